@@ -1,0 +1,125 @@
+"""Small, batched linear-algebra helpers shared by every filter.
+
+All functions broadcast over leading batch dimensions: matrices are ``[..., d, d]`` and
+vectors ``[..., d]``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "symmetrize",
+    "safe_cholesky",
+    "cholesky_solve_right",
+    "gaussian_log_prob_chol",
+    "mahalanobis_sq_chol",
+    "matvec",
+    "outer",
+    "masked_measurement",
+]
+
+LOG_2PI = math.log(2.0 * math.pi)
+
+
+def symmetrize(matrix: Tensor) -> Tensor:
+    """Return ``(A + Aᵀ) / 2`` for ``matrix`` of shape ``[..., d, d]``.
+
+    Round-off makes covariance recursions drift away from symmetry; every filter
+    symmetrises after each update so that Cholesky factorisations keep succeeding.
+    """
+    return 0.5 * (matrix + matrix.transpose(-1, -2))
+
+
+def safe_cholesky(matrix: Tensor, *, name: str = "matrix", max_tries: int = 6) -> Tensor:
+    """Lower Cholesky factor of a symmetric positive-definite ``[..., d, d]`` matrix.
+
+    Jitter fallback: when the factorisation fails (a matrix that is positive
+    semidefinite up to round-off), ``ε·mean(diag)·I`` is added with ε growing from
+    1e-10 (float64) or 1e-6 (float32) by factors of 10, at most ``max_tries`` times.
+    If that still fails the matrix is not positive definite and a ``ValueError`` naming
+    ``name`` is raised.
+    """
+    factor, info = torch.linalg.cholesky_ex(matrix)
+    if not bool((info != 0).any()):
+        return factor
+    eps = 1e-10 if matrix.dtype == torch.float64 else 1e-6
+    eye = torch.eye(matrix.shape[-1], dtype=matrix.dtype, device=matrix.device)
+    scale = matrix.diagonal(dim1=-2, dim2=-1).mean(-1).abs().clamp_min(1e-30)
+    for _ in range(max_tries):
+        jittered = matrix + (eps * scale)[..., None, None] * eye
+        factor, info = torch.linalg.cholesky_ex(jittered)
+        if not bool((info != 0).any()):
+            return factor
+        eps *= 10.0
+    raise ValueError(
+        f"{name} must be symmetric positive definite; its Cholesky factorisation failed "
+        "even with jitter. Check the covariance you passed (all eigenvalues > 0)."
+    )
+
+
+def cholesky_solve_right(rhs: Tensor, chol: Tensor) -> Tensor:
+    """Solve ``X S = rhs`` for ``X`` where ``S = L Lᵀ`` and ``chol = L``.
+
+    Shapes: ``rhs [..., n, d]``, ``chol [..., d, d]`` → ``[..., n, d]``. Used for the
+    Kalman gain ``K = P Hᵀ S⁻¹`` without forming ``S⁻¹``.
+    """
+    return torch.cholesky_solve(rhs.transpose(-1, -2), chol).transpose(-1, -2)
+
+
+def mahalanobis_sq_chol(residual: Tensor, chol: Tensor) -> Tensor:
+    """``rᵀ S⁻¹ r`` with ``S = L Lᵀ``; ``residual [..., d]``, ``chol [..., d, d]`` → ``[...]``."""
+    z = torch.linalg.solve_triangular(chol, residual.unsqueeze(-1), upper=False)
+    return z.squeeze(-1).square().sum(-1)
+
+
+def gaussian_log_prob_chol(residual: Tensor, chol: Tensor, dim: Tensor | int | None = None) -> Tensor:
+    """Log density of ``N(residual; 0, L Lᵀ)``.
+
+    ``log N = -½ rᵀS⁻¹r - Σ log diag L - (m/2) log 2π`` where ``m`` is ``dim`` (the
+    number of observed entries; defaults to ``d``). Shapes: ``residual [..., d]``,
+    ``chol [..., d, d]``, ``dim`` scalar or ``[...]`` → ``[...]``.
+    """
+    if dim is None:
+        dim = residual.shape[-1]
+    half_logdet = torch.log(chol.diagonal(dim1=-2, dim2=-1)).sum(-1)
+    return -0.5 * mahalanobis_sq_chol(residual, chol) - half_logdet - 0.5 * dim * LOG_2PI
+
+
+def matvec(matrix: Tensor, vector: Tensor) -> Tensor:
+    """``A v`` for ``matrix [..., m, n]`` and ``vector [..., n]`` → ``[..., m]``."""
+    return (matrix @ vector.unsqueeze(-1)).squeeze(-1)
+
+
+def outer(a: Tensor, b: Tensor) -> Tensor:
+    """``a bᵀ`` for ``a [..., m]``, ``b [..., n]`` → ``[..., m, n]``."""
+    return a.unsqueeze(-1) * b.unsqueeze(-2)
+
+
+def masked_measurement(
+    residual: Tensor, obs_matrix: Tensor, noise_cov: Tensor, mask: Tensor | None
+) -> tuple[Tensor, Tensor, Tensor, Tensor | int]:
+    """Remove unreceived measurement entries from a Gaussian update, exactly.
+
+    For a mask ``M = diag(mask)`` the update uses ``r' = M r``, ``H' = M H`` and
+    ``R' = M R M + (I − M)``. A masked entry then has a zero row in ``H'``, a unit,
+    uncorrelated noise variance and a zero residual, so its Kalman-gain column is zero
+    and it adds ``−½ log 2π`` to ``log N(r'; 0, S')``, which the returned count of
+    observed entries removes again: the result equals the update with the marginal
+    model of the received entries alone (Round-Robin scheduling, packet loss).
+
+    Shapes: ``residual [..., m]``, ``obs_matrix [..., m, n]``, ``noise_cov [..., m, m]``,
+    ``mask [..., m]`` (bool) or ``None``. Returns ``(r', H', R', observed_count)``; with
+    ``mask=None`` the inputs come back unchanged and the count is ``m``.
+    """
+    if mask is None:
+        return residual, obs_matrix, noise_cov, residual.shape[-1]
+    m = mask.to(residual.dtype)
+    residual = residual * m
+    obs_matrix = obs_matrix * m.unsqueeze(-1)
+    eye = torch.eye(m.shape[-1], dtype=m.dtype, device=m.device)
+    noise_cov = noise_cov * outer(m, m) + torch.diag_embed(1.0 - m) * eye
+    return residual, obs_matrix, noise_cov, m.sum(-1)

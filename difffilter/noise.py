@@ -1,0 +1,268 @@
+"""Noise models: Gaussian (Cholesky), Gaussian mixture (glint) and uniform box.
+
+Each is an ``nn.Module`` (so ``.to(device)`` and ``.double()`` move it with its model)
+with the same four members:
+
+* ``sample(sample_shape=(), generator=None)`` → ``[*sample_shape, *batch, d]``; every
+  draw comes from the given ``torch.Generator`` (or the global one when ``None``);
+* ``log_prob(value)`` for ``value [..., d]`` → ``[...]``;
+* ``mean`` → ``[*batch, d]`` and ``cov`` → ``[*batch, d, d]`` (moments; for the
+  mixture and the box these are the exact first two moments, which the Gaussian
+  filters use).
+
+Parameters given as ``nn.Parameter`` are registered as parameters (learnable); plain
+tensors are buffers. A tensor with autograd history keeps it, so a covariance can be
+the output of another computation (``gradcheck`` through ``Q`` and ``R``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+from ._checks import as_tensor, check_finite, check_positive_definite, check_square, check_vector_last
+from .linalg import gaussian_log_prob_chol, masked_measurement, matvec, outer, safe_cholesky
+
+__all__ = ["NoiseModel", "Gaussian", "GaussianMixture", "UniformBox", "register_tensor"]
+
+
+def register_tensor(module: nn.Module, name: str, value: Tensor) -> None:
+    """Register ``value`` on ``module`` as a parameter if it is one, else as a buffer."""
+    if isinstance(value, nn.Parameter):
+        module.register_parameter(name, value)
+    else:
+        module.register_buffer(name, value)
+
+
+def _shape(sample_shape) -> torch.Size:
+    if isinstance(sample_shape, int):
+        return torch.Size([sample_shape])
+    return torch.Size(sample_shape)
+
+
+class NoiseModel(nn.Module):
+    """Base class: a distribution over ``R^d`` with ``sample``, ``log_prob``, ``mean``, ``cov``."""
+
+    dim: int
+
+    def sample(self, sample_shape=(), generator: torch.Generator | None = None) -> Tensor:
+        raise NotImplementedError
+
+    def log_prob(self, value: Tensor, mask: Tensor | None = None) -> Tensor:
+        """``log p(value)`` for ``value [..., d]`` → ``[...]``.
+
+        ``mask [..., d]`` (bool) keeps only the marked entries: the result is the log
+        density of the marginal distribution of those entries.
+        """
+        raise NotImplementedError
+
+    @property
+    def mean(self) -> Tensor:
+        raise NotImplementedError
+
+    @property
+    def cov(self) -> Tensor:
+        raise NotImplementedError
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        return self.mean.shape[:-1]
+
+
+class Gaussian(NoiseModel):
+    """Multivariate normal ``N(loc, cov)`` parameterised by its Cholesky factor.
+
+    Args:
+        loc: mean ``[*batch, d]`` (or a scalar ``0`` with ``cov`` given, meaning zeros).
+        cov: covariance ``[*batch, d, d]``, symmetric positive definite.
+        scale_tril: alternatively the lower Cholesky factor ``L`` with ``cov = L Lᵀ``.
+
+    ``log_prob(v) = −½ (v−μ)ᵀ Σ⁻¹ (v−μ) − Σᵢ log Lᵢᵢ − (d/2) log 2π``;
+    ``sample = μ + L ε`` with ``ε ~ N(0, I)``.
+    """
+
+    def __init__(self, loc, cov=None, *, scale_tril=None):
+        super().__init__()
+        if (cov is None) == (scale_tril is None):
+            raise ValueError("Gaussian needs exactly one of cov= or scale_tril=")
+        mat = as_tensor(cov if cov is not None else scale_tril, "cov" if cov is not None else "scale_tril")
+        loc = as_tensor(loc, "loc", dtype=mat.dtype, device=mat.device)
+        check_square(mat, "cov" if cov is not None else "scale_tril")
+        d = mat.shape[-1]
+        if loc.dim() == 0:
+            loc = loc.expand(d).clone() if loc.requires_grad else torch.full((d,), float(loc), dtype=mat.dtype)
+        check_vector_last(loc, "loc", d)
+        check_finite(loc, "loc")
+        self.dim = d
+        register_tensor(self, "loc", loc)
+        if cov is not None:
+            check_positive_definite(mat, "cov", d)
+            register_tensor(self, "_cov", mat)
+            self._given = "cov"
+        else:
+            check_finite(mat, "scale_tril")
+            if bool((mat.detach().diagonal(dim1=-2, dim2=-1) <= 0).any()):
+                raise ValueError("scale_tril must be lower triangular with a positive diagonal")
+            register_tensor(self, "_scale_tril", mat)
+            self._given = "scale_tril"
+
+    @property
+    def scale_tril(self) -> Tensor:
+        """Lower Cholesky factor ``[*batch, d, d]``."""
+        if self._given == "scale_tril":
+            return self._scale_tril.tril()
+        return safe_cholesky(self._cov, name="cov")
+
+    @property
+    def mean(self) -> Tensor:
+        return self.loc.expand(torch.broadcast_shapes(self.loc.shape, self.cov.shape[:-1]))
+
+    @property
+    def cov(self) -> Tensor:
+        if self._given == "cov":
+            return self._cov
+        L = self._scale_tril.tril()
+        return L @ L.transpose(-1, -2)
+
+    def sample(self, sample_shape=(), generator=None) -> Tensor:
+        """Draw ``[*sample_shape, *batch, d]`` samples: ``μ + L ε``."""
+        L = self.scale_tril
+        batch = torch.broadcast_shapes(self.loc.shape[:-1], L.shape[:-2])
+        eps = torch.randn(
+            _shape(sample_shape) + batch + (self.dim,), generator=generator, dtype=L.dtype, device=L.device
+        )
+        return self.loc + matvec(L, eps)
+
+    def log_prob(self, value: Tensor, mask: Tensor | None = None) -> Tensor:
+        """``log N(value; μ, Σ)`` for ``value [..., d]`` → ``[...]`` (marginal on ``mask``)."""
+        residual = value - self.loc
+        if mask is None:
+            return gaussian_log_prob_chol(residual, self.scale_tril)
+        return _masked_gaussian_log_prob(residual, self.cov, mask)
+
+
+class GaussianMixture(NoiseModel):
+    """Mixture ``Σ_c π_c N(μ_c, Σ_c)``, e.g. glint noise ``(1−κ)N(0,Σ₁) + κN(0,Σ₂)``.
+
+    Args:
+        weights: mixing probabilities ``[C]`` (non-negative, summing to one).
+        locs: component means ``[C, d]``.
+        covs: component covariances ``[C, d, d]``.
+
+    ``log_prob(v) = logsumexp_c(log π_c + log N(v; μ_c, Σ_c))``; ``mean = Σ π_c μ_c``;
+    ``cov = Σ π_c (Σ_c + μ_c μ_cᵀ) − mean meanᵀ``.
+    """
+
+    def __init__(self, weights, locs, covs):
+        super().__init__()
+        covs = as_tensor(covs, "covs")
+        weights = as_tensor(weights, "weights", dtype=covs.dtype)
+        locs = as_tensor(locs, "locs", dtype=covs.dtype)
+        if weights.dim() != 1:
+            raise ValueError(f"weights must have shape [C]; got {tuple(weights.shape)}")
+        c = weights.shape[0]
+        if locs.dim() != 2 or locs.shape[0] != c:
+            raise ValueError(f"locs must have shape [{c}, d]; got {tuple(locs.shape)}")
+        d = locs.shape[1]
+        if covs.shape != (c, d, d):
+            raise ValueError(f"covs must have shape [{c}, {d}, {d}]; got {tuple(covs.shape)}")
+        check_positive_definite(covs, "covs", d)
+        if bool((weights < 0).any()) or abs(float(weights.sum()) - 1.0) > 1e-6:
+            raise ValueError("weights must be non-negative and sum to 1")
+        self.dim = d
+        register_tensor(self, "weights", weights)
+        register_tensor(self, "locs", locs)
+        register_tensor(self, "covs", covs)
+
+    @property
+    def mean(self) -> Tensor:
+        return (self.weights[:, None] * self.locs).sum(0)
+
+    @property
+    def cov(self) -> Tensor:
+        second = (self.weights[:, None, None] * (self.covs + outer(self.locs, self.locs))).sum(0)
+        m = self.mean
+        return second - outer(m, m)
+
+    def sample(self, sample_shape=(), generator=None) -> Tensor:
+        """Draw ``[*sample_shape, d]``: a component index, then its Gaussian."""
+        shape = _shape(sample_shape)
+        n = max(1, math.prod(shape))
+        comp = torch.multinomial(self.weights, n, replacement=True, generator=generator)
+        L = safe_cholesky(self.covs, name="covs")
+        eps = torch.randn(n, self.dim, generator=generator, dtype=self.covs.dtype, device=self.covs.device)
+        draws = self.locs[comp] + matvec(L[comp], eps)
+        return draws.reshape(shape + (self.dim,))
+
+    def log_prob(self, value: Tensor, mask: Tensor | None = None) -> Tensor:
+        """``log p(value)`` for ``value [..., d]`` → ``[...]`` (log-sum-exp over components).
+
+        With ``mask`` each component is marginalised to the marked entries (the marginal
+        of a mixture is the mixture of the marginals).
+        """
+        residual = value.unsqueeze(-2) - self.locs  # [..., C, d]
+        if mask is None:
+            comp = gaussian_log_prob_chol(residual, safe_cholesky(self.covs, name="covs"))
+        else:
+            comp = _masked_gaussian_log_prob(residual, self.covs, mask.unsqueeze(-2))
+        return torch.logsumexp(comp + torch.log(self.weights), dim=-1)
+
+
+def _masked_gaussian_log_prob(residual: Tensor, cov: Tensor, mask: Tensor) -> Tensor:
+    """Log density of the received entries of ``N(residual; 0, cov)`` (see ``masked_measurement``)."""
+    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    r, _, c, count = masked_measurement(residual, eye, cov, mask)
+    return gaussian_log_prob_chol(r, safe_cholesky(c, name="cov"), count)
+
+
+class UniformBox(NoiseModel):
+    """Uniform distribution on the box ``[low, high]`` (``low, high [*batch, d]``).
+
+    ``log_prob = −Σ log(high − low)`` inside the box and ``−inf`` outside;
+    ``mean = (low + high)/2``; ``cov = diag((high − low)² / 12)``.
+    """
+
+    def __init__(self, low, high):
+        super().__init__()
+        low = as_tensor(low, "low")
+        high = as_tensor(high, "high", dtype=low.dtype)
+        if low.dim() == 0 or low.shape != high.shape:
+            raise ValueError(f"low and high must have the same shape [..., d]; got {tuple(low.shape)}, {tuple(high.shape)}")
+        check_finite(low, "low")
+        check_finite(high, "high")
+        if bool((high <= low).any()):
+            raise ValueError("high must be strictly greater than low in every coordinate")
+        self.dim = low.shape[-1]
+        register_tensor(self, "low", low)
+        register_tensor(self, "high", high)
+
+    @property
+    def mean(self) -> Tensor:
+        return 0.5 * (self.low + self.high)
+
+    @property
+    def cov(self) -> Tensor:
+        return torch.diag_embed((self.high - self.low).square() / 12.0)
+
+    @property
+    def log_volume(self) -> Tensor:
+        """``Σ log(high − low)`` ``[*batch]``."""
+        return torch.log(self.high - self.low).sum(-1)
+
+    def sample(self, sample_shape=(), generator=None) -> Tensor:
+        shape = _shape(sample_shape) + self.low.shape
+        u = torch.rand(shape, generator=generator, dtype=self.low.dtype, device=self.low.device)
+        return self.low + (self.high - self.low) * u
+
+    def log_prob(self, value: Tensor, mask: Tensor | None = None) -> Tensor:
+        """``−Σ log(high − low)`` inside the box, ``−inf`` outside (marginal on ``mask``)."""
+        inside = (value >= self.low) & (value <= self.high)
+        log_len = torch.log(self.high - self.low)
+        if mask is not None:
+            inside = inside | ~mask
+            log_len = log_len * mask
+        lp = -log_len.sum(-1)
+        inside = inside.all(-1)
+        return torch.where(inside, lp, lp.new_tensor(-math.inf))

@@ -1,0 +1,316 @@
+"""State-space models: the interface every filter runs on.
+
+Time convention (shared by every filter, simulator and result in difffilter)::
+
+    x_0     ~ initial                         (prior, no measurement at k = 0)
+    x_{k+1} = f(x_k, u_k, k) + w_k,   w_k ~ process_noise,      k = 0 … T−1
+    y_k     = h(x_k, k) + v_k,        v_k ~ measurement_noise,  k = 1 … T
+
+A measurement sequence ``ys [..., T, dy]`` holds ``y_1 … y_T``; ``us [..., T, du]`` holds
+``u_0 … u_{T−1}`` (``us[..., t, :]`` drives the step to the state measured by
+``ys[..., t, :]``). Filter outputs ``means[..., t, :]`` are ``E[x_{t+1} | y_{1:t+1}]``.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+
+import torch
+from torch import Tensor, nn
+
+from ._checks import as_tensor, check_positive_definite, check_square, check_vector_last
+from .linalg import matvec
+from .noise import Gaussian, NoiseModel, register_tensor
+
+__all__ = ["StateSpaceModel", "LinearGaussianModel", "NonlinearGaussianModel", "batched_jacobian"]
+
+
+def batched_jacobian(fn: Callable[..., Tensor], x: Tensor, *args: Tensor | None) -> Tensor:
+    """Jacobian ``∂fn(x, *args)/∂x`` for every row of ``x [..., n]`` → ``[..., m, n]``.
+
+    Uses ``torch.func.vmap(torch.func.jacfwd(fn))`` over the flattened leading dimensions,
+    so ``fn`` must act on a single vector ``[n]`` (every model function in difffilter
+    broadcasts over leading dimensions, so it does). ``args`` broadcast with ``x``'s
+    leading dimensions; ``None`` arguments are passed through unbatched.
+    """
+    lead = x.shape[:-1]
+    for a in args:
+        if a is not None:
+            lead = torch.broadcast_shapes(lead, a.shape[:-1])
+    flat_x = x.expand(lead + x.shape[-1:]).reshape(-1, x.shape[-1])
+    flat_args = []
+    in_dims = [0]
+    for a in args:
+        if a is None:
+            flat_args.append(None)
+            in_dims.append(None)
+        else:
+            flat_args.append(a.expand(lead + a.shape[-1:]).reshape(-1, a.shape[-1]))
+            in_dims.append(0)
+    jac = torch.func.vmap(torch.func.jacfwd(fn, argnums=0), in_dims=tuple(in_dims))(flat_x, *flat_args)
+    return jac.reshape(lead + jac.shape[-2:])
+
+
+class StateSpaceModel(nn.Module):
+    """Base class of all state-space models (see the module docstring for the equations).
+
+    Subclasses set ``dim_x``, ``dim_y``, ``dim_u`` (0 when there is no input) and the
+    noise modules ``initial``, ``process_noise`` and ``measurement_noise``, and implement
+    ``transition(x, u, k)`` and ``observe(x, k)``. Every method broadcasts over leading
+    batch dimensions (runs ``B``, particles ``N``): ``x [..., dx]``, ``u [..., du]`` or
+    ``None``, ``y [..., dy]``.
+
+    Jacobians default to ``torch.func`` automatic differentiation; override
+    ``transition_jacobian``/``observation_jacobian`` with closed forms when known.
+    Time-varying noise: override ``process_cov(k)``/``measurement_cov(k)`` (and the
+    sampling/log-density hooks) and set ``time_varying = True`` so filters do not cache
+    them across steps.
+    """
+
+    dim_x: int
+    dim_y: int
+    dim_u: int = 0
+    time_varying: bool = False
+    initial: NoiseModel
+    process_noise: NoiseModel
+    measurement_noise: NoiseModel
+
+    # -- dynamics --------------------------------------------------------------------
+    def transition(self, x: Tensor, u: Tensor | None, k: int) -> Tensor:
+        """Mean of ``x_{k+1}`` given ``x_k`` ``[..., dx]`` and ``u_k`` ``[..., du]`` → ``[..., dx]``."""
+        raise NotImplementedError
+
+    def observe(self, x: Tensor, k: int) -> Tensor:
+        """Mean of ``y_k`` given ``x_k`` ``[..., dx]`` → ``[..., dy]``."""
+        raise NotImplementedError
+
+    def transition_jacobian(self, x: Tensor, u: Tensor | None, k: int) -> Tensor:
+        """``∂f/∂x`` at ``x [..., dx]`` → ``[..., dx, dx]`` (autodiff by default)."""
+        return batched_jacobian(lambda xi, ui: self.transition(xi, ui, k), x, u)
+
+    def observation_jacobian(self, x: Tensor, k: int) -> Tensor:
+        """``∂h/∂x`` at ``x [..., dx]`` → ``[..., dy, dx]`` (autodiff by default)."""
+        return batched_jacobian(lambda xi: self.observe(xi, k), x)
+
+    # -- noise -----------------------------------------------------------------------
+    def process_cov(self, k: int) -> Tensor:
+        """Covariance ``Q_k`` of ``w_k`` ``[..., dx, dx]``."""
+        return self.process_noise.cov
+
+    def measurement_cov(self, k: int) -> Tensor:
+        """Covariance ``R_k`` of ``v_k`` ``[..., dy, dy]``."""
+        return self.measurement_noise.cov
+
+    def sample_initial(self, sample_shape=(), generator: torch.Generator | None = None) -> Tensor:
+        """Draw ``x_0`` ``[*sample_shape, dx]``."""
+        return self.initial.sample(sample_shape, generator)
+
+    def sample_transition(self, x: Tensor, u: Tensor | None, k: int, generator=None) -> Tensor:
+        """Draw ``x_{k+1} ~ p(· | x_k)`` for ``x [..., dx]`` → ``[..., dx]``."""
+        mean = self.transition(x, u, k)
+        noise = self.process_noise.sample(mean.shape[:-1], generator)
+        return mean + noise.reshape(mean.shape)
+
+    def sample_measurement(self, x: Tensor, k: int, generator=None) -> Tensor:
+        """Draw ``y_k ~ p(· | x_k)`` for ``x [..., dx]`` → ``[..., dy]``."""
+        mean = self.observe(x, k)
+        noise = self.measurement_noise.sample(mean.shape[:-1], generator)
+        return mean + noise.reshape(mean.shape)
+
+    def measurement_log_prob(self, y: Tensor, x: Tensor, k: int, mask: Tensor | None = None) -> Tensor:
+        """``log p(y_k | x_k)`` of the received entries: ``y [..., dy]``, ``x [..., dx]`` → ``[...]``.
+
+        ``mask [..., dy]`` marks received entries; unreceived ones are marginalised out.
+        """
+        return self.measurement_noise.log_prob(y - self.observe(x, k), mask=mask)
+
+    # -- simulation ------------------------------------------------------------------
+    @torch.no_grad()
+    def simulate(
+        self,
+        num_steps: int,
+        batch_shape=(),
+        us: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Simulate ``x_0 … x_T`` and ``y_1 … y_T``.
+
+        Returns ``(xs [*batch, T, dx], ys [*batch, T, dy], x0 [*batch, dx])`` where
+        ``xs[..., t, :] = x_{t+1}`` is the state measured by ``ys[..., t, :]``.
+        """
+        batch_shape = torch.Size(batch_shape if not isinstance(batch_shape, int) else (batch_shape,))
+        x = self.sample_initial(batch_shape, generator)
+        x0 = x
+        xs, ys = [], []
+        for t in range(num_steps):
+            u = None if us is None else us[..., t, :]
+            x = self.sample_transition(x, u, t, generator)
+            xs.append(x)
+            ys.append(self.sample_measurement(x, t + 1, generator))
+        return torch.stack(xs, -2), torch.stack(ys, -2), x0
+
+
+class LinearGaussianModel(StateSpaceModel):
+    """``x_{k+1} = F x_k + B u_k + w_k``, ``y_k = H x_k + v_k``, Gaussian noise and prior.
+
+    Args:
+        F: transition matrix ``[*, dx, dx]``.
+        H: observation matrix ``[*, dy, dx]``.
+        Q: process-noise covariance ``[*, dx, dx]``.
+        R: measurement-noise covariance ``[*, dy, dy]``.
+        m0, P0: prior mean ``[*, dx]`` and covariance ``[*, dx, dx]`` of ``x_0``.
+        B: optional input matrix ``[*, dx, du]``.
+
+    ``nn.Parameter`` arguments become learnable parameters; other tensors are buffers
+    (and keep their autograd history). Time-varying linear models override
+    ``transition_matrix(k)``, ``observation_matrix(k)``, ``control_matrix(k)`` and the
+    covariance methods, and set ``time_varying = True``.
+    """
+
+    def __init__(self, F, H, Q, R, m0, P0, B=None):
+        super().__init__()
+        F = as_tensor(F, "F")
+        dtype, device = F.dtype, F.device
+        H = as_tensor(H, "H", dtype=dtype, device=device)
+        Q = as_tensor(Q, "Q", dtype=dtype, device=device)
+        R = as_tensor(R, "R", dtype=dtype, device=device)
+        m0 = as_tensor(m0, "m0", dtype=dtype, device=device)
+        P0 = as_tensor(P0, "P0", dtype=dtype, device=device)
+        check_square(F, "F")
+        dx = F.shape[-1]
+        if H.dim() < 2 or H.shape[-1] != dx:
+            raise ValueError(f"H must have shape [..., dy, {dx}]; got {tuple(H.shape)}")
+        dy = H.shape[-2]
+        check_positive_definite(Q, "Q", dx)
+        check_positive_definite(R, "R", dy)
+        check_vector_last(m0, "m0", dx)
+        check_positive_definite(P0, "P0", dx)
+        self.dim_x, self.dim_y = dx, dy
+        register_tensor(self, "F", F)
+        register_tensor(self, "H", H)
+        if B is not None:
+            B = as_tensor(B, "B", dtype=dtype, device=device)
+            if B.dim() < 2 or B.shape[-2] != dx:
+                raise ValueError(f"B must have shape [..., {dx}, du]; got {tuple(B.shape)}")
+            self.dim_u = B.shape[-1]
+            register_tensor(self, "B", B)
+        else:
+            self.B = None
+        self.initial = Gaussian(m0, P0)
+        self.process_noise = Gaussian(torch.zeros(dx, dtype=dtype, device=device), Q)
+        self.measurement_noise = Gaussian(torch.zeros(dy, dtype=dtype, device=device), R)
+
+    def transition_matrix(self, k: int) -> Tensor:
+        """``F_k`` ``[*, dx, dx]``."""
+        return self.F
+
+    def observation_matrix(self, k: int) -> Tensor:
+        """``H_k`` ``[*, dy, dx]``."""
+        return self.H
+
+    def control_matrix(self, k: int) -> Tensor | None:
+        """``B_k`` ``[*, dx, du]`` or ``None``."""
+        return self.B
+
+    def transition(self, x, u, k):
+        out = matvec(self.transition_matrix(k), x)
+        B = self.control_matrix(k)
+        if B is not None and u is not None:
+            out = out + matvec(B, u)
+        return out
+
+    def observe(self, x, k):
+        return matvec(self.observation_matrix(k), x)
+
+    def transition_jacobian(self, x, u, k):
+        F = self.transition_matrix(k)
+        return F.expand(torch.broadcast_shapes(x.shape[:-1], F.shape[:-2]) + F.shape[-2:])
+
+    def observation_jacobian(self, x, k):
+        H = self.observation_matrix(k)
+        return H.expand(torch.broadcast_shapes(x.shape[:-1], H.shape[:-2]) + H.shape[-2:])
+
+
+def _arity(fn: Callable) -> int:
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+        return 3
+    if any(p.kind == p.VAR_POSITIONAL for p in params):
+        return 3
+    return sum(p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) and p.default is p.empty for p in params)
+
+
+class NonlinearGaussianModel(StateSpaceModel):
+    """``x_{k+1} = f(x_k, u_k, k) + w_k``, ``y_k = h(x_k, k) + v_k`` from plain functions.
+
+    Args:
+        transition: ``f(x)``, ``f(x, u)`` or ``f(x, u, k)``; ``x [..., dx]`` → ``[..., dx]``.
+        observe: ``h(x)`` or ``h(x, k)``; ``x [..., dx]`` → ``[..., dy]``.
+        Q, R, m0, P0: as in :class:`LinearGaussianModel`.
+        dim_u: input dimension (0 when there is no input).
+        transition_jacobian, observation_jacobian: optional closed forms with the same
+            arguments as ``transition``/``observe`` returning ``[..., dx, dx]`` and
+            ``[..., dy, dx]``; by default ``torch.func`` computes them.
+    """
+
+    def __init__(
+        self,
+        transition: Callable,
+        observe: Callable,
+        Q,
+        R,
+        m0,
+        P0,
+        *,
+        dim_u: int = 0,
+        transition_jacobian: Callable | None = None,
+        observation_jacobian: Callable | None = None,
+    ):
+        super().__init__()
+        if not callable(transition) or not callable(observe):
+            raise ValueError("transition and observe must be callables (functions of x)")
+        Q = as_tensor(Q, "Q")
+        dtype, device = Q.dtype, Q.device
+        R = as_tensor(R, "R", dtype=dtype, device=device)
+        m0 = as_tensor(m0, "m0", dtype=dtype, device=device)
+        P0 = as_tensor(P0, "P0", dtype=dtype, device=device)
+        check_square(Q, "Q")
+        check_square(R, "R")
+        dx, dy = Q.shape[-1], R.shape[-1]
+        check_positive_definite(Q, "Q", dx)
+        check_positive_definite(R, "R", dy)
+        check_vector_last(m0, "m0", dx)
+        check_positive_definite(P0, "P0", dx)
+        self.dim_x, self.dim_y, self.dim_u = dx, dy, dim_u
+        self._f, self._h = transition, observe
+        self._f_arity, self._h_arity = _arity(transition), _arity(observe)
+        self._jf, self._jh = transition_jacobian, observation_jacobian
+        self.initial = Gaussian(m0, P0)
+        self.process_noise = Gaussian(torch.zeros(dx, dtype=dtype, device=device), Q)
+        self.measurement_noise = Gaussian(torch.zeros(dy, dtype=dtype, device=device), R)
+
+    def transition(self, x, u, k):
+        return _dispatch(self._f, self._f_arity, x, u, k)
+
+    def observe(self, x, k):
+        return self._h(x) if self._h_arity <= 1 else self._h(x, k)
+
+    def transition_jacobian(self, x, u, k):
+        if self._jf is None:
+            return super().transition_jacobian(x, u, k)
+        return _dispatch(self._jf, self._f_arity, x, u, k)
+
+    def observation_jacobian(self, x, k):
+        if self._jh is None:
+            return super().observation_jacobian(x, k)
+        return self._jh(x) if self._h_arity <= 1 else self._jh(x, k)
+
+
+def _dispatch(fn: Callable, arity: int, x, u, k):
+    if arity <= 1:
+        return fn(x)
+    if arity == 2:
+        return fn(x, u)
+    return fn(x, u, k)
