@@ -1,1 +1,46 @@
-"""difffilter."""
+"""difffilter: differentiable, batched state estimation under false-data-injection attacks.
+
+Models (:class:`StateSpaceModel`, :class:`LinearGaussianModel`,
+:class:`NonlinearGaussianModel`), noise models (:mod:`difffilter.noise`), Gaussian filters
+(:func:`kalman_filter`, :func:`extended_kalman_filter`, :func:`unscented_kalman_filter`),
+the particle filter (:func:`particle_filter`) with pluggable proposals, likelihoods and
+resamplers (:mod:`difffilter.resampling`), and the attack detectors and attack-aware
+filters of the FDI literature (:mod:`difffilter.fdi`).
+
+Shapes are batch first: measurements ``ys [..., T, dy]``, inputs ``us [..., T, du]``,
+particles ``[..., N, dx]``. See :mod:`difffilter.ssm` for the time convention.
+"""
+
+from . import noise
+from .extended import (
+    SigmaPoints,
+    extended_kalman_filter,
+    extended_kalman_step,
+    unscented_kalman_filter,
+    unscented_kalman_step,
+)
+from .kalman import gaussian_init, kalman_filter, kalman_predict, kalman_step
+from .results import FilterResult, GaussianState, GaussianStepOutput, ParticleFilterResult
+from .ssm import LinearGaussianModel, NonlinearGaussianModel, StateSpaceModel
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "StateSpaceModel",
+    "LinearGaussianModel",
+    "NonlinearGaussianModel",
+    "noise",
+    "GaussianState",
+    "GaussianStepOutput",
+    "FilterResult",
+    "ParticleFilterResult",
+    "gaussian_init",
+    "kalman_predict",
+    "kalman_step",
+    "kalman_filter",
+    "extended_kalman_step",
+    "extended_kalman_filter",
+    "unscented_kalman_step",
+    "unscented_kalman_filter",
+    "SigmaPoints",
+]

@@ -72,6 +72,13 @@ def cholesky_solve_right(rhs: Tensor, chol: Tensor) -> Tensor:
 
 def mahalanobis_sq_chol(residual: Tensor, chol: Tensor) -> Tensor:
     """``rᵀ S⁻¹ r`` with ``S = L Lᵀ``; ``residual [..., d]``, ``chol [..., d, d]`` → ``[...]``."""
+    if chol.dim() == 2:
+        # One shared factor (the common case: covariances identical across runs and
+        # particles): a single triangular solve with all residuals as columns, instead
+        # of broadcasting the factor to every row.
+        flat = residual.reshape(-1, residual.shape[-1]).transpose(0, 1)
+        z = torch.linalg.solve_triangular(chol, flat, upper=False)
+        return z.square().sum(0).reshape(residual.shape[:-1])
     z = torch.linalg.solve_triangular(chol, residual.unsqueeze(-1), upper=False)
     return z.squeeze(-1).square().sum(-1)
 
@@ -91,6 +98,9 @@ def gaussian_log_prob_chol(residual: Tensor, chol: Tensor, dim: Tensor | int | N
 
 def matvec(matrix: Tensor, vector: Tensor) -> Tensor:
     """``A v`` for ``matrix [..., m, n]`` and ``vector [..., n]`` → ``[..., m]``."""
+    if matrix.dim() == 2:
+        # A shared matrix: one GEMM over all rows instead of a broadcast batched matmul.
+        return vector @ matrix.transpose(0, 1)
     return (matrix @ vector.unsqueeze(-1)).squeeze(-1)
 
 

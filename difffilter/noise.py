@@ -22,7 +22,13 @@ import math
 import torch
 from torch import Tensor, nn
 
-from ._checks import as_tensor, check_finite, check_positive_definite, check_square, check_vector_last
+from ._checks import (
+    as_tensor,
+    check_finite,
+    check_positive_definite,
+    check_square,
+    check_vector_last,
+)
 from .linalg import gaussian_log_prob_chol, masked_measurement, matvec, outer, safe_cholesky
 
 __all__ = ["NoiseModel", "Gaussian", "GaussianMixture", "UniformBox", "register_tensor"]

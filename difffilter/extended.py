@@ -1,0 +1,166 @@
+"""Extended and unscented Kalman filters.
+
+EKF (first-order linearisation about the current estimate)::
+
+    m⁻ = f(m, u, k)             P⁻ = F P Fᵀ + Q,        F = ∂f/∂x (m)
+    r  = y − h(m⁻, k+1)         H = ∂h/∂x (m⁻)
+    then the shared Joseph-form update (:func:`difffilter.kalman.gaussian_update`).
+
+UKF (additive noise, scaled sigma points of Julier/van der Merwe): with
+``λ = α²(n + κ) − n``, points ``X₀ = m``, ``X_{±i} = m ± √(n+λ) Lᵢ`` (``L`` the Cholesky
+factor of ``P``), mean weights ``w₀ = λ/(n+λ)``, ``wᵢ = 1/(2(n+λ))`` and covariance
+weight ``w₀ᶜ = w₀ + 1 − α² + β``::
+
+    m⁻ = Σ w f(X)                P⁻ = Σ wᶜ (f(X) − m⁻)(·)ᵀ + Q
+    ŷ  = Σ w h(X⁻)               Pyy = Σ wᶜ (h(X⁻) − ŷ)(·)ᵀ,  Pxy = Σ wᶜ (X⁻ − m⁻)(h(X⁻) − ŷ)ᵀ
+
+where ``X⁻`` are sigma points redrawn from ``(m⁻, P⁻)``. The update uses ``K = Pxy S⁻¹``,
+``S = Pyy + R`` and the Joseph form with the statistical linearisation
+``H̃ = Pxyᵀ P⁻⁻¹``; on a linear model ``H̃ = H`` and both filters equal the KF exactly.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from .kalman import gaussian_update, run_gaussian_filter
+from .linalg import masked_measurement, outer, safe_cholesky, symmetrize
+from .results import FilterResult, GaussianState, GaussianStepOutput
+from .ssm import StateSpaceModel
+
+__all__ = [
+    "extended_kalman_step",
+    "extended_kalman_filter",
+    "unscented_kalman_step",
+    "unscented_kalman_filter",
+    "SigmaPoints",
+]
+
+
+def extended_kalman_step(
+    model: StateSpaceModel,
+    state: GaussianState,
+    y: Tensor,
+    u: Tensor | None = None,
+    mask: Tensor | None = None,
+) -> tuple[GaussianState, GaussianStepOutput]:
+    """One EKF step ``x_{k−1} → x_k``; shapes as in :func:`difffilter.kalman_step`."""
+    k = state.k
+    F = model.transition_jacobian(state.mean, u, k)
+    pred_mean = model.transition(state.mean, u, k)
+    pred_cov = symmetrize(F @ state.cov @ F.transpose(-1, -2) + model.process_cov(k))
+    H = model.observation_jacobian(pred_mean, k + 1)
+    residual = y - model.observe(pred_mean, k + 1)
+    residual, H, R, observed = masked_measurement(residual, H, model.measurement_cov(k + 1), mask)
+    cross = pred_cov @ H.transpose(-1, -2)
+    mean, cov, S, log_lik = gaussian_update(pred_mean, pred_cov, residual, cross, H @ cross, H, R, observed)
+    return GaussianState(mean, cov, k + 1), GaussianStepOutput(mean, cov, pred_mean, pred_cov, residual, S, log_lik)
+
+
+def extended_kalman_filter(
+    model: StateSpaceModel, ys: Tensor, us: Tensor | None = None, *, mask: Tensor | None = None
+) -> FilterResult:
+    """EKF over a whole sequence: ``ys [..., T, dy]``, ``us [..., T, du]``, ``mask [..., T, dy]``.
+
+    Jacobians come from ``model.transition_jacobian``/``observation_jacobian``
+    (``torch.func`` by default). Returns a :class:`~difffilter.results.FilterResult`.
+    """
+    return run_gaussian_filter(extended_kalman_step, model, ys, us, mask)
+
+
+class SigmaPoints:
+    """Scaled symmetric sigma points (van der Merwe 2004) for dimension ``n``.
+
+    Defaults ``α = 1, β = 2, κ = 0`` keep every weight non-negative (``w₀ = 0``) so
+    covariances stay positive semidefinite; a small ``α`` (e.g. 1e-3) concentrates the
+    points but makes ``w₀`` large and negative.
+    """
+
+    def __init__(self, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0):
+        if not alpha > 0:
+            raise ValueError(f"alpha must be > 0; got {alpha}")
+        self.alpha, self.beta, self.kappa = float(alpha), float(beta), float(kappa)
+
+    def weights(self, n: int, dtype, device) -> tuple[Tensor, Tensor, float]:
+        """Mean weights ``[2n+1]``, covariance weights ``[2n+1]`` and the scale ``√(n+λ)``."""
+        lam = self.alpha**2 * (n + self.kappa) - n
+        if n + lam <= 0:
+            raise ValueError(f"sigma-point scaling gives n + λ = {n + lam} ≤ 0; raise alpha or kappa")
+        wm = torch.full((2 * n + 1,), 0.5 / (n + lam), dtype=dtype, device=device)
+        wm[0] = lam / (n + lam)
+        wc = wm.clone()
+        wc[0] = wm[0] + 1.0 - self.alpha**2 + self.beta
+        return wm, wc, (n + lam) ** 0.5
+
+    def points(self, mean: Tensor, cov: Tensor, scale: float) -> Tensor:
+        """Sigma points ``[..., 2n+1, n]`` of ``N(mean [..., n], cov [..., n, n])``."""
+        L = safe_cholesky(cov, name="state covariance P") * scale
+        cols = L.transpose(-1, -2)  # row i = i-th column of L
+        batch = torch.broadcast_shapes(mean.shape[:-1], cols.shape[:-2])
+        mean = mean.expand(batch + mean.shape[-1:]).unsqueeze(-2)
+        cols = cols.expand(batch + cols.shape[-2:])
+        return torch.cat([mean, mean + cols, mean - cols], dim=-2)
+
+
+def _moments(points: Tensor, wm: Tensor, wc: Tensor) -> tuple[Tensor, Tensor]:
+    mean = (wm[:, None] * points).sum(-2)
+    dev = points - mean.unsqueeze(-2)
+    return mean, (wc[:, None, None] * outer(dev, dev)).sum(-3)
+
+
+def unscented_kalman_step(
+    model: StateSpaceModel,
+    state: GaussianState,
+    y: Tensor,
+    u: Tensor | None = None,
+    mask: Tensor | None = None,
+    sigma_points: SigmaPoints | None = None,
+) -> tuple[GaussianState, GaussianStepOutput]:
+    """One UKF step ``x_{k−1} → x_k``; shapes as in :func:`difffilter.kalman_step`."""
+    sp = sigma_points or SigmaPoints()
+    k = state.k
+    n = state.mean.shape[-1]
+    wm, wc, scale = sp.weights(n, state.mean.dtype, state.mean.device)
+    X = sp.points(state.mean, state.cov, scale)  # [..., 2n+1, n]
+    u_pts = None if u is None else u.unsqueeze(-2)
+    FX = model.transition(X, u_pts, k)
+    pred_mean, pred_cov = _moments(FX, wm, wc)
+    pred_cov = symmetrize(pred_cov + model.process_cov(k))
+    Xp = sp.points(pred_mean, pred_cov, scale)
+    Y = model.observe(Xp, k + 1)  # [..., 2n+1, dy]
+    y_hat = (wm[:, None] * Y).sum(-2)
+    dy_pts = Y - y_hat.unsqueeze(-2)
+    dx_pts = Xp - pred_mean.unsqueeze(-2)
+    residual = y - y_hat
+    R = model.measurement_cov(k + 1)
+    if mask is not None:
+        dy_pts = dy_pts * mask.to(dy_pts.dtype).unsqueeze(-2)
+    eye_y = torch.eye(Y.shape[-1], dtype=Y.dtype, device=Y.device)
+    residual, _, R, observed = masked_measurement(residual, eye_y, R, mask)
+    cross = (wc[:, None, None] * outer(dx_pts, dy_pts)).sum(-3)  # Pxy [..., n, dy]
+    pyy = (wc[:, None, None] * outer(dy_pts, dy_pts)).sum(-3)
+    # Statistical linearisation H̃ = Pxyᵀ P⁻⁻¹ for the Joseph form.
+    H_stat = torch.linalg.solve(pred_cov, cross).transpose(-1, -2)
+    mean, cov, S, log_lik = gaussian_update(pred_mean, pred_cov, residual, cross, pyy, H_stat, R, observed)
+    return GaussianState(mean, cov, k + 1), GaussianStepOutput(mean, cov, pred_mean, pred_cov, residual, S, log_lik)
+
+
+def unscented_kalman_filter(
+    model: StateSpaceModel,
+    ys: Tensor,
+    us: Tensor | None = None,
+    *,
+    mask: Tensor | None = None,
+    sigma_points: SigmaPoints | None = None,
+) -> FilterResult:
+    """UKF over a whole sequence; shapes as in :func:`extended_kalman_filter`.
+
+    ``sigma_points`` sets ``(α, β, κ)`` (default ``SigmaPoints(1, 2, 0)``).
+    """
+    sp = sigma_points or SigmaPoints()
+
+    def step(model, state, y, u, m):
+        return unscented_kalman_step(model, state, y, u, m, sp)
+
+    return run_gaussian_filter(step, model, ys, us, mask)

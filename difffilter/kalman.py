@@ -1,0 +1,247 @@
+"""The Kalman filter and the pieces every Gaussian filter shares.
+
+Equations (one step, ``k−1 → k``)::
+
+    predict   m⁻ = F m + B u                 P⁻ = F P Fᵀ + Q
+    innovate  r  = y − H m⁻                  S  = H P⁻ Hᵀ + R
+    gain      K  = P⁻ Hᵀ S⁻¹                 (Cholesky solve, S never inverted)
+    update    m⁺ = m⁻ + K r                  P⁺ = (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ   (Joseph)
+    evidence  log p(y_k | y_{1:k−1}) = log N(r; 0, S)
+
+Covariances are symmetrised after every step. Unreceived measurement entries (``mask``)
+are removed exactly (:func:`difffilter.linalg.masked_measurement`). Every function is
+differentiable with respect to the model's tensors and broadcasts over leading batch
+dimensions. When the model's matrices carry no batch dimension and there is no mask,
+the covariance recursion runs once for all runs (it does not depend on the data).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from ._checks import check_mask, check_sequence
+from .linalg import (
+    cholesky_solve_right,
+    gaussian_log_prob_chol,
+    masked_measurement,
+    matvec,
+    safe_cholesky,
+    symmetrize,
+)
+from .results import FilterResult, GaussianState, GaussianStepOutput
+from .ssm import StateSpaceModel
+
+__all__ = [
+    "gaussian_init",
+    "gaussian_update",
+    "kalman_predict",
+    "kalman_step",
+    "kalman_filter",
+    "run_gaussian_filter",
+]
+
+
+def gaussian_init(model: StateSpaceModel, batch_shape=()) -> GaussianState:
+    """Prior state ``(m_0, P_0)`` of a Gaussian filter.
+
+    ``mean`` is ``[*batch_shape, dx]``; ``cov`` keeps the prior's own shape
+    ``[*, dx, dx]`` (broadcast lazily).
+    """
+    mean = model.initial.mean
+    batch_shape = torch.Size(batch_shape)
+    mean = mean.expand(torch.broadcast_shapes(batch_shape, mean.shape[:-1]) + mean.shape[-1:])
+    return GaussianState(mean, model.initial.cov, 0)
+
+
+def gaussian_update(
+    pred_mean: Tensor,
+    pred_cov: Tensor,
+    residual: Tensor,
+    cross_cov: Tensor,
+    pred_obs_cov: Tensor,
+    obs_matrix: Tensor,
+    noise_cov: Tensor,
+    observed: Tensor | int,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Measurement update shared by the KF, EKF and UKF.
+
+    Args:
+        pred_mean: ``m⁻`` ``[..., dx]``.
+        pred_cov: ``P⁻`` ``[..., dx, dx]``.
+        residual: ``r = y − ŷ`` ``[..., dy]`` (already masked).
+        cross_cov: ``C = Cov(x, y)`` ``[..., dx, dy]`` (``P⁻Hᵀ`` for the KF/EKF).
+        pred_obs_cov: covariance of the predicted measurement without noise
+            ``[..., dy, dy]`` (``H P⁻ Hᵀ`` for the KF/EKF).
+        obs_matrix: ``H`` ``[..., dy, dx]`` used by the Joseph form (the UKF passes its
+            statistical linearisation ``Cᵀ P⁻⁻¹``).
+        noise_cov: ``R`` ``[..., dy, dy]`` (already masked).
+        observed: number of received entries (scalar or ``[...]``).
+
+    Returns ``(m⁺, P⁺, S, log N(r; 0, S))``.
+    """
+    S = symmetrize(pred_obs_cov + noise_cov)
+    chol = safe_cholesky(S, name="innovation covariance S")
+    gain = cholesky_solve_right(cross_cov, chol)  # K = C S⁻¹  [..., dx, dy]
+    mean = pred_mean + matvec(gain, residual)
+    eye = torch.eye(pred_cov.shape[-1], dtype=pred_cov.dtype, device=pred_cov.device)
+    i_kh = eye - gain @ obs_matrix
+    cov = i_kh @ pred_cov @ i_kh.transpose(-1, -2) + gain @ noise_cov @ gain.transpose(-1, -2)
+    log_lik = gaussian_log_prob_chol(residual, chol, observed)
+    return mean, symmetrize(cov), S, log_lik
+
+
+def kalman_predict(model, state: GaussianState, u: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """``m⁻ = F m + B u``, ``P⁻ = F P Fᵀ + Q`` for a linear model → ``([..., dx], [..., dx, dx])``.
+
+    ``model`` must provide ``transition_matrix(k)``, ``control_matrix(k)`` and
+    ``process_cov(k)`` (as :class:`~difffilter.LinearGaussianModel` does).
+    """
+    k = state.k
+    F = model.transition_matrix(k)
+    mean = matvec(F, state.mean)
+    B = model.control_matrix(k)
+    if B is not None and u is not None:
+        mean = mean + matvec(B, u)
+    cov = symmetrize(F @ state.cov @ F.transpose(-1, -2) + model.process_cov(k))
+    return mean, cov
+
+
+def kalman_step(
+    model, state: GaussianState, y: Tensor, u: Tensor | None = None, mask: Tensor | None = None
+) -> tuple[GaussianState, GaussianStepOutput]:
+    """One Kalman-filter step ``x_{k−1} → x_k`` with measurement ``y_k``.
+
+    Args:
+        model: a linear model (``transition_matrix``, ``observation_matrix``,
+            ``control_matrix``, ``process_cov``, ``measurement_cov``).
+        state: posterior of ``x_{k−1}`` (mean ``[..., dx]``, cov ``[..., dx, dx]``).
+        y: ``[..., dy]``; u: ``[..., du]`` or ``None``; mask: ``[..., dy]`` bool or ``None``.
+
+    Returns the posterior of ``x_k`` and a :class:`GaussianStepOutput`.
+    """
+    pred_mean, pred_cov = kalman_predict(model, state, u)
+    k = state.k + 1
+    H = model.observation_matrix(k)
+    residual = y - matvec(H, pred_mean)
+    residual, H, R, observed = masked_measurement(residual, H, model.measurement_cov(k), mask)
+    cross = pred_cov @ H.transpose(-1, -2)
+    mean, cov, S, log_lik = gaussian_update(pred_mean, pred_cov, residual, cross, H @ cross, H, R, observed)
+    out = GaussianStepOutput(mean, cov, pred_mean, pred_cov, residual, S, log_lik)
+    return GaussianState(mean, cov, k), out
+
+
+def _validate_inputs(model, ys, us, mask):
+    if not isinstance(ys, Tensor):
+        raise ValueError(f"ys must be a tensor of shape [..., T, {model.dim_y}]; got {type(ys).__name__}")
+    if mask is not None:
+        mask = check_mask(mask, "mask", ys.shape)
+    check_sequence(ys, "ys", model.dim_y, allow_nan=None if mask is None else ~mask)
+    if mask is not None:
+        ys = torch.where(mask, ys, torch.zeros((), dtype=ys.dtype, device=ys.device))
+    if us is not None:
+        if model.dim_u == 0:
+            raise ValueError("us was given but the model has no input (dim_u = 0)")
+        check_sequence(us, "us", model.dim_u)
+        if us.shape[-2] != ys.shape[-2]:
+            raise ValueError(f"us must have T = {ys.shape[-2]} steps like ys; got {us.shape[-2]}")
+    return ys, us, mask
+
+
+def run_gaussian_filter(
+    step: Callable[..., tuple[GaussianState, GaussianStepOutput]],
+    model: StateSpaceModel,
+    ys: Tensor,
+    us: Tensor | None = None,
+    mask: Tensor | None = None,
+    state: GaussianState | None = None,
+) -> FilterResult:
+    """Run an online ``step`` over a whole sequence and stack its outputs.
+
+    ``ys [..., T, dy]``, ``us [..., T, du]``, ``mask [..., T, dy]``; returns a
+    :class:`FilterResult` with every field batch first. The Python loop over time is
+    the only loop.
+    """
+    ys, us, mask = _validate_inputs(model, ys, us, mask)
+    num_steps = ys.shape[-2]
+    batch = ys.shape[:-2]
+    if us is not None:
+        batch = torch.broadcast_shapes(batch, us.shape[:-2])
+    if mask is not None:
+        batch = torch.broadcast_shapes(batch, mask.shape[:-2])
+    if state is None:
+        state = gaussian_init(model, batch)
+    outs = []
+    for t in range(num_steps):
+        u = None if us is None else us[..., t, :]
+        m = None if mask is None else mask[..., t, :]
+        state, out = step(model, state, ys[..., t, :], u, m)
+        outs.append(out)
+    return _stack_outputs(outs, batch)
+
+
+def _stack_outputs(outs: list[GaussianStepOutput], batch: torch.Size) -> FilterResult:
+    def vec(name):
+        vals = [getattr(o, name) for o in outs]
+        shape = torch.broadcast_shapes(batch, *(v.shape[:-1] for v in vals))
+        return torch.stack([v.expand(shape + v.shape[-1:]) for v in vals], dim=-2)
+
+    def mat(name):
+        vals = [getattr(o, name) for o in outs]
+        shape = torch.broadcast_shapes(*(v.shape[:-2] for v in vals))
+        stacked = torch.stack([v.expand(shape + v.shape[-2:]) for v in vals], dim=-3)
+        full = torch.broadcast_shapes(batch, stacked.shape[:-3])
+        return stacked.expand(full + stacked.shape[-3:])
+
+    incs = [o.log_likelihood for o in outs]
+    lshape = torch.broadcast_shapes(batch, *(v.shape for v in incs))
+    increments = torch.stack([v.expand(lshape) for v in incs], dim=-1)
+    return FilterResult(
+        means=vec("mean"),
+        covs=mat("cov"),
+        pred_means=vec("pred_mean"),
+        pred_covs=mat("pred_cov"),
+        innovations=vec("innovation"),
+        innovation_covs=mat("innovation_cov"),
+        log_likelihood_increments=increments,
+        log_likelihood=increments.sum(-1),
+    )
+
+
+def kalman_filter(
+    model,
+    ys: Tensor,
+    us: Tensor | None = None,
+    *,
+    mask: Tensor | None = None,
+    method: str = "sequential",
+) -> FilterResult:
+    """Kalman filter of a linear-Gaussian model over a whole sequence.
+
+    Args:
+        model: :class:`~difffilter.LinearGaussianModel` (or any model with its matrix
+            methods).
+        ys: measurements ``y_1 … y_T`` ``[..., T, dy]``.
+        us: inputs ``u_0 … u_{T−1}`` ``[..., T, du]`` or ``None``.
+        mask: received entries ``[..., T, dy]`` (bool) or ``None`` (all received).
+            Unreceived entries may be NaN.
+        method: ``"sequential"`` (the online step in a loop; Joseph form) or
+            ``"parallel"`` (the associative-scan filter of Särkkä & García-Fernández,
+            IEEE TAC 2021: ``O(log T)`` batched operations instead of ``T`` small
+            ones, fastest for a few long runs; equal to the sequential filter up to
+            round-off).
+
+    Returns:
+        :class:`~difffilter.results.FilterResult` (means ``[..., T, dx]``, covs
+        ``[..., T, dx, dx]``, innovations, innovation covariances, log-likelihood ``[...]``).
+    """
+    if method == "sequential":
+        return run_gaussian_filter(kalman_step, model, ys, us, mask)
+    if method == "parallel":
+        from .parallel_kalman import parallel_kalman_filter
+
+        ys, us, mask = _validate_inputs(model, ys, us, mask)
+        return parallel_kalman_filter(model, ys, us, mask)
+    raise ValueError(f"method must be 'sequential' or 'parallel'; got {method!r}")

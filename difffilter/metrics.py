@@ -1,0 +1,125 @@
+"""Evaluation metrics of the FDI literature (SCENARIOS.md §5), batched over runs.
+
+Conventions: alarms, attack flags and scores are ``[..., T]`` (runs first, time last);
+counts and rates pool every run and step unless ``valid`` excludes some steps.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+__all__ = ["rmse", "detection_counts", "detection_rates", "roc_curve", "roc_auc", "detection_delay"]
+
+
+def rmse(estimate: Tensor, truth: Tensor, *, dim=None) -> Tensor:
+    """Root-mean-square error ``√mean((estimate − truth)²)`` over ``dim`` (all entries by default)."""
+    sq = (estimate - truth).square()
+    return torch.sqrt(sq.mean() if dim is None else sq.mean(dim=dim))
+
+
+def _valid(alarms: Tensor, valid: Tensor | None) -> Tensor:
+    return torch.ones_like(alarms, dtype=torch.bool) if valid is None else valid.bool().expand(alarms.shape)
+
+
+def detection_counts(alarms: Tensor, attacked: Tensor, valid: Tensor | None = None) -> dict[str, int]:
+    """Confusion counts of per-step decisions ``alarms [..., T]`` against ``attacked [..., T]``.
+
+    Returns ``{"tp", "fp", "tn", "fn"}`` pooled over every run and step in ``valid``.
+    """
+    a, y = alarms.bool(), attacked.bool()
+    v = _valid(a, valid)
+    return {
+        "tp": int((a & y & v).sum()),
+        "fp": int((a & ~y & v).sum()),
+        "tn": int((~a & ~y & v).sum()),
+        "fn": int((~a & y & v).sum()),
+    }
+
+
+def detection_rates(alarms: Tensor, attacked: Tensor, valid: Tensor | None = None) -> dict[str, float | int]:
+    """Per-step TPR = TP/(TP+FN) and FPR = FP/(FP+TN), plus the counts.
+
+    ``false_alarms`` = FP and ``missed_attacks`` = FN (the paper's counts). Rates are
+    ``nan`` when their denominator is zero.
+    """
+    c = detection_counts(alarms, attacked, valid)
+    pos, neg = c["tp"] + c["fn"], c["fp"] + c["tn"]
+    return {
+        "tpr": c["tp"] / pos if pos else math.nan,
+        "fpr": c["fp"] / neg if neg else math.nan,
+        "false_alarms": c["fp"],
+        "missed_attacks": c["fn"],
+        **c,
+    }
+
+
+def roc_curve(scores: Tensor, labels: Tensor, valid: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """ROC by sweeping the threshold over every distinct score (alarm when score ≥ threshold).
+
+    Returns ``(fpr [M], tpr [M], thresholds [M])`` starting at (0, 0) and ending at (1, 1),
+    computed in float64. Ties are grouped, so the curve is exact for discrete scores.
+    """
+    v = _valid(scores, valid)
+    s = scores[v].double().flatten()
+    y = labels.bool().expand(scores.shape)[v].flatten()
+    order = torch.argsort(s, descending=True)
+    s, y = s[order], y[order]
+    tp = torch.cumsum(y.double(), 0)
+    fp = torch.cumsum((~y).double(), 0)
+    # keep the last index of each group of tied scores
+    last = torch.ones_like(s, dtype=torch.bool)
+    if s.numel() > 1:
+        last[:-1] = s[1:] != s[:-1]
+    tp, fp, thr = tp[last], fp[last], s[last]
+    pos, neg = y.sum().double(), (~y).sum().double()
+    zero = torch.zeros(1, dtype=torch.float64)
+    tpr = torch.cat([zero, tp / pos.clamp_min(1)])
+    fpr = torch.cat([zero, fp / neg.clamp_min(1)])
+    thr = torch.cat([torch.tensor([math.inf], dtype=torch.float64), thr])
+    return fpr, tpr, thr
+
+
+def roc_auc(scores: Tensor, labels: Tensor, valid: Tensor | None = None) -> float:
+    """Area under the ROC curve (trapezoid rule); ``nan`` if one class is absent."""
+    y = labels.bool().expand(scores.shape)[_valid(scores, valid)]
+    if bool(y.all()) or not bool(y.any()):
+        return math.nan
+    fpr, tpr, _ = roc_curve(scores, labels, valid)
+    return float(torch.trapezoid(tpr, fpr))
+
+
+def detection_delay(alarms: Tensor, attacked: Tensor) -> dict[str, float | int]:
+    """Mean delay from the onset of each attack episode to the first alarm at or after it.
+
+    An episode is a maximal run of consecutive attacked steps in one run; its delay is
+    ``first alarm index ≥ onset − onset`` if that alarm falls inside the episode, else
+    the episode is missed. Returns ``{"mean_delay" (steps, nan if none detected),
+    "episodes", "detected", "missed"}``. Vectorised over runs and steps.
+    """
+    a = alarms.bool().reshape(-1, alarms.shape[-1])
+    y = attacked.bool().expand(alarms.shape).reshape(-1, alarms.shape[-1])
+    T = y.shape[-1]
+    prev = torch.cat([torch.zeros_like(y[:, :1]), y[:, :-1]], dim=1)
+    onset = y & ~prev
+    # episode id of each attacked step: cumulative count of onsets
+    episode = torch.cumsum(onset.long(), dim=1)
+    idx = torch.arange(T).expand_as(y)
+    # first alarmed step inside each episode: min over (attacked & alarmed) steps grouped by (run, episode)
+    hit = y & a
+    n_ep = int(episode.max()) + 1 if y.numel() else 1
+    key = torch.arange(y.shape[0]).unsqueeze(1) * n_ep + episode
+    big = torch.full((y.shape[0] * n_ep,), T, dtype=torch.long)
+    first_hit = big.scatter_reduce(0, key[hit], idx[hit], reduce="amin")
+    onset_at = big.scatter_reduce(0, key[onset], idx[onset], reduce="amin")
+    has_ep = onset_at < T
+    detected = has_ep & (first_hit < T)
+    delays = (first_hit - onset_at)[detected].double()
+    return {
+        "mean_delay": float(delays.mean()) if delays.numel() else math.nan,
+        "episodes": int(has_ep.sum()),
+        "detected": int(detected.sum()),
+        "missed": int((has_ep & ~detected).sum()),
+    }

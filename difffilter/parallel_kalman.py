@@ -1,0 +1,210 @@
+"""Parallel-in-time Kalman filter (associative scan).
+
+Särkkä & García-Fernández, "Temporal parallelization of Bayesian smoothers", IEEE TAC
+66(1), 2021, Lemmas 6–8. Each step ``t`` becomes an element ``a_t = (A, b, C, η, J)`` of
+an associative operator; the prefix "sum" ``a_1 ⊗ … ⊗ a_t`` holds the filtering moments
+``(m_t, P_t) = (b, C)``. With ``S = H Q Hᵀ + R`` and ``K = Q Hᵀ S⁻¹`` (``c = B u`` the
+input offset)::
+
+    A = (I − K H) F       b = c + K (y − H c)     C = (I − K H) Q
+    η = Fᵀ Hᵀ S⁻¹ (y − H c)                       J = Fᵀ Hᵀ S⁻¹ H F
+
+and the first element conditions the prior ``(m_0, P_0)`` exactly (``A = η = J = 0``).
+Combining ``a_i ⊗ a_j`` (``i`` earlier) with ``X = I + C_i J_j``::
+
+    A = A_j X⁻¹ A_i                  b = A_j X⁻¹ (b_i + C_i η_j) + b_j
+    C = A_j X⁻¹ C_i A_jᵀ + C_j       η = (X⁻¹ A_i)ᵀ (η_j − J_j b_i) + η_i
+    J = (X⁻¹ A_i)ᵀ J_j A_i + J_i
+
+(``(I + J_j C_i)⁻¹ = X⁻ᵀ`` because ``C`` and ``J`` are symmetric). ``X`` has all
+eigenvalues ≥ 1 (product of two PSD matrices plus ``I``), so its inverse is well
+conditioned. Innovations and the log-likelihood follow afterwards from the filtered
+moments, vectorised over time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import Tensor
+
+from .linalg import (
+    cholesky_solve_right,
+    gaussian_log_prob_chol,
+    masked_measurement,
+    matvec,
+    safe_cholesky,
+    symmetrize,
+)
+from .results import FilterResult
+
+__all__ = ["parallel_kalman_filter", "associative_scan"]
+
+
+def _take(t: Tensor, dim: int, start: int | None, stop: int | None, step: int | None = None) -> Tensor:
+    index = [slice(None)] * t.dim()
+    index[dim] = slice(start, stop, step)
+    return t[tuple(index)]
+
+
+def _interleave(even: Tensor, odd: Tensor, dim: int) -> Tensor:
+    """``[e0, o0, e1, o1, …]`` along ``dim`` (``even`` may be one longer than ``odd``)."""
+    n_odd = odd.shape[dim]
+    pairs = torch.stack([_take(even, dim, 0, n_odd), odd], dim=dim + 1).flatten(dim, dim + 1)
+    if even.shape[dim] > n_odd:
+        pairs = torch.cat([pairs, _take(even, dim, n_odd, None)], dim=dim)
+    return pairs
+
+
+def associative_scan(
+    combine: Callable[[Sequence[Tensor], Sequence[Tensor]], Sequence[Tensor]],
+    elems: Sequence[Tensor],
+    dims: Sequence[int],
+) -> list[Tensor]:
+    """Inclusive prefix scan ``e_0, e_0⊗e_1, …`` of an associative ``combine``.
+
+    ``elems`` is a tuple of tensors sharing a time axis of length ``T``, located at
+    ``dims[i]`` (a non-negative index) in ``elems[i]``. ``combine(earlier, later)`` acts
+    elementwise along that axis. Work ``O(T)``, depth ``O(log T)`` (the odd/even
+    recursion of Blelloch's scan).
+    """
+    length = elems[0].shape[dims[0]]
+    if length < 2:
+        return list(elems)
+    reduced = combine(
+        [_take(e, d, 0, -1, 2) for e, d in zip(elems, dims)],
+        [_take(e, d, 1, None, 2) for e, d in zip(elems, dims)],
+    )
+    odd = associative_scan(combine, reduced, dims)
+    if length % 2 == 0:
+        even = combine([_take(o, d, 0, -1) for o, d in zip(odd, dims)], [_take(e, d, 2, None, 2) for e, d in zip(elems, dims)])
+    else:
+        even = combine(odd, [_take(e, d, 2, None, 2) for e, d in zip(elems, dims)])
+    even = [torch.cat([_take(e, d, 0, 1), ev], dim=d) for e, ev, d in zip(elems, even, dims)]
+    return [_interleave(ev, od, d) for ev, od, d in zip(even, odd, dims)]
+
+
+def _combine(first, second):
+    A_i, b_i, C_i, eta_i, J_i = first
+    A_j, b_j, C_j, eta_j, J_j = second
+    eye = torch.eye(A_i.shape[-1], dtype=A_i.dtype, device=A_i.device)
+    x_inv = torch.linalg.inv(eye + C_i @ J_j)
+    xa = x_inv @ A_i
+    a_x = A_j @ x_inv
+    A = A_j @ xa
+    b = matvec(a_x, b_i + matvec(C_i, eta_j)) + b_j
+    C = symmetrize(a_x @ C_i @ A_j.transpose(-1, -2) + C_j)
+    eta = matvec(xa.transpose(-1, -2), eta_j - matvec(J_j, b_i)) + eta_i
+    J = symmetrize(xa.transpose(-1, -2) @ J_j @ A_i + J_i)
+    return [A, b, C, eta, J]
+
+
+def _stack_over_time(fn: Callable[[int], Tensor | None], ks: range, time_varying: bool) -> Tensor | None:
+    """``fn(k)`` for every ``k`` stacked on a new time axis at ``-3``/``-2`` (matrix/vector)."""
+    first = fn(ks[0])
+    if first is None:
+        return None
+    if not time_varying:
+        return first.unsqueeze(-3)
+    return torch.stack([fn(k) for k in ks], dim=-3)
+
+
+def parallel_kalman_filter(model, ys: Tensor, us: Tensor | None, mask: Tensor | None) -> FilterResult:
+    """Whole-sequence Kalman filter by associative scan (inputs already validated).
+
+    Shapes as in :func:`difffilter.kalman_filter`. Time-invariant model matrices stay
+    shared across time (size-1 time axis) and runs, so only the vector parts of the
+    elements grow with the batch.
+    """
+    T = ys.shape[-2]
+    tv = bool(getattr(model, "time_varying", False))
+    steps, meas = range(0, T), range(1, T + 1)
+    F = _stack_over_time(model.transition_matrix, steps, tv)  # [*, T|1, dx, dx]
+    Q = symmetrize(_stack_over_time(model.process_cov, steps, tv))
+    H = _stack_over_time(model.observation_matrix, meas, tv)  # [*, T|1, dy, dx]
+    R = _stack_over_time(model.measurement_cov, meas, tv)
+    Bm = _stack_over_time(model.control_matrix, steps, tv)
+    dx = F.shape[-1]
+    offset = None
+    if Bm is not None and us is not None:
+        offset = matvec(Bm, us)  # c_t = B u_t  [..., T, dx]
+    m0, P0 = model.initial.mean, model.initial.cov
+
+    # Masking makes H, R per step and per run; y is masked inside the residuals.
+    ys_m, H_m, R_m, observed = masked_measurement(ys, H, R, mask)
+
+    eye = torch.eye(dx, dtype=F.dtype, device=F.device)
+    c = offset if offset is not None else torch.zeros((), dtype=F.dtype, device=F.device)
+    # Generic elements t ≥ 1 (computed for all t; element 0 is replaced below).
+    cross = Q @ H_m.transpose(-1, -2)
+    S = symmetrize(H_m @ cross + R_m)
+    chol = safe_cholesky(S, name="innovation covariance S")
+    K = cholesky_solve_right(cross, chol)
+    i_kh = eye - K @ H_m
+    Hc = matvec(H_m, c) if offset is not None else 0.0
+    resid = ys_m - Hc
+    A = i_kh @ F
+    b = c + matvec(K, resid)
+    C = symmetrize(i_kh @ Q @ i_kh.transpose(-1, -2) + K @ R_m @ K.transpose(-1, -2))
+    HF = H_m @ F
+    s_inv_hf = torch.cholesky_solve(HF, chol)  # S⁻¹ H F   [*, T, dy, dx]
+    eta = matvec(s_inv_hf.transpose(-1, -2), resid)
+    J = symmetrize(HF.transpose(-1, -2) @ s_inv_hf)
+
+    # First element: condition on the prior exactly.
+    F0, Q0 = _take(F, F.dim() - 3, 0, 1).squeeze(-3), _take(Q, Q.dim() - 3, 0, 1).squeeze(-3)
+    H0, R0 = _take(H_m, H_m.dim() - 3, 0, 1).squeeze(-3), _take(R_m, R_m.dim() - 3, 0, 1).squeeze(-3)
+    pm = matvec(F0, m0) + (offset[..., 0, :] if offset is not None else 0.0)
+    pP = symmetrize(F0 @ P0 @ F0.transpose(-1, -2) + Q0)
+    cross0 = pP @ H0.transpose(-1, -2)
+    S0 = symmetrize(H0 @ cross0 + R0)
+    chol0 = safe_cholesky(S0, name="innovation covariance S")
+    K0 = cholesky_solve_right(cross0, chol0)
+    ikh0 = eye - K0 @ H0
+    b0 = pm + matvec(K0, ys_m[..., 0, :] - matvec(H0, pm))
+    C0 = symmetrize(ikh0 @ pP @ ikh0.transpose(-1, -2) + K0 @ R0 @ K0.transpose(-1, -2))
+
+    batch = torch.broadcast_shapes(ys.shape[:-2], b.shape[:-2], b0.shape[:-1])
+    mat_batch = torch.broadcast_shapes(A.shape[:-3], C.shape[:-3], C0.shape[:-2], J.shape[:-3])
+
+    def full_mat(generic, first):
+        generic = generic.expand(mat_batch + (T,) + generic.shape[-2:]) if generic.shape[-3] == 1 else generic.expand(mat_batch + generic.shape[-3:])
+        return torch.cat([first.expand(mat_batch + first.shape[-2:]).unsqueeze(-3), _take(generic, len(mat_batch), 1, None)], dim=-3)
+
+    def full_vec(generic, first):
+        generic = generic.expand(batch + (T, dx))
+        return torch.cat([first.expand(batch + (dx,)).unsqueeze(-2), _take(generic, len(batch), 1, None)], dim=-2)
+
+    zero_mat = torch.zeros(dx, dx, dtype=F.dtype, device=F.device)
+    zero_vec = torch.zeros(dx, dtype=F.dtype, device=F.device)
+    elems = [
+        full_mat(A, zero_mat),
+        full_vec(b, b0),
+        full_mat(C, C0),
+        full_vec(eta, zero_vec),
+        full_mat(J, zero_mat),
+    ]
+    tm, tv_ = len(mat_batch), len(batch)
+    scanned = associative_scan(_combine, elems, [tm, tv_, tm, tv_, tm])
+    means, covs = scanned[1], scanned[2]
+
+    # Innovations and evidence from the filtered moments, all steps at once.
+    prev_means = torch.cat([m0.expand(batch + (dx,)).unsqueeze(-2), means[..., :-1, :]], dim=-2)
+    prev_covs = torch.cat([P0.expand(mat_batch + (dx, dx)).unsqueeze(-3), covs[..., :-1, :, :]], dim=-3)
+    pred_means = matvec(F, prev_means) + (offset if offset is not None else 0.0)
+    pred_covs = symmetrize(F @ prev_covs @ F.transpose(-1, -2) + Q)
+    innovations = ys_m - matvec(H_m, pred_means)
+    innov_covs = symmetrize(H_m @ pred_covs @ H_m.transpose(-1, -2) + R_m)
+    increments = gaussian_log_prob_chol(innovations, safe_cholesky(innov_covs, name="innovation covariance S"), observed)
+    increments = increments.expand(batch + (T,))
+    return FilterResult(
+        means=means,
+        covs=covs.expand(batch + covs.shape[-3:]),
+        pred_means=pred_means.expand(batch + (T, dx)),
+        pred_covs=pred_covs.expand(batch + pred_covs.shape[-3:]),
+        innovations=innovations.expand(batch + innovations.shape[-2:]),
+        innovation_covs=innov_covs.expand(batch + innov_covs.shape[-3:]),
+        log_likelihood_increments=increments,
+        log_likelihood=increments.sum(-1),
+    )

@@ -1,0 +1,210 @@
+"""Gaussian filters against closed forms and independent references (float64)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from conftest import constant_velocity
+from reference import dense_joint_gaussian, numpy_kalman_filter
+
+import difffilter as df
+
+METHODS = ["sequential", "parallel"]
+
+
+def _np(model):
+    return [t.detach().numpy() for t in (model.F, model.H, model.process_noise.cov, model.measurement_noise.cov, model.initial.mean, model.initial.cov)]
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_kf_equals_dense_joint_gaussian(method, generator):
+    model = constant_velocity()
+    _, ys, _ = model.simulate(8, (), generator=generator)
+    res = df.kalman_filter(model, ys, method=method)
+    F, H, Q, R, m0, P0 = _np(model)
+    y = ys.numpy()
+    # filtered mean at t = posterior of x_t given y_{1:t}: condition the joint on a prefix
+    for t in range(1, 9):
+        _, last, ll = dense_joint_gaussian(F, H, Q, R, m0, P0, y[:t])
+        np.testing.assert_allclose(res.means[t - 1].numpy(), last, atol=1e-10, rtol=0)
+        np.testing.assert_allclose(res.log_likelihood_increments[: t].sum().item(), ll, atol=1e-10, rtol=0)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_kf_masked_equals_dense_joint_gaussian(method, generator):
+    model = constant_velocity()
+    _, ys, _ = model.simulate(10, (), generator=generator)
+    mask = torch.rand(10, 2, generator=generator) > 0.4
+    mask[3] = False  # a fully lost packet
+    ys = torch.where(mask, ys, torch.nan)  # lost entries may be NaN
+    res = df.kalman_filter(model, ys, mask=mask, method=method)
+    F, H, Q, R, m0, P0 = _np(model)
+    y = np.nan_to_num(ys.numpy())
+    _, last, ll = dense_joint_gaussian(F, H, Q, R, m0, P0, y, mask.numpy())
+    np.testing.assert_allclose(res.means[-1].numpy(), last, atol=1e-10, rtol=0)
+    np.testing.assert_allclose(res.log_likelihood.item(), ll, atol=1e-10, rtol=0)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_kf_equals_numpy_reference_with_inputs_and_mask(method, generator):
+    model = constant_velocity(with_input=True)
+    us = torch.randn(3, 25, 1, dtype=torch.float64, generator=generator)
+    _, ys, _ = model.simulate(25, (3,), us=us, generator=generator)
+    mask = torch.rand(3, 25, 2, generator=generator) > 0.3
+    res = df.kalman_filter(model, ys, us, mask=mask, method=method)
+    F, H, Q, R, m0, P0 = _np(model)
+    for b in range(3):
+        means, covs, ll = numpy_kalman_filter(F, H, Q, R, m0, P0, ys[b].numpy(), B=model.B.numpy(), us=us[b].numpy(), mask=mask[b].numpy())
+        np.testing.assert_allclose(res.means[b].numpy(), means, atol=1e-10, rtol=0)
+        np.testing.assert_allclose(res.covs[b].numpy(), covs, atol=1e-10, rtol=0)
+        np.testing.assert_allclose(res.log_likelihood[b].item(), ll, atol=1e-10, rtol=0)
+
+
+def test_kf_matches_filterpy(generator):
+    filterpy = pytest.importorskip("filterpy.kalman")
+    model = constant_velocity()
+    _, ys, _ = model.simulate(30, (), generator=generator)
+    res = df.kalman_filter(model, ys)
+    F, H, Q, R, m0, P0 = _np(model)
+    kf = filterpy.KalmanFilter(dim_x=4, dim_z=2)
+    kf.x, kf.P, kf.F, kf.H, kf.Q, kf.R = m0.copy(), P0.copy(), F, H, Q, R
+    for t, y in enumerate(ys.numpy()):
+        kf.predict()
+        kf.update(y)
+        np.testing.assert_allclose(res.means[t].numpy(), kf.x, atol=1e-9)
+        np.testing.assert_allclose(res.covs[t].numpy(), kf.P, atol=1e-9)
+
+
+def test_parallel_equals_sequential_batched_time_varying(generator):
+    class RotatingModel(df.LinearGaussianModel):
+        time_varying = True
+
+        def transition_matrix(self, k):
+            c, s = np.cos(0.1 * k), np.sin(0.1 * k)
+            rot = torch.tensor([[c, -s], [s, c]], dtype=self.F.dtype)
+            return 0.95 * torch.block_diag(rot, rot)
+
+        def measurement_cov(self, k):
+            return self.measurement_noise.cov * (1.0 + 0.1 * k)
+
+    base = constant_velocity()
+    model = RotatingModel(base.F, base.H, base.process_noise.cov, base.measurement_noise.cov, base.initial.mean, base.initial.cov)
+    _, ys, _ = model.simulate(33, (2, 3), generator=generator)
+    a = df.kalman_filter(model, ys, method="sequential")
+    b = df.kalman_filter(model, ys, method="parallel")
+    for name in ["means", "covs", "pred_means", "pred_covs", "innovations", "innovation_covs", "log_likelihood"]:
+        torch.testing.assert_close(getattr(b, name), getattr(a, name), atol=1e-9, rtol=1e-9)
+
+
+@pytest.mark.parametrize("filt", ["ekf", "ukf"])
+def test_ekf_ukf_equal_kf_on_linear_model(filt, generator):
+    model = constant_velocity(with_input=True)
+    us = torch.randn(4, 20, 1, dtype=torch.float64, generator=generator)
+    _, ys, _ = model.simulate(20, (4,), us=us, generator=generator)
+    mask = torch.rand(4, 20, 2, generator=generator) > 0.25
+    kf = df.kalman_filter(model, ys, us, mask=mask)
+    run = df.extended_kalman_filter if filt == "ekf" else df.unscented_kalman_filter
+    other = run(model, ys, us, mask=mask)
+    for name in ["means", "covs", "innovations", "innovation_covs", "log_likelihood"]:
+        torch.testing.assert_close(getattr(other, name), getattr(kf, name), atol=1e-10, rtol=1e-10)
+
+
+def test_nonlinear_model_autodiff_jacobians_match_closed_form(generator):
+    def f(x, u):
+        return torch.stack([x[..., 0] + 0.1 * torch.sin(x[..., 1]), 0.9 * x[..., 1] + u[..., 0]], -1)
+
+    def h(x):
+        return (x[..., :1] ** 2) / 10.0
+
+    def jf(x, u):
+        z = torch.zeros_like(x[..., 0])
+        row0 = torch.stack([torch.ones_like(z), 0.1 * torch.cos(x[..., 1])], -1)
+        row1 = torch.stack([z, 0.9 + z], -1)
+        return torch.stack([row0, row1], -2)
+
+    kw = dict(Q=0.01 * torch.eye(2, dtype=torch.float64), R=0.1 * torch.eye(1, dtype=torch.float64), m0=torch.ones(2, dtype=torch.float64), P0=torch.eye(2, dtype=torch.float64), dim_u=1)
+    auto = df.NonlinearGaussianModel(f, h, **kw)
+    closed = df.NonlinearGaussianModel(f, h, transition_jacobian=jf, **kw)
+    x = torch.randn(5, 2, dtype=torch.float64, generator=generator)
+    u = torch.randn(5, 1, dtype=torch.float64, generator=generator)
+    torch.testing.assert_close(auto.transition_jacobian(x, u, 0), jf(x, u))
+    torch.testing.assert_close(auto.observation_jacobian(x, 1)[..., 0, 0], x[..., 0] / 5.0)
+    us = torch.randn(3, 15, 1, dtype=torch.float64, generator=generator)
+    _, ys, _ = auto.simulate(15, (3,), us=us, generator=generator)
+    torch.testing.assert_close(df.extended_kalman_filter(auto, ys, us).means, df.extended_kalman_filter(closed, ys, us).means)
+
+
+def test_fully_masked_step_equals_prediction(cv_model, generator):
+    _, ys, _ = cv_model.simulate(6, (2,), generator=generator)
+    mask = torch.ones(2, 6, 2, dtype=torch.bool)
+    mask[:, 3] = False
+    for run in (df.kalman_filter, df.extended_kalman_filter, df.unscented_kalman_filter):
+        res = run(cv_model, ys, mask=mask)
+        torch.testing.assert_close(res.means[:, 3], res.pred_means[:, 3], atol=1e-12, rtol=0)
+        torch.testing.assert_close(res.covs[:, 3], res.pred_covs[:, 3], atol=1e-12, rtol=0)
+        assert torch.all(res.log_likelihood_increments[:, 3] == 0)
+        # and the prediction is F m_{t-1}, F P F' + Q exactly
+        F, Q = cv_model.F, cv_model.process_noise.cov
+        torch.testing.assert_close(res.pred_means[:, 3], res.means[:, 2] @ F.T, atol=1e-12, rtol=0)
+        torch.testing.assert_close(res.pred_covs[:, 3], F @ res.covs[:, 2] @ F.T + Q, atol=1e-12, rtol=0)
+
+
+def test_online_step_api_matches_whole_run(cv_model, generator):
+    _, ys, _ = cv_model.simulate(12, (3,), generator=generator)
+    whole = df.kalman_filter(cv_model, ys)
+    state = df.gaussian_init(cv_model, (3,))
+    for t in range(12):
+        state, out = df.kalman_step(cv_model, state, ys[:, t])
+        torch.testing.assert_close(out.mean, whole.means[:, t])
+        torch.testing.assert_close(out.log_likelihood, whole.log_likelihood_increments[:, t])
+    assert state.k == 12
+
+
+def test_unbatched_model_shares_covariance_across_runs(cv_model, generator):
+    # covariances of an LTI model without mask do not depend on the data
+    _, ys, _ = cv_model.simulate(5, (7,), generator=generator)
+    res = df.kalman_filter(cv_model, ys)
+    assert res.covs.shape == (7, 5, 4, 4)
+    torch.testing.assert_close(res.covs[0], res.covs[6])
+
+
+def test_gradcheck_kf_log_likelihood_wrt_F_Q_R(generator):
+    base = constant_velocity()
+    _, ys, _ = base.simulate(6, (2,), generator=generator)
+    H, m0, P0 = base.H, base.initial.mean, base.initial.cov
+
+    def loglik(F, Lq, Lr):
+        Q = Lq @ Lq.T + 1e-3 * torch.eye(4, dtype=torch.float64)
+        R = Lr @ Lr.T + 1e-2 * torch.eye(2, dtype=torch.float64)
+        return df.kalman_filter(df.LinearGaussianModel(F, H, Q, R, m0, P0), ys).log_likelihood
+
+    F = base.F.clone().requires_grad_()
+    Lq = torch.linalg.cholesky(base.process_noise.cov + 1e-2 * torch.eye(4, dtype=torch.float64)).requires_grad_()
+    Lr = torch.linalg.cholesky(base.measurement_noise.cov).requires_grad_()
+    assert torch.autograd.gradcheck(loglik, (F, Lq, Lr), eps=1e-6, atol=1e-6)
+
+    def loglik_par(F, Lq, Lr):
+        Q = Lq @ Lq.T + 1e-3 * torch.eye(4, dtype=torch.float64)
+        R = Lr @ Lr.T + 1e-2 * torch.eye(2, dtype=torch.float64)
+        return df.kalman_filter(df.LinearGaussianModel(F, H, Q, R, m0, P0), ys, method="parallel").log_likelihood
+
+    assert torch.autograd.gradcheck(loglik_par, (F, Lq, Lr), eps=1e-6, atol=1e-6)
+
+
+def test_gradcheck_kf_log_likelihood_wrt_covariances_directly(generator):
+    base = constant_velocity()
+    _, ys, _ = base.simulate(5, (), generator=generator)
+
+    def loglik(Q, R):
+        Q, R = 0.5 * (Q + Q.T), 0.5 * (R + R.T)
+        return df.kalman_filter(df.LinearGaussianModel(base.F, base.H, Q, R, base.initial.mean, base.initial.cov), ys).log_likelihood
+
+    Q = base.process_noise.cov.clone().requires_grad_()
+    R = base.measurement_noise.cov.clone().requires_grad_()
+    assert torch.autograd.gradcheck(loglik, (Q, R), eps=1e-7, atol=1e-5)
+
+
+def test_auto_method_rejects_unknown(cv_model):
+    with pytest.raises(ValueError, match="method"):
+        df.kalman_filter(cv_model, torch.zeros(3, 2, dtype=torch.float64), method="magic")
