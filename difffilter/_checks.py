@@ -32,7 +32,9 @@ def as_tensor(value, name: str, *, dtype=None, device=None) -> Tensor:
     try:
         return torch.as_tensor(value, dtype=dtype or torch.get_default_dtype(), device=device)
     except (TypeError, ValueError, RuntimeError) as exc:
-        raise ValueError(f"{name} must be a tensor or array of numbers; got {type(value).__name__}") from exc
+        raise ValueError(
+            f"{name} must be a tensor or array of numbers; got {type(value).__name__}"
+        ) from exc
 
 
 def check_vector_last(t: Tensor, name: str, dim: int) -> None:
@@ -60,7 +62,9 @@ def check_positive_definite(t: Tensor, name: str, dim: int | None = None) -> Non
     scale = t.detach().abs().amax(dim=(-1, -2), keepdim=True).clamp_min(1e-30)
     asym = (t.detach() - t.detach().transpose(-1, -2)).abs() / scale
     if bool((asym > 1e-6).any()):
-        raise ValueError(f"{name} must be symmetric; max relative asymmetry {float(asym.max()):.3g}")
+        raise ValueError(
+            f"{name} must be symmetric; max relative asymmetry {float(asym.max()):.3g}"
+        )
     _, info = torch.linalg.cholesky_ex(t.detach())
     if bool((info != 0).any()):
         raise ValueError(f"{name} must be positive definite (all eigenvalues > 0)")
@@ -73,13 +77,21 @@ def check_sequence(t: Tensor, name: str, dim: int, *, allow_nan: Tensor | None =
     whose value is ignored (unreceived measurements), which may then be NaN.
     """
     if t.dim() < 2 or t.shape[-1] != dim:
-        raise ValueError(f"{name} must have shape [..., T, {dim}] (batch first, time second to last); got {tuple(t.shape)}")
+        raise ValueError(
+            f"{name} must have shape [..., T, {dim}] (batch first, time second to last); got {tuple(t.shape)}"
+        )
     bad = ~torch.isfinite(t)
     if allow_nan is not None:
         bad = bad & ~allow_nan
     if bool(bad.any()):
-        hint = " (pass mask=... to mark lost entries, which may then be NaN)" if allow_nan is None else ""
-        raise ValueError(f"{name} contains NaN or Inf values{hint}; received entries must be finite")
+        hint = (
+            " (pass mask=... to mark lost entries, which may then be NaN)"
+            if allow_nan is None
+            else ""
+        )
+        raise ValueError(
+            f"{name} contains NaN or Inf values{hint}; received entries must be finite"
+        )
 
 
 def check_mask(mask: Tensor, name: str, shape: torch.Size) -> Tensor:
@@ -93,7 +105,9 @@ def check_mask(mask: Tensor, name: str, shape: torch.Size) -> Tensor:
     try:
         torch.broadcast_shapes(mask.shape, shape)
     except RuntimeError as exc:
-        raise ValueError(f"{name} must broadcast to {tuple(shape)}; got {tuple(mask.shape)}") from exc
+        raise ValueError(
+            f"{name} must broadcast to {tuple(shape)}; got {tuple(mask.shape)}"
+        ) from exc
     return mask
 
 

@@ -54,8 +54,12 @@ def extended_kalman_step(
     residual = y - model.observe(pred_mean, k + 1)
     residual, H, R, observed = masked_measurement(residual, H, model.measurement_cov(k + 1), mask)
     cross = pred_cov @ H.transpose(-1, -2)
-    mean, cov, S, log_lik = gaussian_update(pred_mean, pred_cov, residual, cross, H @ cross, H, R, observed)
-    return GaussianState(mean, cov, k + 1), GaussianStepOutput(mean, cov, pred_mean, pred_cov, residual, S, log_lik)
+    mean, cov, S, log_lik = gaussian_update(
+        pred_mean, pred_cov, residual, cross, H @ cross, H, R, observed
+    )
+    return GaussianState(mean, cov, k + 1), GaussianStepOutput(
+        mean, cov, pred_mean, pred_cov, residual, S, log_lik
+    )
 
 
 def extended_kalman_filter(
@@ -86,7 +90,9 @@ class SigmaPoints:
         """Mean weights ``[2n+1]``, covariance weights ``[2n+1]`` and the scale ``√(n+λ)``."""
         lam = self.alpha**2 * (n + self.kappa) - n
         if n + lam <= 0:
-            raise ValueError(f"sigma-point scaling gives n + λ = {n + lam} ≤ 0; raise alpha or kappa")
+            raise ValueError(
+                f"sigma-point scaling gives n + λ = {n + lam} ≤ 0; raise alpha or kappa"
+            )
         wm = torch.full((2 * n + 1,), 0.5 / (n + lam), dtype=dtype, device=device)
         wm[0] = lam / (n + lam)
         wc = wm.clone()
@@ -142,8 +148,12 @@ def unscented_kalman_step(
     pyy = (wc[:, None, None] * outer(dy_pts, dy_pts)).sum(-3)
     # Statistical linearisation H̃ = Pxyᵀ P⁻⁻¹ for the Joseph form.
     H_stat = torch.linalg.solve(pred_cov, cross).transpose(-1, -2)
-    mean, cov, S, log_lik = gaussian_update(pred_mean, pred_cov, residual, cross, pyy, H_stat, R, observed)
-    return GaussianState(mean, cov, k + 1), GaussianStepOutput(mean, cov, pred_mean, pred_cov, residual, S, log_lik)
+    mean, cov, S, log_lik = gaussian_update(
+        pred_mean, pred_cov, residual, cross, pyy, H_stat, R, observed
+    )
+    return GaussianState(mean, cov, k + 1), GaussianStepOutput(
+        mean, cov, pred_mean, pred_cov, residual, S, log_lik
+    )
 
 
 def unscented_kalman_filter(

@@ -128,14 +128,18 @@ def kalman_step(
     residual = y - matvec(H, pred_mean)
     residual, H, R, observed = masked_measurement(residual, H, model.measurement_cov(k), mask)
     cross = pred_cov @ H.transpose(-1, -2)
-    mean, cov, S, log_lik = gaussian_update(pred_mean, pred_cov, residual, cross, H @ cross, H, R, observed)
+    mean, cov, S, log_lik = gaussian_update(
+        pred_mean, pred_cov, residual, cross, H @ cross, H, R, observed
+    )
     out = GaussianStepOutput(mean, cov, pred_mean, pred_cov, residual, S, log_lik)
     return GaussianState(mean, cov, k), out
 
 
 def _validate_inputs(model, ys, us, mask):
     if not isinstance(ys, Tensor):
-        raise ValueError(f"ys must be a tensor of shape [..., T, {model.dim_y}]; got {type(ys).__name__}")
+        raise ValueError(
+            f"ys must be a tensor of shape [..., T, {model.dim_y}]; got {type(ys).__name__}"
+        )
     if mask is not None:
         mask = check_mask(mask, "mask", ys.shape)
     check_sequence(ys, "ys", model.dim_y, allow_nan=None if mask is None else ~mask)

@@ -83,7 +83,9 @@ def mahalanobis_sq_chol(residual: Tensor, chol: Tensor) -> Tensor:
     return z.squeeze(-1).square().sum(-1)
 
 
-def gaussian_log_prob_chol(residual: Tensor, chol: Tensor, dim: Tensor | int | None = None) -> Tensor:
+def gaussian_log_prob_chol(
+    residual: Tensor, chol: Tensor, dim: Tensor | int | None = None
+) -> Tensor:
     """Log density of ``N(residual; 0, L Lᵀ)``.
 
     ``log N = -½ rᵀS⁻¹r - Σ log diag L - (m/2) log 2π`` where ``m`` is ``dim`` (the

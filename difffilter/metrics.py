@@ -21,10 +21,16 @@ def rmse(estimate: Tensor, truth: Tensor, *, dim=None) -> Tensor:
 
 
 def _valid(alarms: Tensor, valid: Tensor | None) -> Tensor:
-    return torch.ones_like(alarms, dtype=torch.bool) if valid is None else valid.bool().expand(alarms.shape)
+    return (
+        torch.ones_like(alarms, dtype=torch.bool)
+        if valid is None
+        else valid.bool().expand(alarms.shape)
+    )
 
 
-def detection_counts(alarms: Tensor, attacked: Tensor, valid: Tensor | None = None) -> dict[str, int]:
+def detection_counts(
+    alarms: Tensor, attacked: Tensor, valid: Tensor | None = None
+) -> dict[str, int]:
     """Confusion counts of per-step decisions ``alarms [..., T]`` against ``attacked [..., T]``.
 
     Returns ``{"tp", "fp", "tn", "fn"}`` pooled over every run and step in ``valid``.
@@ -39,7 +45,9 @@ def detection_counts(alarms: Tensor, attacked: Tensor, valid: Tensor | None = No
     }
 
 
-def detection_rates(alarms: Tensor, attacked: Tensor, valid: Tensor | None = None) -> dict[str, float | int]:
+def detection_rates(
+    alarms: Tensor, attacked: Tensor, valid: Tensor | None = None
+) -> dict[str, float | int]:
     """Per-step TPR = TP/(TP+FN) and FPR = FP/(FP+TN), plus the counts.
 
     ``false_alarms`` = FP and ``missed_attacks`` = FN (the paper's counts). Rates are
@@ -56,7 +64,9 @@ def detection_rates(alarms: Tensor, attacked: Tensor, valid: Tensor | None = Non
     }
 
 
-def roc_curve(scores: Tensor, labels: Tensor, valid: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+def roc_curve(
+    scores: Tensor, labels: Tensor, valid: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
     """ROC by sweeping the threshold over every distinct score (alarm when score ≥ threshold).
 
     Returns ``(fpr [M], tpr [M], thresholds [M])`` starting at (0, 0) and ending at (1, 1),

@@ -93,12 +93,18 @@ class Gaussian(NoiseModel):
         super().__init__()
         if (cov is None) == (scale_tril is None):
             raise ValueError("Gaussian needs exactly one of cov= or scale_tril=")
-        mat = as_tensor(cov if cov is not None else scale_tril, "cov" if cov is not None else "scale_tril")
+        mat = as_tensor(
+            cov if cov is not None else scale_tril, "cov" if cov is not None else "scale_tril"
+        )
         loc = as_tensor(loc, "loc", dtype=mat.dtype, device=mat.device)
         check_square(mat, "cov" if cov is not None else "scale_tril")
         d = mat.shape[-1]
         if loc.dim() == 0:
-            loc = loc.expand(d).clone() if loc.requires_grad else torch.full((d,), float(loc), dtype=mat.dtype)
+            loc = (
+                loc.expand(d).clone()
+                if loc.requires_grad
+                else torch.full((d,), float(loc), dtype=mat.dtype)
+            )
         check_vector_last(loc, "loc", d)
         check_finite(loc, "loc")
         self.dim = d
@@ -137,7 +143,10 @@ class Gaussian(NoiseModel):
         L = self.scale_tril
         batch = torch.broadcast_shapes(self.loc.shape[:-1], L.shape[:-2])
         eps = torch.randn(
-            _shape(sample_shape) + batch + (self.dim,), generator=generator, dtype=L.dtype, device=L.device
+            _shape(sample_shape) + batch + (self.dim,),
+            generator=generator,
+            dtype=L.dtype,
+            device=L.device,
         )
         return self.loc + matvec(L, eps)
 
@@ -198,7 +207,9 @@ class GaussianMixture(NoiseModel):
         n = max(1, math.prod(shape))
         comp = torch.multinomial(self.weights, n, replacement=True, generator=generator)
         L = safe_cholesky(self.covs, name="covs")
-        eps = torch.randn(n, self.dim, generator=generator, dtype=self.covs.dtype, device=self.covs.device)
+        eps = torch.randn(
+            n, self.dim, generator=generator, dtype=self.covs.dtype, device=self.covs.device
+        )
         draws = self.locs[comp] + matvec(L[comp], eps)
         return draws.reshape(shape + (self.dim,))
 
@@ -235,7 +246,9 @@ class UniformBox(NoiseModel):
         low = as_tensor(low, "low")
         high = as_tensor(high, "high", dtype=low.dtype)
         if low.dim() == 0 or low.shape != high.shape:
-            raise ValueError(f"low and high must have the same shape [..., d]; got {tuple(low.shape)}, {tuple(high.shape)}")
+            raise ValueError(
+                f"low and high must have the same shape [..., d]; got {tuple(low.shape)}, {tuple(high.shape)}"
+            )
         check_finite(low, "low")
         check_finite(high, "high")
         if bool((high <= low).any()):

@@ -42,7 +42,9 @@ from .results import FilterResult
 __all__ = ["parallel_kalman_filter", "associative_scan"]
 
 
-def _take(t: Tensor, dim: int, start: int | None, stop: int | None, step: int | None = None) -> Tensor:
+def _take(
+    t: Tensor, dim: int, start: int | None, stop: int | None, step: int | None = None
+) -> Tensor:
     index = [slice(None)] * t.dim()
     index[dim] = slice(start, stop, step)
     return t[tuple(index)]
@@ -78,7 +80,10 @@ def associative_scan(
     )
     odd = associative_scan(combine, reduced, dims)
     if length % 2 == 0:
-        even = combine([_take(o, d, 0, -1) for o, d in zip(odd, dims)], [_take(e, d, 2, None, 2) for e, d in zip(elems, dims)])
+        even = combine(
+            [_take(o, d, 0, -1) for o, d in zip(odd, dims)],
+            [_take(e, d, 2, None, 2) for e, d in zip(elems, dims)],
+        )
     else:
         even = combine(odd, [_take(e, d, 2, None, 2) for e, d in zip(elems, dims)])
     even = [torch.cat([_take(e, d, 0, 1), ev], dim=d) for e, ev, d in zip(elems, even, dims)]
@@ -100,7 +105,9 @@ def _combine(first, second):
     return [A, b, C, eta, J]
 
 
-def _stack_over_time(fn: Callable[[int], Tensor | None], ks: range, time_varying: bool) -> Tensor | None:
+def _stack_over_time(
+    fn: Callable[[int], Tensor | None], ks: range, time_varying: bool
+) -> Tensor | None:
     """``fn(k)`` for every ``k`` stacked on a new time axis at ``-3``/``-2`` (matrix/vector)."""
     first = fn(ks[0])
     if first is None:
@@ -110,7 +117,9 @@ def _stack_over_time(fn: Callable[[int], Tensor | None], ks: range, time_varying
     return torch.stack([fn(k) for k in ks], dim=-3)
 
 
-def parallel_kalman_filter(model, ys: Tensor, us: Tensor | None, mask: Tensor | None) -> FilterResult:
+def parallel_kalman_filter(
+    model, ys: Tensor, us: Tensor | None, mask: Tensor | None
+) -> FilterResult:
     """Whole-sequence Kalman filter by associative scan (inputs already validated).
 
     Shapes as in :func:`difffilter.kalman_filter`. Time-invariant model matrices stay
@@ -154,7 +163,10 @@ def parallel_kalman_filter(model, ys: Tensor, us: Tensor | None, mask: Tensor | 
 
     # First element: condition on the prior exactly.
     F0, Q0 = _take(F, F.dim() - 3, 0, 1).squeeze(-3), _take(Q, Q.dim() - 3, 0, 1).squeeze(-3)
-    H0, R0 = _take(H_m, H_m.dim() - 3, 0, 1).squeeze(-3), _take(R_m, R_m.dim() - 3, 0, 1).squeeze(-3)
+    H0, R0 = (
+        _take(H_m, H_m.dim() - 3, 0, 1).squeeze(-3),
+        _take(R_m, R_m.dim() - 3, 0, 1).squeeze(-3),
+    )
     pm = matvec(F0, m0) + (offset[..., 0, :] if offset is not None else 0.0)
     pP = symmetrize(F0 @ P0 @ F0.transpose(-1, -2) + Q0)
     cross0 = pP @ H0.transpose(-1, -2)
@@ -169,12 +181,24 @@ def parallel_kalman_filter(model, ys: Tensor, us: Tensor | None, mask: Tensor | 
     mat_batch = torch.broadcast_shapes(A.shape[:-3], C.shape[:-3], C0.shape[:-2], J.shape[:-3])
 
     def full_mat(generic, first):
-        generic = generic.expand(mat_batch + (T,) + generic.shape[-2:]) if generic.shape[-3] == 1 else generic.expand(mat_batch + generic.shape[-3:])
-        return torch.cat([first.expand(mat_batch + first.shape[-2:]).unsqueeze(-3), _take(generic, len(mat_batch), 1, None)], dim=-3)
+        generic = (
+            generic.expand(mat_batch + (T,) + generic.shape[-2:])
+            if generic.shape[-3] == 1
+            else generic.expand(mat_batch + generic.shape[-3:])
+        )
+        return torch.cat(
+            [
+                first.expand(mat_batch + first.shape[-2:]).unsqueeze(-3),
+                _take(generic, len(mat_batch), 1, None),
+            ],
+            dim=-3,
+        )
 
     def full_vec(generic, first):
         generic = generic.expand(batch + (T, dx))
-        return torch.cat([first.expand(batch + (dx,)).unsqueeze(-2), _take(generic, len(batch), 1, None)], dim=-2)
+        return torch.cat(
+            [first.expand(batch + (dx,)).unsqueeze(-2), _take(generic, len(batch), 1, None)], dim=-2
+        )
 
     zero_mat = torch.zeros(dx, dx, dtype=F.dtype, device=F.device)
     zero_vec = torch.zeros(dx, dtype=F.dtype, device=F.device)
@@ -191,12 +215,16 @@ def parallel_kalman_filter(model, ys: Tensor, us: Tensor | None, mask: Tensor | 
 
     # Innovations and evidence from the filtered moments, all steps at once.
     prev_means = torch.cat([m0.expand(batch + (dx,)).unsqueeze(-2), means[..., :-1, :]], dim=-2)
-    prev_covs = torch.cat([P0.expand(mat_batch + (dx, dx)).unsqueeze(-3), covs[..., :-1, :, :]], dim=-3)
+    prev_covs = torch.cat(
+        [P0.expand(mat_batch + (dx, dx)).unsqueeze(-3), covs[..., :-1, :, :]], dim=-3
+    )
     pred_means = matvec(F, prev_means) + (offset if offset is not None else 0.0)
     pred_covs = symmetrize(F @ prev_covs @ F.transpose(-1, -2) + Q)
     innovations = ys_m - matvec(H_m, pred_means)
     innov_covs = symmetrize(H_m @ pred_covs @ H_m.transpose(-1, -2) + R_m)
-    increments = gaussian_log_prob_chol(innovations, safe_cholesky(innov_covs, name="innovation covariance S"), observed)
+    increments = gaussian_log_prob_chol(
+        innovations, safe_cholesky(innov_covs, name="innovation covariance S"), observed
+    )
     increments = increments.expand(batch + (T,))
     return FilterResult(
         means=means,

@@ -121,7 +121,9 @@ class KalmanProposal:
         residual, H, R, _ = masked_measurement(residual, H, model.measurement_cov(k + 1), m)
         cross = Q @ H.transpose(-1, -2)
         S = symmetrize(H @ cross + R)
-        gain = torch.cholesky_solve(cross.transpose(-1, -2), safe_cholesky(S, name="S")).transpose(-1, -2)
+        gain = torch.cholesky_solve(cross.transpose(-1, -2), safe_cholesky(S, name="S")).transpose(
+            -1, -2
+        )
         mu = f + matvec(gain, residual)
         eye = torch.eye(f.shape[-1], dtype=f.dtype, device=f.device)
         i_kh = eye - gain @ H
@@ -200,7 +202,9 @@ def particle_step(
     # Resample rows whose ESS fell below the threshold.
     need = _ess(log_w) < ess_threshold * n
     if bool(need.any()):
-        res = resampler(particles, log_w, resample_generator if resample_generator is not None else generator)
+        res = resampler(
+            particles, log_w, resample_generator if resample_generator is not None else generator
+        )
         particles = torch.where(need[..., None, None], res.particles, particles)
         log_w = torch.where(need[..., None], res.log_weights, log_w)
 
@@ -291,7 +295,11 @@ def particle_filter(
         batch = torch.broadcast_shapes(batch, us.shape[:-2])
     if mask is not None:
         batch = torch.broadcast_shapes(batch, mask.shape[:-2])
-    state = initial_state if initial_state is not None else particle_init(model, num_particles, batch, generator)
+    state = (
+        initial_state
+        if initial_state is not None
+        else particle_init(model, num_particles, batch, generator)
+    )
     outs, parts, logws = [], [], []
     for t in range(ys.shape[-2]):
         u = None if us is None else us[..., t, :]

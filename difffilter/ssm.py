@@ -48,7 +48,9 @@ def batched_jacobian(fn: Callable[..., Tensor], x: Tensor, *args: Tensor | None)
         else:
             flat_args.append(a.expand(lead + a.shape[-1:]).reshape(-1, a.shape[-1]))
             in_dims.append(0)
-    jac = torch.func.vmap(torch.func.jacfwd(fn, argnums=0), in_dims=tuple(in_dims))(flat_x, *flat_args)
+    jac = torch.func.vmap(torch.func.jacfwd(fn, argnums=0), in_dims=tuple(in_dims))(
+        flat_x, *flat_args
+    )
     return jac.reshape(lead + jac.shape[-2:])
 
 
@@ -118,7 +120,9 @@ class StateSpaceModel(nn.Module):
         noise = self.measurement_noise.sample(mean.shape[:-1], generator)
         return mean + noise.reshape(mean.shape)
 
-    def measurement_log_prob(self, y: Tensor, x: Tensor, k: int, mask: Tensor | None = None) -> Tensor:
+    def measurement_log_prob(
+        self, y: Tensor, x: Tensor, k: int, mask: Tensor | None = None
+    ) -> Tensor:
         """``log p(y_k | x_k)`` of the received entries: ``y [..., dy]``, ``x [..., dx]`` → ``[...]``.
 
         ``mask [..., dy]`` marks received entries; unreceived ones are marginalised out.
@@ -139,7 +143,9 @@ class StateSpaceModel(nn.Module):
         Returns ``(xs [*batch, T, dx], ys [*batch, T, dy], x0 [*batch, dx])`` where
         ``xs[..., t, :] = x_{t+1}`` is the state measured by ``ys[..., t, :]``.
         """
-        batch_shape = torch.Size(batch_shape if not isinstance(batch_shape, int) else (batch_shape,))
+        batch_shape = torch.Size(
+            batch_shape if not isinstance(batch_shape, int) else (batch_shape,)
+        )
         x = self.sample_initial(batch_shape, generator)
         x0 = x
         xs, ys = [], []
@@ -239,7 +245,10 @@ def _arity(fn: Callable) -> int:
         return 3
     if any(p.kind == p.VAR_POSITIONAL for p in params):
         return 3
-    return sum(p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) and p.default is p.empty for p in params)
+    return sum(
+        p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) and p.default is p.empty
+        for p in params
+    )
 
 
 class NonlinearGaussianModel(StateSpaceModel):

@@ -100,7 +100,15 @@ def write_metrics(
         missing = [k for k in REQUIRED_KEYS if k not in entry]
         if missing:
             raise ValueError(f"estimator {name!r} lacks required metric keys {missing}")
-    doc = {"scenario": scenario, "runs": runs, "steps": steps, "seed": seed, "paper": paper, "estimators": estimators, **extra}
+    doc = {
+        "scenario": scenario,
+        "runs": runs,
+        "steps": steps,
+        "seed": seed,
+        "paper": paper,
+        "estimators": estimators,
+        **extra,
+    }
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(_clean(doc), indent=2, sort_keys=False) + "\n")

@@ -114,8 +114,19 @@ class FourTankModel(StateSpaceModel):
         #   ḣ = outflow_coef ⊙ √h + couple_coef ⊙ √h[[2, 3, ·, ·]] + inflow
         root = (2.0 * p.g) ** 0.5
         self.register_buffer("outflow", -(a / A) * root)
-        self.register_buffer("couple", torch.stack([a[2] / A[0], a[3] / A[1], A.new_zeros(()), A.new_zeros(())]) * root)
-        inflow = torch.tensor([g1 * k1 * v1 / p.A[0], g2 * k2 * v2 / p.A[1], (1 - g2) * k2 * v2 / p.A[2], (1 - g1) * k1 * v1 / p.A[3]], **kw)
+        self.register_buffer(
+            "couple",
+            torch.stack([a[2] / A[0], a[3] / A[1], A.new_zeros(()), A.new_zeros(())]) * root,
+        )
+        inflow = torch.tensor(
+            [
+                g1 * k1 * v1 / p.A[0],
+                g2 * k2 * v2 / p.A[1],
+                (1 - g2) * k2 * v2 / p.A[2],
+                (1 - g1) * k1 * v1 / p.A[3],
+            ],
+            **kw,
+        )
         self.register_buffer("inflow", inflow)
         self.register_buffer("G", torch.eye(4, **kw))
         x0 = torch.tensor(p.fixed_point(), **kw) if x0 is None else torch.as_tensor(x0, **kw)
@@ -136,7 +147,9 @@ class FourTankModel(StateSpaceModel):
     def transition_jacobian(self, x: Tensor, u: Tensor | None, k: int) -> Tensor:
         """Closed form: ``I + dt · ∂f_c/∂x`` with ``∂√h/∂h = 1/(2√h)`` (0 where ``h ≤ 0``)."""
         pos = x > 0
-        d_sqrt = torch.where(pos, 0.5 / torch.sqrt(torch.where(pos, x, torch.ones_like(x))), torch.zeros_like(x))
+        d_sqrt = torch.where(
+            pos, 0.5 / torch.sqrt(torch.where(pos, x, torch.ones_like(x))), torch.zeros_like(x)
+        )
         jac = torch.diag_embed(1.0 + self.dt * self.outflow * d_sqrt)
         jac[..., 0, 2] = self.dt * self.couple[0] * d_sqrt[..., 2]
         jac[..., 1, 3] = self.dt * self.couple[1] * d_sqrt[..., 3]

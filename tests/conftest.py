@@ -8,7 +8,9 @@ import torch
 import difffilter as df
 
 
-def constant_velocity(dtype=torch.float64, q: float = 0.1, r: float = 0.5, with_input: bool = False):
+def constant_velocity(
+    dtype=torch.float64, q: float = 0.1, r: float = 0.5, with_input: bool = False
+):
     """2-D constant-velocity model (tracking paper, eqs 16–17) with position measurements."""
     T = 1.0
     F = torch.tensor([[1, T, 0, 0], [0, 1, 0, 0], [0, 0, 1, T], [0, 0, 0, 1.0]], dtype=dtype)
@@ -17,7 +19,9 @@ def constant_velocity(dtype=torch.float64, q: float = 0.1, r: float = 0.5, with_
     H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1, 0]], dtype=dtype)
     R = r * torch.eye(2, dtype=dtype) + 0.1 * r * torch.tensor([[0.0, 1], [1, 0]], dtype=dtype)
     B = torch.tensor([[0.5], [1.0], [0.2], [-0.3]], dtype=dtype) if with_input else None
-    return df.LinearGaussianModel(F, H, Q, R, torch.tensor([0.0, 1, 0, -1], dtype=dtype), torch.eye(4, dtype=dtype), B=B)
+    return df.LinearGaussianModel(
+        F, H, Q, R, torch.tensor([0.0, 1, 0, -1], dtype=dtype), torch.eye(4, dtype=dtype), B=B
+    )
 
 
 @pytest.fixture

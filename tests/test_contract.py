@@ -64,7 +64,14 @@ class FilterContract:
         base = constant_velocity()
         F = torch.nn.Parameter(base.F.clone())
         log_r = torch.nn.Parameter(torch.zeros(()))
-        model = df.LinearGaussianModel(F, base.H, base.process_noise.cov, base.measurement_noise.cov * torch.exp(log_r), base.initial.mean, base.initial.cov)
+        model = df.LinearGaussianModel(
+            F,
+            base.H,
+            base.process_noise.cov,
+            base.measurement_noise.cov * torch.exp(log_r),
+            base.initial.mean,
+            base.initial.cov,
+        )
         _, ys, _ = base.simulate(T, (2,), generator=torch.Generator().manual_seed(2))
         res = self.run(model, ys)
         (res.log_likelihood.sum() + res.means.sum()).backward()
@@ -96,18 +103,38 @@ class TestBootstrapParticle(FilterContract):
     particle = True
 
     def run(self, model, ys, us=None, mask=None):
-        return particle_filter(model, ys, us, mask=mask, num_particles=64, generator=torch.Generator().manual_seed(0))
+        return particle_filter(
+            model, ys, us, mask=mask, num_particles=64, generator=torch.Generator().manual_seed(0)
+        )
 
 
 class TestKalmanProposalParticle(FilterContract):
     particle = True
 
     def run(self, model, ys, us=None, mask=None):
-        return particle_filter(model, ys, us, mask=mask, num_particles=64, proposal=KalmanProposal(), resampler=resampling.Soft(0.5), generator=torch.Generator().manual_seed(0))
+        return particle_filter(
+            model,
+            ys,
+            us,
+            mask=mask,
+            num_particles=64,
+            proposal=KalmanProposal(),
+            resampler=resampling.Soft(0.5),
+            generator=torch.Generator().manual_seed(0),
+        )
 
 
 class TestOptimalTransportParticle(FilterContract):
     particle = True
 
     def run(self, model, ys, us=None, mask=None):
-        return particle_filter(model, ys, us, mask=mask, num_particles=32, resampler=resampling.OptimalTransport(), ess_threshold=1.0, generator=torch.Generator().manual_seed(0))
+        return particle_filter(
+            model,
+            ys,
+            us,
+            mask=mask,
+            num_particles=32,
+            resampler=resampling.OptimalTransport(),
+            ess_threshold=1.0,
+            generator=torch.Generator().manual_seed(0),
+        )

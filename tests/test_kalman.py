@@ -14,7 +14,17 @@ METHODS = ["sequential", "parallel"]
 
 
 def _np(model):
-    return [t.detach().numpy() for t in (model.F, model.H, model.process_noise.cov, model.measurement_noise.cov, model.initial.mean, model.initial.cov)]
+    return [
+        t.detach().numpy()
+        for t in (
+            model.F,
+            model.H,
+            model.process_noise.cov,
+            model.measurement_noise.cov,
+            model.initial.mean,
+            model.initial.cov,
+        )
+    ]
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -28,7 +38,9 @@ def test_kf_equals_dense_joint_gaussian(method, generator):
     for t in range(1, 9):
         _, last, ll = dense_joint_gaussian(F, H, Q, R, m0, P0, y[:t])
         np.testing.assert_allclose(res.means[t - 1].numpy(), last, atol=1e-10, rtol=0)
-        np.testing.assert_allclose(res.log_likelihood_increments[: t].sum().item(), ll, atol=1e-10, rtol=0)
+        np.testing.assert_allclose(
+            res.log_likelihood_increments[:t].sum().item(), ll, atol=1e-10, rtol=0
+        )
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -55,7 +67,18 @@ def test_kf_equals_numpy_reference_with_inputs_and_mask(method, generator):
     res = df.kalman_filter(model, ys, us, mask=mask, method=method)
     F, H, Q, R, m0, P0 = _np(model)
     for b in range(3):
-        means, covs, ll = numpy_kalman_filter(F, H, Q, R, m0, P0, ys[b].numpy(), B=model.B.numpy(), us=us[b].numpy(), mask=mask[b].numpy())
+        means, covs, ll = numpy_kalman_filter(
+            F,
+            H,
+            Q,
+            R,
+            m0,
+            P0,
+            ys[b].numpy(),
+            B=model.B.numpy(),
+            us=us[b].numpy(),
+            mask=mask[b].numpy(),
+        )
         np.testing.assert_allclose(res.means[b].numpy(), means, atol=1e-10, rtol=0)
         np.testing.assert_allclose(res.covs[b].numpy(), covs, atol=1e-10, rtol=0)
         np.testing.assert_allclose(res.log_likelihood[b].item(), ll, atol=1e-10, rtol=0)
@@ -89,11 +112,26 @@ def test_parallel_equals_sequential_batched_time_varying(generator):
             return self.measurement_noise.cov * (1.0 + 0.1 * k)
 
     base = constant_velocity()
-    model = RotatingModel(base.F, base.H, base.process_noise.cov, base.measurement_noise.cov, base.initial.mean, base.initial.cov)
+    model = RotatingModel(
+        base.F,
+        base.H,
+        base.process_noise.cov,
+        base.measurement_noise.cov,
+        base.initial.mean,
+        base.initial.cov,
+    )
     _, ys, _ = model.simulate(33, (2, 3), generator=generator)
     a = df.kalman_filter(model, ys, method="sequential")
     b = df.kalman_filter(model, ys, method="parallel")
-    for name in ["means", "covs", "pred_means", "pred_covs", "innovations", "innovation_covs", "log_likelihood"]:
+    for name in [
+        "means",
+        "covs",
+        "pred_means",
+        "pred_covs",
+        "innovations",
+        "innovation_covs",
+        "log_likelihood",
+    ]:
         torch.testing.assert_close(getattr(b, name), getattr(a, name), atol=1e-9, rtol=1e-9)
 
 
@@ -112,7 +150,9 @@ def test_ekf_ukf_equal_kf_on_linear_model(filt, generator):
 
 def test_nonlinear_model_autodiff_jacobians_match_closed_form(generator):
     def f(x, u):
-        return torch.stack([x[..., 0] + 0.1 * torch.sin(x[..., 1]), 0.9 * x[..., 1] + u[..., 0]], -1)
+        return torch.stack(
+            [x[..., 0] + 0.1 * torch.sin(x[..., 1]), 0.9 * x[..., 1] + u[..., 0]], -1
+        )
 
     def h(x):
         return (x[..., :1] ** 2) / 10.0
@@ -123,7 +163,13 @@ def test_nonlinear_model_autodiff_jacobians_match_closed_form(generator):
         row1 = torch.stack([z, 0.9 + z], -1)
         return torch.stack([row0, row1], -2)
 
-    kw = dict(Q=0.01 * torch.eye(2, dtype=torch.float64), R=0.1 * torch.eye(1, dtype=torch.float64), m0=torch.ones(2, dtype=torch.float64), P0=torch.eye(2, dtype=torch.float64), dim_u=1)
+    kw = dict(
+        Q=0.01 * torch.eye(2, dtype=torch.float64),
+        R=0.1 * torch.eye(1, dtype=torch.float64),
+        m0=torch.ones(2, dtype=torch.float64),
+        P0=torch.eye(2, dtype=torch.float64),
+        dim_u=1,
+    )
     auto = df.NonlinearGaussianModel(f, h, **kw)
     closed = df.NonlinearGaussianModel(f, h, transition_jacobian=jf, **kw)
     x = torch.randn(5, 2, dtype=torch.float64, generator=generator)
@@ -132,7 +178,10 @@ def test_nonlinear_model_autodiff_jacobians_match_closed_form(generator):
     torch.testing.assert_close(auto.observation_jacobian(x, 1)[..., 0, 0], x[..., 0] / 5.0)
     us = torch.randn(3, 15, 1, dtype=torch.float64, generator=generator)
     _, ys, _ = auto.simulate(15, (3,), us=us, generator=generator)
-    torch.testing.assert_close(df.extended_kalman_filter(auto, ys, us).means, df.extended_kalman_filter(closed, ys, us).means)
+    torch.testing.assert_close(
+        df.extended_kalman_filter(auto, ys, us).means,
+        df.extended_kalman_filter(closed, ys, us).means,
+    )
 
 
 def test_fully_masked_step_equals_prediction(cv_model, generator):
@@ -147,7 +196,9 @@ def test_fully_masked_step_equals_prediction(cv_model, generator):
         # and the prediction is F m_{t-1}, F P F' + Q exactly
         F, Q = cv_model.F, cv_model.process_noise.cov
         torch.testing.assert_close(res.pred_means[:, 3], res.means[:, 2] @ F.T, atol=1e-12, rtol=0)
-        torch.testing.assert_close(res.pred_covs[:, 3], F @ res.covs[:, 2] @ F.T + Q, atol=1e-12, rtol=0)
+        torch.testing.assert_close(
+            res.pred_covs[:, 3], F @ res.covs[:, 2] @ F.T + Q, atol=1e-12, rtol=0
+        )
 
 
 def test_online_step_api_matches_whole_run(cv_model, generator):
@@ -180,14 +231,18 @@ def test_gradcheck_kf_log_likelihood_wrt_F_Q_R(generator):
         return df.kalman_filter(df.LinearGaussianModel(F, H, Q, R, m0, P0), ys).log_likelihood
 
     F = base.F.clone().requires_grad_()
-    Lq = torch.linalg.cholesky(base.process_noise.cov + 1e-2 * torch.eye(4, dtype=torch.float64)).requires_grad_()
+    Lq = torch.linalg.cholesky(
+        base.process_noise.cov + 1e-2 * torch.eye(4, dtype=torch.float64)
+    ).requires_grad_()
     Lr = torch.linalg.cholesky(base.measurement_noise.cov).requires_grad_()
     assert torch.autograd.gradcheck(loglik, (F, Lq, Lr), eps=1e-6, atol=1e-6)
 
     def loglik_par(F, Lq, Lr):
         Q = Lq @ Lq.T + 1e-3 * torch.eye(4, dtype=torch.float64)
         R = Lr @ Lr.T + 1e-2 * torch.eye(2, dtype=torch.float64)
-        return df.kalman_filter(df.LinearGaussianModel(F, H, Q, R, m0, P0), ys, method="parallel").log_likelihood
+        return df.kalman_filter(
+            df.LinearGaussianModel(F, H, Q, R, m0, P0), ys, method="parallel"
+        ).log_likelihood
 
     assert torch.autograd.gradcheck(loglik_par, (F, Lq, Lr), eps=1e-6, atol=1e-6)
 
@@ -198,7 +253,9 @@ def test_gradcheck_kf_log_likelihood_wrt_covariances_directly(generator):
 
     def loglik(Q, R):
         Q, R = 0.5 * (Q + Q.T), 0.5 * (R + R.T)
-        return df.kalman_filter(df.LinearGaussianModel(base.F, base.H, Q, R, base.initial.mean, base.initial.cov), ys).log_likelihood
+        return df.kalman_filter(
+            df.LinearGaussianModel(base.F, base.H, Q, R, base.initial.mean, base.initial.cov), ys
+        ).log_likelihood
 
     Q = base.process_noise.cov.clone().requires_grad_()
     R = base.measurement_noise.cov.clone().requires_grad_()

@@ -24,7 +24,12 @@ def data():
 
 def test_pf_log_likelihood_within_three_standard_errors_of_kf(data):
     model, ys, kf = data
-    res = particle_filter(model, ys.expand(RUNS, -1, -1), num_particles=2000, generator=torch.Generator().manual_seed(0))
+    res = particle_filter(
+        model,
+        ys.expand(RUNS, -1, -1),
+        num_particles=2000,
+        generator=torch.Generator().manual_seed(0),
+    )
     # the PF estimates p(y) without bias; log p̂ has a small negative bias (Jensen), so
     # compare the log of the mean likelihood estimate
     log_mean = torch.logsumexp(res.log_likelihood, 0) - math.log(RUNS)
@@ -33,14 +38,22 @@ def test_pf_log_likelihood_within_three_standard_errors_of_kf(data):
     se = (w.std() / w.mean() / math.sqrt(RUNS)).item()
     assert abs(log_mean.item() - kf.log_likelihood.item()) < 3 * se + 1e-3
     # and the per-replicate log estimates scatter around the truth too
-    assert abs(res.log_likelihood.mean().item() - kf.log_likelihood.item()) < 3 * res.log_likelihood.std().item()
+    assert (
+        abs(res.log_likelihood.mean().item() - kf.log_likelihood.item())
+        < 3 * res.log_likelihood.std().item()
+    )
 
 
 def test_pf_log_likelihood_error_shrinks_with_particles(data):
     model, ys, kf = data
     errors = []
     for n in (100, 1000, 10000):
-        res = particle_filter(model, ys.expand(64, -1, -1), num_particles=n, generator=torch.Generator().manual_seed(n))
+        res = particle_filter(
+            model,
+            ys.expand(64, -1, -1),
+            num_particles=n,
+            generator=torch.Generator().manual_seed(n),
+        )
         errors.append((res.log_likelihood - kf.log_likelihood).square().mean().sqrt().item())
     assert errors[0] > errors[1] > errors[2]
     # root-mean-square error decays roughly like N^{-1/2}: at least a factor 2 per decade
@@ -49,7 +62,12 @@ def test_pf_log_likelihood_error_shrinks_with_particles(data):
 
 def test_pf_means_agree_with_kf_within_monte_carlo_error(data):
     model, ys, kf = data
-    res = particle_filter(model, ys.expand(RUNS, -1, -1), num_particles=1000, generator=torch.Generator().manual_seed(3))
+    res = particle_filter(
+        model,
+        ys.expand(RUNS, -1, -1),
+        num_particles=1000,
+        generator=torch.Generator().manual_seed(3),
+    )
     mean_of_means = res.means.mean(0)
     se = res.means.std(0) / math.sqrt(RUNS)
     # PF means are consistent with O(1/N) bias; allow 4 standard errors plus a small bias term
@@ -64,22 +82,47 @@ def test_pf_means_agree_with_kf_within_monte_carlo_error(data):
 
 def test_kalman_proposal_is_exact_optimal_proposal_on_linear_model(data):
     model, ys, kf = data
-    boot = particle_filter(model, ys.expand(64, -1, -1), num_particles=300, generator=torch.Generator().manual_seed(1))
-    opt = particle_filter(model, ys.expand(64, -1, -1), num_particles=300, proposal=KalmanProposal(), generator=torch.Generator().manual_seed(1))
+    boot = particle_filter(
+        model, ys.expand(64, -1, -1), num_particles=300, generator=torch.Generator().manual_seed(1)
+    )
+    opt = particle_filter(
+        model,
+        ys.expand(64, -1, -1),
+        num_particles=300,
+        proposal=KalmanProposal(),
+        generator=torch.Generator().manual_seed(1),
+    )
     # same target: both estimates centre on the KF; the optimal proposal has no larger spread
     for res in (boot, opt):
-        assert abs(res.log_likelihood.mean().item() - kf.log_likelihood.item()) < 3 * res.log_likelihood.std().item() + 0.5
+        assert (
+            abs(res.log_likelihood.mean().item() - kf.log_likelihood.item())
+            < 3 * res.log_likelihood.std().item() + 0.5
+        )
     assert opt.log_likelihood.std() < 1.2 * boot.log_likelihood.std()
 
 
 @pytest.mark.parametrize(
     "resampler",
-    [resampling.Multinomial(), resampling.Systematic(), resampling.Stratified(), resampling.Residual(), resampling.Soft(0.5), resampling.StopGradient(), resampling.OptimalTransport()],
+    [
+        resampling.Multinomial(),
+        resampling.Systematic(),
+        resampling.Stratified(),
+        resampling.Residual(),
+        resampling.Soft(0.5),
+        resampling.StopGradient(),
+        resampling.OptimalTransport(),
+    ],
     ids=lambda r: type(r).__name__,
 )
 def test_every_resampler_gives_a_consistent_filter(data, resampler):
     model, ys, kf = data
-    res = particle_filter(model, ys.expand(32, -1, -1), num_particles=500, resampler=resampler, generator=torch.Generator().manual_seed(5))
+    res = particle_filter(
+        model,
+        ys.expand(32, -1, -1),
+        num_particles=500,
+        resampler=resampler,
+        generator=torch.Generator().manual_seed(5),
+    )
     assert torch.isfinite(res.log_likelihood).all()
     rmse_to_kf = (res.means - kf.means).square().mean().sqrt()
     assert rmse_to_kf < 0.35 * kf.covs.diagonal(dim1=-2, dim2=-1).sqrt().mean()
@@ -95,9 +138,17 @@ def test_pf_is_reproducible_from_its_generator(data):
 
 def test_pf_step_api_and_particle_storage(data):
     model, ys, _ = data
-    whole = particle_filter(model, ys[:5], num_particles=50, generator=torch.Generator().manual_seed(2), return_particles=True)
+    whole = particle_filter(
+        model,
+        ys[:5],
+        num_particles=50,
+        generator=torch.Generator().manual_seed(2),
+        return_particles=True,
+    )
     assert whole.particles.shape == (5, 50, 4) and whole.log_weights.shape == (5, 50)
-    torch.testing.assert_close(torch.logsumexp(whole.log_weights, -1), torch.zeros(5, dtype=torch.float64))
+    torch.testing.assert_close(
+        torch.logsumexp(whole.log_weights, -1), torch.zeros(5, dtype=torch.float64)
+    )
     g = torch.Generator().manual_seed(2)
     state = particle_init(model, 50, (), g)
     for t in range(5):
@@ -110,7 +161,15 @@ def test_fully_masked_step_is_pure_prediction(data):
     model, ys, _ = data
     mask = torch.ones(25, 2, dtype=torch.bool)
     mask[4] = False
-    res = particle_filter(model, ys, num_particles=200, mask=mask, ess_threshold=0.0, generator=torch.Generator().manual_seed(4), return_particles=True)
+    res = particle_filter(
+        model,
+        ys,
+        num_particles=200,
+        mask=mask,
+        ess_threshold=0.0,
+        generator=torch.Generator().manual_seed(4),
+        return_particles=True,
+    )
     # no weight change, zero evidence increment, and the particles just moved by the dynamics
     torch.testing.assert_close(res.log_weights[4], res.log_weights[3])
     assert res.log_likelihood_increments[4] == 0
@@ -119,7 +178,9 @@ def test_fully_masked_step_is_pure_prediction(data):
 
 def test_sis_without_resampling_degenerates_but_stays_finite(data):
     model, ys, _ = data
-    res = particle_filter(model, ys, num_particles=100, ess_threshold=0.0, generator=torch.Generator().manual_seed(0))
+    res = particle_filter(
+        model, ys, num_particles=100, ess_threshold=0.0, generator=torch.Generator().manual_seed(0)
+    )
     assert not res.resampled.any()
     assert res.ess[-1] < res.ess[0]
     assert torch.isfinite(res.means).all()

@@ -52,13 +52,24 @@ def test_inputs_with_wrong_length(run):
 
 def test_mask_not_broadcastable():
     with pytest.raises(ValueError, match="mask must broadcast"):
-        df.kalman_filter(constant_velocity(), torch.zeros(5, 2, dtype=torch.float64), mask=torch.ones(4, 2, dtype=torch.bool))
+        df.kalman_filter(
+            constant_velocity(),
+            torch.zeros(5, 2, dtype=torch.float64),
+            mask=torch.ones(4, 2, dtype=torch.bool),
+        )
 
 
 @pytest.mark.parametrize("name", ["Q", "R", "P0"])
 def test_covariance_not_positive_definite(name):
     base = constant_velocity()
-    args = dict(F=base.F, H=base.H, Q=base.process_noise.cov, R=base.measurement_noise.cov, m0=base.initial.mean, P0=base.initial.cov)
+    args = dict(
+        F=base.F,
+        H=base.H,
+        Q=base.process_noise.cov,
+        R=base.measurement_noise.cov,
+        m0=base.initial.mean,
+        P0=base.initial.cov,
+    )
     bad = -torch.eye(args[name].shape[-1], dtype=torch.float64)
     args[name] = bad
     with pytest.raises(ValueError, match=f"{name} must be positive definite"):
@@ -69,31 +80,56 @@ def test_covariance_not_symmetric():
     base = constant_velocity()
     R = torch.tensor([[1.0, 0.5], [0.0, 1.0]], dtype=torch.float64)
     with pytest.raises(ValueError, match="R must be symmetric"):
-        df.LinearGaussianModel(base.F, base.H, base.process_noise.cov, R, base.initial.mean, base.initial.cov)
+        df.LinearGaussianModel(
+            base.F, base.H, base.process_noise.cov, R, base.initial.mean, base.initial.cov
+        )
 
 
 def test_matrix_shapes():
     base = constant_velocity()
     with pytest.raises(ValueError, match=r"H must have shape \[\.\.\., dy, 4\]"):
-        df.LinearGaussianModel(base.F, torch.zeros(2, 3), base.process_noise.cov, base.measurement_noise.cov, base.initial.mean, base.initial.cov)
+        df.LinearGaussianModel(
+            base.F,
+            torch.zeros(2, 3),
+            base.process_noise.cov,
+            base.measurement_noise.cov,
+            base.initial.mean,
+            base.initial.cov,
+        )
     with pytest.raises(ValueError, match=r"m0 must have shape \[\.\.\., 4\]"):
-        df.LinearGaussianModel(base.F, base.H, base.process_noise.cov, base.measurement_noise.cov, torch.zeros(3), base.initial.cov)
+        df.LinearGaussianModel(
+            base.F,
+            base.H,
+            base.process_noise.cov,
+            base.measurement_noise.cov,
+            torch.zeros(3),
+            base.initial.cov,
+        )
 
 
 @pytest.mark.parametrize("n", [0, -3, 2.5, True])
 def test_num_particles_must_be_positive_int(n):
     with pytest.raises(ValueError, match="num_particles must be a positive integer"):
-        particle_filter(constant_velocity(), torch.zeros(5, 2, dtype=torch.float64), num_particles=n)
+        particle_filter(
+            constant_velocity(), torch.zeros(5, 2, dtype=torch.float64), num_particles=n
+        )
 
 
 def test_particle_filter_dtype_mismatch():
     with pytest.raises(ValueError, match="ys must have the model's dtype"):
-        particle_filter(constant_velocity(), torch.zeros(5, 2, dtype=torch.float32), num_particles=4)
+        particle_filter(
+            constant_velocity(), torch.zeros(5, 2, dtype=torch.float32), num_particles=4
+        )
 
 
 def test_ess_threshold_range():
     with pytest.raises(ValueError, match="ess_threshold must lie in"):
-        particle_filter(constant_velocity(), torch.zeros(5, 2, dtype=torch.float64), num_particles=4, ess_threshold=2.0)
+        particle_filter(
+            constant_velocity(),
+            torch.zeros(5, 2, dtype=torch.float64),
+            num_particles=4,
+            ess_threshold=2.0,
+        )
 
 
 def test_noise_model_errors():

@@ -13,7 +13,12 @@ from torch import Tensor
 
 from ..linalg import mahalanobis_sq_chol, safe_cholesky
 
-__all__ = ["normalized_innovation_squared", "chi_square_quantile", "ChiSquareDetector", "CusumDetector"]
+__all__ = [
+    "normalized_innovation_squared",
+    "chi_square_quantile",
+    "ChiSquareDetector",
+    "CusumDetector",
+]
 
 
 def normalized_innovation_squared(innovations: Tensor, innovation_covs: Tensor) -> Tensor:
@@ -80,13 +85,18 @@ class ChiSquareDetector:
         if self.window == 1:
             return g
         c = torch.cumsum(g, dim=-1)
-        shifted = torch.cat([torch.zeros_like(c[..., : self.window]), c[..., : -self.window]], dim=-1)
+        shifted = torch.cat(
+            [torch.zeros_like(c[..., : self.window]), c[..., : -self.window]], dim=-1
+        )
         return c - shifted[..., : c.shape[-1]]
 
     def thresholds(self, num_steps: int, dtype=torch.float64) -> Tensor:
         """Per-step thresholds ``[T]`` (smaller windows at the start)."""
         full = self.threshold
-        head = [chi_square_quantile(self.dim * (t + 1), 1.0 - self.false_alarm_rate) for t in range(min(self.window - 1, num_steps))]
+        head = [
+            chi_square_quantile(self.dim * (t + 1), 1.0 - self.false_alarm_rate)
+            for t in range(min(self.window - 1, num_steps))
+        ]
         return torch.tensor(head + [full] * (num_steps - len(head)), dtype=dtype)
 
     def detect(self, innovations: Tensor, innovation_covs: Tensor) -> tuple[Tensor, Tensor]:
@@ -143,7 +153,9 @@ class CusumDetector:
         _, alarms = self.run(g)
         return self.scores(g), alarms
 
-    def calibrate(self, g_attack_free: Tensor, false_alarm_rate: float, *, iterations: int = 40) -> float:
+    def calibrate(
+        self, g_attack_free: Tensor, false_alarm_rate: float, *, iterations: int = 40
+    ) -> float:
         """Set ``τ`` so that the alarm rate on attack-free ``g [..., T]`` is ``false_alarm_rate``.
 
         Bisection on ``τ`` (the alarm rate is non-increasing in ``τ``); returns and
