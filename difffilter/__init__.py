@@ -11,7 +11,7 @@ Shapes are batch first: measurements ``ys [..., T, dy]``, inputs ``us [..., T, d
 particles ``[..., N, dx]``. See :mod:`difffilter.ssm` for the time convention.
 """
 
-from . import noise
+from . import metrics, noise, resampling
 from .extended import (
     SigmaPoints,
     extended_kalman_filter,
@@ -20,6 +20,15 @@ from .extended import (
     unscented_kalman_step,
 )
 from .kalman import gaussian_init, kalman_filter, kalman_predict, kalman_step
+from .particle import (
+    BootstrapProposal,
+    KalmanProposal,
+    ModelLikelihood,
+    ParticleState,
+    particle_filter,
+    particle_init,
+    particle_step,
+)
 from .results import FilterResult, GaussianState, GaussianStepOutput, ParticleFilterResult
 from .ssm import LinearGaussianModel, NonlinearGaussianModel, StateSpaceModel
 
@@ -30,6 +39,15 @@ __all__ = [
     "LinearGaussianModel",
     "NonlinearGaussianModel",
     "noise",
+    "metrics",
+    "resampling",
+    "ParticleState",
+    "particle_init",
+    "particle_step",
+    "particle_filter",
+    "BootstrapProposal",
+    "KalmanProposal",
+    "ModelLikelihood",
     "GaussianState",
     "GaussianStepOutput",
     "FilterResult",

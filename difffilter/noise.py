@@ -29,7 +29,7 @@ from ._checks import (
     check_square,
     check_vector_last,
 )
-from .linalg import gaussian_log_prob_chol, masked_measurement, matvec, outer, safe_cholesky
+from .linalg import LOG_2PI, gaussian_log_prob_chol, masked_measurement, matvec, outer, safe_cholesky
 
 __all__ = ["NoiseModel", "Gaussian", "GaussianMixture", "UniformBox", "register_tensor"]
 
@@ -120,12 +120,36 @@ class Gaussian(NoiseModel):
             register_tensor(self, "_scale_tril", mat)
             self._given = "scale_tril"
 
-    @property
-    def scale_tril(self) -> Tensor:
-        """Lower Cholesky factor ``[*batch, d, d]``."""
+    def _factor(self) -> tuple[Tensor, Tensor | None]:
+        """``(L, diag)``: the Cholesky factor and, when it is diagonal, its diagonal.
+
+        For covariances that do not require gradients the factor is cached against the
+        tensor's version counter (filters call it at every step); a diagonal factor
+        lets sampling and densities skip the triangular matrix products.
+        """
+        src = self._cov if self._given == "cov" else self._scale_tril
+        if src.requires_grad:
+            return self._compute_scale_tril(), None
+        key = (src.data_ptr(), src._version, src.dtype, src.device, tuple(src.shape))
+        cached = getattr(self, "_factor_cache", None)
+        if cached is not None and cached[0] == key:
+            return cached[1], cached[2]
+        L = self._compute_scale_tril()
+        diag = None
+        if L.dim() == 2 and bool((L == torch.diag_embed(L.diagonal())).all()):
+            diag = L.diagonal()
+        self._factor_cache = (key, L, diag)
+        return L, diag
+
+    def _compute_scale_tril(self) -> Tensor:
         if self._given == "scale_tril":
             return self._scale_tril.tril()
         return safe_cholesky(self._cov, name="cov")
+
+    @property
+    def scale_tril(self) -> Tensor:
+        """Lower Cholesky factor ``[*batch, d, d]``."""
+        return self._factor()[0]
 
     @property
     def mean(self) -> Tensor:
@@ -140,7 +164,7 @@ class Gaussian(NoiseModel):
 
     def sample(self, sample_shape=(), generator=None) -> Tensor:
         """Draw ``[*sample_shape, *batch, d]`` samples: ``μ + L ε``."""
-        L = self.scale_tril
+        L, diag = self._factor()
         batch = torch.broadcast_shapes(self.loc.shape[:-1], L.shape[:-2])
         eps = torch.randn(
             _shape(sample_shape) + batch + (self.dim,),
@@ -148,14 +172,20 @@ class Gaussian(NoiseModel):
             dtype=L.dtype,
             device=L.device,
         )
+        if diag is not None:
+            return torch.addcmul(self.loc, eps, diag)
         return self.loc + matvec(L, eps)
 
     def log_prob(self, value: Tensor, mask: Tensor | None = None) -> Tensor:
         """``log N(value; μ, Σ)`` for ``value [..., d]`` → ``[...]`` (marginal on ``mask``)."""
         residual = value - self.loc
-        if mask is None:
-            return gaussian_log_prob_chol(residual, self.scale_tril)
-        return _masked_gaussian_log_prob(residual, self.cov, mask)
+        if mask is not None:
+            return _masked_gaussian_log_prob(residual, self.cov, mask)
+        L, diag = self._factor()
+        if diag is not None:
+            z = residual / diag
+            return -0.5 * (z * z).sum(-1) - (torch.log(diag).sum() + 0.5 * self.dim * LOG_2PI)
+        return gaussian_log_prob_chol(residual, L)
 
 
 class GaussianMixture(NoiseModel):

@@ -75,8 +75,9 @@ class Proposal(Protocol):
 
     ``__call__(model, particles [..., N, dx], u [..., du] | None, y [..., dy], k, mask,
     generator)`` returns ``(new_particles [..., N, dx], log_correction [..., N])`` with
-    ``log_correction = log p(x_k | x_{k−1}) − log q(x_k | x_{k−1}, y_k)``; ``k`` is the
-    index of the state being propagated (``x_k → x_{k+1}``).
+    ``log_correction = log p(x_k | x_{k−1}) − log q(x_k | x_{k−1}, y_k)`` (``None`` means
+    zero: the bootstrap proposal); ``k`` is the index of the state being propagated
+    (``x_k → x_{k+1}``).
     """
 
     def __call__(self, model, particles, u, y, k, mask, generator) -> tuple[Tensor, Tensor]: ...
@@ -90,12 +91,11 @@ class Likelihood(Protocol):
 
 
 class BootstrapProposal:
-    """``q = p(x_k | x_{k−1})``: propagate through the model; zero correction."""
+    """``q = p(x_k | x_{k−1})``: propagate through the model; zero correction (``None``)."""
 
     def __call__(self, model, particles, u, y, k, mask, generator):
         u = None if u is None else u.unsqueeze(-2)
-        new = model.sample_transition(particles, u, k, generator)
-        return new, new.new_zeros(new.shape[:-1])
+        return model.sample_transition(particles, u, k, generator), None
 
 
 class KalmanProposal:
@@ -115,7 +115,11 @@ class KalmanProposal:
         u = None if u is None else u.unsqueeze(-2)
         f = model.transition(particles, u, k)
         Q = model.process_cov(k)
-        H = model.observation_jacobian(f, k + 1)
+        if hasattr(model, "observation_matrix"):
+            # linear measurement: one gain shared by every particle and run
+            H = model.observation_matrix(k + 1)
+        else:
+            H = model.observation_jacobian(f, k + 1)
         residual = y.unsqueeze(-2) - model.observe(f, k + 1)
         m = None if mask is None else mask.unsqueeze(-2)
         residual, H, R, _ = masked_measurement(residual, H, model.measurement_cov(k + 1), m)
@@ -149,11 +153,7 @@ def weighted_moments(particles: Tensor, log_weights: Tensor) -> tuple[Tensor, Te
 
     ``mean = Σ wᵢ xᵢ``, ``cov = Σ wᵢ (xᵢ − mean)(xᵢ − mean)ᵀ`` with ``w = softmax(log_weights)``.
     """
-    w = torch.softmax(log_weights, dim=-1).unsqueeze(-2)  # [..., 1, N]
-    mean = (w @ particles).squeeze(-2)
-    dev = particles - mean.unsqueeze(-2)
-    cov = (dev * w.transpose(-1, -2)).transpose(-1, -2) @ dev
-    return mean, symmetrize(cov)
+    return _moments(particles, torch.softmax(log_weights, dim=-1))
 
 
 def _ess(log_weights: Tensor) -> Tensor:
@@ -199,27 +199,36 @@ def particle_step(
     particles, log_w, k = state
     n = particles.shape[-2]
 
-    # Resample rows whose ESS fell below the threshold.
+    # Resample the rows whose ESS fell below the threshold.
     need = _ess(log_w) < ess_threshold * n
     if bool(need.any()):
-        res = resampler(
-            particles, log_w, resample_generator if resample_generator is not None else generator
-        )
-        particles = torch.where(need[..., None, None], res.particles, particles)
-        log_w = torch.where(need[..., None], res.log_weights, log_w)
+        res = resampler(particles, log_w, resample_generator if resample_generator is not None else generator)
+        if bool(need.all()):
+            particles, log_w = res.particles, res.log_weights
+        else:
+            particles = torch.where(need[..., None, None], res.particles, particles)
+            log_w = torch.where(need[..., None], res.log_weights, log_w)
 
     new, correction = proposal(model, particles, u, y, k, mask, generator)
-    log_pred_w = log_w + correction  # predictive weights of the proposed particles
-    log_alpha = likelihood(model, y, new, k + 1, mask) + correction
+    log_alpha = likelihood(model, y, new, k + 1, mask)
+    if correction is not None:
+        log_alpha = log_alpha + correction
     joint = log_w + log_alpha
     increment = torch.logsumexp(joint, dim=-1)
     log_w_new = joint - increment.unsqueeze(-1)
 
-    # Predicted measurement moments (for innovations / chi-square detectors).
+    # Predictive weights of the proposed particles: w_{k−1}·p/q (just w_{k−1} for the
+    # bootstrap proposal, whose correction is None).
+    if correction is None:
+        pred_w = torch.exp(log_w)
+    else:
+        pred_w = torch.softmax(log_w + correction, dim=-1)
+    pred_w = pred_w.unsqueeze(-2)  # [..., 1, N]
     obs = model.observe(new, k + 1)
-    pred_log_w = log_pred_w - torch.logsumexp(log_pred_w, dim=-1, keepdim=True)
-    y_hat, y_cov = weighted_moments(obs, pred_log_w)
-    pred_mean = (torch.exp(pred_log_w).unsqueeze(-2) @ new).squeeze(-2)
+    y_hat = (pred_w @ obs).squeeze(-2)
+    obs_dev = obs - y_hat.unsqueeze(-2)
+    y_cov = (obs_dev * pred_w.transpose(-1, -2)).transpose(-1, -2) @ obs_dev
+    pred_mean = (pred_w @ new).squeeze(-2)
     innovation = y - y_hat
     R = model.measurement_cov(k + 1)
     if mask is not None:
@@ -227,7 +236,8 @@ def particle_step(
         innovation, _, R, _ = masked_measurement(innovation, eye, R, mask)
         mf = mask.to(y_cov.dtype)
         y_cov = y_cov * (mf.unsqueeze(-1) * mf.unsqueeze(-2))
-    mean, cov = weighted_moments(new, log_w_new)
+    w_new = torch.exp(log_w_new)
+    mean, cov = _moments(new, w_new)
     out = ParticleStepOutput(
         mean=mean,
         cov=cov,
@@ -235,10 +245,19 @@ def particle_step(
         innovation=innovation,
         innovation_cov=symmetrize(y_cov + R),
         log_likelihood=increment,
-        ess=_ess(log_w_new),
+        ess=1.0 / w_new.square().sum(-1),
         resampled=need,
     )
     return ParticleState(new, log_w_new, k + 1), out
+
+
+def _moments(particles: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
+    """Mean and covariance of ``particles [..., N, d]`` under normalised ``weights [..., N]``."""
+    w = weights.unsqueeze(-2)
+    mean = (w @ particles).squeeze(-2)
+    dev = particles - mean.unsqueeze(-2)
+    cov = (dev * w.transpose(-1, -2)).transpose(-1, -2) @ dev
+    return mean, symmetrize(cov)
 
 
 def particle_filter(

@@ -157,7 +157,9 @@ class FourTankModel(StateSpaceModel):
 
     def observe(self, x: Tensor, k: int) -> Tensor:
         """``G x`` with ``G = I``: ``[..., 4]`` → ``[..., 4]``."""
-        return x @ self.G.transpose(0, 1)
+        # G = I [D]: skip the product (a [N,4]×[4,4] GEMM is slow on CPU); a copy keeps
+        # the contract that the result is a new tensor.
+        return x.clone()
 
     def observation_jacobian(self, x: Tensor, k: int) -> Tensor:
         return self.G.expand(x.shape[:-1] + (4, 4))

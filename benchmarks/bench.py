@@ -1,0 +1,332 @@
+"""``make bench``: speed and memory figures, side by side with plain numpy loops.
+
+Prints, in one run:
+
+1. Kalman filter run-steps per second at B = 1 and B = 1000 on the constant-velocity
+   model of the tracking paper (SCENARIOS.md §2: T = 1, σ_ω = 0.055, position
+   measurements with R = diag(4, 4)), for the sequential and the parallel-scan filter,
+   beside a per-run numpy predict/update loop of the same filter.
+2. Bootstrap PF particle-steps per second on the four-tank model (SCENARIOS.md §1),
+   float32, at (B, N) = (1, 100), (100, 1000), (10, 10000), beside a per-run numpy loop
+   (particles vectorised in numpy, runs and time in Python).
+3. Peak memory of a PF run with gradients (B = 32, N = 1000, T = 100) for systematic,
+   soft and optimal-transport resampling, each in a fresh subprocess (peak resident set
+   size, ``ru_maxrss``, minus the resident size before the run).
+4. The modified PF of the four-tank paper (when its benchmark module is present).
+
+Targets (2-core CPU) are printed beside the figures; a missed target says so.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from difffilter.models.four_tank import FourTankModel  # noqa: E402
+
+import difffilter as df  # noqa: E402
+from difffilter.particle import particle_filter  # noqa: E402
+
+
+def best_time(fn, repeats: int = 3, min_time: float = 0.2) -> float:
+    """Best wall time of ``fn()`` over ``repeats`` rounds (each round ≥ ``min_time`` s)."""
+    fn()  # warm-up (allocator, lazy initialisation)
+    best = math.inf
+    for _ in range(repeats):
+        n, start = 0, time.perf_counter()
+        while True:
+            fn()
+            n += 1
+            elapsed = time.perf_counter() - start
+            if elapsed >= min_time:
+                break
+        best = min(best, elapsed / n)
+    return best
+
+
+# --------------------------------------------------------------------------- KF ----
+def tracking_cv_model(dtype=torch.float64) -> df.LinearGaussianModel:
+    """Constant-velocity model of the tracking paper, position measurements (R = diag(4, 4))."""
+    T, sigma = 1.0, 0.055
+    block = torch.tensor([[T**3 / 3, T**2 / 2], [T**2 / 2, T]], dtype=dtype)
+    F1 = torch.tensor([[1.0, T], [0.0, 1.0]], dtype=dtype)
+    F = torch.block_diag(F1, F1)
+    Q = sigma**2 * torch.block_diag(block, block)
+    H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1, 0]], dtype=dtype)
+    R = torch.diag(torch.tensor([4.0, 4.0], dtype=dtype))
+    m0 = torch.tensor([20.0, 0.3, 20.0, 0.3], dtype=dtype)
+    P0 = torch.diag(torch.tensor([1.0, 1e-4, 1.0, 1e-4], dtype=dtype))
+    return df.LinearGaussianModel(F, H, Q, R, m0, P0)
+
+
+def numpy_kf_run(F, H, Q, R, m0, P0, ys):
+    """Plain numpy Kalman filter for one run (Joseph form, Cholesky, log-likelihood)."""
+    m, P = m0.copy(), P0.copy()
+    eye = np.eye(len(m))
+    ll = 0.0
+    for y in ys:
+        m = F @ m
+        P = F @ P @ F.T + Q
+        S = H @ P @ H.T + R
+        L = np.linalg.cholesky(S)
+        K = np.linalg.solve(S, H @ P).T
+        r = y - H @ m
+        m = m + K @ r
+        IKH = eye - K @ H
+        P = IKH @ P @ IKH.T + K @ R @ K.T
+        P = 0.5 * (P + P.T)
+        z = np.linalg.solve(L, r)
+        ll += -0.5 * z @ z - np.log(np.diag(L)).sum() - np.log(2 * np.pi)
+    return m, ll
+
+
+def bench_kf(steps: int = 200) -> list[dict]:
+    model = tracking_cv_model()
+    gen = torch.Generator().manual_seed(0)
+    rows = []
+    mats = [
+        t.numpy()
+        for t in (
+            model.F,
+            model.H,
+            model.process_noise.cov,
+            model.measurement_noise.cov,
+            model.initial.mean,
+            model.initial.cov,
+        )
+    ]
+    with torch.no_grad():
+        _, ys1, _ = model.simulate(steps, (1,), generator=gen)
+        y_np = ys1[0].numpy()
+        t_np = best_time(lambda: numpy_kf_run(*mats, y_np))
+        np_rate = steps / t_np
+        for B in (1, 1000):
+            _, ys, _ = model.simulate(steps, (B,), generator=gen)
+            for method in ("sequential", "parallel"):
+                t = best_time(
+                    lambda ys=ys, method=method: df.kalman_filter(model, ys, method=method)
+                )
+                rows.append(
+                    {"B": B, "method": method, "rate": B * steps / t, "numpy_rate": np_rate}
+                )
+    return rows
+
+
+# --------------------------------------------------------------------------- PF ----
+def numpy_bootstrap_pf_run(model: FourTankModel, ys: np.ndarray, N: int, rng: np.random.Generator):
+    """Plain numpy bootstrap PF for one run: particles vectorised, systematic resampling."""
+    outflow, couple, inflow = (model.outflow.numpy(), model.couple.numpy(), model.inflow.numpy())
+    dt = model.dt
+    q_sd = np.sqrt(np.diag(model.process_noise.cov.numpy()))
+    r_var = np.diag(model.measurement_noise.cov.numpy())
+    x = model.initial.mean.numpy() + rng.standard_normal((N, 4)).astype(np.float32) * np.sqrt(
+        np.diag(model.initial.cov.numpy())
+    )
+    logw = np.full(N, -np.log(N), dtype=np.float32)
+    means = []
+    for y in ys:
+        w = np.exp(logw)
+        if 1.0 / np.sum(w * w) < 0.5 * N:
+            c = np.cumsum(w)
+            u = (np.arange(N) + rng.random()) / N
+            idx = np.minimum(np.searchsorted(c, u), N - 1)
+            x = x[idx]
+            logw = np.full(N, -np.log(N), dtype=np.float32)
+        s = np.sqrt(np.maximum(x, 0.0))
+        coupled = np.concatenate([s[:, 2:4], np.zeros_like(s[:, :2])], axis=1)
+        x = (
+            x
+            + dt * (outflow * s + couple * coupled + inflow)
+            + rng.standard_normal((N, 4)).astype(np.float32) * q_sd
+        )
+        r = y - x
+        loglik = -0.5 * np.sum(r * r / r_var, axis=1)
+        joint = logw + loglik
+        mx = joint.max()
+        lse = mx + np.log(np.sum(np.exp(joint - mx)))
+        logw = joint - lse
+        means.append(np.exp(logw) @ x)
+    return np.array(means)
+
+
+def bench_pf(steps: int = 50) -> list[dict]:
+    model = FourTankModel(dtype=torch.float32)
+    gen = torch.Generator().manual_seed(0)
+    rows = []
+    with torch.no_grad():
+        for B, N in ((1, 100), (100, 1000), (10, 10000)):
+            _, ys, _ = model.simulate(steps, (B,), generator=gen)
+            t = best_time(
+                lambda ys=ys, N=N: particle_filter(model, ys, num_particles=N, generator=gen),
+                repeats=3,
+                min_time=0.5,
+            )
+            rng = np.random.default_rng(0)
+            y_np = ys[0].numpy()
+            t_np = best_time(
+                lambda y_np=y_np, N=N, rng=rng: numpy_bootstrap_pf_run(model, y_np, N, rng),
+                repeats=2,
+                min_time=0.3,
+            )
+            rows.append({"B": B, "N": N, "rate": B * N * steps / t, "numpy_rate": N * steps / t_np})
+    return rows
+
+
+# ---------------------------------------------------------------------- memory ----
+MEMORY_CHILD = r"""
+import json, resource, sys, torch
+from difffilter.models.four_tank import FourTankModel
+from difffilter.particle import particle_filter
+from difffilter.resampling import OptimalTransport, Soft, Systematic
+name = sys.argv[1]
+resampler = {"systematic": Systematic(), "soft": Soft(0.5), "ot": OptimalTransport()}[name]
+model = FourTankModel(dtype=torch.float32)
+gen = torch.Generator().manual_seed(0)
+_, ys, _ = model.simulate(100, (32,), generator=gen)
+scale = torch.nn.Parameter(torch.ones(()))
+# gradients through the particle paths too: the prior mean is a leaf that requires grad
+model.initial.loc.requires_grad_(True)
+def rss_kib():
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS"):
+                return int(line.split()[1])
+before = rss_kib()
+res = particle_filter(model, ys * scale, num_particles=1000, resampler=resampler, generator=gen)
+res.log_likelihood.sum().backward()
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(json.dumps({"before_kib": before, "peak_kib": peak, "grad": float(scale.grad)}))
+"""
+
+
+def bench_memory() -> list[dict]:
+    rows = []
+    for name in ("systematic", "soft", "ot"):
+        start = time.perf_counter()
+        out = subprocess.run(
+            [sys.executable, "-c", MEMORY_CHILD, name], capture_output=True, text=True, check=False
+        )
+        if out.returncode != 0:
+            rows.append(
+                {
+                    "resampler": name,
+                    "error": out.stderr.strip().splitlines()[-1] if out.stderr else "failed",
+                }
+            )
+            continue
+        data = json.loads(out.stdout.strip().splitlines()[-1])
+        rows.append(
+            {
+                "resampler": name,
+                "peak_mib": data["peak_kib"] / 1024,
+                "run_mib": (data["peak_kib"] - data["before_kib"]) / 1024,
+                "seconds": time.perf_counter() - start,
+                "grad_finite": math.isfinite(data["grad"]),
+            }
+        )
+    return rows
+
+
+# ------------------------------------------------------------------------ main ----
+def _fmt(x: float) -> str:
+    return f"{x:,.3g}" if x < 1e3 else f"{x:,.0f}"
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--skip-memory", action="store_true")
+    p.add_argument("--json", type=Path, default=None, help="also write the figures as JSON")
+    args = p.parse_args(argv)
+    print(
+        f"difffilter benchmarks — torch {torch.__version__}, {torch.get_num_threads()} threads, {os.cpu_count()} CPUs\n"
+    )
+    figures: dict = {}
+
+    print("1. Kalman filter, constant-velocity model (dx = 4, dy = 2), float64, T = 200")
+    print(
+        f"   {'runs B':>6s}  {'method':>10s}  {'run-steps/s':>14s}  {'numpy loop':>12s}  {'speed-up':>8s}  target"
+    )
+    kf = bench_kf()
+    figures["kf"] = kf
+    for r in kf:
+        speedup = r["rate"] / r["numpy_rate"]
+        target = "≥ 50× numpy" if r["B"] == 1000 else "≥ 1× numpy"
+        need = 50 if r["B"] == 1000 else 1
+        verdict = "met" if speedup >= need else f"MISSED ({speedup / need:.2f} of target)"
+        print(
+            f"   {r['B']:>6d}  {r['method']:>10s}  {_fmt(r['rate']):>14s}  "
+            f"{_fmt(r['numpy_rate']):>12s}  {speedup:7.1f}×  {target}: {verdict}"
+        )
+
+    print(
+        "\n2. Bootstrap PF, four-tank model (dx = 4), float32, systematic resampling at ESS < N/2, T = 50"
+    )
+    print(
+        f"   {'B':>4s} {'N':>6s}  {'particle-steps/s':>16s}  {'numpy loop':>12s}  {'speed-up':>8s}  target"
+    )
+    pf = bench_pf()
+    figures["pf"] = pf
+    for r in pf:
+        speedup = r["rate"] / r["numpy_rate"]
+        big = r["B"] * r["N"] >= 1e5
+        target = "≥ 2.5e7 (B·N ≥ 1e5)" if big else "—"
+        verdict = (
+            ("met" if r["rate"] >= 2.5e7 else f"MISSED ({r['rate'] / 2.5e7:.2f} of target)")
+            if big
+            else ""
+        )
+        print(
+            f"   {r['B']:>4d} {r['N']:>6d}  {_fmt(r['rate']):>16s}  "
+            f"{_fmt(r['numpy_rate']):>12s}  {speedup:7.1f}×  {target} {verdict}"
+        )
+
+    if not args.skip_memory:
+        print("\n3. Peak memory, PF with gradients (B = 32, N = 1000, T = 100, four-tank, float32)")
+        print(
+            f"   {'resampler':>10s}  {'peak RSS (MiB)':>14s}  {'run (MiB)':>10s}  {'time (s)':>8s}  target"
+        )
+        mem = bench_memory()
+        figures["memory"] = mem
+        for r in mem:
+            if "error" in r:
+                print(f"   {r['resampler']:>10s}  error: {r['error']}")
+                continue
+            target = ""
+            if r["resampler"] == "ot":
+                target = "≤ 4096 MiB: " + ("met" if r["peak_mib"] <= 4096 else "MISSED")
+            print(
+                f"   {r['resampler']:>10s}  {r['peak_mib']:14.0f}  {r['run_mib']:10.0f}  {r['seconds']:8.1f}  {target}"
+            )
+
+    try:
+        from bench_four_tank import bench_modified_pf
+    except ImportError:
+        bench_modified_pf = None
+    if bench_modified_pf is not None:
+        print("\n4. Modified PF (four-tank paper, Table 2)")
+        rows = bench_modified_pf()
+        figures["modified_pf"] = rows
+        for r in rows:
+            print(
+                "   "
+                + "  ".join(f"{k}={_fmt(v) if isinstance(v, float) else v}" for k, v in r.items())
+            )
+
+    if args.json:
+        args.json.write_text(json.dumps(figures, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

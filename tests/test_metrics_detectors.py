@@ -1,0 +1,91 @@
+"""Metrics and residual detectors against hand-computed values and known distributions."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from difffilter import metrics
+from difffilter.fdi.detectors import (
+    ChiSquareDetector,
+    CusumDetector,
+    chi_square_quantile,
+    normalized_innovation_squared,
+)
+
+
+def test_detection_rates_and_counts():
+    alarms = torch.tensor([[1, 0, 1, 0, 0], [0, 0, 1, 1, 0]], dtype=torch.bool)
+    attacked = torch.tensor([[1, 1, 0, 0, 0], [0, 0, 1, 1, 1]], dtype=torch.bool)
+    r = metrics.detection_rates(alarms, attacked)
+    assert (r["tp"], r["fp"], r["tn"], r["fn"]) == (3, 1, 4, 2)
+    assert r["tpr"] == pytest.approx(3 / 5) and r["fpr"] == pytest.approx(1 / 5)
+    assert r["false_alarms"] == 1 and r["missed_attacks"] == 2
+
+
+def test_roc_auc_matches_pairwise_definition():
+    g = torch.Generator().manual_seed(0)
+    labels = torch.rand(400, generator=g) < 0.4
+    scores = torch.randn(400, generator=g) + labels.double() * 1.0
+    scores[::7] = 0.5  # ties
+    pos, neg = scores[labels], scores[~labels]
+    diff = pos[:, None] - neg[None, :]
+    pairwise = ((diff > 0).double() + 0.5 * (diff == 0).double()).mean().item()
+    assert metrics.roc_auc(scores, labels) == pytest.approx(pairwise, abs=1e-12)
+    assert math.isnan(metrics.roc_auc(scores, torch.ones(400, dtype=torch.bool)))
+
+
+def test_detection_delay_episodes():
+    attacked = torch.tensor([[0, 1, 1, 1, 0, 0, 1, 1], [1, 1, 0, 0, 0, 0, 0, 0]], dtype=torch.bool)
+    alarms = torch.tensor([[0, 0, 0, 1, 0, 1, 0, 0], [1, 0, 0, 0, 0, 0, 0, 0]], dtype=torch.bool)
+    d = metrics.detection_delay(alarms, attacked)
+    assert d["episodes"] == 3 and d["detected"] == 2 and d["missed"] == 1
+    assert d["mean_delay"] == pytest.approx((2 + 0) / 2)
+
+
+def test_rmse():
+    assert metrics.rmse(torch.tensor([1.0, 3.0]), torch.tensor([0.0, 0.0])).item() == pytest.approx(
+        math.sqrt(5)
+    )
+
+
+@pytest.mark.parametrize(
+    "dof,prob,expected",
+    [(1, 0.95, 3.841458820694124), (2, 0.99, 9.21034037197618), (4, 0.999, 18.46682695290317)],
+)
+def test_chi_square_quantile_against_tables(dof, prob, expected):
+    assert chi_square_quantile(dof, prob) == pytest.approx(expected, rel=1e-9)
+
+
+def test_chi_square_detector_false_alarm_rate_on_model_consistent_innovations():
+    g = torch.Generator().manual_seed(1)
+    S = torch.tensor([[2.0, 0.3], [0.3, 0.5]], dtype=torch.float64)
+    L = torch.linalg.cholesky(S)
+    innov = torch.randn(200, 500, 2, dtype=torch.float64, generator=g) @ L.T
+    det = ChiSquareDetector(dim=2, false_alarm_rate=0.05)
+    _, alarms = det.detect(innov, S.expand(200, 500, 2, 2))
+    rate = alarms.double().mean().item()
+    assert abs(rate - 0.05) < 4 * math.sqrt(0.05 * 0.95 / alarms.numel())
+    # windowed statistic: sums of W consecutive g's against χ²_{mW}
+    detw = ChiSquareDetector(dim=2, false_alarm_rate=0.05, window=4)
+    s, a = detw.detect(innov, S.expand(200, 500, 2, 2))
+    g_ = normalized_innovation_squared(innov, S.expand(200, 500, 2, 2))
+    torch.testing.assert_close(s[:, 10], g_[:, 7:11].sum(-1))
+    assert abs(a[:, 3:].double().mean().item() - 0.05) < 0.01
+
+
+def test_cusum_hand_computed_and_calibration():
+    det = CusumDetector(bias=2.0, threshold=3.0)
+    g = torch.tensor([[1.0, 4.0, 3.5, 0.0, 5.0, 2.0]])
+    stat, alarm = det.run(g)
+    # S: 0, 2, 3.5 (>3 alarm, reset 0), 0, 3 (not > 3), 3
+    torch.testing.assert_close(stat, torch.tensor([[0.0, 2.0, 3.5, 0.0, 3.0, 3.0]]))
+    assert alarm.tolist() == [[False, False, True, False, False, False]]
+    gen = torch.Generator().manual_seed(2)
+    free = (torch.randn(300, 200, 2, generator=gen) ** 2).sum(-1)  # χ²_2 statistics
+    det = CusumDetector(bias=3.0)
+    tau = det.calibrate(free, 0.01)
+    rate = det.run(free)[1].double().mean().item()
+    assert tau > 0 and rate <= 0.01 + 1e-9 and rate > 0.005
