@@ -104,6 +104,25 @@ class ChiSquareDetector:
         s = self.scores(innovations, innovation_covs)
         return s, s > self.thresholds(s.shape[-1], s.dtype).to(s.device)
 
+    # -- online use (one step at a time, e.g. to gate a filter's update) ----------------
+    def init(self, batch_shape=(), *, dtype=torch.float64, device=None) -> tuple[Tensor, int]:
+        """Online state: the last ``W − 1`` values of ``g`` ``[*batch, W − 1]`` and the step count."""
+        return torch.zeros(
+            torch.Size(batch_shape) + (self.window - 1,), dtype=dtype, device=device
+        ), 0
+
+    def step(
+        self, state: tuple[Tensor, int], g: Tensor
+    ) -> tuple[tuple[Tensor, int], Tensor, Tensor]:
+        """Feed ``g_k [...]``; returns ``(state, score [...], alarm [...])`` as :meth:`detect` would."""
+        past, count = state
+        score = g + past.sum(-1)
+        dof = self.dim * min(count + 1, self.window)
+        alarm = score > chi_square_quantile(dof, 1.0 - self.false_alarm_rate)
+        if self.window > 1:
+            past = torch.cat([past[..., 1:], g.unsqueeze(-1)], dim=-1)
+        return (past, count + 1), score, alarm
+
 
 class CusumDetector:
     """CUSUM on the normalised innovation squared (Page 1954; Murguia & Ruths 2016).
@@ -152,6 +171,19 @@ class CusumDetector:
         g = normalized_innovation_squared(innovations, innovation_covs)
         _, alarms = self.run(g)
         return self.scores(g), alarms
+
+    # -- online use ----------------------------------------------------------------------
+    def init(self, batch_shape=(), *, dtype=torch.float64, device=None) -> Tensor:
+        """Online state ``S_0 = 0`` ``[*batch]``."""
+        return torch.zeros(torch.Size(batch_shape), dtype=dtype, device=device)
+
+    def step(self, state: Tensor, g: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``S_k = max(0, S_{k−1} + g_k − b)``; returns ``(state, S_k, alarm)``, resetting after an alarm."""
+        if self.threshold is None:
+            raise ValueError("threshold is not set: pass threshold= or call calibrate() first")
+        s = torch.clamp(state + g - self.bias, min=0.0)
+        alarm = s > self.threshold
+        return torch.where(alarm, torch.zeros_like(s), s), s, alarm
 
     def calibrate(
         self, g_attack_free: Tensor, false_alarm_rate: float, *, iterations: int = 40

@@ -1,0 +1,113 @@
+"""Attack-aware mixture likelihood for particle filters under randomly occurring deception.
+
+Song, Wang, Wang & Shan (RRP particle filter with deception attacks, eqs 14–15; the
+"method [31]" the modified-PF paper compares with): with a Bernoulli attack indicator
+of known rate ``p`` the likelihood of a received measurement marginalises it out::
+
+    p(ỹ_k | x_k) = (1 − p) p_v(ỹ_k − h(x_k)) + p · p_a(ỹ_k | x_k)
+
+where ``p_a`` is the measurement density under attack:
+
+* :class:`ReplacementDeception` — the measurement is replaced by ``ξ_k ~ p_ξ``
+  (the RRP paper, eq. 5): ``p_a(ỹ | x) = p_ξ(ỹ)``, independent of ``x``;
+* :class:`BiasDeception` — an additive deception ``ỹ = y + ρ`` (the extension to the
+  bias attack that the modified-PF paper makes in Sec. V-B, ``ρ = γ̄``):
+  ``p_a(ỹ | x) = p_v(ỹ − h(x) − ρ)``.
+
+Everything is evaluated in log space (``logaddexp``). :meth:`DeceptionMixtureLikelihood.
+attack_probability` gives the filter's posterior probability that the current packet is
+attacked, ``P(l_k = 1 | ỹ_{1:k})``, a detection score.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from ..noise import NoiseModel
+
+__all__ = ["BiasDeception", "ReplacementDeception", "DeceptionMixtureLikelihood"]
+
+
+class BiasDeception:
+    """Additive deception ``ỹ = y + ρ``: ``log p_a(ỹ | x) = log p_v(ỹ − ρ − h(x))``.
+
+    Args:
+        rho: the deception vector ``ρ`` ``[..., dy]`` (``γ̄`` for the bias attack).
+    """
+
+    def __init__(self, rho):
+        rho = torch.as_tensor(rho)
+        if rho.dim() < 1 or not bool(torch.isfinite(rho).all()):
+            raise ValueError(f"rho must be a finite vector [..., dy]; got {rho!r}")
+        self.rho = rho
+
+    def __call__(self, model, y: Tensor, particles: Tensor, k: int, mask) -> Tensor:
+        rho = self.rho.to(dtype=y.dtype, device=y.device)
+        m = None if mask is None else mask.unsqueeze(-2)
+        return model.measurement_log_prob((y - rho).unsqueeze(-2), particles, k, m)
+
+
+class ReplacementDeception:
+    """Replacement deception ``ỹ = ξ``, ``ξ ~ p_ξ``: ``log p_a(ỹ | x) = log p_ξ(ỹ)``.
+
+    Args:
+        density: a :mod:`difffilter.noise` model of ``ξ`` (e.g. ``UniformBox``).
+    """
+
+    def __init__(self, density: NoiseModel):
+        if not isinstance(density, NoiseModel):
+            raise ValueError(
+                f"density must be a difffilter.noise model; got {type(density).__name__}"
+            )
+        self.density = density
+
+    def __call__(self, model, y: Tensor, particles: Tensor, k: int, mask) -> Tensor:
+        lp = self.density.log_prob(y, mask=mask) if mask is not None else self.density.log_prob(y)
+        return lp.unsqueeze(-1).expand(particles.shape[:-1])
+
+
+class DeceptionMixtureLikelihood:
+    """``log[(1 − p) p_v(ỹ − h(x)) + p p_a(ỹ | x)]``, a particle-filter ``Likelihood``.
+
+    Args:
+        attack_probability: ``p ∈ [0, 1]`` (``η̄`` of the RRP paper, ``p_l`` here).
+        attack: :class:`BiasDeception` or :class:`ReplacementDeception` (any callable
+            ``(model, y, particles, k, mask) → [..., N]``).
+
+    ``__call__(model, y [..., dy], particles [..., N, dx], k, mask)`` → ``[..., N]``.
+    """
+
+    def __init__(self, attack_probability: float, attack):
+        p = float(attack_probability)
+        if not 0.0 <= p <= 1.0:
+            raise ValueError(f"attack_probability must lie in [0, 1]; got {attack_probability!r}")
+        if not callable(attack):
+            raise ValueError("attack must be a callable (model, y, particles, k, mask) -> [..., N]")
+        self.p, self.attack = p, attack
+        self._log_p = math.log(p) if p > 0 else -math.inf
+        self._log_q = math.log1p(-p) if p < 1 else -math.inf
+
+    def components(self, model, y, particles, k, mask) -> tuple[Tensor, Tensor]:
+        """``(log[(1−p) p_v], log[p p_a])`` per particle, each ``[..., N]``."""
+        m = None if mask is None else mask.unsqueeze(-2)
+        clean = model.measurement_log_prob(y.unsqueeze(-2), particles, k, m) + self._log_q
+        attacked = self.attack(model, y, particles, k, mask) + self._log_p
+        return clean, attacked
+
+    def __call__(self, model, y, particles, k, mask) -> Tensor:
+        clean, attacked = self.components(model, y, particles, k, mask)
+        return torch.logaddexp(clean, attacked)
+
+    def attack_probability(self, model, y, particles, log_weights, k, mask=None) -> Tensor:
+        """``P(l_k = 1 | ỹ_{1:k})`` ``[...]`` from predictive ``log_weights [..., N]``.
+
+        ``= Σ_i w^i p p_a^i / Σ_i w^i [(1−p) p_v^i + p p_a^i]`` (log space).
+        """
+        clean, attacked = self.components(model, y, particles, k, mask)
+        lw = torch.log_softmax(log_weights, dim=-1)
+        num = torch.logsumexp(lw + attacked, dim=-1)
+        den = torch.logsumexp(lw + torch.logaddexp(clean, attacked), dim=-1)
+        return torch.exp(num - den)

@@ -1,0 +1,319 @@
+"""Probability-of-attack (PoA) detection on weighted particle sets and its thresholds.
+
+Sadeghzadeh-Nokhodberiz, Meskin & Hasanzadeh, "Modified particle filters for detection
+of FDI attacks and state estimation in networked nonlinear systems", IEEE Access 2022.
+
+For a particle set ``{x^i, w^i}`` approximating ``p(x_k | ·)`` and a (possibly attacked)
+measurement ``ỹ_k = G x_k + v_k + l_k γ_k``::
+
+    z^i = ỹ_k − G x^i                                   residual samples (eqs 9, 15)
+    β_k = Σ_{i : ‖z^i‖ > η_k} w^i                        PoA (eqs 10, 14, 17, 58)
+    alarm (l̂_k = 1)  ⇔  β_k > ζ
+
+Thresholds (Theorem 1, Remark 3, Theorem 2)::
+
+    K_k = Q Gᵀ (R + G Q Gᵀ)⁻¹                            gain of the modified proposal (35)
+    η_k = ς_k ‖γ‖_min,   ς_k = |σ̄_k − 1|,  σ̄_k the singular value of G K_k nearest to 1   (45)
+    ζ   = α (N − 1)/N,   p_l N/(N − 1) ≤ α < 1                                          (46, 53)
+
+so the smallest admissible ``α`` gives ``ζ = p_l``. When ``p_l`` is unknown (Remark 6) it
+is replaced by the running fraction of detected attacks (:class:`RunningAttackRate`).
+
+The diagnostic :func:`literal_probability_of_attack` evaluates the Gaussian likelihood
+literally in float64 (``(2π)^{−m/2} |R|^{−1/2} exp(−½ rᵀR⁻¹r)``) and normalises in linear
+space, as a naive implementation would: for large attacks every density underflows to 0,
+the normalised weights are ``0/0 = NaN`` and ``NaN > ζ`` is false, so no alarm is raised.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from ..linalg import LOG_2PI, safe_cholesky
+
+__all__ = [
+    "modified_pf_gain",
+    "attack_threshold",
+    "attack_threshold_factor",
+    "detection_threshold",
+    "probability_of_attack",
+    "PoADetector",
+    "literal_gaussian_density",
+    "literal_probability_of_attack",
+    "RunningAttackRate",
+    "AttackRateState",
+]
+
+
+def _as_matrix(value, name: str, dtype=None) -> Tensor:
+    t = torch.as_tensor(value, dtype=dtype if dtype is not None else torch.float64)
+    if t.dim() < 2:
+        raise ValueError(
+            f"{name} must be a matrix of shape [..., m, n]; got shape {tuple(t.shape)}"
+        )
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{name} contains NaN or Inf values; every entry must be finite")
+    return t
+
+
+def modified_pf_gain(G, Q, R) -> Tensor:
+    """Gain of the modified (Kalman-corrected) proposal, eq. (35): ``K = Q Gᵀ (R + G Q Gᵀ)⁻¹``.
+
+    Shapes: ``G [..., dy, dx]``, ``Q [..., dx, dx]``, ``R [..., dy, dy]`` → ``K [..., dx, dy]``.
+    ``R + G Q Gᵀ`` is solved by Cholesky (``ValueError`` if not positive definite).
+    """
+    G = _as_matrix(G, "G")
+    Q = _as_matrix(Q, "Q", G.dtype)
+    R = _as_matrix(R, "R", G.dtype)
+    dy, dx = G.shape[-2:]
+    if Q.shape[-2:] != (dx, dx):
+        raise ValueError(
+            f"Q must have shape [..., {dx}, {dx}] to match G [{dy}, {dx}]; got {tuple(Q.shape)}"
+        )
+    if R.shape[-2:] != (dy, dy):
+        raise ValueError(
+            f"R must have shape [..., {dy}, {dy}] to match G [{dy}, {dx}]; got {tuple(R.shape)}"
+        )
+    cross = Q @ G.transpose(-1, -2)  # [dx, dy]
+    S = R + G @ cross
+    S = 0.5 * (S + S.transpose(-1, -2))
+    chol = safe_cholesky(S, name="R + G Q Gᵀ")
+    return torch.cholesky_solve(cross.transpose(-1, -2), chol).transpose(-1, -2)
+
+
+def attack_threshold_factor(G, K) -> Tensor:
+    """``ς = |σ̄ − 1|`` of Theorem 1, ``σ̄`` the singular value of ``G K`` nearest to 1.
+
+    Shapes: ``G [..., dy, dx]``, ``K [..., dx, dy]`` → ``[...]``.
+    """
+    G = _as_matrix(G, "G")
+    K = _as_matrix(K, "K", G.dtype)
+    if K.shape[-2] != G.shape[-1] or K.shape[-1] != G.shape[-2]:
+        raise ValueError(
+            f"K must have shape [..., {G.shape[-1]}, {G.shape[-2]}] (the transpose of G's); got {tuple(K.shape)}"
+        )
+    sv = torch.linalg.svdvals(G @ K)
+    nearest = torch.gather(sv, -1, (sv - 1.0).abs().argmin(-1, keepdim=True)).squeeze(-1)
+    return (nearest - 1.0).abs()
+
+
+def attack_threshold(G, K, gamma_min: float) -> Tensor:
+    """Residual-norm threshold of Theorem 1, eq. (45): ``η = ς ‖γ‖_min``.
+
+    ``gamma_min`` is the smallest attack norm to be guaranteed detectable (a lower bound
+    on ``‖γ_k‖``). Returns ``η`` ``[...]`` (a 0-dim tensor for single matrices). With
+    ``G = I``, ``Q = 1e-4 I`` and ``R = 1e-3 diag(1, 1, .5, .5)``, ``G K`` has singular
+    values 1/11 and 1/6, so ``ς = 5/6`` and ``η = 0.28·5/6 = 0.233`` (the paper's value).
+    """
+    if not (isinstance(gamma_min, (int, float)) and math.isfinite(gamma_min) and gamma_min > 0):
+        raise ValueError(
+            f"gamma_min must be a finite number > 0 (a lower bound on ‖γ_k‖); got {gamma_min!r}"
+        )
+    return attack_threshold_factor(G, K) * gamma_min
+
+
+def detection_threshold(
+    p_l: float | None, num_particles: int, *, alpha: float | None = None
+) -> float:
+    """PoA threshold ``ζ = α (N − 1)/N`` (eq. 46).
+
+    With ``alpha=None`` it uses the smallest ``α`` of eq. (53), ``α = p_l N/(N − 1)``, so
+    ``ζ = p_l``; an explicit ``alpha ∈ (0, 1)`` (Remark 3, ``p_l`` unknown) gives
+    ``ζ = α(N − 1)/N``. ``ValueError`` if eq. (53) has no solution (``p_l N/(N−1) ≥ 1``).
+    """
+    if isinstance(num_particles, bool) or not isinstance(num_particles, int) or num_particles < 2:
+        raise ValueError(f"num_particles must be an integer >= 2; got {num_particles!r}")
+    n = num_particles
+    if alpha is None:
+        if p_l is None or not 0.0 <= float(p_l) <= 1.0:
+            raise ValueError(f"p_l must lie in [0, 1] when alpha is not given; got {p_l!r}")
+        alpha = float(p_l) * n / (n - 1)
+        if not alpha < 1.0:
+            raise ValueError(
+                f"eq. (53) needs p_l N/(N-1) < 1; got p_l = {p_l}, N = {n} (alpha = {alpha:.4g}); "
+                "use more particles or pass alpha"
+            )
+    elif not 0.0 < float(alpha) < 1.0:
+        raise ValueError(f"alpha must lie in (0, 1) (eq. 46); got {alpha!r}")
+    return float(alpha) * (n - 1) / n
+
+
+def _exceed(residuals: Tensor, eta) -> Tensor:
+    if not isinstance(residuals, Tensor) or residuals.dim() < 2:
+        raise ValueError(
+            f"residuals must be a tensor of shape [..., N, dy]; got {getattr(residuals, 'shape', type(residuals))}"
+        )
+    eta = torch.as_tensor(eta, dtype=residuals.dtype, device=residuals.device)
+    if bool((eta < 0).any()) or not bool(torch.isfinite(eta).all()):
+        raise ValueError("eta must be finite and >= 0")
+    # ‖z‖ > η ⇔ ‖z‖² > η² (η ≥ 0): no square root per particle
+    return residuals.square().sum(-1) > (eta * eta).unsqueeze(-1)
+
+
+def probability_of_attack(residuals: Tensor, eta, log_weights: Tensor | None = None) -> Tensor:
+    """PoA ``β = Σ_{i: ‖z^i‖ > η} w^i`` (eqs 14 and 58).
+
+    Args:
+        residuals: ``z^i`` ``[..., N, dy]`` (``ỹ − G x^i``, or ``ỹ − G x̃^{i+}`` for the
+            modified PF).
+        eta: threshold, a number or ``[...]``.
+        log_weights: ``[..., N]`` (normalised or not; softmax is applied), ``None`` for
+            equal weights ``1/N`` (eq. 58).
+
+    Returns ``β`` ``[...]`` in ``[0, 1]``. Rows whose weights are all equal use the exact
+    count ``#{‖z^i‖ > η}/N`` (a float sum of ``1/N``'s is not exact, and ``β = ζ`` must
+    not raise an alarm by round-off).
+    """
+    exceed = _exceed(residuals, eta).to(residuals.dtype)
+    if log_weights is None:
+        return exceed.mean(-1)
+    if log_weights.shape[-1] != residuals.shape[-2]:
+        raise ValueError(
+            f"log_weights must have shape [..., {residuals.shape[-2]}] (one per particle); got {tuple(log_weights.shape)}"
+        )
+    beta = (torch.softmax(log_weights, dim=-1) * exceed).sum(-1)
+    equal = (log_weights == log_weights[..., :1]).all(-1)
+    return torch.where(equal, exceed.mean(-1), beta)
+
+
+class PoADetector:
+    """The PoA detector: ``β = Σ_{‖z^i‖>η} w^i``, alarm when ``β > ζ``.
+
+    Args:
+        eta: residual-norm threshold ``η`` (:func:`attack_threshold`), number or tensor.
+        zeta: PoA threshold ``ζ`` (:func:`detection_threshold`), in ``[0, 1)``.
+    """
+
+    def __init__(self, eta, zeta: float):
+        eta_t = torch.as_tensor(eta, dtype=torch.float64)
+        if bool((eta_t < 0).any()) or not bool(torch.isfinite(eta_t).all()):
+            raise ValueError(f"eta must be finite and >= 0; got {eta!r}")
+        if not 0.0 <= float(zeta) < 1.0:
+            raise ValueError(f"zeta must lie in [0, 1); got {zeta!r}")
+        self.eta, self.zeta = eta, float(zeta)
+
+    def __call__(
+        self, residuals: Tensor, log_weights: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """``(β [...], alarm [...])`` for residuals ``[..., N, dy]`` and log-weights ``[..., N]``."""
+        beta = probability_of_attack(residuals, self.eta, log_weights)
+        return beta, beta > self.zeta
+
+    def __repr__(self) -> str:
+        return (
+            f"PoADetector(eta={float(torch.as_tensor(self.eta).mean()):.4g}, zeta={self.zeta:.4g})"
+        )
+
+
+def literal_gaussian_density(residuals: Tensor, cov) -> Tensor:
+    """``N(r; 0, R)`` evaluated literally in float64: ``(2π)^{−m/2} |R|^{−1/2} exp(−½ rᵀR⁻¹r)``.
+
+    Diagnostic only (Fig. 9 question): a density below ~5e-324 underflows to exactly 0.
+    Shapes: ``residuals [..., dy]``, ``cov [dy, dy]`` → ``[...]`` (float64).
+    """
+    r = residuals.to(torch.float64)
+    R = torch.as_tensor(cov, dtype=torch.float64, device=r.device)
+    m = r.shape[-1]
+    if R.shape != (m, m):
+        raise ValueError(f"cov must have shape [{m}, {m}]; got {tuple(R.shape)}")
+    chol = safe_cholesky(R, name="cov")
+    z = torch.linalg.solve_triangular(chol, r.reshape(-1, m).transpose(0, 1), upper=False)
+    quad = z.square().sum(0).reshape(r.shape[:-1])
+    log_norm = 0.5 * m * LOG_2PI + torch.log(chol.diagonal()).sum()
+    # one exp of the whole exponent, as MATLAB's mvnpdf does: exactly 0 below ~5e-324
+    return torch.exp(-0.5 * quad - log_norm)
+
+
+def literal_probability_of_attack(
+    residuals: Tensor, cov, eta, prior_weights: Tensor | None = None
+) -> Tensor:
+    """PoA with the weights of eq. (17) formed in linear float64 space (a naive implementation).
+
+    ``w^i = p(ỹ | x^i) w^i_{k−1} / Σ_j p(ỹ | x^j) w^j_{k−1}`` with the literal density of
+    :func:`literal_gaussian_density`; ``β = Σ_{‖z^i‖>η} w^i``. When every density
+    underflows the weights are ``0/0 = NaN`` and so is ``β`` — compare with ``β > ζ``,
+    which is then false (no alarm), the IEEE semantics a MATLAB implementation shares.
+
+    Shapes: ``residuals [..., N, dy]``, ``prior_weights [..., N]`` (linear, ``None``:
+    uniform) → ``[...]`` float64.
+    """
+    dens = literal_gaussian_density(residuals, cov)
+    if prior_weights is not None:
+        dens = dens * prior_weights.to(torch.float64)
+    w = dens / dens.sum(-1, keepdim=True)
+    exceed = _exceed(residuals.to(torch.float64), eta).to(torch.float64)
+    return (w * exceed).sum(-1)
+
+
+class AttackRateState(NamedTuple):
+    """State of :class:`RunningAttackRate`: detections ``count [...]`` after ``steps`` steps."""
+
+    count: Tensor
+    steps: int
+
+
+class RunningAttackRate:
+    """Remark 6: ``ζ`` from a running estimate of ``p_l`` when ``p_l`` is unknown.
+
+    For the first ``warmup`` steps ``ζ = α₀ (N − 1)/N`` with a chosen ``α₀ ∈ (0, 1)``
+    (eq. 46); afterwards ``p̂_l = #{alarms}/#{steps}`` and ``α = p̂_l N/(N − 1)`` (eq. 53),
+    clipped to ``[alpha_min, alpha_max] ⊂ (0, 1)`` so that ``ζ`` stays a proper threshold
+    while few attacks have been seen ([DEF] bounds; Remark 6 notes ``p̂_l ≥ p_l`` is
+    harmless).
+
+    Args:
+        num_particles: ``N``.
+        alpha0: ``α₀`` [DEF 0.5].
+        warmup: steps with ``α₀`` [DEF 10].
+        alpha_min, alpha_max: clipping bounds of ``α`` [DEF 0.05, 0.95].
+    """
+
+    def __init__(
+        self,
+        num_particles: int,
+        *,
+        alpha0: float = 0.5,
+        warmup: int = 10,
+        alpha_min: float = 0.05,
+        alpha_max: float = 0.95,
+    ):
+        if (
+            isinstance(num_particles, bool)
+            or not isinstance(num_particles, int)
+            or num_particles < 2
+        ):
+            raise ValueError(f"num_particles must be an integer >= 2; got {num_particles!r}")
+        if not 0.0 < alpha0 < 1.0:
+            raise ValueError(f"alpha0 must lie in (0, 1); got {alpha0!r}")
+        if isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 1:
+            raise ValueError(f"warmup must be an integer >= 1; got {warmup!r}")
+        if not 0.0 < alpha_min <= alpha_max < 1.0:
+            raise ValueError(
+                f"need 0 < alpha_min <= alpha_max < 1; got {alpha_min!r}, {alpha_max!r}"
+            )
+        self.n, self.alpha0, self.warmup = num_particles, float(alpha0), warmup
+        self.alpha_min, self.alpha_max = float(alpha_min), float(alpha_max)
+
+    def init(self, batch_shape=(), *, dtype=torch.float64, device=None) -> AttackRateState:
+        return AttackRateState(torch.zeros(torch.Size(batch_shape), dtype=dtype, device=device), 0)
+
+    def zeta(self, state: AttackRateState) -> Tensor:
+        """``ζ`` for the next step ``[...]``."""
+        scale = (self.n - 1) / self.n
+        if state.steps < self.warmup:
+            return torch.full_like(state.count, self.alpha0 * scale)
+        p_hat = state.count / state.steps
+        alpha = (p_hat * self.n / (self.n - 1)).clamp(self.alpha_min, self.alpha_max)
+        return alpha * scale
+
+    def update(self, state: AttackRateState, alarms: Tensor) -> AttackRateState:
+        """Count this step's decisions ``alarms [...]``."""
+        return AttackRateState(state.count + alarms.to(state.count.dtype), state.steps + 1)
+
+    def estimate(self, state: AttackRateState) -> Tensor:
+        """``p̂_l`` so far ``[...]`` (NaN before the first step)."""
+        return state.count / state.steps if state.steps else torch.full_like(state.count, math.nan)

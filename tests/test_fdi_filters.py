@@ -1,0 +1,387 @@
+"""The modified PF of Table 2 and its parts, the normal PF with PoA, the γ̂ estimator, the
+deception mixture likelihood, the gated EKF detectors and the fused benchmark path."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from difffilter.models.attacks import BiasAttack
+from difffilter.models.four_tank import FourTankModel, simulate_attacked
+
+import difffilter as df
+from difffilter import fdi
+from difffilter.fdi.fused import FusedModifiedPF
+from difffilter.noise import UniformBox
+from difffilter.particle import ModelLikelihood, particle_filter, particle_init
+
+ETA, ZETA = 0.28 * 5 / 6, 0.5
+
+
+def scalar_model(r: float = 1.0) -> df.LinearGaussianModel:
+    one = torch.ones(1, 1, dtype=torch.float64)
+    return df.LinearGaussianModel(one, one, one, r * one, torch.zeros(1, dtype=torch.float64), one)
+
+
+def streams(model, B, N, seed=0):
+    return {
+        "num_particles": N,
+        "initial_state": particle_init(model, N, (B,), torch.Generator().manual_seed(seed)),
+        "generator": torch.Generator().manual_seed(seed + 1),
+        "resample_generator": torch.Generator().manual_seed(seed + 2),
+    }
+
+
+@pytest.fixture(scope="module")
+def plant():
+    model = FourTankModel(dtype=torch.float64)
+    tr = simulate_attacked(
+        model,
+        BiasAttack((0.5,) * 4),
+        4,
+        30,
+        plant_generator=torch.Generator().manual_seed(10),
+        attack_generator=torch.Generator().manual_seed(11),
+    )
+    return model, tr
+
+
+# ------------------------------------------------------------------------------ pieces
+
+
+def test_kalman_corrected_particles_eq36_and_residuals_eq58():
+    G = torch.eye(2, dtype=torch.float64)
+    K = torch.diag(torch.tensor([0.5, 0.25], dtype=torch.float64))
+    x = torch.tensor([[[1.0, 2.0], [0.0, 0.0]]], dtype=torch.float64)  # [1, N=2, 2]
+    y = torch.tensor([[3.0, 6.0]], dtype=torch.float64)
+    xp = fdi.kalman_corrected_particles(x, y, G, K)
+    assert torch.allclose(xp[0, 0], torch.tensor([2.0, 3.0], dtype=torch.float64))  # x + K(y − x)
+    z = fdi.corrected_residuals(x, y, G, K)
+    assert torch.allclose(z, y.unsqueeze(-2) - xp)
+    assert torch.allclose(
+        z[0, 0], torch.tensor([1.0, 3.0], dtype=torch.float64)
+    )  # (I − GK)(y − Gx)
+
+
+def test_eq59_weights_on_a_hand_case():
+    model = scalar_model(1.0)
+    x = torch.tensor([[[0.0], [1.0], [2.0]]], dtype=torch.float64)  # [B=1, N=3, 1]
+    y = torch.tensor([[3.0]], dtype=torch.float64)
+    lik = fdi.AttackCompensatedLikelihood(
+        torch.tensor([True]), torch.tensor([[2.0]], dtype=torch.float64)
+    )
+    ll = lik(model, y, x, 1, None)
+    # ỹ − l̂γ̂ = 1: residuals 1, 0, −1 → N(·; 0, 1) ∝ e^{−1/2}, 1, e^{−1/2}
+    prior = torch.tensor([[0.2, 0.3, 0.5]], dtype=torch.float64)
+    log_w, _ = fdi.reweight(torch.log(prior), ll)
+    unnorm = prior * torch.tensor([math.exp(-0.5), 1.0, math.exp(-0.5)], dtype=torch.float64)
+    assert torch.allclose(torch.exp(log_w), unnorm / unnorm.sum())
+    # l̂ = 0: the measurement is used as received
+    lik0 = fdi.AttackCompensatedLikelihood(
+        torch.tensor([False]), torch.tensor([[2.0]], dtype=torch.float64)
+    )
+    assert torch.allclose(lik0(model, y, x, 1, None), ModelLikelihood()(model, y, x, 1, None))
+
+
+def test_modified_pf_equals_attack_free_pf_when_every_attack_is_detected(plant):
+    """With l̂ = l and γ̂ = γ, eq. (59) gives the attack-free weights: under common random
+    numbers the modified PF reproduces the attack-free normal PF exactly (eqs 55–57)."""
+    model, tr = plant
+    big = torch.ones_like(tr.gammas)  # ‖γ‖ = 2 ≫ ‖γ‖_min at every attacked step
+    y_recv = tr.y_true + tr.flags.unsqueeze(-1) * big
+    det = fdi.PoADetector(ETA, ZETA)
+    mod = fdi.modified_particle_filter(
+        model, y_recv, detector=det, gamma_hat=big, **streams(model, 4, 50)
+    )
+    free = fdi.particle_filter_poa(model, tr.y_true, detector=det, **streams(model, 4, 50))
+    assert torch.equal(mod.alarms, tr.flags)
+    assert torch.allclose(mod.means, free.filter.means, atol=1e-9)
+    assert not bool(free.alarms.any())
+    # the normal PF on the attacked data is biased
+    att = fdi.particle_filter_poa(model, y_recv, detector=det, **streams(model, 4, 50))
+    assert (att.filter.means - free.filter.means).abs().max() > 0.05
+
+
+def test_modified_pf_detect_and_estimate_compose_to_the_filter(plant):
+    model, tr = plant
+    det = fdi.PoADetector(ETA, ZETA)
+    res = fdi.modified_particle_filter(
+        model, tr.y_recv, detector=det, gamma_hat=tr.gammas, **streams(model, 4, 40)
+    )
+    kw = streams(model, 4, 40)
+    state = kw.pop("initial_state")
+    kw.pop("num_particles")
+    for t in range(5):
+        pred, pred_out, beta, alarm = fdi.modified_pf_detect(
+            model, state, tr.y_recv[:, t], detector=det, **kw
+        )
+        # eq. (58) by hand: the fraction of Kalman-corrected residuals above η (weights 1/N after resampling)
+        K = fdi.modified_pf_gain(model.G, model.process_cov(0), model.measurement_cov(1))
+        z = tr.y_recv[:, t].unsqueeze(-2) - fdi.kalman_corrected_particles(
+            pred.particles, tr.y_recv[:, t], model.G, K
+        )
+        assert torch.allclose(beta, (z.norm(dim=-1) > ETA).double().mean(-1))
+        state, mean, _, _ = fdi.modified_pf_estimate(
+            model, pred, tr.y_recv[:, t], alarm, tr.gammas[:, t]
+        )
+        assert torch.allclose(mean, res.means[:, t]) and torch.equal(alarm, res.alarms[:, t])
+    assert res.beta.shape == res.alarms.shape == (4, 30) and res.gamma_hat.shape == (4, 30, 4)
+
+
+def test_modified_pf_rejects_bad_arguments(plant):
+    model, tr = plant
+    with pytest.raises(ValueError, match="gamma_hat"):
+        fdi.modified_particle_filter(
+            model,
+            tr.y_recv,
+            num_particles=10,
+            detector=fdi.PoADetector(ETA, ZETA),
+            gamma_hat=tr.gammas[:, :5],
+        )
+    with pytest.raises(ValueError, match="detector"):
+        fdi.modified_particle_filter(
+            model, tr.y_recv, num_particles=10, detector=0.5, gamma_hat=tr.gammas
+        )
+    with pytest.raises(ValueError, match="ys"):
+        fdi.modified_particle_filter(
+            model,
+            tr.y_recv[..., :2],
+            num_particles=10,
+            detector=fdi.PoADetector(ETA, ZETA),
+            gamma_hat=tr.gammas,
+        )
+
+
+def test_normal_pf_poa_uses_the_posterior_weights(plant):
+    model, tr = plant
+    det = fdi.PoADetector(ETA, ZETA)
+    res = fdi.particle_filter_poa(
+        model, tr.y_recv, detector=det, ess_threshold=0.0, **streams(model, 4, 30)
+    )
+    f = res.filter
+    z = tr.y_recv.unsqueeze(-2) - f.particles  # G = I
+    beta = (torch.softmax(f.log_weights, -1) * (z.norm(dim=-1) > ETA)).sum(-1)
+    assert torch.allclose(res.beta, beta)
+    assert torch.equal(res.alarms, beta > ZETA)
+    # without resampling the predictive weights are the previous posterior's
+    assert torch.allclose(res.prior_log_weights[:, 1:], f.log_weights[:, :-1])
+
+
+def test_literal_normal_pf_misses_what_the_log_space_pf_detects():
+    model = FourTankModel(dtype=torch.float64)
+    tr = simulate_attacked(
+        model,
+        BiasAttack((2.0,) * 4),
+        3,
+        25,
+        plant_generator=torch.Generator().manual_seed(0),
+        attack_generator=torch.Generator().manual_seed(1),
+    )
+    det = fdi.PoADetector(ETA, ZETA)
+    log = fdi.particle_filter_poa(model, tr.y_recv, detector=det, **streams(model, 3, 50))
+    lit = fdi.particle_filter_poa(
+        model, tr.y_recv, detector=det, literal=True, **streams(model, 3, 50)
+    )
+    large = tr.flags & (tr.gammas.norm(dim=-1) > 2.0)  # rᵀR⁻¹r ≳ 6e3: every density underflows
+    assert bool(large.any())
+    assert bool(log.alarms[large].all())
+    assert bool(lit.beta[large].isnan().all()) and not bool(lit.alarms[large].any())
+    assert bool(lit.filter.means.isfinite().all())  # the guard keeps the filter running
+    with pytest.raises(ValueError, match="literal"):
+        fdi.particle_filter_poa(
+            model,
+            tr.y_recv,
+            detector=det,
+            literal=True,
+            likelihood=ModelLikelihood(),
+            num_particles=10,
+        )
+
+
+# ------------------------------------------------------------------------- γ̂ estimator
+
+
+def test_bias_attack_estimator_tracks_eq4_from_flagged_residuals():
+    attack = BiasAttack((0.5, -0.3), tau=0.9)
+    gammas = attack.values(40).unsqueeze(0)  # [1, T, 2]
+    est = fdi.BiasAttackEstimator(2, 0.9)
+    state = est.init((1,))
+    cov = 1e-6 * torch.eye(2, dtype=torch.float64)
+    flags = torch.zeros(40, dtype=torch.bool)
+    flags[5::2] = True
+    out = []
+    for t in range(40):
+        state, g_hat, g_cov = est.step(state, gammas[:, t], cov, flags[t : t + 1])
+        out.append(g_hat)
+    g_hat = torch.stack(out, 1)
+    assert torch.allclose(
+        g_hat[:, :5], torch.zeros(1, 5, 2, dtype=torch.float64)
+    )  # nothing flagged yet: γ̂ = 0
+    assert (
+        g_hat[:, 10:] - gammas[:, 10:]
+    ).abs().max() < 1e-2  # γ̄ identified, also on unflagged steps
+    assert g_cov.shape == (1, 2, 2)
+    with pytest.raises(ValueError, match="tau"):
+        fdi.BiasAttackEstimator(2, 1.5)
+    with pytest.raises(ValueError, match="residual"):
+        est.step(state, torch.zeros(1, 3, dtype=torch.float64), cov, flags[:1])
+
+
+def test_modified_pf_with_estimated_gamma_runs_and_reports_estimates(plant):
+    model, tr = plant
+    res = fdi.modified_particle_filter(
+        model,
+        tr.y_recv,
+        detector=fdi.PoADetector(ETA, ZETA),
+        gamma_hat=fdi.BiasAttackEstimator(4, 0.9),
+        **streams(model, 4, 40),
+    )
+    late = tr.flags & res.alarms
+    late[:, :15] = False
+    assert (res.gamma_hat[late] - tr.gammas[late]).abs().mean() < 0.05
+
+
+def test_remark6_running_rate_drives_zeta(plant):
+    model, tr = plant
+    res = fdi.modified_particle_filter(
+        model,
+        tr.y_recv,
+        detector=fdi.PoADetector(ETA, ZETA),
+        gamma_hat=tr.gammas,
+        attack_rate=fdi.RunningAttackRate(40, warmup=5),
+        **streams(model, 4, 40),
+    )
+    assert torch.allclose(res.zeta[:, :5], torch.full((4, 5), 0.5 * 39 / 40, dtype=torch.float64))
+    p_hat = res.alarms[:, :-1].double().mean(-1)
+    assert torch.allclose(res.attack_rate, res.alarms.double().mean(-1))
+    assert torch.allclose(res.zeta[:, -1], (p_hat * 40 / 39).clamp(0.05, 0.95) * 39 / 40)
+
+
+# -------------------------------------------------------------------- mixture likelihood
+
+
+def test_deception_mixture_likelihood_hand_case():
+    model = scalar_model(1.0)
+    x = torch.zeros(1, 1, 1, dtype=torch.float64)
+    y = torch.tensor([[1.0]], dtype=torch.float64)
+    n = lambda v: math.exp(-0.5 * v * v) / math.sqrt(2 * math.pi)  # noqa: E731
+    lik = fdi.DeceptionMixtureLikelihood(
+        0.2, fdi.BiasDeception(torch.tensor([1.0], dtype=torch.float64))
+    )
+    assert math.isclose(
+        float(lik(model, y, x, 1, None)), math.log(0.8 * n(1.0) + 0.2 * n(0.0)), rel_tol=1e-12
+    )
+    box = UniformBox(
+        torch.tensor([-5.0], dtype=torch.float64), torch.tensor([5.0], dtype=torch.float64)
+    )
+    rep = fdi.DeceptionMixtureLikelihood(0.2, fdi.ReplacementDeception(box))
+    assert math.isclose(
+        float(rep(model, y, x, 1, None)), math.log(0.8 * n(1.0) + 0.2 / 10.0), rel_tol=1e-12
+    )
+    # P(attacked | y) with one particle = p p_a / [(1 − p) p_v + p p_a]
+    post = lik.attack_probability(model, y, x, torch.zeros(1, 1, dtype=torch.float64), 1)
+    assert math.isclose(float(post), 0.2 * n(0.0) / (0.8 * n(1.0) + 0.2 * n(0.0)), rel_tol=1e-12)
+    # p = 0 is the model's likelihood
+    plain = fdi.DeceptionMixtureLikelihood(
+        0.0, fdi.BiasDeception(torch.tensor([1.0], dtype=torch.float64))
+    )
+    assert torch.allclose(plain(model, y, x, 1, None), ModelLikelihood()(model, y, x, 1, None))
+    with pytest.raises(ValueError, match="attack_probability"):
+        fdi.DeceptionMixtureLikelihood(1.2, fdi.BiasDeception([1.0]))
+
+
+def test_mixture_likelihood_plugs_into_the_particle_filter(plant):
+    model, tr = plant
+    lik = fdi.DeceptionMixtureLikelihood(
+        0.5, fdi.BiasDeception(torch.full((4,), 0.5, dtype=torch.float64))
+    )
+    res = particle_filter(model, tr.y_recv, likelihood=lik, **streams(model, 4, 50))
+    plain = particle_filter(model, tr.y_recv, **streams(model, 4, 50))
+    late = slice(15, None)  # once γ_k ≈ γ̄ the mixture explains the attacked packets
+    err_mix = (res.means[:, late] - tr.x[:, late]).square().mean()
+    err_plain = (plain.means[:, late] - tr.x[:, late]).square().mean()
+    assert err_mix < err_plain
+
+
+# ----------------------------------------------------------------------- gated detectors
+
+
+@pytest.mark.parametrize("window", [1, 3])
+def test_chi_square_online_step_equals_offline_detect(window):
+    det = fdi.ChiSquareDetector(2, 0.05, window=window)
+    r = torch.randn(3, 12, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    S = torch.eye(2, dtype=torch.float64).expand(3, 12, 2, 2)
+    scores, alarms = det.detect(r, S)
+    g = fdi.normalized_innovation_squared(r, S)
+    state = det.init((3,))
+    for t in range(12):
+        state, s, a = det.step(state, g[:, t])
+        assert torch.allclose(s, scores[:, t]) and torch.equal(a, alarms[:, t])
+
+
+def test_cusum_online_step_equals_offline_run():
+    det = fdi.CusumDetector(3.0, threshold=4.0)
+    g = 6 * torch.rand(3, 20, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    stats, alarms = det.run(g)
+    state = det.init((3,))
+    for t in range(20):
+        state, s, a = det.step(state, g[:, t])
+        assert torch.allclose(s, stats[:, t]) and torch.equal(a, alarms[:, t])
+
+
+def test_gated_ekf_drops_alarmed_measurements(plant):
+    model, tr = plant
+    y = tr.y_true.clone()
+    y[:, 10] += 5.0  # one huge injected packet
+    det = fdi.ChiSquareDetector(4, 1e-9)  # (almost) no false alarms
+    gated = fdi.gated_extended_kalman_filter(model, y, detector=det)
+    plain = df.extended_kalman_filter(model, tr.y_true)
+    assert bool(gated.alarms[:, 10].all()) and int(gated.alarms.sum()) == 4
+    assert torch.allclose(gated.means[:, :10], plain.means[:, :10])
+    # at the alarm the estimate is the prediction: the update is skipped
+    pred = model.transition(gated.means[:, 9], None, 9)
+    assert torch.allclose(gated.means[:, 10], pred)
+    with pytest.raises(ValueError, match="detector"):
+        fdi.gated_extended_kalman_filter(model, y, detector=fdi.PoADetector(0.2, 0.5))
+
+
+# ------------------------------------------------------------------------- fused path
+
+
+@pytest.mark.parametrize(
+    "B, N", [(2, 50), (21, 100)]
+)  # searchsorted and offspring-count resampling
+def test_fused_modified_pf_equals_the_composed_filter(B, N):
+    model = FourTankModel(dtype=torch.float64)
+    tr = simulate_attacked(
+        model,
+        BiasAttack((0.5,) * 4),
+        B,
+        25,
+        plant_generator=torch.Generator().manual_seed(3),
+        attack_generator=torch.Generator().manual_seed(4),
+    )
+    det = fdi.PoADetector(ETA, ZETA)
+    ref = fdi.modified_particle_filter(
+        model, tr.y_recv, num_particles=N, detector=det, gamma_hat=tr.gammas,
+        generator=torch.Generator().manual_seed(5), resample_generator=torch.Generator().manual_seed(6),
+    )  # fmt: skip
+    out = FusedModifiedPF(model, num_particles=N, eta=ETA, zeta=ZETA).run(
+        tr.y_recv,
+        tr.gammas,
+        generator=torch.Generator().manual_seed(5),
+        resample_generator=torch.Generator().manual_seed(6),
+    )
+    assert torch.equal(out.alarms, ref.alarms)
+    assert torch.equal(out.beta, ref.beta)
+    assert torch.allclose(out.means, ref.means, atol=1e-10)
+
+
+def test_fused_rejects_bad_input():
+    model = FourTankModel(dtype=torch.float64)
+    with pytest.raises(ValueError, match="zeta"):
+        FusedModifiedPF(model, num_particles=10, eta=0.2, zeta=1.0)
+    pf = FusedModifiedPF(model, num_particles=10, eta=0.2, zeta=0.5)
+    with pytest.raises(ValueError, match="gamma_hat"):
+        pf.run(torch.zeros(1, 5, 4, dtype=torch.float64), torch.zeros(1, 4, 4, dtype=torch.float64))

@@ -1,0 +1,131 @@
+"""``difffilter-eval`` on the four-tank scenarios, end to end, and the issue-3 acceptance figures."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from difffilter.eval.cli import main
+from difffilter.eval.four_tank import run_four_tank
+from difffilter.eval.report import REQUIRED_KEYS
+from difffilter.models import registry
+from difffilter.models.four_tank import simulate_attacked
+
+from difffilter import fdi, metrics
+from difffilter.particle import particle_init
+
+ESTIMATORS = (
+    "normal_pf_attack_free",
+    "normal_pf",
+    "normal_pf_literal",
+    "modified_pf",
+    "modified_pf_est",
+    "modified_pf_unknown_pl",
+    "modified_pf_noisy_gamma",
+    "mixture_likelihood_pf",
+    "open_loop_pf",
+    "chi_square_ekf",
+    "cusum_ekf",
+)
+
+
+@pytest.mark.slow
+def test_cli_end_to_end_on_three_runs(tmp_path):
+    assert main(["four_tank_bias", "--runs", "3", "--out", str(tmp_path), "--no-progress"]) == 0
+    out = tmp_path / "four_tank_bias"
+    doc = json.loads((out / "metrics.json").read_text())
+    assert (
+        doc["scenario"] == "four_tank_bias"
+        and doc["runs"] == 3
+        and doc["steps"] == 100
+        and doc["seed"] == 0
+    )
+    assert doc["paper"]["table4"]["modified_pf"]["cpu_time_per_step_s"] == 6.9782e-4
+    for name in ESTIMATORS:
+        entry = doc["estimators"][name]
+        assert all(k in entry for k in REQUIRED_KEYS), name
+        assert entry["state_rmse"] > 0 and entry["time_per_step_s"] > 0
+    est = doc["estimators"]
+    assert est["normal_pf_attack_free"]["state_rmse_vs_attack_free"] == 0.0
+    assert est["modified_pf"]["attack_rmse"] == 0.0  # oracle γ̂
+    assert (
+        est["modified_pf"]["state_rmse_vs_attack_free"]
+        < est["normal_pf"]["state_rmse_vs_attack_free"]
+    )
+    assert (
+        est["modified_pf"]["fused_alarms_identical"]
+        and est["modified_pf"]["fused_max_abs_diff"] < 1e-9
+    )
+    th = doc["thresholds"]
+    assert abs(th["eta_paper"] - 0.28 * 5 / 6) < 1e-12 and th["zeta"] == 0.5
+    high = doc["high_noise_false_alarms"]
+    assert high["eta_theorem1"]["eta"] > high["eta_paper"]["eta"]
+    assert high["eta_theorem1"]["false_alarms"] <= high["eta_paper"]["false_alarms"]
+    # the Fig. 9 diagnosis: at γ̄ = 2·[1,1,1,1] the literal density misses what log space detects
+    big = max(doc["detection_vs_attack_size"]["per_scale"], key=lambda r: r["scale"])
+    assert big["normal_pf"]["tpr_detectable"] > 0.9 > big["normal_pf_literal"]["tpr_detectable"]
+    report = (out / "report.md").read_text()
+    for text in ("Table 3", "Table 4", "How RMSE is defined", "Fig. 9", "R × 5"):
+        assert text in report
+    for png in (
+        "fig5_attack.png",
+        "fig7_estimates.png",
+        "fig9_detection_normal_large.png",
+        "detection_vs_attack_size.png",
+    ):
+        assert (out / png).stat().st_size > 1000
+        assert f"]({png})" in report
+    assert any(p.name.startswith("events.out.tfevents") for p in (out / "tb").iterdir())
+
+
+def test_cli_and_runner_reject_bad_input(tmp_path, capsys):
+    assert main(["four_tank_nope", "--out", str(tmp_path), "--no-progress"]) == 2
+    assert "unknown scenario" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="runs"):
+        run_four_tank(["four_tank_bias"], out=tmp_path, runs=0)
+
+
+@pytest.mark.slow
+def test_acceptance_figures_on_100_runs():
+    """Issue 3 acceptance: 100 runs, N = 100, common random numbers (the composed filters)."""
+    sc = registry.get("four_tank_bias")
+    model = sc.model(torch.float64)
+    B = 100
+    tr = simulate_attacked(
+        model,
+        sc.attack(),
+        B,
+        sc.steps,
+        plant_generator=torch.Generator().manual_seed(101),
+        attack_generator=torch.Generator().manual_seed(102),
+    )
+    det = fdi.PoADetector(
+        fdi.attack_threshold(
+            model.G,
+            fdi.modified_pf_gain(model.G, model.process_cov(0), model.measurement_cov(1)),
+            sc.gamma_min,
+        ),
+        0.5,
+    )
+
+    def crn():
+        return {
+            "num_particles": sc.num_particles,
+            "initial_state": particle_init(
+                model, sc.num_particles, (B,), torch.Generator().manual_seed(103)
+            ),
+            "generator": torch.Generator().manual_seed(104),
+            "resample_generator": torch.Generator().manual_seed(105),
+        }
+
+    free = fdi.particle_filter_poa(model, tr.y_true, detector=det, **crn()).filter.means
+    normal = fdi.particle_filter_poa(model, tr.y_recv, detector=det, **crn()).filter.means
+    mod = fdi.modified_particle_filter(model, tr.y_recv, detector=det, gamma_hat=tr.gammas, **crn())
+    detectable = tr.flags & (tr.gammas.norm(dim=-1) > sc.gamma_min)
+    assert mod.alarms[detectable].double().mean() >= 0.99
+    assert mod.alarms[~tr.flags].double().mean() <= 0.005
+    rmse_all = float(metrics.rmse(mod.means, free))
+    rmse_late = float(metrics.rmse(mod.means[:, 20:], free[:, 20:]))
+    assert rmse_all <= 1.5e-2 and rmse_late <= 6e-3
+    assert float(metrics.rmse(normal, free)) >= 5 * rmse_all
