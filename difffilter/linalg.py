@@ -20,6 +20,7 @@ __all__ = [
     "matvec",
     "outer",
     "masked_measurement",
+    "rowwise",
 ]
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -135,3 +136,40 @@ def masked_measurement(
     eye = torch.eye(m.shape[-1], dtype=m.dtype, device=m.device)
     noise_cov = noise_cov * outer(m, m) + torch.diag_embed(1.0 - m) * eye
     return residual, obs_matrix, noise_cov, m.sum(-1)
+
+
+def _period(rows: int) -> int:
+    for k in (16, 8, 4, 2):
+        if rows % k == 0:
+            return k
+    return 1
+
+
+def rowwise(op, a: Tensor, b: Tensor) -> Tensor:
+    """``op(a, b)`` where one operand is ``[..., N, d]`` and the other a row ``[..., 1, d]`` or ``[d]``.
+
+    Same result as plain broadcasting. Why: on CPU an elementwise kernel that broadcasts
+    a short last dimension (``d`` = 2–6 state components) runs an inner loop of length
+    ``d`` and is 5–7× slower than a contiguous one. Viewing the full operand as
+    ``[..., N/k, k·d]`` and tiling the row ``k`` times restores a long inner loop. Falls
+    back to plain broadcasting when the shapes do not fit (non-contiguous, ``N`` not
+    divisible, other broadcast patterns).
+    """
+    full, row, swap = (a, b, False) if a.numel() >= b.numel() else (b, a, True)
+    if full.dim() < 2 or not full.is_contiguous() or full.device.type != "cpu":
+        return op(a, b)
+    n, d = full.shape[-2:]
+    if row.shape[-1] != d or (row.dim() >= 2 and row.shape[-2] != 1) or row.dim() > full.dim():
+        return op(a, b)
+    if (
+        row.dim() >= 2
+        and torch.broadcast_shapes(row.shape[:-2], full.shape[:-2]) != full.shape[:-2]
+    ):
+        return op(a, b)
+    k = _period(n)
+    if k == 1 or d * k < 8:
+        return op(a, b)
+    view = full.reshape(full.shape[:-2] + (n // k, d * k))
+    tiled = row.repeat((1,) * (row.dim() - 1) + (k,))
+    out = op(tiled, view) if swap else op(view, tiled)
+    return out.reshape(full.shape)

@@ -29,7 +29,15 @@ from ._checks import (
     check_square,
     check_vector_last,
 )
-from .linalg import LOG_2PI, gaussian_log_prob_chol, masked_measurement, matvec, outer, safe_cholesky
+from .linalg import (
+    LOG_2PI,
+    gaussian_log_prob_chol,
+    masked_measurement,
+    matvec,
+    outer,
+    rowwise,
+    safe_cholesky,
+)
 
 __all__ = ["NoiseModel", "Gaussian", "GaussianMixture", "UniformBox", "register_tensor"]
 
@@ -173,18 +181,20 @@ class Gaussian(NoiseModel):
             device=L.device,
         )
         if diag is not None:
-            return torch.addcmul(self.loc, eps, diag)
+            return rowwise(torch.add, rowwise(torch.mul, eps, diag), self.loc)
         return self.loc + matvec(L, eps)
 
     def log_prob(self, value: Tensor, mask: Tensor | None = None) -> Tensor:
         """``log N(value; μ, Σ)`` for ``value [..., d]`` → ``[...]`` (marginal on ``mask``)."""
-        residual = value - self.loc
+        residual = rowwise(torch.sub, value, self.loc)
         if mask is not None:
             return _masked_gaussian_log_prob(residual, self.cov, mask)
         L, diag = self._factor()
         if diag is not None:
-            z = residual / diag
-            return -0.5 * (z * z).sum(-1) - (torch.log(diag).sum() + 0.5 * self.dim * LOG_2PI)
+            # Σᵢ rᵢ²/σᵢ² as a matrix-vector product: a reduction over a short last
+            # dimension is an order of magnitude slower on CPU.
+            maha = (residual * residual) @ diag.square().reciprocal()
+            return -0.5 * maha - (torch.log(diag).sum() + 0.5 * self.dim * LOG_2PI)
         return gaussian_log_prob_chol(residual, L)
 
 

@@ -26,7 +26,14 @@ from torch import Tensor
 
 from ._checks import check_positive_int
 from .kalman import _validate_inputs
-from .linalg import gaussian_log_prob_chol, masked_measurement, matvec, safe_cholesky, symmetrize
+from .linalg import (
+    gaussian_log_prob_chol,
+    masked_measurement,
+    matvec,
+    rowwise,
+    safe_cholesky,
+    symmetrize,
+)
 from .resampling import Resampler, Systematic
 from .results import ParticleFilterResult
 from .ssm import StateSpaceModel
@@ -202,7 +209,10 @@ def particle_step(
     # Resample the rows whose ESS fell below the threshold.
     need = _ess(log_w) < ess_threshold * n
     if bool(need.any()):
-        res = resampler(particles, log_w, resample_generator if resample_generator is not None else generator)
+        gen = resample_generator if resample_generator is not None else generator
+        # weights here are normalised and finite by construction: skip re-validation
+        fast = getattr(resampler, "resample_normalized", None)
+        res = fast(particles, log_w, gen) if fast is not None else resampler(particles, log_w, gen)
         if bool(need.all()):
             particles, log_w = res.particles, res.log_weights
         else:
@@ -226,7 +236,7 @@ def particle_step(
     pred_w = pred_w.unsqueeze(-2)  # [..., 1, N]
     obs = model.observe(new, k + 1)
     y_hat = (pred_w @ obs).squeeze(-2)
-    obs_dev = obs - y_hat.unsqueeze(-2)
+    obs_dev = rowwise(torch.sub, obs, y_hat.unsqueeze(-2))
     y_cov = (obs_dev * pred_w.transpose(-1, -2)).transpose(-1, -2) @ obs_dev
     pred_mean = (pred_w @ new).squeeze(-2)
     innovation = y - y_hat
@@ -255,7 +265,7 @@ def _moments(particles: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
     """Mean and covariance of ``particles [..., N, d]`` under normalised ``weights [..., N]``."""
     w = weights.unsqueeze(-2)
     mean = (w @ particles).squeeze(-2)
-    dev = particles - mean.unsqueeze(-2)
+    dev = rowwise(torch.sub, particles, mean.unsqueeze(-2))
     cov = (dev * w.transpose(-1, -2)).transpose(-1, -2) @ dev
     return mean, symmetrize(cov)
 

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import as_tensor, check_positive_definite, check_square, check_vector_last
-from .linalg import matvec
+from .linalg import matvec, rowwise
 from .noise import Gaussian, NoiseModel, register_tensor
 
 __all__ = ["StateSpaceModel", "LinearGaussianModel", "NonlinearGaussianModel", "batched_jacobian"]
@@ -127,7 +127,7 @@ class StateSpaceModel(nn.Module):
 
         ``mask [..., dy]`` marks received entries; unreceived ones are marginalised out.
         """
-        return self.measurement_noise.log_prob(y - self.observe(x, k), mask=mask)
+        return self.measurement_noise.log_prob(rowwise(torch.sub, y, self.observe(x, k)), mask=mask)
 
     # -- simulation ------------------------------------------------------------------
     @torch.no_grad()

@@ -30,6 +30,7 @@ from torch import Tensor
 
 from ..noise import Gaussian
 from ..particle import _ess, particle_init
+from ..resampling import systematic_ancestors
 from .poa import modified_pf_gain
 
 __all__ = ["FusedModifiedPF", "FusedResult"]
@@ -146,11 +147,7 @@ class FusedModifiedPF:
         uniforms = torch.rand(
             (T - 1 + int(first), B, 1), generator=resample_generator, dtype=dtype, device=device
         )
-        if B * n >= 2048:
-            resample = _CountResampler(B, n, dtype, device)
-        else:
-            resample = _SearchResampler(B, n, dtype, device)
-            uniforms = resample.targets(uniforms)
+        resample = _CountResampler(B, n, dtype, device)
         flat = x.reshape(B * n, dx)
         if first:
             w0 = torch.exp(log_w0 - torch.logsumexp(log_w0, -1, keepdim=True))
@@ -271,45 +268,13 @@ class _NoiseSampler:
         return out if self.loc is None else out + self.loc
 
 
-class _SearchResampler:
-    """Systematic ancestors by ``searchsorted`` (as :class:`~difffilter.resampling.Systematic`),
-    returned as flat indices into ``[B·N]`` rows. ``u`` is the row's uniform ``[B, 1]``,
-    or its precomputed targets ``(j + U)/N`` ``[B, N]``."""
-
-    def __init__(self, B, n, dtype, device):
-        self.n = n
-        self.steps = torch.arange(n, dtype=dtype, device=device)
-        self.offset = None if B == 1 else (torch.arange(B, device=device) * n).unsqueeze(1)
-
-    def targets(self, uniforms: Tensor) -> Tensor:
-        """``(j + U)/N`` for every uniform ``[..., B, 1]`` → ``[..., B, N]`` (one kernel for the horizon)."""
-        return (self.steps + uniforms) / self.n
-
-    def __call__(self, cdf: Tensor, u: Tensor) -> Tensor:
-        targets = (self.targets(u) if u.shape[-1] == 1 else u) * cdf[:, -1:]
-        idx = torch.searchsorted(cdf, targets, right=True).clamp_max_(self.n - 1)
-        return (idx if self.offset is None else idx + self.offset).view(-1)
-
-
 class _CountResampler:
-    """Systematic ancestors from offspring counts (faster than ``searchsorted`` for many rows).
-
-    Target ``j`` of a row is ``t_j = (j + U)/N · c`` (``c`` the total weight); the number
-    of targets below ``v`` is ``C(v) = clamp(⌈N v / c − U⌉, 0, N)``, so ``C(cdf_i)`` is the
-    first target of particle ``i + 1`` and the ancestor of target ``j`` is
-    ``#{i < N − 1 : C(cdf_i) ≤ j}`` — a scatter of ones at those positions and a cumsum.
-    Equal to the ``searchsorted`` ancestors except for round-off ties.
-    """
+    """Systematic ancestors (:func:`~difffilter.resampling.systematic_ancestors`, the
+    algorithm of :class:`~difffilter.resampling.Systematic`) as flat indices into the
+    ``[B·N]`` particle rows; ``u`` is the row's uniform ``[B, 1]``."""
 
     def __init__(self, B, n, dtype, device):
-        self.B, self.n = B, n
         self.offset = (torch.arange(B, device=device) * n).unsqueeze(1)
-        self.ones = torch.ones(B, n - 1, dtype=torch.int64, device=device)
-        self.marks = torch.zeros(B, n + 1, dtype=torch.int64, device=device)
 
     def __call__(self, cdf: Tensor, u: Tensor) -> Tensor:
-        starts = (
-            torch.ceil(cdf[:, :-1] * (self.n / cdf[:, -1:]) - u).clamp_(0, self.n).to(torch.int64)
-        )
-        marks = self.marks.zero_().scatter_add_(1, starts, self.ones)
-        return torch.cumsum(marks[:, : self.n], -1).add_(self.offset).view(-1)
+        return systematic_ancestors(cdf, u).add_(self.offset).view(-1)
