@@ -33,9 +33,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from difffilter.models.four_tank import FourTankModel  # noqa: E402
-
 import difffilter as df  # noqa: E402
+from difffilter.models.four_tank import FourTankModel  # noqa: E402
 from difffilter.particle import particle_filter  # noqa: E402
 
 

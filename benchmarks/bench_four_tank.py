@@ -19,11 +19,11 @@ import math
 import time
 
 import torch
-from difffilter.models import registry
-from difffilter.models.four_tank import simulate_attacked
 
 from difffilter import fdi
 from difffilter.fdi.fused import FusedModifiedPF
+from difffilter.models import registry
+from difffilter.models.four_tank import simulate_attacked
 
 __all__ = ["bench_modified_pf"]
 

@@ -30,7 +30,10 @@ FAMILY_DEFAULTS = {"four_tank": ["four_tank_bias"], "lfc": None}
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="difffilter-eval",
-        description="Evaluate estimators and detectors on a scenario and write metrics.json, report.md, plots and TensorBoard logs.",
+        description=(
+            "Evaluate estimators and detectors on a scenario and write metrics.json, "
+            "report.md, plots and TensorBoard logs."
+        ),
     )
     p.add_argument(
         "scenario", nargs="?", help="scenario name, family name (four_tank, lfc) or 'all'"

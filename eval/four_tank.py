@@ -39,13 +39,13 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from difffilter.models import registry
-from difffilter.models.four_tank import FourTankScenario, simulate_attacked
 from torch import Tensor
 
 from difffilter import fdi, metrics
 from difffilter.extended import extended_kalman_filter
 from difffilter.fdi.fused import FusedModifiedPF
+from difffilter.models import registry
+from difffilter.models.four_tank import FourTankScenario, simulate_attacked
 from difffilter.particle import particle_filter, particle_init
 from difffilter.resampling import Systematic
 

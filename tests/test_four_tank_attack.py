@@ -6,6 +6,8 @@ import math
 
 import pytest
 import torch
+
+from difffilter import fdi
 from difffilter.models import registry
 from difffilter.models.attacks import BiasAttack
 from difffilter.models.four_tank import (
@@ -15,8 +17,6 @@ from difffilter.models.four_tank import (
     FourTankScenario,
     simulate_attacked,
 )
-
-from difffilter import fdi
 
 
 def test_attack_values_follow_eq4_and_its_closed_form():

@@ -6,13 +6,13 @@ import json
 
 import pytest
 import torch
+
+from difffilter import fdi, metrics
 from difffilter.eval.cli import main
 from difffilter.eval.four_tank import run_four_tank
 from difffilter.eval.report import REQUIRED_KEYS
 from difffilter.models import registry
 from difffilter.models.four_tank import simulate_attacked
-
-from difffilter import fdi, metrics
 from difffilter.particle import particle_init
 
 ESTIMATORS = (
