@@ -54,11 +54,15 @@ __all__ = [
 
 
 class ParticleState(NamedTuple):
-    """Online state: particles ``[..., N, dx]`` and normalised log-weights ``[..., N]`` of ``x_k``."""
+    """Online state: particles ``[..., N, dx]`` and normalised log-weights ``[..., N]`` of ``x_k``.
+
+    ``ess [...]`` caches the effective sample size of ``log_weights`` (``None``: compute it).
+    """
 
     particles: Tensor
     log_weights: Tensor
     k: int = 0
+    ess: Tensor | None = None
 
 
 class ParticleStepOutput(NamedTuple):
@@ -203,11 +207,11 @@ def particle_step(
     resampler = resampler if resampler is not None else Systematic()
     proposal = proposal if proposal is not None else BootstrapProposal()
     likelihood = likelihood if likelihood is not None else ModelLikelihood()
-    particles, log_w, k = state
+    particles, log_w, k, ess = state
     n = particles.shape[-2]
 
     # Resample the rows whose ESS fell below the threshold.
-    need = _ess(log_w) < ess_threshold * n
+    need = (_ess(log_w) if ess is None else ess) < ess_threshold * n
     if bool(need.any()):
         gen = resample_generator if resample_generator is not None else generator
         # weights here are normalised and finite by construction: skip re-validation
@@ -247,6 +251,7 @@ def particle_step(
         mf = mask.to(y_cov.dtype)
         y_cov = y_cov * (mf.unsqueeze(-1) * mf.unsqueeze(-2))
     w_new = torch.exp(log_w_new)
+    ess_new = 1.0 / w_new.square().sum(-1)
     mean, cov = _moments(new, w_new)
     out = ParticleStepOutput(
         mean=mean,
@@ -255,10 +260,10 @@ def particle_step(
         innovation=innovation,
         innovation_cov=symmetrize(y_cov + R),
         log_likelihood=increment,
-        ess=1.0 / w_new.square().sum(-1),
+        ess=ess_new,
         resampled=need,
     )
-    return ParticleState(new, log_w_new, k + 1), out
+    return ParticleState(new, log_w_new, k + 1, ess_new), out
 
 
 def _moments(particles: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:

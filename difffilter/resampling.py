@@ -247,9 +247,8 @@ def systematic_ancestors(
     marks = torch.zeros(cdf.shape[:-1] + (n + 1,), dtype=torch.int64, device=cdf.device)
     marks.scatter_add_(-1, starts, torch.ones_like(starts))
     ancestors = torch.cumsum(marks[..., :n], dim=-1)
-    weights_positive = torch.diff(cdf, dim=-1, prepend=torch.zeros_like(cdf[..., :1])) > 0
-    idx = torch.arange(n, device=cdf.device)
-    last_positive = torch.where(weights_positive, idx, 0).amax(dim=-1, keepdim=True)
+    # index of the last particle of positive weight = number of cdf entries below the total
+    last_positive = (cdf < cdf[..., -1:]).sum(-1, keepdim=True)
     return torch.minimum(ancestors, last_positive)
 
 
