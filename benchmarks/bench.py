@@ -36,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import difffilter as df  # noqa: E402
 from difffilter.models.four_tank import FourTankModel  # noqa: E402
 from difffilter.particle import particle_filter  # noqa: E402
+from difffilter.runtime import tune_cpu_allocator  # noqa: E402
 
 
 def best_time(fn, repeats: int = 3, min_time: float = 0.2) -> float:
@@ -185,6 +186,8 @@ def bench_pf(steps: int = 50) -> list[dict]:
 # ---------------------------------------------------------------------- memory ----
 MEMORY_CHILD = r"""
 import json, resource, sys, torch
+from difffilter.runtime import tune_cpu_allocator
+tune_cpu_allocator()
 from difffilter.models.four_tank import FourTankModel
 from difffilter.particle import particle_filter
 from difffilter.resampling import OptimalTransport, Soft, Systematic
@@ -247,8 +250,10 @@ def main(argv=None) -> int:
     p.add_argument("--skip-memory", action="store_true")
     p.add_argument("--json", type=Path, default=None, help="also write the figures as JSON")
     args = p.parse_args(argv)
+    tuned = tune_cpu_allocator()
     print(
-        f"difffilter benchmarks — torch {torch.__version__}, {torch.get_num_threads()} threads, {os.cpu_count()} CPUs\n"
+        f"difffilter benchmarks — torch {torch.__version__}, {torch.get_num_threads()} threads, "
+        f"{os.cpu_count()} CPUs, glibc allocator tuned: {tuned} (difffilter.runtime)\n"
     )
     figures: dict = {}
 

@@ -20,6 +20,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from difffilter.models import registry
+from difffilter.runtime import tune_cpu_allocator
 
 __all__ = ["main", "build_parser", "resolve_scenarios", "evaluate"]
 
@@ -118,6 +119,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     if not args.scenario:
         parser.error("a scenario name is required (or --list)")
+    tune_cpu_allocator()
     try:
         names = resolve_scenarios(args.scenario)
         evaluate(
