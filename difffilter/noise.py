@@ -149,6 +149,19 @@ class Gaussian(NoiseModel):
         self._factor_cache = (key, L, diag)
         return L, diag
 
+    def _zero_loc(self) -> bool:
+        """Whether ``loc`` is a constant zero vector (noise models usually are): lets
+        sampling and densities skip a pass over the samples. Cached like the factor."""
+        loc = self.loc
+        if loc.requires_grad:
+            return False
+        key = (loc.data_ptr(), loc._version, loc.dtype, loc.device, tuple(loc.shape))
+        cached = getattr(self, "_zero_loc_cache", None)
+        if cached is None or cached[0] != key:
+            cached = (key, not bool(loc.any()))
+            self._zero_loc_cache = cached
+        return cached[1]
+
     def _compute_scale_tril(self) -> Tensor:
         if self._given == "scale_tril":
             return self._scale_tril.tril()
@@ -181,12 +194,13 @@ class Gaussian(NoiseModel):
             device=L.device,
         )
         if diag is not None:
-            return rowwise(torch.add, rowwise(torch.mul, eps, diag), self.loc)
+            out = rowwise(torch.mul, eps, diag)
+            return out if self._zero_loc() else rowwise(torch.add, out, self.loc)
         return self.loc + matvec(L, eps)
 
     def log_prob(self, value: Tensor, mask: Tensor | None = None) -> Tensor:
         """``log N(value; μ, Σ)`` for ``value [..., d]`` → ``[...]`` (marginal on ``mask``)."""
-        residual = rowwise(torch.sub, value, self.loc)
+        residual = value if self._zero_loc() else rowwise(torch.sub, value, self.loc)
         if mask is not None:
             return _masked_gaussian_log_prob(residual, self.cov, mask)
         L, diag = self._factor()

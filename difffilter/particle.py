@@ -224,7 +224,15 @@ def particle_step(
             log_w = torch.where(need[..., None], res.log_weights, log_w)
 
     new, correction = proposal(model, particles, u, y, k, mask, generator)
-    log_alpha = likelihood(model, y, new, k + 1, mask)
+    obs = model.observe(new, k + 1)
+    if type(likelihood) is ModelLikelihood and _default_measurement_density(model):
+        # the model's own density: reuse the predicted measurements computed above
+        m = None if mask is None else mask.unsqueeze(-2)
+        log_alpha = model.measurement_noise.log_prob(
+            rowwise(torch.sub, y.unsqueeze(-2), obs), mask=m
+        )
+    else:
+        log_alpha = likelihood(model, y, new, k + 1, mask)
     if correction is not None:
         log_alpha = log_alpha + correction
     joint = log_w + log_alpha
@@ -238,7 +246,6 @@ def particle_step(
     else:
         pred_w = torch.softmax(log_w + correction, dim=-1)
     pred_w = pred_w.unsqueeze(-2)  # [..., 1, N]
-    obs = model.observe(new, k + 1)
     y_hat = (pred_w @ obs).squeeze(-2)
     obs_dev = rowwise(torch.sub, obs, y_hat.unsqueeze(-2))
     y_cov = (obs_dev * pred_w.transpose(-1, -2)).transpose(-1, -2) @ obs_dev
@@ -264,6 +271,11 @@ def particle_step(
         resampled=need,
     )
     return ParticleState(new, log_w_new, k + 1, ess_new), out
+
+
+def _default_measurement_density(model: StateSpaceModel) -> bool:
+    """Whether ``model.measurement_log_prob`` is the base class's ``log p(y − h(x))``."""
+    return type(model).measurement_log_prob is StateSpaceModel.measurement_log_prob
 
 
 def _moments(particles: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
