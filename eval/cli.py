@@ -25,7 +25,10 @@ from difffilter.runtime import tune_cpu_allocator
 __all__ = ["main", "build_parser", "resolve_scenarios", "evaluate"]
 
 #: Scenarios run by `all` and by a family name (variants are reachable by their own names).
-FAMILY_DEFAULTS = {"four_tank": ["four_tank_bias"], "lfc": None}
+FAMILY_DEFAULTS = {
+    "four_tank": ["four_tank_bias"],
+    "lfc": ["lfc_step", "lfc_sine", "lfc_simultaneous", "lfc_sawtooth"],
+}
 
 
 def build_parser() -> argparse.ArgumentParser:

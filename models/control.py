@@ -1,0 +1,212 @@
+"""Controller and observer gains for linear plants: LQR (CARE) and Luenberger designs.
+
+LQR (the paper's eqs 15–16): ``K₁ = R⁻¹BᵀP`` with ``PA + AᵀP + Q − PBR⁻¹BᵀP = 0``. The
+continuous algebraic Riccati equation (CARE) has a stabilising solution only for a
+stabilisable ``(A, B)``. The two-area LFC model is not: ``wᵀA = 0`` and ``wᵀB = 0`` for
+``w = e₄ + e₉`` (the sum of the tie-line flows is conserved), an uncontrollable eigenvalue
+at exactly 0. Two remedies (SCENARIOS.md §3):
+
+* ``method="reduced"`` (default): restrict to the controllable subspace ``{x : wᵀx = 0}``,
+  solve the CARE exactly on its 9 coordinates and apply the gain to the orthogonal
+  projection of the state onto that subspace, so ``K₁ w = 0``: the controller ignores the
+  uncontrollable direction instead of fighting it.
+* ``method="shift"``: solve the CARE for ``A − εI`` (every mode, the uncontrollable one
+  included, becomes stable), which feeds the tie-line sum back with a gain of order one.
+
+Observers: with ``C = I`` a Luenberger gain that places the error poles is
+underdetermined (100 free entries for 10 poles). :func:`luenberger_gain` implements three
+designs with the same poles; the LFC report shows how much the baseline depends on the
+choice (SCENARIOS.md "Pitfalls").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.signal as ssig
+import torch
+from torch import Tensor
+
+__all__ = [
+    "care_residual",
+    "lqr",
+    "uncontrollable_direction",
+    "observer_poles",
+    "luenberger_gain",
+    "LUENBERGER_DESIGNS",
+]
+
+
+def _np(t: Tensor) -> np.ndarray:
+    return t.detach().cpu().to(torch.float64).numpy()
+
+
+def care_residual(A: Tensor, B: Tensor, Q: Tensor, R: Tensor, P: Tensor) -> Tensor:
+    """``PA + AᵀP + Q − PBR⁻¹BᵀP`` (zero at a CARE solution) → ``[n, n]``."""
+    return P @ A + A.T @ P + Q - P @ B @ torch.linalg.solve(R, B.T @ P)
+
+
+def uncontrollable_direction(A: Tensor, B: Tensor, tol: float = 1e-9) -> Tensor | None:
+    """Unit left null vector ``w`` with ``wᵀ[A, B] = 0``, or ``None`` if there is none.
+
+    Shapes ``A [n, n]``, ``B [n, m]`` → ``[n]``. Such a ``w`` spans an uncontrollable mode at
+    eigenvalue 0 (the case of the LFC tie-line sum).
+    """
+    M = _np(torch.cat([A, B], dim=1))
+    _, s, vh = np.linalg.svd(M.T)
+    if s[-1] > tol * max(s[0], 1.0):
+        return None
+    w = vh[-1]
+    w = w / np.linalg.norm(w)
+    # Fix the sign so that the direction is reproducible (largest entry positive).
+    w = w * np.sign(w[np.argmax(np.abs(w))])
+    return torch.as_tensor(w, dtype=A.dtype)
+
+
+def lqr(
+    A: Tensor,
+    B: Tensor,
+    Q: Tensor | None = None,
+    R: Tensor | None = None,
+    *,
+    method: str = "reduced",
+    shift: float = 1e-3,
+) -> tuple[Tensor, Tensor]:
+    """Continuous-time LQR gain ``K₁ [m, n]`` and Riccati solution ``P [n, n]``.
+
+    Args:
+        A, B: ``[n, n]``, ``[n, m]`` continuous-time plant.
+        Q, R: state and input weights (default ``I``; [DEF] for the LFC, the paper gives none).
+        method: ``"reduced"`` (exact CARE on the controllable subspace when there is an
+            uncontrollable zero mode; plain CARE otherwise), ``"shift"`` (CARE on
+            ``A − shift·I``) or ``"direct"`` (plain CARE; fails for the LFC model).
+        shift: the ``ε`` of ``method="shift"``.
+
+    For ``"reduced"`` the returned ``P`` is the reduced solution lifted back,
+    ``P = Tᵀ P_r T`` with ``T`` the coordinate map of the projection, so it satisfies the
+    CARE on the controllable subspace (``Vᵀ·care_residual·V = 0`` for its basis ``V``).
+    """
+    n, m = B.shape
+    if A.shape != (n, n):
+        raise ValueError(
+            f"A must have shape [{n}, {n}] to match B [{n}, {m}]; got {tuple(A.shape)}"
+        )
+    Q = torch.eye(n, dtype=A.dtype) if Q is None else Q
+    R = torch.eye(m, dtype=A.dtype) if R is None else R
+    if method not in ("reduced", "shift", "direct"):
+        raise ValueError(f"method must be 'reduced', 'shift' or 'direct'; got {method!r}")
+    if method == "shift" and not shift > 0:
+        raise ValueError(f"shift must be positive; got {shift!r}")
+    w = uncontrollable_direction(A, B) if method == "reduced" else None
+    if method == "direct" or (method == "reduced" and w is None):
+        P = sla.solve_continuous_are(_np(A), _np(B), _np(Q), _np(R))
+    elif method == "shift":
+        P = sla.solve_continuous_are(_np(A) - shift * np.eye(n), _np(B), _np(Q), _np(R))
+    else:
+        # Controllable subspace S = w⊥. Drop the coordinate where |w| is largest; on S it is
+        # a linear function of the others, x_j = −Σ_{i≠j} w_i x_i / w_j.
+        wn = _np(w)
+        j = int(np.argmax(np.abs(wn)))
+        keep = [i for i in range(n) if i != j]
+        # Lift L: reduced coordinates r → full state on S, x = L r.
+        L = np.zeros((n, n - 1))
+        L[keep, np.arange(n - 1)] = 1.0
+        L[j, :] = -wn[keep] / wn[j]
+        # Projection coordinates T: x → r of the orthogonal projection onto S.
+        proj = np.eye(n) - np.outer(wn, wn)
+        T = proj[keep, :]
+        An, Bn, Qn = _np(A), _np(B), _np(Q)
+        Ar, Br = T @ An @ L, T @ Bn
+        Qr = L.T @ Qn @ L  # x ∈ S ⇒ xᵀQx = rᵀ(LᵀQL)r
+        Pr = sla.solve_continuous_are(Ar, Br, Qr, _np(R))
+        P = T.T @ Pr @ T
+    P = torch.as_tensor(0.5 * (P + P.T), dtype=A.dtype)
+    K = torch.linalg.solve(R, B.T @ P)
+    return K, P
+
+
+def _observer_spectrum(A_closed: Tensor, factor: float, zero_pole: float | None):
+    """Eigen-decomposition of ``A − BK₁`` with eigenvalues scaled by ``factor``.
+
+    Returns ``(λ_obs [n] complex, V [n, n] complex)``. The closed loop of the LFC keeps the
+    uncontrollable eigenvalue at 0, which "``factor`` times faster" leaves at 0 (a discrete
+    pole at 1: that observer error would never decay). [DEF] it is moved to ``zero_pole``
+    (default: the slowest of the other scaled eigenvalues).
+    """
+    lam, V = np.linalg.eig(_np(A_closed))
+    lam = factor * lam
+    tiny = np.abs(lam) < 1e-8
+    if tiny.any():
+        target = lam[~tiny].real.max() if zero_pole is None else float(zero_pole)
+        lam = np.where(tiny, target, lam)
+    return lam, V
+
+
+def observer_poles(
+    A_closed: Tensor, dt: float, factor: float = 3.0, zero_pole: float | None = None
+) -> Tensor:
+    """Discrete observer poles ``exp(factor·λᵢ·dt)`` for the eigenvalues ``λᵢ`` of ``A − BK₁``.
+
+    See :func:`_observer_spectrum` for the zero eigenvalue. Returns a complex tensor ``[n]``.
+    """
+    lam, _ = _observer_spectrum(A_closed, factor, zero_pole)
+    return torch.as_tensor(np.exp(lam * dt))
+
+
+LUENBERGER_DESIGNS = ("modal", "robust", "diagonal")
+
+
+def luenberger_gain(
+    Ad: Tensor,
+    A_closed: Tensor,
+    dt: float,
+    *,
+    design: str = "modal",
+    factor: float = 3.0,
+    zero_pole: float | None = None,
+) -> Tensor:
+    """Filter-form gain ``L_f`` for ``x̂_k = x̂⁻_k + L_f (z_k − M̂_k − x̂⁻_k)`` with ``C = I``.
+
+    The a-priori error obeys ``ẽ⁻_{k+1} = A_d (I − L_f) ẽ⁻_k``, so ``L_f = A_d⁻¹ L_p`` where
+    the predictor gain ``L_p`` places the eigenvalues of ``Φ = A_d − L_p`` at
+    ``exp(factor·λᵢ(A − BK₁)·dt)`` ("observer poles three times faster than the closed
+    loop"). With ``C = I`` every ``Φ`` with those eigenvalues is admissible; the designs
+    choose its eigenvectors:
+
+    * ``"modal"``: ``Φ = V diag(exp(factor λ dt)) V⁻¹`` with ``V`` the eigenvectors of
+      ``A − BK₁`` (i.e. ``Φ = exp(factor (A − BK₁) dt)`` up to the moved zero pole): the
+      error modes are the closed-loop modes, ``factor`` times faster.
+    * ``"robust"``: ``scipy.signal.place_poles`` (Tits–Yang), the best-conditioned
+      eigenvectors — ``Φ`` close to a normal matrix.
+    * ``"diagonal"``: ``Φ`` block diagonal in the coordinate axes (a real 2×2 block per
+      complex pair): every channel's error decays on its own.
+
+    Shapes: ``Ad [n, n]``, ``A_closed [n, n]`` → ``L_f [n, n]``.
+    """
+    n = Ad.shape[0]
+    if A_closed.shape != (n, n):
+        raise ValueError(f"A_closed must have shape [{n}, {n}]; got {tuple(A_closed.shape)}")
+    if not dt > 0:
+        raise ValueError(f"dt must be positive; got {dt!r}")
+    lam, V = _observer_spectrum(A_closed, factor, zero_pole)
+    p = np.exp(lam * dt)
+    if design == "modal":
+        Phi = (V @ np.diag(p) @ np.linalg.inv(V)).real
+    elif design == "robust":
+        res = ssig.place_poles(_np(Ad).T, np.eye(n), p, method="YT", maxiter=100)
+        Phi = _np(Ad) - res.gain_matrix.T
+    elif design == "diagonal":
+        Phi = np.zeros((n, n))
+        real = sorted(p[np.abs(p.imag) < 1e-12].real)
+        upper = sorted(p[p.imag >= 1e-12], key=lambda z: z.real)
+        i = 0
+        for r in real:
+            Phi[i, i] = r
+            i += 1
+        for z in upper:  # each complex pair as [[a, b], [-b, a]]
+            Phi[i : i + 2, i : i + 2] = [[z.real, z.imag], [-z.imag, z.real]]
+            i += 2
+    else:
+        raise ValueError(f"design must be one of {LUENBERGER_DESIGNS}; got {design!r}")
+    Lp = _np(Ad) - Phi
+    return torch.as_tensor(np.linalg.solve(_np(Ad), Lp), dtype=Ad.dtype)

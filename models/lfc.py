@@ -1,0 +1,527 @@
+"""Two-area load-frequency control (LFC) under false-data injection (Sargolzaei et al., TII 2020).
+
+Plant, eqs (34)–(42) of the paper. Area ``i`` has the state
+``xⁱ = [Δf, ΔP_g, ΔP_tu, ΔP_tie, ∫(βΔf + ΔP_tie)]`` and::
+
+    ẋⁱ = Aᵢ xⁱ + Σ_{j≠i} Aᵢⱼ xʲ + Bᵢ uⁱ + Fᵢ ΔP_lⁱ                          (34)–(41)
+
+    Aᵢ = [[−μ/J, 1/J, 0, −1/J, 0],          Bᵢ = e₃ / T_g,   Fᵢ = −e₁ / J,
+          [0, −1/T_tu, 1/T_tu, 0, 0],        Aᵢⱼ = −2π Tᵢⱼ at (4, 1), else 0.
+          [−1/(ω T_g), 0, −1/T_g, 0, 0],
+          [2π Σ_{j≠i} Tᵢⱼ, 0, 0, 0, 0],
+          [β, 0, 0, 1, 0]]
+
+The stacked 10-state model is discretised exactly by a zero-order hold (the paper's
+eq. 42): ``A_d = e^{AΔt}``, ``B_d = ∫₀^Δt e^{Aα} dα B``, both read off one matrix exponential
+of the augmented block matrix ``[[A, B], [0, 0]]Δt`` (Van Loan). The discrete model is::
+
+    X_{k+1} = A_d X_k + B_d U_k + F_d ΔP_l + D ξ_k,    ξ_k ~ N(0, Ξ)           (42)
+    Z_k     = X_k + M_k + θ_k,                          θ_k ~ N(0, Θ)
+
+Time grid (difffilter's convention): ``X_0 = 0`` is the prior, measurements ``Z_k`` arrive
+at ``t_k = kΔt`` for ``k = 1 … T``; ``U_k`` is applied on ``[t_k, t_{k+1})``.
+
+Attack scenarios I–IV (eqs 44–47 and Sec. VII-D) and a random-attack generator for
+training and validation live here, together with the scenario registrations
+``lfc_step``, ``lfc_sine``, ``lfc_simultaneous``, ``lfc_sawtooth`` and ``lfc_sine_1ms``.
+
+Values the paper leaves open are ``[DEF]`` defaults (``../shared/SCENARIOS.md`` §3); each
+is named in :data:`DEFAULT_NOTES` and in the scenario's ``notes``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor, nn
+
+from difffilter.models.registry import Scenario, register
+
+__all__ = [
+    "NUM_AREAS",
+    "AREA_DIM",
+    "STATE_DIM",
+    "STATE_NAMES",
+    "LFCParameters",
+    "continuous_model",
+    "zoh_discretize",
+    "controllability_rank",
+    "LFCPlant",
+    "LFCScenario",
+    "scenario_attack",
+    "sawtooth_pulse_train",
+    "random_attacks",
+    "DEFAULT_NOTES",
+]
+
+NUM_AREAS = 2
+AREA_DIM = 5
+STATE_DIM = NUM_AREAS * AREA_DIM
+STATE_NAMES = tuple(
+    f"{n}_{i + 1}" for i in range(NUM_AREAS) for n in ("df", "dPg", "dPtu", "dPtie", "ace_int")
+)
+
+# Tolerance for comparing sample times with interval ends: k·Δt is not exact in binary
+# floating point (300·0.01 may round below 3), and the paper's intervals are closed.
+_T_EPS = 1e-9
+
+
+@dataclass(frozen=True)
+class LFCParameters:
+    """Physical parameters of the two areas (one value per area).
+
+    [DEF] Table I of Sargolzaei et al., TSG 2016 (the paper's ref. [31]) was not available.
+    These are the two-area values of Zhang et al., IEEE TPS 28(3) 2013 (the paper's
+    ref. [36]) as recorded in SCENARIOS.md §3 ("recalled from memory, not verified").
+    """
+
+    inertia: tuple[float, float] = (10.0, 12.0)  # J = 2H, p.u.·s
+    damping: tuple[float, float] = (1.0, 1.5)  # μ = D, p.u./Hz
+    turbine_time: tuple[float, float] = (0.3, 0.4)  # T_tu, s
+    governor_time: tuple[float, float] = (0.1, 0.17)  # T_g, s
+    droop: tuple[float, float] = (0.05, 0.05)  # ω = R, Hz/p.u.
+    freq_bias: tuple[float, float] = (21.0, 21.5)  # β, p.u./Hz
+    tie_stiffness: float = 0.198  # T_12 = T_21, p.u./rad
+
+    def __post_init__(self):
+        for name in ("inertia", "turbine_time", "governor_time", "droop"):
+            vals = getattr(self, name)
+            if len(vals) != NUM_AREAS or any(v <= 0 for v in vals):
+                raise ValueError(f"{name} must hold {NUM_AREAS} positive values; got {vals!r}")
+        for name in ("damping", "freq_bias"):
+            if len(getattr(self, name)) != NUM_AREAS:
+                raise ValueError(f"{name} must hold {NUM_AREAS} values")
+
+
+def continuous_model(params: LFCParameters | None = None, *, dtype=torch.float64):
+    """Stacked continuous-time matrices of eqs (34)–(41).
+
+    Returns ``(A [10, 10], B [10, 2], F [10, 2])`` where column ``i`` of ``B`` (``F``) is the
+    control input (load deviation) of area ``i``.
+    """
+    p = params or LFCParameters()
+    A = torch.zeros(STATE_DIM, STATE_DIM, dtype=dtype)
+    B = torch.zeros(STATE_DIM, NUM_AREAS, dtype=dtype)
+    F = torch.zeros(STATE_DIM, NUM_AREAS, dtype=dtype)
+    two_pi_t = 2.0 * math.pi * p.tie_stiffness
+    for i in range(NUM_AREAS):
+        o = AREA_DIM * i
+        J, mu, Ttu, Tg, w, beta = (
+            p.inertia[i],
+            p.damping[i],
+            p.turbine_time[i],
+            p.governor_time[i],
+            p.droop[i],
+            p.freq_bias[i],
+        )
+        A[o, o], A[o, o + 1], A[o, o + 3] = -mu / J, 1.0 / J, -1.0 / J
+        A[o + 1, o + 1], A[o + 1, o + 2] = -1.0 / Ttu, 1.0 / Ttu
+        A[o + 2, o], A[o + 2, o + 2] = -1.0 / (w * Tg), -1.0 / Tg
+        # Two areas: Σ_{j≠i} 2πT_ij has a single term.
+        A[o + 3, o] = two_pi_t
+        A[o + 4, o], A[o + 4, o + 3] = beta, 1.0
+        B[o + 2, i] = 1.0 / Tg
+        F[o, i] = -1.0 / J
+        for j in range(NUM_AREAS):
+            if j != i:  # A_ij of eq. (41): the other area's frequency drives the tie line
+                A[o + 3, AREA_DIM * j] = -two_pi_t
+    return A, B, F
+
+
+def zoh_discretize(A: Tensor, B: Tensor, dt: float) -> tuple[Tensor, Tensor]:
+    """Exact zero-order-hold discretisation of ``ẋ = A x + B u`` over ``dt``.
+
+    ``exp([[A, B], [0, 0]]·dt) = [[A_d, B_d], [0, I]]`` with ``A_d = e^{A dt}`` and
+    ``B_d = ∫₀^dt e^{Aα} dα B``. Shapes: ``A [n, n]``, ``B [n, m]`` → ``(A_d [n, n], B_d [n, m])``.
+    """
+    if not (isinstance(dt, (int, float)) and dt > 0 and math.isfinite(dt)):
+        raise ValueError(f"dt must be a positive finite number of seconds; got {dt!r}")
+    if A.dim() != 2 or A.shape[0] != A.shape[1]:
+        raise ValueError(f"A must be square [n, n]; got {tuple(A.shape)}")
+    if B.dim() != 2 or B.shape[0] != A.shape[0]:
+        raise ValueError(f"B must have shape [{A.shape[0]}, m]; got {tuple(B.shape)}")
+    n, m = B.shape
+    block = torch.zeros(n + m, n + m, dtype=A.dtype, device=A.device)
+    block[:n, :n] = A
+    block[:n, n:] = B
+    expm = torch.linalg.matrix_exp(block * dt)
+    return expm[:n, :n], expm[:n, n:]
+
+
+def controllability_rank(A: Tensor, B: Tensor, tol: float | None = None) -> int:
+    """Rank of ``[B, AB, …, Aⁿ⁻¹B]`` (9 for the two-area LFC: the tie-line sum is conserved)."""
+    blocks, M = [], B
+    for _ in range(A.shape[0]):
+        blocks.append(M)
+        M = A @ M
+    ctrb = torch.cat(blocks, dim=1)
+    # Columns are scaled to unit norm first: A's entries span four orders of magnitude.
+    ctrb = ctrb / ctrb.norm(dim=0, keepdim=True).clamp_min(1e-300)
+    rank = (
+        torch.linalg.matrix_rank(ctrb) if tol is None else torch.linalg.matrix_rank(ctrb, atol=tol)
+    )
+    return int(rank.item())
+
+
+class LFCPlant(nn.Module):
+    """Discrete two-area LFC plant with process/measurement noise and a load disturbance.
+
+    Args:
+        dt: sampling time in seconds (the paper: 0.01; Fig. 7: 0.001).
+        params: physical parameters (:class:`LFCParameters`).
+        process_var: ``Ξ = process_var·I`` with ``D = I``, the covariance of the discrete-time
+            noise ``ξ_k`` of eq. (42). [DEF] (not given in the paper): ``1e-6·dt/0.01``, i.e.
+            1e-6 per 10 ms step, a white-noise intensity of 1e-4 s⁻¹ that the 1 ms variant
+            keeps (1e-7 per step) so that both sampling times simulate the same plant.
+        measurement_var: ``Θ = measurement_var·I``. [DEF] 1e-4.
+        dtype: floating dtype of every buffer.
+
+    Buffers: ``A, B, F`` (continuous), ``Ad, Bd, Fd`` (ZOH), ``C = I₁₀``, ``Q = Ξ``, ``R = Θ``.
+    """
+
+    def __init__(
+        self,
+        dt: float = 0.01,
+        params: LFCParameters | None = None,
+        *,
+        process_var: float | None = None,
+        measurement_var: float = 1e-4,
+        dtype=torch.float64,
+    ):
+        super().__init__()
+        if process_var is None:
+            process_var = 1e-6 * float(dt) / 0.01
+        if not (process_var > 0 and measurement_var > 0):
+            raise ValueError("process_var and measurement_var must be positive")
+        self.dt = float(dt)
+        self.params = params or LFCParameters()
+        A, B, F = continuous_model(self.params, dtype=torch.float64)
+        Ad, BFd = zoh_discretize(A, torch.cat([B, F], dim=1), self.dt)
+        eye = torch.eye(STATE_DIM, dtype=torch.float64)
+        for name, value in {
+            "A": A,
+            "B": B,
+            "F": F,
+            "Ad": Ad,
+            "Bd": BFd[:, :NUM_AREAS],
+            "Fd": BFd[:, NUM_AREAS:],
+            "C": eye,
+            "Q": process_var * eye,
+            "R": measurement_var * eye,
+        }.items():
+            self.register_buffer(name, value.to(dtype))
+        self.process_var = float(process_var)
+        self.measurement_var = float(measurement_var)
+
+    @property
+    def dtype(self):
+        return self.Ad.dtype
+
+    def sample_noise(
+        self, num_runs: int, steps: int, generator: torch.Generator
+    ) -> tuple[Tensor, Tensor]:
+        """Process and measurement noise ``(ξ [B, T, 10], θ [B, T, 10])`` from ``generator``.
+
+        Drawn once per Monte Carlo study and shared by every estimator (common random
+        numbers): ``ξ[:, k]`` drives ``X_k → X_{k+1}``, ``θ[:, k]`` corrupts ``Z_{k+1}``.
+        """
+        if not isinstance(generator, torch.Generator):
+            raise ValueError("generator must be a torch.Generator (every draw is seeded)")
+        shape = (num_runs, steps, STATE_DIM)
+        xi = torch.randn(shape, generator=generator, dtype=self.dtype) * math.sqrt(self.process_var)
+        theta = torch.randn(shape, generator=generator, dtype=self.dtype) * math.sqrt(
+            self.measurement_var
+        )
+        return xi, theta
+
+    def step(self, x: Tensor, u: Tensor, load: Tensor, xi: Tensor) -> Tensor:
+        """``X_{k+1} = A_d X_k + B_d U_k + F_d ΔP_l + ξ_k``; ``x [B,10]``, ``u [B,2]``,
+        ``load [B,2]`` or ``[2]``, ``xi [B,10]`` → ``[B,10]``."""
+        return x @ self.Ad.T + u @ self.Bd.T + load @ self.Fd.T + xi
+
+
+# -- attacks ---------------------------------------------------------------------------------
+
+
+def _between(t: Tensor, lo: float, hi: float) -> Tensor:
+    """Indicator of the closed interval ``lo ≤ t ≤ hi`` (with the sample-time tolerance)."""
+    return ((t >= lo - _T_EPS) & (t <= hi + _T_EPS)).to(t.dtype)
+
+
+def sawtooth_pulse_train(
+    t: Tensor,
+    *,
+    width: float = 0.2,
+    period: float = 0.5,
+    skew: float = 1.0,
+    amplitude: float = 1.0,
+    start: float = 0.0,
+    stop: float = 10.0,
+) -> Tensor:
+    """MATLAB ``pulstran(t, start:period:stop, 'tripuls', width, skew)`` times ``amplitude``.
+
+    ``tripuls(τ, w, s)`` is ``(τ + w/2)/(w/2·(1+s))`` on ``−w/2 ≤ τ < s·w/2`` and
+    ``(w/2 − τ)/(w/2·(1−s))`` on ``s·w/2 ≤ τ < w/2``, else 0. With ``s = 1`` each pulse is a
+    ramp from 0 to (just under) ``amplitude`` over ``width`` seconds, centred on its delay,
+    followed by an instant drop. Shape: ``t [T]`` → ``[T]``.
+    """
+    if not (width > 0 and period > 0 and -1.0 <= skew <= 1.0):
+        raise ValueError("width and period must be positive and skew must lie in [-1, 1]")
+    n_pulses = int(math.floor((stop - start) / period + 1e-9)) + 1
+    delays = start + period * torch.arange(n_pulses, dtype=t.dtype)
+    tau = t[:, None] - delays[None, :]
+    half = width / 2.0
+    peak = skew * half
+    rise = (tau >= -half - _T_EPS) & (tau < peak - _T_EPS)
+    fall = (tau >= peak - _T_EPS) & (tau < half - _T_EPS)
+    out = torch.zeros_like(tau)
+    out = torch.where(rise, (tau + half) / (half * (1.0 + skew)), out)
+    if skew < 1.0:
+        out = torch.where(fall, (half - tau) / (half * (1.0 - skew)), out)
+    return amplitude * out.clamp(0.0, 1.0).sum(dim=1)
+
+
+ATTACK_KINDS = ("step", "sine", "simultaneous", "sawtooth", "none")
+
+
+def scenario_attack(kind: str, t: Tensor) -> Tensor:
+    """Attack ``α [T, 10]`` of scenario ``kind`` at the sample times ``t [T]`` (seconds).
+
+    Channel indices are zero-based (the paper's state 3 of area 1 is channel 2, state 3 of
+    area 2, the global state 8, is channel 7).
+
+    * ``step`` (I, eq. 44): 0.4 on 3 ≤ t ≤ 5, 0.9 on 7 ≤ t ≤ 8 (the gap 5 < t < 7 is
+      unspecified; [DEF] 0).
+    * ``sine`` (II, eq. 45): 1.5·sin(10t) for t ≥ 3.
+    * ``simultaneous`` (III, eqs 46–47): channel 2: 0.6 on [0.1, 5], 1.2 on [7, 8];
+      channel 7: 0.9·sin(10t) on [0.1, 5], 0.1 on [7, 8]; 0 elsewhere.
+    * ``sawtooth`` (IV): ``pulstran(t, 0:0.5:10, 'tripuls', 0.2, 1)`` on channel 2
+      ([DEF] amplitude 1, channel α^{1,3}, the whole 0–10 s).
+    * ``none``: no attack.
+    """
+    if t.dim() != 1:
+        raise ValueError(f"t must be a 1-D tensor of sample times [T]; got {tuple(t.shape)}")
+    alpha = torch.zeros(t.shape[0], STATE_DIM, dtype=t.dtype)
+    if kind == "step":
+        alpha[:, 2] = 0.4 * _between(t, 3.0, 5.0) + 0.9 * _between(t, 7.0, 8.0)
+    elif kind == "sine":
+        alpha[:, 2] = 1.5 * torch.sin(10.0 * t) * (t >= 3.0 - _T_EPS).to(t.dtype)
+    elif kind == "simultaneous":
+        first, second = _between(t, 0.1, 5.0), _between(t, 7.0, 8.0)
+        alpha[:, 2] = 0.6 * first + 1.2 * second
+        alpha[:, 7] = 0.9 * torch.sin(10.0 * t) * first + 0.1 * second
+    elif kind == "sawtooth":
+        alpha[:, 2] = sawtooth_pulse_train(t)
+    elif kind != "none":
+        raise ValueError(f"kind must be one of {ATTACK_KINDS}; got {kind!r}")
+    return alpha
+
+
+# Angular frequencies the random sinusoids avoid, so that the training and validation
+# distribution never contains scenario II/III's 10 rad/s carrier (rad/s).
+EXCLUDED_OMEGA = (9.0, 11.0)
+
+
+def random_attacks(
+    num_runs: int,
+    steps: int,
+    dt: float,
+    *,
+    generator: torch.Generator,
+    channels: tuple[int, ...] | None = None,
+    max_events: int = 3,
+    min_events: int = 0,
+    amplitude: tuple[float, float] = (0.1, 2.0),
+    dtype=torch.float64,
+) -> Tensor:
+    """Random FDI attacks ``α [B, T, 10]`` for training and validation.
+
+    Each run holds ``U{min_events … max_events}`` events; each event picks a channel (from
+    ``channels``, default all ten), an onset ``U[0, 0.9·T·Δt]``, a duration ``U[0.3, 6]`` s, a
+    signed amplitude ``±U[amplitude]`` and one of four shapes:
+
+    * step (a box from onset to onset + duration),
+    * ramp (linear rise over ``U[0.1, 3]`` s, then held until the event ends),
+    * sinusoid ``A·sin(ω(t − onset) + φ)``, ``ω ~ U[2, 40]`` rad/s outside ``EXCLUDED_OMEGA``,
+    * rectangular pulse train (period ``U[0.2, 2]`` s, duty ``U[0.1, 0.9]``).
+
+    The test signals of scenarios I–IV are never drawn: the sinusoids avoid 10 rad/s and
+    there is no periodic sawtooth; the remaining shapes have continuous random parameters.
+    Events on the same channel add. All draws come from ``generator``.
+    """
+    if not isinstance(generator, torch.Generator):
+        raise ValueError("generator must be a torch.Generator (every draw is seeded)")
+    if num_runs < 1 or steps < 1:
+        raise ValueError(f"num_runs and steps must be >= 1; got {num_runs}, {steps}")
+    if not 0 <= min_events <= max_events:
+        raise ValueError(f"need 0 <= min_events <= max_events; got {min_events}, {max_events}")
+    chans = torch.arange(STATE_DIM) if channels is None else torch.as_tensor(channels)
+    if chans.numel() == 0 or bool(((chans < 0) | (chans >= STATE_DIM)).any()):
+        raise ValueError(f"channels must be indices in 0..{STATE_DIM - 1}; got {channels!r}")
+    lo_amp, hi_amp = amplitude
+    if not 0 <= lo_amp <= hi_amp:
+        raise ValueError(f"amplitude must be (low, high) with 0 <= low <= high; got {amplitude!r}")
+    g = generator
+    B, E = num_runs, max(max_events, 1)
+
+    def u(*shape):
+        return torch.rand(*shape, generator=g, dtype=dtype)
+
+    t = dt * torch.arange(1, steps + 1, dtype=dtype)  # [T]
+    horizon = steps * dt
+    n_events = torch.randint(min_events, max_events + 1, (B, 1), generator=g)
+    active = (torch.arange(E)[None, :] < n_events).to(dtype)  # [B, E]
+    channel = chans[torch.randint(0, chans.numel(), (B, E), generator=g)]
+    kind = torch.randint(0, 4, (B, E), generator=g)
+    onset = 0.9 * horizon * u(B, E)
+    duration = 0.3 + 5.7 * u(B, E)
+    sign = torch.where(u(B, E) < 0.5, -1.0, 1.0).to(dtype)
+    amp = sign * (lo_amp + (hi_amp - lo_amp) * u(B, E))
+    rise = 0.1 + 2.9 * u(B, E)
+    # ω uniform on [2, 40] minus the excluded band: draw on the shortened interval, then
+    # shift the part above the band's lower edge past it.
+    width = EXCLUDED_OMEGA[1] - EXCLUDED_OMEGA[0]
+    omega = 2.0 + (38.0 - width) * u(B, E)
+    omega = torch.where(omega >= EXCLUDED_OMEGA[0], omega + width, omega)
+    phase = 2.0 * math.pi * u(B, E)
+    period = 0.2 + 1.8 * u(B, E)
+    duty = 0.1 + 0.8 * u(B, E)
+
+    tau = t[None, None, :] - onset[..., None]  # [B, E, T] time since onset
+    window = ((tau >= 0) & (tau <= duration[..., None])).to(dtype)
+    shapes = torch.stack(
+        [
+            torch.ones_like(tau),
+            (tau / rise[..., None]).clamp(0.0, 1.0),
+            torch.sin(omega[..., None] * tau + phase[..., None]),
+            (torch.remainder(tau, period[..., None]) < duty[..., None] * period[..., None]).to(
+                dtype
+            ),
+        ],
+        dim=0,
+    )  # [4, B, E, T]
+    shape = shapes.gather(0, kind[None, ..., None].expand(1, B, E, steps))[0]
+    signal = amp[..., None] * shape * window * active[..., None]  # [B, E, T]
+    one_hot = torch.nn.functional.one_hot(channel, STATE_DIM).to(dtype)  # [B, E, 10]
+    return torch.einsum("bet,bec->btc", signal, one_hot)
+
+
+# -- scenarios -------------------------------------------------------------------------------
+
+PAPER = "Sargolzaei, Yazdani, Abbaspour, Crane, Dixon, IEEE TII 16(1), 2020"
+
+DEFAULT_NOTES = (
+    "[DEF] plant parameters: Zhang et al. TPS 2013 two-area set (TSG 2016 Table I unavailable)",
+    "[DEF] noise: D = I, Xi = 1e-6 I per 10 ms step (1e-7 per 1 ms step: same intensity), "
+    "Theta = 1e-4 I per sample",
+    "[DEF] load: 0.01 p.u. step in area 1 at t = 0 (paper: stochastic load of its ref. [39]); "
+    "unknown to the observers",
+    "[DEF] LQR weights Q = I10, R = I2 on the reduced 9-state controllable model",
+    "[DEF] Kalman observer Sigma(0) = 1e-2 I, X_hat(0) = X(0) = 0",
+    "[DEF] NN sizes a = b = 3, 10 tanh units; initial weights s*U[0,1] (s chosen on validation)",
+)
+
+# Table I (attack-estimate RMSE) and Table II (state-5 RMSE) of the paper.
+PAPER_TABLES = {
+    "step": {
+        "traditional_ad": 0.225363,
+        "proposed_ad": 0.068807,
+        "state5_traditional_ctrl": 0.066127,
+        "state5_secure_ctrl": 0.064231,
+    },
+    "sine": {
+        "traditional_ad": 0.405883,
+        "proposed_ad": 0.186432,
+        "state5_traditional_ctrl": 0.064558,
+        "state5_secure_ctrl": 0.064236,
+    },
+    "simultaneous": {
+        "traditional_ad": 0.549188,
+        "proposed_ad": 0.133867,
+        "state5_traditional_ctrl": 0.076106,
+        "state5_secure_ctrl": 0.064159,
+    },
+    "sawtooth": {
+        "traditional_ad": 0.232860,
+        "proposed_ad": 0.221108,
+        "state5_traditional_ctrl": 0.064502,
+        "state5_secure_ctrl": 0.064219,
+    },
+}
+
+
+@dataclass(frozen=True)
+class LFCScenario(Scenario):
+    """An LFC attack scenario: plant sampling, horizon, load and attack signal.
+
+    Attributes:
+        attack: one of ``step``, ``sine``, ``simultaneous``, ``sawtooth``, ``none``.
+        dt: sampling time (s); ``duration``: horizon (s), so ``steps = duration / dt``.
+        load: constant load deviation per area (p.u.), applied from t = 0. [DEF]
+        attacked_channels: zero-based channels the attack targets (metric channels, eq. 43).
+        paper_table: the paper's Table I/II entries for this scenario (``{}`` if none).
+    """
+
+    attack: str = "none"
+    dt: float = 0.01
+    duration: float = 10.0
+    load: tuple[float, float] = (0.01, 0.0)
+    attacked_channels: tuple[int, ...] = (2,)
+    paper_table: dict = field(default_factory=dict, hash=False, compare=False)
+
+    def __post_init__(self):
+        if self.attack not in ATTACK_KINDS:
+            raise ValueError(f"attack must be one of {ATTACK_KINDS}; got {self.attack!r}")
+        if not (self.dt > 0 and self.duration >= self.dt):
+            raise ValueError("dt must be positive and duration >= dt")
+
+    @property
+    def steps(self) -> int:
+        return int(round(self.duration / self.dt))
+
+    def times(self, dtype=torch.float64) -> Tensor:
+        """Sample times ``t_k = kΔt``, ``k = 1 … T`` → ``[T]``."""
+        return self.dt * torch.arange(1, self.steps + 1, dtype=dtype)
+
+    def attack_signal(self, dtype=torch.float64) -> Tensor:
+        """The scenario's attack ``α [T, 10]``."""
+        return scenario_attack(self.attack, self.times(dtype))
+
+    def load_tensor(self, dtype=torch.float64) -> Tensor:
+        return torch.tensor(self.load, dtype=dtype)
+
+
+def _lfc(name, attack, description, channels=(2,), dt=0.01, table_key=None):
+    return register(
+        LFCScenario(
+            name=name,
+            family="lfc",
+            description=description,
+            paper=PAPER,
+            notes=DEFAULT_NOTES,
+            attack=attack,
+            dt=dt,
+            attacked_channels=channels,
+            paper_table=dict(PAPER_TABLES.get(table_key or attack, {})),
+        )
+    )
+
+
+_lfc("lfc_step", "step", "LFC scenario I: steps 0.4 (3-5 s) and 0.9 (7-8 s) on dP_tu of area 1")
+_lfc("lfc_sine", "sine", "LFC scenario II: 1.5 sin(10t) from t = 3 s on dP_tu of area 1")
+_lfc(
+    "lfc_simultaneous",
+    "simultaneous",
+    "LFC scenario III: steps on state 3 and a sinusoid then step on state 8 (both areas)",
+    channels=(2, 7),
+)
+_lfc("lfc_sawtooth", "sawtooth", "LFC scenario IV: 2 Hz sawtooth pulse train on dP_tu of area 1")
+_lfc(
+    "lfc_sine_1ms",
+    "sine",
+    "LFC scenario II sampled at 1 ms (the paper's Fig. 7)",
+    dt=0.001,
+    table_key="none",
+)

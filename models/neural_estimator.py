@@ -1,0 +1,309 @@
+"""The neural FDI estimator of Sargolzaei et al. (TII 2020), eqs (8)–(9).
+
+One small network per area ``i`` maps a window of its own past attack estimates and
+residuals to the current attack estimate::
+
+    M̂ⁱ_k = Wⁱ σ(Vⁱ δⁱ_k),   σ = tanh                                          (8)
+    δⁱ_k = [M̂ⁱ_{k−1}, …, M̂ⁱ_{k−a}, eⁱ_{k−ℓ}, …, eⁱ_{k−ℓ−b+1}]                   (9)
+
+with ``Wⁱ [d, h]``, ``Vⁱ [h, d(a+b)]`` and no biases (as in the paper). ``ℓ`` (the residual
+lag) is the observer's business (see :mod:`difffilter.models.attack_observer`): the paper
+uses ``ℓ = 1``. Each area also has an optional detection head, a logistic read-out of the
+squared hidden units, ``pⁱ_k = sigmoid(cⁱ + Pⁱ σ(Vⁱ δⁱ_k)²)``, the "attack probability";
+only gradient training fits it (the EKF of eqs 10–14 trains ``ζⁱ = [Wⁱ, Vⁱ]`` alone). The
+squares matter: without biases every hidden unit is an odd function of ``δ``, so a linear
+read-out of them could not respond alike to an attack and its negative.
+
+Initial weights: Algorithm 1 draws them in ``[0, 1]``; full-scale weights saturate the
+tanh units and make the recurrent map (``M̂`` feeds back into ``δ``) unstable, so they are
+``s·U[0, 1]`` with a configurable ``s`` (``init="uniform01"``), or ``U[−s, s]``
+(``init="symmetric"``).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["AreaNetwork", "NeuralFDIEstimator", "build_delta"]
+
+
+def _check_int(value, name, minimum=1):
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}")
+
+
+class AreaNetwork(nn.Module):
+    """One area's ``M̂ = W tanh(V δ)``: ``δ [..., in_dim]`` → ``[..., out_dim]``.
+
+    The template the EKF-over-parameters trainer calls functionally with one parameter set
+    per run (``W [out_dim, hidden]``, ``V [hidden, in_dim]``).
+    """
+
+    def __init__(
+        self,
+        in_dim: int,
+        hidden: int,
+        out_dim: int,
+        in_scale: Tensor | None = None,
+        dtype=torch.float64,
+    ):
+        super().__init__()
+        self.W = nn.Parameter(torch.zeros(out_dim, hidden, dtype=dtype))
+        self.V = nn.Parameter(torch.zeros(hidden, in_dim, dtype=dtype))
+        scale = torch.ones(in_dim, dtype=dtype) if in_scale is None else in_scale.to(dtype)
+        self.register_buffer("in_scale", scale.clone())
+
+    def forward(self, delta: Tensor) -> Tensor:
+        return torch.tanh((delta / self.in_scale) @ self.V.T) @ self.W.T
+
+    # Closed forms used by difffilter.param_ekf instead of torch.func (same values, a
+    # fraction of the cost: the online learners call them at every step of every run).
+    def batched_forward(self, params: dict[str, Tensor], delta: Tensor) -> Tensor:
+        """``W_n tanh(V_n δ_n)`` for per-run weights ``W [N, m, h]``, ``V [N, h, in]``, ``δ [N, in]``."""
+        h = torch.tanh(torch.einsum("nhi,ni->nh", params["V"], delta / self.in_scale))
+        return torch.einsum("nmh,nh->nm", params["W"], h)
+
+    def batched_jacobian(self, params: dict[str, Tensor], delta: Tensor) -> tuple[Tensor, Tensor]:
+        """Output ``[N, m]`` and ``∂out/∂[vec W, vec V]`` ``[N, m, m·h + h·in]`` (row-major).
+
+        ``∂out_i/∂W_kj = 1[i = k]·h_j`` and ``∂out_i/∂V_jl = W_ij (1 − h_j²) δ̃_l``: eq. (13).
+        """
+        W, V = params["W"], params["V"]
+        N, m, hid = W.shape
+        x = delta / self.in_scale
+        h = torch.tanh(torch.einsum("nhi,ni->nh", V, x))
+        out = torch.einsum("nmh,nh->nm", W, h)
+        eye = torch.eye(m, dtype=W.dtype, device=W.device)
+        d_w = (eye[None, :, :, None] * h[:, None, None, :]).reshape(N, m, m * hid)
+        d_v = ((W * (1.0 - h * h)[:, None, :])[..., None] * x[:, None, None, :]).reshape(N, m, -1)
+        return out, torch.cat([d_w, d_v], dim=-1)
+
+
+def build_delta(attack_hist: Tensor, resid_hist: Tensor, num_areas: int) -> Tensor:
+    """Per-area network inputs ``δ [B, J, d(a+b)]`` from the histories.
+
+    ``attack_hist [B, a, J·d]`` holds ``M̂_{k−1} … M̂_{k−a}`` (most recent first),
+    ``resid_hist [B, b, J·d]`` the residuals, most recent first. Area ``i`` takes its own
+    ``d`` channels: ``δⁱ = [M̂ⁱ_{k−1}, …, M̂ⁱ_{k−a}, eⁱ_…]`` as in eq. (9).
+    """
+    B, a, n = attack_hist.shape
+    b = resid_hist.shape[1]
+    d = n // num_areas
+    ma = attack_hist.reshape(B, a, num_areas, d).transpose(1, 2).reshape(B, num_areas, a * d)
+    rb = resid_hist.reshape(B, b, num_areas, d).transpose(1, 2).reshape(B, num_areas, b * d)
+    return torch.cat([ma, rb], dim=-1)
+
+
+class NeuralFDIEstimator(nn.Module):
+    """Per-area networks ``M̂ⁱ = Wⁱ tanh(Vⁱ δⁱ)`` (eqs 8–9), stacked over areas.
+
+    Args:
+        num_areas: ``J`` (2 for the two-area LFC).
+        area_dim: ``d``, measured channels per area (5).
+        a, b: number of past attack estimates and residuals in ``δ`` ([DEF] 3 and 3).
+        hidden: tanh units per area ([DEF] 10).
+        init_scale: ``s`` of the initial weights.
+        init: ``"uniform01"`` (``s·U[0,1]``, Algorithm 1) or ``"symmetric"`` (``U[−s, s]``).
+        detection_head: add the logistic attack-probability read-out.
+        attack_scale, resid_scale: fixed input normalisation, ``δ̃ = δ / scale`` for the
+            attack-estimate and the residual entries (1 and 1 = the paper). Residuals are of
+            the order of the measurement noise (√Θ = 0.01) while attacks are of order 1, so
+            gradient training uses ``resid_scale ≈ √Θ``; it is a reparametrisation of ``V``
+            (``V δ̃ = (V D⁻¹) δ``), so eq. (8) is unchanged.
+        seed: seed of the weight initialisation (a private ``torch.Generator``).
+
+    Parameters: ``V [J, h, d(a+b)]``, ``W [J, d, h]`` and, with the head, ``P [J, h]`` and
+    ``c [J]``.
+    """
+
+    def __init__(
+        self,
+        num_areas: int = 2,
+        area_dim: int = 5,
+        a: int = 3,
+        b: int = 3,
+        hidden: int = 10,
+        init_scale: float = 0.05,
+        init: str = "uniform01",
+        detection_head: bool = True,
+        attack_scale: float = 1.0,
+        resid_scale: float = 1.0,
+        seed: int = 0,
+        dtype=torch.float64,
+    ):
+        super().__init__()
+        for name, val in (
+            ("num_areas", num_areas),
+            ("area_dim", area_dim),
+            ("a", a),
+            ("b", b),
+            ("hidden", hidden),
+        ):
+            _check_int(val, name)
+        if not init_scale > 0:
+            raise ValueError(f"init_scale must be positive; got {init_scale!r}")
+        if init not in ("uniform01", "symmetric"):
+            raise ValueError(f"init must be 'uniform01' or 'symmetric'; got {init!r}")
+        self.num_areas, self.area_dim, self.a, self.b, self.hidden = (
+            num_areas,
+            area_dim,
+            a,
+            b,
+            hidden,
+        )
+        self.in_dim = area_dim * (a + b)
+        if not (attack_scale > 0 and resid_scale > 0):
+            raise ValueError("attack_scale and resid_scale must be positive")
+        self.attack_scale, self.resid_scale = float(attack_scale), float(resid_scale)
+        scale = torch.cat(
+            [
+                torch.full((area_dim * a,), float(attack_scale), dtype=dtype),
+                torch.full((area_dim * b,), float(resid_scale), dtype=dtype),
+            ]
+        )
+        self.register_buffer("in_scale", scale)
+        self.init_scale, self.init = float(init_scale), init
+        g = torch.Generator().manual_seed(int(seed))
+
+        def draw(*shape):
+            u = torch.rand(*shape, generator=g, dtype=dtype)
+            return init_scale * (u if init == "uniform01" else 2.0 * u - 1.0)
+
+        self.V = nn.Parameter(draw(num_areas, hidden, self.in_dim))
+        self.W = nn.Parameter(draw(num_areas, area_dim, hidden))
+        self.detection_head = bool(detection_head)
+        if detection_head:
+            # Starts at p = sigmoid(-4) ≈ 0.018: "no attack" until trained.
+            self.P = nn.Parameter(torch.zeros(num_areas, hidden, dtype=dtype))
+            self.c = nn.Parameter(torch.full((num_areas,), -4.0, dtype=dtype))
+
+    @property
+    def channels(self) -> int:
+        return self.num_areas * self.area_dim
+
+    def config(self) -> dict:
+        """Constructor arguments (for checkpoint cards)."""
+        return {
+            "num_areas": self.num_areas,
+            "area_dim": self.area_dim,
+            "a": self.a,
+            "b": self.b,
+            "hidden": self.hidden,
+            "init_scale": self.init_scale,
+            "init": self.init,
+            "detection_head": self.detection_head,
+            "attack_scale": self.attack_scale,
+            "resid_scale": self.resid_scale,
+        }
+
+    def area_template(self) -> AreaNetwork:
+        """An :class:`AreaNetwork` with this estimator's shapes and input scaling."""
+        return AreaNetwork(
+            self.in_dim, self.hidden, self.area_dim, in_scale=self.in_scale, dtype=self.V.dtype
+        )
+
+    def area_params(self) -> dict[str, Tensor]:
+        """``{"W": [J, d, h], "V": [J, h, in]}``: the per-area ``ζⁱ`` of eq. (10)."""
+        return {"W": self.W, "V": self.V}
+
+    def hidden_units(self, delta: Tensor, V: Tensor | None = None) -> Tensor:
+        """``tanh(Vⁱ δⁱ)``: ``delta [..., J, in]`` (``V [..., J, h, in]`` optional) → ``[..., J, h]``."""
+        V = self.V if V is None else V
+        return torch.tanh((V @ (delta / self.in_scale).unsqueeze(-1)).squeeze(-1))
+
+    def forward(self, delta: Tensor, W: Tensor | None = None, V: Tensor | None = None):
+        """Attack estimate and attack-probability logit.
+
+        ``delta [..., J, d(a+b)]`` → ``(M̂ [..., J, d], logit [..., J])``; the logit is
+        ``None`` without a detection head. ``W``/``V`` override the weights (per-run
+        weights ``[..., J, d, h]``/``[..., J, h, in]`` of an online learning rule).
+        """
+        if delta.shape[-2:] != (self.num_areas, self.in_dim):
+            raise ValueError(
+                f"delta must have shape [..., {self.num_areas}, {self.in_dim}]; got {tuple(delta.shape)}"
+            )
+        h = self.hidden_units(delta, V)
+        W = self.W if W is None else W
+        attack = (W @ h.unsqueeze(-1)).squeeze(-1)
+        logit = (self.c + (self.P * h * h).sum(-1)) if self.detection_head else None
+        return attack, logit
+
+
+# -- checkpoints -----------------------------------------------------------------------------
+
+CHECKPOINT_FORMAT = "difffilter.neural_fdi_estimator/1"
+_CONFIG_TYPES = {
+    "num_areas": int,
+    "area_dim": int,
+    "a": int,
+    "b": int,
+    "hidden": int,
+    "init_scale": float,
+    "init": str,
+    "detection_head": bool,
+    "attack_scale": float,
+    "resid_scale": float,
+}
+
+
+def save_estimator_checkpoint(
+    path, estimator: NeuralFDIEstimator, observer: dict | None = None, extra: dict | None = None
+) -> None:
+    """Write a weights-only checkpoint: tensors and plain Python values, never a pickled module.
+
+    Layout: ``{"format", "estimator_config", "observer" (e.g. ``{"residual_lag": 0}``),
+    "state_dict", "extra"}``; it loads with ``torch.load(path, weights_only=True)``.
+    """
+    from pathlib import Path
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().cpu().clone() for k, v in estimator.state_dict().items()}
+    torch.save(
+        {
+            "format": CHECKPOINT_FORMAT,
+            "estimator_config": estimator.config(),
+            "observer": dict(observer or {}),
+            "state_dict": state,
+            "extra": dict(extra or {}),
+        },
+        path,
+    )
+
+
+def load_estimator_checkpoint(path, *, dtype=torch.float64) -> tuple[NeuralFDIEstimator, dict]:
+    """Load a checkpoint written by :func:`save_estimator_checkpoint`.
+
+    Returns ``(estimator, observer_config)``. ``FileNotFoundError`` if ``path`` does not
+    exist; ``ValueError`` naming ``path`` if it is not such a checkpoint (wrong format,
+    missing keys, shapes that do not match the stored configuration).
+    """
+    from pathlib import Path
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"ckpt: no checkpoint file at {path}")
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # unpickling errors come in many types
+        raise ValueError(f"ckpt: {path} is not a weights-only torch checkpoint ({exc})") from exc
+    if not isinstance(blob, dict) or blob.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"ckpt: {path} is not a {CHECKPOINT_FORMAT} checkpoint")
+    for key in ("estimator_config", "state_dict", "observer"):
+        if key not in blob:
+            raise ValueError(f"ckpt: {path} lacks the {key!r} entry")
+    cfg = blob["estimator_config"]
+    unknown = set(cfg) - set(_CONFIG_TYPES)
+    if unknown:
+        raise ValueError(f"ckpt: {path} has unknown estimator settings {sorted(unknown)}")
+    try:
+        kwargs = {k: _CONFIG_TYPES[k](v) for k, v in cfg.items()}
+        estimator = NeuralFDIEstimator(**kwargs, dtype=dtype)
+        state = {
+            k: v.to(dtype) if v.is_floating_point() else v for k, v in blob["state_dict"].items()
+        }
+        estimator.load_state_dict(state, strict=True)
+    except (TypeError, RuntimeError) as exc:
+        raise ValueError(f"ckpt: {path} does not match its own configuration ({exc})") from exc
+    return estimator, dict(blob["observer"])

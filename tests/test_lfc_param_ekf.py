@@ -1,0 +1,180 @@
+"""EKF-over-parameters trainer (difffilter.param_ekf) and the online gradient rule."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch import nn
+
+from difffilter.param_ekf import OnlineGradientDescent, ParamEKF
+
+
+class TwoParam(nn.Module):
+    """y = [a·tanh(b·x₀), a·x₁]: two parameters, two outputs."""
+
+    def __init__(self, a=0.5, b=-0.3):
+        super().__init__()
+        self.a = nn.Parameter(torch.tensor(a, dtype=torch.float64))
+        self.b = nn.Parameter(torch.tensor(b, dtype=torch.float64))
+
+    def forward(self, x):
+        return torch.stack([self.a * torch.tanh(self.b * x[0]), self.a * x[1]])
+
+
+def _hand_update(a, b, rho, ups, k, x, target, lr, q):
+    """Eqs (10)-(14) written out by hand for the TwoParam model (plain Python floats)."""
+    t = math.tanh(b * x[0])
+    pred = [a * t, a * x[1]]
+    e = [target[0] - pred[0], target[1] - pred[1]]
+    # H = ∂pred/∂(a, b), rows = outputs.
+    H = [[t, a * (1 - t * t) * x[0]], [x[1], 0.0]]
+    ups = ups + (e[0] ** 2 + e[1] ** 2 - ups) / k
+    # rho Hᵀ (2x2)
+    rHt = [[sum(rho[i][p] * H[j][p] for p in range(2)) for j in range(2)] for i in range(2)]
+    S = [
+        [sum(H[i][p] * rHt[p][j] for p in range(2)) + (ups if i == j else 0.0) for j in range(2)]
+        for i in range(2)
+    ]
+    det = S[0][0] * S[1][1] - S[0][1] * S[1][0]
+    Sinv = [[S[1][1] / det, -S[0][1] / det], [-S[1][0] / det, S[0][0] / det]]
+    lam = [[sum(rHt[i][p] * Sinv[p][j] for p in range(2)) for j in range(2)] for i in range(2)]
+    da = lr * (lam[0][0] * e[0] + lam[0][1] * e[1])
+    db = lr * (lam[1][0] * e[0] + lam[1][1] * e[1])
+    # rho - lam H rho
+    Hrho = [[sum(H[i][p] * rho[p][j] for p in range(2)) for j in range(2)] for i in range(2)]
+    new_rho = [
+        [
+            rho[i][j] - sum(lam[i][p] * Hrho[p][j] for p in range(2)) + (q if i == j else 0)
+            for j in range(2)
+        ]
+        for i in range(2)
+    ]
+    return a + da, b + db, new_rho, ups, pred, e
+
+
+@pytest.mark.parametrize("q", [0.0, 1e-3])
+def test_ekf_matches_hand_computed_updates(q):
+    model = TwoParam()
+    ekf = ParamEKF(model, (1,), lr=0.7, init_cov=10.0, init_noise=1e-3, process_noise=q)
+    a, b = 0.5, -0.3
+    rho = [[10.0, 0.0], [0.0, 10.0]]
+    ups = 1e-3
+    xs = [(0.4, -1.2), (1.5, 0.3), (-0.8, 0.9)]
+    targets = [(0.2, -0.5), (0.1, 0.4), (-0.3, 0.2)]
+    for k, (x, tg) in enumerate(zip(xs, targets), start=1):
+        a, b, rho, ups, pred, e = _hand_update(a, b, rho, ups, k, x, tg, 0.7, q)
+        out = ekf.step(
+            torch.tensor([x], dtype=torch.float64), torch.tensor([tg], dtype=torch.float64)
+        )
+        assert torch.allclose(
+            out.prediction[0], torch.tensor(pred, dtype=torch.float64), atol=1e-12
+        )
+        assert torch.allclose(out.residual[0], torch.tensor(e, dtype=torch.float64), atol=1e-12)
+        got = ekf.params()
+        assert got["a"][0].item() == pytest.approx(a, abs=1e-10)
+        assert got["b"][0].item() == pytest.approx(b, abs=1e-10)
+        assert torch.allclose(ekf.rho[0], torch.tensor(rho, dtype=torch.float64), atol=1e-9)
+        assert ekf.upsilon[0].item() == pytest.approx(ups, abs=1e-12)
+
+
+def test_ekf_runs_are_independent_and_batched():
+    model = TwoParam()
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(4, 3, 2, generator=g, dtype=torch.float64)
+    y = torch.randn(4, 3, 2, generator=g, dtype=torch.float64)
+    batched = ParamEKF(model, (4, 3))
+    batched.step(x, y)
+    # Each (run, area) filter equals a filter run on its own.
+    for i, j in [(0, 0), (2, 1), (3, 2)]:
+        single = ParamEKF(model, (1,))
+        single.step(x[i, j][None], y[i, j][None])
+        assert torch.allclose(batched.params()["a"][i, j], single.params()["a"][0])
+        assert torch.allclose(batched.rho[i * 3 + j], single.rho[0])
+    # Per-run initial parameters are honoured.
+    start = {"a": torch.tensor([1.0, 2.0], dtype=torch.float64)}
+    ekf = ParamEKF(model, (2,), params=start)
+    assert torch.equal(ekf.params()["a"], start["a"])
+    assert torch.equal(ekf.params()["b"], torch.full((2,), -0.3, dtype=torch.float64))
+    pred = ekf.predict(torch.ones(2, 2, dtype=torch.float64))
+    assert torch.allclose(pred[:, 1], start["a"])
+
+
+def test_ekf_converges_on_a_linear_regression():
+    # y = θ·x with noise: the EKF is recursive least squares and finds θ.
+    lin = nn.Linear(3, 1, bias=False).double()
+    with torch.no_grad():
+        lin.weight.zero_()
+    theta = torch.tensor([0.5, -1.0, 2.0], dtype=torch.float64)
+    ekf = ParamEKF(lin, (2,), init_cov=100.0, init_noise=1e-2)
+    g = torch.Generator().manual_seed(1)
+    for _ in range(200):
+        x = torch.randn(2, 3, generator=g, dtype=torch.float64)
+        y = (x @ theta)[:, None] + 0.01 * torch.randn(2, 1, generator=g, dtype=torch.float64)
+        ekf.step(x, y)
+    assert torch.allclose(ekf.params()["weight"][:, 0], theta.expand(2, 3), atol=0.01)
+    # Without process noise the covariance (and with it the gain) collapses.
+    assert ekf.gain_norm().max() < 1e-3
+
+
+def test_process_noise_keeps_the_gain_alive():
+    lin = nn.Linear(2, 1, bias=False).double()
+    plain = ParamEKF(lin, (1,), init_cov=10.0)
+    noisy = ParamEKF(lin, (1,), init_cov=10.0, process_noise=1e-3)
+    g = torch.Generator().manual_seed(2)
+    for _ in range(500):
+        x = torch.randn(1, 2, generator=g, dtype=torch.float64)
+        y = torch.randn(1, 1, generator=g, dtype=torch.float64)
+        plain.step(x, y)
+        noisy.step(x, y)
+    assert noisy.gain_norm().item() > 10 * plain.gain_norm().item()
+
+
+def test_online_gradient_descent_step():
+    model = TwoParam()
+    gd = OnlineGradientDescent(model, (1,), lr=0.1)
+    x, tg = (0.4, -1.2), (0.2, -0.5)
+    a, b = 0.5, -0.3
+    t = math.tanh(b * x[0])
+    e = [tg[0] - a * t, tg[1] - a * x[1]]
+    grad_a = t * e[0] + x[1] * e[1]
+    grad_b = a * (1 - t * t) * x[0] * e[0]
+    gd.step(torch.tensor([x], dtype=torch.float64), torch.tensor([tg], dtype=torch.float64))
+    assert gd.params()["a"][0].item() == pytest.approx(a + 0.1 * grad_a, abs=1e-12)
+    assert gd.params()["b"][0].item() == pytest.approx(b + 0.1 * grad_b, abs=1e-12)
+
+
+def test_bad_arguments():
+    model = TwoParam()
+    with pytest.raises(ValueError, match="lr"):
+        ParamEKF(model, (1,), lr=0.0)
+    with pytest.raises(ValueError, match="process_noise"):
+        ParamEKF(model, (1,), process_noise=-1.0)
+    with pytest.raises(ValueError, match="params"):
+        ParamEKF(model, (1,), params={"nope": torch.zeros(1)})
+    with pytest.raises(ValueError, match="module"):
+        ParamEKF("not a module", (1,))
+    ekf = ParamEKF(model, (2,))
+    with pytest.raises(ValueError, match="inputs"):
+        ekf.step(torch.zeros(3, 2, dtype=torch.float64), torch.zeros(3, 2, dtype=torch.float64))
+    with pytest.raises(ValueError, match="targets"):
+        ekf.step(torch.zeros(2, 2, dtype=torch.float64), torch.zeros(2, 3, dtype=torch.float64))
+
+
+def test_closed_form_jacobian_of_the_area_network_matches_autodiff():
+    from difffilter.models.neural_estimator import NeuralFDIEstimator
+
+    net = NeuralFDIEstimator(hidden=4, init="symmetric", init_scale=0.5, resid_scale=0.1, seed=2)
+    g = torch.Generator().manual_seed(3)
+    params = {
+        k: v.detach() + 0.1 * torch.randn((5,) + v.shape, generator=g, dtype=v.dtype)
+        for k, v in net.area_params().items()
+    }
+    ekf = ParamEKF(net.area_template(), (5, 2), params=params)
+    x = torch.randn(5, 2, net.in_dim, generator=g, dtype=torch.float64)
+    out_cf, H_cf = ekf.jacobian(x)
+    out_ad, H_ad = ekf.jacobian(x, autodiff=True)
+    assert H_cf.shape == (10, 5, 5 * 4 + 4 * 30)
+    assert torch.allclose(out_cf, out_ad, atol=1e-12) and torch.allclose(H_cf, H_ad, atol=1e-12)
+    assert torch.allclose(ekf.predict(x).reshape(10, 5), out_ad, atol=1e-12)

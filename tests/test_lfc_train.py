@@ -1,0 +1,170 @@
+"""Training of kf_nn_grad: configs, TensorBoard logging, resuming, the shipped checkpoint."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import lightning.pytorch as pl
+import pytest
+import torch
+
+from difffilter.models.neural_estimator import load_estimator_checkpoint
+from difffilter.train.cli import main
+from difffilter.train.lfc import LFCDataModule, LFCGradModule, check_metric
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = sorted((ROOT / "train" / "configs").glob("*.yaml"))
+CKPT = ROOT / "checkpoints" / "lfc_nn_grad.ckpt"
+
+# A tiny problem (short trajectories, few runs) for the tests that really train.
+TINY_DATA = dict(
+    batch_size=4, batches_per_epoch=2, val_runs=4, steps=120, train_seed=11, val_seed=12
+)
+TINY_MODEL = dict(hidden=6, tbptt_steps=40, monitor_scenarios=["lfc_step"], monitor_runs=2)
+
+
+def test_configs_exist():
+    assert any(p.name == "lfc.yaml" for p in CONFIGS)
+
+
+@pytest.mark.parametrize("config", CONFIGS, ids=lambda p: p.name)
+def test_every_config_runs_fast_dev_run(config, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # anything a config writes lands in the temporary folder
+    code = main(
+        [
+            "fit",
+            "--config",
+            str(config),
+            "--trainer.fast_dev_run=1",
+            f"--trainer.default_root_dir={tmp_path}",
+        ]
+    )
+    assert code == 0
+    assert not (tmp_path / "checkpoints" / "lfc_nn_grad.ckpt").exists()  # no export in dev runs
+
+
+def _tiny_trainer(tmp_path, max_epochs, callbacks=(), logger=False):
+    ckpt = pl.callbacks.ModelCheckpoint(
+        dirpath=tmp_path / "ckpt", monitor="val/attack_rmse", save_last=True, save_top_k=1
+    )
+    return pl.Trainer(
+        max_epochs=max_epochs,
+        accelerator="cpu",
+        devices=1,
+        logger=logger,
+        callbacks=[ckpt, *callbacks],
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        num_sanity_val_steps=0,
+        use_distributed_sampler=False,
+        default_root_dir=tmp_path,
+        log_every_n_steps=1,
+    )
+
+
+class _StopAfterFirstEpoch(pl.Callback):
+    """Simulates an interruption: the run stops after epoch 0 (its last.ckpt is on disk)."""
+
+    def on_train_epoch_end(self, trainer, pl_module):
+        trainer.should_stop = True
+
+
+def test_interrupted_training_resumes_from_last_checkpoint(tmp_path):
+    pl.seed_everything(0)
+    full = LFCGradModule(**TINY_MODEL)
+    _tiny_trainer(tmp_path / "full", 2).fit(full, LFCDataModule(**TINY_DATA))
+
+    pl.seed_everything(0)
+    first = LFCGradModule(**TINY_MODEL)
+    t1 = _tiny_trainer(tmp_path / "cut", 2, callbacks=[_StopAfterFirstEpoch()])
+    t1.fit(first, LFCDataModule(**TINY_DATA))
+    last = tmp_path / "cut" / "ckpt" / "last.ckpt"
+    assert last.is_file() and t1.current_epoch == 1
+    assert not torch.allclose(first.estimator.V, full.estimator.V)
+
+    pl.seed_everything(123)  # the resumed run must not depend on the global seed
+    resumed = LFCGradModule(**TINY_MODEL)
+    t2 = _tiny_trainer(tmp_path / "cut", 2)
+    t2.fit(resumed, LFCDataModule(**TINY_DATA), ckpt_path=last)
+    assert t2.global_step == 2 * 2 * 3  # 2 epochs × 2 batches × 3 TBPTT chunks
+    for name in ("V", "W", "P", "c"):
+        assert torch.allclose(
+            getattr(resumed.estimator, name), getattr(full.estimator, name), atol=1e-6
+        ), name
+
+
+def test_tensorboard_events_hold_scalars_images_and_hparams(tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    logger = pl.loggers.TensorBoardLogger(tmp_path, name="tb", default_hp_metric=False)
+    pl.seed_everything(0)
+    module = LFCGradModule(**TINY_MODEL)
+    _tiny_trainer(tmp_path, 1, logger=logger).fit(module, LFCDataModule(**TINY_DATA))
+    acc = EventAccumulator(str(logger.log_dir), size_guidance={"images": 0, "scalars": 0})
+    acc.Reload()
+    scalars = set(acc.Tags()["scalars"])
+    for tag in (
+        "train/loss",
+        "train/target_rmse",
+        "train/grad_norm",
+        "train/lr",
+        "val/attack_rmse",
+        "val/scenario/lfc_step/attack_rmse",
+    ):
+        assert tag in scalars, tag
+    assert acc.Scalars("val/attack_rmse")[-1].value > 0
+    images = set(acc.Tags()["images"])
+    assert {"val/random_attack", "val/scenario/lfc_step"} <= images
+    assert acc.Images("val/scenario/lfc_step")[0].encoded_image_string[:4] == b"\x89PNG"
+    assert (Path(logger.log_dir) / "hparams.yaml").is_file()
+    hp = (Path(logger.log_dir) / "hparams.yaml").read_text()
+    assert "tbptt_steps: 40" in hp and "hidden: 6" in hp
+
+
+def test_datamodule_seeds():
+    dm = LFCDataModule(**TINY_DATA)
+    first = dm.train_batch(0, 0)
+    assert torch.equal(first["attack"], dm.train_batch(0, 0)["attack"])  # reproducible
+    assert not torch.equal(first["xi"], dm.train_batch(1, 0)["xi"])  # new epoch, new data
+    assert not torch.equal(first["xi"], dm.train_batch(0, 1)["xi"])
+    assert first["attack"].shape == (4, 120, 10) and first["load"].shape == (4, 2)
+    key = next(iter(dm.train_dataloader()))
+    assert torch.equal(dm.on_after_batch_transfer(key, 0)["xi"], first["xi"])
+    val = next(iter(dm.val_dataloader()))
+    assert val["xi"].shape == (4, 120, 10) and not torch.equal(val["xi"], first["xi"])
+    with pytest.raises(ValueError, match="differ"):
+        LFCDataModule(train_seed=3, val_seed=3)
+
+
+@pytest.mark.skipif(not CKPT.is_file(), reason="the shipped checkpoint is produced by training")
+def test_shipped_checkpoint_loads_and_reproduces_its_card():
+    raw = torch.load(CKPT, map_location="cpu", weights_only=True)
+    assert isinstance(raw["state_dict"], dict)
+    card = json.loads(CKPT.with_suffix(".json").read_text())
+    assert card["torch_version"] and card["seed"]["train_seed"] != card["seed"]["val_seed"]
+    assert card["train_time_s"] <= 15 * 60
+    estimator, observer = load_estimator_checkpoint(CKPT)
+    check = card["check"]
+    value = check_metric(
+        estimator,
+        residual_lag=observer["residual_lag"],
+        seed=check["seed"],
+        runs=check["runs"],
+        channels=check["channels"],
+    )
+    assert value == pytest.approx(check["value"], rel=1e-6)
+
+
+def test_loss_targets():
+    from types import SimpleNamespace
+
+    g = torch.Generator().manual_seed(0)
+    attack, theta, est = (torch.randn(2, 5, 10, generator=g) for _ in range(3))
+    rec = SimpleNamespace(attack_est=est, logit=None)
+    plain = LFCGradModule(hidden=4, monitor_scenarios=[])
+    _, mse, _ = plain._loss(rec, attack, theta)
+    assert mse.item() == pytest.approx((est - attack).square().mean().item())
+    noisy = LFCGradModule(hidden=4, monitor_scenarios=[], noise_target=True)
+    _, mse, _ = noisy._loss(rec, attack, theta)  # the paper's O_s = M + θ
+    assert mse.item() == pytest.approx((est - attack - theta).square().mean().item())
