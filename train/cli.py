@@ -19,6 +19,8 @@ import sys
 import torch
 from lightning.pytorch.cli import LightningCLI
 
+from difffilter.runtime import tune_cpu_allocator
+
 from .lfc import LFCDataModule, LFCGradModule
 
 __all__ = ["main"]
@@ -32,6 +34,7 @@ def main(args: list[str] | None = None) -> int:
     process holds a core). One thread is the default; ``DIFFFILTER_THREADS`` overrides it.
     """
     torch.set_num_threads(int(os.environ.get("DIFFFILTER_THREADS", "1")))
+    tune_cpu_allocator()
     LightningCLI(
         LFCGradModule,
         LFCDataModule,
