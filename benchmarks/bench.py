@@ -33,26 +33,12 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from timing import best_time  # noqa: E402
+
 import difffilter as df  # noqa: E402
 from difffilter.models.four_tank import FourTankModel  # noqa: E402
 from difffilter.particle import particle_filter  # noqa: E402
 from difffilter.runtime import tune_cpu_allocator  # noqa: E402
-
-
-def best_time(fn, repeats: int = 3, min_time: float = 0.2) -> float:
-    """Best wall time of ``fn()`` over ``repeats`` rounds (each round ≥ ``min_time`` s)."""
-    fn()  # warm-up (allocator, lazy initialisation)
-    best = math.inf
-    for _ in range(repeats):
-        n, start = 0, time.perf_counter()
-        while True:
-            fn()
-            n += 1
-            elapsed = time.perf_counter() - start
-            if elapsed >= min_time:
-                break
-        best = min(best, elapsed / n)
-    return best
 
 
 # --------------------------------------------------------------------------- KF ----

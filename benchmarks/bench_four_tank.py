@@ -15,10 +15,8 @@ Run alone: ``python benchmarks/bench_four_tank.py``.
 
 from __future__ import annotations
 
-import math
-import time
-
 import torch
+from timing import best_time
 
 from difffilter import fdi
 from difffilter.fdi.fused import FusedModifiedPF
@@ -30,22 +28,6 @@ __all__ = ["bench_modified_pf"]
 PAPER_STEP_S = 6.9782e-4  # Table 4, "the proposed method", MATLAB tic-toc per step
 TARGET_RATE = 1e7  # particle-steps per second at B = N = 100
 TARGET_STEP_S = 1e-4  # single run, N = 100
-
-
-def _best(fn, rounds: int, min_time: float = 0.2) -> float:
-    """Best wall time of one call of ``fn`` over ``rounds`` rounds of at least ``min_time`` s."""
-    fn()  # warm-up: allocator, lazy initialisation
-    best = math.inf
-    for _ in range(rounds):
-        n, start = 0, time.perf_counter()
-        while True:
-            fn()
-            n += 1
-            elapsed = time.perf_counter() - start
-            if elapsed >= min_time:
-                break
-        best = min(best, elapsed / n)
-    return best
 
 
 def _setup(batch: int, steps: int, dtype: torch.dtype):
@@ -99,7 +81,7 @@ def _bench(rounds: int, num_particles: int, steps: int, threads: int) -> list[di
                 resample_generator=torch.Generator().manual_seed(3),
             )
 
-        t = _best(batched, rounds)
+        t = best_time(batched, rounds)
         rate = B * num_particles * steps / t
         rows.append(
             {
@@ -126,7 +108,7 @@ def _bench(rounds: int, num_particles: int, steps: int, threads: int) -> list[di
                 resample_generator=torch.Generator().manual_seed(3),
             )
 
-        step = _best(single, rounds) / steps
+        step = best_time(single, rounds) / steps
         rows.append(
             {
                 "figure": "single_run",
@@ -155,7 +137,7 @@ def _bench(rounds: int, num_particles: int, steps: int, threads: int) -> list[di
                 resample_generator=torch.Generator().manual_seed(3),
             )
 
-    step = _best(composed, max(2, rounds // 2)) / steps
+    step = best_time(composed, max(2, rounds // 2)) / steps
     rows.append(
         {
             "figure": "single_run_composed_reference",

@@ -22,6 +22,8 @@ from pathlib import Path
 from difffilter.models import registry
 from difffilter.runtime import tune_cpu_allocator
 
+from .report import summary_table
+
 __all__ = ["main", "build_parser", "resolve_scenarios", "evaluate"]
 
 #: Scenarios run by `all` and by a family name (variants are reachable by their own names).
@@ -125,7 +127,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     tune_cpu_allocator()
     try:
         names = resolve_scenarios(args.scenario)
-        evaluate(
+        results = evaluate(
             names,
             ckpt=args.ckpt,
             runs=args.runs,
@@ -136,6 +138,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-eval: error: {exc}", file=sys.stderr)
         return 2
+    print("\n" + summary_table(results) + "\n")
     print(
         f"reports written under {args.out}/ (open the TensorBoard logs with: tensorboard --logdir {args.out})"
     )

@@ -115,6 +115,7 @@ def main(argv=None) -> int:
         return 0
 
     from difffilter.eval.cli import evaluate, resolve_scenarios
+    from difffilter.eval.report import summary_table
 
     scenarios = []
     for family in ("four_tank", "lfc"):
@@ -122,7 +123,7 @@ def main(argv=None) -> int:
             scenarios += resolve_scenarios(family)
     ckpt = Path("checkpoints/lfc_nn_grad.ckpt")
     print(f"\n== Evaluations: {', '.join(scenarios)} -> {args.out}/ ==")
-    evaluate(
+    results = evaluate(
         scenarios,
         ckpt=ckpt if ckpt.is_file() else None,
         runs=args.runs,
@@ -130,6 +131,7 @@ def main(argv=None) -> int:
         seed=args.seed,
         progress=True,
     )
+    print("\n" + summary_table(results))
     print(
         f"\nReports: {args.out}/<scenario>/report.md; TensorBoard: .venv/bin/tensorboard --logdir {args.out}"
     )

@@ -21,7 +21,14 @@ import math
 from pathlib import Path
 from typing import Any
 
-__all__ = ["REQUIRED_KEYS", "estimator_entry", "write_metrics", "read_metrics", "format_number"]
+__all__ = [
+    "REQUIRED_KEYS",
+    "estimator_entry",
+    "write_metrics",
+    "read_metrics",
+    "format_number",
+    "summary_table",
+]
 
 REQUIRED_KEYS = (
     "state_rmse",
@@ -136,3 +143,37 @@ def format_number(value: Any, digits: int = 4) -> str:
             return f"{value:.{digits}g}"
         return f"{value:.{max(digits - 1, 1)}e}"
     return str(value)
+
+
+SUMMARY_COLUMNS = {  # metrics.json key -> terminal column label
+    "state_rmse": "state RMSE",
+    "state_rmse_vs_attack_free": "vs attack-free",
+    "state5_rmse": "state-5 RMSE",
+    "attack_rmse": "attack RMSE",
+    "tpr": "TPR",
+    "fpr": "FPR",
+    "auc": "AUC",
+}
+
+
+def summary_table(results: dict[str, dict[str, Any]], digits: int = 3) -> str:
+    """Plain-text headline table of ``{scenario: metrics}`` for the terminal.
+
+    One block per scenario that has estimators, one row per estimator, the headline columns
+    of :data:`SUMMARY_COLUMNS`; a column empty for every estimator of a scenario is dropped.
+    The full numbers are in each scenario's ``metrics.json`` and ``report.md``.
+    """
+    blocks = []
+    for scenario, metrics in results.items():
+        rows = metrics.get("estimators") or {}
+        if not rows:
+            continue
+        columns = [c for c in SUMMARY_COLUMNS if any(r.get(c) is not None for r in rows.values())]
+        width = max(len(n) for n in [*rows, "estimator"])
+        head = f"{'estimator':{width}s}" + "".join(f" {SUMMARY_COLUMNS[c]:>14s}" for c in columns)
+        lines = [f"{scenario} ({metrics.get('runs')} runs × {metrics.get('steps')} steps)", head]
+        for name, row in rows.items():
+            cells = "".join(f" {format_number(row.get(c), digits):>14s}" for c in columns)
+            lines.append(f"{name:{width}s}{cells}")
+        blocks.append("\n".join(lines))
+    return "\n\n".join(blocks)

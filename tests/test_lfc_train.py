@@ -31,6 +31,7 @@ def test_configs_exist():
 @pytest.mark.parametrize("config", CONFIGS, ids=lambda p: p.name)
 def test_every_config_runs_fast_dev_run(config, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # anything a config writes lands in the temporary folder
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])  # pytest's own flags are not ours
     code = main(
         [
             "fit",
