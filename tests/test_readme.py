@@ -1,0 +1,19 @@
+"""The README's Python example runs as written and its PF estimate is near the KF's."""
+
+import re
+from pathlib import Path
+
+import torch
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def test_readme_python_example_runs():
+    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+    assert blocks, "README.md has no python example"
+    namespace: dict = {}
+    exec(compile("\n".join(blocks), str(README), "exec"), namespace)  # noqa: S102
+    pf, kf = namespace["pf"], namespace["kf"]
+    # 32 runs × 100 steps, N = 1000: the PF log-likelihood is close to the exact value
+    assert torch.allclose(pf.log_likelihood.mean(), kf.log_likelihood.mean(), rtol=0.01)
+    assert namespace["kf_lossy"].means.shape == (32, 100, 2)
