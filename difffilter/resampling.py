@@ -553,14 +553,27 @@ def _lse_shift(h: Tensor, k: Tensor, out: Tensor | None = None) -> Tensor:
     buf = torch.sub(h.unsqueeze(-2), k, out=out)
     shift = buf.amax(dim=-1, keepdim=True)
     shift = torch.where(torch.isfinite(shift), shift, torch.zeros_like(shift))
-    buf.sub_(shift).exp_()
+    buf.sub_(shift).clamp_(min=_exp_floor(buf.dtype)).exp_()
     return buf.sum(dim=-1).log_().add_(shift.squeeze(-1))
 
 
 def _softmax_shift(h: Tensor, k: Tensor, lse: Tensor) -> Tensor:
     """``S_ij = exp(h_j − K_ij − s_i)`` (rows sum to 1) as a new ``[M, N, N]`` tensor."""
     buf = torch.sub(h.unsqueeze(-2), k)
-    return buf.sub_(lse.unsqueeze(-1)).exp_()
+    return buf.sub_(lse.unsqueeze(-1)).clamp_(min=_exp_floor(buf.dtype)).exp_()
+
+
+def _exp_floor(dtype: torch.dtype) -> float:
+    """Exponent floor ``2·log(eps)`` (−31.8 in float32, −72.1 in float64) applied before ``exp``.
+
+    Why: torch's vectorised CPU ``exp`` takes a slow path for arguments near and below
+    the underflow limit (measured 15× slower per element), and the Sinkhorn kernels are
+    mostly such arguments at small ``ε``; clamping made a ``[32, 1000, 1000]`` half-step
+    4× faster. Every term is relative to the row's largest (which is 1 after the shift),
+    so a floored term is at most ``eps²`` instead of 0 and a sum of ``N`` of them
+    ``N·eps²``, far below the rounding error of the sum for any practical ``N``.
+    """
+    return 2.0 * math.log(torch.finfo(dtype).eps)
 
 
 class _LogSumExpShift(torch.autograd.Function):
