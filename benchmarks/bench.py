@@ -174,7 +174,7 @@ def bench_pf(steps: int = 50) -> list[dict]:
 # ---------------------------------------------------------------------- memory ----
 # Peak memory does not depend on the number of no-grad Sinkhorn iterations (they reuse one
 # [B, N, N] buffer and save nothing for backward), only their time does: the memory run caps
-# them so that `make bench` takes minutes; OT_STEP_SECONDS times one default resampling.
+# them so that `make bench` takes minutes; bench_ot_step times one default resampling.
 OT_MEMORY_ITERATIONS = 10
 
 # The child runs with glibc's default allocator (no tune_cpu_allocator): the tuning keeps

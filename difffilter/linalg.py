@@ -21,6 +21,7 @@ __all__ = [
     "outer",
     "masked_measurement",
     "rowwise",
+    "rowwise_addcmul",
 ]
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -172,4 +173,28 @@ def rowwise(op, a: Tensor, b: Tensor) -> Tensor:
     view = full.reshape(full.shape[:-2] + (n // k, d * k))
     tiled = row.repeat((1,) * (row.dim() - 1) + (k,))
     out = op(tiled, view) if swap else op(view, tiled)
+    return out.reshape(full.shape)
+
+
+def rowwise_addcmul(base: Tensor, full: Tensor, row: Tensor) -> Tensor:
+    """``base + full ⊙ row`` for ``base``, ``full [..., N, d]`` and a row ``row [d]``.
+
+    :func:`rowwise`'s period trick for the fused multiply-add (one pass instead of two);
+    plain broadcasting when the shapes do not fit.
+    """
+    if (
+        base.shape != full.shape
+        or row.dim() != 1
+        or full.dim() < 2
+        or row.shape[0] != full.shape[-1]
+        or not (base.is_contiguous() and full.is_contiguous())
+        or full.device.type != "cpu"
+    ):
+        return torch.addcmul(base, full, row)
+    n, d = full.shape[-2:]
+    k = _period(n)
+    if k == 1 or d * k < 8:
+        return torch.addcmul(base, full, row)
+    shape = full.shape[:-2] + (n // k, d * k)
+    out = torch.addcmul(base.reshape(shape), full.reshape(shape), row.repeat(k))
     return out.reshape(full.shape)

@@ -36,6 +36,7 @@ from .linalg import (
     matvec,
     outer,
     rowwise,
+    rowwise_addcmul,
     safe_cholesky,
 )
 
@@ -197,6 +198,19 @@ class Gaussian(NoiseModel):
             out = rowwise(torch.mul, eps, diag)
             return out if self._zero_loc() else rowwise(torch.add, out, self.loc)
         return self.loc + matvec(L, eps)
+
+    def perturb(self, value: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """``value + s`` with ``s`` drawn from this distribution: ``value [..., d]`` → ``[..., d]``.
+
+        The same draws as ``value + sample(value.shape[:-1])`` for an unbatched noise
+        model; for a zero-mean diagonal one it is a single fused ``value + σ ⊙ ε`` pass
+        (one fewer pass over ``[..., N, d]`` particle tensors per filter step).
+        """
+        L, diag = self._factor()
+        if diag is None or diag.dim() != 1 or self.loc.dim() != 1 or not self._zero_loc():
+            return value + self.sample(value.shape[:-1], generator).reshape(value.shape)
+        eps = torch.randn(value.shape, generator=generator, dtype=L.dtype, device=L.device)
+        return rowwise_addcmul(value, eps, diag)
 
     def log_prob(self, value: Tensor, mask: Tensor | None = None) -> Tensor:
         """``log N(value; μ, Σ)`` for ``value [..., d]`` → ``[...]`` (marginal on ``mask``)."""

@@ -214,14 +214,19 @@ def particle_step(
     need = (_ess(log_w) if ess is None else ess) < ess_threshold * n
     if bool(need.any()):
         gen = resample_generator if resample_generator is not None else generator
+        rows = None if bool(need.all()) else need
         # weights here are normalised and finite by construction: skip re-validation
         fast = getattr(resampler, "resample_normalized", None)
-        res = fast(particles, log_w, gen) if fast is not None else resampler(particles, log_w, gen)
-        if bool(need.all()):
+        if fast is not None:
+            res = fast(particles, log_w, gen, rows=rows)
             particles, log_w = res.particles, res.log_weights
         else:
-            particles = torch.where(need[..., None, None], res.particles, particles)
-            log_w = torch.where(need[..., None], res.log_weights, log_w)
+            res = resampler(particles, log_w, gen)
+            if rows is None:
+                particles, log_w = res.particles, res.log_weights
+            else:
+                particles = torch.where(rows[..., None, None], res.particles, particles)
+                log_w = torch.where(rows[..., None], res.log_weights, log_w)
 
     new, correction = proposal(model, particles, u, y, k, mask, generator)
     obs = model.observe(new, k + 1)

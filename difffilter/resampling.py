@@ -292,16 +292,28 @@ class Resampler:
         return self.resample_normalized(particles, log_w, generator)
 
     def resample_normalized(
-        self, particles: Tensor, log_w: Tensor, generator: torch.Generator | None = None
+        self,
+        particles: Tensor,
+        log_w: Tensor,
+        generator: torch.Generator | None = None,
+        rows: Tensor | None = None,
     ) -> Resampled:
         """:meth:`__call__` without validation, for already normalised ``log_w``.
 
         The particle filter's inner loop calls this (its weights are normalised and
         finite by construction); shapes as in :meth:`__call__`, batch dims equal.
+        ``rows [...]`` (bool) resamples only the marked batch rows: the others keep their
+        particles (identity ancestors) and log-weights. Why here and not by the caller:
+        selecting ancestors ``[..., N]`` is cheaper than selecting particles ``[..., N, d]``.
         """
         ancestors = self._draw(log_w.detach(), generator)
+        new_log_w = self._new_log_weights(log_w, ancestors)
+        if rows is not None:
+            identity = torch.arange(ancestors.shape[-1], device=ancestors.device)
+            ancestors = torch.where(rows.unsqueeze(-1), ancestors, identity)
+            new_log_w = torch.where(rows.unsqueeze(-1), new_log_w, log_w)
         new_particles = _gather_particles(particles, ancestors)
-        return Resampled(new_particles, self._new_log_weights(log_w, ancestors), ancestors)
+        return Resampled(new_particles, new_log_w, ancestors)
 
     # -- hooks -------------------------------------------------------------------------
     def _draw(self, log_w: Tensor, generator: torch.Generator | None) -> Tensor:
@@ -831,9 +843,16 @@ class OptimalTransport(Resampler):
         new = new.reshape(*batch, n, d)
         return Resampled(new, _uniform_log_weights(log_a.reshape(*batch, n)), None)
 
-    def resample_normalized(self, particles, log_w, generator=None) -> Resampled:
-        """Same as :meth:`__call__` (the transport needs no separate fast path)."""
-        return self(particles, log_w, generator)
+    def resample_normalized(self, particles, log_w, generator=None, rows=None) -> Resampled:
+        """:meth:`__call__`, keeping the unmarked batch ``rows [...]`` (bool) unchanged."""
+        res = self(particles, log_w, generator)
+        if rows is None:
+            return res
+        return Resampled(
+            torch.where(rows[..., None, None], res.particles, particles),
+            torch.where(rows[..., None], res.log_weights, log_w),
+            None,
+        )
 
     def transport_matrix(self, particles: Tensor, log_weights: Tensor) -> Tensor:
         """The transport plan ``P [..., N, N]`` used by :meth:`__call__`.

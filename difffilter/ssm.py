@@ -111,6 +111,9 @@ class StateSpaceModel(nn.Module):
     def sample_transition(self, x: Tensor, u: Tensor | None, k: int, generator=None) -> Tensor:
         """Draw ``x_{k+1} ~ p(· | x_k)`` for ``x [..., dx]`` → ``[..., dx]``."""
         mean = self.transition(x, u, k)
+        perturb = getattr(self.process_noise, "perturb", None)
+        if perturb is not None:  # fused mean + noise where the noise model offers it
+            return perturb(mean, generator)
         noise = self.process_noise.sample(mean.shape[:-1], generator)
         return mean + noise.reshape(mean.shape)
 

@@ -109,3 +109,20 @@ def test_sampling_is_reproducible():
     a = g.sample((5,), generator=torch.Generator().manual_seed(9))
     b = g.sample((5,), generator=torch.Generator().manual_seed(9))
     assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize(
+    "cov, loc",
+    [
+        (torch.diag(torch.tensor([0.5, 2.0, 1e-4, 3.0], dtype=D)), torch.zeros(4, dtype=D)),
+        (torch.diag(torch.tensor([0.5, 2.0, 1e-4, 3.0], dtype=D)), torch.ones(4, dtype=D)),
+        (torch.eye(4, dtype=D) + 0.5, torch.zeros(4, dtype=D)),
+    ],
+    ids=["diagonal-zero-mean-fused", "diagonal-with-mean", "full"],
+)
+def test_perturb_equals_value_plus_a_sample_with_the_same_draws(cov, loc):
+    g = Gaussian(loc, cov)
+    value = torch.randn(3, 64, 4, dtype=D, generator=torch.Generator().manual_seed(0))
+    got = g.perturb(value, torch.Generator().manual_seed(1))
+    want = value + g.sample((3, 64), torch.Generator().manual_seed(1))
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-14)

@@ -493,3 +493,19 @@ def test_bad_log_weights_in_ancestors_and_ess():
 def test_bad_constructor_arguments(factory, argument):
     with pytest.raises(ValueError, match=argument):
         factory()
+
+
+@pytest.mark.parametrize("resampler", [Systematic(), StopGradient(), OptimalTransport()], ids=repr)
+def test_resample_normalized_rows_keeps_the_unmarked_rows(resampler):
+    gen = torch.Generator().manual_seed(0)
+    particles = torch.randn(4, 32, 2, dtype=torch.float64, generator=gen)
+    log_w = torch.log_softmax(2 * torch.randn(4, 32, dtype=torch.float64, generator=gen), -1)
+    rows = torch.tensor([True, False, True, False])
+    full = resampler.resample_normalized(particles, log_w, torch.Generator().manual_seed(1))
+    part = resampler.resample_normalized(
+        particles, log_w, torch.Generator().manual_seed(1), rows=rows
+    )
+    torch.testing.assert_close(part.particles[rows], full.particles[rows])
+    torch.testing.assert_close(part.log_weights[rows], full.log_weights[rows])
+    torch.testing.assert_close(part.particles[~rows], particles[~rows])
+    torch.testing.assert_close(part.log_weights[~rows], log_w[~rows])
