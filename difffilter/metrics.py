@@ -15,7 +15,10 @@ __all__ = ["rmse", "detection_counts", "detection_rates", "roc_curve", "roc_auc"
 
 
 def rmse(estimate: Tensor, truth: Tensor, *, dim=None) -> Tensor:
-    """Root-mean-square error ``√mean((estimate − truth)²)`` over ``dim`` (all entries by default)."""
+    """Root-mean-square error ``√mean((estimate − truth)²)`` over ``dim`` (all entries by default).
+
+    ``estimate`` and ``truth`` broadcast (for example ``[B, T, d]`` each); the result is a
+    0-d tensor, or the broadcast shape without ``dim``."""
     sq = (estimate - truth).square()
     return torch.sqrt(sq.mean() if dim is None else sq.mean(dim=dim))
 
@@ -49,6 +52,9 @@ def detection_rates(
     alarms: Tensor, attacked: Tensor, valid: Tensor | None = None
 ) -> dict[str, float | int]:
     """Per-step TPR = TP/(TP+FN) and FPR = FP/(FP+TN), plus the counts.
+
+    ``alarms``, ``attacked`` and ``valid`` (steps to score) are bool ``[B, T]`` (any equal
+    shapes).
 
     ``false_alarms`` = FP and ``missed_attacks`` = FN (the paper's counts). Rates are
     ``nan`` when their denominator is zero.
@@ -93,7 +99,10 @@ def roc_curve(
 
 
 def roc_auc(scores: Tensor, labels: Tensor, valid: Tensor | None = None) -> float:
-    """Area under the ROC curve (trapezoid rule); ``nan`` if one class is absent."""
+    """Area under the ROC curve (trapezoid rule); ``nan`` if one class is absent.
+
+    ``scores`` (higher means attack; finite: map NaN first), bool ``labels`` and ``valid``: equal
+    shapes, for example ``[B, T]``; every valid entry is one sample."""
     y = labels.bool().expand(scores.shape)[_valid(scores, valid)]
     if bool(y.all()) or not bool(y.any()):
         return math.nan
@@ -103,6 +112,8 @@ def roc_auc(scores: Tensor, labels: Tensor, valid: Tensor | None = None) -> floa
 
 def detection_delay(alarms: Tensor, attacked: Tensor) -> dict[str, float | int]:
     """Mean delay from the onset of each attack episode to the first alarm at or after it.
+
+    ``alarms`` and ``attacked``: bool ``[B, T]`` (runs, steps).
 
     An episode is a maximal run of consecutive attacked steps in one run; its delay is
     ``first alarm index ≥ onset − onset`` if that alarm falls inside the episode, else
