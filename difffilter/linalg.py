@@ -179,22 +179,9 @@ def rowwise(op, a: Tensor, b: Tensor) -> Tensor:
 def rowwise_addcmul(base: Tensor, full: Tensor, row: Tensor) -> Tensor:
     """``base + full ⊙ row`` for ``base``, ``full [..., N, d]`` and a row ``row [d]``.
 
-    :func:`rowwise`'s period trick for the fused multiply-add (one pass instead of two);
-    plain broadcasting when the shapes do not fit.
+    The fused multiply-add (one pass instead of two) with :func:`rowwise`'s period trick:
+    ``base`` is viewed like ``full``. Plain broadcasting when ``base`` is not ``full``-shaped.
     """
-    if (
-        base.shape != full.shape
-        or row.dim() != 1
-        or full.dim() < 2
-        or row.shape[0] != full.shape[-1]
-        or not (base.is_contiguous() and full.is_contiguous())
-        or full.device.type != "cpu"
-    ):
+    if base.shape != full.shape:
         return torch.addcmul(base, full, row)
-    n, d = full.shape[-2:]
-    k = _period(n)
-    if k == 1 or d * k < 8:
-        return torch.addcmul(base, full, row)
-    shape = full.shape[:-2] + (n // k, d * k)
-    out = torch.addcmul(base.reshape(shape), full.reshape(shape), row.repeat(k))
-    return out.reshape(full.shape)
+    return rowwise(lambda f, r: torch.addcmul(base.reshape(f.shape), f, r), full, row)

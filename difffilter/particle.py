@@ -34,7 +34,7 @@ from .linalg import (
     safe_cholesky,
     symmetrize,
 )
-from .resampling import Resampler, Systematic
+from .resampling import Resampler, Systematic, keep_unmarked_rows
 from .results import ParticleFilterResult
 from .ssm import StateSpaceModel
 
@@ -219,14 +219,11 @@ def particle_step(
         fast = getattr(resampler, "resample_normalized", None)
         if fast is not None:
             res = fast(particles, log_w, gen, rows=rows)
-            particles, log_w = res.particles, res.log_weights
-        else:
+        else:  # a user resampler with only __call__
             res = resampler(particles, log_w, gen)
-            if rows is None:
-                particles, log_w = res.particles, res.log_weights
-            else:
-                particles = torch.where(rows[..., None, None], res.particles, particles)
-                log_w = torch.where(rows[..., None], res.log_weights, log_w)
+            if rows is not None:
+                res = keep_unmarked_rows(res, particles, log_w, rows)
+        particles, log_w = res.particles, res.log_weights
 
     new, correction = proposal(model, particles, u, y, k, mask, generator)
     obs = model.observe(new, k + 1)

@@ -54,6 +54,7 @@ __all__ = [
     "OptimalTransport",
     "effective_sample_size",
     "normalize_log_weights",
+    "keep_unmarked_rows",
 ]
 
 
@@ -198,6 +199,19 @@ def _gather_particles(particles: Tensor, ancestors: Tensor) -> Tensor:
     flat = ancestors.expand(batch + (n,)).reshape(-1, n)
     offsets = torch.arange(0, flat.shape[0] * n, n, device=flat.device).unsqueeze(-1)
     return rows.index_select(0, (flat + offsets).reshape(-1)).reshape(batch + (n, d))
+
+
+def keep_unmarked_rows(res: Resampled, particles: Tensor, log_w: Tensor, rows: Tensor) -> Resampled:
+    """``res`` on the batch ``rows [...]`` (bool) marked, the inputs elsewhere.
+
+    For resamplers without ancestor indices (selecting particles ``[..., N, d]``); index
+    resamplers select ancestors instead (:meth:`Resampler.resample_normalized`).
+    """
+    return Resampled(
+        torch.where(rows[..., None, None], res.particles, particles),
+        torch.where(rows[..., None], res.log_weights, log_w),
+        None,
+    )
 
 
 def _uniform_log_weights(log_weights: Tensor) -> Tensor:
@@ -846,13 +860,7 @@ class OptimalTransport(Resampler):
     def resample_normalized(self, particles, log_w, generator=None, rows=None) -> Resampled:
         """:meth:`__call__`, keeping the unmarked batch ``rows [...]`` (bool) unchanged."""
         res = self(particles, log_w, generator)
-        if rows is None:
-            return res
-        return Resampled(
-            torch.where(rows[..., None, None], res.particles, particles),
-            torch.where(rows[..., None], res.log_weights, log_w),
-            None,
-        )
+        return res if rows is None else keep_unmarked_rows(res, particles, log_w, rows)
 
     def transport_matrix(self, particles: Tensor, log_weights: Tensor) -> Tensor:
         """The transport plan ``P [..., N, N]`` used by :meth:`__call__`.

@@ -186,3 +186,34 @@ def test_sis_without_resampling_degenerates_but_stays_finite(data):
     assert not res.resampled.any()
     assert res.ess[-1] < res.ess[0]
     assert torch.isfinite(res.means).all()
+
+
+class _CallOnly:
+    """A user resampler with only ``__call__`` (no ``resample_normalized`` fast path)."""
+
+    def __init__(self):
+        self.inner = resampling.Systematic()
+
+    def __call__(self, particles, log_weights, generator=None):
+        return self.inner(particles, log_weights, generator)
+
+
+def test_call_only_resampler_equals_the_fast_path_under_partial_resampling(data):
+    model, ys, _ = data
+    ys = ys.expand(8, *ys.shape)  # 8 runs whose ESS crosses the threshold at different steps
+    kwargs = dict(num_particles=64, ess_threshold=0.3)
+    fast = particle_filter(
+        model,
+        ys,
+        resampler=resampling.Systematic(),
+        generator=torch.Generator().manual_seed(3),
+        **kwargs,
+    )
+    slow = particle_filter(
+        model, ys, resampler=_CallOnly(), generator=torch.Generator().manual_seed(3), **kwargs
+    )
+    # the case under test really happens: at some step some rows resample, not all
+    per_step = fast.resampled.float().mean(0)
+    assert bool(((per_step > 0) & (per_step < 1)).any())
+    torch.testing.assert_close(slow.means, fast.means)
+    torch.testing.assert_close(slow.log_likelihood, fast.log_likelihood)
