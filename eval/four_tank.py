@@ -413,17 +413,17 @@ def _evaluate(
         raw[name] = {"result": result, "kind": kind, "wall": wall, "single": single}
         bar.update()
 
-    ref = raw["normal_pf_attack_free"]["result"].filter.means
+    ref = raw["normal_pf_attack_free"]["result"].means
     estimators: dict[str, dict[str, Any]] = {}
     series: dict[str, dict[str, Tensor]] = {}
     for name, item in raw.items():
         res, kind = item["result"], item["kind"]
         attack_rmse = None
         if kind in ("poa", "poa_clean"):
-            means, alarms, scores = res.filter.means, res.alarms, res.beta
+            means, alarms, scores = res.means, res.alarms, res.scores
         elif kind == "modified":
-            means, alarms, scores = res.means, res.alarms, res.beta
-            attack_rmse = _attack_rmse(res.gamma_hat, traj.gammas, traj.flags)
+            means, alarms, scores = res.means, res.alarms, res.scores
+            attack_rmse = _attack_rmse(res.extras["gamma_hat"], traj.gammas, traj.flags)
         elif kind == "mixture":
             means, scores = res[0].means, res[1]
             alarms = scores > 0.5
@@ -449,8 +449,8 @@ def _evaluate(
             time_per_step_batch_s=item["wall"] / T,
             time_per_step_single_run_s=item["single"],
         )
-        if kind == "modified" and res.attack_rate is not None:
-            entry["p_l_estimate_mean"] = float(res.attack_rate.mean())
+        if kind == "modified" and "attack_rate" in res.extras:
+            entry["p_l_estimate_mean"] = float(res.extras["attack_rate"].mean())
         estimators[name] = estimator_entry(**entry)
         series[name] = {"means": means, "alarms": alarms, "scores": scores}
 
@@ -598,9 +598,9 @@ def _attack_size_sweep(
                 "normal_pf": outs["normal_pf"].alarms[0],
                 "normal_pf_literal": outs["normal_pf_literal"].alarms[0],
                 "modified_pf": outs["modified_pf"].alarms[0],
-                "literal_nan_steps": int(outs["normal_pf_literal"].beta[0].isnan().sum()),
+                "literal_nan_steps": int(outs["normal_pf_literal"].scores[0].isnan().sum()),
             }
-            nan_rate = float(outs["normal_pf_literal"].beta.isnan().double().mean())
+            nan_rate = float(outs["normal_pf_literal"].scores.isnan().double().mean())
             row["literal_beta_nan_rate"] = nan_rate
         per_scale.append(row)
         norms.append(gn)
@@ -649,7 +649,7 @@ def _high_noise_check(sc, seed, B, runner: _Runner, eta_paper, zeta) -> dict[str
             gamma_hat=traj5.gammas,
             **run5.pf_kwargs(B),
         )
-        det = _detection_metrics(res.alarms, res.beta, traj5.flags, gn, sc.gamma_min)
+        det = _detection_metrics(res.alarms, res.scores, traj5.flags, gn, sc.gamma_min)
         out[label] = {
             "eta": eta,
             "fpr": det["fpr"],
@@ -657,7 +657,7 @@ def _high_noise_check(sc, seed, B, runner: _Runner, eta_paper, zeta) -> dict[str
             "false_alarms_per_run": det["false_alarms_per_run"],
             "tpr_detectable": det["tpr_detectable"],
             "missed_attacks_per_run": det["missed_attacks_per_run"],
-            "state_rmse_vs_attack_free": _rmse(res.means, free.filter.means),
-            "state_rmse_vs_attack_free_k_gt_20": _rmse(res.means, free.filter.means, 20),
+            "state_rmse_vs_attack_free": _rmse(res.means, free.means),
+            "state_rmse_vs_attack_free_k_gt_20": _rmse(res.means, free.means, 20),
         }
     return out

@@ -119,8 +119,8 @@ def test_acceptance_figures_on_100_runs():
             "resample_generator": torch.Generator().manual_seed(105),
         }
 
-    free = fdi.particle_filter_poa(model, tr.y_true, detector=det, **crn()).filter.means
-    normal = fdi.particle_filter_poa(model, tr.y_recv, detector=det, **crn()).filter.means
+    free = fdi.particle_filter_poa(model, tr.y_true, detector=det, **crn()).means
+    normal = fdi.particle_filter_poa(model, tr.y_recv, detector=det, **crn()).means
     mod = fdi.modified_particle_filter(model, tr.y_recv, detector=det, gamma_hat=tr.gammas, **crn())
     detectable = tr.flags & (tr.gammas.norm(dim=-1) > sc.gamma_min)
     assert mod.alarms[detectable].double().mean() >= 0.99

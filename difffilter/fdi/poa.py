@@ -33,6 +33,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from ..kalman import kalman_gain
 from ..linalg import LOG_2PI, safe_cholesky
 
 __all__ = [
@@ -79,10 +80,7 @@ def modified_pf_gain(G, Q, R) -> Tensor:
             f"R must have shape [..., {dy}, {dy}] to match G [{dy}, {dx}]; got {tuple(R.shape)}"
         )
     cross = Q @ G.transpose(-1, -2)  # [dx, dy]
-    S = R + G @ cross
-    S = 0.5 * (S + S.transpose(-1, -2))
-    chol = safe_cholesky(S, name="R + G Q Gᵀ")
-    return torch.cholesky_solve(cross.transpose(-1, -2), chol).transpose(-1, -2)
+    return kalman_gain(cross, R + G @ cross)[0]
 
 
 def attack_threshold_factor(G, K) -> Tensor:
