@@ -24,7 +24,7 @@ from .detectors import (
     normalized_innovation_squared,
 )
 from .fused import FusedModifiedPF
-from .gated import gated_extended_kalman_filter, gated_gaussian_filter
+from .gated import cusum_detector_for, gated_extended_kalman_filter, gated_gaussian_filter
 from .mixture import (
     BiasDeception,
     DeceptionMixtureLikelihood,
@@ -54,6 +54,7 @@ from .poa import (
     literal_gaussian_density,
     literal_probability_of_attack,
     modified_pf_gain,
+    poa_detector_for,
     probability_of_attack,
 )
 
@@ -63,8 +64,10 @@ __all__ = [
     "chi_square_quantile",
     "normalized_innovation_squared",
     "gated_gaussian_filter",
+    "cusum_detector_for",
     "gated_extended_kalman_filter",
     "PoADetector",
+    "poa_detector_for",
     "RunningAttackRate",
     "AttackRateState",
     "attack_threshold",

@@ -31,7 +31,7 @@ from torch import Tensor
 from .._steps import StepRecorder
 from ..estimator import Detection, EstimatorOutput
 from ..extended import extended_kalman_step
-from ..kalman import _validate_inputs, gaussian_init
+from ..kalman import _validate_inputs, gaussian_init, run_gaussian_filter
 from ..results import GaussianState
 from .detectors import (
     ChiSquareDetector,
@@ -40,7 +40,7 @@ from .detectors import (
     normalized_innovation_squared,
 )
 
-__all__ = ["gated_gaussian_filter", "gated_extended_kalman_filter"]
+__all__ = ["gated_gaussian_filter", "gated_extended_kalman_filter", "cusum_detector_for"]
 
 
 def gated_gaussian_filter(
@@ -143,3 +143,36 @@ def gated_extended_kalman_filter(
     return gated_gaussian_filter(
         model, ys, us, mask=mask, detector=detector, step=extended_kalman_step, gate=gate
     )
+
+
+def cusum_detector_for(
+    model,
+    *,
+    false_alarm_rate: float,
+    step: Callable = extended_kalman_step,
+    bias: float | None = None,
+    ys: Tensor | None = None,
+    us: Tensor | None = None,
+    mask: Tensor | None = None,
+    runs: int = 100,
+    steps: int = 100,
+    generator: torch.Generator | None = None,
+) -> CusumDetector:
+    """A :class:`CusumDetector` calibrated for ``model`` and a filter ``step``.
+
+    ``b = bias`` or ``dy + 2`` [DEF: the mean ``dy`` of an attack-free NIS plus a margin
+    that makes the statistic drift down]; ``τ`` is set by
+    :meth:`CusumDetector.calibrate` so that the alarm rate on attack-free statistics is
+    ``false_alarm_rate``. The statistics are the NIS of the ungated filter on ``ys`` (and
+    ``us``, ``mask``) when given — attack-free measurements of the plant — else on
+    ``runs × steps`` runs simulated from the model with ``generator``.
+    """
+    if ys is None:
+        _, ys, _ = model.simulate(steps, (runs,), us, generator=generator)
+    free = run_gaussian_filter(step, model, ys, us, mask)
+    g = normalized_innovation_squared(free.innovations, free.innovation_covs)
+    if mask is not None:  # as in gated_gaussian_filter: missing entries count their mean
+        g = g + (ys.shape[-1] - mask.sum(-1)).to(g.dtype)
+    detector = CusumDetector(ys.shape[-1] + 2.0 if bias is None else bias)
+    detector.calibrate(g, false_alarm_rate)
+    return detector

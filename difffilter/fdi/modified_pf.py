@@ -168,20 +168,24 @@ def prior_log_weights(result: ParticleFilterResult, initial_log_weights: Tensor)
     return torch.where(result.resampled.unsqueeze(-1), uniform, prev)
 
 
-def _linear_measurement(model, k: int, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+def _linear_measurement(
+    model, k: int, mask: Tensor | None, at: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
     """``(G, K)`` of eq. (35) at step ``k``, with the unreceived rows of ``G`` removed.
 
-    Without a mask ``G [dy, dx]`` and ``K [dx, dy]`` are shared by every run; with a mask
-    ``[..., dy]`` both carry its batch dimensions (``K`` then has zero columns for the
-    unreceived entries, :func:`~difffilter.linalg.masked_measurement`).
+    ``G`` is the model's ``observation_matrix(k)``; a nonlinear measurement is linearised
+    at ``at [..., dx]`` (the predictive particle mean), as an EKF would. Without a mask and
+    linearisation ``G [dy, dx]`` and ``K [dx, dy]`` are shared by every run; otherwise both
+    carry the batch dimensions (``K`` has zero columns for unreceived entries,
+    :func:`~difffilter.linalg.masked_measurement`).
     """
-    if not hasattr(model, "observation_matrix"):
-        raise ValueError(
-            "the modified PF needs a linear measurement y = G x + v: model must provide "
-            "observation_matrix(k) (wrap a nonlinear model's Jacobian in a LinearGaussianModel, "
-            "or use particle_filter_poa)"
-        )
-    G, Q, R = model.observation_matrix(k), model.process_cov(k - 1), model.measurement_cov(k)
+    if hasattr(model, "observation_matrix"):
+        G = model.observation_matrix(k)
+    elif at is not None:
+        G = model.observation_jacobian(at, k)
+    else:
+        raise ValueError("a nonlinear measurement needs a linearisation point (at=)")
+    Q, R = model.process_cov(k - 1), model.measurement_cov(k)
     if mask is not None:
         G = G.expand(mask.shape[:-1] + G.shape[-2:])
         _, G, R, _ = masked_measurement(torch.zeros_like(mask, dtype=G.dtype), G, R, mask)
@@ -235,9 +239,19 @@ def modified_pf_detect(
         generator=generator,
         resample_generator=resample_generator,
     )
-    G, K = gain if gain is not None else _linear_measurement(model, pred_state.k, mask)
-    y_rx = y if mask is None else y * mask.to(y.dtype)
-    residuals = corrected_residuals(pred_state.particles, y_rx, G.to(y.dtype), K.to(y.dtype))
+    k, particles = pred_state.k, pred_state.particles
+    if gain is None:
+        gain = _linear_measurement(model, k, mask, at=pred_out.pred_mean)
+    G, K = (m.to(y.dtype) for m in gain)
+    if hasattr(model, "observation_matrix"):
+        y_rx = y if mask is None else y * mask.to(y.dtype)
+        residuals = corrected_residuals(particles, y_rx, G, K)
+    else:  # z̃⁺ = (I − G K)(ỹ − h(x^i)), G the Jacobian at the predictive mean
+        innov = y.unsqueeze(-2) - model.observe(particles, k)
+        if mask is not None:
+            innov = innov * mask.unsqueeze(-2).to(innov.dtype)
+        eye = torch.eye(G.shape[-2], dtype=G.dtype, device=G.device)
+        residuals = innov @ (eye - G @ K).transpose(-1, -2)
     beta = probability_of_attack(residuals, detector.eta, pred_state.log_weights)
     z = detector.zeta if zeta is None else zeta
     alarm = beta > (z if not isinstance(z, Tensor) else z.to(beta.dtype))
@@ -290,8 +304,9 @@ def modified_particle_filter(
     """The modified PF of Table 2 over a sequence ``ys [..., T, dy]`` of received ``ỹ_k``.
 
     Args:
-        model: a model with a linear measurement (``observation_matrix``) and Gaussian
-            process noise; the four-tank plant is one.
+        model: a model with Gaussian process noise; a linear measurement
+            (``observation_matrix``, as the four-tank plant has) gives the paper's exact
+            eq. (35); a nonlinear one is linearised at the predictive particle mean.
         us: inputs ``[..., T, du]`` or ``None``; mask: received entries ``[..., T, dy]``.
         num_particles: ``N``.
         detector: :class:`PoADetector` with ``η`` (Theorem 1) and ``ζ`` (eqs 46, 53);
@@ -341,7 +356,11 @@ def modified_particle_filter(
         if initial_state is not None
         else particle_init(model, num_particles, batch, generator)
     )
-    shared = mask is None and not getattr(model, "time_varying", False)
+    shared = (
+        mask is None
+        and hasattr(model, "observation_matrix")
+        and not getattr(model, "time_varying", False)
+    )
     gain = tuple(m.to(ys.dtype) for m in _linear_measurement(model, 1, None)) if shared else None
     est_state = estimator.init(batch) if estimator is not None else None
     rate_state = (
