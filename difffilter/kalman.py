@@ -38,6 +38,7 @@ __all__ = [
     "gaussian_init",
     "gaussian_update",
     "kalman_gain",
+    "joseph_covariance",
     "kalman_predict",
     "kalman_step",
     "kalman_filter",
@@ -69,6 +70,20 @@ def kalman_gain(cross_cov: Tensor, innovation_cov: Tensor) -> tuple[Tensor, Tens
     return cholesky_solve_right(cross_cov, chol), chol
 
 
+def joseph_covariance(
+    pred_cov: Tensor, gain: Tensor, obs_matrix: Tensor, noise_cov: Tensor
+) -> Tensor:
+    """Joseph-form posterior covariance ``(I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ``, symmetrised.
+
+    Shapes: ``pred_cov [..., dx, dx]``, ``gain [..., dx, dy]``, ``obs_matrix [..., dy, dx]``,
+    ``noise_cov [..., dy, dy]`` → ``[..., dx, dx]``. Positive semidefinite for any gain.
+    """
+    eye = torch.eye(pred_cov.shape[-1], dtype=pred_cov.dtype, device=pred_cov.device)
+    i_kh = eye - gain @ obs_matrix
+    cov = i_kh @ pred_cov @ i_kh.transpose(-1, -2) + gain @ noise_cov @ gain.transpose(-1, -2)
+    return symmetrize(cov)
+
+
 def gaussian_update(
     pred_mean: Tensor,
     pred_cov: Tensor,
@@ -98,11 +113,9 @@ def gaussian_update(
     S = symmetrize(pred_obs_cov + noise_cov)
     gain, chol = kalman_gain(cross_cov, S)  # K = C S⁻¹  [..., dx, dy]
     mean = pred_mean + matvec(gain, residual)
-    eye = torch.eye(pred_cov.shape[-1], dtype=pred_cov.dtype, device=pred_cov.device)
-    i_kh = eye - gain @ obs_matrix
-    cov = i_kh @ pred_cov @ i_kh.transpose(-1, -2) + gain @ noise_cov @ gain.transpose(-1, -2)
+    cov = joseph_covariance(pred_cov, gain, obs_matrix, noise_cov)
     log_lik = gaussian_log_prob_chol(residual, chol, observed)
-    return mean, symmetrize(cov), S, log_lik
+    return mean, cov, S, log_lik
 
 
 def kalman_predict(model, state: GaussianState, u: Tensor | None = None) -> tuple[Tensor, Tensor]:

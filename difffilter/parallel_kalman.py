@@ -29,8 +29,8 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from .kalman import joseph_covariance, kalman_gain
 from .linalg import (
-    cholesky_solve_right,
     gaussian_log_prob_chol,
     masked_measurement,
     matvec,
@@ -147,15 +147,12 @@ def parallel_kalman_filter(
     c = offset if offset is not None else torch.zeros((), dtype=F.dtype, device=F.device)
     # Generic elements t ≥ 1 (computed for all t; element 0 is replaced below).
     cross = Q @ H_m.transpose(-1, -2)
-    S = symmetrize(H_m @ cross + R_m)
-    chol = safe_cholesky(S, name="innovation covariance S")
-    K = cholesky_solve_right(cross, chol)
-    i_kh = eye - K @ H_m
+    K, chol = kalman_gain(cross, H_m @ cross + R_m)
     Hc = matvec(H_m, c) if offset is not None else 0.0
     resid = ys_m - Hc
-    A = i_kh @ F
+    A = (eye - K @ H_m) @ F
     b = c + matvec(K, resid)
-    C = symmetrize(i_kh @ Q @ i_kh.transpose(-1, -2) + K @ R_m @ K.transpose(-1, -2))
+    C = joseph_covariance(Q, K, H_m, R_m)
     HF = H_m @ F
     s_inv_hf = torch.cholesky_solve(HF, chol)  # S⁻¹ H F   [*, T, dy, dx]
     eta = matvec(s_inv_hf.transpose(-1, -2), resid)
@@ -170,12 +167,9 @@ def parallel_kalman_filter(
     pm = matvec(F0, m0) + (offset[..., 0, :] if offset is not None else 0.0)
     pP = symmetrize(F0 @ P0 @ F0.transpose(-1, -2) + Q0)
     cross0 = pP @ H0.transpose(-1, -2)
-    S0 = symmetrize(H0 @ cross0 + R0)
-    chol0 = safe_cholesky(S0, name="innovation covariance S")
-    K0 = cholesky_solve_right(cross0, chol0)
-    ikh0 = eye - K0 @ H0
+    K0, _ = kalman_gain(cross0, H0 @ cross0 + R0)
     b0 = pm + matvec(K0, ys_m[..., 0, :] - matvec(H0, pm))
-    C0 = symmetrize(ikh0 @ pP @ ikh0.transpose(-1, -2) + K0 @ R0 @ K0.transpose(-1, -2))
+    C0 = joseph_covariance(pP, K0, H0, R0)
 
     batch = torch.broadcast_shapes(ys.shape[:-2], b.shape[:-2], b0.shape[:-1])
     mat_batch = torch.broadcast_shapes(A.shape[:-3], C.shape[:-3], C0.shape[:-2], J.shape[:-3])

@@ -19,13 +19,15 @@ particles; the time loop is the only Python loop.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from typing import NamedTuple, Protocol
 
 import torch
 from torch import Tensor
 
 from ._checks import check_positive_int
-from .kalman import _validate_inputs
+from ._steps import StepRecorder
+from .kalman import _validate_inputs, joseph_covariance, kalman_gain
 from .linalg import (
     gaussian_log_prob_chol,
     masked_measurement,
@@ -41,6 +43,7 @@ from .ssm import StateSpaceModel
 __all__ = [
     "ParticleState",
     "ParticleStepOutput",
+    "Predictive",
     "Proposal",
     "Likelihood",
     "BootstrapProposal",
@@ -69,7 +72,8 @@ class ParticleStepOutput(NamedTuple):
     """Per-step report: ``mean [..., dx]``, ``cov [..., dx, dx]``, the predicted state mean
     ``pred_mean = E[x_k | y_{1:k−1}]`` ``[..., dx]``, ``innovation = y − E[h(x_k) | y_{1:k−1}]``
     ``[..., dy]`` and its covariance (particle covariance of ``h`` plus ``R``) ``[..., dy, dy]``, ``log_likelihood`` increment
-    ``[...]``, ``ess [...]`` after weighting, and ``resampled [...]`` (bool)."""
+    ``[...]``, ``ess [...]`` after weighting, ``resampled [...]`` (bool) and the normalised
+    predictive log-weights ``log w_{k−1}`` of the proposed particles ``[..., N]``."""
 
     mean: Tensor
     cov: Tensor
@@ -79,6 +83,21 @@ class ParticleStepOutput(NamedTuple):
     log_likelihood: Tensor
     ess: Tensor
     resampled: Tensor
+    prior_log_weights: Tensor
+
+
+class Predictive(NamedTuple):
+    """The predictive view of a step, before weighting (what attack-aware likelihoods read).
+
+    ``log_weights`` ``log w_{k−1}`` of the proposed particles ``[..., N]`` (normalised),
+    ``mean`` ``E[x_k | y_{1:k−1}]`` ``[..., dx]``, ``innovation`` ``y_k − E[h(x_k) | y_{1:k−1}]``
+    ``[..., dy]`` (zero where unreceived) and its covariance ``[..., dy, dy]``.
+    """
+
+    log_weights: Tensor
+    mean: Tensor
+    innovation: Tensor
+    innovation_cov: Tensor
 
 
 class Proposal(Protocol):
@@ -96,9 +115,18 @@ class Proposal(Protocol):
 
 class Likelihood(Protocol):
     """A measurement log-likelihood: ``(model, y [..., dy], particles [..., N, dx], k, mask
-    [..., dy] | None) → log p(y_k | x_k^i)`` ``[..., N]``."""
+    [..., dy] | None) → log p(y_k | x_k^i)`` ``[..., N]``.
+
+    A likelihood with ``uses_predictive = True`` is also passed ``predictive=``, the step's
+    :class:`Predictive` (predictive weights and moments): the hook through which the
+    attack-aware filters (the modified PF's detection and compensation) decide how to
+    weigh the particles.
+    """
 
     def __call__(self, model, y, particles, k, mask) -> Tensor: ...
+
+
+StepHook = Callable[..., dict]
 
 
 class BootstrapProposal:
@@ -135,14 +163,9 @@ class KalmanProposal:
         m = None if mask is None else mask.unsqueeze(-2)
         residual, H, R, _ = masked_measurement(residual, H, model.measurement_cov(k + 1), m)
         cross = Q @ H.transpose(-1, -2)
-        S = symmetrize(H @ cross + R)
-        gain = torch.cholesky_solve(cross.transpose(-1, -2), safe_cholesky(S, name="S")).transpose(
-            -1, -2
-        )
+        gain, _ = kalman_gain(cross, H @ cross + R)
         mu = f + matvec(gain, residual)
-        eye = torch.eye(f.shape[-1], dtype=f.dtype, device=f.device)
-        i_kh = eye - gain @ H
-        sigma = symmetrize(i_kh @ Q @ i_kh.transpose(-1, -2) + gain @ R @ gain.transpose(-1, -2))
+        sigma = joseph_covariance(Q, gain, H, R)
         chol_sigma = safe_cholesky(sigma, name="proposal covariance")
         eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
         new = mu + matvec(chol_sigma, eps)
@@ -227,27 +250,11 @@ def particle_step(
 
     new, correction = proposal(model, particles, u, y, k, mask, generator)
     obs = model.observe(new, k + 1)
-    if type(likelihood) is ModelLikelihood and _default_measurement_density(model):
-        # the model's own density: reuse the predicted measurements computed above
-        m = None if mask is None else mask.unsqueeze(-2)
-        log_alpha = model.measurement_noise.log_prob(
-            rowwise(torch.sub, y.unsqueeze(-2), obs), mask=m
-        )
-    else:
-        log_alpha = likelihood(model, y, new, k + 1, mask)
-    if correction is not None:
-        log_alpha = log_alpha + correction
-    joint = log_w + log_alpha
-    increment = torch.logsumexp(joint, dim=-1)
-    log_w_new = joint - increment.unsqueeze(-1)
 
     # Predictive weights of the proposed particles: w_{k−1}·p/q (just w_{k−1} for the
-    # bootstrap proposal, whose correction is None).
-    if correction is None:
-        pred_w = torch.exp(log_w)
-    else:
-        pred_w = torch.softmax(log_w + correction, dim=-1)
-    pred_w = pred_w.unsqueeze(-2)  # [..., 1, N]
+    # bootstrap proposal, whose correction is None), and the predictive moments.
+    prior_lw = log_w if correction is None else torch.log_softmax(log_w + correction, dim=-1)
+    pred_w = torch.exp(prior_lw).unsqueeze(-2)  # [..., 1, N]
     y_hat = (pred_w @ obs).squeeze(-2)
     obs_dev = rowwise(torch.sub, obs, y_hat.unsqueeze(-2))
     y_cov = (obs_dev * pred_w.transpose(-1, -2)).transpose(-1, -2) @ obs_dev
@@ -259,6 +266,23 @@ def particle_step(
         innovation, _, R, _ = masked_measurement(innovation, eye, R, mask)
         mf = mask.to(y_cov.dtype)
         y_cov = y_cov * (mf.unsqueeze(-1) * mf.unsqueeze(-2))
+    predictive = Predictive(prior_lw, pred_mean, innovation, symmetrize(y_cov + R))
+
+    if type(likelihood) is ModelLikelihood and _default_measurement_density(model):
+        # the model's own density: reuse the predicted measurements computed above
+        m = None if mask is None else mask.unsqueeze(-2)
+        log_alpha = model.measurement_noise.log_prob(
+            rowwise(torch.sub, y.unsqueeze(-2), obs), mask=m
+        )
+    elif getattr(likelihood, "uses_predictive", False):
+        log_alpha = likelihood(model, y, new, k + 1, mask, predictive=predictive)
+    else:
+        log_alpha = likelihood(model, y, new, k + 1, mask)
+    if correction is not None:
+        log_alpha = log_alpha + correction
+    joint = log_w + log_alpha
+    increment = torch.logsumexp(joint, dim=-1)
+    log_w_new = joint - increment.unsqueeze(-1)
     w_new = torch.exp(log_w_new)
     ess_new = 1.0 / w_new.square().sum(-1)
     mean, cov = _moments(new, w_new)
@@ -266,11 +290,12 @@ def particle_step(
         mean=mean,
         cov=cov,
         pred_mean=pred_mean,
-        innovation=innovation,
-        innovation_cov=symmetrize(y_cov + R),
+        innovation=predictive.innovation,
+        innovation_cov=predictive.innovation_cov,
         log_likelihood=increment,
         ess=ess_new,
         resampled=need,
+        prior_log_weights=prior_lw,
     )
     return ParticleState(new, log_w_new, k + 1, ess_new), out
 
@@ -304,6 +329,7 @@ def particle_filter(
     resample_generator: torch.Generator | None = None,
     return_particles: bool = False,
     initial_state: ParticleState | None = None,
+    hooks: Sequence[StepHook] = (),
 ) -> ParticleFilterResult:
     """Particle filter over a whole sequence.
 
@@ -325,6 +351,11 @@ def particle_filter(
         return_particles: also return particles ``[..., T, N, dx]`` and log-weights
             ``[..., T, N]`` (memory ``O(T N)``).
         initial_state: start from this :class:`ParticleState` instead of the prior.
+        hooks: callables ``hook(model, y, mask, state, out) → {name: tensor [...]}`` run
+            after every step (``state``: the new :class:`ParticleState`, ``out``: its
+            :class:`ParticleStepOutput`); their values are stacked over time into
+            ``result.records[name]`` ``[..., T, ...]`` — what a detector needs, without
+            keeping every particle (``return_particles``).
 
     Returns:
         :class:`~difffilter.results.ParticleFilterResult`: weighted means ``[..., T, dx]``,
@@ -348,7 +379,7 @@ def particle_filter(
         if initial_state is not None
         else particle_init(model, num_particles, batch, generator)
     )
-    outs, parts, logws = [], [], []
+    outs, parts, logws, records = [], [], [], StepRecorder()
     for t in range(ys.shape[-2]):
         u = None if us is None else us[..., t, :]
         m = None if mask is None else mask[..., t, :]
@@ -366,6 +397,8 @@ def particle_filter(
             resample_generator=resample_generator,
         )
         outs.append(out)
+        for hook in hooks:
+            records.add(**hook(model, ys[..., t, :], m, state, out))
         if return_particles:
             parts.append(state.particles)
             logws.append(state.log_weights)
@@ -387,4 +420,5 @@ def particle_filter(
         resampled=stack("resampled", 0),
         particles=torch.stack(parts, dim=-3) if return_particles else None,
         log_weights=torch.stack(logws, dim=-2) if return_particles else None,
+        records=records.stack(len(batch)),
     )

@@ -84,9 +84,11 @@ class ParticleFilterResult(FilterResult):
         resampled: whether the particles were resampled before step ``t`` ``[..., T]``.
         particles: ``[..., T, N, dx]`` when requested (``return_particles=True``), else ``None``.
         log_weights: normalised log-weights ``[..., T, N]`` when requested, else ``None``.
+        records: what the filter's step hooks recorded, ``{name: [..., T, ...]}``.
     """
 
     ess: Tensor | None = None
     resampled: Tensor | None = None
     particles: Tensor | None = None
     log_weights: Tensor | None = None
+    records: dict[str, Tensor] | None = None

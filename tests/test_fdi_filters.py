@@ -103,7 +103,7 @@ def test_modified_pf_equals_attack_free_pf_when_every_attack_is_detected(plant):
     assert (att.means - free.means).abs().max() > 0.05
 
 
-def test_modified_pf_detect_and_estimate_compose_to_the_filter(plant):
+def test_modified_pf_online_steps_compose_to_the_filter(plant):
     model, tr = plant
     det = fdi.PoADetector(ETA, ZETA)
     res = fdi.modified_particle_filter(
@@ -112,21 +112,24 @@ def test_modified_pf_detect_and_estimate_compose_to_the_filter(plant):
     kw = streams(model, 4, 40)
     state = kw.pop("initial_state")
     kw.pop("num_particles")
+    weighting = fdi.ModifiedPFWeighting(det, tr.gammas)
+    K = fdi.modified_pf_gain(model.G, model.process_cov(0), model.measurement_cov(1))
     for t in range(5):
-        pred, pred_out, beta, alarm = fdi.modified_pf_detect(
-            model, state, tr.y_recv[:, t], detector=det, **kw
+        state, out = df.particle_step(
+            model, state, tr.y_recv[:, t], likelihood=weighting, ess_threshold=1.0, **kw
         )
         # eq. (58) by hand: the fraction of Kalman-corrected residuals above η (weights 1/N after resampling)
-        K = fdi.modified_pf_gain(model.G, model.process_cov(0), model.measurement_cov(1))
         z = tr.y_recv[:, t].unsqueeze(-2) - fdi.kalman_corrected_particles(
-            pred.particles, tr.y_recv[:, t], model.G, K
+            state.particles, tr.y_recv[:, t], model.G, K
         )
+        beta, alarm = weighting.last["beta"], weighting.last["alarm"]
         assert torch.allclose(beta, (z.norm(dim=-1) > ETA).double().mean(-1))
-        state, mean, _, _ = fdi.modified_pf_estimate(
-            model, pred, tr.y_recv[:, t], alarm, tr.gammas[:, t]
-        )
-        assert torch.allclose(mean, res.means[:, t]) and torch.equal(alarm, res.alarms[:, t])
-    assert res.scores.shape == res.alarms.shape == (4, 30) and res.extras["gamma_hat"].shape == (4, 30, 4)
+        assert torch.allclose(out.mean, res.means[:, t]) and torch.equal(alarm, res.alarms[:, t])
+    assert res.scores.shape == res.alarms.shape == (4, 30) and res.extras["gamma_hat"].shape == (
+        4,
+        30,
+        4,
+    )
 
 
 def test_modified_pf_rejects_bad_arguments(plant):
@@ -157,7 +160,12 @@ def test_normal_pf_poa_uses_the_posterior_weights(plant):
     model, tr = plant
     det = fdi.PoADetector(ETA, ZETA)
     res = fdi.particle_filter_poa(
-        model, tr.y_recv, detector=det, ess_threshold=0.0, **streams(model, 4, 30)
+        model,
+        tr.y_recv,
+        detector=det,
+        ess_threshold=0.0,
+        return_particles=True,
+        **streams(model, 4, 30),
     )
     particles, log_weights = res.extras["particles"], res.extras["log_weights"]
     z = tr.y_recv.unsqueeze(-2) - particles  # G = I
@@ -252,10 +260,14 @@ def test_remark6_running_rate_drives_zeta(plant):
         attack_rate=fdi.RunningAttackRate(40, warmup=5),
         **streams(model, 4, 40),
     )
-    assert torch.allclose(res.detection.threshold[:, :5], torch.full((4, 5), 0.5 * 39 / 40, dtype=torch.float64))
+    assert torch.allclose(
+        res.detection.threshold[:, :5], torch.full((4, 5), 0.5 * 39 / 40, dtype=torch.float64)
+    )
     p_hat = res.alarms[:, :-1].double().mean(-1)
     assert torch.allclose(res.extras["attack_rate"], res.alarms.double().mean(-1))
-    assert torch.allclose(res.detection.threshold[:, -1], (p_hat * 40 / 39).clamp(0.05, 0.95) * 39 / 40)
+    assert torch.allclose(
+        res.detection.threshold[:, -1], (p_hat * 40 / 39).clamp(0.05, 0.95) * 39 / 40
+    )
 
 
 # -------------------------------------------------------------------- mixture likelihood

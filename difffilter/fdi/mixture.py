@@ -29,9 +29,8 @@ from torch import Tensor
 from ..estimator import Detection, EstimatorOutput
 from ..kalman import _validate_inputs
 from ..noise import NoiseModel
-from ..particle import ParticleState, particle_filter, particle_init
+from ..particle import ParticleState, particle_filter
 from ..resampling import Systematic
-from .modified_pf import prior_log_weights
 
 __all__ = [
     "BiasDeception",
@@ -158,9 +157,11 @@ def mixture_likelihood_particle_filter(
     if not 0.0 <= float(threshold) <= 1.0:
         raise ValueError(f"threshold must lie in [0, 1] (a probability); got {threshold!r}")
     ys, us, mask = _validate_inputs(model, ys, us, mask)
-    state = initial_state
-    if state is None:
-        state = particle_init(model, num_particles, ys.shape[:-2], generator)
+
+    def responsibility(model, y, m, state, out):  # P(l_k = 1 | ỹ_{1:k}) from w_{k−1}
+        prior = out.prior_log_weights
+        return {"p": likelihood.attack_probability(model, y, state.particles, prior, state.k, m)}
+
     res = particle_filter(
         model,
         ys,
@@ -172,28 +173,10 @@ def mixture_likelihood_particle_filter(
         ess_threshold=ess_threshold,
         generator=generator,
         resample_generator=resample_generator,
-        return_particles=True,
-        initial_state=state,
+        initial_state=initial_state,
+        hooks=(responsibility,),
     )
-    prior = prior_log_weights(res, state.log_weights)
-    if getattr(model, "time_varying", False) or mask is not None:
-        T = ys.shape[-2]
-        score = torch.stack(
-            [
-                likelihood.attack_probability(
-                    model,
-                    ys[..., t, :],
-                    res.particles[..., t, :, :],
-                    prior[..., t, :],
-                    t + 1,
-                    None if mask is None else mask[..., t, :],
-                )
-                for t in range(T)
-            ],
-            dim=-1,
-        )
-    else:  # a time-invariant model: every step in one call
-        score = likelihood.attack_probability(model, ys, res.particles, prior, 1)
+    score = res.records["p"]
     return EstimatorOutput(
         means=res.means,
         covs=res.covs,

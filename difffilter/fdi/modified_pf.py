@@ -30,8 +30,6 @@ are :func:`reweight` with :class:`AttackCompensatedLikelihood`.
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
@@ -43,12 +41,8 @@ from ..particle import (
     ModelLikelihood,
     ParticleState,
     particle_filter,
-    particle_init,
-    particle_step,
-    weighted_moments,
 )
 from ..resampling import Systematic
-from ..results import ParticleFilterResult
 from .attack_estimation import BiasAttackEstimator
 from .poa import (
     PoADetector,
@@ -65,11 +59,9 @@ __all__ = [
     "AttackCompensatedLikelihood",
     "LiteralGaussianLikelihood",
     "reweight",
-    "modified_pf_detect",
-    "modified_pf_estimate",
+    "ModifiedPFWeighting",
     "modified_particle_filter",
     "particle_filter_poa",
-    "prior_log_weights",
 ]
 
 
@@ -151,23 +143,6 @@ def reweight(log_weights: Tensor, log_likelihood: Tensor) -> tuple[Tensor, Tenso
     return joint - increment.unsqueeze(-1), increment
 
 
-def prior_log_weights(result: ParticleFilterResult, initial_log_weights: Tensor) -> Tensor:
-    """Predictive weights ``log w_{k−1}`` of the particles ``x_k`` of a filter run ``[..., T, N]``.
-
-    Uniform where the filter resampled before step ``t``; the previous posterior
-    weights otherwise (``initial_log_weights [..., N]`` before the first step).
-    Needs ``return_particles=True`` (the run's ``log_weights``).
-    """
-    if result.log_weights is None:
-        raise ValueError("result must come from a filter run with return_particles=True")
-    lw = result.log_weights
-    prev = torch.cat(
-        [initial_log_weights.unsqueeze(-2).expand(lw[..., :1, :].shape), lw[..., :-1, :]], dim=-2
-    )
-    uniform = torch.full_like(prev, -math.log(lw.shape[-1]))
-    return torch.where(result.resampled.unsqueeze(-1), uniform, prev)
-
-
 def _linear_measurement(
     model, k: int, mask: Tensor | None, at: Tensor | None = None
 ) -> tuple[Tensor, Tensor]:
@@ -193,91 +168,86 @@ def _linear_measurement(
     return G, K
 
 
-def modified_pf_detect(
-    model,
-    state: ParticleState,
-    y: Tensor,
-    u: Tensor | None = None,
-    mask: Tensor | None = None,
-    *,
-    detector: PoADetector,
-    zeta: Tensor | float | None = None,
-    gain: tuple[Tensor, Tensor] | None = None,
-    resampler=None,
-    ess_threshold: float = 1.0,
-    generator: torch.Generator | None = None,
-    resample_generator: torch.Generator | None = None,
-):
-    """Table 2, steps 1–2: propagate, correct the particles (eq. 36) and detect (eq. 58).
+class ModifiedPFWeighting:
+    """Table 2, steps 2–3 as the particle filter's likelihood: detect, then compensate.
+
+    With the predictive particles ``x_k^i`` and weights ``w_{k−1}`` of the step
+    (:class:`~difffilter.particle.Predictive`)::
+
+        2-1/2-2  β̃_k = Σ_{‖(I − G K)(ỹ_k − h(x_k^i))‖ > η} w_{k−1}^i       (36), (58)
+        2-3      l̂_k = [β̃_k > ζ_k]                                          (46), (53)
+        3-0      γ̂_k: given ``[..., T, dy]``, or a BiasAttackEstimator fed the flagged innovation
+        3-1      log p(ỹ_k − l̂_k γ̂_k | x_k^i)                                 (59)
+
+    so ``particle_step(..., likelihood=ModifiedPFWeighting(...))`` is one step of the
+    modified PF (eq. 60 is the step's weighted mean) and :func:`modified_particle_filter`
+    is :func:`~difffilter.particle_filter` with it. ``G`` is the model's
+    ``observation_matrix`` or, for a nonlinear measurement, its Jacobian at the predictive
+    mean; unreceived entries (``mask``) enter neither the correction nor the norm. Each
+    call appends ``beta``, ``alarm``, ``zeta`` and ``gamma_hat`` to :attr:`records` (and
+    leaves them in :attr:`last`).
 
     Args:
-        state: posterior particle set of ``x_{k−1}`` (particles ``[..., N, dx]``).
-        y: received ``ỹ_k`` ``[..., dy]``; u: input ``u_{k−1}`` ``[..., du]`` or ``None``;
-            mask: received entries ``[..., dy]`` (bool) or ``None`` — unreceived entries
-            enter neither the correction nor the residual norm.
-        detector: :class:`PoADetector` (``η``, and ``ζ`` unless ``zeta`` is given).
-        zeta: this step's ``ζ`` (number or ``[...]``; Remark 6), overriding the detector's.
-        gain: ``(G, K)`` of eq. (35) (computed from the model when ``None``).
-        resampler, ess_threshold, generator, resample_generator: as in
-            :func:`~difffilter.particle.particle_step` (default systematic resampling at
-            every step; ``generator`` draws the propagation noise).
-
-    Returns ``(pred_state, pred_out, beta [...], alarm [...])``: ``pred_state`` holds the
-    uncorrected ``x_k^i`` with the predictive log-weights ``log w_{k−1}`` and
-    ``pred_out`` the predictive moments (``pred_out.innovation`` ``ỹ − E[G x_k]`` and its
-    covariance, used by γ̂ estimators).
+        detector: :class:`PoADetector` (``η``; ``ζ`` unless ``attack_rate`` is given).
+        gamma_hat: tensor ``[..., T, dy]`` (indexed by the step) or a
+            :class:`BiasAttackEstimator`.
+        attack_rate: :class:`RunningAttackRate` (Remark 6) or ``None``.
+        gain: ``(G, K)`` shared by every step (``None``: computed at each step).
+        base_likelihood: clean-measurement likelihood of eq. (59) (default the model's).
     """
-    pred_state, pred_out = particle_step(
-        model,
-        state,
-        y,
-        u,
-        mask,
-        resampler=resampler if resampler is not None else Systematic(),
-        likelihood=FlatLikelihood(),
-        ess_threshold=ess_threshold,
-        generator=generator,
-        resample_generator=resample_generator,
-    )
-    k, particles = pred_state.k, pred_state.particles
-    if gain is None:
-        gain = _linear_measurement(model, k, mask, at=pred_out.pred_mean)
-    G, K = (m.to(y.dtype) for m in gain)
-    if hasattr(model, "observation_matrix"):
-        y_rx = y if mask is None else y * mask.to(y.dtype)
-        residuals = corrected_residuals(particles, y_rx, G, K)
-    else:  # z̃⁺ = (I − G K)(ỹ − h(x^i)), G the Jacobian at the predictive mean
-        innov = y.unsqueeze(-2) - model.observe(particles, k)
-        if mask is not None:
-            innov = innov * mask.unsqueeze(-2).to(innov.dtype)
-        eye = torch.eye(G.shape[-2], dtype=G.dtype, device=G.device)
-        residuals = innov @ (eye - G @ K).transpose(-1, -2)
-    beta = probability_of_attack(residuals, detector.eta, pred_state.log_weights)
-    z = detector.zeta if zeta is None else zeta
-    alarm = beta > (z if not isinstance(z, Tensor) else z.to(beta.dtype))
-    return pred_state, pred_out, beta, alarm
 
+    uses_predictive = True
 
-def modified_pf_estimate(
-    model,
-    pred_state: ParticleState,
-    y: Tensor,
-    alarm: Tensor,
-    gamma_hat: Tensor,
-    mask: Tensor | None = None,
-    *,
-    base_likelihood=None,
-) -> tuple[ParticleState, Tensor, Tensor, Tensor]:
-    """Table 2, steps 3-1 and 3-2: weight the uncorrected particles by eq. (59), estimate by (60).
+    def __init__(self, detector, gamma_hat, *, attack_rate=None, gain=None, base_likelihood=None):
+        self.detector, self.gamma_hat, self.attack_rate, self.gain = (
+            detector,
+            gamma_hat,
+            attack_rate,
+            gain,
+        )
+        self.base = base_likelihood
+        self.estimator = gamma_hat if isinstance(gamma_hat, BiasAttackEstimator) else None
+        self.est_state = self.rate_state = None
+        self.records, self.last = StepRecorder(), {}
 
-    Returns ``(state, mean [..., dx], cov [..., dx, dx], ess [...])``.
-    """
-    lik = AttackCompensatedLikelihood(alarm, gamma_hat, base_likelihood)
-    log_lik = lik(model, y, pred_state.particles, pred_state.k, mask)
-    log_w, _ = reweight(pred_state.log_weights, log_lik)
-    mean, cov = weighted_moments(pred_state.particles, log_w)
-    ess = torch.exp(-torch.logsumexp(2.0 * log_w, dim=-1))
-    return ParticleState(pred_state.particles, log_w, pred_state.k), mean, cov, ess
+    def __call__(self, model, y, particles, k, mask, *, predictive) -> Tensor:
+        batch = y.shape[:-1]
+        if self.attack_rate is not None:
+            if self.rate_state is None:
+                self.rate_state = self.attack_rate.init(batch, dtype=y.dtype, device=y.device)
+            zeta = self.attack_rate.zeta(self.rate_state)
+        else:
+            zeta = torch.full(batch, self.detector.zeta, dtype=y.dtype, device=y.device)
+        G, K = (
+            m.to(y.dtype)
+            for m in (self.gain or _linear_measurement(model, k, mask, at=predictive.mean))
+        )
+        if hasattr(model, "observation_matrix"):
+            residuals = corrected_residuals(
+                particles, y if mask is None else y * mask.to(y.dtype), G, K
+            )
+        else:  # z̃⁺ = (I − G K)(ỹ − h(x^i)), G the Jacobian at the predictive mean
+            innov = y.unsqueeze(-2) - model.observe(particles, k)
+            if mask is not None:
+                innov = innov * mask.unsqueeze(-2).to(innov.dtype)
+            eye = torch.eye(G.shape[-2], dtype=G.dtype, device=G.device)
+            residuals = innov @ (eye - G @ K).transpose(-1, -2)
+        beta = probability_of_attack(residuals, self.detector.eta, predictive.log_weights)
+        alarm = beta > zeta
+        if self.attack_rate is not None:
+            self.rate_state = self.attack_rate.update(self.rate_state, alarm)
+        if self.estimator is not None:
+            if self.est_state is None:
+                self.est_state = self.estimator.init(batch)
+            flag = alarm if mask is None else alarm.unsqueeze(-1) & mask
+            self.est_state, g_hat, _ = self.estimator.step(
+                self.est_state, predictive.innovation, predictive.innovation_cov, flag
+            )
+        else:
+            g_hat = self.gamma_hat[..., k - 1, :]
+        self.last = {"beta": beta, "alarm": alarm, "zeta": zeta, "gamma_hat": g_hat}
+        self.records.add(**self.last)
+        return AttackCompensatedLikelihood(alarm, g_hat, self.base)(model, y, particles, k, mask)
 
 
 # ------------------------------------------------------------------------------ filters
@@ -344,78 +314,43 @@ def modified_particle_filter(
             model, ys, us, mask, num_particles, detector, gamma_hat, attack_rate, resampler,
             ess_threshold, generator, resample_generator, initial_state, base_likelihood,
         )  # fmt: skip
-    estimator = gamma_hat if isinstance(gamma_hat, BiasAttackEstimator) else None
-    if estimator is None:
-        if not isinstance(gamma_hat, Tensor) or gamma_hat.shape[-2:] != ys.shape[-2:]:
-            raise ValueError(
-                f"gamma_hat must be a BiasAttackEstimator or a tensor [..., {T}, {model.dim_y}]; "
-                f"got {getattr(gamma_hat, 'shape', type(gamma_hat).__name__)}"
-            )
-    state = (
-        initial_state
-        if initial_state is not None
-        else particle_init(model, num_particles, batch, generator)
-    )
+    if not isinstance(gamma_hat, BiasAttackEstimator) and (
+        not isinstance(gamma_hat, Tensor) or gamma_hat.shape[-2:] != ys.shape[-2:]
+    ):
+        raise ValueError(
+            f"gamma_hat must be a BiasAttackEstimator or a tensor [..., {T}, {model.dim_y}]; "
+            f"got {getattr(gamma_hat, 'shape', type(gamma_hat).__name__)}"
+        )
     shared = (
         mask is None
         and hasattr(model, "observation_matrix")
         and not getattr(model, "time_varying", False)
     )
     gain = tuple(m.to(ys.dtype) for m in _linear_measurement(model, 1, None)) if shared else None
-    est_state = estimator.init(batch) if estimator is not None else None
-    rate_state = (
-        attack_rate.init(batch, dtype=ys.dtype, device=ys.device)
-        if attack_rate is not None
-        else None
+    weighting = ModifiedPFWeighting(
+        detector, gamma_hat, attack_rate=attack_rate, gain=gain, base_likelihood=base_likelihood
     )
-    rec = StepRecorder()
-    for t in range(T):
-        y = ys[..., t, :]
-        u = None if us is None else us[..., t, :]
-        m = None if mask is None else mask[..., t, :]
-        zeta = (
-            attack_rate.zeta(rate_state)
-            if attack_rate is not None
-            else torch.full(batch, detector.zeta, dtype=ys.dtype, device=ys.device)
-        )
-        pred_state, pred_out, beta, alarm = modified_pf_detect(
-            model,
-            state,
-            y,
-            u,
-            m,
-            detector=detector,
-            zeta=zeta,
-            gain=gain,
-            resampler=resampler,
-            ess_threshold=ess_threshold,
-            generator=generator,
-            resample_generator=resample_generator,
-        )
-        if attack_rate is not None:
-            rate_state = attack_rate.update(rate_state, alarm)
-        if estimator is not None:
-            flag = alarm if m is None else alarm.unsqueeze(-1) & m
-            est_state, g_hat, _ = estimator.step(
-                est_state, pred_out.innovation, pred_out.innovation_cov, flag
-            )
-        else:
-            g_hat = gamma_hat[..., t, :]
-        state, mean, cov, ess = modified_pf_estimate(
-            model, pred_state, y, alarm, g_hat, m, base_likelihood=base_likelihood
-        )
-        rec.add(
-            mean=mean, cov=cov, pred=pred_out.mean, beta=beta, alarm=alarm, zeta=zeta,
-            ghat=g_hat, ess=ess,
-        )  # fmt: skip
-    r = rec.stack(len(batch))
-    extras = {"gamma_hat": r["ghat"], "pred_means": r["pred"], "ess": r["ess"]}
+    res = particle_filter(
+        model,
+        ys,
+        us,
+        mask=mask,
+        num_particles=num_particles,
+        resampler=resampler if resampler is not None else Systematic(),
+        likelihood=weighting,
+        ess_threshold=ess_threshold,
+        generator=generator,
+        resample_generator=resample_generator,
+        initial_state=initial_state,
+    )
+    r = weighting.records.stack(len(batch))
+    extras = {"gamma_hat": r["gamma_hat"], "pred_means": res.pred_means, "ess": res.ess}
     if attack_rate is not None:
-        extras["attack_rate"] = attack_rate.estimate(rate_state)
+        extras["attack_rate"] = attack_rate.estimate(weighting.rate_state)
     return EstimatorOutput(
-        means=r["mean"],
-        covs=r["cov"],
-        attack=r["alarm"].unsqueeze(-1).to(ys.dtype) * r["ghat"],
+        means=res.means,
+        covs=res.covs,
+        attack=r["alarm"].unsqueeze(-1).to(ys.dtype) * r["gamma_hat"],
         detection=Detection(r["beta"], r["alarm"], r["zeta"]),
         extras=extras,
     )
@@ -468,6 +403,7 @@ def particle_filter_poa(
     generator: torch.Generator | None = None,
     resample_generator: torch.Generator | None = None,
     initial_state: ParticleState | None = None,
+    return_particles: bool = False,
 ) -> EstimatorOutput:
     """The normal (bootstrap) PF on ``ys [..., T, dy]`` with the PoA detector of eqs (10)–(17).
 
@@ -481,9 +417,10 @@ def particle_filter_poa(
 
     Returns an :class:`~difffilter.EstimatorOutput` (``attack`` is ``None``; detection
     scores ``β_k``, threshold ``ζ``) with ``extras``: ``ess [..., T]``,
-    ``log_likelihood [...]``, ``particles [..., T, N, dx]``, their normalised
-    ``log_weights [..., T, N]`` and ``prior_log_weights [..., T, N]`` (the predictive
-    weights ``log w_{k−1}`` of the particles ``x_k``).
+    ``log_likelihood [...]`` and, with ``return_particles=True``, ``particles
+    [..., T, N, dx]``, their normalised ``log_weights [..., T, N]`` and
+    ``prior_log_weights [..., T, N]`` (the predictive weights ``log w_{k−1}`` of ``x_k``).
+    β is computed by a step hook of the one particle driver, so no particle history is kept.
     """
     if not isinstance(detector, PoADetector):
         raise ValueError(f"detector must be a PoADetector; got {type(detector).__name__}")
@@ -492,12 +429,23 @@ def particle_filter_poa(
     if literal and mask is not None:
         raise ValueError("literal=True does not support a measurement mask (mask must be None)")
     ys, us, mask = _validate_inputs(model, ys, us, mask)
-    batch = ys.shape[:-2]
-    state = (
-        initial_state
-        if initial_state is not None
-        else particle_init(model, num_particles, batch, generator)
-    )
+    R = model.measurement_cov(1)
+
+    def poa(model, y, m, state, out):
+        residuals = y.unsqueeze(-2) - model.observe(state.particles, state.k)
+        if m is not None:
+            residuals = residuals * m.unsqueeze(-2).to(residuals.dtype)
+        if literal:
+            prior = torch.exp(out.prior_log_weights)
+            beta = literal_probability_of_attack(residuals, R, detector.eta, prior).to(y.dtype)
+        else:
+            beta = probability_of_attack(residuals, detector.eta, state.log_weights)
+        return (
+            {"beta": beta, "prior_log_weights": out.prior_log_weights}
+            if return_particles
+            else {"beta": beta}
+        )
+
     res = particle_filter(
         model,
         ys,
@@ -509,37 +457,18 @@ def particle_filter_poa(
         ess_threshold=ess_threshold,
         generator=generator,
         resample_generator=resample_generator,
-        return_particles=True,
-        initial_state=state,
+        return_particles=return_particles,
+        initial_state=initial_state,
+        hooks=(poa,),
     )
-    residuals = ys.unsqueeze(-2) - _observe_all(model, res.particles)  # [..., T, N, dy]
-    if mask is not None:
-        residuals = residuals * mask.unsqueeze(-2).to(residuals.dtype)
-    prior = prior_log_weights(res, state.log_weights)
-    if literal:
-        beta = literal_probability_of_attack(
-            residuals, model.measurement_cov(1), detector.eta, torch.exp(prior)
-        )
-        beta = beta.to(ys.dtype)
-    else:
-        beta = probability_of_attack(residuals, detector.eta, res.log_weights)
+    beta = res.records["beta"]
+    extras = {"ess": res.ess, "log_likelihood": res.log_likelihood}
+    if return_particles:
+        extras.update(particles=res.particles, log_weights=res.log_weights,
+                      prior_log_weights=res.records["prior_log_weights"])  # fmt: skip
     return EstimatorOutput(
         means=res.means,
         covs=res.covs,
         detection=Detection(beta, beta > detector.zeta, detector.zeta),
-        extras={
-            "ess": res.ess,
-            "log_likelihood": res.log_likelihood,
-            "particles": res.particles,
-            "log_weights": res.log_weights,
-            "prior_log_weights": prior,
-        },
+        extras=extras,
     )
-
-
-def _observe_all(model, particles: Tensor) -> Tensor:
-    """``h(x)`` of particles ``[..., T, N, dx]`` of a whole run, time index ``t`` ↔ ``k = t + 1``."""
-    if hasattr(model, "observation_matrix") and not getattr(model, "time_varying", False):
-        return particles @ model.observation_matrix(1).transpose(-1, -2).to(particles.dtype)
-    T = particles.shape[-3]
-    return torch.stack([model.observe(particles[..., t, :, :], t + 1) for t in range(T)], -3)
