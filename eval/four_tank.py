@@ -1,4 +1,4 @@
-"""Monte Carlo evaluation of the four-tank FDI scenarios (SCENARIOS.md §1; issue 3).
+"""Monte Carlo evaluation of the four-tank FDI scenarios (docs/scenarios.md, four-tank; issue 3).
 
 One batched tensor program per scenario: every run is simulated at once, and every
 estimator sees the same runs and the same random numbers (common random numbers): the
@@ -195,7 +195,7 @@ def _detection_metrics(
     *,
     attacked_input: bool = True,
 ) -> dict[str, Any]:
-    """Per-step detection figures (SCENARIOS.md §5) pooled over runs and steps."""
+    """Per-step detection figures (docs/metrics.md) pooled over runs and steps."""
     B = alarms.shape[0]
     if not attacked_input:  # a filter fed the clean measurements: every alarm is false
         fa = int(alarms.sum())

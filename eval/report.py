@@ -1,4 +1,4 @@
-"""The report schema shared by every evaluation (DESIGN.md, "Reports").
+"""The report schema shared by every evaluation (docs/architecture.md, "Reports").
 
 ``<out>/<scenario>/metrics.json``::
 
