@@ -12,6 +12,7 @@ particles ``[..., N, dx]``. See :mod:`difffilter.ssm` for the time convention.
 """
 
 from . import metrics, noise, resampling
+from .estimator import Detection, EstimatorOutput
 from .extended import (
     SigmaPoints,
     extended_kalman_filter,
@@ -61,4 +62,6 @@ __all__ = [
     "unscented_kalman_step",
     "unscented_kalman_filter",
     "SigmaPoints",
+    "Detection",
+    "EstimatorOutput",
 ]

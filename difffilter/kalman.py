@@ -37,6 +37,7 @@ from .ssm import StateSpaceModel
 __all__ = [
     "gaussian_init",
     "gaussian_update",
+    "kalman_gain",
     "kalman_predict",
     "kalman_step",
     "kalman_filter",
@@ -54,6 +55,18 @@ def gaussian_init(model: StateSpaceModel, batch_shape=()) -> GaussianState:
     batch_shape = torch.Size(batch_shape)
     mean = mean.expand(torch.broadcast_shapes(batch_shape, mean.shape[:-1]) + mean.shape[-1:])
     return GaussianState(mean, model.initial.cov, 0)
+
+
+def kalman_gain(cross_cov: Tensor, innovation_cov: Tensor) -> tuple[Tensor, Tensor]:
+    """Gain ``K = C S⁻¹`` by a Cholesky solve (``S`` is never inverted).
+
+    Shapes: ``cross_cov`` ``C = Cov(x, y)`` ``[..., dx, dy]``, ``innovation_cov`` ``S``
+    ``[..., dy, dy]`` (symmetrised here) → ``(K [..., dx, dy], chol(S) [..., dy, dy])``.
+    Every Gaussian update of the library (KF, EKF, UKF, the Kalman proposal of the PF,
+    the modified PF's eq. 35, the attack estimators) takes its gain from here.
+    """
+    chol = safe_cholesky(symmetrize(innovation_cov), name="innovation covariance S")
+    return cholesky_solve_right(cross_cov, chol), chol
 
 
 def gaussian_update(
@@ -83,8 +96,7 @@ def gaussian_update(
     Returns ``(m⁺, P⁺, S, log N(r; 0, S))``.
     """
     S = symmetrize(pred_obs_cov + noise_cov)
-    chol = safe_cholesky(S, name="innovation covariance S")
-    gain = cholesky_solve_right(cross_cov, chol)  # K = C S⁻¹  [..., dx, dy]
+    gain, chol = kalman_gain(cross_cov, S)  # K = C S⁻¹  [..., dx, dy]
     mean = pred_mean + matvec(gain, residual)
     eye = torch.eye(pred_cov.shape[-1], dtype=pred_cov.dtype, device=pred_cov.device)
     i_kh = eye - gain @ obs_matrix

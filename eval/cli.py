@@ -9,12 +9,13 @@ Usage::
 
 Each scenario writes ``<out>/<scenario>/{metrics.json, report.md, *.png}`` and
 TensorBoard events under ``<out>/<scenario>/tb`` (``tensorboard --logdir <out>``).
-Family names (``four_tank``, ``lfc``) select every scenario of that family.
+A family name (``four_tank``, ``lfc``, …) selects its headline scenarios.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -22,15 +23,10 @@ from pathlib import Path
 from difffilter.models import registry
 from difffilter.runtime import tune_cpu_allocator
 
-from .report import summary_table
+from .report import summary_table, write_report
+from .suite import run_suite
 
 __all__ = ["main", "build_parser", "resolve_scenarios", "evaluate"]
-
-#: Scenarios run by `all` and by a family name (variants are reachable by their own names).
-FAMILY_DEFAULTS = {
-    "four_tank": ["four_tank_bias"],
-    "lfc": ["lfc_step", "lfc_sine", "lfc_simultaneous", "lfc_sawtooth"],
-}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -41,9 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
             "report.md, plots and TensorBoard logs."
         ),
     )
-    p.add_argument(
-        "scenario", nargs="?", help="scenario name, family name (four_tank, lfc) or 'all'"
-    )
+    p.add_argument("scenario", nargs="?", help="scenario name, family name or 'all' (see --list)")
     p.add_argument(
         "--ckpt", type=Path, default=None, help="trained estimator checkpoint (LFC scenarios)"
     )
@@ -62,21 +56,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def resolve_scenarios(name: str) -> list[str]:
-    """Expand ``name`` (a scenario, a family or ``all``) to scenario names; ``ValueError`` if unknown."""
-    known = registry.names()
+    """Expand ``name`` (a scenario, a family or ``all``) to scenario names; ``ValueError`` if unknown.
+
+    ``all`` and a family name run the scenarios marked ``headline``; variants are run by
+    their own names.
+    """
     if name == "all":
-        out = []
-        for family in FAMILY_DEFAULTS:
-            out += resolve_scenarios(family) if registry.names(family) else []
-        return out
-    if name in FAMILY_DEFAULTS:
-        members = registry.names(name)
-        if not members:
-            raise ValueError(f"no scenarios registered for family {name!r}")
-        default = FAMILY_DEFAULTS[name]
-        return [n for n in (default or members) if n in members]
-    if name not in known:
-        registry.get(name)  # raises ValueError listing the known names
+        return registry.names(headline_only=True)
+    if name in registry.families():
+        return registry.names(name, headline_only=True) or registry.names(name)
+    registry.get(name)  # raises ValueError listing the known names
     return [name]
 
 
@@ -89,29 +78,33 @@ def evaluate(
     seed: int,
     progress: bool,
 ) -> dict:
-    """Run the evaluation of every scenario, grouped by family; returns ``{scenario: metrics}``."""
-    if runs is not None and runs < 1:
-        raise ValueError(f"--runs must be >= 1; got {runs}")
+    """Evaluate every scenario; returns ``{scenario: metrics}``.
+
+    A scenario runs the generic Monte Carlo suite and report writer unless it names its
+    family's own evaluation (``Scenario.evaluator``, ``"module:function"``), which is
+    called once with all the scenarios of the call that name it.
+    """
+    if runs is not None and (isinstance(runs, bool) or not isinstance(runs, int) or runs < 1):
+        raise ValueError(f"--runs must be an integer >= 1; got {runs!r}")
     if ckpt is not None and not Path(ckpt).is_file():
         raise FileNotFoundError(f"--ckpt: no checkpoint file at {ckpt}")
-    by_family: dict[str, list[str]] = {}
+    grouped: dict[str, list[str]] = {}
     for name in scenarios:
-        by_family.setdefault(registry.get(name).family, []).append(name)
+        evaluator = registry.get(name).evaluator
+        grouped.setdefault(evaluator or "", []).append(name)
     results: dict = {}
-    for family, names in by_family.items():
-        kwargs = {"out": Path(out), "seed": seed, "progress": progress}
-        if runs is not None:
-            kwargs["runs"] = runs
-        if family == "four_tank":
-            from difffilter.eval.four_tank import run_four_tank
-
-            results.update(run_four_tank(names, **kwargs))
-        elif family == "lfc":
-            from difffilter.eval.lfc import run_lfc
-
-            results.update(run_lfc(names, ckpt=ckpt, **kwargs))
-        else:  # pragma: no cover - a registered family without an evaluator
-            raise ValueError(f"no evaluator for scenario family {family!r}")
+    for evaluator, names in grouped.items():
+        if evaluator:
+            module, func = evaluator.split(":")
+            run = getattr(importlib.import_module(module), func)
+            kwargs = {"out": Path(out), "seed": seed, "progress": progress, "ckpt": ckpt}
+            if runs is not None:
+                kwargs["runs"] = runs
+            results.update(run(names, **kwargs))
+            continue
+        for name in names:
+            result = run_suite(registry.get(name), runs=runs, seed=seed, progress=progress)
+            results[name] = write_report(Path(out) / name, result)
     return results
 
 

@@ -17,7 +17,6 @@ from pathlib import Path
 import torch
 
 import difffilter as df
-from difffilter.models import registry
 from difffilter.models.four_tank import FourTankModel
 from difffilter.particle import KalmanProposal, particle_filter
 
@@ -117,10 +116,7 @@ def main(argv=None) -> int:
     from difffilter.eval.cli import evaluate, resolve_scenarios
     from difffilter.eval.report import summary_table
 
-    scenarios = []
-    for family in ("four_tank", "lfc"):
-        if registry.names(family):
-            scenarios += resolve_scenarios(family)
+    scenarios = resolve_scenarios("all")
     ckpt = Path("checkpoints/lfc_nn_grad.ckpt")
     print(f"\n== Evaluations: {', '.join(scenarios)} -> {args.out}/ ==")
     results = evaluate(

@@ -26,7 +26,7 @@ Metrics (per estimator):
   ``kf_nn_grad`` also reports its attack-probability head (``*_prob`` keys);
   ``chi_square_kf``/``cusum_kf`` run on the uncompensated Kalman observer's innovations
   ([DEF] false-alarm rate 1 %; CUSUM bias ``b = m + 2`` and ``τ`` calibrated on
-  attack-free runs of other seeds). ``detection_delay`` is in seconds.
+  attack-free runs of other seeds). ``detection_delay_s`` is in seconds, ``detection_delay_steps`` in steps.
 """
 
 from __future__ import annotations
@@ -108,7 +108,9 @@ def _detection_summary(score: Tensor, alarms: Tensor, attacked: Tensor, dt: floa
         "tpr": rates["tpr"],
         "fpr": rates["fpr"],
         "auc": dm.roc_auc(score, attacked),
-        "detection_delay": delay["mean_delay"] * dt if math.isfinite(delay["mean_delay"]) else None,
+        "detection_delay_s": delay["mean_delay"] * dt
+        if math.isfinite(delay["mean_delay"])
+        else None,
         "detection_delay_steps": delay["mean_delay"],
         "false_alarms": rates["false_alarms"],
         "missed_attacks": rates["missed_attacks"],
@@ -231,7 +233,7 @@ def _run_scenario(
                 for k, v in _detection_summary(
                     prob_score, prob_score > 0.0, attacked, sc.dt
                 ).items()
-                if k in ("tpr", "fpr", "auc", "detection_delay")
+                if k in ("tpr", "fpr", "auc", "detection_delay_s")
             }
         entries[name] = estimator_entry(
             **common,
@@ -644,7 +646,7 @@ def _report(result: dict, per_channel: dict | None, tuning: dict | None, sc: LFC
             e = est[n]
             lines.append(
                 f"| {n} | {f(e['tpr'])} | {f(e['fpr'])} | {f(e['auc'])} | "
-                f"{f(e['detection_delay'])} | {f(e['false_alarms'])} | "
+                f"{f(e['detection_delay_s'])} | {f(e['false_alarms'])} | "
                 f"{f(e['missed_attacks'])} |"
             )
     if "kf_nn_grad" in est and "auc_prob" in est["kf_nn_grad"]:

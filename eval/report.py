@@ -1,28 +1,41 @@
-"""The report schema shared by every evaluation (docs/architecture.md, "Reports").
+"""The report writer shared by every scenario: metrics.json, report.md, plots, TensorBoard.
 
-``<out>/<scenario>/metrics.json``::
+``<out>/<scenario>/metrics.json`` (JSON Schema: ``eval/metrics.schema.json``)::
 
-    {"scenario": str, "runs": int, "steps": int, "seed": int,
+    {"scenario": str, "runs": int, "steps": int, "seed": int, "dt_s": float,
+     "units": {"<metric>": "<unit>", ...},
      "paper": {...the paper's reference numbers...},
-     "estimators": {"<name>": {"state_rmse": float, "state_rmse_vs_attack_free": float|null,
-                               "attack_rmse": float|null, "tpr": float|null, "fpr": float|null,
-                               "auc": float|null, "detection_delay": float|null,
-                               "false_alarms": int|null, "missed_attacks": int|null,
-                               "time_per_step_s": float, ...extra keys}}}
+     "estimators": {"<name>": {"<metric>": number|null for every metric of
+                               difffilter.eval.scoring.METRICS, ...extra keys}}}
 
-Extra keys (scenario-specific numbers) may be added to an estimator entry or at the
-top level; the listed keys are always present.
+Extra keys (scenario-specific numbers) may be added to an estimator entry or at the top
+level; the metrics of :data:`~difffilter.eval.scoring.METRICS` are always present.
+
+:func:`write_report` writes the whole report of a suite run: the generic sections every
+scenario gets (settings, the estimator table, plots of RMSE over time, ROC curves and one
+run's attack estimates and alarms) followed by the sections a family registers with
+:func:`register_family` (its paper's table and discussion).
 """
 
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from .scoring import METRICS
+
 __all__ = [
     "REQUIRED_KEYS",
+    "Section",
+    "FamilyReport",
+    "register_family",
+    "metrics_schema",
+    "write_report",
+    "markdown_table",
     "estimator_entry",
     "write_metrics",
     "read_metrics",
@@ -30,18 +43,8 @@ __all__ = [
     "summary_table",
 ]
 
-REQUIRED_KEYS = (
-    "state_rmse",
-    "state_rmse_vs_attack_free",
-    "attack_rmse",
-    "tpr",
-    "fpr",
-    "auc",
-    "detection_delay",
-    "false_alarms",
-    "missed_attacks",
-    "time_per_step_s",
-)
+#: Every estimator entry of metrics.json has these keys (``None`` where not applicable).
+REQUIRED_KEYS = tuple(METRICS)
 
 
 def _clean(value: Any) -> Any:
@@ -60,34 +63,10 @@ def _clean(value: Any) -> Any:
     return value
 
 
-def estimator_entry(
-    *,
-    state_rmse: float,
-    time_per_step_s: float,
-    state_rmse_vs_attack_free: float | None = None,
-    attack_rmse: float | None = None,
-    tpr: float | None = None,
-    fpr: float | None = None,
-    auc: float | None = None,
-    detection_delay: float | None = None,
-    false_alarms: int | None = None,
-    missed_attacks: int | None = None,
-    **extra: Any,
-) -> dict[str, Any]:
-    """One estimator's entry with every required key (``None`` where not applicable)."""
-    entry = {
-        "state_rmse": state_rmse,
-        "state_rmse_vs_attack_free": state_rmse_vs_attack_free,
-        "attack_rmse": attack_rmse,
-        "tpr": tpr,
-        "fpr": fpr,
-        "auc": auc,
-        "detection_delay": detection_delay,
-        "false_alarms": false_alarms,
-        "missed_attacks": missed_attacks,
-        "time_per_step_s": time_per_step_s,
-        **extra,
-    }
+def estimator_entry(*, state_rmse: float, time_per_step_s: float, **values: Any) -> dict[str, Any]:
+    """One estimator's entry with every key of :data:`REQUIRED_KEYS` (``None`` where absent)."""
+    entry = dict.fromkeys(REQUIRED_KEYS)
+    entry.update(state_rmse=state_rmse, time_per_step_s=time_per_step_s, **values)
     return _clean(entry)
 
 
@@ -112,6 +91,7 @@ def write_metrics(
         "runs": runs,
         "steps": steps,
         "seed": seed,
+        "units": {name: m.unit for name, m in METRICS.items()},
         "paper": paper,
         "estimators": estimators,
         **extra,
@@ -177,3 +157,196 @@ def summary_table(results: dict[str, dict[str, Any]], digits: int = 3) -> str:
             lines.append(f"{name:{width}s}{cells}")
         blocks.append("\n".join(lines))
     return "\n\n".join(blocks)
+
+
+# ------------------------------------------------------------------ the generic report
+
+
+@dataclass
+class Section:
+    """A titled part of report.md (markdown body; figures are file names in the folder)."""
+
+    title: str
+    body: str
+    figures: list[str] = field(default_factory=list)
+
+
+@dataclass
+class FamilyReport:
+    """What a family adds to the generic report.
+
+    Attributes:
+        extra: ``SuiteResult → dict`` of family numbers for metrics.json (top level),
+            computed from the suite run (e.g. an attack-size sweep, a paper table); it
+            may also add family keys to ``result.metrics[estimator]``.
+        sections: ``(SuiteResult, doc, out) → [Section]`` after the generic sections;
+            ``doc`` is the metrics.json content, ``out`` the folder (for its own plots).
+    """
+
+    extra: Callable[..., dict[str, Any]] | None = None
+    sections: Callable[..., list[Section]] | None = None
+
+
+_FAMILIES: dict[str, FamilyReport] = {}
+
+
+def register_family(family: str, report: FamilyReport) -> FamilyReport:
+    """Register the report additions of ``family`` (one per family)."""
+    _FAMILIES[family] = report
+    return report
+
+
+def metrics_schema() -> dict[str, Any]:
+    """The JSON Schema of metrics.json, built from :data:`~difffilter.eval.scoring.METRICS`."""
+    number = {"type": ["number", "null"]}
+    integer = {"type": ["integer", "null"]}
+    props = {
+        name: {
+            **(integer if m.kind == "integer" else number),
+            "description": f"[{m.unit}] {m.definition}",
+        }
+        for name, m in METRICS.items()
+    }
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "difffilter metrics.json",
+        "type": "object",
+        "required": ["scenario", "runs", "steps", "seed", "units", "paper", "estimators"],
+        "properties": {
+            "scenario": {"type": "string"},
+            "runs": {"type": "integer", "minimum": 1},
+            "steps": {"type": "integer", "minimum": 1},
+            "seed": {"type": "integer", "minimum": 0},
+            "dt_s": {"type": "number", "exclusiveMinimum": 0},
+            "units": {
+                "type": "object",
+                "properties": {name: {"const": m.unit} for name, m in METRICS.items()},
+                "required": list(METRICS),
+            },
+            "paper": {"type": "object"},
+            "estimators": {
+                "type": "object",
+                "additionalProperties": {
+                    "type": "object",
+                    "properties": props,
+                    "required": list(METRICS),
+                },
+            },
+        },
+    }
+
+
+def markdown_table(header: list[str], rows: list[list[Any]]) -> str:
+    """A markdown table (cells formatted with ``str``; numbers should be formatted first)."""
+    lines = ["| " + " | ".join(map(str, header)) + " |", "|---" * len(header) + "|"]
+    lines += ["| " + " | ".join(map(str, r)) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def write_report(out: str | Path, result, *, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Write metrics.json, report.md, plots and TensorBoard events of a suite run.
+
+    Args:
+        out: the scenario's folder (created).
+        result: a :class:`~difffilter.eval.suite.SuiteResult`.
+        extra: more top-level metrics.json entries (e.g. the checkpoint evaluated).
+
+    Returns the metrics.json content.
+    """
+    from .families import load_all
+    from .plots import standard_figures
+    from .tensorboard import log_suite
+
+    load_all()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    sc = result.scenario
+    family = _FAMILIES.get(sc.family, FamilyReport())
+    from . import estimators as registry
+
+    family_numbers = family.extra(result) if family.extra else {}  # may add estimator keys
+    entries = {name: estimator_entry(**m) for name, m in result.metrics.items()}
+    top = {
+        "description": sc.description,
+        "dt_s": sc.dt,
+        "reference": result.reference,
+        "estimator_descriptions": {n: registry.get(n).description for n in result.metrics},
+        "notes": list(sc.notes),
+        "attacked_steps": int(result.traj.flags.sum()),
+        "attack_free_steps": int((~result.traj.flags).sum()),
+        **family_numbers,
+        **(extra or {}),
+    }
+    path = write_metrics(
+        out / "metrics.json",
+        scenario=sc.name,
+        runs=result.runs,
+        steps=sc.steps,
+        seed=result.seed,
+        paper=sc.paper_numbers(),
+        estimators=entries,
+        **top,
+    )
+    doc = read_metrics(path)
+    figures = standard_figures(result)
+    sections = [_summary_section(doc, sc), _table_section(doc)]
+    sections.append(Section("Plots", "", [name for name, _ in figures]))
+    if family.sections:
+        sections += family.sections(result, doc, out)
+    for name, fig in figures:
+        fig.savefig(out / name, dpi=110, bbox_inches="tight")
+    (out / "report.md").write_text(_markdown(doc, sc, sections))
+    log_suite(out / "tb", result, doc, figures)
+    import matplotlib.pyplot as plt
+
+    for _, fig in figures:
+        plt.close(fig)
+    return doc
+
+
+def _summary_section(doc: dict, sc) -> Section:
+    body = (
+        f"{doc['runs']} Monte Carlo runs × {doc['steps']} steps (dt = {doc['dt_s']} s), seed "
+        f"{doc['seed']}; {doc['attacked_steps']} attacked and {doc['attack_free_steps']} "
+        "attack-free steps. Every estimator sees the same runs and the same random numbers "
+        "(named streams of one master seed). "
+        + (f"Attack-free reference: `{doc['reference']}`.\n" if doc.get("reference") else "\n")
+    )
+    if sc.paper:
+        body += f"\nPaper: {sc.paper}.\n"
+    if doc["notes"]:
+        body += "\n" + "\n".join(f"- {n}" for n in doc["notes"]) + "\n"
+    return Section("Setting", body)
+
+
+_TABLE_COLUMNS = (
+    "state_rmse",
+    "state_rmse_vs_attack_free",
+    "attack_rmse",
+    "tpr",
+    "fpr",
+    "auc",
+    "tpr_at_1pct_fpr",
+    "false_alarms_per_1000_steps",
+    "detection_delay_steps",
+    "detection_delay_s",
+    "time_per_step_s",
+)
+
+
+def _table_section(doc: dict) -> Section:
+    est = doc["estimators"]
+    cols = [c for c in _TABLE_COLUMNS if any(e.get(c) is not None for e in est.values())]
+    rows = [[f"`{name}`", *(format_number(e.get(c), 3) for c in cols)] for name, e in est.items()]
+    table = markdown_table(["estimator", *(f"{c} [{doc['units'][c]}]" for c in cols)], rows)
+    desc = "\n".join(f"- `{n}`: {d}" for n, d in doc["estimator_descriptions"].items())
+    defs = "\n".join(f"- `{c}` [{METRICS[c].unit}]: {METRICS[c].definition}" for c in cols)
+    return Section("Estimators", f"{table}\n{desc}\n\nDefinitions:\n\n{defs}\n")
+
+
+def _markdown(doc: dict, sc, sections: list[Section]) -> str:
+    parts = [f"# {doc['scenario']}\n\n{doc['description']}\n"]
+    for s in sections:
+        parts.append(f"## {s.title}\n\n{s.body}")
+        parts += [f"![{name}]({name})\n" for name in s.figures]
+    return "\n".join(parts)

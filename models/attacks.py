@@ -1,4 +1,4 @@
-"""False-data-injection attack generators (measurement channel).
+"""False-data-injection attack generators: sensor bias, actuator injection, replacement.
 
 Bias injection attack of the modified-PF paper (Sadeghzadeh-Nokhodberiz et al., IEEE
 Access 2022, eqs 3–4)::
@@ -24,7 +24,13 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-__all__ = ["BiasAttack", "AttackRealisation"]
+__all__ = [
+    "BiasAttack",
+    "AttackRealisation",
+    "SensorBias",
+    "ActuatorInjection",
+    "Replacement",
+]
 
 
 class AttackRealisation(NamedTuple):
@@ -131,3 +137,119 @@ class BiasAttack:
         )
         y_recv = y_true + flags.unsqueeze(-1).to(y_true.dtype) * gammas
         return AttackRealisation(y_recv, flags, gammas)
+
+
+# ------------------------------------------------------------------ the attack interface
+#
+# Every attack a scenario can carry has ``channel`` ("sensor": it changes what the
+# estimator receives; "actuator": it changes what the plant is driven with),
+# ``sample(batch_shape, T, dim, generator, dtype=, device=) -> (values [*, T, dim],
+# flags [*, T])`` and ``inject(signal [*, T, dim], values, flags) -> signal``. The
+# simulation (:func:`difffilter.models.scenario.simulate`) applies them; ``values`` are
+# what the attacker would inject at every step, ``flags`` where it does.
+
+
+def _check_steps(num_steps) -> None:
+    if isinstance(num_steps, bool) or not isinstance(num_steps, int) or num_steps < 1:
+        raise ValueError(f"num_steps must be an integer >= 1; got {num_steps!r}")
+
+
+class SensorBias(BiasAttack):
+    """:class:`BiasAttack` (eqs 3–4 of the four-tank paper) in the attack interface.
+
+    ``values[t] = γ_{t+1}`` (eq. 4), ``flags ~ Bernoulli(p_l)`` (eq. 3), and
+    ``inject`` adds ``l_k γ_k`` to the measurement.
+    """
+
+    channel = "sensor"
+
+    def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        if dim != self.dim:
+            raise ValueError(f"gamma_bar has {self.dim} entries but the measurement has {dim}")
+        flags = self.sample_flags(batch_shape, num_steps, generator, device=device)
+        values = self.values(num_steps, dtype=dtype, device=device)
+        return values.expand(flags.shape + (dim,)), flags
+
+    def inject(self, signal: Tensor, values: Tensor, flags: Tensor) -> Tensor:
+        return signal + flags.unsqueeze(-1).to(signal.dtype) * values
+
+
+@dataclass(frozen=True)
+class ActuatorInjection:
+    """A constant false input ``a`` added to the applied control from step ``start`` on.
+
+    ``u_applied,k = u_k + a`` for ``k ≥ start`` (0-based index of ``u_k``); the estimator
+    knows only the commanded ``u_k``. ``values [*, T, du]`` is ``a`` at every step.
+
+    Args:
+        value: ``a`` (``du`` numbers).
+        start: first attacked step index (``0 ≤ start``).
+    """
+
+    value: tuple[float, ...]
+    start: int = 0
+    channel = "actuator"
+
+    def __post_init__(self):
+        v = tuple(float(a) for a in self.value)
+        if not v or not all(math.isfinite(a) for a in v):
+            raise ValueError(
+                f"value must be a non-empty sequence of finite numbers; got {self.value!r}"
+            )
+        if isinstance(self.start, bool) or not isinstance(self.start, int) or self.start < 0:
+            raise ValueError(f"start must be an integer >= 0; got {self.start!r}")
+        object.__setattr__(self, "value", v)
+
+    def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        _check_steps(num_steps)
+        if dim != len(self.value):
+            raise ValueError(f"value has {len(self.value)} entries but the input has {dim}")
+        shape = torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
+        flags = (torch.arange(num_steps, device=device) >= self.start).expand(shape + (num_steps,))
+        values = torch.tensor(self.value, dtype=dtype, device=device)
+        return values.expand(flags.shape + (dim,)), flags
+
+    def inject(self, signal: Tensor, values: Tensor, flags: Tensor) -> Tensor:
+        return signal + flags.unsqueeze(-1).to(signal.dtype) * values
+
+
+@dataclass(frozen=True)
+class Replacement:
+    """Deception by replacement: with probability ``rate`` per step the received
+    measurement is replaced by ``ξ_k ~ U(low, high)`` (the RRP paper, eqs 4–6).
+
+    ``values [*, T, dy]`` holds the draws ``ξ_k``; ``inject`` returns ``ξ_k`` where
+    flagged and ``y_k`` elsewhere.
+    """
+
+    rate: float
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+    channel = "sensor"
+
+    def __post_init__(self):
+        if not 0.0 <= float(self.rate) <= 1.0:
+            raise ValueError(f"rate must lie in [0, 1] (a probability); got {self.rate!r}")
+        lo, hi = tuple(float(v) for v in self.low), tuple(float(v) for v in self.high)
+        if len(lo) != len(hi) or not lo or not all(a < b for a, b in zip(lo, hi)):
+            raise ValueError(
+                f"low and high must be equal-length boxes with low < high; got {lo}, {hi}"
+            )
+        object.__setattr__(self, "low", lo)
+        object.__setattr__(self, "high", hi)
+
+    def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        _check_steps(num_steps)
+        if dim != len(self.low):
+            raise ValueError(f"the box has {len(self.low)} entries but the measurement has {dim}")
+        shape = torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
+        u = torch.rand(
+            shape + (num_steps,), generator=generator, dtype=torch.float64, device=device
+        )
+        lo = torch.tensor(self.low, dtype=dtype, device=device)
+        hi = torch.tensor(self.high, dtype=dtype, device=device)
+        box = torch.rand(shape + (num_steps, dim), generator=generator, dtype=dtype, device=device)
+        return lo + (hi - lo) * box, u < self.rate
+
+    def inject(self, signal: Tensor, values: Tensor, flags: Tensor) -> Tensor:
+        return torch.where(flags.unsqueeze(-1), values, signal)

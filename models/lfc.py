@@ -470,16 +470,16 @@ class LFCScenario(Scenario):
     load: tuple[float, float] = (0.01, 0.0)
     attacked_channels: tuple[int, ...] = (2,)
     paper_table: dict = field(default_factory=dict, hash=False, compare=False)
+    runs: int = 20
+    steps: int = 0  # derived: duration / dt
+    evaluator: str | None = "difffilter.eval.lfc:run_lfc"  # closed-loop evaluation
 
     def __post_init__(self):
         if self.attack not in ATTACK_KINDS:
             raise ValueError(f"attack must be one of {ATTACK_KINDS}; got {self.attack!r}")
         if not (self.dt > 0 and self.duration >= self.dt):
             raise ValueError("dt must be positive and duration >= dt")
-
-    @property
-    def steps(self) -> int:
-        return int(round(self.duration / self.dt))
+        object.__setattr__(self, "steps", int(round(self.duration / self.dt)))
 
     def times(self, dtype=torch.float64) -> Tensor:
         """Sample times ``t_k = kΔt``, ``k = 1 … T`` → ``[T]``."""
@@ -493,7 +493,7 @@ class LFCScenario(Scenario):
         return torch.tensor(self.load, dtype=dtype)
 
 
-def _lfc(name, attack, description, channels=(2,), dt=0.01, table_key=None):
+def _lfc(name, attack, description, channels=(2,), dt=0.01, table_key=None, headline=True):
     return register(
         LFCScenario(
             name=name,
@@ -505,6 +505,7 @@ def _lfc(name, attack, description, channels=(2,), dt=0.01, table_key=None):
             dt=dt,
             attacked_channels=channels,
             paper_table=dict(PAPER_TABLES.get(table_key or attack, {})),
+            headline=headline,
         )
     )
 
@@ -524,4 +525,5 @@ _lfc(
     "LFC scenario II sampled at 1 ms (the paper's Fig. 7)",
     dt=0.001,
     table_key="none",
+    headline=False,
 )

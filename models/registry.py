@@ -1,8 +1,9 @@
 """Scenario registry: one name per (system, attack, protocol) combination.
 
-A scenario is a frozen dataclass deriving from :class:`Scenario`; each family (four-tank,
-load-frequency control, …) defines its own subclass with the settings it needs and
-registers instances by name::
+A scenario is a frozen dataclass deriving from :class:`~difffilter.models.scenario.Scenario`;
+each family (four-tank, load-frequency control, …) is one module of ``models/`` that
+defines its own subclass with the settings it needs and registers instances by name
+when imported (every module of the package is imported on first use)::
 
     register(FourTankScenario(name="four_tank_bias", ...))
     get("four_tank_bias")            # -> the scenario object
@@ -14,28 +15,12 @@ them here, in one place, and nowhere else.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import importlib
+import pkgutil
 
-__all__ = ["Scenario", "register", "get", "names", "all_scenarios"]
+from .scenario import Scenario
 
-
-@dataclass(frozen=True)
-class Scenario:
-    """Common fields of every scenario.
-
-    Attributes:
-        name: stable snake_case identifier used by the CLIs and in reports.
-        family: which system/paper the scenario belongs to (``"four_tank"``, ``"lfc"``).
-        description: one line for ``difffilter-eval --list`` and report headers.
-        paper: short citation of the paper the scenario reproduces.
-        notes: provenance of non-paper values (``[DEF]`` defaults) for the report.
-    """
-
-    name: str
-    family: str
-    description: str
-    paper: str = ""
-    notes: tuple[str, ...] = field(default_factory=tuple)
+__all__ = ["Scenario", "register", "get", "names", "families", "all_scenarios"]
 
 
 _REGISTRY: dict[str, Scenario] = {}
@@ -49,17 +34,20 @@ def register(scenario: Scenario) -> Scenario:
     return scenario
 
 
-def _load_builtin() -> None:
-    # Importing the family modules registers their scenarios (import side effect kept
-    # in one place so that `get` always sees every built-in scenario).
-    import importlib
+_LOADED = False
 
-    for module in ("four_tank", "lfc"):
-        try:
-            importlib.import_module(f"difffilter.models.{module}")
-        except ModuleNotFoundError as exc:  # a family not built yet
-            if exc.name != f"difffilter.models.{module}":
-                raise
+
+def _load_builtin() -> None:
+    """Import every module of ``difffilter.models`` once: family modules register their
+    scenarios when imported, so a new family is one new file and no list to edit."""
+    global _LOADED
+    if _LOADED:
+        return
+    _LOADED = True
+    package = importlib.import_module("difffilter.models")
+    for info in pkgutil.iter_modules(package.__path__):
+        if not info.name.startswith("_"):
+            importlib.import_module(f"difffilter.models.{info.name}")
 
 
 def get(name: str) -> Scenario:
@@ -72,10 +60,21 @@ def get(name: str) -> Scenario:
         raise ValueError(f"unknown scenario {name!r}; known scenarios: {known}") from None
 
 
-def names(family: str | None = None) -> list[str]:
-    """Sorted names of the registered scenarios (of one ``family`` when given)."""
+def names(family: str | None = None, *, headline_only: bool = False) -> list[str]:
+    """Sorted names of the registered scenarios (of one ``family`` when given; only those
+    marked ``headline`` — the ones ``difffilter-eval all`` runs — with ``headline_only``)."""
     _load_builtin()
-    return sorted(n for n, s in _REGISTRY.items() if family is None or s.family == family)
+    return sorted(
+        n
+        for n, s in _REGISTRY.items()
+        if family in (None, s.family) and (s.headline or not headline_only)
+    )
+
+
+def families() -> list[str]:
+    """Sorted names of the registered families."""
+    _load_builtin()
+    return sorted({s.family for s in _REGISTRY.values()})
 
 
 def all_scenarios() -> list[Scenario]:

@@ -96,11 +96,11 @@ def test_modified_pf_equals_attack_free_pf_when_every_attack_is_detected(plant):
     )
     free = fdi.particle_filter_poa(model, tr.y_true, detector=det, **streams(model, 4, 50))
     assert torch.equal(mod.alarms, tr.flags)
-    assert torch.allclose(mod.means, free.filter.means, atol=1e-9)
+    assert torch.allclose(mod.means, free.means, atol=1e-9)
     assert not bool(free.alarms.any())
     # the normal PF on the attacked data is biased
     att = fdi.particle_filter_poa(model, y_recv, detector=det, **streams(model, 4, 50))
-    assert (att.filter.means - free.filter.means).abs().max() > 0.05
+    assert (att.means - free.means).abs().max() > 0.05
 
 
 def test_modified_pf_detect_and_estimate_compose_to_the_filter(plant):
@@ -126,7 +126,7 @@ def test_modified_pf_detect_and_estimate_compose_to_the_filter(plant):
             model, pred, tr.y_recv[:, t], alarm, tr.gammas[:, t]
         )
         assert torch.allclose(mean, res.means[:, t]) and torch.equal(alarm, res.alarms[:, t])
-    assert res.beta.shape == res.alarms.shape == (4, 30) and res.gamma_hat.shape == (4, 30, 4)
+    assert res.scores.shape == res.alarms.shape == (4, 30) and res.extras["gamma_hat"].shape == (4, 30, 4)
 
 
 def test_modified_pf_rejects_bad_arguments(plant):
@@ -159,13 +159,13 @@ def test_normal_pf_poa_uses_the_posterior_weights(plant):
     res = fdi.particle_filter_poa(
         model, tr.y_recv, detector=det, ess_threshold=0.0, **streams(model, 4, 30)
     )
-    f = res.filter
-    z = tr.y_recv.unsqueeze(-2) - f.particles  # G = I
-    beta = (torch.softmax(f.log_weights, -1) * (z.norm(dim=-1) > ETA)).sum(-1)
-    assert torch.allclose(res.beta, beta)
+    particles, log_weights = res.extras["particles"], res.extras["log_weights"]
+    z = tr.y_recv.unsqueeze(-2) - particles  # G = I
+    beta = (torch.softmax(log_weights, -1) * (z.norm(dim=-1) > ETA)).sum(-1)
+    assert torch.allclose(res.scores, beta)
     assert torch.equal(res.alarms, beta > ZETA)
     # without resampling the predictive weights are the previous posterior's
-    assert torch.allclose(res.prior_log_weights[:, 1:], f.log_weights[:, :-1])
+    assert torch.allclose(res.extras["prior_log_weights"][:, 1:], log_weights[:, :-1])
 
 
 def test_literal_normal_pf_misses_what_the_log_space_pf_detects():
@@ -186,8 +186,8 @@ def test_literal_normal_pf_misses_what_the_log_space_pf_detects():
     large = tr.flags & (tr.gammas.norm(dim=-1) > 2.0)  # rᵀR⁻¹r ≳ 6e3: every density underflows
     assert bool(large.any())
     assert bool(log.alarms[large].all())
-    assert bool(lit.beta[large].isnan().all()) and not bool(lit.alarms[large].any())
-    assert bool(lit.filter.means.isfinite().all())  # the guard keeps the filter running
+    assert bool(lit.scores[large].isnan().all()) and not bool(lit.alarms[large].any())
+    assert bool(lit.means.isfinite().all())  # the guard keeps the filter running
     with pytest.raises(ValueError, match="literal"):
         fdi.particle_filter_poa(
             model,
@@ -239,7 +239,7 @@ def test_modified_pf_with_estimated_gamma_runs_and_reports_estimates(plant):
     )
     late = tr.flags & res.alarms
     late[:, :15] = False
-    assert (res.gamma_hat[late] - tr.gammas[late]).abs().mean() < 0.05
+    assert (res.extras["gamma_hat"][late] - tr.gammas[late]).abs().mean() < 0.05
 
 
 def test_remark6_running_rate_drives_zeta(plant):
@@ -252,10 +252,10 @@ def test_remark6_running_rate_drives_zeta(plant):
         attack_rate=fdi.RunningAttackRate(40, warmup=5),
         **streams(model, 4, 40),
     )
-    assert torch.allclose(res.zeta[:, :5], torch.full((4, 5), 0.5 * 39 / 40, dtype=torch.float64))
+    assert torch.allclose(res.detection.threshold[:, :5], torch.full((4, 5), 0.5 * 39 / 40, dtype=torch.float64))
     p_hat = res.alarms[:, :-1].double().mean(-1)
-    assert torch.allclose(res.attack_rate, res.alarms.double().mean(-1))
-    assert torch.allclose(res.zeta[:, -1], (p_hat * 40 / 39).clamp(0.05, 0.95) * 39 / 40)
+    assert torch.allclose(res.extras["attack_rate"], res.alarms.double().mean(-1))
+    assert torch.allclose(res.detection.threshold[:, -1], (p_hat * 40 / 39).clamp(0.05, 0.95) * 39 / 40)
 
 
 # -------------------------------------------------------------------- mixture likelihood
@@ -367,14 +367,14 @@ def test_fused_modified_pf_equals_the_composed_filter(B, N):
         model, tr.y_recv, num_particles=N, detector=det, gamma_hat=tr.gammas,
         generator=torch.Generator().manual_seed(5), resample_generator=torch.Generator().manual_seed(6),
     )  # fmt: skip
-    out = FusedModifiedPF(model, num_particles=N, eta=ETA, zeta=ZETA).run(
-        tr.y_recv,
-        tr.gammas,
-        generator=torch.Generator().manual_seed(5),
-        resample_generator=torch.Generator().manual_seed(6),
-    )
+    out = fdi.modified_particle_filter(
+        model, tr.y_recv, num_particles=N, detector=det, gamma_hat=tr.gammas,
+        generator=torch.Generator().manual_seed(5), resample_generator=torch.Generator().manual_seed(6),
+        fused=True,
+    )  # fmt: skip
+    assert out.covs is None and torch.equal(out.attack, ref.attack)
     assert torch.equal(out.alarms, ref.alarms)
-    assert torch.equal(out.beta, ref.beta)
+    assert torch.equal(out.scores, ref.scores)
     assert torch.allclose(out.means, ref.means, atol=1e-10)
 
 
@@ -385,3 +385,9 @@ def test_fused_rejects_bad_input():
     pf = FusedModifiedPF(model, num_particles=10, eta=0.2, zeta=0.5)
     with pytest.raises(ValueError, match="gamma_hat"):
         pf.run(torch.zeros(1, 5, 4, dtype=torch.float64), torch.zeros(1, 4, 4, dtype=torch.float64))
+    y = torch.zeros(1, 5, 4, dtype=torch.float64)
+    with pytest.raises(ValueError, match="fused=True does not support mask"):
+        fdi.modified_particle_filter(
+            model, y, mask=torch.ones_like(y, dtype=torch.bool), num_particles=10,
+            detector=fdi.PoADetector(0.2, 0.5), gamma_hat=y, fused=True,
+        )  # fmt: skip

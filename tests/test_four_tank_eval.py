@@ -3,31 +3,21 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
+import jsonschema
 import pytest
 import torch
 
 from difffilter import fdi, metrics
 from difffilter.eval.cli import main
-from difffilter.eval.four_tank import run_four_tank
 from difffilter.eval.report import REQUIRED_KEYS
+from difffilter.eval.suite import run_suite
 from difffilter.models import registry
 from difffilter.models.four_tank import simulate_attacked
 from difffilter.particle import particle_init
 
-ESTIMATORS = (
-    "normal_pf_attack_free",
-    "normal_pf",
-    "normal_pf_literal",
-    "modified_pf",
-    "modified_pf_est",
-    "modified_pf_unknown_pl",
-    "modified_pf_noisy_gamma",
-    "mixture_likelihood_pf",
-    "open_loop_pf",
-    "chi_square_ekf",
-    "cusum_ekf",
-)
+SCHEMA = json.loads((Path(__file__).parents[1] / "eval" / "metrics.schema.json").read_text())
 
 
 @pytest.mark.slow
@@ -35,28 +25,25 @@ def test_cli_end_to_end_on_three_runs(tmp_path):
     assert main(["four_tank_bias", "--runs", "3", "--out", str(tmp_path), "--no-progress"]) == 0
     out = tmp_path / "four_tank_bias"
     doc = json.loads((out / "metrics.json").read_text())
-    assert (
-        doc["scenario"] == "four_tank_bias"
-        and doc["runs"] == 3
-        and doc["steps"] == 100
-        and doc["seed"] == 0
+    jsonschema.validate(doc, SCHEMA)
+    assert (doc["scenario"], doc["runs"], doc["steps"], doc["seed"]) == (
+        "four_tank_bias",
+        3,
+        100,
+        0,
     )
     assert doc["paper"]["table4"]["modified_pf"]["cpu_time_per_step_s"] == 6.9782e-4
-    for name in ESTIMATORS:
-        entry = doc["estimators"][name]
+    est = doc["estimators"]
+    assert tuple(est) == registry.get("four_tank_bias").estimators
+    for name, entry in est.items():
         assert all(k in entry for k in REQUIRED_KEYS), name
         assert entry["state_rmse"] > 0 and entry["time_per_step_s"] > 0
-    est = doc["estimators"]
     assert est["normal_pf_attack_free"]["state_rmse_vs_attack_free"] == 0.0
-    assert est["modified_pf"]["attack_rmse"] == 0.0  # oracle γ̂
-    assert (
-        est["modified_pf"]["state_rmse_vs_attack_free"]
-        < est["normal_pf"]["state_rmse_vs_attack_free"]
-    )
-    assert (
-        est["modified_pf"]["fused_alarms_identical"]
-        and est["modified_pf"]["fused_max_abs_diff"] < 1e-9
-    )
+    assert est["normal_pf_attack_free"]["tpr"] is None  # clean input: no attacks to detect
+    mod, normal = est["modified_pf"], est["normal_pf"]
+    assert mod["state_rmse_vs_attack_free"] < normal["state_rmse_vs_attack_free"]
+    assert mod["attack_rmse"] < est["modified_pf_est"]["attack_rmse"]  # oracle vs estimated γ̂
+    assert mod["time_per_step_single_run_s"] > 0 and mod["tpr_detectable"] > 0.9
     th = doc["thresholds"]
     assert abs(th["eta_paper"] - 0.28 * 5 / 6) < 1e-12 and th["zeta"] == 0.5
     high = doc["high_noise_false_alarms"]
@@ -66,12 +53,12 @@ def test_cli_end_to_end_on_three_runs(tmp_path):
     big = max(doc["detection_vs_attack_size"]["per_scale"], key=lambda r: r["scale"])
     assert big["normal_pf"]["tpr_detectable"] > 0.9 > big["normal_pf_literal"]["tpr_detectable"]
     report = (out / "report.md").read_text()
-    for text in ("Table 3", "Table 4", "How RMSE is defined", "Fig. 9", "R × 5"):
+    for text in ("Table 3", "Table 4", "RMSE: pooled", "Fig. 9", "R × 5", "## Estimators"):
         assert text in report
     for png in (
-        "fig5_attack.png",
-        "fig7_estimates.png",
-        "fig9_detection_normal_large.png",
+        "rmse_over_time.png",
+        "roc.png",
+        "attack_estimates_run0.png",
         "detection_vs_attack_size.png",
     ):
         assert (out / png).stat().st_size > 1000
@@ -79,11 +66,19 @@ def test_cli_end_to_end_on_three_runs(tmp_path):
     assert any(p.name.startswith("events.out.tfevents") for p in (out / "tb").iterdir())
 
 
-def test_cli_and_runner_reject_bad_input(tmp_path, capsys):
+def test_cli_and_suite_reject_bad_input(tmp_path, capsys):
     assert main(["four_tank_nope", "--out", str(tmp_path), "--no-progress"]) == 2
     assert "unknown scenario" in capsys.readouterr().err
     with pytest.raises(ValueError, match="runs"):
-        run_four_tank(["four_tank_bias"], out=tmp_path, runs=0)
+        run_suite(registry.get("four_tank_bias"), runs=0)
+    with pytest.raises(ValueError, match="unknown estimator"):
+        run_suite(registry.get("four_tank_bias"), runs=1, estimators=["nope"], progress=False)
+
+
+def test_committed_schema_is_the_generated_one():
+    from difffilter.eval.report import metrics_schema
+
+    assert SCHEMA == metrics_schema()
 
 
 @pytest.mark.slow
@@ -100,14 +95,10 @@ def test_acceptance_figures_on_100_runs():
         plant_generator=torch.Generator().manual_seed(101),
         attack_generator=torch.Generator().manual_seed(102),
     )
-    det = fdi.PoADetector(
-        fdi.attack_threshold(
-            model.G,
-            fdi.modified_pf_gain(model.G, model.process_cov(0), model.measurement_cov(1)),
-            sc.gamma_min,
-        ),
-        0.5,
+    det = fdi.poa_detector_for(
+        model, gamma_min=sc.gamma_min, p_l=sc.p_l, num_particles=sc.num_particles
     )
+    assert abs(det.eta - 0.28 * 5 / 6) < 1e-12 and det.zeta == 0.5
 
     def crn():
         return {
@@ -119,8 +110,8 @@ def test_acceptance_figures_on_100_runs():
             "resample_generator": torch.Generator().manual_seed(105),
         }
 
-    free = fdi.particle_filter_poa(model, tr.y_true, detector=det, **crn()).filter.means
-    normal = fdi.particle_filter_poa(model, tr.y_recv, detector=det, **crn()).filter.means
+    free = fdi.particle_filter_poa(model, tr.y_true, detector=det, **crn()).means
+    normal = fdi.particle_filter_poa(model, tr.y_recv, detector=det, **crn()).means
     mod = fdi.modified_particle_filter(model, tr.y_recv, detector=det, gamma_hat=tr.gammas, **crn())
     detectable = tr.flags & (tr.gammas.norm(dim=-1) > sc.gamma_min)
     assert mod.alarms[detectable].double().mean() >= 0.99

@@ -1,14 +1,18 @@
 """Attack detectors and attack-aware filters of the FDI literature.
 
+Every estimator here takes ``(model, ys, us=None, *, mask=None, ...)`` and returns one
+:class:`~difffilter.EstimatorOutput` (means, covariances, attack estimate, detection).
+
 * :mod:`~difffilter.fdi.detectors` — chi-square and CUSUM on filter innovations;
-* :mod:`~difffilter.fdi.gated` — those detectors run online on an EKF, gating its update;
+* :mod:`~difffilter.fdi.gated` — those detectors run online on a KF/EKF/UKF, gating its update;
 * :mod:`~difffilter.fdi.poa` — the probability-of-attack (PoA) detector on weighted
   particle sets with the thresholds of Theorem 1 and eqs (46)/(53), Remark 6's running
   ``p_l``, and the literal-density diagnostic;
 * :mod:`~difffilter.fdi.modified_pf` — the normal PF with PoA and the modified PF of
   Table 2 (Sadeghzadeh-Nokhodberiz et al. 2022), composed from the PF parts;
 * :mod:`~difffilter.fdi.attack_estimation` — a Kalman estimator of the bias attack γ_k;
-* :mod:`~difffilter.fdi.mixture` — the attack-aware mixture likelihood (RRP-PF-DA);
+* :mod:`~difffilter.fdi.mixture` — the attack-aware mixture likelihood (RRP-PF-DA) and the
+  particle filter that scores attacks with it;
 * :mod:`~difffilter.fdi.fused` — a fused, low-overhead modified PF (benchmarks, real time).
 """
 
@@ -19,14 +23,18 @@ from .detectors import (
     chi_square_quantile,
     normalized_innovation_squared,
 )
-from .gated import GatedFilterResult, gated_extended_kalman_filter
-from .mixture import BiasDeception, DeceptionMixtureLikelihood, ReplacementDeception
+from .fused import FusedModifiedPF
+from .gated import cusum_detector_for, gated_extended_kalman_filter, gated_gaussian_filter
+from .mixture import (
+    BiasDeception,
+    DeceptionMixtureLikelihood,
+    ReplacementDeception,
+    mixture_likelihood_particle_filter,
+)
 from .modified_pf import (
     AttackCompensatedLikelihood,
     FlatLikelihood,
     LiteralGaussianLikelihood,
-    ModifiedPFResult,
-    PoAFilterResult,
     corrected_residuals,
     kalman_corrected_particles,
     modified_particle_filter,
@@ -46,6 +54,7 @@ from .poa import (
     literal_gaussian_density,
     literal_probability_of_attack,
     modified_pf_gain,
+    poa_detector_for,
     probability_of_attack,
 )
 
@@ -54,9 +63,11 @@ __all__ = [
     "CusumDetector",
     "chi_square_quantile",
     "normalized_innovation_squared",
-    "GatedFilterResult",
+    "gated_gaussian_filter",
+    "cusum_detector_for",
     "gated_extended_kalman_filter",
     "PoADetector",
+    "poa_detector_for",
     "RunningAttackRate",
     "AttackRateState",
     "attack_threshold",
@@ -76,11 +87,11 @@ __all__ = [
     "modified_pf_detect",
     "modified_pf_estimate",
     "modified_particle_filter",
-    "ModifiedPFResult",
     "particle_filter_poa",
-    "PoAFilterResult",
     "BiasAttackEstimator",
     "BiasDeception",
     "ReplacementDeception",
     "DeceptionMixtureLikelihood",
+    "mixture_likelihood_particle_filter",
+    "FusedModifiedPF",
 ]

@@ -83,7 +83,8 @@ class BiasAttackEstimator:
     ) -> tuple[GaussianState, Tensor, Tensor]:
         """Predict ``θ_k`` and, where ``flag [...]`` is set, update with ``residual [..., dy]``.
 
-        ``residual_cov [..., dy, dy]`` is ``S_k``. Returns the new state, ``γ̂_k = E[γ_k]``
+        ``flag`` is ``[...]`` or, per entry, ``[..., dy]``; ``residual_cov [..., dy, dy]`` is
+        ``S_k``. Returns the new state, ``γ̂_k = E[γ_k]``
         ``[..., dy]`` and its covariance ``[..., dy, dy]``.
         """
         d = self.dim
@@ -94,7 +95,9 @@ class BiasAttackEstimator:
             )
         pred_mean, pred_cov = kalman_predict(self.model, state)
         H = self.model.H
-        mask = flag.bool().unsqueeze(-1).expand(residual.shape)
+        # one flag per run, or one per entry (an attacked step's received entries)
+        mask = flag.bool()
+        mask = (mask if mask.dim() == residual.dim() else mask.unsqueeze(-1)).expand(residual.shape)
         innov = residual - matvec(H, pred_mean)
         innov, Hm, Rm, observed = masked_measurement(innov, H, residual_cov, mask)
         cross = pred_cov @ Hm.transpose(-1, -2)

@@ -23,25 +23,17 @@ pick a different ancestor.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
+from ..estimator import Detection, EstimatorOutput
 from ..noise import Gaussian
 from ..particle import _ess, particle_init
 from ..resampling import systematic_ancestors
 from .poa import modified_pf_gain
 
-__all__ = ["FusedModifiedPF", "FusedResult"]
-
-
-class FusedResult(NamedTuple):
-    """``means [B, T, dx]`` (eq. 60), ``beta [B, T]`` (eq. 58), ``alarms [B, T]`` (``l̂_k``)."""
-
-    means: Tensor
-    beta: Tensor
-    alarms: Tensor
+__all__ = ["FusedModifiedPF"]
 
 
 class FusedModifiedPF:
@@ -115,7 +107,7 @@ class FusedModifiedPF:
         generator: torch.Generator | None = None,
         resample_generator: torch.Generator | None = None,
         initial_particles: Tensor | None = None,
-    ) -> FusedResult:
+    ) -> EstimatorOutput:
         """Filter ``ys [B, T, dy]`` with ``γ̂`` ``[B, T, dy]``.
 
         ``initial_particles [B, N, dx]`` (default drawn from the prior with
@@ -215,7 +207,13 @@ class FusedModifiedPF:
                     .view(B, n, dx)
                 )
         beta = torch.stack(counts, 1).to(dtype) / n
-        return FusedResult(torch.stack(means, 1), beta, torch.stack(alarms, 1))
+        alarms = torch.stack(alarms, 1)
+        return EstimatorOutput(
+            means=torch.stack(means, 1),
+            attack=alarms.unsqueeze(-1).to(dtype) * gamma_hat,
+            detection=Detection(beta, alarms, self.zeta),
+            extras={"gamma_hat": gamma_hat},
+        )
 
 
 class _NoiseSampler:

@@ -26,9 +26,19 @@ import math
 import torch
 from torch import Tensor
 
+from ..estimator import Detection, EstimatorOutput
+from ..kalman import _validate_inputs
 from ..noise import NoiseModel
+from ..particle import ParticleState, particle_filter, particle_init
+from ..resampling import Systematic
+from .modified_pf import prior_log_weights
 
-__all__ = ["BiasDeception", "ReplacementDeception", "DeceptionMixtureLikelihood"]
+__all__ = [
+    "BiasDeception",
+    "ReplacementDeception",
+    "DeceptionMixtureLikelihood",
+    "mixture_likelihood_particle_filter",
+]
 
 
 class BiasDeception:
@@ -111,3 +121,82 @@ class DeceptionMixtureLikelihood:
         num = torch.logsumexp(lw + attacked, dim=-1)
         den = torch.logsumexp(lw + torch.logaddexp(clean, attacked), dim=-1)
         return torch.exp(num - den)
+
+
+def mixture_likelihood_particle_filter(
+    model,
+    ys: Tensor,
+    us: Tensor | None = None,
+    *,
+    mask: Tensor | None = None,
+    num_particles: int,
+    likelihood: DeceptionMixtureLikelihood,
+    threshold: float = 0.5,
+    resampler=None,
+    ess_threshold: float = 1.0,
+    generator: torch.Generator | None = None,
+    resample_generator: torch.Generator | None = None,
+    initial_state: ParticleState | None = None,
+) -> EstimatorOutput:
+    """A particle filter weighted by the mixture likelihood, with its attack posterior as score.
+
+    The filter is :func:`~difffilter.particle_filter` with ``likelihood``; the detection
+    score of step ``k`` is the posterior probability that the packet is a deception,
+    ``P(l_k = 1 | ỹ_{1:k})`` (:meth:`DeceptionMixtureLikelihood.attack_probability`, from
+    the predictive weights), and the alarm is ``score > threshold`` [DEF 0.5: the
+    maximum-a-posteriori decision].
+
+    Shapes: ``ys [..., T, dy]``, ``us [..., T, du]``, ``mask [..., T, dy]``. Returns an
+    :class:`~difffilter.EstimatorOutput` (``attack`` is ``None``) with ``extras``:
+    ``ess [..., T]`` and ``log_likelihood [...]``. Other arguments as in
+    :func:`~difffilter.particle_filter` (default systematic resampling at every step).
+    """
+    if not isinstance(likelihood, DeceptionMixtureLikelihood):
+        raise ValueError(
+            f"likelihood must be a DeceptionMixtureLikelihood; got {type(likelihood).__name__}"
+        )
+    if not 0.0 <= float(threshold) <= 1.0:
+        raise ValueError(f"threshold must lie in [0, 1] (a probability); got {threshold!r}")
+    ys, us, mask = _validate_inputs(model, ys, us, mask)
+    state = initial_state
+    if state is None:
+        state = particle_init(model, num_particles, ys.shape[:-2], generator)
+    res = particle_filter(
+        model,
+        ys,
+        us,
+        mask=mask,
+        num_particles=num_particles,
+        likelihood=likelihood,
+        resampler=resampler if resampler is not None else Systematic(),
+        ess_threshold=ess_threshold,
+        generator=generator,
+        resample_generator=resample_generator,
+        return_particles=True,
+        initial_state=state,
+    )
+    prior = prior_log_weights(res, state.log_weights)
+    if getattr(model, "time_varying", False) or mask is not None:
+        T = ys.shape[-2]
+        score = torch.stack(
+            [
+                likelihood.attack_probability(
+                    model,
+                    ys[..., t, :],
+                    res.particles[..., t, :, :],
+                    prior[..., t, :],
+                    t + 1,
+                    None if mask is None else mask[..., t, :],
+                )
+                for t in range(T)
+            ],
+            dim=-1,
+        )
+    else:  # a time-invariant model: every step in one call
+        score = likelihood.attack_probability(model, ys, res.particles, prior, 1)
+    return EstimatorOutput(
+        means=res.means,
+        covs=res.covs,
+        detection=Detection(score, score > threshold, float(threshold)),
+        extras={"ess": res.ess, "log_likelihood": res.log_likelihood},
+    )

@@ -31,11 +31,14 @@ are :func:`reweight` with :class:`AttackCompensatedLikelihood`.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
 
 import torch
 from torch import Tensor
 
+from .._steps import StepRecorder
+from ..estimator import Detection, EstimatorOutput
+from ..kalman import _validate_inputs, kalman_gain
+from ..linalg import masked_measurement
 from ..particle import (
     ModelLikelihood,
     ParticleState,
@@ -52,7 +55,6 @@ from .poa import (
     RunningAttackRate,
     literal_gaussian_density,
     literal_probability_of_attack,
-    modified_pf_gain,
     probability_of_attack,
 )
 
@@ -66,9 +68,7 @@ __all__ = [
     "modified_pf_detect",
     "modified_pf_estimate",
     "modified_particle_filter",
-    "ModifiedPFResult",
     "particle_filter_poa",
-    "PoAFilterResult",
     "prior_log_weights",
 ]
 
@@ -168,13 +168,29 @@ def prior_log_weights(result: ParticleFilterResult, initial_log_weights: Tensor)
     return torch.where(result.resampled.unsqueeze(-1), uniform, prev)
 
 
-def _measurement_matrices(model, k: int) -> tuple[Tensor, Tensor, Tensor]:
-    if not hasattr(model, "observation_matrix"):
-        raise ValueError(
-            "the modified PF needs a linear measurement y = G x + v: model must provide observation_matrix(k)"
-        )
-    G = model.observation_matrix(k)
-    return G, model.process_cov(k - 1), model.measurement_cov(k)
+def _linear_measurement(
+    model, k: int, mask: Tensor | None, at: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    """``(G, K)`` of eq. (35) at step ``k``, with the unreceived rows of ``G`` removed.
+
+    ``G`` is the model's ``observation_matrix(k)``; a nonlinear measurement is linearised
+    at ``at [..., dx]`` (the predictive particle mean), as an EKF would. Without a mask and
+    linearisation ``G [dy, dx]`` and ``K [dx, dy]`` are shared by every run; otherwise both
+    carry the batch dimensions (``K`` has zero columns for unreceived entries,
+    :func:`~difffilter.linalg.masked_measurement`).
+    """
+    if hasattr(model, "observation_matrix"):
+        G = model.observation_matrix(k)
+    elif at is not None:
+        G = model.observation_jacobian(at, k)
+    else:
+        raise ValueError("a nonlinear measurement needs a linearisation point (at=)")
+    Q, R = model.process_cov(k - 1), model.measurement_cov(k)
+    if mask is not None:
+        G = G.expand(mask.shape[:-1] + G.shape[-2:])
+        _, G, R, _ = masked_measurement(torch.zeros_like(mask, dtype=G.dtype), G, R, mask)
+    K, _ = kalman_gain(Q @ G.transpose(-1, -2), G @ Q @ G.transpose(-1, -2) + R)
+    return G, K
 
 
 def modified_pf_detect(
@@ -182,10 +198,11 @@ def modified_pf_detect(
     state: ParticleState,
     y: Tensor,
     u: Tensor | None = None,
+    mask: Tensor | None = None,
     *,
     detector: PoADetector,
     zeta: Tensor | float | None = None,
-    gain: Tensor | None = None,
+    gain: tuple[Tensor, Tensor] | None = None,
     resampler=None,
     ess_threshold: float = 1.0,
     generator: torch.Generator | None = None,
@@ -195,10 +212,12 @@ def modified_pf_detect(
 
     Args:
         state: posterior particle set of ``x_{k−1}`` (particles ``[..., N, dx]``).
-        y: received ``ỹ_k`` ``[..., dy]``; u: input ``u_{k−1}`` or ``None``.
+        y: received ``ỹ_k`` ``[..., dy]``; u: input ``u_{k−1}`` ``[..., du]`` or ``None``;
+            mask: received entries ``[..., dy]`` (bool) or ``None`` — unreceived entries
+            enter neither the correction nor the residual norm.
         detector: :class:`PoADetector` (``η``, and ``ζ`` unless ``zeta`` is given).
         zeta: this step's ``ζ`` (number or ``[...]``; Remark 6), overriding the detector's.
-        gain: ``K`` ``[dx, dy]`` of eq. (35) (computed from the model when ``None``).
+        gain: ``(G, K)`` of eq. (35) (computed from the model when ``None``).
         resampler, ess_threshold, generator, resample_generator: as in
             :func:`~difffilter.particle.particle_step` (default systematic resampling at
             every step; ``generator`` draws the propagation noise).
@@ -213,16 +232,26 @@ def modified_pf_detect(
         state,
         y,
         u,
-        None,
+        mask,
         resampler=resampler if resampler is not None else Systematic(),
         likelihood=FlatLikelihood(),
         ess_threshold=ess_threshold,
         generator=generator,
         resample_generator=resample_generator,
     )
-    G, Q, R = _measurement_matrices(model, pred_state.k)
-    K = gain if gain is not None else modified_pf_gain(G, Q, R).to(y.dtype)
-    residuals = corrected_residuals(pred_state.particles, y, G.to(y.dtype), K)
+    k, particles = pred_state.k, pred_state.particles
+    if gain is None:
+        gain = _linear_measurement(model, k, mask, at=pred_out.pred_mean)
+    G, K = (m.to(y.dtype) for m in gain)
+    if hasattr(model, "observation_matrix"):
+        y_rx = y if mask is None else y * mask.to(y.dtype)
+        residuals = corrected_residuals(particles, y_rx, G, K)
+    else:  # z̃⁺ = (I − G K)(ỹ − h(x^i)), G the Jacobian at the predictive mean
+        innov = y.unsqueeze(-2) - model.observe(particles, k)
+        if mask is not None:
+            innov = innov * mask.unsqueeze(-2).to(innov.dtype)
+        eye = torch.eye(G.shape[-2], dtype=G.dtype, device=G.device)
+        residuals = innov @ (eye - G @ K).transpose(-1, -2)
     beta = probability_of_attack(residuals, detector.eta, pred_state.log_weights)
     z = detector.zeta if zeta is None else zeta
     alarm = beta > (z if not isinstance(z, Tensor) else z.to(beta.dtype))
@@ -235,6 +264,7 @@ def modified_pf_estimate(
     y: Tensor,
     alarm: Tensor,
     gamma_hat: Tensor,
+    mask: Tensor | None = None,
     *,
     base_likelihood=None,
 ) -> tuple[ParticleState, Tensor, Tensor, Tensor]:
@@ -243,7 +273,7 @@ def modified_pf_estimate(
     Returns ``(state, mean [..., dx], cov [..., dx, dx], ess [...])``.
     """
     lik = AttackCompensatedLikelihood(alarm, gamma_hat, base_likelihood)
-    log_lik = lik(model, y, pred_state.particles, pred_state.k, None)
+    log_lik = lik(model, y, pred_state.particles, pred_state.k, mask)
     log_w, _ = reweight(pred_state.log_weights, log_lik)
     mean, cov = weighted_moments(pred_state.particles, log_w)
     ess = torch.exp(-torch.logsumexp(2.0 * log_w, dim=-1))
@@ -253,43 +283,12 @@ def modified_pf_estimate(
 # ------------------------------------------------------------------------------ filters
 
 
-@dataclass
-class ModifiedPFResult:
-    """Output of :func:`modified_particle_filter` (time index ``t`` ↔ ``k = t + 1``).
-
-    Attributes:
-        means: ``x̂_k`` (eq. 60) ``[..., T, dx]``; covs ``[..., T, dx, dx]``.
-        pred_means: ``E[x_k | ỹ_{1:k−1}]`` ``[..., T, dx]``.
-        beta: PoA ``β̃_k`` (eq. 58) ``[..., T]``; alarms: ``l̂_k`` ``[..., T]`` (bool).
-        zeta: the threshold used at each step ``[..., T]``.
-        gamma_hat: ``γ̂_k`` ``[..., T, dy]`` (used only where ``alarms``).
-        ess: effective sample size after weighting ``[..., T]``.
-        attack_rate: final ``p̂_l`` ``[...]`` (Remark 6) or ``None`` when ``p_l`` was known.
-    """
-
-    means: Tensor
-    covs: Tensor
-    pred_means: Tensor
-    beta: Tensor
-    alarms: Tensor
-    zeta: Tensor
-    gamma_hat: Tensor
-    ess: Tensor
-    attack_rate: Tensor | None = None
-
-    def detach(self) -> ModifiedPFResult:
-        return ModifiedPFResult(
-            **{
-                f.name: (v.detach() if isinstance(v := getattr(self, f.name), Tensor) else v)
-                for f in fields(self)
-            }
-        )
-
-
 def modified_particle_filter(
     model,
     ys: Tensor,
+    us: Tensor | None = None,
     *,
+    mask: Tensor | None = None,
     num_particles: int,
     detector: PoADetector,
     gamma_hat: Tensor | BiasAttackEstimator,
@@ -300,14 +299,18 @@ def modified_particle_filter(
     resample_generator: torch.Generator | None = None,
     initial_state: ParticleState | None = None,
     base_likelihood=None,
-) -> ModifiedPFResult:
+    fused: bool = False,
+) -> EstimatorOutput:
     """The modified PF of Table 2 over a sequence ``ys [..., T, dy]`` of received ``ỹ_k``.
 
     Args:
-        model: a model with a linear measurement (``observation_matrix``) and Gaussian
-            process noise; the four-tank plant is one.
+        model: a model with Gaussian process noise; a linear measurement
+            (``observation_matrix``, as the four-tank plant has) gives the paper's exact
+            eq. (35); a nonlinear one is linearised at the predictive particle mean.
+        us: inputs ``[..., T, du]`` or ``None``; mask: received entries ``[..., T, dy]``.
         num_particles: ``N``.
-        detector: :class:`PoADetector` with ``η`` (Theorem 1) and ``ζ`` (eqs 46, 53).
+        detector: :class:`PoADetector` with ``η`` (Theorem 1) and ``ζ`` (eqs 46, 53);
+            :meth:`PoADetector.from_model` derives both.
         gamma_hat: ``γ̂`` as a tensor ``[..., T, dy]`` (the oracle ``γ_k`` or a noisy
             version), or a :class:`BiasAttackEstimator` fed with the flagged residuals.
         attack_rate: :class:`RunningAttackRate` for unknown ``p_l`` (Remark 6): ``ζ``
@@ -319,12 +322,28 @@ def modified_particle_filter(
             random numbers aligned across estimators).
         initial_state: start from this particle set instead of the prior.
         base_likelihood: clean-measurement likelihood of eq. (59) (default the model's).
+        fused: run the low-overhead implementation of :mod:`difffilter.fdi.fused`
+            (the same algorithm and random numbers, equal up to round-off; about 20
+            kernels per step, for real-time use of small particle sets). It needs a
+            tensor ``gamma_hat``, a time-invariant model, systematic resampling at every
+            step and none of ``us``, ``mask``, ``attack_rate``, ``base_likelihood``; it
+            records no gradient and returns no ``covs``.
+
+    Returns an :class:`~difffilter.EstimatorOutput`: ``means`` ``x̂_k`` (eq. 60),
+    ``covs``, ``attack = l̂_k γ̂_k`` ``[..., T, dy]`` (the compensation applied),
+    ``detection`` (scores ``β̃_k``, eq. 58; alarms ``l̂_k``; threshold ``ζ_k [..., T]``)
+    and ``extras``: ``gamma_hat [..., T, dy]``, ``pred_means [..., T, dx]``,
+    ``ess [..., T]`` and, with ``attack_rate``, ``attack_rate`` (final ``p̂_l`` ``[...]``).
     """
     if not isinstance(detector, PoADetector):
         raise ValueError(f"detector must be a PoADetector; got {type(detector).__name__}")
-    if ys.dim() < 2 or ys.shape[-1] != model.dim_y:
-        raise ValueError(f"ys must have shape [..., T, {model.dim_y}]; got {tuple(ys.shape)}")
+    ys, us, mask = _validate_inputs(model, ys, us, mask)
     batch, T = ys.shape[:-2], ys.shape[-2]
+    if fused:
+        return _run_fused(
+            model, ys, us, mask, num_particles, detector, gamma_hat, attack_rate, resampler,
+            ess_threshold, generator, resample_generator, initial_state, base_likelihood,
+        )  # fmt: skip
     estimator = gamma_hat if isinstance(gamma_hat, BiasAttackEstimator) else None
     if estimator is None:
         if not isinstance(gamma_hat, Tensor) or gamma_hat.shape[-2:] != ys.shape[-2:]:
@@ -337,19 +356,23 @@ def modified_particle_filter(
         if initial_state is not None
         else particle_init(model, num_particles, batch, generator)
     )
-    G, Q, R = _measurement_matrices(model, 1)
-    gain = None if getattr(model, "time_varying", False) else modified_pf_gain(G, Q, R).to(ys.dtype)
+    shared = (
+        mask is None
+        and hasattr(model, "observation_matrix")
+        and not getattr(model, "time_varying", False)
+    )
+    gain = tuple(m.to(ys.dtype) for m in _linear_measurement(model, 1, None)) if shared else None
     est_state = estimator.init(batch) if estimator is not None else None
     rate_state = (
         attack_rate.init(batch, dtype=ys.dtype, device=ys.device)
         if attack_rate is not None
         else None
     )
-    rec: dict[str, list[Tensor]] = {
-        k: [] for k in ("mean", "cov", "pred", "beta", "alarm", "zeta", "ghat", "ess")
-    }
+    rec = StepRecorder()
     for t in range(T):
         y = ys[..., t, :]
+        u = None if us is None else us[..., t, :]
+        m = None if mask is None else mask[..., t, :]
         zeta = (
             attack_rate.zeta(rate_state)
             if attack_rate is not None
@@ -359,6 +382,8 @@ def modified_particle_filter(
             model,
             state,
             y,
+            u,
+            m,
             detector=detector,
             zeta=zeta,
             gain=gain,
@@ -370,51 +395,70 @@ def modified_particle_filter(
         if attack_rate is not None:
             rate_state = attack_rate.update(rate_state, alarm)
         if estimator is not None:
+            flag = alarm if m is None else alarm.unsqueeze(-1) & m
             est_state, g_hat, _ = estimator.step(
-                est_state, pred_out.innovation, pred_out.innovation_cov, alarm
+                est_state, pred_out.innovation, pred_out.innovation_cov, flag
             )
         else:
             g_hat = gamma_hat[..., t, :]
         state, mean, cov, ess = modified_pf_estimate(
-            model, pred_state, y, alarm, g_hat, base_likelihood=base_likelihood
+            model, pred_state, y, alarm, g_hat, m, base_likelihood=base_likelihood
         )
-        for key, val in zip(rec, (mean, cov, pred_out.mean, beta, alarm, zeta, g_hat, ess)):
-            rec[key].append(val)
-    stack = {k: torch.stack(v, dim=len(batch)) for k, v in rec.items()}
-    return ModifiedPFResult(
-        means=stack["mean"],
-        covs=stack["cov"],
-        pred_means=stack["pred"],
-        beta=stack["beta"],
-        alarms=stack["alarm"],
-        zeta=stack["zeta"],
-        gamma_hat=stack["ghat"],
-        ess=stack["ess"],
-        attack_rate=attack_rate.estimate(rate_state) if attack_rate is not None else None,
+        rec.add(
+            mean=mean, cov=cov, pred=pred_out.mean, beta=beta, alarm=alarm, zeta=zeta,
+            ghat=g_hat, ess=ess,
+        )  # fmt: skip
+    r = rec.stack(len(batch))
+    extras = {"gamma_hat": r["ghat"], "pred_means": r["pred"], "ess": r["ess"]}
+    if attack_rate is not None:
+        extras["attack_rate"] = attack_rate.estimate(rate_state)
+    return EstimatorOutput(
+        means=r["mean"],
+        covs=r["cov"],
+        attack=r["alarm"].unsqueeze(-1).to(ys.dtype) * r["ghat"],
+        detection=Detection(r["beta"], r["alarm"], r["zeta"]),
+        extras=extras,
     )
 
 
-@dataclass
-class PoAFilterResult:
-    """Output of :func:`particle_filter_poa`: the filter run plus its PoA detector.
+def _run_fused(
+    model, ys, us, mask, num_particles, detector, gamma_hat, attack_rate, resampler,
+    ess_threshold, generator, resample_generator, initial_state, base_likelihood,
+) -> EstimatorOutput:  # fmt: skip
+    from .fused import FusedModifiedPF
 
-    Attributes:
-        filter: the :class:`~difffilter.results.ParticleFilterResult` (with particles).
-        beta: ``β_k`` ``[..., T]`` (NaN where a literal-density row underflowed).
-        alarms: ``β_k > ζ`` ``[..., T]`` (false where ``β_k`` is NaN).
-        prior_log_weights: predictive weights ``log w_{k−1}`` ``[..., T, N]``.
-    """
-
-    filter: ParticleFilterResult
-    beta: Tensor
-    alarms: Tensor
-    prior_log_weights: Tensor
+    unsupported = {
+        "us": us is not None,
+        "mask": mask is not None,
+        "attack_rate": attack_rate is not None,
+        "base_likelihood": base_likelihood is not None,
+        "gamma_hat (an estimator)": not isinstance(gamma_hat, Tensor),
+        "resampler (not Systematic)": resampler is not None and type(resampler) is not Systematic,
+        "ess_threshold (not 1.0)": ess_threshold != 1.0,
+    }
+    bad = [name for name, flag in unsupported.items() if flag]
+    if bad:
+        raise ValueError(f"fused=True does not support {', '.join(bad)}; use fused=False")
+    if ys.dim() != 3:
+        raise ValueError(f"fused=True needs ys of shape [B, T, dy]; got {tuple(ys.shape)}")
+    pf = FusedModifiedPF(
+        model, num_particles=num_particles, eta=float(detector.eta), zeta=detector.zeta
+    )
+    return pf.run(
+        ys,
+        gamma_hat,
+        generator=generator,
+        resample_generator=resample_generator,
+        initial_particles=None if initial_state is None else initial_state.particles,
+    )
 
 
 def particle_filter_poa(
     model,
     ys: Tensor,
+    us: Tensor | None = None,
     *,
+    mask: Tensor | None = None,
     num_particles: int,
     detector: PoADetector,
     literal: bool = False,
@@ -424,20 +468,30 @@ def particle_filter_poa(
     generator: torch.Generator | None = None,
     resample_generator: torch.Generator | None = None,
     initial_state: ParticleState | None = None,
-) -> PoAFilterResult:
+) -> EstimatorOutput:
     """The normal (bootstrap) PF on ``ys [..., T, dy]`` with the PoA detector of eqs (10)–(17).
 
-    ``β_k = Σ_{‖y_k − G x_k^i‖ > η} w_k^i`` with the filter's posterior weights (eq. 17
-    when it resamples every step). ``literal=True`` runs the diagnostic variant: weights
-    from :class:`LiteralGaussianLikelihood` and the PoA of
+    ``β_k = Σ_{‖y_k − h(x_k^i)‖ > η} w_k^i`` with the filter's posterior weights (eq. 17
+    when it resamples every step); unreceived entries (``mask``) do not enter the norm.
+    ``literal=True`` runs the diagnostic variant: weights from
+    :class:`LiteralGaussianLikelihood` and the PoA of
     :func:`~difffilter.fdi.poa.literal_probability_of_attack` (NaN → no alarm when every
     density underflows). Other arguments as in :func:`modified_particle_filter`;
     ``likelihood`` overrides the weighting likelihood (log-space mode only).
+
+    Returns an :class:`~difffilter.EstimatorOutput` (``attack`` is ``None``; detection
+    scores ``β_k``, threshold ``ζ``) with ``extras``: ``ess [..., T]``,
+    ``log_likelihood [...]``, ``particles [..., T, N, dx]``, their normalised
+    ``log_weights [..., T, N]`` and ``prior_log_weights [..., T, N]`` (the predictive
+    weights ``log w_{k−1}`` of the particles ``x_k``).
     """
     if not isinstance(detector, PoADetector):
         raise ValueError(f"detector must be a PoADetector; got {type(detector).__name__}")
     if literal and likelihood is not None:
         raise ValueError("pass either literal=True or a likelihood, not both")
+    if literal and mask is not None:
+        raise ValueError("literal=True does not support a measurement mask (mask must be None)")
+    ys, us, mask = _validate_inputs(model, ys, us, mask)
     batch = ys.shape[:-2]
     state = (
         initial_state
@@ -447,6 +501,8 @@ def particle_filter_poa(
     res = particle_filter(
         model,
         ys,
+        us,
+        mask=mask,
         num_particles=num_particles,
         resampler=resampler if resampler is not None else Systematic(),
         likelihood=LiteralGaussianLikelihood() if literal else likelihood,
@@ -456,13 +512,9 @@ def particle_filter_poa(
         return_particles=True,
         initial_state=state,
     )
-    G = model.observation_matrix(1) if hasattr(model, "observation_matrix") else None
-    obs = (
-        res.particles @ G.transpose(-1, -2).to(ys.dtype)
-        if G is not None
-        else model.observe(res.particles, 1)
-    )
-    residuals = ys.unsqueeze(-2) - obs  # [..., T, N, dy]
+    residuals = ys.unsqueeze(-2) - _observe_all(model, res.particles)  # [..., T, N, dy]
+    if mask is not None:
+        residuals = residuals * mask.unsqueeze(-2).to(residuals.dtype)
     prior = prior_log_weights(res, state.log_weights)
     if literal:
         beta = literal_probability_of_attack(
@@ -471,4 +523,23 @@ def particle_filter_poa(
         beta = beta.to(ys.dtype)
     else:
         beta = probability_of_attack(residuals, detector.eta, res.log_weights)
-    return PoAFilterResult(res, beta, beta > detector.zeta, prior)
+    return EstimatorOutput(
+        means=res.means,
+        covs=res.covs,
+        detection=Detection(beta, beta > detector.zeta, detector.zeta),
+        extras={
+            "ess": res.ess,
+            "log_likelihood": res.log_likelihood,
+            "particles": res.particles,
+            "log_weights": res.log_weights,
+            "prior_log_weights": prior,
+        },
+    )
+
+
+def _observe_all(model, particles: Tensor) -> Tensor:
+    """``h(x)`` of particles ``[..., T, N, dx]`` of a whole run, time index ``t`` ↔ ``k = t + 1``."""
+    if hasattr(model, "observation_matrix") and not getattr(model, "time_varying", False):
+        return particles @ model.observation_matrix(1).transpose(-1, -2).to(particles.dtype)
+    T = particles.shape[-3]
+    return torch.stack([model.observe(particles[..., t, :, :], t + 1) for t in range(T)], -3)

@@ -33,6 +33,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from ..kalman import kalman_gain
 from ..linalg import LOG_2PI, safe_cholesky
 
 __all__ = [
@@ -42,6 +43,7 @@ __all__ = [
     "detection_threshold",
     "probability_of_attack",
     "PoADetector",
+    "poa_detector_for",
     "literal_gaussian_density",
     "literal_probability_of_attack",
     "RunningAttackRate",
@@ -79,10 +81,7 @@ def modified_pf_gain(G, Q, R) -> Tensor:
             f"R must have shape [..., {dy}, {dy}] to match G [{dy}, {dx}]; got {tuple(R.shape)}"
         )
     cross = Q @ G.transpose(-1, -2)  # [dx, dy]
-    S = R + G @ cross
-    S = 0.5 * (S + S.transpose(-1, -2))
-    chol = safe_cholesky(S, name="R + G Q Gᵀ")
-    return torch.cholesky_solve(cross.transpose(-1, -2), chol).transpose(-1, -2)
+    return kalman_gain(cross, R + G @ cross)[0]
 
 
 def attack_threshold_factor(G, K) -> Tensor:
@@ -317,3 +316,25 @@ class RunningAttackRate:
     def estimate(self, state: AttackRateState) -> Tensor:
         """``p̂_l`` so far ``[...]`` (NaN before the first step)."""
         return state.count / state.steps if state.steps else torch.full_like(state.count, math.nan)
+
+
+def poa_detector_for(
+    model, *, gamma_min: float, p_l: float, num_particles: int, R=None
+) -> PoADetector:
+    """The PoA detector of a model with the paper's thresholds (Theorem 1, eqs 46/53).
+
+    ``η = ς ‖γ‖_min`` with ``ς`` from ``G K`` (eq. 45), ``K = Q Gᵀ (R + G Q Gᵀ)⁻¹``
+    (eq. 35), where ``G`` is the model's ``observation_matrix(1)`` or, for a nonlinear
+    measurement, its Jacobian at the prior mean; ``Q = process_cov(0)``; ``R`` is the
+    model's ``measurement_cov(1)`` unless given (the paper keeps the ``η`` of its
+    nominal ``R`` in the high-noise case). ``ζ = p_l`` (the smallest ``α`` of eq. 53).
+    """
+    if hasattr(model, "observation_matrix"):
+        G = model.observation_matrix(1)
+    else:
+        G = model.observation_jacobian(model.initial.mean, 1)
+    G = G.detach().to(torch.float64)
+    R = model.measurement_cov(1) if R is None else torch.as_tensor(R)
+    K = modified_pf_gain(G, model.process_cov(0).detach().double(), R.detach().double())
+    eta = float(attack_threshold(G, K, gamma_min))
+    return PoADetector(eta, detection_threshold(p_l, num_particles))

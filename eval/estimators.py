@@ -1,0 +1,284 @@
+"""The estimator registry: name → factory → a run on trajectories → an EstimatorOutput.
+
+An estimator is registered once, by a stable snake_case name::
+
+    @register("chi_square_ekf", "EKF gated by a chi-square test on its innovations")
+    def _(ctx: SuiteContext):
+        detector = fdi.ChiSquareDetector(ctx.model.dim_y, ctx.scenario.false_alarm_rate)
+        return lambda traj: fdi.gated_extended_kalman_filter(
+            ctx.model, traj.y_recv, traj.us, mask=traj.mask, detector=detector)
+
+The factory gets a :class:`SuiteContext` (scenario, model, runs, named random streams,
+attack-free calibration runs) and returns a function of
+:class:`~difffilter.models.scenario.Trajectories`. Everything stochastic draws from
+``ctx.streams``, so every estimator sees the same random numbers. This module registers
+the generic estimators, which run on any scenario whose model fits them; a family may
+register more in ``difffilter.eval.families.<family>``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Any
+
+import torch
+
+from difffilter import fdi
+from difffilter.estimator import EstimatorOutput
+from difffilter.extended import extended_kalman_step, unscented_kalman_step
+from difffilter.kalman import kalman_step
+from difffilter.particle import particle_init
+from difffilter.resampling import Systematic
+
+from .streams import Streams
+
+__all__ = ["EstimatorSpec", "SuiteContext", "register", "get", "names", "ESTIMATORS"]
+
+Run = Callable[[Any], EstimatorOutput]
+
+
+@dataclass(frozen=True)
+class EstimatorSpec:
+    """A registered estimator.
+
+    Attributes:
+        name: stable snake_case name (``metrics.json`` key).
+        factory: ``SuiteContext → (Trajectories → EstimatorOutput)``.
+        description: one line for reports.
+        clean_input: the estimator reads the attack-free ``y_true`` (a reference); its
+            alarms are all false alarms.
+        reference: the scenario's attack-free reference (``state_rmse_vs_attack_free``).
+    """
+
+    name: str
+    factory: Callable[[SuiteContext], Run]
+    description: str
+    clean_input: bool = False
+    reference: bool = False
+
+
+ESTIMATORS: dict[str, EstimatorSpec] = {}
+
+
+def register(name: str, description: str, *, clean_input: bool = False, reference: bool = False):
+    """Decorator registering ``factory`` under ``name`` (twice is an error)."""
+
+    def wrap(factory):
+        if name in ESTIMATORS and ESTIMATORS[name].factory is not factory:
+            raise ValueError(f"estimator {name!r} is already registered")
+        ESTIMATORS[name] = EstimatorSpec(name, factory, description, clean_input, reference)
+        return factory
+
+    return wrap
+
+
+def get(name: str) -> EstimatorSpec:
+    """The estimator called ``name``; ``ValueError`` listing the known names otherwise."""
+    _load_families()
+    try:
+        return ESTIMATORS[name]
+    except KeyError:
+        known = ", ".join(sorted(ESTIMATORS))
+        raise ValueError(f"unknown estimator {name!r}; known estimators: {known}") from None
+
+
+def names() -> list[str]:
+    _load_families()
+    return sorted(ESTIMATORS)
+
+
+def _load_families() -> None:
+    # family modules register their estimators and report sections when imported
+    from .families import load_all
+
+    load_all()
+
+
+@dataclass
+class SuiteContext:
+    """What an estimator factory may use.
+
+    Attributes:
+        scenario: the :class:`~difffilter.models.scenario.Scenario`.
+        model: the estimators' model (``scenario.system(dtype)``).
+        runs: number of Monte Carlo runs.
+        streams: the study's :class:`~difffilter.eval.streams.Streams`.
+        options: the scenario's ``estimator_options()`` (family settings).
+    """
+
+    scenario: Any
+    model: Any
+    runs: int
+    streams: Streams
+    options: dict[str, Any] = field(default_factory=dict)
+
+    def particle_kwargs(self, runs: int | None = None) -> dict[str, Any]:
+        """Common random numbers for particle filters: identically seeded initial particles,
+        propagation noise and resampling uniforms, systematic resampling at every step."""
+        n = self.scenario.num_particles
+        b = self.runs if runs is None else runs
+        return {
+            "num_particles": n,
+            "initial_state": particle_init(self.model, n, (b,), self.streams("particles/init")),
+            "generator": self.streams("particles/propagate"),
+            "resample_generator": self.streams("particles/resample"),
+            "resampler": Systematic(),
+            "ess_threshold": 1.0,
+        }
+
+    @cached_property
+    def calibration(self):
+        """Attack-free runs of the plant from their own streams (at least 50 runs)."""
+        streams = {k: self.streams(f"calibration/{k}") for k in ("plant", "schedule")}
+        runs = max(self.runs, 50)
+        return self.scenario.simulate(
+            runs, streams, dtype=self.dtype, attack=None, model=self.model
+        )
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.model.initial.mean.dtype
+
+    def option(self, key: str, default: Any) -> Any:
+        return self.options.get(key, default)
+
+    def poa_detector(self) -> fdi.PoADetector:
+        """PoA thresholds from the model (Theorem 1, eq. 53), or the scenario's options."""
+        if "poa_eta" in self.options:
+            return fdi.PoADetector(self.options["poa_eta"], self.options["poa_zeta"])
+        return fdi.poa_detector_for(
+            self.model,
+            gamma_min=self.scenario.attack_norm_floor(),
+            p_l=float(getattr(self.scenario.attack_model(), "p_l", 0.5)),
+            num_particles=self.scenario.num_particles,
+        )
+
+    def cusum(self, step) -> fdi.CusumDetector:
+        """CUSUM calibrated on the attack-free calibration runs with ``step``'s filter."""
+        cal = self.calibration
+        return fdi.cusum_detector_for(
+            self.model,
+            false_alarm_rate=self.scenario.false_alarm_rate,
+            step=step,
+            bias=self.options.get("cusum_bias"),
+            ys=cal.y_true,
+            us=cal.us,
+            mask=cal.mask,
+        )
+
+
+# ---------------------------------------------------------------------- generic estimators
+
+_GAUSSIAN_STEPS = {"kf": kalman_step, "ekf": extended_kalman_step, "ukf": unscented_kalman_step}
+
+
+def _gated(kind: str, detector: str):
+    step = _GAUSSIAN_STEPS[kind]
+
+    def factory(ctx: SuiteContext) -> Run:
+        if detector == "chi_square":
+            det = fdi.ChiSquareDetector(ctx.model.dim_y, ctx.scenario.false_alarm_rate)
+        else:
+            det = ctx.cusum(step)
+        return lambda tr: fdi.gated_gaussian_filter(
+            ctx.model, tr.y_recv, tr.us, mask=tr.mask, detector=det, step=step
+        )
+
+    return factory
+
+
+for _kind, _label in (("kf", "KF"), ("ekf", "EKF"), ("ukf", "UKF")):
+    register(f"chi_square_{_kind}", f"{_label} gated by a χ² test on its innovations")(
+        _gated(_kind, "chi_square")
+    )
+    register(f"cusum_{_kind}", f"{_label} gated by CUSUM on its innovations (τ calibrated)")(
+        _gated(_kind, "cusum")
+    )
+
+
+def _poa_pf(ctx: SuiteContext, clean: bool) -> Run:
+    det = ctx.poa_detector()
+
+    def run(tr):
+        ys = tr.y_true if clean else tr.y_recv
+        return fdi.particle_filter_poa(
+            ctx.model, ys, tr.us, mask=tr.mask, detector=det, **ctx.particle_kwargs(len(ys))
+        )
+
+    return run
+
+
+@register("normal_pf", "bootstrap PF on ỹ with the probability-of-attack (PoA) detector")
+def _normal_pf(ctx: SuiteContext) -> Run:
+    return _poa_pf(ctx, clean=False)
+
+
+@register(
+    "normal_pf_attack_free",
+    "bootstrap PF + PoA on the true y (the attack-free reference)",
+    clean_input=True,
+    reference=True,
+)
+def _normal_pf_attack_free(ctx: SuiteContext) -> Run:
+    return _poa_pf(ctx, clean=True)
+
+
+def oracle_attack(ctx: SuiteContext, tr, noise_var: float | None = None):
+    """``γ̂ = γ + e``: the attack values with ``e ~ N(0, var I)`` from stream ``"gamma_noise"``
+    (``var`` = the scenario's ``gamma_hat_noise_var`` option unless given; 0 → exact)."""
+    values = tr.info["attack_values"]
+    var = ctx.option("gamma_hat_noise_var", 0.0) if noise_var is None else noise_var
+    if var == 0:
+        return values
+    gen = ctx.streams("gamma_noise")
+    noise = torch.randn(values.shape, generator=gen, dtype=values.dtype)
+    return values + math.sqrt(var) * noise
+
+
+def modified_pf(ctx: SuiteContext, gamma_hat, **kwargs) -> Run:
+    """The modified PF of Table 2 with ``gamma_hat(tr)`` (a tensor or an estimator)."""
+    det = kwargs.pop("detector", None) or ctx.poa_detector()
+
+    def run(tr):
+        return fdi.modified_particle_filter(
+            ctx.model, tr.y_recv, tr.us, mask=tr.mask, detector=det,
+            gamma_hat=gamma_hat(tr), **ctx.particle_kwargs(len(tr.y_recv)), **kwargs,
+        )  # fmt: skip
+
+    return run
+
+
+@register("modified_pf", "modified PF (Table 2) with the oracle γ̂ (the paper's tables)")
+def _modified_pf(ctx: SuiteContext) -> Run:
+    return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr))
+
+
+@register("modified_pf_est", "modified PF with γ̂ from a Kalman filter on the attack model (eq. 4)")
+def _modified_pf_est(ctx: SuiteContext) -> Run:
+    tau = float(getattr(ctx.scenario.attack_model(), "tau", 0.9))
+    return modified_pf(
+        ctx, lambda tr: fdi.BiasAttackEstimator(ctx.model.dim_y, tau, dtype=ctx.dtype)
+    )
+
+
+@register("mixture_likelihood_pf", "PF with the deception mixture likelihood (RRP method)")
+def _mixture_pf(ctx: SuiteContext) -> Run:
+    attack = ctx.scenario.attack_model()
+    if hasattr(attack, "gamma_bar"):
+        deception = fdi.BiasDeception(torch.tensor(attack.gamma_bar, dtype=ctx.dtype))
+        rate = attack.p_l
+    else:
+        from difffilter.noise import UniformBox
+
+        box = UniformBox(
+            torch.tensor(attack.low, dtype=ctx.dtype), torch.tensor(attack.high, dtype=ctx.dtype)
+        )
+        deception, rate = fdi.ReplacementDeception(box), attack.rate
+    likelihood = fdi.DeceptionMixtureLikelihood(rate, deception)
+    return lambda tr: fdi.mixture_likelihood_particle_filter(
+        ctx.model, tr.y_recv, tr.us, mask=tr.mask, likelihood=likelihood,
+        **ctx.particle_kwargs(len(tr.y_recv)),
+    )  # fmt: skip

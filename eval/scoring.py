@@ -1,0 +1,210 @@
+"""Every evaluation metric, defined once, with its unit.
+
+:data:`METRICS` is the single source of the metric names, units and definitions: the
+JSON Schema of ``metrics.json`` (:mod:`difffilter.eval.report`), the reports, the
+TensorBoard tables and ``docs/metrics.md`` read it. :func:`score` computes all of them
+for one estimator's :class:`~difffilter.EstimatorOutput` on a batch of
+:class:`~difffilter.models.scenario.Trajectories`.
+
+Pooling: RMSEs pool every run, step and component (one mean of squares, then the root);
+detection counts and rates pool every run and step. ROC curves come from torchmetrics.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+from torchmetrics.functional.classification import binary_auroc, binary_roc
+
+from difffilter import metrics as dm
+from difffilter.estimator import EstimatorOutput
+
+__all__ = [
+    "Metric",
+    "METRICS",
+    "FALSE_ALARM_BUDGET",
+    "score",
+    "roc",
+    "auc",
+    "rmse_over_time",
+    "rates_by_size",
+]
+
+#: The false-alarm rate at which ``tpr_at_1pct_fpr`` reads the ROC curve.
+FALSE_ALARM_BUDGET = 0.01
+
+
+@dataclass(frozen=True)
+class Metric:
+    """A metric's unit and one-line definition (the formula of docs/metrics.md)."""
+
+    unit: str
+    definition: str
+    kind: str = "number"  # "number" or "integer"
+
+
+METRICS: dict[str, Metric] = {
+    "state_rmse": Metric(
+        "state units",
+        "sqrt(mean over runs, steps and state components of (x_hat - x)^2): pooled RMSE against the truth",
+    ),
+    "state_rmse_vs_attack_free": Metric(
+        "state units",
+        "pooled RMSE against the scenario's attack-free reference estimator under common random numbers",
+    ),
+    "attack_rmse": Metric(
+        "attack units",
+        "sqrt(mean over runs, attacked steps and attack channels of (a_hat - a)^2); a_hat = 0 where "
+        "the estimator sees no attack",
+    ),
+    "tpr": Metric("fraction", "attacked steps with an alarm / attacked steps (pooled)"),
+    "fpr": Metric("fraction", "attack-free steps with an alarm / attack-free steps (pooled)"),
+    "false_alarms": Metric("count", "alarms on attack-free steps, all runs", "integer"),
+    "missed_attacks": Metric("count", "attacked steps without an alarm, all runs", "integer"),
+    "false_alarms_per_1000_steps": Metric(
+        "per 1,000 steps", "1000 * false_alarms / (runs * steps)"
+    ),
+    "auc": Metric(
+        "fraction",
+        "area under the ROC curve of the detection scores (every run and step one sample)",
+    ),
+    "tpr_at_1pct_fpr": Metric(
+        "fraction",
+        "TPR of the score threshold whose false-alarm rate on the attack-free steps is at most 1 %",
+    ),
+    "detection_delay_steps": Metric(
+        "steps",
+        "mean over detected attack episodes (maximal runs of attacked steps) of first alarm - onset",
+    ),
+    "detection_delay_s": Metric("s", "detection_delay_steps * dt"),
+    "attack_episodes": Metric("count", "attack episodes over all runs", "integer"),
+    "episodes_detected": Metric("count", "episodes with an alarm inside them", "integer"),
+    "time_per_step_s": Metric(
+        "s", "wall time of the batched run / (runs * steps): time per run and step"
+    ),
+}
+
+
+def _rmse(a: Tensor, b: Tensor) -> float:
+    return float(dm.rmse(a.double(), b.double()))
+
+
+def _ranked(scores: Tensor) -> Tensor:
+    """Scores mapped to ``[0, 1]`` by rank, ties kept, NaN lowest.
+
+    torchmetrics reads scores outside ``[0, 1]`` as logits and applies a sigmoid, which
+    saturates (NIS values of 1e3 would tie at 1.0); the ROC depends only on the order.
+    """
+    s = torch.nan_to_num(scores.double().flatten(), nan=-math.inf)
+    _, inverse = torch.unique(s, return_inverse=True)
+    return inverse.double() / max(int(inverse.max()), 1)
+
+
+def auc(scores: Tensor, flags: Tensor) -> float | None:
+    """ROC AUC of ``scores [B, T]`` against ``flags [B, T]``; ``None`` if one class is absent."""
+    y = flags.flatten().long()
+    if int(y.sum()) in (0, y.numel()):
+        return None
+    return float(binary_auroc(_ranked(scores), y, validate_args=False))
+
+
+def roc(scores: Tensor, flags: Tensor) -> tuple[Tensor, Tensor]:
+    """``(fpr [M], tpr [M])`` of the ROC curve of ``scores [B, T]`` against ``flags [B, T]``."""
+    fpr, tpr, _ = binary_roc(_ranked(scores), flags.flatten().long(), validate_args=False)
+    return fpr, tpr
+
+
+def _tpr_at(scores: Tensor, flags: Tensor, budget: float) -> float | None:
+    y = flags.flatten().long()
+    if int(y.sum()) in (0, y.numel()):
+        return None
+    fpr, tpr = roc(scores, flags)
+    ok = fpr <= budget + 1e-12
+    return float(tpr[ok].max()) if bool(ok.any()) else 0.0
+
+
+def rmse_over_time(means: Tensor, reference: Tensor) -> Tensor:
+    """Per-step RMSE pooled over runs and components ``[T]``."""
+    return (means.double() - reference.double()).square().mean(dim=(0, 2)).sqrt()
+
+
+def score(
+    output: EstimatorOutput,
+    traj,
+    *,
+    dt: float,
+    wall_s: float,
+    reference_means: Tensor | None = None,
+    attacked_input: bool = True,
+) -> dict[str, Any]:
+    """Every metric of :data:`METRICS` for one estimator (``None`` where it does not apply).
+
+    Args:
+        output: the estimator's output on ``traj`` (``means [B, T, dx]``).
+        traj: :class:`~difffilter.models.scenario.Trajectories` (``x``, ``attack``, ``flags``).
+        dt: sampling period in s. wall_s: wall time of the batched run.
+        reference_means: the attack-free reference estimate ``[B, T, dx]`` or ``None``.
+        attacked_input: ``False`` for an estimator fed the clean measurements (its
+            every alarm is false; no TPR, AUC or delay).
+    """
+    B, T = traj.flags.shape
+    out: dict[str, Any] = dict.fromkeys(METRICS)
+    out["state_rmse"] = _rmse(output.means, traj.x)
+    if reference_means is not None:
+        out["state_rmse_vs_attack_free"] = _rmse(output.means, reference_means)
+    flags = traj.flags
+    if (
+        output.attack is not None
+        and output.attack.shape[-1] == traj.attack.shape[-1]
+        and bool(flags.any())
+    ):
+        out["attack_rmse"] = _rmse(output.attack[flags], traj.attack[flags])
+    out["time_per_step_s"] = wall_s / (B * T)
+    det = output.detection
+    if det is None:
+        return out
+    alarms = det.alarms
+    if not attacked_input:
+        flags = torch.zeros_like(flags)
+    rates = dm.detection_rates(alarms, flags)
+    out.update(
+        fpr=_finite(rates["fpr"]),
+        false_alarms=rates["false_alarms"],
+        false_alarms_per_1000_steps=1000.0 * rates["false_alarms"] / (B * T),
+    )
+    if attacked_input and bool(flags.any()):
+        delay = dm.detection_delay(alarms, flags)
+        steps = _finite(delay["mean_delay"])
+        out.update(
+            tpr=_finite(rates["tpr"]),
+            missed_attacks=rates["missed_attacks"],
+            auc=auc(det.scores, flags),
+            tpr_at_1pct_fpr=_tpr_at(det.scores, flags, FALSE_ALARM_BUDGET),
+            detection_delay_steps=steps,
+            detection_delay_s=None if steps is None else steps * dt,
+            attack_episodes=delay["episodes"],
+            episodes_detected=delay["detected"],
+        )
+    return out
+
+
+def _finite(value: float) -> float | None:
+    return value if math.isfinite(value) else None
+
+
+def rates_by_size(alarms: Tensor, flags: Tensor, sizes: Tensor, bins) -> list[dict[str, Any]]:
+    """Detection rate of attacked steps binned by attack size ``(lo, hi]``.
+
+    ``alarms``, ``flags``, ``sizes`` (e.g. ``‖γ_k‖``): ``[B, T]``; ``bins``: increasing
+    edges. Returns one ``{"lo", "hi", "steps", "rate"}`` per bin (``rate`` ``None`` if empty).
+    """
+    rows = []
+    for lo, hi in zip(bins[:-1], bins[1:]):
+        m = flags & (sizes > lo) & (sizes <= hi)
+        rate = float(alarms[m].double().mean()) if bool(m.any()) else None
+        rows.append({"lo": lo, "hi": hi, "steps": int(m.sum()), "rate": rate})
+    return rows

@@ -1,0 +1,284 @@
+"""Scenarios as data: a system, an attack, a schedule, and how to simulate them.
+
+A scenario is a frozen dataclass (subclass of :class:`Scenario`) registered by name in
+:mod:`difffilter.models.registry`. It builds its system (a
+:class:`~difffilter.StateSpaceModel`) and simulates a batch of runs as
+:class:`Trajectories`; the evaluation suite, the reports and the training data modules
+consume nothing else. A family (four-tank, LFC, …) is one module of ``models/`` that
+defines a subclass and registers its instances; nothing lists the families by hand.
+
+Simulation (:func:`simulate`), time index ``t`` ↔ ``k = t + 1``::
+
+    x_0 ~ prior (or its mean)
+    u_applied,k−1 = inject_actuator(u_{k−1})            actuator attack, if any
+    x_k ~ p(x_k | x_{k−1}, u_applied,k−1),  y_k ~ p(y_k | x_k)
+    ỹ_k = inject_sensor(y_k)                             sensor attack, if any
+    mask_k = schedule(k)                                 received entries
+
+Random draws come from three named generators: ``"plant"`` (initial state, process and
+measurement noise, in that order per step), ``"attack"`` and ``"schedule"``; the plant
+realisation therefore does not depend on the attack, and vice versa.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor
+
+from .schedules import AllSensors
+
+__all__ = ["Trajectories", "Scenario", "CustomScenario", "simulate"]
+
+
+class Trajectories(NamedTuple):
+    """A batch of simulated runs (time index ``t`` ↔ ``k = t + 1``).
+
+    Attributes:
+        x: true states ``x_1 … x_T`` ``[B, T, dx]``.
+        y_true: measurements before any attack ``[B, T, dy]``.
+        y_recv: what the estimator receives ``[B, T, dy]`` (attacked; unreceived
+            entries are whatever ``mask`` says not to read).
+        us: inputs the estimator knows ``u_0 … u_{T−1}`` ``[B, T, du]`` or ``None``.
+        mask: received entries ``[B, T, dy]`` (bool) or ``None`` (all received).
+        attack: the injected attack signal ``[B, T, da]`` (zero where none is injected;
+            ``da = dy`` for sensor attacks, ``du`` for actuator attacks).
+        flags: attacked steps ``[B, T]`` (bool).
+        info: extras: ``"attack_values"`` ``[B, T, da]`` (what the attacker would inject
+            at every step, also where it does not) and ``"x0"`` ``[B, dx]``.
+    """
+
+    x: Tensor
+    y_true: Tensor
+    y_recv: Tensor
+    us: Tensor | None
+    mask: Tensor | None
+    attack: Tensor
+    flags: Tensor
+    info: Mapping[str, Tensor] = {}
+
+    def runs(self, count: int) -> Trajectories:
+        """The first ``count`` runs (every batch-first tensor sliced)."""
+
+        def cut(v):
+            return v[:count] if isinstance(v, Tensor) else v
+
+        return Trajectories(
+            *(cut(v) for v in self[:-1]), info={k: cut(v) for k, v in self.info.items()}
+        )
+
+
+@torch.no_grad()
+def simulate(
+    model,
+    runs: int,
+    steps: int,
+    *,
+    generators: Mapping[str, torch.Generator],
+    attack=None,
+    schedule=None,
+    us: Tensor | None = None,
+    random_initial: bool = False,
+) -> Trajectories:
+    """Simulate ``runs`` runs of ``steps`` steps of ``model`` under ``attack`` and ``schedule``.
+
+    Args:
+        model: any :class:`~difffilter.StateSpaceModel` (its noise models draw the noise).
+        generators: ``{"plant", "attack", "schedule"}`` → ``torch.Generator`` (missing
+            ones are needed only if used).
+        attack: an attack of :mod:`difffilter.models.attacks` (``channel`` "sensor" or
+            "actuator") or ``None``.
+        schedule: :mod:`difffilter.models.schedules` object (default all sensors).
+        us: commanded inputs ``[runs, steps, du]`` or ``None``.
+        random_initial: draw ``x_0`` from the prior instead of taking its mean.
+    """
+    for name, value in (("runs", runs), ("steps", steps)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
+    schedule = schedule if schedule is not None else AllSensors()
+    dtype, device = model.initial.mean.dtype, model.initial.mean.device
+    plant = generators.get("plant")
+    channel = getattr(attack, "channel", None)
+    if attack is not None and channel not in ("sensor", "actuator"):
+        raise ValueError(f"attack.channel must be 'sensor' or 'actuator'; got {channel!r}")
+    if channel == "actuator":
+        if us is None:
+            if model.dim_u == 0:
+                raise ValueError("an actuator attack needs a model with inputs (dim_u > 0)")
+            us = torch.zeros(runs, steps, model.dim_u, dtype=dtype, device=device)
+        values, flags = attack.sample(
+            (runs,), steps, model.dim_u, generators.get("attack"), dtype=dtype, device=device
+        )
+        applied = attack.inject(us, values, flags)
+    else:
+        applied = us
+    if us is not None and tuple(us.shape) != (runs, steps, model.dim_u):
+        raise ValueError(
+            f"us must have shape [{runs}, {steps}, {model.dim_u}]; got {tuple(us.shape)}"
+        )
+    if random_initial:
+        x = model.sample_initial((runs,), plant)
+    else:
+        x = model.initial.mean.expand(runs, model.dim_x).clone()
+    x0, xs, ys = x, [], []
+    for t in range(steps):
+        u = None if applied is None else applied[:, t]
+        x = model.sample_transition(x, u, t, plant)
+        xs.append(x)
+        ys.append(model.sample_measurement(x, t + 1, plant))
+    x, y_true = torch.stack(xs, 1), torch.stack(ys, 1)
+    if channel == "sensor":
+        values, flags = attack.sample(
+            (runs,), steps, model.dim_y, generators.get("attack"), dtype=dtype, device=device
+        )
+        y_recv = attack.inject(y_true, values, flags)
+    else:
+        y_recv = y_true
+    if attack is None:
+        values = y_true.new_zeros(runs, steps, 0)
+        flags = torch.zeros(runs, steps, dtype=torch.bool, device=device)
+    mask = schedule.mask((runs,), steps, model.dim_y, generators.get("schedule"), device=device)
+    injected = flags.unsqueeze(-1).to(dtype) * values
+    if channel == "sensor" and mask is not None:  # an attack on a packet never sent is none
+        flags = flags & mask.any(-1)
+    return Trajectories(
+        x, y_true, y_recv, us, mask, injected, flags, {"attack_values": values, "x0": x0}
+    )
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """Common fields and the simulation of every scenario.
+
+    Attributes:
+        name: stable snake_case identifier used by the CLIs and in reports.
+        family: which system/paper the scenario belongs to (``"four_tank"``, ``"lfc"``).
+        description: one line for ``difffilter-eval --list`` and report headers.
+        paper: short citation of the paper the scenario reproduces.
+        notes: provenance of non-paper values (``[DEF]`` defaults) for the report.
+        runs, steps: default Monte Carlo runs and horizon.
+        dt: sampling period in seconds (detection delays are reported in steps and s).
+        headline: run by ``difffilter-eval all`` and by its family's name.
+        estimators: names (in the evaluation's estimator registry) run by default.
+        num_particles: ``N`` of the particle-filter estimators.
+        false_alarm_rate: target per-step false-alarm rate of the residual detectors.
+        gamma_min: smallest attack norm the PoA detector must catch (Theorem 1 of the
+            modified-PF paper); ``None``: half the attack's steady-state norm [DEF].
+        evaluator: ``"module:function"`` of a family's own evaluation, for families not
+            yet expressed as estimators on trajectories (closed-loop control); ``None``
+            runs the generic Monte Carlo suite.
+    """
+
+    name: str
+    family: str
+    description: str
+    paper: str = ""
+    notes: tuple[str, ...] = field(default_factory=tuple)
+    runs: int = 100
+    steps: int = 100
+    dt: float = 1.0
+    headline: bool = True
+    estimators: tuple[str, ...] = ()
+    num_particles: int = 100
+    false_alarm_rate: float = 0.005
+    gamma_min: float | None = None
+    evaluator: str | None = None
+
+    # -- what a family defines --------------------------------------------------------
+    def system(self, dtype: torch.dtype = torch.float64, device=None):
+        """The plant (and the estimators' model) of this scenario."""
+        raise NotImplementedError(f"scenario {self.name!r} does not define system()")
+
+    def attack_model(self):
+        """The attack (:mod:`difffilter.models.attacks`) or ``None``."""
+        return None
+
+    def schedule(self):
+        """The communication schedule (:mod:`difffilter.models.schedules`)."""
+        return AllSensors()
+
+    def inputs(self, runs: int, dtype: torch.dtype, device=None) -> Tensor | None:
+        """Commanded inputs ``[runs, steps, du]`` or ``None`` (no input)."""
+        return None
+
+    # -- derived ----------------------------------------------------------------------
+    def simulate(
+        self,
+        runs: int,
+        generators: Mapping[str, torch.Generator],
+        *,
+        dtype: torch.dtype = torch.float64,
+        attack: Any = "scenario",
+        model=None,
+    ) -> Trajectories:
+        """``runs`` runs of this scenario (``attack=None``: attack-free runs)."""
+        model = model if model is not None else self.system(dtype)
+        return simulate(
+            model,
+            runs,
+            self.steps,
+            generators=generators,
+            attack=self.attack_model() if attack == "scenario" else attack,
+            schedule=self.schedule(),
+            us=self.inputs(runs, dtype),
+        )
+
+    def attack_norm_floor(self) -> float:
+        """``‖γ‖_min`` for the PoA threshold: ``gamma_min`` or half the attack's norm [DEF]."""
+        if self.gamma_min is not None:
+            return float(self.gamma_min)
+        attack = self.attack_model()
+        values = getattr(attack, "gamma_bar", None) or getattr(attack, "value", None)
+        if values is None:
+            raise ValueError(
+                f"scenario {self.name!r}: set gamma_min (its attack has no steady-state value)"
+            )
+        return 0.5 * math.sqrt(sum(v * v for v in values))
+
+    def estimator_options(self) -> dict[str, Any]:
+        """Settings the estimators read (family-specific; empty by default)."""
+        return {}
+
+    def paper_numbers(self) -> dict[str, Any]:
+        """The paper's reference numbers for metrics.json's ``"paper"`` (empty by default)."""
+        return {}
+
+
+@dataclass(frozen=True)
+class CustomScenario(Scenario):
+    """A scenario from plain parts, for a user's own plant (no subclass needed).
+
+    Attributes:
+        model_fn: ``dtype → StateSpaceModel``, the plant and the estimators' model.
+        attack: an attack of :mod:`difffilter.models.attacks` or ``None``.
+        protocol: a schedule of :mod:`difffilter.models.schedules` (default all sensors).
+        options: settings the estimators read (``cusum_bias``, ``poa_eta``/``poa_zeta``, …).
+
+    Register it (:func:`difffilter.models.registry.register`) to run it from the CLI, or
+    pass it to :func:`difffilter.eval.suite.run_suite` directly.
+    """
+
+    model_fn: Any = field(default=None, compare=False)
+    attack: Any = None
+    protocol: Any = None
+    options: Mapping[str, Any] = field(default_factory=dict, compare=False)
+
+    def __post_init__(self):
+        if not callable(self.model_fn):
+            raise ValueError("model_fn must be a callable dtype -> StateSpaceModel")
+
+    def system(self, dtype: torch.dtype = torch.float64, device=None):
+        return self.model_fn(dtype)
+
+    def attack_model(self):
+        return self.attack
+
+    def schedule(self):
+        return self.protocol if self.protocol is not None else AllSensors()
+
+    def estimator_options(self) -> dict[str, Any]:
+        return dict(self.options)

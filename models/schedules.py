@@ -1,0 +1,80 @@
+"""Communication schedules: which measurement entries reach the estimator at each step.
+
+A schedule turns ``(batch_shape, T, dy)`` into a received-entries mask ``[*, T, dy]``
+(bool) or ``None`` when everything is received; every filter of the library takes that
+mask and removes the unreceived entries exactly.
+
+* :class:`AllSensors` — every entry at every step (``None``);
+* :class:`RoundRobin` — sensor group ``k mod n`` at step ``k`` (the RRP paper, eq. 3);
+* :class:`PacketLoss` — each entry lost independently with probability ``rate``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = ["AllSensors", "RoundRobin", "PacketLoss"]
+
+
+def _shape(batch_shape) -> torch.Size:
+    return torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
+
+
+@dataclass(frozen=True)
+class AllSensors:
+    """Every entry is received at every step: the mask is ``None``."""
+
+    def mask(self, batch_shape, num_steps: int, dim: int, generator=None, *, device=None):
+        return None
+
+
+@dataclass(frozen=True)
+class RoundRobin:
+    """Round-Robin scheduling: at step ``k`` (1-based) only group ``(k − 1) mod n`` transmits.
+
+    Args:
+        groups: the measurement entries of each group, e.g. ``((0, 1), (2, 3))`` for two
+            range-bearing sensors; every entry must belong to exactly one group.
+    """
+
+    groups: tuple[tuple[int, ...], ...]
+
+    def __post_init__(self):
+        groups = tuple(tuple(int(i) for i in g) for g in self.groups)
+        flat = [i for g in groups for i in g]
+        if not groups or not all(groups) or len(set(flat)) != len(flat) or min(flat) < 0:
+            raise ValueError(
+                f"groups must be non-empty, disjoint groups of entry indices >= 0; got {self.groups!r}"
+            )
+        object.__setattr__(self, "groups", groups)
+
+    def mask(self, batch_shape, num_steps: int, dim: int, generator=None, *, device=None):
+        flat = sorted(i for g in self.groups for i in g)
+        if flat != list(range(dim)):
+            raise ValueError(
+                f"groups must cover the {dim} measurement entries exactly once; got {self.groups!r}"
+            )
+        table = torch.zeros(len(self.groups), dim, dtype=torch.bool, device=device)
+        for j, g in enumerate(self.groups):
+            table[j, list(g)] = True
+        steps = torch.arange(num_steps, device=device) % len(self.groups)
+        return table[steps].expand(_shape(batch_shape) + (num_steps, dim))
+
+
+@dataclass(frozen=True)
+class PacketLoss:
+    """Each measurement entry is lost independently with probability ``rate`` (Bernoulli)."""
+
+    rate: float
+
+    def __post_init__(self):
+        if not 0.0 <= float(self.rate) < 1.0:
+            raise ValueError(f"rate must lie in [0, 1); got {self.rate!r}")
+
+    def mask(self, batch_shape, num_steps: int, dim: int, generator=None, *, device=None) -> Tensor:
+        shape = _shape(batch_shape) + (num_steps, dim)
+        u = torch.rand(shape, generator=generator, dtype=torch.float64, device=device)
+        return u >= self.rate
