@@ -3,10 +3,10 @@
 Prints, in one run:
 
 1. Kalman filter run-steps per second at B = 1 and B = 1000 on the constant-velocity
-   model of the tracking paper (SCENARIOS.md §2: T = 1, σ_ω = 0.055, position
+   model of the tracking paper (docs/scenarios.md, target tracking: T = 1, σ_ω = 0.055, position
    measurements with R = diag(4, 4)), for the sequential and the parallel-scan filter,
    beside a per-run numpy predict/update loop of the same filter.
-2. Bootstrap PF particle-steps per second on the four-tank model (SCENARIOS.md §1),
+2. Bootstrap PF particle-steps per second on the four-tank model (docs/scenarios.md, four-tank),
    float32, at (B, N) = (1, 100), (100, 1000), (10, 10000), beside a per-run numpy loop
    (particles vectorised in numpy, runs and time in Python).
 3. Peak memory of a PF run with gradients (B = 32, N = 1000, T = 100) for systematic,

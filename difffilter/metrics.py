@@ -1,4 +1,4 @@
-"""Evaluation metrics of the FDI literature (SCENARIOS.md §5), batched over runs.
+"""Evaluation metrics of the FDI literature (docs/metrics.md), batched over runs.
 
 Conventions: alarms, attack flags and scores are ``[..., T]`` (runs first, time last);
 counts and rates pool every run and step unless ``valid`` excludes some steps.

@@ -1,6 +1,6 @@
 """``make demo``: the main job on the shipped defaults.
 
-1. Filters on the four-tank plant (SCENARIOS.md §1, no attack): simulate 100 runs,
+1. Filters on the four-tank plant (docs/scenarios.md, four-tank; no attack): simulate 100 runs,
    run the linearised KF, the EKF, the UKF and the bootstrap and Kalman-proposal PFs,
    and print the state RMSE of each against the truth and its time per step.
 2. The evaluations: ``difffilter-eval`` on the four-tank bias attack and on the

@@ -4,7 +4,7 @@
 own closed loop on the same noise, load and attack (common random numbers; all runs of a
 scenario are one batched tensor program), scores them and writes per scenario::
 
-    <out>/<scenario>/metrics.json     DESIGN.md schema (+ state5_rmse, per-channel RMSE, …)
+    <out>/<scenario>/metrics.json     docs/architecture.md schema (+ state5_rmse, per-channel RMSE, …)
     <out>/<scenario>/report.md        the paper's Tables I and II beside ours
     <out>/<scenario>/*.png            attack estimates (Figs 3, 5, 8, 10), states 3 and 5
                                       under the secure and the traditional controller
@@ -22,7 +22,7 @@ Metrics (per estimator):
 * ``state_rmse``: RMSE of the observer's estimate of all ten states; ``state_rmse_vs_attack_free``:
   against the plain Kalman filter's estimate on the same noise without attack;
 * detection (NN estimators): score ``max_c |α̂_c| / σ_c`` with ``σ_c`` the estimator's own
-  attack-free spread, alarm above 3 ([DEF] "3σ of the attack-free α̂", SCENARIOS §5);
+  attack-free spread, alarm above 3 ([DEF] "3σ of the attack-free α̂", docs/metrics.md);
   ``kf_nn_grad`` also reports its attack-probability head (``*_prob`` keys);
   ``chi_square_kf``/``cusum_kf`` run on the uncompensated Kalman observer's innovations
   ([DEF] false-alarm rate 1 %; CUSUM bias ``b = m + 2`` and ``τ`` calibrated on
@@ -631,7 +631,7 @@ def _report(result: dict, per_channel: dict | None, tuning: dict | None, sc: LFC
             )
     lines += [
         "",
-        "Table II depends on the unknown load and noise of the paper (SCENARIOS.md §3): "
+        "Table II depends on the unknown load and noise of the paper (docs/scenarios.md, LFC): "
         "compare orderings and ratios, not values.",
         "",
     ]

@@ -24,7 +24,7 @@ Choices the paper leaves open (each a keyword, chosen on validation attacks):
   "estimate the FDI attack from (8)") or the estimate before it (``"prior"``).
 
 The controller is ``U = −K₁(Z − M̂)``: ``K₂ = L_s²/ε₂·C⁻¹`` has no given values
-(SCENARIOS.md, "Pitfalls"). Without compensation (``compensate=False``) it is ``U = −K₁Z``,
+(docs/scenarios.md, LFC pitfalls). Without compensation (``compensate=False``) it is ``U = −K₁Z``,
 the paper's "traditional controller".
 """
 

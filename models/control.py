@@ -4,7 +4,7 @@ LQR (the paper's eqs 15–16): ``K₁ = R⁻¹BᵀP`` with ``PA + AᵀP + Q − 
 continuous algebraic Riccati equation (CARE) has a stabilising solution only for a
 stabilisable ``(A, B)``. The two-area LFC model is not: ``wᵀA = 0`` and ``wᵀB = 0`` for
 ``w = e₄ + e₉`` (the sum of the tie-line flows is conserved), an uncontrollable eigenvalue
-at exactly 0. Two remedies (SCENARIOS.md §3):
+at exactly 0. Two remedies (docs/scenarios.md, LFC):
 
 * ``method="reduced"`` (default): restrict to the controllable subspace ``{x : wᵀx = 0}``,
   solve the CARE exactly on its 9 coordinates and apply the gain to the orthogonal
@@ -16,7 +16,7 @@ at exactly 0. Two remedies (SCENARIOS.md §3):
 Observers: with ``C = I`` a Luenberger gain that places the error poles is
 underdetermined (100 free entries for 10 poles). :func:`luenberger_gain` implements three
 designs with the same poles; the LFC report shows how much the baseline depends on the
-choice (SCENARIOS.md "Pitfalls").
+choice (docs/scenarios.md, LFC pitfalls).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Johansson's quadruple-tank process (the plant of the modified-PF paper, SCENARIOS.md §1).
+"""Johansson's quadruple-tank process (the plant of the modified-PF paper, docs/scenarios.md).
 
 Continuous dynamics (levels ``h`` in cm, pump voltages ``v`` in V)::
 
@@ -14,7 +14,7 @@ square roots)::
     y_k     = G x_k + v_k,                             v_k ~ N(0, R)
 
 Parameters: Johansson, IEEE TCST 8(3) 2000, minimum-phase point P−; ``G = I``,
-``Q = 1e-4 I`` (derived from the paper's threshold, see SCENARIOS.md); ``dt = 1 s``,
+``Q = 1e-4 I`` (derived from the paper's threshold, see docs/scenarios.md); ``dt = 1 s``,
 ``p(x_0) = N(x*, 1e-2 I)`` are [DEF] defaults.
 
 Attacked simulation (:func:`simulate_attacked`) and the scenario registry entries
@@ -285,7 +285,7 @@ def simulate_attacked(
 ) -> AttackedTrajectories:
     """Simulate ``num_runs`` runs of ``num_steps`` steps of the plant under ``attack``.
 
-    ``x_0`` is the prior mean (the fixed point, [DEF] SCENARIOS.md §1) unless
+    ``x_0`` is the prior mean (the fixed point, [DEF] docs/scenarios.md) unless
     ``random_initial`` draws it from the prior. Process and measurement noise come from
     ``plant_generator`` (one ``[B, 4]`` standard-normal draw each per step, scaled by the
     Cholesky factor of ``Q``/``R``, so two plants that differ only in ``R`` share their
@@ -315,7 +315,7 @@ def simulate_attacked(
 
 @dataclass(frozen=True)
 class FourTankScenario(Scenario):
-    """A four-tank FDI scenario (SCENARIOS.md §1). Tags: [P] paper, [D] derived, [DEF] default.
+    """A four-tank FDI scenario (docs/scenarios.md, four-tank). Tags: [P] paper, [D] derived, [DEF] default.
 
     Attributes:
         R: measurement-noise variances [P]; Q: process-noise variance [D]; dt [DEF];

@@ -25,7 +25,7 @@ Attack scenarios I–IV (eqs 44–47 and Sec. VII-D) and a random-attack generat
 training and validation live here, together with the scenario registrations
 ``lfc_step``, ``lfc_sine``, ``lfc_simultaneous``, ``lfc_sawtooth`` and ``lfc_sine_1ms``.
 
-Values the paper leaves open are ``[DEF]`` defaults (``../shared/SCENARIOS.md`` §3); each
+Values the paper leaves open are ``[DEF]`` defaults (``docs/scenarios.md``, LFC); each
 is named in :data:`DEFAULT_NOTES` and in the scenario's ``notes``.
 """
 
@@ -74,7 +74,7 @@ class LFCParameters:
 
     [DEF] Table I of Sargolzaei et al., TSG 2016 (the paper's ref. [31]) was not available.
     These are the two-area values of Zhang et al., IEEE TPS 28(3) 2013 (the paper's
-    ref. [36]) as recorded in SCENARIOS.md §3 ("recalled from memory, not verified").
+    ref. [36]) as recorded in docs/scenarios.md (LFC) ("recalled from memory, not verified").
     """
 
     inertia: tuple[float, float] = (10.0, 12.0)  # J = 2H, p.u.·s

@@ -1,4 +1,4 @@
-"""Residual-based attack detectors: chi-square and CUSUM (SCENARIOS.md §5).
+"""Residual-based attack detectors: chi-square and CUSUM (docs/metrics.md).
 
 Both consume a filter's innovations ``r_k [..., T, m]`` and innovation covariances
 ``S_k [..., T, m, m]`` (any difffilter filter result provides them) through the
