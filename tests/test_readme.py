@@ -17,3 +17,6 @@ def test_readme_python_example_runs():
     # 32 runs × 100 steps, N = 1000: the PF log-likelihood is close to the exact value
     assert torch.allclose(pf.log_likelihood.mean(), kf.log_likelihood.mean(), rtol=0.01)
     assert namespace["kf_lossy"].means.shape == (32, 100, 2)
+    out = namespace["out"]  # the estimator-contract example
+    assert out.means.shape == (32, 100, 2) and out.attack.shape == (32, 100, 1)
+    assert out.detection.alarms.dtype == torch.bool
