@@ -30,7 +30,7 @@ from ..estimator import Detection, EstimatorOutput
 from ..kalman import _validate_inputs
 from ..noise import NoiseModel
 from ..particle import ParticleState, particle_filter
-from ..resampling import Systematic
+from .modified_pf import driver_settings
 
 __all__ = [
     "BiasDeception",
@@ -162,19 +162,11 @@ def mixture_likelihood_particle_filter(
         prior = out.prior_log_weights
         return {"p": likelihood.attack_probability(model, y, state.particles, prior, state.k, m)}
 
+    settings = driver_settings(
+        num_particles, resampler, ess_threshold, generator, resample_generator, initial_state
+    )
     res = particle_filter(
-        model,
-        ys,
-        us,
-        mask=mask,
-        num_particles=num_particles,
-        likelihood=likelihood,
-        resampler=resampler if resampler is not None else Systematic(),
-        ess_threshold=ess_threshold,
-        generator=generator,
-        resample_generator=resample_generator,
-        initial_state=initial_state,
-        hooks=(responsibility,),
+        model, ys, us, mask=mask, likelihood=likelihood, hooks=(responsibility,), **settings
     )
     score = res.records["p"]
     return EstimatorOutput(

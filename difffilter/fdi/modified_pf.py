@@ -250,6 +250,20 @@ class ModifiedPFWeighting:
         return AttackCompensatedLikelihood(alarm, g_hat, self.base)(model, y, particles, k, mask)
 
 
+def driver_settings(
+    num_particles, resampler, ess_threshold, generator, resample_generator, initial_state
+) -> dict:
+    """The particle-driver keywords the FDI filters share (default: systematic resampling)."""
+    return {
+        "num_particles": num_particles,
+        "resampler": resampler if resampler is not None else Systematic(),
+        "ess_threshold": ess_threshold,
+        "generator": generator,
+        "resample_generator": resample_generator,
+        "initial_state": initial_state,
+    }
+
+
 # ------------------------------------------------------------------------------ filters
 
 
@@ -330,19 +344,10 @@ def modified_particle_filter(
     weighting = ModifiedPFWeighting(
         detector, gamma_hat, attack_rate=attack_rate, gain=gain, base_likelihood=base_likelihood
     )
-    res = particle_filter(
-        model,
-        ys,
-        us,
-        mask=mask,
-        num_particles=num_particles,
-        resampler=resampler if resampler is not None else Systematic(),
-        likelihood=weighting,
-        ess_threshold=ess_threshold,
-        generator=generator,
-        resample_generator=resample_generator,
-        initial_state=initial_state,
+    settings = driver_settings(
+        num_particles, resampler, ess_threshold, generator, resample_generator, initial_state
     )
+    res = particle_filter(model, ys, us, mask=mask, likelihood=weighting, **settings)
     r = weighting.records.stack(len(batch))
     extras = {"gamma_hat": r["gamma_hat"], "pred_means": res.pred_means, "ess": res.ess}
     if attack_rate is not None:
@@ -446,21 +451,14 @@ def particle_filter_poa(
             else {"beta": beta}
         )
 
-    res = particle_filter(
-        model,
-        ys,
-        us,
-        mask=mask,
-        num_particles=num_particles,
-        resampler=resampler if resampler is not None else Systematic(),
-        likelihood=LiteralGaussianLikelihood() if literal else likelihood,
-        ess_threshold=ess_threshold,
-        generator=generator,
-        resample_generator=resample_generator,
-        return_particles=return_particles,
-        initial_state=initial_state,
-        hooks=(poa,),
+    settings = driver_settings(
+        num_particles, resampler, ess_threshold, generator, resample_generator, initial_state
     )
+    weigh = LiteralGaussianLikelihood() if literal else likelihood
+    res = particle_filter(
+        model, ys, us, mask=mask, likelihood=weigh, hooks=(poa,), return_particles=return_particles,
+        **settings,
+    )  # fmt: skip
     beta = res.records["beta"]
     extras = {"ess": res.ess, "log_likelihood": res.log_likelihood}
     if return_particles:
