@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .._checks import check_filter_inputs
 from ..extended import extended_kalman_step
 from ..kalman import gaussian_init
 from ..results import GaussianState
@@ -47,6 +48,7 @@ def gated_extended_kalman_filter(
     model, ys: Tensor, us: Tensor | None = None, *, detector: ChiSquareDetector | CusumDetector
 ) -> GatedFilterResult:
     """EKF on ``ys [..., T, dy]`` whose update is skipped where ``detector`` raises an alarm."""
+    check_filter_inputs(model, ys, us)  # the plain filters' checks (shape, dtype, finite)
     if not isinstance(detector, (ChiSquareDetector, CusumDetector)):
         raise ValueError(
             f"detector must be a ChiSquareDetector or a CusumDetector; got {type(detector).__name__}"

@@ -36,6 +36,7 @@ from dataclasses import dataclass, fields
 import torch
 from torch import Tensor
 
+from .._checks import check_filter_inputs
 from ..particle import (
     ModelLikelihood,
     ParticleState,
@@ -320,6 +321,9 @@ def modified_particle_filter(
         initial_state: start from this particle set instead of the prior.
         base_likelihood: clean-measurement likelihood of eq. (59) (default the model's).
     """
+    check_filter_inputs(
+        model, ys, resampler=resampler, ess_threshold=ess_threshold, gamma_hat=gamma_hat
+    )
     if not isinstance(detector, PoADetector):
         raise ValueError(f"detector must be a PoADetector; got {type(detector).__name__}")
     if ys.dim() < 2 or ys.shape[-1] != model.dim_y:
@@ -434,6 +438,7 @@ def particle_filter_poa(
     density underflows). Other arguments as in :func:`modified_particle_filter`;
     ``likelihood`` overrides the weighting likelihood (log-space mode only).
     """
+    check_filter_inputs(model, ys, resampler=resampler, ess_threshold=ess_threshold)
     if not isinstance(detector, PoADetector):
         raise ValueError(f"detector must be a PoADetector; got {type(detector).__name__}")
     if literal and likelihood is not None:
