@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -11,9 +13,17 @@ __all__ = [
     "check_square",
     "check_positive_definite",
     "check_finite",
+    "check_symmetric",
     "check_sequence",
     "check_mask",
     "check_positive_int",
+    "check_finite_number",
+    "model_dtype_device",
+    "check_strategy",
+    "check_ess_threshold",
+    "check_sequence_inputs",
+    "check_step_inputs",
+    "check_filter_inputs",
 ]
 
 
@@ -55,16 +65,23 @@ def check_finite(t: Tensor, name: str) -> None:
         raise ValueError(f"{name} contains NaN or Inf values; every entry must be finite")
 
 
+def check_symmetric(t: Tensor, name: str, rtol: float = 1e-6) -> None:
+    """``t [..., d, d]`` must be symmetric up to ``rtol`` relative to its largest entry."""
+    if t.numel() == 0:
+        return
+    scale = t.detach().abs().amax(dim=(-1, -2), keepdim=True).clamp_min(1e-30)
+    asym = (t.detach() - t.detach().transpose(-1, -2)).abs() / scale
+    if bool((asym > rtol).any()):
+        raise ValueError(
+            f"{name} must be symmetric; max relative asymmetry {float(asym.max()):.3g}"
+        )
+
+
 def check_positive_definite(t: Tensor, name: str, dim: int | None = None) -> None:
     """``t`` must be a finite, symmetric, positive-definite ``[..., d, d]`` matrix."""
     check_square(t, name, dim)
     check_finite(t, name)
-    scale = t.detach().abs().amax(dim=(-1, -2), keepdim=True).clamp_min(1e-30)
-    asym = (t.detach() - t.detach().transpose(-1, -2)).abs() / scale
-    if bool((asym > 1e-6).any()):
-        raise ValueError(
-            f"{name} must be symmetric; max relative asymmetry {float(asym.max()):.3g}"
-        )
+    check_symmetric(t, name)
     _, info = torch.linalg.cholesky_ex(t.detach())
     if bool((info != 0).any()):
         raise ValueError(f"{name} must be positive definite (all eigenvalues > 0)")
@@ -111,7 +128,249 @@ def check_mask(mask: Tensor, name: str, shape: torch.Size) -> Tensor:
     return mask
 
 
+def check_finite_number(
+    value, name: str, *, positive: bool = False, nonnegative: bool = False
+) -> float:
+    """``value`` must be a finite real number (``> 0`` / ``>= 0`` when asked); returns a ``float``."""
+    if isinstance(value, Tensor) and value.numel() == 1:
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeError(f"{name} must be a real number; got {type(value).__name__}")
+    value = float(value)
+    ok = math.isfinite(value) and (not positive or value > 0) and (not nonnegative or value >= 0)
+    if not ok:
+        need = " > 0" if positive else " >= 0" if nonnegative else ""
+        raise ValueError(f"{name} must be a finite number{need}; got {value!r}")
+    return value
+
+
 def check_positive_int(value, name: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
         raise ValueError(f"{name} must be a positive integer (>= 1); got {value!r}")
     return value
+
+
+# ------------------------------------------------------------------ filter inputs ----
+# One set of checks shared by every public filter and online step (kalman, extended,
+# unscented, particle, and the FDI filters): each failure names the argument and says
+# what was expected, before any tensor work (a raw torch error deep inside a filter names
+# neither).
+
+NONFINITE_POLICIES = ("raise", "skip")
+
+
+def model_dtype_device(model) -> tuple[torch.dtype | None, torch.device | None]:
+    """dtype and device of a model's tensors (``(None, None)`` when it holds none).
+
+    The prior mean when the model has one (every built-in model does), else its first
+    floating parameter or buffer.
+    """
+    initial = getattr(model, "initial", None)
+    mean = getattr(initial, "mean", None)
+    if isinstance(mean, Tensor) and mean.is_floating_point():
+        return mean.dtype, mean.device
+    tensors = getattr(model, "parameters", None)
+    if tensors is not None:
+        for t in list(model.parameters()) + list(model.buffers()):
+            if t.is_floating_point():
+                return t.dtype, t.device
+    return None, None
+
+
+def _check_float_tensor(t, name: str, want: str, dtype, device) -> None:
+    if not isinstance(t, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor of shape {want}; got {type(t).__name__}")
+    if not t.is_floating_point():
+        expect = dtype if dtype is not None else "a floating dtype"
+        raise ValueError(f"{name} must have a floating dtype ({expect}); got {t.dtype}")
+    if dtype is not None and t.dtype != dtype:
+        raise ValueError(
+            f"{name} must have the model's dtype {dtype}; got {t.dtype} "
+            f"(convert with {name}.to({dtype}) or build the model in {t.dtype})"
+        )
+    if device is not None and t.device != device:
+        raise ValueError(f"{name} must be on the model's device {device}; got {t.device}")
+
+
+def _check_bool_mask(mask, name: str, shape: torch.Size, of: str) -> Tensor:
+    if not isinstance(mask, Tensor):
+        raise TypeError(
+            f"{name} must be a bool torch.Tensor of shape {tuple(shape)}; got {type(mask).__name__}"
+        )
+    if mask.dtype != torch.bool:
+        # a 0/1 float mask would be ambiguous (a 0.5 is not "half received"): bool only
+        raise ValueError(
+            f"{name} must have dtype torch.bool (True = entry received); got {mask.dtype}"
+        )
+    if mask.shape != shape:
+        raise ValueError(
+            f"{name} must have the shape of {of} {tuple(shape)}; got {tuple(mask.shape)}"
+        )
+    return mask
+
+
+def check_strategy(obj, name: str, example: str) -> None:
+    """``obj`` must be ``None`` or a callable strategy object, never its name as a string."""
+    if obj is None:
+        return
+    if isinstance(obj, str):
+        raise TypeError(
+            f"{name} must be an object, not the string {obj!r}: pass e.g. {name}={example}"
+        )
+    if not callable(obj):
+        raise TypeError(
+            f"{name} must be a callable object (e.g. {example}); got {type(obj).__name__}"
+        )
+
+
+def check_ess_threshold(value) -> float:
+    """``ess_threshold`` must be a finite real number in ``[0, 1]``; returns it as ``float``."""
+    if isinstance(value, Tensor) and value.numel() == 1:
+        value = float(value)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeError(f"ess_threshold must be a number in [0, 1]; got {type(value).__name__}")
+    if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+        raise ValueError(f"ess_threshold must lie in [0, 1] (a finite number); got {value!r}")
+    return float(value)
+
+
+def check_sequence_inputs(
+    model,
+    ys,
+    us=None,
+    mask=None,
+    *,
+    nonfinite: str = "raise",
+) -> tuple[Tensor, Tensor | None, Tensor | None, Tensor | None]:
+    """Validate the inputs of a whole-sequence filter; returns ``(ys, us, mask, skipped)``.
+
+    Checks, each raising an error that names the argument:
+
+    * ``ys`` a floating tensor ``[..., T, dy]`` of the model's dtype and device, ``T ≥ 1``;
+    * ``mask`` ``None`` or a ``torch.bool`` tensor of exactly ``ys``'s shape;
+    * ``us`` ``None`` (or required absent when ``model.dim_u = 0``) or a finite floating
+      tensor ``[..., T, du]`` of the model's dtype whose batch broadcasts with ``ys``'s;
+    * received entries of ``ys`` finite. ``nonfinite="raise"`` (default) raises on a NaN
+      or ±Inf there; ``nonfinite="skip"`` treats such entries as unreceived: they are
+      folded into the mask and counted in ``skipped [...]`` (per run, summed over time and
+      entries; ``None`` with ``"raise"``).
+
+    The returned ``ys`` has its unreceived entries replaced by 0 (they are never read, but
+    ``0 · NaN`` would still be NaN in the masked update).
+    """
+    if nonfinite not in NONFINITE_POLICIES:
+        raise ValueError(f"nonfinite must be one of {NONFINITE_POLICIES}; got {nonfinite!r}")
+    dy = model.dim_y
+    dtype, device = model_dtype_device(model)
+    _check_float_tensor(ys, "ys", f"[..., T, {dy}]", dtype, device)
+    if ys.dim() < 2 or ys.shape[-1] != dy:
+        raise ValueError(
+            f"ys must have shape [..., T, {dy}] (batch first, time second to last); got {tuple(ys.shape)}"
+        )
+    if ys.shape[-2] == 0:
+        raise ValueError(
+            f"ys must hold at least one time step (T >= 1); got shape {tuple(ys.shape)}"
+        )
+    if mask is not None:
+        mask = _check_bool_mask(mask, "mask", ys.shape, "ys")
+    finite = torch.isfinite(ys)
+    bad = ~finite if mask is None else ~finite & mask
+    skipped = None
+    if nonfinite == "skip":
+        skipped = bad.sum((-1, -2))
+        if bool(bad.any()):
+            mask = finite if mask is None else mask & finite
+    elif bool(bad.any()):
+        where = tuple(int(i) for i in bad.nonzero()[0])
+        raise ValueError(
+            f"ys contains NaN or Inf values at received entries (first at index {where}); "
+            "every received measurement must be finite. Pass nonfinite='skip' to treat them "
+            "as unreceived, or mask=... to mark lost entries"
+        )
+    if mask is not None:
+        ys = torch.where(mask, ys, torch.zeros((), dtype=ys.dtype, device=ys.device))
+    if us is not None:
+        us = _check_us(model, us, ys.shape[:-2], ys.shape[-2], dtype, device)
+    return ys, us, mask, skipped
+
+
+def _check_us(model, us, batch: torch.Size, num_steps: int | None, dtype, device) -> Tensor:
+    du = model.dim_u
+    if du == 0:
+        raise ValueError("us was given but the model has no input (dim_u = 0); pass us=None")
+    seq = num_steps is not None
+    want = f"[..., T, {du}]" if seq else f"[..., {du}]"
+    name = "us" if seq else "u"
+    _check_float_tensor(us, name, want, dtype, device)
+    if us.dim() < (2 if seq else 1) or us.shape[-1] != du:
+        raise ValueError(f"{name} must have shape {want}; got {tuple(us.shape)}")
+    if seq and us.shape[-2] != num_steps:
+        raise ValueError(f"us must have T = {num_steps} steps like ys; got {us.shape[-2]}")
+    lead = us.shape[:-2] if seq else us.shape[:-1]
+    try:
+        torch.broadcast_shapes(lead, batch)
+    except RuntimeError as exc:
+        of = "ys" if seq else "y"
+        raise ValueError(
+            f"{name}'s batch shape {tuple(lead)} does not broadcast with {of}'s {tuple(batch)}"
+        ) from exc
+    if not bool(torch.isfinite(us).all()):
+        raise ValueError(f"{name} contains NaN or Inf values; every input must be finite")
+    return us
+
+
+def check_step_inputs(
+    model, state_mean, y, u=None, mask=None
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """Validate the inputs of one online filter step; returns ``(y, u, mask)``.
+
+    ``state_mean [..., dx]`` (the state's mean or particles), ``y [..., dy]`` finite on
+    the received entries (a non-finite one raises: a single NaN would poison every later
+    state), ``u [..., du]`` or ``None``, ``mask`` ``None`` or bool of exactly ``y``'s
+    shape. Unreceived entries of ``y`` come back as 0.
+    """
+    dy, dx = model.dim_y, model.dim_x
+    dtype, device = model_dtype_device(model)
+    _check_float_tensor(y, "y", f"[..., {dy}]", dtype, device)
+    if y.dim() < 1 or y.shape[-1] != dy:
+        raise ValueError(
+            f"y must have shape [..., {dy}] (one measurement per run); got {tuple(y.shape)}"
+        )
+    if not isinstance(state_mean, Tensor) or state_mean.dim() < 1 or state_mean.shape[-1] != dx:
+        raise ValueError(
+            f"state must hold a mean [..., {dx}]; got {getattr(state_mean, 'shape', type(state_mean).__name__)}"
+        )
+    if mask is not None:
+        mask = _check_bool_mask(mask, "mask", y.shape, "y")
+    finite = torch.isfinite(y)
+    bad = ~finite if mask is None else ~finite & mask
+    if bool(bad.any()):
+        raise ValueError(
+            "y contains NaN or Inf values at received entries; every received measurement "
+            "must be finite (pass mask=... with False at lost entries)"
+        )
+    if mask is not None:
+        y = torch.where(mask, y, torch.zeros((), dtype=y.dtype, device=y.device))
+    if u is not None:
+        u = _check_us(model, u, y.shape[:-1], None, dtype, device)
+    return y, u, mask
+
+
+def check_filter_inputs(
+    model, ys, us=None, mask=None, *, resampler=None, ess_threshold=None, gamma_hat=None
+) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """The plain filters' checks for the FDI filters; returns ``(ys, us, mask)``.
+
+    ``ys``/``us``/``mask`` as in :func:`check_sequence_inputs` (a non-finite received
+    measurement raises); ``resampler`` an object, not a string; ``ess_threshold`` (when
+    given) finite in ``[0, 1]``; ``gamma_hat`` (when a tensor) finite.
+    """
+    ys, us, mask, _ = check_sequence_inputs(model, ys, us, mask)
+    check_strategy(resampler, "resampler", "difffilter.resampling.Systematic()")
+    if ess_threshold is not None:
+        check_ess_threshold(ess_threshold)
+    if isinstance(gamma_hat, Tensor) and not bool(torch.isfinite(gamma_hat).all()):
+        raise ValueError(
+            "gamma_hat contains NaN or Inf values; every attack estimate must be finite"
+        )
+    return ys, us, mask

@@ -24,6 +24,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ._checks import check_step_inputs
 from .kalman import gaussian_update, run_gaussian_filter
 from .linalg import masked_measurement, outer, safe_cholesky, symmetrize
 from .results import FilterResult, GaussianState, GaussianStepOutput
@@ -45,12 +46,22 @@ def extended_kalman_step(
     u: Tensor | None = None,
     mask: Tensor | None = None,
 ) -> tuple[GaussianState, GaussianStepOutput]:
-    """One EKF step ``x_{k−1} → x_k``; shapes as in :func:`difffilter.kalman_step`."""
+    """One EKF step ``x_{k−1} → x_k``; shapes and input checks as in :func:`difffilter.kalman_step`."""
+    y, u, mask = check_step_inputs(model, state.mean, y, u, mask)
+    return _extended_kalman_step(model, state, y, u, mask)
+
+
+def _extended_kalman_step(model, state, y, u=None, mask=None):
+    """:func:`extended_kalman_step` without input validation."""
     k = state.k
-    F = model.transition_jacobian(state.mean, u, k)
+    dtype = state.mean.dtype
+    # A torch.func Jacobian can come back in another dtype than the state (a model
+    # function that builds a float64 constant from a Python float promotes it): cast, so
+    # a float32 model stays float32 (and the products below do not mix dtypes).
+    F = model.transition_jacobian(state.mean, u, k).to(dtype)
     pred_mean = model.transition(state.mean, u, k)
     pred_cov = symmetrize(F @ state.cov @ F.transpose(-1, -2) + model.process_cov(k))
-    H = model.observation_jacobian(pred_mean, k + 1)
+    H = model.observation_jacobian(pred_mean, k + 1).to(dtype)
     residual = y - model.observe(pred_mean, k + 1)
     residual, H, R, observed = masked_measurement(residual, H, model.measurement_cov(k + 1), mask)
     cross = pred_cov @ H.transpose(-1, -2)
@@ -63,14 +74,20 @@ def extended_kalman_step(
 
 
 def extended_kalman_filter(
-    model: StateSpaceModel, ys: Tensor, us: Tensor | None = None, *, mask: Tensor | None = None
+    model: StateSpaceModel,
+    ys: Tensor,
+    us: Tensor | None = None,
+    *,
+    mask: Tensor | None = None,
+    nonfinite: str = "raise",
 ) -> FilterResult:
     """EKF over a whole sequence: ``ys [..., T, dy]``, ``us [..., T, du]``, ``mask [..., T, dy]``.
 
     Jacobians come from ``model.transition_jacobian``/``observation_jacobian``
-    (``torch.func`` by default). Returns a :class:`~difffilter.results.FilterResult`.
+    (``torch.func`` by default). Input checks and ``nonfinite`` as in
+    :func:`difffilter.kalman_filter`. Returns a :class:`~difffilter.results.FilterResult`.
     """
-    return run_gaussian_filter(extended_kalman_step, model, ys, us, mask)
+    return run_gaussian_filter(_extended_kalman_step, model, ys, us, mask, nonfinite=nonfinite)
 
 
 class SigmaPoints:
@@ -123,7 +140,22 @@ def unscented_kalman_step(
     mask: Tensor | None = None,
     sigma_points: SigmaPoints | None = None,
 ) -> tuple[GaussianState, GaussianStepOutput]:
-    """One UKF step ``x_{k−1} → x_k``; shapes as in :func:`difffilter.kalman_step`."""
+    """One UKF step ``x_{k−1} → x_k``; shapes and input checks as in :func:`difffilter.kalman_step`."""
+    y, u, mask = check_step_inputs(model, state.mean, y, u, mask)
+    _check_sigma_points(sigma_points)
+    return _unscented_kalman_step(model, state, y, u, mask, sigma_points)
+
+
+def _check_sigma_points(sigma_points) -> None:
+    if sigma_points is not None and not isinstance(sigma_points, SigmaPoints):
+        raise TypeError(
+            f"sigma_points must be a SigmaPoints object (e.g. SigmaPoints(alpha=1.0)); "
+            f"got {type(sigma_points).__name__}"
+        )
+
+
+def _unscented_kalman_step(model, state, y, u=None, mask=None, sigma_points=None):
+    """:func:`unscented_kalman_step` without input validation."""
     sp = sigma_points or SigmaPoints()
     k = state.k
     n = state.mean.shape[-1]
@@ -163,14 +195,17 @@ def unscented_kalman_filter(
     *,
     mask: Tensor | None = None,
     sigma_points: SigmaPoints | None = None,
+    nonfinite: str = "raise",
 ) -> FilterResult:
-    """UKF over a whole sequence; shapes as in :func:`extended_kalman_filter`.
+    """UKF over a whole sequence; shapes, input checks and ``nonfinite`` as in
+    :func:`extended_kalman_filter`.
 
     ``sigma_points`` sets ``(α, β, κ)`` (default ``SigmaPoints(1, 2, 0)``).
     """
+    _check_sigma_points(sigma_points)
     sp = sigma_points or SigmaPoints()
 
     def step(model, state, y, u, m):
-        return unscented_kalman_step(model, state, y, u, m, sp)
+        return _unscented_kalman_step(model, state, y, u, m, sp)
 
-    return run_gaussian_filter(step, model, ys, us, mask)
+    return run_gaussian_filter(step, model, ys, us, mask, nonfinite=nonfinite)

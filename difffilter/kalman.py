@@ -22,7 +22,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from ._checks import check_mask, check_sequence
+from ._checks import check_sequence_inputs, check_step_inputs
 from .linalg import (
     cholesky_solve_right,
     gaussian_log_prob_chol,
@@ -145,8 +145,16 @@ def kalman_step(
         state: posterior of ``x_{k−1}`` (mean ``[..., dx]``, cov ``[..., dx, dx]``).
         y: ``[..., dy]``; u: ``[..., du]`` or ``None``; mask: ``[..., dy]`` bool or ``None``.
 
-    Returns the posterior of ``x_k`` and a :class:`GaussianStepOutput`.
+    The inputs are validated (:func:`difffilter._checks.check_step_inputs`): a NaN or Inf
+    in a received entry of ``y`` raises ``ValueError`` instead of poisoning every later
+    state. Returns the posterior of ``x_k`` and a :class:`GaussianStepOutput`.
     """
+    y, u, mask = check_step_inputs(model, state.mean, y, u, mask)
+    return _kalman_step(model, state, y, u, mask)
+
+
+def _kalman_step(model, state, y, u=None, mask=None):
+    """:func:`kalman_step` without input validation (the filters validate whole sequences)."""
     pred_mean, pred_cov = kalman_predict(model, state, u)
     k = state.k + 1
     H = model.observation_matrix(k)
@@ -160,23 +168,9 @@ def kalman_step(
     return GaussianState(mean, cov, k), out
 
 
-def _validate_inputs(model, ys, us, mask):
-    if not isinstance(ys, Tensor):
-        raise ValueError(
-            f"ys must be a tensor of shape [..., T, {model.dim_y}]; got {type(ys).__name__}"
-        )
-    if mask is not None:
-        mask = check_mask(mask, "mask", ys.shape)
-    check_sequence(ys, "ys", model.dim_y, allow_nan=None if mask is None else ~mask)
-    if mask is not None:
-        ys = torch.where(mask, ys, torch.zeros((), dtype=ys.dtype, device=ys.device))
-    if us is not None:
-        if model.dim_u == 0:
-            raise ValueError("us was given but the model has no input (dim_u = 0)")
-        check_sequence(us, "us", model.dim_u)
-        if us.shape[-2] != ys.shape[-2]:
-            raise ValueError(f"us must have T = {ys.shape[-2]} steps like ys; got {us.shape[-2]}")
-    return ys, us, mask
+def _validate_inputs(model, ys, us, mask, nonfinite="raise"):
+    """The shared sequence checks (:func:`difffilter._checks.check_sequence_inputs`)."""
+    return check_sequence_inputs(model, ys, us, mask, nonfinite=nonfinite)
 
 
 def run_gaussian_filter(
@@ -186,14 +180,16 @@ def run_gaussian_filter(
     us: Tensor | None = None,
     mask: Tensor | None = None,
     state: GaussianState | None = None,
+    *,
+    nonfinite: str = "raise",
 ) -> FilterResult:
     """Run an online ``step`` over a whole sequence and stack its outputs.
 
     ``ys [..., T, dy]``, ``us [..., T, du]``, ``mask [..., T, dy]``; returns a
     :class:`FilterResult` with every field batch first. The Python loop over time is
-    the only loop.
+    the only loop. ``nonfinite`` as in :func:`kalman_filter`.
     """
-    ys, us, mask = _validate_inputs(model, ys, us, mask)
+    ys, us, mask, skipped = _validate_inputs(model, ys, us, mask, nonfinite)
     num_steps = ys.shape[-2]
     batch = ys.shape[:-2]
     if us is not None:
@@ -208,7 +204,9 @@ def run_gaussian_filter(
         m = None if mask is None else mask[..., t, :]
         state, out = step(model, state, ys[..., t, :], u, m)
         outs.append(out)
-    return _stack_outputs(outs, batch)
+    result = _stack_outputs(outs, batch)
+    result.nonfinite_skipped = skipped
+    return result
 
 
 def _stack_outputs(outs: list[GaussianStepOutput], batch: torch.Size) -> FilterResult:
@@ -246,6 +244,7 @@ def kalman_filter(
     *,
     mask: Tensor | None = None,
     method: str = "sequential",
+    nonfinite: str = "raise",
 ) -> FilterResult:
     """Kalman filter of a linear-Gaussian model over a whole sequence.
 
@@ -261,16 +260,25 @@ def kalman_filter(
             IEEE TAC 2021: ``O(log T)`` batched operations instead of ``T`` small
             ones, fastest for a few long runs; equal to the sequential filter up to
             round-off).
+        nonfinite: ``"raise"`` (default): a NaN or ±Inf in a received entry of ``ys``
+            raises ``ValueError``; ``"skip"``: such entries are treated as unreceived
+            (folded into ``mask``) and counted per run in
+            ``result.nonfinite_skipped [...]``.
+
+    Every input is validated first (shape, dtype, finiteness, mask dtype and shape,
+    ``us`` batch; :func:`difffilter._checks.check_sequence_inputs`).
 
     Returns:
         :class:`~difffilter.results.FilterResult` (means ``[..., T, dx]``, covs
         ``[..., T, dx, dx]``, innovations, innovation covariances, log-likelihood ``[...]``).
     """
+    if method not in ("sequential", "parallel"):
+        raise ValueError(f"method must be 'sequential' or 'parallel'; got {method!r}")
     if method == "sequential":
-        return run_gaussian_filter(kalman_step, model, ys, us, mask)
-    if method == "parallel":
-        from .parallel_kalman import parallel_kalman_filter
+        return run_gaussian_filter(_kalman_step, model, ys, us, mask, nonfinite=nonfinite)
+    from .parallel_kalman import parallel_kalman_filter
 
-        ys, us, mask = _validate_inputs(model, ys, us, mask)
-        return parallel_kalman_filter(model, ys, us, mask)
-    raise ValueError(f"method must be 'sequential' or 'parallel'; got {method!r}")
+    ys, us, mask, skipped = _validate_inputs(model, ys, us, mask, nonfinite)
+    result = parallel_kalman_filter(model, ys, us, mask)
+    result.nonfinite_skipped = skipped
+    return result

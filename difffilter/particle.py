@@ -8,6 +8,15 @@ One step ``k−1 → k`` (weights in log space throughout)::
     evidence   log p̂(y_k | y_{1:k−1}) = logsumexp_i(log w^i + log α^i)        (log w normalised)
     normalise  log w_k^i = log w^i + log α^i − log p̂(y_k | y_{1:k−1})
 
+**Degenerate steps.** When every ``log w^i + log α^i`` of a run is ``−inf`` (a measurement
+so far from every particle that its likelihood underflows, e.g. one reading of 1e19 on
+a float32 model), the normalisation is ``−inf − (−inf) = NaN`` and would poison the run
+forever. Policy: that run's weights are reset to the predictive weights (``w^i`` times
+the proposal correction, normalised; uniform after resampling), the particles are kept,
+the step is flagged in ``degenerate`` (step output and filter result), its evidence
+increment stays ``−inf`` (the measurement had numerically zero likelihood: the
+log-likelihood says so rather than hiding it), and filtering continues.
+
 The bootstrap proposal is the transition (``c = 0``). ``log p̂(y_{1:T})`` is the sum of
 the increments; it is unbiased for ``p(y_{1:T})`` with multinomial-type resampling.
 Gradients flow through reparameterised proposals and the weights; whether they flow
@@ -25,7 +34,12 @@ from typing import NamedTuple, Protocol
 import torch
 from torch import Tensor
 
-from ._checks import check_positive_int
+from ._checks import (
+    check_ess_threshold,
+    check_positive_int,
+    check_step_inputs,
+    check_strategy,
+)
 from ._steps import StepRecorder
 from .kalman import _validate_inputs, joseph_covariance, kalman_gain
 from .linalg import (
@@ -72,8 +86,10 @@ class ParticleStepOutput(NamedTuple):
     """Per-step report: ``mean [..., dx]``, ``cov [..., dx, dx]``, the predicted state mean
     ``pred_mean = E[x_k | y_{1:k−1}]`` ``[..., dx]``, ``innovation = y − E[h(x_k) | y_{1:k−1}]``
     ``[..., dy]`` and its covariance (particle covariance of ``h`` plus ``R``) ``[..., dy, dy]``, ``log_likelihood`` increment
-    ``[...]``, ``ess [...]`` after weighting, ``resampled [...]`` (bool) and the normalised
-    predictive log-weights ``log w_{k−1}`` of the proposed particles ``[..., N]``."""
+    ``[...]``, ``ess [...]`` after weighting, ``resampled [...]`` (bool), the normalised
+    predictive log-weights ``log w_{k−1}`` of the proposed particles ``[..., N]`` and
+    ``degenerate [...]`` (bool: every weight of the run underflowed and was reset to the
+    predictive weights, see the module docstring)."""
 
     mean: Tensor
     cov: Tensor
@@ -84,6 +100,7 @@ class ParticleStepOutput(NamedTuple):
     ess: Tensor
     resampled: Tensor
     prior_log_weights: Tensor
+    degenerate: Tensor | None = None
 
 
 class Predictive(NamedTuple):
@@ -224,9 +241,50 @@ def particle_step(
 ) -> tuple[ParticleState, ParticleStepOutput]:
     """One particle-filter step ``x_{k−1} → x_k`` with measurement ``y_k [..., dy]``.
 
-    Args as in :func:`particle_filter`; ``u [..., du]``, ``mask [..., dy]``.
-    Returns the new :class:`ParticleState` and a :class:`ParticleStepOutput`.
+    Args as in :func:`particle_filter`; ``u [..., du]``, ``mask [..., dy]``. The inputs
+    are validated as in :func:`difffilter.kalman_step` (a NaN or Inf in a received entry
+    of ``y`` raises). Returns the new :class:`ParticleState` and a
+    :class:`ParticleStepOutput`.
     """
+    y, u, mask = check_step_inputs(model, state.particles, y, u, mask)
+    ess_threshold = _check_strategies(resampler, proposal, likelihood, ess_threshold)
+    return _particle_step(
+        model,
+        state,
+        y,
+        u,
+        mask,
+        resampler=resampler,
+        proposal=proposal,
+        likelihood=likelihood,
+        ess_threshold=ess_threshold,
+        generator=generator,
+        resample_generator=resample_generator,
+    )
+
+
+def _check_strategies(resampler, proposal, likelihood, ess_threshold) -> float:
+    check_strategy(resampler, "resampler", "difffilter.resampling.Systematic()")
+    check_strategy(proposal, "proposal", "difffilter.BootstrapProposal()")
+    check_strategy(likelihood, "likelihood", "difffilter.ModelLikelihood()")
+    return check_ess_threshold(ess_threshold)
+
+
+def _particle_step(
+    model,
+    state,
+    y,
+    u=None,
+    mask=None,
+    *,
+    resampler=None,
+    proposal=None,
+    likelihood=None,
+    ess_threshold=0.5,
+    generator=None,
+    resample_generator=None,
+):
+    """:func:`particle_step` without input validation (the filter validates whole sequences)."""
     resampler = resampler if resampler is not None else Systematic()
     proposal = proposal if proposal is not None else BootstrapProposal()
     likelihood = likelihood if likelihood is not None else ModelLikelihood()
@@ -283,6 +341,11 @@ def particle_step(
     joint = log_w + log_alpha
     increment = torch.logsumexp(joint, dim=-1)
     log_w_new = joint - increment.unsqueeze(-1)
+    # Degenerate runs (every joint weight −inf, or NaN): reset to the predictive weights
+    # (module docstring). One host sync per step; the reset itself only when needed.
+    degenerate = ~torch.isfinite(increment)
+    if bool(degenerate.any()):
+        log_w_new = torch.where(degenerate.unsqueeze(-1), prior_lw, log_w_new)
     w_new = torch.exp(log_w_new)
     ess_new = 1.0 / w_new.square().sum(-1)
     mean, cov = _moments(new, w_new)
@@ -296,6 +359,7 @@ def particle_step(
         ess=ess_new,
         resampled=need,
         prior_log_weights=prior_lw,
+        degenerate=degenerate,
     )
     return ParticleState(new, log_w_new, k + 1, ess_new), out
 
@@ -330,6 +394,7 @@ def particle_filter(
     return_particles: bool = False,
     initial_state: ParticleState | None = None,
     hooks: Sequence[StepHook] = (),
+    nonfinite: str = "raise",
 ) -> ParticleFilterResult:
     """Particle filter over a whole sequence.
 
@@ -356,24 +421,26 @@ def particle_filter(
             :class:`ParticleStepOutput`); their values are stacked over time into
             ``result.records[name]`` ``[..., T, ...]`` — what a detector needs, without
             keeping every particle (``return_particles``).
+        nonfinite: ``"raise"`` (default) or ``"skip"``, as in
+            :func:`difffilter.kalman_filter` (skipped entries are counted in
+            ``nonfinite_skipped``).
+
+    Inputs are validated first (:func:`difffilter._checks.check_sequence_inputs`);
+    ``resampler``, ``proposal`` and ``likelihood`` must be objects, not strings. A step
+    at which every weight of a run underflows is recovered and flagged in
+    ``degenerate`` (module docstring).
 
     Returns:
         :class:`~difffilter.results.ParticleFilterResult`: weighted means ``[..., T, dx]``,
         covariances, innovations and their covariances, ``log_likelihood [...]`` (the
-        particle estimate), ``ess [..., T]``, ``resampled [..., T]``.
+        particle estimate), ``ess [..., T]``, ``resampled [..., T]``, ``degenerate [..., T]``.
     """
     check_positive_int(num_particles, "num_particles")
-    if not 0.0 <= ess_threshold <= 1.0:
-        raise ValueError(f"ess_threshold must lie in [0, 1]; got {ess_threshold}")
-    ys, us, mask = _validate_inputs(model, ys, us, mask)
-    model_dtype = model.initial.mean.dtype
-    if ys.dtype != model_dtype:
-        raise ValueError(f"ys must have the model's dtype {model_dtype}; got {ys.dtype}")
+    ess_threshold = _check_strategies(resampler, proposal, likelihood, ess_threshold)
+    ys, us, mask, skipped = _validate_inputs(model, ys, us, mask, nonfinite)
     batch = ys.shape[:-2]
     if us is not None:
         batch = torch.broadcast_shapes(batch, us.shape[:-2])
-    if mask is not None:
-        batch = torch.broadcast_shapes(batch, mask.shape[:-2])
     state = (
         initial_state
         if initial_state is not None
@@ -383,7 +450,7 @@ def particle_filter(
     for t in range(ys.shape[-2]):
         u = None if us is None else us[..., t, :]
         m = None if mask is None else mask[..., t, :]
-        state, out = particle_step(
+        state, out = _particle_step(
             model,
             state,
             ys[..., t, :],
@@ -418,6 +485,8 @@ def particle_filter(
         log_likelihood=increments.sum(-1),
         ess=stack("ess", 0),
         resampled=stack("resampled", 0),
+        degenerate=stack("degenerate", 0),
+        nonfinite_skipped=skipped,
         particles=torch.stack(parts, dim=-3) if return_particles else None,
         log_weights=torch.stack(logws, dim=-2) if return_particles else None,
         records=records.stack(len(batch)),

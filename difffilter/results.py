@@ -56,6 +56,8 @@ class FilterResult:
         innovation_covs: ``S_t`` ``[..., T, dy, dy]``.
         log_likelihood_increments: ``log p(y_t | y_{1:t−1})`` ``[..., T]``.
         log_likelihood: ``log p(y_{1:T})`` ``[...]``.
+        nonfinite_skipped: with ``nonfinite="skip"``, the number of non-finite received
+            entries of ``ys`` treated as unreceived ``[...]`` (``None`` otherwise).
     """
 
     means: Tensor
@@ -66,6 +68,7 @@ class FilterResult:
     innovation_covs: Tensor
     log_likelihood_increments: Tensor
     log_likelihood: Tensor
+    nonfinite_skipped: Tensor | None = None
 
     def to_dict(self) -> dict[str, Tensor | None]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -82,6 +85,8 @@ class ParticleFilterResult(FilterResult):
     Attributes:
         ess: effective sample size after weighting ``[..., T]``.
         resampled: whether the particles were resampled before step ``t`` ``[..., T]``.
+        degenerate: whether every weight of the run underflowed at step ``t`` and was
+            reset to the predictive weights ``[..., T]`` (see :mod:`difffilter.particle`).
         particles: ``[..., T, N, dx]`` when requested (``return_particles=True``), else ``None``.
         log_weights: normalised log-weights ``[..., T, N]`` when requested, else ``None``.
         records: what the filter's step hooks recorded, ``{name: [..., T, ...]}``.
@@ -89,6 +94,7 @@ class ParticleFilterResult(FilterResult):
 
     ess: Tensor | None = None
     resampled: Tensor | None = None
+    degenerate: Tensor | None = None
     particles: Tensor | None = None
     log_weights: Tensor | None = None
     records: dict[str, Tensor] | None = None

@@ -14,12 +14,19 @@ A measurement sequence ``ys [..., T, dy]`` holds ``y_1 … y_T``; ``us [..., T, 
 from __future__ import annotations
 
 import inspect
+import numbers
 from collections.abc import Callable
 
 import torch
 from torch import Tensor, nn
 
-from ._checks import as_tensor, check_positive_definite, check_square, check_vector_last
+from ._checks import (
+    as_tensor,
+    check_finite,
+    check_positive_definite,
+    check_square,
+    check_vector_last,
+)
 from .linalg import matvec, rowwise
 from .noise import Gaussian, NoiseModel, register_tensor
 
@@ -51,7 +58,9 @@ def batched_jacobian(fn: Callable[..., Tensor], x: Tensor, *args: Tensor | None)
     jac = torch.func.vmap(torch.func.jacfwd(fn, argnums=0), in_dims=tuple(in_dims))(
         flat_x, *flat_args
     )
-    return jac.reshape(lead + jac.shape[-2:])
+    # In x's dtype: a function that promotes (e.g. builds a float64 constant from a Python
+    # float) would otherwise hand float64 Jacobians to a float32 filter.
+    return jac.reshape(lead + jac.shape[-2:]).to(x.dtype)
 
 
 class StateSpaceModel(nn.Module):
@@ -191,9 +200,12 @@ class LinearGaussianModel(StateSpaceModel):
         if H.dim() < 2 or H.shape[-1] != dx:
             raise ValueError(f"H must have shape [..., dy, {dx}]; got {tuple(H.shape)}")
         dy = H.shape[-2]
+        check_finite(F, "F")
+        check_finite(H, "H")
         check_positive_definite(Q, "Q", dx)
         check_positive_definite(R, "R", dy)
         check_vector_last(m0, "m0", dx)
+        check_finite(m0, "m0")
         check_positive_definite(P0, "P0", dx)
         self.dim_x, self.dim_y = dx, dy
         register_tensor(self, "F", F)
@@ -202,6 +214,7 @@ class LinearGaussianModel(StateSpaceModel):
             B = as_tensor(B, "B", dtype=dtype, device=device)
             if B.dim() < 2 or B.shape[-2] != dx:
                 raise ValueError(f"B must have shape [..., {dx}, du]; got {tuple(B.shape)}")
+            check_finite(B, "B")
             self.dim_u = B.shape[-1]
             register_tensor(self, "B", B)
         else:
@@ -294,8 +307,11 @@ class NonlinearGaussianModel(StateSpaceModel):
         check_positive_definite(Q, "Q", dx)
         check_positive_definite(R, "R", dy)
         check_vector_last(m0, "m0", dx)
+        check_finite(m0, "m0")
         check_positive_definite(P0, "P0", dx)
-        self.dim_x, self.dim_y, self.dim_u = dx, dy, dim_u
+        if isinstance(dim_u, bool) or not isinstance(dim_u, numbers.Integral) or dim_u < 0:
+            raise ValueError(f"dim_u must be an integer >= 0 (0: no input); got {dim_u!r}")
+        self.dim_x, self.dim_y, self.dim_u = dx, dy, int(dim_u)
         self._f, self._h = transition, observe
         self._f_arity, self._h_arity = _arity(transition), _arity(observe)
         self._jf, self._jh = transition_jacobian, observation_jacobian

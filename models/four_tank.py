@@ -30,6 +30,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from difffilter._checks import check_finite_number
 from difffilter.fdi.poa import poa_detector_for
 from difffilter.noise import Gaussian
 from difffilter.ssm import StateSpaceModel
@@ -119,9 +120,8 @@ class FourTankModel(StateSpaceModel):
         super().__init__()
         p = params or FourTankParameters()
         self.params = p
-        self._dt = float(dt)
-        if not self._dt > 0:
-            raise ValueError(f"dt must be > 0; got {dt}")
+        # finite too: dt = inf would be accepted by "> 0" and make every state NaN later
+        self._dt = check_finite_number(dt, "dt", positive=True)
         kw = {"dtype": dtype, "device": device}
         A = torch.tensor(p.A, **kw)
         a = torch.tensor(p.a, **kw)

@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
+from difffilter._checks import check_finite_number
 from difffilter.models.registry import Scenario, register
 
 __all__ = [
@@ -191,11 +192,13 @@ class LFCPlant(nn.Module):
         dtype=torch.float64,
     ):
         super().__init__()
+        # finite as well as positive: inf passes "> 0" and turns every later state NaN
+        dt = check_finite_number(dt, "dt", positive=True)
         if process_var is None:
-            process_var = 1e-6 * float(dt) / 0.01
-        if not (process_var > 0 and measurement_var > 0):
-            raise ValueError("process_var and measurement_var must be positive")
-        self.dt = float(dt)
+            process_var = 1e-6 * dt / 0.01
+        process_var = check_finite_number(process_var, "process_var", positive=True)
+        measurement_var = check_finite_number(measurement_var, "measurement_var", positive=True)
+        self.dt = dt
         self.params = params or LFCParameters()
         A, B, F = continuous_model(self.params, dtype=torch.float64)
         Ad, BFd = zoh_discretize(A, torch.cat([B, F], dim=1), self.dt)

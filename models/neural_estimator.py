@@ -22,6 +22,11 @@ tanh units and make the recurrent map (``M̂`` feeds back into ``δ``) unstable,
 
 from __future__ import annotations
 
+import hashlib
+import json
+import math
+from pathlib import Path
+
 import torch
 from torch import Tensor, nn
 
@@ -247,19 +252,29 @@ _CONFIG_TYPES = {
 }
 
 
+def checkpoint_sha256(path) -> str:
+    """Hex sha256 digest of the file at ``path`` (read in 1 MiB chunks)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
 def save_estimator_checkpoint(
     path, estimator: NeuralFDIEstimator, observer: dict | None = None, extra: dict | None = None
-) -> None:
+) -> str:
     """Write a weights-only checkpoint: tensors and plain Python values, never a pickled module.
 
     Layout: ``{"format", "estimator_config", "observer" (e.g. ``{"residual_lag": 0}``),
     "state_dict", "extra"}``; it loads with ``torch.load(path, weights_only=True)``.
+    Returns the sha256 of the written file (for the card beside it, see
+    :func:`load_estimator_checkpoint`). ``ValueError`` if a weight is not finite.
     """
-    from pathlib import Path
-
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().cpu().clone() for k, v in estimator.state_dict().items()}
+    _check_finite_weights(state, f"estimator to save at {path}")
+    path.parent.mkdir(parents=True, exist_ok=True)
     torch.save(
         {
             "format": CHECKPOINT_FORMAT,
@@ -270,20 +285,65 @@ def save_estimator_checkpoint(
         },
         path,
     )
+    return checkpoint_sha256(path)
 
 
-def load_estimator_checkpoint(path, *, dtype=torch.float64) -> tuple[NeuralFDIEstimator, dict]:
+def _check_finite_weights(state: dict, what: str) -> None:
+    bad = [
+        f"{k} ({int((~torch.isfinite(v)).sum())} of {v.numel()})"
+        for k, v in state.items()
+        if isinstance(v, Tensor) and v.is_floating_point() and not bool(torch.isfinite(v).all())
+    ]
+    if bad:
+        raise ValueError(f"ckpt: {what} holds non-finite (NaN/Inf) weights: {', '.join(bad)}")
+
+
+def _verify_sha256(path: Path, expected_sha256: str | None) -> None:
+    """Compare ``path``'s sha256 with ``expected_sha256``, or with the card beside it."""
+    source = "the expected_sha256 argument"
+    if expected_sha256 is None:
+        card = path.with_suffix(".json")
+        if not card.is_file():
+            return  # no card: nothing recorded to compare with (weights are still checked)
+        try:
+            info = json.loads(card.read_text())
+        except (OSError, ValueError) as exc:
+            raise ValueError(
+                f"ckpt: the card {card} beside {path} is not readable JSON ({exc})"
+            ) from exc
+        expected_sha256 = info.get("sha256") if isinstance(info, dict) else None
+        if not isinstance(expected_sha256, str):
+            raise ValueError(
+                f"ckpt: the card {card} beside {path} records no sha256 of the checkpoint; "
+                "re-export the checkpoint (its card then records one) or remove the stale card"
+            )
+        source = f"the card {card}"
+    actual = checkpoint_sha256(path)
+    if actual != expected_sha256.lower():
+        raise ValueError(
+            f"ckpt: {path} does not match the sha256 recorded in {source} (file corrupted or "
+            f"replaced): expected {expected_sha256}, got {actual}"
+        )
+
+
+def load_estimator_checkpoint(
+    path, *, dtype=torch.float64, expected_sha256: str | None = None
+) -> tuple[NeuralFDIEstimator, dict]:
     """Load a checkpoint written by :func:`save_estimator_checkpoint`.
+
+    Integrity: the file's sha256 is compared with ``expected_sha256`` when given, else
+    with the ``"sha256"`` of the card beside it (``path`` with suffix ``.json``, written
+    by ``ExportEstimator``) when that card exists; every weight must be finite.
 
     Returns ``(estimator, observer_config)``. ``FileNotFoundError`` if ``path`` does not
     exist; ``ValueError`` naming ``path`` if it is not such a checkpoint (wrong format,
-    missing keys, shapes that do not match the stored configuration).
+    missing keys, shapes that do not match the stored configuration, a sha256 that does
+    not match, non-finite weights).
     """
-    from pathlib import Path
-
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"ckpt: no checkpoint file at {path}")
+    _verify_sha256(path, expected_sha256)
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # unpickling errors come in many types
@@ -293,6 +353,11 @@ def load_estimator_checkpoint(path, *, dtype=torch.float64) -> tuple[NeuralFDIEs
     for key in ("estimator_config", "state_dict", "observer"):
         if key not in blob:
             raise ValueError(f"ckpt: {path} lacks the {key!r} entry")
+    if not isinstance(blob["state_dict"], dict):
+        raise ValueError(f"ckpt: {path} has a state_dict that is not a dict")
+    # Corrupted bytes inside a tensor's storage still unpickle (as NaN or huge weights):
+    # refuse non-finite ones before anything is evaluated with them.
+    _check_finite_weights(blob["state_dict"], str(path))
     cfg = blob["estimator_config"]
     unknown = set(cfg) - set(_CONFIG_TYPES)
     if unknown:
@@ -306,4 +371,7 @@ def load_estimator_checkpoint(path, *, dtype=torch.float64) -> tuple[NeuralFDIEs
         estimator.load_state_dict(state, strict=True)
     except (TypeError, RuntimeError) as exc:
         raise ValueError(f"ckpt: {path} does not match its own configuration ({exc})") from exc
+    for name, value in kwargs.items():
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError(f"ckpt: {path} has a non-finite setting {name} = {value}")
     return estimator, dict(blob["observer"])

@@ -50,12 +50,14 @@ def test_inputs_with_wrong_length(run):
         run(model, torch.zeros(5, 2, dtype=torch.float64), torch.zeros(4, 1, dtype=torch.float64))
 
 
-def test_mask_not_broadcastable():
-    with pytest.raises(ValueError, match="mask must broadcast"):
+@pytest.mark.parametrize("shape", [(4, 2), (1, 2), (3, 5, 2)], ids=str)
+def test_mask_must_have_the_shape_of_ys(shape):
+    # (1, 2) and (3, 5, 2) broadcast with ys (5, 2) but are not its shape
+    with pytest.raises(ValueError, match=r"mask must have the shape of ys \(5, 2\)"):
         df.kalman_filter(
             constant_velocity(),
             torch.zeros(5, 2, dtype=torch.float64),
-            mask=torch.ones(4, 2, dtype=torch.bool),
+            mask=torch.ones(shape, dtype=torch.bool),
         )
 
 

@@ -542,8 +542,10 @@ class ExportEstimator(pl.Callback):
             "dt": float(hp["dt"]),
             "kind": "kalman",
         }
-        save_estimator_checkpoint(self.path, module.estimator, observer)
-        estimator, _ = load_estimator_checkpoint(self.path)
+        digest = save_estimator_checkpoint(self.path, module.estimator, observer)
+        # verify against the digest just computed (a card from an earlier export may still
+        # lie beside the file; it is rewritten below)
+        estimator, _ = load_estimator_checkpoint(self.path, expected_sha256=digest)
         dm = trainer.datamodule
         channels = None if dm is None else dm.hparams.channels
         check = check_metric(
@@ -566,6 +568,7 @@ class ExportEstimator(pl.Callback):
             "description": "Neural FDI estimator (eqs 8-9) trained by TBPTT through the Kalman "
             "observer on random attacks; Sargolzaei et al., TII 2020",
             "checkpoint": self.path.name,
+            "sha256": digest,
             "selected_checkpoint": Path(best_path).name if best_path else None,
             "best_val_attack_rmse": None if best_score is None else float(best_score),
             "metrics_last_validation": metrics,

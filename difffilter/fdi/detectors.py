@@ -4,13 +4,22 @@ Both consume a filter's innovations ``r_k [..., T, m]`` and innovation covarianc
 ``S_k [..., T, m, m]`` (any difffilter filter result provides them) through the
 normalised innovation squared ``g_k = r_kᵀ S_k⁻¹ r_k``, which is χ²_m-distributed when
 the model is right and there is no attack.
+
+**Non-finite input raises.** A detector must never answer "no alarm" for a statistic it
+could not compute (``NaN > τ`` is false): NaN or ±Inf innovations, covariances or
+statistics ``g`` raise ``ValueError`` naming the argument, as do non-symmetric innovation
+covariances. Validate or clean the filter output (e.g. ``nonfinite="skip"`` in the
+filters) before detection.
 """
 
 from __future__ import annotations
 
+import numbers
+
 import torch
 from torch import Tensor
 
+from .._checks import check_finite_number, check_square, check_symmetric
 from ..linalg import mahalanobis_sq_chol, safe_cholesky
 
 __all__ = [
@@ -21,8 +30,27 @@ __all__ = [
 ]
 
 
+def _check_statistic(t, name: str) -> Tensor:
+    """``t`` must be a tensor with finite entries (a NaN would read as "no alarm")."""
+    if not isinstance(t, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor; got {type(t).__name__}")
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(
+            f"{name} contains NaN or Inf values; a detector cannot decide on a statistic it "
+            "could not compute (it raises instead of returning 'no alarm')"
+        )
+    return t
+
+
 def normalized_innovation_squared(innovations: Tensor, innovation_covs: Tensor) -> Tensor:
-    """``g_k = r_kᵀ S_k⁻¹ r_k``: ``[..., T, m]``, ``[..., T, m, m]`` → ``[..., T]``."""
+    """``g_k = r_kᵀ S_k⁻¹ r_k``: ``[..., T, m]``, ``[..., T, m, m]`` → ``[..., T]``.
+
+    ``ValueError`` for non-finite entries, non-symmetric or non-positive-definite ``S``.
+    """
+    _check_statistic(innovations, "innovations")
+    _check_statistic(innovation_covs, "innovation_covs")
+    check_square(innovation_covs, "innovation_covs", innovations.shape[-1])
+    check_symmetric(innovation_covs, "innovation_covs")
     return mahalanobis_sq_chol(innovations, safe_cholesky(innovation_covs, name="innovation_covs"))
 
 
@@ -66,12 +94,11 @@ class ChiSquareDetector:
     """
 
     def __init__(self, dim: int, false_alarm_rate: float = 0.01, window: int = 1):
-        if dim < 1:
-            raise ValueError(f"dim must be >= 1; got {dim}")
-        if not 0.0 < false_alarm_rate < 1.0:
+        for name, value in (("dim", dim), ("window", window)):
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
+        if not 0.0 < false_alarm_rate < 1.0:  # also rejects NaN
             raise ValueError(f"false_alarm_rate must lie in (0, 1); got {false_alarm_rate}")
-        if window < 1:
-            raise ValueError(f"window must be >= 1; got {window}")
         self.dim, self.false_alarm_rate, self.window = dim, false_alarm_rate, window
 
     @property
@@ -114,7 +141,10 @@ class ChiSquareDetector:
     def step(
         self, state: tuple[Tensor, int], g: Tensor
     ) -> tuple[tuple[Tensor, int], Tensor, Tensor]:
-        """Feed ``g_k [...]``; returns ``(state, score [...], alarm [...])`` as :meth:`detect` would."""
+        """Feed ``g_k [...]``; returns ``(state, score [...], alarm [...])`` as :meth:`detect` would.
+
+        ``ValueError`` for a non-finite ``g``."""
+        _check_statistic(g, "g")
         past, count = state
         score = g + past.sum(-1)
         dof = self.dim * min(count + 1, self.window)
@@ -133,20 +163,24 @@ class CusumDetector:
     Carlo on attack-free statistics.
 
     Args:
-        bias: ``b``.
-        threshold: ``τ`` (``None`` until calibrated).
+        bias: ``b``, a finite number ``> 0``.
+        threshold: ``τ``, a finite number ``≥ 0`` (``None`` until calibrated). A NaN
+            threshold would never alarm (``S > NaN`` is false) and is rejected, like
+            negative and infinite ones.
+
+    Non-finite statistics ``g`` raise ``ValueError`` (module docstring).
     """
 
     def __init__(self, bias: float, threshold: float | None = None):
-        if not bias > 0:
-            raise ValueError(f"bias must be > 0; got {bias}")
-        self.bias, self.threshold = float(bias), threshold
+        self.bias = check_finite_number(bias, "bias", positive=True)
+        self.threshold = None if threshold is None else _check_threshold(threshold)
 
     def run(self, g: Tensor, threshold: float | None = None) -> tuple[Tensor, Tensor]:
         """``(statistic [..., T], alarms [..., T])`` with reset after each alarm."""
-        tau = self.threshold if threshold is None else threshold
+        tau = self.threshold if threshold is None else _check_threshold(threshold)
         if tau is None:
             raise ValueError("threshold is not set: pass threshold= or call calibrate() first")
+        _check_statistic(g, "g")
         s = torch.zeros_like(g[..., 0])
         stats, alarms = [], []
         for t in range(g.shape[-1]):
@@ -159,6 +193,7 @@ class CusumDetector:
 
     def scores(self, g: Tensor) -> Tensor:
         """Statistic without resets ``[..., T]``: a threshold-free score for ROC curves."""
+        _check_statistic(g, "g")
         s = torch.zeros_like(g[..., 0])
         out = []
         for t in range(g.shape[-1]):
@@ -181,6 +216,7 @@ class CusumDetector:
         """``S_k = max(0, S_{k−1} + g_k − b)``; returns ``(state, S_k, alarm)``, resetting after an alarm."""
         if self.threshold is None:
             raise ValueError("threshold is not set: pass threshold= or call calibrate() first")
+        _check_statistic(g, "g")
         s = torch.clamp(state + g - self.bias, min=0.0)
         alarm = s > self.threshold
         return torch.where(alarm, torch.zeros_like(s), s), s, alarm
@@ -195,6 +231,7 @@ class CusumDetector:
         """
         if not 0.0 < false_alarm_rate < 1.0:
             raise ValueError(f"false_alarm_rate must lie in (0, 1); got {false_alarm_rate}")
+        _check_statistic(g_attack_free, "g_attack_free")
         lo, hi = 0.0, max(1.0, float(g_attack_free.sum(-1).max()))
         for _ in range(iterations):
             mid = 0.5 * (lo + hi)
@@ -205,3 +242,7 @@ class CusumDetector:
                 hi = mid
         self.threshold = hi
         return hi
+
+
+def _check_threshold(value) -> float:
+    return check_finite_number(value, "threshold", nonnegative=True)

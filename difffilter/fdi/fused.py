@@ -113,8 +113,13 @@ class FusedModifiedPF:
         ``initial_particles [B, N, dx]`` (default drawn from the prior with
         ``generator``, as :func:`~difffilter.particle.particle_init` does); ``generator``
         then draws the propagation noise and ``resample_generator`` the resampling
-        uniforms.
+        uniforms. Without ``resample_generator`` the uniforms come from ``generator`` too
+        (never from torch's global generator when a generator is given), so two runs
+        with equally seeded generators are identical; the draws are then ordered
+        differently from the composed filter's, which interleaves them.
         """
+        if resample_generator is None:
+            resample_generator = generator
         if ys.dim() != 3 or gamma_hat.shape != ys.shape:
             raise ValueError(
                 f"ys must be [B, T, dy] and gamma_hat the same shape; got {tuple(ys.shape)}, {tuple(gamma_hat.shape)}"

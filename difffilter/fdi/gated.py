@@ -28,10 +28,11 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from .._checks import check_filter_inputs
 from .._steps import StepRecorder
 from ..estimator import Detection, EstimatorOutput
 from ..extended import extended_kalman_step
-from ..kalman import _validate_inputs, gaussian_init, run_gaussian_filter
+from ..kalman import gaussian_init, run_gaussian_filter
 from ..results import GaussianState
 from .detectors import (
     ChiSquareDetector,
@@ -80,7 +81,7 @@ def gated_gaussian_filter(
     masked_chi2 = mask is not None and isinstance(detector, ChiSquareDetector)
     if masked_chi2 and detector.window != 1:
         raise ValueError("a measurement mask needs a ChiSquareDetector with window=1")
-    ys, us, mask = _validate_inputs(model, ys, us, mask)
+    ys, us, mask = check_filter_inputs(model, ys, us, mask)
     batch, dy = ys.shape[:-2], ys.shape[-1]
     if masked_chi2:  # quantile for each possible number of received entries (0: never alarm)
         fa = 1.0 - detector.false_alarm_rate

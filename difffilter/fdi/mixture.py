@@ -26,8 +26,8 @@ import math
 import torch
 from torch import Tensor
 
+from .._checks import check_filter_inputs
 from ..estimator import Detection, EstimatorOutput
-from ..kalman import _validate_inputs
 from ..noise import NoiseModel
 from ..particle import ParticleState, particle_filter
 from .modified_pf import driver_settings
@@ -156,7 +156,9 @@ def mixture_likelihood_particle_filter(
         )
     if not 0.0 <= float(threshold) <= 1.0:
         raise ValueError(f"threshold must lie in [0, 1] (a probability); got {threshold!r}")
-    ys, us, mask = _validate_inputs(model, ys, us, mask)
+    ys, us, mask = check_filter_inputs(
+        model, ys, us, mask, resampler=resampler, ess_threshold=ess_threshold
+    )
 
     def responsibility(model, y, m, state, out):  # P(l_k = 1 | ỹ_{1:k}) from w_{k−1}
         prior = out.prior_log_weights

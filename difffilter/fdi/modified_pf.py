@@ -33,9 +33,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._checks import check_filter_inputs
 from .._steps import StepRecorder
 from ..estimator import Detection, EstimatorOutput
-from ..kalman import _validate_inputs, kalman_gain
+from ..kalman import kalman_gain
 from ..linalg import masked_measurement
 from ..particle import (
     ModelLikelihood,
@@ -321,7 +322,9 @@ def modified_particle_filter(
     """
     if not isinstance(detector, PoADetector):
         raise ValueError(f"detector must be a PoADetector; got {type(detector).__name__}")
-    ys, us, mask = _validate_inputs(model, ys, us, mask)
+    ys, us, mask = check_filter_inputs(
+        model, ys, us, mask, resampler=resampler, ess_threshold=ess_threshold, gamma_hat=gamma_hat
+    )
     batch, T = ys.shape[:-2], ys.shape[-2]
     if fused:
         return _run_fused(
@@ -433,7 +436,9 @@ def particle_filter_poa(
         raise ValueError("pass either literal=True or a likelihood, not both")
     if literal and mask is not None:
         raise ValueError("literal=True does not support a measurement mask (mask must be None)")
-    ys, us, mask = _validate_inputs(model, ys, us, mask)
+    ys, us, mask = check_filter_inputs(
+        model, ys, us, mask, resampler=resampler, ess_threshold=ess_threshold
+    )
     R = model.measurement_cov(1)
 
     def poa(model, y, m, state, out):

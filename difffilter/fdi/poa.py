@@ -149,6 +149,12 @@ def _exceed(residuals: Tensor, eta) -> Tensor:
     eta = torch.as_tensor(eta, dtype=residuals.dtype, device=residuals.device)
     if bool((eta < 0).any()) or not bool(torch.isfinite(eta).all()):
         raise ValueError("eta must be finite and >= 0")
+    if bool(torch.isnan(residuals).any()):
+        # NaN > η² is false: a NaN residual would silently count as "below threshold"
+        raise ValueError(
+            "residuals contains NaN values; the PoA cannot tell whether they exceed eta "
+            "(±Inf residuals are allowed and count as exceeding)"
+        )
     # ‖z‖ > η ⇔ ‖z‖² > η² (η ≥ 0): no square root per particle
     return residuals.square().sum(-1) > (eta * eta).unsqueeze(-1)
 
@@ -166,6 +172,10 @@ def probability_of_attack(residuals: Tensor, eta, log_weights: Tensor | None = N
     Returns ``β`` ``[...]`` in ``[0, 1]``. Rows whose weights are all equal use the exact
     count ``#{‖z^i‖ > η}/N`` (a float sum of ``1/N``'s is not exact, and ``β = ζ`` must
     not raise an alarm by round-off).
+
+    Never silently "no attack": NaN residuals raise ``ValueError`` (``±Inf`` residuals
+    exceed any ``η``), as do log-weights that are NaN or all ``−inf`` in a row (``β``
+    would be NaN and ``NaN > ζ`` false).
     """
     exceed = _exceed(residuals, eta).to(residuals.dtype)
     if log_weights is None:
@@ -175,6 +185,11 @@ def probability_of_attack(residuals: Tensor, eta, log_weights: Tensor | None = N
             f"log_weights must have shape [..., {residuals.shape[-2]}] (one per particle); got {tuple(log_weights.shape)}"
         )
     beta = (torch.softmax(log_weights, dim=-1) * exceed).sum(-1)
+    if bool(torch.isnan(beta).any()):
+        raise ValueError(
+            "log_weights are NaN or all -inf in some row; the PoA of such a row is undefined "
+            "(normalisable log-weights needed)"
+        )
     equal = (log_weights == log_weights[..., :1]).all(-1)
     return torch.where(equal, exceed.mean(-1), beta)
 

@@ -1,0 +1,325 @@
+"""Property-based tests: generated malformed inputs to the public API end in a clear error.
+
+Every example calls a public filter, online step, detector or model constructor with one
+malformed argument and must raise ``ValueError`` or ``TypeError`` whose message names that
+argument. The ``max_examples`` below sum to more than 1,000 per run; each call fails in
+the input checks, before any filtering, so the whole module takes seconds.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from conftest import constant_velocity
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import difffilter as df
+from difffilter import fdi
+from difffilter.models.four_tank import FourTankModel
+from difffilter.models.lfc import LFCPlant
+
+F64 = torch.float64
+SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=False)
+
+CV = constant_velocity(with_input=True)  # dx = 4, dy = 2, du = 1, float64
+TANK = FourTankModel(dtype=F64)  # dy = 4, no input
+
+
+def _pf(model, ys, us=None, **kw):
+    return df.particle_filter(model, ys, us, num_particles=4, **kw)
+
+
+def _kf_par(model, ys, us=None, **kw):
+    return df.kalman_filter(model, ys, us, method="parallel", **kw)
+
+
+SEQUENCE_FILTERS = {
+    "kf": df.kalman_filter,
+    "kf_parallel": _kf_par,
+    "ekf": df.extended_kalman_filter,
+    "ukf": df.unscented_kalman_filter,
+    "pf": _pf,
+}
+
+
+def _fdi(name):
+    det = fdi.PoADetector(0.2, 0.3)
+    if name == "gated":
+        return lambda ys: fdi.gated_extended_kalman_filter(
+            TANK, ys, detector=fdi.ChiSquareDetector(4)
+        )
+    if name == "modified":
+        return lambda ys: fdi.modified_particle_filter(
+            TANK, ys, num_particles=4, detector=det, gamma_hat=torch.zeros(2, 3, 4, dtype=F64)
+        )
+    return lambda ys: fdi.particle_filter_poa(TANK, ys, num_particles=4, detector=det)
+
+
+FDI_FILTERS = {name: _fdi(name) for name in ("gated", "modified", "poa")}
+
+
+def raises_naming(name, fn, *args, **kwargs):
+    with pytest.raises((ValueError, TypeError)) as info:
+        fn(*args, **kwargs)
+    assert name in str(info.value), f"message does not name {name!r}: {info.value}"
+
+
+# ------------------------------------------------------------------------ strategies
+
+non_finite = st.sampled_from([math.nan, math.inf, -math.inf])
+batch_shapes = st.lists(st.integers(1, 3), min_size=0, max_size=2).map(tuple)
+
+
+@st.composite
+def malformed_ys(draw, dy: int):
+    """A measurement sequence that is wrong in exactly one way (for a float64 model)."""
+    batch = draw(batch_shapes)
+    T = draw(st.integers(1, 4))
+    kind = draw(
+        st.sampled_from(
+            ["dim", "ndim", "empty", "float32", "int", "bool", "nonfinite", "list", "none", "str"]
+        )
+    )
+    good = torch.zeros(*batch, T, dy, dtype=F64)
+    if kind == "dim":
+        return torch.zeros(*batch, T, draw(st.integers(0, 6).filter(lambda d: d != dy)), dtype=F64)
+    if kind == "ndim":
+        return torch.zeros(dy + draw(st.integers(1, 3)), dtype=F64)  # 1-D, no time axis
+    if kind == "empty":
+        return torch.zeros(*batch, 0, dy, dtype=F64)
+    if kind == "float32":
+        return good.float()
+    if kind == "int":
+        return good.long()
+    if kind == "bool":
+        return good.bool()
+    if kind == "nonfinite":
+        flat = good.view(-1)
+        flat[draw(st.integers(0, flat.numel() - 1))] = draw(non_finite)
+        return good
+    if kind == "list":
+        return good.tolist()
+    if kind == "none":
+        return None
+    return "ys"
+
+
+@st.composite
+def malformed_y(draw, dy: int):
+    """One step's measurement ``[2, dy]`` that is wrong in exactly one way."""
+    kind = draw(st.sampled_from(["dim", "scalar", "float32", "int", "bool", "nonfinite", "list"]))
+    good = torch.zeros(2, dy, dtype=F64)
+    if kind == "dim":
+        return torch.zeros(2, draw(st.integers(0, 6).filter(lambda d: d != dy)), dtype=F64)
+    if kind == "scalar":
+        return torch.tensor(0.0, dtype=F64)
+    if kind == "float32":
+        return good.float()
+    if kind == "int":
+        return good.long()
+    if kind == "bool":
+        return good.bool()
+    if kind == "nonfinite":
+        good.view(-1)[draw(st.integers(0, good.numel() - 1))] = draw(non_finite)
+        return good
+    return good.tolist()
+
+
+@st.composite
+def malformed_mask(draw, shape):
+    kind = draw(st.sampled_from(["float", "int", "shape", "list"]))
+    if kind == "float":
+        return torch.full(shape, draw(st.floats(0, 1)), dtype=F64)
+    if kind == "int":
+        return torch.ones(shape, dtype=torch.int64)
+    if kind == "list":
+        return np.ones(shape, dtype=bool)
+    other = draw(st.lists(st.integers(1, 3), min_size=1, max_size=4).map(tuple))
+    if other == tuple(shape):
+        other = (*other, 1)
+    return torch.ones(other, dtype=torch.bool)
+
+
+@st.composite
+def malformed_us(draw, batch, T):
+    kind = draw(st.sampled_from(["int", "bool", "dim", "steps", "batch", "nonfinite", "float32"]))
+    good = torch.zeros(*batch, T, 1, dtype=F64)
+    if kind == "int":
+        return good.long()
+    if kind == "bool":
+        return good.bool()
+    if kind == "float32":
+        return good.float()
+    if kind == "dim":
+        return torch.zeros(*batch, T, draw(st.integers(2, 4)), dtype=F64)
+    if kind == "steps":
+        return torch.zeros(*batch, T + draw(st.integers(1, 3)), 1, dtype=F64)
+    if kind == "batch":
+        return torch.zeros(batch[0] + draw(st.integers(1, 3)), T, 1, dtype=F64)
+    good.view(-1)[draw(st.integers(0, good.numel() - 1))] = draw(non_finite)
+    return good
+
+
+bad_probability = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True).filter(lambda x: not 0.0 <= x <= 1.0),
+    st.sampled_from([None, "0.5", [0.5], True]),
+)
+bad_positive = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True).filter(
+        lambda x: not (math.isfinite(x) and x > 0)
+    ),
+    st.sampled_from([None, "1.0"]),
+)
+bad_nonnegative = st.floats(allow_nan=True, allow_infinity=True).filter(
+    lambda x: not (math.isfinite(x) and x >= 0)
+)
+
+
+# ------------------------------------------------------------------------- the tests
+
+
+@settings(max_examples=250, **SETTINGS)
+@given(name=st.sampled_from(sorted(SEQUENCE_FILTERS)), ys=malformed_ys(2))
+def test_filters_reject_malformed_ys(name, ys):
+    raises_naming("ys", SEQUENCE_FILTERS[name], CV, ys)
+
+
+@settings(max_examples=120, **SETTINGS)
+@given(name=st.sampled_from(sorted(FDI_FILTERS)), ys=malformed_ys(4))
+def test_fdi_filters_reject_malformed_ys(name, ys):
+    raises_naming("ys", FDI_FILTERS[name], ys)
+
+
+@settings(max_examples=150, **SETTINGS)
+@given(
+    name=st.sampled_from(sorted(SEQUENCE_FILTERS)),
+    T=st.integers(1, 4),
+    data=st.data(),
+)
+def test_filters_reject_malformed_mask_and_us(name, T, data):
+    ys = torch.zeros(2, T, 2, dtype=F64)
+    if data.draw(st.booleans()):
+        raises_naming(
+            "mask", SEQUENCE_FILTERS[name], CV, ys, mask=data.draw(malformed_mask(ys.shape))
+        )
+    else:
+        raises_naming("us", SEQUENCE_FILTERS[name], CV, ys, data.draw(malformed_us((2,), T)))
+
+
+STEPS = {
+    "kf": df.kalman_step,
+    "ekf": df.extended_kalman_step,
+    "ukf": df.unscented_kalman_step,
+}
+
+
+def _step(name):
+    if name == "pf":
+        return lambda model, state, y, u=None, mask=None: df.particle_step(
+            model, df.particle_init(model, 4, (2,)), y, u, mask
+        )
+    return STEPS[name]
+
+
+@settings(max_examples=200, **SETTINGS)
+@given(name=st.sampled_from(["kf", "ekf", "ukf", "pf"]), data=st.data())
+def test_online_steps_reject_malformed_y_mask_u(name, data):
+    state = df.gaussian_init(CV, (2,))
+    good = torch.zeros(2, 2, dtype=F64)
+    which = data.draw(st.sampled_from(["y", "mask", "u"]))
+    step = _step(name)
+    if which == "y":
+        raises_naming("y", step, CV, state, data.draw(malformed_y(2)))
+    elif which == "mask":
+        raises_naming("mask", step, CV, state, good, None, data.draw(malformed_mask((2, 2))))
+    else:
+        u = data.draw(malformed_us((2,), 1))[..., 0, :]
+        if u.shape == (2, 1) and u.dtype == F64 and bool(torch.isfinite(u).all()):
+            u = torch.zeros(3, 1, dtype=F64)  # "steps" has no meaning for one step: batch
+        raises_naming("u", step, CV, state, good, u)
+
+
+@settings(max_examples=150, **SETTINGS)
+@given(
+    which=st.sampled_from(
+        ["ess_threshold", "resampler", "proposal", "likelihood", "num_particles"]
+    ),
+    data=st.data(),
+)
+def test_particle_filter_rejects_malformed_settings(which, data):
+    ys = torch.zeros(2, 3, 2, dtype=F64)
+    if which == "ess_threshold":
+        kw = {"ess_threshold": data.draw(bad_probability), "num_particles": 4}
+    elif which == "num_particles":
+        bad = st.one_of(st.integers(max_value=0), st.floats(allow_nan=True), st.just(True))
+        kw = {"num_particles": data.draw(bad)}
+    else:
+        kw = {which: data.draw(st.one_of(st.text(max_size=12), st.integers())), "num_particles": 4}
+    raises_naming(which, df.particle_filter, CV, ys, **kw)
+
+
+@settings(max_examples=150, **SETTINGS)
+@given(which=st.sampled_from(["bias", "threshold", "g", "dim", "innovations"]), data=st.data())
+def test_detectors_reject_malformed_arguments(which, data):
+    if which == "bias":
+        raises_naming("bias", fdi.CusumDetector, data.draw(bad_positive), 1.0)
+    elif which == "threshold":
+        raises_naming("threshold", fdi.CusumDetector, 3.0, data.draw(bad_nonnegative))
+    elif which == "dim":
+        bad = st.one_of(st.integers(max_value=0), st.floats(allow_nan=True), st.just(True))
+        raises_naming("dim", fdi.ChiSquareDetector, data.draw(bad))
+    elif which == "g":
+        g = torch.ones(2, data.draw(st.integers(1, 5)), dtype=F64)
+        g.view(-1)[data.draw(st.integers(0, g.numel() - 1))] = data.draw(non_finite)
+        det = fdi.CusumDetector(3.0, 1.0)
+        raises_naming("g", data.draw(st.sampled_from([det.run, det.scores])), g)
+    else:
+        T = data.draw(st.integers(1, 4))
+        innov = torch.zeros(2, T, 2, dtype=F64)
+        innov.view(-1)[data.draw(st.integers(0, innov.numel() - 1))] = data.draw(non_finite)
+        S = torch.eye(2, dtype=F64).expand(2, T, 2, 2)
+        raises_naming("innovations", fdi.ChiSquareDetector(2).detect, innov, S)
+
+
+MATRICES = ["F", "H", "Q", "R", "m0", "P0", "B"]
+
+
+@settings(max_examples=150, **SETTINGS)
+@given(which=st.sampled_from(MATRICES + ["dt", "process_var", "dim_u"]), data=st.data())
+def test_models_reject_poisoned_arguments(which, data):
+    if which in MATRICES:
+        args = dict(
+            F=CV.F, H=CV.H, Q=CV.process_noise.cov, R=CV.measurement_noise.cov,
+            m0=CV.initial.mean, P0=CV.initial.cov, B=CV.B,
+        )  # fmt: skip
+        bad = args[which].clone()
+        bad.view(-1)[data.draw(st.integers(0, bad.numel() - 1))] = data.draw(non_finite)
+        args[which] = bad
+        raises_naming(which, df.LinearGaussianModel, **args)
+    elif which == "dt":
+        raises_naming("dt", FourTankModel, dt=data.draw(bad_positive))
+    elif which == "process_var":
+        raises_naming(
+            "process_var",
+            LFCPlant,
+            process_var=data.draw(bad_positive.filter(lambda v: v is not None)),
+        )
+    else:
+        bad = st.one_of(st.integers(max_value=-1), st.floats(allow_nan=True), st.just(True))
+        raises_naming(
+            "dim_u",
+            df.NonlinearGaussianModel,
+            lambda x: x, lambda x: x, torch.eye(2), torch.eye(2), torch.zeros(2), torch.eye(2),
+            dim_u=data.draw(bad),
+        )  # fmt: skip
+
+
+def test_examples_sum_to_at_least_1000():
+    tests = [v for k, v in globals().items() if k.startswith("test_") and hasattr(v, "hypothesis")]
+    assert len(tests) == 7
+    total = sum(t._hypothesis_internal_use_settings.max_examples for t in tests)
+    assert total >= 1000
