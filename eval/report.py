@@ -130,6 +130,7 @@ SUMMARY_COLUMNS = {  # metrics.json key -> terminal column label
     "state_rmse_vs_attack_free": "vs attack-free",
     "state5_rmse": "state-5 RMSE",
     "attack_rmse": "attack RMSE",
+    "attack_rmse_eq43": "eq.43 RMSE",
     "tpr": "TPR",
     "fpr": "FPR",
     "auc": "AUC",

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import json
 
+import jsonschema
 import pytest
 import torch
 
 from difffilter.eval.lfc import run_lfc
-from difffilter.eval.report import REQUIRED_KEYS
+from difffilter.eval.report import REQUIRED_KEYS, metrics_schema
 from difffilter.models.neural_estimator import NeuralFDIEstimator, save_estimator_checkpoint
 
 
@@ -35,6 +36,7 @@ def smoke(tmp_path_factory):
 def test_metrics_json_follows_the_schema(smoke):
     out, result = smoke
     doc = json.loads((out / "lfc_simultaneous" / "metrics.json").read_text())
+    jsonschema.validate(doc, metrics_schema())
     assert doc["scenario"] == "lfc_simultaneous" and doc["runs"] == 2 and doc["steps"] == 150
     assert doc["paper"]["proposed_ad"] == pytest.approx(0.133867)
     est = doc["estimators"]
@@ -53,17 +55,18 @@ def test_metrics_json_follows_the_schema(smoke):
         assert entry["state5_rmse"] > 0, name
     for name in ("kf_nn_ekf", "traditional_ad", "kf_nn_grad", "kf_nn_grad_ekf"):
         e = est[name]
-        assert e["attack_rmse"] > 0 and set(e["attack_rmse_per_channel"]) == {"dPtu_1", "dPtu_2"}
-        # Scenario III's metric is the sum over the two attacked channels (eq. 43, Table I).
-        assert e["attack_rmse"] == pytest.approx(
-            sum(e["attack_rmse_per_channel"].values()), rel=0.05
-        )
+        per_channel = e["attack_rmse_eq43_per_channel"]
+        assert e["attack_rmse_eq43"] > 0 and set(per_channel) == {"dPtu_1", "dPtu_2"}
+        # Scenario III's paper metric is the sum over the two attacked channels (eq. 43, Table I).
+        assert e["attack_rmse_eq43"] == pytest.approx(sum(per_channel.values()), rel=0.05)
+        # the shared, pooled definition: attacked steps × all ten channels
+        assert 0 < e["attack_rmse"] < e["attack_rmse_eq43"]
         assert 0 <= e["tpr"] <= 1 and 0 <= e["fpr"] <= 1
     assert est["uncompensated"]["attack_rmse"] is None
     assert 0 < est["chi_square_kf"]["tpr"] <= 1 and est["chi_square_kf"]["auc"] > 0.5
-    assert result["lfc_simultaneous"]["estimators"]["kf_nn_grad"]["attack_rmse"] == pytest.approx(
-        est["kf_nn_grad"]["attack_rmse"]
-    )
+    assert result["lfc_simultaneous"]["estimators"]["kf_nn_grad"][
+        "attack_rmse_eq43"
+    ] == pytest.approx(est["kf_nn_grad"]["attack_rmse_eq43"])
 
 
 def test_report_plots_and_tensorboard(smoke):
@@ -125,4 +128,4 @@ def test_uncompensated_and_skipped_without_checkpoint(tmp_path):
     # (0.4 from t = 3 s) is outside 60 steps, so the uncompensated loop is attack-free here.
     unc = res["estimators"]["uncompensated"]
     assert unc["state5_rmse"] == pytest.approx(unc["state5_rmse_attack_free"])
-    assert torch.isfinite(torch.tensor(res["estimators"]["kf_nn_ekf"]["attack_rmse"]))
+    assert torch.isfinite(torch.tensor(res["estimators"]["kf_nn_ekf"]["attack_rmse_eq43"]))
