@@ -11,8 +11,9 @@ scenario are one batched tensor program), scores them and writes per scenario::
                                       (Figs 4, 6, 9, 11), Fig. 7 for the 1 ms variant
     <out>/<scenario>/tb/              TensorBoard events (scalars and figures)
 
-and once per call the per-channel validation (random attacks on each of the ten
-measurement channels, validation seeds) in ``<out>/lfc_per_channel/``.
+and, when asked for (``per_channel_runs > 0``; ``difffilter-eval --per-channel``), once per
+call the per-channel validation (random attacks on each of the ten measurement channels,
+validation seeds) in ``<out>/lfc_per_channel/``, with its wall time in its metrics.json.
 
 Metrics (per estimator):
 
@@ -461,7 +462,9 @@ def per_channel_validation(
     ]
     checkpoint = None if ckpt_blob is None else ckpt_blob[:2]
     table: dict[str, dict[str, float]] = {}
-    update, close = _progress(len(names) * steps, "per-channel validation", progress)
+    desc = f"per-channel validation ({len(names)} estimators x {STATE_DIM * R} runs)"
+    update, close = _progress(len(names) * steps, desc, progress)
+    start = time.perf_counter()
     try:
         for name in names:
             rec, _ = run_estimator(
@@ -478,6 +481,9 @@ def per_channel_validation(
             table[name] = _per_channel(rec.attack_est, attack, R)
     finally:
         close()
+    wall = time.perf_counter() - start
+    if progress:  # its cost, beside the scenarios' bars
+        print(f"per-channel validation: {wall:.1f} s", flush=True)
     table["zero_estimate"] = _per_channel(torch.zeros_like(attack), attack, R)
     folder = out / "lfc_per_channel"
     folder.mkdir(parents=True, exist_ok=True)
@@ -488,6 +494,7 @@ def per_channel_validation(
         "dt": dt,
         "channels": list(STATE_NAMES),
         "attack_rmse": table,
+        "wall_time_s": wall,
     }
     (folder / "metrics.json").write_text(json.dumps(doc, indent=2) + "\n")
     _per_channel_plot(folder / "per_channel.png", table)
