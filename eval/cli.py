@@ -50,6 +50,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--seed", type=int, default=0, help="master seed of every random draw (default 0)"
     )
+    p.add_argument(
+        "--per-channel",
+        action="store_true",
+        help="also run the LFC per-channel validation (random attacks on each channel, "
+        "80 runs x 6 estimators x 1000 steps; its wall time goes into its metrics.json)",
+    )
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     p.add_argument("--list", action="store_true", help="list the registered scenarios and exit")
     return p
@@ -77,6 +83,7 @@ def evaluate(
     out: Path,
     seed: int,
     progress: bool,
+    per_channel: bool = False,
 ) -> dict:
     """Evaluate every scenario; returns ``{scenario: metrics}``.
 
@@ -98,6 +105,7 @@ def evaluate(
             module, func = evaluator.split(":")
             run = getattr(importlib.import_module(module), func)
             kwargs = {"out": Path(out), "seed": seed, "progress": progress, "ckpt": ckpt}
+            kwargs["per_channel"] = per_channel  # a family's optional extra study
             if runs is not None:
                 kwargs["runs"] = runs
             results.update(run(names, **kwargs))
@@ -127,6 +135,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             out=args.out,
             seed=args.seed,
             progress=not args.no_progress,
+            per_channel=args.per_channel,
         )
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-eval: error: {exc}", file=sys.stderr)

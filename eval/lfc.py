@@ -11,8 +11,9 @@ scenario are one batched tensor program), scores them and writes per scenario::
                                       (Figs 4, 6, 9, 11), Fig. 7 for the 1 ms variant
     <out>/<scenario>/tb/              TensorBoard events (scalars and figures)
 
-and once per call the per-channel validation (random attacks on each of the ten
-measurement channels, validation seeds) in ``<out>/lfc_per_channel/``.
+and, when asked for (``per_channel_runs > 0``; ``difffilter-eval --per-channel``), once per
+call the per-channel validation (random attacks on each of the ten measurement channels,
+validation seeds) in ``<out>/lfc_per_channel/``, with its wall time in its metrics.json.
 
 Metrics (per estimator):
 
@@ -469,7 +470,9 @@ def per_channel_validation(
     ]
     checkpoint = None if ckpt_blob is None else ckpt_blob[:2]
     table: dict[str, dict[str, float]] = {}
-    update, close = _progress(len(names) * steps, "per-channel validation", progress)
+    desc = f"per-channel validation ({len(names)} estimators x {STATE_DIM * R} runs)"
+    update, close = _progress(len(names) * steps, desc, progress)
+    start = time.perf_counter()
     try:
         for name in names:
             rec, _ = run_estimator(
@@ -486,6 +489,9 @@ def per_channel_validation(
             table[name] = _per_channel(rec.attack_est, attack, R)
     finally:
         close()
+    wall = time.perf_counter() - start
+    if progress:  # its cost, beside the scenarios' bars
+        print(f"per-channel validation: {wall:.1f} s", flush=True)
     table["zero_estimate"] = _per_channel(torch.zeros_like(attack), attack, R)
     folder = out / "lfc_per_channel"
     folder.mkdir(parents=True, exist_ok=True)
@@ -496,6 +502,7 @@ def per_channel_validation(
         "dt": dt,
         "channels": list(STATE_NAMES),
         "attack_rmse": table,
+        "wall_time_s": wall,
     }
     (folder / "metrics.json").write_text(json.dumps(doc, indent=2) + "\n")
     _per_channel_plot(folder / "per_channel.png", table)
@@ -813,6 +820,7 @@ def run_lfc(
     progress: bool = True,
     per_channel_runs: int = 8,
     max_steps: int | None = None,
+    per_channel: bool = True,
 ) -> dict:
     """Monte Carlo evaluation of the LFC scenarios; returns ``{scenario: metrics dict}``.
 
@@ -826,6 +834,8 @@ def run_lfc(
         per_channel_runs: runs per channel of the per-channel validation (0 disables it).
         max_steps: truncate every horizon to this many steps (smoke tests only; the reported
             numbers need the full 10 s).
+        per_channel: run the per-channel validation at all (``difffilter-eval
+            --per-channel``; ``False`` is ``per_channel_runs=0``).
     """
     if isinstance(scenarios, str):
         scenarios = [scenarios]
@@ -850,7 +860,7 @@ def run_lfc(
     ckpt_blob = _load_checkpoint(ckpt) if ckpt is not None else None
     start = time.perf_counter()
     per_channel = None
-    if per_channel_runs > 0:
+    if per_channel and per_channel_runs > 0:
         # Validation seeds: disjoint from the test seed by construction (offset 10⁶).
         per_channel = per_channel_validation(
             ckpt_blob=ckpt_blob,

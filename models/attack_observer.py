@@ -367,7 +367,16 @@ class ClosedLoop:
                 f"attack must have shape [B or 1, {L}, {n}]; got {tuple(attack.shape)}"
             )
         x, u, obs = state.x, state.u, state.observer
-        rec = {k: [] for k in ("x", "z", "u", "attack_est", "mean", "innovation", "icov", "logit")}
+        # Without autograd (evaluation) the trajectories go into buffers allocated once and
+        # filled in place. Appending T small per-step tensors and stacking them at the end
+        # left thousands of long-lived small blocks interleaved with each step's large
+        # temporaries (the learners' Jacobians, ρ updates): the heap could not reuse or trim
+        # the holes between them, so memory grew with every step and each allocation got
+        # slower (time superlinear in the horizon). With autograd (TBPTT training) the
+        # per-step tensors are graph nodes anyway; they are kept and stacked as before.
+        keep_graph = torch.is_grad_enabled()
+        keys = ("x", "z", "u", "attack_est", "mean", "innovation", "icov", "logit")
+        rec: dict = {k: [] for k in keys} if keep_graph else dict.fromkeys(keys)
         for t in range(L):
             x = self.plant.step(x, u, load, xi[:, t])
             z = x + attack[:, t] + theta[:, t]
@@ -384,17 +393,32 @@ class ClosedLoop:
                 ("icov", out.innovation_cov),
                 ("logit", out.logit),
             ):
-                rec[key].append(val)
+                if keep_graph:
+                    rec[key].append(val)
+                elif val is not None:
+                    if rec[key] is None:  # shapes are known at the first step
+                        # innovation_cov [T, n, n] is shared by the runs; the rest [B, T, ...]
+                        shape = (L, *val.shape) if key == "icov" else (B, L, *val.shape[1:])
+                        rec[key] = val.new_empty(shape)
+                    if key == "icov":
+                        rec[key][t] = val
+                    else:
+                        rec[key][:, t] = val
             if progress is not None:
                 progress(1)
+        if keep_graph:
+            rec = {
+                k: None if v[0] is None else torch.stack(v, 0 if k == "icov" else 1)
+                for k, v in rec.items()
+            }
         record = LoopRecord(
-            x=torch.stack(rec["x"], 1),
-            z=torch.stack(rec["z"], 1),
-            u=torch.stack(rec["u"], 1),
-            attack_est=torch.stack(rec["attack_est"], 1),
-            mean=torch.stack(rec["mean"], 1),
-            innovation=torch.stack(rec["innovation"], 1),
-            innovation_cov=None if rec["icov"][0] is None else torch.stack(rec["icov"], 0),
-            logit=None if rec["logit"][0] is None else torch.stack(rec["logit"], 1),
+            x=rec["x"],
+            z=rec["z"],
+            u=rec["u"],
+            attack_est=rec["attack_est"],
+            mean=rec["mean"],
+            innovation=rec["innovation"],
+            innovation_cov=rec["icov"],
+            logit=rec["logit"],
         )
         return LoopState(x, u, obs, state.k + L), record

@@ -102,6 +102,14 @@ def test_per_channel_validation_files(smoke):
     assert all(len(v) == 10 for v in table.values())
     assert (out / "lfc_per_channel" / "per_channel.png").is_file()
     assert "Lowest RMSE per channel" in (out / "lfc_per_channel" / "report.md").read_text()
+    assert doc["wall_time_s"] > 0  # its cost, recorded beside its numbers
+
+
+def test_per_channel_validation_is_opt_in_on_the_cli():
+    from difffilter.eval.cli import build_parser
+
+    assert build_parser().parse_args(["lfc_step"]).per_channel is False
+    assert build_parser().parse_args(["lfc", "--per-channel"]).per_channel is True
 
 
 def test_run_lfc_rejects_bad_arguments(tmp_path):
