@@ -859,10 +859,10 @@ def run_lfc(
     out.mkdir(parents=True, exist_ok=True)
     ckpt_blob = _load_checkpoint(ckpt) if ckpt is not None else None
     start = time.perf_counter()
-    per_channel = None
+    validation = None
     if per_channel and per_channel_runs > 0:
         # Validation seeds: disjoint from the test seed by construction (offset 10⁶).
-        per_channel = per_channel_validation(
+        validation = per_channel_validation(
             ckpt_blob=ckpt_blob,
             runs_per_channel=per_channel_runs,
             seed=int(seed) + 1_000_003,
@@ -883,7 +883,7 @@ def run_lfc(
             cache=cache,
             max_steps=max_steps,
         )
-        (out / sc.name / "report.md").write_text(_report(res, per_channel, tuning, sc))
+        (out / sc.name / "report.md").write_text(_report(res, validation, tuning, sc))
         results[sc.name] = res
     _summary(out, results, time.perf_counter() - start)
     return results
