@@ -26,7 +26,7 @@ from difffilter.runtime import tune_cpu_allocator
 from .report import summary_table, write_report
 from .suite import run_suite
 
-__all__ = ["main", "build_parser", "resolve_scenarios", "evaluate"]
+__all__ = ["main", "build_parser", "resolve_scenarios", "evaluate", "check_output_folder"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -116,6 +116,20 @@ def evaluate(
     return results
 
 
+def check_output_folder(out: Path) -> None:
+    """Create ``out`` and prove it writable; ``ValueError`` naming ``--out`` otherwise."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out: {out} exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".difffilter-write-check"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as exc:
+        raise ValueError(f"--out: cannot write to {out} ({exc.strerror or exc})") from None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -128,6 +142,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     tune_cpu_allocator()
     try:
         names = resolve_scenarios(args.scenario)
+        check_output_folder(args.out)  # before any work, not after the whole evaluation
+        if args.runs is not None and args.runs < 1:
+            raise ValueError(f"--runs must be an integer >= 1; got {args.runs}")
         results = evaluate(
             names,
             ckpt=args.ckpt,

@@ -69,6 +69,13 @@ def test_cli_end_to_end_on_three_runs(tmp_path):
 def test_cli_and_suite_reject_bad_input(tmp_path, capsys):
     assert main(["four_tank_nope", "--out", str(tmp_path), "--no-progress"]) == 2
     assert "unknown scenario" in capsys.readouterr().err
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    assert main(["four_tank_bias", "--out", str(a_file), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "--out" in err and "not a folder" in err and "Traceback" not in err
+    assert main(["four_tank_bias", "--runs", "0", "--out", str(tmp_path), "--no-progress"]) == 2
+    assert "--runs" in capsys.readouterr().err
     with pytest.raises(ValueError, match="runs"):
         run_suite(registry.get("four_tank_bias"), runs=0)
     with pytest.raises(ValueError, match="unknown estimator"):
