@@ -9,6 +9,7 @@ from torch import Tensor
 
 __all__ = [
     "as_tensor",
+    "values_known",
     "check_vector_last",
     "check_square",
     "check_positive_definite",
@@ -25,6 +26,13 @@ __all__ = [
     "check_step_inputs",
     "check_filter_inputs",
 ]
+
+
+def values_known(t: Tensor) -> bool:
+    """Whether ``t`` holds values: ``False`` on the ``meta`` device (shapes and dtypes
+    only), where value checks (finiteness, symmetry, definiteness) are skipped so that a
+    filter can be traced there; shape, dtype and device checks still apply."""
+    return t.device.type != "meta"
 
 
 def as_tensor(value, name: str, *, dtype=None, device=None) -> Tensor:
@@ -61,13 +69,13 @@ def check_square(t: Tensor, name: str, dim: int | None = None) -> None:
 
 
 def check_finite(t: Tensor, name: str) -> None:
-    if not bool(torch.isfinite(t).all()):
+    if values_known(t) and not bool(torch.isfinite(t).all()):
         raise ValueError(f"{name} contains NaN or Inf values; every entry must be finite")
 
 
 def check_symmetric(t: Tensor, name: str, rtol: float = 1e-6) -> None:
     """``t [..., d, d]`` must be symmetric up to ``rtol`` relative to its largest entry."""
-    if t.numel() == 0:
+    if t.numel() == 0 or not values_known(t):
         return
     scale = t.detach().abs().amax(dim=(-1, -2), keepdim=True).clamp_min(1e-30)
     asym = (t.detach() - t.detach().transpose(-1, -2)).abs() / scale
@@ -82,6 +90,8 @@ def check_positive_definite(t: Tensor, name: str, dim: int | None = None) -> Non
     check_square(t, name, dim)
     check_finite(t, name)
     check_symmetric(t, name)
+    if not values_known(t):
+        return
     _, info = torch.linalg.cholesky_ex(t.detach())
     if bool((info != 0).any()):
         raise ValueError(f"{name} must be positive definite (all eigenvalues > 0)")
@@ -273,14 +283,15 @@ def check_sequence_inputs(
         )
     if mask is not None:
         mask = _check_bool_mask(mask, "mask", ys.shape, "ys")
-    finite = torch.isfinite(ys)
+    # on the meta device nothing is known to be non-finite
+    finite = torch.isfinite(ys) if values_known(ys) else torch.ones_like(ys, dtype=torch.bool)
     bad = ~finite if mask is None else ~finite & mask
     skipped = None
     if nonfinite == "skip":
         skipped = bad.sum((-1, -2))
-        if bool(bad.any()):
+        if values_known(ys) and bool(bad.any()):
             mask = finite if mask is None else mask & finite
-    elif bool(bad.any()):
+    elif values_known(ys) and bool(bad.any()):
         where = tuple(int(i) for i in bad.nonzero()[0])
         raise ValueError(
             f"ys contains NaN or Inf values at received entries (first at index {where}); "
@@ -314,7 +325,7 @@ def _check_us(model, us, batch: torch.Size, num_steps: int | None, dtype, device
         raise ValueError(
             f"{name}'s batch shape {tuple(lead)} does not broadcast with {of}'s {tuple(batch)}"
         ) from exc
-    if not bool(torch.isfinite(us).all()):
+    if values_known(us) and not bool(torch.isfinite(us).all()):
         raise ValueError(f"{name} contains NaN or Inf values; every input must be finite")
     return us
 
@@ -344,7 +355,7 @@ def check_step_inputs(
         mask = _check_bool_mask(mask, "mask", y.shape, "y")
     finite = torch.isfinite(y)
     bad = ~finite if mask is None else ~finite & mask
-    if bool(bad.any()):
+    if values_known(y) and bool(bad.any()):
         raise ValueError(
             "y contains NaN or Inf values at received entries; every received measurement "
             "must be finite (pass mask=... with False at lost entries)"

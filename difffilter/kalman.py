@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from ._checks import check_sequence_inputs, check_step_inputs
+from ._shared_cov import shared_covariance_applies, shared_covariance_kalman_filter
 from .linalg import (
     cholesky_solve_right,
     gaussian_log_prob_chol,
@@ -190,6 +191,12 @@ def run_gaussian_filter(
     the only loop. ``nonfinite`` as in :func:`kalman_filter`.
     """
     ys, us, mask, skipped = _validate_inputs(model, ys, us, mask, nonfinite)
+    result = _run_validated(step, model, ys, us, mask, state)
+    result.nonfinite_skipped = skipped
+    return result
+
+
+def _run_validated(step, model, ys, us, mask, state=None) -> FilterResult:
     num_steps = ys.shape[-2]
     batch = ys.shape[:-2]
     if us is not None:
@@ -204,9 +211,7 @@ def run_gaussian_filter(
         m = None if mask is None else mask[..., t, :]
         state, out = step(model, state, ys[..., t, :], u, m)
         outs.append(out)
-    result = _stack_outputs(outs, batch)
-    result.nonfinite_skipped = skipped
-    return result
+    return _stack_outputs(outs, batch)
 
 
 def _stack_outputs(outs: list[GaussianStepOutput], batch: torch.Size) -> FilterResult:
@@ -259,7 +264,11 @@ def kalman_filter(
             ``"parallel"`` (the associative-scan filter of Särkkä & García-Fernández,
             IEEE TAC 2021: ``O(log T)`` batched operations instead of ``T`` small
             ones, fastest for a few long runs; equal to the sequential filter up to
-            round-off).
+            round-off). The sequential filter picks the shared-covariance fast path
+            (:mod:`difffilter._shared_cov`) by itself when the model's matrices have no
+            batch dimension, the model is time-invariant and nothing is masked: the
+            covariance recursion runs once for all runs and the covariances come back
+            as expanded views ``[..., T, dx, dx]`` of one ``[T, dx, dx]`` tensor.
         nonfinite: ``"raise"`` (default): a NaN or ±Inf in a received entry of ``ys``
             raises ``ValueError``; ``"skip"``: such entries are treated as unreceived
             (folded into ``mask``) and counted per run in
@@ -274,11 +283,15 @@ def kalman_filter(
     """
     if method not in ("sequential", "parallel"):
         raise ValueError(f"method must be 'sequential' or 'parallel'; got {method!r}")
-    if method == "sequential":
-        return run_gaussian_filter(_kalman_step, model, ys, us, mask, nonfinite=nonfinite)
-    from .parallel_kalman import parallel_kalman_filter
-
     ys, us, mask, skipped = _validate_inputs(model, ys, us, mask, nonfinite)
-    result = parallel_kalman_filter(model, ys, us, mask)
+    if method == "parallel":
+        from .parallel_kalman import parallel_kalman_filter
+
+        result = parallel_kalman_filter(model, ys, us, mask)
+    elif shared_covariance_applies(model, mask):
+        # one unbatched LTI model, nothing masked: covariances once for all runs
+        result = shared_covariance_kalman_filter(model, ys, us)
+    else:
+        result = _run_validated(_kalman_step, model, ys, us, mask)
     result.nonfinite_skipped = skipped
     return result

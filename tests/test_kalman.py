@@ -265,3 +265,80 @@ def test_gradcheck_kf_log_likelihood_wrt_covariances_directly(generator):
 def test_auto_method_rejects_unknown(cv_model):
     with pytest.raises(ValueError, match="method"):
         df.kalman_filter(cv_model, torch.zeros(3, 2, dtype=torch.float64), method="magic")
+
+
+# ------------------------------------------------- shared-covariance fast path (issue 12)
+
+
+def _general(model, ys, us=None, mask=None):
+    from difffilter.kalman import _kalman_step, run_gaussian_filter
+
+    return run_gaussian_filter(_kalman_step, model, ys, us, mask)
+
+
+FIELDS = (
+    "means",
+    "covs",
+    "pred_means",
+    "pred_covs",
+    "innovations",
+    "innovation_covs",
+    "log_likelihood_increments",
+    "log_likelihood",
+)
+
+
+@pytest.mark.parametrize("with_input", [False, True])
+@pytest.mark.parametrize("batch, T", [((), 1), ((3,), 7), ((2, 3), 13), ((5,), 16), ((4,), 61)])
+def test_shared_covariance_path_equals_the_general_path(with_input, batch, T, generator):
+    from difffilter._shared_cov import shared_covariance_applies
+
+    model = constant_velocity(with_input=with_input)
+    us = torch.randn(*batch, T, 1, dtype=torch.float64, generator=generator) if with_input else None
+    _, ys, _ = model.simulate(T, batch, us=us, generator=generator)
+    assert shared_covariance_applies(model, None)
+    fast, ref = df.kalman_filter(model, ys, us), _general(model, ys, us)
+    for name in FIELDS:
+        a, b = getattr(fast, name), getattr(ref, name)
+        assert a.shape == b.shape, name
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10, msg=name)
+    if batch:  # covariances are views of one [T, dx, dx] tensor, not B copies
+        assert fast.covs.stride(0) == 0 and fast.innovation_covs.stride(0) == 0
+
+
+def test_shared_covariance_path_is_chosen_only_when_it_applies(cv_model, generator):
+    from difffilter._shared_cov import shared_covariance_applies
+
+    _, ys, _ = cv_model.simulate(5, (3,), generator=generator)
+    mask = torch.ones(3, 5, 2, dtype=torch.bool)
+    assert not shared_covariance_applies(cv_model, mask)
+    batched = df.LinearGaussianModel(
+        cv_model.F.expand(3, 4, 4),
+        cv_model.H,
+        cv_model.process_noise.cov,
+        cv_model.measurement_noise.cov,
+        cv_model.initial.mean,
+        cv_model.initial.cov,
+    )
+    assert not shared_covariance_applies(batched, None)
+    torch.testing.assert_close(
+        df.kalman_filter(batched, ys).means, df.kalman_filter(cv_model, ys).means
+    )
+
+
+def test_shared_covariance_path_gradients_equal_the_general_path(generator):
+    base = constant_velocity()
+    _, ys, _ = base.simulate(11, (3,), generator=generator)
+
+    def grads(run):
+        F = base.F.clone().requires_grad_()
+        R = base.measurement_noise.cov.clone().requires_grad_()
+        model = df.LinearGaussianModel(
+            F, base.H, base.process_noise.cov, R, base.initial.mean, base.initial.cov
+        )
+        res = run(model, ys)
+        (res.log_likelihood.sum() + res.means.square().sum()).backward()
+        return F.grad, R.grad
+
+    for a, b in zip(grads(df.kalman_filter), grads(_general)):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-10)
