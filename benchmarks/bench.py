@@ -84,21 +84,17 @@ def numpy_kf_run(F, H, Q, R, m0, P0, ys):
     return m, ll
 
 
+def numpy_matrices(model) -> list:
+    """``F, H, Q, R, m0, P0`` of a linear model as numpy arrays (the yardstick's inputs)."""
+    noise = (model.process_noise.cov, model.measurement_noise.cov)
+    return [t.numpy() for t in (model.F, model.H, *noise, model.initial.mean, model.initial.cov)]
+
+
 def bench_kf(steps: int = 200) -> list[dict]:
     model = tracking_cv_model()
     gen = torch.Generator().manual_seed(0)
     rows = []
-    mats = [
-        t.numpy()
-        for t in (
-            model.F,
-            model.H,
-            model.process_noise.cov,
-            model.measurement_noise.cov,
-            model.initial.mean,
-            model.initial.cov,
-        )
-    ]
+    mats = numpy_matrices(model)
     with torch.no_grad():
         _, ys1, _ = model.simulate(steps, (1,), generator=gen)
         y_np = ys1[0].numpy()
@@ -152,17 +148,7 @@ def bench_kf_large(B: int = 100_000, steps: int = 200) -> dict:
 
     model = tracking_cv_model()
     gen = torch.Generator().manual_seed(0)
-    mats = [
-        t.numpy()
-        for t in (
-            model.F,
-            model.H,
-            model.process_noise.cov,
-            model.measurement_noise.cov,
-            model.initial.mean,
-            model.initial.cov,
-        )
-    ]
+    mats = numpy_matrices(model)
     with torch.no_grad():
         _, ys, _ = model.simulate(steps, (B,), generator=gen)
         fast = best_time(lambda: df.kalman_filter(model, ys), repeats=3, min_time=0.0)
