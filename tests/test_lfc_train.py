@@ -169,3 +169,32 @@ def test_loss_targets():
     noisy = LFCGradModule(hidden=4, monitor_scenarios=[], noise_target=True)
     _, mse, _ = noisy._loss(rec, attack, theta)  # the paper's O_s = M + θ
     assert mse.item() == pytest.approx((est - attack - theta).square().mean().item())
+
+
+def test_an_endless_schedule_is_a_clear_cli_error(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    code = main(
+        [
+            "fit",
+            "--config",
+            str(ROOT / "train" / "configs" / "lfc.yaml"),
+            "--trainer.max_epochs=-1",
+            "--trainer.limit_train_batches=1",
+            f"--trainer.default_root_dir={tmp_path}",
+        ]
+    )
+    err = capsys.readouterr().err
+    assert code == 2 and "max_epochs" in err and "Traceback" not in err
+
+
+def test_resuming_with_a_longer_schedule_is_refused_clearly(tmp_path):
+    # pct_start 0.4: the schedule is batches × chunks long (not its 2-step warm-up floor)
+    model = {**TINY_MODEL, "pct_start": 0.4}
+    pl.seed_everything(0)
+    _tiny_trainer(tmp_path / "cut", 1).fit(LFCGradModule(**model), LFCDataModule(**TINY_DATA))
+    last = tmp_path / "cut" / "ckpt" / "last.ckpt"
+    with pytest.raises(ValueError, match="ckpt_path.*schedule has 7 steps but this run needs 12"):
+        _tiny_trainer(tmp_path / "cut", 2).fit(
+            LFCGradModule(**model), LFCDataModule(**TINY_DATA), ckpt_path=last
+        )

@@ -35,13 +35,18 @@ def main(args: list[str] | None = None) -> int:
     """
     torch.set_num_threads(int(os.environ.get("DIFFFILTER_THREADS", "1")))
     tune_cpu_allocator()
-    LightningCLI(
-        LFCGradModule,
-        LFCDataModule,
-        args=args,
-        save_config_kwargs={"overwrite": True},
-        auto_configure_optimizers=False,
-    )
+    try:
+        LightningCLI(
+            LFCGradModule,
+            LFCDataModule,
+            args=args,
+            save_config_kwargs={"overwrite": True},
+            auto_configure_optimizers=False,
+        )
+    except (ValueError, FileNotFoundError) as exc:
+        # a user error (a setting out of range, a missing file): one line, no traceback
+        print(f"difffilter-train: error: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 

@@ -296,14 +296,36 @@ class LFCGradModule(pl.LightningModule):
     def configure_optimizers(self):
         hp = self.hparams
         opt = torch.optim.AdamW(self.estimator.parameters(), lr=hp.lr, weight_decay=hp.weight_decay)
-        steps = self.trainer.estimated_stepping_batches if self.trainer is not None else 1
-        chunks = self._chunks_per_batch()
-        # OneCycleLR needs at least two warm-up steps (fast_dev_run has one batch).
-        total = max(int(steps) * chunks, math.ceil(2.0 / hp.pct_start) + 2)
+        total = self._schedule_length()
         sched = torch.optim.lr_scheduler.OneCycleLR(
             opt, max_lr=hp.lr, total_steps=total, pct_start=hp.pct_start
         )
         return [opt], [{"scheduler": sched, "interval": "step"}]
+
+    def _schedule_length(self) -> int:
+        """Optimizer steps of the one-cycle schedule: batches × TBPTT chunks (at least 2 warm-up)."""
+        steps = self.trainer.estimated_stepping_batches if self.trainer is not None else 1
+        if not math.isfinite(steps) or steps < 1:
+            raise ValueError(
+                "--trainer.max_epochs (or max_steps) must give a finite number of steps >= 1: the "
+                f"one-cycle learning-rate schedule needs its length; got {steps} steps"
+            )
+        # OneCycleLR needs at least two warm-up steps (fast_dev_run has one batch).
+        return max(
+            int(steps) * self._chunks_per_batch(), math.ceil(2.0 / self.hparams.pct_start) + 2
+        )
+
+    def on_train_start(self):
+        # A resumed run restores the schedule of the checkpoint, whose length was fixed by
+        # its max_epochs: a longer run would step past its end ("Tried to step N times").
+        sched = self.lr_schedulers()
+        restored, wanted = getattr(sched, "total_steps", None), self._schedule_length()
+        if restored is not None and restored != wanted:
+            raise ValueError(
+                f"--ckpt_path: the checkpoint's learning-rate schedule has {restored} steps but this "
+                f"run needs {wanted} (its --trainer.max_epochs differs); resume with the checkpoint's "
+                "max_epochs, or start a new run"
+            )
 
     def _chunks_per_batch(self) -> int:
         dm = getattr(self.trainer, "datamodule", None) if self.trainer is not None else None
