@@ -446,23 +446,19 @@ def particle_filter(
         if initial_state is not None
         else particle_init(model, num_particles, batch, generator)
     )
+    step_options = {
+        "resampler": resampler,
+        "proposal": proposal,
+        "likelihood": likelihood,
+        "ess_threshold": ess_threshold,
+        "generator": generator,
+        "resample_generator": resample_generator,
+    }
     outs, parts, logws, records = [], [], [], StepRecorder()
     for t in range(ys.shape[-2]):
         u = None if us is None else us[..., t, :]
         m = None if mask is None else mask[..., t, :]
-        state, out = _particle_step(
-            model,
-            state,
-            ys[..., t, :],
-            u,
-            m,
-            resampler=resampler,
-            proposal=proposal,
-            likelihood=likelihood,
-            ess_threshold=ess_threshold,
-            generator=generator,
-            resample_generator=resample_generator,
-        )
+        state, out = _particle_step(model, state, ys[..., t, :], u, m, **step_options)
         outs.append(out)
         for hook in hooks:
             records.add(**hook(model, ys[..., t, :], m, state, out))
