@@ -151,7 +151,7 @@ def bench_kf_large(B: int = 100_000, steps: int = 200) -> dict:
     mats = numpy_matrices(model)
     with torch.no_grad():
         _, ys, _ = model.simulate(steps, (B,), generator=gen)
-        fast = best_time(lambda: df.kalman_filter(model, ys), repeats=3, min_time=0.0)
+        fast = best_time(lambda: df.kalman_filter(model, ys), repeats=5, min_time=0.0)
         general = best_time(
             lambda: run_gaussian_filter(_kalman_step, model, ys), repeats=1, min_time=0.0
         )

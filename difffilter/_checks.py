@@ -244,6 +244,19 @@ def check_ess_threshold(value) -> float:
     return float(value)
 
 
+def _all_finite(t: Tensor) -> bool:
+    """Whether every entry of ``t`` is finite, cheaply in the common case.
+
+    A finite sum proves it (a NaN or ±Inf entry makes the sum NaN or ±Inf); the sum is
+    one reduction without a ``[..]``-sized boolean temporary (65 → 10 ms on a 160 MB
+    ``ys``). Only when the sum is not finite (a bad entry, or an overflow of large finite
+    values) is every entry tested.
+    """
+    if bool(torch.isfinite(t.detach().sum())):
+        return True
+    return bool(torch.isfinite(t).all())
+
+
 def check_sequence_inputs(
     model,
     ys,
@@ -284,14 +297,17 @@ def check_sequence_inputs(
     if mask is not None:
         mask = _check_bool_mask(mask, "mask", ys.shape, "ys")
     # on the meta device nothing is known to be non-finite
-    finite = torch.isfinite(ys) if values_known(ys) else torch.ones_like(ys, dtype=torch.bool)
-    bad = ~finite if mask is None else ~finite & mask
+    bad = None
+    if values_known(ys) and not _all_finite(ys):
+        finite = torch.isfinite(ys)
+        bad = ~finite if mask is None else ~finite & mask
     skipped = None
     if nonfinite == "skip":
-        skipped = bad.sum((-1, -2))
-        if values_known(ys) and bool(bad.any()):
+        no_skips = ys.new_zeros(ys.shape[:-2], dtype=torch.long)
+        skipped = no_skips if bad is None else bad.sum((-1, -2))
+        if bad is not None and bool(bad.any()):
             mask = finite if mask is None else mask & finite
-    elif values_known(ys) and bool(bad.any()):
+    elif bad is not None and bool(bad.any()):
         where = tuple(int(i) for i in bad.nonzero()[0])
         raise ValueError(
             f"ys contains NaN or Inf values at received entries (first at index {where}); "

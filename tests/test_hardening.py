@@ -381,6 +381,21 @@ def test_nonfinite_skip_treats_entries_as_unreceived_and_counts_them():
         df.kalman_filter(model, ys, nonfinite="ignore")
 
 
+def test_finiteness_check_is_not_fooled_by_an_overflowing_sum():
+    """The check sums ``ys`` first; a sum that overflows must fall back to testing entries."""
+    from difffilter._checks import check_sequence_inputs
+
+    model, ys = cv_data(T=8, B=(3,))
+    huge = torch.full_like(ys, 1e308)  # finite entries whose sum is +inf
+    out, *_ = check_sequence_inputs(model, huge)
+    assert torch.equal(out, huge)
+    _, _, _, skipped = check_sequence_inputs(model, huge, nonfinite="skip")
+    assert skipped.tolist() == [0, 0, 0]
+    huge[1, 4, 0] = NAN
+    with pytest.raises(ValueError, match=r"ys contains NaN or Inf .* index \(1, 4, 0\)"):
+        check_sequence_inputs(model, huge)
+
+
 # ------------------------------------------------------- dtype and reproducibility
 
 

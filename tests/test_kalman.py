@@ -288,11 +288,16 @@ FIELDS = (
 )
 
 
+@pytest.mark.parametrize("run_chunk", [4096, 2])  # 2: several run chunks, a ragged last one
 @pytest.mark.parametrize("with_input", [False, True])
 @pytest.mark.parametrize("batch, T", [((), 1), ((3,), 7), ((2, 3), 13), ((5,), 16), ((4,), 61)])
-def test_shared_covariance_path_equals_the_general_path(with_input, batch, T, generator):
+def test_shared_covariance_path_equals_the_general_path(
+    with_input, batch, T, run_chunk, generator, monkeypatch
+):
+    from difffilter import _shared_cov
     from difffilter._shared_cov import shared_covariance_applies
 
+    monkeypatch.setattr(_shared_cov, "RUN_CHUNK", run_chunk)
     model = constant_velocity(with_input=with_input)
     us = torch.randn(*batch, T, 1, dtype=torch.float64, generator=generator) if with_input else None
     _, ys, _ = model.simulate(T, batch, us=us, generator=generator)
@@ -326,17 +331,25 @@ def test_shared_covariance_path_is_chosen_only_when_it_applies(cv_model, generat
     )
 
 
-def test_shared_covariance_path_gradients_equal_the_general_path(generator):
-    base = constant_velocity()
-    _, ys, _ = base.simulate(11, (3,), generator=generator)
+@pytest.mark.parametrize("with_input", [False, True])
+def test_shared_covariance_path_gradients_equal_the_general_path(with_input, generator):
+    base = constant_velocity(with_input=with_input)
+    us = torch.randn(3, 11, 1, dtype=torch.float64, generator=generator) if with_input else None
+    _, ys, _ = base.simulate(11, (3,), us=us, generator=generator)
 
     def grads(run):
         F = base.F.clone().requires_grad_()
         R = base.measurement_noise.cov.clone().requires_grad_()
         model = df.LinearGaussianModel(
-            F, base.H, base.process_noise.cov, R, base.initial.mean, base.initial.cov
+            F,
+            base.H,
+            base.process_noise.cov,
+            R,
+            base.initial.mean,
+            base.initial.cov,
+            B=base.B if with_input else None,
         )
-        res = run(model, ys)
+        res = run(model, ys, us)
         (res.log_likelihood.sum() + res.means.square().sum()).backward()
         return F.grad, R.grad
 
