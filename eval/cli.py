@@ -15,7 +15,6 @@ A family name (``four_tank``, ``lfc``, …) selects its headline scenarios.
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -23,7 +22,7 @@ from pathlib import Path
 from difffilter.models import registry
 from difffilter.runtime import tune_cpu_allocator
 
-from .report import summary_table, write_report
+from .report import family_report, summary_table, write_report
 from .suite import run_suite
 
 __all__ = ["main", "build_parser", "resolve_scenarios", "evaluate", "check_output_folder"]
@@ -84,35 +83,39 @@ def evaluate(
     seed: int,
     progress: bool,
     per_channel: bool = False,
+    family_options: dict | None = None,
 ) -> dict:
-    """Evaluate every scenario; returns ``{scenario: metrics}``.
+    """Evaluate every scenario with the Monte Carlo suite; returns ``{scenario: metrics}``.
 
-    A scenario runs the generic Monte Carlo suite and report writer unless it names its
-    family's own evaluation (``Scenario.evaluator``, ``"module:function"``), which is
-    called once with all the scenarios of the call that name it.
+    Scenarios are taken family by family: the family's ``prepare`` (a study its reports
+    share) runs once before its scenarios, its ``finish`` (a summary across them) once
+    after (:class:`~difffilter.eval.report.FamilyReport`). ``per_channel`` (the LFC
+    per-channel validation) and ``family_options`` reach ``prepare`` as its options.
     """
     if runs is not None and (isinstance(runs, bool) or not isinstance(runs, int) or runs < 1):
         raise ValueError(f"--runs must be an integer >= 1; got {runs!r}")
     if ckpt is not None and not Path(ckpt).is_file():
         raise FileNotFoundError(f"--ckpt: no checkpoint file at {ckpt}")
-    grouped: dict[str, list[str]] = {}
+    families: dict[str, list[str]] = {}
     for name in scenarios:
-        evaluator = registry.get(name).evaluator
-        grouped.setdefault(evaluator or "", []).append(name)
+        families.setdefault(registry.get(name).family, []).append(name)
     results: dict = {}
-    for evaluator, names in grouped.items():
-        if evaluator:
-            module, func = evaluator.split(":")
-            run = getattr(importlib.import_module(module), func)
-            kwargs = {"out": Path(out), "seed": seed, "progress": progress, "ckpt": ckpt}
-            kwargs["per_channel"] = per_channel  # a family's optional extra study
-            if runs is not None:
-                kwargs["runs"] = runs
-            results.update(run(names, **kwargs))
-            continue
+    cache: dict = {}  # shared by the suites of this call (e.g. common attack-free runs)
+    for family, names in families.items():
+        report = family_report(family)
+        prepared = None
+        if report.prepare:
+            options = {"per_channel": per_channel, **(family_options or {})}
+            prepared = report.prepare(names, out=Path(out), seed=seed, checkpoint=ckpt,
+                                      progress=progress, options=options)  # fmt: skip
+        done = {}
         for name in names:
-            result = run_suite(registry.get(name), runs=runs, seed=seed, progress=progress)
-            results[name] = write_report(Path(out) / name, result)
+            result = run_suite(registry.get(name), runs=runs, seed=seed, progress=progress,
+                               checkpoint=ckpt, cache=cache)  # fmt: skip
+            done[name] = write_report(Path(out) / name, result, prepared=prepared)
+        if report.finish:
+            report.finish(done, Path(out), prepared)
+        results.update(done)
     return results
 
 

@@ -35,7 +35,15 @@ from difffilter.resampling import Systematic
 
 from .streams import Streams
 
-__all__ = ["EstimatorSpec", "SuiteContext", "register", "get", "names", "ESTIMATORS"]
+__all__ = [
+    "EstimatorSpec",
+    "SuiteContext",
+    "SkipEstimator",
+    "register",
+    "get",
+    "names",
+    "ESTIMATORS",
+]
 
 Run = Callable[[Any], EstimatorOutput]
 
@@ -61,6 +69,11 @@ class EstimatorSpec:
 
 
 ESTIMATORS: dict[str, EstimatorSpec] = {}
+
+
+class SkipEstimator(Exception):
+    """Raised by a factory that cannot run in this study (e.g. no checkpoint was given);
+    the suite records the message in ``SuiteResult.skipped`` and the report lists it."""
 
 
 def register(name: str, description: str, *, clean_input: bool = False, reference: bool = False):
@@ -107,6 +120,10 @@ class SuiteContext:
         runs: number of Monte Carlo runs.
         streams: the study's :class:`~difffilter.eval.streams.Streams`.
         options: the scenario's ``estimator_options()`` (family settings).
+        checkpoint: path of a trained estimator checkpoint (``difffilter-eval --ckpt``)
+            or ``None``; factories that need one raise :class:`SkipEstimator` without.
+        cache: shared by the scenarios of one evaluation (e.g. attack-free runs that
+            several scenarios have in common).
     """
 
     scenario: Any
@@ -114,6 +131,8 @@ class SuiteContext:
     runs: int
     streams: Streams
     options: dict[str, Any] = field(default_factory=dict)
+    checkpoint: Any = None
+    cache: dict[Any, Any] = field(default_factory=dict)
 
     def particle_kwargs(self, runs: int | None = None) -> dict[str, Any]:
         """Common random numbers for particle filters: identically seeded initial particles,

@@ -33,6 +33,7 @@ __all__ = [
     "Section",
     "FamilyReport",
     "register_family",
+    "family_report",
     "metrics_schema",
     "write_report",
     "markdown_table",
@@ -180,12 +181,20 @@ class FamilyReport:
         extra: ``SuiteResult → dict`` of family numbers for metrics.json (top level),
             computed from the suite run (e.g. an attack-size sweep, a paper table); it
             may also add family keys to ``result.metrics[estimator]``.
-        sections: ``(SuiteResult, doc, out) → [Section]`` after the generic sections;
-            ``doc`` is the metrics.json content, ``out`` the folder (for its own plots).
+        sections: ``(SuiteResult, doc, out, prepared) → [Section]`` after the generic
+            sections; ``doc`` is the metrics.json content, ``out`` the folder (for its own
+            plots), ``prepared`` what ``prepare`` returned (or ``None``).
+        prepare: ``(scenarios, out=, seed=, checkpoint=, progress=, options=) → object``,
+            once per evaluation before the family's scenarios: a study they share (e.g.
+            a validation the reports discuss). ``options`` holds the CLI's family flags.
+        finish: ``(results, out, prepared) → None`` once after them: a summary across the
+            family's scenarios (``results``: ``{scenario: metrics.json content}``).
     """
 
     extra: Callable[..., dict[str, Any]] | None = None
     sections: Callable[..., list[Section]] | None = None
+    prepare: Callable[..., Any] | None = None
+    finish: Callable[..., None] | None = None
 
 
 _FAMILIES: dict[str, FamilyReport] = {}
@@ -195,6 +204,14 @@ def register_family(family: str, report: FamilyReport) -> FamilyReport:
     """Register the report additions of ``family`` (one per family)."""
     _FAMILIES[family] = report
     return report
+
+
+def family_report(family: str) -> FamilyReport:
+    """What ``family`` registered (an empty :class:`FamilyReport` if nothing)."""
+    from .families import load_all
+
+    load_all()
+    return _FAMILIES.get(family, FamilyReport())
 
 
 def metrics_schema() -> dict[str, Any]:
@@ -244,25 +261,26 @@ def markdown_table(header: list[str], rows: list[list[Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_report(out: str | Path, result, *, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+def write_report(
+    out: str | Path, result, *, extra: dict[str, Any] | None = None, prepared: Any = None
+) -> dict[str, Any]:
     """Write metrics.json, report.md, plots and TensorBoard events of a suite run.
 
     Args:
         out: the scenario's folder (created).
         result: a :class:`~difffilter.eval.suite.SuiteResult`.
         extra: more top-level metrics.json entries (e.g. the checkpoint evaluated).
+        prepared: what the family's ``prepare`` returned, for its sections.
 
     Returns the metrics.json content.
     """
-    from .families import load_all
     from .plots import standard_figures
     from .tensorboard import log_suite
 
-    load_all()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     sc = result.scenario
-    family = _FAMILIES.get(sc.family, FamilyReport())
+    family = family_report(sc.family)
     from . import estimators as registry
 
     family_numbers = family.extra(result) if family.extra else {}  # may add estimator keys
@@ -275,6 +293,7 @@ def write_report(out: str | Path, result, *, extra: dict[str, Any] | None = None
         "notes": list(sc.notes),
         "attacked_steps": int(result.traj.flags.sum()),
         "attack_free_steps": int((~result.traj.flags).sum()),
+        "skipped": dict(result.skipped),
         **family_numbers,
         **(extra or {}),
     }
@@ -293,7 +312,7 @@ def write_report(out: str | Path, result, *, extra: dict[str, Any] | None = None
     sections = [_summary_section(doc, sc), _table_section(doc)]
     sections.append(Section("Plots", "", [name for name, _ in figures]))
     if family.sections:
-        sections += family.sections(result, doc, out)
+        sections += family.sections(result, doc, out, prepared)
     for name, fig in figures:
         fig.savefig(out / name, dpi=110, bbox_inches="tight")
     (out / "report.md").write_text(_markdown(doc, sc, sections))
@@ -313,6 +332,9 @@ def _summary_section(doc: dict, sc) -> Section:
         "(named streams of one master seed). "
         + (f"Attack-free reference: `{doc['reference']}`.\n" if doc.get("reference") else "\n")
     )
+    if doc.get("skipped"):
+        body += "\nSkipped: " + "; ".join(f"`{k}` ({v})" for k, v in doc["skipped"].items())
+        body += ".\n"
     if sc.paper:
         body += f"\nPaper: {sc.paper}.\n"
     if doc["notes"]:

@@ -27,6 +27,7 @@ __all__ = [
     "Metric",
     "METRICS",
     "FALSE_ALARM_BUDGET",
+    "true_states",
     "score",
     "roc",
     "auc",
@@ -132,6 +133,14 @@ def rmse_over_time(means: Tensor, reference: Tensor) -> Tensor:
     return (means.double() - reference.double()).square().mean(dim=(0, 2)).sqrt()
 
 
+def true_states(output: EstimatorOutput, traj) -> Tensor:
+    """The states ``output`` estimated: ``traj.x``, or for an estimator that closes a
+    control loop (its estimate changes the plant's path) the states of its own loop,
+    ``output.extras["x"]``."""
+    extras = output.extras or {}
+    return extras["x"] if "x" in extras else traj.x
+
+
 def score(
     output: EstimatorOutput,
     traj,
@@ -153,7 +162,7 @@ def score(
     """
     B, T = traj.flags.shape
     out: dict[str, Any] = dict.fromkeys(METRICS)
-    out["state_rmse"] = _rmse(output.means, traj.x)
+    out["state_rmse"] = _rmse(output.means, true_states(output, traj))
     if reference_means is not None:
         out["state_rmse_vs_attack_free"] = _rmse(output.means, reference_means)
     flags = traj.flags

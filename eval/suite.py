@@ -36,6 +36,7 @@ class SuiteResult:
         metrics: ``{estimator: {metric: value}}`` (:data:`~difffilter.eval.scoring.METRICS`).
         reference: name of the attack-free reference estimator, or ``None``.
         context: the :class:`~difffilter.eval.estimators.SuiteContext` the factories saw.
+        skipped: ``{estimator: why}`` for those whose factory raised ``SkipEstimator``.
     """
 
     scenario: Any
@@ -47,6 +48,7 @@ class SuiteResult:
     metrics: dict[str, dict[str, Any]] = field(default_factory=dict)
     reference: str | None = None
     context: Any = None
+    skipped: dict[str, str] = field(default_factory=dict)
 
 
 @contextmanager
@@ -82,6 +84,8 @@ def run_suite(
     estimators: tuple[str, ...] | list[str] | None = None,
     progress: bool = True,
     dtype: torch.dtype = torch.float64,
+    checkpoint=None,
+    cache: dict | None = None,
 ) -> SuiteResult:
     """Simulate ``runs`` runs of ``scenario`` and run every estimator on them.
 
@@ -93,8 +97,12 @@ def run_suite(
             :func:`default_estimators` of its model).
         progress: show a progress bar.
         dtype: of the model and the simulation.
+        checkpoint: a trained estimator checkpoint for the estimators that use one.
+        cache: a dict shared by the suites of one evaluation (``SuiteContext.cache``).
 
-    Runs with one intra-op thread (:func:`one_thread`).
+    Runs with one intra-op thread (:func:`one_thread`). An estimator whose factory
+    raises :class:`~difffilter.eval.estimators.SkipEstimator` is left out and listed in
+    ``skipped``.
     """
     runs = scenario.runs if runs is None else runs
     if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
@@ -103,7 +111,10 @@ def run_suite(
     model = scenario.system(dtype)
     gens = {k: streams(k) for k in ("plant", "attack", "schedule")}
     traj = scenario.simulate(runs, gens, dtype=dtype, model=model)
-    ctx = registry.SuiteContext(scenario, model, runs, streams, scenario.estimator_options())
+    options = scenario.estimator_options()
+    ctx = registry.SuiteContext(scenario, model, runs, streams, options, checkpoint)
+    if cache is not None:
+        ctx.cache = cache
     names = tuple(estimators or scenario.estimators or default_estimators(model))
     specs = [registry.get(n) for n in names]  # unknown names fail before any work
     result = SuiteResult(scenario, runs, seed, traj, context=ctx)
@@ -113,14 +124,18 @@ def run_suite(
         bar = tqdm(specs, desc=scenario.name, disable=not progress, leave=False)
         for spec in bar:
             bar.set_postfix_str(spec.name)
-            run = spec.factory(ctx)
+            try:
+                run = spec.factory(ctx)
+            except registry.SkipEstimator as why:
+                result.skipped[spec.name] = str(why)
+                continue
             start = time.perf_counter()
             result.outputs[spec.name] = run(traj)
             result.wall_s[spec.name] = time.perf_counter() - start
             if spec.reference and result.reference is None:
                 result.reference = spec.name
     ref = result.outputs[result.reference].means if result.reference else None
-    for spec in specs:
+    for spec in (s for s in specs if s.name in result.outputs):
         result.metrics[spec.name] = score(
             result.outputs[spec.name],
             traj,

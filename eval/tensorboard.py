@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .scoring import rmse_over_time
+from .scoring import rmse_over_time, true_states
 
 __all__ = ["log_suite", "HPARAM_METRICS"]
 
@@ -34,7 +34,7 @@ def log_suite(logdir: Path, result, doc: dict, figures) -> None:
     traj = result.traj
     with SummaryWriter(str(logdir)) as w:
         for name, out in result.outputs.items():
-            curve = rmse_over_time(out.means, traj.x)
+            curve = rmse_over_time(out.means, true_states(out, traj))
             alarm_rate = None
             if out.detection is not None:
                 alarm_rate = out.detection.alarms.double().mean(0)

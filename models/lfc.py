@@ -455,6 +455,22 @@ PAPER_TABLES = {
 }
 
 
+# The estimators every LFC scenario runs (difffilter.eval.families.lfc registers them).
+LFC_ESTIMATORS = (
+    "kf_attack_free",
+    "uncompensated",
+    "kf_nn_ekf",
+    "traditional_ad",
+    "kf_nn_grad",
+    "kf_nn_grad_ekf",
+    "kf_nn_ekf_qrho0",
+    "traditional_ad_robust",
+    "traditional_ad_diagonal",
+    "chi_square_kf",
+    "cusum_kf",
+)
+
+
 @dataclass(frozen=True)
 class LFCScenario(Scenario):
     """An LFC attack scenario: plant sampling, horizon, load and attack signal.
@@ -475,7 +491,8 @@ class LFCScenario(Scenario):
     paper_table: dict = field(default_factory=dict, hash=False, compare=False)
     runs: int = 20
     steps: int = 0  # derived: duration / dt
-    evaluator: str | None = "difffilter.eval.lfc:run_lfc"  # closed-loop evaluation
+    false_alarm_rate: float = 0.01  # [DEF] of the chi-square and CUSUM detectors
+    estimators: tuple[str, ...] = LFC_ESTIMATORS
 
     def __post_init__(self):
         if self.attack not in ATTACK_KINDS:
@@ -494,6 +511,38 @@ class LFCScenario(Scenario):
 
     def load_tensor(self, dtype=torch.float64) -> Tensor:
         return torch.tensor(self.load, dtype=dtype)
+
+    def system(self, dtype: torch.dtype = torch.float64, device=None):
+        """The observers' model ``(A_d, I, Ξ, Θ, 0, Σ(0), B_d)`` (the load is unknown to it)."""
+        from difffilter.models.attack_observer import AttackObserver
+
+        plant = LFCPlant(dt=self.dt, dtype=dtype)
+        return AttackObserver(plant.Ad, plant.Bd, plant.Q, plant.R).observer_model()
+
+    def simulate(self, runs, generators, *, dtype=torch.float64, attack="scenario", model=None):
+        """The traditional closed loop ``U = −K₁Z`` with its Kalman observer (``attack=None``:
+        attack-free); ``info`` carries the exogenous draws ``xi, theta [B, T, 10]`` and
+        ``load [1, 2]`` that every estimator's own closed loop replays (common random
+        numbers). ``us[:, t]`` is the input applied before ``x_t``.
+        """
+        from difffilter.models.lfc_estimators import ESTIMATORS, LFCContext, run_estimator
+
+        from .scenario import Trajectories
+
+        ctx = LFCContext(dt=self.dt, dtype=dtype)
+        xi, theta = ctx.plant.sample_noise(runs, self.steps, generators["plant"])
+        alpha = self.attack_signal(dtype)[None].expand(runs, -1, -1)
+        if attack is None:
+            alpha = torch.zeros_like(alpha)
+        load = self.load_tensor(dtype)[None]
+        rec, _ = run_estimator(ESTIMATORS["uncompensated"], ctx, alpha, xi, theta, load, init_seed=0)
+        us = torch.cat([torch.zeros_like(rec.u[:, :1]), rec.u[:, :-1]], 1)
+        info = {"xi": xi, "theta": theta, "load": load, "attack_values": alpha}
+        flags = (alpha != 0).any(-1)
+        return Trajectories(rec.x, rec.z - alpha, rec.z, us, None, alpha, flags, info)
+
+    def paper_numbers(self) -> dict:
+        return dict(self.paper_table)
 
 
 def _lfc(name, attack, description, channels=(2,), dt=0.01, table_key=None, headline=True):

@@ -168,9 +168,6 @@ class Scenario:
         false_alarm_rate: target per-step false-alarm rate of the residual detectors.
         gamma_min: smallest attack norm the PoA detector must catch (Theorem 1 of the
             modified-PF paper); ``None``: half the attack's steady-state norm [DEF].
-        evaluator: ``"module:function"`` of a family's own evaluation, for families not
-            yet expressed as estimators on trajectories (closed-loop control); ``None``
-            runs the generic Monte Carlo suite.
     """
 
     name: str
@@ -186,7 +183,6 @@ class Scenario:
     num_particles: int = 100
     false_alarm_rate: float = 0.005
     gamma_min: float | None = None
-    evaluator: str | None = None
 
     # -- what a family defines --------------------------------------------------------
     def system(self, dtype: torch.dtype = torch.float64, device=None):

@@ -1,104 +1,111 @@
-"""LFC evaluation: report schema, plots, TensorBoard events, per-channel validation."""
+"""LFC evaluation through the one pipeline: schema, family metrics, report, plots,
+TensorBoard events, the per-channel validation and the summary."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import jsonschema
 import pytest
 import torch
 
-from difffilter.eval.lfc import run_lfc
+import difffilter as df
+from difffilter.eval.cli import evaluate
 from difffilter.eval.report import REQUIRED_KEYS, metrics_schema
+from difffilter.eval.suite import run_suite
+from difffilter.models import registry
 from difffilter.models.neural_estimator import NeuralFDIEstimator, save_estimator_checkpoint
+
+MAIN = ("kf_nn_ekf", "traditional_ad", "kf_nn_grad", "kf_nn_grad_ekf")
 
 
 @pytest.fixture(scope="module")
-def smoke(tmp_path_factory):
-    """A short evaluation (2 runs, 150 steps) with an untrained checkpoint: plumbing only."""
+def short_scenario():
+    """lfc_simultaneous cut to 6 s (its attack on both areas runs from 0.1 s to 5 s)."""
+    sc = dataclasses.replace(
+        registry.get("lfc_simultaneous"), name="lfc_simultaneous_6s", duration=6.0, headline=False
+    )
+    registry.register(sc)
+    yield sc
+    registry._REGISTRY.pop(sc.name)
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory, short_scenario):
+    """2 runs with an untrained checkpoint, a 1-run-per-channel validation: plumbing only."""
     out = tmp_path_factory.mktemp("lfc_eval")
     ckpt = out / "net.ckpt"
     net = NeuralFDIEstimator(hidden=4, init="symmetric", init_scale=0.05, seed=1)
     save_estimator_checkpoint(ckpt, net, {"residual_lag": 0, "dt": 0.01})
-    result = run_lfc(
-        ["lfc_simultaneous"],
+    options = {"per_channel_runs": 1, "per_channel_steps": 150}
+    result = evaluate(
+        [short_scenario.name],
         ckpt=ckpt,
         runs=2,
         out=out,
         seed=5,
         progress=False,
-        per_channel_runs=1,
-        max_steps=150,
+        per_channel=True,
+        family_options=options,
     )
-    return out, result
+    return out, out / short_scenario.name, result[short_scenario.name]
 
 
-def test_metrics_json_follows_the_schema(smoke):
-    out, result = smoke
-    doc = json.loads((out / "lfc_simultaneous" / "metrics.json").read_text())
+def test_metrics_json_follows_the_schema_with_the_family_metrics(smoke):
+    _, folder, result = smoke
+    doc = json.loads((folder / "metrics.json").read_text())
     jsonschema.validate(doc, metrics_schema())
-    assert doc["scenario"] == "lfc_simultaneous" and doc["runs"] == 2 and doc["steps"] == 150
+    assert doc["runs"] == 2 and doc["steps"] == 600 and doc["dt_s"] == 0.01
     assert doc["paper"]["proposed_ad"] == pytest.approx(0.133867)
+    assert doc["reference"] == "kf_attack_free" and doc["skipped"] == {}
     est = doc["estimators"]
-    expected = {
-        "uncompensated",
-        "kf_nn_ekf",
-        "traditional_ad",
-        "kf_nn_grad",
-        "kf_nn_grad_ekf",
-        "chi_square_kf",
-        "cusum_kf",
-    }
-    assert expected <= set(est)
+    assert set(registry.get("lfc_simultaneous").estimators) == set(est)
     for name, entry in est.items():
         assert set(REQUIRED_KEYS) <= set(entry), name
         assert entry["state5_rmse"] > 0, name
-    for name in ("kf_nn_ekf", "traditional_ad", "kf_nn_grad", "kf_nn_grad_ekf"):
+    for name in MAIN:
         e = est[name]
         per_channel = e["attack_rmse_eq43_per_channel"]
-        assert e["attack_rmse_eq43"] > 0 and set(per_channel) == {"dPtu_1", "dPtu_2"}
-        # Scenario III's paper metric is the sum over the two attacked channels (eq. 43, Table I).
-        assert e["attack_rmse_eq43"] == pytest.approx(sum(per_channel.values()), rel=0.05)
+        assert set(per_channel) == {"dPtu_1", "dPtu_2"}
+        # Scenario III's paper metric: eq. (43) per attacked channel, summed (Table I).
+        assert e["attack_rmse_eq43"] == pytest.approx(sum(per_channel.values()))
         # the shared, pooled definition: attacked steps × all ten channels
         assert 0 < e["attack_rmse"] < e["attack_rmse_eq43"]
         assert 0 <= e["tpr"] <= 1 and 0 <= e["fpr"] <= 1
+        assert e["detection_delay_s"] == pytest.approx(0.01 * e["detection_delay_steps"])
     assert est["uncompensated"]["attack_rmse"] is None
+    assert est["uncompensated"]["attack_rmse_eq43_zero_estimate"] > 0
+    assert est["kf_nn_grad"]["auc_prob"] is not None  # the checkpoint's probability head
     assert 0 < est["chi_square_kf"]["tpr"] <= 1 and est["chi_square_kf"]["auc"] > 0.5
-    assert result["lfc_simultaneous"]["estimators"]["kf_nn_grad"][
-        "attack_rmse_eq43"
-    ] == pytest.approx(est["kf_nn_grad"]["attack_rmse_eq43"])
+    assert result["estimators"]["kf_nn_grad"]["attack_rmse_eq43"] == pytest.approx(
+        est["kf_nn_grad"]["attack_rmse_eq43"]
+    )
 
 
-def test_report_plots_and_tensorboard(smoke):
+def test_report_plots_tensorboard_and_summary(smoke):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    out, _ = smoke
-    folder = out / "lfc_simultaneous"
+    out, folder, _ = smoke
     report = (folder / "report.md").read_text()
     assert "Table I" in report and "Table II" in report and "0.1339" in report  # paper beside ours
-    assert "Per-channel validation" in report
-    for png in ("attack_estimates.png", "states.png"):
+    assert "Per-channel validation" in report and "Hyperparameters chosen" in report
+    for png in ("states.png", "rmse_over_time.png", "roc.png", "attack_estimates_run0.png"):
         assert (folder / png).read_bytes()[:4] == b"\x89PNG"
-    acc = EventAccumulator(str(folder / "tb"), size_guidance={"images": 0, "scalars": 0})
+    acc = EventAccumulator(str(folder / "tb"), size_guidance={"scalars": 0})
     acc.Reload()
-    assert "kf_nn_grad/attack_rmse" in acc.Tags()["scalars"]
-    assert "kf_nn_ekf/state5_rmse" in acc.Tags()["scalars"]
-    assert {"attack_estimates", "states"} <= set(acc.Tags()["images"])
-    assert (out / "lfc_summary.md").is_file()
+    assert "state_rmse_per_step/kf_nn_grad" in acc.Tags()["scalars"]
+    assert len(acc.Scalars("state_rmse_per_step/kf_nn_grad")) == 600  # a curve, not a point
+    summary = (out / "lfc_summary.md").read_text()
+    assert "lfc_simultaneous_6s" in summary and "0.1526" in summary  # the paper's mean of I–IV
 
 
 def test_per_channel_validation_files(smoke):
-    out, _ = smoke
+    out, _, _ = smoke
     doc = json.loads((out / "lfc_per_channel" / "metrics.json").read_text())
     table = doc["attack_rmse"]
-    assert {
-        "kf_nn_ekf",
-        "traditional_ad",
-        "kf_nn_gd",
-        "luenberger_nn_ekf",
-        "kf_nn_grad",
-        "zero_estimate",
-    } <= set(table)
+    expected = {"kf_nn_ekf", "traditional_ad", "kf_nn_gd", "luenberger_nn_ekf", "kf_nn_grad"}
+    assert expected | {"zero_estimate"} <= set(table)
     assert all(len(v) == 10 for v in table.values())
     assert (out / "lfc_per_channel" / "per_channel.png").is_file()
     assert "Lowest RMSE per channel" in (out / "lfc_per_channel" / "report.md").read_text()
@@ -112,28 +119,21 @@ def test_per_channel_validation_is_opt_in_on_the_cli():
     assert build_parser().parse_args(["lfc", "--per-channel"]).per_channel is True
 
 
-def test_run_lfc_rejects_bad_arguments(tmp_path):
-    with pytest.raises(ValueError, match="runs"):
-        run_lfc(["lfc_step"], ckpt=None, runs=0, out=tmp_path)
-    with pytest.raises(ValueError, match="unknown scenario"):
-        run_lfc(["lfc_nope"], ckpt=None, runs=1, out=tmp_path)
-    with pytest.raises(FileNotFoundError):
-        run_lfc(["lfc_step"], ckpt=tmp_path / "missing.ckpt", runs=1, out=tmp_path)
+def test_checkpoint_estimators_are_skipped_and_listed_without_a_checkpoint():
+    sc = dataclasses.replace(registry.get("lfc_step"), duration=0.6)
+    result = run_suite(sc, runs=1, progress=False)
+    assert result.skipped == {"kf_nn_grad": "no --ckpt given", "kf_nn_grad_ekf": "no --ckpt given"}
+    assert "kf_nn_grad" not in result.outputs and "kf_nn_ekf" in result.outputs
 
 
-def test_uncompensated_and_skipped_without_checkpoint(tmp_path):
-    res = run_lfc(
-        ["lfc_step"],
-        ckpt=None,
-        runs=1,
-        out=tmp_path,
-        progress=False,
-        per_channel_runs=0,
-        max_steps=60,
-    )["lfc_step"]
-    assert "kf_nn_grad" not in res["estimators"] and "kf_nn_grad" in res["skipped"]
-    # Without an attack estimate the secure and the traditional loop coincide; the attack
-    # (0.4 from t = 3 s) is outside 60 steps, so the uncompensated loop is attack-free here.
-    unc = res["estimators"]["uncompensated"]
-    assert unc["state5_rmse"] == pytest.approx(unc["state5_rmse_attack_free"])
-    assert torch.isfinite(torch.tensor(res["estimators"]["kf_nn_ekf"]["attack_rmse_eq43"]))
+def test_closed_loops_replay_the_scenario_draws(short_scenario):
+    """The uncompensated loop is the trajectory the suite simulated, and the plain Kalman
+    filter on its received measurements and inputs is its observer (every residual
+    detector reads those innovations)."""
+    sc = dataclasses.replace(short_scenario, duration=2.0)
+    result = run_suite(sc, runs=3, seed=1, estimators=("uncompensated",), progress=False)
+    tr, out = result.traj, result.outputs["uncompensated"]
+    assert torch.equal(out.extras["x"], tr.x)
+    kf = df.kalman_filter(sc.system(), tr.y_recv, tr.us)
+    torch.testing.assert_close(kf.means, out.means, rtol=0, atol=1e-10)
+    assert torch.equal(tr.flags, (tr.attack != 0).any(-1)) and bool(tr.flags.any())

@@ -14,9 +14,9 @@ import gc
 import pytest
 import torch
 
-from difffilter.eval.lfc_estimators import ESTIMATORS, EstimatorSpec, LFCContext, run_estimator
 from difffilter.models.attack_observer import AttackObserver, ClosedLoop
 from difffilter.models.lfc import STATE_DIM, random_attacks
+from difffilter.models.lfc_estimators import ESTIMATORS, EstimatorSpec, LFCContext, run_estimator
 from difffilter.models.neural_estimator import NeuralFDIEstimator
 
 

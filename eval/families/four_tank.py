@@ -192,7 +192,7 @@ def _high_noise(result) -> dict[str, Any]:
 # ------------------------------------------------------------------------------ sections
 
 
-def _sections(result, doc: dict, out) -> list[Section]:
+def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
     f = format_number
     est, st = doc["estimators"], doc["settings"]
     p3, p4 = doc["paper"]["table3"], doc["paper"]["table4"]

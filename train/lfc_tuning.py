@@ -3,10 +3,12 @@
 The paper leaves the initial-weight scale, the EKF's process noise, the order of
 operations inside a step, the baseline's learning rate and its Luenberger gain open. This
 script scores every combination on random attacks of the validation seeds (never the
-four test scenarios) and writes ``checkpoints/lfc_tuning.json`` (the provenance of the
-defaults in :mod:`difffilter.eval.lfc_estimators`)::
+four test scenarios) and writes the scores and the winners as JSON (default
+``reports/lfc_tuning.json``; the shipped ``checkpoints/lfc_tuning.json`` is the provenance
+of the defaults in :mod:`difffilter.models.lfc_estimators`, and is only replaced when
+asked for by name)::
 
-    python -m difffilter.eval.lfc_tuning --runs 16 --out checkpoints/lfc_tuning.json
+    python -m difffilter.train.lfc_tuning --runs 16 --out reports/lfc_tuning.json
 
 Score: RMSE of the attack estimate over all channels and steps (``val/attack_rmse``, the
 metric ``kf_nn_grad``'s checkpoints are selected on). Diverging settings score ``inf``.
@@ -24,7 +26,7 @@ from pathlib import Path
 
 import torch
 
-from difffilter.eval.lfc_estimators import EKF_DEFAULTS, ESTIMATORS, LFCContext, run_estimator
+from difffilter.models.lfc_estimators import EKF_DEFAULTS, ESTIMATORS, LFCContext, run_estimator
 
 __all__ = ["validation_batch", "score", "tune", "main"]
 
@@ -141,9 +143,14 @@ def tune(
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m difffilter.eval.lfc_tuning", description=__doc__)
+    p = argparse.ArgumentParser(prog="python -m difffilter.train.lfc_tuning", description=__doc__)
     p.add_argument("--runs", type=int, default=16)
-    p.add_argument("--out", type=Path, default=Path("checkpoints/lfc_tuning.json"))
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("reports/lfc_tuning.json"),
+        help="output JSON, merged into if it exists (default reports/lfc_tuning.json)",
+    )
     p.add_argument(
         "--estimators", nargs="+", default=["kf_nn_ekf", "traditional_ad"], choices=sorted(GRIDS)
     )

@@ -4,7 +4,7 @@ Every estimator is an :class:`EstimatorSpec`: an observer (Kalman or Luenberger)
 network (the paper's randomly initialised one, the trained checkpoint, or none), an
 online learning rule (EKF of eqs 10–14, plain gradient, or none) and whether the
 controller compensates. The defaults below were chosen on random validation attacks
-(``python -m difffilter.eval.lfc_tuning``; the table is in ``checkpoints/lfc_tuning.json``
+(``python -m difffilter.train.lfc_tuning``; the table is in ``checkpoints/lfc_tuning.json``
 and in the report), never on the four test scenarios.
 
 ==================  ==========  ============  ==========  =========================================
@@ -73,7 +73,7 @@ class EstimatorSpec:
 
 
 # The paper's settings where it gives them, [DEF] values chosen on validation otherwise
-# (python -m difffilter.eval.lfc_tuning; the scores are in checkpoints/lfc_tuning.json):
+# (python -m difffilter.train.lfc_tuning; the scores are in checkpoints/lfc_tuning.json):
 # eta = 1, rho(0) = 10 I, Upsilon(0) = tr(Theta) = 1e-3 (docs/scenarios.md, LFC); Q_rho = 1e-3 and
 # s = 0.01 won the grid (Q_rho = 0, the paper's eq. 14 alone, scored 0.186 against 0.132).
 EKF_DEFAULTS = {"lr": 1.0, "init_cov": 10.0, "init_noise": 1e-3, "process_noise": 1e-3}
