@@ -535,7 +535,9 @@ class LFCScenario(Scenario):
         if attack is None:
             alpha = torch.zeros_like(alpha)
         load = self.load_tensor(dtype)[None]
-        rec, _ = run_estimator(ESTIMATORS["uncompensated"], ctx, alpha, xi, theta, load, init_seed=0)
+        rec, _ = run_estimator(
+            ESTIMATORS["uncompensated"], ctx, alpha, xi, theta, load, init_seed=0
+        )
         us = torch.cat([torch.zeros_like(rec.u[:, :1]), rec.u[:, :-1]], 1)
         info = {"xi": xi, "theta": theta, "load": load, "attack_values": alpha}
         flags = (alpha != 0).any(-1)
