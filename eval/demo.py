@@ -4,8 +4,8 @@
    run the linearised KF, the EKF, the UKF and the bootstrap and Kalman-proposal PFs,
    and print the state RMSE of each against the truth and its time per step.
 2. The evaluations: ``difffilter-eval`` on the four-tank bias attack and on the
-   load-frequency-control scenarios with the shipped checkpoint (where those
-   evaluators exist), writing reports under ``--out``.
+   load-frequency-control scenarios with the shipped checkpoint, writing reports under
+   ``--out``.
 """
 
 from __future__ import annotations

@@ -105,25 +105,6 @@ ESTIMATORS: dict[str, EstimatorSpec] = {
         init_scale=0.01,
         luenberger_design="modal",
     ),
-    # The same baseline with the other two Luenberger gains (same poles): its sensitivity.
-    "traditional_ad_robust": EstimatorSpec(
-        "traditional_ad_robust",
-        observer="luenberger",
-        network="paper",
-        learning="gradient",
-        learning_kwargs=GD_DEFAULTS,
-        init_scale=0.01,
-        luenberger_design="robust",
-    ),
-    "traditional_ad_diagonal": EstimatorSpec(
-        "traditional_ad_diagonal",
-        observer="luenberger",
-        network="paper",
-        learning="gradient",
-        learning_kwargs=GD_DEFAULTS,
-        init_scale=0.01,
-        luenberger_design="diagonal",
-    ),
     "kf_nn_grad": EstimatorSpec("kf_nn_grad", network="checkpoint"),
     "kf_nn_grad_ekf": EstimatorSpec(
         "kf_nn_grad_ekf", network="checkpoint", learning="ekf", learning_kwargs=FINETUNE_DEFAULTS
@@ -145,6 +126,12 @@ ESTIMATORS: dict[str, EstimatorSpec] = {
         luenberger_design="modal",
     ),
 }
+
+
+# The same baseline with the other two Luenberger gains (same poles): its sensitivity.
+for _design in ("robust", "diagonal"):
+    _name = f"traditional_ad_{_design}"
+    ESTIMATORS[_name] = ESTIMATORS["traditional_ad"].with_(name=_name, luenberger_design=_design)
 
 
 class LFCContext:
