@@ -230,8 +230,9 @@ def _sections(result, doc: dict, out: Path, prepared=None) -> list[Section]:
     )
     det = (
         "NN estimators alarm when some |α̂_c| exceeds 3σ_c of the same estimator's "
-        "attack-free run [DEF]; `chi_square_kf` and `cusum_kf` test the uncompensated "
-        "loop's Kalman innovations at a 1 % false-alarm rate [DEF]. Per-step rates are "
+        "attack-free run [DEF]; `chi_square_kf` and `cusum_kf` are the Kalman observer of "
+        "the uncompensated loop gated by its χ² or CUSUM test on the innovations (a 1 % "
+        "false-alarm rate [DEF]; alarmed measurements are not used). Per-step rates are "
         "strict: estimates that settle after an attack ends, or leak onto other channels, "
         "count as false alarms. The CUSUM score is its statistic without resets, which "
         "stays high long after an attack (AUC near 0.5 when attacks recur).\n"
