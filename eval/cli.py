@@ -3,7 +3,8 @@
 Usage::
 
     difffilter-eval four_tank_bias --runs 100 --out reports/
-    difffilter-eval lfc --ckpt checkpoints/lfc_nn_grad.ckpt --runs 20
+    difffilter-eval lfc --runs 20          # the shipped checkpoints/lfc_nn_grad.ckpt
+    difffilter-eval lfc --ckpt lightning_logs/lfc_nn_grad/version_0/lfc_nn_grad.ckpt
     difffilter-eval all
     difffilter-eval --list
 
@@ -38,7 +39,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("scenario", nargs="?", help="scenario name, family name or 'all' (see --list)")
     p.add_argument(
-        "--ckpt", type=Path, default=None, help="trained estimator checkpoint (LFC scenarios)"
+        "--ckpt",
+        type=Path,
+        default=None,
+        help="trained estimator: an exported file or a Lightning checkpoint of a training run "
+        "(default: the scenario's shipped checkpoint, if it has one)",
     )
     p.add_argument(
         "--runs", type=int, default=None, help="Monte Carlo runs (default: the scenario family's)"
@@ -94,8 +99,10 @@ def evaluate(
     """
     if runs is not None and (isinstance(runs, bool) or not isinstance(runs, int) or runs < 1):
         raise ValueError(f"--runs must be an integer >= 1; got {runs!r}")
-    if ckpt is not None and not Path(ckpt).is_file():
-        raise FileNotFoundError(f"--ckpt: no checkpoint file at {ckpt}")
+    if ckpt is not None:
+        from difffilter.models.neural_estimator import load_estimator_checkpoint
+
+        load_estimator_checkpoint(ckpt)  # a missing or bad file fails before any work
     families: dict[str, list[str]] = {}
     for name in scenarios:
         families.setdefault(registry.get(name).family, []).append(name)
@@ -106,12 +113,19 @@ def evaluate(
         prepared = None
         if report.prepare:
             options = {"per_channel": per_channel, **(family_options or {})}
-            prepared = report.prepare(names, out=Path(out), seed=seed, checkpoint=ckpt,
-                                      progress=progress, options=options)  # fmt: skip
+            prepared = report.prepare(
+                names, out=Path(out), seed=seed, checkpoint=ckpt, progress=progress, options=options
+            )
         done = {}
         for name in names:
-            result = run_suite(registry.get(name), runs=runs, seed=seed, progress=progress,
-                               checkpoint=ckpt, cache=cache)  # fmt: skip
+            result = run_suite(
+                registry.get(name),
+                runs=runs,
+                seed=seed,
+                progress=progress,
+                checkpoint=ckpt,
+                cache=cache,
+            )
             done[name] = write_report(Path(out) / name, result, prepared=prepared)
         if report.finish:
             report.finish(done, Path(out), prepared)
@@ -161,6 +175,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"difffilter-eval: error: {exc}", file=sys.stderr)
         return 2
     print("\n" + summary_table(results) + "\n")
+    unused = [n for n, doc in results.items() if not (doc.get("checkpoint") or {}).get("used_by")]
+    if args.ckpt is not None and unused:
+        print(f"note: --ckpt {args.ckpt} is used by no estimator of {', '.join(unused)}")
     print(
         f"reports written under {args.out}/ (open the TensorBoard logs with: tensorboard --logdir {args.out})"
     )

@@ -120,8 +120,9 @@ class SuiteContext:
         runs: number of Monte Carlo runs.
         streams: the study's :class:`~difffilter.eval.streams.Streams`.
         options: the scenario's ``estimator_options()`` (family settings).
-        checkpoint: path of a trained estimator checkpoint (``difffilter-eval --ckpt``)
-            or ``None``; factories that need one raise :class:`SkipEstimator` without.
+        checkpoint: path of a trained estimator checkpoint (``difffilter-eval --ckpt``,
+            else the scenario's shipped one) or ``None``; factories that need one raise
+            :class:`SkipEstimator` without, and add their name to ``checkpoint_users``.
         cache: shared by the scenarios of one evaluation (e.g. attack-free runs that
             several scenarios have in common).
     """
@@ -133,6 +134,7 @@ class SuiteContext:
     options: dict[str, Any] = field(default_factory=dict)
     checkpoint: Any = None
     cache: dict[Any, Any] = field(default_factory=dict)
+    checkpoint_users: list[str] = field(default_factory=list)
 
     def particle_kwargs(self, runs: int | None = None) -> dict[str, Any]:
         """Common random numbers for particle filters: identically seeded initial particles,

@@ -294,6 +294,7 @@ def write_report(
         "attacked_steps": int(result.traj.flags.sum()),
         "attack_free_steps": int((~result.traj.flags).sum()),
         "skipped": dict(result.skipped),
+        "checkpoint": result.checkpoint,
         **family_numbers,
         **(extra or {}),
     }
@@ -335,6 +336,13 @@ def _summary_section(doc: dict, sc) -> Section:
     if doc.get("skipped"):
         body += "\nSkipped: " + "; ".join(f"`{k}` ({v})" for k, v in doc["skipped"].items())
         body += ".\n"
+    ckpt = doc.get("checkpoint")
+    if ckpt:
+        users = ", ".join(f"`{n}`" for n in ckpt["used_by"]) or "no estimator (ignored)"
+        body += (
+            f"\nCheckpoint: `{ckpt['path']}` ({ckpt['source']}; sha256 "
+            f"{ckpt['sha256'][:16]}…), used by {users}.\n"
+        )
     if sc.paper:
         body += f"\nPaper: {sc.paper}.\n"
     if doc["notes"]:

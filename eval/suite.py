@@ -37,6 +37,8 @@ class SuiteResult:
         reference: name of the attack-free reference estimator, or ``None``.
         context: the :class:`~difffilter.eval.estimators.SuiteContext` the factories saw.
         skipped: ``{estimator: why}`` for those whose factory raised ``SkipEstimator``.
+        checkpoint: ``{"path", "sha256", "source", "used_by"}`` of the checkpoint the
+            study was given (or the scenario's shipped one), or ``None``.
     """
 
     scenario: Any
@@ -49,6 +51,7 @@ class SuiteResult:
     reference: str | None = None
     context: Any = None
     skipped: dict[str, str] = field(default_factory=dict)
+    checkpoint: dict[str, Any] | None = None
 
 
 @contextmanager
@@ -97,7 +100,8 @@ def run_suite(
             :func:`default_estimators` of its model).
         progress: show a progress bar.
         dtype: of the model and the simulation.
-        checkpoint: a trained estimator checkpoint for the estimators that use one.
+        checkpoint: a trained estimator checkpoint for the estimators that use one
+            (default: the scenario's shipped checkpoint, if it has one).
         cache: a dict shared by the suites of one evaluation (``SuiteContext.cache``).
 
     Runs with one intra-op thread (:func:`one_thread`). An estimator whose factory
@@ -111,6 +115,9 @@ def run_suite(
     model = scenario.system(dtype)
     gens = {k: streams(k) for k in ("plant", "attack", "schedule")}
     traj = scenario.simulate(runs, gens, dtype=dtype, model=model)
+    source = "--ckpt"
+    if checkpoint is None and scenario.shipped_checkpoint() is not None:
+        checkpoint, source = scenario.shipped_checkpoint(), "shipped default (no --ckpt given)"
     options = scenario.estimator_options()
     ctx = registry.SuiteContext(scenario, model, runs, streams, options, checkpoint)
     if cache is not None:
@@ -134,6 +141,15 @@ def run_suite(
             result.wall_s[spec.name] = time.perf_counter() - start
             if spec.reference and result.reference is None:
                 result.reference = spec.name
+    if checkpoint is not None:
+        from difffilter.models.neural_estimator import checkpoint_sha256
+
+        result.checkpoint = {
+            "path": str(checkpoint),
+            "sha256": checkpoint_sha256(checkpoint),
+            "source": source,
+            "used_by": list(ctx.checkpoint_users),
+        }
     ref = result.outputs[result.reference].means if result.reference else None
     for spec in (s for s in specs if s.name in result.outputs):
         result.metrics[spec.name] = score(

@@ -492,6 +492,7 @@ class LFCScenario(Scenario):
     runs: int = 20
     steps: int = 0  # derived: duration / dt
     false_alarm_rate: float = 0.01  # [DEF] of the chi-square and CUSUM detectors
+    checkpoint: str | None = "checkpoints/lfc_nn_grad.ckpt"  # kf_nn_grad without --ckpt
     estimators: tuple[str, ...] = LFC_ESTIMATORS
 
     def __post_init__(self):

@@ -326,10 +326,35 @@ def _verify_sha256(path: Path, expected_sha256: str | None) -> None:
         )
 
 
+def _is_lightning_checkpoint(blob) -> bool:
+    return isinstance(blob, dict) and "pytorch-lightning_version" in blob and "state_dict" in blob
+
+
+def _from_lightning(blob: dict, path: Path) -> dict:
+    """The exported form of a Lightning checkpoint of a module holding ``self.estimator``
+    (its ``hyper_parameters`` carry the estimator's settings, ``residual_lag`` and ``dt``)."""
+    hp = blob.get("hyper_parameters") or {}
+    prefix = "estimator."
+    state = {k[len(prefix) :]: v for k, v in blob["state_dict"].items() if k.startswith(prefix)}
+    if not state or not isinstance(hp, dict):
+        raise ValueError(f"ckpt: the Lightning checkpoint {path} holds no neural FDI estimator")
+    return {
+        "format": CHECKPOINT_FORMAT,
+        "estimator_config": {k: hp[k] for k in _CONFIG_TYPES if k in hp},
+        "observer": {
+            "residual_lag": int(hp.get("residual_lag", 1)),
+            "dt": float(hp.get("dt", 0.01)),
+            "kind": "kalman",
+        },
+        "state_dict": state,
+    }
+
+
 def load_estimator_checkpoint(
     path, *, dtype=torch.float64, expected_sha256: str | None = None
 ) -> tuple[NeuralFDIEstimator, dict]:
-    """Load a checkpoint written by :func:`save_estimator_checkpoint`.
+    """Load a checkpoint written by :func:`save_estimator_checkpoint`, or the estimator of
+    a Lightning checkpoint of a training run (``<run>/checkpoints/*.ckpt``).
 
     Integrity: the file's sha256 is compared with ``expected_sha256`` when given, else
     with the ``"sha256"`` of the card beside it (``path`` with suffix ``.json``, written
@@ -348,8 +373,13 @@ def load_estimator_checkpoint(
         blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # unpickling errors come in many types
         raise ValueError(f"ckpt: {path} is not a weights-only torch checkpoint ({exc})") from exc
+    if _is_lightning_checkpoint(blob):
+        blob = _from_lightning(blob, path)
     if not isinstance(blob, dict) or blob.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"ckpt: {path} is not a {CHECKPOINT_FORMAT} checkpoint")
+        raise ValueError(
+            f"ckpt: {path} is neither a {CHECKPOINT_FORMAT} checkpoint nor a Lightning "
+            "checkpoint of a neural FDI estimator"
+        )
     for key in ("estimator_config", "state_dict", "observer"):
         if key not in blob:
             raise ValueError(f"ckpt: {path} lacks the {key!r} entry")

@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import torch
@@ -168,6 +169,9 @@ class Scenario:
         false_alarm_rate: target per-step false-alarm rate of the residual detectors.
         gamma_min: smallest attack norm the PoA detector must catch (Theorem 1 of the
             modified-PF paper); ``None``: half the attack's steady-state norm [DEF].
+        checkpoint: the shipped trained estimator its learned estimators use when no
+            checkpoint is given (a path relative to the repository, e.g.
+            ``"checkpoints/lfc_nn_grad.ckpt"``), or ``None``.
     """
 
     name: str
@@ -183,6 +187,7 @@ class Scenario:
     num_particles: int = 100
     false_alarm_rate: float = 0.005
     gamma_min: float | None = None
+    checkpoint: str | None = None
 
     # -- what a family defines --------------------------------------------------------
     def system(self, dtype: torch.dtype = torch.float64, device=None):
@@ -222,6 +227,13 @@ class Scenario:
             schedule=self.schedule(),
             us=self.inputs(runs, dtype),
         )
+
+    def shipped_checkpoint(self) -> Path | None:
+        """The file of ``checkpoint`` in this repository, or ``None`` (unset or absent)."""
+        if self.checkpoint is None:
+            return None
+        path = Path(__file__).resolve().parents[1] / self.checkpoint
+        return path if path.is_file() else None
 
     def attack_norm_floor(self) -> float:
         """``‖γ‖_min`` for the PoA threshold: ``gamma_min`` or half the attack's norm [DEF]."""

@@ -619,3 +619,15 @@ def test_resampling_strings_message_names_the_object_to_pass():
     with pytest.raises(TypeError, match=r"difffilter\.resampling\.Systematic\(\)"):
         pf(model, ys, resampler="systematic")
     pf(model, ys, resampler=resampling.Systematic())
+
+
+def test_eval_cli_refuses_a_bad_checkpoint_before_any_work(tmp_path, capsys):
+    from difffilter.eval.cli import main as eval_main
+
+    bad = tmp_path / "bad.ckpt"
+    bad.write_bytes(b"not a checkpoint")
+    out = tmp_path / "out"
+    assert eval_main(["lfc_step", "--ckpt", str(bad), "--out", str(out), "--no-progress"]) == 2
+    assert "bad.ckpt" in capsys.readouterr().err and not (out / "lfc_step").exists()
+    missing = ["lfc_step", "--ckpt", str(tmp_path / "none.ckpt"), "--out", str(out)]
+    assert eval_main(missing) == 2

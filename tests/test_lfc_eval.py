@@ -12,7 +12,7 @@ import torch
 
 import difffilter as df
 from difffilter.eval.cli import evaluate
-from difffilter.eval.report import REQUIRED_KEYS, metrics_schema
+from difffilter.eval.report import REQUIRED_KEYS, metrics_schema, write_report
 from difffilter.eval.suite import run_suite
 from difffilter.models import registry
 from difffilter.models.neural_estimator import NeuralFDIEstimator, save_estimator_checkpoint
@@ -119,11 +119,30 @@ def test_per_channel_validation_is_opt_in_on_the_cli():
     assert build_parser().parse_args(["lfc", "--per-channel"]).per_channel is True
 
 
-def test_checkpoint_estimators_are_skipped_and_listed_without_a_checkpoint():
+def test_without_ckpt_the_shipped_checkpoint_is_used_and_recorded(tmp_path):
     sc = dataclasses.replace(registry.get("lfc_step"), duration=0.6)
+    result = run_suite(sc, runs=1, progress=False, estimators=("uncompensated", "kf_nn_grad"))
+    ckpt = result.checkpoint
+    assert ckpt["path"].endswith("checkpoints/lfc_nn_grad.ckpt") and ckpt["used_by"] == [
+        "kf_nn_grad"
+    ]
+    assert ckpt["source"].startswith("shipped default")
+    card = json.loads(
+        (registry.get("lfc_step").shipped_checkpoint().with_suffix(".json")).read_text()
+    )
+    assert ckpt["sha256"] == card["sha256"]
+    doc = write_report(tmp_path, result)
+    assert doc["checkpoint"] == ckpt
+    assert "shipped default" in (tmp_path / "report.md").read_text()
+
+
+def test_checkpoint_estimators_are_skipped_and_listed_without_any_checkpoint():
+    sc = dataclasses.replace(registry.get("lfc_step"), duration=0.6, checkpoint=None)
     result = run_suite(sc, runs=1, progress=False)
-    assert result.skipped == {"kf_nn_grad": "no --ckpt given", "kf_nn_grad_ekf": "no --ckpt given"}
+    why = "no --ckpt given and no shipped checkpoint"
+    assert result.skipped == {"kf_nn_grad": why, "kf_nn_grad_ekf": why}
     assert "kf_nn_grad" not in result.outputs and "kf_nn_ekf" in result.outputs
+    assert result.checkpoint is None
 
 
 def test_closed_loops_replay_the_scenario_draws(short_scenario):

@@ -198,3 +198,46 @@ def test_resuming_with_a_longer_schedule_is_refused_clearly(tmp_path):
         _tiny_trainer(tmp_path / "cut", 2).fit(
             LFCGradModule(**model), LFCDataModule(**TINY_DATA), ckpt_path=last
         )
+
+
+def test_fit_writes_only_inside_its_run_and_export_ships_it(tmp_path, monkeypatch):
+    """``fit`` leaves ``checkpoints/`` alone; ``export`` ships the run's estimator (from the
+    exported file or the Lightning checkpoint: the same weights, the same evaluation)."""
+    import dataclasses
+
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import registry
+
+    shipped = {p.name: p.read_bytes() for p in (ROOT / "checkpoints").iterdir()}
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    tiny = [
+        "--data.batch_size=2",
+        "--data.batches_per_epoch=1",
+        "--data.val_runs=2",
+        "--data.steps=60",
+        "--model.tbptt_steps=30",
+        "--model.monitor_runs=1",
+    ]
+    config = str(ROOT / "train" / "configs" / "lfc.yaml")
+    assert main(["fit", "--config", config, "--trainer.max_epochs=1", *tiny]) == 0
+    run = tmp_path / "lightning_logs" / "lfc_nn_grad" / "version_0"
+    assert (run / "lfc_nn_grad.ckpt").is_file() and (run / "lfc_nn_grad.json").is_file()
+    assert {p.name: p.read_bytes() for p in (ROOT / "checkpoints").iterdir()} == shipped
+    assert not (tmp_path / "checkpoints").exists()
+
+    assert main(["export", str(run / "lfc_nn_grad.ckpt"), "--out", "ship/a.ckpt"]) == 0
+    assert main(["export", str(run / "lfc_nn_grad.ckpt"), "--out", "ship/a.ckpt"]) == 2  # exists
+    best = next((run / "checkpoints").glob("best-*.ckpt"))
+    assert main(["export", str(best), "--out", "ship/b.ckpt"]) == 0
+    card = json.loads((tmp_path / "ship" / "a.json").read_text())
+    assert card["exported_from"].endswith("lfc_nn_grad.ckpt") and "sha256" in card
+
+    sc = dataclasses.replace(registry.get("lfc_step"), duration=0.5)
+    numbers = []
+    for ckpt in (tmp_path / "ship" / "a.ckpt", tmp_path / "ship" / "b.ckpt", best):
+        out = run_suite(sc, runs=2, estimators=("kf_nn_grad",), checkpoint=ckpt, progress=False)
+        assert out.checkpoint["used_by"] == ["kf_nn_grad"]
+        numbers.append(out.outputs["kf_nn_grad"].attack)
+    torch.testing.assert_close(numbers[0], numbers[1], rtol=0, atol=1e-6)
+    torch.testing.assert_close(numbers[1], numbers[2], rtol=0, atol=0)

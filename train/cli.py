@@ -5,10 +5,12 @@ Usage::
     difffilter-train fit --config train/configs/lfc.yaml
     difffilter-train fit --config train/configs/lfc.yaml --trainer.fast_dev_run=1
     difffilter-train fit --config train/configs/lfc.yaml --ckpt_path <run>/checkpoints/last.ckpt
+    difffilter-train export <run>/lfc_nn_grad.ckpt --out checkpoints/lfc_nn_grad.ckpt --force
 
 The YAML files in ``train/configs/`` hold every setting (model, data, trainer, callbacks);
 ``--print_config`` shows the resolved configuration. TensorBoard logs go under the
-logger's ``save_dir`` (``tensorboard --logdir lightning_logs``).
+logger's ``save_dir`` (``tensorboard --logdir lightning_logs``). ``fit`` writes only
+inside its run folder; ``export`` (:mod:`difffilter.train.export`) ships a result.
 """
 
 from __future__ import annotations
@@ -33,6 +35,11 @@ def main(args: list[str] | None = None) -> int:
     for which intra-op threads only add synchronisation (and stall badly when another
     process holds a core). One thread is the default; ``DIFFFILTER_THREADS`` overrides it.
     """
+    argv = sys.argv[1:] if args is None else list(args)
+    if argv[:1] == ["export"]:
+        from .export import main as export_main
+
+        return export_main(argv[1:])
     torch.set_num_threads(int(os.environ.get("DIFFFILTER_THREADS", "1")))
     tune_cpu_allocator()
     try:

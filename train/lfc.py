@@ -522,21 +522,26 @@ class ExportEstimator(pl.Callback):
     """At the end of ``fit``, export the best checkpoint's estimator (weights only) and a card.
 
     Args:
-        path: the ``.ckpt`` to write (``None`` disables the export); the card goes next to
-            it with the suffix ``.json``.
+        path: the ``.ckpt`` to write; default ``<run folder>/lfc_nn_grad.ckpt`` (the
+            logger's ``version_<n>`` folder), so that ``fit`` writes only inside its run.
+            Shipping a result to ``checkpoints/`` is the explicit ``difffilter-train
+            export``. The card goes next to the file with the suffix ``.json``.
         check_seed, check_runs: the reproducibility check recorded in the card.
+        enabled: ``False`` turns the export off.
 
     Nothing is exported under ``fast_dev_run``.
     """
 
     def __init__(
         self,
-        path: str | None = "checkpoints/lfc_nn_grad.ckpt",
+        path: str | None = None,
         check_seed: int = 20,
         check_runs: int = 4,
+        enabled: bool = True,
     ):
         super().__init__()
         self.path = None if path is None else Path(path)
+        self.enabled = bool(enabled)
         self.check_seed, self.check_runs = int(check_seed), int(check_runs)
         self._start = None
 
@@ -544,8 +549,9 @@ class ExportEstimator(pl.Callback):
         self._start = time.time()
 
     def on_fit_end(self, trainer, pl_module):
-        if self.path is None or trainer.fast_dev_run:
+        if not self.enabled or trainer.fast_dev_run:
             return
+        path = self.path or Path(trainer.log_dir or trainer.default_root_dir) / "lfc_nn_grad.ckpt"
         best_path, best_score = None, None
         for cb in trainer.callbacks:
             if isinstance(cb, pl.callbacks.ModelCheckpoint) and cb.best_model_path:
@@ -564,10 +570,10 @@ class ExportEstimator(pl.Callback):
             "dt": float(hp["dt"]),
             "kind": "kalman",
         }
-        digest = save_estimator_checkpoint(self.path, module.estimator, observer)
+        digest = save_estimator_checkpoint(path, module.estimator, observer)
         # verify against the digest just computed (a card from an earlier export may still
         # lie beside the file; it is rewritten below)
-        estimator, _ = load_estimator_checkpoint(self.path, expected_sha256=digest)
+        estimator, _ = load_estimator_checkpoint(path, expected_sha256=digest)
         dm = trainer.datamodule
         channels = None if dm is None else dm.hparams.channels
         check = check_metric(
@@ -589,7 +595,7 @@ class ExportEstimator(pl.Callback):
             "estimator": "kf_nn_grad",
             "description": "Neural FDI estimator (eqs 8-9) trained by TBPTT through the Kalman "
             "observer on random attacks; Sargolzaei et al., TII 2020",
-            "checkpoint": self.path.name,
+            "checkpoint": path.name,
             "sha256": digest,
             "selected_checkpoint": Path(best_path).name if best_path else None,
             "best_val_attack_rmse": None if best_score is None else float(best_score),
@@ -615,4 +621,5 @@ class ExportEstimator(pl.Callback):
             "torch_version": torch.__version__,
             "lightning_version": pl.__version__,
         }
-        self.path.with_suffix(".json").write_text(json.dumps(card, indent=2) + "\n")
+        path.with_suffix(".json").write_text(json.dumps(card, indent=2) + "\n")
+        print(f"exported {path} (ship it with: difffilter-train export {path} --out <file>)")

@@ -21,6 +21,7 @@ import matplotlib.pyplot as plt
 import torch
 
 from difffilter.estimator import Detection, EstimatorOutput
+from difffilter.models import registry
 from difffilter.models.lfc import PAPER_TABLES, STATE_DIM, STATE_NAMES, random_attacks
 from difffilter.models.lfc_estimators import ESTIMATORS, LFCContext, run_estimator
 from difffilter.models.neural_estimator import load_estimator_checkpoint
@@ -60,9 +61,9 @@ def _cached(ctx: SuiteContext, key, make):
     return ctx.cache[key]
 
 
-def _checkpoint(ctx: SuiteContext):
+def _checkpoint(ctx: SuiteContext, name: str):
     if ctx.checkpoint is None:
-        raise SkipEstimator("no --ckpt given")
+        raise SkipEstimator("no --ckpt given and no shipped checkpoint")
     net, obs = _cached(
         ctx, ("lfc/ckpt", str(ctx.checkpoint)), lambda: load_estimator_checkpoint(ctx.checkpoint)
     )
@@ -70,6 +71,7 @@ def _checkpoint(ctx: SuiteContext):
         raise SkipEstimator(
             f"checkpoint trained at dt = {obs.get('dt', 0.01)} s, scenario dt = {ctx.scenario.dt} s"
         )
+    ctx.checkpoint_users.append(name)
     return net, obs
 
 
@@ -107,7 +109,7 @@ def _closed_loop(name: str):
     def factory(ctx: SuiteContext):
         if name in ABLATIONS and abs(ctx.scenario.dt - 0.01) > 1e-12:
             raise SkipEstimator("ablation run at dt = 10 ms only")
-        ckpt = _checkpoint(ctx) if ESTIMATORS[name].network == "checkpoint" else None
+        ckpt = _checkpoint(ctx, name) if ESTIMATORS[name].network == "checkpoint" else None
 
         def run(tr) -> EstimatorOutput:
             rec, free = _loop(ctx, name, tr, tr.attack, ckpt), _attack_free(ctx, name, tr, ckpt)
@@ -320,6 +322,7 @@ def _prepare(names, *, out: Path, seed: int, checkpoint, progress: bool, options
     (``per_channel_runs``, ``per_channel_steps``: its size, default 8 per channel × 1000)."""
     tuning = json.loads(TUNING.read_text()) if TUNING.is_file() else None
     doc = None
+    checkpoint = checkpoint or registry.get(names[0]).shipped_checkpoint()
     if options.get("per_channel"):
         size = {"runs_per_channel": options.get("per_channel_runs", 8)}
         size["steps"] = options.get("per_channel_steps", 1000)
