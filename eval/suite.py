@@ -55,14 +55,17 @@ class SuiteResult:
 
 
 @contextmanager
-def one_thread():
-    """Run the block with one intra-op thread (restored afterwards).
+def one_thread(enabled: bool = True):
+    """Run the block with one intra-op thread (restored afterwards; ``enabled=False``: as is).
 
     The tensors of a study are small (``B·N·dx`` ≈ 1e4–1e5): on a 2-core machine a second
     thread costs more in synchronisation than it gains (measured 5× slower under load).
+    A scenario whose estimators carry large matrices (``Scenario.single_thread = False``:
+    the LFC EKF over a network's weights, ``[B, P, P]`` covariances) keeps torch's threads.
     """
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)
+    if enabled:
+        torch.set_num_threads(1)
     try:
         yield
     finally:
@@ -104,7 +107,8 @@ def run_suite(
             (default: the scenario's shipped checkpoint, if it has one).
         cache: a dict shared by the suites of one evaluation (``SuiteContext.cache``).
 
-    Runs with one intra-op thread (:func:`one_thread`). An estimator whose factory
+    Runs with one intra-op thread unless the scenario says otherwise
+    (:func:`one_thread`). An estimator whose factory
     raises :class:`~difffilter.eval.estimators.SkipEstimator` is left out and listed in
     ``skipped``.
     """
@@ -127,7 +131,7 @@ def run_suite(
     result = SuiteResult(scenario, runs, seed, traj, context=ctx)
     from tqdm.auto import tqdm
 
-    with one_thread(), torch.no_grad():
+    with one_thread(scenario.single_thread), torch.no_grad():
         bar = tqdm(specs, desc=scenario.name, disable=not progress, leave=False)
         for spec in bar:
             bar.set_postfix_str(spec.name)

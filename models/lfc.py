@@ -493,6 +493,7 @@ class LFCScenario(Scenario):
     steps: int = 0  # derived: duration / dt
     false_alarm_rate: float = 0.01  # [DEF] of the chi-square and CUSUM detectors
     checkpoint: str | None = "checkpoints/lfc_nn_grad.ckpt"  # kf_nn_grad without --ckpt
+    single_thread: bool = False  # the EKF over the weights: [B, P, P] covariances
     estimators: tuple[str, ...] = LFC_ESTIMATORS
 
     def __post_init__(self):

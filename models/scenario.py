@@ -169,6 +169,8 @@ class Scenario:
         false_alarm_rate: target per-step false-alarm rate of the residual detectors.
         gamma_min: smallest attack norm the PoA detector must catch (Theorem 1 of the
             modified-PF paper); ``None``: half the attack's steady-state norm [DEF].
+        single_thread: run the suite with one intra-op thread (small tensors; ``False``
+            for estimators with large matrices).
         checkpoint: the shipped trained estimator its learned estimators use when no
             checkpoint is given (a path relative to the repository, e.g.
             ``"checkpoints/lfc_nn_grad.ckpt"``), or ``None``.
@@ -187,6 +189,7 @@ class Scenario:
     num_particles: int = 100
     false_alarm_rate: float = 0.005
     gamma_min: float | None = None
+    single_thread: bool = True
     checkpoint: str | None = None
 
     # -- what a family defines --------------------------------------------------------
