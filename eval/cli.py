@@ -23,6 +23,7 @@ from pathlib import Path
 from difffilter.models import registry
 from difffilter.runtime import tune_cpu_allocator
 
+from .leaderboard import write_leaderboard
 from .report import family_report, summary_table, write_report
 from .suite import run_suite
 
@@ -95,7 +96,9 @@ def evaluate(
     Scenarios are taken family by family: the family's ``prepare`` (a study its reports
     share) runs once before its scenarios, its ``finish`` (a summary across them) once
     after (:class:`~difffilter.eval.report.FamilyReport`). ``per_channel`` (the LFC
-    per-channel validation) and ``family_options`` reach ``prepare`` as its options.
+    per-channel validation) and ``family_options`` reach ``prepare`` as its options. Ends
+    with the leaderboard of every scenario × estimator (:mod:`~difffilter.eval.leaderboard`:
+    ``<out>/leaderboard.{md,json,png}``, ``<out>/tb_leaderboard``).
     """
     if runs is not None and (isinstance(runs, bool) or not isinstance(runs, int) or runs < 1):
         raise ValueError(f"--runs must be an integer >= 1; got {runs!r}")
@@ -130,6 +133,7 @@ def evaluate(
         if report.finish:
             report.finish(done, Path(out), prepared)
         results.update(done)
+    write_leaderboard(out, results)
     return results
 
 
@@ -179,7 +183,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.ckpt is not None and unused:
         print(f"note: --ckpt {args.ckpt} is used by no estimator of {', '.join(unused)}")
     print(
-        f"reports written under {args.out}/ (open the TensorBoard logs with: tensorboard --logdir {args.out})"
+        f"reports written under {args.out}/, leaderboard in {args.out}/leaderboard.md "
+        f"(open the TensorBoard logs with: tensorboard --logdir {args.out})"
     )
     return 0
 
