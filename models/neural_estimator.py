@@ -326,6 +326,16 @@ def _verify_sha256(path: Path, expected_sha256: str | None) -> None:
         )
 
 
+def is_exported_checkpoint(path) -> bool:
+    """Whether ``path`` is a file written by :func:`save_estimator_checkpoint` (not a
+    Lightning checkpoint); ``False`` for anything unreadable."""
+    try:
+        blob = torch.load(Path(path), map_location="cpu", weights_only=True)
+    except Exception:  # unpickling errors come in many types
+        return False
+    return isinstance(blob, dict) and blob.get("format") == CHECKPOINT_FORMAT
+
+
 def _is_lightning_checkpoint(blob) -> bool:
     return isinstance(blob, dict) and "pytorch-lightning_version" in blob and "state_dict" in blob
 

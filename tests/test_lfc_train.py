@@ -241,3 +241,20 @@ def test_fit_writes_only_inside_its_run_and_export_ships_it(tmp_path, monkeypatc
         numbers.append(out.outputs["kf_nn_grad"].attack)
     torch.testing.assert_close(numbers[0], numbers[1], rtol=0, atol=1e-6)
     torch.testing.assert_close(numbers[1], numbers[2], rtol=0, atol=0)
+
+
+def test_validate_and_test_take_the_exported_checkpoint(tmp_path, monkeypatch, capsys):
+    """``validate``/``test`` load an exported file into the configured module; ``test`` runs
+    the LFC test scenarios on difffilter-eval's draws; a mismatched model is refused."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    config = ["--config", str(ROOT / "train" / "configs" / "lfc.yaml"), "--ckpt_path", str(CKPT)]
+    small = ["--data.val_runs=2", "--data.steps=60", "--data.test_runs=2"]
+    assert main(["validate", *config, *small]) == 0
+    assert main(["test", *config, *small]) == 0
+    out = capsys.readouterr().out
+    assert "loaded the exported estimator" in out and "test/lfc_step/attack_rmse_eq43" in out
+    events = list((tmp_path / "lightning_logs").rglob("events.out.tfevents*"))
+    assert events  # test metrics and figures go to TensorBoard
+    assert main(["test", *config, *small, "--model.hidden=4"]) == 2
+    assert "settings" in capsys.readouterr().err

@@ -6,6 +6,7 @@ Usage::
     difffilter-train fit --config train/configs/lfc.yaml --trainer.fast_dev_run=1
     difffilter-train fit --config train/configs/lfc.yaml --ckpt_path <run>/checkpoints/last.ckpt
     difffilter-train export <run>/lfc_nn_grad.ckpt --out checkpoints/lfc_nn_grad.ckpt --force
+    difffilter-train test --config train/configs/lfc.yaml --ckpt_path checkpoints/lfc_nn_grad.ckpt
 
 The YAML files in ``train/configs/`` hold every setting (model, data, trainer, callbacks);
 ``--print_config`` shows the resolved configuration. TensorBoard logs go under the
@@ -25,7 +26,51 @@ from difffilter.runtime import tune_cpu_allocator
 
 from .lfc import LFCDataModule, LFCGradModule
 
-__all__ = ["main"]
+__all__ = ["main", "DifffilterCLI"]
+
+
+class DifffilterCLI(LightningCLI):
+    """LightningCLI whose ``validate``, ``test`` and ``predict`` also take an exported
+    estimator file (``difffilter-train export``, ``checkpoints/*.ckpt``) as ``--ckpt_path``:
+    its weights are loaded into the configured module, whose estimator settings must match."""
+
+    def before_validate(self):
+        self._load_exported("validate")
+
+    def before_test(self):
+        self._load_exported("test")
+
+    def before_predict(self):
+        self._load_exported("predict")
+
+    def _load_exported(self, subcommand: str) -> None:
+        from difffilter.models.neural_estimator import (
+            is_exported_checkpoint,
+            load_estimator_checkpoint,
+        )
+
+        path = self.config_init[subcommand].get("ckpt_path")
+        if not path or not is_exported_checkpoint(path):
+            return  # a Lightning checkpoint: Lightning restores it
+        mine = self.model.estimator
+        dtype = next(mine.parameters()).dtype
+        estimator, observer = load_estimator_checkpoint(path, dtype=dtype)
+        if estimator.config() != mine.config():
+            raise ValueError(
+                f"--ckpt_path: the estimator in {path} has settings {estimator.config()}, the "
+                f"configured model {mine.config()}; pass the matching --config/--model.* options"
+            )
+        hp = self.model.hparams
+        if int(observer.get("residual_lag", hp.residual_lag)) != hp.residual_lag or (
+            abs(float(observer.get("dt", hp.dt)) - hp.dt) > 1e-12
+        ):
+            raise ValueError(
+                f"--ckpt_path: {path} was trained with observer {observer}, the configured model "
+                f"has residual_lag = {hp.residual_lag}, dt = {hp.dt}"
+            )
+        mine.load_state_dict(estimator.state_dict())
+        self.config_init[subcommand]["ckpt_path"] = None  # weights are in; nothing to restore
+        print(f"loaded the exported estimator {path}")
 
 
 def main(args: list[str] | None = None) -> int:
@@ -43,7 +88,7 @@ def main(args: list[str] | None = None) -> int:
     torch.set_num_threads(int(os.environ.get("DIFFFILTER_THREADS", "1")))
     tune_cpu_allocator()
     try:
-        LightningCLI(
+        DifffilterCLI(
             LFCGradModule,
             LFCDataModule,
             args=args,

@@ -131,6 +131,9 @@ class LFCDataModule(pl.LightningDataModule):
         channels: attackable channels (zero-based; ``None`` = all ten).
         max_events, amplitude, load_range: see :func:`simulate_batch`.
         dtype: ``"float32"`` or ``"float64"``.
+        test_runs, test_seed: runs and master seed of ``test``/``predict``: the registered
+            LFC test scenarios at this ``dt``, their noise drawn from the same named streams
+            as ``difffilter-eval --seed test_seed`` (so ``test`` reproduces its draws).
     """
 
     def __init__(
@@ -147,6 +150,8 @@ class LFCDataModule(pl.LightningDataModule):
         amplitude: tuple[float, float] = (0.1, 2.0),
         load_range: float = 0.02,
         dtype: str = "float32",
+        test_runs: int = 8,
+        test_seed: int = 0,
     ):
         super().__init__()
         if train_seed == val_seed:
@@ -156,6 +161,7 @@ class LFCDataModule(pl.LightningDataModule):
             ("batches_per_epoch", batches_per_epoch),
             ("val_runs", val_runs),
             ("steps", steps),
+            ("test_runs", test_runs),
         ):
             if not (isinstance(val, int) and val >= 1):
                 raise ValueError(f"{name} must be a positive integer; got {val!r}")
@@ -191,6 +197,35 @@ class LFCDataModule(pl.LightningDataModule):
 
     def val_dataloader(self):
         return torch.utils.data.DataLoader(self._val, batch_size=None)
+
+    def test_batches(self) -> list[dict]:
+        """One batch per registered LFC headline scenario at this ``dt``: its attack and the
+        noise and load of ``test_runs`` runs (``Scenario.simulate``'s draws)."""
+        from difffilter.eval.streams import Streams
+
+        hp, batches = self.hparams, []
+        for name in registry.names("lfc", headline_only=True):
+            sc = registry.get(name)
+            if abs(sc.dt - hp.dt) > 1e-12:
+                continue
+            gens = {"plant": Streams(hp.test_seed)("plant")}
+            tr = sc.simulate(hp.test_runs, gens, dtype=_dtype(hp.dtype))
+            batch = {k: tr.info[k] for k in ("xi", "theta", "load")}
+            batches.append(
+                {
+                    "name": name,
+                    "attack": tr.attack,
+                    **batch,
+                    "channels": torch.tensor(sc.attacked_channels),
+                }
+            )
+        return batches
+
+    def test_dataloader(self):
+        return torch.utils.data.DataLoader(self.test_batches(), batch_size=None)
+
+    def predict_dataloader(self):
+        return self.test_dataloader()
 
 
 def build_closed_loop(
@@ -425,6 +460,40 @@ class LFCGradModule(pl.LightningModule):
             if math.isfinite(auc):
                 self.log("val/detection_auc", auc, batch_size=B)
         self._figure("val/random_attack", attack[0], rec.attack_est[0])
+
+    def test_step(self, batch, batch_idx):
+        """One test scenario: eq. (43) over its attacked channels, state-5 RMSE, AUC."""
+        attack, name = batch["attack"], batch["name"]
+        rec = self._simulate(attack, batch["xi"], batch["theta"], batch["load"])
+        ch, B = batch["channels"].tolist(), attack.shape[0]
+        eq43 = (rec.attack_est - attack)[..., ch].square().mean(1).sqrt().sum(-1).mean()
+        self.log(f"test/{name}/attack_rmse_eq43", float(eq43), batch_size=B)
+        self.log(
+            f"test/{name}/state5_rmse",
+            float(rec.x[..., 4].square().mean(1).sqrt().mean()),
+            batch_size=B,
+        )
+        self._test_scores.append(float(eq43))
+        self._figure(f"test/{name}", attack[0], rec.attack_est[0], channels=ch)
+
+    def on_test_epoch_start(self):
+        self._test_scores = []
+
+    def on_test_epoch_end(self):
+        if self._test_scores:
+            mean = sum(self._test_scores) / len(self._test_scores)
+            self.log("test/attack_rmse_eq43_mean", mean)
+
+    def predict_step(self, batch, batch_idx):
+        """The attack estimate ``[B, T, 10]`` (and probability, with a detection head) of
+        one test scenario, in its closed loop."""
+        rec = self._simulate(batch["attack"], batch["xi"], batch["theta"], batch["load"])
+        prob = None if rec.logit is None else torch.sigmoid(rec.logit)
+        return {
+            "name": batch["name"],
+            "attack_estimate": rec.attack_est,
+            "attack_probability": prob,
+        }
 
     def on_validation_epoch_end(self):
         if getattr(self.trainer, "sanity_checking", False):
