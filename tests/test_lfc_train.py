@@ -225,6 +225,10 @@ def test_fit_writes_only_inside_its_run_and_export_ships_it(tmp_path, monkeypatc
     assert (run / "lfc_nn_grad.ckpt").is_file() and (run / "lfc_nn_grad.json").is_file()
     assert {p.name: p.read_bytes() for p in (ROOT / "checkpoints").iterdir()} == shipped
     assert not (tmp_path / "checkpoints").exists()
+    # resuming continues the same run folder (its TensorBoard curves), not a new version_1
+    resume = ["--ckpt_path", str(run / "checkpoints" / "last.ckpt")]
+    assert main(["fit", "--config", config, "--trainer.max_epochs=1", *tiny, *resume]) == 0
+    assert sorted(p.name for p in run.parent.iterdir()) == ["version_0"]
 
     assert main(["export", str(run / "lfc_nn_grad.ckpt"), "--out", "ship/a.ckpt"]) == 0
     assert main(["export", str(run / "lfc_nn_grad.ckpt"), "--out", "ship/a.ckpt"]) == 2  # exists
@@ -258,3 +262,8 @@ def test_validate_and_test_take_the_exported_checkpoint(tmp_path, monkeypatch, c
     assert events  # test metrics and figures go to TensorBoard
     assert main(["test", *config, *small, "--model.hidden=4"]) == 2
     assert "settings" in capsys.readouterr().err
+
+
+def test_monitor_scenarios_of_another_family_are_refused():
+    with pytest.raises(ValueError, match="monitor_scenarios: 'four_tank_bias' is not an LFC"):
+        LFCGradModule(monitor_scenarios=["four_tank_bias"])

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 import sys
+from pathlib import Path
 
 import torch
 from lightning.pytorch.cli import LightningCLI
@@ -33,6 +34,24 @@ class DifffilterCLI(LightningCLI):
     """LightningCLI whose ``validate``, ``test`` and ``predict`` also take an exported
     estimator file (``difffilter-train export``, ``checkpoints/*.ckpt``) as ``--ckpt_path``:
     its weights are loaded into the configured module, whose estimator settings must match."""
+
+    def before_instantiate_classes(self):
+        """Resuming ``fit`` from ``<save_dir>/<name>/version_<n>/checkpoints/*.ckpt`` logs into
+        that same ``version_<n>`` (TensorBoard curves continue) instead of a new folder."""
+        if self.subcommand != "fit":
+            return
+        cfg = self.config["fit"]
+        ckpt, logger = cfg.get("ckpt_path"), cfg["trainer"].get("logger")
+        args = (
+            None if logger is None or isinstance(logger, (bool, list)) else logger.get("init_args")
+        )
+        if not ckpt or args is None:
+            return
+        path = Path(ckpt).resolve()
+        run = path.parent.parent  # .../version_<n>/checkpoints/x.ckpt → .../version_<n>
+        if path.parent.name == "checkpoints" and run.name.startswith("version_"):
+            if args.get("version") is None and run.parent.name == args.get("name"):
+                args["version"] = int(run.name.removeprefix("version_"))
 
     def before_validate(self):
         self._load_exported("validate")

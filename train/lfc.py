@@ -321,8 +321,13 @@ class LFCGradModule(pl.LightningModule):
         )
         if monitor_scenarios is None:
             monitor_scenarios = ["lfc_step", "lfc_sine", "lfc_simultaneous", "lfc_sawtooth"]
-        for name in monitor_scenarios:
-            registry.get(name)  # ValueError for unknown names, at construction time
+        for name in monitor_scenarios:  # at construction time, not silently at validation
+            sc = registry.get(name)  # ValueError for unknown names
+            if sc.family != "lfc" or abs(sc.dt - dt) > 1e-12:
+                raise ValueError(
+                    f"monitor_scenarios: {name!r} is not an LFC scenario at dt = {dt} s "
+                    f"(family {sc.family!r}, dt = {sc.dt} s); this module trains the LFC estimator"
+                )
         self.monitor_scenarios = list(monitor_scenarios)
         self._fit_start = None
         self._val_reference = None  # attack-free state-5 RMSE of the traditional loop (val batch)
