@@ -101,7 +101,9 @@ def test_tensorboard_events_hold_scalars_images_and_hparams(tmp_path):
     logger = pl.loggers.TensorBoardLogger(tmp_path, name="tb", default_hp_metric=False)
     pl.seed_everything(0)
     module = LFCGradModule(**TINY_MODEL)
-    _tiny_trainer(tmp_path, 1, logger=logger).fit(module, LFCDataModule(**TINY_DATA))
+    lr = pl.callbacks.LearningRateMonitor(logging_interval="step")
+    trainer = _tiny_trainer(tmp_path, 1, callbacks=[lr], logger=logger)
+    trainer.fit(module, LFCDataModule(**TINY_DATA))
     acc = EventAccumulator(str(logger.log_dir), size_guidance={"images": 0, "scalars": 0})
     acc.Reload()
     scalars = set(acc.Tags()["scalars"])
@@ -109,7 +111,7 @@ def test_tensorboard_events_hold_scalars_images_and_hparams(tmp_path):
         "train/loss",
         "train/target_rmse",
         "train/grad_norm",
-        "train/lr",
+        "lr-AdamW",  # the one learning-rate curve
         "val/attack_rmse",
         "val/scenario/lfc_step/attack_rmse",
     ):
@@ -121,6 +123,8 @@ def test_tensorboard_events_hold_scalars_images_and_hparams(tmp_path):
     assert (Path(logger.log_dir) / "hparams.yaml").is_file()
     hp = (Path(logger.log_dir) / "hparams.yaml").read_text()
     assert "tbptt_steps: 40" in hp and "hidden: 6" in hp
+    assert "batch_size: 4" in hp and "train_seed: 11" in hp  # the data's settings too
+    assert "train/lr" not in scalars
 
 
 def test_datamodule_seeds():

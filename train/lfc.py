@@ -420,7 +420,7 @@ class LFCGradModule(pl.LightningModule):
         self.log("train/bce", sums["bce"], batch_size=B)
         self.log("train/grad_norm", float(np.mean(norms)), batch_size=B)
         self.log("train/grad_norm_max", float(np.max(norms)), batch_size=B)
-        self.log("train/lr", sched.get_last_lr()[0], batch_size=B)
+        # the learning rate is logged once, by the config's LearningRateMonitor (per step)
 
     # -- validation ---------------------------------------------------------------------
     def _simulate(self, attack, xi, theta, load):
@@ -557,8 +557,11 @@ class LFCGradModule(pl.LightningModule):
             for cb in self.trainer.callbacks:
                 if isinstance(cb, pl.callbacks.ModelCheckpoint) and cb.best_model_score is not None:
                     best = float(cb.best_model_score)
-            if best is not None:
-                self.logger.log_hyperparams(dict(self.hparams), {"hp/best_val_attack_rmse": best})
+            if best is not None:  # the model's and the data's settings, beside the result
+                dm = getattr(self.trainer, "datamodule", None)
+                data = {} if dm is None else dict(dm.hparams)
+                params = {**data, **dict(self.hparams)}  # as Lightning merges them at start
+                self.logger.log_hyperparams(params, {"hp/best_val_attack_rmse": best})
 
 
 def check_metric(
