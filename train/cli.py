@@ -53,6 +53,13 @@ class DifffilterCLI(LightningCLI):
             if args.get("version") is None and run.parent.name == args.get("name"):
                 args["version"] = int(run.name.removeprefix("version_"))
 
+    def before_fit(self):
+        """A ``fast_dev_run`` writes no checkpoint (its ``last.ckpt`` landed in
+        ``./checkpoints/``, beside the shipped files)."""
+        if self.trainer.fast_dev_run:
+            for cb in self.trainer.checkpoint_callbacks:
+                cb.save_last, cb.save_top_k = False, 0
+
     def before_validate(self):
         self._load_exported("validate")
 
