@@ -271,3 +271,38 @@ def test_validate_and_test_take_the_exported_checkpoint(tmp_path, monkeypatch, c
 def test_monitor_scenarios_of_another_family_are_refused():
     with pytest.raises(ValueError, match="monitor_scenarios: 'four_tank_bias' is not an LFC"):
         LFCGradModule(monitor_scenarios=["four_tank_bias"])
+
+
+def test_ddp_on_two_cpu_processes_trains_and_exports_once(tmp_path):
+    """``--trainer.strategy ddp --trainer.devices 2`` on CPU (gloo): each process simulates
+    its half of the epoch's seeded batches, one process writes the export."""
+    import subprocess
+    import sys
+
+    tiny = [
+        "--data.batch_size=2",
+        "--data.batches_per_epoch=2",
+        "--data.val_runs=2",
+        "--data.steps=60",
+        "--model.tbptt_steps=30",
+        "--model.monitor_runs=1",
+    ]
+    cmd = [
+        sys.executable,
+        "-m",
+        "difffilter.train.cli",
+        "fit",
+        "--config",
+        str(ROOT / "train" / "configs" / "lfc.yaml"),
+        "--trainer.max_epochs=1",
+        "--trainer.strategy=ddp",
+        "--trainer.devices=2",
+        "--trainer.accelerator=cpu",
+        *tiny,
+    ]
+    done = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.count("exported ") == 1
+    run = tmp_path / "lightning_logs" / "lfc_nn_grad" / "version_0"
+    estimator, _ = load_estimator_checkpoint(run / "lfc_nn_grad.ckpt")
+    assert all(torch.isfinite(p).all() for p in estimator.parameters())

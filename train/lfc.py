@@ -181,7 +181,15 @@ class LFCDataModule(pl.LightningDataModule):
         self._val = _SeededBatches(val_seed, 1, runs=val_runs, **common)
 
     def train_dataloader(self):
-        return torch.utils.data.DataLoader(self._train, batch_size=None)
+        data = self._train
+        trainer = getattr(self, "trainer", None)
+        if trainer is not None and trainer.world_size > 1:
+            # DDP: each process simulates its own share of the epoch's seeded batches
+            # (the sampler is ours, not Lightning's, so that the data stay a function of
+            # (train_seed, epoch, batch) and resuming sees the same batches)
+            indices = range(trainer.global_rank, len(data), trainer.world_size)
+            data = torch.utils.data.Subset(data, list(indices))
+        return torch.utils.data.DataLoader(data, batch_size=None)
 
     def train_batch(self, epoch: int, index: int) -> dict:
         """Training batch ``index`` of ``epoch`` (seed ``(train_seed, epoch, index)``)."""
@@ -439,10 +447,10 @@ class LFCGradModule(pl.LightningModule):
             if bool(attacked.any())
             else float("nan")
         )
-        self.log("val/attack_rmse", rmse, prog_bar=True, batch_size=B)
-        self.log("val/attack_rmse_attacked", rmse_att, batch_size=B)
+        self.log("val/attack_rmse", rmse, prog_bar=True, batch_size=B, sync_dist=True)
+        self.log("val/attack_rmse_attacked", rmse_att, batch_size=B, sync_dist=True)
         s5 = float(rec.x[..., 4].square().mean().sqrt())
-        self.log("val/state5_rmse", s5, batch_size=B)
+        self.log("val/state5_rmse", s5, batch_size=B, sync_dist=True)
         # Reference: the traditional controller on the same noise without attack (independent
         # of the network: cached). A ratio near 1 means the secure loop under random attacks
         # is as calm as the attack-free one; estimation noise fed back through K₁ raises it.
@@ -457,13 +465,13 @@ class LFCGradModule(pl.LightningModule):
                     batch["load"],
                 )
             self._val_reference = float(ref_rec.x[..., 4].square().mean().sqrt())
-        self.log("val/state5_excess", s5 / self._val_reference, batch_size=B)
+        self.log("val/state5_excess", s5 / self._val_reference, batch_size=B, sync_dist=True)
         if rec.logit is not None:
             from difffilter.metrics import roc_auc
 
             auc = roc_auc(rec.logit.transpose(1, 2), _area_flags(attack).transpose(1, 2).bool())
             if math.isfinite(auc):
-                self.log("val/detection_auc", auc, batch_size=B)
+                self.log("val/detection_auc", auc, batch_size=B, sync_dist=True)
         self._figure("val/random_attack", attack[0], rec.attack_est[0])
 
     def test_step(self, batch, batch_idx):
@@ -472,11 +480,12 @@ class LFCGradModule(pl.LightningModule):
         rec = self._simulate(attack, batch["xi"], batch["theta"], batch["load"])
         ch, B = batch["channels"].tolist(), attack.shape[0]
         eq43 = (rec.attack_est - attack)[..., ch].square().mean(1).sqrt().sum(-1).mean()
-        self.log(f"test/{name}/attack_rmse_eq43", float(eq43), batch_size=B)
+        self.log(f"test/{name}/attack_rmse_eq43", float(eq43), batch_size=B, sync_dist=True)
         self.log(
             f"test/{name}/state5_rmse",
             float(rec.x[..., 4].square().mean(1).sqrt().mean()),
             batch_size=B,
+            sync_dist=True,
         )
         self._test_scores.append(float(eq43))
         self._figure(f"test/{name}", attack[0], rec.attack_est[0], channels=ch)
@@ -487,7 +496,7 @@ class LFCGradModule(pl.LightningModule):
     def on_test_epoch_end(self):
         if self._test_scores:
             mean = sum(self._test_scores) / len(self._test_scores)
-            self.log("test/attack_rmse_eq43_mean", mean)
+            self.log("test/attack_rmse_eq43_mean", mean, sync_dist=True)
 
     def predict_step(self, batch, batch_idx):
         """The attack estimate ``[B, T, 10]`` (and probability, with a detection head) of
@@ -516,11 +525,12 @@ class LFCGradModule(pl.LightningModule):
             rec = self._simulate(attack, xi, theta, sc.load_tensor(self._dtype)[None])
             ch = list(sc.attacked_channels)
             err = (rec.attack_est - attack)[..., ch].square().mean(1).sqrt().sum(-1).mean()
-            self.log(f"val/scenario/{name}/attack_rmse", float(err), batch_size=R)
+            self.log(f"val/scenario/{name}/attack_rmse", float(err), batch_size=R, sync_dist=True)
             self.log(
                 f"val/scenario/{name}/state5_rmse",
                 float(rec.x[..., 4].square().mean(1).sqrt().mean()),
                 batch_size=R,
+                sync_dist=True,
             )
             self._figure(f"val/scenario/{name}", attack[0], rec.attack_est[0], channels=ch)
 
@@ -628,7 +638,10 @@ class ExportEstimator(pl.Callback):
     def on_fit_end(self, trainer, pl_module):
         if not self.enabled or trainer.fast_dev_run:
             return
+        # trainer.log_dir is a collective under DDP: every process asks, one writes
         path = self.path or Path(trainer.log_dir or trainer.default_root_dir) / "lfc_nn_grad.ckpt"
+        if not trainer.is_global_zero:
+            return
         best_path, best_score = None, None
         for cb in trainer.callbacks:
             if isinstance(cb, pl.callbacks.ModelCheckpoint) and cb.best_model_path:
