@@ -16,6 +16,7 @@ A family name (``four_tank``, ``lfc``, …) selects its headline scenarios.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -60,6 +61,13 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="also run the LFC per-channel validation (random attacks on each channel, "
         "80 runs x 6 estimators x 1000 steps; its wall time goes into its metrics.json)",
+    )
+    p.add_argument(
+        "--devices",
+        type=int,
+        default=1,
+        help="processes that share each scenario's estimators (torch.distributed, gloo on "
+        "CPU); the metrics are those of one process (default 1)",
     )
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     p.add_argument("--list", action="store_true", help="list the registered scenarios and exit")
@@ -111,10 +119,11 @@ def evaluate(
         families.setdefault(registry.get(name).family, []).append(name)
     results: dict = {}
     cache: dict = {}  # shared by the suites of this call (e.g. common attack-free runs)
+    writer = _rank() == 0  # with --devices N, one process writes (all run the suites)
     for family, names in families.items():
         report = family_report(family)
         prepared = None
-        if report.prepare:
+        if report.prepare and writer:
             options = {"per_channel": per_channel, **(family_options or {})}
             prepared = report.prepare(
                 names, out=Path(out), seed=seed, checkpoint=ckpt, progress=progress, options=options
@@ -129,12 +138,49 @@ def evaluate(
                 checkpoint=ckpt,
                 cache=cache,
             )
-            done[name] = write_report(Path(out) / name, result, prepared=prepared)
-        if report.finish:
+            if writer:
+                done[name] = write_report(Path(out) / name, result, prepared=prepared)
+        if report.finish and writer:
             report.finish(done, Path(out), prepared)
         results.update(done)
-    write_leaderboard(out, results)
+    if writer:
+        write_leaderboard(out, results)
     return results
+
+
+def _rank() -> int:
+    import torch.distributed as dist
+
+    return dist.get_rank() if dist.is_available() and dist.is_initialized() else 0
+
+
+def _launch(devices: int, argv: list[str]) -> int:
+    """Run ``difffilter-eval`` in ``devices`` processes of one gloo group (rank 0 writes)."""
+    import socket
+
+    import torch.multiprocessing as mp
+
+    with socket.socket() as s:  # a free port for the group's rendezvous
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    try:
+        mp.spawn(_worker, args=(devices, port, argv), nprocs=devices, join=True)
+    except mp.ProcessExitedException as exc:  # the worker printed its error
+        return exc.exit_code or 1
+    return 0
+
+
+def _worker(rank: int, devices: int, port: int, argv: list[str]) -> None:
+    import torch.distributed as dist
+
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
+    dist.init_process_group("gloo", rank=rank, world_size=devices)
+    try:
+        code = main([*argv, "--devices", "1"] + ([] if rank == 0 else ["--no-progress"]))
+    finally:
+        dist.destroy_process_group()
+    if code:
+        raise SystemExit(code)
 
 
 def check_output_folder(out: Path) -> None:
@@ -144,7 +190,7 @@ def check_output_folder(out: Path) -> None:
         raise ValueError(f"--out: {out} exists and is not a folder")
     try:
         out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".difffilter-write-check"
+        probe = out / f".difffilter-write-check-{os.getpid()}"  # one per process (--devices)
         probe.write_text("")
         probe.unlink()
     except OSError as exc:
@@ -166,6 +212,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_output_folder(args.out)  # before any work, not after the whole evaluation
         if args.runs is not None and args.runs < 1:
             raise ValueError(f"--runs must be an integer >= 1; got {args.runs}")
+        if args.devices < 1:
+            raise ValueError(f"--devices must be an integer >= 1; got {args.devices}")
+        if args.devices > 1:  # checked above in this process; the workers run the rest
+            if args.ckpt is not None:
+                from difffilter.models.neural_estimator import load_estimator_checkpoint
+
+                load_estimator_checkpoint(args.ckpt)
+            return _launch(args.devices, list(sys.argv[1:] if argv is None else argv))
         results = evaluate(
             names,
             ckpt=args.ckpt,
@@ -178,6 +232,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-eval: error: {exc}", file=sys.stderr)
         return 2
+    if _rank() > 0:
+        return 0
     print("\n" + summary_table(results) + "\n")
     unused = [n for n, doc in results.items() if not (doc.get("checkpoint") or {}).get("used_by")]
     if args.ckpt is not None and unused:

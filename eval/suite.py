@@ -108,7 +108,10 @@ def run_suite(
         cache: a dict shared by the suites of one evaluation (``SuiteContext.cache``).
 
     Runs with one intra-op thread unless the scenario says otherwise
-    (:func:`one_thread`). An estimator whose factory
+    (:func:`one_thread`). Inside a torch.distributed process group (``difffilter-eval
+    --devices N``) each process runs every N-th estimator and the outputs are gathered:
+    the same numbers as one process, since every estimator sees the same trajectories and
+    named streams wherever it runs. An estimator whose factory
     raises :class:`~difffilter.eval.estimators.SkipEstimator` is left out and listed in
     ``skipped``.
     """
@@ -131,8 +134,10 @@ def run_suite(
     result = SuiteResult(scenario, runs, seed, traj, context=ctx)
     from tqdm.auto import tqdm
 
+    rank, world = _process_group()
+    mine = specs[rank::world]  # with several processes, each runs its share of estimators
     with one_thread(scenario.single_thread), torch.no_grad():
-        bar = tqdm(specs, desc=scenario.name, disable=not progress, leave=False)
+        bar = tqdm(mine, desc=scenario.name, disable=not progress or rank > 0, leave=False)
         for spec in bar:
             bar.set_postfix_str(spec.name)
             try:
@@ -143,8 +148,11 @@ def run_suite(
             start = time.perf_counter()
             result.outputs[spec.name] = run(traj)
             result.wall_s[spec.name] = time.perf_counter() - start
-            if spec.reference and result.reference is None:
-                result.reference = spec.name
+    if world > 1:
+        _gather(result, ctx, specs, world)
+    result.reference = next(
+        (s.name for s in specs if s.reference and s.name in result.outputs), None
+    )
     if checkpoint is not None:
         from difffilter.models.neural_estimator import checkpoint_sha256
 
@@ -165,6 +173,39 @@ def run_suite(
             attacked_input=not spec.clean_input,
         )
     return result
+
+
+def _process_group() -> tuple[int, int]:
+    """``(rank, world size)`` of the torch.distributed group, ``(0, 1)`` without one."""
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def _gather(result: SuiteResult, ctx, specs, world: int) -> None:
+    """Give every process every estimator's output, in the registry order of ``specs``.
+
+    Each estimator ran in one process on the same trajectories and named streams as it
+    would in one process, so the gathered outputs are those of a single-process run.
+    """
+    import torch.distributed as dist
+
+    parts: list = [None] * world
+    mine = (result.outputs, result.wall_s, result.skipped, ctx.checkpoint_users)
+    dist.all_gather_object(parts, mine)
+    outputs, walls, skipped, users = {}, {}, {}, []
+    for out, wall, skip, used in parts:
+        outputs.update(out)
+        walls.update(wall)
+        skipped.update(skip)
+        users += used
+    order = [s.name for s in specs]
+    result.outputs = {n: outputs[n] for n in order if n in outputs}
+    result.wall_s = {n: walls[n] for n in order if n in walls}
+    result.skipped = {n: skipped[n] for n in order if n in skipped}
+    ctx.checkpoint_users[:] = [n for n in order if n in users]
 
 
 def single_run_time_per_step(spec, ctx, traj, repeats: int = 3) -> float:
