@@ -478,17 +478,10 @@ class LFCGradModule(pl.LightningModule):
         """One test scenario: eq. (43) over its attacked channels, state-5 RMSE, AUC."""
         attack, name = batch["attack"], batch["name"]
         rec = self._simulate(attack, batch["xi"], batch["theta"], batch["load"])
-        ch, B = batch["channels"].tolist(), attack.shape[0]
-        eq43 = (rec.attack_est - attack)[..., ch].square().mean(1).sqrt().sum(-1).mean()
-        self.log(f"test/{name}/attack_rmse_eq43", float(eq43), batch_size=B, sync_dist=True)
-        self.log(
-            f"test/{name}/state5_rmse",
-            float(rec.x[..., 4].square().mean(1).sqrt().mean()),
-            batch_size=B,
-            sync_dist=True,
+        eq43 = self._log_scenario(
+            f"test/{name}", "attack_rmse_eq43", attack, rec, batch["channels"].tolist()
         )
-        self._test_scores.append(float(eq43))
-        self._figure(f"test/{name}", attack[0], rec.attack_est[0], channels=ch)
+        self._test_scores.append(eq43)
 
     def on_test_epoch_start(self):
         self._test_scores = []
@@ -523,16 +516,20 @@ class LFCGradModule(pl.LightningModule):
             )
             attack = sc.attack_signal(self._dtype)[None].expand(R, -1, -1)
             rec = self._simulate(attack, xi, theta, sc.load_tensor(self._dtype)[None])
-            ch = list(sc.attacked_channels)
-            err = (rec.attack_est - attack)[..., ch].square().mean(1).sqrt().sum(-1).mean()
-            self.log(f"val/scenario/{name}/attack_rmse", float(err), batch_size=R, sync_dist=True)
-            self.log(
-                f"val/scenario/{name}/state5_rmse",
-                float(rec.x[..., 4].square().mean(1).sqrt().mean()),
-                batch_size=R,
-                sync_dist=True,
-            )
-            self._figure(f"val/scenario/{name}", attack[0], rec.attack_est[0], channels=ch)
+            channels = list(sc.attacked_channels)
+            self._log_scenario(f"val/scenario/{name}", "attack_rmse", attack, rec, channels)
+
+    def _log_scenario(self, prefix: str, key: str, attack, rec, channels: list[int]) -> float:
+        """Log a test scenario's eq. (43) RMSE (as ``key``), its state-5 RMSE and a figure."""
+        runs = attack.shape[0]
+        eq43 = float(
+            (rec.attack_est - attack)[..., channels].square().mean(1).sqrt().sum(-1).mean()
+        )
+        state5 = float(rec.x[..., 4].square().mean(1).sqrt().mean())
+        self.log(f"{prefix}/{key}", eq43, batch_size=runs, sync_dist=True)
+        self.log(f"{prefix}/state5_rmse", state5, batch_size=runs, sync_dist=True)
+        self._figure(prefix, attack[0], rec.attack_est[0], channels=channels)
+        return eq43
 
     def _figure(self, tag, attack, estimate, channels=None):
         logger = self.logger
