@@ -36,7 +36,7 @@ from torch.utils.data import Dataset
 from difffilter.models import registry
 from difffilter.models.attack_observer import AttackObserver, ClosedLoop
 from difffilter.models.control import lqr
-from difffilter.models.lfc import NUM_AREAS, LFCPlant, random_attacks
+from difffilter.models.lfc import NUM_AREAS, LFCPlant, LFCScenario, random_attacks
 from difffilter.models.neural_estimator import (
     NeuralFDIEstimator,
     load_estimator_checkpoint,
@@ -331,7 +331,7 @@ class LFCGradModule(pl.LightningModule):
             monitor_scenarios = ["lfc_step", "lfc_sine", "lfc_simultaneous", "lfc_sawtooth"]
         for name in monitor_scenarios:  # at construction time, not silently at validation
             sc = registry.get(name)  # ValueError for unknown names
-            if sc.family != "lfc" or abs(sc.dt - dt) > 1e-12:
+            if not isinstance(sc, LFCScenario) or abs(sc.dt - dt) > 1e-12:
                 raise ValueError(
                     f"monitor_scenarios: {name!r} is not an LFC scenario at dt = {dt} s "
                     f"(family {sc.family!r}, dt = {sc.dt} s); this module trains the LFC estimator"
