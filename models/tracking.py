@@ -30,7 +30,14 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from difffilter.linalg import matvec, rowwise
+from difffilter.kalman import joseph_covariance, kalman_gain
+from difffilter.linalg import (
+    gaussian_log_prob_chol,
+    masked_measurement,
+    matvec,
+    rowwise,
+    safe_cholesky,
+)
 from difffilter.noise import Gaussian, NoiseModel, register_tensor
 from difffilter.ssm import StateSpaceModel
 
@@ -47,6 +54,8 @@ __all__ = [
     "TrackingModel",
     "TrackingScenario",
     "communication_counts",
+    "PerSensorDeception",
+    "DeceptionEKFProposal",
 ]
 
 #: Sensor positions (ζ, ψ) [DEF]: shown only in the paper's Fig. 2 (docs/scenarios.md).
@@ -220,6 +229,78 @@ def communication_counts(mask: Tensor | None, runs: int, steps: int, sensors: in
     if mask is None:
         return torch.full((runs,), sensors * steps, dtype=torch.long)
     return mask.reshape(mask.shape[:-1] + (sensors, -1)).any(-1).sum((-1, -2)).long()
+
+
+class PerSensorDeception:
+    """``Π_i [(1 − η̄) p_ν(ỹ^i − h^i(x)) + η̄ p_ξ(ỹ^i)]`` over the received sensors (PF-DA).
+
+    ``components`` gives the per-sensor clean and attacked log terms ``[..., N, S]``.
+    """
+
+    def __init__(self, rate: float, low, high, sensors: int):
+        self.rate, self.sensors = float(rate), sensors
+        self.low, self.high = torch.tensor(low), torch.tensor(high)
+        self.log_q = math.log1p(-self.rate)
+        self.log_pa = (math.log(self.rate) if self.rate > 0 else -math.inf) - math.log(
+            float((self.high - self.low).prod())
+        )
+
+    def components(self, model, y, particles, k, mask):
+        r = model.measurement_residual(y.unsqueeze(-2), model.observe(particles, k))
+        clean = model.measurement_noise.block_log_prob(r) + self.log_q  # [..., N, S]
+        yb = y.reshape(y.shape[:-1] + (self.sensors, 2))
+        inside = ((yb >= self.low.to(y)) & (yb <= self.high.to(y))).all(-1)
+        att = torch.where(inside, self.log_pa, -math.inf).unsqueeze(-2).expand_as(clean)
+        recv = torch.ones_like(inside) if mask is None else mask.reshape(yb.shape).any(-1)
+        return clean, att, recv.unsqueeze(-2)
+
+    def __call__(self, model, y, particles, k, mask):
+        clean, att, recv = self.components(model, y, particles, k, mask)
+        return torch.where(recv, torch.logaddexp(clean, att), 0.0).sum(-1)
+
+    def posterior_attack(self, model, y, state, mask):
+        """``P(η^i_k = 1 | ỹ_{1:k})`` ``[..., S]``: ``Σ_j w_j a_ij / (c_ij + a_ij)`` (posterior weights)."""
+        clean, att, recv = self.components(model, y, state.particles, state.k, mask)
+        resp = torch.exp(att - torch.logaddexp(clean, att))
+        w = torch.softmax(state.log_weights, -1).unsqueeze(-1)
+        return torch.where(recv.squeeze(-2), (w * resp).sum(-2), 0.0)
+
+
+class DeceptionEKFProposal:
+    """``q = (1 − ρ) N(μ, Σ) + ρ N(f, Q)``: an EKF step on the received measurement, and the
+    prior with weight ``ρ`` (= η̄ [DEF]) so a replaced packet cannot drag every particle.
+
+    ``f = F x_{k−1}``, ``H = ∂h/∂x(f)`` on the received entries, ``R`` the glint noise's
+    moment covariance, ``μ = f + K r`` (wrapped residual), ``Σ`` Joseph form; the log
+    correction ``log N(x; f, Q) − log q(x)`` keeps the weights targeting the posterior.
+    """
+
+    def __init__(self, rho: float):
+        self.rho = float(rho)
+
+    def __call__(self, model, particles, u, y, k, mask, generator):
+        f = model.transition(particles, None, k)
+        Q = model.process_cov(k)
+        H = model.observation_jacobian(f, k + 1)
+        r = model.measurement_residual(y.unsqueeze(-2), model.observe(f, k + 1))
+        m = None if mask is None else mask.unsqueeze(-2)
+        r, H, R, _ = masked_measurement(r, H, model.measurement_cov(k + 1), m)
+        cross = Q @ H.transpose(-1, -2)
+        gain, _ = kalman_gain(cross, H @ cross + R)
+        mu = f + matvec(gain, r)
+        chol_s = safe_cholesky(joseph_covariance(Q, gain, H, R), name="proposal covariance")
+        chol_q = safe_cholesky(Q, name="Q")
+        eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
+        prior = torch.rand(mu.shape[:-1], generator=generator, dtype=mu.dtype) < self.rho
+        new = torch.where(prior.unsqueeze(-1), f + matvec(chol_q, eps), mu + matvec(chol_s, eps))
+        log_p = gaussian_log_prob_chol(new - f, chol_q)
+        log_ekf = gaussian_log_prob_chol(new - mu, chol_s)
+        log_q = (
+            log_ekf
+            if self.rho == 0
+            else torch.logaddexp(log_ekf + math.log1p(-self.rho), log_p + math.log(self.rho))
+        )
+        return new, log_p - log_q
 
 
 @dataclass(frozen=True)
