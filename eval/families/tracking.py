@@ -294,7 +294,7 @@ def _sections(result, doc: dict, out) -> list[Section]:
         "RMSE_v",
         "PCRB_v",
         "ratio_v",
-        "≥ bound every step",
+        "fraction of steps ≥ bound",
     ]
     rows = [[f"`{n}`", e["bound"], f(e["rmse_p"]), f(e["bound_rmse_p"]), f(e["ratio_p"]), f(e["rmse_v"]),
              f(e["bound_rmse_v"]), f(e["ratio_v"]), f(e["steps_at_or_above_bound"])] for n, e in est.items()]  # fmt: skip
