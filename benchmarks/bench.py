@@ -20,6 +20,8 @@ Prints, in one run:
    OT with its no-grad Sinkhorn iterations capped, which changes the time, not the peak),
    and the time of one default OT resampling at that size.
 4. The modified PF of the four-tank paper (when its benchmark module is present).
+5. ``rrp_pf_da`` of the tracking paper, 50 runs × 500 particles × 120 steps batched
+   (target ≥ 1e7 particle-steps/s), float64 and float32 (``bench_tracking.py``).
 
 Targets (2-core CPU) are printed beside the figures; a missed target says so.
 """
@@ -437,6 +439,17 @@ def main(argv=None) -> int:
                 "   "
                 + "  ".join(f"{k}={_fmt(v) if isinstance(v, float) else v}" for k, v in r.items())
             )
+
+    from bench_tracking import bench_rrp_pf_da
+
+    print("\n5. rrp_pf_da (tracking, RRP deception PF), B = 50, N = 500, T = 120, one thread")
+    rows = bench_rrp_pf_da()
+    figures["rrp_pf_da"] = rows
+    for r in rows:
+        print(
+            f"   {r['dtype']:>7s}  {_fmt(r['particle_steps_per_s']):>10s} particle-steps/s  "
+            f"({r['seconds']:.2f} s)  target ≥ 1e7: {r['target']}"
+        )
 
     if args.json:
         args.json.write_text(json.dumps(figures, indent=2))

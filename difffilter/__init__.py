@@ -4,14 +4,16 @@ Models (:class:`StateSpaceModel`, :class:`LinearGaussianModel`,
 :class:`NonlinearGaussianModel`), noise models (:mod:`difffilter.noise`), Gaussian filters
 (:func:`kalman_filter`, :func:`extended_kalman_filter`, :func:`unscented_kalman_filter`),
 the particle filter (:func:`particle_filter`) with pluggable proposals, likelihoods and
-resamplers (:mod:`difffilter.resampling`), and the attack detectors and attack-aware
+resamplers (:mod:`difffilter.resampling`), the posterior Cramér–Rao bound
+(:func:`posterior_crb`), and the attack detectors and attack-aware
 filters of the FDI literature (:mod:`difffilter.fdi`).
 
 Shapes are batch first: measurements ``ys [..., T, dy]``, inputs ``us [..., T, du]``,
 particles ``[..., N, dx]``. See :mod:`difffilter.ssm` for the time convention.
 """
 
-from . import metrics, noise, resampling
+from . import bounds, metrics, noise, resampling
+from .bounds import PCRBResult, posterior_crb
 from .estimator import Detection, EstimatorOutput
 from .extended import (
     SigmaPoints,
@@ -41,6 +43,9 @@ __all__ = [
     "NonlinearGaussianModel",
     "noise",
     "metrics",
+    "bounds",
+    "posterior_crb",
+    "PCRBResult",
     "resampling",
     "ParticleState",
     "particle_init",

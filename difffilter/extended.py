@@ -62,7 +62,7 @@ def _extended_kalman_step(model, state, y, u=None, mask=None):
     pred_mean = model.transition(state.mean, u, k)
     pred_cov = symmetrize(F @ state.cov @ F.transpose(-1, -2) + model.process_cov(k))
     H = model.observation_jacobian(pred_mean, k + 1).to(dtype)
-    residual = y - model.observe(pred_mean, k + 1)
+    residual = model.measurement_residual(y, model.observe(pred_mean, k + 1))
     residual, H, R, observed = masked_measurement(residual, H, model.measurement_cov(k + 1), mask)
     cross = pred_cov @ H.transpose(-1, -2)
     mean, cov, S, log_lik = gaussian_update(
@@ -170,7 +170,7 @@ def _unscented_kalman_step(model, state, y, u=None, mask=None, sigma_points=None
     y_hat = (wm[:, None] * Y).sum(-2)
     dy_pts = Y - y_hat.unsqueeze(-2)
     dx_pts = Xp - pred_mean.unsqueeze(-2)
-    residual = y - y_hat
+    residual = model.measurement_residual(y, y_hat)
     R = model.measurement_cov(k + 1)
     if mask is not None:
         dy_pts = dy_pts * mask.to(dy_pts.dtype).unsqueeze(-2)

@@ -176,7 +176,7 @@ class KalmanProposal:
             H = model.observation_matrix(k + 1)
         else:
             H = model.observation_jacobian(f, k + 1)
-        residual = y.unsqueeze(-2) - model.observe(f, k + 1)
+        residual = model.measurement_residual(y.unsqueeze(-2), model.observe(f, k + 1))
         m = None if mask is None else mask.unsqueeze(-2)
         residual, H, R, _ = masked_measurement(residual, H, model.measurement_cov(k + 1), m)
         cross = Q @ H.transpose(-1, -2)
@@ -317,7 +317,7 @@ def _particle_step(
     obs_dev = rowwise(torch.sub, obs, y_hat.unsqueeze(-2))
     y_cov = (obs_dev * pred_w.transpose(-1, -2)).transpose(-1, -2) @ obs_dev
     pred_mean = (pred_w @ new).squeeze(-2)
-    innovation = y - y_hat
+    innovation = model.measurement_residual(y, y_hat)
     R = model.measurement_cov(k + 1)
     if mask is not None:
         eye = torch.eye(R.shape[-1], dtype=R.dtype, device=R.device)
@@ -330,7 +330,7 @@ def _particle_step(
         # the model's own density: reuse the predicted measurements computed above
         m = None if mask is None else mask.unsqueeze(-2)
         log_alpha = model.measurement_noise.log_prob(
-            rowwise(torch.sub, y.unsqueeze(-2), obs), mask=m
+            model.measurement_residual(y.unsqueeze(-2), obs), mask=m
         )
     elif getattr(likelihood, "uses_predictive", False):
         log_alpha = likelihood(model, y, new, k + 1, mask, predictive=predictive)

@@ -132,6 +132,14 @@ class StateSpaceModel(nn.Module):
         noise = self.measurement_noise.sample(mean.shape[:-1], generator)
         return mean + noise.reshape(mean.shape)
 
+    def measurement_residual(self, y: Tensor, y_hat: Tensor) -> Tensor:
+        """``y − ŷ`` ``[..., dy]`` (broadcasting); a model with angles overrides it to wrap them.
+
+        The Gaussian filters' innovations, the Kalman proposal and
+        ``measurement_log_prob`` all go through it.
+        """
+        return rowwise(torch.sub, y, y_hat)
+
     def measurement_log_prob(
         self, y: Tensor, x: Tensor, k: int, mask: Tensor | None = None
     ) -> Tensor:
@@ -139,7 +147,9 @@ class StateSpaceModel(nn.Module):
 
         ``mask [..., dy]`` marks received entries; unreceived ones are marginalised out.
         """
-        return self.measurement_noise.log_prob(rowwise(torch.sub, y, self.observe(x, k)), mask=mask)
+        return self.measurement_noise.log_prob(
+            self.measurement_residual(y, self.observe(x, k)), mask=mask
+        )
 
     # -- simulation ------------------------------------------------------------------
     @torch.no_grad()

@@ -253,3 +253,41 @@ class Replacement:
 
     def inject(self, signal: Tensor, values: Tensor, flags: Tensor) -> Tensor:
         return torch.where(flags.unsqueeze(-1), values, signal)
+
+    def sample_groups(
+        self, batch_shape, num_steps, groups, generator=None, *, dtype, device=None
+    ) -> tuple[Tensor, Tensor]:
+        """Independent attacks per sensor group (each group's packet replaced at ``rate``).
+
+        ``groups``: the measurement entries of each sensor (as in
+        :class:`~difffilter.models.schedules.RoundRobin`). Returns ``values [*, T, dy]``
+        (the ``ξ`` draws, as :meth:`sample`) and ``flags [*, T, G]`` (bool, one Bernoulli
+        per group and step); draws the uniforms of the flags first, then the box, from
+        ``generator``. Apply with :meth:`inject_groups`.
+        """
+        _check_steps(num_steps)
+        dim = len(self.low)
+        shape = torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
+        u = torch.rand(
+            shape + (num_steps, len(groups)),
+            generator=generator,
+            dtype=torch.float64,
+            device=device,
+        )
+        lo = torch.tensor(self.low, dtype=dtype, device=device)
+        hi = torch.tensor(self.high, dtype=dtype, device=device)
+        box = torch.rand(shape + (num_steps, dim), generator=generator, dtype=dtype, device=device)
+        return lo + (hi - lo) * box, u < self.rate
+
+    @staticmethod
+    def entry_flags(flags: Tensor, groups) -> Tensor:
+        """Group flags ``[*, T, G]`` → entry flags ``[*, T, dy]`` (each entry its group's flag)."""
+        owner = [0] * sum(len(g) for g in groups)
+        for j, g in enumerate(groups):
+            for i in g:
+                owner[i] = j
+        return flags[..., torch.tensor(owner, device=flags.device)]
+
+    def inject_groups(self, signal: Tensor, values: Tensor, flags: Tensor, groups) -> Tensor:
+        """``signal [*, T, dy]`` with each flagged group's entries replaced by ``values``."""
+        return torch.where(self.entry_flags(flags, groups), values, signal)

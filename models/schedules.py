@@ -33,14 +33,18 @@ class AllSensors:
 
 @dataclass(frozen=True)
 class RoundRobin:
-    """Round-Robin scheduling: at step ``k`` (1-based) only group ``(k − 1) mod n`` transmits.
+    """Round-Robin scheduling: at step ``k`` (1-based) only group ``(k − 1 + start) mod n`` transmits.
+
+    Eq. (3) of the RRP paper, ``γ_k = mod(k + γ_ini − 2, n) + 1``, with ``start = γ_ini − 1``.
 
     Args:
         groups: the measurement entries of each group, e.g. ``((0, 1), (2, 3))`` for two
             range-bearing sensors; every entry must belong to exactly one group.
+        start: the (0-based) group granted access at ``k = 1`` (default 0).
     """
 
     groups: tuple[tuple[int, ...], ...]
+    start: int = 0
 
     def __post_init__(self):
         groups = tuple(tuple(int(i) for i in g) for g in self.groups)
@@ -50,6 +54,12 @@ class RoundRobin:
                 f"groups must be non-empty, disjoint groups of entry indices >= 0; got {self.groups!r}"
             )
         object.__setattr__(self, "groups", groups)
+        if isinstance(self.start, bool) or not isinstance(self.start, int) or self.start < 0:
+            raise ValueError(f"start must be an integer >= 0 (γ_ini − 1); got {self.start!r}")
+
+    def scheduled(self, num_steps: int, *, device=None) -> Tensor:
+        """The (0-based) group transmitting at each step ``k = 1 … T``, ``[T]`` (long)."""
+        return (torch.arange(num_steps, device=device) + self.start) % len(self.groups)
 
     def mask(self, batch_shape, num_steps: int, dim: int, generator=None, *, device=None):
         flat = sorted(i for g in self.groups for i in g)
@@ -60,8 +70,9 @@ class RoundRobin:
         table = torch.zeros(len(self.groups), dim, dtype=torch.bool, device=device)
         for j, g in enumerate(self.groups):
             table[j, list(g)] = True
-        steps = torch.arange(num_steps, device=device) % len(self.groups)
-        return table[steps].expand(_shape(batch_shape) + (num_steps, dim))
+        return table[self.scheduled(num_steps, device=device)].expand(
+            _shape(batch_shape) + (num_steps, dim)
+        )
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,49 @@
+"""Throughput of ``rrp_pf_da`` (RRP particle filter with deception attacks, Algorithm 1).
+
+``bench_rrp_pf_da()`` returns one dict per dtype: 50 runs × 500 particles × 120 steps in
+one batched program (the paper's study), one intra-op thread as in the evaluation suite,
+in particle-steps per second (target ≥ 1e7 on the 2-core machine). ``make bench`` prints
+it; run alone: ``python benchmarks/bench_tracking.py``.
+"""
+
+from __future__ import annotations
+
+import torch
+from timing import best_time
+
+from difffilter.eval.estimators import SuiteContext, get
+from difffilter.eval.streams import Streams
+from difffilter.models import registry
+
+__all__ = ["bench_rrp_pf_da"]
+
+TARGET_RATE = 1e7
+
+
+def bench_rrp_pf_da(runs: int = 50, particles: int = 500, steps: int = 120) -> list[dict]:
+    sc = registry.get("tracking_rrp_deception")
+    rows = []
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        for dtype in (torch.float64, torch.float32):
+            model = sc.system(dtype)
+            streams = Streams(0)
+            gens = {k: streams(k) for k in ("plant", "attack", "schedule")}
+            tr = sc.simulate(runs, gens, dtype=dtype, model=model)
+            ctx = SuiteContext(sc, model, runs, streams)
+            run = get("rrp_pf_da").factory(ctx)
+            with torch.no_grad():
+                seconds = best_time(lambda run=run, tr=tr: run(tr), repeats=3, min_time=0.0)
+            rate = runs * particles * steps / seconds
+            rows.append({"dtype": str(dtype).replace("torch.", ""), "B": runs, "N": particles, "T": steps,
+                         "seconds": seconds, "particle_steps_per_s": rate,
+                         "target": "met" if rate >= TARGET_RATE else f"MISSED ({rate / TARGET_RATE:.2f} of 1e7)"})  # fmt: skip
+    finally:
+        torch.set_num_threads(threads)
+    return rows
+
+
+if __name__ == "__main__":
+    for r in bench_rrp_pf_da():
+        print(r)

@@ -1,0 +1,238 @@
+"""Posterior Cramér–Rao bound (PCRB): the accuracy floor of any state estimator.
+
+Tichavský, Muravchik & Nehorai (IEEE TSP 46(5), 1998): for
+``x_{k+1} = f(x_k, u_k) + w_k``, ``w_k ~ N(0, Q)``, ``y_k = h(x_k) + v_k`` with a
+measurement noise of density ``p_v`` (independent of ``x``), the Bayesian information
+matrix ``J_k`` of ``x_k`` given ``y_{1:k}`` obeys ``E[(x̂_k − x_k)(x̂_k − x_k)ᵀ] ⪰ J_k⁻¹``
+for every estimator ``x̂_k`` and::
+
+    J_0     = P_0⁻¹                                           (Gaussian prior)
+    D11_k   = E[F̃_kᵀ Q⁻¹ F̃_k],   D12_k = −E[F̃_k]ᵀ Q⁻¹,   D21_k = D12_kᵀ
+    D22_k   = Q⁻¹ + E[H̃_{k+1}ᵀ J_v(m_{k+1}) H̃_{k+1}]
+    J_{k+1} = D22_k − D21_k (J_k + D11_k)⁻¹ D12_k
+
+with ``F̃_k = ∂f/∂x(x_k)``, ``H̃_k = ∂h/∂x(x_k)``, the expectations over the true
+trajectories (Monte Carlo over the given sample paths), and ``J_v(m)`` the Fisher
+information of the measurement noise restricted to the received entries ``m``:
+
+* Gaussian ``p_v = N(0, R)``: ``J_v(m) = Mᵀ (R_mm)⁻¹ M`` (``M`` selects the received
+  entries; unreceived entries contribute no information) — closed form;
+* any other noise model (the glint Gaussian mixture): ``J_v(m) = E[s sᵀ]`` with
+  ``s = ∇_v log p_v^m(v)`` the score of the marginal density of the received entries,
+  by **Monte Carlo** over ``num_samples`` draws ``v ~ p_v`` from an explicit
+  ``torch.Generator`` (standard error ∝ 1/√num_samples; the draws are shared by every
+  mask pattern).
+
+On a linear-Gaussian model ``J_k⁻¹`` equals the Kalman filter's posterior covariance
+``P_{k|k}`` (also with a mask): ``J_{k+1} = (Q + F J_k⁻¹ Fᵀ)⁻¹ + Hᵀ R_m⁻¹ H``.
+
+Shapes: trajectories ``xs [..., M, T, dx]`` (``M`` Monte Carlo paths, ``xs[..., t, :] =
+x_{t+1}``), initial states ``x0 [..., M, dx]``, mask ``[..., T, dy]`` (bool, shared by
+the ``M`` paths: the bound conditional on that schedule; leading dimensions give a batch
+of bounds, e.g. one per attack-flag pattern).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from ._checks import check_positive_int
+from .linalg import symmetrize
+from .noise import Gaussian, NoiseModel
+from .ssm import StateSpaceModel
+
+__all__ = [
+    "PCRBResult",
+    "gaussian_information",
+    "noise_information",
+    "measurement_information_moments",
+    "posterior_crb",
+]
+
+
+class PCRBResult(NamedTuple):
+    """The bound over ``T`` steps.
+
+    Attributes:
+        information: Bayesian information ``J_k`` ``[..., T, dx, dx]`` (k = 1 … T).
+        bound: ``J_k⁻¹`` ``[..., T, dx, dx]``, the lower bound on the MSE matrix.
+    """
+
+    information: Tensor
+    bound: Tensor
+
+    def rmse(self, index) -> Tensor:
+        """``sqrt(tr J_k⁻¹[index, index])`` ``[..., T]``: the RMSE floor of components ``index``."""
+        idx = torch.as_tensor(index, device=self.bound.device)
+        return self.bound[..., idx, idx].sum(-1).sqrt()
+
+
+def _check_mask(mask: Tensor | None, dim: int, name: str = "mask") -> Tensor | None:
+    if mask is None:
+        return None
+    if not isinstance(mask, Tensor) or mask.dtype != torch.bool or mask.shape[-1:] != (dim,):
+        got = tuple(mask.shape) if isinstance(mask, Tensor) else type(mask).__name__
+        raise ValueError(f"{name} must be a bool tensor [..., {dim}]; got {got}")
+    return mask
+
+
+def gaussian_information(R: Tensor, mask: Tensor | None = None) -> Tensor:
+    """``J_v(m) = Mᵀ (R_mm)⁻¹ M`` of ``N(0, R)`` for ``R [dy, dy]``, ``mask [..., dy]`` → ``[..., dy, dy]``.
+
+    Unreceived entries get zero rows and columns (the information of the marginal of the
+    received entries; an entry correlated with an unreceived one loses that correlation).
+    """
+    if mask is None:
+        return torch.linalg.inv(R)
+    _check_mask(mask, R.shape[-1])
+    m = mask.to(R.dtype)
+    mm = m.unsqueeze(-1) * m.unsqueeze(-2)
+    eye = torch.eye(R.shape[-1], dtype=R.dtype, device=R.device)
+    padded = R * mm + torch.diag_embed(1.0 - m) * eye  # R_mm on the received block, I elsewhere
+    return torch.linalg.inv(padded) * mm
+
+
+def noise_information(
+    noise: NoiseModel,
+    mask: Tensor | None = None,
+    *,
+    num_samples: int = 200_000,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """Fisher information ``J_v(m) = E[s sᵀ]`` of an additive noise ``p_v`` on the received entries.
+
+    ``noise``: a :mod:`difffilter.noise` model of dimension ``dy``; ``mask [..., dy]`` or
+    ``None`` → ``[..., dy, dy]``. A :class:`~difffilter.noise.Gaussian` uses the closed
+    form (:func:`gaussian_information`); any other model (``GaussianMixture``, a product
+    of per-sensor mixtures) the Monte Carlo estimate of the module docstring: ``v ~ p_v``
+    (``num_samples`` draws from ``generator``), ``s = ∇_v log p_v(v; mask)`` by autograd,
+    computed once per distinct mask pattern.
+    """
+    if not isinstance(noise, NoiseModel):
+        raise ValueError(f"noise must be a difffilter.noise model; got {type(noise).__name__}")
+    dim = noise.dim
+    _check_mask(mask, dim)
+    if isinstance(noise, Gaussian):
+        return gaussian_information(noise.cov, mask)
+    check_positive_int(num_samples, "num_samples")
+    with torch.no_grad():
+        v = noise.sample((num_samples,), generator)
+    patterns = (
+        torch.ones(1, dim, dtype=torch.bool, device=v.device)
+        if mask is None
+        else mask.reshape(-1, dim)
+    )
+    unique, inverse = torch.unique(patterns, dim=0, return_inverse=True)
+    infos = []
+    for pattern in unique:
+        with torch.enable_grad():
+            vv = v.detach().clone().requires_grad_(True)
+            m = None if bool(pattern.all()) else pattern.expand_as(vv)
+            (score,) = torch.autograd.grad(noise.log_prob(vv, mask=m).sum(), vv)
+        score = score * pattern.to(score.dtype)  # unreceived entries: no information
+        infos.append(symmetrize(score.transpose(-1, -2) @ score / num_samples))
+    out = torch.stack(infos)[inverse]
+    if mask is None:
+        return out[0]
+    return out.reshape(mask.shape + (dim,))
+
+
+def measurement_information_moments(model: StateSpaceModel, xs: Tensor, k0: int = 1) -> Tensor:
+    """``G_k[i, j] = E_x[H̃_{k,i}ᵀ H̃_{k,j}]`` for ``xs [..., M, T, dx]`` → ``[..., T, dy, dy, dx, dx]``.
+
+    ``H̃_{k,i}`` is row ``i`` of ``∂h/∂x`` at ``x_k`` (``k = k0 + t``); the mean is over
+    the ``M`` paths. Then ``E[H̃ᵀ J_v H̃] = Σ_ij J_v[i, j] G[i, j]`` for any ``J_v``.
+    """
+    T = xs.shape[-2]
+    out = []
+    for t in range(T):
+        H = model.observation_jacobian(xs[..., t, :], k0 + t)  # [..., M, dy, dx]
+        out.append(torch.einsum("...mia,...mjb->...ijab", H, H) / H.shape[-3])
+    return torch.stack(out, dim=-5)
+
+
+def posterior_crb(
+    model: StateSpaceModel,
+    xs: Tensor,
+    x0: Tensor,
+    *,
+    us: Tensor | None = None,
+    mask: Tensor | None = None,
+    information: Tensor | None = None,
+    num_samples: int = 200_000,
+    generator: torch.Generator | None = None,
+) -> PCRBResult:
+    """The PCRB recursion of the module docstring along ``T`` steps.
+
+    Args:
+        model: a :class:`~difffilter.StateSpaceModel` with Gaussian process noise
+            (``model.process_cov``) and a Gaussian prior (``model.initial.cov``);
+            Jacobians from ``transition_jacobian``/``observation_jacobian``.
+        xs: true trajectories ``x_1 … x_T`` ``[..., M, T, dx]`` (the expectations over
+            ``x`` are means over the ``M`` paths; ``M = 1`` for a linear model).
+        x0: their initial states ``[..., M, dx]``.
+        us: inputs ``[..., M, T, du]`` or ``None``.
+        mask: received entries ``[..., T, dy]`` (bool) or ``None`` (all received); an
+            all-false step adds no information.
+        information: ``J_v`` for every step, ``[..., T, dy, dy]``, instead of computing
+            it from ``model.measurement_noise`` and ``mask`` with :func:`noise_information`.
+        num_samples, generator: of the Monte Carlo Fisher information (non-Gaussian noise).
+
+    Returns a :class:`PCRBResult` (``information``, ``bound``: ``[..., T, dx, dx]``).
+    """
+    if not isinstance(model, StateSpaceModel):
+        raise ValueError(f"model must be a difffilter.StateSpaceModel; got {type(model).__name__}")
+    dx, dy = model.dim_x, model.dim_y
+    if not isinstance(xs, Tensor) or xs.dim() < 3 or xs.shape[-1] != dx:
+        got = tuple(xs.shape) if isinstance(xs, Tensor) else type(xs).__name__
+        raise ValueError(f"xs must be a tensor [..., M, T, {dx}] of true trajectories; got {got}")
+    if not isinstance(x0, Tensor) or x0.shape != xs.shape[:-2] + (dx,):
+        got = tuple(x0.shape) if isinstance(x0, Tensor) else type(x0).__name__
+        raise ValueError(
+            f"x0 must have shape {tuple(xs.shape[:-2]) + (dx,)} (xs without T); got {got}"
+        )
+    if not bool(torch.isfinite(xs).all()) or not bool(torch.isfinite(x0).all()):
+        raise ValueError("xs and x0 must be finite")
+    T = xs.shape[-2]
+    mask = _check_mask(mask, dy)
+    if mask is not None and mask.shape[-2] != T:
+        raise ValueError(
+            f"mask must have shape [..., {T}, {dy}] (one row per step); got {tuple(mask.shape)}"
+        )
+    if information is None:
+        noise = model.measurement_noise
+        if mask is None:
+            jv = noise_information(noise, None, num_samples=num_samples, generator=generator)
+            information = jv.expand(T, dy, dy)
+        else:
+            information = noise_information(
+                noise, mask, num_samples=num_samples, generator=generator
+            )
+    elif information.shape[-3:] != (T, dy, dy):
+        raise ValueError(
+            f"information must have shape [..., {T}, {dy}, {dy}]; got {tuple(information.shape)}"
+        )
+    information = information.to(xs.dtype)
+    G = measurement_information_moments(model, xs)  # [..., T, dy, dy, dx, dx]
+    Q_inv = torch.linalg.inv(model.process_cov(0).to(xs.dtype))
+    J = torch.linalg.inv(model.initial.cov.to(xs.dtype))
+    batch = torch.broadcast_shapes(information.shape[:-3], G.shape[:-5])
+    J = J.expand(batch + (dx, dx))
+    x_prev, out = x0, []
+    for t in range(T):
+        u = None if us is None else us[..., t, :]
+        Fj = model.transition_jacobian(x_prev, u, t)  # [..., M, dx, dx]
+        M = Fj.shape[-3]
+        D11 = (Fj.transpose(-1, -2) @ Q_inv @ Fj).sum(-3) / M
+        D12 = -(Fj.sum(-3) / M).transpose(-1, -2) @ Q_inv
+        D22 = Q_inv + torch.einsum(
+            "...ij,...ijab->...ab", information[..., t, :, :], G[..., t, :, :, :, :]
+        )
+        J = symmetrize(D22 - D12.transpose(-1, -2) @ torch.linalg.solve(J + D11, D12))
+        out.append(J)
+        x_prev = xs[..., t, :]
+    info = torch.stack(out, dim=-3)
+    return PCRBResult(info, symmetrize(torch.linalg.inv(info)))

@@ -1,0 +1,133 @@
+"""The tracking family (RRP particle filter with deception attacks): small, fast checks."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+import torch
+
+from difffilter.eval.estimators import SuiteContext, get
+from difffilter.eval.streams import Streams
+from difffilter.models import registry
+from difffilter.models.tracking import GlintNoise, TrackingScenario, wrap_angle
+
+RUNS = 4
+
+
+def _setup(scenario, runs=RUNS, seed=0, num_particles=64, steps=24):
+    sc = replace(scenario, num_particles=num_particles, steps=steps)
+    streams = Streams(seed)
+    model = sc.system()
+    tr = sc.simulate(runs, {k: streams(k) for k in ("plant", "attack", "schedule")}, model=model)
+    return sc, SuiteContext(sc, model, runs, streams), tr
+
+
+def test_scenarios_registered_with_their_rates():
+    for name, eta in (
+        ("tracking_rrp_deception", 0.2),
+        ("tracking_rrp_deception_eta04", 0.4),
+        ("tracking_rrp_deception_eta06", 0.6),
+    ):
+        sc = registry.get(name)
+        assert sc.family == "tracking" and sc.eta_bar == eta
+        assert (sc.runs, sc.steps, sc.num_particles) == (50, 120, 500)
+
+
+def test_wrap_angle_to_half_open_interval():
+    f64 = torch.float64
+    a = torch.tensor(
+        [math.pi, -math.pi, 3 * math.pi, -3 * math.pi + 1e-9, 0.1, 2 * math.pi + 0.1], dtype=f64
+    )
+    w = wrap_angle(a)
+    want = torch.tensor([math.pi, math.pi, math.pi, -math.pi + 1e-9, 0.1, 0.1], dtype=f64)
+    assert torch.allclose(w, want, rtol=0, atol=1e-12)
+    assert bool(((w > -math.pi) & (w <= math.pi)).all())
+
+
+def test_bearing_residual_wraps_across_pi():
+    model = registry.get("tracking_rrp_deception").system()
+    y = torch.tensor([10.0, math.pi - 0.01] * 4, dtype=torch.float64)
+    y_hat = torch.tensor([9.0, -math.pi + 0.01] * 4, dtype=torch.float64)
+    r = model.measurement_residual(y, y_hat)
+    assert torch.allclose(r, torch.tensor([1.0, -0.02] * 4, dtype=torch.float64))
+
+
+def test_glint_log_prob_matches_direct_mixture_density():
+    g = registry.get("tracking_rrp_deception").system().measurement_noise
+    assert isinstance(g, GlintNoise)
+    v = torch.tensor([1.0, 0.01, -3.0, 0.02, 0.5, -0.03, 7.0, 0.0], dtype=torch.float64)
+
+    def n(x, var):
+        return math.exp(-0.5 * x * x / var) / math.sqrt(2 * math.pi * var)
+
+    s1, s2 = (4.0, (math.pi / 180) ** 2), (25.0, (math.pi / 90) ** 2)
+    direct = sum(
+        math.log(
+            0.8 * n(v[2 * i], s1[0]) * n(v[2 * i + 1], s1[1])
+            + 0.2 * n(v[2 * i], s2[0]) * n(v[2 * i + 1], s2[1])
+        )
+        for i in range(4)
+    )
+    assert abs(float(g.log_prob(v)) - direct) < 1e-10
+    mask = torch.tensor([False, False, True, True, False, False, False, False])
+    one = math.log(0.8 * n(-3.0, s1[0]) * n(0.02, s1[1]) + 0.2 * n(-3.0, s2[0]) * n(0.02, s2[1]))
+    assert abs(float(g.log_prob(v, mask)) - one) < 1e-10
+
+
+@pytest.mark.parametrize("holding", ["zero_input", "zero_order_hold"])
+def test_schedule_attack_and_holding(holding):
+    sc, _, tr = _setup(
+        replace(registry.get("tracking_rrp_deception"), holding=holding, gamma_ini=2)
+    )
+    sched = tr.mask.reshape(RUNS, sc.steps, 4, 2)
+    assert bool((sched[..., 0] == sched[..., 1]).all()) and bool((sched.any(-1).sum(-1) == 1).all())
+    # eq. (3): γ_k = mod(k + γ_ini − 2, 4) + 1 with γ_ini = 2 → sensors 2, 3, 4, 1, … (1-based)
+    gamma = sched.any(-1).double().argmax(-1)[0] + 1
+    k = torch.arange(1, sc.steps + 1)
+    assert torch.equal(gamma.long(), (k + 2 - 2) % 4 + 1)
+    # the received entries are the scheduled sensor's packet (replaced where flagged)
+    assert torch.equal(tr.y_recv[tr.mask], tr.info["y_all"][tr.mask])
+    received_flag = (tr.info["sensor_flags"] & sched.any(-1)).any(-1)
+    assert torch.equal(received_flag, tr.flags)
+    attacked = tr.flags.unsqueeze(-1) & tr.mask
+    assert bool((tr.y_recv[attacked] != tr.y_true[attacked]).all())
+    assert torch.equal(tr.y_recv[tr.mask & ~attacked], tr.y_true[tr.mask & ~attacked])
+    if holding == "zero_input":
+        assert bool((tr.y_recv[~tr.mask] == 0).all())
+    else:  # the held value of an unscheduled sensor is its last received packet
+        t = 5
+        assert torch.equal(tr.y_recv[:, t][~tr.mask[:, t]], tr.y_recv[:, t - 1][~tr.mask[:, t]])
+
+
+def test_remark1_eta_zero_equals_standard_pf_on_normal_data():
+    sc, ctx, tr = _setup(replace(registry.get("tracking_rrp_deception"), eta_bar=0.0))
+    assert not bool(tr.flags.any())
+    da = get("rrp_pf_da").factory(ctx)(tr)
+    nm = get("rrp_spf_nm").factory(ctx)(tr)
+    assert torch.equal(da.means, nm.means)
+    assert torch.equal(da.covs, nm.covs)
+
+
+def test_communication_counts_and_detection_score():
+    sc, ctx, tr = _setup(
+        registry.get("tracking_rrp_deception"), steps=120, num_particles=32, runs=2
+    )
+    counts = {n: get(n).factory(ctx)(tr) for n in ("rrp_pf_da", "pf_da")}
+    assert counts["rrp_pf_da"].extras["transmissions"].tolist() == [120, 120]
+    assert counts["pf_da"].extras["transmissions"].tolist() == [480, 480]
+    for out in counts.values():
+        s = out.detection.scores
+        assert bool(((s >= 0) & (s <= 1 + 1e-12)).all())
+        # replaced packets get a high posterior attack probability, genuine ones a low one
+        assert float(s[tr.flags].mean()) > 0.8 > 0.2 > float(s[~tr.flags].mean())
+
+
+def test_bad_scenario_settings_raise():
+    with pytest.raises(ValueError, match="holding"):
+        TrackingScenario(name="x", holding="hold")
+    with pytest.raises(ValueError, match="eta_bar"):
+        TrackingScenario(name="x", eta_bar=1.0)
+    with pytest.raises(ValueError, match="gamma_ini"):
+        TrackingScenario(name="x", gamma_ini=5)
