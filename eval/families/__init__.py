@@ -1,9 +1,10 @@
-"""Family-specific evaluation: extra estimators and report sections, one module per family.
+"""Family-specific report sections, one module per family.
 
-A module here registers, when imported, the estimators its scenarios name
-(:func:`difffilter.eval.estimators.register`) and the report sections of its family
-(:func:`difffilter.eval.report.register_sections`). :func:`load_all` imports every module
-of this package, so a new family adds a file and edits no list.
+A family's scenarios and estimators live in ``difffilter.models`` (its module registers
+them when imported, with :func:`difffilter.eval.estimators.register`); a module here
+registers the family's report sections (:func:`difffilter.eval.report.register_family`).
+:func:`load_all` imports every module of ``difffilter.models`` and of this package, so a
+new family adds files and edits no list.
 """
 
 from __future__ import annotations
@@ -22,6 +23,9 @@ def load_all() -> None:
     if _LOADED:
         return
     _LOADED = True
+    from difffilter.models.registry import all_scenarios
+
+    all_scenarios()  # imports every module of difffilter.models
     for info in pkgutil.iter_modules(__path__):
         if not info.name.startswith("_"):
             importlib.import_module(f"{__name__}.{info.name}")
