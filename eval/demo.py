@@ -1,91 +1,20 @@
 """``make demo``: the main job on the shipped defaults.
 
-1. Filters on the four-tank plant (docs/scenarios.md, four-tank; no attack): simulate 100 runs,
-   run the linearised KF, the EKF, the UKF and the bootstrap and Kalman-proposal PFs,
-   and print the state RMSE of each against the truth and its time per step.
-2. The evaluations: ``difffilter-eval`` on the four-tank bias attack and on the
-   load-frequency-control scenarios with the shipped checkpoint, writing reports under
-   ``--out``.
+1. The library's filters on the attack-free four-tank plant
+   (:func:`difffilter.models.four_tank_estimators.filter_comparison`): state RMSE and time
+   per step of the linearised KF, the EKF, the UKF and the bootstrap and Kalman-proposal PFs.
+2. ``difffilter-eval all``: every headline scenario, each with its shipped checkpoint where
+   it has one, reports under ``--out``.
 """
 
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 
-import torch
+from difffilter.models.four_tank_estimators import filter_comparison
 
-import difffilter as df
-from difffilter.models.four_tank import FourTankModel
-from difffilter.particle import KalmanProposal, particle_filter
-
-__all__ = ["filter_comparison", "main"]
-
-
-def linearised_four_tank(model: FourTankModel) -> tuple[df.LinearGaussianModel, torch.Tensor]:
-    """The four-tank model linearised at its fixed point ``x*``: ``δx_{k+1} = F δx_k + w``.
-
-    Returns the linear model (in deviation coordinates) and ``x*`` to shift by.
-    """
-    x_star = model.initial.mean
-    F = model.transition_jacobian(x_star, None, 0)
-    lin = df.LinearGaussianModel(
-        F,
-        model.G,
-        model.process_noise.cov,
-        model.measurement_noise.cov,
-        torch.zeros_like(x_star),
-        model.initial.cov,
-    )
-    return lin, x_star
-
-
-def _timed(fn):
-    start = time.perf_counter()
-    out = fn()
-    return out, time.perf_counter() - start
-
-
-@torch.no_grad()
-def filter_comparison(
-    runs: int = 100, steps: int = 100, particles: int = 1000, seed: int = 0
-) -> dict[str, dict[str, float]]:
-    """State RMSE (against the simulated truth, all runs, steps and components) per filter."""
-    model = FourTankModel(dtype=torch.float64)
-    gen = torch.Generator().manual_seed(seed)
-    xs, ys, _ = model.simulate(steps, (runs,), generator=gen)
-    lin, x_star = linearised_four_tank(model)
-    filters = {
-        "kf_linearised": lambda: df.kalman_filter(lin, ys - x_star).means + x_star,
-        "ekf": lambda: df.extended_kalman_filter(model, ys).means,
-        "ukf": lambda: df.unscented_kalman_filter(model, ys).means,
-        "pf_bootstrap": lambda: (
-            particle_filter(
-                model,
-                ys,
-                num_particles=particles,
-                generator=torch.Generator().manual_seed(seed + 1),
-            ).means
-        ),
-        "pf_kalman_proposal": lambda: (
-            particle_filter(
-                model,
-                ys,
-                num_particles=particles,
-                proposal=KalmanProposal(),
-                generator=torch.Generator().manual_seed(seed + 1),
-            ).means
-        ),
-    }
-    table = {}
-    for name, run in filters.items():
-        means, seconds = _timed(run)
-        table[name] = {
-            "state_rmse": float(df.metrics.rmse(means, xs)),
-            "time_per_step_s": seconds / steps,
-        }
-    return table
+__all__ = ["main"]
 
 
 def main(argv=None) -> int:
@@ -117,11 +46,10 @@ def main(argv=None) -> int:
     from difffilter.eval.report import summary_table
 
     scenarios = resolve_scenarios("all")
-    ckpt = Path("checkpoints/lfc_nn_grad.ckpt")
     print(f"\n== Evaluations: {', '.join(scenarios)} -> {args.out}/ ==")
     results = evaluate(
         scenarios,
-        ckpt=ckpt if ckpt.is_file() else None,
+        ckpt=None,  # each scenario's shipped checkpoint
         runs=args.runs,
         out=args.out,
         seed=args.seed,

@@ -1,5 +1,6 @@
-"""Four-tank family (modified-PF paper, Sadeghzadeh-Nokhodberiz et al. 2022): its extra
-estimators, the paper's Tables 3–4, the Fig. 9 diagnosis and the R × 5 check.
+"""Four-tank family (modified-PF paper, Sadeghzadeh-Nokhodberiz et al. 2022): the paper's
+Tables 3–4, the Fig. 9 diagnosis and the R × 5 check (its extra estimators are registered
+in :mod:`difffilter.models.four_tank_estimators`).
 
 RMSE is the pooled RMSE of :mod:`~difffilter.eval.scoring` in cm, against the truth and
 against the attack-free normal PF under common random numbers (the paper's reference);
@@ -16,10 +17,8 @@ import matplotlib.pyplot as plt
 import torch
 
 from difffilter import fdi, metrics
-from difffilter.estimator import EstimatorOutput
-from difffilter.particle import particle_filter
 
-from ..estimators import SuiteContext, get, modified_pf, oracle_attack, register
+from ..estimators import SuiteContext, get, modified_pf
 from ..report import FamilyReport, Section, format_number, markdown_table, register_family
 from ..scoring import rates_by_size, score
 from ..suite import single_run_time_per_step
@@ -39,53 +38,6 @@ TABLE4 = (
 
 def _pct(v) -> str:
     return "—" if v is None else f"{100 * v:.2f} %"
-
-
-# ---------------------------------------------------------------------------- estimators
-
-
-@register("normal_pf_literal", "normal PF + PoA with the Gaussian density literally in float64")
-def _literal(ctx: SuiteContext):
-    det = ctx.poa_detector()
-    return lambda tr: fdi.particle_filter_poa(
-        ctx.model, tr.y_recv, detector=det, literal=True, **ctx.particle_kwargs(len(tr.y_recv))
-    )
-
-
-@register("modified_pf_unknown_pl", "modified PF, Remark 6's running p̂_l, oracle γ̂")
-def _unknown_pl(ctx: SuiteContext):
-    rate = fdi.RunningAttackRate(ctx.scenario.num_particles)
-    return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr), attack_rate=rate)
-
-
-@register("modified_pf_noisy_gamma", "modified PF, γ̂ = γ + N(0, 1e-2 I) (Table 3, column 3)")
-def _noisy(ctx: SuiteContext):
-    return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr, noise_var=1e-2))
-
-
-@register("modified_pf_eta_theorem1", "modified PF, η from Theorem 1 for this scenario's R")
-def _eta_thm1(ctx: SuiteContext):
-    det = fdi.PoADetector(ctx.options["eta_theorem1"], ctx.options["poa_zeta"])
-    return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr), detector=det)
-
-
-@register("modified_pf_fused", "modified PF, oracle γ̂, the fused low-overhead implementation")
-def _fused(ctx: SuiteContext):
-    return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr), fused=True)
-
-
-@register("open_loop_pf", "all weights 1/N: the paper's account of method [31]")
-def _open_loop(ctx: SuiteContext):
-    def run(tr):
-        res = particle_filter(
-            ctx.model,
-            tr.y_recv,
-            likelihood=fdi.FlatLikelihood(),
-            **ctx.particle_kwargs(len(tr.y_recv)),
-        )
-        return EstimatorOutput(res.means, res.covs)
-
-    return run
 
 
 # ------------------------------------------------------------------------- family numbers

@@ -1,11 +1,7 @@
-"""LFC family (Sargolzaei et al., TII 2020): closed-loop estimators, Tables I–II, the
-per-channel validation and the summary across scenarios I–IV.
+"""LFC family (Sargolzaei et al., TII 2020): Tables I–II, the per-channel validation and
+the summary across scenarios I–IV. The closed-loop estimators (each scored against the
+states of its own loop) are registered in :mod:`difffilter.models.lfc_estimators`.
 
-Each estimator of :mod:`difffilter.models.lfc_estimators` runs in its own closed loop on
-the scenario's exogenous draws (``traj.info``: noise and load; common random numbers) and
-reports the states its loop produced as ``extras["x"]``, the truth it is scored against.
-Detection from an attack estimate: score ``max_c |α̂_c| / σ_c``, ``σ_c`` the spread of the
-same estimator's estimate on the same draws without attack, alarm above 3 ([DEF]).
 Family metrics: ``attack_rmse_eq43`` (eq. 43 per attacked channel, summed over them,
 mean over runs; ``_std``, ``_per_channel``), ``state5_rmse`` (Table II, and
 ``_attack_free``), ``*_prob`` (the attack-probability head, alarm at p > 0.5).
@@ -22,128 +18,18 @@ import torch
 
 from difffilter.estimator import Detection, EstimatorOutput
 from difffilter.models import registry
-from difffilter.models.lfc import PAPER_TABLES, STATE_DIM, STATE_NAMES, random_attacks
-from difffilter.models.lfc_estimators import ESTIMATORS, LFCContext, run_estimator
-from difffilter.models.neural_estimator import load_estimator_checkpoint
+from difffilter.models.lfc import PAPER_TABLES, STATE_DIM, STATE_NAMES
+from difffilter.models.lfc_estimators import ABLATIONS, PER_CHANNEL, per_channel_attack_rmse
 
-from ..estimators import SkipEstimator, SuiteContext, register
 from ..report import FamilyReport, Section, format_number, markdown_table, register_family
 from ..scoring import score, true_states
-from ..streams import Streams
 
-THREE_SIGMA = 3.0
 MAIN = ("kf_nn_ekf", "traditional_ad", "kf_nn_grad", "kf_nn_grad_ekf")
-ABLATIONS = ("kf_nn_ekf_qrho0", "traditional_ad_robust", "traditional_ad_diagonal")
-PER_CHANNEL = ("kf_nn_ekf", "traditional_ad", "kf_nn_gd", "luenberger_nn_ekf", *MAIN[2:])
 CORE = ("lfc_step", "lfc_sine", "lfc_simultaneous", "lfc_sawtooth")
 PAPER_MEAN = {
     k: sum(PAPER_TABLES[s][k] for s in PAPER_TABLES) / 4 for k in ("proposed_ad", "traditional_ad")
 }
 TUNING = Path(__file__).resolve().parents[2] / "checkpoints" / "lfc_tuning.json"
-ROLES = {
-    "uncompensated": "Kalman observer, traditional controller U = −K₁Z",
-    "kf_nn_ekf": "the paper's proposed AD: Kalman observer + NN learned online by EKF",
-    "kf_nn_ekf_qrho0": "kf_nn_ekf with the paper's eq. (14) alone (Q_ρ = 0)",
-    "traditional_ad": "the paper's baseline: Luenberger observer (modal gain) + NN by gradient",
-    "traditional_ad_robust": "traditional_ad with the robust Luenberger gain (same poles)",
-    "traditional_ad_diagonal": "traditional_ad with the diagonal Luenberger gain (same poles)",
-    "kf_nn_grad": "ours: Kalman observer + NN trained by TBPTT (the checkpoint), frozen",
-    "kf_nn_grad_ekf": "kf_nn_grad fine-tuned online by the paper's EKF",
-}
-
-
-# ---------------------------------------------------------------------------- estimators
-
-
-def _cached(ctx: SuiteContext, key, make):
-    if key not in ctx.cache:
-        ctx.cache[key] = make()
-    return ctx.cache[key]
-
-
-def _checkpoint(ctx: SuiteContext, name: str):
-    if ctx.checkpoint is None:
-        raise SkipEstimator("no --ckpt given and no shipped checkpoint")
-    net, obs = _cached(
-        ctx, ("lfc/ckpt", str(ctx.checkpoint)), lambda: load_estimator_checkpoint(ctx.checkpoint)
-    )
-    if abs(float(obs.get("dt", 0.01)) - ctx.scenario.dt) > 1e-12:
-        raise SkipEstimator(
-            f"checkpoint trained at dt = {obs.get('dt', 0.01)} s, scenario dt = {ctx.scenario.dt} s"
-        )
-    ctx.checkpoint_users.append(name)
-    return net, obs
-
-
-def _loop(ctx: SuiteContext, name: str, tr, attack, checkpoint=None):
-    """``name``'s closed loop on ``tr``'s draws under ``attack [B, T, 10]``."""
-    lfc = _cached(ctx, ("lfc/context", ctx.scenario.dt), lambda: LFCContext(dt=ctx.scenario.dt))
-    info, init_seed = tr.info, ctx.streams.seed_of("lfc/initial_weights")
-    rec, _ = run_estimator(
-        ESTIMATORS[name],
-        lfc,
-        attack,
-        info["xi"],
-        info["theta"],
-        info["load"],
-        init_seed=init_seed,
-        checkpoint=checkpoint,
-    )
-    return rec
-
-
-def _attack_free(ctx: SuiteContext, name: str, tr, checkpoint=None):
-    """``name``'s loop without attack; shared by the scenarios with the same draws."""
-    key = (
-        "lfc/free",
-        name,
-        ctx.scenario.dt,
-        tuple(tr.x.shape),
-        ctx.streams.seed,
-        ctx.scenario.load,
-    )
-    return _cached(ctx, key, lambda: _loop(ctx, name, tr, torch.zeros_like(tr.attack), checkpoint))
-
-
-def _closed_loop(name: str):
-    def factory(ctx: SuiteContext):
-        if name in ABLATIONS and abs(ctx.scenario.dt - 0.01) > 1e-12:
-            raise SkipEstimator("ablation run at dt = 10 ms only")
-        ckpt = _checkpoint(ctx, name) if ESTIMATORS[name].network == "checkpoint" else None
-
-        def run(tr) -> EstimatorOutput:
-            rec, free = _loop(ctx, name, tr, tr.attack, ckpt), _attack_free(ctx, name, tr, ckpt)
-            extras = {"x": rec.x, "x_attack_free": free.x}
-            if ESTIMATORS[name].network is None:
-                return EstimatorOutput(rec.mean, extras=extras)
-            sigma = free.attack_est.std(dim=(0, 1)).clamp_min(1e-12)
-            scores = (rec.attack_est.abs() / sigma).amax(-1)
-            if rec.logit is not None:
-                extras["attack_logit"] = rec.logit.amax(-1)
-            det = Detection(scores, scores > THREE_SIGMA, THREE_SIGMA)
-            return EstimatorOutput(rec.mean, attack=rec.attack_est, detection=det, extras=extras)
-
-        return run
-
-    return factory
-
-
-for _name, _role in ROLES.items():
-    register(_name, _role)(_closed_loop(_name))
-
-
-@register(
-    "kf_attack_free",
-    "uncompensated loop without attack (reference)",
-    clean_input=True,
-    reference=True,
-)
-def _reference(ctx: SuiteContext):
-    def run(tr):
-        rec = _attack_free(ctx, "uncompensated", tr)
-        return EstimatorOutput(rec.mean, extras={"x": rec.x})
-
-    return run
 
 
 # ------------------------------------------------------------------------- family numbers
@@ -366,45 +252,12 @@ def per_channel_validation(
     steps: int = 1000,
     progress: bool = False,
 ) -> dict:
-    """Random attacks on one channel at a time (validation streams), every estimator of
-    :data:`PER_CHANNEL`: ``{estimator: {channel: eq. 43 RMSE}}`` and the zero estimate's,
-    written to ``<out>/lfc_per_channel/`` with its wall time."""
-    from tqdm.auto import tqdm
-
-    streams, R, ctx = Streams(seed), runs_per_channel, LFCContext(dt=0.01)
-    g = streams("lfc/per_channel")
-    attack = torch.cat(
-        [
-            random_attacks(R, steps, 0.01, generator=g, channels=(c,), min_events=1)
-            for c in range(STATE_DIM)
-        ]
+    """:func:`~difffilter.models.lfc_estimators.per_channel_attack_rmse` written to
+    ``<out>/lfc_per_channel/`` (metrics.json with its wall time, report.md, a bar plot)."""
+    R, start = runs_per_channel, time.perf_counter()
+    table = per_channel_attack_rmse(
+        checkpoint, seed=seed, runs_per_channel=R, steps=steps, progress=progress
     )
-    xi, theta = ctx.plant.sample_noise(STATE_DIM * R, steps, g)
-    load = torch.tensor([[0.01, 0.0]], dtype=ctx.dtype)
-    ckpt = None if checkpoint is None else load_estimator_checkpoint(checkpoint)
-    names = [n for n in PER_CHANNEL if ESTIMATORS[n].network != "checkpoint" or ckpt]
-    start, table = time.perf_counter(), {}
-    for n in tqdm(names, desc="per-channel validation", disable=not progress, leave=False):
-        rec, _ = run_estimator(
-            ESTIMATORS[n],
-            ctx,
-            attack,
-            xi,
-            theta,
-            load,
-            init_seed=streams.seed_of("lfc/initial_weights"),
-            checkpoint=ckpt,
-        )
-        table[n] = rec.attack_est
-    table["zero_estimate"] = torch.zeros_like(attack)
-    blocks = [slice(c * R, (c + 1) * R) for c in range(STATE_DIM)]
-    table = {
-        n: {
-            s: float((e[b, :, c] - attack[b, :, c]).square().mean(1).sqrt().mean())
-            for c, (s, b) in enumerate(zip(STATE_NAMES, blocks))
-        }
-        for n, e in table.items()
-    }
     doc = {
         "runs_per_channel": R,
         "seed": seed,

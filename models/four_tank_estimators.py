@@ -1,0 +1,134 @@
+"""The four-tank family's estimators beyond the generic ones, and the library's filters on
+the attack-free plant (the first table of ``make demo``).
+
+Registered with :func:`difffilter.eval.estimators.register` when this module is imported
+(every module of :mod:`difffilter.models` is, on first use of a registry); the scenarios
+name them in :mod:`difffilter.models.four_tank`.
+"""
+
+from __future__ import annotations
+
+import time
+
+import torch
+
+import difffilter as df
+from difffilter import fdi
+from difffilter.estimator import EstimatorOutput
+from difffilter.eval.estimators import SuiteContext, modified_pf, oracle_attack, register
+from difffilter.models.four_tank import FourTankModel
+from difffilter.particle import KalmanProposal, particle_filter
+
+__all__ = ["filter_comparison", "linearised_four_tank"]
+
+
+@register("normal_pf_literal", "normal PF + PoA with the Gaussian density literally in float64")
+def _literal(ctx: SuiteContext):
+    det = ctx.poa_detector()
+    return lambda tr: fdi.particle_filter_poa(
+        ctx.model, tr.y_recv, detector=det, literal=True, **ctx.particle_kwargs(len(tr.y_recv))
+    )
+
+
+@register("modified_pf_unknown_pl", "modified PF, Remark 6's running p̂_l, oracle γ̂")
+def _unknown_pl(ctx: SuiteContext):
+    rate = fdi.RunningAttackRate(ctx.scenario.num_particles)
+    return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr), attack_rate=rate)
+
+
+@register("modified_pf_noisy_gamma", "modified PF, γ̂ = γ + N(0, 1e-2 I) (Table 3, column 3)")
+def _noisy(ctx: SuiteContext):
+    return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr, noise_var=1e-2))
+
+
+@register("modified_pf_eta_theorem1", "modified PF, η from Theorem 1 for this scenario's R")
+def _eta_thm1(ctx: SuiteContext):
+    det = fdi.PoADetector(ctx.options["eta_theorem1"], ctx.options["poa_zeta"])
+    return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr), detector=det)
+
+
+@register("modified_pf_fused", "modified PF, oracle γ̂, the fused low-overhead implementation")
+def _fused(ctx: SuiteContext):
+    return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr), fused=True)
+
+
+@register("open_loop_pf", "all weights 1/N: the paper's account of method [31]")
+def _open_loop(ctx: SuiteContext):
+    def run(tr):
+        res = particle_filter(
+            ctx.model,
+            tr.y_recv,
+            likelihood=fdi.FlatLikelihood(),
+            **ctx.particle_kwargs(len(tr.y_recv)),
+        )
+        return EstimatorOutput(res.means, res.covs)
+
+    return run
+
+
+# ------------------------------------------------ the library's filters, no attack
+
+
+def linearised_four_tank(model: FourTankModel) -> tuple[df.LinearGaussianModel, torch.Tensor]:
+    """The four-tank model linearised at its fixed point ``x*``: ``δx_{k+1} = F δx_k + w``.
+
+    Returns the linear model (in deviation coordinates) and ``x*`` to shift by.
+    """
+    x_star = model.initial.mean
+    F = model.transition_jacobian(x_star, None, 0)
+    lin = df.LinearGaussianModel(
+        F,
+        model.G,
+        model.process_noise.cov,
+        model.measurement_noise.cov,
+        torch.zeros_like(x_star),
+        model.initial.cov,
+    )
+    return lin, x_star
+
+
+def _timed(fn):
+    start = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - start
+
+
+@torch.no_grad()
+def filter_comparison(
+    runs: int = 100, steps: int = 100, particles: int = 1000, seed: int = 0
+) -> dict[str, dict[str, float]]:
+    """State RMSE (against the simulated truth, all runs, steps and components) per filter."""
+    model = FourTankModel(dtype=torch.float64)
+    gen = torch.Generator().manual_seed(seed)
+    xs, ys, _ = model.simulate(steps, (runs,), generator=gen)
+    lin, x_star = linearised_four_tank(model)
+    filters = {
+        "kf_linearised": lambda: df.kalman_filter(lin, ys - x_star).means + x_star,
+        "ekf": lambda: df.extended_kalman_filter(model, ys).means,
+        "ukf": lambda: df.unscented_kalman_filter(model, ys).means,
+        "pf_bootstrap": lambda: (
+            particle_filter(
+                model,
+                ys,
+                num_particles=particles,
+                generator=torch.Generator().manual_seed(seed + 1),
+            ).means
+        ),
+        "pf_kalman_proposal": lambda: (
+            particle_filter(
+                model,
+                ys,
+                num_particles=particles,
+                proposal=KalmanProposal(),
+                generator=torch.Generator().manual_seed(seed + 1),
+            ).means
+        ),
+    }
+    table = {}
+    for name, run in filters.items():
+        means, seconds = _timed(run)
+        table[name] = {
+            "state_rmse": float(df.metrics.rmse(means, xs)),
+            "time_per_step_s": seconds / steps,
+        }
+    return table
