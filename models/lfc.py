@@ -455,7 +455,7 @@ PAPER_TABLES = {
 }
 
 
-# The estimators every LFC scenario runs (difffilter.eval.families.lfc registers them).
+# The estimators every LFC scenario runs (registered in difffilter.models.lfc_estimators).
 LFC_ESTIMATORS = (
     "kf_attack_free",
     "uncompensated",
