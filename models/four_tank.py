@@ -366,7 +366,9 @@ class FourTankScenario(Scenario):
         "open_loop_pf",
         "chi_square_ekf",
         "cusum_ekf",
+        "pf_nn_grad",
     )
+    checkpoint: str | None = "checkpoints/four_tank_nn_grad.ckpt"  # pf_nn_grad without --ckpt
 
     def model(self, dtype: torch.dtype = torch.float64, device=None, *, R=None) -> FourTankModel:
         """The plant (and filter model) of this scenario; ``R`` overrides the scenario's."""

@@ -272,6 +272,11 @@ def _checkpoint(ctx: SuiteContext, name: str):
     net, obs = _cached(
         ctx, ("lfc/ckpt", str(ctx.checkpoint)), lambda: load_estimator_checkpoint(ctx.checkpoint)
     )
+    if obs.get("kind", "kalman") != "kalman" or obs.get("scenario_family", "lfc") != "lfc":
+        raise SkipEstimator(
+            f"the checkpoint is not an LFC closed-loop estimator (filter {obs.get('kind')!r}, "
+            f"family {obs.get('scenario_family')!r})"
+        )
     if abs(float(obs.get("dt", 0.01)) - ctx.scenario.dt) > 1e-12:
         raise SkipEstimator(
             f"checkpoint trained at dt = {obs.get('dt', 0.01)} s, scenario dt = {ctx.scenario.dt} s"

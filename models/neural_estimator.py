@@ -348,14 +348,18 @@ def _from_lightning(blob: dict, path: Path) -> dict:
     state = {k[len(prefix) :]: v for k, v in blob["state_dict"].items() if k.startswith(prefix)}
     if not state or not isinstance(hp, dict):
         raise ValueError(f"ckpt: the Lightning checkpoint {path} holds no neural FDI estimator")
+    # A module may store its estimator's settings and what evaluation needs beside the
+    # weights (difffilter.train.task does); otherwise they come from its hyperparameters.
+    config = blob.get("difffilter_estimator_config") or {k: hp[k] for k in _CONFIG_TYPES if k in hp}
+    observer = blob.get("difffilter_observer") or {
+        "residual_lag": int(hp.get("residual_lag", 1)),
+        "dt": float(hp.get("dt", 0.01)),
+        "kind": "kalman",
+    }
     return {
         "format": CHECKPOINT_FORMAT,
-        "estimator_config": {k: hp[k] for k in _CONFIG_TYPES if k in hp},
-        "observer": {
-            "residual_lag": int(hp.get("residual_lag", 1)),
-            "dt": float(hp.get("dt", 0.01)),
-            "kind": "kalman",
-        },
+        "estimator_config": dict(config),
+        "observer": dict(observer),
         "state_dict": state,
     }
 

@@ -3,12 +3,17 @@
 Usage::
 
     difffilter-train fit --config train/configs/lfc.yaml
+    difffilter-train fit --config train/configs/four_tank.yaml
     difffilter-train fit --config train/configs/lfc.yaml --trainer.fast_dev_run=1
     difffilter-train fit --config train/configs/lfc.yaml --ckpt_path <run>/checkpoints/last.ckpt
     difffilter-train export <run>/lfc_nn_grad.ckpt --out checkpoints/lfc_nn_grad.ckpt --force
     difffilter-train test --config train/configs/lfc.yaml --ckpt_path checkpoints/lfc_nn_grad.ckpt
 
-The YAML files in ``train/configs/`` hold every setting (model, data, trainer, callbacks);
+The YAML files in ``train/configs/`` hold every setting (model, data, trainer, callbacks):
+one per scenario family, each naming its LightningModule and data module (``class_path``,
+subclass mode): :class:`~difffilter.train.task.FilterEstimatorTask` with
+:class:`~difffilter.train.task.ScenarioDataModule` for any registered scenario, the
+closed-loop :class:`~difffilter.train.lfc.LFCGradModule` for LFC;
 ``--print_config`` shows the resolved configuration. TensorBoard logs go under the
 logger's ``save_dir`` (``tensorboard --logdir lightning_logs``). ``fit`` writes only
 inside its run folder; ``export`` (:mod:`difffilter.train.export`) ships a result.
@@ -20,12 +25,11 @@ import os
 import sys
 from pathlib import Path
 
+import lightning.pytorch as pl
 import torch
 from lightning.pytorch.cli import LightningCLI
 
 from difffilter.runtime import tune_cpu_allocator
-
-from .lfc import LFCDataModule, LFCGradModule
 
 __all__ = ["main", "DifffilterCLI"]
 
@@ -86,14 +90,7 @@ class DifffilterCLI(LightningCLI):
                 f"--ckpt_path: the estimator in {path} has settings {estimator.config()}, the "
                 f"configured model {mine.config()}; pass the matching --config/--model.* options"
             )
-        hp = self.model.hparams
-        if int(observer.get("residual_lag", hp.residual_lag)) != hp.residual_lag or (
-            abs(float(observer.get("dt", hp.dt)) - hp.dt) > 1e-12
-        ):
-            raise ValueError(
-                f"--ckpt_path: {path} was trained with observer {observer}, the configured model "
-                f"has residual_lag = {hp.residual_lag}, dt = {hp.dt}"
-            )
+        self.model.check_exported(observer, path)  # the filter it was trained for
         mine.load_state_dict(estimator.state_dict())
         self.config_init[subcommand]["ckpt_path"] = None  # weights are in; nothing to restore
         print(f"loaded the exported estimator {path}")
@@ -115,8 +112,10 @@ def main(args: list[str] | None = None) -> int:
     tune_cpu_allocator()
     try:
         DifffilterCLI(
-            LFCGradModule,
-            LFCDataModule,
+            pl.LightningModule,
+            pl.LightningDataModule,
+            subclass_mode_model=True,
+            subclass_mode_data=True,
             args=args,
             save_config_kwargs={"overwrite": True},
             auto_configure_optimizers=False,

@@ -19,8 +19,10 @@ import argparse
 import json
 import shutil
 import sys
+import time
 from pathlib import Path
 
+import lightning.pytorch as pl
 import torch
 
 from difffilter.models.neural_estimator import (
@@ -29,7 +31,7 @@ from difffilter.models.neural_estimator import (
     save_estimator_checkpoint,
 )
 
-__all__ = ["export", "main"]
+__all__ = ["export", "main", "ExportEstimator"]
 
 
 def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
@@ -65,6 +67,88 @@ def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
     out.with_suffix(".json").write_text(json.dumps(card, indent=2) + "\n")
     load_estimator_checkpoint(out)  # the shipped pair loads and matches its card
     return out
+
+
+def _plain(config: dict) -> dict:
+    """JSON-ready copy of a hyperparameter dict (tuples → lists, private keys dropped)."""
+    return {
+        k: (list(v) if isinstance(v, tuple) else v)
+        for k, v in config.items()
+        if not k.startswith("_")
+    }
+
+
+class ExportEstimator(pl.Callback):
+    """At the end of ``fit``, export the best checkpoint's estimator (weights only) and a card.
+
+    The module names the file and adds to the card: ``export_name()`` (the file's stem),
+    ``export_observer()`` (what evaluation needs beside the weights) and
+    ``export_card(trainer, estimator)`` (its own card entries).
+
+    Args:
+        path: the ``.ckpt`` to write; default ``<run folder>/<export_name>.ckpt`` (the
+            logger's ``version_<n>`` folder), so that ``fit`` writes only inside its run.
+            Shipping a result to ``checkpoints/`` is the explicit ``difffilter-train
+            export``. The card goes next to the file with the suffix ``.json``.
+        enabled: ``False`` turns the export off.
+
+    Nothing is exported under ``fast_dev_run``.
+    """
+
+    def __init__(self, path: str | None = None, enabled: bool = True):
+        super().__init__()
+        self.path = None if path is None else Path(path)
+        self.enabled = bool(enabled)
+        self._start = None
+
+    def on_fit_start(self, trainer, pl_module):
+        self._start = time.time()
+
+    def on_fit_end(self, trainer, pl_module):
+        if not self.enabled or trainer.fast_dev_run:
+            return
+        # trainer.log_dir is a collective under DDP: every process asks, one writes
+        name = pl_module.export_name()
+        path = self.path or Path(trainer.log_dir or trainer.default_root_dir) / f"{name}.ckpt"
+        if not trainer.is_global_zero:
+            return
+        best_path, best_score = None, None
+        for cb in trainer.callbacks:
+            if isinstance(cb, pl.callbacks.ModelCheckpoint) and cb.best_model_path:
+                best_path, best_score = cb.best_model_path, cb.best_model_score
+        if best_path:  # the selected weights (and their buffers, e.g. a threshold)
+            blob = torch.load(best_path, map_location="cpu", weights_only=True)
+            pl_module.load_state_dict(blob["state_dict"])
+        observer = pl_module.export_observer()
+        digest = save_estimator_checkpoint(path, pl_module.estimator, observer)
+        # verify against the digest just computed (a card from an earlier export may still
+        # lie beside the file; it is rewritten below)
+        estimator, _ = load_estimator_checkpoint(path, expected_sha256=digest)
+        dm = trainer.datamodule
+        metrics = {
+            k: float(v)
+            for k, v in trainer.callback_metrics.items()
+            if k.startswith("val/") and torch.as_tensor(v).numel() == 1
+        }
+        card = {
+            "name": name,
+            "checkpoint": path.name,
+            "sha256": digest,
+            "selected_checkpoint": Path(best_path).name if best_path else None,
+            "best_val_score": None if best_score is None else float(best_score),
+            "metrics_last_validation": metrics,
+            "model_config": _plain(dict(pl_module.hparams)),
+            "data_config": None if dm is None else _plain(dict(dm.hparams)),
+            "observer": observer,
+            "epochs": trainer.current_epoch,
+            "global_step": trainer.global_step,
+            "train_time_s": None if self._start is None else time.time() - self._start,
+            "torch_version": torch.__version__,
+            "lightning_version": pl.__version__,
+            **pl_module.export_card(trainer, estimator),
+        }
+        path.with_suffix(".json").write_text(json.dumps(card, indent=2) + "\n")
+        print(f"exported {path} (ship it with: difffilter-train export {path} --out <file>)")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -23,10 +23,8 @@ and logged as ``val/scenario/<name>/attack_rmse`` for monitoring only.
 
 from __future__ import annotations
 
-import json
 import math
 import time
-from pathlib import Path
 
 import lightning.pytorch as pl
 import numpy as np
@@ -39,9 +37,10 @@ from difffilter.models.control import lqr
 from difffilter.models.lfc import NUM_AREAS, LFCPlant, LFCScenario, random_attacks
 from difffilter.models.neural_estimator import (
     NeuralFDIEstimator,
-    load_estimator_checkpoint,
-    save_estimator_checkpoint,
 )
+
+from .common import dtype_of, mix_seed
+from .export import ExportEstimator
 
 __all__ = [
     "LFCGradModule",
@@ -52,18 +51,7 @@ __all__ = [
     "simulate_batch",
 ]
 
-_DTYPES = {"float32": torch.float32, "float64": torch.float64}
-
-
-def _dtype(name: str) -> torch.dtype:
-    if name not in _DTYPES:
-        raise ValueError(f"dtype must be one of {sorted(_DTYPES)}; got {name!r}")
-    return _DTYPES[name]
-
-
-def _seed(*parts: int) -> int:
-    """A 63-bit seed mixed from integers (numpy SeedSequence: well spread, reproducible)."""
-    return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1, np.uint64)[0] >> 1)
+_dtype, _seed = dtype_of, mix_seed
 
 
 def simulate_batch(
@@ -570,6 +558,59 @@ class LFCGradModule(pl.LightningModule):
                 params = {**data, **dict(self.hparams)}  # as Lightning merges them at start
                 self.logger.log_hyperparams(params, {"hp/best_val_attack_rmse": best})
 
+    # -- export (difffilter.train.export.ExportEstimator) --------------------------------
+    def export_name(self) -> str:
+        return "lfc_nn_grad"
+
+    def export_observer(self) -> dict:
+        hp = self.hparams
+        return {"residual_lag": int(hp.residual_lag), "dt": float(hp.dt), "kind": "kalman"}
+
+    def check_exported(self, observer: dict, path) -> None:
+        """``ValueError`` unless an exported estimator's observer settings are this module's."""
+        hp = self.hparams
+        if int(observer.get("residual_lag", hp.residual_lag)) != hp.residual_lag or (
+            abs(float(observer.get("dt", hp.dt)) - hp.dt) > 1e-12
+        ):
+            raise ValueError(
+                f"--ckpt_path: {path} was trained with observer {observer}, the configured model "
+                f"has residual_lag = {hp.residual_lag}, dt = {hp.dt}"
+            )
+
+    def export_card(
+        self, trainer, estimator=None, check_seed: int = 20, check_runs: int = 4
+    ) -> dict:
+        """The card's LFC entries: the reproducibility check (``check_metric`` on
+        ``check_runs`` random-attack runs of ``check_seed``) and the seeds."""
+        dm, hp = trainer.datamodule, self.hparams
+        channels = None if dm is None else dm.hparams.channels
+        check = check_metric(
+            estimator or self.estimator,
+            residual_lag=int(hp.residual_lag),
+            seed=check_seed,
+            runs=check_runs,
+            dt=float(hp.dt),
+            channels=channels,
+        )
+        return {
+            "scenario_family": "lfc",
+            "estimator": "kf_nn_grad",
+            "description": "Neural FDI estimator (eqs 8-9) trained by TBPTT through the Kalman "
+            "observer on random attacks; Sargolzaei et al., TII 2020",
+            "check": {
+                "metric": "attack_rmse_random_validation",
+                "seed": check_seed,
+                "runs": check_runs,
+                "channels": channels,
+                "value": check,
+            },
+            "seed": {
+                "model_seed": hp["model_seed"],
+                "train_seed": None if dm is None else dm.hparams.train_seed,
+                "val_seed": None if dm is None else dm.hparams.val_seed,
+            },
+        }
+
 
 def check_metric(
     estimator: NeuralFDIEstimator,
@@ -591,122 +632,3 @@ def check_metric(
     with torch.no_grad():
         _, rec = loop.run(loop.init(runs), data["attack"], data["xi"], data["theta"], data["load"])
     return float((rec.attack_est - data["attack"]).square().mean().sqrt())
-
-
-def _plain(config: dict) -> dict:
-    """JSON-ready copy of a hyperparameter dict (tuples → lists, private keys dropped)."""
-    return {
-        k: (list(v) if isinstance(v, tuple) else v)
-        for k, v in config.items()
-        if not k.startswith("_")
-    }
-
-
-class ExportEstimator(pl.Callback):
-    """At the end of ``fit``, export the best checkpoint's estimator (weights only) and a card.
-
-    Args:
-        path: the ``.ckpt`` to write; default ``<run folder>/lfc_nn_grad.ckpt`` (the
-            logger's ``version_<n>`` folder), so that ``fit`` writes only inside its run.
-            Shipping a result to ``checkpoints/`` is the explicit ``difffilter-train
-            export``. The card goes next to the file with the suffix ``.json``.
-        check_seed, check_runs: the reproducibility check recorded in the card.
-        enabled: ``False`` turns the export off.
-
-    Nothing is exported under ``fast_dev_run``.
-    """
-
-    def __init__(
-        self,
-        path: str | None = None,
-        check_seed: int = 20,
-        check_runs: int = 4,
-        enabled: bool = True,
-    ):
-        super().__init__()
-        self.path = None if path is None else Path(path)
-        self.enabled = bool(enabled)
-        self.check_seed, self.check_runs = int(check_seed), int(check_runs)
-        self._start = None
-
-    def on_fit_start(self, trainer, pl_module):
-        self._start = time.time()
-
-    def on_fit_end(self, trainer, pl_module):
-        if not self.enabled or trainer.fast_dev_run:
-            return
-        # trainer.log_dir is a collective under DDP: every process asks, one writes
-        path = self.path or Path(trainer.log_dir or trainer.default_root_dir) / "lfc_nn_grad.ckpt"
-        if not trainer.is_global_zero:
-            return
-        best_path, best_score = None, None
-        for cb in trainer.callbacks:
-            if isinstance(cb, pl.callbacks.ModelCheckpoint) and cb.best_model_path:
-                best_path, best_score = cb.best_model_path, cb.best_model_score
-        module = pl_module
-        if best_path:
-            blob = torch.load(best_path, map_location="cpu", weights_only=True)
-            prefix = "estimator."
-            state = {
-                k[len(prefix) :]: v for k, v in blob["state_dict"].items() if k.startswith(prefix)
-            }
-            module.estimator.load_state_dict(state)
-        hp = dict(module.hparams)
-        observer = {
-            "residual_lag": int(hp["residual_lag"]),
-            "dt": float(hp["dt"]),
-            "kind": "kalman",
-        }
-        digest = save_estimator_checkpoint(path, module.estimator, observer)
-        # verify against the digest just computed (a card from an earlier export may still
-        # lie beside the file; it is rewritten below)
-        estimator, _ = load_estimator_checkpoint(path, expected_sha256=digest)
-        dm = trainer.datamodule
-        channels = None if dm is None else dm.hparams.channels
-        check = check_metric(
-            estimator,
-            residual_lag=observer["residual_lag"],
-            seed=self.check_seed,
-            runs=self.check_runs,
-            dt=observer["dt"],
-            channels=channels,
-        )
-        metrics = {
-            k: float(v)
-            for k, v in trainer.callback_metrics.items()
-            if k.startswith("val/") and torch.as_tensor(v).numel() == 1
-        }
-        card = {
-            "name": "lfc_nn_grad",
-            "scenario_family": "lfc",
-            "estimator": "kf_nn_grad",
-            "description": "Neural FDI estimator (eqs 8-9) trained by TBPTT through the Kalman "
-            "observer on random attacks; Sargolzaei et al., TII 2020",
-            "checkpoint": path.name,
-            "sha256": digest,
-            "selected_checkpoint": Path(best_path).name if best_path else None,
-            "best_val_attack_rmse": None if best_score is None else float(best_score),
-            "metrics_last_validation": metrics,
-            "check": {
-                "metric": "attack_rmse_random_validation",
-                "seed": self.check_seed,
-                "runs": self.check_runs,
-                "channels": channels,
-                "value": check,
-            },
-            "model_config": _plain(hp),
-            "data_config": None if dm is None else _plain(dict(dm.hparams)),
-            "observer": observer,
-            "seed": {
-                "model_seed": hp["model_seed"],
-                "train_seed": None if dm is None else dm.hparams.train_seed,
-                "val_seed": None if dm is None else dm.hparams.val_seed,
-            },
-            "epochs": trainer.current_epoch,
-            "global_step": trainer.global_step,
-            "train_time_s": None if self._start is None else time.time() - self._start,
-            "torch_version": torch.__version__,
-            "lightning_version": pl.__version__,
-        }
-        path.with_suffix(".json").write_text(json.dumps(card, indent=2) + "\n")
-        print(f"exported {path} (ship it with: difffilter-train export {path} --out <file>)")

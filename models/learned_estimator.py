@@ -1,0 +1,244 @@
+"""The neural FDI estimator inside difffilter's own filters: learned attack compensation.
+
+At every step the filter that runs the scenario supplies the network's features and
+uses its output (one configuration of :class:`~difffilter.models.neural_estimator.
+NeuralFDIEstimator`, with one "area" of ``dy`` channels)::
+
+    ν_k = ỹ_k − E[h(x_k) | ỹ_{1:k−1}],   S_k = Cov(ν_k)       the filter's innovation
+    e_k = ν_k / √diag(S_k)                                    standardised, 0 where unreceived
+    δ_k = [â_{k−1}, …, â_{k−a}, e_k, …, e_{k−b+1}]            eq. (9) with residual lag ℓ = 0
+    â_k, logit_k = network(δ_k)                               eq. (8) and its detection head
+    update with ỹ_k − â_k                                     the compensated measurement
+
+``S_k`` is the particles' spread of ``h`` plus ``R`` for the particle filter (its
+:class:`~difffilter.particle.Predictive`), ``H P⁻ Hᵀ + R`` for the Kalman filters. Every
+operation is differentiable, so a loss on ``â``, ``logit`` or the state estimates
+back-propagates through the filter (through the particle weights and, with a
+differentiable resampler, through resampling): how :mod:`difffilter.train.task` trains
+the network. Detection: ``p_k = sigmoid(logit_k)``, alarm where ``p_k > threshold``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from difffilter.estimator import Detection, EstimatorOutput
+from difffilter.extended import extended_kalman_step, unscented_kalman_step
+from difffilter.fdi.modified_pf import AttackCompensatedLikelihood
+from difffilter.kalman import gaussian_init, kalman_step
+from difffilter.models.neural_estimator import NeuralFDIEstimator, build_delta
+from difffilter.particle import particle_filter
+
+__all__ = ["NeuralCompensation", "neural_particle_filter", "neural_gaussian_filter"]
+
+GAUSSIAN_STEPS = {"kf": kalman_step, "ekf": extended_kalman_step, "ukf": unscented_kalman_step}
+
+
+class NeuralCompensation:
+    """The network's state over a sequence: its input histories and what it output.
+
+    :meth:`step` maps one innovation ``ν [..., dy]`` with covariance ``S [..., dy, dy]``
+    (and ``mask [..., dy]``) to ``(â [..., dy], logit [...])``; :attr:`attack` and
+    :attr:`logit` stack the outputs over the steps so far (``[..., T, dy]``, ``[..., T]``).
+    As a particle-filter likelihood (``uses_predictive``) it reads the step's
+    :class:`~difffilter.particle.Predictive` and weighs the particles with the
+    compensated measurement, ``log p(ỹ_k − â_k | x_k^i)``.
+    """
+
+    uses_predictive = True
+
+    def __init__(self, network: NeuralFDIEstimator):
+        if not isinstance(network, NeuralFDIEstimator):
+            raise TypeError(f"network must be a NeuralFDIEstimator; got {type(network).__name__}")
+        if network.num_areas != 1:
+            raise ValueError(
+                f"network must have num_areas = 1 (one area of dy channels); got {network.num_areas}"
+            )
+        self.network = network
+        self.attack_hist = self.resid_hist = None
+        self._attacks: list[Tensor] = []
+        self._logits: list[Tensor] = []
+
+    def step(self, innovation: Tensor, innovation_cov: Tensor, mask: Tensor | None = None):
+        net, dy = self.network, innovation.shape[-1]
+        if dy != net.area_dim:
+            raise ValueError(
+                f"network.area_dim is {net.area_dim} but the measurement has dy = {dy}"
+            )
+        scale = torch.diagonal(innovation_cov, dim1=-2, dim2=-1).clamp_min(1e-30).sqrt()
+        e = innovation / scale
+        if mask is not None:
+            e = e * mask.to(e.dtype)
+        batch = e.shape[:-1]
+        if self.attack_hist is None:
+            self.attack_hist = e.new_zeros(*batch, net.a, dy)
+            self.resid_hist = e.new_zeros(*batch, net.b, dy)
+        resid = torch.cat([e.unsqueeze(-2), self.resid_hist[..., :-1, :]], -2)
+        delta = build_delta(
+            self.attack_hist.reshape(-1, net.a, dy), resid.reshape(-1, net.b, dy), 1
+        ).reshape(*batch, 1, -1)
+        attack, logit = net(delta.to(net.V.dtype))
+        attack = attack[..., 0, :].to(e.dtype)
+        if mask is not None:
+            attack = attack * mask.to(attack.dtype)
+        logit = logit[..., 0].to(e.dtype) if logit is not None else attack.new_zeros(batch)
+        self.attack_hist = torch.cat([attack.unsqueeze(-2), self.attack_hist[..., :-1, :]], -2)
+        self.resid_hist = resid
+        self._attacks.append(attack)
+        self._logits.append(logit)
+        return attack, logit
+
+    def __call__(self, model, y, particles, k, mask, *, predictive) -> Tensor:
+        attack, _ = self.step(predictive.innovation, predictive.innovation_cov, mask)
+        always = torch.ones(attack.shape[:-1], dtype=torch.bool, device=attack.device)
+        return AttackCompensatedLikelihood(always, attack)(model, y, particles, k, mask)
+
+    @property
+    def attack(self) -> Tensor:
+        return torch.stack(self._attacks, -2)
+
+    @property
+    def logit(self) -> Tensor:
+        return torch.stack(self._logits, -1)
+
+
+def _output(means, covs, comp: NeuralCompensation, threshold: float, **extras) -> EstimatorOutput:
+    prob = torch.sigmoid(comp.logit)
+    return EstimatorOutput(
+        means,
+        covs,
+        attack=comp.attack,
+        detection=Detection(prob, prob > threshold, float(threshold)),
+        extras={"attack_logit": comp.logit, **extras},
+    )
+
+
+def neural_particle_filter(
+    model,
+    ys: Tensor,
+    us: Tensor | None = None,
+    *,
+    network: NeuralFDIEstimator,
+    num_particles: int,
+    mask: Tensor | None = None,
+    threshold: float = 0.5,
+    **driver,
+) -> EstimatorOutput:
+    """The particle filter of :func:`difffilter.particle_filter` (``driver``: resampler,
+    proposal, generators, ``initial_state``, …) with the network's compensation as its
+    likelihood. ``ys [..., T, dy]`` → means ``[..., T, dx]``, ``attack [..., T, dy]``,
+    detection scores ``p [..., T]``; ``extras``: ``attack_logit``, ``log_likelihood [...]``."""
+    comp = NeuralCompensation(network)
+    res = particle_filter(
+        model, ys, us, num_particles=num_particles, mask=mask, likelihood=comp, **driver
+    )
+    return _output(res.means, res.covs, comp, threshold, log_likelihood=res.log_likelihood)
+
+
+def neural_gaussian_filter(
+    model,
+    ys: Tensor,
+    us: Tensor | None = None,
+    *,
+    network: NeuralFDIEstimator,
+    kind: str = "kf",
+    mask: Tensor | None = None,
+    threshold: float = 0.5,
+) -> EstimatorOutput:
+    """The KF, EKF or UKF (``kind``) with the network's compensation: each step runs the
+    filter's step once for ``ν_k, S_k`` and once with ``ỹ_k − â_k`` (the update that counts).
+    Shapes as in :func:`neural_particle_filter`."""
+    if kind not in GAUSSIAN_STEPS:
+        raise ValueError(f"kind must be one of {sorted(GAUSSIAN_STEPS)}; got {kind!r}")
+    step, comp = GAUSSIAN_STEPS[kind], NeuralCompensation(network)
+    state = gaussian_init(model, ys.shape[:-2])
+    means, covs = [], []
+    for t in range(ys.shape[-2]):
+        u = None if us is None else us[..., t, :]
+        m = None if mask is None else mask[..., t, :]
+        _, probe = step(model, state, ys[..., t, :], u, m)
+        attack, _ = comp.step(probe.innovation, probe.innovation_cov, m)
+        state, _ = step(model, state, ys[..., t, :] - attack, u, m)
+        means.append(state.mean)
+        covs.append(state.cov)
+    return _output(torch.stack(means, -2), torch.stack(covs, -3), comp, threshold)
+
+
+# ---------------------------------------------- registration with difffilter.eval.estimators
+
+
+def _trained_network(ctx, name: str, kinds) -> tuple[NeuralFDIEstimator, dict]:
+    """The checkpoint's network if it was trained for this scenario family with one of
+    ``kinds`` of filter; :class:`~difffilter.eval.estimators.SkipEstimator` otherwise."""
+    from difffilter.eval.estimators import SkipEstimator
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+
+    if ctx.checkpoint is None:
+        raise SkipEstimator("no --ckpt given and no shipped checkpoint")
+    key = ("learned/ckpt", str(ctx.checkpoint))
+    if key not in ctx.cache:
+        ctx.cache[key] = load_estimator_checkpoint(ctx.checkpoint, dtype=ctx.dtype)
+    net, obs = ctx.cache[key]
+    family, kind = obs.get("scenario_family"), obs.get("kind")
+    if family != ctx.scenario.family or kind not in kinds:
+        raise SkipEstimator(
+            f"the checkpoint was trained for {family or 'another'} scenarios with filter "
+            f"{kind!r}, not {ctx.scenario.family} with {'/'.join(kinds)}"
+        )
+    ctx.checkpoint_users.append(name)
+    return net, obs
+
+
+def _register() -> None:
+    from difffilter.eval.estimators import SuiteContext, register
+
+    @register(
+        "pf_nn_grad",
+        "neural FDI estimator trained through the differentiable PF (checkpoint), compensating "
+        "the PF's measurements; alarm at its validation-chosen threshold",
+    )
+    def _pf_nn_grad(ctx: SuiteContext):
+        net, obs = _trained_network(ctx, "pf_nn_grad", ("pf",))
+        threshold = float(obs.get("threshold", 0.5))
+
+        def run(tr):
+            kw = ctx.particle_kwargs(len(tr.y_recv))
+            with torch.no_grad():
+                return neural_particle_filter(
+                    ctx.model,
+                    tr.y_recv,
+                    tr.us,
+                    network=net,
+                    mask=tr.mask,
+                    threshold=threshold,
+                    **kw,
+                )
+
+        return run
+
+    @register(
+        "gaussian_nn_grad",
+        "neural FDI estimator trained through a KF/EKF/UKF (checkpoint), compensating its "
+        "measurements; alarm at its validation-chosen threshold",
+    )
+    def _gaussian_nn_grad(ctx: SuiteContext):
+        net, obs = _trained_network(ctx, "gaussian_nn_grad", tuple(GAUSSIAN_STEPS))
+        threshold = float(obs.get("threshold", 0.5))
+
+        def run(tr):
+            with torch.no_grad():
+                return neural_gaussian_filter(
+                    ctx.model,
+                    tr.y_recv,
+                    tr.us,
+                    network=net,
+                    kind=obs["kind"],
+                    mask=tr.mask,
+                    threshold=threshold,
+                )
+
+        return run
+
+
+_register()

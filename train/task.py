@@ -1,0 +1,373 @@
+"""One training task for any registered scenario: the neural FDI estimator inside
+difffilter's own filter, trained by gradient descent through it.
+
+:class:`ScenarioDataModule` simulates the scenario (its plant, attack and schedule) from
+seeded named streams: training batch ``i`` of epoch ``e`` from seed ``(train_seed, e, i)``,
+one fixed validation batch from ``val_seed`` (the scenario's attack distribution on
+unseen draws: the operating threshold is chosen there), and ``test`` on exactly the runs
+``difffilter-eval <scenario> --seed test_seed`` scores.
+
+:class:`FilterEstimatorTask` runs :func:`~difffilter.models.learned_estimator.
+neural_particle_filter` (``filter="pf"``, with a differentiable resampler) or
+:func:`~difffilter.models.learned_estimator.neural_gaussian_filter` (``"kf"``, ``"ekf"``,
+``"ukf"``) on each batch and minimises::
+
+    mean‖â_k − a_k‖² + bce_weight·BCE(logit_k, l_k) + state_weight·mean‖x̂_k − x_k‖²/σ_x²
+
+(``a_k`` the injected attack, ``l_k`` its flag, ``σ_x²`` the prior variance of the state):
+the attack loss back-propagates through the filter too, since ``â_k`` reads innovations
+that earlier estimates shaped. Validation and test run the filter as the evaluation does
+(systematic resampling at every step) and pick the alarm threshold on the validation
+batch: the ``1 − target_false_alarm_rate`` quantile of ``p_k`` over its attack-free steps.
+"""
+
+from __future__ import annotations
+
+import math
+
+import lightning.pytorch as pl
+import torch
+
+from difffilter import resampling
+from difffilter.eval.streams import Streams
+from difffilter.metrics import roc_auc
+from difffilter.models import registry
+from difffilter.models.learned_estimator import (
+    GAUSSIAN_STEPS,
+    neural_gaussian_filter,
+    neural_particle_filter,
+)
+from difffilter.models.neural_estimator import NeuralFDIEstimator
+
+from .common import dtype_of, mix_seed
+
+__all__ = ["ScenarioDataModule", "FilterEstimatorTask", "RESAMPLERS"]
+
+#: Training resamplers (``resampler=``): gradients through resampling or around it.
+RESAMPLERS = {
+    "stop_gradient": lambda alpha: resampling.StopGradient(),
+    "soft": lambda alpha: resampling.Soft(alpha),
+    "ot": lambda alpha: resampling.OptimalTransport(),
+}
+_FIELDS = ("x", "y_recv", "us", "mask", "attack", "flags")
+
+
+def simulate_batch(scenario, runs: int, seed: int, dtype: torch.dtype) -> dict:
+    """``runs`` runs of ``scenario`` from the named streams of ``seed`` (as ``difffilter-eval``):
+    ``{"x", "y_recv", "attack", "flags"}`` and, where the scenario has them, ``"us"``, ``"mask"``."""
+    streams = Streams(seed)
+    tr = scenario.simulate(
+        runs, {k: streams(k) for k in ("plant", "attack", "schedule")}, dtype=dtype
+    )
+    return {k: getattr(tr, k) for k in _FIELDS if getattr(tr, k) is not None}
+
+
+class _Keys(torch.utils.data.Dataset):
+    def __init__(self, indices):
+        self.indices = list(indices)
+
+    def __len__(self):
+        return len(self.indices)
+
+    def __getitem__(self, i):
+        return {"index": torch.tensor(self.indices[i])}
+
+
+class ScenarioDataModule(pl.LightningDataModule):
+    """Trajectories of one registered scenario, simulated on the fly from seeds.
+
+    Args:
+        scenario: a registered scenario name (``difffilter-eval --list``).
+        batch_size, batches_per_epoch: training runs per batch and batches per epoch.
+        val_runs, val_seed: the fixed validation batch.
+        train_seed: master seed of the training batches (differs from ``val_seed``).
+        test_runs, test_seed: ``test``/``predict`` runs (default the scenario's ``runs``)
+            and seed: the draws of ``difffilter-eval <scenario> --seed test_seed``.
+        dtype: ``"float32"`` or ``"float64"``.
+    """
+
+    def __init__(
+        self,
+        scenario: str = "four_tank_bias",
+        batch_size: int = 16,
+        batches_per_epoch: int = 8,
+        val_runs: int = 64,
+        train_seed: int = 1,
+        val_seed: int = 2,
+        test_runs: int | None = None,
+        test_seed: int = 0,
+        dtype: str = "float32",
+    ):
+        super().__init__()
+        self.scenario = registry.get(scenario)  # ValueError listing the known names
+        for name, val in (
+            ("batch_size", batch_size),
+            ("batches_per_epoch", batches_per_epoch),
+            ("val_runs", val_runs),
+            ("test_runs", 1 if test_runs is None else test_runs),
+        ):
+            if isinstance(val, bool) or not isinstance(val, int) or val < 1:
+                raise ValueError(f"{name} must be a positive integer; got {val!r}")
+        if train_seed == val_seed:
+            raise ValueError("train_seed and val_seed must differ (validation data must be unseen)")
+        if test_seed in (train_seed, val_seed):
+            raise ValueError("test_seed must differ from train_seed and val_seed")
+        self.save_hyperparameters()
+        self._dtype = dtype_of(dtype)
+        self._val = None
+
+    def train_dataloader(self):
+        n, trainer = self.hparams.batches_per_epoch, getattr(self, "trainer", None)
+        # DDP: each process simulates its share of the epoch's seeded batches (our own
+        # split, so the data stay a function of (train_seed, epoch, batch) across resumes)
+        rank, world = (trainer.global_rank, trainer.world_size) if trainer else (0, 1)
+        return torch.utils.data.DataLoader(_Keys(range(rank, n, world)), batch_size=None)
+
+    def on_after_batch_transfer(self, batch, dataloader_idx):
+        # drawn here, from the trainer's epoch (right after a resume too)
+        if isinstance(batch, dict) and "index" in batch:
+            epoch = self.trainer.current_epoch if getattr(self, "trainer", None) else 0
+            seed = mix_seed(self.hparams.train_seed, epoch, int(batch["index"]))
+            return simulate_batch(self.scenario, self.hparams.batch_size, seed, self._dtype)
+        return batch
+
+    def val_dataloader(self):
+        if self._val is None:
+            hp = self.hparams
+            self._val = simulate_batch(self.scenario, hp.val_runs, hp.val_seed, self._dtype)
+        return torch.utils.data.DataLoader([self._val], batch_size=None)
+
+    def test_dataloader(self):
+        hp = self.hparams
+        runs = hp.test_runs or self.scenario.runs
+        return torch.utils.data.DataLoader(
+            [simulate_batch(self.scenario, runs, hp.test_seed, self._dtype)], batch_size=None
+        )
+
+    def predict_dataloader(self):
+        return self.test_dataloader()
+
+
+class FilterEstimatorTask(pl.LightningModule):
+    """The neural FDI estimator trained through difffilter's filter on one scenario.
+
+    Args:
+        scenario: the registered scenario (its model is the filter's).
+        filter: ``"pf"`` (particle filter) or ``"kf"``, ``"ekf"``, ``"ukf"``.
+        resampler: PF training resampler, ``"soft"`` (``soft_alpha``), ``"stop_gradient"``
+            or ``"ot"`` (entropy-regularised optimal transport); validation, test and
+            evaluation resample systematically.
+        num_particles: PF particles (default: the scenario's).
+        a, b, hidden, init_scale, init, attack_scale, resid_scale: the network
+            (:class:`~difffilter.models.neural_estimator.NeuralFDIEstimator`, one area of
+            ``dy`` channels; ``model_seed`` seeds its weights and the training filter).
+        lr, weight_decay: AdamW.
+        bce_weight, state_weight: loss weights (module docstring).
+        target_false_alarm_rate: of the operating threshold (default: the scenario's).
+        dtype: ``"float32"`` or ``"float64"``.
+    """
+
+    def __init__(
+        self,
+        scenario: str = "four_tank_bias",
+        filter: str = "pf",
+        resampler: str = "soft",
+        soft_alpha: float = 0.5,
+        num_particles: int | None = None,
+        a: int = 3,
+        b: int = 3,
+        hidden: int = 16,
+        init_scale: float = 0.1,
+        init: str = "symmetric",
+        attack_scale: float = 1.0,
+        resid_scale: float = 10.0,
+        lr: float = 3e-3,
+        weight_decay: float = 0.0,
+        bce_weight: float = 0.1,
+        state_weight: float = 1.0,
+        target_false_alarm_rate: float | None = None,
+        model_seed: int = 0,
+        dtype: str = "float32",
+    ):
+        super().__init__()
+        sc = registry.get(scenario)
+        if filter != "pf" and filter not in GAUSSIAN_STEPS:
+            raise ValueError(
+                f"filter must be 'pf' or one of {sorted(GAUSSIAN_STEPS)}; got {filter!r}"
+            )
+        if resampler not in RESAMPLERS:
+            raise ValueError(f"resampler must be one of {sorted(RESAMPLERS)}; got {resampler!r}")
+        far = sc.false_alarm_rate if target_false_alarm_rate is None else target_false_alarm_rate
+        if not 0 < far < 1:
+            raise ValueError(f"target_false_alarm_rate must be in (0, 1); got {far!r}")
+        self.save_hyperparameters()
+        self.scenario, self._dtype, self.false_alarm_rate = sc, dtype_of(dtype), float(far)
+        self.system = sc.system(self._dtype)
+        self.num_particles = num_particles or sc.num_particles
+        self.estimator = NeuralFDIEstimator(
+            num_areas=1,
+            area_dim=self.system.dim_y,
+            a=a,
+            b=b,
+            hidden=hidden,
+            init_scale=init_scale,
+            init=init,
+            attack_scale=attack_scale,
+            resid_scale=resid_scale,
+            detection_head=True,
+            seed=model_seed,
+            dtype=self._dtype,
+        )
+        # the operating threshold on p, chosen at every validation; saved with the weights
+        self.register_buffer("alarm_threshold", torch.tensor(0.5, dtype=torch.float64))
+        self._state_scale = torch.diagonal(self.system.initial.cov, dim1=-2, dim2=-1).mean()
+
+    def configure_optimizers(self):
+        hp = self.hparams
+        return torch.optim.AdamW(
+            self.estimator.parameters(), lr=hp.lr, weight_decay=hp.weight_decay
+        )
+
+    # -- the filter --------------------------------------------------------------------
+    def run_filter(self, batch: dict, *, training: bool, seed: int, threshold: float = 0.5):
+        """The estimator on ``batch`` (an :class:`~difffilter.EstimatorOutput`)."""
+        kw = {"network": self.estimator, "mask": batch.get("mask"), "threshold": threshold}
+        if self.hparams.filter != "pf":
+            return neural_gaussian_filter(
+                self.system, batch["y_recv"], batch.get("us"), kind=self.hparams.filter, **kw
+            )
+        hp = self.hparams
+        resampler = RESAMPLERS[hp.resampler](hp.soft_alpha) if training else resampling.Systematic()
+        gens = Streams(seed)
+        return neural_particle_filter(
+            self.system,
+            batch["y_recv"],
+            batch.get("us"),
+            num_particles=self.num_particles,
+            resampler=resampler,
+            ess_threshold=1.0,
+            generator=gens("particles/propagate"),
+            resample_generator=gens("particles/resample"),
+            **kw,
+        )
+
+    def _losses(self, out, batch) -> dict:
+        flags = batch["flags"].to(out.attack.dtype)
+        losses = {
+            "attack_mse": (out.attack - batch["attack"]).square().mean(),
+            "bce": torch.nn.functional.binary_cross_entropy_with_logits(
+                out.extras["attack_logit"], flags
+            ),
+            "state_mse": (out.means - batch["x"]).square().mean() / self._state_scale,
+        }
+        hp = self.hparams
+        losses["loss"] = (
+            losses["attack_mse"]
+            + hp.bce_weight * losses["bce"]
+            + hp.state_weight * losses["state_mse"]
+        )
+        return losses
+
+    def training_step(self, batch, batch_idx):
+        seed = mix_seed(self.hparams.model_seed, self.global_step)
+        out = self.run_filter(batch, training=True, seed=seed)
+        losses = self._losses(out, batch)
+        runs = batch["y_recv"].shape[0]
+        for k, v in losses.items():
+            self.log(f"train/{k}", v.detach(), prog_bar=k == "loss", batch_size=runs)
+        return losses["loss"]
+
+    # -- validation, test, predict -------------------------------------------------------
+    def _scores(self, stage: str, batch, threshold: float | None) -> dict:
+        """Evaluate on ``batch``; with ``threshold=None`` choose it (validation)."""
+        with torch.no_grad():
+            out = self.run_filter(batch, training=False, seed=mix_seed(self.hparams.model_seed, 7))
+        prob, flags = out.detection.scores, batch["flags"]
+        if threshold is None:
+            quiet = prob[~flags]
+            q = 1.0 - self.false_alarm_rate
+            threshold = float(torch.quantile(quiet.double(), q)) if quiet.numel() else 0.5
+            self.alarm_threshold.fill_(threshold)
+        alarms = prob > threshold
+        err = out.attack - batch["attack"]
+        scores = {
+            "attack_rmse": float(err.square().mean().sqrt()),
+            "state_rmse": float((out.means - batch["x"]).square().mean().sqrt()),
+            "auc": roc_auc(prob, flags),
+            "tpr": float(alarms[flags].double().mean()) if bool(flags.any()) else float("nan"),
+            "fpr": float(alarms[~flags].double().mean()) if bool((~flags).any()) else float("nan"),
+            "threshold": threshold,
+        }
+        runs = flags.shape[0]
+        for k, v in scores.items():
+            if math.isfinite(v):
+                self.log(
+                    f"{stage}/{k}", v, prog_bar=k == "attack_rmse", batch_size=runs, sync_dist=True
+                )
+        return scores
+
+    def validation_step(self, batch, batch_idx):
+        self._scores("val", batch, None)
+
+    def test_step(self, batch, batch_idx):
+        self._scores("test", batch, float(self.alarm_threshold))
+
+    def predict_step(self, batch, batch_idx):
+        with torch.no_grad():
+            out = self.run_filter(
+                batch,
+                training=False,
+                seed=mix_seed(self.hparams.model_seed, 7),
+                threshold=float(self.alarm_threshold),
+            )
+        return {
+            "attack_estimate": out.attack,
+            "attack_probability": out.detection.scores,
+            "alarms": out.detection.alarms,
+            "means": out.means,
+        }
+
+    # -- export (difffilter.train.export.ExportEstimator) --------------------------------
+    def export_name(self) -> str:
+        return f"{self.scenario.family}_nn_grad"
+
+    def export_observer(self) -> dict:
+        """What evaluation needs beside the weights (the filter, its threshold, the scenario)."""
+        hp = self.hparams
+        return {
+            "kind": hp.filter,
+            "scenario": self.scenario.name,
+            "scenario_family": self.scenario.family,
+            "num_particles": int(self.num_particles),
+            "threshold": float(self.alarm_threshold),
+            "target_false_alarm_rate": self.false_alarm_rate,
+            "dt": float(self.scenario.dt),
+        }
+
+    def check_exported(self, observer: dict, path) -> None:
+        """``ValueError`` unless an exported estimator was trained for this filter and
+        scenario family; its operating threshold becomes this module's."""
+        mine = self.export_observer()
+        for key in ("kind", "scenario_family"):
+            if observer.get(key) != mine[key]:
+                raise ValueError(
+                    f"--ckpt_path: {path} was trained with {key} = {observer.get(key)!r}, the "
+                    f"configured model has {mine[key]!r}"
+                )
+        self.alarm_threshold.fill_(float(observer.get("threshold", 0.5)))
+
+    def export_card(self, trainer, estimator=None) -> dict:
+        return {
+            "scenario_family": self.scenario.family,
+            "estimator": f"{self.hparams.filter}_nn_grad",
+            "description": (
+                f"Neural FDI estimator (eqs 8-9, one area of dy channels) trained through "
+                f"difffilter's {self.hparams.filter.upper()} on {self.scenario.name} "
+                f"(resampler for training: {self.hparams.resampler})"
+            ),
+        }
+
+    def on_save_checkpoint(self, checkpoint):
+        # a Lightning checkpoint of this task loads as an estimator (difffilter-eval --ckpt)
+        checkpoint["difffilter_observer"] = self.export_observer()
+        checkpoint["difffilter_estimator_config"] = self.estimator.config()
