@@ -130,6 +130,35 @@ class RobotModel(StateSpaceModel):
         n = self.input_noise.sample(x.shape[:-1], generator)
         return self.transition(x, u, k) + matvec(self.input_jacobian(x, u, k), n)
 
+    def linearize_components(self, x, u, y, k):
+        """Everything one adaptive update needs, on component lists (the fast path of
+        :class:`~difffilter.fdi.mdpf.AdaptiveKalmanProposal`): ``x`` (3 tensors ``[...]``),
+        ``u`` the effective input (2), ``y`` the measurement (``dim_y`` tensors, broadcasting)
+        → ``(f(x, u), ∂f/∂x, ∂f/∂u, wrapped y − h(f), ∂h/∂x at f)`` as lists (3; 3×3; 3×2;
+        dim_y; dim_y×3)."""
+        T = self.dt
+        pos = self.sensor_pos
+        if pos.dim() == 2:
+            sensors = pos.tolist()
+        else:  # [G, S, 2]: per-group coordinates [G, 1, …] against x [G, …]
+            shape = pos.shape[:1] + (1,) * (x[0].dim() - 1)
+            sensors = [(pos[:, i, 0].reshape(shape), pos[:, i, 1].reshape(shape)) for i in range(pos.shape[1])]
+        c, s = torch.cos(x[2]), torch.sin(x[2])
+        vc, vs = T * u[0] * c, T * u[0] * s
+        xp = [x[0] + vc, x[1] + vs, x[2] + T * u[1]]
+        F = [[1.0, 0.0, -vs], [0.0, 1.0, vc], [0.0, 0.0, 1.0]]
+        B = [[T * c, 0.0], [T * s, 0.0], [0.0, T]]
+        e, H = [], []
+        for i, (px, py) in enumerate(sensors):
+            dx, dy = px - xp[0], py - xp[1]
+            r2 = dx * dx + dy * dy
+            r = torch.sqrt(r2)
+            e.append(y[2 * i] - r)
+            e.append(wrap_angle(y[2 * i + 1] - xp[2] + torch.atan2(dy, dx)))
+            H.append([-dx / r, -dy / r, 0.0])
+            H.append([-dy / r2, dx / r2, 1.0])
+        return xp, F, B, e, H
+
     # -- measurements ----------------------------------------------------------------
     def _offsets(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """``s_i − p`` per sensor ``[..., S]`` (x and the sensor groups broadcast)."""
