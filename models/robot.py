@@ -142,7 +142,10 @@ class RobotModel(StateSpaceModel):
             sensors = pos.tolist()
         else:  # [G, S, 2]: per-group coordinates [G, 1, …] against x [G, …]
             shape = pos.shape[:1] + (1,) * (x[0].dim() - 1)
-            sensors = [(pos[:, i, 0].reshape(shape), pos[:, i, 1].reshape(shape)) for i in range(pos.shape[1])]
+            sensors = [
+                (pos[:, i, 0].reshape(shape), pos[:, i, 1].reshape(shape))
+                for i in range(pos.shape[1])
+            ]
         c, s = torch.cos(x[2]), torch.sin(x[2])
         vc, vs = T * u[0] * c, T * u[0] * s
         xp = [x[0] + vc, x[1] + vs, x[2] + T * u[1]]

@@ -138,9 +138,7 @@ register("zhang_akf_group2", "Zhang's adaptive EKF, lidars {4, 5, 6}")(_zhang(GR
 register("mdpf_local_1", "local estimator (A1)–(A8), lidars {1, 2, 3}")(_local(0))
 register("mdpf_local_2", "local estimator (A1)–(A8), lidars {4, 5, 6}")(_local(1))
 register("mdpf_fused_ci", "the two locals fused by covariance intersection")(_fused("ci"))
-register("mdpf_fused_naive", "the two locals fused by naive information fusion")(
-    _fused("naive")
-)
+register("mdpf_fused_naive", "the two locals fused by naive information fusion")(_fused("naive"))
 
 
 @torch.no_grad()

@@ -81,6 +81,9 @@ def spd_inverse(a):
         inv[i][i] = 1.0 / low[i][i]
         for j in range(i):
             inv[i][j] = -_dot((low[i][k], inv[k][j]) for k in range(j, i)) / low[i][i]
-    out = [[_dot((inv[k][i], inv[k][j]) for k in range(max(i, j), d)) for j in range(d)] for i in range(d)]
+    out = [
+        [_dot((inv[k][i], inv[k][j]) for k in range(max(i, j), d)) for j in range(d)]
+        for i in range(d)
+    ]
     logdet = 2.0 * sum(torch.log(low[i][i]) for i in range(d))
     return out, logdet

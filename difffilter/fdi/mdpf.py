@@ -89,7 +89,13 @@ class ParticleLayout:
     def unpack(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         x, a, ups, S, P = torch.split(z, self.sizes, -1)
         lead, dx, da = z.shape[:-1], self.dx, self.da
-        return x, a, ups.reshape(lead + (dx, da)), S.reshape(lead + (da, da)), P.reshape(lead + (dx, dx))
+        return (
+            x,
+            a,
+            ups.reshape(lead + (dx, da)),
+            S.reshape(lead + (da, da)),
+            P.reshape(lead + (dx, dx)),
+        )
 
 
 class ParticleView(StateSpaceModel):
@@ -206,7 +212,9 @@ class AdaptiveKalmanProposal:
         o += da * da
         P = [comp[o + i * dx : o + (i + 1) * dx] for i in range(dx)]
         if self.reading == "draw":  # x̂ʲ(k−1) ~ N(x̄ˡ, Pˡ)
-            eps = torch.randn((dx,) + x[0].shape, generator=generator, dtype=z.dtype, device=z.device)
+            eps = torch.randn(
+                (dx,) + x[0].shape, generator=generator, dtype=z.dtype, device=z.device
+            )
             low = C.cholesky(P)
             x = [x[i] + C._dot((low[i][j], eps[j]) for j in range(i + 1)) for i in range(dx)]
         own = getattr(base, "linearize_components", None)
@@ -263,10 +271,16 @@ class AdaptiveKalmanProposal:
         dq = [C._dot((D[j][i], qke[j]) for j in range(dx)) for i in range(da)]  # ΩᵀΣ⁻¹ε
         step = [C._dot((new_S[i][j], dq[j]) for j in range(da)) for i in range(da)]  # Γε
         new_a = [a[i] + step[i] for i in range(da)]
-        new_x = [xpc[i] + ke[i] + C._dot((new_ups[i][j], step[j]) for j in range(da)) for i in range(dx)]
+        new_x = [
+            xpc[i] + ke[i] + C._dot((new_ups[i][j], step[j]) for j in range(da)) for i in range(dx)
+        ]
         gk = C._dot((g[i], ke[i]) for i in range(dx))
-        log_lik = -0.5 * (quad - gk + logdet_r + self._logdet_q + logdet_m + count * math.log(2 * math.pi))
-        flat = new_x + new_a + [v for row in new_ups for v in row] + [v for row in new_S for v in row]
+        log_lik = -0.5 * (
+            quad - gk + logdet_r + self._logdet_q + logdet_m + count * math.log(2 * math.pi)
+        )
+        flat = (
+            new_x + new_a + [v for row in new_ups for v in row] + [v for row in new_S for v in row]
+        )
         flat += [v for row in Minv for v in row]
         return torch.stack(flat, 0).movedim(0, -1).contiguous(), log_lik
 
