@@ -59,13 +59,13 @@ def add(a, b):
 
 def cholesky(a):
     """Lower Cholesky factor of a symmetric positive-definite component matrix (no pivoting;
-    diagonals clamped at 1e-300 before the square root, so a semidefinite input gives a
+    diagonals clamped at the dtype's smallest normal number before the square root, so a semidefinite input gives a
     finite factor)."""
     d = len(a)
     low = [[0.0] * d for _ in range(d)]
     for j in range(d):
         s = a[j][j] - _dot((low[j][k], low[j][k]) for k in range(j))
-        low[j][j] = torch.sqrt(torch.clamp_min(s, 1e-300))
+        low[j][j] = torch.sqrt(torch.clamp_min(s, torch.finfo(s.dtype).tiny))
         for i in range(j + 1, d):
             low[i][j] = (a[i][j] - _dot((low[i][k], low[j][k]) for k in range(j))) / low[j][j]
     return low
