@@ -204,8 +204,11 @@ def _claims(doc) -> str:
     ci = fus.get("mdpf_fused_ci")
     if ci:
         holds = ci["ratio_all"] < 1 and ci["ratio_late"] < 1
-        lines.append(f"- Fusion below both locals (Fig. B2): {'holds' if holds else 'does not hold'} "
-                     f"(CI/better local {format_number(ci['ratio_all'])}, k ≥ 40: {format_number(ci['ratio_late'])}).")  # fmt: skip
+        ra, rl = format_number(ci["ratio_all"]), format_number(ci["ratio_late"])
+        verdict = "holds" if holds else "does not hold"
+        lines.append(
+            f"- Fusion below both locals (Fig. B2): {verdict} (CI/better local {ra}, k ≥ 40: {rl})."
+        )
     if "zhang_akf" in est and "mdpf_fused_ci" in est:
         z, fz = est["zhang_akf"]["position_rmse"], est["mdpf_fused_ci"]["position_rmse"]
         zg = min(
