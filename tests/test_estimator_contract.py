@@ -154,3 +154,21 @@ class TestMixtureLikelihoodParticleFilter(EstimatorContract):
         return fdi.mixture_likelihood_particle_filter(
             model, ys, us, mask=mask, likelihood=lik, **pf_kwargs()
         )
+
+
+class TestZhangAdaptiveKalmanFilter(EstimatorContract):
+    """The attack has the input's dimension (actuator channel), not ``DY``: checked here."""
+
+    def run(self, model, ys, us=None, mask=None):
+        out = fdi.adaptive_kalman_filter(model, ys, us, mask=mask, forgetting=0.9)
+        assert out.attack.shape == out.means.shape[:-1] + (model.dim_u,)
+        return out
+
+
+class TestAdaptiveParticleFilter(EstimatorContract):
+    def run(self, model, ys, us=None, mask=None):
+        out = fdi.adaptive_particle_filter(
+            model, ys, us, mask=mask, num_particles=16, generator=torch.Generator().manual_seed(0)
+        )
+        assert out.attack.shape == out.means.shape[:-1] + (model.dim_u,)
+        return out

@@ -13,9 +13,15 @@ Every estimator here takes ``(model, ys, us=None, *, mask=None, ...)`` and retur
 * :mod:`~difffilter.fdi.attack_estimation` — a Kalman estimator of the bias attack γ_k;
 * :mod:`~difffilter.fdi.mixture` — the attack-aware mixture likelihood (RRP-PF-DA) and the
   particle filter that scores attacks with it;
-* :mod:`~difffilter.fdi.fused` — a fused, low-overhead modified PF (benchmarks, real time).
+* :mod:`~difffilter.fdi.fused` — a fused, low-overhead modified PF (benchmarks, real time);
+* :mod:`~difffilter.fdi.adaptive_kf` — Zhang's adaptive Kalman filter (joint state and
+  actuator-attack estimate, extended form, forgetting factor λ);
+* :mod:`~difffilter.fdi.mdpf` — the lidar-robot paper's local estimator, a particle filter
+  whose particles each carry an adaptive Kalman filter (A1)–(A8);
+* :mod:`~difffilter.fdi.fusion` — covariance intersection and naive information fusion.
 """
 
+from .adaptive_kf import adaptive_kalman_filter, adaptive_kalman_step
 from .attack_estimation import BiasAttackEstimator
 from .detectors import (
     ChiSquareDetector,
@@ -24,7 +30,9 @@ from .detectors import (
     normalized_innovation_squared,
 )
 from .fused import FusedModifiedPF
+from .fusion import covariance_intersection, information_fusion
 from .gated import cusum_detector_for, gated_extended_kalman_filter, gated_gaussian_filter
+from .mdpf import adaptive_particle_filter, adaptive_particle_step
 from .mixture import (
     BiasDeception,
     DeceptionMixtureLikelihood,
@@ -90,4 +98,10 @@ __all__ = [
     "DeceptionMixtureLikelihood",
     "mixture_likelihood_particle_filter",
     "FusedModifiedPF",
+    "adaptive_kalman_filter",
+    "adaptive_kalman_step",
+    "adaptive_particle_filter",
+    "adaptive_particle_step",
+    "covariance_intersection",
+    "information_fusion",
 ]

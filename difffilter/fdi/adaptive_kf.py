@@ -1,0 +1,284 @@
+"""Zhang's adaptive Kalman filter: joint state and actuator-attack estimation (extended form).
+
+Q. Zhang, "Adaptive Kalman filter for actuator fault diagnosis", Automatica 93:333–342,
+2018, eq. (5), for ``x_k = A x_{k−1} + B u_{k−1} + Φ θ_{k−1} + w``, ``y_k = C x_k + v``.
+In the extended form used here the plant is ``x_k = f(x_{k−1}, u_{k−1} + θ) + w``: the
+attack ``θ`` enters through the actuators, so ``Φ = ∂f/∂u`` (for the unicycle
+``Φ = B(k)`` of the lidar-robot paper, (B4), at the estimated heading). One step
+``k−1 → k`` with ``ū = u_{k−1} + θ̂_{k−1}``::
+
+    x⁻ = f(x̂_{k−1}, ū)          A = ∂f/∂x(x̂_{k−1}, ū)     Φ = ∂f/∂u(x̂_{k−1}, ū)
+    P⁻ = A P Aᵀ + Q             (the MDPF local estimator uses P⁻ = Q, (A4))
+    ỹ  = y_k − h(x⁻)            C = ∂h/∂x(x⁻)
+    Σ  = C P⁻ Cᵀ + R            K = P⁻ Cᵀ Σ⁻¹               P = (I − KC) P⁻ (Joseph)
+    Υ  = (I − KC)(A Υ_{k−1} + Φ)                                          (5e)
+    Ω  = C (A Υ_{k−1} + Φ)                                                (5f)
+    Λ  = (λ Σ + Ω S_{k−1} Ωᵀ)⁻¹                                           (5g)
+    Γ  = S_{k−1} Ωᵀ Λ                                                      (5h)
+    S  = (1/λ) S_{k−1} − (1/λ) S_{k−1} Ωᵀ Λ Ω S_{k−1}                      (5i)
+    θ̂_k = θ̂_{k−1} + Γ ỹ
+    x̂_k = x⁻ + K ỹ + Υ (θ̂_k − θ̂_{k−1}) = x⁻ + (K + ΥΓ) ỹ
+
+``Γ`` is a Kalman gain for ``θ`` with predicted covariance ``S_{k−1}/λ``, measurement
+matrix ``Ω`` and noise ``Σ``, and (5i) is its Joseph-form covariance, so both come from
+the shared :func:`~difffilter.kalman.kalman_gain` / :func:`~difffilter.kalman.joseph_covariance`
+(the same pieces as every Gaussian update of the library). ``λ ∈ (0, 1]`` is the
+forgetting factor. With ``S_0 = 0`` (no attack uncertainty) ``Γ = 0``, ``θ̂`` stays at
+``θ̂_0`` and the filter is the EKF; with ``λ = 1`` on a linear model it is the two-stage
+(Friedland) filter, equal to the Kalman filter on ``[x; θ]`` with a constant ``θ``
+(both are tested).
+
+Detection: the Wald statistic ``θ̂ᵀ S⁻¹ θ̂`` against the ``χ²_{dθ}`` quantile at
+``false_alarm_rate`` (``S`` is the attack estimate's covariance of the θ-filter above;
+with ``λ < 1`` it is inflated, so the test is conservative).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from ..estimator import Detection, EstimatorOutput
+from ..kalman import _validate_inputs, joseph_covariance, kalman_gain
+from ..linalg import gaussian_log_prob_chol, masked_measurement, matvec, symmetrize
+from ..ssm import batched_jacobian
+from .detectors import chi_square_quantile
+
+__all__ = [
+    "AdaptiveKFState",
+    "AdaptiveUpdate",
+    "input_jacobian",
+    "adaptive_update",
+    "adaptive_kalman_init",
+    "adaptive_kalman_step",
+    "adaptive_kalman_filter",
+]
+
+
+class AdaptiveKFState(NamedTuple):
+    """Posterior at step ``k``: ``mean`` ``x̂ [..., dx]``, ``cov`` ``P [..., dx, dx]``,
+    ``attack`` ``θ̂ [..., da]``, ``attack_cov`` ``S [..., da, da]``, ``sensitivity``
+    ``Υ [..., dx, da]`` and the step index ``k``."""
+
+    mean: Tensor
+    cov: Tensor
+    attack: Tensor
+    attack_cov: Tensor
+    sensitivity: Tensor
+    k: int = 0
+
+
+class AdaptiveUpdate(NamedTuple):
+    """One update's results (shapes as in :class:`AdaptiveKFState`): ``mean`` ``x̂_k``,
+    ``cov`` ``P_k``, ``attack`` ``θ̂_k``, ``attack_cov`` ``S_k``, ``sensitivity`` ``Υ_k``,
+    ``residual`` ``ỹ [..., dy]``, ``residual_cov`` ``Σ [..., dy, dy]`` and
+    ``log_likelihood`` ``log N(ỹ; 0, Σ)`` ``[...]`` (weight (A8) of the MDPF)."""
+
+    mean: Tensor
+    cov: Tensor
+    attack: Tensor
+    attack_cov: Tensor
+    sensitivity: Tensor
+    residual: Tensor
+    residual_cov: Tensor
+    log_likelihood: Tensor
+
+
+def input_jacobian(model, x: Tensor, u: Tensor, k: int) -> Tensor:
+    """``Φ = ∂f/∂u`` at ``(x [..., dx], u [..., du])`` → ``[..., dx, du]``.
+
+    The model's own ``input_jacobian(x, u, k)`` when it has one, its ``control_matrix(k)``
+    for a linear model, autodiff otherwise.
+    """
+    own = getattr(model, "input_jacobian", None)
+    if own is not None:
+        return own(x, u, k)
+    control = getattr(model, "control_matrix", None)
+    if control is not None and control(k) is not None:
+        return control(k).to(x.dtype)
+    return batched_jacobian(lambda ui, xi: model.transition(xi, ui, k), u, x)
+
+
+def adaptive_update(
+    model,
+    mean: Tensor,
+    attack: Tensor,
+    attack_cov: Tensor,
+    sensitivity: Tensor,
+    y: Tensor,
+    u: Tensor,
+    k: int,
+    *,
+    forgetting: float,
+    pred_cov: Tensor | None = None,
+    cov: Tensor | None = None,
+    mask: Tensor | None = None,
+) -> AdaptiveUpdate:
+    """Eq. (5) of Zhang in the extended form, one step ``k → k+1`` (module docstring).
+
+    Args:
+        model: a :class:`~difffilter.StateSpaceModel` with inputs (``dim_u = da``).
+        mean, attack, attack_cov, sensitivity: ``x̂ [..., dx]``, ``θ̂ [..., da]``,
+            ``S [..., da, da]``, ``Υ [..., dx, da]`` at step ``k``.
+        y: ``y_{k+1} [..., dy]``; u: ``u_k [..., du]`` (the commanded input).
+        forgetting: ``λ ∈ (0, 1]``.
+        pred_cov: ``P⁻`` (the MDPF's ``Q``, (A4)); ``None``: ``A P Aᵀ + Q`` from ``cov``.
+        mask: received entries of ``y`` ``[..., dy]`` or ``None``.
+    """
+    u_eff = u + attack
+    A = model.transition_jacobian(mean, u_eff, k).to(mean.dtype)
+    phi = input_jacobian(model, mean, u_eff, k).to(mean.dtype)
+    x_pred = model.transition(mean, u_eff, k)
+    if pred_cov is None:
+        pred_cov = symmetrize(A @ cov @ A.transpose(-1, -2) + model.process_cov(k))
+    C = model.observation_jacobian(x_pred, k + 1).to(mean.dtype)
+    residual = model.measurement_residual(y, model.observe(x_pred, k + 1))
+    residual, C, R, observed = masked_measurement(residual, C, model.measurement_cov(k + 1), mask)
+    cross = pred_cov @ C.transpose(-1, -2)
+    sigma = symmetrize(C @ cross + R)
+    gain, chol = kalman_gain(cross, sigma)  # K = P⁻Cᵀ Σ⁻¹
+    post_cov = joseph_covariance(pred_cov, gain, C, R)
+    drive = A @ sensitivity + phi  # A Υ_{k−1} + Φ  [..., dx, da]
+    eye = torch.eye(mean.shape[-1], dtype=mean.dtype, device=mean.device)
+    new_sens = (eye - gain @ C) @ drive  # (5e)
+    omega = C @ drive  # (5f)  [..., dy, da]
+    s_pred = attack_cov / forgetting
+    attack_gain, _ = kalman_gain(
+        s_pred @ omega.transpose(-1, -2), omega @ s_pred @ omega.transpose(-1, -2) + sigma
+    )  # (5g)–(5h): Γ = S Ωᵀ (λΣ + ΩSΩᵀ)⁻¹
+    new_attack_cov = joseph_covariance(s_pred, attack_gain, omega, sigma)  # (5i)
+    step = matvec(attack_gain, residual)
+    new_attack = attack + step
+    new_mean = x_pred + matvec(gain, residual) + matvec(new_sens, step)
+    log_lik = gaussian_log_prob_chol(residual, chol, observed)
+    return AdaptiveUpdate(
+        new_mean, post_cov, new_attack, new_attack_cov, new_sens, residual, sigma, log_lik
+    )
+
+
+def adaptive_kalman_init(
+    model, batch_shape=(), *, attack_cov0: float = 10.0, attack0: Tensor | None = None
+) -> AdaptiveKFState:
+    """``x̂_0, P_0`` from the model's prior, ``θ̂_0 = attack0`` (default 0), ``S_0 = ω I``
+    (``attack_cov0 = ω ≥ 0``), ``Υ_0 = 0``; shapes ``[*batch_shape, ·]``."""
+    m0, p0 = model.initial.mean, model.initial.cov
+    batch = torch.Size(batch_shape)
+    dx, da = model.dim_x, model.dim_u
+    mean = m0.expand(batch + (dx,))
+    cov = p0.expand(batch + (dx, dx))
+    attack = (
+        m0.new_zeros(batch + (da,)) if attack0 is None else attack0.to(m0).expand(batch + (da,))
+    )
+    s0 = float(attack_cov0) * torch.eye(da, dtype=m0.dtype, device=m0.device)
+    sens = m0.new_zeros(batch + (dx, da))
+    return AdaptiveKFState(mean, cov, attack, s0.expand(batch + (da, da)), sens, 0)
+
+
+def adaptive_kalman_step(
+    model,
+    state: AdaptiveKFState,
+    y: Tensor,
+    u: Tensor | None = None,
+    mask: Tensor | None = None,
+    *,
+    forgetting: float = 0.7,
+) -> tuple[AdaptiveKFState, AdaptiveUpdate]:
+    """One online step ``k → k+1`` of :func:`adaptive_kalman_filter` (``y [..., dy]``,
+    ``u [..., du]`` or ``None`` = 0, ``mask [..., dy]``)."""
+    if u is None:
+        u = state.attack.new_zeros(state.attack.shape)
+    upd = adaptive_update(
+        model, state.mean, state.attack, state.attack_cov, state.sensitivity, y, u, state.k,
+        forgetting=forgetting, cov=state.cov, mask=mask,
+    )  # fmt: skip
+    new = AdaptiveKFState(
+        upd.mean, upd.cov, upd.attack, upd.attack_cov, upd.sensitivity, state.k + 1
+    )
+    return new, upd
+
+
+def _check_forgetting(forgetting) -> float:
+    lam = float(forgetting)
+    if not 0.0 < lam <= 1.0:
+        raise ValueError(f"forgetting (λ) must lie in (0, 1]; got {forgetting!r}")
+    return lam
+
+
+def adaptive_kalman_filter(
+    model,
+    ys: Tensor,
+    us: Tensor | None = None,
+    *,
+    mask: Tensor | None = None,
+    forgetting: float = 0.7,
+    attack_cov0: float = 10.0,
+    attack0: Tensor | None = None,
+    false_alarm_rate: float = 0.01,
+) -> EstimatorOutput:
+    """Zhang's adaptive (extended) Kalman filter over a sequence (module docstring).
+
+    Args:
+        model: a :class:`~difffilter.StateSpaceModel` with ``dim_u ≥ 1`` (the attack
+            ``θ`` has the input's dimension and enters through ``∂f/∂u``).
+        ys: ``[..., T, dy]``; us: commanded inputs ``[..., T, du]`` or ``None`` (zero).
+        mask: received entries ``[..., T, dy]`` or ``None``.
+        forgetting: ``λ ∈ (0, 1]``. attack_cov0: ``S_0 = ω I``, ``ω ≥ 0``.
+        attack0: ``θ̂_0 [da]`` (default 0). false_alarm_rate: of the Wald test on ``θ̂``.
+
+    Returns an :class:`~difffilter.EstimatorOutput`: ``means [..., T, dx]``, ``covs``
+    (``P``, the covariance of the state given the attack estimate), ``attack`` ``θ̂_k``
+    ``[..., T, du]`` (the estimate of the attack on ``u_{k−1}``, aligned with
+    ``Trajectories.attack``), a Wald :class:`~difffilter.Detection`, and ``extras``
+    ``"attack_covs"`` ``S_k [..., T, du, du]``, ``"innovations"`` ``ỹ [..., T, dy]``,
+    ``"innovation_covs"`` ``Σ [..., T, dy, dy]`` and ``"log_likelihood"`` ``[...]``.
+    """
+    lam = _check_forgetting(forgetting)
+    if model.dim_u < 1:
+        raise ValueError("the adaptive Kalman filter needs a model with inputs (dim_u >= 1)")
+    if float(attack_cov0) < 0:
+        raise ValueError(f"attack_cov0 must be >= 0; got {attack_cov0!r}")
+    ys, us, mask, _ = _validate_inputs(model, ys, us, mask)
+    batch = ys.shape[:-2]
+    if us is not None:
+        batch = torch.broadcast_shapes(batch, us.shape[:-2])
+    if mask is not None:
+        batch = torch.broadcast_shapes(batch, mask.shape[:-2])
+    state = adaptive_kalman_init(model, batch, attack_cov0=attack_cov0, attack0=attack0)
+    outs = []
+    for t in range(ys.shape[-2]):
+        u = None if us is None else us[..., t, :]
+        m = None if mask is None else mask[..., t, :]
+        state, upd = adaptive_kalman_step(model, state, ys[..., t, :], u, m, forgetting=lam)
+        outs.append(upd)
+
+    def stack(name, dims):
+        return torch.stack([getattr(o, name) for o in outs], dim=-1 - dims)
+
+    attack, attack_covs = stack("attack", 1), stack("attack_cov", 2)
+    score = wald_statistic(attack, attack_covs)
+    threshold = chi_square_quantile(model.dim_u, 1.0 - false_alarm_rate)
+    lik = stack("log_likelihood", 0)
+    return EstimatorOutput(
+        stack("mean", 1),
+        stack("cov", 2),
+        attack=attack,
+        detection=Detection(score, score > threshold, threshold),
+        extras={
+            "attack_covs": attack_covs,
+            "innovations": stack("residual", 1),
+            "innovation_covs": stack("residual_cov", 2),
+            "log_likelihood": lik.sum(-1),
+        },
+    )
+
+
+def wald_statistic(attack: Tensor, attack_cov: Tensor) -> Tensor:
+    """``θ̂ᵀ S⁻¹ θ̂`` for ``attack [..., da]`` and ``attack_cov [..., da, da]`` → ``[...]``
+    (``S`` regularised by ``1e-12·tr S`` so that ``S_0 = 0`` gives a finite score)."""
+    eye = torch.eye(attack.shape[-1], dtype=attack.dtype, device=attack.device)
+    tr = attack_cov.diagonal(dim1=-2, dim2=-1).sum(-1).clamp_min(1e-300)
+    reg = attack_cov + (1e-12 * tr)[..., None, None] * eye
+    sol = torch.linalg.solve(reg, attack.unsqueeze(-1)).squeeze(-1)
+    return (attack * sol).sum(-1)

@@ -1,0 +1,428 @@
+"""Local estimator of the lidar-robot paper: a particle filter of adaptive Kalman filters.
+
+Tan, Weng, Chen & Yu, "Nonlinear fusion estimation for false data injection attack
+signals in cyber-physical systems" (Sci. China Inf. Sci., supplementary, Theorem 1 and
+(A1)–(A8)); a multi-distribution particle filter (Murata & Hiramatsu, IEEE TAC 2019)
+whose particle ``j`` carries ``(x̂ʲ, âʲ, Υʲ, Sʲ)``. One step ``k−1 → k`` for every
+particle, with ``u = u_{k−1}``::
+
+    x_p = f(x̂ʲ, u + âʲ)  [= f(x̂ʲ, u) + B(k) âʲ]          P_p = Q                    (A3)–(A4)
+    ε   = y − h(x_p)     Σ = H Q Hᵀ + R    K = Q Hᵀ Σ⁻¹   P = (I − KH) Q             (A4)
+    Υ, Ω, Λ, Γ, S by Zhang's (5e)–(5i) (F, B at x̂ʲ, H at x_p)                        (A5)
+    āʲ  = âʲ + Γ ε        x̄ʲ = x_p + (K + ΥΓ) ε                                      (A2)
+    wʲ ∝ N(y; h(x_p), Σ)                                                             (A8)
+    l ~ Categorical(w) (inverse CDF, one uniform per draw = multinomial resampling)
+    x̂ʲ(k), âʲ(k) by the letter's eq. (5); Υʲ = Υˡ, Sʲ = Sˡ
+
+The letter's eq. (5), which gives ``x̂ʲ(k)`` and ``âʲ(k)`` from the selected particle, is
+not in the supplementary; both readings are available (``reading``):
+
+* ``"draw"`` (default): ``x̂ʲ(k) ~ N(x̄ˡ, Pˡ)``, ``âʲ(k) = āˡ``: sample the selected
+  Gaussian component of the mixture posterior, as the multi-distribution PF does. Keeps
+  particle diversity (the propagation (A3) itself adds no noise).
+* ``"copy"``: ``x̂ʲ(k) = x̄ˡ``, ``âʲ(k) = āˡ``. Since (A3) is deterministic, the
+  particles then collapse onto the descendants of a single particle within a few steps
+  and the filter becomes one adaptive EKF with ``P_p = Q`` (tested).
+
+Tensor program: a particle is the vector ``[x̄ (dx), ā (da), vec Υ (dx·da), vec S
+(da·da), vec P (dx·dx)]`` (:class:`ParticleLayout`); the shared particle driver
+(:func:`difffilter.particle.particle_filter`) resamples them (``Multinomial``, every
+step), calls :class:`AdaptiveKalmanProposal` (which draws the ``"draw"`` reading and runs
+(A2)–(A5) for all particles of all runs at once, :func:`~difffilter.fdi.adaptive_kf.adaptive_update`)
+and weights them: the proposal returns ``log N(ε; 0, Σ)`` (A8) as its log-correction and
+the likelihood is flat — (A8) is the optimal-proposal weight ``p(y_k | x̂ʲ_{k−1})``.
+Every run and every particle, and several local estimators stacked on a leading
+dimension, are one batched program; the time loop is the only Python loop.
+
+The local estimate is the weighted mixture: ``x̂ = Σ wʲ x̄ʲ``,
+``P̂ = Σ wʲ (Pʲ + (x̄ʲ − x̂)(x̄ʲ − x̂)ᵀ)``, ``â = Σ wʲ āʲ``, ``Ŝ = Σ wʲ (Sʲ + (āʲ − â)(·)ᵀ)``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from ..estimator import Detection, EstimatorOutput
+from ..linalg import matvec, safe_cholesky, symmetrize
+from ..particle import ParticleState, particle_filter, particle_step
+from ..resampling import Multinomial
+from ..ssm import StateSpaceModel
+from . import _components as C
+from .adaptive_kf import _check_forgetting, adaptive_update, input_jacobian, wald_statistic
+from .detectors import chi_square_quantile
+from .modified_pf import FlatLikelihood
+
+__all__ = [
+    "READINGS",
+    "ParticleLayout",
+    "ParticleView",
+    "AdaptiveKalmanProposal",
+    "information_form_applies",
+    "LocalEstimate",
+    "adaptive_particle_init",
+    "adaptive_particle_step",
+    "adaptive_particle_filter",
+]
+
+#: The two readings of the letter's missing eq. (5) (module docstring).
+READINGS = ("draw", "copy")
+
+
+class ParticleLayout:
+    """Packs ``(x̄ [..., dx], ā [..., da], Υ [..., dx, da], S [..., da, da], P [..., dx, dx])``
+    into one particle vector ``[..., dx + da + dx·da + da² + dx²]`` and back."""
+
+    def __init__(self, dx: int, da: int):
+        self.dx, self.da = dx, da
+        self.sizes = (dx, da, dx * da, da * da, dx * dx)
+        self.size = sum(self.sizes)
+
+    def pack(self, x, a, ups, S, P) -> Tensor:
+        lead = x.shape[:-1]
+        parts = (x, a, ups.reshape(lead + (-1,)), S.reshape(lead + (-1,)), P.reshape(lead + (-1,)))
+        return torch.cat(parts, -1)
+
+    def unpack(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        x, a, ups, S, P = torch.split(z, self.sizes, -1)
+        lead, dx, da = z.shape[:-1], self.dx, self.da
+        return (
+            x,
+            a,
+            ups.reshape(lead + (dx, da)),
+            S.reshape(lead + (da, da)),
+            P.reshape(lead + (dx, dx)),
+        )
+
+
+class ParticleView(StateSpaceModel):
+    """The base model seen through packed particles (what the particle driver calls):
+    ``observe`` reads the ``x̄`` block; noise and residuals are the base model's."""
+
+    def __init__(self, base: StateSpaceModel, layout: ParticleLayout):
+        super().__init__()
+        self.base, self.layout = base, layout
+        self.dim_x, self.dim_y, self.dim_u = layout.size, base.dim_y, base.dim_u
+        self.initial = base.initial
+        self.process_noise = base.process_noise
+        self.measurement_noise = base.measurement_noise
+
+    def observe(self, x, k):
+        return self.base.observe(x[..., : self.layout.dx], k)
+
+    def measurement_residual(self, y, y_hat):
+        return self.base.measurement_residual(y, y_hat)
+
+    def measurement_cov(self, k):
+        return self.base.measurement_cov(k)
+
+    def process_cov(self, k):
+        return self.base.process_cov(k)
+
+
+def information_form_applies(model: StateSpaceModel) -> bool:
+    """Whether ``model`` has the time-invariant, diagonal ``R`` the information form needs."""
+    if getattr(model, "time_varying", False):
+        return False
+    R = model.measurement_cov(0)
+    return R.dim() == 2 and not bool((R - torch.diag_embed(R.diagonal())).abs().max() > 0)
+
+
+class AdaptiveKalmanProposal:
+    """(A2)–(A5) for every particle, with the ``"draw"`` reading of eq. (5) first.
+
+    ``form``: ``"information"`` (default) evaluates (A4)–(A5) in information form on
+    component lists (:mod:`difffilter.fdi._components`, ~10× faster on CPU); it needs a
+    diagonal, time-invariant ``R`` and a time-invariant ``Q``. With ``P_p = Q`` and
+    ``M = Q⁻¹ + HᵀR⁻¹H``::
+
+        P = M⁻¹,  Kε = M⁻¹ HᵀR⁻¹ε,  HᵀΣ⁻¹ = Q⁻¹K,  J = HᵀΣ⁻¹H = Q⁻¹ − Q⁻¹M⁻¹Q⁻¹
+        D = FΥ + B,  Υ⁺ = (I − KH) D = M⁻¹Q⁻¹D,  S⁺ = (λS⁻¹ + DᵀJD)⁻¹,  Γε = S⁺DᵀQ⁻¹Kε
+        log N(ε; 0, Σ) = −½ (εᵀR⁻¹ε − εᵀR⁻¹HKε + log det R + log det Q + log det M + m log 2π)
+
+    (matrix inversion and determinant lemmas; ``S⁺`` is (5i) since ``Γ`` is the gain of
+    the θ-filter with prior ``S/λ``). ``"covariance"`` runs
+    :func:`~difffilter.fdi.adaptive_kf.adaptive_update` (the shared Kalman gain and
+    Joseph form) on the packed tensors; the two agree to round-off (tested).
+
+    Returns ``(new packed particles [..., N, D], log N(ε; 0, Σ) [..., N])`` (A8).
+    """
+
+    def __init__(
+        self,
+        base: StateSpaceModel,
+        forgetting: float,
+        reading: str = "draw",
+        form: str = "auto",
+    ):
+        if form == "auto":
+            form = "information" if information_form_applies(base) else "covariance"
+        if reading not in READINGS:
+            raise ValueError(f"reading must be one of {READINGS} (eq. 5); got {reading!r}")
+        if form not in ("information", "covariance"):
+            raise ValueError(f"form must be 'information' or 'covariance'; got {form!r}")
+        self.base, self.forgetting, self.reading = base, _check_forgetting(forgetting), reading
+        self.layout = ParticleLayout(base.dim_x, base.dim_u)
+        self.form = form
+        if form == "information":
+            if not information_form_applies(base):
+                raise ValueError(
+                    "form='information' needs a time-invariant, diagonal R; use form='covariance'"
+                )
+            R = base.measurement_cov(0)
+            Q = base.process_cov(0).detach().double()
+            self._rvar = R.diagonal().detach().tolist()
+            self._qinv = torch.linalg.inv(Q).tolist()
+            self._logdet_q = float(torch.logdet(Q))
+
+    def __call__(self, model, particles, u, y, k, mask, generator):
+        if self.form == "covariance":
+            return self._covariance(particles, u, y, k, mask, generator)
+        return self._information(particles, u, y, k, mask, generator)
+
+    def _covariance(self, particles, u, y, k, mask, generator):
+        x, a, ups, S, P = self.layout.unpack(particles)
+        if self.reading == "draw":  # x̂ʲ(k−1) ~ N(x̄ˡ, Pˡ)
+            eps = torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
+            x = x + matvec(safe_cholesky(P, name="particle covariance P"), eps)
+        u = a.new_zeros(()).expand(a.shape) if u is None else u.unsqueeze(-2)
+        m = None if mask is None else mask.unsqueeze(-2)
+        upd = adaptive_update(
+            self.base, x, a, S, ups, y.unsqueeze(-2), u, k, forgetting=self.forgetting,
+            pred_cov=self.base.process_cov(k), mask=m,
+        )  # fmt: skip
+        new = self.layout.pack(upd.mean, upd.attack, upd.sensitivity, upd.attack_cov, upd.cov)
+        return new, upd.log_likelihood
+
+    def _information(self, particles, u, y, k, mask, generator):
+        base, lay = self.base, self.layout
+        dx, da = lay.dx, lay.da
+        z = particles.movedim(-1, 0).contiguous()  # [D, ..., N]
+        comp = list(z.unbind(0))
+        o = 0
+        x = comp[o : o + dx]
+        a = comp[o + dx : o + dx + da]
+        o += dx + da
+        ups = [comp[o + i * da : o + (i + 1) * da] for i in range(dx)]
+        o += dx * da
+        S = [comp[o + i * da : o + (i + 1) * da] for i in range(da)]
+        o += da * da
+        P = [comp[o + i * dx : o + (i + 1) * dx] for i in range(dx)]
+        if self.reading == "draw":  # x̂ʲ(k−1) ~ N(x̄ˡ, Pˡ)
+            eps = torch.randn(
+                (dx,) + x[0].shape, generator=generator, dtype=z.dtype, device=z.device
+            )
+            low = C.cholesky(P)
+            x = [x[i] + C._dot((low[i][j], eps[j]) for j in range(i + 1)) for i in range(dx)]
+        own = getattr(base, "linearize_components", None)
+        if own is not None:  # the model's component form (no AoS round trips)
+            uc = list(u.movedim(-1, 0).unsqueeze(-1).unbind(0)) if u is not None else None
+            ue = a if uc is None else [a[i] + uc[i] for i in range(da)]
+            yc = list(y.movedim(-1, 0).unsqueeze(-1).unbind(0))
+            xpc, F, phi, e, H = own(x, ue, yc, k)
+        else:
+            xa = torch.stack(x, -1)
+            ua = torch.stack(a, -1)
+            if u is not None:
+                ua = ua + u.unsqueeze(-2)
+            F = C.to_components(base.transition_jacobian(xa, ua, k).to(z.dtype))
+            phi = C.to_components(input_jacobian(base, xa, ua, k).to(z.dtype))
+            xp = base.transition(xa, ua, k)
+            H = C.to_components(base.observation_jacobian(xp, k + 1).to(z.dtype))
+            eps_y = base.measurement_residual(y.unsqueeze(-2), base.observe(xp, k + 1))
+            e = list(eps_y.movedim(-1, 0).contiguous().unbind(0))
+            xpc = list(xp.movedim(-1, 0).unbind(0))
+        dy = len(e)
+        if mask is None:
+            rinv = [1.0 / v for v in self._rvar]
+            logdet_r = sum(math.log(v) for v in self._rvar)
+            count = float(dy)
+        else:
+            mf = mask.to(z.dtype).unsqueeze(-1)  # [..., 1]: one mask for the N particles
+            ms = list(mf.movedim(-2, 0).unbind(0))
+            rinv = [ms[i] / self._rvar[i] for i in range(dy)]
+            logdet_r = sum(ms[i] * math.log(self._rvar[i]) for i in range(dy))
+            count = sum(ms)
+        we = [e[i] * rinv[i] for i in range(dy)]  # R⁻¹ε
+        g = [C._dot((H[i][j], we[i]) for i in range(dy)) for j in range(dx)]  # HᵀR⁻¹ε
+        quad = C._dot((e[i], we[i]) for i in range(dy))  # εᵀR⁻¹ε
+        hw = [[H[i][j] * rinv[i] for j in range(dx)] for i in range(dy)]
+        M = [[None] * dx for _ in range(dx)]
+        for j in range(dx):
+            for m_ in range(j, dx):
+                M[j][m_] = self._qinv[j][m_] + C._dot((hw[i][j], H[i][m_]) for i in range(dy))
+                M[m_][j] = M[j][m_]
+        Minv, logdet_m = C.spd_inverse(M)  # P = M⁻¹
+        ke = [C._dot((Minv[i][j], g[j]) for j in range(dx)) for i in range(dx)]  # Kε
+        D = C.add(C.mm(F, ups), phi)  # FΥ + B
+        qi = self._qinv
+        qd = C.mm(qi, D)
+        new_ups = C.mm(Minv, qd)  # (5e): M⁻¹Q⁻¹D
+        J = C.add(qi, [[-v for v in row] for row in C.mm(C.mm(qi, Minv), qi)])
+        dtjd = C.mm(C.mt(D), C.mm(J, D))
+        s_inv, _ = C.spd_inverse(S)
+        lam = self.forgetting
+        info_a = [[lam * s_inv[i][j] + dtjd[i][j] for j in range(da)] for i in range(da)]
+        new_S, _ = C.spd_inverse(info_a)  # (5i)
+        qke = [C._dot((qi[i][j], ke[j]) for j in range(dx)) for i in range(dx)]
+        dq = [C._dot((D[j][i], qke[j]) for j in range(dx)) for i in range(da)]  # ΩᵀΣ⁻¹ε
+        step = [C._dot((new_S[i][j], dq[j]) for j in range(da)) for i in range(da)]  # Γε
+        new_a = [a[i] + step[i] for i in range(da)]
+        new_x = [
+            xpc[i] + ke[i] + C._dot((new_ups[i][j], step[j]) for j in range(da)) for i in range(dx)
+        ]
+        gk = C._dot((g[i], ke[i]) for i in range(dx))
+        log_lik = -0.5 * (
+            quad - gk + logdet_r + self._logdet_q + logdet_m + count * math.log(2 * math.pi)
+        )
+        flat = (
+            new_x + new_a + [v for row in new_ups for v in row] + [v for row in new_S for v in row]
+        )
+        flat += [v for row in Minv for v in row]
+        return torch.stack(flat, 0).movedim(0, -1).contiguous(), log_lik
+
+
+class LocalEstimate(NamedTuple):
+    """The weighted mixture of one step (module docstring): ``mean [..., dx]``,
+    ``cov [..., dx, dx]``, ``attack [..., da]``, ``attack_cov [..., da, da]``."""
+
+    mean: Tensor
+    cov: Tensor
+    attack: Tensor
+    attack_cov: Tensor
+
+
+def _summary(layout: ParticleLayout, mean: Tensor, cov: Tensor) -> LocalEstimate:
+    """Mixture moments from the particles' weighted mean ``[..., D]`` and covariance ``[..., D, D]``."""
+    x, a, _, S, P = layout.unpack(mean)
+    dx, da = layout.dx, layout.da
+    cx = cov[..., :dx, :dx]
+    ca = cov[..., dx : dx + da, dx : dx + da]
+    return LocalEstimate(x, symmetrize(P + cx), a, symmetrize(S + ca))
+
+
+def adaptive_particle_init(
+    model: StateSpaceModel,
+    num_particles: int,
+    batch_shape=(),
+    generator: torch.Generator | None = None,
+    *,
+    attack_cov0: float = 10.0,
+) -> ParticleState:
+    """Packed particles ``[*batch_shape, N, D]`` at ``k = 0``: ``x̄ʲ ~ p(x_0)`` (from
+    ``generator``), ``āʲ = 0``, ``Υʲ = 0``, ``Sʲ = attack_cov0 · I``, ``Pʲ = 0`` (the
+    components are the prior's samples), uniform log-weights."""
+    layout = ParticleLayout(model.dim_x, model.dim_u)
+    shape = torch.Size(batch_shape) + (num_particles,)
+    x = model.sample_initial(shape, generator)
+    dx, da = model.dim_x, model.dim_u
+    eye = torch.eye(da, dtype=x.dtype, device=x.device)
+    packed = layout.pack(
+        x, x.new_zeros(shape + (da,)), x.new_zeros(shape + (dx, da)),
+        (float(attack_cov0) * eye).expand(shape + (da, da)), x.new_zeros(shape + (dx, dx)),
+    )  # fmt: skip
+    log_w = x.new_full(shape, -math.log(num_particles))
+    return ParticleState(packed, log_w, 0)
+
+
+def adaptive_particle_step(
+    model: StateSpaceModel,
+    state: ParticleState,
+    y: Tensor,
+    u: Tensor | None = None,
+    mask: Tensor | None = None,
+    *,
+    forgetting: float = 0.7,
+    reading: str = "draw",
+    form: str = "auto",
+    resampler=None,
+    generator: torch.Generator | None = None,
+    resample_generator: torch.Generator | None = None,
+) -> tuple[ParticleState, LocalEstimate]:
+    """One online step ``k−1 → k`` (a closed loop calls this): resample, (A2)–(A8).
+
+    ``state`` from :func:`adaptive_particle_init`; ``y [..., dy]``, ``u [..., du]``.
+    Returns the new state and the step's :class:`LocalEstimate`.
+    """
+    layout = ParticleLayout(model.dim_x, model.dim_u)
+    view = ParticleView(model, layout)
+    state, out = particle_step(
+        view, state, y, u, mask,
+        resampler=resampler if resampler is not None else Multinomial(),
+        proposal=AdaptiveKalmanProposal(model, forgetting, reading, form),
+        likelihood=FlatLikelihood(), ess_threshold=1.0,
+        generator=generator, resample_generator=resample_generator,
+    )  # fmt: skip
+    return state, _summary(layout, out.mean, out.cov)
+
+
+def adaptive_particle_filter(
+    model: StateSpaceModel,
+    ys: Tensor,
+    us: Tensor | None = None,
+    *,
+    mask: Tensor | None = None,
+    num_particles: int = 100,
+    forgetting: float = 0.7,
+    reading: str = "draw",
+    form: str = "auto",
+    attack_cov0: float = 10.0,
+    resampler=None,
+    generator: torch.Generator | None = None,
+    resample_generator: torch.Generator | None = None,
+    initial_state: ParticleState | None = None,
+    false_alarm_rate: float = 0.01,
+) -> EstimatorOutput:
+    """The local estimator (A1)–(A8) over a sequence (module docstring).
+
+    Args:
+        model: a :class:`~difffilter.StateSpaceModel` with inputs; the attack enters
+            through them (``dim_a = dim_u``). Its ``process_cov`` is the ``Q`` of (A4).
+        ys: ``[..., T, dy]``; us: commanded inputs ``[..., T, du]`` or ``None``.
+        mask: received entries ``[..., T, dy]`` or ``None``.
+        num_particles: ``M``. forgetting: ``λ ∈ (0, 1]``. reading: ``"draw"`` or
+            ``"copy"`` (eq. 5). form: ``"information"``, ``"covariance"`` or ``"auto"``
+            (:class:`AdaptiveKalmanProposal`). attack_cov0: ``S_0 = ω I``.
+        resampler: default ``Multinomial()`` (the inverse-CDF selection of App. A), at
+            every step. generator: initial particles and the ``"draw"`` noise;
+            resample_generator: the selection uniforms (default ``generator``).
+        initial_state: packed particles (:func:`adaptive_particle_init`) instead of the prior.
+
+    Returns an :class:`~difffilter.EstimatorOutput` with the mixture ``means [..., T, dx]``,
+    ``covs``, ``attack`` ``â_k [..., T, du]`` (the attack on ``u_{k−1}``), a Wald
+    :class:`~difffilter.Detection` on ``(â, Ŝ)`` and ``extras`` ``"attack_covs"``
+    ``Ŝ [..., T, du, du]``, ``"ess" [..., T]`` (before resampling).
+    """
+    if model.dim_u < 1:
+        raise ValueError("the adaptive particle filter needs a model with inputs (dim_u >= 1)")
+    layout = ParticleLayout(model.dim_x, model.dim_u)
+    view = ParticleView(model, layout)
+    if initial_state is None:
+        batch = ys.shape[:-2]
+        if us is not None:
+            batch = torch.broadcast_shapes(batch, us.shape[:-2])
+        if mask is not None:
+            batch = torch.broadcast_shapes(batch, mask.shape[:-2])
+        initial_state = adaptive_particle_init(
+            model, num_particles, batch, generator, attack_cov0=attack_cov0
+        )
+    res = particle_filter(
+        view, ys, us, num_particles=num_particles, mask=mask,
+        resampler=resampler if resampler is not None else Multinomial(),
+        proposal=AdaptiveKalmanProposal(model, forgetting, reading, form),
+        likelihood=FlatLikelihood(), ess_threshold=1.0, generator=generator,
+        resample_generator=resample_generator, initial_state=initial_state,
+    )  # fmt: skip
+    est = _summary(layout, res.means, res.covs)
+    score = wald_statistic(est.attack, est.attack_cov)
+    threshold = chi_square_quantile(model.dim_u, 1.0 - false_alarm_rate)
+    return EstimatorOutput(
+        est.mean,
+        est.cov,
+        attack=est.attack,
+        detection=Detection(score, score > threshold, threshold),
+        extras={"attack_covs": est.attack_cov, "ess": res.ess},
+    )

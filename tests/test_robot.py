@@ -1,0 +1,271 @@
+"""The robot family (Tan et al.): Zhang's AKF, the MDPF local estimator, fusion, the plant.
+
+Every check compares with an independent truth: the augmented-state Kalman filter, the
+EKF, autodiff Jacobians, the equations written out by hand, brute-force minimisation.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from conftest import constant_velocity
+
+import difffilter as df
+from difffilter.eval.estimators import SuiteContext
+from difffilter.eval.streams import Streams
+from difffilter.eval.suite import one_thread
+from difffilter.fdi.adaptive_kf import adaptive_kalman_filter
+from difffilter.fdi.fusion import covariance_intersection, fuse, information_fusion
+from difffilter.fdi.mdpf import ParticleLayout, adaptive_particle_filter, adaptive_particle_init
+from difffilter.models.registry import get
+from difffilter.models.robot import DEG, GROUPS, RobotModel
+from difffilter.models.robot_estimators import compensated_loop, group_measurements, local_pair
+from difffilter.ssm import batched_jacobian
+
+F64 = torch.float64
+
+
+def _linear_data(T=25, attack=0.7):
+    model = constant_velocity(with_input=True)
+    g = torch.Generator().manual_seed(0)
+    us = torch.randn(3, T, 1, generator=g, dtype=F64)
+    _, ys, _ = model.simulate(T, (3,), us=us + attack, generator=g)
+    return model, ys, us
+
+
+def test_zhang_lambda1_equals_augmented_kalman_filter():
+    """λ = 1: the two-stage filter equals the KF on [x; θ] with a constant θ (Friedland)."""
+    model, ys, us = _linear_data()
+    F, H, Q = model.transition_matrix(0), model.observation_matrix(0), model.process_cov(0)
+    R, B = model.measurement_cov(0), model.control_matrix(0)
+    Fa = torch.zeros(5, 5, dtype=F64)
+    Fa[:4, :4], Fa[:4, 4:], Fa[4, 4] = F, B, 1.0
+    Qa = torch.zeros(5, 5, dtype=F64)
+    Qa[:4, :4], Qa[4, 4] = Q, 1e-14
+    aug = df.LinearGaussianModel(
+        Fa, torch.cat([H, torch.zeros(2, 1, dtype=F64)], 1), Qa, R,
+        torch.cat([model.initial.mean, torch.zeros(1, dtype=F64)]),
+        torch.block_diag(model.initial.cov, 10.0 * torch.eye(1, dtype=F64)),
+        B=torch.cat([B, torch.zeros(1, 1, dtype=F64)]),
+    )  # fmt: skip
+    kf = df.kalman_filter(aug, ys, us)
+    out = adaptive_kalman_filter(model, ys, us, forgetting=1.0, attack_cov0=10.0)
+    torch.testing.assert_close(out.means, kf.means[..., :4], atol=1e-9, rtol=0)
+    torch.testing.assert_close(out.attack, kf.means[..., 4:], atol=1e-9, rtol=0)
+    torch.testing.assert_close(out.extras["attack_covs"], kf.covs[..., 4:, 4:], atol=1e-9, rtol=0)
+    assert abs(float(out.attack[:, -1].mean()) - 0.7) < 0.3  # it does estimate the attack
+
+
+def test_zhang_without_attack_uncertainty_is_the_ekf():
+    model = RobotModel()
+    tr = get("robot_actuator_attack").simulate(
+        4, {"plant": torch.Generator().manual_seed(1), "attack": None}
+    )
+    out = adaptive_kalman_filter(
+        model, tr.y_recv[:, :20], tr.us[:, :20], forgetting=1.0, attack_cov0=0.0
+    )
+    ekf = df.extended_kalman_filter(model, tr.y_recv[:, :20], tr.us[:, :20])
+    torch.testing.assert_close(out.means, ekf.means, atol=1e-12, rtol=0)
+    assert bool((out.attack == 0).all())
+
+
+def test_robot_jacobians_match_autodiff():
+    m = RobotModel()
+    x = torch.tensor([[10.0, -5.0, 0.3], [3.0, 4.0, 2.0]], dtype=F64)
+    u = torch.tensor([[5.0, 0.1], [3.0, 0.2]], dtype=F64)
+    jac = batched_jacobian(lambda xi: m.observe(xi, 1), x)
+    torch.testing.assert_close(m.observation_jacobian(x, 1), jac)
+    torch.testing.assert_close(
+        m.transition_jacobian(x, u, 0), batched_jacobian(lambda a, b: m.transition(a, b, 0), x, u)
+    )
+    torch.testing.assert_close(
+        m.input_jacobian(x, u, 0), batched_jacobian(lambda b, a: m.transition(a, b, 0), u, x)
+    )
+    y = m.observe(x, 1) + 0.01
+    xp, F, B, e, H = m.linearize_components(list(x.T), list(u.T), list(y.T), 0)
+    xp_ref = m.transition(x, u, 0)
+    torch.testing.assert_close(torch.stack(xp, -1), xp_ref)
+    torch.testing.assert_close(torch.stack(e, -1), m.measurement_residual(y, m.observe(xp_ref, 1)))
+    H_ref = m.observation_jacobian(xp_ref, 1)
+    for i in range(12):
+        for j in range(3):
+            torch.testing.assert_close(
+                torch.as_tensor(H[i][j], dtype=F64).expand(2), H_ref[:, i, j]
+            )
+
+
+def _robot_data(runs=3, steps=15, seed=0):
+    tr = get("robot_actuator_attack").simulate(
+        runs, {"plant": torch.Generator().manual_seed(seed), "attack": None}
+    )
+    return RobotModel(), tr
+
+
+def test_mdpf_one_step_by_hand():
+    """N = 1, copy reading: (A2)–(A5) written out with explicit inverses."""
+    model, tr = _robot_data(runs=1)
+    x0 = torch.tensor([1.0, -0.5, 0.02], dtype=F64)
+    lay = ParticleLayout(3, 2)
+    S0 = 10.0 * torch.eye(2, dtype=F64)
+    init = adaptive_particle_init(model, 1, (1,), torch.Generator().manual_seed(0))
+    init = init._replace(
+        particles=lay.pack(
+            x0[None, None],
+            torch.zeros(1, 1, 2, dtype=F64),
+            torch.zeros(1, 1, 3, 2, dtype=F64),
+            S0[None, None],
+            torch.zeros(1, 1, 3, 3, dtype=F64),
+        )
+    )
+    lam, y, u = 0.7, tr.y_recv[:, :1], tr.us[:, :1]
+    for form in ("information", "covariance"):
+        out = adaptive_particle_filter(
+            model,
+            y,
+            u,
+            num_particles=1,
+            reading="copy",
+            form=form,
+            forgetting=lam,
+            initial_state=init,
+        )
+        Q, R = model.process_cov(0), model.measurement_cov(1)
+        uu = u[0, 0]
+        xp = model.transition(x0, uu, 0)
+        B = model.input_jacobian(x0, uu, 0)
+        H = model.observation_jacobian(xp, 1)
+        eps = model.measurement_residual(y[0, 0], model.observe(xp, 1))
+        Sig = H @ Q @ H.T + R
+        K = Q @ H.T @ torch.linalg.inv(Sig)
+        ups = (torch.eye(3, dtype=F64) - K @ H) @ B  # Υ(0) = 0
+        Om = H @ B
+        Lam = torch.linalg.inv(lam * Sig + Om @ S0 @ Om.T)
+        Gam = S0 @ Om.T @ Lam
+        S1 = S0 / lam - Gam @ Om @ S0 / lam
+        a_bar = Gam @ eps
+        x_bar = xp + (K + ups @ Gam) @ eps
+        P = Q - K @ Sig @ K.T
+        torch.testing.assert_close(out.means[0, 0], x_bar)
+        torch.testing.assert_close(out.attack[0, 0], a_bar)
+        torch.testing.assert_close(out.covs[0, 0], P)
+        torch.testing.assert_close(out.extras["attack_covs"][0, 0], S1)
+
+
+def test_information_form_equals_covariance_form_with_a_mask():
+    model, tr = _robot_data()
+    gm = model.group(GROUPS)
+    ys = group_measurements(tr.y_recv[:, :12])
+    mask = torch.rand(ys.shape, generator=torch.Generator().manual_seed(3)) > 0.3
+    outs = [
+        adaptive_particle_filter(gm, ys, tr.us[:, :12], mask=mask, num_particles=16, reading="copy", form=f,
+                                 generator=torch.Generator().manual_seed(1))
+        for f in ("information", "covariance")
+    ]  # fmt: skip
+    torch.testing.assert_close(outs[0].means, outs[1].means, atol=1e-7, rtol=0)
+    torch.testing.assert_close(outs[0].attack, outs[1].attack, atol=1e-7, rtol=0)
+    torch.testing.assert_close(outs[0].covs, outs[1].covs, atol=1e-7, rtol=0)
+
+
+def test_copy_reading_collapses_and_draw_keeps_diversity():
+    model, tr = _robot_data(steps=30)
+    ys, us = tr.y_recv[:, :30], tr.us[:, :30]
+    spread = {}
+    for reading in ("copy", "draw"):
+        out = adaptive_particle_filter(
+            model,
+            ys,
+            us,
+            num_particles=32,
+            reading=reading,
+            generator=torch.Generator().manual_seed(0),
+        )
+        P_mix = out.covs[:, -1]
+        # mixture cov = mean particle P + spread of x̄; the spread alone:
+        spread[reading] = float(out.extras["ess"][:, -1].mean())
+        assert bool(P_mix.isfinite().all())
+    assert spread["copy"] > 31.9  # every particle the same: equal weights
+    assert spread["draw"] < 31.0
+
+
+def test_covariance_intersection_identical_estimates_and_brute_force():
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(4, 3, 3, generator=g, dtype=F64)
+    P = A @ A.mT + 0.1 * torch.eye(3, dtype=F64)
+    x = torch.randn(4, 3, generator=g, dtype=F64)
+    m, c, _ = covariance_intersection(torch.stack([x, x], -2), torch.stack([P, P], -3))
+    torch.testing.assert_close(m, x)
+    torch.testing.assert_close(c, P)
+    A2 = torch.randn(4, 3, 3, generator=g, dtype=F64)
+    P2 = A2 @ A2.mT + 0.1 * torch.eye(3, dtype=F64)
+    x2 = torch.randn(4, 3, generator=g, dtype=F64)
+    means, covs = torch.stack([x, x2], -2), torch.stack([P, P2], -3)
+    _, c, w = covariance_intersection(means, covs)
+    grid = torch.linspace(0, 1, 20001, dtype=F64)
+    tot = grid[:, None, None, None] * torch.linalg.inv(P) + (
+        1 - grid[:, None, None, None]
+    ) * torch.linalg.inv(P2)
+    tr_ = torch.linalg.inv(tot).diagonal(dim1=-2, dim2=-1).sum(-1)
+    torch.testing.assert_close(w, grid[tr_.argmin(0)], atol=1e-4, rtol=0)
+    # naive fusion: the information sum
+    mn, cn = information_fusion(means, covs)
+    torch.testing.assert_close(cn, torch.linalg.inv(torch.linalg.inv(P) + torch.linalg.inv(P2)))
+    torch.testing.assert_close(fuse(means, covs, "naive")[0], mn)
+    with pytest.raises(ValueError, match="rule"):
+        fuse(means, covs, "mean")
+
+
+def test_scenario_attack_timing_and_sensor_proximity():
+    sc = get("robot_actuator_attack")
+    tr = sc.simulate(2, {"plant": torch.Generator().manual_seed(0), "attack": None})
+    first = int(tr.flags[0].nonzero()[0])
+    assert first == 29  # a(k) from k = 30 acts on u index 29
+    torch.testing.assert_close(tr.attack[0, first], torch.tensor([20.0, 20 * DEG], dtype=F64))
+    # u = (5, 5): the attacked path keeps the curvature (radius 57.3 cm) and passes within cm of sensors 4, 5
+    d = torch.cdist(tr.x[..., :2], RobotModel().sensor_pos).amin(1)
+    assert bool((d[:, 3:5] < 10.0).all()) and bool((d[:, [0, 1, 2, 5]] > 40.0).all())
+
+
+def _ctx(runs, seed=0, name="robot_actuator_attack", steps=100):
+    from dataclasses import replace
+
+    sc = replace(get(name), steps=steps)
+    model = sc.system()
+    streams = Streams(seed)
+    tr = sc.simulate(runs, {k: streams(k) for k in ("plant", "attack", "schedule")}, model=model)
+    return SuiteContext(sc, model, runs, streams), tr
+
+
+@one_thread()
+def test_closed_loop_without_compensation_reproduces_the_runs_and_compensation_works():
+    ctx, tr = _ctx(3, steps=60)
+    sc = ctx.scenario
+    open_loop = compensated_loop(ctx, 3, compensate=False)
+    torch.testing.assert_close(open_loop["x"], tr.x)
+    out = local_pair(ctx, tr)
+    torch.testing.assert_close(open_loop["attack"], fuse_attack(out))
+    closed = compensated_loop(ctx, 3)
+    err = closed["applied"][:, 45:] - tr.us[:, 45:]  # effective input error a − â
+    assert float(err[..., 0].abs().mean()) < 2.0 and float(err[..., 1].abs().mean()) < 2 * DEG
+    assert sc.steps == tr.x.shape[1]
+
+
+def fuse_attack(out):
+    from difffilter.models.robot_estimators import fuse_pair
+
+    return fuse_pair(out.means, out.covs, out.attack, out.extras["attack_covs"], "ci")[2]
+
+
+@one_thread()
+def test_fused_estimator_small_study_no_nan_reproducible_and_converges():
+    from difffilter.eval.estimators import get as get_estimator
+
+    ctx, tr = _ctx(4, seed=1, steps=60)
+    run = get_estimator("mdpf_fused_ci").factory(ctx)
+    a, b = run(tr), run(tr)
+    torch.testing.assert_close(a.means, b.means, atol=0, rtol=0)
+    assert bool(a.means.isfinite().all()) and bool(a.attack.isfinite().all())
+    rel = (a.attack[:, -1].mean(0) - tr.attack[:, -1].mean(0)).abs() / tr.attack[:, -1].mean(0)
+    assert bool((rel < 0.1).all())
+    assert math.isfinite(float(a.detection.scores.sum()))
