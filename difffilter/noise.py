@@ -137,7 +137,7 @@ class Gaussian(NoiseModel):
         lets sampling and densities skip the triangular matrix products.
         """
         src = self._cov if self._given == "cov" else self._scale_tril
-        if src.requires_grad:
+        if src.requires_grad or src.is_inference():  # inference tensors have no version
             return self._compute_scale_tril(), None
         key = (src.data_ptr(), src._version, src.dtype, src.device, tuple(src.shape))
         cached = getattr(self, "_factor_cache", None)

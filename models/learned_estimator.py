@@ -162,7 +162,9 @@ def neural_gaussian_filter(
         state, _ = step(model, state, ys[..., t, :] - attack, u, m)
         means.append(state.mean)
         covs.append(state.cov)
-    return _output(torch.stack(means, -2), torch.stack(covs, -3), comp, threshold)
+    means = torch.stack(means, -2)
+    covs = torch.stack(torch.broadcast_tensors(*covs), -3)  # data-independent: may be unbatched
+    return _output(means, covs.expand(*means.shape, means.shape[-1]), comp, threshold)
 
 
 # ---------------------------------------------- registration with difffilter.eval.estimators
@@ -182,9 +184,10 @@ def _trained_network(ctx, name: str, kinds) -> tuple[NeuralFDIEstimator, dict]:
     net, obs = ctx.cache[key]
     family, kind = obs.get("scenario_family"), obs.get("kind")
     if family != ctx.scenario.family or kind not in kinds:
+        trained = f"filter {kind!r}" + (f" on {family} scenarios" if family else "")
         raise SkipEstimator(
-            f"the checkpoint was trained for {family or 'another'} scenarios with filter "
-            f"{kind!r}, not {ctx.scenario.family} with {'/'.join(kinds)}"
+            f"the checkpoint was trained with {trained}; this one needs filter "
+            f"{'/'.join(kinds)} on {ctx.scenario.family}"
         )
     ctx.checkpoint_users.append(name)
     return net, obs

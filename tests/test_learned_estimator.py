@@ -1,0 +1,185 @@
+"""The neural FDI estimator inside difffilter's filters, and the one training task."""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+import difffilter as df
+from difffilter.models.learned_estimator import (
+    NeuralCompensation,
+    neural_gaussian_filter,
+    neural_particle_filter,
+)
+from difffilter.models.neural_estimator import NeuralFDIEstimator, build_delta
+from difffilter.particle import particle_filter
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _linear(dtype=torch.float64):
+    F = torch.tensor([[1.0, 0.1], [0.0, 0.95]], dtype=dtype)
+    H = torch.eye(2, dtype=dtype)
+    eye = torch.eye(2, dtype=dtype)
+    return df.LinearGaussianModel(F, H, 1e-3 * eye, 1e-2 * eye, torch.zeros(2, dtype=dtype), eye)
+
+
+def _data(model, runs=3, steps=12, seed=0):
+    xs, ys, _ = model.simulate(steps, (runs,), generator=torch.Generator().manual_seed(seed))
+    ys = ys.clone()
+    ys[:, 5:, 0] += 0.8  # a bias on sensor 1 from step 5
+    return xs, ys
+
+
+def _net(dtype=torch.float64, zero_output=False, seed=1):
+    net = NeuralFDIEstimator(
+        num_areas=1,
+        area_dim=2,
+        a=2,
+        b=2,
+        hidden=5,
+        init="symmetric",
+        init_scale=0.5,
+        resid_scale=3.0,
+        seed=seed,
+        dtype=dtype,
+    )
+    if zero_output:
+        with torch.no_grad():
+            net.W.zero_()
+    return net
+
+
+def test_a_zero_network_leaves_the_kalman_and_particle_filters_unchanged():
+    model = _linear()
+    _, ys = _data(model)
+    net = _net(zero_output=True)
+    out = neural_gaussian_filter(model, ys, network=net, kind="kf")
+    ref = df.kalman_filter(model, ys)
+    torch.testing.assert_close(out.means, ref.means, rtol=0, atol=1e-12)
+    torch.testing.assert_close(out.covs, ref.covs, rtol=0, atol=1e-12)
+    assert out.attack.abs().max() == 0
+    g = lambda: torch.Generator().manual_seed(3)  # noqa: E731
+    pf = neural_particle_filter(model, ys, network=net, num_particles=50, generator=g())
+    plain = particle_filter(model, ys, num_particles=50, generator=g())
+    torch.testing.assert_close(pf.means, plain.means, rtol=0, atol=1e-12)
+
+
+def test_each_kalman_step_updates_with_the_measurement_minus_the_networks_estimate():
+    """One step by hand: ν, S of the plain step → δ (eq. 9, ℓ = 0) → â → KF step on y − â."""
+    model, net = _linear(), _net()
+    _, ys = _data(model, runs=2, steps=3)
+    out = neural_gaussian_filter(model, ys, network=net, kind="kf")
+    state = df.kalman.gaussian_init(model, (2,))
+    attack_hist, resid_hist = (
+        torch.zeros(2, 2, 2, dtype=ys.dtype),
+        torch.zeros(2, 2, 2, dtype=ys.dtype),
+    )
+    for t in range(3):
+        _, probe = df.kalman_step(model, state, ys[:, t])
+        e = probe.innovation / torch.diagonal(probe.innovation_cov, dim1=-2, dim2=-1).sqrt()
+        resid_hist = torch.cat([e[:, None], resid_hist[:, :-1]], 1)
+        a_hat, _ = net(build_delta(attack_hist, resid_hist, 1))
+        a_hat = a_hat[:, 0]
+        attack_hist = torch.cat([a_hat[:, None], attack_hist[:, :-1]], 1)
+        state, _ = df.kalman_step(model, state, ys[:, t] - a_hat)
+        torch.testing.assert_close(out.attack[:, t], a_hat, rtol=0, atol=1e-12)
+        torch.testing.assert_close(out.means[:, t], state.mean, rtol=0, atol=1e-12)
+
+
+def test_gradcheck_through_the_compensated_kalman_filter():
+    """float64 gradcheck of the filter's outputs w.r.t. the network weights and the data."""
+    model, net = _linear(), _net()
+    _, ys = _data(model, runs=2, steps=6)
+
+    def loss(W, V, y):
+        plain = copy.deepcopy(net)
+        del plain.W, plain.V  # plain tensors instead of parameters: the inputs of gradcheck
+        plain.W, plain.V = W, V
+        res = neural_gaussian_filter(model, y, network=plain, kind="kf")
+        return res.means.sum() + res.attack.square().sum() + res.extras["attack_logit"].sum()
+
+    inputs = [t.detach().clone().requires_grad_() for t in (net.W, net.V, ys)]
+    assert torch.autograd.gradcheck(loss, inputs, eps=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("resampler", [df.resampling.Soft(0.5), df.resampling.StopGradient()])
+def test_gradients_reach_the_network_through_the_particle_filter(resampler):
+    model, net = _linear(torch.float32), _net(torch.float32)
+    xs, ys = _data(model, runs=4, steps=10)
+    out = neural_particle_filter(
+        model,
+        ys,
+        network=net,
+        num_particles=64,
+        resampler=resampler,
+        ess_threshold=1.0,
+        generator=torch.Generator().manual_seed(0),
+    )
+    (out.means - xs).square().mean().backward()  # a state loss alone: only through the PF
+    grads = torch.cat([p.grad.flatten() for p in net.parameters() if p.grad is not None])
+    assert torch.isfinite(grads).all() and grads.abs().max() > 0
+
+
+def test_the_network_must_fit_the_measurement():
+    model = _linear()
+    _, ys = _data(model)
+    with pytest.raises(ValueError, match="num_areas = 1"):
+        NeuralCompensation(NeuralFDIEstimator(num_areas=2, area_dim=1))
+    with pytest.raises(ValueError, match="area_dim is 3"):
+        neural_gaussian_filter(model, ys, network=NeuralFDIEstimator(num_areas=1, area_dim=3))
+    with pytest.raises(ValueError, match="kind must be one of"):
+        neural_gaussian_filter(model, ys, network=_net(), kind="pf")
+
+
+def test_task_fit_export_and_evaluate_round_trip(tmp_path, monkeypatch, capsys):
+    """``fit`` writes only in its run; the exported file and the Lightning checkpoint give
+    the same evaluation; ``test`` takes the exported file; another family's checkpoint is
+    skipped with its reason."""
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import registry
+    from difffilter.train.cli import main
+
+    shipped = {p.name: p.read_bytes() for p in (ROOT / "checkpoints").iterdir()}
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    config = ["--config", str(ROOT / "train" / "configs" / "four_tank.yaml")]
+    tiny = [
+        "--data.init_args.batch_size=2",
+        "--data.init_args.batches_per_epoch=1",
+        "--data.init_args.val_runs=4",
+        "--data.init_args.test_runs=2",
+        "--model.init_args.num_particles=20",
+        "--model.init_args.hidden=4",
+        "--trainer.max_epochs=1",
+    ]
+    assert main(["fit", *config, *tiny]) == 0
+    run = tmp_path / "lightning_logs" / "four_tank_nn_grad" / "version_0"
+    card = json.loads((run / "four_tank_nn_grad.json").read_text())
+    assert card["observer"]["kind"] == "pf" and 0 < card["observer"]["threshold"] < 1
+    assert {p.name: p.read_bytes() for p in (ROOT / "checkpoints").iterdir()} == shipped
+    assert not (tmp_path / "checkpoints").exists()
+
+    assert main(["export", str(run / "four_tank_nn_grad.ckpt"), "--out", "ship/ft.ckpt"]) == 0
+    best = next((run / "checkpoints").glob("best-*.ckpt"))
+    sc = registry.get("four_tank_bias")
+    outs = [
+        run_suite(sc, runs=2, estimators=("pf_nn_grad",), checkpoint=c, progress=False)
+        for c in (tmp_path / "ship" / "ft.ckpt", best)
+    ]
+    assert outs[0].checkpoint["used_by"] == ["pf_nn_grad"]
+    a, b = (o.outputs["pf_nn_grad"] for o in outs)
+    torch.testing.assert_close(a.attack, b.attack, rtol=0, atol=1e-6)
+    assert a.detection.threshold == pytest.approx(b.detection.threshold)
+
+    capsys.readouterr()
+    assert main(["test", *config, *tiny, "--ckpt_path", "ship/ft.ckpt"]) == 0
+    assert "test/attack_rmse" in capsys.readouterr().out
+
+    lfc = ROOT / "checkpoints" / "lfc_nn_grad.ckpt"
+    other = run_suite(sc, runs=2, estimators=("pf_nn_grad",), checkpoint=lfc, progress=False)
+    assert "pf_nn_grad" in other.skipped and "'kalman'" in other.skipped["pf_nn_grad"]
