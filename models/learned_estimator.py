@@ -193,55 +193,57 @@ def _trained_network(ctx, name: str, kinds) -> tuple[NeuralFDIEstimator, dict]:
     return net, obs
 
 
-def _register() -> None:
-    from difffilter.eval.estimators import SuiteContext, register
+def _learned(name: str, kinds, run_filter):
+    """A factory running ``run_filter(ctx, traj, observer, network=, threshold=)`` with the
+    checkpoint's network, without gradients."""
 
-    @register(
+    def factory(ctx):
+        net, obs = _trained_network(ctx, name, kinds)
+        kw = {"network": net, "threshold": float(obs.get("threshold", 0.5))}
+
+        def run(tr):
+            with torch.no_grad():
+                return run_filter(ctx, tr, obs, **kw)
+
+        return run
+
+    return factory
+
+
+def _register() -> None:
+    from difffilter.eval.estimators import register
+
+    register(
         "pf_nn_grad",
         "neural FDI estimator trained through the differentiable PF (checkpoint), compensating "
         "the PF's measurements; alarm at its validation-chosen threshold",
+    )(
+        _learned(
+            "pf_nn_grad",
+            ("pf",),
+            lambda ctx, tr, obs, **kw: neural_particle_filter(
+                ctx.model,
+                tr.y_recv,
+                tr.us,
+                mask=tr.mask,
+                **ctx.particle_kwargs(len(tr.y_recv)),
+                **kw,
+            ),
+        )
     )
-    def _pf_nn_grad(ctx: SuiteContext):
-        net, obs = _trained_network(ctx, "pf_nn_grad", ("pf",))
-        threshold = float(obs.get("threshold", 0.5))
-
-        def run(tr):
-            kw = ctx.particle_kwargs(len(tr.y_recv))
-            with torch.no_grad():
-                return neural_particle_filter(
-                    ctx.model,
-                    tr.y_recv,
-                    tr.us,
-                    network=net,
-                    mask=tr.mask,
-                    threshold=threshold,
-                    **kw,
-                )
-
-        return run
-
-    @register(
+    register(
         "gaussian_nn_grad",
         "neural FDI estimator trained through a KF/EKF/UKF (checkpoint), compensating its "
         "measurements; alarm at its validation-chosen threshold",
+    )(
+        _learned(
+            "gaussian_nn_grad",
+            tuple(GAUSSIAN_STEPS),
+            lambda ctx, tr, obs, **kw: neural_gaussian_filter(
+                ctx.model, tr.y_recv, tr.us, mask=tr.mask, kind=obs["kind"], **kw
+            ),
+        )
     )
-    def _gaussian_nn_grad(ctx: SuiteContext):
-        net, obs = _trained_network(ctx, "gaussian_nn_grad", tuple(GAUSSIAN_STEPS))
-        threshold = float(obs.get("threshold", 0.5))
-
-        def run(tr):
-            with torch.no_grad():
-                return neural_gaussian_filter(
-                    ctx.model,
-                    tr.y_recv,
-                    tr.us,
-                    network=net,
-                    kind=obs["kind"],
-                    mask=tr.mask,
-                    threshold=threshold,
-                )
-
-        return run
 
 
 _register()
