@@ -41,7 +41,7 @@ from ._checks import (
     check_strategy,
 )
 from ._steps import StepRecorder
-from .kalman import _validate_inputs, joseph_covariance, kalman_gain
+from .kalman import _validate_inputs, gaussian_update
 from .linalg import (
     gaussian_log_prob_chol,
     masked_measurement,
@@ -62,6 +62,7 @@ __all__ = [
     "Likelihood",
     "BootstrapProposal",
     "KalmanProposal",
+    "kalman_proposal_moments",
     "ModelLikelihood",
     "particle_init",
     "particle_step",
@@ -161,34 +162,69 @@ class KalmanProposal:
 
         q = N(μ, Σ),   μ = f + K (y − h(f)),   Σ = (I − KH) Q (I − KH)ᵀ + K R Kᵀ
 
-    and ``log_correction = log N(x; f, Q) − log N(x; μ, Σ)``, so the weights target
-    the same posterior as the bootstrap filter. On a linear-Gaussian measurement this is
-    the exact optimal proposal (incremental weights ``N(y; H f, S)``). Requires a
-    Gaussian process noise (``model.process_cov``).
+    (the moments are :func:`kalman_proposal_moments`, one :func:`~difffilter.kalman.
+    gaussian_update` per particle) and ``log_correction = log N(x; f, Q) − log q(x)``, so
+    the weights target the same posterior as the bootstrap filter. On a linear-Gaussian
+    measurement this is the exact optimal proposal (incremental weights ``N(y; H f, S)``).
+    Requires a Gaussian process noise (``model.process_cov``).
+
+    Args:
+        defensive: weight ``ρ ∈ [0, 1)`` of the prior in a defensive mixture
+            ``q = (1 − ρ) N(μ, Σ) + ρ N(f, Q)`` (default 0: the plain Kalman proposal).
+            With ``ρ > 0`` a measurement that the likelihood will discount (a replaced
+            packet) cannot drag every particle; each particle draws one extra uniform to
+            pick its component.
     """
 
+    def __init__(self, defensive: float = 0.0):
+        rho = float(defensive)
+        if not 0.0 <= rho < 1.0:
+            raise ValueError(f"defensive must lie in [0, 1); got {defensive!r}")
+        self.rho = rho
+
     def __call__(self, model, particles, u, y, k, mask, generator):
-        u = None if u is None else u.unsqueeze(-2)
-        f = model.transition(particles, u, k)
-        Q = model.process_cov(k)
-        if hasattr(model, "observation_matrix"):
-            # linear measurement: one gain shared by every particle and run
-            H = model.observation_matrix(k + 1)
-        else:
-            H = model.observation_jacobian(f, k + 1)
-        residual = model.measurement_residual(y.unsqueeze(-2), model.observe(f, k + 1))
-        m = None if mask is None else mask.unsqueeze(-2)
-        residual, H, R, _ = masked_measurement(residual, H, model.measurement_cov(k + 1), m)
-        cross = Q @ H.transpose(-1, -2)
-        gain, _ = kalman_gain(cross, H @ cross + R)
-        mu = f + matvec(gain, residual)
-        sigma = joseph_covariance(Q, gain, H, R)
+        f, Q, mu, sigma = kalman_proposal_moments(model, particles, u, y, k, mask)
         chol_sigma = safe_cholesky(sigma, name="proposal covariance")
+        chol_q = safe_cholesky(Q, name="Q")
         eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
-        new = mu + matvec(chol_sigma, eps)
-        log_q = gaussian_log_prob_chol(new - mu, chol_sigma)
-        log_p = gaussian_log_prob_chol(new - f, safe_cholesky(Q, name="Q"))
+        if self.rho == 0:
+            new = mu + matvec(chol_sigma, eps)
+            log_q = gaussian_log_prob_chol(new - mu, chol_sigma)
+            return new, gaussian_log_prob_chol(new - f, chol_q) - log_q
+        u_pick = torch.rand(mu.shape[:-1], generator=generator, dtype=mu.dtype, device=mu.device)
+        prior = (u_pick < self.rho).unsqueeze(-1)
+        new = torch.where(prior, f + matvec(chol_q, eps), mu + matvec(chol_sigma, eps))
+        log_p = gaussian_log_prob_chol(new - f, chol_q)
+        log_kalman = gaussian_log_prob_chol(new - mu, chol_sigma)
+        log_q = torch.logaddexp(log_kalman + math.log1p(-self.rho), log_p + math.log(self.rho))
         return new, log_p - log_q
+
+
+def kalman_proposal_moments(
+    model, particles: Tensor, u: Tensor | None, y: Tensor, k: int, mask: Tensor | None
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Moments of the Kalman proposal of every particle: ``(f, Q, μ, Σ)``.
+
+    ``f = f(x_{k−1}, u) [..., N, dx]`` and ``Q [dx, dx]`` (the transition), ``μ [..., N, dx]``
+    and ``Σ [..., N, dx, dx]``: one :func:`~difffilter.kalman.gaussian_update` of the prior
+    ``N(f, Q)`` with ``y [..., dy]`` on the received entries (``mask [..., dy]``), ``H`` the
+    model's ``observation_matrix`` when it has one (one gain for every particle) and its
+    Jacobian at ``f`` otherwise; the residual is the model's (a wrapped bearing stays
+    wrapped). ``u [..., du]`` or ``None``.
+    """
+    u = None if u is None else u.unsqueeze(-2)
+    f = model.transition(particles, u, k)
+    Q = model.process_cov(k)
+    if hasattr(model, "observation_matrix"):
+        H = model.observation_matrix(k + 1)
+    else:
+        H = model.observation_jacobian(f, k + 1)
+    residual = model.measurement_residual(y.unsqueeze(-2), model.observe(f, k + 1))
+    m = None if mask is None else mask.unsqueeze(-2)
+    residual, H, R, observed = masked_measurement(residual, H, model.measurement_cov(k + 1), m)
+    cross = Q @ H.transpose(-1, -2)
+    mu, sigma, _, _ = gaussian_update(f, Q, residual, cross, H @ cross, H, R, observed)
+    return f, Q, mu, sigma
 
 
 class ModelLikelihood:

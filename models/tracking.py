@@ -30,15 +30,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from difffilter.kalman import joseph_covariance, kalman_gain
-from difffilter.linalg import (
-    gaussian_log_prob_chol,
-    masked_measurement,
-    matvec,
-    rowwise,
-    safe_cholesky,
-)
+from difffilter.linalg import matvec, rowwise
 from difffilter.noise import Gaussian, NoiseModel, register_tensor
+from difffilter.particle import KalmanProposal
 from difffilter.ssm import StateSpaceModel
 
 from .attacks import Replacement
@@ -266,41 +260,18 @@ class PerSensorDeception:
         return torch.where(recv.squeeze(-2), (w * resp).sum(-2), 0.0)
 
 
-class DeceptionEKFProposal:
+class DeceptionEKFProposal(KalmanProposal):
     """``q = (1 − ρ) N(μ, Σ) + ρ N(f, Q)``: an EKF step on the received measurement, and the
     prior with weight ``ρ`` (= η̄ [DEF]) so a replaced packet cannot drag every particle.
 
-    ``f = F x_{k−1}``, ``H = ∂h/∂x(f)`` on the received entries, ``R`` the glint noise's
-    moment covariance, ``μ = f + K r`` (wrapped residual), ``Σ`` Joseph form; the log
-    correction ``log N(x; f, Q) − log q(x)`` keeps the weights targeting the posterior.
+    The shared Kalman proposal (:class:`difffilter.particle.KalmanProposal` with
+    ``defensive=ρ``): ``f = F x_{k−1}``, ``H = ∂h/∂x(f)`` on the received entries, ``R`` the
+    glint noise's moment covariance, ``μ = f + K r`` (wrapped residual), ``Σ`` Joseph form;
+    the log correction ``log N(x; f, Q) − log q(x)`` keeps the weights targeting the posterior.
     """
 
     def __init__(self, rho: float):
-        self.rho = float(rho)
-
-    def __call__(self, model, particles, u, y, k, mask, generator):
-        f = model.transition(particles, None, k)
-        Q = model.process_cov(k)
-        H = model.observation_jacobian(f, k + 1)
-        r = model.measurement_residual(y.unsqueeze(-2), model.observe(f, k + 1))
-        m = None if mask is None else mask.unsqueeze(-2)
-        r, H, R, _ = masked_measurement(r, H, model.measurement_cov(k + 1), m)
-        cross = Q @ H.transpose(-1, -2)
-        gain, _ = kalman_gain(cross, H @ cross + R)
-        mu = f + matvec(gain, r)
-        chol_s = safe_cholesky(joseph_covariance(Q, gain, H, R), name="proposal covariance")
-        chol_q = safe_cholesky(Q, name="Q")
-        eps = torch.randn(mu.shape, generator=generator, dtype=mu.dtype, device=mu.device)
-        prior = torch.rand(mu.shape[:-1], generator=generator, dtype=mu.dtype) < self.rho
-        new = torch.where(prior.unsqueeze(-1), f + matvec(chol_q, eps), mu + matvec(chol_s, eps))
-        log_p = gaussian_log_prob_chol(new - f, chol_q)
-        log_ekf = gaussian_log_prob_chol(new - mu, chol_s)
-        log_q = (
-            log_ekf
-            if self.rho == 0
-            else torch.logaddexp(log_ekf + math.log1p(-self.rho), log_p + math.log(self.rho))
-        )
-        return new, log_p - log_q
+        super().__init__(defensive=rho)
 
 
 @dataclass(frozen=True)
