@@ -197,7 +197,8 @@ class Gaussian(NoiseModel):
         if diag is not None:
             out = rowwise(torch.mul, eps, diag)
             return out if self._zero_loc() else rowwise(torch.add, out, self.loc)
-        return self.loc + matvec(L, eps)
+        out = matvec(L, eps)
+        return out if self._zero_loc() else self.loc + out
 
     def perturb(self, value: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """``value + s`` with ``s`` drawn from this distribution: ``value [..., d]`` → ``[..., d]``.

@@ -68,7 +68,7 @@ def _responsibility_pf(ctx, tr, *, proposal=None) -> EstimatorOutput:
         }
 
     res = particle_filter(ctx.model, tr.y_recv, mask=tr.mask, likelihood=lik, proposal=proposal,
-                          hooks=(hook,), **ctx.particle_kwargs(len(tr.y_recv)))  # fmt: skip
+                          hooks=(hook,), innovations=False, **ctx.particle_kwargs(len(tr.y_recv)))  # fmt: skip
     p = res.records["p"]
     out = EstimatorOutput(
         res.means, res.covs, detection=Detection(p, p > 0.5, 0.5), extras={"ess": res.ess}
@@ -98,7 +98,8 @@ def _rrp_pf_da(ctx: SuiteContext):
 def _standard(ctx: SuiteContext, clean: bool):
     def run(tr):
         ys = tr.y_true if clean else tr.y_recv
-        res = particle_filter(ctx.model, ys, mask=tr.mask, **ctx.particle_kwargs(len(ys)))
+        res = particle_filter(ctx.model, ys, mask=tr.mask, innovations=False,
+                              **ctx.particle_kwargs(len(ys)))  # fmt: skip
         extras = {"ess": res.ess, "degenerate": res.degenerate}
         return _with_counts(EstimatorOutput(res.means, res.covs, extras=extras), tr.mask, tr)
 
@@ -126,9 +127,8 @@ def _pf_da(ctx: SuiteContext):
             return {"p": lik.posterior_attack(model, y, state, m)}
 
         ys = tr.info["y_all"]
-        res = particle_filter(
-            ctx.model, ys, likelihood=lik, hooks=(hook,), **ctx.particle_kwargs(len(ys))
-        )
+        res = particle_filter(ctx.model, ys, likelihood=lik, hooks=(hook,), innovations=False,
+                              **ctx.particle_kwargs(len(ys)))  # fmt: skip
         per_sensor = res.records["p"]  # [B, T, S]
         sched = tr.mask.reshape(per_sensor.shape + (2,)).any(-1)
         # the scheduled packet's probability: the same labels as the Round-Robin filters

@@ -237,3 +237,21 @@ def test_call_only_resampler_equals_the_fast_path_under_partial_resampling(data)
     assert bool(((per_step > 0) & (per_step < 1)).any())
     torch.testing.assert_close(slow.means, fast.means)
     torch.testing.assert_close(slow.log_likelihood, fast.log_likelihood)
+
+
+def test_skipping_innovations_changes_no_estimate(data):
+    model, ys, _ = data
+    runs = [
+        particle_filter(
+            model,
+            ys.expand(4, -1, -1),
+            num_particles=100,
+            innovations=flag,
+            generator=torch.Generator().manual_seed(5),
+        )  # fmt: skip
+        for flag in (True, False)
+    ]
+    assert runs[1].innovations is None and runs[1].innovation_covs is None
+    assert runs[0].innovations.shape == (4, ys.shape[-2], ys.shape[-1])
+    for name in ("means", "covs", "pred_means", "log_likelihood", "ess"):
+        assert torch.equal(getattr(runs[0], name), getattr(runs[1], name))

@@ -131,3 +131,59 @@ def test_bad_scenario_settings_raise():
         TrackingScenario(name="x", eta_bar=1.0)
     with pytest.raises(ValueError, match="gamma_ini"):
         TrackingScenario(name="x", gamma_ini=5)
+
+
+def _cloud(dtype=torch.float64):
+    model = registry.get("tracking_rrp_deception").system(dtype)
+    g = torch.Generator().manual_seed(0)
+    spread = torch.tensor([20.0, 1.0, 20.0, 1.0], dtype=dtype)
+    x = (
+        model.sample_initial((5, 300), g)
+        + torch.randn(5, 300, 4, generator=g, dtype=dtype) * spread
+    )
+    return model, x, g
+
+
+def test_round_robin_log_prob_fast_path_equals_the_generic_density():
+    from difffilter.ssm import StateSpaceModel
+
+    model, x, g = _cloud()
+    y = model.observe(x[:, :1], 1) + 3 * torch.randn(5, 1, 8, generator=g, dtype=x.dtype)
+    y[0, 0, 1] = math.pi - 1e-3  # a bearing across the ±π cut
+    mask = torch.zeros(5, 1, 8, dtype=torch.bool)
+    for b, s in enumerate((0, 1, 2, 3, 0)):
+        mask[b, 0, 2 * s : 2 * s + 2] = True
+    fast = model.measurement_log_prob(y, x, 1, mask)
+    generic = StateSpaceModel.measurement_log_prob(model, y, x, 1, mask)
+    assert fast.shape == (5, 300)
+    assert torch.allclose(fast, generic, rtol=1e-12, atol=1e-9)
+    mask[0, 0, 2] = True  # not one whole sensor per row: the generic path
+    assert torch.equal(
+        model.measurement_log_prob(y, x, 1, mask),
+        StateSpaceModel.measurement_log_prob(model, y, x, 1, mask),
+    )
+
+
+def test_closed_form_transition_draws_what_the_generic_path_draws():
+    from difffilter.ssm import StateSpaceModel
+
+    model, x, _ = _cloud()
+    fast = model.sample_transition(x, None, 0, torch.Generator().manual_seed(1))
+    generic = StateSpaceModel.sample_transition(model, x, None, 0, torch.Generator().manual_seed(1))
+    assert torch.allclose(fast, generic, rtol=0, atol=1e-12)
+
+
+def test_attack_probability_from_the_evidence_equals_the_full_sum():
+    from difffilter.models.tracking_estimators import mixture_likelihood
+
+    sc, ctx, tr = _setup(registry.get("tracking_rrp_deception"))
+    lik, model = mixture_likelihood(ctx), ctx.model
+    _, x, g = _cloud()
+    x = x[:RUNS]
+    log_w = torch.log_softmax(torch.randn(RUNS, 300, generator=g, dtype=x.dtype), -1)
+    for t in range(6):
+        y, m = tr.y_recv[:, t], tr.mask[:, t]
+        evidence = torch.logsumexp(log_w + lik(model, y, x, t + 1, m), -1)
+        full = lik.attack_probability(model, y, x, log_w, t + 1, m)
+        quick = lik.attack_probability(model, y, x, log_w, t + 1, m, evidence=evidence)
+        assert torch.allclose(quick, full, rtol=1e-12, atol=1e-15)
