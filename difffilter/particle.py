@@ -515,10 +515,11 @@ def particle_filter(
     for t in range(ys.shape[-2]):
         u = None if us is None else us[..., t, :]
         m = None if mask is None else mask[..., t, :]
-        state, out = _particle_step(model, state, ys[..., t, :], u, m, **step_options)
+        y = ys[..., t, :]  # one view: the step and its hooks see the same tensor
+        state, out = _particle_step(model, state, y, u, m, **step_options)
         outs.append(out)
         for hook in hooks:
-            records.add(**hook(model, ys[..., t, :], m, state, out))
+            records.add(**hook(model, y, m, state, out))
         if return_particles:
             parts.append(state.particles)
             logws.append(state.log_weights)

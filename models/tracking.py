@@ -98,6 +98,9 @@ class GlintNoise(NoiseModel):
         self.register_buffer(
             "_const_one", torch.log(weights) - 0.5 * torch.log(2 * math.pi * variances).sum(-1)
         )
+        self._one_sensor_terms = [
+            (float(q[0]), float(q[1]), float(c)) for q, c in zip(self._quad_one, self._const_one)
+        ]
 
     @property
     def mean(self) -> Tensor:
@@ -150,9 +153,14 @@ class GlintNoise(NoiseModel):
         ``log Σ_c π_c N(r; 0, var_c0) N(b; 0, var_c1)``, elementwise: what
         :meth:`block_log_prob` gives for a sensor whose two entries are received.
         """
-        q, c = self._quad_one, self._const_one
-        comp = [range_residual.square() * q[i, 0] + bearing_residual.square() * q[i, 1] + c[i]
-                for i in range(len(c))]  # fmt: skip
+        r2, b2 = range_residual.square(), bearing_residual.square()
+        if self.weights.requires_grad or self.variances.requires_grad:
+            q, c = self._quad_one, self._const_one
+            comp = [r2 * q[i, 0] + b2 * q[i, 1] + c[i] for i in range(len(c))]
+        else:  # fixed noise: its constants as Python numbers, two fused ops a component
+            comp = [
+                torch.add(b2 * q1, r2, alpha=q0).add_(c) for q0, q1, c in self._one_sensor_terms
+            ]
         if len(comp) == 2:
             return torch.logaddexp(comp[0], comp[1])
         return torch.logsumexp(torch.stack(comp, -1), dim=-1)
@@ -212,9 +220,10 @@ class TrackingModel(StateSpaceModel):
         T, a, b, c = self._cv
         out = torch.empty_like(eps)
         # [M, axis, (position, velocity)] views, written in place (no stacking copy)
-        xp, e, o = x.reshape(-1, 2, 2), eps.view(-1, 2, 2), out.view(-1, 2, 2)
-        torch.add(xp[..., 0], xp[..., 1], alpha=T, out=o[..., 0]).add_(e[..., 0], alpha=a)
-        torch.mul(e[..., 0], b, out=o[..., 1]).add_(e[..., 1], alpha=c).add_(xp[..., 1])
+        (xp, xv), (ep, ev) = x.reshape(-1, 2, 2).unbind(-1), eps.view(-1, 2, 2).unbind(-1)
+        op, ov = out.view(-1, 2, 2).unbind(-1)
+        torch.add(xp, xv, alpha=T, out=op).add_(ep, alpha=a)
+        torch.mul(ep, b, out=ov).add_(ev, alpha=c).add_(xv)
         return out
 
     def transition_matrix(self, k: int) -> Tensor:
@@ -263,24 +272,26 @@ class TrackingModel(StateSpaceModel):
         one = self._one_sensor(y, x, mask)
         if one is None:
             return super().measurement_log_prob(y, x, k, mask)
-        pos, yb = one  # [..., 1, 2] each: the sensor's position and its packet
-        dz, dp = x[..., 0] - pos[..., 0], x[..., 2] - pos[..., 1]
-        r = yb[..., 0] - torch.hypot(dz, dp)
-        b = wrap_angle(yb[..., 1] - torch.atan2(dp, dz))
+        (sz, sp), (yr, yb) = one  # [..., 1] each: the sensor's position and its packet
+        xz, _, xp, _ = x.unbind(-1)
+        dz, dp = xz - sz, xp - sp
+        r = yr - torch.hypot(dz, dp)
+        b = wrap_angle(yb - torch.atan2(dp, dz))
         return self.measurement_noise.sensor_log_prob(r, b)
 
     def _one_sensor(self, y, x, mask):
-        """``(sensor position, its packet)`` ``[..., 1, 2]`` each for the fast path, else ``None``."""
+        """``((ζ_s, ψ_s), (range, bearing))`` of the received sensor, each ``[..., 1]``, for the
+        fast path; ``None`` unless every row receives exactly one whole sensor."""
         if mask is None or x.dim() < 2 or mask.dim() != x.dim() or mask.shape[-2] != 1:
             return None
         pairs = mask.reshape(mask.shape[:-1] + (-1, 2))
-        both, any_ = pairs.all(-1), pairs.any(-1)
-        if not (bool((both.sum(-1) == 1).all()) and torch.equal(both, any_)):
+        both = pairs.all(-1)  # [..., 1, S]
+        if not bool(((mask.sum(-1) == 2) & both.any(-1)).all()):
             return None
-        idx = both.to(torch.uint8).argmax(-1)  # [..., 1]
-        yb = y.expand(mask.shape).reshape(pairs.shape)
-        yb = torch.gather(yb, -2, idx[..., None, None].expand(idx.shape + (1, 2))).squeeze(-2)
-        return self.sensor_pos[idx], yb
+        # one sensor per row: its packet and position by sums with one nonzero term (exact)
+        packet = torch.where(mask, y, 0.0).reshape(pairs.shape).sum(-2)
+        pos = both.to(self.sensor_pos.dtype) @ self.sensor_pos
+        return pos.unbind(-1), packet.unbind(-1)
 
 
 def communication_counts(mask: Tensor | None, runs: int, steps: int, sensors: int = 4) -> Tensor:
