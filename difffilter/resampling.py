@@ -213,6 +213,13 @@ def _gather_particles(particles: Tensor, ancestors: Tensor) -> Tensor:
         offsets = _row_offsets(ancestors.numel() // n, n, ancestors.device)
         flat = (ancestors.reshape(-1, n) + offsets).reshape(-1)
         return particles.view(-1, d).index_select(0, flat).view(particles.shape)
+    if particles.shape[:-1] == ancestors.shape and particles.transpose(-1, -2).is_contiguous():
+        # component-major particles ([..., d, N] in memory): one gather along each row,
+        # and the layout is kept
+        rows_t = particles.transpose(-1, -2)
+        return torch.gather(rows_t, -1, ancestors.unsqueeze(-2).expand(rows_t.shape)).transpose(
+            -1, -2
+        )
     batch = torch.broadcast_shapes(particles.shape[:-2], ancestors.shape[:-1])
     rows = particles.expand(batch + (n, d)).reshape(-1, d)
     flat = ancestors.expand(batch + (n,)).reshape(-1, n)
