@@ -199,6 +199,16 @@ class TrackingModel(StateSpaceModel):
         self._cv = (T, float(chol[0, 0]), float(chol[1, 0]), float(chol[1, 1]))
         self.register_buffer("F", F)
         self.register_buffer("sensor_pos", torch.tensor(sensors, dtype=dtype))
+        # Round-Robin fast path (_one_sensor): entry e of sensor s = e // 2 contributes
+        # [1, is range, ±(s + 1) (+ range, − bearing), ζ_s / 2, ψ_s / 2]; a row that receives
+        # exactly one whole sensor sums to [2, 1, 0, ζ_s, ψ_s] (halves: exact in binary)
+        e = torch.arange(self.dim_y)
+        s, is_range = e // 2, (e % 2 == 0).to(dtype)
+        code = torch.stack((torch.ones(self.dim_y, dtype=dtype), is_range, (s + 1).to(dtype) * (2 * is_range - 1),
+                            self.sensor_pos[s, 0] / 2, self.sensor_pos[s, 1] / 2), -1)  # fmt: skip
+        self.register_buffer("_schedule_code", code)
+        self.register_buffer("_one_whole_sensor", torch.tensor([2.0, 1.0, 0.0], dtype=dtype))
+        self.register_buffer("_entry_kind", torch.stack((is_range, 1 - is_range), -1))
         self.initial = Gaussian(
             torch.tensor(x0, dtype=dtype), torch.diag(torch.tensor(p0, dtype=dtype))
         )
@@ -291,14 +301,13 @@ class TrackingModel(StateSpaceModel):
         fast path; ``None`` unless every row receives exactly one whole sensor."""
         if mask is None or x.dim() < 2 or mask.dim() != x.dim() or mask.shape[-2] != 1:
             return None
-        pairs = mask.reshape(mask.shape[:-1] + (-1, 2))
-        both = pairs.all(-1)  # [..., 1, S]
-        if not bool(((mask.sum(-1) == 2) & both.any(-1)).all()):
+        # one product gives [received, ranges, Σ ±sensor, ζ_s, ψ_s] per row (_schedule_code)
+        code = mask.to(self._schedule_code.dtype) @ self._schedule_code
+        if not torch.equal(code[..., :3], self._one_whole_sensor.expand(code.shape[:-1] + (3,))):
             return None
-        # one sensor per row: its packet and position by sums with one nonzero term (exact)
-        packet = torch.where(mask, y, 0.0).reshape(pairs.shape).sum(-2)
-        pos = both.to(self.sensor_pos.dtype) @ self.sensor_pos
-        return pos.unbind(-1), packet.unbind(-1)
+        # the packet: sums with one nonzero term, exact
+        packet = torch.where(mask, y, 0.0) @ self._entry_kind
+        return code[..., 3:].unbind(-1), packet.unbind(-1)
 
 
 def communication_counts(mask: Tensor | None, runs: int, steps: int, sensors: int = 4) -> Tensor:
