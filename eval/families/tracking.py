@@ -109,21 +109,33 @@ def _numbers(result) -> dict:
     extra = {"pcrb": {k: {"rmse_p": float(p.mean()), "rmse_v": float(v.mean())} for k, (p, v) in bounds.items()},
              "eta_sweep": _sweep(result)}  # fmt: skip
     if {"rrp_pf_da", "rrp_pf_da_ekf_proposal"} <= set(result.outputs):
-        n = sc.num_particles
-        n_eq = max(
-            1, round(n * result.wall_s["rrp_pf_da_ekf_proposal"] / result.wall_s["rrp_pf_da"])
-        )
+        extra["equal_wall_time"] = _equal_wall_time(result)
+    extra["bound_curves"] = {k: [p.tolist(), v.tolist()] for k, (p, v) in bounds.items()}
+    return extra
+
+
+def _equal_wall_time(result) -> dict:
+    """``rrp_pf_da`` with as many particles as fit in ``rrp_pf_da_ekf_proposal``'s wall time.
+
+    The count scales the 500-particle time; the time per particle grows with the cloud
+    (cache), so one correction by the measured time follows when it is off by over 20 %.
+    """
+    sc, ctx, tr = result.scenario, result.context, result.traj
+    target = result.wall_s["rrp_pf_da_ekf_proposal"]
+    n_eq = max(1, round(sc.num_particles * target / result.wall_s["rrp_pf_da"]))
+    for _ in range(2):
         sctx = SuiteContext(
             replace(sc, num_particles=n_eq), ctx.model, result.runs, ctx.streams, ctx.options
         )
         start = time.perf_counter()
         out = get("rrp_pf_da").factory(sctx)(tr)
         wall = time.perf_counter() - start
-        p, v = _rmse_pv(out.means, tr.x)
-        extra["equal_wall_time"] = {"num_particles": n_eq, "rmse_p": float(p.mean()), "rmse_v": float(v.mean()),
-                                    "time_per_run_batched_s": wall / result.runs}  # fmt: skip
-    extra["bound_curves"] = {k: [p.tolist(), v.tolist()] for k, (p, v) in bounds.items()}
-    return extra
+        if abs(wall / target - 1) <= 0.2:
+            break
+        n_eq = max(1, round(n_eq * target / wall))
+    p, v = _rmse_pv(out.means, tr.x)
+    return {"num_particles": sctx.scenario.num_particles, "rmse_p": float(p.mean()), "rmse_v": float(v.mean()),
+            "time_per_run_batched_s": wall / result.runs}  # fmt: skip
 
 
 # ------------------------------------------------------------------------------ sections
@@ -227,6 +239,12 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
         rows = [row("`rrp_pf_da`", n, a), row("`rrp_pf_da_ekf_proposal`", n, b),
                 row("`rrp_pf_da`, equal wall time", eq["num_particles"], eq)]  # fmt: skip
         body = markdown_table(["filter", "particles", "RMSE_p", "RMSE_v", "s/run (batched)"], rows)
+        same_n = "lower" if b["rmse_p"] < a["rmse_p"] else "higher"
+        same_t = "helps" if b["rmse_p"] < eq["rmse_p"] else "does not help"
+        body += (f"\nAt {n} particles the EKF proposal's RMSE_p is {same_n} than the bootstrap filter's "
+                 f"({f(b['rmse_p'])} vs {f(a['rmse_p'])}); for its wall time the bootstrap filter runs "
+                 f"{eq['num_particles']} particles (measured time in the last column): at equal wall time "
+                 f"the EKF proposal {same_t}.\n")  # fmt: skip
         secs.append(Section("EKF proposal (the paper's future work)", body))
     return secs
 
