@@ -86,7 +86,8 @@ class ParticleState(NamedTuple):
 class ParticleStepOutput(NamedTuple):
     """Per-step report: ``mean [..., dx]``, ``cov [..., dx, dx]``, the predicted state mean
     ``pred_mean = E[x_k | y_{1:k−1}]`` ``[..., dx]``, ``innovation = y − E[h(x_k) | y_{1:k−1}]``
-    ``[..., dy]`` and its covariance (particle covariance of ``h`` plus ``R``) ``[..., dy, dy]``, ``log_likelihood`` increment
+    ``[..., dy]`` and its covariance (particle covariance of ``h`` plus ``R``) ``[..., dy, dy]``
+    (both ``None`` for a step asked for no ``innovations``), ``log_likelihood`` increment
     ``[...]``, ``ess [...]`` after weighting, ``resampled [...]`` (bool), the normalised
     predictive log-weights ``log w_{k−1}`` of the proposed particles ``[..., N]`` and
     ``degenerate [...]`` (bool: every weight of the run underflowed and was reset to the
