@@ -455,7 +455,8 @@ def main(argv=None) -> int:
     for r in rows:
         print(
             f"   {r['dtype']:>7s}  {_fmt(r['particle_steps_per_s']):>10s} particle-steps/s  "
-            f"({r['seconds']:.2f} s)  target ≥ 1e7: {r['target']}"
+            f"({r['seconds']:.2f} s)  target ≥ 1e7: {r['target']};  by CPU time "
+            f"{_fmt(r['particle_steps_per_cpu_s'])} ({r['cpu_seconds']:.2f} s, load {r['load_average']:.1f})"
         )
 
     print_robot(figures)

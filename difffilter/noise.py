@@ -197,7 +197,8 @@ class Gaussian(NoiseModel):
         if diag is not None:
             out = rowwise(torch.mul, eps, diag)
             return out if self._zero_loc() else rowwise(torch.add, out, self.loc)
-        return self.loc + matvec(L, eps)
+        out = matvec(L, eps)
+        return out if self._zero_loc() else self.loc + out
 
     def perturb(self, value: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """``value + s`` with ``s`` drawn from this distribution: ``value [..., d]`` → ``[..., d]``.
@@ -345,11 +346,23 @@ class UniformBox(NoiseModel):
 
     def log_prob(self, value: Tensor, mask: Tensor | None = None) -> Tensor:
         """``−Σ log(high − low)`` inside the box, ``−inf`` outside (marginal on ``mask``)."""
-        inside = (value >= self.low) & (value <= self.high)
-        log_len = torch.log(self.high - self.low)
+        outside = ~((value >= self.low) & (value <= self.high))  # NaN counts as outside
+        log_len = self._log_lengths()
         if mask is not None:
-            inside = inside | ~mask
+            outside = outside & mask
             log_len = log_len * mask
         lp = -log_len.sum(-1)
-        inside = inside.all(-1)
-        return torch.where(inside, lp, lp.new_tensor(-math.inf))
+        return lp.masked_fill(outside.any(-1), -math.inf)
+
+    def _log_lengths(self) -> Tensor:
+        """``log(high − low)`` ``[*batch, d]``, kept while ``low`` and ``high`` are unchanged
+        (a filter asks at every step); recomputed for learnable bounds."""
+        low, high = self.low, self.high
+        if low.requires_grad or high.requires_grad:
+            return torch.log(high - low)
+        key = (low.data_ptr(), low._version, high.data_ptr(), high._version, low.dtype, low.device)
+        cached = getattr(self, "_log_len_cache", None)
+        if cached is None or cached[0] != key:
+            cached = (key, torch.log(high - low))
+            self._log_len_cache = cached
+        return cached[1]

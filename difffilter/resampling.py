@@ -187,6 +187,20 @@ def effective_sample_size(log_weights: Tensor) -> Tensor:
     return torch.exp(-torch.logsumexp(2.0 * log_w, dim=-1))
 
 
+_OFFSETS: dict = {}
+
+
+def _row_offsets(rows: int, n: int, device) -> Tensor:
+    """``[[0], [n], [2n], …]`` ``[rows, 1]`` (int64), kept per shape: the gather's row starts."""
+    key = (rows, n, str(device))
+    out = _OFFSETS.get(key)
+    if out is None:
+        if len(_OFFSETS) > 64:
+            _OFFSETS.clear()
+        out = _OFFSETS[key] = torch.arange(0, rows * n, n, device=device).unsqueeze(-1)
+    return out
+
+
 def _gather_particles(particles: Tensor, ancestors: Tensor) -> Tensor:
     """``particles[..., a_j, :]`` for ``particles [..., N, d]``, ``ancestors [..., N]``.
 
@@ -194,6 +208,18 @@ def _gather_particles(particles: Tensor, ancestors: Tensor) -> Tensor:
     expanded ``[..., N, d]`` index with a ``remainder`` pass, about twice the cost).
     """
     n, d = particles.shape[-2:]
+    if particles.shape[:-1] == ancestors.shape and particles.is_contiguous():
+        # the filter's case: one ancestor row per batch row, no broadcasting
+        offsets = _row_offsets(ancestors.numel() // n, n, ancestors.device)
+        flat = (ancestors.reshape(-1, n) + offsets).reshape(-1)
+        return particles.view(-1, d).index_select(0, flat).view(particles.shape)
+    if particles.shape[:-1] == ancestors.shape and particles.transpose(-1, -2).is_contiguous():
+        # component-major particles ([..., d, N] in memory): one gather along each row,
+        # and the layout is kept
+        rows_t = particles.transpose(-1, -2)
+        return torch.gather(rows_t, -1, ancestors.unsqueeze(-2).expand(rows_t.shape)).transpose(
+            -1, -2
+        )
     batch = torch.broadcast_shapes(particles.shape[:-2], ancestors.shape[:-1])
     rows = particles.expand(batch + (n, d)).reshape(-1, d)
     flat = ancestors.expand(batch + (n,)).reshape(-1, n)

@@ -101,6 +101,26 @@ def test_kalman_proposal_is_exact_optimal_proposal_on_linear_model(data):
     assert opt.log_likelihood.std() < 1.2 * boot.log_likelihood.std()
 
 
+def test_defensive_kalman_proposal_correction_is_the_mixture_density(data):
+    model, ys, _ = data
+    x_prev = torch.tensor([[0.5, -1.0, 2.0, 0.3], [3.0, 0.2, -1.0, 0.0]], dtype=ys.dtype)
+    x_prev = x_prev[:, : model.dim_x]
+    rho, y = 0.3, ys[3]
+    new, corr = KalmanProposal(defensive=rho)(
+        model, x_prev, None, y, 2, None, torch.Generator().manual_seed(0)
+    )
+    # the same moments from the Kalman filter: prior N(F x, Q), then the update with y
+    for i in range(len(x_prev)):
+        prior = df.GaussianState(x_prev[i], torch.zeros(model.dim_x, model.dim_x, dtype=y.dtype), 2)
+        post, out = df.kalman_step(model, prior, y)
+        p = torch.distributions.MultivariateNormal(out.pred_mean, out.pred_cov).log_prob(new[i])
+        k = torch.distributions.MultivariateNormal(post.mean, post.cov).log_prob(new[i])
+        q = torch.logaddexp(k + math.log(1 - rho), p + math.log(rho))
+        assert torch.allclose(corr[i], p - q, rtol=1e-9, atol=1e-9)
+    with pytest.raises(ValueError, match="defensive"):
+        KalmanProposal(defensive=1.0)
+
+
 @pytest.mark.parametrize(
     "resampler",
     [
@@ -217,3 +237,21 @@ def test_call_only_resampler_equals_the_fast_path_under_partial_resampling(data)
     assert bool(((per_step > 0) & (per_step < 1)).any())
     torch.testing.assert_close(slow.means, fast.means)
     torch.testing.assert_close(slow.log_likelihood, fast.log_likelihood)
+
+
+def test_skipping_innovations_changes_no_estimate(data):
+    model, ys, _ = data
+    runs = [
+        particle_filter(
+            model,
+            ys.expand(4, -1, -1),
+            num_particles=100,
+            innovations=flag,
+            generator=torch.Generator().manual_seed(5),
+        )  # fmt: skip
+        for flag in (True, False)
+    ]
+    assert runs[1].innovations is None and runs[1].innovation_covs is None
+    assert runs[0].innovations.shape == (4, ys.shape[-2], ys.shape[-1])
+    for name in ("means", "covs", "pred_means", "log_likelihood", "ess"):
+        assert torch.equal(getattr(runs[0], name), getattr(runs[1], name))

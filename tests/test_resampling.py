@@ -509,3 +509,16 @@ def test_resample_normalized_rows_keeps_the_unmarked_rows(resampler):
     torch.testing.assert_close(part.log_weights[rows], full.log_weights[rows])
     torch.testing.assert_close(part.particles[~rows], particles[~rows])
     torch.testing.assert_close(part.log_weights[~rows], log_w[~rows])
+
+
+def test_gather_keeps_a_component_major_layout():
+    from difffilter.resampling import _gather_particles
+
+    g = torch.Generator().manual_seed(0)
+    rows = torch.randn(3, 4, 50, generator=g)  # [B, d, N] in memory
+    particles = rows.transpose(-1, -2)  # viewed [B, N, d]
+    ancestors = torch.randint(0, 50, (3, 50), generator=g)
+    out = _gather_particles(particles, ancestors)
+    want = _gather_particles(particles.contiguous(), ancestors)
+    assert torch.equal(out, want) and out.transpose(-1, -2).is_contiguous()
+    assert torch.equal(out[1, 7], particles[1, ancestors[1, 7]])

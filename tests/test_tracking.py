@@ -10,6 +10,7 @@ import torch
 
 from difffilter.eval.estimators import SuiteContext, get
 from difffilter.eval.streams import Streams
+from difffilter.eval.suite import one_thread
 from difffilter.models import registry
 from difffilter.models.tracking import GlintNoise, TrackingScenario, wrap_angle
 
@@ -114,7 +115,8 @@ def test_communication_counts_and_detection_score():
     sc, ctx, tr = _setup(
         registry.get("tracking_rrp_deception"), steps=120, num_particles=32, runs=2
     )
-    counts = {n: get(n).factory(ctx)(tr) for n in ("rrp_pf_da", "pf_da")}
+    with one_thread():
+        counts = {n: get(n).factory(ctx)(tr) for n in ("rrp_pf_da", "pf_da")}
     assert counts["rrp_pf_da"].extras["transmissions"].tolist() == [120, 120]
     assert counts["pf_da"].extras["transmissions"].tolist() == [480, 480]
     for out in counts.values():
@@ -131,3 +133,121 @@ def test_bad_scenario_settings_raise():
         TrackingScenario(name="x", eta_bar=1.0)
     with pytest.raises(ValueError, match="gamma_ini"):
         TrackingScenario(name="x", gamma_ini=5)
+
+
+def _cloud(dtype=torch.float64):
+    model = registry.get("tracking_rrp_deception").system(dtype)
+    g = torch.Generator().manual_seed(0)
+    spread = torch.tensor([20.0, 1.0, 20.0, 1.0], dtype=dtype)
+    x = (
+        model.sample_initial((5, 300), g)
+        + torch.randn(5, 300, 4, generator=g, dtype=dtype) * spread
+    )
+    return model, x, g
+
+
+def test_round_robin_log_prob_fast_path_equals_the_generic_density():
+    from difffilter.ssm import StateSpaceModel
+
+    model, x, g = _cloud()
+    y = model.observe(x[:, :1], 1) + 3 * torch.randn(5, 1, 8, generator=g, dtype=x.dtype)
+    y[0, 0, 1] = math.pi - 1e-3  # a bearing across the ±π cut
+    mask = torch.zeros(5, 1, 8, dtype=torch.bool)
+    for b, s in enumerate((0, 1, 2, 3, 0)):
+        mask[b, 0, 2 * s : 2 * s + 2] = True
+    fast = model.measurement_log_prob(y, x, 1, mask)
+    generic = StateSpaceModel.measurement_log_prob(model, y, x, 1, mask)
+    assert fast.shape == (5, 300)
+    assert torch.allclose(fast, generic, rtol=1e-12, atol=1e-9)
+    mask[0, 0, 2] = True  # not one whole sensor per row: the generic path
+    assert torch.equal(
+        model.measurement_log_prob(y, x, 1, mask),
+        StateSpaceModel.measurement_log_prob(model, y, x, 1, mask),
+    )
+
+
+def test_closed_form_transition_draws_what_the_generic_path_draws():
+    from difffilter.ssm import StateSpaceModel
+
+    model, x, _ = _cloud()
+    fast = model.sample_transition(x, None, 0, torch.Generator().manual_seed(1))
+    generic = StateSpaceModel.sample_transition(model, x, None, 0, torch.Generator().manual_seed(1))
+    assert torch.allclose(fast, generic, rtol=0, atol=1e-12)
+
+
+def test_attack_probability_from_the_evidence_equals_the_full_sum():
+    from difffilter.models.tracking_estimators import mixture_likelihood
+
+    sc, ctx, tr = _setup(registry.get("tracking_rrp_deception"))
+    lik, model = mixture_likelihood(ctx), ctx.model
+    _, x, g = _cloud()
+    x = x[:RUNS]
+    log_w = torch.log_softmax(torch.randn(RUNS, 300, generator=g, dtype=x.dtype), -1)
+    for t in range(6):
+        y, m = tr.y_recv[:, t], tr.mask[:, t]
+        evidence = torch.logsumexp(log_w + lik(model, y, x, t + 1, m), -1)
+        full = lik.attack_probability(model, y, x, log_w, t + 1, m)
+        quick = lik.attack_probability(model, y, x, log_w, t + 1, m, evidence=evidence)
+        assert torch.allclose(quick, full, rtol=1e-12, atol=1e-15)
+
+
+# --------------------------------------------------- issue-10 acceptance, at a small size
+# (16 runs × 300 particles × 120 steps, seed 0, one thread as in the evaluation suite;
+# the full-size figures are in the report)
+
+
+def _rmse_p(out, tr) -> float:
+    e = (out.means - tr.x).square()
+    return float((e[..., 0] + e[..., 2]).mean(0).sqrt().mean())
+
+
+@pytest.fixture(scope="module")
+def small_study():
+    with torch.no_grad(), one_thread():
+        sc, ctx, tr = _setup(
+            registry.get("tracking_rrp_deception"), runs=16, num_particles=300, steps=120
+        )
+        names = ("rrp_pf_da", "rrp_spf_da", "rrp_spf_nm", "pf_da")
+        outs = {n: get(n).factory(ctx)(tr) for n in names}
+    return sc, ctx, tr, outs
+
+
+def test_table1_ordering_and_ratios_at_small_size(small_study):
+    _, _, tr, outs = small_study
+    rmse = {n: _rmse_p(o, tr) for n, o in outs.items()}
+    assert rmse["pf_da"] < rmse["rrp_spf_nm"] < rmse["rrp_pf_da"] < rmse["rrp_spf_da"], rmse
+    assert 1.0 < rmse["rrp_pf_da"] / rmse["rrp_spf_nm"] <= 1.3, rmse
+    assert rmse["rrp_spf_da"] / rmse["rrp_pf_da"] >= 4, rmse
+
+
+def test_rmse_at_or_above_the_posterior_crb(small_study):
+    from difffilter.bounds import posterior_crb
+    from difffilter.models.attacks import Replacement
+
+    sc, ctx, tr, outs = small_study
+    oracle = tr.mask & ~Replacement.entry_flags(tr.info["sensor_flags"], sc.groups)
+    gen = torch.Generator().manual_seed(0)
+    with one_thread():
+        bound = posterior_crb(
+            ctx.model, tr.x, tr.info["x0"], mask=oracle, generator=gen, num_samples=20_000
+        )
+    cov = bound.bound.mean(0)  # over the runs' flag patterns
+    pcrb_p = float((cov[:, 0, 0] + cov[:, 2, 2]).sqrt().mean())
+    for name in ("rrp_pf_da", "rrp_spf_da"):
+        assert _rmse_p(outs[name], tr) >= pcrb_p, (name, pcrb_p)
+
+
+def test_eta_sweep_increases_and_detection_auc_at_every_rate():
+    from difffilter.eval.scoring import auc
+
+    base = registry.get("tracking_rrp_deception")
+    rmse, aucs = [], []
+    for eta in (0.0, 0.2, 0.4, 0.6):
+        with torch.no_grad(), one_thread():
+            _, ctx, tr = _setup(replace(base, eta_bar=eta), runs=16, num_particles=300, steps=120)
+            out = get("rrp_pf_da").factory(ctx)(tr)
+        rmse.append(_rmse_p(out, tr))
+        if eta > 0:
+            aucs.append(auc(out.detection.scores, tr.flags))
+    assert all(a < b for a, b in zip(rmse, rmse[1:])), rmse
+    assert min(aucs) >= 0.995, aucs

@@ -72,10 +72,25 @@ class ReplacementDeception:
                 f"density must be a difffilter.noise model; got {type(density).__name__}"
             )
         self.density = density
+        self._last = None
 
     def __call__(self, model, y: Tensor, particles: Tensor, k: int, mask) -> Tensor:
+        return self.log_density(y, mask).unsqueeze(-1).expand(particles.shape[:-1])
+
+    def log_density(self, y: Tensor, mask=None) -> Tensor:
+        """``log p_ξ(ỹ)`` of the received entries ``[...]`` (the same for every particle).
+
+        The last value is kept for the same ``y`` and ``mask`` tensors (unmodified): the
+        filter step and its detection hook ask for the same packet once each.
+        """
+        key = (y, mask, y._version, None if mask is None else mask._version)
+        cached = self._last
+        if cached is not None and all(a is b for a, b in zip(cached[0][:2], key[:2])):
+            if cached[0][2:] == key[2:]:
+                return cached[1]
         lp = self.density.log_prob(y, mask=mask) if mask is not None else self.density.log_prob(y)
-        return lp.unsqueeze(-1).expand(particles.shape[:-1])
+        self._last = (key, lp)
+        return lp
 
 
 class DeceptionMixtureLikelihood:
@@ -110,11 +125,22 @@ class DeceptionMixtureLikelihood:
         clean, attacked = self.components(model, y, particles, k, mask)
         return torch.logaddexp(clean, attacked)
 
-    def attack_probability(self, model, y, particles, log_weights, k, mask=None) -> Tensor:
+    def attack_probability(
+        self, model, y, particles, log_weights, k, mask=None, *, evidence=None
+    ) -> Tensor:
         """``P(l_k = 1 | ỹ_{1:k})`` ``[...]`` from predictive ``log_weights [..., N]``.
 
         ``= Σ_i w^i p p_a^i / Σ_i w^i [(1−p) p_v^i + p p_a^i]`` (log space).
+
+        ``evidence``: the denominator's log, ``log Σ_i w^i p(ỹ | x^i)`` ``[...]``, when the
+        caller has it (the log-likelihood increment of a bootstrap-proposal step, whose
+        weights before the update are these ``log_weights``). With an attack density
+        that does not depend on the state (:class:`ReplacementDeception`) the numerator
+        is then ``p p_ξ(ỹ)`` and no particle is visited again; equal to the full sum up
+        to round-off.
         """
+        if evidence is not None and isinstance(self.attack, ReplacementDeception):
+            return torch.exp(self.attack.log_density(y, mask) + self._log_p - evidence)
         clean, attacked = self.components(model, y, particles, k, mask)
         lw = torch.log_softmax(log_weights, dim=-1)
         num = torch.logsumexp(lw + attacked, dim=-1)
@@ -161,15 +187,17 @@ def mixture_likelihood_particle_filter(
     )
 
     def responsibility(model, y, m, state, out):  # P(l_k = 1 | ỹ_{1:k}) from w_{k−1}
-        prior = out.prior_log_weights
-        return {"p": likelihood.attack_probability(model, y, state.particles, prior, state.k, m)}
+        prior, evidence = out.prior_log_weights, out.log_likelihood  # bootstrap proposal
+        p = likelihood.attack_probability(
+            model, y, state.particles, prior, state.k, m, evidence=evidence
+        )
+        return {"p": p}
 
     settings = driver_settings(
         num_particles, resampler, ess_threshold, generator, resample_generator, initial_state
     )
-    res = particle_filter(
-        model, ys, us, mask=mask, likelihood=likelihood, hooks=(responsibility,), **settings
-    )
+    res = particle_filter(model, ys, us, mask=mask, likelihood=likelihood,
+                          hooks=(responsibility,), innovations=False, **settings)  # fmt: skip
     score = res.records["p"]
     return EstimatorOutput(
         means=res.means,

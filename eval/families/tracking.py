@@ -1,5 +1,6 @@
-"""Tracking family (RRP particle filter with deception attacks, Song et al.): its estimators,
-Table 1 beside ours, the posterior Cramér–Rao bound, the η̄ sweep and the EKF proposal.
+"""Tracking family report (RRP particle filter with deception attacks, Song et al.): Table 1
+beside ours, the posterior Cramér–Rao bound, the η̄ sweep and the EKF proposal. The
+family's estimators are registered in ``difffilter.models.tracking_estimators``.
 
 RMSE_p / RMSE_v follow the paper: per step, the RMSE over runs of the position (velocity)
 error norm, then the mean over steps. The bound is :func:`difffilter.posterior_crb` along
@@ -10,161 +11,22 @@ mask (an attack oracle, a valid floor for a filter that does not know them) for 
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 
 import matplotlib.pyplot as plt
 import torch
 
-from difffilter import fdi
 from difffilter.bounds import posterior_crb
-from difffilter.estimator import Detection, EstimatorOutput
 from difffilter.models.attacks import Replacement
-from difffilter.models.tracking import (
-    DeceptionEKFProposal,
-    PerSensorDeception,
-    communication_counts,
-)
-from difffilter.noise import UniformBox
-from difffilter.particle import particle_filter, particle_init
 
-from ..estimators import SuiteContext, get, register
+from ..estimators import SuiteContext, get
 from ..report import FamilyReport, Section, format_number, markdown_table, register_family
 from ..scoring import auc
 from ..suite import one_thread, single_run_time_per_step
 
 TABLE1 = ("rrp_pf_da", "rrp_spf_da", "rrp_spf_nm", "pf_da")
 SWEEP = (0.0, 0.2, 0.4, 0.6)
-
-
-# ------------------------------------------------------------------------ building blocks
-
-
-def _kwargs(ctx: SuiteContext, runs: int, num_particles: int | None = None) -> dict:
-    if num_particles is None:
-        return ctx.particle_kwargs(runs)
-    init = particle_init(ctx.model, num_particles, (runs,), ctx.streams("particles/init"))
-    return {**ctx.particle_kwargs(runs), "num_particles": num_particles, "initial_state": init}
-
-
-def _mixture(ctx: SuiteContext) -> fdi.DeceptionMixtureLikelihood:
-    """Eq. (15): ``(1 − η̄) p_ν(ỹ − h(x)) + η̄ p_ξ(ỹ)`` on the received entries."""
-    sc, n = ctx.scenario, len(ctx.scenario.sensors)
-    box = UniformBox(
-        torch.tensor(sc.box_low * n, dtype=ctx.dtype),
-        torch.tensor(sc.box_high * n, dtype=ctx.dtype),
-    )
-    return fdi.DeceptionMixtureLikelihood(sc.eta_bar, fdi.ReplacementDeception(box))
-
-
-def _with_counts(out: EstimatorOutput, mask, tr) -> EstimatorOutput:
-    B, T = tr.flags.shape
-    out.extras["transmissions"] = communication_counts(
-        mask, B, T, len(tr.info["sensor_flags"][0, 0])
-    )
-    return out
-
-
-def _responsibility_pf(ctx, tr, *, proposal=None, num_particles=None) -> EstimatorOutput:
-    """The eq.-(15) PF through the shared driver with ``proposal``; score = mixture responsibility."""
-    lik = _mixture(ctx)
-
-    def hook(model, y, m, state, out):
-        return {
-            "p": lik.attack_probability(
-                model, y, state.particles, out.prior_log_weights, state.k, m
-            )
-        }
-
-    res = particle_filter(ctx.model, tr.y_recv, mask=tr.mask, likelihood=lik, proposal=proposal, hooks=(hook,),
-                          **_kwargs(ctx, len(tr.y_recv), num_particles))  # fmt: skip
-    p = res.records["p"]
-    out = EstimatorOutput(
-        res.means, res.covs, detection=Detection(p, p > 0.5, 0.5), extras={"ess": res.ess}
-    )
-    return _with_counts(out, tr.mask, tr)
-
-
-# ---------------------------------------------------------------------------- estimators
-
-
-@register(
-    "rrp_pf_da", "RRP-PF-DA: bootstrap PF, mixture likelihood eq. (15) on the scheduled sensor"
-)
-def _rrp_pf_da(ctx: SuiteContext):
-    lik = _mixture(ctx)
-
-    def run(tr):
-        out = fdi.mixture_likelihood_particle_filter(
-            ctx.model,
-            tr.y_recv,
-            mask=tr.mask,
-            likelihood=lik,
-            **ctx.particle_kwargs(len(tr.y_recv)),
-        )
-        return _with_counts(out, tr.mask, tr)
-
-    return run
-
-
-def _standard(ctx: SuiteContext, clean: bool):
-    def run(tr):
-        ys = tr.y_true if clean else tr.y_recv
-        res = particle_filter(ctx.model, ys, mask=tr.mask, **ctx.particle_kwargs(len(ys)))
-        extras = {"ess": res.ess, "degenerate": res.degenerate}
-        return _with_counts(EstimatorOutput(res.means, res.covs, extras=extras), tr.mask, tr)
-
-    return run
-
-
-@register("rrp_spf_da", "RRP-SPF-DA: bootstrap PF, glint likelihood only, attacked data")
-def _rrp_spf_da(ctx: SuiteContext):
-    return _standard(ctx, clean=False)
-
-
-@register("rrp_spf_nm", "RRP-SPF-NM: bootstrap PF, glint likelihood, normal (attack-free) data",
-          clean_input=True, reference=True)  # fmt: skip
-def _rrp_spf_nm(ctx: SuiteContext):
-    return _standard(ctx, clean=True)
-
-
-@register("pf_da", "PF-DA: all 4 sensors every step, product of per-sensor mixtures")
-def _pf_da(ctx: SuiteContext):
-    sc = ctx.scenario
-    lik = PerSensorDeception(sc.eta_bar, sc.box_low, sc.box_high, len(sc.sensors))
-
-    def run(tr):
-        def hook(model, y, m, state, out):
-            return {"p": lik.posterior_attack(model, y, state, m)}
-
-        ys = tr.info["y_all"]
-        res = particle_filter(
-            ctx.model, ys, likelihood=lik, hooks=(hook,), **ctx.particle_kwargs(len(ys))
-        )
-        per_sensor = res.records["p"]  # [B, T, S]
-        sched = tr.mask.reshape(per_sensor.shape + (2,)).any(-1)
-        score = (per_sensor * sched).sum(
-            -1
-        )  # the scheduled packet, the same labels as the RR filters
-        out = EstimatorOutput(res.means, res.covs, detection=Detection(score, score > 0.5, 0.5),
-                              extras={"ess": res.ess, "sensor_attack_probability": per_sensor})  # fmt: skip
-        return _with_counts(out, None, tr)
-
-    return run
-
-
-@register(
-    "rrp_pf_da_ekf_proposal",
-    "RRP-PF-DA with an EKF-step proposal (defensive mixture with the prior)",
-)
-def _ekf_proposal(ctx: SuiteContext):
-    prop = DeceptionEKFProposal(ctx.scenario.eta_bar)
-    return lambda tr: _responsibility_pf(ctx, tr, proposal=prop)
-
-
-@register("ukf_chi_square", "UKF gated by a χ² test on its innovation (analytic baseline)")
-def _ukf_chi_square(ctx: SuiteContext):
-    run = get("chi_square_ukf").factory(ctx)
-    return lambda tr: _with_counts(run(tr), tr.mask, tr)
 
 
 # ------------------------------------------------------------------------- family numbers
@@ -247,23 +109,33 @@ def _numbers(result) -> dict:
     extra = {"pcrb": {k: {"rmse_p": float(p.mean()), "rmse_v": float(v.mean())} for k, (p, v) in bounds.items()},
              "eta_sweep": _sweep(result)}  # fmt: skip
     if {"rrp_pf_da", "rrp_pf_da_ekf_proposal"} <= set(result.outputs):
-        n = sc.num_particles
-        n_eq = max(
-            1, round(n * result.wall_s["rrp_pf_da_ekf_proposal"] / result.wall_s["rrp_pf_da"])
-        )
+        extra["equal_wall_time"] = _equal_wall_time(result)
+    extra["bound_curves"] = {k: [p.tolist(), v.tolist()] for k, (p, v) in bounds.items()}
+    return extra
+
+
+def _equal_wall_time(result) -> dict:
+    """``rrp_pf_da`` with as many particles as fit in ``rrp_pf_da_ekf_proposal``'s wall time.
+
+    The count scales the 500-particle time; the time per particle grows with the cloud
+    (cache), so one correction by the measured time follows when it is off by over 20 %.
+    """
+    sc, ctx, tr = result.scenario, result.context, result.traj
+    target = result.wall_s["rrp_pf_da_ekf_proposal"]
+    n_eq = max(1, round(sc.num_particles * target / result.wall_s["rrp_pf_da"]))
+    for _ in range(2):
         sctx = SuiteContext(
             replace(sc, num_particles=n_eq), ctx.model, result.runs, ctx.streams, ctx.options
         )
-        import time
-
         start = time.perf_counter()
         out = get("rrp_pf_da").factory(sctx)(tr)
         wall = time.perf_counter() - start
-        p, v = _rmse_pv(out.means, tr.x)
-        extra["equal_wall_time"] = {"num_particles": n_eq, "rmse_p": float(p.mean()), "rmse_v": float(v.mean()),
-                                    "time_per_run_batched_s": wall / result.runs}  # fmt: skip
-    extra["bound_curves"] = {k: [p.tolist(), v.tolist()] for k, (p, v) in bounds.items()}
-    return extra
+        if abs(wall / target - 1) <= 0.2:
+            break
+        n_eq = max(1, round(n_eq * target / wall))
+    p, v = _rmse_pv(out.means, tr.x)
+    return {"num_particles": sctx.scenario.num_particles, "rmse_p": float(p.mean()), "rmse_v": float(v.mean()),
+            "time_per_run_batched_s": wall / result.runs}  # fmt: skip
 
 
 # ------------------------------------------------------------------------------ sections
@@ -367,6 +239,12 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
         rows = [row("`rrp_pf_da`", n, a), row("`rrp_pf_da_ekf_proposal`", n, b),
                 row("`rrp_pf_da`, equal wall time", eq["num_particles"], eq)]  # fmt: skip
         body = markdown_table(["filter", "particles", "RMSE_p", "RMSE_v", "s/run (batched)"], rows)
+        same_n = "lower" if b["rmse_p"] < a["rmse_p"] else "higher"
+        same_t = "helps" if b["rmse_p"] < eq["rmse_p"] else "does not help"
+        body += (f"\nAt {n} particles the EKF proposal's RMSE_p is {same_n} than the bootstrap filter's "
+                 f"({f(b['rmse_p'])} vs {f(a['rmse_p'])}); for its wall time the bootstrap filter runs "
+                 f"{eq['num_particles']} particles (measured time in the last column): at equal wall time "
+                 f"the EKF proposal {same_t}.\n")  # fmt: skip
         secs.append(Section("EKF proposal (the paper's future work)", body))
     return secs
 
