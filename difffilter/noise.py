@@ -156,6 +156,8 @@ class Gaussian(NoiseModel):
         loc = self.loc
         if loc.requires_grad:
             return False
+        if loc.is_inference():  # no version counter to cache against
+            return not bool(loc.any())
         key = (loc.data_ptr(), loc._version, loc.dtype, loc.device, tuple(loc.shape))
         cached = getattr(self, "_zero_loc_cache", None)
         if cached is None or cached[0] != key:
@@ -358,7 +360,7 @@ class UniformBox(NoiseModel):
         """``log(high − low)`` ``[*batch, d]``, kept while ``low`` and ``high`` are unchanged
         (a filter asks at every step); recomputed for learnable bounds."""
         low, high = self.low, self.high
-        if low.requires_grad or high.requires_grad:
+        if low.requires_grad or high.requires_grad or low.is_inference() or high.is_inference():
             return torch.log(high - low)
         key = (low.data_ptr(), low._version, high.data_ptr(), high._version, low.dtype, low.device)
         cached = getattr(self, "_log_len_cache", None)

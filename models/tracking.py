@@ -509,6 +509,7 @@ _ESTIMATORS = (
     "pf_da",
     "rrp_pf_da_ekf_proposal",
     "ukf_chi_square",
+    "pf_nn_grad",  # runs with --ckpt of a run of train/configs/tracking.yaml
 )
 _NOTES = (
     "[DEF] sensor positions (10,10), (10,60), (60,10), (60,60): shown only in the paper's Fig. 2.",

@@ -126,3 +126,16 @@ def test_perturb_equals_value_plus_a_sample_with_the_same_draws(cov, loc):
     got = g.perturb(value, torch.Generator().manual_seed(1))
     want = value + g.sample((3, 64), torch.Generator().manual_seed(1))
     torch.testing.assert_close(got, want, rtol=0, atol=1e-14)
+
+
+def test_noise_models_work_on_inference_mode_tensors():
+    """Lightning's validate/test run under torch.inference_mode, whose tensors have no
+    version counter: the cached factors must not ask for one."""
+    from difffilter.noise import Gaussian, UniformBox
+
+    with torch.inference_mode():
+        g = Gaussian(torch.zeros(2), torch.eye(2))
+        box = UniformBox(torch.zeros(2), torch.ones(2))
+        x = g.sample((3,), torch.Generator().manual_seed(0))
+        assert torch.isfinite(g.log_prob(x)).all()
+        assert torch.allclose(box.log_prob(torch.full((2,), 0.5)), torch.tensor(0.0))

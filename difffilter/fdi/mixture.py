@@ -83,6 +83,13 @@ class ReplacementDeception:
         The last value is kept for the same ``y`` and ``mask`` tensors (unmodified): the
         filter step and its detection hook ask for the same packet once each.
         """
+        if y.is_inference() or (mask is not None and mask.is_inference()):
+            self._last = None  # inference tensors have no version counter: no cache
+            return (
+                self.density.log_prob(y, mask=mask)
+                if mask is not None
+                else self.density.log_prob(y)
+            )
         key = (y, mask, y._version, None if mask is None else mask._version)
         cached = self._last
         if cached is not None and all(a is b for a, b in zip(cached[0][:2], key[:2])):

@@ -19,6 +19,7 @@ import torch
 
 from difffilter.bounds import posterior_crb
 from difffilter.models.attacks import Replacement
+from difffilter.models.tracking import communication_counts
 
 from ..estimators import SuiteContext, get
 from ..report import FamilyReport, Section, format_number, markdown_table, register_family
@@ -87,6 +88,13 @@ def _extra(result) -> dict:
         return _numbers(result)
 
 
+def _transmissions(out, tr):
+    """Packets per run: the estimator's own count, else those of the scenario's schedule."""
+    if "transmissions" in out.extras:
+        return out.extras["transmissions"]
+    return communication_counts(tr.mask, *tr.flags.shape, len(tr.info["sensor_flags"][0, 0]))
+
+
 def _numbers(result) -> dict:
     tr, ctx, sc = result.traj, result.context, result.scenario
     bounds = _bounds(result)
@@ -98,7 +106,7 @@ def _numbers(result) -> dict:
                  bound_rmse_p=float(bp.mean()), bound_rmse_v=float(bv.mean()),
                  ratio_p=float(p.mean() / bp.mean()), ratio_v=float(v.mean() / bv.mean()),
                  steps_at_or_above_bound=float(((p >= bp) & (v >= bv)).double().mean()),
-                 communication=float(out.extras["transmissions"].double().mean()),
+                 communication=float(_transmissions(out, tr).double().mean()),
                  time_per_run_batched_s=result.wall_s[name] / result.runs,
                  time_per_run_single_s=single_run_time_per_step(get(name), ctx, tr) * sc.steps)  # fmt: skip
     if "pf_da" in result.outputs:
