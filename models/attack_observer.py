@@ -35,9 +35,7 @@ from dataclasses import dataclass, fields
 import torch
 from torch import Tensor
 
-from difffilter.kalman import _kalman_step
 from difffilter.param_ekf import OnlineGradientDescent, ParamEKF
-from difffilter.results import GaussianState
 
 from .neural_estimator import NeuralFDIEstimator, build_delta
 
@@ -139,14 +137,7 @@ class AttackObserver:
         self.residual_lag, self.subtract = residual_lag, subtract
         self.init_cov = float(init_cov)
         # Data-independent Kalman gains (see kalman_schedule), filled on first use.
-        self._schedule = {
-            "model": None,
-            "state": None,
-            "gain": [],
-            "icov": [],
-            "post": [],
-            "converged": False,
-        }
+        self._schedule = {"model": None, "state": None, "gain": [], "icov": [], "converged": False}
         if network is not None and network.channels != self.n:
             raise ValueError(
                 f"network estimates {network.channels} channels but the plant has {self.n}"
@@ -220,7 +211,6 @@ class AttackObserver:
                 cache["state"] = difffilter.GaussianState(
                     torch.zeros(n, dtype=dtype), self.init_cov * torch.eye(n, dtype=dtype)
                 )
-                cache["post"].append(cache["state"].cov)
             y0 = torch.zeros(self.n, dtype=self.Ad.dtype)
             u0 = torch.zeros(self.Bd.shape[1], dtype=self.Ad.dtype)
             with torch.no_grad():
@@ -234,7 +224,6 @@ class AttackObserver:
             cache["gain"].append(gain)
             cache["icov"].append(S)
             cache["state"] = new
-            cache["post"].append(new.cov)
         i = min(k, len(cache["gain"])) - 1
         return cache["gain"][i], cache["icov"][i]
 
@@ -276,15 +265,10 @@ class AttackObserver:
         y = z - attack
         innovation = y - pred_mean
         if self.kind == "kalman":
-            # difffilter's Kalman step on the batch of means with the shared, data-independent
-            # covariance Σ_{k−1} of the schedule (unbatched: computed once, not per run)
-            _, innovation_cov = self.kalman_schedule(state.k)
-            post = self._schedule["post"]
-            prior = GaussianState(state.mean, post[min(state.k, len(post)) - 1], state.k - 1)
-            new_mean = _kalman_step(self._schedule["model"], prior, y, u_prev)[0].mean
+            gain, innovation_cov = self.kalman_schedule(state.k)
         else:
-            new_mean = pred_mean + innovation @ self.gain.T
-            innovation_cov = None
+            gain, innovation_cov = self.gain, None
+        new_mean = pred_mean + innovation @ gain.T
         a_hist = torch.cat([attack[:, None], state.attack_hist[:, :-1]], dim=1)
         r_hist = torch.cat([resid_entry[:, None], state.resid_hist[:, :-1]], dim=1)
         new_state = ObserverState(new_mean, state.k + 1, a_hist, r_hist, state.learner)
