@@ -55,7 +55,7 @@ def main(argv=None) -> int:
         seed=args.seed,
         progress=True,
         # The LFC per-channel validation (80 runs per estimator, about as costly as the four
-        # scenarios together) stays off: `make demo` must finish in 5 minutes on 2 cores.
+        # scenarios together) stays off: `make demo` takes about 6 minutes on 2 cores without it.
         # `difffilter-eval lfc --per-channel` runs it.
         per_channel=False,
     )
