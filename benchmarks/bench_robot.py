@@ -8,11 +8,8 @@ prints it; alone: ``python benchmarks/bench.py --only-robot`` or ``python benchm
 
 from __future__ import annotations
 
-import torch
-from timing import best_time
+from timing import time_registered_estimator
 
-from difffilter.eval.estimators import SuiteContext, get
-from difffilter.eval.streams import Streams
 from difffilter.models import registry
 
 __all__ = ["bench_mdpf_fused"]
@@ -21,28 +18,14 @@ TARGET_RATE = 5_000
 
 
 def bench_mdpf_fused(runs: int = 100, steps: int = 100) -> list[dict]:
-    sc = registry.get("robot_actuator_attack")
+    particles = registry.get("robot_actuator_attack").num_particles
     rows = []
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        for dtype in (torch.float64, torch.float32):
-            model = sc.system(dtype)
-            streams = Streams(0)
-            tr = sc.simulate(
-                runs,
-                {k: streams(k) for k in ("plant", "attack", "schedule")},
-                dtype=dtype,
-                model=model,
-            )
-            run = get("mdpf_fused_ci").factory(SuiteContext(sc, model, runs, streams))
-            with torch.no_grad():
-                seconds = best_time(lambda run=run, tr=tr: run(tr), repeats=3, min_time=0.0)
-            rate = runs * steps / seconds
-            rows.append({"dtype": str(dtype).replace("torch.", ""), "B": runs, "N": sc.num_particles, "T": steps,
-                         "seconds": seconds, "run_steps_per_s": rate, "target": rate >= TARGET_RATE})  # fmt: skip
-    finally:
-        torch.set_num_threads(threads)
+    for dtype, seconds, _ in time_registered_estimator(
+        "robot_actuator_attack", "mdpf_fused_ci", runs
+    ):
+        rate = runs * steps / seconds
+        rows.append({"dtype": dtype, "B": runs, "N": particles, "T": steps, "seconds": seconds,
+                     "run_steps_per_s": rate, "target": rate >= TARGET_RATE})  # fmt: skip
     return rows
 
 

@@ -6,7 +6,7 @@ import math
 import time
 from collections.abc import Callable
 
-__all__ = ["best_time"]
+__all__ = ["best_time", "time_registered_estimator"]
 
 
 def best_time(
@@ -34,3 +34,35 @@ def best_time(
                 break
         best = min(best, elapsed / n)
     return best
+
+
+def time_registered_estimator(scenario: str, estimator: str, runs: int, *, cpu: bool = False):
+    """``[(dtype name, wall seconds, CPU seconds or None)]`` of one batched run of the
+    registered ``estimator`` on ``runs`` simulated runs of ``scenario`` (seed 0, float64 then
+    float32), as the evaluation suite runs it: one intra-op thread, no gradients."""
+    import torch
+
+    from difffilter.eval.estimators import SuiteContext, get
+    from difffilter.eval.streams import Streams
+    from difffilter.models import registry
+
+    sc, rows = registry.get(scenario), []
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        for dtype in (torch.float64, torch.float32):
+            model, streams = sc.system(dtype), Streams(0)
+            gens = {k: streams(k) for k in ("plant", "attack", "schedule")}
+            tr = sc.simulate(runs, gens, dtype=dtype, model=model)
+            run = get(estimator).factory(SuiteContext(sc, model, runs, streams))
+            with torch.no_grad():
+                wall = best_time(lambda run=run, tr=tr: run(tr), repeats=3, min_time=0.0)
+                cpu_s = (
+                    best_time(lambda run=run, tr=tr: run(tr), 3, 0.0, clock=time.process_time)
+                    if cpu
+                    else None
+                )
+            rows.append((str(dtype).replace("torch.", ""), wall, cpu_s))
+    finally:
+        torch.set_num_threads(threads)
+    return rows
