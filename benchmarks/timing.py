@@ -42,9 +42,9 @@ def time_registered_estimator(scenario: str, estimator: str, runs: int, *, cpu: 
     float32), as the evaluation suite runs it: one intra-op thread, no gradients."""
     import torch
 
-    from difffilter.eval.estimators import SuiteContext, get
-    from difffilter.eval.streams import Streams
     from difffilter.models import registry
+    from difffilter.models.estimators import SuiteContext, get
+    from difffilter.models.streams import Streams
 
     sc, rows = registry.get(scenario), []
     threads = torch.get_num_threads()

@@ -281,7 +281,7 @@ def write_report(
     out.mkdir(parents=True, exist_ok=True)
     sc = result.scenario
     family = family_report(sc.family)
-    from . import estimators as registry
+    from difffilter.models import estimators as registry
 
     family_numbers = family.extra(result) if family.extra else {}  # may add estimator keys
     entries = {name: estimator_entry(**m) for name, m in result.metrics.items()}

@@ -16,12 +16,13 @@ from typing import Any
 import torch
 
 from difffilter.estimator import EstimatorOutput
+from difffilter.models import estimators as registry
+from difffilter.models.generic_estimators import default_estimators
+from difffilter.models.streams import Streams
 
-from . import estimators as registry
 from .scoring import score
-from .streams import Streams
 
-__all__ = ["SuiteResult", "run_suite", "default_estimators", "single_run_time_per_step"]
+__all__ = ["SuiteResult", "run_suite", "single_run_time_per_step"]
 
 
 @dataclass
@@ -35,7 +36,7 @@ class SuiteResult:
         wall_s: ``{estimator: wall time of its batched run}``.
         metrics: ``{estimator: {metric: value}}`` (:data:`~difffilter.eval.scoring.METRICS`).
         reference: name of the attack-free reference estimator, or ``None``.
-        context: the :class:`~difffilter.eval.estimators.SuiteContext` the factories saw.
+        context: the :class:`~difffilter.models.estimators.SuiteContext` the factories saw.
         skipped: ``{estimator: why}`` for those whose factory raised ``SkipEstimator``.
         checkpoint: ``{"path", "sha256", "source", "used_by"}`` of the checkpoint the
             study was given (or the scenario's shipped one), or ``None``.
@@ -72,16 +73,6 @@ def one_thread(enabled: bool = True):
         torch.set_num_threads(threads)
 
 
-def default_estimators(model) -> tuple[str, ...]:
-    """The generic estimators that fit ``model`` (the KF pair only for a linear model)."""
-    names = ["normal_pf_attack_free", "normal_pf", "modified_pf", "modified_pf_est"]
-    names += ["mixture_likelihood_pf"]
-    if hasattr(model, "transition_matrix"):
-        names += ["chi_square_kf", "cusum_kf"]
-    names += ["chi_square_ekf", "cusum_ekf", "chi_square_ukf", "cusum_ukf"]
-    return tuple(names)
-
-
 def run_suite(
     scenario,
     *,
@@ -98,9 +89,9 @@ def run_suite(
     Args:
         scenario: a :class:`~difffilter.models.scenario.Scenario`.
         runs: Monte Carlo runs (default ``scenario.runs``).
-        seed: master seed of every random draw (:class:`~difffilter.eval.streams.Streams`).
+        seed: master seed of every random draw (:class:`~difffilter.models.streams.Streams`).
         estimators: registered estimator names (default ``scenario.estimators``, else
-            :func:`default_estimators` of its model).
+            :func:`~difffilter.models.generic_estimators.default_estimators` of its model).
         progress: show a progress bar.
         dtype: of the model and the simulation.
         checkpoint: a trained estimator checkpoint for the estimators that use one
@@ -112,7 +103,7 @@ def run_suite(
     --devices N``) each process runs every N-th estimator and the outputs are gathered:
     the same numbers as one process, since every estimator sees the same trajectories and
     named streams wherever it runs. An estimator whose factory
-    raises :class:`~difffilter.eval.estimators.SkipEstimator` is left out and listed in
+    raises :class:`~difffilter.models.estimators.SkipEstimator` is left out and listed in
     ``skipped``.
     """
     runs = scenario.runs if runs is None else runs

@@ -1,7 +1,7 @@
 """The four-tank family's estimators beyond the generic ones, and the library's filters on
 the attack-free plant (the first table of ``make demo``).
 
-Registered with :func:`difffilter.eval.estimators.register` when this module is imported
+Registered with :func:`difffilter.models.estimators.register` when this module is imported
 (every module of :mod:`difffilter.models` is, on first use of a registry); the scenarios
 name them in :mod:`difffilter.models.four_tank`.
 """
@@ -15,8 +15,9 @@ import torch
 import difffilter as df
 from difffilter import fdi
 from difffilter.estimator import EstimatorOutput
-from difffilter.eval.estimators import SuiteContext, modified_pf, oracle_attack, register
+from difffilter.models.estimators import SuiteContext, register
 from difffilter.models.four_tank import FourTankModel
+from difffilter.models.generic_estimators import modified_pf, oracle_attack
 from difffilter.particle import KalmanProposal, particle_filter
 
 __all__ = ["filter_comparison", "linearised_four_tank"]

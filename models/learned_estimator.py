@@ -27,6 +27,7 @@ from difffilter.estimator import Detection, EstimatorOutput
 from difffilter.extended import extended_kalman_step, unscented_kalman_step
 from difffilter.fdi.modified_pf import AttackCompensatedLikelihood
 from difffilter.kalman import gaussian_init, kalman_step
+from difffilter.models.estimators import SkipEstimator, register
 from difffilter.models.neural_estimator import NeuralFDIEstimator, build_delta
 from difffilter.particle import particle_filter
 
@@ -167,13 +168,12 @@ def neural_gaussian_filter(
     return _output(means, covs.expand(*means.shape, means.shape[-1]), comp, threshold)
 
 
-# ---------------------------------------------- registration with difffilter.eval.estimators
+# ------------------------------------------------- registration with the estimator registry
 
 
 def _trained_network(ctx, name: str, kinds) -> tuple[NeuralFDIEstimator, dict]:
     """The checkpoint's network if it was trained for this scenario family with one of
-    ``kinds`` of filter; :class:`~difffilter.eval.estimators.SkipEstimator` otherwise."""
-    from difffilter.eval.estimators import SkipEstimator
+    ``kinds`` of filter; :class:`~difffilter.models.estimators.SkipEstimator` otherwise."""
     from difffilter.models.neural_estimator import load_estimator_checkpoint
 
     if ctx.checkpoint is None:
@@ -211,8 +211,6 @@ def _learned(name: str, kinds, run_filter):
 
 
 def _register() -> None:
-    from difffilter.eval.estimators import register
-
     register(
         "pf_nn_grad",
         "neural FDI estimator trained through the differentiable PF (checkpoint), compensating "

@@ -31,12 +31,12 @@ import torch
 from torch import Tensor
 
 from difffilter.estimator import Detection, EstimatorOutput
-from difffilter.eval.estimators import SkipEstimator, SuiteContext, register
-from difffilter.eval.streams import Streams
 from difffilter.models.attack_observer import AttackObserver, ClosedLoop, LoopRecord
 from difffilter.models.control import lqr, luenberger_gain
+from difffilter.models.estimators import SkipEstimator, SuiteContext, register
 from difffilter.models.lfc import STATE_DIM, STATE_NAMES, LFCPlant, random_attacks
 from difffilter.models.neural_estimator import NeuralFDIEstimator, load_estimator_checkpoint
+from difffilter.models.streams import Streams
 
 __all__ = [
     "EstimatorSpec",
@@ -239,7 +239,7 @@ def run_estimator(
     return record, time.perf_counter() - start
 
 
-# ---------------------------------------------- registration with difffilter.eval.estimators
+# ---------------------------------------------- registration with difffilter.models.estimators
 # Each estimator runs in its own closed loop on the scenario's exogenous draws
 # (``traj.info``: noise and load; common random numbers) and reports the states its loop
 # produced as ``extras["x"]``, the truth it is scored against. Detection from an attack

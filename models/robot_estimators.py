@@ -28,7 +28,6 @@ from __future__ import annotations
 import torch
 
 from difffilter.estimator import Detection, EstimatorOutput
-from difffilter.eval.estimators import SuiteContext, register
 from difffilter.fdi.adaptive_kf import adaptive_kalman_filter, wald_statistic
 from difffilter.fdi.fusion import covariance_intersection, information_fusion
 from difffilter.fdi.mdpf import (
@@ -36,6 +35,7 @@ from difffilter.fdi.mdpf import (
     adaptive_particle_init,
     adaptive_particle_step,
 )
+from difffilter.models.estimators import SuiteContext, register
 
 from .robot import GROUPS
 

@@ -26,7 +26,7 @@ import torch
 
 from difffilter import fdi
 from difffilter.estimator import Detection, EstimatorOutput
-from difffilter.eval.estimators import SuiteContext, get, register
+from difffilter.models.estimators import SuiteContext, get, register
 from difffilter.models.tracking import (
     DeceptionEKFProposal,
     PerSensorDeception,

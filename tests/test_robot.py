@@ -13,15 +13,15 @@ import torch
 from conftest import constant_velocity
 
 import difffilter as df
-from difffilter.eval.estimators import SuiteContext
-from difffilter.eval.streams import Streams
 from difffilter.eval.suite import one_thread
 from difffilter.fdi.adaptive_kf import adaptive_kalman_filter
 from difffilter.fdi.fusion import covariance_intersection, fuse, information_fusion
 from difffilter.fdi.mdpf import ParticleLayout, adaptive_particle_filter, adaptive_particle_init
+from difffilter.models.estimators import SuiteContext
 from difffilter.models.registry import get
 from difffilter.models.robot import DEG, GROUPS, RobotModel
 from difffilter.models.robot_estimators import compensated_loop, group_measurements, local_pair
+from difffilter.models.streams import Streams
 from difffilter.ssm import batched_jacobian
 
 F64 = torch.float64
@@ -259,7 +259,7 @@ def fuse_attack(out):
 
 @one_thread()
 def test_fused_estimator_small_study_no_nan_reproducible_and_converges():
-    from difffilter.eval.estimators import get as get_estimator
+    from difffilter.models.estimators import get as get_estimator
 
     ctx, tr = _ctx(4, seed=1, steps=60)
     run = get_estimator("mdpf_fused_ci").factory(ctx)

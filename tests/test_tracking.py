@@ -8,10 +8,10 @@ from dataclasses import replace
 import pytest
 import torch
 
-from difffilter.eval.estimators import SuiteContext, get
-from difffilter.eval.streams import Streams
 from difffilter.eval.suite import one_thread
 from difffilter.models import registry
+from difffilter.models.estimators import SuiteContext, get
+from difffilter.models.streams import Streams
 from difffilter.models.tracking import GlintNoise, TrackingScenario, wrap_angle
 
 RUNS = 4

@@ -197,7 +197,7 @@ class LFCDataModule(pl.LightningDataModule):
     def test_batches(self) -> list[dict]:
         """One batch per registered LFC headline scenario at this ``dt``: its attack and the
         noise and load of ``test_runs`` runs (``Scenario.simulate``'s draws)."""
-        from difffilter.eval.streams import Streams
+        from difffilter.models.streams import Streams
 
         hp, batches = self.hparams, []
         for name in registry.names("lfc", headline_only=True):

@@ -29,7 +29,6 @@ import lightning.pytorch as pl
 import torch
 
 from difffilter import resampling
-from difffilter.eval.streams import Streams
 from difffilter.metrics import roc_auc
 from difffilter.models import registry
 from difffilter.models.learned_estimator import (
@@ -38,6 +37,7 @@ from difffilter.models.learned_estimator import (
     neural_particle_filter,
 )
 from difffilter.models.neural_estimator import NeuralFDIEstimator
+from difffilter.models.streams import Streams
 
 from .common import dtype_of, mix_seed
 

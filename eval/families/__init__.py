@@ -1,7 +1,7 @@
 """Family-specific report sections, one module per family.
 
 A family's scenarios and estimators live in ``difffilter.models`` (its module registers
-them when imported, with :func:`difffilter.eval.estimators.register`); a module here
+them when imported, with :func:`difffilter.models.estimators.register`); a module here
 registers the family's report sections (:func:`difffilter.eval.report.register_family`).
 :func:`load_all` imports every module of ``difffilter.models`` and of this package, so a
 new family adds files and edits no list.

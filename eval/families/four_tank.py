@@ -17,8 +17,9 @@ import matplotlib.pyplot as plt
 import torch
 
 from difffilter import fdi, metrics
+from difffilter.models.estimators import SuiteContext, get
+from difffilter.models.generic_estimators import modified_pf
 
-from ..estimators import SuiteContext, get, modified_pf
 from ..report import FamilyReport, Section, format_number, markdown_table, register_family
 from ..scoring import rates_by_size, score
 from ..suite import single_run_time_per_step

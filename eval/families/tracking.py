@@ -19,9 +19,9 @@ import torch
 
 from difffilter.bounds import posterior_crb
 from difffilter.models.attacks import Replacement
+from difffilter.models.estimators import SuiteContext, get
 from difffilter.models.tracking import communication_counts
 
-from ..estimators import SuiteContext, get
 from ..report import FamilyReport, Section, format_number, markdown_table, register_family
 from ..scoring import auc
 from ..suite import one_thread, single_run_time_per_step

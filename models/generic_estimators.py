@@ -1,0 +1,143 @@
+"""The generic estimators: they run on any scenario whose model fits them.
+
+KF/EKF/UKF gated by a χ² test or by CUSUM (τ calibrated on attack-free runs), the bootstrap
+PF with the probability-of-attack detector (and its attack-free reference), the modified
+PF with the oracle or an estimated attack, and the PF with the deception mixture
+likelihood. Detector thresholds come from the model (:meth:`SuiteContext.poa_detector`,
+:meth:`SuiteContext.cusum`), so a new plant needs no paper-specific arithmetic.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from difffilter import fdi
+from difffilter.extended import extended_kalman_step, unscented_kalman_step
+from difffilter.kalman import kalman_step
+
+from .estimators import Run, SuiteContext, register
+
+__all__ = ["oracle_attack", "modified_pf", "default_estimators"]
+
+_GAUSSIAN_STEPS = {"kf": kalman_step, "ekf": extended_kalman_step, "ukf": unscented_kalman_step}
+
+
+def _gated(kind: str, detector: str):
+    step = _GAUSSIAN_STEPS[kind]
+
+    def factory(ctx: SuiteContext) -> Run:
+        if detector == "chi_square":
+            det = fdi.ChiSquareDetector(ctx.model.dim_y, ctx.scenario.false_alarm_rate)
+        else:
+            det = ctx.cusum(step)
+        return lambda tr: fdi.gated_gaussian_filter(
+            ctx.model, tr.y_recv, tr.us, mask=tr.mask, detector=det, step=step
+        )
+
+    return factory
+
+
+for _kind, _label in (("kf", "KF"), ("ekf", "EKF"), ("ukf", "UKF")):
+    register(f"chi_square_{_kind}", f"{_label} gated by a χ² test on its innovations")(
+        _gated(_kind, "chi_square")
+    )
+    register(f"cusum_{_kind}", f"{_label} gated by CUSUM on its innovations (τ calibrated)")(
+        _gated(_kind, "cusum")
+    )
+
+
+def _poa_pf(ctx: SuiteContext, clean: bool) -> Run:
+    det = ctx.poa_detector()
+
+    def run(tr):
+        ys = tr.y_true if clean else tr.y_recv
+        return fdi.particle_filter_poa(
+            ctx.model, ys, tr.us, mask=tr.mask, detector=det, **ctx.particle_kwargs(len(ys))
+        )
+
+    return run
+
+
+@register("normal_pf", "bootstrap PF on ỹ with the probability-of-attack (PoA) detector")
+def _normal_pf(ctx: SuiteContext) -> Run:
+    return _poa_pf(ctx, clean=False)
+
+
+@register(
+    "normal_pf_attack_free",
+    "bootstrap PF + PoA on the true y (the attack-free reference)",
+    clean_input=True,
+    reference=True,
+)
+def _normal_pf_attack_free(ctx: SuiteContext) -> Run:
+    return _poa_pf(ctx, clean=True)
+
+
+def oracle_attack(ctx: SuiteContext, tr, noise_var: float | None = None):
+    """``γ̂ = γ + e``: the attack values with ``e ~ N(0, var I)`` from stream ``"gamma_noise"``
+    (``var`` = the scenario's ``gamma_hat_noise_var`` option unless given; 0 → exact)."""
+    values = tr.info["attack_values"]
+    var = ctx.option("gamma_hat_noise_var", 0.0) if noise_var is None else noise_var
+    if var == 0:
+        return values
+    gen = ctx.streams("gamma_noise")
+    noise = torch.randn(values.shape, generator=gen, dtype=values.dtype)
+    return values + math.sqrt(var) * noise
+
+
+def modified_pf(ctx: SuiteContext, gamma_hat, **kwargs) -> Run:
+    """The modified PF of Table 2 with ``gamma_hat(tr)`` (a tensor or an estimator)."""
+    det = kwargs.pop("detector", None) or ctx.poa_detector()
+
+    def run(tr):
+        return fdi.modified_particle_filter(
+            ctx.model, tr.y_recv, tr.us, mask=tr.mask, detector=det,
+            gamma_hat=gamma_hat(tr), **ctx.particle_kwargs(len(tr.y_recv)), **kwargs,
+        )  # fmt: skip
+
+    return run
+
+
+@register("modified_pf", "modified PF (Table 2) with the oracle γ̂ (the paper's tables)")
+def _modified_pf(ctx: SuiteContext) -> Run:
+    return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr))
+
+
+@register("modified_pf_est", "modified PF with γ̂ from a Kalman filter on the attack model (eq. 4)")
+def _modified_pf_est(ctx: SuiteContext) -> Run:
+    tau = float(getattr(ctx.scenario.attack_model(), "tau", 0.9))
+    return modified_pf(
+        ctx, lambda tr: fdi.BiasAttackEstimator(ctx.model.dim_y, tau, dtype=ctx.dtype)
+    )
+
+
+@register("mixture_likelihood_pf", "PF with the deception mixture likelihood (RRP method)")
+def _mixture_pf(ctx: SuiteContext) -> Run:
+    attack = ctx.scenario.attack_model()
+    if hasattr(attack, "gamma_bar"):
+        deception = fdi.BiasDeception(torch.tensor(attack.gamma_bar, dtype=ctx.dtype))
+        rate = attack.p_l
+    else:
+        from difffilter.noise import UniformBox
+
+        box = UniformBox(
+            torch.tensor(attack.low, dtype=ctx.dtype), torch.tensor(attack.high, dtype=ctx.dtype)
+        )
+        deception, rate = fdi.ReplacementDeception(box), attack.rate
+    likelihood = fdi.DeceptionMixtureLikelihood(rate, deception)
+    return lambda tr: fdi.mixture_likelihood_particle_filter(
+        ctx.model, tr.y_recv, tr.us, mask=tr.mask, likelihood=likelihood,
+        **ctx.particle_kwargs(len(tr.y_recv)),
+    )  # fmt: skip
+
+
+def default_estimators(model) -> tuple[str, ...]:
+    """The generic estimators that fit ``model`` (the KF pair only for a linear model)."""
+    names = ["normal_pf_attack_free", "normal_pf", "modified_pf", "modified_pf_est"]
+    names += ["mixture_likelihood_pf"]
+    if hasattr(model, "transition_matrix"):
+        names += ["chi_square_kf", "cusum_kf"]
+    names += ["chi_square_ekf", "cusum_ekf", "chi_square_ukf", "cusum_ukf"]
+    return tuple(names)
