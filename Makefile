@@ -18,7 +18,7 @@ $(STAMP): pyproject.toml constraints.txt
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m difffilter.eval.demo --out $(OUT)
+	$(VENV)/bin/difffilter-eval all --out $(OUT)
 
 test: $(STAMP)
 	$(PY) -m ruff check .

@@ -25,10 +25,17 @@ from difffilter.models import registry
 from difffilter.runtime import tune_cpu_allocator
 
 from .leaderboard import write_leaderboard
-from .report import family_report, summary_table, write_report
-from .suite import run_suite
+from .report import family_report, write_report
+from .suite import process_group, run_suite
 
-__all__ = ["main", "build_parser", "resolve_scenarios", "evaluate", "check_output_folder"]
+__all__ = [
+    "main",
+    "build_parser",
+    "resolve_scenarios",
+    "evaluate",
+    "check_arguments",
+    "check_output_folder",
+]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -108,18 +115,13 @@ def evaluate(
     with the leaderboard of every scenario × estimator (:mod:`~difffilter.eval.leaderboard`:
     ``<out>/leaderboard.{md,json,png}``, ``<out>/tb_leaderboard``).
     """
-    if runs is not None and (isinstance(runs, bool) or not isinstance(runs, int) or runs < 1):
-        raise ValueError(f"--runs must be an integer >= 1; got {runs!r}")
-    if ckpt is not None:
-        from difffilter.models.neural_estimator import load_estimator_checkpoint
-
-        load_estimator_checkpoint(ckpt)  # a missing or bad file fails before any work
+    check_arguments(runs=runs, ckpt=ckpt)
     families: dict[str, list[str]] = {}
     for name in scenarios:
         families.setdefault(registry.get(name).family, []).append(name)
     results: dict = {}
     cache: dict = {}  # shared by the suites of this call (e.g. common attack-free runs)
-    writer = _rank() == 0  # with --devices N, one process writes (all run the suites)
+    writer = process_group()[0] == 0  # with --devices N, one process writes
     for family, names in families.items():
         report = family_report(family)
         prepared = None
@@ -148,10 +150,17 @@ def evaluate(
     return results
 
 
-def _rank() -> int:
-    import torch.distributed as dist
+def check_arguments(*, runs: int | None = None, ckpt: Path | None = None, devices: int = 1) -> None:
+    """``ValueError``/``FileNotFoundError`` naming the option, before any work."""
+    for name, value in (("--runs", runs), ("--devices", devices)):
+        if value is not None and (
+            isinstance(value, bool) or not isinstance(value, int) or value < 1
+        ):
+            raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
+    if ckpt is not None:
+        from difffilter.models.neural_estimator import load_estimator_checkpoint
 
-    return dist.get_rank() if dist.is_available() and dist.is_initialized() else 0
+        load_estimator_checkpoint(ckpt)  # a missing or bad file fails here
 
 
 def _launch(devices: int, argv: list[str]) -> int:
@@ -210,15 +219,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         names = resolve_scenarios(args.scenario)
         check_output_folder(args.out)  # before any work, not after the whole evaluation
-        if args.runs is not None and args.runs < 1:
-            raise ValueError(f"--runs must be an integer >= 1; got {args.runs}")
-        if args.devices < 1:
-            raise ValueError(f"--devices must be an integer >= 1; got {args.devices}")
-        if args.devices > 1:  # checked above in this process; the workers run the rest
-            if args.ckpt is not None:
-                from difffilter.models.neural_estimator import load_estimator_checkpoint
-
-                load_estimator_checkpoint(args.ckpt)
+        check_arguments(runs=args.runs, ckpt=args.ckpt, devices=args.devices)
+        if args.devices > 1:  # checked here; the workers run the rest
             return _launch(args.devices, list(sys.argv[1:] if argv is None else argv))
         results = evaluate(
             names,
@@ -232,15 +234,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-eval: error: {exc}", file=sys.stderr)
         return 2
-    if _rank() > 0:
+    if process_group()[0] > 0:
         return 0
-    print("\n" + summary_table(results) + "\n")
+    print("\n" + (args.out / "leaderboard.md").read_text())
     unused = [n for n, doc in results.items() if not (doc.get("checkpoint") or {}).get("used_by")]
     if args.ckpt is not None and unused:
         print(f"note: --ckpt {args.ckpt} is used by no estimator of {', '.join(unused)}")
     print(
-        f"reports written under {args.out}/, leaderboard in {args.out}/leaderboard.md "
-        f"(open the TensorBoard logs with: tensorboard --logdir {args.out})"
+        f"reports written under {args.out}/ (<scenario>/report.md); open the TensorBoard "
+        f"logs with: tensorboard --logdir {args.out}"
     )
     return 0
 

@@ -41,7 +41,6 @@ __all__ = [
     "write_metrics",
     "read_metrics",
     "format_number",
-    "summary_table",
 ]
 
 #: Every estimator entry of metrics.json has these keys (``None`` where not applicable).
@@ -126,41 +125,6 @@ def format_number(value: Any, digits: int = 4) -> str:
     return str(value)
 
 
-SUMMARY_COLUMNS = {  # metrics.json key -> terminal column label
-    "state_rmse": "state RMSE",
-    "state_rmse_vs_attack_free": "vs attack-free",
-    "state5_rmse": "state-5 RMSE",
-    "attack_rmse": "attack RMSE",
-    "attack_rmse_eq43": "eq.43 RMSE",
-    "tpr": "TPR",
-    "fpr": "FPR",
-    "auc": "AUC",
-}
-
-
-def summary_table(results: dict[str, dict[str, Any]], digits: int = 3) -> str:
-    """Plain-text headline table of ``{scenario: metrics}`` for the terminal.
-
-    One block per scenario that has estimators, one row per estimator, the headline columns
-    of :data:`SUMMARY_COLUMNS`; a column empty for every estimator of a scenario is dropped.
-    The full numbers are in each scenario's ``metrics.json`` and ``report.md``.
-    """
-    blocks = []
-    for scenario, metrics in results.items():
-        rows = metrics.get("estimators") or {}
-        if not rows:
-            continue
-        columns = [c for c in SUMMARY_COLUMNS if any(r.get(c) is not None for r in rows.values())]
-        width = max(len(n) for n in [*rows, "estimator"])
-        head = f"{'estimator':{width}s}" + "".join(f" {SUMMARY_COLUMNS[c]:>14s}" for c in columns)
-        lines = [f"{scenario} ({metrics.get('runs')} runs × {metrics.get('steps')} steps)", head]
-        for name, row in rows.items():
-            cells = "".join(f" {format_number(row.get(c), digits):>14s}" for c in columns)
-            lines.append(f"{name:{width}s}{cells}")
-        blocks.append("\n".join(lines))
-    return "\n\n".join(blocks)
-
-
 # ------------------------------------------------------------------ the generic report
 
 
@@ -215,43 +179,9 @@ def family_report(family: str) -> FamilyReport:
 
 
 def metrics_schema() -> dict[str, Any]:
-    """The JSON Schema of metrics.json, built from :data:`~difffilter.eval.scoring.METRICS`."""
-    number = {"type": ["number", "null"]}
-    integer = {"type": ["integer", "null"]}
-    props = {
-        name: {
-            **(integer if m.kind == "integer" else number),
-            "description": f"[{m.unit}] {m.definition}",
-        }
-        for name, m in METRICS.items()
-    }
-    return {
-        "$schema": "https://json-schema.org/draft/2020-12/schema",
-        "title": "difffilter metrics.json",
-        "type": "object",
-        "required": ["scenario", "runs", "steps", "seed", "units", "paper", "estimators"],
-        "properties": {
-            "scenario": {"type": "string"},
-            "runs": {"type": "integer", "minimum": 1},
-            "steps": {"type": "integer", "minimum": 1},
-            "seed": {"type": "integer", "minimum": 0},
-            "dt_s": {"type": "number", "exclusiveMinimum": 0},
-            "units": {
-                "type": "object",
-                "properties": {name: {"const": m.unit} for name, m in METRICS.items()},
-                "required": list(METRICS),
-            },
-            "paper": {"type": "object"},
-            "estimators": {
-                "type": "object",
-                "additionalProperties": {
-                    "type": "object",
-                    "properties": props,
-                    "required": list(METRICS),
-                },
-            },
-        },
-    }
+    """The JSON Schema of metrics.json (``eval/metrics.schema.json``; its units and
+    descriptions are those of :data:`~difffilter.eval.scoring.METRICS`, tested)."""
+    return json.loads((Path(__file__).parent / "metrics.schema.json").read_text())
 
 
 def markdown_table(header: list[str], rows: list[list[Any]]) -> str:

@@ -22,7 +22,7 @@ from difffilter.models.streams import Streams
 
 from .scoring import score
 
-__all__ = ["SuiteResult", "run_suite", "single_run_time_per_step"]
+__all__ = ["SuiteResult", "run_suite", "process_group", "single_run_time_per_step"]
 
 
 @dataclass
@@ -125,7 +125,7 @@ def run_suite(
     result = SuiteResult(scenario, runs, seed, traj, context=ctx)
     from tqdm.auto import tqdm
 
-    rank, world = _process_group()
+    rank, world = process_group()
     mine = specs[rank::world]  # with several processes, each runs its share of estimators
     with one_thread(scenario.single_thread), torch.no_grad():
         bar = tqdm(mine, desc=scenario.name, disable=not progress or rank > 0, leave=False)
@@ -166,7 +166,7 @@ def run_suite(
     return result
 
 
-def _process_group() -> tuple[int, int]:
+def process_group() -> tuple[int, int]:
     """``(rank, world size)`` of the torch.distributed group, ``(0, 1)`` without one."""
     import torch.distributed as dist
 

@@ -1,9 +1,11 @@
 """The generic estimators: they run on any scenario whose model fits them.
 
-KF/EKF/UKF gated by a χ² test or by CUSUM (τ calibrated on attack-free runs), the bootstrap
-PF with the probability-of-attack detector (and its attack-free reference), the modified
-PF with the oracle or an estimated attack, and the PF with the deception mixture
-likelihood. Detector thresholds come from the model (:meth:`SuiteContext.poa_detector`,
+The library's filters as they are (``kf`` for a linear model, ``ekf``, ``ukf``,
+``bootstrap_pf``, ``kalman_proposal_pf``: state estimates, no detection); KF/EKF/UKF
+gated by a χ² test or by CUSUM (τ calibrated on attack-free runs), the bootstrap PF with
+the probability-of-attack detector (and its attack-free reference), the modified PF with
+the oracle or an estimated attack, and the PF with the deception mixture likelihood.
+Detector thresholds come from the model (:meth:`SuiteContext.poa_detector`,
 :meth:`SuiteContext.cusum`), so a new plant needs no paper-specific arithmetic.
 """
 
@@ -13,13 +15,43 @@ import math
 
 import torch
 
+import difffilter as df
 from difffilter import fdi
+from difffilter.estimator import EstimatorOutput
 from difffilter.extended import extended_kalman_step, unscented_kalman_step
 from difffilter.kalman import kalman_step
+from difffilter.particle import KalmanProposal
 
 from .estimators import Run, SuiteContext, register
 
 __all__ = ["oracle_attack", "modified_pf", "default_estimators"]
+
+
+def _plain(run_filter):
+    """A factory of ``run_filter(ctx, traj)``'s means and covariances, without detection."""
+
+    def factory(ctx: SuiteContext) -> Run:
+        def run(tr):
+            res = run_filter(ctx, tr)
+            return EstimatorOutput(res.means, res.covs)
+
+        return run
+
+    return factory
+
+
+for _name, _filter in (("kf", df.kalman_filter), ("ekf", df.extended_kalman_filter),
+                       ("ukf", df.unscented_kalman_filter)):  # fmt: skip
+    register(_name, f"the library's {_name.upper()}, no attack handling (a linear model for kf)")(
+        _plain(lambda ctx, tr, f=_filter: f(ctx.model, tr.y_recv, tr.us, mask=tr.mask))
+    )
+for _name, _proposal in (("bootstrap_pf", None), ("kalman_proposal_pf", KalmanProposal())):
+    register(_name, f"the library's particle filter, {_name[:-3].replace('_', ' ')} proposal")(
+        _plain(lambda ctx, tr, p=_proposal: df.particle_filter(
+            ctx.model, tr.y_recv, tr.us, mask=tr.mask, **({"proposal": p} if p else {}),
+            **ctx.particle_kwargs(len(tr.y_recv))))
+    )  # fmt: skip
+
 
 _GAUSSIAN_STEPS = {"kf": kalman_step, "ekf": extended_kalman_step, "ukf": unscented_kalman_step}
 

@@ -82,10 +82,23 @@ def test_cli_and_suite_reject_bad_input(tmp_path, capsys):
         run_suite(registry.get("four_tank_bias"), runs=1, estimators=["nope"], progress=False)
 
 
-def test_committed_schema_is_the_generated_one():
+def test_committed_schema_holds_every_metric_with_its_unit_and_definition():
     from difffilter.eval.report import metrics_schema
+    from difffilter.eval.scoring import METRICS
 
-    assert SCHEMA == metrics_schema()
+    assert metrics_schema() == SCHEMA
+    units = SCHEMA["properties"]["units"]
+    assert units["required"] == list(METRICS)
+    assert {k: v["const"] for k, v in units["properties"].items()} == {
+        k: m.unit for k, m in METRICS.items()
+    }
+    entry = SCHEMA["properties"]["estimators"]["additionalProperties"]
+    assert entry["required"] == list(METRICS)
+    for name, m in METRICS.items():
+        assert entry["properties"][name] == {
+            "type": ["integer" if m.kind == "integer" else "number", "null"],
+            "description": f"[{m.unit}] {m.definition}",
+        }
 
 
 @pytest.mark.slow
