@@ -1,5 +1,8 @@
 """Process-level CPU tuning for long batched runs (opt-in; the library never calls it).
 
+:func:`one_thread` runs a block with one intra-op thread; :func:`tune_cpu_allocator`
+keeps large freed blocks in glibc's heap.
+
 Why: PyTorch's CPU tensors of a few MB (a particle cloud ``[B, N, d]`` with ``B·N`` ≈
 1e5) are allocated with glibc ``malloc``, which serves blocks above its mmap threshold
 with fresh ``mmap`` pages and returns them on ``free``. Every temporary of a filter step
@@ -16,8 +19,11 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import sys
+from contextlib import contextmanager
 
-__all__ = ["tune_cpu_allocator"]
+import torch
+
+__all__ = ["tune_cpu_allocator", "one_thread"]
 
 # mallopt parameter numbers from glibc's <malloc.h>
 _M_TRIM_THRESHOLD = -1
@@ -49,3 +55,21 @@ def tune_cpu_allocator(mmap_threshold: int = 1 << 30, top_pad: int = 64 << 20) -
     ok &= mallopt(_M_TRIM_THRESHOLD, int(mmap_threshold)) == 1
     ok &= mallopt(_M_TOP_PAD, int(top_pad)) == 1
     return bool(ok)
+
+
+@contextmanager
+def one_thread(enabled: bool = True):
+    """Run the block with one intra-op thread (restored afterwards; ``enabled=False``: as is).
+
+    The tensors of a study are small (``B·N·dx`` ≈ 1e4–1e5): on a 2-core machine a second
+    thread costs more in synchronisation than it gains (measured 5× slower under load).
+    A scenario whose estimators carry large matrices (``Scenario.single_thread = False``:
+    the LFC EKF over a network's weights, ``[B, P, P]`` covariances) keeps torch's threads.
+    """
+    threads = torch.get_num_threads()
+    if enabled:
+        torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)

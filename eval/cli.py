@@ -21,6 +21,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+import yaml
+
 from difffilter.models import registry
 from difffilter.runtime import tune_cpu_allocator
 
@@ -28,14 +30,8 @@ from .leaderboard import write_leaderboard
 from .report import family_report, write_report
 from .suite import process_group, run_suite
 
-__all__ = [
-    "main",
-    "build_parser",
-    "resolve_scenarios",
-    "evaluate",
-    "check_arguments",
-    "check_output_folder",
-]
+__all__ = ["main", "build_parser", "resolve_scenarios", "evaluate", "check_arguments",
+           "check_output_folder"]  # fmt: skip
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -64,10 +60,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--seed", type=int, default=0, help="master seed of every random draw (default 0)"
     )
     p.add_argument(
-        "--per-channel",
-        action="store_true",
-        help="also run the LFC per-channel validation (random attacks on each channel, "
-        "80 runs x 6 estimators x 1000 steps; its wall time goes into its metrics.json)",
+        "-o",
+        "--option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        type=_option,
+        help="an option of the scenario family's report, repeatable (VALUE read as YAML), e.g. "
+        "lfc's per_channel=true: the per-channel validation on random attacks (docs/scenarios.md)",
     )
     p.add_argument(
         "--devices",
@@ -79,6 +79,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     p.add_argument("--list", action="store_true", help="list the registered scenarios and exit")
     return p
+
+
+def _option(text: str) -> tuple[str, object]:
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE; got {text!r}")
+    return key, yaml.safe_load(value)
 
 
 def resolve_scenarios(name: str) -> list[str]:
@@ -103,15 +110,14 @@ def evaluate(
     out: Path,
     seed: int,
     progress: bool,
-    per_channel: bool = False,
     family_options: dict | None = None,
 ) -> dict:
     """Evaluate every scenario with the Monte Carlo suite; returns ``{scenario: metrics}``.
 
     Scenarios are taken family by family: the family's ``prepare`` (a study its reports
     share) runs once before its scenarios, its ``finish`` (a summary across them) once
-    after (:class:`~difffilter.eval.report.FamilyReport`). ``per_channel`` (the LFC
-    per-channel validation) and ``family_options`` reach ``prepare`` as its options. Ends
+    after (:class:`~difffilter.eval.report.FamilyReport`); ``family_options``
+    (``--option KEY=VALUE``) reach ``prepare`` as its options. Ends
     with the leaderboard of every scenario × estimator (:mod:`~difffilter.eval.leaderboard`:
     ``<out>/leaderboard.{md,json,png}``, ``<out>/tb_leaderboard``).
     """
@@ -119,6 +125,8 @@ def evaluate(
     families: dict[str, list[str]] = {}
     for name in scenarios:
         families.setdefault(registry.get(name).family, []).append(name)
+    if family_options and not any(family_report(f).prepare for f in families):
+        raise ValueError(f"--option: no family of {', '.join(families)} takes options")
     results: dict = {}
     cache: dict = {}  # shared by the suites of this call (e.g. common attack-free runs)
     writer = process_group()[0] == 0  # with --devices N, one process writes
@@ -126,10 +134,10 @@ def evaluate(
         report = family_report(family)
         prepared = None
         if report.prepare and writer:
-            options = {"per_channel": per_channel, **(family_options or {})}
             prepared = report.prepare(
-                names, out=Path(out), seed=seed, checkpoint=ckpt, progress=progress, options=options
-            )
+                names, out=Path(out), seed=seed, checkpoint=ckpt, progress=progress,
+                options=dict(family_options or {}),
+            )  # fmt: skip
         done = {}
         for name in names:
             result = run_suite(
@@ -164,32 +172,24 @@ def check_arguments(*, runs: int | None = None, ckpt: Path | None = None, device
 
 
 def _launch(devices: int, argv: list[str]) -> int:
-    """Run ``difffilter-eval`` in ``devices`` processes of one gloo group (rank 0 writes)."""
-    import socket
-
+    """Run ``difffilter-eval`` in ``devices`` CPU processes of one gloo group, launched by
+    Lightning Fabric (``ddp_spawn``); rank 0 writes. Returns rank 0's exit code."""
     import torch.multiprocessing as mp
+    from lightning.fabric import Fabric
 
-    with socket.socket() as s:  # a free port for the group's rendezvous
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
     try:
-        mp.spawn(_worker, args=(devices, port, argv), nprocs=devices, join=True)
+        return Fabric(accelerator="cpu", devices=devices, strategy="ddp_spawn").launch(
+            _worker, argv
+        )
     except mp.ProcessExitedException as exc:  # the worker printed its error
         return exc.exit_code or 1
-    return 0
 
 
-def _worker(rank: int, devices: int, port: int, argv: list[str]) -> None:
-    import torch.distributed as dist
-
-    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
-    dist.init_process_group("gloo", rank=rank, world_size=devices)
-    try:
-        code = main([*argv, "--devices", "1"] + ([] if rank == 0 else ["--no-progress"]))
-    finally:
-        dist.destroy_process_group()
+def _worker(fabric, argv: list[str]) -> int:
+    code = main([*argv, "--devices", "1"] + (["--no-progress"] if fabric.global_rank else []))
     if code:
         raise SystemExit(code)
+    return code
 
 
 def check_output_folder(out: Path) -> None:
@@ -229,7 +229,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             out=args.out,
             seed=args.seed,
             progress=not args.no_progress,
-            per_channel=args.per_channel,
+            family_options=dict(args.option),
         )
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-eval: error: {exc}", file=sys.stderr)

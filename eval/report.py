@@ -26,10 +26,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from difffilter.models import estimators as registry
+
 from .scoring import METRICS
 
 __all__ = [
-    "REQUIRED_KEYS",
     "Section",
     "FamilyReport",
     "register_family",
@@ -37,14 +38,8 @@ __all__ = [
     "metrics_schema",
     "write_report",
     "markdown_table",
-    "estimator_entry",
-    "write_metrics",
-    "read_metrics",
     "format_number",
 ]
-
-#: Every estimator entry of metrics.json has these keys (``None`` where not applicable).
-REQUIRED_KEYS = tuple(METRICS)
 
 
 def _clean(value: Any) -> Any:
@@ -63,60 +58,11 @@ def _clean(value: Any) -> Any:
     return value
 
 
-def estimator_entry(*, state_rmse: float, time_per_step_s: float, **values: Any) -> dict[str, Any]:
-    """One estimator's entry with every key of :data:`REQUIRED_KEYS` (``None`` where absent)."""
-    entry = dict.fromkeys(REQUIRED_KEYS)
-    entry.update(state_rmse=state_rmse, time_per_step_s=time_per_step_s, **values)
-    return _clean(entry)
-
-
-def write_metrics(
-    path: str | Path,
-    *,
-    scenario: str,
-    runs: int,
-    steps: int,
-    seed: int,
-    paper: dict[str, Any],
-    estimators: dict[str, dict[str, Any]],
-    **extra: Any,
-) -> Path:
-    """Validate and write ``metrics.json``; returns its path."""
-    for name, entry in estimators.items():
-        missing = [k for k in REQUIRED_KEYS if k not in entry]
-        if missing:
-            raise ValueError(f"estimator {name!r} lacks required metric keys {missing}")
-    doc = {
-        "scenario": scenario,
-        "runs": runs,
-        "steps": steps,
-        "seed": seed,
-        "units": {name: m.unit for name, m in METRICS.items()},
-        "paper": paper,
-        "estimators": estimators,
-        **extra,
-    }
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(_clean(doc), indent=2, sort_keys=False) + "\n")
-    return path
-
-
-def read_metrics(path: str | Path) -> dict[str, Any]:
-    """Load a ``metrics.json`` written by :func:`write_metrics` (``FileNotFoundError`` if absent)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no metrics file at {path}")
-    return json.loads(path.read_text())
-
-
 def format_number(value: Any, digits: int = 4) -> str:
     """Compact table formatting: ``—`` for missing values, scientific for small ones."""
     if value is None:
         return "—"
-    if isinstance(value, bool):
-        return str(value)
-    if isinstance(value, int):
+    if isinstance(value, (bool, int)):
         return str(value)
     if isinstance(value, float):
         if value == 0 or 1e-3 <= abs(value) < 1e4:
@@ -191,15 +137,16 @@ def markdown_table(header: list[str], rows: list[list[Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_report(
-    out: str | Path, result, *, extra: dict[str, Any] | None = None, prepared: Any = None
-) -> dict[str, Any]:
+def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, Any]:
     """Write metrics.json, report.md, plots and TensorBoard events of a suite run.
+
+    metrics.json holds every metric of :data:`~difffilter.eval.scoring.METRICS` for every
+    estimator (``None`` where it does not apply), with the units, the scenario's settings
+    and paper numbers, and what the family's ``extra`` adds.
 
     Args:
         out: the scenario's folder (created).
         result: a :class:`~difffilter.eval.suite.SuiteResult`.
-        extra: more top-level metrics.json entries (e.g. the checkpoint evaluated).
         prepared: what the family's ``prepare`` returned, for its sections.
 
     Returns the metrics.json content.
@@ -211,34 +158,21 @@ def write_report(
     out.mkdir(parents=True, exist_ok=True)
     sc = result.scenario
     family = family_report(sc.family)
-    from difffilter.models import estimators as registry
-
     family_numbers = family.extra(result) if family.extra else {}  # may add estimator keys
-    entries = {name: estimator_entry(**m) for name, m in result.metrics.items()}
-    top = {
-        "description": sc.description,
-        "dt_s": sc.dt,
-        "reference": result.reference,
+    doc = _clean({
+        "scenario": sc.name, "runs": result.runs, "steps": sc.steps, "seed": result.seed,
+        "units": {name: m.unit for name, m in METRICS.items()},
+        "paper": sc.paper_numbers(),
+        "estimators": {n: {**dict.fromkeys(METRICS), **m} for n, m in result.metrics.items()},
+        "description": sc.description, "dt_s": sc.dt, "reference": result.reference,
         "estimator_descriptions": {n: registry.get(n).description for n in result.metrics},
         "notes": list(sc.notes),
         "attacked_steps": int(result.traj.flags.sum()),
         "attack_free_steps": int((~result.traj.flags).sum()),
-        "skipped": dict(result.skipped),
-        "checkpoint": result.checkpoint,
+        "skipped": dict(result.skipped), "checkpoint": result.checkpoint,
         **family_numbers,
-        **(extra or {}),
-    }
-    path = write_metrics(
-        out / "metrics.json",
-        scenario=sc.name,
-        runs=result.runs,
-        steps=sc.steps,
-        seed=result.seed,
-        paper=sc.paper_numbers(),
-        estimators=entries,
-        **top,
-    )
-    doc = read_metrics(path)
+    })  # fmt: skip
+    (out / "metrics.json").write_text(json.dumps(doc, indent=2) + "\n")
     figures = standard_figures(result)
     sections = [_summary_section(doc, sc), _table_section(doc)]
     sections.append(Section("Plots", "", [name for name, _ in figures]))
@@ -280,19 +214,9 @@ def _summary_section(doc: dict, sc) -> Section:
     return Section("Setting", body)
 
 
-_TABLE_COLUMNS = (
-    "state_rmse",
-    "state_rmse_vs_attack_free",
-    "attack_rmse",
-    "tpr",
-    "fpr",
-    "auc",
-    "tpr_at_1pct_fpr",
-    "false_alarms_per_1000_steps",
-    "detection_delay_steps",
-    "detection_delay_s",
-    "time_per_step_s",
-)
+_TABLE_COLUMNS = ("state_rmse", "state_rmse_vs_attack_free", "attack_rmse", "tpr", "fpr", "auc",
+                  "tpr_at_1pct_fpr", "false_alarms_per_1000_steps", "detection_delay_steps",
+                  "detection_delay_s", "time_per_step_s")  # fmt: skip
 
 
 def _table_section(doc: dict) -> Section:

@@ -27,6 +27,7 @@ __all__ = [
     "Metric",
     "METRICS",
     "FALSE_ALARM_BUDGET",
+    "HEADLINE",
     "true_states",
     "score",
     "roc",
@@ -34,6 +35,10 @@ __all__ = [
     "rmse_over_time",
     "rates_by_size",
 ]
+
+#: The headline metrics (the leaderboard's columns and the TensorBoard HPARAMS table's).
+HEADLINE = ("attack_rmse", "auc", "tpr_at_1pct_fpr", "detection_delay_s", "state_rmse",
+            "state_rmse_vs_attack_free", "time_per_step_s")  # fmt: skip
 
 #: The false-alarm rate at which ``tpr_at_1pct_fpr`` reads the ROC curve.
 FALSE_ALARM_BUDGET = 0.01

@@ -9,7 +9,6 @@ master seed, runs each estimator on the same trajectories with the same random n
 from __future__ import annotations
 
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -19,6 +18,7 @@ from difffilter.estimator import EstimatorOutput
 from difffilter.models import estimators as registry
 from difffilter.models.generic_estimators import default_estimators
 from difffilter.models.streams import Streams
+from difffilter.runtime import one_thread
 
 from .scoring import score
 
@@ -55,24 +55,6 @@ class SuiteResult:
     checkpoint: dict[str, Any] | None = None
 
 
-@contextmanager
-def one_thread(enabled: bool = True):
-    """Run the block with one intra-op thread (restored afterwards; ``enabled=False``: as is).
-
-    The tensors of a study are small (``B·N·dx`` ≈ 1e4–1e5): on a 2-core machine a second
-    thread costs more in synchronisation than it gains (measured 5× slower under load).
-    A scenario whose estimators carry large matrices (``Scenario.single_thread = False``:
-    the LFC EKF over a network's weights, ``[B, P, P]`` covariances) keeps torch's threads.
-    """
-    threads = torch.get_num_threads()
-    if enabled:
-        torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
-
-
 def run_suite(
     scenario,
     *,
@@ -99,7 +81,7 @@ def run_suite(
         cache: a dict shared by the suites of one evaluation (``SuiteContext.cache``).
 
     Runs with one intra-op thread unless the scenario says otherwise
-    (:func:`one_thread`). Inside a torch.distributed process group (``difffilter-eval
+    (:func:`difffilter.runtime.one_thread`). Inside a torch.distributed process group (``difffilter-eval
     --devices N``) each process runs every N-th estimator and the outputs are gathered:
     the same numbers as one process, since every estimator sees the same trajectories and
     named streams wherever it runs. An estimator whose factory

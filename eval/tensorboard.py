@@ -11,20 +11,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .scoring import rmse_over_time, true_states
+from .scoring import HEADLINE, rmse_over_time, true_states
 
-__all__ = ["log_suite", "HPARAM_METRICS"]
-
-#: Metrics shown in the hparams table.
-HPARAM_METRICS = (
-    "state_rmse",
-    "state_rmse_vs_attack_free",
-    "attack_rmse",
-    "auc",
-    "tpr_at_1pct_fpr",
-    "detection_delay_s",
-    "time_per_step_s",
-)
+__all__ = ["log_suite"]
 
 
 def log_suite(logdir: Path, result, doc: dict, figures) -> None:
@@ -45,7 +34,7 @@ def log_suite(logdir: Path, result, doc: dict, figures) -> None:
         for fname, fig in figures:
             w.add_figure(Path(fname).stem, fig, close=False)
         for name, entry in doc["estimators"].items():
-            metrics = {f"hparam/{m}": entry[m] for m in HPARAM_METRICS if entry.get(m) is not None}
+            metrics = {f"hparam/{m}": entry[m] for m in HEADLINE if entry.get(m) is not None}
             hparams = {
                 "scenario": doc["scenario"],
                 "estimator": name,

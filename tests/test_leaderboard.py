@@ -5,11 +5,11 @@ from __future__ import annotations
 import json
 
 from difffilter.eval.leaderboard import COLUMNS, leaderboard_rows, write_leaderboard
-from difffilter.eval.report import REQUIRED_KEYS
+from difffilter.eval.scoring import METRICS
 
 
 def doc(names, ckpt=None, **values):
-    entries = {n: dict.fromkeys(REQUIRED_KEYS) | values for n in names}
+    entries = {n: dict.fromkeys(METRICS) | values for n in names}
     return {"estimators": entries, "checkpoint": ckpt}
 
 

@@ -12,7 +12,8 @@ import torch
 
 import difffilter as df
 from difffilter.eval.cli import evaluate
-from difffilter.eval.report import REQUIRED_KEYS, metrics_schema, write_report
+from difffilter.eval.report import metrics_schema, write_report
+from difffilter.eval.scoring import METRICS
 from difffilter.eval.suite import run_suite
 from difffilter.models import registry
 from difffilter.models.neural_estimator import NeuralFDIEstimator, save_estimator_checkpoint
@@ -38,7 +39,7 @@ def smoke(tmp_path_factory, short_scenario):
     ckpt = out / "net.ckpt"
     net = NeuralFDIEstimator(hidden=4, init="symmetric", init_scale=0.05, seed=1)
     save_estimator_checkpoint(ckpt, net, {"residual_lag": 0, "dt": 0.01})
-    options = {"per_channel_runs": 1, "per_channel_steps": 150}
+    options = {"per_channel": True, "per_channel_runs": 1, "per_channel_steps": 150}
     result = evaluate(
         [short_scenario.name],
         ckpt=ckpt,
@@ -46,7 +47,6 @@ def smoke(tmp_path_factory, short_scenario):
         out=out,
         seed=5,
         progress=False,
-        per_channel=True,
         family_options=options,
     )
     return out, out / short_scenario.name, result[short_scenario.name]
@@ -62,7 +62,7 @@ def test_metrics_json_follows_the_schema_with_the_family_metrics(smoke):
     est = doc["estimators"]
     assert set(registry.get("lfc_simultaneous").estimators) == set(est)
     for name, entry in est.items():
-        assert set(REQUIRED_KEYS) <= set(entry), name
+        assert set(METRICS) <= set(entry), name
         assert entry["state5_rmse"] > 0, name
     for name in MAIN:
         e = est[name]
@@ -115,8 +115,13 @@ def test_per_channel_validation_files(smoke):
 def test_per_channel_validation_is_opt_in_on_the_cli():
     from difffilter.eval.cli import build_parser
 
-    assert build_parser().parse_args(["lfc_step"]).per_channel is False
-    assert build_parser().parse_args(["lfc", "--per-channel"]).per_channel is True
+    assert build_parser().parse_args(["lfc_step"]).option == []
+    args = build_parser().parse_args(
+        ["lfc", "-o", "per_channel=true", "--option", "per_channel_runs=2"]
+    )
+    assert dict(args.option) == {"per_channel": True, "per_channel_runs": 2}
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["lfc", "--option", "per_channel"])
 
 
 def test_without_ckpt_the_shipped_checkpoint_is_used_and_recorded(tmp_path):

@@ -9,23 +9,19 @@ new family adds files and edits no list.
 
 from __future__ import annotations
 
+import functools
 import importlib
 import pkgutil
 
 __all__ = ["load_all"]
 
-_LOADED = False
 
-
+@functools.cache
 def load_all() -> None:
-    """Import every family module once."""
-    global _LOADED
-    if _LOADED:
-        return
-    _LOADED = True
+    """Import every module of ``difffilter.models``, then every family module here, once."""
     from difffilter.models.registry import all_scenarios
 
-    all_scenarios()  # imports every module of difffilter.models
+    all_scenarios()
     for info in pkgutil.iter_modules(__path__):
         if not info.name.startswith("_"):
             importlib.import_module(f"{__name__}.{info.name}")

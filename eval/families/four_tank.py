@@ -186,13 +186,8 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
         head, rows
     )
     if nominal and not noisy:
-        head = [
-            "method",
-            "paper RMSE",
-            "ours vs attack-free (median run)",
-            "paper CPU s/step",
-            "ours single-run s/step",
-        ]
+        head = ["method", "paper RMSE", "ours vs attack-free (median run)", "paper CPU s/step",
+                "ours single-run s/step"]  # fmt: skip
         rows = [[label, f(p4[key]["rmse"]), f"{f(est[n]['state_rmse_vs_attack_free'])} "
                  f"({f(est[n]['state_rmse_vs_attack_free_median_run'])})", f(p4[key]["cpu_time_per_step_s"]),
                  f(est[n].get("time_per_step_single_run_s"))] for label, key, n in TABLE4]  # fmt: skip
@@ -212,14 +207,8 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
     secs = [Section("Beside the paper", table), _fig9_section(doc, out)]
     h = doc.get("high_noise_false_alarms")
     if h:
-        head = [
-            "η",
-            "value",
-            "FPR",
-            "false alarms / run",
-            "TPR ‖γ‖>‖γ‖_min",
-            "RMSE vs attack-free (all / k > 20)",
-        ]
+        head = ["η", "value", "FPR", "false alarms / run", "TPR ‖γ‖>‖γ‖_min",
+                "RMSE vs attack-free (all / k > 20)"]  # fmt: skip
         rows = [[label, f"{r['eta']:.4f}", _pct(r["fpr"]), f(r["false_alarms_per_run"]), _pct(r["tpr_detectable"]),
                  f"{f(r['state_rmse_vs_attack_free'])} / {f(r['state_rmse_vs_attack_free_k_gt_20'])}"]
                 for label, r in (("paper's (nominal R)", h["eta_paper"]),

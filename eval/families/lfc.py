@@ -80,14 +80,8 @@ def _sections(result, doc: dict, out: Path, prepared=None) -> list[Section]:
     est, paper, sc, f = doc["estimators"], doc["paper"], result.scenario, format_number
     ref = {"traditional_ad": paper.get("traditional_ad"), "kf_nn_ekf": paper.get("proposed_ad")}
     shown = [n for n in (*MAIN, *ABLATIONS) if n in est]
-    rows = [
-        [
-            f"`{n}`",
-            f"{f(est[n]['attack_rmse_eq43'])} ± {f(est[n]['attack_rmse_eq43_std'])}",
-            f(ref.get(n)),
-        ]
-        for n in shown
-    ]
+    rows = [[f"`{n}`", f"{f(est[n]['attack_rmse_eq43'])} ± {f(est[n]['attack_rmse_eq43_std'])}",
+             f(ref.get(n))] for n in shown]  # fmt: skip
     t1 = markdown_table(["estimator", "ours (mean ± sd over runs)", "paper"], rows) + (
         '\nThe paper\'s "proposed AD" is `kf_nn_ekf`, its "traditional AD" `traditional_ad`; '
         '`kf_nn_grad` and `kf_nn_grad_ekf` are ours. With C = I, "observer poles 3× faster '
@@ -103,15 +97,10 @@ def _sections(result, doc: dict, out: Path, prepared=None) -> list[Section]:
             f(paper.get("state5_traditional_ctrl")),
         ]
     ]
-    rows += [
-        [
-            f"secure, compensated by `{n}`",
-            f(est[n]["state5_rmse"]),
-            f(est[n]["state5_rmse_attack_free"]),
-            f(paper.get("state5_secure_ctrl")) if n == "kf_nn_ekf" else "",
-        ]
-        for n in shown
-    ]
+    rows += [[f"secure, compensated by `{n}`", f(est[n]["state5_rmse"]),
+              f(est[n]["state5_rmse_attack_free"]),
+              f(paper.get("state5_secure_ctrl")) if n == "kf_nn_ekf" else ""]
+             for n in shown]  # fmt: skip
     t2 = markdown_table(["controller", "ours", "ours, attack-free", "paper"], rows) + (
         "\nTable II depends on the paper's unknown load and noise (docs/scenarios.md): "
         "compare orderings and ratios, not values.\n"
@@ -233,6 +222,9 @@ def _explain(sc, table: dict, est: dict) -> str:
 def _prepare(names, *, out: Path, seed: int, checkpoint, progress: bool, options: dict) -> dict:
     """The tuning table and, with ``options["per_channel"]``, the per-channel validation
     (``per_channel_runs``, ``per_channel_steps``: its size, default 8 per channel × 1000)."""
+    unknown = set(options) - {"per_channel", "per_channel_runs", "per_channel_steps"}
+    if unknown:
+        raise ValueError(f"--option: unknown lfc option(s) {sorted(unknown)}")
     tuning = json.loads(TUNING.read_text()) if TUNING.is_file() else None
     doc = None
     checkpoint = checkpoint or registry.get(names[0]).shipped_checkpoint()
@@ -317,22 +309,10 @@ def _finish(results: dict, out: Path, prepared) -> None:
         for n in MAIN:
             if name in CORE and n in est:
                 means[n].append(est[n]["attack_rmse_eq43"])
-        rows.append(
-            [
-                name,
-                *(f(est.get(n, {}).get("attack_rmse_eq43")) for n in MAIN),
-                f(doc["paper"].get("proposed_ad")),
-                f(doc["paper"].get("traditional_ad")),
-            ]
-        )
-    rows.append(
-        [
-            "mean of I–IV",
-            *(f(sum(v) / 4) if len(v) == 4 else "—" for v in means.values()),
-            f(PAPER_MEAN["proposed_ad"]),
-            f(PAPER_MEAN["traditional_ad"]),
-        ]
-    )
+        rows.append([name, *(f(est.get(n, {}).get("attack_rmse_eq43")) for n in MAIN),
+                     f(doc["paper"].get("proposed_ad")), f(doc["paper"].get("traditional_ad"))])  # fmt: skip
+    rows.append(["mean of I–IV", *(f(sum(v) / 4) if len(v) == 4 else "—" for v in means.values()),
+                 f(PAPER_MEAN["proposed_ad"]), f(PAPER_MEAN["traditional_ad"])])  # fmt: skip
     table = markdown_table(["scenario", *MAIN, "paper proposed", "paper traditional"], rows)
     (out / "lfc_summary.md").write_text(
         f"# LFC summary\n\nAttack RMSE (eq. 43; scenario III: sum over states 3 and 8).\n\n{table}"
