@@ -43,6 +43,7 @@ __all__ = [
     "get",
     "names",
     "ESTIMATORS",
+    "poa_detector_for_scenario",
 ]
 
 Run = Callable[[Any], EstimatorOutput]
@@ -168,15 +169,8 @@ class SuiteContext:
         return self.options.get(key, default)
 
     def poa_detector(self) -> fdi.PoADetector:
-        """PoA thresholds from the model (Theorem 1, eq. 53), or the scenario's options."""
-        if "poa_eta" in self.options:
-            return fdi.PoADetector(self.options["poa_eta"], self.options["poa_zeta"])
-        return fdi.poa_detector_for(
-            self.model,
-            gamma_min=self.scenario.attack_norm_floor(),
-            p_l=float(getattr(self.scenario.attack_model(), "p_l", 0.5)),
-            num_particles=self.scenario.num_particles,
-        )
+        """PoA thresholds of the scenario (:func:`poa_detector_for_scenario`)."""
+        return poa_detector_for_scenario(self.scenario, self.model, self.options)
 
     def cusum(self, step) -> fdi.CusumDetector:
         """CUSUM calibrated on the attack-free calibration runs with ``step``'s filter."""
@@ -190,3 +184,19 @@ class SuiteContext:
             us=cal.us,
             mask=cal.mask,
         )
+
+
+def poa_detector_for_scenario(scenario, model, options=None) -> fdi.PoADetector:
+    """The PoA detector of ``scenario`` on ``model``: ``η, ζ`` from the scenario's options
+    (``poa_eta``, ``poa_zeta``: a paper's values) or else from the model by Theorem 1
+    (eq. 53) with ``‖γ‖_min = scenario.attack_norm_floor()``, ``p_l`` of its attack (0.5
+    when it has none) and its particle count. Evaluation and training share it."""
+    options = scenario.estimator_options() if options is None else options
+    if "poa_eta" in options:
+        return fdi.PoADetector(options["poa_eta"], options["poa_zeta"])
+    return fdi.poa_detector_for(
+        model,
+        gamma_min=scenario.attack_norm_floor(),
+        p_l=float(getattr(scenario.attack_model(), "p_l", 0.5)),
+        num_particles=scenario.num_particles,
+    )

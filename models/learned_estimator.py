@@ -6,9 +6,22 @@ NeuralFDIEstimator`, with one "area" of ``dy`` channels)::
 
     ν_k = ỹ_k − E[h(x_k) | ỹ_{1:k−1}],   S_k = Cov(ν_k)       the filter's innovation
     e_k = ν_k / √diag(S_k)                                    standardised, 0 where unreceived
-    δ_k = [â_{k−1}, …, â_{k−a}, e_k, …, e_{k−b+1}]            eq. (9) with residual lag ℓ = 0
+    δ_k = [â_{k−1}, …, â_{k−a}, e_k, …, e_{k−b+1}, f_k]       eq. (9) with residual lag ℓ = 0
     â_k, logit_k = network(δ_k)                               eq. (8) and its detection head
     update with ỹ_k − â_k                                     the compensated measurement
+
+``f_k`` holds the optional ``features`` (:data:`FEATURES`), in this order::
+
+    "mask"            m_k ∈ {0, 1}^dy, the received entries
+    "log_likelihood"  asinh(−2 ℓ_k / max(|m_k|, 1)),  ℓ_k = log p̂(ỹ_k | ỹ_{1:k−1}) of the
+                      uncompensated measurement (the PF's log-sum-exp of its predictive
+                      weights times the particles' likelihoods; the Kalman filters'
+                      Gaussian density of ν_k): about 1 per entry without attack, growing
+                      with it; asinh keeps the tanh units out of saturation
+    "poa"             β_k = Σ_{i: ‖z^i‖ > η} w^i_{k−1},  z^i = ỹ_k − h(x^i_k) (received
+                      entries; the model's ``measurement_residual``, angles wrapped): the
+                      probability of attack of the modified-PF paper (eq. 14) with the
+                      scenario's threshold η; particle filter only
 
 ``S_k`` is the particles' spread of ``h`` plus ``R`` for the particle filter (its
 :class:`~difffilter.particle.Predictive`), ``H P⁻ Hᵀ + R`` for the Kalman filters. Every
@@ -26,42 +39,100 @@ from torch import Tensor
 from difffilter.estimator import Detection, EstimatorOutput
 from difffilter.extended import extended_kalman_step, unscented_kalman_step
 from difffilter.fdi.modified_pf import AttackCompensatedLikelihood
+from difffilter.fdi.poa import probability_of_attack
 from difffilter.kalman import gaussian_init, kalman_step
 from difffilter.models.estimators import SkipEstimator, register
 from difffilter.models.neural_estimator import NeuralFDIEstimator, build_delta
-from difffilter.particle import particle_filter
+from difffilter.particle import ModelLikelihood, particle_filter
 
-__all__ = ["NeuralCompensation", "neural_particle_filter", "neural_gaussian_filter"]
+__all__ = [
+    "FEATURES",
+    "feature_dim",
+    "NeuralCompensation",
+    "neural_particle_filter",
+    "neural_gaussian_filter",
+]
 
 GAUSSIAN_STEPS = {"kf": kalman_step, "ekf": extended_kalman_step, "ukf": unscented_kalman_step}
+
+#: The optional per-step inputs (module docstring), in the order they enter ``δ_k``.
+FEATURES = ("mask", "log_likelihood", "poa")
+
+
+def feature_dim(features, dim_y: int) -> int:
+    """Width of ``f_k`` for ``features`` (``ValueError`` naming an unknown or repeated one)."""
+    features = tuple(features)
+    unknown = [f for f in features if f not in FEATURES]
+    if unknown or len(set(features)) != len(features):
+        raise ValueError(f"features must be distinct names of {FEATURES}; got {list(features)}")
+    return sum(dim_y if f == "mask" else 1 for f in features)
 
 
 class NeuralCompensation:
     """The network's state over a sequence: its input histories and what it output.
 
     :meth:`step` maps one innovation ``ν [..., dy]`` with covariance ``S [..., dy, dy]``
-    (and ``mask [..., dy]``) to ``(â [..., dy], logit [...])``; :attr:`attack` and
+    (and ``mask [..., dy]``, the step's ``log_likelihood [...]`` and ``poa [...]`` where
+    ``features`` ask for them) to ``(â [..., dy], logit [...])``; :attr:`attack` and
     :attr:`logit` stack the outputs over the steps so far (``[..., T, dy]``, ``[..., T]``).
     As a particle-filter likelihood (``uses_predictive``) it reads the step's
-    :class:`~difffilter.particle.Predictive` and weighs the particles with the
-    compensated measurement, ``log p(ỹ_k − â_k | x_k^i)``.
+    :class:`~difffilter.particle.Predictive`, computes the features from the proposed
+    particles, and weighs them with the compensated measurement, ``log p(ỹ_k − â_k | x_k^i)``.
+
+    Args:
+        network: one area of ``dy`` channels, ``extra_inputs = feature_dim(features, dy)``.
+        features: names of :data:`FEATURES` (module docstring).
+        poa_eta: ``η`` of the ``"poa"`` feature (needed with it).
     """
 
     uses_predictive = True
 
-    def __init__(self, network: NeuralFDIEstimator):
+    def __init__(self, network: NeuralFDIEstimator, features=(), poa_eta: float | None = None):
         if not isinstance(network, NeuralFDIEstimator):
             raise TypeError(f"network must be a NeuralFDIEstimator; got {type(network).__name__}")
         if network.num_areas != 1:
             raise ValueError(
                 f"network must have num_areas = 1 (one area of dy channels); got {network.num_areas}"
             )
-        self.network = network
+        width = feature_dim(features, network.area_dim)
+        if network.extra_inputs != width:
+            raise ValueError(
+                f"network.extra_inputs is {network.extra_inputs} but features {list(features)} "
+                f"need {width} inputs"
+            )
+        if "poa" in features and (poa_eta is None or not poa_eta >= 0):
+            raise ValueError(
+                f"the 'poa' feature needs poa_eta >= 0 (its threshold η); got {poa_eta!r}"
+            )
+        self.network, self.features, self.poa_eta = network, tuple(features), poa_eta
         self.attack_hist = self.resid_hist = None
         self._attacks: list[Tensor] = []
         self._logits: list[Tensor] = []
 
-    def step(self, innovation: Tensor, innovation_cov: Tensor, mask: Tensor | None = None):
+    def _features(self, e: Tensor, mask: Tensor | None, log_likelihood, poa) -> list[Tensor]:
+        received = torch.ones_like(e) if mask is None else mask.to(e.dtype)
+        out = []
+        for name in self.features:
+            if name == "mask":
+                out.append(received)
+            elif log_likelihood is None or (name == "poa" and poa is None):
+                raise ValueError(f"feature {name!r} needs the filter's {name} at every step")
+            elif name == "log_likelihood":
+                count = received.sum(-1).clamp_min(1.0)
+                out.append(torch.asinh(-2.0 * log_likelihood.to(e.dtype) / count).unsqueeze(-1))
+            else:
+                out.append(poa.to(e.dtype).unsqueeze(-1))
+        return out
+
+    def step(
+        self,
+        innovation: Tensor,
+        innovation_cov: Tensor,
+        mask: Tensor | None = None,
+        *,
+        log_likelihood: Tensor | None = None,
+        poa: Tensor | None = None,
+    ):
         net, dy = self.network, innovation.shape[-1]
         if dy != net.area_dim:
             raise ValueError(
@@ -78,8 +149,11 @@ class NeuralCompensation:
         resid = torch.cat([e.unsqueeze(-2), self.resid_hist[..., :-1, :]], -2)
         delta = build_delta(
             self.attack_hist.reshape(-1, net.a, dy), resid.reshape(-1, net.b, dy), 1
-        ).reshape(*batch, 1, -1)
-        attack, logit = net(delta.to(net.V.dtype))
+        ).reshape(*batch, -1)
+        if self.features:
+            extra = self._features(e, mask, log_likelihood, poa)
+            delta = torch.cat([delta, *(f.expand(*batch, -1) for f in extra)], -1)
+        attack, logit = net(delta.unsqueeze(-2).to(net.V.dtype))
         attack = attack[..., 0, :].to(e.dtype)
         if mask is not None:
             attack = attack * mask.to(attack.dtype)
@@ -91,7 +165,16 @@ class NeuralCompensation:
         return attack, logit
 
     def __call__(self, model, y, particles, k, mask, *, predictive) -> Tensor:
-        attack, _ = self.step(predictive.innovation, predictive.innovation_cov, mask)
+        kw = {}
+        if "log_likelihood" in self.features:
+            ll = ModelLikelihood()(model, y, particles, k, mask)
+            kw["log_likelihood"] = torch.logsumexp(predictive.log_weights + ll, -1)
+        if "poa" in self.features:
+            z = model.measurement_residual(y.unsqueeze(-2), model.observe(particles, k))
+            if mask is not None:
+                z = z * mask.unsqueeze(-2).to(z.dtype)
+            kw["poa"] = probability_of_attack(z, self.poa_eta, predictive.log_weights)
+        attack, _ = self.step(predictive.innovation, predictive.innovation_cov, mask, **kw)
         always = torch.ones(attack.shape[:-1], dtype=torch.bool, device=attack.device)
         return AttackCompensatedLikelihood(always, attack)(model, y, particles, k, mask)
 
@@ -124,13 +207,16 @@ def neural_particle_filter(
     num_particles: int,
     mask: Tensor | None = None,
     threshold: float = 0.5,
+    features=(),
+    poa_eta: float | None = None,
     **driver,
 ) -> EstimatorOutput:
     """The particle filter of :func:`difffilter.particle_filter` (``driver``: resampler,
     proposal, generators, ``initial_state``, …) with the network's compensation as its
-    likelihood. ``ys [..., T, dy]`` → means ``[..., T, dx]``, ``attack [..., T, dy]``,
-    detection scores ``p [..., T]``; ``extras``: ``attack_logit``, ``log_likelihood [...]``."""
-    comp = NeuralCompensation(network)
+    likelihood (``features``, ``poa_eta``: :class:`NeuralCompensation`). ``ys [..., T, dy]``
+    → means ``[..., T, dx]``, ``attack [..., T, dy]``, detection scores ``p [..., T]``;
+    ``extras``: ``attack_logit``, ``log_likelihood [...]``."""
+    comp = NeuralCompensation(network, features, poa_eta)
     res = particle_filter(
         model, ys, us, num_particles=num_particles, mask=mask, likelihood=comp, **driver
     )
@@ -146,20 +232,26 @@ def neural_gaussian_filter(
     kind: str = "kf",
     mask: Tensor | None = None,
     threshold: float = 0.5,
+    features=(),
 ) -> EstimatorOutput:
     """The KF, EKF or UKF (``kind``) with the network's compensation: each step runs the
-    filter's step once for ``ν_k, S_k`` and once with ``ỹ_k − â_k`` (the update that counts).
-    Shapes as in :func:`neural_particle_filter`."""
+    filter's step once for ``ν_k, S_k`` and ``ℓ_k`` and once with ``ỹ_k − â_k`` (the update
+    that counts). ``features`` as in :class:`NeuralCompensation`, without ``"poa"`` (no
+    particles). Shapes as in :func:`neural_particle_filter`."""
     if kind not in GAUSSIAN_STEPS:
         raise ValueError(f"kind must be one of {sorted(GAUSSIAN_STEPS)}; got {kind!r}")
-    step, comp = GAUSSIAN_STEPS[kind], NeuralCompensation(network)
+    if "poa" in features:
+        raise ValueError("the 'poa' feature needs particles: use neural_particle_filter")
+    step, comp = GAUSSIAN_STEPS[kind], NeuralCompensation(network, features)
     state = gaussian_init(model, ys.shape[:-2])
     means, covs = [], []
     for t in range(ys.shape[-2]):
         u = None if us is None else us[..., t, :]
         m = None if mask is None else mask[..., t, :]
         _, probe = step(model, state, ys[..., t, :], u, m)
-        attack, _ = comp.step(probe.innovation, probe.innovation_cov, m)
+        attack, _ = comp.step(
+            probe.innovation, probe.innovation_cov, m, log_likelihood=probe.log_likelihood
+        )
         state, _ = step(model, state, ys[..., t, :] - attack, u, m)
         means.append(state.mean)
         covs.append(state.cov)
@@ -194,12 +286,13 @@ def _trained_network(ctx, name: str, kinds) -> tuple[NeuralFDIEstimator, dict]:
 
 
 def _learned(name: str, kinds, run_filter):
-    """A factory running ``run_filter(ctx, traj, observer, network=, threshold=)`` with the
-    checkpoint's network, without gradients."""
+    """A factory running ``run_filter(ctx, traj, observer, network=, threshold=, features=)``
+    with the checkpoint's network and input features, without gradients."""
 
     def factory(ctx):
         net, obs = _trained_network(ctx, name, kinds)
         kw = {"network": net, "threshold": float(obs.get("threshold", 0.5))}
+        kw["features"] = tuple(obs.get("features", ()))
 
         def run(tr):
             with torch.no_grad():
@@ -224,6 +317,7 @@ def _register() -> None:
                 tr.y_recv,
                 tr.us,
                 mask=tr.mask,
+                poa_eta=obs.get("poa_eta"),
                 **ctx.particle_kwargs(len(tr.y_recv)),
                 **kw,
             ),

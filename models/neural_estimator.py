@@ -116,9 +116,13 @@ class NeuralFDIEstimator(nn.Module):
             the order of the measurement noise (√Θ = 0.01) while attacks are of order 1, so
             gradient training uses ``resid_scale ≈ √Θ``; it is a reparametrisation of ``V``
             (``V δ̃ = (V D⁻¹) δ``), so eq. (8) is unchanged.
+        extra_inputs: per-step inputs appended to ``δ`` beyond eq. (9) (``0`` = the
+            paper; :mod:`difffilter.models.learned_estimator` feeds the filter's
+            statistics there: the received-measurement mask, the step's log-likelihood,
+            the probability of attack), unscaled.
         seed: seed of the weight initialisation (a private ``torch.Generator``).
 
-    Parameters: ``V [J, h, d(a+b)]``, ``W [J, d, h]`` and, with the head, ``P [J, h]`` and
+    Parameters: ``V [J, h, d(a+b) + extra_inputs]``, ``W [J, d, h]`` and, with the head, ``P [J, h]`` and
     ``c [J]``.
     """
 
@@ -134,6 +138,7 @@ class NeuralFDIEstimator(nn.Module):
         detection_head: bool = True,
         attack_scale: float = 1.0,
         resid_scale: float = 1.0,
+        extra_inputs: int = 0,
         seed: int = 0,
         dtype=torch.float64,
     ):
@@ -146,6 +151,7 @@ class NeuralFDIEstimator(nn.Module):
             ("hidden", hidden),
         ):
             _check_int(val, name)
+        _check_int(extra_inputs, "extra_inputs", minimum=0)
         if not init_scale > 0:
             raise ValueError(f"init_scale must be positive; got {init_scale!r}")
         if init not in ("uniform01", "symmetric"):
@@ -157,7 +163,8 @@ class NeuralFDIEstimator(nn.Module):
             b,
             hidden,
         )
-        self.in_dim = area_dim * (a + b)
+        self.extra_inputs = extra_inputs
+        self.in_dim = area_dim * (a + b) + extra_inputs
         if not (attack_scale > 0 and resid_scale > 0):
             raise ValueError("attack_scale and resid_scale must be positive")
         self.attack_scale, self.resid_scale = float(attack_scale), float(resid_scale)
@@ -165,6 +172,7 @@ class NeuralFDIEstimator(nn.Module):
             [
                 torch.full((area_dim * a,), float(attack_scale), dtype=dtype),
                 torch.full((area_dim * b,), float(resid_scale), dtype=dtype),
+                torch.ones(extra_inputs, dtype=dtype),
             ]
         )
         self.register_buffer("in_scale", scale)
@@ -200,6 +208,7 @@ class NeuralFDIEstimator(nn.Module):
             "detection_head": self.detection_head,
             "attack_scale": self.attack_scale,
             "resid_scale": self.resid_scale,
+            "extra_inputs": self.extra_inputs,
         }
 
     def area_template(self) -> AreaNetwork:
@@ -249,6 +258,7 @@ _CONFIG_TYPES = {
     "detection_head": bool,
     "attack_scale": float,
     "resid_scale": float,
+    "extra_inputs": int,
 }
 
 

@@ -12,11 +12,12 @@ import torch
 import difffilter as df
 from difffilter.models.learned_estimator import (
     NeuralCompensation,
+    feature_dim,
     neural_gaussian_filter,
     neural_particle_filter,
 )
 from difffilter.models.neural_estimator import NeuralFDIEstimator, build_delta
-from difffilter.particle import particle_filter
+from difffilter.particle import Predictive, particle_filter
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -35,8 +36,9 @@ def _data(model, runs=3, steps=12, seed=0):
     return xs, ys
 
 
-def _net(dtype=torch.float64, zero_output=False, seed=1):
+def _net(dtype=torch.float64, zero_output=False, seed=1, extra_inputs=0):
     net = NeuralFDIEstimator(
+        extra_inputs=extra_inputs,
         num_areas=1,
         area_dim=2,
         a=2,
@@ -136,6 +138,69 @@ def test_the_network_must_fit_the_measurement():
         neural_gaussian_filter(model, ys, network=_net(), kind="pf")
 
 
+def _captured_inputs(net):
+    """The ``δ`` of every forward call of ``net`` (a forward pre-hook records them)."""
+    seen = []
+    net.register_forward_pre_hook(lambda module, args: seen.append(args[0].detach().clone()))
+    return seen
+
+
+def test_particle_filter_features_by_hand():
+    """δ's tail: the mask, asinh(−2ℓ/m) with ℓ the log-sum-exp of predictive weights times
+    the received entries' Gaussian densities, and β = Σ w over ‖z‖ > η."""
+    model, gen = _linear(), torch.Generator().manual_seed(3)
+    features = ("mask", "log_likelihood", "poa")
+    net = _net(extra_inputs=feature_dim(features, 2))
+    seen = _captured_inputs(net)
+    comp = NeuralCompensation(net, features, poa_eta=0.3)
+    B, N = 3, 7
+    particles = torch.randn(B, N, 2, generator=gen, dtype=torch.float64)
+    log_w = torch.log_softmax(torch.randn(B, N, generator=gen, dtype=torch.float64), -1)
+    y = torch.randn(B, 2, generator=gen, dtype=torch.float64)
+    mask = torch.tensor([[True, True], [True, False], [False, False]])
+    innovation = torch.randn(B, 2, generator=gen, dtype=torch.float64) * mask
+    cov = torch.eye(2, dtype=torch.float64).expand(B, 2, 2)
+    comp(model, y, particles, 1, mask, predictive=Predictive(log_w, y, innovation, cov))
+    tail = seen[0][:, 0, -4:]
+    torch.testing.assert_close(tail[:, :2], mask.double())
+    sd = 0.1  # R = 1e-2 I
+    for i in range(B):
+        m = mask[i]
+        z = (y[i] - particles[i]) * m  # H = I
+        dens = torch.distributions.Normal(0.0, sd).log_prob(z[:, m]).sum(-1)
+        ell = torch.logsumexp(log_w[i] + dens, 0) if bool(m.any()) else torch.tensor(0.0)
+        expect = torch.asinh(-2.0 * ell / max(int(m.sum()), 1))
+        beta = log_w[i].exp()[z.norm(dim=-1) > 0.3].sum()
+        torch.testing.assert_close(tail[i, 2], expect.double())
+        torch.testing.assert_close(tail[i, 3], beta)
+
+
+def test_kalman_filter_log_likelihood_feature_by_hand():
+    """For the KF, ℓ_1 = log N(y_1; H F m_0, H(F P_0 Fᵀ + Q)Hᵀ + R) of the first measurement."""
+    model = _linear()
+    _, ys = _data(model, runs=2, steps=3)
+    net = _net(extra_inputs=1)
+    seen = _captured_inputs(net)
+    neural_gaussian_filter(model, ys, network=net, features=("log_likelihood",))
+    F, Q, R = model.transition_matrix(0), model.process_cov(0), model.measurement_cov(1)
+    S = F @ model.initial.cov @ F.T + Q + R  # H = I
+    ell = torch.distributions.MultivariateNormal(F @ model.initial.mean, S).log_prob(ys[:, 0])
+    torch.testing.assert_close(seen[0][:, 0, -1], torch.asinh(-ell))  # m = 2: −2ℓ/2
+
+
+def test_features_must_fit_the_network():
+    with pytest.raises(ValueError, match="extra_inputs is 0"):
+        NeuralCompensation(_net(), ("mask",))
+    with pytest.raises(ValueError, match="distinct names"):
+        feature_dim(("mask", "nis"), 2)
+    with pytest.raises(ValueError, match="poa_eta"):
+        NeuralCompensation(_net(extra_inputs=1), ("poa",))
+    model = _linear()
+    _, ys = _data(model)
+    with pytest.raises(ValueError, match="needs particles"):
+        neural_gaussian_filter(model, ys, network=_net(extra_inputs=1), features=("poa",))
+
+
 def test_task_fit_export_and_evaluate_round_trip(tmp_path, monkeypatch, capsys):
     """``fit`` writes only in its run; the exported file and the Lightning checkpoint give
     the same evaluation; ``test`` takes the exported file; another family's checkpoint is
@@ -155,12 +220,15 @@ def test_task_fit_export_and_evaluate_round_trip(tmp_path, monkeypatch, capsys):
         "--data.init_args.test_runs=2",
         "--model.init_args.num_particles=20",
         "--model.init_args.hidden=4",
+        "--model.init_args.features=[mask,log_likelihood,poa]",  # they reach evaluation
         "--trainer.max_epochs=1",
     ]
     assert main(["fit", *config, *tiny]) == 0
     run = tmp_path / "lightning_logs" / "four_tank_nn_grad" / "version_0"
     card = json.loads((run / "four_tank_nn_grad.json").read_text())
     assert card["observer"]["kind"] == "pf" and 0 < card["observer"]["threshold"] < 1
+    assert card["observer"]["features"] == ["mask", "log_likelihood", "poa"]
+    assert card["observer"]["poa_eta"] == pytest.approx(0.233, abs=5e-4)  # the paper's η
     assert {p.name: p.read_bytes() for p in (ROOT / "checkpoints").iterdir()} == shipped
     assert not (tmp_path / "checkpoints").exists()
 

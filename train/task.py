@@ -31,8 +31,10 @@ import torch
 from difffilter import resampling
 from difffilter.metrics import roc_auc
 from difffilter.models import registry
+from difffilter.models.estimators import poa_detector_for_scenario
 from difffilter.models.learned_estimator import (
     GAUSSIAN_STEPS,
+    feature_dim,
     neural_gaussian_filter,
     neural_particle_filter,
 )
@@ -161,6 +163,10 @@ class FilterEstimatorTask(pl.LightningModule):
         a, b, hidden, init_scale, init, attack_scale, resid_scale: the network
             (:class:`~difffilter.models.neural_estimator.NeuralFDIEstimator`, one area of
             ``dy`` channels; ``model_seed`` seeds its weights and the training filter).
+        features: the filter's statistics the network reads beside its innovations and
+            past estimates (:data:`~difffilter.models.learned_estimator.FEATURES`:
+            ``"mask"``, ``"log_likelihood"``, ``"poa"``; the PoA threshold η is the
+            scenario's, as the evaluation's PoA detector uses it).
         lr, weight_decay: AdamW.
         bce_weight, state_weight: loss weights (module docstring).
         target_false_alarm_rate: of the operating threshold (default: the scenario's).
@@ -181,6 +187,7 @@ class FilterEstimatorTask(pl.LightningModule):
         init: str = "symmetric",
         attack_scale: float = 1.0,
         resid_scale: float = 10.0,
+        features: list[str] | None = None,
         lr: float = 3e-3,
         weight_decay: float = 0.0,
         bce_weight: float = 0.1,
@@ -197,6 +204,9 @@ class FilterEstimatorTask(pl.LightningModule):
             )
         if resampler not in RESAMPLERS:
             raise ValueError(f"resampler must be one of {sorted(RESAMPLERS)}; got {resampler!r}")
+        features = tuple(features or ())
+        if "poa" in features and filter != "pf":
+            raise ValueError("features: 'poa' needs particles (filter='pf')")
         far = sc.false_alarm_rate if target_false_alarm_rate is None else target_false_alarm_rate
         if not 0 < far < 1:
             raise ValueError(f"target_false_alarm_rate must be in (0, 1); got {far!r}")
@@ -204,6 +214,9 @@ class FilterEstimatorTask(pl.LightningModule):
         self.scenario, self._dtype, self.false_alarm_rate = sc, dtype_of(dtype), float(far)
         self.system = sc.system(self._dtype)
         self.num_particles = num_particles or sc.num_particles
+        self.features, self.poa_eta = features, None
+        if "poa" in features:
+            self.poa_eta = float(poa_detector_for_scenario(sc, self.system).eta)
         self.estimator = NeuralFDIEstimator(
             num_areas=1,
             area_dim=self.system.dim_y,
@@ -214,6 +227,7 @@ class FilterEstimatorTask(pl.LightningModule):
             init=init,
             attack_scale=attack_scale,
             resid_scale=resid_scale,
+            extra_inputs=feature_dim(features, self.system.dim_y),
             detection_head=True,
             seed=model_seed,
             dtype=self._dtype,
@@ -232,6 +246,7 @@ class FilterEstimatorTask(pl.LightningModule):
     def run_filter(self, batch: dict, *, training: bool, seed: int, threshold: float = 0.5):
         """The estimator on ``batch`` (an :class:`~difffilter.EstimatorOutput`)."""
         kw = {"network": self.estimator, "mask": batch.get("mask"), "threshold": threshold}
+        kw["features"] = self.features
         if self.hparams.filter != "pf":
             return neural_gaussian_filter(
                 self.system, batch["y_recv"], batch.get("us"), kind=self.hparams.filter, **kw
@@ -248,6 +263,7 @@ class FilterEstimatorTask(pl.LightningModule):
             ess_threshold=1.0,
             generator=gens("particles/propagate"),
             resample_generator=gens("particles/resample"),
+            poa_eta=self.poa_eta,
             **kw,
         )
 
@@ -342,16 +358,19 @@ class FilterEstimatorTask(pl.LightningModule):
             "threshold": float(self.alarm_threshold),
             "target_false_alarm_rate": self.false_alarm_rate,
             "dt": float(self.scenario.dt),
+            "features": list(self.features),
+            "poa_eta": self.poa_eta,
         }
 
     def check_exported(self, observer: dict, path) -> None:
         """``ValueError`` unless an exported estimator was trained for this filter and
         scenario family; its operating threshold becomes this module's."""
         mine = self.export_observer()
-        for key in ("kind", "scenario_family"):
-            if observer.get(key) != mine[key]:
+        for key in ("kind", "scenario_family", "features"):
+            theirs = observer.get(key, [] if key == "features" else None)
+            if theirs != mine[key]:
                 raise ValueError(
-                    f"--ckpt_path: {path} was trained with {key} = {observer.get(key)!r}, the "
+                    f"--ckpt_path: {path} was trained with {key} = {theirs!r}, the "
                     f"configured model has {mine[key]!r}"
                 )
         self.alarm_threshold.fill_(float(observer.get("threshold", 0.5)))
