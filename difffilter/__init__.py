@@ -22,6 +22,7 @@ from .extended import (
     unscented_kalman_filter,
     unscented_kalman_step,
 )
+from .gain_schedule import GainSchedule
 from .kalman import gaussian_init, kalman_filter, kalman_predict, kalman_step
 from .particle import (
     BootstrapProposal,
@@ -62,6 +63,7 @@ __all__ = [
     "kalman_predict",
     "kalman_step",
     "kalman_filter",
+    "GainSchedule",
     "extended_kalman_step",
     "extended_kalman_filter",
     "unscented_kalman_step",

@@ -35,6 +35,7 @@ from dataclasses import dataclass, fields
 import torch
 from torch import Tensor
 
+from difffilter.gain_schedule import GainSchedule
 from difffilter.param_ekf import OnlineGradientDescent, ParamEKF
 
 from .neural_estimator import NeuralFDIEstimator, build_delta
@@ -136,8 +137,7 @@ class AttackObserver:
         self.learning_kwargs = dict(learning_kwargs or {})
         self.residual_lag, self.subtract = residual_lag, subtract
         self.init_cov = float(init_cov)
-        # Data-independent Kalman gains (see kalman_schedule), filled on first use.
-        self._schedule = {"model": None, "state": None, "gain": [], "icov": [], "converged": False}
+        self._gains = None  # the data-independent Kalman gains (gain_schedule)
         if network is not None and network.channels != self.n:
             raise ValueError(
                 f"network estimates {network.channels} channels but the plant has {self.n}"
@@ -191,48 +191,36 @@ class AttackObserver:
             B=self.Bd,
         )
 
-    def kalman_schedule(self, k: int) -> tuple[Tensor, Tensor]:
-        """Kalman gain ``K_k [n, n]`` and innovation covariance ``S_k [n, n]`` of step ``k ≥ 1``.
+    @property
+    def gain_schedule(self):
+        """The observer's :class:`difffilter.gain_schedule.GainSchedule` (built on first use).
 
-        Without lost measurements the covariance recursion (eq. 7 in discrete time)
-        does not depend on the data, so it is run once — by :func:`difffilter.kalman_step`
-        on a single, unbatched state — and cached: ``K_k = Σ⁻_k Cᵀ S_k⁻¹`` with
-        ``S_k = C Σ⁻_k Cᵀ + Θ``. The batched mean update ``x̂_k = x̂⁻_k + K_k(y_k − C x̂⁻_k)``
-        is then the Kalman filter's exactly. Once the gain has converged (relative change
-        below 1e-12) the last one is reused.
+        Without lost measurements the Kalman covariance recursion (eq. 7 in discrete time)
+        does not depend on the data, so difffilter runs it once and every run's mean
+        update is the Kalman filter's exactly (tested against :func:`difffilter.kalman_step`).
         """
-        cache = self._schedule
-        while len(cache["gain"]) < k and not cache["converged"]:
-            import difffilter
+        if self._gains is None:
+            self._gains = GainSchedule(self.observer_model())
+        return self._gains
 
-            if cache["model"] is None:
-                cache["model"] = self.observer_model()
-                n, dtype = self.n, self.Ad.dtype
-                cache["state"] = difffilter.GaussianState(
-                    torch.zeros(n, dtype=dtype), self.init_cov * torch.eye(n, dtype=dtype)
-                )
-            y0 = torch.zeros(self.n, dtype=self.Ad.dtype)
-            u0 = torch.zeros(self.Bd.shape[1], dtype=self.Ad.dtype)
-            with torch.no_grad():
-                new, out = difffilter.kalman_step(cache["model"], cache["state"], y0, u=u0)
-            S = out.innovation_cov
-            gain = torch.linalg.solve(S, out.pred_cov).T  # Σ⁻ S⁻¹ (both symmetric, C = I)
-            if cache["gain"]:
-                prev = cache["gain"][-1]
-                if float((gain - prev).abs().max()) <= 1e-12 * float(prev.abs().max()):
-                    cache["converged"] = True
-            cache["gain"].append(gain)
-            cache["icov"].append(S)
-            cache["state"] = new
-        i = min(k, len(cache["gain"])) - 1
-        return cache["gain"][i], cache["icov"][i]
+    def kalman_schedule(self, k: int) -> tuple[Tensor, Tensor]:
+        """Kalman gain ``K_k [n, n]`` and innovation covariance ``S_k [n, n]`` of step ``k ≥ 1``."""
+        return self.gain_schedule.gain(k)
 
     # -- one step ------------------------------------------------------------------------
     def step(
         self, state: ObserverState, z: Tensor, u_prev: Tensor
     ) -> tuple[ObserverState, StepOutput]:
-        """Advance one sample: ``z [B, n]`` (measurement ``Z_k``), ``u_prev [B, m]`` (``U_{k−1}``)."""
-        pred_mean = state.mean @ self.Ad.T + u_prev @ self.Bd.T
+        """Advance one sample: ``z [B, n]`` (measurement ``Z_k``), ``u_prev [B, m]`` (``U_{k−1}``).
+
+        The Kalman observer predicts and updates through difffilter's
+        :class:`~difffilter.gain_schedule.GainSchedule`; the Luenberger observer with its
+        fixed gain."""
+        kalman = self.kind == "kalman"
+        if kalman:
+            pred_mean = self.gain_schedule.predict(state.mean, u_prev)
+        else:
+            pred_mean = state.mean @ self.Ad.T + u_prev @ self.Bd.T
         net = self.network
         logit = None
         if net is None:
@@ -263,12 +251,11 @@ class AttackObserver:
                     _, logit = net(delta, V=V, W=state.learner.params()["W"])
             resid_entry = r_now if self.residual_lag == 0 else e
         y = z - attack
-        innovation = y - pred_mean
-        if self.kind == "kalman":
-            gain, innovation_cov = self.kalman_schedule(state.k)
+        if kalman:
+            new_mean, innovation, innovation_cov = self.gain_schedule.update(pred_mean, y, state.k)
         else:
-            gain, innovation_cov = self.gain, None
-        new_mean = pred_mean + innovation @ gain.T
+            innovation, innovation_cov = y - pred_mean, None
+            new_mean = pred_mean + innovation @ self.gain.T
         a_hist = torch.cat([attack[:, None], state.attack_hist[:, :-1]], dim=1)
         r_hist = torch.cat([resid_entry[:, None], state.resid_hist[:, :-1]], dim=1)
         new_state = ObserverState(new_mean, state.k + 1, a_hist, r_hist, state.learner)

@@ -355,3 +355,35 @@ def test_shared_covariance_path_gradients_equal_the_general_path(with_input, gen
 
     for a, b in zip(grads(df.kalman_filter), grads(_general)):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-10)
+
+
+def test_gain_schedule_reproduces_the_kalman_filter_with_inputs():
+    """The shared-gain online step equals difffilter.kalman_filter on every run (1e-10),
+    converges, and refuses a batched model."""
+    gen = torch.Generator().manual_seed(4)
+    F = torch.tensor([[1.0, 0.1], [0.0, 0.9]], dtype=torch.float64)
+    H = torch.tensor([[1.0, 0.5]], dtype=torch.float64)
+    model = df.LinearGaussianModel(
+        F, H, 0.01 * torch.eye(2, dtype=torch.float64), torch.tensor([[0.04]], dtype=torch.float64),
+        torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64),
+        B=torch.tensor([[0.0], [0.1]], dtype=torch.float64),
+    )  # fmt: skip
+    B, T = 4, 120
+    ys = torch.randn(B, T, 1, generator=gen, dtype=torch.float64)
+    us = torch.randn(B, T, 1, generator=gen, dtype=torch.float64)
+    ref = df.kalman_filter(model, ys, us)
+    schedule, mean = df.GainSchedule(model), model.initial.mean.expand(B, 2)
+    for t in range(T):
+        mean, innovation, S = schedule.update(schedule.predict(mean, us[:, t]), ys[:, t], t + 1)
+        torch.testing.assert_close(mean, ref.means[:, t], rtol=0, atol=1e-10)
+        torch.testing.assert_close(innovation, ref.innovations[:, t], rtol=0, atol=1e-10)
+        torch.testing.assert_close(S, ref.innovation_covs[0, t], rtol=0, atol=1e-12)
+    assert schedule.converged and len(schedule._gains) < T  # reused once converged
+    batched = df.LinearGaussianModel(
+        F.expand(2, 2, 2), H, torch.eye(2, dtype=torch.float64), torch.eye(1, dtype=torch.float64),
+        torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64),
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="no batch dimension"):
+        df.GainSchedule(batched)
+    with pytest.raises(ValueError, match="k must be"):
+        schedule.gain(0)
