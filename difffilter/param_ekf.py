@@ -19,6 +19,12 @@ paper's equations exactly.
 :class:`OnlineGradientDescent` is the plain gradient rule of the paper's "traditional"
 baseline: ``ζ_k = ζ_{k−1} + lr · H_kᵀ e_k``, a gradient step on ``½‖e_k‖²``.
 
+:class:`EKFOptimizer` is the same EKF as a ``torch.optim.Optimizer`` over one shared
+parameter vector (the weights of a network being trained offline), observed at each step
+through a pool of ``S`` samples stacked into one measurement: ``H_k [S·m, P]``, ``e_k
+[S·m]``, and ``Υ_k`` the running mean of ``‖e‖²`` per sample. Its state (``ρ``, ``Υ``,
+``k``) lives in the optimizer's ``state_dict``, so a Lightning checkpoint resumes it.
+
 Both hold one independent parameter vector per run: parameters ``[*batch, *shape]``,
 inputs ``[*batch, ...]``, outputs ``[*batch, m]``. Jacobians come from ``torch.func``
 (``vmap`` of ``jacrev`` of ``functional_call``), so any module whose forward maps one
@@ -38,7 +44,7 @@ import torch
 from torch import Tensor, nn
 from torch.func import functional_call, jacrev, vmap
 
-__all__ = ["ParamEKF", "OnlineGradientDescent", "ParamStepOutput"]
+__all__ = ["ParamEKF", "OnlineGradientDescent", "EKFOptimizer", "ParamStepOutput"]
 
 
 class ParamStepOutput(NamedTuple):
@@ -157,6 +163,23 @@ class _BatchedParams:
         return targets.reshape(-1, m).to(self.dtype)
 
 
+def _ekf_gain_step(rho: Tensor, H: Tensor, e: Tensor, upsilon: Tensor, q: float, k: int) -> Tensor:
+    """Eqs (12) and (14) for ``N`` filters: returns ``λ_k e_k [N, P]`` and updates ``ρ [N, P, P]``
+    in place (``H [N, m, P]``, ``e [N, m]``, ``Υ [N]``, ``Q_ρ = q``, ``k`` the step count)."""
+    rho_Ht = rho @ H.transpose(-1, -2)  # ρHᵀ [N, P, m]
+    eye_m = torch.eye(H.shape[-2], dtype=H.dtype, device=H.device)
+    S = H @ rho_Ht + upsilon[:, None, None] * eye_m
+    gain = torch.linalg.solve(S, rho_Ht.transpose(-1, -2)).transpose(-1, -2)  # λ [N, P, m]
+    # ρ ← ρ − λ(Hρ) with Hρ = (ρHᵀ)ᵀ (ρ is symmetric), in place: ρ is the big [N, P, P]
+    # array, and this step is bound by passes over its memory.
+    rho.baddbmm_(gain, rho_Ht.transpose(-1, -2), alpha=-1.0)
+    if q > 0:
+        rho.diagonal(dim1=-2, dim2=-1).add_(q)
+    if k % 16 == 0:  # round-off slowly breaks the symmetry; restore it now and then
+        rho.copy_(0.5 * (rho + rho.transpose(-1, -2)))
+    return (gain @ e.unsqueeze(-1)).squeeze(-1)
+
+
 class ParamEKF(_BatchedParams):
     """EKF over the weights of ``module``, one filter per run (eqs 10–14; see module doc).
 
@@ -207,18 +230,9 @@ class ParamEKF(_BatchedParams):
             e = self._targets(targets, m) - pred
             self.k += 1
             self.upsilon = self.upsilon + ((e * e).sum(-1) - self.upsilon) / self.k
-            rho_Ht = self.rho @ H.transpose(-1, -2)  # ρHᵀ [N, P, m]
-            eye_m = torch.eye(m, dtype=self.dtype)
-            S = H @ rho_Ht + self.upsilon[:, None, None] * eye_m
-            gain = torch.linalg.solve(S, rho_Ht.transpose(-1, -2)).transpose(-1, -2)  # λ [N,P,m]
-            self.theta = self.theta + self.lr * (gain @ e.unsqueeze(-1)).squeeze(-1)
-            # ρ ← ρ − λ(Hρ) with Hρ = (ρHᵀ)ᵀ (ρ is symmetric), in place: ρ is the big
-            # [N, P, P] array, and this step is bound by passes over its memory.
-            self.rho.baddbmm_(gain, rho_Ht.transpose(-1, -2), alpha=-1.0)
-            if self.process_noise > 0:
-                self.rho.diagonal(dim1=-2, dim2=-1).add_(self.process_noise)
-            if self.k % 16 == 0:  # round-off slowly breaks the symmetry; restore it now and then
-                self.rho = 0.5 * (self.rho + self.rho.transpose(-1, -2))
+            self.theta = self.theta + self.lr * _ekf_gain_step(
+                self.rho, H, e, self.upsilon, self.process_noise, self.k
+            )
         shape = self.batch_shape + (m,)
         return ParamStepOutput(pred.reshape(shape), e.reshape(shape))
 
@@ -251,3 +265,66 @@ class OnlineGradientDescent(_BatchedParams):
             self.theta = self.theta + self.lr * (H.transpose(-1, -2) @ e.unsqueeze(-1)).squeeze(-1)
         shape = self.batch_shape + (m,)
         return ParamStepOutput(pred.reshape(shape), e.reshape(shape))
+
+
+class EKFOptimizer(torch.optim.Optimizer):
+    """The EKF over weights (eqs 10–14) as an optimizer of one shared parameter vector.
+
+    ``step(jacobian, residual)`` takes ``S`` samples of an ``m``-vector output at the current
+    weights: ``jacobian [S, m, P]`` (``∂f(ζ, x_s)/∂ζ``, the parameters flattened row-major
+    in the order given) and ``residual [S, m]`` (``target_s − f(ζ, x_s)``; zero rows carry
+    no information, e.g. unreceived entries). It stacks them into one measurement and
+    applies eqs (11)–(14) with ``Υ_k = Υ_{k−1} + (mean_s ‖e_s‖² − Υ_{k−1}) / k``.
+
+    Args:
+        params: the tensors ``ζ`` (e.g. ``[W, V]``; one parameter group).
+        lr, init_cov, init_noise, process_noise: as in :class:`ParamEKF`.
+
+    State (``state_dict``): ``rho [P, P]``, ``upsilon``, ``k``. Cost per step
+    ``O(P²·S·m + (S·m)³)``.
+    """
+
+    def __init__(self, params, *, lr=1.0, init_cov=10.0, init_noise=1e-3, process_noise=0.0):
+        for name, val in (("lr", lr), ("init_cov", init_cov), ("init_noise", init_noise)):
+            if not val > 0:
+                raise ValueError(f"{name} must be positive; got {val!r}")
+        if not process_noise >= 0:
+            raise ValueError(f"process_noise must be >= 0; got {process_noise!r}")
+        defaults = dict(
+            lr=lr, init_cov=init_cov, init_noise=init_noise, process_noise=process_noise
+        )
+        super().__init__(params, defaults)
+        if len(self.param_groups) != 1:
+            raise ValueError("EKFOptimizer takes one parameter group (one vector ζ)")
+
+    @torch.no_grad()
+    def step(self, jacobian: Tensor, residual: Tensor) -> Tensor:  # type: ignore[override]
+        """One update; returns the innovation ``‖e‖²`` per sample ``[S]`` before it."""
+        group = self.param_groups[0]
+        params = group["params"]
+        P = sum(p.numel() for p in params)
+        if jacobian.dim() != 3 or jacobian.shape[-1] != P or residual.shape != jacobian.shape[:2]:
+            raise ValueError(
+                f"jacobian must be [S, m, {P}] and residual [S, m]; got "
+                f"{tuple(jacobian.shape)} and {tuple(residual.shape)}"
+            )
+        state = self.state[params[0]]
+        if not state:
+            dtype, device = params[0].dtype, params[0].device
+            state["rho"] = group["init_cov"] * torch.eye(P, dtype=dtype, device=device)
+            state["upsilon"] = torch.tensor(float(group["init_noise"]), dtype=dtype, device=device)
+            state["k"] = 0
+        e = residual.to(params[0].dtype)
+        per_sample = e.square().sum(-1)
+        state["k"] += 1
+        state["upsilon"] += (per_sample.mean() - state["upsilon"]) / state["k"]
+        H = jacobian.to(e.dtype).reshape(1, -1, P)
+        update = _ekf_gain_step(
+            state["rho"].unsqueeze(0), H, e.reshape(1, -1), state["upsilon"].reshape(1),
+            group["process_noise"], state["k"],
+        )[0] * group["lr"]  # fmt: skip
+        i = 0
+        for p in params:
+            p.add_(update[i : i + p.numel()].reshape(p.shape))
+            i += p.numel()
+        return per_sample

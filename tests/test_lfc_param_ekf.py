@@ -1,4 +1,5 @@
-"""EKF-over-parameters trainer (difffilter.param_ekf) and the online gradient rule."""
+"""EKF-over-parameters trainers (difffilter.param_ekf: per run, and as an optimizer of one
+shared vector) and the online gradient rule."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import pytest
 import torch
 from torch import nn
 
-from difffilter.param_ekf import OnlineGradientDescent, ParamEKF
+from difffilter.param_ekf import EKFOptimizer, OnlineGradientDescent, ParamEKF
 
 
 class TwoParam(nn.Module):
@@ -178,3 +179,43 @@ def test_closed_form_jacobian_of_the_area_network_matches_autodiff():
     assert H_cf.shape == (10, 5, 5 * 4 + 4 * 30)
     assert torch.allclose(out_cf, out_ad, atol=1e-12) and torch.allclose(H_cf, H_ad, atol=1e-12)
     assert torch.allclose(ekf.predict(x).reshape(10, 5), out_ad, atol=1e-12)
+
+
+@pytest.mark.parametrize("q", [0.0, 1e-3])
+def test_ekf_optimizer_matches_the_hand_computed_updates_of_one_sample(q):
+    """With one sample per step the optimizer is eqs (10)–(14) exactly (the hand updates)."""
+    model = TwoParam()
+    opt = EKFOptimizer(list(model.parameters()), lr=0.7, init_cov=10.0, init_noise=1e-3,
+                       process_noise=q)  # fmt: skip
+    a, b, rho, ups = 0.5, -0.3, [[10.0, 0.0], [0.0, 10.0]], 1e-3
+    gen = torch.Generator().manual_seed(2)
+    for k in range(1, 6):
+        x = torch.randn(2, generator=gen, dtype=torch.float64)
+        target = torch.randn(2, generator=gen, dtype=torch.float64)
+        a, b, rho, ups, _, _ = _hand_update(a, b, rho, ups, k, x.tolist(), target.tolist(), 0.7, q)
+        jac = torch.func.jacrev(lambda ab, x=x: torch.func.functional_call(
+            model, {"a": ab[0], "b": ab[1]}, (x,)))(torch.stack([model.a, model.b]).detach())  # fmt: skip
+        opt.step(jac.unsqueeze(0), (target - model(x)).detach().unsqueeze(0))
+        assert float(model.a.detach()) == pytest.approx(a, abs=1e-12)
+        assert float(model.b.detach()) == pytest.approx(b, abs=1e-12)
+
+
+def test_ekf_optimizer_pools_samples_into_one_measurement():
+    """Linear model y = x·ζ, S samples at once: ζ₁ = ρ₀Hᵀ(Hρ₀Hᵀ + Υ₁I)⁻¹ y with Υ₁ the
+    mean squared error per sample (closed form, numpy)."""
+    import numpy as np
+
+    gen = torch.Generator().manual_seed(5)
+    zeta = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    X = torch.randn(8, 3, generator=gen, dtype=torch.float64)
+    y = X @ torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    opt = EKFOptimizer([zeta], init_cov=2.0, init_noise=0.1)
+    opt.step(X.unsqueeze(1), y.unsqueeze(1))  # jacobian [S, 1, 3], residual [S, 1]
+    H, Y = X.numpy(), y.numpy()
+    ups = 0.1 + (np.mean(Y**2) - 0.1)
+    expect = 2.0 * H.T @ np.linalg.solve(2.0 * H @ H.T + ups * np.eye(8), Y)
+    np.testing.assert_allclose(zeta.detach().numpy(), expect, atol=1e-12)
+    state = opt.state_dict()["state"][0]
+    assert state["k"] == 1 and float(state["upsilon"]) == pytest.approx(ups)
+    with pytest.raises(ValueError, match="jacobian must be"):
+        opt.step(X.unsqueeze(1)[:, :, :2], y.unsqueeze(1))
