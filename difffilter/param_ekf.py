@@ -298,8 +298,11 @@ class EKFOptimizer(torch.optim.Optimizer):
             raise ValueError("EKFOptimizer takes one parameter group (one vector ζ)")
 
     @torch.no_grad()
-    def step(self, jacobian: Tensor, residual: Tensor) -> Tensor:  # type: ignore[override]
-        """One update; returns the innovation ``‖e‖²`` per sample ``[S]`` before it."""
+    def step(self, jacobian: Tensor, residual: Tensor, closure=None) -> Tensor:  # type: ignore[override]
+        """One update; returns ``‖e_s‖²`` per sample ``[S]`` before it. ``closure`` (what
+        Lightning's optimizer wrapper passes; it runs its hooks) is called first."""
+        if closure is not None:
+            closure()
         group = self.param_groups[0]
         params = group["params"]
         P = sum(p.numel() for p in params)

@@ -54,6 +54,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--runs", type=int, default=None, help="Monte Carlo runs (default: the scenario family's)"
     )
     p.add_argument(
+        "--add-estimators",
+        type=lambda text: [n for n in text.split(",") if n],
+        default=[],
+        metavar="A,B,…",
+        help="registered estimators to run beside each scenario's own (e.g. pf_nn_ekf with an "
+        "EKF-trained --ckpt)",
+    )
+    p.add_argument(
         "--out", type=Path, default=Path("reports"), help="output folder (default: reports/)"
     )
     p.add_argument(
@@ -111,15 +119,16 @@ def evaluate(
     seed: int,
     progress: bool,
     family_options: dict | None = None,
+    add_estimators: Sequence[str] = (),
 ) -> dict:
     """Evaluate every scenario with the Monte Carlo suite; returns ``{scenario: metrics}``.
 
     Scenarios are taken family by family: the family's ``prepare`` (a study its reports
     share) runs once before its scenarios, its ``finish`` (a summary across them) once
     after (:class:`~difffilter.eval.report.FamilyReport`); ``family_options``
-    (``--option KEY=VALUE``) reach ``prepare`` as its options. Ends
-    with the leaderboard of every scenario × estimator (:mod:`~difffilter.eval.leaderboard`:
-    ``<out>/leaderboard.{md,json,png}``, ``<out>/tb_leaderboard``).
+    (``--option KEY=VALUE``) reach ``prepare`` as its options; ``add_estimators`` run
+    beside each scenario's own. Ends with the leaderboard of every scenario × estimator
+    (:mod:`~difffilter.eval.leaderboard`: ``<out>/leaderboard.{md,json,png}``, ``tb_leaderboard``).
     """
     check_arguments(runs=runs, ckpt=ckpt)
     families: dict[str, list[str]] = {}
@@ -141,13 +150,9 @@ def evaluate(
         done = {}
         for name in names:
             result = run_suite(
-                registry.get(name),
-                runs=runs,
-                seed=seed,
-                progress=progress,
-                checkpoint=ckpt,
-                cache=cache,
-            )
+                registry.get(name), runs=runs, seed=seed, progress=progress, checkpoint=ckpt,
+                cache=cache, add=add_estimators,
+            )  # fmt: skip
             if writer:
                 done[name] = write_report(Path(out) / name, result, prepared=prepared)
         if report.finish and writer:
@@ -161,9 +166,7 @@ def evaluate(
 def check_arguments(*, runs: int | None = None, ckpt: Path | None = None, devices: int = 1) -> None:
     """``ValueError``/``FileNotFoundError`` naming the option, before any work."""
     for name, value in (("--runs", runs), ("--devices", devices)):
-        if value is not None and (
-            isinstance(value, bool) or not isinstance(value, int) or value < 1
-        ):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):  # fmt: skip
             raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
     if ckpt is not None:
         from difffilter.models.neural_estimator import load_estimator_checkpoint
@@ -230,6 +233,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             seed=args.seed,
             progress=not args.no_progress,
             family_options=dict(args.option),
+            add_estimators=args.add_estimators,
         )
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-eval: error: {exc}", file=sys.stderr)

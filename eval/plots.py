@@ -27,9 +27,8 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
     fig, ax = plt.subplots(figsize=(8, 4.5))
     for name, out in outs.items():
         ax.plot(t, rmse_over_time(out.means, true_states(out, traj)).numpy(), label=name, lw=1)
-    ax.set(
-        xlabel="time [s]", ylabel="state RMSE over runs", yscale="log", title="State RMSE over time"
-    )
+    ax.set(xlabel="time [s]", ylabel="state RMSE over runs", yscale="log")
+    ax.set_title("State RMSE over time")
     ax.legend(fontsize=7, ncol=2)
     figs.append(("rmse_over_time.png", fig))
 
@@ -40,12 +39,8 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
             if result.metrics[name].get("auc") is None:
                 continue
             fpr, tpr = roc(out.detection.scores, traj.flags)
-            ax.plot(
-                fpr.numpy(),
-                tpr.numpy(),
-                label=f"{name} (AUC {result.metrics[name]['auc']:.3f})",
-                lw=1,
-            )
+            label = f"{name} (AUC {result.metrics[name]['auc']:.3f})"
+            ax.plot(fpr.numpy(), tpr.numpy(), label=label, lw=1)
         ax.plot([0, 1], [0, 1], "k:", lw=0.8)
         ax.set(xlabel="false-alarm rate", ylabel="detection rate", title="ROC, every run and step")
         ax.legend(fontsize=7)

@@ -61,6 +61,7 @@ def run_suite(
     runs: int | None = None,
     seed: int = 0,
     estimators: tuple[str, ...] | list[str] | None = None,
+    add: tuple[str, ...] | list[str] = (),
     progress: bool = True,
     dtype: torch.dtype = torch.float64,
     checkpoint=None,
@@ -74,6 +75,7 @@ def run_suite(
         seed: master seed of every random draw (:class:`~difffilter.models.streams.Streams`).
         estimators: registered estimator names (default ``scenario.estimators``, else
             :func:`~difffilter.models.generic_estimators.default_estimators` of its model).
+        add: more registered estimators to run after those.
         progress: show a progress bar.
         dtype: of the model and the simulation.
         checkpoint: a trained estimator checkpoint for the estimators that use one
@@ -103,6 +105,7 @@ def run_suite(
     if cache is not None:
         ctx.cache = cache
     names = tuple(estimators or scenario.estimators or default_estimators(model))
+    names += tuple(n for n in add if n not in names)
     specs = [registry.get(n) for n in names]  # unknown names fail before any work
     result = SuiteResult(scenario, runs, seed, traj, context=ctx)
     from tqdm.auto import tqdm

@@ -28,7 +28,10 @@ NeuralFDIEstimator`, with one "area" of ``dy`` channels)::
 operation is differentiable, so a loss on ``â``, ``logit`` or the state estimates
 back-propagates through the filter (through the particle weights and, with a
 differentiable resampler, through resampling): how :mod:`difffilter.train.task` trains
-the network. Detection: ``p_k = sigmoid(logit_k)``, alarm where ``p_k > threshold``.
+the network. Detection: ``p_k = sigmoid(logit_k)``, alarm where ``p_k > threshold``; a
+network without a detection head (trained by the EKF over its weights, which fits the
+attack estimate alone) scores ``s_k = Σ_c (â_{k,c} / √S_{k,cc})²``, the squared
+standardised attack estimate, alarm where ``s_k > threshold``.
 """
 
 from __future__ import annotations
@@ -83,11 +86,19 @@ class NeuralCompensation:
         network: one area of ``dy`` channels, ``extra_inputs = feature_dim(features, dy)``.
         features: names of :data:`FEATURES` (module docstring).
         poa_eta: ``η`` of the ``"poa"`` feature (needed with it).
+        record_inputs: keep every step's ``δ_k [..., in]`` (:attr:`inputs`: ``[..., T, in]``),
+            the samples the EKF over the weights is trained on.
     """
 
     uses_predictive = True
 
-    def __init__(self, network: NeuralFDIEstimator, features=(), poa_eta: float | None = None):
+    def __init__(
+        self,
+        network: NeuralFDIEstimator,
+        features=(),
+        poa_eta: float | None = None,
+        record_inputs: bool = False,
+    ):
         if not isinstance(network, NeuralFDIEstimator):
             raise TypeError(f"network must be a NeuralFDIEstimator; got {type(network).__name__}")
         if network.num_areas != 1:
@@ -108,6 +119,7 @@ class NeuralCompensation:
         self.attack_hist = self.resid_hist = None
         self._attacks: list[Tensor] = []
         self._logits: list[Tensor] = []
+        self._inputs: list[Tensor] | None = [] if record_inputs else None
 
     def _features(self, e: Tensor, mask: Tensor | None, log_likelihood, poa) -> list[Tensor]:
         received = torch.ones_like(e) if mask is None else mask.to(e.dtype)
@@ -153,11 +165,16 @@ class NeuralCompensation:
         if self.features:
             extra = self._features(e, mask, log_likelihood, poa)
             delta = torch.cat([delta, *(f.expand(*batch, -1) for f in extra)], -1)
+        if self._inputs is not None:
+            self._inputs.append(delta.detach())
         attack, logit = net(delta.unsqueeze(-2).to(net.V.dtype))
         attack = attack[..., 0, :].to(e.dtype)
         if mask is not None:
             attack = attack * mask.to(attack.dtype)
-        logit = logit[..., 0].to(e.dtype) if logit is not None else attack.new_zeros(batch)
+        if logit is None:  # no detection head: the squared standardised attack estimate
+            logit = (attack / scale).square().sum(-1)
+        else:
+            logit = logit[..., 0].to(e.dtype)
         self.attack_hist = torch.cat([attack.unsqueeze(-2), self.attack_hist[..., :-1, :]], -2)
         self.resid_hist = resid
         self._attacks.append(attack)
@@ -184,17 +201,30 @@ class NeuralCompensation:
 
     @property
     def logit(self) -> Tensor:
+        """Detection-head logits ``[..., T]`` (without a head: the statistic ``s_k``)."""
         return torch.stack(self._logits, -1)
+
+    @property
+    def inputs(self) -> Tensor:
+        """The recorded ``δ_k`` ``[..., T, in]`` (``record_inputs=True``)."""
+        if self._inputs is None:
+            raise ValueError("inputs were not recorded (NeuralCompensation(record_inputs=True))")
+        return torch.stack(self._inputs, -2)
 
 
 def _output(means, covs, comp: NeuralCompensation, threshold: float, **extras) -> EstimatorOutput:
-    prob = torch.sigmoid(comp.logit)
+    if comp.network.detection_head:
+        score, extras = torch.sigmoid(comp.logit), {"attack_logit": comp.logit, **extras}
+    else:
+        score = comp.logit  # s_k (module docstring)
+    if comp._inputs is not None:
+        extras["network_inputs"] = comp.inputs
     return EstimatorOutput(
         means,
         covs,
         attack=comp.attack,
-        detection=Detection(prob, prob > threshold, float(threshold)),
-        extras={"attack_logit": comp.logit, **extras},
+        detection=Detection(score, score > threshold, float(threshold)),
+        extras=extras,
     )
 
 
@@ -209,14 +239,16 @@ def neural_particle_filter(
     threshold: float = 0.5,
     features=(),
     poa_eta: float | None = None,
+    record_inputs: bool = False,
     **driver,
 ) -> EstimatorOutput:
     """The particle filter of :func:`difffilter.particle_filter` (``driver``: resampler,
     proposal, generators, ``initial_state``, …) with the network's compensation as its
-    likelihood (``features``, ``poa_eta``: :class:`NeuralCompensation`). ``ys [..., T, dy]``
-    → means ``[..., T, dx]``, ``attack [..., T, dy]``, detection scores ``p [..., T]``;
-    ``extras``: ``attack_logit``, ``log_likelihood [...]``."""
-    comp = NeuralCompensation(network, features, poa_eta)
+    likelihood (``features``, ``poa_eta``, ``record_inputs``: :class:`NeuralCompensation`).
+    ``ys [..., T, dy]`` → means ``[..., T, dx]``, ``attack [..., T, dy]``, detection scores
+    ``[..., T]``; ``extras``: ``attack_logit`` (with a head), ``log_likelihood [...]``,
+    ``network_inputs [..., T, in]`` (when recorded)."""
+    comp = NeuralCompensation(network, features, poa_eta, record_inputs)
     res = particle_filter(
         model, ys, us, num_particles=num_particles, mask=mask, likelihood=comp, **driver
     )
@@ -233,6 +265,7 @@ def neural_gaussian_filter(
     mask: Tensor | None = None,
     threshold: float = 0.5,
     features=(),
+    record_inputs: bool = False,
 ) -> EstimatorOutput:
     """The KF, EKF or UKF (``kind``) with the network's compensation: each step runs the
     filter's step once for ``ν_k, S_k`` and ``ℓ_k`` and once with ``ỹ_k − â_k`` (the update
@@ -242,7 +275,7 @@ def neural_gaussian_filter(
         raise ValueError(f"kind must be one of {sorted(GAUSSIAN_STEPS)}; got {kind!r}")
     if "poa" in features:
         raise ValueError("the 'poa' feature needs particles: use neural_particle_filter")
-    step, comp = GAUSSIAN_STEPS[kind], NeuralCompensation(network, features)
+    step, comp = GAUSSIAN_STEPS[kind], NeuralCompensation(network, features, None, record_inputs)
     state = gaussian_init(model, ys.shape[:-2])
     means, covs = [], []
     for t in range(ys.shape[-2]):
@@ -263,9 +296,10 @@ def neural_gaussian_filter(
 # ------------------------------------------------- registration with the estimator registry
 
 
-def _trained_network(ctx, name: str, kinds) -> tuple[NeuralFDIEstimator, dict]:
+def _trained_network(ctx, name: str, kinds, trainer: str) -> tuple[NeuralFDIEstimator, dict]:
     """The checkpoint's network if it was trained for this scenario family with one of
-    ``kinds`` of filter; :class:`~difffilter.models.estimators.SkipEstimator` otherwise."""
+    ``kinds`` of filter by ``trainer`` (``"grad"`` or ``"ekf"``);
+    :class:`~difffilter.models.estimators.SkipEstimator` otherwise."""
     from difffilter.models.neural_estimator import load_estimator_checkpoint
 
     if ctx.checkpoint is None:
@@ -274,23 +308,34 @@ def _trained_network(ctx, name: str, kinds) -> tuple[NeuralFDIEstimator, dict]:
     if key not in ctx.cache:
         ctx.cache[key] = load_estimator_checkpoint(ctx.checkpoint, dtype=ctx.dtype)
     net, obs = ctx.cache[key]
-    family, kind = obs.get("scenario_family"), obs.get("kind")
-    if family != ctx.scenario.family or kind not in kinds:
-        trained = f"filter {kind!r}" + (f" on {family} scenarios" if family else "")
+    family, kind, how = obs.get("scenario_family"), obs.get("kind"), obs.get("trainer", "grad")
+    if family != ctx.scenario.family or kind not in kinds or how != trainer:
+        trained = f"filter {kind!r}" + (f" by {how} on {family} scenarios" if family else "")
         raise SkipEstimator(
             f"the checkpoint was trained with {trained}; this one needs filter "
-            f"{'/'.join(kinds)} on {ctx.scenario.family}"
+            f"{'/'.join(kinds)} by {trainer} on {ctx.scenario.family}"
         )
     ctx.checkpoint_users.append(name)
     return net, obs
 
 
-def _learned(name: str, kinds, run_filter):
+def _run_pf(ctx, tr, obs, **kw):
+    return neural_particle_filter(
+        ctx.model, tr.y_recv, tr.us, mask=tr.mask, poa_eta=obs.get("poa_eta"),
+        **ctx.particle_kwargs(len(tr.y_recv)), **kw,
+    )  # fmt: skip
+
+
+def _run_gaussian(ctx, tr, obs, **kw):
+    return neural_gaussian_filter(ctx.model, tr.y_recv, tr.us, mask=tr.mask, kind=obs["kind"], **kw)
+
+
+def _learned(name: str, kinds, trainer: str, run_filter):
     """A factory running ``run_filter(ctx, traj, observer, network=, threshold=, features=)``
     with the checkpoint's network and input features, without gradients."""
 
     def factory(ctx):
-        net, obs = _trained_network(ctx, name, kinds)
+        net, obs = _trained_network(ctx, name, kinds, trainer)
         kw = {"network": net, "threshold": float(obs.get("threshold", 0.5))}
         kw["features"] = tuple(obs.get("features", ()))
 
@@ -303,39 +348,17 @@ def _learned(name: str, kinds, run_filter):
     return factory
 
 
-def _register() -> None:
-    register(
-        "pf_nn_grad",
-        "neural FDI estimator trained through the differentiable PF (checkpoint), compensating "
-        "the PF's measurements; alarm at its validation-chosen threshold",
-    )(
-        _learned(
-            "pf_nn_grad",
-            ("pf",),
-            lambda ctx, tr, obs, **kw: neural_particle_filter(
-                ctx.model,
-                tr.y_recv,
-                tr.us,
-                mask=tr.mask,
-                poa_eta=obs.get("poa_eta"),
-                **ctx.particle_kwargs(len(tr.y_recv)),
-                **kw,
-            ),
-        )
-    )
-    register(
-        "gaussian_nn_grad",
-        "neural FDI estimator trained through a KF/EKF/UKF (checkpoint), compensating its "
-        "measurements; alarm at its validation-chosen threshold",
-    )(
-        _learned(
-            "gaussian_nn_grad",
-            tuple(GAUSSIAN_STEPS),
-            lambda ctx, tr, obs, **kw: neural_gaussian_filter(
-                ctx.model, tr.y_recv, tr.us, mask=tr.mask, kind=obs["kind"], **kw
-            ),
-        )
-    )
-
-
-_register()
+_HOW = {
+    "grad": "trained by gradient descent through the differentiable {}",
+    "ekf": "trained by the EKF over its weights inside the {}",
+}
+for _trainer, _how in _HOW.items():
+    for _filter, _kinds, _run in (("pf", ("pf",), _run_pf),
+                                  ("gaussian", tuple(GAUSSIAN_STEPS), _run_gaussian)):  # fmt: skip
+        _name = f"{_filter}_nn_{_trainer}"
+        register(
+            _name,
+            f"neural FDI estimator {_how.format('PF' if _filter == 'pf' else 'KF/EKF/UKF')} "
+            "(checkpoint), compensating the filter's measurements; alarm at its "
+            "validation-chosen threshold",
+        )(_learned(_name, _kinds, _trainer, _run))

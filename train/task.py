@@ -1,5 +1,6 @@
 """One training task for any registered scenario: the neural FDI estimator inside
-difffilter's own filter, trained by gradient descent through it.
+difffilter's own filter, trained by gradient descent through it or by the EKF over its
+weights.
 
 :class:`ScenarioDataModule` simulates the scenario (its plant, attack and schedule) from
 seeded named streams: training batch ``i`` of epoch ``e`` from seed ``(train_seed, e, i)``,
@@ -19,6 +20,17 @@ the attack loss back-propagates through the filter too, since ``â_k`` reads inn
 that earlier estimates shaped. Validation and test run the filter as the evaluation does
 (systematic resampling at every step) and pick the alarm threshold on the validation
 batch: the ``1 − target_false_alarm_rate`` quantile of ``p_k`` over its attack-free steps.
+
+``trainer="ekf"`` trains the weights ``ζ = [W, V]`` (eq. 10) by the EKF of eqs (11)–(14)
+instead (:class:`~difffilter.param_ekf.EKFOptimizer`, Lightning's manual optimisation):
+the filter runs on the batch with the current weights (no gradients, systematic
+resampling), records every step's network input ``δ_k``, and then, step by step in time,
+one EKF update takes the batch's ``B`` samples ``(δ_k, a_k)`` as one measurement of the
+network's output, ``H_k = ∂f(ζ, δ_k)/∂ζ`` in closed form (eq. 13; unreceived entries
+carry no information). The measurement is the injected attack of the simulated runs
+(the paper's online rule measures the residual, having no attack to learn from at run
+time). Such a network has no detection head; it alarms on its standardised attack
+estimate (:mod:`difffilter.models.learned_estimator`).
 """
 
 from __future__ import annotations
@@ -40,6 +52,7 @@ from difffilter.models.learned_estimator import (
 )
 from difffilter.models.neural_estimator import NeuralFDIEstimator
 from difffilter.models.streams import Streams
+from difffilter.param_ekf import EKFOptimizer
 
 from .common import dtype_of, mix_seed
 
@@ -167,7 +180,11 @@ class FilterEstimatorTask(pl.LightningModule):
             past estimates (:data:`~difffilter.models.learned_estimator.FEATURES`:
             ``"mask"``, ``"log_likelihood"``, ``"poa"``; the PoA threshold η is the
             scenario's, as the evaluation's PoA detector uses it).
+        trainer: ``"grad"`` (AdamW through the filter) or ``"ekf"`` (the EKF over the
+            weights; module docstring).
         lr, weight_decay: AdamW.
+        ekf_lr, ekf_init_cov, ekf_init_noise, ekf_process_noise: ``η``, ``ρ(0)``, ``Υ(0)``
+            and ``Q_ρ`` of the EKF (:class:`~difffilter.param_ekf.EKFOptimizer`).
         bce_weight, state_weight: loss weights (module docstring).
         target_false_alarm_rate: of the operating threshold (default: the scenario's).
         dtype: ``"float32"`` or ``"float64"``.
@@ -188,8 +205,13 @@ class FilterEstimatorTask(pl.LightningModule):
         attack_scale: float = 1.0,
         resid_scale: float = 10.0,
         features: list[str] | None = None,
+        trainer: str = "grad",
         lr: float = 3e-3,
         weight_decay: float = 0.0,
+        ekf_lr: float = 1.0,
+        ekf_init_cov: float = 1.0,
+        ekf_init_noise: float = 1e-2,
+        ekf_process_noise: float = 0.0,
         bce_weight: float = 0.1,
         state_weight: float = 1.0,
         target_false_alarm_rate: float | None = None,
@@ -204,6 +226,8 @@ class FilterEstimatorTask(pl.LightningModule):
             )
         if resampler not in RESAMPLERS:
             raise ValueError(f"resampler must be one of {sorted(RESAMPLERS)}; got {resampler!r}")
+        if trainer not in ("grad", "ekf"):
+            raise ValueError(f"trainer must be 'grad' or 'ekf'; got {trainer!r}")
         features = tuple(features or ())
         if "poa" in features and filter != "pf":
             raise ValueError("features: 'poa' needs particles (filter='pf')")
@@ -228,25 +252,35 @@ class FilterEstimatorTask(pl.LightningModule):
             attack_scale=attack_scale,
             resid_scale=resid_scale,
             extra_inputs=feature_dim(features, self.system.dim_y),
-            detection_head=True,
+            detection_head=trainer == "grad",  # the EKF fits the attack estimate alone
             seed=model_seed,
             dtype=self._dtype,
         )
         # the operating threshold on p, chosen at every validation; saved with the weights
         self.register_buffer("alarm_threshold", torch.tensor(0.5, dtype=torch.float64))
         self._state_scale = torch.diagonal(self.system.initial.cov, dim1=-2, dim2=-1).mean()
+        self.automatic_optimization = trainer == "grad"
 
     def configure_optimizers(self):
         hp = self.hparams
+        if hp.trainer == "ekf":
+            return EKFOptimizer(
+                [self.estimator.W, self.estimator.V], lr=hp.ekf_lr, init_cov=hp.ekf_init_cov,
+                init_noise=hp.ekf_init_noise, process_noise=hp.ekf_process_noise,
+            )  # fmt: skip
         return torch.optim.AdamW(
             self.estimator.parameters(), lr=hp.lr, weight_decay=hp.weight_decay
         )
 
     # -- the filter --------------------------------------------------------------------
-    def run_filter(self, batch: dict, *, training: bool, seed: int, threshold: float = 0.5):
-        """The estimator on ``batch`` (an :class:`~difffilter.EstimatorOutput`)."""
+    def run_filter(
+        self, batch: dict, *, training: bool, seed: int, threshold: float = 0.5, record=False
+    ):
+        """The estimator on ``batch`` (an :class:`~difffilter.EstimatorOutput`; ``record``:
+        with the network's inputs in ``extras["network_inputs"]``)."""
         kw = {"network": self.estimator, "mask": batch.get("mask"), "threshold": threshold}
-        kw["features"] = self.features
+        kw.update(features=self.features, record_inputs=record)
+        training = training and self.hparams.trainer == "grad"  # the EKF needs no gradients
         if self.hparams.filter != "pf":
             return neural_gaussian_filter(
                 self.system, batch["y_recv"], batch.get("us"), kind=self.hparams.filter, **kw
@@ -286,12 +320,31 @@ class FilterEstimatorTask(pl.LightningModule):
 
     def training_step(self, batch, batch_idx):
         seed = mix_seed(self.hparams.model_seed, self.global_step)
+        runs = batch["y_recv"].shape[0]
+        if self.hparams.trainer == "ekf":
+            return self._ekf_step(batch, seed, runs)
         out = self.run_filter(batch, training=True, seed=seed)
         losses = self._losses(out, batch)
-        runs = batch["y_recv"].shape[0]
         for k, v in losses.items():
             self.log(f"train/{k}", v.detach(), prog_bar=k == "loss", batch_size=runs)
         return losses["loss"]
+
+    def _ekf_step(self, batch, seed: int, runs: int):
+        """The EKF over ``ζ = [W, V]``: one update per time step from the batch's samples."""
+        with torch.no_grad():
+            out = self.run_filter(batch, training=True, seed=seed, record=True)
+            deltas, template = out.extras["network_inputs"], self.estimator.area_template()
+            received = batch.get("mask", torch.ones_like(batch["attack"], dtype=torch.bool))
+            optimizer, sq_err = self.optimizers(), []
+            for t in range(deltas.shape[-2]):
+                params = {"W": self.estimator.W[0].expand(runs, -1, -1),
+                          "V": self.estimator.V[0].expand(runs, -1, -1)}  # fmt: skip
+                pred, jac = template.batched_jacobian(params, deltas[:, t].to(self.estimator.V))
+                keep = received[:, t].to(pred.dtype)
+                residual = (batch["attack"][:, t].to(pred.dtype) - pred) * keep
+                sq_err.append(optimizer.step(jacobian=jac * keep[..., None], residual=residual))
+        mse = torch.stack(sq_err).mean() / batch["attack"].shape[-1]  # per entry, before updates
+        self.log("train/attack_mse", mse, prog_bar=True, batch_size=runs)
 
     # -- validation, test, predict -------------------------------------------------------
     def _scores(self, stage: str, batch, threshold: float | None) -> dict:
@@ -345,7 +398,7 @@ class FilterEstimatorTask(pl.LightningModule):
 
     # -- export (difffilter.train.export.ExportEstimator) --------------------------------
     def export_name(self) -> str:
-        return f"{self.scenario.family}_nn_grad"
+        return f"{self.scenario.family}_nn_{self.hparams.trainer}"
 
     def export_observer(self) -> dict:
         """What evaluation needs beside the weights (the filter, its threshold, the scenario)."""
@@ -360,14 +413,15 @@ class FilterEstimatorTask(pl.LightningModule):
             "dt": float(self.scenario.dt),
             "features": list(self.features),
             "poa_eta": self.poa_eta,
+            "trainer": self.hparams.trainer,
         }
 
     def check_exported(self, observer: dict, path) -> None:
         """``ValueError`` unless an exported estimator was trained for this filter and
         scenario family; its operating threshold becomes this module's."""
         mine = self.export_observer()
-        for key in ("kind", "scenario_family", "features"):
-            theirs = observer.get(key, [] if key == "features" else None)
+        for key in ("kind", "scenario_family", "features", "trainer"):
+            theirs = observer.get(key, {"features": [], "trainer": "grad"}.get(key))
             if theirs != mine[key]:
                 raise ValueError(
                     f"--ckpt_path: {path} was trained with {key} = {theirs!r}, the "
@@ -376,13 +430,19 @@ class FilterEstimatorTask(pl.LightningModule):
         self.alarm_threshold.fill_(float(observer.get("threshold", 0.5)))
 
     def export_card(self, trainer, estimator=None) -> dict:
+        hp = self.hparams
         return {
             "scenario_family": self.scenario.family,
-            "estimator": f"{self.hparams.filter}_nn_grad",
+            "estimator": f"{'pf' if hp.filter == 'pf' else 'gaussian'}_nn_{hp.trainer}",
             "description": (
-                f"Neural FDI estimator (eqs 8-9, one area of dy channels) trained through "
-                f"difffilter's {self.hparams.filter.upper()} on {self.scenario.name} "
-                f"(resampler for training: {self.hparams.resampler})"
+                "Neural FDI estimator (eqs 8-9, one area of dy channels) trained "
+                + (
+                    f"through difffilter's {hp.filter.upper()} (resampler for training: "
+                    f"{hp.resampler})"
+                    if hp.trainer == "grad"
+                    else f"by the EKF over its weights inside difffilter's {hp.filter.upper()}"
+                )
+                + f" on {self.scenario.name}"
             ),
         }
 
