@@ -10,6 +10,12 @@ NeuralFDIEstimator`, with one "area" of ``dy`` channels)::
     â_k, logit_k = network(δ_k)                               eq. (8) and its detection head
     update with ỹ_k − â_k                                     the compensated measurement
 
+An actuator attack (``channel="actuator"``, ``ũ = u + a``: the mobile robot) is estimated
+in the input's ``du`` channels from the same ``dy`` residuals and compensated in the
+input instead: the Kalman filters' update step predicts with ``u_{k−1} + â_k`` (the
+innovation ``ν_k`` of the plain input ``u_{k−1}`` shows the attack of the last
+transition).
+
 ``f_k`` holds the optional ``features`` (:data:`FEATURES`), in this order::
 
     "mask"            m_k ∈ {0, 1}^dy, the received entries
@@ -45,7 +51,7 @@ from difffilter.fdi.modified_pf import AttackCompensatedLikelihood
 from difffilter.fdi.poa import probability_of_attack
 from difffilter.kalman import gaussian_init, kalman_step
 from difffilter.models.estimators import SkipEstimator, register
-from difffilter.models.neural_estimator import NeuralFDIEstimator, build_delta
+from difffilter.models.neural_estimator import NeuralFDIEstimator
 from difffilter.particle import ModelLikelihood, particle_filter
 
 __all__ = [
@@ -88,6 +94,9 @@ class NeuralCompensation:
         poa_eta: ``η`` of the ``"poa"`` feature (needed with it).
         record_inputs: keep every step's ``δ_k [..., in]`` (:attr:`inputs`: ``[..., T, in]``),
             the samples the EKF over the weights is trained on.
+        channel: ``"sensor"`` (``â`` has the measurement's ``dy`` channels; unreceived ones
+            are 0) or ``"actuator"`` (``â`` has the network's ``area_dim = du`` channels,
+            read from ``dy = network.resid_dim`` residuals).
     """
 
     uses_predictive = True
@@ -98,6 +107,7 @@ class NeuralCompensation:
         features=(),
         poa_eta: float | None = None,
         record_inputs: bool = False,
+        channel: str = "sensor",
     ):
         if not isinstance(network, NeuralFDIEstimator):
             raise TypeError(f"network must be a NeuralFDIEstimator; got {type(network).__name__}")
@@ -105,7 +115,11 @@ class NeuralCompensation:
             raise ValueError(
                 f"network must have num_areas = 1 (one area of dy channels); got {network.num_areas}"
             )
-        width = feature_dim(features, network.area_dim)
+        if channel not in ("sensor", "actuator"):
+            raise ValueError(f"channel must be 'sensor' or 'actuator'; got {channel!r}")
+        if channel == "sensor" and network.resid_dim != network.area_dim:
+            raise ValueError("a sensor attack estimate needs network.resid_dim == area_dim (dy)")
+        width = feature_dim(features, network.resid_dim)
         if network.extra_inputs != width:
             raise ValueError(
                 f"network.extra_inputs is {network.extra_inputs} but features {list(features)} "
@@ -116,6 +130,7 @@ class NeuralCompensation:
                 f"the 'poa' feature needs poa_eta >= 0 (its threshold η); got {poa_eta!r}"
             )
         self.network, self.features, self.poa_eta = network, tuple(features), poa_eta
+        self.channel = channel
         self.attack_hist = self.resid_hist = None
         self._attacks: list[Tensor] = []
         self._logits: list[Tensor] = []
@@ -146,9 +161,9 @@ class NeuralCompensation:
         poa: Tensor | None = None,
     ):
         net, dy = self.network, innovation.shape[-1]
-        if dy != net.area_dim:
+        if dy != net.resid_dim:
             raise ValueError(
-                f"network.area_dim is {net.area_dim} but the measurement has dy = {dy}"
+                f"network.resid_dim is {net.resid_dim} but the measurement has dy = {dy}"
             )
         scale = torch.diagonal(innovation_cov, dim1=-2, dim2=-1).clamp_min(1e-30).sqrt()
         e = innovation / scale
@@ -156,12 +171,11 @@ class NeuralCompensation:
             e = e * mask.to(e.dtype)
         batch = e.shape[:-1]
         if self.attack_hist is None:
-            self.attack_hist = e.new_zeros(*batch, net.a, dy)
+            self.attack_hist = e.new_zeros(*batch, net.a, net.area_dim)
             self.resid_hist = e.new_zeros(*batch, net.b, dy)
         resid = torch.cat([e.unsqueeze(-2), self.resid_hist[..., :-1, :]], -2)
-        delta = build_delta(
-            self.attack_hist.reshape(-1, net.a, dy), resid.reshape(-1, net.b, dy), 1
-        ).reshape(*batch, -1)
+        # eq. (9) for one area: [â_{k−1}, …, â_{k−a}, e_k, …, e_{k−b+1}] (most recent first)
+        delta = torch.cat([self.attack_hist.flatten(-2), resid.flatten(-2)], -1)
         if self.features:
             extra = self._features(e, mask, log_likelihood, poa)
             delta = torch.cat([delta, *(f.expand(*batch, -1) for f in extra)], -1)
@@ -169,10 +183,11 @@ class NeuralCompensation:
             self._inputs.append(delta.detach())
         attack, logit = net(delta.unsqueeze(-2).to(net.V.dtype))
         attack = attack[..., 0, :].to(e.dtype)
-        if mask is not None:
+        sensor = self.channel == "sensor"
+        if mask is not None and sensor:
             attack = attack * mask.to(attack.dtype)
-        if logit is None:  # no detection head: the squared standardised attack estimate
-            logit = (attack / scale).square().sum(-1)
+        if logit is None:  # no detection head: the squared (standardised) attack estimate
+            logit = (attack / scale if sensor else attack).square().sum(-1)
         else:
             logit = logit[..., 0].to(e.dtype)
         self.attack_hist = torch.cat([attack.unsqueeze(-2), self.attack_hist[..., :-1, :]], -2)
@@ -182,6 +197,11 @@ class NeuralCompensation:
         return attack, logit
 
     def __call__(self, model, y, particles, k, mask, *, predictive) -> Tensor:
+        if self.channel != "sensor":
+            raise ValueError(
+                "the particle filter compensates sensor attacks; an actuator attack is "
+                "compensated in the input of neural_gaussian_filter (filter kf/ekf/ukf)"
+            )
         kw = {}
         if "log_likelihood" in self.features:
             ll = ModelLikelihood()(model, y, particles, k, mask)
@@ -266,16 +286,22 @@ def neural_gaussian_filter(
     threshold: float = 0.5,
     features=(),
     record_inputs: bool = False,
+    channel: str = "sensor",
 ) -> EstimatorOutput:
     """The KF, EKF or UKF (``kind``) with the network's compensation: each step runs the
-    filter's step once for ``ν_k, S_k`` and ``ℓ_k`` and once with ``ỹ_k − â_k`` (the update
-    that counts). ``features`` as in :class:`NeuralCompensation`, without ``"poa"`` (no
-    particles). Shapes as in :func:`neural_particle_filter`."""
+    filter's step once for ``ν_k, S_k`` and ``ℓ_k`` and once with ``ỹ_k − â_k``
+    (``channel="sensor"``) or with the input ``u_{k−1} + â_k`` (``"actuator"``: ``â``
+    ``[..., T, du]``): the update that counts. ``features`` as in
+    :class:`NeuralCompensation`, without ``"poa"`` (no particles). Shapes as in
+    :func:`neural_particle_filter`."""
     if kind not in GAUSSIAN_STEPS:
         raise ValueError(f"kind must be one of {sorted(GAUSSIAN_STEPS)}; got {kind!r}")
     if "poa" in features:
         raise ValueError("the 'poa' feature needs particles: use neural_particle_filter")
-    step, comp = GAUSSIAN_STEPS[kind], NeuralCompensation(network, features, None, record_inputs)
+    comp = NeuralCompensation(network, features, None, record_inputs, channel)
+    step, actuator = GAUSSIAN_STEPS[kind], channel == "actuator"
+    if actuator and us is None:
+        raise ValueError("channel='actuator' needs the inputs us [..., T, du]")
     state = gaussian_init(model, ys.shape[:-2])
     means, covs = [], []
     for t in range(ys.shape[-2]):
@@ -285,7 +311,10 @@ def neural_gaussian_filter(
         attack, _ = comp.step(
             probe.innovation, probe.innovation_cov, m, log_likelihood=probe.log_likelihood
         )
-        state, _ = step(model, state, ys[..., t, :] - attack, u, m)
+        if actuator:
+            state, _ = step(model, state, ys[..., t, :], u + attack, m)
+        else:
+            state, _ = step(model, state, ys[..., t, :] - attack, u, m)
         means.append(state.mean)
         covs.append(state.cov)
     means = torch.stack(means, -2)
@@ -327,7 +356,10 @@ def _run_pf(ctx, tr, obs, **kw):
 
 
 def _run_gaussian(ctx, tr, obs, **kw):
-    return neural_gaussian_filter(ctx.model, tr.y_recv, tr.us, mask=tr.mask, kind=obs["kind"], **kw)
+    return neural_gaussian_filter(
+        ctx.model, tr.y_recv, tr.us, mask=tr.mask, kind=obs["kind"],
+        channel=obs.get("channel", "sensor"), **kw,
+    )  # fmt: skip
 
 
 def _learned(name: str, kinds, trainer: str, run_filter):

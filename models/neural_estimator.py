@@ -116,13 +116,17 @@ class NeuralFDIEstimator(nn.Module):
             the order of the measurement noise (√Θ = 0.01) while attacks are of order 1, so
             gradient training uses ``resid_scale ≈ √Θ``; it is a reparametrisation of ``V``
             (``V δ̃ = (V D⁻¹) δ``), so eq. (8) is unchanged.
+        resid_dim: residual channels per area in ``δ`` (default ``area_dim``, as in
+            eq. 9; another value for one area whose attack lives elsewhere than its
+            measurement, e.g. an actuator attack of ``du`` channels seen through ``dy``
+            residuals).
         extra_inputs: per-step inputs appended to ``δ`` beyond eq. (9) (``0`` = the
             paper; :mod:`difffilter.models.learned_estimator` feeds the filter's
             statistics there: the received-measurement mask, the step's log-likelihood,
             the probability of attack), unscaled.
         seed: seed of the weight initialisation (a private ``torch.Generator``).
 
-    Parameters: ``V [J, h, d(a+b) + extra_inputs]``, ``W [J, d, h]`` and, with the head, ``P [J, h]`` and
+    Parameters: ``V [J, h, d·a + resid_dim·b + extra_inputs]``, ``W [J, d, h]`` and, with the head, ``P [J, h]`` and
     ``c [J]``.
     """
 
@@ -138,6 +142,7 @@ class NeuralFDIEstimator(nn.Module):
         detection_head: bool = True,
         attack_scale: float = 1.0,
         resid_scale: float = 1.0,
+        resid_dim: int | None = None,
         extra_inputs: int = 0,
         seed: int = 0,
         dtype=torch.float64,
@@ -152,6 +157,10 @@ class NeuralFDIEstimator(nn.Module):
         ):
             _check_int(val, name)
         _check_int(extra_inputs, "extra_inputs", minimum=0)
+        resid_dim = area_dim if resid_dim is None else resid_dim
+        _check_int(resid_dim, "resid_dim")
+        if num_areas > 1 and resid_dim != area_dim:
+            raise ValueError("resid_dim must equal area_dim with several areas (eq. 9)")
         if not init_scale > 0:
             raise ValueError(f"init_scale must be positive; got {init_scale!r}")
         if init not in ("uniform01", "symmetric"):
@@ -163,15 +172,15 @@ class NeuralFDIEstimator(nn.Module):
             b,
             hidden,
         )
-        self.extra_inputs = extra_inputs
-        self.in_dim = area_dim * (a + b) + extra_inputs
+        self.extra_inputs, self.resid_dim = extra_inputs, resid_dim
+        self.in_dim = area_dim * a + resid_dim * b + extra_inputs
         if not (attack_scale > 0 and resid_scale > 0):
             raise ValueError("attack_scale and resid_scale must be positive")
         self.attack_scale, self.resid_scale = float(attack_scale), float(resid_scale)
         scale = torch.cat(
             [
                 torch.full((area_dim * a,), float(attack_scale), dtype=dtype),
-                torch.full((area_dim * b,), float(resid_scale), dtype=dtype),
+                torch.full((resid_dim * b,), float(resid_scale), dtype=dtype),
                 torch.ones(extra_inputs, dtype=dtype),
             ]
         )
@@ -208,6 +217,7 @@ class NeuralFDIEstimator(nn.Module):
             "detection_head": self.detection_head,
             "attack_scale": self.attack_scale,
             "resid_scale": self.resid_scale,
+            "resid_dim": self.resid_dim,
             "extra_inputs": self.extra_inputs,
         }
 
@@ -258,6 +268,7 @@ _CONFIG_TYPES = {
     "detection_head": bool,
     "attack_scale": float,
     "resid_scale": float,
+    "resid_dim": int,
     "extra_inputs": int,
 }
 

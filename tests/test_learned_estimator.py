@@ -132,7 +132,7 @@ def test_the_network_must_fit_the_measurement():
     _, ys = _data(model)
     with pytest.raises(ValueError, match="num_areas = 1"):
         NeuralCompensation(NeuralFDIEstimator(num_areas=2, area_dim=1))
-    with pytest.raises(ValueError, match="area_dim is 3"):
+    with pytest.raises(ValueError, match="resid_dim is 3"):
         neural_gaussian_filter(model, ys, network=NeuralFDIEstimator(num_areas=1, area_dim=3))
     with pytest.raises(ValueError, match="kind must be one of"):
         neural_gaussian_filter(model, ys, network=_net(), kind="pf")

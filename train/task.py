@@ -229,6 +229,12 @@ class FilterEstimatorTask(pl.LightningModule):
         if trainer not in ("grad", "ekf"):
             raise ValueError(f"trainer must be 'grad' or 'ekf'; got {trainer!r}")
         features = tuple(features or ())
+        self.channel = getattr(sc.attack_model(), "channel", "sensor")
+        if self.channel == "actuator" and filter == "pf":
+            raise ValueError(
+                f"filter: {scenario} has an actuator attack, which the learned estimator "
+                "compensates in the input of a Gaussian filter: use kf, ekf or ukf"
+            )
         if "poa" in features and filter != "pf":
             raise ValueError("features: 'poa' needs particles (filter='pf')")
         far = sc.false_alarm_rate if target_false_alarm_rate is None else target_false_alarm_rate
@@ -241,9 +247,11 @@ class FilterEstimatorTask(pl.LightningModule):
         self.features, self.poa_eta = features, None
         if "poa" in features:
             self.poa_eta = float(poa_detector_for_scenario(sc, self.system).eta)
+        dy = self.system.dim_y
         self.estimator = NeuralFDIEstimator(
             num_areas=1,
-            area_dim=self.system.dim_y,
+            area_dim=self.system.dim_u if self.channel == "actuator" else dy,
+            resid_dim=dy,
             a=a,
             b=b,
             hidden=hidden,
@@ -251,7 +259,7 @@ class FilterEstimatorTask(pl.LightningModule):
             init=init,
             attack_scale=attack_scale,
             resid_scale=resid_scale,
-            extra_inputs=feature_dim(features, self.system.dim_y),
+            extra_inputs=feature_dim(features, dy),
             detection_head=trainer == "grad",  # the EKF fits the attack estimate alone
             seed=model_seed,
             dtype=self._dtype,
@@ -283,8 +291,9 @@ class FilterEstimatorTask(pl.LightningModule):
         training = training and self.hparams.trainer == "grad"  # the EKF needs no gradients
         if self.hparams.filter != "pf":
             return neural_gaussian_filter(
-                self.system, batch["y_recv"], batch.get("us"), kind=self.hparams.filter, **kw
-            )
+                self.system, batch["y_recv"], batch.get("us"), kind=self.hparams.filter,
+                channel=self.channel, **kw,
+            )  # fmt: skip
         hp = self.hparams
         resampler = RESAMPLERS[hp.resampler](hp.soft_alpha) if training else resampling.Systematic()
         gens = Streams(seed)
@@ -334,7 +343,9 @@ class FilterEstimatorTask(pl.LightningModule):
         with torch.no_grad():
             out = self.run_filter(batch, training=True, seed=seed, record=True)
             deltas, template = out.extras["network_inputs"], self.estimator.area_template()
-            received = batch.get("mask", torch.ones_like(batch["attack"], dtype=torch.bool))
+            received = batch.get("mask") if self.channel == "sensor" else None
+            if received is None:
+                received = torch.ones_like(batch["attack"], dtype=torch.bool)
             optimizer, sq_err = self.optimizers(), []
             for t in range(deltas.shape[-2]):
                 params = {"W": self.estimator.W[0].expand(runs, -1, -1),
@@ -414,6 +425,7 @@ class FilterEstimatorTask(pl.LightningModule):
             "features": list(self.features),
             "poa_eta": self.poa_eta,
             "trainer": self.hparams.trainer,
+            "channel": self.channel,
         }
 
     def check_exported(self, observer: dict, path) -> None:
