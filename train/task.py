@@ -13,11 +13,14 @@ neural_particle_filter` (``filter="pf"``, with a differentiable resampler) or
 :func:`~difffilter.models.learned_estimator.neural_gaussian_filter` (``"kf"``, ``"ekf"``,
 ``"ukf"``) on each batch and minimises::
 
-    mean‖â_k − a_k‖² + bce_weight·BCE(logit_k, l_k) + state_weight·mean‖x̂_k − x_k‖²/σ_x²
+    attack_weight·mean‖â_k − a_k‖² + bce_weight·BCE(logit_k, l_k) + state_weight·mean‖x̂_k − x_k‖²/σ_x²
 
 (``a_k`` the injected attack, ``l_k`` its flag, ``σ_x²`` the prior variance of the state):
 the attack loss back-propagates through the filter too, since ``â_k`` reads innovations
-that earlier estimates shaped. Validation and test run the filter as the evaluation does
+that earlier estimates shaped. A replacement attack (the tracking deception, ``a_k = ξ_k −
+y_k`` with ``ξ`` anywhere in a box) has no additive signal worth regressing:
+``attack_weight = 0`` leaves ``â`` to the state loss (whatever compensation serves the
+state estimate) and the head to the BCE. Validation and test run the filter as the evaluation does
 (systematic resampling at every step) and pick the alarm threshold on the validation
 batch: the ``1 − target_false_alarm_rate`` quantile of ``p_k`` over its attack-free steps.
 
@@ -185,7 +188,7 @@ class FilterEstimatorTask(pl.LightningModule):
         lr, weight_decay: AdamW.
         ekf_lr, ekf_init_cov, ekf_init_noise, ekf_process_noise: ``η``, ``ρ(0)``, ``Υ(0)``
             and ``Q_ρ`` of the EKF (:class:`~difffilter.param_ekf.EKFOptimizer`).
-        bce_weight, state_weight: loss weights (module docstring).
+        attack_weight, bce_weight, state_weight: loss weights (module docstring).
         target_false_alarm_rate: of the operating threshold (default: the scenario's).
         dtype: ``"float32"`` or ``"float64"``.
     """
@@ -212,6 +215,7 @@ class FilterEstimatorTask(pl.LightningModule):
         ekf_init_cov: float = 1.0,
         ekf_init_noise: float = 1e-2,
         ekf_process_noise: float = 0.0,
+        attack_weight: float = 1.0,
         bce_weight: float = 0.1,
         state_weight: float = 1.0,
         target_false_alarm_rate: float | None = None,
@@ -321,7 +325,7 @@ class FilterEstimatorTask(pl.LightningModule):
         }
         hp = self.hparams
         losses["loss"] = (
-            losses["attack_mse"]
+            hp.attack_weight * losses["attack_mse"]
             + hp.bce_weight * losses["bce"]
             + hp.state_weight * losses["state_mse"]
         )
