@@ -346,3 +346,27 @@ def test_fused_estimator_small_study_no_nan_reproducible_and_converges():
     rel = (a.attack[:, -1].mean(0) - tr.attack[:, -1].mean(0)).abs() / tr.attack[:, -1].mean(0)
     assert bool((rel < 0.1).all())
     assert math.isfinite(float(a.detection.scores.sum()))
+
+
+def test_input_error_readings_by_hand():
+    """The report's readings of the input error: 2 runs × 3 steps, one channel each."""
+    from difffilter.eval.families.robot import _input_error_readings
+
+    e = torch.tensor([[[1.0, 0.0], [2.0, 0.5], [0.0, 0.5]], [[-1.0, 0.0], [2.0, 0.5], [0.5, -3.0]]])
+    r = _input_error_readings(e, 40)
+    torch.testing.assert_close(
+        torch.tensor(r["pooled_rms"]), torch.tensor([(10.25 / 6) ** 0.5, (9.75 / 6) ** 0.5])
+    )
+    torch.testing.assert_close(
+        torch.tensor(r["max_step_rms"]), torch.tensor([2.0, (9.25 / 2) ** 0.5])
+    )
+    torch.testing.assert_close(torch.tensor(r["max_step_mean"]), torch.tensor([2.0, 1.25]))
+    torch.testing.assert_close(torch.tensor(r["max_step_mean_abs"]), torch.tensor([2.0, 1.75]))
+    assert r["worst_run_step"] == [2.0, 3.0]
+    assert r["share_within"] == [4 / 6, 5 / 6]
+    assert r["argmax_k"] == {"max_step_rms": [41, 42], "max_step_mean": [41, 42]}
+    assert r["settle_k"] == {"max_step_rms": [42, None], "max_step_mean": [42, None]}
+    bias, spread = torch.tensor(r["bias"]), torch.tensor(r["spread"])
+    torch.testing.assert_close(
+        bias.square() + spread.square(), torch.tensor(r["pooled_rms"]).square()
+    )
