@@ -205,6 +205,23 @@ def test_information_draw_step_equals_the_shared_update_on_the_same_noise():
         torch.testing.assert_close(log_lik, ref.log_likelihood, atol=1e-9, rtol=1e-9)
 
 
+def test_information_form_gradients_survive_the_in_place_accumulation():
+    """The component helpers accumulate in place into tensors they allocated: autograd
+    must still give the right gradient (finite differences) through one update."""
+    model, tr = _robot_data()
+    gm = model.group(GROUPS)
+    state = adaptive_particle_init(gm, 2, (2, 1), torch.Generator().manual_seed(1))
+    prop = AdaptiveKalmanProposal(gm, 0.7, "copy", "information")
+    y0 = group_measurements(tr.y_recv[:1, 0]).clone().requires_grad_()
+    u0 = tr.us[:1, 0].expand(2, 1, 2)
+
+    def f(y):
+        new, log_lik = prop(gm, state.particles, u0, y, 0, None, None)
+        return new.sum() + log_lik.sum()
+
+    assert torch.autograd.gradcheck(f, (y0,))
+
+
 def test_small_symmetric_inverses_by_hand_match_torch():
     g = torch.Generator().manual_seed(4)
     for d in (1, 2, 3, 4):
