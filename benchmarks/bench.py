@@ -474,7 +474,8 @@ def print_robot(figures: dict) -> None:
     for r in rows:
         print(
             f"   {r['dtype']:>7s}  {_fmt(r['run_steps_per_s']):>10s} run-steps/s  "
-            f"({r['seconds']:.2f} s)  target ≥ 5,000: {r['target']}"
+            f"({r['seconds']:.2f} s)  target ≥ 5,000: {r['target']};  by CPU time "
+            f"{_fmt(r['run_steps_per_cpu_s'])} ({r['cpu_seconds']:.2f} s, load {r['load_average']:.1f})"
         )
 
 

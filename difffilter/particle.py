@@ -276,6 +276,7 @@ def particle_step(
     generator: torch.Generator | None = None,
     resample_generator: torch.Generator | None = None,
     innovations: bool = True,
+    cov_dims: int | None = None,
 ) -> tuple[ParticleState, ParticleStepOutput]:
     """One particle-filter step ``x_{k−1} → x_k`` with measurement ``y_k [..., dy]``.
 
@@ -299,7 +300,16 @@ def particle_step(
         generator=generator,
         resample_generator=resample_generator,
         innovations=innovations,
+        cov_dims=_check_cov_dims(cov_dims, state.particles.shape[-1]),
     )
+
+
+def _check_cov_dims(cov_dims, dim: int) -> int | None:
+    if cov_dims is None:
+        return None
+    if isinstance(cov_dims, bool) or not isinstance(cov_dims, int) or not 1 <= cov_dims <= dim:
+        raise ValueError(f"cov_dims must be None or an integer in [1, {dim}]; got {cov_dims!r}")
+    return None if cov_dims == dim else cov_dims
 
 
 def _check_strategies(resampler, proposal, likelihood, ess_threshold) -> float:
@@ -323,6 +333,7 @@ def _particle_step(
     generator=None,
     resample_generator=None,
     innovations=True,
+    cov_dims=None,
 ):
     """:func:`particle_step` without input validation (the filter validates whole sequences)."""
     resampler = resampler if resampler is not None else Systematic()
@@ -382,7 +393,7 @@ def _particle_step(
         log_w_new = torch.where(degenerate.unsqueeze(-1), prior_lw, log_w_new)
     w_new = torch.exp(log_w_new)
     ess_new = 1.0 / w_new.square().sum(-1)
-    mean, cov = _moments(new, w_new)
+    mean, cov = _moments(new, w_new, cov_dims)
     out = ParticleStepOutput(
         mean=mean,
         cov=cov,
@@ -418,13 +429,21 @@ def _default_measurement_density(model: StateSpaceModel) -> bool:
     return type(model).measurement_log_prob is StateSpaceModel.measurement_log_prob
 
 
-def _moments(particles: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
-    """Mean and covariance of ``particles [..., N, d]`` under normalised ``weights [..., N]``."""
+def _moments(
+    particles: Tensor, weights: Tensor, cov_dims: int | None = None
+) -> tuple[Tensor, Tensor]:
+    """Mean ``[..., d]`` and covariance ``[..., c, c]`` of ``particles [..., N, d]`` under
+    normalised ``weights [..., N]``; the covariance of the first ``c = cov_dims``
+    components (default all ``d``)."""
     w = weights.unsqueeze(-2)
     mean = (w @ particles).squeeze(-2)
-    # deviations laid out [..., d, N]: the subtraction and the weighting then broadcast
-    # along the long particle axis (a short last axis runs ~2x slower on CPU)
-    dev = particles.transpose(-1, -2).contiguous() - mean.unsqueeze(-1)
+    # deviations laid out [..., c, N]: the subtraction and the weighting then broadcast
+    # along the long particle axis (a short last axis runs ~2x slower on CPU); no copy
+    # for component-major particles ([..., d, N] in memory)
+    rows, centre = particles.transpose(-1, -2), mean.unsqueeze(-1)
+    if cov_dims is not None:
+        rows, centre = rows[..., :cov_dims, :], centre[..., :cov_dims, :]
+    dev = rows.contiguous() - centre
     cov = (dev * w) @ dev.transpose(-1, -2)
     return mean, symmetrize(cov)
 
@@ -447,6 +466,7 @@ def particle_filter(
     hooks: Sequence[StepHook] = (),
     nonfinite: str = "raise",
     innovations: bool = True,
+    cov_dims: int | None = None,
 ) -> ParticleFilterResult:
     """Particle filter over a whole sequence.
 
@@ -481,6 +501,11 @@ def particle_filter(
             the step outputs) unless the likelihood reads them (``uses_predictive``): a
             filter whose caller needs only the state estimates saves ``h`` of every
             particle on every measurement entry per step.
+        cov_dims: ``covs`` (and each step's ``cov``) of the first ``cov_dims`` particle
+            components only, ``[..., T, c, c]`` (default ``None``: all ``dx``); the means
+            keep every component. For particles that carry more than the state (the
+            per-particle Kalman statistics of :mod:`difffilter.fdi.mdpf`), whose
+            covariance nobody reads: a ``dx × dx`` covariance costs ``O(N dx²)`` per run.
 
     Inputs are validated first (:func:`difffilter._checks.check_sequence_inputs`);
     ``resampler``, ``proposal`` and ``likelihood`` must be objects, not strings. A step
@@ -511,6 +536,7 @@ def particle_filter(
         "generator": generator,
         "resample_generator": resample_generator,
         "innovations": innovations,
+        "cov_dims": _check_cov_dims(cov_dims, state.particles.shape[-1]),
     }
     outs, parts, logws, records = [], [], [], StepRecorder()
     for t in range(ys.shape[-2]):

@@ -135,7 +135,15 @@ class RobotModel(StateSpaceModel):
         :class:`~difffilter.fdi.mdpf.AdaptiveKalmanProposal`): ``x`` (3 tensors ``[...]``),
         ``u`` the effective input (2), ``y`` the measurement (``dim_y`` tensors, broadcasting)
         → ``(f(x, u), ∂f/∂x, ∂f/∂u, wrapped y − h(f), ∂h/∂x at f)`` as lists (3; 3×3; 3×2;
-        dim_y; dim_y×3)."""
+        dim_y; dim_y×3). Constant entries are Python numbers. Per lidar, with
+        ``(d_x, d_y) = s_i − p`` and ``r = |s_i − p|``::
+
+            ε_r = y_r − r,   ε_b = π − ((π − y_b + θ − atan2(d_y, d_x)) mod 2π)   (wrapped)
+            ∂h/∂x = [[−d_x/r, −d_y/r, 0], [−d_y/r², d_x/r², 1]]
+
+        written so that each entry costs one elementwise kernel where it can (the
+        ``y``-only terms are per-run tensors ``[..., 1]``, not per-particle).
+        """
         T = self.dt
         pos = self.sensor_pos
         if pos.dim() == 2:
@@ -147,19 +155,25 @@ class RobotModel(StateSpaceModel):
                 for i in range(pos.shape[1])
             ]
         c, s = torch.cos(x[2]), torch.sin(x[2])
-        vc, vs = T * u[0] * c, T * u[0] * s
-        xp = [x[0] + vc, x[1] + vs, x[2] + T * u[1]]
+        up = u[0] if T == 1.0 else T * u[0]
+        vc, vs = up * c, up * s
+        xp = [x[0] + vc, x[1] + vs, x[2] + (u[1] if T == 1.0 else T * u[1])]
         F = [[1.0, 0.0, -vs], [0.0, 1.0, vc], [0.0, 0.0, 1.0]]
-        B = [[T * c, 0.0], [T * s, 0.0], [0.0, T]]
+        B = [[c if T == 1.0 else T * c, 0.0], [s if T == 1.0 else T * s, 0.0], [0.0, T]]
         e, H = [], []
         for i, (px, py) in enumerate(sensors):
             dx, dy = px - xp[0], py - xp[1]
-            r2 = dx * dx + dy * dy
-            r = torch.sqrt(r2)
+            r = torch.sqrt(torch.addcmul(dx * dx, dy, dy))
             e.append(y[2 * i] - r)
-            e.append(wrap_angle(y[2 * i + 1] - xp[2] + torch.atan2(dy, dx)))
-            H.append([-dx / r, -dy / r, 0.0])
-            H.append([-dy / r2, dx / r2, 1.0])
+            t = (xp[2] + (math.pi - y[2 * i + 1])).sub_(
+                torch.atan2(dy, dx)
+            )  # π − (y_b − θ + atan2)
+            e.append(math.pi - torch.remainder(t, 2 * math.pi))
+            ir = torch.reciprocal(r)
+            nir = -ir
+            hr0, hr1 = dx * nir, dy * nir  # −d_x/r, −d_y/r
+            H.append([hr0, hr1, 0.0])
+            H.append([hr1 * ir, hr0 * nir, 1.0])  # −d_y/r², d_x/r²
         return xp, F, B, e, H
 
     # -- measurements ----------------------------------------------------------------

@@ -255,3 +255,25 @@ def test_skipping_innovations_changes_no_estimate(data):
     assert runs[0].innovations.shape == (4, ys.shape[-2], ys.shape[-1])
     for name in ("means", "covs", "pred_means", "log_likelihood", "ess"):
         assert torch.equal(getattr(runs[0], name), getattr(runs[1], name))
+
+
+def test_cov_dims_is_the_leading_block_of_the_full_covariance(data):
+    model, ys, _ = data
+    runs = [
+        particle_filter(
+            model,
+            ys.expand(4, -1, -1),
+            num_particles=100,
+            cov_dims=c,
+            generator=torch.Generator().manual_seed(5),
+        )  # fmt: skip
+        for c in (None, 2)
+    ]
+    assert runs[1].covs.shape == (4, ys.shape[-2], 2, 2)
+    torch.testing.assert_close(runs[1].covs, runs[0].covs[..., :2, :2], atol=1e-12, rtol=0)
+    assert torch.equal(runs[0].means, runs[1].means)
+    with pytest.raises(ValueError, match="cov_dims"):
+        particle_filter(model, ys, num_particles=10, cov_dims=model.dim_x + 1)
+    state = particle_init(model, 10, (), torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match="cov_dims"):
+        particle_step(model, state, ys[0], cov_dims=0)

@@ -14,9 +14,16 @@ from conftest import constant_velocity
 
 import difffilter as df
 from difffilter.eval.suite import one_thread
-from difffilter.fdi.adaptive_kf import adaptive_kalman_filter
-from difffilter.fdi.fusion import covariance_intersection, fuse, information_fusion
-from difffilter.fdi.mdpf import ParticleLayout, adaptive_particle_filter, adaptive_particle_init
+from difffilter.fdi import _components as C
+from difffilter.fdi.adaptive_kf import adaptive_kalman_filter, adaptive_update
+from difffilter.fdi.fusion import _fused, covariance_intersection, fuse, information_fusion
+from difffilter.fdi.mdpf import (
+    AdaptiveKalmanProposal,
+    ParticleLayout,
+    adaptive_particle_filter,
+    adaptive_particle_init,
+    adaptive_particle_step,
+)
 from difffilter.models.estimators import SuiteContext
 from difffilter.models.registry import get
 from difffilter.models.robot import DEG, GROUPS, RobotModel
@@ -168,6 +175,93 @@ def test_information_form_equals_covariance_form_with_a_mask():
     torch.testing.assert_close(outs[0].covs, outs[1].covs, atol=1e-7, rtol=0)
 
 
+def test_information_draw_step_equals_the_shared_update_on_the_same_noise():
+    """The fast path (information form, component-major particles, adjugate inverses)
+    against :func:`adaptive_update` (shared Kalman gain, Joseph form) on particles with
+    non-trivial Υ, S, P and the same ``"draw"`` noise; row-major input gives the same."""
+    model, tr = _robot_data()
+    gm, lay = model.group(GROUPS), ParticleLayout(3, 2)
+    ys, us = group_measurements(tr.y_recv), tr.us.expand(2, -1, -1, -1)
+    g = torch.Generator().manual_seed(2)
+    state = adaptive_particle_init(gm, 8, (2, 3), g)
+    for t in range(6):  # a few steps: Υ, S and P away from their initial values
+        state, _ = adaptive_particle_step(gm, state, ys[:, :, t], us[:, :, t], generator=g)
+    particles, k = state.particles, state.k
+    assert particles.transpose(-1, -2).is_contiguous()  # component-major
+    prop = AdaptiveKalmanProposal(gm, 0.7, "draw", "information")
+    y, u = ys[:, :, k], us[:, :, k]
+    outs = [prop(gm, p, u, y, k, None, torch.Generator().manual_seed(9))
+            for p in (particles, particles.contiguous())]  # fmt: skip
+    eps = torch.randn((3, 2, 3, 8), generator=torch.Generator().manual_seed(9), dtype=F64)
+    x, a, ups, S, P = lay.unpack(particles)
+    x = x + (torch.linalg.cholesky(P) @ eps.movedim(0, -1).unsqueeze(-1)).squeeze(-1)
+    ref = adaptive_update(
+        gm, x, a, S, ups, y.unsqueeze(-2), u.unsqueeze(-2), k, forgetting=0.7,
+        pred_cov=gm.process_cov(k),
+    )  # fmt: skip
+    want = lay.pack(ref.mean, ref.attack, ref.sensitivity, ref.attack_cov, ref.cov)
+    for new, log_lik in outs:
+        torch.testing.assert_close(new, want, atol=1e-9, rtol=1e-9)
+        torch.testing.assert_close(log_lik, ref.log_likelihood, atol=1e-9, rtol=1e-9)
+
+
+def test_information_form_gradients_survive_the_in_place_accumulation():
+    """The component helpers accumulate in place into tensors they allocated: autograd
+    must still give the right gradient (finite differences) through one update."""
+    model, tr = _robot_data()
+    gm = model.group(GROUPS)
+    state = adaptive_particle_init(gm, 2, (2, 1), torch.Generator().manual_seed(1))
+    prop = AdaptiveKalmanProposal(gm, 0.7, "copy", "information")
+    y0 = group_measurements(tr.y_recv[:1, 0]).clone().requires_grad_()
+    u0 = tr.us[:1, 0].expand(2, 1, 2)
+
+    def f(y):
+        new, log_lik = prop(gm, state.particles, u0, y, 0, None, None)
+        return new.sum() + log_lik.sum()
+
+    assert torch.autograd.gradcheck(f, (y0,))
+
+
+def test_small_symmetric_inverses_by_hand_match_torch():
+    g = torch.Generator().manual_seed(4)
+    for d in (1, 2, 3, 4):
+        A = torch.randn(5, d, d, generator=g, dtype=F64)
+        A = A @ A.mT + 0.5 * torch.eye(d, dtype=F64)
+        comp = C.to_components(A)
+        inv, logdet = C.sym_inverse(comp, logdet=True)
+        torch.testing.assert_close(C.from_components(inv), torch.linalg.inv(A))
+        torch.testing.assert_close(logdet, torch.logdet(A))
+        low = C.from_components(
+            [[v if isinstance(v, torch.Tensor) else torch.zeros(5, dtype=F64) for v in row]
+             for row in C.cholesky(comp)]
+        )  # fmt: skip
+        torch.testing.assert_close(low, torch.linalg.cholesky(A))
+
+
+def test_fusion_by_hand_equals_the_linalg_route():
+    """d ≤ 3 is fused entry by entry (the robot's 3×3 states, 2×2 attacks); the result is
+    the torch.linalg formula at the same ω. d = 4 takes the torch.linalg route."""
+    g = torch.Generator().manual_seed(6)
+    for d in (1, 2, 3, 4):
+        A = torch.randn(7, 2, d, d, generator=g, dtype=F64)
+        covs = A @ A.mT + 0.1 * torch.eye(d, dtype=F64)
+        means = torch.randn(7, 2, d, generator=g, dtype=F64)
+        mean, cov, omega = covariance_intersection(means, covs)
+        info = torch.linalg.inv(covs)
+        ref_mean, ref_cov = _fused(info, means, torch.stack((omega, 1 - omega), -1))
+        torch.testing.assert_close(mean, ref_mean)
+        torch.testing.assert_close(cov, ref_cov)
+        grid = torch.linspace(0, 1, 2001, dtype=F64)[:, None]
+        tot = grid[..., None, None] * info[:, 0] + (1 - grid[..., None, None]) * info[:, 1]
+        best = torch.linalg.inv(tot).diagonal(dim1=-2, dim2=-1).sum(-1).amin(0)
+        got = cov.diagonal(dim1=-2, dim2=-1).sum(-1)
+        assert bool((got <= best * (1 + 1e-6)).all())  # ω minimises tr P_f (grid of 2001)
+        n_mean, n_cov = information_fusion(means, covs)
+        ref_mean, ref_cov = _fused(info, means, torch.ones(7, 2, dtype=F64))
+        torch.testing.assert_close(n_mean, ref_mean)
+        torch.testing.assert_close(n_cov, ref_cov)
+
+
 def test_copy_reading_collapses_and_draw_keeps_diversity():
     model, tr = _robot_data(steps=30)
     ys, us = tr.y_recv[:, :30], tr.us[:, :30]
@@ -269,3 +363,27 @@ def test_fused_estimator_small_study_no_nan_reproducible_and_converges():
     rel = (a.attack[:, -1].mean(0) - tr.attack[:, -1].mean(0)).abs() / tr.attack[:, -1].mean(0)
     assert bool((rel < 0.1).all())
     assert math.isfinite(float(a.detection.scores.sum()))
+
+
+def test_input_error_readings_by_hand():
+    """The report's readings of the input error: 2 runs × 3 steps, one channel each."""
+    from difffilter.eval.families.robot import _input_error_readings
+
+    e = torch.tensor([[[1.0, 0.0], [2.0, 0.5], [0.0, 0.5]], [[-1.0, 0.0], [2.0, 0.5], [0.5, -3.0]]])
+    r = _input_error_readings(e, 40)
+    torch.testing.assert_close(
+        torch.tensor(r["pooled_rms"]), torch.tensor([(10.25 / 6) ** 0.5, (9.75 / 6) ** 0.5])
+    )
+    torch.testing.assert_close(
+        torch.tensor(r["max_step_rms"]), torch.tensor([2.0, (9.25 / 2) ** 0.5])
+    )
+    torch.testing.assert_close(torch.tensor(r["max_step_mean"]), torch.tensor([2.0, 1.25]))
+    torch.testing.assert_close(torch.tensor(r["max_step_mean_abs"]), torch.tensor([2.0, 1.75]))
+    assert r["worst_run_step"] == [2.0, 3.0]
+    assert r["share_within"] == [4 / 6, 5 / 6]
+    assert r["argmax_k"] == {"max_step_rms": [41, 42], "max_step_mean": [41, 42]}
+    assert r["settle_k"] == {"max_step_rms": [42, None], "max_step_mean": [42, None]}
+    bias, spread = torch.tensor(r["bias"]), torch.tensor(r["spread"])
+    torch.testing.assert_close(
+        bias.square() + spread.square(), torch.tensor(r["pooled_rms"]).square()
+    )

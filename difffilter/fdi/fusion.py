@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from ..linalg import matvec, symmetrize
+from . import _components as C
 
 __all__ = ["covariance_intersection", "information_fusion", "FUSION_RULES", "fuse"]
 
@@ -55,17 +56,83 @@ def _fused(info: Tensor, means: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
     return mean, cov
 
 
+# -- d ≤ 3 by hand ----------------------------------------------------------------------
+# The locals' covariances are 3×3 (state) and 2×2 (attack): batched torch.linalg calls on
+# such matrices cost ~100 ns per matrix plus a dispatch each, and the golden-section
+# search makes 32 of them. Written entry by entry (difffilter.fdi._components) a trace
+# evaluation is ~20 elementwise kernels: the same formulas, the same result up to
+# round-off (tested against the torch.linalg route, which larger d still takes).
+
+_HAND_MAX_DIM = 3
+
+
+def _local_entries(covs: Tensor, d: int):
+    """Upper-triangle component views of the two locals' ``covs [..., 2, d, d]``."""
+    return [[[covs[..., n, i, j] if j >= i else None for j in range(d)] for i in range(d)]
+            for n in range(2)]  # fmt: skip
+
+
+def _weighted(info, w0, w1, d: int):
+    """``w₀ I₀ + w₁ I₁`` (upper triangle) of the locals' information components."""
+    return [[C.lin(((1.0, info[0][i][j], w0), (1.0, info[1][i][j], w1))) if j >= i else None
+             for j in range(d)] for i in range(d)]  # fmt: skip
+
+
+def _trace_inverse(a, d: int) -> Tensor:
+    """``tr A⁻¹`` of a symmetric ``d × d`` component matrix (``d ≤ 3``, upper triangle
+    read): the sum of the principal cofactors over the determinant."""
+    if d == 1:
+        return torch.reciprocal(a[0][0])
+    if d == 2:
+        det = C.lin(((1.0, a[0][0], a[1][1]), (-1.0, a[0][1], a[0][1])))
+        return (a[0][0] + a[1][1]).div_(det)
+    c00 = C.lin(((1.0, a[1][1], a[2][2]), (-1.0, a[1][2], a[1][2])))
+    c11 = C.lin(((1.0, a[0][0], a[2][2]), (-1.0, a[0][2], a[0][2])))
+    c22 = C.lin(((1.0, a[0][0], a[1][1]), (-1.0, a[0][1], a[0][1])))
+    c01 = C.lin(((1.0, a[0][2], a[1][2]), (-1.0, a[0][1], a[2][2])))
+    c02 = C.lin(((1.0, a[0][1], a[1][2]), (-1.0, a[1][1], a[0][2])))
+    det = C.lin(((1.0, a[0][0], c00), (1.0, a[0][1], c01), (1.0, a[0][2], c02)))
+    return (c00 + c11).add_(c22).div_(det)
+
+
+def _fused_by_hand(info, means: Tensor, w0, w1, d: int) -> tuple[Tensor, Tensor]:
+    """:func:`_fused` on components: ``info`` the two locals' information matrices
+    (component lists), ``w0``, ``w1`` the weights (``[...]`` tensors or numbers)."""
+    cov, _ = C.sym_inverse(_weighted(info, w0, w1, d))
+    ws = (w0, w1)
+    # Σ wᵢ Iᵢ x̂ᵢ, then P_f times it
+    ix = [[C.lin((1.0, info[n][r][c], means[..., n, c]) for c in range(d)) for r in range(d)]
+          for n in range(2)]  # fmt: skip
+    rhs = [C.lin((1.0, ix[n][r], ws[n]) for n in range(2)) for r in range(d)]
+    mean = [C.lin((1.0, cov[r][c], rhs[c]) for c in range(d)) for r in range(d)]
+    return torch.stack(mean, -1), C.from_components(cov)
+
+
+def _local_information(covs: Tensor, d: int):
+    """The two locals' ``Pᵢ⁻¹`` as full component matrices (``out[j][i] is out[i][j]``)."""
+    return [C.sym_inverse(m)[0] for m in _local_entries(covs, d)]
+
+
 def covariance_intersection(
     means: Tensor, covs: Tensor, *, iterations: int = 30
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Covariance intersection of two estimates (module docstring) → ``(mean, cov, ω)``."""
     _check_pair(means, covs)
-    info = torch.linalg.inv(covs)
+    d = means.shape[-1]
+    hand = d <= _HAND_MAX_DIM
+    if hand:
+        info = _local_information(covs, d)
 
-    def trace(omega):
-        w = torch.stack((omega, 1.0 - omega), -1)
-        total = (w[..., None, None] * info).sum(-3)
-        return torch.linalg.inv(total).diagonal(dim1=-2, dim2=-1).sum(-1)
+        def trace(omega):
+            return _trace_inverse(_weighted(info, omega, 1.0 - omega, d), d)
+
+    else:
+        info = torch.linalg.inv(covs)
+
+        def trace(omega):
+            w = torch.stack((omega, 1.0 - omega), -1)
+            total = (w[..., None, None] * info).sum(-3)
+            return torch.linalg.inv(total).diagonal(dim1=-2, dim2=-1).sum(-1)
 
     lo = means.new_zeros(means.shape[:-2])
     hi = torch.ones_like(lo)
@@ -81,13 +148,19 @@ def covariance_intersection(
         a, b = torch.where(left, new, b), torch.where(left, a, new)
         fa, fb = torch.where(left, f_new, fb), torch.where(left, fa, f_new)
     omega = 0.5 * (lo + hi)
-    mean, cov = _fused(info, means, torch.stack((omega, 1.0 - omega), -1))
+    if hand:
+        mean, cov = _fused_by_hand(info, means, omega, 1.0 - omega, d)
+    else:
+        mean, cov = _fused(info, means, torch.stack((omega, 1.0 - omega), -1))
     return mean, cov, omega
 
 
 def information_fusion(means: Tensor, covs: Tensor) -> tuple[Tensor, Tensor]:
     """Naive information fusion ``P_f⁻¹ = P₁⁻¹ + P₂⁻¹`` (module docstring) → ``(mean, cov)``."""
     _check_pair(means, covs)
+    d = means.shape[-1]
+    if d <= _HAND_MAX_DIM:
+        return _fused_by_hand(_local_information(covs, d), means, 1.0, 1.0, d)
     info = torch.linalg.inv(covs)
     return _fused(info, means, means.new_ones(means.shape[:-1]))
 

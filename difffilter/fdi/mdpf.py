@@ -144,11 +144,20 @@ class AdaptiveKalmanProposal:
         log N(ε; 0, Σ) = −½ (εᵀR⁻¹ε − εᵀR⁻¹HKε + log det R + log det Q + log det M + m log 2π)
 
     (matrix inversion and determinant lemmas; ``S⁺`` is (5i) since ``Γ`` is the gain of
-    the θ-filter with prior ``S/λ``). ``"covariance"`` runs
-    :func:`~difffilter.fdi.adaptive_kf.adaptive_update` (the shared Kalman gain and
-    Joseph form) on the packed tensors; the two agree to round-off (tested).
+    the θ-filter with prior ``S/λ``). ``J`` is never formed: ``JD = Q⁻¹(D − Υ⁺)``, so
+    ``DᵀJD = (Q⁻¹D)ᵀ(D − Υ⁺)``. The 2×2 and 3×3 inverses and ``log det M`` are the
+    adjugate formulas (:func:`~difffilter.fdi._components.sym_inverse`); every entry of
+    every matrix is one tensor over all particles of all runs, and constant entries
+    (``Q⁻¹``, the unicycle's 0/1 Jacobian entries) are Python numbers that cost no
+    kernel. ``"covariance"`` runs :func:`~difffilter.fdi.adaptive_kf.adaptive_update`
+    (the shared Kalman gain and Joseph form) on the packed tensors; the two agree to
+    round-off (tested, also for one ``"draw"`` step against the same noise).
 
-    Returns ``(new packed particles [..., N, D], log N(ε; 0, Σ) [..., N])`` (A8).
+    Returns ``(new packed particles [..., N, D], log N(ε; 0, Σ) [..., N])`` (A8). The
+    information form returns them component-major (``[..., D, N]`` in memory, seen as
+    ``[..., N, D]``): the resampler gathers each component row and keeps the layout, the
+    driver's moments need no transpose copy and the next step reads its components as
+    views.
     """
 
     def __init__(
@@ -200,23 +209,23 @@ class AdaptiveKalmanProposal:
     def _information(self, particles, u, y, k, mask, generator):
         base, lay = self.base, self.layout
         dx, da = lay.dx, lay.da
-        z = particles.movedim(-1, 0).contiguous()  # [D, ..., N]
-        comp = list(z.unbind(0))
-        o = 0
-        x = comp[o : o + dx]
-        a = comp[o + dx : o + dx + da]
-        o += dx + da
-        ups = [comp[o + i * da : o + (i + 1) * da] for i in range(dx)]
+        z = particles.transpose(-1, -2)  # [..., D, N]
+        if not z.is_contiguous():  # row-major particles (an initial state): one copy
+            z = z.contiguous()
+        comp = z.unbind(-2)  # views [..., N], each contiguous along the particles
+        o = dx + da
+        x, a = list(comp[:dx]), list(comp[dx:o])
+        ups = [list(comp[o + i * da : o + (i + 1) * da]) for i in range(dx)]
         o += dx * da
-        S = [comp[o + i * da : o + (i + 1) * da] for i in range(da)]
+        S = [list(comp[o + i * da : o + (i + 1) * da]) for i in range(da)]
         o += da * da
-        P = [comp[o + i * dx : o + (i + 1) * dx] for i in range(dx)]
         if self.reading == "draw":  # x̂ʲ(k−1) ~ N(x̄ˡ, Pˡ)
+            P = [list(comp[o + i * dx : o + (i + 1) * dx]) for i in range(dx)]
             eps = torch.randn(
                 (dx,) + x[0].shape, generator=generator, dtype=z.dtype, device=z.device
             )
             low = C.cholesky(P)
-            x = [x[i] + C._dot((low[i][j], eps[j]) for j in range(i + 1)) for i in range(dx)]
+            x = [C.lin(((1.0, xi, 1.0), (1.0, li, 1.0))) for xi, li in zip(x, C.mv(low, eps))]
         own = getattr(base, "linearize_components", None)
         if own is not None:  # the model's component form (no AoS round trips)
             uc = list(u.movedim(-1, 0).unsqueeze(-1).unbind(0)) if u is not None else None
@@ -246,43 +255,40 @@ class AdaptiveKalmanProposal:
             rinv = [ms[i] / self._rvar[i] for i in range(dy)]
             logdet_r = sum(ms[i] * math.log(self._rvar[i]) for i in range(dy))
             count = sum(ms)
-        we = [e[i] * rinv[i] for i in range(dy)]  # R⁻¹ε
-        g = [C._dot((H[i][j], we[i]) for i in range(dy)) for j in range(dx)]  # HᵀR⁻¹ε
-        quad = C._dot((e[i], we[i]) for i in range(dy))  # εᵀR⁻¹ε
-        hw = [[H[i][j] * rinv[i] for j in range(dx)] for i in range(dy)]
-        M = [[None] * dx for _ in range(dx)]
-        for j in range(dx):
-            for m_ in range(j, dx):
-                M[j][m_] = self._qinv[j][m_] + C._dot((hw[i][j], H[i][m_]) for i in range(dy))
-                M[m_][j] = M[j][m_]
-        Minv, logdet_m = C.spd_inverse(M)  # P = M⁻¹
-        ke = [C._dot((Minv[i][j], g[j]) for j in range(dx)) for i in range(dx)]  # Kε
-        D = C.add(C.mm(F, ups), phi)  # FΥ + B
+        we = [C.lin(((1.0, e[i], rinv[i]),)) for i in range(dy)]  # R⁻¹ε
+        g = C.mv(C.mt(H), we)  # HᵀR⁻¹ε
+        quad = C._dot(zip(e, we))  # εᵀR⁻¹ε
         qi = self._qinv
-        qd = C.mm(qi, D)
-        new_ups = C.mm(Minv, qd)  # (5e): M⁻¹Q⁻¹D
-        J = C.add(qi, [[-v for v in row] for row in C.mm(C.mm(qi, Minv), qi)])
-        dtjd = C.mm(C.mt(D), C.mm(J, D))
-        s_inv, _ = C.spd_inverse(S)
-        lam = self.forgetting
-        info_a = [[lam * s_inv[i][j] + dtjd[i][j] for j in range(da)] for i in range(da)]
-        new_S, _ = C.spd_inverse(info_a)  # (5i)
-        qke = [C._dot((qi[i][j], ke[j]) for j in range(dx)) for i in range(dx)]
-        dq = [C._dot((D[j][i], qke[j]) for j in range(dx)) for i in range(da)]  # ΩᵀΣ⁻¹ε
-        step = [C._dot((new_S[i][j], dq[j]) for j in range(da)) for i in range(da)]  # Γε
-        new_a = [a[i] + step[i] for i in range(da)]
+        Minv, logdet_m = C.sym_inverse(C.gram(H, rinv, qi), logdet=True)  # P = M⁻¹
+        ke = C.mv(Minv, g)  # Kε
+        D = C.add(C.mm(F, ups), phi)  # FΥ + B
+        qd = C.mm(qi, D)  # Q⁻¹D
+        new_ups = C.mm(Minv, qd)  # (5e): Υ⁺ = M⁻¹Q⁻¹D
+        # DᵀJD with J = Q⁻¹ − Q⁻¹M⁻¹Q⁻¹: JD = Q⁻¹(D − Υ⁺), so DᵀJD = (Q⁻¹D)ᵀ(D − Υ⁺)
+        djd = C.mm(C.mt(qd), C.add(D, new_ups, -1.0), upper=True)
+        s_inv, _ = C.sym_inverse(S)
+        info_a = C.add(djd, s_inv, self.forgetting)  # λS⁻¹ + DᵀJD (upper triangle)
+        new_S, _ = C.sym_inverse(info_a)  # (5i): S⁺ = (λS⁻¹ + DᵀJD)⁻¹
+        step = C.mv(new_S, C.mv(C.mt(qd), ke))  # Γε = S⁺ DᵀQ⁻¹Kε
+        new_a = [C.lin(((1.0, a[i], 1.0), (1.0, step[i], 1.0))) for i in range(da)]
         new_x = [
-            xpc[i] + ke[i] + C._dot((new_ups[i][j], step[j]) for j in range(da)) for i in range(dx)
-        ]
-        gk = C._dot((g[i], ke[i]) for i in range(dx))
-        log_lik = -0.5 * (
-            quad - gk + logdet_r + self._logdet_q + logdet_m + count * math.log(2 * math.pi)
-        )
-        flat = (
-            new_x + new_a + [v for row in new_ups for v in row] + [v for row in new_S for v in row]
-        )
-        flat += [v for row in Minv for v in row]
-        return torch.stack(flat, 0).movedim(0, -1).contiguous(), log_lik
+            C.lin(
+                [(1.0, xpc[i], 1.0), (1.0, ke[i], 1.0)]
+                + [(1.0, new_ups[i][j], step[j]) for j in range(da)]
+            )
+            for i in range(dx)
+        ]  # fmt: skip  x⁺ = x_p + Kε + Υ⁺Γε
+        gk = C._dot(zip(g, ke))
+        log_lik = C.lin(((-0.5, quad, 1.0), (0.5, gk, 1.0), (-0.5, logdet_m, 1.0)))
+        log_lik = log_lik - 0.5 * (logdet_r + self._logdet_q + count * math.log(2 * math.pi))
+        flat = new_x + new_a + [v for row in new_ups for v in row]
+        flat += [v for row in new_S for v in row] + [v for row in Minv for v in row]
+        shape = torch.broadcast_shapes(*(t.shape for t in flat if isinstance(t, Tensor)))
+        flat = [t.expand(shape) if isinstance(t, Tensor) else z.new_full(shape, t) for t in flat]
+        # component-major particles: [..., D, N] in memory, seen as [..., N, D]; the
+        # resampler gathers along each component row and keeps the layout, and the next
+        # step reads the components without a copy
+        return torch.stack(flat, -2).transpose(-1, -2), log_lik
 
 
 class LocalEstimate(NamedTuple):
@@ -296,7 +302,8 @@ class LocalEstimate(NamedTuple):
 
 
 def _summary(layout: ParticleLayout, mean: Tensor, cov: Tensor) -> LocalEstimate:
-    """Mixture moments from the particles' weighted mean ``[..., D]`` and covariance ``[..., D, D]``."""
+    """Mixture moments from the particles' weighted mean ``[..., D]`` and the covariance
+    ``[..., c, c]`` of their first ``c ≥ dx + da`` components (``x̄``, ``ā``)."""
     x, a, _, S, P = layout.unpack(mean)
     dx, da = layout.dx, layout.da
     cx = cov[..., :dx, :dx]
@@ -354,7 +361,8 @@ def adaptive_particle_step(
         resampler=resampler if resampler is not None else Multinomial(),
         proposal=AdaptiveKalmanProposal(model, forgetting, reading, form),
         likelihood=FlatLikelihood(), ess_threshold=1.0,
-        generator=generator, resample_generator=resample_generator,
+        generator=generator, resample_generator=resample_generator, innovations=False,
+        cov_dims=layout.dx + layout.da,
     )  # fmt: skip
     return state, _summary(layout, out.mean, out.cov)
 
@@ -414,7 +422,8 @@ def adaptive_particle_filter(
         resampler=resampler if resampler is not None else Multinomial(),
         proposal=AdaptiveKalmanProposal(model, forgetting, reading, form),
         likelihood=FlatLikelihood(), ess_threshold=1.0, generator=generator,
-        resample_generator=resample_generator, initial_state=initial_state,
+        resample_generator=resample_generator, initial_state=initial_state, innovations=False,
+        cov_dims=layout.dx + layout.da,
     )  # fmt: skip
     est = _summary(layout, res.means, res.covs)
     score = wald_statistic(est.attack, est.attack_cov)
