@@ -93,6 +93,50 @@ def test_each_kalman_step_updates_with_the_measurement_minus_the_networks_estima
         torch.testing.assert_close(out.means[:, t], state.mean, rtol=0, atol=1e-12)
 
 
+def test_an_actuator_estimate_is_added_to_the_input_of_each_update_by_hand():
+    """channel='actuator': â (du = 1 channel) from the dy = 2 residuals of the plain step,
+    δ = [â_{k−1}, â_{k−2}, e_k, e_{k−1}], then the KF step with u + â."""
+    dtype = torch.float64
+    F = torch.tensor([[1.0, 0.1], [0.0, 0.95]], dtype=dtype)
+    eye = torch.eye(2, dtype=dtype)
+    Bm = torch.tensor([[0.0], [0.1]], dtype=dtype)
+    model = df.LinearGaussianModel(F, eye, 1e-3 * eye, 1e-2 * eye, torch.zeros(2, dtype=dtype),
+                                   eye, B=Bm)  # fmt: skip
+    gen = torch.Generator().manual_seed(6)
+    ys = torch.randn(2, 4, 2, generator=gen, dtype=dtype)
+    us = torch.randn(2, 4, 1, generator=gen, dtype=dtype)
+    net = NeuralFDIEstimator(num_areas=1, area_dim=1, resid_dim=2, a=2, b=2, hidden=5,
+                             init="symmetric", init_scale=0.5, seed=2, dtype=dtype)  # fmt: skip
+    out = neural_gaussian_filter(model, ys, us, network=net, channel="actuator")
+    assert out.attack.shape == (2, 4, 1)
+    state = df.kalman.gaussian_init(model, (2,))
+    a_hist, e_hist = torch.zeros(2, 2, 1, dtype=dtype), torch.zeros(2, 2, 2, dtype=dtype)
+    for t in range(4):
+        _, probe = df.kalman_step(model, state, ys[:, t], us[:, t])
+        e = probe.innovation / torch.diagonal(probe.innovation_cov, dim1=-2, dim2=-1).sqrt()
+        e_hist = torch.cat([e[:, None], e_hist[:, :-1]], 1)
+        a_hat, _ = net(torch.cat([a_hist.flatten(1), e_hist.flatten(1)], 1)[:, None])
+        a_hat = a_hat[:, 0]
+        a_hist = torch.cat([a_hat[:, None], a_hist[:, :-1]], 1)
+        state, _ = df.kalman_step(model, state, ys[:, t], us[:, t] + a_hat)
+        torch.testing.assert_close(out.attack[:, t], a_hat, rtol=0, atol=1e-12)
+        torch.testing.assert_close(out.means[:, t], state.mean, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="needs the inputs"):
+        neural_gaussian_filter(model, ys, network=net, channel="actuator")
+    with pytest.raises(ValueError, match="resid_dim == area_dim"):
+        neural_gaussian_filter(model, ys, us, network=net)  # a sensor estimate of 1 channel
+
+
+def test_the_task_takes_the_attack_channel_from_the_scenario():
+    from difffilter.train.task import FilterEstimatorTask
+
+    task = FilterEstimatorTask("robot_actuator_attack", filter="ekf", hidden=4)
+    assert task.channel == "actuator"
+    assert (task.estimator.area_dim, task.estimator.resid_dim) == (2, 12)
+    with pytest.raises(ValueError, match="actuator attack"):
+        FilterEstimatorTask("robot_actuator_attack", filter="pf")
+
+
 def test_gradcheck_through_the_compensated_kalman_filter():
     """float64 gradcheck of the filter's outputs w.r.t. the network weights and the data."""
     model, net = _linear(), _net()
