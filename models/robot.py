@@ -232,6 +232,7 @@ class RobotScenario(Scenario):
     forgetting: float = 0.7
     attack_cov0: float = 10.0
     reading: str = "draw"
+    checkpoint: str | None = "checkpoints/robot_nn_ekf.ckpt"  # gaussian_nn_ekf without --ckpt
 
     def system(self, dtype: torch.dtype = torch.float64, device=None) -> RobotModel:
         return RobotModel(dt=self.dt, dtype=dtype)
@@ -260,6 +261,7 @@ _ESTIMATORS = (
     "mdpf_local_2",
     "mdpf_fused_ci",
     "mdpf_fused_naive",
+    "gaussian_nn_ekf",
 )
 _NOTES = (
     "[DEF] u = (5 cm/s, 5 deg/s) (unstated); filters' Q = diag(1 cm², 1 cm², 1 deg²) for (A4); "
