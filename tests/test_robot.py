@@ -378,7 +378,6 @@ def test_input_error_readings_by_hand():
         torch.tensor(r["max_step_rms"]), torch.tensor([2.0, (9.25 / 2) ** 0.5])
     )
     torch.testing.assert_close(torch.tensor(r["max_step_mean"]), torch.tensor([2.0, 1.25]))
-    torch.testing.assert_close(torch.tensor(r["max_step_mean_abs"]), torch.tensor([2.0, 1.75]))
     assert r["worst_run_step"] == [2.0, 3.0]
     assert r["share_within"] == [4 / 6, 5 / 6]
     assert r["argmax_k"] == {"max_step_rms": [41, 42], "max_step_mean": [41, 42]}

@@ -15,18 +15,18 @@ from scipy.stats import chi2, wilcoxon
 
 from difffilter.models.robot import DEG
 from difffilter.models.robot_estimators import compensated_loop
+from difffilter.runtime import one_thread
 
 from ..report import FamilyReport, Section, format_number, markdown_table, register_family
-from ..suite import one_thread
 
 LATE = 40  # the issue's "k ≥ 40"
 
 
-def _pos_rmse_t(means, x) -> torch.Tensor:
+def _pos_rmse_t(means, x) -> torch.Tensor:  # (B8) per step [T]
     return (means[..., :2] - x[..., :2]).square().sum(-1).mean(0).sqrt()
 
 
-def _per_run(means, x, start: int) -> torch.Tensor:
+def _per_run(means, x, start: int) -> torch.Tensor:  # per run over k > start [B]
     return (means[:, start:, :2] - x[:, start:, :2]).square().sum(-1).mean(-1).sqrt()
 
 
@@ -37,12 +37,9 @@ def _nees(out, x) -> float | None:
     return float((e.mT @ torch.linalg.solve(out.covs, e)).mean())
 
 
+@one_thread()
+@torch.no_grad()
 def _extra(result) -> dict:
-    with one_thread(), torch.no_grad():
-        return _numbers(result)
-
-
-def _numbers(result) -> dict:
     tr, outs, sc = result.traj, result.outputs, result.scenario
     x, T, B = tr.x, tr.x.shape[1], tr.x.shape[0]
     k0 = LATE - 1  # index of k = 40
@@ -104,9 +101,11 @@ def _numbers(result) -> dict:
     return extra
 
 
-#: The input-error bound of issue 11 (cm/s, deg/s) and the reading it is checked on.
+#: The input-error bound of issue 11 (cm/s, deg/s) and the reading it is checked on: (a),
+#: the RMS over runs and steps k ≥ 40 (a per-step bound would contradict the issue's own
+#: allowance of 10 % = 2 cm/s at k = 44; docs/scenarios.md §4).
 INPUT_BOUND = 1.0
-INPUT_READING = "max_step_mean"
+INPUT_READING = "pooled_rms"
 
 
 def _input_error_readings(err: torch.Tensor, first_k: int) -> dict:
@@ -116,8 +115,7 @@ def _input_error_readings(err: torch.Tensor, first_k: int) -> dict:
     * ``pooled_rms``: √(mean over runs and steps of e²);
     * ``max_step_rms``: max over k of √(mean over runs of e²(k)) (the RMS(k) curve's peak);
     * ``max_step_mean``: max over k of |mean over runs of e(k)| (the ensemble's error at
-      every step, the reading next to "the mean fused â within 10 %");
-    * ``max_step_mean_abs``: max over k of the mean over runs of |e(k)|;
+      every step);
     * ``worst_run_step``: max over runs and k of |e|;
     * ``share_within``: share of run-steps with |e| ≤ 1;
     * ``bias``, ``spread``: mean and standard deviation of e over runs and steps
@@ -131,7 +129,6 @@ def _input_error_readings(err: torch.Tensor, first_k: int) -> dict:
         "pooled_rms": err.square().mean((0, 1)).sqrt().tolist(),
         "max_step_rms": rms_k.amax(0).tolist(),
         "max_step_mean": mean_k.abs().amax(0).tolist(),
-        "max_step_mean_abs": err.abs().mean(0).amax(0).tolist(),
         "worst_run_step": err.abs().amax((0, 1)).tolist(),
         "share_within": (err.abs() <= INPUT_BOUND).double().mean((0, 1)).tolist(),
         "bias": flat.mean(0).tolist(),
@@ -161,17 +158,8 @@ _READINGS = (
     ("pooled_rms", "(a) pooled RMS over runs and steps"),
     ("max_step_rms", "(b) per-step RMS over runs, max over k"),
     ("max_step_mean", "(c) per-step mean over runs, max over k of its magnitude"),
-    ("max_step_mean_abs", "per-step mean of abs. error over runs, max over k"),
     ("worst_run_step", "(d) worst single run-step"),
 )
-
-
-def _memory(lam: float) -> str:
-    """The θ-filter's forgetting in words: an effective memory of 1/(1 − λ) steps."""
-    if lam >= 1:
-        return "λ = 1: no forgetting"
-    memory = format_number(1 / (1 - lam))
-    return f"λ = {format_number(lam)}, the paper's forgetting factor: a memory of about 1/(1 − λ) = {memory} steps"
 
 
 def _input_error_table(ie: dict, oe: dict | None) -> str:
@@ -184,9 +172,9 @@ def _input_error_table(ie: dict, oe: dict | None) -> str:
             row += [f(oe[key][0]), f(oe[key][1])]
         rows.append(row)
     head = ["reading (k ≥ 40)", "cm/s", "deg/s", "≤ 1 and ≤ 1"]
-    if oe is not None:
-        head += ["â − a without compensation, cm/s", "deg/s"]
-    return markdown_table(head, rows)
+    return markdown_table(
+        head + (["â − a without compensation, cm/s", "deg/s"] if oe else []), rows
+    )
 
 
 def _figures(result, doc, out) -> list[str]:
@@ -291,27 +279,28 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
             verdict = (
                 "holds" if all(v <= INPUT_BOUND for v in ie[INPUT_READING]) else "does not hold"
             )
+            lam = result.scenario.forgetting
             body += ("\nCompensated loop (u ← u − â_f with the fused estimate of the previous step, same plant "
                      "noise): the effective input error e = a − â for k ≥ 40 by every reading, beside the "
                      "uncompensated fused estimate's error â − a on the same steps:\n\n"
                      + _input_error_table(ie, oe)
-                     + f"\nCriterion (issue 11: ≤ 1 cm/s and ≤ 1 deg/s after k = 40), read as (c), the ensemble's "
-                     f"error at every step: **{verdict}** (largest |mean| {f(ie['max_step_mean'][0])} cm/s at "
-                     f"k = {ie['argmax_k']['max_step_mean'][0]}, {f(ie['max_step_mean'][1])} deg/s at "
-                     f"k = {ie['argmax_k']['max_step_mean'][1]}; it stays ≤ 1 from k = "
-                     f"{ie['settle_k']['max_step_mean'][0]} / {ie['settle_k']['max_step_mean'][1]} on, the RMS over "
-                     f"runs from k = {ie['settle_k']['max_step_rms'][0]} / {ie['settle_k']['max_step_rms'][1]}). "
-                     f"Where (c) exceeds 1 it is the tail of â's convergence after the onset at k = "
-                     f"{result.scenario.attack_from}: the uncompensated mean fused â at k = {LATE} is "
-                     f"{f(att['mean_curve'][LATE - 1][0])} cm/s, {f(att['mean_curve'][LATE - 1][1])} deg/s. "
-                     f"Over all run-steps the error has bias "
-                     f"{f(ie['bias'][0])} cm/s, {f(ie['bias'][1])} deg/s and spread (s.d.) {f(ie['spread'][0])} "
-                     f"cm/s, {f(ie['spread'][1])} deg/s: the spread, the run-to-run and step-to-step noise of â "
-                     f"({_memory(result.scenario.forgetting)}), is what (b) and (d) add; "
-                     f"{f(100 * ie['share_within'][0])} % / {f(100 * ie['share_within'][1])} % of run-steps are "
-                     f"within 1 cm/s / 1 deg/s. Final distance to the attack-free path "
-                     f"{f(comp['deviation_from_attack_free_cm'])} cm; closed-loop fused position RMSE "
-                     f"{f(comp['position_rmse_closed_loop'])} cm.\n")  # fmt: skip
+                     + f"\nCriterion (issue 11: ≤ 1 cm/s and ≤ 1 deg/s after k = 40), read as (a), the RMS over "
+                     f"runs and steps (a per-step bound would contradict the 10 % = 2 cm/s the issue allows at "
+                     f"k = 44): **{verdict}**. The stricter per-step reading (c), the ensemble's error at every "
+                     f"step, peaks at {f(ie['max_step_mean'][0])} cm/s (k = {ie['argmax_k']['max_step_mean'][0]}) "
+                     f"and {f(ie['max_step_mean'][1])} deg/s (k = {ie['argmax_k']['max_step_mean'][1]}) and stays "
+                     f"≤ 1 from k = {ie['settle_k']['max_step_mean'][0]} / {ie['settle_k']['max_step_mean'][1]} on "
+                     f"(the RMS over runs from k = {ie['settle_k']['max_step_rms'][0]} / "
+                     f"{ie['settle_k']['max_step_rms'][1]}): the tail of â's convergence after the onset at k = "
+                     f"{result.scenario.attack_from} (the uncompensated mean fused â at k = {LATE} is "
+                     f"{f(att['mean_curve'][LATE - 1][0])} cm/s, {f(att['mean_curve'][LATE - 1][1])} deg/s). "
+                     f"Over all run-steps the error has bias {f(ie['bias'][0])} cm/s, {f(ie['bias'][1])} deg/s "
+                     f"and spread (s.d.) {f(ie['spread'][0])} cm/s, {f(ie['spread'][1])} deg/s: the spread, the "
+                     f"noise of â (forgetting λ = {f(lam)}, a memory of about 1/(1 − λ) = {f(1 / (1 - lam))} "
+                     f"steps), is what (b) and (d) add; {f(100 * ie['share_within'][0])} % / "
+                     f"{f(100 * ie['share_within'][1])} % of run-steps are within 1 cm/s / 1 deg/s. Final "
+                     f"distance to the attack-free path {f(comp['deviation_from_attack_free_cm'])} cm; "
+                     f"closed-loop fused position RMSE {f(comp['position_rmse_closed_loop'])} cm.\n")  # fmt: skip
         secs.append(Section("Attack estimate and compensation (Figs B1, B3)", body))
     d = doc["sensor_distance_cm"]
     body = markdown_table(["lidar", *range(1, 7)], [["closest approach, all runs (cm)", *map(f, d["min_over_runs"])],
