@@ -20,11 +20,12 @@ from difffilter import fdi
 from difffilter.estimator import EstimatorOutput
 from difffilter.extended import extended_kalman_step, unscented_kalman_step
 from difffilter.kalman import kalman_step
+from difffilter.noise import UniformBox
 from difffilter.particle import KalmanProposal
 
 from .estimators import Run, SuiteContext, register
 
-__all__ = ["oracle_attack", "modified_pf", "default_estimators"]
+__all__ = ["oracle_attack", "modified_pf", "deception_of", "default_estimators"]
 
 
 def _plain(run_filter):
@@ -145,20 +146,25 @@ def _modified_pf_est(ctx: SuiteContext) -> Run:
     )
 
 
+def deception_of(attack, dtype: torch.dtype):
+    """``(p_a, rate)``: the attacked-measurement density of a scenario's attack for the
+    mixture likelihood (a bias attack's additive ``γ̄``, or a replacement attack's box
+    ``U(low, high)``) and its per-step rate."""
+    if hasattr(attack, "gamma_bar"):
+        return fdi.BiasDeception(torch.tensor(attack.gamma_bar, dtype=dtype)), attack.p_l
+    if hasattr(attack, "low"):
+        box = UniformBox(
+            torch.tensor(attack.low, dtype=dtype), torch.tensor(attack.high, dtype=dtype)
+        )
+        return fdi.ReplacementDeception(box), attack.rate
+    raise ValueError(f"no deception density for an attack of type {type(attack).__name__}")
+
+
 @register("mixture_likelihood_pf", "PF with the deception mixture likelihood (RRP method)")
 def _mixture_pf(ctx: SuiteContext) -> Run:
-    attack = ctx.scenario.attack_model()
-    if hasattr(attack, "gamma_bar"):
-        deception = fdi.BiasDeception(torch.tensor(attack.gamma_bar, dtype=ctx.dtype))
-        rate = attack.p_l
-    else:
-        from difffilter.noise import UniformBox
-
-        box = UniformBox(
-            torch.tensor(attack.low, dtype=ctx.dtype), torch.tensor(attack.high, dtype=ctx.dtype)
-        )
-        deception, rate = fdi.ReplacementDeception(box), attack.rate
-    likelihood = fdi.DeceptionMixtureLikelihood(rate, deception)
+    likelihood = fdi.DeceptionMixtureLikelihood(
+        *reversed(deception_of(ctx.scenario.attack_model(), ctx.dtype))
+    )
     return lambda tr: fdi.mixture_likelihood_particle_filter(
         ctx.model, tr.y_recv, tr.us, mask=tr.mask, likelihood=likelihood,
         **ctx.particle_kwargs(len(tr.y_recv)),

@@ -14,7 +14,11 @@ An actuator attack (``channel="actuator"``, ``ũ = u + a``: the mobile robot) is
 in the input's ``du`` channels from the same ``dy`` residuals and compensated in the
 input instead: the Kalman filters' update step predicts with ``u_{k−1} + â_k`` (the
 innovation ``ν_k`` of the plain input ``u_{k−1}`` shows the attack of the last
-transition).
+transition). A replacement attack (``channel="replacement"``, ``ỹ = ξ ~ p_ξ``: the
+tracking deception) has no additive signal to subtract: the particle filter weighs with
+the mixture of eq. (15) of the RRP paper with the network's probability ``p_k`` in place
+of the fixed rate η̄, ``log[(1 − p_k) p_v(ỹ_k − h(x^i)) + p_k p_ξ(ỹ_k)]``, and reports
+``â_k = p_k ν_k`` (the injected ``ξ − y`` expected given the data).
 
 ``f_k`` holds the optional ``features`` (:data:`FEATURES`), in this order::
 
@@ -51,6 +55,7 @@ from difffilter.fdi.modified_pf import AttackCompensatedLikelihood
 from difffilter.fdi.poa import probability_of_attack
 from difffilter.kalman import gaussian_init, kalman_step
 from difffilter.models.estimators import SkipEstimator, register
+from difffilter.models.generic_estimators import deception_of
 from difffilter.models.neural_estimator import NeuralFDIEstimator
 from difffilter.particle import ModelLikelihood, particle_filter
 
@@ -95,8 +100,11 @@ class NeuralCompensation:
         record_inputs: keep every step's ``δ_k [..., in]`` (:attr:`inputs`: ``[..., T, in]``),
             the samples the EKF over the weights is trained on.
         channel: ``"sensor"`` (``â`` has the measurement's ``dy`` channels; unreceived ones
-            are 0) or ``"actuator"`` (``â`` has the network's ``area_dim = du`` channels,
-            read from ``dy = network.resid_dim`` residuals).
+            are 0), ``"actuator"`` (``â`` has the network's ``area_dim = du`` channels,
+            read from ``dy = network.resid_dim`` residuals) or ``"replacement"`` (the
+            mixture likelihood with ``p_k``; needs a detection head and ``deception``).
+        deception: ``log p_ξ`` as a likelihood ``(model, y, particles, k, mask) → [..., N]``
+            (:class:`~difffilter.fdi.ReplacementDeception`), for ``"replacement"``.
     """
 
     uses_predictive = True
@@ -108,6 +116,7 @@ class NeuralCompensation:
         poa_eta: float | None = None,
         record_inputs: bool = False,
         channel: str = "sensor",
+        deception=None,
     ):
         if not isinstance(network, NeuralFDIEstimator):
             raise TypeError(f"network must be a NeuralFDIEstimator; got {type(network).__name__}")
@@ -115,10 +124,14 @@ class NeuralCompensation:
             raise ValueError(
                 f"network must have num_areas = 1 (one area of dy channels); got {network.num_areas}"
             )
-        if channel not in ("sensor", "actuator"):
-            raise ValueError(f"channel must be 'sensor' or 'actuator'; got {channel!r}")
-        if channel == "sensor" and network.resid_dim != network.area_dim:
+        if channel not in ("sensor", "actuator", "replacement"):
+            raise ValueError(
+                f"channel must be 'sensor', 'actuator' or 'replacement'; got {channel!r}"
+            )
+        if channel != "actuator" and network.resid_dim != network.area_dim:
             raise ValueError("a sensor attack estimate needs network.resid_dim == area_dim (dy)")
+        if channel == "replacement" and (deception is None or not network.detection_head):
+            raise ValueError("channel='replacement' needs deception= and a network with a head")
         width = feature_dim(features, network.resid_dim)
         if network.extra_inputs != width:
             raise ValueError(
@@ -130,7 +143,7 @@ class NeuralCompensation:
                 f"the 'poa' feature needs poa_eta >= 0 (its threshold η); got {poa_eta!r}"
             )
         self.network, self.features, self.poa_eta = network, tuple(features), poa_eta
-        self.channel = channel
+        self.channel, self.deception = channel, deception
         self.attack_hist = self.resid_hist = None
         self._attacks: list[Tensor] = []
         self._logits: list[Tensor] = []
@@ -183,13 +196,15 @@ class NeuralCompensation:
             self._inputs.append(delta.detach())
         attack, logit = net(delta.unsqueeze(-2).to(net.V.dtype))
         attack = attack[..., 0, :].to(e.dtype)
-        sensor = self.channel == "sensor"
+        sensor = self.channel != "actuator"
         if mask is not None and sensor:
             attack = attack * mask.to(attack.dtype)
         if logit is None:  # no detection head: the squared (standardised) attack estimate
             logit = (attack / scale if sensor else attack).square().sum(-1)
         else:
             logit = logit[..., 0].to(e.dtype)
+        if self.channel == "replacement":  # the expected injected ξ − y, p_k ν_k
+            attack = torch.sigmoid(logit).unsqueeze(-1) * innovation
         self.attack_hist = torch.cat([attack.unsqueeze(-2), self.attack_hist[..., :-1, :]], -2)
         self.resid_hist = resid
         self._attacks.append(attack)
@@ -197,7 +212,7 @@ class NeuralCompensation:
         return attack, logit
 
     def __call__(self, model, y, particles, k, mask, *, predictive) -> Tensor:
-        if self.channel != "sensor":
+        if self.channel == "actuator":
             raise ValueError(
                 "the particle filter compensates sensor attacks; an actuator attack is "
                 "compensated in the input of neural_gaussian_filter (filter kf/ekf/ukf)"
@@ -211,7 +226,16 @@ class NeuralCompensation:
             if mask is not None:
                 z = z * mask.unsqueeze(-2).to(z.dtype)
             kw["poa"] = probability_of_attack(z, self.poa_eta, predictive.log_weights)
-        attack, _ = self.step(predictive.innovation, predictive.innovation_cov, mask, **kw)
+        attack, logit = self.step(predictive.innovation, predictive.innovation_cov, mask, **kw)
+        if self.channel == "replacement":  # eq. (15) with the learned p_k for η̄
+            clean = ModelLikelihood()(model, y, particles, k, mask)
+            replaced = self.deception(model, y, particles, k, mask)
+            logit = logit.unsqueeze(-1)
+            log_p, log_q = (
+                torch.nn.functional.logsigmoid(logit),
+                torch.nn.functional.logsigmoid(-logit),
+            )
+            return torch.logaddexp(clean + log_q, replaced + log_p)
         always = torch.ones(attack.shape[:-1], dtype=torch.bool, device=attack.device)
         return AttackCompensatedLikelihood(always, attack)(model, y, particles, k, mask)
 
@@ -260,15 +284,18 @@ def neural_particle_filter(
     features=(),
     poa_eta: float | None = None,
     record_inputs: bool = False,
+    channel: str = "sensor",
+    deception=None,
     **driver,
 ) -> EstimatorOutput:
     """The particle filter of :func:`difffilter.particle_filter` (``driver``: resampler,
     proposal, generators, ``initial_state``, …) with the network's compensation as its
-    likelihood (``features``, ``poa_eta``, ``record_inputs``: :class:`NeuralCompensation`).
+    likelihood (``features``, ``poa_eta``, ``record_inputs``, ``channel`` ``"sensor"`` or
+    ``"replacement"``, ``deception``: :class:`NeuralCompensation`).
     ``ys [..., T, dy]`` → means ``[..., T, dx]``, ``attack [..., T, dy]``, detection scores
     ``[..., T]``; ``extras``: ``attack_logit`` (with a head), ``log_likelihood [...]``,
     ``network_inputs [..., T, in]`` (when recorded)."""
-    comp = NeuralCompensation(network, features, poa_eta, record_inputs)
+    comp = NeuralCompensation(network, features, poa_eta, record_inputs, channel, deception)
     res = particle_filter(
         model, ys, us, num_particles=num_particles, mask=mask, likelihood=comp, **driver
     )
@@ -296,8 +323,8 @@ def neural_gaussian_filter(
     :func:`neural_particle_filter`."""
     if kind not in GAUSSIAN_STEPS:
         raise ValueError(f"kind must be one of {sorted(GAUSSIAN_STEPS)}; got {kind!r}")
-    if "poa" in features:
-        raise ValueError("the 'poa' feature needs particles: use neural_particle_filter")
+    if "poa" in features or channel == "replacement":
+        raise ValueError("'poa' and channel='replacement' need particles: neural_particle_filter")
     comp = NeuralCompensation(network, features, None, record_inputs, channel)
     step, actuator = GAUSSIAN_STEPS[kind], channel == "actuator"
     if actuator and us is None:
@@ -349,9 +376,12 @@ def _trained_network(ctx, name: str, kinds, trainer: str) -> tuple[NeuralFDIEsti
 
 
 def _run_pf(ctx, tr, obs, **kw):
+    channel, deception = obs.get("channel", "sensor"), None
+    if channel == "replacement":
+        deception = deception_of(ctx.scenario.attack_model(), ctx.dtype)[0]
     return neural_particle_filter(
-        ctx.model, tr.y_recv, tr.us, mask=tr.mask, poa_eta=obs.get("poa_eta"),
-        **ctx.particle_kwargs(len(tr.y_recv)), **kw,
+        ctx.model, tr.y_recv, tr.us, mask=tr.mask, poa_eta=obs.get("poa_eta"), channel=channel,
+        deception=deception, **ctx.particle_kwargs(len(tr.y_recv)), **kw,
     )  # fmt: skip
 
 

@@ -219,6 +219,35 @@ def test_particle_filter_features_by_hand():
         torch.testing.assert_close(tail[i, 3], beta)
 
 
+def test_replacement_channel_weighs_with_the_learned_attack_probability_by_hand():
+    """channel='replacement': log[(1 − p) p_v(y − Hx) + p p_ξ(y)] with p = sigmoid(logit)
+    (eq. 15 with the network's probability for η̄), â = p ν."""
+    from difffilter import fdi
+    from difffilter.noise import UniformBox
+
+    model, gen = _linear(), torch.Generator().manual_seed(8)
+    net = _net()
+    with torch.no_grad():
+        net.P.normal_(generator=gen)  # a head that answers something other than its init
+    box = UniformBox(
+        torch.full((2,), -5.0, dtype=torch.float64), torch.full((2,), 5.0, dtype=torch.float64)
+    )
+    comp = NeuralCompensation(net, channel="replacement", deception=fdi.ReplacementDeception(box))
+    particles = torch.randn(3, 6, 2, generator=gen, dtype=torch.float64)
+    log_w = torch.log_softmax(torch.randn(3, 6, generator=gen, dtype=torch.float64), -1)
+    y = torch.randn(3, 2, generator=gen, dtype=torch.float64)
+    innovation = torch.randn(3, 2, generator=gen, dtype=torch.float64)
+    cov = torch.eye(2, dtype=torch.float64).expand(3, 2, 2)
+    ll = comp(model, y, particles, 1, None, predictive=Predictive(log_w, y, innovation, cov))
+    p = torch.sigmoid(comp.logit[:, 0])
+    clean = torch.distributions.Normal(0.0, 0.1).log_prob(y[:, None] - particles).sum(-1)
+    expect = torch.log((1 - p)[:, None] * clean.exp() + p[:, None] / 100.0)  # box area 10²
+    torch.testing.assert_close(ll, expect)
+    torch.testing.assert_close(comp.attack[:, 0], p[:, None] * innovation)
+    with pytest.raises(ValueError, match="needs deception"):
+        NeuralCompensation(net, channel="replacement")
+
+
 def test_kalman_filter_log_likelihood_feature_by_hand():
     """For the KF, ℓ_1 = log N(y_1; H F m_0, H(F P_0 Fᵀ + Q)Hᵀ + R) of the first measurement."""
     model = _linear()
@@ -241,7 +270,7 @@ def test_features_must_fit_the_network():
         NeuralCompensation(_net(extra_inputs=1), ("poa",))
     model = _linear()
     _, ys = _data(model)
-    with pytest.raises(ValueError, match="needs particles"):
+    with pytest.raises(ValueError, match="need particles"):
         neural_gaussian_filter(model, ys, network=_net(extra_inputs=1), features=("poa",))
 
 

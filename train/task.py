@@ -18,9 +18,11 @@ neural_particle_filter` (``filter="pf"``, with a differentiable resampler) or
 (``a_k`` the injected attack, ``l_k`` its flag, ``σ_x²`` the prior variance of the state):
 the attack loss back-propagates through the filter too, since ``â_k`` reads innovations
 that earlier estimates shaped. A replacement attack (the tracking deception, ``a_k = ξ_k −
-y_k`` with ``ξ`` anywhere in a box) has no additive signal worth regressing:
-``attack_weight = 0`` leaves ``â`` to the state loss (whatever compensation serves the
-state estimate) and the head to the BCE. Validation and test run the filter as the evaluation does
+y_k`` with ``ξ`` anywhere in a box) has no additive signal to subtract: the PF weighs the
+particles with the mixture likelihood of the network's probability
+(:mod:`difffilter.models.learned_estimator`, ``channel="replacement"``), ``â_k = p_k ν_k``,
+and ``attack_weight = 0`` leaves the training to the BCE and the state loss through the
+filter. Validation and test run the filter as the evaluation does
 (systematic resampling at every step) and pick the alarm threshold on the validation
 batch: the ``1 − target_false_alarm_rate`` quantile of ``p_k`` over its attack-free steps.
 
@@ -46,7 +48,9 @@ import torch
 from difffilter import resampling
 from difffilter.metrics import roc_auc
 from difffilter.models import registry
+from difffilter.models.attacks import Replacement
 from difffilter.models.estimators import poa_detector_for_scenario
+from difffilter.models.generic_estimators import deception_of
 from difffilter.models.learned_estimator import (
     GAUSSIAN_STEPS,
     feature_dim,
@@ -233,12 +237,21 @@ class FilterEstimatorTask(pl.LightningModule):
         if trainer not in ("grad", "ekf"):
             raise ValueError(f"trainer must be 'grad' or 'ekf'; got {trainer!r}")
         features = tuple(features or ())
-        self.channel = getattr(sc.attack_model(), "channel", "sensor")
+        attack = sc.attack_model()
+        self.channel = "replacement" if isinstance(attack, Replacement) else attack.channel
         if self.channel == "actuator" and filter == "pf":
             raise ValueError(
                 f"filter: {scenario} has an actuator attack, which the learned estimator "
                 "compensates in the input of a Gaussian filter: use kf, ekf or ukf"
             )
+        if self.channel == "replacement" and (filter != "pf" or trainer != "grad"):
+            raise ValueError(
+                f"{scenario} replaces measurements: the learned estimator weighs them with the "
+                "mixture likelihood of its attack probability, in the PF (filter: pf, trainer: grad)"
+            )
+        self.deception = (
+            deception_of(attack, dtype_of(dtype))[0] if self.channel == "replacement" else None
+        )
         if "poa" in features and filter != "pf":
             raise ValueError("features: 'poa' needs particles (filter='pf')")
         far = sc.false_alarm_rate if target_false_alarm_rate is None else target_false_alarm_rate
@@ -311,6 +324,8 @@ class FilterEstimatorTask(pl.LightningModule):
             generator=gens("particles/propagate"),
             resample_generator=gens("particles/resample"),
             poa_eta=self.poa_eta,
+            channel=self.channel,
+            deception=self.deception,
             **kw,
         )
 
