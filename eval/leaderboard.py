@@ -10,7 +10,7 @@ sha256, so that runs of different checkpoints compare side by side).
 from __future__ import annotations
 
 import json
-import math
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -77,21 +77,19 @@ def _heatmaps(path: Path, rows: list[dict[str, Any]]) -> None:
     size = (2.0 * len(COLUMNS) + 2, 0.32 * len(estimators) + 1.5)
     fig, axes = plt.subplots(1, len(COLUMNS), figsize=size, sharey=True, squeeze=False)
     for ax, metric in zip(axes[0], COLUMNS):
-        grid = np.full((len(estimators), len(scenarios)), np.nan)
-        for i, e in enumerate(estimators):
-            for j, s in enumerate(scenarios):
-                value = index.get((s, e), {}).get(metric)
-                if value is not None and math.isfinite(value):
-                    grid[i, j] = value
-        goodness = np.full_like(grid, np.nan)
-        for j in range(len(scenarios)):
-            col = grid[:, j]
-            lo, hi = np.nanmin(col, initial=np.inf), np.nanmax(col, initial=-np.inf)
-            if np.isfinite(lo) and hi > lo:
-                frac = (col - lo) / (hi - lo)
-                goodness[:, j] = frac if metric in HIGHER_IS_BETTER else 1 - frac
-            elif np.isfinite(lo):
-                goodness[:, j] = np.where(np.isnan(col), np.nan, 1.0)
+        values = [[index.get((s, e), {}).get(metric) for s in scenarios] for e in estimators]
+        grid = np.array([[np.nan if v is None else v for v in row] for row in values], float)
+        grid[~np.isfinite(grid)] = np.nan
+        # min-max per scenario column (a single value or a tie counts as best)
+        with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns
+            lo, hi = np.nanmin(grid, 0), np.nanmax(grid, 0)
+            frac = np.where(
+                hi > lo, (grid - lo) / (hi - lo), 1.0 if metric in HIGHER_IS_BETTER else 0.0
+            )
+        goodness = np.where(
+            np.isnan(grid), np.nan, frac if metric in HIGHER_IS_BETTER else 1 - frac
+        )
         ax.imshow(goodness, aspect="auto", cmap="RdYlGn", vmin=0, vmax=1)
         for (i, j), value in np.ndenumerate(grid):
             if not np.isnan(value):
