@@ -396,6 +396,7 @@ class TrackingScenario(Scenario):
     box_high: tuple = (80.0, math.pi / 2)
     x0: tuple = (20.0, 0.3, 20.0, 0.3)
     p0: tuple = (1.0, 1e-4, 1.0, 1e-4)
+    checkpoint: str | None = "checkpoints/tracking_nn_grad.ckpt"  # pf_nn_grad without --ckpt
 
     def __post_init__(self):
         if self.holding not in ("zero_input", "zero_order_hold"):
@@ -509,7 +510,7 @@ _ESTIMATORS = (
     "pf_da",
     "rrp_pf_da_ekf_proposal",
     "ukf_chi_square",
-    "pf_nn_grad",  # runs with --ckpt of a run of train/configs/tracking.yaml
+    "pf_nn_grad",  # the shipped checkpoints/tracking_nn_grad.ckpt, or --ckpt
 )
 _NOTES = (
     "[DEF] sensor positions (10,10), (10,60), (60,10), (60,60): shown only in the paper's Fig. 2.",
