@@ -7,8 +7,9 @@ import torch
 
 import difffilter as df
 from difffilter.eval.report import metrics_schema, write_report
-from difffilter.eval.suite import default_estimators, run_suite
+from difffilter.eval.suite import run_suite
 from difffilter.models.attacks import SensorBias
+from difffilter.models.generic_estimators import default_estimators
 from difffilter.models.scenario import CustomScenario
 
 DT = 0.05

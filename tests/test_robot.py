@@ -13,7 +13,6 @@ import torch
 from conftest import constant_velocity
 
 import difffilter as df
-from difffilter.eval.suite import one_thread
 from difffilter.fdi import _components as C
 from difffilter.fdi.adaptive_kf import adaptive_kalman_filter, adaptive_update
 from difffilter.fdi.fusion import _fused, covariance_intersection, fuse, information_fusion
@@ -29,6 +28,7 @@ from difffilter.models.registry import get
 from difffilter.models.robot import DEG, GROUPS, RobotModel
 from difffilter.models.robot_estimators import compensated_loop, group_measurements, local_pair
 from difffilter.models.streams import Streams
+from difffilter.runtime import one_thread
 from difffilter.ssm import batched_jacobian
 
 F64 = torch.float64

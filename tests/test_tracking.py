@@ -8,11 +8,11 @@ from dataclasses import replace
 import pytest
 import torch
 
-from difffilter.eval.suite import one_thread
 from difffilter.models import registry
 from difffilter.models.estimators import SuiteContext, get
 from difffilter.models.streams import Streams
 from difffilter.models.tracking import GlintNoise, TrackingScenario, wrap_angle
+from difffilter.runtime import one_thread
 
 RUNS = 4
 
