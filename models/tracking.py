@@ -98,9 +98,11 @@ class GlintNoise(NoiseModel):
         self.register_buffer(
             "_const_one", torch.log(weights) - 0.5 * torch.log(2 * math.pi * variances).sum(-1)
         )
-        self._one_sensor_terms = [
-            (float(q[0]), float(q[1]), float(c)) for q, c in zip(self._quad_one, self._const_one)
-        ]
+        # the same per component, stacked [C, 3] = (−½/var_r, −½/var_b, const) for one
+        # two-call evaluation of every component (sensor_log_prob)
+        self.register_buffer(
+            "_one_terms", torch.cat((self._quad_one, self._const_one[:, None]), -1)
+        )
 
     @property
     def mean(self) -> Tensor:
@@ -153,17 +155,25 @@ class GlintNoise(NoiseModel):
         ``log Σ_c π_c N(r; 0, var_c0) N(b; 0, var_c1)``, elementwise: what
         :meth:`block_log_prob` gives for a sensor whose two entries are received.
         """
-        r2, b2 = range_residual.square(), bearing_residual.square()
+        return self.sensor_log_prob_squared(range_residual.square(), bearing_residual.square())
+
+    def sensor_log_prob_squared(self, range_sq: Tensor, bearing_sq: Tensor) -> Tensor:
+        """:meth:`sensor_log_prob` from the squared residuals ``r², b²`` (each ``[...]``) → ``[...]``.
+
+        Component ``c``: ``log π_c − ½ log(2π var_c0) − ½ log(2π var_c1) − r²/(2 var_c0)
+        − b²/(2 var_c1)``; the components are combined with ``logaddexp`` (two) or
+        ``logsumexp``.
+        """
+        r2, b2 = range_sq, bearing_sq
         if self.weights.requires_grad or self.variances.requires_grad:
             q, c = self._quad_one, self._const_one
-            comp = [r2 * q[i, 0] + b2 * q[i, 1] + c[i] for i in range(len(c))]
-        else:  # fixed noise: its constants as Python numbers, two fused ops a component
-            comp = [
-                torch.add(b2 * q1, r2, alpha=q0).add_(c) for q0, q1, c in self._one_sensor_terms
-            ]
-        if len(comp) == 2:
+            comp = torch.stack([r2 * q[i, 0] + b2 * q[i, 1] + c[i] for i in range(len(c))])
+        else:  # fixed noise: every component [C, ...] in two calls
+            cols = self._one_terms.reshape(self._one_terms.shape + (1,) * r2.dim()).unbind(1)
+            comp = torch.addcmul(cols[2], cols[0], r2).addcmul_(cols[1], b2)
+        if comp.shape[0] == 2:
             return torch.logaddexp(comp[0], comp[1])
-        return torch.logsumexp(torch.stack(comp, -1), dim=-1)
+        return torch.logsumexp(comp, dim=0)
 
 
 class TrackingModel(StateSpaceModel):
@@ -281,10 +291,17 @@ class TrackingModel(StateSpaceModel):
 
         Round-Robin fast path: when ``mask`` is one row per batch element (``[..., 1, dy]``
         against ``x [..., N, dx]``) and every row receives both entries of exactly one
-        sensor, only that sensor's range and bearing are computed, gathered by its index
-        (a quarter of the work of all four sensors; the same density as
-        :meth:`GlintNoise.block_log_prob`, up to round-off). Otherwise the generic
-        ``log p(y − h(x))`` over the masked entries.
+        sensor, only that sensor's range and bearing are computed (a quarter of the work of
+        all four sensors; the same density as :meth:`GlintNoise.block_log_prob`, up to
+        round-off). With ``(Δζ, Δψ) = p − s`` the particle's offset from the sensor and
+        ``(ỹ_r, ỹ_b)`` its packet::
+
+            r = ỹ_r − ‖(Δζ, Δψ)‖,   b = wrap(ỹ_b − atan2(Δψ, Δζ))
+              = atan2(Δζ sin ỹ_b − Δψ cos ỹ_b,  Δζ cos ỹ_b + Δψ sin ỹ_b)
+
+        (the offset rotated by ``−ỹ_b``: an exact identity, wrapped by construction, so no
+        ``remainder`` pass over the particles). Otherwise the generic ``log p(y − h(x))``
+        over the masked entries.
         """
         one = self._one_sensor(y, x, mask)
         if one is None:
@@ -292,9 +309,10 @@ class TrackingModel(StateSpaceModel):
         (sz, sp), (yr, yb) = one  # [..., 1] each: the sensor's position and its packet
         xz, _, xp, _ = x.unbind(-1)
         dz, dp = xz - sz, xp - sp
-        r = yr - torch.hypot(dz, dp)
-        b = wrap_angle(yb - torch.atan2(dp, dz))
-        return self.measurement_noise.sensor_log_prob(r, b)
+        sin_b, cos_b = torch.sin(yb), torch.cos(yb)
+        r2 = (torch.hypot(dz, dp) - yr).square()
+        b2 = torch.atan2(dz * sin_b - dp * cos_b, dz * cos_b + dp * sin_b).square()
+        return self.measurement_noise.sensor_log_prob_squared(r2, b2)
 
     def _one_sensor(self, y, x, mask):
         """``((ζ_s, ψ_s), (range, bearing))`` of the received sensor, each ``[..., 1]``, for the

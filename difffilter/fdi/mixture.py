@@ -129,6 +129,16 @@ class DeceptionMixtureLikelihood:
         return clean, attacked
 
     def __call__(self, model, y, particles, k, mask) -> Tensor:
+        if self.p == 0.0:  # log(1 − p) = 0 and p p_a = 0: the clean density, exactly
+            m = None if mask is None else mask.unsqueeze(-2)
+            return model.measurement_log_prob(y.unsqueeze(-2), particles, k, m)
+        if isinstance(self.attack, ReplacementDeception):
+            # p p_ξ(ỹ) is one number per run: add log p there ([..., 1]) and broadcast it in
+            # the logaddexp instead of a pass over the particles
+            m = None if mask is None else mask.unsqueeze(-2)
+            clean = model.measurement_log_prob(y.unsqueeze(-2), particles, k, m) + self._log_q
+            attacked = (self.attack.log_density(y, mask) + self._log_p).unsqueeze(-1)
+            return torch.logaddexp(clean, attacked)
         clean, attacked = self.components(model, y, particles, k, mask)
         return torch.logaddexp(clean, attacked)
 
@@ -143,8 +153,10 @@ class DeceptionMixtureLikelihood:
         caller has it (the log-likelihood increment of a bootstrap-proposal step, whose
         weights before the update are these ``log_weights``). With an attack density
         that does not depend on the state (:class:`ReplacementDeception`) the numerator
-        is then ``p p_ξ(ỹ)`` and no particle is visited again; equal to the full sum up
-        to round-off.
+        is then ``p p_ξ(ỹ)`` and no particle is visited again (``particles``,
+        ``log_weights`` and ``k`` are not read: ``y [..., dy]``, ``mask`` and ``evidence``
+        may then hold whole sequences, e.g. ``[B, T, dy]`` and ``[B, T]``); equal to the
+        full sum up to round-off.
         """
         if evidence is not None and isinstance(self.attack, ReplacementDeception):
             return torch.exp(self.attack.log_density(y, mask) + self._log_p - evidence)
@@ -200,12 +212,22 @@ def mixture_likelihood_particle_filter(
         )
         return {"p": p}
 
+    # A replacement density does not depend on the state: the score of every step is then
+    # p p_ξ(ỹ_k) / p̂(ỹ_k | ỹ_{1:k−1}) from the filter's evidence increments, computed once
+    # for the whole sequence after the loop (the same formula as the hook, elementwise).
+    after = isinstance(likelihood.attack, ReplacementDeception)
     settings = driver_settings(
         num_particles, resampler, ess_threshold, generator, resample_generator, initial_state
     )
     res = particle_filter(model, ys, us, mask=mask, likelihood=likelihood,
-                          hooks=(responsibility,), innovations=False, **settings)  # fmt: skip
-    score = res.records["p"]
+                          hooks=() if after else (responsibility,), innovations=False,
+                          **settings)  # fmt: skip
+    if after:
+        score = likelihood.attack_probability(
+            model, ys, None, None, None, mask, evidence=res.log_likelihood_increments
+        )
+    else:
+        score = res.records["p"]
     return EstimatorOutput(
         means=res.means,
         covs=res.covs,
