@@ -242,16 +242,17 @@ class TrackingModel(StateSpaceModel):
             # particles [..., N, 4]: written component-major (a [..., 4, N] buffer, returned
             # transposed), so each component is one contiguous row for the elementwise
             # passes here, the likelihood and the weighted moments (no transposing copy)
-            out_t = torch.empty(x.shape[:-2] + (4, x.shape[-2]), dtype=x.dtype, device=x.device)
-            xs, es, os = x.unbind(-1), eps.unbind(-1), out_t.unbind(-2)
+            out = torch.empty(x.shape[:-2] + (4, x.shape[-2]), dtype=x.dtype, device=x.device)
+            rows = (x.transpose(-1, -2), eps.transpose(-1, -2), out)  # [..., 4, N]
+            (xp, xv), (ep, ev), (op, ov) = ((t[..., 0::2, :], t[..., 1::2, :]) for t in rows)
         else:
             out = torch.empty_like(eps)
-            # [M, axis, (position, velocity)] views, written in place (no stacking copy)
-            xs, es, os = (t.reshape(-1, 4).unbind(-1) for t in (x, eps, out))
-        for i in (0, 2):  # per axis: position i, velocity i + 1
-            torch.add(xs[i], xs[i + 1], alpha=T, out=os[i]).add_(es[i], alpha=a)
-            torch.mul(es[i], b, out=os[i + 1]).add_(es[i + 1], alpha=c).add_(xs[i + 1])
-        return out_t.transpose(-1, -2) if x.dim() >= 3 else out
+            (xp, xv), (ep, ev), (op, ov) = ((t[..., 0::2], t[..., 1::2]) for t in (x, eps, out))
+        # both axes at once through the strided views position (ζ, ψ) and velocity (ζ̇, ψ̇),
+        # written in place: p' = p + T v + a ε_p,  v' = b ε_p + c ε_v + v
+        torch.add(xp, xv, alpha=T, out=op).add_(ep, alpha=a)
+        torch.mul(ep, b, out=ov).add_(ev, alpha=c).add_(xv)
+        return out.transpose(-1, -2) if x.dim() >= 3 else out
 
     def transition_matrix(self, k: int) -> Tensor:
         return self.F
