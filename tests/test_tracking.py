@@ -214,6 +214,12 @@ def test_scores_after_the_loop_equal_the_per_step_hook():
     assert torch.equal(out.means, res.means)
     assert torch.allclose(out.detection.scores, res.records["p"], rtol=1e-14, atol=0)
     assert bool(tr.flags.any()) and float(out.detection.scores[tr.flags].mean()) > 0.5
+    # a run started from a later state index reads the same table rows (time-invariant model)
+    kw = ctx.particle_kwargs(RUNS)
+    kw["initial_state"] = kw["initial_state"]._replace(k=7)
+    later = mixture_likelihood_particle_filter(model, tr.y_recv, mask=tr.mask, likelihood=lik, **kw)
+    assert torch.equal(later.means, out.means)
+    assert torch.equal(later.detection.scores, out.detection.scores)
 
 
 # --------------------------------------------------- issue-10 acceptance, at a small size
