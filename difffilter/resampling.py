@@ -288,7 +288,8 @@ def systematic_ancestors(
     marks.scatter_add_(-1, starts, torch.ones_like(starts))
     ancestors = torch.cumsum(marks[..., :n], dim=-1)
     # index of the last particle of positive weight = number of cdf entries below the total
-    last_positive = (cdf < cdf[..., -1:]).sum(-1, keepdim=True)
+    # (the cdf is sorted: one binary search per row instead of a comparison pass and a sum)
+    last_positive = torch.searchsorted(cdf, cdf[..., -1:].contiguous())
     return torch.minimum(ancestors, last_positive)
 
 
