@@ -54,6 +54,9 @@ from .resampling import Resampler, Systematic, keep_unmarked_rows
 from .results import ParticleFilterResult
 from .ssm import StateSpaceModel
 
+# the resampler base class's hook: uniform log-weights −log N after resampling
+_UNIFORM = Resampler._new_log_weights
+
 __all__ = [
     "ParticleState",
     "ParticleStepOutput",
@@ -74,13 +77,15 @@ __all__ = [
 class ParticleState(NamedTuple):
     """Online state: particles ``[..., N, dx]`` and normalised log-weights ``[..., N]`` of ``x_k``.
 
-    ``ess [...]`` caches the effective sample size of ``log_weights`` (``None``: compute it).
+    ``ess [...]`` caches the effective sample size of ``log_weights`` and ``weights [..., N]``
+    their exponential ``w = exp(log_weights)`` (``None``: compute them when needed).
     """
 
     particles: Tensor
     log_weights: Tensor
     k: int = 0
     ess: Tensor | None = None
+    weights: Tensor | None = None
 
 
 class ParticleStepOutput(NamedTuple):
@@ -339,34 +344,46 @@ def _particle_step(
     resampler = resampler if resampler is not None else Systematic()
     proposal = proposal if proposal is not None else BootstrapProposal()
     likelihood = likelihood if likelihood is not None else ModelLikelihood()
-    particles, log_w, k, ess = state
+    particles, log_w, k, ess, w = state
     n = particles.shape[-2]
 
     # Resample the rows whose ESS fell below the threshold.
     need = (_ess(log_w) if ess is None else ess) < ess_threshold * n
-    if bool(need.any()):
+    count = int(need.sum())
+    uniform = False  # whether the weights are now exactly −log N in every row
+    if count:
         gen = resample_generator if resample_generator is not None else generator
-        rows = None if bool(need.all()) else need
+        rows = None if count == need.numel() else need
         # weights here are normalised and finite by construction: skip re-validation
         fast = getattr(resampler, "resample_normalized", None)
-        if fast is not None:
-            res = fast(particles, log_w, gen, rows=rows)
-        else:  # a user resampler with only __call__
+        if fast is None:  # a user resampler with only __call__
             res = resampler(particles, log_w, gen)
             if rows is not None:
                 res = keep_unmarked_rows(res, particles, log_w, rows)
-        particles, log_w = res.particles, res.log_weights
+        elif type(resampler).resample_normalized is Resampler.resample_normalized:
+            # the library's index resamplers also take the weights this step has (no exp)
+            res = fast(particles, log_w, gen, rows=rows, weights=w)
+            uniform = rows is None and type(resampler)._new_log_weights is _UNIFORM
+        else:
+            res = fast(particles, log_w, gen, rows=rows)
+        particles, log_w, w = res.particles, res.log_weights, None
 
     new, correction = proposal(model, particles, u, y, k, mask, generator)
 
     # Predictive weights of the proposed particles: w_{k−1}·p/q (just w_{k−1} for the
     # bootstrap proposal, whose correction is None), and the predictive moments.
     prior_lw = log_w if correction is None else torch.log_softmax(log_w + correction, dim=-1)
-    pred_w = torch.exp(prior_lw).unsqueeze(-2)  # [..., 1, N]
-    pred_mean = (pred_w @ new).squeeze(-2)
     uses_predictive = getattr(likelihood, "uses_predictive", False)
     obs = predictive = None
+    pred_w = None
+    if correction is None and uniform:
+        # equal weights: the predicted mean is the particles' average (no exp, no product)
+        pred_mean = new.mean(-2)
+    else:
+        pred_w = (w if correction is None and w is not None else torch.exp(prior_lw)).unsqueeze(-2)
+        pred_mean = (pred_w @ new).squeeze(-2)  # [..., 1, N] @ [..., N, dx]
     if innovations or uses_predictive:
+        pred_w = torch.exp(prior_lw).unsqueeze(-2) if pred_w is None else pred_w
         obs = model.observe(new, k + 1)
         predictive = _predictive(model, y, mask, k, obs, pred_w, prior_lw, pred_mean)
 
@@ -384,15 +401,22 @@ def _particle_step(
     if correction is not None:
         log_alpha = log_alpha + correction
     joint = log_w + log_alpha
-    increment = torch.logsumexp(joint, dim=-1)
+    # logsumexp by hand, keeping its exponentials: e = exp(joint − max) gives the new weights
+    # e / Σe and the increment log Σe + max without a second exp pass
+    top = joint.detach().amax(-1, keepdim=True)
+    e = torch.exp(joint - top)
+    total = e.sum(-1, keepdim=True)
+    increment = (torch.log(total) + top).squeeze(-1)
     log_w_new = joint - increment.unsqueeze(-1)
+    w_new = e / total
     # Degenerate runs (every joint weight −inf, or NaN): reset to the predictive weights
     # (module docstring). One host sync per step; the reset itself only when needed.
     degenerate = ~torch.isfinite(increment)
     if bool(degenerate.any()):
+        increment = torch.logsumexp(joint, dim=-1)  # −inf (not NaN) where all are −inf
         log_w_new = torch.where(degenerate.unsqueeze(-1), prior_lw, log_w_new)
-    w_new = torch.exp(log_w_new)
-    ess_new = 1.0 / w_new.square().sum(-1)
+        w_new = torch.exp(log_w_new)
+    ess_new = torch.linalg.vecdot(w_new, w_new).reciprocal()
     mean, cov = _moments(new, w_new, cov_dims)
     out = ParticleStepOutput(
         mean=mean,
@@ -406,7 +430,7 @@ def _particle_step(
         prior_log_weights=prior_lw,
         degenerate=degenerate,
     )
-    return ParticleState(new, log_w_new, k + 1, ess_new), out
+    return ParticleState(new, log_w_new, k + 1, ess_new, w_new), out
 
 
 def _predictive(model, y, mask, k, obs, pred_w, prior_lw, pred_mean) -> Predictive:

@@ -288,7 +288,8 @@ def systematic_ancestors(
     marks.scatter_add_(-1, starts, torch.ones_like(starts))
     ancestors = torch.cumsum(marks[..., :n], dim=-1)
     # index of the last particle of positive weight = number of cdf entries below the total
-    last_positive = (cdf < cdf[..., -1:]).sum(-1, keepdim=True)
+    # (the cdf is sorted: one binary search per row instead of a comparison pass and a sum)
+    last_positive = torch.searchsorted(cdf, cdf[..., -1:].contiguous())
     return torch.minimum(ancestors, last_positive)
 
 
@@ -337,6 +338,7 @@ class Resampler:
         log_w: Tensor,
         generator: torch.Generator | None = None,
         rows: Tensor | None = None,
+        weights: Tensor | None = None,
     ) -> Resampled:
         """:meth:`__call__` without validation, for already normalised ``log_w``.
 
@@ -345,8 +347,13 @@ class Resampler:
         ``rows [...]`` (bool) resamples only the marked batch rows: the others keep their
         particles (identity ancestors) and log-weights. Why here and not by the caller:
         selecting ancestors ``[..., N]`` is cheaper than selecting particles ``[..., N, d]``.
+        ``weights [..., N]``: ``exp(log_w)`` when the caller has it (the inverse-CDF
+        schemes then skip that pass; equal up to round-off).
         """
-        ancestors = self._draw(log_w.detach(), generator)
+        if weights is not None and isinstance(self, _InverseCDFResampler):
+            ancestors = self._draw_from(weights.detach(), generator)
+        else:
+            ancestors = self._draw(log_w.detach(), generator)
         new_log_w = self._new_log_weights(log_w, ancestors)
         if rows is not None:
             identity = torch.arange(ancestors.shape[-1], device=ancestors.device)

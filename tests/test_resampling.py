@@ -166,6 +166,21 @@ def test_unnormalised_log_weights_give_same_draws():
         assert torch.equal(r.ancestors(log_w, _gen(1)), r.ancestors(log_w + 123.0, _gen(1)))
 
 
+@pytest.mark.parametrize("name", list(INDEX_RESAMPLERS))
+def test_given_weights_give_the_same_draws(name):
+    # the particle filter passes exp(log_w) it already has: the same ancestors, rows kept
+    log_w = torch.log_softmax(torch.randn(5, 40, generator=_gen(14), dtype=torch.float64), -1)
+    x = torch.randn(5, 40, 3, generator=_gen(15), dtype=torch.float64)
+    rows = torch.tensor([True, False, True, True, False])
+    r = INDEX_RESAMPLERS[name]
+    for keep in (None, rows):
+        plain = r.resample_normalized(x, log_w, _gen(2), rows=keep)
+        given = r.resample_normalized(x, log_w, _gen(2), rows=keep, weights=torch.exp(log_w))
+        assert torch.equal(plain.ancestors, given.ancestors)
+        assert torch.equal(plain.particles, given.particles)
+        assert torch.equal(plain.log_weights, given.log_weights)
+
+
 def test_particles_broadcast_against_log_weights():
     particles = torch.randn(6, 2)
     log_w = torch.randn(3, 6)

@@ -128,7 +128,20 @@ class DeceptionMixtureLikelihood:
         attacked = self.attack(model, y, particles, k, mask) + self._log_p
         return clean, attacked
 
-    def __call__(self, model, y, particles, k, mask) -> Tensor:
+    def __call__(self, model, y, particles, k, mask, *, attacked=None) -> Tensor:
+        """``attacked``: ``log[p p_a(ỹ)]`` ``[..., 1]`` when the caller has it (a replacement
+        attack: one number per run, e.g. tabulated for a whole sequence)."""
+        if self.p == 0.0:  # log(1 − p) = 0 and p p_a = 0: the clean density, exactly
+            m = None if mask is None else mask.unsqueeze(-2)
+            return model.measurement_log_prob(y.unsqueeze(-2), particles, k, m)
+        if attacked is None and isinstance(self.attack, ReplacementDeception):
+            attacked = (self.attack.log_density(y, mask) + self._log_p).unsqueeze(-1)
+        if attacked is not None:
+            # p p_ξ(ỹ) is one number per run ([..., 1]): broadcast in the logaddexp instead
+            # of a pass over the particles
+            m = None if mask is None else mask.unsqueeze(-2)
+            clean = model.measurement_log_prob(y.unsqueeze(-2), particles, k, m) + self._log_q
+            return torch.logaddexp(clean, attacked)
         clean, attacked = self.components(model, y, particles, k, mask)
         return torch.logaddexp(clean, attacked)
 
@@ -143,8 +156,10 @@ class DeceptionMixtureLikelihood:
         caller has it (the log-likelihood increment of a bootstrap-proposal step, whose
         weights before the update are these ``log_weights``). With an attack density
         that does not depend on the state (:class:`ReplacementDeception`) the numerator
-        is then ``p p_ξ(ỹ)`` and no particle is visited again; equal to the full sum up
-        to round-off.
+        is then ``p p_ξ(ỹ)`` and no particle is visited again (``particles``,
+        ``log_weights`` and ``k`` are not read: ``y [..., dy]``, ``mask`` and ``evidence``
+        may then hold whole sequences, e.g. ``[B, T, dy]`` and ``[B, T]``); equal to the
+        full sum up to round-off.
         """
         if evidence is not None and isinstance(self.attack, ReplacementDeception):
             return torch.exp(self.attack.log_density(y, mask) + self._log_p - evidence)
@@ -203,12 +218,37 @@ def mixture_likelihood_particle_filter(
     settings = driver_settings(
         num_particles, resampler, ess_threshold, generator, resample_generator, initial_state
     )
-    res = particle_filter(model, ys, us, mask=mask, likelihood=likelihood,
-                          hooks=(responsibility,), innovations=False, **settings)  # fmt: skip
-    score = res.records["p"]
+    if not isinstance(likelihood.attack, ReplacementDeception):
+        res = particle_filter(model, ys, us, mask=mask, likelihood=likelihood,
+                              hooks=(responsibility,), innovations=False, **settings)  # fmt: skip
+        score = res.records["p"]
+    else:
+        # A replacement density does not depend on the state: log[p p_ξ(ỹ_k)] of every step
+        # is one table [..., T] for the sequence, read by each step's likelihood, and the
+        # score is p p_ξ(ỹ_k) / p̂(ỹ_k | ỹ_{1:k−1}) from the evidence increments after the
+        # loop (what the hook computes, elementwise)
+        attacked = likelihood.attack.log_density(ys, mask) + likelihood._log_p
+        k0 = 0 if initial_state is None else initial_state.k
+        step_likelihood = _Tabulated(likelihood, attacked.unsqueeze(-1), k0)
+        res = particle_filter(model, ys, us, mask=mask, likelihood=step_likelihood,
+                              innovations=False, **settings)  # fmt: skip
+        score = torch.exp(attacked - res.log_likelihood_increments)
     return EstimatorOutput(
         means=res.means,
         covs=res.covs,
         detection=Detection(score, score > threshold, float(threshold)),
         extras={"ess": res.ess, "log_likelihood": res.log_likelihood},
     )
+
+
+class _Tabulated:
+    """``likelihood`` (a replacement-attack mixture) with ``log[p p_ξ(ỹ_k)]`` read from a
+    table ``[..., T, 1]`` of the sequence: the driver asks for state ``k`` at step
+    ``t = k − k0 − 1`` of a run started from state ``k0``."""
+
+    def __init__(self, likelihood: DeceptionMixtureLikelihood, table: Tensor, k0: int):
+        self.likelihood, self.table, self.k0 = likelihood, table, k0
+
+    def __call__(self, model, y, particles, k, mask):
+        attacked = self.table[..., k - self.k0 - 1, :]
+        return self.likelihood(model, y, particles, k, mask, attacked=attacked)
