@@ -21,10 +21,11 @@ from difffilter.bounds import posterior_crb
 from difffilter.models.attacks import Replacement
 from difffilter.models.estimators import SuiteContext, get
 from difffilter.models.tracking import communication_counts
+from difffilter.runtime import one_thread
 
 from ..report import FamilyReport, Section, format_number, markdown_table, register_family
 from ..scoring import auc
-from ..suite import one_thread, single_run_time_per_step
+from ..suite import single_run_time_per_step
 
 TABLE1 = ("rrp_pf_da", "rrp_spf_da", "rrp_spf_nm", "pf_da")
 SWEEP = (0.0, 0.2, 0.4, 0.6)
