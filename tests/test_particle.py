@@ -239,18 +239,18 @@ def test_call_only_resampler_equals_the_fast_path_under_partial_resampling(data)
     torch.testing.assert_close(slow.log_likelihood, fast.log_likelihood)
 
 
+def _same_draws(model, ys, option: str, values):
+    """One 4-run filter per value of ``option``, all on the same random numbers."""
+    return [
+        particle_filter(model, ys.expand(4, -1, -1), num_particles=100,
+                        generator=torch.Generator().manual_seed(5), **{option: v})
+        for v in values
+    ]  # fmt: skip
+
+
 def test_skipping_innovations_changes_no_estimate(data):
     model, ys, _ = data
-    runs = [
-        particle_filter(
-            model,
-            ys.expand(4, -1, -1),
-            num_particles=100,
-            innovations=flag,
-            generator=torch.Generator().manual_seed(5),
-        )  # fmt: skip
-        for flag in (True, False)
-    ]
+    runs = _same_draws(model, ys, "innovations", (True, False))
     assert runs[1].innovations is None and runs[1].innovation_covs is None
     assert runs[0].innovations.shape == (4, ys.shape[-2], ys.shape[-1])
     for name in ("means", "covs", "pred_means", "log_likelihood", "ess"):
@@ -259,16 +259,7 @@ def test_skipping_innovations_changes_no_estimate(data):
 
 def test_cov_dims_is_the_leading_block_of_the_full_covariance(data):
     model, ys, _ = data
-    runs = [
-        particle_filter(
-            model,
-            ys.expand(4, -1, -1),
-            num_particles=100,
-            cov_dims=c,
-            generator=torch.Generator().manual_seed(5),
-        )  # fmt: skip
-        for c in (None, 2)
-    ]
+    runs = _same_draws(model, ys, "cov_dims", (None, 2))
     assert runs[1].covs.shape == (4, ys.shape[-2], 2, 2)
     torch.testing.assert_close(runs[1].covs, runs[0].covs[..., :2, :2], atol=1e-12, rtol=0)
     assert torch.equal(runs[0].means, runs[1].means)
