@@ -23,9 +23,9 @@ MAIN = ("kf_nn_ekf", "traditional_ad", "kf_nn_grad", "kf_nn_grad_ekf")
 
 @pytest.fixture(scope="module")
 def short_scenario():
-    """lfc_simultaneous cut to 6 s (its attack on both areas runs from 0.1 s to 5 s)."""
+    """lfc_simultaneous cut to 3 s (its attack on both areas runs from 0.1 s to 5 s)."""
     sc = dataclasses.replace(
-        registry.get("lfc_simultaneous"), name="lfc_simultaneous_6s", duration=6.0, headline=False
+        registry.get("lfc_simultaneous"), name="lfc_simultaneous_3s", duration=3.0, headline=False
     )
     registry.register(sc)
     yield sc
@@ -56,7 +56,7 @@ def test_metrics_json_follows_the_schema_with_the_family_metrics(smoke):
     _, folder, result = smoke
     doc = json.loads((folder / "metrics.json").read_text())
     jsonschema.validate(doc, metrics_schema())
-    assert doc["runs"] == 2 and doc["steps"] == 600 and doc["dt_s"] == 0.01
+    assert doc["runs"] == 2 and doc["steps"] == 300 and doc["dt_s"] == 0.01
     assert doc["paper"]["proposed_ad"] == pytest.approx(0.133867)
     assert doc["reference"] == "kf_attack_free" and doc["skipped"] == {}
     est = doc["estimators"]
@@ -95,9 +95,9 @@ def test_report_plots_tensorboard_and_summary(smoke):
     acc = EventAccumulator(str(folder / "tb"), size_guidance={"scalars": 0})
     acc.Reload()
     assert "state_rmse_per_step/kf_nn_grad" in acc.Tags()["scalars"]
-    assert len(acc.Scalars("state_rmse_per_step/kf_nn_grad")) == 600  # a curve, not a point
+    assert len(acc.Scalars("state_rmse_per_step/kf_nn_grad")) == 300  # a curve, not a point
     summary = (out / "lfc_summary.md").read_text()
-    assert "lfc_simultaneous_6s" in summary and "0.1526" in summary  # the paper's mean of I–IV
+    assert "lfc_simultaneous_3s" in summary and "0.1526" in summary  # the paper's mean of I–IV
 
 
 def test_per_channel_validation_files(smoke):
