@@ -1,8 +1,8 @@
 """The leaderboard of one evaluation: every scenario × estimator on the headline metrics.
 
 :func:`write_leaderboard` writes, under the evaluation's output folder,
-``leaderboard.md`` (one table), ``leaderboard.json`` (its rows), ``leaderboard.png``
-(one heatmap per metric, estimators × scenarios) and TensorBoard events in
+``leaderboard.md`` (one table), ``leaderboard.json`` (its rows), ``leaderboard.png`` (the
+table, each cell coloured by its distance to its scenario's best) and TensorBoard events in
 ``tb_leaderboard/`` (one HPARAMS row per scenario × estimator, with the checkpoint's
 sha256, so that runs of different checkpoints compare side by side).
 """
@@ -68,38 +68,40 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
 HIGHER_IS_BETTER = {"auc", "tpr_at_1pct_fpr"}
 
 
-def _heatmaps(path: Path, rows: list[dict[str, Any]]) -> None:
-    """One panel per metric, estimators × scenarios, each cell annotated with its value and
-    coloured by its rank within its scenario (green: best of that scenario)."""
-    scenarios = list(dict.fromkeys(r["scenario"] for r in rows))
-    estimators = list(dict.fromkeys(r["estimator"] for r in rows))
-    index = {(r["scenario"], r["estimator"]): r for r in rows}
-    size = (2.0 * len(COLUMNS) + 2, 0.32 * len(estimators) + 1.5)
-    fig, axes = plt.subplots(1, len(COLUMNS), figsize=size, sharey=True, squeeze=False)
-    for ax, metric in zip(axes[0], COLUMNS):
-        values = [[index.get((s, e), {}).get(metric) for s in scenarios] for e in estimators]
-        grid = np.array([[np.nan if v is None else v for v in row] for row in values], float)
-        grid[~np.isfinite(grid)] = np.nan
-        # min-max per scenario column (a single value or a tie counts as best)
-        with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+def cell_goodness(grid: np.ndarray, scenarios: list[str]) -> np.ndarray:
+    """``grid [rows, COLUMNS]`` → colour in [0, 1] (1: the best of the row's scenario): for
+    AUC and TPR 1 − (best − v)/0.1, so 0.1 below the best is 0; otherwise
+    1 − log10((v + f)/(best + f)), so 10× the best is 0, with a floor f of 5 % of the
+    scenario's largest value so that zeros and round-off differences do not paint a cell red."""
+    scen, good = np.array(scenarios), np.full_like(grid, np.nan)
+    higher = np.array([m in HIGHER_IS_BETTER for m in COLUMNS])
+    for s in dict.fromkeys(scenarios):
+        g = grid[scen == s]
+        with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns
-            lo, hi = np.nanmin(grid, 0), np.nanmax(grid, 0)
-            frac = np.where(
-                hi > lo, (grid - lo) / (hi - lo), 1.0 if metric in HIGHER_IS_BETTER else 0.0
-            )
-        goodness = np.where(
-            np.isnan(grid), np.nan, frac if metric in HIGHER_IS_BETTER else 1 - frac
-        )
-        ax.imshow(goodness, aspect="auto", cmap="RdYlGn", vmin=0, vmax=1)
-        for (i, j), value in np.ndenumerate(grid):
-            if not np.isnan(value):
-                ax.text(j, i, format_number(float(value), 2), ha="center", va="center", fontsize=5)
-        ax.set_xticks(range(len(scenarios)), scenarios, rotation=60, ha="right", fontsize=6)
-        ax.set_title(f"{metric} [{METRICS[metric].unit}]", fontsize=7)
-    axes[0, 0].set_yticks(range(len(estimators)), estimators, fontsize=6)
-    fig.suptitle(
-        "estimators × scenarios; green = best within its scenario, blank = n/a", fontsize=8
-    )
+            lo, hi = np.nanmin(g, 0), np.nanmax(g, 0)
+            floor = np.maximum(0.05 * np.abs(hi), 1e-300)
+            shortfall = np.where(higher, (hi - g) / 0.1, np.log10((g + floor) / (lo + floor)))
+        good[scen == s] = np.clip(1 - shortfall, 0, 1)
+    return good
+
+
+def _heatmaps(path: Path, rows: list[dict[str, Any]]) -> None:
+    """The leaderboard as a coloured table: a row per scenario × estimator, a column per
+    metric, each cell annotated with its value and coloured by :func:`cell_goodness`."""
+    grid = np.array([[np.nan if r[m] is None else r[m] for m in COLUMNS] for r in rows], float)
+    grid[~np.isfinite(grid)], scenarios = np.nan, [r["scenario"] for r in rows]
+    fig, ax = plt.subplots(figsize=(1.1 * len(COLUMNS) + 3, 0.2 * len(rows) + 1.2))
+    ax.imshow(cell_goodness(grid, scenarios), aspect="auto", cmap="RdYlGn", vmin=0, vmax=1)
+    for (i, j), value in np.ndenumerate(grid):
+        text = "—" if np.isnan(value) else format_number(float(value), 3)
+        ax.text(j, i, text, ha="center", va="center", fontsize=6)
+    for i in np.flatnonzero(np.array(scenarios[1:]) != np.array(scenarios[:-1])):
+        ax.axhline(i + 0.5, color="black", linewidth=0.8)  # between two scenarios
+    ax.set_yticks(range(len(rows)), [f"{s} · {r['estimator']}" for s, r in zip(scenarios, rows)])
+    ax.set_xticks(range(len(COLUMNS)), [f"{m}\n[{METRICS[m].unit}]" for m in COLUMNS])
+    ax.tick_params(labelsize=6, top=True, labeltop=True, bottom=False, labelbottom=False)
+    ax.set_title("green: the best of its scenario; red: 10× it (0.1 below: AUC, TPR)", fontsize=7)
     fig.savefig(path, dpi=130, bbox_inches="tight")
     plt.close(fig)
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from difffilter.eval.leaderboard import COLUMNS, leaderboard_rows, write_leaderboard
 from difffilter.eval.scoring import METRICS
 
@@ -37,3 +39,27 @@ def test_rows_tables_plot_and_hparams(tmp_path):
         for p in (tmp_path / "tb_leaderboard").rglob("events.out.tfevents*")
     }
     assert {"plant_a/kf", "plant_b/net"} <= runs  # one HPARAMS row per scenario × estimator
+
+
+def test_colours_measure_the_distance_to_the_best_of_each_scenario():
+    import numpy as np
+
+    from difffilter.eval.leaderboard import cell_goodness
+
+    col = {m: i for i, m in enumerate(COLUMNS)}
+    grid = np.full((4, len(COLUMNS)), np.nan)
+    grid[:, col["auc"]] = [0.999, 0.997, 0.949, 0.5]
+    grid[:, col["state_rmse"]] = [0.1, 0.1, 1.0, np.sqrt(10) * 0.1]
+    grid[:, col["detection_delay_s"]] = [0.0, 0.01, 1.0, 0.0]
+    good = cell_goodness(grid, ["a"] * 4)
+    assert good[:, col["auc"]] == pytest.approx([1.0, 0.98, 0.5, 0.0])  # 0.1 below the best: red
+    rmse = good[:, col["state_rmse"]]  # log10 of the ratio, with a floor of 5 % of the largest
+    f = 0.05
+    assert rmse == pytest.approx(
+        [1, 1, 1 - np.log10(1.05 / (0.1 + f)), 1 - np.log10((0.316 + f) / 0.15)], abs=1e-3
+    )
+    delay = good[:, col["detection_delay_s"]]  # zeros are the best; 0.01 is near them
+    assert delay == pytest.approx([1, 1 - np.log10(0.06 / 0.05), 0, 1])
+    assert np.isnan(good[:, col["attack_rmse"]]).all()  # n/a stays blank
+    other = cell_goodness(np.vstack([grid, grid * 10]), ["a"] * 4 + ["b"] * 4)
+    assert other[4:, col["state_rmse"]] == pytest.approx(rmse, abs=1e-12)  # scale-free per scenario
