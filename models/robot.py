@@ -234,6 +234,15 @@ class RobotScenario(Scenario):
     reading: str = "draw"
     checkpoint: str | None = "checkpoints/robot_nn_ekf.ckpt"  # gaussian_nn_ekf without --ckpt
 
+    def __post_init__(self):
+        # the study reads the attack estimate at k = attack_from + 14 and errors from k = 40
+        if not 1 <= self.attack_from or self.steps < max(self.attack_from + 14, 41):
+            raise ValueError(
+                f"steps must be at least max(attack_from + 14, 41) and attack_from ≥ 1 (the "
+                f"report reads â at k = attack_from + 14 and the errors from k = 40); got "
+                f"steps={self.steps!r}, attack_from={self.attack_from!r}"
+            )
+
     def system(self, dtype: torch.dtype = torch.float64, device=None) -> RobotModel:
         return RobotModel(dt=self.dt, dtype=dtype)
 

@@ -402,3 +402,14 @@ def test_the_shipped_learned_estimator_estimates_the_actuator_attack():
     assert learned["attack_rmse"] < 1.0 and learned["attack_rmse"] < zhang["attack_rmse"]
     assert learned["auc"] > 0.99 and learned["fpr"] < 0.02
     assert not bool(torch.isnan(res.outputs["gaussian_nn_ekf"].means).any())
+
+
+def test_a_horizon_too_short_for_the_study_is_refused_by_name():
+    import dataclasses
+
+    sc = get("robot_actuator_attack")
+    with pytest.raises(ValueError, match=r"steps must be at least .*steps=43, attack_from=30"):
+        dataclasses.replace(sc, steps=43)
+    assert dataclasses.replace(sc, steps=44).steps == 44
+    with pytest.raises(ValueError, match="attack_from"):
+        dataclasses.replace(sc, attack_from=0)

@@ -41,7 +41,7 @@ def _nees(out, x) -> float | None:
 @torch.no_grad()
 def _extra(result) -> dict:
     tr, outs, sc = result.traj, result.outputs, result.scenario
-    x, T, B = tr.x, tr.x.shape[1], tr.x.shape[0]
+    x, B = tr.x, tr.x.shape[0]
     k0 = LATE - 1  # index of k = 40
     curves = {n: _pos_rmse_t(o.means, x) for n, o in outs.items()}
     for n, o in outs.items():
@@ -70,7 +70,7 @@ def _extra(result) -> dict:
         rel = (a_hat - a_true).abs() / a_true.abs()  # [B, T, 2]
         k44 = sc.attack_from + 14 - 1
         extra["attack"] = {
-            "mean_rel_error_k44": rel.mean(0)[k44].tolist() if k44 < T else None,
+            "mean_rel_error_k44": rel.mean(0)[k44].tolist(),
             "mean_attack_k44": (a_hat.mean(0)[k44] / torch.tensor([1.0, DEG])).tolist(),
             "all_runs_within_10pct_at_end": bool((rel[:, -1] < 0.1).all()),
             "max_rel_error_at_end": rel[:, -1].amax(0).tolist(),
@@ -270,9 +270,10 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
         secs.append(Section("Fusion against the locals (paired)", body))
     att, comp = doc.get("attack"), doc.get("compensation")
     if att:
-        body = (f"Mean fused â at k = 44: {f(att['mean_attack_k44'][0])} cm/s, {f(att['mean_attack_k44'][1])} deg/s "
+        k44 = result.scenario.attack_from + 14
+        body = (f"Mean fused â at k = {k44}: {f(att['mean_attack_k44'][0])} cm/s, {f(att['mean_attack_k44'][1])} deg/s "
                 f"(relative errors {f(att['mean_rel_error_k44'][0])}, {f(att['mean_rel_error_k44'][1])}; target < 0.1). "
-                f"Every run within 10 % at k = 100: {att['all_runs_within_10pct_at_end']} (largest relative errors "
+                f"Every run within 10 % at k = {doc['steps']}: {att['all_runs_within_10pct_at_end']} (largest relative errors "
                 f"{f(att['max_rel_error_at_end'][0])}, {f(att['max_rel_error_at_end'][1])}).\n")  # fmt: skip
         if comp:
             ie, oe = comp["input_error"], comp["open_loop_attack_error"]
