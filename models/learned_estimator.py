@@ -50,12 +50,11 @@ import torch
 from torch import Tensor
 
 from difffilter.estimator import Detection, EstimatorOutput
-from difffilter.extended import extended_kalman_step, unscented_kalman_step
 from difffilter.fdi.modified_pf import AttackCompensatedLikelihood
 from difffilter.fdi.poa import probability_of_attack
-from difffilter.kalman import gaussian_init, kalman_step
+from difffilter.kalman import gaussian_init
 from difffilter.models.estimators import SkipEstimator, register
-from difffilter.models.generic_estimators import deception_of
+from difffilter.models.generic_estimators import GAUSSIAN_STEPS, deception_of
 from difffilter.models.neural_estimator import NeuralFDIEstimator
 from difffilter.particle import ModelLikelihood, particle_filter
 
@@ -66,8 +65,6 @@ __all__ = [
     "neural_particle_filter",
     "neural_gaussian_filter",
 ]
-
-GAUSSIAN_STEPS = {"kf": kalman_step, "ekf": extended_kalman_step, "ukf": unscented_kalman_step}
 
 #: The optional per-step inputs (module docstring), in the order they enter ``δ_k``.
 FEATURES = ("mask", "log_likelihood", "poa")
@@ -151,17 +148,19 @@ class NeuralCompensation:
 
     def _features(self, e: Tensor, mask: Tensor | None, log_likelihood, poa) -> list[Tensor]:
         received = torch.ones_like(e) if mask is None else mask.to(e.dtype)
+        given = {"log_likelihood": log_likelihood, "poa": poa}
         out = []
         for name in self.features:
             if name == "mask":
                 out.append(received)
-            elif log_likelihood is None or (name == "poa" and poa is None):
+                continue
+            value = given[name]
+            if value is None:
                 raise ValueError(f"feature {name!r} needs the filter's {name} at every step")
-            elif name == "log_likelihood":
-                count = received.sum(-1).clamp_min(1.0)
-                out.append(torch.asinh(-2.0 * log_likelihood.to(e.dtype) / count).unsqueeze(-1))
-            else:
-                out.append(poa.to(e.dtype).unsqueeze(-1))
+            value = value.to(e.dtype)
+            if name == "log_likelihood":
+                value = torch.asinh(-2.0 * value / received.sum(-1).clamp_min(1.0))
+            out.append(value.unsqueeze(-1))
         return out
 
     def step(
@@ -217,10 +216,11 @@ class NeuralCompensation:
                 "the particle filter compensates sensor attacks; an actuator attack is "
                 "compensated in the input of neural_gaussian_filter (filter kf/ekf/ukf)"
             )
-        kw = {}
+        kw, clean = {}, None  # clean: log p_v(ỹ_k − h(x^i)) of every particle, once
+        if "log_likelihood" in self.features or self.channel == "replacement":
+            clean = ModelLikelihood()(model, y, particles, k, mask)
         if "log_likelihood" in self.features:
-            ll = ModelLikelihood()(model, y, particles, k, mask)
-            kw["log_likelihood"] = torch.logsumexp(predictive.log_weights + ll, -1)
+            kw["log_likelihood"] = torch.logsumexp(predictive.log_weights + clean, -1)
         if "poa" in self.features:
             z = model.measurement_residual(y.unsqueeze(-2), model.observe(particles, k))
             if mask is not None:
@@ -228,7 +228,6 @@ class NeuralCompensation:
             kw["poa"] = probability_of_attack(z, self.poa_eta, predictive.log_weights)
         attack, logit = self.step(predictive.innovation, predictive.innovation_cov, mask, **kw)
         if self.channel == "replacement":  # eq. (15) with the learned p_k for η̄
-            clean = ModelLikelihood()(model, y, particles, k, mask)
             replaced = self.deception(model, y, particles, k, mask)
             logit = logit.unsqueeze(-1)
             log_p, log_q = (

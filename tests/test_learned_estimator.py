@@ -219,6 +219,30 @@ def test_particle_filter_features_by_hand():
         torch.testing.assert_close(tail[i, 3], beta)
 
 
+@pytest.mark.parametrize("features", [("poa",), ("log_likelihood",), ("poa", "mask")])
+def test_each_feature_alone_gives_its_column_of_the_full_set(features):
+    """The features read only the filter's statistics: any subset (in any order) gives the
+    same columns as the full set on the same step."""
+    model, gen = _linear(), torch.Generator().manual_seed(5)
+    B, N = 3, 6
+    particles = torch.randn(B, N, 2, generator=gen, dtype=torch.float64)
+    log_w = torch.log_softmax(torch.randn(B, N, generator=gen, dtype=torch.float64), -1)
+    y = torch.randn(B, 2, generator=gen, dtype=torch.float64)
+    mask = torch.tensor([[True, True], [True, False], [True, True]])
+    pred = Predictive(log_w, y, torch.randn(B, 2, generator=gen, dtype=torch.float64),
+                      torch.eye(2, dtype=torch.float64).expand(B, 2, 2))  # fmt: skip
+    tails = {}
+    for names in (("mask", "log_likelihood", "poa"), features):
+        width = feature_dim(names, 2)
+        net = _net(extra_inputs=width)
+        seen = _captured_inputs(net)
+        NeuralCompensation(net, names, poa_eta=0.3)(model, y, particles, 1, mask, predictive=pred)
+        tails[names] = seen[0][:, 0, -width:]
+    full = dict(zip(("mask", "log_likelihood", "poa"), tails[("mask", "log_likelihood", "poa")]
+                    .split([2, 1, 1], -1)))  # fmt: skip
+    torch.testing.assert_close(tails[features], torch.cat([full[n] for n in features], -1))
+
+
 def test_replacement_channel_weighs_with_the_learned_attack_probability_by_hand():
     """channel='replacement': log[(1 − p) p_v(y − Hx) + p p_ξ(y)] with p = sigmoid(logit)
     (eq. 15 with the network's probability for η̄), â = p ν."""
