@@ -350,10 +350,9 @@ class Resampler:
         ``weights [..., N]``: ``exp(log_w)`` when the caller has it (the inverse-CDF
         schemes then skip that pass; equal up to round-off).
         """
-        if weights is not None and isinstance(self, _InverseCDFResampler):
-            ancestors = self._draw_from(weights.detach(), generator)
-        else:
-            ancestors = self._draw(log_w.detach(), generator)
+        ancestors = self._draw_given(
+            log_w.detach(), None if weights is None else weights.detach(), generator
+        )
         new_log_w = self._new_log_weights(log_w, ancestors)
         if rows is not None:
             identity = torch.arange(ancestors.shape[-1], device=ancestors.device)
@@ -365,6 +364,13 @@ class Resampler:
     # -- hooks -------------------------------------------------------------------------
     def _draw(self, log_w: Tensor, generator: torch.Generator | None) -> Tensor:
         raise NotImplementedError(f"{type(self).__name__} does not produce ancestor indices")
+
+    def _draw_given(
+        self, log_w: Tensor, weights: Tensor | None, generator: torch.Generator | None
+    ) -> Tensor:
+        """:meth:`_draw` when the caller may also have ``weights = exp(log_w)`` (or ``None``);
+        a scheme that works on the weights overrides it to skip the ``exp`` pass."""
+        return self._draw(log_w, generator)
 
     def _new_log_weights(self, log_w: Tensor, ancestors: Tensor) -> Tensor:
         return _uniform_log_weights(log_w)
@@ -392,7 +398,10 @@ class _InverseCDFResampler(Resampler):
         return _inverse_cdf(weights, self._uniforms(weights, count, generator))
 
     def _draw(self, log_w: Tensor, generator: torch.Generator | None) -> Tensor:
-        return self._draw_from(torch.exp(log_w), generator)
+        return self._draw_given(log_w, None, generator)
+
+    def _draw_given(self, log_w, weights, generator):
+        return self._draw_from(torch.exp(log_w) if weights is None else weights, generator)
 
 
 def _rand(shape, like: Tensor, generator: torch.Generator | None) -> Tensor:

@@ -25,7 +25,7 @@ from difffilter.particle import KalmanProposal
 
 from .estimators import Run, SuiteContext, register
 
-__all__ = ["oracle_attack", "modified_pf", "deception_of", "default_estimators"]
+__all__ = ["GAUSSIAN_STEPS", "oracle_attack", "modified_pf", "deception_of", "default_estimators"]
 
 
 def _plain(run_filter):
@@ -54,11 +54,12 @@ for _name, _proposal in (("bootstrap_pf", None), ("kalman_proposal_pf", KalmanPr
     )  # fmt: skip
 
 
-_GAUSSIAN_STEPS = {"kf": kalman_step, "ekf": extended_kalman_step, "ukf": unscented_kalman_step}
+#: The library's Gaussian filter steps by name (the gated filters here, the learned estimator).
+GAUSSIAN_STEPS = {"kf": kalman_step, "ekf": extended_kalman_step, "ukf": unscented_kalman_step}
 
 
 def _gated(kind: str, detector: str):
-    step = _GAUSSIAN_STEPS[kind]
+    step = GAUSSIAN_STEPS[kind]
 
     def factory(ctx: SuiteContext) -> Run:
         if detector == "chi_square":

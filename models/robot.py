@@ -165,9 +165,8 @@ class RobotModel(StateSpaceModel):
             dx, dy = px - xp[0], py - xp[1]
             r = torch.sqrt(torch.addcmul(dx * dx, dy, dy))
             e.append(y[2 * i] - r)
-            t = (xp[2] + (math.pi - y[2 * i + 1])).sub_(
-                torch.atan2(dy, dx)
-            )  # π − (y_b − θ + atan2)
+            t = xp[2] + (math.pi - y[2 * i + 1])  # π − y_b + θ, a new tensor
+            t.sub_(torch.atan2(dy, dx))  # π − (y_b − θ + atan2(d_y, d_x))
             e.append(math.pi - torch.remainder(t, 2 * math.pi))
             ir = torch.reciprocal(r)
             nir = -ir

@@ -50,9 +50,8 @@ from difffilter.metrics import roc_auc
 from difffilter.models import registry
 from difffilter.models.attacks import Replacement
 from difffilter.models.estimators import poa_detector_for_scenario
-from difffilter.models.generic_estimators import deception_of
+from difffilter.models.generic_estimators import GAUSSIAN_STEPS, deception_of
 from difffilter.models.learned_estimator import (
-    GAUSSIAN_STEPS,
     feature_dim,
     neural_gaussian_filter,
     neural_particle_filter,

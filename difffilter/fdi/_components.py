@@ -30,6 +30,7 @@ __all__ = [
     "gram",
     "cholesky",
     "spd_inverse",
+    "cofactors",
     "sym_inverse",
 ]
 
@@ -176,12 +177,39 @@ def spd_inverse(a):
     return out, logdet
 
 
+def cofactors(a):
+    """``(C, det A)`` of a symmetric component matrix ``d ≤ 3`` (upper triangle read): the
+    cofactors ``C`` (upper triangle; ``A⁻¹ = C / det A``, ``tr A⁻¹ = Σ C_ii / det A``) and the
+    determinant. For ``d = 2`` the off-diagonal entry is stored as ``a₀₁``, the cofactor's
+    negative (the caller folds the sign into its next product: no negation kernel)::
+
+        d = 2:  C = [[a₁₁, (−)a₀₁], [·, a₀₀]],  det = a₀₀a₁₁ − a₀₁²
+        d = 3:  C_ij = the (i, j) minor with sign (−1)^(i+j),  det = a₀₀C₀₀ + a₀₁C₀₁ + a₀₂C₀₂
+    """
+    d = len(a)
+    if d == 1:
+        return [[1.0]], a[0][0]
+    if d == 2:
+        det = lin(((1.0, a[0][0], a[1][1]), (-1.0, a[0][1], a[0][1])))
+        return [[a[1][1], a[0][1]], [None, a[0][0]]], det
+    if d != 3:
+        raise ValueError(f"cofactors takes d <= 3; got d = {d}")
+    c00 = lin(((1.0, a[1][1], a[2][2]), (-1.0, a[1][2], a[1][2])))
+    c01 = lin(((1.0, a[0][2], a[1][2]), (-1.0, a[0][1], a[2][2])))
+    c02 = lin(((1.0, a[0][1], a[1][2]), (-1.0, a[1][1], a[0][2])))
+    c11 = lin(((1.0, a[0][0], a[2][2]), (-1.0, a[0][2], a[0][2])))
+    c12 = lin(((1.0, a[0][1], a[0][2]), (-1.0, a[0][0], a[1][2])))
+    c22 = lin(((1.0, a[0][0], a[1][1]), (-1.0, a[0][1], a[0][1])))
+    det = lin(((1.0, a[0][0], c00), (1.0, a[0][1], c01), (1.0, a[0][2], c02)))
+    return [[c00, c01, c02], [None, c11, c12], [None, None, c22]], det
+
+
 def sym_inverse(a, logdet: bool = False):
     """``(A⁻¹, log det A or None)`` of a symmetric positive-definite component matrix.
 
     ``d ≤ 3`` by the adjugate, ``A⁻¹ = adj(A) / det A`` (``d = 2``:
-    ``[[a₁₁, −a₀₁], [−a₀₁, a₀₀]] / (a₀₀a₁₁ − a₀₁²)``; ``d = 3``: the six cofactors and
-    ``det A = a₀₀c₀₀ + a₀₁c₀₁ + a₀₂c₀₂``), about half the kernels of the Cholesky route
+    ``[[a₁₁, −a₀₁], [−a₀₁, a₀₀]] / (a₀₀a₁₁ − a₀₁²)``; ``d = 3``: the six
+    :func:`cofactors`), about half the kernels of the Cholesky route
     and no square roots; larger ``d`` by :func:`spd_inverse`. Only the upper triangle of
     ``a`` is read. The log-determinant (one ``log``) only when asked for.
     """
@@ -189,21 +217,7 @@ def sym_inverse(a, logdet: bool = False):
     if d > 3:
         out, ld = spd_inverse(a)
         return out, (ld if logdet else None)
-    if d == 1:
-        det = a[0][0]
-        cof = [[1.0]]
-    elif d == 2:
-        det = lin(((1.0, a[0][0], a[1][1]), (-1.0, a[0][1], a[0][1])))
-        cof = [[a[1][1], a[0][1]], [None, a[0][0]]]  # the off-diagonal is negated below
-    else:
-        c00 = lin(((1.0, a[1][1], a[2][2]), (-1.0, a[1][2], a[1][2])))
-        c01 = lin(((1.0, a[0][2], a[1][2]), (-1.0, a[0][1], a[2][2])))
-        c02 = lin(((1.0, a[0][1], a[1][2]), (-1.0, a[1][1], a[0][2])))
-        c11 = lin(((1.0, a[0][0], a[2][2]), (-1.0, a[0][2], a[0][2])))
-        c12 = lin(((1.0, a[0][1], a[0][2]), (-1.0, a[0][0], a[1][2])))
-        c22 = lin(((1.0, a[0][0], a[1][1]), (-1.0, a[0][1], a[0][1])))
-        det = lin(((1.0, a[0][0], c00), (1.0, a[0][1], c01), (1.0, a[0][2], c02)))
-        cof = [[c00, c01, c02], [None, c11, c12], [None, None, c22]]
+    cof, det = cofactors(a)
     inv_det = torch.reciprocal(det) if isinstance(det, Tensor) else 1.0 / det
     out = [[None] * d for _ in range(d)]
     for i in range(d):

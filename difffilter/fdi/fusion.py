@@ -81,18 +81,8 @@ def _weighted(info, w0, w1, d: int):
 def _trace_inverse(a, d: int) -> Tensor:
     """``tr A⁻¹`` of a symmetric ``d × d`` component matrix (``d ≤ 3``, upper triangle
     read): the sum of the principal cofactors over the determinant."""
-    if d == 1:
-        return torch.reciprocal(a[0][0])
-    if d == 2:
-        det = C.lin(((1.0, a[0][0], a[1][1]), (-1.0, a[0][1], a[0][1])))
-        return (a[0][0] + a[1][1]).div_(det)
-    c00 = C.lin(((1.0, a[1][1], a[2][2]), (-1.0, a[1][2], a[1][2])))
-    c11 = C.lin(((1.0, a[0][0], a[2][2]), (-1.0, a[0][2], a[0][2])))
-    c22 = C.lin(((1.0, a[0][0], a[1][1]), (-1.0, a[0][1], a[0][1])))
-    c01 = C.lin(((1.0, a[0][2], a[1][2]), (-1.0, a[0][1], a[2][2])))
-    c02 = C.lin(((1.0, a[0][1], a[1][2]), (-1.0, a[1][1], a[0][2])))
-    det = C.lin(((1.0, a[0][0], c00), (1.0, a[0][1], c01), (1.0, a[0][2], c02)))
-    return (c00 + c11).add_(c22).div_(det)
+    cof, det = C.cofactors(a)
+    return C.lin((1.0, cof[i][i], 1.0) for i in range(d)) / det
 
 
 def _fused_by_hand(info, means: Tensor, w0, w1, d: int) -> tuple[Tensor, Tensor]:

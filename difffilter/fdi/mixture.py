@@ -100,6 +100,12 @@ class ReplacementDeception:
         return lp
 
 
+def _clean_log_prob(model, y, particles, k, mask) -> Tensor:
+    """``log p_v(ỹ − h(x^i))`` of ``particles [..., N, dx]`` on the received entries → ``[..., N]``."""
+    m = None if mask is None else mask.unsqueeze(-2)
+    return model.measurement_log_prob(y.unsqueeze(-2), particles, k, m)
+
+
 class DeceptionMixtureLikelihood:
     """``log[(1 − p) p_v(ỹ − h(x)) + p p_a(ỹ | x)]``, a particle-filter ``Likelihood``.
 
@@ -123,26 +129,28 @@ class DeceptionMixtureLikelihood:
 
     def components(self, model, y, particles, k, mask) -> tuple[Tensor, Tensor]:
         """``(log[(1−p) p_v], log[p p_a])`` per particle, each ``[..., N]``."""
-        m = None if mask is None else mask.unsqueeze(-2)
-        clean = model.measurement_log_prob(y.unsqueeze(-2), particles, k, m) + self._log_q
+        clean = _clean_log_prob(model, y, particles, k, mask) + self._log_q
         attacked = self.attack(model, y, particles, k, mask) + self._log_p
         return clean, attacked
+
+    def replacement_term(self, y: Tensor, mask: Tensor | None) -> Tensor:
+        """``log[p p_ξ(ỹ)]`` of a :class:`ReplacementDeception` ``[...]``: it does not depend
+        on the state, so ``y [..., dy]`` and ``mask`` may hold whole sequences."""
+        return self.attack.log_density(y, mask) + self._log_p
 
     def __call__(self, model, y, particles, k, mask, *, attacked=None) -> Tensor:
         """``attacked``: ``log[p p_a(ỹ)]`` ``[..., 1]`` when the caller has it (a replacement
         attack: one number per run, e.g. tabulated for a whole sequence)."""
         if self.p == 0.0:  # log(1 − p) = 0 and p p_a = 0: the clean density, exactly
-            m = None if mask is None else mask.unsqueeze(-2)
-            return model.measurement_log_prob(y.unsqueeze(-2), particles, k, m)
+            return _clean_log_prob(model, y, particles, k, mask)
         if attacked is None and isinstance(self.attack, ReplacementDeception):
-            attacked = (self.attack.log_density(y, mask) + self._log_p).unsqueeze(-1)
-        if attacked is not None:
+            attacked = self.replacement_term(y, mask).unsqueeze(-1)
+        if attacked is None:
+            clean, attacked = self.components(model, y, particles, k, mask)
+        else:
             # p p_ξ(ỹ) is one number per run ([..., 1]): broadcast in the logaddexp instead
             # of a pass over the particles
-            m = None if mask is None else mask.unsqueeze(-2)
-            clean = model.measurement_log_prob(y.unsqueeze(-2), particles, k, m) + self._log_q
-            return torch.logaddexp(clean, attacked)
-        clean, attacked = self.components(model, y, particles, k, mask)
+            clean = _clean_log_prob(model, y, particles, k, mask) + self._log_q
         return torch.logaddexp(clean, attacked)
 
     def attack_probability(
@@ -162,7 +170,7 @@ class DeceptionMixtureLikelihood:
         full sum up to round-off.
         """
         if evidence is not None and isinstance(self.attack, ReplacementDeception):
-            return torch.exp(self.attack.log_density(y, mask) + self._log_p - evidence)
+            return torch.exp(self.replacement_term(y, mask) - evidence)
         clean, attacked = self.components(model, y, particles, k, mask)
         lw = torch.log_softmax(log_weights, dim=-1)
         num = torch.logsumexp(lw + attacked, dim=-1)
@@ -227,7 +235,7 @@ def mixture_likelihood_particle_filter(
         # is one table [..., T] for the sequence, read by each step's likelihood, and the
         # score is p p_ξ(ỹ_k) / p̂(ỹ_k | ỹ_{1:k−1}) from the evidence increments after the
         # loop (what the hook computes, elementwise)
-        attacked = likelihood.attack.log_density(ys, mask) + likelihood._log_p
+        attacked = likelihood.replacement_term(ys, mask)
         k0 = 0 if initial_state is None else initial_state.k
         step_likelihood = _Tabulated(likelihood, attacked.unsqueeze(-1), k0)
         res = particle_filter(model, ys, us, mask=mask, likelihood=step_likelihood,
