@@ -356,23 +356,14 @@ def main(argv=None) -> int:
     )
     figures: dict = {}
 
-    if args.only_robot:
-        print_robot(figures)
-        if args.json:
-            args.json.write_text(json.dumps(figures, indent=2))
-        return 0
-
-    if args.only_tracking:
-        print_tracking(figures)
-        if args.json:
-            args.json.write_text(json.dumps(figures, indent=2))
-        return 0
-
-    if args.only_kf_large:
-        print_kf_large(figures)
-        if args.json:
-            args.json.write_text(json.dumps(figures, indent=2))
-        return 0
+    only = {"only_robot": print_robot, "only_tracking": print_tracking,
+            "only_kf_large": print_kf_large}  # fmt: skip
+    for flag, section in only.items():
+        if getattr(args, flag):
+            section(figures)
+            if args.json:
+                args.json.write_text(json.dumps(figures, indent=2))
+            return 0
 
     print("1. Kalman filter, constant-velocity model (dx = 4, dy = 2), float64, T = 200")
     print(

@@ -13,7 +13,9 @@ bound ratios and the Remark-1 equality are not limited by float32 round-off); fl
 what the throughput target is met with. Its estimates are statistically the same
 (position RMSE within the Monte Carlo spread), not the same runs: round-off changes
 resampling decisions. Float64 cannot meet it on this CPU: ``torch.randn`` alone costs
-~1.75 ms per step for the 50 × 500 × 4 draws (5× float32), 70 % of a 2.5 ms step.
+~1.9 ms per step for the 50 × 500 × 4 draws (0.37 ms in float32), 48 % of a float64 run in
+the profiler; Box–Muller or ``erfinv`` in float64 cost as much (2.2 / 1.1 ms incl. the
+uniforms) and a second thread does not help (2026-11-25).
 """
 
 from __future__ import annotations
