@@ -8,7 +8,7 @@ Prints, in one run:
    beside a per-run numpy predict/update loop of the same filter.
    1b. At B = 1e5 runs (T = 200, float64, target ≥ 3e7 run-steps/s): the shared-covariance
    fast path that ``kalman_filter`` picks automatically for one unbatched model without
-   mask, the general step-by-step path (``run_gaussian_filter(kalman_step, …)``), and a
+   mask, the general step-by-step path (``open_loop(KalmanFilter(), …, carry=gaussian_init(…))``), and a
    vectorised numpy implementation of the same filter (covariances once per step, means
    of all runs as one array) as the yardstick.
 2. Bootstrap PF particle-steps per second on the four-tank model (docs/scenarios.md, four-tank),
@@ -146,7 +146,8 @@ def numpy_kf_vectorised(F, H, Q, R, m0, P0, ys):
 
 def bench_kf_large(B: int = 100_000, steps: int = 200) -> dict:
     """Run-steps/s at ``B`` runs: shared-covariance fast path, general path, numpy."""
-    from difffilter.kalman import _kalman_step, run_gaussian_filter
+    from difffilter.kalman import KalmanFilter, gaussian_init
+    from difffilter.loop import open_loop
 
     model = tracking_cv_model()
     gen = torch.Generator().manual_seed(0)
@@ -155,7 +156,9 @@ def bench_kf_large(B: int = 100_000, steps: int = 200) -> dict:
         _, ys, _ = model.simulate(steps, (B,), generator=gen)
         fast = best_time(lambda: df.kalman_filter(model, ys), repeats=5, min_time=0.0)
         general = best_time(
-            lambda: run_gaussian_filter(_kalman_step, model, ys), repeats=1, min_time=0.0
+            lambda: open_loop(KalmanFilter(), model, ys, carry=gaussian_init(model, (B,))),
+            repeats=1,
+            min_time=0.0,
         )
         y_np = ys.numpy()
         t_np = best_time(lambda: numpy_kf_vectorised(*mats, y_np), repeats=2, min_time=0.0)

@@ -1,10 +1,13 @@
 """difffilter: differentiable, batched state estimation under false-data-injection attacks.
 
 Models (:class:`StateSpaceModel`, :class:`LinearGaussianModel`,
-:class:`NonlinearGaussianModel`), noise models (:mod:`difffilter.noise`), Gaussian filters
-(:func:`kalman_filter`, :func:`extended_kalman_filter`, :func:`unscented_kalman_filter`),
-the particle filter (:func:`particle_filter`) with pluggable proposals, likelihoods and
-resamplers (:mod:`difffilter.resampling`), the posterior Cramér–Rao bound
+:class:`NonlinearGaussianModel`), noise models (:mod:`difffilter.noise`), every estimator
+as an object with a pure step over one carry (:class:`Estimator`: :class:`KalmanFilter`,
+:class:`ExtendedKalmanFilter`, :class:`UnscentedKalmanFilter`, :class:`ParticleFilter`
+with pluggable proposals, likelihoods and resamplers of :mod:`difffilter.resampling`) run
+by the drivers of :mod:`difffilter.loop`, their whole-sequence functions
+(:func:`kalman_filter`, :func:`extended_kalman_filter`, :func:`unscented_kalman_filter`,
+:func:`particle_filter`), the posterior Cramér–Rao bound
 (:func:`posterior_crb`), and the attack detectors and attack-aware
 filters of the FDI literature (:mod:`difffilter.fdi`).
 
@@ -14,26 +17,43 @@ particles ``[..., N, dx]``. See :mod:`difffilter.ssm` for the time convention.
 
 from . import bounds, metrics, noise, resampling
 from .bounds import PCRBResult, posterior_crb
-from .estimator import Detection, EstimatorOutput
+from .estimator import Detection, Estimator, EstimatorOutput, Generators
 from .extended import (
+    ExtendedKalmanFilter,
     SigmaPoints,
+    UnscentedKalmanFilter,
     extended_kalman_filter,
     extended_kalman_step,
     unscented_kalman_filter,
     unscented_kalman_step,
 )
 from .gain_schedule import GainSchedule
-from .kalman import gaussian_init, kalman_filter, kalman_predict, kalman_step
+from .kalman import (
+    GaussianFilter,
+    KalmanFilter,
+    gaussian_init,
+    kalman_filter,
+    kalman_predict,
+    kalman_step,
+)
+from .loop import open_loop
 from .particle import (
     BootstrapProposal,
     KalmanProposal,
     ModelLikelihood,
+    ParticleFilter,
     ParticleState,
     particle_filter,
     particle_init,
     particle_step,
 )
-from .results import FilterResult, GaussianState, GaussianStepOutput, ParticleFilterResult
+from .results import (
+    FilterResult,
+    GaussianState,
+    GaussianStepOutput,
+    ParticleFilterResult,
+    StepOutput,
+)
 from .ssm import LinearGaussianModel, NonlinearGaussianModel, StateSpaceModel
 
 __version__ = "0.1.0"
@@ -71,4 +91,13 @@ __all__ = [
     "SigmaPoints",
     "Detection",
     "EstimatorOutput",
+    "Estimator",
+    "Generators",
+    "StepOutput",
+    "open_loop",
+    "GaussianFilter",
+    "KalmanFilter",
+    "ExtendedKalmanFilter",
+    "UnscentedKalmanFilter",
+    "ParticleFilter",
 ]

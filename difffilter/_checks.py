@@ -25,6 +25,9 @@ __all__ = [
     "check_sequence_inputs",
     "check_step_inputs",
     "check_filter_inputs",
+    "check_model",
+    "check_carry_batch",
+    "check_carry_tensor",
 ]
 
 
@@ -227,6 +230,11 @@ def check_strategy(obj, name: str, example: str) -> None:
         raise TypeError(
             f"{name} must be an object, not the string {obj!r}: pass e.g. {name}={example}"
         )
+    if isinstance(obj, type):
+        raise TypeError(
+            f"{name} must be an instance, not the class {obj.__name__}: pass "
+            f"{name}={obj.__name__}(...) (e.g. {name}={example})"
+        )
     if not callable(obj):
         raise TypeError(
             f"{name} must be a callable object (e.g. {example}); got {type(obj).__name__}"
@@ -363,7 +371,9 @@ def check_step_inputs(
         raise ValueError(
             f"y must have shape [..., {dy}] (one measurement per run); got {tuple(y.shape)}"
         )
-    if not isinstance(state_mean, Tensor) or state_mean.dim() < 1 or state_mean.shape[-1] != dx:
+    if state_mean is not None and (
+        not isinstance(state_mean, Tensor) or state_mean.dim() < 1 or state_mean.shape[-1] != dx
+    ):
         raise ValueError(
             f"state must hold a mean [..., {dx}]; got {getattr(state_mean, 'shape', type(state_mean).__name__)}"
         )
@@ -401,3 +411,48 @@ def check_filter_inputs(
             "gamma_hat contains NaN or Inf values; every attack estimate must be finite"
         )
     return ys, us, mask
+
+
+def check_model(model) -> None:
+    """``model`` must be a state-space model (``dim_x``, ``dim_y``, ``transition``, ``observe``)."""
+    needed = ("dim_x", "dim_y", "dim_u", "transition", "observe", "initial")
+    missing = [name for name in needed if not hasattr(model, name)]
+    if missing:
+        raise TypeError(
+            "model must be a difffilter.StateSpaceModel (e.g. difffilter.LinearGaussianModel); "
+            f"{type(model).__name__} lacks {', '.join(missing)}"
+        )
+
+
+def check_carry_batch(batch: torch.Size, y: Tensor, u: Tensor | None, mask: Tensor | None) -> None:
+    """``y [..., dy]`` (and ``u``, ``mask``) must broadcast with the carry's runs ``batch``."""
+    for name, value in (("y", y), ("u", u), ("mask", mask)):
+        if value is None:
+            continue
+        lead = value.shape[:-1]
+        try:
+            full = torch.broadcast_shapes(lead, batch)
+        except RuntimeError:
+            full = None
+        if full != batch:
+            raise ValueError(
+                f"{name}'s batch shape {tuple(lead)} does not broadcast to the carry's "
+                f"runs {tuple(batch)}: pass one {name} per run ([{', '.join(map(str, batch))}, "
+                f"{value.shape[-1]}])"
+            )
+
+
+def check_carry_tensor(t, name: str, *, dim: int | None = None, symmetric: bool = False) -> None:
+    """A tensor of a carry built outside its estimator: finite (a NaN would poison every
+    later step), of last dimension ``dim``, symmetric when a covariance."""
+    if not isinstance(t, Tensor):
+        raise TypeError(f"carry.{name} must be a torch.Tensor; got {type(t).__name__}")
+    if dim is not None and (t.dim() < 1 or t.shape[-1] != dim):
+        raise ValueError(f"carry.{name} must have shape [..., {dim}]; got {tuple(t.shape)}")
+    if values_known(t) and not _all_finite(t):
+        raise ValueError(
+            f"carry.{name} contains NaN or Inf values; a carry must come from the "
+            "estimator's init (or an earlier step) with finite values"
+        )
+    if symmetric and values_known(t):
+        check_symmetric(t, f"carry.{name}")

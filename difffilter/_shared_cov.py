@@ -30,7 +30,8 @@ import torch
 from torch import Tensor
 from torch.nn.functional import pad as F_pad
 
-from .linalg import LOG_2PI, cholesky_solve_right, safe_cholesky, symmetrize
+from .gaussian import joseph_covariance, kalman_gain, predict_covariance
+from .linalg import LOG_2PI, symmetrize
 from .results import FilterResult
 
 __all__ = ["shared_covariance_applies", "shared_covariance_kalman_filter"]
@@ -66,19 +67,15 @@ def shared_covariance_applies(model, mask: Tensor | None) -> bool:
 
 
 def _covariances(F, H, Q, R, P, T):
-    """The data-independent recursion, the same operations as ``kalman_step``."""
-    dx = F.shape[-1]
-    eye = torch.eye(dx, dtype=F.dtype, device=F.device)
+    """The data-independent recursion, with the Gaussian core's blocks (as ``kalman_step``)."""
     eye_y = torch.eye(H.shape[-2], dtype=F.dtype, device=F.device)
     pred, covs, inn, gains, whiten, half_logdet = [], [], [], [], [], []
-    for _ in range(T):
-        Pp = symmetrize(F @ P @ F.transpose(-1, -2) + Q)
+    for _ in range(T):  # the covariance recursion: T small unbatched steps, not an estimator loop
+        Pp = predict_covariance(P, F, Q)
         cross = Pp @ H.transpose(-1, -2)
         S = symmetrize(H @ cross + R)
-        chol = safe_cholesky(S, name="innovation covariance S")
-        K = cholesky_solve_right(cross, chol)
-        i_kh = eye - K @ H
-        P = symmetrize(i_kh @ Pp @ i_kh.transpose(-1, -2) + K @ R @ K.transpose(-1, -2))
+        K, chol = kalman_gain(cross, S)
+        P = joseph_covariance(Pp, K, H, R)
         pred.append(Pp)
         covs.append(P)
         inn.append(S)

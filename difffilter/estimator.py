@@ -17,12 +17,24 @@ beyond it (the PF's ESS, the modified PF's ``ζ_k``, the NIS of a gated EKF) goe
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
 
-__all__ = ["Detection", "EstimatorOutput"]
+from ._checks import check_carry_batch, check_model, check_step_inputs
+from .results import FilterResult, StepOutput
+
+__all__ = [
+    "Detection",
+    "EstimatorOutput",
+    "Estimator",
+    "Generators",
+    "stack_steps",
+    "output_of",
+]
 
 
 @dataclass
@@ -112,3 +124,218 @@ class EstimatorOutput:
         values = {f.name: d(getattr(self, f.name)) for f in fields(self)}
         values.update(detection=det, extras={k: d(v) for k, v in self.extras.items()})
         return replace(self, **values)
+
+
+# ------------------------------------------------------------------ the online estimator
+
+
+class Generators(NamedTuple):
+    """The random streams of an estimator's draws: ``init`` (its initial state, e.g. the
+    prior particles), ``propagate`` (proposals, process noise) and ``resample``.
+
+    Separate streams keep common random numbers aligned across estimators
+    (:class:`difffilter.models.streams.Streams` hands out one per purpose);
+    :meth:`of` turns one generator into all three.
+    """
+
+    init: torch.Generator | None = None
+    propagate: torch.Generator | None = None
+    resample: torch.Generator | None = None
+
+    @classmethod
+    def of(cls, generator) -> Generators:
+        """``None`` → no generators; a ``torch.Generator`` → that one for every purpose;
+        a :class:`Generators` → itself. ``TypeError`` otherwise."""
+        if generator is None or isinstance(generator, Generators):
+            return generator or cls()
+        if isinstance(generator, torch.Generator):
+            return cls(generator, generator, generator)
+        raise TypeError(
+            "generator must be a torch.Generator or difffilter.Generators(init=, propagate=, "
+            f"resample=); got {type(generator).__name__}"
+        )
+
+
+class Estimator:
+    """Every estimator of the library: a pure step over one carry.
+
+    ``init(model, batch_shape=(), generator=None) -> carry`` and
+    ``step(carry, y, u=None, mask=None) -> (carry, StepOutput)``. The carry (a
+    ``NamedTuple`` whose ``model`` field is the model being filtered) holds *all* of the
+    estimator's state: moments or particles, detector statistics, histories, weights
+    learned online, the random generators it draws from. The estimator object holds only
+    its options, so the same object runs any number of independent carries, and the
+    step is a function of ``(carry, y_k, u_{k−1}, mask_k)``: what lets the closed loop
+    (:func:`difffilter.loop.closed_loop`) put it between a plant and a controller.
+
+    Shapes: ``y [..., dy]``, ``u [..., du]`` or ``None``, ``mask [..., dy]`` (bool) or
+    ``None``, with ``...`` the carry's batch shape (or broadcasting to it).
+    :func:`difffilter.loop.open_loop` runs it over whole sequences into an
+    :class:`EstimatorOutput`.
+
+    ``init`` and ``step`` validate their inputs and name the offending argument; the
+    drivers validate whole sequences once and call the unchecked ``_init``/``_step``.
+    Subclasses implement ``_init(model, batch_shape, generators)``,
+    ``_step(carry, y, u, mask)`` and ``_check_carry(carry)`` (what a valid carry is), and
+    may provide a whole-sequence fast path ``_run(carry, ys, us, mask)`` returning an
+    :class:`EstimatorOutput` (or ``None`` where it does not apply), tested equal to the
+    composed steps.
+    """
+
+    #: The carry type ``_init`` returns (checked by :meth:`step`).
+    carry_type: type = tuple
+
+    def init(self, model, batch_shape=(), generator=None):
+        """The carry of ``batch_shape`` independent runs before the first measurement."""
+        check_model(model)
+        batch = _batch_shape(batch_shape)
+        return self._init(model, batch, Generators.of(generator))
+
+    def step(self, carry, y: Tensor, u: Tensor | None = None, mask: Tensor | None = None):
+        """One step ``k−1 → k`` with ``y_k``, ``u_{k−1}`` and ``mask_k``; returns
+        ``(carry, StepOutput)``. The carry given is not modified."""
+        if not isinstance(carry, self.carry_type):
+            raise TypeError(
+                f"carry must be a {self.carry_type.__name__} (from {type(self).__name__}.init); "
+                f"got {type(carry).__name__}"
+            )
+        model = carry.model
+        self._check_carry(carry)
+        y, u, mask = check_step_inputs(model, None, y, u, mask)
+        check_carry_batch(self.batch_of(carry), y, u, mask)
+        return self._step(carry, y, u, mask)
+
+    def batch_of(self, carry) -> torch.Size:
+        """The batch shape of the runs a carry holds."""
+        return carry.mean.shape[:-1]
+
+    # -- what a subclass provides ------------------------------------------------------
+    def _init(self, model, batch_shape: torch.Size, generators: Generators):
+        raise NotImplementedError
+
+    def _step(self, carry, y, u, mask) -> tuple[Any, StepOutput]:
+        raise NotImplementedError
+
+    def _check_carry(self, carry) -> None:
+        """``ValueError`` naming what is wrong with a carry built elsewhere (default: none)."""
+
+    def _run(self, carry, ys, us, mask) -> EstimatorOutput | None:
+        """A private whole-sequence fast path, or ``None`` (the default: step by step)."""
+        return None
+
+
+def _batch_shape(batch_shape) -> torch.Size:
+    if isinstance(batch_shape, int) and not isinstance(batch_shape, bool):
+        batch_shape = (batch_shape,)
+    try:
+        batch = torch.Size(batch_shape)
+    except TypeError as exc:
+        raise ValueError(
+            f"batch_shape must be a tuple of integers >= 1; got {batch_shape!r}"
+        ) from exc
+    if any(int(b) < 1 for b in batch):
+        raise ValueError(f"batch_shape must be a tuple of integers >= 1; got {tuple(batch)}")
+    return batch
+
+
+# ---------------------------------------------------------------- stacking step outputs
+
+#: StepOutput fields stacked into EstimatorOutput.extras, and the name each gets there.
+_STATISTICS = {
+    "pred_mean": "pred_means",
+    "innovation": "innovations",
+}
+_MATRICES = {"pred_cov": "pred_covs", "innovation_cov": "innovation_covs"}
+
+
+def _stack_vectors(values: Sequence[Tensor], batch: torch.Size) -> Tensor:
+    """``[..., d]`` per step → ``[*batch, T, d]`` (each broadcast to ``batch``)."""
+    shape = torch.broadcast_shapes(batch, *(v.shape[:-1] for v in values))
+    return torch.stack([v.expand(shape + v.shape[-1:]) for v in values], dim=-2)
+
+
+def _stack_matrices(values: Sequence[Tensor], batch: torch.Size) -> Tensor:
+    """``[..., d, d]`` per step → ``[*batch, T, d, d]``; matrices shared by the runs are
+    stacked once and expanded (a view, no copy per run)."""
+    shape = torch.broadcast_shapes(*(v.shape[:-2] for v in values))
+    stacked = torch.stack([v.expand(shape + v.shape[-2:]) for v in values], dim=-3)
+    full = torch.broadcast_shapes(batch, stacked.shape[:-3])
+    return stacked.expand(full + stacked.shape[-3:])
+
+
+def _stack_scalars(values: Sequence[Tensor], batch: torch.Size) -> Tensor:
+    """``[...]`` per step → ``[*batch, T]``."""
+    shape = torch.broadcast_shapes(batch, *(v.shape for v in values))
+    return torch.stack([v.expand(shape) for v in values], dim=-1)
+
+
+def _stack_thresholds(values: Sequence, batch: torch.Size, like: Tensor):
+    """A number when every step used the same one, else ``[*batch, T]`` (``None``: none)."""
+    if values[0] is None:
+        return None
+    numbers = [v for v in values if not isinstance(v, Tensor) or v.dim() == 0]
+    if len(numbers) == len(values):
+        first = float(values[0])
+        if all(float(v) == first for v in values):
+            return first
+    tensors = [torch.as_tensor(v, dtype=like.dtype, device=like.device) for v in values]
+    return _stack_scalars(tensors, batch)
+
+
+def stack_steps(
+    outs: Sequence[StepOutput], batch: torch.Size, collected: dict | None = None
+) -> EstimatorOutput:
+    """The :class:`EstimatorOutput` of ``T`` step outputs of runs of shape ``batch``.
+
+    ``means [*batch, T, dx]``, ``covs`` (shared matrices stay expanded views), ``attack``,
+    a :class:`Detection` when the steps scored, and ``extras``: the stacked filter
+    statistics (``"pred_means"``, ``"pred_covs"``, ``"innovations"``,
+    ``"innovation_covs"``, ``"log_likelihood_increments" [*batch, T]`` and their sum
+    ``"log_likelihood" [*batch]``, where the steps reported them), every key of the steps'
+    own ``extras`` stacked after the batch dimensions, and ``collected`` (already stacked
+    by the driver).
+    """
+    if not outs:
+        raise ValueError("outs must hold at least one step output (T >= 1)")
+    first = outs[0]
+    extras: dict[str, Tensor] = {}
+    for name, key in _STATISTICS.items():
+        if getattr(first, name) is not None:
+            extras[key] = _stack_vectors([getattr(o, name) for o in outs], batch)
+    for name, key in _MATRICES.items():
+        if getattr(first, name) is not None:
+            extras[key] = _stack_matrices([getattr(o, name) for o in outs], batch)
+    if first.log_likelihood is not None:
+        increments = _stack_scalars([o.log_likelihood for o in outs], batch)
+        extras["log_likelihood_increments"] = increments
+        extras["log_likelihood"] = increments.sum(-1)
+    if first.extras:
+        for key in first.extras:
+            extras[key] = torch.stack([o.extras[key] for o in outs], dim=len(batch))
+    extras.update(collected or {})
+    means = _stack_vectors([o.mean for o in outs], batch)
+    covs = None if first.cov is None else _stack_matrices([o.cov for o in outs], batch)
+    attack = None if first.attack is None else _stack_vectors([o.attack for o in outs], batch)
+    detection = None
+    if first.score is not None:
+        lead = means.shape[:-2]
+        scores = _stack_scalars([o.score for o in outs], lead)
+        alarms = _stack_scalars([o.alarm for o in outs], lead)
+        threshold = _stack_thresholds([o.threshold for o in outs], lead, scores)
+        detection = Detection(scores, alarms, threshold)
+    return EstimatorOutput(means, covs, attack=attack, detection=detection, extras=extras)
+
+
+def output_of(result: FilterResult) -> EstimatorOutput:
+    """A filter's whole-sequence :class:`~difffilter.results.FilterResult` as the
+    :class:`EstimatorOutput` that :func:`stack_steps` would give (no copies)."""
+    extras = {
+        "pred_means": result.pred_means,
+        "pred_covs": result.pred_covs,
+        "innovations": result.innovations,
+        "innovation_covs": result.innovation_covs,
+        "log_likelihood_increments": result.log_likelihood_increments,
+        "log_likelihood": result.log_likelihood,
+    }
+    extras = {k: v for k, v in extras.items() if v is not None}
+    return EstimatorOutput(result.means, result.covs, extras=extras)

@@ -1,4 +1,4 @@
-"""Extended and unscented Kalman filters.
+"""Extended and unscented Kalman filters: estimator objects and their whole-sequence runs.
 
 EKF (first-order linearisation about the current estimate)::
 
@@ -25,12 +25,16 @@ import torch
 from torch import Tensor
 
 from ._checks import check_step_inputs
-from .kalman import gaussian_update, run_gaussian_filter
+from .gaussian import gaussian_update, linear_update, predict_covariance
+from .kalman import GaussianFilter, Prediction
 from .linalg import masked_measurement, outer, safe_cholesky, symmetrize
-from .results import FilterResult, GaussianState, GaussianStepOutput
+from .loop import open_loop
+from .results import FilterResult, GaussianState, StepOutput
 from .ssm import StateSpaceModel
 
 __all__ = [
+    "ExtendedKalmanFilter",
+    "UnscentedKalmanFilter",
     "extended_kalman_step",
     "extended_kalman_filter",
     "unscented_kalman_step",
@@ -39,38 +43,46 @@ __all__ = [
 ]
 
 
+class ExtendedKalmanFilter(GaussianFilter):
+    """The EKF as an estimator object (first-order linearisation about the estimate).
+
+    ``predict``: ``F = ∂f/∂x(m)``, ``m⁻ = f(m, u)``, ``P⁻ = F P Fᵀ + Q``; ``update``: ``H =
+    ∂h/∂x(m⁻)`` and the shared Joseph-form update with the model's residual (a wrapped
+    angle stays wrapped). Jacobians from ``torch.func`` unless the model has closed forms.
+    Carry: :class:`~difffilter.results.GaussianState`.
+    """
+
+    def predict(self, carry, u):
+        model, k = carry.model, carry.k
+        # A torch.func Jacobian can come back in another dtype than the state (a model
+        # function that builds a float64 constant from a Python float promotes it): cast, so
+        # a float32 model stays float32 (and the products below do not mix dtypes).
+        F = model.transition_jacobian(carry.mean, u, k).to(carry.mean.dtype)
+        pred_mean = model.transition(carry.mean, u, k)
+        return Prediction(pred_mean, predict_covariance(carry.cov, F, model.process_cov(k)))
+
+    def update(self, carry, prediction, y, mask):
+        model, k = carry.model, carry.k + 1
+        pred_mean, pred_cov = prediction
+        H = model.observation_jacobian(pred_mean, k).to(pred_mean.dtype)
+        residual = model.measurement_residual(y, model.observe(pred_mean, k))
+        mean, cov, residual, S, log_lik = linear_update(
+            pred_mean, pred_cov, residual, H, model.measurement_cov(k), mask
+        )
+        out = StepOutput(mean, cov, pred_mean, pred_cov, residual, S, log_lik)
+        return GaussianState(mean, cov, k, model), out
+
+
 def extended_kalman_step(
     model: StateSpaceModel,
     state: GaussianState,
     y: Tensor,
     u: Tensor | None = None,
     mask: Tensor | None = None,
-) -> tuple[GaussianState, GaussianStepOutput]:
+) -> tuple[GaussianState, StepOutput]:
     """One EKF step ``x_{k−1} → x_k``; shapes and input checks as in :func:`difffilter.kalman_step`."""
     y, u, mask = check_step_inputs(model, state.mean, y, u, mask)
-    return _extended_kalman_step(model, state, y, u, mask)
-
-
-def _extended_kalman_step(model, state, y, u=None, mask=None):
-    """:func:`extended_kalman_step` without input validation."""
-    k = state.k
-    dtype = state.mean.dtype
-    # A torch.func Jacobian can come back in another dtype than the state (a model
-    # function that builds a float64 constant from a Python float promotes it): cast, so
-    # a float32 model stays float32 (and the products below do not mix dtypes).
-    F = model.transition_jacobian(state.mean, u, k).to(dtype)
-    pred_mean = model.transition(state.mean, u, k)
-    pred_cov = symmetrize(F @ state.cov @ F.transpose(-1, -2) + model.process_cov(k))
-    H = model.observation_jacobian(pred_mean, k + 1).to(dtype)
-    residual = model.measurement_residual(y, model.observe(pred_mean, k + 1))
-    residual, H, R, observed = masked_measurement(residual, H, model.measurement_cov(k + 1), mask)
-    cross = pred_cov @ H.transpose(-1, -2)
-    mean, cov, S, log_lik = gaussian_update(
-        pred_mean, pred_cov, residual, cross, H @ cross, H, R, observed
-    )
-    return GaussianState(mean, cov, k + 1), GaussianStepOutput(
-        mean, cov, pred_mean, pred_cov, residual, S, log_lik
-    )
+    return ExtendedKalmanFilter()._step(state._replace(model=model), y, u, mask)
 
 
 def extended_kalman_filter(
@@ -87,7 +99,8 @@ def extended_kalman_filter(
     (``torch.func`` by default). Input checks and ``nonfinite`` as in
     :func:`difffilter.kalman_filter`. Returns a :class:`~difffilter.results.FilterResult`.
     """
-    return run_gaussian_filter(_extended_kalman_step, model, ys, us, mask, nonfinite=nonfinite)
+    out = open_loop(ExtendedKalmanFilter(), model, ys, us, mask=mask, nonfinite=nonfinite)
+    return FilterResult.from_output(out)
 
 
 class SigmaPoints:
@@ -132,6 +145,54 @@ def _moments(points: Tensor, wm: Tensor, wc: Tensor) -> tuple[Tensor, Tensor]:
     return mean, (wc[:, None, None] * outer(dev, dev)).sum(-3)
 
 
+class UnscentedKalmanFilter(GaussianFilter):
+    """The UKF as an estimator object (module docstring).
+
+    Args:
+        sigma_points: :class:`SigmaPoints` ``(α, β, κ)`` (default ``SigmaPoints(1, 2, 0)``).
+
+    Carry: :class:`~difffilter.results.GaussianState`.
+    """
+
+    def __init__(self, sigma_points: SigmaPoints | None = None):
+        _check_sigma_points(sigma_points)
+        self.sigma_points = sigma_points or SigmaPoints()
+
+    def predict(self, carry, u):
+        model, k, sp = carry.model, carry.k, self.sigma_points
+        wm, wc, scale = sp.weights(carry.mean.shape[-1], carry.mean.dtype, carry.mean.device)
+        X = sp.points(carry.mean, carry.cov, scale)  # [..., 2n+1, n]
+        FX = model.transition(X, None if u is None else u.unsqueeze(-2), k)
+        pred_mean, pred_cov = _moments(FX, wm, wc)
+        return Prediction(pred_mean, symmetrize(pred_cov + model.process_cov(k)))
+
+    def update(self, carry, prediction, y, mask):
+        model, k, sp = carry.model, carry.k + 1, self.sigma_points
+        pred_mean, pred_cov = prediction
+        wm, wc, scale = sp.weights(pred_mean.shape[-1], pred_mean.dtype, pred_mean.device)
+        Xp = sp.points(pred_mean, pred_cov, scale)
+        Y = model.observe(Xp, k)  # [..., 2n+1, dy]
+        y_hat = (wm[:, None] * Y).sum(-2)
+        dy_pts = Y - y_hat.unsqueeze(-2)
+        dx_pts = Xp - pred_mean.unsqueeze(-2)
+        residual = model.measurement_residual(y, y_hat)
+        if mask is not None:
+            dy_pts = dy_pts * mask.to(dy_pts.dtype).unsqueeze(-2)
+        eye_y = torch.eye(Y.shape[-1], dtype=Y.dtype, device=Y.device)
+        residual, _, R, observed = masked_measurement(
+            residual, eye_y, model.measurement_cov(k), mask
+        )
+        cross = (wc[:, None, None] * outer(dx_pts, dy_pts)).sum(-3)  # Pxy [..., n, dy]
+        pyy = (wc[:, None, None] * outer(dy_pts, dy_pts)).sum(-3)
+        # Statistical linearisation H̃ = Pxyᵀ P⁻⁻¹ for the Joseph form.
+        H_stat = torch.linalg.solve(pred_cov, cross).transpose(-1, -2)
+        mean, cov, S, log_lik = gaussian_update(
+            pred_mean, pred_cov, residual, cross, pyy, H_stat, R, observed
+        )
+        out = StepOutput(mean, cov, pred_mean, pred_cov, residual, S, log_lik)
+        return GaussianState(mean, cov, k, model), out
+
+
 def unscented_kalman_step(
     model: StateSpaceModel,
     state: GaussianState,
@@ -139,11 +200,10 @@ def unscented_kalman_step(
     u: Tensor | None = None,
     mask: Tensor | None = None,
     sigma_points: SigmaPoints | None = None,
-) -> tuple[GaussianState, GaussianStepOutput]:
+) -> tuple[GaussianState, StepOutput]:
     """One UKF step ``x_{k−1} → x_k``; shapes and input checks as in :func:`difffilter.kalman_step`."""
     y, u, mask = check_step_inputs(model, state.mean, y, u, mask)
-    _check_sigma_points(sigma_points)
-    return _unscented_kalman_step(model, state, y, u, mask, sigma_points)
+    return UnscentedKalmanFilter(sigma_points)._step(state._replace(model=model), y, u, mask)
 
 
 def _check_sigma_points(sigma_points) -> None:
@@ -152,40 +212,6 @@ def _check_sigma_points(sigma_points) -> None:
             f"sigma_points must be a SigmaPoints object (e.g. SigmaPoints(alpha=1.0)); "
             f"got {type(sigma_points).__name__}"
         )
-
-
-def _unscented_kalman_step(model, state, y, u=None, mask=None, sigma_points=None):
-    """:func:`unscented_kalman_step` without input validation."""
-    sp = sigma_points or SigmaPoints()
-    k = state.k
-    n = state.mean.shape[-1]
-    wm, wc, scale = sp.weights(n, state.mean.dtype, state.mean.device)
-    X = sp.points(state.mean, state.cov, scale)  # [..., 2n+1, n]
-    u_pts = None if u is None else u.unsqueeze(-2)
-    FX = model.transition(X, u_pts, k)
-    pred_mean, pred_cov = _moments(FX, wm, wc)
-    pred_cov = symmetrize(pred_cov + model.process_cov(k))
-    Xp = sp.points(pred_mean, pred_cov, scale)
-    Y = model.observe(Xp, k + 1)  # [..., 2n+1, dy]
-    y_hat = (wm[:, None] * Y).sum(-2)
-    dy_pts = Y - y_hat.unsqueeze(-2)
-    dx_pts = Xp - pred_mean.unsqueeze(-2)
-    residual = model.measurement_residual(y, y_hat)
-    R = model.measurement_cov(k + 1)
-    if mask is not None:
-        dy_pts = dy_pts * mask.to(dy_pts.dtype).unsqueeze(-2)
-    eye_y = torch.eye(Y.shape[-1], dtype=Y.dtype, device=Y.device)
-    residual, _, R, observed = masked_measurement(residual, eye_y, R, mask)
-    cross = (wc[:, None, None] * outer(dx_pts, dy_pts)).sum(-3)  # Pxy [..., n, dy]
-    pyy = (wc[:, None, None] * outer(dy_pts, dy_pts)).sum(-3)
-    # Statistical linearisation H̃ = Pxyᵀ P⁻⁻¹ for the Joseph form.
-    H_stat = torch.linalg.solve(pred_cov, cross).transpose(-1, -2)
-    mean, cov, S, log_lik = gaussian_update(
-        pred_mean, pred_cov, residual, cross, pyy, H_stat, R, observed
-    )
-    return GaussianState(mean, cov, k + 1), GaussianStepOutput(
-        mean, cov, pred_mean, pred_cov, residual, S, log_lik
-    )
 
 
 def unscented_kalman_filter(
@@ -202,10 +228,6 @@ def unscented_kalman_filter(
 
     ``sigma_points`` sets ``(α, β, κ)`` (default ``SigmaPoints(1, 2, 0)``).
     """
-    _check_sigma_points(sigma_points)
-    sp = sigma_points or SigmaPoints()
-
-    def step(model, state, y, u, m):
-        return _unscented_kalman_step(model, state, y, u, m, sp)
-
-    return run_gaussian_filter(step, model, ys, us, mask, nonfinite=nonfinite)
+    estimator = UnscentedKalmanFilter(sigma_points)
+    out = open_loop(estimator, model, ys, us, mask=mask, nonfinite=nonfinite)
+    return FilterResult.from_output(out)

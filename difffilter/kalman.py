@@ -1,6 +1,6 @@
-"""The Kalman filter and the pieces every Gaussian filter shares.
+"""The Kalman filter: an online step over one carry, and its whole-sequence run.
 
-Equations (one step, ``k−1 → k``)::
+Equations (one step, ``k−1 → k``; the blocks of :mod:`difffilter.gaussian`)::
 
     predict   m⁻ = F m + B u                 P⁻ = F P Fᵀ + Q
     innovate  r  = y − H m⁻                  S  = H P⁻ Hᵀ + R
@@ -11,43 +11,59 @@ Equations (one step, ``k−1 → k``)::
 Covariances are symmetrised after every step. Unreceived measurement entries (``mask``)
 are removed exactly (:func:`difffilter.linalg.masked_measurement`). Every function is
 differentiable with respect to the model's tensors and broadcasts over leading batch
-dimensions. When the model's matrices carry no batch dimension and there is no mask,
-the covariance recursion runs once for all runs (it does not depend on the data).
+dimensions.
+
+:class:`KalmanFilter` is the estimator object (``init``/``step``, run by the drivers of
+:mod:`difffilter.loop`); :func:`kalman_step` is its step as a function of an explicit
+model and :func:`kalman_filter` its whole-sequence run. When the model's matrices carry
+no batch dimension and nothing is masked the covariance recursion does not depend on the
+data: the step then reads it from a :class:`~difffilter.GainSchedule` computed once for
+all runs, and the whole-sequence run takes the shared-covariance path
+(:mod:`difffilter._shared_cov`) or, with ``method="parallel"``, the associative scan
+(:mod:`difffilter.parallel_kalman`); both are tested equal to the composed steps.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from enum import Enum
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from ._checks import check_sequence_inputs, check_step_inputs
+from ._checks import check_carry_tensor, check_step_inputs
 from ._shared_cov import shared_covariance_applies, shared_covariance_kalman_filter
-from .linalg import (
-    cholesky_solve_right,
-    gaussian_log_prob_chol,
-    masked_measurement,
-    matvec,
-    safe_cholesky,
-    symmetrize,
-)
-from .results import FilterResult, GaussianState, GaussianStepOutput
-from .ssm import StateSpaceModel
+from .estimator import Estimator, output_of
+from .gain_schedule import GainSchedule, shared_gains_apply
+from .gaussian import linear_predict, linear_update
+from .linalg import gaussian_log_prob_chol, matvec
+from .loop import open_loop
+from .parallel_kalman import parallel_kalman_filter
+from .results import FilterResult, GaussianState, StepOutput
 
 __all__ = [
+    "Method",
+    "Prediction",
+    "GaussianFilter",
+    "KalmanFilter",
     "gaussian_init",
-    "gaussian_update",
-    "kalman_gain",
-    "joseph_covariance",
     "kalman_predict",
     "kalman_step",
     "kalman_filter",
-    "run_gaussian_filter",
 ]
 
 
-def gaussian_init(model: StateSpaceModel, batch_shape=()) -> GaussianState:
+class Method(str, Enum):
+    """How :class:`KalmanFilter` runs a whole sequence: step by step (``SEQUENTIAL``, with
+    the shared-covariance path when it applies) or by the associative scan of Särkkä &
+    García-Fernández (``PARALLEL``: ``O(log T)`` batched operations, fastest for a few
+    long runs; equal up to round-off)."""
+
+    SEQUENTIAL = "sequential"
+    PARALLEL = "parallel"
+
+
+def gaussian_init(model, batch_shape=()) -> GaussianState:
     """Prior state ``(m_0, P_0)`` of a Gaussian filter.
 
     ``mean`` is ``[*batch_shape, dx]``; ``cov`` keeps the prior's own shape
@@ -56,67 +72,7 @@ def gaussian_init(model: StateSpaceModel, batch_shape=()) -> GaussianState:
     mean = model.initial.mean
     batch_shape = torch.Size(batch_shape)
     mean = mean.expand(torch.broadcast_shapes(batch_shape, mean.shape[:-1]) + mean.shape[-1:])
-    return GaussianState(mean, model.initial.cov, 0)
-
-
-def kalman_gain(cross_cov: Tensor, innovation_cov: Tensor) -> tuple[Tensor, Tensor]:
-    """Gain ``K = C S⁻¹`` by a Cholesky solve (``S`` is never inverted).
-
-    Shapes: ``cross_cov`` ``C = Cov(x, y)`` ``[..., dx, dy]``, ``innovation_cov`` ``S``
-    ``[..., dy, dy]`` (symmetrised here) → ``(K [..., dx, dy], chol(S) [..., dy, dy])``.
-    Every Gaussian update of the library (KF, EKF, UKF, the Kalman proposal of the PF,
-    the modified PF's eq. 35, the attack estimators) takes its gain from here.
-    """
-    chol = safe_cholesky(symmetrize(innovation_cov), name="innovation covariance S")
-    return cholesky_solve_right(cross_cov, chol), chol
-
-
-def joseph_covariance(
-    pred_cov: Tensor, gain: Tensor, obs_matrix: Tensor, noise_cov: Tensor
-) -> Tensor:
-    """Joseph-form posterior covariance ``(I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ``, symmetrised.
-
-    Shapes: ``pred_cov [..., dx, dx]``, ``gain [..., dx, dy]``, ``obs_matrix [..., dy, dx]``,
-    ``noise_cov [..., dy, dy]`` → ``[..., dx, dx]``. Positive semidefinite for any gain.
-    """
-    eye = torch.eye(pred_cov.shape[-1], dtype=pred_cov.dtype, device=pred_cov.device)
-    i_kh = eye - gain @ obs_matrix
-    cov = i_kh @ pred_cov @ i_kh.transpose(-1, -2) + gain @ noise_cov @ gain.transpose(-1, -2)
-    return symmetrize(cov)
-
-
-def gaussian_update(
-    pred_mean: Tensor,
-    pred_cov: Tensor,
-    residual: Tensor,
-    cross_cov: Tensor,
-    pred_obs_cov: Tensor,
-    obs_matrix: Tensor,
-    noise_cov: Tensor,
-    observed: Tensor | int,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Measurement update shared by the KF, EKF and UKF.
-
-    Args:
-        pred_mean: ``m⁻`` ``[..., dx]``.
-        pred_cov: ``P⁻`` ``[..., dx, dx]``.
-        residual: ``r = y − ŷ`` ``[..., dy]`` (already masked).
-        cross_cov: ``C = Cov(x, y)`` ``[..., dx, dy]`` (``P⁻Hᵀ`` for the KF/EKF).
-        pred_obs_cov: covariance of the predicted measurement without noise
-            ``[..., dy, dy]`` (``H P⁻ Hᵀ`` for the KF/EKF).
-        obs_matrix: ``H`` ``[..., dy, dx]`` used by the Joseph form (the UKF passes its
-            statistical linearisation ``Cᵀ P⁻⁻¹``).
-        noise_cov: ``R`` ``[..., dy, dy]`` (already masked).
-        observed: number of received entries (scalar or ``[...]``).
-
-    Returns ``(m⁺, P⁺, S, log N(r; 0, S))``.
-    """
-    S = symmetrize(pred_obs_cov + noise_cov)
-    gain, chol = kalman_gain(cross_cov, S)  # K = C S⁻¹  [..., dx, dy]
-    mean = pred_mean + matvec(gain, residual)
-    cov = joseph_covariance(pred_cov, gain, obs_matrix, noise_cov)
-    log_lik = gaussian_log_prob_chol(residual, chol, observed)
-    return mean, cov, S, log_lik
+    return GaussianState(mean, model.initial.cov, 0, model)
 
 
 def kalman_predict(model, state: GaussianState, u: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -126,18 +82,19 @@ def kalman_predict(model, state: GaussianState, u: Tensor | None = None) -> tupl
     ``process_cov(k)`` (as :class:`~difffilter.LinearGaussianModel` does).
     """
     k = state.k
-    F = model.transition_matrix(k)
-    mean = matvec(F, state.mean)
-    B = model.control_matrix(k)
-    if B is not None and u is not None:
-        mean = mean + matvec(B, u)
-    cov = symmetrize(F @ state.cov @ F.transpose(-1, -2) + model.process_cov(k))
-    return mean, cov
+    return linear_predict(
+        state.mean,
+        state.cov,
+        model.transition_matrix(k),
+        model.process_cov(k),
+        model.control_matrix(k),
+        u,
+    )
 
 
 def kalman_step(
     model, state: GaussianState, y: Tensor, u: Tensor | None = None, mask: Tensor | None = None
-) -> tuple[GaussianState, GaussianStepOutput]:
+) -> tuple[GaussianState, StepOutput]:
     """One Kalman-filter step ``x_{k−1} → x_k`` with measurement ``y_k``.
 
     Args:
@@ -148,98 +105,149 @@ def kalman_step(
 
     The inputs are validated (:func:`difffilter._checks.check_step_inputs`): a NaN or Inf
     in a received entry of ``y`` raises ``ValueError`` instead of poisoning every later
-    state. Returns the posterior of ``x_k`` and a :class:`GaussianStepOutput`.
+    state. Returns the posterior of ``x_k`` and a :class:`~difffilter.results.StepOutput`.
     """
     y, u, mask = check_step_inputs(model, state.mean, y, u, mask)
     return _kalman_step(model, state, y, u, mask)
 
 
 def _kalman_step(model, state, y, u=None, mask=None):
-    """:func:`kalman_step` without input validation (the filters validate whole sequences)."""
-    pred_mean, pred_cov = kalman_predict(model, state, u)
-    k = state.k + 1
-    H = model.observation_matrix(k)
-    residual = y - matvec(H, pred_mean)
-    residual, H, R, observed = masked_measurement(residual, H, model.measurement_cov(k), mask)
-    cross = pred_cov @ H.transpose(-1, -2)
-    mean, cov, S, log_lik = gaussian_update(
-        pred_mean, pred_cov, residual, cross, H @ cross, H, R, observed
-    )
-    out = GaussianStepOutput(mean, cov, pred_mean, pred_cov, residual, S, log_lik)
-    return GaussianState(mean, cov, k), out
+    """:func:`kalman_step` without input validation (the drivers validate whole sequences)."""
+    filt = KalmanFilter()
+    carry = state._replace(model=model, gains=None)
+    return filt.update(carry, filt.predict(carry, u), y, mask)
 
 
-def _validate_inputs(model, ys, us, mask, nonfinite="raise"):
-    """The shared sequence checks (:func:`difffilter._checks.check_sequence_inputs`)."""
-    return check_sequence_inputs(model, ys, us, mask, nonfinite=nonfinite)
+class Prediction(NamedTuple):
+    """A Gaussian filter's prediction of ``x_k``: ``mean`` ``m⁻ [..., dx]``, ``cov``
+    ``P⁻ [..., dx, dx]`` (what :meth:`GaussianFilter.update` conditions on ``y_k``)."""
+
+    mean: Tensor
+    cov: Tensor
 
 
-def run_gaussian_filter(
-    step: Callable[..., tuple[GaussianState, GaussianStepOutput]],
-    model: StateSpaceModel,
-    ys: Tensor,
-    us: Tensor | None = None,
-    mask: Tensor | None = None,
-    state: GaussianState | None = None,
-    *,
-    nonfinite: str = "raise",
-) -> FilterResult:
-    """Run an online ``step`` over a whole sequence and stack its outputs.
+class GaussianFilter(Estimator):
+    """A Gaussian filter as an estimator object: ``step = update ∘ predict``.
 
-    ``ys [..., T, dy]``, ``us [..., T, du]``, ``mask [..., T, dy]``; returns a
-    :class:`FilterResult` with every field batch first. The Python loop over time is
-    the only loop. ``nonfinite`` as in :func:`kalman_filter`.
+    Subclasses (:class:`KalmanFilter`, :class:`~difffilter.ExtendedKalmanFilter`,
+    :class:`~difffilter.UnscentedKalmanFilter`) implement
+    ``predict(carry, u) -> Prediction`` and ``update(carry, prediction, y, mask) ->
+    (carry, StepOutput)``, the two halves that the attack-aware estimators recombine
+    (a gated filter keeps the prediction where its detector alarms; the learned
+    estimator updates with a compensated measurement or predicts with a compensated
+    input). Carry: :class:`~difffilter.results.GaussianState`.
     """
-    ys, us, mask, skipped = _validate_inputs(model, ys, us, mask, nonfinite)
-    result = _run_validated(step, model, ys, us, mask, state)
-    result.nonfinite_skipped = skipped
-    return result
+
+    carry_type = GaussianState
+
+    def _init(self, model, batch_shape, generators):
+        return gaussian_init(model, batch_shape)
+
+    def predict(self, carry: GaussianState, u: Tensor | None) -> Prediction:
+        raise NotImplementedError
+
+    def update(self, carry, prediction: Prediction, y, mask):
+        raise NotImplementedError
+
+    def _step(self, carry, y, u, mask):
+        return self.update(carry, self.predict(carry, u), y, mask)
+
+    def _check_carry(self, carry):
+        dx = carry.model.dim_x
+        check_carry_tensor(carry.mean, "mean", dim=dx)
+        check_carry_tensor(carry.cov, "cov", dim=dx, symmetric=True)
 
 
-def _run_validated(step, model, ys, us, mask, state=None) -> FilterResult:
-    num_steps = ys.shape[-2]
-    batch = ys.shape[:-2]
-    if us is not None:
-        batch = torch.broadcast_shapes(batch, us.shape[:-2])
-    if mask is not None:
-        batch = torch.broadcast_shapes(batch, mask.shape[:-2])
-    if state is None:
-        state = gaussian_init(model, batch)
-    outs = []
-    for t in range(num_steps):
-        u = None if us is None else us[..., t, :]
-        m = None if mask is None else mask[..., t, :]
-        state, out = step(model, state, ys[..., t, :], u, m)
-        outs.append(out)
-    return _stack_outputs(outs, batch)
+class KalmanFilter(GaussianFilter):
+    """The Kalman filter of a linear-Gaussian model as an estimator object.
+
+    Args:
+        method: :class:`Method` (or its name) for whole sequences (:func:`kalman_filter`).
+
+    Carry: :class:`~difffilter.results.GaussianState` ``(mean [..., dx], cov, k, model,
+    gains)``; ``gains`` is the model's :class:`~difffilter.GainSchedule` when its
+    covariances are shared by every run (an unbatched time-invariant model), used by
+    every unmasked step: the same numbers, the covariance recursion computed once for all
+    runs (a masked step falls back to the general update and drops it).
+    """
+
+    def __init__(self, method: Method | str = Method.SEQUENTIAL):
+        self.method = _method(method)
+
+    def _init(self, model, batch_shape, generators):
+        _check_linear(model)
+        state = gaussian_init(model, batch_shape)
+        if shared_gains_apply(model):
+            state = state._replace(gains=GainSchedule(model))
+        return state
+
+    def predict(self, carry, u):
+        if carry.gains is not None:
+            return Prediction(carry.gains.predict(carry.mean, u),
+                              carry.gains.moments(carry.k + 1).pred_cov)  # fmt: skip
+        return Prediction(*kalman_predict(carry.model, carry, u))
+
+    def update(self, carry, prediction, y, mask):
+        model, k = carry.model, carry.k + 1
+        if carry.gains is not None and mask is None:
+            return _shared_update(carry, prediction.mean, y)
+        H = model.observation_matrix(k)
+        mean, cov, residual, S, log_lik = linear_update(
+            prediction.mean, prediction.cov, y - matvec(H, prediction.mean), H,
+            model.measurement_cov(k), mask,
+        )  # fmt: skip
+        out = StepOutput(mean, cov, prediction.mean, prediction.cov, residual, S, log_lik)
+        return GaussianState(mean, cov, k, model), out
+
+    def _check_carry(self, carry):
+        super()._check_carry(carry)
+        if carry.gains is not None:
+            shared = carry.model.initial.cov if carry.k == 0 else carry.gains.moments(carry.k).cov
+            if carry.cov is not shared:
+                raise ValueError(
+                    "carry.cov is not the shared covariance of carry.gains: drop the gains "
+                    "(carry._replace(gains=None)) when changing the covariance"
+                )
+
+    def _run(self, carry, ys, us, mask):
+        model = carry.model
+        if self.method is Method.PARALLEL:
+            return output_of(parallel_kalman_filter(model, ys, us, mask))
+        if shared_covariance_applies(model, mask):
+            return output_of(shared_covariance_kalman_filter(model, ys, us))
+        return None
 
 
-def _stack_outputs(outs: list[GaussianStepOutput], batch: torch.Size) -> FilterResult:
-    def vec(name):
-        vals = [getattr(o, name) for o in outs]
-        shape = torch.broadcast_shapes(batch, *(v.shape[:-1] for v in vals))
-        return torch.stack([v.expand(shape + v.shape[-1:]) for v in vals], dim=-2)
+def _shared_update(carry: GaussianState, pred_mean: Tensor, y: Tensor):
+    """The update with the covariances of ``carry.gains`` (no mask): the same numbers as
+    the general update, with the data-independent part computed once for all runs."""
+    gains: GainSchedule = carry.gains
+    k = carry.k + 1
+    m = gains.moments(k)
+    innovation = gains.innovation(pred_mean, y)
+    mean = pred_mean + matvec(m.gain, innovation)
+    log_lik = gaussian_log_prob_chol(innovation, m.chol)
+    out = StepOutput(mean, m.cov, pred_mean, m.pred_cov, innovation, m.innovation_cov, log_lik)
+    return GaussianState(mean, m.cov, k, carry.model, gains), out
 
-    def mat(name):
-        vals = [getattr(o, name) for o in outs]
-        shape = torch.broadcast_shapes(*(v.shape[:-2] for v in vals))
-        stacked = torch.stack([v.expand(shape + v.shape[-2:]) for v in vals], dim=-3)
-        full = torch.broadcast_shapes(batch, stacked.shape[:-3])
-        return stacked.expand(full + stacked.shape[-3:])
 
-    incs = [o.log_likelihood for o in outs]
-    lshape = torch.broadcast_shapes(batch, *(v.shape for v in incs))
-    increments = torch.stack([v.expand(lshape) for v in incs], dim=-1)
-    return FilterResult(
-        means=vec("mean"),
-        covs=mat("cov"),
-        pred_means=vec("pred_mean"),
-        pred_covs=mat("pred_cov"),
-        innovations=vec("innovation"),
-        innovation_covs=mat("innovation_cov"),
-        log_likelihood_increments=increments,
-        log_likelihood=increments.sum(-1),
-    )
+def _method(method) -> Method:
+    try:
+        return Method(method)
+    except ValueError:
+        raise ValueError(
+            f"method must be one of {[m.value for m in Method]}; got {method!r}"
+        ) from None
+
+
+def _check_linear(model) -> None:
+    needed = ("transition_matrix", "observation_matrix", "control_matrix", "process_cov")
+    missing = [name for name in needed if not hasattr(model, name)]
+    if missing:
+        raise TypeError(
+            f"the Kalman filter needs a linear model (e.g. difffilter.LinearGaussianModel); "
+            f"{type(model).__name__} lacks {', '.join(missing)}: use the EKF or UKF"
+        )
 
 
 def kalman_filter(
@@ -248,7 +256,7 @@ def kalman_filter(
     us: Tensor | None = None,
     *,
     mask: Tensor | None = None,
-    method: str = "sequential",
+    method: Method | str = Method.SEQUENTIAL,
     nonfinite: str = "raise",
 ) -> FilterResult:
     """Kalman filter of a linear-Gaussian model over a whole sequence.
@@ -260,11 +268,11 @@ def kalman_filter(
         us: inputs ``u_0 … u_{T−1}`` ``[..., T, du]`` or ``None``.
         mask: received entries ``[..., T, dy]`` (bool) or ``None`` (all received).
             Unreceived entries may be NaN.
-        method: ``"sequential"`` (the online step in a loop; Joseph form) or
-            ``"parallel"`` (the associative-scan filter of Särkkä & García-Fernández,
-            IEEE TAC 2021: ``O(log T)`` batched operations instead of ``T`` small
-            ones, fastest for a few long runs; equal to the sequential filter up to
-            round-off). The sequential filter picks the shared-covariance fast path
+        method: :class:`Method` or its name, ``"sequential"`` (the online step in a
+            loop; Joseph form) or ``"parallel"`` (the associative-scan filter of Särkkä &
+            García-Fernández, IEEE TAC 2021: ``O(log T)`` batched operations instead of
+            ``T`` small ones, fastest for a few long runs; equal to the sequential filter
+            up to round-off). The sequential filter picks the shared-covariance fast path
             (:mod:`difffilter._shared_cov`) by itself when the model's matrices have no
             batch dimension, the model is time-invariant and nothing is masked: the
             covariance recursion runs once for all runs and the covariances come back
@@ -281,17 +289,5 @@ def kalman_filter(
         :class:`~difffilter.results.FilterResult` (means ``[..., T, dx]``, covs
         ``[..., T, dx, dx]``, innovations, innovation covariances, log-likelihood ``[...]``).
     """
-    if method not in ("sequential", "parallel"):
-        raise ValueError(f"method must be 'sequential' or 'parallel'; got {method!r}")
-    ys, us, mask, skipped = _validate_inputs(model, ys, us, mask, nonfinite)
-    if method == "parallel":
-        from .parallel_kalman import parallel_kalman_filter
-
-        result = parallel_kalman_filter(model, ys, us, mask)
-    elif shared_covariance_applies(model, mask):
-        # one unbatched LTI model, nothing masked: covariances once for all runs
-        result = shared_covariance_kalman_filter(model, ys, us)
-    else:
-        result = _run_validated(_kalman_step, model, ys, us, mask)
-    result.nonfinite_skipped = skipped
-    return result
+    out = open_loop(KalmanFilter(method), model, ys, us, mask=mask, nonfinite=nonfinite)
+    return FilterResult.from_output(out)

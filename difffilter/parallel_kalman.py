@@ -29,7 +29,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
-from .kalman import joseph_covariance, kalman_gain
+from .gaussian import joseph_covariance, kalman_gain
 from .linalg import (
     gaussian_log_prob_chol,
     masked_measurement,

@@ -29,19 +29,20 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from typing import NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import torch
 from torch import Tensor
 
 from ._checks import (
+    check_carry_tensor,
     check_ess_threshold,
     check_positive_int,
     check_step_inputs,
     check_strategy,
 )
-from ._steps import StepRecorder
-from .kalman import _validate_inputs, gaussian_update
+from .estimator import Estimator, Generators
+from .gaussian import gaussian_update
 from .linalg import (
     gaussian_log_prob_chol,
     masked_measurement,
@@ -50,8 +51,9 @@ from .linalg import (
     safe_cholesky,
     symmetrize,
 )
+from .loop import open_loop
 from .resampling import Resampler, Systematic, keep_unmarked_rows
-from .results import ParticleFilterResult
+from .results import ParticleFilterResult, StepOutput
 from .ssm import StateSpaceModel
 
 # the resampler base class's hook: uniform log-weights −log N after resampling
@@ -59,6 +61,7 @@ _UNIFORM = Resampler._new_log_weights
 
 __all__ = [
     "ParticleState",
+    "ParticleFilter",
     "ParticleStepOutput",
     "Predictive",
     "Proposal",
@@ -75,10 +78,14 @@ __all__ = [
 
 
 class ParticleState(NamedTuple):
-    """Online state: particles ``[..., N, dx]`` and normalised log-weights ``[..., N]`` of ``x_k``.
+    """Online state (the carry): particles ``[..., N, dx]`` and normalised log-weights
+    ``[..., N]`` of ``x_k``.
 
     ``ess [...]`` caches the effective sample size of ``log_weights`` and ``weights [..., N]``
     their exponential ``w = exp(log_weights)`` (``None``: compute them when needed).
+    ``model`` is the model being filtered, ``aux`` the state of a stateful likelihood
+    (:class:`StepLikelihood`: a detector's running statistics, a network's histories),
+    ``generators`` the :class:`~difffilter.estimator.Generators` the steps draw from.
     """
 
     particles: Tensor
@@ -86,28 +93,19 @@ class ParticleState(NamedTuple):
     k: int = 0
     ess: Tensor | None = None
     weights: Tensor | None = None
+    model: Any = None
+    aux: Any = None
+    generators: Any = None
 
 
-class ParticleStepOutput(NamedTuple):
-    """Per-step report: ``mean [..., dx]``, ``cov [..., dx, dx]``, the predicted state mean
-    ``pred_mean = E[x_k | y_{1:k−1}]`` ``[..., dx]``, ``innovation = y − E[h(x_k) | y_{1:k−1}]``
-    ``[..., dy]`` and its covariance (particle covariance of ``h`` plus ``R``) ``[..., dy, dy]``
-    (both ``None`` for a step asked for no ``innovations``), ``log_likelihood`` increment
-    ``[...]``, ``ess [...]`` after weighting, ``resampled [...]`` (bool), the normalised
-    predictive log-weights ``log w_{k−1}`` of the proposed particles ``[..., N]`` and
-    ``degenerate [...]`` (bool: every weight of the run underflowed and was reset to the
-    predictive weights, see the module docstring)."""
-
-    mean: Tensor
-    cov: Tensor
-    pred_mean: Tensor
-    innovation: Tensor
-    innovation_cov: Tensor
-    log_likelihood: Tensor
-    ess: Tensor
-    resampled: Tensor
-    prior_log_weights: Tensor
-    degenerate: Tensor | None = None
+#: The particle filter's step output: the one :class:`~difffilter.results.StepOutput`
+#: (``innovation``/``innovation_cov`` ``None`` for a step asked for no ``innovations``),
+#: with ``extras`` ``"ess" [...]`` after weighting, ``"resampled" [...]`` (bool),
+#: ``"degenerate" [...]`` (bool: every weight of the run underflowed and was reset to the
+#: predictive weights, see the module docstring), ``"prior_log_weights" [..., N]`` (the
+#: normalised predictive log-weights ``log w_{k−1}`` of the proposed particles; with
+#: ``record_prior=True``) and what the likelihood and hooks recorded.
+ParticleStepOutput = StepOutput
 
 
 class Predictive(NamedTuple):
@@ -148,6 +146,23 @@ class Likelihood(Protocol):
     """
 
     def __call__(self, model, y, particles, k, mask) -> Tensor: ...
+
+
+class StepLikelihood(Protocol):
+    """A likelihood with state (in the carry's ``aux``) that reads the step's predictive view.
+
+    ``init(model, batch_shape, dtype, device) -> state`` and ``weigh(state, model, y [...,
+    dy], particles [..., N, dx], k, mask, predictive) -> (state, log p [..., N], record)``
+    with ``record`` a ``{name: tensor [...]}`` that the step reports in its ``extras``.
+    The attack-aware filters decide with it, step by step, whether and how to discount a
+    measurement (the modified PF's detection and compensation, the learned estimator).
+    """
+
+    def init(self, model, batch_shape, dtype, device) -> Any: ...
+
+    def weigh(
+        self, state, model, y, particles, k, mask, predictive
+    ) -> tuple[Any, Tensor, dict]: ...
 
 
 StepHook = Callable[..., dict]
@@ -264,7 +279,96 @@ def particle_init(
     batch_shape = torch.Size(batch_shape)
     particles = model.sample_initial(batch_shape + (num_particles,), generator)
     log_w = particles.new_full(batch_shape + (num_particles,), -math.log(num_particles))
-    return ParticleState(particles, log_w, 0)
+    return ParticleState(particles, log_w, 0, model=model)
+
+
+class ParticleFilter(Estimator):
+    """The particle filter as an estimator object (module docstring for one step).
+
+    Args:
+        num_particles: ``N ≥ 1``.
+        resampler: a :mod:`difffilter.resampling` object (default ``Systematic()``).
+        proposal: default :class:`BootstrapProposal`; :class:`KalmanProposal` is the
+            locally linearised optimal proposal.
+        likelihood: default :class:`ModelLikelihood`; any callable ``(model, y, particles,
+            k, mask) → [..., N]`` (``uses_predictive = True``: also passed ``predictive=``),
+            or a :class:`StepLikelihood` whose state lives in the carry's ``aux``.
+        ess_threshold: resample when ``ESS < ess_threshold · N`` (``1.0`` resamples at
+            every step with non-uniform weights, ``0`` never: plain SIS).
+        hooks: callables ``hook(model, y, mask, carry, out) → {name: tensor [...]}`` run
+            after every step (``carry``: the new carry, ``out``: its step output); what
+            they return goes into the step's ``extras`` (what a detector needs, without
+            keeping every particle).
+        innovations: compute the predictive measurement moments (``innovation``,
+            ``innovation_cov``); ``False`` skips them unless the likelihood reads them.
+        cov_dims: ``cov`` of the first ``cov_dims`` particle components only (default
+            all ``dx``): for particles that carry more than the state (the per-particle
+            Kalman statistics of :mod:`difffilter.fdi.mdpf`).
+        record_prior: also report the predictive log-weights ``"prior_log_weights"``.
+
+    Carry: :class:`ParticleState` with the generators (``init`` draws the prior particles
+    from ``generators.init``, the steps propagate with ``generators.propagate`` and
+    resample with ``generators.resample``).
+    """
+
+    carry_type = ParticleState
+
+    def __init__(
+        self,
+        num_particles: int,
+        *,
+        resampler: Resampler | None = None,
+        proposal: Proposal | None = None,
+        likelihood: Likelihood | None = None,
+        ess_threshold: float = 0.5,
+        hooks: Sequence[StepHook] = (),
+        innovations: bool = True,
+        cov_dims: int | None = None,
+        record_prior: bool = False,
+    ):
+        self.num_particles = check_positive_int(num_particles, "num_particles")
+        self.ess_threshold = _check_strategies(resampler, proposal, likelihood, ess_threshold)
+        self.resampler = resampler if resampler is not None else Systematic()
+        self.proposal = proposal if proposal is not None else BootstrapProposal()
+        self.likelihood = likelihood if likelihood is not None else ModelLikelihood()
+        self.stateful = hasattr(self.likelihood, "weigh")
+        self.hooks, self.innovations, self.cov_dims = tuple(hooks), bool(innovations), cov_dims
+        self.record_prior = bool(record_prior)
+
+    def _init(self, model, batch_shape, generators):
+        state = particle_init(model, self.num_particles, batch_shape, generators.init)
+        return self.attach(state, model, generators)
+
+    def attach(self, state: ParticleState, model, generators: Generators) -> ParticleState:
+        """``state`` (e.g. particles drawn elsewhere) as this filter's carry on ``model``:
+        the model, the generators and, for a stateful likelihood, its initial state."""
+        aux = state.aux
+        if self.stateful and aux is None:
+            lead = state.log_weights.shape[:-1]
+            aux = self.likelihood.init(model, lead, state.particles.dtype, state.particles.device)
+        return state._replace(model=model, aux=aux, generators=generators)
+
+    def batch_of(self, carry):
+        return carry.log_weights.shape[:-1]
+
+    def _check_carry(self, carry):
+        n, dx = self.num_particles, carry.model.dim_x
+        check_carry_tensor(carry.particles, "particles", dim=None)
+        if carry.particles.dim() < 2 or carry.particles.shape[-2:] != (n, dx):
+            raise ValueError(
+                f"carry.particles must have shape [..., {n}, {dx}] (num_particles = {n}); got "
+                f"{tuple(carry.particles.shape)}"
+            )
+        if carry.log_weights.shape != carry.particles.shape[:-1]:
+            raise ValueError(
+                f"carry.log_weights must have shape {tuple(carry.particles.shape[:-1])}; got "
+                f"{tuple(carry.log_weights.shape)}"
+            )
+        if bool(torch.isnan(carry.log_weights).any()):
+            raise ValueError("carry.log_weights contains NaN values")
+
+    def _step(self, carry, y, u, mask):
+        return _particle_step(self, carry, y, u, mask)
 
 
 def particle_step(
@@ -282,31 +386,23 @@ def particle_step(
     resample_generator: torch.Generator | None = None,
     innovations: bool = True,
     cov_dims: int | None = None,
-) -> tuple[ParticleState, ParticleStepOutput]:
+) -> tuple[ParticleState, StepOutput]:
     """One particle-filter step ``x_{k−1} → x_k`` with measurement ``y_k [..., dy]``.
 
     Args as in :func:`particle_filter`; ``u [..., du]``, ``mask [..., dy]``. The inputs
     are validated as in :func:`difffilter.kalman_step` (a NaN or Inf in a received entry
-    of ``y`` raises). Returns the new :class:`ParticleState` and a
-    :class:`ParticleStepOutput`.
+    of ``y`` raises). Returns the new :class:`ParticleState` and the step's
+    :class:`~difffilter.results.StepOutput` (``extras``: ``ess``, ``resampled``,
+    ``degenerate``, ``prior_log_weights``).
     """
     y, u, mask = check_step_inputs(model, state.particles, y, u, mask)
-    ess_threshold = _check_strategies(resampler, proposal, likelihood, ess_threshold)
-    return _particle_step(
-        model,
-        state,
-        y,
-        u,
-        mask,
-        resampler=resampler,
-        proposal=proposal,
-        likelihood=likelihood,
-        ess_threshold=ess_threshold,
-        generator=generator,
-        resample_generator=resample_generator,
-        innovations=innovations,
-        cov_dims=_check_cov_dims(cov_dims, state.particles.shape[-1]),
-    )
+    pf = ParticleFilter(
+        state.log_weights.shape[-1], resampler=resampler, proposal=proposal,
+        likelihood=likelihood, ess_threshold=ess_threshold, innovations=innovations,
+        cov_dims=_check_cov_dims(cov_dims, state.particles.shape[-1]), record_prior=True,
+    )  # fmt: skip
+    gens = Generators(None, generator, resample_generator if resample_generator else generator)
+    return pf._step(pf.attach(state, model, gens), y, u, mask)
 
 
 def _check_cov_dims(cov_dims, dim: int) -> int | None:
@@ -320,60 +416,51 @@ def _check_cov_dims(cov_dims, dim: int) -> int | None:
 def _check_strategies(resampler, proposal, likelihood, ess_threshold) -> float:
     check_strategy(resampler, "resampler", "difffilter.resampling.Systematic()")
     check_strategy(proposal, "proposal", "difffilter.BootstrapProposal()")
-    check_strategy(likelihood, "likelihood", "difffilter.ModelLikelihood()")
+    if not hasattr(likelihood, "weigh"):
+        check_strategy(likelihood, "likelihood", "difffilter.ModelLikelihood()")
     return check_ess_threshold(ess_threshold)
 
 
-def _particle_step(
-    model,
-    state,
-    y,
-    u=None,
-    mask=None,
-    *,
-    resampler=None,
-    proposal=None,
-    likelihood=None,
-    ess_threshold=0.5,
-    generator=None,
-    resample_generator=None,
-    innovations=True,
-    cov_dims=None,
-):
-    """:func:`particle_step` without input validation (the filter validates whole sequences)."""
-    resampler = resampler if resampler is not None else Systematic()
-    proposal = proposal if proposal is not None else BootstrapProposal()
-    likelihood = likelihood if likelihood is not None else ModelLikelihood()
-    particles, log_w, k, ess, w = state
+def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator):
+    """Resample the rows whose ESS fell below the threshold: ``(particles, log_w, w,
+    need [...], uniform)`` (``uniform``: the weights are now exactly −log N in every row)."""
     n = particles.shape[-2]
-
-    # Resample the rows whose ESS fell below the threshold.
-    need = (_ess(log_w) if ess is None else ess) < ess_threshold * n
+    need = (_ess(log_w) if ess is None else ess) < pf.ess_threshold * n
     count = int(need.sum())
-    uniform = False  # whether the weights are now exactly −log N in every row
-    if count:
-        gen = resample_generator if resample_generator is not None else generator
-        rows = None if count == need.numel() else need
-        # weights here are normalised and finite by construction: skip re-validation
-        fast = getattr(resampler, "resample_normalized", None)
-        if fast is None:  # a user resampler with only __call__
-            res = resampler(particles, log_w, gen)
-            if rows is not None:
-                res = keep_unmarked_rows(res, particles, log_w, rows)
-        elif type(resampler).resample_normalized is Resampler.resample_normalized:
-            # the library's index resamplers also take the weights this step has (no exp)
-            res = fast(particles, log_w, gen, rows=rows, weights=w)
-            uniform = rows is None and type(resampler)._new_log_weights is _UNIFORM
-        else:
-            res = fast(particles, log_w, gen, rows=rows)
-        particles, log_w, w = res.particles, res.log_weights, None
+    if not count:
+        return particles, log_w, w, need, False
+    resampler, uniform = pf.resampler, False
+    rows = None if count == need.numel() else need
+    # weights here are normalised and finite by construction: skip re-validation
+    fast = getattr(resampler, "resample_normalized", None)
+    if fast is None:  # a user resampler with only __call__
+        res = resampler(particles, log_w, generator)
+        if rows is not None:
+            res = keep_unmarked_rows(res, particles, log_w, rows)
+    elif type(resampler).resample_normalized is Resampler.resample_normalized:
+        # the library's index resamplers also take the weights this step has (no exp)
+        res = fast(particles, log_w, generator, rows=rows, weights=w)
+        uniform = rows is None and type(resampler)._new_log_weights is _UNIFORM
+    else:
+        res = fast(particles, log_w, generator, rows=rows)
+    return res.particles, res.log_weights, None, need, uniform
 
-    new, correction = proposal(model, particles, u, y, k, mask, generator)
+
+def _particle_step(pf: ParticleFilter, carry: ParticleState, y, u, mask):
+    """One step of ``pf`` from ``carry`` (inputs validated): resample, propose, weigh."""
+    model, gens = carry.model, carry.generators or Generators()
+    likelihood = pf.likelihood
+    k = carry.k
+    resample_gen = gens.resample if gens.resample is not None else gens.propagate
+    particles, log_w, w, need, uniform = _resample(
+        pf, carry.particles, carry.log_weights, carry.ess, carry.weights, resample_gen
+    )
+    new, correction = pf.proposal(model, particles, u, y, k, mask, gens.propagate)
 
     # Predictive weights of the proposed particles: w_{k−1}·p/q (just w_{k−1} for the
     # bootstrap proposal, whose correction is None), and the predictive moments.
     prior_lw = log_w if correction is None else torch.log_softmax(log_w + correction, dim=-1)
-    uses_predictive = getattr(likelihood, "uses_predictive", False)
+    uses_predictive = pf.stateful or getattr(likelihood, "uses_predictive", False)
     obs = predictive = None
     pred_w = None
     if correction is None and uniform:
@@ -382,11 +469,12 @@ def _particle_step(
     else:
         pred_w = (w if correction is None and w is not None else torch.exp(prior_lw)).unsqueeze(-2)
         pred_mean = (pred_w @ new).squeeze(-2)  # [..., 1, N] @ [..., N, dx]
-    if innovations or uses_predictive:
+    if pf.innovations or uses_predictive:
         pred_w = torch.exp(prior_lw).unsqueeze(-2) if pred_w is None else pred_w
         obs = model.observe(new, k + 1)
         predictive = _predictive(model, y, mask, k, obs, pred_w, prior_lw, pred_mean)
 
+    aux, record = carry.aux, {}
     if type(likelihood) is ModelLikelihood and _default_measurement_density(model):
         # the model's own density: reuse the predicted measurements computed above
         obs = model.observe(new, k + 1) if obs is None else obs
@@ -394,6 +482,8 @@ def _particle_step(
         log_alpha = model.measurement_noise.log_prob(
             model.measurement_residual(y.unsqueeze(-2), obs), mask=m
         )
+    elif pf.stateful:
+        aux, log_alpha, record = likelihood.weigh(aux, model, y, new, k + 1, mask, predictive)
     elif uses_predictive:
         log_alpha = likelihood(model, y, new, k + 1, mask, predictive=predictive)
     else:
@@ -417,20 +507,28 @@ def _particle_step(
         log_w_new = torch.where(degenerate.unsqueeze(-1), prior_lw, log_w_new)
         w_new = torch.exp(log_w_new)
     ess_new = torch.linalg.vecdot(w_new, w_new).reciprocal()
-    mean, cov = _moments(new, w_new, cov_dims)
-    out = ParticleStepOutput(
-        mean=mean,
-        cov=cov,
+    mean, cov = _moments(new, w_new, pf.cov_dims)
+    extras = {"ess": ess_new, "resampled": need, "degenerate": degenerate, **record}
+    if pf.record_prior or pf.hooks:
+        extras["prior_log_weights"] = prior_lw
+    out = StepOutput(
+        mean,
+        cov,
         pred_mean=pred_mean,
-        innovation=None if predictive is None else predictive.innovation,
-        innovation_cov=None if predictive is None else predictive.innovation_cov,
+        innovation=None if predictive is None or not pf.innovations else predictive.innovation,
+        innovation_cov=None
+        if predictive is None or not pf.innovations
+        else predictive.innovation_cov,
         log_likelihood=increment,
-        ess=ess_new,
-        resampled=need,
-        prior_log_weights=prior_lw,
-        degenerate=degenerate,
+        extras=extras,
     )
-    return ParticleState(new, log_w_new, k + 1, ess_new, w_new), out
+    new_carry = ParticleState(new, log_w_new, k + 1, ess_new, w_new, model, aux, carry.generators)
+    if pf.hooks:
+        for hook in pf.hooks:
+            extras.update(hook(model, y, mask, new_carry, out))
+        if not pf.record_prior:
+            del extras["prior_log_weights"]
+    return new_carry, out
 
 
 def _predictive(model, y, mask, k, obs, pred_w, prior_lw, pred_mean) -> Predictive:
@@ -483,7 +581,7 @@ def particle_filter(
     likelihood: Likelihood | None = None,
     mask: Tensor | None = None,
     ess_threshold: float = 0.5,
-    generator: torch.Generator | None = None,
+    generator: torch.Generator | Generators | None = None,
     resample_generator: torch.Generator | None = None,
     return_particles: bool = False,
     initial_state: ParticleState | None = None,
@@ -492,44 +590,23 @@ def particle_filter(
     innovations: bool = True,
     cov_dims: int | None = None,
 ) -> ParticleFilterResult:
-    """Particle filter over a whole sequence.
+    """Particle filter over a whole sequence: :class:`ParticleFilter` in the open loop.
 
     Args:
         model: any :class:`~difffilter.StateSpaceModel`.
         ys: measurements ``[..., T, dy]``; us: inputs ``[..., T, du]`` or ``None``.
-        num_particles: ``N ≥ 1``.
-        resampler: a :mod:`difffilter.resampling` object (default ``Systematic()``).
-        proposal: default :class:`BootstrapProposal`; :class:`KalmanProposal` is the
-            locally linearised optimal proposal.
-        likelihood: default :class:`ModelLikelihood`; any callable
-            ``(model, y, particles, k, mask) → [..., N]``.
+        num_particles, resampler, proposal, likelihood, ess_threshold, hooks,
+            innovations, cov_dims: as in :class:`ParticleFilter`.
         mask: received measurement entries ``[..., T, dy]`` or ``None``.
-        ess_threshold: resample when ``ESS < ess_threshold · N`` (``1.0`` resamples
-            at every step with non-uniform weights, ``0`` never: plain SIS).
         generator: source of every random draw (prior, proposal; resampling too unless
             ``resample_generator`` is given — separate streams keep common random numbers
-            aligned across estimators).
+            aligned across estimators), or :class:`~difffilter.estimator.Generators`.
         return_particles: also return particles ``[..., T, N, dx]`` and log-weights
             ``[..., T, N]`` (memory ``O(T N)``).
         initial_state: start from this :class:`ParticleState` instead of the prior.
-        hooks: callables ``hook(model, y, mask, state, out) → {name: tensor [...]}`` run
-            after every step (``state``: the new :class:`ParticleState`, ``out``: its
-            :class:`ParticleStepOutput`); their values are stacked over time into
-            ``result.records[name]`` ``[..., T, ...]`` — what a detector needs, without
-            keeping every particle (``return_particles``).
         nonfinite: ``"raise"`` (default) or ``"skip"``, as in
             :func:`difffilter.kalman_filter` (skipped entries are counted in
             ``nonfinite_skipped``).
-        innovations: compute the predictive measurement moments (``innovations``,
-            ``innovation_covs``); ``False`` skips them (both ``None`` in the result and
-            the step outputs) unless the likelihood reads them (``uses_predictive``): a
-            filter whose caller needs only the state estimates saves ``h`` of every
-            particle on every measurement entry per step.
-        cov_dims: ``covs`` (and each step's ``cov``) of the first ``cov_dims`` particle
-            components only, ``[..., T, c, c]`` (default ``None``: all ``dx``); the means
-            keep every component. For particles that carry more than the state (the
-            per-particle Kalman statistics of :mod:`difffilter.fdi.mdpf`), whose
-            covariance nobody reads: a ``dx × dx`` covariance costs ``O(N dx²)`` per run.
 
     Inputs are validated first (:func:`difffilter._checks.check_sequence_inputs`);
     ``resampler``, ``proposal`` and ``likelihood`` must be objects, not strings. A step
@@ -539,60 +616,44 @@ def particle_filter(
     Returns:
         :class:`~difffilter.results.ParticleFilterResult`: weighted means ``[..., T, dx]``,
         covariances, innovations and their covariances, ``log_likelihood [...]`` (the
-        particle estimate), ``ess [..., T]``, ``resampled [..., T]``, ``degenerate [..., T]``.
+        particle estimate), ``ess [..., T]``, ``resampled [..., T]``, ``degenerate [..., T]``,
+        and in ``records`` what the hooks (and a stateful likelihood) recorded.
     """
     check_positive_int(num_particles, "num_particles")
-    ess_threshold = _check_strategies(resampler, proposal, likelihood, ess_threshold)
-    ys, us, mask, skipped = _validate_inputs(model, ys, us, mask, nonfinite)
-    batch = ys.shape[:-2]
-    if us is not None:
-        batch = torch.broadcast_shapes(batch, us.shape[:-2])
-    state = (
-        initial_state
-        if initial_state is not None
-        else particle_init(model, num_particles, batch, generator)
-    )
-    step_options = {
-        "resampler": resampler,
-        "proposal": proposal,
-        "likelihood": likelihood,
-        "ess_threshold": ess_threshold,
-        "generator": generator,
-        "resample_generator": resample_generator,
-        "innovations": innovations,
-        "cov_dims": _check_cov_dims(cov_dims, state.particles.shape[-1]),
-    }
-    outs, parts, logws, records = [], [], [], StepRecorder()
-    for t in range(ys.shape[-2]):
-        u = None if us is None else us[..., t, :]
-        m = None if mask is None else mask[..., t, :]
-        y = ys[..., t, :]  # one view: the step and its hooks see the same tensor
-        state, out = _particle_step(model, state, y, u, m, **step_options)
-        outs.append(out)
-        for hook in hooks:
-            records.add(**hook(model, y, m, state, out))
-        if return_particles:
-            parts.append(state.particles)
-            logws.append(state.log_weights)
+    dx = model.dim_x if initial_state is None else initial_state.particles.shape[-1]
+    pf = ParticleFilter(
+        num_particles, resampler=resampler, proposal=proposal, likelihood=likelihood,
+        ess_threshold=ess_threshold, hooks=hooks, innovations=innovations,
+        cov_dims=_check_cov_dims(cov_dims, dx),
+    )  # fmt: skip
+    gens = Generators.of(generator)
+    if resample_generator is not None:
+        gens = gens._replace(resample=resample_generator)
+    carry = None if initial_state is None else pf.attach(initial_state, model, gens)
+    collect = None
+    if return_particles:
 
-    def stack(name, dims):
-        return torch.stack([getattr(o, name) for o in outs], dim=-1 - dims)
+        def collect(carry, out):
+            return {"particles": carry.particles, "log_weights": carry.log_weights}
 
-    increments = stack("log_likelihood", 0)
-    return ParticleFilterResult(
-        means=stack("mean", 1),
-        covs=stack("cov", 2),
-        pred_means=stack("pred_mean", 1),
-        pred_covs=None,
-        innovations=stack("innovation", 1) if innovations else None,
-        innovation_covs=stack("innovation_cov", 2) if innovations else None,
-        log_likelihood_increments=increments,
-        log_likelihood=increments.sum(-1),
-        ess=stack("ess", 0),
-        resampled=stack("resampled", 0),
-        degenerate=stack("degenerate", 0),
-        nonfinite_skipped=skipped,
-        particles=torch.stack(parts, dim=-3) if return_particles else None,
-        log_weights=torch.stack(logws, dim=-2) if return_particles else None,
-        records=records.stack(len(batch)),
+    out = open_loop(pf, model, ys, us, mask=mask, generator=gens, carry=carry,
+                    nonfinite=nonfinite, collect=collect)  # fmt: skip
+    return particle_result(out)
+
+
+#: The keys of a particle filter's stacked extras that are fields of its result.
+_PF_FIELDS = ("ess", "resampled", "degenerate", "particles", "log_weights")
+_FILTER_KEYS = (
+    "pred_means", "pred_covs", "innovations", "innovation_covs",
+    "log_likelihood_increments", "log_likelihood", "nonfinite_skipped",
+)  # fmt: skip
+
+
+def particle_result(out) -> ParticleFilterResult:
+    """The :class:`~difffilter.results.ParticleFilterResult` of a particle filter's
+    :class:`~difffilter.EstimatorOutput` (what :func:`~difffilter.loop.open_loop` stacks)."""
+    x = out.extras
+    records = {k: v for k, v in x.items() if k not in _PF_FIELDS + _FILTER_KEYS}
+    return ParticleFilterResult.from_output(
+        out, **{k: x.get(k) for k in _PF_FIELDS}, records=records
     )

@@ -3,44 +3,80 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from torch import Tensor
 
-__all__ = ["GaussianState", "GaussianStepOutput", "FilterResult", "ParticleFilterResult"]
+__all__ = [
+    "GaussianState",
+    "StepOutput",
+    "GaussianStepOutput",
+    "FilterResult",
+    "ParticleFilterResult",
+]
 
 
 class GaussianState(NamedTuple):
-    """Online state of a Gaussian filter: the posterior of ``x_k``.
+    """Online state (the carry) of a Gaussian filter: the posterior of ``x_k``.
 
     Attributes:
         mean: ``[..., dx]``.
         cov: ``[..., dx, dx]`` (may have fewer leading dimensions than ``mean`` when it
             is the same for every run, e.g. a linear time-invariant model without mask).
         k: time index of the state (0 for the prior of ``x_0``).
+        model: the model being filtered (set by the estimators' ``init``).
+        gains: the :class:`~difffilter.GainSchedule` whose shared covariances ``cov`` is
+            (a Kalman filter of an unbatched time-invariant model), or ``None``.
     """
 
     mean: Tensor
     cov: Tensor
     k: int = 0
+    model: Any = None
+    gains: Any = None
 
 
-class GaussianStepOutput(NamedTuple):
-    """What one predict/update step of a Gaussian filter reports.
+class StepOutput(NamedTuple):
+    """What one step ``k−1 → k`` of any estimator reports: the one step-output type.
 
-    Shapes: ``mean``/``pred_mean`` ``[..., dx]``, ``cov``/``pred_cov`` ``[..., dx, dx]``,
-    ``innovation`` ``[..., dy]`` (``y − ŷ_{k|k−1}``, zero on unreceived entries),
-    ``innovation_cov`` ``[..., dy, dy]`` (``S_k``), ``log_likelihood`` ``[...]``
-    (``log p(y_k | y_{1:k−1})`` of the received entries).
+    Every estimator of the library (plain filters, the papers' attack-aware filters, the
+    learned estimator) returns it from ``step``; the open-loop driver stacks it over time
+    into an :class:`~difffilter.EstimatorOutput`. Fields an estimator does not compute are
+    ``None``.
+
+    Attributes:
+        mean: ``x̂_k`` ``[..., dx]`` (after compensation, where the estimator compensates).
+        cov: its covariance ``[..., dx, dx]`` (may lack the batch dimensions when it is
+            the same for every run).
+        pred_mean, pred_cov: the prediction ``E[x_k | y_{1:k−1}]`` and its covariance.
+        innovation: ``y_k − E[h(x_k) | y_{1:k−1}]`` ``[..., dy]`` (zero on unreceived entries).
+        innovation_cov: its covariance ``S_k`` ``[..., dy, dy]``.
+        log_likelihood: ``log p(y_k | y_{1:k−1})`` of the received entries ``[...]``.
+        attack: the attack estimate ``â_k`` ``[..., da]``.
+        score, alarm: the detection statistic ``[...]`` (higher = more likely attacked) and
+            the decision ``l̂_k`` ``[...]`` (bool).
+        threshold: what ``score`` was compared with: a number or ``[...]``.
+        extras: what an estimator records beyond this, ``{name: tensor [..., ·]}`` (the
+            particle filter's ``"ess"``, ``"resampled"``, ``"prior_log_weights"``,
+            ``"degenerate"``; a detector's running statistic; …), or ``None``.
     """
 
     mean: Tensor
-    cov: Tensor
-    pred_mean: Tensor
-    pred_cov: Tensor
-    innovation: Tensor
-    innovation_cov: Tensor
-    log_likelihood: Tensor
+    cov: Tensor | None = None
+    pred_mean: Tensor | None = None
+    pred_cov: Tensor | None = None
+    innovation: Tensor | None = None
+    innovation_cov: Tensor | None = None
+    log_likelihood: Tensor | None = None
+    attack: Tensor | None = None
+    score: Tensor | None = None
+    alarm: Tensor | None = None
+    threshold: Tensor | float | None = None
+    extras: dict[str, Tensor] | None = None
+
+
+#: The step output of the Gaussian filters (the same type, kept as a name of the API).
+GaussianStepOutput = StepOutput
 
 
 @dataclass
@@ -72,6 +108,25 @@ class FilterResult:
 
     def to_dict(self) -> dict[str, Tensor | None]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @classmethod
+    def from_output(cls, out, **more) -> FilterResult:
+        """The result held by an :class:`~difffilter.EstimatorOutput` of a filter (its
+        ``extras`` carry the statistics that :func:`~difffilter.estimator.stack_steps`
+        stacks); ``more``: the subclass's own fields."""
+        x = out.extras
+        return cls(
+            means=out.means,
+            covs=out.covs,
+            pred_means=x.get("pred_means"),
+            pred_covs=x.get("pred_covs"),
+            innovations=x.get("innovations"),
+            innovation_covs=x.get("innovation_covs"),
+            log_likelihood_increments=x.get("log_likelihood_increments"),
+            log_likelihood=x.get("log_likelihood"),
+            nonfinite_skipped=x.get("nonfinite_skipped"),
+            **more,
+        )
 
 
 @dataclass

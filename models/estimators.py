@@ -172,13 +172,13 @@ class SuiteContext:
         """PoA thresholds of the scenario (:func:`poa_detector_for_scenario`)."""
         return poa_detector_for_scenario(self.scenario, self.model, self.options)
 
-    def cusum(self, step) -> fdi.CusumDetector:
-        """CUSUM calibrated on the attack-free calibration runs with ``step``'s filter."""
+    def cusum(self, filter) -> fdi.CusumDetector:
+        """CUSUM calibrated on the attack-free calibration runs with the Gaussian ``filter``."""
         cal = self.calibration
         return fdi.cusum_detector_for(
             self.model,
             false_alarm_rate=self.scenario.false_alarm_rate,
-            step=step,
+            filter=filter,
             bias=self.options.get("cusum_bias"),
             ys=cal.y_true,
             us=cal.us,

@@ -18,14 +18,20 @@ import torch
 import difffilter as df
 from difffilter import fdi
 from difffilter.estimator import EstimatorOutput
-from difffilter.extended import extended_kalman_step, unscented_kalman_step
-from difffilter.kalman import kalman_step
+from difffilter.extended import ExtendedKalmanFilter, UnscentedKalmanFilter
+from difffilter.kalman import KalmanFilter
 from difffilter.noise import UniformBox
 from difffilter.particle import KalmanProposal
 
 from .estimators import Run, SuiteContext, register
 
-__all__ = ["GAUSSIAN_STEPS", "oracle_attack", "modified_pf", "deception_of", "default_estimators"]
+__all__ = [
+    "GAUSSIAN_FILTERS",
+    "oracle_attack",
+    "modified_pf",
+    "deception_of",
+    "default_estimators",
+]
 
 
 def _plain(run_filter):
@@ -54,20 +60,25 @@ for _name, _proposal in (("bootstrap_pf", None), ("kalman_proposal_pf", KalmanPr
     )  # fmt: skip
 
 
-#: The library's Gaussian filter steps by name (the gated filters here, the learned estimator).
-GAUSSIAN_STEPS = {"kf": kalman_step, "ekf": extended_kalman_step, "ukf": unscented_kalman_step}
+#: The library's Gaussian filters by the names configs use (the gated filters here, the
+#: learned estimator): names are translated to objects here, once.
+GAUSSIAN_FILTERS = {
+    "kf": KalmanFilter(),
+    "ekf": ExtendedKalmanFilter(),
+    "ukf": UnscentedKalmanFilter(),
+}
 
 
 def _gated(kind: str, detector: str):
-    step = GAUSSIAN_STEPS[kind]
+    filt = GAUSSIAN_FILTERS[kind]
 
     def factory(ctx: SuiteContext) -> Run:
         if detector == "chi_square":
             det = fdi.ChiSquareDetector(ctx.model.dim_y, ctx.scenario.false_alarm_rate)
         else:
-            det = ctx.cusum(step)
+            det = ctx.cusum(filt)
         return lambda tr: fdi.gated_gaussian_filter(
-            ctx.model, tr.y_recv, tr.us, mask=tr.mask, detector=det, step=step
+            ctx.model, tr.y_recv, tr.us, mask=tr.mask, detector=det, filter=filt
         )
 
     return factory

@@ -52,9 +52,8 @@ from torch import Tensor
 from difffilter.estimator import Detection, EstimatorOutput
 from difffilter.fdi.modified_pf import AttackCompensatedLikelihood
 from difffilter.fdi.poa import probability_of_attack
-from difffilter.kalman import gaussian_init
 from difffilter.models.estimators import SkipEstimator, register
-from difffilter.models.generic_estimators import GAUSSIAN_STEPS, deception_of
+from difffilter.models.generic_estimators import GAUSSIAN_FILTERS, deception_of
 from difffilter.models.neural_estimator import NeuralFDIEstimator
 from difffilter.particle import ModelLikelihood, particle_filter
 
@@ -320,27 +319,28 @@ def neural_gaussian_filter(
     ``[..., T, du]``): the update that counts. ``features`` as in
     :class:`NeuralCompensation`, without ``"poa"`` (no particles). Shapes as in
     :func:`neural_particle_filter`."""
-    if kind not in GAUSSIAN_STEPS:
-        raise ValueError(f"kind must be one of {sorted(GAUSSIAN_STEPS)}; got {kind!r}")
+    if kind not in GAUSSIAN_FILTERS:
+        raise ValueError(f"kind must be one of {sorted(GAUSSIAN_FILTERS)}; got {kind!r}")
     if "poa" in features or channel == "replacement":
         raise ValueError("'poa' and channel='replacement' need particles: neural_particle_filter")
     comp = NeuralCompensation(network, features, None, record_inputs, channel)
-    step, actuator = GAUSSIAN_STEPS[kind], channel == "actuator"
+    filt, actuator = GAUSSIAN_FILTERS[kind], channel == "actuator"
     if actuator and us is None:
         raise ValueError("channel='actuator' needs the inputs us [..., T, du]")
-    state = gaussian_init(model, ys.shape[:-2])
+    state = filt._init(model, ys.shape[:-2], None)
     means, covs = [], []
     for t in range(ys.shape[-2]):
         u = None if us is None else us[..., t, :]
         m = None if mask is None else mask[..., t, :]
-        _, probe = step(model, state, ys[..., t, :], u, m)
+        pred = filt.predict(state, u)
+        _, probe = filt.update(state, pred, ys[..., t, :], m)
         attack, _ = comp.step(
             probe.innovation, probe.innovation_cov, m, log_likelihood=probe.log_likelihood
         )
         if actuator:
-            state, _ = step(model, state, ys[..., t, :], u + attack, m)
+            state, _ = filt.update(state, filt.predict(state, u + attack), ys[..., t, :], m)
         else:
-            state, _ = step(model, state, ys[..., t, :] - attack, u, m)
+            state, _ = filt.update(state, pred, ys[..., t, :] - attack, m)
         means.append(state.mean)
         covs.append(state.cov)
     means = torch.stack(means, -2)
@@ -415,7 +415,7 @@ _HOW = {
 }
 for _trainer, _how in _HOW.items():
     for _filter, _kinds, _run in (("pf", ("pf",), _run_pf),
-                                  ("gaussian", tuple(GAUSSIAN_STEPS), _run_gaussian)):  # fmt: skip
+                                  ("gaussian", tuple(GAUSSIAN_FILTERS), _run_gaussian)):  # fmt: skip
         _name = f"{_filter}_nn_{_trainer}"
         register(
             _name,

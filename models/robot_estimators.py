@@ -171,7 +171,7 @@ def compensated_loop(ctx: SuiteContext, runs: int, *, compensate: bool = True, r
             gm, state, group_measurements(y), sent.expand(2, runs, 2), reading=sc.reading,
             forgetting=sc.forgetting, generator=prop, resample_generator=res,
         )  # fmt: skip
-        xf, _, af, _, _ = fuse_pair(est.mean, est.cov, est.attack, est.attack_cov, rule)
+        xf, _, af, _, _ = fuse_pair(est.mean, est.cov, est.attack, est.extras["attack_covs"], rule)
         a_hat = af
         xs.append(x)
         means.append(xf)

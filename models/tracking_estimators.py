@@ -63,7 +63,7 @@ def _responsibility_pf(ctx, tr, *, proposal=None) -> EstimatorOutput:
     def hook(model, y, m, state, out):
         return {
             "p": lik.attack_probability(
-                model, y, state.particles, out.prior_log_weights, state.k, m
+                model, y, state.particles, out.extras["prior_log_weights"], state.k, m
             )
         }
 

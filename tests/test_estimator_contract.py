@@ -89,7 +89,7 @@ class TestGatedKalmanChiSquare(EstimatorContract):
     def run(self, model, ys, us=None, mask=None):
         det = fdi.ChiSquareDetector(DY, 0.01)
         return fdi.gated_gaussian_filter(
-            model, ys, us, mask=mask, detector=det, step=df.kalman_step
+            model, ys, us, mask=mask, detector=det, filter=df.KalmanFilter()
         )
 
 
@@ -104,7 +104,7 @@ class TestGatedUKF(EstimatorContract):
     def run(self, model, ys, us=None, mask=None):
         det = fdi.ChiSquareDetector(DY, 0.01)
         return fdi.gated_gaussian_filter(
-            model, ys, us, mask=mask, detector=det, step=df.unscented_kalman_step
+            model, ys, us, mask=mask, detector=det, filter=df.UnscentedKalmanFilter()
         )
 
 

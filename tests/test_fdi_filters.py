@@ -122,7 +122,7 @@ def test_modified_pf_online_steps_compose_to_the_filter(plant):
         z = tr.y_recv[:, t].unsqueeze(-2) - fdi.kalman_corrected_particles(
             state.particles, tr.y_recv[:, t], model.G, K
         )
-        beta, alarm = weighting.last["beta"], weighting.last["alarm"]
+        beta, alarm = out.extras["beta"], out.extras["alarm"]  # the weighting's record
         assert torch.allclose(beta, (z.norm(dim=-1) > ETA).double().mean(-1))
         assert torch.allclose(out.mean, res.means[:, t]) and torch.equal(alarm, res.alarms[:, t])
     assert res.scores.shape == res.alarms.shape == (4, 30) and res.extras["gamma_hat"].shape == (

@@ -525,10 +525,10 @@ def test_particle_step_flags_the_degenerate_run_only():
     y = ys[:, 0].clone()
     y[0, 2] = 1e19
     new, out = df.particle_step(model, state, y, generator=g, ess_threshold=0.0)
-    assert out.degenerate.tolist() == [True, False]
+    assert out.extras["degenerate"].tolist() == [True, False]
     # reset to the predictive weights: uniform here (the prior weights were uniform)
     torch.testing.assert_close(new.log_weights[0], state.log_weights[0])
-    assert torch.isfinite(new.log_weights).all() and out.ess[0] == pytest.approx(50.0)
+    assert torch.isfinite(new.log_weights).all() and out.extras["ess"][0] == pytest.approx(50.0)
 
 
 # --------------------------------------------------------------------- checkpoints

@@ -271,9 +271,14 @@ def test_auto_method_rejects_unknown(cv_model):
 
 
 def _general(model, ys, us=None, mask=None):
-    from difffilter.kalman import _kalman_step, run_gaussian_filter
+    """The step-by-step filter without the shared fast paths (a carry without gains)."""
+    from difffilter.kalman import KalmanFilter, gaussian_init
+    from difffilter.loop import open_loop
 
-    return run_gaussian_filter(_kalman_step, model, ys, us, mask)
+    batch = ys.shape[:-2] if us is None else torch.broadcast_shapes(ys.shape[:-2], us.shape[:-2])
+    carry = gaussian_init(model, batch)
+    out = open_loop(KalmanFilter(), model, ys, us, mask=mask, carry=carry)
+    return df.FilterResult.from_output(out)
 
 
 FIELDS = (
@@ -378,7 +383,7 @@ def test_gain_schedule_reproduces_the_kalman_filter_with_inputs():
         torch.testing.assert_close(mean, ref.means[:, t], rtol=0, atol=1e-10)
         torch.testing.assert_close(innovation, ref.innovations[:, t], rtol=0, atol=1e-10)
         torch.testing.assert_close(S, ref.innovation_covs[0, t], rtol=0, atol=1e-12)
-    assert schedule.converged and len(schedule._gains) < T  # reused once converged
+    assert schedule.converged and len(schedule._moments) < T  # reused once converged
     batched = df.LinearGaussianModel(
         F.expand(2, 2, 2), H, torch.eye(2, dtype=torch.float64), torch.eye(1, dtype=torch.float64),
         torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64),

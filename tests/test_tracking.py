@@ -205,7 +205,7 @@ def test_scores_after_the_loop_equal_the_per_step_hook():
     )
 
     def hook(model, y, m, state, step):
-        p = lik.attack_probability(model, y, state.particles, step.prior_log_weights, state.k, m,
+        p = lik.attack_probability(model, y, state.particles, step.extras["prior_log_weights"], state.k, m,
                                    evidence=step.log_likelihood)  # fmt: skip
         return {"p": p}
 

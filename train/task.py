@@ -50,7 +50,7 @@ from difffilter.metrics import roc_auc
 from difffilter.models import registry
 from difffilter.models.attacks import Replacement
 from difffilter.models.estimators import poa_detector_for_scenario
-from difffilter.models.generic_estimators import GAUSSIAN_STEPS, deception_of
+from difffilter.models.generic_estimators import GAUSSIAN_FILTERS, deception_of
 from difffilter.models.learned_estimator import (
     feature_dim,
     neural_gaussian_filter,
@@ -227,9 +227,9 @@ class FilterEstimatorTask(pl.LightningModule):
     ):
         super().__init__()
         sc = registry.get(scenario)
-        if filter != "pf" and filter not in GAUSSIAN_STEPS:
+        if filter != "pf" and filter not in GAUSSIAN_FILTERS:
             raise ValueError(
-                f"filter must be 'pf' or one of {sorted(GAUSSIAN_STEPS)}; got {filter!r}"
+                f"filter must be 'pf' or one of {sorted(GAUSSIAN_FILTERS)}; got {filter!r}"
             )
         if resampler not in RESAMPLERS:
             raise ValueError(f"resampler must be one of {sorted(RESAMPLERS)}; got {resampler!r}")

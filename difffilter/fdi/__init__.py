@@ -21,7 +21,7 @@ Every estimator here takes ``(model, ys, us=None, *, mask=None, ...)`` and retur
 * :mod:`~difffilter.fdi.fusion` — covariance intersection and naive information fusion.
 """
 
-from .adaptive_kf import adaptive_kalman_filter, adaptive_kalman_step
+from .adaptive_kf import AdaptiveKalmanFilter, adaptive_kalman_filter, adaptive_kalman_step
 from .attack_estimation import BiasAttackEstimator
 from .detectors import (
     ChiSquareDetector,
@@ -31,11 +31,17 @@ from .detectors import (
 )
 from .fused import FusedModifiedPF
 from .fusion import covariance_intersection, information_fusion
-from .gated import cusum_detector_for, gated_extended_kalman_filter, gated_gaussian_filter
-from .mdpf import adaptive_particle_filter, adaptive_particle_step
+from .gated import (
+    GatedFilter,
+    cusum_detector_for,
+    gated_extended_kalman_filter,
+    gated_gaussian_filter,
+)
+from .mdpf import AdaptiveParticleFilter, adaptive_particle_filter, adaptive_particle_step
 from .mixture import (
     BiasDeception,
     DeceptionMixtureLikelihood,
+    MixtureParticleFilter,
     ReplacementDeception,
     mixture_likelihood_particle_filter,
 )
@@ -43,7 +49,9 @@ from .modified_pf import (
     AttackCompensatedLikelihood,
     FlatLikelihood,
     LiteralGaussianLikelihood,
+    ModifiedParticleFilter,
     ModifiedPFWeighting,
+    PoAParticleFilter,
     corrected_residuals,
     kalman_corrected_particles,
     modified_particle_filter,
@@ -65,6 +73,12 @@ from .poa import (
 )
 
 __all__ = [
+    "GatedFilter",
+    "AdaptiveKalmanFilter",
+    "AdaptiveParticleFilter",
+    "ModifiedParticleFilter",
+    "PoAParticleFilter",
+    "MixtureParticleFilter",
     "ChiSquareDetector",
     "CusumDetector",
     "chi_square_quantile",

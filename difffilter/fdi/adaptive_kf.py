@@ -35,18 +35,22 @@ with ``λ < 1`` it is inflated, so the test is conservative).
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
 
-from ..estimator import Detection, EstimatorOutput
-from ..kalman import _validate_inputs, joseph_covariance, kalman_gain
+from .._checks import check_carry_tensor
+from ..estimator import Estimator, EstimatorOutput
+from ..gaussian import joseph_covariance, kalman_gain, predict_covariance
 from ..linalg import gaussian_log_prob_chol, masked_measurement, matvec, symmetrize
+from ..loop import open_loop
+from ..results import StepOutput
 from ..ssm import batched_jacobian
 from .detectors import chi_square_quantile
 
 __all__ = [
+    "AdaptiveKalmanFilter",
     "AdaptiveKFState",
     "AdaptiveUpdate",
     "input_jacobian",
@@ -68,6 +72,7 @@ class AdaptiveKFState(NamedTuple):
     attack_cov: Tensor
     sensitivity: Tensor
     k: int = 0
+    model: Any = None
 
 
 class AdaptiveUpdate(NamedTuple):
@@ -132,7 +137,7 @@ def adaptive_update(
     phi = input_jacobian(model, mean, u_eff, k).to(mean.dtype)
     x_pred = model.transition(mean, u_eff, k)
     if pred_cov is None:
-        pred_cov = symmetrize(A @ cov @ A.transpose(-1, -2) + model.process_cov(k))
+        pred_cov = predict_covariance(cov, A, model.process_cov(k))
     C = model.observation_jacobian(x_pred, k + 1).to(mean.dtype)
     residual = model.measurement_residual(y, model.observe(x_pred, k + 1))
     residual, C, R, observed = masked_measurement(residual, C, model.measurement_cov(k + 1), mask)
@@ -173,7 +178,78 @@ def adaptive_kalman_init(
     )
     s0 = float(attack_cov0) * torch.eye(da, dtype=m0.dtype, device=m0.device)
     sens = m0.new_zeros(batch + (dx, da))
-    return AdaptiveKFState(mean, cov, attack, s0.expand(batch + (da, da)), sens, 0)
+    return AdaptiveKFState(mean, cov, attack, s0.expand(batch + (da, da)), sens, 0, model)
+
+
+class AdaptiveKalmanFilter(Estimator):
+    """Zhang's adaptive (extended) Kalman filter as an estimator object (module docstring).
+
+    Args:
+        forgetting: ``λ ∈ (0, 1]``.
+        attack_cov0: ``S_0 = ω I``, ``ω ≥ 0``.
+        attack0: ``θ̂_0 [da]`` (default 0).
+        false_alarm_rate: of the Wald test on ``θ̂``.
+
+    The model needs inputs (``dim_u ≥ 1``: the attack ``θ`` has the input's dimension and
+    enters through ``∂f/∂u``). Step output: ``mean``, ``cov`` (``P``, the covariance of the
+    state given the attack estimate), ``attack`` ``θ̂_k [..., du]`` (the estimate of the
+    attack on ``u_{k−1}``), the Wald score ``θ̂ᵀ S⁻¹ θ̂`` with its alarm and ``χ²_{du}``
+    threshold, the innovation ``ỹ``, its covariance ``Σ``, ``log N(ỹ; 0, Σ)`` and
+    ``extras["attack_covs"]`` ``S_k``. ``u = None`` is a zero input. Carry:
+    :class:`AdaptiveKFState`.
+    """
+
+    carry_type = AdaptiveKFState
+
+    def __init__(
+        self,
+        forgetting: float = 0.7,
+        *,
+        attack_cov0: float = 10.0,
+        attack0: Tensor | None = None,
+        false_alarm_rate: float = 0.01,
+    ):
+        self.forgetting = _check_forgetting(forgetting)
+        if not float(attack_cov0) >= 0:
+            raise ValueError(f"attack_cov0 must be >= 0; got {attack_cov0!r}")
+        if not 0.0 < float(false_alarm_rate) < 1.0:
+            raise ValueError(f"false_alarm_rate must lie in (0, 1); got {false_alarm_rate!r}")
+        self.attack_cov0, self.attack0 = float(attack_cov0), attack0
+        self.false_alarm_rate = float(false_alarm_rate)
+
+    def _init(self, model, batch_shape, generators):
+        if model.dim_u < 1:
+            raise ValueError("the adaptive Kalman filter needs a model with inputs (dim_u >= 1)")
+        return adaptive_kalman_init(
+            model, batch_shape, attack_cov0=self.attack_cov0, attack0=self.attack0
+        )
+
+    def _check_carry(self, carry):
+        dx, da = carry.model.dim_x, carry.model.dim_u
+        check_carry_tensor(carry.mean, "mean", dim=dx)
+        check_carry_tensor(carry.cov, "cov", dim=dx, symmetric=True)
+        check_carry_tensor(carry.attack, "attack", dim=da)
+        check_carry_tensor(carry.attack_cov, "attack_cov", dim=da, symmetric=True)
+
+    def _step(self, carry, y, u, mask):
+        model = carry.model
+        if u is None:
+            u = carry.attack.new_zeros(carry.attack.shape)
+        upd = adaptive_update(
+            model, carry.mean, carry.attack, carry.attack_cov, carry.sensitivity, y, u,
+            carry.k, forgetting=self.forgetting, cov=carry.cov, mask=mask,
+        )  # fmt: skip
+        new = AdaptiveKFState(
+            upd.mean, upd.cov, upd.attack, upd.attack_cov, upd.sensitivity, carry.k + 1, model
+        )
+        score = wald_statistic(upd.attack, upd.attack_cov)
+        threshold = chi_square_quantile(model.dim_u, 1.0 - self.false_alarm_rate)
+        return new, StepOutput(
+            upd.mean, upd.cov, innovation=upd.residual, innovation_cov=upd.residual_cov,
+            log_likelihood=upd.log_likelihood, attack=upd.attack, score=score,
+            alarm=score > threshold, threshold=threshold,
+            extras={"attack_covs": upd.attack_cov},
+        )  # fmt: skip
 
 
 def adaptive_kalman_step(
@@ -184,19 +260,10 @@ def adaptive_kalman_step(
     mask: Tensor | None = None,
     *,
     forgetting: float = 0.7,
-) -> tuple[AdaptiveKFState, AdaptiveUpdate]:
-    """One online step ``k → k+1`` of :func:`adaptive_kalman_filter` (``y [..., dy]``,
-    ``u [..., du]`` or ``None`` = 0, ``mask [..., dy]``)."""
-    if u is None:
-        u = state.attack.new_zeros(state.attack.shape)
-    upd = adaptive_update(
-        model, state.mean, state.attack, state.attack_cov, state.sensitivity, y, u, state.k,
-        forgetting=forgetting, cov=state.cov, mask=mask,
-    )  # fmt: skip
-    new = AdaptiveKFState(
-        upd.mean, upd.cov, upd.attack, upd.attack_cov, upd.sensitivity, state.k + 1
-    )
-    return new, upd
+) -> tuple[AdaptiveKFState, StepOutput]:
+    """One online step ``k → k+1`` of :class:`AdaptiveKalmanFilter` (``y [..., dy]``,
+    ``u [..., du]`` or ``None`` = 0, ``mask [..., dy]``), validated."""
+    return AdaptiveKalmanFilter(forgetting).step(state._replace(model=model), y, u, mask)
 
 
 def _check_forgetting(forgetting) -> float:
@@ -217,61 +284,25 @@ def adaptive_kalman_filter(
     attack0: Tensor | None = None,
     false_alarm_rate: float = 0.01,
 ) -> EstimatorOutput:
-    """Zhang's adaptive (extended) Kalman filter over a sequence (module docstring).
+    """Zhang's adaptive (extended) Kalman filter over a sequence (:class:`AdaptiveKalmanFilter`
+    in the open loop).
 
     Args:
-        model: a :class:`~difffilter.StateSpaceModel` with ``dim_u ≥ 1`` (the attack
-            ``θ`` has the input's dimension and enters through ``∂f/∂u``).
+        model: a :class:`~difffilter.StateSpaceModel` with ``dim_u ≥ 1``.
         ys: ``[..., T, dy]``; us: commanded inputs ``[..., T, du]`` or ``None`` (zero).
         mask: received entries ``[..., T, dy]`` or ``None``.
-        forgetting: ``λ ∈ (0, 1]``. attack_cov0: ``S_0 = ω I``, ``ω ≥ 0``.
-        attack0: ``θ̂_0 [da]`` (default 0). false_alarm_rate: of the Wald test on ``θ̂``.
+        forgetting, attack_cov0, attack0, false_alarm_rate: as in :class:`AdaptiveKalmanFilter`.
 
-    Returns an :class:`~difffilter.EstimatorOutput`: ``means [..., T, dx]``, ``covs``
-    (``P``, the covariance of the state given the attack estimate), ``attack`` ``θ̂_k``
-    ``[..., T, du]`` (the estimate of the attack on ``u_{k−1}``, aligned with
-    ``Trajectories.attack``), a Wald :class:`~difffilter.Detection`, and ``extras``
-    ``"attack_covs"`` ``S_k [..., T, du, du]``, ``"innovations"`` ``ỹ [..., T, dy]``,
-    ``"innovation_covs"`` ``Σ [..., T, dy, dy]`` and ``"log_likelihood"`` ``[...]``.
+    Returns an :class:`~difffilter.EstimatorOutput`: ``means [..., T, dx]``, ``covs``,
+    ``attack`` ``θ̂_k`` ``[..., T, du]`` (aligned with ``Trajectories.attack``), a Wald
+    :class:`~difffilter.Detection`, and ``extras`` ``"attack_covs"`` ``S_k [..., T, du, du]``,
+    ``"innovations"`` ``ỹ [..., T, dy]``, ``"innovation_covs"`` ``Σ [..., T, dy, dy]`` and
+    ``"log_likelihood"`` ``[...]``.
     """
-    lam = _check_forgetting(forgetting)
-    if model.dim_u < 1:
-        raise ValueError("the adaptive Kalman filter needs a model with inputs (dim_u >= 1)")
-    if float(attack_cov0) < 0:
-        raise ValueError(f"attack_cov0 must be >= 0; got {attack_cov0!r}")
-    ys, us, mask, _ = _validate_inputs(model, ys, us, mask)
-    batch = ys.shape[:-2]
-    if us is not None:
-        batch = torch.broadcast_shapes(batch, us.shape[:-2])
-    if mask is not None:
-        batch = torch.broadcast_shapes(batch, mask.shape[:-2])
-    state = adaptive_kalman_init(model, batch, attack_cov0=attack_cov0, attack0=attack0)
-    outs = []
-    for t in range(ys.shape[-2]):
-        u = None if us is None else us[..., t, :]
-        m = None if mask is None else mask[..., t, :]
-        state, upd = adaptive_kalman_step(model, state, ys[..., t, :], u, m, forgetting=lam)
-        outs.append(upd)
-
-    def stack(name, dims):
-        return torch.stack([getattr(o, name) for o in outs], dim=-1 - dims)
-
-    attack, attack_covs = stack("attack", 1), stack("attack_cov", 2)
-    score = wald_statistic(attack, attack_covs)
-    threshold = chi_square_quantile(model.dim_u, 1.0 - false_alarm_rate)
-    lik = stack("log_likelihood", 0)
-    return EstimatorOutput(
-        stack("mean", 1),
-        stack("cov", 2),
-        attack=attack,
-        detection=Detection(score, score > threshold, threshold),
-        extras={
-            "attack_covs": attack_covs,
-            "innovations": stack("residual", 1),
-            "innovation_covs": stack("residual_cov", 2),
-            "log_likelihood": lik.sum(-1),
-        },
+    estimator = AdaptiveKalmanFilter(
+        forgetting, attack_cov0=attack_cov0, attack0=attack0, false_alarm_rate=false_alarm_rate
     )
+    return open_loop(estimator, model, ys, us, mask=mask)
 
 
 def wald_statistic(attack: Tensor, attack_cov: Tensor) -> Tensor:

@@ -18,7 +18,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..kalman import gaussian_update, kalman_predict
+from ..gaussian import gaussian_update
+from ..kalman import kalman_predict
 from ..linalg import masked_measurement, matvec
 from ..results import GaussianState
 from ..ssm import LinearGaussianModel

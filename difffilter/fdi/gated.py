@@ -8,7 +8,9 @@ detector sees the normalised innovation squared ``g_k = r_kᵀ S_k⁻¹ r_k``
     else   → the usual update
 
 so an alarmed packet never biases the state estimate; a missed one does (``gate=False``
-keeps every update and only reports the alarms). Detectors:
+keeps every update and only reports the alarms). :class:`GatedFilter` is the estimator
+object (its carry holds the filter's and the detector's state); the functions run it in
+the open loop. Detectors:
 :class:`~difffilter.fdi.detectors.ChiSquareDetector` (``g_k`` or its window sum against a
 ``χ²`` quantile) and :class:`~difffilter.fdi.detectors.CusumDetector` (``S_k = max(0,
 S_{k−1} + g_k − b)`` against ``τ``, reset after an alarm), both through their online
@@ -23,16 +25,15 @@ expectation, 1).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
 
-from .._checks import check_filter_inputs
-from .._steps import StepRecorder
-from ..estimator import Detection, EstimatorOutput
-from ..extended import extended_kalman_step
-from ..kalman import gaussian_init, run_gaussian_filter
+from ..estimator import Estimator, EstimatorOutput
+from ..extended import ExtendedKalmanFilter
+from ..kalman import GaussianFilter
+from ..loop import open_loop
 from ..results import GaussianState
 from .detectors import (
     ChiSquareDetector,
@@ -41,7 +42,124 @@ from .detectors import (
     normalized_innovation_squared,
 )
 
-__all__ = ["gated_gaussian_filter", "gated_extended_kalman_filter", "cusum_detector_for"]
+__all__ = [
+    "GatedFilter",
+    "GatedState",
+    "gated_gaussian_filter",
+    "gated_extended_kalman_filter",
+    "cusum_detector_for",
+]
+
+
+class GatedState(NamedTuple):
+    """Carry of :class:`GatedFilter`: the filter's ``inner`` carry (a
+    :class:`~difffilter.results.GaussianState`), the detector's online state and the model."""
+
+    inner: GaussianState
+    detector: Any
+    model: Any
+
+
+class GatedFilter(Estimator):
+    """A Gaussian filter whose update is skipped where a residual detector alarms.
+
+    Args:
+        filter: the Gaussian filter (:class:`~difffilter.KalmanFilter`,
+            :class:`~difffilter.ExtendedKalmanFilter` (default) or
+            :class:`~difffilter.UnscentedKalmanFilter`).
+        detector: a :class:`ChiSquareDetector` or a calibrated :class:`CusumDetector`.
+        gate: drop alarmed measurements (default) or only report the alarms.
+
+    Step output: the filter's moments after gating, ``score`` the detector statistic,
+    ``alarm``, ``threshold`` (the χ² quantile of the step's window and received entries,
+    or CUSUM's ``τ``) and ``extras["nis"]`` ``g_k``.
+    """
+
+    carry_type = GatedState
+
+    def __init__(
+        self,
+        detector: ChiSquareDetector | CusumDetector,
+        filter: GaussianFilter | None = None,
+        *,
+        gate: bool = True,
+    ):
+        if not isinstance(detector, (ChiSquareDetector, CusumDetector)):
+            raise ValueError(
+                f"detector must be a ChiSquareDetector or a CusumDetector; got {type(detector).__name__}"
+            )
+        if isinstance(detector, CusumDetector) and detector.threshold is None:
+            raise ValueError(
+                "detector: the CusumDetector has no threshold; pass threshold= or call calibrate() first"
+            )
+        filter = ExtendedKalmanFilter() if filter is None else filter
+        if not isinstance(filter, GaussianFilter):
+            raise TypeError(
+                "filter must be a Gaussian filter object (difffilter.KalmanFilter(), "
+                f"ExtendedKalmanFilter(), UnscentedKalmanFilter()); got {type(filter).__name__}"
+            )
+        self.detector, self.filter, self.gate = detector, filter, bool(gate)
+        self._quantiles: dict = {}
+
+    def batch_of(self, carry):
+        return carry.inner.mean.shape[:-1]
+
+    def _init(self, model, batch_shape, generators):
+        inner = self.filter._init(model, batch_shape, generators)
+        dtype, device = inner.mean.dtype, inner.mean.device
+        return GatedState(inner, self.detector.init(batch_shape, dtype=dtype, device=device), model)
+
+    def _check_carry(self, carry):
+        self.filter._check_carry(carry.inner)
+
+    def _chi2_quantiles(self, dim: int, like: Tensor) -> Tensor:
+        """The χ² quantile for each number of received entries ``0 … dim`` (0: never alarm)."""
+        key = (dim, like.dtype, like.device)
+        if key not in self._quantiles:
+            fa = 1.0 - self.detector.false_alarm_rate
+            q = [float("inf")] + [chi_square_quantile(m, fa) for m in range(1, dim + 1)]
+            self._quantiles[key] = torch.tensor(q, dtype=like.dtype, device=like.device)
+        return self._quantiles[key]
+
+    def _detect(self, det_state, g: Tensor, mask: Tensor | None, dy: int):
+        """``(detector state, score, alarm, threshold)`` of the step's NIS ``g [...]``."""
+        det = self.detector
+        if isinstance(det, ChiSquareDetector):
+            if mask is not None:  # one quantile per number of received entries
+                if det.window != 1:
+                    raise ValueError("a measurement mask needs a ChiSquareDetector with window=1")
+                threshold = self._chi2_quantiles(dy, g)[mask.sum(-1)]
+                return det_state, g, g > threshold, threshold
+            count = det_state[1]
+            threshold = chi_square_quantile(
+                det.dim * min(count + 1, det.window), 1.0 - det.false_alarm_rate
+            )
+            det_state, score, alarm = det.step(det_state, g)
+            return det_state, score, alarm, threshold
+        if mask is not None:  # CUSUM: missing entries count their mean (see module docs)
+            g = g + (dy - mask.sum(-1)).to(g.dtype)
+        det_state, score, alarm = det.step(det_state, g)
+        return det_state, score, alarm, float(det.threshold)
+
+    def _step(self, carry, y, u, mask):
+        pred = self.filter.predict(carry.inner, u)
+        updated, out = self.filter.update(carry.inner, pred, y, mask)
+        g = normalized_innovation_squared(out.innovation, out.innovation_cov)
+        det_state, score, alarm, threshold = self._detect(carry.detector, g, mask, y.shape[-1])
+        if self.gate:
+            cov_shape = torch.broadcast_shapes(updated.cov.shape, pred.cov.shape)
+            mean = torch.where(alarm.unsqueeze(-1), pred.mean, updated.mean)
+            cov = torch.where(
+                alarm[..., None, None], pred.cov.expand(cov_shape), updated.cov.expand(cov_shape)
+            )
+            inner = GaussianState(mean, cov, updated.k, carry.model)
+        else:
+            inner = updated
+        out = out._replace(
+            mean=inner.mean, cov=inner.cov, score=score, alarm=alarm, threshold=threshold,
+            extras={"nis": g},
+        )  # fmt: skip
+        return GatedState(inner, det_state, carry.model), out
 
 
 def gated_gaussian_filter(
@@ -51,84 +169,27 @@ def gated_gaussian_filter(
     *,
     mask: Tensor | None = None,
     detector: ChiSquareDetector | CusumDetector,
-    step: Callable = extended_kalman_step,
+    filter: GaussianFilter | None = None,
     gate: bool = True,
 ) -> EstimatorOutput:
-    """Gaussian filter on ``ys [..., T, dy]`` whose update is skipped where ``detector`` alarms.
+    """:class:`GatedFilter` on ``ys [..., T, dy]`` in the open loop.
 
     Args:
-        model: the filter's model (linear for ``difffilter.kalman_step``).
+        model: the filter's model (linear for :class:`~difffilter.KalmanFilter`).
         us: inputs ``[..., T, du]`` or ``None``; mask: received entries ``[..., T, dy]``.
         detector: a :class:`ChiSquareDetector` or a calibrated :class:`CusumDetector`.
-        step: the online step, ``difffilter.kalman_step``, ``extended_kalman_step``
-            (default) or ``unscented_kalman_step``.
+        filter: the Gaussian filter object (default :class:`~difffilter.ExtendedKalmanFilter`).
         gate: drop alarmed measurements (default) or only report the alarms.
 
     Returns an :class:`~difffilter.EstimatorOutput` (``attack`` is ``None``; detection
     scores = the detector statistic, threshold ``[..., T]`` for a windowed or masked
-    χ², else a number) with ``extras``: ``nis`` ``g_k`` ``[..., T]``.
+    χ², else a number) with ``extras``: ``nis`` ``g_k`` ``[..., T]`` (and the filter's
+    stacked statistics).
     """
-    if not isinstance(detector, (ChiSquareDetector, CusumDetector)):
-        raise ValueError(
-            f"detector must be a ChiSquareDetector or a CusumDetector; got {type(detector).__name__}"
-        )
-    if not callable(step):
-        raise TypeError(f"step must be an online filter step function; got {type(step).__name__}")
-    if isinstance(detector, CusumDetector) and detector.threshold is None:
-        raise ValueError(
-            "detector: the CusumDetector has no threshold; pass threshold= or call calibrate() first"
-        )
-    masked_chi2 = mask is not None and isinstance(detector, ChiSquareDetector)
-    if masked_chi2 and detector.window != 1:
+    gated = GatedFilter(detector, filter, gate=gate)
+    if mask is not None and isinstance(detector, ChiSquareDetector) and detector.window != 1:
         raise ValueError("a measurement mask needs a ChiSquareDetector with window=1")
-    ys, us, mask = check_filter_inputs(model, ys, us, mask)
-    batch, dy = ys.shape[:-2], ys.shape[-1]
-    if masked_chi2:  # quantile for each possible number of received entries (0: never alarm)
-        fa = 1.0 - detector.false_alarm_rate
-        q = [float("inf")] + [chi_square_quantile(m, fa) for m in range(1, dy + 1)]
-        quantiles = torch.tensor(q, dtype=ys.dtype, device=ys.device)
-    elif isinstance(detector, ChiSquareDetector):  # computed once, not at every step
-        step_thresholds = detector.thresholds(ys.shape[-2], ys.dtype).tolist()
-    else:
-        step_thresholds = [float(detector.threshold)] * ys.shape[-2]
-    state = gaussian_init(model, batch)
-    det_state = detector.init(batch, dtype=ys.dtype, device=ys.device)
-    rec = StepRecorder()
-    for t in range(ys.shape[-2]):
-        u = None if us is None else us[..., t, :]
-        m = None if mask is None else mask[..., t, :]
-        updated, out = step(model, state, ys[..., t, :], u, m)
-        g = normalized_innovation_squared(out.innovation, out.innovation_cov)
-        if masked_chi2:
-            threshold = quantiles[m.sum(-1)]
-            score, alarm = g, g > threshold
-        else:
-            if m is not None:  # CUSUM: missing entries count their mean (see module docs)
-                g = g + (dy - m.sum(-1)).to(g.dtype)
-            det_state, score, alarm = detector.step(det_state, g)
-            threshold = step_thresholds[t]
-        if gate:
-            cov_shape = torch.broadcast_shapes(updated.cov.shape, out.pred_cov.shape)
-            mean = torch.where(alarm.unsqueeze(-1), out.pred_mean, updated.mean)
-            cov = torch.where(
-                alarm[..., None, None],
-                out.pred_cov.expand(cov_shape),
-                updated.cov.expand(cov_shape),
-            )
-            state = GaussianState(mean, cov, updated.k)
-        else:
-            state = updated
-        rec.add(mean=state.mean, cov=state.cov, nis=g, score=score, alarm=alarm)
-        rec.add(threshold=torch.as_tensor(threshold, dtype=ys.dtype).expand(alarm.shape))
-    r = rec.stack(len(batch))
-    thr = r["threshold"]
-    fixed = bool((thr == thr.reshape(-1)[:1]).all()) if thr.numel() else True
-    return EstimatorOutput(
-        means=r["mean"],
-        covs=r["cov"],
-        detection=Detection(r["score"], r["alarm"], float(thr.reshape(-1)[0]) if fixed else thr),
-        extras={"nis": r["nis"]},
-    )
+    return open_loop(gated, model, ys, us, mask=mask)
 
 
 def gated_extended_kalman_filter(
@@ -140,17 +201,15 @@ def gated_extended_kalman_filter(
     detector: ChiSquareDetector | CusumDetector,
     gate: bool = True,
 ) -> EstimatorOutput:
-    """:func:`gated_gaussian_filter` with the EKF step (``extended_kalman_step``)."""
-    return gated_gaussian_filter(
-        model, ys, us, mask=mask, detector=detector, step=extended_kalman_step, gate=gate
-    )
+    """:func:`gated_gaussian_filter` with the EKF."""
+    return gated_gaussian_filter(model, ys, us, mask=mask, detector=detector, gate=gate)
 
 
 def cusum_detector_for(
     model,
     *,
     false_alarm_rate: float,
-    step: Callable = extended_kalman_step,
+    filter: GaussianFilter | None = None,
     bias: float | None = None,
     ys: Tensor | None = None,
     us: Tensor | None = None,
@@ -159,20 +218,21 @@ def cusum_detector_for(
     steps: int = 100,
     generator: torch.Generator | None = None,
 ) -> CusumDetector:
-    """A :class:`CusumDetector` calibrated for ``model`` and a filter ``step``.
+    """A :class:`CusumDetector` calibrated for ``model`` and a Gaussian ``filter``.
 
     ``b = bias`` or ``dy + 2`` [DEF: the mean ``dy`` of an attack-free NIS plus a margin
     that makes the statistic drift down]; ``τ`` is set by
     :meth:`CusumDetector.calibrate` so that the alarm rate on attack-free statistics is
-    ``false_alarm_rate``. The statistics are the NIS of the ungated filter on ``ys`` (and
-    ``us``, ``mask``) when given — attack-free measurements of the plant — else on
-    ``runs × steps`` runs simulated from the model with ``generator``.
+    ``false_alarm_rate``. The statistics are the NIS of the ungated filter (default the
+    EKF) on ``ys`` (and ``us``, ``mask``) when given — attack-free measurements of the
+    plant — else on ``runs × steps`` runs simulated from the model with ``generator``.
     """
+    filter = ExtendedKalmanFilter() if filter is None else filter
     if ys is None:
         _, ys, _ = model.simulate(steps, (runs,), us, generator=generator)
-    free = run_gaussian_filter(step, model, ys, us, mask)
-    g = normalized_innovation_squared(free.innovations, free.innovation_covs)
-    if mask is not None:  # as in gated_gaussian_filter: missing entries count their mean
+    free = open_loop(filter, model, ys, us, mask=mask)
+    g = normalized_innovation_squared(free.extras["innovations"], free.extras["innovation_covs"])
+    if mask is not None:  # as in the gated filter: missing entries count their mean
         g = g + (ys.shape[-1] - mask.sum(-1)).to(g.dtype)
     detector = CusumDetector(ys.shape[-1] + 2.0 if bias is None else bias)
     detector.calibrate(g, false_alarm_rate)

@@ -46,10 +46,13 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ..estimator import Detection, EstimatorOutput
+from .._checks import check_step_inputs
+from ..estimator import Estimator, EstimatorOutput, Generators
 from ..linalg import matvec, safe_cholesky, symmetrize
-from ..particle import ParticleState, particle_filter, particle_step
+from ..loop import open_loop
+from ..particle import ParticleFilter, ParticleState
 from ..resampling import Multinomial
+from ..results import StepOutput
 from ..ssm import StateSpaceModel
 from . import _components as C
 from .adaptive_kf import _check_forgetting, adaptive_update, input_jacobian, wald_statistic
@@ -63,6 +66,7 @@ __all__ = [
     "AdaptiveKalmanProposal",
     "information_form_applies",
     "LocalEstimate",
+    "AdaptiveParticleFilter",
     "adaptive_particle_init",
     "adaptive_particle_step",
     "adaptive_particle_filter",
@@ -335,6 +339,99 @@ def adaptive_particle_init(
     return ParticleState(packed, log_w, 0)
 
 
+class AdaptiveParticleFilter(Estimator):
+    """The local estimator (A1)–(A8) as an estimator object (module docstring).
+
+    Args:
+        num_particles: ``M``.
+        forgetting: ``λ ∈ (0, 1]``.
+        reading: ``"draw"`` or ``"copy"`` (eq. 5).
+        form: ``"information"``, ``"covariance"`` or ``"auto"`` (:class:`AdaptiveKalmanProposal`).
+        attack_cov0: ``S_0 = ω I``.
+        resampler: default ``Multinomial()`` (the inverse-CDF selection of App. A), at
+            every step.
+        false_alarm_rate: of the Wald test on ``(â, Ŝ)``.
+
+    The model needs inputs (the attack enters through them, ``dim_a = dim_u``); its
+    ``process_cov`` is the ``Q`` of (A4). Carry: a :class:`~difffilter.ParticleState` of
+    packed particles (:class:`ParticleLayout`) whose ``model`` is the
+    :class:`ParticleView` of the model; ``init`` draws ``x̄ʲ`` from ``generators.init``,
+    the ``"draw"`` reading from ``generators.propagate``, the selection uniforms from
+    ``generators.resample``. Step output: the mixture ``mean``, ``cov``, ``attack`` ``â``
+    (the attack on ``u_{k−1}``), the Wald score with its alarm and threshold, and
+    ``extras`` ``"attack_covs"`` ``Ŝ`` and ``"ess"`` (before resampling).
+    """
+
+    carry_type = ParticleState
+
+    def __init__(
+        self,
+        num_particles: int = 100,
+        *,
+        forgetting: float = 0.7,
+        reading: str = "draw",
+        form: str = "auto",
+        attack_cov0: float = 10.0,
+        resampler=None,
+        false_alarm_rate: float = 0.01,
+    ):
+        if reading not in READINGS:
+            raise ValueError(f"reading must be one of {READINGS} (eq. 5); got {reading!r}")
+        self.num_particles, self.forgetting = num_particles, _check_forgetting(forgetting)
+        self.reading, self.form, self.attack_cov0 = reading, form, float(attack_cov0)
+        self.resampler = resampler if resampler is not None else Multinomial()
+        self.false_alarm_rate = float(false_alarm_rate)
+        self._filters: dict = {}  # the particle filter of each model (derived constants only)
+
+    def filter_for(self, model: StateSpaceModel) -> tuple[ParticleView, ParticleFilter]:
+        """The packed view of ``model`` and the particle filter that steps it."""
+        key = id(model)
+        if key not in self._filters or self._filters[key][0] is not model:
+            layout = ParticleLayout(model.dim_x, model.dim_u)
+            pf = ParticleFilter(
+                self.num_particles, resampler=self.resampler,
+                proposal=AdaptiveKalmanProposal(model, self.forgetting, self.reading, self.form),
+                likelihood=FlatLikelihood(), ess_threshold=1.0, innovations=False,
+                cov_dims=layout.dx + layout.da,
+            )  # fmt: skip
+            self._filters[key] = (model, ParticleView(model, layout), pf)
+        _, view, pf = self._filters[key]
+        return view, pf
+
+    def attach(self, state: ParticleState, model, generators: Generators) -> ParticleState:
+        """Packed particles (:func:`adaptive_particle_init`) as this estimator's carry."""
+        view, pf = self.filter_for(model)
+        return pf.attach(state, view, generators)
+
+    def _init(self, model, batch_shape, generators):
+        if model.dim_u < 1:
+            raise ValueError("the adaptive particle filter needs a model with inputs (dim_u >= 1)")
+        state = adaptive_particle_init(
+            model, self.num_particles, batch_shape, generators.init, attack_cov0=self.attack_cov0
+        )
+        return self.attach(state, model, generators)
+
+    def batch_of(self, carry):
+        return carry.log_weights.shape[:-1]
+
+    def _check_carry(self, carry):
+        if not isinstance(carry.model, ParticleView):
+            raise ValueError("carry.model must be the ParticleView of AdaptiveParticleFilter.init")
+        self.filter_for(carry.model.base)[1]._check_carry(carry)
+
+    def _step(self, carry, y, u, mask):
+        base = carry.model.base
+        _, pf = self.filter_for(base)
+        carry, out = pf._step(carry, y, u, mask)
+        est = _summary(pf.proposal.layout, out.mean, out.cov)
+        score = wald_statistic(est.attack, est.attack_cov)
+        threshold = chi_square_quantile(base.dim_u, 1.0 - self.false_alarm_rate)
+        return carry, StepOutput(
+            est.mean, est.cov, attack=est.attack, score=score, alarm=score > threshold,
+            threshold=threshold, extras={"attack_covs": est.attack_cov, "ess": out.extras["ess"]},
+        )  # fmt: skip
+
+
 def adaptive_particle_step(
     model: StateSpaceModel,
     state: ParticleState,
@@ -348,23 +445,19 @@ def adaptive_particle_step(
     resampler=None,
     generator: torch.Generator | None = None,
     resample_generator: torch.Generator | None = None,
-) -> tuple[ParticleState, LocalEstimate]:
-    """One online step ``k−1 → k`` (a closed loop calls this): resample, (A2)–(A8).
+) -> tuple[ParticleState, StepOutput]:
+    """One online step ``k−1 → k`` of :class:`AdaptiveParticleFilter`: resample, (A2)–(A8).
 
-    ``state`` from :func:`adaptive_particle_init`; ``y [..., dy]``, ``u [..., du]``.
-    Returns the new state and the step's :class:`LocalEstimate`.
+    ``state`` from :func:`adaptive_particle_init` (or an earlier step); ``y [..., dy]``,
+    ``u [..., du]``. Returns the new state and the step output.
     """
-    layout = ParticleLayout(model.dim_x, model.dim_u)
-    view = ParticleView(model, layout)
-    state, out = particle_step(
-        view, state, y, u, mask,
-        resampler=resampler if resampler is not None else Multinomial(),
-        proposal=AdaptiveKalmanProposal(model, forgetting, reading, form),
-        likelihood=FlatLikelihood(), ess_threshold=1.0,
-        generator=generator, resample_generator=resample_generator, innovations=False,
-        cov_dims=layout.dx + layout.da,
+    apf = AdaptiveParticleFilter(
+        state.log_weights.shape[-1], forgetting=forgetting, reading=reading, form=form,
+        resampler=resampler,
     )  # fmt: skip
-    return state, _summary(layout, out.mean, out.cov)
+    y, u, mask = check_step_inputs(model, None, y, u, mask)
+    gens = Generators(None, generator, resample_generator or generator)
+    return apf._step(apf.attach(state, model, gens), y, u, mask)
 
 
 def adaptive_particle_filter(
@@ -384,19 +477,17 @@ def adaptive_particle_filter(
     initial_state: ParticleState | None = None,
     false_alarm_rate: float = 0.01,
 ) -> EstimatorOutput:
-    """The local estimator (A1)–(A8) over a sequence (module docstring).
+    """The local estimator (A1)–(A8) over a sequence: :class:`AdaptiveParticleFilter` in
+    the open loop.
 
     Args:
-        model: a :class:`~difffilter.StateSpaceModel` with inputs; the attack enters
-            through them (``dim_a = dim_u``). Its ``process_cov`` is the ``Q`` of (A4).
+        model: a :class:`~difffilter.StateSpaceModel` with inputs.
         ys: ``[..., T, dy]``; us: commanded inputs ``[..., T, du]`` or ``None``.
         mask: received entries ``[..., T, dy]`` or ``None``.
-        num_particles: ``M``. forgetting: ``λ ∈ (0, 1]``. reading: ``"draw"`` or
-            ``"copy"`` (eq. 5). form: ``"information"``, ``"covariance"`` or ``"auto"``
-            (:class:`AdaptiveKalmanProposal`). attack_cov0: ``S_0 = ω I``.
-        resampler: default ``Multinomial()`` (the inverse-CDF selection of App. A), at
-            every step. generator: initial particles and the ``"draw"`` noise;
-            resample_generator: the selection uniforms (default ``generator``).
+        num_particles, forgetting, reading, form, attack_cov0, resampler,
+            false_alarm_rate: as in :class:`AdaptiveParticleFilter`.
+        generator: initial particles and the ``"draw"`` noise; resample_generator: the
+            selection uniforms (default ``generator``).
         initial_state: packed particles (:func:`adaptive_particle_init`) instead of the prior.
 
     Returns an :class:`~difffilter.EstimatorOutput` with the mixture ``means [..., T, dx]``,
@@ -406,32 +497,12 @@ def adaptive_particle_filter(
     """
     if model.dim_u < 1:
         raise ValueError("the adaptive particle filter needs a model with inputs (dim_u >= 1)")
-    layout = ParticleLayout(model.dim_x, model.dim_u)
-    view = ParticleView(model, layout)
-    if initial_state is None:
-        batch = ys.shape[:-2]
-        if us is not None:
-            batch = torch.broadcast_shapes(batch, us.shape[:-2])
-        if mask is not None:
-            batch = torch.broadcast_shapes(batch, mask.shape[:-2])
-        initial_state = adaptive_particle_init(
-            model, num_particles, batch, generator, attack_cov0=attack_cov0
-        )
-    res = particle_filter(
-        view, ys, us, num_particles=num_particles, mask=mask,
-        resampler=resampler if resampler is not None else Multinomial(),
-        proposal=AdaptiveKalmanProposal(model, forgetting, reading, form),
-        likelihood=FlatLikelihood(), ess_threshold=1.0, generator=generator,
-        resample_generator=resample_generator, initial_state=initial_state, innovations=False,
-        cov_dims=layout.dx + layout.da,
+    apf = AdaptiveParticleFilter(
+        num_particles, forgetting=forgetting, reading=reading, form=form,
+        attack_cov0=attack_cov0, resampler=resampler, false_alarm_rate=false_alarm_rate,
     )  # fmt: skip
-    est = _summary(layout, res.means, res.covs)
-    score = wald_statistic(est.attack, est.attack_cov)
-    threshold = chi_square_quantile(model.dim_u, 1.0 - false_alarm_rate)
-    return EstimatorOutput(
-        est.mean,
-        est.cov,
-        attack=est.attack,
-        detection=Detection(score, score > threshold, threshold),
-        extras={"attack_covs": est.attack_cov, "ess": res.ess},
-    )
+    gens = Generators.of(generator)
+    if resample_generator is not None:
+        gens = gens._replace(resample=resample_generator)
+    carry = None if initial_state is None else apf.attach(initial_state, model, gens)
+    return open_loop(apf, model, ys, us, mask=mask, generator=gens, carry=carry)

@@ -28,14 +28,17 @@ from torch import Tensor
 
 from .._checks import check_filter_inputs
 from ..estimator import Detection, EstimatorOutput
+from ..loop import _step_through, open_loop
 from ..noise import NoiseModel
-from ..particle import ParticleState, particle_filter
-from .modified_pf import driver_settings
+from ..particle import BootstrapProposal, ParticleFilter, ParticleState
+from ..resampling import Systematic
+from .modified_pf import _attach, _generators
 
 __all__ = [
     "BiasDeception",
     "ReplacementDeception",
     "DeceptionMixtureLikelihood",
+    "MixtureParticleFilter",
     "mixture_likelihood_particle_filter",
 ]
 
@@ -178,6 +181,86 @@ class DeceptionMixtureLikelihood:
         return torch.exp(num - den)
 
 
+class MixtureParticleFilter(ParticleFilter):
+    """A particle filter weighted by the mixture likelihood, with its attack posterior as score.
+
+    Args:
+        num_particles: ``N``.
+        likelihood: the :class:`DeceptionMixtureLikelihood`.
+        threshold: alarm where the score exceeds it [DEF 0.5: the maximum-a-posteriori
+            decision].
+        proposal: default the bootstrap proposal (the score then reads the step's
+            evidence; another proposal recomputes the sum).
+        resampler, ess_threshold: default systematic resampling at every step.
+        innovations: compute the predictive measurement moments (default no).
+
+    The score of step ``k`` is the posterior probability that the packet is a deception,
+    ``P(l_k = 1 | ỹ_{1:k})`` (:meth:`DeceptionMixtureLikelihood.attack_probability`, from
+    the predictive weights). With a :class:`ReplacementDeception` (a density that does not
+    depend on the state) whole sequences take a private fast path: ``log[p p_ξ(ỹ_k)]`` of
+    every step is one table for the sequence, and the score ``p p_ξ(ỹ_k) / p̂(ỹ_k |
+    ỹ_{1:k−1})`` comes from the evidence increments after the loop (equal to the steps'
+    up to round-off).
+    """
+
+    def __init__(
+        self,
+        num_particles: int,
+        likelihood: DeceptionMixtureLikelihood,
+        *,
+        threshold: float = 0.5,
+        proposal=None,
+        resampler=None,
+        ess_threshold: float = 1.0,
+        innovations: bool = False,
+    ):
+        if not isinstance(likelihood, DeceptionMixtureLikelihood):
+            raise ValueError(
+                f"likelihood must be a DeceptionMixtureLikelihood; got {type(likelihood).__name__}"
+            )
+        if not 0.0 <= float(threshold) <= 1.0:
+            raise ValueError(f"threshold must lie in [0, 1] (a probability); got {threshold!r}")
+        self.mixture, self.threshold = likelihood, float(threshold)
+        self._options = dict(
+            resampler=resampler if resampler is not None else Systematic(),
+            proposal=proposal, ess_threshold=ess_threshold, innovations=innovations,
+        )  # fmt: skip
+        super().__init__(num_particles, likelihood=likelihood, hooks=(self._responsibility,),
+                         **self._options)  # fmt: skip
+
+    def _responsibility(self, model, y, m, state, out):  # P(l_k = 1 | ỹ_{1:k}) from w_{k−1}
+        prior = out.extras["prior_log_weights"]
+        bootstrap = type(self.proposal) is BootstrapProposal
+        evidence = out.log_likelihood if bootstrap else None
+        p = self.mixture.attack_probability(
+            model, y, state.particles, prior, state.k, m, evidence=evidence
+        )
+        return {"p": p}
+
+    def _step(self, carry, y, u, mask):
+        carry, out = super()._step(carry, y, u, mask)
+        x = dict(out.extras)
+        p = x.pop("p")
+        return carry, out._replace(score=p, alarm=p > self.threshold, threshold=self.threshold,
+                                   extras=x)  # fmt: skip
+
+    def _run(self, carry, ys, us, mask):
+        if not isinstance(self.mixture.attack, ReplacementDeception):
+            return None
+        if type(self.proposal) is not BootstrapProposal:
+            return None
+        attacked = self.mixture.replacement_term(ys, mask)
+        tabulated = ParticleFilter(
+            self.num_particles, likelihood=_Tabulated(self.mixture, attacked.unsqueeze(-1), carry.k),
+            **self._options,
+        )  # fmt: skip
+        batch = self.batch_of(carry)
+        out = _step_through(tabulated, carry, ys, us, mask, batch, None)
+        score = torch.exp(attacked - out.extras["log_likelihood_increments"])
+        out.detection = Detection(score, score > self.threshold, self.threshold)
+        return out
+
+
 def mixture_likelihood_particle_filter(
     model,
     ys: Tensor,
@@ -193,60 +276,28 @@ def mixture_likelihood_particle_filter(
     resample_generator: torch.Generator | None = None,
     initial_state: ParticleState | None = None,
 ) -> EstimatorOutput:
-    """A particle filter weighted by the mixture likelihood, with its attack posterior as score.
-
-    The filter is :func:`~difffilter.particle_filter` with ``likelihood``; the detection
-    score of step ``k`` is the posterior probability that the packet is a deception,
-    ``P(l_k = 1 | ỹ_{1:k})`` (:meth:`DeceptionMixtureLikelihood.attack_probability`, from
-    the predictive weights), and the alarm is ``score > threshold`` [DEF 0.5: the
-    maximum-a-posteriori decision].
+    """:class:`MixtureParticleFilter` in the open loop.
 
     Shapes: ``ys [..., T, dy]``, ``us [..., T, du]``, ``mask [..., T, dy]``. Returns an
-    :class:`~difffilter.EstimatorOutput` (``attack`` is ``None``) with ``extras``:
-    ``ess [..., T]`` and ``log_likelihood [...]``. Other arguments as in
-    :func:`~difffilter.particle_filter` (default systematic resampling at every step).
+    :class:`~difffilter.EstimatorOutput` (``attack`` is ``None``; detection scores
+    ``P(l_k = 1 | ỹ_{1:k})``) with ``extras``: ``ess [..., T]`` and ``log_likelihood [...]``.
+    Other arguments as in :func:`~difffilter.particle_filter` (default systematic
+    resampling at every step).
     """
-    if not isinstance(likelihood, DeceptionMixtureLikelihood):
-        raise ValueError(
-            f"likelihood must be a DeceptionMixtureLikelihood; got {type(likelihood).__name__}"
-        )
-    if not 0.0 <= float(threshold) <= 1.0:
-        raise ValueError(f"threshold must lie in [0, 1] (a probability); got {threshold!r}")
     ys, us, mask = check_filter_inputs(
         model, ys, us, mask, resampler=resampler, ess_threshold=ess_threshold
     )
-
-    def responsibility(model, y, m, state, out):  # P(l_k = 1 | ỹ_{1:k}) from w_{k−1}
-        prior, evidence = out.prior_log_weights, out.log_likelihood  # bootstrap proposal
-        p = likelihood.attack_probability(
-            model, y, state.particles, prior, state.k, m, evidence=evidence
-        )
-        return {"p": p}
-
-    settings = driver_settings(
-        num_particles, resampler, ess_threshold, generator, resample_generator, initial_state
-    )
-    if not isinstance(likelihood.attack, ReplacementDeception):
-        res = particle_filter(model, ys, us, mask=mask, likelihood=likelihood,
-                              hooks=(responsibility,), innovations=False, **settings)  # fmt: skip
-        score = res.records["p"]
-    else:
-        # A replacement density does not depend on the state: log[p p_ξ(ỹ_k)] of every step
-        # is one table [..., T] for the sequence, read by each step's likelihood, and the
-        # score is p p_ξ(ỹ_k) / p̂(ỹ_k | ỹ_{1:k−1}) from the evidence increments after the
-        # loop (what the hook computes, elementwise)
-        attacked = likelihood.replacement_term(ys, mask)
-        k0 = 0 if initial_state is None else initial_state.k
-        step_likelihood = _Tabulated(likelihood, attacked.unsqueeze(-1), k0)
-        res = particle_filter(model, ys, us, mask=mask, likelihood=step_likelihood,
-                              innovations=False, **settings)  # fmt: skip
-        score = torch.exp(attacked - res.log_likelihood_increments)
-    return EstimatorOutput(
-        means=res.means,
-        covs=res.covs,
-        detection=Detection(score, score > threshold, float(threshold)),
-        extras={"ess": res.ess, "log_likelihood": res.log_likelihood},
-    )
+    pf = MixtureParticleFilter(
+        num_particles, likelihood, threshold=threshold, resampler=resampler,
+        ess_threshold=ess_threshold,
+    )  # fmt: skip
+    gens = _generators(generator, resample_generator)
+    carry = _attach(pf, model, initial_state, gens)
+    if carry is not None:  # open_loop takes the fast path only from the prior
+        out = pf._run(carry, ys, us, mask)
+        if out is not None:
+            return out
+    return open_loop(pf, model, ys, us, mask=mask, generator=gens, carry=carry)
 
 
 class _Tabulated:

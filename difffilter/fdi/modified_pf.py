@@ -23,26 +23,27 @@ The corrected particles ``x̃^{i+}`` serve detection only; the uncorrected ``x_k
 propagated, so the estimate is unbiased given a correct ``l̂_k, γ̂_k`` (eqs 54–57). With
 resampling at every step ``w_{k−1}^i = 1/N`` and step 2-2 is eq. (58) exactly.
 
-Step 1 is :func:`~difffilter.particle.particle_step` with :class:`FlatLikelihood` (the
-likelihood of "no measurement": it keeps the predictive weights ``w_{k−1}``), steps 3-1/3-2
-are :func:`reweight` with :class:`AttackCompensatedLikelihood`.
+The modified PF is :class:`~difffilter.ParticleFilter` whose likelihood is
+:class:`ModifiedPFWeighting` (steps 2–3: it reads the step's predictive view, decides and
+weighs with the compensated measurement; its running statistics live in the carry):
+:class:`ModifiedParticleFilter`. The normal PF with PoA is the bootstrap PF with a step
+hook computing ``β_k``: :class:`PoAParticleFilter`. Both report their decisions in the
+step output (``score``, ``alarm``, ``threshold``, ``attack``).
 """
 
 from __future__ import annotations
+
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
 
 from .._checks import check_filter_inputs
-from .._steps import StepRecorder
-from ..estimator import Detection, EstimatorOutput
-from ..kalman import kalman_gain
+from ..estimator import EstimatorOutput, Generators
+from ..gaussian import kalman_gain
 from ..linalg import masked_measurement
-from ..particle import (
-    ModelLikelihood,
-    ParticleState,
-    particle_filter,
-)
+from ..loop import open_loop
+from ..particle import ModelLikelihood, ParticleFilter, ParticleState
 from ..resampling import Systematic
 from .attack_estimation import BiasAttackEstimator
 from .poa import (
@@ -61,6 +62,8 @@ __all__ = [
     "LiteralGaussianLikelihood",
     "reweight",
     "ModifiedPFWeighting",
+    "ModifiedParticleFilter",
+    "PoAParticleFilter",
     "modified_particle_filter",
     "particle_filter_poa",
 ]
@@ -169,6 +172,17 @@ def _linear_measurement(
     return G, K
 
 
+class WeightingState(NamedTuple):
+    """The running state of :class:`ModifiedPFWeighting` (in the particle carry's ``aux``):
+    Remark 6's ``rate`` (:class:`~difffilter.fdi.poa.AttackRateState` or ``None``), the
+    attack estimator's ``estimator`` state (or ``None``) and the shared ``gain`` ``(G, K)``
+    (``None``: computed at each step)."""
+
+    rate: Any
+    estimator: Any
+    gain: Any
+
+
 class ModifiedPFWeighting:
     """Table 2, steps 2–3 as the particle filter's likelihood: detect, then compensate.
 
@@ -180,48 +194,57 @@ class ModifiedPFWeighting:
         3-0      γ̂_k: given ``[..., T, dy]``, or a BiasAttackEstimator fed the flagged innovation
         3-1      log p(ỹ_k − l̂_k γ̂_k | x_k^i)                                 (59)
 
-    so ``particle_step(..., likelihood=ModifiedPFWeighting(...))`` is one step of the
-    modified PF (eq. 60 is the step's weighted mean) and :func:`modified_particle_filter`
-    is :func:`~difffilter.particle_filter` with it. ``G`` is the model's
+    a :class:`~difffilter.particle.StepLikelihood` (its :class:`WeightingState` lives in
+    the carry), so ``ParticleFilter(N, likelihood=ModifiedPFWeighting(...))`` steps the
+    modified PF (eq. 60 is the step's weighted mean). ``G`` is the model's
     ``observation_matrix`` or, for a nonlinear measurement, its Jacobian at the predictive
     mean; unreceived entries (``mask``) enter neither the correction nor the norm. Each
-    call appends ``beta``, ``alarm``, ``zeta`` and ``gamma_hat`` to :attr:`records` (and
-    leaves them in :attr:`last`).
+    step records ``beta``, ``alarm``, ``zeta``, ``gamma_hat`` (and, with ``attack_rate``,
+    the running ``attack_rate`` ``p̂_l``).
 
     Args:
         detector: :class:`PoADetector` (``η``; ``ζ`` unless ``attack_rate`` is given).
         gamma_hat: tensor ``[..., T, dy]`` (indexed by the step) or a
             :class:`BiasAttackEstimator`.
         attack_rate: :class:`RunningAttackRate` (Remark 6) or ``None``.
-        gain: ``(G, K)`` shared by every step (``None``: computed at each step).
+        gain: ``(G, K)`` shared by every step (``None``: shared when the model's measurement
+            is linear and time-invariant and nothing is masked, else computed at each step).
         base_likelihood: clean-measurement likelihood of eq. (59) (default the model's).
     """
 
-    uses_predictive = True
-
     def __init__(self, detector, gamma_hat, *, attack_rate=None, gain=None, base_likelihood=None):
-        self.detector, self.gamma_hat, self.attack_rate, self.gain = (
-            detector,
-            gamma_hat,
-            attack_rate,
-            gain,
-        )
-        self.base = base_likelihood
+        if not isinstance(detector, PoADetector):
+            raise ValueError(f"detector must be a PoADetector; got {type(detector).__name__}")
+        if not isinstance(gamma_hat, (BiasAttackEstimator, Tensor)):
+            raise ValueError(
+                "gamma_hat must be a BiasAttackEstimator or a tensor [..., T, dy]; got "
+                f"{type(gamma_hat).__name__}"
+            )
+        self.detector, self.gamma_hat, self.attack_rate = detector, gamma_hat, attack_rate
+        self.gain, self.base = gain, base_likelihood
         self.estimator = gamma_hat if isinstance(gamma_hat, BiasAttackEstimator) else None
-        self.est_state = self.rate_state = None
-        self.records, self.last = StepRecorder(), {}
 
-    def __call__(self, model, y, particles, k, mask, *, predictive) -> Tensor:
+    def init(self, model, batch_shape, dtype, device) -> WeightingState:
+        rate = None
+        if self.attack_rate is not None:
+            rate = self.attack_rate.init(batch_shape, dtype=dtype, device=device)
+        est = None if self.estimator is None else self.estimator.init(batch_shape)
+        gain = self.gain
+        if gain is None and _shared_gain_applies(model):
+            gain = _linear_measurement(model, 1, None)
+        if gain is not None:
+            gain = tuple(m.to(dtype) for m in gain)
+        return WeightingState(rate, est, gain)
+
+    def weigh(self, state: WeightingState, model, y, particles, k, mask, predictive):
         batch = y.shape[:-1]
         if self.attack_rate is not None:
-            if self.rate_state is None:
-                self.rate_state = self.attack_rate.init(batch, dtype=y.dtype, device=y.device)
-            zeta = self.attack_rate.zeta(self.rate_state)
+            zeta = self.attack_rate.zeta(state.rate)
         else:
             zeta = torch.full(batch, self.detector.zeta, dtype=y.dtype, device=y.device)
+        gain = state.gain if mask is None else None
         G, K = (
-            m.to(y.dtype)
-            for m in (self.gain or _linear_measurement(model, k, mask, at=predictive.mean))
+            m.to(y.dtype) for m in (gain or _linear_measurement(model, k, mask, at=predictive.mean))
         )
         if hasattr(model, "observation_matrix"):
             residuals = corrected_residuals(
@@ -235,34 +258,121 @@ class ModifiedPFWeighting:
             residuals = innov @ (eye - G @ K).transpose(-1, -2)
         beta = probability_of_attack(residuals, self.detector.eta, predictive.log_weights)
         alarm = beta > zeta
+        rate, est = state.rate, state.estimator
+        record = {"beta": beta, "alarm": alarm, "zeta": zeta}
         if self.attack_rate is not None:
-            self.rate_state = self.attack_rate.update(self.rate_state, alarm)
+            rate = self.attack_rate.update(rate, alarm)
+            record["attack_rate"] = self.attack_rate.estimate(rate)
         if self.estimator is not None:
-            if self.est_state is None:
-                self.est_state = self.estimator.init(batch)
             flag = alarm if mask is None else alarm.unsqueeze(-1) & mask
-            self.est_state, g_hat, _ = self.estimator.step(
-                self.est_state, predictive.innovation, predictive.innovation_cov, flag
+            est, g_hat, _ = self.estimator.step(
+                est, predictive.innovation, predictive.innovation_cov, flag
             )
         else:
             g_hat = self.gamma_hat[..., k - 1, :]
-        self.last = {"beta": beta, "alarm": alarm, "zeta": zeta, "gamma_hat": g_hat}
-        self.records.add(**self.last)
-        return AttackCompensatedLikelihood(alarm, g_hat, self.base)(model, y, particles, k, mask)
+        record["gamma_hat"] = g_hat
+        log_p = AttackCompensatedLikelihood(alarm, g_hat, self.base)(model, y, particles, k, mask)
+        return WeightingState(rate, est, state.gain), log_p, record
 
 
-def driver_settings(
-    num_particles, resampler, ess_threshold, generator, resample_generator, initial_state
-) -> dict:
-    """The particle-driver keywords the FDI filters share (default: systematic resampling)."""
-    return {
-        "num_particles": num_particles,
-        "resampler": resampler if resampler is not None else Systematic(),
-        "ess_threshold": ess_threshold,
-        "generator": generator,
-        "resample_generator": resample_generator,
-        "initial_state": initial_state,
+def _shared_gain_applies(model) -> bool:
+    return hasattr(model, "observation_matrix") and not getattr(model, "time_varying", False)
+
+
+class ModifiedParticleFilter(ParticleFilter):
+    """The modified PF of Table 2 as an estimator object.
+
+    Args:
+        num_particles: ``N``.
+        detector: :class:`PoADetector` with ``η`` (Theorem 1) and ``ζ`` (eqs 46, 53).
+        gamma_hat: ``γ̂`` as a tensor ``[..., T, dy]`` (the oracle ``γ_k`` or a noisy
+            version), or a :class:`BiasAttackEstimator` fed with the flagged residuals.
+        attack_rate: :class:`RunningAttackRate` for unknown ``p_l`` (Remark 6).
+        resampler, ess_threshold: default systematic resampling at every step (1.0),
+            which makes step 2-2 eq. (58) exactly.
+        base_likelihood: clean-measurement likelihood of eq. (59) (default the model's).
+        fused: run whole sequences through the low-overhead implementation of
+            :mod:`difffilter.fdi.fused` (the same algorithm and random numbers, equal up to
+            round-off); it needs a tensor ``gamma_hat``, a time-invariant model, systematic
+            resampling at every step and none of ``us``, ``mask``, ``attack_rate``,
+            ``base_likelihood``.
+
+    Step output: the weighted mean (eq. 60), ``attack = l̂_k γ̂_k`` (the compensation
+    applied), ``score`` ``β̃_k`` (eq. 58), ``alarm`` ``l̂_k``, ``threshold`` ``ζ_k [...]``,
+    ``extras`` ``gamma_hat`` (and the particle filter's records).
+    """
+
+    def __init__(
+        self,
+        num_particles: int,
+        detector: PoADetector,
+        gamma_hat,
+        *,
+        attack_rate: RunningAttackRate | None = None,
+        resampler=None,
+        ess_threshold: float = 1.0,
+        base_likelihood=None,
+        fused: bool = False,
+    ):
+        weighting = ModifiedPFWeighting(
+            detector, gamma_hat, attack_rate=attack_rate, base_likelihood=base_likelihood
+        )
+        resampler = resampler if resampler is not None else Systematic()
+        super().__init__(
+            num_particles, resampler=resampler, likelihood=weighting, ess_threshold=ess_threshold
+        )
+        self.detector, self.gamma_hat, self.fused = detector, gamma_hat, bool(fused)
+        if self.fused:
+            _check_fused(gamma_hat, attack_rate, base_likelihood, resampler, ess_threshold)
+
+    def _step(self, carry, y, u, mask):
+        carry, out = super()._step(carry, y, u, mask)
+        x = dict(out.extras)
+        beta, alarm, zeta = x.pop("beta"), x.pop("alarm"), x.pop("zeta")
+        attack = alarm.unsqueeze(-1).to(y.dtype) * x["gamma_hat"]
+        return carry, out._replace(attack=attack, score=beta, alarm=alarm, threshold=zeta, extras=x)
+
+    def _run(self, carry, ys, us, mask):
+        if not self.fused:
+            return None
+        if us is not None or mask is not None:
+            bad = "us" if us is not None else "mask"
+            raise ValueError(f"fused=True does not support {bad}; use fused=False")
+        if ys.dim() != 3:
+            raise ValueError(f"fused=True needs ys of shape [B, T, dy]; got {tuple(ys.shape)}")
+        from .fused import FusedModifiedPF
+
+        pf = FusedModifiedPF(
+            carry.model, num_particles=self.num_particles, eta=float(self.detector.eta),
+            zeta=self.detector.zeta,
+        )  # fmt: skip
+        gens = carry.generators or Generators()
+        return pf.run(
+            ys, self.gamma_hat, generator=gens.propagate, resample_generator=gens.resample,
+            initial_particles=carry.particles,
+        )  # fmt: skip
+
+
+def _check_fused(gamma_hat, attack_rate, base_likelihood, resampler, ess_threshold) -> None:
+    unsupported = {
+        "attack_rate": attack_rate is not None,
+        "base_likelihood": base_likelihood is not None,
+        "gamma_hat (an estimator)": not isinstance(gamma_hat, Tensor),
+        "resampler (not Systematic)": type(resampler) is not Systematic,
+        "ess_threshold (not 1.0)": ess_threshold != 1.0,
     }
+    bad = [name for name, flag in unsupported.items() if flag]
+    if bad:
+        raise ValueError(f"fused=True does not support {', '.join(bad)}; use fused=False")
+
+
+def _generators(generator, resample_generator) -> Generators:
+    gens = Generators.of(generator)
+    return gens if resample_generator is None else gens._replace(resample=resample_generator)
+
+
+def _attach(pf: ParticleFilter, model, initial_state, generators):
+    return None if initial_state is None else pf.attach(initial_state, model, generators)
 
 
 # ------------------------------------------------------------------------------ filters
@@ -286,33 +396,20 @@ def modified_particle_filter(
     base_likelihood=None,
     fused: bool = False,
 ) -> EstimatorOutput:
-    """The modified PF of Table 2 over a sequence ``ys [..., T, dy]`` of received ``ỹ_k``.
+    """The modified PF of Table 2 over a sequence ``ys [..., T, dy]`` of received ``ỹ_k``:
+    :class:`ModifiedParticleFilter` in the open loop.
 
     Args:
         model: a model with Gaussian process noise; a linear measurement
             (``observation_matrix``, as the four-tank plant has) gives the paper's exact
             eq. (35); a nonlinear one is linearised at the predictive particle mean.
         us: inputs ``[..., T, du]`` or ``None``; mask: received entries ``[..., T, dy]``.
-        num_particles: ``N``.
-        detector: :class:`PoADetector` with ``η`` (Theorem 1) and ``ζ`` (eqs 46, 53);
-            :meth:`PoADetector.from_model` derives both.
-        gamma_hat: ``γ̂`` as a tensor ``[..., T, dy]`` (the oracle ``γ_k`` or a noisy
-            version), or a :class:`BiasAttackEstimator` fed with the flagged residuals.
-        attack_rate: :class:`RunningAttackRate` for unknown ``p_l`` (Remark 6): ``ζ``
-            then comes from it, not from ``detector``.
-        resampler, ess_threshold: default systematic resampling at every step (1.0),
-            which makes step 2-2 eq. (58) exactly.
+        num_particles, detector, gamma_hat, attack_rate, resampler, ess_threshold,
+            base_likelihood, fused: as in :class:`ModifiedParticleFilter`.
         generator: initial particles (unless ``initial_state``) and propagation noise;
             resample_generator: resampling uniforms (separate streams keep common
             random numbers aligned across estimators).
         initial_state: start from this particle set instead of the prior.
-        base_likelihood: clean-measurement likelihood of eq. (59) (default the model's).
-        fused: run the low-overhead implementation of :mod:`difffilter.fdi.fused`
-            (the same algorithm and random numbers, equal up to round-off; about 20
-            kernels per step, for real-time use of small particle sets). It needs a
-            tensor ``gamma_hat``, a time-invariant model, systematic resampling at every
-            step and none of ``us``, ``mask``, ``attack_rate``, ``base_likelihood``; it
-            records no gradient and returns no ``covs``.
 
     Returns an :class:`~difffilter.EstimatorOutput`: ``means`` ``x̂_k`` (eq. 60),
     ``covs``, ``attack = l̂_k γ̂_k`` ``[..., T, dy]`` (the compensation applied),
@@ -320,80 +417,87 @@ def modified_particle_filter(
     and ``extras``: ``gamma_hat [..., T, dy]``, ``pred_means [..., T, dx]``,
     ``ess [..., T]`` and, with ``attack_rate``, ``attack_rate`` (final ``p̂_l`` ``[...]``).
     """
-    if not isinstance(detector, PoADetector):
-        raise ValueError(f"detector must be a PoADetector; got {type(detector).__name__}")
     ys, us, mask = check_filter_inputs(
         model, ys, us, mask, resampler=resampler, ess_threshold=ess_threshold, gamma_hat=gamma_hat
     )
-    batch, T = ys.shape[:-2], ys.shape[-2]
-    if fused:
-        return _run_fused(
-            model, ys, us, mask, num_particles, detector, gamma_hat, attack_rate, resampler,
-            ess_threshold, generator, resample_generator, initial_state, base_likelihood,
-        )  # fmt: skip
-    if not isinstance(gamma_hat, BiasAttackEstimator) and (
-        not isinstance(gamma_hat, Tensor) or gamma_hat.shape[-2:] != ys.shape[-2:]
-    ):
+    if isinstance(gamma_hat, Tensor) and gamma_hat.shape[-2:] != ys.shape[-2:]:
         raise ValueError(
-            f"gamma_hat must be a BiasAttackEstimator or a tensor [..., {T}, {model.dim_y}]; "
-            f"got {getattr(gamma_hat, 'shape', type(gamma_hat).__name__)}"
+            f"gamma_hat must be a BiasAttackEstimator or a tensor [..., {ys.shape[-2]}, "
+            f"{model.dim_y}]; got {tuple(gamma_hat.shape)}"
         )
-    shared = (
-        mask is None
-        and hasattr(model, "observation_matrix")
-        and not getattr(model, "time_varying", False)
-    )
-    gain = tuple(m.to(ys.dtype) for m in _linear_measurement(model, 1, None)) if shared else None
-    weighting = ModifiedPFWeighting(
-        detector, gamma_hat, attack_rate=attack_rate, gain=gain, base_likelihood=base_likelihood
-    )
-    settings = driver_settings(
-        num_particles, resampler, ess_threshold, generator, resample_generator, initial_state
-    )
-    res = particle_filter(model, ys, us, mask=mask, likelihood=weighting, **settings)
-    r = weighting.records.stack(len(batch))
-    extras = {"gamma_hat": r["gamma_hat"], "pred_means": res.pred_means, "ess": res.ess}
+    pf = ModifiedParticleFilter(
+        num_particles, detector, gamma_hat, attack_rate=attack_rate, resampler=resampler,
+        ess_threshold=ess_threshold, base_likelihood=base_likelihood, fused=fused,
+    )  # fmt: skip
+    gens = _generators(generator, resample_generator)
+    carry = _attach(pf, model, initial_state, gens)
+    if fused and carry is not None:  # open_loop takes the fast path only from the prior
+        out = pf._run(carry, ys, us, mask)
+    else:
+        out = open_loop(pf, model, ys, us, mask=mask, generator=gens, carry=carry)
     if attack_rate is not None:
-        extras["attack_rate"] = attack_rate.estimate(weighting.rate_state)
-    return EstimatorOutput(
-        means=res.means,
-        covs=res.covs,
-        attack=r["alarm"].unsqueeze(-1).to(ys.dtype) * r["gamma_hat"],
-        detection=Detection(r["beta"], r["alarm"], r["zeta"]),
-        extras=extras,
-    )
+        out.extras["attack_rate"] = out.extras["attack_rate"][..., -1]
+    return out
 
 
-def _run_fused(
-    model, ys, us, mask, num_particles, detector, gamma_hat, attack_rate, resampler,
-    ess_threshold, generator, resample_generator, initial_state, base_likelihood,
-) -> EstimatorOutput:  # fmt: skip
-    from .fused import FusedModifiedPF
+class PoAParticleFilter(ParticleFilter):
+    """The normal (bootstrap) PF with the PoA detector of eqs (10)–(17), as an estimator.
 
-    unsupported = {
-        "us": us is not None,
-        "mask": mask is not None,
-        "attack_rate": attack_rate is not None,
-        "base_likelihood": base_likelihood is not None,
-        "gamma_hat (an estimator)": not isinstance(gamma_hat, Tensor),
-        "resampler (not Systematic)": resampler is not None and type(resampler) is not Systematic,
-        "ess_threshold (not 1.0)": ess_threshold != 1.0,
-    }
-    bad = [name for name, flag in unsupported.items() if flag]
-    if bad:
-        raise ValueError(f"fused=True does not support {', '.join(bad)}; use fused=False")
-    if ys.dim() != 3:
-        raise ValueError(f"fused=True needs ys of shape [B, T, dy]; got {tuple(ys.shape)}")
-    pf = FusedModifiedPF(
-        model, num_particles=num_particles, eta=float(detector.eta), zeta=detector.zeta
-    )
-    return pf.run(
-        ys,
-        gamma_hat,
-        generator=generator,
-        resample_generator=resample_generator,
-        initial_particles=None if initial_state is None else initial_state.particles,
-    )
+    ``β_k = Σ_{‖y_k − h(x_k^i)‖ > η} w_k^i`` with the filter's posterior weights (eq. 17
+    when it resamples every step); unreceived entries (``mask``) do not enter the norm.
+    ``literal=True`` runs the diagnostic variant: weights from
+    :class:`LiteralGaussianLikelihood` and the PoA of
+    :func:`~difffilter.fdi.poa.literal_probability_of_attack` (NaN → no alarm when every
+    density underflows). ``likelihood`` overrides the weighting likelihood (log-space mode
+    only). Step output: ``score`` ``β_k``, ``alarm`` ``β_k > ζ``, ``threshold`` ``ζ``.
+    """
+
+    def __init__(
+        self,
+        num_particles: int,
+        detector: PoADetector,
+        *,
+        literal: bool = False,
+        likelihood=None,
+        resampler=None,
+        ess_threshold: float = 1.0,
+        record_prior: bool = False,
+    ):
+        if not isinstance(detector, PoADetector):
+            raise ValueError(f"detector must be a PoADetector; got {type(detector).__name__}")
+        if literal and likelihood is not None:
+            raise ValueError("pass either literal=True or a likelihood, not both")
+        self.detector, self.literal = detector, bool(literal)
+        super().__init__(
+            num_particles,
+            resampler=resampler if resampler is not None else Systematic(),
+            likelihood=LiteralGaussianLikelihood() if literal else likelihood,
+            ess_threshold=ess_threshold,
+            hooks=(self._poa,),
+            record_prior=record_prior,
+        )
+
+    def _poa(self, model, y, m, state, out):
+        residuals = y.unsqueeze(-2) - model.observe(state.particles, state.k)
+        if m is not None:
+            residuals = residuals * m.unsqueeze(-2).to(residuals.dtype)
+        if self.literal:
+            if m is not None:
+                raise ValueError(
+                    "literal=True does not support a measurement mask (mask must be None)"
+                )
+            prior = torch.exp(out.extras["prior_log_weights"])
+            R = model.measurement_cov(state.k)
+            beta = literal_probability_of_attack(residuals, R, self.detector.eta, prior)
+            return {"beta": beta.to(y.dtype)}
+        return {"beta": probability_of_attack(residuals, self.detector.eta, state.log_weights)}
+
+    def _step(self, carry, y, u, mask):
+        carry, out = super()._step(carry, y, u, mask)
+        x = dict(out.extras)
+        beta = x.pop("beta")
+        zeta = self.detector.zeta
+        return carry, out._replace(score=beta, alarm=beta > zeta, threshold=zeta, extras=x)
 
 
 def particle_filter_poa(
@@ -413,65 +517,32 @@ def particle_filter_poa(
     initial_state: ParticleState | None = None,
     return_particles: bool = False,
 ) -> EstimatorOutput:
-    """The normal (bootstrap) PF on ``ys [..., T, dy]`` with the PoA detector of eqs (10)–(17).
+    """The normal (bootstrap) PF on ``ys [..., T, dy]`` with the PoA detector:
+    :class:`PoAParticleFilter` in the open loop.
 
-    ``β_k = Σ_{‖y_k − h(x_k^i)‖ > η} w_k^i`` with the filter's posterior weights (eq. 17
-    when it resamples every step); unreceived entries (``mask``) do not enter the norm.
-    ``literal=True`` runs the diagnostic variant: weights from
-    :class:`LiteralGaussianLikelihood` and the PoA of
-    :func:`~difffilter.fdi.poa.literal_probability_of_attack` (NaN → no alarm when every
-    density underflows). Other arguments as in :func:`modified_particle_filter`;
-    ``likelihood`` overrides the weighting likelihood (log-space mode only).
-
-    Returns an :class:`~difffilter.EstimatorOutput` (``attack`` is ``None``; detection
-    scores ``β_k``, threshold ``ζ``) with ``extras``: ``ess [..., T]``,
-    ``log_likelihood [...]`` and, with ``return_particles=True``, ``particles
-    [..., T, N, dx]``, their normalised ``log_weights [..., T, N]`` and
-    ``prior_log_weights [..., T, N]`` (the predictive weights ``log w_{k−1}`` of ``x_k``).
-    β is computed by a step hook of the one particle driver, so no particle history is kept.
+    Other arguments as in :func:`modified_particle_filter`. Returns an
+    :class:`~difffilter.EstimatorOutput` (``attack`` is ``None``; detection scores
+    ``β_k``, threshold ``ζ``) with ``extras``: ``ess [..., T]``, ``log_likelihood [...]``
+    and, with ``return_particles=True``, ``particles [..., T, N, dx]``, their normalised
+    ``log_weights [..., T, N]`` and ``prior_log_weights [..., T, N]`` (the predictive
+    weights ``log w_{k−1}`` of ``x_k``). β is computed by a step hook, so no particle
+    history is kept unless asked for.
     """
-    if not isinstance(detector, PoADetector):
-        raise ValueError(f"detector must be a PoADetector; got {type(detector).__name__}")
-    if literal and likelihood is not None:
-        raise ValueError("pass either literal=True or a likelihood, not both")
     if literal and mask is not None:
         raise ValueError("literal=True does not support a measurement mask (mask must be None)")
     ys, us, mask = check_filter_inputs(
         model, ys, us, mask, resampler=resampler, ess_threshold=ess_threshold
     )
-    R = model.measurement_cov(1)
-
-    def poa(model, y, m, state, out):
-        residuals = y.unsqueeze(-2) - model.observe(state.particles, state.k)
-        if m is not None:
-            residuals = residuals * m.unsqueeze(-2).to(residuals.dtype)
-        if literal:
-            prior = torch.exp(out.prior_log_weights)
-            beta = literal_probability_of_attack(residuals, R, detector.eta, prior).to(y.dtype)
-        else:
-            beta = probability_of_attack(residuals, detector.eta, state.log_weights)
-        return (
-            {"beta": beta, "prior_log_weights": out.prior_log_weights}
-            if return_particles
-            else {"beta": beta}
-        )
-
-    settings = driver_settings(
-        num_particles, resampler, ess_threshold, generator, resample_generator, initial_state
-    )
-    weigh = LiteralGaussianLikelihood() if literal else likelihood
-    res = particle_filter(
-        model, ys, us, mask=mask, likelihood=weigh, hooks=(poa,), return_particles=return_particles,
-        **settings,
+    pf = PoAParticleFilter(
+        num_particles, detector, literal=literal, likelihood=likelihood, resampler=resampler,
+        ess_threshold=ess_threshold, record_prior=return_particles,
     )  # fmt: skip
-    beta = res.records["beta"]
-    extras = {"ess": res.ess, "log_likelihood": res.log_likelihood}
+    gens = _generators(generator, resample_generator)
+    collect = None
     if return_particles:
-        extras.update(particles=res.particles, log_weights=res.log_weights,
-                      prior_log_weights=res.records["prior_log_weights"])  # fmt: skip
-    return EstimatorOutput(
-        means=res.means,
-        covs=res.covs,
-        detection=Detection(beta, beta > detector.zeta, detector.zeta),
-        extras=extras,
-    )
+
+        def collect(carry, out):
+            return {"particles": carry.particles, "log_weights": carry.log_weights}
+
+    carry = _attach(pf, model, initial_state, gens)
+    return open_loop(pf, model, ys, us, mask=mask, generator=gens, carry=carry, collect=collect)

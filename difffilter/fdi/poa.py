@@ -33,7 +33,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ..kalman import kalman_gain
+from ..gaussian import kalman_gain
 from ..linalg import LOG_2PI, safe_cholesky
 
 __all__ = [

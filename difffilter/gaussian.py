@@ -1,0 +1,147 @@
+"""The Gaussian core: every Kalman-type prediction and update of the library, once.
+
+One step ``k−1 → k`` of a Gaussian filter is three textbook blocks::
+
+    predict   m⁻ = F m + B u                 P⁻ = F P Fᵀ + Q                 (linear_predict)
+    gain      S  = C_yy + R                  K  = C_xy S⁻¹  (Cholesky solve)   (kalman_gain)
+    update    m⁺ = m⁻ + K r                  P⁺ = (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ
+    evidence  log p(y_k | y_{1:k−1}) = log N(r; 0, S)                       (gaussian_update)
+
+with ``C_xy = P⁻ Hᵀ`` and ``C_yy = H P⁻ Hᵀ`` for the KF and EKF (:func:`linear_update`)
+and their sigma-point estimates for the UKF. Every Gaussian update of the library takes
+its pieces from here: the Kalman filter (sequential, parallel-in-time and the
+shared-covariance path), the gain schedule, the EKF and UKF, the Kalman proposal of the
+particle filter, Zhang's adaptive Kalman filter and the MDPF's local filters, the attack
+estimators and the EKF over a network's weights. Covariances are symmetrised after every
+step; unreceived measurement entries are removed exactly
+(:func:`difffilter.linalg.masked_measurement`). Shapes broadcast over leading batch
+dimensions: vectors ``[..., d]``, matrices ``[..., d, d]``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from .linalg import (
+    cholesky_solve_right,
+    gaussian_log_prob_chol,
+    masked_measurement,
+    matvec,
+    safe_cholesky,
+    symmetrize,
+)
+
+__all__ = [
+    "kalman_gain",
+    "joseph_covariance",
+    "gaussian_update",
+    "predict_covariance",
+    "linear_predict",
+    "linear_update",
+]
+
+
+def kalman_gain(cross_cov: Tensor, innovation_cov: Tensor) -> tuple[Tensor, Tensor]:
+    """Gain ``K = C S⁻¹`` by a Cholesky solve (``S`` is never inverted).
+
+    Shapes: ``cross_cov`` ``C = Cov(x, y)`` ``[..., dx, dy]``, ``innovation_cov`` ``S``
+    ``[..., dy, dy]`` (symmetrised here) → ``(K [..., dx, dy], chol(S) [..., dy, dy])``.
+    """
+    chol = safe_cholesky(symmetrize(innovation_cov), name="innovation covariance S")
+    return cholesky_solve_right(cross_cov, chol), chol
+
+
+def joseph_covariance(
+    pred_cov: Tensor, gain: Tensor, obs_matrix: Tensor, noise_cov: Tensor
+) -> Tensor:
+    """Joseph-form posterior covariance ``(I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ``, symmetrised.
+
+    Shapes: ``pred_cov [..., dx, dx]``, ``gain [..., dx, dy]``, ``obs_matrix [..., dy, dx]``,
+    ``noise_cov [..., dy, dy]`` → ``[..., dx, dx]``. Positive semidefinite for any gain.
+    """
+    eye = torch.eye(pred_cov.shape[-1], dtype=pred_cov.dtype, device=pred_cov.device)
+    i_kh = eye - gain @ obs_matrix
+    cov = i_kh @ pred_cov @ i_kh.transpose(-1, -2) + gain @ noise_cov @ gain.transpose(-1, -2)
+    return symmetrize(cov)
+
+
+def gaussian_update(
+    pred_mean: Tensor,
+    pred_cov: Tensor,
+    residual: Tensor,
+    cross_cov: Tensor,
+    pred_obs_cov: Tensor,
+    obs_matrix: Tensor,
+    noise_cov: Tensor,
+    observed: Tensor | int,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Measurement update shared by every Gaussian filter.
+
+    Args:
+        pred_mean: ``m⁻`` ``[..., dx]``.
+        pred_cov: ``P⁻`` ``[..., dx, dx]``.
+        residual: ``r = y − ŷ`` ``[..., dy]`` (already masked).
+        cross_cov: ``C = Cov(x, y)`` ``[..., dx, dy]`` (``P⁻Hᵀ`` for the KF/EKF).
+        pred_obs_cov: covariance of the predicted measurement without noise
+            ``[..., dy, dy]`` (``H P⁻ Hᵀ`` for the KF/EKF).
+        obs_matrix: ``H`` ``[..., dy, dx]`` used by the Joseph form (the UKF passes its
+            statistical linearisation ``Cᵀ P⁻⁻¹``).
+        noise_cov: ``R`` ``[..., dy, dy]`` (already masked).
+        observed: number of received entries (scalar or ``[...]``).
+
+    Returns ``(m⁺, P⁺, S, log N(r; 0, S))``.
+    """
+    S = symmetrize(pred_obs_cov + noise_cov)
+    gain, chol = kalman_gain(cross_cov, S)  # K = C S⁻¹  [..., dx, dy]
+    mean = pred_mean + matvec(gain, residual)
+    cov = joseph_covariance(pred_cov, gain, obs_matrix, noise_cov)
+    log_lik = gaussian_log_prob_chol(residual, chol, observed)
+    return mean, cov, S, log_lik
+
+
+def predict_covariance(cov: Tensor, transition: Tensor, process_cov: Tensor) -> Tensor:
+    """``P⁻ = F P Fᵀ + Q``, symmetrised: ``[..., dx, dx]`` each (``F`` may be a Jacobian)."""
+    return symmetrize(transition @ cov @ transition.transpose(-1, -2) + process_cov)
+
+
+def linear_predict(
+    mean: Tensor,
+    cov: Tensor,
+    transition: Tensor,
+    process_cov: Tensor,
+    control: Tensor | None = None,
+    u: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """``m⁻ = F m + B u``, ``P⁻ = F P Fᵀ + Q``: ``mean [..., dx]``, ``cov [..., dx, dx]``,
+    ``F [..., dx, dx]``, ``Q [..., dx, dx]``, ``B [..., dx, du]`` and ``u [..., du]`` (either
+    ``None``: no input) → ``([..., dx], [..., dx, dx])``.
+
+    (The EKF's mean comes from the model; it shares :func:`predict_covariance`.)
+    """
+    pred_mean = matvec(transition, mean)
+    if control is not None and u is not None:
+        pred_mean = pred_mean + matvec(control, u)
+    return pred_mean, predict_covariance(cov, transition, process_cov)
+
+
+def linear_update(
+    pred_mean: Tensor,
+    pred_cov: Tensor,
+    residual: Tensor,
+    obs_matrix: Tensor,
+    noise_cov: Tensor,
+    mask: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The KF/EKF update from ``r = y − ŷ⁻`` with ``H`` (the matrix or the Jacobian at ``m⁻``).
+
+    ``residual [..., dy]`` (unmasked), ``obs_matrix [..., dy, dx]``, ``noise_cov [..., dy, dy]``,
+    ``mask [..., dy]`` (bool) or ``None``. Returns ``(m⁺, P⁺, r', S, log N(r'; 0, S))`` with
+    ``r'`` the residual with unreceived entries zeroed.
+    """
+    residual, H, R, observed = masked_measurement(residual, obs_matrix, noise_cov, mask)
+    cross = pred_cov @ H.transpose(-1, -2)
+    mean, cov, S, log_lik = gaussian_update(
+        pred_mean, pred_cov, residual, cross, H @ cross, H, R, observed
+    )
+    return mean, cov, residual, S, log_lik
