@@ -14,22 +14,87 @@ stacked into one :class:`~difffilter.estimator.EstimatorOutput`. An estimator ma
 private whole-sequence fast path instead (the shared-covariance Kalman filter, the
 parallel-in-time scan, the fused modified PF), tested equal to the composed steps.
 
-**Closed loop** (:func:`closed_loop`, in :mod:`difffilter.closed_loop`): plant → attack →
-channel and schedule → estimator → controller, one step at a time, so that the input
-depends on the estimate and the attack may read the plant and the estimator.
+**Closed loop** (:func:`closed_loop`): plant → attack → channel and schedule → estimator
+→ controller, one step at a time, so that the input depends on the estimate and the
+attack may read the plant and the estimator::
+
+    x_k    = f(x_{k−1}, ũ_{k−1}) + w_k,     ũ_{k−1} = u_{k−1} (+ l_k a_k: an actuator attack)
+    y_k    = h(x_k) + v_k
+    A_k, a_k, l_k = attack.step(A_{k−1}, k, y=y_k, x=x_k, u=u_{k−1}, view=out_{k−1})
+    ỹ_k, m_k = channel(y_k, a_k, l_k), mask_k                 (sensor or replacement attack)
+    E_k, out_k = estimator.step(E_{k−1}, ỹ_k, u_{k−1}, m_k)
+    u_k    = controller(k, ỹ_k, out_k)        (or the known input u_k: the open loop's plant)
+
+It returns the loop's own :class:`Trajectories` beside the estimator's output: what the
+plant did is the truth that scoring reads (never the estimator's ``extras``). The noise
+is drawn by the plant's noise models from a generator (:class:`DrawnNoise`) or replayed
+from draws made beforehand (:class:`ReplayedNoise`), so every estimator's loop can run on
+the same random numbers. Without an estimator it is the simulation of the plant (the
+open loop's data); a loop may also be resumed from its :class:`LoopState` (truncated
+backpropagation through time trains the learned estimator in chunks of steps).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from typing import Any, NamedTuple, Protocol
 
 import torch
 from torch import Tensor
 
 from ._checks import check_model, check_sequence_inputs
+from .attack import Attack, Channel, inject
 from .estimator import Estimator, EstimatorOutput, Generators, stack_steps
 
-__all__ = ["open_loop"]
+__all__ = [
+    "open_loop",
+    "closed_loop",
+    "Trajectories",
+    "LoopResult",
+    "LoopState",
+    "DrawnNoise",
+    "ReplayedNoise",
+    "Controller",
+    "KnownInputs",
+]
+
+
+class Trajectories(NamedTuple):
+    """A batch of runs of a loop (time index ``t`` ↔ ``k = t + 1``).
+
+    Attributes:
+        x: true states ``x_1 … x_T`` ``[B, T, dx]``.
+        y_true: measurements before any attack ``[B, T, dy]``.
+        y_recv: what the estimator receives ``[B, T, dy]`` (attacked; unreceived
+            entries are whatever ``mask`` says not to read).
+        us: inputs the estimator knows ``u_0 … u_{T−1}`` ``[B, T, du]`` or ``None``.
+        mask: received entries ``[B, T, dy]`` (bool) or ``None`` (all received).
+        attack: the injected attack signal ``[B, T, da]`` (zero where none is injected;
+            ``da = dy`` for sensor-side attacks, ``du`` for actuator attacks).
+        flags: attacked steps ``[B, T]`` (bool).
+        info: extras: ``"attack_values"`` ``[B, T, da]`` (what the attacker would inject
+            at every step, also where it does not), ``"x0"`` ``[B, dx]`` and what a
+            scenario records beside them (the exogenous draws of a closed loop).
+    """
+
+    x: Tensor
+    y_true: Tensor
+    y_recv: Tensor
+    us: Tensor | None
+    mask: Tensor | None
+    attack: Tensor
+    flags: Tensor
+    info: Mapping[str, Tensor] = {}
+
+    def runs(self, count: int) -> Trajectories:
+        """The first ``count`` runs (every batch-first tensor sliced)."""
+
+        def cut(v):
+            return v[:count] if isinstance(v, Tensor) else v
+
+        return Trajectories(
+            *(cut(v) for v in self[:-1]), info={k: cut(v) for k, v in self.info.items()}
+        )
 
 
 def open_loop(
@@ -106,3 +171,219 @@ def _step_through(estimator, carry, ys, us, mask, batch, collect) -> EstimatorOu
                 records.setdefault(name, []).append(value)
     collected = {k: torch.stack(v, dim=len(batch)) for k, v in records.items()}
     return stack_steps(outs, batch, collected)
+
+
+# ------------------------------------------------------------------------ the closed loop
+
+
+class DrawnNoise:
+    """Process and measurement noise drawn by the plant's own noise models from one
+    generator, per step and in this order: ``x_k ~ p(x_k | x_{k−1}, u)`` then ``y_k ~ p(y_k
+    | x_k)`` (:meth:`~difffilter.StateSpaceModel.sample_transition`,
+    :meth:`~difffilter.StateSpaceModel.sample_measurement`)."""
+
+    def __init__(self, generator: torch.Generator | None):
+        self.generator = generator
+
+    def transition(self, plant, x: Tensor, u: Tensor | None, t: int) -> Tensor:
+        return plant.sample_transition(x, u, t, self.generator)
+
+    def measure(self, plant, x: Tensor, t: int) -> Tensor:
+        return plant.sample_measurement(x, t + 1, self.generator)
+
+
+class ReplayedNoise:
+    """Additive noise drawn beforehand: ``x_k = f(x_{k−1}, u) + w[:, t]``, ``y_k = h(x_k) +
+    v[:, t]`` with ``process [B, T, dx]`` and ``measurement [B, T, dy]`` (``t = k − 1``): every
+    estimator's loop replays the same draws (common random numbers)."""
+
+    def __init__(self, process: Tensor, measurement: Tensor):
+        if process.shape[:-1] != measurement.shape[:-1]:
+            raise ValueError(
+                f"process [B, T, dx] and measurement [B, T, dy] noise must share B and T; got "
+                f"{tuple(process.shape)} and {tuple(measurement.shape)}"
+            )
+        self.process, self.measurement = process, measurement
+
+    def transition(self, plant, x: Tensor, u: Tensor | None, t: int) -> Tensor:
+        return plant.transition(x, u, t) + self.process[:, t]
+
+    def measure(self, plant, x: Tensor, t: int) -> Tensor:
+        return plant.observe(x, t + 1) + self.measurement[:, t]
+
+
+class Controller(Protocol):
+    """The input of the next step from what the loop has: ``init(batch_shape, dtype, device)
+    → u_0 [..., du]`` (or ``None`` for a plant without input) and ``__call__(k, y, out) →
+    u_k [..., du]`` after measurement ``k`` (``y`` the received ``ỹ_k``, ``out`` the
+    estimator's :class:`~difffilter.results.StepOutput` or ``None``)."""
+
+    def init(self, batch_shape, dtype, device) -> Tensor | None: ...
+
+    def __call__(self, k: int, y: Tensor, out) -> Tensor: ...
+
+
+class KnownInputs:
+    """The open loop's controller: the known inputs ``us [B, T, du]`` (``u_k = us[:, k]``)."""
+
+    def __init__(self, us: Tensor):
+        self.us = us
+
+    def init(self, batch_shape, dtype, device) -> Tensor:
+        return self.us[:, 0]
+
+    def __call__(self, k: int, y: Tensor, out) -> Tensor:
+        return self.us[:, min(k, self.us.shape[1] - 1)]
+
+
+class LoopState(NamedTuple):
+    """Where a closed loop stands after ``k`` steps: the plant's state ``x [B, dx]``, the
+    next input ``u [B, du]`` (or ``None``), the attacker's state, the estimator's carry
+    (or ``None``) and its last output ``view`` (what an adaptive attacker reads)."""
+
+    k: int
+    x: Tensor
+    u: Tensor | None
+    attack: Any
+    carry: Any
+    view: Any
+
+    def detach(self) -> LoopState:
+        """The same state cut from the autograd graph (truncated backpropagation)."""
+
+        def cut(value):
+            if isinstance(value, Tensor):
+                return value.detach()
+            if isinstance(value, tuple) and not isinstance(value, torch.Size):
+                items = [cut(v) for v in value]
+                return type(value)(*items) if hasattr(value, "_fields") else type(value)(items)
+            return value
+
+        return LoopState(self.k, *(cut(v) for v in self[1:]))
+
+
+class LoopResult(NamedTuple):
+    """A closed loop's own :class:`Trajectories`, the estimator's stacked
+    :class:`~difffilter.EstimatorOutput` (``None`` without an estimator) and the
+    :class:`LoopState` it ended in."""
+
+    trajectories: Trajectories
+    output: EstimatorOutput | None
+    state: LoopState
+
+
+def closed_loop(
+    plant,
+    steps: int,
+    *,
+    noise,
+    x0: Tensor | None = None,
+    estimator: Estimator | None = None,
+    model=None,
+    controller: Controller | None = None,
+    attack: Attack | None = None,
+    attack_generator: torch.Generator | None = None,
+    mask: Tensor | None = None,
+    generator=None,
+    state: LoopState | None = None,
+    horizon: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> LoopResult:
+    """Run ``steps`` steps of plant → attack → channel → estimator → controller.
+
+    Args:
+        plant: the :class:`~difffilter.StateSpaceModel` that simulates the truth.
+        steps: ``L ≥ 1`` steps to run (from ``state.k`` on when resuming).
+        noise: :class:`DrawnNoise` or :class:`ReplayedNoise`.
+        x0: initial states ``[B, dx]`` (a new loop).
+        estimator, model: the :class:`~difffilter.estimator.Estimator` and its model (the
+            plant's, or what the estimator believes; default the plant), or ``None``.
+        controller: a :class:`Controller` (``None``: a plant without input).
+        attack: an :class:`~difffilter.attack.Attack` or ``None``; attack_generator its
+            draws.
+        mask: received entries ``[B, T, dy]`` (the schedule) or ``None``, indexed by the
+            absolute step.
+        generator: the estimator's draws (a ``torch.Generator`` or
+            :class:`~difffilter.estimator.Generators`).
+        state: resume from this :class:`LoopState` (``x0`` and the initial draws unused).
+        horizon: the whole loop's length ``T`` when it runs in chunks (what the attacker
+            tabulates for at the start; default ``steps``).
+        progress: called with 1 after every step (e.g. a progress bar's ``update``).
+
+    Returns a :class:`LoopResult`: the trajectories of these ``L`` steps
+    (``us`` = the inputs the estimator knew, ``attack``/``flags``/``info["attack_values"]``
+    as the attack made them), the estimator's output over them and the final state.
+    Differentiable end to end (the loop records no tensor in place).
+    """
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"steps must be an integer >= 1; got {steps!r}")
+    check_model(plant)
+    model = plant if model is None else model
+    if state is None:
+        if x0 is None:
+            raise ValueError("x0 [B, dx] is needed to start a loop (or pass state= to resume)")
+        state = _start(plant, horizon or steps, x0, estimator, model, controller, attack,
+                       attack_generator, generator)  # fmt: skip
+    channel = None if attack is None else Channel(attack.channel)
+    rec: dict[str, list] = {k: [] for k in ("x", "y", "recv", "u", "attack", "value", "flag")}
+    outs = []
+    k, x, u, a_state, carry, view = state
+    for _ in range(steps):
+        k += 1
+        m = None if mask is None else mask[:, k - 1]
+        applied, a, value, flag = u, None, None, None
+        if channel is Channel.ACTUATOR:
+            a_state, value, flag = attack.step(a_state, k, x=x, u=u, view=view)
+            applied, a = inject(channel, u, value, flag)
+        x = noise.transition(plant, x, applied, k - 1)
+        y = noise.measure(plant, x, k - 1)
+        received = y
+        if channel is not None and channel is not Channel.ACTUATOR:
+            a_state, value, flag = attack.step(a_state, k, y=y, x=x, u=u, view=view)
+            received, a = inject(channel, y, value, flag)
+        if estimator is not None:
+            carry, view = estimator._step(carry, received, u, m)
+            outs.append(view)
+        for key, val in (("x", x), ("y", y), ("recv", received), ("u", u), ("attack", a),
+                         ("value", value), ("flag", flag)):  # fmt: skip
+            rec[key].append(val)
+        if controller is not None:
+            u = controller(k, received, view)
+        if progress is not None:
+            progress(1)
+    traj = _trajectories(rec, mask, state.k, k, channel)
+    batch = x.shape[:-1]
+    output = stack_steps(outs, batch) if outs else None
+    return LoopResult(traj, output, LoopState(k, x, u, a_state, carry, view))
+
+
+def _start(plant, steps, x0, estimator, model, controller, attack, attack_generator, generator):
+    batch, dtype, device = x0.shape[:-1], x0.dtype, x0.device
+    u = None if controller is None else controller.init(batch, dtype, device)
+    a_state = None
+    if attack is not None:
+        dim = plant.dim_u if Channel(attack.channel) is Channel.ACTUATOR else plant.dim_y
+        a_state = attack.init(batch, steps, dim, attack_generator, dtype=dtype, device=device)
+    carry = None
+    if estimator is not None:
+        carry = estimator._init(model, batch, Generators.of(generator))
+    return LoopState(0, x0, u, a_state, carry, None)
+
+
+def _trajectories(rec, mask, k0, k1, channel) -> Trajectories:
+    """Stack the recorded steps ``k0 + 1 … k1`` into :class:`Trajectories`."""
+    x, y, recv = (torch.stack(rec[key], 1) for key in ("x", "y", "recv"))
+    us = None if rec["u"][0] is None else torch.stack(rec["u"], 1)
+    B, T = x.shape[:2]
+    m = None if mask is None else mask[:, k0:k1]
+    if channel is None:
+        attack = y.new_zeros(B, T, 0)
+        flags = torch.zeros(B, T, dtype=torch.bool, device=y.device)
+        values = attack
+    else:
+        attack, values = torch.stack(rec["attack"], 1), torch.stack(rec["value"], 1)
+        flags = torch.stack(rec["flag"], 1)
+        flags = flags.any(-1) if flags.dim() == 3 else flags
+        if channel is not Channel.ACTUATOR and m is not None:
+            flags = flags & m.any(-1)  # an attack on a packet never sent is none
+    return Trajectories(x, y, recv, us, m, attack, flags, {"attack_values": values})

@@ -11,7 +11,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from .scoring import rmse_over_time, roc, true_states  # noqa: E402
+from .scoring import rmse_over_time, roc  # noqa: E402
 
 __all__ = ["standard_figures"]
 
@@ -26,7 +26,8 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
 
     fig, ax = plt.subplots(figsize=(8, 4.5))
     for name, out in outs.items():
-        ax.plot(t, rmse_over_time(out.means, true_states(out, traj)).numpy(), label=name, lw=1)
+        truth = result.traj_of(name).x
+        ax.plot(t, rmse_over_time(out.means, truth).numpy(), label=name, lw=1)
     ax.set(xlabel="time [s]", ylabel="state RMSE over runs", yscale="log")
     ax.set_title("State RMSE over time")
     ax.legend(fontsize=7, ncol=2)

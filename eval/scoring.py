@@ -28,7 +28,6 @@ __all__ = [
     "METRICS",
     "FALSE_ALARM_BUDGET",
     "HEADLINE",
-    "true_states",
     "score",
     "roc",
     "auc",
@@ -138,14 +137,6 @@ def rmse_over_time(means: Tensor, reference: Tensor) -> Tensor:
     return (means.double() - reference.double()).square().mean(dim=(0, 2)).sqrt()
 
 
-def true_states(output: EstimatorOutput, traj) -> Tensor:
-    """The states ``output`` estimated: ``traj.x``, or for an estimator that closes a
-    control loop (its estimate changes the plant's path) the states of its own loop,
-    ``output.extras["x"]``."""
-    extras = output.extras or {}
-    return extras["x"] if "x" in extras else traj.x
-
-
 def score(
     output: EstimatorOutput,
     traj,
@@ -159,7 +150,8 @@ def score(
 
     Args:
         output: the estimator's output on ``traj`` (``means [B, T, dx]``).
-        traj: :class:`~difffilter.models.scenario.Trajectories` (``x``, ``attack``, ``flags``).
+        traj: the :class:`~difffilter.loop.Trajectories` the estimator ran on (``x``,
+            ``attack``, ``flags``): the truth, from the loop, never from the output.
         dt: sampling period in s. wall_s: wall time of the batched run.
         reference_means: the attack-free reference estimate ``[B, T, dx]`` or ``None``.
         attacked_input: ``False`` for an estimator fed the clean measurements (its
@@ -167,7 +159,7 @@ def score(
     """
     B, T = traj.flags.shape
     out: dict[str, Any] = dict.fromkeys(METRICS)
-    out["state_rmse"] = _rmse(output.means, true_states(output, traj))
+    out["state_rmse"] = _rmse(output.means, traj.x)
     if reference_means is not None:
         out["state_rmse_vs_attack_free"] = _rmse(output.means, reference_means)
     flags = traj.flags

@@ -15,6 +15,7 @@ from typing import Any
 import torch
 
 from difffilter.estimator import EstimatorOutput
+from difffilter.loop import LoopResult, Trajectories
 from difffilter.models import estimators as registry
 from difffilter.models.generic_estimators import default_estimators
 from difffilter.models.streams import Streams
@@ -31,8 +32,12 @@ class SuiteResult:
 
     Attributes:
         scenario: the scenario object; runs, seed: the study's size and master seed.
-        traj: the simulated :class:`~difffilter.models.scenario.Trajectories`.
+        traj: the simulated :class:`~difffilter.loop.Trajectories` (the data of the
+            open-loop estimators).
         outputs: ``{estimator: EstimatorOutput}`` in run order.
+        trajectories: ``{estimator: Trajectories}`` of the estimators that ran their own
+            closed loop (their estimate changed the plant): the truth they are scored
+            against (:meth:`traj_of`).
         wall_s: ``{estimator: wall time of its batched run}``.
         metrics: ``{estimator: {metric: value}}`` (:data:`~difffilter.eval.scoring.METRICS`).
         reference: name of the attack-free reference estimator, or ``None``.
@@ -47,12 +52,17 @@ class SuiteResult:
     seed: int
     traj: Any
     outputs: dict[str, EstimatorOutput] = field(default_factory=dict)
+    trajectories: dict[str, Trajectories] = field(default_factory=dict)
     wall_s: dict[str, float] = field(default_factory=dict)
     metrics: dict[str, dict[str, Any]] = field(default_factory=dict)
     reference: str | None = None
     context: Any = None
     skipped: dict[str, str] = field(default_factory=dict)
     checkpoint: dict[str, Any] | None = None
+
+    def traj_of(self, name: str) -> Trajectories:
+        """The trajectories estimator ``name`` ran on: its own closed loop's, or the study's."""
+        return self.trajectories.get(name, self.traj)
 
 
 def run_suite(
@@ -122,8 +132,12 @@ def run_suite(
                 result.skipped[spec.name] = str(why)
                 continue
             start = time.perf_counter()
-            result.outputs[spec.name] = run(traj)
+            out = run(traj)
             result.wall_s[spec.name] = time.perf_counter() - start
+            if isinstance(out, LoopResult):  # a closed loop of its own: its truth
+                result.trajectories[spec.name] = out.trajectories
+                out = out.output
+            result.outputs[spec.name] = out
     if world > 1:
         _gather(result, ctx, specs, world)
     result.reference = next(
@@ -142,7 +156,7 @@ def run_suite(
     for spec in (s for s in specs if s.name in result.outputs):
         result.metrics[spec.name] = score(
             result.outputs[spec.name],
-            traj,
+            result.traj_of(spec.name),
             dt=scenario.dt,
             wall_s=result.wall_s[spec.name],
             reference_means=ref,
@@ -169,16 +183,19 @@ def _gather(result: SuiteResult, ctx, specs, world: int) -> None:
     import torch.distributed as dist
 
     parts: list = [None] * world
-    mine = (result.outputs, result.wall_s, result.skipped, ctx.checkpoint_users)
+    mine = (result.outputs, result.wall_s, result.skipped, ctx.checkpoint_users,
+            result.trajectories)  # fmt: skip
     dist.all_gather_object(parts, mine)
-    outputs, walls, skipped, users = {}, {}, {}, []
-    for out, wall, skip, used in parts:
+    outputs, walls, skipped, users, trajs = {}, {}, {}, [], {}
+    for out, wall, skip, used, own in parts:
         outputs.update(out)
         walls.update(wall)
         skipped.update(skip)
         users += used
+        trajs.update(own)
     order = [s.name for s in specs]
     result.outputs = {n: outputs[n] for n in order if n in outputs}
+    result.trajectories = {n: trajs[n] for n in order if n in trajs}
     result.wall_s = {n: walls[n] for n in order if n in walls}
     result.skipped = {n: skipped[n] for n in order if n in skipped}
     ctx.checkpoint_users[:] = [n for n in order if n in users]

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .scoring import HEADLINE, rmse_over_time, true_states
+from .scoring import HEADLINE, rmse_over_time
 
 __all__ = ["log_suite"]
 
@@ -20,10 +20,9 @@ def log_suite(logdir: Path, result, doc: dict, figures) -> None:
     """Write the events of one suite run under ``logdir``."""
     from torch.utils.tensorboard import SummaryWriter
 
-    traj = result.traj
     with SummaryWriter(str(logdir)) as w:
         for name, out in result.outputs.items():
-            curve = rmse_over_time(out.means, true_states(out, traj))
+            curve = rmse_over_time(out.means, result.traj_of(name).x)
             alarm_rate = None
             if out.detection is not None:
                 alarm_rate = out.detection.alarms.double().mean(0)

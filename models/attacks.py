@@ -1,4 +1,5 @@
-"""False-data-injection attack generators: sensor bias, actuator injection, replacement.
+"""The attacks of the scenarios: sensor bias, actuator injection, replacement, a known
+signal and replay, each an :class:`~difffilter.attack.Attack` step object.
 
 Bias injection attack of the modified-PF paper (Sadeghzadeh-Nokhodberiz et al., IEEE
 Access 2022, eqs 3–4)::
@@ -13,6 +14,11 @@ Bernoulli flag only decides whether the packet of step ``k`` carries it.
 Time convention (as everywhere in difffilter, :mod:`difffilter.ssm`): a measurement
 sequence ``ys [..., T, dy]`` holds ``y_1 … y_T``, so ``gammas[..., t, :] = γ_{t+1}`` and
 ``flags[..., t] = l_{t+1}``.
+
+Every attack here runs inside the loop of :mod:`difffilter.loop` (the attack interface is
+:mod:`difffilter.attack`): those that read nothing are tabulated for the whole batch when
+the loop starts (:class:`~difffilter.attack.TabulatedAttack`), :class:`Replay` reads the
+true measurement step by step.
 """
 
 from __future__ import annotations
@@ -24,12 +30,16 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from difffilter.attack import Attack, Channel, TabulatedAttack
+
 __all__ = [
     "BiasAttack",
     "AttackRealisation",
     "SensorBias",
     "ActuatorInjection",
     "Replacement",
+    "Signal",
+    "Replay",
 ]
 
 
@@ -139,14 +149,12 @@ class BiasAttack:
         return AttackRealisation(y_recv, flags, gammas)
 
 
-# ------------------------------------------------------------------ the attack interface
+# ------------------------------------------------------------------ the attacks in the loop
 #
-# Every attack a scenario can carry has ``channel`` ("sensor": it changes what the
-# estimator receives; "actuator": it changes what the plant is driven with),
+# A tabulated attack has ``channel`` (:class:`difffilter.attack.Channel`) and
 # ``sample(batch_shape, T, dim, generator, dtype=, device=) -> (values [*, T, dim],
-# flags [*, T])`` and ``inject(signal [*, T, dim], values, flags) -> signal``. The
-# simulation (:func:`difffilter.models.scenario.simulate`) applies them; ``values`` are
-# what the attacker would inject at every step, ``flags`` where it does.
+# flags [*, T])``: ``values`` are what the attacker would inject at every step, ``flags``
+# where it does; the loop applies them on the channel (:func:`difffilter.attack.inject`).
 
 
 def _check_steps(num_steps) -> None:
@@ -154,14 +162,14 @@ def _check_steps(num_steps) -> None:
         raise ValueError(f"num_steps must be an integer >= 1; got {num_steps!r}")
 
 
-class SensorBias(BiasAttack):
-    """:class:`BiasAttack` (eqs 3–4 of the four-tank paper) in the attack interface.
+class SensorBias(BiasAttack, TabulatedAttack):
+    """:class:`BiasAttack` (eqs 3–4 of the four-tank paper) as an attack of the loop.
 
-    ``values[t] = γ_{t+1}`` (eq. 4), ``flags ~ Bernoulli(p_l)`` (eq. 3), and
-    ``inject`` adds ``l_k γ_k`` to the measurement.
+    ``values[t] = γ_{t+1}`` (eq. 4), ``flags ~ Bernoulli(p_l)`` (eq. 3); on the sensor
+    channel the loop adds ``l_k γ_k`` to the measurement.
     """
 
-    channel = "sensor"
+    channel = Channel.SENSOR
 
     def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
         if dim != self.dim:
@@ -170,12 +178,9 @@ class SensorBias(BiasAttack):
         values = self.values(num_steps, dtype=dtype, device=device)
         return values.expand(flags.shape + (dim,)), flags
 
-    def inject(self, signal: Tensor, values: Tensor, flags: Tensor) -> Tensor:
-        return signal + flags.unsqueeze(-1).to(signal.dtype) * values
-
 
 @dataclass(frozen=True)
-class ActuatorInjection:
+class ActuatorInjection(TabulatedAttack):
     """A constant false input ``a`` added to the applied control from step ``start`` on.
 
     ``u_applied,k = u_k + a`` for ``k ≥ start`` (0-based index of ``u_k``); the estimator
@@ -188,7 +193,7 @@ class ActuatorInjection:
 
     value: tuple[float, ...]
     start: int = 0
-    channel = "actuator"
+    channel = Channel.ACTUATOR
 
     def __post_init__(self):
         v = tuple(float(a) for a in self.value)
@@ -209,23 +214,20 @@ class ActuatorInjection:
         values = torch.tensor(self.value, dtype=dtype, device=device)
         return values.expand(flags.shape + (dim,)), flags
 
-    def inject(self, signal: Tensor, values: Tensor, flags: Tensor) -> Tensor:
-        return signal + flags.unsqueeze(-1).to(signal.dtype) * values
-
 
 @dataclass(frozen=True)
-class Replacement:
+class Replacement(TabulatedAttack):
     """Deception by replacement: with probability ``rate`` per step the received
     measurement is replaced by ``ξ_k ~ U(low, high)`` (the RRP paper, eqs 4–6).
 
-    ``values [*, T, dy]`` holds the draws ``ξ_k``; ``inject`` returns ``ξ_k`` where
-    flagged and ``y_k`` elsewhere.
+    ``values [*, T, dy]`` holds the draws ``ξ_k``; on the replacement channel the loop
+    delivers ``ξ_k`` where flagged and ``y_k`` elsewhere (and records ``ξ_k − y_k``).
     """
 
     rate: float
     low: tuple[float, ...]
     high: tuple[float, ...]
-    channel = "sensor"
+    channel = Channel.REPLACEMENT
 
     def __post_init__(self):
         if not 0.0 <= float(self.rate) <= 1.0:
@@ -250,9 +252,6 @@ class Replacement:
         hi = torch.tensor(self.high, dtype=dtype, device=device)
         box = torch.rand(shape + (num_steps, dim), generator=generator, dtype=dtype, device=device)
         return lo + (hi - lo) * box, u < self.rate
-
-    def inject(self, signal: Tensor, values: Tensor, flags: Tensor) -> Tensor:
-        return torch.where(flags.unsqueeze(-1), values, signal)
 
     def sample_groups(
         self, batch_shape, num_steps, groups, generator=None, *, dtype, device=None
@@ -291,3 +290,81 @@ class Replacement:
     def inject_groups(self, signal: Tensor, values: Tensor, flags: Tensor, groups) -> Tensor:
         """``signal [*, T, dy]`` with each flagged group's entries replaced by ``values``."""
         return torch.where(self.entry_flags(flags, groups), values, signal)
+
+
+class Signal(TabulatedAttack):
+    """A known, deterministic attack signal: ``values [T, dim]`` (the same for every run)
+    or ``[B, T, dim]`` (one per run), ``a_k = values[..., k − 1, :]``, flagged where it is
+    non-zero, on ``channel`` (default the sensor channel).
+
+    The LFC scenarios' attacks (steps, sinusoids, sawtooth pulse trains of eqs 44–47)
+    are such signals, and so are the random attacks the LFC estimator is trained on.
+    """
+
+    def __init__(self, values: Tensor, channel: Channel = Channel.SENSOR):
+        if not isinstance(values, Tensor) or values.dim() not in (2, 3):
+            raise ValueError(
+                f"values must be a tensor [T, dim] or [B, T, dim]; got "
+                f"{getattr(values, 'shape', values)!r}"
+            )
+        if not bool(torch.isfinite(values).all()):
+            raise ValueError("values must be finite")
+        self.values, self.channel = values, Channel(channel)
+
+    def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        _check_steps(num_steps)
+        shape = torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
+        try:
+            values = self.values.to(dtype=dtype, device=device).expand(shape + (num_steps, dim))
+        except RuntimeError:
+            raise ValueError(
+                f"the signal has shape {tuple(self.values.shape)}; the loop needs "
+                f"[{num_steps}, {dim}] or {list(shape) + [num_steps, dim]}"
+            ) from None
+        return values, (values != 0).any(-1)
+
+
+@dataclass(frozen=True)
+class Replay(Attack):
+    """Replay (Mo & Sinopoli 2009): from measurement ``onset`` on, the receiver gets the
+    plant's own output of ``delay`` steps before, ``ỹ_k = y_{k−d}`` (the replacement
+    channel: the loop records ``y_{k−d} − y_k``).
+
+    The attacker records the true measurements it sees (a ring buffer of the last ``d``,
+    in the attack's state) and replays them; the plant meanwhile may do anything. Needs
+    ``onset > delay`` (there is nothing to replay before).
+
+    Args:
+        delay: ``d ≥ 1`` steps.
+        onset: first replayed measurement ``k₀`` (1-based, ``k₀ > d``).
+        duration: replayed steps (``None``: until the end).
+    """
+
+    delay: int
+    onset: int
+    duration: int | None = None
+    channel = Channel.REPLACEMENT
+
+    def __post_init__(self):
+        for name in ("delay", "onset"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
+        if self.onset <= self.delay:
+            raise ValueError(
+                f"onset must exceed delay (y_(k-d) must exist); got onset={self.onset}, delay={self.delay}"
+            )
+        if self.duration is not None and (not isinstance(self.duration, int) or self.duration < 1):
+            raise ValueError(f"duration must be None or an integer >= 1; got {self.duration!r}")
+
+    def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        shape = torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
+        return torch.zeros(shape + (self.delay, dim), dtype=dtype, device=device)
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        old = state[..., 0, :]  # y_{k−d} (the oldest recorded)
+        state = torch.cat([state[..., 1:, :], y.unsqueeze(-2)], dim=-2)
+        last = None if self.duration is None else self.onset + self.duration - 1
+        on = k >= self.onset and (last is None or k <= last)
+        flag = torch.full(y.shape[:-1], on, dtype=torch.bool, device=y.device)
+        return state, old, flag

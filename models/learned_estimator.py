@@ -1,72 +1,131 @@
-"""The neural FDI estimator inside difffilter's own filters: learned attack compensation.
+"""The neural FDI estimator inside difffilter's own filters: one wrapper for every use.
 
-At every step the filter that runs the scenario supplies the network's features and
-uses its output (one configuration of :class:`~difffilter.models.neural_estimator.
-NeuralFDIEstimator`, with one "area" of ``dy`` channels)::
+:class:`NeuralCompensation` wraps a filter of the library (a Kalman, extended or
+unscented Kalman filter, the Luenberger observer of the LFC paper's baseline, or a
+particle filter) with the network of eqs (8)–(9)
+(:class:`~difffilter.models.neural_estimator.NeuralFDIEstimator`, ``J`` areas of ``d``
+channels). One step ``k`` with the inner filter's prediction::
 
-    ν_k = ỹ_k − E[h(x_k) | ỹ_{1:k−1}],   S_k = Cov(ν_k)       the filter's innovation
-    e_k = ν_k / √diag(S_k)                                    standardised, 0 where unreceived
-    δ_k = [â_{k−1}, …, â_{k−a}, e_k, …, e_{k−b+1}, f_k]       eq. (9) with residual lag ℓ = 0
-    â_k, logit_k = network(δ_k)                               eq. (8) and its detection head
-    update with ỹ_k − â_k                                     the compensated measurement
+    ν_k = ỹ_k − E[h(x_k) | ỹ_{1:k−1}],   S_k = Cov(ν_k)        the inner filter's innovation
+    r_k = ν_k (or ν_k / √diag S_k, standardise=True; 0 where unreceived)
+    δ_k = [â_{k−1}, …, â_{k−a}, r-history, f_k]                 eq. (9), per area
+    â_k, logit_k = network(δ_k)                                 eq. (8) and its detection head
+    update with ỹ_k − â_k                                       the compensated measurement
 
-An actuator attack (``channel="actuator"``, ``ũ = u + a``: the mobile robot) is estimated
-in the input's ``du`` channels from the same ``dy`` residuals and compensated in the
-input instead: the Kalman filters' update step predicts with ``u_{k−1} + â_k`` (the
-innovation ``ν_k`` of the plain input ``u_{k−1}`` shows the attack of the last
-transition). A replacement attack (``channel="replacement"``, ``ỹ = ξ ~ p_ξ``: the
-tracking deception) has no additive signal to subtract: the particle filter weighs with
+The residual history (``residual``, :class:`Residual`):
+
+* ``INNOVATION``: ``r_k, r_{k−1}, …, r_{k−b+1}`` of the innovations (ours; eq. 9 with lag 0);
+* ``PREDICTED``: the same of ``ν_k − â_{k−1}`` (the residual if the attack kept its last
+  estimate: the LFC paper's network with lag 0, ``kf_nn_grad``);
+* ``LAGGED``: ``e_{k−1} … e_{k−b}``, ``e = ν − â`` after compensation (eq. 9 as printed,
+  lag 1: the paper's online-learned network).
+
+Online learning (``learning``, :class:`OnlineLearning`): before estimating, the weights of
+each run and area take one step of a rule of :mod:`difffilter.param_ekf` (the EKF over the
+weights of eqs 10–14, or plain gradient steps) towards ``ν_k`` (the attack plus noise the
+observer sees, eq. 5), and ``â_k`` is the re-evaluated (``posterior``) or the prior
+estimate. The learners' state lives in the carry, one weight vector per run.
+
+Channels (:class:`~difffilter.attack.Channel`): a sensor attack estimate is subtracted
+from the measurement; an actuator attack estimate (``â`` in the input's channels, from
+the ``dy`` residuals) is added to the input of the Gaussian filters' prediction; against
+a replacement (the tracking deception, ``ỹ = ξ ~ p_ξ``) the particle filter weighs with
 the mixture of eq. (15) of the RRP paper with the network's probability ``p_k`` in place
-of the fixed rate η̄, ``log[(1 − p_k) p_v(ỹ_k − h(x^i)) + p_k p_ξ(ỹ_k)]``, and reports
-``â_k = p_k ν_k`` (the injected ``ξ − y`` expected given the data).
+of the fixed rate, ``log[(1 − p_k) p_v(ỹ_k − h(x^i)) + p_k p_ξ(ỹ_k)]``, and reports ``â_k =
+p_k ν_k``.
 
-``f_k`` holds the optional ``features`` (:data:`FEATURES`), in this order::
+``f_k`` holds the optional ``features`` (:data:`FEATURES`, one area only), in this order::
 
     "mask"            m_k ∈ {0, 1}^dy, the received entries
-    "log_likelihood"  asinh(−2 ℓ_k / max(|m_k|, 1)),  ℓ_k = log p̂(ỹ_k | ỹ_{1:k−1}) of the
-                      uncompensated measurement (the PF's log-sum-exp of its predictive
-                      weights times the particles' likelihoods; the Kalman filters'
-                      Gaussian density of ν_k): about 1 per entry without attack, growing
-                      with it; asinh keeps the tanh units out of saturation
-    "poa"             β_k = Σ_{i: ‖z^i‖ > η} w^i_{k−1},  z^i = ỹ_k − h(x^i_k) (received
-                      entries; the model's ``measurement_residual``, angles wrapped): the
-                      probability of attack of the modified-PF paper (eq. 14) with the
-                      scenario's threshold η; particle filter only
+    "log_likelihood"  asinh(−2 ℓ_k / max(|m_k|, 1)), ℓ_k = log p̂(ỹ_k | ỹ_{1:k−1}) of the
+                      uncompensated measurement (about 1 per entry without attack)
+    "poa"             β_k = Σ_{i: ‖z^i‖ > η} w^i_{k−1},  z^i = ỹ_k − h(x^i_k): the probability
+                      of attack of the modified-PF paper (eq. 14); particle filter only
 
-``S_k`` is the particles' spread of ``h`` plus ``R`` for the particle filter (its
-:class:`~difffilter.particle.Predictive`), ``H P⁻ Hᵀ + R`` for the Kalman filters. Every
+Detection: ``p_k = sigmoid(logit_k)`` (the largest over areas), alarm where ``p_k >
+threshold``; a network without a detection head (trained by the EKF over its weights,
+which fits the attack estimate alone) scores ``s_k = Σ_c (â_{k,c} / √S_{k,cc})²``. Every
 operation is differentiable, so a loss on ``â``, ``logit`` or the state estimates
 back-propagates through the filter (through the particle weights and, with a
 differentiable resampler, through resampling): how :mod:`difffilter.train.task` trains
-the network. Detection: ``p_k = sigmoid(logit_k)``, alarm where ``p_k > threshold``; a
-network without a detection head (trained by the EKF over its weights, which fits the
-attack estimate alone) scores ``s_k = Σ_c (â_{k,c} / √S_{k,cc})²``, the squared
-standardised attack estimate, alarm where ``s_k > threshold``.
+the network.
 """
 
 from __future__ import annotations
 
+from enum import Enum
+from typing import Any, NamedTuple
+
 import torch
 from torch import Tensor
 
-from difffilter.estimator import Detection, EstimatorOutput
+from difffilter.attack import Channel
+from difffilter.estimator import Estimator, EstimatorOutput, Generators
 from difffilter.fdi.modified_pf import AttackCompensatedLikelihood
 from difffilter.fdi.poa import probability_of_attack
+from difffilter.kalman import GaussianFilter
+from difffilter.loop import open_loop
 from difffilter.models.estimators import SkipEstimator, register
 from difffilter.models.generic_estimators import GAUSSIAN_FILTERS, deception_of
-from difffilter.models.neural_estimator import NeuralFDIEstimator
-from difffilter.particle import ModelLikelihood, particle_filter
+from difffilter.models.neural_estimator import NeuralFDIEstimator, build_delta
+from difffilter.param_ekf import EKFRule, GradientRule, LearnerState, WeightTemplate
+from difffilter.particle import ModelLikelihood, ParticleFilter, ParticleState
+from difffilter.results import StepOutput
 
 __all__ = [
     "FEATURES",
-    "feature_dim",
+    "Residual",
+    "OnlineLearning",
+    "NeuralState",
+    "NeuralCarry",
     "NeuralCompensation",
+    "feature_dim",
     "neural_particle_filter",
     "neural_gaussian_filter",
 ]
 
 #: The optional per-step inputs (module docstring), in the order they enter ``δ_k``.
 FEATURES = ("mask", "log_likelihood", "poa")
+
+
+class Residual(str, Enum):
+    """Which residuals the network reads (module docstring)."""
+
+    INNOVATION = "innovation"
+    PREDICTED = "predicted"
+    LAGGED = "lagged"
+
+
+class OnlineLearning(NamedTuple):
+    """Online learning of the weights, one learner per run and area: ``rule`` an
+    :class:`~difffilter.param_ekf.EKFRule` or :class:`~difffilter.param_ekf.GradientRule`;
+    ``posterior``: estimate with the weights after this step's update (Algorithm 1's final
+    "estimate the FDI attack from (8)") or before it; ``init_scale``: each run starts from
+    its own ``s·U[0, 1]`` weights (Algorithm 1, drawn from the carry's init generator) or,
+    ``None``, from the network's."""
+
+    rule: EKFRule | GradientRule
+    posterior: bool = True
+    init_scale: float | None = None
+
+
+class NeuralState(NamedTuple):
+    """The network's part of a carry: ``attack_hist [..., a, J·d]`` (``â_{k−1} … â_{k−a}``),
+    ``resid_hist [..., b, J·r]`` (most recent first) and the online ``learner``
+    (:class:`~difffilter.param_ekf.LearnerState` of ``[... · J]`` learners, or ``None``)."""
+
+    attack_hist: Tensor
+    resid_hist: Tensor
+    learner: LearnerState | None = None
+
+
+class NeuralCarry(NamedTuple):
+    """Carry of a :class:`NeuralCompensation` around a Gaussian filter: the filter's carry
+    ``inner``, the network's :class:`NeuralState` and the model."""
+
+    inner: Any
+    net: NeuralState
+    model: Any
 
 
 def feature_dim(features, dim_y: int) -> int:
@@ -78,74 +137,36 @@ def feature_dim(features, dim_y: int) -> int:
     return sum(dim_y if f == "mask" else 1 for f in features)
 
 
-class NeuralCompensation:
-    """The network's state over a sequence: its input histories and what it output.
+class _Core:
+    """The network's step (eqs 8–9) on one innovation, shared by both adapters."""
 
-    :meth:`step` maps one innovation ``ν [..., dy]`` with covariance ``S [..., dy, dy]``
-    (and ``mask [..., dy]``, the step's ``log_likelihood [...]`` and ``poa [...]`` where
-    ``features`` ask for them) to ``(â [..., dy], logit [...])``; :attr:`attack` and
-    :attr:`logit` stack the outputs over the steps so far (``[..., T, dy]``, ``[..., T]``).
-    As a particle-filter likelihood (``uses_predictive``) it reads the step's
-    :class:`~difffilter.particle.Predictive`, computes the features from the proposed
-    particles, and weighs them with the compensated measurement, ``log p(ỹ_k − â_k | x_k^i)``.
+    def __init__(self, network, channel, residual, standardize, features, poa_eta, learning,
+                 record_inputs):  # fmt: skip
+        self.network, self.channel, self.residual = network, channel, residual
+        self.standardize, self.features, self.poa_eta = standardize, features, poa_eta
+        self.learning, self.record_inputs = learning, record_inputs
+        self.template = None if learning is None else WeightTemplate(network.area_template())
 
-    Args:
-        network: one area of ``dy`` channels, ``extra_inputs = feature_dim(features, dy)``.
-        features: names of :data:`FEATURES` (module docstring).
-        poa_eta: ``η`` of the ``"poa"`` feature (needed with it).
-        record_inputs: keep every step's ``δ_k [..., in]`` (:attr:`inputs`: ``[..., T, in]``),
-            the samples the EKF over the weights is trained on.
-        channel: ``"sensor"`` (``â`` has the measurement's ``dy`` channels; unreceived ones
-            are 0), ``"actuator"`` (``â`` has the network's ``area_dim = du`` channels,
-            read from ``dy = network.resid_dim`` residuals) or ``"replacement"`` (the
-            mixture likelihood with ``p_k``; needs a detection head and ``deception``).
-        deception: ``log p_ξ`` as a likelihood ``(model, y, particles, k, mask) → [..., N]``
-            (:class:`~difffilter.fdi.ReplacementDeception`), for ``"replacement"``.
-    """
+    def init(self, batch: torch.Size, dtype, device, generator) -> NeuralState:
+        net = self.network
+        J = net.num_areas
+        attack_hist = torch.zeros(batch + (net.a, J * net.area_dim), dtype=dtype, device=device)
+        resid_hist = torch.zeros(batch + (net.b, J * net.resid_dim), dtype=dtype, device=device)
+        learner = None
+        if self.learning is not None:
+            areas = batch + (J,)
+            start = {k: v.detach().to(dtype) for k, v in net.area_params().items()}
+            if self.learning.init_scale is not None:  # Algorithm 1: every run its own draw
+                s = self.learning.init_scale
+                start = {
+                    k: s * torch.rand(batch + v.shape, generator=generator, dtype=dtype)
+                    for k, v in start.items()
+                }
+            theta = self.template.flatten(start, areas).to(device)
+            learner = self.learning.rule.init(theta)
+        return NeuralState(attack_hist, resid_hist, learner)
 
-    uses_predictive = True
-
-    def __init__(
-        self,
-        network: NeuralFDIEstimator,
-        features=(),
-        poa_eta: float | None = None,
-        record_inputs: bool = False,
-        channel: str = "sensor",
-        deception=None,
-    ):
-        if not isinstance(network, NeuralFDIEstimator):
-            raise TypeError(f"network must be a NeuralFDIEstimator; got {type(network).__name__}")
-        if network.num_areas != 1:
-            raise ValueError(
-                f"network must have num_areas = 1 (one area of dy channels); got {network.num_areas}"
-            )
-        if channel not in ("sensor", "actuator", "replacement"):
-            raise ValueError(
-                f"channel must be 'sensor', 'actuator' or 'replacement'; got {channel!r}"
-            )
-        if channel != "actuator" and network.resid_dim != network.area_dim:
-            raise ValueError("a sensor attack estimate needs network.resid_dim == area_dim (dy)")
-        if channel == "replacement" and (deception is None or not network.detection_head):
-            raise ValueError("channel='replacement' needs deception= and a network with a head")
-        width = feature_dim(features, network.resid_dim)
-        if network.extra_inputs != width:
-            raise ValueError(
-                f"network.extra_inputs is {network.extra_inputs} but features {list(features)} "
-                f"need {width} inputs"
-            )
-        if "poa" in features and (poa_eta is None or not poa_eta >= 0):
-            raise ValueError(
-                f"the 'poa' feature needs poa_eta >= 0 (its threshold η); got {poa_eta!r}"
-            )
-        self.network, self.features, self.poa_eta = network, tuple(features), poa_eta
-        self.channel, self.deception = channel, deception
-        self.attack_hist = self.resid_hist = None
-        self._attacks: list[Tensor] = []
-        self._logits: list[Tensor] = []
-        self._inputs: list[Tensor] | None = [] if record_inputs else None
-
-    def _features(self, e: Tensor, mask: Tensor | None, log_likelihood, poa) -> list[Tensor]:
+    def _features(self, e, mask, log_likelihood, poa) -> list[Tensor]:
         received = torch.ones_like(e) if mask is None else mask.to(e.dtype)
         given = {"log_likelihood": log_likelihood, "poa": poa}
         out = []
@@ -162,112 +183,290 @@ class NeuralCompensation:
             out.append(value.unsqueeze(-1))
         return out
 
-    def step(
-        self,
-        innovation: Tensor,
-        innovation_cov: Tensor,
-        mask: Tensor | None = None,
-        *,
-        log_likelihood: Tensor | None = None,
-        poa: Tensor | None = None,
-    ):
-        net, dy = self.network, innovation.shape[-1]
-        if dy != net.resid_dim:
+    def step(self, state: NeuralState, innovation, innovation_cov, mask, log_likelihood=None,
+             poa=None):  # fmt: skip
+        """``(state, â [..., J·d], logit [..., J] or None, scale [..., dy], δ [..., J, in])``."""
+        net, J = self.network, self.network.num_areas
+        if innovation.shape[-1] != J * net.resid_dim:
             raise ValueError(
-                f"network.resid_dim is {net.resid_dim} but the measurement has dy = {dy}"
+                f"network.resid_dim is {net.resid_dim} (× {J} areas) but the measurement has "
+                f"dy = {innovation.shape[-1]}"
             )
-        scale = torch.diagonal(innovation_cov, dim1=-2, dim2=-1).clamp_min(1e-30).sqrt()
-        e = innovation / scale
+        scale = None
+        e = innovation
+        if innovation_cov is not None:
+            scale = torch.diagonal(innovation_cov, dim1=-2, dim2=-1).clamp_min(1e-30).sqrt()
+        if self.standardize:
+            e = innovation / scale
         if mask is not None:
             e = e * mask.to(e.dtype)
-        batch = e.shape[:-1]
-        if self.attack_hist is None:
-            self.attack_hist = e.new_zeros(*batch, net.a, net.area_dim)
-            self.resid_hist = e.new_zeros(*batch, net.b, dy)
-        resid = torch.cat([e.unsqueeze(-2), self.resid_hist[..., :-1, :]], -2)
-        # eq. (9) for one area: [â_{k−1}, …, â_{k−a}, e_k, …, e_{k−b+1}] (most recent first)
-        delta = torch.cat([self.attack_hist.flatten(-2), resid.flatten(-2)], -1)
+        if self.residual is Residual.PREDICTED:
+            e = e - state.attack_hist[..., 0, :]
+        if self.residual is Residual.LAGGED:
+            resid_in = state.resid_hist
+        else:
+            resid_in = torch.cat([e.unsqueeze(-2), state.resid_hist[..., :-1, :]], -2)
+        delta = build_delta(state.attack_hist, resid_in, J)  # [..., J, in]
         if self.features:
             extra = self._features(e, mask, log_likelihood, poa)
-            delta = torch.cat([delta, *(f.expand(*batch, -1) for f in extra)], -1)
-        if self._inputs is not None:
-            self._inputs.append(delta.detach())
-        attack, logit = net(delta.unsqueeze(-2).to(net.V.dtype))
-        attack = attack[..., 0, :].to(e.dtype)
-        sensor = self.channel != "actuator"
+            batch = e.shape[:-1]
+            delta = torch.cat([delta, *(f.expand(*batch, -1).unsqueeze(-2) for f in extra)], -1)
+        learner = state.learner
+        if learner is None:
+            attack, logit = net(delta.to(net.V.dtype))
+            attack = attack.to(e.dtype)
+        else:
+            attack, logit, learner, prior = self._learn(learner, delta, innovation)
+        attack = attack.flatten(-2)  # [..., J·d]
+        if self.residual is Residual.LAGGED:
+            entry = innovation - (attack if learner is None else prior)
+        else:
+            entry = e
+        sensor = self.channel is not Channel.ACTUATOR
         if mask is not None and sensor:
             attack = attack * mask.to(attack.dtype)
-        if logit is None:  # no detection head: the squared (standardised) attack estimate
-            logit = (attack / scale if sensor else attack).square().sum(-1)
-        else:
-            logit = logit[..., 0].to(e.dtype)
-        if self.channel == "replacement":  # the expected injected ξ − y, p_k ν_k
-            attack = torch.sigmoid(logit).unsqueeze(-1) * innovation
-        self.attack_hist = torch.cat([attack.unsqueeze(-2), self.attack_hist[..., :-1, :]], -2)
-        self.resid_hist = resid
-        self._attacks.append(attack)
-        self._logits.append(logit)
-        return attack, logit
+        if logit is not None:
+            logit = logit.to(e.dtype)
+        if self.channel is Channel.REPLACEMENT:  # the expected injected ξ − y, p_k ν_k
+            attack = torch.sigmoid(logit) * innovation
+        hist = NeuralState(
+            torch.cat([attack.unsqueeze(-2), state.attack_hist[..., :-1, :]], -2),
+            torch.cat([entry.unsqueeze(-2), state.resid_hist[..., :-1, :]], -2),
+            learner,
+        )
+        return hist, attack, logit, scale, delta
 
-    def __call__(self, model, y, particles, k, mask, *, predictive) -> Tensor:
-        if self.channel == "actuator":
-            raise ValueError(
-                "the particle filter compensates sensor attacks; an actuator attack is "
-                "compensated in the input of neural_gaussian_filter (filter kf/ekf/ukf)"
-            )
-        kw, clean = {}, None  # clean: log p_v(ỹ_k − h(x^i)) of every particle, once
-        if "log_likelihood" in self.features or self.channel == "replacement":
+    def _learn(self, learner: LearnerState, delta: Tensor, innovation: Tensor):
+        """One step of every run's learner towards ``ν`` (eq. 5's ``e = z − ẑ``), then the
+        estimate: ``(â [..., J, d], logit, learner, prior â [..., J·d])``."""
+        net, J, d = self.network, self.network.num_areas, self.network.area_dim
+        lead = delta.shape[:-2]
+        x = delta.reshape(-1, delta.shape[-1])
+        pred, H = self.template.jacobian(learner.theta, x)
+        target = innovation.reshape(-1, d).to(pred.dtype)
+        learner = self.learning.rule.step(learner, H, target - pred)
+        prior = pred.reshape(lead + (J * d,))
+        if self.learning.posterior:
+            attack = self.template.forward(learner.theta, x).reshape(lead + (J, d))
+        else:
+            attack = pred.reshape(lead + (J, d))
+        logit = None
+        if net.detection_head:
+            params = {k: v.reshape(lead + (J,) + v.shape[1:])
+                      for k, v in self.template.unflatten(learner.theta).items()}  # fmt: skip
+            _, logit = net(delta, W=params["W"], V=params["V"])
+        return attack, logit, learner, prior
+
+    def detect(self, attack, logit, scale, innovation) -> tuple[Tensor, dict]:
+        """``(score [...], extras)``: ``sigmoid`` of the largest area logit, or without a
+        head the squared standardised estimate (module docstring)."""
+        if logit is not None:
+            top = logit.amax(-1)
+            extras = {"attack_logit": top}
+            if logit.shape[-1] > 1:  # one per area (the training loss reads them)
+                extras["area_logits"] = logit
+            return torch.sigmoid(top), extras
+        sensor = self.channel is not Channel.ACTUATOR
+        s = attack / scale if (sensor and scale is not None) else attack
+        return s.square().sum(-1), {}
+
+
+class _NeuralLikelihood:
+    """The network inside the particle filter: a :class:`~difffilter.particle.StepLikelihood`
+    that estimates from the step's predictive view and weighs with the compensated
+    measurement (or, against a replacement, with the learned mixture)."""
+
+    def __init__(self, core: _Core, deception):
+        self.core, self.deception = core, deception
+
+    def init(self, model, batch_shape, dtype, device):
+        return self.core.init(batch_shape, dtype, device, None)
+
+    def weigh(self, state, model, y, particles, k, mask, predictive):
+        core, kw, clean = self.core, {}, None
+        if "log_likelihood" in core.features or core.channel is Channel.REPLACEMENT:
             clean = ModelLikelihood()(model, y, particles, k, mask)
-        if "log_likelihood" in self.features:
+        if "log_likelihood" in core.features:
             kw["log_likelihood"] = torch.logsumexp(predictive.log_weights + clean, -1)
-        if "poa" in self.features:
+        if "poa" in core.features:
             z = model.measurement_residual(y.unsqueeze(-2), model.observe(particles, k))
             if mask is not None:
                 z = z * mask.unsqueeze(-2).to(z.dtype)
-            kw["poa"] = probability_of_attack(z, self.poa_eta, predictive.log_weights)
-        attack, logit = self.step(predictive.innovation, predictive.innovation_cov, mask, **kw)
-        if self.channel == "replacement":  # eq. (15) with the learned p_k for η̄
+            kw["poa"] = probability_of_attack(z, core.poa_eta, predictive.log_weights)
+        nu, S = predictive.innovation, predictive.innovation_cov
+        state, attack, logit, scale, delta = core.step(state, nu, S, mask, **kw)
+        record = {"attack": attack, "scale": scale}
+        if logit is not None:
+            record["logit"] = logit
+        if core.record_inputs:
+            record["network_inputs"] = delta[..., 0, :].detach()
+        if core.channel is Channel.REPLACEMENT:  # eq. (15) with the learned p_k for η̄
+            top = logit.amax(-1, keepdim=True)
+            log_p = torch.nn.functional.logsigmoid(top)
+            log_q = torch.nn.functional.logsigmoid(-top)
             replaced = self.deception(model, y, particles, k, mask)
-            logit = logit.unsqueeze(-1)
-            log_p, log_q = (
-                torch.nn.functional.logsigmoid(logit),
-                torch.nn.functional.logsigmoid(-logit),
-            )
-            return torch.logaddexp(clean + log_q, replaced + log_p)
+            return state, torch.logaddexp(clean + log_q, replaced + log_p), record
         always = torch.ones(attack.shape[:-1], dtype=torch.bool, device=attack.device)
-        return AttackCompensatedLikelihood(always, attack)(model, y, particles, k, mask)
-
-    @property
-    def attack(self) -> Tensor:
-        return torch.stack(self._attacks, -2)
-
-    @property
-    def logit(self) -> Tensor:
-        """Detection-head logits ``[..., T]`` (without a head: the statistic ``s_k``)."""
-        return torch.stack(self._logits, -1)
-
-    @property
-    def inputs(self) -> Tensor:
-        """The recorded ``δ_k`` ``[..., T, in]`` (``record_inputs=True``)."""
-        if self._inputs is None:
-            raise ValueError("inputs were not recorded (NeuralCompensation(record_inputs=True))")
-        return torch.stack(self._inputs, -2)
+        return (
+            state,
+            AttackCompensatedLikelihood(always, attack)(model, y, particles, k, mask),
+            record,
+        )
 
 
-def _output(means, covs, comp: NeuralCompensation, threshold: float, **extras) -> EstimatorOutput:
-    if comp.network.detection_head:
-        score, extras = torch.sigmoid(comp.logit), {"attack_logit": comp.logit, **extras}
-    else:
-        score = comp.logit  # s_k (module docstring)
-    if comp._inputs is not None:
-        extras["network_inputs"] = comp.inputs
-    return EstimatorOutput(
-        means,
-        covs,
-        attack=comp.attack,
-        detection=Detection(score, score > threshold, float(threshold)),
-        extras=extras,
-    )
+class NeuralCompensation(Estimator):
+    """The neural FDI estimator around a filter of the library (module docstring).
+
+    Args:
+        network: the :class:`~difffilter.models.neural_estimator.NeuralFDIEstimator`
+            (``J`` areas of ``area_dim`` channels; ``extra_inputs = feature_dim(features,
+            dy)``).
+        inner: the filter: a :class:`~difffilter.kalman.GaussianFilter` (KF, EKF, UKF,
+            :class:`~difffilter.observers.FixedGainFilter`) or a
+            :class:`~difffilter.ParticleFilter` (its resampler, proposal and ESS threshold
+            are used; its likelihood is the network's).
+        channel: :class:`~difffilter.attack.Channel` of the attack it compensates.
+        residual: :class:`Residual`; standardize: divide the innovations by ``√diag S``.
+        features: names of :data:`FEATURES` (one area only).
+        poa_eta: ``η`` of the ``"poa"`` feature.
+        learning: :class:`OnlineLearning` or ``None`` (frozen weights).
+        threshold: alarm threshold of the score.
+        deception: ``log p_ξ`` (:class:`~difffilter.fdi.ReplacementDeception`) for the
+            replacement channel.
+        record_inputs: report every step's ``δ_k [..., in]`` (``extras["network_inputs"]``;
+            one area): the samples the EKF over the weights is trained on.
+
+    Step output: the filter's moments after compensation, ``attack`` ``â_k``, ``score``,
+    ``alarm``, ``threshold`` and ``extras`` (``"attack_logit"`` with a head, the recorded
+    inputs). Carry: :class:`NeuralCarry` (Gaussian inner filter) or the particle filter's
+    :class:`~difffilter.ParticleState` with the :class:`NeuralState` in ``aux``.
+    """
+
+    def __init__(
+        self,
+        network: NeuralFDIEstimator,
+        inner: GaussianFilter | ParticleFilter,
+        *,
+        channel: Channel | str = Channel.SENSOR,
+        residual: Residual | str = Residual.INNOVATION,
+        standardize: bool = True,
+        features=(),
+        poa_eta: float | None = None,
+        learning: OnlineLearning | None = None,
+        threshold: float = 0.5,
+        deception=None,
+        record_inputs: bool = False,
+    ):
+        channel, residual, features = Channel(channel), Residual(residual), tuple(features)
+        _check_options(network, inner, channel, features, poa_eta, learning, deception)
+        self.network, self.inner, self.channel = network, inner, channel
+        self.threshold = float(threshold)
+        self.core = _Core(network, channel, residual, bool(standardize), features, poa_eta,
+                          learning, record_inputs)  # fmt: skip
+        self.particles = isinstance(inner, ParticleFilter)
+        if self.particles:
+            self.pf = ParticleFilter(
+                inner.num_particles, resampler=inner.resampler, proposal=inner.proposal,
+                likelihood=_NeuralLikelihood(self.core, deception),
+                ess_threshold=inner.ess_threshold, innovations=True,
+            )  # fmt: skip
+            self.carry_type = ParticleState
+        else:
+            self.carry_type = NeuralCarry
+
+    def batch_of(self, carry):
+        return self.pf.batch_of(carry) if self.particles else self.inner.batch_of(carry.inner)
+
+    def _init(self, model, batch_shape, generators):
+        if self.particles:
+            carry = self.pf._init(model, batch_shape, generators)
+            net = self.core.init(batch_shape, carry.particles.dtype, carry.particles.device,
+                                 generators.init)  # fmt: skip
+            return carry._replace(aux=net)
+        inner = self.inner._init(model, batch_shape, generators)
+        net = self.core.init(batch_shape, inner.mean.dtype, inner.mean.device, generators.init)
+        return NeuralCarry(inner, net, model)
+
+    def attach(self, state: ParticleState, model, generators: Generators) -> ParticleState:
+        """Particles drawn elsewhere as this estimator's carry (particle filter only)."""
+        carry = self.pf.attach(state._replace(aux=None), model, generators)
+        lead = state.log_weights.shape[:-1]
+        net = self.core.init(lead, state.particles.dtype, state.particles.device, generators.init)
+        return carry._replace(aux=net)
+
+    def _check_carry(self, carry):
+        if self.particles:
+            self.pf._check_carry(carry)
+        else:
+            self.inner._check_carry(carry.inner)
+
+    def _step(self, carry, y, u, mask):
+        if self.particles:
+            carry, out = self.pf._step(carry, y, u, mask)
+            x = dict(out.extras)
+            attack, logit, scale = x.pop("attack"), x.pop("logit", None), x.pop("scale")
+            return carry, self._report(out, attack, logit, scale, out.innovation, x)
+        inner, core = self.inner, self.core
+        pred = inner.predict(carry.inner, u)
+        _, probe = inner.update(carry.inner, pred, y, mask)
+        net, attack, logit, scale, delta = core.step(
+            carry.net, probe.innovation, probe.innovation_cov, mask,
+            log_likelihood=probe.log_likelihood,
+        )  # fmt: skip
+        if self.channel is Channel.ACTUATOR:
+            new, out = inner.update(carry.inner, inner.predict(carry.inner, u + attack), y, mask)
+        else:
+            new, out = inner.update(carry.inner, pred, y - attack, mask)
+        extras = {"network_inputs": delta[..., 0, :].detach()} if core.record_inputs else {}
+        report = self._report(out, attack, logit, scale, probe.innovation, extras)
+        return NeuralCarry(new, net, carry.model), report
+
+    def _report(self, out: StepOutput, attack, logit, scale, innovation, extras) -> StepOutput:
+        score, more = self.core.detect(attack, logit, scale, innovation)
+        return out._replace(
+            attack=attack, score=score, alarm=score > self.threshold, threshold=self.threshold,
+            extras={**extras, **more},
+        )  # fmt: skip
+
+
+def _check_options(network, inner, channel, features, poa_eta, learning, deception) -> None:
+    if not isinstance(network, NeuralFDIEstimator):
+        raise TypeError(f"network must be a NeuralFDIEstimator; got {type(network).__name__}")
+    if not isinstance(inner, (GaussianFilter, ParticleFilter)):
+        raise TypeError(
+            "inner must be a filter object (difffilter.KalmanFilter(), ExtendedKalmanFilter(), "
+            f"UnscentedKalmanFilter(), ParticleFilter(N), ...); got {type(inner).__name__}"
+        )
+    particles = isinstance(inner, ParticleFilter)
+    if channel is not Channel.ACTUATOR and network.resid_dim != network.area_dim:
+        raise ValueError("a sensor attack estimate needs network.resid_dim == area_dim (dy)")
+    if channel is Channel.ACTUATOR and particles:
+        raise ValueError(
+            "the particle filter compensates sensor attacks; an actuator attack is "
+            "compensated in the input of a Gaussian filter (filter kf/ekf/ukf)"
+        )
+    if channel is Channel.REPLACEMENT and (
+        deception is None or not network.detection_head or not particles
+    ):
+        raise ValueError(
+            "channel='replacement' needs a particle filter, deception= and a network with a head"
+        )
+    if features and network.num_areas != 1:
+        raise ValueError("features are read by a network of one area (num_areas = 1)")
+    width = feature_dim(features, network.resid_dim)
+    if network.extra_inputs != width:
+        raise ValueError(
+            f"network.extra_inputs is {network.extra_inputs} but features {list(features)} "
+            f"need {width} inputs"
+        )
+    if "poa" in features and not particles:
+        raise ValueError("'poa' needs particles: inner must be a ParticleFilter")
+    if "poa" in features and (poa_eta is None or not poa_eta >= 0):
+        raise ValueError(f"the 'poa' feature needs poa_eta >= 0 (its threshold η); got {poa_eta!r}")
+    if learning is not None and not isinstance(learning, OnlineLearning):
+        raise TypeError(
+            f"learning must be an OnlineLearning(rule=...) or None; got {type(learning).__name__}"
+        )
 
 
 def neural_particle_filter(
@@ -282,22 +481,33 @@ def neural_particle_filter(
     features=(),
     poa_eta: float | None = None,
     record_inputs: bool = False,
-    channel: str = "sensor",
+    channel: Channel | str = Channel.SENSOR,
     deception=None,
-    **driver,
+    resampler=None,
+    proposal=None,
+    ess_threshold: float = 0.5,
+    generator=None,
+    resample_generator=None,
+    initial_state: ParticleState | None = None,
 ) -> EstimatorOutput:
-    """The particle filter of :func:`difffilter.particle_filter` (``driver``: resampler,
-    proposal, generators, ``initial_state``, …) with the network's compensation as its
-    likelihood (``features``, ``poa_eta``, ``record_inputs``, ``channel`` ``"sensor"`` or
-    ``"replacement"``, ``deception``: :class:`NeuralCompensation`).
+    """:class:`NeuralCompensation` around :class:`~difffilter.ParticleFilter` in the open loop.
+
     ``ys [..., T, dy]`` → means ``[..., T, dx]``, ``attack [..., T, dy]``, detection scores
     ``[..., T]``; ``extras``: ``attack_logit`` (with a head), ``log_likelihood [...]``,
-    ``network_inputs [..., T, in]`` (when recorded)."""
-    comp = NeuralCompensation(network, features, poa_eta, record_inputs, channel, deception)
-    res = particle_filter(
-        model, ys, us, num_particles=num_particles, mask=mask, likelihood=comp, **driver
-    )
-    return _output(res.means, res.covs, comp, threshold, log_likelihood=res.log_likelihood)
+    ``network_inputs [..., T, in]`` (when recorded). Other arguments as in
+    :func:`~difffilter.particle_filter` and :class:`NeuralCompensation`.
+    """
+    pf = ParticleFilter(num_particles, resampler=resampler, proposal=proposal,
+                        ess_threshold=ess_threshold)  # fmt: skip
+    est = NeuralCompensation(
+        network, pf, channel=channel, features=features, poa_eta=poa_eta, threshold=threshold,
+        deception=deception, record_inputs=record_inputs,
+    )  # fmt: skip
+    gens = Generators.of(generator)
+    if resample_generator is not None:
+        gens = gens._replace(resample=resample_generator)
+    carry = None if initial_state is None else est.attach(initial_state, model, gens)
+    return open_loop(est, model, ys, us, mask=mask, generator=gens, carry=carry)
 
 
 def neural_gaussian_filter(
@@ -306,55 +516,31 @@ def neural_gaussian_filter(
     us: Tensor | None = None,
     *,
     network: NeuralFDIEstimator,
-    kind: str = "kf",
+    filter: GaussianFilter,
     mask: Tensor | None = None,
     threshold: float = 0.5,
     features=(),
     record_inputs: bool = False,
-    channel: str = "sensor",
+    channel: Channel | str = Channel.SENSOR,
 ) -> EstimatorOutput:
-    """The KF, EKF or UKF (``kind``) with the network's compensation: each step runs the
-    filter's step once for ``ν_k, S_k`` and ``ℓ_k`` and once with ``ỹ_k − â_k``
-    (``channel="sensor"``) or with the input ``u_{k−1} + â_k`` (``"actuator"``: ``â``
-    ``[..., T, du]``): the update that counts. ``features`` as in
-    :class:`NeuralCompensation`, without ``"poa"`` (no particles). Shapes as in
-    :func:`neural_particle_filter`."""
-    if kind not in GAUSSIAN_FILTERS:
-        raise ValueError(f"kind must be one of {sorted(GAUSSIAN_FILTERS)}; got {kind!r}")
-    if "poa" in features or channel == "replacement":
-        raise ValueError("'poa' and channel='replacement' need particles: neural_particle_filter")
-    comp = NeuralCompensation(network, features, None, record_inputs, channel)
-    filt, actuator = GAUSSIAN_FILTERS[kind], channel == "actuator"
-    if actuator and us is None:
+    """:class:`NeuralCompensation` around a Gaussian ``filter`` in the open loop: each step
+    predicts once, updates with ``ỹ_k`` for ``ν_k, S_k, ℓ_k`` and again with ``ỹ_k − â_k``
+    (``channel="sensor"``) or after predicting with the input ``u_{k−1} + â_k``
+    (``"actuator"``: ``â [..., T, du]``). Shapes as in :func:`neural_particle_filter`."""
+    if Channel(channel) is Channel.ACTUATOR and us is None:
         raise ValueError("channel='actuator' needs the inputs us [..., T, du]")
-    state = filt._init(model, ys.shape[:-2], None)
-    means, covs = [], []
-    for t in range(ys.shape[-2]):
-        u = None if us is None else us[..., t, :]
-        m = None if mask is None else mask[..., t, :]
-        pred = filt.predict(state, u)
-        _, probe = filt.update(state, pred, ys[..., t, :], m)
-        attack, _ = comp.step(
-            probe.innovation, probe.innovation_cov, m, log_likelihood=probe.log_likelihood
-        )
-        if actuator:
-            state, _ = filt.update(state, filt.predict(state, u + attack), ys[..., t, :], m)
-        else:
-            state, _ = filt.update(state, pred, ys[..., t, :] - attack, m)
-        means.append(state.mean)
-        covs.append(state.cov)
-    means = torch.stack(means, -2)
-    covs = torch.stack(torch.broadcast_tensors(*covs), -3)  # data-independent: may be unbatched
-    return _output(means, covs.expand(*means.shape, means.shape[-1]), comp, threshold)
+    est = NeuralCompensation(network, filter, channel=channel, features=features,
+                             threshold=threshold, record_inputs=record_inputs)  # fmt: skip
+    return open_loop(est, model, ys, us, mask=mask)
 
 
 # ------------------------------------------------- registration with the estimator registry
 
 
-def _trained_network(ctx, name: str, kinds, trainer: str) -> tuple[NeuralFDIEstimator, dict]:
-    """The checkpoint's network if it was trained for this scenario family with one of
-    ``kinds`` of filter by ``trainer`` (``"grad"`` or ``"ekf"``);
-    :class:`~difffilter.models.estimators.SkipEstimator` otherwise."""
+def _trained_network(ctx, name: str, filters, trainer: str):
+    """The checkpoint's network and card if it was trained for this scenario family with
+    one of ``filters`` by ``trainer``; :class:`~difffilter.models.estimators.SkipEstimator`
+    otherwise."""
     from difffilter.models.neural_estimator import load_estimator_checkpoint
 
     if ctx.checkpoint is None:
@@ -362,47 +548,53 @@ def _trained_network(ctx, name: str, kinds, trainer: str) -> tuple[NeuralFDIEsti
     key = ("learned/ckpt", str(ctx.checkpoint))
     if key not in ctx.cache:
         ctx.cache[key] = load_estimator_checkpoint(ctx.checkpoint, dtype=ctx.dtype)
-    net, obs = ctx.cache[key]
-    family, kind, how = obs.get("scenario_family"), obs.get("kind"), obs.get("trainer", "grad")
-    if family != ctx.scenario.family or kind not in kinds or how != trainer:
-        trained = f"filter {kind!r}" + (f" by {how} on {family} scenarios" if family else "")
+    net, card = ctx.cache[key]
+    if (
+        card.scenario_family != ctx.scenario.family
+        or card.filter not in filters
+        or (card.trainer != trainer)
+    ):
         raise SkipEstimator(
-            f"the checkpoint was trained with {trained}; this one needs filter "
-            f"{'/'.join(kinds)} by {trainer} on {ctx.scenario.family}"
+            f"the checkpoint was trained with filter {card.filter!r} by {card.trainer} on "
+            f"{card.scenario_family} scenarios; this one needs filter {'/'.join(filters)} by "
+            f"{trainer} on {ctx.scenario.family}"
         )
     ctx.checkpoint_users.append(name)
-    return net, obs
+    return net, card
 
 
-def _run_pf(ctx, tr, obs, **kw):
-    channel, deception = obs.get("channel", "sensor"), None
-    if channel == "replacement":
-        deception = deception_of(ctx.scenario.attack_model(), ctx.dtype)[0]
-    return neural_particle_filter(
-        ctx.model, tr.y_recv, tr.us, mask=tr.mask, poa_eta=obs.get("poa_eta"), channel=channel,
-        deception=deception, **ctx.particle_kwargs(len(tr.y_recv)), **kw,
-    )  # fmt: skip
-
-
-def _run_gaussian(ctx, tr, obs, **kw):
-    return neural_gaussian_filter(
-        ctx.model, tr.y_recv, tr.us, mask=tr.mask, kind=obs["kind"],
-        channel=obs.get("channel", "sensor"), **kw,
-    )  # fmt: skip
-
-
-def _learned(name: str, kinds, trainer: str, run_filter):
-    """A factory running ``run_filter(ctx, traj, observer, network=, threshold=, features=)``
-    with the checkpoint's network and input features, without gradients."""
+def _learned(name: str, particles: bool, trainer: str):
+    """A factory running the checkpoint's network in the open loop on the scenario's data
+    (the particle filter with the study's common random numbers, or the card's Gaussian
+    filter), without gradients."""
 
     def factory(ctx):
-        net, obs = _trained_network(ctx, name, kinds, trainer)
-        kw = {"network": net, "threshold": float(obs.get("threshold", 0.5))}
-        kw["features"] = tuple(obs.get("features", ()))
+        filters = ("pf",) if particles else tuple(GAUSSIAN_FILTERS)
+        net, card = _trained_network(ctx, name, filters, trainer)
+        channel = Channel(card.channel)
+        deception = None
+        if channel is Channel.REPLACEMENT:
+            deception = deception_of(ctx.scenario.attack_model(), ctx.dtype)[0]
+        if particles:
+            kw = ctx.particle_kwargs()
+            inner = ParticleFilter(kw["num_particles"], resampler=kw["resampler"],
+                                   ess_threshold=kw["ess_threshold"])  # fmt: skip
+        else:
+            inner = GAUSSIAN_FILTERS[card.filter]
+        est = NeuralCompensation(
+            net, inner, channel=channel, residual=Residual(card.residual),
+            standardize=card.standardize, features=card.features, poa_eta=card.poa_eta,
+            threshold=card.threshold, deception=deception,
+        )  # fmt: skip
 
         def run(tr):
             with torch.no_grad():
-                return run_filter(ctx, tr, obs, **kw)
+                if not particles:
+                    return open_loop(est, ctx.model, tr.y_recv, tr.us, mask=tr.mask)
+                kw = ctx.particle_kwargs(len(tr.y_recv))
+                gens = Generators(None, kw["generator"], kw["resample_generator"])
+                carry = est.attach(kw["initial_state"], ctx.model, gens)
+                return open_loop(est, ctx.model, tr.y_recv, tr.us, mask=tr.mask, carry=carry)
 
         return run
 
@@ -414,12 +606,11 @@ _HOW = {
     "ekf": "trained by the EKF over its weights inside the {}",
 }
 for _trainer, _how in _HOW.items():
-    for _filter, _kinds, _run in (("pf", ("pf",), _run_pf),
-                                  ("gaussian", tuple(GAUSSIAN_FILTERS), _run_gaussian)):  # fmt: skip
-        _name = f"{_filter}_nn_{_trainer}"
+    for _particles in (True, False):
+        _name = f"{'pf' if _particles else 'gaussian'}_nn_{_trainer}"
         register(
             _name,
-            f"neural FDI estimator {_how.format('PF' if _filter == 'pf' else 'KF/EKF/UKF')} "
+            f"neural FDI estimator {_how.format('PF' if _particles else 'KF/EKF/UKF')} "
             "(checkpoint), compensating the filter's measurements; alarm at its "
             "validation-chosen threshold",
-        )(_learned(_name, _kinds, _trainer, _run))
+        )(_learned(_name, _particles, _trainer))

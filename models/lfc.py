@@ -31,14 +31,20 @@ is named in :data:`DEFAULT_NOTES` and in the scenario's ``notes``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor, nn
 
+import difffilter
 from difffilter._checks import check_finite_number
+from difffilter.kalman import KalmanFilter
+from difffilter.loop import LoopResult, ReplayedNoise, closed_loop
 from difffilter.models.registry import Scenario, register
+
+from .attacks import Signal
 
 __all__ = [
     "NUM_AREAS",
@@ -50,6 +56,7 @@ __all__ = [
     "zoh_discretize",
     "controllability_rank",
     "LFCPlant",
+    "SecureController",
     "LFCScenario",
     "scenario_attack",
     "sawtooth_pulse_train",
@@ -222,6 +229,19 @@ class LFCPlant(nn.Module):
     def dtype(self):
         return self.Ad.dtype
 
+    def model(self, *, init_cov: float = 1e-2, knows_load: bool = True):
+        """Eq. (42) as a :class:`~difffilter.LinearGaussianModel` with the input
+        ``[U (2), ΔP_l (2)]``: ``B = [B_d, F_d]``, ``H = I``, ``Q = Ξ``, ``R = Θ``, prior
+        ``N(0, init_cov·I)``. ``knows_load=False`` gives the observers' model, to which the
+        load is an unknown input (``B = [B_d, 0]``; [DEF], as in eq. 2): the same input
+        vector reaches both, the observers simply do not use its load part."""
+        eye = torch.eye(STATE_DIM, dtype=self.dtype, device=self.Ad.device)
+        load = self.Fd if knows_load else torch.zeros_like(self.Fd)
+        return difffilter.LinearGaussianModel(
+            self.Ad, self.C, self.Q, self.R, torch.zeros_like(eye[0]), init_cov * eye,
+            B=torch.cat([self.Bd, load], dim=1),
+        )  # fmt: skip
+
     def sample_noise(
         self, num_runs: int, steps: int, generator: torch.Generator
     ) -> tuple[Tensor, Tensor]:
@@ -239,10 +259,32 @@ class LFCPlant(nn.Module):
         )
         return xi, theta
 
-    def step(self, x: Tensor, u: Tensor, load: Tensor, xi: Tensor) -> Tensor:
-        """``X_{k+1} = A_d X_k + B_d U_k + F_d ΔP_l + ξ_k``; ``x [B,10]``, ``u [B,2]``,
-        ``load [B,2]`` or ``[2]``, ``xi [B,10]`` → ``[B,10]``."""
-        return x @ self.Ad.T + u @ self.Bd.T + load @ self.Fd.T + xi
+
+class SecureController:
+    """The LFC controllers as the closed loop's :class:`~difffilter.loop.Controller`:
+    ``U_k = −K₁(Z_k − M̂_k)`` (the paper's secure controller, eq. 17 with ``K₂ = 0``;
+    ``M̂`` the estimator's attack estimate) or, with ``compensate=False``, the traditional
+    ``U_k = −K₁ Z_k``; the plant's input is ``[U_k, ΔP_l]`` (the load rides along:
+    :meth:`LFCPlant.model`).
+
+    Args:
+        K1: the LQR gain ``[2, 10]``.
+        load: the load deviation per run ``[B or 1, 2]``.
+        compensate: secure (default) or traditional controller.
+    """
+
+    def __init__(self, K1: Tensor, load: Tensor, *, compensate: bool = True):
+        self.K1, self.load, self.compensate = K1, load, bool(compensate)
+
+    def init(self, batch_shape, dtype, device) -> Tensor:
+        u = torch.zeros(tuple(batch_shape) + (self.K1.shape[0],), dtype=dtype, device=device)
+        return torch.cat([u, self.load.to(dtype).expand(u.shape)], -1)
+
+    def __call__(self, k: int, y: Tensor, out) -> Tensor:
+        attack = None if out is None else out.attack
+        feedback = y - attack if self.compensate and attack is not None else y
+        u = -feedback @ self.K1.T
+        return torch.cat([u, self.load.to(u.dtype).expand(u.shape)], -1)
 
 
 # -- attacks ---------------------------------------------------------------------------------
@@ -411,6 +453,48 @@ def random_attacks(
     return torch.einsum("bet,bec->btc", signal, one_hot)
 
 
+# -- the closed loop ---------------------------------------------------------------------------
+
+
+def lqr_gain(plant: LFCPlant) -> Tensor:
+    """The LQR gain ``K₁ [2, 10]`` of the plant (the reduced CARE, [DEF] ``Q = I, R = I``)."""
+    from .control import lqr
+
+    K1, _ = lqr(plant.A.double(), plant.B.double())
+    return K1.to(plant.dtype)
+
+
+def lfc_loop(
+    plant: LFCPlant,
+    estimator,
+    xi: Tensor,
+    theta: Tensor,
+    load: Tensor,
+    *,
+    attack=None,
+    compensate: bool = True,
+    generator=None,
+    K1: Tensor | None = None,
+    steps: int | None = None,
+    state=None,
+    progress=None,
+) -> LoopResult:
+    """One LFC closed loop (eq. 42 with the secure or traditional controller) around
+    ``estimator`` on the observers' model, replaying the draws ``xi, theta [B, T, 10]``
+    and the load ``[B or 1, 2]`` (:func:`difffilter.loop.closed_loop`): ``X_0 = 0`` [DEF],
+    ``Z_k = X_k + α_k + θ_k``. ``steps``/``state``: run a chunk of the loop and resume it;
+    ``progress``: called after every step."""
+    B, T, _ = xi.shape
+    K1 = lqr_gain(plant) if K1 is None else K1
+    x0 = torch.zeros(B, STATE_DIM, dtype=xi.dtype, device=xi.device)
+    return closed_loop(
+        plant.model(), T if steps is None else steps, noise=ReplayedNoise(xi, theta), x0=x0,
+        estimator=estimator, model=plant.model(knows_load=False),
+        controller=SecureController(K1, load, compensate=compensate), attack=attack,
+        generator=generator, state=state, horizon=T, progress=progress,
+    )  # fmt: skip
+
+
 # -- scenarios -------------------------------------------------------------------------------
 
 PAPER = "Sargolzaei, Yazdani, Abbaspour, Crane, Dixon, IEEE TII 16(1), 2020"
@@ -473,12 +557,22 @@ LFC_ESTIMATORS = (
 
 @dataclass(frozen=True)
 class LFCScenario(Scenario):
-    """An LFC attack scenario: plant sampling, horizon, load and attack signal.
+    """An LFC attack scenario: plant sampling, horizon, load and attack, in closed loop.
+
+    Every estimator runs in its own closed loop (:meth:`loop`: the plant, the estimator,
+    the secure controller) on the scenario's draws (:meth:`exogenous`: noise, load and, for
+    random attacks, the attack), so that every estimator sees the same random numbers.
 
     Attributes:
-        attack: one of ``step``, ``sine``, ``simultaneous``, ``sawtooth``, ``none``.
+        attack: one of ``step``, ``sine``, ``simultaneous``, ``sawtooth``, ``none`` (the
+            paper's signals, eqs 44–47) or ``random`` (:func:`random_attacks`, one draw per
+            run: the training and validation distribution).
         dt: sampling time (s); ``duration``: horizon (s), so ``steps = duration / dt``.
         load: constant load deviation per area (p.u.), applied from t = 0. [DEF]
+        load_range: for training: a load per run ``~ U[−range/2, range/2]`` per area
+            instead of ``load`` (``None``: the fixed load).
+        random_channels, max_events, amplitude: the random attacks' channels (``None``: all
+            ten), events per run and amplitude range (:func:`random_attacks`).
         attacked_channels: zero-based channels the attack targets (metric channels, eq. 43).
         paper_table: the paper's Table I/II entries for this scenario (``{}`` if none).
     """
@@ -487,6 +581,10 @@ class LFCScenario(Scenario):
     dt: float = 0.01
     duration: float = 10.0
     load: tuple[float, float] = (0.01, 0.0)
+    load_range: float | None = None
+    random_channels: tuple[int, ...] | None = None
+    max_events: int = 3
+    amplitude: tuple[float, float] = (0.1, 2.0)
     attacked_channels: tuple[int, ...] = (2,)
     paper_table: dict = field(default_factory=dict, hash=False, compare=False)
     runs: int = 20
@@ -496,54 +594,84 @@ class LFCScenario(Scenario):
     single_thread: bool = False  # the EKF over the weights: [B, P, P] covariances
     estimators: tuple[str, ...] = LFC_ESTIMATORS
 
+    closed_loop = True
+
     def __post_init__(self):
-        if self.attack not in ATTACK_KINDS:
-            raise ValueError(f"attack must be one of {ATTACK_KINDS}; got {self.attack!r}")
+        if self.attack not in ATTACK_KINDS + ("random",):
+            raise ValueError(
+                f"attack must be one of {ATTACK_KINDS + ('random',)}; got {self.attack!r}"
+            )
         if not (self.dt > 0 and self.duration >= self.dt):
             raise ValueError("dt must be positive and duration >= dt")
         object.__setattr__(self, "steps", int(round(self.duration / self.dt)))
+
+    def with_steps(self, steps: int) -> LFCScenario:
+        return dataclasses.replace(self, duration=steps * self.dt)
 
     def times(self, dtype=torch.float64) -> Tensor:
         """Sample times ``t_k = kΔt``, ``k = 1 … T`` → ``[T]``."""
         return self.dt * torch.arange(1, self.steps + 1, dtype=dtype)
 
     def attack_signal(self, dtype=torch.float64) -> Tensor:
-        """The scenario's attack ``α [T, 10]``."""
+        """The scenario's attack ``α [T, 10]`` (one of the paper's signals)."""
         return scenario_attack(self.attack, self.times(dtype))
 
     def load_tensor(self, dtype=torch.float64) -> Tensor:
         return torch.tensor(self.load, dtype=dtype)
 
     def system(self, dtype: torch.dtype = torch.float64, device=None):
-        """The observers' model ``(A_d, I, Ξ, Θ, 0, Σ(0), B_d)`` (the load is unknown to it)."""
-        from difffilter.models.attack_observer import AttackObserver
+        """The observers' model (:meth:`LFCPlant.model` without the load)."""
+        return LFCPlant(dt=self.dt, dtype=dtype).model(knows_load=False)
 
+    def attack_model(self):
+        """The scenario's attack: the known signal ``α [T, 10]`` on the sensors (``None``
+        without one, and for random attacks, whose per-run draws are in :meth:`exogenous`)."""
+        return None if self.attack in ("none", "random") else Signal(self.attack_signal())
+
+    def feedback_gain(self, dtype=torch.float64) -> Tensor:
+        """The LQR gain ``K₁ [2, 10]`` of ``U = −K₁(Z − M̂)``."""
+        return lqr_gain(LFCPlant(dt=self.dt, dtype=dtype))
+
+    def exogenous(self, runs, generators, *, dtype=torch.float64) -> dict:
+        """The draws every loop replays: ``xi, theta [B, T, 10]`` (``generators["plant"]``),
+        the load ``[B or 1, 2]`` and, for random attacks, ``attack [B, T, 10]``
+        (``generators["attack"]``)."""
         plant = LFCPlant(dt=self.dt, dtype=dtype)
-        return AttackObserver(plant.Ad, plant.Bd, plant.Q, plant.R).observer_model()
+        xi, theta = plant.sample_noise(runs, self.steps, generators["plant"])
+        load = self.load_tensor(dtype)[None]
+        if self.load_range is not None:
+            u = torch.rand(runs, NUM_AREAS, generator=generators["plant"], dtype=dtype)
+            load = (u - 0.5) * self.load_range
+        draws = {"xi": xi, "theta": theta, "load": load}
+        if self.attack == "random":
+            draws["attack"] = random_attacks(
+                runs, self.steps, self.dt, generator=generators["attack"],
+                channels=self.random_channels, max_events=self.max_events,
+                amplitude=self.amplitude, dtype=dtype,
+            )  # fmt: skip
+        return draws
+
+    def loop(self, estimator, draws, *, generator=None, steps=None, state=None, compensate=True,
+             attack="scenario", progress=None):  # fmt: skip
+        """``estimator`` in its own closed loop on ``draws`` (:func:`lfc_loop`): the secure
+        controller (``compensate=False``: the traditional one), the scenario's attack (or
+        ``attack``: another one, ``None`` for none)."""
+        if attack == "scenario":
+            attack = Signal(draws["attack"]) if "attack" in draws else self.attack_model()
+        plant = LFCPlant(dt=self.dt, dtype=draws["xi"].dtype)
+        return lfc_loop(plant, estimator, draws["xi"], draws["theta"], draws["load"],
+                        attack=attack, compensate=compensate, generator=generator, steps=steps,
+                        state=state, progress=progress)  # fmt: skip
 
     def simulate(self, runs, generators, *, dtype=torch.float64, attack="scenario", model=None):
         """The traditional closed loop ``U = −K₁Z`` with its Kalman observer (``attack=None``:
-        attack-free); ``info`` carries the exogenous draws ``xi, theta [B, T, 10]`` and
-        ``load [1, 2]`` that every estimator's own closed loop replays (common random
-        numbers). ``us[:, t]`` is the input applied before ``x_t``.
-        """
-        from difffilter.models.lfc_estimators import ESTIMATORS, LFCContext, run_estimator
-
-        from .scenario import Trajectories
-
-        ctx = LFCContext(dt=self.dt, dtype=dtype)
-        xi, theta = ctx.plant.sample_noise(runs, self.steps, generators["plant"])
-        alpha = self.attack_signal(dtype)[None].expand(runs, -1, -1)
-        if attack is None:
-            alpha = torch.zeros_like(alpha)
-        load = self.load_tensor(dtype)[None]
-        rec, _ = run_estimator(
-            ESTIMATORS["uncompensated"], ctx, alpha, xi, theta, load, init_seed=0
-        )
-        us = torch.cat([torch.zeros_like(rec.u[:, :1]), rec.u[:, :-1]], 1)
-        info = {"xi": xi, "theta": theta, "load": load, "attack_values": alpha}
-        flags = (alpha != 0).any(-1)
-        return Trajectories(rec.x, rec.z - alpha, rec.z, us, None, alpha, flags, info)
+        attack-free). ``info`` carries the exogenous draws (``xi, theta [B, T, 10]``,
+        ``load``) that every estimator's own closed loop replays (common random numbers).
+        ``us[:, t]`` is the input applied before ``x_{t+1}`` (control and load)."""
+        draws = self.exogenous(runs, generators, dtype=dtype)
+        loop = self.loop(KalmanFilter(), draws, compensate=False, attack=attack)
+        info = {**loop.trajectories.info, **draws}
+        return loop.trajectories._replace(info=info)
 
     def paper_numbers(self) -> dict:
         return dict(self.paper_table)
@@ -582,4 +710,21 @@ _lfc(
     dt=0.001,
     table_key="none",
     headline=False,
+)
+
+# The training and validation distribution of the learned estimator (never the test signals:
+# the random sinusoids avoid 10 rad/s and there is no periodic sawtooth).
+register(
+    LFCScenario(
+        name="lfc_random_attacks",
+        family="lfc",
+        description="LFC with random attacks (steps, ramps, sinusoids, pulse trains) on all "
+        "ten channels and a random load per run: the learned estimator's training data",
+        paper=PAPER,
+        notes=DEFAULT_NOTES,
+        attack="random",
+        load_range=0.02,
+        attacked_channels=tuple(range(STATE_DIM)),
+        headline=False,
+    )
 )

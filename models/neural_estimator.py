@@ -7,7 +7,7 @@ residuals to the current attack estimate::
     δⁱ_k = [M̂ⁱ_{k−1}, …, M̂ⁱ_{k−a}, eⁱ_{k−ℓ}, …, eⁱ_{k−ℓ−b+1}]                   (9)
 
 with ``Wⁱ [d, h]``, ``Vⁱ [h, d(a+b)]`` and no biases (as in the paper). ``ℓ`` (the residual
-lag) is the observer's business (see :mod:`difffilter.models.attack_observer`): the paper
+lag) is the wrapper's business (:mod:`difffilter.models.learned_estimator`): the paper
 uses ``ℓ = 1``. Each area also has an optional detection head, a logistic read-out of the
 squared hidden units, ``pⁱ_k = sigmoid(cⁱ + Pⁱ σ(Vⁱ δⁱ_k)²)``, the "attack probability";
 only gradient training fits it (the EKF of eqs 10–14 trains ``ζⁱ = [Wⁱ, Vⁱ]`` alone). The
@@ -22,15 +22,17 @@ tanh units and make the recurrent map (``M̂`` feeds back into ``δ``) unstable,
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 from torch import Tensor, nn
 
-__all__ = ["AreaNetwork", "NeuralFDIEstimator", "build_delta"]
+__all__ = ["AreaNetwork", "NeuralFDIEstimator", "EstimatorCard", "build_delta"]
 
 
 def _check_int(value, name, minimum=1):
@@ -86,18 +88,20 @@ class AreaNetwork(nn.Module):
 
 
 def build_delta(attack_hist: Tensor, resid_hist: Tensor, num_areas: int) -> Tensor:
-    """Per-area network inputs ``δ [B, J, d(a+b)]`` from the histories.
+    """Per-area network inputs ``δ [..., J, a·d + b·r]`` from the histories.
 
-    ``attack_hist [B, a, J·d]`` holds ``M̂_{k−1} … M̂_{k−a}`` (most recent first),
-    ``resid_hist [B, b, J·d]`` the residuals, most recent first. Area ``i`` takes its own
-    ``d`` channels: ``δⁱ = [M̂ⁱ_{k−1}, …, M̂ⁱ_{k−a}, eⁱ_…]`` as in eq. (9).
+    ``attack_hist [..., a, J·d]`` holds ``M̂_{k−1} … M̂_{k−a}`` (most recent first),
+    ``resid_hist [..., b, J·r]`` the residuals, most recent first. Area ``i`` takes its own
+    channels: ``δⁱ = [M̂ⁱ_{k−1}, …, M̂ⁱ_{k−a}, eⁱ_…]`` as in eq. (9).
     """
-    B, a, n = attack_hist.shape
-    b = resid_hist.shape[1]
-    d = n // num_areas
-    ma = attack_hist.reshape(B, a, num_areas, d).transpose(1, 2).reshape(B, num_areas, a * d)
-    rb = resid_hist.reshape(B, b, num_areas, d).transpose(1, 2).reshape(B, num_areas, b * d)
-    return torch.cat([ma, rb], dim=-1)
+    J = num_areas
+
+    def per_area(hist: Tensor) -> Tensor:  # [..., n, J·d] → [..., J, n·d]
+        lead, n, width = hist.shape[:-2], hist.shape[-2], hist.shape[-1]
+        split = hist.reshape(lead + (n, J, width // J)).transpose(-3, -2)
+        return split.reshape(lead + (J, n * (width // J)))
+
+    return torch.cat([per_area(attack_hist), per_area(resid_hist)], dim=-1)
 
 
 class NeuralFDIEstimator(nn.Module):
@@ -256,6 +260,77 @@ class NeuralFDIEstimator(nn.Module):
 
 # -- checkpoints -----------------------------------------------------------------------------
 
+
+@dataclass(frozen=True)
+class EstimatorCard:
+    """What evaluation needs beside a trained network's weights: one typed card for
+    every checkpoint (stored in the checkpoint as ``"observer"`` and in its JSON card).
+
+    Attributes:
+        scenario_family: the family it was trained for (``"four_tank"``, ``"lfc"``, …;
+            ``None``: unknown, no registered estimator takes it).
+        scenario: the training scenario's name.
+        filter: the filter it runs in: ``"kf"``, ``"ekf"``, ``"ukf"`` or ``"pf"``.
+        trainer: ``"grad"`` (gradient descent through the filter) or ``"ekf"`` (the EKF
+            over its weights).
+        channel: the attack channel it compensates (``"sensor"``, ``"actuator"``,
+            ``"replacement"``).
+        residual: the residual history it reads (``"innovation"``, ``"predicted"``,
+            ``"lagged"``: :class:`~difffilter.models.learned_estimator.Residual`).
+        standardize: whether it reads innovations divided by ``√diag S``.
+        features: the filter statistics it reads beside them.
+        threshold: its alarm threshold; target_false_alarm_rate: what it was chosen for.
+        dt: the sampling time it was trained at; num_particles: the training filter's.
+        poa_eta: the ``"poa"`` feature's ``η``.
+        estimator: the registry name it is evaluated as (``pf_nn_grad``, ``kf_nn_grad``, …).
+    """
+
+    scenario_family: str | None = None
+    scenario: str | None = None
+    filter: str = "pf"
+    trainer: str = "grad"
+    channel: str = "sensor"
+    residual: str = "innovation"
+    standardize: bool = True
+    features: tuple[str, ...] = ()
+    threshold: float = 0.5
+    target_false_alarm_rate: float | None = None
+    dt: float | None = None
+    num_particles: int | None = None
+    poa_eta: float | None = None
+    estimator: str | None = None
+    extra: dict = field(default_factory=dict, compare=False)
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["features"] = list(self.features)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> EstimatorCard:
+        """A card from its dict, including the older layouts: an LFC observer
+        ``{"kind": "kalman", "residual_lag": ℓ, "dt": Δt}`` (the Kalman filter, raw
+        residuals, ``ℓ = 0`` → ``"predicted"``, ``1`` → ``"lagged"``) and the task's
+        ``{"kind": <filter>, …}``."""
+        d = dict(d)
+        kind = d.pop("kind", None)
+        lag = d.pop("residual_lag", None)
+        if kind == "kalman" or (kind is None and lag is not None):  # the LFC module's exports
+            d.setdefault("scenario_family", "lfc")
+            d.setdefault("scenario", "lfc_random_attacks")
+            d.setdefault("filter", "kf")
+            d.setdefault("standardize", False)
+            d.setdefault("residual", "predicted" if int(lag or 0) == 0 else "lagged")
+            d.setdefault("estimator", "kf_nn_grad")
+        elif kind is not None:
+            d.setdefault("filter", kind)
+        names = {f.name for f in dataclasses.fields(cls)}
+        extra = {**d.pop("extra", {}), **{k: v for k, v in d.items() if k not in names}}
+        d = {k: v for k, v in d.items() if k in names}
+        d["features"] = tuple(d.get("features") or ())
+        return cls(**d, extra=extra)
+
+
 CHECKPOINT_FORMAT = "difffilter.neural_fdi_estimator/1"
 _CONFIG_TYPES = {
     "num_areas": int,
@@ -283,12 +358,13 @@ def checkpoint_sha256(path) -> str:
 
 
 def save_estimator_checkpoint(
-    path, estimator: NeuralFDIEstimator, observer: dict | None = None, extra: dict | None = None
-) -> str:
+    path, estimator: NeuralFDIEstimator, card: EstimatorCard | dict | None = None,
+    extra: dict | None = None,
+) -> str:  # fmt: skip
     """Write a weights-only checkpoint: tensors and plain Python values, never a pickled module.
 
-    Layout: ``{"format", "estimator_config", "observer" (e.g. ``{"residual_lag": 0}``),
-    "state_dict", "extra"}``; it loads with ``torch.load(path, weights_only=True)``.
+    Layout: ``{"format", "estimator_config", "observer" (the :class:`EstimatorCard` as a
+    dict), "state_dict", "extra"}``; it loads with ``torch.load(path, weights_only=True)``.
     Returns the sha256 of the written file (for the card beside it, see
     :func:`load_estimator_checkpoint`). ``ValueError`` if a weight is not finite.
     """
@@ -300,7 +376,7 @@ def save_estimator_checkpoint(
         {
             "format": CHECKPOINT_FORMAT,
             "estimator_config": estimator.config(),
-            "observer": dict(observer or {}),
+            "observer": card.to_dict() if isinstance(card, EstimatorCard) else dict(card or {}),
             "state_dict": state,
             "extra": dict(extra or {}),
         },
@@ -387,7 +463,7 @@ def _from_lightning(blob: dict, path: Path) -> dict:
 
 def load_estimator_checkpoint(
     path, *, dtype=torch.float64, expected_sha256: str | None = None
-) -> tuple[NeuralFDIEstimator, dict]:
+) -> tuple[NeuralFDIEstimator, EstimatorCard]:
     """Load a checkpoint written by :func:`save_estimator_checkpoint`, or the estimator of
     a Lightning checkpoint of a training run (``<run>/checkpoints/*.ckpt``).
 
@@ -395,7 +471,7 @@ def load_estimator_checkpoint(
     with the ``"sha256"`` of the card beside it (``path`` with suffix ``.json``, written
     by ``ExportEstimator``) when that card exists; every weight must be finite.
 
-    Returns ``(estimator, observer_config)``. ``FileNotFoundError`` if ``path`` does not
+    Returns ``(estimator, card)`` (:class:`EstimatorCard`). ``FileNotFoundError`` if ``path`` does not
     exist; ``ValueError`` naming ``path`` if it is not such a checkpoint (wrong format,
     missing keys, shapes that do not match the stored configuration, a sha256 that does
     not match, non-finite weights).
@@ -439,4 +515,8 @@ def load_estimator_checkpoint(
     for name, value in kwargs.items():
         if isinstance(value, float) and not math.isfinite(value):
             raise ValueError(f"ckpt: {path} has a non-finite setting {name} = {value}")
-    return estimator, dict(blob["observer"])
+    try:
+        card = EstimatorCard.from_dict(blob["observer"])
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"ckpt: {path} has an unreadable card ({exc})") from exc
+    return estimator, card

@@ -14,12 +14,15 @@ mdpf_fused_naive    the same locals fused by naive information fusion (ablation)
 The four MDPF estimators draw from the same streams (``particles/init``,
 ``particles/propagate``, ``particles/resample``), so their locals are identical: the
 fused estimators differ from the locals only by the fusion, and from each other only by
-the rule. The fused estimators' ``extras`` carry their locals (``"local_means"``
-``[2, B, T, 3]``, ``"local_attacks"`` ``[2, B, T, 2]``) and the CI weight ``"omega"``.
+the rule. The fused estimator is :class:`FusedLocals` (the two locals as one batched
+:class:`~difffilter.fdi.AdaptiveParticleFilter`, fused at every step); its ``extras``
+carry the locals (``"local_means"`` ``[B, T, 2, 3]``, ``"local_attacks"``
+``[B, T, 2, 2]``) and the CI weight ``"omega"``.
 
-:func:`compensated_loop` closes the loop of Remark 1: ``u_sent,k = u_k − â_f,k`` (the
-fused attack estimate of the previous step), the plant receives ``u_sent + a``, and the
-plant's noise is replayed from the study's ``plant`` stream (the same draws as the
+:func:`compensated_loop` closes the loop of Remark 1 in difffilter's closed loop:
+``u_sent,k = u_k − â_f,k`` (the fused attack estimate of the previous step, the
+controller :class:`CompensatingInputs`), the plant receives ``u_sent + a``, and the
+plant's noise is drawn from the study's ``plant`` stream (the same draws as the
 simulated runs, so ``compensate=False`` reproduces them exactly).
 """
 
@@ -27,19 +30,29 @@ from __future__ import annotations
 
 import torch
 
-from difffilter.estimator import Detection, EstimatorOutput
+from difffilter.estimator import Detection, Estimator, EstimatorOutput, Generators
 from difffilter.fdi.adaptive_kf import adaptive_kalman_filter, wald_statistic
 from difffilter.fdi.fusion import covariance_intersection, information_fusion
 from difffilter.fdi.mdpf import (
+    AdaptiveParticleFilter,
     adaptive_particle_filter,
     adaptive_particle_init,
-    adaptive_particle_step,
 )
+from difffilter.loop import DrawnNoise, _step_through, closed_loop, open_loop
 from difffilter.models.estimators import SuiteContext, register
+from difffilter.particle import ParticleState
+from difffilter.results import StepOutput
 
 from .robot import GROUPS
 
-__all__ = ["group_measurements", "local_pair", "fuse_pair", "compensated_loop"]
+__all__ = [
+    "group_measurements",
+    "local_pair",
+    "fuse_pair",
+    "FusedLocals",
+    "CompensatingInputs",
+    "compensated_loop",
+]
 
 
 def _entries(group) -> list[int]:
@@ -100,23 +113,20 @@ def _local(index: int):
 
 def _fused(rule: str):
     def factory(ctx: SuiteContext):
+        est = _fused_locals(ctx, rule)
+
         def run(tr):
-            out = local_pair(ctx, tr)
-            x, P, a, S, omega = fuse_pair(
-                out.means, out.covs, out.attack, out.extras["attack_covs"], rule
-            )
-            score = wald_statistic(a, S)
-            extras = {"attack_covs": S, "local_means": out.means, "local_attacks": out.attack}
-            if omega is not None:
-                extras["omega"] = omega
-            thr = out.detection.threshold
-            return EstimatorOutput(
-                x, P, attack=a, detection=Detection(score, score > thr, thr), extras=extras
-            )
+            return open_loop(est, ctx.model, tr.y_recv, tr.us, mask=tr.mask,
+                             generator=_generators(ctx))  # fmt: skip
 
         return run
 
     return factory
+
+
+def _generators(ctx: SuiteContext) -> Generators:
+    return Generators(ctx.streams("particles/init"), ctx.streams("particles/propagate"),
+                      ctx.streams("particles/resample"))  # fmt: skip
 
 
 def _zhang(group):
@@ -141,47 +151,110 @@ register("mdpf_fused_ci", "the two locals fused by covariance intersection")(_fu
 register("mdpf_fused_naive", "the two locals fused by naive information fusion")(_fused("naive"))
 
 
+class FusedLocals(Estimator):
+    """The two local estimators of the sensor groups, fused at every step (App. B).
+
+    One :class:`~difffilter.fdi.AdaptiveParticleFilter` runs both locals as a batch
+    ``[G, ...]`` on the grouped model (each group's range–bearing entries); the fusion
+    ``rule`` (``"ci"``: covariance intersection, ``"naive"``: information fusion) combines
+    their states and attack estimates. Step output: the fused ``x̂, P, â``, the Wald score
+    on ``(â, Ŝ)`` with the locals' threshold, ``extras`` ``"attack_covs"`` ``Ŝ``,
+    ``"local_means" [..., G, dx]``, ``"local_attacks" [..., G, du]`` and, for CI, ``"omega"``.
+
+    Whole sequences take a private fast path: the locals over the whole sequence, then the
+    fusion of all runs and steps at once (one batched covariance intersection instead of
+    ``T``), equal to the composed steps up to round-off (tested).
+    """
+
+    carry_type = ParticleState
+
+    def __init__(self, local: AdaptiveParticleFilter, rule: str = "ci", groups=GROUPS):
+        if rule not in ("ci", "naive"):
+            raise ValueError(f"rule must be 'ci' or 'naive'; got {rule!r}")
+        self.local, self.rule, self.groups = local, rule, tuple(groups)
+
+    def _init(self, model, batch_shape, generators):
+        grouped = model.group(self.groups)
+        return self.local._init(grouped, torch.Size((len(self.groups),)) + batch_shape, generators)
+
+    def batch_of(self, carry):
+        return carry.log_weights.shape[1:-1]
+
+    def _check_carry(self, carry):
+        self.local._check_carry(carry)
+
+    def _step(self, carry, y, u, mask):
+        G = len(self.groups)
+        u = None if u is None else u.expand((G,) + u.shape)
+        carry, out = self.local._step(carry, group_measurements(y, self.groups), u, None)
+        x, P, a, S, omega = fuse_pair(out.mean, out.cov, out.attack, out.extras["attack_covs"],
+                                      self.rule)  # fmt: skip
+        score = wald_statistic(a, S)
+        extras = {"attack_covs": S, "local_means": out.mean.movedim(0, -2),
+                  "local_attacks": out.attack.movedim(0, -2)}  # fmt: skip
+        if omega is not None:
+            extras["omega"] = omega
+        thr = out.threshold
+        return carry, StepOutput(x, P, attack=a, score=score, alarm=score > thr, threshold=thr,
+                                 extras=extras)  # fmt: skip
+
+    def _run(self, carry, ys, us, mask):
+        if mask is not None:
+            return None
+        G, batch = len(self.groups), self.batch_of(carry)
+        us = None if us is None else us.expand((G,) + us.shape)
+        out = _step_through(self.local, carry, group_measurements(ys, self.groups), us, None,
+                            torch.Size((G,)) + batch, None)  # fmt: skip
+        x, P, a, S, omega = fuse_pair(out.means, out.covs, out.attack, out.extras["attack_covs"],
+                                      self.rule)  # fmt: skip
+        score, thr = wald_statistic(a, S), out.detection.threshold
+        extras = {"attack_covs": S, "local_means": out.means.movedim(0, -2),
+                  "local_attacks": out.attack.movedim(0, -2)}  # fmt: skip
+        if omega is not None:
+            extras["omega"] = omega
+        return EstimatorOutput(x, P, attack=a, detection=Detection(score, score > thr, thr),
+                               extras=extras)  # fmt: skip
+
+
+class CompensatingInputs:
+    """Remark 1's controller: the commanded inputs ``us [B, T, du]`` minus the fused attack
+    estimate, ``u_sent,k = u_k − â_f,k`` (``compensate=False``: the commanded inputs)."""
+
+    def __init__(self, us: torch.Tensor, *, compensate: bool = True):
+        self.us, self.compensate = us, bool(compensate)
+
+    def init(self, batch_shape, dtype, device):
+        return self.us[:, 0]
+
+    def __call__(self, k, y, out):
+        u = self.us[:, min(k, self.us.shape[1] - 1)]
+        return u - out.attack if self.compensate else u
+
+
+def _fused_locals(ctx: SuiteContext, rule: str) -> FusedLocals:
+    sc = ctx.scenario
+    local = AdaptiveParticleFilter(sc.num_particles, forgetting=sc.forgetting,
+                                   reading=sc.reading, attack_cov0=sc.attack_cov0)  # fmt: skip
+    return FusedLocals(local, rule)
+
+
 @torch.no_grad()
 def compensated_loop(ctx: SuiteContext, runs: int, *, compensate: bool = True, rule: str = "ci"):
-    """The fused estimator in closed loop with ``u ← u − â`` (module docstring).
+    """The fused estimator in difffilter's closed loop with ``u ← u − â`` (module docstring).
 
     Returns a dict of ``"x"`` true states ``[B, T, 3]``, ``"means"`` fused estimates,
     ``"attack"`` fused ``â [B, T, 2]``, ``"sent"`` the sent inputs ``[B, T, 2]`` and
     ``"applied"`` the plant's inputs (``sent + a``).
     """
     sc, model = ctx.scenario, ctx.model
-    dtype, T, N = ctx.dtype, sc.steps, sc.num_particles
-    plant = ctx.streams("plant")
-    us = sc.inputs(runs, dtype)
-    values, flags = sc.attack_model().sample((runs,), T, 2, ctx.streams("attack"), dtype=dtype)
-    injected = flags.unsqueeze(-1).to(dtype) * values
-    gm = model.group(GROUPS)
-    state = adaptive_particle_init(
-        gm, N, (2, runs), ctx.streams("particles/init"), attack_cov0=sc.attack_cov0
-    )
-    prop, res = ctx.streams("particles/propagate"), ctx.streams("particles/resample")
-    x = model.initial.mean.expand(runs, 3).clone()
-    a_hat = x.new_zeros(runs, 2)
-    xs, means, attacks, sent_all = [], [], [], []
-    for t in range(T):
-        sent = us[:, t] - a_hat if compensate else us[:, t]
-        x = model.sample_transition(x, sent + injected[:, t], t, plant)
-        y = model.sample_measurement(x, t + 1, plant)
-        state, est = adaptive_particle_step(
-            gm, state, group_measurements(y), sent.expand(2, runs, 2), reading=sc.reading,
-            forgetting=sc.forgetting, generator=prop, resample_generator=res,
-        )  # fmt: skip
-        xf, _, af, _, _ = fuse_pair(est.mean, est.cov, est.attack, est.extras["attack_covs"], rule)
-        a_hat = af
-        xs.append(x)
-        means.append(xf)
-        attacks.append(af)
-        sent_all.append(sent)
-    sent = torch.stack(sent_all, 1)
-    return {
-        "x": torch.stack(xs, 1),
-        "means": torch.stack(means, 1),
-        "attack": torch.stack(attacks, 1),
-        "sent": sent,
-        "applied": sent + injected,
-    }
+    x0 = model.initial.mean.expand(runs, model.dim_x).clone()
+    loop = closed_loop(
+        model, sc.steps, noise=DrawnNoise(ctx.streams("plant")), x0=x0,
+        estimator=_fused_locals(ctx, rule),
+        controller=CompensatingInputs(sc.inputs(runs, ctx.dtype), compensate=compensate),
+        attack=sc.attack_model(), attack_generator=ctx.streams("attack"),
+        generator=_generators(ctx),
+    )  # fmt: skip
+    tr = loop.trajectories
+    return {"x": tr.x, "means": loop.output.means, "attack": loop.output.attack, "sent": tr.us,
+            "applied": tr.us + tr.attack}  # fmt: skip

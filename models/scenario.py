@@ -7,7 +7,8 @@ A scenario is a frozen dataclass (subclass of :class:`Scenario`) registered by n
 consume nothing else. A family (four-tank, LFC, …) is one module of ``models/`` that
 defines a subclass and registers its instances; nothing lists the families by hand.
 
-Simulation (:func:`simulate`), time index ``t`` ↔ ``k = t + 1``::
+Simulation (:func:`simulate`, the closed loop of :mod:`difffilter.loop` without an
+estimator), time index ``t`` ↔ ``k = t + 1``::
 
     x_0 ~ prior (or its mean)
     u_applied,k−1 = inject_actuator(u_{k−1})            actuator attack, if any
@@ -22,55 +23,22 @@ realisation therefore does not depend on the attack, and vice versa.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
 
+from difffilter.attack import Attack, Channel
+from difffilter.loop import DrawnNoise, KnownInputs, Trajectories, closed_loop
+
 from .schedules import AllSensors
 
 __all__ = ["Trajectories", "Scenario", "CustomScenario", "simulate"]
-
-
-class Trajectories(NamedTuple):
-    """A batch of simulated runs (time index ``t`` ↔ ``k = t + 1``).
-
-    Attributes:
-        x: true states ``x_1 … x_T`` ``[B, T, dx]``.
-        y_true: measurements before any attack ``[B, T, dy]``.
-        y_recv: what the estimator receives ``[B, T, dy]`` (attacked; unreceived
-            entries are whatever ``mask`` says not to read).
-        us: inputs the estimator knows ``u_0 … u_{T−1}`` ``[B, T, du]`` or ``None``.
-        mask: received entries ``[B, T, dy]`` (bool) or ``None`` (all received).
-        attack: the injected attack signal ``[B, T, da]`` (zero where none is injected;
-            ``da = dy`` for sensor attacks, ``du`` for actuator attacks).
-        flags: attacked steps ``[B, T]`` (bool).
-        info: extras: ``"attack_values"`` ``[B, T, da]`` (what the attacker would inject
-            at every step, also where it does not) and ``"x0"`` ``[B, dx]``.
-    """
-
-    x: Tensor
-    y_true: Tensor
-    y_recv: Tensor
-    us: Tensor | None
-    mask: Tensor | None
-    attack: Tensor
-    flags: Tensor
-    info: Mapping[str, Tensor] = {}
-
-    def runs(self, count: int) -> Trajectories:
-        """The first ``count`` runs (every batch-first tensor sliced)."""
-
-        def cut(v):
-            return v[:count] if isinstance(v, Tensor) else v
-
-        return Trajectories(
-            *(cut(v) for v in self[:-1]), info={k: cut(v) for k, v in self.info.items()}
-        )
 
 
 @torch.no_grad()
@@ -85,70 +53,52 @@ def simulate(
     us: Tensor | None = None,
     random_initial: bool = False,
 ) -> Trajectories:
-    """Simulate ``runs`` runs of ``steps`` steps of ``model`` under ``attack`` and ``schedule``.
+    """Simulate ``runs`` runs of ``steps`` steps of ``model`` under ``attack`` and ``schedule``:
+    the closed loop of :func:`difffilter.loop.closed_loop` without an estimator, driven by
+    the known inputs.
 
     Args:
         model: any :class:`~difffilter.StateSpaceModel` (its noise models draw the noise).
         generators: ``{"plant", "attack", "schedule"}`` → ``torch.Generator`` (missing
             ones are needed only if used).
-        attack: an attack of :mod:`difffilter.models.attacks` (``channel`` "sensor" or
-            "actuator") or ``None``.
+        attack: an :class:`~difffilter.attack.Attack` (:mod:`difffilter.models.attacks`) or
+            ``None``.
         schedule: :mod:`difffilter.models.schedules` object (default all sensors).
-        us: commanded inputs ``[runs, steps, du]`` or ``None``.
+        us: commanded inputs ``[runs, steps, du]`` or ``None`` (zero inputs under an
+            actuator attack).
         random_initial: draw ``x_0`` from the prior instead of taking its mean.
     """
     for name, value in (("runs", runs), ("steps", steps)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
+    if attack is not None and not isinstance(attack, Attack):
+        raise TypeError(
+            "attack must be a difffilter.attack.Attack (e.g. difffilter.models.attacks."
+            f"SensorBias); got {type(attack).__name__}"
+        )
     schedule = schedule if schedule is not None else AllSensors()
     dtype, device = model.initial.mean.dtype, model.initial.mean.device
     plant = generators.get("plant")
-    channel = getattr(attack, "channel", None)
-    if attack is not None and channel not in ("sensor", "actuator"):
-        raise ValueError(f"attack.channel must be 'sensor' or 'actuator'; got {channel!r}")
-    if channel == "actuator":
-        if us is None:
-            if model.dim_u == 0:
-                raise ValueError("an actuator attack needs a model with inputs (dim_u > 0)")
-            us = torch.zeros(runs, steps, model.dim_u, dtype=dtype, device=device)
-        values, flags = attack.sample(
-            (runs,), steps, model.dim_u, generators.get("attack"), dtype=dtype, device=device
-        )
-        applied = attack.inject(us, values, flags)
-    else:
-        applied = us
+    if attack is not None and Channel(attack.channel) is Channel.ACTUATOR and us is None:
+        if model.dim_u == 0:
+            raise ValueError("an actuator attack needs a model with inputs (dim_u > 0)")
+        us = torch.zeros(runs, steps, model.dim_u, dtype=dtype, device=device)
     if us is not None and tuple(us.shape) != (runs, steps, model.dim_u):
         raise ValueError(
             f"us must have shape [{runs}, {steps}, {model.dim_u}]; got {tuple(us.shape)}"
         )
     if random_initial:
-        x = model.sample_initial((runs,), plant)
+        x0 = model.sample_initial((runs,), plant)
     else:
-        x = model.initial.mean.expand(runs, model.dim_x).clone()
-    x0, xs, ys = x, [], []
-    for t in range(steps):
-        u = None if applied is None else applied[:, t]
-        x = model.sample_transition(x, u, t, plant)
-        xs.append(x)
-        ys.append(model.sample_measurement(x, t + 1, plant))
-    x, y_true = torch.stack(xs, 1), torch.stack(ys, 1)
-    if channel == "sensor":
-        values, flags = attack.sample(
-            (runs,), steps, model.dim_y, generators.get("attack"), dtype=dtype, device=device
-        )
-        y_recv = attack.inject(y_true, values, flags)
-    else:
-        y_recv = y_true
-    if attack is None:
-        values = y_true.new_zeros(runs, steps, 0)
-        flags = torch.zeros(runs, steps, dtype=torch.bool, device=device)
+        x0 = model.initial.mean.expand(runs, model.dim_x).clone()
     mask = schedule.mask((runs,), steps, model.dim_y, generators.get("schedule"), device=device)
-    injected = flags.unsqueeze(-1).to(dtype) * values
-    if channel == "sensor" and mask is not None:  # an attack on a packet never sent is none
-        flags = flags & mask.any(-1)
-    return Trajectories(
-        x, y_true, y_recv, us, mask, injected, flags, {"attack_values": values, "x0": x0}
-    )
+    loop = closed_loop(
+        model, steps, noise=DrawnNoise(plant), x0=x0,
+        controller=None if us is None else KnownInputs(us), attack=attack,
+        attack_generator=generators.get("attack"), mask=mask,
+    )  # fmt: skip
+    traj = loop.trajectories
+    return traj._replace(info={**traj.info, "x0": x0})
 
 
 @dataclass(frozen=True)
@@ -192,6 +142,10 @@ class Scenario:
     single_thread: bool = True
     checkpoint: str | None = None
 
+    #: Whether the scenario's estimators run in its own closed loop (their estimate feeds
+    #: back into the plant through a controller): :meth:`exogenous` and :meth:`loop`.
+    closed_loop: ClassVar[bool] = False
+
     # -- what a family defines --------------------------------------------------------
     def system(self, dtype: torch.dtype = torch.float64, device=None):
         """The plant (and the estimators' model) of this scenario."""
@@ -230,6 +184,25 @@ class Scenario:
             schedule=self.schedule(),
             us=self.inputs(runs, dtype),
         )
+
+    def with_steps(self, steps: int) -> Scenario:
+        """The same scenario over a horizon of ``steps`` steps (tests, quick runs)."""
+        return dataclasses.replace(self, steps=steps)
+
+    # -- a closed-loop scenario defines these ----------------------------------------------
+    def exogenous(self, runs: int, generators: Mapping[str, torch.Generator], *, dtype) -> dict:
+        """The draws every estimator's closed loop replays (noise, inputs, attack)."""
+        raise NotImplementedError(f"scenario {self.name!r} is not a closed loop")
+
+    def loop(self, estimator, draws: dict, *, generator=None, steps=None, state=None):
+        """``estimator`` in this scenario's closed loop on ``draws`` (:meth:`exogenous`):
+        a :class:`~difffilter.loop.LoopResult` (``steps``/``state``: a chunk of it)."""
+        raise NotImplementedError(f"scenario {self.name!r} is not a closed loop")
+
+    def feedback_gain(self, dtype=torch.float64) -> Tensor:
+        """The controller's gain ``K`` through which an attack-estimate error enters the
+        plant (``U = −K(Z − â)``) of a closed-loop scenario."""
+        raise NotImplementedError(f"scenario {self.name!r} is not a closed loop")
 
     def shipped_checkpoint(self) -> Path | None:
         """The file of ``checkpoint`` in this repository, or ``None`` (unset or absent)."""

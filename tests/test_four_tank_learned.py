@@ -35,8 +35,8 @@ def metrics():
 
 def test_the_shipped_checkpoint_carries_its_validation_threshold():
     _, observer = load_estimator_checkpoint(CKPT)
-    assert observer["kind"] == "pf" and observer["scenario_family"] == "four_tank"
-    assert 0.0 < observer["threshold"] < 1.0 and observer["target_false_alarm_rate"] <= 0.005
+    assert observer.filter == "pf" and observer.scenario_family == "four_tank"
+    assert 0.0 < observer.threshold < 1.0 and observer.target_false_alarm_rate <= 0.005
 
 
 def test_attack_estimate_within_1_2_of_the_modified_pf_with_estimated_gamma(metrics):

@@ -60,7 +60,7 @@ def test_a_zero_network_leaves_the_kalman_and_particle_filters_unchanged():
     model = _linear()
     _, ys = _data(model)
     net = _net(zero_output=True)
-    out = neural_gaussian_filter(model, ys, network=net, kind="kf")
+    out = neural_gaussian_filter(model, ys, network=net, filter=df.KalmanFilter())
     ref = df.kalman_filter(model, ys)
     torch.testing.assert_close(out.means, ref.means, rtol=0, atol=1e-12)
     torch.testing.assert_close(out.covs, ref.covs, rtol=0, atol=1e-12)
@@ -75,7 +75,7 @@ def test_each_kalman_step_updates_with_the_measurement_minus_the_networks_estima
     """One step by hand: ν, S of the plain step → δ (eq. 9, ℓ = 0) → â → KF step on y − â."""
     model, net = _linear(), _net()
     _, ys = _data(model, runs=2, steps=3)
-    out = neural_gaussian_filter(model, ys, network=net, kind="kf")
+    out = neural_gaussian_filter(model, ys, network=net, filter=df.KalmanFilter())
     state = df.kalman.gaussian_init(model, (2,))
     attack_hist, resid_hist = (
         torch.zeros(2, 2, 2, dtype=ys.dtype),
@@ -107,7 +107,8 @@ def test_an_actuator_estimate_is_added_to_the_input_of_each_update_by_hand():
     us = torch.randn(2, 4, 1, generator=gen, dtype=dtype)
     net = NeuralFDIEstimator(num_areas=1, area_dim=1, resid_dim=2, a=2, b=2, hidden=5,
                              init="symmetric", init_scale=0.5, seed=2, dtype=dtype)  # fmt: skip
-    out = neural_gaussian_filter(model, ys, us, network=net, channel="actuator")
+    out = neural_gaussian_filter(model, ys, us, network=net, filter=df.KalmanFilter(),
+                                 channel="actuator")  # fmt: skip
     assert out.attack.shape == (2, 4, 1)
     state = df.kalman.gaussian_init(model, (2,))
     a_hist, e_hist = torch.zeros(2, 2, 1, dtype=dtype), torch.zeros(2, 2, 2, dtype=dtype)
@@ -122,9 +123,9 @@ def test_an_actuator_estimate_is_added_to_the_input_of_each_update_by_hand():
         torch.testing.assert_close(out.attack[:, t], a_hat, rtol=0, atol=1e-12)
         torch.testing.assert_close(out.means[:, t], state.mean, rtol=0, atol=1e-12)
     with pytest.raises(ValueError, match="needs the inputs"):
-        neural_gaussian_filter(model, ys, network=net, channel="actuator")
-    with pytest.raises(ValueError, match="resid_dim == area_dim"):
-        neural_gaussian_filter(model, ys, us, network=net)  # a sensor estimate of 1 channel
+        neural_gaussian_filter(model, ys, network=net, filter=df.KalmanFilter(), channel="actuator")
+    with pytest.raises(ValueError, match="resid_dim == area_dim"):  # a sensor estimate of 1 channel
+        neural_gaussian_filter(model, ys, us, network=net, filter=df.KalmanFilter())
 
 
 def test_the_task_takes_the_attack_channel_from_the_scenario():
@@ -146,7 +147,7 @@ def test_gradcheck_through_the_compensated_kalman_filter():
         plain = copy.deepcopy(net)
         del plain.W, plain.V  # plain tensors instead of parameters: the inputs of gradcheck
         plain.W, plain.V = W, V
-        res = neural_gaussian_filter(model, y, network=plain, kind="kf")
+        res = neural_gaussian_filter(model, y, network=plain, filter=df.KalmanFilter())
         return res.means.sum() + res.attack.square().sum() + res.extras["attack_logit"].sum()
 
     inputs = [t.detach().clone().requires_grad_() for t in (net.W, net.V, ys)]
@@ -174,12 +175,22 @@ def test_gradients_reach_the_network_through_the_particle_filter(resampler):
 def test_the_network_must_fit_the_measurement():
     model = _linear()
     _, ys = _data(model)
-    with pytest.raises(ValueError, match="num_areas = 1"):
-        NeuralCompensation(NeuralFDIEstimator(num_areas=2, area_dim=1))
+    two = NeuralFDIEstimator(num_areas=2, area_dim=1, extra_inputs=2)
+    with pytest.raises(ValueError, match="one area"):
+        NeuralCompensation(two, df.KalmanFilter(), features=("mask",))
     with pytest.raises(ValueError, match="resid_dim is 3"):
-        neural_gaussian_filter(model, ys, network=NeuralFDIEstimator(num_areas=1, area_dim=3))
-    with pytest.raises(ValueError, match="kind must be one of"):
-        neural_gaussian_filter(model, ys, network=_net(), kind="pf")
+        neural_gaussian_filter(model, ys, network=NeuralFDIEstimator(num_areas=1, area_dim=3),
+                               filter=df.KalmanFilter())  # fmt: skip
+    with pytest.raises(TypeError, match="inner must be a filter object"):
+        neural_gaussian_filter(model, ys, network=_net(), filter="pf")
+
+
+def _weigh(net, model, y, particles, mask, predictive, **kw):
+    """One weighting of the network's particle likelihood (its state fresh)."""
+    est = NeuralCompensation(net, df.ParticleFilter(particles.shape[-2]), **kw)
+    lik = est.pf.likelihood
+    state = lik.init(model, y.shape[:-1], y.dtype, y.device)
+    return lik.weigh(state, model, y, particles, 1, mask, predictive)
 
 
 def _captured_inputs(net):
@@ -196,7 +207,6 @@ def test_particle_filter_features_by_hand():
     features = ("mask", "log_likelihood", "poa")
     net = _net(extra_inputs=feature_dim(features, 2))
     seen = _captured_inputs(net)
-    comp = NeuralCompensation(net, features, poa_eta=0.3)
     B, N = 3, 7
     particles = torch.randn(B, N, 2, generator=gen, dtype=torch.float64)
     log_w = torch.log_softmax(torch.randn(B, N, generator=gen, dtype=torch.float64), -1)
@@ -204,7 +214,8 @@ def test_particle_filter_features_by_hand():
     mask = torch.tensor([[True, True], [True, False], [False, False]])
     innovation = torch.randn(B, 2, generator=gen, dtype=torch.float64) * mask
     cov = torch.eye(2, dtype=torch.float64).expand(B, 2, 2)
-    comp(model, y, particles, 1, mask, predictive=Predictive(log_w, y, innovation, cov))
+    pred = Predictive(log_w, y, innovation, cov)
+    _weigh(net, model, y, particles, mask, pred, features=features, poa_eta=0.3)
     tail = seen[0][:, 0, -4:]
     torch.testing.assert_close(tail[:, :2], mask.double())
     sd = 0.1  # R = 1e-2 I
@@ -236,7 +247,7 @@ def test_each_feature_alone_gives_its_column_of_the_full_set(features):
         width = feature_dim(names, 2)
         net = _net(extra_inputs=width)
         seen = _captured_inputs(net)
-        NeuralCompensation(net, names, poa_eta=0.3)(model, y, particles, 1, mask, predictive=pred)
+        _weigh(net, model, y, particles, mask, pred, features=names, poa_eta=0.3)
         tails[names] = seen[0][:, 0, -width:]
     full = dict(zip(("mask", "log_likelihood", "poa"), tails[("mask", "log_likelihood", "poa")]
                     .split([2, 1, 1], -1)))  # fmt: skip
@@ -256,20 +267,22 @@ def test_replacement_channel_weighs_with_the_learned_attack_probability_by_hand(
     box = UniformBox(
         torch.full((2,), -5.0, dtype=torch.float64), torch.full((2,), 5.0, dtype=torch.float64)
     )
-    comp = NeuralCompensation(net, channel="replacement", deception=fdi.ReplacementDeception(box))
     particles = torch.randn(3, 6, 2, generator=gen, dtype=torch.float64)
     log_w = torch.log_softmax(torch.randn(3, 6, generator=gen, dtype=torch.float64), -1)
     y = torch.randn(3, 2, generator=gen, dtype=torch.float64)
     innovation = torch.randn(3, 2, generator=gen, dtype=torch.float64)
     cov = torch.eye(2, dtype=torch.float64).expand(3, 2, 2)
-    ll = comp(model, y, particles, 1, None, predictive=Predictive(log_w, y, innovation, cov))
-    p = torch.sigmoid(comp.logit[:, 0])
+    deception = fdi.ReplacementDeception(box)
+    pred = Predictive(log_w, y, innovation, cov)
+    _, ll, record = _weigh(net, model, y, particles, None, pred, channel="replacement",
+                           deception=deception)  # fmt: skip
+    p = torch.sigmoid(record["logit"][:, 0])
     clean = torch.distributions.Normal(0.0, 0.1).log_prob(y[:, None] - particles).sum(-1)
     expect = torch.log((1 - p)[:, None] * clean.exp() + p[:, None] / 100.0)  # box area 10²
     torch.testing.assert_close(ll, expect)
-    torch.testing.assert_close(comp.attack[:, 0], p[:, None] * innovation)
-    with pytest.raises(ValueError, match="needs deception"):
-        NeuralCompensation(net, channel="replacement")
+    torch.testing.assert_close(record["attack"], p[:, None] * innovation)
+    with pytest.raises(ValueError, match="deception="):
+        NeuralCompensation(net, df.ParticleFilter(6), channel="replacement")
 
 
 def test_kalman_filter_log_likelihood_feature_by_hand():
@@ -278,7 +291,8 @@ def test_kalman_filter_log_likelihood_feature_by_hand():
     _, ys = _data(model, runs=2, steps=3)
     net = _net(extra_inputs=1)
     seen = _captured_inputs(net)
-    neural_gaussian_filter(model, ys, network=net, features=("log_likelihood",))
+    neural_gaussian_filter(model, ys, network=net, filter=df.KalmanFilter(),
+                           features=("log_likelihood",))  # fmt: skip
     F, Q, R = model.transition_matrix(0), model.process_cov(0), model.measurement_cov(1)
     S = F @ model.initial.cov @ F.T + Q + R  # H = I
     ell = torch.distributions.MultivariateNormal(F @ model.initial.mean, S).log_prob(ys[:, 0])
@@ -286,16 +300,18 @@ def test_kalman_filter_log_likelihood_feature_by_hand():
 
 
 def test_features_must_fit_the_network():
+    pf = df.ParticleFilter(8)
     with pytest.raises(ValueError, match="extra_inputs is 0"):
-        NeuralCompensation(_net(), ("mask",))
+        NeuralCompensation(_net(), pf, features=("mask",))
     with pytest.raises(ValueError, match="distinct names"):
         feature_dim(("mask", "nis"), 2)
     with pytest.raises(ValueError, match="poa_eta"):
-        NeuralCompensation(_net(extra_inputs=1), ("poa",))
+        NeuralCompensation(_net(extra_inputs=1), pf, features=("poa",))
     model = _linear()
     _, ys = _data(model)
-    with pytest.raises(ValueError, match="need particles"):
-        neural_gaussian_filter(model, ys, network=_net(extra_inputs=1), features=("poa",))
+    with pytest.raises(ValueError, match="needs particles"):
+        neural_gaussian_filter(model, ys, network=_net(extra_inputs=1), filter=df.KalmanFilter(),
+                               features=("poa",))  # fmt: skip
 
 
 def test_task_fit_export_and_evaluate_round_trip(tmp_path, monkeypatch, capsys):
@@ -323,7 +339,7 @@ def test_task_fit_export_and_evaluate_round_trip(tmp_path, monkeypatch, capsys):
     assert main(["fit", *config, *tiny]) == 0
     run = tmp_path / "lightning_logs" / "four_tank_nn_grad" / "version_0"
     card = json.loads((run / "four_tank_nn_grad.json").read_text())
-    assert card["observer"]["kind"] == "pf" and 0 < card["observer"]["threshold"] < 1
+    assert card["observer"]["filter"] == "pf" and 0 < card["observer"]["threshold"] < 1
     assert card["observer"]["features"] == ["mask", "log_likelihood", "poa"]
     assert card["observer"]["poa_eta"] == pytest.approx(0.233, abs=5e-4)  # the paper's η
     assert {p.name: p.read_bytes() for p in (ROOT / "checkpoints").iterdir()} == shipped
@@ -347,7 +363,7 @@ def test_task_fit_export_and_evaluate_round_trip(tmp_path, monkeypatch, capsys):
 
     lfc = ROOT / "checkpoints" / "lfc_nn_grad.ckpt"
     other = run_suite(sc, runs=2, estimators=("pf_nn_grad",), checkpoint=lfc, progress=False)
-    assert "pf_nn_grad" in other.skipped and "'kalman'" in other.skipped["pf_nn_grad"]
+    assert "pf_nn_grad" in other.skipped and "'kf'" in other.skipped["pf_nn_grad"]
 
 
 def test_ekf_trainer_learns_the_attack_and_its_export_evaluates_as_pf_nn_ekf(tmp_path, monkeypatch):

@@ -1,22 +1,26 @@
-"""Neural FDI estimator, attack-compensating observers and the secure closed loop."""
+"""The LFC paper's neural FDI estimator, its observers and the secure closed loop, on the
+shared path: NeuralCompensation around the library's filters in difffilter's closed loop."""
 
 from __future__ import annotations
-
-import dataclasses
 
 import pytest
 import torch
 
 import difffilter
-from difffilter.models.attack_observer import AttackObserver, ClosedLoop
-from difffilter.models.control import lqr
-from difffilter.models.lfc import LFCPlant, scenario_attack
+from difffilter.estimator import Estimator, Generators
+from difffilter.kalman import KalmanFilter
+from difffilter.models.learned_estimator import NeuralCompensation, OnlineLearning, Residual
+from difffilter.models.lfc import LFCPlant, lfc_loop, scenario_attack
+from difffilter.models.lfc_estimators import LFCContext, lfc_estimator, paper_network
 from difffilter.models.neural_estimator import (
+    EstimatorCard,
     NeuralFDIEstimator,
     build_delta,
     load_estimator_checkpoint,
     save_estimator_checkpoint,
 )
+from difffilter.observers import FixedGainFilter
+from difffilter.param_ekf import EKFRule, GradientRule
 
 
 @pytest.fixture(scope="module")
@@ -69,6 +73,10 @@ def test_estimator_bad_arguments():
         NeuralFDIEstimator(init="normal")
     with pytest.raises(ValueError, match="delta"):
         NeuralFDIEstimator()(torch.zeros(3, 2, 29, dtype=torch.float64))
+    with pytest.raises(TypeError, match="inner"):
+        NeuralCompensation(NeuralFDIEstimator(), "kf")
+    with pytest.raises(TypeError, match="learning"):
+        NeuralCompensation(NeuralFDIEstimator(), KalmanFilter(), learning="ekf")
 
 
 def test_build_delta_orders_channels_per_area():
@@ -82,17 +90,26 @@ def test_build_delta_orders_channels_per_area():
     assert delta[0, 1, 5:10].tolist() == [15, 16, 17, 18, 19]
     assert delta[0, 1, 10:15].tolist() == [105, 106, 107, 108, 109]
     assert delta[0, 0, 20:25].tolist() == [120, 121, 122, 123, 124]
+    # any leading batch shape
+    assert build_delta(
+        attack_hist.expand(3, 4, a, 10), resid_hist.expand(3, 4, b, 10), 2
+    ).shape == (3, 4, 2, 25)
 
 
 def test_checkpoint_roundtrip_and_errors(tmp_path):
     net = NeuralFDIEstimator(hidden=6, resid_scale=0.1, seed=9, dtype=torch.float32)
     path = tmp_path / "est.ckpt"
-    save_estimator_checkpoint(path, net, {"residual_lag": 0, "dt": 0.01})
+    save_estimator_checkpoint(path, net, {"residual_lag": 0, "dt": 0.01, "kind": "kalman"})
     raw = torch.load(path, weights_only=True)  # never a pickled module
     assert set(raw) >= {"format", "estimator_config", "state_dict", "observer"}
-    loaded, obs = load_estimator_checkpoint(path)
-    assert obs == {"residual_lag": 0, "dt": 0.01} and loaded.V.dtype == torch.float64
+    loaded, card = load_estimator_checkpoint(path)
+    # the LFC module's older card layout reads as the typed card
+    assert card.filter == "kf" and card.residual == "predicted" and not card.standardize
+    assert card.scenario_family == "lfc" and card.dt == 0.01 and loaded.V.dtype == torch.float64
     assert torch.allclose(loaded.V.float(), net.V) and loaded.resid_scale == 0.1
+    typed = EstimatorCard(scenario_family="four_tank", filter="pf", features=("mask",))
+    save_estimator_checkpoint(path, net, typed)
+    assert load_estimator_checkpoint(path)[1] == typed
     with pytest.raises(FileNotFoundError):
         load_estimator_checkpoint(tmp_path / "missing.ckpt")
     bad = tmp_path / "bad.ckpt"
@@ -105,126 +122,157 @@ def test_checkpoint_roundtrip_and_errors(tmp_path):
         load_estimator_checkpoint(bad)
 
 
-def test_kalman_schedule_equals_the_batched_kalman_filter(plant):
-    """The cached gain schedule reproduces difffilter.kalman_step run on every run."""
-    obs = AttackObserver(plant.Ad, plant.Bd, plant.Q, plant.R)
-    model = obs.observer_model()
+def test_the_observers_kalman_filter_equals_kalman_step(plant):
+    """The closed loop's Kalman filter (the shared gain schedule) is difffilter's
+    kalman_step on every run."""
+    model = plant.model(knows_load=False)
     g = torch.Generator().manual_seed(0)
     B, T = 3, 40
     zs = 0.05 * torch.randn(B, T, 10, generator=g, dtype=torch.float64)
-    us = 0.05 * torch.randn(B, T, 2, generator=g, dtype=torch.float64)
-    state = obs.init(B)
+    us = 0.05 * torch.randn(B, T, 4, generator=g, dtype=torch.float64)
+    kf = KalmanFilter()
+    carry = kf.init(model, (B,))
+    assert carry.gains is not None  # an unbatched LTI model: gains shared by the runs
     ref = difffilter.GaussianState(
         torch.zeros(B, 10, dtype=torch.float64), 1e-2 * torch.eye(10, dtype=torch.float64)
     )
     for t in range(T):
-        state, out = obs.step(state, zs[:, t], us[:, t])
+        carry, out = kf.step(carry, zs[:, t], us[:, t])
         ref, ref_out = difffilter.kalman_step(model, ref, zs[:, t], u=us[:, t])
         assert torch.allclose(out.mean, ref.mean, atol=1e-12)
         assert torch.allclose(out.innovation, ref_out.innovation, atol=1e-12)
         assert torch.allclose(out.innovation_cov, ref_out.innovation_cov, atol=1e-14)
+        assert torch.allclose(out.log_likelihood, ref_out.log_likelihood, atol=1e-9)
 
 
-class _OracleObserver:
-    """A Kalman observer whose attack estimate is the true attack (duck-types AttackObserver)."""
+class _Oracle(Estimator):
+    """A Kalman observer fed the measurement without the true attack, reporting it."""
 
-    def __init__(self, plant, alpha):
-        self.inner = AttackObserver(plant.Ad, plant.Bd, plant.Q, plant.R)
-        self.alpha = alpha
+    carry_type = difffilter.GaussianState
 
-    def init(self, runs, params=None):
-        return self.inner.init(runs)
+    def __init__(self, alpha):
+        self.kf, self.alpha = KalmanFilter(), alpha
 
-    def step(self, state, z, u):
-        k = state.k
-        new, out = self.inner.step(state, z - self.alpha[:, k - 1], u)
-        return new, dataclasses.replace(out, attack=self.alpha[:, k - 1].expand_as(z))
+    def _init(self, model, batch_shape, generators):
+        return self.kf._init(model, batch_shape, generators)
+
+    def _step(self, carry, y, u, mask):
+        a = self.alpha[:, carry.k]
+        carry, out = self.kf._step(carry, y - a, u, mask)
+        return carry, out._replace(attack=a.expand_as(y))
 
 
 def test_secure_controller_with_a_perfect_estimate_undoes_the_attack(plant):
-    K1, _ = lqr(plant.A, plant.B)
     g = torch.Generator().manual_seed(1)
     T = 300
     xi, theta = plant.sample_noise(2, T, g)
     t = plant.dt * torch.arange(1, T + 1, dtype=torch.float64)
-    alpha = scenario_attack("step", t + 2.9)[None]  # the 0.4 step begins at k = 1
+    alpha = scenario_attack("step", t + 2.9)[None].expand(2, T, 10)  # begins at k = 10
     load = torch.tensor([[0.01, 0.0]], dtype=torch.float64)
-    plain = ClosedLoop(
-        plant, K1, AttackObserver(plant.Ad, plant.Bd, plant.Q, plant.R), compensate=False
-    )
-    _, free = plain.run(plain.init(2), torch.zeros_like(alpha), xi, theta, load)
-    _, attacked = plain.run(plain.init(2), alpha, xi, theta, load)
-    # The attack drives the traditional loop away from the attack-free one ...
-    assert (attacked.x - free.x)[..., 4].abs().max() > 0.05
-    # ... and a secure loop fed the true attack reproduces the attack-free trajectory.
-    secure = ClosedLoop(plant, K1, _OracleObserver(plant, alpha))
-    _, oracle = secure.run(secure.init(2), alpha, xi, theta, load)
-    assert torch.allclose(oracle.x, free.x, atol=1e-12)
-    assert torch.allclose(oracle.mean, free.mean, atol=1e-12)
+    from difffilter.models.attacks import Signal
+
+    free = lfc_loop(plant, KalmanFilter(), xi, theta, load, compensate=False)
+    attacked = lfc_loop(plant, KalmanFilter(), xi, theta, load, attack=Signal(alpha),
+                        compensate=False)  # fmt: skip
+    dx = (attacked.trajectories.x - free.trajectories.x)[..., 4]
+    assert dx.abs().max() > 0.05  # the attack drives the traditional loop away ...
+    # ... and a secure loop fed the true attack reproduces the attack-free trajectory
+    oracle = lfc_loop(plant, _Oracle(alpha), xi, theta, load, attack=Signal(alpha))
+    assert torch.allclose(oracle.trajectories.x, free.trajectories.x, atol=1e-12)
+    assert torch.allclose(oracle.output.means, free.output.means, atol=1e-12)
+    # the loop's own record: the received measurement is the plant's output plus the attack
+    tr = attacked.trajectories
+    assert torch.allclose(tr.y_recv, tr.y_true + alpha) and bool(tr.flags[:, 10:190].all())
 
 
-def test_closed_loop_shapes_and_online_learning(plant):
-    K1, _ = lqr(plant.A, plant.B)
-    net = NeuralFDIEstimator(init_scale=0.1, detection_head=False)
-    for learning in ("ekf", "gradient"):
-        obs = AttackObserver(
-            plant.Ad,
-            plant.Bd,
-            plant.Q,
-            plant.R,
-            network=net,
-            learning=learning,
-            learning_kwargs={"lr": 0.01} if learning == "gradient" else {},
-        )
-        loop = ClosedLoop(plant, K1, obs)
-        g = torch.Generator().manual_seed(2)
-        xi, theta = plant.sample_noise(3, 20, g)
-        alpha = torch.zeros(1, 20, 10, dtype=torch.float64)
-        alpha[..., 2] = 0.5
-        state, rec = loop.run(
-            loop.init(3), alpha, xi, theta, torch.zeros(1, 2, dtype=torch.float64)
-        )
-        assert rec.attack_est.shape == (3, 20, 10) and rec.innovation_cov.shape == (20, 10, 10)
-        assert bool(torch.isfinite(rec.attack_est).all())
-        # Every run has its own weights, and learning moved them.
-        W = state.observer.learner.params()["W"]
-        assert W.shape == (3, 2, 5, 10)
-        assert not torch.allclose(W[0], net.W)
-        assert not torch.allclose(W[0], W[1])
-    with pytest.raises(ValueError, match="learning"):
-        AttackObserver(plant.Ad, plant.Bd, plant.Q, plant.R, learning="ekf")
-    with pytest.raises(ValueError, match="gain"):
-        AttackObserver(plant.Ad, plant.Bd, plant.Q, plant.R, kind="luenberger")
-    with pytest.raises(ValueError, match="residual_lag"):
-        AttackObserver(plant.Ad, plant.Bd, plant.Q, plant.R, residual_lag=2)
+@pytest.mark.parametrize("rule", [EKFRule(), GradientRule(lr=0.01)], ids=["ekf", "gradient"])
+def test_closed_loop_online_learning_keeps_one_learner_per_run(plant, rule):
+    ctx = LFCContext()
+    est = lfc_estimator(ctx, network=paper_network(0.1), rule=rule, init_scale=0.1)
+    g = torch.Generator().manual_seed(2)
+    xi, theta = plant.sample_noise(3, 20, g)
+    alpha = torch.zeros(3, 20, 10, dtype=torch.float64)
+    alpha[..., 2] = 0.5
+    from difffilter.models.attacks import Signal
+
+    gens = Generators(init=torch.Generator().manual_seed(4))
+    loop = lfc_loop(plant, est, xi, theta, torch.zeros(1, 2, dtype=torch.float64),
+                    attack=Signal(alpha), generator=gens)  # fmt: skip
+    assert loop.output.attack.shape == (3, 20, 10) and bool(loop.output.attack.isfinite().all())
+    learner = loop.state.carry.net.learner
+    W = est.core.template.unflatten(learner.theta)["W"].reshape(3, 2, 5, 10)
+    start = est.core.template.unflatten(
+        est.core.init(torch.Size([3]), torch.float64, "cpu",
+                      torch.Generator().manual_seed(4)).learner.theta)["W"].reshape(3, 2, 5, 10)  # fmt: skip
+    assert not torch.allclose(W[0], start[0])  # learning moved the weights ...
+    assert not torch.allclose(W[0], W[1])  # ... of every run on its own
 
 
-def test_residual_lag_zero_sees_the_current_measurement(plant):
+def test_the_networks_step_by_hand(plant):
+    """Eq. (9) with the predicted residual (ℓ = 0) and the lagged one (ℓ = 1), two steps."""
+    model = plant.model(knows_load=False)
+    net = NeuralFDIEstimator(init="symmetric", init_scale=0.3, seed=5, detection_head=False)
+    g = torch.Generator().manual_seed(6)
+    ys = 0.1 * torch.randn(2, 3, 10, generator=g, dtype=torch.float64)
+    for residual in (Residual.PREDICTED, Residual.LAGGED):
+        est = NeuralCompensation(net, KalmanFilter(), residual=residual, standardize=False)
+        carry, kf = est.init(model, (2,)), KalmanFilter()
+        ref = kf.init(model, (2,))
+        a_hist = torch.zeros(2, 3, 10, dtype=torch.float64)
+        r_hist = torch.zeros(2, 3, 10, dtype=torch.float64)
+        for t in range(3):
+            carry, out = est.step(carry, ys[:, t])
+            pred = kf.predict(ref, None)
+            nu = ys[:, t] - pred.mean
+            if residual is Residual.PREDICTED:
+                r = nu - a_hist[:, 0]
+                resid_in = torch.cat([r[:, None], r_hist[:, :-1]], 1)
+            else:
+                resid_in = r_hist
+            a, _ = net(build_delta(a_hist, resid_in, 2))
+            a = a.flatten(-2)
+            entry = r if residual is Residual.PREDICTED else nu - a
+            ref, ref_out = kf.update(ref, pred, ys[:, t] - a, None)
+            a_hist = torch.cat([a[:, None], a_hist[:, :-1]], 1)
+            r_hist = torch.cat([entry[:, None], r_hist[:, :-1]], 1)
+            torch.testing.assert_close(out.attack, a, rtol=0, atol=1e-12)
+            torch.testing.assert_close(out.mean, ref.mean, rtol=0, atol=1e-12)
+
+
+def test_residual_predicted_sees_the_current_measurement(plant):
     """With ℓ = 0 a frozen network reacts to an attack at the step it starts; with ℓ = 1 a step later."""
-    K1, _ = lqr(plant.A, plant.B)
     net = NeuralFDIEstimator(init="symmetric", init_scale=0.3, seed=5, detection_head=False)
     xi = torch.zeros(1, 6, 10, dtype=torch.float64)
     alpha = torch.zeros(1, 6, 10, dtype=torch.float64)
     alpha[:, 3:, 2] = 1.0
+    from difffilter.models.attacks import Signal
+
     out = {}
-    for lag in (0, 1):
-        loop = ClosedLoop(
-            plant,
-            K1,
-            AttackObserver(plant.Ad, plant.Bd, plant.Q, plant.R, network=net, residual_lag=lag),
-        )
-        _, rec = loop.run(loop.init(1), alpha, xi, xi, torch.zeros(1, 2, dtype=torch.float64))
-        free_loop = ClosedLoop(
-            plant,
-            K1,
-            AttackObserver(plant.Ad, plant.Bd, plant.Q, plant.R, network=net, residual_lag=lag),
-        )
-        _, free = free_loop.run(
-            free_loop.init(1),
-            torch.zeros_like(alpha),
-            xi,
-            xi,
-            torch.zeros(1, 2, dtype=torch.float64),
-        )
-        out[lag] = (rec.attack_est - free.attack_est).abs().sum(-1)[0]
-    assert out[0][3] > 1e-3 and out[1][3] == 0 and out[1][4] > 1e-3
+    zero = torch.zeros(1, 2, dtype=torch.float64)
+    for residual in (Residual.PREDICTED, Residual.LAGGED):
+        est = NeuralCompensation(net, KalmanFilter(), residual=residual, standardize=False)
+        rec = lfc_loop(plant, est, xi, xi, zero, attack=Signal(alpha)).output.attack
+        free = lfc_loop(plant, est, xi, xi, zero).output.attack
+        out[residual] = (rec - free).abs().sum(-1)[0]
+    p, lag = out[Residual.PREDICTED], out[Residual.LAGGED]
+    assert p[3] > 1e-3 and lag[3] == 0 and lag[4] > 1e-3
+
+
+def test_luenberger_observer_is_the_fixed_gain_filter(plant):
+    ctx = LFCContext()
+    L = ctx.luenberger("modal")
+    model = plant.model(knows_load=False)
+    obs = FixedGainFilter(L)
+    carry = obs.init(model, (2,))
+    y = torch.randn(2, 10, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    u = torch.zeros(2, 4, dtype=torch.float64)
+    carry, out = obs.step(carry, y, u)
+    pred = plant.Ad @ torch.zeros(10, dtype=torch.float64)
+    assert torch.allclose(out.mean, pred + (y - pred) @ L.T)
+    assert out.cov is None and out.innovation_cov is None
+    with pytest.raises(ValueError, match="gain"):
+        FixedGainFilter(torch.zeros(3, 3, dtype=torch.float64)).init(model, (1,))
+    # the online learners are objects, not names
+    with pytest.raises(TypeError, match="OnlineLearning"):
+        NeuralCompensation(paper_network(), obs, learning="gradient")
+    assert OnlineLearning(GradientRule()).posterior

@@ -1,10 +1,9 @@
-"""Closed-loop evaluation in bounded memory and linear time (issue 12, part 5).
+"""Closed-loop evaluation in bounded memory and linear time.
 
-The evaluation once appended every step's small record tensors to lists and stacked them
-at the end; interleaved with each step's large temporaries they fragmented the heap, so
-memory grew with every step and the step rate fell over a long run. These tests count
-live tensors instead of timing anything: they fail whenever something (a record list, an
-autograd graph, a growing history) accumulates per step.
+A loop records its trajectories and step outputs (a bounded number of tensors per step);
+nothing else may accumulate: no autograd graph in evaluation, no growing history in a
+carry (the network's windows and the online learners' covariances are replaced, not
+appended to). These tests count live tensors instead of timing anything.
 """
 
 from __future__ import annotations
@@ -14,10 +13,12 @@ import gc
 import pytest
 import torch
 
-from difffilter.models.attack_observer import AttackObserver, ClosedLoop
-from difffilter.models.lfc import STATE_DIM, random_attacks
-from difffilter.models.lfc_estimators import ESTIMATORS, EstimatorSpec, LFCContext, run_estimator
-from difffilter.models.neural_estimator import NeuralFDIEstimator
+from difffilter.estimator import Generators
+from difffilter.models import registry
+from difffilter.models.estimators import SuiteContext
+from difffilter.models.lfc_estimators import _BUILDERS
+from difffilter.models.neural_estimator import EstimatorCard, NeuralFDIEstimator
+from difffilter.models.streams import Streams
 
 
 def _live_tensors() -> int:
@@ -25,78 +26,72 @@ def _live_tensors() -> int:
     return sum(1 for o in gc.get_objects() if isinstance(o, torch.Tensor))
 
 
-def _data(runs: int, steps: int):
-    ctx = LFCContext(dt=0.01)
-    g = torch.Generator().manual_seed(3)
-    attack = random_attacks(runs, steps, 0.01, generator=g, channels=(2,), min_events=1)
-    xi, theta = ctx.plant.sample_noise(runs, steps, g)
-    load = torch.tensor([[0.01, 0.0]], dtype=ctx.dtype)
-    return ctx, attack, xi, theta, load
-
-
-def _checkpoint():
+def _setup(name: str, runs: int, steps: int, monkeypatch):
+    sc = registry.get("lfc_random_attacks").with_steps(steps)
+    streams = Streams(3)
+    draws = sc.exogenous(runs, {k: streams(k) for k in ("plant", "attack")}, dtype=torch.float64)
+    ctx = SuiteContext(sc, sc.system(), runs, streams)
     net = NeuralFDIEstimator(init="symmetric", init_scale=0.05, seed=1)
-    return net, {"residual_lag": 0}
+    card = EstimatorCard("lfc", filter="kf", residual="predicted", standardize=False)
+    monkeypatch.setattr(
+        "difffilter.models.lfc_estimators._checkpoint_network", lambda ctx, name: (net, card)
+    )
+    return sc, draws, _BUILDERS[name][1](ctx), net
+
+
+# per step a loop keeps x, y, ỹ, u, the attack's value, flag and change, and the step's
+# output (moments, prediction, innovation, likelihood, attack, score, alarm, extras)
+PER_STEP = 25
+
+
+def _numel(value) -> int:
+    """Elements of every tensor reachable from a carry (NamedTuples, tuples, dicts)."""
+    if isinstance(value, torch.Tensor):
+        return value.numel()
+    if isinstance(value, dict):
+        return sum(_numel(v) for v in value.values())
+    if isinstance(value, (tuple, list)) and not isinstance(value, torch.Size):
+        return sum(_numel(v) for v in value)
+    return 0
 
 
 @pytest.mark.parametrize("name", ["uncompensated", "kf_nn_ekf", "traditional_ad", "kf_nn_grad"])
-def test_evaluation_keeps_no_per_step_tensors(name, monkeypatch):
-    """The number of live tensors is the same after 10 and after 60 steps of a run."""
-    # The Kalman gain schedule is cached per step until it converges (bounded by the horizon,
-    # data-independent, 3 small tensors a step): compute it up front so that only what the
-    # loop itself keeps is counted.
-    init = AttackObserver.__init__
-
-    def warmed(self, *args, **kwargs):
-        init(self, *args, **kwargs)
-        if self.kind == "kalman":
-            self.kalman_schedule(61)
-
-    monkeypatch.setattr(AttackObserver, "__init__", warmed)
-    ctx, attack, xi, theta, load = _data(runs=3, steps=60)
-    counts = {}
-    step = [0]
+def test_evaluation_keeps_only_its_records(name, monkeypatch):
+    sc, draws, est, _ = _setup(name, runs=3, steps=60, monkeypatch=monkeypatch)
+    counts, step = {}, [0]
 
     def probe(n):
         step[0] += n
         if step[0] in (10, 60):
             counts[step[0]] = _live_tensors()
 
-    rec, _ = run_estimator(
-        ESTIMATORS[name],
-        ctx,
-        attack,
-        xi,
-        theta,
-        load,
-        init_seed=0,
-        checkpoint=_checkpoint(),
-        progress=probe,
-    )
-    # A list of per-step tensors adds 6-8 tensors per step (300+ over these 50 steps).
-    assert counts[60] - counts[10] <= 2, counts
-    for field in ("x", "z", "u", "attack_est", "mean", "innovation", "innovation_cov", "logit"):
-        value = getattr(rec, field)
+    gens = Generators(init=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        sc.loop(est, draws, generator=gens)  # warm up: the Kalman gains are cached per step
+        loop = sc.loop(est, draws, generator=gens, progress=probe)
+    assert counts[60] - counts[10] <= 50 * PER_STEP, counts
+    # the estimator's carry is the same size after 10 steps as after 60 (the attacker's
+    # state is its table for the horizon)
+    with torch.no_grad():
+        short = sc.with_steps(10).loop(est, {k: v[:, :10] if v.dim() == 3 else v
+                                             for k, v in draws.items()}, generator=gens)  # fmt: skip
+    assert _numel(short.state.carry) == _numel(loop.state.carry)
+    for value in (loop.trajectories.x, loop.output.means, loop.output.attack):
         if value is not None:
-            assert not value.requires_grad and value.grad_fn is None, field
-    assert rec.x.shape == (3, 60, STATE_DIM)
+            assert not value.requires_grad and value.grad_fn is None
+    assert loop.trajectories.x.shape == (3, 60, 10)
 
 
-def test_buffered_record_equals_the_autograd_path():
-    """Evaluation (buffers filled in place) and training (stacked graph nodes) agree exactly,
-    and gradients still reach the network when autograd is on."""
-    ctx, attack, xi, theta, load = _data(runs=2, steps=25)
-    spec = EstimatorSpec("frozen", network="checkpoint")
-    net, obs = _checkpoint()
-    rec_eval, _ = run_estimator(
-        spec, ctx, attack, xi, theta, load, init_seed=0, checkpoint=(net, obs)
-    )
-    plant = ctx.plant
-    observer = AttackObserver(plant.Ad, plant.Bd, plant.Q, plant.R, network=net, residual_lag=0)
-    loop = ClosedLoop(plant, ctx.K1, observer)
-    _, rec_grad = loop.run(loop.init(2), attack, xi, theta, load)
-    assert rec_grad.attack_est.grad_fn is not None
-    for field in ("x", "z", "u", "attack_est", "mean", "innovation", "innovation_cov", "logit"):
-        assert torch.equal(getattr(rec_eval, field), getattr(rec_grad, field).detach()), field
-    rec_grad.attack_est.square().sum().backward()
+def test_evaluation_equals_the_autograd_path(monkeypatch):
+    """Without and with autograd the loop computes the same numbers, and gradients reach the
+    network through the closed loop (the controller feeds the estimate back)."""
+    sc, draws, est, net = _setup("kf_nn_grad", runs=2, steps=25, monkeypatch=monkeypatch)
+    with torch.no_grad():
+        plain = sc.loop(est, draws)
+    graph = sc.loop(est, draws)
+    assert graph.output.attack.grad_fn is not None
+    torch.testing.assert_close(plain.output.attack, graph.output.attack.detach(), rtol=0, atol=0)
+    torch.testing.assert_close(plain.trajectories.x, graph.trajectories.x.detach(), rtol=0, atol=0)
+    graph.trajectories.x.square().sum().backward()  # through the plant: the loop is closed
     assert net.V.grad is not None and torch.isfinite(net.V.grad).all()
+    assert float(net.V.grad.abs().sum()) > 0

@@ -1,4 +1,5 @@
-"""Training of kf_nn_grad: configs, TensorBoard logging, resuming, the shipped checkpoint."""
+"""Training of kf_nn_grad in the LFC closed loop with the one training task: configs,
+TensorBoard logging, resuming, the shipped checkpoint."""
 
 from __future__ import annotations
 
@@ -11,17 +12,32 @@ import torch
 
 from difffilter.models.neural_estimator import load_estimator_checkpoint
 from difffilter.train.cli import main
-from difffilter.train.lfc import LFCDataModule, LFCGradModule, check_metric
+from difffilter.train.export import check_metric
+from difffilter.train.task import FilterEstimatorTask, ScenarioDataModule
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((ROOT / "train" / "configs").glob("*.yaml"))
 CKPT = ROOT / "checkpoints" / "lfc_nn_grad.ckpt"
 
 # A tiny problem (short trajectories, few runs) for the tests that really train.
+SCENARIO = "lfc_random_attacks"
 TINY_DATA = dict(
-    batch_size=4, batches_per_epoch=2, val_runs=4, steps=120, train_seed=11, val_seed=12
-)
-TINY_MODEL = dict(hidden=6, tbptt_steps=40, monitor_scenarios=["lfc_step"], monitor_runs=2)
+    scenario=SCENARIO, batch_size=4, batches_per_epoch=2, val_runs=4, steps=120,
+    train_seed=11, val_seed=12,
+)  # fmt: skip
+TINY_MODEL = dict(
+    scenario=SCENARIO, filter="kf", areas=2, hidden=6, resid_scale=1.0, residual="predicted",
+    standardize=False, lr=0.01, pct_start=0.1, tbptt_steps=40, state_weight=0.0,
+    bce_weight=0.05, control_weight=0.01, monitor_scenarios=["lfc_step"], monitor_runs=2,
+)  # fmt: skip
+
+
+def LFCGradModule(**kw):  # noqa: N802 - the LFC configuration of the one task
+    return FilterEstimatorTask(**{**TINY_MODEL, **kw})
+
+
+def LFCDataModule(**kw):  # noqa: N802
+    return ScenarioDataModule(**{**TINY_DATA, **kw})
 
 
 def test_configs_exist():
@@ -73,21 +89,21 @@ class _StopAfterFirstEpoch(pl.Callback):
 
 def test_interrupted_training_resumes_from_last_checkpoint(tmp_path):
     pl.seed_everything(0)
-    full = LFCGradModule(**TINY_MODEL)
-    _tiny_trainer(tmp_path / "full", 2).fit(full, LFCDataModule(**TINY_DATA))
+    full = LFCGradModule()
+    _tiny_trainer(tmp_path / "full", 2).fit(full, LFCDataModule())
 
     pl.seed_everything(0)
-    first = LFCGradModule(**TINY_MODEL)
+    first = LFCGradModule()
     t1 = _tiny_trainer(tmp_path / "cut", 2, callbacks=[_StopAfterFirstEpoch()])
-    t1.fit(first, LFCDataModule(**TINY_DATA))
+    t1.fit(first, LFCDataModule())
     last = tmp_path / "cut" / "ckpt" / "last.ckpt"
     assert last.is_file() and t1.current_epoch == 1
     assert not torch.allclose(first.estimator.V, full.estimator.V)
 
     pl.seed_everything(123)  # the resumed run must not depend on the global seed
-    resumed = LFCGradModule(**TINY_MODEL)
+    resumed = LFCGradModule()
     t2 = _tiny_trainer(tmp_path / "cut", 2)
-    t2.fit(resumed, LFCDataModule(**TINY_DATA), ckpt_path=last)
+    t2.fit(resumed, LFCDataModule(), ckpt_path=last)
     assert t2.global_step == 2 * 2 * 3  # 2 epochs × 2 batches × 3 TBPTT chunks
     for name in ("V", "W", "P", "c"):
         assert torch.allclose(
@@ -100,25 +116,27 @@ def test_tensorboard_events_hold_scalars_images_and_hparams(tmp_path):
 
     logger = pl.loggers.TensorBoardLogger(tmp_path, name="tb", default_hp_metric=False)
     pl.seed_everything(0)
-    module = LFCGradModule(**TINY_MODEL)
+    module = LFCGradModule()
     lr = pl.callbacks.LearningRateMonitor(logging_interval="step")
     trainer = _tiny_trainer(tmp_path, 1, callbacks=[lr], logger=logger)
-    trainer.fit(module, LFCDataModule(**TINY_DATA))
+    trainer.fit(module, LFCDataModule())
     acc = EventAccumulator(str(logger.log_dir), size_guidance={"images": 0, "scalars": 0})
     acc.Reload()
     scalars = set(acc.Tags()["scalars"])
     for tag in (
         "train/loss",
-        "train/target_rmse",
+        "train/attack_mse",
+        "train/control_mse",
         "train/grad_norm",
         "lr-AdamW",  # the one learning-rate curve
         "val/attack_rmse",
+        "val/auc",
         "val/scenario/lfc_step/attack_rmse",
     ):
         assert tag in scalars, tag
     assert acc.Scalars("val/attack_rmse")[-1].value > 0
     images = set(acc.Tags()["images"])
-    assert {"val/random_attack", "val/scenario/lfc_step"} <= images
+    assert {"val/attack_estimate", "val/scenario/lfc_step"} <= images
     assert acc.Images("val/scenario/lfc_step")[0].encoded_image_string[:4] == b"\x89PNG"
     assert (Path(logger.log_dir) / "hparams.yaml").is_file()
     hp = (Path(logger.log_dir) / "hparams.yaml").read_text()
@@ -128,18 +146,19 @@ def test_tensorboard_events_hold_scalars_images_and_hparams(tmp_path):
 
 
 def test_datamodule_seeds():
-    dm = LFCDataModule(**TINY_DATA)
+    dm = LFCDataModule()
     first = dm.train_batch(0, 0)
     assert torch.equal(first["attack"], dm.train_batch(0, 0)["attack"])  # reproducible
     assert not torch.equal(first["xi"], dm.train_batch(1, 0)["xi"])  # new epoch, new data
     assert not torch.equal(first["xi"], dm.train_batch(0, 1)["xi"])
-    assert first["attack"].shape == (4, 120, 10) and first["load"].shape == (4, 2)
+    assert first["attack"].shape == (4, 120, 10)
     key = next(iter(dm.train_dataloader()))
     assert torch.equal(dm.on_after_batch_transfer(key, 0)["xi"], first["xi"])
     val = next(iter(dm.val_dataloader()))
     assert val["xi"].shape == (4, 120, 10) and not torch.equal(val["xi"], first["xi"])
     with pytest.raises(ValueError, match="differ"):
         LFCDataModule(train_seed=3, val_seed=3)
+    assert first["load"].shape == (4, 2) and not torch.equal(first["load"][0], first["load"][1])
 
 
 @pytest.mark.skipif(not CKPT.is_file(), reason="the shipped checkpoint is produced by training")
@@ -149,30 +168,35 @@ def test_shipped_checkpoint_loads_and_reproduces_its_card():
     card = json.loads(CKPT.with_suffix(".json").read_text())
     assert card["torch_version"] and card["seed"]["train_seed"] != card["seed"]["val_seed"]
     assert card["train_time_s"] <= 15 * 60
-    estimator, observer = load_estimator_checkpoint(CKPT)
+    _, typed = load_estimator_checkpoint(CKPT)
+    assert typed.filter == "kf" and typed.residual == "predicted" and typed.scenario_family == "lfc"
     check = card["check"]
-    value = check_metric(
-        estimator,
-        residual_lag=observer["residual_lag"],
-        seed=check["seed"],
-        runs=check["runs"],
-        channels=check["channels"],
-    )
+    value = check_metric(CKPT, seed=check["seed"], runs=check["runs"])["value"]
     assert value == pytest.approx(check["value"], rel=1e-6)
 
 
-def test_loss_targets():
+def test_loss_terms_by_hand():
+    """The attack MSE, the per-area BCE and the control-weighted term of the LFC config."""
     from types import SimpleNamespace
 
     g = torch.Generator().manual_seed(0)
-    attack, theta, est = (torch.randn(2, 5, 10, generator=g) for _ in range(3))
-    rec = SimpleNamespace(attack_est=est, logit=None)
-    plain = LFCGradModule(hidden=4, monitor_scenarios=[])
-    _, mse, _ = plain._loss(rec, attack, theta)
-    assert mse.item() == pytest.approx((est - attack).square().mean().item())
-    noisy = LFCGradModule(hidden=4, monitor_scenarios=[], noise_target=True)
-    _, mse, _ = noisy._loss(rec, attack, theta)  # the paper's O_s = M + θ
-    assert mse.item() == pytest.approx((est - attack - theta).square().mean().item())
+    attack, est, logits = (torch.randn(2, 5, 10, generator=g) for _ in range(3))
+    attack[0, :, :5] = 0  # area 1 of run 0 not attacked
+    logits = logits[..., :2]
+    task = LFCGradModule(monitor_scenarios=[])
+    out = SimpleNamespace(attack=est, means=torch.zeros(2, 5, 10), extras={"area_logits": logits})
+    truth = {"attack": attack, "x": torch.zeros(2, 5, 10), "flags": (attack != 0).any(-1)}
+    losses = task._losses(out, truth)
+    assert losses["attack_mse"].item() == pytest.approx((est - attack).square().mean().item())
+    K = task.scenario.feedback_gain(torch.float32)
+    du = (est - attack) @ K.T
+    assert losses["control_mse"].item() == pytest.approx(du.square().mean().item(), rel=1e-6)
+    flags = (attack.reshape(2, 5, 2, 5) != 0).any(-1).float()
+    bce = torch.nn.functional.binary_cross_entropy_with_logits(logits, flags)
+    assert losses["bce"].item() == pytest.approx(bce.item())
+    assert losses["loss"].item() == pytest.approx(
+        (losses["attack_mse"] + 0.05 * bce + 0.01 * losses["control_mse"]).item(), rel=1e-6
+    )
 
 
 def test_an_endless_schedule_is_a_clear_cli_error(tmp_path, capsys, monkeypatch):
@@ -194,13 +218,12 @@ def test_an_endless_schedule_is_a_clear_cli_error(tmp_path, capsys, monkeypatch)
 
 def test_resuming_with_a_longer_schedule_is_refused_clearly(tmp_path):
     # pct_start 0.4: the schedule is batches × chunks long (not its 2-step warm-up floor)
-    model = {**TINY_MODEL, "pct_start": 0.4}
     pl.seed_everything(0)
-    _tiny_trainer(tmp_path / "cut", 1).fit(LFCGradModule(**model), LFCDataModule(**TINY_DATA))
+    _tiny_trainer(tmp_path / "cut", 1).fit(LFCGradModule(pct_start=0.4), LFCDataModule())
     last = tmp_path / "cut" / "ckpt" / "last.ckpt"
     with pytest.raises(ValueError, match="ckpt_path.*schedule has 7 steps but this run needs 12"):
         _tiny_trainer(tmp_path / "cut", 2).fit(
-            LFCGradModule(**model), LFCDataModule(**TINY_DATA), ckpt_path=last
+            LFCGradModule(pct_start=0.4), LFCDataModule(), ckpt_path=last
         )
 
 
@@ -223,7 +246,7 @@ def test_fit_writes_only_inside_its_run_and_export_ships_it(tmp_path, monkeypatc
         "--model.tbptt_steps=30",
         "--model.monitor_runs=1",
     ]
-    config = str(ROOT / "train" / "configs" / "lfc.yaml")
+    config = str(ROOT / "train" / "configs" / "lfc.yaml")  # the LFC config of the one task
     assert main(["fit", "--config", config, "--trainer.max_epochs=1", *tiny]) == 0
     run = tmp_path / "lightning_logs" / "lfc_nn_grad" / "version_0"
     assert (run / "lfc_nn_grad.ckpt").is_file() and (run / "lfc_nn_grad.json").is_file()
@@ -261,7 +284,7 @@ def test_validate_and_test_take_the_exported_checkpoint(tmp_path, monkeypatch, c
     assert main(["validate", *config, *small]) == 0
     assert main(["test", *config, *small]) == 0
     out = capsys.readouterr().out
-    assert "loaded the exported estimator" in out and "test/lfc_step/attack_rmse_eq43" in out
+    assert "loaded the exported estimator" in out and "test/scenario/lfc_step/attack_rmse" in out
     events = list((tmp_path / "lightning_logs").rglob("events.out.tfevents*"))
     assert events  # test metrics and figures go to TensorBoard
     assert main(["test", *config, *small, "--model.hidden=4"]) == 2
@@ -269,7 +292,7 @@ def test_validate_and_test_take_the_exported_checkpoint(tmp_path, monkeypatch, c
 
 
 def test_monitor_scenarios_of_another_family_are_refused():
-    with pytest.raises(ValueError, match="monitor_scenarios: 'four_tank_bias' is not an LFC"):
+    with pytest.raises(ValueError, match="monitor_scenarios: 'four_tank_bias' is not a lfc"):
         LFCGradModule(monitor_scenarios=["four_tank_bias"])
 
 

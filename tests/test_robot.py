@@ -413,3 +413,28 @@ def test_a_horizon_too_short_for_the_study_is_refused_by_name():
     assert dataclasses.replace(sc, steps=44).steps == 44
     with pytest.raises(ValueError, match="attack_from"):
         dataclasses.replace(sc, attack_from=0)
+
+
+@one_thread()
+@pytest.mark.parametrize("rule", ["ci", "naive"])
+def test_fused_locals_fast_path_equals_the_composed_steps(rule):
+    """The fused estimator's whole-sequence path (locals over the sequence, then one batched
+    fusion) equals its step (fuse at every step), which the closed loop runs."""
+    from difffilter.estimator import Generators
+    from difffilter.loop import open_loop
+    from difffilter.models.robot_estimators import _fused_locals
+
+    ctx, tr = _ctx(3, seed=2, steps=45)
+    est = _fused_locals(ctx, rule)
+
+    def gens():
+        s = ctx.streams
+        return Generators(s("particles/init"), s("particles/propagate"), s("particles/resample"))
+
+    fast = open_loop(est, ctx.model, tr.y_recv, tr.us, generator=gens())
+    carry = est.init(ctx.model, (3,), gens())
+    steps = open_loop(est, ctx.model, tr.y_recv, tr.us, carry=carry)  # a carry: step by step
+    for a, b in ((fast.means, steps.means), (fast.covs, steps.covs), (fast.attack, steps.attack),
+                 (fast.scores, steps.scores), (fast.extras["local_means"], steps.extras["local_means"])):  # fmt: skip
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-10)
+    assert torch.equal(fast.alarms, steps.alarms)

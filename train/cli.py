@@ -12,8 +12,8 @@ Usage::
 The YAML files in ``train/configs/`` hold every setting (model, data, trainer, callbacks):
 one per scenario family, each naming its LightningModule and data module (``class_path``,
 subclass mode): :class:`~difffilter.train.task.FilterEstimatorTask` with
-:class:`~difffilter.train.task.ScenarioDataModule` for any registered scenario, the
-closed-loop :class:`~difffilter.train.lfc.LFCGradModule` for LFC;
+:class:`~difffilter.train.task.ScenarioDataModule` for any registered scenario, open or
+closed loop (LFC);
 ``--print_config`` shows the resolved configuration. TensorBoard logs go under the
 logger's ``save_dir`` (``tensorboard --logdir lightning_logs``). ``fit`` writes only
 inside its run folder; ``export`` (:mod:`difffilter.train.export`) ships a result.
@@ -84,13 +84,13 @@ class DifffilterCLI(LightningCLI):
             return  # a Lightning checkpoint: Lightning restores it
         mine = self.model.estimator
         dtype = next(mine.parameters()).dtype
-        estimator, observer = load_estimator_checkpoint(path, dtype=dtype)
+        estimator, card = load_estimator_checkpoint(path, dtype=dtype)
         if estimator.config() != mine.config():
             raise ValueError(
                 f"--ckpt_path: the estimator in {path} has settings {estimator.config()}, the "
                 f"configured model {mine.config()}; pass the matching --config/--model.* options"
             )
-        self.model.check_exported(observer, path)  # the filter it was trained for
+        self.model.check_exported(card, path)  # the filter it was trained for
         mine.load_state_dict(estimator.state_dict())
         self.config_init[subcommand]["ckpt_path"] = None  # weights are in; nothing to restore
         print(f"loaded the exported estimator {path}")

@@ -31,7 +31,31 @@ from difffilter.models.neural_estimator import (
     save_estimator_checkpoint,
 )
 
-__all__ = ["export", "main", "ExportEstimator"]
+__all__ = ["export", "main", "ExportEstimator", "check_metric"]
+
+
+def check_metric(path, *, seed: int = 20, runs: int = 4) -> dict:
+    """The card's reproducibility check of the exported estimator at ``path``: its attack
+    RMSE on ``runs`` runs of its training scenario (``difffilter-eval``'s draws of
+    ``seed``, float64), run as the evaluation runs it (its registered estimator, in its
+    own closed loop where the scenario has one). A test recomputes it from the file."""
+    from difffilter.loop import LoopResult
+    from difffilter.models import estimators, registry
+    from difffilter.models.streams import Streams
+
+    _, card = load_estimator_checkpoint(path)
+    scenario, streams = registry.get(card.scenario), Streams(seed)
+    model = scenario.system(torch.float64)
+    with torch.no_grad():  # the one process that exports runs it (no process group)
+        traj = scenario.simulate(runs, {k: streams(k) for k in ("plant", "attack", "schedule")},
+                                 model=model)  # fmt: skip
+        ctx = estimators.SuiteContext(scenario, model, runs, streams, checkpoint=path)
+        out = estimators.get(card.estimator).factory(ctx)(traj)
+    if isinstance(out, LoopResult):  # its own closed loop: its own truth
+        traj, out = out.trajectories, out.output
+    value = float((out.attack - traj.attack).square().mean().sqrt())
+    return {"metric": "attack_rmse", "scenario": card.scenario, "seed": seed, "runs": runs,
+            "value": value}  # fmt: skip
 
 
 def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
@@ -45,7 +69,7 @@ def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
         raise ValueError(f"--out: {out} exists; pass --force to replace it")
     if out.resolve() == src.resolve():
         raise ValueError(f"--out: {out} is the source itself")
-    estimator, observer = load_estimator_checkpoint(src, dtype=torch.float32)  # verifies it
+    estimator, est_card = load_estimator_checkpoint(src, dtype=torch.float32)  # verifies it
     out.parent.mkdir(parents=True, exist_ok=True)
     card_src = src.with_suffix(".json")
     blob = torch.load(src, map_location="cpu", weights_only=True)
@@ -54,10 +78,10 @@ def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
         card = json.loads(card_src.read_text()) if card_src.is_file() else {}
         digest = checkpoint_sha256(out)
     else:
-        digest = save_estimator_checkpoint(out, estimator, observer)
+        digest = save_estimator_checkpoint(out, estimator, est_card)
         card = {
             "estimator_config": estimator.config(),
-            "observer": observer,
+            "observer": est_card.to_dict(),
             "epoch": blob.get("epoch"),
             "global_step": blob.get("global_step"),
             "torch_version": torch.__version__,
@@ -82,8 +106,9 @@ class ExportEstimator(pl.Callback):
     """At the end of ``fit``, export the best checkpoint's estimator (weights only) and a card.
 
     The module names the file and adds to the card: ``export_name()`` (the file's stem),
-    ``export_observer()`` (what evaluation needs beside the weights) and
-    ``export_card(trainer, estimator)`` (its own card entries).
+    ``card()`` (the :class:`~difffilter.models.neural_estimator.EstimatorCard`: what
+    evaluation needs beside the weights) and ``export_card(trainer, estimator)`` (its own
+    card entries).
 
     Args:
         path: the ``.ckpt`` to write; default ``<run folder>/<export_name>.ckpt`` (the
@@ -119,8 +144,8 @@ class ExportEstimator(pl.Callback):
         if best_path:  # the selected weights (and their buffers, e.g. a threshold)
             blob = torch.load(best_path, map_location="cpu", weights_only=True)
             pl_module.load_state_dict(blob["state_dict"])
-        observer = pl_module.export_observer()
-        digest = save_estimator_checkpoint(path, pl_module.estimator, observer)
+        est_card = pl_module.card()
+        digest = save_estimator_checkpoint(path, pl_module.estimator, est_card)
         # verify against the digest just computed (a card from an earlier export may still
         # lie beside the file; it is rewritten below)
         estimator, _ = load_estimator_checkpoint(path, expected_sha256=digest)
@@ -139,13 +164,14 @@ class ExportEstimator(pl.Callback):
             "metrics_last_validation": metrics,
             "model_config": _plain(dict(pl_module.hparams)),
             "data_config": None if dm is None else _plain(dict(dm.hparams)),
-            "observer": observer,
+            "observer": est_card.to_dict(),
             "epochs": trainer.current_epoch,
             "global_step": trainer.global_step,
             "train_time_s": None if self._start is None else time.time() - self._start,
             "torch_version": torch.__version__,
             "lightning_version": pl.__version__,
             **pl_module.export_card(trainer, estimator),
+            "check": check_metric(path),
         }
         path.with_suffix(".json").write_text(json.dumps(card, indent=2) + "\n")
         print(f"exported {path} (ship it with: difffilter-train export {path} --out <file>)")

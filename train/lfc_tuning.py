@@ -26,37 +26,46 @@ from pathlib import Path
 
 import torch
 
-from difffilter.models.lfc_estimators import EKF_DEFAULTS, ESTIMATORS, LFCContext, run_estimator
+from difffilter.estimator import Generators
+from difffilter.models import registry
+from difffilter.models.learned_estimator import Residual
+from difffilter.models.lfc_estimators import (
+    EKF_DEFAULTS,
+    FINETUNE_DEFAULTS,
+    GD_DEFAULTS,
+    LFCContext,
+    lfc_estimator,
+    paper_network,
+)
+from difffilter.param_ekf import EKFRule, GradientRule
 
 __all__ = ["validation_batch", "score", "tune", "main"]
 
 VALIDATION_SEED = 2_000_003  # disjoint from the evaluation seeds (0 … 10⁶) and training seeds
 
 
-def validation_batch(runs: int, seed: int = VALIDATION_SEED, steps: int = 1000, dt: float = 0.01):
-    """Random attacks on all ten channels with plant noise and a random load (float64)."""
-    from difffilter.train.lfc import simulate_batch
+def validation_batch(runs: int, seed: int = VALIDATION_SEED) -> dict:
+    """Random attacks on all ten channels with plant noise and a random load (float64):
+    the draws of ``lfc_random_attacks`` from the named streams of ``seed``."""
+    from difffilter.train.task import training_batch
 
-    return simulate_batch(seed, runs, steps, dt, dtype=torch.float64)
+    return training_batch(registry.get("lfc_random_attacks"), runs, seed, torch.float64)
 
 
-def score(spec, ctx: LFCContext, batch: dict, *, init_seed: int = 1, checkpoint=None) -> dict:
-    """Validation attack RMSE (all channels), state-5 RMSE and wall time of ``spec``."""
-    rec, wall = run_estimator(
-        spec,
-        ctx,
-        batch["attack"],
-        batch["xi"],
-        batch["theta"],
-        batch["load"],
-        init_seed=init_seed,
-        checkpoint=checkpoint,
-    )
-    err = (rec.attack_est - batch["attack"]).square().mean()
+def score(estimator, batch: dict, *, init_seed: int = 1) -> dict:
+    """Validation attack RMSE (all channels), state-5 RMSE and wall time of ``estimator``
+    in its closed loop on ``batch``."""
+    scenario = registry.get("lfc_random_attacks")
+    gens = Generators(init=torch.Generator().manual_seed(init_seed))
+    start = time.perf_counter()
+    with torch.no_grad():
+        loop = scenario.loop(estimator, batch, generator=gens)
+    wall = time.perf_counter() - start
+    err = (loop.output.attack - batch["attack"]).square().mean()
     rmse = float(err.sqrt()) if bool(torch.isfinite(err)) else math.inf
     attacked = batch["attack"] != 0
-    att = (rec.attack_est - batch["attack"])[attacked].square().mean()
-    s5 = rec.x[..., 4].square().mean()
+    att = (loop.output.attack - batch["attack"])[attacked].square().mean()
+    s5 = loop.trajectories.x[..., 4].square().mean()
     return {
         "attack_rmse": rmse,
         "attack_rmse_attacked": float(att.sqrt()) if bool(torch.isfinite(att)) else math.inf,
@@ -85,15 +94,25 @@ GRIDS = {
 }
 
 
-def _apply(spec, setting: dict):
-    kwargs = dict(spec.learning_kwargs)
-    changes = {}
-    for key, val in setting.items():
-        if key in ("process_noise", "lr", "init_cov", "init_noise"):  # learning-rule arguments
-            kwargs[key] = val
-        else:
-            changes[key] = val
-    return spec.with_(learning_kwargs=kwargs, **changes)
+def _estimator(name: str, setting: dict, ctx: LFCContext, checkpoint):
+    """The estimator ``name`` with the grid point ``setting`` (the names are translated to
+    objects here, once)."""
+    rule_kw = {k: v for k, v in setting.items() if k in ("process_noise", "lr", "init_cov")}
+    posterior = setting.get("subtract", "posterior") == "posterior"
+    if name == "traditional_ad":
+        rule = GradientRule(**{**GD_DEFAULTS, **rule_kw})
+        s = setting["init_scale"]
+        return lfc_estimator(ctx, luenberger=setting["luenberger_design"], rule=rule,
+                             network=paper_network(s), init_scale=s)  # fmt: skip
+    if name == "kf_nn_ekf":
+        rule = EKFRule(**{**EKF_DEFAULTS, **rule_kw}, donate=True)
+        s = setting["init_scale"]
+        return lfc_estimator(ctx, network=paper_network(s), rule=rule, init_scale=s,
+                             posterior=posterior)  # fmt: skip
+    net, card = checkpoint
+    rule = EKFRule(**{**FINETUNE_DEFAULTS, **rule_kw}, donate=True)
+    return lfc_estimator(ctx, network=net, rule=rule, posterior=posterior,
+                         residual=Residual(card.residual), standardize=card.standardize)  # fmt: skip
 
 
 def tune(
@@ -128,14 +147,10 @@ def tune(
         rows = []
         for values in itertools.product(*(grid[k] for k in keys)):
             setting = dict(zip(keys, values))
-            spec = _apply(ESTIMATORS[name], setting)
-            start = time.perf_counter()
-            res = score(spec, ctx, batch, checkpoint=checkpoint)
+            res = score(_estimator(name, setting, ctx, checkpoint), batch)
             rows.append({**setting, **res})
             if progress:
-                log(
-                    f"{name} {setting} -> {res['attack_rmse']:.4f} ({time.perf_counter() - start:.0f}s)"
-                )
+                log(f"{name} {setting} -> {res['attack_rmse']:.4f} ({res['wall_s']:.0f}s)")
         best = min(rows, key=lambda r: r["attack_rmse"])
         out["grids"][name] = rows
         out["chosen"][name] = {k: best[k] for k in keys} | {"attack_rmse": best["attack_rmse"]}

@@ -1,41 +1,40 @@
-"""One training task for any registered scenario: the neural FDI estimator inside
-difffilter's own filter, trained by gradient descent through it or by the EKF over its
-weights.
+"""One training task for every registered scenario, open or closed loop: the neural FDI
+estimator inside difffilter's own filter, trained by gradient descent through it or by the
+EKF over its weights.
 
-:class:`ScenarioDataModule` simulates the scenario (its plant, attack and schedule) from
-seeded named streams: training batch ``i`` of epoch ``e`` from seed ``(train_seed, e, i)``,
-one fixed validation batch from ``val_seed`` (the scenario's attack distribution on
-unseen draws: the operating threshold is chosen there), and ``test`` on exactly the runs
-``difffilter-eval <scenario> --seed test_seed`` scores.
+:class:`ScenarioDataModule` draws training batches from seeded named streams: batch ``i`` of
+epoch ``e`` from seed ``(train_seed, e, i)`` (so an interrupted run resumes on the same
+data), one fixed validation batch from ``val_seed`` and ``test`` on exactly the runs
+``difffilter-eval <scenario> --seed test_seed`` scores. A batch is what the scenario's
+loop needs: the simulated trajectories of an open-loop scenario, the exogenous draws
+(noise, load, attack) of a closed-loop one, which every loop replays.
 
-:class:`FilterEstimatorTask` runs :func:`~difffilter.models.learned_estimator.
-neural_particle_filter` (``filter="pf"``, with a differentiable resampler) or
-:func:`~difffilter.models.learned_estimator.neural_gaussian_filter` (``"kf"``, ``"ekf"``,
-``"ukf"``) on each batch and minimises::
+:class:`FilterEstimatorTask` runs
+:class:`~difffilter.models.learned_estimator.NeuralCompensation` around the configured
+filter (``filter="pf"`` with a differentiable resampler for training, or ``"kf"``,
+``"ekf"``, ``"ukf"``) in the scenario's loop — the open loop over the received data, or
+the scenario's own closed loop (its estimate feeds back through the controller) — and
+minimises, per chunk of ``tbptt_steps`` steps (truncated backpropagation through time:
+the loop state is detached between chunks; the whole sequence when ``None``)::
 
-    attack_weight·mean‖â_k − a_k‖² + bce_weight·BCE(logit_k, l_k) + state_weight·mean‖x̂_k − x_k‖²/σ_x²
+    attack_weight·mean‖â_k − a_k‖² + bce_weight·BCE(logit_k, l_k)
+      + state_weight·mean‖x̂_k − x_k‖²/σ_x² + control_weight·mean‖K(â_k − a_k)‖²
 
-(``a_k`` the injected attack, ``l_k`` its flag, ``σ_x²`` the prior variance of the state):
-the attack loss back-propagates through the filter too, since ``â_k`` reads innovations
-that earlier estimates shaped. A replacement attack (the tracking deception, ``a_k = ξ_k −
-y_k`` with ``ξ`` anywhere in a box) has no additive signal to subtract: the PF weighs the
-particles with the mixture likelihood of the network's probability
-(:mod:`difffilter.models.learned_estimator`, ``channel="replacement"``), ``â_k = p_k ν_k``,
-and ``attack_weight = 0`` leaves the training to the BCE and the state loss through the
-filter. Validation and test run the filter as the evaluation does
-(systematic resampling at every step) and pick the alarm threshold on the validation
-batch: the ``1 − target_false_alarm_rate`` quantile of ``p_k`` over its attack-free steps.
+(``a_k`` the injected attack, ``l_k`` its flag per area, ``σ_x²`` the prior variance of the
+state, ``K`` the closed loop's feedback gain: an estimate error enters the plant through
+``U = −K(Z − â)``). A replacement attack (the tracking deception) has no additive signal to
+subtract: the PF weighs with the mixture likelihood of the network's probability and
+``attack_weight = 0`` leaves the training to the BCE and the state loss. Validation and
+test run the filter as the evaluation does (systematic resampling at every step) and
+choose the alarm threshold on the validation batch: the ``1 − target_false_alarm_rate``
+quantile of the score over its attack-free steps.
 
 ``trainer="ekf"`` trains the weights ``ζ = [W, V]`` (eq. 10) by the EKF of eqs (11)–(14)
-instead (:class:`~difffilter.param_ekf.EKFOptimizer`, Lightning's manual optimisation):
-the filter runs on the batch with the current weights (no gradients, systematic
-resampling), records every step's network input ``δ_k``, and then, step by step in time,
-one EKF update takes the batch's ``B`` samples ``(δ_k, a_k)`` as one measurement of the
-network's output, ``H_k = ∂f(ζ, δ_k)/∂ζ`` in closed form (eq. 13; unreceived entries
-carry no information). The measurement is the injected attack of the simulated runs
-(the paper's online rule measures the residual, having no attack to learn from at run
-time). Such a network has no detection head; it alarms on its standardised attack
-estimate (:mod:`difffilter.models.learned_estimator`).
+instead (:class:`~difffilter.param_ekf.EKFOptimizer`): the filter runs on the batch with
+the current weights (no gradients), records every step's network input ``δ_k``, and then,
+step by step in time, one EKF update takes the batch's ``B`` samples ``(δ_k, a_k)`` as one
+measurement of the network's output (open-loop scenarios). Such a network has no
+detection head; it alarms on its standardised attack estimate.
 """
 
 from __future__ import annotations
@@ -46,23 +45,23 @@ import lightning.pytorch as pl
 import torch
 
 from difffilter import resampling
+from difffilter.attack import Channel
+from difffilter.estimator import Generators
+from difffilter.loop import open_loop
 from difffilter.metrics import roc_auc
 from difffilter.models import registry
-from difffilter.models.attacks import Replacement
 from difffilter.models.estimators import poa_detector_for_scenario
 from difffilter.models.generic_estimators import GAUSSIAN_FILTERS, deception_of
-from difffilter.models.learned_estimator import (
-    feature_dim,
-    neural_gaussian_filter,
-    neural_particle_filter,
-)
-from difffilter.models.neural_estimator import NeuralFDIEstimator
+from difffilter.models.learned_estimator import NeuralCompensation, Residual, feature_dim
+from difffilter.models.neural_estimator import EstimatorCard, NeuralFDIEstimator
 from difffilter.models.streams import Streams
 from difffilter.param_ekf import EKFOptimizer
+from difffilter.particle import ParticleFilter
 
 from .common import dtype_of, mix_seed
+from .figures import attack_figure
 
-__all__ = ["ScenarioDataModule", "FilterEstimatorTask", "RESAMPLERS"]
+__all__ = ["ScenarioDataModule", "FilterEstimatorTask", "RESAMPLERS", "training_batch"]
 
 #: Training resamplers (``resampler=``): gradients through resampling or around it.
 RESAMPLERS = {
@@ -73,13 +72,16 @@ RESAMPLERS = {
 _FIELDS = ("x", "y_recv", "us", "mask", "attack", "flags")
 
 
-def simulate_batch(scenario, runs: int, seed: int, dtype: torch.dtype) -> dict:
-    """``runs`` runs of ``scenario`` from the named streams of ``seed`` (as ``difffilter-eval``):
-    ``{"x", "y_recv", "attack", "flags"}`` and, where the scenario has them, ``"us"``, ``"mask"``."""
+def training_batch(scenario, runs: int, seed: int, dtype: torch.dtype) -> dict:
+    """``runs`` runs of ``scenario`` from the named streams of ``seed`` (as ``difffilter-eval
+    --seed``): the trajectories' ``x, y_recv, attack, flags`` (and ``us``, ``mask``) of an
+    open-loop scenario, or the exogenous draws of a closed-loop one
+    (:meth:`~difffilter.models.scenario.Scenario.exogenous`)."""
     streams = Streams(seed)
-    tr = scenario.simulate(
-        runs, {k: streams(k) for k in ("plant", "attack", "schedule")}, dtype=dtype
-    )
+    gens = {k: streams(k) for k in ("plant", "attack", "schedule")}
+    if scenario.closed_loop:
+        return scenario.exogenous(runs, gens, dtype=dtype)
+    tr = scenario.simulate(runs, gens, dtype=dtype)
     return {k: getattr(tr, k) for k in _FIELDS if getattr(tr, k) is not None}
 
 
@@ -95,7 +97,7 @@ class _Keys(torch.utils.data.Dataset):
 
 
 class ScenarioDataModule(pl.LightningDataModule):
-    """Trajectories of one registered scenario, simulated on the fly from seeds.
+    """Batches of one registered scenario, drawn on the fly from seeds.
 
     Args:
         scenario: a registered scenario name (``difffilter-eval --list``).
@@ -104,6 +106,7 @@ class ScenarioDataModule(pl.LightningDataModule):
         train_seed: master seed of the training batches (differs from ``val_seed``).
         test_runs, test_seed: ``test``/``predict`` runs (default the scenario's ``runs``)
             and seed: the draws of ``difffilter-eval <scenario> --seed test_seed``.
+        steps: a shorter horizon than the scenario's (tests, quick runs).
         dtype: ``"float32"`` or ``"float64"``.
     """
 
@@ -117,6 +120,7 @@ class ScenarioDataModule(pl.LightningDataModule):
         val_seed: int = 2,
         test_runs: int | None = None,
         test_seed: int = 0,
+        steps: int | None = None,
         dtype: str = "float32",
     ):
         super().__init__()
@@ -126,6 +130,7 @@ class ScenarioDataModule(pl.LightningDataModule):
             ("batches_per_epoch", batches_per_epoch),
             ("val_runs", val_runs),
             ("test_runs", 1 if test_runs is None else test_runs),
+            ("steps", 1 if steps is None else steps),
         ):
             if isinstance(val, bool) or not isinstance(val, int) or val < 1:
                 raise ValueError(f"{name} must be a positive integer; got {val!r}")
@@ -133,9 +138,18 @@ class ScenarioDataModule(pl.LightningDataModule):
             raise ValueError("train_seed and val_seed must differ (validation data must be unseen)")
         if test_seed in (train_seed, val_seed):
             raise ValueError("test_seed must differ from train_seed and val_seed")
+        if steps is not None:
+            self.scenario = self.scenario.with_steps(steps)
         self.save_hyperparameters()
         self._dtype = dtype_of(dtype)
         self._val = None
+
+    def batch(self, runs: int, seed: int) -> dict:
+        return training_batch(self.scenario, runs, seed, self._dtype)
+
+    def train_batch(self, epoch: int, index: int) -> dict:
+        """Training batch ``index`` of ``epoch`` (seed ``(train_seed, epoch, index)``)."""
+        return self.batch(self.hparams.batch_size, mix_seed(self.hparams.train_seed, epoch, index))
 
     def train_dataloader(self):
         n, trainer = self.hparams.batches_per_epoch, getattr(self, "trainer", None)
@@ -148,22 +162,18 @@ class ScenarioDataModule(pl.LightningDataModule):
         # drawn here, from the trainer's epoch (right after a resume too)
         if isinstance(batch, dict) and "index" in batch:
             epoch = self.trainer.current_epoch if getattr(self, "trainer", None) else 0
-            seed = mix_seed(self.hparams.train_seed, epoch, int(batch["index"]))
-            return simulate_batch(self.scenario, self.hparams.batch_size, seed, self._dtype)
+            return self.train_batch(epoch, int(batch["index"]))
         return batch
 
     def val_dataloader(self):
         if self._val is None:
-            hp = self.hparams
-            self._val = simulate_batch(self.scenario, hp.val_runs, hp.val_seed, self._dtype)
+            self._val = self.batch(self.hparams.val_runs, self.hparams.val_seed)
         return torch.utils.data.DataLoader([self._val], batch_size=None)
 
     def test_dataloader(self):
         hp = self.hparams
         runs = hp.test_runs or self.scenario.runs
-        return torch.utils.data.DataLoader(
-            [simulate_batch(self.scenario, runs, hp.test_seed, self._dtype)], batch_size=None
-        )
+        return torch.utils.data.DataLoader([self.batch(runs, hp.test_seed)], batch_size=None)
 
     def predict_dataloader(self):
         return self.test_dataloader()
@@ -173,26 +183,33 @@ class FilterEstimatorTask(pl.LightningModule):
     """The neural FDI estimator trained through difffilter's filter on one scenario.
 
     Args:
-        scenario: the registered scenario (its model is the filter's).
+        scenario: the registered scenario (its model is the filter's; a closed-loop
+            scenario trains in its own loop).
         filter: ``"pf"`` (particle filter) or ``"kf"``, ``"ekf"``, ``"ukf"``.
         resampler: PF training resampler, ``"soft"`` (``soft_alpha``), ``"stop_gradient"``
-            or ``"ot"`` (entropy-regularised optimal transport); validation, test and
-            evaluation resample systematically.
+            or ``"ot"``; validation, test and evaluation resample systematically.
         num_particles: PF particles (default: the scenario's).
-        a, b, hidden, init_scale, init, attack_scale, resid_scale: the network
-            (:class:`~difffilter.models.neural_estimator.NeuralFDIEstimator`, one area of
-            ``dy`` channels; ``model_seed`` seeds its weights and the training filter).
-        features: the filter's statistics the network reads beside its innovations and
-            past estimates (:data:`~difffilter.models.learned_estimator.FEATURES`:
-            ``"mask"``, ``"log_likelihood"``, ``"poa"``; the PoA threshold η is the
-            scenario's, as the evaluation's PoA detector uses it).
+        areas, a, b, hidden, init_scale, init, attack_scale, resid_scale, detection_head:
+            the network (:class:`~difffilter.models.neural_estimator.NeuralFDIEstimator`,
+            ``areas`` areas of the measurement's channels; ``model_seed`` seeds it).
+        residual: the residual history it reads (``"innovation"``, ``"predicted"``,
+            ``"lagged"``); standardize: divide innovations by ``√diag S``.
+        features: the filter's statistics the network reads (``"mask"``,
+            ``"log_likelihood"``, ``"poa"``; the PoA threshold is the scenario's).
         trainer: ``"grad"`` (AdamW through the filter) or ``"ekf"`` (the EKF over the
             weights; module docstring).
-        lr, weight_decay: AdamW.
+        lr, weight_decay, pct_start, grad_clip: AdamW, its one-cycle schedule
+            (``pct_start`` warm-up share; ``None``: a constant rate) stepped after every
+            chunk, and the global gradient-norm clip (``None``: none).
+        tbptt_steps: chunk length of truncated backpropagation (``None``: whole sequences).
         ekf_lr, ekf_init_cov, ekf_init_noise, ekf_process_noise: ``η``, ``ρ(0)``, ``Υ(0)``
-            and ``Q_ρ`` of the EKF (:class:`~difffilter.param_ekf.EKFOptimizer`).
-        attack_weight, bce_weight, state_weight: loss weights (module docstring).
+            and ``Q_ρ`` of the EKF trainer.
+        attack_weight, bce_weight, state_weight, control_weight: loss weights (module
+            docstring).
         target_false_alarm_rate: of the operating threshold (default: the scenario's).
+        monitor_scenarios, monitor_runs, monitor_seed: other registered scenarios whose
+            attack RMSE is logged at every validation (``val/scenario/<name>/…``) and
+            scored by ``test``.
         dtype: ``"float32"`` or ``"float64"``.
     """
 
@@ -203,6 +220,7 @@ class FilterEstimatorTask(pl.LightningModule):
         resampler: str = "soft",
         soft_alpha: float = 0.5,
         num_particles: int | None = None,
+        areas: int = 1,
         a: int = 3,
         b: int = 3,
         hidden: int = 16,
@@ -210,10 +228,16 @@ class FilterEstimatorTask(pl.LightningModule):
         init: str = "symmetric",
         attack_scale: float = 1.0,
         resid_scale: float = 10.0,
+        detection_head: bool | None = None,
+        residual: str = "innovation",
+        standardize: bool = True,
         features: list[str] | None = None,
         trainer: str = "grad",
         lr: float = 3e-3,
         weight_decay: float = 0.0,
+        pct_start: float | None = None,
+        grad_clip: float | None = 1.0,
+        tbptt_steps: int | None = None,
         ekf_lr: float = 1.0,
         ekf_init_cov: float = 1.0,
         ekf_init_noise: float = 1e-2,
@@ -221,69 +245,56 @@ class FilterEstimatorTask(pl.LightningModule):
         attack_weight: float = 1.0,
         bce_weight: float = 0.1,
         state_weight: float = 1.0,
+        control_weight: float = 0.0,
         target_false_alarm_rate: float | None = None,
+        monitor_scenarios: list[str] | None = None,
+        monitor_runs: int = 4,
+        monitor_seed: int = 3,
         model_seed: int = 0,
         dtype: str = "float32",
     ):
         super().__init__()
         sc = registry.get(scenario)
-        if filter != "pf" and filter not in GAUSSIAN_FILTERS:
-            raise ValueError(
-                f"filter must be 'pf' or one of {sorted(GAUSSIAN_FILTERS)}; got {filter!r}"
-            )
-        if resampler not in RESAMPLERS:
-            raise ValueError(f"resampler must be one of {sorted(RESAMPLERS)}; got {resampler!r}")
-        if trainer not in ("grad", "ekf"):
-            raise ValueError(f"trainer must be 'grad' or 'ekf'; got {trainer!r}")
-        features = tuple(features or ())
-        attack = sc.attack_model()
-        self.channel = "replacement" if isinstance(attack, Replacement) else attack.channel
-        if self.channel == "actuator" and filter == "pf":
-            raise ValueError(
-                f"filter: {scenario} has an actuator attack, which the learned estimator "
-                "compensates in the input of a Gaussian filter: use kf, ekf or ukf"
-            )
-        if self.channel == "replacement" and (filter != "pf" or trainer != "grad"):
-            raise ValueError(
-                f"{scenario} replaces measurements: the learned estimator weighs them with the "
-                "mixture likelihood of its attack probability, in the PF (filter: pf, trainer: grad)"
-            )
-        self.deception = (
-            deception_of(attack, dtype_of(dtype))[0] if self.channel == "replacement" else None
-        )
-        if "poa" in features and filter != "pf":
-            raise ValueError("features: 'poa' needs particles (filter='pf')")
-        far = sc.false_alarm_rate if target_false_alarm_rate is None else target_false_alarm_rate
-        if not 0 < far < 1:
-            raise ValueError(f"target_false_alarm_rate must be in (0, 1); got {far!r}")
         self.save_hyperparameters()
-        self.scenario, self._dtype, self.false_alarm_rate = sc, dtype_of(dtype), float(far)
+        self.scenario, self._dtype = sc, dtype_of(dtype)
+        self.channel = _channel(sc)
+        self.false_alarm_rate = _check_options(self.hparams, sc, self.channel)
         self.system = sc.system(self._dtype)
         self.num_particles = num_particles or sc.num_particles
-        self.features, self.poa_eta = features, None
-        if "poa" in features:
+        self.features, self.poa_eta = tuple(features or ()), None
+        if "poa" in self.features:
             self.poa_eta = float(poa_detector_for_scenario(sc, self.system).eta)
-        dy = self.system.dim_y
-        self.estimator = NeuralFDIEstimator(
-            num_areas=1,
-            area_dim=self.system.dim_u if self.channel == "actuator" else dy,
-            resid_dim=dy,
-            a=a,
-            b=b,
-            hidden=hidden,
-            init_scale=init_scale,
-            init=init,
-            attack_scale=attack_scale,
-            resid_scale=resid_scale,
-            extra_inputs=feature_dim(features, dy),
-            detection_head=trainer == "grad",  # the EKF fits the attack estimate alone
-            seed=model_seed,
-            dtype=self._dtype,
+        self.deception = (
+            deception_of(sc.attack_model(), self._dtype)[0]
+            if self.channel is Channel.REPLACEMENT
+            else None
         )
-        # the operating threshold on p, chosen at every validation; saved with the weights
+        self.estimator = self._network()
+        # the operating threshold on the score, chosen at every validation; saved with it
         self.register_buffer("alarm_threshold", torch.tensor(0.5, dtype=torch.float64))
         self._state_scale = torch.diagonal(self.system.initial.cov, dim1=-2, dim2=-1).mean()
-        self.automatic_optimization = trainer == "grad"
+        self.monitors = [registry.get(n) for n in (monitor_scenarios or ())]
+        for other in self.monitors:  # at construction time, not silently at validation
+            if other.family != sc.family or abs(other.dt - sc.dt) > 1e-12:
+                raise ValueError(
+                    f"monitor_scenarios: {other.name!r} is not a {sc.family} scenario at "
+                    f"dt = {sc.dt} s (family {other.family!r}, dt = {other.dt} s)"
+                )
+        self.automatic_optimization = False
+
+    def _network(self) -> NeuralFDIEstimator:
+        hp, dy = self.hparams, self.system.dim_y
+        if dy % hp.areas:
+            raise ValueError(f"areas must divide the measurement's {dy} channels; got {hp.areas}")
+        d = dy // hp.areas
+        head = hp.trainer == "grad" if hp.detection_head is None else hp.detection_head
+        return NeuralFDIEstimator(
+            num_areas=hp.areas, area_dim=self.system.dim_u if self.channel is Channel.ACTUATOR
+            else d, resid_dim=d, a=hp.a, b=hp.b, hidden=hp.hidden, init_scale=hp.init_scale,
+            init=hp.init, attack_scale=hp.attack_scale, resid_scale=hp.resid_scale,
+            extra_inputs=feature_dim(self.features, d), detection_head=head,
+            seed=hp.model_seed, dtype=self._dtype,
+        )  # fmt: skip
 
     def configure_optimizers(self):
         hp = self.hparams
@@ -292,106 +303,175 @@ class FilterEstimatorTask(pl.LightningModule):
                 [self.estimator.W, self.estimator.V], lr=hp.ekf_lr, init_cov=hp.ekf_init_cov,
                 init_noise=hp.ekf_init_noise, process_noise=hp.ekf_process_noise,
             )  # fmt: skip
-        return torch.optim.AdamW(
-            self.estimator.parameters(), lr=hp.lr, weight_decay=hp.weight_decay
+        opt = torch.optim.AdamW(self.estimator.parameters(), lr=hp.lr, weight_decay=hp.weight_decay)
+        if hp.pct_start is None:
+            return opt
+        sched = torch.optim.lr_scheduler.OneCycleLR(
+            opt, max_lr=hp.lr, total_steps=self._schedule_length(), pct_start=hp.pct_start
         )
+        return [opt], [{"scheduler": sched, "interval": "step"}]
 
-    # -- the filter --------------------------------------------------------------------
-    def run_filter(
-        self, batch: dict, *, training: bool, seed: int, threshold: float = 0.5, record=False
-    ):
-        """The estimator on ``batch`` (an :class:`~difffilter.EstimatorOutput`; ``record``:
-        with the network's inputs in ``extras["network_inputs"]``)."""
-        kw = {"network": self.estimator, "mask": batch.get("mask"), "threshold": threshold}
-        kw.update(features=self.features, record_inputs=record)
-        training = training and self.hparams.trainer == "grad"  # the EKF needs no gradients
-        if self.hparams.filter != "pf":
-            return neural_gaussian_filter(
-                self.system, batch["y_recv"], batch.get("us"), kind=self.hparams.filter,
-                channel=self.channel, **kw,
-            )  # fmt: skip
+    # -- the estimator in its loop --------------------------------------------------------
+    def estimator_object(self, *, training: bool, threshold: float = 0.5, record=False):
+        """The :class:`NeuralCompensation` of the current weights (a differentiable
+        resampler for training the PF, systematic resampling otherwise)."""
         hp = self.hparams
-        resampler = RESAMPLERS[hp.resampler](hp.soft_alpha) if training else resampling.Systematic()
+        if hp.filter == "pf":
+            train = training and hp.trainer == "grad"
+            resampler = (
+                RESAMPLERS[hp.resampler](hp.soft_alpha) if train else resampling.Systematic()
+            )
+            inner = ParticleFilter(self.num_particles, resampler=resampler, ess_threshold=1.0)
+        else:
+            inner = GAUSSIAN_FILTERS[hp.filter]
+        return NeuralCompensation(
+            self.estimator, inner, channel=self.channel, residual=Residual(hp.residual),
+            standardize=hp.standardize, features=self.features, poa_eta=self.poa_eta,
+            threshold=threshold, deception=self.deception, record_inputs=record,
+        )  # fmt: skip
+
+    def run(self, scenario, batch: dict, estimator, seed: int, *, steps=None, state=None):
+        """``(output, truth)``: the estimator on ``batch`` of ``scenario`` in its loop (the
+        closed loop's own :class:`~difffilter.loop.Trajectories`, or the batch itself), and
+        the loop's final state (closed loop; ``None`` otherwise)."""
         gens = Streams(seed)
-        return neural_particle_filter(
-            self.system,
-            batch["y_recv"],
-            batch.get("us"),
-            num_particles=self.num_particles,
-            resampler=resampler,
-            ess_threshold=1.0,
-            generator=gens("particles/propagate"),
-            resample_generator=gens("particles/resample"),
-            poa_eta=self.poa_eta,
-            channel=self.channel,
-            deception=self.deception,
-            **kw,
-        )
+        prop = gens("particles/propagate")
+        generators = Generators(prop, prop, gens("particles/resample"))
+        if scenario.closed_loop:
+            loop = scenario.loop(estimator, batch, generator=generators, steps=steps, state=state)
+            t = loop.trajectories
+            truth = {"x": t.x, "attack": t.attack, "flags": t.flags}
+            return loop.output, truth, loop.state
+        out = open_loop(estimator, self.system, batch["y_recv"], batch.get("us"),
+                        mask=batch.get("mask"), generator=generators)  # fmt: skip
+        return out, batch, None
 
-    def _losses(self, out, batch) -> dict:
-        flags = batch["flags"].to(out.attack.dtype)
-        losses = {
-            "attack_mse": (out.attack - batch["attack"]).square().mean(),
-            "bce": torch.nn.functional.binary_cross_entropy_with_logits(
-                out.extras["attack_logit"], flags
-            ),
-            "state_mse": (out.means - batch["x"]).square().mean() / self._state_scale,
-        }
+    # -- training -------------------------------------------------------------------------
+    def _losses(self, out, truth) -> dict:
         hp = self.hparams
+        err = out.attack - truth["attack"]
+        losses = {
+            "attack_mse": err.square().mean(),
+            "state_mse": (out.means - truth["x"]).square().mean() / self._state_scale,
+        }
+        logits = out.extras.get("area_logits", out.extras.get("attack_logit"))
+        if logits is not None and hp.bce_weight > 0:
+            flags = _area_flags(truth, logits).to(logits.dtype)
+            bce = torch.nn.functional.binary_cross_entropy_with_logits(logits, flags)
+            losses["bce"] = bce
+        if hp.control_weight > 0:
+            gain = self.scenario.feedback_gain(err.dtype)
+            losses["control_mse"] = (err @ gain.T).square().mean()
         losses["loss"] = (
             hp.attack_weight * losses["attack_mse"]
-            + hp.bce_weight * losses["bce"]
+            + hp.bce_weight * losses.get("bce", 0.0)
             + hp.state_weight * losses["state_mse"]
+            + hp.control_weight * losses.get("control_mse", 0.0)
         )
         return losses
 
     def training_step(self, batch, batch_idx):
         seed = mix_seed(self.hparams.model_seed, self.global_step)
-        runs = batch["y_recv"].shape[0]
         if self.hparams.trainer == "ekf":
-            return self._ekf_step(batch, seed, runs)
-        out = self.run_filter(batch, training=True, seed=seed)
-        losses = self._losses(out, batch)
-        for k, v in losses.items():
-            self.log(f"train/{k}", v.detach(), prog_bar=k == "loss", batch_size=runs)
-        return losses["loss"]
+            return self._ekf_step(batch, seed)
+        opt, sched = self.optimizers(), self.lr_schedulers()
+        est = self.estimator_object(training=True)
+        T = _horizon(self.scenario, batch)
+        chunk = self.hparams.tbptt_steps or T
+        totals, norms, state = {}, [], None
+        for start in range(0, T, chunk):  # truncated backpropagation through time
+            steps = min(chunk, T - start)
+            if self.scenario.closed_loop:
+                out, truth, state = self.run(self.scenario, batch, est, seed, steps=steps,
+                                             state=state)  # fmt: skip
+                state = state.detach()
+            else:
+                out, truth, _ = self.run(self.scenario, batch, est, seed)
+            losses = self._losses(out, truth)
+            opt.zero_grad()
+            self.manual_backward(losses["loss"])
+            norms.append(self._clip())
+            opt.step()
+            if sched is not None:
+                sched.step()
+            for k, v in losses.items():
+                totals[k] = totals.get(k, 0.0) + float(v.detach()) * steps / T
+        runs = _runs(batch)
+        for k, v in totals.items():
+            self.log(f"train/{k}", v, prog_bar=k == "loss", batch_size=runs)
+        self.log("train/grad_norm", max(norms), batch_size=runs)
 
-    def _ekf_step(self, batch, seed: int, runs: int):
+    def _clip(self) -> float:
+        params = list(self.estimator.parameters())
+        limit = self.hparams.grad_clip if self.hparams.grad_clip is not None else math.inf
+        return float(torch.nn.utils.clip_grad_norm_(params, limit))
+
+    def _ekf_step(self, batch, seed: int):
         """The EKF over ``ζ = [W, V]``: one update per time step from the batch's samples."""
         with torch.no_grad():
-            out = self.run_filter(batch, training=True, seed=seed, record=True)
+            est = self.estimator_object(training=True, record=True)
+            out, truth, _ = self.run(self.scenario, batch, est, seed)
             deltas, template = out.extras["network_inputs"], self.estimator.area_template()
-            received = batch.get("mask") if self.channel == "sensor" else None
+            received = batch.get("mask") if self.channel is Channel.SENSOR else None
             if received is None:
-                received = torch.ones_like(batch["attack"], dtype=torch.bool)
-            optimizer, sq_err = self.optimizers(), []
-            for t in range(deltas.shape[-2]):
+                received = torch.ones_like(truth["attack"], dtype=torch.bool)
+            optimizer, sq_err, runs = self.optimizers(), [], deltas.shape[0]
+            for t in range(deltas.shape[-2]):  # the EKF's samples, one measurement per step
                 params = {"W": self.estimator.W[0].expand(runs, -1, -1),
                           "V": self.estimator.V[0].expand(runs, -1, -1)}  # fmt: skip
                 pred, jac = template.batched_jacobian(params, deltas[:, t].to(self.estimator.V))
                 keep = received[:, t].to(pred.dtype)
-                residual = (batch["attack"][:, t].to(pred.dtype) - pred) * keep
+                residual = (truth["attack"][:, t].to(pred.dtype) - pred) * keep
                 sq_err.append(optimizer.step(jacobian=jac * keep[..., None], residual=residual))
-        mse = torch.stack(sq_err).mean() / batch["attack"].shape[-1]  # per entry, before updates
+        mse = torch.stack(sq_err).mean() / truth["attack"].shape[-1]  # per entry, before updates
         self.log("train/attack_mse", mse, prog_bar=True, batch_size=runs)
 
-    # -- validation, test, predict -------------------------------------------------------
-    def _scores(self, stage: str, batch, threshold: float | None) -> dict:
-        """Evaluate on ``batch``; with ``threshold=None`` choose it (validation)."""
+    def _schedule_length(self) -> int:
+        """Optimizer steps of the one-cycle schedule: batches × chunks (≥ its warm-up)."""
+        steps = self.trainer.estimated_stepping_batches if self.trainer is not None else 1
+        if not math.isfinite(steps) or steps < 1:
+            raise ValueError(
+                "--trainer.max_epochs (or max_steps) must give a finite number of steps >= 1: the "
+                f"one-cycle learning-rate schedule needs its length; got {steps} steps"
+            )
+        dm = getattr(self.trainer, "datamodule", None)
+        T = dm.scenario.steps if dm is not None else self.scenario.steps
+        chunks = math.ceil(T / (self.hparams.tbptt_steps or T))
+        return max(int(steps) * chunks, math.ceil(2.0 / self.hparams.pct_start) + 2)
+
+    def on_train_start(self):
+        # A resumed run restores the schedule of the checkpoint, whose length was fixed by
+        # its max_epochs: a longer run would step past its end ("Tried to step N times").
+        sched = self.lr_schedulers()
+        restored = getattr(sched, "total_steps", None)
+        if restored is not None and restored != self._schedule_length():
+            raise ValueError(
+                f"--ckpt_path: the checkpoint's learning-rate schedule has {restored} steps but "
+                f"this run needs {self._schedule_length()} (its --trainer.max_epochs differs); "
+                "resume with the checkpoint's max_epochs, or start a new run"
+            )
+
+    # -- validation, test, predict --------------------------------------------------------
+    def _evaluate(self, scenario, batch, threshold: float = 0.5):
         with torch.no_grad():
-            out = self.run_filter(batch, training=False, seed=mix_seed(self.hparams.model_seed, 7))
-        prob, flags = out.detection.scores, batch["flags"]
+            est = self.estimator_object(training=False, threshold=threshold)
+            out, truth, _ = self.run(scenario, batch, est, mix_seed(self.hparams.model_seed, 7))
+        return out, truth
+
+    def _scores(self, stage: str, scenario, batch, threshold: float | None) -> dict:
+        """Evaluate on ``batch``; with ``threshold=None`` choose it (validation)."""
+        out, truth = self._evaluate(scenario, batch)
+        score, flags = out.detection.scores, truth["flags"]
         if threshold is None:
-            quiet = prob[~flags]
+            quiet = score[~flags]
             q = 1.0 - self.false_alarm_rate
             threshold = float(torch.quantile(quiet.double(), q)) if quiet.numel() else 0.5
             self.alarm_threshold.fill_(threshold)
-        alarms = prob > threshold
-        err = out.attack - batch["attack"]
+        alarms = score > threshold
         scores = {
-            "attack_rmse": float(err.square().mean().sqrt()),
-            "state_rmse": float((out.means - batch["x"]).square().mean().sqrt()),
-            "auc": roc_auc(prob, flags),
+            "attack_rmse": float((out.attack - truth["attack"]).square().mean().sqrt()),
+            "state_rmse": float((out.means - truth["x"]).square().mean().sqrt()),
+            "auc": roc_auc(score, flags),
             "tpr": float(alarms[flags].double().mean()) if bool(flags.any()) else float("nan"),
             "fpr": float(alarms[~flags].double().mean()) if bool((~flags).any()) else float("nan"),
             "threshold": threshold,
@@ -399,25 +479,38 @@ class FilterEstimatorTask(pl.LightningModule):
         runs = flags.shape[0]
         for k, v in scores.items():
             if math.isfinite(v):
-                self.log(
-                    f"{stage}/{k}", v, prog_bar=k == "attack_rmse", batch_size=runs, sync_dist=True
-                )
+                self.log(f"{stage}/{k}", v, prog_bar=k == "attack_rmse", batch_size=runs,
+                         sync_dist=True)  # fmt: skip
+        self._figure(f"{stage}/attack_estimate", scenario, out, truth)
         return scores
 
     def validation_step(self, batch, batch_idx):
-        self._scores("val", batch, None)
+        self._scores("val", self.scenario_of_data(), batch, None)
+        if not getattr(self.trainer, "sanity_checking", False):
+            for sc in self.monitors:
+                self._monitor("val", sc, self.hparams.monitor_seed)
 
     def test_step(self, batch, batch_idx):
-        self._scores("test", batch, float(self.alarm_threshold))
+        self._scores("test", self.scenario_of_data(), batch, float(self.alarm_threshold))
+        for sc in self.monitors:
+            self._monitor("test", sc, self.trainer.datamodule.hparams.test_seed)
+
+    def _monitor(self, stage: str, scenario, seed: int) -> None:
+        runs = self.hparams.monitor_runs
+        batch = training_batch(scenario, runs, seed, self._dtype)
+        out, truth = self._evaluate(scenario, batch, float(self.alarm_threshold))
+        rmse = float((out.attack - truth["attack"]).square().mean().sqrt())
+        self.log(f"{stage}/scenario/{scenario.name}/attack_rmse", rmse, batch_size=runs,
+                 sync_dist=True)  # fmt: skip
+        self._figure(f"{stage}/scenario/{scenario.name}", scenario, out, truth)
+
+    def scenario_of_data(self):
+        """The data module's scenario (a shorter horizon of the configured one, in tests)."""
+        dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        return self.scenario if dm is None else dm.scenario
 
     def predict_step(self, batch, batch_idx):
-        with torch.no_grad():
-            out = self.run_filter(
-                batch,
-                training=False,
-                seed=mix_seed(self.hparams.model_seed, 7),
-                threshold=float(self.alarm_threshold),
-            )
+        out, _ = self._evaluate(self.scenario_of_data(), batch, float(self.alarm_threshold))
         return {
             "attack_estimate": out.attack,
             "attack_probability": out.detection.scores,
@@ -425,58 +518,130 @@ class FilterEstimatorTask(pl.LightningModule):
             "means": out.means,
         }
 
-    # -- export (difffilter.train.export.ExportEstimator) --------------------------------
+    def _figure(self, tag: str, scenario, out, truth) -> None:
+        experiment = getattr(self.logger, "experiment", None)
+        if experiment is None or not hasattr(experiment, "add_figure"):
+            return
+        fig = attack_figure(truth["attack"][0], out.attack[0].detach(), scenario.dt)
+        experiment.add_figure(tag, fig, global_step=self.global_step)
+
+    def on_fit_end(self):
+        best = None
+        for cb in self.trainer.callbacks if self.trainer is not None else ():
+            if isinstance(cb, pl.callbacks.ModelCheckpoint) and cb.best_model_score is not None:
+                best = float(cb.best_model_score)
+        if self.logger is not None and best is not None:  # the run's settings beside its result
+            dm = getattr(self.trainer, "datamodule", None)
+            params = {**({} if dm is None else dict(dm.hparams)), **dict(self.hparams)}
+            self.logger.log_hyperparams(params, {"hp/best_val_score": best})
+
+    # -- export (difffilter.train.export.ExportEstimator) ----------------------------------
     def export_name(self) -> str:
         return f"{self.scenario.family}_nn_{self.hparams.trainer}"
 
-    def export_observer(self) -> dict:
-        """What evaluation needs beside the weights (the filter, its threshold, the scenario)."""
+    def card(self) -> EstimatorCard:
+        """What evaluation needs beside the weights."""
         hp = self.hparams
-        return {
-            "kind": hp.filter,
-            "scenario": self.scenario.name,
-            "scenario_family": self.scenario.family,
-            "num_particles": int(self.num_particles),
-            "threshold": float(self.alarm_threshold),
-            "target_false_alarm_rate": self.false_alarm_rate,
-            "dt": float(self.scenario.dt),
-            "features": list(self.features),
-            "poa_eta": self.poa_eta,
-            "trainer": self.hparams.trainer,
-            "channel": self.channel,
-        }
+        registered = {"pf": "pf_nn_"}.get(hp.filter, "gaussian_nn_") + hp.trainer
+        if self.scenario.closed_loop:
+            registered = f"kf_nn_{hp.trainer}"
+        return EstimatorCard(
+            scenario_family=self.scenario.family, scenario=self.scenario.name,
+            filter=hp.filter, trainer=hp.trainer, channel=self.channel.value,
+            residual=hp.residual, standardize=hp.standardize, features=self.features,
+            threshold=float(self.alarm_threshold),
+            target_false_alarm_rate=self.false_alarm_rate, dt=float(self.scenario.dt),
+            num_particles=int(self.num_particles), poa_eta=self.poa_eta, estimator=registered,
+        )  # fmt: skip
 
-    def check_exported(self, observer: dict, path) -> None:
-        """``ValueError`` unless an exported estimator was trained for this filter and
-        scenario family; its operating threshold becomes this module's."""
-        mine = self.export_observer()
-        for key in ("kind", "scenario_family", "features", "trainer"):
-            theirs = observer.get(key, {"features": [], "trainer": "grad"}.get(key))
-            if theirs != mine[key]:
+    def check_exported(self, card: EstimatorCard, path) -> None:
+        """``ValueError`` unless an exported estimator was trained with this module's filter,
+        family, features and trainer; its operating threshold becomes this module's."""
+        mine = self.card()
+        for key in ("filter", "scenario_family", "features", "trainer", "residual"):
+            if getattr(card, key) != getattr(mine, key):
                 raise ValueError(
-                    f"--ckpt_path: {path} was trained with {key} = {theirs!r}, the "
-                    f"configured model has {mine[key]!r}"
+                    f"--ckpt_path: {path} was trained with {key} = {getattr(card, key)!r}, the "
+                    f"configured model has {getattr(mine, key)!r}"
                 )
-        self.alarm_threshold.fill_(float(observer.get("threshold", 0.5)))
+        self.alarm_threshold.fill_(float(card.threshold))
 
     def export_card(self, trainer, estimator=None) -> dict:
         hp = self.hparams
+        how = (
+            f"through difffilter's {hp.filter.upper()} (resampler for training: {hp.resampler})"
+            if hp.trainer == "grad"
+            else f"by the EKF over its weights inside difffilter's {hp.filter.upper()}"
+        )
+        loop = " in its closed loop" if self.scenario.closed_loop else ""
         return {
             "scenario_family": self.scenario.family,
-            "estimator": f"{'pf' if hp.filter == 'pf' else 'gaussian'}_nn_{hp.trainer}",
-            "description": (
-                "Neural FDI estimator (eqs 8-9, one area of dy channels) trained "
-                + (
-                    f"through difffilter's {hp.filter.upper()} (resampler for training: "
-                    f"{hp.resampler})"
-                    if hp.trainer == "grad"
-                    else f"by the EKF over its weights inside difffilter's {hp.filter.upper()}"
-                )
-                + f" on {self.scenario.name}"
-            ),
+            "estimator": self.card().estimator,
+            "description": f"Neural FDI estimator (eqs 8-9) trained {how}{loop} on "
+            f"{self.scenario.name}",
         }
 
     def on_save_checkpoint(self, checkpoint):
         # a Lightning checkpoint of this task loads as an estimator (difffilter-eval --ckpt)
-        checkpoint["difffilter_observer"] = self.export_observer()
+        checkpoint["difffilter_observer"] = self.card().to_dict()
         checkpoint["difffilter_estimator_config"] = self.estimator.config()
+
+
+def _channel(scenario) -> Channel:
+    attack = scenario.attack_model()
+    return Channel.SENSOR if attack is None else Channel(attack.channel)
+
+
+def _check_options(hp, sc, channel: Channel) -> float:
+    """The option combinations the task refuses, each with the reason; returns the FAR."""
+    if hp.filter != "pf" and hp.filter not in GAUSSIAN_FILTERS:
+        raise ValueError(
+            f"filter must be 'pf' or one of {sorted(GAUSSIAN_FILTERS)}; got {hp.filter!r}"
+        )
+    if hp.resampler not in RESAMPLERS:
+        raise ValueError(f"resampler must be one of {sorted(RESAMPLERS)}; got {hp.resampler!r}")
+    if hp.trainer not in ("grad", "ekf"):
+        raise ValueError(f"trainer must be 'grad' or 'ekf'; got {hp.trainer!r}")
+    Residual(hp.residual)
+    if channel is Channel.ACTUATOR and hp.filter == "pf":
+        raise ValueError(
+            f"filter: {sc.name} has an actuator attack, which the learned estimator "
+            "compensates in the input of a Gaussian filter: use kf, ekf or ukf"
+        )
+    if channel is Channel.REPLACEMENT and (hp.filter != "pf" or hp.trainer != "grad"):
+        raise ValueError(
+            f"{sc.name} replaces measurements: the learned estimator weighs them with the "
+            "mixture likelihood of its attack probability, in the PF (filter: pf, trainer: grad)"
+        )
+    if "poa" in (hp.features or ()) and hp.filter != "pf":
+        raise ValueError("features: 'poa' needs particles (filter='pf')")
+    if sc.closed_loop and hp.trainer == "ekf":
+        raise ValueError(f"trainer: {sc.name} is a closed loop; the EKF trainer runs open loops")
+    if hp.control_weight > 0 and not sc.closed_loop:
+        raise ValueError("control_weight needs a closed-loop scenario (its feedback gain)")
+    if hp.tbptt_steps is not None and hp.tbptt_steps < 1:
+        raise ValueError(f"tbptt_steps must be >= 1 or None; got {hp.tbptt_steps!r}")
+    far = sc.false_alarm_rate if hp.target_false_alarm_rate is None else hp.target_false_alarm_rate
+    if not 0 < far < 1:
+        raise ValueError(f"target_false_alarm_rate must be in (0, 1); got {far!r}")
+    return float(far)
+
+
+def _area_flags(truth: dict, logits: torch.Tensor) -> torch.Tensor:
+    """The BCE's labels: the attacked steps ``[B, T]``, or with ``J`` area logits whether any
+    channel of each area is attacked ``[B, T, J]``."""
+    if logits.dim() == truth["flags"].dim():
+        return truth["flags"]
+    attack = truth["attack"]
+    J = logits.shape[-1]
+    return (attack.reshape(attack.shape[:-1] + (J, -1)) != 0).any(-1)
+
+
+def _runs(batch: dict) -> int:
+    return next(v for v in batch.values() if isinstance(v, torch.Tensor)).shape[0]
+
+
+def _horizon(scenario, batch: dict) -> int:
+    if scenario.closed_loop:
+        return batch["xi"].shape[1]
+    return batch["y_recv"].shape[1]

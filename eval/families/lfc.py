@@ -22,7 +22,7 @@ from difffilter.models.lfc import PAPER_TABLES, STATE_DIM, STATE_NAMES
 from difffilter.models.lfc_estimators import ABLATIONS, PER_CHANNEL, per_channel_attack_rmse
 
 from ..report import FamilyReport, Section, format_number, markdown_table, register_family
-from ..scoring import score, true_states
+from ..scoring import score
 
 MAIN = ("kf_nn_ekf", "traditional_ad", "kf_nn_grad", "kf_nn_grad_ekf")
 CORE = ("lfc_step", "lfc_sine", "lfc_simultaneous", "lfc_sawtooth")
@@ -51,7 +51,7 @@ def _extra(result) -> dict:
     chans = sc.attacked_channels
     for name, out in result.outputs.items():
         m, extras = result.metrics[name], out.extras or {}
-        m["state5_rmse"] = _state5(true_states(out, tr))
+        m["state5_rmse"] = _state5(result.traj_of(name).x)
         if "x_attack_free" in extras:
             m["state5_rmse_attack_free"] = _state5(extras["x_attack_free"])
         m["time_per_batch_step_s"] = result.wall_s[name] / tr.flags.shape[1]
@@ -151,7 +151,7 @@ def _states_figure(result, out: Path) -> str:
     for ax, s in zip(axes, (2, 4)):
         for n in ("uncompensated", "kf_nn_ekf", "kf_nn_grad"):
             if n in outs:
-                ax.plot(t, outs[n].extras["x"][0, :, s].numpy(), lw=0.9, label=n)
+                ax.plot(t, result.traj_of(n).x[0, :, s].numpy(), lw=0.9, label=n)
         ax.set_ylabel(f"X{s + 1}")
         ax.legend(fontsize=7, loc="upper right")
     axes[-1].set_xlabel("t [s]")

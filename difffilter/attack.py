@@ -1,0 +1,102 @@
+"""The attacker inside the loop: a step object on one of three channels.
+
+An attack is data plus a step. At measurement ``k`` of the loop
+(:func:`difffilter.loop.closed_loop`) it reads what its threat model allows — the true
+measurement ``y_k``, the true state ``x_k``, the commanded input ``u_{k−1}`` and, for an
+adaptive attacker, the estimator's output of the previous step (``view``) — and returns
+what it injects and where::
+
+    A_0            = attack.init(batch_shape, T, dim, generator, dtype=, device=)
+    A_k, a_k, l_k  = attack.step(A_{k−1}, k, y=y_k, x=x_k, u=u_{k−1}, view=out_{k−1})
+
+with ``a_k [..., dim]`` the value and ``l_k`` the flag (``[...]``, or ``[..., dim]`` per
+entry). The channel says what it acts on (:class:`Channel`)::
+
+    SENSOR        ỹ_k = y_k + l_k a_k                  (additive false data)
+    REPLACEMENT   ỹ_k = a_k where l_k, y_k elsewhere   (deception, replay)
+    ACTUATOR      ũ_{k−1} = u_{k−1} + l_k a_k          (the plant is driven with ũ; the
+                                                        estimator knows only u)
+
+An attack that reads nothing (a bias, a ramp, a known signal, a random replacement)
+derives from :class:`TabulatedAttack`: ``init`` draws the whole table ``[..., T, dim]``
+at once (the same random numbers as a vectorised simulation), and the step reads row
+``k``, so open-loop speed is kept. What the loop records as the injected attack is the
+change it made, ``ỹ_k − y_k`` on the sensor side and ``l_k a_k`` on the actuator side;
+``values`` (``Trajectories.info["attack_values"]``) are the ``a_k`` at every step, also
+where they were not injected. An estimator never reads an attack object: what it assumes
+about attacks is its own parameter.
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+from typing import Any
+
+import torch
+from torch import Tensor
+
+__all__ = ["Channel", "Attack", "TabulatedAttack", "inject"]
+
+
+class Channel(str, Enum):
+    """What an attack acts on (module docstring)."""
+
+    SENSOR = "sensor"
+    REPLACEMENT = "replacement"
+    ACTUATOR = "actuator"
+
+
+class Attack:
+    """Base of every attack (module docstring). Subclasses set :attr:`channel` and
+    implement :meth:`init` and :meth:`step`; an adaptive attack (one that reads the
+    estimator's last output) sets :attr:`reads_view`."""
+
+    channel: Channel = Channel.SENSOR
+    reads_view: bool = False
+
+    def init(
+        self, batch_shape, num_steps: int, dim: int, generator=None, *, dtype, device=None
+    ) -> Any:
+        """The attacker's state before step 1 of ``num_steps`` on ``dim`` channels."""
+        raise NotImplementedError
+
+    def step(self, state, k: int, *, y=None, x=None, u=None, view=None):
+        """``(state, value [..., dim], flag [...] or [..., dim])`` at measurement ``k``."""
+        raise NotImplementedError
+
+
+class TabulatedAttack(Attack):
+    """An attack that reads nothing: ``init`` tabulates ``sample``'s ``(values [*, T, dim],
+    flags [*, T] or [*, T, dim])``, and step ``k`` reads row ``k − 1``.
+
+    Subclasses implement ``sample(batch_shape, num_steps, dim, generator, *, dtype,
+    device) -> (values, flags)`` (:meth:`sample`).
+    """
+
+    def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        raise NotImplementedError
+
+    def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        values, flags = self.sample(batch_shape, num_steps, dim, generator, dtype=dtype,
+                                    device=device)  # fmt: skip
+        return values, flags.bool()
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        values, flags = state
+        return state, values[..., k - 1, :], flags[..., k - 1, ...]
+
+
+def _entrywise(flag: Tensor, value: Tensor) -> Tensor:
+    """A flag ``[...]`` or ``[..., d]`` as ``[..., d]``-broadcastable."""
+    return flag if flag.dim() == value.dim() else flag.unsqueeze(-1)
+
+
+def inject(channel: Channel, signal: Tensor, value: Tensor, flag: Tensor) -> tuple[Tensor, Tensor]:
+    """``(attacked signal, recorded attack)`` of one step on ``channel`` (module docstring):
+    ``signal [..., d]`` (``y_k`` or ``u_{k−1}``), ``value [..., d]``, ``flag`` → both ``[..., d]``."""
+    f = _entrywise(flag, value)
+    if channel is Channel.REPLACEMENT:
+        received = torch.where(f, value, signal)
+        return received, torch.where(f, received - signal, torch.zeros_like(signal))
+    change = f.to(signal.dtype) * value
+    return signal + change, change

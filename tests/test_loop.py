@@ -1,0 +1,139 @@
+"""The two drivers: the open loop and the closed loop, with the attacker inside the loop."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import difffilter as df
+from difffilter.attack import Attack, Channel
+from difffilter.loop import DrawnNoise, KnownInputs, closed_loop, open_loop
+from difffilter.models import registry
+from difffilter.models.attacks import Replay, SensorBias, Signal
+from difffilter.models.lfc import LFCPlant, lfc_loop
+from difffilter.models.streams import Streams
+
+
+def _linear(dtype=torch.float64):
+    F = torch.tensor([[1.0, 0.1], [0.0, 0.95]], dtype=dtype)
+    eye = torch.eye(2, dtype=dtype)
+    B = torch.tensor([[0.0], [0.1]], dtype=dtype)
+    return df.LinearGaussianModel(F, eye, 1e-3 * eye, 1e-2 * eye, torch.zeros(2, dtype=dtype),
+                                  eye, B=B)  # fmt: skip
+
+
+def test_replay_delivers_the_plants_own_delayed_output_in_the_open_loop():
+    """Four-tank, the same Replay object as in the LFC loop below: ỹ_k = y_{k−d} for k ≥ k₀."""
+    sc = registry.get("four_tank_bias")
+    streams = Streams(0)
+    d, k0 = 7, 20
+    gens = {k: streams(k) for k in ("plant", "attack", "schedule")}
+    tr = sc.simulate(4, gens, attack=REPLAY)
+    t0 = k0 - 1  # time index of k0
+    assert torch.equal(tr.y_recv[:, :t0], tr.y_true[:, :t0])
+    assert torch.equal(tr.y_recv[:, t0:], tr.y_true[:, t0 - d : -d])  # bit for bit
+    assert not tr.flags[:, :t0].any() and tr.flags[:, t0:].all()
+    torch.testing.assert_close(tr.attack, tr.y_recv - tr.y_true, rtol=0, atol=0)
+    assert REPLAY.delay == d and REPLAY.onset == k0
+
+
+REPLAY = Replay(delay=7, onset=20)
+
+
+def test_replay_delivers_the_plants_own_delayed_output_in_the_lfc_closed_loop():
+    """In the closed loop the plant's output depends on the estimator through the controller:
+    the replayed measurement is this loop's own output of d steps before."""
+    plant = LFCPlant()
+    xi, theta = plant.sample_noise(3, 60, torch.Generator().manual_seed(2))
+    load = torch.tensor([[0.01, 0.0]], dtype=torch.float64)
+    loop = lfc_loop(plant, df.KalmanFilter(), xi, theta, load, attack=REPLAY)
+    tr, d, t0 = loop.trajectories, REPLAY.delay, REPLAY.onset - 1
+    assert torch.equal(tr.y_recv[:, t0:], tr.y_true[:, t0 - d : -d])
+    assert torch.equal(tr.y_recv[:, :t0], tr.y_true[:, :t0]) and tr.flags[:, t0:].all()
+    # the replayed data fool the observer: its estimate follows the old measurements
+    free = lfc_loop(plant, df.KalmanFilter(), xi, theta, load)
+    assert not torch.equal(loop.trajectories.x, free.trajectories.x)
+
+
+def test_the_closed_loop_with_known_inputs_is_the_simulation_plus_the_open_loop():
+    """An estimator inside the closed loop (the known inputs as the controller) sees what it
+    would see on the simulated data: the same states, the same estimates."""
+    model = _linear()
+    us = 0.3 * torch.randn(
+        5, 30, 1, generator=torch.Generator().manual_seed(1), dtype=torch.float64
+    )
+    attack = SensorBias(gamma_bar=(0.5, -0.2), p_l=0.5)
+    x0 = model.initial.mean.expand(5, 2).clone()
+    inside = closed_loop(model, 30, noise=DrawnNoise(torch.Generator().manual_seed(3)), x0=x0,
+                         estimator=df.KalmanFilter(), controller=KnownInputs(us), attack=attack,
+                         attack_generator=torch.Generator().manual_seed(4))  # fmt: skip
+    sim = closed_loop(model, 30, noise=DrawnNoise(torch.Generator().manual_seed(3)), x0=x0,
+                      controller=KnownInputs(us), attack=attack,
+                      attack_generator=torch.Generator().manual_seed(4))  # fmt: skip
+    tr = sim.trajectories
+    assert torch.equal(inside.trajectories.x, tr.x) and torch.equal(
+        inside.trajectories.y_recv, tr.y_recv
+    )
+    assert torch.equal(tr.us, us) and sim.output is None
+    out = open_loop(df.KalmanFilter(), model, tr.y_recv, tr.us)
+    torch.testing.assert_close(inside.output.means, out.means, rtol=0, atol=1e-12)
+    # the bias attack: recorded as injected (up to the sum's round-off), flagged where injected
+    torch.testing.assert_close(tr.attack, tr.y_recv - tr.y_true, rtol=0, atol=1e-15)
+    assert torch.equal(tr.flags, tr.attack.abs().sum(-1) > 0)
+
+
+def test_a_loop_run_in_chunks_is_the_loop_run_at_once():
+    """Truncated backpropagation runs the loop in chunks from its LoopState: the same loop."""
+    plant = LFCPlant()
+    xi, theta = plant.sample_noise(2, 40, torch.Generator().manual_seed(5))
+    load = torch.tensor([[0.01, 0.0]], dtype=torch.float64)
+    alpha = torch.zeros(40, 10, dtype=torch.float64)
+    alpha[10:25, 2] = 0.4
+    whole = lfc_loop(plant, df.KalmanFilter(), xi, theta, load, attack=Signal(alpha))
+    first = lfc_loop(plant, df.KalmanFilter(), xi, theta, load, attack=Signal(alpha), steps=15)
+    second = lfc_loop(plant, df.KalmanFilter(), xi, theta, load, attack=Signal(alpha), steps=25,
+                      state=first.state.detach())  # fmt: skip
+    joined = torch.cat([first.trajectories.x, second.trajectories.x], 1)
+    assert torch.equal(joined, whole.trajectories.x)
+    means = torch.cat([first.output.means, second.output.means], 1)
+    assert torch.equal(means, whole.output.means) and second.state.k == 40
+
+
+class _Adaptive(Attack):
+    """An adaptive attacker: pushes the received measurement against the estimator's last
+    estimate (it reads the view), from step 2 on."""
+
+    channel = Channel.SENSOR
+    reads_view = True
+
+    def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        return []
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        seen = state + [None if view is None else view.mean.clone()]
+        value = torch.zeros_like(y) if view is None else -view.mean
+        return seen, value, torch.full(y.shape[:-1], view is not None)
+
+
+def test_an_adaptive_attack_reads_the_estimators_previous_output():
+    model = _linear()
+    x0 = model.initial.mean.expand(2, 2).clone()
+    attack = _Adaptive()
+    loop = closed_loop(model, 6, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                       estimator=df.KalmanFilter(), attack=attack)  # fmt: skip
+    seen = loop.state.attack
+    assert seen[0] is None  # nothing to read before the first estimate
+    for k in range(1, 6):  # at step k + 1 it read the estimate of step k
+        torch.testing.assert_close(seen[k], loop.output.means[:, k - 1], rtol=0, atol=0)
+    torch.testing.assert_close(loop.trajectories.attack[:, 1:], -loop.output.means[:, :-1])
+
+
+def test_replay_and_the_loop_refuse_bad_arguments():
+    with pytest.raises(ValueError, match="onset must exceed delay"):
+        Replay(delay=5, onset=5)
+    with pytest.raises(ValueError, match="steps"):
+        closed_loop(_linear(), 0, noise=DrawnNoise(None), x0=torch.zeros(1, 2, dtype=torch.float64))
+    with pytest.raises(ValueError, match="x0"):
+        closed_loop(_linear(), 3, noise=DrawnNoise(None))
+    with pytest.raises(TypeError, match="Estimator"):
+        open_loop(df.kalman_step, _linear(), torch.zeros(1, 3, 2, dtype=torch.float64))
