@@ -21,7 +21,7 @@ from timing import best_time
 from difffilter import fdi
 from difffilter.fdi.fused import FusedModifiedPF
 from difffilter.models import registry
-from difffilter.models.four_tank import simulate_attacked
+from difffilter.models.scenario import simulate
 
 __all__ = ["bench_modified_pf"]
 
@@ -33,14 +33,8 @@ TARGET_STEP_S = 1e-4  # single run, N = 100
 def _setup(batch: int, steps: int, dtype: torch.dtype):
     sc = registry.get("four_tank_bias")
     model = sc.model(dtype)
-    traj = simulate_attacked(
-        model,
-        sc.attack(),
-        batch,
-        steps,
-        plant_generator=torch.Generator().manual_seed(0),
-        attack_generator=torch.Generator().manual_seed(1),
-    )
+    gens = {"plant": torch.Generator().manual_seed(0), "attack": torch.Generator().manual_seed(1)}
+    traj = simulate(model, batch, steps, generators=gens, attack=sc.attack_model())
     G, Q = model.G, model.process_cov(0)
     eta = float(
         fdi.attack_threshold(G, fdi.modified_pf_gain(G, Q, model.measurement_cov(1)), sc.gamma_min)
@@ -76,7 +70,7 @@ def _bench(rounds: int, num_particles: int, steps: int, threads: int) -> list[di
         def batched(pf=pf, traj=traj):
             pf.run(
                 traj.y_recv,
-                traj.gammas,
+                traj.info["attack_values"],
                 generator=torch.Generator().manual_seed(2),
                 resample_generator=torch.Generator().manual_seed(3),
             )
@@ -103,7 +97,7 @@ def _bench(rounds: int, num_particles: int, steps: int, threads: int) -> list[di
         def single(pf=pf, traj=traj):
             pf.run(
                 traj.y_recv,
-                traj.gammas,
+                traj.info["attack_values"],
                 generator=torch.Generator().manual_seed(2),
                 resample_generator=torch.Generator().manual_seed(3),
             )
@@ -132,7 +126,7 @@ def _bench(rounds: int, num_particles: int, steps: int, threads: int) -> list[di
                 traj.y_recv,
                 num_particles=num_particles,
                 detector=detector,
-                gamma_hat=traj.gammas,
+                gamma_hat=traj.info["attack_values"],
                 generator=torch.Generator().manual_seed(2),
                 resample_generator=torch.Generator().manual_seed(3),
             )

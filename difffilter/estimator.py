@@ -248,25 +248,35 @@ _STATISTICS = {
 _MATRICES = {"pred_cov": "pred_covs", "innovation_cov": "innovation_covs"}
 
 
+def _common(shapes, *more) -> torch.Size:
+    """The broadcast of ``shapes`` (one per step: most are equal, so each distinct one once)."""
+    return torch.broadcast_shapes(*more, *set(shapes))
+
+
+def _stack(values: Sequence[Tensor], shape: torch.Size, dim: int) -> Tensor:
+    if all(v.shape == shape for v in values):
+        return torch.stack(values, dim=dim)
+    return torch.stack([v.expand(shape) for v in values], dim=dim)
+
+
 def _stack_vectors(values: Sequence[Tensor], batch: torch.Size) -> Tensor:
     """``[..., d]`` per step → ``[*batch, T, d]`` (each broadcast to ``batch``)."""
-    shape = torch.broadcast_shapes(batch, *(v.shape[:-1] for v in values))
-    return torch.stack([v.expand(shape + v.shape[-1:]) for v in values], dim=-2)
+    lead = _common((v.shape[:-1] for v in values), batch)
+    return _stack(values, lead + values[0].shape[-1:], -2)
 
 
 def _stack_matrices(values: Sequence[Tensor], batch: torch.Size) -> Tensor:
     """``[..., d, d]`` per step → ``[*batch, T, d, d]``; matrices shared by the runs are
     stacked once and expanded (a view, no copy per run)."""
-    shape = torch.broadcast_shapes(*(v.shape[:-2] for v in values))
-    stacked = torch.stack([v.expand(shape + v.shape[-2:]) for v in values], dim=-3)
+    lead = _common(v.shape[:-2] for v in values)
+    stacked = _stack(values, lead + values[0].shape[-2:], -3)
     full = torch.broadcast_shapes(batch, stacked.shape[:-3])
     return stacked.expand(full + stacked.shape[-3:])
 
 
 def _stack_scalars(values: Sequence[Tensor], batch: torch.Size) -> Tensor:
     """``[...]`` per step → ``[*batch, T]``."""
-    shape = torch.broadcast_shapes(batch, *(v.shape for v in values))
-    return torch.stack([v.expand(shape) for v in values], dim=-1)
+    return _stack(values, _common((v.shape for v in values), batch), -1)
 
 
 def _stack_thresholds(values: Sequence, batch: torch.Size, like: Tensor):

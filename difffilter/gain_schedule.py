@@ -30,21 +30,25 @@ import torch
 from torch import Tensor
 
 from .gaussian import joseph_covariance, kalman_gain, predict_covariance
-from .linalg import matvec, symmetrize
+from .linalg import LOG_2PI, matvec, symmetrize
 
 __all__ = ["GainSchedule", "SharedMoments", "shared_gains_apply"]
 
 
 class SharedMoments(NamedTuple):
     """The moments of measurement ``k`` shared by every run: ``pred_cov`` ``P⁻_k``, ``cov``
-    ``P_k`` ``[dx, dx]``, ``gain`` ``K_k [dx, dy]``, ``innovation_cov`` ``S_k`` and its
-    Cholesky factor ``chol`` ``[dy, dy]``."""
+    ``P_k`` ``[dx, dx]``, ``gain`` ``K_k [dx, dy]``, ``innovation_cov`` ``S_k``, its
+    Cholesky factor ``chol`` ``L_k``, the whitening ``whiten = L_k⁻¹`` ``[dy, dy]`` and
+    ``log_norm = Σ log diag L_k + (dy/2) log 2π`` (so ``log N(ν; 0, S_k) =
+    −½‖L_k⁻¹ν‖² − log_norm``: one product per step for all runs)."""
 
     pred_cov: Tensor
     cov: Tensor
     gain: Tensor
     innovation_cov: Tensor
     chol: Tensor
+    whiten: Tensor
+    log_norm: Tensor
 
 
 def shared_gains_apply(model) -> bool:
@@ -114,7 +118,10 @@ class GainSchedule:
             prev = self._moments[-1].gain
             change = float((K - prev).abs().max())
             self.converged = change <= self.tol * float(prev.abs().max())
-        self._moments.append(SharedMoments(pred_cov, self._cov, K, S, chol))
+        eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
+        whiten = torch.linalg.solve_triangular(chol, eye, upper=False)
+        log_norm = torch.log(torch.diagonal(chol)).sum() + 0.5 * S.shape[-1] * LOG_2PI
+        self._moments.append(SharedMoments(pred_cov, self._cov, K, S, chol, whiten, log_norm))
 
     def gain(self, k: int) -> tuple[Tensor, Tensor]:
         """``(K_k [dx, dy], S_k [dy, dy])`` of measurement ``k ≥ 1``."""

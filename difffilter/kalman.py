@@ -36,7 +36,7 @@ from ._shared_cov import shared_covariance_applies, shared_covariance_kalman_fil
 from .estimator import Estimator, output_of
 from .gain_schedule import GainSchedule, shared_gains_apply
 from .gaussian import linear_predict, linear_update
-from .linalg import gaussian_log_prob_chol, matvec
+from .linalg import matvec
 from .loop import open_loop
 from .parallel_kalman import parallel_kalman_filter
 from .results import FilterResult, GaussianState, StepOutput
@@ -149,6 +149,13 @@ class GaussianFilter(Estimator):
     def update(self, carry, prediction: Prediction, y, mask):
         raise NotImplementedError
 
+    def innovation(self, carry, prediction: Prediction, y, mask, *, evidence: bool = True):
+        """``(ν [..., dy], S [..., dy, dy], log N(ν; 0, S) [...] or None)`` of ``y`` under
+        ``prediction`` without the update's posterior (what a compensating wrapper reads
+        before it decides what to update with; ``evidence=False`` skips the density)."""
+        _, out = self.update(carry, prediction, y, mask)
+        return out.innovation, out.innovation_cov, out.log_likelihood if evidence else None
+
     def _step(self, carry, y, u, mask):
         return self.update(carry, self.predict(carry, u), y, mask)
 
@@ -199,6 +206,14 @@ class KalmanFilter(GaussianFilter):
         out = StepOutput(mean, cov, prediction.mean, prediction.cov, residual, S, log_lik)
         return GaussianState(mean, cov, k, model), out
 
+    def innovation(self, carry, prediction, y, mask, *, evidence: bool = True):
+        if carry.gains is None or mask is not None:
+            return super().innovation(carry, prediction, y, mask, evidence=evidence)
+        m = carry.gains.moments(carry.k + 1)
+        nu = carry.gains.innovation(prediction.mean, y)
+        ell = -0.5 * matvec(m.whiten, nu).square().sum(-1) - m.log_norm if evidence else None
+        return nu, m.innovation_cov, ell
+
     def _check_carry(self, carry):
         super()._check_carry(carry)
         if carry.gains is not None:
@@ -226,7 +241,7 @@ def _shared_update(carry: GaussianState, pred_mean: Tensor, y: Tensor):
     m = gains.moments(k)
     innovation = gains.innovation(pred_mean, y)
     mean = pred_mean + matvec(m.gain, innovation)
-    log_lik = gaussian_log_prob_chol(innovation, m.chol)
+    log_lik = -0.5 * matvec(m.whiten, innovation).square().sum(-1) - m.log_norm
     out = StepOutput(mean, m.cov, pred_mean, m.pred_cov, innovation, m.innovation_cov, log_lik)
     return GaussianState(mean, m.cov, k, carry.model, gains), out
 

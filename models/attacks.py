@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -34,7 +33,6 @@ from difffilter.attack import Attack, Channel, TabulatedAttack
 
 __all__ = [
     "BiasAttack",
-    "AttackRealisation",
     "SensorBias",
     "ActuatorInjection",
     "Replacement",
@@ -43,23 +41,11 @@ __all__ = [
 ]
 
 
-class AttackRealisation(NamedTuple):
-    """One realisation of an attack on a measurement sequence.
-
-    Attributes:
-        y_recv: received measurements ``ỹ = y + l γ`` ``[..., T, dy]``.
-        flags: attack indicators ``l_k`` ``[..., T]`` (bool).
-        gammas: attack values ``γ_k`` ``[..., T, dy]`` (injected only where ``flags``).
-    """
-
-    y_recv: Tensor
-    flags: Tensor
-    gammas: Tensor
-
-
 @dataclass(frozen=True)
-class BiasAttack:
-    """The bias FDI attack of eqs (3)–(4).
+class SensorBias(TabulatedAttack):
+    """The bias FDI attack of eqs (3)–(4), on the sensor channel: ``values[t] = γ_{t+1}``
+    (eq. 4), ``flags ~ Bernoulli(p_l)`` (eq. 3), and the loop adds ``l_k γ_k`` to the
+    measurement.
 
     Args:
         gamma_bar: steady-state bias ``γ̄`` (``dy`` numbers).
@@ -70,6 +56,7 @@ class BiasAttack:
     gamma_bar: tuple[float, ...]
     tau: float = 0.9
     p_l: float = 0.5
+    channel = Channel.SENSOR
 
     def __post_init__(self):
         gb = tuple(float(g) for g in self.gamma_bar)
@@ -120,33 +107,16 @@ class BiasAttack:
         )
         return u < self.p_l
 
-    def apply(
-        self,
-        y_true: Tensor,
-        generator: torch.Generator | None = None,
-        *,
-        flags: Tensor | None = None,
-    ) -> AttackRealisation:
-        """Attack ``y_true [..., T, dy]``: draw ``l_k`` (or use ``flags [..., T]``) and add ``l_k γ_k``.
+    def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        if dim != self.dim:
+            raise ValueError(f"gamma_bar has {self.dim} entries but the measurement has {dim}")
+        flags = self.sample_flags(batch_shape, num_steps, generator, device=device)
+        values = self.values(num_steps, dtype=dtype, device=device)
+        return values.expand(flags.shape + (dim,)), flags
 
-        Returns an :class:`AttackRealisation` with ``gammas`` expanded to ``y_true``'s shape.
-        """
-        if not isinstance(y_true, Tensor) or y_true.dim() < 2 or y_true.shape[-1] != self.dim:
-            shape = tuple(y_true.shape) if isinstance(y_true, Tensor) else type(y_true).__name__
-            raise ValueError(f"y_true must be a tensor of shape [..., T, {self.dim}]; got {shape}")
-        num_steps = y_true.shape[-2]
-        if flags is None:
-            flags = self.sample_flags(y_true.shape[:-2], num_steps, generator, device=y_true.device)
-        elif flags.shape != y_true.shape[:-1]:
-            raise ValueError(
-                f"flags must have shape {tuple(y_true.shape[:-1])} (y_true without its last dim); got {tuple(flags.shape)}"
-            )
-        flags = flags.bool()
-        gammas = self.values(num_steps, dtype=y_true.dtype, device=y_true.device).expand(
-            y_true.shape
-        )
-        y_recv = y_true + flags.unsqueeze(-1).to(y_true.dtype) * gammas
-        return AttackRealisation(y_recv, flags, gammas)
+
+#: The name the four-tank paper's attack had before it joined the loop (the same class).
+BiasAttack = SensorBias
 
 
 # ------------------------------------------------------------------ the attacks in the loop
@@ -160,23 +130,6 @@ class BiasAttack:
 def _check_steps(num_steps) -> None:
     if isinstance(num_steps, bool) or not isinstance(num_steps, int) or num_steps < 1:
         raise ValueError(f"num_steps must be an integer >= 1; got {num_steps!r}")
-
-
-class SensorBias(BiasAttack, TabulatedAttack):
-    """:class:`BiasAttack` (eqs 3–4 of the four-tank paper) as an attack of the loop.
-
-    ``values[t] = γ_{t+1}`` (eq. 4), ``flags ~ Bernoulli(p_l)`` (eq. 3); on the sensor
-    channel the loop adds ``l_k γ_k`` to the measurement.
-    """
-
-    channel = Channel.SENSOR
-
-    def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
-        if dim != self.dim:
-            raise ValueError(f"gamma_bar has {self.dim} entries but the measurement has {dim}")
-        flags = self.sample_flags(batch_shape, num_steps, generator, device=device)
-        values = self.values(num_steps, dtype=dtype, device=device)
-        return values.expand(flags.shape + (dim,)), flags
 
 
 @dataclass(frozen=True)

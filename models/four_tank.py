@@ -17,15 +17,15 @@ Parameters: Johansson, IEEE TCST 8(3) 2000, minimum-phase point P−; ``G = I``,
 ``Q = 1e-4 I`` (derived from the paper's threshold, see docs/scenarios.md); ``dt = 1 s``,
 ``p(x_0) = N(x*, 1e-2 I)`` are [DEF] defaults.
 
-Attacked simulation (:func:`simulate_attacked`) and the scenario registry entries
-(:class:`FourTankScenario`: ``four_tank_bias`` and its variants) live here too; the
-attack itself is :class:`difffilter.models.attacks.BiasAttack` (eqs 3–4).
+The scenario registry entries (:class:`FourTankScenario`: ``four_tank_bias`` and its
+variants) live here too; the attack itself is
+:class:`difffilter.models.attacks.SensorBias` (eqs 3–4), simulated in the loop of
+:func:`difffilter.models.scenario.simulate`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -35,17 +35,15 @@ from difffilter.fdi.poa import poa_detector_for
 from difffilter.noise import Gaussian
 from difffilter.ssm import StateSpaceModel
 
-from .attacks import BiasAttack, SensorBias
+from .attacks import SensorBias
 from .registry import register
-from .scenario import CustomScenario, Scenario, simulate
+from .scenario import CustomScenario, Scenario
 
 __all__ = [
     "FourTankParameters",
     "FourTankModel",
     "R_NOMINAL",
     "R_HIGH",
-    "AttackedTrajectories",
-    "simulate_attacked",
     "FourTankScenario",
 ]
 
@@ -250,64 +248,6 @@ def _cov(value, kw, name) -> Tensor:
 
 
 # --------------------------------------------------------------------------- simulation
-
-
-class AttackedTrajectories(NamedTuple):
-    """A batch of attacked four-tank runs (time index ``t`` ↔ ``k = t + 1``).
-
-    Attributes:
-        x: true states ``x_1 … x_T`` ``[B, T, 4]``.
-        y_true: measurements ``y_k = G x_k + v_k`` ``[B, T, 4]``.
-        y_recv: received measurements ``ỹ_k = y_k + l_k γ_k`` ``[B, T, 4]``.
-        flags: ``l_k`` ``[B, T]`` (bool).
-        gammas: ``γ_k`` ``[B, T, 4]`` (the value the attacker would inject at ``k``).
-        x0: initial states ``[B, 4]``.
-    """
-
-    x: Tensor
-    y_true: Tensor
-    y_recv: Tensor
-    flags: Tensor
-    gammas: Tensor
-    x0: Tensor
-
-
-@torch.no_grad()
-def simulate_attacked(
-    model: FourTankModel,
-    attack: BiasAttack,
-    num_runs: int,
-    num_steps: int,
-    *,
-    plant_generator: torch.Generator,
-    attack_generator: torch.Generator,
-    random_initial: bool = False,
-) -> AttackedTrajectories:
-    """Simulate ``num_runs`` runs of ``num_steps`` steps of the plant under ``attack``.
-
-    ``x_0`` is the prior mean (the fixed point, [DEF] docs/scenarios.md) unless
-    ``random_initial`` draws it from the prior. Process and measurement noise come from
-    ``plant_generator`` (one ``[B, 4]`` standard-normal draw each per step, scaled by the
-    Cholesky factor of ``Q``/``R``, so two plants that differ only in ``R`` share their
-    noise draws); the attack flags come from ``attack_generator`` alone, so the plant
-    realisation does not depend on the attack and vice versa.
-    """
-    if attack.dim != model.dim_y:
-        raise ValueError(f"attack.gamma_bar must have {model.dim_y} entries; got {attack.dim}")
-    if not isinstance(attack, SensorBias):
-        attack = SensorBias(attack.gamma_bar, attack.tau, attack.p_l)
-    traj = simulate(
-        model,
-        num_runs,
-        num_steps,
-        generators={"plant": plant_generator, "attack": attack_generator},
-        attack=attack,
-        random_initial=random_initial,
-    )
-    gammas = traj.info["attack_values"]
-    return AttackedTrajectories(
-        traj.x, traj.y_true, traj.y_recv, traj.flags, gammas, traj.info["x0"]
-    )
 
 
 # ---------------------------------------------------------------------------- scenarios

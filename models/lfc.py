@@ -40,6 +40,7 @@ from torch import Tensor, nn
 
 import difffilter
 from difffilter._checks import check_finite_number
+from difffilter.control import zoh_discretize
 from difffilter.kalman import KalmanFilter
 from difffilter.loop import LoopResult, ReplayedNoise, closed_loop
 from difffilter.models.registry import Scenario, register
@@ -53,8 +54,6 @@ __all__ = [
     "STATE_NAMES",
     "LFCParameters",
     "continuous_model",
-    "zoh_discretize",
-    "controllability_rank",
     "LFCPlant",
     "SecureController",
     "LFCScenario",
@@ -136,41 +135,6 @@ def continuous_model(params: LFCParameters | None = None, *, dtype=torch.float64
             if j != i:  # A_ij of eq. (41): the other area's frequency drives the tie line
                 A[o + 3, AREA_DIM * j] = -two_pi_t
     return A, B, F
-
-
-def zoh_discretize(A: Tensor, B: Tensor, dt: float) -> tuple[Tensor, Tensor]:
-    """Exact zero-order-hold discretisation of ``ẋ = A x + B u`` over ``dt``.
-
-    ``exp([[A, B], [0, 0]]·dt) = [[A_d, B_d], [0, I]]`` with ``A_d = e^{A dt}`` and
-    ``B_d = ∫₀^dt e^{Aα} dα B``. Shapes: ``A [n, n]``, ``B [n, m]`` → ``(A_d [n, n], B_d [n, m])``.
-    """
-    if not (isinstance(dt, (int, float)) and dt > 0 and math.isfinite(dt)):
-        raise ValueError(f"dt must be a positive finite number of seconds; got {dt!r}")
-    if A.dim() != 2 or A.shape[0] != A.shape[1]:
-        raise ValueError(f"A must be square [n, n]; got {tuple(A.shape)}")
-    if B.dim() != 2 or B.shape[0] != A.shape[0]:
-        raise ValueError(f"B must have shape [{A.shape[0]}, m]; got {tuple(B.shape)}")
-    n, m = B.shape
-    block = torch.zeros(n + m, n + m, dtype=A.dtype, device=A.device)
-    block[:n, :n] = A
-    block[:n, n:] = B
-    expm = torch.linalg.matrix_exp(block * dt)
-    return expm[:n, :n], expm[:n, n:]
-
-
-def controllability_rank(A: Tensor, B: Tensor, tol: float | None = None) -> int:
-    """Rank of ``[B, AB, …, Aⁿ⁻¹B]`` (9 for the two-area LFC: the tie-line sum is conserved)."""
-    blocks, M = [], B
-    for _ in range(A.shape[0]):
-        blocks.append(M)
-        M = A @ M
-    ctrb = torch.cat(blocks, dim=1)
-    # Columns are scaled to unit norm first: A's entries span four orders of magnitude.
-    ctrb = ctrb / ctrb.norm(dim=0, keepdim=True).clamp_min(1e-300)
-    rank = (
-        torch.linalg.matrix_rank(ctrb) if tol is None else torch.linalg.matrix_rank(ctrb, atol=tol)
-    )
-    return int(rank.item())
 
 
 class LFCPlant(nn.Module):
@@ -458,7 +422,7 @@ def random_attacks(
 
 def lqr_gain(plant: LFCPlant) -> Tensor:
     """The LQR gain ``K₁ [2, 10]`` of the plant (the reduced CARE, [DEF] ``Q = I, R = I``)."""
-    from .control import lqr
+    from difffilter.control import lqr
 
     K1, _ = lqr(plant.A.double(), plant.B.double())
     return K1.to(plant.dtype)

@@ -38,10 +38,10 @@ from functools import partial
 import torch
 from torch import Tensor
 
+from difffilter.control import luenberger_gain
 from difffilter.estimator import Detection, EstimatorOutput, Generators
 from difffilter.kalman import KalmanFilter
 from difffilter.loop import LoopResult, Trajectories
-from difffilter.models.control import luenberger_gain
 from difffilter.models.estimators import SkipEstimator, SuiteContext, register
 from difffilter.models.learned_estimator import NeuralCompensation, OnlineLearning, Residual
 from difffilter.models.lfc import STATE_DIM, STATE_NAMES, LFCPlant, lfc_loop, lqr_gain
@@ -124,7 +124,7 @@ def lfc_estimator(
     standardize: bool = False,
 ):
     """An LFC estimator: the Kalman observer (or the Luenberger one of gain ``luenberger``,
-    a :data:`~difffilter.models.control.LUENBERGER_DESIGNS` name), alone or with
+    a :data:`~difffilter.control.LUENBERGER_DESIGNS` name), alone or with
     ``network`` learning online by ``rule`` from per-run ``init_scale·U[0, 1]`` weights
     (or the network's own) with the ``residual`` history of eq. (9) (raw residuals, as
     the paper's network reads them, unless ``standardize``)."""

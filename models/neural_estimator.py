@@ -7,7 +7,7 @@ residuals to the current attack estimate::
     δⁱ_k = [M̂ⁱ_{k−1}, …, M̂ⁱ_{k−a}, eⁱ_{k−ℓ}, …, eⁱ_{k−ℓ−b+1}]                   (9)
 
 with ``Wⁱ [d, h]``, ``Vⁱ [h, d(a+b)]`` and no biases (as in the paper). ``ℓ`` (the residual
-lag) is the wrapper's business (:mod:`difffilter.models.learned_estimator`): the paper
+lag) is the wrapper's business (:mod:`difffilter.fdi.neural`): the paper
 uses ``ℓ = 1``. Each area also has an optional detection head, a logistic read-out of the
 squared hidden units, ``pⁱ_k = sigmoid(cⁱ + Pⁱ σ(Vⁱ δⁱ_k)²)``, the "attack probability";
 only gradient training fits it (the EKF of eqs 10–14 trains ``ζⁱ = [Wⁱ, Vⁱ]`` alone). The
@@ -32,7 +32,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-__all__ = ["AreaNetwork", "NeuralFDIEstimator", "EstimatorCard", "build_delta"]
+__all__ = ["AreaNetwork", "NeuralFDIEstimator", "EstimatorCard"]
 
 
 def _check_int(value, name, minimum=1):
@@ -85,23 +85,6 @@ class AreaNetwork(nn.Module):
         d_w = (eye[None, :, :, None] * h[:, None, None, :]).reshape(N, m, m * hid)
         d_v = ((W * (1.0 - h * h)[:, None, :])[..., None] * x[:, None, None, :]).reshape(N, m, -1)
         return out, torch.cat([d_w, d_v], dim=-1)
-
-
-def build_delta(attack_hist: Tensor, resid_hist: Tensor, num_areas: int) -> Tensor:
-    """Per-area network inputs ``δ [..., J, a·d + b·r]`` from the histories.
-
-    ``attack_hist [..., a, J·d]`` holds ``M̂_{k−1} … M̂_{k−a}`` (most recent first),
-    ``resid_hist [..., b, J·r]`` the residuals, most recent first. Area ``i`` takes its own
-    channels: ``δⁱ = [M̂ⁱ_{k−1}, …, M̂ⁱ_{k−a}, eⁱ_…]`` as in eq. (9).
-    """
-    J = num_areas
-
-    def per_area(hist: Tensor) -> Tensor:  # [..., n, J·d] → [..., J, n·d]
-        lead, n, width = hist.shape[:-2], hist.shape[-2], hist.shape[-1]
-        split = hist.reshape(lead + (n, J, width // J)).transpose(-3, -2)
-        return split.reshape(lead + (J, n * (width // J)))
-
-    return torch.cat([per_area(attack_hist), per_area(resid_hist)], dim=-1)
 
 
 class NeuralFDIEstimator(nn.Module):

@@ -490,11 +490,11 @@ class TrackingScenario(Scenario):
         """Eq. (7): zeros for the sensors without access, or their last received value."""
         if self.holding == "zero_input":
             return torch.where(mask, y_all, torch.zeros_like(y_all))
-        held, out = torch.zeros_like(y_all[:, 0]), []
-        for t in range(y_all.shape[1]):
-            held = torch.where(mask[:, t], y_all[:, t], held)
-            out.append(held)
-        return torch.stack(out, 1)
+        # the step each entry last arrived at (−1 before its first packet), by a running max
+        steps = torch.arange(y_all.shape[1], device=mask.device)[None, :, None]
+        last = torch.where(mask, steps, -1).cummax(dim=1).values
+        held = torch.gather(y_all, 1, last.clamp_min(0))
+        return torch.where(last >= 0, held, torch.zeros_like(y_all))
 
     def paper_numbers(self) -> dict:
         table1 = {

@@ -7,12 +7,13 @@ import math
 
 import pytest
 import torch
+from attacked import simulate_attacked
 
 import difffilter as df
 from difffilter import fdi
 from difffilter.fdi.fused import FusedModifiedPF
 from difffilter.models.attacks import BiasAttack
-from difffilter.models.four_tank import FourTankModel, simulate_attacked
+from difffilter.models.four_tank import FourTankModel
 from difffilter.noise import UniformBox
 from difffilter.particle import ModelLikelihood, particle_filter, particle_init
 

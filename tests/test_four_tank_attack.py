@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from attacked import simulate_attacked
 
 from difffilter import fdi
 from difffilter.models import registry
@@ -15,7 +16,6 @@ from difffilter.models.four_tank import (
     R_NOMINAL,
     FourTankModel,
     FourTankScenario,
-    simulate_attacked,
 )
 
 
@@ -46,16 +46,18 @@ def test_attack_flags_are_bernoulli_reproducible_and_nested():
     assert bool((f1 <= f_hi).all())  # same uniforms: a larger p_l only adds attacks
 
 
-def test_attack_apply_adds_l_gamma_exactly_where_flagged():
+def test_the_sensor_channel_adds_l_gamma_exactly_where_flagged():
+    from difffilter.attack import Channel, inject
+
     attack = BiasAttack((0.5, -0.25), tau=0.8, p_l=0.5)
     y = torch.randn(3, 10, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
-    real = attack.apply(y, torch.Generator().manual_seed(1))
-    diff = real.y_recv - y
-    assert torch.allclose(diff, real.flags.unsqueeze(-1) * real.gammas)
-    assert torch.equal(diff[~real.flags], torch.zeros_like(diff[~real.flags]))
-    assert bool(real.flags.any()) and not bool(real.flags.all())
-    given = torch.zeros(3, 10, dtype=torch.bool)
-    assert torch.equal(attack.apply(y, flags=given).y_recv, y)
+    values, flags = attack.init((3,), 10, 2, torch.Generator().manual_seed(1), dtype=y.dtype)
+    received, change = inject(Channel.SENSOR, y, values, flags)
+    diff = received - y
+    assert torch.allclose(diff, flags.unsqueeze(-1) * values) and torch.allclose(diff, change)
+    assert torch.equal(diff[~flags], torch.zeros_like(diff[~flags]))
+    assert bool(flags.any()) and not bool(flags.all()) and attack.channel is Channel.SENSOR
+    assert torch.equal(values[0], attack.values(10, dtype=y.dtype))
 
 
 @pytest.mark.parametrize(
@@ -75,10 +77,8 @@ def test_attack_rejects_bad_parameters(kwargs, match):
 
 def test_attack_rejects_bad_shapes():
     attack = BiasAttack((1.0, 1.0))
-    with pytest.raises(ValueError, match="y_true"):
-        attack.apply(torch.zeros(5, 3))
-    with pytest.raises(ValueError, match="flags"):
-        attack.apply(torch.zeros(2, 5, 2), flags=torch.zeros(2, 4, dtype=torch.bool))
+    with pytest.raises(ValueError, match="gamma_bar has 2 entries"):
+        attack.init((5,), 4, 3, dtype=torch.float64)
     with pytest.raises(ValueError, match="num_steps"):
         attack.values(0)
 

@@ -8,13 +8,13 @@ from pathlib import Path
 import jsonschema
 import pytest
 import torch
+from attacked import simulate_attacked
 
 from difffilter import fdi, metrics
 from difffilter.eval.cli import main
 from difffilter.eval.scoring import METRICS
 from difffilter.eval.suite import run_suite
 from difffilter.models import registry
-from difffilter.models.four_tank import simulate_attacked
 from difffilter.particle import particle_init
 
 SCHEMA = json.loads((Path(__file__).parents[1] / "eval" / "metrics.schema.json").read_text())

@@ -10,13 +10,14 @@ import pytest
 import torch
 
 import difffilter as df
+from difffilter.fdi.neural import build_delta
 from difffilter.models.learned_estimator import (
     NeuralCompensation,
     feature_dim,
     neural_gaussian_filter,
     neural_particle_filter,
 )
-from difffilter.models.neural_estimator import NeuralFDIEstimator, build_delta
+from difffilter.models.neural_estimator import NeuralFDIEstimator
 from difffilter.particle import Predictive, particle_filter
 
 ROOT = Path(__file__).resolve().parents[1]

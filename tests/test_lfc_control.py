@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from difffilter.models.control import (
+from difffilter.control import (
     LUENBERGER_DESIGNS,
     care_residual,
     lqr,

@@ -8,6 +8,7 @@ import torch
 
 import difffilter
 from difffilter.estimator import Estimator, Generators
+from difffilter.fdi.neural import build_delta
 from difffilter.kalman import KalmanFilter
 from difffilter.models.learned_estimator import NeuralCompensation, OnlineLearning, Residual
 from difffilter.models.lfc import LFCPlant, lfc_loop, scenario_attack
@@ -15,7 +16,6 @@ from difffilter.models.lfc_estimators import LFCContext, lfc_estimator, paper_ne
 from difffilter.models.neural_estimator import (
     EstimatorCard,
     NeuralFDIEstimator,
-    build_delta,
     load_estimator_checkpoint,
     save_estimator_checkpoint,
 )

@@ -7,17 +7,16 @@ import math
 import pytest
 import torch
 
+from difffilter.control import controllability_rank, zoh_discretize
 from difffilter.models import registry
 from difffilter.models.lfc import (
     EXCLUDED_OMEGA,
     LFCParameters,
     LFCPlant,
     continuous_model,
-    controllability_rank,
     random_attacks,
     sawtooth_pulse_train,
     scenario_attack,
-    zoh_discretize,
 )
 
 

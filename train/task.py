@@ -201,7 +201,8 @@ class FilterEstimatorTask(pl.LightningModule):
         lr, weight_decay, pct_start, grad_clip: AdamW, its one-cycle schedule
             (``pct_start`` warm-up share; ``None``: a constant rate) stepped after every
             chunk, and the global gradient-norm clip (``None``: none).
-        tbptt_steps: chunk length of truncated backpropagation (``None``: whole sequences).
+        tbptt_steps: chunk length of truncated backpropagation through a closed loop
+            (``None``: whole sequences; open loops always run whole).
         ekf_lr, ekf_init_cov, ekf_init_noise, ekf_process_noise: ``η``, ``ρ(0)``, ``Υ(0)``
             and ``Q_ρ`` of the EKF trainer.
         attack_weight, bce_weight, state_weight, control_weight: loss weights (module
@@ -270,6 +271,7 @@ class FilterEstimatorTask(pl.LightningModule):
             else None
         )
         self.estimator = self._network()
+        self.estimator_object(training=False)  # what the wrapper refuses, refused now
         # the operating threshold on the score, chosen at every validation; saved with it
         self.register_buffer("alarm_threshold", torch.tensor(0.5, dtype=torch.float64))
         self._state_scale = torch.diagonal(self.system.initial.cov, dim1=-2, dim2=-1).mean()
@@ -377,16 +379,12 @@ class FilterEstimatorTask(pl.LightningModule):
         opt, sched = self.optimizers(), self.lr_schedulers()
         est = self.estimator_object(training=True)
         T = _horizon(self.scenario, batch)
-        chunk = self.hparams.tbptt_steps or T
+        chunk = (self.hparams.tbptt_steps or T) if self.scenario.closed_loop else T
         totals, norms, state = {}, [], None
         for start in range(0, T, chunk):  # truncated backpropagation through time
             steps = min(chunk, T - start)
-            if self.scenario.closed_loop:
-                out, truth, state = self.run(self.scenario, batch, est, seed, steps=steps,
-                                             state=state)  # fmt: skip
-                state = state.detach()
-            else:
-                out, truth, _ = self.run(self.scenario, batch, est, seed)
+            out, truth, state = self.run(self.scenario, batch, est, seed, steps=steps, state=state)
+            state = None if state is None else state.detach()
             losses = self._losses(out, truth)
             opt.zero_grad()
             self.manual_backward(losses["loss"])
@@ -593,7 +591,8 @@ def _channel(scenario) -> Channel:
 
 
 def _check_options(hp, sc, channel: Channel) -> float:
-    """The option combinations the task refuses, each with the reason; returns the FAR."""
+    """The option combinations the task refuses, each with the reason; returns the FAR.
+    (What the estimator itself refuses, :class:`NeuralCompensation` says on construction.)"""
     if hp.filter != "pf" and hp.filter not in GAUSSIAN_FILTERS:
         raise ValueError(
             f"filter must be 'pf' or one of {sorted(GAUSSIAN_FILTERS)}; got {hp.filter!r}"
@@ -602,19 +601,6 @@ def _check_options(hp, sc, channel: Channel) -> float:
         raise ValueError(f"resampler must be one of {sorted(RESAMPLERS)}; got {hp.resampler!r}")
     if hp.trainer not in ("grad", "ekf"):
         raise ValueError(f"trainer must be 'grad' or 'ekf'; got {hp.trainer!r}")
-    Residual(hp.residual)
-    if channel is Channel.ACTUATOR and hp.filter == "pf":
-        raise ValueError(
-            f"filter: {sc.name} has an actuator attack, which the learned estimator "
-            "compensates in the input of a Gaussian filter: use kf, ekf or ukf"
-        )
-    if channel is Channel.REPLACEMENT and (hp.filter != "pf" or hp.trainer != "grad"):
-        raise ValueError(
-            f"{sc.name} replaces measurements: the learned estimator weighs them with the "
-            "mixture likelihood of its attack probability, in the PF (filter: pf, trainer: grad)"
-        )
-    if "poa" in (hp.features or ()) and hp.filter != "pf":
-        raise ValueError("features: 'poa' needs particles (filter='pf')")
     if sc.closed_loop and hp.trainer == "ekf":
         raise ValueError(f"trainer: {sc.name} is a closed loop; the EKF trainer runs open loops")
     if hp.control_weight > 0 and not sc.closed_loop:
@@ -642,6 +628,4 @@ def _runs(batch: dict) -> int:
 
 
 def _horizon(scenario, batch: dict) -> int:
-    if scenario.closed_loop:
-        return batch["xi"].shape[1]
-    return batch["y_recv"].shape[1]
+    return batch["xi" if scenario.closed_loop else "y_recv"].shape[1]

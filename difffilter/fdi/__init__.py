@@ -18,7 +18,9 @@ Every estimator here takes ``(model, ys, us=None, *, mask=None, ...)`` and retur
   actuator-attack estimate, extended form, forgetting factor λ);
 * :mod:`~difffilter.fdi.mdpf` — the lidar-robot paper's local estimator, a particle filter
   whose particles each carry an adaptive Kalman filter (A1)–(A8);
-* :mod:`~difffilter.fdi.fusion` — covariance intersection and naive information fusion.
+* :mod:`~difffilter.fdi.fusion` — covariance intersection and naive information fusion;
+* :mod:`~difffilter.fdi.neural` — the LFC paper's learned attack compensation (a network of
+  eqs 8–9 around any filter, optionally learning online).
 """
 
 from .adaptive_kf import AdaptiveKalmanFilter, adaptive_kalman_filter, adaptive_kalman_step
@@ -58,6 +60,7 @@ from .modified_pf import (
     particle_filter_poa,
     reweight,
 )
+from .neural import NeuralCompensation, OnlineLearning, Residual
 from .poa import (
     AttackRateState,
     PoADetector,
@@ -79,6 +82,9 @@ __all__ = [
     "ModifiedParticleFilter",
     "PoAParticleFilter",
     "MixtureParticleFilter",
+    "NeuralCompensation",
+    "OnlineLearning",
+    "Residual",
     "ChiSquareDetector",
     "CusumDetector",
     "chi_square_quantile",

@@ -1,5 +1,9 @@
 """Controller and observer gains for linear plants: LQR (CARE) and Luenberger designs.
 
+The closed loop of :mod:`difffilter.loop` puts a controller after the estimator; these
+are the gains of the linear ones (the LFC secure controller ``U = −K₁(Z − M̂)``, the
+Luenberger observer :class:`~difffilter.observers.FixedGainFilter`).
+
 LQR (the paper's eqs 15–16): ``K₁ = R⁻¹BᵀP`` with ``PA + AᵀP + Q − PBR⁻¹BᵀP = 0``. The
 continuous algebraic Riccati equation (CARE) has a stabilising solution only for a
 stabilisable ``(A, B)``. The two-area LFC model is not: ``wᵀA = 0`` and ``wᵀB = 0`` for
@@ -21,6 +25,8 @@ choice (docs/scenarios.md, LFC pitfalls).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import scipy.linalg as sla
 import scipy.signal as ssig
@@ -28,6 +34,8 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "zoh_discretize",
+    "controllability_rank",
     "care_residual",
     "lqr",
     "uncontrollable_direction",
@@ -210,3 +218,38 @@ def luenberger_gain(
         raise ValueError(f"design must be one of {LUENBERGER_DESIGNS}; got {design!r}")
     Lp = _np(Ad) - Phi
     return torch.as_tensor(np.linalg.solve(_np(Ad), Lp), dtype=Ad.dtype)
+
+
+def zoh_discretize(A: Tensor, B: Tensor, dt: float) -> tuple[Tensor, Tensor]:
+    """Exact zero-order-hold discretisation of ``ẋ = A x + B u`` over ``dt`` (Van Loan).
+
+    ``exp([[A, B], [0, 0]]·dt) = [[A_d, B_d], [0, I]]`` with ``A_d = e^{A dt}`` and
+    ``B_d = ∫₀^dt e^{Aα} dα B``. Shapes: ``A [n, n]``, ``B [n, m]`` → ``(A_d [n, n], B_d [n, m])``.
+    """
+    if not (isinstance(dt, (int, float)) and dt > 0 and math.isfinite(dt)):
+        raise ValueError(f"dt must be a positive finite number of seconds; got {dt!r}")
+    if A.dim() != 2 or A.shape[0] != A.shape[1]:
+        raise ValueError(f"A must be square [n, n]; got {tuple(A.shape)}")
+    if B.dim() != 2 or B.shape[0] != A.shape[0]:
+        raise ValueError(f"B must have shape [{A.shape[0]}, m]; got {tuple(B.shape)}")
+    n, m = B.shape
+    block = torch.zeros(n + m, n + m, dtype=A.dtype, device=A.device)
+    block[:n, :n] = A
+    block[:n, n:] = B
+    expm = torch.linalg.matrix_exp(block * dt)
+    return expm[:n, :n], expm[:n, n:]
+
+
+def controllability_rank(A: Tensor, B: Tensor, tol: float | None = None) -> int:
+    """Rank of ``[B, AB, …, Aⁿ⁻¹B]`` (9 for the two-area LFC: the tie-line sum is conserved)."""
+    blocks, M = [], B
+    for _ in range(A.shape[0]):
+        blocks.append(M)
+        M = A @ M
+    ctrb = torch.cat(blocks, dim=1)
+    # Columns are scaled to unit norm first: A's entries span four orders of magnitude.
+    ctrb = ctrb / ctrb.norm(dim=0, keepdim=True).clamp_min(1e-300)
+    rank = (
+        torch.linalg.matrix_rank(ctrb) if tol is None else torch.linalg.matrix_rank(ctrb, atol=tol)
+    )
+    return int(rank.item())

@@ -1,0 +1,517 @@
+"""The learned attack compensation of the LFC paper around any filter: one wrapper.
+
+Sargolzaei et al. (TII 2020, eqs 5–9): an observer runs on the measurement with the
+estimated attack removed, and a network estimates the attack from the observer's
+residuals. :class:`NeuralCompensation` wraps a filter of the library (a Kalman, extended
+or unscented Kalman filter, the fixed-gain Luenberger observer of the paper's baseline,
+or a particle filter) with any network of the eq. (8)–(9) interface
+(:class:`CompensationNetwork`; the project's is
+:class:`difffilter.models.neural_estimator.NeuralFDIEstimator`, ``J`` areas of ``d``
+channels). One step ``k`` with the inner filter's prediction::
+
+    ν_k = ỹ_k − E[h(x_k) | ỹ_{1:k−1}],   S_k = Cov(ν_k)        the inner filter's innovation
+    r_k = ν_k (or ν_k / √diag S_k, standardise=True; 0 where unreceived)
+    δ_k = [â_{k−1}, …, â_{k−a}, r-history, f_k]                 eq. (9), per area
+    â_k, logit_k = network(δ_k)                                 eq. (8) and its detection head
+    update with ỹ_k − â_k                                       the compensated measurement
+
+The residual history (``residual``, :class:`Residual`):
+
+* ``INNOVATION``: ``r_k, r_{k−1}, …, r_{k−b+1}`` of the innovations (ours; eq. 9 with lag 0);
+* ``PREDICTED``: the same of ``ν_k − â_{k−1}`` (the residual if the attack kept its last
+  estimate: the LFC paper's network with lag 0, ``kf_nn_grad``);
+* ``LAGGED``: ``e_{k−1} … e_{k−b}``, ``e = ν − â`` after compensation (eq. 9 as printed,
+  lag 1: the paper's online-learned network).
+
+Online learning (``learning``, :class:`OnlineLearning`): before estimating, the weights of
+each run and area take one step of a rule of :mod:`difffilter.param_ekf` (the EKF over the
+weights of eqs 10–14, or plain gradient steps) towards ``ν_k`` (the attack plus noise the
+observer sees, eq. 5), and ``â_k`` is the re-evaluated (``posterior``) or the prior
+estimate. The learners' state lives in the carry, one weight vector per run.
+
+Channels (:class:`~difffilter.attack.Channel`): a sensor attack estimate is subtracted
+from the measurement; an actuator attack estimate (``â`` in the input's channels, from
+the ``dy`` residuals) is added to the input of the Gaussian filters' prediction; against
+a replacement (the tracking deception, ``ỹ = ξ ~ p_ξ``) the particle filter weighs with
+the mixture of eq. (15) of the RRP paper with the network's probability ``p_k`` in place
+of the fixed rate, ``log[(1 − p_k) p_v(ỹ_k − h(x^i)) + p_k p_ξ(ỹ_k)]``, and reports ``â_k =
+p_k ν_k``.
+
+``f_k`` holds the optional ``features`` (:data:`FEATURES`, one area only), in this order::
+
+    "mask"            m_k ∈ {0, 1}^dy, the received entries
+    "log_likelihood"  asinh(−2 ℓ_k / max(|m_k|, 1)), ℓ_k = log p̂(ỹ_k | ỹ_{1:k−1}) of the
+                      uncompensated measurement (about 1 per entry without attack)
+    "poa"             β_k = Σ_{i: ‖z^i‖ > η} w^i_{k−1},  z^i = ỹ_k − h(x^i_k): the probability
+                      of attack of the modified-PF paper (eq. 14); particle filter only
+
+Detection: ``p_k = sigmoid(logit_k)`` (the largest over areas), alarm where ``p_k >
+threshold``; a network without a detection head (trained by the EKF over its weights,
+which fits the attack estimate alone) scores ``s_k = Σ_c (â_{k,c} / √S_{k,cc})²``. Every
+operation is differentiable, so a loss on ``â``, ``logit`` or the state estimates
+back-propagates through the filter (through the particle weights and, with a
+differentiable resampler, through resampling): how :mod:`difffilter.train.task` trains
+the network.
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+from typing import Any, NamedTuple, Protocol
+
+import torch
+from torch import Tensor, nn
+
+from ..attack import Channel
+from ..estimator import Estimator, Generators
+from ..kalman import GaussianFilter
+from ..param_ekf import EKFRule, GradientRule, LearnerState, WeightTemplate
+from ..particle import ModelLikelihood, ParticleFilter, ParticleState
+from ..results import StepOutput
+from .modified_pf import AttackCompensatedLikelihood
+from .poa import probability_of_attack
+
+__all__ = [
+    "FEATURES",
+    "CompensationNetwork",
+    "Residual",
+    "OnlineLearning",
+    "NeuralState",
+    "NeuralCarry",
+    "NeuralCompensation",
+    "build_delta",
+    "feature_dim",
+]
+
+#: The optional per-step inputs (module docstring), in the order they enter ``δ_k``.
+FEATURES = ("mask", "log_likelihood", "poa")
+
+
+class CompensationNetwork(Protocol):
+    """What :class:`NeuralCompensation` needs of its network: eq. (8) per area.
+
+    Sizes: ``num_areas`` ``J``, ``area_dim`` ``d`` (attack channels per area),
+    ``resid_dim`` (residual channels per area), ``a``, ``b`` (estimates and residuals in
+    ``δ``), ``extra_inputs`` (the features' width); ``detection_head`` (whether it returns
+    a logit); ``V`` (its first-layer weights: their dtype is the network's).
+    ``__call__(δ [..., J, in], W=None, V=None) → (â [..., J, d], logit [..., J] or
+    None)`` with optional per-run weights; ``area_template()`` one area as an
+    ``nn.Module`` of parameters ``W, V`` (the online learners' template) and
+    ``area_params() → {"W": [J, d, h], "V": [J, h, in]}``.
+    """
+
+    num_areas: int
+    area_dim: int
+    resid_dim: int
+    a: int
+    b: int
+    extra_inputs: int
+    detection_head: bool
+    V: Tensor
+
+    def __call__(self, delta: Tensor, W: Tensor | None = None, V: Tensor | None = None): ...
+
+    def area_template(self) -> nn.Module: ...
+
+    def area_params(self) -> dict[str, Tensor]: ...
+
+
+def build_delta(attack_hist: Tensor, resid_hist: Tensor, num_areas: int) -> Tensor:
+    """Per-area network inputs ``δ [..., J, a·d + b·r]`` from the histories (eq. 9).
+
+    ``attack_hist [..., a, J·d]`` holds ``M̂_{k−1} … M̂_{k−a}`` (most recent first),
+    ``resid_hist [..., b, J·r]`` the residuals, most recent first. Area ``i`` takes its own
+    channels: ``δⁱ = [M̂ⁱ_{k−1}, …, M̂ⁱ_{k−a}, eⁱ_…]``.
+    """
+    J = num_areas
+
+    def per_area(hist: Tensor) -> Tensor:  # [..., n, J·d] → [..., J, n·d]
+        lead, n, width = hist.shape[:-2], hist.shape[-2], hist.shape[-1]
+        split = hist.reshape(lead + (n, J, width // J)).transpose(-3, -2)
+        return split.reshape(lead + (J, n * (width // J)))
+
+    return torch.cat([per_area(attack_hist), per_area(resid_hist)], dim=-1)
+
+
+class Residual(str, Enum):
+    """Which residuals the network reads (module docstring)."""
+
+    INNOVATION = "innovation"
+    PREDICTED = "predicted"
+    LAGGED = "lagged"
+
+
+class OnlineLearning(NamedTuple):
+    """Online learning of the weights, one learner per run and area: ``rule`` an
+    :class:`~difffilter.param_ekf.EKFRule` or :class:`~difffilter.param_ekf.GradientRule`;
+    ``posterior``: estimate with the weights after this step's update (Algorithm 1's final
+    "estimate the FDI attack from (8)") or before it; ``init_scale``: each run starts from
+    its own ``s·U[0, 1]`` weights (Algorithm 1, drawn from the carry's init generator) or,
+    ``None``, from the network's."""
+
+    rule: EKFRule | GradientRule
+    posterior: bool = True
+    init_scale: float | None = None
+
+
+class NeuralState(NamedTuple):
+    """The network's part of a carry: ``attack_hist [..., a, J·d]`` (``â_{k−1} … â_{k−a}``),
+    ``resid_hist [..., b, J·r]`` (most recent first) and the online ``learner``
+    (:class:`~difffilter.param_ekf.LearnerState` of ``[... · J]`` learners, or ``None``)."""
+
+    attack_hist: Tensor
+    resid_hist: Tensor
+    learner: LearnerState | None = None
+
+
+class NeuralCarry(NamedTuple):
+    """Carry of a :class:`NeuralCompensation` around a Gaussian filter: the filter's carry
+    ``inner``, the network's :class:`NeuralState` and the model."""
+
+    inner: Any
+    net: NeuralState
+    model: Any
+
+
+def feature_dim(features, dim_y: int) -> int:
+    """Width of ``f_k`` for ``features`` (``ValueError`` naming an unknown or repeated one)."""
+    features = tuple(features)
+    unknown = [f for f in features if f not in FEATURES]
+    if unknown or len(set(features)) != len(features):
+        raise ValueError(f"features must be distinct names of {FEATURES}; got {list(features)}")
+    return sum(dim_y if f == "mask" else 1 for f in features)
+
+
+class _Core:
+    """The network's step (eqs 8–9) on one innovation, shared by both adapters."""
+
+    def __init__(self, network, channel, residual, standardize, features, poa_eta, learning,
+                 record_inputs):  # fmt: skip
+        self.network, self.channel, self.residual = network, channel, residual
+        self.standardize, self.features, self.poa_eta = standardize, features, poa_eta
+        self.learning, self.record_inputs = learning, record_inputs
+        self.template = None if learning is None else WeightTemplate(network.area_template())
+
+    def init(self, batch: torch.Size, dtype, device, generator) -> NeuralState:
+        net = self.network
+        J = net.num_areas
+        attack_hist = torch.zeros(batch + (net.a, J * net.area_dim), dtype=dtype, device=device)
+        resid_hist = torch.zeros(batch + (net.b, J * net.resid_dim), dtype=dtype, device=device)
+        learner = None
+        if self.learning is not None:
+            areas = batch + (J,)
+            start = {k: v.detach().to(dtype) for k, v in net.area_params().items()}
+            if self.learning.init_scale is not None:  # Algorithm 1: every run its own draw
+                s = self.learning.init_scale
+                start = {
+                    k: s * torch.rand(batch + v.shape, generator=generator, dtype=dtype)
+                    for k, v in start.items()
+                }
+            theta = self.template.flatten(start, areas).to(device)
+            learner = self.learning.rule.init(theta)
+        return NeuralState(attack_hist, resid_hist, learner)
+
+    def _features(self, e, mask, log_likelihood, poa) -> list[Tensor]:
+        received = torch.ones_like(e) if mask is None else mask.to(e.dtype)
+        given = {"log_likelihood": log_likelihood, "poa": poa}
+        out = []
+        for name in self.features:
+            if name == "mask":
+                out.append(received)
+                continue
+            value = given[name]
+            if value is None:
+                raise ValueError(f"feature {name!r} needs the filter's {name} at every step")
+            value = value.to(e.dtype)
+            if name == "log_likelihood":
+                value = torch.asinh(-2.0 * value / received.sum(-1).clamp_min(1.0))
+            out.append(value.unsqueeze(-1))
+        return out
+
+    def step(self, state: NeuralState, innovation, innovation_cov, mask, log_likelihood=None,
+             poa=None):  # fmt: skip
+        """``(state, â [..., J·d], logit [..., J] or None, scale [..., dy], δ [..., J, in])``."""
+        net, J = self.network, self.network.num_areas
+        if innovation.shape[-1] != J * net.resid_dim:
+            raise ValueError(
+                f"network.resid_dim is {net.resid_dim} (× {J} areas) but the measurement has "
+                f"dy = {innovation.shape[-1]}"
+            )
+        scale = None
+        e = innovation
+        if innovation_cov is not None:
+            scale = torch.diagonal(innovation_cov, dim1=-2, dim2=-1).clamp_min(1e-30).sqrt()
+        if self.standardize:
+            e = innovation / scale
+        if mask is not None:
+            e = e * mask.to(e.dtype)
+        if self.residual is Residual.PREDICTED:
+            e = e - state.attack_hist[..., 0, :]
+        if self.residual is Residual.LAGGED:
+            resid_in = state.resid_hist
+        else:
+            resid_in = torch.cat([e.unsqueeze(-2), state.resid_hist[..., :-1, :]], -2)
+        delta = build_delta(state.attack_hist, resid_in, J)  # [..., J, in]
+        if self.features:
+            extra = self._features(e, mask, log_likelihood, poa)
+            batch = e.shape[:-1]
+            delta = torch.cat([delta, *(f.expand(*batch, -1).unsqueeze(-2) for f in extra)], -1)
+        learner = state.learner
+        if learner is None:
+            attack, logit = net(delta.to(net.V.dtype))
+            attack = attack.to(e.dtype)
+        else:
+            attack, logit, learner, prior = self._learn(learner, delta, innovation)
+        attack = attack.flatten(-2)  # [..., J·d]
+        if self.residual is Residual.LAGGED:
+            entry = innovation - (attack if learner is None else prior)
+        else:
+            entry = e
+        sensor = self.channel is not Channel.ACTUATOR
+        if mask is not None and sensor:
+            attack = attack * mask.to(attack.dtype)
+        if logit is not None:
+            logit = logit.to(e.dtype)
+        if self.channel is Channel.REPLACEMENT:  # the expected injected ξ − y, p_k ν_k
+            attack = torch.sigmoid(logit) * innovation
+        hist = NeuralState(
+            torch.cat([attack.unsqueeze(-2), state.attack_hist[..., :-1, :]], -2),
+            torch.cat([entry.unsqueeze(-2), state.resid_hist[..., :-1, :]], -2),
+            learner,
+        )
+        return hist, attack, logit, scale, delta
+
+    def _learn(self, learner: LearnerState, delta: Tensor, innovation: Tensor):
+        """One step of every run's learner towards ``ν`` (eq. 5's ``e = z − ẑ``), then the
+        estimate: ``(â [..., J, d], logit, learner, prior â [..., J·d])``."""
+        net, J, d = self.network, self.network.num_areas, self.network.area_dim
+        lead = delta.shape[:-2]
+        x = delta.reshape(-1, delta.shape[-1])
+        pred, H = self.template.jacobian(learner.theta, x)
+        target = innovation.reshape(-1, d).to(pred.dtype)
+        learner = self.learning.rule.step(learner, H, target - pred)
+        prior = pred.reshape(lead + (J * d,))
+        if self.learning.posterior:
+            attack = self.template.forward(learner.theta, x).reshape(lead + (J, d))
+        else:
+            attack = pred.reshape(lead + (J, d))
+        logit = None
+        if net.detection_head:
+            params = {k: v.reshape(lead + (J,) + v.shape[1:])
+                      for k, v in self.template.unflatten(learner.theta).items()}  # fmt: skip
+            _, logit = net(delta, W=params["W"], V=params["V"])
+        return attack, logit, learner, prior
+
+    def detect(self, attack, logit, scale, innovation) -> tuple[Tensor, dict]:
+        """``(score [...], extras)``: ``sigmoid`` of the largest area logit, or without a
+        head the squared standardised estimate (module docstring)."""
+        if logit is not None:
+            top = logit.amax(-1)
+            extras = {"attack_logit": top}
+            if logit.shape[-1] > 1:  # one per area (the training loss reads them)
+                extras["area_logits"] = logit
+            return torch.sigmoid(top), extras
+        sensor = self.channel is not Channel.ACTUATOR
+        s = attack / scale if (sensor and scale is not None) else attack
+        return s.square().sum(-1), {}
+
+
+class _NeuralLikelihood:
+    """The network inside the particle filter: a :class:`~difffilter.particle.StepLikelihood`
+    that estimates from the step's predictive view and weighs with the compensated
+    measurement (or, against a replacement, with the learned mixture)."""
+
+    def __init__(self, core: _Core, deception):
+        self.core, self.deception = core, deception
+
+    def init(self, model, batch_shape, dtype, device):
+        return self.core.init(batch_shape, dtype, device, None)
+
+    def weigh(self, state, model, y, particles, k, mask, predictive):
+        core, kw, clean = self.core, {}, None
+        if "log_likelihood" in core.features or core.channel is Channel.REPLACEMENT:
+            clean = ModelLikelihood()(model, y, particles, k, mask)
+        if "log_likelihood" in core.features:
+            kw["log_likelihood"] = torch.logsumexp(predictive.log_weights + clean, -1)
+        if "poa" in core.features:
+            z = model.measurement_residual(y.unsqueeze(-2), model.observe(particles, k))
+            if mask is not None:
+                z = z * mask.unsqueeze(-2).to(z.dtype)
+            kw["poa"] = probability_of_attack(z, core.poa_eta, predictive.log_weights)
+        nu, S = predictive.innovation, predictive.innovation_cov
+        state, attack, logit, scale, delta = core.step(state, nu, S, mask, **kw)
+        record = {"attack": attack, "scale": scale}
+        if logit is not None:
+            record["logit"] = logit
+        if core.record_inputs:
+            record["network_inputs"] = delta[..., 0, :].detach()
+        if core.channel is Channel.REPLACEMENT:  # eq. (15) with the learned p_k for η̄
+            top = logit.amax(-1, keepdim=True)
+            log_p = torch.nn.functional.logsigmoid(top)
+            log_q = torch.nn.functional.logsigmoid(-top)
+            replaced = self.deception(model, y, particles, k, mask)
+            return state, torch.logaddexp(clean + log_q, replaced + log_p), record
+        always = torch.ones(attack.shape[:-1], dtype=torch.bool, device=attack.device)
+        return (
+            state,
+            AttackCompensatedLikelihood(always, attack)(model, y, particles, k, mask),
+            record,
+        )
+
+
+class NeuralCompensation(Estimator):
+    """The neural FDI estimator around a filter of the library (module docstring).
+
+    Args:
+        network: a :class:`CompensationNetwork` (e.g.
+            :class:`~difffilter.models.neural_estimator.NeuralFDIEstimator`: ``J`` areas of
+            ``area_dim`` channels; ``extra_inputs = feature_dim(features, dy)``).
+        inner: the filter: a :class:`~difffilter.kalman.GaussianFilter` (KF, EKF, UKF,
+            :class:`~difffilter.observers.FixedGainFilter`) or a
+            :class:`~difffilter.ParticleFilter` (its resampler, proposal and ESS threshold
+            are used; its likelihood is the network's).
+        channel: :class:`~difffilter.attack.Channel` of the attack it compensates.
+        residual: :class:`Residual`; standardize: divide the innovations by ``√diag S``.
+        features: names of :data:`FEATURES` (one area only).
+        poa_eta: ``η`` of the ``"poa"`` feature.
+        learning: :class:`OnlineLearning` or ``None`` (frozen weights).
+        threshold: alarm threshold of the score.
+        deception: ``log p_ξ`` (:class:`~difffilter.fdi.ReplacementDeception`) for the
+            replacement channel.
+        record_inputs: report every step's ``δ_k [..., in]`` (``extras["network_inputs"]``;
+            one area): the samples the EKF over the weights is trained on.
+
+    Step output: the filter's moments after compensation, ``attack`` ``â_k``, ``score``,
+    ``alarm``, ``threshold`` and ``extras`` (``"attack_logit"`` with a head, the recorded
+    inputs). Carry: :class:`NeuralCarry` (Gaussian inner filter) or the particle filter's
+    :class:`~difffilter.ParticleState` with the :class:`NeuralState` in ``aux``.
+    """
+
+    def __init__(
+        self,
+        network: CompensationNetwork,
+        inner: GaussianFilter | ParticleFilter,
+        *,
+        channel: Channel | str = Channel.SENSOR,
+        residual: Residual | str = Residual.INNOVATION,
+        standardize: bool = True,
+        features=(),
+        poa_eta: float | None = None,
+        learning: OnlineLearning | None = None,
+        threshold: float = 0.5,
+        deception=None,
+        record_inputs: bool = False,
+    ):
+        channel, residual, features = Channel(channel), Residual(residual), tuple(features)
+        _check_options(network, inner, channel, features, poa_eta, learning, deception)
+        self.network, self.inner, self.channel = network, inner, channel
+        self.threshold = float(threshold)
+        self.core = _Core(network, channel, residual, bool(standardize), features, poa_eta,
+                          learning, record_inputs)  # fmt: skip
+        self.particles = isinstance(inner, ParticleFilter)
+        if self.particles:
+            self.pf = ParticleFilter(
+                inner.num_particles, resampler=inner.resampler, proposal=inner.proposal,
+                likelihood=_NeuralLikelihood(self.core, deception),
+                ess_threshold=inner.ess_threshold, innovations=True,
+            )  # fmt: skip
+            self.carry_type = ParticleState
+        else:
+            self.carry_type = NeuralCarry
+
+    def batch_of(self, carry):
+        return self.pf.batch_of(carry) if self.particles else self.inner.batch_of(carry.inner)
+
+    def _init(self, model, batch_shape, generators):
+        if self.particles:
+            carry = self.pf._init(model, batch_shape, generators)
+            net = self.core.init(batch_shape, carry.particles.dtype, carry.particles.device,
+                                 generators.init)  # fmt: skip
+            return carry._replace(aux=net)
+        inner = self.inner._init(model, batch_shape, generators)
+        net = self.core.init(batch_shape, inner.mean.dtype, inner.mean.device, generators.init)
+        return NeuralCarry(inner, net, model)
+
+    def attach(self, state: ParticleState, model, generators: Generators) -> ParticleState:
+        """Particles drawn elsewhere as this estimator's carry (particle filter only)."""
+        carry = self.pf.attach(state._replace(aux=None), model, generators)
+        lead = state.log_weights.shape[:-1]
+        net = self.core.init(lead, state.particles.dtype, state.particles.device, generators.init)
+        return carry._replace(aux=net)
+
+    def _check_carry(self, carry):
+        if self.particles:
+            self.pf._check_carry(carry)
+        else:
+            self.inner._check_carry(carry.inner)
+
+    def _step(self, carry, y, u, mask):
+        if self.particles:
+            carry, out = self.pf._step(carry, y, u, mask)
+            x = dict(out.extras)
+            attack, logit, scale = x.pop("attack"), x.pop("logit", None), x.pop("scale")
+            return carry, self._report(out, attack, logit, scale, out.innovation, x)
+        inner, core = self.inner, self.core
+        pred = inner.predict(carry.inner, u)
+        evidence = "log_likelihood" in core.features
+        nu, S, ell = inner.innovation(carry.inner, pred, y, mask, evidence=evidence)
+        net, attack, logit, scale, delta = core.step(carry.net, nu, S, mask, log_likelihood=ell)
+        if self.channel is Channel.ACTUATOR:
+            new, out = inner.update(carry.inner, inner.predict(carry.inner, u + attack), y, mask)
+        else:
+            new, out = inner.update(carry.inner, pred, y - attack, mask)
+        extras = {"network_inputs": delta[..., 0, :].detach()} if core.record_inputs else {}
+        report = self._report(out, attack, logit, scale, nu, extras)
+        return NeuralCarry(new, net, carry.model), report
+
+    def _report(self, out: StepOutput, attack, logit, scale, innovation, extras) -> StepOutput:
+        score, more = self.core.detect(attack, logit, scale, innovation)
+        return out._replace(
+            attack=attack, score=score, alarm=score > self.threshold, threshold=self.threshold,
+            extras={**extras, **more},
+        )  # fmt: skip
+
+
+def _check_options(network, inner, channel, features, poa_eta, learning, deception) -> None:
+    needed = ("num_areas", "area_dim", "resid_dim", "a", "b", "extra_inputs", "area_template")
+    missing = [name for name in needed if not hasattr(network, name)]
+    if not isinstance(network, nn.Module) or missing:
+        raise TypeError(
+            "network must be an eq. (8)-(9) network (e.g. difffilter.models.neural_estimator."
+            f"NeuralFDIEstimator); {type(network).__name__} lacks {', '.join(missing) or 'nn.Module'}"
+        )
+    if not isinstance(inner, (GaussianFilter, ParticleFilter)):
+        raise TypeError(
+            "inner must be a filter object (difffilter.KalmanFilter(), ExtendedKalmanFilter(), "
+            f"UnscentedKalmanFilter(), ParticleFilter(N), ...); got {type(inner).__name__}"
+        )
+    particles = isinstance(inner, ParticleFilter)
+    if channel is not Channel.ACTUATOR and network.resid_dim != network.area_dim:
+        raise ValueError("a sensor attack estimate needs network.resid_dim == area_dim (dy)")
+    if channel is Channel.ACTUATOR and particles:
+        raise ValueError(
+            "the particle filter compensates sensor attacks; an actuator attack is "
+            "compensated in the input of a Gaussian filter (filter kf/ekf/ukf)"
+        )
+    if channel is Channel.REPLACEMENT and (
+        deception is None or not network.detection_head or not particles
+    ):
+        raise ValueError(
+            "channel='replacement' needs a particle filter, deception= and a network with a head"
+        )
+    if features and network.num_areas != 1:
+        raise ValueError("features are read by a network of one area (num_areas = 1)")
+    width = feature_dim(features, network.resid_dim)
+    if network.extra_inputs != width:
+        raise ValueError(
+            f"network.extra_inputs is {network.extra_inputs} but features {list(features)} "
+            f"need {width} inputs"
+        )
+    if "poa" in features and not particles:
+        raise ValueError("'poa' needs particles: inner must be a ParticleFilter")
+    if "poa" in features and (poa_eta is None or not poa_eta >= 0):
+        raise ValueError(f"the 'poa' feature needs poa_eta >= 0 (its threshold η); got {poa_eta!r}")
+    if learning is not None and not isinstance(learning, OnlineLearning):
+        raise TypeError(
+            f"learning must be an OnlineLearning(rule=...) or None; got {type(learning).__name__}"
+        )
