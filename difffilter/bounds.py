@@ -154,35 +154,9 @@ def measurement_information_moments(model: StateSpaceModel, xs: Tensor, k0: int 
     return torch.stack(out, dim=-5)
 
 
-def posterior_crb(
-    model: StateSpaceModel,
-    xs: Tensor,
-    x0: Tensor,
-    *,
-    us: Tensor | None = None,
-    mask: Tensor | None = None,
-    information: Tensor | None = None,
-    num_samples: int = 200_000,
-    generator: torch.Generator | None = None,
-) -> PCRBResult:
-    """The PCRB recursion of the module docstring along ``T`` steps.
-
-    Args:
-        model: a :class:`~difffilter.StateSpaceModel` with Gaussian process noise
-            (``model.process_cov``) and a Gaussian prior (``model.initial.cov``);
-            Jacobians from ``transition_jacobian``/``observation_jacobian``.
-        xs: true trajectories ``x_1 … x_T`` ``[..., M, T, dx]`` (the expectations over
-            ``x`` are means over the ``M`` paths; ``M = 1`` for a linear model).
-        x0: their initial states ``[..., M, dx]``.
-        us: inputs ``[..., M, T, du]`` or ``None``.
-        mask: received entries ``[..., T, dy]`` (bool) or ``None`` (all received); an
-            all-false step adds no information.
-        information: ``J_v`` for every step, ``[..., T, dy, dy]``, instead of computing
-            it from ``model.measurement_noise`` and ``mask`` with :func:`noise_information`.
-        num_samples, generator: of the Monte Carlo Fisher information (non-Gaussian noise).
-
-    Returns a :class:`PCRBResult` (``information``, ``bound``: ``[..., T, dx, dx]``).
-    """
+def _pcrb_information(model, xs, x0, mask, information, num_samples, generator) -> Tensor:
+    """The arguments of :func:`posterior_crb` checked; ``J_v`` for every step
+    ``[..., T, dy, dy]`` (given, or from the measurement noise and the mask)."""
     if not isinstance(model, StateSpaceModel):
         raise ValueError(f"model must be a difffilter.StateSpaceModel; got {type(model).__name__}")
     dx, dy = model.dim_x, model.dim_y
@@ -215,6 +189,40 @@ def posterior_crb(
         raise ValueError(
             f"information must have shape [..., {T}, {dy}, {dy}]; got {tuple(information.shape)}"
         )
+    return information
+
+
+def posterior_crb(
+    model: StateSpaceModel,
+    xs: Tensor,
+    x0: Tensor,
+    *,
+    us: Tensor | None = None,
+    mask: Tensor | None = None,
+    information: Tensor | None = None,
+    num_samples: int = 200_000,
+    generator: torch.Generator | None = None,
+) -> PCRBResult:
+    """The PCRB recursion of the module docstring along ``T`` steps.
+
+    Args:
+        model: a :class:`~difffilter.StateSpaceModel` with Gaussian process noise
+            (``model.process_cov``) and a Gaussian prior (``model.initial.cov``);
+            Jacobians from ``transition_jacobian``/``observation_jacobian``.
+        xs: true trajectories ``x_1 … x_T`` ``[..., M, T, dx]`` (the expectations over
+            ``x`` are means over the ``M`` paths; ``M = 1`` for a linear model).
+        x0: their initial states ``[..., M, dx]``.
+        us: inputs ``[..., M, T, du]`` or ``None``.
+        mask: received entries ``[..., T, dy]`` (bool) or ``None`` (all received); an
+            all-false step adds no information.
+        information: ``J_v`` for every step, ``[..., T, dy, dy]``, instead of computing
+            it from ``model.measurement_noise`` and ``mask`` with :func:`noise_information`.
+        num_samples, generator: of the Monte Carlo Fisher information (non-Gaussian noise).
+
+    Returns a :class:`PCRBResult` (``information``, ``bound``: ``[..., T, dx, dx]``).
+    """
+    information = _pcrb_information(model, xs, x0, mask, information, num_samples, generator)
+    dx, T = model.dim_x, xs.shape[-2]
     information = information.to(xs.dtype)
     G = measurement_information_moments(model, xs)  # [..., T, dy, dy, dx, dx]
     Q_inv = torch.linalg.inv(model.process_cov(0).to(xs.dtype))

@@ -317,12 +317,9 @@ def closed_loop(
     """
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"steps must be an integer >= 1; got {steps!r}")
-    check_model(plant)
     model = plant if model is None else model
     if state is None:
-        if x0 is None:
-            raise ValueError("x0 [B, dx] is needed to start a loop (or pass state= to resume)")
-        state = _start(plant, horizon or steps, x0, estimator, model, controller, attack,
+        state = _start(plant, steps, horizon, x0, estimator, model, controller, attack,
                        attack_generator, generator)  # fmt: skip
     channel = None if attack is None else Channel(attack.channel)
     rec: dict[str, list] = {k: [] for k in ("x", "y", "recv", "u", "attack", "value", "flag")}
@@ -357,7 +354,13 @@ def closed_loop(
     return LoopResult(traj, output, LoopState(k, x, u, a_state, carry, view))
 
 
-def _start(plant, steps, x0, estimator, model, controller, attack, attack_generator, generator):
+def _start(plant, steps, horizon, x0, estimator, model, controller, attack, attack_generator,
+           generator) -> LoopState:  # fmt: skip
+    """The state before step 1 (after checking the plant and ``x0``)."""
+    check_model(plant)
+    if x0 is None:
+        raise ValueError("x0 [B, dx] is needed to start a loop (or pass state= to resume)")
+    steps = horizon or steps
     batch, dtype, device = x0.shape[:-1], x0.dtype, x0.device
     u = None if controller is None else controller.init(batch, dtype, device)
     a_state = None

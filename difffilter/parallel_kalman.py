@@ -127,52 +127,14 @@ def parallel_kalman_filter(
     elements grow with the batch.
     """
     T = ys.shape[-2]
-    tv = bool(getattr(model, "time_varying", False))
-    steps, meas = range(0, T), range(1, T + 1)
-    F = _stack_over_time(model.transition_matrix, steps, tv)  # [*, T|1, dx, dx]
-    Q = symmetrize(_stack_over_time(model.process_cov, steps, tv))
-    H = _stack_over_time(model.observation_matrix, meas, tv)  # [*, T|1, dy, dx]
-    R = _stack_over_time(model.measurement_cov, meas, tv)
-    Bm = _stack_over_time(model.control_matrix, steps, tv)
-    dx = F.shape[-1]
-    offset = None
-    if Bm is not None and us is not None:
-        offset = matvec(Bm, us)  # c_t = B u_t  [..., T, dx]
-    m0, P0 = model.initial.mean, model.initial.cov
-
+    F, Q, H, R, offset = _model_over_time(model, T, us)
     # Masking makes H, R per step and per run; y is masked inside the residuals.
     ys_m, H_m, R_m, observed = masked_measurement(ys, H, R, mask)
-
-    eye = torch.eye(dx, dtype=F.dtype, device=F.device)
-    c = offset if offset is not None else torch.zeros((), dtype=F.dtype, device=F.device)
-    # Generic elements t ≥ 1 (computed for all t; element 0 is replaced below).
-    cross = Q @ H_m.transpose(-1, -2)
-    K, chol = kalman_gain(cross, H_m @ cross + R_m)
-    Hc = matvec(H_m, c) if offset is not None else 0.0
-    resid = ys_m - Hc
-    A = (eye - K @ H_m) @ F
-    b = c + matvec(K, resid)
-    C = joseph_covariance(Q, K, H_m, R_m)
-    HF = H_m @ F
-    s_inv_hf = torch.cholesky_solve(HF, chol)  # S⁻¹ H F   [*, T, dy, dx]
-    eta = matvec(s_inv_hf.transpose(-1, -2), resid)
-    J = symmetrize(HF.transpose(-1, -2) @ s_inv_hf)
-
-    # First element: condition on the prior exactly.
-    F0, Q0 = _take(F, F.dim() - 3, 0, 1).squeeze(-3), _take(Q, Q.dim() - 3, 0, 1).squeeze(-3)
-    H0, R0 = (
-        _take(H_m, H_m.dim() - 3, 0, 1).squeeze(-3),
-        _take(R_m, R_m.dim() - 3, 0, 1).squeeze(-3),
-    )
-    pm = matvec(F0, m0) + (offset[..., 0, :] if offset is not None else 0.0)
-    pP = symmetrize(F0 @ P0 @ F0.transpose(-1, -2) + Q0)
-    cross0 = pP @ H0.transpose(-1, -2)
-    K0, _ = kalman_gain(cross0, H0 @ cross0 + R0)
-    b0 = pm + matvec(K0, ys_m[..., 0, :] - matvec(H0, pm))
-    C0 = joseph_covariance(pP, K0, H0, R0)
-
+    A, b, C, eta, J = _generic_elements(F, Q, H_m, R_m, ys_m, offset)
+    b0, C0 = _first_element(model, F, Q, H_m, R_m, ys_m, offset)
     batch = torch.broadcast_shapes(ys.shape[:-2], b.shape[:-2], b0.shape[:-1])
     mat_batch = torch.broadcast_shapes(A.shape[:-3], C.shape[:-3], C0.shape[:-2], J.shape[:-3])
+    dx = F.shape[-1]
 
     def full_mat(generic, first):
         generic = (
@@ -180,34 +142,24 @@ def parallel_kalman_filter(
             if generic.shape[-3] == 1
             else generic.expand(mat_batch + generic.shape[-3:])
         )
-        return torch.cat(
-            [
-                first.expand(mat_batch + first.shape[-2:]).unsqueeze(-3),
-                _take(generic, len(mat_batch), 1, None),
-            ],
-            dim=-3,
-        )
+        first = first.expand(mat_batch + first.shape[-2:]).unsqueeze(-3)
+        return torch.cat([first, _take(generic, len(mat_batch), 1, None)], dim=-3)
 
     def full_vec(generic, first):
         generic = generic.expand(batch + (T, dx))
-        return torch.cat(
-            [first.expand(batch + (dx,)).unsqueeze(-2), _take(generic, len(batch), 1, None)], dim=-2
-        )
+        first = first.expand(batch + (dx,)).unsqueeze(-2)
+        return torch.cat([first, _take(generic, len(batch), 1, None)], dim=-2)
 
     zero_mat = torch.zeros(dx, dx, dtype=F.dtype, device=F.device)
     zero_vec = torch.zeros(dx, dtype=F.dtype, device=F.device)
-    elems = [
-        full_mat(A, zero_mat),
-        full_vec(b, b0),
-        full_mat(C, C0),
-        full_vec(eta, zero_vec),
-        full_mat(J, zero_mat),
-    ]
-    tm, tv_ = len(mat_batch), len(batch)
-    scanned = associative_scan(_combine, elems, [tm, tv_, tm, tv_, tm])
+    elems = [full_mat(A, zero_mat), full_vec(b, b0), full_mat(C, C0), full_vec(eta, zero_vec),
+             full_mat(J, zero_mat)]  # fmt: skip
+    tm, tv = len(mat_batch), len(batch)
+    scanned = associative_scan(_combine, elems, [tm, tv, tm, tv, tm])
     means, covs = scanned[1], scanned[2]
 
     # Innovations and evidence from the filtered moments, all steps at once.
+    m0, P0 = model.initial.mean, model.initial.cov
     prev_means = torch.cat([m0.expand(batch + (dx,)).unsqueeze(-2), means[..., :-1, :]], dim=-2)
     prev_covs = torch.cat(
         [P0.expand(mat_batch + (dx, dx)).unsqueeze(-3), covs[..., :-1, :, :]], dim=-3
@@ -230,3 +182,52 @@ def parallel_kalman_filter(
         log_likelihood_increments=increments,
         log_likelihood=increments.sum(-1),
     )
+
+
+def _model_over_time(model, T: int, us: Tensor | None):
+    """``F, Q [*, T|1, dx, dx]``, ``H [*, T|1, dy, dx]``, ``R`` and the input offsets
+    ``c_t = B u_t [..., T, dx]`` (or ``None``); a size-1 time axis for a time-invariant model."""
+    tv = bool(getattr(model, "time_varying", False))
+    steps, meas = range(0, T), range(1, T + 1)
+    F = _stack_over_time(model.transition_matrix, steps, tv)
+    Q = symmetrize(_stack_over_time(model.process_cov, steps, tv))
+    H = _stack_over_time(model.observation_matrix, meas, tv)
+    R = _stack_over_time(model.measurement_cov, meas, tv)
+    Bm = _stack_over_time(model.control_matrix, steps, tv)
+    offset = matvec(Bm, us) if Bm is not None and us is not None else None
+    return F, Q, H, R, offset
+
+
+def _generic_elements(F, Q, H, R, ys, offset):
+    """The scan elements ``A, b, C, η, J`` of every step ``t ≥ 1`` (computed for all ``t``;
+    element 0 is replaced by :func:`_first_element`)."""
+    dx = F.shape[-1]
+    eye = torch.eye(dx, dtype=F.dtype, device=F.device)
+    c = offset if offset is not None else torch.zeros((), dtype=F.dtype, device=F.device)
+    cross = Q @ H.transpose(-1, -2)
+    K, chol = kalman_gain(cross, H @ cross + R)
+    resid = ys - (matvec(H, c) if offset is not None else 0.0)
+    A = (eye - K @ H) @ F
+    b = c + matvec(K, resid)
+    C = joseph_covariance(Q, K, H, R)
+    HF = H @ F
+    s_inv_hf = torch.cholesky_solve(HF, chol)  # S⁻¹ H F   [*, T, dy, dx]
+    eta = matvec(s_inv_hf.transpose(-1, -2), resid)
+    J = symmetrize(HF.transpose(-1, -2) @ s_inv_hf)
+    return A, b, C, eta, J
+
+
+def _first_element(model, F, Q, H, R, ys, offset):
+    """``b_0, C_0``: the first step conditioned on the prior exactly."""
+    m0, P0 = model.initial.mean, model.initial.cov
+
+    def first(x):
+        return _take(x, x.dim() - 3, 0, 1).squeeze(-3)
+
+    F0, Q0, H0, R0 = first(F), first(Q), first(H), first(R)
+    pm = matvec(F0, m0) + (offset[..., 0, :] if offset is not None else 0.0)
+    pP = symmetrize(F0 @ P0 @ F0.transpose(-1, -2) + Q0)
+    cross0 = pP @ H0.transpose(-1, -2)
+    K0, _ = kalman_gain(cross0, H0 @ cross0 + R0)
+    b0 = pm + matvec(K0, ys[..., 0, :] - matvec(H0, pm))
+    return b0, joseph_covariance(pP, K0, H0, R0)

@@ -448,9 +448,7 @@ def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator):
 
 def _particle_step(pf: ParticleFilter, carry: ParticleState, y, u, mask):
     """One step of ``pf`` from ``carry`` (inputs validated): resample, propose, weigh."""
-    model, gens = carry.model, carry.generators or Generators()
-    likelihood = pf.likelihood
-    k = carry.k
+    model, gens, k = carry.model, carry.generators or Generators(), carry.k
     resample_gen = gens.resample if gens.resample is not None else gens.propagate
     particles, log_w, w, need, uniform = _resample(
         pf, carry.particles, carry.log_weights, carry.ess, carry.weights, resample_gen
@@ -460,9 +458,8 @@ def _particle_step(pf: ParticleFilter, carry: ParticleState, y, u, mask):
     # Predictive weights of the proposed particles: w_{k−1}·p/q (just w_{k−1} for the
     # bootstrap proposal, whose correction is None), and the predictive moments.
     prior_lw = log_w if correction is None else torch.log_softmax(log_w + correction, dim=-1)
-    uses_predictive = pf.stateful or getattr(likelihood, "uses_predictive", False)
-    obs = predictive = None
-    pred_w = None
+    uses_predictive = pf.stateful or getattr(pf.likelihood, "uses_predictive", False)
+    obs = predictive = pred_w = None
     if correction is None and uniform:
         # equal weights: the predicted mean is the particles' average (no exp, no product)
         pred_mean = new.mean(-2)
@@ -474,54 +471,22 @@ def _particle_step(pf: ParticleFilter, carry: ParticleState, y, u, mask):
         obs = model.observe(new, k + 1)
         predictive = _predictive(model, y, mask, k, obs, pred_w, prior_lw, pred_mean)
 
-    aux, record = carry.aux, {}
-    if type(likelihood) is ModelLikelihood and _default_measurement_density(model):
-        # the model's own density: reuse the predicted measurements computed above
-        obs = model.observe(new, k + 1) if obs is None else obs
-        m = None if mask is None else mask.unsqueeze(-2)
-        log_alpha = model.measurement_noise.log_prob(
-            model.measurement_residual(y.unsqueeze(-2), obs), mask=m
-        )
-    elif pf.stateful:
-        aux, log_alpha, record = likelihood.weigh(aux, model, y, new, k + 1, mask, predictive)
-    elif uses_predictive:
-        log_alpha = likelihood(model, y, new, k + 1, mask, predictive=predictive)
-    else:
-        log_alpha = likelihood(model, y, new, k + 1, mask)
+    aux, log_alpha, record = _weigh(pf, carry.aux, model, y, new, k + 1, mask, obs, predictive,
+                                    uses_predictive)  # fmt: skip
     if correction is not None:
         log_alpha = log_alpha + correction
-    joint = log_w + log_alpha
-    # logsumexp by hand, keeping its exponentials: e = exp(joint − max) gives the new weights
-    # e / Σe and the increment log Σe + max without a second exp pass
-    top = joint.detach().amax(-1, keepdim=True)
-    e = torch.exp(joint - top)
-    total = e.sum(-1, keepdim=True)
-    increment = (torch.log(total) + top).squeeze(-1)
-    log_w_new = joint - increment.unsqueeze(-1)
-    w_new = e / total
-    # Degenerate runs (every joint weight −inf, or NaN): reset to the predictive weights
-    # (module docstring). One host sync per step; the reset itself only when needed.
-    degenerate = ~torch.isfinite(increment)
-    if bool(degenerate.any()):
-        increment = torch.logsumexp(joint, dim=-1)  # −inf (not NaN) where all are −inf
-        log_w_new = torch.where(degenerate.unsqueeze(-1), prior_lw, log_w_new)
-        w_new = torch.exp(log_w_new)
+    increment, log_w_new, w_new, degenerate = _normalise(log_w + log_alpha, prior_lw)
     ess_new = torch.linalg.vecdot(w_new, w_new).reciprocal()
     mean, cov = _moments(new, w_new, pf.cov_dims)
     extras = {"ess": ess_new, "resampled": need, "degenerate": degenerate, **record}
     if pf.record_prior or pf.hooks:
         extras["prior_log_weights"] = prior_lw
+    shown = predictive if pf.innovations else None
     out = StepOutput(
-        mean,
-        cov,
-        pred_mean=pred_mean,
-        innovation=None if predictive is None or not pf.innovations else predictive.innovation,
-        innovation_cov=None
-        if predictive is None or not pf.innovations
-        else predictive.innovation_cov,
-        log_likelihood=increment,
-        extras=extras,
-    )
+        mean, cov, pred_mean=pred_mean, log_likelihood=increment, extras=extras,
+        innovation=None if shown is None else shown.innovation,
+        innovation_cov=None if shown is None else shown.innovation_cov,
+    )  # fmt: skip
     new_carry = ParticleState(new, log_w_new, k + 1, ess_new, w_new, model, aux, carry.generators)
     if pf.hooks:
         for hook in pf.hooks:
@@ -529,6 +494,41 @@ def _particle_step(pf: ParticleFilter, carry: ParticleState, y, u, mask):
         if not pf.record_prior:
             del extras["prior_log_weights"]
     return new_carry, out
+
+
+def _weigh(pf, aux, model, y, particles, k, mask, obs, predictive, uses_predictive):
+    """``(aux, log α [..., N], record)``: the likelihood of the proposed particles at step ``k``
+    (the model's own density reuses the predicted measurements ``obs`` when it has them)."""
+    likelihood = pf.likelihood
+    if type(likelihood) is ModelLikelihood and _default_measurement_density(model):
+        obs = model.observe(particles, k) if obs is None else obs
+        m = None if mask is None else mask.unsqueeze(-2)
+        residual = model.measurement_residual(y.unsqueeze(-2), obs)
+        return aux, model.measurement_noise.log_prob(residual, mask=m), {}
+    if pf.stateful:
+        return likelihood.weigh(aux, model, y, particles, k, mask, predictive)
+    if uses_predictive:
+        return aux, likelihood(model, y, particles, k, mask, predictive=predictive), {}
+    return aux, likelihood(model, y, particles, k, mask), {}
+
+
+def _normalise(joint: Tensor, prior_lw: Tensor):
+    """``(increment [...], log w [..., N], w [..., N], degenerate [...])`` from the joint log
+    weights: logsumexp by hand, keeping its exponentials (``e = exp(joint − max)`` gives the
+    weights ``e / Σe`` and the increment ``log Σe + max`` without a second exp pass).
+    Degenerate runs (every joint weight −inf, or NaN) reset to the predictive weights
+    ``prior_lw`` (module docstring): one host sync per step, the reset only when needed."""
+    top = joint.detach().amax(-1, keepdim=True)
+    e = torch.exp(joint - top)
+    total = e.sum(-1, keepdim=True)
+    increment = (torch.log(total) + top).squeeze(-1)
+    log_w, w = joint - increment.unsqueeze(-1), e / total
+    degenerate = ~torch.isfinite(increment)
+    if bool(degenerate.any()):
+        increment = torch.logsumexp(joint, dim=-1)  # −inf (not NaN) where all are −inf
+        log_w = torch.where(degenerate.unsqueeze(-1), prior_lw, log_w)
+        w = torch.exp(log_w)
+    return increment, log_w, w, degenerate
 
 
 def _predictive(model, y, mask, k, obs, pred_w, prior_lw, pred_mean) -> Predictive:

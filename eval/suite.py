@@ -118,26 +118,10 @@ def run_suite(
     names += tuple(n for n in add if n not in names)
     specs = [registry.get(n) for n in names]  # unknown names fail before any work
     result = SuiteResult(scenario, runs, seed, traj, context=ctx)
-    from tqdm.auto import tqdm
-
     rank, world = process_group()
     mine = specs[rank::world]  # with several processes, each runs its share of estimators
     with one_thread(scenario.single_thread), torch.no_grad():
-        bar = tqdm(mine, desc=scenario.name, disable=not progress or rank > 0, leave=False)
-        for spec in bar:
-            bar.set_postfix_str(spec.name)
-            try:
-                run = spec.factory(ctx)
-            except registry.SkipEstimator as why:
-                result.skipped[spec.name] = str(why)
-                continue
-            start = time.perf_counter()
-            out = run(traj)
-            result.wall_s[spec.name] = time.perf_counter() - start
-            if isinstance(out, LoopResult):  # a closed loop of its own: its truth
-                result.trajectories[spec.name] = out.trajectories
-                out = out.output
-            result.outputs[spec.name] = out
+        _run_estimators(result, mine, progress and rank == 0)
     if world > 1:
         _gather(result, ctx, specs, world)
     result.reference = next(
@@ -152,17 +136,45 @@ def run_suite(
             "source": source,
             "used_by": list(ctx.checkpoint_users),
         }
+    _score(result, specs)
+    return result
+
+
+def _run_estimators(result: SuiteResult, specs, progress: bool) -> None:
+    """Run every estimator of ``specs`` on the study's trajectories into ``result``
+    (outputs, wall times, the trajectories of those that run their own closed loop, and
+    those skipped with the reason)."""
+    from tqdm.auto import tqdm
+
+    bar = tqdm(specs, desc=result.scenario.name, disable=not progress, leave=False)
+    for spec in bar:
+        bar.set_postfix_str(spec.name)
+        try:
+            run = spec.factory(result.context)
+        except registry.SkipEstimator as why:
+            result.skipped[spec.name] = str(why)
+            continue
+        start = time.perf_counter()
+        out = run(result.traj)
+        result.wall_s[spec.name] = time.perf_counter() - start
+        if isinstance(out, LoopResult):  # a closed loop of its own: its truth
+            result.trajectories[spec.name] = out.trajectories
+            out = out.output
+        result.outputs[spec.name] = out
+
+
+def _score(result: SuiteResult, specs) -> None:
+    """Every run estimator's metrics against the trajectories it ran on."""
     ref = result.outputs[result.reference].means if result.reference else None
     for spec in (s for s in specs if s.name in result.outputs):
         result.metrics[spec.name] = score(
             result.outputs[spec.name],
             result.traj_of(spec.name),
-            dt=scenario.dt,
+            dt=result.scenario.dt,
             wall_s=result.wall_s[spec.name],
             reference_means=ref,
             attacked_input=not spec.clean_input,
         )
-    return result
 
 
 def process_group() -> tuple[int, int]:

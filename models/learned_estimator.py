@@ -1,12 +1,12 @@
-"""The neural FDI estimator in the evaluation and training: whole-sequence runs and the
-registry entries of the trained checkpoints.
+"""The neural FDI estimator in the evaluation: the registry entries of the trained
+checkpoints.
 
 The wrapper itself, the network of eqs (8)–(9) inside any filter of the library, is
 :class:`difffilter.fdi.neural.NeuralCompensation` (its module docstring has the
 equations); the network is :class:`~difffilter.models.neural_estimator.NeuralFDIEstimator`
 and its checkpoints carry an :class:`~difffilter.models.neural_estimator.EstimatorCard`.
-:func:`neural_particle_filter` and :func:`neural_gaussian_filter` run it in the open loop
-(what :mod:`difffilter.train.task` trains through); the registry entries ``pf_nn_grad``,
+:mod:`difffilter.train.task` trains it through :func:`difffilter.loop.open_loop` or
+:func:`~difffilter.loop.closed_loop`; the registry entries ``pf_nn_grad``,
 ``gaussian_nn_grad``, ``pf_nn_ekf`` and ``gaussian_nn_ekf`` run a checkpoint as its card
 says.
 """
@@ -14,10 +14,9 @@ says.
 from __future__ import annotations
 
 import torch
-from torch import Tensor
 
 from difffilter.attack import Channel
-from difffilter.estimator import EstimatorOutput, Generators
+from difffilter.estimator import Generators
 from difffilter.fdi.neural import (
     FEATURES,
     NeuralCompensation,
@@ -26,12 +25,10 @@ from difffilter.fdi.neural import (
     build_delta,
     feature_dim,
 )
-from difffilter.kalman import GaussianFilter
 from difffilter.loop import open_loop
 from difffilter.models.estimators import SkipEstimator, register
 from difffilter.models.generic_estimators import GAUSSIAN_FILTERS, deception_of
-from difffilter.models.neural_estimator import NeuralFDIEstimator
-from difffilter.particle import ParticleFilter, ParticleState
+from difffilter.particle import ParticleFilter
 
 __all__ = [
     "FEATURES",
@@ -40,74 +37,7 @@ __all__ = [
     "NeuralCompensation",
     "build_delta",
     "feature_dim",
-    "neural_particle_filter",
-    "neural_gaussian_filter",
 ]
-
-
-def neural_particle_filter(
-    model,
-    ys: Tensor,
-    us: Tensor | None = None,
-    *,
-    network: NeuralFDIEstimator,
-    num_particles: int,
-    mask: Tensor | None = None,
-    threshold: float = 0.5,
-    features=(),
-    poa_eta: float | None = None,
-    record_inputs: bool = False,
-    channel: Channel | str = Channel.SENSOR,
-    deception=None,
-    resampler=None,
-    proposal=None,
-    ess_threshold: float = 0.5,
-    generator=None,
-    resample_generator=None,
-    initial_state: ParticleState | None = None,
-) -> EstimatorOutput:
-    """:class:`NeuralCompensation` around :class:`~difffilter.ParticleFilter` in the open loop.
-
-    ``ys [..., T, dy]`` → means ``[..., T, dx]``, ``attack [..., T, dy]``, detection scores
-    ``[..., T]``; ``extras``: ``attack_logit`` (with a head), ``log_likelihood [...]``,
-    ``network_inputs [..., T, in]`` (when recorded). Other arguments as in
-    :func:`~difffilter.particle_filter` and :class:`NeuralCompensation`.
-    """
-    pf = ParticleFilter(num_particles, resampler=resampler, proposal=proposal,
-                        ess_threshold=ess_threshold)  # fmt: skip
-    est = NeuralCompensation(
-        network, pf, channel=channel, features=features, poa_eta=poa_eta, threshold=threshold,
-        deception=deception, record_inputs=record_inputs,
-    )  # fmt: skip
-    gens = Generators.of(generator)
-    if resample_generator is not None:
-        gens = gens._replace(resample=resample_generator)
-    carry = None if initial_state is None else est.attach(initial_state, model, gens)
-    return open_loop(est, model, ys, us, mask=mask, generator=gens, carry=carry)
-
-
-def neural_gaussian_filter(
-    model,
-    ys: Tensor,
-    us: Tensor | None = None,
-    *,
-    network: NeuralFDIEstimator,
-    filter: GaussianFilter,
-    mask: Tensor | None = None,
-    threshold: float = 0.5,
-    features=(),
-    record_inputs: bool = False,
-    channel: Channel | str = Channel.SENSOR,
-) -> EstimatorOutput:
-    """:class:`NeuralCompensation` around a Gaussian ``filter`` in the open loop: each step
-    predicts once, updates with ``ỹ_k`` for ``ν_k, S_k, ℓ_k`` and again with ``ỹ_k − â_k``
-    (``channel="sensor"``) or after predicting with the input ``u_{k−1} + â_k``
-    (``"actuator"``: ``â [..., T, du]``). Shapes as in :func:`neural_particle_filter`."""
-    if Channel(channel) is Channel.ACTUATOR and us is None:
-        raise ValueError("channel='actuator' needs the inputs us [..., T, du]")
-    est = NeuralCompensation(network, filter, channel=channel, features=features,
-                             threshold=threshold, record_inputs=record_inputs)  # fmt: skip
-    return open_loop(est, model, ys, us, mask=mask)
 
 
 # ------------------------------------------------- registration with the estimator registry

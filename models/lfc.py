@@ -360,18 +360,9 @@ def random_attacks(
     there is no periodic sawtooth; the remaining shapes have continuous random parameters.
     Events on the same channel add. All draws come from ``generator``.
     """
-    if not isinstance(generator, torch.Generator):
-        raise ValueError("generator must be a torch.Generator (every draw is seeded)")
-    if num_runs < 1 or steps < 1:
-        raise ValueError(f"num_runs and steps must be >= 1; got {num_runs}, {steps}")
-    if not 0 <= min_events <= max_events:
-        raise ValueError(f"need 0 <= min_events <= max_events; got {min_events}, {max_events}")
-    chans = torch.arange(STATE_DIM) if channels is None else torch.as_tensor(channels)
-    if chans.numel() == 0 or bool(((chans < 0) | (chans >= STATE_DIM)).any()):
-        raise ValueError(f"channels must be indices in 0..{STATE_DIM - 1}; got {channels!r}")
+    chans = _check_random_attacks(num_runs, steps, generator, channels, min_events, max_events,
+                                  amplitude)  # fmt: skip
     lo_amp, hi_amp = amplitude
-    if not 0 <= lo_amp <= hi_amp:
-        raise ValueError(f"amplitude must be (low, high) with 0 <= low <= high; got {amplitude!r}")
     g = generator
     B, E = num_runs, max(max_events, 1)
 
@@ -415,6 +406,23 @@ def random_attacks(
     signal = amp[..., None] * shape * window * active[..., None]  # [B, E, T]
     one_hot = torch.nn.functional.one_hot(channel, STATE_DIM).to(dtype)  # [B, E, 10]
     return torch.einsum("bet,bec->btc", signal, one_hot)
+
+
+def _check_random_attacks(num_runs, steps, generator, channels, min_events, max_events,
+                          amplitude) -> Tensor:  # fmt: skip
+    """The arguments of :func:`random_attacks` checked; the channel indices as a tensor."""
+    if not isinstance(generator, torch.Generator):
+        raise ValueError("generator must be a torch.Generator (every draw is seeded)")
+    if num_runs < 1 or steps < 1:
+        raise ValueError(f"num_runs and steps must be >= 1; got {num_runs}, {steps}")
+    if not 0 <= min_events <= max_events:
+        raise ValueError(f"need 0 <= min_events <= max_events; got {min_events}, {max_events}")
+    chans = torch.arange(STATE_DIM) if channels is None else torch.as_tensor(channels)
+    if chans.numel() == 0 or bool(((chans < 0) | (chans >= STATE_DIM)).any()):
+        raise ValueError(f"channels must be indices in 0..{STATE_DIM - 1}; got {channels!r}")
+    if not 0 <= amplitude[0] <= amplitude[1]:
+        raise ValueError(f"amplitude must be (low, high) with 0 <= low <= high; got {amplitude!r}")
+    return chans
 
 
 # -- the closed loop ---------------------------------------------------------------------------

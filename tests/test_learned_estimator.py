@@ -10,17 +10,27 @@ import pytest
 import torch
 
 import difffilter as df
+from difffilter.estimator import Generators
 from difffilter.fdi.neural import build_delta
-from difffilter.models.learned_estimator import (
-    NeuralCompensation,
-    feature_dim,
-    neural_gaussian_filter,
-    neural_particle_filter,
-)
+from difffilter.loop import open_loop
+from difffilter.models.learned_estimator import NeuralCompensation, feature_dim
 from difffilter.models.neural_estimator import NeuralFDIEstimator
 from difffilter.particle import Predictive, particle_filter
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def neural_gaussian_filter(model, ys, us=None, *, network, filter, **options):
+    """The network around a Gaussian ``filter`` in the open loop."""
+    return open_loop(NeuralCompensation(network, filter, **options), model, ys, us)
+
+
+def neural_particle_filter(model, ys, us=None, *, network, num_particles, resampler=None,
+                           ess_threshold=0.5, generator=None, **options):  # fmt: skip
+    """The network around a bootstrap particle filter in the open loop."""
+    pf = df.ParticleFilter(num_particles, resampler=resampler, ess_threshold=ess_threshold)
+    est = NeuralCompensation(network, pf, **options)
+    return open_loop(est, model, ys, us, generator=Generators.of(generator))
 
 
 def _linear(dtype=torch.float64):
@@ -123,7 +133,7 @@ def test_an_actuator_estimate_is_added_to_the_input_of_each_update_by_hand():
         state, _ = df.kalman_step(model, state, ys[:, t], us[:, t] + a_hat)
         torch.testing.assert_close(out.attack[:, t], a_hat, rtol=0, atol=1e-12)
         torch.testing.assert_close(out.means[:, t], state.mean, rtol=0, atol=1e-12)
-    with pytest.raises(ValueError, match="needs the inputs"):
+    with pytest.raises(ValueError, match="needs u_k"):
         neural_gaussian_filter(model, ys, network=net, filter=df.KalmanFilter(), channel="actuator")
     with pytest.raises(ValueError, match="resid_dim == area_dim"):  # a sensor estimate of 1 channel
         neural_gaussian_filter(model, ys, us, network=net, filter=df.KalmanFilter())

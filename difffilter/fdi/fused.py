@@ -98,6 +98,54 @@ class FusedModifiedPF:
             self.neg_half_prec = -0.5 * torch.ones(dy, dtype=G.dtype, device=G.device)
             self.whiten = torch.linalg.solve_triangular(chol, eye, upper=False).transpose(0, 1)
 
+    def _start(self, B, T, generator, resample_generator, initial_particles):
+        """The particles before step 1 ``[B, N, dx]`` (resampled once if the prior weights
+        ask for it), the resampling uniforms of the horizon and the resampler."""
+        model, n = self.model, self.n
+        if initial_particles is None:
+            state = particle_init(model, n, (B,), generator)
+            x, log_w0 = state.particles, state.log_weights
+        else:
+            if initial_particles.shape != (B, n, model.dim_x):
+                raise ValueError(
+                    f"initial_particles must be [{B}, {n}, {model.dim_x}]; got {tuple(initial_particles.shape)}"
+                )
+            x = initial_particles
+            log_w0 = x.new_full((B, n), -math.log(n))
+        dx, dtype, device = x.shape[-1], x.dtype, x.device
+        # Resampling uniforms in the order the composed filter draws them: before step 0
+        # only if the ESS of the uniform prior weights rounds below N, then after every step.
+        first = bool((_ess(log_w0) < n).any())
+        uniforms = torch.rand(
+            (T - 1 + int(first), B, 1), generator=resample_generator, dtype=dtype, device=device
+        )
+        resample = _CountResampler(B, n, dtype, device)
+        flat = x.reshape(B * n, dx)
+        if first:
+            w0 = torch.exp(log_w0 - torch.logsumexp(log_w0, -1, keepdim=True))
+            flat = flat.index_select(0, resample(torch.cumsum(w0, -1), uniforms[0]))
+            uniforms = uniforms[1:]
+        return flat.view(B, n, dx), uniforms, resample
+
+    def _propagation(self, B, dtype, draw):
+        """``x ↦ f(x) + w_t`` for the particles ``[B, N, dx]``. Small sets: a model whose
+        step is ``x + c + √max(x,0) @ M`` (the four-tank) runs as one addmm with ``c``
+        folded into the noise; large sets keep the model's elementwise transition (a GEMM
+        with 4 columns is slow for many rows on CPU)."""
+        model, n = self.model, self.n
+        affine = getattr(model, "sqrt_affine_form", None)
+        affine = affine() if (affine is not None and B * n <= 2048) else None
+        if affine is None:
+            return lambda x, t: model.transition(x, None, t) + draw(t)
+        step_matrix, offset = affine[0].to(dtype), affine[1].to(dtype)
+
+        def propagate(x, t):
+            flat = x.reshape(B * n, -1)
+            s = torch.sqrt(flat.clamp_min(0.0))
+            return torch.addmm(flat + draw.plus(t, offset), s, step_matrix).view(x.shape)
+
+        return propagate
+
     @torch.inference_mode()
     def run(
         self,
@@ -124,48 +172,15 @@ class FusedModifiedPF:
             raise ValueError(
                 f"ys must be [B, T, dy] and gamma_hat the same shape; got {tuple(ys.shape)}, {tuple(gamma_hat.shape)}"
             )
-        model, n = self.model, self.n
-        B, T, _ = ys.shape
-        if initial_particles is None:
-            state = particle_init(model, n, (B,), generator)
-            x, log_w0 = state.particles, state.log_weights
-        else:
-            if initial_particles.shape != (B, n, model.dim_x):
-                raise ValueError(
-                    f"initial_particles must be [{B}, {n}, {model.dim_x}]; got {tuple(initial_particles.shape)}"
-                )
-            x = initial_particles
-            log_w0 = x.new_full((B, n), -math.log(n))
-        dx, dtype, device = x.shape[-1], x.dtype, x.device
-        draw = _NoiseSampler(model.process_noise, (B, n), T, generator)
-        # Resampling uniforms in the order the composed filter draws them: before step 0
-        # only if the ESS of the uniform prior weights rounds below N, then after every step.
-        first = bool((_ess(log_w0) < n).any())
-        uniforms = torch.rand(
-            (T - 1 + int(first), B, 1), generator=resample_generator, dtype=dtype, device=device
-        )
-        resample = _CountResampler(B, n, dtype, device)
-        flat = x.reshape(B * n, dx)
-        if first:
-            w0 = torch.exp(log_w0 - torch.logsumexp(log_w0, -1, keepdim=True))
-            flat = flat.index_select(0, resample(torch.cumsum(w0, -1), uniforms[0]))
-            uniforms = uniforms[1:]
-        x = flat.view(B, n, dx)
-        # Small sets: a model whose step is x + c + √max(x,0) @ M (the four-tank) runs as
-        # one addmm with c folded into the noise; large sets keep the model's elementwise
-        # transition (a GEMM with 4 columns is slow for many rows on CPU).
-        affine = getattr(model, "sqrt_affine_form", None)
-        affine = affine() if (affine is not None and B * n <= 2048) else None
-        if affine is not None:
-            step_matrix, offset = affine[0].to(dtype), affine[1].to(dtype)
+        n, (B, T, _) = self.n, ys.shape
+        x, uniforms, resample = self._start(B, T, generator, resample_generator,
+                                            initial_particles)  # fmt: skip
+        dx, dtype = x.shape[-1], x.dtype
+        draw = _NoiseSampler(self.model.process_noise, (B, n), T, generator)
+        propagate = self._propagation(B, dtype, draw)
         ys3 = ys.unsqueeze(-2)
-        G_t, dmap, dsq, whiten, nhp = (
-            self.G_t,
-            self.detect_map,
-            self.detect_sq,
-            self.whiten,
-            self.neg_half_prec,
-        )
+        G_t, dmap, dsq = self.G_t, self.detect_map, self.detect_sq
+        whiten, nhp = self.whiten, self.neg_half_prec
         # eq. (59) without forming r − l̂γ̂: Σ_d p_d (r_d − c_d)² = Σ p_d r_d² − 2 Σ p_d c_d r_d + const
         # (p = −½ diag R⁻¹ after whitening); the constant cancels in the normalisation.
         comp = (-2.0 * nhp) * (gamma_hat if whiten is None else gamma_hat @ whiten)  # [B, T, dy]
@@ -173,14 +188,7 @@ class FusedModifiedPF:
         both = torch.stack([dsq, nhp], -1) if (dmap is None and whiten is None) else None
         means, counts, alarms = [], [], []
         for t in range(T):
-            # Step 1: x_k^i ~ p(x_k | x_{k−1}^i)
-            if affine is None:
-                x = model.transition(x, None, t) + draw(t)
-            else:
-                s = torch.sqrt(x.reshape(B * n, dx).clamp_min(0.0))
-                x = torch.addmm(x.reshape(B * n, dx) + draw.plus(t, offset), s, step_matrix).view(
-                    B, n, dx
-                )
+            x = propagate(x, t)  # Step 1: x_k^i ~ p(x_k | x_{k−1}^i)
             # Step 2: Kalman-corrected residuals (36) and PoA with weights 1/N (58):
             # β = #{‖(I − GK) r^i‖ > η} / N
             r = ys3[:, t] - (x if G_t is None else x @ G_t)
@@ -206,11 +214,8 @@ class FusedModifiedPF:
             counts.append(count)
             alarms.append(alarm)
             if t < T - 1:  # systematic resampling for the next step
-                x = (
-                    x.reshape(B * n, dx)
-                    .index_select(0, resample(torch.cumsum(w, -1), uniforms[t]))
-                    .view(B, n, dx)
-                )
+                ancestors = resample(torch.cumsum(w, -1), uniforms[t])
+                x = x.reshape(B * n, dx).index_select(0, ancestors).view(B, n, dx)
         beta = torch.stack(counts, 1).to(dtype) / n
         alarms = torch.stack(alarms, 1)
         return EstimatorOutput(

@@ -210,8 +210,29 @@ class AdaptiveKalmanProposal:
         new = self.layout.pack(upd.mean, upd.attack, upd.sensitivity, upd.attack_cov, upd.cov)
         return new, upd.log_likelihood
 
+    def _linearized(self, x, a, u, y, k, dtype):
+        """``x_p, F, Φ, ε, H`` in component form at the particles' ``x̂ʲ(k−1)`` and
+        ``âʲ(k−1)``: the model's own component linearisation, or its Jacobians."""
+        base = self.base
+        own = getattr(base, "linearize_components", None)
+        if own is not None:  # the model's component form (no AoS round trips)
+            uc = list(u.movedim(-1, 0).unsqueeze(-1).unbind(0)) if u is not None else None
+            ue = a if uc is None else [ai + ui for ai, ui in zip(a, uc)]
+            yc = list(y.movedim(-1, 0).unsqueeze(-1).unbind(0))
+            return own(x, ue, yc, k)
+        xa, ua = torch.stack(x, -1), torch.stack(a, -1)
+        if u is not None:
+            ua = ua + u.unsqueeze(-2)
+        F = C.to_components(base.transition_jacobian(xa, ua, k).to(dtype))
+        phi = C.to_components(input_jacobian(base, xa, ua, k).to(dtype))
+        xp = base.transition(xa, ua, k)
+        H = C.to_components(base.observation_jacobian(xp, k + 1).to(dtype))
+        eps_y = base.measurement_residual(y.unsqueeze(-2), base.observe(xp, k + 1))
+        e = list(eps_y.movedim(-1, 0).contiguous().unbind(0))
+        return list(xp.movedim(-1, 0).unbind(0)), F, phi, e, H
+
     def _information(self, particles, u, y, k, mask, generator):
-        base, lay = self.base, self.layout
+        lay = self.layout
         dx, da = lay.dx, lay.da
         z = particles.transpose(-1, -2)  # [..., D, N]
         if not z.is_contiguous():  # row-major particles (an initial state): one copy
@@ -230,24 +251,7 @@ class AdaptiveKalmanProposal:
             )
             low = C.cholesky(P)
             x = [C.lin(((1.0, xi, 1.0), (1.0, li, 1.0))) for xi, li in zip(x, C.mv(low, eps))]
-        own = getattr(base, "linearize_components", None)
-        if own is not None:  # the model's component form (no AoS round trips)
-            uc = list(u.movedim(-1, 0).unsqueeze(-1).unbind(0)) if u is not None else None
-            ue = a if uc is None else [a[i] + uc[i] for i in range(da)]
-            yc = list(y.movedim(-1, 0).unsqueeze(-1).unbind(0))
-            xpc, F, phi, e, H = own(x, ue, yc, k)
-        else:
-            xa = torch.stack(x, -1)
-            ua = torch.stack(a, -1)
-            if u is not None:
-                ua = ua + u.unsqueeze(-2)
-            F = C.to_components(base.transition_jacobian(xa, ua, k).to(z.dtype))
-            phi = C.to_components(input_jacobian(base, xa, ua, k).to(z.dtype))
-            xp = base.transition(xa, ua, k)
-            H = C.to_components(base.observation_jacobian(xp, k + 1).to(z.dtype))
-            eps_y = base.measurement_residual(y.unsqueeze(-2), base.observe(xp, k + 1))
-            e = list(eps_y.movedim(-1, 0).contiguous().unbind(0))
-            xpc = list(xp.movedim(-1, 0).unbind(0))
+        xpc, F, phi, e, H = self._linearized(x, a, u, y, k, z.dtype)
         dy = len(e)
         if mask is None:
             rinv = [1.0 / v for v in self._rvar]

@@ -457,6 +457,8 @@ class NeuralCompensation(Estimator):
         nu, S, ell = inner.innovation(carry.inner, pred, y, mask, evidence=evidence)
         net, attack, logit, scale, delta = core.step(carry.net, nu, S, mask, log_likelihood=ell)
         if self.channel is Channel.ACTUATOR:
+            if u is None:
+                raise ValueError("channel ACTUATOR compensates the input: step needs u_k [..., du]")
             new, out = inner.update(carry.inner, inner.predict(carry.inner, u + attack), y, mask)
         else:
             new, out = inner.update(carry.inner, pred, y - attack, mask)

@@ -151,6 +151,13 @@ def _equal_wall_time(result) -> dict:
 
 
 def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
+    secs = [_table1(doc), _bound_section(result, doc, out), _eta_section(doc, out)]
+    proposal = _proposal_section(result, doc)
+    return secs + ([] if proposal is None else [proposal])
+
+
+def _table1(doc: dict) -> Section:
+    """Table 1 of the paper beside ours."""
     f, est, paper = format_number, doc["estimators"], (doc["paper"].get("table1") or {})
     head = ["estimator", "paper RMSE_p", "ours RMSE_p", "paper RMSE_v", "ours RMSE_v", "paper time",
             "ours s/run (batched / single run)", "paper comm.", "ours comm."]  # fmt: skip
@@ -164,7 +171,12 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
         "\nThe paper does not state the unit of its running time; ours is seconds per run, batched over the "
         "runs (throughput) and for one run alone (latency). Communication: packets sent per run.\n"
     )
-    secs = [Section("Table 1 beside the paper", body)]
+    return Section("Table 1 beside the paper", body)
+
+
+def _bound_section(result, doc: dict, out) -> Section:
+    """The RMSEs beside the PCRB, with the curves plotted."""
+    f, est = format_number, doc["estimators"]
 
     head = [
         "estimator",
@@ -190,27 +202,23 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
         p, v = _rmse_pv(o.means, result.traj.x)
         ax[0].plot(t, p.numpy(), lw=1, label=n)
         ax[1].plot(t, v.numpy(), lw=1, label=n)
+    styles = {"rr_clean": ":", "rr_oracle": "--", "all_oracle": "-."}
     for k, (bp, bv) in doc["bound_curves"].items():
-        if k in ("rr_clean", "rr_oracle", "all_oracle"):
-            ax[0].plot(
-                t,
-                bp,
-                "k",
-                ls={"rr_clean": ":", "rr_oracle": "--", "all_oracle": "-."}[k],
-                lw=1,
-                label=f"PCRB {k}",
-            )
-            ax[1].plot(
-                t, bv, "k", ls={"rr_clean": ":", "rr_oracle": "--", "all_oracle": "-."}[k], lw=1
-            )
+        if k in styles:
+            ax[0].plot(t, bp, "k", ls=styles[k], lw=1, label=f"PCRB {k}")
+            ax[1].plot(t, bv, "k", ls=styles[k], lw=1)
     ax[0].set(xlabel="k", ylabel="RMSE_p", yscale="log", title="Position RMSE and bound")
     ax[1].set(xlabel="k", ylabel="RMSE_v", yscale="log", title="Velocity RMSE and bound")
     ax[0].legend(fontsize=7)
     fig.savefig(out / "rmse_vs_bound.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
-    secs.append(Section("RMSE next to the posterior Cramér–Rao bound", body, ["rmse_vs_bound.png"]))
+    return Section("RMSE next to the posterior Cramér–Rao bound", body, ["rmse_vs_bound.png"])
 
-    sw = doc["eta_sweep"]
+
+def _eta_section(doc: dict, out) -> Section:
+    """The η̄ sweep of Fig. 5 and the deception-detection AUC."""
+    f, est = format_number, doc["estimators"]
+    t, sw = list(range(1, doc["steps"] + 1)), doc["eta_sweep"]
     body = markdown_table(["η̄", "rrp_pf_da RMSE_p", "RMSE_v", "AUC of P(attack)"],
                           [[r["eta_bar"], f(r["rmse_p"]), f(r["rmse_v"]), f(r["auc"])] for r in sw])  # fmt: skip
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -229,33 +237,37 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
     if "auc_all_sensors" in est.get("pf_da", {}):
         auc_all = f(est["pf_da"]["auc_all_sensors"])
         body += f"\n`pf_da`'s per-sensor attack posterior over all four sensors' packets: AUC {auc_all}.\n"
-    secs.append(Section("η̄ sweep and deception detection", body, ["eta_sweep.png"]))
+    return Section("η̄ sweep and deception detection", body, ["eta_sweep.png"])
 
+
+def _proposal_section(result, doc: dict) -> Section | None:
+    """The EKF proposal against the bootstrap filter at equal particles and equal wall time."""
+    f, est = format_number, doc["estimators"]
     eq = doc.get("equal_wall_time")
-    if eq:
-        a, b = est["rrp_pf_da"], est["rrp_pf_da_ekf_proposal"]
-        n = result.scenario.num_particles
+    if not eq:
+        return None
+    a, b = est["rrp_pf_da"], est["rrp_pf_da_ekf_proposal"]
+    n = result.scenario.num_particles
 
-        def row(label, particles, e):
-            return [
-                label,
-                particles,
-                f(e["rmse_p"]),
-                f(e["rmse_v"]),
-                f(e["time_per_run_batched_s"]),
-            ]
+    def row(label, particles, e):
+        return [
+            label,
+            particles,
+            f(e["rmse_p"]),
+            f(e["rmse_v"]),
+            f(e["time_per_run_batched_s"]),
+        ]
 
-        rows = [row("`rrp_pf_da`", n, a), row("`rrp_pf_da_ekf_proposal`", n, b),
-                row("`rrp_pf_da`, equal wall time", eq["num_particles"], eq)]  # fmt: skip
-        body = markdown_table(["filter", "particles", "RMSE_p", "RMSE_v", "s/run (batched)"], rows)
-        same_n = "lower" if b["rmse_p"] < a["rmse_p"] else "higher"
-        same_t = "helps" if b["rmse_p"] < eq["rmse_p"] else "does not help"
-        body += (f"\nAt {n} particles the EKF proposal's RMSE_p is {same_n} than the bootstrap filter's "
-                 f"({f(b['rmse_p'])} vs {f(a['rmse_p'])}); for its wall time the bootstrap filter runs "
-                 f"{eq['num_particles']} particles (measured time in the last column): at equal wall time "
-                 f"the EKF proposal {same_t}.\n")  # fmt: skip
-        secs.append(Section("EKF proposal (the paper's future work)", body))
-    return secs
+    rows = [row("`rrp_pf_da`", n, a), row("`rrp_pf_da_ekf_proposal`", n, b),
+            row("`rrp_pf_da`, equal wall time", eq["num_particles"], eq)]  # fmt: skip
+    body = markdown_table(["filter", "particles", "RMSE_p", "RMSE_v", "s/run (batched)"], rows)
+    same_n = "lower" if b["rmse_p"] < a["rmse_p"] else "higher"
+    same_t = "helps" if b["rmse_p"] < eq["rmse_p"] else "does not help"
+    body += (f"\nAt {n} particles the EKF proposal's RMSE_p is {same_n} than the bootstrap filter's "
+             f"({f(b['rmse_p'])} vs {f(a['rmse_p'])}); for its wall time the bootstrap filter runs "
+             f"{eq['num_particles']} particles (measured time in the last column): at equal wall time "
+             f"the EKF proposal {same_t}.\n")  # fmt: skip
+    return Section("EKF proposal (the paper's future work)", body)
 
 
 register_family("tracking", FamilyReport(extra=_extra, sections=_sections))
