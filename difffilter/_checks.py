@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import math
+from enum import Enum
 
 import torch
 from torch import Tensor
 
 __all__ = [
+    "Choice",
     "as_tensor",
     "values_known",
     "check_vector_last",
@@ -29,6 +31,17 @@ __all__ = [
     "check_carry_batch",
     "check_carry_tensor",
 ]
+
+
+class Choice(str, Enum):
+    """Base of the library's named options (``Channel``, ``Method``, ``Reading``, …): built
+    once from a name at the edge (``Channel("sensor")``), compared by identity inside; a
+    name that is none of them is a ``ValueError`` listing the choices."""
+
+    @classmethod
+    def _missing_(cls, value):
+        names = ", ".join(repr(m.value) for m in cls)
+        raise ValueError(f"{value!r} is not a {cls.__name__}: one of {names}")
 
 
 def values_known(t: Tensor) -> bool:

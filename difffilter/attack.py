@@ -29,16 +29,17 @@ about attacks is its own parameter.
 
 from __future__ import annotations
 
-from enum import Enum
 from typing import Any
 
 import torch
 from torch import Tensor
 
+from ._checks import Choice
+
 __all__ = ["Channel", "Attack", "TabulatedAttack", "inject"]
 
 
-class Channel(str, Enum):
+class Channel(Choice):
     """What an attack acts on (module docstring)."""
 
     SENSOR = "sensor"

@@ -33,6 +33,8 @@ import scipy.signal as ssig
 import torch
 from torch import Tensor
 
+from ._checks import Choice
+
 __all__ = [
     "zoh_discretize",
     "controllability_rank",
@@ -41,7 +43,7 @@ __all__ = [
     "uncontrollable_direction",
     "observer_poles",
     "luenberger_gain",
-    "LUENBERGER_DESIGNS",
+    "LuenbergerDesign",
 ]
 
 
@@ -161,7 +163,12 @@ def observer_poles(
     return torch.as_tensor(np.exp(lam * dt))
 
 
-LUENBERGER_DESIGNS = ("modal", "robust", "diagonal")
+class LuenbergerDesign(Choice):
+    """How :func:`luenberger_gain` chooses the eigenvectors of ``Φ`` (its docstring)."""
+
+    MODAL = "modal"
+    ROBUST = "robust"
+    DIAGONAL = "diagonal"
 
 
 def luenberger_gain(
@@ -169,7 +176,7 @@ def luenberger_gain(
     A_closed: Tensor,
     dt: float,
     *,
-    design: str = "modal",
+    design: LuenbergerDesign | str = LuenbergerDesign.MODAL,
     factor: float = 3.0,
     zero_pole: float | None = None,
 ) -> Tensor:
@@ -181,12 +188,12 @@ def luenberger_gain(
     loop"). With ``C = I`` every ``Φ`` with those eigenvalues is admissible; the designs
     choose its eigenvectors:
 
-    * ``"modal"``: ``Φ = V diag(exp(factor λ dt)) V⁻¹`` with ``V`` the eigenvectors of
+    * ``MODAL``: ``Φ = V diag(exp(factor λ dt)) V⁻¹`` with ``V`` the eigenvectors of
       ``A − BK₁`` (i.e. ``Φ = exp(factor (A − BK₁) dt)`` up to the moved zero pole): the
       error modes are the closed-loop modes, ``factor`` times faster.
-    * ``"robust"``: ``scipy.signal.place_poles`` (Tits–Yang), the best-conditioned
+    * ``ROBUST``: ``scipy.signal.place_poles`` (Tits–Yang), the best-conditioned
       eigenvectors — ``Φ`` close to a normal matrix.
-    * ``"diagonal"``: ``Φ`` block diagonal in the coordinate axes (a real 2×2 block per
+    * ``DIAGONAL``: ``Φ`` block diagonal in the coordinate axes (a real 2×2 block per
       complex pair): every channel's error decays on its own.
 
     Shapes: ``Ad [n, n]``, ``A_closed [n, n]`` → ``L_f [n, n]``.
@@ -196,14 +203,15 @@ def luenberger_gain(
         raise ValueError(f"A_closed must have shape [{n}, {n}]; got {tuple(A_closed.shape)}")
     if not dt > 0:
         raise ValueError(f"dt must be positive; got {dt!r}")
+    design = LuenbergerDesign(design)
     lam, V = _observer_spectrum(A_closed, factor, zero_pole)
     p = np.exp(lam * dt)
-    if design == "modal":
+    if design is LuenbergerDesign.MODAL:
         Phi = (V @ np.diag(p) @ np.linalg.inv(V)).real
-    elif design == "robust":
+    elif design is LuenbergerDesign.ROBUST:
         res = ssig.place_poles(_np(Ad).T, np.eye(n), p, method="YT", maxiter=100)
         Phi = _np(Ad) - res.gain_matrix.T
-    elif design == "diagonal":
+    else:
         Phi = np.zeros((n, n))
         real = sorted(p[np.abs(p.imag) < 1e-12].real)
         upper = sorted(p[p.imag >= 1e-12], key=lambda z: z.real)
@@ -214,8 +222,6 @@ def luenberger_gain(
         for z in upper:  # each complex pair as [[a, b], [-b, a]]
             Phi[i : i + 2, i : i + 2] = [[z.real, z.imag], [-z.imag, z.real]]
             i += 2
-    else:
-        raise ValueError(f"design must be one of {LUENBERGER_DESIGNS}; got {design!r}")
     Lp = _np(Ad) - Phi
     return torch.as_tensor(np.linalg.solve(_np(Ad), Lp), dtype=Ad.dtype)
 

@@ -25,13 +25,12 @@ all runs, and the whole-sequence run takes the shared-covariance path
 
 from __future__ import annotations
 
-from enum import Enum
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from ._checks import check_carry_tensor, check_step_inputs
+from ._checks import Choice, check_carry_tensor, check_step_inputs
 from ._shared_cov import shared_covariance_applies, shared_covariance_kalman_filter
 from .estimator import Estimator, output_of
 from .gain_schedule import GainSchedule, shared_gains_apply
@@ -53,7 +52,7 @@ __all__ = [
 ]
 
 
-class Method(str, Enum):
+class Method(Choice):
     """How :class:`KalmanFilter` runs a whole sequence: step by step (``SEQUENTIAL``, with
     the shared-covariance path when it applies) or by the associative scan of Särkkä &
     García-Fernández (``PARALLEL``: ``O(log T)`` batched operations, fastest for a few

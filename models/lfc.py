@@ -39,11 +39,12 @@ import torch
 from torch import Tensor, nn
 
 import difffilter
-from difffilter._checks import check_finite_number
+from difffilter._checks import Choice, check_finite_number
 from difffilter.control import zoh_discretize
 from difffilter.kalman import KalmanFilter
 from difffilter.loop import LoopResult, ReplayedNoise, closed_loop
 from difffilter.models.registry import Scenario, register
+from difffilter.models.scenario import OWN_ATTACK
 
 from .attacks import Signal
 
@@ -57,6 +58,7 @@ __all__ = [
     "LFCPlant",
     "SecureController",
     "LFCScenario",
+    "LFCAttack",
     "scenario_attack",
     "sawtooth_pulse_train",
     "random_attacks",
@@ -292,10 +294,19 @@ def sawtooth_pulse_train(
     return amplitude * out.clamp(0.0, 1.0).sum(dim=1)
 
 
-ATTACK_KINDS = ("step", "sine", "simultaneous", "sawtooth", "none")
+class LFCAttack(Choice):
+    """The attack of an LFC scenario: the paper's signals (eqs 44–47), none, or random
+    attacks drawn per run (:func:`random_attacks`: the training distribution)."""
+
+    STEP = "step"
+    SINE = "sine"
+    SIMULTANEOUS = "simultaneous"
+    SAWTOOTH = "sawtooth"
+    NONE = "none"
+    RANDOM = "random"
 
 
-def scenario_attack(kind: str, t: Tensor) -> Tensor:
+def scenario_attack(kind: LFCAttack | str, t: Tensor) -> Tensor:
     """Attack ``α [T, 10]`` of scenario ``kind`` at the sample times ``t [T]`` (seconds).
 
     Channel indices are zero-based (the paper's state 3 of area 1 is channel 2, state 3 of
@@ -310,21 +321,22 @@ def scenario_attack(kind: str, t: Tensor) -> Tensor:
       ([DEF] amplitude 1, channel α^{1,3}, the whole 0–10 s).
     * ``none``: no attack.
     """
+    kind = LFCAttack(kind)
+    if kind is LFCAttack.RANDOM:
+        raise ValueError("kind RANDOM is drawn per run by random_attacks, not a fixed signal")
     if t.dim() != 1:
         raise ValueError(f"t must be a 1-D tensor of sample times [T]; got {tuple(t.shape)}")
     alpha = torch.zeros(t.shape[0], STATE_DIM, dtype=t.dtype)
-    if kind == "step":
+    if kind is LFCAttack.STEP:
         alpha[:, 2] = 0.4 * _between(t, 3.0, 5.0) + 0.9 * _between(t, 7.0, 8.0)
-    elif kind == "sine":
+    elif kind is LFCAttack.SINE:
         alpha[:, 2] = 1.5 * torch.sin(10.0 * t) * (t >= 3.0 - _T_EPS).to(t.dtype)
-    elif kind == "simultaneous":
+    elif kind is LFCAttack.SIMULTANEOUS:
         first, second = _between(t, 0.1, 5.0), _between(t, 7.0, 8.0)
         alpha[:, 2] = 0.6 * first + 1.2 * second
         alpha[:, 7] = 0.9 * torch.sin(10.0 * t) * first + 0.1 * second
-    elif kind == "sawtooth":
+    elif kind is LFCAttack.SAWTOOTH:
         alpha[:, 2] = sawtooth_pulse_train(t)
-    elif kind != "none":
-        raise ValueError(f"kind must be one of {ATTACK_KINDS}; got {kind!r}")
     return alpha
 
 
@@ -536,9 +548,9 @@ class LFCScenario(Scenario):
     random attacks, the attack), so that every estimator sees the same random numbers.
 
     Attributes:
-        attack: one of ``step``, ``sine``, ``simultaneous``, ``sawtooth``, ``none`` (the
-            paper's signals, eqs 44–47) or ``random`` (:func:`random_attacks`, one draw per
-            run: the training and validation distribution).
+        attack: :class:`LFCAttack`: one of the paper's signals (eqs 44–47), none, or
+            random (:func:`random_attacks`, one draw per run: the training and validation
+            distribution).
         dt: sampling time (s); ``duration``: horizon (s), so ``steps = duration / dt``.
         load: constant load deviation per area (p.u.), applied from t = 0. [DEF]
         load_range: for training: a load per run ``~ U[−range/2, range/2]`` per area
@@ -549,7 +561,7 @@ class LFCScenario(Scenario):
         paper_table: the paper's Table I/II entries for this scenario (``{}`` if none).
     """
 
-    attack: str = "none"
+    attack: LFCAttack = LFCAttack.NONE
     dt: float = 0.01
     duration: float = 10.0
     load: tuple[float, float] = (0.01, 0.0)
@@ -569,10 +581,7 @@ class LFCScenario(Scenario):
     closed_loop = True
 
     def __post_init__(self):
-        if self.attack not in ATTACK_KINDS + ("random",):
-            raise ValueError(
-                f"attack must be one of {ATTACK_KINDS + ('random',)}; got {self.attack!r}"
-            )
+        object.__setattr__(self, "attack", LFCAttack(self.attack))
         if not (self.dt > 0 and self.duration >= self.dt):
             raise ValueError("dt must be positive and duration >= dt")
         object.__setattr__(self, "steps", int(round(self.duration / self.dt)))
@@ -588,9 +597,6 @@ class LFCScenario(Scenario):
         """The scenario's attack ``α [T, 10]`` (one of the paper's signals)."""
         return scenario_attack(self.attack, self.times(dtype))
 
-    def load_tensor(self, dtype=torch.float64) -> Tensor:
-        return torch.tensor(self.load, dtype=dtype)
-
     def system(self, dtype: torch.dtype = torch.float64, device=None):
         """The observers' model (:meth:`LFCPlant.model` without the load)."""
         return LFCPlant(dt=self.dt, dtype=dtype).model(knows_load=False)
@@ -598,7 +604,8 @@ class LFCScenario(Scenario):
     def attack_model(self):
         """The scenario's attack: the known signal ``α [T, 10]`` on the sensors (``None``
         without one, and for random attacks, whose per-run draws are in :meth:`exogenous`)."""
-        return None if self.attack in ("none", "random") else Signal(self.attack_signal())
+        fixed = self.attack not in (LFCAttack.NONE, LFCAttack.RANDOM)
+        return Signal(self.attack_signal()) if fixed else None
 
     def feedback_gain(self, dtype=torch.float64) -> Tensor:
         """The LQR gain ``K₁ [2, 10]`` of ``U = −K₁(Z − M̂)``."""
@@ -610,12 +617,12 @@ class LFCScenario(Scenario):
         (``generators["attack"]``)."""
         plant = LFCPlant(dt=self.dt, dtype=dtype)
         xi, theta = plant.sample_noise(runs, self.steps, generators["plant"])
-        load = self.load_tensor(dtype)[None]
+        load = torch.tensor(self.load, dtype=dtype)[None]
         if self.load_range is not None:
             u = torch.rand(runs, NUM_AREAS, generator=generators["plant"], dtype=dtype)
             load = (u - 0.5) * self.load_range
         draws = {"xi": xi, "theta": theta, "load": load}
-        if self.attack == "random":
+        if self.attack is LFCAttack.RANDOM:
             draws["attack"] = random_attacks(
                 runs, self.steps, self.dt, generator=generators["attack"],
                 channels=self.random_channels, max_events=self.max_events,
@@ -624,18 +631,18 @@ class LFCScenario(Scenario):
         return draws
 
     def loop(self, estimator, draws, *, generator=None, steps=None, state=None, compensate=True,
-             attack="scenario", progress=None):  # fmt: skip
+             attack=OWN_ATTACK, progress=None):  # fmt: skip
         """``estimator`` in its own closed loop on ``draws`` (:func:`lfc_loop`): the secure
         controller (``compensate=False``: the traditional one), the scenario's attack (or
         ``attack``: another one, ``None`` for none)."""
-        if attack == "scenario":
+        if attack is OWN_ATTACK:
             attack = Signal(draws["attack"]) if "attack" in draws else self.attack_model()
         plant = LFCPlant(dt=self.dt, dtype=draws["xi"].dtype)
         return lfc_loop(plant, estimator, draws["xi"], draws["theta"], draws["load"],
                         attack=attack, compensate=compensate, generator=generator, steps=steps,
                         state=state, progress=progress)  # fmt: skip
 
-    def simulate(self, runs, generators, *, dtype=torch.float64, attack="scenario", model=None):
+    def simulate(self, runs, generators, *, dtype=torch.float64, attack=OWN_ATTACK, model=None):
         """The traditional closed loop ``U = −K₁Z`` with its Kalman observer (``attack=None``:
         attack-free). ``info`` carries the exogenous draws (``xi, theta [B, T, 10]``,
         ``load``) that every estimator's own closed loop replays (common random numbers).

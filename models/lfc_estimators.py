@@ -38,15 +38,15 @@ from functools import partial
 import torch
 from torch import Tensor
 
-from difffilter.control import luenberger_gain
+from difffilter.control import LuenbergerDesign, luenberger_gain
 from difffilter.estimator import Detection, EstimatorOutput, Generators
 from difffilter.kalman import KalmanFilter
 from difffilter.loop import LoopResult, Trajectories
 from difffilter.models.estimators import SkipEstimator, SuiteContext, register
 from difffilter.models.learned_estimator import NeuralCompensation, OnlineLearning, Residual
-from difffilter.models.lfc import STATE_DIM, STATE_NAMES, LFCPlant, lfc_loop, lqr_gain
+from difffilter.models.lfc import LFCPlant, lqr_gain
 from difffilter.models.neural_estimator import NeuralFDIEstimator, load_estimator_checkpoint
-from difffilter.models.streams import Streams
+from difffilter.models.scenario import OWN_ATTACK
 from difffilter.observers import FixedGainFilter
 from difffilter.param_ekf import EKFRule, GradientRule
 
@@ -57,8 +57,7 @@ __all__ = [
     "LFCContext",
     "paper_network",
     "lfc_estimator",
-    "per_channel_attack_rmse",
-    "PER_CHANNEL",
+    "build_estimator",
     "ABLATIONS",
 ]
 
@@ -73,15 +72,6 @@ GD_DEFAULTS = {"lr": 0.1}
 # 1e-4 I and Q_rho = 1e-7 won the grid (0.074 against 0.088 for the frozen network).
 FINETUNE_DEFAULTS = {"lr": 1.0, "init_cov": 1e-4, "init_noise": 1e-3, "process_noise": 1e-7}
 
-# The estimators of the per-channel validation: the paper's two, ours, and the cross terms.
-PER_CHANNEL = (
-    "kf_nn_ekf",
-    "traditional_ad",
-    "kf_nn_gd",
-    "luenberger_nn_ekf",
-    "kf_nn_grad",
-    "kf_nn_grad_ekf",
-)
 ABLATIONS = ("kf_nn_ekf_qrho0", "traditional_ad_robust", "traditional_ad_diagonal")
 THREE_SIGMA = 3.0
 
@@ -94,10 +84,11 @@ class LFCContext:
         self.plant = LFCPlant(dt=dt, dtype=dtype)
         self.K1 = lqr_gain(self.plant)
         self.A_closed = self.plant.A.double() - self.plant.B.double() @ self.K1.double()
-        self._luenberger: dict[str, Tensor] = {}
+        self._luenberger: dict[LuenbergerDesign, Tensor] = {}
 
-    def luenberger(self, design: str) -> Tensor:
+    def luenberger(self, design: LuenbergerDesign | str) -> Tensor:
         """The filter-form Luenberger gain of ``design`` (``[10, 10]``)."""
+        design = LuenbergerDesign(design)
         if design not in self._luenberger:
             L = luenberger_gain(self.plant.Ad.double(), self.A_closed, self.dt, design=design)
             self._luenberger[design] = L.to(self.dtype)
@@ -115,7 +106,7 @@ def paper_network(init_scale: float = 0.01, *, dtype=torch.float64) -> NeuralFDI
 def lfc_estimator(
     ctx: LFCContext,
     *,
-    luenberger: str | None = None,
+    luenberger: LuenbergerDesign | None = None,
     network: NeuralFDIEstimator | None = None,
     rule: EKFRule | GradientRule | None = None,
     init_scale: float | None = None,
@@ -124,7 +115,7 @@ def lfc_estimator(
     standardize: bool = False,
 ):
     """An LFC estimator: the Kalman observer (or the Luenberger one of gain ``luenberger``,
-    a :data:`~difffilter.control.LUENBERGER_DESIGNS` name), alone or with
+    a :class:`~difffilter.control.LuenbergerDesign`), alone or with
     ``network`` learning online by ``rule`` from per-run ``init_scale·U[0, 1]`` weights
     (or the network's own) with the ``residual`` history of eq. (9) (raw residuals, as
     the paper's network reads them, unless ``standardize``)."""
@@ -171,7 +162,7 @@ def _context(ctx: SuiteContext) -> LFCContext:
     return _cached(ctx, ("lfc/context", ctx.scenario.dt), lambda: LFCContext(dt=ctx.scenario.dt))
 
 
-def _loop(ctx: SuiteContext, estimator, tr: Trajectories, compensate: bool, attack="scenario"):
+def _loop(ctx: SuiteContext, estimator, tr: Trajectories, compensate: bool, attack=OWN_ATTACK):
     """``estimator``'s closed loop on ``tr``'s draws (:meth:`LFCScenario.loop`; its per-run
     initial weights from the stream ``lfc/initial_weights``)."""
     seed = ctx.streams.seed_of("lfc/initial_weights")
@@ -240,11 +231,11 @@ _BUILDERS = {
                                                      donate=True)),
                         {"ablation": True}),
     "traditional_ad": ("the paper's baseline: Luenberger observer (modal gain) + NN by gradient",
-                       partial(_paper, luenberger="modal", rule=_GD), {}),
+                       partial(_paper, luenberger=LuenbergerDesign.MODAL, rule=_GD), {}),
     "traditional_ad_robust": ("traditional_ad with the robust Luenberger gain (same poles)",
-                              partial(_paper, luenberger="robust", rule=_GD), {"ablation": True}),
+                              partial(_paper, luenberger=LuenbergerDesign.ROBUST, rule=_GD), {"ablation": True}),
     "traditional_ad_diagonal": ("traditional_ad with the diagonal Luenberger gain (same poles)",
-                                partial(_paper, luenberger="diagonal", rule=_GD),
+                                partial(_paper, luenberger=LuenbergerDesign.DIAGONAL, rule=_GD),
                                 {"ablation": True}),
     "kf_nn_grad": ("ours: Kalman observer + NN trained by TBPTT (the checkpoint), frozen",
                    lambda ctx: _trained(ctx, "kf_nn_grad"), {}),
@@ -254,10 +245,15 @@ _BUILDERS = {
     "kf_nn_gd": ("cross term: Kalman observer + NN learned online by gradient steps",
                  partial(_paper, rule=_GD), {}),
     "luenberger_nn_ekf": ("cross term: Luenberger observer + NN learned online by EKF",
-                          partial(_paper, luenberger="modal", rule=_EKF), {}),
+                          partial(_paper, luenberger=LuenbergerDesign.MODAL, rule=_EKF), {}),
 }  # fmt: skip
 for _name, (_role, _build, _kw) in _BUILDERS.items():
     register(_name, _role)(_closed_loop(_name, _build, **_kw))
+
+
+def build_estimator(name: str, ctx: SuiteContext):
+    """The estimator object of the closed-loop entry ``name``, built as its entry builds it."""
+    return _BUILDERS[name][1](ctx)
 
 
 @register(
@@ -274,60 +270,3 @@ def _reference(ctx: SuiteContext):
         return free._replace(output=EstimatorOutput(free.output.means))
 
     return run
-
-
-# ------------------------------------------------------------- the per-channel validation
-
-
-def per_channel_attack_rmse(
-    checkpoint,
-    *,
-    seed: int,
-    runs_per_channel: int = 8,
-    steps: int = 1000,
-    progress: bool = False,
-) -> dict[str, dict[str, float]]:
-    """Random attacks on one channel at a time (the ``lfc/per_channel`` validation stream,
-    never the test scenarios), every estimator of the per-channel study (built as its
-    registry entry builds it, each in its own loop): ``{estimator: {channel: eq. 43 RMSE of
-    the attacked channel, mean over its runs}}`` and the zero estimate's
-    (``checkpoint=None`` leaves out the checkpoint's estimators)."""
-    from tqdm.auto import tqdm
-
-    from difffilter.models import registry
-    from difffilter.models.attacks import Signal
-    from difffilter.models.lfc import random_attacks
-
-    streams, R = Streams(seed), runs_per_channel
-    scenario = registry.get("lfc_step")
-    lfc = LFCContext(dt=0.01)
-    g = streams("lfc/per_channel")
-    attack = torch.cat(
-        [
-            random_attacks(R, steps, 0.01, generator=g, channels=(c,), min_events=1)
-            for c in range(STATE_DIM)
-        ]
-    )
-    xi, theta = lfc.plant.sample_noise(STATE_DIM * R, steps, g)
-    load = torch.tensor([[0.01, 0.0]], dtype=lfc.dtype)
-    ctx = SuiteContext(scenario, scenario.system(), STATE_DIM * R, streams, checkpoint=checkpoint)
-    ctx.cache[("lfc/context", 0.01)] = lfc
-    names = [n for n in PER_CHANNEL if checkpoint is not None or "grad" not in n]
-    weights_seed = streams.seed_of("lfc/initial_weights")
-    estimates = {}
-    for n in tqdm(names, desc="per-channel validation", disable=not progress, leave=False):
-        estimator = _BUILDERS[n][1](ctx)
-        gens = Generators(init=torch.Generator().manual_seed(weights_seed))
-        with torch.no_grad():
-            loop = lfc_loop(lfc.plant, estimator, xi, theta, load, attack=Signal(attack),
-                            generator=gens, K1=lfc.K1)  # fmt: skip
-        estimates[n] = loop.output.attack
-    estimates["zero_estimate"] = torch.zeros_like(attack)
-    blocks = [slice(c * R, (c + 1) * R) for c in range(STATE_DIM)]
-    return {
-        n: {
-            s: float((e[b, :, c] - attack[b, :, c]).square().mean(1).sqrt().mean())
-            for c, (s, b) in enumerate(zip(STATE_NAMES, blocks))
-        }
-        for n, e in estimates.items()
-    }

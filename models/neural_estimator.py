@@ -32,7 +32,9 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-__all__ = ["AreaNetwork", "NeuralFDIEstimator", "EstimatorCard"]
+from difffilter._checks import Choice
+
+__all__ = ["AreaNetwork", "WeightInit", "NeuralFDIEstimator", "EstimatorCard"]
 
 
 def _check_int(value, name, minimum=1):
@@ -87,6 +89,13 @@ class AreaNetwork(nn.Module):
         return out, torch.cat([d_w, d_v], dim=-1)
 
 
+class WeightInit(Choice):
+    """Initial weights: ``s·U[0, 1]`` (Algorithm 1 of the LFC paper) or ``U[−s, s]``."""
+
+    UNIFORM01 = "uniform01"
+    SYMMETRIC = "symmetric"
+
+
 class NeuralFDIEstimator(nn.Module):
     """Per-area networks ``M̂ⁱ = Wⁱ tanh(Vⁱ δⁱ)`` (eqs 8–9), stacked over areas.
 
@@ -96,7 +105,7 @@ class NeuralFDIEstimator(nn.Module):
         a, b: number of past attack estimates and residuals in ``δ`` ([DEF] 3 and 3).
         hidden: tanh units per area ([DEF] 10).
         init_scale: ``s`` of the initial weights.
-        init: ``"uniform01"`` (``s·U[0,1]``, Algorithm 1) or ``"symmetric"`` (``U[−s, s]``).
+        init: :class:`WeightInit` (``s·U[0,1]``, Algorithm 1, or ``U[−s, s]``).
         detection_head: add the logistic attack-probability read-out.
         attack_scale, resid_scale: fixed input normalisation, ``δ̃ = δ / scale`` for the
             attack-estimate and the residual entries (1 and 1 = the paper). Residuals are of
@@ -125,7 +134,7 @@ class NeuralFDIEstimator(nn.Module):
         b: int = 3,
         hidden: int = 10,
         init_scale: float = 0.05,
-        init: str = "uniform01",
+        init: WeightInit | str = WeightInit.UNIFORM01,
         detection_head: bool = True,
         attack_scale: float = 1.0,
         resid_scale: float = 1.0,
@@ -150,15 +159,9 @@ class NeuralFDIEstimator(nn.Module):
             raise ValueError("resid_dim must equal area_dim with several areas (eq. 9)")
         if not init_scale > 0:
             raise ValueError(f"init_scale must be positive; got {init_scale!r}")
-        if init not in ("uniform01", "symmetric"):
-            raise ValueError(f"init must be 'uniform01' or 'symmetric'; got {init!r}")
-        self.num_areas, self.area_dim, self.a, self.b, self.hidden = (
-            num_areas,
-            area_dim,
-            a,
-            b,
-            hidden,
-        )
+        init = WeightInit(init)
+        self.num_areas, self.area_dim, self.a, self.b = num_areas, area_dim, a, b
+        self.hidden = hidden
         self.extra_inputs, self.resid_dim = extra_inputs, resid_dim
         self.in_dim = area_dim * a + resid_dim * b + extra_inputs
         if not (attack_scale > 0 and resid_scale > 0):
@@ -177,7 +180,7 @@ class NeuralFDIEstimator(nn.Module):
 
         def draw(*shape):
             u = torch.rand(*shape, generator=g, dtype=dtype)
-            return init_scale * (u if init == "uniform01" else 2.0 * u - 1.0)
+            return init_scale * (u if init is WeightInit.UNIFORM01 else 2.0 * u - 1.0)
 
         self.V = nn.Parameter(draw(num_areas, hidden, self.in_dim))
         self.W = nn.Parameter(draw(num_areas, area_dim, hidden))
@@ -200,7 +203,7 @@ class NeuralFDIEstimator(nn.Module):
             "b": self.b,
             "hidden": self.hidden,
             "init_scale": self.init_scale,
-            "init": self.init,
+            "init": self.init.value,
             "detection_head": self.detection_head,
             "attack_scale": self.attack_scale,
             "resid_scale": self.resid_scale,

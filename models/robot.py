@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from difffilter.fdi.mdpf import Reading
 from difffilter.linalg import matvec, rowwise
 from difffilter.noise import Gaussian
 from difffilter.ssm import StateSpaceModel
@@ -230,7 +231,7 @@ class RobotScenario(Scenario):
     attack_from: int = 30
     forgetting: float = 0.7
     attack_cov0: float = 10.0
-    reading: str = "draw"
+    reading: Reading = Reading.DRAW
     checkpoint: str | None = "checkpoints/robot_nn_ekf.ckpt"  # gaussian_nn_ekf without --ckpt
 
     def __post_init__(self):

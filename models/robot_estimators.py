@@ -32,7 +32,7 @@ import torch
 
 from difffilter.estimator import Detection, Estimator, EstimatorOutput, Generators
 from difffilter.fdi.adaptive_kf import adaptive_kalman_filter, wald_statistic
-from difffilter.fdi.fusion import covariance_intersection, information_fusion
+from difffilter.fdi.fusion import FusionRule, covariance_intersection, information_fusion
 from difffilter.fdi.mdpf import (
     AdaptiveParticleFilter,
     adaptive_particle_filter,
@@ -84,9 +84,9 @@ def local_pair(ctx: SuiteContext, tr) -> EstimatorOutput:
     )  # fmt: skip
 
 
-def fuse_pair(means, covs, attacks, attack_covs, rule: str):
+def fuse_pair(means, covs, attacks, attack_covs, rule: FusionRule | str):
     """Fuse locals stacked first (``[2, …, d]``) → ``(x̂, P, â, S, ω or None)``."""
-    if rule == "ci":
+    if FusionRule(rule) is FusionRule.CI:
         x, P, omega = covariance_intersection(means.movedim(0, -2), covs.movedim(0, -3))
         a, S, _ = covariance_intersection(attacks.movedim(0, -2), attack_covs.movedim(0, -3))
         return x, P, a, S, omega
@@ -111,7 +111,7 @@ def _local(index: int):
     return factory
 
 
-def _fused(rule: str):
+def _fused(rule: FusionRule):
     def factory(ctx: SuiteContext):
         est = _fused_locals(ctx, rule)
 
@@ -147,8 +147,10 @@ register("zhang_akf_group1", "Zhang's adaptive EKF, lidars {1, 2, 3}")(_zhang(GR
 register("zhang_akf_group2", "Zhang's adaptive EKF, lidars {4, 5, 6}")(_zhang(GROUPS[1]))
 register("mdpf_local_1", "local estimator (A1)–(A8), lidars {1, 2, 3}")(_local(0))
 register("mdpf_local_2", "local estimator (A1)–(A8), lidars {4, 5, 6}")(_local(1))
-register("mdpf_fused_ci", "the two locals fused by covariance intersection")(_fused("ci"))
-register("mdpf_fused_naive", "the two locals fused by naive information fusion")(_fused("naive"))
+register("mdpf_fused_ci", "the two locals fused by covariance intersection")(_fused(FusionRule.CI))
+register("mdpf_fused_naive", "the two locals fused by naive information fusion")(
+    _fused(FusionRule.NAIVE)
+)
 
 
 class FusedLocals(Estimator):
@@ -156,7 +158,7 @@ class FusedLocals(Estimator):
 
     One :class:`~difffilter.fdi.AdaptiveParticleFilter` runs both locals as a batch
     ``[G, ...]`` on the grouped model (each group's range–bearing entries); the fusion
-    ``rule`` (``"ci"``: covariance intersection, ``"naive"``: information fusion) combines
+    ``rule`` (:class:`~difffilter.fdi.fusion.FusionRule`: CI or information fusion) combines
     their states and attack estimates. Step output: the fused ``x̂, P, â``, the Wald score
     on ``(â, Ŝ)`` with the locals' threshold, ``extras`` ``"attack_covs"`` ``Ŝ``,
     ``"local_means" [..., G, dx]``, ``"local_attacks" [..., G, du]`` and, for CI, ``"omega"``.
@@ -168,10 +170,9 @@ class FusedLocals(Estimator):
 
     carry_type = ParticleState
 
-    def __init__(self, local: AdaptiveParticleFilter, rule: str = "ci", groups=GROUPS):
-        if rule not in ("ci", "naive"):
-            raise ValueError(f"rule must be 'ci' or 'naive'; got {rule!r}")
-        self.local, self.rule, self.groups = local, rule, tuple(groups)
+    def __init__(self, local: AdaptiveParticleFilter, rule: FusionRule | str = FusionRule.CI,
+                 groups=GROUPS):  # fmt: skip
+        self.local, self.rule, self.groups = local, FusionRule(rule), tuple(groups)
 
     def _init(self, model, batch_shape, generators):
         grouped = model.group(self.groups)
@@ -231,7 +232,7 @@ class CompensatingInputs:
         return u - out.attack if self.compensate else u
 
 
-def _fused_locals(ctx: SuiteContext, rule: str) -> FusedLocals:
+def _fused_locals(ctx: SuiteContext, rule: FusionRule) -> FusedLocals:
     sc = ctx.scenario
     local = AdaptiveParticleFilter(sc.num_particles, forgetting=sc.forgetting,
                                    reading=sc.reading, attack_cov0=sc.attack_cov0)  # fmt: skip
@@ -239,7 +240,8 @@ def _fused_locals(ctx: SuiteContext, rule: str) -> FusedLocals:
 
 
 @torch.no_grad()
-def compensated_loop(ctx: SuiteContext, runs: int, *, compensate: bool = True, rule: str = "ci"):
+def compensated_loop(ctx: SuiteContext, runs: int, *, compensate: bool = True,
+                     rule: FusionRule = FusionRule.CI):  # fmt: skip
     """The fused estimator in difffilter's closed loop with ``u ← u − â`` (module docstring).
 
     Returns a dict of ``"x"`` true states ``[B, T, 3]``, ``"means"`` fused estimates,

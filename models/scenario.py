@@ -27,6 +27,7 @@ import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from enum import Enum
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -38,7 +39,16 @@ from difffilter.loop import DrawnNoise, KnownInputs, Trajectories, closed_loop
 
 from .schedules import AllSensors
 
-__all__ = ["Trajectories", "Scenario", "CustomScenario", "simulate"]
+__all__ = ["Trajectories", "Scenario", "CustomScenario", "simulate", "OWN_ATTACK"]
+
+
+class _Own(Enum):
+    ATTACK = "the scenario's own attack"
+
+
+#: ``attack=OWN_ATTACK`` (the default of :meth:`Scenario.simulate` and ``loop``): the
+#: scenario's own attack; ``attack=None`` runs attack-free, an ``Attack`` runs that one.
+OWN_ATTACK = _Own.ATTACK
 
 
 @torch.no_grad()
@@ -170,17 +180,17 @@ class Scenario:
         generators: Mapping[str, torch.Generator],
         *,
         dtype: torch.dtype = torch.float64,
-        attack: Any = "scenario",
+        attack: Any = OWN_ATTACK,
         model=None,
     ) -> Trajectories:
-        """``runs`` runs of this scenario (``attack=None``: attack-free runs)."""
+        """``runs`` runs of this scenario (``attack``: :data:`OWN_ATTACK`, ``None`` or another)."""
         model = model if model is not None else self.system(dtype)
         return simulate(
             model,
             runs,
             self.steps,
             generators=generators,
-            attack=self.attack_model() if attack == "scenario" else attack,
+            attack=self.attack_model() if attack is OWN_ATTACK else attack,
             schedule=self.schedule(),
             us=self.inputs(runs, dtype),
         )

@@ -37,7 +37,7 @@ from difffilter.ssm import StateSpaceModel
 
 from .attacks import Replacement
 from .registry import register
-from .scenario import Scenario, Trajectories, simulate
+from .scenario import OWN_ATTACK, Scenario, Trajectories, simulate
 from .schedules import RoundRobin
 
 __all__ = [
@@ -453,7 +453,7 @@ class TrackingScenario(Scenario):
     def schedule(self) -> RoundRobin:
         return RoundRobin(self.groups, start=self.gamma_ini - 1)
 
-    def simulate(self, runs, generators, *, dtype=torch.float64, attack="scenario", model=None):
+    def simulate(self, runs, generators, *, dtype=torch.float64, attack=OWN_ATTACK, model=None):
         """``runs`` runs: plant, per-sensor attacks, Round-Robin mask, held measurements.
 
         ``y_recv`` is eq. (7) under ``holding``; ``flags`` mark steps whose scheduled
@@ -463,7 +463,7 @@ class TrackingScenario(Scenario):
         """
         model = model if model is not None else self.system(dtype)
         base = simulate(model, runs, self.steps, generators=generators, schedule=self.schedule())
-        attack = self.attack_model() if attack == "scenario" else attack
+        attack = self.attack_model() if attack is OWN_ATTACK else attack
         y_true, mask, groups = base.y_true, base.mask, self.groups
         if attack is None:
             values = torch.zeros_like(y_true)

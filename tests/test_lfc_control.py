@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from difffilter.control import (
-    LUENBERGER_DESIGNS,
+    LuenbergerDesign,
     care_residual,
     lqr,
     luenberger_gain,
@@ -83,7 +83,7 @@ def test_lqr_bad_arguments(plant):
         lqr(plant.A[:3, :3], plant.B)
 
 
-@pytest.mark.parametrize("design", LUENBERGER_DESIGNS)
+@pytest.mark.parametrize("design", LuenbergerDesign)
 def test_luenberger_designs_place_the_same_poles(plant, design):
     K, _ = lqr(plant.A, plant.B)
     Acl = plant.A - plant.B @ K
@@ -98,7 +98,7 @@ def test_luenberger_designs_place_the_same_poles(plant, design):
 def test_luenberger_designs_differ(plant):
     K, _ = lqr(plant.A, plant.B)
     Acl = plant.A - plant.B @ K
-    gains = [luenberger_gain(plant.Ad, Acl, plant.dt, design=d) for d in LUENBERGER_DESIGNS]
+    gains = [luenberger_gain(plant.Ad, Acl, plant.dt, design=d) for d in LuenbergerDesign]
     assert (gains[0] - gains[1]).abs().max() > 0.05
-    with pytest.raises(ValueError, match="design"):
-        luenberger_gain(plant.Ad, Acl, plant.dt, design="nope")
+    with pytest.raises(ValueError, match="LuenbergerDesign"):
+        luenberger_gain(plant.Ad, Acl, plant.dt, design="nope")  # names LuenbergerDesign

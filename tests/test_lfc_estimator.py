@@ -69,7 +69,7 @@ def test_estimator_bad_arguments():
         NeuralFDIEstimator(hidden=0)
     with pytest.raises(ValueError, match="init_scale"):
         NeuralFDIEstimator(init_scale=-1.0)
-    with pytest.raises(ValueError, match="init"):
+    with pytest.raises(ValueError, match="WeightInit"):
         NeuralFDIEstimator(init="normal")
     with pytest.raises(ValueError, match="delta"):
         NeuralFDIEstimator()(torch.zeros(3, 2, 29, dtype=torch.float64))

@@ -121,8 +121,10 @@ def test_scenario_attacks_exact_values():
     assert saw[59, 2] == 0
     assert saw[:, 2].max().item() == pytest.approx(0.95)
     assert torch.equal(scenario_attack("none", t), torch.zeros(1000, 10, dtype=torch.float64))
-    with pytest.raises(ValueError, match="kind"):
+    with pytest.raises(ValueError, match="LFCAttack"):
         scenario_attack("bogus", t)
+    with pytest.raises(ValueError, match="random_attacks"):
+        scenario_attack("random", t)
 
 
 def test_sawtooth_general_skew():

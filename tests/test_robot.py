@@ -306,7 +306,7 @@ def test_covariance_intersection_identical_estimates_and_brute_force():
     mn, cn = information_fusion(means, covs)
     torch.testing.assert_close(cn, torch.linalg.inv(torch.linalg.inv(P) + torch.linalg.inv(P2)))
     torch.testing.assert_close(fuse(means, covs, "naive")[0], mn)
-    with pytest.raises(ValueError, match="rule"):
+    with pytest.raises(ValueError, match="FusionRule"):
         fuse(means, covs, "mean")
 
 

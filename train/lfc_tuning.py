@@ -26,6 +26,7 @@ from pathlib import Path
 
 import torch
 
+from difffilter.control import LuenbergerDesign
 from difffilter.estimator import Generators
 from difffilter.models import registry
 from difffilter.models.learned_estimator import Residual
@@ -102,7 +103,7 @@ def _estimator(name: str, setting: dict, ctx: LFCContext, checkpoint):
     if name == "traditional_ad":
         rule = GradientRule(**{**GD_DEFAULTS, **rule_kw})
         s = setting["init_scale"]
-        return lfc_estimator(ctx, luenberger=setting["luenberger_design"], rule=rule,
+        return lfc_estimator(ctx, luenberger=LuenbergerDesign(setting["luenberger_design"]), rule=rule,
                              network=paper_network(s), init_scale=s)  # fmt: skip
     if name == "kf_nn_ekf":
         rule = EKFRule(**{**EKF_DEFAULTS, **rule_kw}, donate=True)

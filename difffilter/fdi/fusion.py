@@ -29,10 +29,11 @@ import math
 import torch
 from torch import Tensor
 
+from .._checks import Choice
 from ..linalg import matvec, symmetrize
 from . import _components as C
 
-__all__ = ["covariance_intersection", "information_fusion", "FUSION_RULES", "fuse"]
+__all__ = ["covariance_intersection", "information_fusion", "FusionRule", "fuse"]
 
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
@@ -155,15 +156,18 @@ def information_fusion(means: Tensor, covs: Tensor) -> tuple[Tensor, Tensor]:
     return _fused(info, means, means.new_ones(means.shape[:-1]))
 
 
-#: The fusion rules by name (what the estimators and tests select).
-FUSION_RULES = ("ci", "naive")
+class FusionRule(Choice):
+    """How two estimates are fused: covariance intersection or naive information fusion."""
+
+    CI = "ci"
+    NAIVE = "naive"
 
 
-def fuse(means: Tensor, covs: Tensor, rule: str = "ci") -> tuple[Tensor, Tensor]:
-    """``(mean, cov)`` of the two estimates by ``rule`` (``"ci"`` or ``"naive"``)."""
-    if rule == "ci":
+def fuse(
+    means: Tensor, covs: Tensor, rule: FusionRule | str = FusionRule.CI
+) -> tuple[Tensor, Tensor]:
+    """``(mean, cov)`` of the two estimates by ``rule`` (:class:`FusionRule`)."""
+    if FusionRule(rule) is FusionRule.CI:
         mean, cov, _ = covariance_intersection(means, covs)
         return mean, cov
-    if rule == "naive":
-        return information_fusion(means, covs)
-    raise ValueError(f"rule must be one of {FUSION_RULES}; got {rule!r}")
+    return information_fusion(means, covs)

@@ -17,17 +17,17 @@ particle, with ``u = u_{k−1}``::
 The letter's eq. (5), which gives ``x̂ʲ(k)`` and ``âʲ(k)`` from the selected particle, is
 not in the supplementary; both readings are available (``reading``):
 
-* ``"draw"`` (default): ``x̂ʲ(k) ~ N(x̄ˡ, Pˡ)``, ``âʲ(k) = āˡ``: sample the selected
+* ``Reading.DRAW`` (default): ``x̂ʲ(k) ~ N(x̄ˡ, Pˡ)``, ``âʲ(k) = āˡ``: sample the selected
   Gaussian component of the mixture posterior, as the multi-distribution PF does. Keeps
   particle diversity (the propagation (A3) itself adds no noise).
-* ``"copy"``: ``x̂ʲ(k) = x̄ˡ``, ``âʲ(k) = āˡ``. Since (A3) is deterministic, the
+* ``Reading.COPY``: ``x̂ʲ(k) = x̄ˡ``, ``âʲ(k) = āˡ``. Since (A3) is deterministic, the
   particles then collapse onto the descendants of a single particle within a few steps
   and the filter becomes one adaptive EKF with ``P_p = Q`` (tested).
 
 Tensor program: a particle is the vector ``[x̄ (dx), ā (da), vec Υ (dx·da), vec S
 (da·da), vec P (dx·dx)]`` (:class:`ParticleLayout`); the shared particle driver
 (:func:`difffilter.particle.particle_filter`) resamples them (``Multinomial``, every
-step), calls :class:`AdaptiveKalmanProposal` (which draws the ``"draw"`` reading and runs
+step), calls :class:`AdaptiveKalmanProposal` (which draws the ``DRAW`` reading and runs
 (A2)–(A5) for all particles of all runs at once, :func:`~difffilter.fdi.adaptive_kf.adaptive_update`)
 and weights them: the proposal returns ``log N(ε; 0, Σ)`` (A8) as its log-correction and
 the likelihood is flat — (A8) is the optimal-proposal weight ``p(y_k | x̂ʲ_{k−1})``.
@@ -46,7 +46,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._checks import check_step_inputs
+from .._checks import Choice, check_step_inputs
 from ..estimator import Estimator, EstimatorOutput, Generators
 from ..linalg import matvec, safe_cholesky, symmetrize
 from ..loop import open_loop
@@ -60,7 +60,8 @@ from .detectors import chi_square_quantile
 from .modified_pf import FlatLikelihood
 
 __all__ = [
-    "READINGS",
+    "Reading",
+    "Form",
     "ParticleLayout",
     "ParticleView",
     "AdaptiveKalmanProposal",
@@ -72,8 +73,21 @@ __all__ = [
     "adaptive_particle_filter",
 ]
 
-#: The two readings of the letter's missing eq. (5) (module docstring).
-READINGS = ("draw", "copy")
+
+class Reading(Choice):
+    """The two readings of the letter's missing eq. (5) (module docstring)."""
+
+    DRAW = "draw"
+    COPY = "copy"
+
+
+class Form(Choice):
+    """How the proposal runs (A2)–(A5): the information form (time-invariant, diagonal
+    ``R``), the covariance form, or the first where it applies (``AUTO``)."""
+
+    AUTO = "auto"
+    INFORMATION = "information"
+    COVARIANCE = "covariance"
 
 
 class ParticleLayout:
@@ -136,9 +150,9 @@ def information_form_applies(model: StateSpaceModel) -> bool:
 
 
 class AdaptiveKalmanProposal:
-    """(A2)–(A5) for every particle, with the ``"draw"`` reading of eq. (5) first.
+    """(A2)–(A5) for every particle, with the ``DRAW`` reading of eq. (5) first.
 
-    ``form``: ``"information"`` (default) evaluates (A4)–(A5) in information form on
+    ``form``: :attr:`Form.INFORMATION` (where it applies) evaluates (A4)–(A5) in information form on
     component lists (:mod:`difffilter.fdi._components`, ~10× faster on CPU); it needs a
     diagonal, time-invariant ``R`` and a time-invariant ``Q``. With ``P_p = Q`` and
     ``M = Q⁻¹ + HᵀR⁻¹H``::
@@ -153,9 +167,9 @@ class AdaptiveKalmanProposal:
     adjugate formulas (:func:`~difffilter.fdi._components.sym_inverse`); every entry of
     every matrix is one tensor over all particles of all runs, and constant entries
     (``Q⁻¹``, the unicycle's 0/1 Jacobian entries) are Python numbers that cost no
-    kernel. ``"covariance"`` runs :func:`~difffilter.fdi.adaptive_kf.adaptive_update`
+    kernel. :attr:`Form.COVARIANCE` runs :func:`~difffilter.fdi.adaptive_kf.adaptive_update`
     (the shared Kalman gain and Joseph form) on the packed tensors; the two agree to
-    round-off (tested, also for one ``"draw"`` step against the same noise).
+    round-off (tested, also for one ``DRAW`` step against the same noise).
 
     Returns ``(new packed particles [..., N, D], log N(ε; 0, Σ) [..., N])`` (A8). The
     information form returns them component-major (``[..., D, N]`` in memory, seen as
@@ -168,19 +182,16 @@ class AdaptiveKalmanProposal:
         self,
         base: StateSpaceModel,
         forgetting: float,
-        reading: str = "draw",
-        form: str = "auto",
+        reading: Reading | str = Reading.DRAW,
+        form: Form | str = Form.AUTO,
     ):
-        if form == "auto":
-            form = "information" if information_form_applies(base) else "covariance"
-        if reading not in READINGS:
-            raise ValueError(f"reading must be one of {READINGS} (eq. 5); got {reading!r}")
-        if form not in ("information", "covariance"):
-            raise ValueError(f"form must be 'information' or 'covariance'; got {form!r}")
+        reading, form = Reading(reading), Form(form)
+        if form is Form.AUTO:
+            form = Form.INFORMATION if information_form_applies(base) else Form.COVARIANCE
         self.base, self.forgetting, self.reading = base, _check_forgetting(forgetting), reading
         self.layout = ParticleLayout(base.dim_x, base.dim_u)
         self.form = form
-        if form == "information":
+        if form is Form.INFORMATION:
             if not information_form_applies(base):
                 raise ValueError(
                     "form='information' needs a time-invariant, diagonal R; use form='covariance'"
@@ -192,13 +203,13 @@ class AdaptiveKalmanProposal:
             self._logdet_q = float(torch.logdet(Q))
 
     def __call__(self, model, particles, u, y, k, mask, generator):
-        if self.form == "covariance":
+        if self.form is Form.COVARIANCE:
             return self._covariance(particles, u, y, k, mask, generator)
         return self._information(particles, u, y, k, mask, generator)
 
     def _covariance(self, particles, u, y, k, mask, generator):
         x, a, ups, S, P = self.layout.unpack(particles)
-        if self.reading == "draw":  # x̂ʲ(k−1) ~ N(x̄ˡ, Pˡ)
+        if self.reading is Reading.DRAW:  # x̂ʲ(k−1) ~ N(x̄ˡ, Pˡ)
             eps = torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
             x = x + matvec(safe_cholesky(P, name="particle covariance P"), eps)
         u = a.new_zeros(()).expand(a.shape) if u is None else u.unsqueeze(-2)
@@ -244,7 +255,7 @@ class AdaptiveKalmanProposal:
         o += dx * da
         S = [list(comp[o + i * da : o + (i + 1) * da]) for i in range(da)]
         o += da * da
-        if self.reading == "draw":  # x̂ʲ(k−1) ~ N(x̄ˡ, Pˡ)
+        if self.reading is Reading.DRAW:  # x̂ʲ(k−1) ~ N(x̄ˡ, Pˡ)
             P = [list(comp[o + i * dx : o + (i + 1) * dx]) for i in range(dx)]
             eps = torch.randn(
                 (dx,) + x[0].shape, generator=generator, dtype=z.dtype, device=z.device
@@ -349,8 +360,8 @@ class AdaptiveParticleFilter(Estimator):
     Args:
         num_particles: ``M``.
         forgetting: ``λ ∈ (0, 1]``.
-        reading: ``"draw"`` or ``"copy"`` (eq. 5).
-        form: ``"information"``, ``"covariance"`` or ``"auto"`` (:class:`AdaptiveKalmanProposal`).
+        reading: :class:`Reading` (eq. 5).
+        form: :class:`Form` (:class:`AdaptiveKalmanProposal`).
         attack_cov0: ``S_0 = ω I``.
         resampler: default ``Multinomial()`` (the inverse-CDF selection of App. A), at
             every step.
@@ -360,7 +371,7 @@ class AdaptiveParticleFilter(Estimator):
     ``process_cov`` is the ``Q`` of (A4). Carry: a :class:`~difffilter.ParticleState` of
     packed particles (:class:`ParticleLayout`) whose ``model`` is the
     :class:`ParticleView` of the model; ``init`` draws ``x̄ʲ`` from ``generators.init``,
-    the ``"draw"`` reading from ``generators.propagate``, the selection uniforms from
+    the ``DRAW`` reading from ``generators.propagate``, the selection uniforms from
     ``generators.resample``. Step output: the mixture ``mean``, ``cov``, ``attack`` ``â``
     (the attack on ``u_{k−1}``), the Wald score with its alarm and threshold, and
     ``extras`` ``"attack_covs"`` ``Ŝ`` and ``"ess"`` (before resampling).
@@ -373,14 +384,13 @@ class AdaptiveParticleFilter(Estimator):
         num_particles: int = 100,
         *,
         forgetting: float = 0.7,
-        reading: str = "draw",
-        form: str = "auto",
+        reading: Reading | str = Reading.DRAW,
+        form: Form | str = Form.AUTO,
         attack_cov0: float = 10.0,
         resampler=None,
         false_alarm_rate: float = 0.01,
     ):
-        if reading not in READINGS:
-            raise ValueError(f"reading must be one of {READINGS} (eq. 5); got {reading!r}")
+        reading, form = Reading(reading), Form(form)
         self.num_particles, self.forgetting = num_particles, _check_forgetting(forgetting)
         self.reading, self.form, self.attack_cov0 = reading, form, float(attack_cov0)
         self.resampler = resampler if resampler is not None else Multinomial()
@@ -444,8 +454,8 @@ def adaptive_particle_step(
     mask: Tensor | None = None,
     *,
     forgetting: float = 0.7,
-    reading: str = "draw",
-    form: str = "auto",
+    reading: Reading | str = Reading.DRAW,
+    form: Form | str = Form.AUTO,
     resampler=None,
     generator: torch.Generator | None = None,
     resample_generator: torch.Generator | None = None,
@@ -472,8 +482,8 @@ def adaptive_particle_filter(
     mask: Tensor | None = None,
     num_particles: int = 100,
     forgetting: float = 0.7,
-    reading: str = "draw",
-    form: str = "auto",
+    reading: Reading | str = Reading.DRAW,
+    form: Form | str = Form.AUTO,
     attack_cov0: float = 10.0,
     resampler=None,
     generator: torch.Generator | None = None,
@@ -490,7 +500,7 @@ def adaptive_particle_filter(
         mask: received entries ``[..., T, dy]`` or ``None``.
         num_particles, forgetting, reading, form, attack_cov0, resampler,
             false_alarm_rate: as in :class:`AdaptiveParticleFilter`.
-        generator: initial particles and the ``"draw"`` noise; resample_generator: the
+        generator: initial particles and the ``DRAW`` noise; resample_generator: the
             selection uniforms (default ``generator``).
         initial_state: packed particles (:func:`adaptive_particle_init`) instead of the prior.
 

@@ -56,12 +56,12 @@ the network.
 
 from __future__ import annotations
 
-from enum import Enum
 from typing import Any, NamedTuple, Protocol
 
 import torch
 from torch import Tensor, nn
 
+from .._checks import Choice
 from ..attack import Channel
 from ..estimator import Estimator, Generators
 from ..kalman import GaussianFilter
@@ -133,7 +133,7 @@ def build_delta(attack_hist: Tensor, resid_hist: Tensor, num_areas: int) -> Tens
     return torch.cat([per_area(attack_hist), per_area(resid_hist)], dim=-1)
 
 
-class Residual(str, Enum):
+class Residual(Choice):
     """Which residuals the network reads (module docstring)."""
 
     INNOVATION = "innovation"

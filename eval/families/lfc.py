@@ -16,10 +16,13 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import torch
 
-from difffilter.estimator import Detection, EstimatorOutput
+from difffilter.estimator import Detection, EstimatorOutput, Generators
 from difffilter.models import registry
-from difffilter.models.lfc import PAPER_TABLES, STATE_DIM, STATE_NAMES
-from difffilter.models.lfc_estimators import ABLATIONS, PER_CHANNEL, per_channel_attack_rmse
+from difffilter.models.attacks import Signal
+from difffilter.models.estimators import SuiteContext
+from difffilter.models.lfc import PAPER_TABLES, STATE_DIM, STATE_NAMES, lfc_loop, random_attacks
+from difffilter.models.lfc_estimators import ABLATIONS, LFCContext, build_estimator
+from difffilter.models.streams import Streams
 
 from ..report import FamilyReport, Section, format_number, markdown_table, register_family
 from ..scoring import score
@@ -30,6 +33,17 @@ PAPER_MEAN = {
     k: sum(PAPER_TABLES[s][k] for s in PAPER_TABLES) / 4 for k in ("proposed_ad", "traditional_ad")
 }
 TUNING = Path(__file__).resolve().parents[2] / "checkpoints" / "lfc_tuning.json"
+
+
+# The estimators of the per-channel validation: the paper's two, ours, and the cross terms.
+PER_CHANNEL = (
+    "kf_nn_ekf",
+    "traditional_ad",
+    "kf_nn_gd",
+    "luenberger_nn_ekf",
+    "kf_nn_grad",
+    "kf_nn_grad_ekf",
+)
 
 
 # ------------------------------------------------------------------------- family numbers
@@ -235,6 +249,56 @@ def _prepare(names, *, out: Path, seed: int, checkpoint, progress: bool, options
     return {"per_channel": doc, "tuning": tuning}
 
 
+def per_channel_attack_rmse(
+    checkpoint,
+    *,
+    seed: int,
+    runs_per_channel: int = 8,
+    steps: int = 1000,
+    progress: bool = False,
+) -> dict[str, dict[str, float]]:
+    """Random attacks on one channel at a time (the ``lfc/per_channel`` validation stream,
+    never the test scenarios), every estimator of the per-channel study (built as its
+    registry entry builds it, each in its own loop): ``{estimator: {channel: eq. 43 RMSE of
+    the attacked channel, mean over its runs}}`` and the zero estimate's
+    (``checkpoint=None`` leaves out the checkpoint's estimators)."""
+    from tqdm.auto import tqdm
+
+    streams, R = Streams(seed), runs_per_channel
+    scenario = registry.get("lfc_step")
+    lfc = LFCContext(dt=0.01)
+    g = streams("lfc/per_channel")
+    attack = torch.cat(
+        [
+            random_attacks(R, steps, 0.01, generator=g, channels=(c,), min_events=1)
+            for c in range(STATE_DIM)
+        ]
+    )
+    xi, theta = lfc.plant.sample_noise(STATE_DIM * R, steps, g)
+    load = torch.tensor([[0.01, 0.0]], dtype=lfc.dtype)
+    ctx = SuiteContext(scenario, scenario.system(), STATE_DIM * R, streams, checkpoint=checkpoint)
+    ctx.cache[("lfc/context", 0.01)] = lfc
+    names = [n for n in PER_CHANNEL if checkpoint is not None or "grad" not in n]
+    weights_seed = streams.seed_of("lfc/initial_weights")
+    estimates = {}
+    for n in tqdm(names, desc="per-channel validation", disable=not progress, leave=False):
+        estimator = build_estimator(n, ctx)
+        gens = Generators(init=torch.Generator().manual_seed(weights_seed))
+        with torch.no_grad():
+            loop = lfc_loop(lfc.plant, estimator, xi, theta, load, attack=Signal(attack),
+                            generator=gens, K1=lfc.K1)  # fmt: skip
+        estimates[n] = loop.output.attack
+    estimates["zero_estimate"] = torch.zeros_like(attack)
+    blocks = [slice(c * R, (c + 1) * R) for c in range(STATE_DIM)]
+    return {
+        n: {
+            s: float((e[b, :, c] - attack[b, :, c]).square().mean(1).sqrt().mean())
+            for c, (s, b) in enumerate(zip(STATE_NAMES, blocks))
+        }
+        for n, e in estimates.items()
+    }
+
+
 def per_channel_validation(
     checkpoint,
     *,
@@ -244,7 +308,7 @@ def per_channel_validation(
     steps: int = 1000,
     progress: bool = False,
 ) -> dict:
-    """:func:`~difffilter.models.lfc_estimators.per_channel_attack_rmse` written to
+    """:func:`per_channel_attack_rmse` written to
     ``<out>/lfc_per_channel/`` (metrics.json with its wall time, report.md, a bar plot)."""
     R, start = runs_per_channel, time.perf_counter()
     table = per_channel_attack_rmse(
