@@ -24,7 +24,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ._checks import check_step_inputs
 from .gaussian import gaussian_update, linear_update, predict_covariance
 from .kalman import GaussianFilter, Prediction
 from .linalg import masked_measurement, outer, safe_cholesky, symmetrize
@@ -81,8 +80,7 @@ def extended_kalman_step(
     mask: Tensor | None = None,
 ) -> tuple[GaussianState, StepOutput]:
     """One EKF step ``x_{k−1} → x_k``; shapes and input checks as in :func:`difffilter.kalman_step`."""
-    y, u, mask = check_step_inputs(model, state.mean, y, u, mask)
-    return ExtendedKalmanFilter()._step(state._replace(model=model), y, u, mask)
+    return ExtendedKalmanFilter().step(state._replace(model=model), y, u, mask)
 
 
 def extended_kalman_filter(
@@ -202,8 +200,7 @@ def unscented_kalman_step(
     sigma_points: SigmaPoints | None = None,
 ) -> tuple[GaussianState, StepOutput]:
     """One UKF step ``x_{k−1} → x_k``; shapes and input checks as in :func:`difffilter.kalman_step`."""
-    y, u, mask = check_step_inputs(model, state.mean, y, u, mask)
-    return UnscentedKalmanFilter(sigma_points)._step(state._replace(model=model), y, u, mask)
+    return UnscentedKalmanFilter(sigma_points).step(state._replace(model=model), y, u, mask)
 
 
 def _check_sigma_points(sigma_points) -> None:

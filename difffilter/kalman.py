@@ -30,7 +30,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._checks import Choice, check_carry_tensor, check_step_inputs
+from ._checks import Choice, check_carry_tensor
 from ._shared_cov import shared_covariance_applies, shared_covariance_kalman_filter
 from .estimator import Estimator, output_of
 from .gain_schedule import GainSchedule, shared_gains_apply
@@ -106,8 +106,7 @@ def kalman_step(
     in a received entry of ``y`` raises ``ValueError`` instead of poisoning every later
     state. Returns the posterior of ``x_k`` and a :class:`~difffilter.results.StepOutput`.
     """
-    y, u, mask = check_step_inputs(model, state.mean, y, u, mask)
-    return _kalman_step(model, state, y, u, mask)
+    return KalmanFilter().step(state._replace(model=model, gains=None), y, u, mask)
 
 
 def _kalman_step(model, state, y, u=None, mask=None):

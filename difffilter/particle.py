@@ -37,8 +37,8 @@ from torch import Tensor
 from ._checks import (
     check_carry_tensor,
     check_ess_threshold,
+    check_model,
     check_positive_int,
-    check_step_inputs,
     check_strategy,
 )
 from .estimator import Estimator, Generators
@@ -342,6 +342,12 @@ class ParticleFilter(Estimator):
     def attach(self, state: ParticleState, model, generators: Generators) -> ParticleState:
         """``state`` (e.g. particles drawn elsewhere) as this filter's carry on ``model``:
         the model, the generators and, for a stateful likelihood, its initial state."""
+        n = state.log_weights.shape[-1] if isinstance(state, ParticleState) else None
+        if n != self.num_particles:
+            raise ValueError(
+                f"state must be a ParticleState of {self.num_particles} particles (num_particles); "
+                f"got {'a ' + type(state).__name__ if n is None else f'{n} particles'}"
+            )
         aux = state.aux
         if self.stateful and aux is None:
             lead = state.log_weights.shape[:-1]
@@ -395,14 +401,18 @@ def particle_step(
     :class:`~difffilter.results.StepOutput` (``extras``: ``ess``, ``resampled``,
     ``degenerate``, ``prior_log_weights``).
     """
-    y, u, mask = check_step_inputs(model, state.particles, y, u, mask)
+    check_model(model)
+    if not isinstance(state, ParticleState):
+        raise TypeError(
+            f"state must be a ParticleState (particle_init); got {type(state).__name__}"
+        )
     pf = ParticleFilter(
         state.log_weights.shape[-1], resampler=resampler, proposal=proposal,
         likelihood=likelihood, ess_threshold=ess_threshold, innovations=innovations,
         cov_dims=_check_cov_dims(cov_dims, state.particles.shape[-1]), record_prior=True,
     )  # fmt: skip
     gens = Generators(None, generator, resample_generator if resample_generator else generator)
-    return pf._step(pf.attach(state, model, gens), y, u, mask)
+    return pf.step(pf.attach(state, model, gens), y, u, mask)
 
 
 def _check_cov_dims(cov_dims, dim: int) -> int | None:

@@ -31,14 +31,25 @@ __all__ = [
 
 
 def _check_statistic(t, name: str) -> Tensor:
-    """``t`` must be a tensor with finite entries (a NaN would read as "no alarm")."""
+    """``t`` must be a floating tensor with finite entries (a NaN would read as "no alarm")."""
     if not isinstance(t, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor; got {type(t).__name__}")
+    if not t.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor; got {t.dtype}")
     if not bool(torch.isfinite(t).all()):
         raise ValueError(
             f"{name} contains NaN or Inf values; a detector cannot decide on a statistic it "
             "could not compute (it raises instead of returning 'no alarm')"
         )
+    return t
+
+
+def _check_sequence(t, name: str, event_dims: int) -> Tensor:
+    """A statistic over time: ``[..., T]`` plus ``event_dims`` trailing dimensions, ``T ≥ 1``."""
+    _check_statistic(t, name)
+    shape = "[..., T" + ", m" * event_dims + "]"
+    if t.dim() < 1 + event_dims or t.shape[t.dim() - 1 - event_dims] < 1:
+        raise ValueError(f"{name} must be a sequence {shape} of T >= 1 steps; got {tuple(t.shape)}")
     return t
 
 
@@ -48,6 +59,8 @@ def normalized_innovation_squared(innovations: Tensor, innovation_covs: Tensor) 
     ``ValueError`` for non-finite entries, non-symmetric or non-positive-definite ``S``.
     """
     _check_statistic(innovations, "innovations")
+    if innovations.dim() < 1:
+        raise ValueError(f"innovations must have shape [..., m]; got {tuple(innovations.shape)}")
     _check_statistic(innovation_covs, "innovation_covs")
     check_square(innovation_covs, "innovation_covs", innovations.shape[-1])
     check_symmetric(innovation_covs, "innovation_covs")
@@ -94,6 +107,7 @@ class ChiSquareDetector:
 
     def scores(self, innovations: Tensor, innovation_covs: Tensor) -> Tensor:
         """Windowed statistic ``[..., T]`` (the sum of the last ``W`` values of ``g``)."""
+        _check_sequence(innovations, "innovations", 1)
         g = normalized_innovation_squared(innovations, innovation_covs)
         if self.window == 1:
             return g
@@ -166,7 +180,7 @@ class CusumDetector:
         tau = self.threshold if threshold is None else _check_threshold(threshold)
         if tau is None:
             raise ValueError("threshold is not set: pass threshold= or call calibrate() first")
-        _check_statistic(g, "g")
+        _check_sequence(g, "g", 0)
         s = torch.zeros_like(g[..., 0])
         stats, alarms = [], []
         for t in range(g.shape[-1]):
@@ -179,7 +193,7 @@ class CusumDetector:
 
     def scores(self, g: Tensor) -> Tensor:
         """Statistic without resets ``[..., T]``: a threshold-free score for ROC curves."""
-        _check_statistic(g, "g")
+        _check_sequence(g, "g", 0)
         s = torch.zeros_like(g[..., 0])
         out = []
         for t in range(g.shape[-1]):
@@ -189,6 +203,7 @@ class CusumDetector:
 
     def detect(self, innovations: Tensor, innovation_covs: Tensor) -> tuple[Tensor, Tensor]:
         """``(scores [..., T], alarms [..., T])`` from innovations and their covariances."""
+        _check_sequence(innovations, "innovations", 1)
         g = normalized_innovation_squared(innovations, innovation_covs)
         _, alarms = self.run(g)
         return self.scores(g), alarms
@@ -217,7 +232,7 @@ class CusumDetector:
         """
         if not 0.0 < false_alarm_rate < 1.0:
             raise ValueError(f"false_alarm_rate must lie in (0, 1); got {false_alarm_rate}")
-        _check_statistic(g_attack_free, "g_attack_free")
+        _check_sequence(g_attack_free, "g_attack_free", 0)
         lo, hi = 0.0, max(1.0, float(g_attack_free.sum(-1).max()))
         for _ in range(iterations):
             mid = 0.5 * (lo + hi)

@@ -46,7 +46,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._checks import Choice, check_step_inputs
+from .._checks import Choice, check_step_inputs, check_strategy
 from ..estimator import Estimator, EstimatorOutput, Generators
 from ..linalg import matvec, safe_cholesky, symmetrize
 from ..loop import open_loop
@@ -391,6 +391,7 @@ class AdaptiveParticleFilter(Estimator):
         false_alarm_rate: float = 0.01,
     ):
         reading, form = Reading(reading), Form(form)
+        check_strategy(resampler, "resampler", "difffilter.resampling.Multinomial()")
         self.num_particles, self.forgetting = num_particles, _check_forgetting(forgetting)
         self.reading, self.form, self.attack_cov0 = reading, form, float(attack_cov0)
         self.resampler = resampler if resampler is not None else Multinomial()

@@ -141,11 +141,18 @@ def detection_threshold(
     return float(alpha) * (n - 1) / n
 
 
-def _exceed(residuals: Tensor, eta) -> Tensor:
-    if not isinstance(residuals, Tensor) or residuals.dim() < 2:
+def _check_residuals(residuals) -> None:
+    if not isinstance(residuals, Tensor) or residuals.dim() < 2 or residuals.shape[-2] < 1:
         raise ValueError(
-            f"residuals must be a tensor of shape [..., N, dy]; got {getattr(residuals, 'shape', type(residuals))}"
+            "residuals must be a tensor of shape [..., N, dy] with N >= 1 particles; got "
+            f"{getattr(residuals, 'shape', type(residuals))}"
         )
+    if not residuals.is_floating_point():
+        raise TypeError(f"residuals must be a floating-point tensor; got {residuals.dtype}")
+
+
+def _exceed(residuals: Tensor, eta) -> Tensor:
+    _check_residuals(residuals)
     eta = torch.as_tensor(eta, dtype=residuals.dtype, device=residuals.device)
     if bool((eta < 0).any()) or not bool(torch.isfinite(eta).all()):
         raise ValueError("eta must be finite and >= 0")
@@ -255,6 +262,7 @@ def literal_probability_of_attack(
     Shapes: ``residuals [..., N, dy]``, ``prior_weights [..., N]`` (linear, ``None``:
     uniform) → ``[...]`` float64.
     """
+    _check_residuals(residuals)
     dens = literal_gaussian_density(residuals, cov)
     if prior_weights is not None:
         dens = dens * prior_weights.to(torch.float64)
