@@ -10,11 +10,11 @@ stabilisable ``(A, B)``. The two-area LFC model is not: ``wᵀA = 0`` and ``wᵀ
 ``w = e₄ + e₉`` (the sum of the tie-line flows is conserved), an uncontrollable eigenvalue
 at exactly 0. Two remedies (docs/scenarios.md, LFC):
 
-* ``method="reduced"`` (default): restrict to the controllable subspace ``{x : wᵀx = 0}``,
+* ``LQRMethod.REDUCED`` (default): restrict to the controllable subspace ``{x : wᵀx = 0}``,
   solve the CARE exactly on its 9 coordinates and apply the gain to the orthogonal
   projection of the state onto that subspace, so ``K₁ w = 0``: the controller ignores the
   uncontrollable direction instead of fighting it.
-* ``method="shift"``: solve the CARE for ``A − εI`` (every mode, the uncontrollable one
+* ``LQRMethod.SHIFT``: solve the CARE for ``A − εI`` (every mode, the uncontrollable one
   included, becomes stable), which feeds the tie-line sum back with a gain of order one.
 
 Observers: with ``C = I`` a Luenberger gain that places the error poles is
@@ -44,6 +44,7 @@ __all__ = [
     "observer_poles",
     "luenberger_gain",
     "LuenbergerDesign",
+    "LQRMethod",
 ]
 
 
@@ -73,13 +74,22 @@ def uncontrollable_direction(A: Tensor, B: Tensor, tol: float = 1e-9) -> Tensor 
     return torch.as_tensor(w, dtype=A.dtype)
 
 
+class LQRMethod(Choice):
+    """How :func:`lqr` treats an uncontrollable zero mode (module docstring); ``DIRECT`` is
+    the plain CARE."""
+
+    REDUCED = "reduced"
+    SHIFT = "shift"
+    DIRECT = "direct"
+
+
 def lqr(
     A: Tensor,
     B: Tensor,
     Q: Tensor | None = None,
     R: Tensor | None = None,
     *,
-    method: str = "reduced",
+    method: LQRMethod | str = LQRMethod.REDUCED,
     shift: float = 1e-3,
 ) -> tuple[Tensor, Tensor]:
     """Continuous-time LQR gain ``K₁ [m, n]`` and Riccati solution ``P [n, n]``.
@@ -87,12 +97,12 @@ def lqr(
     Args:
         A, B: ``[n, n]``, ``[n, m]`` continuous-time plant.
         Q, R: state and input weights (default ``I``; [DEF] for the LFC, the paper gives none).
-        method: ``"reduced"`` (exact CARE on the controllable subspace when there is an
-            uncontrollable zero mode; plain CARE otherwise), ``"shift"`` (CARE on
-            ``A − shift·I``) or ``"direct"`` (plain CARE; fails for the LFC model).
-        shift: the ``ε`` of ``method="shift"``.
+        method: :class:`LQRMethod`: ``REDUCED`` (exact CARE on the controllable subspace
+            when there is an uncontrollable zero mode; plain CARE otherwise), ``SHIFT``
+            (CARE on ``A − shift·I``) or ``DIRECT`` (plain CARE; fails for the LFC model).
+        shift: the ``ε`` of ``SHIFT``.
 
-    For ``"reduced"`` the returned ``P`` is the reduced solution lifted back,
+    For ``REDUCED`` the returned ``P`` is the reduced solution lifted back,
     ``P = Tᵀ P_r T`` with ``T`` the coordinate map of the projection, so it satisfies the
     CARE on the controllable subspace (``Vᵀ·care_residual·V = 0`` for its basis ``V``).
     """
@@ -103,14 +113,13 @@ def lqr(
         )
     Q = torch.eye(n, dtype=A.dtype) if Q is None else Q
     R = torch.eye(m, dtype=A.dtype) if R is None else R
-    if method not in ("reduced", "shift", "direct"):
-        raise ValueError(f"method must be 'reduced', 'shift' or 'direct'; got {method!r}")
-    if method == "shift" and not shift > 0:
+    method = LQRMethod(method)
+    if method is LQRMethod.SHIFT and not shift > 0:
         raise ValueError(f"shift must be positive; got {shift!r}")
-    w = uncontrollable_direction(A, B) if method == "reduced" else None
-    if method == "direct" or (method == "reduced" and w is None):
+    w = uncontrollable_direction(A, B) if method is LQRMethod.REDUCED else None
+    if method is LQRMethod.DIRECT or (method is LQRMethod.REDUCED and w is None):
         P = sla.solve_continuous_are(_np(A), _np(B), _np(Q), _np(R))
-    elif method == "shift":
+    elif method is LQRMethod.SHIFT:
         P = sla.solve_continuous_are(_np(A) - shift * np.eye(n), _np(B), _np(Q), _np(R))
     else:
         # Controllable subspace S = w⊥. Drop the coordinate where |w| is largest; on S it is

@@ -101,6 +101,9 @@ class GainSchedule:
 
     def moments(self, k: int) -> SharedMoments:
         """The :class:`SharedMoments` of measurement ``k ≥ 1``."""
+        known = self._moments
+        if type(k) is int and 1 <= k <= len(known):  # computed already: every step after the first
+            return known[k - 1]
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise ValueError(f"k must be an integer >= 1 (the measurement index); got {k!r}")
         with torch.no_grad():

@@ -239,7 +239,8 @@ def _shared_update(carry: GaussianState, pred_mean: Tensor, y: Tensor):
     m = gains.moments(k)
     innovation = gains.innovation(pred_mean, y)
     mean = pred_mean + matvec(m.gain, innovation)
-    log_lik = -0.5 * matvec(m.whiten, innovation).square().sum(-1) - m.log_norm
+    white = matvec(m.whiten, innovation)
+    log_lik = -0.5 * torch.linalg.vecdot(white, white) - m.log_norm
     out = StepOutput(mean, m.cov, pred_mean, m.pred_cov, innovation, m.innovation_cov, log_lik)
     return GaussianState(mean, m.cov, k, carry.model, gains), out
 

@@ -264,7 +264,7 @@ class GradientRule:
 
     def step(self, state: LearnerState, H: Tensor, e: Tensor) -> LearnerState:
         with torch.no_grad():
-            step = (H.transpose(-1, -2) @ e.unsqueeze(-1)).squeeze(-1)
+            step = (e.unsqueeze(-2) @ H).squeeze(-2)  # Hᵀe as eᵀH: no transposed operand
             return LearnerState(state.theta + self.lr * step, None, None, state.k + 1)
 
 

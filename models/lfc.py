@@ -241,6 +241,7 @@ class SecureController:
 
     def __init__(self, K1: Tensor, load: Tensor, *, compensate: bool = True):
         self.K1, self.load, self.compensate = K1, load, bool(compensate)
+        self._gain = -K1.T  # U = Z·(−K₁ᵀ): one product per step
 
     def init(self, batch_shape, dtype, device) -> Tensor:
         u = torch.zeros(tuple(batch_shape) + (self.K1.shape[0],), dtype=dtype, device=device)
@@ -249,7 +250,7 @@ class SecureController:
     def __call__(self, k: int, y: Tensor, out) -> Tensor:
         attack = None if out is None else out.attack
         feedback = y - attack if self.compensate and attack is not None else y
-        u = -feedback @ self.K1.T
+        u = feedback @ self._gain.to(feedback.dtype)
         return torch.cat([u, self.load.to(u.dtype).expand(u.shape)], -1)
 
 

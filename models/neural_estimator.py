@@ -42,6 +42,12 @@ def _check_int(value, name, minimum=1):
         raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}")
 
 
+def _bmv(M: Tensor, v: Tensor) -> Tensor:
+    """``M_n v_n`` for ``M [N, a, b]``, ``v [N, b]`` → ``[N, a]`` (one batched GEMM; the
+    same numbers as ``einsum("nab,nb->na")`` at half the cost per call)."""
+    return torch.bmm(M, v.unsqueeze(-1)).squeeze(-1)
+
+
 class AreaNetwork(nn.Module):
     """One area's ``M̂ = W tanh(V δ)``: ``δ [..., in_dim]`` → ``[..., out_dim]``.
 
@@ -70,8 +76,8 @@ class AreaNetwork(nn.Module):
     # fraction of the cost: the online learners call them at every step of every run).
     def batched_forward(self, params: dict[str, Tensor], delta: Tensor) -> Tensor:
         """``W_n tanh(V_n δ_n)`` for per-run weights ``W [N, m, h]``, ``V [N, h, in]``, ``δ [N, in]``."""
-        h = torch.tanh(torch.einsum("nhi,ni->nh", params["V"], delta / self.in_scale))
-        return torch.einsum("nmh,nh->nm", params["W"], h)
+        h = torch.tanh(_bmv(params["V"], delta / self.in_scale))
+        return _bmv(params["W"], h)
 
     def batched_jacobian(self, params: dict[str, Tensor], delta: Tensor) -> tuple[Tensor, Tensor]:
         """Output ``[N, m]`` and ``∂out/∂[vec W, vec V]`` ``[N, m, m·h + h·in]`` (row-major).
@@ -81,8 +87,8 @@ class AreaNetwork(nn.Module):
         W, V = params["W"], params["V"]
         N, m, hid = W.shape
         x = delta / self.in_scale
-        h = torch.tanh(torch.einsum("nhi,ni->nh", V, x))
-        out = torch.einsum("nmh,nh->nm", W, h)
+        h = torch.tanh(_bmv(V, x))
+        out = _bmv(W, h)
         eye = torch.eye(m, dtype=W.dtype, device=W.device)
         d_w = (eye[None, :, :, None] * h[:, None, None, :]).reshape(N, m, m * hid)
         d_v = ((W * (1.0 - h * h)[:, None, :])[..., None] * x[:, None, None, :]).reshape(N, m, -1)
@@ -224,7 +230,7 @@ class NeuralFDIEstimator(nn.Module):
     def hidden_units(self, delta: Tensor, V: Tensor | None = None) -> Tensor:
         """``tanh(Vⁱ δⁱ)``: ``delta [..., J, in]`` (``V [..., J, h, in]`` optional) → ``[..., J, h]``."""
         V = self.V if V is None else V
-        return torch.tanh((V @ (delta / self.in_scale).unsqueeze(-1)).squeeze(-1))
+        return torch.tanh(_per_area(delta / self.in_scale, V))
 
     def forward(self, delta: Tensor, W: Tensor | None = None, V: Tensor | None = None):
         """Attack estimate and attack-probability logit.
@@ -238,10 +244,20 @@ class NeuralFDIEstimator(nn.Module):
                 f"delta must have shape [..., {self.num_areas}, {self.in_dim}]; got {tuple(delta.shape)}"
             )
         h = self.hidden_units(delta, V)
-        W = self.W if W is None else W
-        attack = (W @ h.unsqueeze(-1)).squeeze(-1)
+        attack = _per_area(h, self.W if W is None else W)
         logit = (self.c + (self.P * h * h).sum(-1)) if self.detection_head else None
         return attack, logit
+
+
+def _per_area(x: Tensor, M: Tensor) -> Tensor:
+    """``Mⁱ xⁱ`` for every area: ``x [..., J, n]``, ``M [J, m, n]`` (shared) or
+    ``[..., J, m, n]`` (per run) → ``[..., J, m]``. Shared weights take one GEMM per area
+    over all runs (a broadcast batched product would expand ``M`` to every run)."""
+    if M.dim() > 3 or x.dim() < 3:
+        return (M @ x.unsqueeze(-1)).squeeze(-1)
+    lead, (J, n) = x.shape[:-2], x.shape[-2:]
+    out = torch.bmm(x.reshape(-1, J, n).transpose(0, 1), M.transpose(-1, -2))  # [J, N, m]
+    return out.transpose(0, 1).reshape(lead + (J, M.shape[-2]))
 
 
 # -- checkpoints -----------------------------------------------------------------------------

@@ -270,6 +270,7 @@ _ESTIMATORS = (
     "mdpf_local_2",
     "mdpf_fused_ci",
     "mdpf_fused_naive",
+    "mdpf_fused_ci_compensated",
     "gaussian_nn_ekf",
 )
 _NOTES = (

@@ -19,7 +19,7 @@ the rule. The fused estimator is :class:`FusedLocals` (the two locals as one bat
 carry the locals (``"local_means"`` ``[B, T, 2, 3]``, ``"local_attacks"``
 ``[B, T, 2, 2]``) and the CI weight ``"omega"``.
 
-:func:`compensated_loop` closes the loop of Remark 1 in difffilter's closed loop:
+``mdpf_fused_ci_compensated`` closes the loop of Remark 1 in difffilter's closed loop:
 ``u_sent,k = u_k − â_f,k`` (the fused attack estimate of the previous step, the
 controller :class:`CompensatingInputs`), the plant receives ``u_sent + a``, and the
 plant's noise is drawn from the study's ``plant`` stream (the same draws as the
@@ -38,7 +38,7 @@ from difffilter.fdi.mdpf import (
     adaptive_particle_filter,
     adaptive_particle_init,
 )
-from difffilter.loop import DrawnNoise, _step_through, closed_loop, open_loop
+from difffilter.loop import DrawnNoise, LoopResult, _step_through, closed_loop, open_loop
 from difffilter.models.estimators import SuiteContext, register
 from difffilter.particle import ParticleState
 from difffilter.results import StepOutput
@@ -51,7 +51,6 @@ __all__ = [
     "fuse_pair",
     "FusedLocals",
     "CompensatingInputs",
-    "compensated_loop",
 ]
 
 
@@ -239,24 +238,27 @@ def _fused_locals(ctx: SuiteContext, rule: FusionRule) -> FusedLocals:
     return FusedLocals(local, rule)
 
 
-@torch.no_grad()
-def compensated_loop(ctx: SuiteContext, runs: int, *, compensate: bool = True,
-                     rule: FusionRule = FusionRule.CI):  # fmt: skip
-    """The fused estimator in difffilter's closed loop with ``u ← u − â`` (module docstring).
+def _compensated(compensate: bool = True):
+    """A registry factory: the CI-fused estimator in its own closed loop with Remark 1's
+    controller (module docstring); scored against that loop's states."""
 
-    Returns a dict of ``"x"`` true states ``[B, T, 3]``, ``"means"`` fused estimates,
-    ``"attack"`` fused ``â [B, T, 2]``, ``"sent"`` the sent inputs ``[B, T, 2]`` and
-    ``"applied"`` the plant's inputs (``sent + a``).
-    """
-    sc, model = ctx.scenario, ctx.model
-    x0 = model.initial.mean.expand(runs, model.dim_x).clone()
-    loop = closed_loop(
-        model, sc.steps, noise=DrawnNoise(ctx.streams("plant")), x0=x0,
-        estimator=_fused_locals(ctx, rule),
-        controller=CompensatingInputs(sc.inputs(runs, ctx.dtype), compensate=compensate),
-        attack=sc.attack_model(), attack_generator=ctx.streams("attack"),
-        generator=_generators(ctx),
-    )  # fmt: skip
-    tr = loop.trajectories
-    return {"x": tr.x, "means": loop.output.means, "attack": loop.output.attack, "sent": tr.us,
-            "applied": tr.us + tr.attack}  # fmt: skip
+    def factory(ctx: SuiteContext):
+        sc, model, est = ctx.scenario, ctx.model, _fused_locals(ctx, FusionRule.CI)
+
+        def run(tr) -> LoopResult:
+            runs = tr.x.shape[0]
+            x0 = model.initial.mean.expand(runs, model.dim_x).clone()
+            return closed_loop(
+                model, sc.steps, noise=DrawnNoise(ctx.streams("plant")), x0=x0, estimator=est,
+                controller=CompensatingInputs(sc.inputs(runs, ctx.dtype), compensate=compensate),
+                attack=sc.attack_model(), attack_generator=ctx.streams("attack"),
+                generator=_generators(ctx),
+            )  # fmt: skip
+
+        return run
+
+    return factory
+
+
+register("mdpf_fused_ci_compensated", "mdpf_fused_ci in Remark 1's closed loop: the sent input "
+         "compensated by the fused attack estimate, u − â")(_compensated())  # fmt: skip

@@ -77,7 +77,7 @@ def test_shift_method_agrees_on_the_controllable_subspace(plant):
 
 
 def test_lqr_bad_arguments(plant):
-    with pytest.raises(ValueError, match="method"):
+    with pytest.raises(ValueError, match="LQRMethod"):
         lqr(plant.A, plant.B, method="magic")
     with pytest.raises(ValueError, match="A must have shape"):
         lqr(plant.A[:3, :3], plant.B)

@@ -20,3 +20,8 @@ def test_readme_python_example_runs():
     out = namespace["out"]  # the estimator-contract example
     assert out.means.shape == (32, 100, 2) and out.attack.shape == (32, 100, 1)
     assert out.detection.alarms.dtype == torch.bool
+    # the loop example: the open loop is the whole-sequence filter, the replay is exact
+    torch.testing.assert_close(namespace["whole"].means, kf.means)
+    loop = namespace["replayed"].trajectories
+    torch.testing.assert_close(loop.y_recv[:, 59:], loop.y_true[:, 39:80], rtol=0, atol=0)
+    torch.testing.assert_close(loop.y_recv[:, :59], loop.y_true[:, :59], rtol=0, atol=0)

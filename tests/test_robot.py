@@ -24,9 +24,10 @@ from difffilter.fdi.mdpf import (
     adaptive_particle_step,
 )
 from difffilter.models.estimators import SuiteContext
+from difffilter.models.estimators import get as get_estimator
 from difffilter.models.registry import get
 from difffilter.models.robot import DEG, GROUPS, RobotModel
-from difffilter.models.robot_estimators import compensated_loop, group_measurements, local_pair
+from difffilter.models.robot_estimators import _compensated, group_measurements, local_pair
 from difffilter.models.streams import Streams
 from difffilter.runtime import one_thread
 from difffilter.ssm import batched_jacobian
@@ -335,12 +336,13 @@ def _ctx(runs, seed=0, name="robot_actuator_attack", steps=100):
 def test_closed_loop_without_compensation_reproduces_the_runs_and_compensation_works():
     ctx, tr = _ctx(3, steps=60)
     sc = ctx.scenario
-    open_loop = compensated_loop(ctx, 3, compensate=False)
-    torch.testing.assert_close(open_loop["x"], tr.x)
+    uncompensated = _compensated(compensate=False)(ctx)(tr)
+    torch.testing.assert_close(uncompensated.trajectories.x, tr.x)
     out = local_pair(ctx, tr)
-    torch.testing.assert_close(open_loop["attack"], fuse_attack(out))
-    closed = compensated_loop(ctx, 3)
-    err = closed["applied"][:, 45:] - tr.us[:, 45:]  # effective input error a − â
+    torch.testing.assert_close(uncompensated.output.attack, fuse_attack(out))
+    closed = get_estimator("mdpf_fused_ci_compensated").factory(ctx)(tr).trajectories
+    applied = closed.us + closed.attack  # what the plant received: u − â + a
+    err = applied[:, 45:] - tr.us[:, 45:]  # effective input error a − â
     assert float(err[..., 0].abs().mean()) < 2.0 and float(err[..., 1].abs().mean()) < 2 * DEG
     assert sc.steps == tr.x.shape[1]
 

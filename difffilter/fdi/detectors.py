@@ -64,6 +64,11 @@ def normalized_innovation_squared(innovations: Tensor, innovation_covs: Tensor) 
     _check_statistic(innovation_covs, "innovation_covs")
     check_square(innovation_covs, "innovation_covs", innovations.shape[-1])
     check_symmetric(innovation_covs, "innovation_covs")
+    return _nis(innovations, innovation_covs)
+
+
+def _nis(innovations: Tensor, innovation_covs: Tensor) -> Tensor:
+    """:func:`normalized_innovation_squared` without the checks (a filter's own output)."""
     return mahalanobis_sq_chol(innovations, safe_cholesky(innovation_covs, name="innovation_covs"))
 
 

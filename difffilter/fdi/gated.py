@@ -38,6 +38,7 @@ from ..results import GaussianState
 from .detectors import (
     ChiSquareDetector,
     CusumDetector,
+    _nis,
     chi_square_quantile,
     normalized_innovation_squared,
 )
@@ -144,7 +145,7 @@ class GatedFilter(Estimator):
     def _step(self, carry, y, u, mask):
         pred = self.filter.predict(carry.inner, u)
         updated, out = self.filter.update(carry.inner, pred, y, mask)
-        g = normalized_innovation_squared(out.innovation, out.innovation_cov)
+        g = _nis(out.innovation, out.innovation_cov)  # the filter's own, checked output
         det_state, score, alarm, threshold = self._detect(carry.detector, g, mask, y.shape[-1])
         if self.gate:
             cov_shape = torch.broadcast_shapes(updated.cov.shape, pred.cov.shape)

@@ -155,8 +155,8 @@ class OnlineLearning(NamedTuple):
 
 
 class NeuralState(NamedTuple):
-    """The network's part of a carry: ``attack_hist [..., a, J·d]`` (``â_{k−1} … â_{k−a}``),
-    ``resid_hist [..., b, J·r]`` (most recent first) and the online ``learner``
+    """The network's part of a carry: ``attack_hist [..., J, a, d]`` (``â_{k−1} … â_{k−a}``
+    of each area), ``resid_hist [..., J, b, r]`` (most recent first) and the online ``learner``
     (:class:`~difffilter.param_ekf.LearnerState` of ``[... · J]`` learners, or ``None``)."""
 
     attack_hist: Tensor
@@ -182,6 +182,11 @@ def feature_dim(features, dim_y: int) -> int:
     return sum(dim_y if f == "mask" else 1 for f in features)
 
 
+def _push(hist: Tensor, value: Tensor, areas: int) -> Tensor:
+    """``value [..., J·c]`` in front of ``hist [..., J, n, c]``, the oldest entry dropped."""
+    return torch.cat([value.unflatten(-1, (areas, -1)).unsqueeze(-2), hist[..., :-1, :]], -2)
+
+
 class _Core:
     """The network's step (eqs 8–9) on one innovation, shared by both adapters."""
 
@@ -195,8 +200,9 @@ class _Core:
     def init(self, batch: torch.Size, dtype, device, generator) -> NeuralState:
         net = self.network
         J = net.num_areas
-        attack_hist = torch.zeros(batch + (net.a, J * net.area_dim), dtype=dtype, device=device)
-        resid_hist = torch.zeros(batch + (net.b, J * net.resid_dim), dtype=dtype, device=device)
+        # per-area layout: δⁱ is the two histories of area i flattened (no transposes per step)
+        attack_hist = torch.zeros(batch + (J, net.a, net.area_dim), dtype=dtype, device=device)
+        resid_hist = torch.zeros(batch + (J, net.b, net.resid_dim), dtype=dtype, device=device)
         learner = None
         if self.learning is not None:
             areas = batch + (J,)
@@ -237,29 +243,30 @@ class _Core:
                 f"network.resid_dim is {net.resid_dim} (× {J} areas) but the measurement has "
                 f"dy = {innovation.shape[-1]}"
             )
-        scale = None
-        e = innovation
-        if innovation_cov is not None:
+        scale, e = None, innovation
+        # √diag S: read by the standardisation and, without a head, by the score
+        if innovation_cov is not None and (self.standardize or not net.detection_head):
             scale = torch.diagonal(innovation_cov, dim1=-2, dim2=-1).clamp_min(1e-30).sqrt()
         if self.standardize:
             e = innovation / scale
         if mask is not None:
             e = e * mask.to(e.dtype)
         if self.residual is Residual.PREDICTED:
-            e = e - state.attack_hist[..., 0, :]
+            e = e - state.attack_hist[..., 0, :].flatten(-2)
         if self.residual is Residual.LAGGED:
             resid_in = state.resid_hist
         else:
-            resid_in = torch.cat([e.unsqueeze(-2), state.resid_hist[..., :-1, :]], -2)
-        delta = build_delta(state.attack_hist, resid_in, J)  # [..., J, in]
+            resid_in = _push(state.resid_hist, e, J)
+        # δ [..., J, in]: each area's histories, most recent first (build_delta's layout)
+        delta = torch.cat([state.attack_hist.flatten(-2), resid_in.flatten(-2)], -1)
         if self.features:
             extra = self._features(e, mask, log_likelihood, poa)
             batch = e.shape[:-1]
             delta = torch.cat([delta, *(f.expand(*batch, -1).unsqueeze(-2) for f in extra)], -1)
         learner = state.learner
         if learner is None:
-            attack, logit = net(delta.to(net.V.dtype))
-            attack = attack.to(e.dtype)
+            attack, logit = net(delta if delta.dtype == net.V.dtype else delta.to(net.V.dtype))
+            attack = attack if attack.dtype == e.dtype else attack.to(e.dtype)
         else:
             attack, logit, learner, prior = self._learn(learner, delta, innovation)
         attack = attack.flatten(-2)  # [..., J·d]
@@ -270,14 +277,12 @@ class _Core:
         sensor = self.channel is not Channel.ACTUATOR
         if mask is not None and sensor:
             attack = attack * mask.to(attack.dtype)
-        if logit is not None:
+        if logit is not None and logit.dtype != e.dtype:
             logit = logit.to(e.dtype)
         if self.channel is Channel.REPLACEMENT:  # the expected injected ξ − y, p_k ν_k
             attack = torch.sigmoid(logit) * innovation
         hist = NeuralState(
-            torch.cat([attack.unsqueeze(-2), state.attack_hist[..., :-1, :]], -2),
-            torch.cat([entry.unsqueeze(-2), state.resid_hist[..., :-1, :]], -2),
-            learner,
+            _push(state.attack_hist, attack, J), _push(state.resid_hist, entry, J), learner
         )
         return hist, attack, logit, scale, delta
 

@@ -14,7 +14,6 @@ import torch
 from scipy.stats import chi2, wilcoxon
 
 from difffilter.models.robot import DEG
-from difffilter.models.robot_estimators import compensated_loop
 from difffilter.runtime import one_thread
 
 from ..report import FamilyReport, Section, format_number, markdown_table, register_family
@@ -43,12 +42,14 @@ def _extra(result) -> dict:
     tr, outs, sc = result.traj, result.outputs, result.scenario
     x, B = tr.x, tr.x.shape[0]
     k0 = LATE - 1  # index of k = 40
-    curves = {n: _pos_rmse_t(o.means, x) for n, o in outs.items()}
+    # each estimator against the states it ran on (its own closed loop, or the study's)
+    curves = {n: _pos_rmse_t(o.means, result.traj_of(n).x) for n, o in outs.items()}
     for n, o in outs.items():
         m = result.metrics[n]
         m.update(position_rmse=float(curves[n].square().mean().sqrt()),
                  position_rmse_late=float(curves[n][k0:].square().mean().sqrt()),
-                 nees=_nees(o, x), nan_runs=int((~o.means.isfinite()).flatten(1).any(1).sum()))  # fmt: skip
+                 nees=_nees(o, result.traj_of(n).x),
+                 nan_runs=int((~o.means.isfinite()).flatten(1).any(1).sum()))  # fmt: skip
     extra: dict = {"rmse_curves": {n: c.tolist() for n, c in curves.items()}}
     locals_ = [n for n in ("mdpf_local_1", "mdpf_local_2") if n in outs]
     if len(locals_) == 2:
@@ -76,12 +77,14 @@ def _extra(result) -> dict:
             "max_rel_error_at_end": rel[:, -1].amax(0).tolist(),
             "mean_curve": (a_hat.mean(0) / torch.tensor([1.0, DEG])).tolist(),
         }
-        ctx = result.context
-        loop = compensated_loop(ctx, B)
+    if "mdpf_fused_ci" in outs and "mdpf_fused_ci_compensated" in outs:
+        ctx, name = result.context, "mdpf_fused_ci_compensated"
+        loop, est = result.traj_of(name), outs[name].means  # its own closed loop
+        applied = loop.us + loop.attack  # the sent input u − â plus the attack
         free = sc.simulate(B, {k: ctx.streams(k) for k in ("plant", "attack", "schedule")},
                            attack=None, model=ctx.model)  # fmt: skip
-        units = torch.tensor([1.0, DEG], dtype=loop["applied"].dtype)
-        full = (loop["applied"] - tr.us) / units  # a − â of the previous step, cm/s and deg/s
+        units = torch.tensor([1.0, DEG], dtype=applied.dtype)
+        full = (applied - tr.us) / units  # a − â of the previous step, cm/s and deg/s
         err = full[:, k0:]
         # the uncompensated fused estimate's error on the same steps (the estimator alone)
         open_err = (tr.attack - a_hat)[:, k0:] / units
@@ -89,10 +92,10 @@ def _extra(result) -> dict:
             "input_error": _input_error_readings(err, LATE),
             "open_loop_attack_error": _input_error_readings(open_err, LATE),
             "input_error_curves": {"mean": full.mean(0).tolist(), "rms": full.square().mean(0).sqrt().tolist()},
-            "deviation_from_attack_free_cm": float((loop["x"][..., :2] - free.x[..., :2]).norm(dim=-1)[:, -1].mean()),
-            "position_rmse_closed_loop": float(_pos_rmse_t(loop["means"], loop["x"]).square().mean().sqrt()),
+            "deviation_from_attack_free_cm": float((loop.x[..., :2] - free.x[..., :2]).norm(dim=-1)[:, -1].mean()),
+            "position_rmse_closed_loop": float(_pos_rmse_t(est, loop.x).square().mean().sqrt()),
             "paths": {"attack_free": free.x[0, :, :2].tolist(), "attacked": x[0, :, :2].tolist(),
-                      "compensated": loop["x"][0, :, :2].tolist(), "estimate": loop["means"][0, :, :2].tolist()},
+                      "compensated": loop.x[0, :, :2].tolist(), "estimate": est[0, :, :2].tolist()},
         }  # fmt: skip
     pos = result.context.model.sensor_pos
     dist = torch.cdist(x[..., :2], pos.to(x))  # [B, T, 6]
