@@ -28,7 +28,7 @@ through a pool of ``S`` samples stacked into one measurement: ``H_k [S·m, P]``,
 The learning rules are pure functions of a :class:`LearnerState` (``θ``, ``ρ``, ``Υ``,
 ``k``): :class:`EKFRule` and :class:`GradientRule` step it, :class:`WeightTemplate` maps
 flat weights through the network, so that the learned estimator keeps every run's
-learner in its carry (:mod:`difffilter.models.learned_estimator`). :class:`ParamEKF` and
+learner in its carry (:mod:`difffilter.fdi.neural`). :class:`ParamEKF` and
 :class:`OnlineGradientDescent` are the same rules holding their state, for direct use.
 
 Both hold one independent parameter vector per run: parameters ``[*batch, *shape]``,
