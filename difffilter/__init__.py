@@ -16,6 +16,7 @@ particles ``[..., N, dx]``. See :mod:`difffilter.ssm` for the time convention.
 """
 
 from . import bounds, metrics, noise, resampling
+from ._checks import NonFinite
 from .bounds import PCRBResult, posterior_crb
 from .estimator import Detection, Estimator, EstimatorOutput, Generators
 from .extended import (
@@ -59,6 +60,7 @@ from .ssm import LinearGaussianModel, NonlinearGaussianModel, StateSpaceModel
 __version__ = "0.1.0"
 
 __all__ = [
+    "NonFinite",
     "StateSpaceModel",
     "LinearGaussianModel",
     "NonlinearGaussianModel",

@@ -30,6 +30,7 @@ __all__ = [
     "check_model",
     "check_carry_batch",
     "check_carry_tensor",
+    "NonFinite",
 ]
 
 
@@ -182,7 +183,13 @@ def check_positive_int(value, name: str) -> int:
 # what was expected, before any tensor work (a raw torch error deep inside a filter names
 # neither).
 
-NONFINITE_POLICIES = ("raise", "skip")
+
+class NonFinite(Choice):
+    """What a whole-sequence filter does with a NaN or ±Inf in a received entry of ``ys``:
+    raise (default) or treat the entry as unreceived (counted per run)."""
+
+    RAISE = "raise"
+    SKIP = "skip"
 
 
 def model_dtype_device(model) -> tuple[torch.dtype | None, torch.device | None]:
@@ -284,7 +291,7 @@ def check_sequence_inputs(
     us=None,
     mask=None,
     *,
-    nonfinite: str = "raise",
+    nonfinite: NonFinite | str = NonFinite.RAISE,
 ) -> tuple[Tensor, Tensor | None, Tensor | None, Tensor | None]:
     """Validate the inputs of a whole-sequence filter; returns ``(ys, us, mask, skipped)``.
 
@@ -302,8 +309,10 @@ def check_sequence_inputs(
     The returned ``ys`` has its unreceived entries replaced by 0 (they are never read, but
     ``0 · NaN`` would still be NaN in the masked update).
     """
-    if nonfinite not in NONFINITE_POLICIES:
-        raise ValueError(f"nonfinite must be one of {NONFINITE_POLICIES}; got {nonfinite!r}")
+    try:
+        nonfinite = NonFinite(nonfinite)
+    except ValueError as exc:
+        raise ValueError(f"nonfinite: {exc}") from None
     dy = model.dim_y
     dtype, device = model_dtype_device(model)
     _check_float_tensor(ys, "ys", f"[..., T, {dy}]", dtype, device)
@@ -323,7 +332,7 @@ def check_sequence_inputs(
         finite = torch.isfinite(ys)
         bad = ~finite if mask is None else ~finite & mask
     skipped = None
-    if nonfinite == "skip":
+    if nonfinite is NonFinite.SKIP:
         no_skips = ys.new_zeros(ys.shape[:-2], dtype=torch.long)
         skipped = no_skips if bad is None else bad.sum((-1, -2))
         if bad is not None and bool(bad.any()):

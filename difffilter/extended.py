@@ -24,6 +24,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ._checks import NonFinite
 from .gaussian import gaussian_update, linear_update, predict_covariance
 from .kalman import GaussianFilter, Prediction
 from .linalg import masked_measurement, outer, safe_cholesky, symmetrize
@@ -89,7 +90,7 @@ def extended_kalman_filter(
     us: Tensor | None = None,
     *,
     mask: Tensor | None = None,
-    nonfinite: str = "raise",
+    nonfinite: NonFinite | str = NonFinite.RAISE,
 ) -> FilterResult:
     """EKF over a whole sequence: ``ys [..., T, dy]``, ``us [..., T, du]``, ``mask [..., T, dy]``.
 
@@ -218,7 +219,7 @@ def unscented_kalman_filter(
     *,
     mask: Tensor | None = None,
     sigma_points: SigmaPoints | None = None,
-    nonfinite: str = "raise",
+    nonfinite: NonFinite | str = NonFinite.RAISE,
 ) -> FilterResult:
     """UKF over a whole sequence; shapes, input checks and ``nonfinite`` as in
     :func:`extended_kalman_filter`.

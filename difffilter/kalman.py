@@ -30,7 +30,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._checks import Choice, check_carry_tensor
+from ._checks import Choice, NonFinite, check_carry_tensor
 from ._shared_cov import shared_covariance_applies, shared_covariance_kalman_filter
 from .estimator import Estimator, output_of
 from .gain_schedule import GainSchedule, shared_gains_apply
@@ -271,7 +271,7 @@ def kalman_filter(
     *,
     mask: Tensor | None = None,
     method: Method | str = Method.SEQUENTIAL,
-    nonfinite: str = "raise",
+    nonfinite: NonFinite | str = NonFinite.RAISE,
 ) -> FilterResult:
     """Kalman filter of a linear-Gaussian model over a whole sequence.
 
@@ -291,8 +291,9 @@ def kalman_filter(
             batch dimension, the model is time-invariant and nothing is masked: the
             covariance recursion runs once for all runs and the covariances come back
             as expanded views ``[..., T, dx, dx]`` of one ``[T, dx, dx]`` tensor.
-        nonfinite: ``"raise"`` (default): a NaN or ±Inf in a received entry of ``ys``
-            raises ``ValueError``; ``"skip"``: such entries are treated as unreceived
+        nonfinite: :class:`~difffilter.NonFinite` ``RAISE`` (default): a NaN or
+            ±Inf in a received entry of ``ys`` raises ``ValueError``; ``SKIP``: such
+            entries are treated as unreceived
             (folded into ``mask``) and counted per run in
             ``result.nonfinite_skipped [...]``.
 

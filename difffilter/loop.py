@@ -42,7 +42,7 @@ from typing import Any, NamedTuple, Protocol
 import torch
 from torch import Tensor
 
-from ._checks import check_model, check_sequence_inputs
+from ._checks import NonFinite, check_model, check_sequence_inputs
 from .attack import Attack, Channel, inject
 from .estimator import Estimator, EstimatorOutput, Generators, stack_steps
 
@@ -106,7 +106,7 @@ def open_loop(
     mask: Tensor | None = None,
     generator=None,
     carry=None,
-    nonfinite: str = "raise",
+    nonfinite: NonFinite | str = NonFinite.RAISE,
     collect: Callable | None = None,
 ) -> EstimatorOutput:
     """Run ``estimator`` on ``model`` over received measurements ``ys [..., T, dy]``.
@@ -119,8 +119,9 @@ def open_loop(
         generator: a ``torch.Generator`` or :class:`~difffilter.estimator.Generators`
             for the estimator's draws.
         carry: start from this carry (default ``estimator.init(model, batch, generator)``).
-        nonfinite: ``"raise"`` or ``"skip"`` (non-finite received entries treated as
-            unreceived and counted in ``extras["nonfinite_skipped"] [...]``).
+        nonfinite: :class:`~difffilter.NonFinite` (or its name): ``SKIP`` treats
+            non-finite received entries as unreceived and counts them in
+            ``extras["nonfinite_skipped"] [...]``; ``RAISE`` (default) raises.
         collect: ``collect(carry, out) → {name: tensor}`` after every step (what a run
             records beyond the step outputs, e.g. every particle): stacked into
             ``extras`` after the batch dimensions. Runs step by step (no fast path).

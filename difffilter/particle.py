@@ -35,6 +35,7 @@ import torch
 from torch import Tensor
 
 from ._checks import (
+    NonFinite,
     check_carry_tensor,
     check_ess_threshold,
     check_model,
@@ -596,7 +597,7 @@ def particle_filter(
     return_particles: bool = False,
     initial_state: ParticleState | None = None,
     hooks: Sequence[StepHook] = (),
-    nonfinite: str = "raise",
+    nonfinite: NonFinite | str = NonFinite.RAISE,
     innovations: bool = True,
     cov_dims: int | None = None,
 ) -> ParticleFilterResult:
@@ -614,7 +615,7 @@ def particle_filter(
         return_particles: also return particles ``[..., T, N, dx]`` and log-weights
             ``[..., T, N]`` (memory ``O(T N)``).
         initial_state: start from this :class:`ParticleState` instead of the prior.
-        nonfinite: ``"raise"`` (default) or ``"skip"``, as in
+        nonfinite: :class:`~difffilter.NonFinite` (``RAISE`` default, or ``SKIP``), as in
             :func:`difffilter.kalman_filter` (skipped entries are counted in
             ``nonfinite_skipped``).
 

@@ -12,6 +12,7 @@ Detector thresholds come from the model (:meth:`SuiteContext.poa_detector`,
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 
@@ -69,14 +70,12 @@ GAUSSIAN_FILTERS = {
 }
 
 
-def _gated(kind: str, detector: str):
+def _gated(kind: str, detector: Callable):
+    """A factory of the ``kind`` filter gated by ``detector(ctx, filter)``."""
     filt = GAUSSIAN_FILTERS[kind]
 
     def factory(ctx: SuiteContext) -> Run:
-        if detector == "chi_square":
-            det = fdi.ChiSquareDetector(ctx.model.dim_y, ctx.scenario.false_alarm_rate)
-        else:
-            det = ctx.cusum(filt)
+        det = detector(ctx, filt)
         return lambda tr: fdi.gated_gaussian_filter(
             ctx.model, tr.y_recv, tr.us, mask=tr.mask, detector=det, filter=filt
         )
@@ -84,12 +83,20 @@ def _gated(kind: str, detector: str):
     return factory
 
 
+def _chi_square(ctx: SuiteContext, filt) -> fdi.ChiSquareDetector:
+    return fdi.ChiSquareDetector(ctx.model.dim_y, ctx.scenario.false_alarm_rate)
+
+
+def _cusum(ctx: SuiteContext, filt) -> fdi.CusumDetector:
+    return ctx.cusum(filt)  # τ calibrated on the scenario's attack-free runs
+
+
 for _kind, _label in (("kf", "KF"), ("ekf", "EKF"), ("ukf", "UKF")):
     register(f"chi_square_{_kind}", f"{_label} gated by a χ² test on its innovations")(
-        _gated(_kind, "chi_square")
+        _gated(_kind, _chi_square)
     )
     register(f"cusum_{_kind}", f"{_label} gated by CUSUM on its innovations (τ calibrated)")(
-        _gated(_kind, "cusum")
+        _gated(_kind, _cusum)
     )
 
 

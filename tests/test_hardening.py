@@ -377,7 +377,7 @@ def test_nonfinite_skip_treats_entries_as_unreceived_and_counts_them():
         torch.testing.assert_close(res.means, ref.means)
         assert res.nonfinite_skipped.tolist() == [1, 0, 2]
         assert ref.nonfinite_skipped is None
-    with pytest.raises(ValueError, match="nonfinite must be one of"):
+    with pytest.raises(ValueError, match="nonfinite: 'ignore' is not a NonFinite"):
         df.kalman_filter(model, ys, nonfinite="ignore")
 
 
