@@ -269,7 +269,9 @@ class ModifiedPFWeighting:
                 est, predictive.innovation, predictive.innovation_cov, flag
             )
         else:
-            g_hat = self.gamma_hat[..., k - 1, :]
+            # a shared γ̂ [T, dy] is recorded per run, so the records stack after the batch
+            g_hat = self.gamma_hat[..., k - 1, :].to(y.dtype)
+            g_hat = g_hat.expand(torch.broadcast_shapes(g_hat.shape, zeta.shape + y.shape[-1:]))
         record["gamma_hat"] = g_hat
         log_p = AttackCompensatedLikelihood(alarm, g_hat, self.base)(model, y, particles, k, mask)
         return WeightingState(rate, est, state.gain), log_p, record
