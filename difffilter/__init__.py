@@ -15,7 +15,7 @@ Shapes are batch first: measurements ``ys [..., T, dy]``, inputs ``us [..., T, d
 particles ``[..., N, dx]``. See :mod:`difffilter.ssm` for the time convention.
 """
 
-from . import bounds, metrics, noise, resampling
+from . import bounds, metrics, noise, resampling, threats
 from ._checks import NonFinite
 from .bounds import PCRBResult, posterior_crb
 from .estimator import Detection, Estimator, EstimatorOutput, Generators
@@ -70,6 +70,7 @@ __all__ = [
     "posterior_crb",
     "PCRBResult",
     "resampling",
+    "threats",
     "ParticleState",
     "particle_init",
     "particle_step",

@@ -84,7 +84,8 @@ class TabulatedAttack(Attack):
 
     def step(self, state, k, *, y=None, x=None, u=None, view=None):
         values, flags = state
-        return state, values[..., k - 1, :], flags[..., k - 1, ...]
+        flag = flags[..., k - 1, :] if flags.dim() == values.dim() else flags[..., k - 1]
+        return state, values[..., k - 1, :], flag
 
 
 def _entrywise(flag: Tensor, value: Tensor) -> Tensor:

@@ -73,7 +73,8 @@ class Trajectories(NamedTuple):
             ``da = dy`` for sensor-side attacks, ``du`` for actuator attacks).
         flags: attacked steps ``[B, T]`` (bool).
         info: extras: ``"attack_values"`` ``[B, T, da]`` (what the attacker would inject
-            at every step, also where it does not), ``"x0"`` ``[B, dx]`` and what a
+            at every step, also where it does not), ``"attack_channel"`` (its
+            :class:`~difffilter.attack.Channel`, ``None`` attack-free), ``"x0"`` ``[B, dx]`` and what a
             scenario records beside them (the exogenous draws of a closed loop).
     """
 
@@ -390,4 +391,5 @@ def _trajectories(rec, mask, k0, k1, channel) -> Trajectories:
         flags = flags.any(-1) if flags.dim() == 3 else flags
         if channel is not Channel.ACTUATOR and m is not None:
             flags = flags & m.any(-1)  # an attack on a packet never sent is none
-    return Trajectories(x, y, recv, us, m, attack, flags, {"attack_values": values})
+    info = {"attack_values": values, "attack_channel": channel}
+    return Trajectories(x, y, recv, us, m, attack, flags, info)

@@ -18,7 +18,8 @@ sequence ``ys [..., T, dy]`` holds ``y_1 … y_T``, so ``gammas[..., t, :] = γ_
 Every attack here runs inside the loop of :mod:`difffilter.loop` (the attack interface is
 :mod:`difffilter.attack`): those that read nothing are tabulated for the whole batch when
 the loop starts (:class:`~difffilter.attack.TabulatedAttack`), :class:`Replay` reads the
-true measurement step by step.
+true measurement step by step (it lives in the threat library, :mod:`difffilter.threats`,
+and is re-exported here).
 """
 
 from __future__ import annotations
@@ -29,7 +30,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from difffilter.attack import Attack, Channel, TabulatedAttack
+from difffilter.attack import Channel, TabulatedAttack
+from difffilter.threats import Replay
 
 __all__ = [
     "BiasAttack",
@@ -275,49 +277,3 @@ class Signal(TabulatedAttack):
                 f"[{num_steps}, {dim}] or {list(shape) + [num_steps, dim]}"
             ) from None
         return values, (values != 0).any(-1)
-
-
-@dataclass(frozen=True)
-class Replay(Attack):
-    """Replay (Mo & Sinopoli 2009): from measurement ``onset`` on, the receiver gets the
-    plant's own output of ``delay`` steps before, ``ỹ_k = y_{k−d}`` (the replacement
-    channel: the loop records ``y_{k−d} − y_k``).
-
-    The attacker records the true measurements it sees (a ring buffer of the last ``d``,
-    in the attack's state) and replays them; the plant meanwhile may do anything. Needs
-    ``onset > delay`` (there is nothing to replay before).
-
-    Args:
-        delay: ``d ≥ 1`` steps.
-        onset: first replayed measurement ``k₀`` (1-based, ``k₀ > d``).
-        duration: replayed steps (``None``: until the end).
-    """
-
-    delay: int
-    onset: int
-    duration: int | None = None
-    channel = Channel.REPLACEMENT
-
-    def __post_init__(self):
-        for name in ("delay", "onset"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
-        if self.onset <= self.delay:
-            raise ValueError(
-                f"onset must exceed delay (y_(k-d) must exist); got onset={self.onset}, delay={self.delay}"
-            )
-        if self.duration is not None and (not isinstance(self.duration, int) or self.duration < 1):
-            raise ValueError(f"duration must be None or an integer >= 1; got {self.duration!r}")
-
-    def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
-        shape = torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
-        return torch.zeros(shape + (self.delay, dim), dtype=dtype, device=device)
-
-    def step(self, state, k, *, y=None, x=None, u=None, view=None):
-        old = state[..., 0, :]  # y_{k−d} (the oldest recorded)
-        state = torch.cat([state[..., 1:, :], y.unsqueeze(-2)], dim=-2)
-        last = None if self.duration is None else self.onset + self.duration - 1
-        on = k >= self.onset and (last is None or k <= last)
-        flag = torch.full(y.shape[:-1], on, dtype=torch.bool, device=y.device)
-        return state, old, flag

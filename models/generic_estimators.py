@@ -18,6 +18,7 @@ import torch
 
 import difffilter as df
 from difffilter import fdi
+from difffilter.attack import Channel
 from difffilter.estimator import EstimatorOutput
 from difffilter.extended import ExtendedKalmanFilter, UnscentedKalmanFilter
 from difffilter.kalman import KalmanFilter
@@ -129,8 +130,14 @@ def _normal_pf_attack_free(ctx: SuiteContext) -> Run:
 
 def oracle_attack(ctx: SuiteContext, tr, noise_var: float | None = None):
     """``γ̂ = γ + e``: the attack values with ``e ~ N(0, var I)`` from stream ``"gamma_noise"``
-    (``var`` = the scenario's ``gamma_hat_noise_var`` option unless given; 0 → exact)."""
-    values = tr.info["attack_values"]
+    (``var`` = the scenario's ``gamma_hat_noise_var`` option unless given; 0 → exact).
+
+    ``γ`` is the sensor attack's value at every step (injected or not); for a replacement
+    attack (replay) it is what changed at the receiver, ``ỹ − y``; attack-free or on the
+    actuator, zero."""
+    values, channel = tr.info["attack_values"], tr.info.get("attack_channel", Channel.SENSOR)
+    if channel is not Channel.SENSOR:  # what reached the receiver: ỹ − y (zero attack-free)
+        values = tr.y_recv - tr.y_true if channel is Channel.REPLACEMENT else tr.y_recv * 0
     var = ctx.option("gamma_hat_noise_var", 0.0) if noise_var is None else noise_var
     if var == 0:
         return values

@@ -636,7 +636,9 @@ class LFCScenario(Scenario):
         """``estimator`` in its own closed loop on ``draws`` (:func:`lfc_loop`): the secure
         controller (``compensate=False``: the traditional one), the scenario's attack (or
         ``attack``: another one, ``None`` for none)."""
-        if attack is OWN_ATTACK:
+        if attack is OWN_ATTACK and self.threat is not OWN_ATTACK:
+            attack = self.threat
+        elif attack is OWN_ATTACK:
             attack = Signal(draws["attack"]) if "attack" in draws else self.attack_model()
         plant = LFCPlant(dt=self.dt, dtype=draws["xi"].dtype)
         return lfc_loop(plant, estimator, draws["xi"], draws["theta"], draws["load"],

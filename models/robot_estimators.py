@@ -251,7 +251,7 @@ def _compensated(compensate: bool = True):
             return closed_loop(
                 model, sc.steps, noise=DrawnNoise(ctx.streams("plant")), x0=x0, estimator=est,
                 controller=CompensatingInputs(sc.inputs(runs, ctx.dtype), compensate=compensate),
-                attack=sc.attack_model(), attack_generator=ctx.streams("attack"),
+                attack=sc.simulated_attack(), attack_generator=ctx.streams("attack"),
                 generator=_generators(ctx),
             )  # fmt: skip
 

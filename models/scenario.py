@@ -134,6 +134,10 @@ class Scenario:
         checkpoint: the shipped trained estimator its learned estimators use when no
             checkpoint is given (a path relative to the repository, e.g.
             ``"checkpoints/lfc_nn_grad.ckpt"``), or ``None``.
+        threat: the attack the plant meets instead of the scenario's own
+            (:meth:`with_threat`; ``None``: attack-free). The estimators' assumptions
+            about attacks (``gamma_min``, a deception density) still come from
+            :meth:`attack_model`: a threat study changes the attacker, not the defender.
     """
 
     name: str
@@ -151,6 +155,7 @@ class Scenario:
     gamma_min: float | None = None
     single_thread: bool = True
     checkpoint: str | None = None
+    threat: Any = field(default=OWN_ATTACK, compare=False, repr=False)
 
     #: Whether the scenario's estimators run in its own closed loop (their estimate feeds
     #: back into the plant through a controller): :meth:`exogenous` and :meth:`loop`.
@@ -174,6 +179,21 @@ class Scenario:
         return None
 
     # -- derived ----------------------------------------------------------------------
+    def with_threat(self, attack) -> Scenario:
+        """This scenario with the plant under ``attack`` (an
+        :class:`~difffilter.attack.Attack`, ``None`` for none, or :data:`OWN_ATTACK`) while
+        every estimator keeps the assumptions it draws from :meth:`attack_model`."""
+        if attack is not OWN_ATTACK and attack is not None and not isinstance(attack, Attack):
+            raise TypeError(
+                f"attack must be a difffilter.attack.Attack, None or OWN_ATTACK; got "
+                f"{type(attack).__name__}"
+            )
+        return dataclasses.replace(self, threat=attack)
+
+    def simulated_attack(self):
+        """The attack the plant meets: the threat (:meth:`with_threat`) or the scenario's own."""
+        return self.attack_model() if self.threat is OWN_ATTACK else self.threat
+
     def simulate(
         self,
         runs: int,
@@ -190,7 +210,7 @@ class Scenario:
             runs,
             self.steps,
             generators=generators,
-            attack=self.attack_model() if attack is OWN_ATTACK else attack,
+            attack=self.simulated_attack() if attack is OWN_ATTACK else attack,
             schedule=self.schedule(),
             us=self.inputs(runs, dtype),
         )

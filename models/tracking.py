@@ -463,7 +463,12 @@ class TrackingScenario(Scenario):
         """
         model = model if model is not None else self.system(dtype)
         base = simulate(model, runs, self.steps, generators=generators, schedule=self.schedule())
-        attack = self.attack_model() if attack is OWN_ATTACK else attack
+        attack = self.simulated_attack() if attack is OWN_ATTACK else attack
+        if attack is not None and not isinstance(attack, Replacement):
+            raise ValueError(
+                f"scenario {self.name!r} simulates per-sensor replacement attacks "
+                f"(Replacement); got {type(attack).__name__}"
+            )
         y_true, mask, groups = base.y_true, base.mask, self.groups
         if attack is None:
             values = torch.zeros_like(y_true)

@@ -1,0 +1,400 @@
+"""The threat library: attacks of the FDI literature as step objects, with a window.
+
+Every attack here is an :class:`~difffilter.attack.Attack` for the loops of
+:mod:`difffilter.loop`. The shaped ones (:class:`Shaped`) read nothing, so ``init``
+tabulates the whole batch at once; what they share is *when and on whom* they act::
+
+    on_k = onset ≤ k < onset + duration          (duration None: until the end)
+    r    ~ Bernoulli(share) per run               (the runs attacked; drawn first)
+    l_k  = on_k ∧ r                               flag; per entry when ``entries`` is given
+    a_k  = shape(s),  s = k − onset               (s = 0 at the onset)
+
+and the loop applies ``a_k`` on the attack's channel (sensor: ``ỹ = y + l a``; replacement:
+``ỹ = a`` where ``l``; actuator: ``ũ = u + l a``). Outside ``entries`` the value is zero.
+
+The shapes (``s`` as above, ``Δt`` the sampling period, ``ε ~ N(0, 1)``):
+
+==================  ==========================================  ======================
+class               ``a_k``                                     source
+==================  ==========================================  ======================
+:class:`Bias`       ``b``                                       Mo & Sinopoli 2010
+:class:`KSigmaBias` ``k σ``, ``σ = √diag R``                    a bias scaled to noise
+:class:`Ramp`       ``c (s + 1)``                               Urbina et al. 2016
+:class:`RandomWalk` ``a_{k−1} + σ_w ε_k`` (``a = 0`` before)    Urbina et al. 2016
+:class:`Pulses`     ``A`` where ``s mod P < W``, else 0          Sridhar & Govindarasu 2014
+:class:`Sinusoid`   ``A sin(ω s Δt + φ)``                        Sridhar & Govindarasu 2014
+:class:`Chirp`      ``A sin(2π (f₀ t + (f₁ − f₀) t² / 2τ))``,    a frequency sweep
+                    ``t = s Δt``, ``τ`` the sweep's length
+:class:`Replay`     ``y_{k−d}`` (replacement channel)           Mo & Sinopoli 2009
+==================  ==========================================  ======================
+
+Vectors (``b``, ``c``, ``A``, ``σ_w``) are one number for every entry or one per entry of
+the channel. :func:`threat_from_dict` builds any of them from plain data (a YAML
+entry), by the names of :data:`THREATS`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from .attack import Attack, Channel, TabulatedAttack
+
+__all__ = [
+    "Shaped",
+    "Bias",
+    "KSigmaBias",
+    "Ramp",
+    "RandomWalk",
+    "Pulses",
+    "Sinusoid",
+    "Chirp",
+    "Replay",
+    "THREATS",
+    "threat_from_dict",
+]
+
+
+def _numbers(value, name: str) -> tuple[float, ...]:
+    """One finite number or a non-empty sequence of them, as a tuple."""
+    seq = (value,) if isinstance(value, (int, float)) and not isinstance(value, bool) else value
+    try:
+        out = tuple(float(v) for v in seq)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"{name} must be a number or a sequence of numbers; got {value!r}"
+        ) from None
+    if not out or not all(math.isfinite(v) for v in out):
+        raise ValueError(f"{name} must be finite numbers (at least one); got {value!r}")
+    return out
+
+
+def _count(value, name: str, minimum: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}")
+
+
+def _batch(batch_shape) -> torch.Size:
+    return torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Shaped(TabulatedAttack):
+    """A shaped attack's window (module docstring): ``onset`` (first attacked measurement,
+    1-based), ``duration`` (steps, ``None``: to the end), ``share`` (probability that a run
+    is attacked), ``entries`` (attacked entries of the channel, ``None``: all) and
+    ``channel`` (:class:`~difffilter.attack.Channel`, default the sensors).
+
+    Subclasses implement :meth:`shape`.
+    """
+
+    onset: int = 1
+    duration: int | None = None
+    share: float = 1.0
+    entries: tuple[int, ...] | None = None
+    channel: Channel = Channel.SENSOR
+
+    def __post_init__(self):
+        _count(self.onset, "onset", 1)
+        if self.duration is not None:
+            _count(self.duration, "duration", 1)
+        if not 0.0 <= float(self.share) <= 1.0:
+            raise ValueError(f"share must lie in [0, 1] (a share of runs); got {self.share!r}")
+        object.__setattr__(self, "channel", Channel(self.channel))
+        if self.entries is not None:
+            entries = tuple(self.entries)
+            if not entries or any(isinstance(i, bool) or not isinstance(i, int) or i < 0
+                                  for i in entries):  # fmt: skip
+                raise ValueError(f"entries must be None or indices >= 0; got {self.entries!r}")
+            object.__setattr__(self, "entries", entries)
+
+    def shape(self, s: Tensor, dim: int, batch: torch.Size, generator, dtype) -> Tensor:
+        """``a`` at the steps since the onset ``s [T]`` (negative before it): ``[T, dim]``
+        or ``[*batch, T, dim]``."""
+        raise NotImplementedError
+
+    def _vector(self, value: tuple[float, ...], dim: int, name: str, dtype, device) -> Tensor:
+        if len(value) not in (1, dim):
+            raise ValueError(f"{name} has {len(value)} entries; the channel has {dim}")
+        return torch.tensor(value, dtype=dtype, device=device).expand(dim)
+
+    def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        _count(num_steps, "num_steps", 1)
+        shape = _batch(batch_shape)
+        runs = torch.rand(shape, generator=generator, dtype=torch.float64, device=device)
+        attacked_run = runs < self.share
+        k = torch.arange(1, num_steps + 1, device=device)
+        on = k >= self.onset
+        if self.duration is not None:
+            on = on & (k < self.onset + self.duration)
+        s = (k - self.onset).to(dtype)
+        values = self.shape(s, dim, shape, generator, dtype).to(device)
+        values = torch.where(on.unsqueeze(-1), values, torch.zeros((), dtype=dtype, device=device))
+        flags = attacked_run.unsqueeze(-1) & on
+        if self.entries is not None:
+            if max(self.entries) >= dim:
+                raise ValueError(f"entries {self.entries} name entries beyond the channel's {dim}")
+            picked = torch.zeros(dim, dtype=torch.bool, device=device)
+            picked[list(self.entries)] = True
+            values = values * picked.to(dtype)
+            flags = flags.unsqueeze(-1) & picked
+        return values.expand(*shape, num_steps, dim), flags
+
+
+@dataclass(frozen=True)
+class Bias(Shaped):
+    """A constant bias ``a_k = b`` (Mo & Sinopoli 2010, the simplest FDI attack)."""
+
+    value: Any = 1.0
+
+    def __post_init__(self):
+        super().__post_init__()
+        object.__setattr__(self, "value", _numbers(self.value, "value"))
+
+    def shape(self, s, dim, batch, generator, dtype):
+        b = self._vector(self.value, dim, "value", dtype, s.device)
+        return b.expand(s.shape[0], dim)
+
+
+@dataclass(frozen=True)
+class KSigmaBias(Shaped):
+    """A bias of ``k`` noise standard deviations on each attacked entry, ``a = k σ`` with
+    ``σ = √diag R`` (given as ``sigma``; :meth:`of` reads it from a model)."""
+
+    k: float = 1.5
+    sigma: Any = 1.0
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not math.isfinite(float(self.k)):
+            raise ValueError(f"k must be a finite number; got {self.k!r}")
+        sigma = _numbers(self.sigma, "sigma")
+        if any(v <= 0 for v in sigma):
+            raise ValueError(f"sigma must be positive; got {self.sigma!r}")
+        object.__setattr__(self, "sigma", sigma)
+
+    @classmethod
+    def of(cls, model, k: float, **window) -> KSigmaBias:
+        """``k σ`` with ``σ = √diag R`` of ``model``'s measurement noise at step 1."""
+        sigma = model.measurement_cov(1).diagonal(dim1=-2, dim2=-1).sqrt()
+        return cls(k=k, sigma=tuple(float(v) for v in sigma.reshape(-1, sigma.shape[-1])[0]),
+                   **window)  # fmt: skip
+
+    def shape(self, s, dim, batch, generator, dtype):
+        sigma = self._vector(self.sigma, dim, "sigma", dtype, s.device)
+        return (float(self.k) * sigma).expand(s.shape[0], dim)
+
+
+@dataclass(frozen=True)
+class Ramp(Shaped):
+    """A ramp ``a_k = c (s + 1)``: ``c`` per step at the onset, growing linearly
+    (Urbina et al. 2016's slowly growing bias)."""
+
+    slope: Any = 0.01
+
+    def __post_init__(self):
+        super().__post_init__()
+        object.__setattr__(self, "slope", _numbers(self.slope, "slope"))
+
+    def shape(self, s, dim, batch, generator, dtype):
+        c = self._vector(self.slope, dim, "slope", dtype, s.device)
+        return (s + 1).unsqueeze(-1) * c
+
+
+@dataclass(frozen=True)
+class RandomWalk(Shaped):
+    """A random walk from zero at the onset, ``a_k = a_{k−1} + σ_w ε_k`` (one walk per run,
+    ``ε`` drawn from the attack's generator after the run selection)."""
+
+    step_std: Any = 0.01
+
+    def __post_init__(self):
+        super().__post_init__()
+        std = _numbers(self.step_std, "step_std")
+        if any(v < 0 for v in std):
+            raise ValueError(f"step_std must be >= 0; got {self.step_std!r}")
+        object.__setattr__(self, "step_std", std)
+
+    def shape(self, s, dim, batch, generator, dtype):
+        std = self._vector(self.step_std, dim, "step_std", dtype, s.device)
+        eps = torch.randn(*batch, s.shape[0], dim, generator=generator, dtype=dtype,
+                          device=s.device)  # fmt: skip
+        steps = eps * std * (s >= 0).to(dtype).unsqueeze(-1)  # nothing moves before the onset
+        return steps.cumsum(-2)
+
+
+@dataclass(frozen=True)
+class Pulses(Shaped):
+    """A pulse train: ``a_k = A`` for the first ``width`` of every ``period`` steps after
+    the onset, else 0 (a pulse or square-wave attack)."""
+
+    amplitude: Any = 1.0
+    period: int = 10
+    width: int = 5
+
+    def __post_init__(self):
+        super().__post_init__()
+        object.__setattr__(self, "amplitude", _numbers(self.amplitude, "amplitude"))
+        _count(self.period, "period", 1)
+        _count(self.width, "width", 1)
+        if self.width > self.period:
+            raise ValueError(
+                f"width must be <= period; got width={self.width}, period={self.period}"
+            )
+
+    def shape(self, s, dim, batch, generator, dtype):
+        amp = self._vector(self.amplitude, dim, "amplitude", dtype, s.device)
+        high = torch.remainder(s, self.period) < self.width
+        return high.to(dtype).unsqueeze(-1) * amp
+
+
+@dataclass(frozen=True)
+class Sinusoid(Shaped):
+    """A sinusoid ``a_k = A sin(ω s Δt + φ)`` (``ω`` in rad per unit of ``dt``)."""
+
+    amplitude: Any = 1.0
+    omega: float = 1.0
+    phase: float = 0.0
+    dt: float = 1.0
+
+    def __post_init__(self):
+        super().__post_init__()
+        object.__setattr__(self, "amplitude", _numbers(self.amplitude, "amplitude"))
+        for name in ("omega", "phase", "dt"):
+            if not math.isfinite(float(getattr(self, name))):
+                raise ValueError(f"{name} must be a finite number; got {getattr(self, name)!r}")
+        if self.dt <= 0:
+            raise ValueError(f"dt must be positive; got {self.dt!r}")
+
+    def shape(self, s, dim, batch, generator, dtype):
+        amp = self._vector(self.amplitude, dim, "amplitude", dtype, s.device)
+        return torch.sin(self.omega * self.dt * s + self.phase).unsqueeze(-1) * amp
+
+
+@dataclass(frozen=True)
+class Chirp(Shaped):
+    """A linear chirp: the frequency sweeps from ``f0`` to ``f1`` (cycles per unit of
+    ``dt``) over ``sweep`` steps and stays at ``f1`` after,
+    ``a = A sin(2π (f₀ t + (f₁ − f₀) t² / 2τ))``, ``t = s Δt``, ``τ = sweep Δt``."""
+
+    amplitude: Any = 1.0
+    f0: float = 0.01
+    f1: float = 0.2
+    sweep: int = 100
+    dt: float = 1.0
+
+    def __post_init__(self):
+        super().__post_init__()
+        object.__setattr__(self, "amplitude", _numbers(self.amplitude, "amplitude"))
+        _count(self.sweep, "sweep", 1)
+        if not (self.f0 >= 0 and self.f1 >= 0 and self.dt > 0):
+            raise ValueError(f"f0, f1 must be >= 0 and dt > 0; got {self.f0}, {self.f1}, {self.dt}")
+
+    def phase(self, s: Tensor) -> Tensor:
+        """``2π ∫ f`` at ``s`` steps after the onset (continuous past the sweep)."""
+        tau = self.sweep * self.dt
+        t = (s * self.dt).clamp_min(0)
+        inside = t.clamp_max(tau)
+        cycles = self.f0 * inside + (self.f1 - self.f0) * inside.square() / (2 * tau)
+        return 2 * math.pi * (cycles + self.f1 * (t - inside))
+
+    def shape(self, s, dim, batch, generator, dtype):
+        amp = self._vector(self.amplitude, dim, "amplitude", dtype, s.device)
+        return torch.sin(self.phase(s)).unsqueeze(-1) * amp
+
+
+@dataclass(frozen=True)
+class Replay(Attack):
+    """Replay (Mo & Sinopoli 2009): from measurement ``onset`` on, the receiver gets the
+    plant's own output of ``delay`` steps before, ``ỹ_k = y_{k−d}`` (the replacement
+    channel: the loop records ``y_{k−d} − y_k``).
+
+    The attacker records the true measurements it sees (a ring buffer of the last ``d``,
+    in the attack's state) and replays them; the plant meanwhile may do anything. Needs
+    ``onset > delay`` (there is nothing to replay before).
+
+    Args:
+        delay: ``d ≥ 1`` steps.
+        onset: first replayed measurement ``k₀`` (1-based, ``k₀ > d``).
+        duration: replayed steps (``None``: until the end).
+        share: probability that a run is attacked (drawn at ``init``).
+    """
+
+    delay: int
+    onset: int
+    duration: int | None = None
+    share: float = 1.0
+    channel = Channel.REPLACEMENT
+
+    def __post_init__(self):
+        _count(self.delay, "delay", 1)
+        _count(self.onset, "onset", 1)
+        if self.onset <= self.delay:
+            raise ValueError(
+                f"onset must exceed delay (y_(k-d) must exist); got onset={self.onset}, "
+                f"delay={self.delay}"
+            )
+        if self.duration is not None:
+            _count(self.duration, "duration", 1)
+        if not 0.0 <= float(self.share) <= 1.0:
+            raise ValueError(f"share must lie in [0, 1] (a share of runs); got {self.share!r}")
+
+    def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        shape = _batch(batch_shape)
+        runs = torch.rand(shape, generator=generator, dtype=torch.float64, device=device)
+        return torch.zeros(shape + (self.delay, dim), dtype=dtype, device=device), runs < self.share
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        buffer, attacked_run = state
+        old = buffer[..., 0, :]  # y_{k−d} (the oldest recorded)
+        buffer = torch.cat([buffer[..., 1:, :], y.unsqueeze(-2)], dim=-2)
+        last = None if self.duration is None else self.onset + self.duration - 1
+        on = k >= self.onset and (last is None or k <= last)
+        flag = attacked_run.expand(y.shape[:-1]) & on
+        return (buffer, attacked_run), old, flag
+
+
+#: The threat library by name (the ``kind`` of a YAML entry, :func:`threat_from_dict`).
+THREATS: dict[str, type[Attack]] = {
+    "bias": Bias,
+    "ksigma_bias": KSigmaBias,
+    "ramp": Ramp,
+    "random_walk": RandomWalk,
+    "pulses": Pulses,
+    "sinusoid": Sinusoid,
+    "chirp": Chirp,
+    "replay": Replay,
+}
+
+
+def threat_from_dict(spec: dict, model=None) -> Attack:
+    """An attack of :data:`THREATS` from plain data: ``{"kind": name, **fields}``.
+
+    ``ksigma_bias`` without ``sigma`` reads ``σ = √diag R`` from ``model``. Unknown kinds
+    and fields are named in the error with the valid ones.
+    """
+    if not isinstance(spec, dict) or "kind" not in spec:
+        raise ValueError(f"a threat must be a mapping with a 'kind'; got {spec!r}")
+    params = dict(spec)
+    kind = params.pop("kind")
+    if kind not in THREATS:
+        raise ValueError(f"unknown threat kind {kind!r}; valid: {', '.join(sorted(THREATS))}")
+    cls = THREATS[kind]
+    valid = {f.name for f in fields(cls)}
+    unknown = sorted(set(params) - valid)
+    if unknown:
+        raise ValueError(
+            f"threat {kind!r} has no field(s) {', '.join(unknown)}; valid: {', '.join(sorted(valid))}"
+        )
+    if "entries" in params and params["entries"] is not None:
+        params["entries"] = tuple(params["entries"])
+    if cls is KSigmaBias and "sigma" not in params:
+        if model is None:
+            raise ValueError("ksigma_bias without sigma needs the model (sigma = sqrt(diag R))")
+        k = params.pop("k", 1.5)
+        return KSigmaBias.of(model, k, **params)
+    return cls(**params)

@@ -1,0 +1,171 @@
+"""The threat library on a small linear plant, each against its known answer: what the
+receiver gets minus what the plant measured is exactly the threat's formula, inside its
+window, on its entries and its share of runs."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import difffilter as df
+from difffilter.attack import Channel
+from difffilter.loop import DrawnNoise, KnownInputs, closed_loop
+from difffilter.threats import (
+    THREATS,
+    Bias,
+    Chirp,
+    KSigmaBias,
+    Pulses,
+    Ramp,
+    RandomWalk,
+    Replay,
+    Sinusoid,
+    threat_from_dict,
+)
+
+F64 = torch.float64
+T = 40
+
+
+def _plant():
+    F = torch.tensor([[0.9, 0.1, 0.0], [0.0, 0.8, 0.1], [0.0, 0.0, 0.7]], dtype=F64)
+    H = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 1.0]], dtype=F64)
+    eye = torch.eye(3, dtype=F64)
+    R = torch.diag(torch.tensor([0.04, 0.09], dtype=F64))
+    B = torch.tensor([[0.0], [0.0], [1.0]], dtype=F64)
+    return df.LinearGaussianModel(F, H, 1e-2 * eye, R, torch.zeros(3, dtype=F64), eye, B=B)
+
+
+def _run(attack, runs=3, seed=0, steps=T):
+    plant = _plant()
+    controller = None
+    if Channel(attack.channel) is Channel.ACTUATOR:
+        controller = KnownInputs(torch.zeros(runs, steps, 1, dtype=F64))
+    return closed_loop(
+        plant, steps, noise=DrawnNoise(torch.Generator().manual_seed(seed)),
+        x0=torch.zeros(runs, 3, dtype=F64), attack=attack, controller=controller,
+        attack_generator=torch.Generator().manual_seed(seed + 1),
+    ).trajectories  # fmt: skip
+
+
+def _injected(tr):
+    return tr.y_recv - tr.y_true
+
+
+def _s(onset, steps=T):
+    return torch.arange(1, steps + 1, dtype=F64) - onset
+
+
+def test_a_bias_is_its_value_inside_its_window_and_zero_outside():
+    tr = _run(Bias((0.5, -1.0), onset=10, duration=5))
+    a = _injected(tr)
+    on = (_s(10) >= 0) & (_s(10) < 5)
+    torch.testing.assert_close(a[:, on], torch.tensor([0.5, -1.0], dtype=F64).expand(3, 5, 2))
+    assert torch.equal(a[:, ~on], torch.zeros(3, T - 5, 2, dtype=F64))
+    assert torch.equal(tr.flags, on.expand(3, T))
+
+
+def test_a_ksigma_bias_reads_the_noise_standard_deviations_of_the_model():
+    attack = KSigmaBias.of(_plant(), 1.5)
+    assert attack.sigma == pytest.approx((0.2, 0.3))
+    torch.testing.assert_close(_injected(_run(attack))[0, 0], torch.tensor([0.3, 0.45], dtype=F64))
+
+
+def test_a_ramp_grows_by_its_slope_every_step_from_the_onset():
+    tr = _run(Ramp(slope=(0.1, 0.02), onset=5))
+    s = _s(5)
+    expected = (s + 1).clamp_min(0).unsqueeze(-1) * torch.tensor([0.1, 0.02], dtype=F64)
+    expected[s < 0] = 0
+    torch.testing.assert_close(_injected(tr), expected.expand(3, T, 2))
+
+
+def test_a_random_walk_starts_at_zero_and_its_increments_have_the_given_spread():
+    walk = RandomWalk(step_std=0.3, onset=11)
+    values, flags = walk.sample((4000,), T, 2, torch.Generator().manual_seed(3), dtype=F64)
+    assert torch.equal(values[:, :10], torch.zeros(4000, 10, 2, dtype=F64))
+    steps = values[:, 11:].diff(dim=1)
+    assert abs(float(steps.std()) - 0.3) < 0.01 and abs(float(steps.mean())) < 0.01
+    # every run walks its own way: the final values spread like sqrt(30) steps
+    assert abs(float(values[:, -1].std()) - 0.3 * math.sqrt(T - 10)) < 0.05
+    assert flags[:, 10:].all() and not flags[:, :10].any()
+
+
+def test_pulses_repeat_with_their_period_and_width():
+    values, _ = Pulses(amplitude=2.0, period=4, width=1, onset=3).sample(
+        (1,), 12, 1, None, dtype=F64
+    )
+    assert values[0, :, 0].tolist() == [0, 0, 2, 0, 0, 0, 2, 0, 0, 0, 2, 0]
+
+
+def test_a_sinusoid_and_a_chirp_follow_their_formulas():
+    values, _ = Sinusoid(amplitude=1.5, omega=10.0, phase=0.3, dt=0.01, onset=2).sample(
+        (), 30, 1, None, dtype=F64
+    )
+    s = _s(2, 30)
+    expected = torch.where(s >= 0, 1.5 * torch.sin(0.1 * s + 0.3), torch.zeros_like(s))
+    torch.testing.assert_close(values[:, 0], expected)
+    chirp = Chirp(amplitude=1.0, f0=0.01, f1=0.1, sweep=200, onset=1)
+    phase = chirp.phase(torch.arange(0, 400, dtype=F64))
+    frequency = phase.diff() / (2 * math.pi)  # cycles per step, the mid-step frequency
+    torch.testing.assert_close(frequency[0], torch.tensor(0.01 + 0.09 / 400, dtype=F64))
+    torch.testing.assert_close(frequency[-1], torch.tensor(0.1, dtype=F64))
+    values, _ = chirp.sample((), 400, 1, None, dtype=F64)
+    torch.testing.assert_close(values[:, 0], torch.sin(phase))
+
+
+def test_replay_delivers_the_measurement_of_d_steps_before_on_its_share_of_runs():
+    tr = _run(Replay(delay=4, onset=10, share=0.5), runs=400)
+    attacked = tr.flags.any(-1)
+    assert 160 < int(attacked.sum()) < 240  # Binomial(400, 1/2): ± 4 σ
+    t0 = 9
+    assert torch.equal(tr.y_recv[attacked, t0:], tr.y_true[attacked, t0 - 4 : -4])
+    assert torch.equal(tr.y_recv[~attacked], tr.y_true[~attacked])
+    assert tr.flags[attacked, t0:].all()
+
+
+def test_share_and_entries_choose_the_runs_and_the_measurements_attacked():
+    tr = _run(Bias(1.0, share=0.25, entries=(1,)), runs=800)
+    attacked = tr.flags.all(-1)
+    assert torch.equal(attacked, tr.flags.any(-1))  # a run is attacked throughout or not at all
+    assert abs(float(attacked.double().mean()) - 0.25) < 0.06
+    a = tr.attack  # the change the loop made, l_k a_k
+    torch.testing.assert_close(a, _injected(tr))
+    assert torch.equal(a[..., 0], torch.zeros_like(a[..., 0]))  # entry 0 is never touched
+    assert torch.equal(a[attacked][..., 1], torch.ones_like(a[attacked][..., 1]))
+    assert torch.equal(a[~attacked], torch.zeros_like(a[~attacked]))
+
+
+def test_a_shaped_attack_on_the_actuator_drives_the_plant_only():
+    tr = _run(Bias(0.7, channel="actuator", onset=3))
+    assert torch.equal(tr.y_recv, tr.y_true)  # the sensors are honest
+    assert torch.equal(tr.attack[:, 2:], torch.full((3, T - 2, 1), 0.7, dtype=F64))
+    free = _run(Bias(0.0, channel="actuator", onset=3))
+    assert not torch.equal(tr.x, free.x)
+
+
+def test_every_threat_is_built_from_data_and_bad_data_is_named():
+    specs = {
+        "bias": {"value": 1.0}, "ksigma_bias": {"k": 2.0}, "ramp": {"slope": 0.1},
+        "random_walk": {"step_std": 0.1}, "pulses": {"amplitude": 1.0, "period": 5, "width": 2},
+        "sinusoid": {"amplitude": 1.0, "omega": 0.5}, "chirp": {"f1": 0.3},
+        "replay": {"delay": 3, "onset": 5},
+    }  # fmt: skip
+    assert set(specs) == set(THREATS)
+    for kind, params in specs.items():
+        threat = threat_from_dict({"kind": kind, "onset": 5, **params}, model=_plant())
+        assert isinstance(threat, THREATS[kind])
+        _run(threat)  # runs in the loop
+    with pytest.raises(ValueError, match="unknown threat kind 'spoof'.*bias"):
+        threat_from_dict({"kind": "spoof"})
+    with pytest.raises(ValueError, match="no field.*slop.*valid"):
+        threat_from_dict({"kind": "ramp", "slop": 1.0})
+    with pytest.raises(ValueError, match="share"):
+        Bias(1.0, share=1.5)
+    with pytest.raises(ValueError, match="onset"):
+        Ramp(0.1, onset=0)
+    with pytest.raises(ValueError, match="width"):
+        Pulses(1.0, period=2, width=3)
+    with pytest.raises(ValueError, match="value has 3 entries; the channel has 2"):
+        _run(Bias((1.0, 2.0, 3.0)))
