@@ -16,6 +16,7 @@ A family name (``four_tank``, ``lfc``, …) selects its headline scenarios.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 from collections.abc import Sequence
@@ -26,6 +27,7 @@ import yaml
 from difffilter.models import registry
 from difffilter.runtime import tune_cpu_allocator
 
+from .calibration import calibrate
 from .leaderboard import write_leaderboard
 from .report import family_report, write_report
 from .suite import process_group, run_suite
@@ -84,9 +86,36 @@ def build_parser() -> argparse.ArgumentParser:
         help="processes that share each scenario's estimators (torch.distributed, gloo on "
         "CPU); the metrics are those of one process (default 1)",
     )
+    p.add_argument(
+        "--far",
+        type=_far,
+        default=0.01,
+        metavar="RATE",
+        help="the false-alarm rate every detector is judged at: its threshold comes from "
+        "attack-free runs of their own seed (default 0.01; 'off' skips the calibration)",
+    )
+    p.add_argument(
+        "--calibration-runs",
+        type=int,
+        default=None,
+        metavar="N",
+        help="attack-free runs behind each threshold (default: --runs, else the scenario's)",
+    )
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     p.add_argument("--list", action="store_true", help="list the registered scenarios and exit")
     return p
+
+
+def _far(text: str) -> float | None:
+    if text.strip().lower() in ("off", "none"):
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(f"expected a rate in (0, 1) or 'off'; got {text!r}")
+    return value
 
 
 def _option(text: str) -> tuple[str, object]:
@@ -120,6 +149,8 @@ def evaluate(
     progress: bool,
     family_options: dict | None = None,
     add_estimators: Sequence[str] = (),
+    far: float | None = 0.01,
+    calibration_runs: int | None = None,
 ) -> dict:
     """Evaluate every scenario with the Monte Carlo suite; returns ``{scenario: metrics}``.
 
@@ -127,10 +158,12 @@ def evaluate(
     share) runs once before its scenarios, its ``finish`` (a summary across them) once
     after (:class:`~difffilter.eval.report.FamilyReport`); ``family_options``
     (``--option KEY=VALUE``) reach ``prepare`` as its options; ``add_estimators`` run
-    beside each scenario's own. Ends with the leaderboard of every scenario × estimator
+    beside each scenario's own. With ``far`` every detector is judged at that false-alarm
+    rate, its threshold calibrated on ``calibration_runs`` attack-free runs of their own
+    seed (:mod:`~difffilter.eval.calibration`). Ends with the leaderboard of every scenario × estimator
     (:mod:`~difffilter.eval.leaderboard`: ``<out>/leaderboard.{md,json,png}``, ``tb_leaderboard``).
     """
-    check_arguments(runs=runs, ckpt=ckpt)
+    check_arguments(runs=runs, ckpt=ckpt, calibration_runs=calibration_runs)
     families: dict[str, list[str]] = {}
     for name in scenarios:
         families.setdefault(registry.get(name).family, []).append(name)
@@ -149,9 +182,15 @@ def evaluate(
             )  # fmt: skip
         done = {}
         for name in names:
+            scenario, calibration = registry.get(name), None
+            if far is not None:
+                calibration = calibrate(
+                    scenario, far=far, runs=calibration_runs or runs, seed=seed,
+                    add=add_estimators, checkpoint=ckpt, progress=progress, cache=cache,
+                )  # fmt: skip
             result = run_suite(
-                registry.get(name), runs=runs, seed=seed, progress=progress, checkpoint=ckpt,
-                cache=cache, add=add_estimators,
+                scenario, runs=runs, seed=seed, progress=progress, checkpoint=ckpt,
+                cache=cache, add=add_estimators, calibration=calibration,
             )  # fmt: skip
             if writer:
                 done[name] = write_report(Path(out) / name, result, prepared=prepared)
@@ -163,9 +202,11 @@ def evaluate(
     return results
 
 
-def check_arguments(*, runs: int | None = None, ckpt: Path | None = None, devices: int = 1) -> None:
+def check_arguments(*, runs: int | None = None, ckpt: Path | None = None, devices: int = 1,
+                    calibration_runs: int | None = None) -> None:  # fmt: skip
     """``ValueError``/``FileNotFoundError`` naming the option, before any work."""
-    for name, value in (("--runs", runs), ("--devices", devices)):
+    checked = (("--runs", runs), ("--devices", devices), ("--calibration-runs", calibration_runs))
+    for name, value in checked:
         if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):  # fmt: skip
             raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
     if ckpt is not None:
@@ -222,7 +263,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         names = resolve_scenarios(args.scenario)
         check_output_folder(args.out)  # before any work, not after the whole evaluation
-        check_arguments(runs=args.runs, ckpt=args.ckpt, devices=args.devices)
+        check_arguments(runs=args.runs, ckpt=args.ckpt, devices=args.devices,
+                        calibration_runs=args.calibration_runs)  # fmt: skip
         if args.devices > 1:  # checked here; the workers run the rest
             return _launch(args.devices, list(sys.argv[1:] if argv is None else argv))
         results = evaluate(
@@ -234,6 +276,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             progress=not args.no_progress,
             family_options=dict(args.option),
             add_estimators=args.add_estimators,
+            far=args.far,
+            calibration_runs=args.calibration_runs,
         )
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-eval: error: {exc}", file=sys.stderr)

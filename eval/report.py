@@ -170,6 +170,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
         "attacked_steps": int(result.traj.flags.sum()),
         "attack_free_steps": int((~result.traj.flags).sum()),
         "skipped": dict(result.skipped), "checkpoint": result.checkpoint,
+        "far": None if result.calibration is None else result.calibration.summary(),
         **family_numbers,
     })  # fmt: skip
     (out / "metrics.json").write_text(json.dumps(doc, indent=2) + "\n")
@@ -197,6 +198,14 @@ def _summary_section(doc: dict, sc) -> Section:
         "(named streams of one master seed). "
         + (f"Attack-free reference: `{doc['reference']}`.\n" if doc.get("reference") else "\n")
     )
+    far = doc.get("far")
+    if far:
+        body += (
+            f"\nDetectors are compared at one false-alarm rate, {100 * far['target']:g} %: each "
+            f"threshold (`threshold_at_far`) comes from {far['calibration_runs']} attack-free "
+            f"runs of their own seed ({far['calibration_seed']}), never from these runs; "
+            "`fpr_at_far` is the rate met on this study's attack-free steps.\n"
+        )
     if doc.get("skipped"):
         body += "\nSkipped: " + "; ".join(f"`{k}` ({v})" for k, v in doc["skipped"].items())
         body += ".\n"

@@ -91,6 +91,24 @@ METRICS: dict[str, Metric] = {
     "time_per_step_s": Metric(
         "s", "wall time of the batched run / (runs * steps): time per run and step"
     ),
+    "threshold_at_far": Metric(
+        "score units",
+        "the smallest score threshold whose false-alarm rate on attack-free calibration runs "
+        "(their own seed) is at most the target rate (far.target); alarm when score > threshold",
+    ),
+    "tpr_at_far": Metric(
+        "fraction", "attacked steps with score > threshold_at_far / attacked steps (pooled)"
+    ),
+    "fpr_at_far": Metric(
+        "fraction",
+        "attack-free steps of this study with score > threshold_at_far / attack-free steps: "
+        "the false-alarm rate met on fresh runs",
+    ),
+    "impact": Metric(
+        "state units",
+        "mean over attacked runs of the largest |x_hat_k - x_k| at attacked steps before the "
+        "run's first alarm at threshold_at_far: the estimation error an attacker causes unseen",
+    ),
 }
 
 

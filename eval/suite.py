@@ -21,6 +21,7 @@ from difffilter.models.generic_estimators import default_estimators
 from difffilter.models.streams import Streams
 from difffilter.runtime import one_thread
 
+from .calibration import calibrated_metrics
 from .scoring import score
 
 __all__ = ["SuiteResult", "run_suite", "process_group", "single_run_time_per_step"]
@@ -45,6 +46,8 @@ class SuiteResult:
         skipped: ``{estimator: why}`` for those whose factory raised ``SkipEstimator``.
         checkpoint: ``{"path", "sha256", "source", "used_by"}`` of the checkpoint the
             study was given (or the scenario's shipped one), or ``None``.
+        calibration: the :class:`~difffilter.eval.calibration.Calibration` the
+            detectors were judged at, or ``None``.
     """
 
     scenario: Any
@@ -59,6 +62,7 @@ class SuiteResult:
     context: Any = None
     skipped: dict[str, str] = field(default_factory=dict)
     checkpoint: dict[str, Any] | None = None
+    calibration: Any = None
 
     def traj_of(self, name: str) -> Trajectories:
         """The trajectories estimator ``name`` ran on: its own closed loop's, or the study's."""
@@ -76,6 +80,7 @@ def run_suite(
     dtype: torch.dtype = torch.float64,
     checkpoint=None,
     cache: dict | None = None,
+    calibration=None,
 ) -> SuiteResult:
     """Simulate ``runs`` runs of ``scenario`` and run every estimator on them.
 
@@ -91,6 +96,9 @@ def run_suite(
         checkpoint: a trained estimator checkpoint for the estimators that use one
             (default: the scenario's shipped checkpoint, if it has one).
         cache: a dict shared by the suites of one evaluation (``SuiteContext.cache``).
+        calibration: a :class:`~difffilter.eval.calibration.Calibration` (thresholds
+            from attack-free runs of their own seed): adds the metrics at the target
+            false-alarm rate (``tpr_at_far``, ``fpr_at_far``, ``impact``), or ``None``.
 
     Runs with one intra-op thread unless the scenario says otherwise
     (:func:`difffilter.runtime.one_thread`). Inside a torch.distributed process group (``difffilter-eval
@@ -117,7 +125,7 @@ def run_suite(
     names = tuple(estimators or scenario.estimators or default_estimators(model))
     names += tuple(n for n in add if n not in names)
     specs = [registry.get(n) for n in names]  # unknown names fail before any work
-    result = SuiteResult(scenario, runs, seed, traj, context=ctx)
+    result = SuiteResult(scenario, runs, seed, traj, context=ctx, calibration=calibration)
     rank, world = process_group()
     mine = specs[rank::world]  # with several processes, each runs its share of estimators
     with one_thread(scenario.single_thread), torch.no_grad():
@@ -166,15 +174,16 @@ def _run_estimators(result: SuiteResult, specs, progress: bool) -> None:
 def _score(result: SuiteResult, specs) -> None:
     """Every run estimator's metrics against the trajectories it ran on."""
     ref = result.outputs[result.reference].means if result.reference else None
+    thresholds = result.calibration.thresholds if result.calibration is not None else {}
     for spec in (s for s in specs if s.name in result.outputs):
+        out, traj = result.outputs[spec.name], result.traj_of(spec.name)
         result.metrics[spec.name] = score(
-            result.outputs[spec.name],
-            result.traj_of(spec.name),
-            dt=result.scenario.dt,
-            wall_s=result.wall_s[spec.name],
-            reference_means=ref,
-            attacked_input=not spec.clean_input,
-        )
+            out, traj, dt=result.scenario.dt, wall_s=result.wall_s[spec.name],
+            reference_means=ref, attacked_input=not spec.clean_input,
+        )  # fmt: skip
+        result.metrics[spec.name].update(calibrated_metrics(
+            out, traj, thresholds.get(spec.name), attacked_input=not spec.clean_input
+        ))  # fmt: skip
 
 
 def process_group() -> tuple[int, int]:

@@ -658,6 +658,10 @@ class LFCScenario(Scenario):
     def paper_numbers(self) -> dict:
         return dict(self.paper_table)
 
+    def attack_free_key(self) -> tuple:
+        """The LFC scenarios differ in their attack only: without it, the same loops."""
+        return ("lfc", self.dt, self.steps, self.load, self.load_range)
+
 
 def _lfc(name, attack, description, channels=(2,), dt=0.01, table_key=None, headline=True):
     return register(

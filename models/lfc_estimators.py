@@ -187,8 +187,11 @@ def _closed_loop(name: str, build, *, compensate: bool = True, ablation: bool = 
         estimator = build(ctx)
 
         def run(tr) -> LoopResult:
-            loop = _loop(ctx, estimator, tr, compensate)
             free = _attack_free(ctx, name, estimator, tr, compensate)
+            sc = ctx.scenario  # attack-free (a calibration run): the loop is the free one
+            unattacked = sc.threat is None or (sc.simulated_attack() is None
+                                               and "attack" not in tr.info)  # fmt: skip
+            loop = free if unattacked else _loop(ctx, estimator, tr, compensate)
             out = loop.output
             extras = {"x_attack_free": free.trajectories.x}
             if out.attack is None:

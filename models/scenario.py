@@ -190,6 +190,12 @@ class Scenario:
             )
         return dataclasses.replace(self, threat=attack)
 
+    def attack_free_key(self) -> tuple:
+        """What the scenario's attack-free runs depend on: scenarios with the same key share
+        their attack-free calibration (:mod:`difffilter.eval.calibration`). Default: the
+        scenario itself; a family whose scenarios differ only in the attack says so."""
+        return (self.name, self.steps)
+
     def simulated_attack(self):
         """The attack the plant meets: the threat (:meth:`with_threat`) or the scenario's own."""
         return self.attack_model() if self.threat is OWN_ATTACK else self.threat

@@ -1,0 +1,148 @@
+"""Every detector at one false-alarm rate: thresholds from attack-free runs.
+
+A detector's scores ``s_k`` (higher means attack) are turned into alarms ``s_k > τ``. The
+threshold of the comparison is chosen for a target false-alarm rate ``α`` (default 1 %)
+on attack-free runs of the scenario, never on the runs it is judged on::
+
+    τ_α = the smallest score τ with  #{attack-free steps with s > τ} ≤ ⌊α n⌋,
+
+``n`` the attack-free calibration steps pooled over runs. The calibration runs come from
+their own master seed (``Streams(seed).seed_of("far-calibration")``), so the study's noise,
+attacks and particles are fresh for it; the learned detectors are calibrated the same way
+as the analytic ones. :func:`calibrated_metrics` then reads the study's scores at ``τ_α``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from difffilter.models.streams import Streams
+
+__all__ = ["Calibration", "threshold_for", "calibrate", "calibrated_metrics", "calibration_seed"]
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Thresholds of one scenario's detectors at the target false-alarm rate.
+
+    Attributes:
+        far: the target ``α``; runs, seed: of the attack-free calibration runs.
+        thresholds: ``{estimator: τ_α}`` (estimators with detection scores only).
+        measured: ``{estimator: false-alarm rate at τ_α on the calibration runs}``.
+        attack_free_state_rmse: ``{estimator: state RMSE on the attack-free runs}`` (the
+            denominator of a threat study's state-error ratio).
+    """
+
+    far: float
+    runs: int
+    seed: int
+    thresholds: dict[str, float] = field(default_factory=dict)
+    measured: dict[str, float] = field(default_factory=dict)
+    attack_free_state_rmse: dict[str, float] = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        """The calibration as metrics.json's ``"far"`` entry."""
+        return {"target": self.far, "calibration_runs": self.runs, "calibration_seed": self.seed,
+                "measured_on_calibration": dict(self.measured)}  # fmt: skip
+
+
+def _finite_scores(scores: Tensor) -> Tensor:
+    return torch.nan_to_num(scores.double().flatten(), nan=-math.inf)
+
+
+def threshold_for(scores: Tensor, far: float) -> float:
+    """``τ_α`` of attack-free ``scores`` (any shape, every entry one step; module docstring).
+
+    At most ``⌊α n⌋`` of the scores exceed it; ties at the threshold never alarm, so with
+    discrete scores the rate may fall below ``α``."""
+    if not 0.0 < far < 1.0:
+        raise ValueError(f"far must lie in (0, 1); got {far!r}")
+    s = _finite_scores(scores)
+    if s.numel() == 0:
+        raise ValueError("scores must hold at least one attack-free step")
+    allowed = int(math.floor(far * s.numel()))
+    ranked = torch.sort(s, descending=True).values
+    return float(ranked[allowed]) if allowed < s.numel() else -math.inf
+
+
+def calibration_seed(seed: int) -> int:
+    """The master seed of the calibration runs of a study of master seed ``seed``."""
+    return Streams(seed).seed_of("far-calibration")
+
+
+def calibrate(
+    scenario,
+    *,
+    far: float = 0.01,
+    runs: int | None = None,
+    seed: int = 0,
+    estimators=None,
+    add=(),
+    checkpoint=None,
+    progress: bool = True,
+    cache: dict | None = None,
+) -> Calibration:
+    """Run ``scenario``'s estimators on attack-free runs and pick every detector's ``τ_α``.
+
+    ``runs`` (default the scenario's), ``estimators``, ``add`` and ``checkpoint`` as for
+    :func:`~difffilter.eval.suite.run_suite`; the runs come from :func:`calibration_seed`.
+    ``cache`` (a dict shared by one evaluation) keeps the result for the same scenario,
+    runs, estimators, checkpoint and target.
+    """
+    from .suite import run_suite
+
+    if not 0.0 < float(far) < 1.0:
+        raise ValueError(f"far must lie in (0, 1); got {far!r}")
+    runs = scenario.runs if runs is None else runs
+    key = ("far-calibration", scenario.attack_free_key(), runs, seed, far,
+           tuple(estimators or ()), tuple(add), str(checkpoint))  # fmt: skip
+    if cache is not None and key in cache:
+        return cache[key]
+    cal_seed = calibration_seed(seed)
+    result = run_suite(
+        scenario.with_threat(None), runs=runs, seed=cal_seed, estimators=estimators, add=add,
+        progress=progress, checkpoint=checkpoint, cache=cache, calibration=None,
+    )  # fmt: skip
+    thresholds, measured = {}, {}
+    for name, out in result.outputs.items():
+        if out.detection is None or out.detection.scores is None:
+            continue
+        scores = out.detection.scores
+        thresholds[name] = threshold_for(scores, far)
+        measured[name] = float((_finite_scores(scores) > thresholds[name]).double().mean())
+    rmse = {n: m["state_rmse"] for n, m in result.metrics.items()}
+    calibration = Calibration(far, runs, cal_seed, thresholds, measured, rmse)
+    if cache is not None:
+        cache[key] = calibration
+    return calibration
+
+
+def calibrated_metrics(output, traj, threshold: float | None, *, attacked_input: bool = True):
+    """``threshold_at_far``, ``tpr_at_far``, ``fpr_at_far`` and ``impact`` of one estimator's
+    ``output`` on ``traj`` at ``threshold`` (``None``: all ``None``).
+
+    ``impact``: over the attacked runs, the mean of the largest estimation error
+    ``‖x̂_k − x_k‖`` at attacked steps before the run's first alarm at the threshold (the
+    error an attacker causes while the detector stays silent)."""
+    out = dict.fromkeys(("threshold_at_far", "tpr_at_far", "fpr_at_far", "impact"))
+    det = output.detection
+    if threshold is None or det is None or det.scores is None:
+        return out
+    scores = torch.nan_to_num(det.scores.double(), nan=-math.inf)
+    alarms = scores > threshold
+    flags = traj.flags if attacked_input else torch.zeros_like(traj.flags)
+    out["threshold_at_far"] = threshold
+    if bool((~flags).any()):
+        out["fpr_at_far"] = float(alarms[~flags].double().mean())
+    if bool(flags.any()):
+        out["tpr_at_far"] = float(alarms[flags].double().mean())
+        unseen = flags & (alarms.long().cumsum(-1) == 0)  # attacked, before the first alarm
+        error = (output.means.double() - traj.x.double()).norm(dim=-1)
+        worst = torch.where(unseen, error, torch.zeros_like(error)).amax(-1)
+        attacked_runs = flags.any(-1)
+        out["impact"] = float(worst[attacked_runs].mean())
+    return out
