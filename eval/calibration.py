@@ -126,8 +126,8 @@ def calibrated_metrics(output, traj, threshold: float | None, *, attacked_input:
     ``output`` on ``traj`` at ``threshold`` (``None``: all ``None``).
 
     ``impact``: over the attacked runs, the mean of the largest estimation error
-    ``‖x̂_k − x_k‖`` at attacked steps before the run's first alarm at the threshold (the
-    error an attacker causes while the detector stays silent)."""
+    ``‖x̂_k − x_k‖`` at attacked steps before the run's first alarm on an attacked step at
+    the threshold (the error an attacker causes while the detector has not seen it)."""
     out = dict.fromkeys(("threshold_at_far", "tpr_at_far", "fpr_at_far", "impact"))
     det = output.detection
     if threshold is None or det is None or det.scores is None:
@@ -140,7 +140,9 @@ def calibrated_metrics(output, traj, threshold: float | None, *, attacked_input:
         out["fpr_at_far"] = float(alarms[~flags].double().mean())
     if bool(flags.any()):
         out["tpr_at_far"] = float(alarms[flags].double().mean())
-        unseen = flags & (alarms.long().cumsum(-1) == 0)  # attacked, before the first alarm
+        # attacked and before the first alarm on an attacked step (a false alarm before the
+        # onset does not count as seeing the attack)
+        unseen = flags & ((alarms & flags).long().cumsum(-1) == 0)
         error = (output.means.double() - traj.x.double()).norm(dim=-1)
         worst = torch.where(unseen, error, torch.zeros_like(error)).amax(-1)
         attacked_runs = flags.any(-1)

@@ -101,6 +101,15 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="attack-free runs behind each threshold (default: --runs, else the scenario's)",
     )
+    p.add_argument(
+        "--threats",
+        type=_threats,
+        default=None,
+        metavar="all|A,B,…",
+        help="the robustness study instead of the scenario's report: every estimator against "
+        "these threats of the scenario's threat set (eval/threats/*.yaml), at --far; the "
+        "scenario 'robustness' runs it on every headline scenario (default: all threats)",
+    )
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     p.add_argument("--list", action="store_true", help="list the registered scenarios and exit")
     return p
@@ -118,6 +127,15 @@ def _far(text: str) -> float | None:
     return value
 
 
+def _threats(text: str):
+    if text.strip() == "all":
+        return "all"
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:
+        raise argparse.ArgumentTypeError("expected 'all' or threat names separated by commas")
+    return names
+
+
 def _option(text: str) -> tuple[str, object]:
     key, sep, value = text.partition("=")
     if not sep or not key:
@@ -131,7 +149,7 @@ def resolve_scenarios(name: str) -> list[str]:
     ``all`` and a family name run the scenarios marked ``headline``; variants are run by
     their own names.
     """
-    if name == "all":
+    if name in ("all", "robustness"):
         return registry.names(headline_only=True)
     if name in registry.families():
         return registry.names(name, headline_only=True) or registry.names(name)
@@ -265,6 +283,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_output_folder(args.out)  # before any work, not after the whole evaluation
         check_arguments(runs=args.runs, ckpt=args.ckpt, devices=args.devices,
                         calibration_runs=args.calibration_runs)  # fmt: skip
+        threats = args.threats or ("all" if args.scenario == "robustness" else None)
+        if threats is not None:
+            return _robustness(names, threats, args)
         if args.devices > 1:  # checked here; the workers run the rest
             return _launch(args.devices, list(sys.argv[1:] if argv is None else argv))
         results = evaluate(
@@ -292,6 +313,39 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"reports written under {args.out}/ (<scenario>/report.md); open the TensorBoard "
         f"logs with: tensorboard --logdir {args.out}"
     )
+    return 0
+
+
+def _robustness(names: list[str], threats, args) -> int:
+    """``--threats`` / ``robustness``: the robustness study of each scenario (one per
+    attack-free setting), its files under ``<out>/<scenario>/``, and the summary."""
+    from .robustness import (
+        load_threat_set,
+        robustness_scenarios,
+        run_robustness,
+        write_robustness,
+        write_robustness_summary,
+    )
+
+    if args.far is None:
+        raise ValueError("--far off: the robustness study compares detectors at one --far")
+    if args.devices > 1:
+        raise ValueError("--devices: the robustness study runs in one process")
+    chosen = robustness_scenarios(names)
+    sets = {n: load_threat_set(registry.get(n), threats) for n in chosen}  # errors first
+    cache: dict = {}
+    docs = {}
+    for name, threat_set in sets.items():
+        result = run_robustness(
+            registry.get(name), threat_set, runs=args.runs, seed=args.seed, far=args.far,
+            add=args.add_estimators,
+            calibration_runs=args.calibration_runs, checkpoint=args.ckpt,
+            progress=not args.no_progress, cache=cache,
+        )  # fmt: skip
+        docs[name] = write_robustness(args.out / name, result)
+    summary = write_robustness_summary(args.out, docs)
+    print("\n" + summary.read_text())
+    print(f"robustness reports written under {args.out}/ (<scenario>/robustness.md)")
     return 0
 
 

@@ -27,6 +27,9 @@ __all__ = ["COLUMNS", "leaderboard_rows", "write_leaderboard"]
 
 #: The leaderboard's columns: the headline metrics (the vs-attack-free RMSE is per scenario).
 COLUMNS = tuple(m for m in HEADLINE if m != "state_rmse_vs_attack_free")
+#: The worst case over a robustness study's threats, as ``worst_<metric>`` columns.
+WORST = ("tpr_at_far", "state_error_ratio")
+_WORST_UNITS = {"worst_tpr_at_far": "fraction", "worst_state_error_ratio": "ratio"}
 
 
 def leaderboard_rows(results: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
@@ -39,6 +42,9 @@ def leaderboard_rows(results: dict[str, dict[str, Any]]) -> list[dict[str, Any]]
             row = {"scenario": scenario, "estimator": name}
             row["checkpoint"] = ckpt.get("sha256", "")[:12] if used else None
             row.update({m: entry.get(m) for m in COLUMNS})
+            worst = (doc.get("worst_case") or {}).get(name)
+            if worst is not None:  # a robustness study: the worst case over its threats
+                row.update({f"worst_{m}": worst.get(m) for m in WORST})
             rows.append(row)
     return rows
 
@@ -48,9 +54,11 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
     out = Path(out)
     rows = leaderboard_rows(results)
     (out / "leaderboard.json").write_text(json.dumps(rows, indent=2) + "\n")
-    header = ["scenario", "estimator", *(f"{m} [{METRICS[m].unit}]" for m in COLUMNS)]
+    cols = list(COLUMNS) + [c for c in _WORST_UNITS if any(c in r for r in rows)]
+    units = {**{m: METRICS[m].unit for m in COLUMNS}, **_WORST_UNITS}
+    header = ["scenario", "estimator", *(f"{m} [{units[m]}]" for m in cols)]
     cells = [
-        [r["scenario"], f"`{r['estimator']}`", *(format_number(r[m], 3) for m in COLUMNS)]
+        [r["scenario"], f"`{r['estimator']}`", *(format_number(r.get(m), 3) for m in cols)]
         for r in rows
     ]
     path = out / "leaderboard.md"

@@ -107,7 +107,8 @@ METRICS: dict[str, Metric] = {
     "impact": Metric(
         "state units",
         "mean over attacked runs of the largest |x_hat_k - x_k| at attacked steps before the "
-        "run's first alarm at threshold_at_far: the estimation error an attacker causes unseen",
+        "run's first alarm on an attacked step at threshold_at_far: the estimation error an "
+        "attacker causes unseen",
     ),
 }
 

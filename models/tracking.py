@@ -462,15 +462,16 @@ class TrackingScenario(Scenario):
         ``[B, T, S]``, ``"attack_values"`` (the ξ draws) and ``"x0"``.
         """
         model = model if model is not None else self.system(dtype)
-        base = simulate(model, runs, self.steps, generators=generators, schedule=self.schedule())
         attack = self.simulated_attack() if attack is OWN_ATTACK else attack
-        if attack is not None and not isinstance(attack, Replacement):
-            raise ValueError(
-                f"scenario {self.name!r} simulates per-sensor replacement attacks "
-                f"(Replacement); got {type(attack).__name__}"
-            )
+        threat = attack is not None and not isinstance(attack, Replacement)  # of the library
+        base = simulate(model, runs, self.steps, generators=generators, schedule=self.schedule(),
+                        attack=attack if threat else None)  # fmt: skip
         y_true, mask, groups = base.y_true, base.mask, self.groups
-        if attack is None:
+        if threat:  # applied by the loop to every entry; a sensor's packet carries its entries
+            y_all, values = base.y_recv, base.info["attack_values"]
+            changed = y_all != y_true
+            sensor_flags = torch.stack([changed[..., list(g)].any(-1) for g in groups], -1)
+        elif attack is None:
             values = torch.zeros_like(y_true)
             sensor_flags = torch.zeros(runs, self.steps, len(groups), dtype=torch.bool)
             y_all = y_true

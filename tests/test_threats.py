@@ -169,3 +169,23 @@ def test_every_threat_is_built_from_data_and_bad_data_is_named():
         Pulses(1.0, period=2, width=3)
     with pytest.raises(ValueError, match="value has 3 entries; the channel has 2"):
         _run(Bias((1.0, 2.0, 3.0)))
+
+
+def test_a_library_threat_on_the_tracking_scenario_keeps_its_plant_and_its_schedule():
+    """Tracking simulates per-sensor packets under Round-Robin access: a threat of the
+    library rides on the packets sent, on the same plant draws as the attack-free runs."""
+    from difffilter.models import registry
+    from difffilter.models.streams import Streams
+
+    sc = registry.get("tracking_rrp_deception")
+
+    def gens():
+        return {k: Streams(0)(k) for k in ("plant", "attack", "schedule")}
+
+    free = sc.with_threat(None).simulate(3, gens())
+    ramp = sc.with_threat(Ramp(slope=0.5, onset=30)).simulate(3, gens())
+    assert torch.equal(free.x, ramp.x) and torch.equal(free.mask, ramp.mask)
+    assert not ramp.flags[:, :29].any() and ramp.flags[:, 30:].all()
+    sent = ramp.mask[:, 40]  # the packet of step 41: its entries carry 0.5 · 12
+    delta = ramp.info["y_all"][:, 40] - free.info["y_all"][:, 40]
+    torch.testing.assert_close(delta[sent], torch.full_like(delta[sent], 6.0))

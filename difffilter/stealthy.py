@@ -1,0 +1,154 @@
+"""Optimal stealthy attacks crafted by gradient through a differentiable estimator.
+
+The attacker knows the defender's model, its estimator and its detector (Kerckhoffs: the
+worst case), and designs one deterministic sensor attack ``a_1 … a_T`` (zero before
+``onset`` and outside ``entries``) on training noise::
+
+    maximise   J(a) = mean over runs b and attacked steps k of  ‖x̂_k(ỹ) − x_k‖²,   ỹ = y + a
+    subject to p_k(a) = mean_b 1[s_{b,k}(ỹ) > τ] ≤ α + ε   for every attacked step k
+
+(``p_k(0) ≈ α`` when ``τ`` is calibrated, so the budget is an increase of ``ε``)
+
+with ``s`` the detector's statistic (the estimator's ``detection.scores``: the NIS of a
+χ²-gated filter, the learned head's logit, …), ``τ`` its threshold at the false-alarm rate
+``α`` and ``ε`` the slack allowed (the attack may raise the alarm rate that much). The
+indicator is smoothed, ``1[s > τ] ≈ σ((s − τ)/t)``, which overstates the rate, so the
+smoothed constraint bounds the increase over the attack-free run, ``p̃_k(a) − p̃_k(0) ≤ ε``;
+it enters as a penalty, and the problem is solved by Adam on ``a`` through the estimator's
+whole-sequence run (:func:`difffilter.loop.open_loop`)::
+
+    L(a) = − J(a)/J₀ + ρ Σ_k max(0, p̃_k(a) − p̃_k(0) − ε)² / ε²
+
+``J₀`` is ``J`` at the start (a scale). The result is a
+:class:`~difffilter.attack.TabulatedAttack` (:class:`CraftedAttack`) to be judged on fresh
+noise, where the detector's real alarm rate and the error it caused are measured.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from .attack import Channel, TabulatedAttack
+from .estimator import Estimator
+from .loop import open_loop
+
+__all__ = ["CraftedAttack", "StealthySettings", "craft_stealthy_attack"]
+
+
+class CraftedAttack(TabulatedAttack):
+    """A crafted sensor attack: ``values [T, dy]`` (the same for every run), injected at
+    every step from ``onset`` on (flag where the step is attacked)."""
+
+    channel = Channel.SENSOR
+
+    def __init__(self, values: Tensor, onset: int, history: list | None = None, settings=None):
+        if not isinstance(values, Tensor) or values.dim() != 2:
+            raise ValueError(
+                f"values must be a tensor [T, dy]; got {getattr(values, 'shape', values)!r}"
+            )
+        self.values, self.onset = values.detach().clone(), int(onset)
+        self.history, self.settings = list(history or []), settings
+
+    def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        if tuple(self.values.shape) != (num_steps, dim):
+            raise ValueError(
+                f"the crafted attack is [{self.values.shape[0]}, {self.values.shape[1]}]; the "
+                f"loop needs [{num_steps}, {dim}]"
+            )
+        shape = torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
+        flags = (torch.arange(1, num_steps + 1, device=device) >= self.onset).expand(
+            *shape, num_steps
+        )
+        values = self.values.to(dtype=dtype, device=device).expand(*shape, num_steps, dim)
+        return values, flags
+
+
+@dataclass(frozen=True)
+class StealthySettings:
+    """The optimiser's settings (module docstring): ``iterations`` of Adam at ``lr``,
+    smoothing temperature ``temperature`` (in units of the statistic), penalty weight
+    ``penalty``, slack ``slack`` (ε) over the false-alarm rate, and the start: a bias of
+    ``init`` times the measurement noise's standard deviation."""
+
+    iterations: int = 300
+    lr: float = 0.05
+    temperature: float = 0.5
+    penalty: float = 50.0
+    slack: float = 0.004
+    init: float = 0.3
+    extra: dict = field(default_factory=dict)
+
+
+def craft_stealthy_attack(
+    estimator: Estimator,
+    model,
+    ys: Tensor,
+    xs: Tensor,
+    threshold: float,
+    *,
+    far: float,
+    us: Tensor | None = None,
+    onset: int = 1,
+    entries: tuple[int, ...] | None = None,
+    settings: StealthySettings = StealthySettings(),
+    generator=None,
+    progress: bool = False,
+) -> CraftedAttack:
+    """Craft a stealthy sensor attack against ``estimator``'s detector (module docstring).
+
+    Args:
+        estimator: a differentiable :class:`~difffilter.estimator.Estimator` whose steps
+            score (``detection.scores``: higher means attack).
+        model: its model. ys: clean training measurements ``[B, T, dy]``; xs: the true
+            states ``[B, T, dx]``; us: known inputs or ``None``.
+        threshold: ``τ`` of the detector at the false-alarm rate ``far``.
+        onset: first attacked measurement (1-based); entries: attacked measurement entries
+            (``None``: all).
+        generator: of the estimator's own draws (the same at every iteration).
+
+    Returns a :class:`CraftedAttack` with ``history`` ``[(iteration, J, max_k p̃_k(a) − p̃_k(0))]``.
+    """
+    from tqdm.auto import tqdm
+
+    B, T, dy = ys.shape
+    if not 1 <= onset <= T:
+        raise ValueError(f"onset must lie in [1, {T}]; got {onset!r}")
+    s = settings
+    attacked = (torch.arange(1, T + 1) >= onset).to(ys.dtype)
+    picked = torch.ones(dy, dtype=ys.dtype)
+    if entries is not None:
+        picked = torch.zeros(dy, dtype=ys.dtype)
+        picked[list(entries)] = 1.0
+    window = attacked.unsqueeze(-1) * picked  # [T, dy]
+    sigma = model.measurement_cov(1).diagonal(dim1=-2, dim2=-1).sqrt().reshape(-1, dy)[0]
+    raw = (s.init * torch.ones(T, dy, dtype=ys.dtype)).requires_grad_(True)  # in units of σ
+    optimiser = torch.optim.Adam([raw], lr=s.lr)
+    on = attacked.bool()
+
+    def smoothed_rate(out) -> Tensor:
+        return torch.sigmoid((out.detection.scores - threshold) / s.temperature).mean(0)[on]
+
+    with torch.no_grad():
+        gens = None if generator is None else generator()
+        bound = smoothed_rate(open_loop(estimator, model, ys, us, generator=gens)) + s.slack
+    history, scale = [], None
+    bar = tqdm(range(s.iterations), desc="crafting a stealthy attack", disable=not progress)
+    for it in bar:
+        a = raw * sigma * window
+        gens = None if generator is None else generator()
+        out = open_loop(estimator, model, ys + a, us, generator=gens)
+        error = (out.means - xs).square().sum(-1)[:, on].mean()
+        p = smoothed_rate(out)
+        if scale is None:
+            scale = error.detach().clamp_min(1e-12)
+        excess = torch.relu(p - bound) / s.slack
+        loss = -error / scale + s.penalty * excess.square().sum()
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        history.append((it, float(error), float((p - bound + s.slack).max())))
+        bar.set_postfix(J=f"{float(error):.3g}", dp_max=f"{history[-1][2]:.3f}")
+    return CraftedAttack((raw * sigma * window).detach(), onset, history, s)

@@ -1,0 +1,325 @@
+"""The robustness report: every estimator against every threat, at one false-alarm rate.
+
+For one scenario, with its threat set (data: ``eval/threats/<scenario>.yaml``, else
+``<family>.yaml``; :func:`load_threat_set`)::
+
+    calibration    attack-free runs of their own seed → every detector's τ_α
+    attack-free    the study's runs without attack      → each estimator's RMSE₀, FPR at τ_α
+    threat j       the same runs (common random numbers) under threat j, the estimators
+                   keeping their own assumptions about attacks
+
+and per estimator × threat: ``tpr_at_far`` (TPR at τ_α), ``state_error_ratio`` =
+``state_rmse`` under the threat / ``RMSE₀``, and ``impact`` (the estimation error caused
+before the first alarm, :mod:`~difffilter.eval.calibration`). The worst case of an
+estimator is its lowest TPR, highest ratio and highest impact over the threats.
+
+:func:`write_robustness` writes ``robustness.json`` (the metrics.json schema: its
+``estimators`` are the attack-free study's metrics; ``threats``, ``cells`` and
+``worst_case`` hold the rest), ``robustness.md`` and ``robustness.png`` (heat maps).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from difffilter.threats import threat_from_dict
+
+from .calibration import calibrate
+from .report import _clean, format_number, markdown_table
+from .scoring import METRICS
+from .suite import run_suite
+
+__all__ = ["ThreatSet", "load_threat_set", "run_robustness", "write_robustness", "CELL_METRICS",
+           "robustness_scenarios", "write_robustness_summary"]  # fmt: skip
+
+THREAT_DIR = Path(__file__).parent / "threats"
+
+#: What each cell of the robustness tables holds (``state_error_ratio`` is robustness's own).
+CELL_METRICS = ("tpr_at_far", "state_error_ratio", "impact", "auc", "fpr_at_far", "state_rmse",
+                "attack_rmse")  # fmt: skip
+#: Worst case: the lowest of these over the threats …
+LOWER_IS_WORSE = ("tpr_at_far", "auc")
+#: … and the highest of these.
+HIGHER_IS_WORSE = ("state_error_ratio", "impact")
+
+
+@dataclass
+class ThreatSet:
+    """A scenario's threats: ``{name: attack}`` with their plain specs, and the study's size
+    (``runs``: ``None`` for the scenario's; ``estimators``: ``None`` for the scenario's)."""
+
+    threats: dict[str, Any]
+    specs: dict[str, dict]
+    runs: int | None = None
+    estimators: tuple[str, ...] | None = None
+    source: str = ""
+
+
+def _threat_file(scenario) -> Path:
+    for stem in (scenario.name, scenario.family):
+        path = THREAT_DIR / f"{stem}.yaml"
+        if path.is_file():
+            return path
+    known = sorted(p.stem for p in THREAT_DIR.glob("*.yaml"))
+    raise ValueError(
+        f"scenario {scenario.name!r} has no threat set (eval/threats/{scenario.name}.yaml or "
+        f"{scenario.family}.yaml); threat sets exist for: {', '.join(known)}"
+    )
+
+
+def load_threat_set(scenario, names="all", path: str | Path | None = None) -> ThreatSet:
+    """The threats of ``scenario`` from its YAML (``path`` overrides the lookup), those named
+    in ``names`` (``"all"`` or a sequence; an unknown name is an error listing the valid).
+
+    The YAML holds ``threats: {name: {kind: …, fields}}`` (:func:`~difffilter.threats.
+    threat_from_dict`), or ``threats_from: <file>`` (another file's, beside it), and
+    optionally ``runs`` and ``estimators``."""
+    path = Path(path) if path is not None else _threat_file(scenario)
+    data = yaml.safe_load(path.read_text()) or {}
+    if "threats_from" in data:  # another file's threats, this file's study size
+        shared = yaml.safe_load((path.parent / data["threats_from"]).read_text()) or {}
+        data = {**data, "threats": shared.get("threats")}
+    specs = data.get("threats") or {}
+    if not isinstance(specs, dict) or not specs:
+        raise ValueError(f"{path}: 'threats' must map threat names to their specs")
+    chosen = list(specs) if names == "all" else list(names)
+    unknown = [n for n in chosen if n not in specs]
+    if unknown:
+        raise ValueError(
+            f"--threats: unknown threat(s) {', '.join(unknown)} for {scenario.name}; valid: "
+            f"{', '.join(specs)} (or 'all')"
+        )
+    model = scenario.system()
+    threats = {}
+    for name in chosen:
+        try:
+            threats[name] = threat_from_dict(dict(specs[name]), model=model)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: threat {name!r}: {exc}") from None
+    estimators = data.get("estimators")
+    return ThreatSet(threats, {n: dict(specs[n]) for n in chosen}, data.get("runs"),
+                     None if estimators is None else tuple(estimators), str(path))  # fmt: skip
+
+
+def robustness_scenarios(names) -> list[str]:
+    """``names`` with one scenario per attack-free setting: the scenarios that differ only in
+    their own attack (the four LFC ones) give the same robustness study, run once."""
+    from difffilter.models import registry
+
+    seen, out = set(), []
+    for name in names:
+        key = registry.get(name).attack_free_key()
+        if key not in seen:
+            seen.add(key)
+            out.append(name)
+    return out
+
+
+@dataclass
+class RobustnessResult:
+    """What :func:`run_robustness` measured (module docstring)."""
+
+    scenario: Any
+    runs: int
+    seed: int
+    threat_set: ThreatSet
+    calibration: Any
+    attack_free: Any  # SuiteResult
+    cells: dict[str, dict[str, dict[str, Any]]] = field(default_factory=dict)
+    worst_case: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+def run_robustness(
+    scenario,
+    threat_set: ThreatSet,
+    *,
+    runs: int | None = None,
+    seed: int = 0,
+    far: float = 0.01,
+    calibration_runs: int | None = None,
+    add=(),
+    checkpoint=None,
+    progress: bool = True,
+    cache: dict | None = None,
+) -> RobustnessResult:
+    """Calibrate, run attack-free, run every threat of ``threat_set`` (module docstring):
+    ``runs`` (default the threat set's, else the scenario's), the threat set's estimators
+    and ``add``, every threshold at ``far`` from ``calibration_runs`` attack-free runs."""
+    from tqdm.auto import tqdm
+
+    runs = runs or threat_set.runs or scenario.runs
+    kwargs = dict(runs=runs, estimators=threat_set.estimators, add=tuple(add),
+                  checkpoint=checkpoint, progress=progress, cache=cache)  # fmt: skip
+    cal = calibrate(scenario, far=far, seed=seed, **{**kwargs, "runs": calibration_runs or runs})
+    free = run_suite(scenario.with_threat(None), seed=seed, calibration=cal, **kwargs)
+    result = RobustnessResult(scenario, runs, seed, threat_set, cal, free)
+    bar = tqdm(threat_set.threats.items(), desc=f"{scenario.name} threats", disable=not progress)
+    for name, threat in bar:
+        bar.set_postfix_str(name)
+        suite = run_suite(scenario.with_threat(threat), seed=seed, calibration=cal, **kwargs)
+        result.cells[name] = {
+            est: _cell(m, free.metrics.get(est, {})) for est, m in suite.metrics.items()
+        }
+    result.worst_case = _worst_cases(result.cells)
+    return result
+
+
+def _cell(m: dict, free: dict) -> dict[str, Any]:
+    cell = {k: m.get(k) for k in CELL_METRICS if k != "state_error_ratio"}
+    base = free.get("state_rmse")
+    ratio = None
+    if base and m.get("state_rmse") is not None and base > 0:
+        ratio = m["state_rmse"] / base
+    cell["state_error_ratio"] = ratio
+    return cell
+
+
+def _worst_cases(cells) -> dict[str, dict[str, Any]]:
+    worst: dict[str, dict[str, Any]] = {}
+    for threat, row in cells.items():
+        for est, cell in row.items():
+            w = worst.setdefault(est, {})
+            for key in LOWER_IS_WORSE + HIGHER_IS_WORSE:
+                value = cell.get(key)
+                if value is None or not math.isfinite(value):
+                    continue
+                sign = -1 if key in LOWER_IS_WORSE else 1
+                if key not in w or sign * value > sign * w[key]:
+                    w[key], w[f"{key}_threat"] = value, threat
+    return worst
+
+
+def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any]:
+    """Write ``robustness.json``, ``robustness.md`` and ``robustness.png`` under ``out``
+    (created); returns the JSON content."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    sc, free = result.scenario, result.attack_free
+    doc = _clean({
+        "scenario": sc.name, "runs": result.runs, "steps": sc.steps, "seed": result.seed,
+        "units": {name: m.unit for name, m in METRICS.items()}, "paper": {},
+        "estimators": {n: {**dict.fromkeys(METRICS), **m} for n, m in free.metrics.items()},
+        "far": result.calibration.summary(), "threat_set": result.threat_set.source,
+        "threats": result.threat_set.specs, "cells": result.cells,
+        "worst_case": result.worst_case, "skipped": dict(free.skipped),
+        "checkpoint": free.checkpoint,
+    })  # fmt: skip
+    (out / "robustness.json").write_text(json.dumps(doc, indent=2) + "\n")
+    (out / "robustness.md").write_text(_markdown(doc, sc))
+    _heatmap(out / "robustness.png", doc)
+    return doc
+
+
+_TITLES = {
+    "tpr_at_far": "Detection rate at the calibrated threshold (`tpr_at_far`, higher is better)",
+    "state_error_ratio": "State error under the threat / attack-free (`state_error_ratio`, "
+    "lower is better)",
+    "impact": "Estimation error caused before the first alarm (`impact` [state units], lower "
+    "is better)",
+}
+
+
+def _markdown(doc: dict, sc) -> str:
+    far, threats = doc["far"], list(doc["threats"])
+    ests = list(doc["estimators"])
+    parts = [
+        f"# Robustness: {doc['scenario']}\n\n{sc.description}\n",
+        f"{doc['runs']} runs × {doc['steps']} steps, seed {doc['seed']}. Every detector is "
+        f"judged at one false-alarm rate, {100 * far['target']:g} %: its threshold comes from "
+        f"{far['calibration_runs']} attack-free runs of their own seed "
+        f"({far['calibration_seed']}). Every threat runs on the same plant noise as the "
+        "attack-free column (common random numbers); the estimators keep their own "
+        "assumptions about attacks. Threat set: "
+        f"`{Path(doc['threat_set']).name}`.\n",
+    ]
+    for metric, title in _TITLES.items():
+        header = ["estimator", "attack-free FPR", *threats, "worst"]
+        rows = []
+        for est in ests:
+            worst = doc["worst_case"].get(est, {})
+            w = worst.get(metric)
+            wt = worst.get(f"{metric}_threat")
+            rows.append([f"`{est}`", format_number(doc["estimators"][est].get("fpr_at_far"), 3),
+                         *(format_number(doc["cells"][t].get(est, {}).get(metric), 3)
+                           for t in threats),
+                         "—" if w is None else f"{format_number(w, 3)} ({wt})"])  # fmt: skip
+        parts.append(f"## {title}\n\n{markdown_table(header, rows)}")
+    specs = "\n".join(f"- `{n}`: {s}" for n, s in doc["threats"].items())
+    parts.append(f"## Threats\n\n{specs}\n\n![robustness.png](robustness.png)\n")
+    return "\n".join(parts)
+
+
+def _heatmap(path: Path, doc: dict) -> None:
+    """One panel per headline cell metric: estimators × threats, coloured good → bad."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    threats, ests = list(doc["threats"]), list(doc["estimators"])
+    fig, axes = plt.subplots(1, 3, figsize=(3 + 1.3 * len(threats) * 1.5, 0.35 * len(ests) + 2))
+    panels = (("tpr_at_far", "RdYlGn", (0, 1), False), ("state_error_ratio", "RdYlGn_r",
+              (0, 1), True), ("impact", "RdYlGn_r", None, False))  # fmt: skip
+    for ax, (metric, cmap, limits, log) in zip(axes, panels):
+        grid = np.array([[np.nan if doc["cells"][t].get(e, {}).get(metric) is None
+                          else doc["cells"][t][e][metric] for t in threats] for e in ests],
+                        float)  # fmt: skip
+        shown = np.log10(np.clip(grid, 1e-3, None)) if log else grid
+        if limits is None:
+            finite = shown[np.isfinite(shown)]
+            limits = (0.0, float(finite.max()) if finite.size and finite.max() > 0 else 1.0)
+        ax.imshow(shown, aspect="auto", cmap=cmap, vmin=limits[0], vmax=limits[1])
+        for (i, j), value in np.ndenumerate(grid):
+            text = "—" if np.isnan(value) else format_number(float(value), 2)
+            ax.text(j, i, text, ha="center", va="center", fontsize=6)
+        ax.set_xticks(range(len(threats)), threats, rotation=45, ha="right", fontsize=7)
+        ax.set_yticks(range(len(ests)), ests if ax is axes[0] else [""] * len(ests), fontsize=7)
+        scale = " (colour: log10, 1 = 0)" if log else ""
+        ax.set_title(f"{metric} [{_unit(metric)}]{scale}", fontsize=8)
+    fig.suptitle(f"{doc['scenario']}: robustness at {100 * doc['far']['target']:g} % FAR",
+                 fontsize=9)  # fmt: skip
+    fig.savefig(path, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+
+
+def _unit(metric: str) -> str:
+    return "ratio" if metric == "state_error_ratio" else METRICS[metric].unit
+
+
+def write_robustness_summary(out: str | Path, docs: dict[str, dict]) -> Path:
+    """``<out>/robustness.md``: every scenario × estimator's worst case over its threats
+    (with the threat that caused it), and the leaderboard of the attack-free studies with
+    the worst-case columns (:func:`~difffilter.eval.leaderboard.write_leaderboard`)."""
+    from .leaderboard import write_leaderboard
+
+    out = Path(out)
+    rows = []
+    for scenario, doc in docs.items():
+        for est, entry in doc["estimators"].items():
+            w = doc["worst_case"].get(est, {})
+
+            def worst(key, w=w):
+                v = w.get(key)
+                return "—" if v is None else f"{format_number(v, 3)} ({w[key + '_threat']})"
+
+            rows.append([scenario, f"`{est}`", format_number(entry.get("fpr_at_far"), 3),
+                         worst("tpr_at_far"), worst("state_error_ratio"), worst("impact")])  # fmt: skip
+    header = ["scenario", "estimator", "attack-free fpr_at_far", "worst tpr_at_far",
+              "worst state_error_ratio", "worst impact [state units]"]  # fmt: skip
+    far = next(iter(docs.values()))["far"]["target"] if docs else 0.01
+    path = out / "robustness.md"
+    path.write_text(
+        f"# Robustness\n\nEvery estimator's worst case over its scenario's threats, every "
+        f"detector at {100 * far:g} % false alarms (thresholds from attack-free runs of "
+        "their own seed); the threat that caused it in brackets. Details per scenario in "
+        "`<scenario>/robustness.md`.\n\n" + markdown_table(header, rows) + "\n"
+    )
+    write_leaderboard(out, docs)
+    return path

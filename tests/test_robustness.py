@@ -1,0 +1,95 @@
+"""The robustness study: threat sets as data, every estimator × threat at one calibrated
+false-alarm rate, the files it writes and the CLI that runs it."""
+
+from __future__ import annotations
+
+import json
+
+import jsonschema
+import pytest
+
+from difffilter.eval.cli import main
+from difffilter.eval.report import metrics_schema
+from difffilter.eval.robustness import (
+    load_threat_set,
+    robustness_scenarios,
+    run_robustness,
+    write_robustness,
+)
+from difffilter.models import registry
+from difffilter.threats import Bias, Replay
+
+ESTIMATORS = ("chi_square_ekf", "cusum_ekf", "pf_nn_grad")
+
+
+def test_every_headline_scenario_has_a_threat_set_that_builds():
+    for name in registry.names(headline_only=True):
+        threat_set = load_threat_set(registry.get(name))
+        assert threat_set.threats, name
+        assert all(spec["kind"] for spec in threat_set.specs.values())
+
+
+def test_scenarios_that_differ_only_in_their_attack_share_one_study():
+    lfc = registry.names("lfc", headline_only=True)
+    assert len(lfc) == 4 and robustness_scenarios(lfc) == lfc[:1]
+    both = ["four_tank_bias", "robot_actuator_attack", "robot_actuator_attack_turning"]
+    assert robustness_scenarios(both) == both  # the turning robot has other inputs
+
+
+def test_unknown_threats_and_bad_specs_are_named(tmp_path):
+    sc = registry.get("four_tank_bias")
+    with pytest.raises(ValueError, match="unknown threat.*spoof.*valid: bias"):
+        load_threat_set(sc, ["spoof"])
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("threats:\n  slow: {kind: ramp, slop: 1.0}\n")
+    with pytest.raises(ValueError, match="threat 'slow'.*slop"):
+        load_threat_set(sc, path=bad)
+
+
+def test_a_study_scores_every_estimator_against_every_threat_at_the_calibrated_rate(tmp_path):
+    sc = registry.get("four_tank_bias").with_steps(60)
+    spec = tmp_path / "t.yaml"
+    spec.write_text(
+        "threats:\n  bias: {kind: bias, value: 0.5, onset: 21}\n"
+        "  replay: {kind: replay, delay: 10, onset: 31}\n"
+        "  tiny: {kind: bias, value: 0.001, onset: 21}\n"
+    )
+    threat_set = load_threat_set(sc, path=spec)
+    assert isinstance(threat_set.threats["bias"], Bias)
+    assert isinstance(threat_set.threats["replay"], Replay)
+    threat_set.estimators = ESTIMATORS
+    result = run_robustness(sc, threat_set, runs=20, progress=False)
+    assert set(result.cells) == {"bias", "replay", "tiny"}
+    for threat, row in result.cells.items():
+        assert set(row) == set(ESTIMATORS), threat
+    # a bias of 16 noise std is caught at once; one of 0.03 std is invisible and harmless
+    for est in ESTIMATORS:
+        assert result.cells["bias"][est]["tpr_at_far"] > 0.9
+        assert result.cells["tiny"][est]["tpr_at_far"] < 0.05
+        assert result.cells["tiny"][est]["state_error_ratio"] == pytest.approx(1.0, abs=0.02)
+        assert result.cells["bias"][est]["state_error_ratio"] > 1.0
+        worst = result.worst_case[est]
+        assert worst["tpr_at_far"] == min(r[est]["tpr_at_far"] for r in result.cells.values())
+        assert worst["tpr_at_far_threat"] in ("tiny", "replay")
+    assert result.cells["bias"]["chi_square_ekf"]["state_error_ratio"] > 1.5  # gating ≠ undoing
+    doc = write_robustness(tmp_path / "out", result)
+    written = json.loads((tmp_path / "out" / "robustness.json").read_text())
+    jsonschema.validate(written, metrics_schema())
+    assert written["cells"] == json.loads(json.dumps(doc["cells"]))
+    assert written["far"]["target"] == 0.01
+    text = (tmp_path / "out" / "robustness.md").read_text()
+    assert "tpr_at_far" in text and "| `cusum_ekf` |" in text
+    assert (tmp_path / "out" / "robustness.png").stat().st_size > 10_000
+
+
+def test_the_cli_runs_the_study_and_names_an_unknown_threat(tmp_path, capsys):
+    assert main(["four_tank_bias", "--threats", "spoof", "--out", str(tmp_path)]) == 2
+    assert "valid: bias" in capsys.readouterr().err
+    args = ["four_tank_bias", "--threats", "bias,ramp", "--runs", "4", "--out", str(tmp_path),
+            "--no-progress"]  # fmt: skip
+    assert main(args) == 0
+    doc = json.loads((tmp_path / "four_tank_bias" / "robustness.json").read_text())
+    assert list(doc["threats"]) == ["bias", "ramp"]
+    board = (tmp_path / "leaderboard.md").read_text()
+    assert "worst_tpr_at_far" in board and "worst_state_error_ratio" in board
+    assert "worst tpr_at_far" in (tmp_path / "robustness.md").read_text()
