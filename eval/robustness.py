@@ -33,6 +33,7 @@ from difffilter.threats import threat_from_dict
 from .calibration import calibrate
 from .report import _clean, format_number, markdown_table
 from .scoring import METRICS
+from .stealthy import StealthySpec, craft_threat, crafted_error, same_rate_bias
 from .suite import run_suite
 
 __all__ = ["ThreatSet", "load_threat_set", "run_robustness", "write_robustness", "CELL_METRICS",
@@ -99,7 +100,11 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
     threats = {}
     for name in chosen:
         try:
-            threats[name] = threat_from_dict(dict(specs[name]), model=model)
+            spec = dict(specs[name])
+            if spec.get("kind") == "stealthy":  # crafted when the study runs (eval.stealthy)
+                threats[name] = StealthySpec.from_dict(spec)
+            else:
+                threats[name] = threat_from_dict(spec, model=model)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{path}: threat {name!r}: {exc}") from None
     estimators = data.get("estimators")
@@ -133,6 +138,7 @@ class RobustnessResult:
     attack_free: Any  # SuiteResult
     cells: dict[str, dict[str, dict[str, Any]]] = field(default_factory=dict)
     worst_case: dict[str, dict[str, Any]] = field(default_factory=dict)
+    stealthy: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
 def run_robustness(
@@ -154,7 +160,9 @@ def run_robustness(
     from tqdm.auto import tqdm
 
     runs = runs or threat_set.runs or scenario.runs
-    kwargs = dict(runs=runs, estimators=threat_set.estimators, add=tuple(add),
+    targets = [t.against for t in threat_set.threats.values() if isinstance(t, StealthySpec)]
+    add = tuple(dict.fromkeys((*add, *targets)))  # a crafted attack's detector is calibrated
+    kwargs = dict(runs=runs, estimators=threat_set.estimators, add=add,
                   checkpoint=checkpoint, progress=progress, cache=cache)  # fmt: skip
     cal = calibrate(scenario, far=far, seed=seed, **{**kwargs, "runs": calibration_runs or runs})
     free = run_suite(scenario.with_threat(None), seed=seed, calibration=cal, **kwargs)
@@ -162,12 +170,29 @@ def run_robustness(
     bar = tqdm(threat_set.threats.items(), desc=f"{scenario.name} threats", disable=not progress)
     for name, threat in bar:
         bar.set_postfix_str(name)
+        if isinstance(threat, StealthySpec):
+            threat = _crafted(result, name, threat, progress)
         suite = run_suite(scenario.with_threat(threat), seed=seed, calibration=cal, **kwargs)
         result.cells[name] = {
             est: _cell(m, free.metrics.get(est, {})) for est, m in suite.metrics.items()
         }
     result.worst_case = _worst_cases(result.cells)
     return result
+
+
+def _crafted(result: RobustnessResult, name: str, spec: StealthySpec, progress: bool):
+    """Craft stealthy threat ``name`` against its detector, and compare it on the study's
+    runs with the constant bias of the same alarm rate (``result.stealthy[name]``)."""
+    sc, cal = result.scenario, result.calibration
+    attack, report = craft_threat(name, spec, sc, cal, seed=result.seed, progress=progress)
+    tau = report["threshold"]
+    judged = crafted_error(sc, spec.against, attack, tau, runs=result.runs, seed=result.seed)
+    bias = same_rate_bias(sc, spec.against, judged["alarm_rate"], tau, onset=spec.onset,
+                          entries=spec.entries, runs=result.runs, seed=result.seed)  # fmt: skip
+    report.update(crafted=judged, same_rate_bias=bias,
+                  error_ratio_to_bias=judged["state_error"] / bias["state_error"])  # fmt: skip
+    result.stealthy[name] = report
+    return attack
 
 
 def _cell(m: dict, free: dict) -> dict[str, Any]:
@@ -208,6 +233,7 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
         "far": result.calibration.summary(), "threat_set": result.threat_set.source,
         "threats": result.threat_set.specs, "cells": result.cells,
         "worst_case": result.worst_case, "skipped": dict(free.skipped),
+        "stealthy": result.stealthy,
         "checkpoint": free.checkpoint,
     })  # fmt: skip
     (out / "robustness.json").write_text(json.dumps(doc, indent=2) + "\n")
@@ -252,7 +278,37 @@ def _markdown(doc: dict, sc) -> str:
         parts.append(f"## {title}\n\n{markdown_table(header, rows)}")
     specs = "\n".join(f"- `{n}`: {s}" for n, s in doc["threats"].items())
     parts.append(f"## Threats\n\n{specs}\n\n![robustness.png](robustness.png)\n")
+    parts += [_stealthy_section(n, r) for n, r in (doc.get("stealthy") or {}).items()]
     return "\n".join(parts)
+
+
+def _stealthy_section(name: str, r: dict) -> str:
+    c, b, st = r["crafted"], r["same_rate_bias"], r["settings"]
+    return (
+        f"## The crafted stealthy attack `{name}`\n\n"
+        f"Crafted by gradient through `{r['against']}` (its threshold τ = "
+        f"{format_number(r['threshold'], 4)} at the calibrated rate) to maximise the "
+        "estimation error while the alarm rate over the attacked steps rises by at most "
+        f"{100 * st['slack']:g} points on the training runs: Adam, {st['iterations']} "
+        f"iterations at lr {st['lr']} (σ per step), {r['train_runs']} fresh training runs per "
+        f"iteration, sigmoid temperature {st['temperature']}, penalty {st['penalty']}; "
+        f"{r['iterations_within_budget']} iterates kept the budget, the one of largest error "
+        "was kept.\n\n"
+        + markdown_table(
+            ["attack (the study's runs)", f"`{r['against']}` alarm rate", "RMS state error"],
+            [
+                ["crafted", format_number(c["alarm_rate"], 4), format_number(c["state_error"], 4)],
+                [
+                    f"constant bias {format_number(b['k_sigma'], 3)} σ (same alarm rate)",
+                    format_number(b["alarm_rate"], 4),
+                    format_number(b["state_error"], 4),
+                ],
+            ],
+        )  # fmt: skip
+        + f"\nThe crafted attack's error is {format_number(r['error_ratio_to_bias'], 3)}× the "
+        "constant bias's at the same alarm rate. Every other estimator meets it as a threat "
+        "of the tables above (transfer: it was crafted against one detector only).\n"
+    )
 
 
 def _heatmap(path: Path, doc: dict) -> None:

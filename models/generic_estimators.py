@@ -30,6 +30,7 @@ from .estimators import Run, SuiteContext, register
 __all__ = [
     "GAUSSIAN_FILTERS",
     "oracle_attack",
+    "gated_estimator",
     "modified_pf",
     "deception_of",
     "default_estimators",
@@ -92,13 +93,28 @@ def _cusum(ctx: SuiteContext, filt) -> fdi.CusumDetector:
     return ctx.cusum(filt)  # τ calibrated on the scenario's attack-free runs
 
 
+#: The gated Gaussian filters by registry name: ``(filter kind, detector builder)``.
+GATED: dict[str, tuple[str, Callable]] = {}
+
 for _kind, _label in (("kf", "KF"), ("ekf", "EKF"), ("ukf", "UKF")):
+    GATED[f"chi_square_{_kind}"] = (_kind, _chi_square)
+    GATED[f"cusum_{_kind}"] = (_kind, _cusum)
     register(f"chi_square_{_kind}", f"{_label} gated by a χ² test on its innovations")(
         _gated(_kind, _chi_square)
     )
     register(f"cusum_{_kind}", f"{_label} gated by CUSUM on its innovations (τ calibrated)")(
         _gated(_kind, _cusum)
     )
+
+
+def gated_estimator(ctx: SuiteContext, name: str) -> fdi.GatedFilter:
+    """The step object of the registered gated filter ``name`` (``chi_square_ekf``, …): what
+    an attacker differentiates through (:mod:`difffilter.stealthy`)."""
+    if name not in GATED:
+        raise ValueError(f"{name!r} is not a gated Gaussian filter; valid: {', '.join(GATED)}")
+    kind, detector = GATED[name]
+    filt = GAUSSIAN_FILTERS[kind]
+    return fdi.GatedFilter(detector(ctx, filt), filt)
 
 
 def _poa_pf(ctx: SuiteContext, clean: bool) -> Run:

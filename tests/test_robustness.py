@@ -93,3 +93,14 @@ def test_the_cli_runs_the_study_and_names_an_unknown_threat(tmp_path, capsys):
     board = (tmp_path / "leaderboard.md").read_text()
     assert "worst_tpr_at_far" in board and "worst_state_error_ratio" in board
     assert "worst tpr_at_far" in (tmp_path / "robustness.md").read_text()
+
+
+def test_a_stealthy_threat_is_data_crafted_when_the_study_runs():
+    from difffilter.eval.stealthy import StealthySpec
+
+    threat_set = load_threat_set(registry.get("four_tank_bias"), ["stealthy_chi_square"])
+    spec = threat_set.threats["stealthy_chi_square"]
+    assert isinstance(spec, StealthySpec) and spec.against == "chi_square_ekf"
+    assert spec.onset == 21 and spec.settings.iterations == 250
+    with pytest.raises(ValueError, match="no field.*target.*valid"):
+        StealthySpec.from_dict({"kind": "stealthy", "target": "x"})

@@ -1,0 +1,143 @@
+"""The gradient-crafted stealthy attack as a threat of the robustness study.
+
+A threat set entry ``{kind: stealthy, against: chi_square_ekf, onset: 21, ...}`` is crafted
+when the study runs (:func:`craft_threat`): :func:`difffilter.stealthy.craft_stealthy_attack`
+through the named detector's own step object (a registered gated Gaussian filter), with
+its threshold from the study's calibration (attack-free runs of their own seed), on
+training runs drawn afresh at every iteration from the stream ``stealthy/<name>/<it>``.
+The study then judges the crafted attack on its own runs like any threat, and
+:func:`same_rate_bias` finds the constant bias (``k σ`` on the same entries) that makes the
+detector alarm as often, for the comparison the report states.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import torch
+
+from difffilter.loop import open_loop
+from difffilter.models.estimators import SuiteContext
+from difffilter.models.generic_estimators import gated_estimator
+from difffilter.models.streams import Streams
+from difffilter.stealthy import StealthySettings, craft_stealthy_attack
+from difffilter.threats import KSigmaBias
+
+__all__ = ["StealthySpec", "craft_threat", "same_rate_bias"]
+
+
+@dataclass(frozen=True)
+class StealthySpec:
+    """A stealthy threat to craft (module docstring): the detector ``against`` (a registered
+    gated filter), ``onset``, ``entries``, the training batch size ``train_runs`` and the
+    optimiser's :class:`~difffilter.stealthy.StealthySettings`."""
+
+    against: str = "chi_square_ekf"
+    onset: int = 1
+    entries: tuple[int, ...] | None = None
+    train_runs: int = 64
+    settings: StealthySettings = field(default_factory=StealthySettings)
+
+    @classmethod
+    def from_dict(cls, spec: dict) -> StealthySpec:
+        params = {k: v for k, v in spec.items() if k != "kind"}
+        names = {f.name for f in fields(StealthySettings)} - {"extra"}
+        settings = StealthySettings(**{k: params.pop(k) for k in list(params) if k in names})
+        valid = {f.name for f in fields(cls)} - {"settings"}
+        unknown = sorted(set(params) - valid)
+        if unknown:
+            raise ValueError(
+                f"stealthy threat has no field(s) {', '.join(unknown)}; valid: "
+                f"{', '.join(sorted(valid | names))}"
+            )
+        if params.get("entries") is not None:
+            params["entries"] = tuple(params["entries"])
+        return cls(settings=settings, **params)
+
+
+def _context(scenario, runs: int, seed: int) -> SuiteContext:
+    model = scenario.system()
+    return SuiteContext(scenario, model, runs, Streams(seed), scenario.estimator_options(), None)
+
+
+def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: int,
+                 progress: bool = False):  # fmt: skip
+    """The crafted attack of threat ``name`` and what to report of its crafting:
+    ``(attack, {"against", "threshold", "settings", "train_runs", "iterations_kept",
+    "history"})``."""
+    if spec.against not in calibration.thresholds:
+        raise ValueError(
+            f"threat {name!r}: {spec.against!r} was not calibrated in this study (add it to "
+            f"the threat set's estimators)"
+        )
+    ctx = _context(scenario, spec.train_runs, seed)
+    estimator, tau = gated_estimator(ctx, spec.against), calibration.thresholds[spec.against]
+    streams = Streams(seed)
+    free = scenario.with_threat(None)
+
+    def batch(it: int):
+        gens = {k: streams(f"stealthy/{name}/{it}/{k}") for k in ("plant", "attack", "schedule")}
+        tr = free.simulate(spec.train_runs, gens, model=ctx.model)
+        return tr.y_true, tr.x
+
+    ys, xs = batch(0)
+    with torch.enable_grad():
+        attack = craft_stealthy_attack(
+            estimator, ctx.model, ys, xs, tau, far=calibration.far, onset=spec.onset,
+            entries=spec.entries, settings=spec.settings, resample=batch, progress=progress,
+        )  # fmt: skip
+    kept = [h for h in attack.history if h[3] <= attack.history[0][3] + spec.settings.slack]
+    report = {
+        "against": spec.against, "threshold": tau, "train_runs": spec.train_runs,
+        "settings": {f.name: getattr(spec.settings, f.name) for f in fields(StealthySettings)
+                     if f.name != "extra"},
+        "iterations_within_budget": len(kept),
+        "history": [{"iteration": h[0], "J": h[1], "alarm_rate": h[3]} for h in attack.history],
+    }  # fmt: skip
+    return attack, report
+
+
+def same_rate_bias(scenario, against: str, rate: float, threshold: float, *, onset: int,
+                   entries=None, runs: int, seed: int, iterations: int = 12) -> dict[str, Any]:  # fmt: skip
+    """The constant bias ``k σ`` (on ``entries``, from ``onset``) whose alarm rate under
+    ``against`` at ``threshold`` on the study's runs equals ``rate`` (bisection on ``k``),
+    with its RMS estimation error over the attacked steps."""
+    ctx = _context(scenario, runs, seed)
+    estimator, streams = gated_estimator(ctx, against), Streams(seed)
+
+    def judge(k: float) -> tuple[float, float]:
+        bias = KSigmaBias.of(ctx.model, k, onset=onset, entries=entries)
+        gens = {n: streams(n) for n in ("plant", "attack", "schedule")}
+        tr = scenario.with_threat(bias).simulate(runs, gens, model=ctx.model)
+        out = open_loop(estimator, ctx.model, tr.y_recv, tr.us, mask=tr.mask)
+        on = tr.flags
+        alarm = float((out.detection.scores > threshold)[on].double().mean())
+        error = math.sqrt(float((out.means - tr.x).square().sum(-1)[on].mean()))
+        return alarm, error
+
+    lo, hi = 0.0, 1.0
+    while judge(hi)[0] < rate and hi < 1e3:
+        lo, hi = hi, 2 * hi
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if judge(mid)[0] < rate else (lo, mid)
+    alarm, error = judge(hi)
+    return {"k_sigma": hi, "alarm_rate": alarm, "state_error": error}
+
+
+def crafted_error(scenario, against: str, attack, threshold: float, *, runs: int,
+                  seed: int) -> dict[str, float]:  # fmt: skip
+    """The crafted attack's alarm rate under ``against`` and its RMS estimation error over
+    the attacked steps, on the study's runs (the numbers :func:`same_rate_bias` matches)."""
+    ctx = _context(scenario, runs, seed)
+    estimator, streams = gated_estimator(ctx, against), Streams(seed)
+    gens = {n: streams(n) for n in ("plant", "attack", "schedule")}
+    tr = scenario.with_threat(attack).simulate(runs, gens, model=ctx.model)
+    out = open_loop(estimator, ctx.model, tr.y_recv, tr.us, mask=tr.mask)
+    on = tr.flags
+    return {
+        "alarm_rate": float((out.detection.scores > threshold)[on].double().mean()),
+        "state_error": math.sqrt(float((out.means - tr.x).square().sum(-1)[on].mean())),
+    }
