@@ -57,6 +57,7 @@ __all__ = [
     "continuous_model",
     "LFCPlant",
     "SecureController",
+    "Watermarked",
     "LFCScenario",
     "LFCAttack",
     "scenario_attack",
@@ -252,6 +253,31 @@ class SecureController:
         feedback = y - attack if self.compensate and attack is not None else y
         u = feedback @ self._gain.to(feedback.dtype)
         return torch.cat([u, self.load.to(u.dtype).expand(u.shape)], -1)
+
+
+class Watermarked:
+    """A controller whose control input carries a physical watermark (Mo & Sinopoli 2009):
+    ``U_k + ΔU_k``, ``ΔU_k ~ N(0, diag(std²))`` i.i.d. from ``generator``, on the first
+    ``len(std)`` entries of the input (the control; the load that rides along gets none).
+
+    The loop hands what was sent to the plant and to the estimator alike, so the estimator
+    knows the watermark; a replayed measurement does not carry its effect, and the
+    innovations show it. The price is the control cost the noise adds."""
+
+    def __init__(self, inner, std: Tensor, generator: torch.Generator):
+        if not isinstance(std, Tensor) or std.dim() != 1 or not bool((std >= 0).all()):
+            raise ValueError(f"std must be a tensor [du] of non-negative numbers; got {std!r}")
+        self.inner, self.std, self.generator = inner, std, generator
+
+    def init(self, batch_shape, dtype, device) -> Tensor:
+        return self.inner.init(batch_shape, dtype, device)
+
+    def __call__(self, k: int, y: Tensor, out) -> Tensor:
+        u = self.inner(k, y, out)
+        n = self.std.shape[0]
+        noise = torch.randn(*u.shape[:-1], n, generator=self.generator, dtype=u.dtype,
+                            device=u.device)  # fmt: skip
+        return torch.cat([u[..., :n] + noise * self.std.to(u.dtype), u[..., n:]], -1)
 
 
 # -- attacks ---------------------------------------------------------------------------------
@@ -463,19 +489,24 @@ def lfc_loop(
     steps: int | None = None,
     state=None,
     progress=None,
+    watermark=None,
 ) -> LoopResult:
     """One LFC closed loop (eq. 42 with the secure or traditional controller) around
     ``estimator`` on the observers' model, replaying the draws ``xi, theta [B, T, 10]``
     and the load ``[B or 1, 2]`` (:func:`difffilter.loop.closed_loop`): ``X_0 = 0`` [DEF],
     ``Z_k = X_k + α_k + θ_k``. ``steps``/``state``: run a chunk of the loop and resume it;
-    ``progress``: called after every step."""
+    ``progress``: called after every step; ``watermark``: a :class:`Watermarked` wrapper
+    factory ``controller → controller`` (``None``: none)."""
     B, T, _ = xi.shape
     K1 = lqr_gain(plant) if K1 is None else K1
     x0 = torch.zeros(B, STATE_DIM, dtype=xi.dtype, device=xi.device)
+    controller = SecureController(K1, load, compensate=compensate)
+    if watermark is not None:
+        controller = watermark(controller)
     return closed_loop(
         plant.model(), T if steps is None else steps, noise=ReplayedNoise(xi, theta), x0=x0,
         estimator=estimator, model=plant.model(knows_load=False),
-        controller=SecureController(K1, load, compensate=compensate), attack=attack,
+        controller=controller, attack=attack,
         generator=generator, state=state, horizon=T, progress=progress,
     )  # fmt: skip
 

@@ -235,8 +235,11 @@ def _explain(sc, table: dict, est: dict) -> str:
 
 def _prepare(names, *, out: Path, seed: int, checkpoint, progress: bool, options: dict) -> dict:
     """The tuning table and, with ``options["per_channel"]``, the per-channel validation
-    (``per_channel_runs``, ``per_channel_steps``: its size, default 8 per channel × 1000)."""
-    unknown = set(options) - {"per_channel", "per_channel_runs", "per_channel_steps"}
+    (``per_channel_runs``, ``per_channel_steps``: its size, default 8 per channel × 1000);
+    with ``options["watermark"]``, the replay/watermark study (``watermark_std``, p.u.)
+    written to ``<out>/lfc_watermark/``."""
+    unknown = set(options) - {"per_channel", "per_channel_runs", "per_channel_steps",
+                              "watermark", "watermark_std"}  # fmt: skip
     if unknown:
         raise ValueError(f"--option: unknown lfc option(s) {sorted(unknown)}")
     tuning = json.loads(TUNING.read_text()) if TUNING.is_file() else None
@@ -246,6 +249,12 @@ def _prepare(names, *, out: Path, seed: int, checkpoint, progress: bool, options
         size = {"runs_per_channel": options.get("per_channel_runs", 8)}
         size["steps"] = options.get("per_channel_steps", 1000)
         doc = per_channel_validation(checkpoint, seed=seed, out=out, progress=progress, **size)
+    if options.get("watermark"):  # replay and the physical watermark (eval/watermark.py)
+        from ..watermark import watermark_study, write_watermark
+
+        study = watermark_study(registry.get(names[0]), seed=seed,
+                                std=float(options.get("watermark_std", 0.08)))  # fmt: skip
+        write_watermark(out, study)
     return {"per_channel": doc, "tuning": tuning}
 
 

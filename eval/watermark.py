@@ -1,0 +1,126 @@
+"""A defence for replay: the physical watermark on the LFC loop (Mo & Sinopoli 2009).
+
+The controller adds i.i.d. Gaussian noise ``ΔU_k ~ N(0, σ² I)`` to the control it sends
+(:class:`~difffilter.models.lfc.Watermarked`); the Kalman observer knows what was sent. A
+replayed measurement ``ỹ_k = y_{k−d}`` answers to the inputs of ``d`` steps before, so the
+innovations stop being white and a χ² detector on a window of ``w`` steps sees it::
+
+    g_k = Σ_{j=k−w+1..k} ν_jᵀ S_j⁻¹ ν_j   (χ² with w·dy degrees of freedom without attack)
+
+:func:`watermark_study` runs the traditional LFC loop (``U = −K₁Z``) with its Kalman
+observer, without and with the watermark, attack-free and under a replay, on the same
+draws, and reports the χ² AUC on the replayed runs, the TPR at the calibrated threshold
+(from the attack-free runs of each) and the control cost ``J = mean(‖X‖² + ‖U‖²)`` (the
+LQR weights, ``Q = I``, ``R = I``) it costs.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+
+from difffilter import fdi
+from difffilter.kalman import KalmanFilter
+from difffilter.models.lfc import LFCPlant, Watermarked, lfc_loop
+from difffilter.models.streams import Streams
+from difffilter.threats import Replay
+
+from .calibration import threshold_for
+from .scoring import auc
+
+__all__ = ["watermark_study"]
+
+
+def _cost(loop) -> float:
+    """``mean over runs and steps of ‖X_k‖² + ‖U_k‖²`` (the LQR weights Q = I, R = I)."""
+    tr = loop.trajectories
+    control = tr.us[..., :2]  # [U_1, U_2] (the load rides along)
+    return float(tr.x.square().sum(-1).mean() + control.square().sum(-1).mean())
+
+
+def watermark_study(scenario, *, runs: int = 20, seed: int = 0, std: float = 0.08,
+                    window: int = 30, delay: int = 300, onset: int = 700, far: float = 0.01,
+                    progress: bool = False) -> dict[str, Any]:  # fmt: skip
+    """Replay on the LFC loop without and with the watermark (module docstring).
+
+    ``std``: the watermark's standard deviation per control input (p.u.); ``window``: of
+    the χ² detector; the replay records from ``onset − delay`` and replays from ``onset``
+    (1-based steps); the thresholds come from attack-free runs of their own seed at
+    ``far``. Defaults: the replay records 4–7 s and replays them over 7–10 s; ``std`` 0.08
+    p.u. keeps the control cost within 10 % (measured: +7.4 %)."""
+    streams = Streams(seed)
+    draws = scenario.exogenous(runs, {k: streams(k) for k in ("plant", "attack")})
+    cal = scenario.exogenous(
+        runs, {k: streams(f"far-calibration/{k}") for k in ("plant", "attack")}
+    )
+    plant = LFCPlant(dt=scenario.dt, dtype=draws["xi"].dtype)
+    detector = fdi.ChiSquareDetector(plant.model().dim_y, far, window=window)
+    replay = Replay(delay=delay, onset=onset)
+    rows = {}
+    for label, sigma in (("without watermark", 0.0), ("with watermark", std)):
+
+        def run(d, attack, name, sigma=sigma):
+            gen = torch.Generator().manual_seed(streams.seed_of(f"watermark/{name}"))
+            mark = None
+            if sigma > 0:
+                mark = lambda c: Watermarked(c, torch.full((2,), sigma), gen)  # noqa: E731
+            estimator = fdi.GatedFilter(detector, KalmanFilter(), gate=False)
+            return lfc_loop(plant, estimator, d["xi"], d["theta"], d["load"], attack=attack,
+                            compensate=False, watermark=mark)  # fmt: skip
+
+        free, attacked = run(cal, None, "calibration"), run(draws, replay, "study")
+        clean = run(draws, None, "study")
+        tau = threshold_for(free.output.detection.scores, far)
+        scores, flags = attacked.output.detection.scores, attacked.trajectories.flags
+        rows[label] = {
+            "std": sigma, "auc": auc(scores, flags), "threshold": tau,
+            "tpr_at_far": float((scores > tau)[flags].double().mean()),
+            "fpr_at_far": float((clean.output.detection.scores > tau).double().mean()),
+            "control_cost": _cost(clean),
+        }  # fmt: skip
+    base = rows["without watermark"]["control_cost"]
+    increase = rows["with watermark"]["control_cost"] / base - 1.0
+    return {"runs": runs, "seed": seed, "window": window, "far": far,
+            "replay": {"delay": delay, "onset": onset}, "rows": rows,
+            "control_cost_increase": increase if math.isfinite(increase) else None}  # fmt: skip
+
+
+def write_watermark(out, doc: dict):
+    """``<out>/lfc_watermark/{metrics.json, report.md}`` of :func:`watermark_study`."""
+    import json
+    from pathlib import Path
+
+    from .report import format_number, markdown_table
+
+    folder = Path(out) / "lfc_watermark"
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "metrics.json").write_text(json.dumps(doc, indent=2) + "\n")
+    f, rp = format_number, doc["replay"]
+    rows = [[label, f(r["std"]), f(r["auc"]), f(r["tpr_at_far"]), f(r["fpr_at_far"]),
+             f(r["control_cost"])] for label, r in doc["rows"].items()]  # fmt: skip
+    (folder / "report.md").write_text(
+        "# Replay and the physical watermark (LFC)\n\n"
+        f"The traditional loop U = −K₁Z with its Kalman observer, {doc['runs']} runs, seed "
+        f"{doc['seed']}. Replay (Mo & Sinopoli 2009): from step {rp['onset']} the receiver gets "
+        f"the measurements of {rp['delay']} steps before. Detector: χ² on the observer's "
+        f"innovations over a window of {doc['window']} steps, its threshold from attack-free "
+        f"runs of their own seed at {100 * doc['far']:g} % false alarms. Watermark: i.i.d. "
+        "Gaussian noise of standard deviation `std` (p.u.) on both control inputs, known to "
+        "the observer.\n\n"
+        + markdown_table(
+            [
+                "",
+                "std",
+                "χ² AUC (replayed runs)",
+                "TPR at the threshold",
+                "FPR at the threshold (attack-free)",
+                "control cost J",
+            ],
+            rows,
+        )  # fmt: skip
+        + f"\nThe watermark raises the control cost J = mean(‖X‖² + ‖U‖²) by "
+        f"{100 * doc['control_cost_increase']:.2f} %.\n"
+    )
+    return folder
