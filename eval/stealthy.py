@@ -25,7 +25,7 @@ from difffilter.models.streams import Streams
 from difffilter.stealthy import StealthySettings, craft_stealthy_attack
 from difffilter.threats import KSigmaBias
 
-__all__ = ["StealthySpec", "craft_threat", "same_rate_bias"]
+__all__ = ["StealthySpec", "craft_threat", "crafted_error", "same_rate_bias"]
 
 
 @dataclass(frozen=True)
@@ -99,38 +99,10 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
     return attack, report
 
 
-def same_rate_bias(scenario, against: str, rate: float, threshold: float, *, onset: int,
-                   entries=None, runs: int, seed: int, iterations: int = 12) -> dict[str, Any]:  # fmt: skip
-    """The constant bias ``k σ`` (on ``entries``, from ``onset``) whose alarm rate under
-    ``against`` at ``threshold`` on the study's runs equals ``rate`` (bisection on ``k``),
-    with its RMS estimation error over the attacked steps."""
-    ctx = _context(scenario, runs, seed)
-    estimator, streams = gated_estimator(ctx, against), Streams(seed)
-
-    def judge(k: float) -> tuple[float, float]:
-        bias = KSigmaBias.of(ctx.model, k, onset=onset, entries=entries)
-        gens = {n: streams(n) for n in ("plant", "attack", "schedule")}
-        tr = scenario.with_threat(bias).simulate(runs, gens, model=ctx.model)
-        out = open_loop(estimator, ctx.model, tr.y_recv, tr.us, mask=tr.mask)
-        on = tr.flags
-        alarm = float((out.detection.scores > threshold)[on].double().mean())
-        error = math.sqrt(float((out.means - tr.x).square().sum(-1)[on].mean()))
-        return alarm, error
-
-    lo, hi = 0.0, 1.0
-    while judge(hi)[0] < rate and hi < 1e3:
-        lo, hi = hi, 2 * hi
-    for _ in range(iterations):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if judge(mid)[0] < rate else (lo, mid)
-    alarm, error = judge(hi)
-    return {"k_sigma": hi, "alarm_rate": alarm, "state_error": error}
-
-
-def crafted_error(scenario, against: str, attack, threshold: float, *, runs: int,
-                  seed: int) -> dict[str, float]:  # fmt: skip
-    """The crafted attack's alarm rate under ``against`` and its RMS estimation error over
-    the attacked steps, on the study's runs (the numbers :func:`same_rate_bias` matches)."""
+def _judge(scenario, against: str, attack, threshold: float, *, runs: int, seed: int):
+    """``{"alarm_rate", "state_error"}`` of ``attack`` on the study's runs: the share of
+    attacked steps where ``against`` alarms at ``threshold``, and its RMS estimation error
+    over them."""
     ctx = _context(scenario, runs, seed)
     estimator, streams = gated_estimator(ctx, against), Streams(seed)
     gens = {n: streams(n) for n in ("plant", "attack", "schedule")}
@@ -141,3 +113,30 @@ def crafted_error(scenario, against: str, attack, threshold: float, *, runs: int
         "alarm_rate": float((out.detection.scores > threshold)[on].double().mean()),
         "state_error": math.sqrt(float((out.means - tr.x).square().sum(-1)[on].mean())),
     }
+
+
+def crafted_error(scenario, against: str, attack, threshold: float, *, runs: int,
+                  seed: int) -> dict[str, float]:  # fmt: skip
+    """The crafted attack's alarm rate under ``against`` and its RMS estimation error over
+    the attacked steps, on the study's runs (the numbers :func:`same_rate_bias` matches)."""
+    return _judge(scenario, against, attack, threshold, runs=runs, seed=seed)
+
+
+def same_rate_bias(scenario, against: str, rate: float, threshold: float, *, onset: int,
+                   entries=None, runs: int, seed: int, iterations: int = 12) -> dict[str, Any]:  # fmt: skip
+    """The constant bias ``k σ`` (on ``entries``, from ``onset``) whose alarm rate under
+    ``against`` at ``threshold`` on the study's runs equals ``rate`` (bisection on ``k``),
+    with its RMS estimation error over the attacked steps."""
+    model = scenario.system()
+
+    def judge(k: float) -> dict[str, float]:
+        bias = KSigmaBias.of(model, k, onset=onset, entries=entries)
+        return _judge(scenario, against, bias, threshold, runs=runs, seed=seed)
+
+    lo, hi = 0.0, 1.0
+    while judge(hi)["alarm_rate"] < rate and hi < 1e3:
+        lo, hi = hi, 2 * hi
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if judge(mid)["alarm_rate"] < rate else (lo, mid)
+    return {"k_sigma": hi, **judge(hi)}
