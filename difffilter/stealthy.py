@@ -99,7 +99,7 @@ def craft_stealthy_attack(
     settings: StealthySettings = StealthySettings(),
     generator=None,
     resample=None,
-    progress: bool = False,
+    progress=None,
 ) -> CraftedAttack:
     """Craft a stealthy sensor attack against ``estimator``'s detector (module docstring).
 
@@ -115,12 +115,11 @@ def craft_stealthy_attack(
         resample: ``iteration → (ys, xs)``, a fresh training batch for every iteration
             (stochastic optimisation over the noise: without it the attack may fit the
             training noise and alarm more on fresh noise); ``ys, xs`` are the first.
+        progress: ``(iteration, J, alarm rate) → None`` after every iteration, or ``None``.
 
     Returns a :class:`CraftedAttack` with ``history`` ``[(iteration, J, p̃(a) − p̃(0),
     p(a))]`` (zero if no iterate kept the budget).
     """
-    from tqdm.auto import tqdm
-
     B, T, dy = ys.shape
     if not 1 <= onset <= T:
         raise ValueError(f"onset must lie in [1, {T}]; got {onset!r}")
@@ -151,8 +150,7 @@ def craft_stealthy_attack(
         free = open_loop(estimator, model, ys, us, generator=gens)
         bound, hard_bound = smoothed_rate(free) + s.slack, hard_rate(free) + s.slack
     history, scale, best = [], None, (-1.0, torch.zeros(T, dy, dtype=ys.dtype))
-    bar = tqdm(range(s.iterations), desc="crafting a stealthy attack", disable=not progress)
-    for it in bar:
+    for it in range(s.iterations):
         a = raw.cumsum(0) * sigma * window
         gens = None if generator is None else generator()
         if resample is not None and it > 0:
@@ -171,5 +169,6 @@ def craft_stealthy_attack(
         loss.backward()
         optimiser.step()
         history.append((it, value, float(p.detach() - bound + s.slack), rate))
-        bar.set_postfix(J=f"{value:.3g}", rate=f"{rate:.4f}")
+        if progress is not None:
+            progress(it, value, rate)
     return CraftedAttack(best[1], onset, history, s)

@@ -82,12 +82,22 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
         tr = free.simulate(spec.train_runs, gens, model=ctx.model)
         return tr.y_true, tr.x
 
+    from tqdm.auto import tqdm
+
     ys, xs = batch(0)
+    bar = tqdm(total=spec.settings.iterations, desc=f"crafting {name}", disable=not progress,
+               leave=False)  # fmt: skip
+
+    def advance(it, value, rate):
+        bar.update(1)
+        bar.set_postfix(J=f"{value:.3g}", alarm_rate=f"{rate:.4f}")
+
     with torch.enable_grad():
         attack = craft_stealthy_attack(
             estimator, ctx.model, ys, xs, tau, far=calibration.far, onset=spec.onset,
-            entries=spec.entries, settings=spec.settings, resample=batch, progress=progress,
+            entries=spec.entries, settings=spec.settings, resample=batch, progress=advance,
         )  # fmt: skip
+    bar.close()
     kept = [h for h in attack.history if h[3] <= attack.history[0][3] + spec.settings.slack]
     report = {
         "against": spec.against, "threshold": tau, "train_runs": spec.train_runs,
