@@ -79,13 +79,15 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
     in ``names`` (``"all"`` or a sequence; an unknown name is an error listing the valid).
 
     The YAML holds ``threats: {name: {kind: …, fields}}`` (:func:`~difffilter.threats.
-    threat_from_dict`), or ``threats_from: <file>`` (another file's, beside it), and
-    optionally ``runs`` and ``estimators``."""
+    threat_from_dict`), or ``threats_from: <file>`` (another file's, beside it, less those
+    named in ``exclude``), and optionally ``runs`` and ``estimators``."""
     path = Path(path) if path is not None else _threat_file(scenario)
     data = yaml.safe_load(path.read_text()) or {}
     if "threats_from" in data:  # another file's threats, this file's study size
         shared = yaml.safe_load((path.parent / data["threats_from"]).read_text()) or {}
-        data = {**data, "threats": shared.get("threats")}
+        left_out = set(data.get("exclude") or ())
+        kept = {n: t for n, t in (shared.get("threats") or {}).items() if n not in left_out}
+        data = {**data, "threats": kept}
     specs = data.get("threats") or {}
     if not isinstance(specs, dict) or not specs:
         raise ValueError(f"{path}: 'threats' must map threat names to their specs")
