@@ -29,7 +29,7 @@ noise, where the detector's real alarm rate and the error it caused are measured
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -82,7 +82,6 @@ class StealthySettings:
     penalty: float = 50.0
     slack: float = 0.003
     init: float = 0.3
-    extra: dict = field(default_factory=dict)
 
 
 def craft_stealthy_attack(
@@ -120,7 +119,7 @@ def craft_stealthy_attack(
     Returns a :class:`CraftedAttack` with ``history`` ``[(iteration, J, p̃(a) − p̃(0),
     p(a))]`` (zero if no iterate kept the budget).
     """
-    B, T, dy = ys.shape
+    T, dy = ys.shape[-2:]
     if not 1 <= onset <= T:
         raise ValueError(f"onset must lie in [1, {T}]; got {onset!r}")
     s = settings

@@ -33,8 +33,6 @@ class Calibration:
         far: the target ``α``; runs, seed: of the attack-free calibration runs.
         thresholds: ``{estimator: τ_α}`` (estimators with detection scores only).
         measured: ``{estimator: false-alarm rate at τ_α on the calibration runs}``.
-        attack_free_state_rmse: ``{estimator: state RMSE on the attack-free runs}`` (the
-            denominator of a threat study's state-error ratio).
     """
 
     far: float
@@ -42,7 +40,6 @@ class Calibration:
     seed: int
     thresholds: dict[str, float] = field(default_factory=dict)
     measured: dict[str, float] = field(default_factory=dict)
-    attack_free_state_rmse: dict[str, float] = field(default_factory=dict)
 
     def summary(self) -> dict:
         """The calibration as metrics.json's ``"far"`` entry."""
@@ -114,8 +111,7 @@ def calibrate(
         scores = out.detection.scores
         thresholds[name] = threshold_for(scores, far)
         measured[name] = float((_finite_scores(scores) > thresholds[name]).double().mean())
-    rmse = {n: m["state_rmse"] for n, m in result.metrics.items()}
-    calibration = Calibration(far, runs, cal_seed, thresholds, measured, rmse)
+    calibration = Calibration(far, runs, cal_seed, thresholds, measured)
     if cache is not None:
         cache[key] = calibration
     return calibration

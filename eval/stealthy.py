@@ -43,7 +43,7 @@ class StealthySpec:
     @classmethod
     def from_dict(cls, spec: dict) -> StealthySpec:
         params = {k: v for k, v in spec.items() if k != "kind"}
-        names = {f.name for f in fields(StealthySettings)} - {"extra"}
+        names = {f.name for f in fields(StealthySettings)}
         settings = StealthySettings(**{k: params.pop(k) for k in list(params) if k in names})
         valid = {f.name for f in fields(cls)} - {"settings"}
         unknown = sorted(set(params) - valid)
@@ -101,35 +101,38 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
     kept = [h for h in attack.history if h[3] <= attack.history[0][3] + spec.settings.slack]
     report = {
         "against": spec.against, "threshold": tau, "train_runs": spec.train_runs,
-        "settings": {f.name: getattr(spec.settings, f.name) for f in fields(StealthySettings)
-                     if f.name != "extra"},
+        "settings": {f.name: getattr(spec.settings, f.name) for f in fields(StealthySettings)},
         "iterations_within_budget": len(kept),
         "history": [{"iteration": h[0], "J": h[1], "alarm_rate": h[3]} for h in attack.history],
     }  # fmt: skip
     return attack, report
 
 
-def _judge(scenario, against: str, attack, threshold: float, *, runs: int, seed: int):
-    """``{"alarm_rate", "state_error"}`` of ``attack`` on the study's runs: the share of
-    attacked steps where ``against`` alarms at ``threshold``, and its RMS estimation error
-    over them."""
+def _judge(scenario, against: str, threshold: float, *, runs: int, seed: int):
+    """``attack → {"alarm_rate", "state_error"}`` on the study's runs: the share of attacked
+    steps where ``against`` alarms at ``threshold``, and its RMS estimation error over them
+    (the detector is built once, however many attacks are judged)."""
     ctx = _context(scenario, runs, seed)
     estimator, streams = gated_estimator(ctx, against), Streams(seed)
-    gens = {n: streams(n) for n in ("plant", "attack", "schedule")}
-    tr = scenario.with_threat(attack).simulate(runs, gens, model=ctx.model)
-    out = open_loop(estimator, ctx.model, tr.y_recv, tr.us, mask=tr.mask)
-    on = tr.flags
-    return {
-        "alarm_rate": float((out.detection.scores > threshold)[on].double().mean()),
-        "state_error": math.sqrt(float((out.means - tr.x).square().sum(-1)[on].mean())),
-    }
+
+    def judge(attack) -> dict[str, float]:
+        gens = {n: streams(n) for n in ("plant", "attack", "schedule")}
+        tr = scenario.with_threat(attack).simulate(runs, gens, model=ctx.model)
+        out = open_loop(estimator, ctx.model, tr.y_recv, tr.us, mask=tr.mask)
+        on = tr.flags
+        return {
+            "alarm_rate": float((out.detection.scores > threshold)[on].double().mean()),
+            "state_error": math.sqrt(float((out.means - tr.x).square().sum(-1)[on].mean())),
+        }
+
+    return judge
 
 
 def crafted_error(scenario, against: str, attack, threshold: float, *, runs: int,
                   seed: int) -> dict[str, float]:  # fmt: skip
     """The crafted attack's alarm rate under ``against`` and its RMS estimation error over
     the attacked steps, on the study's runs (the numbers :func:`same_rate_bias` matches)."""
-    return _judge(scenario, against, attack, threshold, runs=runs, seed=seed)
+    return _judge(scenario, against, threshold, runs=runs, seed=seed)(attack)
 
 
 def same_rate_bias(scenario, against: str, rate: float, threshold: float, *, onset: int,
@@ -137,11 +140,11 @@ def same_rate_bias(scenario, against: str, rate: float, threshold: float, *, ons
     """The constant bias ``k σ`` (on ``entries``, from ``onset``) whose alarm rate under
     ``against`` at ``threshold`` on the study's runs equals ``rate`` (bisection on ``k``),
     with its RMS estimation error over the attacked steps."""
-    model = scenario.system()
+    model, judge_attack = scenario.system(), _judge(scenario, against, threshold, runs=runs,
+                                                    seed=seed)  # fmt: skip
 
     def judge(k: float) -> dict[str, float]:
-        bias = KSigmaBias.of(model, k, onset=onset, entries=entries)
-        return _judge(scenario, against, bias, threshold, runs=runs, seed=seed)
+        return judge_attack(KSigmaBias.of(model, k, onset=onset, entries=entries))
 
     lo, hi = 0.0, 1.0
     while judge(hi)["alarm_rate"] < rate and hi < 1e3:
