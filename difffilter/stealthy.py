@@ -11,9 +11,10 @@ worst case), and designs one deterministic sensor attack ``a_1 … a_T`` (zero b
 detector's alarm rate over the attacked steps: the rate a defender would see)
 
 with ``s`` the detector's statistic (the estimator's ``detection.scores``: the NIS of a
-χ²-gated filter, the learned head's logit, …), ``τ`` its threshold at the false-alarm rate
+χ²-gated filter, the learned head's probability of attack, …), ``τ`` its threshold at the false-alarm rate
 ``α`` and ``ε`` the slack allowed (the attack may raise the alarm rate that much). The
-indicator is smoothed, ``1[s > τ] ≈ σ((s − τ)/t)``, which overstates the rate, so the
+indicator is smoothed, ``1[s > τ] ≈ σ((s − τ)/t)`` (``t`` a fraction of the statistic's
+attack-free standard deviation), which overstates the rate, so the
 smoothed constraint bounds the increase over the attack-free run, ``p̃(a) − p̃(0) ≤ ε``;
 it enters as a penalty, and the problem is solved by Adam on ``a`` through the estimator's
 whole-sequence run (:func:`difffilter.loop.open_loop`)::
@@ -72,13 +73,15 @@ class CraftedAttack(TabulatedAttack):
 @dataclass(frozen=True)
 class StealthySettings:
     """The optimiser's settings (module docstring): ``iterations`` of Adam at ``lr``,
-    smoothing temperature ``temperature`` (in units of the statistic), penalty weight
+    smoothing temperature ``temperature`` (in units of the statistic's standard deviation
+    over the attacked steps of the attack-free training run, so that one setting fits a
+    χ² statistic and a learned probability alike), penalty weight
     ``penalty``, slack ``slack`` (ε) over the false-alarm rate, and the start: a bias of
     ``init`` times the measurement noise's standard deviation."""
 
     iterations: int = 300
     lr: float = 0.01
-    temperature: float = 0.5
+    temperature: float = 0.18
     penalty: float = 50.0
     slack: float = 0.003
     init: float = 0.3
@@ -97,6 +100,7 @@ def craft_stealthy_attack(
     entries: tuple[int, ...] | None = None,
     settings: StealthySettings = StealthySettings(),
     generator=None,
+    start=None,
     resample=None,
     progress=None,
 ) -> CraftedAttack:
@@ -110,7 +114,12 @@ def craft_stealthy_attack(
         threshold: ``τ`` of the detector at the false-alarm rate ``far``.
         onset: first attacked measurement (1-based); entries: attacked measurement entries
             (``None``: all).
-        generator: of the estimator's own draws (the same at every iteration).
+        generator: ``() → generator`` of the estimator's own draws (the same at every
+            iteration), or ``None``.
+        start: ``runs → carry``, the estimator's starting carry (the same draws at every
+            iteration: a particle filter's initial particles and generators), or ``None``
+            (``estimator.init``). A particle filter's gradient flows through the particles
+            and weights between resamplings, not through the resampler's discrete choice.
         resample: ``iteration → (ys, xs)``, a fresh training batch for every iteration
             (stochastic optimisation over the noise: without it the attack may fit the
             training noise and alarm more on fresh noise); ``ys, xs`` are the first.
@@ -138,23 +147,29 @@ def craft_stealthy_attack(
     optimiser = torch.optim.Adam([raw], lr=s.lr)
     on = attacked.bool()
 
+    temperature = None  # t = s.temperature × the attack-free statistic's std (set below)
+
     def smoothed_rate(out) -> Tensor:
-        return torch.sigmoid((out.detection.scores - threshold) / s.temperature)[:, on].mean()
+        return torch.sigmoid((out.detection.scores - threshold) / temperature)[:, on].mean()
 
     def hard_rate(out) -> float:
         return float((out.detection.scores > threshold)[:, on].double().mean())
 
+    def run(received: Tensor):
+        carry = None if start is None else start(received.shape[0])
+        gens = None if generator is None or carry is not None else generator()
+        return open_loop(estimator, model, received, us, generator=gens, carry=carry)
+
     with torch.no_grad():
-        gens = None if generator is None else generator()
-        free = open_loop(estimator, model, ys, us, generator=gens)
+        free = run(ys)
+        temperature = s.temperature * float(free.detection.scores[:, on].std()) + 1e-12
         bound, hard_bound = smoothed_rate(free) + s.slack, hard_rate(free) + s.slack
     history, scale, best = [], None, (-1.0, torch.zeros(T, dy, dtype=ys.dtype))
     for it in range(s.iterations):
         a = raw.cumsum(0) * sigma * window
-        gens = None if generator is None else generator()
         if resample is not None and it > 0:
             ys, xs = resample(it)
-        out = open_loop(estimator, model, ys + a, us, generator=gens)
+        out = run(ys + a)
         error = (out.means - xs).square().sum(-1)[:, on].mean()
         p = smoothed_rate(out)
         if scale is None:

@@ -173,7 +173,7 @@ def run_robustness(
     for name, threat in bar:
         bar.set_postfix_str(name)
         if isinstance(threat, StealthySpec):
-            threat = _crafted(result, name, threat, progress)
+            threat = _crafted(result, name, threat, progress, checkpoint)
         suite = run_suite(scenario.with_threat(threat), seed=seed, calibration=cal, **kwargs)
         result.cells[name] = {
             est: _cell(m, free.metrics.get(est, {})) for est, m in suite.metrics.items()
@@ -182,15 +182,17 @@ def run_robustness(
     return result
 
 
-def _crafted(result: RobustnessResult, name: str, spec: StealthySpec, progress: bool):
+def _crafted(result: RobustnessResult, name: str, spec: StealthySpec, progress: bool,
+             checkpoint=None):  # fmt: skip
     """Craft stealthy threat ``name`` against its detector, and compare it on the study's
     runs with the constant bias of the same alarm rate (``result.stealthy[name]``)."""
     sc, cal = result.scenario, result.calibration
-    attack, report = craft_threat(name, spec, sc, cal, seed=result.seed, progress=progress)
+    common = dict(seed=result.seed, checkpoint=checkpoint)
+    attack, report = craft_threat(name, spec, sc, cal, progress=progress, **common)
     tau = report["threshold"]
-    judged = crafted_error(sc, spec.against, attack, tau, runs=result.runs, seed=result.seed)
+    judged = crafted_error(sc, spec.against, attack, tau, runs=result.runs, **common)
     bias = same_rate_bias(sc, spec.against, judged["alarm_rate"], tau, onset=spec.onset,
-                          entries=spec.entries, runs=result.runs, seed=result.seed)  # fmt: skip
+                          entries=spec.entries, runs=result.runs, **common)  # fmt: skip
     report.update(crafted=judged, same_rate_bias=bias,
                   error_ratio_to_bias=judged["state_error"] / bias["state_error"])  # fmt: skip
     result.stealthy[name] = report

@@ -18,14 +18,17 @@ from typing import Any
 
 import torch
 
+from difffilter import fdi
+from difffilter.estimator import Generators
 from difffilter.loop import open_loop
-from difffilter.models.estimators import SuiteContext
-from difffilter.models.generic_estimators import gated_estimator
+from difffilter.models.estimators import SkipEstimator, SuiteContext
+from difffilter.models.generic_estimators import GATED, gated_estimator
+from difffilter.models.learned_estimator import LEARNED, learned_step
 from difffilter.models.streams import Streams
 from difffilter.stealthy import StealthySettings, craft_stealthy_attack
 from difffilter.threats import KSigmaBias
 
-__all__ = ["StealthySpec", "craft_threat", "crafted_error", "same_rate_bias"]
+__all__ = ["StealthySpec", "craft_threat", "crafted_error", "detector_step", "same_rate_bias"]
 
 
 @dataclass(frozen=True)
@@ -57,13 +60,46 @@ class StealthySpec:
         return cls(settings=settings, **params)
 
 
-def _context(scenario, runs: int, seed: int) -> SuiteContext:
+def _context(scenario, runs: int, seed: int, checkpoint=None) -> SuiteContext:
     model = scenario.system()
-    return SuiteContext(scenario, model, runs, Streams(seed), scenario.estimator_options(), None)
+    checkpoint = checkpoint if checkpoint is not None else scenario.shipped_checkpoint()
+    options = scenario.estimator_options()
+    return SuiteContext(scenario, model, runs, Streams(seed), options, checkpoint)
+
+
+def detector_step(ctx: SuiteContext, against: str):
+    """``(estimator, start)``: the step object of the detector ``against`` and its starting
+    carry ``start(runs)`` (``None``: the estimator's own ``init``). A registered gated
+    Gaussian filter (``chi_square_ekf``, ``cusum_kf``, …), the bootstrap particle filter with
+    the probability-of-attack detector (``normal_pf``: the statistic is β_k) or a learned
+    estimator (``pf_nn_grad``, …: the statistic is its detection head's probability). The
+    particle filters start from the study's common random numbers, as in the suite."""
+    if against in GATED:
+        return gated_estimator(ctx, against), None
+    if against == "normal_pf":
+        kw = ctx.particle_kwargs()
+        pf = fdi.PoAParticleFilter(kw["num_particles"], ctx.poa_detector(),
+                                   resampler=kw["resampler"], ess_threshold=kw["ess_threshold"])  # fmt: skip
+
+        def start(runs: int):
+            kw = ctx.particle_kwargs(runs)
+            gens = Generators.of(kw["generator"])._replace(resample=kw["resample_generator"])
+            return pf.attach(kw["initial_state"], ctx.model, gens)
+
+        return pf, start
+    if against in LEARNED:
+        try:
+            return learned_step(ctx, against)
+        except SkipEstimator as err:
+            raise ValueError(f"cannot craft against {against!r}: {err}") from None
+    raise ValueError(
+        f"cannot craft against {against!r}: not a gated Gaussian filter ({', '.join(GATED)}), "
+        f"normal_pf nor a learned estimator ({', '.join(LEARNED)})"
+    )
 
 
 def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: int,
-                 progress: bool = False):  # fmt: skip
+                 checkpoint=None, progress: bool = False):  # fmt: skip
     """The crafted attack of threat ``name`` and what to report of its crafting:
     ``(attack, {"against", "threshold", "settings", "train_runs", "iterations_kept",
     "history"})``."""
@@ -72,8 +108,8 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
             f"threat {name!r}: {spec.against!r} was not calibrated in this study (add it to "
             f"the threat set's estimators)"
         )
-    ctx = _context(scenario, spec.train_runs, seed)
-    estimator, tau = gated_estimator(ctx, spec.against), calibration.thresholds[spec.against]
+    ctx = _context(scenario, spec.train_runs, seed, checkpoint)
+    (estimator, start), tau = detector_step(ctx, spec.against), calibration.thresholds[spec.against]
     streams = Streams(seed)
     free = scenario.with_threat(None)
 
@@ -95,7 +131,8 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
     with torch.enable_grad():
         attack = craft_stealthy_attack(
             estimator, ctx.model, ys, xs, tau, far=calibration.far, onset=spec.onset,
-            entries=spec.entries, settings=spec.settings, resample=batch, progress=advance,
+            entries=spec.entries, settings=spec.settings, start=start, resample=batch,
+            progress=advance,
         )  # fmt: skip
     bar.close()
     kept = [h for h in attack.history if h[3] <= attack.history[0][3] + spec.settings.slack]
@@ -108,17 +145,19 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
     return attack, report
 
 
-def _judge(scenario, against: str, threshold: float, *, runs: int, seed: int):
+def _judge(scenario, against: str, threshold: float, *, runs: int, seed: int, checkpoint=None):
     """``attack → {"alarm_rate", "state_error"}`` on the study's runs: the share of attacked
     steps where ``against`` alarms at ``threshold``, and its RMS estimation error over them
     (the detector is built once, however many attacks are judged)."""
-    ctx = _context(scenario, runs, seed)
-    estimator, streams = gated_estimator(ctx, against), Streams(seed)
+    ctx = _context(scenario, runs, seed, checkpoint)
+    (estimator, start), streams = detector_step(ctx, against), Streams(seed)
 
     def judge(attack) -> dict[str, float]:
         gens = {n: streams(n) for n in ("plant", "attack", "schedule")}
         tr = scenario.with_threat(attack).simulate(runs, gens, model=ctx.model)
-        out = open_loop(estimator, ctx.model, tr.y_recv, tr.us, mask=tr.mask)
+        carry = None if start is None else start(runs)
+        with torch.no_grad():
+            out = open_loop(estimator, ctx.model, tr.y_recv, tr.us, mask=tr.mask, carry=carry)
         on = tr.flags
         return {
             "alarm_rate": float((out.detection.scores > threshold)[on].double().mean()),
@@ -129,19 +168,21 @@ def _judge(scenario, against: str, threshold: float, *, runs: int, seed: int):
 
 
 def crafted_error(scenario, against: str, attack, threshold: float, *, runs: int,
-                  seed: int) -> dict[str, float]:  # fmt: skip
+                  seed: int, checkpoint=None) -> dict[str, float]:  # fmt: skip
     """The crafted attack's alarm rate under ``against`` and its RMS estimation error over
     the attacked steps, on the study's runs (the numbers :func:`same_rate_bias` matches)."""
-    return _judge(scenario, against, threshold, runs=runs, seed=seed)(attack)
+    return _judge(scenario, against, threshold, runs=runs, seed=seed, checkpoint=checkpoint)(attack)
 
 
 def same_rate_bias(scenario, against: str, rate: float, threshold: float, *, onset: int,
-                   entries=None, runs: int, seed: int, iterations: int = 12) -> dict[str, Any]:  # fmt: skip
+                   entries=None, runs: int, seed: int, iterations: int = 12,
+                   checkpoint=None) -> dict[str, Any]:  # fmt: skip
     """The constant bias ``k σ`` (on ``entries``, from ``onset``) whose alarm rate under
     ``against`` at ``threshold`` on the study's runs equals ``rate`` (bisection on ``k``),
     with its RMS estimation error over the attacked steps."""
-    model, judge_attack = scenario.system(), _judge(scenario, against, threshold, runs=runs,
-                                                    seed=seed)  # fmt: skip
+    model = scenario.system()
+    judge_attack = _judge(scenario, against, threshold, runs=runs, seed=seed,
+                          checkpoint=checkpoint)  # fmt: skip
 
     def judge(k: float) -> dict[str, float]:
         return judge_attack(KSigmaBias.of(model, k, onset=onset, entries=entries))

@@ -37,6 +37,8 @@ __all__ = [
     "NeuralCompensation",
     "build_delta",
     "feature_dim",
+    "LEARNED",
+    "learned_step",
 ]
 
 
@@ -69,37 +71,61 @@ def _trained_network(ctx, name: str, filters, trainer: str):
     return net, card
 
 
+def _build(ctx, name: str, particles: bool, trainer: str) -> NeuralCompensation:
+    """The checkpoint's network inside its filter as a step object (:func:`_trained_network`
+    decides whether it fits the scenario)."""
+    filters = ("pf",) if particles else tuple(GAUSSIAN_FILTERS)
+    net, card = _trained_network(ctx, name, filters, trainer)
+    channel = Channel(card.channel)
+    deception = None
+    if channel is Channel.REPLACEMENT:
+        deception = deception_of(ctx.scenario.attack_model(), ctx.dtype)[0]
+    if particles:
+        kw = ctx.particle_kwargs()
+        inner = ParticleFilter(kw["num_particles"], resampler=kw["resampler"],
+                               ess_threshold=kw["ess_threshold"])  # fmt: skip
+    else:
+        inner = GAUSSIAN_FILTERS[card.filter]
+    return NeuralCompensation(
+        net, inner, channel=channel, residual=Residual(card.residual),
+        standardize=card.standardize, features=card.features, poa_eta=card.poa_eta,
+        threshold=card.threshold, deception=deception,
+    )  # fmt: skip
+
+
+def learned_step(ctx, name: str):
+    """``(estimator, start)`` of the registered learned estimator ``name`` (``pf_nn_grad``,
+    ``gaussian_nn_ekf``, …): its step object and ``start(runs) → carry`` (the study's
+    common random numbers for a particle filter; ``None`` for a Gaussian filter, whose
+    ``init`` draws nothing). What an attacker differentiates through
+    (:mod:`difffilter.stealthy`); raises :class:`SkipEstimator` if the checkpoint does not
+    fit the scenario."""
+    if name not in LEARNED:
+        raise ValueError(f"{name!r} is not a learned estimator; valid: {', '.join(LEARNED)}")
+    particles, trainer = LEARNED[name]
+    est = _build(ctx, name, particles, trainer)
+    if not particles:
+        return est, None
+
+    def start(runs: int):
+        kw = ctx.particle_kwargs(runs)
+        gens = Generators(None, kw["generator"], kw["resample_generator"])
+        return est.attach(kw["initial_state"], ctx.model, gens)
+
+    return est, start
+
+
 def _learned(name: str, particles: bool, trainer: str):
     """A factory running the checkpoint's network in the open loop on the scenario's data
     (the particle filter with the study's common random numbers, or the card's Gaussian
     filter), without gradients."""
 
     def factory(ctx):
-        filters = ("pf",) if particles else tuple(GAUSSIAN_FILTERS)
-        net, card = _trained_network(ctx, name, filters, trainer)
-        channel = Channel(card.channel)
-        deception = None
-        if channel is Channel.REPLACEMENT:
-            deception = deception_of(ctx.scenario.attack_model(), ctx.dtype)[0]
-        if particles:
-            kw = ctx.particle_kwargs()
-            inner = ParticleFilter(kw["num_particles"], resampler=kw["resampler"],
-                                   ess_threshold=kw["ess_threshold"])  # fmt: skip
-        else:
-            inner = GAUSSIAN_FILTERS[card.filter]
-        est = NeuralCompensation(
-            net, inner, channel=channel, residual=Residual(card.residual),
-            standardize=card.standardize, features=card.features, poa_eta=card.poa_eta,
-            threshold=card.threshold, deception=deception,
-        )  # fmt: skip
+        est, start = learned_step(ctx, name)
 
         def run(tr):
             with torch.no_grad():
-                if not particles:
-                    return open_loop(est, ctx.model, tr.y_recv, tr.us, mask=tr.mask)
-                kw = ctx.particle_kwargs(len(tr.y_recv))
-                gens = Generators(None, kw["generator"], kw["resample_generator"])
-                carry = est.attach(kw["initial_state"], ctx.model, gens)
+                carry = None if start is None else start(len(tr.y_recv))
                 return open_loop(est, ctx.model, tr.y_recv, tr.us, mask=tr.mask, carry=carry)
 
         return run
@@ -111,12 +137,16 @@ _HOW = {
     "grad": "trained by gradient descent through the differentiable {}",
     "ekf": "trained by the EKF over its weights inside the {}",
 }
-for _trainer, _how in _HOW.items():
-    for _particles in (True, False):
-        _name = f"{'pf' if _particles else 'gaussian'}_nn_{_trainer}"
-        register(
-            _name,
-            f"neural FDI estimator {_how.format('PF' if _particles else 'KF/EKF/UKF')} "
-            "(checkpoint), compensating the filter's measurements; alarm at its "
-            "validation-chosen threshold",
-        )(_learned(_name, _particles, _trainer))
+#: The learned estimators by registry name: ``(particle filter?, trainer)``.
+LEARNED = {
+    f"{'pf' if particles else 'gaussian'}_nn_{trainer}": (particles, trainer)
+    for trainer in _HOW
+    for particles in (True, False)
+}
+for _name, (_particles, _trainer) in LEARNED.items():
+    register(
+        _name,
+        f"neural FDI estimator {_HOW[_trainer].format('PF' if _particles else 'KF/EKF/UKF')} "
+        "(checkpoint), compensating the filter's measurements; alarm at its "
+        "validation-chosen threshold",
+    )(_learned(_name, _particles, _trainer))

@@ -55,7 +55,8 @@ def crafted():
         tr = _runs(32, 100 + it)
         return tr.y_true, tr.x
 
-    settings = StealthySettings(iterations=150, lr=0.03, slack=0.005)
+    # temperature 0.25 σ_s (= 0.5 in units of this χ²(2) statistic, what the test was sized with)
+    settings = StealthySettings(iterations=150, lr=0.03, slack=0.005, temperature=0.25)
     attack = craft_stealthy_attack(estimator, _plant(), first.y_true, first.x, tau, far=0.01,
                                    onset=ONSET, settings=settings, resample=batch)  # fmt: skip
     return estimator, tau, attack
@@ -92,3 +93,36 @@ def test_bad_arguments_are_named():
         craft_stealthy_attack(estimator, _plant(), tr.y_true, tr.x, 9.0, far=0.01, onset=0)
     with pytest.raises(ValueError, match="values must be a tensor"):
         CraftedAttack(torch.zeros(3), 1)
+
+
+@pytest.mark.parametrize("against", ["pf_nn_grad", "normal_pf"])
+def test_the_attacker_sees_the_particle_filters_of_the_suite_and_their_gradient(against):
+    """``detector_step`` gives the suite's learned estimator and its PF with the PoA detector
+    (the same numbers on the same runs: the particle filters start from the study's
+    draws), and the crafting gets a gradient through the particle filter and the
+    detector's statistic (the learned head's probability, the PoA's β)."""
+    from difffilter.eval.stealthy import _context, detector_step
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import registry
+    from difffilter.models.streams import Streams
+
+    scenario, runs = registry.get("four_tank_bias"), 6
+    suite = run_suite(scenario, runs=runs, seed=3, estimators=[against], progress=False)
+    ctx = _context(scenario, runs, 3)
+    estimator, start = detector_step(ctx, against)
+    gens = {k: Streams(3)(k) for k in ("plant", "attack", "schedule")}
+    tr = scenario.simulate(runs, gens, model=ctx.model)
+    with torch.no_grad():
+        out = open_loop(estimator, ctx.model, tr.y_recv, tr.us, carry=start(runs))
+    expected = suite.outputs[against]
+    torch.testing.assert_close(out.means, expected.means, rtol=0, atol=1e-12)
+    torch.testing.assert_close(out.detection.scores, expected.detection.scores, rtol=0, atol=1e-12)
+
+    free = scenario.with_threat(None).simulate(runs, gens, model=ctx.model)
+    settings = StealthySettings(iterations=3, lr=0.05)
+    attack = craft_stealthy_attack(estimator, ctx.model, free.y_true, free.x, 0.5, far=0.01,
+                                   onset=21, settings=settings, start=start)  # fmt: skip
+    moved = [h[1] for h in attack.history]
+    assert moved[2] != moved[0]  # the increments moved: a gradient reached them
+    with pytest.raises(ValueError, match="not a gated Gaussian filter .*, normal_pf nor a learned"):
+        detector_step(ctx, "kf_attack_free")
