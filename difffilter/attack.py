@@ -17,6 +17,12 @@ entry). The channel says what it acts on (:class:`Channel`)::
     ACTUATOR      ũ_{k−1} = u_{k−1} + l_k a_k          (the plant is driven with ũ; the
                                                         estimator knows only u)
 
+An actuator attack may also write the sensors to hide what it does (a *covert* attack,
+Smith 2015; :attr:`Attack.conceals`): after the measurement the loop asks it for a
+correction ``c_k [..., dy]`` and hands the estimator ``ỹ_k = y_k + c_k``::
+
+    A_k, c_k = attack.conceal(A_k, k, y=y_k, x=x_k)          (only if attack.conceals)
+
 An attack that reads nothing (a bias, a ramp, a known signal, a random replacement)
 derives from :class:`TabulatedAttack`: ``init`` draws the whole table ``[..., T, dim]``
 at once (the same random numbers as a vectorised simulation), and the step reads row
@@ -54,6 +60,7 @@ class Attack:
 
     channel: Channel = Channel.SENSOR
     reads_view: bool = False
+    conceals: bool = False
 
     def init(
         self, batch_shape, num_steps: int, dim: int, generator=None, *, dtype, device=None
@@ -63,6 +70,11 @@ class Attack:
 
     def step(self, state, k: int, *, y=None, x=None, u=None, view=None):
         """``(state, value [..., dim], flag [...] or [..., dim])`` at measurement ``k``."""
+        raise NotImplementedError
+
+    def conceal(self, state, k: int, *, y, x):
+        """``(state, c_k [..., dy])``: what an actuator attack that :attr:`conceals` adds to
+        the measurement ``y_k`` (module docstring); never called otherwise."""
         raise NotImplementedError
 
 

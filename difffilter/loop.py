@@ -22,6 +22,7 @@ attack may read the plant and the estimator::
     y_k    = h(x_k) + v_k
     A_k, a_k, l_k = attack.step(A_{k−1}, k, y=y_k, x=x_k, u=u_{k−1}, view=out_{k−1})
     ỹ_k, m_k = channel(y_k, a_k, l_k), mask_k                 (sensor or replacement attack)
+    ỹ_k = y_k + c_k,  A_k, c_k = attack.conceal(A_k, k, y_k, x_k)   (a covert actuator attack)
     E_k, out_k = estimator.step(E_{k−1}, ỹ_k, u_{k−1}, m_k)
     u_k    = controller(k, ỹ_k, out_k)        (or the known input u_k: the open loop's plant)
 
@@ -74,7 +75,9 @@ class Trajectories(NamedTuple):
         flags: attacked steps ``[B, T]`` (bool).
         info: extras: ``"attack_values"`` ``[B, T, da]`` (what the attacker would inject
             at every step, also where it does not), ``"attack_channel"`` (its
-            :class:`~difffilter.attack.Channel`, ``None`` attack-free), ``"x0"`` ``[B, dx]`` and what a
+            :class:`~difffilter.attack.Channel`, ``None`` attack-free),
+            ``"attack_concealment"`` ``[B, T, dy]`` (a covert attack's sensor correction
+            ``ỹ − y``, only under one), ``"x0"`` ``[B, dx]`` and what a
             scenario records beside them (the exogenous draws of a closed loop).
     """
 
@@ -324,7 +327,9 @@ def closed_loop(
         state = _start(plant, steps, horizon, x0, estimator, model, controller, attack,
                        attack_generator, generator)  # fmt: skip
     channel = None if attack is None else Channel(attack.channel)
-    rec: dict[str, list] = {k: [] for k in ("x", "y", "recv", "u", "attack", "value", "flag")}
+    conceals = channel is Channel.ACTUATOR and bool(getattr(attack, "conceals", False))
+    keys = ("x", "y", "recv", "u", "attack", "value", "flag", "concealment")
+    rec: dict[str, list] = {key: [] for key in keys}
     outs = []
     k, x, u, a_state, carry, view = state
     for _ in range(steps):
@@ -337,6 +342,10 @@ def closed_loop(
         x = noise.transition(plant, x, applied, k - 1)
         y = noise.measure(plant, x, k - 1)
         received = y
+        if conceals:
+            a_state, correction = attack.conceal(a_state, k, y=y, x=x)
+            received = y + correction
+            rec["concealment"].append(correction)
         if channel is not None and channel is not Channel.ACTUATOR:
             a_state, value, flag = attack.step(a_state, k, y=y, x=x, u=u, view=view)
             received, a = inject(channel, y, value, flag)
@@ -392,4 +401,6 @@ def _trajectories(rec, mask, k0, k1, channel) -> Trajectories:
         if channel is not Channel.ACTUATOR and m is not None:
             flags = flags & m.any(-1)  # an attack on a packet never sent is none
     info = {"attack_values": values, "attack_channel": channel}
+    if rec["concealment"]:
+        info["attack_concealment"] = torch.stack(rec["concealment"], 1)
     return Trajectories(x, y, recv, us, m, attack, flags, info)

@@ -25,7 +25,11 @@ class               ``a_k``                                     source
 :class:`Sinusoid`   ``A sin(ω s Δt + φ)``                        Sridhar & Govindarasu 2014
 :class:`Chirp`      ``A sin(2π (f₀ t + (f₁ − f₀) t² / 2τ))``,    a frequency sweep
                     ``t = s Δt``, ``τ`` the sweep's length
-:class:`Replay`     ``y_{k−d}`` (replacement channel)           Mo & Sinopoli 2009
+:class:`Replay`     ``y_{k−d}``, the last ``d`` measurements     Mo & Sinopoli 2009
+                    before the onset, cyclically
+                    (replacement channel)
+:class:`Covert`     a shaped actuator attack whose effect on    Smith 2015
+                    the sensors is subtracted from them
 ==================  ==========================================  ======================
 
 Vectors (``b``, ``c``, ``A``, ``σ_w``) are one number for every entry or one per entry of
@@ -36,7 +40,7 @@ entry), by the names of :data:`THREATS`.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import torch
@@ -54,6 +58,7 @@ __all__ = [
     "Sinusoid",
     "Chirp",
     "Replay",
+    "Covert",
     "THREATS",
     "threat_from_dict",
 ]
@@ -309,25 +314,32 @@ class Chirp(Shaped):
 
 @dataclass(frozen=True)
 class Replay(Attack):
-    """Replay (Mo & Sinopoli 2009): from measurement ``onset`` on, the receiver gets the
-    plant's own output of ``delay`` steps before, ``ỹ_k = y_{k−d}`` (the replacement
-    channel: the loop records ``y_{k−d} − y_k``).
+    """Replay (Mo & Sinopoli 2009): record, then replay. The attacker records the plant's
+    last ``d`` true measurements before ``onset`` and, from ``onset`` on, hands the receiver
+    those recordings in order, again from the first if the replay outlasts them (the
+    replacement channel: the loop records ``ỹ_k − y_k``)::
 
-    The attacker records the true measurements it sees (a ring buffer of the last ``d``,
-    in the attack's state) and replays them; the plant meanwhile may do anything. Needs
-    ``onset > delay`` (there is nothing to replay before).
+        ỹ_k = y_{k₀ − d + ((k − k₀) mod d)}          k₀ = onset
+
+    so ``ỹ_k = y_{k−d}`` over the first ``d`` replayed steps. The plant meanwhile may do
+    anything. With ``live=True`` the attacker keeps recording during the replay and hands
+    ``ỹ_k = y_{k−d}`` throughout (a time-delay attack): after ``d`` steps it replays what
+    the plant did under the attack itself. Needs ``onset > delay`` (there is nothing to
+    replay before).
 
     Args:
-        delay: ``d ≥ 1`` steps.
+        delay: ``d ≥ 1`` steps (the length of the recording).
         onset: first replayed measurement ``k₀`` (1-based, ``k₀ > d``).
         duration: replayed steps (``None``: until the end).
         share: probability that a run is attacked (drawn at ``init``).
+        live: keep recording during the replay (default ``False``).
     """
 
     delay: int
     onset: int
     duration: int | None = None
     share: float = 1.0
+    live: bool = False
     channel = Channel.REPLACEMENT
 
     def __post_init__(self):
@@ -342,6 +354,8 @@ class Replay(Attack):
             _count(self.duration, "duration", 1)
         if not 0.0 <= float(self.share) <= 1.0:
             raise ValueError(f"share must lie in [0, 1] (a share of runs); got {self.share!r}")
+        if not isinstance(self.live, bool):
+            raise ValueError(f"live must be True or False; got {self.live!r}")
 
     def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
         shape = _batch(batch_shape)
@@ -350,12 +364,92 @@ class Replay(Attack):
 
     def step(self, state, k, *, y=None, x=None, u=None, view=None):
         buffer, attacked_run = state
-        old = buffer[..., 0, :]  # y_{k−d} (the oldest recorded)
-        buffer = torch.cat([buffer[..., 1:, :], y.unsqueeze(-2)], dim=-2)
+        old = buffer[..., 0, :]  # the oldest recorded: y_{k−d} while recording
         last = None if self.duration is None else self.onset + self.duration - 1
         on = k >= self.onset and (last is None or k <= last)
+        # while replaying, a recording attacker cycles through its recording; otherwise
+        # (and a live one always) it records the true measurement
+        newest = y if self.live or not on else old
+        buffer = torch.cat([buffer[..., 1:, :], newest.unsqueeze(-2)], dim=-2)
         flag = attacked_run.expand(y.shape[:-1]) & on
         return (buffer, attacked_run), old, flag
+
+
+@dataclass(frozen=True)
+class Covert(Attack):
+    """The covert attack (Smith 2015; the "covert" attack of Teixeira et al. 2015): a shaped
+    attack ``a_k`` on the actuators, and on the sensors the attacker subtracts the effect it
+    predicts, so that the receiver sees the plant that was not attacked.
+
+    The attacker runs two noise-free copies of its model of the plant, one driven by what
+    it injects and one by the commanded input, and hides their difference::
+
+        x̄ᵃ_k = f(x̄ᵃ_{k−1}, u_{k−1} + l_k a_k),   x̄ⁿ_k = f(x̄ⁿ_{k−1}, u_{k−1})
+        ỹ_k  = y_k + h(x̄ⁿ_k) − h(x̄ᵃ_k)
+
+    Until it first injects, both copies are reset to the true state ``x_{k−1}`` (which the
+    attacker reads). On a linear plant ``x̄ᵃ − x̄ⁿ = Σ_j A^j B l a`` is exactly the
+    deviation the attack causes, so ``ỹ`` *is* the attack-free measurement, bit for bit up
+    to rounding, in the open loop and in a closed loop (the controller sees what it would
+    have seen, and commands what it would have commanded): no detector that reads ``ỹ`` and
+    ``u`` can see it, while the plant drifts by the deviation. On a nonlinear plant the
+    copies propagate without the noise the plant meets, so the concealment is first order.
+
+    Args:
+        signal: the actuator attack (a :class:`Shaped` on ``Channel.ACTUATOR``: its window,
+            share and entries are the covert attack's).
+        plant: the attacker's model of the plant (``transition(x, u, t)``, ``observe(x, k)``:
+            any :class:`~difffilter.StateSpaceModel`); Kerckhoffs' worst case gives it the
+            defender's.
+    """
+
+    signal: Shaped
+    plant: Any = field(repr=False, compare=False)
+    channel = Channel.ACTUATOR
+    conceals = True
+
+    def __post_init__(self):
+        if not isinstance(self.signal, Shaped):
+            raise ValueError(
+                f"signal must be a shaped attack of difffilter.threats (Bias, Ramp, …); got "
+                f"{type(self.signal).__name__}"
+            )
+        if Channel(self.signal.channel) is not Channel.ACTUATOR:
+            raise ValueError(
+                f"signal must act on the actuators (channel='actuator'); got "
+                f"{Channel(self.signal.channel).value}"
+            )
+        if not (callable(getattr(self.plant, "transition", None))
+                and callable(getattr(self.plant, "observe", None))):  # fmt: skip
+            raise ValueError(
+                "plant must be a model with transition(x, u, t) and observe(x, k) (a "
+                f"difffilter StateSpaceModel); got {type(self.plant).__name__}"
+            )
+        if getattr(self.plant, "dim_u", 1) == 0:
+            raise ValueError("a covert attack needs a plant with inputs (dim_u > 0)")
+
+    def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        """``(signal's table, x̄ᵃ, x̄ⁿ, injected so far [...])``; the copies start at step 1."""
+        table = self.signal.init(batch_shape, num_steps, dim, generator, dtype=dtype,
+                                 device=device)  # fmt: skip
+        return table, None, None, None
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        table, attacked, nominal, injected = state
+        table, value, flag = self.signal.step(table, k)
+        if injected is None:
+            injected = torch.zeros(x.shape[:-1], dtype=torch.bool, device=x.device)
+            attacked = nominal = x
+        fresh = ~injected.unsqueeze(-1)  # a run not attacked yet: the copies follow x_{k−1}
+        attacked, nominal = torch.where(fresh, x, attacked), torch.where(fresh, x, nominal)
+        on = flag if flag.dim() == value.dim() else flag.unsqueeze(-1)
+        attacked = self.plant.transition(attacked, u + on.to(value.dtype) * value, k - 1)
+        nominal = self.plant.transition(nominal, u, k - 1)
+        return (table, attacked, nominal, injected | on.any(-1)), value, flag
+
+    def conceal(self, state, k, *, y, x):
+        _, attacked, nominal, _ = state
+        return state, self.plant.observe(nominal, k) - self.plant.observe(attacked, k)
 
 
 #: The threat library by name (the ``kind`` of a YAML entry, :func:`threat_from_dict`).
@@ -368,14 +462,16 @@ THREATS: dict[str, type[Attack]] = {
     "sinusoid": Sinusoid,
     "chirp": Chirp,
     "replay": Replay,
+    "covert": Covert,
 }
 
 
 def threat_from_dict(spec: dict, model=None) -> Attack:
     """An attack of :data:`THREATS` from plain data: ``{"kind": name, **fields}``.
 
-    ``ksigma_bias`` without ``sigma`` reads ``σ = √diag R`` from ``model``. Unknown kinds
-    and fields are named in the error with the valid ones.
+    ``ksigma_bias`` without ``sigma`` reads ``σ = √diag R`` from ``model``; ``covert`` takes
+    ``model`` as the attacker's plant and its ``signal`` as a nested mapping (put on the
+    actuators). Unknown kinds and fields are named in the error with the valid ones.
     """
     if not isinstance(spec, dict) or "kind" not in spec:
         raise ValueError(f"a threat must be a mapping with a 'kind'; got {spec!r}")
@@ -392,6 +488,17 @@ def threat_from_dict(spec: dict, model=None) -> Attack:
         )
     if "entries" in params and params["entries"] is not None:
         params["entries"] = tuple(params["entries"])
+    if cls is Covert:
+        if model is None:
+            raise ValueError("a covert threat needs the model (the attacker's model of the plant)")
+        signal = params.get("signal")
+        if not isinstance(signal, dict):
+            raise ValueError(
+                f"a covert threat needs signal: a shaped threat's mapping (e.g. {{kind: bias, "
+                f"value: 0.1}}); got {signal!r}"
+            )
+        inner = threat_from_dict({**signal, "channel": "actuator"}, model)
+        return Covert(inner, model)
     if cls is KSigmaBias and "sigma" not in params:
         if model is None:
             raise ValueError("ksigma_bias without sigma needs the model (sigma = sqrt(diag R))")

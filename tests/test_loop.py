@@ -23,7 +23,8 @@ def _linear(dtype=torch.float64):
 
 
 def test_replay_delivers_the_plants_own_delayed_output_in_the_open_loop():
-    """Four-tank, the same Replay object as in the LFC loop below: ỹ_k = y_{k−d} for k ≥ k₀."""
+    """Four-tank, the same Replay object as in the LFC loop below: from k₀ on, the d
+    measurements before k₀ in order, cycled (ỹ_k = y_{k−d} over the first d steps)."""
     sc = registry.get("four_tank_bias")
     streams = Streams(0)
     d, k0 = 7, 20
@@ -31,7 +32,8 @@ def test_replay_delivers_the_plants_own_delayed_output_in_the_open_loop():
     tr = sc.simulate(4, gens, attack=REPLAY)
     t0 = k0 - 1  # time index of k0
     assert torch.equal(tr.y_recv[:, :t0], tr.y_true[:, :t0])
-    assert torch.equal(tr.y_recv[:, t0:], tr.y_true[:, t0 - d : -d])  # bit for bit
+    recorded = t0 - d + torch.arange(tr.y_true.shape[1] - t0) % d  # cycling its recording
+    assert torch.equal(tr.y_recv[:, t0:], tr.y_true[:, recorded])  # bit for bit
     assert not tr.flags[:, :t0].any() and tr.flags[:, t0:].all()
     torch.testing.assert_close(tr.attack, tr.y_recv - tr.y_true, rtol=0, atol=0)
     assert REPLAY.delay == d and REPLAY.onset == k0
@@ -42,14 +44,20 @@ REPLAY = Replay(delay=7, onset=20)
 
 def test_replay_delivers_the_plants_own_delayed_output_in_the_lfc_closed_loop():
     """In the closed loop the plant's output depends on the estimator through the controller:
-    the replayed measurement is this loop's own output of d steps before."""
+    the replayed measurements are this loop's own outputs before the onset, cycled; a live
+    replay (a time-delay attack) hands this loop's own output of d steps before, also
+    those of the attacked steps."""
     plant = LFCPlant()
     xi, theta = plant.sample_noise(3, 60, torch.Generator().manual_seed(2))
     load = torch.tensor([[0.01, 0.0]], dtype=torch.float64)
     loop = lfc_loop(plant, df.KalmanFilter(), xi, theta, load, attack=REPLAY)
     tr, d, t0 = loop.trajectories, REPLAY.delay, REPLAY.onset - 1
-    assert torch.equal(tr.y_recv[:, t0:], tr.y_true[:, t0 - d : -d])
+    recorded = t0 - d + torch.arange(60 - t0) % d
+    assert torch.equal(tr.y_recv[:, t0:], tr.y_true[:, recorded])
     assert torch.equal(tr.y_recv[:, :t0], tr.y_true[:, :t0]) and tr.flags[:, t0:].all()
+    live = lfc_loop(plant, df.KalmanFilter(), xi, theta, load,
+                    attack=Replay(delay=d, onset=REPLAY.onset, live=True)).trajectories  # fmt: skip
+    assert torch.equal(live.y_recv[:, t0:], live.y_true[:, t0 - d : -d])
     # the replayed data fool the observer: its estimate follows the old measurements
     free = lfc_loop(plant, df.KalmanFilter(), xi, theta, load)
     assert not torch.equal(loop.trajectories.x, free.trajectories.x)

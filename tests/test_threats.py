@@ -16,6 +16,7 @@ from difffilter.threats import (
     THREATS,
     Bias,
     Chirp,
+    Covert,
     KSigmaBias,
     Pulses,
     Ramp,
@@ -120,9 +121,19 @@ def test_replay_delivers_the_measurement_of_d_steps_before_on_its_share_of_runs(
     attacked = tr.flags.any(-1)
     assert 160 < int(attacked.sum()) < 240  # Binomial(400, 1/2): ± 4 σ
     t0 = 9
-    assert torch.equal(tr.y_recv[attacked, t0:], tr.y_true[attacked, t0 - 4 : -4])
+    recorded = t0 - 4 + torch.arange(T - t0) % 4  # y_(k-d) while it lasts, then again
+    assert torch.equal(tr.y_recv[attacked, t0:], tr.y_true[attacked][:, recorded])
     assert torch.equal(tr.y_recv[~attacked], tr.y_true[~attacked])
     assert tr.flags[attacked, t0:].all()
+
+
+def test_a_finite_replay_hands_back_the_true_measurements_after_it():
+    tr = _run(Replay(delay=3, onset=6, duration=5))
+    assert torch.equal(tr.y_recv[:, 5:10], tr.y_true[:, [2, 3, 4, 2, 3]])
+    assert torch.equal(tr.y_recv[:, 10:], tr.y_true[:, 10:])
+    assert tr.flags[:, 5:10].all() and not tr.flags[:, 10:].any()
+    with pytest.raises(ValueError, match="live must be True or False"):
+        Replay(delay=3, onset=6, live="yes")
 
 
 def test_share_and_entries_choose_the_runs_and_the_measurements_attacked():
@@ -145,16 +156,80 @@ def test_a_shaped_attack_on_the_actuator_drives_the_plant_only():
     assert not torch.equal(tr.x, free.x)
 
 
+class _Feedback:
+    """``u_k = −K ỹ_k``: a controller that reacts to what it receives."""
+
+    def init(self, batch_shape, dtype, device):
+        return torch.zeros(*batch_shape, 1, dtype=dtype, device=device)
+
+    def __call__(self, k, y, out):
+        return -(y @ torch.tensor([[0.3], [0.5]], dtype=y.dtype))
+
+
+def _feedback_loop(attack, runs=4, steps=T):
+    return closed_loop(
+        _plant(), steps, noise=DrawnNoise(torch.Generator().manual_seed(3)),
+        x0=torch.zeros(runs, 3, dtype=F64), attack=attack, controller=_Feedback(),
+        attack_generator=torch.Generator().manual_seed(4),
+    ).trajectories  # fmt: skip
+
+
+def test_a_covert_attack_hands_the_receiver_the_attack_free_loop_while_the_plant_drifts():
+    """Smith 2015 on a linear plant in closed loop: what the receiver (and so the
+    controller) gets is the attack-free loop's measurement, and the plant's state is the
+    attack-free state plus the attack's own deviation ``δ_k = F δ_{k−1} + B a_k``."""
+    plant = _plant()
+    attack = Covert(Ramp(0.2, channel="actuator", onset=6), plant)
+    tr, free = _feedback_loop(attack), _feedback_loop(None)
+    torch.testing.assert_close(tr.y_recv, free.y_recv, rtol=0, atol=1e-12)
+    torch.testing.assert_close(tr.us, free.us, rtol=0, atol=1e-12)
+    delta, deviations = torch.zeros(3, dtype=F64), []
+    for k in range(1, T + 1):
+        a = 0.2 * (k - 6 + 1) if k >= 6 else 0.0
+        delta = plant.F @ delta + plant.B[:, 0] * a
+        deviations.append(delta)
+    expected = torch.stack(deviations).expand(4, T, 3)
+    torch.testing.assert_close(tr.x - free.x, expected, rtol=0, atol=1e-10)
+    assert float(expected[:, -1].norm(dim=-1).min()) > 1.0  # the plant went far
+    torch.testing.assert_close(tr.info["attack_concealment"], tr.y_recv - tr.y_true)
+    assert torch.equal(tr.flags, (_s(6) >= 0).expand(4, T))  # from the onset, every run
+
+
+def test_a_covert_attack_on_a_share_of_runs_leaves_the_others_alone():
+    attack = Covert(Bias(0.5, channel="actuator", onset=3, share=0.5), _plant())
+    tr, free = _feedback_loop(attack, runs=16), _feedback_loop(None, runs=16)
+    attacked = tr.flags.any(-1)
+    assert 0 < int(attacked.sum()) < 16
+    torch.testing.assert_close(tr.y_recv, free.y_recv, rtol=0, atol=1e-12)
+    assert torch.equal(tr.x[~attacked], free.x[~attacked])
+    assert not torch.allclose(tr.x[attacked], free.x[attacked])
+
+
+def test_a_covert_attack_names_what_it_needs():
+    with pytest.raises(ValueError, match="signal must act on the actuators"):
+        Covert(Bias(1.0), _plant())
+    with pytest.raises(ValueError, match="signal must be a shaped attack"):
+        Covert(Replay(2, 4), _plant())
+    with pytest.raises(ValueError, match="plant must be a model"):
+        Covert(Bias(1.0, channel="actuator"), object())
+    with pytest.raises(ValueError, match="needs the model"):
+        threat_from_dict({"kind": "covert", "signal": {"kind": "bias", "value": 1.0}})
+    with pytest.raises(ValueError, match="needs signal"):
+        threat_from_dict({"kind": "covert"}, model=_plant())
+
+
 def test_every_threat_is_built_from_data_and_bad_data_is_named():
     specs = {
         "bias": {"value": 1.0}, "ksigma_bias": {"k": 2.0}, "ramp": {"slope": 0.1},
         "random_walk": {"step_std": 0.1}, "pulses": {"amplitude": 1.0, "period": 5, "width": 2},
         "sinusoid": {"amplitude": 1.0, "omega": 0.5}, "chirp": {"f1": 0.3},
         "replay": {"delay": 3, "onset": 5},
+        "covert": {"signal": {"kind": "ramp", "slope": 0.1, "onset": 5}},
     }  # fmt: skip
     assert set(specs) == set(THREATS)
     for kind, params in specs.items():
-        threat = threat_from_dict({"kind": kind, "onset": 5, **params}, model=_plant())
+        window = {} if kind == "covert" else {"onset": 5}
+        threat = threat_from_dict({"kind": kind, **window, **params}, model=_plant())
         assert isinstance(threat, THREATS[kind])
         _run(threat)  # runs in the loop
     with pytest.raises(ValueError, match="unknown threat kind 'spoof'.*bias"):
