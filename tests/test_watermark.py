@@ -35,8 +35,9 @@ def test_the_watermark_is_what_the_controller_sent_to_plant_and_observer():
 def test_the_watermark_exposes_a_replay_at_a_stated_control_cost(tmp_path):
     doc = watermark_study(registry.get("lfc_step"))
     without, with_mark = doc["rows"]["without watermark"], doc["rows"]["with watermark"]
-    assert without["auc"] <= 0.65  # measured 0.62: the replay is nearly invisible
-    assert with_mark["auc"] >= 0.9  # measured 0.92
+    assert without["auc"] <= 0.65  # measured 0.62: the replay shows only at the splice
+    assert without["auc_after_splice"] <= 0.6  # measured 0.58: invisible after it
+    assert with_mark["auc"] >= 0.9 and with_mark["auc_after_splice"] >= 0.9  # 0.92, 0.92
     assert 0.0 < doc["control_cost_increase"] <= 0.10  # measured +7.4 %
     folder = write_watermark(tmp_path, doc)
     assert (
