@@ -19,4 +19,6 @@ def dtype_of(name: str) -> torch.dtype:
 
 def mix_seed(*parts: int) -> int:
     """A 63-bit seed mixed from integers (numpy SeedSequence: well spread, reproducible)."""
-    return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1, np.uint64)[0] >> 1)
+    state = np.random.SeedSequence([int(p) for p in parts]).generate_state(1, np.uint64)
+    # shift a Python int: numpy < 2 has no right_shift for np.uint64 by a Python int
+    return int(state[0]) >> 1
