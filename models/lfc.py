@@ -490,13 +490,15 @@ def lfc_loop(
     state=None,
     progress=None,
     watermark=None,
+    attack_generator: torch.Generator | None = None,
 ) -> LoopResult:
     """One LFC closed loop (eq. 42 with the secure or traditional controller) around
     ``estimator`` on the observers' model, replaying the draws ``xi, theta [B, T, 10]``
     and the load ``[B or 1, 2]`` (:func:`difffilter.loop.closed_loop`): ``X_0 = 0`` [DEF],
     ``Z_k = X_k + α_k + θ_k``. ``steps``/``state``: run a chunk of the loop and resume it;
     ``progress``: called after every step; ``watermark``: a :class:`Watermarked` wrapper
-    factory ``controller → controller`` (``None``: none)."""
+    factory ``controller → controller`` (``None``: none); ``attack_generator``: the
+    attack's own draws (a random walk's steps, the runs a ``share`` attacks)."""
     B, T, _ = xi.shape
     K1 = lqr_gain(plant) if K1 is None else K1
     x0 = torch.zeros(B, STATE_DIM, dtype=xi.dtype, device=xi.device)
@@ -506,7 +508,7 @@ def lfc_loop(
     return closed_loop(
         plant.model(), T if steps is None else steps, noise=ReplayedNoise(xi, theta), x0=x0,
         estimator=estimator, model=plant.model(knows_load=False),
-        controller=controller, attack=attack,
+        controller=controller, attack=attack, attack_generator=attack_generator,
         generator=generator, state=state, horizon=T, progress=progress,
     )  # fmt: skip
 
@@ -646,7 +648,9 @@ class LFCScenario(Scenario):
     def exogenous(self, runs, generators, *, dtype=torch.float64) -> dict:
         """The draws every loop replays: ``xi, theta [B, T, 10]`` (``generators["plant"]``),
         the load ``[B or 1, 2]`` and, for random attacks, ``attack [B, T, 10]``
-        (``generators["attack"]``)."""
+        (``generators["attack"]``); with an ``"attack"`` generator, ``attack_seed [B]``: the
+        seed of the attack's own draws (one number, repeated per run so that the draws
+        slice by runs), so that every estimator's loop meets the same random attack."""
         plant = LFCPlant(dt=self.dt, dtype=dtype)
         xi, theta = plant.sample_noise(runs, self.steps, generators["plant"])
         load = torch.tensor(self.load, dtype=dtype)[None]
@@ -660,6 +664,9 @@ class LFCScenario(Scenario):
                 channels=self.random_channels, max_events=self.max_events,
                 amplitude=self.amplitude, dtype=dtype,
             )  # fmt: skip
+        if generators.get("attack") is not None:
+            seed = torch.randint(2**62, (1,), generator=generators["attack"])
+            draws["attack_seed"] = seed.expand(runs)
         return draws
 
     def loop(self, estimator, draws, *, generator=None, steps=None, state=None, compensate=True,
@@ -672,9 +679,14 @@ class LFCScenario(Scenario):
         elif attack is OWN_ATTACK:
             attack = Signal(draws["attack"]) if "attack" in draws else self.attack_model()
         plant = LFCPlant(dt=self.dt, dtype=draws["xi"].dtype)
+        attack_generator = None
+        if "attack_seed" in draws:  # the same draws in every estimator's loop
+            seed = int(draws["attack_seed"].reshape(-1)[0])
+            attack_generator = torch.Generator(device=draws["xi"].device).manual_seed(seed)
         return lfc_loop(plant, estimator, draws["xi"], draws["theta"], draws["load"],
                         attack=attack, compensate=compensate, generator=generator, steps=steps,
-                        state=state, progress=progress)  # fmt: skip
+                        state=state, progress=progress,
+                        attack_generator=attack_generator)  # fmt: skip
 
     def simulate(self, runs, generators, *, dtype=torch.float64, attack=OWN_ATTACK, model=None):
         """The traditional closed loop ``U = −K₁Z`` with its Kalman observer (``attack=None``:

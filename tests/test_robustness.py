@@ -7,6 +7,7 @@ import json
 
 import jsonschema
 import pytest
+import torch
 
 from difffilter.eval.cli import main
 from difffilter.eval.report import metrics_schema
@@ -16,8 +17,10 @@ from difffilter.eval.robustness import (
     run_robustness,
     write_robustness,
 )
+from difffilter.kalman import KalmanFilter
 from difffilter.models import registry
-from difffilter.threats import Bias, Replay
+from difffilter.models.streams import Streams
+from difffilter.threats import Bias, RandomWalk, Replay
 
 ESTIMATORS = ("chi_square_ekf", "cusum_ekf", "pf_nn_grad")
 
@@ -104,3 +107,22 @@ def test_a_stealthy_threat_is_data_crafted_when_the_study_runs():
     assert spec.onset == 21 and spec.settings.iterations == 250
     with pytest.raises(ValueError, match="no field.*target.*valid"):
         StealthySpec.from_dict({"kind": "stealthy", "target": "x"})
+
+
+def test_a_random_threat_meets_every_lfc_estimator_with_the_same_draws():
+    """Every LFC estimator runs its own closed loop: a random threat (a random walk on a
+    random half of the runs) must draw the same values in each, from the study's seed."""
+    threat = RandomWalk(0.02, entries=(2,), onset=5, share=0.5)
+    sc = registry.get("lfc_step").with_steps(40).with_threat(threat)
+
+    def draws(seed):
+        streams = Streams(seed)
+        return sc.exogenous(8, {k: streams(k) for k in ("plant", "attack")})
+
+    first = sc.loop(KalmanFilter(), draws(0)).trajectories
+    torch.manual_seed(123)  # the global generator must not matter
+    again = sc.loop(KalmanFilter(), draws(0)).trajectories
+    other = sc.loop(KalmanFilter(), draws(1)).trajectories
+    assert torch.equal(first.info["attack_values"], again.info["attack_values"])
+    assert torch.equal(first.flags, again.flags) and 0 < int(first.flags.any(-1).sum()) < 8
+    assert not torch.equal(first.info["attack_values"], other.info["attack_values"])
