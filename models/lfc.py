@@ -648,7 +648,7 @@ class LFCScenario(Scenario):
     def exogenous(self, runs, generators, *, dtype=torch.float64) -> dict:
         """The draws every loop replays: ``xi, theta [B, T, 10]`` (``generators["plant"]``),
         the load ``[B or 1, 2]`` and, for random attacks, ``attack [B, T, 10]``
-        (``generators["attack"]``); with an ``"attack"`` generator, ``attack_seed [B]``: the
+        (``generators["attack"]``, if given); with an ``"attack"`` generator, ``attack_seed [B]``: the
         seed of the attack's own draws (one number, repeated per run so that the draws
         slice by runs), so that every estimator's loop meets the same random attack."""
         plant = LFCPlant(dt=self.dt, dtype=dtype)
@@ -658,7 +658,8 @@ class LFCScenario(Scenario):
             u = torch.rand(runs, NUM_AREAS, generator=generators["plant"], dtype=dtype)
             load = (u - 0.5) * self.load_range
         draws = {"xi": xi, "theta": theta, "load": load}
-        if self.attack is LFCAttack.RANDOM:
+        if self.attack is LFCAttack.RANDOM and generators.get("attack") is not None:
+            # (attack-free runs, e.g. a detector's calibration, draw no attack)
             draws["attack"] = random_attacks(
                 runs, self.steps, self.dt, generator=generators["attack"],
                 channels=self.random_channels, max_events=self.max_events,

@@ -162,3 +162,18 @@ def test_closed_loops_replay_the_scenario_draws(short_scenario):
     kf = df.kalman_filter(sc.system(), tr.y_recv, tr.us)
     torch.testing.assert_close(kf.means, out.means, rtol=0, atol=1e-10)
     assert torch.equal(tr.flags, (tr.attack != 0).any(-1)) and bool(tr.flags.any())
+
+
+def test_the_random_attack_scenario_calibrates_its_cusum_on_attack_free_runs():
+    """lfc_random_attacks draws its attacks from the 'attack' stream; the CUSUM's calibration
+    runs are attack-free and draw from 'plant' and 'schedule' only (it used to fail with a
+    KeyError: 'attack'), and they carry no attack."""
+    sc = dataclasses.replace(registry.get("lfc_random_attacks"), steps=60)
+    gens = {k: torch.Generator().manual_seed(i) for i, k in enumerate(("plant", "schedule"))}
+    tr = sc.simulate(3, gens, attack=None)
+    assert not tr.flags.any() and torch.equal(tr.y_recv, tr.y_true)
+    from difffilter.models.estimators import SuiteContext
+    from difffilter.models.streams import Streams
+
+    ctx = SuiteContext(sc, sc.system(), 3, Streams(0), sc.estimator_options())
+    assert not ctx.calibration.flags.any()  # what the CUSUM calibrates on
