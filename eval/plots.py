@@ -2,18 +2,87 @@
 
 :func:`standard_figures` returns ``[(file name, Figure)]``; the report writer saves them
 as PNG and logs them to TensorBoard with ``add_figure``.
+
+Every estimator keeps one colour across the figures of a report
+(:func:`estimator_colours`): estimators of one family (the first word of their name:
+``modified_pf``, ``modified_pf_est``, … are ``modified``) share a hue in shades, and no
+two estimators share a colour. Legends sit outside the axes, beside the data. The ROC
+uses a logarithmic false-alarm axis, where the operating points of a 1 % budget live, and
+marks each detector's operating point at its calibrated threshold (or its own threshold
+when the study is not calibrated).
 """
 
 from __future__ import annotations
+
+import colorsys
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import torch  # noqa: E402
+from matplotlib import colors as mcolors  # noqa: E402
 
 from .scoring import rmse_over_time, roc  # noqa: E402
 
-__all__ = ["standard_figures"]
+__all__ = ["standard_figures", "estimator_colours"]
+
+# one hue per family, in this order (matplotlib's tab10, then tab20's light half)
+_HUES = [mcolors.to_rgb(c) for c in plt.get_cmap("tab10").colors] + [
+    mcolors.to_rgb(c) for c in plt.get_cmap("tab20").colors[1::2]
+]
+
+
+def _family(name: str) -> str:
+    return name.split("_")[0]
+
+
+def estimator_colours(names) -> dict[str, str]:
+    """``{name: hex colour}``: one hue per family (the first word of the name), shades of
+    it for the family's members (lightness 0.3 … 0.7), all distinct."""
+    families: dict[str, list[str]] = {}
+    for name in names:
+        families.setdefault(_family(name), []).append(name)
+    colours: dict[str, str] = {}
+    for i, members in enumerate(families.values()):
+        h, lightness, s = colorsys.rgb_to_hls(*_HUES[i % len(_HUES)])
+        shades = len(members)
+        for j, name in enumerate(members):
+            if shades > 1:  # spread the family over lightness 0.3 … 0.7
+                lightness = 0.3 + 0.4 * j / (shades - 1)
+            rgb = colorsys.hls_to_rgb(h + (i // len(_HUES)) * 0.05, lightness, s)
+            colours[name] = mcolors.to_hex(rgb)
+    seen: set[str] = set()
+    for name, colour in colours.items():  # a clash (many families): nudge the lightness
+        while colour in seen:
+            h, lightness, s = colorsys.rgb_to_hls(*mcolors.to_rgb(colour))
+            colour = mcolors.to_hex(colorsys.hls_to_rgb(h, (lightness + 0.07) % 0.9 + 0.05, s))
+        colours[name] = colour
+        seen.add(colour)
+    return colours
+
+
+def _legend(ax, **kw) -> None:
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False, **kw)
+
+
+def _alarm_spans(alarms: torch.Tensor, t: list[float], dt: float) -> list[tuple[float, float]]:
+    """Consecutive alarmed steps of one run as ``(start, width)`` bars in seconds."""
+    spans, start = [], None
+    for k, on in enumerate(alarms.tolist()):
+        if on and start is None:
+            start = k
+        if start is not None and (not on or k == len(t) - 1):
+            end = k if on else k - 1
+            spans.append((t[start] - dt / 2, dt * (end - start + 1)))
+            start = None
+    return spans
+
+
+def _attacked_channel(attack: torch.Tensor) -> int:
+    """The channel of run 0 with the largest injected attack (channel 0 if none)."""
+    size = attack[0].abs().amax(dim=0)
+    return int(size.argmax()) if attack.shape[-1] > 0 else 0
 
 
 def standard_figures(result) -> list[tuple[str, plt.Figure]]:
@@ -22,46 +91,76 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
     dt = result.scenario.dt
     T = traj.flags.shape[1]
     t = [dt * (k + 1) for k in range(T)]
+    colour = estimator_colours(outs)
     figs = []
 
     fig, ax = plt.subplots(figsize=(8, 4.5))
     for name, out in outs.items():
         truth = result.traj_of(name).x
-        ax.plot(t, rmse_over_time(out.means, truth).numpy(), label=name, lw=1)
+        ax.plot(t, rmse_over_time(out.means, truth).numpy(), label=name, lw=1, color=colour[name])
     ax.set(xlabel="time [s]", ylabel="state RMSE over runs", yscale="log")
     ax.set_title("State RMSE over time")
-    ax.legend(fontsize=7, ncol=2)
+    _legend(ax)
     figs.append(("rmse_over_time.png", fig))
 
     detecting = {n: o for n, o in outs.items() if o.detection is not None}
     if detecting and bool(traj.flags.any()) and not bool(traj.flags.all()):
-        fig, ax = plt.subplots(figsize=(5.5, 5))
-        for name, out in detecting.items():
-            if result.metrics[name].get("auc") is None:
-                continue
-            fpr, tpr = roc(out.detection.scores, traj.flags)
-            label = f"{name} (AUC {result.metrics[name]['auc']:.3f})"
-            ax.plot(fpr.numpy(), tpr.numpy(), label=label, lw=1)
-        ax.plot([0, 1], [0, 1], "k:", lw=0.8)
-        ax.set(xlabel="false-alarm rate", ylabel="detection rate", title="ROC, every run and step")
-        ax.legend(fontsize=7)
-        figs.append(("roc.png", fig))
-
-        fig, ax = plt.subplots(figsize=(8, 0.45 * (len(detecting) + 1) + 1))
-        ax.eventplot([[t[k] for k in range(T) if traj.flags[0, k]]], lineoffsets=0, colors="k")
-        for i, out in enumerate(detecting.values(), start=1):
-            ax.eventplot([[t[k] for k in range(T) if out.detection.alarms[0, k]]], lineoffsets=i)
-        ax.set_yticks(range(len(detecting) + 1), ["attacked", *detecting], fontsize=7)
-        ax.set(xlabel="time [s]", title="Run 0: attacked steps and alarms")
-        figs.append(("alarms_run0.png", fig))
+        figs.append(("roc.png", _roc_figure(result, detecting, colour)))
+        figs.append(("alarms_run0.png", _alarm_figure(traj, detecting, colour, t, dt)))
 
     estimating = {n: o for n, o in outs.items() if o.attack is not None}
     if estimating and traj.attack.shape[-1] > 0:
+        c = _attacked_channel(traj.attack)
         fig, ax = plt.subplots(figsize=(8, 4))
-        ax.plot(t, traj.attack[0, :, 0].numpy(), "k", lw=1.5, label="injected")
+        ax.plot(t, traj.attack[0, :, c].numpy(), "k", lw=1.5, label="injected")
         for name, out in estimating.items():
-            ax.plot(t, out.attack[0, :, 0].numpy(), lw=0.9, label=name)
-        ax.set(xlabel="time [s]", ylabel="attack, channel 1", title="Run 0: attack estimates")
-        ax.legend(fontsize=7)
+            if out.attack.shape[-1] == traj.attack.shape[-1]:
+                ax.plot(t, out.attack[0, :, c].numpy(), lw=0.9, label=name, color=colour[name])
+        ax.set(xlabel="time [s]", ylabel=f"attack, channel {c + 1}",
+               title=f"Run 0: attack estimates (channel {c + 1}, the most attacked)")  # fmt: skip
+        _legend(ax)
         figs.append(("attack_estimates_run0.png", fig))
     return figs
+
+
+def _roc_figure(result, detecting, colour) -> plt.Figure:
+    """ROC curves on a logarithmic false-alarm axis, each operating point marked."""
+    traj = result.traj
+    flags = traj.flags
+    floor = 1.0 / max(1, int((~flags).sum()))  # the smallest non-zero false-alarm rate
+    fig, ax = plt.subplots(figsize=(7.5, 5))
+    for name, out in detecting.items():
+        metrics = result.metrics[name]
+        if metrics.get("auc") is None:
+            continue
+        fpr, tpr = roc(out.detection.scores, flags)
+        ax.plot(fpr.clamp_min(floor).numpy(), tpr.numpy(), lw=1, color=colour[name],
+                label=f"{name} (AUC {metrics['auc']:.3f})")  # fmt: skip
+        point = (metrics.get("fpr_at_far"), metrics.get("tpr_at_far"))
+        if point[1] is None:  # not calibrated: its own threshold
+            point = (metrics.get("fpr"), metrics.get("tpr"))
+        if point[0] is not None and point[1] is not None:
+            ax.plot(max(point[0], floor), point[1], "o", ms=4, color=colour[name])
+    far = getattr(result.calibration, "far", None)
+    if far is not None:
+        ax.axvline(far, color="0.5", ls="--", lw=0.8, label=f"target false-alarm rate {far:g}")
+    ax.set(xscale="log", xlim=(floor, 1.0), ylim=(0.0, 1.02),
+           xlabel="false-alarm rate (log)", ylabel="detection rate",
+           title="ROC, every run and step (dots: operating points)")  # fmt: skip
+    _legend(ax)
+    return fig
+
+
+def _alarm_figure(traj, detecting, colour, t, dt) -> plt.Figure:
+    """Run 0's attacked steps and each detector's alarms as bars of consecutive steps."""
+    rows = len(detecting) + 1
+    fig, ax = plt.subplots(figsize=(8, 0.32 * rows + 1.2))
+    ax.broken_barh(_alarm_spans(traj.flags[0], t, dt), (rows - 1 - 0.35, 0.7), color="k")
+    for i, (name, out) in enumerate(detecting.items(), start=1):
+        spans = _alarm_spans(out.detection.alarms[0], t, dt)
+        ax.broken_barh(spans, (rows - 1 - i - 0.35, 0.7), color=colour[name])
+    ax.set_yticks(range(rows - 1, -1, -1), ["attacked", *detecting], fontsize=7)
+    ax.set(xlabel="time [s]", xlim=(0, t[-1] + dt), ylim=(-0.6, rows - 0.4),
+           title="Run 0: attacked steps and alarms")  # fmt: skip
+    ax.grid(axis="x", lw=0.3, color="0.85")
+    return fig

@@ -1,0 +1,76 @@
+"""The report's generic figures: one colour per estimator across every figure (a family
+shares a hue, no two estimators share a colour), legends beside the data, a logarithmic
+ROC with the operating points, and the attack plot on the attacked channel."""
+
+from __future__ import annotations
+
+import colorsys
+
+import matplotlib.pyplot as plt
+import pytest
+from matplotlib import colors as mcolors
+
+from difffilter.eval.plots import estimator_colours, standard_figures
+from difffilter.eval.suite import run_suite
+from difffilter.models import registry
+
+
+def test_every_estimator_gets_its_own_colour_and_a_family_shares_a_hue():
+    names = ["modified_pf", "modified_pf_est", "modified_pf_unknown_pl", "normal_pf",
+             "normal_pf_literal", "chi_square_ekf", "cusum_ekf", "pf_nn_grad",
+             *(f"family{i}_x" for i in range(30))]  # fmt: skip
+    colours = estimator_colours(names)
+    assert len(set(colours.values())) == len(names)
+
+    def hue(name):
+        return colorsys.rgb_to_hls(*mcolors.to_rgb(colours[name]))[0]
+
+    assert hue("modified_pf") == pytest.approx(hue("modified_pf_unknown_pl"), abs=0.02)
+    assert hue("modified_pf") != pytest.approx(hue("normal_pf"), abs=0.02)
+    assert estimator_colours(names[:5]) == {n: colours[n] for n in names[:5]}  # stable
+
+
+@pytest.fixture(scope="module")
+def figures():
+    suite = run_suite(registry.get("four_tank_bias"), runs=3, progress=False)
+    figs = dict(standard_figures(suite))
+    yield suite, figs
+    for fig in figs.values():
+        plt.close(fig)
+
+
+def _line_colours(fig) -> dict[str, str]:
+    ax = fig.axes[0]
+    return {line.get_label(): mcolors.to_hex(line.get_color()) for line in ax.get_lines()
+            if not line.get_label().startswith("_")}  # fmt: skip
+
+
+def test_a_twelve_estimator_report_keeps_one_distinct_colour_per_estimator(figures):
+    suite, figs = figures
+    assert len(suite.outputs) >= 12
+    rmse = _line_colours(figs["rmse_over_time.png"])
+    assert set(rmse) == set(suite.outputs) and len(set(rmse.values())) == len(rmse)
+    roc = {label.split(" (AUC")[0]: c for label, c in _line_colours(figs["roc.png"]).items()
+           if "(AUC" in label}  # fmt: skip
+    attack = _line_colours(figs["attack_estimates_run0.png"])
+    for name, colour in {**roc, **{n: c for n, c in attack.items() if n != "injected"}}.items():
+        assert colour == rmse[name], name  # the same colour in every figure
+    for fig in figs.values():
+        legend = fig.axes[0].get_legend()
+        if legend is not None:  # beside the axes, not over the data
+            assert legend.get_bbox_to_anchor().x0 >= fig.axes[0].get_window_extent().x1
+
+
+def test_the_roc_has_a_log_false_alarm_axis_and_marks_operating_points(figures):
+    _, figs = figures
+    ax = figs["roc.png"].axes[0]
+    assert ax.get_xscale() == "log"
+    markers = [line for line in ax.get_lines() if line.get_marker() == "o"]
+    assert markers  # one dot per detector with an operating point
+
+
+def test_the_alarm_raster_has_a_row_per_detector(figures):
+    suite, figs = figures
+    ax = figs["alarms_run0.png"].axes[0]
+    detecting = [n for n, o in suite.outputs.items() if o.detection is not None]
+    assert [t.get_text() for t in ax.get_yticklabels()] == ["attacked", *detecting]
