@@ -50,7 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         default=None,
         help="trained estimator: an exported file or a Lightning checkpoint of a training run "
-        "(default: the scenario's shipped checkpoint, if it has one)",
+        "(default: the scenario's shipped checkpoint, if it has one); one trained on another "
+        "scenario family than the scenarios evaluated is an error",
     )
     p.add_argument(
         "--runs", type=int, default=None, help="Monte Carlo runs (default: the scenario family's)"
@@ -233,6 +234,25 @@ def check_arguments(*, runs: int | None = None, ckpt: Path | None = None, device
         load_estimator_checkpoint(ckpt)  # a missing or bad file fails here
 
 
+def check_checkpoint_fits(ckpt: Path | None, names: Sequence[str]) -> None:
+    """``ValueError`` (one line, naming ``--ckpt``) if the checkpoint's card says it was
+    trained on a scenario family none of ``names`` belongs to: no estimator could use it,
+    and a report without it would look like one that used it."""
+    if ckpt is None:
+        return
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+
+    card = load_estimator_checkpoint(ckpt)[1]
+    families = sorted({registry.get(n).family for n in names})
+    if card.scenario_family is not None and card.scenario_family not in families:
+        what = names[0] if len(names) == 1 else f"{len(names)} scenarios"
+        raise ValueError(
+            f"--ckpt {ckpt} was trained on {card.scenario_family} scenarios (its card); {what} "
+            f"{'is' if len(families) == 1 else 'are'} {'/'.join(families)}: no estimator can "
+            "use it"
+        )
+
+
 def _launch(devices: int, argv: list[str]) -> int:
     """Run ``difffilter-eval`` in ``devices`` CPU processes of one gloo group, launched by
     Lightning Fabric (``ddp_spawn``); rank 0 writes. Returns rank 0's exit code."""
@@ -283,6 +303,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_output_folder(args.out)  # before any work, not after the whole evaluation
         check_arguments(runs=args.runs, ckpt=args.ckpt, devices=args.devices,
                         calibration_runs=args.calibration_runs)  # fmt: skip
+        check_checkpoint_fits(args.ckpt, names)
         threats = args.threats or ("all" if args.scenario == "robustness" else None)
         if threats is not None:
             return _robustness(names, threats, args)

@@ -76,6 +76,13 @@ def test_cli_and_suite_reject_bad_input(tmp_path, capsys):
     assert "--out" in err and "not a folder" in err and "Traceback" not in err
     assert main(["four_tank_bias", "--runs", "0", "--out", str(tmp_path), "--no-progress"]) == 2
     assert "--runs" in capsys.readouterr().err
+    # a checkpoint of another family: one line, exit 2, before any work (also the robustness)
+    four_tank = str(registry.get("four_tank_bias").shipped_checkpoint())
+    for extra in ([], ["--threats", "bias"]):
+        argv = ["robot_actuator_attack", "--ckpt", four_tank, "--out", str(tmp_path), *extra]
+        assert main([*argv, "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "--ckpt" in err and "four_tank scenarios" in err
     with pytest.raises(ValueError, match="runs"):
         run_suite(registry.get("four_tank_bias"), runs=0)
     with pytest.raises(ValueError, match="unknown estimator"):
