@@ -47,11 +47,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scenario", nargs="?", help="scenario name, family name or 'all' (see --list)")
     p.add_argument(
         "--ckpt",
-        type=Path,
+        action="append",
         default=None,
+        metavar="[NAME=]PATH",
         help="trained estimator: an exported file or a Lightning checkpoint of a training run "
         "(default: the scenario's shipped checkpoint, if it has one); one trained on another "
-        "scenario family than the scenarios evaluated is an error",
+        "scenario family than the scenarios evaluated is an error. NAME=PATH (repeatable) "
+        "gives estimator NAME its own checkpoint and runs it: --ckpt pf_nn_grad=a.ckpt "
+        "--ckpt pf_nn_ekf=b.ckpt compares two in one run",
     )
     p.add_argument(
         "--runs", type=int, default=None, help="Monte Carlo runs (default: the scenario family's)"
@@ -221,36 +224,74 @@ def evaluate(
     return results
 
 
-def check_arguments(*, runs: int | None = None, ckpt: Path | None = None, devices: int = 1,
+def check_arguments(*, runs: int | None = None, ckpt=None, devices: int = 1,
                     calibration_runs: int | None = None) -> None:  # fmt: skip
     """``ValueError``/``FileNotFoundError`` naming the option, before any work."""
     checked = (("--runs", runs), ("--devices", devices), ("--calibration-runs", calibration_runs))
     for name, value in checked:
         if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):  # fmt: skip
             raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
-    if ckpt is not None:
-        from difffilter.models.neural_estimator import load_estimator_checkpoint
-
-        load_estimator_checkpoint(ckpt)  # a missing or bad file fails here
-
-
-def check_checkpoint_fits(ckpt: Path | None, names: Sequence[str]) -> None:
-    """``ValueError`` (one line, naming ``--ckpt``) if the checkpoint's card says it was
-    trained on a scenario family none of ``names`` belongs to: no estimator could use it,
-    and a report without it would look like one that used it."""
-    if ckpt is None:
-        return
     from difffilter.models.neural_estimator import load_estimator_checkpoint
 
-    card = load_estimator_checkpoint(ckpt)[1]
-    families = sorted({registry.get(n).family for n in names})
-    if card.scenario_family is not None and card.scenario_family not in families:
-        what = names[0] if len(names) == 1 else f"{len(names)} scenarios"
+    for _, path in _checkpoint_paths(ckpt):
+        load_estimator_checkpoint(path)  # a missing or bad file fails here
+
+
+def parse_checkpoints(values: Sequence[str] | None):
+    """``--ckpt`` values → ``None``, one ``Path`` (every estimator that uses one) or
+    ``{estimator: Path}`` (``NAME=PATH`` entries; a plain path among them is ``"*"``, the
+    others' default). ``ValueError`` naming ``--ckpt`` for two plain paths or an unknown
+    estimator name."""
+    if not values:
+        return None
+    from difffilter.models import estimators as known
+
+    named, plain = {}, []
+    for value in values:
+        name, sep, path = str(value).partition("=")
+        if sep and name in known.ESTIMATORS:
+            named[name] = Path(path)
+        elif sep and not Path(value).exists() and "/" not in name:
+            raise ValueError(
+                f"--ckpt {value}: {name!r} is not a registered estimator nor a file; "
+                f"estimators: {', '.join(sorted(known.ESTIMATORS))}"
+            )
+        else:
+            plain.append(Path(value))
+    if len(plain) > 1:
         raise ValueError(
-            f"--ckpt {ckpt} was trained on {card.scenario_family} scenarios (its card); {what} "
-            f"{'is' if len(families) == 1 else 'are'} {'/'.join(families)}: no estimator can "
-            "use it"
+            "--ckpt: one checkpoint for every estimator at most; give the others as NAME=PATH"
         )
+    if not named:
+        return plain[0]
+    return {**named, **({"*": plain[0]} if plain else {})}
+
+
+def _checkpoint_paths(ckpt) -> list[tuple[str, Path]]:
+    """``[(how it was given, path)]`` of a parsed ``--ckpt``."""
+    if ckpt is None:
+        return []
+    if isinstance(ckpt, dict):
+        return [(str(p) if n == "*" else f"{n}={p}", Path(p)) for n, p in ckpt.items()]
+    return [(str(ckpt), Path(ckpt))]
+
+
+def check_checkpoint_fits(ckpt, names: Sequence[str]) -> None:
+    """``ValueError`` (one line, naming ``--ckpt``) if a checkpoint's card says it was
+    trained on a scenario family none of ``names`` belongs to: no estimator could use it,
+    and a report without it would look like one that used it."""
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+
+    families = sorted({registry.get(n).family for n in names})
+    for given, path in _checkpoint_paths(ckpt):
+        card = load_estimator_checkpoint(path)[1]
+        if card.scenario_family is not None and card.scenario_family not in families:
+            what = names[0] if len(names) == 1 else f"{len(names)} scenarios"
+            raise ValueError(
+                f"--ckpt {given} was trained on {card.scenario_family} scenarios (its card); "
+                f"{what} {'is' if len(families) == 1 else 'are'} {'/'.join(families)}: no "
+                "estimator can use it"
+            )
 
 
 def _launch(devices: int, argv: list[str]) -> int:
@@ -300,6 +341,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     tune_cpu_allocator()
     try:
         names = resolve_scenarios(args.scenario)
+        args.ckpt = parse_checkpoints(args.ckpt)
         check_output_folder(args.out)  # before any work, not after the whole evaluation
         check_arguments(runs=args.runs, ckpt=args.ckpt, devices=args.devices,
                         calibration_runs=args.calibration_runs)  # fmt: skip
@@ -328,8 +370,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     print("\n" + (args.out / "leaderboard.md").read_text())
     unused = [n for n, doc in results.items() if not (doc.get("checkpoint") or {}).get("used_by")]
-    if args.ckpt is not None and unused:
-        print(f"note: --ckpt {args.ckpt} is used by no estimator of {', '.join(unused)}")
+    given = args.ckpt.get("*") if isinstance(args.ckpt, dict) else args.ckpt
+    if given is not None and unused:  # the checkpoint for every estimator, unused somewhere
+        print(f"note: --ckpt {given} is used by no estimator of {', '.join(unused)}")
     print(
         f"reports written under {args.out}/ (<scenario>/report.md); open the TensorBoard "
         f"logs with: tensorboard --logdir {args.out}"

@@ -171,6 +171,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
         "attack_free_steps": int((~result.traj.flags).sum()),
         "skipped": dict(result.skipped), "checkpoint": result.checkpoint,
         "far": None if result.calibration is None else result.calibration.summary(),
+        **({"checkpoints": result.checkpoints} if result.checkpoints else {}),
         **family_numbers,
     })  # fmt: skip
     (out / "metrics.json").write_text(json.dumps(doc, indent=2) + "\n")
@@ -216,6 +217,8 @@ def _summary_section(doc: dict, sc) -> Section:
             f"\nCheckpoint: `{ckpt['path']}` ({ckpt['source']}; sha256 "
             f"{ckpt['sha256'][:16]}…), used by {users}.\n"
         )
+    for name, own in (doc.get("checkpoints") or {}).items():
+        body += f"\nCheckpoint of `{name}`: `{own['path']}` (sha256 {own['sha256'][:16]}…).\n"
     if sc.paper:
         body += f"\nPaper: {sc.paper}.\n"
     if doc["notes"]:

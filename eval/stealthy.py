@@ -21,7 +21,7 @@ import torch
 from difffilter import fdi
 from difffilter.estimator import Generators
 from difffilter.loop import open_loop
-from difffilter.models.estimators import SkipEstimator, SuiteContext
+from difffilter.models.estimators import SkipEstimator, SuiteContext, split_checkpoints
 from difffilter.models.generic_estimators import GATED, gated_estimator
 from difffilter.models.learned_estimator import LEARNED, learned_step
 from difffilter.models.streams import Streams
@@ -62,9 +62,11 @@ class StealthySpec:
 
 def _context(scenario, runs: int, seed: int, checkpoint=None) -> SuiteContext:
     model = scenario.system()
-    checkpoint = checkpoint if checkpoint is not None else scenario.shipped_checkpoint()
+    default, named = split_checkpoints(checkpoint)
+    default = default if default is not None else scenario.shipped_checkpoint()
     options = scenario.estimator_options()
-    return SuiteContext(scenario, model, runs, Streams(seed), options, checkpoint)
+    return SuiteContext(scenario, model, runs, Streams(seed), options, default,
+                        named_checkpoints=named)  # fmt: skip
 
 
 def detector_step(ctx: SuiteContext, against: str):

@@ -46,6 +46,8 @@ class SuiteResult:
         skipped: ``{estimator: why}`` for those whose factory raised ``SkipEstimator``.
         checkpoint: ``{"path", "sha256", "source", "used_by"}`` of the checkpoint the
             study was given (or the scenario's shipped one), or ``None``.
+        checkpoints: ``{estimator: {"path", "sha256"}}`` of the checkpoints given to one
+            estimator each (``--ckpt name=path``).
         calibration: the :class:`~difffilter.eval.calibration.Calibration` the
             detectors were judged at, or ``None``.
     """
@@ -63,6 +65,7 @@ class SuiteResult:
     skipped: dict[str, str] = field(default_factory=dict)
     checkpoint: dict[str, Any] | None = None
     calibration: Any = None
+    checkpoints: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def traj_of(self, name: str) -> Trajectories:
         """The trajectories estimator ``name`` ran on: its own closed loop's, or the study's."""
@@ -94,7 +97,10 @@ def run_suite(
         progress: show a progress bar.
         dtype: of the model and the simulation.
         checkpoint: a trained estimator checkpoint for the estimators that use one
-            (default: the scenario's shipped checkpoint, if it has one).
+            (default: the scenario's shipped checkpoint, if it has one), or
+            ``{estimator: path}`` (with ``"*"``: the others' default): each named estimator
+            runs with its own checkpoint, added to the run if it is not in it, and one
+            its checkpoint does not fit is an error, not a skip.
         cache: a dict shared by the suites of one evaluation (``SuiteContext.cache``).
         calibration: a :class:`~difffilter.eval.calibration.Calibration` (thresholds
             from attack-free runs of their own seed): adds the metrics at the target
@@ -116,15 +122,22 @@ def run_suite(
     gens = {k: streams(k) for k in ("plant", "attack", "schedule")}
     traj = scenario.simulate(runs, gens, dtype=dtype, model=model)
     source = "--ckpt"
+    checkpoint, named = registry.split_checkpoints(checkpoint)
     if checkpoint is None and scenario.shipped_checkpoint() is not None:
         checkpoint, source = scenario.shipped_checkpoint(), "shipped default (no --ckpt given)"
     options = scenario.estimator_options()
-    ctx = registry.SuiteContext(scenario, model, runs, streams, options, checkpoint)
+    ctx = registry.SuiteContext(scenario, model, runs, streams, options, checkpoint,
+                                named_checkpoints=dict(named))  # fmt: skip
     if cache is not None:
         ctx.cache = cache
     names = tuple(estimators or scenario.estimators or default_estimators(model))
-    names += tuple(n for n in add if n not in names)
+    names += tuple(n for n in (*add, *named) if n not in names)
     specs = [registry.get(n) for n in names]  # unknown names fail before any work
+    for name, path in named.items():  # asked for by name: a misfit fails here, not a skip
+        try:
+            registry.get(name).factory(ctx)
+        except registry.SkipEstimator as exc:
+            raise ValueError(f"--ckpt {name}={path}: {exc}") from None
     result = SuiteResult(scenario, runs, seed, traj, context=ctx, calibration=calibration)
     rank, world = process_group()
     mine = specs[rank::world]  # with several processes, each runs its share of estimators
@@ -135,14 +148,17 @@ def run_suite(
     result.reference = next(
         (s.name for s in specs if s.reference and s.name in result.outputs), None
     )
-    if checkpoint is not None:
-        from difffilter.models.neural_estimator import checkpoint_sha256
+    from difffilter.models.neural_estimator import checkpoint_sha256
 
+    for name, path in named.items():
+        result.checkpoints[name] = {"path": str(path), "sha256": checkpoint_sha256(path)}
+    users = [n for n in dict.fromkeys(ctx.checkpoint_users) if n not in named]
+    if checkpoint is not None and (users or not named or source == "--ckpt"):
         result.checkpoint = {
             "path": str(checkpoint),
             "sha256": checkpoint_sha256(checkpoint),
             "source": source,
-            "used_by": list(ctx.checkpoint_users),
+            "used_by": users,
         }
     _score(result, specs)
     return result

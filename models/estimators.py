@@ -21,7 +21,7 @@ them.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
@@ -44,6 +44,7 @@ __all__ = [
     "names",
     "ESTIMATORS",
     "poa_detector_for_scenario",
+    "split_checkpoints",
 ]
 
 Run = Callable[[Any], EstimatorOutput]
@@ -123,10 +124,13 @@ class SuiteContext:
         streams: the study's :class:`~difffilter.models.streams.Streams`.
         options: the scenario's ``estimator_options()`` (family settings).
         checkpoint: path of a trained estimator checkpoint (``difffilter-eval --ckpt``,
-            else the scenario's shipped one) or ``None``; factories that need one raise
-            :class:`SkipEstimator` without, and add their name to ``checkpoint_users``.
+            else the scenario's shipped one) or ``None``; factories that need one read
+            :meth:`checkpoint_for`, raise :class:`SkipEstimator` without, and add their
+            name to ``checkpoint_users``.
         cache: shared by the scenarios of one evaluation (e.g. attack-free runs that
             several scenarios have in common).
+        named_checkpoints: ``{estimator: path}``, checkpoints of one estimator each
+            (``difffilter-eval --ckpt name=path``), ahead of ``checkpoint``.
     """
 
     scenario: Any
@@ -137,6 +141,12 @@ class SuiteContext:
     checkpoint: Any = None
     cache: dict[Any, Any] = field(default_factory=dict)
     checkpoint_users: list[str] = field(default_factory=list)
+    named_checkpoints: dict[str, Any] = field(default_factory=dict)
+
+    def checkpoint_for(self, name: str):
+        """The checkpoint estimator ``name`` uses: its own (``--ckpt name=path``), else
+        :attr:`checkpoint`."""
+        return self.named_checkpoints.get(name, self.checkpoint)
 
     def particle_kwargs(self, runs: int | None = None) -> dict[str, Any]:
         """Common random numbers for particle filters: identically seeded initial particles,
@@ -200,3 +210,13 @@ def poa_detector_for_scenario(scenario, model, options=None) -> fdi.PoADetector:
         p_l=float(getattr(scenario.attack_model(), "p_l", 0.5)),
         num_particles=scenario.num_particles,
     )
+
+
+def split_checkpoints(checkpoint) -> tuple[Any, dict[str, Any]]:
+    """``(default, {estimator: path})`` of a ``checkpoint`` argument: a path (every
+    estimator that uses one), ``None``, or a mapping ``{estimator: path}`` whose ``"*"``
+    entry, if any, is the default."""
+    if isinstance(checkpoint, Mapping):
+        named = {k: v for k, v in checkpoint.items() if k != "*"}
+        return checkpoint.get("*"), named
+    return checkpoint, {}

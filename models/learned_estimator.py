@@ -51,11 +51,12 @@ def _trained_network(ctx, name: str, filters, trainer: str):
     otherwise."""
     from difffilter.models.neural_estimator import load_estimator_checkpoint
 
-    if ctx.checkpoint is None:
+    path = ctx.checkpoint_for(name)
+    if path is None:
         raise SkipEstimator("no --ckpt given and no shipped checkpoint")
-    key = ("learned/ckpt", str(ctx.checkpoint))
+    key = ("learned/ckpt", str(path))
     if key not in ctx.cache:
-        ctx.cache[key] = load_estimator_checkpoint(ctx.checkpoint, dtype=ctx.dtype)
+        ctx.cache[key] = load_estimator_checkpoint(path, dtype=ctx.dtype)
     net, card = ctx.cache[key]
     if (
         card.scenario_family != ctx.scenario.family

@@ -141,11 +141,10 @@ def _cached(ctx: SuiteContext, key, make):
 def _checkpoint_network(ctx: SuiteContext, name: str):
     """The trained network of the checkpoint and its card (:class:`SkipEstimator` without
     one, or for a checkpoint of another family or sampling time)."""
-    if ctx.checkpoint is None:
+    path = ctx.checkpoint_for(name)
+    if path is None:
         raise SkipEstimator("no --ckpt given and no shipped checkpoint")
-    net, obs = _cached(
-        ctx, ("lfc/ckpt", str(ctx.checkpoint)), lambda: load_estimator_checkpoint(ctx.checkpoint)
-    )
+    net, obs = _cached(ctx, ("lfc/ckpt", str(path)), lambda: load_estimator_checkpoint(path))
     if obs.filter != "kf" or obs.scenario_family != "lfc":
         raise SkipEstimator(
             f"the checkpoint is not an LFC closed-loop estimator (filter {obs.filter!r}, "

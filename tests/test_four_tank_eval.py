@@ -147,3 +147,32 @@ def test_acceptance_figures_on_100_runs():
     rmse_late = float(metrics.rmse(mod.means[:, 20:], free[:, 20:]))
     assert rmse_all <= 1.5e-2 and rmse_late <= 6e-3
     assert float(metrics.rmse(normal, free)) >= 5 * rmse_all
+
+
+def test_two_checkpoints_are_compared_in_one_run_and_a_misfit_is_an_error(tmp_path, capsys):
+    """``--ckpt NAME=PATH`` (repeatable) gives one estimator its own checkpoint and runs it;
+    a checkpoint its estimator cannot use, an unknown name or two plain paths: exit 2, one
+    line, before the study."""
+    folder = registry.get("four_tank_bias").shipped_checkpoint().parent
+    grad, ekf = folder / "four_tank_nn_grad.ckpt", folder / "four_tank_nn_ekf.ckpt"
+    common = ["--runs", "2", "--far", "off", "--no-progress"]
+    argv = ["four_tank_bias", "--ckpt", f"pf_nn_grad={grad}", "--ckpt", f"pf_nn_ekf={ekf}"]
+    assert main([*argv, "--out", str(tmp_path / "both"), *common]) == 0
+    doc = json.loads((tmp_path / "both" / "four_tank_bias" / "metrics.json").read_text())
+    assert doc["estimators"]["pf_nn_grad"]["auc"] is not None
+    assert doc["estimators"]["pf_nn_ekf"]["auc"] is not None  # added to the run
+    assert {n: c["path"] for n, c in doc["checkpoints"].items()} == {
+        "pf_nn_grad": str(grad), "pf_nn_ekf": str(ekf)
+    }  # fmt: skip
+    report = (tmp_path / "both" / "four_tank_bias" / "report.md").read_text()
+    assert "Checkpoint of `pf_nn_ekf`" in report
+    capsys.readouterr()
+    for bad, why in (
+        ([f"pf_nn_ekf={grad}"], "needs filter pf by ekf"),
+        (["nope=x.ckpt"], "'nope' is not a registered estimator"),
+        ([str(grad), str(ekf)], "one checkpoint for every estimator at most"),
+    ):
+        flags = [x for b in bad for x in ("--ckpt", b)]
+        assert main(["four_tank_bias", *flags, "--out", str(tmp_path / "bad"), *common]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and why in err, err

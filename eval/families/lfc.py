@@ -19,7 +19,7 @@ import torch
 from difffilter.estimator import Detection, EstimatorOutput, Generators
 from difffilter.models import registry
 from difffilter.models.attacks import Signal
-from difffilter.models.estimators import SuiteContext
+from difffilter.models.estimators import SuiteContext, split_checkpoints
 from difffilter.models.lfc import PAPER_TABLES, STATE_DIM, STATE_NAMES, lfc_loop, random_attacks
 from difffilter.models.lfc_estimators import ABLATIONS, LFCContext, build_estimator
 from difffilter.models.streams import Streams
@@ -244,7 +244,10 @@ def _prepare(names, *, out: Path, seed: int, checkpoint, progress: bool, options
         raise ValueError(f"--option: unknown lfc option(s) {sorted(unknown)}")
     tuning = json.loads(TUNING.read_text()) if TUNING.is_file() else None
     doc = None
-    checkpoint = checkpoint or registry.get(names[0]).shipped_checkpoint()
+    default, named = split_checkpoints(checkpoint)
+    if default is None:
+        default = registry.get(names[0]).shipped_checkpoint()
+    checkpoint = {**named, "*": default} if named else default
     if options.get("per_channel"):
         size = {"runs_per_channel": options.get("per_channel_runs", 8)}
         size["steps"] = options.get("per_channel_steps", 1000)
@@ -285,9 +288,11 @@ def per_channel_attack_rmse(
     )
     xi, theta = lfc.plant.sample_noise(STATE_DIM * R, steps, g)
     load = torch.tensor([[0.01, 0.0]], dtype=lfc.dtype)
-    ctx = SuiteContext(scenario, scenario.system(), STATE_DIM * R, streams, checkpoint=checkpoint)
+    default, named = split_checkpoints(checkpoint)
+    ctx = SuiteContext(scenario, scenario.system(), STATE_DIM * R, streams, checkpoint=default,
+                       named_checkpoints=named)  # fmt: skip
     ctx.cache[("lfc/context", 0.01)] = lfc
-    names = [n for n in PER_CHANNEL if checkpoint is not None or "grad" not in n]
+    names = [n for n in PER_CHANNEL if ctx.checkpoint_for(n) is not None or "grad" not in n]
     weights_seed = streams.seed_of("lfc/initial_weights")
     estimates = {}
     for n in tqdm(names, desc="per-channel validation", disable=not progress, leave=False):
