@@ -4,7 +4,8 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-RUNS ?= 100
+# RUNS=N: every scenario of the demo with N Monte Carlo runs (default: each scenario's own)
+RUNS ?=
 OUT ?= reports
 
 .PHONY: demo test bench lint venv clean
@@ -18,7 +19,7 @@ $(STAMP): pyproject.toml constraints.txt
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/difffilter-eval all --out $(OUT)
+	$(VENV)/bin/difffilter-eval all --out $(OUT) $(if $(RUNS),--runs $(RUNS),)
 
 test: $(STAMP)
 	$(PY) -m ruff check .
