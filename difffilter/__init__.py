@@ -60,6 +60,7 @@ from .ssm import LinearGaussianModel, NonlinearGaussianModel, StateSpaceModel
 __version__ = "0.1.0"
 
 __all__ = [
+    "load_estimator",
     "NonFinite",
     "StateSpaceModel",
     "LinearGaussianModel",
@@ -104,3 +105,11 @@ __all__ = [
     "UnscentedKalmanFilter",
     "ParticleFilter",
 ]
+
+
+def load_estimator(path, **kwargs):
+    """A trained neural FDI estimator from its checkpoint, ready to run
+    (:func:`difffilter.models.learned_estimator.load_estimator`; docs/python-api.md)."""
+    from difffilter.models.learned_estimator import load_estimator as load
+
+    return load(path, **kwargs)

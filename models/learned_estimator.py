@@ -39,6 +39,9 @@ __all__ = [
     "feature_dim",
     "LEARNED",
     "learned_step",
+    "compose",
+    "TrainedEstimator",
+    "load_estimator",
 ]
 
 
@@ -72,26 +75,58 @@ def _trained_network(ctx, name: str, filters, trainer: str):
     return net, card
 
 
-def _build(ctx, name: str, particles: bool, trainer: str) -> NeuralCompensation:
-    """The checkpoint's network inside its filter as a step object (:func:`_trained_network`
-    decides whether it fits the scenario)."""
-    filters = ("pf",) if particles else tuple(GAUSSIAN_FILTERS)
-    net, card = _trained_network(ctx, name, filters, trainer)
+def compose(
+    net,
+    card,
+    *,
+    num_particles: int | None = None,
+    resampler=None,
+    ess_threshold: float = 1.0,
+    deception=None,
+) -> NeuralCompensation:
+    """The network ``net`` inside the filter its ``card`` names, as its card says
+    (:class:`~difffilter.fdi.neural.NeuralCompensation`): a particle filter of
+    ``num_particles`` (default the card's) with ``resampler`` (default systematic), or the
+    card's Gaussian filter. ``deception``: the attacked-measurement density a
+    replacement-channel network assumes (a scenario's, e.g. :func:`deception_of`)."""
+    from difffilter.resampling import Systematic
+
     channel = Channel(card.channel)
-    deception = None
-    if channel is Channel.REPLACEMENT:
-        deception = deception_of(ctx.scenario.attack_model(), ctx.dtype)[0]
-    if particles:
-        kw = ctx.particle_kwargs()
-        inner = ParticleFilter(kw["num_particles"], resampler=kw["resampler"],
-                               ess_threshold=kw["ess_threshold"])  # fmt: skip
-    else:
+    if channel is Channel.REPLACEMENT and deception is None:
+        raise ValueError(
+            "deception: this network compensates a replacement attack and needs the density "
+            "it assumes (deception_of(scenario.attack_model(), dtype)[0])"
+        )
+    if card.filter == "pf":
+        n = num_particles if num_particles is not None else card.num_particles
+        if n is None:
+            raise ValueError("num_particles: the card does not say how many the filter had")
+        inner = ParticleFilter(int(n), resampler=resampler or Systematic(),
+                               ess_threshold=ess_threshold)  # fmt: skip
+    elif card.filter in GAUSSIAN_FILTERS:
         inner = GAUSSIAN_FILTERS[card.filter]
+    else:
+        raise ValueError(f"the card names filter {card.filter!r}; known: pf, "
+                         f"{', '.join(GAUSSIAN_FILTERS)}")  # fmt: skip
     return NeuralCompensation(
         net, inner, channel=channel, residual=Residual(card.residual),
         standardize=card.standardize, features=card.features, poa_eta=card.poa_eta,
         threshold=card.threshold, deception=deception,
     )  # fmt: skip
+
+
+def _build(ctx, name: str, particles: bool, trainer: str) -> NeuralCompensation:
+    """The checkpoint's network inside its filter as a step object (:func:`_trained_network`
+    decides whether it fits the scenario)."""
+    filters = ("pf",) if particles else tuple(GAUSSIAN_FILTERS)
+    net, card = _trained_network(ctx, name, filters, trainer)
+    deception = None
+    if Channel(card.channel) is Channel.REPLACEMENT:
+        deception = deception_of(ctx.scenario.attack_model(), ctx.dtype)[0]
+    kw = ctx.particle_kwargs() if particles else {}
+    return compose(net, card, num_particles=kw.get("num_particles"),
+                   resampler=kw.get("resampler"), ess_threshold=kw.get("ess_threshold", 1.0),
+                   deception=deception)  # fmt: skip
 
 
 def learned_step(ctx, name: str):
@@ -151,3 +186,75 @@ for _name, (_particles, _trainer) in LEARNED.items():
         "(checkpoint), compensating the filter's measurements; alarm at its "
         "validation-chosen threshold",
     )(_learned(_name, _particles, _trainer))
+
+
+# ------------------------------------------------------------- a trained estimator in Python
+
+
+class TrainedEstimator:
+    """A trained neural FDI estimator from its checkpoint (:func:`load_estimator`): the
+    same ``init``/``step`` as every estimator of the library, and ``run`` over whole
+    sequences (:func:`difffilter.loop.open_loop`), in eval mode, outputs detached unless
+    ``grad=True``.
+
+    Attributes:
+        estimator: the step object (:class:`~difffilter.fdi.neural.NeuralCompensation`).
+        card: the checkpoint's :class:`~difffilter.models.neural_estimator.EstimatorCard`
+            (filter, channel, threshold, the family it was trained for, …).
+        path: the checkpoint file.
+    """
+
+    def __init__(self, estimator: NeuralCompensation, card, path):
+        self.estimator, self.card, self.path = estimator, card, path
+
+    def __repr__(self) -> str:
+        c = self.card
+        return (f"TrainedEstimator({str(self.path)!r}: {c.filter} filter, {c.channel} channel, "
+                f"trained by {c.trainer} on {c.scenario_family}, threshold {c.threshold:g})")  # fmt: skip
+
+    def init(self, model, batch_shape=(), generator=None):
+        """The carry before step 1 (:meth:`difffilter.Estimator.init`)."""
+        return self.estimator.init(model, batch_shape, generator)
+
+    def step(self, carry, y, u=None, mask=None, *, grad: bool = False):
+        """``(carry, StepOutput)`` of one measurement ``y [..., dy]``."""
+        with torch.set_grad_enabled(grad):
+            return self.estimator.step(carry, y, u, mask)
+
+    def run(self, model, ys, us=None, *, mask=None, generator=None, carry=None,
+            grad: bool = False):  # fmt: skip
+        """The estimator over ``ys [..., T, dy]`` (``us`` the known inputs, ``mask`` the
+        received entries): an :class:`~difffilter.EstimatorOutput` with ``means``,
+        ``attack`` estimates and ``detection`` (scores, alarms at the card's threshold).
+        ``generator``/``carry`` as for :func:`~difffilter.loop.open_loop` (a particle
+        filter's draws)."""
+        with torch.set_grad_enabled(grad):
+            return open_loop(self.estimator, model, ys, us, mask=mask, generator=generator,
+                             carry=carry)  # fmt: skip
+
+
+def load_estimator(path, *, num_particles: int | None = None, resampler=None,
+                   ess_threshold: float = 1.0, deception=None,
+                   dtype: torch.dtype = torch.float64) -> TrainedEstimator:  # fmt: skip
+    """A trained estimator from an exported checkpoint or a Lightning checkpoint of a
+    training run, ready to run (:class:`TrainedEstimator`).
+
+    The card in the checkpoint says which filter the network runs in and how it reads the
+    filter; ``num_particles`` (default the card's), ``resampler`` and ``ess_threshold`` set
+    a particle filter, ``deception`` the density a replacement-channel network assumes.
+    LFC checkpoints run inside the LFC closed loop (the secure controller and the online
+    learners): evaluate them with ``difffilter-eval lfc``. Errors name the argument.
+    """
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+
+    net, card = load_estimator_checkpoint(path, dtype=dtype)
+    if card.scenario_family == "lfc":
+        raise ValueError(
+            f"{path}: an LFC checkpoint runs inside the LFC closed loop (secure controller, "
+            "online learners); evaluate it with difffilter-eval lfc --ckpt"
+        )
+    net.eval()
+    return TrainedEstimator(
+        compose(net, card, num_particles=num_particles, resampler=resampler,
+                ess_threshold=ess_threshold, deception=deception), card, path,
+    )  # fmt: skip
