@@ -71,7 +71,13 @@ class DifffilterCLI(LightningCLI):
         self._load_exported("test")
 
     def before_predict(self):
+        """Load an exported file, and write what is predicted (a
+        :class:`~difffilter.train.predictions.PredictionFiles` unless one is configured)."""
+        from .predictions import PredictionFiles
+
         self._load_exported("predict")
+        if not any(isinstance(cb, PredictionFiles) for cb in self.trainer.callbacks):
+            self.trainer.callbacks.append(PredictionFiles())
 
     def _load_exported(self, subcommand: str) -> None:
         from difffilter.models.neural_estimator import (
