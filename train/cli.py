@@ -22,6 +22,7 @@ inside its run folder; ``export`` (:mod:`difffilter.train.export`) ships a resul
 from __future__ import annotations
 
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -102,6 +103,32 @@ class DifffilterCLI(LightningCLI):
         print(f"loaded the exported estimator {path}")
 
 
+HELP = (
+    "Train, validate, test and predict with difffilter's neural FDI estimator (LightningCLI; "
+    "one YAML per scenario family in train/configs/). Ship a trained estimator with "
+    "'difffilter-train export SRC --out FILE' (export --help)."
+)
+
+
+def _reason(message: str) -> str:
+    """jsonargparse's error on one line, a nested class's own reason pulled out of the
+    "Does not validate against any of the Union subtypes" preamble."""
+    flat = " ".join(str(message).split())
+    if "Union subtypes" not in flat:
+        return flat
+    end = r"(?: - Expected a <class 'NoneType'>| Given value|$)"
+    nested = re.search(rf"Problem with given class_path '([^']+)': (.*?){end}", flat)
+    listed = re.search(rf"Errors: - (.*?){end}", flat)
+    if not (nested or listed):
+        return flat
+    key = re.match(r'Parser key "([^"]+)"', flat)
+    where = [key.group(1)] if key else []
+    if nested:
+        where.append(f"({nested.group(1).rsplit('.', 1)[-1]})")
+    reason = nested.group(2) if nested else listed.group(1)
+    return f"{' '.join(where)}: {reason}" if where else reason
+
+
 def main(args: list[str] | None = None) -> int:
     """Entry point of the ``difffilter-train`` console script (``args`` for tests).
 
@@ -116,6 +143,13 @@ def main(args: list[str] | None = None) -> int:
         return export_main(argv[1:])
     torch.set_num_threads(int(os.environ.get("DIFFFILTER_THREADS", "1")))
     tune_cpu_allocator()
+    from jsonargparse import ArgumentError
+    from lightning.fabric.utilities.exceptions import MisconfigurationException
+
+    # a bad command line raises (one line below) instead of printing the whole usage first
+    raising = {"exit_on_error": False}
+    commands = DifffilterCLI.subcommands()
+    parser_kwargs = {**raising, **{name: raising for name in commands}, "description": HELP}
     try:
         DifffilterCLI(
             pl.LightningModule,
@@ -125,10 +159,16 @@ def main(args: list[str] | None = None) -> int:
             args=args,
             save_config_kwargs={"overwrite": True},
             auto_configure_optimizers=False,
+            parser_kwargs=parser_kwargs,
         )
-    except (ValueError, FileNotFoundError) as exc:
+    except ArgumentError as exc:
+        command = f" {argv[0]}" if argv and argv[0] in commands else ""
+        print(f"difffilter-train: error: {_reason(str(exc))} (difffilter-train{command} --help "
+              "lists the options)", file=sys.stderr)  # fmt: skip
+        return 2
+    except (ValueError, FileNotFoundError, MisconfigurationException) as exc:
         # a user error (a setting out of range, a missing file): one line, no traceback
-        print(f"difffilter-train: error: {exc}", file=sys.stderr)
+        print(f"difffilter-train: error: {_reason(str(exc))}", file=sys.stderr)
         return 2
     return 0
 

@@ -192,6 +192,11 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-train export: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # --out not writable (a file where a folder must be, no permission)
+        where = exc.filename or args.out
+        print(f"difffilter-train export: error: --out {args.out}: cannot write {where} "
+              f"({exc.strerror or exc})", file=sys.stderr)  # fmt: skip
+        return 2
     print(f"wrote {out} and {out.with_suffix('.json')} (sha256 {checkpoint_sha256(out)})")
     return 0
 
