@@ -298,6 +298,11 @@ class FilterEstimatorTask(pl.LightningModule):
             seed=hp.model_seed, dtype=self._dtype,
         )  # fmt: skip
 
+    def configure_callbacks(self):
+        """Every run logs its learning rate per step (``lr-AdamW``, ``lr-EKFOptimizer``),
+        whatever its config lists (one logging contract for every trainer)."""
+        return [pl.callbacks.LearningRateMonitor(logging_interval="step")]
+
     def configure_optimizers(self):
         hp = self.hparams
         if hp.trainer == "ekf":
@@ -423,6 +428,7 @@ class FilterEstimatorTask(pl.LightningModule):
                 sq_err.append(optimizer.step(jacobian=jac * keep[..., None], residual=residual))
         mse = torch.stack(sq_err).mean() / truth["attack"].shape[-1]  # per entry, before updates
         self.log("train/attack_mse", mse, prog_bar=True, batch_size=runs)
+        self.log("train/loss", mse, batch_size=runs)  # the EKF's objective: the same tag as grad
 
     def _schedule_length(self) -> int:
         """Optimizer steps of the one-cycle schedule: batches × chunks (≥ its warm-up)."""
