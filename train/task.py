@@ -300,7 +300,10 @@ class FilterEstimatorTask(pl.LightningModule):
 
     def configure_callbacks(self):
         """Every run logs its learning rate per step (``lr-AdamW``, ``lr-EKFOptimizer``),
-        whatever its config lists (one logging contract for every trainer)."""
+        whatever its config lists (one logging contract for every trainer); a run without
+        a logger logs nothing."""
+        if self._trainer is None or not self.trainer.loggers:
+            return []
         return [pl.callbacks.LearningRateMonitor(logging_interval="step")]
 
     def configure_optimizers(self):
