@@ -96,6 +96,7 @@ def test_report_plots_tensorboard_and_summary(smoke):
     acc.Reload()
     assert "state_rmse_per_step/kf_nn_grad" in acc.Tags()["scalars"]
     assert len(acc.Scalars("state_rmse_per_step/kf_nn_grad")) == 300  # a curve, not a point
+    assert len(acc.Scalars("attack_rmse_per_step/kf_nn_grad")) == 300
     summary = (out / "lfc_summary.md").read_text()
     assert "lfc_simultaneous_3s" in summary and "0.1526" in summary  # the paper's mean of I–IV
 
