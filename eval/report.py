@@ -130,6 +130,19 @@ def metrics_schema() -> dict[str, Any]:
     return json.loads((Path(__file__).parent / "metrics.schema.json").read_text())
 
 
+def study_metrics(scenario: str, *, runs: int, steps: int, seed: int,
+                  estimators: dict[str, dict[str, Any]]) -> dict[str, Any]:  # fmt: skip
+    """The fields every metrics.json carries (``eval/metrics.schema.json``), for a study's
+    own file (the LFC per-channel validation, the watermark study): ``estimators`` maps a
+    name to the metrics it has, every other metric ``None``; the study adds its own keys
+    beside these."""
+    return {
+        "scenario": scenario, "runs": runs, "steps": steps, "seed": seed,
+        "units": {name: m.unit for name, m in METRICS.items()}, "paper": {},
+        "estimators": {n: {**dict.fromkeys(METRICS), **m} for n, m in estimators.items()},
+    }  # fmt: skip
+
+
 def markdown_table(header: list[str], rows: list[list[Any]]) -> str:
     """A markdown table (cells formatted with ``str``; numbers should be formatted first)."""
     lines = ["| " + " | ".join(map(str, header)) + " |", "|---" * len(header) + "|"]

@@ -37,6 +37,7 @@ from difffilter.models.streams import Streams
 from difffilter.threats import Replay
 
 from .calibration import threshold_for
+from .report import study_metrics
 from .scoring import auc
 
 __all__ = ["watermark_study"]
@@ -94,7 +95,16 @@ def watermark_study(scenario, *, runs: int = 20, seed: int = 0, std: float = 0.0
         }  # fmt: skip
     base = rows["without watermark"]["control_cost"]
     increase = rows["with watermark"]["control_cost"] / base - 1.0
-    return {"runs": runs, "seed": seed, "window": window, "far": far,
+    detectors = {
+        f"chi_square_window{window} {label}": {k: r[k] for k in ("auc", "tpr_at_far", "fpr_at_far")}
+        | {"threshold_at_far": r["threshold"]}
+        for label, r in rows.items()
+    }  # the schema's fields (metrics.json), beside the study's own
+    header = study_metrics(f"{scenario.name} (replay, watermark)", runs=runs,
+                           steps=int(draws["xi"].shape[1]), seed=seed, estimators=detectors)  # fmt: skip
+    calibration = {"target": far, "calibration_runs": runs,
+                   "calibration_seed": streams.seed_of("far-calibration/plant")}  # fmt: skip
+    return {**header, "window": window, "far": calibration,
             "replay": {"delay": delay, "onset": onset}, "rows": rows,
             "control_cost_increase": increase if math.isfinite(increase) else None}  # fmt: skip
 
@@ -119,7 +129,7 @@ def write_watermark(out, doc: dict):
         f"{doc['seed']}. Replay (Mo & Sinopoli 2009): from step {rp['onset']} the receiver gets "
         f"the measurements of {rp['delay']} steps before. Detector: χ² on the observer's "
         f"innovations over a window of {doc['window']} steps, its threshold from attack-free "
-        f"runs of their own seed at {100 * doc['far']:g} % false alarms. Watermark: i.i.d. "
+        f"runs of their own seed at {100 * doc['far']['target']:g} % false alarms. Watermark: i.i.d. "
         "Gaussian noise of standard deviation `std` (p.u.) on both control inputs, known to "
         "the observer.\n\n"
         + markdown_table(

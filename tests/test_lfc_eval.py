@@ -104,6 +104,7 @@ def test_report_plots_tensorboard_and_summary(smoke):
 def test_per_channel_validation_files(smoke):
     out, _, _ = smoke
     doc = json.loads((out / "lfc_per_channel" / "metrics.json").read_text())
+    jsonschema.validate(doc, metrics_schema())  # a study's own metrics.json follows it too
     table = doc["attack_rmse"]
     expected = {"kf_nn_ekf", "traditional_ad", "kf_nn_gd", "luenberger_nn_ekf", "kf_nn_grad"}
     assert expected | {"zero_estimate"} <= set(table)

@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import json
 
+import jsonschema
 import pytest
 import torch
 
 import difffilter as df
+from difffilter.eval.report import metrics_schema
 from difffilter.eval.watermark import watermark_study, write_watermark
 from difffilter.models import registry
 from difffilter.models.lfc import LFCPlant, Watermarked, lfc_loop
@@ -40,6 +42,7 @@ def test_the_watermark_exposes_a_replay_at_a_stated_control_cost(tmp_path):
     assert with_mark["auc"] >= 0.9 and with_mark["auc_after_splice"] >= 0.9  # 0.92, 0.92
     assert 0.0 < doc["control_cost_increase"] <= 0.10  # measured +7.4 %
     folder = write_watermark(tmp_path, doc)
+    jsonschema.validate(json.loads((folder / "metrics.json").read_text()), metrics_schema())
     assert (
         json.loads((folder / "metrics.json").read_text())["rows"]["with watermark"]["std"] == 0.08
     )
