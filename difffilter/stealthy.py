@@ -147,14 +147,6 @@ def craft_stealthy_attack(
     optimiser = torch.optim.Adam([raw], lr=s.lr)
     on = attacked.bool()
 
-    temperature = None  # t = s.temperature × the attack-free statistic's std (set below)
-
-    def smoothed_rate(out) -> Tensor:
-        return torch.sigmoid((out.detection.scores - threshold) / temperature)[:, on].mean()
-
-    def hard_rate(out) -> float:
-        return float((out.detection.scores > threshold)[:, on].double().mean())
-
     def run(received: Tensor):
         carry = None if start is None else start(received.shape[0])
         gens = None if generator is None or carry is not None else generator()
@@ -162,7 +154,16 @@ def craft_stealthy_attack(
 
     with torch.no_grad():
         free = run(ys)
-        temperature = s.temperature * float(free.detection.scores[:, on].std()) + 1e-12
+    # t in units of the attack-free statistic's spread: one setting fits any detector
+    temperature = s.temperature * float(free.detection.scores[:, on].std()) + 1e-12
+
+    def smoothed_rate(out) -> Tensor:
+        return torch.sigmoid((out.detection.scores - threshold) / temperature)[:, on].mean()
+
+    def hard_rate(out) -> float:
+        return float((out.detection.scores > threshold)[:, on].double().mean())
+
+    with torch.no_grad():
         bound, hard_bound = smoothed_rate(free) + s.slack, hard_rate(free) + s.slack
     history, scale, best = [], None, (-1.0, torch.zeros(T, dy, dtype=ys.dtype))
     for it in range(s.iterations):

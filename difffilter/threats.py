@@ -437,11 +437,12 @@ class Covert(Attack):
     def step(self, state, k, *, y=None, x=None, u=None, view=None):
         table, attacked, nominal, injected = state
         table, value, flag = self.signal.step(table, k)
-        if injected is None:
+        if injected is None:  # step 1: both copies start at x_0
+            attacked, nominal = x, x
             injected = torch.zeros(x.shape[:-1], dtype=torch.bool, device=x.device)
-            attacked = nominal = x
-        fresh = ~injected.unsqueeze(-1)  # a run not attacked yet: the copies follow x_{k−1}
-        attacked, nominal = torch.where(fresh, x, attacked), torch.where(fresh, x, nominal)
+        else:  # a run not attacked yet: the copies follow its true state x_{k−1}
+            fresh = ~injected.unsqueeze(-1)
+            attacked, nominal = torch.where(fresh, x, attacked), torch.where(fresh, x, nominal)
         on = flag if flag.dim() == value.dim() else flag.unsqueeze(-1)
         attacked = self.plant.transition(attacked, u + on.to(value.dtype) * value, k - 1)
         nominal = self.plant.transition(nominal, u, k - 1)

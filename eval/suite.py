@@ -133,16 +133,17 @@ def run_suite(
     names = tuple(estimators or scenario.estimators or default_estimators(model))
     names += tuple(n for n in (*add, *named) if n not in names)
     specs = [registry.get(n) for n in names]  # unknown names fail before any work
-    for name, path in named.items():  # asked for by name: a misfit fails here, not a skip
+    built = {}  # asked for by name: a misfit fails here, before any work, not as a skip
+    for name, path in named.items():
         try:
-            registry.get(name).factory(ctx)
+            built[name] = registry.get(name).factory(ctx)
         except registry.SkipEstimator as exc:
             raise ValueError(f"--ckpt {name}={path}: {exc}") from None
     result = SuiteResult(scenario, runs, seed, traj, context=ctx, calibration=calibration)
     rank, world = process_group()
     mine = specs[rank::world]  # with several processes, each runs its share of estimators
     with one_thread(scenario.single_thread), torch.no_grad():
-        _run_estimators(result, mine, progress and rank == 0)
+        _run_estimators(result, mine, progress and rank == 0, built)
     if world > 1:
         _gather(result, ctx, specs, world)
     result.reference = next(
@@ -152,7 +153,7 @@ def run_suite(
 
     for name, path in named.items():
         result.checkpoints[name] = {"path": str(path), "sha256": checkpoint_sha256(path)}
-    users = [n for n in dict.fromkeys(ctx.checkpoint_users) if n not in named]
+    users = [n for n in ctx.checkpoint_users if n not in named]
     if checkpoint is not None and (users or not named or source == "--ckpt"):
         result.checkpoint = {
             "path": str(checkpoint),
@@ -164,17 +165,19 @@ def run_suite(
     return result
 
 
-def _run_estimators(result: SuiteResult, specs, progress: bool) -> None:
+def _run_estimators(result: SuiteResult, specs, progress: bool, built=None) -> None:
     """Run every estimator of ``specs`` on the study's trajectories into ``result``
     (outputs, wall times, the trajectories of those that run their own closed loop, and
-    those skipped with the reason)."""
+    those skipped with the reason); ``built``: ``{name: run}`` already made by their
+    factories."""
+    built = built or {}
     from tqdm.auto import tqdm
 
     bar = tqdm(specs, desc=result.scenario.name, disable=not progress, leave=False)
     for spec in bar:
         bar.set_postfix_str(spec.name)
         try:
-            run = spec.factory(result.context)
+            run = built[spec.name] if spec.name in built else spec.factory(result.context)
         except registry.SkipEstimator as why:
             result.skipped[spec.name] = str(why)
             continue

@@ -123,10 +123,10 @@ def _build(ctx, name: str, particles: bool, trainer: str) -> NeuralCompensation:
     deception = None
     if Channel(card.channel) is Channel.REPLACEMENT:
         deception = deception_of(ctx.scenario.attack_model(), ctx.dtype)[0]
-    kw = ctx.particle_kwargs() if particles else {}
-    return compose(net, card, num_particles=kw.get("num_particles"),
-                   resampler=kw.get("resampler"), ess_threshold=kw.get("ess_threshold", 1.0),
-                   deception=deception)  # fmt: skip
+    # the suite's particle filter (ctx.particle_kwargs): N of the scenario, systematic
+    # resampling at every step, compose's defaults
+    n = ctx.scenario.num_particles if particles else None
+    return compose(net, card, num_particles=n, deception=deception)
 
 
 def learned_step(ctx, name: str):

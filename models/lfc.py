@@ -648,9 +648,10 @@ class LFCScenario(Scenario):
     def exogenous(self, runs, generators, *, dtype=torch.float64) -> dict:
         """The draws every loop replays: ``xi, theta [B, T, 10]`` (``generators["plant"]``),
         the load ``[B or 1, 2]`` and, for random attacks, ``attack [B, T, 10]``
-        (``generators["attack"]``, if given); with an ``"attack"`` generator, ``attack_seed [B]``: the
-        seed of the attack's own draws (one number, repeated per run so that the draws
-        slice by runs), so that every estimator's loop meets the same random attack."""
+        (``generators["attack"]``, if given); with an ``"attack"`` generator,
+        ``attack_seed [B]``: the seed of the attack's own draws (one number, repeated per
+        run so that the draws slice by runs), so that every estimator's loop meets the
+        same random attack."""
         plant = LFCPlant(dt=self.dt, dtype=dtype)
         xi, theta = plant.sample_noise(runs, self.steps, generators["plant"])
         load = torch.tensor(self.load, dtype=dtype)[None]
