@@ -327,12 +327,32 @@ class Replay(Attack):
     the plant did under the attack itself. Needs ``onset > delay`` (there is nothing to
     replay before).
 
+    **A seamless splice** (``loop=(Φ, C)``). Where the loop has modes that decay slowly or
+    not at all, the state wanders, and a recording seconds old starts from another level
+    than the live measurement it replaces: the switch is a jump that the innovations show
+    until the observer has followed it. An attacker who knows the closed loop (Kerckhoffs:
+    ``Φ = A − BK`` and ``C`` of the defender's model) hides it: it estimates the state gap
+    ``δ`` between the end and the start of its recording from their ``w``-step means, and
+    replays the recording plus the gap's free response through the loop::
+
+        g   = Φ C⁺ mean(r_{d−w} … r_{d−1}) − C⁺ mean(r_0 … r_{w−1})   (r_{d−1} = y_{k₀−1})
+        δ_k = Φ δ_{k−1} (+ g at the start of every pass),   ỹ_k = r_k + C δ_k
+
+    The offset is what the closed loop would do from that gap on its own, so an observer
+    that predicts with ``Φ`` finds it consistent (innovations zero up to the error of
+    ``g``): only the error of the gap's estimate shows at the splice. On a noise-free loop
+    ``x_{k+1} = Φ x_k`` with ``w = 1`` the replay continues the live trajectory exactly.
+
     Args:
         delay: ``d ≥ 1`` steps (the length of the recording).
         onset: first replayed measurement ``k₀`` (1-based, ``k₀ > d``).
         duration: replayed steps (``None``: until the end).
         share: probability that a run is attacked (drawn at ``init``).
         live: keep recording during the replay (default ``False``).
+        loop: ``(Φ [n, n], C [dy, n])``, the attacker's model of the closed loop, for a
+            seamless splice (default ``None``: Mo & Sinopoli's plain replay); needs
+            ``live=False``.
+        level_window: ``w``, the frames averaged to estimate the gap (default 5; ``≤ d``).
     """
 
     delay: int
@@ -340,6 +360,8 @@ class Replay(Attack):
     duration: int | None = None
     share: float = 1.0
     live: bool = False
+    loop: Any = field(default=None, repr=False, compare=False)
+    level_window: int = 5
     channel = Channel.REPLACEMENT
 
     def __post_init__(self):
@@ -356,23 +378,69 @@ class Replay(Attack):
             raise ValueError(f"share must lie in [0, 1] (a share of runs); got {self.share!r}")
         if not isinstance(self.live, bool):
             raise ValueError(f"live must be True or False; got {self.live!r}")
+        _count(self.level_window, "level_window", 1)
+        if self.loop is not None:
+            self._check_loop()
+
+    def _check_loop(self):
+        if self.live:
+            raise ValueError("loop needs live=False (a live replay has no splice to hide)")
+        if self.level_window > self.delay:
+            raise ValueError(
+                f"level_window must be at most delay (frames of the recording); got "
+                f"level_window={self.level_window}, delay={self.delay}"
+            )
+        try:
+            phi, c = (torch.as_tensor(m) for m in self.loop)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"loop must be a pair (Φ [n, n], C [dy, n]); {error}") from None
+        n = phi.shape[0] if phi.dim() == 2 else -1
+        if phi.shape != (n, n) or c.dim() != 2 or c.shape[1] != n:
+            raise ValueError(
+                f"loop must be (Φ [n, n], C [dy, n]); got shapes {tuple(phi.shape)} and "
+                f"{tuple(c.shape)}"
+            )
 
     def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        """``(recording [..., d, dim], attacked run [...], loop offset δ [..., n] or None)``."""
         shape = _batch(batch_shape)
         runs = torch.rand(shape, generator=generator, dtype=torch.float64, device=device)
-        return torch.zeros(shape + (self.delay, dim), dtype=dtype, device=device), runs < self.share
+        recording = torch.zeros(shape + (self.delay, dim), dtype=dtype, device=device)
+        return recording, runs < self.share, None
+
+    def _splice_gap(self, recording: Tensor) -> Tensor:
+        """``g = C⁺ (end level − start level)`` of the recording ``[..., n]``."""
+        phi, c = (torch.as_tensor(m, dtype=recording.dtype, device=recording.device)
+                  for m in self.loop)  # fmt: skip
+        if c.shape[0] != recording.shape[-1]:
+            raise ValueError(
+                f"loop's C has {c.shape[0]} rows but the measurement has "
+                f"{recording.shape[-1]} channels"
+            )
+        w, to_state = self.level_window, torch.linalg.pinv(c).mT
+        end = recording[..., -w:, :].mean(-2) @ to_state
+        start = recording[..., :w, :].mean(-2) @ to_state
+        return end @ phi.mT - start
 
     def step(self, state, k, *, y=None, x=None, u=None, view=None):
-        buffer, attacked_run = state
+        buffer, attacked_run, offset = state
         old = buffer[..., 0, :]  # the oldest recorded: y_{k−d} while recording
         last = None if self.duration is None else self.onset + self.duration - 1
         on = k >= self.onset and (last is None or k <= last)
         # while replaying, a recording attacker cycles through its recording; otherwise
         # (and a live one always) it records the true measurement
         newest = y if self.live or not on else old
-        buffer = torch.cat([buffer[..., 1:, :], newest.unsqueeze(-2)], dim=-2)
         flag = attacked_run.expand(y.shape[:-1]) & on
-        return (buffer, attacked_run), old, flag
+        if self.loop is not None and on:
+            phi, c = (torch.as_tensor(m, dtype=y.dtype, device=y.device) for m in self.loop)
+            if (k - self.onset) % self.delay == 0:  # a pass starts: add the gap it opens
+                gap = self._splice_gap(buffer)
+                offset = gap if offset is None else offset @ phi.mT + gap
+            else:
+                offset = offset @ phi.mT
+            old = old + offset @ c.mT
+        buffer = torch.cat([buffer[..., 1:, :], newest.unsqueeze(-2)], dim=-2)
+        return (buffer, attacked_run, offset), old, flag
 
 
 @dataclass(frozen=True)

@@ -136,6 +136,45 @@ def test_a_finite_replay_hands_back_the_true_measurements_after_it():
         Replay(delay=3, onset=6, live="yes")
 
 
+def test_a_seamless_replay_continues_a_noise_free_loop_exactly_across_its_passes():
+    # x_{k+1} = Φ x_k measured without noise (C = I): with w = 1 the gap's free response
+    # turns the recording into the live trajectory, at the splice and at every wrap
+    phi = _plant().transition_matrix(0)
+    x0 = torch.tensor([[1.0, -2.0, 0.5], [0.3, 0.7, -1.0]], dtype=F64)
+    ys = [x0]
+    for _ in range(T - 1):
+        ys.append(ys[-1] @ phi.mT)
+    ys = torch.stack(ys, dim=1)  # y_1 … y_T  [2, T, 3]
+    replay = Replay(delay=6, onset=12, loop=(phi, torch.eye(3, dtype=F64)), level_window=1)
+    state = replay.init((2,), T, 3, dtype=F64)
+    received = []
+    for k in range(1, T + 1):
+        state, value, flag = replay.step(state, k, y=ys[:, k - 1])
+        received.append(value if bool(flag.all()) else ys[:, k - 1])
+    torch.testing.assert_close(torch.stack(received, 1), ys, rtol=0, atol=1e-12)
+    plain = Replay(delay=6, onset=12)  # the plain replay jumps back at the splice
+    state = plain.init((2,), T, 3, dtype=F64)
+    for k in range(1, 13):
+        state, value, _ = plain.step(state, k, y=ys[:, k - 1])
+    torch.testing.assert_close(value, ys[:, 5])
+
+
+def test_a_seamless_replay_checks_its_loop_model():
+    eye = torch.eye(3, dtype=F64)
+    with pytest.raises(ValueError, match=r"loop must be \(Φ \[n, n\], C \[dy, n\]\)"):
+        Replay(delay=6, onset=12, loop=(eye, torch.eye(2, dtype=F64)))
+    with pytest.raises(ValueError, match="loop needs live=False"):
+        Replay(delay=6, onset=12, loop=(eye, eye), live=True)
+    with pytest.raises(ValueError, match="level_window must be at most delay"):
+        Replay(delay=6, onset=12, loop=(eye, eye), level_window=7)
+    replay = threat_from_dict({"kind": "replay", "delay": 3, "onset": 5, "level_window": 2,
+                               "loop": [eye.tolist(), eye.tolist()]})  # fmt: skip
+    state = replay.init((1,), 8, 2, dtype=F64)
+    with pytest.raises(ValueError, match="loop's C has 3 rows but the measurement has 2"):
+        for k in range(1, 6):
+            state, _, _ = replay.step(state, k, y=torch.ones(1, 2, dtype=F64))
+
+
 def test_share_and_entries_choose_the_runs_and_the_measurements_attacked():
     tr = _run(Bias(1.0, share=0.25, entries=(1,)), runs=800)
     attacked = tr.flags.all(-1)

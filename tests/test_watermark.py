@@ -36,14 +36,18 @@ def test_the_watermark_is_what_the_controller_sent_to_plant_and_observer():
 
 def test_the_watermark_exposes_a_replay_at_a_stated_control_cost(tmp_path):
     doc = watermark_study(registry.get("lfc_step"))
-    without, with_mark = doc["rows"]["without watermark"], doc["rows"]["with watermark"]
-    assert without["auc"] <= 0.65  # measured 0.62: the replay shows only at the splice
-    assert without["auc_after_splice"] <= 0.6  # measured 0.58: invisible after it
-    assert with_mark["auc"] >= 0.9 and with_mark["auc_after_splice"] >= 0.9  # 0.92, 0.92
+    rows = doc["rows"]
+    plain = rows["plain replay, without watermark"]
+    seamless = rows["seamless replay, without watermark"]
+    # measured (seed 0): plain 0.64 (its splice shows), 0.57 after it; seamless 0.55
+    assert plain["auc"] > seamless["auc"] + 0.05
+    assert seamless["auc"] <= 0.6 and plain["auc_after_splice"] <= 0.6
+    for label in ("plain replay, with watermark", "seamless replay, with watermark"):
+        assert rows[label]["auc"] >= 0.9 and rows[label]["auc_after_splice"] >= 0.9  # 0.94–0.97
+    assert 0.005 <= plain["fpr_at_far"] <= 0.02  # calibrated at 1 % on other runs: 0.52 %
     assert 0.0 < doc["control_cost_increase"] <= 0.10  # measured +7.4 %
     folder = write_watermark(tmp_path, doc)
-    jsonschema.validate(json.loads((folder / "metrics.json").read_text()), metrics_schema())
-    assert (
-        json.loads((folder / "metrics.json").read_text())["rows"]["with watermark"]["std"] == 0.08
-    )
+    written = json.loads((folder / "metrics.json").read_text())
+    jsonschema.validate(written, metrics_schema())
+    assert written["rows"]["seamless replay, with watermark"]["std"] == 0.08
     assert "control cost" in (folder / "report.md").read_text()
