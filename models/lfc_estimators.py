@@ -28,7 +28,9 @@ difffilter.train.lfc_tuning``; the table is in ``checkpoints/lfc_tuning.json`` a
 report), never on the four test scenarios.
 
 Detection from an attack estimate: score ``max_c |α̂_c| / σ_c``, ``σ_c`` the spread of the
-same estimator's estimate on the same draws without attack, alarm above 3 ([DEF]).
+same estimator's estimate on the same draws without attack, alarm above 3 ([DEF]), or,
+for a checkpoint's estimator, above the threshold its card carries once ``difffilter-train
+calibrate`` has chosen it for a false-alarm rate on attack-free runs.
 """
 
 from __future__ import annotations
@@ -177,13 +179,27 @@ def _attack_free(ctx: SuiteContext, name: str, estimator, tr, compensate: bool) 
     return _cached(ctx, key, lambda: _loop(ctx, estimator, tr, compensate, attack=None))
 
 
-def _closed_loop(name: str, build, *, compensate: bool = True, ablation: bool = False):
-    """A registry factory: ``build(ctx) → estimator`` in its own loop, scored against it."""
+def _alarm_threshold(ctx: SuiteContext, name: str, trained: bool) -> float:
+    """The alarm threshold on the score ``max_c |α̂_c| / σ_c``: a checkpoint's calibrated
+    one (``difffilter-train calibrate``: its card carries a target false-alarm rate), else
+    3 ([DEF])."""
+    if not trained:
+        return THREE_SIGMA
+    path = ctx.checkpoint_for(name)  # loaded (and checked) by the entry's build already
+    _, card = _cached(ctx, ("lfc/ckpt", str(path)), lambda: load_estimator_checkpoint(path))
+    return THREE_SIGMA if card.target_false_alarm_rate is None else float(card.threshold)
+
+
+def _closed_loop(name: str, build, *, compensate: bool = True, ablation: bool = False,
+                 trained: bool = False):  # fmt: skip
+    """A registry factory: ``build(ctx) → estimator`` in its own loop, scored against it
+    (``trained``: the estimator of a checkpoint, whose card may carry its threshold)."""
 
     def factory(ctx: SuiteContext):
         if ablation and abs(ctx.scenario.dt - 0.01) > 1e-12:
             raise SkipEstimator("ablation run at dt = 10 ms only")
         estimator = build(ctx)
+        threshold = _alarm_threshold(ctx, name, trained)
 
         def run(tr) -> LoopResult:
             free = _attack_free(ctx, name, estimator, tr, compensate)
@@ -200,7 +216,7 @@ def _closed_loop(name: str, build, *, compensate: bool = True, ablation: bool = 
             scores = (out.attack.abs() / sigma).amax(-1)
             if "attack_logit" in out.extras:
                 extras["attack_logit"] = out.extras["attack_logit"]
-            det = Detection(scores, scores > THREE_SIGMA, THREE_SIGMA)
+            det = Detection(scores, scores > threshold, threshold)
             result = EstimatorOutput(out.means, attack=out.attack, detection=det, extras=extras)
             return loop._replace(output=result)
 
@@ -240,10 +256,11 @@ _BUILDERS = {
                                 partial(_paper, luenberger=LuenbergerDesign.DIAGONAL, rule=_GD),
                                 {"ablation": True}),
     "kf_nn_grad": ("ours: Kalman observer + NN trained by TBPTT (the checkpoint), frozen",
-                   lambda ctx: _trained(ctx, "kf_nn_grad"), {}),
+                   lambda ctx: _trained(ctx, "kf_nn_grad"), {"trained": True}),
     "kf_nn_grad_ekf": ("kf_nn_grad fine-tuned online by the paper's EKF",
                        lambda ctx: _trained(ctx, "kf_nn_grad_ekf",
-                                            rule=EKFRule(**FINETUNE_DEFAULTS, donate=True)), {}),
+                                            rule=EKFRule(**FINETUNE_DEFAULTS, donate=True)),
+                       {"trained": True}),
     "kf_nn_gd": ("cross term: Kalman observer + NN learned online by gradient steps",
                  partial(_paper, rule=_GD), {}),
     "luenberger_nn_ekf": ("cross term: Luenberger observer + NN learned online by EKF",

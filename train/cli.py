@@ -106,7 +106,9 @@ class DifffilterCLI(LightningCLI):
 HELP = (
     "Train, validate, test and predict with difffilter's neural FDI estimator (LightningCLI; "
     "one YAML per scenario family in train/configs/). Ship a trained estimator with "
-    "'difffilter-train export SRC --out FILE' (export --help)."
+    "'difffilter-train export SRC --out FILE' (export --help); set its alarm threshold for a "
+    "false-alarm rate with 'difffilter-train calibrate SRC --far 0.01 --out FILE' "
+    "(calibrate --help)."
 )
 
 
@@ -141,6 +143,10 @@ def main(args: list[str] | None = None) -> int:
         from .export import main as export_main
 
         return export_main(argv[1:])
+    if argv[:1] == ["calibrate"]:
+        from .calibrate import main as calibrate_main
+
+        return calibrate_main(argv[1:])
     torch.set_num_threads(int(os.environ.get("DIFFFILTER_THREADS", "1")))
     tune_cpu_allocator()
     from jsonargparse import ArgumentError

@@ -1,0 +1,87 @@
+"""``difffilter-train calibrate``: a checkpoint's threshold chosen on attack-free runs for a
+false-alarm rate, checked on others, carried by the card and used by the estimator."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from difffilter.eval.suite import run_suite
+from difffilter.models import registry
+from difffilter.models.neural_estimator import load_estimator_checkpoint
+from difffilter.models.streams import Streams
+from difffilter.train.calibrate import calibrate_checkpoint, estimator_name, main
+
+SHIPPED = "checkpoints/four_tank_nn_grad.ckpt"
+
+
+def _free_scores(scenario, name, path, runs, seed):
+    result = run_suite(scenario.with_threat(None), runs=runs, seed=seed, estimators=[name],
+                       checkpoint={name: str(path)}, progress=False)  # fmt: skip
+    return result.outputs[name].detection
+
+
+def test_the_threshold_meets_the_rate_on_its_runs_and_the_estimator_alarms_above_it(tmp_path):
+    out = tmp_path / "calibrated.ckpt"
+    cal = calibrate_checkpoint(SHIPPED, out, far=0.05, runs=6, progress=False)
+    net, card = load_estimator_checkpoint(out)
+    assert card.threshold == cal["threshold"] and card.target_false_alarm_rate == 0.05
+    assert card.estimator == "pf_nn_grad" == cal["estimator"]
+    scenario = registry.get("four_tank_bias")
+    # recomputed from the calibration runs: at most ⌊α n⌋ exceed τ, and τ is tight (a lower
+    # threshold would let more through)
+    fitted = _free_scores(scenario, "pf_nn_grad", SHIPPED, 6, cal["seed"]).scores
+    above, allowed = int((fitted > cal["threshold"]).sum()), math.floor(0.05 * fitted.numel())
+    assert above <= allowed < int((fitted >= cal["threshold"]).sum())
+    assert cal["measured_on_calibration"] == pytest.approx(above / fitted.numel())
+    # the check runs are others (their own seed), and the new file alarms at τ on them
+    assert cal["check_seed"] != cal["seed"] == Streams(5).seed_of("checkpoint-calibration")
+    det = _free_scores(scenario, "pf_nn_grad", out, 6, cal["check_seed"])
+    assert torch.equal(det.alarms, det.scores > cal["threshold"])
+    assert cal["measured_on_check"] == pytest.approx(float(det.alarms.double().mean()))
+    assert 0.0 < cal["measured_on_check"] < 0.15  # 6 runs × 100 steps around 5 %
+    # the weights are the source's; the card keeps its history and records the calibration
+    src_net, _ = load_estimator_checkpoint(SHIPPED)
+    for a, b in zip(net.state_dict().values(), src_net.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    doc = json.loads(out.with_suffix(".json").read_text())
+    assert doc["calibration"] == cal and doc["model_config"]["scenario"] == "four_tank_bias"
+
+
+def test_a_calibrated_lfc_checkpoint_alarms_at_its_threshold_instead_of_three_sigma(tmp_path):
+    out = tmp_path / "lfc.ckpt"
+    cal = calibrate_checkpoint("checkpoints/lfc_nn_grad.ckpt", out, far=0.02, runs=2,
+                               progress=False)  # fmt: skip
+    assert cal["estimator"] == "kf_nn_grad" and cal["scenario"] == "lfc_random_attacks"
+    scenario = registry.get("lfc_step").with_steps(300)
+    for path, threshold in (("checkpoints/lfc_nn_grad.ckpt", 3.0), (out, cal["threshold"])):
+        result = run_suite(scenario, runs=2, estimators=["kf_nn_grad"],
+                           checkpoint={"kf_nn_grad": str(path)}, progress=False)  # fmt: skip
+        det = result.outputs["kf_nn_grad"].detection
+        assert det.threshold == threshold
+        assert torch.equal(det.alarms, det.scores > threshold)
+
+
+def test_calibrate_refuses_what_it_cannot_do(tmp_path, capsys):
+    out = tmp_path / "x.ckpt"
+    assert main([SHIPPED, "--out", str(out), "--far", "1.5"]) == 2
+    assert "--far must lie in (0, 1)" in capsys.readouterr().err
+    assert main([SHIPPED, "--out", str(out), "--runs", "0"]) == 2
+    assert "--runs must be a positive integer" in capsys.readouterr().err
+    out.write_bytes(b"")
+    assert main([SHIPPED, "--out", str(out)]) == 2
+    assert "exists; pass --force" in capsys.readouterr().err
+    assert main([str(tmp_path / "missing.ckpt"), "--out", str(tmp_path / "y.ckpt")]) == 2
+    assert "missing.ckpt" in capsys.readouterr().err
+
+
+def test_old_cards_name_the_entry_that_evaluates_them():
+    _, grad = load_estimator_checkpoint(SHIPPED)
+    _, ekf = load_estimator_checkpoint("checkpoints/robot_nn_ekf.ckpt")
+    _, pf_ekf = load_estimator_checkpoint("checkpoints/four_tank_nn_ekf.ckpt")
+    assert [estimator_name(c) for c in (grad, ekf, pf_ekf)] == [
+        "pf_nn_grad", "gaussian_nn_ekf", "pf_nn_ekf"
+    ]  # fmt: skip

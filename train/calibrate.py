@@ -1,0 +1,163 @@
+"""``difffilter-train calibrate``: a checkpoint's alarm threshold for a false-alarm rate.
+
+A learned estimator alarms when its score exceeds the threshold its card carries. This
+command chooses that threshold the way the evaluation calibrates every detector
+(:func:`difffilter.eval.calibration.threshold_for`), on attack-free runs of the card's
+training scenario, and checks it on other attack-free runs::
+
+    τ_α = the smallest score τ with #{calibration steps with s > τ} ≤ ⌊α n⌋
+    measured rate = #{check steps with s > τ_α} / #check steps
+
+Both sets of runs come from seeds of their own (``Streams(seed)`` streams
+``checkpoint-calibration`` and ``checkpoint-calibration/check``, default ``seed`` 5),
+never the evaluation's (``--seed 0`` and its ``far-calibration`` stream) nor training's.
+The estimator runs as the evaluation runs it (its registered entry: the suite's particle
+filter, its own closed loop where the scenario has one).
+
+It writes a new checkpoint (the weights unchanged, the card's ``threshold`` and
+``target_false_alarm_rate`` set) and its card, with a ``calibration`` entry holding the
+target, both sets of runs and the measured rates; like ``export`` it replaces an existing
+``--out`` only with ``--force``::
+
+    difffilter-train calibrate checkpoints/four_tank_nn_grad.ckpt --far 0.01 \\
+        --out checkpoints/four_tank_nn_grad.ckpt --force
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+__all__ = ["calibrate_checkpoint", "estimator_name", "main"]
+
+#: The master seed of the calibration runs (differs from every default study seed).
+CALIBRATION_SEED = 5
+
+
+def estimator_name(card) -> str:
+    """The registry entry that evaluates a checkpoint of ``card``: the card's ``estimator``,
+    else ``pf_nn_<trainer>`` for a particle filter and ``gaussian_nn_<trainer>`` for the
+    Kalman-type filters (the cards written before the entry was recorded)."""
+    if card.estimator:
+        return card.estimator
+    return f"{'pf' if card.filter == 'pf' else 'gaussian'}_nn_{card.trainer}"
+
+
+def _scores(scenario, name: str, path, runs: int, seed: int, progress: bool) -> torch.Tensor:
+    """The detection scores ``[runs, T]`` of estimator ``name`` (checkpoint ``path``) on
+    ``runs`` attack-free runs of ``scenario`` from master seed ``seed``."""
+    from difffilter.eval.suite import run_suite
+
+    result = run_suite(scenario.with_threat(None), runs=runs, seed=seed, estimators=[name],
+                       checkpoint={name: str(path)}, progress=progress)  # fmt: skip
+    if name not in result.outputs:
+        why = result.skipped.get(name, "it did not run")
+        raise ValueError(f"{path}: {name} cannot run on {scenario.name}: {why}")
+    det = result.outputs[name].detection
+    if det is None or det.scores is None:
+        raise ValueError(f"{path}: {name} gives no detection scores to calibrate")
+    return det.scores
+
+
+def calibrate_checkpoint(
+    src,
+    out,
+    *,
+    far: float = 0.01,
+    runs: int | None = None,
+    seed: int = CALIBRATION_SEED,
+    force: bool = False,
+    progress: bool = True,
+) -> dict:
+    """Calibrate the checkpoint ``src`` to the false-alarm rate ``far`` and write it to
+    ``out`` (module docstring); ``runs`` per set (default the scenario's). Returns the
+    card's ``calibration`` entry. ``ValueError`` for a bad argument or a checkpoint that
+    cannot be calibrated, ``FileNotFoundError`` if ``src`` does not exist."""
+    from difffilter.eval.calibration import threshold_for
+    from difffilter.models import registry
+    from difffilter.models.neural_estimator import (
+        load_estimator_checkpoint,
+        save_estimator_checkpoint,
+    )
+    from difffilter.models.streams import Streams
+
+    src, out = Path(src), Path(out)
+    if not 0.0 < float(far) < 1.0:
+        raise ValueError(f"--far must lie in (0, 1) (a rate per step); got {far!r}")
+    if runs is not None and (isinstance(runs, bool) or not isinstance(runs, int) or runs < 1):
+        raise ValueError(f"--runs must be a positive integer; got {runs!r}")
+    if out.exists() and not force and out.resolve() != src.resolve():
+        raise ValueError(f"--out: {out} exists; pass --force to replace it")
+    if out.resolve() == src.resolve() and not force:
+        raise ValueError(f"--out: {out} is the source itself; pass --force to rewrite it")
+    estimator, card = load_estimator_checkpoint(src, dtype=torch.float32)
+    if card.scenario is None:
+        raise ValueError(f"{src}: its card names no training scenario to calibrate on")
+    scenario = registry.get(card.scenario)
+    name, runs = estimator_name(card), runs or scenario.runs
+    streams, start = Streams(seed), time.time()
+    fit_seed = streams.seed_of("checkpoint-calibration")
+    check_seed = streams.seed_of("checkpoint-calibration/check")
+    fitted = _scores(scenario, name, src, runs, fit_seed, progress)
+    threshold = threshold_for(fitted, far)
+    checked = _scores(scenario, name, src, runs, check_seed, progress)
+    calibration = {
+        "target": float(far), "estimator": name, "scenario": scenario.name, "runs": runs,
+        "steps": int(fitted.shape[-1]), "seed": fit_seed, "check_seed": check_seed,
+        "threshold": threshold, "previous_threshold": card.threshold,
+        "measured_on_calibration": float((fitted > threshold).double().mean()),
+        "measured_on_check": float((checked > threshold).double().mean()),
+        "time_s": time.time() - start,
+    }  # fmt: skip
+    new_card = dataclasses.replace(card, threshold=threshold, target_false_alarm_rate=float(far),
+                                   estimator=name)  # fmt: skip
+    old_json = src.with_suffix(".json")
+    document = json.loads(old_json.read_text()) if old_json.is_file() else {}
+    digest = save_estimator_checkpoint(out, estimator, new_card)
+    document.update(name=document.get("name", out.stem), checkpoint=out.name, sha256=digest,
+                    observer=new_card.to_dict(), calibration=calibration)  # fmt: skip
+    out.with_suffix(".json").write_text(json.dumps(document, indent=2) + "\n")
+    load_estimator_checkpoint(out)  # the pair loads and matches its card
+    return calibration
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="difffilter-train calibrate",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("src", type=Path, help="an exported estimator (.ckpt, with its card)")
+    p.add_argument("--out", type=Path, required=True, help="where to write it (and its card)")
+    p.add_argument("--far", type=float, default=0.01, help="target false-alarm rate (0.01)")
+    p.add_argument("--runs", type=int, default=None,
+                   help="attack-free runs per set (default: the scenario's)")  # fmt: skip
+    p.add_argument("--seed", type=int, default=CALIBRATION_SEED,
+                   help=f"master seed of the calibration runs ({CALIBRATION_SEED})")  # fmt: skip
+    p.add_argument("--force", action="store_true", help="replace an existing --out")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    args = p.parse_args(argv)
+    try:
+        cal = calibrate_checkpoint(args.src, args.out, far=args.far, runs=args.runs,
+                                   seed=args.seed, force=args.force,
+                                   progress=not args.no_progress)  # fmt: skip
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"difffilter-train calibrate: error: {exc}", file=sys.stderr)
+        return 2
+    print(
+        f"wrote {args.out}: {cal['estimator']} alarms above {cal['threshold']:.6g} (was "
+        f"{cal['previous_threshold']:.6g}); false alarms {100 * cal['measured_on_calibration']:.2f} % "
+        f"on the calibration runs, {100 * cal['measured_on_check']:.2f} % on {cal['runs']} other "
+        f"attack-free runs of {cal['scenario']} (target {100 * cal['target']:g} %)"
+    )
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
