@@ -11,7 +11,16 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["rmse", "detection_counts", "detection_rates", "roc_curve", "roc_auc", "detection_delay"]
+__all__ = [
+    "rmse",
+    "detection_counts",
+    "detection_rates",
+    "roc_curve",
+    "roc_auc",
+    "detection_delay",
+    "threshold_for",
+    "finite_scores",
+]
 
 
 def rmse(estimate: Tensor, truth: Tensor, *, dim=None) -> Tensor:
@@ -144,3 +153,24 @@ def detection_delay(alarms: Tensor, attacked: Tensor) -> dict[str, float | int]:
         "detected": int(detected.sum()),
         "missed": int((has_ep & ~detected).sum()),
     }
+
+
+def finite_scores(scores: Tensor) -> Tensor:
+    """``scores`` flattened in float64, NaN (no score: a step without data) as ``−∞``."""
+    return torch.nan_to_num(scores.double().flatten(), nan=-math.inf)
+
+
+def threshold_for(scores: Tensor, far: float) -> float:
+    """``τ_α`` of attack-free ``scores`` (any shape, every entry one step): the smallest score
+    ``τ`` with ``#{s > τ} ≤ ⌊α n⌋`` (alarms are ``s > τ``).
+
+    At most ``⌊α n⌋`` of the scores exceed it; ties at the threshold never alarm, so with
+    discrete scores the rate may fall below ``α``."""
+    if not 0.0 < far < 1.0:
+        raise ValueError(f"far must lie in (0, 1); got {far!r}")
+    s = finite_scores(scores)
+    if s.numel() == 0:
+        raise ValueError("scores must hold at least one attack-free step")
+    allowed = int(math.floor(far * s.numel()))
+    ranked = torch.sort(s, descending=True).values
+    return float(ranked[allowed]) if allowed < s.numel() else -math.inf

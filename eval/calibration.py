@@ -18,8 +18,9 @@ import math
 from dataclasses import dataclass, field
 
 import torch
-from torch import Tensor
 
+from difffilter.metrics import finite_scores as _finite_scores
+from difffilter.metrics import threshold_for
 from difffilter.models.streams import Streams
 
 __all__ = ["Calibration", "threshold_for", "calibrate", "calibrated_metrics", "calibration_seed"]
@@ -45,25 +46,6 @@ class Calibration:
         """The calibration as metrics.json's ``"far"`` entry."""
         return {"target": self.far, "calibration_runs": self.runs, "calibration_seed": self.seed,
                 "measured_on_calibration": dict(self.measured)}  # fmt: skip
-
-
-def _finite_scores(scores: Tensor) -> Tensor:
-    return torch.nan_to_num(scores.double().flatten(), nan=-math.inf)
-
-
-def threshold_for(scores: Tensor, far: float) -> float:
-    """``τ_α`` of attack-free ``scores`` (any shape, every entry one step; module docstring).
-
-    At most ``⌊α n⌋`` of the scores exceed it; ties at the threshold never alarm, so with
-    discrete scores the rate may fall below ``α``."""
-    if not 0.0 < far < 1.0:
-        raise ValueError(f"far must lie in (0, 1); got {far!r}")
-    s = _finite_scores(scores)
-    if s.numel() == 0:
-        raise ValueError("scores must hold at least one attack-free step")
-    allowed = int(math.floor(far * s.numel()))
-    ranked = torch.sort(s, descending=True).values
-    return float(ranked[allowed]) if allowed < s.numel() else -math.inf
 
 
 def calibration_seed(seed: int) -> int:

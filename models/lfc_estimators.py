@@ -180,14 +180,14 @@ def _attack_free(ctx: SuiteContext, name: str, estimator, tr, compensate: bool) 
 
 
 def _alarm_threshold(ctx: SuiteContext, name: str, trained: bool) -> float:
-    """The alarm threshold on the score ``max_c |α̂_c| / σ_c``: a checkpoint's calibrated
-    one (``difffilter-train calibrate``: its card carries a target false-alarm rate), else
-    3 ([DEF])."""
+    """The alarm threshold on the score ``max_c |α̂_c| / σ_c``: the checkpoint's, where
+    ``difffilter-train calibrate`` chose it for this entry's score, else 3 ([DEF])."""
     if not trained:
         return THREE_SIGMA
     path = ctx.checkpoint_for(name)  # loaded (and checked) by the entry's build already
     _, card = _cached(ctx, ("lfc/ckpt", str(path)), lambda: load_estimator_checkpoint(path))
-    return THREE_SIGMA if card.target_false_alarm_rate is None else float(card.threshold)
+    calibrated = card.extra.get("calibration", {}).get("estimator") == name
+    return float(card.threshold) if calibrated else THREE_SIGMA
 
 
 def _closed_loop(name: str, build, *, compensate: bool = True, ablation: bool = False,

@@ -355,6 +355,22 @@ def test_task_fit_export_and_evaluate_round_trip(tmp_path, monkeypatch, capsys):
     assert card["observer"]["poa_eta"] == pytest.approx(0.233, abs=5e-4)  # the paper's η
     assert {p.name: p.read_bytes() for p in (ROOT / "checkpoints").iterdir()} == shipped
     assert not (tmp_path / "checkpoints").exists()
+    # the threshold is the 1 % one of the validation's attack-free calibration runs
+    # (val_runs of them, their own seed), recomputed here from the selected weights
+    from difffilter.metrics import threshold_for
+    from difffilter.train.task import FilterEstimatorTask, ScenarioDataModule
+
+    assert card["observer"]["target_false_alarm_rate"] == 0.01
+    assert card["metrics_last_validation"]["val/fpr_calibration"] <= 0.01
+    best_task = FilterEstimatorTask.load_from_checkpoint(
+        next((run / "checkpoints").glob("best-*.ckpt"))
+    )
+    data = ScenarioDataModule("four_tank_bias", val_runs=4).calibration_data()
+    assert data[0].threat is None and not bool(data[1]["flags"].any())
+    free, _ = best_task._evaluate(*data)
+    assert card["observer"]["threshold"] == pytest.approx(
+        threshold_for(free.detection.scores, 0.01)
+    )
 
     assert main(["export", str(run / "four_tank_nn_grad.ckpt"), "--out", "ship/ft.ckpt"]) == 0
     best = next((run / "checkpoints").glob("best-*.ckpt"))

@@ -2,7 +2,7 @@
 
 A learned estimator alarms when its score exceeds the threshold its card carries. This
 command chooses that threshold the way the evaluation calibrates every detector
-(:func:`difffilter.eval.calibration.threshold_for`), on attack-free runs of the card's
+(:func:`difffilter.metrics.threshold_for`), on attack-free runs of the card's
 training scenario, and checks it on other attack-free runs::
 
     τ_α = the smallest score τ with #{calibration steps with s > τ} ≤ ⌊α n⌋
@@ -79,7 +79,7 @@ def calibrate_checkpoint(
     ``out`` (module docstring); ``runs`` per set (default the scenario's). Returns the
     card's ``calibration`` entry. ``ValueError`` for a bad argument or a checkpoint that
     cannot be calibrated, ``FileNotFoundError`` if ``src`` does not exist."""
-    from difffilter.eval.calibration import threshold_for
+    from difffilter.metrics import threshold_for
     from difffilter.models import registry
     from difffilter.models.neural_estimator import (
         load_estimator_checkpoint,
@@ -115,8 +115,10 @@ def calibrate_checkpoint(
         "measured_on_check": float((checked > threshold).double().mean()),
         "time_s": time.time() - start,
     }  # fmt: skip
+    # the card inside the checkpoint says which entry's score τ is for (an entry with
+    # another score, e.g. LFC's online fine-tuning of the same network, keeps its own)
     new_card = dataclasses.replace(card, threshold=threshold, target_false_alarm_rate=float(far),
-                                   estimator=name)  # fmt: skip
+                                   estimator=name, extra={**card.extra, "calibration": calibration})  # fmt: skip
     old_json = src.with_suffix(".json")
     document = json.loads(old_json.read_text()) if old_json.is_file() else {}
     digest = save_estimator_checkpoint(out, estimator, new_card)

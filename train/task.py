@@ -25,9 +25,11 @@ state, ``K`` the closed loop's feedback gain: an estimate error enters the plant
 ``U = −K(Z − â)``). A replacement attack (the tracking deception) has no additive signal to
 subtract: the PF weighs with the mixture likelihood of the network's probability and
 ``attack_weight = 0`` leaves the training to the BCE and the state loss. Validation and
-test run the filter as the evaluation does (systematic resampling at every step) and
-choose the alarm threshold on the validation batch: the ``1 − target_false_alarm_rate``
-quantile of the score over its attack-free steps.
+test run the filter as the evaluation does (systematic resampling at every step), and
+validation chooses the alarm threshold for ``target_false_alarm_rate`` on attack-free
+runs of their own seed (``calibration_runs``), as ``difffilter-train calibrate`` and the
+evaluation choose every detector's; ``val/fpr`` is then the rate met on the validation
+batch's attack-free steps, ``val/fpr_calibration`` the one on the calibration runs.
 
 ``trainer="ekf"`` trains the weights ``ζ = [W, V]`` (eq. 10) by the EKF of eqs (11)–(14)
 instead (:class:`~difffilter.param_ekf.EKFOptimizer`): the filter runs on the batch with
@@ -48,7 +50,7 @@ from difffilter import resampling
 from difffilter.attack import Channel
 from difffilter.estimator import Generators
 from difffilter.loop import open_loop
-from difffilter.metrics import roc_auc
+from difffilter.metrics import finite_scores, roc_auc, threshold_for
 from difffilter.models import registry
 from difffilter.models.estimators import poa_detector_for_scenario
 from difffilter.models.generic_estimators import GAUSSIAN_FILTERS, deception_of
@@ -104,6 +106,9 @@ class ScenarioDataModule(pl.LightningDataModule):
         batch_size, batches_per_epoch: training runs per batch and batches per epoch.
         val_runs, val_seed: the fixed validation batch.
         train_seed: master seed of the training batches (differs from ``val_seed``).
+        calibration_runs: attack-free runs on which validation chooses the alarm threshold
+            (default ``val_runs``; their own seed, ``Streams(val_seed)`` stream
+            ``attack-free calibration``; 0: the validation batch's attack-free steps).
         test_runs, test_seed: ``test``/``predict`` runs (default the scenario's ``runs``)
             and seed: the draws of ``difffilter-eval <scenario> --seed test_seed``.
         steps: a shorter horizon than the scenario's (tests, quick runs).
@@ -121,10 +126,18 @@ class ScenarioDataModule(pl.LightningDataModule):
         test_runs: int | None = None,
         test_seed: int = 0,
         steps: int | None = None,
+        calibration_runs: int | None = None,
         dtype: str = "float32",
     ):
         super().__init__()
         self.scenario = registry.get(scenario)  # ValueError listing the known names
+        if calibration_runs is not None and (
+            isinstance(calibration_runs, bool) or not isinstance(calibration_runs, int)
+            or calibration_runs < 0
+        ):  # fmt: skip
+            raise ValueError(
+                f"calibration_runs must be a non-negative integer; got {calibration_runs!r}"
+            )
         for name, val in (
             ("batch_size", batch_size),
             ("batches_per_epoch", batches_per_epoch),
@@ -142,10 +155,23 @@ class ScenarioDataModule(pl.LightningDataModule):
             self.scenario = self.scenario.with_steps(steps)
         self.save_hyperparameters()
         self._dtype = dtype_of(dtype)
-        self._val = None
+        self._val = self._calibration = None
 
     def batch(self, runs: int, seed: int) -> dict:
         return training_batch(self.scenario, runs, seed, self._dtype)
+
+    def calibration_data(self):
+        """``(attack-free scenario, batch)`` on which validation chooses the threshold, or
+        ``None`` (``calibration_runs=0``)."""
+        hp = self.hparams
+        runs = hp.val_runs if hp.calibration_runs is None else hp.calibration_runs
+        if runs == 0:
+            return None
+        free = self.scenario.with_threat(None)
+        if self._calibration is None:
+            seed = Streams(hp.val_seed).seed_of("attack-free calibration")
+            self._calibration = training_batch(free, runs, seed, self._dtype)
+        return free, self._calibration
 
     def train_batch(self, epoch: int, index: int) -> dict:
         """Training batch ``index`` of ``epoch`` (seed ``(train_seed, epoch, index)``)."""
@@ -465,14 +491,28 @@ class FilterEstimatorTask(pl.LightningModule):
             out, truth, _ = self.run(scenario, batch, est, mix_seed(self.hparams.model_seed, 7))
         return out, truth
 
+    def _choose_threshold(self, score, flags) -> tuple[float, float | None]:
+        """``(τ, its false-alarm rate on the calibration runs)``: τ for
+        ``target_false_alarm_rate`` on the data module's attack-free calibration runs
+        (:func:`~difffilter.metrics.threshold_for`, as ``difffilter-train calibrate`` and
+        the evaluation choose it), else on the attack-free steps of ``score``."""
+        dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        data = dm.calibration_data() if hasattr(dm, "calibration_data") else None
+        if data is not None:
+            free, _ = self._evaluate(*data)
+            calibration = free.detection.scores
+            threshold = threshold_for(calibration, self.false_alarm_rate)
+            return threshold, float((finite_scores(calibration) > threshold).double().mean())
+        quiet = score[~flags]
+        return (threshold_for(quiet, self.false_alarm_rate) if quiet.numel() else 0.5), None
+
     def _scores(self, stage: str, scenario, batch, threshold: float | None) -> dict:
         """Evaluate on ``batch``; with ``threshold=None`` choose it (validation)."""
         out, truth = self._evaluate(scenario, batch)
         score, flags = out.detection.scores, truth["flags"]
+        calibration_fpr = None
         if threshold is None:
-            quiet = score[~flags]
-            q = 1.0 - self.false_alarm_rate
-            threshold = float(torch.quantile(quiet.double(), q)) if quiet.numel() else 0.5
+            threshold, calibration_fpr = self._choose_threshold(score, flags)
             self.alarm_threshold.fill_(threshold)
         alarms = score > threshold
         scores = {
@@ -483,6 +523,8 @@ class FilterEstimatorTask(pl.LightningModule):
             "fpr": float(alarms[~flags].double().mean()) if bool((~flags).any()) else float("nan"),
             "threshold": threshold,
         }
+        if calibration_fpr is not None:
+            scores["fpr_calibration"] = calibration_fpr
         runs = flags.shape[0]
         for k, v in scores.items():
             if math.isfinite(v):
