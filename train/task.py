@@ -59,11 +59,18 @@ from difffilter.models.neural_estimator import EstimatorCard, NeuralFDIEstimator
 from difffilter.models.streams import Streams
 from difffilter.param_ekf import EKFOptimizer
 from difffilter.particle import ParticleFilter
+from difffilter.threat_distribution import ThreatDistribution
 
 from .common import dtype_of, mix_seed
 from .figures import attack_figure
 
-__all__ = ["ScenarioDataModule", "FilterEstimatorTask", "RESAMPLERS", "training_batch"]
+__all__ = [
+    "ScenarioDataModule",
+    "FilterEstimatorTask",
+    "RESAMPLERS",
+    "training_batch",
+    "threat_batch",
+]
 
 #: Training resamplers (``resampler=``): gradients through resampling or around it.
 RESAMPLERS = {
@@ -87,6 +94,31 @@ def training_batch(scenario, runs: int, seed: int, dtype: torch.dtype) -> dict:
     return {k: getattr(tr, k) for k in _FIELDS if getattr(tr, k) is not None}
 
 
+def threat_batch(scenario, threats: ThreatDistribution, runs: int, seed: int,
+                 dtype: torch.dtype) -> dict:  # fmt: skip
+    """``runs`` runs of an open-loop ``scenario``, each under its own threat drawn from
+    ``threats`` (stream ``threats`` of ``Streams(seed)``; run ``i`` simulated from the
+    streams of ``mix_seed(seed, i)``): :func:`training_batch`'s fields, an attack-free
+    run's ``attack`` zeros."""
+    if scenario.closed_loop:
+        raise ValueError(
+            f"threats: {scenario.name} is a closed-loop scenario, whose loop draws its own "
+            "attack (train on its random-attack scenario instead); threats mix open-loop "
+            "scenarios' attacks"
+        )
+    draw = Streams(seed)("threats")
+    parts = []
+    for i in range(runs):
+        name, attack = threats.sample(draw)
+        sc = scenario if name == "own" else scenario.with_threat(attack)
+        parts.append(training_batch(sc, 1, mix_seed(seed, i), dtype))
+    width = max(p["attack"].shape[-1] for p in parts)
+    for p in parts:  # an attack-free run records an attack of no channels
+        if p["attack"].shape[-1] != width:
+            p["attack"] = p["attack"].new_zeros(p["attack"].shape[:-1] + (width,))
+    return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+
+
 class _Keys(torch.utils.data.Dataset):
     def __init__(self, indices):
         self.indices = list(indices)
@@ -106,6 +138,11 @@ class ScenarioDataModule(pl.LightningDataModule):
         batch_size, batches_per_epoch: training runs per batch and batches per epoch.
         val_runs, val_seed: the fixed validation batch.
         train_seed: master seed of the training batches (differs from ``val_seed``).
+        threats: the threats training and validation runs are drawn from, one per run (a
+            :class:`~difffilter.threat_distribution.ThreatDistribution` mapping: the
+            library's threats with weights and random fields, ``own`` the scenario's attack,
+            ``none`` attack-free; open-loop scenarios); ``None``: the scenario's own attack.
+            ``test`` keeps the scenario's attack (the evaluation's draws).
         calibration_runs: attack-free runs on which validation chooses the alarm threshold
             (default ``val_runs``; their own seed, ``Streams(val_seed)`` stream
             ``attack-free calibration``; 0: the validation batch's attack-free steps).
@@ -127,10 +164,17 @@ class ScenarioDataModule(pl.LightningDataModule):
         test_seed: int = 0,
         steps: int | None = None,
         calibration_runs: int | None = None,
+        threats: dict | None = None,
         dtype: str = "float32",
     ):
         super().__init__()
         self.scenario = registry.get(scenario)  # ValueError listing the known names
+        self.threats = None
+        if threats is not None:
+            own = self.scenario.threat
+            self.threats = ThreatDistribution(threats, model=self.scenario.system(), own=own)
+            if self.scenario.closed_loop:
+                threat_batch(self.scenario, self.threats, 1, 0, torch.float64)  # its error
         if calibration_runs is not None and (
             isinstance(calibration_runs, bool) or not isinstance(calibration_runs, int)
             or calibration_runs < 0
@@ -158,6 +202,9 @@ class ScenarioDataModule(pl.LightningDataModule):
         self._val = self._calibration = None
 
     def batch(self, runs: int, seed: int) -> dict:
+        """Training or validation runs: under :attr:`threats` where given."""
+        if self.threats is not None:
+            return threat_batch(self.scenario, self.threats, runs, seed, self._dtype)
         return training_batch(self.scenario, runs, seed, self._dtype)
 
     def calibration_data(self):
@@ -199,7 +246,8 @@ class ScenarioDataModule(pl.LightningDataModule):
     def test_dataloader(self):
         hp = self.hparams
         runs = hp.test_runs or self.scenario.runs
-        return torch.utils.data.DataLoader([self.batch(runs, hp.test_seed)], batch_size=None)
+        test = training_batch(self.scenario, runs, hp.test_seed, self._dtype)
+        return torch.utils.data.DataLoader([test], batch_size=None)
 
     def predict_dataloader(self):
         return self.test_dataloader()

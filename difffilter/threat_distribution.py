@@ -1,0 +1,161 @@
+"""A distribution over threats: what a learned estimator is trained across.
+
+Plain data (a YAML mapping) names the threats of the library (:data:`~difffilter.threats.
+THREATS`), each with a weight, and lets any field be drawn at random::
+
+    own:    {weight: 0.3}                                  # the scenario's own attack
+    none:   {weight: 0.1}                                  # an attack-free run
+    bias:   {weight: 0.2, kind: bias, value: {uniform: [0.05, 1.5], signed: true},
+             entries: {choice: [[0], [1], [2, 3], null]}, onset: {randint: [5, 60]}}
+    ramp:   {weight: 0.2, kind: ramp, slope: {uniform: [0.002, 0.02]}, onset: 21}
+
+A field is a constant, or one of
+
+- ``{uniform: [lo, hi]}``: ``U(lo, hi)``, times a random sign with ``signed: true``;
+- ``{loguniform: [lo, hi]}``: ``exp U(log lo, log hi)`` (``0 < lo ≤ hi``), ``signed`` too;
+- ``{randint: [lo, hi]}``: an integer of ``lo … hi`` (both included);
+- ``{choice: [v₀, v₁, …]}``: one of the values, equally likely.
+
+:meth:`ThreatDistribution.sample` draws a threat name by weight, then its fields, from a
+``torch.Generator``: the same generator state gives the same threat. ``own`` and ``none``
+are reserved names (the scenario's attack, which the caller supplies, and no attack).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from .attack import Attack
+from .threats import THREATS, threat_from_dict
+
+__all__ = ["ThreatDistribution"]
+
+_DRAWS = ("uniform", "loguniform", "randint", "choice")
+_RESERVED = ("own", "none")
+
+
+def _is_draw(value) -> bool:
+    return isinstance(value, dict) and any(k in value for k in _DRAWS)
+
+
+def _check_draw(where: str, value: dict) -> None:
+    kinds = [k for k in _DRAWS if k in value]
+    extra = sorted(set(value) - set(_DRAWS) - {"signed"})
+    if len(kinds) != 1 or extra:
+        raise ValueError(
+            f"{where}: a random field is one of {{uniform|loguniform|randint|choice: ...}} "
+            f"(uniform and loguniform may add signed: true); got {value!r}"
+        )
+    kind, args = kinds[0], value[kinds[0]]
+    if kind == "choice":
+        if not isinstance(args, list) or not args:
+            raise ValueError(f"{where}: choice needs a non-empty list of values; got {args!r}")
+        return
+    if not (isinstance(args, list) and len(args) == 2
+            and all(isinstance(a, (int, float)) and not isinstance(a, bool) for a in args)):  # fmt: skip
+        raise ValueError(f"{where}: {kind} needs [lo, hi], two numbers; got {args!r}")
+    lo, hi = args
+    if lo > hi or (kind == "loguniform" and lo <= 0) or (kind == "randint" and
+                                                           not all(isinstance(a, int) for a in args)):  # fmt: skip
+        raise ValueError(
+            f"{where}: {kind} needs lo <= hi"
+            + (" and lo > 0" if kind == "loguniform" else "")
+            + (" as integers" if kind == "randint" else "")
+            + f"; got {args!r}"
+        )
+    if "signed" in value and kind not in ("uniform", "loguniform"):
+        raise ValueError(f"{where}: signed applies to uniform and loguniform only")
+
+
+def _draw(value, generator: torch.Generator):
+    """One value of a field (a constant is itself)."""
+    if not _is_draw(value):
+        return value
+    u = lambda: float(torch.rand((), generator=generator, dtype=torch.float64))  # noqa: E731
+    if "choice" in value:
+        options = value["choice"]
+        return options[int(torch.randint(len(options), (), generator=generator))]
+    if "randint" in value:
+        lo, hi = value["randint"]
+        return int(torch.randint(lo, hi + 1, (), generator=generator))
+    lo, hi = value.get("uniform") or value["loguniform"]
+    if "uniform" in value:
+        x = lo + (hi - lo) * u()
+    else:
+        x = math.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * u())
+    if value.get("signed"):
+        x = x if u() < 0.5 else -x
+    return x
+
+
+@dataclass(frozen=True)
+class ThreatDistribution:
+    """Threats drawn by weight, their fields at random (module docstring).
+
+    Args:
+        spec: ``{name: {weight, kind, fields...}}`` (``own``, ``none``: reserved names with
+            a weight only).
+        model: the defender's model, for the threats that read it (``ksigma_bias``,
+            ``covert``: :func:`~difffilter.threats.threat_from_dict`).
+        own: what ``sample`` returns for ``own`` (the scenario's attack or a marker).
+    """
+
+    spec: dict
+    model: Any = None
+    own: Any = None
+
+    def __post_init__(self):
+        if not isinstance(self.spec, dict) or not self.spec:
+            raise ValueError(
+                f"threats must be a non-empty mapping of name: threat; got {self.spec!r}"
+            )
+        for name, entry in self.spec.items():
+            where = f"threats.{name}"
+            if not isinstance(entry, dict) or "weight" not in entry:
+                raise ValueError(f"{where}: needs a mapping with a weight; got {entry!r}")
+            w = entry["weight"]
+            if isinstance(w, bool) or not isinstance(w, (int, float)) or not w >= 0:
+                raise ValueError(f"{where}.weight must be a number >= 0; got {w!r}")
+            if name in _RESERVED:
+                if set(entry) != {"weight"}:
+                    raise ValueError(f"{where}: the reserved name {name!r} takes a weight only")
+                continue
+            kind = entry.get("kind")
+            if kind not in THREATS:
+                raise ValueError(
+                    f"{where}.kind must be one of {', '.join(sorted(THREATS))} (or the name own "
+                    f"or none); got {kind!r}"
+                )
+            for field, value in entry.items():
+                if _is_draw(value):
+                    _check_draw(f"{where}.{field}", value)
+            self._build(name, entry, torch.Generator().manual_seed(0))  # fields checked now
+        if sum(float(e["weight"]) for e in self.spec.values()) <= 0:
+            raise ValueError("threats: the weights must not all be 0")
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self.spec)
+
+    def _build(self, name: str, entry: dict, generator: torch.Generator) -> Attack:
+        fields = {k: _draw(v, generator) for k, v in entry.items() if k != "weight"}
+        try:
+            return threat_from_dict(fields, model=self.model)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"threats.{name}: {error}") from None
+
+    def sample(self, generator: torch.Generator) -> tuple[str, Any]:
+        """``(name, attack)``: a threat by weight and its drawn fields; ``own`` gives
+        :attr:`own`, ``none`` gives ``None``."""
+        names = list(self.spec)
+        weights = torch.tensor([float(self.spec[n]["weight"]) for n in names], dtype=torch.float64)
+        name = names[int(torch.multinomial(weights, 1, generator=generator))]
+        if name == "own":
+            return name, self.own
+        if name == "none":
+            return name, None
+        return name, self._build(name, self.spec[name], generator)

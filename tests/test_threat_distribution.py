@@ -1,0 +1,104 @@
+"""Training across threats: a distribution over the threat library, drawn per run."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from difffilter.threat_distribution import ThreatDistribution
+from difffilter.threats import Bias, Ramp
+from difffilter.train.task import ScenarioDataModule, threat_batch, training_batch
+
+MIX = {
+    "none": {"weight": 1},
+    "bias": {"weight": 3, "kind": "bias", "value": {"uniform": [1.0, 2.0], "signed": True},
+             "onset": {"randint": [5, 9]}, "entries": {"choice": [[0], [1, 2]]}},
+    "ramp": {"weight": 0, "kind": "ramp", "slope": {"loguniform": [0.01, 0.1]}, "onset": 3},
+}  # fmt: skip
+
+
+def test_threats_come_by_weight_with_their_fields_in_range_and_reproducibly():
+    dist = ThreatDistribution(MIX, own="OWN")
+    g = torch.Generator().manual_seed(0)
+    draws = [dist.sample(g) for _ in range(2000)]
+    names = [n for n, _ in draws]
+    # Binomial(2000, 3/4): 1500 ± 4 × 19.4; ramp has weight 0
+    assert 1422 < names.count("bias") < 1578 and "ramp" not in names
+    assert all(a is None for n, a in draws if n == "none")
+    biases = [a for n, a in draws if n == "bias"]
+    assert all(isinstance(a, Bias) and 1.0 <= abs(a.value[0]) <= 2.0 for a in biases)
+    assert 0.4 < sum(a.value[0] > 0 for a in biases) / len(biases) < 0.6  # signed
+    assert {a.onset for a in biases} == {5, 6, 7, 8, 9}
+    assert {a.entries for a in biases} == {(0,), (1, 2)}
+    again = ThreatDistribution(MIX, own="OWN")
+    g = torch.Generator().manual_seed(0)
+    assert [again.sample(g) for _ in range(2000)] == draws
+    ramp = ThreatDistribution(
+        {"ramp": {**MIX["ramp"], "weight": 1}, "own": {"weight": 1}}, own="OWN"
+    )
+    g = torch.Generator().manual_seed(1)
+    draws = [ramp.sample(g) for _ in range(400)]
+    slopes = [a.slope[0] for n, a in draws if n == "ramp"]
+    assert all(0.01 <= s <= 0.1 for s in slopes) and ("own", "OWN") in draws
+    # log-uniform: half of the draws below the geometric mean √(0.01 · 0.1)
+    assert 0.4 < sum(s < 0.1**1.5 for s in slopes) / len(slopes) < 0.6
+
+
+@pytest.mark.parametrize(
+    ("spec", "why"),
+    [
+        ({}, "non-empty mapping"),
+        ({"bias": {"kind": "bias"}}, r"threats.bias: needs a mapping with a weight"),
+        ({"bias": {"weight": -1, "kind": "bias"}}, r"threats.bias.weight must be a number >= 0"),
+        ({"x": {"weight": 1, "kind": "teleport"}}, r"threats.x.kind must be one of"),
+        ({"own": {"weight": 1, "value": 2}}, "reserved name 'own' takes a weight only"),
+        ({"b": {"weight": 1, "kind": "bias", "value": {"uniform": [2, 1]}}}, r"threats.b.value: uniform needs lo <= hi"),
+        ({"b": {"weight": 1, "kind": "bias", "onset": {"randint": [1.5, 3]}}}, "as integers"),
+        ({"b": {"weight": 1, "kind": "bias", "value": {"uniform": [1, 2], "sine": 1}}}, "a random field is one of"),
+        ({"b": {"weight": 1, "kind": "bias", "speed": 3}}, r"threats.b: threat 'bias' has no field\(s\) speed"),
+        ({"b": {"weight": 0, "kind": "bias"}}, "must not all be 0"),
+    ],
+)  # fmt: skip
+def test_a_bad_distribution_names_the_threat_and_the_field(spec, why):
+    with pytest.raises(ValueError, match=why):
+        ThreatDistribution(spec)
+
+
+def test_a_threat_batch_gives_each_run_its_own_threat_and_the_test_keeps_the_scenarios():
+    from difffilter.models import registry
+
+    scenario = registry.get("four_tank_bias")
+    dist = ThreatDistribution(MIX, model=scenario.system(), own=scenario.threat)
+    batch = threat_batch(scenario, dist, 40, seed=11, dtype=torch.float64)
+    assert batch["attack"].shape == (40, 100, 4) and batch["flags"].shape == (40, 100)
+    g = torch.Generator()
+    g.manual_seed(__import__("difffilter").models.streams.Streams(11).seed_of("threats"))
+    expected = [dist.sample(g) for _ in range(40)]
+    for i, (name, attack) in enumerate(expected):
+        a, flags = batch["attack"][i], batch["flags"][i]
+        if name == "none":
+            assert not flags.any() and not a.any()
+            continue
+        k0 = attack.onset - 1  # the 1-based onset's column
+        assert not flags[:k0].any() and flags[k0:].all()
+        want = torch.zeros(4, dtype=torch.float64)
+        want[list(attack.entries)] = attack.value[0]
+        assert torch.equal(a[k0:], want.expand(100 - k0, 4)) and not a[:k0].any()
+    assert torch.equal(
+        threat_batch(scenario, dist, 40, 11, torch.float64)["y_recv"], batch["y_recv"]
+    )
+
+    dm = ScenarioDataModule("four_tank_bias", val_runs=8, test_runs=3, threats=MIX)
+    val = dm.val_dataloader().dataset[0]
+    torch.testing.assert_close(val["x"], threat_batch(scenario, dist, 8, 2, torch.float32)["x"])
+    test = dm.test_dataloader().dataset[0]  # the scenario's own attack, the evaluation's runs
+    torch.testing.assert_close(
+        test["attack"], training_batch(scenario, 3, 0, torch.float32)["attack"]
+    )
+    with pytest.raises(ValueError, match="threats: lfc_step is a closed-loop scenario"):
+        ScenarioDataModule(
+            "lfc_step", threats={"ramp": {"weight": 1, "kind": "ramp", "slope": 0.1}}
+        )
+    assert isinstance(
+        ThreatDistribution({"r": {"weight": 1, "kind": "ramp", "slope": 0.1}}).sample(g)[1], Ramp
+    )
