@@ -108,7 +108,8 @@ HELP = (
     "one YAML per scenario family in train/configs/). Ship a trained estimator with "
     "'difffilter-train export SRC --out FILE' (export --help); set its alarm threshold for a "
     "false-alarm rate with 'difffilter-train calibrate SRC --far 0.01 --out FILE' "
-    "(calibrate --help)."
+    "(calibrate --help); train one config on several seeds and report the spread with "
+    "'difffilter-train sweep --config FILE --seeds 0 1 2 --out DIR' (sweep --help)."
 )
 
 
@@ -147,6 +148,10 @@ def main(args: list[str] | None = None) -> int:
         from .calibrate import main as calibrate_main
 
         return calibrate_main(argv[1:])
+    if argv[:1] == ["sweep"]:
+        from .sweep import main as sweep_main
+
+        return sweep_main(argv[1:])
     torch.set_num_threads(int(os.environ.get("DIFFFILTER_THREADS", "1")))
     tune_cpu_allocator()
     from jsonargparse import ArgumentError

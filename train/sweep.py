@@ -1,0 +1,221 @@
+"""``difffilter-train sweep``: one config trained on several seeds, each checkpoint judged as
+the evaluation judges it, the spread reported and the median seed named.
+
+For every seed ``s`` the sweep runs ``fit`` with ``--seed_everything s``, the network's
+``model_seed s`` and the data's ``train_seed 1 + 10 s`` (the validation and test seeds
+stay the config's), logging into ``<out>/runs/<name>/seed_<s>/``. A seed whose exported
+estimator is already there is not trained again, and one interrupted after a Lightning
+checkpoint resumes from its ``last.ckpt``: an interrupted sweep loses nothing.
+
+Each seed's estimator is then evaluated on the headline scenarios of its family (or
+``--scenarios``) with ``difffilter-eval``'s draws (``--seed 0``) and its calibration (every
+threshold chosen on attack-free runs of their own seed for ``--far``), and the sweep
+writes ``<out>/sweep.json`` and ``<out>/sweep.md``: per seed and scenario the estimator's
+``tpr_at_far``, ``fpr_at_far``, ``fpr`` (at the checkpoint's own threshold), ``auc``,
+``state_rmse`` and ``attack_rmse``, and per metric the mean, min, max and spread
+(max − min) over seeds. The median seed is the one whose ``--rank-by`` metric, averaged
+over the scenarios, is the median (the lower median for an even count); it is the one to
+ship (``difffilter-train export``), never the best::
+
+    difffilter-train sweep --config train/configs/four_tank.yaml --seeds 0 1 2 --out sweeps/four_tank
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+from pathlib import Path
+
+__all__ = ["sweep", "main", "METRICS", "train_seed_of"]
+
+#: The metrics the sweep reports per seed and scenario (eval.scoring's definitions).
+METRICS = ("tpr_at_far", "fpr_at_far", "fpr", "auc", "state_rmse", "attack_rmse")
+_LOWER_IS_BETTER = {"fpr_at_far", "fpr", "state_rmse", "attack_rmse"}
+
+
+def train_seed_of(seed: int) -> int:
+    """The data's ``train_seed`` of sweep seed ``seed`` (``1 + 10 s``: never a default
+    validation (2) or test (0) seed; seed 0 keeps the configs' 1)."""
+    return 1 + 10 * int(seed)
+
+
+def _exported(folder: Path) -> Path | None:
+    found = sorted(p for p in folder.glob("*.ckpt") if p.with_suffix(".json").is_file())
+    return found[0] if found else None
+
+
+def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str]) -> Path:
+    """Train seed ``seed`` (or take its finished run, or resume it); its exported file."""
+    from .cli import main as cli_main
+
+    existing = list(runs_dir.glob(f"*/seed_{seed}"))
+    if existing and (done := _exported(existing[0])) is not None:
+        print(f"seed {seed}: trained already ({done})")
+        return done
+    args = [
+        "fit", "--config", str(config), f"--seed_everything={seed}",
+        f"--model.init_args.model_seed={seed}", f"--data.init_args.train_seed={train_seed_of(seed)}",
+        f"--trainer.logger.init_args.save_dir={runs_dir}",
+        f"--trainer.logger.init_args.version=seed_{seed}", *extra,
+    ]  # fmt: skip
+    last = existing[0] / "checkpoints" / "last.ckpt" if existing else None
+    if last is not None and last.is_file():
+        print(f"seed {seed}: resuming from {last}")
+        args += ["--ckpt_path", str(last)]
+    if cli_main(args) != 0:
+        raise ValueError(f"seed {seed}: difffilter-train fit failed (its error is above)")
+    found = list(runs_dir.glob(f"*/seed_{seed}"))
+    done = _exported(found[0]) if found else None
+    if done is None:
+        raise ValueError(f"seed {seed}: fit exported no estimator under {runs_dir}")
+    return done
+
+
+def _evaluate(path: Path, scenarios, runs, far: float, progress: bool) -> dict:
+    """``{scenario: {metric: value}}`` of the estimator of ``path``, calibrated as
+    ``difffilter-eval`` calibrates (``--seed 0``)."""
+    from difffilter.eval.calibration import calibrate
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import registry
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+
+    from .calibrate import estimator_name
+
+    _, card = load_estimator_checkpoint(path)
+    name = estimator_name(card)
+    if not scenarios:
+        scenarios = registry.names(card.scenario_family, headline_only=True)
+    table = {}
+    for scenario_name in scenarios:
+        scenario, checkpoint = registry.get(scenario_name), {name: str(path)}
+        calibration = calibrate(scenario, far=far, runs=runs, estimators=[name],
+                                checkpoint=checkpoint, progress=progress)  # fmt: skip
+        result = run_suite(scenario, runs=runs, estimators=[name], checkpoint=checkpoint,
+                           calibration=calibration, progress=progress)  # fmt: skip
+        metrics = result.metrics[name]
+        table[scenario_name] = {m: metrics.get(m) for m in METRICS}
+    return {"estimator": name, "scenarios": table}
+
+
+def _summary(per_seed: dict) -> dict:
+    """``{scenario: {metric: {mean, min, max, spread}}}`` over the seeds."""
+    first = next(iter(per_seed.values()))["scenarios"]
+    out = {}
+    for scenario, metrics in first.items():
+        out[scenario] = {}
+        for metric in metrics:
+            values = [s["scenarios"][scenario][metric] for s in per_seed.values()]
+            values = [v for v in values if v is not None]
+            if not values:
+                continue
+            out[scenario][metric] = {"mean": statistics.fmean(values), "min": min(values),
+                                     "max": max(values), "spread": max(values) - min(values)}  # fmt: skip
+    return out
+
+
+def _median_seed(per_seed: dict, rank_by: str) -> int:
+    def key(seed):
+        values = [
+            m[rank_by] for m in per_seed[seed]["scenarios"].values() if m[rank_by] is not None
+        ]
+        return statistics.fmean(values) if values else float("nan")
+
+    ranked = sorted(per_seed, key=key, reverse=rank_by not in _LOWER_IS_BETTER)
+    return ranked[(len(ranked) - 1) // 2]
+
+
+def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | None = None,
+          far: float = 0.01, rank_by: str = "tpr_at_far", extra=(), progress: bool = True) -> dict:  # fmt: skip
+    """Train ``config`` on every seed and evaluate each (module docstring); writes and
+    returns the sweep's document. ``extra``: more ``fit`` options for every seed."""
+    config, out = Path(config), Path(out)
+    if not config.is_file():
+        raise FileNotFoundError(f"--config: {config} does not exist")
+    seeds = [int(s) for s in seeds]
+    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise ValueError(f"--seeds must be distinct integers >= 0; got {seeds}")
+    if rank_by not in METRICS:
+        raise ValueError(f"--rank-by must be one of {', '.join(METRICS)}; got {rank_by!r}")
+    if not 0.0 < far < 1.0:
+        raise ValueError(f"--far must lie in (0, 1); got {far!r}")
+    runs_dir = out / "runs"
+    per_seed = {}
+    for seed in seeds:
+        path = _fit(config, seed, runs_dir, list(extra))
+        card = json.loads(path.with_suffix(".json").read_text())
+        per_seed[seed] = {"checkpoint": str(path), "train_time_s": card.get("train_time_s"),
+                          **_evaluate(path, scenarios, runs, far, progress)}  # fmt: skip
+    median = _median_seed(per_seed, rank_by)
+    doc = {
+        "config": str(config), "seeds": seeds, "far": far, "runs": runs, "eval_seed": 0,
+        "rank_by": rank_by, "median_seed": median,
+        "median_checkpoint": per_seed[median]["checkpoint"],
+        "per_seed": {str(s): v for s, v in per_seed.items()}, "summary": _summary(per_seed),
+    }  # fmt: skip
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "sweep.json").write_text(json.dumps(doc, indent=2) + "\n")
+    (out / "sweep.md").write_text(_markdown(doc))
+    return doc
+
+
+def _markdown(doc: dict) -> str:
+    from difffilter.eval.report import format_number as f
+
+    lines = [
+        f"# Sweep of {doc['config']} over seeds {', '.join(map(str, doc['seeds']))}\n",
+        f"Each seed's estimator on `difffilter-eval`'s runs (seed {doc['eval_seed']}), every "
+        f"threshold calibrated for {100 * doc['far']:g} % false alarms on attack-free runs of "
+        f"their own seed. Median seed by {doc['rank_by']}: **{doc['median_seed']}** "
+        f"(`{doc['median_checkpoint']}`).\n",
+        "| scenario | metric | "
+        + " | ".join(f"seed {s}" for s in doc["seeds"])
+        + " | mean | spread (max − min) |",
+        "|---|---|" + "---|" * (len(doc["seeds"]) + 2),
+    ]
+    for scenario, metrics in doc["summary"].items():
+        for metric, stats in metrics.items():
+            cells = [
+                f(doc["per_seed"][str(s)]["scenarios"][scenario][metric]) for s in doc["seeds"]
+            ]
+            lines.append(f"| {scenario} | {metric} | " + " | ".join(cells)
+                         + f" | {f(stats['mean'])} | {f(stats['spread'])} |")  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="difffilter-train sweep",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="Options after -- go to every seed's fit (e.g. -- --trainer.max_epochs=5).",
+    )
+    p.add_argument("--config", type=Path, required=True, help="the training config (YAML)")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (0 1 2)")
+    p.add_argument("--out", type=Path, required=True, help="the sweep's folder")
+    p.add_argument("--scenarios", default=None,
+                   help="comma-separated scenarios (default: the family's headline ones)")  # fmt: skip
+    p.add_argument("--runs", type=int, default=None, help="evaluation runs (the scenario's)")
+    p.add_argument("--far", type=float, default=0.01, help="target false-alarm rate (0.01)")
+    p.add_argument("--rank-by", default="tpr_at_far", help="the median seed's metric")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra = argv[argv.index("--") + 1 :] if "--" in argv else []
+    args = p.parse_args(argv[: argv.index("--")] if "--" in argv else argv)
+    scenarios = [s for s in args.scenarios.split(",") if s] if args.scenarios else None
+    try:
+        doc = sweep(args.config, args.seeds, args.out, scenarios=scenarios, runs=args.runs,
+                    far=args.far, rank_by=args.rank_by, extra=extra,
+                    progress=not args.no_progress)  # fmt: skip
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"difffilter-train sweep: error: {exc}", file=sys.stderr)
+        return 2
+    print((Path(args.out) / "sweep.md").read_text())
+    print(f"median seed {doc['median_seed']}: ship it with difffilter-train export "
+          f"{doc['median_checkpoint']} --out <file>")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
