@@ -61,6 +61,7 @@ from difffilter.param_ekf import EKFOptimizer
 from difffilter.particle import ParticleFilter
 from difffilter.threat_distribution import ThreatDistribution
 
+from .adversarial import Adversary
 from .common import dtype_of, mix_seed
 from .figures import attack_figure
 
@@ -282,6 +283,12 @@ class FilterEstimatorTask(pl.LightningModule):
         attack_weight, bce_weight, state_weight, control_weight: loss weights (module
             docstring).
         target_false_alarm_rate: of the operating threshold (default: the scenario's).
+        adversarial_runs, adversarial_iterations, adversarial_every,
+        adversarial_crafting_runs, adversarial_onsets: adversarial training
+            (:class:`~difffilter.train.adversarial.Adversary`): every ``adversarial_every``
+            steps an attack is crafted against the current network, and each batch gets
+            ``adversarial_runs`` runs under it (0: off; gradient trainer, open-loop sensor
+            attacks).
         monitor_scenarios, monitor_runs, monitor_seed: other registered scenarios whose
             attack RMSE is logged at every validation (``val/scenario/<name>/…``) and
             scored by ``test``.
@@ -322,6 +329,11 @@ class FilterEstimatorTask(pl.LightningModule):
         state_weight: float = 1.0,
         control_weight: float = 0.0,
         target_false_alarm_rate: float | None = None,
+        adversarial_runs: int = 0,
+        adversarial_iterations: int = 20,
+        adversarial_every: int = 16,
+        adversarial_crafting_runs: int = 8,
+        adversarial_onsets: tuple[int, int] = (5, 60),
         monitor_scenarios: list[str] | None = None,
         monitor_runs: int = 4,
         monitor_seed: int = 3,
@@ -357,6 +369,12 @@ class FilterEstimatorTask(pl.LightningModule):
                     f"dt = {sc.dt} s (family {other.family!r}, dt = {other.dt} s)"
                 )
         self.automatic_optimization = False
+        self.adversary = None
+        if adversarial_runs:
+            self.adversary = Adversary(
+                adversarial_runs, adversarial_iterations, adversarial_every,
+                adversarial_crafting_runs, tuple(adversarial_onsets),
+            )  # fmt: skip
 
     def _network(self) -> NeuralFDIEstimator:
         hp, dy = self.hparams, self.system.dim_y
@@ -459,6 +477,8 @@ class FilterEstimatorTask(pl.LightningModule):
         if self.hparams.trainer == "ekf":
             return self._ekf_step(batch, seed)
         opt, sched = self.optimizers(), self.lr_schedulers()
+        if self.adversary is not None:
+            batch = self._adversarial(batch, seed)
         est = self.estimator_object(training=True)
         T = _horizon(self.scenario, batch)
         chunk = (self.hparams.tbptt_steps or T) if self.scenario.closed_loop else T
@@ -480,6 +500,17 @@ class FilterEstimatorTask(pl.LightningModule):
         for k, v in totals.items():
             self.log(f"train/{k}", v, prog_bar=k == "loss", batch_size=runs)
         self.log("train/grad_norm", max(norms), batch_size=runs)
+
+    def _adversarial(self, batch: dict, seed: int) -> dict:
+        """``batch`` with the adversary's runs (a new attack crafted when due, once a
+        validation has calibrated the threshold the attacker must stay under)."""
+        adversary = self.adversary
+        if adversary.due(self.global_step) and self.current_epoch >= 1:
+            for k, v in adversary.craft(self, self.global_step).items():
+                self.log(f"train/{k}", v, batch_size=adversary.crafting_runs)
+        if adversary.attack is None:
+            return batch
+        return adversary.augment(batch, self.scenario_of_data(), mix_seed(seed, 23), self._dtype)
 
     def _clip(self) -> float:
         params = list(self.estimator.parameters())
@@ -704,6 +735,13 @@ def _check_options(hp, sc, channel: Channel) -> float:
         raise ValueError(f"trainer: {sc.name} is a closed loop; the EKF trainer runs open loops")
     if hp.control_weight > 0 and not sc.closed_loop:
         raise ValueError("control_weight needs a closed-loop scenario (its feedback gain)")
+    if hp.adversarial_runs and (hp.trainer != "grad" or sc.closed_loop
+                                or channel is not Channel.SENSOR):  # fmt: skip
+        raise ValueError(
+            "adversarial_runs needs the gradient trainer on an open-loop scenario with a "
+            f"sensor attack; {sc.name} is {'closed' if sc.closed_loop else 'open'}-loop with a "
+            f"{channel.value} attack, trainer {hp.trainer!r}"
+        )
     if hp.tbptt_steps is not None and hp.tbptt_steps < 1:
         raise ValueError(f"tbptt_steps must be >= 1 or None; got {hp.tbptt_steps!r}")
     far = sc.false_alarm_rate if hp.target_false_alarm_rate is None else hp.target_false_alarm_rate

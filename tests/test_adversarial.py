@@ -1,0 +1,86 @@
+"""Adversarial training: attacks crafted against the current network join its batches."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from difffilter.models import registry
+from difffilter.train.adversarial import Adversary
+from difffilter.train.task import FilterEstimatorTask, training_batch
+
+F32 = torch.float32
+
+
+def test_the_adversarys_runs_receive_its_attack_on_fresh_attack_free_runs():
+    scenario = registry.get("four_tank_bias")
+    adversary = Adversary(runs=3)
+    adversary.attack = torch.zeros(100, 4)
+    adversary.attack[29:] = torch.tensor([0.1, -0.2, 0.0, 0.3])
+    adversary.onset = 30
+    batch = training_batch(scenario, 2, 7, F32)
+    out = adversary.augment(batch, scenario, 5, F32)
+    free = training_batch(scenario.with_threat(None), 3, 5, F32)
+    for k in batch:
+        assert torch.equal(out[k][:2], batch[k])
+    torch.testing.assert_close(
+        out["y_recv"][2:] - free["y_recv"], adversary.attack.expand(3, 100, 4)
+    )
+    assert torch.equal(out["x"][2:], free["x"]) and torch.equal(
+        out["attack"][2:, 29:, 1], torch.full((3, 71), -0.2)
+    )
+    assert not out["flags"][2:, :29].any() and out["flags"][2:, 29:].all()
+
+
+def test_crafting_starts_at_its_onset_and_leaves_the_network_untouched():
+    task = FilterEstimatorTask("four_tank_bias", num_particles=20, hidden=4, adversarial_runs=2,
+                               adversarial_iterations=4, adversarial_crafting_runs=4)  # fmt: skip
+    task.alarm_threshold.fill_(0.3)
+    logs = task.adversary.craft(task, step=0)
+    a, onset = task.adversary.attack, task.adversary.onset
+    assert 5 <= onset <= 60 and a.shape == (100, 4)
+    assert not a[: onset - 1].any() and logs["adversarial_error"] >= 0.0
+    before = [p.clone() for p in task.estimator.parameters()]
+    assert all(p.grad is None for p in task.estimator.parameters())  # nothing leaked in
+    assert all(torch.equal(p, q) for p, q in zip(before, task.estimator.parameters(), strict=True))
+    assert task.adversary.due(16) and not task.adversary.due(3)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "why"),
+    [
+        ({"trainer": "ekf"}, "adversarial_runs needs the gradient trainer"),
+        ({"adversarial_iterations": 0}, "adversarial_iterations must be an integer >= 1"),
+        ({"adversarial_onsets": (9, 3)}, "adversarial_onsets must be"),
+    ],
+)
+def test_adversarial_options_are_checked(kwargs, why):
+    with pytest.raises(ValueError, match=why):
+        FilterEstimatorTask("four_tank_bias", adversarial_runs=2, **kwargs)
+    with pytest.raises(ValueError, match="open-loop scenario with a sensor attack"):
+        FilterEstimatorTask("robot_actuator_attack", filter="ekf", adversarial_runs=2)
+
+
+def test_an_adversarial_fit_crafts_after_the_first_validation_and_logs_it(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from difffilter.train.cli import main
+
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    args = [
+        "fit", "--config", str(root / "train" / "configs" / "four_tank.yaml"),
+        "--data.init_args.batch_size=2", "--data.init_args.batches_per_epoch=2",
+        "--data.init_args.val_runs=4", "--model.init_args.num_particles=20",
+        "--model.init_args.hidden=4", "--trainer.max_epochs=2", "--trainer.log_every_n_steps=1",
+        "--model.init_args.adversarial_runs=2", "--model.init_args.adversarial_iterations=2",
+        "--model.init_args.adversarial_every=1",
+    ]  # fmt: skip
+    assert main(args) == 0
+    run = tmp_path / "lightning_logs" / "four_tank_nn_grad" / "version_0"
+    events = EventAccumulator(str(run)).Reload()
+    crafted = events.Scalars("train/adversarial_error")
+    assert [e.step for e in crafted] == [2, 3]  # epoch 1's two steps, none before validation

@@ -1,0 +1,120 @@
+"""Adversarial training: attacks crafted against the current network join its batches.
+
+A min–max alternation. Every ``every`` training steps the adversary crafts one stealthy
+sensor attack against the network as it is (:func:`difffilter.stealthy.craft_stealthy_
+attack`: maximise the state error through the training filter, with the network's own
+detection score held under its current threshold, the validation's calibrated one),
+``iterations`` Adam steps on ``crafting_runs`` attack-free runs, from a random onset. Until
+the next crafting, every training batch gets ``runs`` more runs under that attack, on
+fresh noise::
+
+    ỹ_k = y_k + a_k,   attack = a_k,   flags = (k ≥ onset)
+
+so the network learns both to flag it and to subtract it. The attacker of the evaluation
+(``eval/stealthy.py``) is the same crafting with more iterations against the final
+network, on noise of its own seed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from difffilter.estimator import Generators
+from difffilter.models.streams import Streams
+from difffilter.stealthy import StealthySettings, craft_stealthy_attack
+
+from .common import mix_seed
+
+__all__ = ["Adversary"]
+
+
+@dataclass
+class Adversary:
+    """The attacker of adversarial training (module docstring).
+
+    Args:
+        runs: crafted-attack runs added to each training batch.
+        iterations: Adam steps of each crafting.
+        every: training steps between craftings.
+        crafting_runs: attack-free runs the attack is crafted on.
+        onsets: ``(first, last)``: the onset is drawn from them (both included).
+    """
+
+    runs: int
+    iterations: int = 20
+    every: int = 16
+    crafting_runs: int = 8
+    onsets: tuple[int, int] = (5, 60)
+    attack: torch.Tensor | None = field(default=None, repr=False)
+    onset: int | None = None
+    history: list = field(default_factory=list, repr=False)
+
+    def __post_init__(self):
+        for name in ("runs", "iterations", "every", "crafting_runs"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"adversarial_{name} must be an integer >= 1; got {value!r}")
+        lo, hi = self.onsets
+        if not (isinstance(lo, int) and isinstance(hi, int) and 1 <= lo <= hi):
+            raise ValueError(f"adversarial_onsets must be [first, last], 1 <= first <= last; "
+                             f"got {self.onsets!r}")  # fmt: skip
+
+    def due(self, step: int) -> bool:
+        return self.attack is None or step % self.every == 0
+
+    def craft(self, task, step: int) -> dict:
+        """A new attack against ``task``'s network as it is now; returns what to log."""
+        scenario, seed = task.scenario_of_data(), mix_seed(task.hparams.model_seed, step, 17)
+        streams = Streams(seed)
+        T = scenario.steps
+        hi = min(self.onsets[1], T)
+        onset = int(torch.randint(min(self.onsets[0], hi), hi + 1, (),
+                                  generator=streams("adversary/onset")))  # fmt: skip
+        free = scenario.with_threat(None)
+        tr = free.simulate(self.crafting_runs, {k: streams(f"adversary/{k}")
+                                                for k in ("plant", "attack", "schedule")},
+                           dtype=task._dtype)  # fmt: skip
+        estimator = task.estimator_object(training=True)
+        params = list(task.estimator.parameters())
+        flags = [p.requires_grad for p in params]
+        for p in params:  # the attacker differentiates through the network, not into it
+            p.requires_grad_(False)
+
+        def generators():
+            return Generators(streams("adversary/particles"), streams("adversary/particles"),
+                              streams("adversary/resample"))  # fmt: skip
+
+        try:
+            with torch.enable_grad():
+                crafted = craft_stealthy_attack(
+                    estimator, task.system, tr.y_true, tr.x, float(task.alarm_threshold),
+                    far=task.false_alarm_rate, us=tr.us, onset=onset,
+                    settings=StealthySettings(iterations=self.iterations), generator=generators,
+                )  # fmt: skip
+        finally:
+            for p, f in zip(params, flags, strict=True):
+                p.requires_grad_(f)
+        self.attack, self.onset = crafted.values.to(task._dtype), onset
+        best = max((h[1] for h in crafted.history), default=0.0)
+        self.history.append((step, onset, best))
+        return {"adversarial_error": best, "adversarial_onset": float(onset)}
+
+    def augment(self, batch: dict, scenario, seed: int, dtype) -> dict:
+        """``batch`` with :attr:`runs` runs under the current attack appended (fresh
+        attack-free runs of stream ``seed``, the attack added to what is received)."""
+        from .task import training_batch
+
+        extra = training_batch(scenario.with_threat(None), self.runs, seed, dtype)
+        T, dy = self.attack.shape
+        attack = self.attack.to(extra["y_recv"]).expand(self.runs, T, dy)
+        extra["y_recv"] = extra["y_recv"] + attack
+        extra["attack"] = attack.clone()
+        on = torch.arange(1, T + 1) >= self.onset
+        flags = batch["flags"]
+        extra["flags"] = (on.expand(self.runs, T) if flags.dim() == 2
+                          else on[:, None] & (attack != 0))  # fmt: skip
+        if batch["attack"].shape[-1] != dy:
+            raise ValueError("adversarial training needs a sensor attack on every channel")
+        return {k: torch.cat([batch[k], extra[k].to(batch[k].dtype)]) for k in batch}
