@@ -50,6 +50,7 @@ class SuiteResult:
             estimator each (``--ckpt name=path``).
         calibration: the :class:`~difffilter.eval.calibration.Calibration` the
             detectors were judged at, or ``None``.
+        progress: whether the study shows progress bars (its family's extra studies too).
     """
 
     scenario: Any
@@ -65,6 +66,7 @@ class SuiteResult:
     skipped: dict[str, str] = field(default_factory=dict)
     checkpoint: dict[str, Any] | None = None
     calibration: Any = None
+    progress: bool = False
     checkpoints: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def traj_of(self, name: str) -> Trajectories:
@@ -139,7 +141,8 @@ def run_suite(
             built[name] = registry.get(name).factory(ctx)
         except registry.SkipEstimator as exc:
             raise ValueError(f"--ckpt {name}={path}: {exc}") from None
-    result = SuiteResult(scenario, runs, seed, traj, context=ctx, calibration=calibration)
+    result = SuiteResult(scenario, runs, seed, traj, context=ctx, calibration=calibration,
+                         progress=progress)  # fmt: skip
     rank, world = process_group()
     mine = specs[rank::world]  # with several processes, each runs its share of estimators
     with one_thread(scenario.single_thread), torch.no_grad():

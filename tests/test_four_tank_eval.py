@@ -176,3 +176,17 @@ def test_two_checkpoints_are_compared_in_one_run_and_a_misfit_is_an_error(tmp_pa
         assert main(["four_tank_bias", *flags, "--out", str(tmp_path / "bad"), *common]) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and why in err, err
+
+
+def test_the_attack_size_sweep_shows_its_progress(capsys):
+    from difffilter.eval.families.four_tank import _sweep
+
+    sc = registry.get("four_tank_bias")
+    result = run_suite(sc, runs=2, estimators=("modified_pf",), progress=True)
+    capsys.readouterr()
+    sweep = _sweep(result)
+    assert len(sweep["per_scale"]) == len(sc.sweep_scales)
+    assert "detection vs attack size" in capsys.readouterr().err
+    result.progress = False  # --no-progress: nothing
+    _sweep(result)
+    assert "detection vs attack size" not in capsys.readouterr().err

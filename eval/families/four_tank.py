@@ -15,6 +15,7 @@ from typing import Any
 
 import matplotlib.pyplot as plt
 import torch
+from tqdm.auto import tqdm
 
 from difffilter import fdi, metrics
 from difffilter.models.estimators import SuiteContext, get
@@ -98,7 +99,9 @@ def _sweep(result) -> dict[str, Any]:
     sc, tr, ctx = result.scenario, result.traj, result.context
     runs = {v: get(v).factory(ctx) for v in SWEPT}
     alarms, norms, per_scale = {v: [] for v in SWEPT}, [], []
-    for s in sc.sweep_scales:
+    scales = tqdm(sc.sweep_scales, desc=f"{sc.name}: detection vs attack size", leave=False,
+                  disable=not result.progress, unit="scale")  # fmt: skip
+    for s in scales:
         values = sc.attack((s,) * 4).values(sc.steps, dtype=tr.x.dtype).expand(tr.y_true.shape)
         attacked = tr._replace(
             y_recv=tr.y_true + tr.flags.unsqueeze(-1) * values, info={"attack_values": values}
