@@ -15,47 +15,83 @@ Shapes are batch first: measurements ``ys [..., T, dy]``, inputs ``us [..., T, d
 particles ``[..., N, dx]``. See :mod:`difffilter.ssm` for the time convention.
 """
 
-from . import bounds, metrics, noise, resampling, threats
-from ._checks import NonFinite
-from .bounds import PCRBResult, posterior_crb
-from .estimator import Detection, Estimator, EstimatorOutput, Generators
-from .extended import (
-    ExtendedKalmanFilter,
-    SigmaPoints,
-    UnscentedKalmanFilter,
-    extended_kalman_filter,
-    extended_kalman_step,
-    unscented_kalman_filter,
-    unscented_kalman_step,
-)
-from .gain_schedule import GainSchedule
-from .kalman import (
-    GaussianFilter,
-    KalmanFilter,
-    gaussian_init,
-    kalman_filter,
-    kalman_predict,
-    kalman_step,
-)
-from .loop import open_loop
-from .particle import (
-    BootstrapProposal,
-    KalmanProposal,
-    ModelLikelihood,
-    ParticleFilter,
-    ParticleState,
-    particle_filter,
-    particle_init,
-    particle_step,
-)
-from .results import (
-    FilterResult,
-    GaussianState,
-    GaussianStepOutput,
-    ParticleFilterResult,
-    StepOutput,
-)
-from .ssm import LinearGaussianModel, NonlinearGaussianModel, StateSpaceModel
+from importlib import import_module as _import_module
+
+# The package loads its modules on first use (PEP 562): ``import difffilter`` and the
+# command lines' ``--help`` do not pay for torch until something needs it.
+_WHERE = {
+    "NonFinite": "_checks",
+    **dict.fromkeys(("PCRBResult", "posterior_crb"), "bounds"),
+    **dict.fromkeys(("Detection", "Estimator", "EstimatorOutput", "Generators"), "estimator"),
+    **dict.fromkeys(
+        (
+            "ExtendedKalmanFilter",
+            "SigmaPoints",
+            "UnscentedKalmanFilter",
+            "extended_kalman_filter",
+            "extended_kalman_step",
+            "unscented_kalman_filter",
+            "unscented_kalman_step",
+        ),
+        "extended",
+    ),  # fmt: skip
+    "GainSchedule": "gain_schedule",
+    **dict.fromkeys(
+        (
+            "GaussianFilter",
+            "KalmanFilter",
+            "gaussian_init",
+            "kalman_filter",
+            "kalman_predict",
+            "kalman_step",
+        ),
+        "kalman",
+    ),  # fmt: skip
+    "open_loop": "loop",
+    **dict.fromkeys(
+        (
+            "BootstrapProposal",
+            "KalmanProposal",
+            "ModelLikelihood",
+            "ParticleFilter",
+            "ParticleState",
+            "particle_filter",
+            "particle_init",
+            "particle_step",
+        ),
+        "particle",
+    ),  # fmt: skip
+    **dict.fromkeys(
+        (
+            "FilterResult",
+            "GaussianState",
+            "GaussianStepOutput",
+            "ParticleFilterResult",
+            "StepOutput",
+        ),
+        "results",
+    ),  # fmt: skip
+    **dict.fromkeys(("LinearGaussianModel", "NonlinearGaussianModel", "StateSpaceModel"), "ssm"),
+}
+
+
+def __getattr__(name: str):
+    if name in _WHERE:
+        value = getattr(_import_module(f".{_WHERE[name]}", __name__), name)
+        globals()[name] = value  # looked up once
+        return value
+    if not name.startswith("__"):  # any submodule: difffilter.fdi, difffilter.loop, …
+        try:
+            return _import_module(f".{name}", __name__)
+        except ModuleNotFoundError as error:
+            if error.name != f"{__name__}.{name}":
+                raise
+    raise AttributeError(f"module 'difffilter' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))
+
 
 __version__ = "0.1.0"
 

@@ -24,13 +24,8 @@ from pathlib import Path
 
 import yaml
 
-from difffilter.models import registry
-from difffilter.runtime import tune_cpu_allocator
-
-from .calibration import calibrate
-from .leaderboard import write_leaderboard
-from .report import family_report, write_report
-from .suite import process_group, run_suite
+# torch, the registry and the suite are imported where they are used, so that --help
+# answers at once
 
 __all__ = ["main", "build_parser", "resolve_scenarios", "evaluate", "check_arguments",
            "check_output_folder"]  # fmt: skip
@@ -153,6 +148,8 @@ def resolve_scenarios(name: str) -> list[str]:
     ``all`` and a family name run the scenarios marked ``headline``; variants are run by
     their own names.
     """
+    from difffilter.models import registry
+
     if name in ("all", "robustness"):
         return registry.names(headline_only=True)
     if name in registry.families():
@@ -185,6 +182,13 @@ def evaluate(
     seed (:mod:`~difffilter.eval.calibration`). Ends with the leaderboard of every scenario × estimator
     (:mod:`~difffilter.eval.leaderboard`: ``<out>/leaderboard.{md,json,png}``, ``tb_leaderboard``).
     """
+    from difffilter.models import registry
+
+    from .calibration import calibrate
+    from .leaderboard import write_leaderboard
+    from .report import family_report, write_report
+    from .suite import process_group, run_suite
+
     check_arguments(runs=runs, ckpt=ckpt, calibration_runs=calibration_runs)
     families: dict[str, list[str]] = {}
     for name in scenarios:
@@ -280,6 +284,7 @@ def check_checkpoint_fits(ckpt, names: Sequence[str]) -> None:
     """``ValueError`` (one line, naming ``--ckpt``) if a checkpoint's card says it was
     trained on a scenario family none of ``names`` belongs to: no estimator could use it,
     and a report without it would look like one that used it."""
+    from difffilter.models import registry
     from difffilter.models.neural_estimator import load_estimator_checkpoint
 
     families = sorted({registry.get(n).family for n in names})
@@ -331,7 +336,12 @@ def check_output_folder(out: Path) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(argv)  # --help and usage errors before the heavy imports
+    from difffilter.models import registry
+    from difffilter.runtime import tune_cpu_allocator
+
+    from .suite import process_group
+
     if args.list:
         for s in registry.all_scenarios():
             print(f"{s.name:28s} [{s.family}] {s.description}")
@@ -383,6 +393,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _robustness(names: list[str], threats, args) -> int:
     """``--threats`` / ``robustness``: the robustness study of each scenario (one per
     attack-free setting), its files under ``<out>/<scenario>/``, and the summary."""
+    from difffilter.models import registry
+
     from .robustness import (
         load_threat_set,
         robustness_scenarios,

@@ -7,6 +7,11 @@ import torch
 
 import difffilter as df
 
+# Lightning attaches a stderr log handler when it is first imported; the command lines now
+# import it only when a command needs it, so import it here, at collection, or the handler
+# would hold the stream one test captured and fail on the next ("I/O operation on closed file")
+import difffilter.train.lightning_cli  # noqa: E402, F401
+
 
 def constant_velocity(
     dtype=torch.float64, q: float = 0.1, r: float = 0.5, with_input: bool = False

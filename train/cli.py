@@ -21,87 +21,10 @@ inside its run folder; ``export`` (:mod:`difffilter.train.export`) ships a resul
 
 from __future__ import annotations
 
-import os
-import re
 import sys
-from pathlib import Path
+import textwrap
 
-import lightning.pytorch as pl
-import torch
-from lightning.pytorch.cli import LightningCLI
-
-from difffilter.runtime import tune_cpu_allocator
-
-__all__ = ["main", "DifffilterCLI"]
-
-
-class DifffilterCLI(LightningCLI):
-    """LightningCLI whose ``validate``, ``test`` and ``predict`` also take an exported
-    estimator file (``difffilter-train export``, ``checkpoints/*.ckpt``) as ``--ckpt_path``:
-    its weights are loaded into the configured module, whose estimator settings must match."""
-
-    def before_instantiate_classes(self):
-        """Resuming ``fit`` from ``<save_dir>/<name>/version_<n>/checkpoints/*.ckpt`` logs into
-        that same ``version_<n>`` (TensorBoard curves continue) instead of a new folder."""
-        if self.subcommand != "fit":
-            return
-        cfg = self.config["fit"]
-        ckpt, logger = cfg.get("ckpt_path"), cfg["trainer"].get("logger")
-        args = (
-            None if logger is None or isinstance(logger, (bool, list)) else logger.get("init_args")
-        )
-        if not ckpt or args is None:
-            return
-        path = Path(ckpt).resolve()
-        run = path.parent.parent  # .../version_<n>/checkpoints/x.ckpt → .../version_<n>
-        if path.parent.name == "checkpoints" and run.name.startswith("version_"):
-            if args.get("version") is None and run.parent.name == args.get("name"):
-                args["version"] = int(run.name.removeprefix("version_"))
-
-    def before_fit(self):
-        """A ``fast_dev_run`` writes no checkpoint (its ``last.ckpt`` landed in
-        ``./checkpoints/``, beside the shipped files)."""
-        if self.trainer.fast_dev_run:
-            for cb in self.trainer.checkpoint_callbacks:
-                cb.save_last, cb.save_top_k = False, 0
-
-    def before_validate(self):
-        self._load_exported("validate")
-
-    def before_test(self):
-        self._load_exported("test")
-
-    def before_predict(self):
-        """Load an exported file, and write what is predicted (a
-        :class:`~difffilter.train.predictions.PredictionFiles` unless one is configured)."""
-        from .predictions import PredictionFiles
-
-        self._load_exported("predict")
-        if not any(isinstance(cb, PredictionFiles) for cb in self.trainer.callbacks):
-            self.trainer.callbacks.append(PredictionFiles())
-
-    def _load_exported(self, subcommand: str) -> None:
-        from difffilter.models.neural_estimator import (
-            is_exported_checkpoint,
-            load_estimator_checkpoint,
-        )
-
-        path = self.config_init[subcommand].get("ckpt_path")
-        if not path or not is_exported_checkpoint(path):
-            return  # a Lightning checkpoint: Lightning restores it
-        mine = self.model.estimator
-        dtype = next(mine.parameters()).dtype
-        estimator, card = load_estimator_checkpoint(path, dtype=dtype)
-        if estimator.config() != mine.config():
-            raise ValueError(
-                f"--ckpt_path: the estimator in {path} has settings {estimator.config()}, the "
-                f"configured model {mine.config()}; pass the matching --config/--model.* options"
-            )
-        self.model.check_exported(card, path)  # the filter it was trained for
-        mine.load_state_dict(estimator.state_dict())
-        self.config_init[subcommand]["ckpt_path"] = None  # weights are in; nothing to restore
-        print(f"loaded the exported estimator {path}")
-
+__all__ = ["main"]  # DifffilterCLI: difffilter.train.lightning_cli (also read here)
 
 HELP = (
     "Train, validate, test and predict with difffilter's neural FDI estimator (LightningCLI; "
@@ -113,75 +36,48 @@ HELP = (
 )
 
 
-def _reason(message: str) -> str:
-    """jsonargparse's error on one line, a nested class's own reason pulled out of the
-    "Does not validate against any of the Union subtypes" preamble."""
-    flat = " ".join(str(message).split())
-    if "Union subtypes" not in flat:
-        return flat
-    end = r"(?: - Expected a <class 'NoneType'>| Given value|$)"
-    nested = re.search(rf"Problem with given class_path '([^']+)': (.*?){end}", flat)
-    listed = re.search(rf"Errors: - (.*?){end}", flat)
-    if not (nested or listed):
-        return flat
-    key = re.match(r'Parser key "([^"]+)"', flat)
-    where = [key.group(1)] if key else []
-    if nested:
-        where.append(f"({nested.group(1).rsplit('.', 1)[-1]})")
-    reason = nested.group(2) if nested else listed.group(1)
-    return f"{' '.join(where)}: {reason}" if where else reason
+USAGE = """usage: difffilter-train COMMAND [options]
+
+{help}
+
+commands:
+  fit        train (--config train/configs/<family>.yaml; --ckpt_path <run>/checkpoints/last.ckpt resumes)
+  validate   validate a Lightning checkpoint or an exported estimator (--ckpt_path)
+  test       test one on the scenario's test runs (those of difffilter-eval --seed <test_seed>)
+  predict    write its estimates, probabilities and alarms to <run>/predictions/
+  export     ship a trained estimator to a file of your choice, with its card
+  calibrate  set an exported estimator's alarm threshold for a false-alarm rate
+  sweep      train one config on several seeds; the spread and the median seed
+
+difffilter-train COMMAND --help lists the options of each command.
+"""
+
+_EXTRA = {"export": ".export", "calibrate": ".calibrate", "sweep": ".sweep"}
+
+
+def __getattr__(name: str):
+    if name == "DifffilterCLI":  # Lightning is imported only when a command needs it
+        from .lightning_cli import DifffilterCLI
+
+        return DifffilterCLI
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def main(args: list[str] | None = None) -> int:
-    """Entry point of the ``difffilter-train`` console script (``args`` for tests).
-
-    Training simulates closed loops step by step: a long chain of tiny tensor operations,
-    for which intra-op threads only add synchronisation (and stall badly when another
-    process holds a core). One thread is the default; ``DIFFFILTER_THREADS`` overrides it.
-    """
+    """Entry point of the ``difffilter-train`` console script (``args`` for tests): the
+    top-level ``--help`` at once, ``export``, ``calibrate`` and ``sweep`` by their own
+    modules, the Lightning commands by :func:`~difffilter.train.lightning_cli.run`."""
     argv = sys.argv[1:] if args is None else list(args)
-    if argv[:1] == ["export"]:
-        from .export import main as export_main
+    if not argv or argv[0] in ("-h", "--help"):
+        print(USAGE.format(help=textwrap.fill(" ".join(HELP.split()), 90)))
+        return 0 if argv else 2
+    if argv[0] in _EXTRA:
+        from importlib import import_module
 
-        return export_main(argv[1:])
-    if argv[:1] == ["calibrate"]:
-        from .calibrate import main as calibrate_main
+        return import_module(_EXTRA[argv[0]], __package__).main(argv[1:])
+    from .lightning_cli import run
 
-        return calibrate_main(argv[1:])
-    if argv[:1] == ["sweep"]:
-        from .sweep import main as sweep_main
-
-        return sweep_main(argv[1:])
-    torch.set_num_threads(int(os.environ.get("DIFFFILTER_THREADS", "1")))
-    tune_cpu_allocator()
-    from jsonargparse import ArgumentError
-    from lightning.fabric.utilities.exceptions import MisconfigurationException
-
-    # a bad command line raises (one line below) instead of printing the whole usage first
-    raising = {"exit_on_error": False}
-    commands = DifffilterCLI.subcommands()
-    parser_kwargs = {**raising, **{name: raising for name in commands}, "description": HELP}
-    try:
-        DifffilterCLI(
-            pl.LightningModule,
-            pl.LightningDataModule,
-            subclass_mode_model=True,
-            subclass_mode_data=True,
-            args=args,
-            save_config_kwargs={"overwrite": True},
-            auto_configure_optimizers=False,
-            parser_kwargs=parser_kwargs,
-        )
-    except ArgumentError as exc:
-        command = f" {argv[0]}" if argv and argv[0] in commands else ""
-        print(f"difffilter-train: error: {_reason(str(exc))} (difffilter-train{command} --help "
-              "lists the options)", file=sys.stderr)  # fmt: skip
-        return 2
-    except (ValueError, FileNotFoundError, MisconfigurationException) as exc:
-        # a user error (a setting out of range, a missing file): one line, no traceback
-        print(f"difffilter-train: error: {_reason(str(exc))}", file=sys.stderr)
-        return 2
-    return 0
+    return run(args, argv, HELP)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,0 +1,146 @@
+"""The Lightning side of ``difffilter-train``: :class:`DifffilterCLI` (LightningCLI) and
+:func:`run`, which runs ``fit``, ``validate``, ``test`` and ``predict`` with one-line
+errors. :mod:`difffilter.train.cli` dispatches here (and answers ``--help`` without
+importing Lightning)."""
+
+from __future__ import annotations
+
+import os
+import re
+import sys
+from pathlib import Path
+
+import lightning.pytorch as pl
+import torch
+from lightning.pytorch.cli import LightningCLI
+
+from difffilter.runtime import tune_cpu_allocator
+
+__all__ = ["DifffilterCLI", "run"]
+
+
+class DifffilterCLI(LightningCLI):
+    """LightningCLI whose ``validate``, ``test`` and ``predict`` also take an exported
+    estimator file (``difffilter-train export``, ``checkpoints/*.ckpt``) as ``--ckpt_path``:
+    its weights are loaded into the configured module, whose estimator settings must match."""
+
+    def before_instantiate_classes(self):
+        """Resuming ``fit`` from ``<save_dir>/<name>/version_<n>/checkpoints/*.ckpt`` logs into
+        that same ``version_<n>`` (TensorBoard curves continue) instead of a new folder."""
+        if self.subcommand != "fit":
+            return
+        cfg = self.config["fit"]
+        ckpt, logger = cfg.get("ckpt_path"), cfg["trainer"].get("logger")
+        args = (
+            None if logger is None or isinstance(logger, (bool, list)) else logger.get("init_args")
+        )
+        if not ckpt or args is None:
+            return
+        path = Path(ckpt).resolve()
+        run = path.parent.parent  # .../version_<n>/checkpoints/x.ckpt → .../version_<n>
+        if path.parent.name == "checkpoints" and run.name.startswith("version_"):
+            if args.get("version") is None and run.parent.name == args.get("name"):
+                args["version"] = int(run.name.removeprefix("version_"))
+
+    def before_fit(self):
+        """A ``fast_dev_run`` writes no checkpoint (its ``last.ckpt`` landed in
+        ``./checkpoints/``, beside the shipped files)."""
+        if self.trainer.fast_dev_run:
+            for cb in self.trainer.checkpoint_callbacks:
+                cb.save_last, cb.save_top_k = False, 0
+
+    def before_validate(self):
+        self._load_exported("validate")
+
+    def before_test(self):
+        self._load_exported("test")
+
+    def before_predict(self):
+        """Load an exported file, and write what is predicted (a
+        :class:`~difffilter.train.predictions.PredictionFiles` unless one is configured)."""
+        from .predictions import PredictionFiles
+
+        self._load_exported("predict")
+        if not any(isinstance(cb, PredictionFiles) for cb in self.trainer.callbacks):
+            self.trainer.callbacks.append(PredictionFiles())
+
+    def _load_exported(self, subcommand: str) -> None:
+        from difffilter.models.neural_estimator import (
+            is_exported_checkpoint,
+            load_estimator_checkpoint,
+        )
+
+        path = self.config_init[subcommand].get("ckpt_path")
+        if not path or not is_exported_checkpoint(path):
+            return  # a Lightning checkpoint: Lightning restores it
+        mine = self.model.estimator
+        dtype = next(mine.parameters()).dtype
+        estimator, card = load_estimator_checkpoint(path, dtype=dtype)
+        if estimator.config() != mine.config():
+            raise ValueError(
+                f"--ckpt_path: the estimator in {path} has settings {estimator.config()}, the "
+                f"configured model {mine.config()}; pass the matching --config/--model.* options"
+            )
+        self.model.check_exported(card, path)  # the filter it was trained for
+        mine.load_state_dict(estimator.state_dict())
+        self.config_init[subcommand]["ckpt_path"] = None  # weights are in; nothing to restore
+        print(f"loaded the exported estimator {path}")
+
+
+def _reason(message: str) -> str:
+    """jsonargparse's error on one line, a nested class's own reason pulled out of the
+    "Does not validate against any of the Union subtypes" preamble."""
+    flat = " ".join(str(message).split())
+    if "Union subtypes" not in flat:
+        return flat
+    end = r"(?: - Expected a <class 'NoneType'>| Given value|$)"
+    nested = re.search(rf"Problem with given class_path '([^']+)': (.*?){end}", flat)
+    listed = re.search(rf"Errors: - (.*?){end}", flat)
+    if not (nested or listed):
+        return flat
+    key = re.match(r'Parser key "([^"]+)"', flat)
+    where = [key.group(1)] if key else []
+    if nested:
+        where.append(f"({nested.group(1).rsplit('.', 1)[-1]})")
+    reason = nested.group(2) if nested else listed.group(1)
+    return f"{' '.join(where)}: {reason}" if where else reason
+
+
+def run(args: list[str] | None, argv: list[str], description: str) -> int:
+    """LightningCLI on ``args`` (``None``: ``sys.argv``; ``argv`` the same as a list):
+    exit code 0, or 2 after a one-line error.
+
+    Training simulates closed loops step by step: a long chain of tiny tensor operations,
+    for which intra-op threads only add synchronisation (and stall badly when another
+    process holds a core). One thread is the default; ``DIFFFILTER_THREADS`` overrides it.
+    """
+    torch.set_num_threads(int(os.environ.get("DIFFFILTER_THREADS", "1")))
+    tune_cpu_allocator()
+    from jsonargparse import ArgumentError
+    from lightning.fabric.utilities.exceptions import MisconfigurationException
+
+    # a bad command line raises (one line below) instead of printing the whole usage first
+    raising = {"exit_on_error": False}
+    commands = DifffilterCLI.subcommands()
+    parser_kwargs = {**raising, **{name: raising for name in commands}, "description": description}
+    try:
+        DifffilterCLI(
+            pl.LightningModule,
+            pl.LightningDataModule,
+            subclass_mode_model=True,
+            subclass_mode_data=True,
+            args=args,
+            save_config_kwargs={"overwrite": True},
+            auto_configure_optimizers=False,
+            parser_kwargs=parser_kwargs,
+        )
+    except ArgumentError as exc:
+        command = f" {argv[0]}" if argv and argv[0] in commands else ""
+        print(f"difffilter-train: error: {_reason(str(exc))} (difffilter-train{command} --help "
+              "lists the options)", file=sys.stderr)  # fmt: skip
+        return 2
+    except (ValueError, FileNotFoundError, MisconfigurationException) as exc:
+        # a user error (a setting out of range, a missing file): one line, no traceback
+        print(f"difffilter-train: error: {_reason(str(exc))}", file=sys.stderr)
+        return 2
+    return 0
