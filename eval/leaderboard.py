@@ -40,6 +40,9 @@ def leaderboard_rows(results: dict[str, dict[str, Any]]) -> list[dict[str, Any]]
         for name, entry in (doc.get("estimators") or {}).items():
             used = name in ckpt.get("used_by", ())
             row = {"scenario": scenario, "estimator": name}
+            named = doc.get("scenario_units") or {}
+            row["units"] = {"state": named.get("state", "state units"),
+                            "attack": named.get("attack", "attack units")}  # fmt: skip
             row["checkpoint"] = ckpt.get("sha256", "")[:12] if used else None
             row.update({m: entry.get(m) for m in COLUMNS})
             worst = (doc.get("worst_case") or {}).get(name)
@@ -56,11 +59,23 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
     (out / "leaderboard.json").write_text(json.dumps(rows, indent=2) + "\n")
     cols = list(COLUMNS) + [c for c in _WORST_UNITS if any(c in r for r in rows)]
     units = {**{m: METRICS[m].unit for m in COLUMNS}, **_WORST_UNITS}
+    # one unit per column where every scenario shares it; else the row's units in a column
+    shared = {}
+    for kind in ("state", "attack"):
+        values = {r["units"][kind] for r in rows}
+        if len(values) == 1:
+            shared[f"{kind} units"] = values.pop()
+    units = {m: shared.get(u, u) for m, u in units.items()}
+    mixed = len(shared) < 2
     header = ["scenario", "estimator", *(f"{m} [{units[m]}]" for m in cols)]
-    cells = [
-        [r["scenario"], f"`{r['estimator']}`", *(format_number(r.get(m), 3) for m in cols)]
-        for r in rows
-    ]
+    if mixed:
+        header.insert(2, "units (state; attack)")
+    cells = []
+    for r in rows:
+        cell = [r["scenario"], f"`{r['estimator']}`", *(format_number(r.get(m), 3) for m in cols)]
+        if mixed:
+            cell.insert(2, f"{r['units']['state']}; {r['units']['attack']}")
+        cells.append(cell)
     path = out / "leaderboard.md"
     path.write_text(
         "# Leaderboard\n\nEvery scenario × estimator of this evaluation (definitions and "

@@ -98,7 +98,8 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
     for name, out in outs.items():
         truth = result.traj_of(name).x
         ax.plot(t, rmse_over_time(out.means, truth).numpy(), label=name, lw=1, color=colour[name])
-    ax.set(xlabel="time [s]", ylabel="state RMSE over runs", yscale="log")
+    state_unit = result.scenario.state_unit
+    ax.set(xlabel="time [s]", ylabel=f"state RMSE over runs [{state_unit}]", yscale="log")
     ax.set_title("State RMSE over time")
     _legend(ax)
     figs.append(("rmse_over_time.png", fig))
@@ -116,7 +117,7 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
         for name, out in estimating.items():
             if out.attack.shape[-1] == traj.attack.shape[-1]:
                 ax.plot(t, out.attack[0, :, c].numpy(), lw=0.9, label=name, color=colour[name])
-        ax.set(xlabel="time [s]", ylabel=f"attack, channel {c + 1}",
+        ax.set(xlabel="time [s]", ylabel=f"attack, channel {c + 1} [{result.scenario.attack_unit}]",
                title=f"Run 0: attack estimates (channel {c + 1}, the most attacked)")  # fmt: skip
         _legend(ax)
         figs.append(("attack_estimates_run0.png", fig))

@@ -143,6 +143,16 @@ def study_metrics(scenario: str, *, runs: int, steps: int, seed: int,
     }  # fmt: skip
 
 
+def concrete_unit(doc: dict, metric: str) -> str:
+    """``metric``'s unit in a metrics.json ``doc``: ``"state units"`` and ``"attack units"``
+    read as the scenario's (``doc["scenario_units"]``, e.g. ``cm``) where it says them."""
+    unit = doc["units"].get(metric) or METRICS[metric].unit
+    named = doc.get("scenario_units") or {}
+    return {"state units": named.get("state"), "attack units": named.get("attack")}.get(
+        unit
+    ) or unit
+
+
 def markdown_table(header: list[str], rows: list[list[Any]]) -> str:
     """A markdown table (cells formatted with ``str``; numbers should be formatted first)."""
     lines = ["| " + " | ".join(map(str, header)) + " |", "|---" * len(header) + "|"]
@@ -175,6 +185,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     doc = _clean({
         "scenario": sc.name, "runs": result.runs, "steps": sc.steps, "seed": result.seed,
         "units": {name: m.unit for name, m in METRICS.items()},
+        "scenario_units": {"state": sc.state_unit, "attack": sc.attack_unit},
         "paper": sc.paper_numbers(),
         "estimators": {n: {**dict.fromkeys(METRICS), **m} for n, m in result.metrics.items()},
         "description": sc.description, "dt_s": sc.dt, "reference": result.reference,
@@ -247,7 +258,7 @@ def _table_section(doc: dict) -> Section:
     est = doc["estimators"]
     cols = [c for c in _TABLE_COLUMNS if any(e.get(c) is not None for e in est.values())]
     rows = [[f"`{name}`", *(format_number(e.get(c), 3) for c in cols)] for name, e in est.items()]
-    table = markdown_table(["estimator", *(f"{c} [{doc['units'][c]}]" for c in cols)], rows)
+    table = markdown_table(["estimator", *(f"{c} [{concrete_unit(doc, c)}]" for c in cols)], rows)
     desc = "\n".join(f"- `{n}`: {d}" for n, d in doc["estimator_descriptions"].items())
     defs = "\n".join(f"- `{c}` [{METRICS[c].unit}]: {METRICS[c].definition}" for c in cols)
     return Section("Estimators", f"{table}\n{desc}\n\nDefinitions:\n\n{defs}\n")

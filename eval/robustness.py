@@ -233,6 +233,7 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
     doc = _clean({
         "scenario": sc.name, "runs": result.runs, "steps": sc.steps, "seed": result.seed,
         "units": {name: m.unit for name, m in METRICS.items()}, "paper": {},
+        "scenario_units": {"state": sc.state_unit, "attack": sc.attack_unit},
         "estimators": {n: {**dict.fromkeys(METRICS), **m} for n, m in free.metrics.items()},
         "far": result.calibration.summary(), "threat_set": result.threat_set.source,
         "threats": result.threat_set.specs, "cells": result.cells,

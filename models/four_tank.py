@@ -26,6 +26,7 @@ variants) live here too; the attack itself is
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
@@ -276,6 +277,8 @@ class FourTankScenario(Scenario):
     """
 
     family: str = "four_tank"
+    state_unit: ClassVar[str] = "cm"  # tank levels
+    attack_unit: ClassVar[str] = "cm"  # on the level sensors
     description: str = ""
     R: tuple[float, ...] = R_NOMINAL
     Q: float = 1e-4
@@ -437,6 +440,7 @@ register(
         family="filters",
         description="the library's filters on the attack-free four-tank plant: state RMSE (cm) and time per step",
         model_fn=lambda dtype: FourTankModel(dtype=dtype),
+        state_unit="cm",
         estimators=("kf_linearised", "ekf", "ukf", "bootstrap_pf", "kalman_proposal_pf"),
         num_particles=1000,
         notes=(

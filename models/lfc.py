@@ -34,6 +34,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
@@ -613,6 +614,8 @@ class LFCScenario(Scenario):
     estimators: tuple[str, ...] = LFC_ESTIMATORS
 
     closed_loop = True
+    state_unit: ClassVar[str] = "p.u. (Δf in Hz)"  # the paper's per-unit system
+    attack_unit: ClassVar[str] = "p.u. (Δf in Hz)"  # on the measured states
 
     def __post_init__(self):
         object.__setattr__(self, "attack", LFCAttack(self.attack))

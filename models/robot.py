@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
@@ -219,6 +220,8 @@ class RobotScenario(Scenario):
     """
 
     family: str = "robot"
+    state_unit: ClassVar[str] = "cm, rad"  # (s_x, s_y, θ) pooled
+    attack_unit: ClassVar[str] = "cm/s, deg/s"  # (a_p, a_r) on the actuators
     description: str = ""
     paper: str = "Tan, Weng, Chen & Yu, nonlinear fusion estimation of FDI attacks, App. B"
     runs: int = 100

@@ -160,6 +160,17 @@ class Scenario:
     #: Whether the scenario's estimators run in its own closed loop (their estimate feeds
     #: back into the plant through a controller): :meth:`exogenous` and :meth:`loop`.
     closed_loop: ClassVar[bool] = False
+    #: The units of the state and of the attack, for reports and plots (a family says
+    #: them; pooled metrics over components of several units name each).
+    state_unit: ClassVar[str] = "state units"
+    attack_unit: ClassVar[str] = "attack units"
+
+    def unit_of(self, metric_unit: str) -> str:
+        """``metric_unit`` of :data:`~difffilter.eval.scoring.METRICS` in this scenario's
+        units (``"state units"`` → :attr:`state_unit`, …; others as they are)."""
+        return {"state units": self.state_unit, "attack units": self.attack_unit}.get(
+            metric_unit, metric_unit
+        )
 
     # -- what a family defines --------------------------------------------------------
     def system(self, dtype: torch.dtype = torch.float64, device=None):
@@ -277,6 +288,7 @@ class CustomScenario(Scenario):
         attack: an attack of :mod:`difffilter.models.attacks` or ``None``.
         protocol: a schedule of :mod:`difffilter.models.schedules` (default all sensors).
         options: settings the estimators read (``cusum_bias``, ``poa_eta``/``poa_zeta``, …).
+        state_unit, attack_unit: the units reports and plots name (e.g. ``"cm"``).
 
     Register it (:func:`difffilter.models.registry.register`) to run it from the CLI, or
     pass it to :func:`difffilter.eval.suite.run_suite` directly.
@@ -286,6 +298,8 @@ class CustomScenario(Scenario):
     attack: Any = None
     protocol: Any = None
     options: Mapping[str, Any] = field(default_factory=dict, compare=False)
+    state_unit: str = "state units"
+    attack_unit: str = "attack units"
 
     def __post_init__(self):
         if not callable(self.model_fn):

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
@@ -406,6 +407,8 @@ class TrackingScenario(Scenario):
     """
 
     family: str = "tracking"
+    state_unit: ClassVar[str] = "length, length/s (paper's, unstated)"
+    attack_unit: ClassVar[str] = "length (paper's, unstated)"
     description: str = ""
     paper: str = "Song, Wang, Wang & Shan, RRP particle filter with deception attacks, Sec. 4"
     runs: int = 50

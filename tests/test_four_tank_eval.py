@@ -33,6 +33,8 @@ def test_cli_end_to_end_on_three_runs(tmp_path):
         0,
     )
     assert doc["paper"]["table4"]["modified_pf"]["cpu_time_per_step_s"] == 6.9782e-4
+    assert doc["scenario_units"] == {"state": "cm", "attack": "cm"}  # tank levels
+    assert "state_rmse [cm]" in (out / "report.md").read_text()
     est = doc["estimators"]
     assert tuple(est) == registry.get("four_tank_bias").estimators
     for name, entry in est.items():

@@ -63,3 +63,18 @@ def test_colours_measure_the_distance_to_the_best_of_each_scenario():
     assert np.isnan(good[:, col["attack_rmse"]]).all()  # n/a stays blank
     other = cell_goodness(np.vstack([grid, grid * 10]), ["a"] * 4 + ["b"] * 4)
     assert other[4:, col["state_rmse"]] == pytest.approx(rmse, abs=1e-12)  # scale-free per scenario
+
+
+def test_units_are_the_scenarios_shared_in_the_header_or_per_row_when_mixed(tmp_path):
+    def with_units(state, attack, **values):
+        return doc(["kf"], **values) | {"scenario_units": {"state": state, "attack": attack}}
+
+    same = {"tank_a": with_units("cm", "cm", state_rmse=0.5), "tank_b": with_units("cm", "cm")}
+    (tmp_path / "same").mkdir(), (tmp_path / "mixed").mkdir()
+    md = write_leaderboard(tmp_path / "same", same).read_text()
+    assert "state_rmse [cm]" in md and "attack_rmse [cm]" in md and "units (state; attack)" not in md
+    mixed = {"tank": with_units("cm", "cm"), "grid": with_units("p.u.", "p.u."), "old": doc(["kf"])}
+    md = write_leaderboard(tmp_path / "mixed", mixed).read_text()
+    assert "state_rmse [state units]" in md and "units (state; attack)" in md
+    assert "| tank | `kf` | cm; cm |" in md and "| grid | `kf` | p.u.; p.u. |" in md
+    assert "| old | `kf` | state units; attack units |" in md  # a study that names none
