@@ -72,7 +72,9 @@ def test_units_are_the_scenarios_shared_in_the_header_or_per_row_when_mixed(tmp_
     same = {"tank_a": with_units("cm", "cm", state_rmse=0.5), "tank_b": with_units("cm", "cm")}
     (tmp_path / "same").mkdir(), (tmp_path / "mixed").mkdir()
     md = write_leaderboard(tmp_path / "same", same).read_text()
-    assert "state_rmse [cm]" in md and "attack_rmse [cm]" in md and "units (state; attack)" not in md
+    assert (
+        "state_rmse [cm]" in md and "attack_rmse [cm]" in md and "units (state; attack)" not in md
+    )
     mixed = {"tank": with_units("cm", "cm"), "grid": with_units("p.u.", "p.u."), "old": doc(["kf"])}
     md = write_leaderboard(tmp_path / "mixed", mixed).read_text()
     assert "state_rmse [state units]" in md and "units (state; attack)" in md
