@@ -111,7 +111,7 @@ def compose(
     return NeuralCompensation(
         net, inner, channel=channel, residual=Residual(card.residual),
         standardize=card.standardize, features=card.features, poa_eta=card.poa_eta,
-        threshold=card.threshold, deception=deception,
+        threshold=card.threshold, deception=deception, gating=card.gating,
     )  # fmt: skip
 
 

@@ -285,6 +285,8 @@ class EstimatorCard:
         dt: the sampling time it was trained at; num_particles: the training filter's.
         poa_eta: the ``"poa"`` feature's ``η``.
         estimator: the registry name it is evaluated as (``pf_nn_grad``, ``kf_nn_grad``, …).
+        gating: whether it may also drop a measurement with its probability of attack
+            (:class:`~difffilter.fdi.neural.NeuralCompensation`'s ``gating``).
     """
 
     scenario_family: str | None = None
@@ -301,6 +303,7 @@ class EstimatorCard:
     num_particles: int | None = None
     poa_eta: float | None = None
     estimator: str | None = None
+    gating: bool = False
     extra: dict = field(default_factory=dict, compare=False)
 
     def to_dict(self) -> dict:

@@ -269,6 +269,8 @@ class FilterEstimatorTask(pl.LightningModule):
             ``areas`` areas of the measurement's channels; ``model_seed`` seeds it).
         residual: the residual history it reads (``"innovation"``, ``"predicted"``,
             ``"lagged"``); standardize: divide innovations by ``√diag S``.
+        gating: the network may also drop a measurement with its probability of attack
+            (gating and compensation both; sensor attacks, a detection head).
         features: the filter's statistics the network reads (``"mask"``,
             ``"log_likelihood"``, ``"poa"``; the PoA threshold is the scenario's).
         trainer: ``"grad"`` (AdamW through the filter) or ``"ekf"`` (the EKF over the
@@ -313,6 +315,7 @@ class FilterEstimatorTask(pl.LightningModule):
         detection_head: bool | None = None,
         residual: str = "innovation",
         standardize: bool = True,
+        gating: bool = False,
         features: list[str] | None = None,
         trainer: str = "grad",
         lr: float = 3e-3,
@@ -430,6 +433,7 @@ class FilterEstimatorTask(pl.LightningModule):
             self.estimator, inner, channel=self.channel, residual=Residual(hp.residual),
             standardize=hp.standardize, features=self.features, poa_eta=self.poa_eta,
             threshold=threshold, deception=self.deception, record_inputs=record,
+            gating=hp.gating,
         )  # fmt: skip
 
     def run(self, scenario, batch: dict, estimator, seed: int, *, steps=None, state=None):
@@ -680,6 +684,7 @@ class FilterEstimatorTask(pl.LightningModule):
             threshold=float(self.alarm_threshold),
             target_false_alarm_rate=self.false_alarm_rate, dt=float(self.scenario.dt),
             num_particles=int(self.num_particles), poa_eta=self.poa_eta, estimator=registered,
+            gating=bool(hp.gating),
         )  # fmt: skip
 
     def check_exported(self, card: EstimatorCard, path) -> None:

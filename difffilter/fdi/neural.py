@@ -45,6 +45,18 @@ p_k ν_k``.
     "poa"             β_k = Σ_{i: ‖z^i‖ > η} w^i_{k−1},  z^i = ỹ_k − h(x^i_k): the probability
                       of attack of the modified-PF paper (eq. 14); particle filter only
 
+Gating (``gating=True``, sensor attacks, a network with a detection head): beside
+subtracting its estimate, the network may drop the measurement. With ``g_k = p_k`` (below)
+the update keeps the compensated measurement with probability ``1 − g_k``::
+
+    Gaussian filters:  m_k = (1 − g) m_u + g m⁻,
+                       P_k = (1 − g) P_u + g P⁻ + g (1 − g)(m_u − m⁻)(m_u − m⁻)ᵀ
+                       (the moments of that two-component mixture; u: updated, ⁻: predicted)
+    particle filter:   log w_k += (1 − g) log p(ỹ_k − â_k | x_k)      (a tempered update)
+
+so ``g = 0`` is plain compensation and ``g = 1`` skips the update, as a χ²-gated filter
+does on an alarm; ``g`` is differentiable, so training decides when to drop.
+
 Detection: ``p_k = sigmoid(logit_k)`` (the largest over areas), alarm where ``p_k >
 threshold``; a network without a detection head (trained by the EKF over its weights,
 which fits the attack estimate alone) scores ``s_k = Σ_c (â_{k,c} / √S_{k,cc})²``. Every
@@ -326,8 +338,8 @@ class _NeuralLikelihood:
     that estimates from the step's predictive view and weighs with the compensated
     measurement (or, against a replacement, with the learned mixture)."""
 
-    def __init__(self, core: _Core, deception):
-        self.core, self.deception = core, deception
+    def __init__(self, core: _Core, deception, gating: bool = False):
+        self.core, self.deception, self.gating = core, deception, gating
 
     def init(self, model, batch_shape, dtype, device):
         return self.core.init(batch_shape, dtype, device, None)
@@ -357,11 +369,10 @@ class _NeuralLikelihood:
             replaced = self.deception(model, y, particles, k, mask)
             return state, torch.logaddexp(clean + log_q, replaced + log_p), record
         always = torch.ones(attack.shape[:-1], dtype=torch.bool, device=attack.device)
-        return (
-            state,
-            AttackCompensatedLikelihood(always, attack)(model, y, particles, k, mask),
-            record,
-        )
+        log_lik = AttackCompensatedLikelihood(always, attack)(model, y, particles, k, mask)
+        if self.gating:  # a tempered update: kept with probability 1 − g
+            log_lik = log_lik * (1.0 - gate_of(logit)).unsqueeze(-1)
+        return state, log_lik, record
 
 
 class NeuralCompensation(Estimator):
@@ -385,6 +396,8 @@ class NeuralCompensation(Estimator):
             replacement channel.
         record_inputs: report every step's ``δ_k [..., in]`` (``extras["network_inputs"]``;
             one area): the samples the EKF over the weights is trained on.
+        gating: drop the measurement with the network's probability of attack (module
+            docstring; sensor attacks, a network with a detection head).
 
     Step output: the filter's moments after compensation, ``attack`` ``â_k``, ``score``,
     ``alarm``, ``threshold`` and ``extras`` (``"attack_logit"`` with a head, the recorded
@@ -406,9 +419,17 @@ class NeuralCompensation(Estimator):
         threshold: float = 0.5,
         deception=None,
         record_inputs: bool = False,
+        gating: bool = False,
     ):
         channel, residual, features = Channel(channel), Residual(residual), tuple(features)
         _check_options(network, inner, channel, features, poa_eta, learning, deception)
+        if gating and (channel is not Channel.SENSOR or not network.detection_head):
+            raise ValueError(
+                "gating drops a measurement with the network's probability of attack: it needs "
+                f"a sensor attack and a network with a detection head (channel {channel.value}, "
+                f"detection_head {bool(network.detection_head)})"
+            )
+        self.gating = bool(gating)
         self.network, self.inner, self.channel = network, inner, channel
         self.threshold = float(threshold)
         self.core = _Core(network, channel, residual, bool(standardize), features, poa_eta,
@@ -417,7 +438,7 @@ class NeuralCompensation(Estimator):
         if self.particles:
             self.pf = ParticleFilter(
                 inner.num_particles, resampler=inner.resampler, proposal=inner.proposal,
-                likelihood=_NeuralLikelihood(self.core, deception),
+                likelihood=_NeuralLikelihood(self.core, deception, self.gating),
                 ess_threshold=inner.ess_threshold, innovations=True,
             )  # fmt: skip
             self.carry_type = ParticleState
@@ -467,6 +488,8 @@ class NeuralCompensation(Estimator):
             new, out = inner.update(carry.inner, inner.predict(carry.inner, u + attack), y, mask)
         else:
             new, out = inner.update(carry.inner, pred, y - attack, mask)
+            if self.gating:
+                new, out = _gated(new, out, pred, gate_of(logit))
         extras = {"network_inputs": delta[..., 0, :].detach()} if core.record_inputs else {}
         report = self._report(out, attack, logit, scale, nu, extras)
         return NeuralCarry(new, net, carry.model), report
@@ -477,6 +500,30 @@ class NeuralCompensation(Estimator):
             attack=attack, score=score, alarm=score > self.threshold, threshold=self.threshold,
             extras={**extras, **more},
         )  # fmt: skip
+
+
+def gate_of(logit: Tensor) -> Tensor:
+    """``g_k = max over areas of sigmoid(logit_k)`` ``[...]``: the probability of attack."""
+    return torch.sigmoid(logit).amax(-1)
+
+
+def _gated(new, out: StepOutput, pred, g: Tensor):
+    """The Gaussian update kept with probability ``1 − g``: the moments of the mixture of
+    the updated and the predicted posteriors (module docstring). The covariance becomes
+    one per run (no shared gain schedule)."""
+    keep = (1.0 - g).unsqueeze(-1)
+    jump = new.mean - pred.mean
+    mean = pred.mean + keep * jump
+    w = keep.unsqueeze(-1)
+    cov = (
+        w * new.cov
+        + (1.0 - w) * pred.cov
+        + (w * (1.0 - w)) * (jump.unsqueeze(-1) * jump.unsqueeze(-2))
+    )
+    state = new._replace(mean=mean, cov=cov)
+    if hasattr(state, "gains"):
+        state = state._replace(gains=None)
+    return state, out._replace(mean=mean, cov=cov)
 
 
 def _check_options(network, inner, channel, features, poa_eta, learning, deception) -> None:
