@@ -39,7 +39,12 @@ def build_parser() -> argparse.ArgumentParser:
             "report.md, plots and TensorBoard logs."
         ),
     )
-    p.add_argument("scenario", nargs="?", help="scenario name, family name or 'all' (see --list)")
+    p.add_argument(
+        "scenario",
+        nargs="?",
+        help="scenario name, family name or 'all' (see --list), or package.module:object for "
+        "a scenario of your own (docs/adding-a-scenario.md)",
+    )
     p.add_argument(
         "--ckpt",
         action="append",
@@ -146,7 +151,8 @@ def resolve_scenarios(name: str) -> list[str]:
     """Expand ``name`` (a scenario, a family or ``all``) to scenario names; ``ValueError`` if unknown.
 
     ``all`` and a family name run the scenarios marked ``headline``; variants are run by
-    their own names.
+    their own names; ``package.module:object`` is a scenario from outside the repository
+    (registered under its own name, :mod:`difffilter.models.registry`).
     """
     from difffilter.models import registry
 
@@ -154,8 +160,7 @@ def resolve_scenarios(name: str) -> list[str]:
         return registry.names(headline_only=True)
     if name in registry.families():
         return registry.names(name, headline_only=True) or registry.names(name)
-    registry.get(name)  # raises ValueError listing the known names
-    return [name]
+    return [registry.get(name).name]  # raises ValueError listing the known names
 
 
 def evaluate(

@@ -11,12 +11,27 @@ when imported (every module of the package is imported on first use)::
 
 Values that a paper leaves open are marked ``[DEF]`` in the scenario's ``notes``; change
 them here, in one place, and nowhere else.
+
+Scenarios from outside the repository, wherever a scenario name is taken (both command
+lines, ``run_suite``, the training config's ``scenario``):
+
+- ``"package.module:object"``: the module is imported and ``object`` (a dotted path in it)
+  is a :class:`~difffilter.models.scenario.Scenario` or a function of no arguments that
+  returns one; it is registered under its own name (:func:`get` returns it);
+- installed plug-ins: every entry point of the group ``difffilter.scenarios`` (in a
+  package's ``pyproject.toml``: ``[project.entry-points."difffilter.scenarios"]
+  my_plant = "my_package.scenarios"``) is loaded with the built-in families. A module
+  registers its scenarios when imported; an object that is a scenario, a list of them, or
+  a function returning either is registered. A plug-in that fails to load is reported
+  with a warning, not an error, so the built-in scenarios keep working.
 """
 
 from __future__ import annotations
 
 import importlib
 import pkgutil
+import warnings
+from importlib.metadata import entry_points
 
 from .scenario import Scenario
 
@@ -48,11 +63,62 @@ def _load_builtin() -> None:
     for info in pkgutil.iter_modules(package.__path__):
         if not info.name.startswith("_"):
             importlib.import_module(f"difffilter.models.{info.name}")
+    for point in entry_points(group=PLUGIN_GROUP):
+        try:
+            _register_all(point.load(), f"entry point {point.name!r} ({point.value})")
+        except Exception as error:  # a broken plug-in must not hide the built-in scenarios
+            warnings.warn(
+                f"difffilter: the scenario plug-in {point.name!r} ({point.value}) failed to "
+                f"load: {type(error).__name__}: {error}",
+                stacklevel=2,
+            )
+
+
+#: The entry-point group of installed scenario plug-ins.
+PLUGIN_GROUP = "difffilter.scenarios"
+
+
+def _register_all(obj, where: str) -> list[Scenario]:
+    """Register what a plug-in or a ``module:object`` path gave: a scenario, a list of
+    them, a function of no arguments returning either, or a module (already registered)."""
+    if isinstance(obj, type(importlib)):  # a module: it registered itself when imported
+        return []
+    if callable(obj) and not isinstance(obj, Scenario):
+        obj = obj()
+    items = obj if isinstance(obj, (list, tuple)) else [obj]
+    bad = [type(s).__name__ for s in items if not isinstance(s, Scenario)]
+    if bad:
+        raise ValueError(
+            f"{where} is not a difffilter scenario (a Scenario, e.g. CustomScenario, a list of "
+            f"them, or a function returning one); got {', '.join(bad)}"
+        )
+    return [register(s) for s in items]
+
+
+def _from_path(path: str) -> Scenario:
+    """The scenario of ``"package.module:object"`` (module docstring), registered."""
+    module_name, _, attribute = path.partition(":")
+    try:
+        obj = importlib.import_module(module_name)
+    except ImportError as error:
+        raise ValueError(f"scenario {path!r}: cannot import {module_name!r} ({error})") from None
+    for part in attribute.split("."):
+        if not hasattr(obj, part):
+            raise ValueError(f"scenario {path!r}: {module_name} has no {attribute!r}")
+        obj = getattr(obj, part)
+    if isinstance(obj, type(importlib)) or isinstance(obj, (list, tuple)):
+        raise ValueError(
+            f"scenario {path!r}: name one scenario (module:object), not a module or list"
+        )
+    return _register_all(obj, f"scenario {path!r}")[0]
 
 
 def get(name: str) -> Scenario:
-    """The scenario called ``name``; ``ValueError`` listing the known names otherwise."""
+    """The scenario called ``name``, or the one a ``"package.module:object"`` path names
+    (module docstring); ``ValueError`` listing the known names otherwise."""
     _load_builtin()
+    if ":" in name:
+        return _from_path(name)
     try:
         return _REGISTRY[name]
     except KeyError:

@@ -1,0 +1,104 @@
+"""Scenarios from outside the repository: ``package.module:object`` wherever a scenario name
+is taken, and installed plug-ins (the ``difffilter.scenarios`` entry points)."""
+
+from __future__ import annotations
+
+import json
+import textwrap
+from importlib.metadata import EntryPoint
+
+import pytest
+
+from difffilter.eval.cli import main as eval_main
+from difffilter.models import registry
+
+PLUGIN = textwrap.dedent("""
+    import dataclasses
+
+    import torch
+
+    import difffilter as df
+    from difffilter.models.attacks import SensorBias
+    from difffilter.models.scenario import CustomScenario
+
+
+    def plant(dtype):
+        F = torch.tensor([[0.9, 0.1], [0.0, 0.95]], dtype=dtype)
+        eye = torch.eye(2, dtype=dtype)
+        return df.LinearGaussianModel(F, eye, 1e-3 * eye, 1e-2 * eye, torch.zeros(2, dtype=dtype), eye)
+
+
+    SCENARIO = CustomScenario(
+        name="plugin_plant_bias", family="plugin_plants", description="a user's plant, bias",
+        model_fn=plant, attack=SensorBias((0.5, 0.0), tau=0.7, p_l=0.3), runs=3, steps=30,
+        dt=1.0, num_particles=40, false_alarm_rate=0.01, state_unit="m", attack_unit="m",
+    )
+
+
+    def make():
+        return dataclasses.replace(SCENARIO, name="plugin_plant_bias_made")
+
+
+    NOT_A_SCENARIO = 3
+""")
+
+
+@pytest.fixture
+def plugin(tmp_path, monkeypatch):
+    (tmp_path / "difffilter_user_plugin.py").write_text(PLUGIN)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    return "difffilter_user_plugin"
+
+
+def test_a_module_object_path_names_a_scenario_and_registers_it(plugin):
+    scenario = registry.get(f"{plugin}:SCENARIO")
+    assert scenario.name == "plugin_plant_bias" and registry.get("plugin_plant_bias") is scenario
+    assert registry.get(f"{plugin}:make").name == "plugin_plant_bias_made"  # a function
+
+
+@pytest.mark.parametrize(
+    ("path", "why"),
+    [
+        ("no_such_module_xyz:S", "cannot import 'no_such_module_xyz'"),
+        ("{plugin}:MISSING", "has no 'MISSING'"),
+        ("{plugin}:NOT_A_SCENARIO", "is not a difffilter scenario"),
+    ],
+)
+def test_a_bad_path_says_what_is_wrong(plugin, path, why):
+    with pytest.raises(ValueError, match=why):
+        registry.get(path.format(plugin=plugin))
+
+
+def test_difffilter_eval_runs_a_scenario_of_ones_own(plugin, tmp_path, capsys):
+    out = tmp_path / "reports"
+    assert eval_main([f"{plugin}:SCENARIO", "--runs", "2", "--out", str(out), "--no-progress"]) == 0
+    doc = json.loads((out / "plugin_plant_bias" / "metrics.json").read_text())
+    assert doc["scenario"] == "plugin_plant_bias" and doc["runs"] == 2
+    assert doc["scenario_units"] == {"state": "m", "attack": "m"}
+    assert doc["estimators"]  # the generic estimators that fit a linear model ran
+
+
+def test_installed_plugins_register_with_the_built_in_families_and_a_broken_one_warns(
+    plugin, monkeypatch
+):
+    points = [
+        EntryPoint("mine", f"{plugin}:SCENARIO", registry.PLUGIN_GROUP),
+        EntryPoint("broken", "no_such_module_xyz:S", registry.PLUGIN_GROUP),
+    ]
+    monkeypatch.setattr(
+        registry, "entry_points", lambda group: points if group == registry.PLUGIN_GROUP else []
+    )
+    monkeypatch.setattr(registry, "_LOADED", False)
+    with pytest.warns(UserWarning, match="plug-in 'broken'.*failed to load"):
+        names = registry.names()
+    assert "plugin_plant_bias" in names and "four_tank_bias" in names
+
+
+def test_training_takes_the_same_path(plugin):
+    from difffilter.train.task import FilterEstimatorTask, ScenarioDataModule
+
+    data = ScenarioDataModule(f"{plugin}:SCENARIO", batch_size=2, val_runs=2)
+    task = FilterEstimatorTask(f"{plugin}:SCENARIO", filter="kf", hidden=4)
+    assert data.scenario.name == task.scenario.name == "plugin_plant_bias"
+    assert task.card().scenario == "plugin_plant_bias"
+    assert data.val_dataloader().dataset[0]["y_recv"].shape == (2, 30, 2)
