@@ -46,6 +46,13 @@ def build_parser() -> argparse.ArgumentParser:
         "a scenario of your own (docs/adding-a-scenario.md)",
     )
     p.add_argument(
+        "--scenario",
+        dest="scenario_option",
+        default=None,
+        metavar="NAME",
+        help="the scenario, as the positional argument (e.g. --scenario my_plants:scenario)",
+    )
+    p.add_argument(
         "--ckpt",
         action="append",
         default=None,
@@ -342,6 +349,12 @@ def check_output_folder(out: Path) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)  # --help and usage errors before the heavy imports
+    if args.scenario_option is not None:
+        if args.scenario not in (None, args.scenario_option):
+            parser.error(
+                f"two scenarios given: {args.scenario!r} and --scenario {args.scenario_option!r}"
+            )
+        args.scenario = args.scenario_option
     from difffilter.models import registry
     from difffilter.runtime import tune_cpu_allocator
 

@@ -102,3 +102,21 @@ def test_training_takes_the_same_path(plugin):
     assert data.scenario.name == task.scenario.name == "plugin_plant_bias"
     assert task.card().scenario == "plugin_plant_bias"
     assert data.val_dataloader().dataset[0]["y_recv"].shape == (2, 30, 2)
+
+
+def test_both_command_lines_take_scenario_as_an_option(plugin, tmp_path, monkeypatch):
+    from pathlib import Path
+
+    from difffilter.train.cli import main as train_main
+
+    out = tmp_path / "reports"
+    assert eval_main(["--scenario", f"{plugin}:SCENARIO", "--runs", "2", "--out", str(out),
+                      "--no-progress", "--far", "off"]) == 0  # fmt: skip
+    assert (out / "plugin_plant_bias" / "metrics.json").is_file()
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    config = str(root / "train" / "configs" / "four_tank.yaml")
+    assert train_main(["fit", "--config", config, "--scenario", f"{plugin}:SCENARIO",
+                       "--model.init_args.filter=ekf", "--trainer.fast_dev_run=1",
+                       "--data.init_args.val_runs=2", "--data.init_args.batch_size=2"]) == 0  # fmt: skip

@@ -41,7 +41,8 @@ USAGE = """usage: difffilter-train COMMAND [options]
 {help}
 
 commands:
-  fit        train (--config train/configs/<family>.yaml; --ckpt_path <run>/checkpoints/last.ckpt resumes)
+  fit        train (--config train/configs/<family>.yaml; --ckpt_path <run>/checkpoints/last.ckpt resumes;
+             --scenario NAME or module:object trains on another scenario, yours included)
   validate   validate a Lightning checkpoint or an exported estimator (--ckpt_path)
   test       test one on the scenario's test runs (those of difffilter-eval --seed <test_seed>)
   predict    write its estimates, probabilities and alarms to <run>/predictions/
@@ -75,9 +76,35 @@ def main(args: list[str] | None = None) -> int:
         from importlib import import_module
 
         return import_module(_EXTRA[argv[0]], __package__).main(argv[1:])
+    argv = _scenario_option(argv)
     from .lightning_cli import run
 
-    return run(args, argv, HELP)
+    if args is None:  # the console script: LightningCLI reads sys.argv itself
+        sys.argv = [sys.argv[0], *argv]
+        return run(None, argv, HELP)
+    return run(argv, argv, HELP)
+
+
+def _scenario_option(argv: list[str]) -> list[str]:
+    """``--scenario NAME`` (or ``--scenario=NAME``; a registered name or
+    ``package.module:object``) sets the model's and the data's scenario at once."""
+    out, i = [], 0
+    while i < len(argv):
+        arg = argv[i]
+        if arg == "--scenario" or arg.startswith("--scenario="):
+            value = (
+                arg.partition("=")[2] if "=" in arg else (argv[i + 1] if i + 1 < len(argv) else "")
+            )
+            i += 1 if "=" in arg else 2
+            if not value:
+                raise SystemExit(
+                    "difffilter-train: error: --scenario needs a name or module:object"
+                )
+            out += [f"--model.init_args.scenario={value}", f"--data.init_args.scenario={value}"]
+            continue
+        out.append(arg)
+        i += 1
+    return out
 
 
 if __name__ == "__main__":  # pragma: no cover
