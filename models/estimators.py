@@ -183,17 +183,28 @@ class SuiteContext:
         return poa_detector_for_scenario(self.scenario, self.model, self.options)
 
     def cusum(self, filter) -> fdi.CusumDetector:
-        """CUSUM calibrated on the attack-free calibration runs with the Gaussian ``filter``."""
-        cal = self.calibration
-        return fdi.cusum_detector_for(
-            self.model,
-            false_alarm_rate=self.scenario.false_alarm_rate,
-            filter=filter,
-            bias=self.options.get("cusum_bias"),
-            ys=cal.y_true,
-            us=cal.us,
-            mask=cal.mask,
-        )
+        """CUSUM calibrated on the attack-free calibration runs with the Gaussian ``filter``.
+
+        Calibrated once per process for the same attack-free scenario, seed, runs, dtype,
+        filter, rate and bias (:data:`_CUSUM_CACHE`): a second ``run_suite`` of the scenario
+        reuses it."""
+        bias, far = self.options.get("cusum_bias"), self.scenario.false_alarm_rate
+        key = (self.scenario.attack_free_key(), type(self.scenario).__name__,
+               self.streams.seed, max(self.runs, 50), str(self.dtype), type(filter).__name__,
+               far, bias)  # fmt: skip
+        if key not in _CUSUM_CACHE:
+            cal = self.calibration
+            if len(_CUSUM_CACHE) >= 64:  # a long session of many scenarios: drop the oldest
+                _CUSUM_CACHE.pop(next(iter(_CUSUM_CACHE)))
+            _CUSUM_CACHE[key] = fdi.cusum_detector_for(
+                self.model, false_alarm_rate=far, filter=filter, bias=bias, ys=cal.y_true,
+                us=cal.us, mask=cal.mask,
+            )  # fmt: skip
+        return _CUSUM_CACHE[key]
+
+
+#: CUSUM detectors calibrated in this process (:meth:`SuiteContext.cusum`).
+_CUSUM_CACHE: dict[tuple, fdi.CusumDetector] = {}
 
 
 def poa_detector_for_scenario(scenario, model, options=None) -> fdi.PoADetector:

@@ -73,3 +73,21 @@ def test_every_detector_meets_the_target_false_alarm_rate_on_fresh_attack_free_r
     assert rates, f"{name}: no detector was calibrated"
     for detector, rate in rates.items():
         assert 0.005 <= rate <= 0.02, f"{name}/{detector}: false-alarm rate {rate:.4f} at 1 %"
+
+
+def test_two_suites_of_one_scenario_calibrate_cusum_once(monkeypatch):
+    from difffilter import fdi
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import estimators, registry
+
+    estimators._CUSUM_CACHE.clear()
+    calls = []
+    real = fdi.cusum_detector_for
+    monkeypatch.setattr(fdi, "cusum_detector_for", lambda *a, **k: calls.append(1) or real(*a, **k))
+    scenario = registry.get("four_tank_bias")
+    first = run_suite(scenario, runs=2, estimators=["cusum_ekf"], progress=False)
+    second = run_suite(scenario, runs=2, estimators=["cusum_ekf"], progress=False)
+    assert len(calls) == 1
+    assert first.metrics["cusum_ekf"]["auc"] == second.metrics["cusum_ekf"]["auc"]
+    run_suite(scenario, runs=2, seed=1, estimators=["cusum_ekf"], progress=False)
+    assert len(calls) == 2  # another seed: other calibration runs
