@@ -26,6 +26,7 @@ def _error_lines(capsys) -> list[str]:
         (["fit", *CONFIG, "--data.init_args.batch_size=0"], "batch_size must be a positive"),
         (["fit", *CONFIG, "--trainer.max_epochs=-2"], "max_epochs"),
         (["fitt"], "invalid choice"),
+        (["fit", *CONFIG, "--scenario"], "--scenario needs a scenario name"),
     ],
 )
 def test_a_bad_command_line_is_one_line_and_exit_2(argv, why, tmp_path, monkeypatch, capsys):

@@ -76,7 +76,11 @@ def main(args: list[str] | None = None) -> int:
         from importlib import import_module
 
         return import_module(_EXTRA[argv[0]], __package__).main(argv[1:])
-    argv = _scenario_option(argv)
+    try:
+        argv = _scenario_option(argv)
+    except ValueError as exc:
+        print(f"difffilter-train: error: {exc}", file=sys.stderr)
+        return 2
     from .lightning_cli import run
 
     if args is None:  # the console script: LightningCLI reads sys.argv itself
@@ -97,9 +101,7 @@ def _scenario_option(argv: list[str]) -> list[str]:
             )
             i += 1 if "=" in arg else 2
             if not value:
-                raise SystemExit(
-                    "difffilter-train: error: --scenario needs a name or module:object"
-                )
+                raise ValueError("--scenario needs a scenario name or package.module:object")
             out += [f"--model.init_args.scenario={value}", f"--data.init_args.scenario={value}"]
             continue
         out.append(arg)
