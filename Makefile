@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 RUNS ?=
 OUT ?= reports
 
-.PHONY: demo test bench lint venv clean
+.PHONY: demo test test-min bench lint venv clean
 
 venv: $(STAMP)
 
@@ -25,6 +25,14 @@ test: $(STAMP)
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q
 
+# The declared minimum versions (constraints-min.txt) in a venv of their own
+VENV_MIN := .venv-min
+test-min:
+	test -x $(VENV_MIN)/bin/python || $(PYTHON) -m venv $(VENV_MIN)
+	$(VENV_MIN)/bin/python -m pip install -q -c constraints-min.txt torch==2.13.0 "setuptools>=77,<81"
+	$(VENV_MIN)/bin/python -m pip install -q -c constraints-min.txt -e ".[dev]"
+	$(VENV_MIN)/bin/python -m pytest -q
+
 bench: $(STAMP)
 	$(PY) benchmarks/bench.py
 
@@ -33,4 +41,4 @@ lint: $(STAMP)
 	$(PY) -m ruff format --check .
 
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) $(VENV_MIN) build *.egg-info
