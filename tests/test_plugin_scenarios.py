@@ -4,6 +4,7 @@ is taken, and installed plug-ins (the ``difffilter.scenarios`` entry points)."""
 from __future__ import annotations
 
 import json
+import sys
 import textwrap
 from importlib.metadata import EntryPoint
 
@@ -47,7 +48,11 @@ PLUGIN = textwrap.dedent("""
 def plugin(tmp_path, monkeypatch):
     (tmp_path / "difffilter_user_plugin.py").write_text(PLUGIN)
     monkeypatch.syspath_prepend(str(tmp_path))
-    return "difffilter_user_plugin"
+    registry.names()  # the built-in families, before the snapshot
+    # the user's scenarios leave with the test (other tests list every headline scenario)
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
+    yield "difffilter_user_plugin"
+    sys.modules.pop("difffilter_user_plugin", None)
 
 
 def test_a_module_object_path_names_a_scenario_and_registers_it(plugin):
