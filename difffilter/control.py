@@ -29,7 +29,6 @@ import math
 
 import numpy as np
 import scipy.linalg as sla
-import scipy.signal as ssig
 import torch
 from torch import Tensor
 
@@ -218,6 +217,8 @@ def luenberger_gain(
     if design is LuenbergerDesign.MODAL:
         Phi = (V @ np.diag(p) @ np.linalg.inv(V)).real
     elif design is LuenbergerDesign.ROBUST:
+        import scipy.signal as ssig  # here: importing it costs 0.7 s that --list need not pay
+
         res = ssig.place_poles(_np(Ad).T, np.eye(n), p, method="YT", maxiter=100)
         Phi = _np(Ad) - res.gain_matrix.T
     else:
