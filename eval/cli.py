@@ -358,14 +358,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     from difffilter.models import registry
     from difffilter.runtime import tune_cpu_allocator
 
-    from .suite import process_group
-
     if args.list:
         for s in registry.all_scenarios():
             print(f"{s.name:28s} [{s.family}] {s.description}")
         return 0
     if not args.scenario:
         parser.error("a scenario name is required (or --list)")
+    from .suite import process_group  # the suite (torch, torchmetrics) only for a study
+
     tune_cpu_allocator()
     try:
         names = resolve_scenarios(args.scenario)
