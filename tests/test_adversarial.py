@@ -36,12 +36,14 @@ def test_crafting_starts_at_its_onset_and_leaves_the_network_untouched():
     task = FilterEstimatorTask("four_tank_bias", num_particles=20, hidden=4, adversarial_runs=2,
                                adversarial_iterations=4, adversarial_crafting_runs=4)  # fmt: skip
     task.alarm_threshold.fill_(0.3)
+    before = [p.detach().clone() for p in task.estimator.parameters()]
     logs = task.adversary.craft(task, step=0)
     a, onset = task.adversary.attack, task.adversary.onset
     assert 5 <= onset <= 60 and a.shape == (100, 4)
-    assert not a[: onset - 1].any() and logs["adversarial_error"] >= 0.0
-    before = [p.clone() for p in task.estimator.parameters()]
+    assert not a[: onset - 1].any() and a[onset - 1 :].abs().sum() > 0  # it attacks
+    assert logs["adversarial_error"] > 0.0
     assert all(p.grad is None for p in task.estimator.parameters())  # nothing leaked in
+    assert all(p.requires_grad for p in task.estimator.parameters())  # and restored
     assert all(torch.equal(p, q) for p, q in zip(before, task.estimator.parameters(), strict=True))
     assert task.adversary.due(16) and not task.adversary.due(3)
 
