@@ -42,7 +42,7 @@ from torch import Tensor
 
 from ._checks import Choice
 
-__all__ = ["Channel", "Attack", "TabulatedAttack", "inject"]
+__all__ = ["Channel", "Attack", "TabulatedAttack", "inject", "same_side"]
 
 
 class Channel(Choice):
@@ -51,6 +51,15 @@ class Channel(Choice):
     SENSOR = "sensor"
     REPLACEMENT = "replacement"
     ACTUATOR = "actuator"
+
+
+def same_side(a: Channel | str, b: Channel | str) -> bool:
+    """Whether two channels act on the same side of the plant: the measurements (sensor
+    and replacement attacks, both recorded as ``ỹ − y``) or the inputs (actuator attacks,
+    recorded as ``ũ − u``). An attack estimate is compared only with an attack on its side:
+    a sensor estimate against an actuator signal is a comparison of two different
+    quantities, whatever their shapes."""
+    return (Channel(a) is Channel.ACTUATOR) == (Channel(b) is Channel.ACTUATOR)
 
 
 class Attack:
@@ -87,6 +96,21 @@ class TabulatedAttack(Attack):
     """
 
     def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        """The whole attack at once: ``(values, flags)``.
+
+        Args:
+            batch_shape: the runs' batch shape ``*batch`` (an int or a tuple).
+            num_steps: ``T``, the measurements ``k = 1 … T``; row ``t`` is ``k = t + 1``.
+            dim: the channel's width (``dy`` on the sensors, ``du`` on the actuators).
+            generator: the only source of random draws (the loop's ``"attack"`` stream).
+            dtype, device: of ``values``.
+
+        Returns:
+            ``values [*batch, T, dim]``: what the attacker would inject at every step
+            (also where it does not), and ``flags [*batch, T]`` (bool; or ``[*batch, T,
+            dim]``, per entry): where it does. The loop applies them on :attr:`channel`
+            (:func:`inject`).
+        """
         raise NotImplementedError
 
     def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):

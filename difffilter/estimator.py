@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from ._checks import check_carry_batch, check_model, check_step_inputs
+from .attack import Channel
 from .results import FilterResult, StepOutput
 
 __all__ = [
@@ -79,6 +80,10 @@ class EstimatorOutput:
         detection: a :class:`Detection` or ``None`` for plain filters.
         extras: named per-run or per-step records of the algorithm (documented by each
             estimator), for example ``"ess" [..., T]``.
+        attack_channel: the :class:`~difffilter.attack.Channel` ``attack`` estimates:
+            the sensors (default; a replacement attack is measured on the same side, as
+            ``ỹ − y``) or the actuators (``ũ − u``). Scoring compares an estimate only with
+            an attack on the same side (:func:`difffilter.attack.same_side`).
     """
 
     means: Tensor
@@ -86,8 +91,10 @@ class EstimatorOutput:
     attack: Tensor | None = None
     detection: Detection | None = None
     extras: dict[str, Tensor] = field(default_factory=dict)
+    attack_channel: Channel = Channel.SENSOR
 
     def __post_init__(self):
+        self.attack_channel = Channel(self.attack_channel)
         if self.means.dim() < 2:
             raise ValueError(f"means must have shape [..., T, dx]; got {tuple(self.means.shape)}")
         lead = self.means.shape[:-1]
@@ -184,6 +191,9 @@ class Estimator:
 
     #: The carry type ``_init`` returns (checked by :meth:`step`).
     carry_type: type = tuple
+    #: The channel of the attack the step estimates (``StepOutput.attack``), marked on the
+    #: stacked :class:`EstimatorOutput`: the sensors unless the estimator says otherwise.
+    attack_channel: Channel = Channel.SENSOR
 
     def init(self, model, batch_shape=(), generator=None):
         """The carry of ``batch_shape`` independent runs before the first measurement."""
@@ -293,9 +303,14 @@ def _stack_thresholds(values: Sequence, batch: torch.Size, like: Tensor):
 
 
 def stack_steps(
-    outs: Sequence[StepOutput], batch: torch.Size, collected: dict | None = None
+    outs: Sequence[StepOutput],
+    batch: torch.Size,
+    collected: dict | None = None,
+    attack_channel: Channel | str = Channel.SENSOR,
 ) -> EstimatorOutput:
-    """The :class:`EstimatorOutput` of ``T`` step outputs of runs of shape ``batch``.
+    """The :class:`EstimatorOutput` of ``T`` step outputs of runs of shape ``batch``
+    (``attack_channel``: the channel of the steps' attack estimate, the estimator's
+    :attr:`Estimator.attack_channel`).
 
     ``means [*batch, T, dx]``, ``covs`` (shared matrices stay expanded views), ``attack``,
     a :class:`Detection` when the steps scored, and ``extras``: the stacked filter
@@ -333,7 +348,8 @@ def stack_steps(
         alarms = _stack_scalars([o.alarm for o in outs], lead)
         threshold = _stack_thresholds([o.threshold for o in outs], lead, scores)
         detection = Detection(scores, alarms, threshold)
-    return EstimatorOutput(means, covs, attack=attack, detection=detection, extras=extras)
+    return EstimatorOutput(means, covs, attack=attack, detection=detection, extras=extras,
+                           attack_channel=attack_channel)  # fmt: skip
 
 
 def output_of(result: FilterResult) -> EstimatorOutput:

@@ -149,6 +149,8 @@ def open_loop(
         carry = estimator._init(model, batch, Generators.of(generator))
         if collect is None:
             result = estimator._run(carry, ys, us, mask)
+            if result is not None:  # a fast path says what its attack estimate is on too
+                result.attack_channel = estimator.attack_channel
     else:
         if not isinstance(carry, estimator.carry_type):
             raise TypeError(
@@ -175,7 +177,7 @@ def _step_through(estimator, carry, ys, us, mask, batch, collect) -> EstimatorOu
             for name, value in collect(carry, out).items():
                 records.setdefault(name, []).append(value)
     collected = {k: torch.stack(v, dim=len(batch)) for k, v in records.items()}
-    return stack_steps(outs, batch, collected)
+    return stack_steps(outs, batch, collected, estimator.attack_channel)
 
 
 # ------------------------------------------------------------------------ the closed loop
@@ -361,7 +363,7 @@ def closed_loop(
             progress(1)
     traj = _trajectories(rec, mask, state.k, k, channel)
     batch = x.shape[:-1]
-    output = stack_steps(outs, batch) if outs else None
+    output = stack_steps(outs, batch, attack_channel=estimator.attack_channel) if outs else None
     return LoopResult(traj, output, LoopState(k, x, u, a_state, carry, view))
 
 

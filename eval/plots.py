@@ -23,7 +23,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 from matplotlib import colors as mcolors  # noqa: E402
 
-from .scoring import rmse_over_time, roc  # noqa: E402
+from .scoring import comparable_attack, rmse_over_time, roc  # noqa: E402
 
 __all__ = ["standard_figures", "estimator_colours"]
 
@@ -115,7 +115,7 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
         fig, ax = plt.subplots(figsize=(8, 4))
         ax.plot(t, traj.attack[0, :, c].numpy(), "k", lw=1.5, label="injected")
         for name, out in estimating.items():
-            if out.attack.shape[-1] == traj.attack.shape[-1]:
+            if comparable_attack(out, traj):
                 ax.plot(t, out.attack[0, :, c].numpy(), lw=0.9, label=name, color=colour[name])
         ax.set(xlabel="time [s]", ylabel=f"attack, channel {c + 1} [{result.scenario.attack_unit}]",
                title=f"Run 0: attack estimates (channel {c + 1}, the most attacked)")  # fmt: skip

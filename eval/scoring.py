@@ -21,6 +21,7 @@ from torch import Tensor
 from torchmetrics.functional.classification import binary_auroc, binary_roc
 
 from difffilter import metrics as dm
+from difffilter.attack import Channel, same_side
 from difffilter.estimator import EstimatorOutput
 
 __all__ = [
@@ -33,6 +34,7 @@ __all__ = [
     "auc",
     "rmse_over_time",
     "rates_by_size",
+    "comparable_attack",
 ]
 
 #: The headline metrics (the leaderboard's columns and the TensorBoard HPARAMS table's).
@@ -182,11 +184,7 @@ def score(
     if reference_means is not None:
         out["state_rmse_vs_attack_free"] = _rmse(output.means, reference_means)
     flags = traj.flags
-    if (
-        output.attack is not None
-        and output.attack.shape[-1] == traj.attack.shape[-1]
-        and bool(flags.any())
-    ):
+    if comparable_attack(output, traj) and bool(flags.any()):
         out["attack_rmse"] = _rmse(output.attack[flags], traj.attack[flags])
     out["time_per_step_s"] = wall_s / (B * T)
     det = output.detection
@@ -215,6 +213,16 @@ def score(
             episodes_detected=delay["detected"],
         )
     return out
+
+
+def comparable_attack(output: EstimatorOutput, traj) -> bool:
+    """Whether ``output``'s attack estimate measures the attack ``traj`` recorded: an
+    estimate on the side of the plant the attack acted on (the sensors or the actuators,
+    :func:`difffilter.attack.same_side`) with as many entries. Shapes alone are not enough:
+    a one-sensor plant with one actuator would compare volts with metres."""
+    if output.attack is None or output.attack.shape[-1] != traj.attack.shape[-1]:
+        return False
+    return same_side(output.attack_channel, traj.info.get("attack_channel", Channel.SENSOR))
 
 
 def _finite(value: float) -> float | None:

@@ -17,7 +17,7 @@ import torch
 from difffilter.estimator import EstimatorOutput
 from difffilter.loop import LoopResult, Trajectories
 from difffilter.models import estimators as registry
-from difffilter.models.generic_estimators import default_estimators
+from difffilter.models.generic_estimators import DEFAULT_SUITE
 from difffilter.models.streams import Streams
 from difffilter.runtime import one_thread
 
@@ -43,7 +43,9 @@ class SuiteResult:
         metrics: ``{estimator: {metric: value}}`` (:data:`~difffilter.eval.scoring.METRICS`).
         reference: name of the attack-free reference estimator, or ``None``.
         context: the :class:`~difffilter.models.estimators.SuiteContext` the factories saw.
-        skipped: ``{estimator: why}`` for those whose factory raised ``SkipEstimator``.
+        skipped: ``{estimator: why}`` for those left out: a need the scenario does not
+            meet (:mod:`difffilter.models.needs`), or a factory that raised
+            ``SkipEstimator`` (no checkpoint, a checkpoint of another family).
         checkpoint: ``{"path", "sha256", "source", "used_by"}`` of the checkpoint the
             study was given (or the scenario's shipped one), or ``None``.
         checkpoints: ``{estimator: {"path", "sha256"}}`` of the checkpoints given to one
@@ -94,7 +96,10 @@ def run_suite(
         runs: Monte Carlo runs (default ``scenario.runs``).
         seed: master seed of every random draw (:class:`~difffilter.models.streams.Streams`).
         estimators: registered estimator names (default ``scenario.estimators``, else
-            :func:`~difffilter.models.generic_estimators.default_estimators` of its model).
+            :data:`~difffilter.models.generic_estimators.DEFAULT_SUITE`). Those whose
+            needs the scenario does not meet (:mod:`difffilter.models.needs`: a KF on a
+            nonlinear model, an attack-free reference under an actuator attack, another
+            family's estimator) are skipped, with the reason, in ``skipped``.
         add: more registered estimators to run after those.
         progress: show a progress bar.
         dtype: of the model and the simulation.
@@ -132,11 +137,14 @@ def run_suite(
                                 named_checkpoints=dict(named))  # fmt: skip
     if cache is not None:
         ctx.cache = cache
-    names = tuple(estimators or scenario.estimators or default_estimators(model))
+    names = tuple(estimators or scenario.estimators or DEFAULT_SUITE)
     names += tuple(n for n in (*add, *named) if n not in names)
     specs = [registry.get(n) for n in names]  # unknown names fail before any work
     built = {}  # asked for by name: a misfit fails here, before any work, not as a skip
     for name, path in named.items():
+        unmet = registry.get(name).unmet(scenario, model)
+        if unmet is not None:
+            raise ValueError(f"--ckpt {name}={path}: {name} does not fit {scenario.name}: {unmet}")
         try:
             built[name] = registry.get(name).factory(ctx)
         except registry.SkipEstimator as exc:
@@ -177,8 +185,13 @@ def _run_estimators(result: SuiteResult, specs, progress: bool, built=None) -> N
     from tqdm.auto import tqdm
 
     bar = tqdm(specs, desc=result.scenario.name, disable=not progress, leave=False)
+    ctx = result.context
     for spec in bar:
         bar.set_postfix_str(spec.name)
+        unmet = spec.unmet(ctx.scenario, ctx.model)
+        if unmet is not None and spec.name not in built:
+            result.skipped[spec.name] = unmet
+            continue
         try:
             run = built[spec.name] if spec.name in built else spec.factory(result.context)
         except registry.SkipEstimator as why:
@@ -190,6 +203,8 @@ def _run_estimators(result: SuiteResult, specs, progress: bool, built=None) -> N
         if isinstance(out, LoopResult):  # a closed loop of its own: its truth
             result.trajectories[spec.name] = out.trajectories
             out = out.output
+        if spec.estimates is not None:
+            out.attack_channel = spec.estimates
         result.outputs[spec.name] = out
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .scoring import HEADLINE, rmse_over_time
+from .scoring import HEADLINE, comparable_attack, rmse_over_time
 
 __all__ = ["log_suite"]
 
@@ -29,7 +29,7 @@ def log_suite(logdir: Path, result, doc: dict, figures) -> None:
             if out.detection is not None:
                 alarm_rate = out.detection.alarms.double().mean(0)
             attack_curve = None  # the attack estimate's error, where it estimates this channel
-            if out.attack is not None and out.attack.shape[-1] == traj.attack.shape[-1] > 0:
+            if traj.attack.shape[-1] > 0 and comparable_attack(out, traj):
                 attack_curve = rmse_over_time(out.attack, traj.attack)
             for k in range(curve.shape[0]):
                 w.add_scalar(f"state_rmse_per_step/{name}", float(curve[k]), k + 1)

@@ -29,10 +29,13 @@ from typing import Any
 import torch
 
 from difffilter import fdi
+from difffilter.attack import Channel
 from difffilter.estimator import EstimatorOutput
 from difffilter.particle import particle_init
 from difffilter.resampling import Systematic
 
+from . import calibration_cache
+from .needs import Need, first_unmet, scenario_of
 from .streams import Streams
 
 __all__ = [
@@ -40,6 +43,7 @@ __all__ = [
     "SuiteContext",
     "SkipEstimator",
     "register",
+    "family_register",
     "get",
     "names",
     "ESTIMATORS",
@@ -61,6 +65,11 @@ class EstimatorSpec:
         clean_input: the estimator reads the attack-free ``y_true`` (a reference); its
             alarms are all false alarms.
         reference: the scenario's attack-free reference (``state_rmse_vs_attack_free``).
+        needs: what it needs of a scenario (:mod:`difffilter.models.needs`); the suite
+            skips it, with the reason, where one is not met.
+        estimates: the channel its attack estimate is on (its outputs are marked so and
+            scored only against an attack on the same side), or ``None``: what its
+            outputs say (``EstimatorOutput.attack_channel``, the sensors by default).
     """
 
     name: str
@@ -68,6 +77,12 @@ class EstimatorSpec:
     description: str
     clean_input: bool = False
     reference: bool = False
+    needs: tuple[Need, ...] = ()
+    estimates: Channel | None = None
+
+    def unmet(self, scenario, model) -> str | None:
+        """Why this estimator does not fit ``scenario`` (its first unmet need), or ``None``."""
+        return first_unmet(self.needs, scenario, model)
 
 
 ESTIMATORS: dict[str, EstimatorSpec] = {}
@@ -78,16 +93,42 @@ class SkipEstimator(Exception):
     the suite records the message in ``SuiteResult.skipped`` and the report lists it."""
 
 
-def register(name: str, description: str, *, clean_input: bool = False, reference: bool = False):
-    """Decorator registering ``factory`` under ``name`` (twice is an error)."""
+def register(
+    name: str,
+    description: str,
+    *,
+    clean_input: bool = False,
+    reference: bool = False,
+    needs: tuple[Need, ...] = (),
+    estimates: Channel | str | None = None,
+):
+    """Decorator registering ``factory`` under ``name`` (twice is an error); ``needs`` and
+    ``estimates`` as in :class:`EstimatorSpec`."""
+    estimates = None if estimates is None else Channel(estimates)
+    needs = tuple(needs)
+    if not all(isinstance(n, Need) for n in needs):
+        raise TypeError(f"needs must be difffilter.models.needs.Need objects; got {needs!r}")
 
     def wrap(factory):
         if name in ESTIMATORS and ESTIMATORS[name].factory is not factory:
             raise ValueError(f"estimator {name!r} is already registered")
-        ESTIMATORS[name] = EstimatorSpec(name, factory, description, clean_input, reference)
+        ESTIMATORS[name] = EstimatorSpec(name, factory, description, clean_input, reference,
+                                         needs, estimates)  # fmt: skip
         return factory
 
     return wrap
+
+
+def family_register(scenario_class: type, family: str, **defaults):
+    """:func:`register` for the estimators of one family: each needs a ``scenario_class``
+    (:func:`~difffilter.models.needs.scenario_of`) besides its own ``needs``, and takes
+    ``defaults`` (e.g. ``estimates="actuator"``)."""
+    family_need = scenario_of(scenario_class, family)
+
+    def register_in_family(name: str, description: str, *, needs=(), **kwargs):
+        return register(name, description, needs=(family_need, *needs), **{**defaults, **kwargs})
+
+    return register_in_family
 
 
 def get(name: str) -> EstimatorSpec:
@@ -185,22 +226,34 @@ class SuiteContext:
     def cusum(self, filter) -> fdi.CusumDetector:
         """CUSUM calibrated on the attack-free calibration runs with the Gaussian ``filter``.
 
-        Calibrated once per process for the same attack-free scenario, seed, runs, dtype,
-        filter, rate and bias (:data:`_CUSUM_CACHE`): a second ``run_suite`` of the scenario
-        reuses it."""
+        Calibrated once for the same attack-free scenario, seed, runs, dtype, filter, rate,
+        bias and model parameters: kept for the process (:data:`_CUSUM_CACHE`) and on disk
+        under the cache folder (:mod:`difffilter.models.calibration_cache`), so a second
+        ``run_suite`` of the scenario, in this process or a later one, reuses it."""
         bias, far = self.options.get("cusum_bias"), self.scenario.false_alarm_rate
+        runs = max(self.runs, 50)
         key = (self.scenario.attack_free_key(), type(self.scenario).__name__,
-               self.streams.seed, max(self.runs, 50), str(self.dtype), type(filter).__name__,
-               far, bias)  # fmt: skip
+               self.streams.seed, runs, str(self.dtype), type(filter).__name__, far, bias)  # fmt: skip
         if key not in _CUSUM_CACHE:
-            cal = self.calibration
             if len(_CUSUM_CACHE) >= 64:  # a long session of many scenarios: drop the oldest
                 _CUSUM_CACHE.pop(next(iter(_CUSUM_CACHE)))
-            _CUSUM_CACHE[key] = fdi.cusum_detector_for(
-                self.model, false_alarm_rate=far, filter=filter, bias=bias, ys=cal.y_true,
-                us=cal.us, mask=cal.mask,
-            )  # fmt: skip
+            # what the calibration runs depend on beyond the key: the plant, its schedule
+            # and its known inputs (a user who edits them gets a new calibration)
+            inputs = self.scenario.inputs(1, self.dtype)
+            parts = (self.model, self.scenario.schedule(), inputs)
+            cached = calibration_cache.cached(
+                "cusum", key, parts, lambda: self._calibrate_cusum(filter, bias, far)
+            )
+            _CUSUM_CACHE[key] = fdi.CusumDetector(cached["bias"], cached["threshold"])
         return _CUSUM_CACHE[key]
+
+    def _calibrate_cusum(self, filter, bias, far) -> dict[str, float]:
+        cal = self.calibration
+        det = fdi.cusum_detector_for(
+            self.model, false_alarm_rate=far, filter=filter, bias=bias, ys=cal.y_true,
+            us=cal.us, mask=cal.mask,
+        )  # fmt: skip
+        return {"bias": float(det.bias), "threshold": float(det.threshold)}
 
 
 #: CUSUM detectors calibrated in this process (:meth:`SuiteContext.cusum`).
@@ -210,14 +263,14 @@ _CUSUM_CACHE: dict[tuple, fdi.CusumDetector] = {}
 def poa_detector_for_scenario(scenario, model, options=None) -> fdi.PoADetector:
     """The PoA detector of ``scenario`` on ``model``: ``η, ζ`` from the scenario's options
     (``poa_eta``, ``poa_zeta``: a paper's values) or else from the model by Theorem 1
-    (eq. 53) with ``‖γ‖_min = scenario.attack_norm_floor()``, ``p_l`` of its attack (0.5
+    (eq. 53) with ``‖γ‖_min = scenario.attack_norm_floor(model)``, ``p_l`` of its attack (0.5
     when it has none) and its particle count. Evaluation and training share it."""
     options = scenario.estimator_options() if options is None else options
     if "poa_eta" in options:
         return fdi.PoADetector(options["poa_eta"], options["poa_zeta"])
     return fdi.poa_detector_for(
         model,
-        gamma_min=scenario.attack_norm_floor(),
+        gamma_min=scenario.attack_norm_floor(model),
         p_l=float(getattr(scenario.attack_model(), "p_l", 0.5)),
         num_particles=scenario.num_particles,
     )

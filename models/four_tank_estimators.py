@@ -13,12 +13,17 @@ import torch
 import difffilter as df
 from difffilter import fdi
 from difffilter.estimator import EstimatorOutput
-from difffilter.models.estimators import SuiteContext, register
-from difffilter.models.four_tank import FourTankModel
+from difffilter.models import estimators
+from difffilter.models.estimators import SuiteContext, family_register
+from difffilter.models.four_tank import FourTankModel, FourTankScenario
 from difffilter.models.generic_estimators import modified_pf, oracle_attack
+from difffilter.models.needs import model_of
 from difffilter.particle import particle_filter
 
 __all__ = ["linearised_four_tank"]
+
+#: Every estimator here reads the four-tank plant (its paper's settings, its linearisation).
+register = family_register(FourTankScenario, "four_tank")
 
 
 @register("normal_pf_literal", "normal PF + PoA with the Gaussian density literally in float64")
@@ -86,8 +91,10 @@ def linearised_four_tank(model: FourTankModel) -> tuple[df.LinearGaussianModel, 
     return lin, x_star
 
 
-@register(
-    "kf_linearised", "KF on the plant linearised at its fixed point x* (deviation coordinates)"
+@estimators.register(
+    "kf_linearised",
+    "KF on the plant linearised at its fixed point x* (deviation coordinates)",
+    needs=(model_of(FourTankModel),),  # any scenario of the four-tank plant
 )
 def _kf_linearised(ctx: SuiteContext):
     lin, x_star = linearised_four_tank(ctx.model)

@@ -26,6 +26,13 @@ from difffilter.noise import UniformBox
 from difffilter.particle import KalmanProposal
 
 from .estimators import Run, SuiteContext, register
+from .needs import (
+    ASSUMES_DECEPTION_DENSITY,
+    ASSUMES_SENSOR_ATTACK,
+    ATTACK_FREE_MEASUREMENTS,
+    LINEAR_MODEL,
+    SENSOR_ATTACK,
+)
 
 __all__ = [
     "GAUSSIAN_FILTERS",
@@ -34,6 +41,7 @@ __all__ = [
     "modified_pf",
     "deception_of",
     "default_estimators",
+    "DEFAULT_SUITE",
 ]
 
 
@@ -52,9 +60,11 @@ def _plain(run_filter):
 
 for _name, _filter in (("kf", df.kalman_filter), ("ekf", df.extended_kalman_filter),
                        ("ukf", df.unscented_kalman_filter)):  # fmt: skip
-    register(_name, f"the library's {_name.upper()}, no attack handling (a linear model for kf)")(
-        _plain(lambda ctx, tr, f=_filter: f(ctx.model, tr.y_recv, tr.us, mask=tr.mask))
-    )
+    register(
+        _name,
+        f"the library's {_name.upper()}, no attack handling (a linear model for kf)",
+        needs=(LINEAR_MODEL,) if _name == "kf" else (),
+    )(_plain(lambda ctx, tr, f=_filter: f(ctx.model, tr.y_recv, tr.us, mask=tr.mask)))
 for _name, _proposal in (("bootstrap_pf", None), ("kalman_proposal_pf", KalmanProposal())):
     register(_name, f"the library's particle filter, {_name[:-3].replace('_', ' ')} proposal")(
         _plain(lambda ctx, tr, p=_proposal: df.particle_filter(
@@ -99,12 +109,11 @@ GATED: dict[str, tuple[str, Callable]] = {}
 for _kind, _label in (("kf", "KF"), ("ekf", "EKF"), ("ukf", "UKF")):
     GATED[f"chi_square_{_kind}"] = (_kind, _chi_square)
     GATED[f"cusum_{_kind}"] = (_kind, _cusum)
-    register(f"chi_square_{_kind}", f"{_label} gated by a χ² test on its innovations")(
-        _gated(_kind, _chi_square)
-    )
-    register(f"cusum_{_kind}", f"{_label} gated by CUSUM on its innovations (τ calibrated)")(
-        _gated(_kind, _cusum)
-    )
+    _needs = (LINEAR_MODEL,) if _kind == "kf" else ()
+    register(f"chi_square_{_kind}", f"{_label} gated by a χ² test on its innovations",
+             needs=_needs)(_gated(_kind, _chi_square))  # fmt: skip
+    register(f"cusum_{_kind}", f"{_label} gated by CUSUM on its innovations (τ calibrated)",
+             needs=_needs)(_gated(_kind, _cusum))  # fmt: skip
 
 
 def gated_estimator(ctx: SuiteContext, name: str) -> fdi.GatedFilter:
@@ -139,6 +148,7 @@ def _normal_pf(ctx: SuiteContext) -> Run:
     "bootstrap PF + PoA on the true y (the attack-free reference)",
     clean_input=True,
     reference=True,
+    needs=(ATTACK_FREE_MEASUREMENTS,),
 )
 def _normal_pf_attack_free(ctx: SuiteContext) -> Run:
     return _poa_pf(ctx, clean=True)
@@ -175,12 +185,20 @@ def modified_pf(ctx: SuiteContext, gamma_hat, **kwargs) -> Run:
     return run
 
 
-@register("modified_pf", "modified PF (Table 2) with the oracle γ̂ (the paper's tables)")
+@register(
+    "modified_pf",
+    "modified PF (Table 2) with the oracle γ̂ (the paper's tables)",
+    needs=(SENSOR_ATTACK,),
+)
 def _modified_pf(ctx: SuiteContext) -> Run:
     return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr))
 
 
-@register("modified_pf_est", "modified PF with γ̂ from a Kalman filter on the attack model (eq. 4)")
+@register(
+    "modified_pf_est",
+    "modified PF with γ̂ from a Kalman filter on the attack model (eq. 4)",
+    needs=(ASSUMES_SENSOR_ATTACK,),
+)
 def _modified_pf_est(ctx: SuiteContext) -> Run:
     tau = float(getattr(ctx.scenario.attack_model(), "tau", 0.9))
     return modified_pf(
@@ -202,7 +220,11 @@ def deception_of(attack, dtype: torch.dtype):
     raise ValueError(f"no deception density for an attack of type {type(attack).__name__}")
 
 
-@register("mixture_likelihood_pf", "PF with the deception mixture likelihood (RRP method)")
+@register(
+    "mixture_likelihood_pf",
+    "PF with the deception mixture likelihood (RRP method)",
+    needs=(ASSUMES_DECEPTION_DENSITY,),
+)
 def _mixture_pf(ctx: SuiteContext) -> Run:
     likelihood = fdi.DeceptionMixtureLikelihood(
         *reversed(deception_of(ctx.scenario.attack_model(), ctx.dtype))
@@ -213,11 +235,23 @@ def _mixture_pf(ctx: SuiteContext) -> Run:
     )  # fmt: skip
 
 
-def default_estimators(model) -> tuple[str, ...]:
-    """The generic estimators that fit ``model`` (the KF pair only for a linear model)."""
-    names = ["normal_pf_attack_free", "normal_pf", "modified_pf", "modified_pf_est"]
-    names += ["mixture_likelihood_pf"]
-    if hasattr(model, "transition_matrix"):
-        names += ["chi_square_kf", "cusum_kf"]
-    names += ["chi_square_ekf", "cusum_ekf", "chi_square_ukf", "cusum_ukf"]
-    return tuple(names)
+#: The default suite of a scenario that does not list its estimators: every generic
+#: estimator, and the learned ones (they run with a checkpoint trained on the scenario's
+#: family, ``--ckpt``). Those whose needs a scenario does not meet are skipped with the
+#: reason (:mod:`difffilter.models.needs`).
+DEFAULT_SUITE = (
+    "normal_pf_attack_free", "normal_pf", "modified_pf", "modified_pf_est",
+    "mixture_likelihood_pf", "chi_square_kf", "cusum_kf", "chi_square_ekf", "cusum_ekf",
+    "chi_square_ukf", "cusum_ukf", "pf_nn_grad", "gaussian_nn_grad",
+)  # fmt: skip
+
+
+def default_estimators(scenario, model=None) -> tuple[str, ...]:
+    """The estimators of :data:`DEFAULT_SUITE` whose needs ``scenario`` meets (with its
+    estimators' ``model``, by default ``scenario.system()``): the KF pair only for a
+    linear model, the attack-free reference only where the true measurements are
+    attack-free, … The learned ones are among them; they still need a checkpoint."""
+    from .estimators import get
+
+    model = scenario.system() if model is None else model
+    return tuple(n for n in DEFAULT_SUITE if get(n).unmet(scenario, model) is None)

@@ -44,9 +44,9 @@ from difffilter.control import LuenbergerDesign, luenberger_gain
 from difffilter.estimator import Detection, EstimatorOutput, Generators
 from difffilter.kalman import KalmanFilter
 from difffilter.loop import LoopResult, Trajectories
-from difffilter.models.estimators import SkipEstimator, SuiteContext, register
+from difffilter.models.estimators import SkipEstimator, SuiteContext, family_register
 from difffilter.models.learned_estimator import NeuralCompensation, OnlineLearning, Residual
-from difffilter.models.lfc import LFCPlant, lqr_gain
+from difffilter.models.lfc import LFCPlant, LFCScenario, lqr_gain
 from difffilter.models.neural_estimator import NeuralFDIEstimator, load_estimator_checkpoint
 from difffilter.models.scenario import OWN_ATTACK
 from difffilter.observers import FixedGainFilter
@@ -62,6 +62,9 @@ __all__ = [
     "build_estimator",
     "ABLATIONS",
 ]
+
+#: Every estimator here runs in the LFC closed loop (its plant, LQR and observers).
+register = family_register(LFCScenario, "lfc")
 
 # The paper's settings where it gives them, [DEF] values chosen on validation otherwise
 # (python -m difffilter.train.lfc_tuning; the scores are in checkpoints/lfc_tuning.json):

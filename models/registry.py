@@ -18,6 +18,9 @@ lines, ``run_suite``, the training config's ``scenario``):
 - ``"package.module:object"``: the module is imported and ``object`` (a dotted path in it)
   is a :class:`~difffilter.models.scenario.Scenario` or a function of no arguments that
   returns one; it is registered under its own name (:func:`get` returns it);
+- ``"path/to/scenario.yaml"``: a scenario written in YAML (a linear plant's matrices, or a
+  plant given by Python function paths; :mod:`difffilter.models.yaml_scenario`),
+  registered under its ``name``;
 - installed plug-ins: every entry point of the group ``difffilter.scenarios`` (in a
   package's ``pyproject.toml``: ``[project.entry-points."difffilter.scenarios"]
   my_plant = "my_package.scenarios"``) is loaded with the built-in families. A module
@@ -34,6 +37,7 @@ import warnings
 from importlib.metadata import entry_points
 
 from .scenario import Scenario
+from .yaml_scenario import is_yaml_path, scenario_from_yaml
 
 __all__ = ["Scenario", "register", "get", "names", "families", "all_scenarios"]
 
@@ -117,6 +121,8 @@ def get(name: str) -> Scenario:
     """The scenario called ``name``, or the one a ``"package.module:object"`` path names
     (module docstring); ``ValueError`` listing the known names otherwise."""
     _load_builtin()
+    if is_yaml_path(name):
+        return _register_all(scenario_from_yaml(name), f"scenario file {name!r}")[0]
     if ":" in name:
         return _from_path(name)
     try:

@@ -39,11 +39,11 @@ from difffilter.fdi.mdpf import (
     adaptive_particle_init,
 )
 from difffilter.loop import DrawnNoise, LoopResult, _step_through, closed_loop, open_loop
-from difffilter.models.estimators import SuiteContext, register
+from difffilter.models.estimators import SuiteContext, family_register
 from difffilter.particle import ParticleState
 from difffilter.results import StepOutput
 
-from .robot import GROUPS
+from .robot import GROUPS, RobotScenario
 
 __all__ = [
     "group_measurements",
@@ -52,6 +52,10 @@ __all__ = [
     "FusedLocals",
     "CompensatingInputs",
 ]
+
+#: Every estimator here reads the robot scenario (its lidar groups) and estimates the
+#: attack on the actuators.
+register = family_register(RobotScenario, "robot", estimates="actuator")
 
 
 def _entries(group) -> list[int]:

@@ -258,17 +258,32 @@ class Scenario:
         path = Path(__file__).resolve().parents[1] / self.checkpoint
         return path if path.is_file() else None
 
-    def attack_norm_floor(self) -> float:
-        """``‖γ‖_min`` for the PoA threshold: ``gamma_min`` or half the attack's norm [DEF]."""
+    def attack_norm_floor(self, model=None) -> float:
+        """``‖γ‖_min`` for the PoA threshold (Theorem 1 of the modified-PF paper): the
+        smallest attack norm the detector must catch.
+
+        ``gamma_min`` if set; else half the steady-state norm of a sensor attack that has
+        one (``γ̄`` of eq. 4, a bias's value) [DEF]; else (a ramp or a random walk, which
+        have no steady state, an actuator attack, whose size is in input units, or no
+        attack) one measurement-noise standard deviation, ``‖√diag R‖`` of ``model``
+        [DEF]: an attack as large as the noise. ``ValueError`` when that is needed and no
+        ``model`` is given.
+        """
         if self.gamma_min is not None:
             return float(self.gamma_min)
         attack = self.attack_model()
         values = getattr(attack, "gamma_bar", None) or getattr(attack, "value", None)
-        if values is None:
+        on_sensors = Channel(getattr(attack, "channel", Channel.SENSOR)) is not Channel.ACTUATOR
+        if values is not None and on_sensors:
+            values = (values,) if isinstance(values, (int, float)) else values
+            return 0.5 * math.sqrt(sum(float(v) ** 2 for v in values))
+        if model is None:
             raise ValueError(
-                f"scenario {self.name!r}: set gamma_min (its attack has no steady-state value)"
+                f"scenario {self.name!r}: set gamma_min (its attack has no steady-state value "
+                "on the sensors) or pass the model (one noise standard deviation is the default)"
             )
-        return 0.5 * math.sqrt(sum(v * v for v in values))
+        noise_var = torch.diagonal(model.measurement_noise.cov, dim1=-2, dim2=-1)
+        return float(noise_var.sum(-1).max().sqrt())  # the largest over a batch of models
 
     def estimator_options(self) -> dict[str, Any]:
         """Settings the estimators read (family-specific; empty by default)."""
@@ -285,18 +300,30 @@ class CustomScenario(Scenario):
 
     Attributes:
         model_fn: ``dtype → StateSpaceModel``, the plant and the estimators' model.
-        attack: an attack of :mod:`difffilter.models.attacks` or ``None``.
+        attack: any :class:`~difffilter.attack.Attack`: the threat library's
+            (:mod:`difffilter.threats`: bias, ramp, random walk, pulses, sinusoid, chirp,
+            replay, covert; each with ``onset``, ``duration``, ``share`` of the runs,
+            ``entries`` and ``channel`` "sensor", "actuator" or "replacement"), the
+            papers' (:mod:`difffilter.models.attacks`), one of your own, or ``None``.
         protocol: a schedule of :mod:`difffilter.models.schedules` (default all sensors).
+        known_inputs: the commanded inputs ``u_0 … u_{T−1}`` the plant is driven with and
+            every estimator knows: a tensor ``[T, du]`` (every run) or ``[runs, T, du]``, or
+            a function of the step index ``k`` (a tensor ``[T]`` of ``0 … T−1`` in the
+            model's dtype) returning ``[T, du]`` (or ``[T]`` for one input); ``None``: no
+            inputs (zeros under an actuator attack).
         options: settings the estimators read (``cusum_bias``, ``poa_eta``/``poa_zeta``, …).
         state_unit, attack_unit: the units reports and plots name (e.g. ``"cm"``).
 
     Register it (:func:`difffilter.models.registry.register`) to run it from the CLI, or
-    pass it to :func:`difffilter.eval.suite.run_suite` directly.
+    pass it to :func:`difffilter.eval.suite.run_suite` directly; a
+    ``package.module:object`` path or a YAML file (:mod:`difffilter.models.yaml_scenario`)
+    names it on the command line.
     """
 
     model_fn: Any = field(default=None, compare=False)
     attack: Any = None
     protocol: Any = None
+    known_inputs: Any = field(default=None, compare=False)
     options: Mapping[str, Any] = field(default_factory=dict, compare=False)
     state_unit: str = "state units"
     attack_unit: str = "attack units"
@@ -304,6 +331,17 @@ class CustomScenario(Scenario):
     def __post_init__(self):
         if not callable(self.model_fn):
             raise ValueError("model_fn must be a callable dtype -> StateSpaceModel")
+        if self.attack is not None and not isinstance(self.attack, Attack):
+            raise TypeError(
+                "attack must be a difffilter.attack.Attack (e.g. difffilter.threats.Ramp) or "
+                f"None; got {type(self.attack).__name__}"
+            )
+        known = self.known_inputs
+        if known is not None and not callable(known) and not isinstance(known, Tensor):
+            raise TypeError(
+                "known_inputs must be a tensor [T, du] or [runs, T, du], a function of the "
+                f"step index k, or None; got {type(known).__name__}"
+            )
 
     def system(self, dtype: torch.dtype = torch.float64, device=None):
         return self.model_fn(dtype)
@@ -313,6 +351,33 @@ class CustomScenario(Scenario):
 
     def schedule(self):
         return self.protocol if self.protocol is not None else AllSensors()
+
+    def inputs(self, runs: int, dtype: torch.dtype, device=None) -> Tensor | None:
+        """``known_inputs`` as ``[runs, steps, du]`` (a clear error when they do not fit)."""
+        known = self.known_inputs
+        if known is None:
+            return None
+        if callable(known):
+            k = torch.arange(self.steps, dtype=dtype, device=device)
+            known = torch.as_tensor(known(k), dtype=dtype, device=device)
+            known = known.unsqueeze(-1) if known.dim() == 1 else known
+        known = known.to(dtype=dtype, device=device)
+        du = getattr(self.system(dtype), "dim_u", None)
+        wanted = (runs, self.steps, du)
+        if known.dim() == 2:
+            known = known.unsqueeze(0)
+        if (
+            known.dim() != 3
+            or known.shape[1] != self.steps
+            or known.shape[2] != du
+            or (known.shape[0] not in (1, runs))
+        ):
+            raise ValueError(
+                f"known_inputs of scenario {self.name!r} must give [steps, du] = "
+                f"[{self.steps}, {du}] or [runs, steps, du] = {list(wanted)}; got "
+                f"{list(known.shape)}"
+            )
+        return known.expand(wanted).clone()
 
     def estimator_options(self) -> dict[str, Any]:
         return dict(self.options)

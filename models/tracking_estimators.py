@@ -26,16 +26,20 @@ import torch
 
 from difffilter import fdi
 from difffilter.estimator import Detection, EstimatorOutput
-from difffilter.models.estimators import SuiteContext, get, register
+from difffilter.models.estimators import SuiteContext, family_register, get
 from difffilter.models.tracking import (
     DeceptionEKFProposal,
     PerSensorDeception,
+    TrackingScenario,
     communication_counts,
 )
 from difffilter.noise import UniformBox
 from difffilter.particle import particle_filter
 
 __all__ = ["mixture_likelihood"]
+
+#: Every estimator here reads the tracking scenario (its sensors, schedule and glint).
+register = family_register(TrackingScenario, "tracking")
 
 
 def mixture_likelihood(ctx: SuiteContext) -> fdi.DeceptionMixtureLikelihood:

@@ -13,6 +13,14 @@ import difffilter as df
 import difffilter.train.lightning_cli  # noqa: E402, F401
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _calibration_cache(tmp_path_factory):
+    """Calibrations cached on disk go to a folder of this test session, not the user's."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("DIFFFILTER_CACHE", str(tmp_path_factory.mktemp("calibration-cache")))
+        yield
+
+
 def constant_velocity(
     dtype=torch.float64, q: float = 0.1, r: float = 0.5, with_input: bool = False
 ):

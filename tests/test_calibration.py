@@ -75,11 +75,12 @@ def test_every_detector_meets_the_target_false_alarm_rate_on_fresh_attack_free_r
         assert 0.005 <= rate <= 0.02, f"{name}/{detector}: false-alarm rate {rate:.4f} at 1 %"
 
 
-def test_two_suites_of_one_scenario_calibrate_cusum_once(monkeypatch):
+def test_two_suites_of_one_scenario_calibrate_cusum_once(monkeypatch, tmp_path):
     from difffilter import fdi
     from difffilter.eval.suite import run_suite
     from difffilter.models import estimators, registry
 
+    monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path))
     estimators._CUSUM_CACHE.clear()
     calls = []
     real = fdi.cusum_detector_for
@@ -91,3 +92,33 @@ def test_two_suites_of_one_scenario_calibrate_cusum_once(monkeypatch):
     assert first.metrics["cusum_ekf"]["auc"] == second.metrics["cusum_ekf"]["auc"]
     run_suite(scenario, runs=2, seed=1, estimators=["cusum_ekf"], progress=False)
     assert len(calls) == 2  # another seed: other calibration runs
+    # a later process (the memory cache empty) reads both from the cache folder
+    estimators._CUSUM_CACHE.clear()
+    third = run_suite(scenario, runs=2, estimators=["cusum_ekf"], progress=False)
+    assert len(calls) == 2 and len(list((tmp_path / "calibrations").glob("cusum-*.json"))) == 2
+    assert third.metrics["cusum_ekf"] == {**first.metrics["cusum_ekf"],
+                                          "time_per_step_s": third.metrics["cusum_ekf"]["time_per_step_s"]}  # fmt: skip
+
+
+def test_the_calibration_cache_tells_plants_apart(tmp_path, monkeypatch):
+    from conftest import constant_velocity
+
+    from difffilter.models.calibration_cache import cached, model_fingerprint
+
+    monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path))
+    a, b = constant_velocity(q=0.1), constant_velocity(q=0.2)
+    assert model_fingerprint(a) == model_fingerprint(constant_velocity(q=0.1))
+    assert model_fingerprint(a) != model_fingerprint(b)
+
+    def f(x, dt=0.1):
+        return x + dt
+
+    def g(x, dt=0.2):
+        return x + dt
+
+    assert model_fingerprint(f) != model_fingerprint(g)  # a default argument changed
+    assert cached("t", (1,), a, lambda: {"v": 1.0}) == {"v": 1.0}
+    assert cached("t", (1,), a, lambda: {"v": 2.0}) == {"v": 1.0}  # read back
+    assert cached("t", (1,), b, lambda: {"v": 3.0}) == {"v": 3.0}  # another plant
+    monkeypatch.setenv("DIFFFILTER_CACHE", "off")
+    assert cached("t", (1,), a, lambda: {"v": 4.0}) == {"v": 4.0}

@@ -28,6 +28,7 @@ def test_every_config_is_covered():
         "four_tank",
         "four_tank_ekf",
         "four_tank_threats",
+        "generic",
         "lfc",
         "robot",
         "tracking",

@@ -431,6 +431,7 @@ class NeuralCompensation(Estimator):
             )
         self.gating = bool(gating)
         self.network, self.inner, self.channel = network, inner, channel
+        self.attack_channel = channel  # what its attack estimate â_k is on
         self.threshold = float(threshold)
         self.core = _Core(network, channel, residual, bool(standardize), features, poa_eta,
                           learning, record_inputs)  # fmt: skip

@@ -1,0 +1,108 @@
+"""Calibrations kept on disk, per scenario, seed and model parameters.
+
+A detector calibrated on attack-free runs (the CUSUM threshold τ of
+:meth:`~difffilter.models.estimators.SuiteContext.cusum`: 50 runs through a filter) gives
+the same number every time for the same scenario, seed, runs, filter, rate and model, so
+it is computed once and kept: in memory for the process, and as a small JSON file under
+the cache folder for every later process.
+
+The folder is ``$DIFFFILTER_CACHE`` if set (``off`` turns the disk cache off), else
+``$XDG_CACHE_HOME/difffilter``, else ``~/.cache/difffilter``; each calibration is
+``calibrations/<kind>-<sha256>.json``. The file name hashes the key and a fingerprint of
+the model: its type, every tensor it holds (matrices, noise covariances, the prior) and
+the code, constants and default arguments of the functions it holds (a nonlinear plant's
+``f`` and ``h``), so editing the plant gives a new file, never a stale number. Deleting
+the folder is always safe.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+
+__all__ = ["cache_folder", "model_fingerprint", "cached", "FORMAT"]
+
+#: Bumped when what a calibration computes changes: older files are then ignored.
+FORMAT = 1
+
+
+def cache_folder() -> Path | None:
+    """The cache folder (module docstring), or ``None`` when ``DIFFFILTER_CACHE=off``."""
+    env = os.environ.get("DIFFFILTER_CACHE")
+    if env is not None:
+        return None if env.strip().lower() in ("off", "0", "false", "") else Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "difffilter"
+
+
+def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
+    """Hash what determines a model's numbers: tensors by value, functions by code."""
+    if depth > 6 or id(value) in seen:
+        return
+    if isinstance(value, torch.Tensor):
+        digest.update(str((value.dtype, tuple(value.shape))).encode())
+        digest.update(value.detach().cpu().contiguous().numpy().tobytes())
+        return
+    if isinstance(value, (int, float, str, bool, type(None))):
+        digest.update(repr(value).encode())
+        return
+    seen.add(id(value))
+    if isinstance(value, (list, tuple)):
+        for item in value:
+            _feed(digest, item, seen, depth + 1)
+        return
+    if isinstance(value, dict):
+        for key in sorted(value, key=repr):
+            digest.update(repr(key).encode())
+            _feed(digest, value[key], seen, depth + 1)
+        return
+    code = getattr(value, "__code__", None)
+    if code is not None:  # a function: its code, constants, defaults and closure
+        digest.update(code.co_code)
+        digest.update(repr(code.co_consts).encode())
+        _feed(digest, getattr(value, "__defaults__", None), seen, depth + 1)
+        for cell in getattr(value, "__closure__", None) or ():
+            try:
+                _feed(digest, cell.cell_contents, seen, depth + 1)
+            except ValueError:  # an empty cell
+                pass
+        return
+    digest.update(type(value).__qualname__.encode())
+    attributes = getattr(value, "__dict__", None)
+    if attributes is not None:
+        _feed(digest, attributes, seen, depth + 1)
+
+
+def model_fingerprint(model) -> str:
+    """A hash of everything that determines ``model``'s numbers (module docstring)."""
+    digest = hashlib.sha256()
+    _feed(digest, model, set())
+    return digest.hexdigest()
+
+
+def cached(kind: str, key: tuple, model, compute):
+    """``compute()`` (a JSON-able mapping) for ``key`` and ``model``, read from the cache
+    folder when an earlier process computed it, else computed and written there."""
+    folder = cache_folder()
+    if folder is None:
+        return compute()
+    name = hashlib.sha256(repr((FORMAT, kind, key, model_fingerprint(model))).encode())
+    path = folder / "calibrations" / f"{kind}-{name.hexdigest()[:32]}.json"
+    try:
+        return json.loads(path.read_text())["value"]
+    except (OSError, ValueError, KeyError):
+        pass  # absent, unreadable or half-written: compute it again
+    value = compute()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        partial = path.with_suffix(f".{os.getpid()}.tmp")
+        partial.write_text(json.dumps({"kind": kind, "key": repr(key), "value": value}))
+        partial.replace(path)  # atomic: a reader never sees half a file
+    except OSError:
+        pass  # a read-only home: the calibration still holds for this process
+    return value

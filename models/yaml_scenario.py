@@ -1,0 +1,276 @@
+"""Scenarios written in YAML: a linear plant as matrices, or a plant given by Python paths.
+
+Wherever a scenario name is taken (both command lines, ``run_suite``, a training config),
+a path ending in ``.yaml`` or ``.yml`` names a file such as::
+
+    name: motor_actuator                 # required: the report folder, the card's scenario
+    family: user_plants                  # default "custom"
+    description: DC motor, known input, bias on the actuator
+    dt: 0.01                             # sampling period in s (default 1)
+    runs: 50                             # default Monte Carlo runs (default 100)
+    steps: 150                           # horizon (default 100)
+    num_particles: 200                   # of the particle filters (default 100)
+    false_alarm_rate: 0.01               # of the residual detectors (default 0.005)
+    gamma_min: 0.1                       # PoA's smallest attack norm (optional)
+    units: {state: rad/s, attack: V}     # what reports call state and attack units
+    plant:                               # a linear plant ...
+      F: [[0.95, 0.04], [-0.02, 0.8]]    #   x_{k+1} = F x_k + B u_k + w_k
+      B: [[0.0], [0.2]]
+      H: [[1.0, 0.0]]                    #   y_k = H x_k + v_k
+      Q: 1.0e-4                          #   a number (× I), a list (diagonal) or a matrix
+      R: 1.0e-3
+      m0: [0.0, 0.0]                     #   prior mean (default zeros) and covariance
+      P0: 1.0e-2                         #   (default I)
+    inputs: {kind: sinusoid, amplitude: 1.0, frequency: 0.5}   # known inputs (optional)
+    attack: {kind: bias, channel: actuator, value: 0.5, onset: 50, share: 0.5}
+    schedule: all                        # or {kind: round_robin, groups: [[0], [1]]},
+                                         #    {kind: packet_loss, rate: 0.1}
+    estimators: [chi_square_kf, cusum_kf]   # optional; default: the generic suite
+    options: {cusum_bias: 0.5}           # settings the estimators read (optional)
+
+A nonlinear plant names its functions by ``package.module:function`` paths, with the
+noise as above::
+
+    plant:
+      transition: my_plants:vdp_step     # f(x), f(x, u) or f(x, u, k): [..., dx] → [..., dx]
+      observe: my_plants:vdp_measure     # h(x) or h(x, k); or H: [[...]] for a linear one
+      dim_u: 0
+      Q: 1.0e-4
+      R: 1.0e-2
+      m0: [2.0, 0.0]
+      P0: 1.0e-2
+
+or the whole model by one path, ``plant: {model: my_plants:vdp}`` (a function ``dtype →
+StateSpaceModel``). ``inputs`` is ``{kind: sinusoid, amplitude, frequency (Hz), phase
+(rad)}``, ``{kind: constant, value}``, ``{values: [[...], ...]}`` (``[T, du]``) or
+``{function: module:function}`` (of the step index tensor ``k``, as
+:class:`~difffilter.models.scenario.CustomScenario`'s ``known_inputs``). ``attack`` is
+any threat of :data:`difffilter.threats.THREATS` (``kind`` and its fields), or one of
+the papers' attacks: ``sensor_bias`` (``gamma_bar``, ``tau``, ``p_l``; eqs 3–4 of the
+modified-PF paper), ``actuator_injection`` (``value``, ``start``) and ``replacement``
+(``rate``, ``low``, ``high``). Every error names the file and the field.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from difffilter.ssm import LinearGaussianModel, NonlinearGaussianModel
+from difffilter.threats import THREATS, threat_from_dict
+
+from .attacks import ActuatorInjection, Replacement, SensorBias
+from .scenario import CustomScenario
+from .schedules import AllSensors, PacketLoss, RoundRobin
+
+__all__ = ["is_yaml_path", "scenario_from_yaml", "scenario_from_dict", "PAPER_ATTACKS"]
+
+#: The papers' attacks by the names a YAML scenario uses (beside the threat library's).
+PAPER_ATTACKS = {
+    "sensor_bias": SensorBias,
+    "actuator_injection": ActuatorInjection,
+    "replacement": Replacement,
+}
+_TOP = {"name", "family", "description", "dt", "runs", "steps", "num_particles",
+        "false_alarm_rate", "gamma_min", "units", "plant", "inputs", "attack", "schedule",
+        "estimators", "options", "paper", "notes"}  # fmt: skip
+_PLANT = {"F", "B", "H", "Q", "R", "m0", "P0", "transition", "observe", "dim_u", "model"}
+
+
+def is_yaml_path(name: str) -> bool:
+    """Whether a scenario name is a YAML file's path (it ends in ``.yaml`` or ``.yml``)."""
+    return str(name).lower().endswith((".yaml", ".yml"))
+
+
+def scenario_from_yaml(path: str | Path) -> CustomScenario:
+    """The :class:`~difffilter.models.scenario.CustomScenario` a YAML file describes
+    (module docstring); ``ValueError`` naming the file and the field otherwise."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"scenario file {str(path)!r} does not exist")
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as error:
+        raise ValueError(f"scenario file {str(path)!r} is not valid YAML: {error}") from None
+    return scenario_from_dict(doc, where=str(path))
+
+
+def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> CustomScenario:
+    """The scenario of a mapping with the fields of a YAML scenario (module docstring)."""
+    if not isinstance(doc, Mapping):
+        raise ValueError(f"{where}: a scenario is a mapping of fields; got {type(doc).__name__}")
+    unknown = sorted(set(doc) - _TOP)
+    if unknown:
+        raise ValueError(f"{where}: unknown field(s) {', '.join(unknown)}; valid: "
+                         f"{', '.join(sorted(_TOP))}")  # fmt: skip
+    for key in ("name", "plant"):
+        if key not in doc:
+            raise ValueError(f"{where}: the field {key!r} is required")
+    plant = _plant(doc["plant"], f"{where}: plant")
+    probe = plant(torch.float64)
+    units = doc.get("units") or {}
+    if not isinstance(units, Mapping) or set(units) - {"state", "attack"}:
+        raise ValueError(f"{where}: units must be {{state: ..., attack: ...}}; got {units!r}")
+    settings = {k: doc[k] for k in ("runs", "steps", "num_particles") if k in doc}
+    settings.update({k: float(doc[k]) for k in ("dt", "false_alarm_rate", "gamma_min")
+                     if doc.get(k) is not None})  # fmt: skip
+    return CustomScenario(
+        name=str(doc["name"]),
+        family=str(doc.get("family", "custom")),
+        description=str(doc.get("description", f"a scenario from {where}")),
+        paper=str(doc.get("paper", "")),
+        notes=tuple(doc.get("notes", ()) or ()),
+        model_fn=plant,
+        attack=_attack(doc.get("attack"), probe, f"{where}: attack"),
+        protocol=_schedule(doc.get("schedule"), f"{where}: schedule"),
+        known_inputs=_inputs(doc.get("inputs"), float(doc.get("dt", 1.0)), f"{where}: inputs"),
+        estimators=tuple(doc.get("estimators", ()) or ()),
+        options=dict(doc.get("options", {}) or {}),
+        state_unit=str(units.get("state", "state units")),
+        attack_unit=str(units.get("attack", "attack units")),
+        **settings,
+    )
+
+
+def _import(path: Any, where: str):
+    """The object of a ``package.module:object`` path."""
+    if not isinstance(path, str) or ":" not in path:
+        raise ValueError(f"{where} must be a 'package.module:object' path; got {path!r}")
+    module_name, _, attribute = path.partition(":")
+    try:
+        obj = importlib.import_module(module_name)
+    except ImportError as error:
+        raise ValueError(f"{where}: cannot import {module_name!r} ({error})") from None
+    for part in attribute.split("."):
+        if not hasattr(obj, part):
+            raise ValueError(f"{where}: {module_name} has no {attribute!r}")
+        obj = getattr(obj, part)
+    if not callable(obj):
+        raise ValueError(f"{where}: {path} is not a function")
+    return obj
+
+
+def _matrix(value: Any, n: int | None, where: str, dtype) -> torch.Tensor:
+    """A covariance or matrix from YAML: a number (× I of size ``n``), a list (its diagonal,
+    when ``n`` is given) or a nested list (the matrix)."""
+    try:
+        t = torch.tensor(value, dtype=dtype)
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(
+            f"{where} must be a number or (nested) lists of numbers; got {value!r}"
+        ) from None
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{where} must be finite; got {value!r}")
+    if n is not None and t.dim() == 0:
+        return t * torch.eye(n, dtype=dtype)
+    if n is not None and t.dim() == 1:
+        return torch.diag(t)
+    if t.dim() != 2:
+        raise ValueError(f"{where} must be a matrix (a list of rows); got shape {list(t.shape)}")
+    return t
+
+
+def _plant(spec: Any, where: str):
+    """``dtype → StateSpaceModel`` of the plant mapping."""
+    if not isinstance(spec, Mapping):
+        raise ValueError(f"{where} must be a mapping (module docstring); got {spec!r}")
+    unknown = sorted(set(spec) - _PLANT)
+    if unknown:
+        raise ValueError(f"{where}: unknown field(s) {', '.join(unknown)}; valid: "
+                         f"{', '.join(sorted(_PLANT))}")  # fmt: skip
+    if "model" in spec:
+        return _import(spec["model"], f"{where}.model")
+    transition = (
+        _import(spec["transition"], f"{where}.transition") if "transition" in spec else None
+    )
+    observe = _import(spec["observe"], f"{where}.observe") if "observe" in spec else None
+    if transition is None and "F" not in spec:
+        raise ValueError(f"{where} needs F (a linear plant), transition (a function path) or "
+                         "model (a function dtype -> StateSpaceModel)")  # fmt: skip
+    if observe is None and "H" not in spec:
+        raise ValueError(f"{where} needs H (a linear observation) or observe (a function path)")
+    for key in ("Q", "R"):
+        if key not in spec:
+            raise ValueError(f"{where}.{key} is required (a number × I, a diagonal or a matrix)")
+
+    def build(dtype):
+        H = None if observe is not None else _matrix(spec["H"], None, f"{where}.H", dtype)
+        F = None if transition is not None else _matrix(spec["F"], None, f"{where}.F", dtype)
+        dx = F.shape[0] if F is not None else len(spec.get("m0") or [])
+        if dx == 0:
+            raise ValueError(f"{where}.m0 is required with a transition function (it sets dx)")
+        m0 = torch.tensor(spec.get("m0") or [0.0] * dx, dtype=dtype)
+        Q = _matrix(spec["Q"], dx, f"{where}.Q", dtype)
+        P0 = _matrix(spec.get("P0", 1.0), dx, f"{where}.P0", dtype)
+        dy = H.shape[0] if H is not None else observe(m0).shape[-1]
+        R = _matrix(spec["R"], dy, f"{where}.R", dtype)
+        if transition is None and observe is None:
+            B = _matrix(spec["B"], None, f"{where}.B", dtype) if "B" in spec else None
+            return LinearGaussianModel(F, H, Q, R, m0, P0, B=B)
+        if transition is None:
+            raise ValueError(f"{where}: a nonlinear observation needs a transition function too")
+        h = observe if observe is not None else (lambda x: x @ H.transpose(-1, -2))
+        return NonlinearGaussianModel(transition, h, Q, R, m0, P0,
+                                      dim_u=int(spec.get("dim_u", 0)))  # fmt: skip
+
+    return build
+
+
+def _attack(spec: Any, model, where: str):
+    if spec is None:
+        return None
+    if not isinstance(spec, Mapping) or "kind" not in spec:
+        raise ValueError(f"{where} must be a mapping with a 'kind'; got {spec!r}")
+    kind = spec["kind"]
+    if kind in PAPER_ATTACKS:
+        params = {k: v for k, v in spec.items() if k != "kind"}
+        try:
+            return PAPER_ATTACKS[kind](**params)
+        except TypeError as error:
+            raise ValueError(f"{where} ({kind}): {error}") from None
+    if kind not in THREATS:
+        valid = ", ".join(sorted((*THREATS, *PAPER_ATTACKS)))
+        raise ValueError(f"{where}: unknown kind {kind!r}; valid: {valid}")
+    try:
+        return threat_from_dict(dict(spec), model)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{where}: {error}") from None
+
+
+def _schedule(spec: Any, where: str):
+    if spec is None or spec == "all":
+        return AllSensors()
+    if isinstance(spec, Mapping) and spec.get("kind") == "round_robin":
+        return RoundRobin(tuple(tuple(g) for g in spec["groups"]), int(spec.get("start", 0)))
+    if isinstance(spec, Mapping) and spec.get("kind") == "packet_loss":
+        return PacketLoss(float(spec["rate"]))
+    raise ValueError(f"{where} must be 'all', {{kind: round_robin, groups: [[...], ...]}} or "
+                     f"{{kind: packet_loss, rate: r}}; got {spec!r}")  # fmt: skip
+
+
+def _inputs(spec: Any, dt: float, where: str):
+    if spec is None:
+        return None
+    if not isinstance(spec, Mapping):
+        raise ValueError(f"{where} must be a mapping (module docstring); got {spec!r}")
+    if "function" in spec:
+        return _import(spec["function"], f"{where}.function")
+    if "values" in spec:
+        return torch.tensor(spec["values"], dtype=torch.float64)
+    kind = spec.get("kind")
+    if kind == "sinusoid":
+        amplitude, frequency = float(spec["amplitude"]), float(spec["frequency"])
+        phase = float(spec.get("phase", 0.0))
+        return lambda k: amplitude * torch.sin(2 * math.pi * frequency * dt * k + phase)
+    if kind == "constant":
+        value = torch.tensor(spec["value"], dtype=torch.float64).reshape(-1)
+        return lambda k: value.to(k.dtype).expand(k.shape[0], value.shape[0])
+    raise ValueError(f"{where} must be {{kind: sinusoid, amplitude, frequency}}, {{kind: "
+                     f"constant, value}}, {{values: [...]}} or {{function: module:fn}}; got {spec!r}")  # fmt: skip

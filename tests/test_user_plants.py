@@ -1,0 +1,249 @@
+"""A user's own plants from outside the package, as a new user writes them: a Van der Pol
+oscillator with a ramp on one sensor, and a DC motor with a known sinusoidal input and an
+actuator attack, each as a Python module and as YAML. The default suite runs on them
+without a crash, lists what it leaves out with the reason, never scores an attack estimate
+against an attack on another channel, and the generic training config trains on them."""
+
+from __future__ import annotations
+
+import json
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+
+from difffilter.attack import Channel
+from difffilter.estimator import EstimatorOutput
+from difffilter.eval.cli import main as eval_main
+from difffilter.eval.scoring import score
+from difffilter.eval.suite import run_suite
+from difffilter.models import registry
+from difffilter.models.generic_estimators import DEFAULT_SUITE
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# The user's code: plant, attack and scenario, with the library's attacks (<= 25 lines each).
+VDP = textwrap.dedent("""
+    import torch
+    import difffilter as df
+    from difffilter.models.scenario import CustomScenario
+    from difffilter.threats import Ramp
+
+
+    def vdp_step(x, dt=0.05, mu=1.0):
+        p, v = x[..., 0], x[..., 1]
+        return torch.stack([p + dt * v, v + dt * (mu * (1 - p * p) * v - p)], -1)
+
+
+    def vdp(dtype):
+        eye = torch.eye(2, dtype=dtype)
+        return df.NonlinearGaussianModel(vdp_step, lambda x: x, 1e-4 * eye, 1e-2 * eye,
+                                         torch.tensor([2.0, 0.0], dtype=dtype), 1e-2 * eye)
+
+
+    vdp_ramp = CustomScenario(
+        name="vdp_ramp", family="user_plants", description="Van der Pol, ramp on the position sensor",
+        model_fn=vdp, attack=Ramp(slope=0.01, entries=(0,), onset=20, share=0.5),
+        runs=4, steps=50, dt=0.05, num_particles=100, false_alarm_rate=0.01)
+""")
+MOTOR = textwrap.dedent("""
+    import math
+    import torch
+    import difffilter as df
+    from difffilter.models.scenario import CustomScenario
+    from difffilter.threats import Bias
+
+
+    def motor(dtype):
+        F = torch.tensor([[0.95, 0.04], [-0.02, 0.8]], dtype=dtype)
+        B, H = torch.tensor([[0.0], [0.2]], dtype=dtype), torch.tensor([[1.0, 0.0]], dtype=dtype)
+        eye = torch.eye(2, dtype=dtype)
+        return df.LinearGaussianModel(F, H, 1e-4 * eye, 1e-3 * torch.eye(1, dtype=dtype),
+                                      torch.zeros(2, dtype=dtype), 1e-2 * eye, B=B)
+
+
+    motor_actuator = CustomScenario(
+        name="motor_actuator", family="user_plants", description="DC motor, actuator bias",
+        model_fn=motor, known_inputs=lambda k: torch.sin(2 * math.pi * 0.5 * 0.01 * k),
+        attack=Bias(value=0.5, channel="actuator", onset=20, share=0.5),
+        runs=4, steps=50, dt=0.01, num_particles=100, false_alarm_rate=0.01,
+        state_unit="rad/s, A", attack_unit="V")
+""")
+VDP_YAML = textwrap.dedent("""
+    name: vdp_ramp_yaml
+    family: user_plants
+    description: Van der Pol oscillator, ramp on the position sensor
+    dt: 0.05
+    runs: 4
+    steps: 50
+    num_particles: 100
+    false_alarm_rate: 0.01
+    plant:
+      transition: user_vdp:vdp_step
+      H: [[1.0, 0.0], [0.0, 1.0]]
+      Q: 1.0e-4
+      R: 1.0e-2
+      m0: [2.0, 0.0]
+      P0: 1.0e-2
+    attack: {kind: ramp, slope: 0.01, entries: [0], onset: 20, share: 0.5}
+""")
+MOTOR_YAML = textwrap.dedent("""
+    name: motor_actuator_yaml
+    family: user_plants
+    description: DC motor, known sinusoidal input, bias on the actuator
+    dt: 0.01
+    runs: 4
+    steps: 50
+    num_particles: 100
+    false_alarm_rate: 0.01
+    units: {state: "rad/s, A", attack: V}
+    plant:
+      F: [[0.95, 0.04], [-0.02, 0.8]]
+      B: [[0.0], [0.2]]
+      H: [[1.0, 0.0]]
+      Q: 1.0e-4
+      R: 1.0e-3
+      P0: 1.0e-2
+    inputs: {kind: sinusoid, amplitude: 1.0, frequency: 0.5}
+    attack: {kind: bias, channel: actuator, value: 0.5, onset: 20, share: 0.5}
+""")
+
+
+@pytest.fixture
+def plants(tmp_path, monkeypatch):
+    """The two modules and the two YAML files in a folder outside the package."""
+    (tmp_path / "user_vdp.py").write_text(VDP)
+    (tmp_path / "user_motor.py").write_text(MOTOR)
+    (tmp_path / "vdp.yaml").write_text(VDP_YAML)
+    (tmp_path / "motor.yaml").write_text(MOTOR_YAML)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    registry.names()  # the built-in families, before the snapshot
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
+    monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path / "cache"))
+    yield tmp_path
+    for name in ("user_vdp", "user_motor"):
+        sys.modules.pop(name, None)
+
+
+def test_the_user_code_is_short():
+    for code in (VDP, MOTOR):
+        assert len(code.strip().splitlines()) <= 25
+
+
+def _evaluate(path: str, out: Path) -> dict:
+    assert eval_main(["--scenario", path, "--out", str(out), "--no-progress"]) == 0
+    name = registry.get(path).name
+    return json.loads((out / name / "metrics.json").read_text())
+
+
+@pytest.mark.parametrize("path", ["user_vdp:vdp_ramp", "{tmp}/vdp.yaml"])
+def test_the_oscillator_runs_the_default_suite(plants, path):
+    doc = _evaluate(path.format(tmp=plants), plants / "reports")
+    ran, skipped = set(doc["estimators"]), doc["skipped"]
+    assert ran | set(skipped) == set(DEFAULT_SUITE) and not ran & set(skipped)
+    assert "linear model" in skipped["chi_square_kf"] and "linear model" in skipped["cusum_kf"]
+    assert "deception density" in skipped["mixture_likelihood_pf"]
+    assert "checkpoint" in skipped["pf_nn_grad"]
+    # a ramp has no steady state: PoA's ‖γ‖_min defaults to one noise std, no error
+    assert {"normal_pf", "modified_pf", "normal_pf_attack_free"} <= ran
+    # a sensor attack: the sensor-side estimates are scored against it
+    assert doc["estimators"]["modified_pf_est"]["attack_rmse"] is not None
+    assert doc["estimators"]["chi_square_ekf"]["auc"] > 0.6
+
+
+@pytest.mark.parametrize("path", ["user_motor:motor_actuator", "{tmp}/motor.yaml"])
+def test_the_motor_runs_the_default_suite_and_nothing_compares_channels(plants, path):
+    doc = _evaluate(path.format(tmp=plants), plants / "reports")
+    ran, skipped = set(doc["estimators"]), doc["skipped"]
+    assert ran | set(skipped) == set(DEFAULT_SUITE)
+    # y carries the actuator attack: no attack-free reference, no sensor-side oracle
+    assert "no attack-free reference" in skipped["normal_pf_attack_free"]
+    assert "actuators" in skipped["modified_pf"] and "actuators" in skipped["modified_pf_est"]
+    assert {"chi_square_kf", "cusum_kf", "normal_pf"} <= ran
+    for name, metrics in doc["estimators"].items():
+        assert metrics["state_rmse_vs_attack_free"] is None, name
+        assert metrics["attack_rmse"] is None, name  # no estimate of the actuator attack here
+    assert doc["scenario_units"]["attack"] == "V"
+
+
+def test_yaml_and_python_give_the_same_motor(plants):
+    py, yml = registry.get("user_motor:motor_actuator"), registry.get(f"{plants}/motor.yaml")
+    gens = {k: torch.Generator().manual_seed(3) for k in ("plant", "attack", "schedule")}
+    a = py.simulate(3, gens)
+    gens = {k: torch.Generator().manual_seed(3) for k in ("plant", "attack", "schedule")}
+    b = yml.simulate(3, gens)
+    torch.testing.assert_close(a.us, b.us)
+    torch.testing.assert_close(a.x, b.x)
+    torch.testing.assert_close(a.attack, b.attack)
+
+
+def test_scoring_refuses_an_estimate_of_another_channel():
+    B, T = 2, 5
+    flags = torch.zeros(B, T, dtype=torch.bool)
+    flags[:, 2:] = True
+
+    class Traj:  # one sensor, one actuator: the shapes agree, the quantities do not
+        x = torch.zeros(B, T, 2)
+        attack = torch.ones(B, T, 1) * flags.unsqueeze(-1)
+        info = {"attack_channel": Channel.ACTUATOR}
+
+    Traj.flags = flags
+    sensor_side = EstimatorOutput(torch.zeros(B, T, 2), attack=torch.zeros(B, T, 1))
+    assert score(sensor_side, Traj, dt=1.0, wall_s=0.0)["attack_rmse"] is None
+    actuator_side = EstimatorOutput(torch.zeros(B, T, 2), attack=torch.zeros(B, T, 1),
+                                    attack_channel="actuator")  # fmt: skip
+    assert score(actuator_side, Traj, dt=1.0, wall_s=0.0)["attack_rmse"] == pytest.approx(1.0)
+
+
+def test_another_familys_estimator_by_name_is_skipped_with_the_reason(plants):
+    scenario = registry.get("user_vdp:vdp_ramp")
+    result = run_suite(scenario, runs=2, progress=False,
+                       estimators=["kf_nn_ekf", "zhang_akf", "rrp_pf_da", "kf_linearised", "ekf"])  # fmt: skip
+    assert list(result.outputs) == ["ekf"]
+    assert "lfc family" in result.skipped["kf_nn_ekf"]
+    assert "robot family" in result.skipped["zhang_akf"]
+    assert "tracking family" in result.skipped["rrp_pf_da"]
+    assert "needs a FourTankModel" in result.skipped["kf_linearised"]
+
+
+@pytest.mark.parametrize("path", ["user_motor:motor_actuator", "{tmp}/motor.yaml",
+                                  "user_vdp:vdp_ramp"])  # fmt: skip
+def test_the_generic_config_trains_on_them(plants, path, monkeypatch):
+    from difffilter.train.cli import main as train_main
+
+    monkeypatch.chdir(plants)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    config = str(ROOT / "train" / "configs" / "generic.yaml")
+    assert train_main(["fit", "--config", config, "--scenario", path.format(tmp=plants),
+                       "--trainer.fast_dev_run=1", "--data.init_args.val_runs=2",
+                       "--data.init_args.batch_size=2"]) == 0  # fmt: skip
+
+
+def test_a_bad_yaml_scenario_names_the_file_and_the_field(tmp_path):
+    from difffilter.models.yaml_scenario import scenario_from_yaml
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\nplant: {F: [[1.0]], H: [[1.0]], Q: 1.0}\n")
+    with pytest.raises(ValueError, match=r"bad.yaml: plant.R is required"):
+        scenario_from_yaml(bad)
+    bad.write_text("name: x\nplant: {F: [[1.0]], H: [[1.0]], Q: 1.0, R: 1.0}\nattak: {}\n")
+    with pytest.raises(ValueError, match=r"bad.yaml: unknown field\(s\) attak"):
+        scenario_from_yaml(bad)
+    bad.write_text("name: x\nplant: {F: [[1.0]], H: [[1.0]], Q: 1.0, R: 1.0}\n"
+                   "attack: {kind: ramp, slop: 1}\n")  # fmt: skip
+    with pytest.raises(ValueError, match=r"bad.yaml: attack: threat 'ramp' has no field\(s\) slop"):
+        scenario_from_yaml(bad)
+    with pytest.raises(ValueError, match="does not exist"):
+        registry.get(str(tmp_path / "missing.yaml"))
+
+
+def test_known_inputs_that_do_not_fit_say_so(plants):
+    import dataclasses
+
+    scenario = registry.get("user_motor:motor_actuator")
+    wrong = dataclasses.replace(scenario, known_inputs=torch.zeros(10, 1))
+    with pytest.raises(ValueError, match=r"known_inputs .* \[50, 1\]"):
+        wrong.inputs(2, torch.float64)
+    assert scenario.inputs(3, torch.float64).shape == (3, 50, 1)
