@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 RUNS ?=
 OUT ?= reports
 
-.PHONY: demo test test-min bench lint venv clean
+.PHONY: demo test test-slow test-all test-min bench lint venv clean
 
 venv: $(STAMP)
 
@@ -21,7 +21,17 @@ $(STAMP): pyproject.toml constraints.txt
 demo: $(STAMP)
 	$(VENV)/bin/difffilter-eval all --out $(OUT) $(if $(RUNS),--runs $(RUNS),)
 
+# `make test` leaves out the `slow` group (tests/conftest.py: end-to-end command-line runs,
+# trainings, multi-process and many-run statistical checks); `make test-slow` runs it;
+# `make test-all` runs everything; CI (.ci/run) runs both groups.
 test: $(STAMP)
+	$(PY) -m ruff check .
+	$(PY) -m pytest -q -m "not slow"
+
+test-slow: $(STAMP)
+	$(PY) -m pytest -q -m slow
+
+test-all: $(STAMP)
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q
 

@@ -13,6 +13,42 @@ import difffilter as df
 import difffilter.train.lightning_cli  # noqa: E402, F401
 
 
+#: The ``slow`` group (``pytest -m slow``; ``make test-slow``; CI runs it): end-to-end runs
+#: of the command lines and trainings, multi-process runs, and statistical checks over many
+#: Monte Carlo runs, each taking seconds to tens of seconds. ``make test`` runs the rest
+#: (``-m "not slow"``). A file name marks every test of the file (their module fixtures are
+#: the cost), ``file::test`` one test with all its parameters.
+SLOW = (
+    # whole files: a module fixture simulates or trains for tens of seconds
+    "test_lfc_acceptance.py", "test_lfc_eval.py", "test_stealthy.py", "test_lfc_train.py",
+    "test_four_tank_eval.py", "test_eval_devices.py", "test_docs_your_own_plant.py",
+    "test_user_plants.py", "test_watermark.py", "test_train_logging.py", "test_sweep.py",
+    "test_metrics_schema.py", "test_robustness.py",
+    # single tests
+    "test_adversarial.py::test_an_adversarial_fit_crafts_after_the_first_validation_and_logs_it",
+    "test_calibrate_checkpoint.py::test_a_calibrated_lfc_checkpoint_alarms_at_its_threshold_instead_of_three_sigma",
+    "test_calibration.py::test_every_detector_meets_the_target_false_alarm_rate_on_fresh_attack_free_runs",
+    "test_gradients.py::test_optimal_transport_resampling_gradient_is_close",
+    "test_gradients.py::test_soft_resampling_gradient_is_close",
+    "test_gradients.py::test_stop_gradient_resampling_gives_consistent_gradient",
+    "test_learned_estimator.py::test_ekf_trainer_learns_the_attack_and_its_export_evaluates_as_pf_nn_ekf",
+    "test_learned_estimator.py::test_task_fit_export_and_evaluate_round_trip",
+    "test_particle.py::test_every_resampler_gives_a_consistent_filter",
+    "test_particle.py::test_pf_log_likelihood_error_shrinks_with_particles",
+    "test_particle.py::test_pf_log_likelihood_within_three_standard_errors_of_kf",
+    "test_step_objects.py::test_every_module_imports_alone",
+    "test_kalman.py::test_gradcheck_kf_log_likelihood_wrt_F_Q_R",
+    "test_particle.py::test_pf_means_agree_with_kf_within_monte_carlo_error",
+)  # fmt: skip
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        path = item.nodeid.split("[")[0].split("/")[-1]  # file.py::test, parameters dropped
+        if path.split("::")[0] in SLOW or path in SLOW:
+            item.add_marker(pytest.mark.slow)
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _calibration_cache(tmp_path_factory):
     """Calibrations cached on disk go to a folder of this test session, not the user's."""
