@@ -63,8 +63,7 @@ def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
         return
     code = getattr(value, "__code__", None)
     if code is not None:  # a function: its code, constants, defaults and closure
-        digest.update(code.co_code)
-        digest.update(repr(code.co_consts).encode())
+        _feed_code(digest, code)
         _feed(digest, getattr(value, "__defaults__", None), seen, depth + 1)
         for cell in getattr(value, "__closure__", None) or ():
             try:
@@ -76,6 +75,17 @@ def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
     attributes = getattr(value, "__dict__", None)
     if attributes is not None:
         _feed(digest, attributes, seen, depth + 1)
+
+
+def _feed_code(digest, code) -> None:
+    """A code object by its bytecode and constants, nested functions' code included (their
+    ``repr`` holds a memory address, which would change the hash in every process)."""
+    digest.update(code.co_code)
+    for const in code.co_consts:
+        if hasattr(const, "co_code"):
+            _feed_code(digest, const)
+        else:
+            digest.update(repr(const).encode())
 
 
 def model_fingerprint(model) -> str:

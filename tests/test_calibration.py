@@ -122,3 +122,19 @@ def test_the_calibration_cache_tells_plants_apart(tmp_path, monkeypatch):
     assert cached("t", (1,), b, lambda: {"v": 3.0}) == {"v": 3.0}  # another plant
     monkeypatch.setenv("DIFFFILTER_CACHE", "off")
     assert cached("t", (1,), a, lambda: {"v": 4.0}) == {"v": 4.0}
+
+
+def test_a_fingerprint_is_the_same_in_every_process(tmp_path):
+    """A nested function's code object has an address in its repr: hashed by content, the
+    fingerprint (and so the cache file) is the same in a later process."""
+    import subprocess
+    import sys
+
+    (tmp_path / "fp_plant.py").write_text(
+        "def make(scale=2.0):\n    def f(x):\n        return scale * x\n    return f\n"
+    )
+    code = ("import fp_plant; from difffilter.models.calibration_cache import model_fingerprint;"
+            " print(model_fingerprint(fp_plant.make()))")  # fmt: skip
+    runs = [subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
+                           text=True, check=True).stdout for _ in range(2)]  # fmt: skip
+    assert runs[0] == runs[1] and len(runs[0].strip()) == 64
