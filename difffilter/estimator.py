@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from ._checks import check_carry_batch, check_model, check_step_inputs
+from ._vouched import Established, vouch, vouched
 from .attack import Channel
 from .results import FilterResult, StepOutput
 
@@ -182,6 +183,9 @@ class Estimator:
 
     ``init`` and ``step`` validate their inputs and name the offending argument; the
     drivers validate whole sequences once and call the unchecked ``_init``/``_step``.
+    The online ``step`` validates a carry once: the carries it returns are vouched for
+    (:mod:`difffilter._vouched`), so a later step re-checks only ``y``, ``u`` and
+    ``mask`` (shape, dtype, device, finiteness) unless :attr:`full_checks` is set.
     Subclasses implement ``_init(model, batch_shape, generators)``,
     ``_step(carry, y, u, mask)`` and ``_check_carry(carry)`` (what a valid carry is), and
     may provide a whole-sequence fast path ``_run(carry, ys, us, mask)`` returning an
@@ -191,6 +195,10 @@ class Estimator:
 
     #: The carry type ``_init`` returns (checked by :meth:`step`).
     carry_type: type = tuple
+    #: ``True``: :meth:`step` validates every carry and input in full, as if it had never
+    #: seen the carry (``estimator.full_checks = True``, or on a subclass). ``False``
+    #: (default): a carry the object's own ``step`` returned is trusted while unchanged.
+    full_checks: bool = False
     #: The channel of the attack the step estimates (``StepOutput.attack``), marked on the
     #: stacked :class:`EstimatorOutput`: the sensors unless the estimator says otherwise.
     attack_channel: Channel = Channel.SENSOR
@@ -203,7 +211,21 @@ class Estimator:
 
     def step(self, carry, y: Tensor, u: Tensor | None = None, mask: Tensor | None = None):
         """One step ``k−1 → k`` with ``y_k``, ``u_{k−1}`` and ``mask_k``; returns
-        ``(carry, StepOutput)``. The carry given is not modified."""
+        ``(carry, StepOutput)``. The carry given is not modified.
+
+        A carry this estimator object returned (from an earlier ``step``), unchanged since,
+        is not validated again: only ``y``, ``u`` and ``mask`` are, against the shapes,
+        dtype and device the first step established (:mod:`difffilter._vouched`). Any
+        other carry, and inputs of another shape or dtype, get the full checks and their
+        errors; set :attr:`full_checks` to run them at every step.
+        """
+        established = None if self.full_checks else vouched(self, carry)
+        if established is not None:
+            fit = established.admits(y, u, mask)
+            if fit is not None:
+                new, out = self._step(carry, *fit)
+                vouch(new, established)
+                return new, out
         if not isinstance(carry, self.carry_type):
             raise TypeError(
                 f"carry must be a {self.carry_type.__name__} (from {type(self).__name__}.init); "
@@ -213,7 +235,10 @@ class Estimator:
         self._check_carry(carry)
         y, u, mask = check_step_inputs(model, None, y, u, mask)
         check_carry_batch(self.batch_of(carry), y, u, mask)
-        return self._step(carry, y, u, mask)
+        new, out = self._step(carry, y, u, mask)
+        if not self.full_checks:
+            vouch(new, Established(self, y, self.batch_of(new), model.dim_y, model.dim_u))
+        return new, out
 
     def batch_of(self, carry) -> torch.Size:
         """The batch shape of the runs a carry holds."""

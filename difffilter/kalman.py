@@ -186,6 +186,14 @@ class KalmanFilter(GaussianFilter):
             state = state._replace(gains=GainSchedule(model))
         return state
 
+    def _step(self, carry, y, u, mask):
+        if carry.gains is not None and mask is None:
+            # the fused step of the shared gains: about eight tensor operations per step
+            mean, pred, nu, log_lik, m = carry.gains.filter_step(carry.mean, y, u, carry.k + 1)
+            out = StepOutput(mean, m.cov, pred, m.pred_cov, nu, m.innovation_cov, log_lik)
+            return GaussianState(mean, m.cov, carry.k + 1, carry.model, carry.gains), out
+        return self.update(carry, self.predict(carry, u), y, mask)
+
     def predict(self, carry, u):
         if carry.gains is not None:
             return Prediction(carry.gains.predict(carry.mean, u),

@@ -51,6 +51,14 @@ def register_tensor(module: nn.Module, name: str, value: Tensor) -> None:
         module.register_buffer(name, value)
 
 
+def _registered(module: nn.Module, name: str) -> Tensor:
+    """``module.<name>`` of a tensor registered by :func:`register_tensor`, read from its
+    dict: ``nn.Module.__getattr__`` is a Python fallback of about a microsecond, and a
+    filter step reads a noise model's tensors several times."""
+    value = module._buffers.get(name)
+    return value if value is not None else module._parameters[name]
+
+
 def _shape(sample_shape) -> torch.Size:
     if isinstance(sample_shape, int):
         return torch.Size([sample_shape])
@@ -136,7 +144,7 @@ class Gaussian(NoiseModel):
         tensor's version counter (filters call it at every step); a diagonal factor
         lets sampling and densities skip the triangular matrix products.
         """
-        src = self._cov if self._given == "cov" else self._scale_tril
+        src = _registered(self, "_cov" if self._given == "cov" else "_scale_tril")
         if src.requires_grad or src.is_inference():  # inference tensors have no version
             return self._compute_scale_tril(), None
         key = (src.data_ptr(), src._version, src.dtype, src.device, tuple(src.shape))
@@ -153,7 +161,7 @@ class Gaussian(NoiseModel):
     def _zero_loc(self) -> bool:
         """Whether ``loc`` is a constant zero vector (noise models usually are): lets
         sampling and densities skip a pass over the samples. Cached like the factor."""
-        loc = self.loc
+        loc = _registered(self, "loc")
         if loc.requires_grad:
             return False
         if loc.is_inference():  # no version counter to cache against
@@ -210,7 +218,8 @@ class Gaussian(NoiseModel):
         (one fewer pass over ``[..., N, d]`` particle tensors per filter step).
         """
         L, diag = self._factor()
-        if diag is None or diag.dim() != 1 or self.loc.dim() != 1 or not self._zero_loc():
+        loc = _registered(self, "loc")
+        if diag is None or diag.dim() != 1 or loc.dim() != 1 or not self._zero_loc():
             return value + self.sample(value.shape[:-1], generator).reshape(value.shape)
         eps = torch.randn(value.shape, generator=generator, dtype=L.dtype, device=L.device)
         return rowwise_addcmul(value, eps, diag)
@@ -224,9 +233,24 @@ class Gaussian(NoiseModel):
         if diag is not None:
             # Σᵢ rᵢ²/σᵢ² as a matrix-vector product: a reduction over a short last
             # dimension is an order of magnitude slower on CPU.
-            maha = (residual * residual) @ diag.square().reciprocal()
-            return -0.5 * maha - (torch.log(diag).sum() + 0.5 * self.dim * LOG_2PI)
+            inv_var, log_norm = self._diagonal_terms(diag)
+            maha = (residual * residual) @ inv_var
+            return -0.5 * maha - log_norm
         return gaussian_log_prob_chol(residual, L)
+
+    def _diagonal_terms(self, diag: Tensor) -> tuple[Tensor, Tensor]:
+        """``(1/σ² [d], Σ log σ + (d/2) log 2π)`` of a diagonal factor ``σ = diag``: what
+        every density evaluation needs, kept with the cached factor (the same numbers,
+        five fewer tensor operations per call; a filter step on a hundred particles is a
+        few dozen small operations, so their number is its cost)."""
+        cached = getattr(self, "_factor_cache", None)
+        if cached is not None and cached[2] is diag and len(cached) > 3:
+            return cached[3]
+        terms = (diag.square().reciprocal(), torch.log(diag).sum() + 0.5 * self.dim * LOG_2PI)
+        # (not inference tensors: a later density with gradients saves 1/σ² for backward)
+        if cached is not None and cached[2] is diag and not torch.is_inference_mode_enabled():
+            self._factor_cache = (*cached[:3], terms)
+        return terms
 
 
 class GaussianMixture(NoiseModel):

@@ -437,7 +437,7 @@ def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator):
     need [...], uniform)`` (``uniform``: the weights are now exactly −log N in every row)."""
     n = particles.shape[-2]
     need = (_ess(log_w) if ess is None else ess) < pf.ess_threshold * n
-    count = int(need.sum())
+    count = int(need.item()) if need.dim() == 0 else int(need.sum())  # one run: one read
     if not count:
         return particles, log_w, w, need, False
     resampler, uniform = pf.resampler, False
@@ -476,7 +476,7 @@ def _particle_step(pf: ParticleFilter, carry: ParticleState, y, u, mask):
         pred_mean = new.mean(-2)
     else:
         pred_w = (w if correction is None and w is not None else torch.exp(prior_lw)).unsqueeze(-2)
-        pred_mean = (pred_w @ new).squeeze(-2)  # [..., 1, N] @ [..., N, dx]
+        pred_mean = _weighted_mean(pred_w, new)
     if pf.innovations or uses_predictive:
         pred_w = torch.exp(prior_lw).unsqueeze(-2) if pred_w is None else pred_w
         obs = model.observe(new, k + 1)
@@ -529,13 +529,20 @@ def _normalise(joint: Tensor, prior_lw: Tensor):
     weights ``e / Σe`` and the increment ``log Σe + max`` without a second exp pass).
     Degenerate runs (every joint weight −inf, or NaN) reset to the predictive weights
     ``prior_lw`` (module docstring): one host sync per step, the reset only when needed."""
-    top = joint.detach().amax(-1, keepdim=True)
-    e = torch.exp(joint - top)
-    total = e.sum(-1, keepdim=True)
-    increment = (torch.log(total) + top).squeeze(-1)
-    log_w, w = joint - increment.unsqueeze(-1), e / total
+    if joint.dim() == 1:  # one run: the same numbers without the keepdim reshapes
+        top = joint.detach().amax(-1)
+        e = torch.exp(joint - top)
+        total = e.sum(-1)
+        increment = torch.log(total) + top
+        log_w, w = joint - increment, e / total
+    else:
+        top = joint.detach().amax(-1, keepdim=True)
+        e = torch.exp(joint - top)
+        total = e.sum(-1, keepdim=True)
+        increment = (torch.log(total) + top).squeeze(-1)
+        log_w, w = joint - increment.unsqueeze(-1), e / total
     degenerate = ~torch.isfinite(increment)
-    if bool(degenerate.any()):
+    if bool(degenerate if degenerate.dim() == 0 else degenerate.any()):
         increment = torch.logsumexp(joint, dim=-1)  # −inf (not NaN) where all are −inf
         log_w = torch.where(degenerate.unsqueeze(-1), prior_lw, log_w)
         w = torch.exp(log_w)
@@ -569,7 +576,7 @@ def _moments(
     normalised ``weights [..., N]``; the covariance of the first ``c = cov_dims``
     components (default all ``d``)."""
     w = weights.unsqueeze(-2)
-    mean = (w @ particles).squeeze(-2)
+    mean = _weighted_mean(w, particles)
     # deviations laid out [..., c, N]: the subtraction and the weighting then broadcast
     # along the long particle axis (a short last axis runs ~2x slower on CPU); no copy
     # for component-major particles ([..., d, N] in memory)
@@ -579,6 +586,15 @@ def _moments(
     dev = rows.contiguous() - centre
     cov = (dev * w) @ dev.transpose(-1, -2)
     return mean, symmetrize(cov)
+
+
+def _weighted_mean(w: Tensor, particles: Tensor) -> Tensor:
+    """``Σᵢ wᵢ xᵢ`` ``[..., d]`` for row weights ``w [..., 1, N]`` and ``particles [..., N, d]``:
+    one batched product (one run: a vector-matrix product, the same numbers without the
+    two reshapes)."""
+    if particles.dim() == 2:
+        return w.squeeze(0) @ particles
+    return (w @ particles).squeeze(-2)  # [..., 1, N] @ [..., N, dx]
 
 
 def particle_filter(

@@ -181,7 +181,7 @@ class FourTankModel(StateSpaceModel):
         s = torch.sqrt(x.clamp_min(0.0))
         offset, diag, couple = self._step_coefficients(x)
         out = torch.addcmul(x + offset, s, diag)
-        return torch.addcmul(out, s.index_select(-1, self._couple_index), couple)
+        return torch.addcmul(out, s.index_select(-1, self._buffers["_couple_index"]), couple)
 
     def sqrt_affine_form(self) -> tuple[Tensor, Tensor]:
         """``(M [4, 4], c [4])`` with ``transition(x) = x + c + √max(x, 0) @ M``.
@@ -201,7 +201,10 @@ class FourTankModel(StateSpaceModel):
         inner loop of 4 (about ten times slower than a same-shape operand on CPU), so for
         large inputs full-size copies are built once and cached for that shape.
         """
-        coefs = (self.step_offset, self.step_diag, self.step_couple)
+        # (read from the buffer dict: nn.Module.__getattr__ costs a microsecond per read,
+        # as much as an operation on a hundred particles)
+        buffers = self._buffers
+        coefs = (buffers["step_offset"], buffers["step_diag"], buffers["step_couple"])
         if x.numel() < 4096 or any(c.requires_grad for c in coefs) or x.shape[-1] != 4:
             return coefs
         key = (tuple(x.shape), x.dtype, x.device) + tuple((c.data_ptr(), c._version) for c in coefs)

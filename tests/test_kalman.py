@@ -392,3 +392,68 @@ def test_gain_schedule_reproduces_the_kalman_filter_with_inputs():
         df.GainSchedule(batched)
     with pytest.raises(ValueError, match="k must be"):
         schedule.gain(0)
+
+
+def _random_linear_model(dx=5, dy=3, du=2, seed=7):
+    """A stable linear-Gaussian model with full matrices (every product of the recursion
+    rounds), float64."""
+    gen = torch.Generator().manual_seed(seed)
+
+    def spd(d):
+        a = torch.randn(d, d, generator=gen, dtype=torch.float64)
+        return a @ a.T / d + 0.1 * torch.eye(d, dtype=torch.float64)
+
+    a = torch.randn(dx, dx, generator=gen, dtype=torch.float64)
+    F = 0.95 * a / torch.linalg.matrix_norm(a, 2)
+    H = torch.randn(dy, dx, generator=gen, dtype=torch.float64)
+    B = torch.randn(dx, du, generator=gen, dtype=torch.float64)
+    m0 = torch.randn(dx, generator=gen, dtype=torch.float64)
+    return df.LinearGaussianModel(F, H, 0.1 * spd(dx), spd(dy), m0, spd(dx), B=B)
+
+
+def test_the_gain_schedule_is_the_gaussian_core_recursion():
+    """The gain schedule's written-out recursion (fused products, K from the whitening)
+    gives the Gaussian core's moments (difffilter.gaussian, as the shared-covariance path
+    runs them) up to round-off, every step until its gain converged."""
+    from difffilter._shared_cov import _covariances
+    from difffilter.linalg import LOG_2PI
+
+    model = _random_linear_model()
+    schedule = df.GainSchedule(model)
+    schedule.moments(200)
+    n = len(schedule._moments)
+    assert schedule.converged and n < 200
+    F, H = model.transition_matrix(0), model.observation_matrix(1)
+    Q, R = model.process_cov(0), model.measurement_cov(1)
+    pred, covs, innov, gains, whiten, half_logdet = _covariances(F, H, Q, R, model.initial.cov, n)
+    for k in range(1, n + 1):
+        m = schedule.moments(k)
+        for got, want in ((m.pred_cov, pred), (m.cov, covs), (m.innovation_cov, innov),
+                          (m.gain, gains), (m.whiten, whiten)):  # fmt: skip
+            torch.testing.assert_close(got, want[k - 1], rtol=0, atol=1e-12)
+        log_norm = half_logdet[k - 1] + 0.5 * H.shape[0] * LOG_2PI
+        torch.testing.assert_close(m.log_norm, log_norm, rtol=0, atol=1e-12)
+    assert schedule.moments(n + 50) is schedule.moments(n)  # the last moments, once converged
+
+
+@pytest.mark.parametrize("batch", [(), (4,), (2, 3)])
+@pytest.mark.parametrize("with_input", [False, True])
+def test_the_fused_gain_step_is_predict_update_and_evidence(batch, with_input):
+    """GainSchedule.filter_step (one run: matrix-vector products; rows: GEMMs) equals
+    predict, update and log N(ν; 0, S) (1e-12)."""
+    model = _random_linear_model()
+    schedule = df.GainSchedule(model)
+    gen = torch.Generator().manual_seed(1)
+    mean = torch.randn(*batch, 5, generator=gen, dtype=torch.float64)
+    y = torch.randn(*batch, 3, generator=gen, dtype=torch.float64)
+    u = torch.randn(*batch, 2, generator=gen, dtype=torch.float64) if with_input else None
+    for k in (1, 2, 7):
+        new, pred, nu, log_lik, m = schedule.filter_step(mean, y, u, k)
+        want_pred = schedule.predict(mean, u)
+        want_new, want_nu, S = schedule.update(want_pred, y, k)
+        want_ll = torch.distributions.MultivariateNormal(torch.zeros(3, dtype=S.dtype), S)
+        for got, want in ((pred, want_pred), (new, want_new), (nu, want_nu),
+                          (log_lik, want_ll.log_prob(want_nu))):  # fmt: skip
+            assert got.shape == want.shape
+            torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+        assert m is schedule.moments(k)

@@ -139,3 +139,27 @@ def test_noise_models_work_on_inference_mode_tensors():
         x = g.sample((3,), torch.Generator().manual_seed(0))
         assert torch.isfinite(g.log_prob(x)).all()
         assert torch.allclose(box.log_prob(torch.full((2,), 0.5)), torch.tensor(0.0))
+
+
+def test_a_diagonal_density_follows_its_covariance_changed_in_place():
+    """The density's cached 1/σ² and normaliser follow the covariance's version counter."""
+    f64 = torch.float64
+    g = Gaussian(torch.zeros(3, dtype=f64), torch.diag(torch.tensor([1.0, 2.0, 3.0], dtype=f64)))
+    x = torch.randn(5, 3, dtype=f64, generator=torch.Generator().manual_seed(0))
+    before = g.log_prob(x)
+    with torch.no_grad():
+        g._cov.mul_(4.0)
+    fresh = Gaussian(
+        torch.zeros(3, dtype=f64), torch.diag(torch.tensor([4.0, 8.0, 12.0], dtype=f64))
+    )
+    torch.testing.assert_close(g.log_prob(x), fresh.log_prob(x), rtol=0, atol=1e-12)
+    assert not torch.allclose(before, fresh.log_prob(x))
+
+
+def test_a_density_first_evaluated_in_inference_mode_still_takes_gradients():
+    g = Gaussian(torch.zeros(3), torch.diag(torch.tensor([1.0, 2.0, 3.0])))
+    with torch.inference_mode():
+        g.log_prob(torch.randn(4, 3))
+    x = torch.randn(4, 3, requires_grad=True)
+    g.log_prob(x).sum().backward()
+    torch.testing.assert_close(x.grad, -x.detach() / torch.tensor([1.0, 2.0, 3.0]))

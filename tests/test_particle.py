@@ -268,3 +268,28 @@ def test_cov_dims_is_the_leading_block_of_the_full_covariance(data):
     state = particle_init(model, 10, (), torch.Generator().manual_seed(0))
     with pytest.raises(ValueError, match="cov_dims"):
         particle_step(model, state, ys[0], cov_dims=0)
+
+
+def test_one_row_resampling_is_that_of_the_batched_rows():
+    """The one-run paths of systematic resampling (offspring counts by ``bincount``, a
+    plain row gather) give the batched rows' ancestors and particles exactly, zero
+    weights included."""
+    from difffilter.resampling import _gather_particles, systematic_ancestors
+
+    gen = torch.Generator().manual_seed(3)
+    w = torch.rand(6, 50, generator=gen, dtype=torch.float64)
+    w[:, ::7] = 0.0
+    w[:, -3:] = 0.0  # past the last particle of positive weight: clamped to it
+    cdf, offset = w.cumsum(-1), torch.rand(6, 1, generator=gen, dtype=torch.float64)
+    x = torch.randn(6, 50, 3, generator=gen, dtype=torch.float64)
+    rows = systematic_ancestors(cdf, offset)
+    batched = _gather_particles(x, rows)
+    for i in range(6):
+        one = systematic_ancestors(cdf[i], offset[i])
+        assert torch.equal(one, rows[i])
+        assert torch.equal(_gather_particles(x[i], one), batched[i])
+        assert bool((w[i][one] > 0).all())
+    counts = systematic_ancestors(cdf, offset, torch.full((6, 1), 20.0, dtype=torch.float64))
+    for i in range(6):
+        one = systematic_ancestors(cdf[i], offset[i], torch.full((1,), 20.0, dtype=torch.float64))
+        assert torch.equal(one, counts[i])

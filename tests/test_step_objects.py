@@ -281,6 +281,105 @@ def test_a_deterministic_step_is_a_function_of_its_carry(name, seed):
     torch.testing.assert_close(first.cov, second.cov, rtol=0, atol=0)
 
 
+# ------------------------------------------------------------------ the lean online step
+
+
+def _tensors(carry, out) -> list:
+    """Every tensor of a step's carry and output, in order (nested tuples and dicts too)."""
+    from difffilter._vouched import _leaves
+
+    return [v for v in _leaves((carry, out), []) if isinstance(v, torch.Tensor)]
+
+
+def _counting_carry_checks(est) -> list:
+    """Count the calls of ``est._check_carry`` (the full validation of a carry)."""
+    calls, check = [], est._check_carry
+
+    def counted(carry):
+        calls.append(1)
+        return check(carry)
+
+    est._check_carry = counted
+    return calls
+
+
+@pytest.mark.parametrize("batch", [(), (3,)])
+@pytest.mark.parametrize("name", ALL)
+def test_the_lean_step_equals_the_fully_checked_step(name, batch):
+    """A carry the step returned is validated once (its first step), then only the new
+    inputs are; the numbers equal those of ``full_checks`` (every step validated in full)
+    exactly, masked and unmasked steps alike."""
+    T = 6
+    ys, us = _data(batch, T, seed=1)
+    mask = torch.rand(*batch, T, 2, generator=torch.Generator().manual_seed(1)) < 0.7
+    ys = torch.where(mask, ys, torch.full_like(ys, float("nan")))  # never read where unreceived
+    lean, checked = BUILDERS[name](), BUILDERS[name]()
+    checked.full_checks = True
+    lean_calls, checked_calls = _counting_carry_checks(lean), _counting_carry_checks(checked)
+    a, b = lean.init(CV, batch, _gens(5)), checked.init(CV, batch, _gens(5))
+    for t in range(T):
+        y, u, m = ys[..., t, :], us[..., t, :], mask[..., t, :]
+        if t % 2 == 0:  # every other step fully received
+            y, m = torch.where(m, y, 0.0), None
+        a, out_a = lean.step(a, y, u, m)
+        b, out_b = checked.step(b, y, u, m)
+        left, right = _tensors(a, out_a), _tensors(b, out_b)
+        assert len(left) == len(right)
+        assert all(torch.equal(x, z) for x, z in zip(left, right)), f"step {t} differs"
+    assert len(lean_calls) == 1 and len(checked_calls) == T
+
+
+@pytest.mark.parametrize("name", ["kf", "ukf", "gated", "pf", "modified_pf"])
+def test_bad_inputs_next_to_a_vouched_carry_are_still_named(name):
+    est, carry = _init(name, (3,))
+    y, u = torch.zeros(3, 2, dtype=F64), torch.zeros(3, 1, dtype=F64)
+    carry, _ = est.step(carry, y, u)  # vouched for from here on
+    raises_naming("y", est.step, carry, torch.zeros(4, 2, dtype=F64), u)  # another batch
+    raises_naming("y", est.step, carry, torch.zeros(3, 3, dtype=F64), u)  # another dy
+    raises_naming("y", est.step, carry, torch.zeros(3, 2, dtype=torch.float32), u)
+    raises_naming("y", est.step, carry, torch.full((3, 2), float("nan"), dtype=F64), u)
+    raises_naming("y", est.step, carry, torch.full((3, 2), float("inf"), dtype=F64), u)
+    raises_naming("u", est.step, carry, y, torch.full((3, 1), float("nan"), dtype=F64))
+    raises_naming("u", est.step, carry, y, torch.zeros(3, 2, dtype=F64))
+    raises_naming("mask", est.step, carry, y, u, torch.ones(3, 2))  # a float mask
+    raises_naming("mask", est.step, carry, y, u, torch.ones(3, 3, dtype=torch.bool))
+    if name == "kf":  # finite entries whose sum overflows: validated in full, accepted
+        est.step(carry, torch.full((3, 2), 1e308, dtype=F64), u)
+    est.step(carry, y, u)  # and the carry is as good as before the errors
+
+
+def test_a_vouched_carry_changed_afterwards_is_validated_again():
+    kf, y = df.KalmanFilter(), torch.zeros(2, 2, dtype=F64)
+    carry, _ = kf.step(kf.init(CV, (2,)), y)
+    carry.mean[0, 0] = float("nan")  # in place: its version counter moves
+    raises_naming("carry.mean", kf.step, carry, y)
+    carry, _ = kf.step(kf.init(CV, (2,)), y)
+    nan = torch.full_like(carry.mean, float("nan"))
+    raises_naming("carry.mean", kf.step, carry._replace(mean=nan), y)
+    carry, _ = kf.step(carry, y)
+    kf.step(carry, y)  # unchanged: still fine
+    # a carry vouched for by one object is validated in full by another
+    pf8, pf5 = df.ParticleFilter(8), df.ParticleFilter(5)
+    carry8, _ = pf8.step(pf8.init(CV, (2,), _gens()), y)
+    raises_naming("particles", pf5.step, carry8, y)
+
+
+@pytest.mark.parametrize("name", ["kf", "pf", "gated"])
+def test_the_online_step_runs_in_inference_mode(name):
+    """Inference tensors keep no version counter: the step vouches for them by identity,
+    and gives the numbers of a step outside inference mode."""
+    ys, us = _data((2,), 4, seed=2)
+    est = BUILDERS[name]()
+    with torch.inference_mode():
+        a = est.init(CV, (2,), _gens(3))
+        for t in range(4):
+            a, out_a = est.step(a, ys[:, t], us[:, t])
+    b = est.init(CV, (2,), _gens(3))
+    for t in range(4):
+        b, out_b = est.step(b, ys[:, t], us[:, t])
+    torch.testing.assert_close(out_a.mean, out_b.mean, rtol=0, atol=0)
+
+
 # ------------------------------------------------------------------------ import cycles
 
 

@@ -1,0 +1,169 @@
+"""The carries an online step has validated: what lets :meth:`Estimator.step` stay lean.
+
+:meth:`~difffilter.Estimator.step` validates a carry it has not seen (its tensors finite,
+of the model's shapes; a covariance symmetric) and the measurement, input and mask against
+the model (dtype, device, shape, finiteness). What that established holds for the carry
+the step returns as well, so the step *vouches* for it here: the next step, given that
+carry unchanged, re-checks only what is new (``y``, ``u`` and ``mask`` against the shapes,
+dtype and device already established, and their finiteness) and goes straight to the
+unchecked ``_step``. An online estimator deployed on one plant then pays a handful of
+Python comparisons per step instead of the whole validation.
+
+"Unchanged" is exact: the carry's leaves (its fields, through nested tuples, lists and
+dicts) must be the very objects vouched for (by identity), and its tensors must not have
+been modified in place since (their autograd version counters). ``carry._replace(mean=…)``,
+a carry built by hand, a tensor written in place, or a carry of another estimator object:
+each is validated in full again, with the same errors as before.
+
+The registry holds weak references to the tensors (a vouched carry keeps no particle
+cloud and no autograd graph alive) and plain references to the other leaves (models, gain
+schedules, step indices: small and usually alive anyway); it keeps the last
+:data:`_LIMIT` carries, so an estimator stepping more independent carries than that in
+turn just validates them in full.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+import weakref
+
+import torch
+from torch import Tensor
+
+__all__ = ["Established", "vouch", "vouched"]
+
+#: How many vouched carries the registry keeps (the oldest go first).
+_LIMIT = 64
+
+#: ``id(carry) → (Established, leaf ids, tensor weak references, tensor versions, other
+#: leaves)``. Keyed by ``id``: tuples cannot be referenced weakly. An ``id`` reused by
+#: another tuple is harmless: its leaves are compared by identity before any trust.
+_VOUCHED: dict[int, tuple] = {}
+
+
+class Established:
+    """What a full validation of one step established, for the steps that follow.
+
+    ``owner``: a weak reference to the estimator object that validated; ``dtype``,
+    ``device``: of the measurements (the model's); ``y_shape`` ``[*batch, dy]`` and
+    ``u_shape`` ``[*batch, du]`` (``None``: no input allowed) the exact shapes a lean step
+    accepts; ``known``: whether tensors hold values (``False`` on the meta device, where
+    finiteness is not checked).
+    """
+
+    __slots__ = ("owner", "dtype", "device", "y_shape", "u_shape", "known")
+
+    def __init__(self, owner, y: Tensor, batch, dim_y: int, dim_u: int):
+        self.owner = weakref.ref(owner)
+        self.dtype, self.device = y.dtype, y.device
+        self.y_shape = tuple(batch) + (dim_y,)
+        self.u_shape = tuple(batch) + (dim_u,) if dim_u > 0 else None
+        self.known = y.device.type != "meta"
+
+    def admits(self, y, u, mask) -> tuple[Tensor, Tensor | None, Tensor | None] | None:
+        """``(y, u, mask)`` ready for the unchecked step (``y`` zeroed where unreceived) when
+        they have exactly the established shapes, dtype and device and every received
+        entry is finite; ``None`` when anything differs (the caller validates in full and
+        raises the error that names the argument)."""
+        if not isinstance(y, Tensor) or y.shape != self.y_shape:
+            return None
+        if y.dtype != self.dtype or y.device != self.device:
+            return None
+        if u is not None:
+            if not isinstance(u, Tensor) or u.shape != self.u_shape:
+                return None
+            if u.dtype != self.dtype or u.device != self.device:
+                return None
+        if mask is not None:
+            if (
+                not isinstance(mask, Tensor)
+                or mask.dtype is not torch.bool
+                or mask.shape != y.shape
+            ):
+                return None
+            # unreceived entries are never read, but 0·NaN would still be NaN in an update
+            y = y.where(mask, 0.0)
+        if self.known and not (_finite(y) and (u is None or _finite(u))):
+            return None
+        return y, u, mask
+
+
+def _finite(t: Tensor) -> bool:
+    """Whether every entry of ``t`` is finite: a finite sum proves it. A non-finite sum (a
+    bad entry, or an overflow of large finite entries) says "not proven": the caller then
+    validates in full, which tells the two apart. A small CPU tensor (one run's
+    measurement) is summed on the host: one read instead of a reduction and a read."""
+    if t.numel() <= _HOST_SUM and t.device.type == "cpu":
+        return math.isfinite(sum(t.tolist() if t.dim() == 1 else t.reshape(-1).tolist()))
+    return math.isfinite(t.detach().sum().item())
+
+
+#: Entries up to which :func:`_finite` sums on the host.
+_HOST_SUM = 64
+_CONTAINERS = (tuple, list, dict)
+_VERSIONS = operator.attrgetter("_version")
+
+
+def _leaves(obj, out: list) -> list:
+    for v in obj.values() if isinstance(obj, dict) else obj:
+        if isinstance(v, Tensor) or not isinstance(v, _CONTAINERS):
+            out.append(v)
+        else:
+            _leaves(v, out)
+    return out
+
+
+def _flat_leaves(carry) -> tuple:
+    """The carry's leaves: the carry itself when none of its fields is a container (the
+    filters' carries), else its fields flattened through tuples, lists and dicts."""
+    for v in carry:
+        if isinstance(v, _CONTAINERS) and not isinstance(v, Tensor):
+            return tuple(_leaves(carry, []))
+    return carry
+
+
+def _versions(tensors) -> tuple:
+    try:
+        return tuple(map(_VERSIONS, tensors))
+    except RuntimeError:  # an inference tensor keeps no version counter: identity only
+        return tuple(t._version if not t.is_inference() else -1 for t in tensors)
+
+
+def vouch(carry, established: Established) -> None:
+    """Record that ``carry`` (a step's output, or a carry just validated in full) is valid
+    under ``established``."""
+    leaves = _flat_leaves(carry)
+    tensors = [v for v in leaves if isinstance(v, Tensor)]
+    entry = (
+        established,
+        tuple(map(id, leaves)),
+        tuple(map(weakref.ref, tensors)),
+        _versions(tensors),
+        [v for v in leaves if not isinstance(v, Tensor)],  # held: their ids stay theirs
+    )
+    key = id(carry)
+    _VOUCHED.pop(key, None)  # re-inserted at the end: the oldest entries go first
+    _VOUCHED[key] = entry
+    if len(_VOUCHED) > _LIMIT:
+        try:
+            del _VOUCHED[next(iter(_VOUCHED))]
+        except (KeyError, RuntimeError, StopIteration):  # another thread got there first
+            pass
+
+
+def vouched(owner, carry) -> Established | None:
+    """The :class:`Established` of ``carry`` when ``owner`` vouched for it and it is
+    unchanged since (same leaves by identity, tensors not written in place); else ``None``."""
+    entry = _VOUCHED.get(id(carry))
+    if entry is None:
+        return None
+    established, ids, refs, versions, _ = entry
+    if established.owner() is not owner or tuple(map(id, _flat_leaves(carry))) != ids:
+        return None
+    # equal ids name the vouched tensors only while those are alive (the others are held)
+    tensors = [ref() for ref in refs]
+    for t in tensors:
+        if t is None:
+            return None
+    return established if _versions(tensors) == versions else None
