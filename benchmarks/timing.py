@@ -6,7 +6,7 @@ import math
 import time
 from collections.abc import Callable
 
-__all__ = ["best_time", "time_registered_estimator"]
+__all__ = ["best_time", "best_times", "time_registered_estimator"]
 
 
 def best_time(
@@ -33,6 +33,31 @@ def best_time(
             if elapsed >= min_time:
                 break
         best = min(best, elapsed / n)
+    return best
+
+
+def best_times(
+    fns: dict[str, Callable[[], object]],
+    repeats: int = 3,
+    min_time: float = 0.2,
+    clock: Callable[[], float] = time.perf_counter,
+) -> dict[str, float]:
+    """:func:`best_time` of several functions, their rounds alternating (``a b a b …``):
+    what a ratio of two of them needs on a shared machine, where the load changes from
+    one second to the next (both see the same load, in turn). ``{name: seconds per call}``."""
+    for fn in fns.values():
+        fn()  # warm-up
+    best = dict.fromkeys(fns, math.inf)
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            n, start = 0, clock()
+            while True:
+                fn()
+                n += 1
+                elapsed = clock() - start
+                if elapsed >= min_time:
+                    break
+            best[name] = min(best[name], elapsed / n)
     return best
 
 
