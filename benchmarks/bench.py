@@ -22,6 +22,11 @@ Prints, in one run:
 4. The modified PF of the four-tank paper (when its benchmark module is present).
 5. ``rrp_pf_da`` of the tracking paper, 50 runs × 500 particles × 120 steps batched
    (target ≥ 1e7 particle-steps/s), float64 and float32 (``bench_tracking.py``).
+7. The LFC online learners (EKF over the network's weights inside the closed loop), seconds
+   per scenario of each (its registry entry through ``run_suite``: the attack-free and the
+   attacked loop), the previous dense EKF (``dense_reference``) against the deferred one,
+   alternating in one process, with the largest difference of their metrics (target: ≥ 5×,
+   ≤ 1e-9).
 
 Targets (2-core CPU) are printed beside the figures; a missed target says so.
 """
@@ -350,6 +355,7 @@ def main(argv=None) -> int:
     p.add_argument("--only-kf-large", action="store_true", help="only section 1b (B = 1e5)")
     p.add_argument("--only-robot", action="store_true", help="only section 6 (mdpf_fused_ci)")
     p.add_argument("--only-tracking", action="store_true", help="only section 5 (rrp_pf_da)")
+    p.add_argument("--only-lfc", action="store_true", help="only section 7 (LFC learners)")
     p.add_argument("--json", type=Path, default=None, help="also write the figures as JSON")
     args = p.parse_args(argv)
     tuned = tune_cpu_allocator()
@@ -360,7 +366,7 @@ def main(argv=None) -> int:
     figures: dict = {}
 
     only = {"only_robot": print_robot, "only_tracking": print_tracking,
-            "only_kf_large": print_kf_large}  # fmt: skip
+            "only_kf_large": print_kf_large, "only_lfc": print_lfc_learners}  # fmt: skip
     for flag, section in only.items():
         if getattr(args, flag):
             section(figures)
@@ -450,6 +456,7 @@ def main(argv=None) -> int:
 
     print_tracking(figures)
     print_robot(figures)
+    print_lfc_learners(figures)
     if args.json:
         args.json.write_text(json.dumps(figures, indent=2))
     return 0
@@ -481,6 +488,100 @@ def print_robot(figures: dict) -> None:
             f"   {r['dtype']:>7s}  {_fmt(r['run_steps_per_s']):>10s} run-steps/s  "
             f"({r['seconds']:.2f} s)  target ≥ 5,000: {r['target']};  by CPU time "
             f"{_fmt(r['run_steps_per_cpu_s'])} ({r['cpu_seconds']:.2f} s, load {r['load_average']:.1f})"
+        )
+
+
+# ------------------------------------------------------------- 7. LFC online learners ----
+LFC_SCENARIOS = ("lfc_step", "lfc_sine", "lfc_simultaneous", "lfc_sawtooth")
+LFC_LEARNERS = ("kf_nn_ekf", "kf_nn_grad_ekf", "kf_nn_ekf_qrho0", "luenberger_nn_ekf")
+
+
+def bench_lfc_learners(scenarios=LFC_SCENARIOS, learners=LFC_LEARNERS) -> list[dict]:
+    """Per scenario and learner: the wall seconds of its registry entry in ``run_suite``
+    (``wall_s``: both closed loops) with the dense EKF of before (``dense_reference``) and
+    with the deferred one, alternating, and the largest absolute difference of their
+    metrics (timings left out) and of their estimates (means, attack). One intra-op
+    thread: on the shared 2-core machine torch's two threads made the same run swing from
+    38 s to 218 s with the other processes' load."""
+    from difffilter.models import registry
+    from difffilter.runtime import one_thread
+
+    with one_thread():
+        return [row for sc in scenarios for row in _lfc_rows(registry.get(sc), learners)]
+
+
+def _lfc_rows(sc, learners) -> list[dict]:
+    """:func:`bench_lfc_learners` on one scenario ``sc``."""
+    import contextlib
+
+    from difffilter.eval.suite import run_suite
+    from difffilter.param_ekf import dense_reference
+
+    rows = []
+    for name in learners:
+        results = {}
+        for form in ("dense", "deferred"):
+            with dense_reference() if form == "dense" else contextlib.nullcontext():
+                results[form] = run_suite(sc, estimators=[name], progress=False)
+        old, new = results["dense"], results["deferred"]
+        if name not in new.outputs:
+            rows.append({"scenario": sc.name, "learner": name,
+                         "skipped": new.skipped.get(name, "?")})  # fmt: skip
+            continue
+        estimates = [(getattr(old.outputs[name], f), getattr(new.outputs[name], f))
+                     for f in ("means", "attack")]  # fmt: skip
+        rows.append({
+            "scenario": sc.name, "learner": name,
+            "dense_s": old.wall_s[name], "deferred_s": new.wall_s[name],
+            "speedup": old.wall_s[name] / new.wall_s[name],
+            "max_metric_diff": _max_metric_diff(old.metrics[name], new.metrics[name]),
+            "max_estimate_diff": max(float((a - b).abs().max())
+                                     for a, b in estimates if a is not None),
+            "load_average": os.getloadavg()[0],
+        })  # fmt: skip
+        r = rows[-1]
+        print(f"   ({sc.name}, {name}: {r['dense_s']:.1f} s → {r['deferred_s']:.1f} s)",
+              flush=True)  # fmt: skip
+    return rows
+
+
+def _max_metric_diff(a: dict, b: dict) -> float:
+    """Largest ``|a − b|`` over the numeric metrics both have (timings left out; a NaN in
+    one only counts as infinite)."""
+    worst = 0.0
+    for key in a.keys() & b.keys():
+        x, y = a[key], b[key]
+        if "time" in key or "wall" in key or isinstance(x, bool) or isinstance(y, bool):
+            continue
+        if isinstance(x, (int, float)) and isinstance(y, (int, float)):
+            if math.isnan(x) and math.isnan(y):
+                continue
+            worst = max(worst, abs(x - y)) if not (math.isnan(x) or math.isnan(y)) else math.inf
+    return worst
+
+
+def print_lfc_learners(figures: dict) -> None:
+    print(
+        "\n7. LFC online learners (EKF over the weights in the closed loop), seconds per "
+        "scenario: dense EKF of before against the deferred one (one process, alternating)"
+    )
+    print(
+        f"   {'scenario':>16s}  {'learner':>17s}  {'dense (s)':>9s}  {'deferred (s)':>12s}  "
+        f"{'speed-up':>8s}  {'max |Δ metric|':>14s}  {'max |Δ estimate|':>16s}  targets"
+    )
+    rows = bench_lfc_learners()
+    figures["lfc_learners"] = rows
+    for r in rows:
+        if "skipped" in r:
+            print(f"   {r['scenario']:>16s}  {r['learner']:>17s}  skipped: {r['skipped']}")
+            continue
+        speed = "met" if r["speedup"] >= 5 else f"MISSED ({r['speedup'] / 5:.2f} of target)"
+        same = "met" if r["max_metric_diff"] <= 1e-9 else "MISSED"
+        print(
+            f"   {r['scenario']:>16s}  {r['learner']:>17s}  {r['dense_s']:9.1f}  "
+            f"{r['deferred_s']:12.1f}  {r['speedup']:7.2f}×  {r['max_metric_diff']:14.2g}  "
+            f"{r['max_estimate_diff']:16.2g}  {speed}; Δ metric ≤ 1e-9: {same} "
+            f"(load {r['load_average']:.1f})"
         )
 
 

@@ -9,7 +9,15 @@ import pytest
 import torch
 from torch import nn
 
-from difffilter.param_ekf import EKFOptimizer, OnlineGradientDescent, ParamEKF
+from difffilter.param_ekf import (
+    EKFOptimizer,
+    EKFRule,
+    KroneckerJacobian,
+    OnlineGradientDescent,
+    ParamEKF,
+    WeightTemplate,
+    dense_reference,
+)
 
 
 class TwoParam(nn.Module):
@@ -219,3 +227,122 @@ def test_ekf_optimizer_pools_samples_into_one_measurement():
     assert state["k"] == 1 and float(state["upsilon"]) == pytest.approx(ups)
     with pytest.raises(ValueError, match="jacobian must be"):
         opt.step(X.unsqueeze(1)[:, :, :2], y.unsqueeze(1))
+
+
+@pytest.fixture
+def single_thread():
+    """One intra-op thread: small products, where a second thread on a loaded 2-core
+    machine costs ten times what it gains."""
+    from difffilter.runtime import one_thread
+
+    with one_thread():
+        yield
+
+
+def _area_template(hidden=4, seed=2):
+    from difffilter.models.neural_estimator import NeuralFDIEstimator
+
+    net = NeuralFDIEstimator(hidden=hidden, init="symmetric", init_scale=0.5, resid_scale=0.1,
+                             seed=seed)  # fmt: skip
+    return net, WeightTemplate(net.area_template())
+
+
+def test_the_area_network_has_a_kronecker_jacobian():
+    """The factors give the module's closed form bit for bit, in θ's and in the covariance's
+    order, and H̃ρ by rows equals the product."""
+    net, tmpl = _area_template()
+    assert tmpl.factored and not WeightTemplate(TwoParam()).factored
+    g = torch.Generator().manual_seed(3)
+    theta = 0.3 * torch.randn(6, tmpl.num_params, generator=g, dtype=torch.float64)
+    x = torch.randn(6, net.in_dim, generator=g, dtype=torch.float64)
+    out, H = tmpl.jacobian(theta, x)
+    out_cf, H_cf = tmpl.module.batched_jacobian(tmpl.unflatten(theta), x)
+    assert isinstance(H, KroneckerJacobian)
+    assert torch.equal(out, out_cf) and torch.equal(H.dense(), H_cf)
+    order, inverse = H.order()
+    assert torch.equal(H.permuted(), H_cf[..., order])
+    assert torch.equal(order[inverse], torch.arange(tmpl.num_params))
+    A = torch.randn(6, tmpl.num_params, tmpl.num_params, generator=g, dtype=torch.float64)
+    rho = A @ A.transpose(-1, -2)
+    assert torch.allclose(H.rows(rho), H.permuted() @ rho, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("donate", [True, False])
+@pytest.mark.parametrize("q", [0.0, 1e-3])
+def test_the_deferred_ekf_is_the_dense_one(single_thread, donate, q):
+    """Eqs (11)–(14) deferred and folded every 3 steps (Kronecker Jacobian) against the dense
+    update of every step (dense_reference): the same weights and covariances to 1e-9."""
+    net, tmpl = _area_template()
+    g = torch.Generator().manual_seed(4)
+    theta0 = 0.5 * torch.rand(6, tmpl.num_params, generator=g, dtype=torch.float64)
+    xs = torch.randn(40, 6, net.in_dim, generator=g, dtype=torch.float64)
+    targets = 0.2 * torch.randn(40, 6, net.area_dim, generator=g, dtype=torch.float64)
+    kw = dict(lr=1.0, init_cov=10.0, init_noise=1e-3, process_noise=q, donate=donate)
+    fast, ref = EKFRule(**kw, fold_every=3), EKFRule(**kw)
+    s_fast = fast.init(theta0.clone())
+    with dense_reference():
+        s_ref = ref.init(theta0.clone())
+    assert not isinstance(s_ref.rho, type(s_fast.rho))
+    for x, target in zip(xs, targets):
+        for rule, state in ((fast, s_fast), (ref, s_ref)):
+            pred, H = tmpl.jacobian(state.theta, x)
+            new = rule.step(state, H, target - pred)
+            if rule is fast:
+                s_fast = new
+            else:
+                s_ref = new
+        assert (s_fast.theta - s_ref.theta).abs().max() <= 1e-9
+    rho_fast, rho_ref = EKFRule.covariance(s_fast), EKFRule.covariance(s_ref)
+    assert (rho_fast - rho_ref).abs().max() <= 1e-9 * rho_ref.abs().max()
+    assert torch.allclose(s_fast.upsilon, s_ref.upsilon, rtol=1e-9, atol=0)
+
+
+def test_the_deferred_ekf_with_a_dense_jacobian():
+    """A module without factors (H [N, m, P]) takes the same deferred update."""
+    g = torch.Generator().manual_seed(6)
+    fast = ParamEKF(TwoParam(), (3,), lr=0.7, process_noise=1e-3)
+    fast.rule.fold_every = 2
+    with dense_reference():
+        ref = ParamEKF(TwoParam(), (3,), lr=0.7, process_noise=1e-3)
+    for _ in range(9):
+        x = torch.randn(3, 2, generator=g, dtype=torch.float64)
+        y = torch.randn(3, 2, generator=g, dtype=torch.float64)
+        fast.step(x, y)
+        ref.step(x, y)
+    assert torch.allclose(fast.theta, ref.theta, rtol=0, atol=1e-12)
+    assert torch.allclose(fast.rho, ref.rho, rtol=0, atol=1e-12)
+
+
+def test_the_lfc_learner_in_its_closed_loop_matches_the_dense_reference(single_thread):
+    """kf_nn_ekf's learner inside the LFC closed loop (2 runs, 120 steps, an attack from
+    step 30): the attack estimates and the plant's states of both forms agree to 1e-9."""
+    from difffilter.estimator import Generators
+    from difffilter.models.attacks import Signal
+    from difffilter.models.lfc import LFCPlant, lfc_loop, scenario_attack
+    from difffilter.models.lfc_estimators import (
+        EKF_DEFAULTS,
+        LFCContext,
+        lfc_estimator,
+        paper_network,
+    )
+
+    plant, ctx = LFCPlant(), LFCContext()
+    T = 120
+    xi, theta = plant.sample_noise(2, T, torch.Generator().manual_seed(1))
+    t = plant.dt * torch.arange(1, T + 1, dtype=torch.float64)
+    alpha = scenario_attack("step", t + 2.7)[None].expand(2, T, 10)
+    load = torch.tensor([[0.01, 0.0]], dtype=torch.float64)
+
+    def loop():
+        rule = EKFRule(**EKF_DEFAULTS, donate=True)
+        est = lfc_estimator(ctx, network=paper_network(0.01), rule=rule, init_scale=0.01)
+        gens = Generators(init=torch.Generator().manual_seed(4))
+        with torch.no_grad():
+            return lfc_loop(plant, est, xi, theta, load, attack=Signal(alpha), generator=gens)
+
+    fast = loop()
+    with dense_reference():
+        ref = loop()
+    assert fast.output.attack.abs().max() > 0.01  # it learned something
+    assert (fast.output.attack - ref.output.attack).abs().max() <= 1e-9
+    assert (fast.trajectories.x - ref.trajectories.x).abs().max() <= 1e-9
