@@ -6,8 +6,9 @@ no entry is masked, the covariance recursion
     P⁻_t = F P_{t−1} Fᵀ + Q,   S_t = H P⁻_t Hᵀ + R,   K_t = P⁻_t Hᵀ S_t⁻¹,
     P_t  = (I − K_t H) P⁻_t (I − K_t H)ᵀ + K_t R K_tᵀ
 
-does not depend on the measurements: it runs once, on ``[dx, dx]`` matrices, with the
-same operations as :func:`difffilter.kalman.kalman_step`. The covariances are returned
+does not depend on the measurements: it runs once, on ``[dx, dx]`` matrices (the
+written-out recursion of :class:`difffilter.GainSchedule`, until an exact fixed point),
+equal to :func:`difffilter.kalman.kalman_step`'s up to round-off. The covariances are returned
 as expanded views ``[..., T, dx, dx]`` of one ``[T, dx, dx]`` tensor (no ``B`` copies).
 
 What remains per run is linear in the data. Over a block of ``L`` steps starting after
@@ -30,8 +31,8 @@ import torch
 from torch import Tensor
 from torch.nn.functional import pad as F_pad
 
-from .gaussian import joseph_covariance, kalman_gain, predict_covariance
-from .linalg import LOG_2PI, symmetrize
+from .gain_schedule import riccati_step
+from .linalg import LOG_2PI
 from .results import FilterResult
 
 __all__ = ["shared_covariance_applies", "shared_covariance_kalman_filter"]
@@ -67,29 +68,31 @@ def shared_covariance_applies(model, mask: Tensor | None) -> bool:
 
 
 def _covariances(F, H, Q, R, P, T):
-    """The data-independent recursion, with the Gaussian core's blocks (as ``kalman_step``)."""
+    """The data-independent recursion (:func:`~difffilter.gain_schedule.riccati_step`, the
+    Gaussian core's blocks written out), ``T`` steps stacked: ``[T, ·, ·]`` each and the
+    ``[T]`` half log-determinants of ``S``.
+
+    Without gradients the recursion stops at an exact fixed point (``P_k`` equal to
+    ``P_{k−1}`` in every bit: every later step would repeat it) and the later steps repeat
+    its moments: the same numbers, fewer steps (155 of 200 on the constant-velocity model
+    in float64). With gradients every step is computed.
+    """
+    eye_x = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device)
     eye_y = torch.eye(H.shape[-2], dtype=F.dtype, device=F.device)
-    pred, covs, inn, gains, whiten, half_logdet = [], [], [], [], [], []
+    Ft, Ht = F.transpose(0, 1), H.transpose(0, 1)
+    grad = torch.is_grad_enabled() and any(t.requires_grad for t in (F, H, Q, R, P))
+    watch = not grad and F.device.type != "meta"
+    steps = []
     for _ in range(T):  # the covariance recursion: T small unbatched steps, not an estimator loop
-        Pp = predict_covariance(P, F, Q)
-        cross = Pp @ H.transpose(-1, -2)
-        S = symmetrize(H @ cross + R)
-        K, chol = kalman_gain(cross, S)
-        P = joseph_covariance(Pp, K, H, R)
-        pred.append(Pp)
-        covs.append(P)
-        inn.append(S)
-        gains.append(K)
-        whiten.append(torch.linalg.solve_triangular(chol, eye_y, upper=False))
-        half_logdet.append(torch.log(torch.diagonal(chol)).sum())
-    return (
-        torch.stack(pred),
-        torch.stack(covs),
-        torch.stack(inn),
-        torch.stack(gains),
-        torch.stack(whiten),
-        torch.stack(half_logdet),
-    )
+        Pp, P_new, K, S, chol, whiten = riccati_step(P, F, Ft, H, Ht, Q, R, eye_x, eye_y)
+        steps.append((Pp, P_new, S, K, whiten, chol))
+        if watch and torch.equal(P_new, P):  # a fixed point: the remaining steps are this one
+            steps += [steps[-1]] * (T - len(steps))
+            break
+        P = P_new
+    pred, covs, inn, gains, whiten, chols = (torch.stack(m) for m in zip(*steps))
+    half_logdet = torch.log(torch.diagonal(chols, dim1=-2, dim2=-1)).sum(-1)
+    return pred, covs, inn, gains, whiten, half_logdet
 
 
 def _block_maps(F, H, Bm, gains, whiten, L, du):

@@ -35,7 +35,7 @@ from torch import Tensor
 
 from .linalg import LOG_2PI, matvec, safe_cholesky
 
-__all__ = ["GainSchedule", "SharedMoments", "shared_gains_apply"]
+__all__ = ["GainSchedule", "SharedMoments", "riccati_step", "shared_gains_apply"]
 
 
 class SharedMoments(NamedTuple):
@@ -125,32 +125,12 @@ class GainSchedule:
         return self._moments[min(k, len(self._moments)) - 1]
 
     def _extend(self) -> None:
-        """One step of the covariance recursion (module docstring), on ``[d, d]`` matrices.
-
-        The Gaussian core's blocks (:func:`~difffilter.gaussian.predict_covariance`,
-        :func:`~difffilter.gaussian.kalman_gain`, :func:`~difffilter.gaussian.joseph_covariance`)
-        written out for one unbatched model: fused multiply-adds (``addmm``), one
-        symmetrisation per covariance, the Cholesky factor checked with one read, the gain
-        from the whitening ``L⁻¹`` that the evidence needs anyway (``K = P⁻Hᵀ L⁻ᵀ L⁻¹``:
-        two products instead of a Cholesky solve) and two reads for the convergence test.
-        On ``4 × 4`` matrices each call is a few microseconds of dispatch, so their number
-        is the cost (180 → about 80 µs per step on the 2-core CPU); the numbers equal the
-        blocks' up to round-off (tests: 1e-12).
-        """
-        F, Ft, H, Ht, R = self.F, self.Ft, self.H, self.Ht, self.R
-        pred_cov = _symmetric(torch.addmm(self.Q, F @ self._cov, Ft))  # F P Fᵀ + Q
-        cross = pred_cov @ Ht  # P⁻ Hᵀ
-        S = _symmetric(torch.addmm(R, H, cross))  # H P⁻ Hᵀ + R
-        known = S.device.type != "meta"
-        chol, info = torch.linalg.cholesky_ex(S)
-        if known and info.item():  # not numerically positive definite:
-            chol = safe_cholesky(S, name="innovation covariance S")  # jitter, or a clear error
-        whiten = torch.linalg.solve_triangular(chol, self._eye_y, upper=False)  # L⁻¹
-        K = (cross @ whiten.mT) @ whiten  # P⁻ Hᵀ S⁻¹ with S⁻¹ = L⁻ᵀ L⁻¹
-        i_kh = torch.addmm(self._eye_x, K, H, alpha=-1.0)  # I − K H
-        # Joseph form (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ
-        self._cov = _symmetric(torch.addmm((K @ R) @ K.mT, i_kh @ pred_cov, i_kh.mT))
-        if known:  # converged: max |K − K_prev| ≤ tol · max |K_prev|
+        """One step of the covariance recursion (:func:`riccati_step`) and the convergence
+        test (two reads)."""
+        pred_cov, self._cov, K, S, chol, whiten = riccati_step(
+            self._cov, self.F, self.Ft, self.H, self.Ht, self.Q, self.R, self._eye_x, self._eye_y
+        )
+        if S.device.type != "meta":  # converged: max |K − K_prev| ≤ tol · max |K_prev|
             scale = torch.linalg.vector_norm(K, math.inf).item()
             if self._moments:
                 change = torch.dist(K, self._moments[-1].gain, math.inf).item()
@@ -215,6 +195,38 @@ class GainSchedule:
         m = self.moments(k)
         innovation = self.innovation(pred_mean, y)
         return pred_mean + matvec(m.gain, innovation), innovation, m.innovation_cov
+
+
+def riccati_step(
+    cov: Tensor, F: Tensor, Ft: Tensor, H: Tensor, Ht: Tensor, Q: Tensor, R: Tensor,
+    eye_x: Tensor, eye_y: Tensor,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
+    """One step of the covariance recursion of one unbatched model (module docstring):
+    ``P_{k−1} → (P⁻_k, P_k, K_k, S_k, L_k, L_k⁻¹)``, every matrix ``[d, d]`` (``Ft``, ``Ht``:
+    the transposes; ``eye_x``, ``eye_y``: identities of ``dx`` and ``dy``).
+
+    The Gaussian core's blocks (:func:`~difffilter.gaussian.predict_covariance`,
+    :func:`~difffilter.gaussian.kalman_gain`, :func:`~difffilter.gaussian.joseph_covariance`)
+    written out: fused multiply-adds (``addmm``), one symmetrisation per covariance, the
+    Cholesky factor checked with one read (the jittered factorisation, or a clear error,
+    only when it fails), and the gain from the whitening ``L⁻¹`` that the evidence needs
+    anyway (``K = P⁻Hᵀ L⁻ᵀ L⁻¹``: two products instead of a Cholesky solve). On ``4 × 4``
+    matrices each call is a few microseconds of dispatch, so their number is the cost (180
+    → about 75 µs per step on the 2-core CPU); the numbers equal the blocks' up to
+    round-off (tests: 1e-12). Differentiable.
+    """
+    pred_cov = _symmetric(torch.addmm(Q, F @ cov, Ft))  # F P Fᵀ + Q
+    cross = pred_cov @ Ht  # P⁻ Hᵀ
+    S = _symmetric(torch.addmm(R, H, cross))  # H P⁻ Hᵀ + R
+    chol, info = torch.linalg.cholesky_ex(S)
+    if S.device.type != "meta" and info.item():  # not numerically positive definite:
+        chol = safe_cholesky(S, name="innovation covariance S")  # jitter, or a clear error
+    whiten = torch.linalg.solve_triangular(chol, eye_y, upper=False)  # L⁻¹
+    K = (cross @ whiten.mT) @ whiten  # P⁻ Hᵀ S⁻¹ with S⁻¹ = L⁻ᵀ L⁻¹
+    i_kh = torch.addmm(eye_x, K, H, alpha=-1.0)  # I − K H
+    # Joseph form (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ
+    cov = _symmetric(torch.addmm((K @ R) @ K.mT, i_kh @ pred_cov, i_kh.mT))
+    return pred_cov, cov, K, S, chol, whiten
 
 
 def _symmetric(matrix: Tensor) -> Tensor:

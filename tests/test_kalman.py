@@ -412,11 +412,13 @@ def _random_linear_model(dx=5, dy=3, du=2, seed=7):
 
 
 def test_the_gain_schedule_is_the_gaussian_core_recursion():
-    """The gain schedule's written-out recursion (fused products, K from the whitening)
-    gives the Gaussian core's moments (difffilter.gaussian, as the shared-covariance path
-    runs them) up to round-off, every step until its gain converged."""
+    """The written-out covariance recursion (fused products, K from the whitening) of the
+    gain schedule and of the shared-covariance path gives the Gaussian core's moments
+    (difffilter.gaussian's blocks, as kalman_step runs them) up to round-off, every step
+    until the schedule's gain converged."""
     from difffilter._shared_cov import _covariances
-    from difffilter.linalg import LOG_2PI
+    from difffilter.gaussian import joseph_covariance, kalman_gain, predict_covariance
+    from difffilter.linalg import LOG_2PI, symmetrize
 
     model = _random_linear_model()
     schedule = df.GainSchedule(model)
@@ -424,15 +426,27 @@ def test_the_gain_schedule_is_the_gaussian_core_recursion():
     n = len(schedule._moments)
     assert schedule.converged and n < 200
     F, H = model.transition_matrix(0), model.observation_matrix(1)
-    Q, R = model.process_cov(0), model.measurement_cov(1)
-    pred, covs, innov, gains, whiten, half_logdet = _covariances(F, H, Q, R, model.initial.cov, n)
-    for k in range(1, n + 1):
-        m = schedule.moments(k)
-        for got, want in ((m.pred_cov, pred), (m.cov, covs), (m.innovation_cov, innov),
-                          (m.gain, gains), (m.whiten, whiten)):  # fmt: skip
-            torch.testing.assert_close(got, want[k - 1], rtol=0, atol=1e-12)
-        log_norm = half_logdet[k - 1] + 0.5 * H.shape[0] * LOG_2PI
-        torch.testing.assert_close(m.log_norm, log_norm, rtol=0, atol=1e-12)
+    Q, R, P = model.process_cov(0), model.measurement_cov(1), model.initial.cov
+    shared = _covariances(F, H, Q, R, P, 300)
+    eye = torch.eye(3, dtype=torch.float64)
+    for k in range(1, 301):
+        pred = predict_covariance(P, F, Q)
+        cross = pred @ H.T
+        S = symmetrize(H @ cross + R)
+        K, chol = kalman_gain(cross, S)
+        P = joseph_covariance(pred, K, H, R)
+        whiten = torch.linalg.solve_triangular(chol, eye, upper=False)
+        half_logdet = torch.log(torch.diagonal(chol)).sum()
+        want = (pred, P, S, K, whiten)
+        for got, ref in zip((shared[0], shared[1], shared[2], shared[3], shared[4]), want):
+            torch.testing.assert_close(got[k - 1], ref, rtol=0, atol=1e-12)
+        torch.testing.assert_close(shared[5][k - 1], half_logdet, rtol=0, atol=1e-12)
+        if k <= n:
+            m = schedule.moments(k)
+            for got, ref in zip((m.pred_cov, m.cov, m.innovation_cov, m.gain, m.whiten), want):
+                torch.testing.assert_close(got, ref, rtol=0, atol=1e-12)
+            log_norm = half_logdet + 0.5 * 3 * LOG_2PI
+            torch.testing.assert_close(m.log_norm, log_norm, rtol=0, atol=1e-12)
     assert schedule.moments(n + 50) is schedule.moments(n)  # the last moments, once converged
 
 
@@ -457,3 +471,33 @@ def test_the_fused_gain_step_is_predict_update_and_evidence(batch, with_input):
             assert got.shape == want.shape
             torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
         assert m is schedule.moments(k)
+
+
+def test_the_shared_recursion_stops_at_an_exact_fixed_point_with_the_same_numbers(monkeypatch):
+    """Without gradients the shared-covariance path stops its recursion where P repeats in
+    every bit (the constant-velocity model of the benchmark: step 155 in float64) and
+    repeats that step: the same numbers as every step computed (the gradient path)."""
+    from difffilter import _shared_cov
+    from difffilter.gain_schedule import riccati_step
+
+    f64 = torch.float64
+    block = torch.tensor([[1 / 3, 1 / 2], [1 / 2, 1.0]], dtype=f64)
+    F = torch.block_diag(*[torch.tensor([[1.0, 1.0], [0.0, 1.0]], dtype=f64)] * 2)
+    H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1, 0]], dtype=f64)
+    Q, R = 0.055**2 * torch.block_diag(block, block), 4.0 * torch.eye(2, dtype=f64)
+    P0 = torch.diag(torch.tensor([1.0, 1e-4, 1.0, 1e-4], dtype=f64))
+    calls = []
+
+    def counted(*args):
+        calls.append(1)
+        return riccati_step(*args)
+
+    monkeypatch.setattr(_shared_cov, "riccati_step", counted)
+    with torch.no_grad():
+        cut = _shared_cov._covariances(F, H, Q, R, P0, 300)
+    stopped = len(calls)
+    assert stopped < 300  # at the fixed point
+    every = _shared_cov._covariances(F, H, Q.clone().requires_grad_(True), R, P0, 300)
+    assert len(calls) - stopped == 300  # every step with gradients
+    for a, b in zip(cut, every):
+        assert torch.equal(a, b.detach())
