@@ -11,9 +11,14 @@ Prints, in one run:
    mask, the general step-by-step path (``open_loop(KalmanFilter(), …, carry=gaussian_init(…))``), and a
    vectorised numpy implementation of the same filter (covariances once per step, means
    of all runs as one array) as the yardstick.
+   1c. At B = 1 through the public online step (``KalmanFilter().step``, one measurement at
+   a time; ``bench_online.py``): online on one plant, from a cold start, and with
+   ``full_checks``, beside the numpy loop (target ≥ 1× numpy).
 2. Bootstrap PF particle-steps per second on the four-tank model (docs/scenarios.md, four-tank),
    float32, at (B, N) = (1, 100), (100, 1000), (10, 10000), beside a per-run numpy loop
    (particles vectorised in numpy, runs and time in Python).
+   2b. At (B, N) = (1, 100) through the public online step (``ParticleFilter(N).step``;
+   ``bench_online.py``), beside the numpy loop (target ≥ 0.5× numpy).
 3. Peak memory of a PF run with gradients (B = 32, N = 1000, T = 100) for systematic,
    soft and optimal-transport resampling, each in a fresh subprocess (peak resident set
    size, ``ru_maxrss``, minus the resident size before the run; glibc's default allocator;
@@ -27,8 +32,16 @@ Prints, in one run:
    attacked loop), the previous dense EKF (``dense_reference``) against the deferred one,
    alternating in one process, with the largest difference of their metrics (target: ≥ 5×,
    ≤ 1e-9).
+8. Peers: torch-kf's batched Kalman filter beside ``kalman_filter`` at 1, 1e3 and 1e5 runs,
+   float32 and float64, alternating in one process (``bench_peers.py``; skipped with a
+   message when torch-kf, the ``bench`` extra, is not installed).
+9. One intra-op thread or two for every KF and bootstrap-PF workload above, alternating
+   in one process (``bench_online.py``).
 
-Targets (2-core CPU) are printed beside the figures; a missed target says so.
+Targets (2-core CPU) are printed beside the figures; a missed target says so. Everything
+runs with one intra-op thread (``--threads``), the faster in section 9 on the shared 2-core
+machine: for every KF workload in every run (by 1.1× to 100×), for every PF workload but
+in the quietest run, where two threads won the PF at B·N = 1e5 by 1.4× (README).
 """
 
 from __future__ import annotations
@@ -47,6 +60,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from bench_online import print_online_kf, print_online_pf, print_threads  # noqa: E402
+from bench_peers import print_peers  # noqa: E402
 from timing import best_time  # noqa: E402
 
 import difffilter as df  # noqa: E402
@@ -345,6 +360,12 @@ def print_kf_large(figures: dict) -> None:
     print(f"   (max |difference| to numpy on 100 runs: {r['max_abs_diff_vs_numpy']:.2g})")
 
 
+def print_online(figures: dict) -> None:
+    """Sections 1c and 2b: the public online steps of the KF and the PF at B = 1."""
+    print_online_kf(figures)
+    print_online_pf(figures)
+
+
 def _fmt(x: float) -> str:
     return f"{x:,.3g}" if x < 1e3 else f"{x:,.0f}"
 
@@ -356,8 +377,14 @@ def main(argv=None) -> int:
     p.add_argument("--only-robot", action="store_true", help="only section 6 (mdpf_fused_ci)")
     p.add_argument("--only-tracking", action="store_true", help="only section 5 (rrp_pf_da)")
     p.add_argument("--only-lfc", action="store_true", help="only section 7 (LFC learners)")
+    p.add_argument("--only-online", action="store_true", help="only sections 1c and 2b")
+    p.add_argument("--only-peers", action="store_true", help="only section 8 (torch-kf)")
+    p.add_argument("--only-threads", action="store_true", help="only section 9 (1 or 2 threads)")
+    p.add_argument("--threads", type=int, default=1,
+                   help="intra-op threads (default 1: the faster one measured, section 9)")  # fmt: skip
     p.add_argument("--json", type=Path, default=None, help="also write the figures as JSON")
     args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
     tuned = tune_cpu_allocator()
     print(
         f"difffilter benchmarks — torch {torch.__version__}, {torch.get_num_threads()} threads, "
@@ -366,7 +393,9 @@ def main(argv=None) -> int:
     figures: dict = {}
 
     only = {"only_robot": print_robot, "only_tracking": print_tracking,
-            "only_kf_large": print_kf_large, "only_lfc": print_lfc_learners}  # fmt: skip
+            "only_kf_large": print_kf_large, "only_lfc": print_lfc_learners,
+            "only_online": print_online, "only_peers": print_peers,
+            "only_threads": print_threads}  # fmt: skip
     for flag, section in only.items():
         if getattr(args, flag):
             section(figures)
@@ -391,6 +420,7 @@ def main(argv=None) -> int:
         )
 
     print_kf_large(figures)
+    print_online_kf(figures)
 
     print(
         "\n2. Bootstrap PF, four-tank model (dx = 4), float32, systematic resampling at ESS < N/2, T = 50"
@@ -413,6 +443,8 @@ def main(argv=None) -> int:
             f"   {r['B']:>4d} {r['N']:>6d}  {_fmt(r['rate']):>16s}  "
             f"{_fmt(r['numpy_rate']):>12s}  {speedup:7.1f}×  {target} {verdict}"
         )
+
+    print_online_pf(figures)
 
     if not args.skip_memory:
         print("\n3. Peak memory, PF with gradients (B = 32, N = 1000, T = 100, four-tank, float32)")
@@ -457,6 +489,8 @@ def main(argv=None) -> int:
     print_tracking(figures)
     print_robot(figures)
     print_lfc_learners(figures)
+    print_peers(figures)
+    print_threads(figures)
     if args.json:
         args.json.write_text(json.dumps(figures, indent=2))
     return 0
