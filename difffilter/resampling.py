@@ -208,6 +208,8 @@ def _gather_particles(particles: Tensor, ancestors: Tensor) -> Tensor:
     expanded ``[..., N, d]`` index with a ``remainder`` pass, about twice the cost).
     """
     n, d = particles.shape[-2:]
+    if particles.dim() == 2 and ancestors.dim() == 1:  # one run: a plain row gather
+        return particles.index_select(0, ancestors)
     if particles.shape[:-1] == ancestors.shape and particles.is_contiguous():
         # the filter's case: one ancestor row per batch row, no broadcasting
         offsets = _row_offsets(ancestors.numel() // n, n, ancestors.device)
@@ -282,14 +284,20 @@ def systematic_ancestors(
     row's uniform ``U``), ``count`` scalar or ``[..., 1]`` → ``[..., N]`` ``int64``.
     """
     n = cdf.shape[-1]
-    m = n if count is None else count
-    starts = torch.ceil(cdf[..., :-1] * (m / cdf[..., -1:]) - offset).clamp_(0, n).to(torch.int64)
-    marks = torch.zeros(cdf.shape[:-1] + (n + 1,), dtype=torch.int64, device=cdf.device)
-    marks.scatter_add_(-1, starts, torch.ones_like(starts))
+    total = cdf[..., -1:]
+    # m / W: a number over a tensor is Tensor.__rtruediv__, i.e. (1/W)·m, written out
+    # (the same numbers without the operator's Python wrapper)
+    scale = total.reciprocal() * n if count is None else count / total
+    starts = torch.ceil(cdf[..., :-1] * scale - offset).clamp_(0, n).to(torch.int64)
+    if starts.dim() == 1 and starts.device.type == "cpu":  # one row: the counts in one call
+        marks = torch.bincount(starts, minlength=n + 1)  # (starts ≤ n: exactly n + 1 bins)
+    else:
+        marks = torch.zeros(cdf.shape[:-1] + (n + 1,), dtype=torch.int64, device=cdf.device)
+        marks.scatter_add_(-1, starts, torch.ones_like(starts))
     ancestors = torch.cumsum(marks[..., :n], dim=-1)
     # index of the last particle of positive weight = number of cdf entries below the total
     # (the cdf is sorted: one binary search per row instead of a comparison pass and a sum)
-    last_positive = torch.searchsorted(cdf, cdf[..., -1:].contiguous())
+    last_positive = torch.searchsorted(cdf, total.contiguous())
     return torch.minimum(ancestors, last_positive)
 
 
