@@ -138,8 +138,6 @@ class GainSchedule:
             self._gain_scale = scale
         log_norm = chol.diagonal().log().sum() + 0.5 * S.shape[-1] * LOG_2PI
         self._moments.append(SharedMoments(pred_cov, self._cov, K, S, chol, whiten, log_norm))
-        # what the fused step multiplies rows by: Kᵀ, L⁻ᵀ (views) and −log_norm
-        self._row_maps.append((K.mT, whiten.mT, log_norm.neg()))
 
     def gain(self, k: int) -> tuple[Tensor, Tensor]:
         """``(K_k [dx, dy], S_k [dy, dy])`` of measurement ``k ≥ 1``."""
@@ -170,7 +168,7 @@ class GainSchedule:
         [..., du]`` or ``None`` → ``[..., dx]``, ``[..., dx]``, ``[..., dy]``, ``[...]``.
         """
         m = self.moments(k)
-        gain_t, whiten_t, neg_log_norm = self._row_maps[min(k, len(self._row_maps)) - 1]
+        gain_t, whiten_t, neg_log_norm = self._row_map(min(k, len(self._moments)) - 1)
         control = u is not None and self.B is not None
         if mean.dim() == 1 and y.dim() == 1 and (not control or u.dim() == 1):
             # one run: matrix-vector products, the subtraction and addition fused in
@@ -188,6 +186,16 @@ class GainSchedule:
         white = innovation @ whiten_t
         log_lik = torch.add(neg_log_norm, torch.linalg.vecdot(white, white), alpha=-0.5)
         return pred + innovation @ gain_t, pred, innovation, log_lik, m
+
+    def _row_map(self, index: int) -> tuple[Tensor, Tensor, Tensor]:
+        """What the fused step multiplies rows by at moments ``index``: ``Kᵀ``, ``L⁻ᵀ``
+        (views) and ``−log_norm``, made on the fused step's first use of them (a loop that
+        steps through :meth:`predict`/:meth:`update` keeps no extra tensor per step)."""
+        maps = self._row_maps
+        while len(maps) <= index:
+            m = self._moments[len(maps)]
+            maps.append((m.gain.mT, m.whiten.mT, m.log_norm.neg()))
+        return maps[index]
 
     def update(self, pred_mean: Tensor, y: Tensor, k: int) -> tuple[Tensor, Tensor, Tensor]:
         """``(m_k, ν_k, S_k)``: ``pred_mean [..., dx]``, ``y [..., dy]`` → ``[..., dx]``,
