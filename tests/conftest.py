@@ -12,7 +12,6 @@ import difffilter as df
 # would hold the stream one test captured and fail on the next ("I/O operation on closed file")
 import difffilter.train.lightning_cli  # noqa: E402, F401
 
-
 #: The ``slow`` group (``pytest -m slow``; ``make test-slow``; CI runs it): end-to-end runs
 #: of the command lines and trainings, multi-process runs, and statistical checks over many
 #: Monte Carlo runs, each taking seconds to tens of seconds. ``make test`` runs the rest
