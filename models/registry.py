@@ -37,7 +37,7 @@ import warnings
 from importlib.metadata import entry_points
 
 from .scenario import Scenario
-from .yaml_scenario import is_yaml_path, scenario_from_yaml
+from .yaml_scenario import import_object, is_yaml_path, scenario_from_yaml
 
 __all__ = ["Scenario", "register", "get", "names", "families", "all_scenarios"]
 
@@ -101,15 +101,7 @@ def _register_all(obj, where: str) -> list[Scenario]:
 
 def _from_path(path: str) -> Scenario:
     """The scenario of ``"package.module:object"`` (module docstring), registered."""
-    module_name, _, attribute = path.partition(":")
-    try:
-        obj = importlib.import_module(module_name)
-    except ImportError as error:
-        raise ValueError(f"scenario {path!r}: cannot import {module_name!r} ({error})") from None
-    for part in attribute.split("."):
-        if not hasattr(obj, part):
-            raise ValueError(f"scenario {path!r}: {module_name} has no {attribute!r}")
-        obj = getattr(obj, part)
+    obj = import_object(path, f"scenario {path!r}")
     if isinstance(obj, type(importlib)) or isinstance(obj, (list, tuple)):
         raise ValueError(
             f"scenario {path!r}: name one scenario (module:object), not a module or list"

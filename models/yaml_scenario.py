@@ -68,7 +68,13 @@ from .attacks import ActuatorInjection, Replacement, SensorBias
 from .scenario import CustomScenario
 from .schedules import AllSensors, PacketLoss, RoundRobin
 
-__all__ = ["is_yaml_path", "scenario_from_yaml", "scenario_from_dict", "PAPER_ATTACKS"]
+__all__ = [
+    "is_yaml_path",
+    "scenario_from_yaml",
+    "scenario_from_dict",
+    "import_object",
+    "PAPER_ATTACKS",
+]
 
 #: The papers' attacks by the names a YAML scenario uses (beside the threat library's).
 PAPER_ATTACKS = {
@@ -139,10 +145,9 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
     )
 
 
-def _import(path: Any, where: str):
-    """The object of a ``package.module:object`` path."""
-    if not isinstance(path, str) or ":" not in path:
-        raise ValueError(f"{where} must be a 'package.module:object' path; got {path!r}")
+def import_object(path: str, where: str):
+    """The object a ``package.module:object`` path names (``object`` may be dotted); a
+    ``ValueError`` starting with ``where`` if the module or the object is missing."""
     module_name, _, attribute = path.partition(":")
     try:
         obj = importlib.import_module(module_name)
@@ -152,6 +157,14 @@ def _import(path: Any, where: str):
         if not hasattr(obj, part):
             raise ValueError(f"{where}: {module_name} has no {attribute!r}")
         obj = getattr(obj, part)
+    return obj
+
+
+def _import(path: Any, where: str):
+    """The function of a ``package.module:function`` path."""
+    if not isinstance(path, str) or ":" not in path:
+        raise ValueError(f"{where} must be a 'package.module:object' path; got {path!r}")
+    obj = import_object(path, where)
     if not callable(obj):
         raise ValueError(f"{where}: {path} is not a function")
     return obj
