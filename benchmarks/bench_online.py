@@ -149,13 +149,9 @@ def print_online_kf(figures: dict) -> None:
         "\n1c. Kalman filter through the public online step, B = 1 (KalmanFilter().step, one "
         f"measurement at a time), T = {r['T']}, float64 (steps/s; load {r['load_average']:.1f})"
     )
-    print(f"   numpy loop                      {_fmt(r['numpy_rate']):>10s}")
     rows = (("online (gains converged)", "online", True), ("cold start (init + T steps)", "cold", True),
             ("online, full_checks = True", "checked", False))  # fmt: skip
-    for label, key, judged in rows:
-        ratio = r[f"{key}_ratio"]
-        verdict = f"  target ≥ {KF_TARGET:g}× numpy: {_verdict(ratio, KF_TARGET)}" if judged else ""
-        print(f"   {label:<30s}  {_fmt(r[f'{key}_rate']):>10s}  {ratio:6.2f}×{verdict}")
+    _print_rates(r, rows, KF_TARGET)
     print(f"   (max |difference| of the last mean to numpy: {r['max_abs_diff_vs_numpy']:.2g})")
 
 
@@ -167,12 +163,18 @@ def print_online_pf(figures: dict) -> None:
         f"(ParticleFilter(N).step, init + T = {r['T']} steps per run), float32 "
         f"(particle-steps/s; load {r['load_average']:.1f})"
     )
-    print(f"   numpy loop                      {_fmt(r['numpy_rate']):>10s}")
     rows = (("default outputs", "default", True), ("innovations = False", "lean", True),
             ("default, full_checks = True", "checked", False))  # fmt: skip
+    _print_rates(r, rows, PF_TARGET)
+
+
+def _print_rates(r: dict, rows, target: float) -> None:
+    """The numpy loop's rate, then each ``(label, key, judged)`` row's rate and ratio to it
+    (with the verdict against ``target`` where ``judged``)."""
+    print(f"   numpy loop                      {_fmt(r['numpy_rate']):>10s}")
     for label, key, judged in rows:
         ratio = r[f"{key}_ratio"]
-        verdict = f"  target ≥ {PF_TARGET:g}× numpy: {_verdict(ratio, PF_TARGET)}" if judged else ""
+        verdict = f"  target ≥ {target:g}× numpy: {_verdict(ratio, target)}" if judged else ""
         print(f"   {label:<30s}  {_fmt(r[f'{key}_rate']):>10s}  {ratio:6.2f}×{verdict}")
 
 

@@ -23,17 +23,18 @@ def best_time(
     processes take turns on the cores; not a wall-clock figure).
     """
     fn()  # warm-up (allocator, lazy initialisation)
-    best = math.inf
-    for _ in range(repeats):
-        n, start = 0, clock()
-        while True:
-            fn()
-            n += 1
-            elapsed = clock() - start
-            if elapsed >= min_time:
-                break
-        best = min(best, elapsed / n)
-    return best
+    return min(_round(fn, min_time, clock) for _ in range(repeats))
+
+
+def _round(fn: Callable[[], object], min_time: float, clock: Callable[[], float]) -> float:
+    """Seconds per call of one round: ``fn`` called until ``min_time`` has passed."""
+    n, start = 0, clock()
+    while True:
+        fn()
+        n += 1
+        elapsed = clock() - start
+        if elapsed >= min_time:
+            return elapsed / n
 
 
 def best_times(
@@ -50,14 +51,7 @@ def best_times(
     best = dict.fromkeys(fns, math.inf)
     for _ in range(repeats):
         for name, fn in fns.items():
-            n, start = 0, clock()
-            while True:
-                fn()
-                n += 1
-                elapsed = clock() - start
-                if elapsed >= min_time:
-                    break
-            best[name] = min(best[name], elapsed / n)
+            best[name] = min(best[name], _round(fn, min_time, clock))
     return best
 
 

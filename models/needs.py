@@ -129,29 +129,33 @@ def _assumes_deception(scenario, model) -> str | None:
 ASSUMES_DECEPTION_DENSITY = Need("assumes a known deception density", _assumes_deception)
 
 
+def _instance_of(cls: type, of_model: bool, what: str, why) -> Need:
+    """A need met when the scenario (or, with ``of_model``, its model) is a ``cls``;
+    ``why(scenario, model)`` is the reason otherwise."""
+
+    def check(scenario, model) -> str | None:
+        return None if isinstance(model if of_model else scenario, cls) else why(scenario, model)
+
+    return Need(what, check)
+
+
 def scenario_of(cls: type, family: str) -> Need:
     """The scenario is a ``cls`` (the ``family``'s scenario class, whose parts the
     estimator reads: its plant's matrices, its schedule, its paper's settings)."""
-
-    def check(scenario, model) -> str | None:
-        if isinstance(scenario, cls):
-            return None
-        return (f"an estimator of the {family} family: it reads the parts of a "
-                f"{cls.__name__}, and {scenario.name!r} is a {type(scenario).__name__}")  # fmt: skip
-
-    return Need(f"the {family} family's scenario ({cls.__name__})", check)
+    return _instance_of(
+        cls, False, f"the {family} family's scenario ({cls.__name__})",
+        lambda sc, model: (f"an estimator of the {family} family: it reads the parts of a "
+                           f"{cls.__name__}, and {sc.name!r} is a {type(sc).__name__}"),
+    )  # fmt: skip
 
 
 def model_of(cls: type) -> Need:
     """The estimators' model is a ``cls`` (e.g. the four-tank model, whose fixed point and
     input matrix an estimator reads), whatever the scenario around it."""
-
-    def check(scenario, model) -> str | None:
-        if isinstance(model, cls):
-            return None
-        return f"needs a {cls.__name__} model; this one is a {type(model).__name__}"
-
-    return Need(f"a {cls.__name__} model", check)
+    return _instance_of(
+        cls, True, f"a {cls.__name__} model",
+        lambda sc, model: f"needs a {cls.__name__} model; this one is a {type(model).__name__}",
+    )  # fmt: skip
 
 
 def first_unmet(needs, scenario, model) -> str | None:

@@ -112,10 +112,7 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
     """The scenario of a mapping with the fields of a YAML scenario (module docstring)."""
     if not isinstance(doc, Mapping):
         raise ValueError(f"{where}: a scenario is a mapping of fields; got {type(doc).__name__}")
-    unknown = sorted(set(doc) - _TOP)
-    if unknown:
-        raise ValueError(f"{where}: unknown field(s) {', '.join(unknown)}; valid: "
-                         f"{', '.join(sorted(_TOP))}")  # fmt: skip
+    _check_fields(doc, _TOP, where)
     for key in ("name", "plant"):
         if key not in doc:
             raise ValueError(f"{where}: the field {key!r} is required")
@@ -160,6 +157,14 @@ def import_object(path: str, where: str):
     return obj
 
 
+def _check_fields(mapping: Mapping, valid: set[str], where: str) -> None:
+    """``ValueError`` naming the fields of ``mapping`` outside ``valid`` (and the valid ones)."""
+    unknown = sorted(set(mapping) - valid)
+    if unknown:
+        raise ValueError(f"{where}: unknown field(s) {', '.join(unknown)}; valid: "
+                         f"{', '.join(sorted(valid))}")  # fmt: skip
+
+
 def _import(path: Any, where: str):
     """The function of a ``package.module:function`` path."""
     if not isinstance(path, str) or ":" not in path:
@@ -194,10 +199,7 @@ def _plant(spec: Any, where: str):
     """``dtype → StateSpaceModel`` of the plant mapping."""
     if not isinstance(spec, Mapping):
         raise ValueError(f"{where} must be a mapping (module docstring); got {spec!r}")
-    unknown = sorted(set(spec) - _PLANT)
-    if unknown:
-        raise ValueError(f"{where}: unknown field(s) {', '.join(unknown)}; valid: "
-                         f"{', '.join(sorted(_PLANT))}")  # fmt: skip
+    _check_fields(spec, _PLANT, where)
     if "model" in spec:
         return _import(spec["model"], f"{where}.model")
     transition = (
