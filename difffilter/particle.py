@@ -375,6 +375,8 @@ class ParticleFilter(Estimator):
             raise ValueError("carry.log_weights contains NaN values")
 
     def _step(self, carry, y, u, mask):
+        if _single_run.applies(self, carry, mask):  # one run on the defaults: a leaner step
+            return _single_run.single_run_step(self, carry, y, u)
         return _particle_step(self, carry, y, u, mask)
 
 
@@ -684,3 +686,7 @@ def particle_result(out) -> ParticleFilterResult:
     return ParticleFilterResult.from_output(
         out, **{k: x.get(k) for k in _PF_FIELDS}, records=records
     )
+
+
+# The one-run step (below the classes it builds on: it imports them from this module).
+from . import _pf_single_run as _single_run  # noqa: E402
