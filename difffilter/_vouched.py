@@ -31,7 +31,7 @@ import weakref
 import torch
 from torch import Tensor
 
-__all__ = ["Established", "vouch", "vouched"]
+__all__ = ["Established", "hold_whole", "vouch", "vouched"]
 
 #: How many vouched carries the registry keeps (the oldest go first).
 _LIMIT = 64
@@ -102,12 +102,25 @@ def _finite(t: Tensor) -> bool:
 #: Entries up to which :func:`_finite` sums on the host.
 _HOST_SUM = 64
 _CONTAINERS = (tuple, list, dict)
+#: Tuple types a carry holds whole, compared by identity like any other non-tensor leaf
+#: (immutable tuples without tensors, e.g. the estimators' ``Generators``): flattening
+#: them would only cost time (:func:`hold_whole`).
+_WHOLE: frozenset = frozenset()
+
+
+def hold_whole(cls: type) -> type:
+    """Treat instances of the tuple type ``cls`` as one leaf of a carry (module docstring)."""
+    global _WHOLE
+    _WHOLE = _WHOLE | {cls}
+    return cls
+
+
 _VERSIONS = operator.attrgetter("_version")
 
 
 def _leaves(obj, out: list) -> list:
     for v in obj.values() if isinstance(obj, dict) else obj:
-        if isinstance(v, Tensor) or not isinstance(v, _CONTAINERS):
+        if isinstance(v, Tensor) or not isinstance(v, _CONTAINERS) or type(v) in _WHOLE:
             out.append(v)
         else:
             _leaves(v, out)
@@ -118,7 +131,7 @@ def _flat_leaves(carry) -> tuple:
     """The carry's leaves: the carry itself when none of its fields is a container (the
     filters' carries), else its fields flattened through tuples, lists and dicts."""
     for v in carry:
-        if isinstance(v, _CONTAINERS) and not isinstance(v, Tensor):
+        if isinstance(v, _CONTAINERS) and not isinstance(v, Tensor) and type(v) not in _WHOLE:
             return tuple(_leaves(carry, []))
     return carry
 

@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from ._checks import check_carry_batch, check_model, check_step_inputs
-from ._vouched import Established, vouch, vouched
+from ._vouched import Established, hold_whole, vouch, vouched
 from .attack import Channel
 from .results import FilterResult, StepOutput
 
@@ -137,6 +137,7 @@ class EstimatorOutput:
 # ------------------------------------------------------------------ the online estimator
 
 
+@hold_whole  # a carry's generators: one leaf, by identity
 class Generators(NamedTuple):
     """The random streams of an estimator's draws: ``init`` (its initial state, e.g. the
     prior particles), ``propagate`` (proposals, process noise) and ``resample``.
