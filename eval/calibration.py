@@ -68,7 +68,8 @@ def calibrate(
     """Run ``scenario``'s estimators on attack-free runs and pick every detector's ``τ_α``.
 
     ``runs`` (default the scenario's), ``estimators``, ``add`` and ``checkpoint`` as for
-    :func:`~difffilter.eval.suite.run_suite`; the runs come from :func:`calibration_seed`.
+    :func:`~difffilter.eval.suite.run_suite` (an empty list of ``estimators`` and no
+    ``add``: no detector, nothing to run); the runs come from :func:`calibration_seed`.
     ``cache`` (a dict shared by one evaluation) keeps the result for the same scenario,
     runs, estimators, checkpoint and target.
     """
@@ -82,6 +83,8 @@ def calibrate(
     if cache is not None and key in cache:
         return cache[key]
     cal_seed = calibration_seed(seed)
+    if estimators is not None and not list(estimators) and not add:
+        return Calibration(far, runs, cal_seed)
     result = run_suite(
         scenario.with_threat(None), runs=runs, seed=cal_seed, estimators=estimators, add=add,
         progress=progress, checkpoint=checkpoint, cache=cache, calibration=None,

@@ -199,7 +199,7 @@ def evaluate(
     from .calibration import calibrate
     from .leaderboard import write_leaderboard
     from .report import family_report, write_report
-    from .suite import process_group, run_suite
+    from .suite import apply_calibration, detectors, process_group, run_suite
 
     check_arguments(runs=runs, ckpt=ckpt, calibration_runs=calibration_runs)
     families: dict[str, list[str]] = {}
@@ -220,16 +220,17 @@ def evaluate(
             )  # fmt: skip
         done = {}
         for name in names:
-            scenario, calibration = registry.get(name), None
-            if far is not None:
-                calibration = calibrate(
-                    scenario, far=far, runs=calibration_runs or runs, seed=seed,
-                    add=add_estimators, checkpoint=ckpt, progress=progress, cache=cache,
-                )  # fmt: skip
+            scenario = registry.get(name)
             result = run_suite(
                 scenario, runs=runs, seed=seed, progress=progress, checkpoint=ckpt,
-                cache=cache, add=add_estimators, calibration=calibration,
+                cache=cache, add=add_estimators,
             )  # fmt: skip
+            if far is not None:  # after the study: only its detectors need attack-free runs
+                apply_calibration(result, calibrate(
+                    scenario, far=far, runs=calibration_runs or runs, seed=seed,
+                    estimators=detectors(result), checkpoint=ckpt, progress=progress,
+                    cache=cache,
+                ))  # fmt: skip
             if writer:
                 done[name] = write_report(Path(out) / name, result, prepared=prepared)
         if report.finish and writer:

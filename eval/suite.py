@@ -211,15 +211,33 @@ def _run_estimators(result: SuiteResult, specs, progress: bool, built=None) -> N
 def _score(result: SuiteResult, specs) -> None:
     """Every run estimator's metrics against the trajectories it ran on."""
     ref = result.outputs[result.reference].means if result.reference else None
-    thresholds = result.calibration.thresholds if result.calibration is not None else {}
     for spec in (s for s in specs if s.name in result.outputs):
         out, traj = result.outputs[spec.name], result.traj_of(spec.name)
         result.metrics[spec.name] = score(
             out, traj, dt=result.scenario.dt, wall_s=result.wall_s[spec.name],
             reference_means=ref, attacked_input=not spec.clean_input,
         )  # fmt: skip
-        result.metrics[spec.name].update(calibrated_metrics(
-            out, traj, thresholds.get(spec.name), attacked_input=not spec.clean_input
+    apply_calibration(result, result.calibration)
+
+
+def detectors(result: SuiteResult) -> list[str]:
+    """The estimators of ``result`` that report detection scores (those a calibration
+    gives a threshold), in the order they ran."""
+    return [name for name, out in result.outputs.items()
+            if out.detection is not None and out.detection.scores is not None]  # fmt: skip
+
+
+def apply_calibration(result: SuiteResult, calibration) -> None:
+    """Judge ``result``'s detectors at the thresholds of ``calibration`` (``None``: none):
+    sets ``result.calibration`` and (re)computes every estimator's calibrated metrics
+    (:func:`~difffilter.eval.calibration.calibrated_metrics`). A study can so run before its
+    calibration, which then runs only the estimators that detect (:func:`detectors`)."""
+    result.calibration = calibration
+    thresholds = calibration.thresholds if calibration is not None else {}
+    for name, out in result.outputs.items():
+        clean = registry.get(name).clean_input
+        result.metrics[name].update(calibrated_metrics(
+            out, result.traj_of(name), thresholds.get(name), attacked_input=not clean
         ))  # fmt: skip
 
 

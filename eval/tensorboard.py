@@ -22,21 +22,19 @@ def log_suite(logdir: Path, result, doc: dict, figures) -> None:
     from torch.utils.tensorboard import SummaryWriter
 
     with SummaryWriter(str(logdir)) as w:
+        curves: dict[str, list[float]] = {}
         for name, out in result.outputs.items():
             traj = result.traj_of(name)
-            curve = rmse_over_time(out.means, traj.x)
-            alarm_rate = None
+            curves[f"state_rmse_per_step/{name}"] = rmse_over_time(out.means, traj.x).tolist()
             if out.detection is not None:
-                alarm_rate = out.detection.alarms.double().mean(0)
-            attack_curve = None  # the attack estimate's error, where it estimates this channel
+                rate = out.detection.alarms.double().mean(0)
+                curves[f"alarm_rate_per_step/{name}"] = rate.tolist()
+            # the attack estimate's error, where it estimates this channel
             if traj.attack.shape[-1] > 0 and comparable_attack(out, traj):
-                attack_curve = rmse_over_time(out.attack, traj.attack)
-            for k in range(curve.shape[0]):
-                w.add_scalar(f"state_rmse_per_step/{name}", float(curve[k]), k + 1)
-                if alarm_rate is not None:
-                    w.add_scalar(f"alarm_rate_per_step/{name}", float(alarm_rate[k]), k + 1)
-                if attack_curve is not None:
-                    w.add_scalar(f"attack_rmse_per_step/{name}", float(attack_curve[k]), k + 1)
+                curves[f"attack_rmse_per_step/{name}"] = rmse_over_time(
+                    out.attack, traj.attack
+                ).tolist()
+        _write_curves(w, curves)
         for fname, fig in figures:
             w.add_figure(Path(fname).stem, fig, close=False)
         for name, entry in doc["estimators"].items():
@@ -48,3 +46,17 @@ def log_suite(logdir: Path, result, doc: dict, figures) -> None:
                 "seed": doc["seed"],
             }
             w.add_hparams(hparams, metrics, run_name=f"hparams/{name}")
+
+
+def _write_curves(writer, curves: dict[str, list[float]]) -> None:
+    """Every curve ``{tag: [value at k = 1, 2, …]}`` as scalars at steps ``k``: one event per
+    step holding every tag's value there (TensorBoard reads each tag as with ``add_scalar``;
+    one event per value made the evaluation's logging 10× slower: ~100 µs per event)."""
+    from tensorboard.compat.proto.summary_pb2 import Summary
+
+    steps = max((len(c) for c in curves.values()), default=0)
+    file_writer = writer._get_file_writer()
+    for k in range(steps):
+        values = [Summary.Value(tag=tag, simple_value=c[k]) for tag, c in curves.items()
+                  if k < len(c)]  # fmt: skip
+        file_writer.add_summary(Summary(value=values), k + 1)

@@ -138,3 +138,31 @@ def test_a_fingerprint_is_the_same_in_every_process(tmp_path):
     runs = [subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
                            text=True, check=True).stdout for _ in range(2)]  # fmt: skip
     assert runs[0] == runs[1] and len(runs[0].strip()) == 64
+
+
+def test_a_study_calibrated_afterwards_on_its_detectors_reads_the_same_thresholds(monkeypatch):
+    """``difffilter-eval`` runs the study first and then calibrates only the estimators that
+    detect: the thresholds and calibrated metrics equal those of calibrating every
+    estimator beforehand, and a study without a detector runs no calibration at all."""
+    from difffilter.eval import suite as suite_module
+    from difffilter.eval.suite import apply_calibration, detectors
+
+    scenario = registry.get("four_tank_bias").with_steps(60)
+    names = ["open_loop_pf", "chi_square_ekf", "cusum_ekf"]  # the first detects nothing
+    before = calibrate(scenario, runs=8, estimators=names, progress=False)
+    study = run_suite(scenario, runs=8, estimators=names, progress=False, calibration=before)
+    after = run_suite(scenario, runs=8, estimators=names, progress=False)
+    assert detectors(after) == ["chi_square_ekf", "cusum_ekf"]
+    apply_calibration(after, calibrate(scenario, runs=8, estimators=detectors(after),
+                                       progress=False))  # fmt: skip
+    assert after.calibration.thresholds == before.thresholds
+    for name in names:
+        for key in ("threshold_at_far", "tpr_at_far", "fpr_at_far", "impact"):
+            assert after.metrics[name][key] == study.metrics[name][key], (name, key)
+
+    def no_suite(*args, **kwargs):
+        raise AssertionError("a calibration without detectors ran a suite")
+
+    monkeypatch.setattr(suite_module, "run_suite", no_suite)
+    empty = calibrate(scenario, runs=8, estimators=[], progress=False)
+    assert empty.thresholds == {} and empty.runs == 8 and empty.seed == calibration_seed(0)
