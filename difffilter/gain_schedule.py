@@ -56,12 +56,18 @@ class SharedMoments(NamedTuple):
 
 def shared_gains_apply(model) -> bool:
     """Whether ``model`` is a time-invariant linear model whose matrices and prior carry no
-    batch dimension (its gains are then the same for every run)."""
+    batch dimension (its gains are then the same for every run) and none of them requires
+    gradients (the schedule is computed once, outside autograd: a model being trained
+    takes the general, differentiable update instead)."""
     needed = ("transition_matrix", "observation_matrix", "control_matrix", "process_cov")
     if not all(hasattr(model, name) for name in needed) or getattr(model, "time_varying", False):
         return False
     mats = (model.transition_matrix(0), model.observation_matrix(1), model.initial.cov)
-    return all(m.dim() == 2 for m in mats) and model.initial.mean.dim() == 1
+    if not (all(m.dim() == 2 for m in mats) and model.initial.mean.dim() == 1):
+        return False
+    B = model.control_matrix(0)
+    every = (*mats, model.process_cov(0), model.measurement_cov(1), model.initial.mean)
+    return not any(m.requires_grad for m in (*every, *(() if B is None else (B,))))
 
 
 class GainSchedule:

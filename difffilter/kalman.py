@@ -171,7 +171,8 @@ class KalmanFilter(GaussianFilter):
 
     Carry: :class:`~difffilter.results.GaussianState` ``(mean [..., dx], cov, k, model,
     gains)``; ``gains`` is the model's :class:`~difffilter.GainSchedule` when its
-    covariances are shared by every run (an unbatched time-invariant model), used by
+    covariances are shared by every run (an unbatched time-invariant model whose matrices
+    require no gradients: the schedule is computed outside autograd), used by
     every unmasked step: the same numbers, the covariance recursion computed once for all
     runs (a masked step falls back to the general update and drops it).
     """

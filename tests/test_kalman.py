@@ -501,3 +501,40 @@ def test_the_shared_recursion_stops_at_an_exact_fixed_point_with_the_same_number
     assert len(calls) - stopped == 300  # every step with gradients
     for a, b in zip(cut, every):
         assert torch.equal(a, b.detach())
+
+
+def test_the_online_step_is_differentiable_in_the_models_matrices(generator):
+    """``KalmanFilter().step`` on a model whose matrices require gradients: gradcheck of
+    the summed evidence in F, Q and R (the shared gain schedule, computed outside autograd,
+    is not used for such a model: it used to drop these gradients silently)."""
+    base = constant_velocity()
+    _, ys, _ = base.simulate(5, (), generator=generator)
+    H, m0, P0 = base.H, base.initial.mean, base.initial.cov
+    eye = torch.eye(4, dtype=torch.float64)
+
+    def model_of(F, Lq, Lr):
+        Q = Lq @ Lq.T + 1e-3 * eye
+        return df.LinearGaussianModel(F, H, Q, Lr @ Lr.T + 1e-2 * eye[:2, :2], m0, P0)
+
+    def online(F, Lq, Lr):
+        kf = df.KalmanFilter()
+        carry, total = kf.init(model_of(F, Lq, Lr)), 0.0
+        for y in ys:
+            carry, out = kf.step(carry, y)
+            total = total + out.log_likelihood
+        return total
+
+    F = base.F.clone().requires_grad_()
+    Lq = torch.linalg.cholesky(base.process_noise.cov + 1e-2 * eye).requires_grad_()
+    Lr = torch.linalg.cholesky(base.measurement_noise.cov).requires_grad_()
+    assert torch.autograd.gradcheck(online, (F, Lq, Lr), eps=1e-6, atol=1e-6)
+    whole = df.kalman_filter(model_of(F, Lq, Lr), ys).log_likelihood
+    got = torch.autograd.grad(online(F, Lq, Lr), (F, Lq, Lr))
+    expected = torch.autograd.grad(whole, (F, Lq, Lr))
+    for g, e in zip(got, expected):
+        assert g.abs().sum() > 0
+        torch.testing.assert_close(g, e, atol=1e-10, rtol=1e-10)
+    with torch.no_grad():  # without gradients the schedule serves the model again
+        assert (
+            df.KalmanFilter().init(model_of(F.detach(), Lq.detach(), Lr.detach())).gains is not None
+        )
