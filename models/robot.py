@@ -217,6 +217,9 @@ class RobotScenario(Scenario):
             (deg/s) [DEF]. attack: ``(a_p cm/s, a_r deg/s)`` (B9). attack_from: first
             attacked ``k`` (B9: 30). forgetting: ``λ₁ = λ₂`` (0.7). attack_cov0: ``S_0 = ω I``
             [DEF 10]. reading: eq. (5) reading of the local estimators [DEF ``"draw"``].
+        turn_rate_range_deg: ``(lo, hi)``: run ``r`` of ``R`` commands ``u_r`` evenly spaced
+            from ``lo`` to ``hi`` deg/s instead of ``turn_rate_deg`` (a training variant:
+            paths of many curvatures, so that a network does not learn one path's inputs).
     """
 
     family: str = "robot"
@@ -235,6 +238,7 @@ class RobotScenario(Scenario):
     forgetting: float = 0.7
     attack_cov0: float = 10.0
     reading: Reading = Reading.DRAW
+    turn_rate_range_deg: tuple | None = None
     checkpoint: str | None = "checkpoints/robot_nn_ekf.ckpt"  # gaussian_nn_ekf without --ckpt
 
     def __post_init__(self):
@@ -253,8 +257,14 @@ class RobotScenario(Scenario):
         return ActuatorInjection((self.attack[0], self.attack[1] * DEG), start=self.attack_from - 1)
 
     def inputs(self, runs: int, dtype: torch.dtype, device=None) -> Tensor:
+        """``u = (u_p cm/s, u_r rad/s)`` ``[runs, T, 2]``, constant along each run."""
         u = torch.tensor((self.velocity, self.turn_rate_deg * DEG), dtype=dtype, device=device)
-        return u.expand(runs, self.steps, 2).clone()
+        u = u.expand(runs, self.steps, 2).clone()
+        if self.turn_rate_range_deg is not None:
+            lo, hi = self.turn_rate_range_deg
+            rates = torch.linspace(lo, hi, runs, dtype=dtype, device=device) * DEG
+            u[..., 1] = rates.unsqueeze(-1)
+        return u
 
     def estimator_options(self) -> dict:
         return {"forgetting": self.forgetting, "attack_cov0": self.attack_cov0,
@@ -299,5 +309,16 @@ register(
         estimators=_ESTIMATORS,
         notes=_NOTES,
         turn_rate_deg=10.0,
+    )
+)
+register(
+    RobotScenario(
+        name="robot_actuator_attack_turn_rates",
+        description="as robot_actuator_attack with u_r evenly spread over 0-15 deg/s across the "
+        "runs (training data: many path curvatures)",
+        estimators=_ESTIMATORS,
+        notes=_NOTES,
+        turn_rate_range_deg=(0.0, 15.0),
+        headline=False,
     )
 )
