@@ -109,7 +109,9 @@ def single_run_step(pf, carry, y: Tensor, u: Tensor | None):
     dev = new - mean
     cov = torch.mm(dev.mT * w_new, dev)
     cov = (cov + cov.mT).mul_(0.5)
-    extras = {"ess": ess_new, "resampled": torch.tensor(resampled), "degenerate": degenerate}
+    # the flags on the filter's device, as the general step's comparisons leave them
+    resampled = torch.tensor(resampled, device=new.device)
+    extras = {"ess": ess_new, "resampled": resampled, "degenerate": degenerate}
     out = StepOutput(
         mean, cov, pred_mean, None,
         None if predictive is None else predictive.innovation,
@@ -185,4 +187,4 @@ def _weigh_and_normalise(noise, residual: Tensor, log_w: Tensor):
         if constant is not None:
             increment = increment - constant
         log_w_new, w_new = log_w, torch.exp(log_w)
-    return increment, log_w_new, w_new, torch.tensor(not finite)
+    return increment, log_w_new, w_new, torch.tensor(not finite, device=increment.device)
