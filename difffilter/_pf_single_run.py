@@ -22,7 +22,7 @@ with the same draws from the same generators in the same order, so the same numb
 round-off (tests: the general step against this one, values and gradients, in float64).
 Two rewrites of the general step's numbers, both exact in exact arithmetic:
 
-* the Gaussian log-density ``−½ r ᵀΣ⁻¹r − c`` of a diagonal zero-mean measurement noise
+* the Gaussian log-density ``−½ rᵀΣ⁻¹r − c`` of a diagonal zero-mean measurement noise
   enters the normalisation as ``−½ rᵀΣ⁻¹r`` and ``c`` is subtracted from the evidence
   afterwards (one pass over the particles fewer);
 * the systematic ancestors are one binary search of the targets ``(j + U)·W/N`` in the
