@@ -43,7 +43,7 @@ from torch import Tensor
 
 from .estimator import Generators
 from .noise import Gaussian
-from .particle import BootstrapProposal, ModelLikelihood, ParticleState, _predictive
+from .particle import BootstrapProposal, ModelLikelihood, ParticleState, _ess, _predictive
 from .resampling import Systematic
 from .results import StepOutput
 from .ssm import StateSpaceModel
@@ -80,7 +80,8 @@ def single_run_step(pf, carry, y: Tensor, u: Tensor | None):
     particles, log_w, w = carry.particles, carry.log_weights, carry.weights
     n = particles.shape[0]
     ess = carry.ess if carry.ess is not None else _ess(log_w)
-    resampled = ess.item() < pf.ess_threshold * n
+    need = ess < pf.ess_threshold * n  # the step's "resampled" flag, on its device
+    resampled = bool(need)
     if resampled:
         gen = gens.resample if gens.resample is not None else gens.propagate
         weights = (w if w is not None else torch.exp(log_w)).detach()
@@ -109,9 +110,7 @@ def single_run_step(pf, carry, y: Tensor, u: Tensor | None):
     dev = new - mean
     cov = torch.mm(dev.mT * w_new, dev)
     cov = (cov + cov.mT).mul_(0.5)
-    # the flags on the filter's device, as the general step's comparisons leave them
-    resampled = torch.tensor(resampled, device=new.device)
-    extras = {"ess": ess_new, "resampled": resampled, "degenerate": degenerate}
+    extras = {"ess": ess_new, "resampled": need, "degenerate": degenerate}
     out = StepOutput(
         mean, cov, pred_mean, None,
         None if predictive is None else predictive.innovation,
@@ -121,10 +120,6 @@ def single_run_step(pf, carry, y: Tensor, u: Tensor | None):
     new_carry = ParticleState(new, log_w_new, k + 1, ess_new, w_new, model, carry.aux,
                               carry.generators)  # fmt: skip
     return new_carry, out
-
-
-def _ess(log_w: Tensor) -> Tensor:
-    return torch.exp(-torch.logsumexp(2.0 * log_w, dim=-1))
 
 
 def _propagate(model, particles: Tensor, u: Tensor | None, k: int, generator) -> Tensor:
