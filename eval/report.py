@@ -99,12 +99,17 @@ class FamilyReport:
             a validation the reports discuss). ``options`` holds the CLI's family flags.
         finish: ``(results, out, prepared) → None`` once after them: a summary across the
             family's scenarios (``results``: ``{scenario: metrics.json content}``).
+        estimator_metrics: ``(SuiteResult, estimator) → dict``: cheap numbers of one
+            estimator's outputs that the family reports beside the generic ones (tracking's
+            position RMSE ``rmse_p``), for the studies that write no report (a training
+            sweep's acceptance, :mod:`difffilter.eval.acceptance`).
     """
 
     extra: Callable[..., dict[str, Any]] | None = None
     sections: Callable[..., list[Section]] | None = None
     prepare: Callable[..., Any] | None = None
     finish: Callable[..., None] | None = None
+    estimator_metrics: Callable[..., dict[str, Any]] | None = None
 
 
 _FAMILIES: dict[str, FamilyReport] = {}
@@ -190,6 +195,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
         "estimators": {n: {**dict.fromkeys(METRICS), **m} for n, m in result.metrics.items()},
         "description": sc.description, "dt_s": sc.dt, "reference": result.reference,
         "estimator_descriptions": {n: registry.get(n).description for n in result.metrics},
+        "estimator_roles": {n: registry.get(n).role for n in result.metrics},
         "notes": list(sc.notes),
         "attacked_steps": int(result.traj.flags.sum()),
         "attack_free_steps": int((~result.traj.flags).sum()),
@@ -201,6 +207,8 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     (out / "metrics.json").write_text(json.dumps(doc, indent=2) + "\n")
     figures = standard_figures(result)
     sections = [_summary_section(doc, sc), _table_section(doc)]
+    if (judged := _acceptance_section(doc)) is not None:
+        sections.append(judged)
     sections.append(Section("Plots", "", [name for name, _ in figures]))
     if family.sections:
         sections += family.sections(result, doc, out, prepared)
@@ -259,9 +267,37 @@ def _table_section(doc: dict) -> Section:
     cols = [c for c in _TABLE_COLUMNS if any(e.get(c) is not None for e in est.values())]
     rows = [[f"`{name}`", *(format_number(e.get(c), 3) for c in cols)] for name, e in est.items()]
     table = markdown_table(["estimator", *(f"{c} [{concrete_unit(doc, c)}]" for c in cols)], rows)
-    desc = "\n".join(f"- `{n}`: {d}" for n, d in doc["estimator_descriptions"].items())
+    role = doc.get("estimator_roles", {})
+    desc = "\n".join(f"- `{n}`{f' ({role[n]})' if role.get(n, 'analytic') != 'analytic' else ''}: {d}"
+                     for n, d in doc["estimator_descriptions"].items())  # fmt: skip
     defs = "\n".join(f"- `{c}` [{METRICS[c].unit}]: {METRICS[c].definition}" for c in cols)
     return Section("Estimators", f"{table}\n{desc}\n\nDefinitions:\n\n{defs}\n")
+
+
+def _acceptance_section(doc: dict) -> Section | None:
+    """Each learned estimator of a calibrated study against the best analytic one
+    (:mod:`difffilter.eval.acceptance`), or ``None`` where there is nothing to judge."""
+    from .acceptance import best_analytic, judge, state_metric
+
+    est, role = doc["estimators"], doc.get("estimator_roles", {})
+    learned = [n for n in est if role.get(n) == "learned" and est[n].get("tpr_at_far") is not None]
+    if doc.get("far") is None or not learned:
+        return None
+    far, metric = doc["far"]["target"], state_metric(est)
+    best = best_analytic(est, role_of=role)
+    if not best:
+        return None
+    rows = []
+    for name in learned:
+        for c in judge(est[name], best, far, metric):
+            who = f" (`{c.best_estimator}`)" if c.best_estimator else ""
+            rows.append([f"`{name}`", f"{c.metric} {c.bound}", format_number(c.value, 4),
+                         format_number(c.best, 4) + who, "yes" if c.holds else "**no**"])  # fmt: skip
+    table = markdown_table(["learned", "check", "value", "best analytic", "holds"], rows)
+    text = ("Each learned estimator at the calibrated rate against the best analytic one (per "
+            "metric the best of the estimators that are neither an oracle, a network nor an "
+            "attack-free reference; `difffilter.eval.acceptance`).\n\n")  # fmt: skip
+    return Section("Learned against the best analytic", text + table + "\n")
 
 
 def _markdown(doc: dict, sc, sections: list[Section]) -> str:

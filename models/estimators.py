@@ -70,6 +70,9 @@ class EstimatorSpec:
         estimates: the channel its attack estimate is on (its outputs are marked so and
             scored only against an attack on the same side), or ``None``: what its
             outputs say (``EstimatorOutput.attack_channel``, the sensors by default).
+        oracle: it reads the true attack (an oracle γ̂, as the papers' tables do): a bound,
+            never a competitor.
+        learned: it runs a neural network, trained offline (a checkpoint) or online.
     """
 
     name: str
@@ -79,6 +82,19 @@ class EstimatorSpec:
     reference: bool = False
     needs: tuple[Need, ...] = ()
     estimates: Channel | None = None
+    oracle: bool = False
+    learned: bool = False
+
+    @property
+    def role(self) -> str:
+        """``"reference"`` (attack-free input), ``"oracle"``, ``"learned"`` or ``"analytic"``:
+        what it may be compared with. "The best analytic" of a study is the best of the
+        estimators whose role is ``"analytic"`` (:func:`difffilter.eval.acceptance.best_analytic`)."""
+        if self.reference or self.clean_input:
+            return "reference"
+        if self.oracle:
+            return "oracle"
+        return "learned" if self.learned else "analytic"
 
     def unmet(self, scenario, model) -> str | None:
         """Why this estimator does not fit ``scenario`` (its first unmet need), or ``None``."""
@@ -101,9 +117,11 @@ def register(
     reference: bool = False,
     needs: tuple[Need, ...] = (),
     estimates: Channel | str | None = None,
+    oracle: bool = False,
+    learned: bool = False,
 ):
-    """Decorator registering ``factory`` under ``name`` (twice is an error); ``needs`` and
-    ``estimates`` as in :class:`EstimatorSpec`."""
+    """Decorator registering ``factory`` under ``name`` (twice is an error); ``needs``,
+    ``estimates``, ``oracle`` and ``learned`` as in :class:`EstimatorSpec`."""
     estimates = None if estimates is None else Channel(estimates)
     needs = tuple(needs)
     if not all(isinstance(n, Need) for n in needs):
@@ -113,7 +131,7 @@ def register(
         if name in ESTIMATORS and ESTIMATORS[name].factory is not factory:
             raise ValueError(f"estimator {name!r} is already registered")
         ESTIMATORS[name] = EstimatorSpec(name, factory, description, clean_input, reference,
-                                         needs, estimates)  # fmt: skip
+                                         needs, estimates, oracle, learned)  # fmt: skip
         return factory
 
     return wrap

@@ -34,24 +34,30 @@ def _literal(ctx: SuiteContext):
     )
 
 
-@register("modified_pf_unknown_pl", "modified PF, Remark 6's running p̂_l, oracle γ̂")
+@register("modified_pf_unknown_pl", "modified PF, Remark 6's running p̂_l, oracle γ̂", oracle=True)
 def _unknown_pl(ctx: SuiteContext):
     rate = fdi.RunningAttackRate(ctx.scenario.num_particles)
     return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr), attack_rate=rate)
 
 
-@register("modified_pf_noisy_gamma", "modified PF, γ̂ = γ + N(0, 1e-2 I) (Table 3, column 3)")
+@register(
+    "modified_pf_noisy_gamma", "modified PF, γ̂ = γ + N(0, 1e-2 I) (Table 3, column 3)", oracle=True
+)
 def _noisy(ctx: SuiteContext):
     return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr, noise_var=1e-2))
 
 
-@register("modified_pf_eta_theorem1", "modified PF, η from Theorem 1 for this scenario's R")
+@register(
+    "modified_pf_eta_theorem1", "modified PF, η from Theorem 1 for this scenario's R", oracle=True
+)
 def _eta_thm1(ctx: SuiteContext):
     det = fdi.PoADetector(ctx.options["eta_theorem1"], ctx.options["poa_zeta"])
     return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr), detector=det)
 
 
-@register("modified_pf_fused", "modified PF, oracle γ̂, the fused low-overhead implementation")
+@register(
+    "modified_pf_fused", "modified PF, oracle γ̂, the fused low-overhead implementation", oracle=True
+)
 def _fused(ctx: SuiteContext):
     return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr), fused=True)
 

@@ -189,6 +189,7 @@ def modified_pf(ctx: SuiteContext, gamma_hat, **kwargs) -> Run:
     "modified_pf",
     "modified PF (Table 2) with the oracle γ̂ (the paper's tables)",
     needs=(SENSOR_ATTACK,),
+    oracle=True,
 )
 def _modified_pf(ctx: SuiteContext) -> Run:
     return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr))

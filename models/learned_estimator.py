@@ -185,6 +185,7 @@ for _name, (_particles, _trainer) in LEARNED.items():
         f"neural FDI estimator {_HOW[_trainer].format('PF' if _particles else 'KF/EKF/UKF')} "
         "(checkpoint), compensating the filter's measurements; alarm at its "
         "validation-chosen threshold",
+        learned=True,
     )(_learned(_name, _particles, _trainer))
 
 

@@ -272,7 +272,8 @@ _BUILDERS = {
                           partial(_paper, luenberger=LuenbergerDesign.MODAL, rule=_EKF), {}),
 }  # fmt: skip
 for _name, (_role, _build, _kw) in _BUILDERS.items():
-    register(_name, _role)(_closed_loop(_name, _build, **_kw))
+    # every entry but the uncompensated loop runs the paper's network (eqs 8-9)
+    register(_name, _role, learned=_name != "uncompensated")(_closed_loop(_name, _build, **_kw))
 
 
 def build_estimator(name: str, ctx: SuiteContext):

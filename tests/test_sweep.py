@@ -11,7 +11,7 @@ import pytest
 
 from difffilter.eval.calibration import calibrate
 from difffilter.eval.suite import run_suite
-from difffilter.models import registry
+from difffilter.models import estimators, registry
 from difffilter.train.sweep import main, train_seed_of
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,11 +53,32 @@ def test_a_sweep_reports_every_seed_the_spread_and_the_median_seed(tmp_path, mon
     assert stats["spread"] == pytest.approx(max(values.values()) - min(values.values()))
     assert values[str(doc["median_seed"])] == sorted(values.values())[1]
     assert "spread (max − min)" in (tmp_path / "sw" / "sweep.md").read_text()
+    # the acceptance: the best of the scenario's analytic estimators on the same runs,
+    # calibrated the same way, and seed 3 held against it
+    analytic = [n for n in sc.estimators if estimators.get(n).role == "analytic"]
+    assert "modified_pf_unknown_pl" not in analytic and "cusum_ekf" in analytic
+    cal = calibrate(sc, runs=4, estimators=analytic, progress=False)
+    base = run_suite(sc, runs=4, estimators=analytic, calibration=cal, progress=False).metrics
+    accept = doc["acceptance"]["four_tank_bias"]
+    best = accept["best_analytic"]
+    assert best["state_rmse"]["value"] == pytest.approx(min(m["state_rmse"] for m in base.values()))
+    tprs = {n: m["tpr_at_far"] for n, m in base.items() if m["tpr_at_far"] is not None}
+    assert best["tpr_at_far"]["value"] == pytest.approx(max(tprs.values()))
+    assert best["tpr_at_far"]["estimator"] == max(tprs, key=tprs.get)
+    checks = {c["metric"]: c["holds"] for c in accept["checks"]["3"]}
+    assert checks["state_rmse"] == (mine["state_rmse"] <= 1.05 * best["state_rmse"]["value"])
+    assert checks["fpr_at_far"] == (0.005 <= mine["fpr_at_far"] <= 0.02)
+    assert accept["holds"]["3"] == all(checks.values())
+    assert "## Against the best analytic estimator" in (tmp_path / "sw" / "sweep.md").read_text()
     # a second call trains nothing again
     stamps = {s: Path(v["checkpoint"]).stat().st_mtime_ns for s, v in seeds.items()}
+    baseline = tmp_path / "sw" / "baselines" / "four_tank_bias.json"
+    stamps["baseline"] = baseline.stat().st_mtime_ns
     assert main(args) == 0
-    again = json.loads((tmp_path / "sw" / "sweep.json").read_text())["per_seed"]
-    assert {s: Path(v["checkpoint"]).stat().st_mtime_ns for s, v in again.items()} == stamps
+    again = json.loads((tmp_path / "sw" / "sweep.json").read_text())
+    assert {s: Path(v["checkpoint"]).stat().st_mtime_ns for s, v in again["per_seed"].items()
+            } | {"baseline": baseline.stat().st_mtime_ns} == stamps  # fmt: skip
+    assert again["acceptance"] == doc["acceptance"]
 
 
 def test_a_sweep_refuses_bad_options(tmp_path, capsys):

@@ -12,10 +12,17 @@ Each seed's estimator is then evaluated on the headline scenarios of its family 
 threshold chosen on attack-free runs of their own seed for ``--far``), and the sweep
 writes ``<out>/sweep.json`` and ``<out>/sweep.md``: per seed and scenario the estimator's
 ``tpr_at_far``, ``fpr_at_far``, ``fpr`` (at the checkpoint's own threshold), ``auc``,
-``state_rmse`` and ``attack_rmse``, and per metric the mean, min, max and spread
-(max − min) over seeds. The median seed is the one whose ``--rank-by`` metric, averaged
-over the scenarios, is the median (the lower median for an even count); it is the one to
-ship (``difffilter-train export``), never the best::
+``state_rmse`` and ``attack_rmse`` (and the family's own, e.g. tracking's position RMSE
+``rmse_p``), and per metric the mean, min, max and spread (max − min) over seeds. The
+median seed is the one whose ``--rank-by`` metric, averaged over the scenarios, is the
+median (the lower median for an even count); it is the one to ship
+(``difffilter-train export``), never the best.
+
+The sweep also judges every seed as the headline acceptance does
+(:mod:`difffilter.eval.acceptance`): the scenario's analytic estimators run once on the
+same draws, calibrated the same way (kept in ``<out>/baselines/<scenario>.json`` for the
+next sweep with the same runs, rate and evaluation seed), and each seed's TPR, state
+error, attack error and measured false-alarm rate are held against the best of them::
 
     difffilter-train sweep --config train/configs/four_tank.yaml --seeds 0 1 2 --out sweeps/four_tank
 """
@@ -73,20 +80,35 @@ def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str]) -> Path:
     return done
 
 
-def _evaluate(path: Path, scenarios, runs, far: float, progress: bool) -> dict:
-    """``{scenario: {metric: value}}`` of the estimator of ``path``, calibrated as
-    ``difffilter-eval`` calibrates (``--seed 0``)."""
-    from difffilter.eval.calibration import calibrate
-    from difffilter.eval.suite import run_suite
+def _family_metrics(result, name: str) -> dict:
+    """The family's own numbers of estimator ``name`` (``FamilyReport.estimator_metrics``)."""
+    from difffilter.eval.report import family_report
+
+    hook = family_report(result.scenario.family).estimator_metrics
+    return hook(result, name) if hook is not None else {}
+
+
+def _scenarios_of(path: Path, scenarios) -> tuple[str, list[str]]:
+    """The registry name of the estimator of ``path`` and the scenarios it is judged on."""
     from difffilter.models import registry
     from difffilter.models.neural_estimator import load_estimator_checkpoint
 
     from .calibrate import estimator_name
 
     _, card = load_estimator_checkpoint(path)
-    name = estimator_name(card)
     if not scenarios:
         scenarios = registry.names(card.scenario_family, headline_only=True)
+    return estimator_name(card), list(scenarios)
+
+
+def _evaluate(path: Path, scenarios, runs, far: float, progress: bool) -> dict:
+    """``{scenario: {metric: value}}`` of the estimator of ``path``, calibrated as
+    ``difffilter-eval`` calibrates (``--seed 0``)."""
+    from difffilter.eval.calibration import calibrate
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import registry
+
+    name, scenarios = _scenarios_of(path, scenarios)
     table = {}
     for scenario_name in scenarios:
         scenario, checkpoint = registry.get(scenario_name), {name: str(path)}
@@ -96,7 +118,57 @@ def _evaluate(path: Path, scenarios, runs, far: float, progress: bool) -> dict:
                            calibration=calibration, progress=progress)  # fmt: skip
         metrics = result.metrics[name]
         table[scenario_name] = {m: metrics.get(m) for m in METRICS}
+        table[scenario_name].update(_family_metrics(result, name))
     return {"estimator": name, "scenarios": table}
+
+
+def _baseline(scenario_name: str, runs, far: float, progress: bool, folder: Path) -> dict:
+    """``{estimator: {metric: value}}`` of the scenario's analytic estimators on the sweep's
+    draws, calibrated as the learned one is; read from ``folder`` if a sweep with the same
+    runs, rate and seed wrote it, else run and written there."""
+    from difffilter.eval.acceptance import roles
+    from difffilter.eval.calibration import calibrate
+    from difffilter.eval.suite import apply_calibration, detectors, run_suite
+    from difffilter.models import registry
+    from difffilter.models.generic_estimators import DEFAULT_SUITE
+
+    key = {"scenario": scenario_name, "runs": runs, "far": far, "eval_seed": 0}
+    file = folder / f"{scenario_name}.json"
+    if file.is_file() and (cached := json.loads(file.read_text())).get("key") == key:
+        return cached["estimators"]
+    scenario = registry.get(scenario_name)
+    names = list(scenario.estimators or DEFAULT_SUITE)
+    analytic = [n for n, role in roles(names).items() if role == "analytic"]
+    result = run_suite(scenario, runs=runs, estimators=analytic, progress=progress)
+    apply_calibration(result, calibrate(scenario, far=far, runs=runs,
+                                        estimators=detectors(result), progress=progress))  # fmt: skip
+    table = {}
+    for name, metrics in result.metrics.items():
+        table[name] = {m: metrics.get(m) for m in METRICS}
+        table[name].update(_family_metrics(result, name))
+    folder.mkdir(parents=True, exist_ok=True)
+    file.write_text(json.dumps({"key": key, "estimators": table}, indent=2) + "\n")
+    return table
+
+
+def _acceptance(per_seed: dict, baselines: dict, far: float) -> dict:
+    """Per scenario, the best analytic numbers and every seed's checks against them."""
+    from difffilter.eval.acceptance import best_analytic, judge, state_metric
+
+    out = {}
+    for scenario, table in baselines.items():
+        learned = {s: v["scenarios"][scenario] for s, v in per_seed.items()}
+        metric = state_metric({**table, **{f"seed {s}": m for s, m in learned.items()}})
+        best = best_analytic(table, role_of=dict.fromkeys(table, "analytic"))
+        checks = {str(s): [c.as_dict() for c in judge(m, best, far, metric)]
+                  for s, m in learned.items()}  # fmt: skip
+        out[scenario] = {
+            "state_metric": metric,
+            "best_analytic": {k: {"value": v, "estimator": n} for k, (v, n) in best.items()},
+            "checks": checks,
+            "holds": {s: all(c["holds"] for c in cs) for s, cs in checks.items()},
+        }
+    return out
 
 
 def _summary(per_seed: dict) -> dict:
@@ -148,11 +220,14 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
         per_seed[seed] = {"checkpoint": str(path), "train_time_s": card.get("train_time_s"),
                           **_evaluate(path, scenarios, runs, far, progress)}  # fmt: skip
     median = _median_seed(per_seed, rank_by)
+    _, judged = _scenarios_of(Path(per_seed[seeds[0]]["checkpoint"]), scenarios)
+    baselines = {sc: _baseline(sc, runs, far, progress, out / "baselines") for sc in judged}
     doc = {
         "config": str(config), "seeds": seeds, "far": far, "runs": runs, "eval_seed": 0,
         "rank_by": rank_by, "median_seed": median,
         "median_checkpoint": per_seed[median]["checkpoint"],
         "per_seed": {str(s): v for s, v in per_seed.items()}, "summary": _summary(per_seed),
+        "acceptance": _acceptance(per_seed, baselines, far),
     }  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     (out / "sweep.json").write_text(json.dumps(doc, indent=2) + "\n")
@@ -181,7 +256,51 @@ def _markdown(doc: dict) -> str:
             ]
             lines.append(f"| {scenario} | {metric} | " + " | ".join(cells)
                          + f" | {f(stats['mean'])} | {f(stats['spread'])} |")  # fmt: skip
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + _acceptance_markdown(doc)) + "\n"
+
+
+def _acceptance_markdown(doc: dict) -> list[str]:
+    """The acceptance section: each check per seed (✓/✗) against the best analytic."""
+    from difffilter.eval.acceptance import TOLERANCES
+    from difffilter.eval.report import format_number as f
+
+    accept = doc.get("acceptance") or {}
+    if not accept:
+        return []
+    seeds = [str(s) for s in doc["seeds"]]
+    lines = [
+        "",
+        "## Against the best analytic estimator",
+        "",
+        "The best analytic: per metric, the best of the scenario's analytic estimators (no "
+        "oracle, no network, no attack-free reference) on the same runs, calibrated the "
+        f"same way. A seed holds a row when its TPR ≥ the best − {TOLERANCES['tpr_margin']:g}, "
+        f"its state error ≤ {TOLERANCES['state_factor']:g} × the best, its attack error ≤ the "
+        "best (where an analytic estimator estimates the attack) and its measured false-alarm "
+        f"rate lies within [{TOLERANCES['fpr_band'][0]:g}α, {TOLERANCES['fpr_band'][1]:g}α].",
+        "",
+        "| scenario | check | best analytic | " + " | ".join(f"seed {s}" for s in seeds) + " |",
+        "|---|---|---|" + "---|" * len(seeds),
+    ]
+    for scenario, entry in accept.items():
+        for i, check in enumerate(entry["checks"][seeds[0]]):
+            best = (f"{f(check['best'])} (`{check['best_estimator']}`)"
+                    if check["best"] is not None else "—")  # fmt: skip
+            cells = []
+            for s in seeds:
+                c = entry["checks"][s][i]
+                cells.append(f"{f(c['value'])} {'✓' if c['holds'] else '✗'}")
+            lines.append(f"| {scenario} | {check['metric']} {check['bound']} | {best} | "
+                         + " | ".join(cells) + " |")  # fmt: skip
+        verdict = ["**holds**" if entry["holds"][s] else "fails" for s in seeds]
+        lines.append(f"| {scenario} | every check | | " + " | ".join(verdict) + " |")
+    median = str(doc["median_seed"])
+    held = all(entry["holds"][median] for entry in accept.values())
+    lines += [
+        "",
+        f"The median seed {median} {'holds every row' if held else 'does not hold every row'}.",
+    ]
+    return lines
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -96,6 +96,12 @@ def _transmissions(out, tr):
     return communication_counts(tr.mask, *tr.flags.shape, len(tr.info["sensor_flags"][0, 0]))
 
 
+def _position_velocity_rmse(result, name: str) -> dict:
+    """``rmse_p`` and ``rmse_v`` of estimator ``name``: the acceptance's state metric."""
+    p, v = _rmse_pv(result.outputs[name].means, result.traj.x)
+    return {"rmse_p": float(p.mean()), "rmse_v": float(v.mean())}
+
+
 def _numbers(result) -> dict:
     tr, ctx, sc = result.traj, result.context, result.scenario
     bounds = _bounds(result)
@@ -270,4 +276,7 @@ def _proposal_section(result, doc: dict) -> Section | None:
     return Section("EKF proposal (the paper's future work)", body)
 
 
-register_family("tracking", FamilyReport(extra=_extra, sections=_sections))
+register_family(
+    "tracking",
+    FamilyReport(extra=_extra, sections=_sections, estimator_metrics=_position_velocity_rmse),
+)

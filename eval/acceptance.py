@@ -1,0 +1,114 @@
+"""The learned estimator against the best analytic one, as the headline acceptance judges it.
+
+"The best analytic" of a study is, per metric, the best value among the estimators whose
+registry role is ``"analytic"`` (:attr:`~difffilter.models.estimators.EstimatorSpec.role`):
+neither a reference on attack-free data, nor an oracle that reads the true attack (the
+modified PF with the true γ̂), nor a neural network (trained offline or online). The
+learned estimator's row holds when, at the calibrated false-alarm rate α:
+
+============================  ==========================================================
+``tpr_at_far``                ≥ the best analytic's − 0.01
+the state metric              ≤ 1.05 × the best analytic's (``state_rmse``; the
+                              family's own where it names one: tracking's position
+                              RMSE ``rmse_p``)
+``attack_rmse``               ≤ the best analytic attack estimate's, where one exists
+``fpr_at_far``                within [α/2, 2α] (the measured rate on the study's
+                              not-attacked steps)
+============================  ==========================================================
+
+Every check reads numbers a study already wrote (``metrics.json``'s ``estimators``, or a
+suite's ``metrics``), so the verdict is reproducible from the files.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+__all__ = ["Check", "TOLERANCES", "best_analytic", "judge", "roles", "state_metric"]
+
+#: The headline acceptance's tolerances: TPR margin, state-error factor, FPR band (× α).
+TOLERANCES = {"tpr_margin": 0.01, "state_factor": 1.05, "fpr_band": (0.5, 2.0)}
+
+
+@dataclass(frozen=True)
+class Check:
+    """One acceptance point: ``metric``, the learned ``value``, the ``bound`` it is held to
+    (``best`` and ``best_estimator`` for the comparisons), and whether it ``holds``."""
+
+    metric: str
+    value: float | None
+    bound: str
+    best: float | None
+    best_estimator: str | None
+    holds: bool
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def roles(names) -> dict[str, str]:
+    """``{estimator: role}`` from the registry (:attr:`EstimatorSpec.role`)."""
+    from difffilter.models import estimators as registry
+
+    return {name: registry.get(name).role for name in names}
+
+
+def state_metric(metrics: dict[str, dict]) -> str:
+    """The state error the acceptance compares: ``rmse_p`` where the study reports it for
+    every estimator (tracking's position RMSE), else ``state_rmse``."""
+    rows = [m for m in metrics.values() if m.get("state_rmse") is not None]
+    if rows and all(m.get("rmse_p") is not None for m in rows):
+        return "rmse_p"
+    return "state_rmse"
+
+
+def _finite(value) -> bool:
+    return value is not None and isinstance(value, int | float) and math.isfinite(value)
+
+
+def best_analytic(metrics: dict[str, dict], role_of: dict[str, str] | None = None) -> dict:
+    """``{metric: (value, estimator)}``: per metric the best value among the analytic
+    estimators of ``metrics`` (``{estimator: {metric: value}}``; ``role_of`` defaults to
+    the registry's roles): the highest ``tpr_at_far`` and ``auc``, the lowest state
+    metric and ``attack_rmse``, a tie going to the first in the study's order. A metric
+    no analytic estimator reports is left out."""
+    role_of = role_of if role_of is not None else roles(metrics)
+    analytic = {n: m for n, m in metrics.items() if role_of.get(n) == "analytic"}
+    best = {}
+    for metric, higher in (("tpr_at_far", True), ("auc", True), (state_metric(metrics), False),
+                           ("attack_rmse", False)):  # fmt: skip
+        sign = -1.0 if higher else 1.0
+        values = [(sign * m[metric], i, n) for i, (n, m) in enumerate(analytic.items())
+                  if _finite(m.get(metric))]  # fmt: skip
+        if values:
+            value, _, name = min(values)
+            best[metric] = (sign * value, name)
+    return best
+
+
+def judge(learned: dict, best: dict, far: float, metric: str = "state_rmse") -> list[Check]:
+    """The four acceptance checks of ``learned`` (its metrics) against ``best``
+    (:func:`best_analytic`) at the calibrated rate ``far``; ``metric`` is the state metric
+    (:func:`state_metric`). A check whose learned number is missing does not hold; the
+    attack check is left out where no analytic estimator estimates the attack."""
+    tol = TOLERANCES
+    checks = []
+
+    def compare(name, bound_text, ok):
+        value = learned.get(name)
+        best_value, who = best.get(name, (None, None))
+        holds = _finite(value) and best_value is not None and ok(value, best_value)
+        checks.append(Check(name, value, bound_text, best_value, who, bool(holds)))
+
+    compare("tpr_at_far", f"≥ best − {tol['tpr_margin']:g}",
+            lambda v, b: v >= b - tol["tpr_margin"])  # fmt: skip
+    compare(metric, f"≤ {tol['state_factor']:g} × best", lambda v, b: v <= tol["state_factor"] * b)
+    if "attack_rmse" in best:
+        compare("attack_rmse", "≤ best", lambda v, b: v <= b)
+    lo, hi = (far * f for f in tol["fpr_band"])
+    fpr = learned.get("fpr_at_far")
+    checks.append(Check("fpr_at_far", fpr, f"within [{lo:g}, {hi:g}]", None, None,
+                        bool(_finite(fpr) and lo <= fpr <= hi)))  # fmt: skip
+    return checks

@@ -1,0 +1,117 @@
+"""The headline acceptance (difffilter.eval.acceptance): the estimators' roles, the best
+analytic estimator of a study, and each check at its boundary."""
+
+from __future__ import annotations
+
+import inspect
+
+import pytest
+
+from difffilter.eval.acceptance import best_analytic, judge, roles, state_metric
+from difffilter.models import estimators as registry
+
+
+def test_every_estimator_that_reads_the_true_attack_is_an_oracle():
+    # the factories that call oracle_attack read γ; nothing else may be called an oracle
+    for name in registry.names():
+        spec = registry.get(name)
+        reads_truth = "oracle_attack(" in inspect.getsource(spec.factory)
+        assert spec.oracle == reads_truth, name
+
+
+def test_roles_of_the_papers_estimators():
+    got = roles(["modified_pf", "modified_pf_unknown_pl", "modified_pf_est", "cusum_ekf",
+                 "normal_pf_attack_free", "pf_nn_grad", "kf_nn_ekf", "uncompensated",
+                 "kf_attack_free", "zhang_akf", "rrp_spf_nm"])  # fmt: skip
+    assert got == {
+        "modified_pf": "oracle", "modified_pf_unknown_pl": "oracle",
+        "modified_pf_est": "analytic", "cusum_ekf": "analytic",
+        "normal_pf_attack_free": "reference", "pf_nn_grad": "learned",
+        "kf_nn_ekf": "learned", "uncompensated": "analytic", "kf_attack_free": "reference",
+        "zhang_akf": "analytic", "rrp_spf_nm": "reference",
+    }  # fmt: skip
+
+
+STUDY = {
+    "modified_pf": {"tpr_at_far": 0.999, "state_rmse": 0.010, "attack_rmse": 0.010},
+    "modified_pf_est": {"tpr_at_far": 0.98, "state_rmse": 0.024, "attack_rmse": 0.033},
+    "mixture_likelihood_pf": {"tpr_at_far": 0.997, "state_rmse": 0.027, "attack_rmse": None},
+    "cusum_ekf": {"tpr_at_far": 0.985, "state_rmse": 0.0226, "attack_rmse": None},
+    "normal_pf_attack_free": {"tpr_at_far": None, "state_rmse": 0.016, "attack_rmse": None},
+    "pf_nn_grad": {"tpr_at_far": 1.0, "state_rmse": 0.001, "attack_rmse": 0.001},
+}
+
+
+def test_the_best_analytic_leaves_out_oracles_references_and_networks():
+    best = best_analytic(STUDY)
+    assert best["tpr_at_far"] == (0.997, "mixture_likelihood_pf")
+    assert best["state_rmse"] == (0.0226, "cusum_ekf")
+    assert best["attack_rmse"] == (0.033, "modified_pf_est")
+    assert "auc" not in best  # no analytic estimator reports it here
+
+
+def test_each_check_holds_up_to_its_bound_and_not_beyond():
+    best = best_analytic(STUDY)
+    edge = {"tpr_at_far": 0.987, "state_rmse": 1.05 * 0.0226, "attack_rmse": 0.033,
+            "fpr_at_far": 0.02}  # fmt: skip
+    assert all(c.holds for c in judge(edge, best, far=0.01))
+    for metric, worse in (("tpr_at_far", 0.9869), ("state_rmse", 1.051 * 0.0226),
+                          ("attack_rmse", 0.0331), ("fpr_at_far", 0.0201),
+                          ("fpr_at_far", 0.0049), ("attack_rmse", None)):  # fmt: skip
+        checks = {c.metric: c for c in judge({**edge, metric: worse}, best, far=0.01)}
+        assert not checks[metric].holds, (metric, worse)
+        assert all(c.holds for m, c in checks.items() if m != metric)
+    # where no analytic estimator estimates the attack there is no attack check
+    no_attack = {k: v for k, v in best.items() if k != "attack_rmse"}
+    assert [c.metric for c in judge(edge, no_attack, far=0.01)] == [
+        "tpr_at_far", "state_rmse", "fpr_at_far"]  # fmt: skip
+
+
+def test_tracking_is_judged_on_its_position_error():
+    study = {"rrp_pf_da": {"state_rmse": 0.5, "rmse_p": 1.02, "tpr_at_far": 0.99},
+             "pf_da": {"state_rmse": 0.4, "rmse_p": 0.554, "tpr_at_far": 0.994},
+             "pf_nn_grad": {"state_rmse": 0.3, "rmse_p": 0.58, "tpr_at_far": 0.992,
+                            "fpr_at_far": 0.01}}  # fmt: skip
+    assert state_metric(study) == "rmse_p"
+    best = best_analytic(study)
+    assert best["rmse_p"] == (0.554, "pf_da") and "state_rmse" not in best
+    checks = {c.metric: c.holds for c in judge(study["pf_nn_grad"], best, 0.01, "rmse_p")}
+    assert checks == {"tpr_at_far": True, "rmse_p": True, "fpr_at_far": True}
+    assert state_metric({"a": {"state_rmse": 1.0, "rmse_p": None}}) == "state_rmse"
+
+
+def test_a_learned_number_that_is_missing_does_not_hold():
+    best = best_analytic(STUDY)
+    checks = judge({"tpr_at_far": float("nan")}, best, far=0.01)
+    assert not any(c.holds for c in checks)
+    with pytest.raises(ValueError, match="unknown estimator"):
+        roles(["no_such_estimator"])
+
+
+def test_a_calibrated_report_judges_its_learned_estimator_against_the_best_analytic(tmp_path):
+    import json
+    from dataclasses import replace
+
+    from difffilter.eval.calibration import calibrate
+    from difffilter.eval.report import write_report
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import registry
+
+    sc = replace(registry.get("robot_actuator_attack"), num_particles=20, steps=60)
+    result = run_suite(sc, runs=3, calibration=calibrate(sc, runs=3, progress=False),
+                       progress=False)  # fmt: skip
+    doc = write_report(tmp_path, result)
+    roles_written = json.loads((tmp_path / "metrics.json").read_text())["estimator_roles"]
+    assert roles_written == roles(doc["estimators"])
+    assert (
+        roles_written["gaussian_nn_ekf"] == "learned" and roles_written["zhang_akf"] == "analytic"
+    )
+    report = (tmp_path / "report.md").read_text()
+    section = report.split("## Learned against the best analytic")[1]
+    m = doc["estimators"]
+    analytic = [n for n, r in roles_written.items() if r == "analytic"]
+    best = min(analytic, key=lambda n: m[n]["state_rmse"])
+    assert f"(`{best}`)" in section
+    holds = m["gaussian_nn_ekf"]["state_rmse"] <= 1.05 * m[best]["state_rmse"]
+    row = next(line for line in section.splitlines() if "state_rmse ≤" in line)
+    assert row.rstrip(" |").endswith("yes" if holds else "**no**")
