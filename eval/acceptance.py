@@ -16,6 +16,10 @@ the state metric              ≤ 1.05 × the best analytic's (``state_rmse``; t
                               not-attacked steps)
 ============================  ==========================================================
 
+Across a robustness study's threats (:func:`judge_robustness`), the learned estimator's
+worst TPR over the threats must be ≥ the best worst case of the analytic estimators, and
+its state error ≤ 1.1 × the best analytic's on every threat.
+
 Every check reads numbers a study already wrote (``metrics.json``'s ``estimators``, or a
 suite's ``metrics``), so the verdict is reproducible from the files.
 """
@@ -26,10 +30,15 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
-__all__ = ["Check", "TOLERANCES", "best_analytic", "judge", "roles", "state_metric"]
+__all__ = [
+    "Check", "TOLERANCES", "ROBUST_STATE_FACTOR", "best_analytic", "judge", "judge_robustness",
+    "roles", "state_metric",
+]  # fmt: skip
 
 #: The headline acceptance's tolerances: TPR margin, state-error factor, FPR band (× α).
 TOLERANCES = {"tpr_margin": 0.01, "state_factor": 1.05, "fpr_band": (0.5, 2.0)}
+#: The robustness acceptance's state-error factor (on every threat).
+ROBUST_STATE_FACTOR = 1.1
 
 
 @dataclass(frozen=True)
@@ -112,3 +121,45 @@ def judge(learned: dict, best: dict, far: float, metric: str = "state_rmse") -> 
     checks.append(Check("fpr_at_far", fpr, f"within [{lo:g}, {hi:g}]", None, None,
                         bool(_finite(fpr) and lo <= fpr <= hi)))  # fmt: skip
     return checks
+
+
+def judge_robustness(cells: dict[str, dict[str, dict]], role_of: dict[str, str]) -> dict:
+    """Each learned estimator of a robustness study against the analytic ones.
+
+    ``cells``: ``{threat: {estimator: {metric: value}}}`` (``robustness.json``'s). Returns
+    ``{learned: {"worst_tpr": (value, threat), "best_analytic_worst_tpr": (value,
+    estimator, threat), "tpr_holds", "state": {threat: {"value", "best", "best_estimator",
+    "ratio", "holds"}}, "state_holds", "holds"}}``; threats where nobody detects (no TPR)
+    count only for the state error."""
+    names = {n for row in cells.values() for n in row}
+    analytic = [n for n in names if role_of.get(n) == "analytic"]
+    learned = [n for n in names if role_of.get(n) == "learned"]
+
+    def worst_tpr(name):
+        values = [(row[name]["tpr_at_far"], t) for t, row in cells.items()
+                  if name in row and _finite(row[name].get("tpr_at_far"))]  # fmt: skip
+        return min(values) if values else None
+
+    analytic_worst = [(w[0], n, w[1]) for n in sorted(analytic) if (w := worst_tpr(n))]
+    best_worst = max(analytic_worst, key=lambda v: v[0]) if analytic_worst else None
+    out = {}
+    for name in sorted(learned):
+        mine = worst_tpr(name)
+        state = {}
+        for threat, row in cells.items():
+            rivals = [(row[n]["state_rmse"], n) for n in sorted(analytic)
+                      if n in row and _finite(row[n].get("state_rmse"))]  # fmt: skip
+            value = row.get(name, {}).get("state_rmse")
+            if not rivals:
+                continue
+            best, who = min(rivals)
+            ok = _finite(value) and value <= ROBUST_STATE_FACTOR * best
+            state[threat] = {"value": value, "best": best, "best_estimator": who,
+                             "ratio": value / best if _finite(value) and best > 0 else None,
+                             "holds": bool(ok)}  # fmt: skip
+        tpr_holds = best_worst is None or (mine is not None and mine[0] >= best_worst[0])
+        state_holds = all(c["holds"] for c in state.values())
+        out[name] = {"worst_tpr": mine, "best_analytic_worst_tpr": best_worst,
+                     "tpr_holds": bool(tpr_holds), "state": state,
+                     "state_holds": bool(state_holds), "holds": bool(tpr_holds and state_holds)}  # fmt: skip
+    return out

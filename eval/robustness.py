@@ -30,6 +30,7 @@ import yaml
 
 from difffilter.threats import threat_from_dict
 
+from .acceptance import ROBUST_STATE_FACTOR, judge_robustness, roles
 from .calibration import calibrate
 from .report import _clean, format_number, markdown_table
 from .scoring import METRICS
@@ -240,7 +241,9 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
         "worst_case": result.worst_case, "skipped": dict(free.skipped),
         "stealthy": result.stealthy,
         "checkpoint": free.checkpoint,
+        "estimator_roles": roles(free.metrics),
     })  # fmt: skip
+    doc["acceptance"] = _clean(judge_robustness(doc["cells"], doc["estimator_roles"]))
     (out / "robustness.json").write_text(json.dumps(doc, indent=2) + "\n")
     (out / "robustness.md").write_text(_markdown(doc, sc))
     _heatmap(out / "robustness.png", doc)
@@ -284,7 +287,32 @@ def _markdown(doc: dict, sc) -> str:
     specs = "\n".join(f"- `{n}`: {s}" for n, s in doc["threats"].items())
     parts.append(f"## Threats\n\n{specs}\n\n![robustness.png](robustness.png)\n")
     parts += [_stealthy_section(n, r) for n, r in (doc.get("stealthy") or {}).items()]
+    parts += [_acceptance_section(n, a) for n, a in (doc.get("acceptance") or {}).items()]
     return "\n".join(parts)
+
+
+def _acceptance_section(name: str, a: dict) -> str:
+    """The learned estimator ``name`` against the analytic ones over the threats."""
+    mine, best = a["worst_tpr"], a["best_analytic_worst_tpr"]
+    lines = [
+        f"## `{name}` against the best analytic over the threats\n",
+        "Analytic: neither an oracle, a network nor an attack-free reference "
+        "(`difffilter.eval.acceptance`).\n",
+    ]
+    if best is not None:
+        lines.append(
+            f"- Worst TPR over the threats: {format_number(mine[0] if mine else None, 4)}"
+            f"{f' ({mine[1]})' if mine else ''}, against the best analytic worst case "
+            f"{format_number(best[0], 4)} (`{best[1]}`, {best[2]}): "
+            f"{'holds' if a['tpr_holds'] else '**does not hold**'}."
+        )  # fmt: skip
+    rows = [[t, format_number(c["value"], 4), f"{format_number(c['best'], 4)} (`{c['best_estimator']}`)",
+             format_number(c["ratio"], 3), "yes" if c["holds"] else "**no**"]
+            for t, c in a["state"].items()]  # fmt: skip
+    lines.append(f"- State RMSE ≤ {ROBUST_STATE_FACTOR:g} × the best analytic's on every threat: "
+                 f"{'holds' if a['state_holds'] else '**does not hold**'}.\n")  # fmt: skip
+    lines.append(markdown_table(["threat", name, "best analytic", "ratio", "holds"], rows))
+    return "\n".join(lines)
 
 
 def _stealthy_section(name: str, r: dict) -> str:

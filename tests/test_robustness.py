@@ -82,6 +82,19 @@ def test_a_study_scores_every_estimator_against_every_threat_at_the_calibrated_r
     assert written["far"]["target"] == 0.01
     text = (tmp_path / "out" / "robustness.md").read_text()
     assert "tpr_at_far" in text and "| `cusum_ekf` |" in text
+    # the learned estimator against the best analytic, threat by threat, from the cells
+    mine = written["acceptance"]["pf_nn_grad"]
+    analytic = ("chi_square_ekf", "cusum_ekf")  # the study's analytic estimators
+    for threat, row in result.cells.items():
+        best = min(row[n]["state_rmse"] for n in analytic)
+        assert mine["state"][threat]["best"] == pytest.approx(best)
+        assert mine["state"][threat]["holds"] == (row["pf_nn_grad"]["state_rmse"] <= 1.1 * best)
+    worst = {n: min(r[n]["tpr_at_far"] for r in result.cells.values()) for n in analytic}
+    assert mine["best_analytic_worst_tpr"][0] == pytest.approx(max(worst.values()))
+    assert mine["tpr_holds"] == (
+        result.worst_case["pf_nn_grad"]["tpr_at_far"] >= max(worst.values())
+    )
+    assert "## `pf_nn_grad` against the best analytic over the threats" in text
     assert (tmp_path / "out" / "robustness.png").stat().st_size > 10_000
 
 
