@@ -65,7 +65,8 @@ def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str]) -> Path:
         "fit", "--config", str(config), f"--seed_everything={seed}",
         f"--model.init_args.model_seed={seed}", f"--data.init_args.train_seed={train_seed_of(seed)}",
         f"--trainer.logger.init_args.save_dir={runs_dir}",
-        f"--trainer.logger.init_args.version=seed_{seed}", *extra,
+        f"--trainer.logger.init_args.version=seed_{seed}",
+        *(option.replace("{seed}", str(seed)) for option in extra),
     ]  # fmt: skip
     last = existing[0] / "checkpoints" / "last.ckpt" if existing else None
     if last is not None and last.is_file():
@@ -308,7 +309,9 @@ def main(argv: list[str] | None = None) -> int:
         prog="difffilter-train sweep",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="Options after -- go to every seed's fit (e.g. -- --trainer.max_epochs=5).",
+        epilog="Options after -- go to every seed's fit (e.g. -- --trainer.max_epochs=5); "
+        "{seed} in them becomes the seed (a curriculum's second stage: -- "
+        "--model.init_args.init_from=stage1/runs/<name>/seed_{seed}/<name>.ckpt).",
     )
     p.add_argument("--config", type=Path, required=True, help="the training config (YAML)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (0 1 2)")

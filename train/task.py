@@ -55,7 +55,11 @@ from difffilter.models import registry
 from difffilter.models.estimators import poa_detector_for_scenario
 from difffilter.models.generic_estimators import GAUSSIAN_FILTERS, deception_of
 from difffilter.models.learned_estimator import NeuralCompensation, Residual, feature_dim
-from difffilter.models.neural_estimator import EstimatorCard, NeuralFDIEstimator
+from difffilter.models.neural_estimator import (
+    EstimatorCard,
+    NeuralFDIEstimator,
+    load_estimator_checkpoint,
+)
 from difffilter.models.streams import Streams
 from difffilter.param_ekf import EKFOptimizer
 from difffilter.particle import ParticleFilter
@@ -294,6 +298,9 @@ class FilterEstimatorTask(pl.LightningModule):
         monitor_scenarios, monitor_runs, monitor_seed: other registered scenarios whose
             attack RMSE is logged at every validation (``val/scenario/<name>/…``) and
             scored by ``test``.
+        init_from: an exported estimator (or a Lightning checkpoint of a training run) whose
+            network weights this training starts from instead of ``model_seed``'s draw:
+            fine-tuning, or a curriculum's second stage (its network settings must match).
         dtype: ``"float32"`` or ``"float64"``.
     """
 
@@ -341,6 +348,7 @@ class FilterEstimatorTask(pl.LightningModule):
         monitor_runs: int = 4,
         monitor_seed: int = 3,
         model_seed: int = 0,
+        init_from: str | None = None,
         dtype: str = "float32",
     ):
         super().__init__()
@@ -360,6 +368,8 @@ class FilterEstimatorTask(pl.LightningModule):
             else None
         )
         self.estimator = self._network()
+        if init_from is not None:
+            self._start_from(init_from)
         self.estimator_object(training=False)  # what the wrapper refuses, refused now
         # the operating threshold on the score, chosen at every validation; saved with it
         self.register_buffer("alarm_threshold", torch.tensor(0.5, dtype=torch.float64))
@@ -378,6 +388,19 @@ class FilterEstimatorTask(pl.LightningModule):
                 adversarial_runs, adversarial_iterations, adversarial_every,
                 adversarial_crafting_runs, tuple(adversarial_onsets),
             )  # fmt: skip
+
+    def _start_from(self, path: str) -> None:
+        """Copy the network weights of the estimator at ``path`` (``init_from``)."""
+        start, _ = load_estimator_checkpoint(path, dtype=self._dtype)
+        mine, theirs = self.estimator.state_dict(), start.state_dict()
+        wrong = sorted(k for k in mine.keys() | theirs.keys()
+                       if k not in mine or k not in theirs or mine[k].shape != theirs[k].shape)  # fmt: skip
+        if wrong:
+            raise ValueError(
+                f"init_from: the network of {path} does not match this config's (a, b, hidden, "
+                f"areas, features, detection head): {', '.join(wrong)} differ"
+            )
+        self.estimator.load_state_dict(theirs)
 
     def _network(self) -> NeuralFDIEstimator:
         hp, dy = self.hparams, self.system.dim_y
