@@ -276,7 +276,8 @@ def _table_section(doc: dict) -> Section:
 
 def _acceptance_section(doc: dict) -> Section | None:
     """Each learned estimator of a calibrated study against the best analytic one
-    (:mod:`difffilter.eval.acceptance`), or ``None`` where there is nothing to judge."""
+    (:mod:`difffilter.eval.acceptance`), one row per learned estimator, or ``None`` where
+    there is nothing to judge."""
     from .acceptance import best_analytic, judge, state_metric
 
     est, role = doc["estimators"], doc.get("estimator_roles", {})
@@ -287,17 +288,19 @@ def _acceptance_section(doc: dict) -> Section | None:
     best = best_analytic(est, role_of=role)
     if not best:
         return None
-    rows = []
-    for name in learned:
-        for c in judge(est[name], best, far, metric):
-            who = f" (`{c.best_estimator}`)" if c.best_estimator else ""
-            rows.append([f"`{name}`", f"{c.metric} {c.bound}", format_number(c.value, 4),
-                         format_number(c.best, 4) + who, "yes" if c.holds else "**no**"])  # fmt: skip
-    table = markdown_table(["learned", "check", "value", "best analytic", "holds"], rows)
+    judged = {name: judge(est[name], best, far, metric) for name in learned}
+    checks = judged[learned[0]]
+    header = ["learned", *(f"{c.metric} {c.bound}" for c in checks), "every check"]
+    rows = [["best analytic",
+             *(f"{format_number(c.best, 4)} (`{c.best_estimator}`)" if c.best_estimator else "—"
+               for c in checks), ""]]  # fmt: skip
+    for name, mine in judged.items():
+        cells = [f"{format_number(c.value, 4)} {'✓' if c.holds else '✗'}" for c in mine]
+        rows.append([f"`{name}`", *cells, "holds" if all(c.holds for c in mine) else "**fails**"])
     text = ("Each learned estimator at the calibrated rate against the best analytic one (per "
             "metric the best of the estimators that are neither an oracle, a network nor an "
             "attack-free reference; `difffilter.eval.acceptance`).\n\n")  # fmt: skip
-    return Section("Learned against the best analytic", text + table + "\n")
+    return Section("Learned against the best analytic", text + markdown_table(header, rows) + "\n")
 
 
 def _markdown(doc: dict, sc, sections: list[Section]) -> str:
