@@ -28,6 +28,7 @@ from typing import Any
 
 from difffilter.models import estimators as registry
 
+from .acceptance import best_analytic, judge, roles, state_metric
 from .scoring import METRICS
 
 __all__ = [
@@ -195,7 +196,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
         "estimators": {n: {**dict.fromkeys(METRICS), **m} for n, m in result.metrics.items()},
         "description": sc.description, "dt_s": sc.dt, "reference": result.reference,
         "estimator_descriptions": {n: registry.get(n).description for n in result.metrics},
-        "estimator_roles": {n: registry.get(n).role for n in result.metrics},
+        "estimator_roles": roles(result.metrics),
         "notes": list(sc.notes),
         "attacked_steps": int(result.traj.flags.sum()),
         "attack_free_steps": int((~result.traj.flags).sum()),
@@ -278,8 +279,6 @@ def _acceptance_section(doc: dict) -> Section | None:
     """Each learned estimator of a calibrated study against the best analytic one
     (:mod:`difffilter.eval.acceptance`), one row per learned estimator, or ``None`` where
     there is nothing to judge."""
-    from .acceptance import best_analytic, judge, state_metric
-
     est, role = doc["estimators"], doc.get("estimator_roles", {})
     learned = [n for n in est if role.get(n) == "learned" and est[n].get("tpr_at_far") is not None]
     if doc.get("far") is None or not learned:

@@ -102,24 +102,32 @@ def _scenarios_of(path: Path, scenarios) -> tuple[str, list[str]]:
     return estimator_name(card), list(scenarios)
 
 
+def _calibrated_metrics(scenario, names, runs, far: float, progress: bool,
+                        checkpoint=None) -> dict:  # fmt: skip
+    """``{estimator: {metric: value}}`` of ``names`` on ``scenario``'s draws (``--seed 0``),
+    their detectors calibrated at ``far`` as ``difffilter-eval`` calibrates them, with the
+    family's own numbers (:func:`_family_metrics`)."""
+    from difffilter.eval.calibration import calibrate
+    from difffilter.eval.suite import apply_calibration, detectors, run_suite
+
+    kwargs = dict(runs=runs, checkpoint=checkpoint, progress=progress)
+    result = run_suite(scenario, estimators=list(names), **kwargs)
+    apply_calibration(result, calibrate(scenario, far=far, estimators=detectors(result), **kwargs))
+    return {name: {**{m: metrics.get(m) for m in METRICS}, **_family_metrics(result, name)}
+            for name, metrics in result.metrics.items()}  # fmt: skip
+
+
 def _evaluate(path: Path, scenarios, runs, far: float, progress: bool) -> dict:
     """``{scenario: {metric: value}}`` of the estimator of ``path``, calibrated as
     ``difffilter-eval`` calibrates (``--seed 0``)."""
-    from difffilter.eval.calibration import calibrate
-    from difffilter.eval.suite import run_suite
     from difffilter.models import registry
 
     name, scenarios = _scenarios_of(path, scenarios)
-    table = {}
-    for scenario_name in scenarios:
-        scenario, checkpoint = registry.get(scenario_name), {name: str(path)}
-        calibration = calibrate(scenario, far=far, runs=runs, estimators=[name],
-                                checkpoint=checkpoint, progress=progress)  # fmt: skip
-        result = run_suite(scenario, runs=runs, estimators=[name], checkpoint=checkpoint,
-                           calibration=calibration, progress=progress)  # fmt: skip
-        metrics = result.metrics[name]
-        table[scenario_name] = {m: metrics.get(m) for m in METRICS}
-        table[scenario_name].update(_family_metrics(result, name))
+    table = {
+        scenario_name: _calibrated_metrics(registry.get(scenario_name), [name], runs, far,
+                                           progress, checkpoint={name: str(path)})[name]
+        for scenario_name in scenarios
+    }  # fmt: skip
     return {"estimator": name, "scenarios": table}
 
 
@@ -128,8 +136,6 @@ def _baseline(scenario_name: str, runs, far: float, progress: bool, folder: Path
     draws, calibrated as the learned one is; read from ``folder`` if a sweep with the same
     runs, rate and seed wrote it, else run and written there."""
     from difffilter.eval.acceptance import roles
-    from difffilter.eval.calibration import calibrate
-    from difffilter.eval.suite import apply_calibration, detectors, run_suite
     from difffilter.models import registry
     from difffilter.models.generic_estimators import DEFAULT_SUITE
 
@@ -140,13 +146,7 @@ def _baseline(scenario_name: str, runs, far: float, progress: bool, folder: Path
     scenario = registry.get(scenario_name)
     names = list(scenario.estimators or DEFAULT_SUITE)
     analytic = [n for n, role in roles(names).items() if role == "analytic"]
-    result = run_suite(scenario, runs=runs, estimators=analytic, progress=progress)
-    apply_calibration(result, calibrate(scenario, far=far, runs=runs,
-                                        estimators=detectors(result), progress=progress))  # fmt: skip
-    table = {}
-    for name, metrics in result.metrics.items():
-        table[name] = {m: metrics.get(m) for m in METRICS}
-        table[name].update(_family_metrics(result, name))
+    table = _calibrated_metrics(scenario, analytic, runs, far, progress)
     folder.mkdir(parents=True, exist_ok=True)
     file.write_text(json.dumps({"key": key, "estimators": table}, indent=2) + "\n")
     return table
@@ -160,7 +160,7 @@ def _acceptance(per_seed: dict, baselines: dict, far: float) -> dict:
     for scenario, table in baselines.items():
         learned = {s: v["scenarios"][scenario] for s, v in per_seed.items()}
         metric = state_metric({**table, **{f"seed {s}": m for s, m in learned.items()}})
-        best = best_analytic(table, role_of=dict.fromkeys(table, "analytic"))
+        best = best_analytic(table)  # the table holds the analytic estimators only
         checks = {str(s): [c.as_dict() for c in judge(m, best, far, metric)]
                   for s, m in learned.items()}  # fmt: skip
         out[scenario] = {
