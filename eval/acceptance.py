@@ -3,8 +3,10 @@
 "The best analytic" of a study is, per metric, the best value among the estimators whose
 registry role is ``"analytic"`` (:attr:`~difffilter.models.estimators.EstimatorSpec.role`):
 neither a reference on attack-free data, nor an oracle that reads the true attack (the
-modified PF with the true γ̂), nor a neural network (trained offline or online). The
-learned estimator's row holds when, at the calibrated false-alarm rate α:
+modified PF with the true γ̂), nor an estimator on more data than the scenario's receiver
+gets (tracking's ``pf_da``, every sensor at every step under a Round-Robin protocol that
+delivers one), nor a neural network (trained offline or online). The learned estimator's
+row holds when, at the calibrated false-alarm rate α:
 
 ============================  ==========================================================
 ``tpr_at_far``                ≥ the best analytic's − 0.01

@@ -297,8 +297,9 @@ def _acceptance_section(doc: dict) -> Section | None:
         cells = [f"{format_number(c.value, 4)} {'✓' if c.holds else '✗'}" for c in mine]
         rows.append([f"`{name}`", *cells, "holds" if all(c.holds for c in mine) else "**fails**"])
     text = ("Each learned estimator at the calibrated rate against the best analytic one (per "
-            "metric the best of the estimators that are neither an oracle, a network nor an "
-            "attack-free reference; `difffilter.eval.acceptance`).\n\n")  # fmt: skip
+            "metric the best of the estimators that are neither an oracle, a network, an "
+            "attack-free reference nor fed more data than the scenario delivers; "
+            "`difffilter.eval.acceptance`).\n\n")  # fmt: skip
     return Section("Learned against the best analytic", text + markdown_table(header, rows) + "\n")
 
 

@@ -296,8 +296,8 @@ def _acceptance_section(name: str, a: dict) -> str:
     mine, best = a["worst_tpr"], a["best_analytic_worst_tpr"]
     lines = [
         f"## `{name}` against the best analytic over the threats\n",
-        "Analytic: neither an oracle, a network nor an attack-free reference "
-        "(`difffilter.eval.acceptance`).\n",
+        "Analytic: neither an oracle, a network, an attack-free reference nor fed more data "
+        "than the scenario delivers (`difffilter.eval.acceptance`).\n",
     ]
     if best is not None:
         lines.append(

@@ -73,6 +73,9 @@ class EstimatorSpec:
         oracle: it reads the true attack (an oracle γ̂, as the papers' tables do): a bound,
             never a competitor.
         learned: it runs a neural network, trained offline (a checkpoint) or online.
+        more_data: it reads data the scenario's receiver does not get (tracking's
+            ``pf_da``: every sensor at every step, where the Round-Robin protocol delivers
+            one): what more data would buy, not a competitor on the scenario's data.
     """
 
     name: str
@@ -84,16 +87,19 @@ class EstimatorSpec:
     estimates: Channel | None = None
     oracle: bool = False
     learned: bool = False
+    more_data: bool = False
 
     @property
     def role(self) -> str:
-        """``"reference"`` (attack-free input), ``"oracle"``, ``"learned"`` or ``"analytic"``:
-        what it may be compared with. "The best analytic" of a study is the best of the
+        """``"reference"`` (attack-free input), ``"oracle"``, ``"more_data"``, ``"learned"``
+        or ``"analytic"``: what it may be compared with. "The best analytic" of a study is the best of the
         estimators whose role is ``"analytic"`` (:func:`difffilter.eval.acceptance.best_analytic`)."""
         if self.reference or self.clean_input:
             return "reference"
         if self.oracle:
             return "oracle"
+        if self.more_data:
+            return "more_data"
         return "learned" if self.learned else "analytic"
 
     def unmet(self, scenario, model) -> str | None:
@@ -119,9 +125,10 @@ def register(
     estimates: Channel | str | None = None,
     oracle: bool = False,
     learned: bool = False,
+    more_data: bool = False,
 ):
     """Decorator registering ``factory`` under ``name`` (twice is an error); ``needs``,
-    ``estimates``, ``oracle`` and ``learned`` as in :class:`EstimatorSpec`."""
+    ``estimates``, ``oracle``, ``learned`` and ``more_data`` as in :class:`EstimatorSpec`."""
     estimates = None if estimates is None else Channel(estimates)
     needs = tuple(needs)
     if not all(isinstance(n, Need) for n in needs):
@@ -131,7 +138,7 @@ def register(
         if name in ESTIMATORS and ESTIMATORS[name].factory is not factory:
             raise ValueError(f"estimator {name!r} is already registered")
         ESTIMATORS[name] = EstimatorSpec(name, factory, description, clean_input, reference,
-                                         needs, estimates, oracle, learned)  # fmt: skip
+                                         needs, estimates, oracle, learned, more_data)  # fmt: skip
         return factory
 
     return wrap

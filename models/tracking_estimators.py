@@ -121,7 +121,9 @@ def _rrp_spf_nm(ctx: SuiteContext):
     return _standard(ctx, clean=True)
 
 
-@register("pf_da", "PF-DA: all 4 sensors every step, product of per-sensor mixtures")
+# four packets a step where the scenario's receiver gets one: a bound on what the data buys
+@register("pf_da", "PF-DA: all 4 sensors every step, product of per-sensor mixtures",
+          more_data=True)  # fmt: skip
 def _pf_da(ctx: SuiteContext):
     sc = ctx.scenario
     lik = PerSensorDeception(sc.eta_bar, sc.box_low, sc.box_high, len(sc.sensors))

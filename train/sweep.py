@@ -274,7 +274,8 @@ def _acceptance_markdown(doc: dict) -> list[str]:
         "## Against the best analytic estimator",
         "",
         "The best analytic: per metric, the best of the scenario's analytic estimators (no "
-        "oracle, no network, no attack-free reference) on the same runs, calibrated the "
+        "oracle, no network, no attack-free reference, none fed more data than the "
+        "scenario delivers) on the same runs, calibrated the "
         f"same way. A seed holds a row when its TPR ≥ the best − {TOLERANCES['tpr_margin']:g}, "
         f"its state error ≤ {TOLERANCES['state_factor']:g} × the best, its attack error ≤ the "
         "best (where an analytic estimator estimates the attack) and its measured false-alarm "
