@@ -33,14 +33,17 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 __all__ = [
-    "Check", "TOLERANCES", "ROBUST_STATE_FACTOR", "best_analytic", "judge", "judge_robustness",
-    "roles", "state_metric",
+    "Check", "TOLERANCES", "ROBUST_STATE_FACTOR", "ANALYTIC", "best_analytic", "judge",
+    "judge_robustness", "roles", "state_metric",
 ]  # fmt: skip
 
 #: The headline acceptance's tolerances: TPR margin, state-error factor, FPR band (× α).
 TOLERANCES = {"tpr_margin": 0.01, "state_factor": 1.05, "fpr_band": (0.5, 2.0)}
 #: The robustness acceptance's state-error factor (on every threat).
 ROBUST_STATE_FACTOR = 1.1
+#: What "analytic" leaves out (the roles other than ``"analytic"``), as the reports say it.
+ANALYTIC = ("neither an oracle, a network, an attack-free reference nor fed more data than "
+            "the scenario delivers")  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,7 @@ from typing import Any
 
 from difffilter.models import estimators as registry
 
-from .acceptance import best_analytic, judge, roles, state_metric
+from .acceptance import ANALYTIC, best_analytic, judge, roles, state_metric
 from .scoring import METRICS
 
 __all__ = [
@@ -297,8 +297,7 @@ def _acceptance_section(doc: dict) -> Section | None:
         cells = [f"{format_number(c.value, 4)} {'✓' if c.holds else '✗'}" for c in mine]
         rows.append([f"`{name}`", *cells, "holds" if all(c.holds for c in mine) else "**fails**"])
     text = ("Each learned estimator at the calibrated rate against the best analytic one (per "
-            "metric the best of the estimators that are neither an oracle, a network, an "
-            "attack-free reference nor fed more data than the scenario delivers; "
+            f"metric the best of the estimators that are {ANALYTIC}; "
             "`difffilter.eval.acceptance`).\n\n")  # fmt: skip
     return Section("Learned against the best analytic", text + markdown_table(header, rows) + "\n")
 

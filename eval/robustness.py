@@ -30,7 +30,7 @@ import yaml
 
 from difffilter.threats import threat_from_dict
 
-from .acceptance import ROBUST_STATE_FACTOR, judge_robustness, roles
+from .acceptance import ANALYTIC, ROBUST_STATE_FACTOR, judge_robustness, roles
 from .calibration import calibrate
 from .report import _clean, format_number, markdown_table
 from .scoring import METRICS
@@ -296,8 +296,7 @@ def _acceptance_section(name: str, a: dict) -> str:
     mine, best = a["worst_tpr"], a["best_analytic_worst_tpr"]
     lines = [
         f"## `{name}` against the best analytic over the threats\n",
-        "Analytic: neither an oracle, a network, an attack-free reference nor fed more data "
-        "than the scenario delivers (`difffilter.eval.acceptance`).\n",
+        f"Analytic: {ANALYTIC} (`difffilter.eval.acceptance`).\n",
     ]
     if best is not None:
         lines.append(

@@ -92,8 +92,9 @@ class EstimatorSpec:
     @property
     def role(self) -> str:
         """``"reference"`` (attack-free input), ``"oracle"``, ``"more_data"``, ``"learned"``
-        or ``"analytic"``: what it may be compared with. "The best analytic" of a study is the best of the
-        estimators whose role is ``"analytic"`` (:func:`difffilter.eval.acceptance.best_analytic`)."""
+        or ``"analytic"``: what it may be compared with. "The best analytic" of a study is
+        the best of the estimators whose role is ``"analytic"``
+        (:func:`difffilter.eval.acceptance.best_analytic`)."""
         if self.reference or self.clean_input:
             return "reference"
         if self.oracle:

@@ -262,7 +262,7 @@ def _markdown(doc: dict) -> str:
 
 def _acceptance_markdown(doc: dict) -> list[str]:
     """The acceptance section: each check per seed (✓/✗) against the best analytic."""
-    from difffilter.eval.acceptance import TOLERANCES
+    from difffilter.eval.acceptance import ANALYTIC, TOLERANCES
     from difffilter.eval.report import format_number as f
 
     accept = doc.get("acceptance") or {}
@@ -273,10 +273,9 @@ def _acceptance_markdown(doc: dict) -> list[str]:
         "",
         "## Against the best analytic estimator",
         "",
-        "The best analytic: per metric, the best of the scenario's analytic estimators (no "
-        "oracle, no network, no attack-free reference, none fed more data than the "
-        "scenario delivers) on the same runs, calibrated the "
-        f"same way. A seed holds a row when its TPR ≥ the best − {TOLERANCES['tpr_margin']:g}, "
+        "The best analytic: per metric, the best of the scenario's analytic estimators "
+        f"({ANALYTIC}) on the same runs, calibrated the same way."
+        f" A seed holds a row when its TPR ≥ the best − {TOLERANCES['tpr_margin']:g}, "
         f"its state error ≤ {TOLERANCES['state_factor']:g} × the best, its attack error ≤ the "
         "best (where an analytic estimator estimates the attack) and its measured false-alarm "
         f"rate lies within [{TOLERANCES['fpr_band'][0]:g}α, {TOLERANCES['fpr_band'][1]:g}α].",
