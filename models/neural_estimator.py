@@ -6,7 +6,8 @@ residuals to the current attack estimate::
     M̂ⁱ_k = Wⁱ σ(Vⁱ δⁱ_k),   σ = tanh                                          (8)
     δⁱ_k = [M̂ⁱ_{k−1}, …, M̂ⁱ_{k−a}, eⁱ_{k−ℓ}, …, eⁱ_{k−ℓ−b+1}]                   (9)
 
-with ``Wⁱ [d, h]``, ``Vⁱ [h, d(a+b)]`` and no biases (as in the paper). ``ℓ`` (the residual
+with ``Wⁱ [d, h]``, ``Vⁱ [h, d(a+b)]`` and no biases (as in the paper). ``a = 0`` leaves the
+past estimates out (no recurrence: the estimate answers from the residuals alone). ``ℓ`` (the residual
 lag) is the wrapper's business (:mod:`difffilter.fdi.neural`): the paper
 uses ``ℓ = 1``. Each area also has an optional detection head, a logistic read-out of the
 squared hidden units, ``pⁱ_k = sigmoid(cⁱ + Pⁱ σ(Vⁱ δⁱ_k)²)``, the "attack probability";
@@ -153,11 +154,13 @@ class NeuralFDIEstimator(nn.Module):
         for name, val in (
             ("num_areas", num_areas),
             ("area_dim", area_dim),
-            ("a", a),
             ("b", b),
             ("hidden", hidden),
         ):
             _check_int(val, name)
+        # a = 0: no past estimates in δ (a network that answers from the current residual
+        # alone, as the tracking deception's i.i.d. packets call for)
+        _check_int(a, "a", minimum=0)
         _check_int(extra_inputs, "extra_inputs", minimum=0)
         resid_dim = area_dim if resid_dim is None else resid_dim
         _check_int(resid_dim, "resid_dim")

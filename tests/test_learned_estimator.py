@@ -424,3 +424,37 @@ def test_ekf_trainer_learns_the_attack_and_its_export_evaluates_as_pf_nn_ekf(tmp
     assert card["metrics_last_validation"]["val/attack_rmse"] < 0.2 * float(scale)
     assert out.detection.threshold == pytest.approx(card["observer"]["threshold"])
     assert "attack_logit" not in out.extras  # no head: scores are the standardised estimate
+
+
+def test_a_network_without_past_estimates_equals_one_that_gives_them_zero_weight():
+    """a = 0 (δ holds the residuals alone, no recurrence) against a = 2 with the columns of
+    V that read the past estimates zeroed and every other weight the same: the same states,
+    attack estimates and scores through the Kalman and the particle filter."""
+    model = _linear()
+    _, ys = _data(model, runs=3, steps=15)
+    without = NeuralFDIEstimator(num_areas=1, area_dim=2, a=0, b=2, hidden=5, init="symmetric",
+                                 init_scale=0.5, resid_scale=3.0, seed=4, dtype=torch.float64)  # fmt: skip
+    zeroed = _net(seed=4)  # a = 2, b = 2
+    with torch.no_grad():
+        for name in ("W", "P", "c"):
+            getattr(zeroed, name).copy_(getattr(without, name))
+        zeroed.V.zero_()[..., 2 * 2 :] = without.V  # the last b·d columns read the residuals
+    runs = {
+        "kf": lambda net: neural_gaussian_filter(model, ys, network=net, filter=df.KalmanFilter()),
+        "pf": lambda net: neural_particle_filter(model, ys, network=net, num_particles=64,
+                                                 generator=torch.Generator().manual_seed(2)),
+    }  # fmt: skip
+    for name, run in runs.items():
+        a0, a2 = run(without), run(zeroed)
+        assert a0.attack.abs().max() > 1e-3, name  # the network answers something
+        torch.testing.assert_close(a0.means, a2.means, rtol=0, atol=1e-12, msg=name)
+        torch.testing.assert_close(a0.attack, a2.attack, rtol=0, atol=1e-12, msg=name)
+        torch.testing.assert_close(a0.detection.scores, a2.detection.scores, rtol=0, atol=1e-12)
+
+
+def test_past_estimates_must_be_counted_and_kept_for_the_predicted_residual():
+    with pytest.raises(ValueError, match="a must be an integer >= 0"):
+        NeuralFDIEstimator(num_areas=1, area_dim=2, a=-1)
+    without = NeuralFDIEstimator(num_areas=1, area_dim=2, a=0, b=2)
+    with pytest.raises(ValueError, match=r"residual='predicted'.*a >= 1"):
+        NeuralCompensation(without, df.KalmanFilter(), residual="predicted")

@@ -195,7 +195,10 @@ def feature_dim(features, dim_y: int) -> int:
 
 
 def _push(hist: Tensor, value: Tensor, areas: int) -> Tensor:
-    """``value [..., J·c]`` in front of ``hist [..., J, n, c]``, the oldest entry dropped."""
+    """``value [..., J·c]`` in front of ``hist [..., J, n, c]``, the oldest entry dropped (an
+    empty history, ``n = 0``, stays empty)."""
+    if hist.shape[-2] == 0:
+        return hist
     return torch.cat([value.unflatten(-1, (areas, -1)).unsqueeze(-2), hist[..., :-1, :]], -2)
 
 
@@ -423,6 +426,11 @@ class NeuralCompensation(Estimator):
     ):
         channel, residual, features = Channel(channel), Residual(residual), tuple(features)
         _check_options(network, inner, channel, features, poa_eta, learning, deception)
+        if residual is Residual.PREDICTED and network.a < 1:
+            raise ValueError(
+                "residual='predicted' subtracts the last attack estimate: it needs a network "
+                f"that keeps one (a >= 1); got a = {network.a}"
+            )
         if gating and (channel is not Channel.SENSOR or not network.detection_head):
             raise ValueError(
                 "gating drops a measurement with the network's probability of attack: it needs "
