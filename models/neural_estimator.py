@@ -290,6 +290,8 @@ class EstimatorCard:
         estimator: the registry name it is evaluated as (``pf_nn_grad``, ``kf_nn_grad``, …).
         gating: whether it may also drop a measurement with its probability of attack
             (:class:`~difffilter.fdi.neural.NeuralCompensation`'s ``gating``).
+        compensation: what the filter subtracts, ``"full"`` (``â``) or ``"detected"``
+            (each area's estimate times its probability of attack).
     """
 
     scenario_family: str | None = None
@@ -307,6 +309,7 @@ class EstimatorCard:
     poa_eta: float | None = None
     estimator: str | None = None
     gating: bool = False
+    compensation: str = "full"
     extra: dict = field(default_factory=dict, compare=False)
 
     def to_dict(self) -> dict:

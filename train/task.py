@@ -275,6 +275,8 @@ class FilterEstimatorTask(pl.LightningModule):
             ``"lagged"``); standardize: divide innovations by ``√diag S``.
         gating: the network may also drop a measurement with its probability of attack
             (gating and compensation both; sensor attacks, a detection head).
+        compensation: ``"full"`` (the filter subtracts ``â``) or ``"detected"`` (each
+            area's estimate times its probability of attack; a detection head).
         features: the filter's statistics the network reads (``"mask"``,
             ``"log_likelihood"``, ``"poa"``; the PoA threshold is the scenario's).
         trainer: ``"grad"`` (AdamW through the filter) or ``"ekf"`` (the EKF over the
@@ -323,6 +325,7 @@ class FilterEstimatorTask(pl.LightningModule):
         residual: str = "innovation",
         standardize: bool = True,
         gating: bool = False,
+        compensation: str = "full",
         features: list[str] | None = None,
         trainer: str = "grad",
         lr: float = 3e-3,
@@ -456,7 +459,7 @@ class FilterEstimatorTask(pl.LightningModule):
             self.estimator, inner, channel=self.channel, residual=Residual(hp.residual),
             standardize=hp.standardize, features=self.features, poa_eta=self.poa_eta,
             threshold=threshold, deception=self.deception, record_inputs=record,
-            gating=hp.gating,
+            gating=hp.gating, compensation=hp.compensation,
         )  # fmt: skip
 
     def run(self, scenario, batch: dict, estimator, seed: int, *, steps=None, state=None):
@@ -707,7 +710,7 @@ class FilterEstimatorTask(pl.LightningModule):
             threshold=float(self.alarm_threshold),
             target_false_alarm_rate=self.false_alarm_rate, dt=float(self.scenario.dt),
             num_particles=int(self.num_particles), poa_eta=self.poa_eta, estimator=registered,
-            gating=bool(hp.gating),
+            gating=bool(hp.gating), compensation=str(hp.compensation),
         )  # fmt: skip
 
     def check_exported(self, card: EstimatorCard, path) -> None:

@@ -57,6 +57,18 @@ the update keeps the compensated measurement with probability ``1 − g_k``::
 so ``g = 0`` is plain compensation and ``g = 1`` skips the update, as a χ²-gated filter
 does on an alarm; ``g`` is differentiable, so training decides when to drop.
 
+Compensation (``compensation``, :class:`Compensation`; sensor and actuator attacks, a
+network with a detection head for ``"detected"``)::
+
+    "full"       ỹ_k − â_k                (the paper's: every step compensated)
+    "detected"   ỹ_k − pⁱ_k âⁱ_k           (each area's estimate times its probability)
+
+With ``"full"`` the network's estimate on an attack-free step, noise of the size of the
+innovation, is subtracted too: it takes part of the innovation for an attack, so the
+filter corrects its state less, and a state error (the one an attack leaves behind among
+them) decays slowly. With ``"detected"`` an attack-free step (``p ≈ 0``) updates with the
+measurement as the filter alone would. The reported ``attack`` is ``â_k`` either way.
+
 Detection: ``p_k = sigmoid(logit_k)`` (the largest over areas), alarm where ``p_k >
 threshold``; a network without a detection head (trained by the EKF over its weights,
 which fits the attack estimate alone) scores ``s_k = Σ_c (â_{k,c} / √S_{k,cc})²``. Every
@@ -87,6 +99,7 @@ __all__ = [
     "FEATURES",
     "CompensationNetwork",
     "Residual",
+    "Compensation",
     "OnlineLearning",
     "NeuralState",
     "NeuralCarry",
@@ -151,6 +164,13 @@ class Residual(Choice):
     INNOVATION = "innovation"
     PREDICTED = "predicted"
     LAGGED = "lagged"
+
+
+class Compensation(Choice):
+    """What the filter subtracts (module docstring): ``â_k``, or each area's ``pⁱ_k âⁱ_k``."""
+
+    FULL = "full"
+    DETECTED = "detected"
 
 
 class OnlineLearning(NamedTuple):
@@ -341,8 +361,10 @@ class _NeuralLikelihood:
     that estimates from the step's predictive view and weighs with the compensated
     measurement (or, against a replacement, with the learned mixture)."""
 
-    def __init__(self, core: _Core, deception, gating: bool = False):
+    def __init__(self, core: _Core, deception, gating: bool = False,
+                 compensation: Compensation = Compensation.FULL):  # fmt: skip
         self.core, self.deception, self.gating = core, deception, gating
+        self.compensation = compensation
 
     def init(self, model, batch_shape, dtype, device):
         return self.core.init(batch_shape, dtype, device, None)
@@ -372,7 +394,8 @@ class _NeuralLikelihood:
             replaced = self.deception(model, y, particles, k, mask)
             return state, torch.logaddexp(clean + log_q, replaced + log_p), record
         always = torch.ones(attack.shape[:-1], dtype=torch.bool, device=attack.device)
-        log_lik = AttackCompensatedLikelihood(always, attack)(model, y, particles, k, mask)
+        applied = applied_estimate(attack, logit, self.compensation)
+        log_lik = AttackCompensatedLikelihood(always, applied)(model, y, particles, k, mask)
         if self.gating:  # a tempered update: kept with probability 1 − g
             log_lik = log_lik * (1.0 - gate_of(logit)).unsqueeze(-1)
         return state, log_lik, record
@@ -401,6 +424,8 @@ class NeuralCompensation(Estimator):
             one area): the samples the EKF over the weights is trained on.
         gating: drop the measurement with the network's probability of attack (module
             docstring; sensor attacks, a network with a detection head).
+        compensation: :class:`Compensation`: subtract ``â_k`` (``"full"``, the paper's) or
+            each area's estimate times its probability of attack (``"detected"``).
 
     Step output: the filter's moments after compensation, ``attack`` ``â_k``, ``score``,
     ``alarm``, ``threshold`` and ``extras`` (``"attack_logit"`` with a head, the recorded
@@ -423,8 +448,10 @@ class NeuralCompensation(Estimator):
         deception=None,
         record_inputs: bool = False,
         gating: bool = False,
+        compensation: Compensation | str = Compensation.FULL,
     ):
         channel, residual, features = Channel(channel), Residual(residual), tuple(features)
+        compensation = Compensation(compensation)
         _check_options(network, inner, channel, features, poa_eta, learning, deception)
         if residual is Residual.PREDICTED and network.a < 1:
             raise ValueError(
@@ -437,7 +464,15 @@ class NeuralCompensation(Estimator):
                 f"a sensor attack and a network with a detection head (channel {channel.value}, "
                 f"detection_head {bool(network.detection_head)})"
             )
-        self.gating = bool(gating)
+        if compensation is Compensation.DETECTED and (
+            channel is Channel.REPLACEMENT or not network.detection_head
+        ):
+            raise ValueError(
+                "compensation='detected' weighs each area's estimate with its probability of "
+                "attack: it needs a network with a detection head and a sensor or actuator "
+                f"attack (channel {channel.value}, detection_head {bool(network.detection_head)})"
+            )
+        self.gating, self.compensation = bool(gating), compensation
         self.network, self.inner, self.channel = network, inner, channel
         self.attack_channel = channel  # what its attack estimate â_k is on
         self.threshold = float(threshold)
@@ -447,7 +482,7 @@ class NeuralCompensation(Estimator):
         if self.particles:
             self.pf = ParticleFilter(
                 inner.num_particles, resampler=inner.resampler, proposal=inner.proposal,
-                likelihood=_NeuralLikelihood(self.core, deception, self.gating),
+                likelihood=_NeuralLikelihood(self.core, deception, self.gating, compensation),
                 ess_threshold=inner.ess_threshold, innovations=True,
             )  # fmt: skip
             self.carry_type = ParticleState
@@ -491,12 +526,13 @@ class NeuralCompensation(Estimator):
         evidence = "log_likelihood" in core.features
         nu, S, ell = inner.innovation(carry.inner, pred, y, mask, evidence=evidence)
         net, attack, logit, scale, delta = core.step(carry.net, nu, S, mask, log_likelihood=ell)
+        applied = applied_estimate(attack, logit, self.compensation)
         if self.channel is Channel.ACTUATOR:
             if u is None:
                 raise ValueError("channel ACTUATOR compensates the input: step needs u_k [..., du]")
-            new, out = inner.update(carry.inner, inner.predict(carry.inner, u + attack), y, mask)
+            new, out = inner.update(carry.inner, inner.predict(carry.inner, u + applied), y, mask)
         else:
-            new, out = inner.update(carry.inner, pred, y - attack, mask)
+            new, out = inner.update(carry.inner, pred, y - applied, mask)
             if self.gating:
                 new, out = _gated(new, out, pred, gate_of(logit))
         extras = {"network_inputs": delta[..., 0, :].detach()} if core.record_inputs else {}
@@ -509,6 +545,15 @@ class NeuralCompensation(Estimator):
             attack=attack, score=score, alarm=score > self.threshold, threshold=self.threshold,
             extras={**extras, **more},
         )  # fmt: skip
+
+
+def applied_estimate(attack: Tensor, logit: Tensor | None, compensation) -> Tensor:
+    """What the filter subtracts (:class:`Compensation`): ``â [..., J·d]`` itself, or each
+    area's ``sigmoid(logitⁱ) âⁱ`` (``logit [..., J]``)."""
+    if compensation is Compensation.FULL:
+        return attack
+    p = torch.sigmoid(logit)
+    return attack * p.repeat_interleave(attack.shape[-1] // p.shape[-1], -1)
 
 
 def gate_of(logit: Tensor) -> Tensor:

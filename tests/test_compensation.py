@@ -1,0 +1,83 @@
+"""Compensation weighed by detection: the filter subtracts each area's estimate times its
+probability of attack (NeuralCompensation(compensation="detected")) instead of the estimate."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from test_learned_estimator import (
+    _data,
+    _linear,
+    _net,
+    neural_gaussian_filter,
+    neural_particle_filter,
+)
+
+import difffilter as df
+from difffilter.models.learned_estimator import NeuralCompensation
+from difffilter.models.neural_estimator import EstimatorCard, NeuralFDIEstimator
+from difffilter.particle import particle_filter
+
+
+def _with_head_bias(bias, net=None):
+    net = _net() if net is None else net
+    with torch.no_grad():
+        net.P.zero_()
+        net.c.copy_(torch.as_tensor(bias, dtype=net.c.dtype).expand_as(net.c))  # logit = c
+    return net
+
+
+def test_certain_attack_is_full_compensation_and_none_is_the_filter_alone():
+    model = _linear()
+    _, ys = _data(model)
+    always, never = _with_head_bias(60.0), _with_head_bias(-60.0)
+    full = neural_gaussian_filter(model, ys, network=always, filter=df.KalmanFilter())
+    detected = neural_gaussian_filter(model, ys, network=always, filter=df.KalmanFilter(),
+                                      compensation="detected")  # fmt: skip
+    assert full.attack.abs().max() > 1e-2  # the estimate is not zero: the weight is what acts
+    torch.testing.assert_close(detected.means, full.means, rtol=0, atol=1e-12)
+    alone = neural_gaussian_filter(model, ys, network=never, filter=df.KalmanFilter(),
+                                   compensation="detected")  # fmt: skip
+    torch.testing.assert_close(alone.means, df.kalman_filter(model, ys).means, rtol=0, atol=1e-12)
+    assert alone.attack.abs().max() > 1e-2  # â is reported, though none of it was subtracted
+    g = lambda: torch.Generator().manual_seed(5)  # noqa: E731
+    pf = neural_particle_filter(model, ys, network=never, num_particles=40, generator=g(),
+                                compensation="detected")  # fmt: skip
+    plain = particle_filter(model, ys, num_particles=40, generator=g())
+    torch.testing.assert_close(pf.means, plain.means, rtol=0, atol=1e-12)
+    pf_full = neural_particle_filter(model, ys, network=always, num_particles=40, generator=g())
+    pf_det = neural_particle_filter(model, ys, network=always, num_particles=40, generator=g(),
+                                    compensation="detected")  # fmt: skip
+    torch.testing.assert_close(pf_det.means, pf_full.means, rtol=0, atol=1e-12)
+
+
+def test_each_area_weighs_its_own_estimate_by_hand():
+    """Two areas of one channel each, logits (−60, 0): the first step updates with
+    y − (0, â₂ / 2), checked against the Kalman step on that measurement."""
+    model = _linear()
+    _, ys = _data(model, runs=2, steps=1)
+    net = NeuralFDIEstimator(num_areas=2, area_dim=1, a=1, b=2, hidden=4, init="symmetric",
+                             init_scale=0.5, resid_scale=3.0, seed=2, dtype=torch.float64)  # fmt: skip
+    _with_head_bias([-60.0, 0.0], net)
+    out = neural_gaussian_filter(model, ys, network=net, filter=df.KalmanFilter(),
+                                 compensation="detected")  # fmt: skip
+    a_hat = out.attack[:, 0]
+    assert a_hat[:, 1].abs().min() > 1e-4
+    prior = df.kalman.gaussian_init(model, (2,))  # kalman_step predicts, then updates
+    applied = torch.stack([torch.zeros_like(a_hat[:, 0]), 0.5 * a_hat[:, 1]], -1)
+    upd, _ = df.kalman_step(model, prior, ys[:, 0] - applied)
+    torch.testing.assert_close(out.means[:, 0], upd.mean, rtol=0, atol=1e-12)
+
+
+def test_detected_compensation_needs_a_head_and_an_additive_attack():
+    headless = NeuralFDIEstimator(num_areas=1, area_dim=2, detection_head=False)
+    with pytest.raises(ValueError, match="compensation='detected'.*detection head"):
+        NeuralCompensation(headless, df.KalmanFilter(), compensation="detected")
+    with pytest.raises(ValueError, match="not a Compensation"):
+        NeuralCompensation(_net(), df.KalmanFilter(), compensation="sometimes")
+
+
+def test_the_card_carries_the_compensation():
+    card = EstimatorCard(filter="kf", compensation="detected")
+    assert EstimatorCard.from_dict(card.to_dict()).compensation == "detected"
+    assert EstimatorCard.from_dict({"filter": "kf"}).compensation == "full"  # older cards
