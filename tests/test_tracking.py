@@ -287,8 +287,9 @@ def test_eta_sweep_increases_and_detection_auc_at_every_rate():
 def test_the_shipped_learned_estimator_detects_the_deception():
     """checkpoints/tracking_nn_grad.ckpt (train/configs/tracking.yaml: the PF with the mixture
     likelihood of the network's attack probability) on 8 runs × 300 particles: it is used by
-    default, detects the replaced packets (AUC > 0.98; 0.997 on 50 runs) and tracks within
-    1.5× of RRP-PF-DA (which knows the attack rate; 1.02–1.14× on 50 runs)."""
+    default, detects the replaced packets (AUC > 0.99; 0.9995 here, 0.998–0.999 on 50 runs)
+    and tracks within 1.1× of RRP-PF-DA, which knows the attack rate (0.99× here and
+    0.99–1.01× on 50 runs; the checkpoint shipped before it, 1.14× on 50 runs)."""
     from difffilter.eval.suite import run_suite
 
     sc = replace(registry.get("tracking_rrp_deception"), num_particles=300)
@@ -296,5 +297,5 @@ def test_the_shipped_learned_estimator_detects_the_deception():
         res = run_suite(sc, runs=8, estimators=("rrp_pf_da", "pf_nn_grad"), progress=False)
     assert res.checkpoint["used_by"] == ["pf_nn_grad"]
     ours, rrp = res.metrics["pf_nn_grad"], res.metrics["rrp_pf_da"]
-    assert ours["auc"] > 0.98
-    assert ours["state_rmse"] < 1.5 * rrp["state_rmse"]
+    assert ours["auc"] > 0.99
+    assert ours["state_rmse"] < 1.1 * rrp["state_rmse"]
