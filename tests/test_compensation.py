@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from test_gating import _with_head_bias
 from test_learned_estimator import (
     _data,
     _linear,
@@ -17,14 +18,6 @@ import difffilter as df
 from difffilter.models.learned_estimator import NeuralCompensation
 from difffilter.models.neural_estimator import EstimatorCard, NeuralFDIEstimator
 from difffilter.particle import particle_filter
-
-
-def _with_head_bias(bias, net=None):
-    net = _net() if net is None else net
-    with torch.no_grad():
-        net.P.zero_()
-        net.c.copy_(torch.as_tensor(bias, dtype=net.c.dtype).expand_as(net.c))  # logit = c
-    return net
 
 
 def test_certain_attack_is_full_compensation_and_none_is_the_filter_alone():

@@ -18,11 +18,13 @@ from difffilter.fdi.neural import gate_of
 from difffilter.models.learned_estimator import NeuralCompensation
 
 
-def _with_head_bias(bias: float):
-    net = _net()
+def _with_head_bias(bias, net=None):
+    """``net`` (default ``_net()``) whose head answers ``logit = c = bias`` (one per area, or
+    one for all) at every step: ``g = sigmoid(c)``."""
+    net = _net() if net is None else net
     with torch.no_grad():
         net.P.zero_()
-        net.c.fill_(bias)  # logit = c: g = sigmoid(c) at every step
+        net.c.copy_(torch.as_tensor(bias, dtype=net.c.dtype).expand_as(net.c))
     return net
 
 

@@ -453,25 +453,7 @@ class NeuralCompensation(Estimator):
         channel, residual, features = Channel(channel), Residual(residual), tuple(features)
         compensation = Compensation(compensation)
         _check_options(network, inner, channel, features, poa_eta, learning, deception)
-        if residual is Residual.PREDICTED and network.a < 1:
-            raise ValueError(
-                "residual='predicted' subtracts the last attack estimate: it needs a network "
-                f"that keeps one (a >= 1); got a = {network.a}"
-            )
-        if gating and (channel is not Channel.SENSOR or not network.detection_head):
-            raise ValueError(
-                "gating drops a measurement with the network's probability of attack: it needs "
-                f"a sensor attack and a network with a detection head (channel {channel.value}, "
-                f"detection_head {bool(network.detection_head)})"
-            )
-        if compensation is Compensation.DETECTED and (
-            channel is Channel.REPLACEMENT or not network.detection_head
-        ):
-            raise ValueError(
-                "compensation='detected' weighs each area's estimate with its probability of "
-                "attack: it needs a network with a detection head and a sensor or actuator "
-                f"attack (channel {channel.value}, detection_head {bool(network.detection_head)})"
-            )
+        _check_step_options(network, channel, residual, gating, compensation)
         self.gating, self.compensation = bool(gating), compensation
         self.network, self.inner, self.channel = network, inner, channel
         self.attack_channel = channel  # what its attack estimate â_k is on
@@ -578,6 +560,29 @@ def _gated(new, out: StepOutput, pred, g: Tensor):
     if hasattr(state, "gains"):
         state = state._replace(gains=None)
     return state, out._replace(mean=mean, cov=cov)
+
+
+def _check_step_options(network, channel, residual, gating, compensation) -> None:
+    """``ValueError`` for a residual, gating or compensation the network cannot serve."""
+    if residual is Residual.PREDICTED and network.a < 1:
+        raise ValueError(
+            "residual='predicted' subtracts the last attack estimate: it needs a network "
+            f"that keeps one (a >= 1); got a = {network.a}"
+        )
+    # the options that read the head's probability of attack: (on, what, channels, which)
+    heads = (
+        (gating, "gating drops a measurement with the network's probability of attack",
+         (Channel.SENSOR,), "a sensor attack"),
+        (compensation is Compensation.DETECTED,
+         "compensation='detected' weighs each area's estimate with its probability of attack",
+         (Channel.SENSOR, Channel.ACTUATOR), "a sensor or actuator attack"),
+    )  # fmt: skip
+    for on, what, channels, which in heads:
+        if on and (channel not in channels or not network.detection_head):
+            raise ValueError(
+                f"{what}: it needs {which} and a network with a detection head (channel "
+                f"{channel.value}, detection_head {bool(network.detection_head)})"
+            )
 
 
 def _check_options(network, inner, channel, features, poa_eta, learning, deception) -> None:
