@@ -120,21 +120,22 @@ def lfc_estimator(
     standardize: bool = False,
     gating: bool = False,
     compensation: str = "full",
+    features: tuple[str, ...] = (),
 ):
     """An LFC estimator: the Kalman observer (or the Luenberger one of gain ``luenberger``,
     a :class:`~difffilter.control.LuenbergerDesign`), alone or with
     ``network`` learning online by ``rule`` from per-run ``init_scale·U[0, 1]`` weights
     (or the network's own) with the ``residual`` history of eq. (9) (raw residuals, as
     the paper's network reads them, unless ``standardize``); ``gating``: the network may
-    also drop a measurement; ``compensation``: ``"full"`` or ``"detected"``
-    (:class:`~difffilter.fdi.neural.NeuralCompensation`)."""
+    also drop a measurement; ``compensation``: ``"full"`` or ``"detected"``; ``features``:
+    the per-step inputs beside eq. (9) (:class:`~difffilter.fdi.neural.NeuralCompensation`)."""
     observer = KalmanFilter() if luenberger is None else FixedGainFilter(ctx.luenberger(luenberger))
     if network is None:
         return observer
     learning = None if rule is None else OnlineLearning(rule, posterior, init_scale)
     return NeuralCompensation(
         network.to(ctx.dtype), observer, residual=residual, standardize=standardize,
-        learning=learning, gating=gating, compensation=compensation,
+        learning=learning, gating=gating, compensation=compensation, features=features,
     )  # fmt: skip
 
 
@@ -241,7 +242,7 @@ def _trained(ctx, name, *, rule=None):
     net, card = _checkpoint_network(ctx, name)
     return lfc_estimator(_context(ctx), network=net, rule=rule, residual=Residual(card.residual),
                          standardize=card.standardize, gating=card.gating,
-                         compensation=card.compensation)  # fmt: skip
+                         compensation=card.compensation, features=card.features)  # fmt: skip
 
 
 # The evaluation's learners donate their ρ to the next step (each loop owns its carry).

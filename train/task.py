@@ -278,7 +278,8 @@ class FilterEstimatorTask(pl.LightningModule):
         compensation: ``"full"`` (the filter subtracts ``â``) or ``"detected"`` (each
             area's estimate times its probability of attack; a detection head).
         features: the filter's statistics the network reads (``"mask"``,
-            ``"log_likelihood"``, ``"poa"``; the PoA threshold is the scenario's).
+            ``"log_likelihood"``, ``"poa"``: the PoA threshold is the scenario's;
+            ``"plain_innovation"``: an uncompensated copy of a Gaussian filter's).
         trainer: ``"grad"`` (AdamW through the filter) or ``"ekf"`` (the EKF over the
             weights; module docstring).
         lr, weight_decay, pct_start, grad_clip: AdamW, its one-cycle schedule

@@ -37,13 +37,23 @@ the mixture of eq. (15) of the RRP paper with the network's probability ``p_k`` 
 of the fixed rate, ``log[(1 − p_k) p_v(ỹ_k − h(x^i)) + p_k p_ξ(ỹ_k)]``, and reports ``â_k =
 p_k ν_k``.
 
-``f_k`` holds the optional ``features`` (:data:`FEATURES`, one area only), in this order::
+``f_k`` holds the optional ``features`` (:data:`FEATURES`), in this order::
 
-    "mask"            m_k ∈ {0, 1}^dy, the received entries
-    "log_likelihood"  asinh(−2 ℓ_k / max(|m_k|, 1)), ℓ_k = log p̂(ỹ_k | ỹ_{1:k−1}) of the
-                      uncompensated measurement (about 1 per entry without attack)
-    "poa"             β_k = Σ_{i: ‖z^i‖ > η} w^i_{k−1},  z^i = ỹ_k − h(x^i_k): the probability
-                      of attack of the modified-PF paper (eq. 14); particle filter only
+    "mask"              m_k ∈ {0, 1}^dy, the received entries (one area only)
+    "log_likelihood"    asinh(−2 ℓ_k / max(|m_k|, 1)), ℓ_k = log p̂(ỹ_k | ỹ_{1:k−1}) of the
+                        uncompensated measurement (about 1 per entry without attack; one
+                        area only)
+    "poa"               β_k = Σ_{i: ‖z^i‖ > η} w^i_{k−1},  z^i = ỹ_k − h(x^i_k): the
+                        probability of attack of the modified-PF paper (eq. 14); particle
+                        filter only
+    "plain_innovation"  ν°_k / √diag S°_k (0 where unreceived): the standardised innovation
+                        of a second copy of the filter that reads ỹ_k uncompensated, each
+                        area its own channels; Gaussian filters only
+
+The plain copy's state never depends on the network: when an attack ends it returns to
+the attack-free innovation at its own rate, whereas the compensated filter's state
+carries whatever part of the attack the estimate missed, and the innovation of that state
+error looks like an attack to a network that reads it alone.
 
 Gating (``gating=True``, sensor attacks, a network with a detection head): beside
 subtracting its estimate, the network may drop the measurement. With ``g_k = p_k`` (below)
@@ -109,7 +119,9 @@ __all__ = [
 ]
 
 #: The optional per-step inputs (module docstring), in the order they enter ``δ_k``.
-FEATURES = ("mask", "log_likelihood", "poa")
+FEATURES = ("mask", "log_likelihood", "poa", "plain_innovation")
+#: Features with one entry per measured channel that each area reads on its own channels.
+PER_AREA_FEATURES = ("plain_innovation",)
 
 
 class CompensationNetwork(Protocol):
@@ -198,11 +210,13 @@ class NeuralState(NamedTuple):
 
 class NeuralCarry(NamedTuple):
     """Carry of a :class:`NeuralCompensation` around a Gaussian filter: the filter's carry
-    ``inner``, the network's :class:`NeuralState` and the model."""
+    ``inner``, the network's :class:`NeuralState`, the model and, with the
+    ``"plain_innovation"`` feature, the carry of the uncompensated copy ``plain``."""
 
     inner: Any
     net: NeuralState
     model: Any
+    plain: Any = None
 
 
 def feature_dim(features, dim_y: int) -> int:
@@ -211,7 +225,7 @@ def feature_dim(features, dim_y: int) -> int:
     unknown = [f for f in features if f not in FEATURES]
     if unknown or len(set(features)) != len(features):
         raise ValueError(f"features must be distinct names of {FEATURES}; got {list(features)}")
-    return sum(dim_y if f == "mask" else 1 for f in features)
+    return sum(dim_y if f in ("mask", *PER_AREA_FEATURES) else 1 for f in features)
 
 
 def _push(hist: Tensor, value: Tensor, areas: int) -> Tensor:
@@ -252,13 +266,23 @@ class _Core:
             learner = self.learning.rule.init(theta)
         return NeuralState(attack_hist, resid_hist, learner)
 
-    def _features(self, e, mask, log_likelihood, poa) -> list[Tensor]:
+    def _features(self, e, mask, log_likelihood, poa, plain) -> list[Tensor]:
+        """The features as ``[..., J, width]`` each (every area reads the run's, or its own
+        channels of a per-area one)."""
+        J = self.network.num_areas
         received = torch.ones_like(e) if mask is None else mask.to(e.dtype)
         given = {"log_likelihood": log_likelihood, "poa": poa}
         out = []
         for name in self.features:
             if name == "mask":
-                out.append(received)
+                out.append(received.unsqueeze(-2))
+                continue
+            if name == "plain_innovation":
+                if plain is None:
+                    raise ValueError(
+                        "feature 'plain_innovation' needs the plain filter's innovation"
+                    )
+                out.append((plain.to(e.dtype) * received).unflatten(-1, (J, -1)))
                 continue
             value = given[name]
             if value is None:
@@ -266,12 +290,13 @@ class _Core:
             value = value.to(e.dtype)
             if name == "log_likelihood":
                 value = torch.asinh(-2.0 * value / received.sum(-1).clamp_min(1.0))
-            out.append(value.unsqueeze(-1))
+            out.append(value.unsqueeze(-1).unsqueeze(-2))
         return out
 
     def step(self, state: NeuralState, innovation, innovation_cov, mask, log_likelihood=None,
-             poa=None):  # fmt: skip
-        """``(state, â [..., J·d], logit [..., J] or None, scale [..., dy], δ [..., J, in])``."""
+             poa=None, plain=None):  # fmt: skip
+        """``(state, â [..., J·d], logit [..., J] or None, scale [..., dy], δ [..., J, in])``;
+        ``plain [..., dy]``: the plain copy's standardised innovation (its feature)."""
         net, J = self.network, self.network.num_areas
         if innovation.shape[-1] != J * net.resid_dim:
             raise ValueError(
@@ -281,7 +306,7 @@ class _Core:
         scale, e = None, innovation
         # √diag S: read by the standardisation and, without a head, by the score
         if innovation_cov is not None and (self.standardize or not net.detection_head):
-            scale = torch.diagonal(innovation_cov, dim1=-2, dim2=-1).clamp_min(1e-30).sqrt()
+            scale = _std(innovation_cov)
         if self.standardize:
             e = innovation / scale
         if mask is not None:
@@ -295,9 +320,9 @@ class _Core:
         # δ [..., J, in]: each area's histories, most recent first (build_delta's layout)
         delta = torch.cat([state.attack_hist.flatten(-2), resid_in.flatten(-2)], -1)
         if self.features:
-            extra = self._features(e, mask, log_likelihood, poa)
-            batch = e.shape[:-1]
-            delta = torch.cat([delta, *(f.expand(*batch, -1).unsqueeze(-2) for f in extra)], -1)
+            extra = self._features(e, mask, log_likelihood, poa, plain)
+            areas = e.shape[:-1] + (J,)
+            delta = torch.cat([delta, *(f.expand(*areas, -1) for f in extra)], -1)
         learner = state.learner
         if learner is None:
             attack, logit = net(delta if delta.dtype == net.V.dtype else delta.to(net.V.dtype))
@@ -414,7 +439,7 @@ class NeuralCompensation(Estimator):
             are used; its likelihood is the network's).
         channel: :class:`~difffilter.attack.Channel` of the attack it compensates.
         residual: :class:`Residual`; standardize: divide the innovations by ``√diag S``.
-        features: names of :data:`FEATURES` (one area only).
+        features: names of :data:`FEATURES` (one area only, but ``"plain_innovation"``).
         poa_eta: ``η`` of the ``"poa"`` feature.
         learning: :class:`OnlineLearning` or ``None`` (frozen weights).
         threshold: alarm threshold of the score.
@@ -461,6 +486,7 @@ class NeuralCompensation(Estimator):
         self.core = _Core(network, channel, residual, bool(standardize), features, poa_eta,
                           learning, record_inputs)  # fmt: skip
         self.particles = isinstance(inner, ParticleFilter)
+        self.plain = "plain_innovation" in features  # the uncompensated copy runs beside
         if self.particles:
             self.pf = ParticleFilter(
                 inner.num_particles, resampler=inner.resampler, proposal=inner.proposal,
@@ -482,7 +508,8 @@ class NeuralCompensation(Estimator):
             return carry._replace(aux=net)
         inner = self.inner._init(model, batch_shape, generators)
         net = self.core.init(batch_shape, inner.mean.dtype, inner.mean.device, generators.init)
-        return NeuralCarry(inner, net, model)
+        plain = self.inner._init(model, batch_shape, generators) if self.plain else None
+        return NeuralCarry(inner, net, model, plain)
 
     def attach(self, state: ParticleState, model, generators: Generators) -> ParticleState:
         """Particles drawn elsewhere as this estimator's carry (particle filter only)."""
@@ -507,7 +534,14 @@ class NeuralCompensation(Estimator):
         pred = inner.predict(carry.inner, u)
         evidence = "log_likelihood" in core.features
         nu, S, ell = inner.innovation(carry.inner, pred, y, mask, evidence=evidence)
-        net, attack, logit, scale, delta = core.step(carry.net, nu, S, mask, log_likelihood=ell)
+        plain, plain_feature = carry.plain, None
+        if plain is not None:  # the copy that reads ỹ_k as it is (never the estimate)
+            plain_pred = inner.predict(plain, u)
+            plain_nu, plain_S, _ = inner.innovation(plain, plain_pred, y, mask, evidence=False)
+            plain_feature = plain_nu / _std(plain_S)
+            plain, _ = inner.update(plain, plain_pred, y, mask)
+        net, attack, logit, scale, delta = core.step(carry.net, nu, S, mask, log_likelihood=ell,
+                                                     plain=plain_feature)  # fmt: skip
         applied = applied_estimate(attack, logit, self.compensation)
         if self.channel is Channel.ACTUATOR:
             if u is None:
@@ -519,7 +553,7 @@ class NeuralCompensation(Estimator):
                 new, out = _gated(new, out, pred, gate_of(logit))
         extras = {"network_inputs": delta[..., 0, :].detach()} if core.record_inputs else {}
         report = self._report(out, attack, logit, scale, nu, extras)
-        return NeuralCarry(new, net, carry.model), report
+        return NeuralCarry(new, net, carry.model, plain), report
 
     def _report(self, out: StepOutput, attack, logit, scale, innovation, extras) -> StepOutput:
         score, more = self.core.detect(attack, logit, scale, innovation)
@@ -527,6 +561,11 @@ class NeuralCompensation(Estimator):
             attack=attack, score=score, alarm=score > self.threshold, threshold=self.threshold,
             extras={**extras, **more},
         )  # fmt: skip
+
+
+def _std(cov: Tensor) -> Tensor:
+    """``√diag S [..., dy]`` of ``S [..., dy, dy]`` (floored at 1e-15: never a division by 0)."""
+    return torch.diagonal(cov, dim1=-2, dim2=-1).clamp_min(1e-30).sqrt()
 
 
 def applied_estimate(attack: Tensor, logit: Tensor | None, compensation) -> Tensor:
@@ -612,13 +651,22 @@ def _check_options(network, inner, channel, features, poa_eta, learning, decepti
         raise ValueError(
             "channel='replacement' needs a particle filter, deception= and a network with a head"
         )
-    if features and network.num_areas != 1:
-        raise ValueError("features are read by a network of one area (num_areas = 1)")
+    whole_run = [f for f in features if f not in PER_AREA_FEATURES]
+    if whole_run and network.num_areas != 1:
+        raise ValueError(
+            f"features {whole_run} are read by a network of one area (num_areas = 1); "
+            f"with several areas only {list(PER_AREA_FEATURES)}"
+        )
     width = feature_dim(features, network.resid_dim)
     if network.extra_inputs != width:
         raise ValueError(
             f"network.extra_inputs is {network.extra_inputs} but features {list(features)} "
             f"need {width} inputs"
+        )
+    if "plain_innovation" in features and particles:
+        raise ValueError(
+            "'plain_innovation' runs an uncompensated copy of a Gaussian filter: inner must be "
+            "a KalmanFilter, ExtendedKalmanFilter, UnscentedKalmanFilter or FixedGainFilter"
         )
     if "poa" in features and not particles:
         raise ValueError("'poa' needs particles: inner must be a ParticleFilter")
