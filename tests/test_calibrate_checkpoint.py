@@ -3,6 +3,7 @@ false-alarm rate, checked on others, carried by the card and used by the estimat
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -11,7 +12,7 @@ import torch
 
 from difffilter.eval.suite import run_suite
 from difffilter.models import registry
-from difffilter.models.neural_estimator import load_estimator_checkpoint
+from difffilter.models.neural_estimator import load_estimator_checkpoint, save_estimator_checkpoint
 from difffilter.models.streams import Streams
 from difffilter.train.calibrate import calibrate_checkpoint, estimator_name, main
 
@@ -51,15 +52,27 @@ def test_the_threshold_meets_the_rate_on_its_runs_and_the_estimator_alarms_above
     assert doc["calibration"] == cal and doc["model_config"]["scenario"] == "four_tank_bias"
 
 
+def _uncalibrated(path, out):
+    """A copy of the checkpoint at ``path`` whose card carries no calibration (the head's
+    default threshold, as ``export`` writes it)."""
+    net, card = load_estimator_checkpoint(path)
+    extra = {k: v for k, v in card.extra.items() if k != "calibration"}
+    save_estimator_checkpoint(out, net, dataclasses.replace(card, threshold=0.5, extra=extra))
+    return out
+
+
 def test_a_calibrated_lfc_checkpoint_alarms_at_its_threshold_instead_of_three_sigma(tmp_path):
+    plain = _uncalibrated("checkpoints/lfc_nn_grad.ckpt", tmp_path / "plain.ckpt")
     out = tmp_path / "lfc.ckpt"
-    cal = calibrate_checkpoint("checkpoints/lfc_nn_grad.ckpt", out, far=0.02, runs=2,
-                               progress=False)  # fmt: skip
+    cal = calibrate_checkpoint(plain, out, far=0.02, runs=2, progress=False)
     assert cal["estimator"] == "kf_nn_grad" and cal["scenario"] == "lfc_random_attacks"
     scenario = registry.get("lfc_step").with_steps(300)
+    shipped = load_estimator_checkpoint("checkpoints/lfc_nn_grad.ckpt")[1]
+    assert shipped.extra["calibration"]["estimator"] == "kf_nn_grad"  # the shipped one is
     # the online fine-tuning of the same network has another score: it keeps 3σ
-    cases = (("checkpoints/lfc_nn_grad.ckpt", "kf_nn_grad", 3.0),
-             (out, "kf_nn_grad", cal["threshold"]), (out, "kf_nn_grad_ekf", 3.0))  # fmt: skip
+    cases = (("checkpoints/lfc_nn_grad.ckpt", "kf_nn_grad", shipped.threshold),
+             (plain, "kf_nn_grad", 3.0), (out, "kf_nn_grad", cal["threshold"]),
+             (out, "kf_nn_grad_ekf", 3.0))  # fmt: skip
     for path, name, threshold in cases:
         result = run_suite(scenario, runs=2, estimators=[name], checkpoint={name: str(path)},
                            progress=False)  # fmt: skip
