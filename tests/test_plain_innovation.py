@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from test_learned_estimator import _captured_inputs, _linear
 
 import difffilter as df
 from difffilter.loop import open_loop
@@ -12,12 +13,6 @@ from difffilter.models.learned_estimator import NeuralCompensation
 from difffilter.models.neural_estimator import NeuralFDIEstimator
 
 FEATURE = ("plain_innovation",)
-
-
-def _model(dtype=torch.float64):
-    F = torch.tensor([[1.0, 0.1], [0.0, 0.95]], dtype=dtype)
-    eye = torch.eye(2, dtype=dtype)
-    return df.LinearGaussianModel(F, eye, 1e-3 * eye, 1e-2 * eye, torch.zeros(2, dtype=dtype), eye)
 
 
 def _data(model, runs=3, steps=15):
@@ -34,25 +29,19 @@ def _two_areas(extra_inputs: int, seed: int = 4) -> NeuralFDIEstimator:
                               seed=seed)  # fmt: skip
 
 
-def _captured(net):
-    seen = []
-    net.register_forward_pre_hook(lambda module, args: seen.append(args[0].detach().clone()))
-    return seen
-
-
 @pytest.mark.parametrize("masked", [False, True])
 def test_each_area_reads_the_plain_kalman_filters_standardised_innovation(masked):
     """δ's last entry of area i at step k is ν°_{k,i} / √S°_{k,ii} of a Kalman filter run
     alone on the received measurements (0 where unreceived), while the compensated filter
     inside has other innovations."""
-    model = _model()
+    model = _linear()
     ys = _data(model)
     mask = None
     if masked:
         mask = torch.ones(ys.shape, dtype=torch.bool)
         mask[0, 6, 1] = mask[2, 10, 0] = False
     net = _two_areas(extra_inputs=1)
-    seen = _captured(net)
+    seen = _captured_inputs(net)
     est = NeuralCompensation(net, df.KalmanFilter(), features=FEATURE, residual="innovation")
     out = open_loop(est, model, ys, mask=mask)
     plain = df.kalman_filter(model, ys, mask=mask)
@@ -69,7 +58,7 @@ def test_each_area_reads_the_plain_kalman_filters_standardised_innovation(masked
 def test_zero_weights_on_the_feature_give_the_network_without_it():
     """The feature only adds inputs: with its V columns zero, every output equals the
     same network's without the feature (means, attack estimates, scores)."""
-    model = _model()
+    model = _linear()
     ys = _data(model)
     without, with_ = _two_areas(extra_inputs=0), _two_areas(extra_inputs=1)
     with torch.no_grad():
@@ -88,7 +77,7 @@ def test_zero_weights_on_the_feature_give_the_network_without_it():
 def test_the_feature_is_differentiable_and_its_copy_never_reads_the_estimate():
     """A loss on the attack estimate has a gradient on the feature's weights; the plain
     copy's carry after the run equals the plain filter's whatever the network."""
-    model = _model()
+    model = _linear()
     ys = _data(model)
     net = _two_areas(extra_inputs=1)
     est = NeuralCompensation(net, df.KalmanFilter(), features=FEATURE)

@@ -271,23 +271,19 @@ class _Core:
         channels of a per-area one)."""
         J = self.network.num_areas
         received = torch.ones_like(e) if mask is None else mask.to(e.dtype)
-        given = {"log_likelihood": log_likelihood, "poa": poa}
+        given = {"log_likelihood": log_likelihood, "poa": poa, "plain_innovation": plain}
         out = []
         for name in self.features:
             if name == "mask":
                 out.append(received.unsqueeze(-2))
                 continue
-            if name == "plain_innovation":
-                if plain is None:
-                    raise ValueError(
-                        "feature 'plain_innovation' needs the plain filter's innovation"
-                    )
-                out.append((plain.to(e.dtype) * received).unflatten(-1, (J, -1)))
-                continue
             value = given[name]
             if value is None:
                 raise ValueError(f"feature {name!r} needs the filter's {name} at every step")
             value = value.to(e.dtype)
+            if name in PER_AREA_FEATURES:  # each area its own channels
+                out.append((value * received).unflatten(-1, (J, -1)))
+                continue
             if name == "log_likelihood":
                 value = torch.asinh(-2.0 * value / received.sum(-1).clamp_min(1.0))
             out.append(value.unsqueeze(-1).unsqueeze(-2))
