@@ -70,7 +70,7 @@ def uncontrollable_direction(A: Tensor, B: Tensor, tol: float = 1e-9) -> Tensor 
     w = w / np.linalg.norm(w)
     # Fix the sign so that the direction is reproducible (largest entry positive).
     w = w * np.sign(w[np.argmax(np.abs(w))])
-    return torch.as_tensor(w, dtype=A.dtype)
+    return torch.as_tensor(w, dtype=A.dtype, device=A.device)
 
 
 class LQRMethod(Choice):
@@ -110,8 +110,8 @@ def lqr(
         raise ValueError(
             f"A must have shape [{n}, {n}] to match B [{n}, {m}]; got {tuple(A.shape)}"
         )
-    Q = torch.eye(n, dtype=A.dtype) if Q is None else Q
-    R = torch.eye(m, dtype=A.dtype) if R is None else R
+    Q = torch.eye(n, dtype=A.dtype, device=A.device) if Q is None else Q
+    R = torch.eye(m, dtype=A.dtype, device=A.device) if R is None else R
     method = LQRMethod(method)
     if method is LQRMethod.SHIFT and not shift > 0:
         raise ValueError(f"shift must be positive; got {shift!r}")
@@ -138,7 +138,7 @@ def lqr(
         Qr = L.T @ Qn @ L  # x ∈ S ⇒ xᵀQx = rᵀ(LᵀQL)r
         Pr = sla.solve_continuous_are(Ar, Br, Qr, _np(R))
         P = T.T @ Pr @ T
-    P = torch.as_tensor(0.5 * (P + P.T), dtype=A.dtype)
+    P = torch.as_tensor(0.5 * (P + P.T), dtype=A.dtype, device=A.device)
     K = torch.linalg.solve(R, B.T @ P)
     return K, P
 

@@ -100,10 +100,10 @@ def roc_curve(
         last[:-1] = s[1:] != s[:-1]
     tp, fp, thr = tp[last], fp[last], s[last]
     pos, neg = y.sum().double(), (~y).sum().double()
-    zero = torch.zeros(1, dtype=torch.float64)
+    zero = torch.zeros(1, dtype=torch.float64, device=s.device)
     tpr = torch.cat([zero, tp / pos.clamp_min(1)])
     fpr = torch.cat([zero, fp / neg.clamp_min(1)])
-    thr = torch.cat([torch.tensor([math.inf], dtype=torch.float64), thr])
+    thr = torch.cat([torch.tensor([math.inf], dtype=torch.float64, device=s.device), thr])
     return fpr, tpr, thr
 
 
@@ -136,12 +136,12 @@ def detection_delay(alarms: Tensor, attacked: Tensor) -> dict[str, float | int]:
     onset = y & ~prev
     # episode id of each attacked step: cumulative count of onsets
     episode = torch.cumsum(onset.long(), dim=1)
-    idx = torch.arange(T).expand_as(y)
+    idx = torch.arange(T, device=y.device).expand_as(y)
     # first alarmed step inside each episode: min over (attacked & alarmed) steps grouped by (run, episode)
     hit = y & a
     n_ep = int(episode.max()) + 1 if y.numel() else 1
-    key = torch.arange(y.shape[0]).unsqueeze(1) * n_ep + episode
-    big = torch.full((y.shape[0] * n_ep,), T, dtype=torch.long)
+    key = torch.arange(y.shape[0], device=y.device).unsqueeze(1) * n_ep + episode
+    big = torch.full((y.shape[0] * n_ep,), T, dtype=torch.long, device=y.device)
     first_hit = big.scatter_reduce(0, key[hit], idx[hit], reduce="amin")
     onset_at = big.scatter_reduce(0, key[onset], idx[onset], reduce="amin")
     has_ep = onset_at < T

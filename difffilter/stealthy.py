@@ -132,16 +132,17 @@ def craft_stealthy_attack(
     if not 1 <= onset <= T:
         raise ValueError(f"onset must lie in [1, {T}]; got {onset!r}")
     s = settings
-    attacked = (torch.arange(1, T + 1) >= onset).to(ys.dtype)
-    picked = torch.ones(dy, dtype=ys.dtype)
+    like = dict(dtype=ys.dtype, device=ys.device)
+    attacked = (torch.arange(1, T + 1, device=ys.device) >= onset).to(ys.dtype)
+    picked = torch.ones(dy, **like)
     if entries is not None:
-        picked = torch.zeros(dy, dtype=ys.dtype)
+        picked = torch.zeros(dy, **like)
         picked[list(entries)] = 1.0
     window = attacked.unsqueeze(-1) * picked  # [T, dy]
     sigma = model.measurement_cov(1).diagonal(dim1=-2, dim2=-1).sqrt().reshape(-1, dy)[0]
     # increments in units of σ: a_k = σ Σ_{j ≤ k} d_j, so a slow drift (what a filter
     # without a bias state follows without alarm) is a constant d, easy for Adam to find
-    raw = torch.zeros(T, dy, dtype=ys.dtype)
+    raw = torch.zeros(T, dy, **like)
     raw[onset - 1] = s.init
     raw.requires_grad_(True)
     optimiser = torch.optim.Adam([raw], lr=s.lr)
@@ -165,7 +166,7 @@ def craft_stealthy_attack(
 
     with torch.no_grad():
         bound, hard_bound = smoothed_rate(free) + s.slack, hard_rate(free) + s.slack
-    history, scale, best = [], None, (-1.0, torch.zeros(T, dy, dtype=ys.dtype))
+    history, scale, best = [], None, (-1.0, torch.zeros(T, dy, **like))
     for it in range(s.iterations):
         a = raw.cumsum(0) * sigma * window
         if resample is not None and it > 0:

@@ -237,13 +237,15 @@ class TrainedEstimator:
 
 def load_estimator(path, *, num_particles: int | None = None, resampler=None,
                    ess_threshold: float = 1.0, deception=None,
-                   dtype: torch.dtype = torch.float64) -> TrainedEstimator:  # fmt: skip
+                   dtype: torch.dtype = torch.float64, device=None) -> TrainedEstimator:  # fmt: skip
     """A trained estimator from an exported checkpoint or a Lightning checkpoint of a
     training run, ready to run (:class:`TrainedEstimator`).
 
     The card in the checkpoint says which filter the network runs in and how it reads the
     filter; ``num_particles`` (default the card's), ``resampler`` and ``ess_threshold`` set
-    a particle filter, ``deception`` the density a replacement-channel network assumes.
+    a particle filter, ``deception`` the density a replacement-channel network assumes,
+    ``device`` where the network's weights go (default the CPU; run it on a model and
+    measurements on that device, and give a particle filter a generator of that device).
     LFC checkpoints run inside the LFC closed loop (the secure controller and the online
     learners): evaluate them with ``difffilter-eval lfc``. Errors name the argument.
     """
@@ -256,6 +258,8 @@ def load_estimator(path, *, num_particles: int | None = None, resampler=None,
             "online learners); evaluate it with difffilter-eval lfc --ckpt"
         )
     net.eval()
+    if device is not None:
+        net.to(device)
     return TrainedEstimator(
         compose(net, card, num_particles=num_particles, resampler=resampler,
                 ess_threshold=ess_threshold, deception=deception), card, path,

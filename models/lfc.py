@@ -683,7 +683,7 @@ class LFCScenario(Scenario):
             attack = self.threat
         elif attack is OWN_ATTACK:
             attack = Signal(draws["attack"]) if "attack" in draws else self.attack_model()
-        plant = LFCPlant(dt=self.dt, dtype=draws["xi"].dtype)
+        plant = LFCPlant(dt=self.dt, dtype=draws["xi"].dtype).to(draws["xi"].device)
         attack_generator = None
         if "attack_seed" in draws:  # the same draws in every estimator's loop
             seed = int(draws["attack_seed"].reshape(-1)[0])

@@ -82,15 +82,20 @@ class Adversary:
         for p in params:  # the attacker differentiates through the network, not into it
             p.requires_grad_(False)
 
+        device = task.device  # drawn on the CPU, crafted where the weights are
+
         def generators():
-            return Generators(streams("adversary/particles"), streams("adversary/particles"),
-                              streams("adversary/resample"))  # fmt: skip
+            return Generators(streams("adversary/particles", device),
+                              streams("adversary/particles", device),
+                              streams("adversary/resample", device))  # fmt: skip
+
+        us = None if tr.us is None else tr.us.to(device)
 
         try:
             with torch.enable_grad():
                 crafted = craft_stealthy_attack(
-                    estimator, task.system, tr.y_true, tr.x, float(task.alarm_threshold),
-                    far=task.false_alarm_rate, us=tr.us, onset=onset,
+                    estimator, task.system, tr.y_true.to(device), tr.x.to(device),
+                    float(task.alarm_threshold), far=task.false_alarm_rate, us=us, onset=onset,
                     settings=StealthySettings(iterations=self.iterations), generator=generators,
                 )  # fmt: skip
         finally:

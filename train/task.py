@@ -45,6 +45,7 @@ import math
 
 import lightning.pytorch as pl
 import torch
+from lightning.fabric.utilities.apply_func import move_data_to_device
 
 from difffilter import resampling
 from difffilter.attack import Channel
@@ -467,9 +468,12 @@ class FilterEstimatorTask(pl.LightningModule):
         """``(output, truth)``: the estimator on ``batch`` of ``scenario`` in its loop (the
         closed loop's own :class:`~difffilter.loop.Trajectories`, or the batch itself), and
         the loop's final state (closed loop; ``None`` otherwise)."""
-        gens = Streams(seed)
-        prop = gens("particles/propagate")
-        generators = Generators(prop, prop, gens("particles/resample"))
+        gens, device = Streams(seed), self.device
+        prop = gens("particles/propagate", device)
+        generators = Generators(prop, prop, gens("particles/resample", device))
+        # every batch (training, validation, calibration, monitors, crafted attacks) is
+        # drawn on the CPU, the same draws on any device; the filter runs where the weights are
+        batch = move_data_to_device(batch, device)
         if scenario.closed_loop:
             loop = scenario.loop(estimator, batch, generator=generators, steps=steps, state=state)
             t = loop.trajectories
@@ -493,7 +497,7 @@ class FilterEstimatorTask(pl.LightningModule):
             bce = torch.nn.functional.binary_cross_entropy_with_logits(logits, flags)
             losses["bce"] = bce
         if hp.control_weight > 0:
-            gain = self.scenario.feedback_gain(err.dtype)
+            gain = self.scenario.feedback_gain(err.dtype).to(err.device)
             losses["control_mse"] = (err @ gain.T).square().mean()
         losses["loss"] = (
             hp.attack_weight * losses["attack_mse"]

@@ -22,6 +22,7 @@ attacked, ``P(l_k = 1 | ỹ_{1:k})``, a detection score.
 from __future__ import annotations
 
 import math
+from itertools import chain
 
 import torch
 from torch import Tensor
@@ -84,8 +85,10 @@ class ReplacementDeception:
         """``log p_ξ(ỹ)`` of the received entries ``[...]`` (the same for every particle).
 
         The last value is kept for the same ``y`` and ``mask`` tensors (unmodified): the
-        filter step and its detection hook ask for the same packet once each.
+        filter step and its detection hook ask for the same packet once each. The density
+        follows the measurements to their device (the first call on a GPU moves it there).
         """
+        self._follow(y.device)
         if y.is_inference() or (mask is not None and mask.is_inference()):
             self._last = None  # inference tensors have no version counter: no cache
             return (
@@ -101,6 +104,11 @@ class ReplacementDeception:
         lp = self.density.log_prob(y, mask=mask) if mask is not None else self.density.log_prob(y)
         self._last = (key, lp)
         return lp
+
+    def _follow(self, device: torch.device) -> None:
+        here = next(chain(self.density.buffers(), self.density.parameters()), None)
+        if here is not None and here.device != device:
+            self.density.to(device)
 
 
 def _clean_log_prob(model, y, particles, k, mask) -> Tensor:
