@@ -242,11 +242,32 @@ def kalman_proposal_moments(
     else:
         H = model.observation_jacobian(f, k + 1)
     residual = model.measurement_residual(y.unsqueeze(-2), model.observe(f, k + 1))
-    m = None if mask is None else mask.unsqueeze(-2)
-    residual, H, R, observed = masked_measurement(residual, H, model.measurement_cov(k + 1), m)
+    R = model.measurement_cov(k + 1)
+    keep = _shared_received(mask)
+    if keep is not None:  # every run receives the same entries: update on those alone
+        if keep.numel() == 0:
+            return f, Q, f, Q.expand(f.shape + f.shape[-1:])
+        residual, H = residual.index_select(-1, keep), H.index_select(-2, keep)
+        R, observed = R.index_select(-1, keep).index_select(-2, keep), keep.numel()
+    else:
+        m = None if mask is None else mask.unsqueeze(-2)
+        residual, H, R, observed = masked_measurement(residual, H, R, m)
     cross = Q @ H.transpose(-1, -2)
     mu, sigma, _, _ = gaussian_update(f, Q, residual, cross, H @ cross, H, R, observed)
     return f, Q, mu, sigma
+
+
+def _shared_received(mask: Tensor | None) -> Tensor | None:
+    """The indices of the received entries when every run of ``mask [..., dy]`` receives
+    the same ones (a Round-Robin schedule, no loss), else ``None``: the Kalman proposal's
+    update then runs on ``[..., d_received, d_received]`` matrices instead of masking
+    ``[..., dy, dy]`` ones (the same numbers: a masked entry's gain column is zero)."""
+    if mask is None:
+        return None
+    rows = mask.reshape(-1, mask.shape[-1])
+    if not bool((rows == rows[:1]).all()):
+        return None
+    return rows[0].nonzero().squeeze(-1)
 
 
 class ModelLikelihood:

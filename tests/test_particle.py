@@ -293,3 +293,42 @@ def test_one_row_resampling_is_that_of_the_batched_rows():
     for i in range(6):
         one = systematic_ancestors(cdf[i], offset[i], torch.full((1,), 20.0, dtype=torch.float64))
         assert torch.equal(one, counts[i])
+
+
+@pytest.mark.parametrize("nonlinear", [False, True], ids=["linear", "jacobian"])
+def test_kalman_proposal_on_entries_every_run_receives_equals_the_masked_update(nonlinear):
+    """When every run receives the same entries (a Round-Robin schedule) the proposal's
+    update runs on those entries alone; it equals the masked update that a batch with
+    different masks takes (the run whose mask differs only forces that path), and with
+    nothing received the proposal is the prior ``N(f, Q)``."""
+    from difffilter.models import registry
+    from difffilter.particle import kalman_proposal_moments
+
+    if nonlinear:
+        sc = registry.get("tracking_rrp_deception")
+        model, k = sc.system(), 3
+        tr = sc.simulate(3, {n: torch.Generator().manual_seed(i)
+                             for i, n in enumerate(("plant", "attack", "schedule"))})  # fmt: skip
+        y = tr.y_recv[:, k]
+        x = tr.x[:, k - 1].unsqueeze(-2) + 0.1 * torch.randn(
+            3, 7, 4, generator=torch.Generator().manual_seed(5), dtype=torch.float64
+        )
+    else:
+        model, k = constant_velocity(), 0
+        _, ys, _ = model.simulate(1, (3,), generator=torch.Generator().manual_seed(4))
+        y = ys[:, 0]
+        x = model.sample_initial((3, 7), torch.Generator().manual_seed(5))
+    dy = y.shape[-1]
+    shared = torch.zeros(dy, dtype=torch.bool)
+    shared[:2] = True
+    mixed = shared.expand(3, dy).clone()
+    mixed[2] = ~shared  # a third run receives the other entries
+    general = kalman_proposal_moments(model, x, None, y, k, mixed)
+    fast = kalman_proposal_moments(model, x[:2], None, y[:2], k, mixed[:2])
+    for a, b in zip(fast, general):  # Σ may come shared ([dx, dx]) or per run: broadcast
+        b = b[:2] if b.dim() > 2 else b
+        a, b = torch.broadcast_tensors(a, b)
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+    nothing = kalman_proposal_moments(model, x, None, y, k, torch.zeros(3, dy, dtype=torch.bool))
+    f, Q, mu, sigma = nothing
+    assert torch.equal(mu, f) and torch.equal(sigma, Q.expand_as(sigma))
