@@ -198,7 +198,7 @@ def evaluate(
 
     from .calibration import calibrate
     from .leaderboard import write_leaderboard
-    from .report import family_report, write_report
+    from .report import family_report, report_writers
     from .suite import apply_calibration, detectors, process_group, run_suite
 
     check_arguments(runs=runs, ckpt=ckpt, calibration_runs=calibration_runs)
@@ -207,18 +207,21 @@ def evaluate(
         families.setdefault(registry.get(name).family, []).append(name)
     if family_options and not any(family_report(f).prepare for f in families):
         raise ValueError(f"--option: no family of {', '.join(families)} takes options")
-    results: dict = {}
     cache: dict = {}  # shared by the suites of this call (e.g. common attack-free runs)
-    writer = process_group()[0] == 0  # with --devices N, one process writes
+    rank, world = process_group()
+    # With --devices N every process holds every result after each suite's gather; each
+    # family's reports are written by one of them, after the last suite (a report written
+    # between two suites would hold the others at the next gather).
+    writers = report_writers(families, world)
+    prepared, held, docs = {}, {}, {}
     for family, names in families.items():
         report = family_report(family)
-        prepared = None
-        if report.prepare and writer:
-            prepared = report.prepare(
+        mine = writers[family] == rank
+        if report.prepare and mine:
+            prepared[family] = report.prepare(
                 names, out=Path(out), seed=seed, checkpoint=ckpt, progress=progress,
                 options=dict(family_options or {}),
             )  # fmt: skip
-        done = {}
         for name in names:
             scenario = registry.get(name)
             result = run_suite(
@@ -231,13 +234,35 @@ def evaluate(
                     estimators=detectors(result), checkpoint=ckpt, progress=progress,
                     cache=cache,
                 ))  # fmt: skip
-            if writer:
-                done[name] = write_report(Path(out) / name, result, prepared=prepared)
-        if report.finish and writer:
-            report.finish(done, Path(out), prepared)
-        results.update(done)
-    if writer:
-        write_leaderboard(out, results)
+            if mine:
+                held.setdefault(family, {})[name] = result
+        if world == 1:  # one process: each family's reports as soon as its suites are done
+            docs.update(_write_family(family, held.pop(family), out, prepared.get(family)))
+    for family, results in held.items():
+        docs.update(_write_family(family, results, out, prepared.get(family)))
+    if world > 1:
+        import torch.distributed as dist
+
+        parts: list = [None] * world
+        dist.all_gather_object(parts, docs)
+        merged = {k: v for part in parts for k, v in part.items()}
+        docs = {name: merged[name] for names in families.values() for name in names}
+    if rank == 0:
+        write_leaderboard(out, docs)
+    return docs if rank == 0 else {}
+
+
+def _write_family(family: str, results: dict, out, prepared) -> dict:
+    """Each scenario's report of ``results`` (``{scenario: SuiteResult}``) and the family's
+    summary; returns ``{scenario: metrics.json content}``."""
+    from .report import family_report, write_report
+
+    done = {name: write_report(Path(out) / name, result, prepared=prepared)
+            for name, result in results.items()}  # fmt: skip
+    report = family_report(family)
+    if report.finish:
+        report.finish(done, Path(out), prepared)
+    return done
     return results
 
 
@@ -313,24 +338,41 @@ def check_checkpoint_fits(ckpt, names: Sequence[str]) -> None:
 
 
 def _launch(devices: int, argv: list[str]) -> int:
-    """Run ``difffilter-eval`` in ``devices`` CPU processes of one gloo group, launched by
-    Lightning Fabric (``ddp_spawn``); rank 0 writes. Returns rank 0's exit code."""
+    """Run ``difffilter-eval`` in ``devices`` spawned CPU processes of one gloo group (a
+    file rendezvous in a temporary folder); each process writes its share of the reports,
+    rank 0 the leaderboard. Returns the first failed process's exit code, else 0.
+
+    Plain ``torch.multiprocessing``: a spawned process imports only what the evaluation
+    needs (Lightning's launcher cost each process about 5 s of imports)."""
+    import tempfile
+
     import torch.multiprocessing as mp
-    from lightning.fabric import Fabric
 
+    with tempfile.TemporaryDirectory(prefix="difffilter-eval-") as folder:
+        store = Path(folder) / "rendezvous"
+        try:
+            mp.start_processes(_worker, args=(devices, f"file://{store}", argv),
+                               nprocs=devices, start_method="spawn")  # fmt: skip
+        except mp.ProcessExitedException as exc:  # the worker printed its error
+            return exc.exit_code or 1
+    return 0
+
+
+def _worker(rank: int, world: int, rendezvous: str, argv: list[str]) -> None:
+    import torch
+    import torch.distributed as dist
+
+    if "OMP_NUM_THREADS" not in os.environ:  # the cores shared out between the processes
+        threads = max(1, (os.cpu_count() or 1) // world)
+        torch.set_num_threads(threads)
+        os.environ["OMP_NUM_THREADS"] = str(threads)
+    dist.init_process_group("gloo", init_method=rendezvous, rank=rank, world_size=world)
     try:
-        return Fabric(accelerator="cpu", devices=devices, strategy="ddp_spawn").launch(
-            _worker, argv
-        )
-    except mp.ProcessExitedException as exc:  # the worker printed its error
-        return exc.exit_code or 1
-
-
-def _worker(fabric, argv: list[str]) -> int:
-    code = main([*argv, "--devices", "1"] + (["--no-progress"] if fabric.global_rank else []))
+        code = main([*argv, "--devices", "1"] + (["--no-progress"] if rank else []))
+    finally:
+        dist.destroy_process_group()
     if code:
         raise SystemExit(code)
-    return code
 
 
 def check_output_folder(out: Path) -> None:

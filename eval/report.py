@@ -36,6 +36,7 @@ __all__ = [
     "FamilyReport",
     "register_family",
     "family_report",
+    "report_writers",
     "metrics_schema",
     "write_report",
     "markdown_table",
@@ -104,6 +105,10 @@ class FamilyReport:
             estimator's outputs that the family reports beside the generic ones (tracking's
             position RMSE ``rmse_p``), for the studies that write no report (a training
             sweep's acceptance, :mod:`difffilter.eval.acceptance`).
+        report_cost: what writing one of its scenarios' reports costs, in plain reports
+            (the generic sections alone, about 2 s on a 2-core machine): how
+            ``difffilter-eval --devices N`` shares the families' reports between its
+            processes (:func:`report_writers`). Measured, not exact.
     """
 
     extra: Callable[..., dict[str, Any]] | None = None
@@ -111,6 +116,7 @@ class FamilyReport:
     prepare: Callable[..., Any] | None = None
     finish: Callable[..., None] | None = None
     estimator_metrics: Callable[..., dict[str, Any]] | None = None
+    report_cost: float = 1.0
 
 
 _FAMILIES: dict[str, FamilyReport] = {}
@@ -120,6 +126,24 @@ def register_family(family: str, report: FamilyReport) -> FamilyReport:
     """Register the report additions of ``family`` (one per family)."""
     _FAMILIES[family] = report
     return report
+
+
+def report_writers(families: dict[str, list[str]], world: int) -> dict[str, int]:
+    """``{family: rank}``: which of ``world`` processes writes each family's reports.
+
+    Longest first onto the least loaded process (a family's scenarios stay together: its
+    ``finish`` reads them all), each family weighing ``report_cost × its scenarios``;
+    rank 0 starts one report behind (it writes the leaderboard too) and ties go to the
+    higher rank. With ``world = 1`` every family is rank 0's.
+    """
+    load = [1.0] + [0.0] * (world - 1)
+    cost = {f: family_report(f).report_cost * len(names) for f, names in families.items()}
+    writers = {}
+    for family in sorted(cost, key=lambda f: -cost[f]):
+        rank = min(range(world), key=lambda r: (load[r], -r))
+        writers[family] = rank
+        load[rank] += cost[family]
+    return writers
 
 
 def family_report(family: str) -> FamilyReport:

@@ -152,11 +152,13 @@ def run_suite(
     result = SuiteResult(scenario, runs, seed, traj, context=ctx, calibration=calibration,
                          progress=progress)  # fmt: skip
     rank, world = process_group()
-    mine = specs[rank::world]  # with several processes, each runs its share of estimators
+    seconds = ctx.cache.setdefault(SECONDS_PER_RUN, {})  # measured by the earlier suites
+    mine = shares(specs, world, seconds, runs)[rank]  # each process runs its share
     with one_thread(scenario.single_thread), torch.no_grad():
         _run_estimators(result, mine, progress and rank == 0, built)
     if world > 1:
         _gather(result, ctx, specs, world)
+    seconds.update({name: wall / runs for name, wall in result.wall_s.items()})
     result.reference = next(
         (s.name for s in specs if s.reference and s.name in result.outputs), None
     )
@@ -239,6 +241,27 @@ def apply_calibration(result: SuiteResult, calibration) -> None:
         result.metrics[name].update(calibrated_metrics(
             out, result.traj_of(name), thresholds.get(name), attacked_input=not clean
         ))  # fmt: skip
+
+
+#: The ``SuiteContext.cache`` key of ``{estimator: wall seconds per run}`` measured by the
+#: suites of one evaluation so far (the same on every process: measured after the gather).
+SECONDS_PER_RUN = "suite/seconds_per_run"
+
+
+def shares(specs, world: int, seconds: dict[str, float], runs: int) -> list[list]:
+    """``specs`` divided between ``world`` processes: longest first onto the least loaded
+    (ties to the lower rank), each estimator's cost its ``seconds`` per run × ``runs``, and
+    one not timed yet the mean of those that are (1 when none is: round robin). The same
+    on every process, given the same ``seconds``; the outputs do not depend on it."""
+    known = [seconds[s.name] for s in specs if s.name in seconds]
+    default = sum(known) / len(known) if known else 1.0
+    cost = [seconds.get(s.name, default) * runs for s in specs]
+    load, out = [0.0] * world, [[] for _ in range(world)]
+    for i in sorted(range(len(specs)), key=lambda i: -cost[i]):  # stable: registry order
+        rank = min(range(world), key=lambda r: load[r])
+        out[rank].append(specs[i])
+        load[rank] += cost[i]
+    return [sorted(part, key=specs.index) for part in out]
 
 
 def process_group() -> tuple[int, int]:
