@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 import torch
 from conftest import constant_velocity
+from test_particle import EVERY_RESAMPLER
 
 import difffilter as df
 from difffilter import fdi, resampling
@@ -94,18 +95,7 @@ def test_the_online_step_at_one_run_on_cuda_equals_the_sequence_run(data):
     _close(torch.stack(means), ref.means)
 
 
-RESAMPLERS = [
-    resampling.Multinomial(),
-    resampling.Systematic(),
-    resampling.Stratified(),
-    resampling.Residual(),
-    resampling.Soft(0.5),
-    resampling.StopGradient(),
-    resampling.OptimalTransport(),
-]
-
-
-@pytest.mark.parametrize("resampler", RESAMPLERS, ids=lambda r: type(r).__name__)
+@pytest.mark.parametrize("resampler", EVERY_RESAMPLER, ids=lambda r: type(r).__name__)
 def test_every_resampler_runs_a_consistent_particle_filter_on_cuda(resampler):
     """On a CUDA generator: the log-likelihood's mean over runs within 4 standard errors
     of the Kalman filter's (the CPU test's criterion), reproducible from the generator,

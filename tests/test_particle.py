@@ -121,17 +121,21 @@ def test_defensive_kalman_proposal_correction_is_the_mixture_density(data):
         KalmanProposal(defensive=1.0)
 
 
+#: One of each resampler of the library (also run on CUDA by tests/test_cuda.py).
+EVERY_RESAMPLER = [
+    resampling.Multinomial(),
+    resampling.Systematic(),
+    resampling.Stratified(),
+    resampling.Residual(),
+    resampling.Soft(0.5),
+    resampling.StopGradient(),
+    resampling.OptimalTransport(),
+]
+
+
 @pytest.mark.parametrize(
     "resampler",
-    [
-        resampling.Multinomial(),
-        resampling.Systematic(),
-        resampling.Stratified(),
-        resampling.Residual(),
-        resampling.Soft(0.5),
-        resampling.StopGradient(),
-        resampling.OptimalTransport(),
-    ],
+    EVERY_RESAMPLER,
     ids=lambda r: type(r).__name__,
 )
 def test_every_resampler_gives_a_consistent_filter(data, resampler):
