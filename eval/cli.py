@@ -263,7 +263,6 @@ def _write_family(family: str, results: dict, out, prepared) -> dict:
     if report.finish:
         report.finish(done, Path(out), prepared)
     return done
-    return results
 
 
 def check_arguments(*, runs: int | None = None, ckpt=None, devices: int = 1,
