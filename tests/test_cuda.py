@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 import torch
 from conftest import constant_velocity
+from test_learned_estimator import _linear, _net
 from test_particle import EVERY_RESAMPLER
 
 import difffilter as df
@@ -28,7 +29,6 @@ from difffilter.models import registry
 from difffilter.models.attacks import Signal
 from difffilter.models.learned_estimator import NeuralCompensation
 from difffilter.models.lfc import LFCPlant, lfc_loop
-from difffilter.models.neural_estimator import NeuralFDIEstimator
 
 ROOT = Path(__file__).resolve().parents[1]
 CUDA = torch.device(os.environ.get("DIFFFILTER_TEST_DEVICE", "cuda"))
@@ -147,21 +147,14 @@ def test_chi_square_gated_filter_on_cuda_equals_the_cpu(data):
     assert torch.equal(gpu.alarms.cpu(), cpu.alarms) and bool(cpu.alarms[:, 12].all())
 
 
-def _network(dtype=torch.float64):
-    return NeuralFDIEstimator(num_areas=1, area_dim=2, a=2, b=2, hidden=5, init="symmetric",
-                              init_scale=0.5, resid_scale=3.0, seed=1, dtype=dtype)  # fmt: skip
-
-
 def test_the_neural_estimator_on_cuda_equals_the_cpu_values_and_gradients():
-    F = torch.tensor([[1.0, 0.1], [0.0, 0.95]], dtype=torch.float64)
-    eye = torch.eye(2, dtype=torch.float64)
-    model = df.LinearGaussianModel(F, eye, 1e-3 * eye, 1e-2 * eye, torch.zeros(2).double(), eye)
+    model = _linear()
     _, ys, _ = model.simulate(15, (4,), generator=torch.Generator().manual_seed(0))
     ys = ys.clone()
     ys[:, 5:, 0] += 0.8
     outs, grads = [], []
     for device in ("cpu", CUDA):
-        net = copy.deepcopy(_network()).to(device)
+        net = _net().to(device)
         est = NeuralCompensation(net, df.KalmanFilter())
         out = open_loop(est, copy.deepcopy(model).to(device), ys.to(device))
         (out.means.square().sum() + out.attack.square().sum()).backward()
