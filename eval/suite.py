@@ -153,7 +153,10 @@ def run_suite(
                          progress=progress)  # fmt: skip
     rank, world = process_group()
     seconds = ctx.cache.setdefault(SECONDS_PER_RUN, {})  # measured by the earlier suites
-    mine = shares(specs, world, seconds, runs)[rank]  # each process runs its share
+    ranks = ctx.cache.setdefault(RANK_OF, {})  # where the earlier suites ran each estimator
+    parts = shares(specs, world, seconds, runs, ranks)
+    ranks.update({spec.name: r for r, part in enumerate(parts) for spec in part})
+    mine = parts[rank]  # each process runs its share
     with one_thread(scenario.single_thread), torch.no_grad():
         _run_estimators(result, mine, progress and rank == 0, built)
     if world > 1:
@@ -246,22 +249,46 @@ def apply_calibration(result: SuiteResult, calibration) -> None:
 #: The ``SuiteContext.cache`` key of ``{estimator: wall seconds per run}`` measured by the
 #: suites of one evaluation so far (the same on every process: measured after the gather).
 SECONDS_PER_RUN = "suite/seconds_per_run"
+#: The ``SuiteContext.cache`` key of ``{estimator: rank}``: the process that ran each
+#: estimator in the latest suite that had it (the same on every process).
+RANK_OF = "suite/rank_of"
 
 
-def shares(specs, world: int, seconds: dict[str, float], runs: int) -> list[list]:
+def shares(
+    specs, world: int, seconds: dict[str, float], runs: int, previous: dict[str, int] | None = None
+) -> list[list]:
     """``specs`` divided between ``world`` processes: longest first onto the least loaded
     (ties to the lower rank), each estimator's cost its ``seconds`` per run × ``runs``, and
     one not timed yet the mean of those that are (1 when none is: round robin). The same
-    on every process, given the same ``seconds``; the outputs do not depend on it."""
+    on every process, given the same ``seconds``; the outputs do not depend on it.
+
+    ``previous`` (``{name: rank}``, the ranks of the earlier suites of the evaluation): an
+    estimator goes back to its rank where that keeps the rank's load within the largest
+    load of the plain assignment, because what a process caches for an estimator serves it
+    only there (the LFC loops without attack, shared by every scenario of the same draws:
+    computed on two processes, each paid for twice)."""
     known = [seconds[s.name] for s in specs if s.name in seconds]
     default = sum(known) / len(known) if known else 1.0
     cost = [seconds.get(s.name, default) * runs for s in specs]
+    order = sorted(range(len(specs)), key=lambda i: -cost[i])  # stable: registry order
+    out, bound = _longest_first(specs, cost, order, world, {}, 0.0)
+    if previous:
+        out, _ = _longest_first(specs, cost, order, world, previous, bound)
+    return [sorted(part, key=specs.index) for part in out]
+
+
+def _longest_first(specs, cost, order, world: int, previous: dict, bound: float):
+    """:func:`shares`' assignment and its largest load: in ``order``, each onto its
+    ``previous`` rank where that rank's load stays within ``bound``, else onto the least
+    loaded."""
     load, out = [0.0] * world, [[] for _ in range(world)]
-    for i in sorted(range(len(specs)), key=lambda i: -cost[i]):  # stable: registry order
-        rank = min(range(world), key=lambda r: load[r])
+    for i in order:
+        rank = previous.get(specs[i].name)
+        if rank is None or rank >= world or load[rank] + cost[i] > bound:
+            rank = min(range(world), key=lambda r: load[r])
         out[rank].append(specs[i])
         load[rank] += cost[i]
-    return [sorted(part, key=specs.index) for part in out]
+    return out, max(load)
 
 
 def process_group() -> tuple[int, int]:

@@ -75,3 +75,24 @@ def test_the_estimators_are_shared_by_their_measured_cost():
     parts = shares(specs, 2, {"c": 3.0, "f": 1.0}, 1)
     assert [[s.name for s in p] for p in parts] == [["c", "d", "f"], ["a", "b", "e"]]
     assert shares(specs, 1, seconds, 10) == [specs]
+
+
+def test_an_estimator_goes_back_to_its_rank_where_the_balance_allows():
+    """``shares(previous=...)``: an estimator returns to the rank of the earlier suites (what
+    that process cached for it serves it only there) unless that rank's load would pass
+    the largest load of the plain assignment; a rank the group no longer has is ignored."""
+    from types import SimpleNamespace
+
+    from difffilter.eval.suite import shares
+
+    specs = [SimpleNamespace(name=n) for n in "abcd"]
+    seconds = {"a": 3.0, "b": 3.0, "c": 2.0, "d": 2.0}
+
+    def names(parts):
+        return [[s.name for s in p] for p in parts]
+
+    assert names(shares(specs, 2, seconds, 1)) == [["a", "c"], ["b", "d"]]  # loads 5 and 5
+    assert names(shares(specs, 2, seconds, 1, {"c": 1, "d": 0})) == [["a", "d"], ["b", "c"]]
+    # b back on rank 1 would load it 6 > 5: it goes to the least loaded instead
+    assert names(shares(specs, 2, seconds, 1, {"a": 1, "b": 1})) == [["b", "c"], ["a", "d"]]
+    assert names(shares(specs, 2, seconds, 1, {"c": 5})) == [["a", "c"], ["b", "d"]]
