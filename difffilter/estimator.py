@@ -51,11 +51,16 @@ class Detection:
         threshold: the threshold the alarms came from: a number, or ``[..., T]`` when it
             changes with the step (windowed χ², Remark 6's running ``ζ_k``). ``None``
             when the decision is not a threshold of ``scores``.
+        statistic: what ``scores`` are, in words (e.g. ``"attack probability"``), where a
+            detector can score more than one statistic; ``None`` otherwise. A threshold
+            calibrated for one statistic is recorded with its name
+            (``difffilter-train calibrate``).
     """
 
     scores: Tensor
     alarms: Tensor
     threshold: Tensor | float | None = None
+    statistic: str | None = None
 
     def __post_init__(self):
         if self.scores.shape != self.alarms.shape:
@@ -128,7 +133,7 @@ class EstimatorOutput:
 
         det = self.detection
         if det is not None:
-            det = Detection(d(det.scores), d(det.alarms), d(det.threshold))
+            det = Detection(d(det.scores), d(det.alarms), d(det.threshold), det.statistic)
         values = {f.name: d(getattr(self, f.name)) for f in fields(self)}
         values.update(detection=det, extras={k: d(v) for k, v in self.extras.items()})
         return replace(self, **values)

@@ -61,24 +61,48 @@ def _uncalibrated(path, out):
     return out
 
 
-def test_a_calibrated_lfc_checkpoint_alarms_at_its_threshold_instead_of_three_sigma(tmp_path):
+def test_a_calibrated_lfc_checkpoint_alarms_at_its_threshold_on_its_head(tmp_path):
+    """The LFC checkpoint's network has a detection head: its entry scores the head's
+    probability, at the card's threshold where the card was calibrated for this entry and
+    this statistic, else at p = 0.5 (a card calibrated for the standardised estimate, as
+    before the statistic was recorded, does not apply to the probability)."""
     plain = _uncalibrated("checkpoints/lfc_nn_grad.ckpt", tmp_path / "plain.ckpt")
     out = tmp_path / "lfc.ckpt"
     cal = calibrate_checkpoint(plain, out, far=0.02, runs=2, progress=False)
     assert cal["estimator"] == "kf_nn_grad" and cal["scenario"] == "lfc_random_attacks"
+    assert cal["score"] == "attack probability" and 0.0 < cal["threshold"] < 1.0
+    net, card = load_estimator_checkpoint(out)
+    old_cal = {k: v for k, v in cal.items() if k != "score"}
+    old = tmp_path / "old.ckpt"
+    save_estimator_checkpoint(old, net, dataclasses.replace(
+        card, threshold=3.3, extra={**card.extra, "calibration": old_cal}))  # fmt: skip
     scenario = registry.get("lfc_step").with_steps(300)
     shipped = load_estimator_checkpoint("checkpoints/lfc_nn_grad.ckpt")[1]
     assert shipped.extra["calibration"]["estimator"] == "kf_nn_grad"  # the shipped one is
-    # the online fine-tuning of the same network has another score: it keeps 3σ
+    assert shipped.extra["calibration"]["score"] == "attack probability"
+    # the online fine-tuning of the same network is another entry: it keeps p = 0.5
     cases = (("checkpoints/lfc_nn_grad.ckpt", "kf_nn_grad", shipped.threshold),
-             (plain, "kf_nn_grad", 3.0), (out, "kf_nn_grad", cal["threshold"]),
-             (out, "kf_nn_grad_ekf", 3.0))  # fmt: skip
+             (plain, "kf_nn_grad", 0.5), (out, "kf_nn_grad", cal["threshold"]),
+             (old, "kf_nn_grad", 0.5), (out, "kf_nn_grad_ekf", 0.5))  # fmt: skip
     for path, name, threshold in cases:
         result = run_suite(scenario, runs=2, estimators=[name], checkpoint={name: str(path)},
                            progress=False)  # fmt: skip
-        det = result.outputs[name].detection
-        assert det.threshold == threshold
+        det, logit = result.outputs[name].detection, result.outputs[name].extras["attack_logit"]
+        assert det.threshold == threshold and det.statistic == "attack probability"
+        assert torch.allclose(det.scores, torch.sigmoid(logit))
         assert torch.equal(det.alarms, det.scores > threshold)
+
+
+def test_the_paper_networks_score_their_standardised_estimate():
+    """Without a detection head (the paper's networks) an LFC entry scores ``max_c |α̂_c| /
+    σ_c`` at 3σ."""
+    result = run_suite(registry.get("lfc_step").with_steps(300), runs=2,
+                       estimators=["kf_nn_gd"], progress=False)  # fmt: skip
+    out = result.outputs["kf_nn_gd"]
+    assert "attack_logit" not in out.extras
+    det = out.detection
+    assert det.statistic == "standardised attack estimate" and det.threshold == 3.0
+    assert torch.equal(det.alarms, det.scores > 3.0)
 
 
 def test_calibrate_refuses_what_it_cannot_do(tmp_path, capsys):

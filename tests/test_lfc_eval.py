@@ -73,6 +73,8 @@ def test_metrics_json_follows_the_schema_with_the_family_metrics(smoke):
         # the shared, pooled definition: attacked steps × all ten channels
         assert 0 < e["attack_rmse"] < e["attack_rmse_eq43"]
         assert 0 <= e["tpr"] <= 1 and 0 <= e["fpr"] <= 1
+        if name.startswith("kf_nn_grad") and e["detection_delay_steps"] is None:
+            continue  # this smoke test's untrained head may never pass p = 0.5
         assert e["detection_delay_s"] == pytest.approx(0.01 * e["detection_delay_steps"])
     assert est["uncompensated"]["attack_rmse"] is None
     assert est["uncompensated"]["attack_rmse_eq43_zero_estimate"] > 0

@@ -16,7 +16,9 @@ filter, its own closed loop where the scenario has one).
 
 It writes a new checkpoint (the weights unchanged, the card's ``threshold`` and
 ``target_false_alarm_rate`` set) and its card, with a ``calibration`` entry holding the
-target, both sets of runs and the measured rates; like ``export`` it replaces an existing
+target, both sets of runs, the measured rates and, where the estimator names it, the
+statistic the threshold is for (``score``: e.g. the LFC head's ``"attack probability"``,
+:attr:`difffilter.Detection.statistic`); like ``export`` it replaces an existing
 ``--out`` only with ``--force``::
 
     difffilter-train calibrate checkpoints/four_tank_nn_grad.ckpt --far 0.01 \\
@@ -49,9 +51,10 @@ def estimator_name(card) -> str:
     return f"{'pf' if card.filter == 'pf' else 'gaussian'}_nn_{card.trainer}"
 
 
-def _scores(scenario, name: str, path, runs: int, seed: int, progress: bool) -> torch.Tensor:
-    """The detection scores ``[runs, T]`` of estimator ``name`` (checkpoint ``path``) on
-    ``runs`` attack-free runs of ``scenario`` from master seed ``seed``."""
+def _scores(scenario, name: str, path, runs: int, seed: int, progress: bool):
+    """``(scores [runs, T], statistic)``: the detection scores of estimator ``name``
+    (checkpoint ``path``) on ``runs`` attack-free runs of ``scenario`` from master seed
+    ``seed``, and what they are (:attr:`~difffilter.Detection.statistic`, or ``None``)."""
     from difffilter.eval.suite import run_suite
 
     result = run_suite(scenario.with_threat(None), runs=runs, seed=seed, estimators=[name],
@@ -62,7 +65,7 @@ def _scores(scenario, name: str, path, runs: int, seed: int, progress: bool) -> 
     det = result.outputs[name].detection
     if det is None or det.scores is None:
         raise ValueError(f"{path}: {name} gives no detection scores to calibrate")
-    return det.scores
+    return det.scores, det.statistic
 
 
 def calibrate_checkpoint(
@@ -104,11 +107,12 @@ def calibrate_checkpoint(
     streams, start = Streams(seed), time.time()
     fit_seed = streams.seed_of("checkpoint-calibration")
     check_seed = streams.seed_of("checkpoint-calibration/check")
-    fitted = _scores(scenario, name, src, runs, fit_seed, progress)
+    fitted, statistic = _scores(scenario, name, src, runs, fit_seed, progress)
     threshold = threshold_for(fitted, far)
-    checked = _scores(scenario, name, src, runs, check_seed, progress)
+    checked, _ = _scores(scenario, name, src, runs, check_seed, progress)
     calibration = {
         "target": float(far), "estimator": name, "scenario": scenario.name, "runs": runs,
+        **({} if statistic is None else {"score": statistic}),
         "steps": int(fitted.shape[-1]), "seed": fit_seed, "check_seed": check_seed,
         "threshold": threshold, "previous_threshold": card.threshold,
         "measured_on_calibration": float((fitted > threshold).double().mean()),
@@ -153,7 +157,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"difffilter-train calibrate: error: {exc}", file=sys.stderr)
         return 2
     print(
-        f"wrote {args.out}: {cal['estimator']} alarms above {cal['threshold']:.6g} (was "
+        f"wrote {args.out}: {cal['estimator']} alarms above {cal['threshold']:.6g}"
+        f"{' (' + cal['score'] + ')' if 'score' in cal else ''} (was "
         f"{cal['previous_threshold']:.6g}); false alarms {100 * cal['measured_on_calibration']:.2f} % "
         f"on the calibration runs, {100 * cal['measured_on_check']:.2f} % on {cal['runs']} other "
         f"attack-free runs of {cal['scenario']} (target {100 * cal['target']:g} %)"

@@ -127,8 +127,10 @@ def _sections(result, doc: dict, out: Path, prepared=None) -> list[Section]:
         "compare orderings and ratios, not values.\n"
     )
     det = (
-        "NN estimators alarm when some |α̂_c| exceeds 3σ_c of the same estimator's "
-        "attack-free run [DEF]; `chi_square_kf` and `cusum_kf` are the Kalman observer of "
+        "The paper's NN estimators alarm when some |α̂_c| exceeds 3σ_c of the same "
+        "estimator's attack-free run [DEF]; `kf_nn_grad` and `kf_nn_grad_ekf` (a trained "
+        "network with a detection head) alarm on the head's attack probability, above 0.5 "
+        "or the threshold the checkpoint's card was calibrated to; `chi_square_kf` and `cusum_kf` are the Kalman observer of "
         "the uncompensated loop gated by its χ² or CUSUM test on the innovations (a 1 % "
         "false-alarm rate [DEF]; alarmed measurements are not used). Per-step rates are "
         "strict: estimates that settle after an attack ends, or leak onto other channels, "
