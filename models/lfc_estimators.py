@@ -36,7 +36,9 @@ of the logit)``), as the learned estimators of the other families do, and alarms
 standardised estimate at the same calibrated 1 % (docs/papers.md, §3). Either alarms
 instead above the threshold the checkpoint's card carries where ``difffilter-train
 calibrate`` chose it for this entry and this statistic (a card calibrated before the
-statistic was recorded was calibrated for the estimate).
+statistic was recorded was calibrated for the estimate). A checkpoint's estimator runs as
+its card says, its observer's ``restart`` from a χ²-gated copy included (the shipped
+``lfc_nn_grad`` card: 0.01).
 """
 
 from __future__ import annotations
@@ -130,6 +132,7 @@ def lfc_estimator(
     gating: bool = False,
     compensation: str = "full",
     features: tuple[str, ...] = (),
+    restart: float | None = None,
 ):
     """An LFC estimator: the Kalman observer (or the Luenberger one of gain ``luenberger``,
     a :class:`~difffilter.control.LuenbergerDesign`), alone or with
@@ -137,7 +140,9 @@ def lfc_estimator(
     (or the network's own) with the ``residual`` history of eq. (9) (raw residuals, as
     the paper's network reads them, unless ``standardize``); ``gating``: the network may
     also drop a measurement; ``compensation``: ``"full"`` or ``"detected"``; ``features``:
-    the per-step inputs beside eq. (9) (:class:`~difffilter.fdi.neural.NeuralCompensation`)."""
+    the per-step inputs beside eq. (9); ``restart``: the uncompensated copy's χ² false-alarm
+    rate whose quiet steps restart the compensated observer, or ``None``
+    (:class:`~difffilter.fdi.neural.NeuralCompensation`)."""
     observer = KalmanFilter() if luenberger is None else FixedGainFilter(ctx.luenberger(luenberger))
     if network is None:
         return observer
@@ -145,6 +150,7 @@ def lfc_estimator(
     return NeuralCompensation(
         network.to(ctx.dtype), observer, residual=residual, standardize=standardize,
         learning=learning, gating=gating, compensation=compensation, features=features,
+        restart=restart,
     )  # fmt: skip
 
 
@@ -258,7 +264,8 @@ def _trained(ctx, name, *, rule=None):
     net, card = _checkpoint_network(ctx, name)
     return lfc_estimator(_context(ctx), network=net, rule=rule, residual=Residual(card.residual),
                          standardize=card.standardize, gating=card.gating,
-                         compensation=card.compensation, features=card.features)  # fmt: skip
+                         compensation=card.compensation, features=card.features,
+                         restart=card.restart)  # fmt: skip
 
 
 # The evaluation's learners donate their ρ to the next step (each loop owns its carry).

@@ -292,6 +292,9 @@ class EstimatorCard:
             (:class:`~difffilter.fdi.neural.NeuralCompensation`'s ``gating``).
         compensation: what the filter subtracts, ``"full"`` (``â``) or ``"detected"``
             (each area's estimate times its probability of attack).
+        restart: the false-alarm rate of the χ² test of the uncompensated copy whose quiet
+            steps restart the compensated filter, or ``None``
+            (:class:`~difffilter.fdi.neural.NeuralCompensation`'s ``restart``).
     """
 
     scenario_family: str | None = None
@@ -310,6 +313,7 @@ class EstimatorCard:
     estimator: str | None = None
     gating: bool = False
     compensation: str = "full"
+    restart: float | None = None
     extra: dict = field(default_factory=dict, compare=False)
 
     def to_dict(self) -> dict:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -125,3 +126,32 @@ def test_old_cards_name_the_entry_that_evaluates_them():
     assert [estimator_name(c) for c in (grad, ekf, pf_ekf)] == [
         "pf_nn_grad", "gaussian_nn_ekf", "pf_nn_ekf"
     ]  # fmt: skip
+
+
+def test_calibrate_sets_the_restart_it_runs_and_chooses_the_threshold_with(tmp_path, capsys):
+    """``--restart α`` is in the card before the scores are taken: the threshold is the one
+    the restarted estimator meets, the card's check is recomputed for it, and ``off``
+    removes it again."""
+    from difffilter.models.lfc_estimators import build_estimator
+
+    plain = _uncalibrated("checkpoints/lfc_nn_grad.ckpt", tmp_path / "plain.ckpt")
+    net, card = load_estimator_checkpoint(plain)
+    save_estimator_checkpoint(plain, net, dataclasses.replace(card, restart=None))
+    on, off = tmp_path / "on.ckpt", tmp_path / "off.ckpt"
+    cal_on = calibrate_checkpoint(plain, on, far=0.05, runs=2, progress=False, restart=0.01)
+    cal_off = calibrate_checkpoint(on, off, far=0.05, runs=2, progress=False, restart=None)
+    assert load_estimator_checkpoint(on)[1].restart == 0.01 == cal_on["restart"]
+    assert load_estimator_checkpoint(off)[1].restart is None and "restart" not in cal_off
+    assert cal_on["threshold"] != cal_off["threshold"]  # other scores, another threshold
+    # the threshold is the one the restarted estimator's scores give on the calibration runs
+    scenario = registry.get("lfc_random_attacks")
+    fitted = _free_scores(scenario, "kf_nn_grad", on, 2, cal_on["seed"]).scores
+    above, allowed = int((fitted > cal_on["threshold"]).sum()), math.floor(0.05 * fitted.numel())
+    assert above <= allowed < int((fitted >= cal_on["threshold"]).sum())
+    # the entry runs the card's restart
+    ctx = SimpleNamespace(checkpoint_for=lambda name: on, cache={}, scenario=scenario,
+                          checkpoint_users=[])  # fmt: skip
+    assert build_estimator("kf_nn_grad", ctx).restart == 0.01
+    assert main(["checkpoints/lfc_nn_grad.ckpt", "--out", str(tmp_path / "x.ckpt"),
+                 "--restart", "sometimes"]) == 2  # fmt: skip
+    assert "--restart must be a rate in (0, 1) or off" in capsys.readouterr().err

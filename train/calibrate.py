@@ -23,6 +23,11 @@ statistic the threshold is for (``score``: e.g. the LFC head's ``"attack probabi
 
     difffilter-train calibrate checkpoints/four_tank_nn_grad.ckpt --far 0.01 \\
         --out checkpoints/four_tank_nn_grad.ckpt --force
+
+``--restart α`` (``off``: none) sets how the estimator runs before its threshold is chosen:
+the card's ``restart``, the false-alarm rate of the χ²-gated copy from which a Gaussian
+filter's compensation restarts (:class:`~difffilter.fdi.neural.NeuralCompensation`); the
+scores, and so the threshold, are those of the estimator so configured.
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ import argparse
 import dataclasses
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -40,6 +46,8 @@ __all__ = ["calibrate_checkpoint", "estimator_name", "main"]
 
 #: The master seed of the calibration runs (differs from every default study seed).
 CALIBRATION_SEED = 5
+#: ``restart`` left as the card has it.
+KEEP = "keep"
 
 
 def estimator_name(card) -> str:
@@ -68,6 +76,20 @@ def _scores(scenario, name: str, path, runs: int, seed: int, progress: bool):
     return det.scores, det.statistic
 
 
+def _new_check(src: Path, scored: Path, card) -> dict | None:
+    """The card's reproducibility check (``difffilter-train export``'s) of the estimator as it
+    now runs (``scored``: its restart changed), where ``src``'s card has one."""
+    from .export import check_metric
+
+    card_json = src.with_suffix(".json")
+    old = json.loads(card_json.read_text()).get("check") if card_json.is_file() else None
+    if old is None:
+        return None
+    return {**check_metric(scored, seed=old["seed"], runs=old["runs"]),
+            "note": f"recomputed by difffilter-train calibrate with restart {card.restart} "
+                    f"(before: {old['value']:.6g})"}  # fmt: skip
+
+
 def calibrate_checkpoint(
     src,
     out,
@@ -77,11 +99,13 @@ def calibrate_checkpoint(
     seed: int = CALIBRATION_SEED,
     force: bool = False,
     progress: bool = True,
+    restart: float | None | str = KEEP,
 ) -> dict:
     """Calibrate the checkpoint ``src`` to the false-alarm rate ``far`` and write it to
-    ``out`` (module docstring); ``runs`` per set (default the scenario's). Returns the
-    card's ``calibration`` entry. ``ValueError`` for a bad argument or a checkpoint that
-    cannot be calibrated, ``FileNotFoundError`` if ``src`` does not exist."""
+    ``out`` (module docstring); ``runs`` per set (default the scenario's); ``restart``: the
+    card's restart rate to calibrate with (``None``: none; default: the card's). Returns
+    the card's ``calibration`` entry. ``ValueError`` for a bad argument or a checkpoint
+    that cannot be calibrated, ``FileNotFoundError`` if ``src`` does not exist."""
     from difffilter.metrics import threshold_for
     from difffilter.models import registry
     from difffilter.models.neural_estimator import (
@@ -102,17 +126,31 @@ def calibrate_checkpoint(
     estimator, card = load_estimator_checkpoint(src, dtype=torch.float32)
     if card.scenario is None:
         raise ValueError(f"{src}: its card names no training scenario to calibrate on")
+    as_shipped = card
+    if restart != KEEP:
+        if restart is not None and (isinstance(restart, bool) or not 0 < float(restart) < 1):
+            raise ValueError(
+                f"--restart must be a false-alarm rate in (0, 1) or off; got {restart!r}"
+            )
+        card = dataclasses.replace(card, restart=None if restart is None else float(restart))
     scenario = registry.get(card.scenario)
     name, runs = estimator_name(card), runs or scenario.runs
     streams, start = Streams(seed), time.time()
     fit_seed = streams.seed_of("checkpoint-calibration")
     check_seed = streams.seed_of("checkpoint-calibration/check")
-    fitted, statistic = _scores(scenario, name, src, runs, fit_seed, progress)
-    threshold = threshold_for(fitted, far)
-    checked, _ = _scores(scenario, name, src, runs, check_seed, progress)
+    with tempfile.TemporaryDirectory() as tmp:
+        scored = src
+        if card.restart != as_shipped.restart:  # the scores of the estimator as configured
+            scored = Path(tmp) / src.name
+            save_estimator_checkpoint(scored, estimator, card)
+        fitted, statistic = _scores(scenario, name, scored, runs, fit_seed, progress)
+        threshold = threshold_for(fitted, far)
+        checked, _ = _scores(scenario, name, scored, runs, check_seed, progress)
+        check = _new_check(src, scored, card) if scored is not src else None
     calibration = {
         "target": float(far), "estimator": name, "scenario": scenario.name, "runs": runs,
         **({} if statistic is None else {"score": statistic}),
+        **({} if card.restart is None else {"restart": card.restart}),
         "steps": int(fitted.shape[-1]), "seed": fit_seed, "check_seed": check_seed,
         "threshold": threshold, "previous_threshold": card.threshold,
         "measured_on_calibration": float((fitted > threshold).double().mean()),
@@ -128,6 +166,8 @@ def calibrate_checkpoint(
     digest = save_estimator_checkpoint(out, estimator, new_card)
     document.update(name=document.get("name", out.stem), checkpoint=out.name, sha256=digest,
                     observer=new_card.to_dict(), calibration=calibration)  # fmt: skip
+    if check is not None:
+        document["check"] = check
     out.with_suffix(".json").write_text(json.dumps(document, indent=2) + "\n")
     load_estimator_checkpoint(out)  # the pair loads and matches its card
     return calibration
@@ -148,11 +188,22 @@ def main(argv: list[str] | None = None) -> int:
                    help=f"master seed of the calibration runs ({CALIBRATION_SEED})")  # fmt: skip
     p.add_argument("--force", action="store_true", help="replace an existing --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--restart", default=KEEP, metavar="RATE|off",
+                   help="the restart rate to run and calibrate with (default: the card's)")  # fmt: skip
     args = p.parse_args(argv)
+    restart = args.restart
     try:
+        if restart not in (KEEP, "off"):
+            try:
+                restart = float(restart)
+            except ValueError:
+                raise ValueError(
+                    f"--restart must be a rate in (0, 1) or off; got {restart!r}"
+                ) from None
         cal = calibrate_checkpoint(args.src, args.out, far=args.far, runs=args.runs,
                                    seed=args.seed, force=args.force,
-                                   progress=not args.no_progress)  # fmt: skip
+                                   progress=not args.no_progress,
+                                   restart=None if restart == "off" else restart)  # fmt: skip
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-train calibrate: error: {exc}", file=sys.stderr)
         return 2

@@ -278,6 +278,9 @@ class FilterEstimatorTask(pl.LightningModule):
             (gating and compensation both; sensor attacks, a detection head).
         compensation: ``"full"`` (the filter subtracts ``â``) or ``"detected"`` (each
             area's estimate times its probability of attack; a detection head).
+        restart: ``α``: an uncompensated copy of the Gaussian filter runs beside, and on
+            every step where its χ² test at false-alarm rate ``α`` is quiet the compensated
+            filter restarts from it (sensor attacks); ``None`` (default): never.
         features: the filter's statistics the network reads (``"mask"``,
             ``"log_likelihood"``, ``"poa"``: the PoA threshold is the scenario's;
             ``"plain_innovation"``: an uncompensated copy of a Gaussian filter's).
@@ -328,6 +331,7 @@ class FilterEstimatorTask(pl.LightningModule):
         standardize: bool = True,
         gating: bool = False,
         compensation: str = "full",
+        restart: float | None = None,
         features: list[str] | None = None,
         trainer: str = "grad",
         lr: float = 3e-3,
@@ -461,7 +465,7 @@ class FilterEstimatorTask(pl.LightningModule):
             self.estimator, inner, channel=self.channel, residual=Residual(hp.residual),
             standardize=hp.standardize, features=self.features, poa_eta=self.poa_eta,
             threshold=threshold, deception=self.deception, record_inputs=record,
-            gating=hp.gating, compensation=hp.compensation,
+            gating=hp.gating, compensation=hp.compensation, restart=hp.restart,
         )  # fmt: skip
 
     def run(self, scenario, batch: dict, estimator, seed: int, *, steps=None, state=None):
@@ -716,6 +720,7 @@ class FilterEstimatorTask(pl.LightningModule):
             target_false_alarm_rate=self.false_alarm_rate, dt=float(self.scenario.dt),
             num_particles=int(self.num_particles), poa_eta=self.poa_eta, estimator=registered,
             gating=bool(hp.gating), compensation=str(hp.compensation),
+            restart=None if hp.restart is None else float(hp.restart),
         )  # fmt: skip
 
     def check_exported(self, card: EstimatorCard, path) -> None:

@@ -79,6 +79,26 @@ filter corrects its state less, and a state error (the one an attack leaves behi
 them) decays slowly. With ``"detected"`` an attack-free step (``p ≈ 0``) updates with the
 measurement as the filter alone would. The reported ``attack`` is ``â_k`` either way.
 
+Restart (``restart=α``, sensor attacks, Gaussian filters): a copy of the filter that
+never reads the estimate runs beside, gated by the χ² test of its innovation at the
+false-alarm rate ``α`` (the ``chi_square_kf`` of the LFC evaluation: an alarmed
+measurement is not used), and on every step where that test is quiet the compensated
+filter takes the copy's posterior::
+
+    q_k = ν°_kᵀ (S°_k)⁻¹ ν°_k ≤ F⁻¹_{χ²_dy}(1 − α)     (the copy's test is quiet)
+    m°_k, P°_k = its update with ỹ_k where q_k, else its prediction
+    m_k, P_k ← m°_k, P°_k   where q_k                   (else the compensated update)
+
+A compensated filter carries whatever part of an attack its estimate missed, and a
+network that reads its residuals takes that state error for an attack, whose
+compensation in turn keeps the filter from correcting it: after an attack the alarms
+outlast it by seconds. The gated copy leaves the attack with the state its predictions
+kept (it used no alarmed measurement), so the compensated filter restarts from a state
+that has not absorbed the attack as soon as the copy's test is quiet again, and an
+attack-free step updates as the filter alone would. The switch is a hard choice;
+gradients flow through the branch taken. With ``"plain_innovation"`` as well, that
+feature is the gated copy's innovation.
+
 Detection: ``p_k = sigmoid(logit_k)`` (the largest over areas), alarm where ``p_k >
 threshold``; a network without a detection head (trained by the EKF over its weights,
 which fits the attack estimate alone) scores ``s_k = Σ_c (â_{k,c} / √S_{k,cc})²``. Every
@@ -102,6 +122,7 @@ from ..kalman import GaussianFilter
 from ..param_ekf import EKFRule, GradientRule, LearnerState, WeightTemplate
 from ..particle import ModelLikelihood, ParticleFilter, ParticleState
 from ..results import StepOutput
+from .detectors import _nis, chi_square_quantile
 from .modified_pf import AttackCompensatedLikelihood
 from .poa import probability_of_attack
 
@@ -211,7 +232,8 @@ class NeuralState(NamedTuple):
 class NeuralCarry(NamedTuple):
     """Carry of a :class:`NeuralCompensation` around a Gaussian filter: the filter's carry
     ``inner``, the network's :class:`NeuralState`, the model and, with the
-    ``"plain_innovation"`` feature, the carry of the uncompensated copy ``plain``."""
+    ``"plain_innovation"`` feature or ``restart``, the carry of the uncompensated copy
+    ``plain``."""
 
     inner: Any
     net: NeuralState
@@ -447,6 +469,10 @@ class NeuralCompensation(Estimator):
             docstring; sensor attacks, a network with a detection head).
         compensation: :class:`Compensation`: subtract ``â_k`` (``"full"``, the paper's) or
             each area's estimate times its probability of attack (``"detected"``).
+        restart: ``α`` in (0, 1): restart the compensated filter from a χ²-gated copy that
+            never reads the estimate, on every step where the copy's test at false-alarm
+            rate ``α`` is quiet (module docstring; sensor attacks, Gaussian filters, every
+            entry received); ``None`` (default): never.
 
     Step output: the filter's moments after compensation, ``attack`` ``â_k``, ``score``,
     ``alarm``, ``threshold`` and ``extras`` (``"attack_logit"`` with a head, the recorded
@@ -470,19 +496,24 @@ class NeuralCompensation(Estimator):
         record_inputs: bool = False,
         gating: bool = False,
         compensation: Compensation | str = Compensation.FULL,
+        restart: float | None = None,
     ):
         channel, residual, features = Channel(channel), Residual(residual), tuple(features)
         compensation = Compensation(compensation)
         _check_options(network, inner, channel, features, poa_eta, learning, deception)
         _check_step_options(network, channel, residual, gating, compensation)
+        _check_restart(restart, inner, channel)
         self.gating, self.compensation = bool(gating), compensation
+        self.restart = None if restart is None else float(restart)
+        self._quiet_below: dict[int, float] = {}  # χ² quantile by degrees of freedom
         self.network, self.inner, self.channel = network, inner, channel
         self.attack_channel = channel  # what its attack estimate â_k is on
         self.threshold = float(threshold)
         self.core = _Core(network, channel, residual, bool(standardize), features, poa_eta,
                           learning, record_inputs)  # fmt: skip
         self.particles = isinstance(inner, ParticleFilter)
-        self.plain = "plain_innovation" in features  # the uncompensated copy runs beside
+        # the uncompensated copy runs beside for its innovation or its χ² test
+        self.plain = "plain_innovation" in features or self.restart is not None
         if self.particles:
             self.pf = ParticleFilter(
                 inner.num_particles, resampler=inner.resampler, proposal=inner.proposal,
@@ -530,12 +561,19 @@ class NeuralCompensation(Estimator):
         pred = inner.predict(carry.inner, u)
         evidence = "log_likelihood" in core.features
         nu, S, ell = inner.innovation(carry.inner, pred, y, mask, evidence=evidence)
-        plain, plain_feature = carry.plain, None
+        plain, plain_feature, quiet = carry.plain, None, None
         if plain is not None:  # the copy that reads ỹ_k as it is (never the estimate)
             plain_pred = inner.predict(plain, u)
             plain_nu, plain_S, _ = inner.innovation(plain, plain_pred, y, mask, evidence=False)
-            plain_feature = plain_nu / _std(plain_S)
+            if "plain_innovation" in core.features:
+                plain_feature = plain_nu / _std(plain_S)
             plain, _ = inner.update(plain, plain_pred, y, mask)
+            if self.restart is not None:
+                if mask is not None:
+                    raise ValueError("restart tests every channel of the uncompensated copy: "
+                                     "it needs every entry received (mask=None)")  # fmt: skip
+                quiet = _nis(plain_nu, plain_S) <= self._quiet_threshold(plain_nu.shape[-1])
+                plain = _gated_copy(plain, plain_pred, quiet)
         net, attack, logit, scale, delta = core.step(carry.net, nu, S, mask, log_likelihood=ell,
                                                      plain=plain_feature)  # fmt: skip
         applied = applied_estimate(attack, logit, self.compensation)
@@ -547,9 +585,17 @@ class NeuralCompensation(Estimator):
             new, out = inner.update(carry.inner, pred, y - applied, mask)
             if self.gating:
                 new, out = _gated(new, out, pred, gate_of(logit))
+            if quiet is not None:
+                new, out = _restarted(new, out, plain, quiet)
         extras = {"network_inputs": delta[..., 0, :].detach()} if core.record_inputs else {}
         report = self._report(out, attack, logit, scale, nu, extras)
         return NeuralCarry(new, net, carry.model, plain), report
+
+    def _quiet_threshold(self, dof: int) -> float:
+        """``F⁻¹_{χ²_dof}(1 − α)``: the uncompensated copy's test is quiet at or below it."""
+        if dof not in self._quiet_below:
+            self._quiet_below[dof] = chi_square_quantile(dof, 1.0 - self.restart)
+        return self._quiet_below[dof]
 
     def _report(self, out: StepOutput, attack, logit, scale, innovation, extras) -> StepOutput:
         score, more = self.core.detect(attack, logit, scale, innovation)
@@ -562,6 +608,31 @@ class NeuralCompensation(Estimator):
 def _std(cov: Tensor) -> Tensor:
     """``√diag S [..., dy]`` of ``S [..., dy, dy]`` (floored at 1e-15: never a division by 0)."""
     return torch.diagonal(cov, dim1=-2, dim2=-1).clamp_min(1e-30).sqrt()
+
+
+def _gated_copy(updated, pred, quiet: Tensor):
+    """The χ²-gated copy: its update ``updated`` where ``quiet [...]``, its prediction
+    ``pred`` (no update: the measurement is not used) where the test alarms."""
+    mean = torch.where(quiet.unsqueeze(-1), updated.mean, pred.mean)
+    cov = torch.where(quiet[..., None, None], updated.cov, pred.cov)
+    state = updated._replace(mean=mean, cov=cov)
+    if hasattr(state, "gains"):
+        state = state._replace(gains=None)
+    return state
+
+
+def _restarted(new, out: StepOutput, plain, quiet: Tensor):
+    """The compensated posterior ``new`` where ``quiet [...]`` is false, the uncompensated
+    copy's ``plain`` where it is true (module docstring, restart), and the step's output
+    to match. A covariance both share (the shared gain schedule) stays shared."""
+    mean = torch.where(quiet.unsqueeze(-1), plain.mean, new.mean)
+    if new.cov is plain.cov:
+        return new._replace(mean=mean), out._replace(mean=mean)
+    cov = torch.where(quiet[..., None, None], plain.cov, new.cov)
+    state = new._replace(mean=mean, cov=cov)
+    if hasattr(state, "gains"):
+        state = state._replace(gains=None)  # one covariance per run from here on
+    return state, out._replace(mean=mean, cov=cov)
 
 
 def applied_estimate(attack: Tensor, logit: Tensor | None, compensation) -> Tensor:
@@ -618,6 +689,20 @@ def _check_step_options(network, channel, residual, gating, compensation) -> Non
                 f"{what}: it needs {which} and a network with a detection head (channel "
                 f"{channel.value}, detection_head {bool(network.detection_head)})"
             )
+
+
+def _check_restart(restart, inner, channel) -> None:
+    """``ValueError`` for a ``restart`` rate out of (0, 1) or one the filter cannot serve."""
+    if restart is None:
+        return
+    if isinstance(restart, bool) or not isinstance(restart, (int, float)) or not 0 < restart < 1:
+        raise ValueError(f"restart must be a false-alarm rate in (0, 1) or None; got {restart!r}")
+    if channel is not Channel.SENSOR or isinstance(inner, ParticleFilter):
+        raise ValueError(
+            "restart runs an uncompensated copy of a Gaussian filter against sensor attacks: "
+            f"inner must be a Gaussian filter and channel 'sensor' (got {type(inner).__name__}, "
+            f"channel {channel.value!r})"
+        )
 
 
 def _check_options(network, inner, channel, features, poa_eta, learning, deception) -> None:
