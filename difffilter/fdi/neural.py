@@ -232,8 +232,8 @@ class NeuralState(NamedTuple):
 class NeuralCarry(NamedTuple):
     """Carry of a :class:`NeuralCompensation` around a Gaussian filter: the filter's carry
     ``inner``, the network's :class:`NeuralState`, the model and, with the
-    ``"plain_innovation"`` feature or ``restart``, the carry of the uncompensated copy
-    ``plain``."""
+    ``"plain_innovation"`` feature or ``restart``, the carry of the copy that never reads
+    the estimate, ``plain`` (χ²-gated with ``restart``)."""
 
     inner: Any
     net: NeuralState
@@ -562,7 +562,7 @@ class NeuralCompensation(Estimator):
         evidence = "log_likelihood" in core.features
         nu, S, ell = inner.innovation(carry.inner, pred, y, mask, evidence=evidence)
         plain, plain_feature, quiet = carry.plain, None, None
-        if plain is not None:  # the copy that reads ỹ_k as it is (never the estimate)
+        if plain is not None:  # the copy that never reads the estimate
             plain_pred = inner.predict(plain, u)
             plain_nu, plain_S, _ = inner.innovation(plain, plain_pred, y, mask, evidence=False)
             if "plain_innovation" in core.features:
@@ -592,7 +592,7 @@ class NeuralCompensation(Estimator):
         return NeuralCarry(new, net, carry.model, plain), report
 
     def _quiet_threshold(self, dof: int) -> float:
-        """``F⁻¹_{χ²_dof}(1 − α)``: the uncompensated copy's test is quiet at or below it."""
+        """``F⁻¹_{χ²_dof}(1 − α)``: the gated copy's test is quiet at or below it."""
         if dof not in self._quiet_below:
             self._quiet_below[dof] = chi_square_quantile(dof, 1.0 - self.restart)
         return self._quiet_below[dof]
@@ -622,9 +622,9 @@ def _gated_copy(updated, pred, quiet: Tensor):
 
 
 def _restarted(new, out: StepOutput, plain, quiet: Tensor):
-    """The compensated posterior ``new`` where ``quiet [...]`` is false, the uncompensated
-    copy's ``plain`` where it is true (module docstring, restart), and the step's output
-    to match. A covariance both share (the shared gain schedule) stays shared."""
+    """The compensated posterior ``new`` where ``quiet [...]`` is false, the gated copy's
+    ``plain`` where it is true (module docstring, restart), and the step's output to match.
+    A covariance both share (the shared gain schedule) stays shared."""
     mean = torch.where(quiet.unsqueeze(-1), plain.mean, new.mean)
     if new.cov is plain.cov:
         return new._replace(mean=mean), out._replace(mean=mean)
