@@ -610,29 +610,29 @@ def _std(cov: Tensor) -> Tensor:
     return torch.diagonal(cov, dim1=-2, dim2=-1).clamp_min(1e-30).sqrt()
 
 
+def _chosen(base, quiet: Tensor, where_quiet, elsewhere):
+    """``base`` (a Gaussian filter's carry) with the mean and covariance of ``where_quiet``
+    where ``quiet [...]`` and of ``elsewhere`` otherwise. A covariance both share (the
+    shared gain schedule) stays shared; else each run gets its own (the schedule dropped)."""
+    mean = torch.where(quiet.unsqueeze(-1), where_quiet.mean, elsewhere.mean)
+    if where_quiet.cov is elsewhere.cov:
+        return base._replace(mean=mean)
+    cov = torch.where(quiet[..., None, None], where_quiet.cov, elsewhere.cov)
+    state = base._replace(mean=mean, cov=cov)
+    return state._replace(gains=None) if hasattr(state, "gains") else state
+
+
 def _gated_copy(updated, pred, quiet: Tensor):
     """The χ²-gated copy: its update ``updated`` where ``quiet [...]``, its prediction
     ``pred`` (no update: the measurement is not used) where the test alarms."""
-    mean = torch.where(quiet.unsqueeze(-1), updated.mean, pred.mean)
-    cov = torch.where(quiet[..., None, None], updated.cov, pred.cov)
-    state = updated._replace(mean=mean, cov=cov)
-    if hasattr(state, "gains"):
-        state = state._replace(gains=None)
-    return state
+    return _chosen(updated, quiet, updated, pred)
 
 
 def _restarted(new, out: StepOutput, plain, quiet: Tensor):
     """The compensated posterior ``new`` where ``quiet [...]`` is false, the gated copy's
-    ``plain`` where it is true (module docstring, restart), and the step's output to match.
-    A covariance both share (the shared gain schedule) stays shared."""
-    mean = torch.where(quiet.unsqueeze(-1), plain.mean, new.mean)
-    if new.cov is plain.cov:
-        return new._replace(mean=mean), out._replace(mean=mean)
-    cov = torch.where(quiet[..., None, None], plain.cov, new.cov)
-    state = new._replace(mean=mean, cov=cov)
-    if hasattr(state, "gains"):
-        state = state._replace(gains=None)  # one covariance per run from here on
-    return state, out._replace(mean=mean, cov=cov)
+    ``plain`` where it is true (module docstring, restart), and the step's output to match."""
+    state = _chosen(new, quiet, plain, new)
+    return state, out._replace(mean=state.mean, cov=state.cov)
 
 
 def applied_estimate(attack: Tensor, logit: Tensor | None, compensation) -> Tensor:
