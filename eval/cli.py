@@ -406,7 +406,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     if not args.scenario:
         parser.error("a scenario name is required (or --list)")
-    from .suite import process_group  # the suite (torch, torchmetrics) only for a study
+    from .suite import process_group  # the suite (torch) only for a study
 
     tune_cpu_allocator()
     try:

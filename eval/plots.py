@@ -1,7 +1,7 @@
 """The figures every scenario's report gets (matplotlib, Agg backend; no files written here).
 
-:func:`standard_figures` returns ``[(file name, Figure)]``; the report writer saves them
-as PNG and logs them to TensorBoard with ``add_figure``.
+:func:`standard_figures` returns ``[(file name, Figure)]``; the report writer draws each
+once to PNG (:func:`png_bytes`), saves it and logs the same image to TensorBoard.
 
 Every estimator keeps one colour across the figures of a report
 (:func:`estimator_colours`): estimators of one family (the first word of their name:
@@ -15,6 +15,7 @@ when the study is not calibrated).
 from __future__ import annotations
 
 import colorsys
+import io
 
 import matplotlib
 
@@ -25,7 +26,7 @@ from matplotlib import colors as mcolors  # noqa: E402
 
 from .scoring import comparable_attack, rmse_over_time, roc  # noqa: E402
 
-__all__ = ["standard_figures", "estimator_colours"]
+__all__ = ["standard_figures", "estimator_colours", "png_bytes"]
 
 # one hue per family, in this order (matplotlib's tab10, then tab20's light half)
 _HUES = [mcolors.to_rgb(c) for c in plt.get_cmap("tab10").colors] + [
@@ -83,6 +84,13 @@ def _attacked_channel(attack: torch.Tensor) -> int:
     """The channel of run 0 with the largest injected attack (channel 0 if none)."""
     size = attack[0].abs().amax(dim=0)
     return int(size.argmax()) if attack.shape[-1] > 0 else 0
+
+
+def png_bytes(fig: plt.Figure, dpi: int = 110) -> bytes:
+    """``fig`` as PNG (cropped to its artists): what the report saves and TensorBoard shows."""
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=dpi, bbox_inches="tight")
+    return buffer.getvalue()
 
 
 def standard_figures(result) -> list[tuple[str, plt.Figure]]:

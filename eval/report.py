@@ -204,7 +204,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
 
     Returns the metrics.json content.
     """
-    from .plots import standard_figures
+    from .plots import png_bytes, standard_figures
     from .tensorboard import log_suite
 
     out = Path(out)
@@ -237,10 +237,11 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     sections.append(Section("Plots", "", [name for name, _ in figures]))
     if family.sections:
         sections += family.sections(result, doc, out, prepared)
-    for name, fig in figures:
-        fig.savefig(out / name, dpi=110, bbox_inches="tight")
+    images = [(name, png_bytes(fig)) for name, fig in figures]  # each drawn once:
+    for name, png in images:  # the file and TensorBoard's image are the same PNG
+        (out / name).write_bytes(png)
     (out / "report.md").write_text(_markdown(doc, sc, sections))
-    log_suite(out / "tb", result, doc, figures)
+    log_suite(out / "tb", result, doc, images)
     import matplotlib.pyplot as plt
 
     for _, fig in figures:

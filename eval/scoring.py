@@ -7,7 +7,8 @@ for one estimator's :class:`~difffilter.EstimatorOutput` on a batch of
 :class:`~difffilter.models.scenario.Trajectories`.
 
 Pooling: RMSEs pool every run, step and component (one mean of squares, then the root);
-detection counts and rates pool every run and step. ROC curves come from torchmetrics.
+detection counts and rates pool every run and step. ROC curves are the library's
+:func:`difffilter.metrics.roc_curve` (float64, ties grouped; NaN scores rank lowest).
 """
 
 from __future__ import annotations
@@ -18,7 +19,6 @@ from typing import Any
 
 import torch
 from torch import Tensor
-from torchmetrics.functional.classification import binary_auroc, binary_roc
 
 from difffilter import metrics as dm
 from difffilter.attack import Channel, same_side
@@ -119,28 +119,20 @@ def _rmse(a: Tensor, b: Tensor) -> float:
     return float(dm.rmse(a.double(), b.double()))
 
 
-def _ranked(scores: Tensor) -> Tensor:
-    """Scores mapped to ``[0, 1]`` by rank, ties kept, NaN lowest.
-
-    torchmetrics reads scores outside ``[0, 1]`` as logits and applies a sigmoid, which
-    saturates (NIS values of 1e3 would tie at 1.0); the ROC depends only on the order.
-    """
-    s = torch.nan_to_num(scores.double().flatten(), nan=-math.inf)
-    _, inverse = torch.unique(s, return_inverse=True)
-    return inverse.double() / max(int(inverse.max()), 1)
+def _nan_lowest(scores: Tensor) -> Tensor:
+    """``scores`` in float64 with NaN (no score) below every score."""
+    return torch.nan_to_num(scores.double(), nan=-math.inf)
 
 
 def auc(scores: Tensor, flags: Tensor) -> float | None:
     """ROC AUC of ``scores [B, T]`` against ``flags [B, T]``; ``None`` if one class is absent."""
-    y = flags.flatten().long()
-    if int(y.sum()) in (0, y.numel()):
-        return None
-    return float(binary_auroc(_ranked(scores), y, validate_args=False))
+    area = dm.roc_auc(_nan_lowest(scores), flags.bool())
+    return None if math.isnan(area) else area
 
 
 def roc(scores: Tensor, flags: Tensor) -> tuple[Tensor, Tensor]:
     """``(fpr [M], tpr [M])`` of the ROC curve of ``scores [B, T]`` against ``flags [B, T]``."""
-    fpr, tpr, _ = binary_roc(_ranked(scores), flags.flatten().long(), validate_args=False)
+    fpr, tpr, _ = dm.roc_curve(_nan_lowest(scores), flags.bool())
     return fpr, tpr
 
 

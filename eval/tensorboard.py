@@ -3,13 +3,14 @@
 ``<out>/<scenario>/tb`` gets, per estimator, the state RMSE at every step (a curve over
 ``k``, not a single point), when it estimates the attacked channel the RMSE of its attack
 estimate at every step, and, when it detects, its alarm rate per step; every report
-figure with ``add_figure``; and one hparams row per estimator (scenario, estimator, runs,
+figure (the PNG the report saved); and one hparams row per estimator (scenario, estimator, runs,
 seed → the headline metrics), so ``tensorboard --logdir <out>`` compares estimators and
 scenarios side by side in its HPARAMS tab.
 """
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 from .scoring import HEADLINE, comparable_attack, rmse_over_time
@@ -17,8 +18,9 @@ from .scoring import HEADLINE, comparable_attack, rmse_over_time
 __all__ = ["log_suite"]
 
 
-def log_suite(logdir: Path, result, doc: dict, figures) -> None:
-    """Write the events of one suite run under ``logdir``."""
+def log_suite(logdir: Path, result, doc: dict, images) -> None:
+    """Write the events of one suite run under ``logdir``; ``images`` ``[(file name, PNG
+    bytes)]`` are the report's figures as saved."""
     from torch.utils.tensorboard import SummaryWriter
 
     with SummaryWriter(str(logdir)) as w:
@@ -35,8 +37,8 @@ def log_suite(logdir: Path, result, doc: dict, figures) -> None:
                     out.attack, traj.attack
                 ).tolist()
         _write_curves(w, curves)
-        for fname, fig in figures:
-            w.add_figure(Path(fname).stem, fig, close=False)
+        for fname, png in images:
+            _write_image(w, Path(fname).stem, png)
         for name, entry in doc["estimators"].items():
             metrics = {f"hparam/{m}": entry[m] for m in HEADLINE if entry.get(m) is not None}
             hparams = {
@@ -46,6 +48,16 @@ def log_suite(logdir: Path, result, doc: dict, figures) -> None:
                 "seed": doc["seed"],
             }
             w.add_hparams(hparams, metrics, run_name=f"hparams/{name}")
+
+
+def _write_image(writer, tag: str, png: bytes) -> None:
+    """One image event holding ``png`` as encoded (what ``add_figure`` would write after
+    drawing the figure again and encoding its pixels again)."""
+    from tensorboard.compat.proto.summary_pb2 import Summary
+
+    width, height = struct.unpack(">II", png[16:24])  # the PNG header's IHDR chunk
+    image = Summary.Image(height=height, width=width, colorspace=4, encoded_image_string=png)
+    writer._get_file_writer().add_summary(Summary(value=[Summary.Value(tag=tag, image=image)]))
 
 
 def _write_curves(writer, curves: dict[str, list[float]]) -> None:

@@ -4,6 +4,7 @@ TensorBoard events, the per-channel validation and the summary."""
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 
 import jsonschema
@@ -86,6 +87,7 @@ def test_metrics_json_follows_the_schema_with_the_family_metrics(smoke):
 
 
 def test_report_plots_tensorboard_and_summary(smoke):
+    import PIL.Image
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     out, folder, _ = smoke
@@ -94,9 +96,14 @@ def test_report_plots_tensorboard_and_summary(smoke):
     assert "Per-channel validation" in report and "Hyperparameters chosen" in report
     for png in ("states.png", "rmse_over_time.png", "roc.png", "attack_estimates_run0.png"):
         assert (folder / png).read_bytes()[:4] == b"\x89PNG"
-    acc = EventAccumulator(str(folder / "tb"), size_guidance={"scalars": 0})
+    acc = EventAccumulator(str(folder / "tb"), size_guidance={"scalars": 0, "images": 0})
     acc.Reload()
     assert "state_rmse_per_step/kf_nn_grad" in acc.Tags()["scalars"]
+    for tag in ("rmse_over_time", "roc", "attack_estimates_run0"):  # the saved PNG, as saved
+        (image,) = acc.Images(tag)
+        saved = (folder / f"{tag}.png").read_bytes()
+        assert image.encoded_image_string == saved
+        assert (image.width, image.height) == PIL.Image.open(io.BytesIO(saved)).size
     assert len(acc.Scalars("state_rmse_per_step/kf_nn_grad")) == 300  # a curve, not a point
     assert len(acc.Scalars("attack_rmse_per_step/kf_nn_grad")) == 300
     summary = (out / "lfc_summary.md").read_text()
