@@ -33,6 +33,13 @@ from draws made beforehand (:class:`ReplayedNoise`), so every estimator's loop c
 the same random numbers. Without an estimator it is the simulation of the plant (the
 open loop's data); a loop may also be resumed from its :class:`LoopState` (truncated
 backpropagation through time trains the learned estimator in chunks of steps).
+
+A loop may keep :class:`LoopFork` s (``forks=``): its state after step ``k`` (tensors and
+generators copied) and what it recorded up to there, from which other loops continue
+(``fork=``). A loop without attack forked at the step before an attack's onset is the
+attacked loop's first ``k`` steps, exactly: the evaluation runs every attack-free loop
+once and each attacked loop only from its onset on (the attack must read nothing and
+inject nothing up to ``k``: a :class:`~difffilter.attack.TabulatedAttack`, checked).
 """
 
 from __future__ import annotations
@@ -44,7 +51,7 @@ import torch
 from torch import Tensor
 
 from ._checks import NonFinite, check_model, check_sequence_inputs
-from .attack import Attack, Channel, inject
+from .attack import Attack, Channel, TabulatedAttack, inject
 from .estimator import Estimator, EstimatorOutput, Generators, stack_steps
 
 __all__ = [
@@ -53,6 +60,7 @@ __all__ = [
     "Trajectories",
     "LoopResult",
     "LoopState",
+    "LoopFork",
     "DrawnNoise",
     "ReplayedNoise",
     "Controller",
@@ -257,16 +265,51 @@ class LoopState(NamedTuple):
 
     def detach(self) -> LoopState:
         """The same state cut from the autograd graph (truncated backpropagation)."""
+        return LoopState(self.k, *(_map_tensors(v, Tensor.detach) for v in self[1:]))
 
-        def cut(value):
-            if isinstance(value, Tensor):
-                return value.detach()
-            if isinstance(value, tuple) and not isinstance(value, torch.Size):
-                items = [cut(v) for v in value]
-                return type(value)(*items) if hasattr(value, "_fields") else type(value)(items)
-            return value
+    def copy(self) -> LoopState:
+        """The same state in new tensors and generators (a loop that updates its carry in
+        place, or draws from its generators, can resume from it and leave it as it was).
+        A generator held in several places stays one generator in the copy."""
+        copies: dict[int, torch.Generator] = {}
 
-        return LoopState(self.k, *(cut(v) for v in self[1:]))
+        def copy_generator(g: torch.Generator) -> torch.Generator:
+            if id(g) not in copies:
+                copies[id(g)] = torch.Generator(device=g.device).set_state(g.get_state())
+            return copies[id(g)]
+
+        return LoopState(self.k, *(_map_tensors(v, Tensor.clone, copy_generator)
+                                   for v in self[1:]))  # fmt: skip
+
+
+def _map_tensors(value, on_tensor, on_generator=None):
+    """``value`` (tensors in nested tuples, named tuples, lists and dicts) with ``on_tensor``
+    applied to every tensor (and ``on_generator`` to every ``torch.Generator``, if given);
+    anything else is kept as it is."""
+    if isinstance(value, Tensor):
+        return on_tensor(value)
+    if on_generator is not None and isinstance(value, torch.Generator):
+        return on_generator(value)
+    if isinstance(value, tuple) and not isinstance(value, torch.Size):
+        items = [_map_tensors(v, on_tensor, on_generator) for v in value]
+        return type(value)(*items) if hasattr(value, "_fields") else type(value)(items)
+    if isinstance(value, list):
+        return [_map_tensors(v, on_tensor, on_generator) for v in value]
+    if isinstance(value, dict):
+        return {k: _map_tensors(v, on_tensor, on_generator) for k, v in value.items()}
+    return value
+
+
+class LoopFork(NamedTuple):
+    """A closed loop stopped after ``state.k`` steps, to be continued by other loops
+    (:func:`closed_loop`'s ``fork``): its :class:`LoopState` (copied: the loop that kept
+    the fork went on) and what it recorded at steps ``1 … k`` (``records``: the lists
+    :func:`closed_loop` stacks into :class:`Trajectories`; ``outputs``: the estimator's
+    step outputs)."""
+
+    state: LoopState
+    records: dict[str, list]
+    outputs: list
 
 
 class LoopResult(NamedTuple):
@@ -295,6 +338,8 @@ def closed_loop(
     state: LoopState | None = None,
     horizon: int | None = None,
     progress: Callable[[int], None] | None = None,
+    forks: dict[int, LoopFork | None] | None = None,
+    fork: LoopFork | None = None,
 ) -> LoopResult:
     """Run ``steps`` steps of plant → attack → channel → estimator → controller.
 
@@ -316,6 +361,11 @@ def closed_loop(
         horizon: the whole loop's length ``T`` when it runs in chunks (what the attacker
             tabulates for at the start; default ``steps``).
         progress: called with 1 after every step (e.g. a progress bar's ``update``).
+        forks: ``{k: None}``: after step ``k`` the loop stores its :class:`LoopFork` there.
+        fork: continue a :class:`LoopFork` (of a loop without attack, on the same noise):
+            the result covers steps ``1 … fork.state.k + L``, the fork's steps as this
+            loop's ``attack`` would have left them (a tabulated attack that flags none of
+            them; ``ValueError`` otherwise). ``state`` must then be ``None``.
 
     Returns a :class:`LoopResult`: the trajectories of these ``L`` steps
     (``us`` = the inputs the estimator knew, ``attack``/``flags``/``info["attack_values"]``
@@ -325,14 +375,23 @@ def closed_loop(
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"steps must be an integer >= 1; got {steps!r}")
     model = plant if model is None else model
-    if state is None:
-        state = _start(plant, steps, horizon, x0, estimator, model, controller, attack,
-                       attack_generator, generator)  # fmt: skip
+    if (forks or fork) and not isinstance(noise, ReplayedNoise):
+        raise ValueError("forks= and fork= need ReplayedNoise: drawn noise's generator is "
+                         "not part of the loop's state, so a fork could not replay it")  # fmt: skip
     channel = None if attack is None else Channel(attack.channel)
     conceals = channel is Channel.ACTUATOR and bool(getattr(attack, "conceals", False))
-    keys = ("x", "y", "recv", "u", "attack", "value", "flag", "concealment")
-    rec: dict[str, list] = {key: [] for key in keys}
-    outs = []
+    if fork is not None:
+        if state is not None:
+            raise ValueError("give a loop either state= or fork= to resume from, not both")
+        state, rec, outs = _resume(fork, plant, attack, attack_generator, channel,
+                                   horizon or fork.state.k + steps)  # fmt: skip
+    else:
+        if state is None:
+            state = _start(plant, steps, horizon, x0, estimator, model, controller, attack,
+                           attack_generator, generator)  # fmt: skip
+        keys = ("x", "y", "recv", "u", "attack", "value", "flag", "concealment")
+        rec, outs = {key: [] for key in keys}, []
+    first = state.k - len(rec["x"])  # the step before the first one recorded
     k, x, u, a_state, carry, view = state
     for _ in range(steps):
         k += 1
@@ -361,7 +420,10 @@ def closed_loop(
             u = controller(k, received, view)
         if progress is not None:
             progress(1)
-    traj = _trajectories(rec, mask, state.k, k, channel)
+        if forks is not None and k in forks:
+            kept = LoopState(k, x, u, a_state, carry, view).copy()
+            forks[k] = LoopFork(kept, {key: list(v) for key, v in rec.items()}, list(outs))
+    traj = _trajectories(rec, mask, first, k, channel)
     batch = x.shape[:-1]
     output = stack_steps(outs, batch, attack_channel=estimator.attack_channel) if outs else None
     return LoopResult(traj, output, LoopState(k, x, u, a_state, carry, view))
@@ -384,6 +446,35 @@ def _start(plant, steps, horizon, x0, estimator, model, controller, attack, atta
     if estimator is not None:
         carry = estimator._init(model, batch, Generators.of(generator))
     return LoopState(0, x0, u, a_state, carry, None)
+
+
+def _resume(fork: LoopFork, plant, attack, attack_generator, channel, horizon):
+    """``(state, records, outputs)`` to continue ``fork`` with ``attack``: its first
+    ``fork.state.k`` steps recorded as the attack would have made them."""
+    if fork.records["attack"] and fork.records["attack"][0] is not None:
+        raise ValueError("fork: a loop resumes only the fork of a loop without attack")
+    state = fork.state.copy()
+    records = {key: list(v) for key, v in fork.records.items()}
+    if attack is None:
+        return state, records, list(fork.outputs)
+    if not isinstance(attack, TabulatedAttack) or getattr(attack, "conceals", False):
+        raise ValueError(
+            "fork: the attack must read nothing (a TabulatedAttack without concealment) to "
+            f"continue a loop without attack; got {type(attack).__name__}"
+        )
+    x = state.x
+    dim = plant.dim_u if channel is Channel.ACTUATOR else plant.dim_y
+    a_state = attack.init(x.shape[:-1], horizon, dim, attack_generator, dtype=x.dtype,
+                          device=x.device)  # fmt: skip
+    for j in range(1, state.k + 1):
+        a_state, value, flag = attack.step(a_state, j)
+        if bool(flag.any()):
+            raise ValueError(f"fork: the attack acts at step {j}, before the fork's step "
+                             f"{state.k}: those steps are not the loop's without attack")  # fmt: skip
+        signal = records["u"][j - 1] if channel is Channel.ACTUATOR else records["y"][j - 1]
+        _, records["attack"][j - 1] = inject(channel, signal, value, flag)
+        records["value"][j - 1], records["flag"][j - 1] = value, flag
+    return state._replace(attack=a_state), records, list(fork.outputs)
 
 
 def _trajectories(rec, mask, k0, k1, channel) -> Trajectories:

@@ -492,6 +492,8 @@ def lfc_loop(
     progress=None,
     watermark=None,
     attack_generator: torch.Generator | None = None,
+    forks: dict | None = None,
+    fork=None,
 ) -> LoopResult:
     """One LFC closed loop (eq. 42 with the secure or traditional controller) around
     ``estimator`` on the observers' model, replaying the draws ``xi, theta [B, T, 10]``
@@ -499,18 +501,22 @@ def lfc_loop(
     ``Z_k = X_k + α_k + θ_k``. ``steps``/``state``: run a chunk of the loop and resume it;
     ``progress``: called after every step; ``watermark``: a :class:`Watermarked` wrapper
     factory ``controller → controller`` (``None``: none); ``attack_generator``: the
-    attack's own draws (a random walk's steps, the runs a ``share`` attacks)."""
+    attack's own draws (a random walk's steps, the runs a ``share`` attacks); ``forks``,
+    ``fork``: keep :class:`~difffilter.loop.LoopFork` s, continue one (to the end of the
+    draws unless ``steps``)."""
     B, T, _ = xi.shape
     K1 = lqr_gain(plant) if K1 is None else K1
     x0 = torch.zeros(B, STATE_DIM, dtype=xi.dtype, device=xi.device)
     controller = SecureController(K1, load, compensate=compensate)
     if watermark is not None:
         controller = watermark(controller)
+    if steps is None:
+        steps = T - (0 if fork is None else fork.state.k)
     return closed_loop(
-        plant.model(), T if steps is None else steps, noise=ReplayedNoise(xi, theta), x0=x0,
+        plant.model(), steps, noise=ReplayedNoise(xi, theta), x0=x0,
         estimator=estimator, model=plant.model(knows_load=False),
         controller=controller, attack=attack, attack_generator=attack_generator,
-        generator=generator, state=state, horizon=T, progress=progress,
+        generator=generator, state=state, horizon=T, progress=progress, forks=forks, fork=fork,
     )  # fmt: skip
 
 
@@ -675,10 +681,11 @@ class LFCScenario(Scenario):
         return draws
 
     def loop(self, estimator, draws, *, generator=None, steps=None, state=None, compensate=True,
-             attack=OWN_ATTACK, progress=None):  # fmt: skip
+             attack=OWN_ATTACK, progress=None, forks=None, fork=None):  # fmt: skip
         """``estimator`` in its own closed loop on ``draws`` (:func:`lfc_loop`): the secure
         controller (``compensate=False``: the traditional one), the scenario's attack (or
-        ``attack``: another one, ``None`` for none)."""
+        ``attack``: another one, ``None`` for none); ``forks``/``fork`` as in
+        :func:`~difffilter.loop.closed_loop`."""
         if attack is OWN_ATTACK and self.threat is not OWN_ATTACK:
             attack = self.threat
         elif attack is OWN_ATTACK:
@@ -690,8 +697,8 @@ class LFCScenario(Scenario):
             attack_generator = torch.Generator(device=draws["xi"].device).manual_seed(seed)
         return lfc_loop(plant, estimator, draws["xi"], draws["theta"], draws["load"],
                         attack=attack, compensate=compensate, generator=generator, steps=steps,
-                        state=state, progress=progress,
-                        attack_generator=attack_generator)  # fmt: skip
+                        state=state, progress=progress, attack_generator=attack_generator,
+                        forks=forks, fork=fork)  # fmt: skip
 
     def simulate(self, runs, generators, *, dtype=torch.float64, attack=OWN_ATTACK, model=None):
         """The traditional closed loop ``U = −K₁Z`` with its Kalman observer (``attack=None``:
@@ -705,6 +712,15 @@ class LFCScenario(Scenario):
 
     def paper_numbers(self) -> dict:
         return dict(self.paper_table)
+
+    def attack_onset(self) -> int | None:
+        """The steps before the scenario's own attack first acts (``None``: its attack is
+        not one known signal, e.g. random attacks, or it never acts)."""
+        attack = self.attack_model()
+        if attack is None:
+            return None
+        acting = (attack.values != 0).any(-1).nonzero()
+        return int(acting[0]) if len(acting) else None
 
     def attack_free_key(self) -> tuple:
         """The LFC scenarios differ in their attack only: without it, the same loops."""

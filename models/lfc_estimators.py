@@ -186,20 +186,51 @@ def _context(ctx: SuiteContext) -> LFCContext:
     return _cached(ctx, ("lfc/context", ctx.scenario.dt), lambda: LFCContext(dt=ctx.scenario.dt))
 
 
-def _loop(ctx: SuiteContext, estimator, tr: Trajectories, compensate: bool, attack=OWN_ATTACK):
+def _loop(ctx: SuiteContext, estimator, tr: Trajectories, compensate: bool, attack=OWN_ATTACK,
+          forks=None, fork=None):  # fmt: skip
     """``estimator``'s closed loop on ``tr``'s draws (:meth:`LFCScenario.loop`; its per-run
     initial weights from the stream ``lfc/initial_weights``)."""
     seed = ctx.streams.seed_of("lfc/initial_weights")
     gens = Generators(init=torch.Generator().manual_seed(seed))
     return ctx.scenario.loop(estimator, tr.info, generator=gens, compensate=compensate,
-                             attack=attack)  # fmt: skip
+                             attack=attack, forks=forks, fork=fork)  # fmt: skip
 
 
-def _attack_free(ctx: SuiteContext, name: str, estimator, tr, compensate: bool) -> LoopResult:
-    """``name``'s loop without attack; shared by the scenarios with the same draws."""
+def _attack_free(ctx: SuiteContext, name: str, estimator, tr, compensate: bool):
+    """``(loop, forks)``: ``name``'s loop without attack, shared by the scenarios with the
+    same draws, and its :class:`~difffilter.loop.LoopFork` s at :func:`_fork_steps`."""
     key = ("lfc/free", name, ctx.scenario.dt, tuple(tr.x.shape), ctx.streams.seed,
            ctx.scenario.load)  # fmt: skip
-    return _cached(ctx, key, lambda: _loop(ctx, estimator, tr, compensate, attack=None))
+
+    def run():
+        forks = dict.fromkeys(_fork_steps(ctx.scenario))
+        return _loop(ctx, estimator, tr, compensate, attack=None, forks=forks), forks
+
+    return _cached(ctx, key, run)
+
+
+def _fork_steps(scenario: LFCScenario) -> list[int]:
+    """Where a loop without attack keeps a fork: the onsets of the registered scenarios
+    with the same loops without attack (:meth:`LFCScenario.attack_free_key`) whose own
+    attack is a known signal, so that each of their attacked loops runs from its onset on
+    (the steps before are the loop without attack's, exactly). None for a study of other
+    threats or none (a calibration); an onset in the first tenth is not worth a fork."""
+    from difffilter.models import registry
+
+    if scenario.threat is not OWN_ATTACK:
+        return []
+    key, least = scenario.attack_free_key(), max(1, scenario.steps // 10)
+    onsets = {other.attack_onset() for other in registry.all_scenarios()
+              if isinstance(other, LFCScenario) and other.attack_free_key() == key}  # fmt: skip
+    return sorted(k for k in onsets if k is not None and k >= least)
+
+
+def _attacked(ctx: SuiteContext, estimator, tr, compensate: bool, forks: dict) -> LoopResult:
+    """``estimator``'s loop under the scenario's attack: from the fork of its loop without
+    attack at the attack's onset where there is one, else from the start."""
+    own = ctx.scenario.threat is OWN_ATTACK and "attack" not in tr.info
+    fork = forks.get(ctx.scenario.attack_onset()) if own else None
+    return _loop(ctx, estimator, tr, compensate, fork=fork)
 
 
 def _alarm_threshold(ctx: SuiteContext, name: str, trained: bool, statistic: str) -> float:
@@ -229,11 +260,11 @@ def _closed_loop(name: str, build, *, compensate: bool = True, ablation: bool = 
         threshold = _alarm_threshold(ctx, name, trained, statistic)
 
         def run(tr) -> LoopResult:
-            free = _attack_free(ctx, name, estimator, tr, compensate)
+            free, forks = _attack_free(ctx, name, estimator, tr, compensate)
             sc = ctx.scenario  # attack-free (a calibration run): the loop is the free one
             unattacked = sc.threat is None or (sc.simulated_attack() is None
                                                and "attack" not in tr.info)  # fmt: skip
-            loop = free if unattacked else _loop(ctx, estimator, tr, compensate)
+            loop = free if unattacked else _attacked(ctx, estimator, tr, compensate, forks)
             out = loop.output
             extras = {"x_attack_free": free.trajectories.x}
             if out.attack is None:
@@ -318,7 +349,7 @@ def _reference(ctx: SuiteContext):
     observer = lfc_estimator(_context(ctx))
 
     def run(tr) -> LoopResult:
-        free = _attack_free(ctx, "uncompensated", observer, tr, False)
+        free, _ = _attack_free(ctx, "uncompensated", observer, tr, False)
         return free._replace(output=EstimatorOutput(free.output.means))
 
     return run

@@ -188,3 +188,26 @@ def test_the_random_attack_scenario_calibrates_its_cusum_on_attack_free_runs():
 
     ctx = SuiteContext(sc, sc.system(), 3, Streams(0), sc.estimator_options())
     assert not ctx.calibration.flags.any()  # what the CUSUM calibrates on
+
+
+def test_attacked_loops_run_from_the_fork_at_their_onset_are_the_whole_loops(monkeypatch):
+    """lfc_step's attacked loops continue their loop without attack from the step before the
+    onset (step 299, kept while that loop ran): the same estimates and trajectories, bit
+    for bit, as loops run from the start (an online learner's ρ, updated in place,
+    included)."""
+    import difffilter.models.lfc_estimators as lfc_estimators
+
+    scenario, names = registry.get("lfc_step"), ["kf_nn_ekf", "kf_nn_grad"]
+    assert lfc_estimators._fork_steps(scenario) == [299] == [scenario.attack_onset()]
+    assert lfc_estimators._fork_steps(scenario.with_threat(None)) == []
+    forked = run_suite(scenario, runs=2, seed=4, progress=False, estimators=names)
+    monkeypatch.setattr(lfc_estimators, "_fork_steps", lambda scenario: [])
+    whole = run_suite(scenario, runs=2, seed=4, progress=False, estimators=names)
+    for name in names:
+        a, b = forked.outputs[name], whole.outputs[name]
+        assert torch.equal(a.means, b.means) and torch.equal(a.attack, b.attack)
+        assert torch.equal(a.detection.scores, b.detection.scores)
+        for field in ("x", "y_recv", "attack", "flags"):
+            assert torch.equal(
+                getattr(forked.traj_of(name), field), getattr(whole.traj_of(name), field)
+            )

@@ -7,7 +7,7 @@ import torch
 
 import difffilter as df
 from difffilter.attack import Attack, Channel
-from difffilter.loop import DrawnNoise, KnownInputs, closed_loop, open_loop
+from difffilter.loop import DrawnNoise, KnownInputs, ReplayedNoise, closed_loop, open_loop
 from difffilter.models import registry
 from difffilter.models.attacks import Replay, SensorBias, Signal
 from difffilter.models.lfc import LFCPlant, lfc_loop
@@ -105,6 +105,72 @@ def test_a_loop_run_in_chunks_is_the_loop_run_at_once():
     assert torch.equal(joined, whole.trajectories.x)
     means = torch.cat([first.output.means, second.output.means], 1)
     assert torch.equal(means, whole.output.means) and second.state.k == 40
+
+
+def _forked_pair(attack, k=12, T=30, runs=3):
+    """The loop with ``attack`` run at once, and continued from the fork after step ``k`` of
+    the same loop without attack (a particle filter: its generators are in the carry)."""
+    model = _linear()
+    gen = torch.Generator().manual_seed(7)
+    noise = ReplayedNoise(0.03 * torch.randn(runs, T, 2, generator=gen, dtype=torch.float64),
+                          0.1 * torch.randn(runs, T, 2, generator=gen, dtype=torch.float64))  # fmt: skip
+    us = 0.3 * torch.randn(runs, T, 1, generator=gen, dtype=torch.float64)
+    x0 = model.initial.mean.expand(runs, 2).clone()
+
+    def loop(**kw):
+        return closed_loop(model, kw.pop("steps", T), noise=noise, x0=x0, controller=KnownInputs(us),
+                           estimator=df.ParticleFilter(num_particles=64),
+                           generator=torch.Generator().manual_seed(11), **kw)  # fmt: skip
+
+    forks = {k: None}
+    free = loop(forks=forks)
+    return (
+        loop(attack=attack),
+        loop(attack=attack, fork=forks[k], steps=T - k),
+        free,
+        forks[k],
+        loop,
+    )
+
+
+def test_a_loop_continued_from_the_fork_of_its_loop_without_attack_is_the_loop_at_once():
+    """The attacked loop from the fork at its onset: the same states, draws, estimates and
+    records, bit for bit; the fork is unchanged by the loops that went on from it."""
+    alpha = torch.zeros(30, 2, dtype=torch.float64)
+    alpha[12:20, 1] = 0.5
+    whole, forked, free, fork, loop = _forked_pair(Signal(alpha))
+    for field in ("x", "y_true", "y_recv", "us", "attack", "flags"):
+        assert torch.equal(getattr(forked.trajectories, field), getattr(whole.trajectories, field))
+    assert torch.equal(
+        forked.trajectories.info["attack_values"], whole.trajectories.info["attack_values"]
+    )
+    assert torch.equal(forked.output.means, whole.output.means) and forked.state.k == 30
+    assert torch.equal(forked.output.extras["ess"], whole.output.extras["ess"])
+    assert torch.equal(free.output.means[:, :12], whole.output.means[:, :12])  # before the onset
+    assert not torch.equal(free.output.means[:, 12:], whole.output.means[:, 12:])
+    again = loop(attack=Signal(alpha), fork=fork, steps=18)  # the fork's generators are copies
+    assert torch.equal(again.output.means, whole.output.means)
+    assert fork.state.k == 12 and len(fork.outputs) == 12 and fork.records["attack"][0] is None
+
+
+def test_a_fork_refuses_what_it_cannot_replay():
+    alpha = torch.zeros(30, 2, dtype=torch.float64)
+    alpha[5, 0] = 1.0  # acts before the fork at 12
+    with pytest.raises(ValueError, match="acts at step 6, before the fork's step 12"):
+        _forked_pair(Signal(alpha))
+    with pytest.raises(ValueError, match="must read nothing"):
+        _forked_pair(Replay(delay=3, onset=20))
+    model = _linear()
+    x0 = model.initial.mean.expand(2, 2).clone()
+    with pytest.raises(ValueError, match="need ReplayedNoise"):
+        closed_loop(model, 5, noise=DrawnNoise(torch.Generator().manual_seed(1)), x0=x0,
+                    forks={2: None})  # fmt: skip
+    fork = _forked_pair(None)[3]
+    noise = ReplayedNoise(
+        torch.zeros(2, 30, 2, dtype=torch.float64), torch.zeros(2, 30, 2, dtype=torch.float64)
+    )
+    with pytest.raises(ValueError, match="either state= or fork="):
+        closed_loop(model, 5, noise=noise, fork=fork, state=fork.state)
 
 
 class _Adaptive(Attack):
