@@ -365,7 +365,9 @@ def closed_loop(
         fork: continue a :class:`LoopFork` (of a loop without attack, on the same noise):
             the result covers steps ``1 … fork.state.k + L``, the fork's steps as this
             loop's ``attack`` would have left them (a tabulated attack that flags none of
-            them; ``ValueError`` otherwise). ``state`` must then be ``None``.
+            them; ``ValueError`` otherwise). ``state`` must then be ``None``; the plant,
+            noise, estimator, model and controller are the forked loop's (a controller
+            keeps no state of its own: the fork holds only the loop's).
 
     Returns a :class:`LoopResult`: the trajectories of these ``L`` steps
     (``us`` = the inputs the estimator knew, ``attack``/``flags``/``info["attack_values"]``
