@@ -680,13 +680,13 @@ def _before():
     from difffilter.models import lfc_estimators
     from difffilter.param_ekf import dense_reference
 
-    forks = lfc_estimators._fork_steps
-    lfc_estimators._fork_steps = lambda scenario: []
+    least = lfc_estimators._least_onset
+    lfc_estimators._least_onset = lambda scenario: math.inf  # no onset is worth a fork
     try:
         with dense_reference():
             yield
     finally:
-        lfc_estimators._fork_steps = forks
+        lfc_estimators._least_onset = least
 
 
 def _max_metric_diff(a: dict, b: dict) -> float:

@@ -41,6 +41,7 @@ from torch import Tensor, nn
 
 import difffilter
 from difffilter._checks import Choice, check_finite_number
+from difffilter.attack import Channel, TabulatedAttack
 from difffilter.control import zoh_discretize
 from difffilter.kalman import KalmanFilter
 from difffilter.loop import LoopResult, ReplayedNoise, closed_loop
@@ -686,15 +687,8 @@ class LFCScenario(Scenario):
         controller (``compensate=False``: the traditional one), the scenario's attack (or
         ``attack``: another one, ``None`` for none); ``forks``/``fork`` as in
         :func:`~difffilter.loop.closed_loop`."""
-        if attack is OWN_ATTACK and self.threat is not OWN_ATTACK:
-            attack = self.threat
-        elif attack is OWN_ATTACK:
-            attack = Signal(draws["attack"]) if "attack" in draws else self.attack_model()
+        attack, attack_generator = self._attack_of(draws, attack)
         plant = LFCPlant(dt=self.dt, dtype=draws["xi"].dtype).to(draws["xi"].device)
-        attack_generator = None
-        if "attack_seed" in draws:  # the same draws in every estimator's loop
-            seed = int(draws["attack_seed"].reshape(-1)[0])
-            attack_generator = torch.Generator(device=draws["xi"].device).manual_seed(seed)
         return lfc_loop(plant, estimator, draws["xi"], draws["theta"], draws["load"],
                         attack=attack, compensate=compensate, generator=generator, steps=steps,
                         state=state, progress=progress, attack_generator=attack_generator,
@@ -713,13 +707,32 @@ class LFCScenario(Scenario):
     def paper_numbers(self) -> dict:
         return dict(self.paper_table)
 
-    def attack_onset(self) -> int | None:
-        """The steps before the scenario's own attack first acts (``None``: its attack is
-        not one known signal, e.g. random attacks, or it never acts)."""
-        attack = self.attack_model()
-        if attack is None:
+    def _attack_of(self, draws, attack=OWN_ATTACK):
+        """``(attack, its generator)`` of a loop on ``draws`` (:meth:`loop`'s ``attack``)."""
+        if attack is OWN_ATTACK and self.threat is not OWN_ATTACK:
+            attack = self.threat
+        elif attack is OWN_ATTACK:
+            attack = Signal(draws["attack"]) if "attack" in draws else self.attack_model()
+        generator = None
+        if "attack_seed" in draws:  # the same draws in every estimator's loop
+            seed = int(draws["attack_seed"].reshape(-1)[0])
+            generator = torch.Generator(device=draws["xi"].device).manual_seed(seed)
+        return attack, generator
+
+    def attack_onset(self, draws) -> int | None:
+        """The steps before the attack of a loop on ``draws`` (:meth:`loop`'s, this scenario's
+        own or threat) first acts in any run: its table, drawn as the loop draws it. ``None``
+        for no attack, one that never acts, or one that reads the loop (its onset is not
+        known beforehand: a replay, a covert attack)."""
+        attack, generator = self._attack_of(draws)
+        if not isinstance(attack, TabulatedAttack) or getattr(attack, "conceals", False):
             return None
-        acting = (attack.values != 0).any(-1).nonzero()
+        xi = draws["xi"]
+        model = LFCPlant(dt=self.dt, dtype=xi.dtype).model()
+        dim = model.dim_u if Channel(attack.channel) is Channel.ACTUATOR else model.dim_y
+        _, flags = attack.init(xi.shape[:1], xi.shape[1], dim, generator, dtype=xi.dtype,
+                               device=xi.device)  # fmt: skip
+        acting = flags.reshape(*flags.shape[:2], -1).any(-1).any(0).nonzero()
         return int(acting[0]) if len(acting) else None
 
     def attack_free_key(self) -> tuple:

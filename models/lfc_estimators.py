@@ -187,13 +187,13 @@ def _context(ctx: SuiteContext) -> LFCContext:
 
 
 def _loop(ctx: SuiteContext, estimator, tr: Trajectories, compensate: bool, attack=OWN_ATTACK,
-          forks=None, fork=None):  # fmt: skip
+          steps=None, forks=None, fork=None):  # fmt: skip
     """``estimator``'s closed loop on ``tr``'s draws (:meth:`LFCScenario.loop`; its per-run
     initial weights from the stream ``lfc/initial_weights``)."""
     seed = ctx.streams.seed_of("lfc/initial_weights")
     gens = Generators(init=torch.Generator().manual_seed(seed))
     return ctx.scenario.loop(estimator, tr.info, generator=gens, compensate=compensate,
-                             attack=attack, forks=forks, fork=fork)  # fmt: skip
+                             attack=attack, steps=steps, forks=forks, fork=fork)  # fmt: skip
 
 
 def _attack_free(ctx: SuiteContext, name: str, estimator, tr, compensate: bool):
@@ -203,34 +203,50 @@ def _attack_free(ctx: SuiteContext, name: str, estimator, tr, compensate: bool):
            ctx.scenario.load)  # fmt: skip
 
     def run():
-        forks = dict.fromkeys(_fork_steps(ctx.scenario))
+        forks = dict.fromkeys(_fork_steps(ctx.scenario, tr.info))
         return _loop(ctx, estimator, tr, compensate, attack=None, forks=forks), forks
 
     return _cached(ctx, key, run)
 
 
-def _fork_steps(scenario: LFCScenario) -> list[int]:
-    """Where a loop without attack keeps a fork: the onsets of the registered scenarios
-    with the same loops without attack (:meth:`LFCScenario.attack_free_key`) whose own
-    attack is a known signal, so that each of their attacked loops runs from its onset on
-    (the steps before are the loop without attack's, exactly). None for a study of other
-    threats or none (a calibration); an onset in the first tenth is not worth a fork."""
+def _fork_steps(scenario: LFCScenario, draws: dict) -> list[int]:
+    """Where a loop without attack on ``draws`` keeps a fork: the onsets of the attacks of
+    ``scenario`` and of the registered scenarios with the same loops without attack
+    (:meth:`LFCScenario.attack_free_key`), so that each of their attacked loops runs from
+    its onset on (the steps before are the loop without attack's, exactly). None for a
+    calibration (no attack: nothing continues the loop) nor before :func:`_least_onset`."""
     from difffilter.models import registry
 
-    if scenario.threat is not OWN_ATTACK:
+    if scenario.threat is None:
         return []
-    key, least = scenario.attack_free_key(), max(1, scenario.steps // 10)
-    onsets = {other.attack_onset() for other in registry.all_scenarios()
-              if isinstance(other, LFCScenario) and other.attack_free_key() == key}  # fmt: skip
+    key, least = scenario.attack_free_key(), _least_onset(scenario)
+    others = [s for s in registry.all_scenarios()
+              if isinstance(s, LFCScenario) and s.attack_free_key() == key]  # fmt: skip
+    onsets = {s.attack_onset(draws) for s in [scenario, *others]}
     return sorted(k for k in onsets if k is not None and k >= least)
 
 
+def _least_onset(scenario: LFCScenario) -> float:
+    """The earliest onset worth a fork: the first tenth of the loop (a fork holds a copy of
+    the estimator's carry; an online learner's is ``N·P²`` numbers)."""
+    return max(1, scenario.steps // 10)
+
+
 def _attacked(ctx: SuiteContext, estimator, tr, compensate: bool, forks: dict) -> LoopResult:
-    """``estimator``'s loop under the scenario's attack: from the fork of its loop without
-    attack at the attack's onset where there is one, else from the start."""
-    own = ctx.scenario.threat is OWN_ATTACK and "attack" not in tr.info
-    fork = forks.get(ctx.scenario.attack_onset()) if own else None
-    return _loop(ctx, estimator, tr, compensate, fork=fork)
+    """``estimator``'s loop under the scenario's attack (its own or its threat), continuing
+    the fork of its loop without attack at the attack's onset. Where that loop kept none
+    (a threat's onset, a loop run without attack first), the steps before the onset run
+    once without attack and their fork is kept in ``forks`` for the next attack with the
+    same onset (a robustness study's threats). An attack with no onset known beforehand,
+    or one before :func:`_least_onset`, runs from the start."""
+    onset = ctx.scenario.attack_onset(tr.info)
+    if onset is None or onset < _least_onset(ctx.scenario):
+        return _loop(ctx, estimator, tr, compensate)
+    if forks.get(onset) is None:
+        prefix = {onset: None}
+        _loop(ctx, estimator, tr, compensate, attack=None, steps=onset, forks=prefix)
+        forks[onset] = prefix[onset]
+    return _loop(ctx, estimator, tr, compensate, fork=forks[onset])
 
 
 def _alarm_threshold(ctx: SuiteContext, name: str, trained: bool, statistic: str) -> float:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+import math
 
 import jsonschema
 import pytest
@@ -192,22 +193,32 @@ def test_the_random_attack_scenario_calibrates_its_cusum_on_attack_free_runs():
 
 def test_attacked_loops_run_from_the_fork_at_their_onset_are_the_whole_loops(monkeypatch):
     """lfc_step's attacked loops continue their loop without attack from the step before the
-    onset (step 299, kept while that loop ran): the same estimates and trajectories, bit
-    for bit, as loops run from the start (an online learner's ρ, updated in place,
-    included)."""
+    onset (step 299, kept while that loop ran, or on demand for a threat after the loop
+    without attack ran without forks): the same estimates and trajectories, bit for bit,
+    as loops run from the start (an online learner's ρ, updated in place, included)."""
     import difffilter.models.lfc_estimators as lfc_estimators
+    from difffilter.eval.robustness import load_threat_set
 
     scenario, names = registry.get("lfc_step"), ["kf_nn_ekf", "kf_nn_grad"]
-    assert lfc_estimators._fork_steps(scenario) == [299] == [scenario.attack_onset()]
-    assert lfc_estimators._fork_steps(scenario.with_threat(None)) == []
-    forked = run_suite(scenario, runs=2, seed=4, progress=False, estimators=names)
-    monkeypatch.setattr(lfc_estimators, "_fork_steps", lambda scenario: [])
-    whole = run_suite(scenario, runs=2, seed=4, progress=False, estimators=names)
-    for name in names:
-        a, b = forked.outputs[name], whole.outputs[name]
-        assert torch.equal(a.means, b.means) and torch.equal(a.attack, b.attack)
-        assert torch.equal(a.detection.scores, b.detection.scores)
-        for field in ("x", "y_recv", "attack", "flags"):
-            assert torch.equal(
-                getattr(forked.traj_of(name), field), getattr(whole.traj_of(name), field)
-            )
+    draws = scenario.exogenous(2, {"plant": torch.Generator().manual_seed(0)})
+    assert lfc_estimators._fork_steps(scenario, draws) == [299] == [scenario.attack_onset(draws)]
+    assert lfc_estimators._fork_steps(scenario.with_threat(None), draws) == []
+    ramp = load_threat_set(scenario, ["ramp"]).threats["ramp"]  # a robustness study's threat
+
+    def suites():  # the loops without attack first (no forks), then the threat's, then its own
+        cache = {}
+        run_suite(scenario.with_threat(None), runs=2, seed=4, progress=False, estimators=names,
+                  cache=cache)  # fmt: skip
+        return [run_suite(sc, runs=2, seed=4, progress=False, estimators=names, cache=cache)
+                for sc in (scenario.with_threat(ramp), scenario)]  # fmt: skip
+
+    forked = suites()
+    monkeypatch.setattr(lfc_estimators, "_least_onset", lambda scenario: math.inf)  # no forks
+    whole = suites()
+    for a, b in zip(forked, whole):
+        for name in names:
+            x, y = a.outputs[name], b.outputs[name]
+            assert torch.equal(x.means, y.means) and torch.equal(x.attack, y.attack)
+            assert torch.equal(x.detection.scores, y.detection.scores)
+            for field in ("x", "y_recv", "attack", "flags"):
+                assert torch.equal(getattr(a.traj_of(name), field), getattr(b.traj_of(name), field))

@@ -173,6 +173,26 @@ def test_a_fork_refuses_what_it_cannot_replay():
         closed_loop(model, 5, noise=noise, fork=fork, state=fork.state)
 
 
+def test_the_lfc_attack_onset_is_the_first_step_any_run_is_attacked():
+    """Read off the attack's own table as the loop draws it; unknown for attacks that read
+    the loop (a replay) and for none."""
+    from difffilter.eval.robustness import load_threat_set
+
+    sc = registry.get("lfc_step")
+    draws = sc.exogenous(
+        3, {"plant": torch.Generator().manual_seed(0), "attack": torch.Generator().manual_seed(1)}
+    )
+    threats = load_threat_set(
+        sc, ["bias", "bias_all_channels_half_runs", "replay", "covert"]
+    ).threats
+    assert sc.attack_onset(draws) == 299 == registry.get("lfc_sine").attack_onset(draws)
+    assert registry.get("lfc_sawtooth").attack_onset(draws) == 0
+    assert sc.with_threat(threats["bias"]).attack_onset(draws) == 299  # onset: 300 (k)
+    assert sc.with_threat(threats["bias_all_channels_half_runs"]).attack_onset(draws) == 299
+    for none in (threats["replay"], threats["covert"], None):
+        assert sc.with_threat(none).attack_onset(draws) is None
+
+
 class _Adaptive(Attack):
     """An adaptive attacker: pushes the received measurement against the estimator's last
     estimate (it reads the view), from step 2 on."""
