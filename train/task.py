@@ -17,14 +17,17 @@ the scenario's own closed loop (its estimate feeds back through the controller) 
 minimises, per chunk of ``tbptt_steps`` steps (truncated backpropagation through time:
 the loop state is detached between chunks; the whole sequence when ``None``)::
 
-    attack_weight·mean‖â_k − a_k‖² + bce_weight·BCE(logit_k, l_k)
+    attack_weight·mean‖â_k − a_k‖² + bce_weight·mean(ω_k BCE(logit_k, l_k))
       + state_weight·mean‖x̂_k − x_k‖²/σ_x² + control_weight·mean‖K(â_k − a_k)‖²
 
 (``a_k`` the injected attack, ``l_k`` its flag per area, ``σ_x²`` the prior variance of the
 state, ``K`` the closed loop's feedback gain: an estimate error enters the plant through
-``U = −K(Z − â)``). A replacement attack (the tracking deception) has no additive signal to
-subtract: the PF weighs with the mixture likelihood of the network's probability and
-``attack_weight = 0`` leaves the training to the BCE and the state loss. Validation and
+``U = −K(Z − â)``; ``ω_k = after_attack_weight`` on the ``after_attack_steps`` steps
+that follow an attacked step of the same run and area within the chunk, 1 elsewhere: the
+steps where a detector with memory still alarms after the attack ended). A replacement
+attack (the tracking deception) has no additive signal to subtract: the PF weighs with the
+mixture likelihood of the network's probability and ``attack_weight = 0`` leaves the
+training to the BCE and the state loss. Validation and
 test run the filter as the evaluation does (systematic resampling at every step), and
 validation chooses the alarm threshold for ``target_false_alarm_rate`` on attack-free
 runs of their own seed (``calibration_runs``), as ``difffilter-train calibrate`` and the
@@ -295,6 +298,8 @@ class FilterEstimatorTask(pl.LightningModule):
             and ``Q_ρ`` of the EKF trainer.
         attack_weight, bce_weight, state_weight, control_weight: loss weights (module
             docstring).
+        after_attack_weight, after_attack_steps: the BCE's weight ``ω`` on the steps just
+            after an attack and how many (module docstring; 1.0: every step alike).
         target_false_alarm_rate: of the operating threshold (default: the scenario's).
         adversarial_runs, adversarial_iterations, adversarial_every,
         adversarial_crafting_runs, adversarial_onsets: adversarial training
@@ -347,6 +352,8 @@ class FilterEstimatorTask(pl.LightningModule):
         bce_weight: float = 0.1,
         state_weight: float = 1.0,
         control_weight: float = 0.0,
+        after_attack_weight: float = 1.0,
+        after_attack_steps: int = 20,
         target_false_alarm_rate: float | None = None,
         adversarial_runs: int = 0,
         adversarial_iterations: int = 20,
@@ -497,8 +504,14 @@ class FilterEstimatorTask(pl.LightningModule):
         }
         logits = out.extras.get("area_logits", out.extras.get("attack_logit"))
         if logits is not None and hp.bce_weight > 0:
-            flags = _area_flags(truth, logits).to(logits.dtype)
-            bce = torch.nn.functional.binary_cross_entropy_with_logits(logits, flags)
+            flags = _area_flags(truth, logits)
+            weight = None
+            if hp.after_attack_weight != 1.0:
+                after = after_attack(flags, hp.after_attack_steps)
+                weight = 1.0 + (hp.after_attack_weight - 1.0) * after.to(logits.dtype)
+            bce = torch.nn.functional.binary_cross_entropy_with_logits(
+                logits, flags.to(logits.dtype), weight=weight
+            )
             losses["bce"] = bce
         if hp.control_weight > 0:
             gain = self.scenario.feedback_gain(err.dtype).to(err.device)
@@ -783,12 +796,26 @@ def _check_options(hp, sc, channel: Channel) -> float:
             f"sensor attack; {sc.name} is {'closed' if sc.closed_loop else 'open'}-loop with a "
             f"{channel.value} attack, trainer {hp.trainer!r}"
         )
+    if not hp.after_attack_weight > 0:
+        raise ValueError(f"after_attack_weight must be positive; got {hp.after_attack_weight!r}")
+    steps = hp.after_attack_steps
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"after_attack_steps must be an integer >= 1; got {steps!r}")
     if hp.tbptt_steps is not None and hp.tbptt_steps < 1:
         raise ValueError(f"tbptt_steps must be >= 1 or None; got {hp.tbptt_steps!r}")
     far = sc.false_alarm_rate if hp.target_false_alarm_rate is None else hp.target_false_alarm_rate
     if not 0 < far < 1:
         raise ValueError(f"target_false_alarm_rate must be in (0, 1); got {far!r}")
     return float(far)
+
+
+def after_attack(flags: torch.Tensor, steps: int) -> torch.Tensor:
+    """Where ``flags [B, T, ...]`` (bool, time on dim 1) is false within ``steps`` steps
+    after a true entry of the same run (and area): ``[B, T, ...]`` bool."""
+    T = flags.shape[1]
+    t = torch.arange(T, device=flags.device).view(1, T, *([1] * (flags.dim() - 2)))
+    last = torch.where(flags, t, -1).cummax(dim=1).values  # the last attacked step ≤ t
+    return ~flags & (last >= 0) & (t - last <= steps)
 
 
 def _area_flags(truth: dict, logits: torch.Tensor) -> torch.Tensor:
