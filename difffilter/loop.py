@@ -468,14 +468,16 @@ def _resume(fork: LoopFork, plant, attack, attack_generator, channel, horizon):
     dim = plant.dim_u if channel is Channel.ACTUATOR else plant.dim_y
     a_state = attack.init(x.shape[:-1], horizon, dim, attack_generator, dtype=x.dtype,
                           device=x.device)  # fmt: skip
-    for j in range(1, state.k + 1):
-        a_state, value, flag = attack.step(a_state, j)
-        if bool(flag.any()):
-            raise ValueError(f"fork: the attack acts at step {j}, before the fork's step "
-                             f"{state.k}: those steps are not the loop's without attack")  # fmt: skip
-        signal = records["u"][j - 1] if channel is Channel.ACTUATOR else records["y"][j - 1]
-        _, records["attack"][j - 1] = inject(channel, signal, value, flag)
-        records["value"][j - 1], records["flag"][j - 1] = value, flag
+    k, time = state.k, a_state[0].dim() - 2  # the tables' first k rows are steps 1 … k
+    values, flags = (table.narrow(time, 0, k) for table in a_state)  # TabulatedAttack.step
+    acting = flags.movedim(time, 0).reshape(k, -1).any(-1)
+    if bool(acting.any()):
+        raise ValueError(f"fork: the attack acts at step {int(acting.nonzero()[0]) + 1}, before "
+                         f"the fork's step {k}: those steps are not the loop's without attack")  # fmt: skip
+    signal = torch.stack(records["u" if channel is Channel.ACTUATOR else "y"], time)
+    _, injected = inject(channel, signal, values, flags)  # every step before the fork at once
+    for key, table in (("attack", injected), ("value", values), ("flag", flags)):
+        records[key] = list(table.unbind(time))
     return state._replace(attack=a_state), records, list(fork.outputs)
 
 
