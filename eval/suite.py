@@ -114,12 +114,13 @@ def run_suite(
             false-alarm rate (``tpr_at_far``, ``fpr_at_far``, ``impact``), or ``None``.
 
     Runs with one intra-op thread unless the scenario says otherwise
-    (:func:`difffilter.runtime.one_thread`). Inside a torch.distributed process group (``difffilter-eval
-    --devices N``) each process runs every N-th estimator and the outputs are gathered:
-    the same numbers as one process, since every estimator sees the same trajectories and
-    named streams wherever it runs. An estimator whose factory
-    raises :class:`~difffilter.models.estimators.SkipEstimator` is left out and listed in
-    ``skipped``.
+    (:func:`difffilter.runtime.one_thread`). Inside a torch.distributed process group
+    (``difffilter-eval --devices N``) each process runs its share of the estimators
+    (:func:`shares`: longest first onto the least loaded process, by the seconds measured
+    so far) and the outputs are gathered: the same numbers as one process, since every
+    estimator sees the same trajectories and named streams wherever it runs. An estimator
+    whose factory raises :class:`~difffilter.models.estimators.SkipEstimator` is left out
+    and listed in ``skipped``.
     """
     runs = scenario.runs if runs is None else runs
     if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:

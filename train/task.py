@@ -27,12 +27,12 @@ that follow an attacked step of the same run and area within the chunk, 1 elsewh
 steps where a detector with memory still alarms after the attack ended). A replacement
 attack (the tracking deception) has no additive signal to subtract: the PF weighs with the
 mixture likelihood of the network's probability and ``attack_weight = 0`` leaves the
-training to the BCE and the state loss. Validation and
-test run the filter as the evaluation does (systematic resampling at every step), and
-validation chooses the alarm threshold for ``target_false_alarm_rate`` on attack-free
-runs of their own seed (``calibration_runs``), as ``difffilter-train calibrate`` and the
-evaluation choose every detector's; ``val/fpr`` is then the rate met on the validation
-batch's attack-free steps, ``val/fpr_calibration`` the one on the calibration runs.
+training to the BCE and the state loss. Validation and test run the filter as the
+evaluation does (systematic resampling at every step), and validation chooses the alarm
+threshold for ``target_false_alarm_rate`` on attack-free runs of their own seed
+(``calibration_runs``), as ``difffilter-train calibrate`` and the evaluation choose every
+detector's; ``val/fpr`` is then the rate met on the validation batch's attack-free steps,
+``val/fpr_calibration`` the one on the calibration runs.
 
 ``trainer="ekf"`` trains the weights ``ζ = [W, V]`` (eq. 10) by the EKF of eqs (11)–(14)
 instead (:class:`~difffilter.param_ekf.EKFOptimizer`): the filter runs on the batch with
