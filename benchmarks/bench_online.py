@@ -14,7 +14,8 @@
 2b. The bootstrap PF of section 2 at (B, N) = (1, 100) through its public online step
     (``init`` then T = 50 steps per run, as the numpy loop draws its prior per run), with
     the default outputs and with ``innovations=False`` (no predictive measurement moments:
-    the numpy loop computes none), and with ``full_checks``.
+    the numpy loop computes none), and with ``full_checks``; under ``torch.no_grad()``, so
+    the step is the host-array one (:mod:`difffilter._pf_host_step`).
 
 9. Each KF and bootstrap-PF workload of sections 1, 1b, 1c, 2 and 2b with one intra-op
    thread and with two, alternating in one process: which is faster.

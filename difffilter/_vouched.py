@@ -137,10 +137,12 @@ def _flat_leaves(carry) -> tuple:
 
 
 def _versions(tensors) -> tuple:
+    if torch.is_inference_mode_enabled():  # its tensors keep no version counter: identity
+        return tuple(-1 if t.is_inference() else t._version for t in tensors)
     try:
         return tuple(map(_VERSIONS, tensors))
-    except RuntimeError:  # an inference tensor keeps no version counter: identity only
-        return tuple(t._version if not t.is_inference() else -1 for t in tensors)
+    except RuntimeError:  # an inference tensor made earlier (raising costs ~30 µs)
+        return tuple(-1 if t.is_inference() else t._version for t in tensors)
 
 
 def vouch(carry, established: Established) -> None:

@@ -397,6 +397,9 @@ class ParticleFilter(Estimator):
 
     def _step(self, carry, y, u, mask):
         if _single_run.applies(self, carry, mask):  # one run on the defaults: a leaner step
+            density = _host_step.density(carry, y, u)
+            if density is not None:  # ... on host arrays where nothing is recorded
+                return _host_step.host_step(self, carry, y, u, density)
             return _single_run.single_run_step(self, carry, y, u)
         return _particle_step(self, carry, y, u, mask)
 
@@ -710,4 +713,5 @@ def particle_result(out) -> ParticleFilterResult:
 
 
 # The one-run step (below the classes it builds on: it imports them from this module).
+from . import _pf_host_step as _host_step  # noqa: E402
 from . import _pf_single_run as _single_run  # noqa: E402

@@ -1,8 +1,10 @@
-"""The particle filter's one-run step (difffilter._pf_single_run) against the general step.
+"""The particle filter's one-run steps (difffilter._pf_single_run, difffilter._pf_host_step)
+against the general step.
 
-For one run on the default strategies, ``ParticleFilter.step`` takes the written-out step;
-it must give the general step's numbers (the same draws in the same order), values and
-gradients, in float64 where round-off cannot move a resampling decision.
+For one run on the default strategies, ``ParticleFilter.step`` takes the written-out step,
+and where no gradient can be recorded its host-array form; both must give the general
+step's numbers (the same draws in the same order), values and gradients, in float64 where
+round-off cannot move a resampling decision.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import pytest
 import torch
 
 import difffilter as df
-from difffilter import particle
+from difffilter import _pf_host_step, particle
 from difffilter._pf_single_run import applies
 from difffilter.estimator import Generators
 from difffilter.models.four_tank import FourTankModel
@@ -22,9 +24,9 @@ from difffilter.resampling import Multinomial
 STEPS = 40
 
 
-def _linear_model(dtype=torch.float64, control=False, full_noise=False):
-    """A 3-state, 2-output linear model; a 1-input control matrix and a full (not
-    diagonal) measurement covariance on request."""
+def _linear_model(dtype=torch.float64, control=False, full_noise=False, cls=df.LinearGaussianModel):
+    """A 3-state, 2-output linear model (of class ``cls``); a 1-input control matrix and a
+    full (not diagonal) measurement covariance on request."""
     F = torch.tensor([[0.9, 0.1, 0.0], [0.0, 0.8, 0.2], [0.1, 0.0, 0.7]], dtype=dtype)
     H = torch.tensor([[1.0, 0.0, 0.5], [0.0, 1.0, 0.0]], dtype=dtype)
     R = (
@@ -33,7 +35,7 @@ def _linear_model(dtype=torch.float64, control=False, full_noise=False):
         else 0.2 * torch.eye(2, dtype=dtype)
     )
     B = torch.tensor([[1.0], [0.0], [0.5]], dtype=dtype) if control else None
-    return df.LinearGaussianModel(F, H, 0.05 * torch.eye(3, dtype=dtype), R,
+    return cls(F, H, 0.05 * torch.eye(3, dtype=dtype), R,
                                   torch.zeros(3, dtype=dtype), torch.eye(3, dtype=dtype), B=B)  # fmt: skip
 
 
@@ -45,20 +47,23 @@ def _data(model, steps=STEPS, seed=0, du=0):
     return ys[0], us
 
 
-def _run(pf, model, ys, us, general: bool):
+def _run(pf, model, ys, us, general: bool, host: bool = False):
     """Step ``pf`` through ``ys`` from one seeded carry: through ``pf.step`` (the one-run
-    step where it applies) or the general step. Returns the carries and outputs."""
+    step where it applies; with ``host``, under ``torch.no_grad()``, where the host-array
+    step applies, asserted) or the general step. Returns the carries and outputs."""
     gens = Generators.of(torch.Generator().manual_seed(7))
     carry = pf.init(model, (), gens)
     carries, outs = [], []
-    for k, y in enumerate(ys):
-        u = None if us is None else us[k]
-        if general:
-            carry, out = particle._particle_step(pf, carry, y, u, None)
-        else:
-            carry, out = pf.step(carry, y, u)
-        carries.append(carry)
-        outs.append(out)
+    with torch.set_grad_enabled(not host):
+        for k, y in enumerate(ys):
+            u = None if us is None else us[k]
+            if general:
+                carry, out = particle._particle_step(pf, carry, y, u, None)
+            else:
+                assert (_pf_host_step.density(carry, y, u) is not None) == host
+                carry, out = pf.step(carry, y, u)
+            carries.append(carry)
+            outs.append(out)
     return carries, outs
 
 
@@ -77,6 +82,7 @@ def _assert_same(a, b, tol=1e-10):
         for name in ("ess", "resampled", "degenerate"):
             torch.testing.assert_close(x.extras[name], y.extras[name], atol=tol, rtol=tol)
         assert set(x.extras) == set(y.extras)
+        assert x.log_likelihood.shape == () and x.extras["resampled"].dtype == torch.bool
 
 
 @pytest.mark.parametrize("innovations", [True, False])
@@ -142,3 +148,153 @@ def test_where_the_one_run_step_does_not_apply():
     assert not applies(df.ParticleFilter(10, record_prior=True), carry, None)
     assert not applies(df.ParticleFilter(10, hooks=[lambda *a: {}]), carry, None)
     assert not applies(df.ParticleFilter(10, cov_dims=1), carry, None)
+
+
+# ----------------------------------------------------------------- the host-array step ----
+class _WrappedAngleModel(df.LinearGaussianModel):
+    """The linear model with its first output an angle: residuals wrapped into (−π, π]."""
+
+    def measurement_residual(self, y, y_hat):
+        r = super().measurement_residual(y, y_hat)
+        return torch.cat([torch.remainder(r[..., :1] + math.pi, 2 * math.pi) - math.pi,
+                          r[..., 1:]], dim=-1)  # fmt: skip
+
+
+@pytest.mark.parametrize("innovations", [True, False])
+@pytest.mark.parametrize("case", ["four_tank", "linear_control", "angles"])
+def test_the_host_step_equals_the_general_step(case, innovations):
+    """Under ``torch.no_grad()`` one run takes the host-array step: the general step's
+    numbers (both resampling branches run), in float64."""
+    du = 1 if case == "linear_control" else 0
+    if case == "four_tank":
+        model = FourTankModel(dtype=torch.float64)
+    elif case == "angles":
+        model = _linear_model(cls=_WrappedAngleModel)
+    else:
+        model = _linear_model(control=True)
+    ys, us = _data(model, du=du)
+    if case == "angles":
+        ys = ys + torch.tensor([2 * math.pi, 0.0], dtype=ys.dtype)  # only wrapping undoes it
+    pf = df.ParticleFilter(200, innovations=innovations)
+    host = _run(pf, model, ys, us, False, host=True)
+    general = _run(pf, model, ys, us, True, host=True)
+    assert any(bool(o.extras["resampled"]) for o in host[1])
+    assert not all(bool(o.extras["resampled"]) for o in host[1])
+    _assert_same(host, general)
+
+
+def test_the_host_step_in_float32_follows_the_general_step():
+    """float32 (what the online benchmark runs): the same resampling decisions and the
+    estimates within float32 round-off over a short run."""
+    model = FourTankModel(dtype=torch.float32)
+    ys, _ = _data(model, steps=10)
+    ys = ys.float()
+    pf = df.ParticleFilter(100)
+    oh = _run(pf, model, ys, None, False, host=True)[1]
+    og = _run(pf, model, ys, None, True, host=True)[1]
+    assert [bool(o.extras["resampled"]) for o in oh] == [bool(o.extras["resampled"]) for o in og]
+    for a, b in zip(oh, og):
+        assert a.mean.dtype == torch.float32 and a.log_likelihood.dtype == torch.float32
+        torch.testing.assert_close(a.mean, b.mean, atol=1e-4, rtol=1e-4)
+        torch.testing.assert_close(a.log_likelihood, b.log_likelihood, atol=1e-3, rtol=1e-4)
+        torch.testing.assert_close(a.innovation_cov, b.innovation_cov, atol=1e-4, rtol=1e-4)
+
+
+def test_a_degenerate_host_step_resets_as_the_general_step():
+    model = _linear_model()
+    ys, _ = _data(model, steps=6)
+    ys = ys.clone()
+    ys[3] = 1e200
+    pf = df.ParticleFilter(50)
+    host, general = (
+        _run(pf, model, ys, None, False, host=True),
+        _run(pf, model, ys, None, True, host=True),
+    )
+    out = host[1][3]
+    assert bool(out.extras["degenerate"]) and out.log_likelihood.item() == -math.inf
+    assert torch.isfinite(host[1][5].log_likelihood)
+    _assert_same(host, general)
+
+
+def test_the_host_step_reads_a_measurement_noise_changed_in_place():
+    """The host copies of ``1/σ²`` follow the noise model's covariance (cached against
+    its version): scaling ``R`` in place between steps changes the next step's weights
+    as in the general step."""
+    model = _linear_model()
+    ys, _ = _data(model, steps=8)
+    pf = df.ParticleFilter(64)
+
+    def run(general):
+        gens = Generators.of(torch.Generator().manual_seed(3))
+        carry, outs = pf.init(model, (), gens), []
+        with torch.no_grad():
+            for k, y in enumerate(ys):
+                if k == 4:
+                    model.measurement_noise._cov.mul_(4.0)
+                step = particle._particle_step if general else (lambda p, c, *a: p.step(c, a[0]))
+                carry, out = step(pf, carry, y, None, None)
+                outs.append(out)
+                if k == 7:
+                    model.measurement_noise._cov.div_(4.0)
+        return outs
+
+    host, general = run(False), run(True)
+    for a, b in zip(host, general):
+        torch.testing.assert_close(a.log_likelihood, b.log_likelihood, atol=1e-10, rtol=1e-10)
+        torch.testing.assert_close(a.mean, b.mean, atol=1e-10, rtol=1e-10)
+
+
+def test_where_the_host_step_does_not_apply():
+    model = _linear_model()
+    pf = df.ParticleFilter(10)
+    carry = pf.init(model, ())
+    y = torch.zeros(2, dtype=torch.float64)
+    with torch.no_grad():
+        assert _pf_host_step.density(carry, y, None) is not None
+        grad_carry = carry._replace(particles=carry.particles.clone().requires_grad_(True))
+        assert _pf_host_step.density(grad_carry, y, None) is None  # a gradient is wanted
+        assert _pf_host_step.density(carry, y.clone().requires_grad_(True), None) is None
+        full = _linear_model(full_noise=True)
+        assert _pf_host_step.density(pf.init(full, ()), y, None) is None  # not diagonal
+        half = carry._replace(particles=carry.particles.half())
+        assert _pf_host_step.density(half, y, None) is None
+    assert _pf_host_step.density(carry, y, None) is None  # grad mode on
+
+
+def test_a_host_step_carry_goes_on_with_gradients():
+    """Carries made without gradients feed a step with gradients: d/dy flows there."""
+    model = _linear_model()
+    ys, _ = _data(model, steps=6)
+    pf = df.ParticleFilter(32)
+    carry = pf.init(model, (), torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        for y in ys[:3]:
+            carry, _ = pf.step(carry, y)
+    y = ys[3].clone().requires_grad_(True)
+    _, out = pf.step(carry, y)
+    (g,) = torch.autograd.grad(out.log_likelihood, y)
+    assert torch.isfinite(g).all() and g.abs().sum() > 0
+
+
+def test_inference_mode_gives_the_no_grad_numbers_and_keeps_carries_vouched():
+    """Under ``torch.inference_mode()`` (tensors without version counters) the host step
+    gives the numbers of ``torch.no_grad()``, and each returned carry is vouched for, so
+    the next step skips the full validation."""
+    from difffilter import _vouched
+
+    model = _linear_model()
+    ys, _ = _data(model, steps=10)
+    pf = df.ParticleFilter(64)
+
+    def run(mode):
+        carry, outs = pf.init(model, (), Generators.of(torch.Generator().manual_seed(5))), []
+        with mode():
+            for y in ys:
+                carry, out = pf.step(carry, y)
+                assert _vouched.vouched(pf, carry) is not None
+                outs.append(out)
+        return outs
+
+    for a, b in zip(run(torch.inference_mode), run(torch.no_grad)):
+        torch.testing.assert_close(a.mean, b.mean, atol=0, rtol=0)
+        torch.testing.assert_close(a.log_likelihood, b.log_likelihood, atol=0, rtol=0)

@@ -1,0 +1,245 @@
+"""The one-run particle-filter step on host arrays, for steps that record no gradient.
+
+On one run of ``N = 100`` particles a torch operation on the CPU costs 2–4 µs of dispatch
+for well under a microsecond of arithmetic; the same operation on a numpy array costs about
+0.5 µs. The written-out one-run step (:mod:`difffilter._pf_single_run`) is a few dozen such
+operations, so its dispatch is its cost. When autograd records nothing (under
+``torch.no_grad()`` or ``torch.inference_mode()``: an estimator deployed on one plant) and
+the run lives in CPU memory, :func:`host_step` computes that step's arithmetic on numpy
+views of the same memory (``Tensor.numpy()`` and ``torch.from_numpy``: no copies) and
+calls the model through torch as every other step does (``transition``, ``observe``,
+``measurement_residual``, the noise's factor)::
+
+    resample   if ESS_{k−1} < ess_threshold · N:  a_j = F⁻¹((j + U)/N),  x ← x[a],
+               log w ← −log N
+    propose    x_k^i = f(x^i, u) + ε^i                 (torch: the model and the draw)
+    predict    x̄_k = Σᵢ wᵢ x_k^i;  ŷ = Σᵢ wᵢ h(x_k^i),  S = Σᵢ wᵢ (h − ŷ)(h − ŷ)ᵀ + R
+    weight     log w_k^i = log w^i − ½ r_iᵀ R⁻¹ r_i − log p̂,   r_i = y_k − h(x_k^i)
+    report     x̂_k = Σᵢ w_k^i x_k^i,  P_k = Σᵢ w_k^i (x_k^i − x̂_k)(x_k^i − x̂_k)ᵀ,
+               ESS_k = 1 / Σᵢ (w_k^i)²,  log p̂(y_k | y_{1:k−1}) (the evidence)
+
+The same draws from the same generators in the same order as the torch step (the uniform
+offset of the systematic resampler and the process noise are drawn by torch), so the same
+numbers up to round-off (tests: against the general step, float64 and float32). What the
+torch step handles beyond this is left to it: a measurement every particle finds
+impossible is reset as there (the evidence ``−∞``, the predictive weights kept, the step
+flagged ``"degenerate"``). What the torch step handles beyond this is left to it: a
+measurement noise other than a zero-mean diagonal Gaussian, half-precision dtypes, and any
+step that could record a gradient.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ._pf_single_run import _propagate
+from .estimator import Generators
+from .noise import Gaussian
+from .particle import ParticleState
+from .results import StepOutput
+from .ssm import StateSpaceModel
+
+__all__ = ["density", "host_step"]
+
+_NO_GENERATORS = Generators()
+_HOST_DTYPES = (torch.float32, torch.float64)
+
+
+def density(carry, y: Tensor, u: Tensor | None) -> tuple[np.ndarray, np.generic] | None:
+    """The measurement density's diagonal terms (:func:`_diagonal_density`) when
+    :func:`host_step` may compute a one-run step from ``carry``, else ``None``: no gradient
+    can be recorded (grad mode off, no input that requires one), the particles live in
+    CPU memory in float32 or float64, and the measurement noise is a diagonal zero-mean
+    Gaussian (the others keep the torch step)."""
+    particles = carry.particles
+    if torch.is_grad_enabled() or particles.device.type != "cpu":
+        return None
+    if particles.dtype not in _HOST_DTYPES or particles.requires_grad:
+        return None
+    if carry.log_weights.requires_grad or y.requires_grad or (u is not None and u.requires_grad):
+        return None
+    return _diagonal_density(carry.model.measurement_noise)
+
+
+def _diagonal_density(noise) -> tuple[np.ndarray, np.generic] | None:
+    """``(1/σ² [dy], Σ log σ + (dy/2) log 2π)`` as host arrays of a zero-mean Gaussian
+    with a diagonal factor ``σ``, else ``None``. The noise model caches its factor against
+    the covariance's version (a changed covariance is a new factor); the host terms are
+    kept against the very factor they were computed from."""
+    global _LAST_TERMS
+    if type(noise) is not Gaussian:
+        return None
+    _, diag = noise._factor()
+    if diag is None or diag.dim() != 1 or not noise._zero_loc():
+        return None
+    last = _LAST_TERMS
+    if last is not None and last[0] is diag:
+        return last[1]
+    inv_var, constant = (t.detach() for t in noise._diagonal_terms(diag))
+    host = (inv_var.numpy().copy(), constant.numpy()[()])
+    _LAST_TERMS = (diag, host)  # held: its identity stays its own
+    return host
+
+
+#: ``(σ, host terms)`` of the last density read (one entry: an online filter's one plant).
+_LAST_TERMS: tuple | None = None
+
+
+def host_step(pf, carry, y: Tensor, u: Tensor | None, density) -> tuple[ParticleState, StepOutput]:
+    """One step of ``pf`` from ``carry`` on host arrays (module docstring):
+    ``(ParticleState, StepOutput)`` as the torch step returns them. ``density``: what
+    :func:`density` returned for these inputs.
+
+    Shapes: particles ``[N, dx]``, log-weights ``[N]``, ``y [dy]``, ``u [du]`` or ``None``.
+    """
+    model, gens, k = carry.model, carry.generators or _NO_GENERATORS, carry.k
+    x_t, log_w = carry.particles, carry.log_weights.numpy()
+    w = None if carry.weights is None else carry.weights.numpy()
+    n, dtype = log_w.shape[0], log_w.dtype.type
+    ess = _host_ess(log_w) if carry.ess is None else carry.ess.item()
+    # the torch step compares in the weights' dtype: so does this one
+    resampled = ess < float(dtype(pf.ess_threshold * n))
+    if resampled:
+        gen = gens.resample if gens.resample is not None else gens.propagate
+        ancestors = _systematic_ancestors(w if w is not None else np.exp(log_w), gen)
+        x_t = torch.from_numpy(x_t.numpy()[ancestors])
+        log_w, w = _uniform(n, log_w.dtype)[0], None
+
+    new_t = _propagate(model, x_t, None if u is None else u.unsqueeze(0), k, gens.propagate)
+    new = new_t.numpy()
+    obs_t = model.observe(new_t, k + 1)
+    plain = type(model).measurement_residual is StateSpaceModel.measurement_residual
+    y_np = y.numpy()
+    obs = obs_t.numpy()
+    pred_w = (
+        (np.exp(log_w) if w is None else w) if not resampled else _uniform_weights(n, log_w.dtype)
+    )
+    pred_mean = pred_w @ new
+    innovation = innovation_cov = None
+    if pf.innovations:
+        innovation, innovation_cov = _predictive(model, y, y_np, k, obs, pred_w, plain)
+    # y − h(x): the host's subtraction where the model wraps no angles
+    residual = np.subtract(y_np, obs) if plain else model.measurement_residual(y, obs_t).numpy()
+    increment, log_w_new, w_new, degenerate = _weigh(residual, log_w, *density)
+    mean = w_new @ new
+    dev = new - mean
+    cov = (dev.T * w_new) @ dev
+    ess_new = torch.from_numpy(np.asarray(dtype(1.0) / (w_new @ w_new)))
+    out = StepOutput(
+        torch.from_numpy(mean), torch.from_numpy(_symmetrize(cov)), torch.from_numpy(pred_mean),
+        None, innovation, innovation_cov, torch.from_numpy(increment),
+        extras={"ess": ess_new, "resampled": _flag(resampled), "degenerate": _flag(degenerate)},
+    )  # fmt: skip
+    new_carry = ParticleState(new_t, torch.from_numpy(log_w_new), k + 1, ess_new,
+                              torch.from_numpy(w_new), model, carry.aux, carry.generators)  # fmt: skip
+    return new_carry, out
+
+
+def _predictive(model, y, y_np, k: int, obs, pred_w, plain: bool):
+    """``(innovation [dy], S [dy, dy])`` as torch tensors from the predicted measurements
+    ``obs [N, dy]`` under the predictive weights ``pred_w [N]``:
+    ``ŷ = Σᵢ wᵢ h_i``, ``y − ŷ``, ``S = sym(Σᵢ wᵢ (h_i − ŷ)(h_i − ŷ)ᵀ + R)``."""
+    y_hat = pred_w @ obs
+    dev = obs - y_hat
+    y_cov = (dev.T * pred_w) @ dev
+    y_cov += model.measurement_cov(k + 1).numpy()
+    if plain:
+        innovation = torch.from_numpy(np.subtract(y_np, y_hat))
+    else:
+        innovation = model.measurement_residual(y, torch.from_numpy(y_hat))
+    return innovation, torch.from_numpy(_symmetrize(y_cov))
+
+
+def _weigh(residual, log_w, inv_var: np.ndarray, constant):
+    """``(log p̂ [] array, log w_k [N], w_k [N], degenerate)`` from the residuals
+    ``[N, dy]`` and the predictive log-weights ``[N]`` under a diagonal zero-mean Gaussian
+    (``inv_var = 1/σ²``, ``constant = Σ log σ + (dy/2) log 2π``):
+    ``log w + log α = log w − ½ Σ_j r_j²/σ_j² − c``, normalised. A step where every weight
+    underflowed (or a NaN) keeps the predictive weights, its evidence ``−∞`` (or NaN), as
+    the torch step's reset."""
+    dtype = log_w.dtype.type
+    with np.errstate(over="ignore", invalid="ignore"):  # a far-off y: torch's inf, silently
+        joint = np.subtract(log_w, ((residual * residual) @ inv_var) * dtype(0.5))
+    top = joint.max()
+    if not math.isfinite(top):
+        return np.asarray(top - constant), log_w.copy(), np.exp(log_w), True
+    e = np.exp(joint - top)
+    total = e.sum()
+    increment = np.log(total) + top
+    joint -= increment
+    e /= total
+    return np.asarray(increment - constant), joint, e, False
+
+
+def _symmetrize(a: np.ndarray) -> np.ndarray:
+    """``(A + Aᵀ)/2`` (in place into ``A + Aᵀ``)."""
+    out = a + a.T
+    out *= out.dtype.type(0.5)
+    return out
+
+
+#: ``{(N, dtype): (log-weights −log N [N], weights exp(−log N) [N])}``, read-only: the
+#: weights after resampling (a carry never holds these arrays themselves).
+_UNIFORM: dict = {}
+
+
+def _uniform(n: int, dtype) -> tuple[np.ndarray, np.ndarray]:
+    key = (n, dtype)
+    pair = _UNIFORM.get(key)
+    if pair is None:
+        log_w = np.full(n, dtype.type(0.0 - math.log(n)))
+        pair = (log_w, np.exp(log_w))
+        for arr in pair:
+            arr.flags.writeable = False
+        _UNIFORM[key] = pair
+    return pair
+
+
+def _uniform_weights(n: int, dtype) -> np.ndarray:
+    return _uniform(n, dtype)[1]
+
+
+def _flag(value: bool) -> Tensor:
+    """A 0-dimensional bool tensor (a new one: callers may stack or modify it)."""
+    return torch.from_numpy(np.array(value))
+
+
+def _host_ess(log_w: np.ndarray):
+    """``1 / Σᵢ exp(2 log wᵢ)`` for normalised log-weights ``[N]`` (as the torch step's
+    ``exp(−logsumexp(2 log w))``)."""
+    twice = log_w * log_w.dtype.type(2.0)
+    top = twice.max()
+    return np.exp(-(np.log(np.exp(twice - top).sum()) + top))
+
+
+def _systematic_ancestors(weights: np.ndarray, generator) -> np.ndarray:
+    """``a_j = F⁻¹((j + U)/N)`` ``[N]`` for non-negative ``weights [N]``, ``U`` drawn by torch
+    from ``generator`` as the torch step draws it: the targets ``(j + U)·W/N`` searched in
+    the cumulative weights (right side), clamped to the last particle of positive weight."""
+    n, dtype = weights.shape[0], weights.dtype
+    offset = torch.rand((1,), generator=generator, dtype=_TORCH_DTYPES[dtype.type]).item()
+    cdf = np.cumsum(weights)
+    total = cdf[-1]
+    targets = _arange(n, dtype) + offset  # in the weights' dtype, as the torch step's
+    targets *= total / dtype.type(n)
+    ancestors = cdf.searchsorted(targets, side="right")
+    return np.minimum(ancestors, cdf.searchsorted(total), out=ancestors)
+
+
+_TORCH_DTYPES = {np.float32: torch.float32, np.float64: torch.float64}
+_ARANGE: dict = {}
+
+
+def _arange(n: int, dtype) -> np.ndarray:
+    """``[0, 1, …, N−1]`` in ``dtype``, read-only and cached."""
+    key = (n, dtype)
+    arr = _ARANGE.get(key)
+    if arr is None:
+        arr = np.arange(n, dtype=dtype)
+        arr.flags.writeable = False
+        _ARANGE[key] = arr
+    return arr
