@@ -54,7 +54,7 @@ def density(carry, y: Tensor, u: Tensor | None) -> tuple[np.ndarray, np.generic]
     :func:`host_step` may compute a one-run step from ``carry``, else ``None``: no gradient
     can be recorded (grad mode off, no input that requires one), the particles live in
     CPU memory in float32 or float64, and the measurement noise is a diagonal zero-mean
-    Gaussian (the others keep the torch step)."""
+    Gaussian of the particles' dtype (the others keep the torch step, which promotes)."""
     particles = carry.particles
     if torch.is_grad_enabled() or particles.device.type != "cpu":
         return None
@@ -62,19 +62,20 @@ def density(carry, y: Tensor, u: Tensor | None) -> tuple[np.ndarray, np.generic]
         return None
     if carry.log_weights.requires_grad or y.requires_grad or (u is not None and u.requires_grad):
         return None
-    return _diagonal_density(carry.model.measurement_noise)
+    return _diagonal_density(carry.model.measurement_noise, particles.dtype)
 
 
-def _diagonal_density(noise) -> tuple[np.ndarray, np.generic] | None:
+def _diagonal_density(noise, dtype: torch.dtype) -> tuple[np.ndarray, np.generic] | None:
     """``(1/σ² [dy], Σ log σ + (dy/2) log 2π)`` as host arrays of a zero-mean Gaussian
     with a diagonal factor ``σ``, else ``None``. The noise model caches its factor against
     the covariance's version (a changed covariance is a new factor); the host terms are
-    kept against the very factor they were computed from."""
+    kept against the very factor they were computed from. ``None`` too for a factor not
+    of ``dtype``."""
     global _LAST_TERMS
     if type(noise) is not Gaussian:
         return None
     _, diag = noise._factor()
-    if diag is None or diag.dim() != 1 or not noise._zero_loc():
+    if diag is None or diag.dim() != 1 or diag.dtype != dtype or not noise._zero_loc():
         return None
     last = _LAST_TERMS
     if last is not None and last[0] is diag:
@@ -146,7 +147,7 @@ def _predictive(model, y, y_np, k: int, obs, pred_w, plain: bool):
     y_hat = pred_w @ obs
     dev = obs - y_hat
     y_cov = (dev.T * pred_w) @ dev
-    y_cov += model.measurement_cov(k + 1).numpy()
+    y_cov = y_cov + model.measurement_cov(k + 1).detach().numpy()  # (a learnable R: its values)
     if plain:
         innovation = torch.from_numpy(np.subtract(y_np, y_hat))
     else:

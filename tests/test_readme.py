@@ -26,3 +26,9 @@ def test_readme_python_example_runs():
     recorded = 39 + torch.arange(41) % 20  # steps 40..59, cycled from step 60 on
     torch.testing.assert_close(loop.y_recv[:, 59:], loop.y_true[:, recorded], rtol=0, atol=0)
     torch.testing.assert_close(loop.y_recv[:, :59], loop.y_true[:, :59], rtol=0, atol=0)
+    # the online example: one run's last PF estimate within 3 posterior sd of the KF's
+    online = namespace["online_out"]
+    sd = kf.covs[0, -1].diagonal().sqrt()
+    assert online.mean.shape == (2,) and bool(
+        ((online.mean - kf.means[0, -1]).abs() < 3 * sd).all()
+    )
