@@ -2,7 +2,7 @@
 
 On one run of ``N = 100`` particles a torch operation on the CPU costs 2–4 µs of dispatch
 for well under a microsecond of arithmetic; the same operation on a numpy array costs about
-0.5 µs. The written-out one-run step (:mod:`difffilter._pf_single_run`) is a few dozen such
+1 µs. The written-out one-run step (:mod:`difffilter._pf_single_run`) is a few dozen such
 operations, so its dispatch is its cost. When autograd records nothing (under
 ``torch.no_grad()`` or ``torch.inference_mode()``: an estimator deployed on one plant) and
 the run lives in CPU memory, :func:`host_step` computes that step's arithmetic on numpy
@@ -20,12 +20,11 @@ calls the model through torch as every other step does (``transition``, ``observ
 
 The same draws from the same generators in the same order as the torch step (the uniform
 offset of the systematic resampler and the process noise are drawn by torch), so the same
-numbers up to round-off (tests: against the general step, float64 and float32). What the
-torch step handles beyond this is left to it: a measurement every particle finds
-impossible is reset as there (the evidence ``−∞``, the predictive weights kept, the step
-flagged ``"degenerate"``). What the torch step handles beyond this is left to it: a
-measurement noise other than a zero-mean diagonal Gaussian, half-precision dtypes, and any
-step that could record a gradient.
+numbers up to round-off (tests: against the general step, float64 and float32). A
+measurement every particle finds impossible is reset as there (the evidence ``−∞``, the
+predictive weights kept, the step flagged ``"degenerate"``). Left to the torch step: a
+measurement noise other than a zero-mean diagonal Gaussian of the particles' dtype,
+half-precision dtypes, other devices, and any step that could record a gradient.
 """
 
 from __future__ import annotations
@@ -116,9 +115,10 @@ def host_step(pf, carry, y: Tensor, u: Tensor | None, density) -> tuple[Particle
     plain = type(model).measurement_residual is StateSpaceModel.measurement_residual
     y_np = y.numpy()
     obs = obs_t.numpy()
-    pred_w = (
-        (np.exp(log_w) if w is None else w) if not resampled else _uniform_weights(n, log_w.dtype)
-    )
+    if resampled:  # equal weights (the torch step averages: the same up to round-off)
+        pred_w = _uniform(n, log_w.dtype)[1]
+    else:
+        pred_w = np.exp(log_w) if w is None else w
     pred_mean = pred_w @ new
     innovation = innovation_cov = None
     if pf.innovations:
@@ -189,6 +189,7 @@ _UNIFORM: dict = {}
 
 
 def _uniform(n: int, dtype) -> tuple[np.ndarray, np.ndarray]:
+    """``(log w, w)`` of ``N`` equal weights in ``dtype`` (cached, read-only)."""
     key = (n, dtype)
     pair = _UNIFORM.get(key)
     if pair is None:
@@ -198,10 +199,6 @@ def _uniform(n: int, dtype) -> tuple[np.ndarray, np.ndarray]:
             arr.flags.writeable = False
         _UNIFORM[key] = pair
     return pair
-
-
-def _uniform_weights(n: int, dtype) -> np.ndarray:
-    return _uniform(n, dtype)[1]
 
 
 def _flag(value: bool) -> Tensor:
