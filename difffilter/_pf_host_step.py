@@ -35,7 +35,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._pf_single_run import _propagate
+# the module, not its function: importing _pf_single_run imports particle, which imports this
+from . import _pf_single_run as _single_run
 from .estimator import Generators
 from .noise import Gaussian
 from .particle import ParticleState
@@ -109,7 +110,9 @@ def host_step(pf, carry, y: Tensor, u: Tensor | None, density) -> tuple[Particle
         x_t = torch.from_numpy(x_t.numpy()[ancestors])
         log_w, w = _uniform(n, log_w.dtype)[0], None
 
-    new_t = _propagate(model, x_t, None if u is None else u.unsqueeze(0), k, gens.propagate)
+    new_t = _single_run._propagate(
+        model, x_t, None if u is None else u.unsqueeze(0), k, gens.propagate
+    )
     new = new_t.numpy()
     obs_t = model.observe(new_t, k + 1)
     plain = type(model).measurement_residual is StateSpaceModel.measurement_residual
