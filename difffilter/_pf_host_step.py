@@ -186,22 +186,15 @@ def _symmetrize(a: np.ndarray) -> np.ndarray:
     return out
 
 
-#: ``{(N, dtype): (log-weights −log N [N], weights exp(−log N) [N])}``, read-only: the
-#: weights after resampling (a carry never holds these arrays themselves).
-_UNIFORM: dict = {}
-
-
 def _uniform(n: int, dtype) -> tuple[np.ndarray, np.ndarray]:
-    """``(log w, w)`` of ``N`` equal weights in ``dtype`` (cached, read-only)."""
-    key = (n, dtype)
-    pair = _UNIFORM.get(key)
-    if pair is None:
+    """``(log w, w)`` of ``N`` equal weights in ``dtype`` (cached, read-only: a carry never
+    holds these arrays themselves)."""
+
+    def make():
         log_w = np.full(n, dtype.type(0.0 - math.log(n)))
-        pair = (log_w, np.exp(log_w))
-        for arr in pair:
-            arr.flags.writeable = False
-        _UNIFORM[key] = pair
-    return pair
+        return log_w, np.exp(log_w)
+
+    return _cached(("uniform", n, dtype), make)
 
 
 def _flag(value: bool) -> Tensor:
@@ -232,15 +225,23 @@ def _systematic_ancestors(weights: np.ndarray, generator) -> np.ndarray:
 
 
 _TORCH_DTYPES = {np.float32: torch.float32, np.float64: torch.float64}
-_ARANGE: dict = {}
 
 
 def _arange(n: int, dtype) -> np.ndarray:
-    """``[0, 1, …, N−1]`` in ``dtype``, read-only and cached."""
-    key = (n, dtype)
-    arr = _ARANGE.get(key)
-    if arr is None:
-        arr = np.arange(n, dtype=dtype)
-        arr.flags.writeable = False
-        _ARANGE[key] = arr
-    return arr
+    """``[0, 1, …, N−1]`` in ``dtype`` (cached, read-only)."""
+    return _cached(("arange", n, dtype), lambda: (np.arange(n, dtype=dtype),))[0]
+
+
+#: The constant arrays of the host step by ``(kind, N, dtype)``, read-only.
+_CONSTANTS: dict = {}
+
+
+def _cached(key, make) -> tuple[np.ndarray, ...]:
+    """``make()``'s arrays for ``key``, made once and frozen (``writeable = False``)."""
+    arrays = _CONSTANTS.get(key)
+    if arrays is None:
+        arrays = make()
+        for arr in arrays:
+            arr.flags.writeable = False
+        _CONSTANTS[key] = arrays
+    return arrays
