@@ -6,8 +6,10 @@ the model (dtype, device, shape, finiteness). What that established holds for th
 the step returns as well, so the step *vouches* for it here: the next step, given that
 carry unchanged, re-checks only what is new (``y``, ``u`` and ``mask`` against the shapes,
 dtype and device already established, and their finiteness) and goes straight to the
-unchecked ``_step``. An online estimator deployed on one plant then pays a handful of
-Python comparisons per step instead of the whole validation.
+unchecked ``_step``. :meth:`~difffilter.Estimator.init` vouches for the carry it makes
+(its own making, as the drivers trust it) under the model's dtype and device, so even the
+first step checks only its inputs. An online estimator deployed on one plant then pays a
+handful of Python comparisons per step instead of the whole validation.
 
 "Unchanged" is exact: the carry's leaves (its fields, through nested tuples, lists and
 dicts) must be the very objects vouched for (by identity), and its tensors must not have
@@ -54,12 +56,12 @@ class Established:
 
     __slots__ = ("owner", "dtype", "device", "y_shape", "u_shape", "known")
 
-    def __init__(self, owner, y: Tensor, batch, dim_y: int, dim_u: int):
+    def __init__(self, owner, dtype: torch.dtype, device, batch, dim_y: int, dim_u: int):
         self.owner = weakref.ref(owner)
-        self.dtype, self.device = y.dtype, y.device
+        self.dtype, self.device = dtype, torch.device(device)
         self.y_shape = tuple(batch) + (dim_y,)
         self.u_shape = tuple(batch) + (dim_u,) if dim_u > 0 else None
-        self.known = y.device.type != "meta"
+        self.known = self.device.type != "meta"
 
     def admits(self, y, u, mask) -> tuple[Tensor, Tensor | None, Tensor | None] | None:
         """``(y, u, mask)`` ready for the unchecked step (``y`` zeroed where unreceived) when

@@ -24,7 +24,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from ._checks import check_carry_batch, check_model, check_step_inputs
+from ._checks import check_carry_batch, check_model, check_step_inputs, model_dtype_device
 from ._vouched import Established, hold_whole, vouch, vouched
 from .attack import Channel
 from .results import FilterResult, StepOutput
@@ -189,7 +189,8 @@ class Estimator:
 
     ``init`` and ``step`` validate their inputs and name the offending argument; the
     drivers validate whole sequences once and call the unchecked ``_init``/``_step``.
-    The online ``step`` validates a carry once: the carries it returns are vouched for
+    The online ``step`` validates a carry once: the carries ``init`` and ``step`` return are
+    vouched for
     (:mod:`difffilter._vouched`), so a later step re-checks only ``y``, ``u`` and
     ``mask`` (shape, dtype, device, finiteness) unless :attr:`full_checks` is set.
     Subclasses implement ``_init(model, batch_shape, generators)``,
@@ -213,14 +214,24 @@ class Estimator:
         """The carry of ``batch_shape`` independent runs before the first measurement."""
         check_model(model)
         batch = _batch_shape(batch_shape)
-        return self._init(model, batch, Generators.of(generator))
+        carry = self._init(model, batch, Generators.of(generator))
+        # Validated once, here: the carry is this object's own making (as the drivers trust
+        # ``_init``'s), so the first step, like every later one, checks only its inputs,
+        # against the model's dtype and device (a model holding no tensors fixes neither:
+        # the first step then validates in full and establishes them from ``y``).
+        dtype, device = model_dtype_device(model)
+        if dtype is not None and not self.full_checks:
+            established = Established(self, dtype, device, self.batch_of(carry), model.dim_y,
+                                      model.dim_u)  # fmt: skip
+            vouch(carry, established)
+        return carry
 
     def step(self, carry, y: Tensor, u: Tensor | None = None, mask: Tensor | None = None):
         """One step ``k−1 → k`` with ``y_k``, ``u_{k−1}`` and ``mask_k``; returns
         ``(carry, StepOutput)``. The carry given is not modified.
 
-        A carry this estimator object returned (from an earlier ``step``), unchanged since,
-        is not validated again: only ``y``, ``u`` and ``mask`` are, against the shapes,
+        A carry this estimator object returned (from ``init`` or an earlier ``step``),
+        unchanged since, is not validated again: only ``y``, ``u`` and ``mask`` are, against the shapes,
         dtype and device the first step established (:mod:`difffilter._vouched`). Any
         other carry, and inputs of another shape or dtype, get the full checks and their
         errors; set :attr:`full_checks` to run them at every step.
@@ -243,7 +254,8 @@ class Estimator:
         check_carry_batch(self.batch_of(carry), y, u, mask)
         new, out = self._step(carry, y, u, mask)
         if not self.full_checks:
-            vouch(new, Established(self, y, self.batch_of(new), model.dim_y, model.dim_u))
+            batch = self.batch_of(new)
+            vouch(new, Established(self, y.dtype, y.device, batch, model.dim_y, model.dim_u))
         return new, out
 
     def batch_of(self, carry) -> torch.Size:
