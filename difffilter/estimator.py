@@ -215,10 +215,11 @@ class Estimator:
         check_model(model)
         batch = _batch_shape(batch_shape)
         carry = self._init(model, batch, Generators.of(generator))
-        # Validated once, here: the carry is this object's own making (as the drivers trust
-        # ``_init``'s), so the first step, like every later one, checks only its inputs,
-        # against the model's dtype and device (a model holding no tensors fixes neither:
-        # the first step then validates in full and establishes them from ``y``).
+        # Validated once, here (a model's own prior of the wrong shape is named now, not
+        # at the first step), and vouched for: the first step, like every later one, checks
+        # only its inputs, against the model's dtype and device (a model holding no tensors
+        # fixes neither: the first step then establishes them from ``y``).
+        self._check_carry(carry)
         dtype, device = model_dtype_device(model)
         if dtype is not None and not self.full_checks:
             established = Established(self, dtype, device, self.batch_of(carry), model.dim_y,

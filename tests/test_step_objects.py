@@ -306,10 +306,10 @@ def _counting_carry_checks(est) -> list:
 @pytest.mark.parametrize("batch", [(), (3,)])
 @pytest.mark.parametrize("name", ALL)
 def test_the_lean_step_equals_the_fully_checked_step(name, batch):
-    """A carry ``init`` made is never validated again (``init`` vouches for it), nor are
-    those the steps return: only the new inputs are; the numbers equal those of
-    ``full_checks`` (every step validated in full) exactly, masked and unmasked steps
-    alike."""
+    """A carry is validated once, by ``init``, which vouches for it; neither it nor the
+    carries the steps return are validated again: only the new inputs are; the numbers
+    equal those of ``full_checks`` (every step validated in full) exactly, masked and
+    unmasked steps alike."""
     T = 6
     ys, us = _data(batch, T, seed=1)
     mask = torch.rand(*batch, T, 2, generator=torch.Generator().manual_seed(1)) < 0.7
@@ -327,7 +327,7 @@ def test_the_lean_step_equals_the_fully_checked_step(name, batch):
         left, right = _tensors(a, out_a), _tensors(b, out_b)
         assert len(left) == len(right)
         assert all(torch.equal(x, z) for x, z in zip(left, right)), f"step {t} differs"
-    assert len(lean_calls) == 0 and len(checked_calls) == T
+    assert len(lean_calls) == 1 and len(checked_calls) == 1 + T
 
 
 @pytest.mark.parametrize("name", ["kf", "ukf", "gated", "pf", "modified_pf"])
@@ -349,6 +349,25 @@ def test_bad_inputs_next_to_a_vouched_carry_are_still_named(name):
     if name == "kf":  # finite entries whose sum overflows: validated in full, accepted
         est.step(carry, torch.full((3, 2), 1e308, dtype=F64), u)
     est.step(carry, y, u)  # and the carry is as good as before the errors
+
+
+class _PriorOfTheWrongSize:
+    """A user's model whose prior has three entries where the state has four."""
+
+    def __init__(self, model):
+        self.model = model
+        self.initial = df.noise.Gaussian(torch.zeros(3, dtype=F64), torch.eye(3, dtype=F64))
+
+    def __getattr__(self, name):
+        return getattr(self.model, name)
+
+
+@pytest.mark.parametrize("name", ["kf", "ukf", "gated"])
+def test_init_names_a_prior_that_does_not_fit_the_state(name):
+    """``init`` validates the carry it makes (the steps then trust it): a prior of the
+    wrong size is named there, not left to a shape error deep in the first step."""
+    est = BUILDERS[name]()
+    raises_naming("[..., 4]", est.init, _PriorOfTheWrongSize(CV), (2,), _gens())
 
 
 def test_a_vouched_carry_changed_afterwards_is_validated_again():
