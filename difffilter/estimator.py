@@ -189,10 +189,10 @@ class Estimator:
 
     ``init`` and ``step`` validate their inputs and name the offending argument; the
     drivers validate whole sequences once and call the unchecked ``_init``/``_step``.
-    The online ``step`` validates a carry once: the carries ``init`` and ``step`` return are
-    vouched for
-    (:mod:`difffilter._vouched`), so a later step re-checks only ``y``, ``u`` and
-    ``mask`` (shape, dtype, device, finiteness) unless :attr:`full_checks` is set.
+    A carry is validated once: ``init`` validates the carry it makes, and the carries
+    ``init`` and ``step`` return are vouched for (:mod:`difffilter._vouched`), so a step
+    re-checks only ``y``, ``u`` and ``mask`` (shape, dtype, device, finiteness) unless
+    :attr:`full_checks` is set.
     Subclasses implement ``_init(model, batch_shape, generators)``,
     ``_step(carry, y, u, mask)`` and ``_check_carry(carry)`` (what a valid carry is), and
     may provide a whole-sequence fast path ``_run(carry, ys, us, mask)`` returning an
@@ -232,10 +232,11 @@ class Estimator:
         ``(carry, StepOutput)``. The carry given is not modified.
 
         A carry this estimator object returned (from ``init`` or an earlier ``step``),
-        unchanged since, is not validated again: only ``y``, ``u`` and ``mask`` are, against the shapes,
-        dtype and device the first step established (:mod:`difffilter._vouched`). Any
-        other carry, and inputs of another shape or dtype, get the full checks and their
-        errors; set :attr:`full_checks` to run them at every step.
+        unchanged since, is not validated again: only ``y``, ``u`` and ``mask`` are,
+        against the shapes, dtype and device established for it (the model's, the runs'
+        batch: :mod:`difffilter._vouched`). Any other carry, and inputs of another shape or
+        dtype, get the full checks and their errors; set :attr:`full_checks` to run them at
+        every step.
         """
         established = None if self.full_checks else vouched(self, carry)
         if established is not None:
