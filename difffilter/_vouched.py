@@ -6,10 +6,10 @@ the model (dtype, device, shape, finiteness). What that established holds for th
 the step returns as well, so the step *vouches* for it here: the next step, given that
 carry unchanged, re-checks only what is new (``y``, ``u`` and ``mask`` against the shapes,
 dtype and device already established, and their finiteness) and goes straight to the
-unchecked ``_step``. :meth:`~difffilter.Estimator.init` validates the carry it makes
-and vouches for it under the model's dtype and device, so even the first step checks only
-its inputs. An online estimator deployed on one plant then pays a
-handful of Python comparisons per step instead of the whole validation.
+unchecked ``_step``. :meth:`~difffilter.Estimator.init` validates the carry it makes and
+vouches for it under the model's dtype and device, so even the first step checks only its
+inputs. An online estimator deployed on one plant then pays a handful of Python
+comparisons per step instead of the whole validation.
 
 "Unchanged" is exact: the carry's leaves (its fields, through nested tuples, lists and
 dicts) must be the very objects vouched for (by identity), and its tensors must not have

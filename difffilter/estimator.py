@@ -221,10 +221,8 @@ class Estimator:
         # fixes neither: the first step then establishes them from ``y``).
         self._check_carry(carry)
         dtype, device = model_dtype_device(model)
-        if dtype is not None and not self.full_checks:
-            established = Established(self, dtype, device, self.batch_of(carry), model.dim_y,
-                                      model.dim_u)  # fmt: skip
-            vouch(carry, established)
+        if dtype is not None:
+            self._vouch(carry, dtype, device)
         return carry
 
     def step(self, carry, y: Tensor, u: Tensor | None = None, mask: Tensor | None = None):
@@ -255,10 +253,17 @@ class Estimator:
         y, u, mask = check_step_inputs(model, None, y, u, mask)
         check_carry_batch(self.batch_of(carry), y, u, mask)
         new, out = self._step(carry, y, u, mask)
-        if not self.full_checks:
-            batch = self.batch_of(new)
-            vouch(new, Established(self, y.dtype, y.device, batch, model.dim_y, model.dim_u))
+        self._vouch(new, y.dtype, y.device)
         return new, out
+
+    def _vouch(self, carry, dtype: torch.dtype, device) -> None:
+        """Vouch for ``carry`` (validated, or made from validated inputs): later steps
+        from it check only measurements of ``dtype`` on ``device`` for its runs
+        (:mod:`difffilter._vouched`); nothing under :attr:`full_checks`."""
+        if not self.full_checks:
+            model = carry.model
+            vouch(carry, Established(self, dtype, device, self.batch_of(carry), model.dim_y,
+                                     model.dim_u))  # fmt: skip
 
     def batch_of(self, carry) -> torch.Size:
         """The batch shape of the runs a carry holds."""
