@@ -44,10 +44,16 @@ class DifffilterCLI(LightningCLI):
 
     def before_fit(self):
         """A ``fast_dev_run`` writes no checkpoint (its ``last.ckpt`` landed in
-        ``./checkpoints/``, beside the shipped files)."""
+        ``./checkpoints/``, beside the shipped files); otherwise a checkpoint callback that
+        keeps a ``last.ckpt`` keeps it at every epoch, not only at its improvements
+        (:mod:`difffilter.train.last_checkpoint`): an interrupted run resumes where it was."""
+        from .last_checkpoint import add_last_every_epoch
+
         if self.trainer.fast_dev_run:
             for cb in self.trainer.checkpoint_callbacks:
                 cb.save_last, cb.save_top_k = False, 0
+            return
+        add_last_every_epoch(self.trainer)
 
     def before_validate(self):
         self._load_exported("validate")

@@ -1,0 +1,125 @@
+"""``last.ckpt`` follows every epoch (``difffilter.train.last_checkpoint``): a run whose
+monitored metric stopped improving, interrupted, resumes where it was, not from its last
+improvement."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import lightning.pytorch as pl
+import pytest
+import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
+from torch.utils.data import DataLoader, TensorDataset
+
+from difffilter.train.last_checkpoint import LastCheckpointEveryEpoch, add_last_every_epoch
+from difffilter.train.lightning_cli import DifffilterCLI
+
+BATCHES = 2
+
+
+class _Worsening(pl.LightningModule):
+    """One weight; its validation metric is the epoch number, so it never improves after
+    the first epoch (a ``mode="min"`` checkpoint saves its best at epoch 0 only)."""
+
+    def __init__(self):
+        super().__init__()
+        self.w = torch.nn.Parameter(torch.zeros(1))
+
+    def training_step(self, batch, batch_idx):
+        return ((self.w - batch[0]) ** 2).sum()
+
+    def validation_step(self, batch, batch_idx):
+        self.log("val/metric", float(self.current_epoch))
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=0.1)
+
+    def train_dataloader(self):
+        return DataLoader(TensorDataset(torch.ones(BATCHES, 1)), batch_size=1)
+
+    def val_dataloader(self):
+        return DataLoader(TensorDataset(torch.ones(1, 1)), batch_size=1)
+
+
+class _StopAfter(pl.Callback):
+    """An interruption: the run stops after epoch ``epoch``."""
+
+    def __init__(self, epoch: int):
+        self.epoch = epoch
+
+    def on_train_epoch_end(self, trainer, pl_module):
+        if trainer.current_epoch == self.epoch:
+            trainer.should_stop = True
+
+
+class _CountBatches(pl.Callback):
+    def __init__(self):
+        self.batches = 0
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        self.batches += 1
+
+
+def _trainer(folder, epochs: int, *extra) -> pl.Trainer:
+    best = ModelCheckpoint(dirpath=folder, monitor="val/metric", mode="min", save_last=True,
+                           save_top_k=1, filename="best-{epoch:02d}")  # fmt: skip
+    trainer = pl.Trainer(
+        max_epochs=epochs, callbacks=[best, *extra], logger=False, enable_progress_bar=False,
+        enable_model_summary=False, num_sanity_val_steps=0, accelerator="cpu", devices=1,
+    )  # fmt: skip
+    add_last_every_epoch(trainer)
+    return trainer
+
+
+def _epoch_of(path) -> int:
+    return torch.load(path, map_location="cpu", weights_only=True)["epoch"]
+
+
+def test_last_checkpoint_follows_every_epoch_not_only_the_improvements(tmp_path):
+    _trainer(tmp_path, 3).fit(_Worsening())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["best-epoch=00.ckpt", "last.ckpt"]
+    assert _epoch_of(tmp_path / "last.ckpt") == 2  # the epoch reached, not the best one (0)
+
+
+def test_an_interrupted_run_resumes_at_the_epoch_it_reached(tmp_path):
+    cut = _trainer(tmp_path, 4, _StopAfter(2))
+    cut.fit(_Worsening())
+    assert cut.current_epoch == 3 and _epoch_of(tmp_path / "last.ckpt") == 2
+
+    count = _CountBatches()
+    resumed = _trainer(tmp_path, 4, count)
+    resumed.fit(_Worsening(), ckpt_path=tmp_path / "last.ckpt")
+    assert count.batches == BATCHES  # it trained epoch 3 alone (not 1, 2 and 3 again)
+    assert resumed.global_step == 4 * BATCHES
+    # the best checkpoint's own bookkeeping came back with it: still epoch 0's file
+    best = resumed.checkpoint_callback
+    assert best.best_model_path.endswith("best-epoch=00.ckpt")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["best-epoch=00.ckpt", "last.ckpt"]
+
+
+def test_fit_adds_it_beside_a_monitored_checkpoint_only(tmp_path):
+    monitored = ModelCheckpoint(dirpath=tmp_path, monitor="val/metric", save_last=True)
+    every_epoch = ModelCheckpoint(dirpath=tmp_path / "b", save_last=True)  # no monitor
+    no_last = ModelCheckpoint(dirpath=tmp_path / "c", monitor="val/other")
+    trainer = pl.Trainer(callbacks=[monitored, every_epoch, no_last], logger=False,
+                         enable_progress_bar=False, accelerator="cpu", devices=1)  # fmt: skip
+    DifffilterCLI.before_fit(SimpleNamespace(trainer=trainer))
+    added = [cb for cb in trainer.callbacks if isinstance(cb, LastCheckpointEveryEpoch)]
+    assert [cb.checkpoint for cb in added] == [monitored]
+    # after the checkpoint callbacks, so that the file holds their state of the epoch
+    assert trainer.callbacks.index(added[0]) > trainer.callbacks.index(no_last)
+
+
+def test_fast_dev_run_gets_none(tmp_path):
+    monitored = ModelCheckpoint(dirpath=tmp_path, monitor="val/metric", save_last=True)
+    trainer = pl.Trainer(callbacks=[monitored], logger=False, fast_dev_run=True,
+                         enable_progress_bar=False, accelerator="cpu", devices=1)  # fmt: skip
+    DifffilterCLI.before_fit(SimpleNamespace(trainer=trainer))
+    assert not any(isinstance(cb, LastCheckpointEveryEpoch) for cb in trainer.callbacks)
+    assert monitored.save_last is False and monitored.save_top_k == 0
+
+
+def test_it_needs_a_model_checkpoint():
+    with pytest.raises(ValueError, match="checkpoint must be a ModelCheckpoint; got str"):
+        LastCheckpointEveryEpoch("last.ckpt")

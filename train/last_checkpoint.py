@@ -1,0 +1,64 @@
+"""``last.ckpt`` at the end of every epoch, so that an interrupted training loses nothing.
+
+A ``ModelCheckpoint`` with a ``monitor`` and ``save_last=True`` writes ``last.ckpt`` only
+when it also writes a best checkpoint (Lightning ≥ 2.5: "saves a last.ckpt copy whenever a
+checkpoint file gets saved"), that is, only in an epoch where the monitored metric
+improved. A run stopped after a few epochs without improvement then resumes from the last
+improvement and trains those epochs again (an LFC training of 30 epochs, two or three
+minutes each, lost seven of them so). :class:`LastCheckpointEveryEpoch` writes the same
+file at the end of every epoch, after the checkpoint callbacks have updated their own
+state (it runs after them), so ``--ckpt_path <run>/checkpoints/last.ckpt`` resumes from the
+epoch the run reached. ``difffilter-train fit`` adds one beside every such callback
+(:meth:`~difffilter.train.lightning_cli.DifffilterCLI.before_fit`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import lightning.pytorch as pl
+from lightning.pytorch.callbacks import ModelCheckpoint
+
+__all__ = ["LastCheckpointEveryEpoch", "add_last_every_epoch"]
+
+
+class LastCheckpointEveryEpoch(pl.Callback):
+    """Write ``checkpoint``'s ``last.ckpt`` at the end of every training epoch (after its
+    validation, where the epoch has one), where ``checkpoint`` keeps it for improvements
+    only (module docstring). Placed after the checkpoint callbacks, so that the file holds
+    their state of this epoch."""
+
+    def __init__(self, checkpoint: ModelCheckpoint):
+        if not isinstance(checkpoint, ModelCheckpoint):
+            raise ValueError(
+                f"checkpoint must be a ModelCheckpoint; got {type(checkpoint).__name__}"
+            )
+        self.checkpoint = checkpoint
+        self._written_at_step: int | None = None
+
+    def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        self._write(trainer)
+
+    def on_train_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        self._write(trainer)  # an epoch without validation (written once per step count)
+
+    def _write(self, trainer: pl.Trainer) -> None:
+        if trainer.sanity_checking or trainer.fast_dev_run or trainer.state.fn != "fit":
+            return
+        if self.checkpoint.dirpath is None or self._written_at_step == trainer.global_step:
+            return
+        cb = self.checkpoint
+        path = Path(cb.dirpath) / f"{cb.CHECKPOINT_NAME_LAST}{cb.FILE_EXTENSION}"
+        # the callback's own idea of its last file: its next write goes to the same path
+        cb.last_model_path = str(path)
+        trainer.save_checkpoint(path)
+        self._written_at_step = trainer.global_step
+
+
+def add_last_every_epoch(trainer: pl.Trainer) -> None:
+    """Append a :class:`LastCheckpointEveryEpoch` for each of ``trainer``'s checkpoint
+    callbacks that keeps a ``last.ckpt`` and watches a metric (the others write one every
+    epoch already)."""
+    for cb in list(trainer.checkpoint_callbacks):
+        if cb.save_last and cb.monitor is not None:
+            trainer.callbacks.append(LastCheckpointEveryEpoch(cb))
