@@ -1,14 +1,18 @@
-"""``last.ckpt`` at the end of every epoch, so that an interrupted training loses nothing.
+"""``last.ckpt`` at the end of every epoch, so that an interrupted training loses at most
+the epoch it was in.
 
 A ``ModelCheckpoint`` with a ``monitor`` and ``save_last=True`` writes ``last.ckpt`` only
-when it also writes a best checkpoint (Lightning ≥ 2.5: "saves a last.ckpt copy whenever a
-checkpoint file gets saved"), that is, only in an epoch where the monitored metric
-improved. A run stopped after a few epochs without improvement then resumes from the last
-improvement and trains those epochs again (an LFC training of 30 epochs, two or three
-minutes each, lost seven of them so). :class:`LastCheckpointEveryEpoch` writes the same
-file at the end of every epoch, after the checkpoint callbacks have updated their own
-state (it runs after them), so ``--ckpt_path <run>/checkpoints/last.ckpt`` resumes from the
-epoch the run reached. ``difffilter-train fit`` adds one beside every such callback
+when it also writes a best checkpoint (Lightning 2.6, here; 2.2 wrote it every epoch: "saves
+a last.ckpt copy whenever a checkpoint file gets saved"), that is, only in an epoch where
+the monitored metric improved. A run stopped after a few epochs without improvement then
+resumes from the last improvement and trains those epochs again (an LFC training of 30
+epochs, two or three minutes each, stopped in epoch 10 with its ``last.ckpt`` at epoch 5).
+:class:`LastCheckpointEveryEpoch` writes the same file at the end of every epoch, after the
+checkpoint callbacks have updated their own state (it runs after them, which is why
+``difffilter-train fit`` appends it rather than a module's ``configure_callbacks``, whose
+callbacks Lightning places before the checkpoint callbacks), so ``--ckpt_path
+<run>/checkpoints/last.ckpt`` resumes from the epoch the run reached. ``difffilter-train
+fit`` adds one beside every such callback
 (:meth:`~difffilter.train.lightning_cli.DifffilterCLI.before_fit`).
 """
 

@@ -5,8 +5,8 @@ For every seed ``s`` the sweep runs ``fit`` with ``--seed_everything s``, the ne
 ``model_seed s`` and the data's ``train_seed 1 + 10 s`` (the validation and test seeds
 stay the config's), logging into ``<out>/runs/<name>/seed_<s>/``. A seed whose exported
 estimator is already there is not trained again, and one interrupted after a Lightning
-checkpoint resumes from its ``last.ckpt`` (every epoch's): an interrupted sweep loses at most the
-epoch it was in.
+checkpoint resumes from its ``last.ckpt`` (written at every epoch): an interrupted sweep
+loses at most the epoch it was in.
 
 Each seed's estimator is then evaluated on the headline scenarios of its family (or
 ``--scenarios``) with ``difffilter-eval``'s draws (``--seed 0``) and its calibration (every
