@@ -15,6 +15,7 @@ import torch
 from lightning.pytorch.cli import LightningCLI
 
 from difffilter.runtime import tune_cpu_allocator
+from difffilter.train.last_checkpoint import add_last_every_epoch
 
 __all__ = ["DifffilterCLI", "run"]
 
@@ -47,8 +48,6 @@ class DifffilterCLI(LightningCLI):
         ``./checkpoints/``, beside the shipped files); otherwise a checkpoint callback that
         keeps a ``last.ckpt`` keeps it at every epoch, not only at its improvements
         (:mod:`difffilter.train.last_checkpoint`): an interrupted run resumes where it was."""
-        from .last_checkpoint import add_last_every_epoch
-
         if self.trainer.fast_dev_run:
             for cb in self.trainer.checkpoint_callbacks:
                 cb.save_last, cb.save_top_k = False, 0
