@@ -38,6 +38,8 @@ __all__ = [
     "gaussian_update",
     "predict_covariance",
     "linear_predict",
+    "linear_innovation",
+    "innovation_log_prob",
     "linear_update",
 ]
 
@@ -93,6 +95,12 @@ def gaussian_update(
     Returns ``(m⁺, P⁺, S, log N(r; 0, S))``.
     """
     S = symmetrize(pred_obs_cov + noise_cov)
+    return _update_given(pred_mean, pred_cov, residual, cross_cov, S, obs_matrix, noise_cov,
+                         observed)  # fmt: skip
+
+
+def _update_given(pred_mean, pred_cov, residual, cross_cov, S, obs_matrix, noise_cov, observed):
+    """:func:`gaussian_update` from its innovation covariance ``S`` (symmetrised)."""
     gain, chol = kalman_gain(cross_cov, S)  # K = C S⁻¹  [..., dx, dy]
     mean = pred_mean + matvec(gain, residual)
     cov = joseph_covariance(pred_cov, gain, obs_matrix, noise_cov)
@@ -125,6 +133,32 @@ def linear_predict(
     return pred_mean, predict_covariance(cov, transition, process_cov)
 
 
+def linear_innovation(
+    pred_mean: Tensor,
+    pred_cov: Tensor,
+    residual: Tensor,
+    obs_matrix: Tensor,
+    noise_cov: Tensor,
+    mask: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor | int]:
+    """The KF/EKF innovation moments of ``r = y − ŷ⁻`` without the posterior:
+    ``(r', S, C, H', R', observed)`` with ``r'``, ``H'``, ``R'`` the masked residual, matrix
+    and noise (:func:`~difffilter.linalg.masked_measurement`), ``C = P⁻H'ᵀ`` and
+    ``S = sym(H' C + R')`` (the numbers :func:`linear_update` computes them with: it calls
+    this). Shapes as there; ``C [..., dx, dy]``."""
+    residual, H, R, observed = masked_measurement(residual, obs_matrix, noise_cov, mask)
+    cross = pred_cov @ H.transpose(-1, -2)
+    return residual, symmetrize(H @ cross + R), cross, H, R, observed
+
+
+def innovation_log_prob(residual: Tensor, innovation_cov: Tensor, observed: Tensor | int) -> Tensor:
+    """``log N(r; 0, S)`` ``[...]`` as :func:`gaussian_update` computes it (the same Cholesky
+    factor of ``sym(S)``, the same density): for a caller that needs the evidence of a
+    measurement without its update."""
+    chol = safe_cholesky(symmetrize(innovation_cov), name="innovation covariance S")
+    return gaussian_log_prob_chol(residual, chol, observed)
+
+
 def linear_update(
     pred_mean: Tensor,
     pred_cov: Tensor,
@@ -139,9 +173,8 @@ def linear_update(
     ``mask [..., dy]`` (bool) or ``None``. Returns ``(m⁺, P⁺, r', S, log N(r'; 0, S))`` with
     ``r'`` the residual with unreceived entries zeroed.
     """
-    residual, H, R, observed = masked_measurement(residual, obs_matrix, noise_cov, mask)
-    cross = pred_cov @ H.transpose(-1, -2)
-    mean, cov, S, log_lik = gaussian_update(
-        pred_mean, pred_cov, residual, cross, H @ cross, H, R, observed
+    residual, S, cross, H, R, observed = linear_innovation(
+        pred_mean, pred_cov, residual, obs_matrix, noise_cov, mask
     )
+    mean, cov, S, log_lik = _update_given(pred_mean, pred_cov, residual, cross, S, H, R, observed)
     return mean, cov, residual, S, log_lik

@@ -34,7 +34,7 @@ from ._checks import Choice, NonFinite, check_carry_tensor
 from ._shared_cov import shared_covariance_applies, shared_covariance_kalman_filter
 from .estimator import Estimator, output_of
 from .gain_schedule import GainSchedule, shared_gains_apply
-from .gaussian import linear_predict, linear_update
+from .gaussian import innovation_log_prob, linear_innovation, linear_predict, linear_update
 from .linalg import matvec
 from .loop import open_loop
 from .parallel_kalman import parallel_kalman_filter
@@ -215,7 +215,14 @@ class KalmanFilter(GaussianFilter):
 
     def innovation(self, carry, prediction, y, mask, *, evidence: bool = True):
         if carry.gains is None or mask is not None:
-            return super().innovation(carry, prediction, y, mask, evidence=evidence)
+            # the update's own ν and S (and density), without its gain and posterior
+            model, k = carry.model, carry.k + 1
+            H = model.observation_matrix(k)
+            nu, S, _, _, _, observed = linear_innovation(
+                prediction.mean, prediction.cov, y - matvec(H, prediction.mean), H,
+                model.measurement_cov(k), mask,
+            )  # fmt: skip
+            return nu, S, innovation_log_prob(nu, S, observed) if evidence else None
         m = carry.gains.moments(carry.k + 1)
         nu = carry.gains.innovation(prediction.mean, y)
         ell = -0.5 * matvec(m.whiten, nu).square().sum(-1) - m.log_norm if evidence else None

@@ -538,3 +538,36 @@ def test_the_online_step_is_differentiable_in_the_models_matrices(generator):
         assert (
             df.KalmanFilter().init(model_of(F.detach(), Lq.detach(), Lr.detach())).gains is not None
         )
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_innovation_is_the_updates_own_without_its_posterior(masked):
+    """KalmanFilter.innovation on per-run covariances (no shared gains) returns the very
+    ν, S and log N(ν; 0, S) of the update (the same numbers, bit for bit), without its
+    gain and posterior, and S equals H P⁻ Hᵀ + R (the masked entries' unit variance)."""
+    model = _random_linear_model()
+    gen = torch.Generator().manual_seed(3)
+    kf = df.KalmanFilter()
+    a = torch.randn(4, 5, 5, generator=gen, dtype=torch.float64)
+    carry = kf.init(model, (4,))._replace(
+        cov=a @ a.mT + torch.eye(5, dtype=torch.float64), gains=None
+    )
+    y = torch.randn(4, 3, generator=gen, dtype=torch.float64)
+    u = torch.randn(4, 2, generator=gen, dtype=torch.float64)
+    mask = torch.tensor([[True, False, True], [True] * 3, [False, True, True], [False] * 3])
+    mask = mask if masked else None
+    pred = kf.predict(carry, u)
+    nu, S, ell = kf.innovation(carry, pred, y, mask)
+    _, out = kf.update(carry, pred, y, mask)
+    for got, want in ((nu, out.innovation), (S, out.innovation_cov), (ell, out.log_likelihood)):
+        assert torch.equal(got, want)
+    H, R = model.observation_matrix(1), model.measurement_cov(1)
+    want_S = H @ pred.cov @ H.T + R
+    want_nu = y - pred.mean @ H.T
+    if masked:  # unreceived entries: zero residual, unit variance, uncorrelated
+        keep = mask.double()
+        want_S = keep[:, :, None] * want_S * keep[:, None, :] + torch.diag_embed(1.0 - keep)
+        want_nu = want_nu * keep
+    torch.testing.assert_close(S, want_S, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(nu, want_nu, rtol=1e-12, atol=1e-12)
+    assert kf.innovation(carry, pred, y, mask, evidence=False)[2] is None

@@ -564,10 +564,10 @@ class NeuralCompensation(Estimator):
         plain, plain_feature, quiet = carry.plain, None, None
         if plain is not None:  # the copy that never reads the estimate
             plain_pred = inner.predict(plain, u)
-            plain_nu, plain_S, _ = inner.innovation(plain, plain_pred, y, mask, evidence=False)
+            plain, plain_out = inner.update(plain, plain_pred, y, mask)  # (its ν and S too)
+            plain_nu, plain_S = plain_out.innovation, plain_out.innovation_cov
             if "plain_innovation" in core.features:
                 plain_feature = plain_nu / _std(plain_S)
-            plain, _ = inner.update(plain, plain_pred, y, mask)
             if self.restart is not None:
                 if mask is not None:
                     raise ValueError("restart tests every channel of the uncompensated copy: "
