@@ -7,8 +7,10 @@ One step ``k−1 → k`` of a Gaussian filter is three textbook blocks::
     update    m⁺ = m⁻ + K r                  P⁺ = (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ
     evidence  log p(y_k | y_{1:k−1}) = log N(r; 0, S)                       (gaussian_update)
 
-with ``C_xy = P⁻ Hᵀ`` and ``C_yy = H P⁻ Hᵀ`` for the KF and EKF (:func:`linear_update`)
-and their sigma-point estimates for the UKF. Every Gaussian update of the library takes
+with ``C_xy = P⁻ Hᵀ`` and ``C_yy = H P⁻ Hᵀ`` for the KF and EKF (:func:`linear_update`;
+:func:`linear_innovation` and :func:`innovation_log_prob` give ``r``, ``S`` and the evidence
+alone, the same numbers, for a caller that reads them before it updates) and their
+sigma-point estimates for the UKF. Every Gaussian update of the library takes
 its pieces from here: the Kalman filter (sequential, parallel-in-time and the
 shared-covariance path), the gain schedule, the EKF and UKF, the Kalman proposal of the
 particle filter, Zhang's adaptive Kalman filter and the MDPF's local filters, the attack
@@ -134,18 +136,13 @@ def linear_predict(
 
 
 def linear_innovation(
-    pred_mean: Tensor,
-    pred_cov: Tensor,
-    residual: Tensor,
-    obs_matrix: Tensor,
-    noise_cov: Tensor,
-    mask: Tensor | None = None,
+    pred_cov: Tensor, residual: Tensor, obs_matrix: Tensor, noise_cov: Tensor, mask=None
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor | int]:
     """The KF/EKF innovation moments of ``r = y − ŷ⁻`` without the posterior:
     ``(r', S, C, H', R', observed)`` with ``r'``, ``H'``, ``R'`` the masked residual, matrix
     and noise (:func:`~difffilter.linalg.masked_measurement`), ``C = P⁻H'ᵀ`` and
     ``S = sym(H' C + R')`` (the numbers :func:`linear_update` computes them with: it calls
-    this). Shapes as there; ``C [..., dx, dy]``."""
+    this). Shapes as there (``mask [..., dy]`` bool or ``None``); ``C [..., dx, dy]``."""
     residual, H, R, observed = masked_measurement(residual, obs_matrix, noise_cov, mask)
     cross = pred_cov @ H.transpose(-1, -2)
     return residual, symmetrize(H @ cross + R), cross, H, R, observed
@@ -174,7 +171,7 @@ def linear_update(
     ``r'`` the residual with unreceived entries zeroed.
     """
     residual, S, cross, H, R, observed = linear_innovation(
-        pred_mean, pred_cov, residual, obs_matrix, noise_cov, mask
+        pred_cov, residual, obs_matrix, noise_cov, mask
     )
     mean, cov, S, log_lik = _update_given(pred_mean, pred_cov, residual, cross, S, H, R, observed)
     return mean, cov, residual, S, log_lik

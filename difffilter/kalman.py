@@ -219,9 +219,8 @@ class KalmanFilter(GaussianFilter):
             model, k = carry.model, carry.k + 1
             H = model.observation_matrix(k)
             nu, S, _, _, _, observed = linear_innovation(
-                prediction.mean, prediction.cov, y - matvec(H, prediction.mean), H,
-                model.measurement_cov(k), mask,
-            )  # fmt: skip
+                prediction.cov, y - matvec(H, prediction.mean), H, model.measurement_cov(k), mask
+            )
             return nu, S, innovation_log_prob(nu, S, observed) if evidence else None
         m = carry.gains.moments(carry.k + 1)
         nu = carry.gains.innovation(prediction.mean, y)
