@@ -23,7 +23,16 @@ from difffilter.metrics import finite_scores as _finite_scores
 from difffilter.metrics import threshold_for
 from difffilter.models.streams import Streams
 
-__all__ = ["Calibration", "threshold_for", "calibrate", "calibrated_metrics", "calibration_seed"]
+from .scoring import AFTER_ATTACK_STEPS
+
+__all__ = [
+    "Calibration",
+    "after_attack",
+    "threshold_for",
+    "calibrate",
+    "calibrated_metrics",
+    "calibration_seed",
+]
 
 
 @dataclass(frozen=True)
@@ -103,13 +112,18 @@ def calibrate(
 
 
 def calibrated_metrics(output, traj, threshold: float | None, *, attacked_input: bool = True):
-    """``threshold_at_far``, ``tpr_at_far``, ``fpr_at_far`` and ``impact`` of one estimator's
-    ``output`` on ``traj`` at ``threshold`` (``None``: all ``None``).
+    """``threshold_at_far``, ``tpr_at_far``, ``fpr_at_far``, ``fpr_at_far_after_attack`` and
+    ``impact`` of one estimator's ``output`` on ``traj`` at ``threshold`` (``None``: all
+    ``None``).
 
-    ``impact``: over the attacked runs, the mean of the largest estimation error
+    ``fpr_at_far_after_attack``: the alarm rate on the attack-free steps 1 to
+    :data:`AFTER_ATTACK_STEPS` after an attacked step of the same run (the false alarms an
+    attack leaves behind, which ``fpr_at_far`` counts with the rest; ``None`` without such
+    steps). ``impact``: over the attacked runs, the mean of the largest estimation error
     ``‖x̂_k − x_k‖`` at attacked steps before the run's first alarm on an attacked step at
     the threshold (the error an attacker causes while the detector has not seen it)."""
-    out = dict.fromkeys(("threshold_at_far", "tpr_at_far", "fpr_at_far", "impact"))
+    out = dict.fromkeys(("threshold_at_far", "tpr_at_far", "fpr_at_far",
+                         "fpr_at_far_after_attack", "impact"))  # fmt: skip
     det = output.detection
     if threshold is None or det is None or det.scores is None:
         return out
@@ -121,6 +135,9 @@ def calibrated_metrics(output, traj, threshold: float | None, *, attacked_input:
         out["fpr_at_far"] = float(alarms[~flags].double().mean())
     if bool(flags.any()):
         out["tpr_at_far"] = float(alarms[flags].double().mean())
+        after = after_attack(flags, AFTER_ATTACK_STEPS)
+        if bool(after.any()):
+            out["fpr_at_far_after_attack"] = float(alarms[after].double().mean())
         # attacked and before the first alarm on an attacked step (a false alarm before the
         # onset does not count as seeing the attack)
         unseen = flags & ((alarms & flags).long().cumsum(-1) == 0)
@@ -129,3 +146,15 @@ def calibrated_metrics(output, traj, threshold: float | None, *, attacked_input:
         attacked_runs = flags.any(-1)
         out["impact"] = float(worst[attacked_runs].mean())
     return out
+
+
+def after_attack(flags, steps: int):
+    """``[..., T]`` bool: the attack-free steps ``1 … steps`` after the last attacked step of
+    their run (``flags [..., T]``, ``True`` where attacked): ``t − max{s ≤ t : flags_s}`` in
+    ``[1, steps]``, from one running maximum over the steps."""
+    T = flags.shape[-1]
+    index = torch.arange(T, device=flags.device).expand(flags.shape)
+    never = torch.full_like(index, -(T + steps + 1))  # before any step: never within reach
+    last = torch.where(flags, index, never).cummax(-1).values
+    since = index - last
+    return (since >= 1) & (since <= steps)

@@ -26,6 +26,7 @@ from difffilter.estimator import EstimatorOutput
 
 __all__ = [
     "Metric",
+    "AFTER_ATTACK_STEPS",
     "METRICS",
     "FALSE_ALARM_BUDGET",
     "HEADLINE",
@@ -53,6 +54,10 @@ class Metric:
     definition: str
     kind: str = "number"  # "number" or "integer"
 
+
+#: The attack-free steps ``1 … AFTER_ATTACK_STEPS`` after an attacked step of the same run
+#: are those of ``fpr_at_far_after_attack`` (:func:`difffilter.eval.calibration.after_attack`).
+AFTER_ATTACK_STEPS = 10
 
 METRICS: dict[str, Metric] = {
     "state_rmse": Metric(
@@ -105,6 +110,12 @@ METRICS: dict[str, Metric] = {
         "fraction",
         "attack-free steps of this study with score > threshold_at_far / attack-free steps: "
         "the false-alarm rate met on fresh runs",
+    ),
+    "fpr_at_far_after_attack": Metric(
+        "fraction",
+        f"attack-free steps 1 to {AFTER_ATTACK_STEPS} steps after an attacked step of the same "
+        "run with score > threshold_at_far / such steps: the false alarms an attack leaves behind (fpr_at_far "
+        "counts them with the rest)",
     ),
     "impact": Metric(
         "state units",

@@ -52,6 +52,37 @@ def test_calibrated_metrics_read_the_scores_at_the_threshold():
     assert calibrated_metrics(out, traj, None)["tpr_at_far"] is None
 
 
+def test_the_false_alarms_an_attack_leaves_behind():
+    """fpr_at_far_after_attack reads the attack-free steps 1 … 10 after an attacked step of
+    the same run (counted by hand here), not those before an attack, farther after it or in
+    an attack-free run; fpr_at_far counts them all."""
+    from difffilter.estimator import Detection, EstimatorOutput
+    from difffilter.eval.calibration import after_attack
+    from difffilter.eval.scoring import AFTER_ATTACK_STEPS, METRICS
+    from difffilter.loop import Trajectories
+
+    assert AFTER_ATTACK_STEPS == 10 and "1 to 10 steps after" in METRICS[
+        "fpr_at_far_after_attack"].definition  # fmt: skip
+    T = 30
+    flags = torch.zeros(3, T, dtype=torch.bool)
+    flags[0, 5:8] = True  # 8 … 17 are after it, 18 … 29 farther
+    flags[1, 2] = flags[1, 6] = True  # 3 … 5 and 7 … 16 after one of them
+    want = torch.zeros(3, T, dtype=torch.bool)
+    want[0, 8:18] = True
+    want[1, 3:6] = want[1, 7:17] = True
+    assert torch.equal(after_attack(flags, 10), want)
+    scores = torch.zeros(3, T, dtype=torch.float64)
+    scores[0, 8:11] = scores[0, 20] = scores[1, 16] = scores[1, 17] = scores[2, 9] = 1.0
+    scores[0, 0] = 1.0  # before the attack: a false alarm, not one it left behind
+    x = torch.zeros(3, T, 1, dtype=torch.float64)
+    out = EstimatorOutput(x.clone(), detection=Detection(scores, scores > 0.5, 0.5))
+    m = calibrated_metrics(out, Trajectories(x, x, x, None, None, x, flags, {}), 0.5)
+    assert m["fpr_at_far_after_attack"] == pytest.approx(4 / 23)  # 8, 9, 10 and 16 of 23
+    assert m["fpr_at_far"] == pytest.approx(8 / (3 * T - 5))  # with 0, 20, 17 and run 3
+    no_attack = Trajectories(x, x, x, None, None, x, torch.zeros_like(flags), {})
+    assert calibrated_metrics(out, no_attack, 0.5)["fpr_at_far_after_attack"] is None
+
+
 CASES = {  # scenario, Monte Carlo runs, horizon (None: the scenario's), detectors
     "four_tank_bias": (100, None, None),
     "lfc_step": (20, 400, ("chi_square_kf", "cusum_kf", "kf_nn_grad", "traditional_ad")),

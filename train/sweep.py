@@ -12,7 +12,8 @@ Each seed's estimator is then evaluated on the headline scenarios of its family 
 ``--scenarios``) with ``difffilter-eval``'s draws (``--seed 0``) and its calibration (every
 threshold chosen on attack-free runs of their own seed for ``--far``), and the sweep
 writes ``<out>/sweep.json`` and ``<out>/sweep.md``: per seed and scenario the estimator's
-``tpr_at_far``, ``fpr_at_far``, ``fpr`` (at the checkpoint's own threshold), ``auc``,
+``tpr_at_far``, ``fpr_at_far`` (and ``fpr_at_far_after_attack``, its rate on the ten
+attack-free steps after an attacked step), ``fpr`` (at the checkpoint's own threshold), ``auc``,
 ``state_rmse`` and ``attack_rmse`` (and the family's own, e.g. tracking's position RMSE
 ``rmse_p``), and per metric the mean, min, max and spread (max − min) over seeds. The
 median seed is the one whose ``--rank-by`` metric, averaged over the scenarios, is the
@@ -39,8 +40,9 @@ from pathlib import Path
 __all__ = ["sweep", "main", "METRICS", "train_seed_of"]
 
 #: The metrics the sweep reports per seed and scenario (eval.scoring's definitions).
-METRICS = ("tpr_at_far", "fpr_at_far", "fpr", "auc", "state_rmse", "attack_rmse")
-_LOWER_IS_BETTER = {"fpr_at_far", "fpr", "state_rmse", "attack_rmse"}
+METRICS = ("tpr_at_far", "fpr_at_far", "fpr_at_far_after_attack", "fpr", "auc", "state_rmse",
+           "attack_rmse")  # fmt: skip
+_LOWER_IS_BETTER = {"fpr_at_far", "fpr_at_far_after_attack", "fpr", "state_rmse", "attack_rmse"}
 
 
 def train_seed_of(seed: int) -> int:
