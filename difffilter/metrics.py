@@ -20,6 +20,7 @@ __all__ = [
     "detection_delay",
     "threshold_for",
     "finite_scores",
+    "after_attack",
 ]
 
 
@@ -174,3 +175,14 @@ def threshold_for(scores: Tensor, far: float) -> float:
     allowed = int(math.floor(far * s.numel()))
     ranked = torch.sort(s, descending=True).values
     return float(ranked[allowed]) if allowed < s.numel() else -math.inf
+
+
+def after_attack(flags: Tensor, steps: int) -> Tensor:
+    """Where ``flags [B, T, ...]`` (bool, time on dim 1) is false within ``steps`` steps
+    after a true entry of the same run (and area): ``[B, T, ...]`` bool, from one running
+    maximum over the steps (the training task's after-attack weight and the evaluation's
+    ``fpr_at_far_after_attack`` read it)."""
+    T = flags.shape[1]
+    t = torch.arange(T, device=flags.device).view(1, T, *([1] * (flags.dim() - 2)))
+    last = torch.where(flags, t, -1).cummax(dim=1).values  # the last attacked step ≤ t
+    return ~flags & (last >= 0) & (t - last <= steps)

@@ -19,15 +19,14 @@ from dataclasses import dataclass, field
 
 import torch
 
+from difffilter.metrics import after_attack, threshold_for
 from difffilter.metrics import finite_scores as _finite_scores
-from difffilter.metrics import threshold_for
 from difffilter.models.streams import Streams
 
 from .scoring import AFTER_ATTACK_STEPS
 
 __all__ = [
     "Calibration",
-    "after_attack",
     "threshold_for",
     "calibrate",
     "calibrated_metrics",
@@ -146,15 +145,3 @@ def calibrated_metrics(output, traj, threshold: float | None, *, attacked_input:
         attacked_runs = flags.any(-1)
         out["impact"] = float(worst[attacked_runs].mean())
     return out
-
-
-def after_attack(flags, steps: int):
-    """``[..., T]`` bool: the attack-free steps ``1 … steps`` after the last attacked step of
-    their run (``flags [..., T]``, ``True`` where attacked): ``t − max{s ≤ t : flags_s}`` in
-    ``[1, steps]``, from one running maximum over the steps."""
-    T = flags.shape[-1]
-    index = torch.arange(T, device=flags.device).expand(flags.shape)
-    never = torch.full_like(index, -(T + steps + 1))  # before any step: never within reach
-    last = torch.where(flags, index, never).cummax(-1).values
-    since = index - last
-    return (since >= 1) & (since <= steps)

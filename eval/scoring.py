@@ -56,7 +56,7 @@ class Metric:
 
 
 #: The attack-free steps ``1 … AFTER_ATTACK_STEPS`` after an attacked step of the same run
-#: are those of ``fpr_at_far_after_attack`` (:func:`difffilter.eval.calibration.after_attack`).
+#: are those of ``fpr_at_far_after_attack`` (:func:`difffilter.metrics.after_attack`).
 AFTER_ATTACK_STEPS = 10
 
 METRICS: dict[str, Metric] = {

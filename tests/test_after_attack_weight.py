@@ -7,7 +7,8 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from difffilter.train.task import FilterEstimatorTask, after_attack
+from difffilter.metrics import after_attack
+from difffilter.train.task import FilterEstimatorTask
 
 
 def test_after_attack_marks_the_quiet_steps_within_the_window_after_an_attacked_step():

@@ -57,9 +57,9 @@ def test_the_false_alarms_an_attack_leaves_behind():
     the same run (counted by hand here), not those before an attack, farther after it or in
     an attack-free run; fpr_at_far counts them all."""
     from difffilter.estimator import Detection, EstimatorOutput
-    from difffilter.eval.calibration import after_attack
     from difffilter.eval.scoring import AFTER_ATTACK_STEPS, METRICS
     from difffilter.loop import Trajectories
+    from difffilter.metrics import after_attack
 
     assert AFTER_ATTACK_STEPS == 10 and "1 to 10 steps after" in METRICS[
         "fpr_at_far_after_attack"].definition  # fmt: skip

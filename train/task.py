@@ -54,7 +54,7 @@ from difffilter import resampling
 from difffilter.attack import Channel
 from difffilter.estimator import Generators
 from difffilter.loop import open_loop
-from difffilter.metrics import finite_scores, roc_auc, threshold_for
+from difffilter.metrics import after_attack, finite_scores, roc_auc, threshold_for
 from difffilter.models import registry
 from difffilter.models.estimators import poa_detector_for_scenario
 from difffilter.models.generic_estimators import GAUSSIAN_FILTERS, deception_of
@@ -807,15 +807,6 @@ def _check_options(hp, sc, channel: Channel) -> float:
     if not 0 < far < 1:
         raise ValueError(f"target_false_alarm_rate must be in (0, 1); got {far!r}")
     return float(far)
-
-
-def after_attack(flags: torch.Tensor, steps: int) -> torch.Tensor:
-    """Where ``flags [B, T, ...]`` (bool, time on dim 1) is false within ``steps`` steps
-    after a true entry of the same run (and area): ``[B, T, ...]`` bool."""
-    T = flags.shape[1]
-    t = torch.arange(T, device=flags.device).view(1, T, *([1] * (flags.dim() - 2)))
-    last = torch.where(flags, t, -1).cummax(dim=1).values  # the last attacked step ≤ t
-    return ~flags & (last >= 0) & (t - last <= steps)
 
 
 def _area_flags(truth: dict, logits: torch.Tensor) -> torch.Tensor:
