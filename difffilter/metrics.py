@@ -21,6 +21,8 @@ __all__ = [
     "threshold_for",
     "finite_scores",
     "after_attack",
+    "steps_since_attack",
+    "alarm_rate_since_attack",
 ]
 
 
@@ -177,12 +179,59 @@ def threshold_for(scores: Tensor, far: float) -> float:
     return float(ranked[allowed]) if allowed < s.numel() else -math.inf
 
 
-def after_attack(flags: Tensor, steps: int) -> Tensor:
-    """Where ``flags [B, T, ...]`` (bool, time on dim 1) is false within ``steps`` steps
-    after a true entry of the same run (and area): ``[B, T, ...]`` bool, from one running
-    maximum over the steps (the training task's after-attack weight and the evaluation's
-    ``fpr_at_far_after_attack`` read it)."""
+def steps_since_attack(flags: Tensor) -> Tensor:
+    """Steps since the last attacked step of the same run (and area): ``[B, T, ...]``
+    int64 for ``flags [B, T, ...]`` (bool, time on dim 1), ``0`` on an attacked step and
+    ``−1`` where the run has not been attacked yet. One running maximum over the steps::
+
+        last_k = max{j ≤ k : flags_j}    steps_k = k − last_k   (−1 without such j)
+    """
+    if flags.dtype != torch.bool or flags.dim() < 2:
+        raise ValueError(
+            f"flags must be a bool tensor [B, T, ...]; got {flags.dtype} of shape "
+            f"{tuple(flags.shape)}"
+        )
     T = flags.shape[1]
     t = torch.arange(T, device=flags.device).view(1, T, *([1] * (flags.dim() - 2)))
-    last = torch.where(flags, t, -1).cummax(dim=1).values  # the last attacked step ≤ t
-    return ~flags & (last >= 0) & (t - last <= steps)
+    last = torch.where(flags, t, -1).cummax(dim=1).values  # the last attacked step ≤ k
+    return torch.where(last >= 0, t - last, -1)
+
+
+def after_attack(flags: Tensor, steps: int) -> Tensor:
+    """Where ``flags [B, T, ...]`` (bool, time on dim 1) is false within ``steps`` steps
+    after a true entry of the same run (and area): ``[B, T, ...]`` bool
+    (:func:`steps_since_attack` in ``1 … steps``; the training task's after-attack weight
+    and the evaluation's ``fpr_at_far_after_attack`` read it)."""
+    since = steps_since_attack(flags)
+    return (since >= 1) & (since <= steps)
+
+
+def alarm_rate_since_attack(
+    alarms: Tensor, flags: Tensor, edges=(1, 5, 10, 20, 50, 100, 200)
+) -> tuple[Tensor, Tensor]:
+    """The alarm rate on attack-free steps by the steps since the run's last attacked step:
+    ``(rates [M], counts [M])`` float64 and int64 for ``M = len(edges)`` bins
+    ``[e_0, e_1), …, [e_{M−1}, ∞)`` of :func:`steps_since_attack`, each rate the share of
+    the bin's steps where ``alarms`` is true (NaN for an empty bin). ``alarms`` and
+    ``flags`` ``[B, T, ...]`` bool; ``edges`` increasing integers ≥ 1. Steps before a
+    run's first attack are in no bin (their rate is the plain false-alarm rate). Where
+    ``fpr_at_far_after_attack`` gives one number for steps 1–10, this shows how long an
+    estimator's alarms outlast the attack (the report's ``false_alarms_after_attack.png``).
+    """
+    if alarms.shape != flags.shape or alarms.dtype != torch.bool:
+        raise ValueError(
+            f"alarms must be a bool tensor of flags' shape {tuple(flags.shape)}; got "
+            f"{alarms.dtype} of shape {tuple(alarms.shape)}"
+        )
+    edges = [int(e) for e in edges]
+    if not edges or edges[0] < 1 or any(b <= a for a, b in zip(edges, edges[1:])):
+        raise ValueError(f"edges must be increasing integers ≥ 1; got {edges}")
+    since = steps_since_attack(flags)
+    quiet = since >= 1
+    bins = torch.bucketize(since[quiet], torch.tensor(edges, device=flags.device), right=True) - 1
+    keep = bins >= 0  # below the first edge: in no bin
+    bins, hits = bins[keep], alarms[quiet][keep]
+    counts = torch.bincount(bins, minlength=len(edges)).cpu()
+    alarmed = torch.bincount(bins[hits], minlength=len(edges)).cpu()
+    rates = alarmed.double() / counts.double()  # 0/0: NaN, an empty bin
+    return rates, counts

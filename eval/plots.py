@@ -9,7 +9,10 @@ Every estimator keeps one colour across the figures of a report
 two estimators share a colour. Legends sit outside the axes, beside the data. The ROC
 uses a logarithmic false-alarm axis, where the operating points of a 1 % budget live, and
 marks each detector's operating point at its calibrated threshold (or its own threshold
-when the study is not calibrated).
+when the study is not calibrated). A calibrated study also shows where the false alarms
+fall in time: each detector's alarm rate on attack-free steps by the steps since the run's
+last attacked step (``false_alarms_after_attack.png``; an estimator whose alarms outlast
+the attack stands out there, while ``fpr_at_far`` pools those steps with the rest).
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 from matplotlib import colors as mcolors  # noqa: E402
+
+from difffilter.metrics import alarm_rate_since_attack, steps_since_attack  # noqa: E402
 
 from .scoring import comparable_attack, rmse_over_time, roc  # noqa: E402
 
@@ -116,6 +121,9 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
     if detecting and bool(traj.flags.any()) and not bool(traj.flags.all()):
         figs.append(("roc.png", _roc_figure(result, detecting, colour)))
         figs.append(("alarms_run0.png", _alarm_figure(traj, detecting, colour, t, dt)))
+    after = [n for n in detecting if result.metrics[n].get("fpr_at_far_after_attack") is not None]
+    if after:
+        figs.append(("false_alarms_after_attack.png", _after_attack_figure(result, after, colour)))
 
     estimating = {n: o for n, o in outs.items() if o.attack is not None}
     if estimating and traj.attack.shape[-1] > 0:
@@ -156,6 +164,51 @@ def _roc_figure(result, detecting, colour) -> plt.Figure:
     ax.set(xscale="log", xlim=(floor, 1.0), ylim=(0.0, 1.02),
            xlabel="false-alarm rate (log)", ylabel="detection rate",
            title="ROC, every run and step (dots: operating points)")  # fmt: skip
+    _legend(ax)
+    return fig
+
+
+#: The bins of the steps since the last attack in ``false_alarms_after_attack.png``.
+AFTER_ATTACK_EDGES = (1, 2, 3, 5, 10, 20, 50, 100, 200)
+
+
+def _after_attack_figure(result, names, colour) -> plt.Figure:
+    """Each calibrated detector's alarm rate on the attack-free steps, by the steps since
+    the run's last attacked step (:func:`difffilter.metrics.alarm_rate_since_attack`, in
+    each estimator's own trajectory), then on the steps before a run's first attack; each
+    bin labelled with its number of steps (the most of any estimator: closed loops differ),
+    bins without steps left out, the target rate dashed. A rate of 0 sits on the axis'
+    floor (half of one alarm in the largest bin shown)."""
+    edges = AFTER_ATTACK_EDGES
+    labels = [f"{a}" if b == a + 1 else f"{a}–{b - 1}" for a, b in zip(edges, edges[1:])]
+    labels += [f"≥ {edges[-1]}", "before any attack"]
+    curves = {}
+    for name in names:
+        flags = result.traj_of(name).flags
+        scores = torch.nan_to_num(result.outputs[name].detection.scores.double(), nan=-torch.inf)
+        alarms = scores > result.metrics[name]["threshold_at_far"]
+        rates, counts = alarm_rate_since_attack(alarms, flags, edges)
+        before = steps_since_attack(flags) < 0
+        first = alarms[before].double().mean() if before.any() else torch.tensor(torch.nan)
+        curves[name] = (torch.cat([rates, first.view(1)]),
+                        torch.cat([counts, before.sum().view(1)]))  # fmt: skip
+    steps = torch.stack([c for _, c in curves.values()]).amax(0)  # the same in open loop
+    shown = steps > 0
+    floor = 0.5 / float(steps[shown].max())
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for name, (rates, _) in curves.items():
+        ax.plot(rates[shown].clamp_min(floor).numpy(), "o-", ms=3.5, lw=1, color=colour[name],
+                label=f"{name} ({100 * result.metrics[name]['fpr_at_far_after_attack']:.1f} % "
+                      "in steps 1–10)")  # fmt: skip
+    far = getattr(result.calibration, "far", None)
+    if far is not None:
+        ax.axhline(far, color="0.5", ls="--", lw=0.8, label=f"target false-alarm rate {far:g}")
+    ticks = [f"{label}\n{n:,} steps" for label, n in zip(labels, steps.tolist()) if n > 0]
+    ax.set_xticks(range(len(ticks)), ticks, fontsize=7)
+    ax.set(yscale="log", ylim=(floor * 0.8, 1.2),
+           xlabel="steps since the run's last attacked step",
+           ylabel="alarm rate on attack-free steps (log)",
+           title="False alarms after an attack (at the calibrated thresholds)")  # fmt: skip
     _legend(ax)
     return fig
 

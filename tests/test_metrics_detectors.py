@@ -45,6 +45,45 @@ def test_detection_delay_episodes():
     assert d["mean_delay"] == pytest.approx((2 + 0) / 2)
 
 
+def test_steps_since_attack_hand_counted_and_against_a_loop():
+    """0 on an attacked step, then 1, 2, … until the next; −1 before a run's first attack;
+    each area its own. Then random flags against a loop over the steps."""
+    flags = torch.tensor([[0, 1, 1, 0, 0, 1, 0], [0, 0, 0, 0, 0, 0, 0]], dtype=torch.bool)
+    expected = torch.tensor([[-1, 0, 0, 1, 2, 0, 1], [-1] * 7])
+    assert torch.equal(metrics.steps_since_attack(flags), expected)
+    areas = torch.stack([flags, flags.roll(1, dims=1)], -1)
+    assert torch.equal(metrics.steps_since_attack(areas)[..., 0], expected)
+
+    gen = torch.Generator().manual_seed(0)
+    flags = torch.rand(6, 300, 2, generator=gen) < 0.03
+    since = torch.full((6, 2), -1)
+    for k in range(300):  # the reference: count up from each attacked step
+        since = torch.where(flags[:, k], 0, torch.where(since >= 0, since + 1, since))
+        assert torch.equal(metrics.steps_since_attack(flags)[:, k], since)
+
+
+def test_alarm_rate_since_attack_hand_counted():
+    """Bins [1, 3), [3, ∞) of the steps since the last attack: attacked steps and those
+    before a run's first attack count in none."""
+    flags = torch.tensor([[0, 1, 0, 0, 0, 0], [1, 0, 0, 0, 0, 0]], dtype=torch.bool)
+    alarms = torch.tensor([[1, 1, 1, 0, 1, 1], [1, 1, 1, 1, 0, 0]], dtype=torch.bool)
+    # since: [-1, 0, 1, 2, 3, 4], [0, 1, 2, 3, 4, 5]
+    rates, counts = metrics.alarm_rate_since_attack(alarms, flags, edges=(1, 3))
+    assert counts.tolist() == [4, 5]
+    assert rates.tolist() == pytest.approx([3 / 4, 3 / 5])
+    rates, counts = metrics.alarm_rate_since_attack(alarms, flags, edges=(2, 10))
+    assert counts.tolist() == [7, 0] and rates[0].item() == pytest.approx(4 / 7)
+    assert math.isnan(rates[1].item())  # an empty bin
+    after = metrics.after_attack(flags, 2)  # fpr_at_far_after_attack's steps: the bin [1, 3)
+    assert alarms[after].double().mean().item() == pytest.approx(3 / 4)
+    with pytest.raises(ValueError, match="edges must be increasing"):
+        metrics.alarm_rate_since_attack(alarms, flags, edges=(3, 3))
+    with pytest.raises(ValueError, match="alarms must be a bool tensor"):
+        metrics.alarm_rate_since_attack(alarms.float(), flags)
+    with pytest.raises(ValueError, match="flags must be a bool tensor"):
+        metrics.steps_since_attack(flags.long())
+
+
 def test_rmse():
     assert metrics.rmse(torch.tensor([1.0, 3.0]), torch.tensor([0.0, 0.0])).item() == pytest.approx(
         math.sqrt(5)

@@ -74,3 +74,39 @@ def test_the_alarm_raster_has_a_row_per_detector(figures):
     ax = figs["alarms_run0.png"].axes[0]
     detecting = [n for n, o in suite.outputs.items() if o.detection is not None]
     assert [t.get_text() for t in ax.get_yticklabels()] == ["attacked", *detecting]
+
+
+def test_a_calibrated_study_shows_its_false_alarms_after_an_attack(figures):
+    """Each calibrated detector's alarm rate by the steps since the run's last attack,
+    each point counted again here step by step; an uncalibrated study has no such figure."""
+    from difffilter.eval.calibration import calibrate
+    from difffilter.eval.plots import AFTER_ATTACK_EDGES
+    from difffilter.eval.suite import apply_calibration
+
+    assert "false_alarms_after_attack.png" not in figures[1]
+    sc, names = registry.get("four_tank_bias"), ["chi_square_ekf", "cusum_ekf"]
+    suite = run_suite(sc, runs=3, estimators=names, progress=False)
+    apply_calibration(suite, calibrate(sc, far=0.05, runs=3, estimators=names, progress=False))
+    fig = dict(standard_figures(suite))["false_alarms_after_attack.png"]
+    lines = {line.get_label().split(" (")[0]: line for line in fig.axes[0].get_lines()}
+    assert set(names) <= set(lines)
+    edges = [*AFTER_ATTACK_EDGES, 10**9]
+    for name in names:
+        flags = suite.traj.flags
+        alarms = suite.outputs[name].detection.scores > suite.metrics[name]["threshold_at_far"]
+        hits, steps = [0] * (len(edges) - 1), [0] * (len(edges) - 1)
+        for b in range(flags.shape[0]):
+            last = None
+            for k in range(flags.shape[1]):
+                if flags[b, k]:
+                    last = k
+                elif last is not None:
+                    i = next(
+                        i for i in range(len(edges) - 1) if edges[i] <= k - last < edges[i + 1]
+                    )
+                    steps[i] += 1
+                    hits[i] += int(alarms[b, k])
+        drawn = lines[name].get_ydata()
+        floor = fig.axes[0].get_ylim()[0] / 0.8
+        expected = [max(h / s, floor) for h, s in zip(hits, steps) if s > 0]
+        assert list(drawn[: len(expected)]) == pytest.approx(expected)
