@@ -189,9 +189,9 @@ def _after_attack_figure(result, names, colour) -> plt.Figure:
         alarms = scores > result.metrics[name]["threshold_at_far"]
         rates, counts = alarm_rate_since_attack(alarms, flags, edges)
         before = steps_since_attack(flags) < 0
-        first = alarms[before].double().mean() if before.any() else torch.tensor(torch.nan)
-        curves[name] = (torch.cat([rates, first.view(1)]),
-                        torch.cat([counts, before.sum().view(1)]))  # fmt: skip
+        first = alarms[before].double().mean().cpu() if before.any() else torch.tensor(torch.nan)
+        curves[name] = (torch.cat([rates, first.view(1).double()]),
+                        torch.cat([counts, before.sum().cpu().view(1)]))  # fmt: skip
     steps = torch.stack([c for _, c in curves.values()]).amax(0)  # the same in open loop
     shown = steps > 0
     floor = 0.5 / float(steps[shown].max())
