@@ -207,14 +207,15 @@ def after_attack(flags: Tensor, steps: int) -> Tensor:
 
 
 def alarm_rate_since_attack(
-    alarms: Tensor, flags: Tensor, edges=(1, 5, 10, 20, 50, 100, 200)
+    alarms: Tensor, flags: Tensor, edges=(1, 5, 10, 20, 50, 100, 200), *, before: bool = False
 ) -> tuple[Tensor, Tensor]:
     """The alarm rate on attack-free steps by the steps since the run's last attacked step:
     ``(rates [M], counts [M])`` float64 and int64 for ``M = len(edges)`` bins
     ``[e_0, e_1), …, [e_{M−1}, ∞)`` of :func:`steps_since_attack`, each rate the share of
     the bin's steps where ``alarms`` is true (NaN for an empty bin). ``alarms`` and
     ``flags`` ``[B, T, ...]`` bool; ``edges`` increasing integers ≥ 1. Steps before a
-    run's first attack are in no bin (their rate is the plain false-alarm rate). Where
+    run's first attack are in no bin (their rate is the plain false-alarm rate), unless
+    ``before``: then they are one more bin, the last (``M = len(edges) + 1``). Where
     ``fpr_at_far_after_attack`` gives one number for steps 1–10, this shows how long an
     estimator's alarms outlast the attack (the report's ``false_alarms_after_attack.png``).
     """
@@ -227,11 +228,15 @@ def alarm_rate_since_attack(
     if not edges or edges[0] < 1 or any(b <= a for a, b in zip(edges, edges[1:])):
         raise ValueError(f"edges must be increasing integers ≥ 1; got {edges}")
     since = steps_since_attack(flags)
-    quiet = since >= 1
-    bins = torch.bucketize(since[quiet], torch.tensor(edges, device=flags.device), right=True) - 1
-    keep = bins >= 0  # below the first edge: in no bin
-    bins, hits = bins[keep], alarms[quiet][keep]
-    counts = torch.bincount(bins, minlength=len(edges)).cpu()
-    alarmed = torch.bincount(bins[hits], minlength=len(edges)).cpu()
+    bins = torch.bucketize(since, torch.tensor(edges, device=flags.device), right=True) - 1
+    if before:
+        bins = torch.where(since < 0, len(edges), bins)
+    # attacked steps (0), steps below the first edge and, without ``before``, the steps
+    # before a run's first attack (−1) land below bin 0: in no bin
+    keep = (bins >= 0) & (since != 0)
+    bins, hits = bins[keep], alarms[keep]
+    size = len(edges) + int(before)
+    counts = torch.bincount(bins, minlength=size).cpu()
+    alarmed = torch.bincount(bins[hits], minlength=size).cpu()
     rates = alarmed.double() / counts.double()  # 0/0: NaN, an empty bin
     return rates, counts

@@ -30,6 +30,7 @@ __all__ = [
     "threshold_for",
     "calibrate",
     "calibrated_metrics",
+    "alarms_at",
     "calibration_seed",
 ]
 
@@ -110,6 +111,12 @@ def calibrate(
     return calibration
 
 
+def alarms_at(scores: torch.Tensor, threshold: float) -> torch.Tensor:
+    """The alarms ``scores > threshold`` (bool, ``scores``' shape), compared in float64; a
+    NaN score (no data at that step) never alarms."""
+    return torch.nan_to_num(scores.double(), nan=-math.inf) > threshold
+
+
 def calibrated_metrics(output, traj, threshold: float | None, *, attacked_input: bool = True):
     """``threshold_at_far``, ``tpr_at_far``, ``fpr_at_far``, ``fpr_at_far_after_attack`` and
     ``impact`` of one estimator's ``output`` on ``traj`` at ``threshold`` (``None``: all
@@ -126,8 +133,7 @@ def calibrated_metrics(output, traj, threshold: float | None, *, attacked_input:
     det = output.detection
     if threshold is None or det is None or det.scores is None:
         return out
-    scores = torch.nan_to_num(det.scores.double(), nan=-math.inf)
-    alarms = scores > threshold
+    alarms = alarms_at(det.scores, threshold)
     flags = traj.flags if attacked_input else torch.zeros_like(traj.flags)
     out["threshold_at_far"] = threshold
     if bool((~flags).any()):

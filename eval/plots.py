@@ -27,8 +27,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 from matplotlib import colors as mcolors  # noqa: E402
 
-from difffilter.metrics import alarm_rate_since_attack, steps_since_attack  # noqa: E402
+from difffilter.metrics import alarm_rate_since_attack  # noqa: E402
 
+from .calibration import alarms_at  # noqa: E402
 from .scoring import comparable_attack, rmse_over_time, roc  # noqa: E402
 
 __all__ = ["standard_figures", "estimator_colours", "png_bytes"]
@@ -185,13 +186,9 @@ def _after_attack_figure(result, names, colour) -> plt.Figure:
     curves = {}
     for name in names:
         flags = result.traj_of(name).flags
-        scores = torch.nan_to_num(result.outputs[name].detection.scores.double(), nan=-torch.inf)
-        alarms = scores > result.metrics[name]["threshold_at_far"]
-        rates, counts = alarm_rate_since_attack(alarms, flags, edges)
-        before = steps_since_attack(flags) < 0
-        first = alarms[before].double().mean().cpu() if before.any() else torch.tensor(torch.nan)
-        curves[name] = (torch.cat([rates, first.view(1).double()]),
-                        torch.cat([counts, before.sum().cpu().view(1)]))  # fmt: skip
+        alarms = alarms_at(result.outputs[name].detection.scores,
+                           result.metrics[name]["threshold_at_far"])  # fmt: skip
+        curves[name] = alarm_rate_since_attack(alarms, flags, edges, before=True)
     steps = torch.stack([c for _, c in curves.values()]).amax(0)  # the same in open loop
     shown = steps > 0
     floor = 0.5 / float(steps[shown].max())

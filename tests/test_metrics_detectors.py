@@ -74,6 +74,9 @@ def test_alarm_rate_since_attack_hand_counted():
     rates, counts = metrics.alarm_rate_since_attack(alarms, flags, edges=(2, 10))
     assert counts.tolist() == [7, 0] and rates[0].item() == pytest.approx(4 / 7)
     assert math.isnan(rates[1].item())  # an empty bin
+    rates, counts = metrics.alarm_rate_since_attack(alarms, flags, edges=(1, 3), before=True)
+    assert counts.tolist() == [4, 5, 1]  # the last bin: run 0's step 0, before its attack
+    assert rates.tolist() == pytest.approx([3 / 4, 3 / 5, 1.0])
     after = metrics.after_attack(flags, 2)  # fpr_at_far_after_attack's steps: the bin [1, 3)
     assert alarms[after].double().mean().item() == pytest.approx(3 / 4)
     with pytest.raises(ValueError, match="edges must be increasing"):
