@@ -17,6 +17,8 @@ SMALL = {  # what each config needs beside the common small settings
     "four_tank": ["--model.init_args.num_particles=20"],
     "tracking": ["--model.init_args.num_particles=20"],
     "robot": ["--data.init_args.steps=45"],  # its report reads the estimate at k = 44
+    # its threats start at k = 10…60 (and the report reads k = 44)
+    "robot_threats": ["--data.init_args.steps=70", "--data.init_args.val_runs=8"],
     # its threats start at k = 5…60: the validation runs need attacked steps for val/auc
     "four_tank_threats": ["--data.init_args.steps=100", "--data.init_args.val_runs=8"],
     "lfc": ["--model.init_args.monitor_runs=1", "--model.init_args.tbptt_steps=10"],
@@ -31,6 +33,7 @@ def test_every_config_is_covered():
         "generic",
         "lfc",
         "robot",
+        "robot_threats",
         "tracking",
     }
 
