@@ -231,9 +231,9 @@ def alarm_rate_since_attack(
     bins = torch.bucketize(since, torch.tensor(edges, device=flags.device), right=True) - 1
     if before:
         bins = torch.where(since < 0, len(edges), bins)
-    # attacked steps (0), steps below the first edge and, without ``before``, the steps
-    # before a run's first attack (−1) land below bin 0: in no bin
-    keep = (bins >= 0) & (since != 0)
+    # attacked steps (0: every edge is ≥ 1), steps below the first edge and, without
+    # ``before``, the steps before a run's first attack (−1) land below bin 0: in no bin
+    keep = bins >= 0
     bins, hits = bins[keep], alarms[keep]
     size = len(edges) + int(before)
     counts = torch.bincount(bins, minlength=size).cpu()
