@@ -25,7 +25,14 @@ import torch
 from torch import Tensor
 
 from ._checks import NonFinite
-from .gaussian import gaussian_update, linear_update, predict_covariance
+from .gaussian import (
+    gaussian_update,
+    innovation_log_prob,
+    masked_residual,
+    measurement_moments,
+    moments_update,
+    predict_covariance,
+)
 from .kalman import GaussianFilter, Prediction
 from .linalg import masked_measurement, outer, safe_cholesky, symmetrize
 from .loop import open_loop
@@ -61,16 +68,30 @@ class ExtendedKalmanFilter(GaussianFilter):
         pred_mean = model.transition(carry.mean, u, k)
         return Prediction(pred_mean, predict_covariance(carry.cov, F, model.process_cov(k)))
 
-    def update(self, carry, prediction, y, mask):
+    def moments(self, carry, prediction, mask):
+        model, k = carry.model, carry.k + 1
+        H = model.observation_jacobian(prediction.mean, k).to(prediction.mean.dtype)
+        return measurement_moments(prediction.cov, H, model.measurement_cov(k), mask)
+
+    def update(self, carry, prediction, y, mask, *, evidence=True, moments=None):
         model, k = carry.model, carry.k + 1
         pred_mean, pred_cov = prediction
-        H = model.observation_jacobian(pred_mean, k).to(pred_mean.dtype)
+        if moments is None:
+            moments = self.moments(carry, prediction, mask)
         residual = model.measurement_residual(y, model.observe(pred_mean, k))
-        mean, cov, residual, S, log_lik = linear_update(
-            pred_mean, pred_cov, residual, H, model.measurement_cov(k), mask
+        mean, cov, residual, S, log_lik = moments_update(
+            pred_mean, pred_cov, residual, moments, evidence=evidence
         )
         out = StepOutput(mean, cov, pred_mean, pred_cov, residual, S, log_lik)
         return GaussianState(mean, cov, k, model), out
+
+    def innovation(self, carry, prediction, y, mask, *, evidence: bool = True, moments=None):
+        if moments is None:
+            moments = self.moments(carry, prediction, mask)
+        model, k = carry.model, carry.k + 1
+        nu = model.measurement_residual(y, model.observe(prediction.mean, k))
+        nu, S = masked_residual(nu, mask), moments.innovation_cov
+        return nu, S, innovation_log_prob(nu, S, moments.observed) if evidence else None
 
 
 def extended_kalman_step(
@@ -165,7 +186,8 @@ class UnscentedKalmanFilter(GaussianFilter):
         pred_mean, pred_cov = _moments(FX, wm, wc)
         return Prediction(pred_mean, symmetrize(pred_cov + model.process_cov(k)))
 
-    def update(self, carry, prediction, y, mask):
+    def update(self, carry, prediction, y, mask, *, evidence=True, moments=None):
+        # (no shared moments: the sigma points' statistics are recomputed each update)
         model, k, sp = carry.model, carry.k + 1, self.sigma_points
         pred_mean, pred_cov = prediction
         wm, wc, scale = sp.weights(pred_mean.shape[-1], pred_mean.dtype, pred_mean.device)
@@ -186,7 +208,7 @@ class UnscentedKalmanFilter(GaussianFilter):
         # Statistical linearisation H̃ = Pxyᵀ P⁻⁻¹ for the Joseph form.
         H_stat = torch.linalg.solve(pred_cov, cross).transpose(-1, -2)
         mean, cov, S, log_lik = gaussian_update(
-            pred_mean, pred_cov, residual, cross, pyy, H_stat, R, observed
+            pred_mean, pred_cov, residual, cross, pyy, H_stat, R, observed, evidence=evidence
         )
         out = StepOutput(mean, cov, pred_mean, pred_cov, residual, S, log_lik)
         return GaussianState(mean, cov, k, model), out

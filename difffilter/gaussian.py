@@ -9,7 +9,10 @@ One step ``k−1 → k`` of a Gaussian filter is three textbook blocks::
 
 with ``C_xy = P⁻ Hᵀ`` and ``C_yy = H P⁻ Hᵀ`` for the KF and EKF (:func:`linear_update`;
 :func:`linear_innovation` and :func:`innovation_log_prob` give ``r``, ``S`` and the evidence
-alone, the same numbers, for a caller that reads them before it updates) and their
+alone, the same numbers, for a caller that reads them before it updates; the part that does
+not read ``y_k``, :func:`measurement_moments`, can be computed once and updated from
+several times, :func:`moments_update`; ``evidence=False`` skips the density where nobody
+reads it) and their
 sigma-point estimates for the UKF. Every Gaussian update of the library takes
 its pieces from here: the Kalman filter (sequential, parallel-in-time and the
 shared-covariance path), the gain schedule, the EKF and UKF, the Kalman proposal of the
@@ -21,6 +24,8 @@ dimensions: vectors ``[..., d]``, matrices ``[..., d, d]``.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -43,6 +48,10 @@ __all__ = [
     "linear_innovation",
     "innovation_log_prob",
     "linear_update",
+    "MeasurementMoments",
+    "measurement_moments",
+    "masked_residual",
+    "moments_update",
 ]
 
 
@@ -52,7 +61,12 @@ def kalman_gain(cross_cov: Tensor, innovation_cov: Tensor) -> tuple[Tensor, Tens
     Shapes: ``cross_cov`` ``C = Cov(x, y)`` ``[..., dx, dy]``, ``innovation_cov`` ``S``
     ``[..., dy, dy]`` (symmetrised here) → ``(K [..., dx, dy], chol(S) [..., dy, dy])``.
     """
-    chol = safe_cholesky(symmetrize(innovation_cov), name="innovation covariance S")
+    return _gain(cross_cov, symmetrize(innovation_cov))
+
+
+def _gain(cross_cov: Tensor, S: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`kalman_gain` of an ``S`` symmetrised already (symmetrising twice changes no bit)."""
+    chol = safe_cholesky(S, name="innovation covariance S")
     return cholesky_solve_right(cross_cov, chol), chol
 
 
@@ -79,7 +93,9 @@ def gaussian_update(
     obs_matrix: Tensor,
     noise_cov: Tensor,
     observed: Tensor | int,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    *,
+    evidence: bool = True,
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
     """Measurement update shared by every Gaussian filter.
 
     Args:
@@ -93,20 +109,23 @@ def gaussian_update(
             statistical linearisation ``Cᵀ P⁻⁻¹``).
         noise_cov: ``R`` ``[..., dy, dy]`` (already masked).
         observed: number of received entries (scalar or ``[...]``).
+        evidence: compute ``log N(r; 0, S)``; ``False`` returns ``None`` in its place (a
+            caller that never reads the density saves its operations).
 
-    Returns ``(m⁺, P⁺, S, log N(r; 0, S))``.
+    Returns ``(m⁺, P⁺, S, log N(r; 0, S) or None)``.
     """
     S = symmetrize(pred_obs_cov + noise_cov)
     return _update_given(pred_mean, pred_cov, residual, cross_cov, S, obs_matrix, noise_cov,
-                         observed)  # fmt: skip
+                         observed, evidence)  # fmt: skip
 
 
-def _update_given(pred_mean, pred_cov, residual, cross_cov, S, obs_matrix, noise_cov, observed):
+def _update_given(pred_mean, pred_cov, residual, cross_cov, S, obs_matrix, noise_cov, observed,
+                  evidence):  # fmt: skip
     """:func:`gaussian_update` from its innovation covariance ``S`` (symmetrised)."""
-    gain, chol = kalman_gain(cross_cov, S)  # K = C S⁻¹  [..., dx, dy]
+    gain, chol = _gain(cross_cov, S)  # K = C S⁻¹  [..., dx, dy]
     mean = pred_mean + matvec(gain, residual)
     cov = joseph_covariance(pred_cov, gain, obs_matrix, noise_cov)
-    log_lik = gaussian_log_prob_chol(residual, chol, observed)
+    log_lik = gaussian_log_prob_chol(residual, chol, observed) if evidence else None
     return mean, cov, S, log_lik
 
 
@@ -135,17 +154,53 @@ def linear_predict(
     return pred_mean, predict_covariance(cov, transition, process_cov)
 
 
+class MeasurementMoments(NamedTuple):
+    """The part of a KF/EKF update that does not read ``y_k`` (:func:`measurement_moments`).
+
+    Attributes: ``innovation_cov`` ``S = sym(H' C + R')`` ``[..., dy, dy]``, ``cross_cov``
+    ``C = P⁻H'ᵀ`` ``[..., dx, dy]``, ``obs_matrix`` ``H'`` and ``noise_cov`` ``R'`` (masked,
+    :func:`~difffilter.linalg.masked_measurement`), ``observed`` (received entries, an int or
+    ``[...]``) and the ``mask`` ``[..., dy]`` (or ``None``) they were computed for.
+    """
+
+    innovation_cov: Tensor
+    cross_cov: Tensor
+    obs_matrix: Tensor
+    noise_cov: Tensor
+    observed: Tensor | int
+    mask: Tensor | None
+
+
+def measurement_moments(
+    pred_cov: Tensor, obs_matrix: Tensor, noise_cov: Tensor, mask: Tensor | None = None
+) -> MeasurementMoments:
+    """``S``, ``C``, ``H'``, ``R'`` of the KF/EKF update of ``P⁻ [..., dx, dx]`` with ``H
+    [..., dy, dx]``, ``R [..., dy, dy]`` and ``mask [..., dy]`` (bool) or ``None``: what
+    every measurement under that prediction shares (a wrapper that reads the innovation of
+    ``y_k`` and then updates with a compensated ``y_k`` computes them once)."""
+    _, H, R, observed = masked_measurement(None, obs_matrix, noise_cov, mask)
+    cross = pred_cov @ H.transpose(-1, -2)
+    return MeasurementMoments(symmetrize(H @ cross + R), cross, H, R, observed, mask)
+
+
+def masked_residual(residual: Tensor, mask: Tensor | None) -> Tensor:
+    """``r' = M r``: the residual ``[..., dy]`` with unreceived entries zeroed (as
+    :func:`~difffilter.linalg.masked_measurement` zeroes it)."""
+    return residual if mask is None else residual * mask.to(residual.dtype)
+
+
 def linear_innovation(
     pred_cov: Tensor, residual: Tensor, obs_matrix: Tensor, noise_cov: Tensor, mask=None
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor | int]:
     """The KF/EKF innovation moments of ``r = y − ŷ⁻`` without the posterior:
     ``(r', S, C, H', R', observed)`` with ``r'``, ``H'``, ``R'`` the masked residual, matrix
     and noise (:func:`~difffilter.linalg.masked_measurement`), ``C = P⁻H'ᵀ`` and
-    ``S = sym(H' C + R')`` (the numbers :func:`linear_update` computes them with: it calls
-    this). Shapes as there (``mask [..., dy]`` bool or ``None``); ``C [..., dx, dy]``."""
-    residual, H, R, observed = masked_measurement(residual, obs_matrix, noise_cov, mask)
-    cross = pred_cov @ H.transpose(-1, -2)
-    return residual, symmetrize(H @ cross + R), cross, H, R, observed
+    ``S = sym(H' C + R')`` (the numbers :func:`linear_update` computes them with:
+    :func:`measurement_moments`). Shapes as there (``mask [..., dy]`` bool or ``None``);
+    ``C [..., dx, dy]``."""
+    m = measurement_moments(pred_cov, obs_matrix, noise_cov, mask)
+    residual = masked_residual(residual, mask)
+    return residual, m.innovation_cov, m.cross_cov, m.obs_matrix, m.noise_cov, m.observed
 
 
 def innovation_log_prob(residual: Tensor, innovation_cov: Tensor, observed: Tensor | int) -> Tensor:
@@ -163,15 +218,35 @@ def linear_update(
     obs_matrix: Tensor,
     noise_cov: Tensor,
     mask: Tensor | None = None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    *,
+    evidence: bool = True,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
     """The KF/EKF update from ``r = y − ŷ⁻`` with ``H`` (the matrix or the Jacobian at ``m⁻``).
 
     ``residual [..., dy]`` (unmasked), ``obs_matrix [..., dy, dx]``, ``noise_cov [..., dy, dy]``,
     ``mask [..., dy]`` (bool) or ``None``. Returns ``(m⁺, P⁺, r', S, log N(r'; 0, S))`` with
-    ``r'`` the residual with unreceived entries zeroed.
+    ``r'`` the residual with unreceived entries zeroed (the density ``None`` with
+    ``evidence=False``).
     """
-    residual, S, cross, H, R, observed = linear_innovation(
-        pred_cov, residual, obs_matrix, noise_cov, mask
-    )
-    mean, cov, S, log_lik = _update_given(pred_mean, pred_cov, residual, cross, S, H, R, observed)
+    moments = measurement_moments(pred_cov, obs_matrix, noise_cov, mask)
+    return moments_update(pred_mean, pred_cov, residual, moments, evidence=evidence)
+
+
+def moments_update(
+    pred_mean: Tensor,
+    pred_cov: Tensor,
+    residual: Tensor,
+    moments: MeasurementMoments,
+    *,
+    evidence: bool = True,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
+    """:func:`linear_update` with its :func:`measurement_moments` computed before (for the
+    same ``P⁻``, ``H``, ``R`` and mask): the same numbers, bit for bit. ``residual [..., dy]``
+    unmasked; returns ``(m⁺, P⁺, r', S, log N(r'; 0, S) or None)``."""
+    m = moments
+    residual = masked_residual(residual, m.mask)
+    mean, cov, S, log_lik = _update_given(
+        pred_mean, pred_cov, residual, m.cross_cov, m.innovation_cov, m.obs_matrix,
+        m.noise_cov, m.observed, evidence,
+    )  # fmt: skip
     return mean, cov, residual, S, log_lik

@@ -34,7 +34,13 @@ from ._checks import Choice, NonFinite, check_carry_tensor
 from ._shared_cov import shared_covariance_applies, shared_covariance_kalman_filter
 from .estimator import Estimator, output_of
 from .gain_schedule import GainSchedule, shared_gains_apply
-from .gaussian import innovation_log_prob, linear_innovation, linear_predict, linear_update
+from .gaussian import (
+    innovation_log_prob,
+    linear_predict,
+    masked_residual,
+    measurement_moments,
+    moments_update,
+)
 from .linalg import matvec
 from .loop import open_loop
 from .parallel_kalman import parallel_kalman_filter
@@ -129,11 +135,16 @@ class GaussianFilter(Estimator):
 
     Subclasses (:class:`KalmanFilter`, :class:`~difffilter.ExtendedKalmanFilter`,
     :class:`~difffilter.UnscentedKalmanFilter`) implement
-    ``predict(carry, u) -> Prediction`` and ``update(carry, prediction, y, mask) ->
-    (carry, StepOutput)``, the two halves that the attack-aware estimators recombine
-    (a gated filter keeps the prediction where its detector alarms; the learned
-    estimator updates with a compensated measurement or predicts with a compensated
-    input). Carry: :class:`~difffilter.results.GaussianState`.
+    ``predict(carry, u) -> Prediction`` and ``update(carry, prediction, y, mask, *,
+    evidence=True, moments=None) -> (carry, StepOutput)``, the two halves that the
+    attack-aware estimators recombine (a gated filter keeps the prediction where its
+    detector alarms; the learned estimator updates with a compensated measurement or
+    predicts with a compensated input). ``evidence=False`` leaves the step's
+    ``log_likelihood`` ``None`` (its density is not computed); ``moments`` is what
+    :meth:`moments` returned for the same carry, prediction and mask (the part of the update
+    that does not read ``y``: a wrapper that reads one measurement's innovation and then
+    updates with another computes it once; ``None``: computed in the update).
+    Carry: :class:`~difffilter.results.GaussianState`.
     """
 
     carry_type = GaussianState
@@ -144,15 +155,23 @@ class GaussianFilter(Estimator):
     def predict(self, carry: GaussianState, u: Tensor | None) -> Prediction:
         raise NotImplementedError
 
-    def update(self, carry, prediction: Prediction, y, mask):
+    def update(self, carry, prediction: Prediction, y, mask, *, evidence=True, moments=None):
         raise NotImplementedError
 
-    def innovation(self, carry, prediction: Prediction, y, mask, *, evidence: bool = True):
+    def moments(self, carry, prediction: Prediction, mask):
+        """The part of :meth:`update` that does not read ``y`` under ``prediction`` and
+        ``mask``, to pass to :meth:`update` and :meth:`innovation` as ``moments``; ``None``
+        where this filter does not share it (each update computes its own)."""
+        return None
+
+    def innovation(self, carry, prediction: Prediction, y, mask, *, evidence: bool = True,
+                   moments=None):  # fmt: skip
         """``(ν [..., dy], S [..., dy, dy], log N(ν; 0, S) [...] or None)`` of ``y`` under
         ``prediction`` without the update's posterior (what a compensating wrapper reads
-        before it decides what to update with; ``evidence=False`` skips the density)."""
-        _, out = self.update(carry, prediction, y, mask)
-        return out.innovation, out.innovation_cov, out.log_likelihood if evidence else None
+        before it decides what to update with; ``evidence=False`` skips the density;
+        ``moments`` as in :meth:`update`)."""
+        _, out = self.update(carry, prediction, y, mask, evidence=evidence, moments=moments)
+        return out.innovation, out.innovation_cov, out.log_likelihood
 
     def _step(self, carry, y, u, mask):
         return self.update(carry, self.predict(carry, u), y, mask)
@@ -201,27 +220,35 @@ class KalmanFilter(GaussianFilter):
                               carry.gains.moments(carry.k + 1).pred_cov)  # fmt: skip
         return Prediction(*kalman_predict(carry.model, carry, u))
 
-    def update(self, carry, prediction, y, mask):
+    def moments(self, carry, prediction, mask):
+        if carry.gains is not None and mask is None:
+            return None  # the shared schedule holds them, computed once for all runs
+        model, k = carry.model, carry.k + 1
+        H, R = model.observation_matrix(k), model.measurement_cov(k)
+        return measurement_moments(prediction.cov, H, R, mask)
+
+    def update(self, carry, prediction, y, mask, *, evidence=True, moments=None):
         model, k = carry.model, carry.k + 1
         if carry.gains is not None and mask is None:
-            return _shared_update(carry, prediction.mean, y)
-        H = model.observation_matrix(k)
-        mean, cov, residual, S, log_lik = linear_update(
-            prediction.mean, prediction.cov, y - matvec(H, prediction.mean), H,
-            model.measurement_cov(k), mask,
-        )  # fmt: skip
+            return _shared_update(carry, prediction.mean, y, evidence)
+        if moments is None:
+            moments = self.moments(carry, prediction, mask)
+        residual = y - matvec(model.observation_matrix(k), prediction.mean)
+        mean, cov, residual, S, log_lik = moments_update(
+            prediction.mean, prediction.cov, residual, moments, evidence=evidence
+        )
         out = StepOutput(mean, cov, prediction.mean, prediction.cov, residual, S, log_lik)
         return GaussianState(mean, cov, k, model), out
 
-    def innovation(self, carry, prediction, y, mask, *, evidence: bool = True):
+    def innovation(self, carry, prediction, y, mask, *, evidence: bool = True, moments=None):
         if carry.gains is None or mask is not None:
             # the update's own ν and S (and density), without its gain and posterior
-            model, k = carry.model, carry.k + 1
-            H = model.observation_matrix(k)
-            nu, S, _, _, _, observed = linear_innovation(
-                prediction.cov, y - matvec(H, prediction.mean), H, model.measurement_cov(k), mask
-            )
-            return nu, S, innovation_log_prob(nu, S, observed) if evidence else None
+            if moments is None:
+                moments = self.moments(carry, prediction, mask)
+            H = carry.model.observation_matrix(carry.k + 1)
+            nu = masked_residual(y - matvec(H, prediction.mean), mask)
+            S = moments.innovation_cov
+            return nu, S, innovation_log_prob(nu, S, moments.observed) if evidence else None
         m = carry.gains.moments(carry.k + 1)
         nu = carry.gains.innovation(prediction.mean, y)
         ell = -0.5 * matvec(m.whiten, nu).square().sum(-1) - m.log_norm if evidence else None
@@ -246,7 +273,7 @@ class KalmanFilter(GaussianFilter):
         return None
 
 
-def _shared_update(carry: GaussianState, pred_mean: Tensor, y: Tensor):
+def _shared_update(carry: GaussianState, pred_mean: Tensor, y: Tensor, evidence: bool = True):
     """The update with the covariances of ``carry.gains`` (no mask): the same numbers as
     the general update, with the data-independent part computed once for all runs."""
     gains: GainSchedule = carry.gains
@@ -254,8 +281,10 @@ def _shared_update(carry: GaussianState, pred_mean: Tensor, y: Tensor):
     m = gains.moments(k)
     innovation = gains.innovation(pred_mean, y)
     mean = pred_mean + matvec(m.gain, innovation)
-    white = matvec(m.whiten, innovation)
-    log_lik = -0.5 * torch.linalg.vecdot(white, white) - m.log_norm
+    log_lik = None
+    if evidence:
+        white = matvec(m.whiten, innovation)
+        log_lik = -0.5 * torch.linalg.vecdot(white, white) - m.log_norm
     out = StepOutput(mean, m.cov, pred_mean, m.pred_cov, innovation, m.innovation_cov, log_lik)
     return GaussianState(mean, m.cov, k, carry.model, gains), out
 

@@ -125,14 +125,15 @@ def masked_measurement(
     observed entries removes again: the result equals the update with the marginal
     model of the received entries alone (Round-Robin scheduling, packet loss).
 
-    Shapes: ``residual [..., m]``, ``obs_matrix [..., m, n]``, ``noise_cov [..., m, m]``,
-    ``mask [..., m]`` (bool) or ``None``. Returns ``(r', H', R', observed_count)``; with
+    Shapes: ``residual [..., m]`` (or ``None``: the matrices alone, ``None`` back in its
+    place), ``obs_matrix [..., m, n]``, ``noise_cov [..., m, m]``, ``mask [..., m]`` (bool) or
+    ``None``. Returns ``(r', H', R', observed_count)``; with
     ``mask=None`` the inputs come back unchanged and the count is ``m``.
     """
     if mask is None:
-        return residual, obs_matrix, noise_cov, residual.shape[-1]
-    m = mask.to(residual.dtype)
-    residual = residual * m
+        return residual, obs_matrix, noise_cov, obs_matrix.shape[-2]
+    m = mask.to(obs_matrix.dtype if residual is None else residual.dtype)
+    residual = None if residual is None else residual * m
     obs_matrix = obs_matrix * m.unsqueeze(-1)
     eye = torch.eye(m.shape[-1], dtype=m.dtype, device=m.device)
     noise_cov = noise_cov * outer(m, m) + torch.diag_embed(1.0 - m) * eye

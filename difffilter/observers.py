@@ -58,7 +58,8 @@ class FixedGainFilter(GaussianFilter):
             mean = mean + matvec(B, u)
         return Prediction(mean, None)
 
-    def update(self, carry, prediction, y, mask):
+    def update(self, carry, prediction, y, mask, *, evidence=True, moments=None):
+        # (an observer reports no density; it has no moments to share)
         model, k = carry.model, carry.k + 1
         residual = y - matvec(model.observation_matrix(k), prediction.mean)
         if mask is not None:

@@ -253,7 +253,8 @@ def kalman_proposal_moments(
         m = None if mask is None else mask.unsqueeze(-2)
         residual, H, R, observed = masked_measurement(residual, H, R, m)
     cross = Q @ H.transpose(-1, -2)
-    mu, sigma, _, _ = gaussian_update(f, Q, residual, cross, H @ cross, H, R, observed)
+    mu, sigma, _, _ = gaussian_update(f, Q, residual, cross, H @ cross, H, R, observed,
+                                      evidence=False)  # fmt: skip
     return f, Q, mu, sigma
 
 

@@ -571,3 +571,82 @@ def test_innovation_is_the_updates_own_without_its_posterior(masked):
     torch.testing.assert_close(S, want_S, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(nu, want_nu, rtol=1e-12, atol=1e-12)
     assert kf.innovation(carry, pred, y, mask, evidence=False)[2] is None
+
+
+def _range_bearing_model():
+    """A nonlinear model whose EKF Jacobian depends on the prediction (range and a
+    smooth bearing-like entry), float64."""
+
+    def f(x, u):
+        return torch.stack([x[..., 0] + 0.1 * x[..., 1], 0.9 * x[..., 1] + u[..., 0]], -1)
+
+    def h(x):
+        return torch.stack([x.square().sum(-1).sqrt(), torch.tanh(x[..., 1] / (1 + x[..., 0]))], -1)
+
+    eye = torch.eye(2, dtype=torch.float64)
+    return df.NonlinearGaussianModel(f, h, Q=0.01 * eye, R=0.1 * eye, m0=torch.full((2,), 2.0,
+                                     dtype=torch.float64), P0=eye, dim_u=1)  # fmt: skip
+
+
+@pytest.mark.parametrize("masked", [False, True])
+@pytest.mark.parametrize("filt", ["kf", "ekf"])
+def test_moments_shared_and_no_evidence_change_no_bit_of_the_update(filt, masked):
+    """The part of an update that does not read ``y`` (``moments``), computed once for a
+    prediction, serves the innovation of one measurement and the update with another:
+    the same numbers, bit for bit, as each computing its own (what the learned estimator
+    does every step: the innovation of ``y``, the update with ``y − â``). ``evidence=False``
+    leaves the density ``None`` and every other output unchanged, and the innovation is
+    the update's own ``ν``, ``S`` and ``log N(ν; 0, S)`` (the EKF's too)."""
+    gen = torch.Generator().manual_seed(5)
+    if filt == "kf":
+        model, est, dx, dy = _random_linear_model(), df.KalmanFilter(), 5, 3
+    else:
+        model, est, dx, dy = _range_bearing_model(), df.ExtendedKalmanFilter(), 2, 2
+    a = torch.randn(4, dx, dx, generator=gen, dtype=torch.float64)
+    carry = est.init(model, (4,))._replace(
+        mean=torch.randn(4, dx, generator=gen, dtype=torch.float64) + 2.0,
+        cov=a @ a.mT + torch.eye(dx, dtype=torch.float64), gains=None,
+    )  # fmt: skip
+    y = torch.randn(4, dy, generator=gen, dtype=torch.float64)
+    shifted = y - torch.randn(4, dy, generator=gen, dtype=torch.float64)  # a compensated y
+    u = torch.randn(4, model.dim_u, generator=gen, dtype=torch.float64)
+    mask = torch.rand(4, dy, generator=gen) > 0.4 if masked else None
+    if masked:
+        mask[0] = True  # one run receives everything, one nothing
+        mask[1] = False
+    pred = est.predict(carry, u)
+    moments = est.moments(carry, pred, mask)
+    assert moments is not None
+    nu, S, ell = est.innovation(carry, pred, y, mask, moments=moments)
+    _, own = est.update(carry, pred, y, mask)
+    for got, want in ((nu, own.innovation), (S, own.innovation_cov), (ell, own.log_likelihood)):
+        assert torch.equal(got, want)
+    for evidence in (True, False):
+        shared = est.update(carry, pred, shifted, mask, evidence=evidence, moments=moments)
+        alone = est.update(carry, pred, shifted, mask)
+        for name in ("mean", "cov"):
+            assert torch.equal(getattr(shared[0], name), getattr(alone[0], name)), name
+        for name in ("mean", "cov", "pred_mean", "pred_cov", "innovation", "innovation_cov"):
+            assert torch.equal(getattr(shared[1], name), getattr(alone[1], name)), name
+        assert (shared[1].log_likelihood is None) is not evidence
+        if evidence:
+            assert torch.equal(shared[1].log_likelihood, alone[1].log_likelihood)
+    assert est.innovation(carry, pred, y, mask, evidence=False, moments=moments)[2] is None
+
+
+def test_the_shared_schedule_has_no_moments_to_share_and_skips_its_evidence_too():
+    """With the shared gain schedule (unbatched model, no mask) the KF's ``moments`` is
+    ``None`` (the schedule holds them); ``evidence=False`` still changes no bit."""
+    model = _random_linear_model()
+    kf = df.KalmanFilter()
+    carry = kf.init(model, (3,))
+    assert carry.gains is not None
+    y = torch.randn(3, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    pred = kf.predict(carry, None)
+    assert kf.moments(carry, pred, None) is None
+    (with_state, with_out), (without_state, without_out) = (
+        kf.update(carry, pred, y, None, evidence=e) for e in (True, False)
+    )
+    assert without_out.log_likelihood is None and with_out.log_likelihood is not None
+    assert torch.equal(with_state.mean, without_state.mean)
+    assert without_state.gains is carry.gains

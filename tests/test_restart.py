@@ -94,3 +94,30 @@ def test_the_card_carries_the_restart_rate():
     card = EstimatorCard(filter="kf", restart=0.01)
     assert EstimatorCard.from_dict(card.to_dict()).restart == 0.01
     assert EstimatorCard.from_dict({"filter": "kf"}).restart is None  # older cards
+
+
+@pytest.mark.parametrize("gating", [False, True])
+def test_without_evidence_every_output_but_the_density_is_the_same_bit_for_bit(gating):
+    """``evidence=False`` (what the training task builds) skips the density of the
+    compensated update and of the copy's: every mean, covariance, attack estimate and score
+    is the same, bit for bit, and the log-likelihood is absent instead of computed."""
+    model = _linear()
+    _, ys = _data(model, runs=4, steps=14)
+    outs = [
+        neural_gaussian_filter(
+            model,
+            ys,
+            network=_net(),
+            filter=df.KalmanFilter(),
+            restart=0.05,
+            gating=gating,
+            evidence=evidence,
+        )  # fmt: skip
+        for evidence in (True, False)
+    ]
+    with_density, without = outs
+    for name in ("means", "covs", "attack"):
+        assert torch.equal(getattr(with_density, name), getattr(without, name)), name
+    assert torch.equal(with_density.detection.scores, without.detection.scores)
+    assert torch.isfinite(with_density.extras["log_likelihood"]).all()
+    assert "log_likelihood" not in without.extras

@@ -473,6 +473,7 @@ class FilterEstimatorTask(pl.LightningModule):
             standardize=hp.standardize, features=self.features, poa_eta=self.poa_eta,
             threshold=threshold, deception=self.deception, record_inputs=record,
             gating=hp.gating, compensation=hp.compensation, restart=hp.restart,
+            evidence=False,  # no loss, metric or monitor of the task reads the density
         )  # fmt: skip
 
     def run(self, scenario, batch: dict, estimator, seed: int, *, steps=None, state=None):

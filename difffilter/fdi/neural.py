@@ -473,6 +473,9 @@ class NeuralCompensation(Estimator):
             never reads the estimate, on every step where the copy's test at false-alarm
             rate ``α`` is quiet (module docstring; sensor attacks, Gaussian filters, every
             entry received); ``None`` (default): never.
+        evidence: report the density ``log p(y_k − â_k | …)`` of the compensated update
+            (``StepOutput.log_likelihood``, Gaussian filters); ``False`` leaves it ``None``
+            and saves its operations (training reads none).
 
     Step output: the filter's moments after compensation, ``attack`` ``â_k``, ``score``,
     ``alarm``, ``threshold`` and ``extras`` (``"attack_logit"`` with a head, the recorded
@@ -497,13 +500,14 @@ class NeuralCompensation(Estimator):
         gating: bool = False,
         compensation: Compensation | str = Compensation.FULL,
         restart: float | None = None,
+        evidence: bool = True,
     ):
         channel, residual, features = Channel(channel), Residual(residual), tuple(features)
         compensation = Compensation(compensation)
         _check_options(network, inner, channel, features, poa_eta, learning, deception)
         _check_step_options(network, channel, residual, gating, compensation)
         _check_restart(restart, inner, channel)
-        self.gating, self.compensation = bool(gating), compensation
+        self.gating, self.compensation, self.evidence = bool(gating), compensation, bool(evidence)
         self.restart = None if restart is None else float(restart)
         self._quiet_below: dict[int, float] = {}  # χ² quantile by degrees of freedom
         self.network, self.inner, self.channel = network, inner, channel
@@ -559,12 +563,15 @@ class NeuralCompensation(Estimator):
             return carry, self._report(out, attack, logit, scale, out.innovation, x)
         inner, core = self.inner, self.core
         pred = inner.predict(carry.inner, u)
+        # what the innovation and the compensated update share (S, C, H: they do not read y)
+        moments = inner.moments(carry.inner, pred, mask)
         evidence = "log_likelihood" in core.features
-        nu, S, ell = inner.innovation(carry.inner, pred, y, mask, evidence=evidence)
+        nu, S, ell = inner.innovation(carry.inner, pred, y, mask, evidence=evidence,
+                                      moments=moments)  # fmt: skip
         plain, plain_feature, quiet = carry.plain, None, None
-        if plain is not None:  # the copy that never reads the estimate
+        if plain is not None:  # the copy that never reads the estimate (nor its density)
             plain_pred = inner.predict(plain, u)
-            plain, plain_out = inner.update(plain, plain_pred, y, mask)  # (its ν and S too)
+            plain, plain_out = inner.update(plain, plain_pred, y, mask, evidence=False)
             plain_nu, plain_S = plain_out.innovation, plain_out.innovation_cov
             if "plain_innovation" in core.features:
                 plain_feature = plain_nu / _std(plain_S)
@@ -580,9 +587,11 @@ class NeuralCompensation(Estimator):
         if self.channel is Channel.ACTUATOR:
             if u is None:
                 raise ValueError("channel ACTUATOR compensates the input: step needs u_k [..., du]")
-            new, out = inner.update(carry.inner, inner.predict(carry.inner, u + applied), y, mask)
+            compensated = inner.predict(carry.inner, u + applied)
+            new, out = inner.update(carry.inner, compensated, y, mask, evidence=self.evidence)
         else:
-            new, out = inner.update(carry.inner, pred, y - applied, mask)
+            new, out = inner.update(carry.inner, pred, y - applied, mask, evidence=self.evidence,
+                                    moments=moments)  # fmt: skip
             if self.gating:
                 new, out = _gated(new, out, pred, gate_of(logit))
             if quiet is not None:
