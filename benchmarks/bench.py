@@ -45,6 +45,8 @@ Prints, in one run:
 10. CUDA beside the CPU (every core) for the KF at 1e5 runs, the bootstrap PF up to 1e6
    particles and one OT resampling, alternating in one process (``bench_cuda.py``;
    skipped with a message without a CUDA device).
+11. One training chunk of the learned LFC estimator (``train/configs/lfc.yaml``, 32 runs ×
+   100 steps), forward and backward apart (``bench_training.py``; ``--only-training``).
 
 Targets (2-core CPU) are printed beside the figures; a missed target says so. Everything
 runs with one intra-op thread (``--threads``), the faster in section 9 on the shared 2-core
@@ -72,6 +74,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_cuda import print_cuda  # noqa: E402
 from bench_online import print_online_kf, print_online_pf, print_threads  # noqa: E402
 from bench_peers import print_peers  # noqa: E402
+from bench_training import print_training  # noqa: E402
 from timing import best_time  # noqa: E402
 
 import difffilter as df  # noqa: E402
@@ -480,6 +483,8 @@ def main(argv=None) -> int:
     p.add_argument("--only-peers", action="store_true", help="only section 8 (torch-kf)")
     p.add_argument("--only-threads", action="store_true", help="only section 9 (1 or 2 threads)")
     p.add_argument("--only-cuda", action="store_true", help="only section 10 (CUDA)")
+    p.add_argument("--only-training", action="store_true",
+                   help="only section 11 (an LFC training step)")  # fmt: skip
     p.add_argument("--threads", type=int, default=1,
                    help="intra-op threads (default 1: the faster one measured, section 9)")  # fmt: skip
     p.add_argument("--json", type=Path, default=None, help="also write the figures as JSON")
@@ -496,7 +501,7 @@ def main(argv=None) -> int:
             "only_kf_large": print_kf_large, "only_lfc": print_lfc_learners,
             "only_online": print_online, "only_peers": print_peers,
             "only_threads": print_threads, "only_ot": print_ot_step,
-            "only_cuda": print_cuda}  # fmt: skip
+            "only_cuda": print_cuda, "only_training": print_training}  # fmt: skip
     for flag, section in only.items():
         if getattr(args, flag):
             section(figures)
@@ -587,6 +592,7 @@ def main(argv=None) -> int:
     print_peers(figures)
     print_threads(figures)
     print_cuda(figures)
+    print_training(figures)
     if args.json:
         args.json.write_text(json.dumps(figures, indent=2))
     return 0
