@@ -25,14 +25,7 @@ import torch
 from torch import Tensor
 
 from ._checks import NonFinite
-from .gaussian import (
-    gaussian_update,
-    innovation_log_prob,
-    masked_residual,
-    measurement_moments,
-    moments_update,
-    predict_covariance,
-)
+from .gaussian import gaussian_update, measurement_moments, predict_covariance
 from .kalman import GaussianFilter, Prediction
 from .linalg import masked_measurement, outer, safe_cholesky, symmetrize
 from .loop import open_loop
@@ -73,25 +66,13 @@ class ExtendedKalmanFilter(GaussianFilter):
         H = model.observation_jacobian(prediction.mean, k).to(prediction.mean.dtype)
         return measurement_moments(prediction.cov, H, model.measurement_cov(k), mask)
 
-    def update(self, carry, prediction, y, mask, *, evidence=True, moments=None):
+    def residual(self, carry, prediction, y):
+        # the model's residual: a wrapped angle stays wrapped
         model, k = carry.model, carry.k + 1
-        pred_mean, pred_cov = prediction
-        if moments is None:
-            moments = self.moments(carry, prediction, mask)
-        residual = model.measurement_residual(y, model.observe(pred_mean, k))
-        mean, cov, residual, S, log_lik = moments_update(
-            pred_mean, pred_cov, residual, moments, evidence=evidence
-        )
-        out = StepOutput(mean, cov, pred_mean, pred_cov, residual, S, log_lik)
-        return GaussianState(mean, cov, k, model), out
+        return model.measurement_residual(y, model.observe(prediction.mean, k))
 
-    def innovation(self, carry, prediction, y, mask, *, evidence: bool = True, moments=None):
-        if moments is None:
-            moments = self.moments(carry, prediction, mask)
-        model, k = carry.model, carry.k + 1
-        nu = model.measurement_residual(y, model.observe(prediction.mean, k))
-        nu, S = masked_residual(nu, mask), moments.innovation_cov
-        return nu, S, innovation_log_prob(nu, S, moments.observed) if evidence else None
+    def update(self, carry, prediction, y, mask, *, evidence=True, moments=None):
+        return self._moments_update(carry, prediction, y, mask, evidence, moments)
 
 
 def extended_kalman_step(

@@ -164,14 +164,37 @@ class GaussianFilter(Estimator):
         where this filter does not share it (each update computes its own)."""
         return None
 
+    def residual(self, carry, prediction: Prediction, y):
+        """``y − ŷ⁻ [..., dy]`` (unmasked) of a filter whose :meth:`moments` are shared."""
+        raise NotImplementedError
+
     def innovation(self, carry, prediction: Prediction, y, mask, *, evidence: bool = True,
                    moments=None):  # fmt: skip
         """``(ν [..., dy], S [..., dy, dy], log N(ν; 0, S) [...] or None)`` of ``y`` under
         ``prediction`` without the update's posterior (what a compensating wrapper reads
         before it decides what to update with; ``evidence=False`` skips the density;
-        ``moments`` as in :meth:`update`)."""
-        _, out = self.update(carry, prediction, y, mask, evidence=evidence, moments=moments)
-        return out.innovation, out.innovation_cov, out.log_likelihood
+        ``moments`` as in :meth:`update`): from the moments where the filter shares them
+        (no gain, no posterior), else the update's own."""
+        if moments is None:
+            moments = self.moments(carry, prediction, mask)
+        if moments is None:
+            _, out = self.update(carry, prediction, y, mask, evidence=evidence)
+            return out.innovation, out.innovation_cov, out.log_likelihood
+        nu = masked_residual(self.residual(carry, prediction, y), mask)
+        S = moments.innovation_cov
+        return nu, S, innovation_log_prob(nu, S, moments.observed) if evidence else None
+
+    def _moments_update(self, carry, prediction: Prediction, y, mask, evidence, moments):
+        """The KF/EKF update (:func:`~difffilter.gaussian.moments_update`) from this filter's
+        :meth:`moments` (computed here when ``None``) and :meth:`residual`."""
+        if moments is None:
+            moments = self.moments(carry, prediction, mask)
+        mean, cov, residual, S, log_lik = moments_update(
+            prediction.mean, prediction.cov, self.residual(carry, prediction, y), moments,
+            evidence=evidence,
+        )  # fmt: skip
+        out = StepOutput(mean, cov, prediction.mean, prediction.cov, residual, S, log_lik)
+        return GaussianState(mean, cov, carry.k + 1, carry.model), out
 
     def _step(self, carry, y, u, mask):
         return self.update(carry, self.predict(carry, u), y, mask)
@@ -227,28 +250,19 @@ class KalmanFilter(GaussianFilter):
         H, R = model.observation_matrix(k), model.measurement_cov(k)
         return measurement_moments(prediction.cov, H, R, mask)
 
+    def residual(self, carry, prediction, y):
+        return y - matvec(carry.model.observation_matrix(carry.k + 1), prediction.mean)
+
     def update(self, carry, prediction, y, mask, *, evidence=True, moments=None):
-        model, k = carry.model, carry.k + 1
         if carry.gains is not None and mask is None:
             return _shared_update(carry, prediction.mean, y, evidence)
-        if moments is None:
-            moments = self.moments(carry, prediction, mask)
-        residual = y - matvec(model.observation_matrix(k), prediction.mean)
-        mean, cov, residual, S, log_lik = moments_update(
-            prediction.mean, prediction.cov, residual, moments, evidence=evidence
-        )
-        out = StepOutput(mean, cov, prediction.mean, prediction.cov, residual, S, log_lik)
-        return GaussianState(mean, cov, k, model), out
+        return self._moments_update(carry, prediction, y, mask, evidence, moments)
 
     def innovation(self, carry, prediction, y, mask, *, evidence: bool = True, moments=None):
         if carry.gains is None or mask is not None:
             # the update's own ν and S (and density), without its gain and posterior
-            if moments is None:
-                moments = self.moments(carry, prediction, mask)
-            H = carry.model.observation_matrix(carry.k + 1)
-            nu = masked_residual(y - matvec(H, prediction.mean), mask)
-            S = moments.innovation_cov
-            return nu, S, innovation_log_prob(nu, S, moments.observed) if evidence else None
+            return super().innovation(carry, prediction, y, mask, evidence=evidence,
+                                      moments=moments)  # fmt: skip
         m = carry.gains.moments(carry.k + 1)
         nu = carry.gains.innovation(prediction.mean, y)
         ell = -0.5 * matvec(m.whiten, nu).square().sum(-1) - m.log_norm if evidence else None
