@@ -112,7 +112,7 @@ def compose(
         net, inner, channel=channel, residual=Residual(card.residual),
         standardize=card.standardize, features=card.features, poa_eta=card.poa_eta,
         threshold=card.threshold, deception=deception, gating=card.gating,
-        compensation=card.compensation, restart=card.restart,
+        compensation=card.compensation, restart=card.restart, confirm=card.confirm,
     )  # fmt: skip
 
 

@@ -38,7 +38,10 @@ instead above the threshold the checkpoint's card carries where ``difffilter-tra
 calibrate`` chose it for this entry and this statistic (a card calibrated before the
 statistic was recorded was calibrated for the estimate). A checkpoint's estimator runs as
 its card says, its observer's ``restart`` from a χ²-gated copy included (the shipped
-``lfc_nn_grad`` card: 0.01).
+``lfc_nn_grad`` card: 0.01), and its ``confirm``: the score (either statistic) counts only
+where that copy's χ² test at the card's rate alarms as well, ``0`` elsewhere
+(:func:`confirmed_statistic` names it; a threshold calibrated for the unconfirmed score is
+not used for it).
 """
 
 from __future__ import annotations
@@ -92,6 +95,14 @@ ESTIMATE, PROBABILITY = "standardised attack estimate", "attack probability"
 DEFAULT_THRESHOLD = {ESTIMATE: 3.0, PROBABILITY: 0.5}
 
 
+def confirmed_statistic(statistic: str, confirm: float | None) -> str:
+    """The name of ``statistic`` as an estimator with ``confirm`` reports it (itself
+    without a confirmation)."""
+    if confirm is None:
+        return statistic
+    return f"{statistic} where the gated copy's χ² test at {confirm:g} alarms"
+
+
 class LFCContext:
     """Plant, LQR gain and Luenberger gains of one sampling time (built once, reused)."""
 
@@ -133,6 +144,7 @@ def lfc_estimator(
     compensation: str = "full",
     features: tuple[str, ...] = (),
     restart: float | None = None,
+    confirm: float | None = None,
 ):
     """An LFC estimator: the Kalman observer (or the Luenberger one of gain ``luenberger``,
     a :class:`~difffilter.control.LuenbergerDesign`), alone or with
@@ -141,8 +153,9 @@ def lfc_estimator(
     the paper's network reads them, unless ``standardize``); ``gating``: the network may
     also drop a measurement; ``compensation``: ``"full"`` or ``"detected"``; ``features``:
     the per-step inputs beside eq. (9); ``restart``: the uncompensated copy's χ² false-alarm
-    rate whose quiet steps restart the compensated observer, or ``None``
-    (:class:`~difffilter.fdi.neural.NeuralCompensation`)."""
+    rate whose quiet steps restart the compensated observer, or ``None``; ``confirm``: the
+    rate of the copy's test that must alarm with the network for its score to count, or
+    ``None`` (:class:`~difffilter.fdi.neural.NeuralCompensation`)."""
     observer = KalmanFilter() if luenberger is None else FixedGainFilter(ctx.luenberger(luenberger))
     if network is None:
         return observer
@@ -150,7 +163,7 @@ def lfc_estimator(
     return NeuralCompensation(
         network.to(ctx.dtype), observer, residual=residual, standardize=standardize,
         learning=learning, gating=gating, compensation=compensation, features=features,
-        restart=restart,
+        restart=restart, confirm=confirm,
     )  # fmt: skip
 
 
@@ -249,16 +262,18 @@ def _attacked(ctx: SuiteContext, estimator, tr, compensate: bool, forks: dict) -
     return _loop(ctx, estimator, tr, compensate, fork=forks[onset])
 
 
-def _alarm_threshold(ctx: SuiteContext, name: str, trained: bool, statistic: str) -> float:
-    """The alarm threshold on ``statistic``: the checkpoint's, where ``difffilter-train
-    calibrate`` chose it for this entry and this statistic, else the statistic's default."""
+def _alarm_threshold(ctx: SuiteContext, name: str, trained: bool, statistic: str,
+                     reported: str) -> float:  # fmt: skip
+    """The alarm threshold on ``statistic`` (reported as ``reported``: confirmed or not):
+    the checkpoint's, where ``difffilter-train calibrate`` chose it for this entry and this
+    statistic, else the statistic's default."""
     if not trained:
         return DEFAULT_THRESHOLD[statistic]
     path = ctx.checkpoint_for(name)  # loaded (and checked) by the entry's build already
     _, card = _cached(ctx, ("lfc/ckpt", str(path)), lambda: load_estimator_checkpoint(path))
     calibration = card.extra.get("calibration", {})
     calibrated = (calibration.get("estimator") == name
-                  and calibration.get("score", ESTIMATE) == statistic)  # fmt: skip
+                  and calibration.get("score", ESTIMATE) == reported)  # fmt: skip
     return float(card.threshold) if calibrated else DEFAULT_THRESHOLD[statistic]
 
 
@@ -273,7 +288,8 @@ def _closed_loop(name: str, build, *, compensate: bool = True, ablation: bool = 
         estimator = build(ctx)
         head = trained and getattr(estimator.network, "detection_head", False)
         statistic = PROBABILITY if head else ESTIMATE
-        threshold = _alarm_threshold(ctx, name, trained, statistic)
+        reported = confirmed_statistic(statistic, getattr(estimator, "confirm", None))
+        threshold = _alarm_threshold(ctx, name, trained, statistic, reported)
 
         def run(tr) -> LoopResult:
             free, forks = _attack_free(ctx, name, estimator, tr, compensate)
@@ -293,7 +309,10 @@ def _closed_loop(name: str, build, *, compensate: bool = True, ablation: bool = 
             else:
                 sigma = free.output.attack.std(dim=(0, 1)).clamp_min(1e-12)
                 scores = (out.attack.abs() / sigma).amax(-1)
-            det = Detection(scores, scores > threshold, threshold, statistic)
+            if "confirmed" in out.extras:  # the card's confirm: where the copy's test alarms
+                extras["confirmed"] = confirmed = out.extras["confirmed"]
+                scores = torch.where(confirmed, scores, torch.zeros_like(scores))
+            det = Detection(scores, scores > threshold, threshold, reported)
             result = EstimatorOutput(out.means, attack=out.attack, detection=det, extras=extras)
             return loop._replace(output=result)
 
@@ -312,7 +331,7 @@ def _trained(ctx, name, *, rule=None):
     return lfc_estimator(_context(ctx), network=net, rule=rule, residual=Residual(card.residual),
                          standardize=card.standardize, gating=card.gating,
                          compensation=card.compensation, features=card.features,
-                         restart=card.restart)  # fmt: skip
+                         restart=card.restart, confirm=card.confirm)  # fmt: skip
 
 
 # The evaluation's learners donate their ρ to the next step (each loop owns its carry).

@@ -295,6 +295,9 @@ class EstimatorCard:
         restart: the false-alarm rate of the χ² test of the uncompensated copy whose quiet
             steps restart the compensated filter, or ``None``
             (:class:`~difffilter.fdi.neural.NeuralCompensation`'s ``restart``).
+        confirm: the rate of the copy's χ² test that must alarm with the network for its
+            score to count (``NeuralCompensation``'s ``confirm``; needs ``restart``), or
+            ``None``: the network's score alone.
     """
 
     scenario_family: str | None = None
@@ -314,6 +317,7 @@ class EstimatorCard:
     gating: bool = False
     compensation: str = "full"
     restart: float | None = None
+    confirm: float | None = None
     extra: dict = field(default_factory=dict, compare=False)
 
     def to_dict(self) -> dict:

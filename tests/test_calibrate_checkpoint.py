@@ -13,6 +13,7 @@ import torch
 
 from difffilter.eval.suite import run_suite
 from difffilter.models import registry
+from difffilter.models.lfc_estimators import PROBABILITY, confirmed_statistic
 from difffilter.models.neural_estimator import load_estimator_checkpoint, save_estimator_checkpoint
 from difffilter.models.streams import Streams
 from difffilter.train.calibrate import calibrate_checkpoint, estimator_name, main
@@ -54,11 +55,12 @@ def test_the_threshold_meets_the_rate_on_its_runs_and_the_estimator_alarms_above
 
 
 def _uncalibrated(path, out):
-    """A copy of the checkpoint at ``path`` whose card carries no calibration (the head's
-    default threshold, as ``export`` writes it)."""
+    """A copy of the checkpoint at ``path`` whose card carries no calibration and no
+    confirmation (the head's default threshold, as ``export`` writes it by default)."""
     net, card = load_estimator_checkpoint(path)
     extra = {k: v for k, v in card.extra.items() if k != "calibration"}
-    save_estimator_checkpoint(out, net, dataclasses.replace(card, threshold=0.5, extra=extra))
+    card = dataclasses.replace(card, threshold=0.5, confirm=None, extra=extra)
+    save_estimator_checkpoint(out, net, card)
     return out
 
 
@@ -79,18 +81,24 @@ def test_a_calibrated_lfc_checkpoint_alarms_at_its_threshold_on_its_head(tmp_pat
         card, threshold=3.3, extra={**card.extra, "calibration": old_cal}))  # fmt: skip
     scenario = registry.get("lfc_step").with_steps(300)
     shipped = load_estimator_checkpoint("checkpoints/lfc_nn_grad.ckpt")[1]
-    assert shipped.extra["calibration"]["estimator"] == "kf_nn_grad"  # the shipped one is
-    assert shipped.extra["calibration"]["score"] == "attack probability"
+    confirmed = confirmed_statistic(PROBABILITY, shipped.confirm)
+    assert shipped.extra["calibration"]["estimator"] == "kf_nn_grad"  # the shipped one is,
+    assert shipped.extra["calibration"]["score"] == confirmed  # for its confirmed probability
     # the online fine-tuning of the same network is another entry: it keeps p = 0.5
-    cases = (("checkpoints/lfc_nn_grad.ckpt", "kf_nn_grad", shipped.threshold),
-             (plain, "kf_nn_grad", 0.5), (out, "kf_nn_grad", cal["threshold"]),
-             (old, "kf_nn_grad", 0.5), (out, "kf_nn_grad_ekf", 0.5))  # fmt: skip
-    for path, name, threshold in cases:
+    cases = (("checkpoints/lfc_nn_grad.ckpt", "kf_nn_grad", shipped.threshold, confirmed),
+             (plain, "kf_nn_grad", 0.5, PROBABILITY),
+             (out, "kf_nn_grad", cal["threshold"], PROBABILITY),
+             (old, "kf_nn_grad", 0.5, PROBABILITY), (out, "kf_nn_grad_ekf", 0.5, PROBABILITY))  # fmt: skip
+    for path, name, threshold, statistic in cases:
         result = run_suite(scenario, runs=2, estimators=[name], checkpoint={name: str(path)},
                            progress=False)  # fmt: skip
-        det, logit = result.outputs[name].detection, result.outputs[name].extras["attack_logit"]
-        assert det.threshold == threshold and det.statistic == "attack probability"
-        assert torch.allclose(det.scores, torch.sigmoid(logit))
+        output = result.outputs[name]
+        det, logit = output.detection, output.extras["attack_logit"]
+        assert det.threshold == threshold and det.statistic == statistic
+        probability = torch.sigmoid(logit)
+        if statistic == confirmed:  # the probability where the copy's test alarmed, else 0
+            probability = torch.where(output.extras["confirmed"], probability, 0.0)
+        assert torch.allclose(det.scores, probability)
         assert torch.equal(det.alarms, det.scores > threshold)
 
 

@@ -280,8 +280,10 @@ def test_validate_and_test_take_the_exported_checkpoint(tmp_path, monkeypatch, c
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr("sys.argv", ["difffilter-train"])
     config = ["--config", str(ROOT / "train" / "configs" / "lfc.yaml"), "--ckpt_path", str(CKPT)]
-    # the shipped network was trained before the config's gating, plain innovation and restart
-    config += ["--model.gating=false", "--model.features=null", "--model.restart=null"]
+    # the shipped network was trained before the config's gating, plain innovation, restart
+    # and confirmation
+    config += ["--model.gating=false", "--model.features=null", "--model.restart=null",
+               "--model.confirm=null"]  # fmt: skip
     small = ["--data.val_runs=2", "--data.steps=60", "--data.test_runs=2"]
     assert main(["validate", *config, *small]) == 0
     assert main(["test", *config, *small]) == 0

@@ -26,8 +26,10 @@ statistic the threshold is for (``score``: e.g. the LFC head's ``"attack probabi
 
 ``--restart α`` (``off``: none) sets how the estimator runs before its threshold is chosen:
 the card's ``restart``, the false-alarm rate of the χ²-gated copy from which a Gaussian
-filter's compensation restarts (:class:`~difffilter.fdi.neural.NeuralCompensation`); the
-scores, and so the threshold, are those of the estimator so configured.
+filter's compensation restarts (:class:`~difffilter.fdi.neural.NeuralCompensation`);
+``--confirm β`` (``off``: none) the card's ``confirm``, the rate of that copy's χ² test that
+must alarm with the network for its score to count. The scores, and so the threshold, are
+those of the estimator so configured.
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ __all__ = ["calibrate_checkpoint", "estimator_name", "main"]
 
 #: The master seed of the calibration runs (differs from every default study seed).
 CALIBRATION_SEED = 5
-#: ``restart`` left as the card has it.
+#: ``restart`` / ``confirm`` left as the card has it.
 KEEP = "keep"
 
 
@@ -78,7 +80,7 @@ def _scores(scenario, name: str, path, runs: int, seed: int, progress: bool):
 
 def _new_check(src: Path, scored: Path, card) -> dict | None:
     """The card's reproducibility check (``difffilter-train export``'s) of the estimator as it
-    now runs (``scored``: its restart changed), where ``src``'s card has one."""
+    now runs (``scored``: its restart or confirm changed), where ``src``'s card has one."""
     from .export import check_metric
 
     card_json = src.with_suffix(".json")
@@ -86,7 +88,8 @@ def _new_check(src: Path, scored: Path, card) -> dict | None:
     if old is None:
         return None
     return {**check_metric(scored, seed=old["seed"], runs=old["runs"]),
-            "note": f"recomputed by difffilter-train calibrate with restart {card.restart} "
+            "note": f"recomputed by difffilter-train calibrate with restart {card.restart}, "
+                    f"confirm {card.confirm} "
                     f"(before: {old['value']:.6g})"}  # fmt: skip
 
 
@@ -100,10 +103,12 @@ def calibrate_checkpoint(
     force: bool = False,
     progress: bool = True,
     restart: float | None | str = KEEP,
+    confirm: float | None | str = KEEP,
 ) -> dict:
     """Calibrate the checkpoint ``src`` to the false-alarm rate ``far`` and write it to
     ``out`` (module docstring); ``runs`` per set (default the scenario's); ``restart``: the
-    card's restart rate to calibrate with (``None``: none; default: the card's). Returns
+    card's restart rate to calibrate with (``None``: none; default: the card's); ``confirm``
+    likewise the card's confirmation rate. Returns
     the card's ``calibration`` entry. ``ValueError`` for a bad argument or a checkpoint
     that cannot be calibrated, ``FileNotFoundError`` if ``src`` does not exist."""
     from difffilter.metrics import threshold_for
@@ -127,12 +132,16 @@ def calibrate_checkpoint(
     if card.scenario is None:
         raise ValueError(f"{src}: its card names no training scenario to calibrate on")
     as_shipped = card
-    if restart != KEEP:
-        if restart is not None and (isinstance(restart, bool) or not 0 < float(restart) < 1):
-            raise ValueError(
-                f"--restart must be a false-alarm rate in (0, 1) or off; got {restart!r}"
-            )
-        card = dataclasses.replace(card, restart=None if restart is None else float(restart))
+    for option, value in (("restart", restart), ("confirm", confirm)):
+        if value != KEEP:
+            if value is not None and (isinstance(value, bool) or not 0 < float(value) < 1):
+                raise ValueError(
+                    f"--{option} must be a false-alarm rate in (0, 1) or off; got {value!r}"
+                )
+            card = dataclasses.replace(card, **{option: None if value is None else float(value)})
+    if card.confirm is not None and card.restart is None:
+        raise ValueError("--confirm reads the χ² test of the restart's gated copy: the card "
+                         "needs a restart rate too (--restart RATE)")  # fmt: skip
     scenario = registry.get(card.scenario)
     name, runs = estimator_name(card), runs or scenario.runs
     streams, start = Streams(seed), time.time()
@@ -140,7 +149,8 @@ def calibrate_checkpoint(
     check_seed = streams.seed_of("checkpoint-calibration/check")
     with tempfile.TemporaryDirectory() as tmp:
         scored = src
-        if card.restart != as_shipped.restart:  # the scores of the estimator as configured
+        if (card.restart, card.confirm) != (as_shipped.restart, as_shipped.confirm):
+            # the scores of the estimator as configured
             scored = Path(tmp) / src.name
             save_estimator_checkpoint(scored, estimator, card)
         fitted, statistic = _scores(scenario, name, scored, runs, fit_seed, progress)
@@ -151,6 +161,7 @@ def calibrate_checkpoint(
         "target": float(far), "estimator": name, "scenario": scenario.name, "runs": runs,
         **({} if statistic is None else {"score": statistic}),
         **({} if card.restart is None else {"restart": card.restart}),
+        **({} if card.confirm is None else {"confirm": card.confirm}),
         "steps": int(fitted.shape[-1]), "seed": fit_seed, "check_seed": check_seed,
         "threshold": threshold, "previous_threshold": card.threshold,
         "measured_on_calibration": float((fitted > threshold).double().mean()),
@@ -173,6 +184,17 @@ def calibrate_checkpoint(
     return calibration
 
 
+def _rate_option(value: str, option: str):
+    """``--restart`` / ``--confirm`` as :func:`calibrate_checkpoint` takes it: :data:`KEEP`,
+    ``None`` for ``off``, else the rate as a float (``ValueError`` naming the option)."""
+    if value in (KEEP, "off"):
+        return None if value == "off" else KEEP
+    try:
+        return float(value)
+    except ValueError:
+        raise ValueError(f"--{option} must be a rate in (0, 1) or off; got {value!r}") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="difffilter-train calibrate",
@@ -190,20 +212,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--restart", default=KEEP, metavar="RATE|off",
                    help="the restart rate to run and calibrate with (default: the card's)")  # fmt: skip
+    p.add_argument("--confirm", default=KEEP, metavar="RATE|off",
+                   help="the rate of the restart copy's χ² test that must alarm with the network "
+                        "(default: the card's)")  # fmt: skip
     args = p.parse_args(argv)
-    restart = args.restart
     try:
-        if restart not in (KEEP, "off"):
-            try:
-                restart = float(restart)
-            except ValueError:
-                raise ValueError(
-                    f"--restart must be a rate in (0, 1) or off; got {restart!r}"
-                ) from None
         cal = calibrate_checkpoint(args.src, args.out, far=args.far, runs=args.runs,
                                    seed=args.seed, force=args.force,
                                    progress=not args.no_progress,
-                                   restart=None if restart == "off" else restart)  # fmt: skip
+                                   restart=_rate_option(args.restart, "restart"),
+                                   confirm=_rate_option(args.confirm, "confirm"))  # fmt: skip
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-train calibrate: error: {exc}", file=sys.stderr)
         return 2

@@ -284,6 +284,10 @@ class FilterEstimatorTask(pl.LightningModule):
         restart: ``α``: an uncompensated copy of the Gaussian filter runs beside, and on
             every step where its χ² test at false-alarm rate ``α`` is quiet the compensated
             filter restarts from it (sensor attacks); ``None`` (default): never.
+        confirm: ``β``: the network's score counts only where that copy's χ² test at rate
+            ``β`` alarms as well (needs ``restart``; the loss reads the logits, so training
+            is the same: the validation's scores and the exported card change); ``None``
+            (default): the network's score alone.
         features: the filter's statistics the network reads (``"mask"``,
             ``"log_likelihood"``, ``"poa"``: the PoA threshold is the scenario's;
             ``"plain_innovation"``: an uncompensated copy of a Gaussian filter's).
@@ -337,6 +341,7 @@ class FilterEstimatorTask(pl.LightningModule):
         gating: bool = False,
         compensation: str = "full",
         restart: float | None = None,
+        confirm: float | None = None,
         features: list[str] | None = None,
         trainer: str = "grad",
         lr: float = 3e-3,
@@ -473,6 +478,7 @@ class FilterEstimatorTask(pl.LightningModule):
             standardize=hp.standardize, features=self.features, poa_eta=self.poa_eta,
             threshold=threshold, deception=self.deception, record_inputs=record,
             gating=hp.gating, compensation=hp.compensation, restart=hp.restart,
+            confirm=hp.confirm,
             evidence=False,  # no loss, metric or monitor of the task reads the density
         )  # fmt: skip
 
@@ -735,6 +741,7 @@ class FilterEstimatorTask(pl.LightningModule):
             num_particles=int(self.num_particles), poa_eta=self.poa_eta, estimator=registered,
             gating=bool(hp.gating), compensation=str(hp.compensation),
             restart=None if hp.restart is None else float(hp.restart),
+            confirm=None if hp.confirm is None else float(hp.confirm),
         )  # fmt: skip
 
     def check_exported(self, card: EstimatorCard, path) -> None:

@@ -106,6 +106,16 @@ operation is differentiable, so a loss on ``â``, ``logit`` or the state estimat
 back-propagates through the filter (through the particle weights and, with a
 differentiable resampler, through resampling): how :mod:`difffilter.train.task` trains
 the network.
+
+Confirmed alarms (``confirm=β``, with ``restart``): the score counts only where the gated
+copy's χ² test at the rate ``β`` alarms as well::
+
+    s_k = p_k · 1[q°_k > F⁻¹_{χ²_dy}(1 − β)]
+
+so an alarm needs the network and the uncompensated innovation. Aimed at the steps just
+after an attack: the network reads residuals of a few past steps, so its probability
+outlasts the attack, while the copy, which used no alarmed measurement, is quiet again
+as soon as the injected signal ends. The threshold is then chosen for this score.
 """
 
 from __future__ import annotations
@@ -476,10 +486,14 @@ class NeuralCompensation(Estimator):
         evidence: report the density ``log p(y_k − â_k | …)`` of the compensated update
             (``StepOutput.log_likelihood``, Gaussian filters); ``False`` leaves it ``None``
             and saves its operations (training reads none).
+        confirm: ``β`` in (0, 1): the score only where the χ²-gated copy's test at rate
+            ``β`` alarms too, ``0`` elsewhere (module docstring; needs ``restart``);
+            ``None`` (default): the network's score alone.
 
     Step output: the filter's moments after compensation, ``attack`` ``â_k``, ``score``,
     ``alarm``, ``threshold`` and ``extras`` (``"attack_logit"`` with a head, the recorded
-    inputs). Carry: :class:`NeuralCarry` (Gaussian inner filter) or the particle filter's
+    inputs, ``"confirmed"`` with ``confirm``: where the copy's test at ``β`` alarmed).
+    Carry: :class:`NeuralCarry` (Gaussian inner filter) or the particle filter's
     :class:`~difffilter.ParticleState` with the :class:`NeuralState` in ``aux``.
     """
 
@@ -501,15 +515,18 @@ class NeuralCompensation(Estimator):
         compensation: Compensation | str = Compensation.FULL,
         restart: float | None = None,
         evidence: bool = True,
+        confirm: float | None = None,
     ):
         channel, residual, features = Channel(channel), Residual(residual), tuple(features)
         compensation = Compensation(compensation)
         _check_options(network, inner, channel, features, poa_eta, learning, deception)
         _check_step_options(network, channel, residual, gating, compensation)
         _check_restart(restart, inner, channel)
+        _check_confirm(confirm, restart)
         self.gating, self.compensation, self.evidence = bool(gating), compensation, bool(evidence)
         self.restart = None if restart is None else float(restart)
-        self._quiet_below: dict[int, float] = {}  # χ² quantile by degrees of freedom
+        self.confirm = None if confirm is None else float(confirm)
+        self._chi2_quantiles: dict[tuple, float] = {}  # χ² quantile by (dof, rate)
         self.network, self.inner, self.channel = network, inner, channel
         self.attack_channel = channel  # what its attack estimate â_k is on
         self.threshold = float(threshold)
@@ -568,7 +585,7 @@ class NeuralCompensation(Estimator):
         evidence = "log_likelihood" in core.features
         nu, S, ell = inner.innovation(carry.inner, pred, y, mask, evidence=evidence,
                                       moments=moments)  # fmt: skip
-        plain, plain_feature, quiet = carry.plain, None, None
+        plain, plain_feature, quiet, confirmed = carry.plain, None, None, None
         if plain is not None:  # the copy that never reads the estimate (nor its density)
             plain_pred = inner.predict(plain, u)
             plain, plain_out = inner.update(plain, plain_pred, y, mask, evidence=False)
@@ -579,7 +596,10 @@ class NeuralCompensation(Estimator):
                 if mask is not None:
                     raise ValueError("restart tests every channel of the uncompensated copy: "
                                      "it needs every entry received (mask=None)")  # fmt: skip
-                quiet = _nis(plain_nu, plain_S) <= self._quiet_threshold(plain_nu.shape[-1])
+                nis, dof = _nis(plain_nu, plain_S), plain_nu.shape[-1]
+                quiet = nis <= self._chi2_threshold(dof, self.restart)
+                if self.confirm is not None:
+                    confirmed = nis > self._chi2_threshold(dof, self.confirm)
                 plain = _gated_copy(plain, plain_pred, quiet)
         net, attack, logit, scale, delta = core.step(carry.net, nu, S, mask, log_likelihood=ell,
                                                      plain=plain_feature)  # fmt: skip
@@ -597,17 +617,23 @@ class NeuralCompensation(Estimator):
             if quiet is not None:
                 new, out = _restarted(new, out, plain, quiet)
         extras = {"network_inputs": delta[..., 0, :].detach()} if core.record_inputs else {}
-        report = self._report(out, attack, logit, scale, nu, extras)
+        report = self._report(out, attack, logit, scale, nu, extras, confirmed)
         return NeuralCarry(new, net, carry.model, plain), report
 
-    def _quiet_threshold(self, dof: int) -> float:
-        """``F⁻¹_{χ²_dof}(1 − α)``: the gated copy's test is quiet at or below it."""
-        if dof not in self._quiet_below:
-            self._quiet_below[dof] = chi_square_quantile(dof, 1.0 - self.restart)
-        return self._quiet_below[dof]
+    def _chi2_threshold(self, dof: int, rate: float) -> float:
+        """``F⁻¹_{χ²_dof}(1 − rate)``: the copy's test at ``rate`` alarms above it (the
+        restart's is quiet at or below it)."""
+        key = (dof, rate)
+        if key not in self._chi2_quantiles:
+            self._chi2_quantiles[key] = chi_square_quantile(dof, 1.0 - rate)
+        return self._chi2_quantiles[key]
 
-    def _report(self, out: StepOutput, attack, logit, scale, innovation, extras) -> StepOutput:
+    def _report(self, out: StepOutput, attack, logit, scale, innovation, extras,
+                confirmed: Tensor | None = None) -> StepOutput:  # fmt: skip
         score, more = self.core.detect(attack, logit, scale, innovation)
+        if confirmed is not None:  # the network's score only where the copy's test alarms
+            score = torch.where(confirmed, score, torch.zeros_like(score))
+            more = {**more, "confirmed": confirmed}
         return out._replace(
             attack=attack, score=score, alarm=score > self.threshold, threshold=self.threshold,
             extras={**extras, **more},
@@ -704,13 +730,30 @@ def _check_restart(restart, inner, channel) -> None:
     """``ValueError`` for a ``restart`` rate out of (0, 1) or one the filter cannot serve."""
     if restart is None:
         return
-    if isinstance(restart, bool) or not isinstance(restart, (int, float)) or not 0 < restart < 1:
-        raise ValueError(f"restart must be a false-alarm rate in (0, 1) or None; got {restart!r}")
+    _check_rate(restart, "restart")
     if channel is not Channel.SENSOR or isinstance(inner, ParticleFilter):
         raise ValueError(
             "restart runs an uncompensated copy of a Gaussian filter against sensor attacks: "
             f"inner must be a Gaussian filter and channel 'sensor' (got {type(inner).__name__}, "
             f"channel {channel.value!r})"
+        )
+
+
+def _check_rate(rate, name: str) -> None:
+    """``ValueError`` naming ``name`` unless ``rate`` is a number in (0, 1)."""
+    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0 < rate < 1:
+        raise ValueError(f"{name} must be a false-alarm rate in (0, 1) or None; got {rate!r}")
+
+
+def _check_confirm(confirm, restart) -> None:
+    """``ValueError`` for a ``confirm`` rate out of (0, 1) or one without the gated copy."""
+    if confirm is None:
+        return
+    _check_rate(confirm, "confirm")
+    if restart is None:
+        raise ValueError(
+            "confirm reads the χ² test of the χ²-gated uncompensated copy, which runs only "
+            f"with restart=α: give restart too (got confirm={confirm!r}, restart=None)"
         )
 
 
