@@ -25,7 +25,7 @@ SLOW = (
     "test_metrics_schema.py", "test_robustness.py",
     # single tests
     "test_adversarial.py::test_an_adversarial_fit_crafts_after_the_first_validation_and_logs_it",
-    "test_calibrate_checkpoint.py::test_a_calibrated_lfc_checkpoint_alarms_at_its_threshold_instead_of_three_sigma",
+    "test_calibrate_checkpoint.py::test_a_calibrated_lfc_checkpoint_alarms_at_its_threshold_on_its_head",
     "test_confirm.py::test_the_lfc_entry_scores_the_confirmed_probability_under_its_own_name",
     "test_calibration.py::test_every_detector_meets_the_target_false_alarm_rate_on_fresh_attack_free_runs",
     "test_gradients.py::test_optimal_transport_resampling_gradient_is_close",
