@@ -9,9 +9,10 @@ from types import SimpleNamespace
 import pytest
 import torch
 from test_learned_estimator import _data, _linear, _net, neural_gaussian_filter
+from test_restart import gated_copy_by_hand
 
 import difffilter as df
-from difffilter.fdi.detectors import chi_square_quantile, normalized_innovation_squared
+from difffilter.fdi.detectors import chi_square_quantile
 from difffilter.models import registry
 from difffilter.models.learned_estimator import NeuralCompensation
 from difffilter.models.neural_estimator import (
@@ -30,23 +31,6 @@ def _head_net() -> NeuralFDIEstimator:
                               detection_head=True)  # fmt: skip
 
 
-def _gated_copy_nis(model, ys, alpha: float) -> torch.Tensor:
-    """``q°_k [B, T]``: the NIS of a Kalman filter gated by its own χ² test at ``alpha``
-    (where the test alarms it keeps its prediction), written out here."""
-    copy, limit, out = df.kalman.gaussian_init(model, (ys.shape[0],)), chi_square_quantile(
-        ys.shape[-1], 1 - alpha
-    ), []  # fmt: skip
-    for k in range(ys.shape[1]):
-        pred_mean, pred_cov = df.kalman_predict(model, copy, None)
-        updated, step = df.kalman_step(model, copy, ys[:, k])
-        nis = normalized_innovation_squared(step.innovation, step.innovation_cov)
-        quiet = nis <= limit
-        copy = updated._replace(mean=torch.where(quiet[:, None], updated.mean, pred_mean),
-                                cov=torch.where(quiet[:, None, None], updated.cov, pred_cov))  # fmt: skip
-        out.append(nis)
-    return torch.stack(out, 1)
-
-
 @pytest.mark.parametrize("head", [False, True])
 def test_the_score_is_the_networks_where_the_copys_test_at_beta_alarms_and_zero_elsewhere(head):
     """Against the copy written out: ``s_k = s⁰_k · 1[q°_k > F⁻¹(1 − β)]`` with ``s⁰`` the
@@ -61,7 +45,8 @@ def test_the_score_is_the_networks_where_the_copys_test_at_beta_alarms_and_zero_
     confirmed = neural_gaussian_filter(model, ys, confirm=beta, **kwargs)
     for name in ("means", "covs", "attack"):
         assert torch.equal(getattr(alone, name), getattr(confirmed, name)), name
-    loud = _gated_copy_nis(model, ys, alpha) > chi_square_quantile(2, 1 - beta)
+    nis = torch.stack([nis for nis, _, _ in gated_copy_by_hand(model, ys, alpha)], 1)
+    loud = nis > chi_square_quantile(2, 1 - beta)
     assert loud.any() and (~loud).any()  # both branches exercised (the bias from step 5)
     want = torch.where(loud, alone.detection.scores, torch.zeros_like(alone.detection.scores))
     assert torch.equal(confirmed.detection.scores, want)
@@ -147,4 +132,4 @@ def test_the_training_task_runs_and_exports_its_confirm():
     assert task.estimator_object(training=True).confirm == 0.05
     assert task.card().confirm == 0.05 and task.card().restart == 0.01
     with pytest.raises(ValueError, match="confirm reads the χ² test"):
-        FilterEstimatorTask(**{**options, "restart": None}).estimator_object(training=True)
+        FilterEstimatorTask(**{**options, "restart": None})

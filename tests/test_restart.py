@@ -34,6 +34,23 @@ def test_a_test_that_is_always_quiet_gives_the_filter_alone_and_one_never_quiet_
     torch.testing.assert_close(loud.attack, full.attack, rtol=0, atol=1e-14)
 
 
+def gated_copy_by_hand(model, ys, alpha: float) -> list[tuple]:
+    """``[(nis [B], quiet [B], copy), …]`` per step: a Kalman filter gated by its own χ²
+    test at ``alpha`` written out (its NIS against ``F⁻¹(1 − α)``; where quiet it updates
+    with ``y_k``, where loud it keeps its prediction), ``copy`` its posterior."""
+    limit = chi_square_quantile(ys.shape[-1], 1 - alpha)
+    copy, steps = df.kalman.gaussian_init(model, (ys.shape[0],)), []
+    for k in range(ys.shape[1]):
+        pred_mean, pred_cov = df.kalman_predict(model, copy, None)
+        updated, step_out = df.kalman_step(model, copy, ys[:, k])
+        nis = normalized_innovation_squared(step_out.innovation, step_out.innovation_cov)
+        quiet = nis <= limit
+        copy = updated._replace(mean=torch.where(quiet[:, None], updated.mean, pred_mean),
+                                cov=torch.where(quiet[:, None, None], updated.cov, pred_cov))  # fmt: skip
+        steps.append((nis, quiet, copy))
+    return steps
+
+
 def test_each_step_restarts_from_the_gated_copy_where_its_test_is_quiet_by_hand():
     """Step by step against a χ²-gated Kalman filter written out here: its NIS against
     ``F⁻¹(1 − α)``; where quiet it updates with ``y_k`` and the posterior is its own,
@@ -44,18 +61,10 @@ def test_each_step_restarts_from_the_gated_copy_where_its_test_is_quiet_by_hand(
     alpha = 0.05
     out = neural_gaussian_filter(model, ys, network=_net(), filter=df.KalmanFilter(),
                                  restart=alpha)  # fmt: skip
-    limit = chi_square_quantile(2, 1 - alpha)
     prior = df.kalman.gaussian_init(model, (4,))
-    copy = prior
     quiet_steps = []
-    for k in range(ys.shape[1]):
-        pred_mean, pred_cov = df.kalman_predict(model, copy, None)
-        updated, step_out = df.kalman_step(model, copy, ys[:, k])
-        nis = normalized_innovation_squared(step_out.innovation, step_out.innovation_cov)
-        quiet = nis <= limit
+    for k, (_, quiet, copy) in enumerate(gated_copy_by_hand(model, ys, alpha)):
         quiet_steps.append(quiet)
-        copy = updated._replace(mean=torch.where(quiet[:, None], updated.mean, pred_mean),
-                                cov=torch.where(quiet[:, None, None], updated.cov, pred_cov))  # fmt: skip
         compensated, _ = df.kalman_step(model, prior, ys[:, k] - out.attack[:, k])
         want = torch.where(quiet[:, None], copy.mean, compensated.mean)
         torch.testing.assert_close(out.means[:, k], want, rtol=0, atol=1e-10)
