@@ -61,9 +61,10 @@ class _CountBatches(pl.Callback):
         self.batches += 1
 
 
-def _trainer(folder, epochs: int, *extra) -> pl.Trainer:
+def _trainer(folder, epochs: int, *extra, weights_only: bool = False) -> pl.Trainer:
     best = ModelCheckpoint(dirpath=folder, monitor="val/metric", mode="min", save_last=True,
-                           save_top_k=1, filename="best-{epoch:02d}")  # fmt: skip
+                           save_top_k=1, filename="best-{epoch:02d}",
+                           save_weights_only=weights_only)  # fmt: skip
     trainer = pl.Trainer(
         max_epochs=epochs, callbacks=[best, *extra], logger=False, enable_progress_bar=False,
         enable_model_summary=False, num_sanity_val_steps=0, accelerator="cpu", devices=1,
@@ -80,6 +81,18 @@ def test_last_checkpoint_follows_every_epoch_not_only_the_improvements(tmp_path)
     _trainer(tmp_path, 3).fit(_Worsening())
     assert sorted(p.name for p in tmp_path.iterdir()) == ["best-epoch=00.ckpt", "last.ckpt"]
     assert _epoch_of(tmp_path / "last.ckpt") == 2  # the epoch reached, not the best one (0)
+
+
+@pytest.mark.parametrize("weights_only", [False, True])
+def test_last_checkpoint_holds_what_the_callbacks_own_files_hold(tmp_path, weights_only, caplog):
+    with caplog.at_level("INFO", logger="lightning.pytorch"):
+        _trainer(tmp_path, 3, weights_only=weights_only).fit(_Worsening())
+    last = torch.load(tmp_path / "last.ckpt", map_location="cpu", weights_only=True)
+    best = torch.load(tmp_path / "best-epoch=00.ckpt", map_location="cpu", weights_only=True)
+    # the optimizer's state (what a resume needs) unless the callback keeps weights only
+    assert ("optimizer_states" in last) is (not weights_only)
+    assert sorted(last) == sorted(best)
+    assert "was not set" not in caplog.text
 
 
 def test_an_interrupted_run_resumes_at_the_epoch_it_reached(tmp_path):

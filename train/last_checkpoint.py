@@ -55,7 +55,9 @@ class LastCheckpointEveryEpoch(pl.Callback):
         path = Path(cb.dirpath) / f"{cb.CHECKPOINT_NAME_LAST}{cb.FILE_EXTENSION}"
         # the callback's own idea of its last file: its next write goes to the same path
         cb.last_model_path = str(path)
-        trainer.save_checkpoint(path)
+        # what the callback's own writes hold: the full state to resume from, unless it keeps
+        # weights only (left unset, Lightning logs "`weights_only` was not set" every epoch)
+        trainer.save_checkpoint(path, weights_only=cb.save_weights_only)
         self._written_at_step = trainer.global_step
 
 
