@@ -264,11 +264,17 @@ def test_fit_writes_only_inside_its_run_and_export_ships_it(tmp_path, monkeypatc
     card = json.loads((tmp_path / "ship" / "a.json").read_text())
     assert card["exported_from"].endswith("lfc_nn_grad.ckpt") and "sha256" in card
 
+    # the threshold the validation chose, on the statistic the entry reads, is the entry's
+    record = card["observer"]["extra"]["calibration"]
+    assert record["threshold"] == card["observer"]["threshold"] != 0.5
+    assert record["estimator"] == "kf_nn_grad" and record["confirm"] == 0.01
+
     sc = dataclasses.replace(registry.get("lfc_step"), duration=0.5)
     numbers = []
     for ckpt in (tmp_path / "ship" / "a.ckpt", tmp_path / "ship" / "b.ckpt", best):
         out = run_suite(sc, runs=2, estimators=("kf_nn_grad",), checkpoint=ckpt, progress=False)
         assert out.checkpoint["used_by"] == ["kf_nn_grad"]
+        assert out.outputs["kf_nn_grad"].detection.threshold == record["threshold"]
         numbers.append(out.outputs["kf_nn_grad"].attack)
     torch.testing.assert_close(numbers[0], numbers[1], rtol=0, atol=1e-6)
     torch.testing.assert_close(numbers[1], numbers[2], rtol=0, atol=0)

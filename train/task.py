@@ -59,6 +59,7 @@ from difffilter.models import registry
 from difffilter.models.estimators import poa_detector_for_scenario
 from difffilter.models.generic_estimators import GAUSSIAN_FILTERS, deception_of
 from difffilter.models.learned_estimator import NeuralCompensation, Residual, feature_dim
+from difffilter.models.lfc_estimators import PROBABILITY, confirmed_statistic
 from difffilter.models.neural_estimator import (
     EstimatorCard,
     NeuralFDIEstimator,
@@ -392,8 +393,10 @@ class FilterEstimatorTask(pl.LightningModule):
         if init_from is not None:
             self._start_from(init_from)
         self.estimator_object(training=False)  # what the wrapper refuses, refused now
-        # the operating threshold on the score, chosen at every validation; saved with it
+        # the operating threshold on the score, chosen at every validation; saved with it,
+        # beside its false-alarm rate where it was chosen (NaN: not chosen by a validation)
         self.register_buffer("alarm_threshold", torch.tensor(0.5, dtype=torch.float64))
+        self.register_buffer("alarm_threshold_rate", torch.tensor(math.nan, dtype=torch.float64))
         self._state_scale = torch.diagonal(self.system.initial.cov, dim1=-2, dim2=-1).mean()
         self.monitors = [registry.get(n) for n in (monitor_scenarios or ())]
         for other in self.monitors:  # at construction time, not silently at validation
@@ -629,20 +632,23 @@ class FilterEstimatorTask(pl.LightningModule):
             out, truth, _ = self.run(scenario, batch, est, mix_seed(self.hparams.model_seed, 7))
         return out, truth
 
-    def _choose_threshold(self, score, flags) -> tuple[float, float | None]:
-        """``(τ, its false-alarm rate on the calibration runs)``: τ for
-        ``target_false_alarm_rate`` on the data module's attack-free calibration runs
+    def _choose_threshold(self, score, flags) -> tuple[float, float, bool]:
+        """``(τ, its false-alarm rate where it was chosen, chosen on calibration runs)``: τ
+        for ``target_false_alarm_rate`` on the data module's attack-free calibration runs
         (:func:`~difffilter.metrics.threshold_for`, as ``difffilter-train calibrate`` and
         the evaluation choose it), else on the attack-free steps of ``score``."""
         dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
         data = dm.calibration_data() if hasattr(dm, "calibration_data") else None
         if data is not None:
             free, _ = self._evaluate(*data)
-            calibration = free.detection.scores
+            calibration = finite_scores(free.detection.scores)
             threshold = threshold_for(calibration, self.false_alarm_rate)
-            return threshold, float((finite_scores(calibration) > threshold).double().mean())
-        quiet = score[~flags]
-        return (threshold_for(quiet, self.false_alarm_rate) if quiet.numel() else 0.5), None
+            return threshold, float((calibration > threshold).double().mean()), True
+        quiet = finite_scores(score[~flags])
+        if not quiet.numel():
+            return 0.5, math.nan, False
+        threshold = threshold_for(quiet, self.false_alarm_rate)
+        return threshold, float((quiet > threshold).double().mean()), False
 
     def _scores(self, stage: str, scenario, batch, threshold: float | None) -> dict:
         """Evaluate on ``batch``; with ``threshold=None`` choose it (validation)."""
@@ -650,8 +656,10 @@ class FilterEstimatorTask(pl.LightningModule):
         score, flags = out.detection.scores, truth["flags"]
         calibration_fpr = None
         if threshold is None:
-            threshold, calibration_fpr = self._choose_threshold(score, flags)
+            threshold, rate, on_calibration_runs = self._choose_threshold(score, flags)
             self.alarm_threshold.fill_(threshold)
+            self.alarm_threshold_rate.fill_(rate)
+            calibration_fpr = rate if on_calibration_runs else None
         alarms = score > threshold
         scores = {
             "attack_rmse": float((out.attack - truth["attack"]).square().mean().sqrt()),
@@ -742,7 +750,28 @@ class FilterEstimatorTask(pl.LightningModule):
             gating=bool(hp.gating), compensation=str(hp.compensation),
             restart=None if hp.restart is None else float(hp.restart),
             confirm=None if hp.confirm is None else float(hp.confirm),
+            extra=self._threshold_record(registered),
         )  # fmt: skip
+
+    def _threshold_record(self, registered: str) -> dict:
+        """``{"calibration": …}`` where a validation chose the threshold on the detection
+        head's attack probability (confirmed by the gated copy where the model confirms),
+        the statistic the registry's learned entries read: the entry named ``registered``
+        then alarms at the card's threshold by default (an LFC entry reads a card's
+        threshold only where its ``calibration`` names the entry and that statistic). Its keys
+        are those of ``difffilter-train calibrate``'s record, which replaces it, where they
+        apply."""
+        rate = float(self.alarm_threshold_rate)
+        if not getattr(self.estimator, "detection_head", False) or not math.isfinite(rate):
+            return {}
+        return {"calibration": {
+            "target": self.false_alarm_rate, "estimator": registered,
+            "score": confirmed_statistic(PROBABILITY, self.hparams.confirm),
+            "restart": self.hparams.restart, "confirm": self.hparams.confirm,
+            "threshold": float(self.alarm_threshold), "measured_on_calibration": rate,
+            "chosen_by": "difffilter-train fit: the validation of the epoch of these weights "
+            "(its attack-free calibration runs; with calibration_runs=0 its unattacked steps)",
+        }}  # fmt: skip
 
     def check_exported(self, card: EstimatorCard, path) -> None:
         """``ValueError`` unless an exported estimator was trained with this module's filter,
@@ -755,6 +784,14 @@ class FilterEstimatorTask(pl.LightningModule):
                     f"configured model has {getattr(mine, key)!r}"
                 )
         self.alarm_threshold.fill_(float(card.threshold))
+        measured = card.extra.get("calibration", {}).get("measured_on_calibration")
+        self.alarm_threshold_rate.fill_(math.nan if measured is None else float(measured))
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        # a checkpoint written before the threshold's rate was kept: rate unknown (NaN)
+        state_dict = dict(state_dict)
+        state_dict.setdefault("alarm_threshold_rate", torch.tensor(math.nan, dtype=torch.float64))
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     def export_card(self, trainer, estimator=None) -> dict:
         hp = self.hparams
