@@ -37,10 +37,10 @@ standardised estimate at the same calibrated 1 % (docs/papers.md, §3). Either a
 instead above the threshold the checkpoint's card carries where its ``calibration``
 record says it was chosen for this entry and this statistic: by ``difffilter-train
 calibrate``, or by the validation of the ``fit`` that exported it (a card calibrated
-before the statistic was recorded was calibrated for the estimate). A checkpoint's estimator runs as
-its card says, its observer's ``restart`` from a χ²-gated copy included (the shipped
-``lfc_nn_grad`` card: 0.01), and its ``confirm``: the score (either statistic) counts only
-where that copy's χ² test at the card's rate alarms as well, ``0`` elsewhere
+before the statistic was recorded was calibrated for the estimate). A checkpoint's
+estimator runs as its card says, its observer's ``restart`` from a χ²-gated copy included
+(the shipped ``lfc_nn_grad`` card: 0.01), and its ``confirm``: the score (either statistic)
+counts only where that copy's χ² test at the card's rate alarms as well, ``0`` elsewhere
 (:func:`confirmed_statistic` names it; a threshold calibrated for the unconfirmed score is
 not used for it).
 """
@@ -266,9 +266,9 @@ def _attacked(ctx: SuiteContext, estimator, tr, compensate: bool, forks: dict) -
 def _alarm_threshold(ctx: SuiteContext, name: str, trained: bool, statistic: str,
                      reported: str) -> float:  # fmt: skip
     """The alarm threshold on ``statistic`` (reported as ``reported``: confirmed or not):
-    the checkpoint's, where its card's ``calibration`` record (``difffilter-train calibrate``'s,
-    or the exporting fit's validation's) chose it for this entry and this statistic, else the
-    statistic's default."""
+    the checkpoint's, where its card's ``calibration`` record (``difffilter-train
+    calibrate``'s, or the exporting fit's validation's) chose it for this entry and this
+    statistic, else the statistic's default."""
     if not trained:
         return DEFAULT_THRESHOLD[statistic]
     path = ctx.checkpoint_for(name)  # loaded (and checked) by the entry's build already
