@@ -21,6 +21,7 @@ __all__ = [
     "check_mask",
     "check_positive_int",
     "check_finite_number",
+    "check_rate",
     "model_dtype_device",
     "check_strategy",
     "check_ess_threshold",
@@ -169,6 +170,14 @@ def check_finite_number(
         need = " > 0" if positive else " >= 0" if nonnegative else ""
         raise ValueError(f"{name} must be a finite number{need}; got {value!r}")
     return value
+
+
+def check_rate(value, name: str, *, unset: str = "None") -> float:
+    """``value`` must be a false-alarm rate, a number in (0, 1) (``unset``: how the caller
+    spells "no rate" in the message); returns it as ``float``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
+        raise ValueError(f"{name} must be a false-alarm rate in (0, 1) or {unset}; got {value!r}")
+    return float(value)
 
 
 def check_positive_int(value, name: str) -> int:

@@ -44,6 +44,8 @@ from pathlib import Path
 
 import torch
 
+from difffilter._checks import check_rate
+
 __all__ = ["calibrate_checkpoint", "estimator_name", "main"]
 
 #: The master seed of the calibration runs (differs from every default study seed).
@@ -134,11 +136,8 @@ def calibrate_checkpoint(
     as_shipped = card
     for option, value in (("restart", restart), ("confirm", confirm)):
         if value != KEEP:
-            if value is not None and (isinstance(value, bool) or not 0 < float(value) < 1):
-                raise ValueError(
-                    f"--{option} must be a false-alarm rate in (0, 1) or off; got {value!r}"
-                )
-            card = dataclasses.replace(card, **{option: None if value is None else float(value)})
+            rate = None if value is None else check_rate(value, f"--{option}", unset="off")
+            card = dataclasses.replace(card, **{option: rate})
     if card.confirm is not None and card.restart is None:
         raise ValueError("--confirm reads the χ² test of the restart's gated copy: the card "
                          "needs a restart rate too (--restart RATE)")  # fmt: skip

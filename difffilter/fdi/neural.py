@@ -125,7 +125,7 @@ from typing import Any, NamedTuple, Protocol
 import torch
 from torch import Tensor, nn
 
-from .._checks import Choice
+from .._checks import Choice, check_rate
 from ..attack import Channel
 from ..estimator import Estimator, Generators
 from ..kalman import GaussianFilter
@@ -730,7 +730,7 @@ def _check_restart(restart, inner, channel) -> None:
     """``ValueError`` for a ``restart`` rate out of (0, 1) or one the filter cannot serve."""
     if restart is None:
         return
-    _check_rate(restart, "restart")
+    check_rate(restart, "restart")
     if channel is not Channel.SENSOR or isinstance(inner, ParticleFilter):
         raise ValueError(
             "restart runs an uncompensated copy of a Gaussian filter against sensor attacks: "
@@ -739,17 +739,11 @@ def _check_restart(restart, inner, channel) -> None:
         )
 
 
-def _check_rate(rate, name: str) -> None:
-    """``ValueError`` naming ``name`` unless ``rate`` is a number in (0, 1)."""
-    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0 < rate < 1:
-        raise ValueError(f"{name} must be a false-alarm rate in (0, 1) or None; got {rate!r}")
-
-
 def _check_confirm(confirm, restart) -> None:
     """``ValueError`` for a ``confirm`` rate out of (0, 1) or one without the gated copy."""
     if confirm is None:
         return
-    _check_rate(confirm, "confirm")
+    check_rate(confirm, "confirm")
     if restart is None:
         raise ValueError(
             "confirm reads the χ² test of the χ²-gated uncompensated copy, which runs only "
