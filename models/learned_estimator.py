@@ -113,6 +113,7 @@ def compose(
         standardize=card.standardize, features=card.features, poa_eta=card.poa_eta,
         threshold=card.threshold, deception=deception, gating=card.gating,
         compensation=card.compensation, restart=card.restart, confirm=card.confirm,
+        reject=card.reject,
     )  # fmt: skip
 
 

@@ -146,6 +146,7 @@ def lfc_estimator(
     features: tuple[str, ...] = (),
     restart: float | None = None,
     confirm: float | None = None,
+    reject: float | None = None,
 ):
     """An LFC estimator: the Kalman observer (or the Luenberger one of gain ``luenberger``,
     a :class:`~difffilter.control.LuenbergerDesign`), alone or with
@@ -156,7 +157,8 @@ def lfc_estimator(
     the per-step inputs beside eq. (9); ``restart``: the uncompensated copy's χ² false-alarm
     rate whose quiet steps restart the compensated observer, or ``None``; ``confirm``: the
     rate of the copy's test that must alarm with the network for its score to count, or
-    ``None`` (:class:`~difffilter.fdi.neural.NeuralCompensation`)."""
+    ``None``; ``reject``: the rate of the compensated innovation's χ² test where failing it
+    keeps the prediction, or ``None`` (:class:`~difffilter.fdi.neural.NeuralCompensation`)."""
     observer = KalmanFilter() if luenberger is None else FixedGainFilter(ctx.luenberger(luenberger))
     if network is None:
         return observer
@@ -164,7 +166,7 @@ def lfc_estimator(
     return NeuralCompensation(
         network.to(ctx.dtype), observer, residual=residual, standardize=standardize,
         learning=learning, gating=gating, compensation=compensation, features=features,
-        restart=restart, confirm=confirm,
+        restart=restart, confirm=confirm, reject=reject,
     )  # fmt: skip
 
 
@@ -333,7 +335,7 @@ def _trained(ctx, name, *, rule=None):
     return lfc_estimator(_context(ctx), network=net, rule=rule, residual=Residual(card.residual),
                          standardize=card.standardize, gating=card.gating,
                          compensation=card.compensation, features=card.features,
-                         restart=card.restart, confirm=card.confirm)  # fmt: skip
+                         restart=card.restart, confirm=card.confirm, reject=card.reject)  # fmt: skip
 
 
 # The evaluation's learners donate their ρ to the next step (each loop owns its carry).

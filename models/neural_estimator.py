@@ -298,6 +298,9 @@ class EstimatorCard:
         confirm: the rate of the copy's χ² test that must alarm with the network for its
             score to count (``NeuralCompensation``'s ``confirm``; needs ``restart``), or
             ``None``: the network's score alone.
+        reject: the rate of the χ² test of the compensated innovation ``ν_k − â_k`` where
+            it fails, the compensated filter keeps its prediction
+            (``NeuralCompensation``'s ``reject``), or ``None``: never.
     """
 
     scenario_family: str | None = None
@@ -318,6 +321,7 @@ class EstimatorCard:
     compensation: str = "full"
     restart: float | None = None
     confirm: float | None = None
+    reject: float | None = None
     extra: dict = field(default_factory=dict, compare=False)
 
     def to_dict(self) -> dict:

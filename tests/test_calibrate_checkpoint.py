@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
@@ -14,7 +15,11 @@ import torch
 from difffilter.eval.suite import run_suite
 from difffilter.models import registry
 from difffilter.models.lfc_estimators import PROBABILITY, confirmed_statistic
-from difffilter.models.neural_estimator import load_estimator_checkpoint, save_estimator_checkpoint
+from difffilter.models.neural_estimator import (
+    checkpoint_sha256,
+    load_estimator_checkpoint,
+    save_estimator_checkpoint,
+)
 from difffilter.models.streams import Streams
 from difffilter.train.calibrate import calibrate_checkpoint, estimator_name, main
 
@@ -137,19 +142,30 @@ def test_old_cards_name_the_entry_that_evaluates_them():
 
 
 def test_calibrate_sets_the_restart_it_runs_and_chooses_the_threshold_with(tmp_path, capsys):
-    """``--restart α`` is in the card before the scores are taken: the threshold is the one
-    the restarted estimator meets, the card's check is recomputed for it, and ``off``
-    removes it again."""
+    """``--restart α`` (and ``--reject ρ``) are in the card before the scores are taken: the
+    threshold is the one the estimator so run meets, the card's check is recomputed for it,
+    and ``off`` removes them again."""
     from difffilter.models.lfc_estimators import build_estimator
 
     plain = _uncalibrated("checkpoints/lfc_nn_grad.ckpt", tmp_path / "plain.ckpt")
     net, card = load_estimator_checkpoint(plain)
     save_estimator_checkpoint(plain, net, dataclasses.replace(card, restart=None))
+    shipped_json = Path("checkpoints/lfc_nn_grad.json").read_text()
+    document = {**json.loads(shipped_json), "sha256": checkpoint_sha256(plain)}
+    plain.with_suffix(".json").write_text(json.dumps(document))  # its check, to be recomputed
     on, off = tmp_path / "on.ckpt", tmp_path / "off.ckpt"
-    cal_on = calibrate_checkpoint(plain, on, far=0.05, runs=2, progress=False, restart=0.01)
-    cal_off = calibrate_checkpoint(on, off, far=0.05, runs=2, progress=False, restart=None)
-    assert load_estimator_checkpoint(on)[1].restart == 0.01 == cal_on["restart"]
-    assert load_estimator_checkpoint(off)[1].restart is None and "restart" not in cal_off
+    cal_on = calibrate_checkpoint(plain, on, far=0.05, runs=2, progress=False, restart=0.01,
+                                  reject=0.02)  # fmt: skip
+    cal_off = calibrate_checkpoint(on, off, far=0.05, runs=2, progress=False, restart=None,
+                                   reject=None)  # fmt: skip
+    on_card, off_card = load_estimator_checkpoint(on)[1], load_estimator_checkpoint(off)[1]
+    assert on_card.restart == 0.01 == cal_on["restart"]
+    assert on_card.reject == 0.02 == cal_on["reject"]
+    assert off_card.restart is None and "restart" not in cal_off
+    assert off_card.reject is None and "reject" not in cal_off
+    check = json.loads(on.with_suffix(".json").read_text())["check"]
+    assert "restart 0.01, confirm None, reject 0.02" in check["note"]
+    assert check["value"] != json.loads(shipped_json)["check"]["value"]
     assert cal_on["threshold"] != cal_off["threshold"]  # other scores, another threshold
     # the threshold is the one the restarted estimator's scores give on the calibration runs
     scenario = registry.get("lfc_random_attacks")
@@ -159,7 +175,11 @@ def test_calibrate_sets_the_restart_it_runs_and_chooses_the_threshold_with(tmp_p
     # the entry runs the card's restart
     ctx = SimpleNamespace(checkpoint_for=lambda name: on, cache={}, scenario=scenario,
                           checkpoint_users=[])  # fmt: skip
-    assert build_estimator("kf_nn_grad", ctx).restart == 0.01
+    built = build_estimator("kf_nn_grad", ctx)
+    assert (built.restart, built.reject) == (0.01, 0.02)
     assert main(["checkpoints/lfc_nn_grad.ckpt", "--out", str(tmp_path / "x.ckpt"),
                  "--restart", "sometimes"]) == 2  # fmt: skip
     assert "--restart must be a rate in (0, 1) or off" in capsys.readouterr().err
+    assert main(["checkpoints/lfc_nn_grad.ckpt", "--out", str(tmp_path / "x.ckpt"),
+                 "--reject", "2"]) == 2  # fmt: skip
+    assert "--reject must be a false-alarm rate in" in capsys.readouterr().err

@@ -28,8 +28,10 @@ statistic the threshold is for (``score``: e.g. the LFC head's ``"attack probabi
 the card's ``restart``, the false-alarm rate of the χ²-gated copy from which a Gaussian
 filter's compensation restarts (:class:`~difffilter.fdi.neural.NeuralCompensation`);
 ``--confirm β`` (``off``: none) the card's ``confirm``, the rate of that copy's χ² test that
-must alarm with the network for its score to count. The scores, and so the threshold, are
-those of the estimator so configured.
+must alarm with the network for its score to count; ``--reject ρ`` (``off``: none) the
+card's ``reject``, the rate of the χ² test of the compensated innovation where failing it
+the filter keeps its prediction. The scores, and so the threshold, are those of the
+estimator so configured.
 """
 
 from __future__ import annotations
@@ -50,8 +52,10 @@ __all__ = ["calibrate_checkpoint", "estimator_name", "main"]
 
 #: The master seed of the calibration runs (differs from every default study seed).
 CALIBRATION_SEED = 5
-#: ``restart`` / ``confirm`` left as the card has it.
+#: ``restart`` / ``confirm`` / ``reject`` left as the card has it.
 KEEP = "keep"
+#: The card's options that change how the estimator runs, set by the command's flags.
+RUN_OPTIONS = ("restart", "confirm", "reject")
 
 
 def estimator_name(card) -> str:
@@ -82,7 +86,7 @@ def _scores(scenario, name: str, path, runs: int, seed: int, progress: bool):
 
 def _new_check(src: Path, scored: Path, card) -> dict | None:
     """The card's reproducibility check (``difffilter-train export``'s) of the estimator as it
-    now runs (``scored``: its restart or confirm changed), where ``src``'s card has one."""
+    now runs (``scored``: its restart, confirm or reject changed), where ``src``'s card has one."""
     from .export import check_metric
 
     card_json = src.with_suffix(".json")
@@ -90,9 +94,15 @@ def _new_check(src: Path, scored: Path, card) -> dict | None:
     if old is None:
         return None
     return {**check_metric(scored, seed=old["seed"], runs=old["runs"]),
-            "note": f"recomputed by difffilter-train calibrate with restart {card.restart}, "
-                    f"confirm {card.confirm} "
-                    f"(before: {old['value']:.6g})"}  # fmt: skip
+            "note": "recomputed by difffilter-train calibrate with "
+                    + ", ".join(f"{o} {getattr(card, o)}" for o in _set(card))
+                    + f" (before: {old['value']:.6g})"}  # fmt: skip
+
+
+def _set(card) -> tuple[str, ...]:
+    """The :data:`RUN_OPTIONS` the card names: restart and confirm always (as before),
+    reject where set."""
+    return tuple(o for o in RUN_OPTIONS if o != "reject" or card.reject is not None)
 
 
 def calibrate_checkpoint(
@@ -106,11 +116,12 @@ def calibrate_checkpoint(
     progress: bool = True,
     restart: float | None | str = KEEP,
     confirm: float | None | str = KEEP,
+    reject: float | None | str = KEEP,
 ) -> dict:
     """Calibrate the checkpoint ``src`` to the false-alarm rate ``far`` and write it to
     ``out`` (module docstring); ``runs`` per set (default the scenario's); ``restart``: the
     card's restart rate to calibrate with (``None``: none; default: the card's); ``confirm``
-    likewise the card's confirmation rate. Returns
+    likewise the card's confirmation rate, ``reject`` its rejection rate. Returns
     the card's ``calibration`` entry. ``ValueError`` for a bad argument or a checkpoint
     that cannot be calibrated, ``FileNotFoundError`` if ``src`` does not exist."""
     from difffilter.metrics import threshold_for
@@ -134,7 +145,7 @@ def calibrate_checkpoint(
     if card.scenario is None:
         raise ValueError(f"{src}: its card names no training scenario to calibrate on")
     as_shipped = card
-    for option, value in (("restart", restart), ("confirm", confirm)):
+    for option, value in zip(RUN_OPTIONS, (restart, confirm, reject), strict=True):
         if value != KEEP:
             rate = None if value is None else check_rate(value, f"--{option}", unset="off")
             card = dataclasses.replace(card, **{option: rate})
@@ -148,7 +159,7 @@ def calibrate_checkpoint(
     check_seed = streams.seed_of("checkpoint-calibration/check")
     with tempfile.TemporaryDirectory() as tmp:
         scored = src
-        if (card.restart, card.confirm) != (as_shipped.restart, as_shipped.confirm):
+        if any(getattr(card, o) != getattr(as_shipped, o) for o in RUN_OPTIONS):
             # the scores of the estimator as configured
             scored = Path(tmp) / src.name
             save_estimator_checkpoint(scored, estimator, card)
@@ -161,6 +172,7 @@ def calibrate_checkpoint(
         **({} if statistic is None else {"score": statistic}),
         **({} if card.restart is None else {"restart": card.restart}),
         **({} if card.confirm is None else {"confirm": card.confirm}),
+        **({} if card.reject is None else {"reject": card.reject}),
         "steps": int(fitted.shape[-1]), "seed": fit_seed, "check_seed": check_seed,
         "threshold": threshold, "previous_threshold": card.threshold,
         "measured_on_calibration": float((fitted > threshold).double().mean()),
@@ -184,7 +196,7 @@ def calibrate_checkpoint(
 
 
 def _rate_option(value: str, option: str):
-    """``--restart`` / ``--confirm`` as :func:`calibrate_checkpoint` takes it: :data:`KEEP`,
+    """``--restart`` / ``--confirm`` / ``--reject`` as :func:`calibrate_checkpoint` takes it: :data:`KEEP`,
     ``None`` for ``off``, else the rate as a float (``ValueError`` naming the option)."""
     if value in (KEEP, "off"):
         return None if value == "off" else KEEP
@@ -214,13 +226,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--confirm", default=KEEP, metavar="RATE|off",
                    help="the rate of the restart copy's χ² test that must alarm with the network "
                         "(default: the card's)")  # fmt: skip
+    p.add_argument("--reject", default=KEEP, metavar="RATE|off",
+                   help="the rate of the compensated innovation's χ² test where failing it keeps "
+                        "the prediction (default: the card's)")  # fmt: skip
     args = p.parse_args(argv)
     try:
         cal = calibrate_checkpoint(args.src, args.out, far=args.far, runs=args.runs,
                                    seed=args.seed, force=args.force,
                                    progress=not args.no_progress,
                                    restart=_rate_option(args.restart, "restart"),
-                                   confirm=_rate_option(args.confirm, "confirm"))  # fmt: skip
+                                   confirm=_rate_option(args.confirm, "confirm"),
+                                   reject=_rate_option(args.reject, "reject"))  # fmt: skip
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-train calibrate: error: {exc}", file=sys.stderr)
         return 2

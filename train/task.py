@@ -289,6 +289,9 @@ class FilterEstimatorTask(pl.LightningModule):
             ``β`` alarms as well (needs ``restart``; the loss reads the logits, so training
             is the same: the validation's scores and the exported card change); ``None``
             (default): the network's score alone.
+        reject: ``ρ``: where the compensated innovation ``ν_k − â_k`` fails its χ² test at
+            rate ``ρ``, the compensated filter keeps its prediction (sensor attacks,
+            Gaussian filters); ``None`` (default): never.
         features: the filter's statistics the network reads (``"mask"``,
             ``"log_likelihood"``, ``"poa"``: the PoA threshold is the scenario's;
             ``"plain_innovation"``: an uncompensated copy of a Gaussian filter's).
@@ -343,6 +346,7 @@ class FilterEstimatorTask(pl.LightningModule):
         compensation: str = "full",
         restart: float | None = None,
         confirm: float | None = None,
+        reject: float | None = None,
         features: list[str] | None = None,
         trainer: str = "grad",
         lr: float = 3e-3,
@@ -481,7 +485,7 @@ class FilterEstimatorTask(pl.LightningModule):
             standardize=hp.standardize, features=self.features, poa_eta=self.poa_eta,
             threshold=threshold, deception=self.deception, record_inputs=record,
             gating=hp.gating, compensation=hp.compensation, restart=hp.restart,
-            confirm=hp.confirm,
+            confirm=hp.confirm, reject=hp.reject,
             evidence=False,  # no loss, metric or monitor of the task reads the density
         )  # fmt: skip
 
@@ -750,6 +754,7 @@ class FilterEstimatorTask(pl.LightningModule):
             gating=bool(hp.gating), compensation=str(hp.compensation),
             restart=None if hp.restart is None else float(hp.restart),
             confirm=None if hp.confirm is None else float(hp.confirm),
+            reject=None if hp.reject is None else float(hp.reject),
             extra=self._threshold_record(registered),
         )  # fmt: skip
 
@@ -768,6 +773,7 @@ class FilterEstimatorTask(pl.LightningModule):
             "target": self.false_alarm_rate, "estimator": registered,
             "score": confirmed_statistic(PROBABILITY, self.hparams.confirm),
             "restart": self.hparams.restart, "confirm": self.hparams.confirm,
+            **({} if self.hparams.reject is None else {"reject": self.hparams.reject}),
             "threshold": float(self.alarm_threshold), "measured_on_calibration": rate,
             "chosen_by": "difffilter-train fit: the validation of the epoch of these weights "
             "(its attack-free calibration runs; with calibration_runs=0 its unattacked steps)",

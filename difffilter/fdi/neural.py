@@ -99,6 +99,18 @@ attack-free step updates as the filter alone would. The switch is a hard choice;
 gradients flow through the branch taken. With ``"plain_innovation"`` as well, that
 feature is the gated copy's innovation.
 
+Rejection (``reject=ρ``, sensor attacks, Gaussian filters): where the compensated
+innovation fails its χ² test at the false-alarm rate ``ρ``, the compensated filter keeps
+its prediction instead of its update (before the restart, after the gating)::
+
+    q_k = (ν_k − â_k)ᵀ S_k⁻¹ (ν_k − â_k) > F⁻¹_{χ²_dy}(1 − ρ)  ⇒  m_k, P_k ← m⁻_k, P⁻_k
+
+(``ν_k = y_k − H m⁻_k``, ``S_k`` the filter's innovation covariance, ``â_k`` what it
+subtracts). An attack the network follows (a bias) leaves a quiet compensated innovation
+and is compensated; one it cannot follow (a replay, the first steps of a ramp) leaves it
+loud, and the filter predicts over it as a χ²-gated filter does, rather than absorb the
+part the estimate missed.
+
 Detection: ``p_k = sigmoid(logit_k)`` (the largest over areas), alarm where ``p_k >
 threshold``; a network without a detection head (trained by the EKF over its weights,
 which fits the attack estimate alone) scores ``s_k = Σ_c (â_{k,c} / √S_{k,cc})²``. Every
@@ -489,6 +501,9 @@ class NeuralCompensation(Estimator):
         confirm: ``β`` in (0, 1): the score only where the χ²-gated copy's test at rate
             ``β`` alarms too, ``0`` elsewhere (module docstring; needs ``restart``);
             ``None`` (default): the network's score alone.
+        reject: ``ρ`` in (0, 1): where the compensated innovation ``ν_k − â_k`` fails its
+            χ² test at rate ``ρ``, keep the prediction (module docstring; sensor attacks,
+            Gaussian filters, every entry received); ``None`` (default): never.
 
     Step output: the filter's moments after compensation, ``attack`` ``â_k``, ``score``,
     ``alarm``, ``threshold`` and ``extras`` (``"attack_logit"`` with a head, the recorded
@@ -516,6 +531,7 @@ class NeuralCompensation(Estimator):
         restart: float | None = None,
         evidence: bool = True,
         confirm: float | None = None,
+        reject: float | None = None,
     ):
         channel, residual, features = Channel(channel), Residual(residual), tuple(features)
         compensation = Compensation(compensation)
@@ -523,9 +539,11 @@ class NeuralCompensation(Estimator):
         _check_step_options(network, channel, residual, gating, compensation)
         _check_restart(restart, inner, channel)
         _check_confirm(confirm, restart)
+        _check_reject(reject, inner, channel)
         self.gating, self.compensation, self.evidence = bool(gating), compensation, bool(evidence)
         self.restart = None if restart is None else float(restart)
         self.confirm = None if confirm is None else float(confirm)
+        self.reject = None if reject is None else float(reject)
         self._chi2_quantiles: dict[tuple, float] = {}  # χ² quantile by (dof, rate)
         self.network, self.inner, self.channel = network, inner, channel
         self.attack_channel = channel  # what its attack estimate â_k is on
@@ -614,11 +632,25 @@ class NeuralCompensation(Estimator):
                                     moments=moments)  # fmt: skip
             if self.gating:
                 new, out = _gated(new, out, pred, gate_of(logit))
+            if self.reject is not None:
+                new, out = self._rejected(new, out, pred, nu - applied, S, mask)
             if quiet is not None:
                 new, out = _restarted(new, out, plain, quiet)
         extras = {"network_inputs": delta[..., 0, :].detach()} if core.record_inputs else {}
         report = self._report(out, attack, logit, scale, nu, extras, confirmed)
         return NeuralCarry(new, net, carry.model, plain), report
+
+    def _rejected(self, new, out: StepOutput, pred, compensated_nu: Tensor, S: Tensor, mask):
+        """``new`` where the compensated innovation ``ν_k − â_k [..., dy]`` passes its χ²
+        test at the rate ``reject`` (``S [..., dy, dy]``), the prediction ``pred`` where it
+        fails (module docstring, rejection), and the step's output to match."""
+        if mask is not None:
+            raise ValueError("reject tests every channel of the compensated innovation: it "
+                             "needs every entry received (mask=None)")  # fmt: skip
+        dof = compensated_nu.shape[-1]
+        kept = _nis(compensated_nu, S) <= self._chi2_threshold(dof, self.reject)
+        state = _chosen(new, kept, new, pred)
+        return state, out._replace(mean=state.mean, cov=state.cov)
 
     def _chi2_threshold(self, dof: int, rate: float) -> float:
         """``F⁻¹_{χ²_dof}(1 − rate)``: the copy's test at ``rate`` alarms above it (the
@@ -736,6 +768,19 @@ def _check_restart(restart, inner, channel) -> None:
             "restart runs an uncompensated copy of a Gaussian filter against sensor attacks: "
             f"inner must be a Gaussian filter and channel 'sensor' (got {type(inner).__name__}, "
             f"channel {channel.value!r})"
+        )
+
+
+def _check_reject(reject, inner, channel) -> None:
+    """``ValueError`` for a ``reject`` rate out of (0, 1) or one the filter cannot serve."""
+    if reject is None:
+        return
+    check_rate(reject, "reject")
+    if channel is not Channel.SENSOR or isinstance(inner, ParticleFilter):
+        raise ValueError(
+            "reject tests the compensated innovation of a Gaussian filter against sensor "
+            f"attacks: inner must be a Gaussian filter and channel 'sensor' (got "
+            f"{type(inner).__name__}, channel {channel.value!r})"
         )
 
 
