@@ -1,7 +1,8 @@
 """Process-level CPU tuning for long batched runs (opt-in; the library never calls it).
 
-:func:`one_thread` runs a block with one intra-op thread; :func:`tune_cpu_allocator`
-keeps large freed blocks in glibc's heap.
+:func:`one_thread` runs a block with one intra-op thread; :func:`command_threads` sets a
+command's intra-op threads from ``DIFFFILTER_THREADS`` (default one);
+:func:`tune_cpu_allocator` keeps large freed blocks in glibc's heap.
 
 Why: PyTorch's CPU tensors of a few MB (a particle cloud ``[B, N, d]`` with ``B·N`` ≈
 1e5) are allocated with glibc ``malloc``, which serves blocks above its mmap threshold
@@ -18,12 +19,17 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import os
 import sys
 from contextlib import contextmanager
 
 import torch
 
-__all__ = ["tune_cpu_allocator", "one_thread"]
+__all__ = ["command_threads", "one_thread", "tune_cpu_allocator"]
+
+#: The environment variable that sets a command's intra-op threads (:func:`command_threads`).
+THREADS_VARIABLE = "DIFFFILTER_THREADS"
+
 
 # mallopt parameter numbers from glibc's <malloc.h>
 _M_TRIM_THRESHOLD = -1
@@ -55,6 +61,28 @@ def tune_cpu_allocator(mmap_threshold: int = 1 << 30, top_pad: int = 64 << 20) -
     ok &= mallopt(_M_TRIM_THRESHOLD, int(mmap_threshold)) == 1
     ok &= mallopt(_M_TOP_PAD, int(top_pad)) == 1
     return bool(ok)
+
+
+def command_threads(default: int = 1) -> int:
+    """Set torch's intra-op threads for a command-line run to ``DIFFFILTER_THREADS`` (else
+    ``default``) and return the number; ``ValueError`` naming the variable for anything but
+    a positive integer.
+
+    Why one by default: a command that simulates closed loops or small filters runs long
+    chains of tiny tensor operations, for which a second thread only adds synchronisation,
+    and stalls badly when another process holds a core (``difffilter-train calibrate`` of
+    the LFC network beside another run on two cores: 629 s with two threads in each
+    process, 16 s with one in each).
+    """
+    raw = os.environ.get(THREADS_VARIABLE, str(default))
+    try:
+        threads = int(raw)
+    except ValueError:
+        threads = 0
+    if threads < 1:
+        raise ValueError(f"{THREADS_VARIABLE} must be a positive integer; got {raw!r}")
+    torch.set_num_threads(threads)
+    return threads
 
 
 @contextmanager

@@ -66,3 +66,26 @@ def test_help_names_every_command_without_importing_lightning(capsys, monkeypatc
              "print(sorted(m for m in ('torch', 'lightning') if m in sys.modules))")  # fmt: skip
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
     assert out.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_every_command_runs_on_one_thread_unless_difffilter_threads_says(
+    tmp_path, monkeypatch, capsys
+):
+    """The Lightning commands and ``export``/``calibrate``/``sweep`` alike: one intra-op
+    thread by default, ``DIFFFILTER_THREADS`` otherwise, a clear error for a bad value."""
+    import torch
+
+    before = torch.get_num_threads()
+    missing = ["export", str(tmp_path / "missing.ckpt"), "--out", str(tmp_path / "x.ckpt")]
+    try:
+        monkeypatch.setenv("DIFFFILTER_THREADS", "two")
+        assert main(["calibrate", "a.ckpt", "--out", "b.ckpt"]) == 2
+        assert _error_lines(capsys) == [
+            "difffilter-train: error: DIFFFILTER_THREADS must be a positive integer; got 'two'"
+        ]
+        monkeypatch.setenv("DIFFFILTER_THREADS", "2")
+        assert main(missing) == 2 and torch.get_num_threads() == 2
+        monkeypatch.delenv("DIFFFILTER_THREADS")
+        assert main(missing) == 2 and torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)

@@ -74,6 +74,13 @@ def main(args: list[str] | None = None) -> int:
     if not argv or argv[0] in ("-h", "--help"):
         print(USAGE.format(help=textwrap.fill(" ".join(HELP.split()), 90)))
         return 0 if argv else 2
+    from difffilter.runtime import command_threads
+
+    try:  # every command on one intra-op thread unless DIFFFILTER_THREADS says otherwise
+        command_threads()
+    except ValueError as exc:
+        print(f"difffilter-train: error: {exc}", file=sys.stderr)
+        return 2
     if argv[0] in _EXTRA:
         from importlib import import_module
 

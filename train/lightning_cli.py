@@ -5,13 +5,11 @@ importing Lightning)."""
 
 from __future__ import annotations
 
-import os
 import re
 import sys
 from pathlib import Path
 
 import lightning.pytorch as pl
-import torch
 from lightning.pytorch.cli import LightningCLI
 
 from difffilter.runtime import tune_cpu_allocator
@@ -117,9 +115,9 @@ def run(args: list[str] | None, argv: list[str], description: str) -> int:
 
     Training simulates closed loops step by step: a long chain of tiny tensor operations,
     for which intra-op threads only add synchronisation (and stall badly when another
-    process holds a core). One thread is the default; ``DIFFFILTER_THREADS`` overrides it.
+    process holds a core): :func:`~difffilter.train.cli.main` sets one thread unless
+    ``DIFFFILTER_THREADS`` says otherwise (:func:`~difffilter.runtime.command_threads`).
     """
-    torch.set_num_threads(int(os.environ.get("DIFFFILTER_THREADS", "1")))
     tune_cpu_allocator()
     from jsonargparse import ArgumentError
     from lightning.fabric.utilities.exceptions import MisconfigurationException
