@@ -6,7 +6,13 @@ from __future__ import annotations
 
 import pytest
 import torch
-from test_learned_estimator import _data, _linear, _net, neural_gaussian_filter
+from test_learned_estimator import (
+    _data,
+    _linear,
+    _net,
+    neural_gaussian_filter,
+    neural_particle_filter,
+)
 
 import difffilter as df
 from difffilter.fdi.detectors import chi_square_quantile, normalized_innovation_squared
@@ -67,18 +73,42 @@ def test_gradients_flow_through_the_branch_taken():
         assert torch.isfinite(weights.grad).all() and weights.grad.abs().sum() > 0
 
 
-def test_reject_needs_a_rate_a_gaussian_filter_a_sensor_attack_and_every_entry():
+def test_the_particle_filter_keeps_its_predictive_weights_where_the_compensated_innovation_fails():
+    """Without resampling the weights are the updates: every step whose compensated
+    innovation (the filter's predictive ``ν_k`` minus ``â_k``, against its ``S_k``) fails
+    the test at ``ρ`` leaves them as they were (its evidence ``log Σ w⁻ = 0``), every other
+    step weighs them; where every step fails, the measurements do not matter."""
+    model = _linear()
+    _, ys = _data(model, runs=3, steps=14)
+    g = lambda: torch.Generator().manual_seed(4)  # noqa: E731
+    opts = dict(num_particles=64, ess_threshold=0.0, network=_net())
+    rho = 0.05
+    out = neural_particle_filter(model, ys, generator=g(), reject=rho, **opts)
+    x = out.extras
+    nis = normalized_innovation_squared(x["innovations"] - out.attack, x["innovation_covs"])
+    kept = nis <= chi_square_quantile(2, 1 - rho)
+    assert kept.any() and (~kept).any()  # both branches (the bias from step 5)
+    increments = x["log_likelihood_increments"]
+    assert increments[~kept].abs().max() < 1e-12 and increments[kept].abs().min() > 1e-3
+    # a test that always fails: what is measured does not matter at all (no update)
+    always = neural_particle_filter(model, ys, generator=g(), reject=1 - 1e-12, **opts)
+    moved = neural_particle_filter(model, ys + 10.0, generator=g(), reject=1 - 1e-12, **opts)
+    torch.testing.assert_close(moved.means, always.means, rtol=0, atol=0)
+    assert not torch.allclose(always.means, out.means, atol=1e-3)
+
+
+def test_reject_needs_a_rate_a_sensor_attack_and_every_entry():
     with pytest.raises(ValueError, match="reject must be a false-alarm rate in"):
         NeuralCompensation(_net(), df.KalmanFilter(), reject=0.0)
-    with pytest.raises(ValueError, match="inner must be a Gaussian filter"):
-        NeuralCompensation(_net(), df.ParticleFilter(10), reject=0.01)
-    with pytest.raises(ValueError, match="channel 'sensor'"):
+    with pytest.raises(ValueError, match="channel must be 'sensor'"):
         NeuralCompensation(_net(), df.KalmanFilter(), reject=0.01, channel="actuator")
     model = _linear()
     _, ys = _data(model, runs=2, steps=3)
-    est = NeuralCompensation(_net(), df.KalmanFilter(), reject=0.01)
-    with pytest.raises(ValueError, match="reject tests every channel"):
-        df.loop.open_loop(est, model, ys, mask=torch.ones_like(ys, dtype=torch.bool))
+    mask = torch.ones_like(ys, dtype=torch.bool)
+    for inner in (df.KalmanFilter(), df.ParticleFilter(16)):
+        est = NeuralCompensation(_net(), inner, reject=0.01)
+        with pytest.raises(ValueError, match="reject tests every channel"):
+            df.loop.open_loop(est, model, ys, mask=mask)
 
 
 def test_the_card_carries_the_rejection_rate():

@@ -290,8 +290,8 @@ class FilterEstimatorTask(pl.LightningModule):
             is the same: the validation's scores and the exported card change); ``None``
             (default): the network's score alone.
         reject: ``ρ``: where the compensated innovation ``ν_k − â_k`` fails its χ² test at
-            rate ``ρ``, the compensated filter keeps its prediction (sensor attacks,
-            Gaussian filters); ``None`` (default): never.
+            rate ``ρ``, the compensated filter keeps its prediction (sensor attacks);
+            ``None`` (default): never.
         features: the filter's statistics the network reads (``"mask"``,
             ``"log_likelihood"``, ``"poa"``: the PoA threshold is the scenario's;
             ``"plain_innovation"``: an uncompensated copy of a Gaussian filter's).

@@ -99,17 +99,19 @@ attack-free step updates as the filter alone would. The switch is a hard choice;
 gradients flow through the branch taken. With ``"plain_innovation"`` as well, that
 feature is the gated copy's innovation.
 
-Rejection (``reject=ρ``, sensor attacks, Gaussian filters): where the compensated
+Rejection (``reject=ρ``, sensor attacks, every entry received): where the compensated
 innovation fails its χ² test at the false-alarm rate ``ρ``, the compensated filter keeps
-its prediction instead of its update (before the restart, after the gating)::
+its prediction instead of its update (after the gating; before the restart)::
 
-    q_k = (ν_k − â_k)ᵀ S_k⁻¹ (ν_k − â_k) > F⁻¹_{χ²_dy}(1 − ρ)  ⇒  m_k, P_k ← m⁻_k, P⁻_k
+    q_k = (ν_k − â_k)ᵀ S_k⁻¹ (ν_k − â_k) > F⁻¹_{χ²_dy}(1 − ρ)  ⇒
+        Gaussian filters:  m_k, P_k ← m⁻_k, P⁻_k
+        particle filter:   log w_k ← log w⁻_k   (the propagated particles, unweighed)
 
-(``ν_k = y_k − H m⁻_k``, ``S_k`` the filter's innovation covariance, ``â_k`` what it
-subtracts). An attack the network follows (a bias) leaves a quiet compensated innovation
-and is compensated; one it cannot follow (a replay, the first steps of a ramp) leaves it
-loud, and the filter predicts over it as a χ²-gated filter does, rather than absorb the
-part the estimate missed.
+(``ν_k`` the innovation, ``S_k`` its covariance: the filter's, or for the particle filter
+its predictive moments with ``R``; ``â_k`` what it subtracts). An attack the network
+follows (a bias) leaves a quiet compensated innovation and is compensated; one it cannot
+follow (a replay, the first steps of a ramp) leaves it loud, and the filter predicts over
+it as a χ²-gated filter does, rather than absorb the part the estimate missed.
 
 Detection: ``p_k = sigmoid(logit_k)`` (the largest over areas), alarm where ``p_k >
 threshold``; a network without a detection head (trained by the EKF over its weights,
@@ -132,6 +134,7 @@ as soon as the injected signal ends. The threshold is then chosen for this score
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any, NamedTuple, Protocol
 
 import torch
@@ -427,9 +430,10 @@ class _NeuralLikelihood:
     measurement (or, against a replacement, with the learned mixture)."""
 
     def __init__(self, core: _Core, deception, gating: bool = False,
-                 compensation: Compensation = Compensation.FULL):  # fmt: skip
+                 compensation: Compensation = Compensation.FULL, reject_limit=None):  # fmt: skip
         self.core, self.deception, self.gating = core, deception, gating
         self.compensation = compensation
+        self.reject_limit = reject_limit  # dof ↦ F⁻¹_{χ²_dof}(1 − ρ), or None
 
     def init(self, model, batch_shape, dtype, device):
         return self.core.init(batch_shape, dtype, device, None)
@@ -463,6 +467,11 @@ class _NeuralLikelihood:
         log_lik = AttackCompensatedLikelihood(always, applied)(model, y, particles, k, mask)
         if self.gating:  # a tempered update: kept with probability 1 − g
             log_lik = log_lik * (1.0 - gate_of(logit)).unsqueeze(-1)
+        if self.reject_limit is not None:  # no update where ν − â fails its χ² test
+            if mask is not None:
+                raise ValueError(_REJECT_MASK)
+            kept = _nis(nu - applied, S) <= self.reject_limit(nu.shape[-1])
+            log_lik = torch.where(kept.unsqueeze(-1), log_lik, torch.zeros_like(log_lik))
         return state, log_lik, record
 
 
@@ -503,7 +512,7 @@ class NeuralCompensation(Estimator):
             ``None`` (default): the network's score alone.
         reject: ``ρ`` in (0, 1): where the compensated innovation ``ν_k − â_k`` fails its
             χ² test at rate ``ρ``, keep the prediction (module docstring; sensor attacks,
-            Gaussian filters, every entry received); ``None`` (default): never.
+            every entry received); ``None`` (default): never.
 
     Step output: the filter's moments after compensation, ``attack`` ``â_k``, ``score``,
     ``alarm``, ``threshold`` and ``extras`` (``"attack_logit"`` with a head, the recorded
@@ -539,7 +548,7 @@ class NeuralCompensation(Estimator):
         _check_step_options(network, channel, residual, gating, compensation)
         _check_restart(restart, inner, channel)
         _check_confirm(confirm, restart)
-        _check_reject(reject, inner, channel)
+        _check_reject(reject, channel)
         self.gating, self.compensation, self.evidence = bool(gating), compensation, bool(evidence)
         self.restart = None if restart is None else float(restart)
         self.confirm = None if confirm is None else float(confirm)
@@ -556,7 +565,10 @@ class NeuralCompensation(Estimator):
         if self.particles:
             self.pf = ParticleFilter(
                 inner.num_particles, resampler=inner.resampler, proposal=inner.proposal,
-                likelihood=_NeuralLikelihood(self.core, deception, self.gating, compensation),
+                likelihood=_NeuralLikelihood(
+                    self.core, deception, self.gating, compensation,
+                    None if self.reject is None else partial(self._chi2_threshold, rate=self.reject),
+                ),
                 ess_threshold=inner.ess_threshold, innovations=True,
             )  # fmt: skip
             self.carry_type = ParticleState
@@ -645,8 +657,7 @@ class NeuralCompensation(Estimator):
         test at the rate ``reject`` (``S [..., dy, dy]``), the prediction ``pred`` where it
         fails (module docstring, rejection), and the step's output to match."""
         if mask is not None:
-            raise ValueError("reject tests every channel of the compensated innovation: it "
-                             "needs every entry received (mask=None)")  # fmt: skip
+            raise ValueError(_REJECT_MASK)
         dof = compensated_nu.shape[-1]
         kept = _nis(compensated_nu, S) <= self._chi2_threshold(dof, self.reject)
         state = _chosen(new, kept, new, pred)
@@ -771,16 +782,19 @@ def _check_restart(restart, inner, channel) -> None:
         )
 
 
-def _check_reject(reject, inner, channel) -> None:
-    """``ValueError`` for a ``reject`` rate out of (0, 1) or one the filter cannot serve."""
+_REJECT_MASK = ("reject tests every channel of the compensated innovation: it needs every "
+                "entry received (mask=None)")  # fmt: skip
+
+
+def _check_reject(reject, channel) -> None:
+    """``ValueError`` for a ``reject`` rate out of (0, 1) or one without a sensor attack."""
     if reject is None:
         return
     check_rate(reject, "reject")
-    if channel is not Channel.SENSOR or isinstance(inner, ParticleFilter):
+    if channel is not Channel.SENSOR:
         raise ValueError(
-            "reject tests the compensated innovation of a Gaussian filter against sensor "
-            f"attacks: inner must be a Gaussian filter and channel 'sensor' (got "
-            f"{type(inner).__name__}, channel {channel.value!r})"
+            "reject tests the compensated innovation of a sensor attack: channel must be "
+            f"'sensor' (got {channel.value!r})"
         )
 
 
