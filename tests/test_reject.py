@@ -63,16 +63,6 @@ def test_a_test_that_never_fails_is_the_compensation_alone_and_one_always_failin
         torch.testing.assert_close(always.covs[:, k], cov.expand(3, 2, 2), rtol=0, atol=1e-12)
 
 
-def test_gradients_flow_through_the_branch_taken():
-    model = _linear()
-    _, ys = _data(model, runs=2, steps=10)
-    net = _net()
-    out = neural_gaussian_filter(model, ys, network=net, filter=df.KalmanFilter(), reject=0.05)
-    out.means.square().sum().backward()
-    for weights in (net.W, net.V):
-        assert torch.isfinite(weights.grad).all() and weights.grad.abs().sum() > 0
-
-
 def test_the_particle_filter_keeps_its_predictive_weights_where_the_compensated_innovation_fails():
     """Without resampling the weights are the updates: every step whose compensated
     innovation (the filter's predictive ``ν_k`` minus ``â_k``, against its ``S_k``) fails

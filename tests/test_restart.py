@@ -74,11 +74,13 @@ def test_each_step_restarts_from_the_gated_copy_where_its_test_is_quiet_by_hand(
     assert quiet.any() and (~quiet).any()  # both branches are exercised (the bias from step 5)
 
 
-def test_gradients_flow_through_the_branch_taken():
+@pytest.mark.parametrize("option", [{"restart": 0.05}, {"reject": 0.05}])
+def test_gradients_flow_through_the_branch_taken(option):
+    """The restart's hard choice, and the rejection's (tests/test_reject.py)."""
     model = _linear()
     _, ys = _data(model, runs=2, steps=10)
     net = _net()
-    out = neural_gaussian_filter(model, ys, network=net, filter=df.KalmanFilter(), restart=0.05)
+    out = neural_gaussian_filter(model, ys, network=net, filter=df.KalmanFilter(), **option)
     out.means.square().sum().backward()
     for weights in (net.W, net.V):  # the estimate's weights (the head does not move the means)
         assert torch.isfinite(weights.grad).all() and weights.grad.abs().sum() > 0
