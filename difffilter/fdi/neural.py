@@ -105,7 +105,7 @@ its prediction instead of its update (after the gating; before the restart)::
 
     q_k = (ν_k − â_k)ᵀ S_k⁻¹ (ν_k − â_k) > F⁻¹_{χ²_dy}(1 − ρ)  ⇒
         Gaussian filters:  m_k, P_k ← m⁻_k, P⁻_k
-        particle filter:   log w_k ← log w⁻_k   (the propagated particles, unweighed)
+        particle filter:   log w_k ← log w⁻_k   (the propagated particles keep their weights)
 
 (``ν_k`` the innovation, ``S_k`` its covariance: the filter's, or for the particle filter
 its predictive moments with ``R``; ``â_k`` what it subtracts). An attack the network
