@@ -141,18 +141,28 @@ def test_old_cards_name_the_entry_that_evaluates_them():
     ]  # fmt: skip
 
 
-def test_calibrate_sets_the_restart_it_runs_and_chooses_the_threshold_with(tmp_path, capsys):
+def test_calibrate_sets_the_restart_it_runs_and_chooses_the_threshold_with(
+    tmp_path, capsys, monkeypatch
+):
     """``--restart α`` (and ``--reject ρ``) are in the card before the scores are taken: the
-    threshold is the one the estimator so run meets, the card's check is recomputed for it,
-    and ``off`` removes them again."""
+    threshold is the one the estimator so run meets, the card's check is recomputed for it
+    (on the file so configured, with the card's seed and runs), and ``off`` removes them."""
     from difffilter.models.lfc_estimators import build_estimator
+    from difffilter.train import export
+
+    checked = []  # (the file's card, seed, runs) of every recomputed check
+
+    def check_metric(path, *, seed, runs):  # the real one is tested on the shipped files
+        checked.append((load_estimator_checkpoint(path)[1], seed, runs))
+        return {"metric": "attack_rmse", "seed": seed, "runs": runs, "value": 0.125}
+
+    monkeypatch.setattr(export, "check_metric", check_metric)
 
     plain = _uncalibrated("checkpoints/lfc_nn_grad.ckpt", tmp_path / "plain.ckpt")
     net, card = load_estimator_checkpoint(plain)
     save_estimator_checkpoint(plain, net, dataclasses.replace(card, restart=None))
     shipped_json = Path("checkpoints/lfc_nn_grad.json").read_text()
-    document = json.loads(shipped_json)
-    document.update(sha256=checkpoint_sha256(plain), check={**document["check"], "runs": 1})
+    document = {**json.loads(shipped_json), "sha256": checkpoint_sha256(plain)}
     plain.with_suffix(".json").write_text(json.dumps(document))  # its check, to be recomputed
     on, off = tmp_path / "on.ckpt", tmp_path / "off.ckpt"
     cal_on = calibrate_checkpoint(plain, on, far=0.05, runs=2, progress=False, restart=0.01,
@@ -165,8 +175,11 @@ def test_calibrate_sets_the_restart_it_runs_and_chooses_the_threshold_with(tmp_p
     assert off_card.restart is None and "restart" not in cal_off
     assert off_card.reject is None and "reject" not in cal_off
     check = json.loads(on.with_suffix(".json").read_text())["check"]
-    assert "restart 0.01, confirm None, reject 0.02" in check["note"]
-    assert check["value"] != json.loads(shipped_json)["check"]["value"]
+    assert "restart 0.01, confirm None, reject 0.02" in check["note"] and check["value"] == 0.125
+    seed, runs = document["check"]["seed"], document["check"]["runs"]
+    assert [(c.restart, c.reject, s, r) for c, s, r in checked] == [
+        (0.01, 0.02, seed, runs), (None, None, seed, runs)
+    ]  # fmt: skip
     assert cal_on["threshold"] != cal_off["threshold"]  # other scores, another threshold
     # the threshold is the one the restarted estimator's scores give on the calibration runs
     scenario = registry.get("lfc_random_attacks")
