@@ -95,14 +95,8 @@ def _new_check(src: Path, scored: Path, card) -> dict | None:
         return None
     return {**check_metric(scored, seed=old["seed"], runs=old["runs"]),
             "note": "recomputed by difffilter-train calibrate with "
-                    + ", ".join(f"{o} {getattr(card, o)}" for o in _set(card))
+                    + ", ".join(f"{o} {getattr(card, o)}" for o in RUN_OPTIONS)
                     + f" (before: {old['value']:.6g})"}  # fmt: skip
-
-
-def _set(card) -> tuple[str, ...]:
-    """The :data:`RUN_OPTIONS` the card names: restart and confirm always (as before),
-    reject where set."""
-    return tuple(o for o in RUN_OPTIONS if o != "reject" or card.reject is not None)
 
 
 def calibrate_checkpoint(
@@ -170,9 +164,7 @@ def calibrate_checkpoint(
     calibration = {
         "target": float(far), "estimator": name, "scenario": scenario.name, "runs": runs,
         **({} if statistic is None else {"score": statistic}),
-        **({} if card.restart is None else {"restart": card.restart}),
-        **({} if card.confirm is None else {"confirm": card.confirm}),
-        **({} if card.reject is None else {"reject": card.reject}),
+        **{o: getattr(card, o) for o in RUN_OPTIONS if getattr(card, o) is not None},
         "steps": int(fitted.shape[-1]), "seed": fit_seed, "check_seed": check_seed,
         "threshold": threshold, "previous_threshold": card.threshold,
         "measured_on_calibration": float((fitted > threshold).double().mean()),
