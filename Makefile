@@ -11,6 +11,11 @@ OUT ?= reports
 # --devices; the same numbers as one process). Default 2 on a machine with 2 CPUs or more:
 # 1.33x faster than one process on the 2-core machine (README).
 DEVICES ?= $(shell [ "$$(nproc 2>/dev/null || echo 1)" -ge 2 ] && echo 2 || echo 1)
+# TEST_JOBS=N: pytest worker processes (pytest-xdist; each on one intra-op thread, a file's
+# tests in one worker so that its module fixtures are built once). Default: one per CPU, at
+# most 8; TEST_JOBS=0 runs the suite in this process.
+TEST_JOBS ?= auto
+PYTEST_ARGS := -q -n $(TEST_JOBS) --maxprocesses 8 --dist loadfile
 
 .PHONY: demo test test-slow test-all test-min bench lint venv clean
 
@@ -30,14 +35,14 @@ demo: $(STAMP)
 # `make test-all` runs everything; CI (.ci/run) runs both groups.
 test: $(STAMP)
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest $(PYTEST_ARGS) -m "not slow"
 
 test-slow: $(STAMP)
-	$(PY) -m pytest -q -m slow
+	$(PY) -m pytest $(PYTEST_ARGS) -m slow
 
 test-all: $(STAMP)
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q
+	$(PY) -m pytest $(PYTEST_ARGS)
 
 # The declared minimum versions (constraints-min.txt) in a venv of their own
 VENV_MIN := .venv-min
@@ -45,7 +50,7 @@ test-min:
 	test -x $(VENV_MIN)/bin/python || $(PYTHON) -m venv $(VENV_MIN)
 	$(VENV_MIN)/bin/python -m pip install -q -c constraints-min.txt torch==2.13.0 "setuptools>=77,<81"
 	$(VENV_MIN)/bin/python -m pip install -q -c constraints-min.txt -e ".[dev]"
-	$(VENV_MIN)/bin/python -m pytest -q
+	$(VENV_MIN)/bin/python -m pytest $(PYTEST_ARGS)
 
 # the `bench` extra: the peers section 8 times beside ours (torch-kf; torch stays pinned)
 BENCH_STAMP := $(VENV)/.bench-installed
