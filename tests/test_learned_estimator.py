@@ -351,6 +351,9 @@ def test_task_fit_export_and_evaluate_round_trip(tmp_path, monkeypatch, capsys):
     run = tmp_path / "lightning_logs" / "four_tank_nn_grad" / "version_0"
     card = json.loads((run / "four_tank_nn_grad.json").read_text())
     assert card["observer"]["filter"] == "pf" and 0 < card["observer"]["threshold"] < 1
+    # what chose the weights (the config's ModelCheckpoint): a sweep ranks its seeds by it
+    assert card["monitor"] == {"metric": "val/auc", "mode": "max"}
+    assert 0.0 <= card["best_val_score"] <= 1.0
     assert card["observer"]["features"] == ["mask", "log_likelihood", "poa"]
     assert card["observer"]["poa_eta"] == pytest.approx(0.233, abs=5e-4)  # the paper's η
     assert {p.name: p.read_bytes() for p in (ROOT / "checkpoints").iterdir()} == shipped

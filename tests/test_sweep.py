@@ -12,7 +12,13 @@ import pytest
 from difffilter.eval.calibration import calibrate
 from difffilter.eval.suite import run_suite
 from difffilter.models import estimators, registry
-from difffilter.train.sweep import main, train_seed_of
+from difffilter.train.sweep import (
+    _config_monitor,
+    _median,
+    _validation_scores,
+    main,
+    train_seed_of,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [
@@ -31,6 +37,7 @@ def test_a_sweep_reports_every_seed_the_spread_and_the_median_seed(tmp_path, mon
     assert main(args) == 0
     doc = json.loads((tmp_path / "sw" / "sweep.json").read_text())
     assert doc["seeds"] == [0, 3, 1] and doc["rank_by"] == "tpr_at_far"
+    assert doc["select_on"] == "validation"
     seeds = doc["per_seed"]
     cards = {s: json.loads(Path(v["checkpoint"]).with_suffix(".json").read_text())
              for s, v in seeds.items()}  # fmt: skip
@@ -51,8 +58,17 @@ def test_a_sweep_reports_every_seed_the_spread_and_the_median_seed(tmp_path, mon
     stats = doc["summary"]["four_tank_bias"]["tpr_at_far"]
     assert stats["mean"] == pytest.approx(statistics.fmean(values.values()))
     assert stats["spread"] == pytest.approx(max(values.values()) - min(values.values()))
-    assert values[str(doc["median_seed"])] == sorted(values.values())[1]
-    assert "spread (max − min)" in (tmp_path / "sw" / "sweep.md").read_text()
+    assert values[str(doc["selection"]["median_seed_by_test"])] == sorted(values.values())[1]
+    # the seed that ships is the median of the validation scores the trainings chose their
+    # weights by (four_tank.yaml: val/auc, higher is better), never of the reported draws
+    val = {s: card["best_val_score"] for s, card in cards.items()}
+    assert len(set(val.values())) == 3  # distinct: the check below picks one seed
+    assert doc["selection"]["monitor"] == {"metric": "val/auc", "mode": "max"}
+    assert doc["selection"]["scores"] == pytest.approx(val)
+    assert val[str(doc["median_seed"])] == sorted(val.values())[1]
+    assert doc["median_checkpoint"] == seeds[str(doc["median_seed"])]["checkpoint"]
+    text = (tmp_path / "sw" / "sweep.md").read_text()
+    assert "spread (max − min)" in text and "Median seed on validation" in text
     # the acceptance: the best of the scenario's analytic estimators on the same runs,
     # calibrated the same way, and seed 3 held against it
     analytic = [n for n in sc.estimators if estimators.get(n).role == "analytic"]
@@ -74,8 +90,10 @@ def test_a_sweep_reports_every_seed_the_spread_and_the_median_seed(tmp_path, mon
     stamps = {s: Path(v["checkpoint"]).stat().st_mtime_ns for s, v in seeds.items()}
     baseline = tmp_path / "sw" / "baselines" / "four_tank_bias.json"
     stamps["baseline"] = baseline.stat().st_mtime_ns
-    assert main(args) == 0
+    assert main([*args[: args.index("--")], "--select-on", "test", *args[args.index("--") :]]) == 0
     again = json.loads((tmp_path / "sw" / "sweep.json").read_text())
+    assert again["select_on"] == "test" and again["selection"]["monitor"] is None
+    assert values[str(again["median_seed"])] == sorted(values.values())[1]
     assert {s: Path(v["checkpoint"]).stat().st_mtime_ns for s, v in again["per_seed"].items()
             } | {"baseline": baseline.stat().st_mtime_ns} == stamps  # fmt: skip
     assert again["acceptance"] == doc["acceptance"]
@@ -87,5 +105,38 @@ def test_a_sweep_refuses_bad_options(tmp_path, capsys):
     assert "--seeds must be distinct" in capsys.readouterr().err
     assert main(["--config", config, "--rank-by", "speed", "--out", str(tmp_path)]) == 2
     assert "--rank-by must be one of" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--config", config, "--select-on", "best", "--out", str(tmp_path)])
+    assert "--select-on: invalid choice: 'best'" in capsys.readouterr().err
     assert main(["--config", str(tmp_path / "no.yaml"), "--out", str(tmp_path)]) == 2
     assert "no.yaml does not exist" in capsys.readouterr().err
+
+
+def test_the_median_seed_ranks_best_first_and_nan_last():
+    assert _median({0: 0.3, 1: 0.1, 2: 0.2}, higher_is_better=False) == 2
+    assert _median({0: 0.3, 1: 0.1, 2: 0.2}, higher_is_better=True) == 2
+    # an even count: the lower median counted from the best
+    assert _median({0: 0.4, 1: 0.1, 2: 0.2, 3: 0.3}, higher_is_better=False) == 2
+    assert _median({0: 0.4, 1: 0.1, 2: 0.2, 3: 0.3}, higher_is_better=True) == 3
+    # a seed without a score is never the median of three scored ones
+    assert _median({0: float("nan"), 1: 0.1, 2: 0.2, 3: 0.3}, higher_is_better=True) == 2
+
+
+def test_the_validation_scores_come_from_the_cards_or_their_config(tmp_path):
+    config = ROOT / "train" / "configs" / "lfc.yaml"
+    assert _config_monitor(config) == {"metric": "val/attack_rmse", "mode": "min"}
+    per_seed = {}
+    for seed, score in ((0, 0.5), (1, 0.25)):
+        card = {"best_val_score": score}  # a card from before cards recorded their monitor
+        (tmp_path / f"s{seed}.json").write_text(json.dumps(card))
+        per_seed[seed] = {"checkpoint": str(tmp_path / f"s{seed}.ckpt")}
+    scores, monitor = _validation_scores(per_seed, config)
+    assert scores == {0: 0.5, 1: 0.25} and monitor == {"metric": "val/attack_rmse", "mode": "min"}
+    # a card's own monitor wins over the config's
+    card = {"best_val_score": 0.9, "monitor": {"metric": "val/auc", "mode": "max"}}
+    (tmp_path / "s0.json").write_text(json.dumps(card))
+    with pytest.raises(ValueError, match="chosen by different validation scores"):
+        _validation_scores(per_seed, config)
+    (tmp_path / "s0.json").write_text(json.dumps({"best_val_score": None}))
+    with pytest.raises(ValueError, match="names no validation score.*--select-on test"):
+        _validation_scores(per_seed, config)

@@ -137,10 +137,12 @@ class ExportEstimator(pl.Callback):
         path = self.path or Path(trainer.log_dir or trainer.default_root_dir) / f"{name}.ckpt"
         if not trainer.is_global_zero:
             return
-        best_path, best_score = None, None
+        best_path, best_score, monitor = None, None, None
         for cb in trainer.callbacks:
             if isinstance(cb, pl.callbacks.ModelCheckpoint) and cb.best_model_path:
                 best_path, best_score = cb.best_model_path, cb.best_model_score
+                # what chose the weights, and which way is better: a sweep ranks seeds by it
+                monitor = None if cb.monitor is None else {"metric": cb.monitor, "mode": cb.mode}
         if best_path:  # the selected weights (and their buffers, e.g. a threshold)
             blob = torch.load(best_path, map_location="cpu", weights_only=True)
             pl_module.load_state_dict(blob["state_dict"])
@@ -161,6 +163,7 @@ class ExportEstimator(pl.Callback):
             "sha256": digest,
             "selected_checkpoint": Path(best_path).name if best_path else None,
             "best_val_score": None if best_score is None else float(best_score),
+            "monitor": monitor,
             "metrics_last_validation": metrics,
             "model_config": _plain(dict(pl_module.hparams)),
             "data_config": None if dm is None else _plain(dict(dm.hparams)),

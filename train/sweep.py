@@ -15,10 +15,17 @@ writes ``<out>/sweep.json`` and ``<out>/sweep.md``: per seed and scenario the es
 ``tpr_at_far``, ``fpr_at_far`` (and ``fpr_at_far_after_attack``, its rate on the ten
 attack-free steps after an attacked step), ``fpr`` (at the checkpoint's own threshold), ``auc``,
 ``state_rmse`` and ``attack_rmse`` (and the family's own, e.g. tracking's position RMSE
-``rmse_p``), and per metric the mean, min, max and spread (max − min) over seeds. The
-median seed is the one whose ``--rank-by`` metric, averaged over the scenarios, is the
-median (the lower median for an even count); it is the one to ship
-(``difffilter-train export``), never the best.
+``rmse_p``), and per metric the mean, min, max and spread (max − min) over seeds.
+
+The median seed is the one to ship (``difffilter-train export``), never the best, and it is
+chosen on validation, not on the numbers the sweep reports: by default
+(``--select-on validation``) each seed is ranked by the score its training chose its
+weights by (the card's ``best_val_score``, the config's ``ModelCheckpoint`` monitor, e.g.
+``val/auc``, on the config's validation runs, ``val_seed``), in the monitor's direction,
+and the median of that ranking ships (the lower median, counted from the best, for an even
+count). ``--select-on test`` ranks by the evaluation's ``--rank-by`` metric averaged over
+the scenarios instead (what earlier sweeps did: a choice made on the test's own draws);
+the sweep names that seed too, so a reader sees whether the two choices differ.
 
 The sweep also judges every seed as the headline acceptance does
 (:mod:`difffilter.eval.acceptance`): the scenario's analytic estimators run once on the
@@ -33,16 +40,19 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import statistics
 import sys
 from pathlib import Path
 
-__all__ = ["sweep", "main", "METRICS", "train_seed_of"]
+__all__ = ["sweep", "main", "METRICS", "SELECT_ON", "train_seed_of"]
 
 #: The metrics the sweep reports per seed and scenario (eval.scoring's definitions).
 METRICS = ("tpr_at_far", "fpr_at_far", "fpr_at_far_after_attack", "fpr", "auc", "state_rmse",
            "attack_rmse")  # fmt: skip
 _LOWER_IS_BETTER = {"fpr_at_far", "fpr_at_far_after_attack", "fpr", "state_rmse", "attack_rmse"}
+#: Where the median seed is chosen: the training's validation score, or the sweep's test.
+SELECT_ON = ("validation", "test")
 
 
 def train_seed_of(seed: int) -> int:
@@ -191,19 +201,70 @@ def _summary(per_seed: dict) -> dict:
     return out
 
 
-def _median_seed(per_seed: dict, rank_by: str) -> int:
-    def key(seed):
-        values = [
-            m[rank_by] for m in per_seed[seed]["scenarios"].values() if m[rank_by] is not None
-        ]
-        return statistics.fmean(values) if values else float("nan")
+def _median(scores: dict[int, float], higher_is_better: bool) -> int:
+    """The seed whose score is the median, ranked best first (the lower median, counted
+    from the best, for an even count; a NaN score ranks last, ties keep the seeds' order)."""
 
-    ranked = sorted(per_seed, key=key, reverse=rank_by not in _LOWER_IS_BETTER)
+    def key(seed):
+        value = scores[seed]
+        return (math.isnan(value), -value if higher_is_better else value)
+
+    ranked = sorted(scores, key=key)
     return ranked[(len(ranked) - 1) // 2]
 
 
+def _test_scores(per_seed: dict, rank_by: str) -> dict[int, float]:
+    """``{seed: mean of rank_by over the evaluated scenarios}`` (NaN where none has it)."""
+    out = {}
+    for seed, entry in per_seed.items():
+        values = [m[rank_by] for m in entry["scenarios"].values() if m[rank_by] is not None]
+        out[seed] = statistics.fmean(values) if values else float("nan")
+    return out
+
+
+def _config_monitor(config: Path) -> dict | None:
+    """``{"metric", "mode"}`` of the config's ``ModelCheckpoint`` (Lightning's mode default
+    ``min``), or ``None``: for cards exported before they recorded their monitor."""
+    import yaml
+
+    trainer = (yaml.safe_load(config.read_text()) or {}).get("trainer") or {}
+    for callback in trainer.get("callbacks") or []:
+        if isinstance(callback, dict) and str(callback.get("class_path", "")).endswith(
+            "ModelCheckpoint"
+        ):
+            init = callback.get("init_args") or {}
+            if init.get("monitor"):
+                return {"metric": init["monitor"], "mode": init.get("mode", "min")}
+    return None
+
+
+def _validation_scores(per_seed: dict, config: Path) -> tuple[dict[int, float], dict]:
+    """``({seed: best_val_score}, {"metric", "mode"})``: the validation score each seed's
+    training chose its weights by, read from its card (its ``monitor``, else the config's)."""
+    scores, monitors = {}, {}
+    for seed, entry in per_seed.items():
+        card_path = Path(entry["checkpoint"]).with_suffix(".json")
+        card = json.loads(card_path.read_text())
+        monitor = card.get("monitor") or _config_monitor(config)
+        score = card.get("best_val_score")
+        if monitor is None or score is None:
+            raise ValueError(
+                f"seed {seed}: its card {card_path} names no validation score its weights were "
+                "chosen by (a ModelCheckpoint with a monitor); --select-on test ranks the "
+                "seeds on the sweep's evaluation instead"
+            )
+        scores[seed], monitors[seed] = float(score), (monitor["metric"], monitor["mode"])
+    if len(set(monitors.values())) > 1:
+        raise ValueError(f"the seeds' weights were chosen by different validation scores "
+                         f"({sorted(set(monitors.values()))}): they rank by no one of them; "
+                         "--select-on test ranks them on the sweep's evaluation")  # fmt: skip
+    metric, mode = next(iter(monitors.values()))
+    return scores, {"metric": metric, "mode": mode}
+
+
 def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | None = None,
-          far: float = 0.01, rank_by: str = "tpr_at_far", extra=(), progress: bool = True) -> dict:  # fmt: skip
+          far: float = 0.01, rank_by: str = "tpr_at_far", select_on: str = "validation",
+          extra=(), progress: bool = True) -> dict:  # fmt: skip
     """Train ``config`` on every seed and evaluate each (module docstring); writes and
     returns the sweep's document. ``extra``: more ``fit`` options for every seed."""
     config, out = Path(config), Path(out)
@@ -214,6 +275,8 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
         raise ValueError(f"--seeds must be distinct integers >= 0; got {seeds}")
     if rank_by not in METRICS:
         raise ValueError(f"--rank-by must be one of {', '.join(METRICS)}; got {rank_by!r}")
+    if select_on not in SELECT_ON:
+        raise ValueError(f"--select-on must be one of {', '.join(SELECT_ON)}; got {select_on!r}")
     if not 0.0 < far < 1.0:
         raise ValueError(f"--far must lie in (0, 1); got {far!r}")
     runs_dir = out / "runs"
@@ -223,13 +286,21 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
         card = json.loads(path.with_suffix(".json").read_text())
         per_seed[seed] = {"checkpoint": str(path), "train_time_s": card.get("train_time_s"),
                           **_evaluate(path, scenarios, runs, far, progress)}  # fmt: skip
-    median = _median_seed(per_seed, rank_by)
+    test_scores = _test_scores(per_seed, rank_by)
+    by_test = _median(test_scores, rank_by not in _LOWER_IS_BETTER)
+    if select_on == "validation":
+        scores, monitor = _validation_scores(per_seed, config)
+        median = _median(scores, monitor["mode"] == "max")
+    else:
+        scores, monitor, median = test_scores, None, by_test
     _, judged = _scenarios_of(Path(per_seed[seeds[0]]["checkpoint"]), scenarios)
     baselines = {sc: _baseline(sc, runs, far, progress, out / "baselines") for sc in judged}
     doc = {
         "config": str(config), "seeds": seeds, "far": far, "runs": runs, "eval_seed": 0,
-        "rank_by": rank_by, "median_seed": median,
+        "rank_by": rank_by, "select_on": select_on, "median_seed": median,
         "median_checkpoint": per_seed[median]["checkpoint"],
+        "selection": {"monitor": monitor, "scores": {str(s): v for s, v in scores.items()},
+                      "median_seed_by_test": by_test},
         "per_seed": {str(s): v for s, v in per_seed.items()}, "summary": _summary(per_seed),
         "acceptance": _acceptance(per_seed, baselines, far),
     }  # fmt: skip
@@ -246,8 +317,7 @@ def _markdown(doc: dict) -> str:
         f"# Sweep of {doc['config']} over seeds {', '.join(map(str, doc['seeds']))}\n",
         f"Each seed's estimator on `difffilter-eval`'s runs (seed {doc['eval_seed']}), every "
         f"threshold calibrated for {100 * doc['far']:g} % false alarms on attack-free runs of "
-        f"their own seed. Median seed by {doc['rank_by']}: **{doc['median_seed']}** "
-        f"(`{doc['median_checkpoint']}`).\n",
+        f"their own seed. {_selection_sentence(doc)}\n",
         "| scenario | metric | "
         + " | ".join(f"seed {s}" for s in doc["seeds"])
         + " | mean | spread (max − min) |",
@@ -261,6 +331,25 @@ def _markdown(doc: dict) -> str:
             lines.append(f"| {scenario} | {metric} | " + " | ".join(cells)
                          + f" | {f(stats['mean'])} | {f(stats['spread'])} |")  # fmt: skip
     return "\n".join(lines + _acceptance_markdown(doc)) + "\n"
+
+
+def _selection_sentence(doc: dict) -> str:
+    """How the median seed was chosen, its scores per seed, and the test's choice beside."""
+    from difffilter.eval.report import format_number as f
+
+    selection, median = doc["selection"], doc["median_seed"]
+    scores = ", ".join(f"seed {s} {f(v)}" for s, v in selection["scores"].items())
+    by_test = selection["median_seed_by_test"]
+    if doc["select_on"] == "test":
+        return (f"Median seed by the evaluation's {doc['rank_by']} (chosen on these draws): "
+                f"**{median}** (`{doc['median_checkpoint']}`; {scores}).")  # fmt: skip
+    monitor = selection["monitor"]
+    beside = "the same seed" if by_test == median else f"seed {by_test}"
+    return (f"Median seed on validation, by the score each training chose its weights by "
+            f"({monitor['metric']}, {'higher' if monitor['mode'] == 'max' else 'lower'} is "
+            f"better; its config's validation runs, not these): **{median}** "
+            f"(`{doc['median_checkpoint']}`; {scores}). The evaluation's {doc['rank_by']} "
+            f"below would name {beside}.")  # fmt: skip
 
 
 def _acceptance_markdown(doc: dict) -> list[str]:
@@ -323,7 +412,12 @@ def main(argv: list[str] | None = None) -> int:
                    help="comma-separated scenarios (default: the family's headline ones)")  # fmt: skip
     p.add_argument("--runs", type=int, default=None, help="evaluation runs (the scenario's)")
     p.add_argument("--far", type=float, default=0.01, help="target false-alarm rate (0.01)")
-    p.add_argument("--rank-by", default="tpr_at_far", help="the median seed's metric")
+    p.add_argument("--select-on", choices=SELECT_ON, default="validation",
+                   help="where the median seed is chosen: each training's validation score "
+                   "(default) or the sweep's evaluation (--rank-by)")  # fmt: skip
+    p.add_argument("--rank-by", default="tpr_at_far",
+                   help="the evaluation's metric that ranks the seeds under --select-on test "
+                   "(and names the test's median beside the validation's)")  # fmt: skip
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     argv = list(sys.argv[1:] if argv is None else argv)
     extra = argv[argv.index("--") + 1 :] if "--" in argv else []
@@ -331,7 +425,7 @@ def main(argv: list[str] | None = None) -> int:
     scenarios = [s for s in args.scenarios.split(",") if s] if args.scenarios else None
     try:
         doc = sweep(args.config, args.seeds, args.out, scenarios=scenarios, runs=args.runs,
-                    far=args.far, rank_by=args.rank_by, extra=extra,
+                    far=args.far, rank_by=args.rank_by, select_on=args.select_on, extra=extra,
                     progress=not args.no_progress)  # fmt: skip
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-train sweep: error: {exc}", file=sys.stderr)
