@@ -108,6 +108,12 @@ def test_a_sweep_refuses_bad_options(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--config", config, "--select-on", "best", "--out", str(tmp_path)])
     assert "--select-on: invalid choice: 'best'" in capsys.readouterr().err
+    # a config whose training chooses its weights by no validation score: said before training
+    bare = tmp_path / "bare.yaml"
+    bare.write_text("trainer:\n  max_epochs: 1\n")
+    assert main(["--config", str(bare), "--out", str(tmp_path / "sw")]) == 2
+    assert "has no ModelCheckpoint monitor; add one, or --select-on test" in capsys.readouterr().err
+    assert not (tmp_path / "sw").exists()
     assert main(["--config", str(tmp_path / "no.yaml"), "--out", str(tmp_path)]) == 2
     assert "no.yaml does not exist" in capsys.readouterr().err
 

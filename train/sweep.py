@@ -279,6 +279,12 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
         raise ValueError(f"--select-on must be one of {', '.join(SELECT_ON)}; got {select_on!r}")
     if not 0.0 < far < 1.0:
         raise ValueError(f"--far must lie in (0, 1); got {far!r}")
+    if (select_on == "validation" and _config_monitor(config) is None
+            and not any("callbacks" in option for option in extra)):  # fmt: skip
+        # said before hours of training, not after
+        raise ValueError(f"--select-on validation ranks the seeds by the score their "
+                         f"training chose its weights by, and {config} has no ModelCheckpoint "
+                         "monitor; add one, or --select-on test")  # fmt: skip
     runs_dir = out / "runs"
     per_seed = {}
     for seed in seeds:
