@@ -4,7 +4,6 @@ test``). Fast: no training (the sweep's end-to-end test is in the slow group).""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import pytest
@@ -24,21 +23,17 @@ def test_the_median_seed_ranks_best_first_and_nan_last():
     assert _median({0: float("nan"), 1: 0.1, 2: 0.2, 3: 0.3}, higher_is_better=True) == 2
 
 
-def test_the_validation_scores_come_from_the_cards_or_their_config(tmp_path):
+def test_the_validation_scores_come_from_the_cards_or_their_config():
     config = ROOT / "train" / "configs" / "lfc.yaml"
     assert _config_monitor(config) == {"metric": "val/attack_rmse", "mode": "min"}
-    per_seed = {}
-    for seed, score in ((0, 0.5), (1, 0.25)):
-        card = {"best_val_score": score}  # a card from before cards recorded their monitor
-        (tmp_path / f"s{seed}.json").write_text(json.dumps(card))
-        per_seed[seed] = {"checkpoint": str(tmp_path / f"s{seed}.ckpt")}
-    scores, monitor = _validation_scores(per_seed, config)
+    # cards from before cards recorded their monitor: the config's
+    cards = {0: {"best_val_score": 0.5}, 1: {"best_val_score": 0.25}}
+    scores, monitor = _validation_scores(cards, config)
     assert scores == {0: 0.5, 1: 0.25} and monitor == {"metric": "val/attack_rmse", "mode": "min"}
     # a card's own monitor wins over the config's
-    card = {"best_val_score": 0.9, "monitor": {"metric": "val/auc", "mode": "max"}}
-    (tmp_path / "s0.json").write_text(json.dumps(card))
+    cards[0] = {"best_val_score": 0.9, "monitor": {"metric": "val/auc", "mode": "max"}}
     with pytest.raises(ValueError, match="chosen by different validation scores"):
-        _validation_scores(per_seed, config)
-    (tmp_path / "s0.json").write_text(json.dumps({"best_val_score": None}))
+        _validation_scores(cards, config)
+    cards[0] = {"best_val_score": None}
     with pytest.raises(ValueError, match="names no validation score.*--select-on test"):
-        _validation_scores(per_seed, config)
+        _validation_scores(cards, config)

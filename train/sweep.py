@@ -238,20 +238,20 @@ def _config_monitor(config: Path) -> dict | None:
     return None
 
 
-def _validation_scores(per_seed: dict, config: Path) -> tuple[dict[int, float], dict]:
+def _validation_scores(cards: dict[int, dict], config: Path) -> tuple[dict[int, float], dict]:
     """``({seed: best_val_score}, {"metric", "mode"})``: the validation score each seed's
-    training chose its weights by, read from its card (its ``monitor``, else the config's)."""
+    training chose its weights by, from its card ``cards[seed]`` (its ``monitor``, else the
+    config's)."""
     scores, monitors = {}, {}
-    for seed, entry in per_seed.items():
-        card_path = Path(entry["checkpoint"]).with_suffix(".json")
-        card = json.loads(card_path.read_text())
-        monitor = card.get("monitor") or _config_monitor(config)
+    fallback = _config_monitor(config)  # for cards exported before they recorded theirs
+    for seed, card in cards.items():
+        monitor = card.get("monitor") or fallback
         score = card.get("best_val_score")
         if monitor is None or score is None:
             raise ValueError(
-                f"seed {seed}: its card {card_path} names no validation score its weights were "
-                "chosen by (a ModelCheckpoint with a monitor); --select-on test ranks the "
-                "seeds on the sweep's evaluation instead"
+                f"seed {seed}: its card names no validation score its weights were chosen by "
+                "(a ModelCheckpoint with a monitor); --select-on test ranks the seeds on the "
+                "sweep's evaluation instead"
             )
         scores[seed], monitors[seed] = float(score), (monitor["metric"], monitor["mode"])
     if len(set(monitors.values())) > 1:
@@ -286,16 +286,16 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
                          f"training chose its weights by, and {config} has no ModelCheckpoint "
                          "monitor; add one, or --select-on test")  # fmt: skip
     runs_dir = out / "runs"
-    per_seed = {}
+    per_seed, cards = {}, {}
     for seed in seeds:
         path = _fit(config, seed, runs_dir, list(extra))
-        card = json.loads(path.with_suffix(".json").read_text())
+        card = cards[seed] = json.loads(path.with_suffix(".json").read_text())
         per_seed[seed] = {"checkpoint": str(path), "train_time_s": card.get("train_time_s"),
                           **_evaluate(path, scenarios, runs, far, progress)}  # fmt: skip
     test_scores = _test_scores(per_seed, rank_by)
     by_test = _median(test_scores, rank_by not in _LOWER_IS_BETTER)
     if select_on == "validation":
-        scores, monitor = _validation_scores(per_seed, config)
+        scores, monitor = _validation_scores(cards, config)
         median = _median(scores, monitor["mode"] == "max")
     else:
         scores, monitor, median = test_scores, None, by_test
