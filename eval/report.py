@@ -29,6 +29,7 @@ from typing import Any
 from difffilter.models import estimators as registry
 
 from .acceptance import ANALYTIC, best_analytic, judge, roles, state_metric
+from .intervals import acceptance_intervals
 from .scoring import METRICS
 
 __all__ = [
@@ -229,6 +230,11 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
         **({"checkpoints": result.checkpoints} if result.checkpoints else {}),
         **family_numbers,
     })  # fmt: skip
+    if doc["far"] is not None and (intervals := acceptance_intervals(
+        result, doc["estimator_roles"], far=doc["far"]["target"],
+        state_metric=state_metric(doc["estimators"]),
+    )):  # fmt: skip
+        doc["acceptance_intervals"] = _clean(intervals)
     (out / "metrics.json").write_text(json.dumps(doc, indent=2) + "\n")
     figures = standard_figures(result)
     sections = [_summary_section(doc, sc), _table_section(doc)]
@@ -324,7 +330,41 @@ def _acceptance_section(doc: dict) -> Section | None:
     text = ("Each learned estimator at the calibrated rate against the best analytic one (per "
             f"metric the best of the estimators that are {ANALYTIC}; "
             "`difffilter.eval.acceptance`).\n\n")  # fmt: skip
-    return Section("Learned against the best analytic", text + markdown_table(header, rows) + "\n")
+    body = text + markdown_table(header, rows) + "\n"
+    if doc.get("acceptance_intervals"):
+        body += "\n" + _intervals_text(doc["acceptance_intervals"], [c.metric for c in checks])
+    return Section("Learned against the best analytic", body)
+
+
+#: How each check's resampled statistic reads in the intervals' table.
+_STATISTIC_TEXT = {"difference": "{m} − best", "ratio": "{m} / best", "value": "{m}"}
+
+
+def _intervals_text(intervals: dict, metrics: list[str]) -> str:
+    """The acceptance's intervals over the runs (:mod:`difffilter.eval.intervals`): per
+    learned estimator and check, the statistic, its interval and the share of resamples
+    in which the check holds."""
+    level, runs = intervals["level"], intervals["runs"]
+    rows, kinds = [], {}
+    for name, checks in intervals["estimators"].items():
+        cells = []
+        for metric in metrics:
+            c = checks.get(metric)
+            if c is None or c["low"] is None:
+                cells.append("—")
+                continue
+            kinds[metric] = c["statistic"]
+            cells.append(f"{format_number(c['estimate'], 4)} [{format_number(c['low'], 4)}, "
+                         f"{format_number(c['high'], 4)}], holds in {100 * c['holds_share']:.0f} %")  # fmt: skip
+        rows.append([f"`{name}`", *cells])
+    header = ["learned", *(_STATISTIC_TEXT[kinds.get(m, "value")].format(m=m) for m in metrics)]
+    return (
+        f"How sure each verdict is over these {runs} runs: the check's statistic, its "
+        f"{100 * level:g} % interval and the share of resamples in which the check holds "
+        f"(paired bootstrap over the runs, {intervals['resamples']:,} resamples, the best "
+        "analytic chosen again in each; the thresholds held fixed; "
+        "`difffilter.eval.intervals`).\n\n" + markdown_table(header, rows) + "\n"
+    )
 
 
 def _markdown(doc: dict, sc, sections: list[Section]) -> str:

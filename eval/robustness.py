@@ -32,6 +32,7 @@ from difffilter.threats import threat_from_dict
 
 from .acceptance import ANALYTIC, ROBUST_STATE_FACTOR, judge_robustness, roles
 from .calibration import calibrate
+from .intervals import LEVEL, RESAMPLES, robust_state_intervals
 from .report import _clean, format_number, markdown_table
 from .scoring import METRICS
 from .stealthy import StealthySpec, craft_threat, crafted_error, same_rate_bias
@@ -142,6 +143,8 @@ class RobustnessResult:
     cells: dict[str, dict[str, dict[str, Any]]] = field(default_factory=dict)
     worst_case: dict[str, dict[str, Any]] = field(default_factory=dict)
     stealthy: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: ``{threat: {learned: interval}}`` of the state ratio (:func:`robust_state_intervals`)
+    state_intervals: dict[str, dict[str, dict]] = field(default_factory=dict)
 
 
 def run_robustness(
@@ -179,6 +182,7 @@ def run_robustness(
         result.cells[name] = {
             est: _cell(m, free.metrics.get(est, {})) for est, m in suite.metrics.items()
         }
+        result.state_intervals[name] = robust_state_intervals(suite, roles(suite.metrics))
     result.worst_case = _worst_cases(result.cells)
     return result
 
@@ -243,7 +247,11 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
         "checkpoint": free.checkpoint,
         "estimator_roles": roles(free.metrics),
     })  # fmt: skip
-    doc["acceptance"] = _clean(judge_robustness(doc["cells"], doc["estimator_roles"]))
+    acceptance = judge_robustness(doc["cells"], doc["estimator_roles"])
+    for name, judged in acceptance.items():
+        for threat, check in judged["state"].items():
+            check["interval"] = result.state_intervals.get(threat, {}).get(name)
+    doc["acceptance"] = _clean(acceptance)
     (out / "robustness.json").write_text(json.dumps(doc, indent=2) + "\n")
     (out / "robustness.md").write_text(_markdown(doc, sc))
     _heatmap(out / "robustness.png", doc)
@@ -306,12 +314,25 @@ def _acceptance_section(name: str, a: dict) -> str:
             f"{'holds' if a['tpr_holds'] else '**does not hold**'}."
         )  # fmt: skip
     rows = [[t, format_number(c["value"], 4), f"{format_number(c['best'], 4)} (`{c['best_estimator']}`)",
-             format_number(c["ratio"], 3), "yes" if c["holds"] else "**no**"]
+             format_number(c["ratio"], 3), _interval_cell(c.get("interval")),
+             "yes" if c["holds"] else "**no**"]
             for t, c in a["state"].items()]  # fmt: skip
     lines.append(f"- State RMSE ≤ {ROBUST_STATE_FACTOR:g} × the best analytic's on every threat: "
-                 f"{'holds' if a['state_holds'] else '**does not hold**'}.\n")  # fmt: skip
-    lines.append(markdown_table(["threat", name, "best analytic", "ratio", "holds"], rows))
+                 f"{'holds' if a['state_holds'] else '**does not hold**'}. The interval: the ratio's "
+                 f"{100 * LEVEL:g} % interval over the runs and the share of resamples within "
+                 f"{ROBUST_STATE_FACTOR:g}× (paired bootstrap over the runs, {RESAMPLES:,} "
+                 "resamples, the best analytic chosen again in each; `difffilter.eval.intervals`).\n")  # fmt: skip
+    lines.append(
+        markdown_table(["threat", name, "best analytic", "ratio", "interval", "holds"], rows)
+    )
     return "\n".join(lines)
+
+
+def _interval_cell(interval: dict | None) -> str:
+    if not interval or interval.get("low") is None:
+        return "—"
+    return (f"[{format_number(interval['low'], 3)}, {format_number(interval['high'], 3)}], "
+            f"{100 * interval['holds_share']:.0f} %")  # fmt: skip
 
 
 def _stealthy_section(name: str, r: dict) -> str:

@@ -122,3 +122,16 @@ def test_a_calibrated_report_judges_its_learned_estimator_against_the_best_analy
     row = next(line for line in section.splitlines() if line.startswith("| `gaussian_nn_ekf`"))
     column = [c.strip() for c in header.split("|")].index("state_rmse ≤ 1.05 × best")
     assert [c.strip() for c in row.split("|")][column].endswith("✓" if holds else "✗")
+    # how sure: the same statistic under resampling of the runs (difffilter.eval.intervals)
+    import jsonschema
+
+    from difffilter.eval.report import metrics_schema
+
+    written = json.loads((tmp_path / "metrics.json").read_text())
+    jsonschema.validate(written, metrics_schema())
+    mine = written["acceptance_intervals"]["estimators"]["gaussian_nn_ekf"]
+    ratio = m["gaussian_nn_ekf"]["state_rmse"] / m[best]["state_rmse"]
+    assert mine["state_rmse"]["estimate"] == pytest.approx(ratio, rel=1e-9)
+    assert mine["state_rmse"]["low"] <= mine["state_rmse"]["high"]
+    assert mine["fpr_at_far"]["estimate"] == pytest.approx(m["gaussian_nn_ekf"]["fpr_at_far"])
+    assert "How sure each verdict is over these 3 runs" in section

@@ -89,6 +89,9 @@ def test_a_study_scores_every_estimator_against_every_threat_at_the_calibrated_r
         best = min(row[n]["state_rmse"] for n in analytic)
         assert mine["state"][threat]["best"] == pytest.approx(best)
         assert mine["state"][threat]["holds"] == (row["pf_nn_grad"]["state_rmse"] <= 1.1 * best)
+        interval = mine["state"][threat]["interval"]  # the ratio over resampled runs
+        assert interval["estimate"] == pytest.approx(mine["state"][threat]["ratio"], rel=1e-9)
+        assert interval["low"] <= interval["high"] and 0.0 <= interval["holds_share"] <= 1.0
     worst = {n: min(r[n]["tpr_at_far"] for r in result.cells.values()) for n in analytic}
     assert mine["best_analytic_worst_tpr"][0] == pytest.approx(max(worst.values()))
     assert mine["tpr_holds"] == (

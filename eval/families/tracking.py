@@ -23,6 +23,7 @@ from difffilter.models.estimators import SuiteContext, get
 from difffilter.models.tracking import communication_counts
 from difffilter.runtime import one_thread
 
+from ..intervals import register_stepwise
 from ..report import FamilyReport, Section, format_number, markdown_table, register_family
 from ..scoring import auc
 from ..suite import single_run_time_per_step
@@ -34,10 +35,20 @@ SWEEP = (0.0, 0.2, 0.4, 0.6)
 # ------------------------------------------------------------------------- family numbers
 
 
+def _position_velocity_sq(means, x) -> tuple[torch.Tensor, torch.Tensor]:
+    """Squared position and velocity error norms ``[B, T]`` each (state ``[px, vx, py, vy]``)."""
+    e = (means - x).square()
+    return e[..., 0] + e[..., 2], e[..., 1] + e[..., 3]
+
+
 def _rmse_pv(means, x) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-step RMSE over runs of the position and velocity error norms ``[T]`` each."""
-    e = (means - x).square()
-    return (e[..., 0] + e[..., 2]).mean(0).sqrt(), (e[..., 1] + e[..., 3]).mean(0).sqrt()
+    p, v = _position_velocity_sq(means, x)
+    return p.mean(0).sqrt(), v.mean(0).sqrt()
+
+
+# the acceptance's state metric (RMSE_p) resamples runs per step (difffilter.eval.intervals)
+register_stepwise("rmse_p", lambda means, x: _position_velocity_sq(means, x)[0])
 
 
 def _bounds(result) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:

@@ -1,0 +1,257 @@
+"""How sure the acceptance's verdicts are: paired bootstrap intervals over the runs.
+
+Every estimator of a study runs on the same ``B`` runs (the same noise, loads and attacks:
+named streams of one master seed; a closed-loop estimator on the same exogenous draws in
+its own loop), so two estimators compare run by run. Each acceptance metric is a ratio of
+sums over the runs of per-run totals,
+
+    state_rmse  = √(Σ_b SE_b / Σ_b n_b),     SE_b = Σ_{t,i} (x̂_{b,t,i} − x_{b,t,i})²,  n_b = T·dx
+    attack_rmse = √(Σ_b ASE_b / Σ_b m_b),    over run b's attacked steps (m_b entries)
+    tpr_at_far  = Σ_b hits_b / Σ_b attacked_b,   fpr_at_far = Σ_b false_b / Σ_b clear_b
+    rmse_p      = mean_t √(Σ_b E_{b,t} / B)  (a per-step metric, :func:`register_stepwise`:
+                  tracking's position error, E_{b,t} = (x̂ − x)²_px + (x̂ − x)²_py)
+
+so a resample of the runs (``B`` drawn with replacement) is a multiplicity vector
+``w ∈ ℕ^B`` and each metric is its totals summed with weights ``w``: ``R`` resamples are one
+``[R, B]`` matrix ``W``, every metric ``[R]`` one product ``W @ totals``. The check's own
+statistic is recomputed in every resample, the best analytic estimator chosen again in
+each (the best of the resampled analytic values, as :func:`~.acceptance.best_analytic`
+chooses on the study):
+
+    TPR      d = tpr_learned − max_analytic tpr          holds where d ≥ −0.01
+    state    r = state_learned / min_analytic state      holds where r ≤ 1.05  (1.1 on a threat)
+    attack   r = attack_learned / min_analytic attack    holds where r ≤ 1
+    FPR      fpr_learned                                 holds where α/2 ≤ fpr ≤ 2α
+
+Reported: the statistic on the study, the percentile interval at ``level`` (default 95 %)
+and the share of resamples in which the check holds. The thresholds are held fixed (they
+come from the calibration's own runs), and only the runs vary: a training seed's spread is
+the sweep's to report, not this. With few runs (the LFC studies' 20) the percentile
+interval is rough; it still says whether a check that holds or fails by a hair would go the
+other way on other runs.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from difffilter.models.streams import Streams
+
+from .acceptance import ROBUST_STATE_FACTOR, TOLERANCES
+from .calibration import alarms_at
+from .scoring import comparable_attack
+
+__all__ = [
+    "RESAMPLES", "LEVEL", "register_stepwise", "run_totals", "resample_weights",
+    "resampled_metric", "acceptance_intervals", "robust_state_intervals",
+]  # fmt: skip
+
+#: Resamples of the runs per study, and the interval's coverage.
+RESAMPLES = 2000
+LEVEL = 0.95
+#: The named stream the resamples are drawn from (of the study's master seed).
+STREAM = "acceptance/bootstrap"
+
+#: Per-step metrics: ``{metric: squared error [B, T] from (means [B, T, dx], x [B, T, dx])}``.
+_STEPWISE: dict[str, Callable[[Tensor, Tensor], Tensor]] = {}
+
+
+def register_stepwise(metric: str, squared_error: Callable[[Tensor, Tensor], Tensor]) -> None:
+    """Declare ``metric`` a per-step state metric ``mean_t √(mean_b E_{b,t})`` with
+    ``E = squared_error(means, x)`` ``[B, T]`` (the family that reports it registers it)."""
+    _STEPWISE[metric] = squared_error
+
+
+def run_totals(output, traj, threshold: float | None, *, state_metric: str = "state_rmse",
+               attacked_input: bool = True) -> dict[str, Tensor]:  # fmt: skip
+    """Per-run totals ``{name: [B] (or [B, T]) float64}`` of one estimator's ``output`` on the
+    trajectories ``traj`` it ran on, at its calibrated ``threshold`` (module docstring):
+    ``se``, ``n`` (or ``step_se [B, T]`` for a :func:`register_stepwise` metric); where the
+    estimate measures the attack, ``attack_se``, ``attack_n``; where it detects at a
+    threshold, ``hits``, ``attacked``, ``false``, ``clear`` (an estimator fed the clean
+    measurements has no attacked step)."""
+    if state_metric != "state_rmse" and state_metric not in _STEPWISE:
+        raise ValueError(f"state_metric must be 'state_rmse' or a registered per-step metric "
+                         f"({', '.join(sorted(_STEPWISE)) or 'none'}); got {state_metric!r}")  # fmt: skip
+    with torch.no_grad():
+        return _run_totals(output, traj, threshold, state_metric, attacked_input)
+
+
+def _run_totals(output, traj, threshold, state_metric, attacked_input) -> dict[str, Tensor]:
+    means, x = output.means.double(), traj.x.double()
+    if state_metric in _STEPWISE:
+        totals = {"step_se": _STEPWISE[state_metric](means, x)}
+    else:
+        se = (means - x).square().sum((1, 2))
+        totals = {"se": se, "n": torch.full_like(se, x.shape[1] * x.shape[2])}
+    flags = traj.flags
+    if comparable_attack(output, traj) and bool(flags.any()):
+        diff = torch.where(flags[..., None], output.attack.double() - traj.attack.double(), 0.0)
+        totals["attack_se"] = diff.square().sum((1, 2))
+        totals["attack_n"] = flags.sum(1).double() * diff.shape[-1]
+    det = output.detection
+    if threshold is not None and det is not None and det.scores is not None:
+        alarms = alarms_at(det.scores, threshold)
+        flags = flags if attacked_input else torch.zeros_like(flags)
+        totals.update(hits=(alarms & flags).sum(1).double(), attacked=flags.sum(1).double(),
+                      false=(alarms & ~flags).sum(1).double(), clear=(~flags).sum(1).double())  # fmt: skip
+    return totals
+
+
+def resample_weights(runs: int, resamples: int = RESAMPLES, seed: int = 0) -> Tensor:
+    """``W [resamples, runs]`` float64: row r counts how often each run was drawn in
+    resample r (``runs`` draws with replacement, uniformly; from the named stream
+    :data:`STREAM` of master seed ``seed``), so every row sums to ``runs``."""
+    if runs < 1 or resamples < 1:
+        raise ValueError(f"runs and resamples must be >= 1; got {runs}, {resamples}")
+    draws = torch.randint(runs, (resamples, runs), generator=Streams(seed)(STREAM))
+    weights = torch.zeros(resamples, runs, dtype=torch.float64)
+    return weights.scatter_add_(1, draws, torch.ones_like(draws, dtype=torch.float64))
+
+
+def resampled_metric(totals: dict[str, Tensor], metric: str, weights: Tensor) -> Tensor | None:
+    """``metric`` of every resample ``[R]`` from one estimator's ``totals`` and the resample
+    ``weights [R, B]`` (a row of ones: the study's own value); ``None`` where the totals do
+    not give it. A resample with a zero denominator gives NaN."""
+
+    def ratio(num, den):
+        if num not in totals:
+            return None
+        return (weights @ totals[num]) / (weights @ totals[den])
+
+    if metric == "tpr_at_far":
+        return ratio("hits", "attacked")
+    if metric == "fpr_at_far":
+        return ratio("false", "clear")
+    if metric == "attack_rmse":
+        value = ratio("attack_se", "attack_n")
+        return None if value is None else value.sqrt()
+    if "step_se" in totals:  # a per-step state metric (mean over steps of the per-step RMSE)
+        return ((weights @ totals["step_se"]) / weights.sum(1, keepdim=True)).sqrt().mean(1)
+    value = ratio("se", "n")
+    return None if value is None else value.sqrt()
+
+
+def _summary(estimate: float | None, samples: Tensor, holds: Tensor, level: float) -> dict:
+    """``{estimate, low, high, holds_share}``: the percentile interval of ``samples`` at
+    ``level`` (NaN resamples left out) and the share of resamples where ``holds``."""
+    ok = ~torch.isnan(samples)
+    if not bool(ok.any()):
+        return {"estimate": estimate, "low": None, "high": None, "holds_share": None}
+    tail = (1.0 - level) / 2.0
+    low, high = torch.quantile(samples[ok], torch.tensor([tail, 1.0 - tail], dtype=samples.dtype))
+    return {"estimate": estimate, "low": float(low), "high": float(high),
+            "holds_share": float(holds[ok].double().mean())}  # fmt: skip
+
+
+def _best(values: dict[str, Tensor], higher: bool) -> Tensor | None:
+    """Per resample the best of ``values`` ``{estimator: [R]}`` (NaN ignored), or ``None``."""
+    if not values:
+        return None
+    stacked = torch.stack(list(values.values()))
+    fill = -math.inf if higher else math.inf
+    stacked = torch.nan_to_num(stacked, nan=fill)
+    best = stacked.amax(0) if higher else stacked.amin(0)
+    return torch.where(torch.isinf(best), torch.nan, best)
+
+
+def _study_totals(result, names, state_metric: str) -> dict[str, dict[str, Tensor]]:
+    """:func:`run_totals` of ``names`` in ``result`` (a suite) at its calibrated thresholds."""
+    from difffilter.models import estimators as registry
+
+    thresholds = result.calibration.thresholds if result.calibration is not None else {}
+    return {name: run_totals(result.outputs[name], result.traj_of(name), thresholds.get(name),
+                             state_metric=state_metric,
+                             attacked_input=not registry.get(name).clean_input)
+            for name in names}  # fmt: skip
+
+
+def _roles(result, role_of):
+    names = [n for n in result.outputs if n in result.metrics]
+    analytic = [n for n in names if role_of.get(n) == "analytic"]
+    learned = [n for n in names if role_of.get(n) == "learned"]
+    return analytic, learned
+
+
+def acceptance_intervals(result, role_of: dict[str, str], *, far: float, state_metric: str,
+                         resamples: int = RESAMPLES, level: float = LEVEL) -> dict[str, Any] | None:  # fmt: skip
+    """The headline checks' intervals of every learned estimator of ``result`` (a calibrated
+    suite) against the analytic ones (module docstring): ``{"level", "resamples", "runs",
+    "seed_stream", "estimators": {learned: {metric: {"statistic", "estimate", "low", "high",
+    "holds_share"}}}}``, or ``None`` with nothing to judge (no calibration, no learned or
+    analytic estimator)."""
+    analytic, learned = _roles(result, role_of)
+    if result.calibration is None or not learned or not analytic:
+        return None
+    totals = _study_totals(result, analytic + learned, state_metric)
+    weights = resample_weights(result.runs, resamples, result.seed)
+    tol = TOLERANCES
+    lo, hi = (far * f for f in tol["fpr_band"])
+    checks = (  # metric, statistic, higher is better, does a resample's statistic hold
+        ("tpr_at_far", "difference", True, lambda d: d >= -tol["tpr_margin"]),
+        (state_metric, "ratio", False, lambda r: r <= tol["state_factor"]),
+        ("attack_rmse", "ratio", False, lambda r: r <= 1.0),
+    )  # fmt: skip
+    out = {}
+    for name in learned:
+        mine, rows = totals[name], {}
+        for metric, statistic, higher, holds in checks:
+            own = resampled_metric(mine, metric, weights)
+            rivals = {n: v for n in analytic
+                      if (v := resampled_metric(totals[n], metric, weights)) is not None}  # fmt: skip
+            best = _best(rivals, higher)
+            if own is None or best is None:
+                continue
+            value = own - best if statistic == "difference" else own / best
+            estimate = _study_value(mine, metric, statistic, totals, analytic, higher)
+            rows[metric] = {
+                "statistic": statistic,
+                **_summary(estimate, value, holds(value), level),
+            }
+        fpr = resampled_metric(mine, "fpr_at_far", weights)
+        if fpr is not None:
+            estimate = float(resampled_metric(mine, "fpr_at_far", _ones(result.runs)))
+            rows["fpr_at_far"] = {"statistic": "value",
+                                  **_summary(estimate, fpr, (fpr >= lo) & (fpr <= hi), level)}  # fmt: skip
+        out[name] = rows
+    return {"level": level, "resamples": resamples, "runs": result.runs,
+            "seed_stream": STREAM, "estimators": out}  # fmt: skip
+
+
+def _ones(runs: int) -> Tensor:
+    return torch.ones(1, runs, dtype=torch.float64)
+
+
+def _study_value(mine, metric, statistic, totals, analytic, higher) -> float | None:
+    """The check's statistic on the study itself (every run once)."""
+    ones = _ones(next(iter(mine.values())).shape[0])
+    own = resampled_metric(mine, metric, ones)
+    best = _best({n: v for n in analytic
+                  if (v := resampled_metric(totals[n], metric, ones)) is not None}, higher)  # fmt: skip
+    value = own - best if statistic == "difference" else own / best
+    return None if bool(torch.isnan(value).any()) else float(value)
+
+
+def robust_state_intervals(result, role_of: dict[str, str], *, resamples: int = RESAMPLES,
+                           level: float = LEVEL) -> dict[str, dict]:  # fmt: skip
+    """On one threat's suite ``result``: ``{learned: {"estimate", "low", "high",
+    "holds_share"}}`` of its state RMSE over the best analytic's, against the robustness
+    acceptance's factor (:data:`~.acceptance.ROBUST_STATE_FACTOR`); ``{}`` with nothing to
+    compare."""
+    analytic, learned = _roles(result, role_of)
+    if not learned or not analytic:
+        return {}
+    totals = _study_totals(result, analytic + learned, "state_rmse")
+    weights = resample_weights(result.runs, resamples, result.seed)
+    best = _best({n: resampled_metric(totals[n], "state_rmse", weights) for n in analytic}, False)
+    out = {}
+    for name in learned:
+        ratio = resampled_metric(totals[name], "state_rmse", weights) / best
+        estimate = _study_value(totals[name], "state_rmse", "ratio", totals, analytic, False)
+        out[name] = _summary(estimate, ratio, ratio <= ROBUST_STATE_FACTOR, level)
+    return out
