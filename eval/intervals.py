@@ -48,7 +48,7 @@ from .scoring import comparable_attack
 
 __all__ = [
     "RESAMPLES", "LEVEL", "register_stepwise", "run_totals", "resample_weights",
-    "resampled_metric", "acceptance_intervals", "robust_state_intervals",
+    "resampled_metric", "acceptance_intervals", "threat_totals", "robustness_intervals",
 ]  # fmt: skip
 
 #: Resamples of the runs per study, and the interval's coverage.
@@ -137,16 +137,25 @@ def resampled_metric(totals: dict[str, Tensor], metric: str, weights: Tensor) ->
     return None if value is None else value.sqrt()
 
 
-def _summary(estimate: float | None, samples: Tensor, holds: Tensor, level: float) -> dict:
-    """``{estimate, low, high, holds_share}``: the percentile interval of ``samples`` at
-    ``level`` (NaN resamples left out) and the share of resamples where ``holds``."""
+def _summary(values: Tensor, holds: Callable[[Tensor], Tensor], level: float) -> dict:
+    """``{estimate, low, high, holds_share}`` from a statistic's ``values [1 + R]`` (row 0 the
+    study itself, then the resamples: :func:`_study_and_resamples`): the percentile interval
+    of the resamples at ``level`` (NaN resamples left out) and the share where ``holds``."""
+    estimate, samples = values[0], values[1:]
     ok = ~torch.isnan(samples)
+    study = None if bool(torch.isnan(estimate)) else float(estimate)
     if not bool(ok.any()):
-        return {"estimate": estimate, "low": None, "high": None, "holds_share": None}
+        return {"estimate": study, "low": None, "high": None, "holds_share": None}
     tail = (1.0 - level) / 2.0
     low, high = torch.quantile(samples[ok], torch.tensor([tail, 1.0 - tail], dtype=samples.dtype))
-    return {"estimate": estimate, "low": float(low), "high": float(high),
-            "holds_share": float(holds[ok].double().mean())}  # fmt: skip
+    return {"estimate": study, "low": float(low), "high": float(high),
+            "holds_share": float(holds(samples[ok]).double().mean())}  # fmt: skip
+
+
+def _study_and_resamples(runs: int, resamples: int, seed: int) -> Tensor:
+    """``[1 + R, B]``: a row of ones (the study, every run once), then :func:`resample_weights`."""
+    ones = torch.ones(1, runs, dtype=torch.float64)
+    return torch.cat([ones, resample_weights(runs, resamples, seed)])
 
 
 def _best(values: dict[str, Tensor], higher: bool) -> Tensor | None:
@@ -178,6 +187,19 @@ def _roles(result, role_of):
     return analytic, learned
 
 
+def _paired(totals: dict, name: str, analytic: list[str], metric: str, statistic: str,
+            higher: bool, weights: Tensor) -> Tensor | None:  # fmt: skip
+    """``[1 + R]``: ``name``'s ``metric`` against the best analytic's, chosen again in every
+    row of ``weights`` (``statistic``: ``"difference"`` or ``"ratio"``), or ``None`` where
+    either side lacks the metric."""
+    own = resampled_metric(totals[name], metric, weights)
+    best = _best({n: v for n in analytic
+                  if (v := resampled_metric(totals[n], metric, weights)) is not None}, higher)  # fmt: skip
+    if own is None or best is None:
+        return None
+    return own - best if statistic == "difference" else own / best
+
+
 def acceptance_intervals(result, role_of: dict[str, str], *, far: float, state_metric: str,
                          resamples: int = RESAMPLES, level: float = LEVEL) -> dict[str, Any] | None:  # fmt: skip
     """The headline checks' intervals of every learned estimator of ``result`` (a calibrated
@@ -189,69 +211,73 @@ def acceptance_intervals(result, role_of: dict[str, str], *, far: float, state_m
     if result.calibration is None or not learned or not analytic:
         return None
     totals = _study_totals(result, analytic + learned, state_metric)
-    weights = resample_weights(result.runs, resamples, result.seed)
+    weights = _study_and_resamples(result.runs, resamples, result.seed)
     tol = TOLERANCES
     lo, hi = (far * f for f in tol["fpr_band"])
-    checks = (  # metric, statistic, higher is better, does a resample's statistic hold
+    checks = (  # metric, statistic, higher is better, where a resample's statistic holds
         ("tpr_at_far", "difference", True, lambda d: d >= -tol["tpr_margin"]),
         (state_metric, "ratio", False, lambda r: r <= tol["state_factor"]),
         ("attack_rmse", "ratio", False, lambda r: r <= 1.0),
     )  # fmt: skip
     out = {}
     for name in learned:
-        mine, rows = totals[name], {}
+        rows = {}
         for metric, statistic, higher, holds in checks:
-            own = resampled_metric(mine, metric, weights)
-            rivals = {n: v for n in analytic
-                      if (v := resampled_metric(totals[n], metric, weights)) is not None}  # fmt: skip
-            best = _best(rivals, higher)
-            if own is None or best is None:
-                continue
-            value = own - best if statistic == "difference" else own / best
-            estimate = _study_value(mine, metric, statistic, totals, analytic, higher)
-            rows[metric] = {
-                "statistic": statistic,
-                **_summary(estimate, value, holds(value), level),
-            }
-        fpr = resampled_metric(mine, "fpr_at_far", weights)
+            values = _paired(totals, name, analytic, metric, statistic, higher, weights)
+            if values is not None:
+                rows[metric] = {"statistic": statistic, **_summary(values, holds, level)}
+        fpr = resampled_metric(totals[name], "fpr_at_far", weights)
         if fpr is not None:
-            estimate = float(resampled_metric(mine, "fpr_at_far", _ones(result.runs)))
-            rows["fpr_at_far"] = {"statistic": "value",
-                                  **_summary(estimate, fpr, (fpr >= lo) & (fpr <= hi), level)}  # fmt: skip
+            in_band = lambda v: (v >= lo) & (v <= hi)  # noqa: E731
+            rows["fpr_at_far"] = {"statistic": "value", **_summary(fpr, in_band, level)}
         out[name] = rows
     return {"level": level, "resamples": resamples, "runs": result.runs,
             "seed_stream": STREAM, "estimators": out}  # fmt: skip
 
 
-def _ones(runs: int) -> Tensor:
-    return torch.ones(1, runs, dtype=torch.float64)
-
-
-def _study_value(mine, metric, statistic, totals, analytic, higher) -> float | None:
-    """The check's statistic on the study itself (every run once)."""
-    ones = _ones(next(iter(mine.values())).shape[0])
-    own = resampled_metric(mine, metric, ones)
-    best = _best({n: v for n in analytic
-                  if (v := resampled_metric(totals[n], metric, ones)) is not None}, higher)  # fmt: skip
-    value = own - best if statistic == "difference" else own / best
-    return None if bool(torch.isnan(value).any()) else float(value)
-
-
-def robust_state_intervals(result, role_of: dict[str, str], *, resamples: int = RESAMPLES,
-                           level: float = LEVEL) -> dict[str, dict]:  # fmt: skip
-    """On one threat's suite ``result``: ``{learned: {"estimate", "low", "high",
-    "holds_share"}}`` of its state RMSE over the best analytic's, against the robustness
-    acceptance's factor (:data:`~.acceptance.ROBUST_STATE_FACTOR`); ``{}`` with nothing to
-    compare."""
+def threat_totals(result, role_of: dict[str, str]) -> dict[str, dict[str, Tensor]]:
+    """:func:`run_totals` (``state_rmse``) of the analytic and learned estimators of one
+    threat's suite ``result``, for :func:`robustness_intervals`."""
     analytic, learned = _roles(result, role_of)
-    if not learned or not analytic:
-        return {}
-    totals = _study_totals(result, analytic + learned, "state_rmse")
-    weights = resample_weights(result.runs, resamples, result.seed)
-    best = _best({n: resampled_metric(totals[n], "state_rmse", weights) for n in analytic}, False)
+    return _study_totals(result, analytic + learned, "state_rmse")
+
+
+def robustness_intervals(totals: dict[str, dict[str, dict[str, Tensor]]], role_of: dict[str, str],
+                         *, runs: int, seed: int, resamples: int = RESAMPLES,
+                         level: float = LEVEL) -> dict[str, dict]:  # fmt: skip
+    """The robustness checks' intervals (:func:`~.acceptance.judge_robustness`) from each
+    threat's :func:`threat_totals` ``{threat: {estimator: totals}}``: ``{learned: {"state":
+    {threat: interval}, "worst_tpr": interval}}``, each ``{"estimate", "low", "high",
+    "holds_share"}``. The state check is the ratio to the best analytic on that threat
+    (holds within :data:`~.acceptance.ROBUST_STATE_FACTOR`); the worst-case check is the
+    difference between the learned estimator's lowest TPR over the threats and the best of
+    the analytic estimators' lowest, every minimum and maximum taken again in each resample
+    (holds where ≥ 0). The threats' studies share their seed, so their runs are the same
+    runs (the same noise and initial draws) and resample together."""
+    names = {n for per in totals.values() for n in per}
+    analytic = sorted(n for n in names if role_of.get(n) == "analytic")
+    learned = sorted(n for n in names if role_of.get(n) == "learned")
+    weights = _study_and_resamples(runs, resamples, seed)
+    within = lambda r: r <= ROBUST_STATE_FACTOR  # noqa: E731
+
+    def worst_tpr(name):  # [1 + R]: the lowest TPR over the threats where it detects
+        rates = [v for per in totals.values() if name in per
+                 if (v := resampled_metric(per[name], "tpr_at_far", weights)) is not None]  # fmt: skip
+        return _best(dict(enumerate(rates)), higher=False)
+
+    rivals = {n: w for n in analytic if (w := worst_tpr(n)) is not None}
+    best_worst = _best(rivals, higher=True)
     out = {}
     for name in learned:
-        ratio = resampled_metric(totals[name], "state_rmse", weights) / best
-        estimate = _study_value(totals[name], "state_rmse", "ratio", totals, analytic, False)
-        out[name] = _summary(estimate, ratio, ratio <= ROBUST_STATE_FACTOR, level)
+        state = {}
+        for threat, per in totals.items():
+            present = [n for n in analytic if n in per]
+            if name in per and present:
+                ratio = _paired(per, name, present, "state_rmse", "ratio", False, weights)
+                if ratio is not None:
+                    state[threat] = _summary(ratio, within, level)
+        mine = worst_tpr(name)
+        gap = None if mine is None or best_worst is None else mine - best_worst
+        out[name] = {"state": state,
+                     "worst_tpr": None if gap is None else _summary(gap, lambda d: d >= 0, level)}  # fmt: skip
     return out

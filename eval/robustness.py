@@ -32,7 +32,7 @@ from difffilter.threats import threat_from_dict
 
 from .acceptance import ANALYTIC, ROBUST_STATE_FACTOR, judge_robustness, roles
 from .calibration import calibrate
-from .intervals import LEVEL, RESAMPLES, robust_state_intervals
+from .intervals import LEVEL, RESAMPLES, robustness_intervals, threat_totals
 from .report import _clean, format_number, markdown_table
 from .scoring import METRICS
 from .stealthy import StealthySpec, craft_threat, crafted_error, same_rate_bias
@@ -143,8 +143,8 @@ class RobustnessResult:
     cells: dict[str, dict[str, dict[str, Any]]] = field(default_factory=dict)
     worst_case: dict[str, dict[str, Any]] = field(default_factory=dict)
     stealthy: dict[str, dict[str, Any]] = field(default_factory=dict)
-    #: ``{threat: {learned: interval}}`` of the state ratio (:func:`robust_state_intervals`)
-    state_intervals: dict[str, dict[str, dict]] = field(default_factory=dict)
+    #: ``{threat: {estimator: per-run totals}}`` (:func:`~.intervals.threat_totals`)
+    run_totals: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
 def run_robustness(
@@ -182,7 +182,7 @@ def run_robustness(
         result.cells[name] = {
             est: _cell(m, free.metrics.get(est, {})) for est, m in suite.metrics.items()
         }
-        result.state_intervals[name] = robust_state_intervals(suite, roles(suite.metrics))
+        result.run_totals[name] = threat_totals(suite, roles(suite.metrics))
     result.worst_case = _worst_cases(result.cells)
     return result
 
@@ -248,9 +248,13 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
         "estimator_roles": roles(free.metrics),
     })  # fmt: skip
     acceptance = judge_robustness(doc["cells"], doc["estimator_roles"])
+    intervals = robustness_intervals(result.run_totals, doc["estimator_roles"],
+                                     runs=result.runs, seed=result.seed)  # fmt: skip
     for name, judged in acceptance.items():
+        mine = intervals.get(name, {})
+        judged["worst_tpr_interval"] = mine.get("worst_tpr")
         for threat, check in judged["state"].items():
-            check["interval"] = result.state_intervals.get(threat, {}).get(name)
+            check["interval"] = mine.get("state", {}).get(threat)
     doc["acceptance"] = _clean(acceptance)
     (out / "robustness.json").write_text(json.dumps(doc, indent=2) + "\n")
     (out / "robustness.md").write_text(_markdown(doc, sc))
@@ -311,7 +315,8 @@ def _acceptance_section(name: str, a: dict) -> str:
             f"- Worst TPR over the threats: {format_number(mine[0] if mine else None, 4)}"
             f"{f' ({mine[1]})' if mine else ''}, against the best analytic worst case "
             f"{format_number(best[0], 4)} (`{best[1]}`, {best[2]}): "
-            f"{'holds' if a['tpr_holds'] else '**does not hold**'}."
+            f"{'holds' if a['tpr_holds'] else '**does not hold**'}"
+            + _gap_text(a.get("worst_tpr_interval")) + "."
         )  # fmt: skip
     rows = [[t, format_number(c["value"], 4), f"{format_number(c['best'], 4)} (`{c['best_estimator']}`)",
              format_number(c["ratio"], 3), _interval_cell(c.get("interval")),
@@ -326,6 +331,15 @@ def _acceptance_section(name: str, a: dict) -> str:
         markdown_table(["threat", name, "best analytic", "ratio", "interval", "holds"], rows)
     )
     return "\n".join(lines)
+
+
+def _gap_text(interval: dict | None) -> str:
+    if not interval or interval.get("low") is None:
+        return ""
+    return (f" (the difference {format_number(interval['estimate'], 3)}, "
+            f"{100 * LEVEL:g} % interval [{format_number(interval['low'], 3)}, "
+            f"{format_number(interval['high'], 3)}] over the runs; it holds in "
+            f"{100 * interval['holds_share']:.0f} % of the resamples)")  # fmt: skip
 
 
 def _interval_cell(interval: dict | None) -> str:

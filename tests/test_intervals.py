@@ -151,3 +151,37 @@ def test_the_best_analytic_is_chosen_again_in_every_resample():
     # nothing to judge without a calibration or a learned estimator
     assert iv.acceptance_intervals(study, {**role, NET: "oracle"}, far=0.01,
                                    state_metric="state_rmse") is None  # fmt: skip
+
+
+def test_the_worst_case_over_threats_is_taken_again_in_every_resample():
+    gen = torch.Generator().manual_seed(6)
+    totals = {}
+    for threat in ("bias", "ramp", "replay"):
+        traj = _traj(gen)
+        per = {n: _output(traj, gen, e) for n, e in ((NET, 0.5), (A, 0.5), (C, 0.6))}
+        totals[threat] = {n: iv.run_totals(o, traj, 1.0 + 0.2 * torch.rand(1, generator=gen).item())
+                          for n, o in per.items()}  # fmt: skip
+    role = {A: "analytic", C: "analytic", NET: "learned"}
+    got = iv.robustness_intervals(totals, role, runs=B, seed=0)[NET]
+    w = torch.cat(
+        [torch.ones(1, B, dtype=torch.float64), iv.resample_weights(B, iv.RESAMPLES, seed=0)]
+    )
+
+    def rates(name):
+        return torch.stack([iv.resampled_metric(t[name], "tpr_at_far", w) for t in totals.values()])
+
+    gap = rates(NET).amin(0) - torch.maximum(rates(A).amin(0), rates(C).amin(0))
+    assert got["worst_tpr"]["estimate"] == pytest.approx(float(gap[0]), abs=1e-15)
+    assert got["worst_tpr"]["holds_share"] == pytest.approx(float((gap[1:] >= 0).double().mean()))
+    low, high = torch.quantile(gap[1:], torch.tensor([0.025, 0.975], dtype=torch.float64))
+    assert (got["worst_tpr"]["low"], got["worst_tpr"]["high"]) == pytest.approx(
+        (float(low), float(high))
+    )
+    for threat, t in totals.items():
+        ratio = iv.resampled_metric(t[NET], "state_rmse", w) / torch.minimum(
+            iv.resampled_metric(t[A], "state_rmse", w), iv.resampled_metric(t[C], "state_rmse", w)
+        )
+        assert got["state"][threat]["estimate"] == pytest.approx(float(ratio[0]), rel=1e-12)
+        assert got["state"][threat]["holds_share"] == pytest.approx(
+            float((ratio[1:] <= 1.1).double().mean())
+        )

@@ -94,6 +94,9 @@ def test_a_study_scores_every_estimator_against_every_threat_at_the_calibrated_r
         assert interval["low"] <= interval["high"] and 0.0 <= interval["holds_share"] <= 1.0
     worst = {n: min(r[n]["tpr_at_far"] for r in result.cells.values()) for n in analytic}
     assert mine["best_analytic_worst_tpr"][0] == pytest.approx(max(worst.values()))
+    gap = mine["worst_tpr_interval"]  # the worst cases again in every resample of the runs
+    assert gap["estimate"] == pytest.approx(mine["worst_tpr"][0] - max(worst.values()), abs=1e-12)
+    assert gap["low"] <= gap["high"] and "it holds in" in text
     assert mine["tpr_holds"] == (
         result.worst_case["pf_nn_grad"]["tpr_at_far"] >= max(worst.values())
     )
