@@ -48,7 +48,7 @@ from .scoring import comparable_attack
 
 __all__ = [
     "RESAMPLES", "LEVEL", "register_stepwise", "run_totals", "resample_weights",
-    "resampled_metric", "acceptance_intervals", "threat_totals", "robustness_intervals",
+    "resampled_metric", "acceptance_intervals", "checks_intervals", "study_totals", "threat_totals", "robustness_intervals",
 ]  # fmt: skip
 
 #: Resamples of the runs per study, and the interval's coverage.
@@ -169,7 +169,7 @@ def _best(values: dict[str, Tensor], higher: bool) -> Tensor | None:
     return torch.where(torch.isinf(best), torch.nan, best)
 
 
-def _study_totals(result, names, state_metric: str) -> dict[str, dict[str, Tensor]]:
+def study_totals(result, names, state_metric: str) -> dict[str, dict[str, Tensor]]:
     """:func:`run_totals` of ``names`` in ``result`` (a suite) at its calibrated thresholds."""
     from difffilter.models import estimators as registry
 
@@ -203,15 +203,27 @@ def _paired(totals: dict, name: str, analytic: list[str], metric: str, statistic
 def acceptance_intervals(result, role_of: dict[str, str], *, far: float, state_metric: str,
                          resamples: int = RESAMPLES, level: float = LEVEL) -> dict[str, Any] | None:  # fmt: skip
     """The headline checks' intervals of every learned estimator of ``result`` (a calibrated
-    suite) against the analytic ones (module docstring): ``{"level", "resamples", "runs",
-    "seed_stream", "estimators": {learned: {metric: {"statistic", "estimate", "low", "high",
-    "holds_share"}}}}``, or ``None`` with nothing to judge (no calibration, no learned or
-    analytic estimator)."""
+    suite) against its analytic ones: :func:`checks_intervals` of their :func:`run_totals`,
+    or ``None`` with nothing to judge (no calibration, no learned or analytic estimator)."""
     analytic, learned = _roles(result, role_of)
     if result.calibration is None or not learned or not analytic:
         return None
-    totals = _study_totals(result, analytic + learned, state_metric)
-    weights = _study_and_resamples(result.runs, resamples, result.seed)
+    totals = study_totals(result, analytic + learned, state_metric)
+    return checks_intervals(totals, role_of, runs=result.runs, seed=result.seed, far=far,
+                            state_metric=state_metric, resamples=resamples, level=level)  # fmt: skip
+
+
+def checks_intervals(totals: dict[str, dict[str, Tensor]], role_of: dict[str, str], *,
+                     runs: int, seed: int, far: float, state_metric: str,
+                     resamples: int = RESAMPLES, level: float = LEVEL) -> dict[str, Any]:  # fmt: skip
+    """The headline checks' intervals (module docstring) of every learned estimator of
+    ``totals`` (``{estimator: run_totals(...)}`` on the same ``runs`` of master seed
+    ``seed``) against the analytic ones, at the calibrated rate ``far``: ``{"level",
+    "resamples", "runs", "seed_stream", "estimators": {learned: {metric: {"statistic",
+    "estimate", "low", "high", "holds_share"}}}}``."""
+    analytic = [n for n in totals if role_of.get(n) == "analytic"]
+    learned = [n for n in totals if role_of.get(n) == "learned"]
+    weights = _study_and_resamples(runs, resamples, seed)
     tol = TOLERANCES
     lo, hi = (far * f for f in tol["fpr_band"])
     checks = (  # metric, statistic, higher is better, where a resample's statistic holds
@@ -231,7 +243,7 @@ def acceptance_intervals(result, role_of: dict[str, str], *, far: float, state_m
             in_band = lambda v: (v >= lo) & (v <= hi)  # noqa: E731
             rows["fpr_at_far"] = {"statistic": "value", **_summary(fpr, in_band, level)}
         out[name] = rows
-    return {"level": level, "resamples": resamples, "runs": result.runs,
+    return {"level": level, "resamples": resamples, "runs": runs,
             "seed_stream": STREAM, "estimators": out}  # fmt: skip
 
 
@@ -239,7 +251,7 @@ def threat_totals(result, role_of: dict[str, str]) -> dict[str, dict[str, Tensor
     """:func:`run_totals` (``state_rmse``) of the analytic and learned estimators of one
     threat's suite ``result``, for :func:`robustness_intervals`."""
     analytic, learned = _roles(result, role_of)
-    return _study_totals(result, analytic + learned, "state_rmse")
+    return study_totals(result, analytic + learned, "state_rmse")
 
 
 def robustness_intervals(totals: dict[str, dict[str, dict[str, Tensor]]], role_of: dict[str, str],

@@ -79,17 +79,25 @@ def test_a_sweep_reports_every_seed_the_spread_and_the_median_seed(tmp_path, mon
     assert checks["state_rmse"] == (mine["state_rmse"] <= 1.05 * best["state_rmse"]["value"])
     assert checks["fpr_at_far"] == (0.005 <= mine["fpr_at_far"] <= 0.02)
     assert accept["holds"]["3"] == all(checks.values())
+    # how sure: the same checks over resamples of the runs, the seed paired with the baselines
+    sure = accept["intervals"]["3"]
+    ratio = mine["state_rmse"] / best["state_rmse"]["value"]
+    assert sure["state_rmse"]["estimate"] == pytest.approx(ratio, rel=1e-9)
+    assert sure["fpr_at_far"]["estimate"] == pytest.approx(mine["fpr_at_far"])
+    assert all(0.0 <= c["holds_share"] <= 1.0 for c in sure.values() if c["low"] is not None)
     assert "## Against the best analytic estimator" in (tmp_path / "sw" / "sweep.md").read_text()
     # a second call trains nothing again
     stamps = {s: Path(v["checkpoint"]).stat().st_mtime_ns for s, v in seeds.items()}
     baseline = tmp_path / "sw" / "baselines" / "four_tank_bias.json"
     stamps["baseline"] = baseline.stat().st_mtime_ns
+    stamps["totals"] = baseline.with_suffix(".totals.pt").stat().st_mtime_ns
     assert main([*args[: args.index("--")], "--select-on", "test", *args[args.index("--") :]]) == 0
     again = json.loads((tmp_path / "sw" / "sweep.json").read_text())
     assert again["select_on"] == "test" and again["selection"]["monitor"] is None
     assert values[str(again["median_seed"])] == sorted(values.values())[1]
     assert {s: Path(v["checkpoint"]).stat().st_mtime_ns for s, v in again["per_seed"].items()
-            } | {"baseline": baseline.stat().st_mtime_ns} == stamps  # fmt: skip
+            } | {"baseline": baseline.stat().st_mtime_ns,
+                 "totals": baseline.with_suffix(".totals.pt").stat().st_mtime_ns} == stamps  # fmt: skip
     assert again["acceptance"] == doc["acceptance"]
 
 

@@ -30,8 +30,11 @@ the sweep names that seed too, so a reader sees whether the two choices differ.
 The sweep also judges every seed as the headline acceptance does
 (:mod:`difffilter.eval.acceptance`): the scenario's analytic estimators run once on the
 same draws, calibrated the same way (kept in ``<out>/baselines/<scenario>.json`` for the
-next sweep with the same runs, rate and evaluation seed), and each seed's TPR, state
-error, attack error and measured false-alarm rate are held against the best of them::
+next sweep with the same runs, rate and evaluation seed, with their per-run totals in
+``<scenario>.totals.pt``), and each seed's TPR, state error, attack error and measured
+false-alarm rate are held against the best of them, with how sure each check is over the
+runs (:func:`difffilter.eval.intervals.checks_intervals`: the seeds' runs are the
+baselines' runs, so the comparison is paired)::
 
     difffilter-train sweep --config train/configs/four_tank.yaml --seeds 0 1 2 --out sweeps/four_tank
 """
@@ -116,71 +119,94 @@ def _scenarios_of(path: Path, scenarios) -> tuple[str, list[str]]:
 
 
 def _calibrated_metrics(scenario, names, runs, far: float, progress: bool,
-                        checkpoint=None) -> dict:  # fmt: skip
-    """``{estimator: {metric: value}}`` of ``names`` on ``scenario``'s draws (``--seed 0``),
-    their detectors calibrated at ``far`` as ``difffilter-eval`` calibrates them, with the
-    family's own numbers (:func:`_family_metrics`)."""
+                        checkpoint=None) -> tuple[dict, dict]:  # fmt: skip
+    """``({estimator: {metric: value}}, {estimator: per-run totals})`` of ``names`` on
+    ``scenario``'s draws (``--seed 0``), their detectors calibrated at ``far`` as
+    ``difffilter-eval`` calibrates them, with the family's own numbers
+    (:func:`_family_metrics`); the totals (:func:`difffilter.eval.intervals.run_totals`)
+    give the acceptance's intervals over the runs."""
+    from difffilter.eval.acceptance import state_metric
     from difffilter.eval.calibration import calibrate
+    from difffilter.eval.intervals import study_totals
     from difffilter.eval.suite import apply_calibration, detectors, run_suite
 
     kwargs = dict(runs=runs, checkpoint=checkpoint, progress=progress)
     result = run_suite(scenario, estimators=list(names), **kwargs)
     apply_calibration(result, calibrate(scenario, far=far, estimators=detectors(result), **kwargs))
-    return {name: {**{m: metrics.get(m) for m in METRICS}, **_family_metrics(result, name)}
-            for name, metrics in result.metrics.items()}  # fmt: skip
+    table = {name: {**{m: metrics.get(m) for m in METRICS}, **_family_metrics(result, name)}
+             for name, metrics in result.metrics.items()}  # fmt: skip
+    return table, study_totals(result, list(result.outputs), state_metric(table))
 
 
-def _evaluate(path: Path, scenarios, runs, far: float, progress: bool) -> dict:
-    """``{scenario: {metric: value}}`` of the estimator of ``path``, calibrated as
-    ``difffilter-eval`` calibrates (``--seed 0``)."""
+def _evaluate(path: Path, scenarios, runs, far: float, progress: bool) -> tuple[dict, dict]:
+    """``({"estimator": name, "scenarios": {scenario: {metric: value}}}, {scenario: per-run
+    totals})`` of the estimator of ``path``, calibrated as ``difffilter-eval`` calibrates
+    (``--seed 0``)."""
     from difffilter.models import registry
 
     name, scenarios = _scenarios_of(path, scenarios)
-    table = {
-        scenario_name: _calibrated_metrics(registry.get(scenario_name), [name], runs, far,
-                                           progress, checkpoint={name: str(path)})[name]
-        for scenario_name in scenarios
-    }  # fmt: skip
-    return {"estimator": name, "scenarios": table}
+    table, totals = {}, {}
+    for scenario_name in scenarios:
+        metrics, run_totals = _calibrated_metrics(registry.get(scenario_name), [name], runs, far,
+                                                  progress, checkpoint={name: str(path)})  # fmt: skip
+        table[scenario_name], totals[scenario_name] = metrics[name], run_totals[name]
+    return {"estimator": name, "scenarios": table}, totals
 
 
-def _baseline(scenario_name: str, runs, far: float, progress: bool, folder: Path) -> dict:
-    """``{estimator: {metric: value}}`` of the scenario's analytic estimators on the sweep's
-    draws, calibrated as the learned one is; read from ``folder`` if a sweep with the same
-    runs, rate and seed wrote it, else run and written there."""
+def _baseline(scenario_name: str, runs, far: float, progress: bool,
+              folder: Path) -> tuple[dict, dict]:  # fmt: skip
+    """``({estimator: {metric: value}}, {estimator: per-run totals})`` of the scenario's
+    analytic estimators on the sweep's draws, calibrated as the learned one is; read from
+    ``folder`` (``<scenario>.json`` and ``<scenario>.totals.pt``) if a sweep with the same
+    runs, rate and seed wrote them, else run and written there."""
+    import torch
+
     from difffilter.eval.acceptance import roles
     from difffilter.models import registry
     from difffilter.models.generic_estimators import DEFAULT_SUITE
 
     key = {"scenario": scenario_name, "runs": runs, "far": far, "eval_seed": 0}
-    file = folder / f"{scenario_name}.json"
-    if file.is_file() and (cached := json.loads(file.read_text())).get("key") == key:
-        return cached["estimators"]
+    file, totals_file = folder / f"{scenario_name}.json", folder / f"{scenario_name}.totals.pt"
+    if (file.is_file() and totals_file.is_file()
+            and (cached := json.loads(file.read_text())).get("key") == key):  # fmt: skip
+        return cached["estimators"], torch.load(totals_file, weights_only=True)
     scenario = registry.get(scenario_name)
     names = list(scenario.estimators or DEFAULT_SUITE)
     analytic = [n for n, role in roles(names).items() if role == "analytic"]
-    table = _calibrated_metrics(scenario, analytic, runs, far, progress)
+    table, totals = _calibrated_metrics(scenario, analytic, runs, far, progress)
     folder.mkdir(parents=True, exist_ok=True)
     file.write_text(json.dumps({"key": key, "estimators": table}, indent=2) + "\n")
-    return table
+    torch.save(totals, totals_file)
+    return table, totals
 
 
-def _acceptance(per_seed: dict, baselines: dict, far: float) -> dict:
-    """Per scenario, the best analytic numbers and every seed's checks against them."""
+def _acceptance(per_seed: dict, baselines: dict, far: float, seed_totals: dict) -> dict:
+    """Per scenario, the best analytic numbers, every seed's checks against them and how
+    sure each check is over the runs (:func:`difffilter.eval.intervals.checks_intervals`:
+    the seeds' and the baselines' runs are the same, ``--seed 0``)."""
     from difffilter.eval.acceptance import best_analytic, judge, state_metric
+    from difffilter.eval.intervals import checks_intervals
 
     out = {}
-    for scenario, table in baselines.items():
+    for scenario, (table, totals) in baselines.items():
         learned = {s: v["scenarios"][scenario] for s, v in per_seed.items()}
         metric = state_metric({**table, **{f"seed {s}": m for s, m in learned.items()}})
         best = best_analytic(table)  # the table holds the analytic estimators only
         checks = {str(s): [c.as_dict() for c in judge(m, best, far, metric)]
                   for s, m in learned.items()}  # fmt: skip
+        intervals = {}
+        for s in learned:
+            mine = seed_totals[s][scenario]
+            role = {**dict.fromkeys(totals, "analytic"), "learned": "learned"}
+            found = checks_intervals({**totals, "learned": mine}, role, far=far, seed=0,
+                                     runs=next(iter(mine.values())).shape[0], state_metric=metric)  # fmt: skip
+            intervals[str(s)] = found["estimators"]["learned"]
         out[scenario] = {
             "state_metric": metric,
             "best_analytic": {k: {"value": v, "estimator": n} for k, (v, n) in best.items()},
             "checks": checks,
             "holds": {s: all(c["holds"] for c in cs) for s, cs in checks.items()},
+            "intervals": intervals,
         }
     return out
 
@@ -286,12 +312,13 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
                          f"training chose its weights by, and {config} has no ModelCheckpoint "
                          "monitor; add one, or --select-on test")  # fmt: skip
     runs_dir = out / "runs"
-    per_seed, cards = {}, {}
+    per_seed, cards, seed_totals = {}, {}, {}
     for seed in seeds:
         path = _fit(config, seed, runs_dir, list(extra))
         card = cards[seed] = json.loads(path.with_suffix(".json").read_text())
+        evaluated, seed_totals[seed] = _evaluate(path, scenarios, runs, far, progress)
         per_seed[seed] = {"checkpoint": str(path), "train_time_s": card.get("train_time_s"),
-                          **_evaluate(path, scenarios, runs, far, progress)}  # fmt: skip
+                          **evaluated}  # fmt: skip
     test_scores = _test_scores(per_seed, rank_by)
     by_test = _median(test_scores, rank_by not in _LOWER_IS_BETTER)
     if select_on == "validation":
@@ -308,7 +335,7 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
         "selection": {"monitor": monitor, "scores": {str(s): v for s, v in scores.items()},
                       "median_seed_by_test": by_test},
         "per_seed": {str(s): v for s, v in per_seed.items()}, "summary": _summary(per_seed),
-        "acceptance": _acceptance(per_seed, baselines, far),
+        "acceptance": _acceptance(per_seed, baselines, far, seed_totals),
     }  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     (out / "sweep.json").write_text(json.dumps(doc, indent=2) + "\n")
@@ -376,7 +403,11 @@ def _acceptance_markdown(doc: dict) -> list[str]:
         f" A seed holds a row when its TPR ≥ the best − {TOLERANCES['tpr_margin']:g}, "
         f"its state error ≤ {TOLERANCES['state_factor']:g} × the best, its attack error ≤ the "
         "best (where an analytic estimator estimates the attack) and its measured false-alarm "
-        f"rate lies within [{TOLERANCES['fpr_band'][0]:g}α, {TOLERANCES['fpr_band'][1]:g}α].",
+        f"rate lies within [{TOLERANCES['fpr_band'][0]:g}α, {TOLERANCES['fpr_band'][1]:g}α]."
+        " In brackets, how sure each check is: the share of resamples of the runs in which it "
+        "holds (a paired bootstrap over the runs, the best analytic chosen again in each; "
+        "`sweep.json`'s `intervals` give each check's statistic and its 95 % interval; "
+        "`difffilter.eval.intervals`).",
         "",
         "| scenario | check | best analytic | " + " | ".join(f"seed {s}" for s in seeds) + " |",
         "|---|---|---|" + "---|" * len(seeds),
@@ -388,7 +419,10 @@ def _acceptance_markdown(doc: dict) -> list[str]:
             cells = []
             for s in seeds:
                 c = entry["checks"][s][i]
-                cells.append(f"{f(c['value'])} {'✓' if c['holds'] else '✗'}")
+                sure = (entry.get("intervals") or {}).get(s, {}).get(c["metric"]) or {}
+                share = sure.get("holds_share")
+                cells.append(f"{f(c['value'])} {'✓' if c['holds'] else '✗'}"
+                             + ("" if share is None else f" ({100 * share:.0f} %)"))  # fmt: skip
             lines.append(f"| {scenario} | {check['metric']} {check['bound']} | {best} | "
                          + " | ".join(cells) + " |")  # fmt: skip
         verdict = ["**holds**" if entry["holds"][s] else "fails" for s in seeds]
