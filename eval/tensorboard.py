@@ -39,8 +39,12 @@ def log_suite(logdir: Path, result, doc: dict, images) -> None:
         _write_curves(w, curves)
         for fname, png in images:
             _write_image(w, Path(fname).stem, png)
+        sure = (doc.get("acceptance_intervals") or {}).get("estimators", {})
         for name, entry in doc["estimators"].items():
             metrics = {f"hparam/{m}": entry[m] for m in HEADLINE if entry.get(m) is not None}
+            # how sure each acceptance check is (difffilter.eval.intervals), where judged
+            metrics.update({f"hparam/holds_share/{m}": c["holds_share"]
+                            for m, c in sure.get(name, {}).items() if c["holds_share"] is not None})  # fmt: skip
             hparams = {
                 "scenario": doc["scenario"],
                 "estimator": name,

@@ -135,3 +135,9 @@ def test_a_calibrated_report_judges_its_learned_estimator_against_the_best_analy
     assert mine["state_rmse"]["low"] <= mine["state_rmse"]["high"]
     assert mine["fpr_at_far"]["estimate"] == pytest.approx(m["gaussian_nn_ekf"]["fpr_at_far"])
     assert "How sure each verdict is over these 3 runs" in section
+    # and in TensorBoard's HPARAMS, to compare checkpoints by how sure their verdicts are
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(tmp_path / "tb" / "hparams" / "gaussian_nn_ekf")).Reload()
+    share = acc.Scalars("hparam/holds_share/state_rmse")[0].value
+    assert share == pytest.approx(mine["state_rmse"]["holds_share"])
