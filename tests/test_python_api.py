@@ -22,7 +22,7 @@ COMPARED = ("state_rmse", "attack_rmse", "auc", "tpr", "fpr", "tpr_at_1pct_fpr",
 def test_the_documented_snippet_gives_the_metrics_of_difffilter_eval(monkeypatch):
     monkeypatch.chdir(ROOT)  # the snippet's paths are the repository's
     blocks = re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)
-    assert len(blocks) == 1
+    assert len(blocks) == 2
     namespace: dict = {}
     exec(compile(blocks[0], str(DOC), "exec"), namespace)  # noqa: S102
     out, metrics = namespace["out"], namespace["metrics"]
@@ -66,3 +66,19 @@ def test_the_loader_names_what_it_needs():
         difffilter.load_estimator(tracking)
     with pytest.raises(FileNotFoundError):
         difffilter.load_estimator("no/such.ckpt")
+
+
+def test_the_documented_judgement_and_its_intervals(monkeypatch):
+    monkeypatch.chdir(ROOT)
+    block = re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)[1]
+    namespace: dict = {}
+    exec(compile(block, str(DOC), "exec"), namespace)  # noqa: S102
+    study, checks, sure = namespace["study"], namespace["checks"], namespace["sure"]
+    m = study.metrics
+    analytic = [n for n, r in namespace["role"].items() if r == "analytic"]
+    best = min(m[n]["state_rmse"] for n in analytic)
+    state = next(c for c in checks if c.metric == "state_rmse")
+    assert state.holds == (m["gaussian_nn_ekf"]["state_rmse"] <= 1.05 * best)
+    mine = sure["estimators"]["gaussian_nn_ekf"]["state_rmse"]
+    assert mine["estimate"] == pytest.approx(m["gaussian_nn_ekf"]["state_rmse"] / best, rel=1e-9)
+    assert mine["low"] <= mine["high"] and 0.0 <= mine["holds_share"] <= 1.0
