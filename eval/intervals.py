@@ -131,10 +131,15 @@ def resampled_metric(totals: dict[str, Tensor], metric: str, weights: Tensor) ->
     if metric == "attack_rmse":
         value = ratio("attack_se", "attack_n")
         return None if value is None else value.sqrt()
-    if "step_se" in totals:  # a per-step state metric (mean over steps of the per-step RMSE)
+    if metric in _STEPWISE:  # a per-step state metric (mean over steps of the per-step RMSE)
+        if "step_se" not in totals:
+            return None
         return ((weights @ totals["step_se"]) / weights.sum(1, keepdim=True)).sqrt().mean(1)
-    value = ratio("se", "n")
-    return None if value is None else value.sqrt()
+    if metric == "state_rmse":
+        value = ratio("se", "n")
+        return None if value is None else value.sqrt()
+    raise ValueError(f"no interval for metric {metric!r}: tpr_at_far, fpr_at_far, attack_rmse, "
+                     f"state_rmse or a registered per-step metric")  # fmt: skip
 
 
 def _summary(values: Tensor, holds: Callable[[Tensor], Tensor], level: float) -> dict:

@@ -78,6 +78,13 @@ def test_a_per_step_metric_resamples_runs_at_every_step():
     assert float(iv.resampled_metric(totals, "rmse_p", ones)) == pytest.approx(
         float(p.mean()), rel=1e-12
     )
+    with pytest.raises(ValueError, match="state_metric must be"):
+        iv.run_totals(out, traj, None, state_metric="rmse_q")
+    with pytest.raises(ValueError, match="no interval for metric 'auc'"):
+        iv.resampled_metric(totals, "auc", ones)
+    # totals of the pooled state error give no per-step metric (and the reverse)
+    assert iv.resampled_metric(iv.run_totals(out, traj, None), "rmse_p", ones) is None
+    assert iv.resampled_metric(totals, "state_rmse", ones) is None
 
 
 def test_resamples_draw_the_runs_with_replacement_from_their_own_stream():
