@@ -442,7 +442,43 @@ def write_robustness_summary(out: str | Path, docs: dict[str, dict]) -> Path:
         f"# Robustness\n\nEvery estimator's worst case over its scenario's threats, every "
         f"detector at {100 * far:g} % false alarms (thresholds from attack-free runs of "
         "their own seed); the threat that caused it in brackets. Details per scenario in "
-        "`<scenario>/robustness.md`.\n\n" + markdown_table(header, rows) + "\n"
+        "`<scenario>/robustness.md`.\n\n"
+        + markdown_table(header, rows)
+        + "\n"
+        + _acceptance_summary(docs)
     )
     write_leaderboard(out, docs)
     return path
+
+
+def _acceptance_summary(docs: dict[str, dict]) -> str:
+    """Each learned estimator's robustness acceptance per scenario, with how sure: the
+    worst-case TPR check's share of resamples, and the threats within the state factor
+    (those that hold in at least 95 % of the resamples, and those in at most 5 %)."""
+    rows = []
+    for scenario, doc in docs.items():
+        for name, a in (doc.get("acceptance") or {}).items():
+            gap = a.get("worst_tpr_interval") or {}
+            share = gap.get("holds_share")
+            tpr = ("holds" if a["tpr_holds"] else "**fails**") + (
+                "" if share is None else f" ({100 * share:.0f} %)"
+            )
+            checks = a["state"].values()
+            shares = [c["interval"]["holds_share"] for c in checks
+                      if c.get("interval") and c["interval"].get("holds_share") is not None]  # fmt: skip
+            rows.append([scenario, f"`{name}`", tpr,
+                         f"{sum(c['holds'] for c in checks)} of {len(checks)}",
+                         f"{sum(v >= 0.95 for v in shares)} / {sum(v <= 0.05 for v in shares)}",
+                         "holds" if a["holds"] else "**fails**"])  # fmt: skip
+    if not rows:
+        return ""
+    header = ["scenario", "learned", "worst TPR ≥ best analytic's worst (share of resamples)",
+              f"threats within {ROBUST_STATE_FACTOR:g}× the best analytic's state RMSE",
+              "sure within / sure beyond (holds in ≥ 95 % / ≤ 5 % of resamples)",
+              "every check"]  # fmt: skip
+    return (
+        "\n## Learned against the best analytic over the threats\n\nThe robustness "
+        "acceptance (`difffilter.eval.acceptance`) per scenario, with how sure each verdict is "
+        "over the runs (paired bootstrap, `difffilter.eval.intervals`; details in each "
+        "`<scenario>/robustness.md`).\n\n" + markdown_table(header, rows) + "\n"
+    )

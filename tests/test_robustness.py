@@ -114,7 +114,17 @@ def test_the_cli_runs_the_study_and_names_an_unknown_threat(tmp_path, capsys):
     assert list(doc["threats"]) == ["bias", "ramp"]
     board = (tmp_path / "leaderboard.md").read_text()
     assert "worst_tpr_at_far" in board and "worst_state_error_ratio" in board
-    assert "worst tpr_at_far" in (tmp_path / "robustness.md").read_text()
+    summary = (tmp_path / "robustness.md").read_text()
+    assert "worst tpr_at_far" in summary
+    # the learned estimator's robustness verdict, with how sure, across the scenarios
+    mine = doc["acceptance"]["pf_nn_grad"]
+    section = summary.split("## Learned against the best analytic over the threats")[1]
+    row = next(
+        line for line in section.splitlines() if line.startswith("| four_tank_bias | `pf_nn_grad`")
+    )
+    cells = [c.strip() for c in row.split("|")]
+    assert cells[4] == f"{sum(c['holds'] for c in mine['state'].values())} of 2"
+    assert cells[6] == ("holds" if mine["holds"] else "**fails**")
 
 
 def test_a_stealthy_threat_is_data_crafted_when_the_study_runs():
