@@ -47,8 +47,9 @@ from .calibration import alarms_at
 from .scoring import comparable_attack
 
 __all__ = [
-    "RESAMPLES", "LEVEL", "register_stepwise", "run_totals", "resample_weights",
-    "resampled_metric", "acceptance_intervals", "checks_intervals", "study_totals", "threat_totals", "robustness_intervals",
+    "RESAMPLES", "LEVEL", "STREAM", "register_stepwise", "run_totals", "study_totals",
+    "threat_totals", "resample_weights", "resampled_metric", "acceptance_intervals",
+    "checks_intervals", "robustness_intervals",
 ]  # fmt: skip
 
 #: Resamples of the runs per study, and the interval's coverage.
