@@ -198,7 +198,7 @@ def evaluate(
 
     from .calibration import calibrate
     from .leaderboard import write_leaderboard
-    from .report import family_report, report_writers
+    from .report import family_report, report_writers, write_acceptance_summary
     from .suite import apply_calibration, detectors, process_group, run_suite
 
     check_arguments(runs=runs, ckpt=ckpt, calibration_runs=calibration_runs)
@@ -249,6 +249,7 @@ def evaluate(
         docs = {name: merged[name] for names in families.values() for name in names}
     if rank == 0:
         write_leaderboard(out, docs)
+        write_acceptance_summary(out, docs)
     return docs if rank == 0 else {}
 
 
@@ -439,6 +440,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if process_group()[0] > 0:
         return 0
     print("\n" + (args.out / "leaderboard.md").read_text())
+    if (summary := args.out / "acceptance.md").is_file():
+        print(summary.read_text())
     unused = [n for n, doc in results.items() if not (doc.get("checkpoint") or {}).get("used_by")]
     given = args.ckpt.get("*") if isinstance(args.ckpt, dict) else args.ckpt
     if given is not None and unused:  # the checkpoint for every estimator, unused somewhere

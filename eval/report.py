@@ -40,6 +40,7 @@ __all__ = [
     "report_writers",
     "metrics_schema",
     "write_report",
+    "write_acceptance_summary",
     "markdown_table",
     "format_number",
 ]
@@ -306,10 +307,10 @@ def _table_section(doc: dict) -> Section:
     return Section("Estimators", f"{table}\n{desc}\n\nDefinitions:\n\n{defs}\n")
 
 
-def _acceptance_section(doc: dict) -> Section | None:
-    """Each learned estimator of a calibrated study against the best analytic one
-    (:mod:`difffilter.eval.acceptance`), one row per learned estimator, or ``None`` where
-    there is nothing to judge."""
+def _judged(doc: dict) -> dict[str, list] | None:
+    """``{learned: [Check]}``: each learned estimator of a calibrated study (a metrics.json
+    ``doc``) judged against the best analytic one (:mod:`difffilter.eval.acceptance`), or
+    ``None`` where there is nothing to judge."""
     est, role = doc["estimators"], doc.get("estimator_roles", {})
     learned = [n for n in est if role.get(n) == "learned" and est[n].get("tpr_at_far") is not None]
     if doc.get("far") is None or not learned:
@@ -318,8 +319,17 @@ def _acceptance_section(doc: dict) -> Section | None:
     best = best_analytic(est, role_of=role)
     if not best:
         return None
-    judged = {name: judge(est[name], best, far, metric) for name in learned}
-    checks = judged[learned[0]]
+    return {name: judge(est[name], best, far, metric) for name in learned}
+
+
+def _acceptance_section(doc: dict) -> Section | None:
+    """Each learned estimator of a calibrated study against the best analytic one
+    (:mod:`difffilter.eval.acceptance`), one row per learned estimator, or ``None`` where
+    there is nothing to judge."""
+    judged = _judged(doc)
+    if judged is None:
+        return None
+    checks = next(iter(judged.values()))
     header = ["learned", *(f"{c.metric} {c.bound}" for c in checks), "every check"]
     rows = [["best analytic",
              *(f"{format_number(c.best, 4)} (`{c.best_estimator}`)" if c.best_estimator else "—"
@@ -365,6 +375,47 @@ def _intervals_text(intervals: dict, metrics: list[str]) -> str:
         "analytic chosen again in each; the thresholds held fixed; "
         "`difffilter.eval.intervals`).\n\n" + markdown_table(header, rows) + "\n"
     )
+
+
+def write_acceptance_summary(out: str | Path, docs: dict[str, dict]) -> Path | None:
+    """``<out>/acceptance.md``: every calibrated scenario's learned estimators against the
+    best analytic one, one row each (the checks of each report's "Learned against the best
+    analytic", with the share of resamples in which each holds); ``None`` (no file) where
+    no study judges a learned estimator. ``docs``: ``{scenario: metrics.json content}``."""
+    columns = ("TPR", "state", "attack", "false alarms")
+    rows = []
+    for scenario, doc in docs.items():
+        judged = _judged(doc)
+        if judged is None:
+            continue
+        sure = (doc.get("acceptance_intervals") or {}).get("estimators", {})
+        for name, checks in judged.items():
+            cells = dict.fromkeys(columns, "—")
+            for c in checks:
+                share = (sure.get(name, {}).get(c.metric) or {}).get("holds_share")
+                cells[_COLUMN_OF.get(c.metric, "state")] = (
+                    f"{format_number(c.value, 4)} {'✓' if c.holds else '✗'}"
+                    + ("" if share is None else f" ({100 * share:.0f} %)")
+                )
+            every = "holds" if all(c.holds for c in checks) else "**fails**"
+            rows.append([scenario, f"`{name}`", *cells.values(), every])
+    if not rows:
+        return None
+    path = Path(out) / "acceptance.md"
+    path.write_text(
+        "# Learned against the best analytic\n\nEvery learned estimator at the calibrated "
+        "false-alarm rate against, per metric, the best analytic estimator of its study (TPR ≥ "
+        "the best − 0.01, state error ≤ 1.05 × the best, attack error ≤ the best, measured "
+        "false-alarm rate within [α/2, 2α]; `difffilter.eval.acceptance`). In brackets: the "
+        "share of resamples of the runs in which the check holds (`difffilter.eval.intervals`). "
+        "Each scenario's `report.md` has the bests and the intervals.\n\n"
+        + markdown_table(["scenario", "learned", *columns, "every check"], rows)
+    )
+    return path
+
+
+#: The summary's column of each check (the state metric's otherwise).
+_COLUMN_OF = {"tpr_at_far": "TPR", "attack_rmse": "attack", "fpr_at_far": "false alarms"}
 
 
 def _markdown(doc: dict, sc, sections: list[Section]) -> str:

@@ -141,3 +141,24 @@ def test_a_calibrated_report_judges_its_learned_estimator_against_the_best_analy
     acc = EventAccumulator(str(tmp_path / "tb" / "hparams" / "gaussian_nn_ekf")).Reload()
     share = acc.Scalars("hparam/holds_share/state_rmse")[0].value
     assert share == pytest.approx(mine["state_rmse"]["holds_share"])
+
+
+def test_the_evaluations_acceptance_summary_has_a_row_per_judged_learned_estimator(tmp_path):
+    from difffilter.eval.report import write_acceptance_summary
+
+    role = {n: "analytic" for n in STUDY if n not in ("pf_nn_grad", "modified_pf")}
+    role.update(pf_nn_grad="learned", modified_pf="oracle")
+    judged = {"estimators": {**STUDY, "pf_nn_grad": {**STUDY["pf_nn_grad"], "fpr_at_far": 0.03}},
+              "estimator_roles": role, "far": {"target": 0.01},
+              "acceptance_intervals": {"estimators": {"pf_nn_grad": {
+                  "tpr_at_far": {"holds_share": 0.53}, "fpr_at_far": {"holds_share": 0.0}}}}}  # fmt: skip
+    uncalibrated = {**judged, "far": None}
+    path = write_acceptance_summary(tmp_path, {"four_tank_bias": judged, "other": uncalibrated})
+    rows = [line for line in path.read_text().splitlines() if line.startswith("| four_tank")]
+    assert len(rows) == 1 and "| other |" not in path.read_text()
+    cells = [c.strip() for c in rows[0].split("|")][1:-1]
+    checks = {c.metric: c for c in judge(judged["estimators"]["pf_nn_grad"],
+                                         best_analytic(judged["estimators"], role), 0.01)}  # fmt: skip
+    assert cells[2].endswith("✓ (53 %)" if checks["tpr_at_far"].holds else "✗ (53 %)")
+    assert cells[5] == "0.03 ✗ (0 %)" and cells[6] == "**fails**"  # outside [0.5 %, 2 %]
+    assert write_acceptance_summary(tmp_path / "none", {"other": uncalibrated}) is None
