@@ -237,6 +237,7 @@ def checks_intervals(totals: dict[str, dict[str, Tensor]], role_of: dict[str, st
         (state_metric, "ratio", False, lambda r: r <= tol["state_factor"]),
         ("attack_rmse", "ratio", False, lambda r: r <= 1.0),
     )  # fmt: skip
+    in_band = lambda v: (v >= lo) & (v <= hi)  # noqa: E731
     out = {}
     for name in learned:
         rows = {}
@@ -246,7 +247,6 @@ def checks_intervals(totals: dict[str, dict[str, Tensor]], role_of: dict[str, st
                 rows[metric] = {"statistic": statistic, **_summary(values, holds, level)}
         fpr = resampled_metric(totals[name], "fpr_at_far", weights)
         if fpr is not None:
-            in_band = lambda v: (v >= lo) & (v <= hi)  # noqa: E731
             rows["fpr_at_far"] = {"statistic": "value", **_summary(fpr, in_band, level)}
         out[name] = rows
     return {"level": level, "resamples": resamples, "runs": runs,

@@ -43,6 +43,7 @@ __all__ = [
     "write_acceptance_summary",
     "markdown_table",
     "format_number",
+    "share_suffix",
 ]
 
 
@@ -73,6 +74,13 @@ def format_number(value: Any, digits: int = 4) -> str:
             return f"{value:.{digits}g}"
         return f"{value:.{max(digits - 1, 1)}e}"
     return str(value)
+
+
+def share_suffix(interval: dict | None) -> str:
+    """``" (53 %)"``: the share of resamples of the runs in which a check holds (an
+    interval of :mod:`difffilter.eval.intervals`), or ``""`` where none was measured."""
+    share = (interval or {}).get("holds_share")
+    return "" if share is None else f" ({100 * share:.0f} %)"
 
 
 # ------------------------------------------------------------------ the generic report
@@ -392,10 +400,9 @@ def write_acceptance_summary(out: str | Path, docs: dict[str, dict]) -> Path | N
         for name, checks in judged.items():
             cells = dict.fromkeys(columns, "—")
             for c in checks:
-                share = (sure.get(name, {}).get(c.metric) or {}).get("holds_share")
                 cells[_COLUMN_OF.get(c.metric, "state")] = (
                     f"{format_number(c.value, 4)} {'✓' if c.holds else '✗'}"
-                    + ("" if share is None else f" ({100 * share:.0f} %)")
+                    + share_suffix(sure.get(name, {}).get(c.metric))
                 )
             every = "holds" if all(c.holds for c in checks) else "**fails**"
             rows.append([scenario, f"`{name}`", *cells.values(), every])

@@ -33,7 +33,7 @@ from difffilter.threats import threat_from_dict
 from .acceptance import ANALYTIC, ROBUST_STATE_FACTOR, judge_robustness, roles
 from .calibration import calibrate
 from .intervals import LEVEL, RESAMPLES, robustness_intervals, threat_totals
-from .report import _clean, format_number, markdown_table
+from .report import _clean, format_number, markdown_table, share_suffix
 from .scoring import METRICS
 from .stealthy import StealthySpec, craft_threat, crafted_error, same_rate_bias
 from .suite import run_suite
@@ -345,8 +345,8 @@ def _gap_text(interval: dict | None) -> str:
 def _interval_cell(interval: dict | None) -> str:
     if not interval or interval.get("low") is None:
         return "—"
-    return (f"[{format_number(interval['low'], 3)}, {format_number(interval['high'], 3)}], "
-            f"{100 * interval['holds_share']:.0f} %")  # fmt: skip
+    return (f"[{format_number(interval['low'], 3)}, {format_number(interval['high'], 3)}]"
+            + share_suffix(interval))  # fmt: skip
 
 
 def _stealthy_section(name: str, r: dict) -> str:
@@ -458,10 +458,8 @@ def _acceptance_summary(docs: dict[str, dict]) -> str:
     rows = []
     for scenario, doc in docs.items():
         for name, a in (doc.get("acceptance") or {}).items():
-            gap = a.get("worst_tpr_interval") or {}
-            share = gap.get("holds_share")
-            tpr = ("holds" if a["tpr_holds"] else "**fails**") + (
-                "" if share is None else f" ({100 * share:.0f} %)"
+            tpr = ("holds" if a["tpr_holds"] else "**fails**") + share_suffix(
+                a.get("worst_tpr_interval")
             )
             checks = a["state"].values()
             shares = [c["interval"]["holds_share"] for c in checks

@@ -195,9 +195,9 @@ def _acceptance(per_seed: dict, baselines: dict, far: float, seed_totals: dict) 
         checks = {str(s): [c.as_dict() for c in judge(m, best, far, metric)]
                   for s, m in learned.items()}  # fmt: skip
         intervals = {}
+        role = {**dict.fromkeys(totals, "analytic"), "learned": "learned"}
         for s in learned:
             mine = seed_totals[s][scenario]
-            role = {**dict.fromkeys(totals, "analytic"), "learned": "learned"}
             found = checks_intervals({**totals, "learned": mine}, role, far=far, seed=0,
                                      runs=next(iter(mine.values())).shape[0], state_metric=metric)  # fmt: skip
             intervals[str(s)] = found["estimators"]["learned"]
@@ -389,6 +389,7 @@ def _acceptance_markdown(doc: dict) -> list[str]:
     """The acceptance section: each check per seed (✓/✗) against the best analytic."""
     from difffilter.eval.acceptance import ANALYTIC, TOLERANCES
     from difffilter.eval.report import format_number as f
+    from difffilter.eval.report import share_suffix
 
     accept = doc.get("acceptance") or {}
     if not accept:
@@ -419,10 +420,8 @@ def _acceptance_markdown(doc: dict) -> list[str]:
             cells = []
             for s in seeds:
                 c = entry["checks"][s][i]
-                sure = (entry.get("intervals") or {}).get(s, {}).get(c["metric"]) or {}
-                share = sure.get("holds_share")
-                cells.append(f"{f(c['value'])} {'✓' if c['holds'] else '✗'}"
-                             + ("" if share is None else f" ({100 * share:.0f} %)"))  # fmt: skip
+                sure = (entry.get("intervals") or {}).get(s, {}).get(c["metric"])
+                cells.append(f"{f(c['value'])} {'✓' if c['holds'] else '✗'}" + share_suffix(sure))
             lines.append(f"| {scenario} | {check['metric']} {check['bound']} | {best} | "
                          + " | ".join(cells) + " |")  # fmt: skip
         verdict = ["**holds**" if entry["holds"][s] else "fails" for s in seeds]
