@@ -128,14 +128,21 @@ def judge(learned: dict, best: dict, far: float, metric: str = "state_rmse") -> 
     return checks
 
 
-def judge_robustness(cells: dict[str, dict[str, dict]], role_of: dict[str, str]) -> dict:
+def judge_robustness(
+    cells: dict[str, dict[str, dict]], role_of: dict[str, str], far: float | None = None
+) -> dict:
     """Each learned estimator of a robustness study against the analytic ones.
 
     ``cells``: ``{threat: {estimator: {metric: value}}}`` (``robustness.json``'s). Returns
     ``{learned: {"worst_tpr": (value, threat), "best_analytic_worst_tpr": (value,
-    estimator, threat), "tpr_holds", "state": {threat: {"value", "best", "best_estimator",
-    "ratio", "holds"}}, "state_holds", "holds"}}``; threats where nobody detects (no TPR)
-    count only for the state error."""
+    estimator, threat), "tpr_holds", "worst_threat_undetected", "state": {threat:
+    {"value", "best", "best_estimator", "ratio", "holds"}}, "state_holds", "holds"}}``;
+    threats where nobody detects (no TPR) count only for the state error.
+
+    ``worst_threat_undetected`` (``None`` without ``far``, the calibrated rate α): the best
+    analytic worst-case TPR is at most the top of the false-alarm band, ``2α``, so no
+    analytic detector sees its worst threat better than a calibrated detector alarms
+    without attack, and the worst-case TPR check compares false-alarm rates there."""
     names = {n for row in cells.values() for n in row}
     analytic = [n for n in names if role_of.get(n) == "analytic"]
     learned = [n for n in names if role_of.get(n) == "learned"]
@@ -147,6 +154,9 @@ def judge_robustness(cells: dict[str, dict[str, dict]], role_of: dict[str, str])
 
     analytic_worst = [(w[0], n, w[1]) for n in sorted(analytic) if (w := worst_tpr(n))]
     best_worst = max(analytic_worst, key=lambda v: v[0]) if analytic_worst else None
+    undetected = None
+    if far is not None and best_worst is not None:
+        undetected = bool(best_worst[0] <= TOLERANCES["fpr_band"][1] * far)
     out = {}
     for name in sorted(learned):
         mine = worst_tpr(name)
@@ -165,6 +175,7 @@ def judge_robustness(cells: dict[str, dict[str, dict]], role_of: dict[str, str])
         tpr_holds = best_worst is None or (mine is not None and mine[0] >= best_worst[0])
         state_holds = all(c["holds"] for c in state.values())
         out[name] = {"worst_tpr": mine, "best_analytic_worst_tpr": best_worst,
-                     "tpr_holds": bool(tpr_holds), "state": state,
+                     "tpr_holds": bool(tpr_holds), "worst_threat_undetected": undetected,
+                     "state": state,
                      "state_holds": bool(state_holds), "holds": bool(tpr_holds and state_holds)}  # fmt: skip
     return out

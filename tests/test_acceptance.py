@@ -7,7 +7,7 @@ import inspect
 
 import pytest
 
-from difffilter.eval.acceptance import best_analytic, judge, roles, state_metric
+from difffilter.eval.acceptance import best_analytic, judge, judge_robustness, roles, state_metric
 from difffilter.models import estimators as registry
 
 
@@ -83,6 +83,24 @@ def test_tracking_is_judged_on_its_position_error_against_the_round_robin_filter
     worse = {**study["pf_nn_grad"], "rmse_p": 1.072}
     assert not {c.metric: c.holds for c in judge(worse, best, 0.01, "rmse_p")}["rmse_p"]
     assert state_metric({"a": {"state_rmse": 1.0, "rmse_p": None}}) == "state_rmse"
+
+
+def test_the_worst_case_tpr_check_says_when_no_analytic_detector_sees_its_worst_threat():
+    role_of = {"net": "learned", "chi": "analytic", "cusum": "analytic"}
+
+    def cells(covert_tpr):  # the analytic detectors' worst threat is "covert"
+        row = lambda tpr, rmse: {"tpr_at_far": tpr, "state_rmse": rmse}  # noqa: E731
+        return {"bias": {"net": row(0.99, 1.0), "chi": row(0.98, 1.0), "cusum": row(0.97, 1.0)},
+                "covert": {"net": row(0.012, 1.0), "chi": row(covert_tpr, 1.0),
+                           "cusum": row(covert_tpr / 2, 1.0)}}  # fmt: skip
+
+    for covert_tpr, far, unseen in [(0.015, 0.01, True), (0.02, 0.01, True), (0.021, 0.01, False),
+                                    (0.3, 0.01, False), (0.015, 0.005, False)]:  # fmt: skip
+        judged = judge_robustness(cells(covert_tpr), role_of, far)["net"]
+        assert judged["best_analytic_worst_tpr"] == (covert_tpr, "chi", "covert")
+        assert judged["worst_threat_undetected"] is unseen, (covert_tpr, far)
+        assert judged["tpr_holds"] == (0.012 >= covert_tpr)
+    assert judge_robustness(cells(0.015), role_of)["net"]["worst_threat_undetected"] is None
 
 
 def test_a_learned_number_that_is_missing_does_not_hold():
