@@ -28,6 +28,16 @@ def test_a_sweep_reports_every_seed_the_spread_and_the_median_seed(tmp_path, mon
     config = str(ROOT / "train" / "configs" / "four_tank.yaml")
     args = ["--config", config, "--seeds", "0", "3", "1", "--out", "sw", "--runs", "4",
             "--scenarios", "four_tank_bias", "--no-progress", "--", *TINY]  # fmt: skip
+    # first the trainings alone, the median named on validation and the test held back
+    split = args.index("--")
+    assert main([*args[:split], "--validation-only", *args[split:]]) == 0
+    held = json.loads((tmp_path / "sw" / "sweep.json").read_text())
+    assert held["test"] == "held back" and held["selection"]["median_seed_by_test"] is None
+    assert all(set(v) == {"checkpoint", "train_time_s"} for v in held["per_seed"].values())
+    assert "acceptance" not in held and not (tmp_path / "sw" / "baselines").exists()
+    assert "The test evaluation is held back" in (tmp_path / "sw" / "sweep.md").read_text()
+    trained = {s: Path(v["checkpoint"]).stat().st_mtime_ns for s, v in held["per_seed"].items()}
+    # then the test: the same seeds evaluated, none trained again, the same median
     assert main(args) == 0
     doc = json.loads((tmp_path / "sw" / "sweep.json").read_text())
     assert doc["seeds"] == [0, 3, 1] and doc["rank_by"] == "tpr_at_far"
@@ -61,6 +71,9 @@ def test_a_sweep_reports_every_seed_the_spread_and_the_median_seed(tmp_path, mon
     assert doc["selection"]["scores"] == pytest.approx(val)
     assert val[str(doc["median_seed"])] == sorted(val.values())[1]
     assert doc["median_checkpoint"] == seeds[str(doc["median_seed"])]["checkpoint"]
+    assert doc["median_seed"] == held["median_seed"]
+    assert held["selection"]["scores"] == doc["selection"]["scores"]
+    assert {s: Path(v["checkpoint"]).stat().st_mtime_ns for s, v in seeds.items()} == trained
     text = (tmp_path / "sw" / "sweep.md").read_text()
     assert "spread (max − min)" in text and "Median seed on validation" in text
     # the acceptance: the best of the scenario's analytic estimators on the same runs,
@@ -115,6 +128,9 @@ def test_a_sweep_refuses_bad_options(tmp_path, capsys):
     bare.write_text("trainer:\n  max_epochs: 1\n")
     assert main(["--config", str(bare), "--out", str(tmp_path / "sw")]) == 2
     assert "has no ModelCheckpoint monitor; add one, or --select-on test" in capsys.readouterr().err
+    args = ["--config", config, "--out", str(tmp_path / "sw"), "--validation-only"]
+    assert main([*args, "--select-on", "test"]) == 2
+    assert "--validation-only chooses the median seed on validation" in capsys.readouterr().err
     assert not (tmp_path / "sw").exists()
     assert main(["--config", str(tmp_path / "no.yaml"), "--out", str(tmp_path)]) == 2
     assert "no.yaml does not exist" in capsys.readouterr().err

@@ -37,6 +37,12 @@ runs (:func:`difffilter.eval.intervals.checks_intervals`: the seeds' runs are th
 baselines' runs, so the comparison is paired)::
 
     difffilter-train sweep --config train/configs/four_tank.yaml --seeds 0 1 2 --out sweeps/four_tank
+
+``--validation-only`` trains every seed and names the median on validation but runs
+nothing on the test's draws: ``sweep.json`` and ``sweep.md`` hold the seeds' checkpoints,
+validation scores and the median seed, and say that the test is held back. For a decision
+made on validation before any test number exists (a rule written first: docs/papers.md);
+the same command without it then evaluates the trained seeds without training them again.
 """
 
 from __future__ import annotations
@@ -69,8 +75,9 @@ def _exported(folder: Path) -> Path | None:
     return found[0] if found else None
 
 
-def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str]) -> Path:
-    """Train seed ``seed`` (or take its finished run, or resume it); its exported file."""
+def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str], progress: bool = True) -> Path:
+    """Train seed ``seed`` (or take its finished run, or resume it); its exported file.
+    ``progress=False`` turns the trainer's progress bar off as well."""
     from .cli import main as cli_main
 
     existing = list(runs_dir.glob(f"*/seed_{seed}"))
@@ -82,6 +89,7 @@ def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str]) -> Path:
         f"--model.init_args.model_seed={seed}", f"--data.init_args.train_seed={train_seed_of(seed)}",
         f"--trainer.logger.init_args.save_dir={runs_dir}",
         f"--trainer.logger.init_args.version=seed_{seed}",
+        *([] if progress else ["--trainer.enable_progress_bar=false"]),
         *(option.replace("{seed}", str(seed)) for option in extra),
     ]  # fmt: skip
     last = existing[0] / "checkpoints" / "last.ckpt" if existing else None
@@ -290,9 +298,10 @@ def _validation_scores(cards: dict[int, dict], config: Path) -> tuple[dict[int, 
 
 def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | None = None,
           far: float = 0.01, rank_by: str = "tpr_at_far", select_on: str = "validation",
-          extra=(), progress: bool = True) -> dict:  # fmt: skip
+          extra=(), progress: bool = True, test: bool = True) -> dict:  # fmt: skip
     """Train ``config`` on every seed and evaluate each (module docstring); writes and
-    returns the sweep's document. ``extra``: more ``fit`` options for every seed."""
+    returns the sweep's document. ``extra``: more ``fit`` options for every seed;
+    ``test=False``: ``--validation-only`` (nothing run on the test's draws)."""
     config, out = Path(config), Path(out)
     if not config.is_file():
         raise FileNotFoundError(f"--config: {config} does not exist")
@@ -305,6 +314,9 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
         raise ValueError(f"--select-on must be one of {', '.join(SELECT_ON)}; got {select_on!r}")
     if not 0.0 < far < 1.0:
         raise ValueError(f"--far must lie in (0, 1); got {far!r}")
+    if not test and select_on != "validation":
+        raise ValueError("--validation-only chooses the median seed on validation; "
+                         "--select-on test needs the test's draws")  # fmt: skip
     if (select_on == "validation" and _config_monitor(config) is None
             and not any("callbacks" in option for option in extra)):  # fmt: skip
         # said before hours of training, not after
@@ -314,11 +326,16 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
     runs_dir = out / "runs"
     per_seed, cards, seed_totals = {}, {}, {}
     for seed in seeds:
-        path = _fit(config, seed, runs_dir, list(extra))
+        path = _fit(config, seed, runs_dir, list(extra), progress)
         card = cards[seed] = json.loads(path.with_suffix(".json").read_text())
+        if not test:
+            per_seed[seed] = {"checkpoint": str(path), "train_time_s": card.get("train_time_s")}
+            continue
         evaluated, seed_totals[seed] = _evaluate(path, scenarios, runs, far, progress)
         per_seed[seed] = {"checkpoint": str(path), "train_time_s": card.get("train_time_s"),
                           **evaluated}  # fmt: skip
+    if not test:
+        return _write(out, _held_back(config, seeds, far, runs, per_seed, cards))
     test_scores = _test_scores(per_seed, rank_by)
     by_test = _median(test_scores, rank_by not in _LOWER_IS_BETTER)
     if select_on == "validation":
@@ -337,6 +354,27 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
         "per_seed": {str(s): v for s, v in per_seed.items()}, "summary": _summary(per_seed),
         "acceptance": _acceptance(per_seed, baselines, far, seed_totals),
     }  # fmt: skip
+    return _write(out, doc)
+
+
+def _held_back(config: Path, seeds: list[int], far: float, runs, per_seed: dict,
+               cards: dict) -> dict:  # fmt: skip
+    """The document of a ``--validation-only`` sweep: the seeds, their validation scores
+    and the median seed, and ``"test": "held back"`` in place of every test number."""
+    scores, monitor = _validation_scores(cards, config)
+    median = _median(scores, monitor["mode"] == "max")
+    return {
+        "config": str(config), "seeds": seeds, "far": far, "runs": runs, "eval_seed": None,
+        "rank_by": None, "select_on": "validation", "median_seed": median,
+        "median_checkpoint": per_seed[median]["checkpoint"],
+        "selection": {"monitor": monitor, "scores": {str(s): v for s, v in scores.items()},
+                      "median_seed_by_test": None},
+        "per_seed": {str(s): v for s, v in per_seed.items()}, "test": "held back",
+    }  # fmt: skip
+
+
+def _write(out: Path, doc: dict) -> dict:
+    """``<out>/sweep.json`` and ``<out>/sweep.md`` of ``doc``; returns it."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "sweep.json").write_text(json.dumps(doc, indent=2) + "\n")
     (out / "sweep.md").write_text(_markdown(doc))
@@ -346,8 +384,16 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
 def _markdown(doc: dict) -> str:
     from difffilter.eval.report import format_number as f
 
+    title = f"# Sweep of {doc['config']} over seeds {', '.join(map(str, doc['seeds']))}\n"
+    if doc.get("test") == "held back":
+        times = ", ".join(f"seed {s} " + ("not recorded" if (t := v.get("train_time_s")) is None
+                                          else f"{f(t)} s") for s, v in doc["per_seed"].items())  # fmt: skip
+        return (f"{title}\n{_selection_sentence(doc)}\n\nTraining time: {times}.\n\n"
+                "The test evaluation is held back (`--validation-only`): no number of the test's "
+                "draws exists yet. The same command without `--validation-only` evaluates these "
+                "seeds without training them again.\n")  # fmt: skip
     lines = [
-        f"# Sweep of {doc['config']} over seeds {', '.join(map(str, doc['seeds']))}\n",
+        title,
         f"Each seed's estimator on `difffilter-eval`'s runs (seed {doc['eval_seed']}), every "
         f"threshold calibrated for {100 * doc['far']:g} % false alarms on attack-free runs of "
         f"their own seed. {_selection_sentence(doc)}\n",
@@ -377,12 +423,14 @@ def _selection_sentence(doc: dict) -> str:
         return (f"Median seed by the evaluation's {doc['rank_by']} (chosen on these draws): "
                 f"**{median}** (`{doc['median_checkpoint']}`; {scores}).")  # fmt: skip
     monitor = selection["monitor"]
+    chosen = (f"Median seed on validation, by the score each training chose its weights by "
+              f"({monitor['metric']}, {'higher' if monitor['mode'] == 'max' else 'lower'} is "
+              f"better; its config's validation runs, not the test's): **{median}** "
+              f"(`{doc['median_checkpoint']}`; {scores}).")  # fmt: skip
+    if by_test is None:  # --validation-only: no test number to name a seed by
+        return chosen
     beside = "the same seed" if by_test == median else f"seed {by_test}"
-    return (f"Median seed on validation, by the score each training chose its weights by "
-            f"({monitor['metric']}, {'higher' if monitor['mode'] == 'max' else 'lower'} is "
-            f"better; its config's validation runs, not these): **{median}** "
-            f"(`{doc['median_checkpoint']}`; {scores}). The evaluation's {doc['rank_by']} "
-            f"below would name {beside}.")  # fmt: skip
+    return f"{chosen} The evaluation's {doc['rank_by']} below would name {beside}."
 
 
 def _acceptance_markdown(doc: dict) -> list[str]:
@@ -457,7 +505,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rank-by", default="tpr_at_far",
                    help="the evaluation's metric that ranks the seeds under --select-on test "
                    "(and names the test's median beside the validation's)")  # fmt: skip
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--validation-only", action="store_true",
+                   help="train and name the median seed on validation, but run nothing on the "
+                   "test's draws (run again without it to evaluate the trained seeds)")  # fmt: skip
+    p.add_argument("--no-progress", action="store_true",
+                   help="no progress bars (the trainings' included)")  # fmt: skip
     argv = list(sys.argv[1:] if argv is None else argv)
     extra = argv[argv.index("--") + 1 :] if "--" in argv else []
     args = p.parse_args(argv[: argv.index("--")] if "--" in argv else argv)
@@ -465,11 +517,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         doc = sweep(args.config, args.seeds, args.out, scenarios=scenarios, runs=args.runs,
                     far=args.far, rank_by=args.rank_by, select_on=args.select_on, extra=extra,
-                    progress=not args.no_progress)  # fmt: skip
+                    progress=not args.no_progress, test=not args.validation_only)  # fmt: skip
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-train sweep: error: {exc}", file=sys.stderr)
         return 2
     print((Path(args.out) / "sweep.md").read_text())
+    if args.validation_only:
+        print(f"median seed {doc['median_seed']} on validation; the test is held back")
+        return 0
     print(f"median seed {doc['median_seed']}: ship it with difffilter-train export "
           f"{doc['median_checkpoint']} --out <file>")  # fmt: skip
     return 0
