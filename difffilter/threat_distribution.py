@@ -19,12 +19,17 @@ A field is a constant, or one of
 :meth:`ThreatDistribution.sample` draws a threat name by weight, then its fields, from a
 ``torch.Generator``: the same generator state gives the same threat. ``own`` and ``none``
 are reserved names (the scenario's attack, which the caller supplies, and no attack).
+
+:meth:`ThreatDistribution.covers` says how a threat written as plain data stands to the
+distribution: ``"within"`` (it could be drawn), ``"kind only"`` (its kind is drawn, with
+other fields) or ``"held out"`` (its kind never is): what a robustness study reports for a
+network trained across threats.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import MISSING, dataclass, fields
 from typing import Any
 
 import torch
@@ -32,7 +37,10 @@ import torch
 from .attack import Attack
 from .threats import THREATS, threat_from_dict
 
-__all__ = ["ThreatDistribution"]
+__all__ = ["ThreatDistribution", "WITHIN", "KIND_ONLY", "HELD_OUT"]
+
+#: How a threat stands to a distribution (:meth:`ThreatDistribution.covers`).
+WITHIN, KIND_ONLY, HELD_OUT = "within", "kind only", "held out"
 
 _DRAWS = ("uniform", "loguniform", "randint", "choice")
 _RESERVED = ("own", "none")
@@ -148,6 +156,30 @@ class ThreatDistribution:
         except (TypeError, ValueError) as error:
             raise ValueError(f"threats.{name}: {error}") from None
 
+    def covers(self, spec: dict) -> str:
+        """How threat ``spec`` (``{"kind", **fields}``, as the threat sets write it) stands
+        to this distribution: :data:`WITHIN` where a component of positive weight has its
+        kind and could draw every one of its fields, :data:`KIND_ONLY` where components
+        draw its kind but not those fields, :data:`HELD_OUT` where none draws its kind.
+
+        A field drawable by a component: a constant equal to it (numbers to 1e-9), a
+        ``uniform``/``loguniform`` interval holding it (its magnitude with ``signed``; a
+        vector only with every entry equal, as a drawn number is the same on every
+        entry), a ``randint`` range holding the integer, a ``choice`` listing it. A field
+        that one side leaves out is the threat class's default on that side."""
+        kind = spec.get("kind")
+        same_kind = [entry for name, entry in self.spec.items()
+                     if name not in _RESERVED and entry.get("kind") == kind
+                     and float(entry["weight"]) > 0]  # fmt: skip
+        if not same_kind:
+            return HELD_OUT
+        for entry in same_kind:
+            names = (set(spec) | set(entry)) - {"kind", "weight"}
+            if all(_drawable(entry.get(f, _default(kind, f)), spec.get(f, _default(kind, f)))
+                   for f in names):  # fmt: skip
+                return WITHIN
+        return KIND_ONLY
+
     def sample(self, generator: torch.Generator) -> tuple[str, Any]:
         """``(name, attack)``: a threat by weight and its drawn fields; ``own`` gives
         :attr:`own`, ``none`` gives ``None``."""
@@ -159,3 +191,57 @@ class ThreatDistribution:
         if name == "none":
             return name, None
         return name, self._build(name, self.spec[name], generator)
+
+
+_NO_DEFAULT = object()
+
+
+def _default(kind: str, name: str):
+    """The default of field ``name`` of threat class ``kind`` (:data:`_NO_DEFAULT` if none)."""
+    for f in fields(THREATS[kind]):
+        if f.name == name:
+            if f.default is not MISSING:
+                return f.default
+            if f.default_factory is not MISSING:
+                return f.default_factory()
+    return _NO_DEFAULT
+
+
+def _numbers(value) -> tuple | None:
+    """``value`` as a tuple of floats (a number is a 1-tuple), ``None`` if it is not numeric."""
+    items = value if isinstance(value, (list, tuple)) else (value,)
+    if not items or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in items):
+        return None
+    return tuple(float(v) for v in items)
+
+
+def _same(a, b) -> bool:
+    """``a == b`` for plain data, numbers to 1e-9 (a number equals its 1-tuple)."""
+    x, y = _numbers(a), _numbers(b)
+    if x is not None and y is not None:
+        return len(x) == len(y) and all(math.isclose(u, v, rel_tol=1e-9, abs_tol=1e-12)
+                                        for u, v in zip(x, y))  # fmt: skip
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(u, v) for u, v in zip(a, b))
+    return a == b
+
+
+def _drawable(field_spec, value) -> bool:
+    """Whether a component's field (a constant or a draw) can give ``value``."""
+    if value is _NO_DEFAULT or field_spec is _NO_DEFAULT:
+        return False
+    if not _is_draw(field_spec):
+        return _same(field_spec, value)
+    if "choice" in field_spec:
+        return any(_same(option, value) for option in field_spec["choice"])
+    numbers = _numbers(value)
+    if numbers is None or len(set(numbers)) != 1:  # a drawn number is one number
+        return False
+    x = numbers[0]
+    if "randint" in field_spec:
+        lo, hi = field_spec["randint"]
+        return x == int(x) and lo <= x <= hi
+    lo, hi = field_spec.get("uniform") or field_spec["loguniform"]
+    magnitude = abs(x) if field_spec.get("signed") else x
+    slack = 1e-9 * max(abs(lo), abs(hi), 1.0)
+    return lo - slack <= magnitude <= hi + slack

@@ -32,6 +32,7 @@ from difffilter.threats import threat_from_dict
 
 from .acceptance import ANALYTIC, ROBUST_STATE_FACTOR, judge_robustness, roles
 from .calibration import calibrate
+from .coverage import checkpoint_of, training_coverage
 from .intervals import LEVEL, RESAMPLES, robustness_intervals, threat_totals
 from .report import _clean, format_number, markdown_table, share_suffix
 from .scoring import METRICS
@@ -252,7 +253,9 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
     acceptance = judge_robustness(doc["cells"], doc["estimator_roles"], result.calibration.far)
     intervals = robustness_intervals(result.run_totals, doc["estimator_roles"],
                                      runs=result.runs, seed=result.seed)  # fmt: skip
+    model = sc.system() if acceptance else None  # for threat kinds that read it
     for name, judged in acceptance.items():
+        judged["training"] = training_coverage(checkpoint_of(name, free), doc["threats"], model)
         mine = intervals.get(name, {})
         judged["worst_tpr_interval"] = mine.get("worst_tpr")
         for threat, check in judged["state"].items():
@@ -308,6 +311,8 @@ def _markdown(doc: dict, sc) -> str:
 def _acceptance_section(name: str, a: dict) -> str:
     """The learned estimator ``name`` against the analytic ones over the threats."""
     mine, best = a["worst_tpr"], a["best_analytic_worst_tpr"]
+    training = a.get("training")
+    seen = (training or {}).get("threats", {})
     lines = [
         f"## `{name}` against the best analytic over the threats\n",
         f"Analytic: {ANALYTIC} (`difffilter.eval.acceptance`).\n",
@@ -325,17 +330,28 @@ def _acceptance_section(name: str, a: dict) -> str:
         )  # fmt: skip
     rows = [[t, format_number(c["value"], 4), f"{format_number(c['best'], 4)} (`{c['best_estimator']}`)",
              format_number(c["ratio"], 3), _interval_cell(c.get("interval")),
-             "yes" if c["holds"] else "**no**"]
+             "yes" if c["holds"] else "**no**", seen.get(t, "—")]
             for t, c in a["state"].items()]  # fmt: skip
     lines.append(f"- State RMSE ≤ {ROBUST_STATE_FACTOR:g} × the best analytic's on every threat: "
                  f"{'holds' if a['state_holds'] else '**does not hold**'}. The interval: the ratio's "
                  f"{100 * LEVEL:g} % interval over the runs and the share of resamples within "
                  f"{ROBUST_STATE_FACTOR:g}× (paired bootstrap over the runs, {RESAMPLES:,} "
                  "resamples, the best analytic chosen again in each; `difffilter.eval.intervals`).\n")  # fmt: skip
-    lines.append(
-        markdown_table(["threat", name, "best analytic", "ratio", "interval", "holds"], rows)
-    )
+    lines.append(_training_line(training))
+    lines.append(markdown_table(["threat", name, "best analytic", "ratio", "interval", "holds",
+                                 "in training"], rows))  # fmt: skip
     return "\n".join(lines)
+
+
+def _training_line(training: dict | None) -> str:
+    """What the learned estimator was trained on, for its threats' "in training" column."""
+    if training is None:
+        return ("- In training: not known (no card beside its checkpoint says how it was "
+                "trained).\n")  # fmt: skip
+    adversarial = ", with adversarial training" if training["adversarial"] else ""
+    return (f"- Trained on {training['trained_on']}{adversarial}: \"in training\" says whether "
+            "each threat could have been drawn in training (within), only its kind (kind "
+            "only) or not even that (held out); `difffilter.eval.coverage`.\n")  # fmt: skip
 
 
 def _gap_text(interval: dict | None) -> str:

@@ -101,6 +101,10 @@ def test_a_study_scores_every_estimator_against_every_threat_at_the_calibrated_r
         result.worst_case["pf_nn_grad"]["tpr_at_far"] >= max(worst.values())
     )
     assert "## `pf_nn_grad` against the best analytic over the threats" in text
+    # the shipped card: trained on the scenario's eq. (4) attack alone, so every threat is new
+    assert mine["training"] == {"trained_on": "its scenario's attack", "adversarial": False,
+                                "threats": dict.fromkeys(result.cells, "held out")}  # fmt: skip
+    assert "- Trained on its scenario's attack:" in text and "| held out |" in text
     unseen = max(worst.values()) <= 2 * 0.01  # the worst threat inside the false-alarm band
     assert mine["worst_threat_undetected"] is unseen
     assert ("compares false-alarm rates on it" in text) is unseen

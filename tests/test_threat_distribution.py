@@ -5,7 +5,13 @@ from __future__ import annotations
 import pytest
 import torch
 
-from difffilter.threat_distribution import ThreatDistribution
+from difffilter.threat_distribution import (
+    HELD_OUT,
+    KIND_ONLY,
+    WITHIN,
+    ThreatDistribution,
+    _draw,
+)
 from difffilter.threats import Bias, Ramp
 from difffilter.train.task import ScenarioDataModule, threat_batch, training_batch
 
@@ -42,6 +48,31 @@ def test_threats_come_by_weight_with_their_fields_in_range_and_reproducibly():
     assert all(0.01 <= s <= 0.1 for s in slopes) and ("own", "OWN") in draws
     # log-uniform: half of the draws below the geometric mean √(0.01 · 0.1)
     assert 0.4 < sum(s < 0.1**1.5 for s in slopes) / len(slopes) < 0.6
+
+
+def test_every_threat_the_distribution_draws_is_within_it_and_others_are_named():
+    dist = ThreatDistribution(MIX)
+    g = torch.Generator().manual_seed(3)
+    for _ in range(300):  # the fields exactly as sample() draws them
+        drawn = {k: _draw(v, g) for k, v in MIX["bias"].items() if k != "weight"}
+        assert dist.covers(drawn) == WITHIN, drawn
+    bias = {"kind": "bias", "value": 1.5, "onset": 7, "entries": [0]}
+    assert dist.covers(bias) == WITHIN
+    assert dist.covers({**bias, "value": -2.0}) == WITHIN  # signed: the magnitude counts
+    assert dist.covers({**bias, "value": [1.5, 1.5], "entries": [1, 2]}) == WITHIN
+    for other in [{"value": 2.5}, {"value": 0.5}, {"onset": 10}, {"onset": 6.5},
+                  {"entries": [2]}, {"entries": None}, {"share": 0.5}, {"duration": 40},
+                  {"value": [1.5, 1.2], "entries": [1, 2]}]:  # fmt: skip
+        assert dist.covers({**bias, **other}) == KIND_ONLY, other
+    without_entries = {k: v for k, v in bias.items() if k != "entries"}
+    assert dist.covers(without_entries) == KIND_ONLY  # all entries: not among the choices
+    # a kind drawn with weight 0, or never: held out
+    assert dist.covers({"kind": "ramp", "slope": 0.05, "onset": 3}) == HELD_OUT
+    assert dist.covers({"kind": "pulses", "amplitude": 1.0}) == HELD_OUT
+    ramp = ThreatDistribution({"ramp": {**MIX["ramp"], "weight": 1}})
+    assert ramp.covers({"kind": "ramp", "slope": 0.05, "onset": 3}) == WITHIN
+    assert ramp.covers({"kind": "ramp", "slope": -0.05, "onset": 3}) == KIND_ONLY  # unsigned
+    assert ramp.covers({"kind": "ramp", "slope": 0.05}) == KIND_ONLY  # onset defaults to 1
 
 
 @pytest.mark.parametrize(

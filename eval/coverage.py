@@ -1,0 +1,65 @@
+"""Which of a study's threats a learned estimator met in training.
+
+A network trained across threats (``data.init_args.threats``, a
+:class:`~difffilter.threat_distribution.ThreatDistribution`) has seen some of a robustness
+study's threats and not others; a verdict on a threat it was trained on says less than one
+on a threat it never met. :func:`training_coverage` reads the card an export writes beside
+its checkpoint (``<checkpoint>.json``: the training's data and model settings) and labels
+every threat of the study (:meth:`~difffilter.threat_distribution.ThreatDistribution.covers`):
+
+============  ================================================================================
+within        a component of the training distribution could draw it (kind and every field)
+kind only     its kind was drawn, with other fields (another size, onset, share, …); a crafted
+              attack when the network was trained adversarially (crafted against the network
+              of the moment, fewer iterations)
+held out      its kind was never drawn: every threat of a network trained on its scenario's
+              attack alone
+============  ================================================================================
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from difffilter.threat_distribution import HELD_OUT, KIND_ONLY, ThreatDistribution
+
+__all__ = ["training_coverage", "checkpoint_of"]
+
+#: What a card says the network was trained on, as the reports name it.
+SCENARIO_ATTACK, DISTRIBUTION = "its scenario's attack", "a distribution over threats"
+
+
+def checkpoint_of(name: str, suite) -> str | None:
+    """The checkpoint file learned estimator ``name`` ran with in ``suite`` (a
+    :class:`~difffilter.eval.suite.SuiteResult`): its own (``--ckpt name=path``), else the
+    default one if it used it, else ``None``."""
+    own = (suite.checkpoints or {}).get(name)
+    if own:
+        return own["path"]
+    default = suite.checkpoint or {}
+    return default.get("path") if name in default.get("used_by", ()) else None
+
+
+def training_coverage(checkpoint, threats: dict[str, dict], model=None) -> dict[str, Any] | None:
+    """``{"trained_on", "adversarial", "threats": {threat: label}}`` for the estimator of
+    ``checkpoint`` against the study's ``threats`` (``{name: {"kind", **fields}}``), or
+    ``None`` where no card beside the checkpoint says how it was trained (a Lightning
+    checkpoint of a run, a file copied alone). ``model``: the scenario's, for threat kinds
+    that read it (``ksigma_bias``, ``covert``)."""
+    card_path = Path(checkpoint).with_suffix(".json") if checkpoint else None
+    if card_path is None or not card_path.is_file():
+        return None
+    card = json.loads(card_path.read_text())
+    spec = (card.get("data_config") or {}).get("threats")
+    adversarial = bool((card.get("model_config") or {}).get("adversarial_runs"))
+    distribution = ThreatDistribution(spec, model=model) if spec else None
+    labels = {}
+    for name, threat in threats.items():
+        if threat.get("kind") == "stealthy":  # crafted when the study runs, not drawn
+            labels[name] = KIND_ONLY if adversarial else HELD_OUT
+        else:
+            labels[name] = HELD_OUT if distribution is None else distribution.covers(threat)
+    return {"trained_on": DISTRIBUTION if spec else SCENARIO_ATTACK,
+            "adversarial": adversarial, "threats": labels}  # fmt: skip

@@ -1,0 +1,63 @@
+"""Which of a robustness study's threats a learned estimator met in training (its card)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from types import SimpleNamespace
+
+from difffilter.eval.coverage import checkpoint_of, training_coverage
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED = ROOT / "checkpoints" / "four_tank_nn_grad.ckpt"
+THREATS = {
+    "bias": {"kind": "bias", "value": 0.5, "onset": 21},
+    "bias_half_runs": {"kind": "bias", "value": 0.5, "onset": 21, "share": 0.5},
+    "ramp": {"kind": "ramp", "slope": 0.005, "onset": 21},
+    "replay": {"kind": "replay", "delay": 20, "onset": 41},
+    "crafted": {"kind": "stealthy", "against": "pf_nn_grad", "onset": 21},
+}
+
+
+def _with_card(tmp_path: Path, data_config: dict, model_config: dict) -> Path:
+    """A copy of the shipped checkpoint whose card says it was trained as given."""
+    path = tmp_path / "net.ckpt"
+    shutil.copy(SHIPPED, path)
+    card = json.loads(SHIPPED.with_suffix(".json").read_text())
+    card["data_config"] = {**card["data_config"], **data_config}
+    card["model_config"] = {**card["model_config"], **model_config}
+    path.with_suffix(".json").write_text(json.dumps(card))
+    return path
+
+
+def test_a_network_trained_across_threats_has_its_threats_labelled_from_its_card(tmp_path):
+    threats = {"own": {"weight": 0.5},
+               "bias": {"weight": 0.3, "kind": "bias", "value": {"loguniform": [0.05, 1.5]},
+                        "onset": {"randint": [5, 60]}},
+               "ramp": {"weight": 0.2, "kind": "ramp", "slope": {"loguniform": [0.01, 0.03]},
+                        "onset": {"randint": [5, 60]}}}  # fmt: skip
+    path = _with_card(tmp_path, {"threats": threats}, {"adversarial_runs": 4})
+    got = training_coverage(path, THREATS)
+    assert got == {"trained_on": "a distribution over threats", "adversarial": True,
+                   "threats": {"bias": "within", "bias_half_runs": "kind only",
+                               "ramp": "kind only", "replay": "held out",
+                               "crafted": "kind only"}}  # fmt: skip
+    plain = _with_card(tmp_path, {"threats": None}, {"adversarial_runs": 0})
+    assert training_coverage(plain, THREATS) == {
+        "trained_on": "its scenario's attack", "adversarial": False,
+        "threats": dict.fromkeys(THREATS, "held out")}  # fmt: skip
+    # no card beside the file: nothing is claimed
+    alone = tmp_path / "alone" / "net.ckpt"
+    alone.parent.mkdir()
+    shutil.copy(SHIPPED, alone)
+    assert training_coverage(alone, THREATS) is None and training_coverage(None, THREATS) is None
+
+
+def test_the_checkpoint_an_estimator_ran_with_is_its_own_else_the_default_it_used():
+    suite = SimpleNamespace(checkpoints={"pf_nn_ekf": {"path": "b.ckpt"}},
+                            checkpoint={"path": "a.ckpt", "used_by": ["pf_nn_grad"]})  # fmt: skip
+    assert checkpoint_of("pf_nn_ekf", suite) == "b.ckpt"
+    assert checkpoint_of("pf_nn_grad", suite) == "a.ckpt"
+    assert checkpoint_of("kf_nn_grad", suite) is None
+    assert checkpoint_of("pf_nn_grad", SimpleNamespace(checkpoints={}, checkpoint=None)) is None
