@@ -346,8 +346,8 @@ def _acceptance_section(name: str, a: dict) -> str:
 def _training_line(training: dict | None) -> str:
     """What the learned estimator was trained on, for its threats' "in training" column."""
     if training is None:
-        return ("- In training: not known (no card beside its checkpoint says how it was "
-                "trained).\n")  # fmt: skip
+        return ("- In training: not known (it ran with no trained checkpoint, or with one "
+                "that has no card beside it to say how it was trained).\n")  # fmt: skip
     adversarial = ", with adversarial training" if training["adversarial"] else ""
     return (f"- Trained on {training['trained_on']}{adversarial}: \"in training\" says whether "
             "each threat could have been drawn in training (within), only its kind (kind "
