@@ -132,6 +132,9 @@ def test_the_cli_runs_the_study_and_names_an_unknown_threat(tmp_path, capsys):
     cells = [c.strip() for c in row.split("|")]
     assert cells[4] == f"{sum(c['holds'] for c in mine['state'].values())} of 2"
     assert cells[6] == ("holds" if mine["holds"] else "**fails**")
+    unseen = mine["worst_threat_undetected"]  # said in the row and under the table
+    assert ("worst threat undetected†" in cells[3]) is unseen
+    assert ("† No analytic detector sees the worst threat" in section) is unseen
 
 
 def test_a_stealthy_threat_is_data_crafted_when_the_study_runs():
