@@ -207,7 +207,7 @@ def _default(kind: str, name: str):
     return _NO_DEFAULT
 
 
-def _numbers(value) -> tuple | None:
+def _floats(value) -> tuple | None:
     """``value`` as a tuple of floats (a number is a 1-tuple), ``None`` if it is not numeric."""
     items = value if isinstance(value, (list, tuple)) else (value,)
     if not items or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in items):
@@ -217,7 +217,7 @@ def _numbers(value) -> tuple | None:
 
 def _same(a, b) -> bool:
     """``a == b`` for plain data, numbers to 1e-9 (a number equals its 1-tuple)."""
-    x, y = _numbers(a), _numbers(b)
+    x, y = _floats(a), _floats(b)
     if x is not None and y is not None:
         return len(x) == len(y) and all(math.isclose(u, v, rel_tol=1e-9, abs_tol=1e-12)
                                         for u, v in zip(x, y))  # fmt: skip
@@ -234,7 +234,7 @@ def _drawable(field_spec, value) -> bool:
         return _same(field_spec, value)
     if "choice" in field_spec:
         return any(_same(option, value) for option in field_spec["choice"])
-    numbers = _numbers(value)
+    numbers = _floats(value)
     if numbers is None or len(set(numbers)) != 1:  # a drawn number is one number
         return False
     x = numbers[0]

@@ -328,49 +328,36 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
     for seed in seeds:
         path = _fit(config, seed, runs_dir, list(extra), progress)
         card = cards[seed] = json.loads(path.with_suffix(".json").read_text())
-        if not test:
-            per_seed[seed] = {"checkpoint": str(path), "train_time_s": card.get("train_time_s")}
-            continue
-        evaluated, seed_totals[seed] = _evaluate(path, scenarios, runs, far, progress)
-        per_seed[seed] = {"checkpoint": str(path), "train_time_s": card.get("train_time_s"),
-                          **evaluated}  # fmt: skip
-    if not test:
-        return _write(out, _held_back(config, seeds, far, runs, per_seed, cards))
-    test_scores = _test_scores(per_seed, rank_by)
-    by_test = _median(test_scores, rank_by not in _LOWER_IS_BETTER)
+        per_seed[seed] = {"checkpoint": str(path), "train_time_s": card.get("train_time_s")}
+        if test:
+            evaluated, seed_totals[seed] = _evaluate(path, scenarios, runs, far, progress)
+            per_seed[seed].update(evaluated)
+    by_test = None  # --validation-only: no test number names a seed
+    if test:
+        test_scores = _test_scores(per_seed, rank_by)
+        by_test = _median(test_scores, rank_by not in _LOWER_IS_BETTER)
     if select_on == "validation":
         scores, monitor = _validation_scores(cards, config)
         median = _median(scores, monitor["mode"] == "max")
     else:
         scores, monitor, median = test_scores, None, by_test
-    _, judged = _scenarios_of(Path(per_seed[seeds[0]]["checkpoint"]), scenarios)
-    baselines = {sc: _baseline(sc, runs, far, progress, out / "baselines") for sc in judged}
     doc = {
-        "config": str(config), "seeds": seeds, "far": far, "runs": runs, "eval_seed": 0,
-        "rank_by": rank_by, "select_on": select_on, "median_seed": median,
+        "config": str(config), "seeds": seeds, "far": far, "runs": runs,
+        "eval_seed": 0 if test else None, "rank_by": rank_by if test else None,
+        "select_on": select_on, "median_seed": median,
         "median_checkpoint": per_seed[median]["checkpoint"],
         "selection": {"monitor": monitor, "scores": {str(s): v for s, v in scores.items()},
                       "median_seed_by_test": by_test},
-        "per_seed": {str(s): v for s, v in per_seed.items()}, "summary": _summary(per_seed),
-        "acceptance": _acceptance(per_seed, baselines, far, seed_totals),
+        "per_seed": {str(s): v for s, v in per_seed.items()},
     }  # fmt: skip
+    if not test:
+        doc["test"] = "held back"
+        return _write(out, doc)
+    _, judged = _scenarios_of(Path(per_seed[seeds[0]]["checkpoint"]), scenarios)
+    baselines = {sc: _baseline(sc, runs, far, progress, out / "baselines") for sc in judged}
+    doc["summary"] = _summary(per_seed)
+    doc["acceptance"] = _acceptance(per_seed, baselines, far, seed_totals)
     return _write(out, doc)
-
-
-def _held_back(config: Path, seeds: list[int], far: float, runs, per_seed: dict,
-               cards: dict) -> dict:  # fmt: skip
-    """The document of a ``--validation-only`` sweep: the seeds, their validation scores
-    and the median seed, and ``"test": "held back"`` in place of every test number."""
-    scores, monitor = _validation_scores(cards, config)
-    median = _median(scores, monitor["mode"] == "max")
-    return {
-        "config": str(config), "seeds": seeds, "far": far, "runs": runs, "eval_seed": None,
-        "rank_by": None, "select_on": "validation", "median_seed": median,
-        "median_checkpoint": per_seed[median]["checkpoint"],
-        "selection": {"monitor": monitor, "scores": {str(s): v for s, v in scores.items()},
-                      "median_seed_by_test": None},
-        "per_seed": {str(s): v for s, v in per_seed.items()}, "test": "held back",
-    }  # fmt: skip
 
 
 def _write(out: Path, doc: dict) -> dict:
