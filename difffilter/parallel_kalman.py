@@ -39,7 +39,12 @@ from .linalg import (
 )
 from .results import FilterResult
 
-__all__ = ["parallel_kalman_filter", "associative_scan"]
+__all__ = [
+    "parallel_kalman_filter",
+    "associative_scan",
+    "combine_covariance",
+    "covariance_elements",
+]
 
 
 def _take(
@@ -93,16 +98,27 @@ def associative_scan(
 def _combine(first, second):
     A_i, b_i, C_i, eta_i, J_i = first
     A_j, b_j, C_j, eta_j, J_j = second
+    (A, C, J), xa, a_x = combine_covariance((A_i, C_i, J_i), (A_j, C_j, J_j))
+    b = matvec(a_x, b_i + matvec(C_i, eta_j)) + b_j
+    eta = matvec(xa.transpose(-1, -2), eta_j - matvec(J_j, b_i)) + eta_i
+    return [A, b, C, eta, J]
+
+
+def combine_covariance(first, second):
+    """The data-independent part ``(A, C, J)`` of ``a_i ⊗ a_j`` (module docstring), with
+    ``X⁻¹ A_i`` and ``A_j X⁻¹`` (what the vector parts ``b, η`` multiply):
+    ``((A, C, J), X⁻¹A_i, A_j X⁻¹)``; ``first = (A_i, C_i, J_i)``, ``second = (A_j, C_j,
+    J_j)``, each ``[..., dx, dx]`` (broadcasting)."""
+    A_i, C_i, J_i = first
+    A_j, C_j, J_j = second
     eye = torch.eye(A_i.shape[-1], dtype=A_i.dtype, device=A_i.device)
     x_inv = torch.linalg.inv(eye + C_i @ J_j)
     xa = x_inv @ A_i
     a_x = A_j @ x_inv
     A = A_j @ xa
-    b = matvec(a_x, b_i + matvec(C_i, eta_j)) + b_j
     C = symmetrize(a_x @ C_i @ A_j.transpose(-1, -2) + C_j)
-    eta = matvec(xa.transpose(-1, -2), eta_j - matvec(J_j, b_i)) + eta_i
     J = symmetrize(xa.transpose(-1, -2) @ J_j @ A_i + J_i)
-    return [A, b, C, eta, J]
+    return (A, C, J), xa, a_x
 
 
 def _stack_over_time(
@@ -201,20 +217,30 @@ def _model_over_time(model, T: int, us: Tensor | None):
 def _generic_elements(F, Q, H, R, ys, offset):
     """The scan elements ``A, b, C, η, J`` of every step ``t ≥ 1`` (computed for all ``t``;
     element 0 is replaced by :func:`_first_element`)."""
+    c = offset if offset is not None else torch.zeros((), dtype=F.dtype, device=F.device)
+    (A, C, J), K, s_inv_hf = covariance_elements(F, Q, H, R)
+    resid = ys - (matvec(H, c) if offset is not None else 0.0)
+    b = c + matvec(K, resid)
+    eta = matvec(s_inv_hf.transpose(-1, -2), resid)
+    return A, b, C, eta, J
+
+
+def covariance_elements(F, Q, H, R):
+    """The data-independent part ``(A, C, J)`` of the scan element of a step ``t ≥ 1``
+    (module docstring: ``S = H Q Hᵀ + R``, ``K = Q Hᵀ S⁻¹``, ``A = (I − K H) F``,
+    ``C = (I − K H) Q`` in Joseph form, ``J = Fᵀ Hᵀ S⁻¹ H F``), with ``K`` and ``S⁻¹ H F``
+    (what the vector parts read): ``((A, C, J), K, S⁻¹HF)``. Shapes ``F, Q [*, dx, dx]``,
+    ``H [*, dy, dx]``, ``R [*, dy, dy]``."""
     dx = F.shape[-1]
     eye = torch.eye(dx, dtype=F.dtype, device=F.device)
-    c = offset if offset is not None else torch.zeros((), dtype=F.dtype, device=F.device)
     cross = Q @ H.transpose(-1, -2)
     K, chol = kalman_gain(cross, H @ cross + R)
-    resid = ys - (matvec(H, c) if offset is not None else 0.0)
     A = (eye - K @ H) @ F
-    b = c + matvec(K, resid)
     C = joseph_covariance(Q, K, H, R)
     HF = H @ F
     s_inv_hf = torch.cholesky_solve(HF, chol)  # S⁻¹ H F   [*, T, dy, dx]
-    eta = matvec(s_inv_hf.transpose(-1, -2), resid)
     J = symmetrize(HF.transpose(-1, -2) @ s_inv_hf)
-    return A, b, C, eta, J
+    return (A, C, J), K, s_inv_hf
 
 
 def _first_element(model, F, Q, H, R, ys, offset):

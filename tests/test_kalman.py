@@ -450,6 +450,78 @@ def test_the_gain_schedule_is_the_gaussian_core_recursion():
     assert schedule.moments(n + 50) is schedule.moments(n)  # the last moments, once converged
 
 
+def _gain_schedule_case(case: str):
+    """A linear model for the chunked-recursion test (every one's gain converges)."""
+    f64 = torch.float64
+    if case == "random":
+        return _random_linear_model()
+    if case == "float32":
+        return _random_linear_model().to(torch.float32)
+    if case == "constant_velocity":  # the benchmark's kind: F unstable, half the state seen
+        return constant_velocity(q=0.003, r=4.0)
+    if case == "unobservable_unstable":  # x₁ grows by 2 % a step and is never measured
+        F = torch.tensor([[1.02, 0.0], [0.0, 0.9]], dtype=f64)
+        H = torch.tensor([[0.0, 1.0]], dtype=f64)
+        model = df.LinearGaussianModel(
+            F, H, 0.01 * torch.eye(2, dtype=f64), torch.tensor([[0.04]], dtype=f64),
+            torch.zeros(2, dtype=f64), torch.eye(2, dtype=f64),
+        )  # fmt: skip
+        return model  # the gain converges (K₁ = 0); P₁₁ grows without bound
+    # H Q Hᵀ + R singular (a duck-typed model with noise-free measurements of a state whose
+    # noise they do not see): no scan element, the step-by-step recursion
+    F = torch.tensor([[1.0, 0.1], [0.0, 1.0]], dtype=f64)
+    model = df.LinearGaussianModel(
+        F, torch.tensor([[1.0, 0.0]], dtype=f64), torch.eye(2, dtype=f64),
+        torch.eye(1, dtype=f64), torch.zeros(2, dtype=f64), torch.eye(2, dtype=f64),
+    )  # fmt: skip
+    Q = torch.diag(torch.tensor([0.0, 0.01], dtype=f64))
+    model.process_cov = lambda k: Q
+    model.measurement_cov = lambda k: torch.zeros(1, 1, dtype=f64)
+    return model
+
+
+@pytest.mark.parametrize(
+    "case", ["random", "float32", "constant_velocity", "unobservable_unstable", "singular_element"]
+)
+def test_the_chunked_recursion_is_the_step_by_step_one(case):
+    """GainSchedule computes the covariance recursion a chunk at a time (riccati_chunk: the
+    scan element's j-step maps over blocks of 16 steps, the blocks' remaining steps
+    batched; step by step where H Q Hᵀ + R is singular); every moment equals riccati_step
+    run one step at a time (relative to each moment's size: 1e-12 in float64, 1e-5 in
+    float32), over 300 steps or until the gain converged, at the same step as the one-step
+    convergence test (max |K_k − K_{k−1}| ≤ 1e-12 max |K_{k−1}|) within one step."""
+    from difffilter.gain_schedule import riccati_step
+
+    model = _gain_schedule_case(case)
+    schedule = df.GainSchedule(model)
+    F, H = schedule.F, schedule.H
+    dx, dy = H.shape[1], H.shape[0]
+    eye_x, eye_y = torch.eye(dx, dtype=F.dtype), torch.eye(dy, dtype=F.dtype)
+    cov, reference, converged_at = model.initial.cov, [], None
+    for k in range(1, 301):
+        step = riccati_step(cov, F, F.mT, H, H.mT, schedule.Q, schedule.R, eye_x, eye_y)
+        cov = step[1]
+        if reference and converged_at is None:
+            change = (step[2] - reference[-1][2]).abs().max()
+            if change <= 1e-12 * reference[-1][2].abs().max():
+                converged_at = k
+        reference.append(step)
+    schedule.moments(300)
+    assert schedule.converged and converged_at is not None
+    n = len(schedule._moments)
+    if case != "float32":
+        assert abs(n - converged_at) <= 1, (n, converged_at)
+    assert (schedule._maps == ()) == (case == "singular_element")
+    # float32 (the schedule stops at a change of 16 ε, the one-step recursion at an exact
+    # repeat, some steps later): every step, the schedule's last moments after it stopped
+    last, rtol = (300, 2e-5) if case == "float32" else (min(n, converged_at), 1e-12)
+    for k in range(1, last + 1):
+        m = schedule.moments(k)
+        got = (m.pred_cov, m.cov, m.gain, m.innovation_cov, m.chol, m.whiten)
+        for a, b in zip(got, reference[k - 1]):
+            assert (a - b).abs().max() <= rtol * b.abs().max(), (k, a, b)
+
+
 @pytest.mark.parametrize("batch", [(), (4,), (2, 3)])
 @pytest.mark.parametrize("with_input", [False, True])
 def test_the_fused_gain_step_is_predict_update_and_evidence(batch, with_input):
