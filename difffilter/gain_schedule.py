@@ -43,7 +43,14 @@ from torch import Tensor
 from .linalg import LOG_2PI, matvec, safe_cholesky
 from .parallel_kalman import combine_covariance, covariance_elements
 
-__all__ = ["GainSchedule", "SharedMoments", "riccati_chunk", "riccati_step", "shared_gains_apply"]
+__all__ = [
+    "CovarianceChunks",
+    "GainSchedule",
+    "SharedMoments",
+    "riccati_chunk",
+    "riccati_step",
+    "shared_gains_apply",
+]
 
 
 class SharedMoments(NamedTuple):
@@ -92,12 +99,6 @@ class GainSchedule:
             different products, so below that the change is round-off; 1.9e-6 in float32).
     """
 
-    #: The chunks of the covariance recursion (:meth:`_extend`, :func:`riccati_chunk`):
-    #: blocks of ``BLOCK`` steps (the maps ``E(1 … BLOCK)``), the first chunk one block,
-    #: each later one ``GROWTH`` times the steps known, at most ``MAX_BLOCKS`` blocks (the
-    #: benchmark's model converges in 110 steps: two chunks).
-    BLOCK, GROWTH, MAX_BLOCKS = 16, 7, 8
-
     def __init__(self, model, *, tol: float = 1e-12):
         needed = ("transition_matrix", "observation_matrix", "control_matrix", "process_cov")
         missing = [name for name in needed if not hasattr(model, name)]
@@ -116,7 +117,6 @@ class GainSchedule:
             model.control_matrix(0),
         )
         self.Q, self.R = model.process_cov(0), model.measurement_cov(1)
-        self._tol = max(self.tol, 16 * torch.finfo(self.H.dtype).eps)  # what _extend tests
         dy, dx = self.H.shape
         eye = torch.eye(dx, dtype=self.H.dtype, device=self.H.device)
         # H = I (a fully measured state) saves a product per step
@@ -124,19 +124,19 @@ class GainSchedule:
         # transposed views, made once: the per-run products are `rows @ Aᵀ` (one GEMM)
         self.Ft, self.Ht = self.F.transpose(0, 1), self.H.transpose(0, 1)
         self.Bt = None if self.B is None else self.B.transpose(0, 1)
-        self._eye_x = eye
-        self._eye_y = torch.eye(dy, dtype=self.H.dtype, device=self.H.device)
         self._moments: list[SharedMoments] = []
         self._row_maps: list[tuple[Tensor, Tensor, Tensor]] = []
-        self._cov = model.initial.cov
-        self._gain_scale = 0.0  # max |K| of the last gain (the convergence test's scale)
-        self._maps: tuple[Tensor, ...] | None = None  # E(1 … BLOCK), () if none: _step_maps
+        self._chunks = CovarianceChunks(self.F, self.H, self.Q, self.R, model.initial.cov, tol)
         # the last chunk's moments [n, ...] (and log-norms [n]) not yet handed out, from
         # index _ahead_next: a step's moments are made when first asked for, so a filter
         # keeps the tensors of the steps it ran, not of the chunk computed ahead
         self._ahead: tuple[Tensor, ...] | None = None
         self._ahead_next = 0
-        self.converged = False
+
+    @property
+    def converged(self) -> bool:
+        """Whether the gain has converged (every later step reuses the last moments)."""
+        return self._chunks.converged
 
     def moments(self, k: int) -> SharedMoments:
         """The :class:`SharedMoments` of measurement ``k ≥ 1``."""
@@ -151,79 +151,15 @@ class GainSchedule:
         with torch.no_grad():
             while len(known) < k and not (self.converged and self._ahead is None):
                 if self._ahead is None:
-                    self._extend()
+                    *moments, half_logdet = self._chunks.next()
+                    log_norms = half_logdet + 0.5 * self.H.shape[0] * LOG_2PI
+                    self._ahead, self._ahead_next = (*moments, log_norms), 0
                 i, ahead = self._ahead_next, self._ahead
                 known.append(SharedMoments(*(t[i] for t in ahead)))
                 self._ahead_next = i + 1
                 if i + 1 == len(ahead[0]):
                     self._ahead = None
         return known[min(k, len(known)) - 1]
-
-    def _extend(self) -> None:
-        """The next chunk of the covariance recursion: ``BLOCK`` steps first (a filter run
-        for a few steps computes little ahead), then ``GROWTH`` times as many as are known,
-        at most ``MAX_BLOCKS`` blocks; the steps after the first converged one are dropped
-        (:meth:`_steps_to_keep`)."""
-        blocks = min(max(self.GROWTH * len(self._moments) // self.BLOCK, 1), self.MAX_BLOCKS)
-        mats = (self.F, self.Ft, self.H, self.Ht, self.Q, self.R, self._eye_x, self._eye_y)
-        maps = self._step_maps()
-        if maps is not None:
-            moments = riccati_chunk(self._cov, maps, blocks, *mats)
-        else:  # no scan element (H Q Hᵀ + R singular): one step at a time
-            steps, cov = [], self._cov
-            for _ in range(blocks * self.BLOCK):
-                steps.append(riccati_step(cov, *mats))
-                cov = steps[-1][1]
-            moments = tuple(torch.stack(field) for field in zip(*steps))
-        keep = self._steps_to_keep(moments[2])
-        self._cov = moments[1][keep - 1]
-        chol = moments[4]
-        log_norms = chol.diagonal(dim1=-2, dim2=-1).log().sum(-1) + 0.5 * chol.shape[-1] * LOG_2PI
-        self._ahead, self._ahead_next = tuple(m[:keep] for m in (*moments, log_norms)), 0
-
-    def _steps_to_keep(self, K: Tensor) -> int:
-        """How many of a chunk's gains ``K [n, dx, dy]`` to keep: up to the first step whose
-        gain converged, ``max |K_k − K_{k−1}| ≤ tol · max |K_{k−1}|`` (then
-        :attr:`converged`), else all; one read. The previous chunk was handed out in full
-        before this one was made, so ``K_{k−1}`` of its first step is the last known."""
-        n = K.shape[0]
-        if K.device.type == "meta":  # shapes only: never converged
-            return n
-        scales = torch.linalg.vector_norm(K, math.inf, dim=(-2, -1))
-        if self._moments:
-            before = torch.cat([self._moments[-1].gain.unsqueeze(0), K[:-1]])
-            before_scales = torch.cat([scales.new_full((1,), self._gain_scale), scales[:-1]])
-        else:  # the first step has no previous gain: tested from the second on
-            before, before_scales = K[:-1], scales[:-1]
-        first = n - len(before)  # the chunk's first tested step
-        change = torch.linalg.vector_norm(K[first:] - before, math.inf, dim=(-2, -1))
-        hits = (change <= self._tol * before_scales).nonzero()
-        keep = n
-        if len(hits):
-            keep, self.converged = first + int(hits[0]) + 1, True
-        self._gain_scale = scales[keep - 1].item()
-        return keep
-
-    def _step_maps(self) -> tuple[Tensor, Tensor, Tensor] | None:
-        """The ``j``-step maps ``E(j) = e ⊗ … ⊗ e`` (``j`` times) of the scan element ``e``
-        of one step (:func:`~difffilter.parallel_kalman.covariance_elements`) for ``j = 1 …
-        BLOCK``: ``(A, C, J)``, each ``[BLOCK, dx, dx]``; made once, by doubling, ``E(i + m)
-        = E(i) ⊗ E(m)`` for ``i = 1 … m`` (the elements are all equal, so any grouping is
-        theirs). ``None`` where ``H Q Hᵀ + R`` is not positive definite (the element needs
-        its inverse; the recursion's ``S_k`` may still be, through ``P⁻_k``)."""
-        if self._maps is None:
-            S = self.H @ self.Q @ self.Ht + self.R
-            if S.device.type != "meta" and torch.linalg.cholesky_ex(S).info.item():
-                self._maps = ()
-                return None
-            maps = tuple(
-                m.unsqueeze(0) for m in covariance_elements(self.F, self.Q, self.H, self.R)[0]
-            )
-            while maps[0].shape[0] < self.BLOCK:
-                more, _, _ = combine_covariance(maps, tuple(m[-1] for m in maps))
-                maps = tuple(torch.cat(pair) for pair in zip(maps, more))
-            self._maps = tuple(m[: self.BLOCK] for m in maps)
-        return self._maps or None
 
     def gain(self, k: int) -> tuple[Tensor, Tensor]:
         """``(K_k [dx, dy], S_k [dy, dy])`` of measurement ``k ≥ 1``."""
@@ -289,6 +225,104 @@ class GainSchedule:
         m = self.moments(k)
         innovation = self.innovation(pred_mean, y)
         return pred_mean + matvec(m.gain, innovation), innovation, m.innovation_cov
+
+
+class CovarianceChunks:
+    """The covariance recursion of one unbatched time-invariant model a chunk of steps at a
+    time (:func:`riccati_chunk`; step by step where ``H Q Hᵀ + R`` is singular), each chunk
+    cut at the first step whose gain converged: what :class:`GainSchedule` hands out step
+    by step and the whole-sequence shared-covariance path (:mod:`difffilter._shared_cov`)
+    stacks.
+
+    Args:
+        F, H, Q, R: ``[dx, dx]``, ``[dy, dx]``, ``[dx, dx]``, ``[dy, dy]``.
+        cov: the prior covariance ``P_0 [dx, dx]``.
+        tol: the convergence test's relative change of ``K``, ``max |K_k − K_{k−1}| ≤ tol ·
+            max |K_{k−1}|``, at least 16 ε of the dtype (:class:`GainSchedule`).
+    """
+
+    #: Blocks of ``BLOCK`` steps (the maps ``E(1 … BLOCK)``); the first chunk one block (a
+    #: filter run for a few steps computes little ahead), each later one ``GROWTH`` times
+    #: the steps done, at most ``MAX_BLOCKS`` blocks (the benchmark's model converges in 110
+    #: steps: two chunks).
+    BLOCK, GROWTH, MAX_BLOCKS = 16, 7, 8
+
+    def __init__(self, F: Tensor, H: Tensor, Q: Tensor, R: Tensor, cov: Tensor, tol: float):
+        dy, dx = H.shape
+        self._mats = (
+            F, F.transpose(0, 1), H, H.transpose(0, 1), Q, R,
+            torch.eye(dx, dtype=H.dtype, device=H.device),
+            torch.eye(dy, dtype=H.dtype, device=H.device),
+        )  # fmt: skip
+        self._cov = cov
+        self._tol = max(float(tol), 16 * torch.finfo(H.dtype).eps)
+        self._maps: tuple[Tensor, ...] | None = None  # E(1 … BLOCK), () if none: _step_maps
+        self._last_gain: Tensor | None = None  # K of the last step done
+        self._gain_scale = 0.0  # its max |K| (the convergence test's scale)
+        self.steps = 0  # steps done
+        self.converged = False
+
+    def next(self) -> tuple[Tensor, ...]:
+        """The next chunk's ``(P⁻, P, K, S, L, L⁻¹)`` (each ``[n, ·, ·]``, as
+        :func:`riccati_step` returns them) and ``Σ log diag L`` ``[n]``, up to and
+        including the first step whose gain converged (then :attr:`converged`)."""
+        blocks = min(max(self.GROWTH * self.steps // self.BLOCK, 1), self.MAX_BLOCKS)
+        maps = self._step_maps()
+        if maps is not None:
+            moments = riccati_chunk(self._cov, maps, blocks, *self._mats)
+        else:  # no scan element (H Q Hᵀ + R singular): one step at a time
+            steps, cov = [], self._cov
+            for _ in range(blocks * self.BLOCK):
+                steps.append(riccati_step(cov, *self._mats))
+                cov = steps[-1][1]
+            moments = tuple(torch.stack(field) for field in zip(*steps))
+        keep = self._steps_to_keep(moments[2])
+        moments = tuple(m[:keep] for m in moments)
+        self._cov, self._last_gain, self.steps = moments[1][-1], moments[2][-1], self.steps + keep
+        half_logdet = moments[4].diagonal(dim1=-2, dim2=-1).log().sum(-1)
+        return (*moments, half_logdet)
+
+    def _steps_to_keep(self, K: Tensor) -> int:
+        """How many of a chunk's gains ``K [n, dx, dy]`` to keep: up to the first step whose
+        gain converged, ``max |K_k − K_{k−1}| ≤ tol · max |K_{k−1}|`` (then
+        :attr:`converged`), else all; one read."""
+        n = K.shape[0]
+        if K.device.type == "meta":  # shapes only: never converged
+            return n
+        scales = torch.linalg.vector_norm(K, math.inf, dim=(-2, -1))
+        if self._last_gain is not None:
+            before = torch.cat([self._last_gain.unsqueeze(0), K[:-1]])
+            before_scales = torch.cat([scales.new_full((1,), self._gain_scale), scales[:-1]])
+        else:  # the first step has no previous gain: tested from the second on
+            before, before_scales = K[:-1], scales[:-1]
+        first = n - len(before)  # the chunk's first tested step
+        change = torch.linalg.vector_norm(K[first:] - before, math.inf, dim=(-2, -1))
+        hits = (change <= self._tol * before_scales).nonzero()
+        keep = n
+        if len(hits):
+            keep, self.converged = first + int(hits[0]) + 1, True
+        self._gain_scale = scales[keep - 1].item()
+        return keep
+
+    def _step_maps(self) -> tuple[Tensor, Tensor, Tensor] | None:
+        """The ``j``-step maps ``E(j) = e ⊗ … ⊗ e`` (``j`` times) of the scan element ``e``
+        of one step (:func:`~difffilter.parallel_kalman.covariance_elements`) for ``j = 1 …
+        BLOCK``: ``(A, C, J)``, each ``[BLOCK, dx, dx]``; made once, by doubling, ``E(i + m)
+        = E(i) ⊗ E(m)`` for ``i = 1 … m`` (the elements are all equal, so any grouping is
+        theirs). ``None`` where ``H Q Hᵀ + R`` is not positive definite (the element needs
+        its inverse; the recursion's ``S_k`` may still be, through ``P⁻_k``)."""
+        if self._maps is None:
+            F, _, H, Ht, Q, R, _, _ = self._mats
+            S = H @ Q @ Ht + R
+            if S.device.type != "meta" and torch.linalg.cholesky_ex(S).info.item():
+                self._maps = ()
+                return None
+            maps = tuple(m.unsqueeze(0) for m in covariance_elements(F, Q, H, R)[0])
+            while maps[0].shape[0] < self.BLOCK:
+                more, _, _ = combine_covariance(maps, tuple(m[-1] for m in maps))
+                maps = tuple(torch.cat(pair) for pair in zip(maps, more))
+            self._maps = tuple(m[: self.BLOCK] for m in maps)
+        return self._maps or None
 
 
 def riccati_step(
