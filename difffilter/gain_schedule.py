@@ -10,12 +10,14 @@ matrices (the Gaussian core's blocks of :mod:`difffilter.gaussian` written out w
 operations, equal up to round-off), and keeps every step's moments. It computes a chunk of
 steps at a time (:func:`riccati_chunk`): with the data-independent part ``(A, C, J)`` of the
 parallel-in-time filter's element of one step (Särkkä & García-Fernández 2021,
-:mod:`difffilter.parallel_kalman`) and its ``j``-fold combinations ``E(j)``, made once by
-doubling, ``P_{s+j} = A_j (I + P_s J_j)⁻¹ P_s A_jᵀ + C_j`` gives every covariance of the
-chunk from its first, and the remaining blocks run batched over the chunk: about 30
-operations on ``[n, d, d]`` batches instead of 25 per step on ``[d, d]`` matrices, whose
-cost at ``d = 4`` is their dispatch (a Kalman filter's cold start at B = 1: its first
-hundred steps). What remains per run is linear in the data,
+:mod:`difffilter.parallel_kalman`) and its ``j``-fold combinations ``E(j)``, ``j ≤ 16``,
+made once by doubling, ``P_{s+j} = A_j (I + P_s J_j)⁻¹ P_s A_jᵀ + C_j`` gives each block of
+16 covariances from the block's first (and the next block's first), and the rest of the
+recursion runs batched over the chunk: about 40 operations on ``[n, d, d]`` batches per
+chunk instead of 25 per step on ``[d, d]`` matrices, whose cost at ``d = 4`` is their
+dispatch (a Kalman filter's cold start at B = 1: its first hundred steps; the
+whole-sequence filter at B = 1). :class:`CovarianceChunks` holds that recursion. What
+remains per run is linear in the data,
 
     m⁻_k = F m_{k−1} + B u_{k−1}                                    (:meth:`GainSchedule.predict`)
     ν_k  = y_k − H m⁻_k,   m_k = m⁻_k + K_k ν_k                    (:meth:`GainSchedule.update`)
