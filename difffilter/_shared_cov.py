@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 from torch.nn.functional import pad as F_pad
 
-from .gain_schedule import CovarianceChunks, riccati_step
+from .gain_schedule import CovarianceChunks, half_log_det, riccati_steps
 from .linalg import LOG_2PI
 from .results import FilterResult
 
@@ -99,13 +99,8 @@ def _covariances(F, H, Q, R, P, T):
     eye_x = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device)
     eye_y = torch.eye(H.shape[-2], dtype=F.dtype, device=F.device)
     Ft, Ht = F.transpose(0, 1), H.transpose(0, 1)
-    steps = []
-    for _ in range(T):  # the covariance recursion: T small unbatched steps, not an estimator loop
-        Pp, P, K, S, chol, whiten = riccati_step(P, F, Ft, H, Ht, Q, R, eye_x, eye_y)
-        steps.append((Pp, P, S, K, whiten, chol))
-    pred, covs, inn, gains, whiten, chols = (torch.stack(m) for m in zip(*steps))
-    half_logdet = torch.log(torch.diagonal(chols, dim1=-2, dim2=-1)).sum(-1)
-    return pred, covs, inn, gains, whiten, half_logdet
+    pred, covs, gains, inn, chols, whiten = riccati_steps(P, T, F, Ft, H, Ht, Q, R, eye_x, eye_y)
+    return pred, covs, inn, gains, whiten, half_log_det(chols)
 
 
 def _block_maps(F, H, Bm, gains, whiten, L, du):

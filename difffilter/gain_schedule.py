@@ -49,8 +49,10 @@ __all__ = [
     "CovarianceChunks",
     "GainSchedule",
     "SharedMoments",
+    "half_log_det",
     "riccati_chunk",
     "riccati_step",
+    "riccati_steps",
     "shared_gains_apply",
 ]
 
@@ -273,16 +275,11 @@ class CovarianceChunks:
         if maps is not None:
             moments = riccati_chunk(self._cov, maps, blocks, *self._mats)
         else:  # no scan element (H Q Hᵀ + R singular): one step at a time
-            steps, cov = [], self._cov
-            for _ in range(blocks * self.BLOCK):
-                steps.append(riccati_step(cov, *self._mats))
-                cov = steps[-1][1]
-            moments = tuple(torch.stack(field) for field in zip(*steps))
+            moments = riccati_steps(self._cov, blocks * self.BLOCK, *self._mats)
         keep = self._steps_to_keep(moments[2])
         moments = tuple(m[:keep] for m in moments)
         self._cov, self._last_gain, self.steps = moments[1][-1], moments[2][-1], self.steps + keep
-        half_logdet = moments[4].diagonal(dim1=-2, dim2=-1).log().sum(-1)
-        return (*moments, half_logdet)
+        return (*moments, half_log_det(moments[4]))
 
     def _steps_to_keep(self, K: Tensor) -> int:
         """How many of a chunk's gains ``K [n, dx, dy]`` to keep: up to the first step whose
@@ -382,9 +379,28 @@ def riccati_chunk(
     starts = [cov]
     for _ in range(blocks - 1):  # the blocks' first covariances, one map of m steps each
         starts.append(_apply_map(starts[-1], A[-1], C[-1], J[-1], eye_x))
-    inner = _apply_map(torch.stack(starts).unsqueeze(1), A[:-1], C[:-1], J[:-1], eye_x)
-    previous = torch.cat([torch.stack(starts).unsqueeze(1), inner], 1).flatten(0, 1)
+    starts = torch.stack(starts).unsqueeze(1)  # [blocks, 1, dx, dx]
+    inner = _apply_map(starts, A[:-1], C[:-1], J[:-1], eye_x)
+    previous = torch.cat([starts, inner], 1).flatten(0, 1)
     return riccati_step(previous, F, Ft, H, Ht, Q, R, eye_x, eye_y)
+
+
+def riccati_steps(
+    cov: Tensor, n: int, F: Tensor, Ft: Tensor, H: Tensor, Ht: Tensor, Q: Tensor, R: Tensor,
+    eye_x: Tensor, eye_y: Tensor,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:  # fmt: skip
+    """``n`` steps of :func:`riccati_step` from ``P_s`` (``cov [dx, dx]``), one at a time
+    (differentiable step by step), stacked as :func:`riccati_chunk` returns them."""
+    steps = []
+    for _ in range(n):  # the covariance recursion: small unbatched steps, not an estimator loop
+        steps.append(riccati_step(cov, F, Ft, H, Ht, Q, R, eye_x, eye_y))
+        cov = steps[-1][1]
+    return tuple(torch.stack(field) for field in zip(*steps))
+
+
+def half_log_det(chol: Tensor) -> Tensor:
+    """``Σ log diag L`` ``[...]`` of Cholesky factors ``L [..., d, d]`` (``½ log det S``)."""
+    return chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
 
 
 def _apply_map(cov: Tensor, A: Tensor, C: Tensor, J: Tensor, eye_x: Tensor) -> Tensor:

@@ -551,8 +551,7 @@ def test_the_shared_recursion_stops_where_the_gain_converges_with_the_same_numbe
     of 300 steps, no step-by-step call) and repeats the last moments: every one within
     1e-12 of its size (2e-14 measured) of the gradient path, which computes all 300 steps
     one at a time."""
-    from difffilter import _shared_cov
-    from difffilter.gain_schedule import riccati_step
+    from difffilter import _shared_cov, gain_schedule
 
     f64 = torch.float64
     block = torch.tensor([[1 / 3, 1 / 2], [1 / 2, 1.0]], dtype=f64)
@@ -560,13 +559,14 @@ def test_the_shared_recursion_stops_where_the_gain_converges_with_the_same_numbe
     H = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1, 0]], dtype=f64)
     Q, R = 0.055**2 * torch.block_diag(block, block), 4.0 * torch.eye(2, dtype=f64)
     P0 = torch.diag(torch.tensor([1.0, 1e-4, 1.0, 1e-4], dtype=f64))
-    calls = []
+    calls, riccati_step = [], gain_schedule.riccati_step
 
-    def counted(*args):
-        calls.append(1)
-        return riccati_step(*args)
+    def counted(cov, *args):
+        if cov.dim() == 2:  # one unbatched step (a chunk passes a batch of covariances)
+            calls.append(1)
+        return riccati_step(cov, *args)
 
-    monkeypatch.setattr(_shared_cov, "riccati_step", counted)
+    monkeypatch.setattr(gain_schedule, "riccati_step", counted)
     with torch.no_grad():
         cut = _shared_cov._covariances(F, H, Q, R, P0, 300)
     assert not calls  # the chunks, not the step-by-step recursion
