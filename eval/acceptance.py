@@ -20,7 +20,10 @@ the state metric              ≤ 1.05 × the best analytic's (``state_rmse``; t
 
 Across a robustness study's threats (:func:`judge_robustness`), the learned estimator's
 worst TPR over the threats must be ≥ the best worst case of the analytic estimators, and
-its state error ≤ 1.1 × the best analytic's on every threat.
+its state error ≤ 1.1 × the best analytic's on every threat. Where that best reads no
+measurement (an open-loop prediction, whose error no sensor attack moves), the check stays
+against it and the verdict also gives the best analytic that reads the sensors, for the
+reader to weigh.
 
 Every check reads numbers a study already wrote (``metrics.json``'s ``estimators``, or a
 suite's ``metrics``), so the verdict is reproducible from the files.
@@ -29,12 +32,13 @@ suite's ``metrics``), so the verdict is reproducible from the files.
 from __future__ import annotations
 
 import math
+from collections.abc import Collection
 from dataclasses import asdict, dataclass
 from typing import Any
 
 __all__ = [
     "Check", "TOLERANCES", "ROBUST_STATE_FACTOR", "ANALYTIC", "best_analytic", "judge",
-    "judge_robustness", "roles", "state_metric",
+    "judge_robustness", "reading_no_measurements", "roles", "state_metric",
 ]  # fmt: skip
 
 #: The headline acceptance's tolerances: TPR margin, state-error factor, FPR band (× α).
@@ -67,6 +71,14 @@ def roles(names) -> dict[str, str]:
     from difffilter.models import estimators as registry
 
     return {name: registry.get(name).role for name in names}
+
+
+def reading_no_measurements(names) -> list[str]:
+    """The estimators of ``names`` that read no measurement (sorted), from the registry
+    (:attr:`EstimatorSpec.reads_measurements`)."""
+    from difffilter.models import estimators as registry
+
+    return sorted(n for n in names if not registry.get(n).reads_measurements)
 
 
 def state_metric(metrics: dict[str, dict]) -> str:
@@ -129,7 +141,10 @@ def judge(learned: dict, best: dict, far: float, metric: str = "state_rmse") -> 
 
 
 def judge_robustness(
-    cells: dict[str, dict[str, dict]], role_of: dict[str, str], far: float | None = None
+    cells: dict[str, dict[str, dict]],
+    role_of: dict[str, str],
+    far: float | None = None,
+    blind: Collection[str] = (),
 ) -> dict:
     """Each learned estimator of a robustness study against the analytic ones.
 
@@ -138,6 +153,12 @@ def judge_robustness(
     estimator, threat), "tpr_holds", "worst_threat_undetected", "state": {threat:
     {"value", "best", "best_estimator", "ratio", "holds"}}, "state_holds", "holds"}}``;
     threats where nobody detects (no TPR) count only for the state error.
+
+    ``blind``: the estimators that read no measurement (:func:`reading_no_measurements`).
+    Where one of them is a threat's best analytic, the threat's entry also holds
+    ``"best_reads_no_measurements": True`` and the best analytic that does read them,
+    ``"best_reading"``, ``"best_reading_estimator"`` and the learned value's
+    ``"ratio_reading"`` to it; the check is unchanged (against the best of all).
 
     ``worst_threat_undetected`` (``None`` without ``far``, the calibrated rate α): the best
     analytic worst-case TPR is at most the top of the false-alarm band, ``2α``, so no
@@ -170,8 +191,13 @@ def judge_robustness(
             best, who = min(rivals)
             ok = _finite(value) and value <= ROBUST_STATE_FACTOR * best
             state[threat] = {"value": value, "best": best, "best_estimator": who,
-                             "ratio": value / best if _finite(value) and best > 0 else None,
-                             "holds": bool(ok)}  # fmt: skip
+                             "ratio": _ratio(value, best), "holds": bool(ok)}  # fmt: skip
+            reading = [r for r in rivals if r[1] not in blind]
+            if who in blind and reading:
+                best_reading, reader = min(reading)
+                state[threat].update(best_reads_no_measurements=True, best_reading=best_reading,
+                                     best_reading_estimator=reader,
+                                     ratio_reading=_ratio(value, best_reading))  # fmt: skip
         tpr_holds = best_worst is None or (mine is not None and mine[0] >= best_worst[0])
         state_holds = all(c["holds"] for c in state.values())
         out[name] = {"worst_tpr": mine, "best_analytic_worst_tpr": best_worst,
@@ -179,3 +205,7 @@ def judge_robustness(
                      "state": state,
                      "state_holds": bool(state_holds), "holds": bool(tpr_holds and state_holds)}  # fmt: skip
     return out
+
+
+def _ratio(value, best: float) -> float | None:
+    return value / best if _finite(value) and best > 0 else None

@@ -30,7 +30,13 @@ import yaml
 
 from difffilter.threats import threat_from_dict
 
-from .acceptance import ANALYTIC, ROBUST_STATE_FACTOR, judge_robustness, roles
+from .acceptance import (
+    ANALYTIC,
+    ROBUST_STATE_FACTOR,
+    judge_robustness,
+    reading_no_measurements,
+    roles,
+)
 from .calibration import calibrate
 from .coverage import checkpoint_of, training_coverage
 from .intervals import LEVEL, RESAMPLES, robustness_intervals, threat_totals
@@ -249,8 +255,10 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
         "stealthy": result.stealthy,
         "checkpoint": free.checkpoint,
         "estimator_roles": roles(free.metrics),
+        "reads_no_measurements": reading_no_measurements(free.metrics),
     })  # fmt: skip
-    acceptance = judge_robustness(doc["cells"], doc["estimator_roles"], result.calibration.far)
+    acceptance = judge_robustness(doc["cells"], doc["estimator_roles"], result.calibration.far,
+                                  blind=doc["reads_no_measurements"])  # fmt: skip
     intervals = robustness_intervals(result.run_totals, doc["estimator_roles"],
                                      runs=result.runs, seed=result.seed)  # fmt: skip
     model = sc.system() if acceptance else None  # for threat kinds that read it
@@ -328,9 +336,13 @@ def _acceptance_section(name: str, a: dict) -> str:
                "compares false-alarm rates on it, not detection."
                if a.get("worst_threat_undetected") else "")
         )  # fmt: skip
-    rows = [[t, format_number(c["value"], 4), f"{format_number(c['best'], 4)} (`{c['best_estimator']}`)",
+    blind = any(c.get("best_reads_no_measurements") for c in a["state"].values())
+    rows = [[t, format_number(c["value"], 4),
+             f"{format_number(c['best'], 4)} (`{c['best_estimator']}`"
+             f"{'†' if c.get('best_reads_no_measurements') else ''})",
              format_number(c["ratio"], 3), _interval_cell(c.get("interval")),
-             "yes" if c["holds"] else "**no**", seen.get(t, "—")]
+             "yes" if c["holds"] else "**no**", seen.get(t, "—"),
+             *([_reading_cell(c)] if blind else [])]
             for t, c in a["state"].items()]  # fmt: skip
     lines.append(f"- State RMSE ≤ {ROBUST_STATE_FACTOR:g} × the best analytic's on every threat: "
                  f"{'holds' if a['state_holds'] else '**does not hold**'}. The interval: the ratio's "
@@ -338,9 +350,24 @@ def _acceptance_section(name: str, a: dict) -> str:
                  f"{ROBUST_STATE_FACTOR:g}× (paired bootstrap over the runs, {RESAMPLES:,} "
                  "resamples, the best analytic chosen again in each; `difffilter.eval.intervals`).\n")  # fmt: skip
     lines.append(_training_line(training))
+    if blind:
+        lines.append("- † reads no measurement (an open-loop prediction): no sensor attack moves "
+                     "its error, so it sets the bar wherever the attack drags every filter that "
+                     "reads the sensors. The check stays against it; the last column gives the "
+                     "best analytic that reads them, and the learned value's ratio to it.\n")  # fmt: skip
     lines.append(markdown_table(["threat", name, "best analytic", "ratio", "interval", "holds",
-                                 "in training"], rows))  # fmt: skip
+                                 "in training",
+                                 *(["best that reads the sensors (ratio)"] if blind else [])],
+                                rows))  # fmt: skip
     return "\n".join(lines)
+
+
+def _reading_cell(check: dict) -> str:
+    """The best analytic that reads the sensors, where the best reads none, and the ratio."""
+    if not check.get("best_reads_no_measurements"):
+        return ""
+    return (f"{format_number(check['best_reading'], 4)} (`{check['best_reading_estimator']}`), "
+            f"{format_number(check['ratio_reading'], 3)}×")  # fmt: skip
 
 
 def _training_line(training: dict | None) -> str:
@@ -472,6 +499,19 @@ def write_robustness_summary(out: str | Path, docs: dict[str, dict]) -> Path:
     return path
 
 
+def _within_readers(checks) -> str:
+    """``" (n within the best that reads the sensors)"`` where some threat's best analytic
+    reads no measurement (:func:`~.acceptance.judge_robustness`), else ``""``: how many
+    threats hold when every such bar is replaced by the best estimator that reads them."""
+    checks = list(checks)
+    if not any(c.get("best_reads_no_measurements") for c in checks):
+        return ""
+    ratios = [c["ratio_reading"] if c.get("best_reads_no_measurements") else c["ratio"]
+              for c in checks]  # fmt: skip
+    n = sum(r is not None and r <= ROBUST_STATE_FACTOR for r in ratios)
+    return f" ({n} within the best that reads the sensors)"
+
+
 def _acceptance_summary(docs: dict[str, dict]) -> str:
     """Each learned estimator's robustness acceptance per scenario, with how sure: the
     worst-case TPR check's share of resamples, and the threats within the state factor
@@ -489,7 +529,8 @@ def _acceptance_summary(docs: dict[str, dict]) -> str:
             shares = [c["interval"]["holds_share"] for c in checks
                       if c.get("interval") and c["interval"].get("holds_share") is not None]  # fmt: skip
             rows.append([scenario, f"`{name}`", tpr,
-                         f"{sum(c['holds'] for c in checks)} of {len(checks)}",
+                         f"{sum(c['holds'] for c in checks)} of {len(checks)}"
+                         + _within_readers(checks),
                          f"{sum(v >= 0.95 for v in shares)} / {sum(v <= 0.05 for v in shares)}",
                          "holds" if a["holds"] else "**fails**"])  # fmt: skip
     if not rows:

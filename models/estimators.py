@@ -76,6 +76,11 @@ class EstimatorSpec:
         more_data: it reads data the scenario's receiver does not get (tracking's
             ``pf_da``: every sensor at every step, where the Round-Robin protocol delivers
             one): what more data would buy, not a competitor on the scenario's data.
+        reads_measurements: ``False`` for an open-loop prediction that reads no measurement
+            (the four-tank paper's account of method [31]): still a competitor, but under
+            any sensor attack its error is its attack-free error, so the robustness report
+            names it where it sets a threat's bar and gives the best estimator that reads
+            the sensors beside it (:func:`difffilter.eval.acceptance.judge_robustness`).
     """
 
     name: str
@@ -88,6 +93,7 @@ class EstimatorSpec:
     oracle: bool = False
     learned: bool = False
     more_data: bool = False
+    reads_measurements: bool = True
 
     @property
     def role(self) -> str:
@@ -127,9 +133,11 @@ def register(
     oracle: bool = False,
     learned: bool = False,
     more_data: bool = False,
+    reads_measurements: bool = True,
 ):
     """Decorator registering ``factory`` under ``name`` (twice is an error); ``needs``,
-    ``estimates``, ``oracle``, ``learned`` and ``more_data`` as in :class:`EstimatorSpec`."""
+    ``estimates``, ``oracle``, ``learned``, ``more_data`` and ``reads_measurements`` as in
+    :class:`EstimatorSpec`."""
     estimates = None if estimates is None else Channel(estimates)
     needs = tuple(needs)
     if not all(isinstance(n, Need) for n in needs):
@@ -139,7 +147,8 @@ def register(
         if name in ESTIMATORS and ESTIMATORS[name].factory is not factory:
             raise ValueError(f"estimator {name!r} is already registered")
         ESTIMATORS[name] = EstimatorSpec(name, factory, description, clean_input, reference,
-                                         needs, estimates, oracle, learned, more_data)  # fmt: skip
+                                         needs, estimates, oracle, learned, more_data,
+                                         reads_measurements)  # fmt: skip
         return factory
 
     return wrap

@@ -62,7 +62,9 @@ def _fused(ctx: SuiteContext):
     return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr), fused=True)
 
 
-@register("open_loop_pf", "all weights 1/N: the paper's account of method [31]")
+@register(
+    "open_loop_pf", "all weights 1/N: the paper's account of method [31]", reads_measurements=False
+)
 def _open_loop(ctx: SuiteContext):
     def run(tr):
         res = particle_filter(

@@ -7,7 +7,14 @@ import inspect
 
 import pytest
 
-from difffilter.eval.acceptance import best_analytic, judge, judge_robustness, roles, state_metric
+from difffilter.eval.acceptance import (
+    best_analytic,
+    judge,
+    judge_robustness,
+    reading_no_measurements,
+    roles,
+    state_metric,
+)
 from difffilter.models import estimators as registry
 
 
@@ -101,6 +108,46 @@ def test_the_worst_case_tpr_check_says_when_no_analytic_detector_sees_its_worst_
         assert judged["worst_threat_undetected"] is unseen, (covert_tpr, far)
         assert judged["tpr_holds"] == (0.012 >= covert_tpr)
     assert judge_robustness(cells(0.015), role_of)["net"]["worst_threat_undetected"] is None
+
+
+def test_a_best_analytic_that_reads_no_measurement_keeps_the_bar_and_names_the_best_reader():
+    role_of = {"net": "learned", "open": "analytic", "chi": "analytic", "cusum": "analytic"}
+    row = lambda rmse: {"tpr_at_far": 0.5, "state_rmse": rmse}  # noqa: E731
+    cells = {  # a ramp drags every filter that reads the sensors; a bias is undone by "chi"
+        "ramp": {"net": row(0.15), "open": row(0.05), "chi": row(0.20), "cusum": row(0.17)},
+        "bias": {"net": row(0.018), "open": row(0.05), "chi": row(0.016), "cusum": row(0.04)},
+    }
+    judged = judge_robustness(cells, role_of, 0.01, blind={"open"})["net"]["state"]
+    ramp, bias = judged["ramp"], judged["bias"]
+    # the check is against the best of all, the open-loop prediction included
+    assert (ramp["best"], ramp["best_estimator"]) == (0.05, "open")
+    assert ramp["ratio"] == pytest.approx(3.0) and not ramp["holds"]
+    # ... and the verdict names the best that reads the sensors beside it
+    assert ramp["best_reads_no_measurements"] is True
+    assert (ramp["best_reading"], ramp["best_reading_estimator"]) == (0.17, "cusum")
+    assert ramp["ratio_reading"] == pytest.approx(0.15 / 0.17)
+    # where a reader is best, nothing is added
+    assert bias["best_estimator"] == "chi" and "best_reading" not in bias
+    assert bias["holds"] == (0.018 <= 1.1 * 0.016)
+    # without the registry's word every estimator counts as reading: the same checks
+    plain = judge_robustness(cells, role_of, 0.01)["net"]["state"]
+    assert "best_reading" not in plain["ramp"]
+    assert {t: c["holds"] for t, c in plain.items()} == {t: c["holds"] for t, c in judged.items()}
+    # the report marks the open-loop bar and gives the reader's column
+    from difffilter.eval.robustness import _acceptance_section
+
+    text = _acceptance_section("net", judge_robustness(cells, role_of, 0.01, blind={"open"})["net"])
+    assert "| ramp | 0.15 | 0.05 (`open`†) | 3 |" in text
+    assert "0.17 (`cusum`), 0.882×" in text and "† reads no measurement" in text
+    assert "best that reads the sensors" not in _acceptance_section(
+        "net", judge_robustness(cells, role_of, 0.01)["net"]
+    )
+    from difffilter.eval.robustness import _within_readers
+
+    assert _within_readers(judged.values()) == " (1 within the best that reads the sensors)"
+    assert _within_readers(plain.values()) == ""
+    # the registry's word: the four-tank paper's open-loop account of method [31]
+    assert reading_no_measurements(["open_loop_pf", "cusum_ekf", "pf_nn_grad"]) == ["open_loop_pf"]
 
 
 def test_a_learned_number_that_is_missing_does_not_hold():
