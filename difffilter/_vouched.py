@@ -26,9 +26,11 @@ turn just validates them in full.
 
 from __future__ import annotations
 
+import itertools
 import math
 import operator
 import weakref
+from math import isfinite
 
 import torch
 from torch import Tensor
@@ -54,7 +56,7 @@ class Established:
     finiteness is not checked).
     """
 
-    __slots__ = ("owner", "dtype", "device", "y_shape", "u_shape", "known")
+    __slots__ = ("owner", "dtype", "device", "y_shape", "u_shape", "known", "_host_sum")
 
     def __init__(self, owner, dtype: torch.dtype, device, batch, dim_y: int, dim_u: int):
         self.owner = weakref.ref(owner)
@@ -62,6 +64,9 @@ class Established:
         self.y_shape = tuple(batch) + (dim_y,)
         self.u_shape = tuple(batch) + (dim_u,) if dim_u > 0 else None
         self.known = self.device.type != "meta"
+        # one run's small y and u on the CPU: summed on the host, no question asked of them
+        self._host_sum = (self.device.type == "cpu" and len(self.y_shape) == 1
+                          and max(dim_y, dim_u) <= _HOST_SUM)  # fmt: skip
 
     def admits(self, y, u, mask) -> tuple[Tensor, Tensor | None, Tensor | None] | None:
         """``(y, u, mask)`` ready for the unchecked step (``y`` zeroed where unreceived) when
@@ -86,7 +91,10 @@ class Established:
                 return None
             # unreceived entries are never read, but 0·NaN would still be NaN in an update
             y = y.where(mask, 0.0)
-        if self.known and not (_finite(y) and (u is None or _finite(u))):
+        if self._host_sum:  # [dy] and [du]: their lists summed (one read each)
+            if not (isfinite(sum(y.tolist())) and (u is None or isfinite(sum(u.tolist())))):
+                return None
+        elif self.known and not (_finite(y) and (u is None or _finite(u))):
             return None
         return y, u, mask
 
@@ -114,7 +122,47 @@ def hold_whole(cls: type) -> type:
     """Treat instances of the tuple type ``cls`` as one leaf of a carry (module docstring)."""
     global _WHOLE
     _WHOLE = _WHOLE | {cls}
+    _LAYOUTS.clear()  # a cached layout may have flattened it
     return cls
+
+
+class _Layout:
+    """What a carry of given field types is made of: whether it is *flat* (no field a
+    container to flatten) and, if so, getters of its tensor fields and of the others. Keyed
+    by the fields' types (``tuple(map(type, carry))``: one C call), so a step asks no
+    ``isinstance`` of each field (each is a Python-level check against torch's tensor
+    metaclass, ~0.3 µs)."""
+
+    __slots__ = ("flat", "tensors", "others")
+
+    def __init__(self, types: tuple[type, ...]):
+        self.flat = not any(issubclass(t, _CONTAINERS) and not issubclass(t, Tensor)
+                            and t not in _WHOLE for t in types)  # fmt: skip
+        self.tensors = _getter([i for i, t in enumerate(types) if issubclass(t, Tensor)])
+        self.others = _getter([i for i, t in enumerate(types) if not issubclass(t, Tensor)])
+
+
+def _getter(indices: list[int]):
+    """``carry → tuple`` of the fields at ``indices`` (C-level ``itemgetter``, which gives
+    the field itself, not a 1-tuple, for one index)."""
+    if not indices:
+        return lambda carry: ()
+    if len(indices) == 1:
+        get = operator.itemgetter(indices[0])
+        return lambda carry: (get(carry),)
+    return operator.itemgetter(*indices)
+
+
+#: ``_Layout`` by the carry's field types (a few per carry type: optional fields ``None``).
+_LAYOUTS: dict[tuple[type, ...], _Layout] = {}
+
+
+def _layout(carry) -> _Layout:
+    types = tuple(map(type, carry))
+    layout = _LAYOUTS.get(types)
+    if layout is None:
+        layout = _LAYOUTS[types] = _Layout(types)
+    return layout
 
 
 _VERSIONS = operator.attrgetter("_version")
@@ -150,14 +198,20 @@ def _versions(tensors) -> tuple:
 def vouch(carry, established: Established) -> None:
     """Record that ``carry`` (a step's output, or a carry just validated in full) is valid
     under ``established``."""
-    leaves = _flat_leaves(carry)
-    tensors = [v for v in leaves if isinstance(v, Tensor)]
+    layout = _layout(carry)
+    if layout.flat:  # the filters' carries: getters made once per layout
+        leaves, tensors, others = carry, layout.tensors(carry), layout.others(carry)
+    else:
+        leaves = _flat_leaves(carry)
+        tensors = [v for v in leaves if isinstance(v, Tensor)]
+        others = [v for v in leaves if not isinstance(v, Tensor)]
     entry = (
         established,
         tuple(map(id, leaves)),
         tuple(map(weakref.ref, tensors)),
         _versions(tensors),
-        [v for v in leaves if not isinstance(v, Tensor)],  # held: their ids stay theirs
+        others,  # held: their ids stay theirs
+        layout.flat,
     )
     key = id(carry)
     _VOUCHED.pop(key, None)  # re-inserted at the end: the oldest entries go first
@@ -175,12 +229,17 @@ def vouched(owner, carry) -> Established | None:
     entry = _VOUCHED.get(id(carry))
     if entry is None:
         return None
-    established, ids, refs, versions, _ = entry
-    if established.owner() is not owner or tuple(map(id, _flat_leaves(carry))) != ids:
+    established, ids, refs, versions, _, flat = entry
+    # a flat entry's fields, if the same objects, are as flat as they were
+    leaves = carry if flat else _flat_leaves(carry)
+    if established.owner() is not owner or tuple(map(id, leaves)) != ids:
         return None
     # equal ids name the vouched tensors only while those are alive (the others are held)
-    tensors = [ref() for ref in refs]
-    for t in tensors:
-        if t is None:
-            return None
+    tensors = tuple(map(_DEREF, refs))
+    if any(map(operator.is_, tensors, _NONES)):  # one was freed: its id may be another's
+        return None
     return established if _versions(tensors) == versions else None
+
+
+_DEREF = weakref.ReferenceType.__call__
+_NONES = itertools.repeat(None)

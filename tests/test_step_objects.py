@@ -361,6 +361,25 @@ def test_bad_inputs_next_to_a_vouched_carry_are_still_named(name):
     est.step(carry, y, u)  # and the carry is as good as before the errors
 
 
+@pytest.mark.parametrize("name", ["kf", "ukf", "pf"])
+def test_bad_inputs_of_one_run_next_to_a_vouched_carry_are_still_named(name):
+    """One run's ``y [dy]`` and ``u [du]`` on the CPU are checked by summing their lists on
+    the host: a NaN or an infinity anywhere is named, and finite entries whose sum
+    overflows are validated in full and accepted."""
+    est, carry = _init(name, ())
+    y, u = torch.zeros(2, dtype=F64), torch.zeros(1, dtype=F64)
+    carry, _ = est.step(carry, y, u)  # vouched for from here on
+    for bad in (float("nan"), float("inf"), float("-inf")):
+        for i in range(2):
+            raises_naming("y", est.step, carry, y.index_fill(0, torch.tensor([i]), bad), u)
+        raises_naming("u", est.step, carry, y, torch.full((1,), bad, dtype=F64))
+    raises_naming("y", est.step, carry, torch.zeros(3, dtype=F64), u)
+    raises_naming("y", est.step, carry, torch.zeros(1, 2, dtype=F64), u)  # a batch of one
+    if name == "kf":  # finite entries whose sum overflows: validated in full, accepted
+        est.step(carry, torch.full((2,), 1e308, dtype=F64), u)
+    est.step(carry, y, u)
+
+
 class _PriorOfTheWrongSize:
     """A user's model whose prior has three entries where the state has four."""
 
