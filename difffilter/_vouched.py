@@ -9,7 +9,9 @@ dtype and device already established, and their finiteness) and goes straight to
 unchecked ``_step``. :meth:`~difffilter.Estimator.init` validates the carry it makes and
 vouches for it under the model's dtype and device, so even the first step checks only its
 inputs. An online estimator deployed on one plant then pays a handful of Python
-comparisons per step instead of the whole validation.
+comparisons per step instead of the whole validation (about 6 µs: what a carry of given
+field types is made of is cached, :class:`_Layout`, so no field is asked ``isinstance`` of
+torch's tensor metaclass at every step).
 
 "Unchanged" is exact: the carry's leaves (its fields, through nested tuples, lists and
 dicts) must be the very objects vouched for (by identity), and its tensors must not have
