@@ -130,12 +130,17 @@ class GainSchedule:
         self.Bt = None if self.B is None else self.B.transpose(0, 1)
         self._moments: list[SharedMoments] = []
         self._row_maps: list[tuple[Tensor, Tensor, Tensor]] = []
+        self._neg_log_norms: list[Tensor] = []  # −log_norm of each k: the one-run step's
         self._chunks = CovarianceChunks(self.F, self.H, self.Q, self.R, model.initial.cov, tol)
         # the last chunk's moments [n, ...] (and log-norms [n]) not yet handed out, from
-        # index _ahead_next: a step's moments are made when first asked for, so a filter
-        # keeps the tensors of the steps it ran, not of the chunk computed ahead
+        # index _ahead_next, and the block of rows unbound from it (each step's moments as
+        # views, made BLOCK steps at a time: one `unbind` per moment instead of an index per
+        # step), of which _block_next is next: a filter keeps the tensors of the steps it
+        # ran and of at most one block ahead, not of the whole chunk computed ahead
         self._ahead: tuple[Tensor, ...] | None = None
         self._ahead_next = 0
+        self._block: list[tuple[Tensor, ...]] = []
+        self._block_next = 0
 
     @property
     def converged(self) -> bool:
@@ -148,22 +153,35 @@ class GainSchedule:
         if type(k) is int and k >= 1:
             if k <= len(known):  # handed out already: every step after the first
                 return known[k - 1]
-            if self.converged and self._ahead is None:  # every later step: the last ones
+            if self._all_handed_out():  # every later step: the last ones
                 return known[-1]
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise ValueError(f"k must be an integer >= 1 (the measurement index); got {k!r}")
         with torch.no_grad():
-            while len(known) < k and not (self.converged and self._ahead is None):
-                if self._ahead is None:
-                    *moments, half_logdet = self._chunks.next()
-                    log_norms = half_logdet + 0.5 * self.H.shape[0] * LOG_2PI
-                    self._ahead, self._ahead_next = (*moments, log_norms), 0
-                i, ahead = self._ahead_next, self._ahead
-                known.append(SharedMoments(*(t[i] for t in ahead)))
-                self._ahead_next = i + 1
-                if i + 1 == len(ahead[0]):
-                    self._ahead = None
+            while len(known) < k and not self._all_handed_out():
+                if self._block_next == len(self._block):
+                    self._next_block()
+                known.append(SharedMoments(*self._block[self._block_next]))
+                self._block_next += 1
         return known[min(k, len(known)) - 1]
+
+    def _all_handed_out(self) -> bool:
+        return (self.converged and self._ahead is None
+                and self._block_next == len(self._block))  # fmt: skip
+
+    def _next_block(self) -> None:
+        """Unbind the next ``BLOCK`` steps' moments from the chunk ahead (computing the next
+        chunk first if none is left)."""
+        if self._ahead is None:
+            *moments, half_logdet = self._chunks.next()
+            log_norms = half_logdet + 0.5 * self.H.shape[0] * LOG_2PI
+            self._ahead, self._ahead_next = (*moments, log_norms), 0
+        start, ahead = self._ahead_next, self._ahead
+        stop = min(start + CovarianceChunks.BLOCK, len(ahead[0]))
+        self._block = list(zip(*(t[start:stop].unbind(0) for t in ahead)))
+        self._block_next, self._ahead_next = 0, stop
+        if stop == len(ahead[0]):
+            self._ahead = None
 
     def gain(self, k: int) -> tuple[Tensor, Tensor]:
         """``(K_k [dx, dy], S_k [dy, dy])`` of measurement ``k ≥ 1``."""
@@ -194,10 +212,11 @@ class GainSchedule:
         [..., du]`` or ``None`` → ``[..., dx]``, ``[..., dx]``, ``[..., dy]``, ``[...]``.
         """
         m = self.moments(k)
-        gain_t, whiten_t, neg_log_norm = self._row_map(min(k, len(self._moments)) - 1)
+        index = min(k, len(self._moments)) - 1
         control = u is not None and self.B is not None
         if mean.dim() == 1 and y.dim() == 1 and (not control or u.dim() == 1):
             # one run: matrix-vector products, the subtraction and addition fused in
+            neg_log_norm = self._neg_log_norm(index)
             pred = torch.mv(self.F, mean)
             if control:
                 pred = torch.addmv(pred, self.B, u)
@@ -205,6 +224,7 @@ class GainSchedule:
             white = torch.mv(m.whiten, innovation)
             log_lik = torch.add(neg_log_norm, torch.dot(white, white), alpha=-0.5)
             return torch.addmv(pred, m.gain, innovation), pred, innovation, log_lik, m
+        gain_t, whiten_t, neg_log_norm = self._row_map(index)
         pred = mean @ self.Ft  # rows [..., dx]: one GEMM for all runs
         if control:
             pred = pred + u @ self.Bt
@@ -220,8 +240,16 @@ class GainSchedule:
         maps = self._row_maps
         while len(maps) <= index:
             m = self._moments[len(maps)]
-            maps.append((m.gain.mT, m.whiten.mT, m.log_norm.neg()))
+            maps.append((m.gain.mT, m.whiten.mT, self._neg_log_norm(len(maps))))
         return maps[index]
+
+    def _neg_log_norm(self, index: int) -> Tensor:
+        """``−log_norm`` of moments ``index``, made on first use (the one-run step needs no
+        transposed maps)."""
+        negs = self._neg_log_norms
+        while len(negs) <= index:
+            negs.append(self._moments[len(negs)].log_norm.neg())
+        return negs[index]
 
     def update(self, pred_mean: Tensor, y: Tensor, k: int) -> tuple[Tensor, Tensor, Tensor]:
         """``(m_k, ν_k, S_k)``: ``pred_mean [..., dx]``, ``y [..., dy]`` → ``[..., dx]``,
