@@ -200,8 +200,10 @@ def _versions(tensors) -> tuple:
 def vouch(carry, established: Established) -> None:
     """Record that ``carry`` (a step's output, or a carry just validated in full) is valid
     under ``established``."""
-    layout = _layout(carry)
-    if layout.flat:  # the filters' carries: getters made once per layout
+    # the filters' carries (tuples without containers): getters made once per layout
+    layout = _layout(carry) if isinstance(carry, tuple) else None
+    flat = layout is not None and layout.flat
+    if flat:
         leaves, tensors, others = carry, layout.tensors(carry), layout.others(carry)
     else:
         leaves = _flat_leaves(carry)
@@ -213,7 +215,7 @@ def vouch(carry, established: Established) -> None:
         tuple(map(weakref.ref, tensors)),
         _versions(tensors),
         others,  # held: their ids stay theirs
-        layout.flat,
+        flat,
     )
     key = id(carry)
     _VOUCHED.pop(key, None)  # re-inserted at the end: the oldest entries go first

@@ -130,7 +130,22 @@ def test_the_cli_runs_the_study_and_names_an_unknown_threat(tmp_path, capsys):
         line for line in section.splitlines() if line.startswith("| four_tank_bias | `pf_nn_grad`")
     )
     cells = [c.strip() for c in row.split("|")]
-    assert cells[4] == f"{sum(c['holds'] for c in mine['state'].values())} of 2"
+    checks = mine["state"].values()
+    # open_loop_pf reads no measurement: where it sets a threat's bar (the ramp drags every
+    # filter that reads the sensors), the best analytic that reads them is named beside it
+    assert doc["reads_no_measurements"] == ["open_loop_pf"]
+    for c in checks:
+        blind = c["best_estimator"] == "open_loop_pf"
+        assert c.get("best_reads_no_measurements", False) is blind
+        if blind:
+            assert c["best_reading_estimator"] != "open_loop_pf"
+            assert c["best_reading"] >= c["best"]
+            assert c["ratio_reading"] == pytest.approx(c["value"] / c["best_reading"])
+    within = [c["ratio_reading"] if c.get("best_reads_no_measurements") else c["ratio"]
+              for c in checks]  # fmt: skip
+    readers = (f" ({sum(r <= 1.1 for r in within)} within the best that reads the sensors)"
+               if any(c.get("best_reads_no_measurements") for c in checks) else "")  # fmt: skip
+    assert cells[4] == f"{sum(c['holds'] for c in checks)} of 2" + readers
     assert cells[6] == ("holds" if mine["holds"] else "**fails**")
     unseen = mine["worst_threat_undetected"]  # said in the row and under the table
     assert ("worst threat undetected†" in cells[3]) is unseen
