@@ -138,8 +138,7 @@ class _Layout:
     __slots__ = ("flat", "tensors", "others")
 
     def __init__(self, types: tuple[type, ...]):
-        self.flat = not any(issubclass(t, _CONTAINERS) and not issubclass(t, Tensor)
-                            and t not in _WHOLE for t in types)  # fmt: skip
+        self.flat = not any(map(_is_container, types))
         self.tensors = _getter([i for i, t in enumerate(types) if issubclass(t, Tensor)])
         self.others = _getter([i for i, t in enumerate(types) if not issubclass(t, Tensor)])
 
@@ -170,21 +169,26 @@ def _layout(carry) -> _Layout:
 _VERSIONS = operator.attrgetter("_version")
 
 
+def _is_container(cls: type) -> bool:
+    """Whether a leaf of type ``cls`` is flattened: a tuple, list or dict that is neither a
+    tensor nor held whole (:func:`hold_whole`)."""
+    return issubclass(cls, _CONTAINERS) and not issubclass(cls, Tensor) and cls not in _WHOLE
+
+
 def _leaves(obj, out: list) -> list:
     for v in obj.values() if isinstance(obj, dict) else obj:
-        if isinstance(v, Tensor) or not isinstance(v, _CONTAINERS) or type(v) in _WHOLE:
-            out.append(v)
-        else:
+        if _is_container(type(v)):
             _leaves(v, out)
+        else:
+            out.append(v)
     return out
 
 
 def _flat_leaves(carry) -> tuple:
     """The carry's leaves: the carry itself when none of its fields is a container (the
     filters' carries), else its fields flattened through tuples, lists and dicts."""
-    for v in carry:
-        if isinstance(v, _CONTAINERS) and not isinstance(v, Tensor) and type(v) not in _WHOLE:
-            return tuple(_leaves(carry, []))
+    if any(map(_is_container, map(type, carry))):
+        return tuple(_leaves(carry, []))
     return carry
 
 

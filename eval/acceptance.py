@@ -157,8 +157,9 @@ def judge_robustness(
     ``blind``: the estimators that read no measurement (:func:`reading_no_measurements`).
     Where one of them is a threat's best analytic, the threat's entry also holds
     ``"best_reads_no_measurements": True`` and the best analytic that does read them,
-    ``"best_reading"``, ``"best_reading_estimator"`` and the learned value's
-    ``"ratio_reading"`` to it; the check is unchanged (against the best of all).
+    ``"best_reading"``, ``"best_reading_estimator"``, the learned value's
+    ``"ratio_reading"`` to it and ``"holds_reading"`` (within the factor of it); the check
+    is unchanged (against the best of all).
 
     ``worst_threat_undetected`` (``None`` without ``far``, the calibrated rate α): the best
     analytic worst-case TPR is at most the top of the false-alarm band, ``2α``, so no
@@ -195,9 +196,11 @@ def judge_robustness(
             reading = [r for r in rivals if r[1] not in blind]
             if who in blind and reading:
                 best_reading, reader = min(reading)
+                held = _finite(value) and value <= ROBUST_STATE_FACTOR * best_reading
                 state[threat].update(best_reads_no_measurements=True, best_reading=best_reading,
                                      best_reading_estimator=reader,
-                                     ratio_reading=_ratio(value, best_reading))  # fmt: skip
+                                     ratio_reading=_ratio(value, best_reading),
+                                     holds_reading=bool(held))  # fmt: skip
         tpr_holds = best_worst is None or (mine is not None and mine[0] >= best_worst[0])
         state_holds = all(c["holds"] for c in state.values())
         out[name] = {"worst_tpr": mine, "best_analytic_worst_tpr": best_worst,

@@ -506,9 +506,7 @@ def _within_readers(checks) -> str:
     checks = list(checks)
     if not any(c.get("best_reads_no_measurements") for c in checks):
         return ""
-    ratios = [c["ratio_reading"] if c.get("best_reads_no_measurements") else c["ratio"]
-              for c in checks]  # fmt: skip
-    n = sum(r is not None and r <= ROBUST_STATE_FACTOR for r in ratios)
+    n = sum(c.get("holds_reading", c["holds"]) for c in checks)
     return f" ({n} within the best that reads the sensors)"
 
 

@@ -125,7 +125,7 @@ def test_a_best_analytic_that_reads_no_measurement_keeps_the_bar_and_names_the_b
     # ... and the verdict names the best that reads the sensors beside it
     assert ramp["best_reads_no_measurements"] is True
     assert (ramp["best_reading"], ramp["best_reading_estimator"]) == (0.17, "cusum")
-    assert ramp["ratio_reading"] == pytest.approx(0.15 / 0.17)
+    assert ramp["ratio_reading"] == pytest.approx(0.15 / 0.17) and ramp["holds_reading"]
     # where a reader is best, nothing is added
     assert bias["best_estimator"] == "chi" and "best_reading" not in bias
     assert bias["holds"] == (0.018 <= 1.1 * 0.016)

@@ -141,9 +141,9 @@ def test_the_cli_runs_the_study_and_names_an_unknown_threat(tmp_path, capsys):
             assert c["best_reading_estimator"] != "open_loop_pf"
             assert c["best_reading"] >= c["best"]
             assert c["ratio_reading"] == pytest.approx(c["value"] / c["best_reading"])
-    within = [c["ratio_reading"] if c.get("best_reads_no_measurements") else c["ratio"]
-              for c in checks]  # fmt: skip
-    readers = (f" ({sum(r <= 1.1 for r in within)} within the best that reads the sensors)"
+            assert c["holds_reading"] == (c["value"] <= 1.1 * c["best_reading"])
+    within = [c["value"] <= 1.1 * c.get("best_reading", c["best"]) for c in checks]
+    readers = (f" ({sum(within)} within the best that reads the sensors)"
                if any(c.get("best_reads_no_measurements") for c in checks) else "")  # fmt: skip
     assert cells[4] == f"{sum(c['holds'] for c in checks)} of 2" + readers
     assert cells[6] == ("holds" if mine["holds"] else "**fails**")
