@@ -294,7 +294,8 @@ class FilterEstimatorTask(pl.LightningModule):
             ``None`` (default): never.
         features: the filter's statistics the network reads (``"mask"``,
             ``"log_likelihood"``, ``"poa"``: the PoA threshold is the scenario's;
-            ``"plain_innovation"``: an uncompensated copy of a Gaussian filter's).
+            ``"plain_innovation"``: an uncompensated copy of a Gaussian filter's;
+            ``"open_loop_innovation"``: the measurement against the open-loop trajectory).
         trainer: ``"grad"`` (AdamW through the filter) or ``"ekf"`` (the EKF over the
             weights; module docstring).
         lr, weight_decay, pct_start, grad_clip: AdamW, its one-cycle schedule

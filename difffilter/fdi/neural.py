@@ -49,11 +49,18 @@ p_k ν_k``.
     "plain_innovation"  ν°_k / √diag S°_k (0 where unreceived): the standardised innovation
                         of a second copy of the filter that reads ỹ_k uncompensated, each
                         area its own channels; Gaussian filters only
+    "open_loop_innovation"
+                        (ỹ_k − h(x̄°_k)) / √diag R_k (0 where unreceived), x̄°_k = f(x̄°_{k−1},
+                        u_{k−1}, k−1), x̄°_0 = E[x_0]: the measurement against the noise-free
+                        open-loop trajectory of the prior mean (what a filter that reads no
+                        measurement predicts), each area its own channels; any filter
 
 The plain copy's state never depends on the network: when an attack ends it returns to
 the attack-free innovation at its own rate, whereas the compensated filter's state
 carries whatever part of the attack the estimate missed, and the innovation of that state
-error looks like an attack to a network that reads it alone.
+error looks like an attack to a network that reads it alone. The open-loop trajectory
+depends on no measurement at all: a persistent attack that a filter absorbs (a slow ramp,
+a random walk) leaves its innovation small and the open-loop one as large as the attack.
 
 Gating (``gating=True``, sensor attacks, a network with a detection head): beside
 subtracting its estimate, the network may drop the measurement. With ``g_k = p_k`` (below)
@@ -165,9 +172,9 @@ __all__ = [
 ]
 
 #: The optional per-step inputs (module docstring), in the order they enter ``δ_k``.
-FEATURES = ("mask", "log_likelihood", "poa", "plain_innovation")
+FEATURES = ("mask", "log_likelihood", "poa", "plain_innovation", "open_loop_innovation")
 #: Features with one entry per measured channel that each area reads on its own channels.
-PER_AREA_FEATURES = ("plain_innovation",)
+PER_AREA_FEATURES = ("plain_innovation", "open_loop_innovation")
 
 
 class CompensationNetwork(Protocol):
@@ -246,12 +253,15 @@ class OnlineLearning(NamedTuple):
 
 class NeuralState(NamedTuple):
     """The network's part of a carry: ``attack_hist [..., J, a, d]`` (``â_{k−1} … â_{k−a}``
-    of each area), ``resid_hist [..., J, b, r]`` (most recent first) and the online ``learner``
-    (:class:`~difffilter.param_ekf.LearnerState` of ``[... · J]`` learners, or ``None``)."""
+    of each area), ``resid_hist [..., J, b, r]`` (most recent first), the online ``learner``
+    (:class:`~difffilter.param_ekf.LearnerState` of ``[... · J]`` learners, or ``None``) and,
+    with the ``"open_loop_innovation"`` feature, the open-loop mean ``x̄°_k [..., dx]`` of the
+    carry's step ``k`` (else ``None``)."""
 
     attack_hist: Tensor
     resid_hist: Tensor
     learner: LearnerState | None = None
+    open_loop: Tensor | None = None
 
 
 class NeuralCarry(NamedTuple):
@@ -293,7 +303,9 @@ class _Core:
         self.learning, self.record_inputs = learning, record_inputs
         self.template = None if learning is None else WeightTemplate(network.area_template())
 
-    def init(self, batch: torch.Size, dtype, device, generator) -> NeuralState:
+    def init(self, batch: torch.Size, dtype, device, generator, model=None) -> NeuralState:
+        """The histories at zero, the learners at their start and, with the
+        ``"open_loop_innovation"`` feature, ``x̄°_0 = E[x_0]`` of ``model`` for every run."""
         net = self.network
         J = net.num_areas
         # per-area layout: δⁱ is the two histories of area i flattened (no transposes per step)
@@ -311,14 +323,34 @@ class _Core:
                 }
             theta = self.template.flatten(start, areas).to(device)
             learner = self.learning.rule.init(theta)
-        return NeuralState(attack_hist, resid_hist, learner)
+        open_loop = None
+        if "open_loop_innovation" in self.features:
+            mean = model.initial.mean.detach().to(dtype=dtype, device=device)
+            open_loop = mean.expand(batch + mean.shape[-1:]).clone()
+        return NeuralState(attack_hist, resid_hist, learner, open_loop)
 
-    def _features(self, e, mask, log_likelihood, poa, plain) -> list[Tensor]:
+    def advance_open_loop(self, state: NeuralState, model, u, k: int) -> NeuralState:
+        """``state`` with ``x̄°_{k+1} = f(x̄°_k, u_k, k)`` (unchanged without the feature)."""
+        if state.open_loop is None:
+            return state
+        with torch.no_grad():  # the model's trajectory: nothing to learn through it
+            return state._replace(open_loop=model.transition(state.open_loop, u, k))
+
+    @staticmethod
+    def open_loop_feature(state: NeuralState, model, y: Tensor, k: int) -> Tensor | None:
+        """``(ỹ_k − h(x̄°_k)) / √diag R_k`` ``[..., dy]`` (``None`` without the feature)."""
+        if state.open_loop is None:
+            return None
+        residual = model.measurement_residual(y, model.observe(state.open_loop, k))
+        return residual / _std(model.measurement_cov(k)).to(residual.dtype)
+
+    def _features(self, e, mask, log_likelihood, poa, plain, open_loop=None) -> list[Tensor]:
         """The features as ``[..., J, width]`` each (every area reads the run's, or its own
         channels of a per-area one)."""
         J = self.network.num_areas
         received = torch.ones_like(e) if mask is None else mask.to(e.dtype)
-        given = {"log_likelihood": log_likelihood, "poa": poa, "plain_innovation": plain}
+        given = {"log_likelihood": log_likelihood, "poa": poa, "plain_innovation": plain,
+                 "open_loop_innovation": open_loop}  # fmt: skip
         out = []
         for name in self.features:
             if name == "mask":
@@ -328,8 +360,10 @@ class _Core:
             if value is None:
                 raise ValueError(f"feature {name!r} needs the filter's {name} at every step")
             value = value.to(e.dtype)
-            if name in PER_AREA_FEATURES:  # each area its own channels
-                out.append((value * received).unflatten(-1, (J, -1)))
+            if name in PER_AREA_FEATURES:  # each area its own channels; 0 where unreceived
+                # (where, not a product: an unreceived entry of ỹ may hold NaN)
+                value = value if mask is None else torch.where(mask, value, 0.0)
+                out.append(value.unflatten(-1, (J, -1)))
                 continue
             if name == "log_likelihood":
                 value = torch.asinh(-2.0 * value / received.sum(-1).clamp_min(1.0))
@@ -337,9 +371,10 @@ class _Core:
         return out
 
     def step(self, state: NeuralState, innovation, innovation_cov, mask, log_likelihood=None,
-             poa=None, plain=None):  # fmt: skip
+             poa=None, plain=None, open_loop=None):  # fmt: skip
         """``(state, â [..., J·d], logit [..., J] or None, scale [..., dy], δ [..., J, in])``;
-        ``plain [..., dy]``: the plain copy's standardised innovation (its feature)."""
+        ``plain [..., dy]``: the plain copy's standardised innovation, ``open_loop [..., dy]``
+        the open-loop one (their features)."""
         net, J = self.network, self.network.num_areas
         if innovation.shape[-1] != J * net.resid_dim:
             raise ValueError(
@@ -363,7 +398,7 @@ class _Core:
         # δ [..., J, in]: each area's histories, most recent first (build_delta's layout)
         delta = torch.cat([state.attack_hist.flatten(-2), resid_in.flatten(-2)], -1)
         if self.features:
-            extra = self._features(e, mask, log_likelihood, poa, plain)
+            extra = self._features(e, mask, log_likelihood, poa, plain, open_loop)
             areas = e.shape[:-1] + (J,)
             delta = torch.cat([delta, *(f.expand(*areas, -1) for f in extra)], -1)
         learner = state.learner
@@ -385,7 +420,10 @@ class _Core:
         if self.channel is Channel.REPLACEMENT:  # the expected injected ξ − y, p_k ν_k
             attack = torch.sigmoid(logit) * innovation
         hist = NeuralState(
-            _push(state.attack_hist, attack, J), _push(state.resid_hist, entry, J), learner
+            _push(state.attack_hist, attack, J),
+            _push(state.resid_hist, entry, J),
+            learner,
+            state.open_loop,
         )
         return hist, attack, logit, scale, delta
 
@@ -436,7 +474,7 @@ class _NeuralLikelihood:
         self.reject_limit = reject_limit  # dof ↦ F⁻¹_{χ²_dof}(1 − ρ), or None
 
     def init(self, model, batch_shape, dtype, device):
-        return self.core.init(batch_shape, dtype, device, None)
+        return self.core.init(batch_shape, dtype, device, None, model)
 
     def weigh(self, state, model, y, particles, k, mask, predictive):
         core, kw, clean = self.core, {}, None
@@ -449,6 +487,7 @@ class _NeuralLikelihood:
             if mask is not None:
                 z = z * mask.unsqueeze(-2).to(z.dtype)
             kw["poa"] = probability_of_attack(z, core.poa_eta, predictive.log_weights)
+        kw["open_loop"] = core.open_loop_feature(state, model, y, k)
         nu, S = predictive.innovation, predictive.innovation_cov
         state, attack, logit, scale, delta = core.step(state, nu, S, mask, **kw)
         record = {"attack": attack, "scale": scale}
@@ -488,7 +527,8 @@ class NeuralCompensation(Estimator):
             are used; its likelihood is the network's).
         channel: :class:`~difffilter.attack.Channel` of the attack it compensates.
         residual: :class:`Residual`; standardize: divide the innovations by ``√diag S``.
-        features: names of :data:`FEATURES` (one area only, but ``"plain_innovation"``).
+        features: names of :data:`FEATURES` (one area only, but the per-area
+            ``"plain_innovation"`` and ``"open_loop_innovation"``).
         poa_eta: ``η`` of the ``"poa"`` feature.
         learning: :class:`OnlineLearning` or ``None`` (frozen weights).
         threshold: alarm threshold of the score.
@@ -582,10 +622,11 @@ class NeuralCompensation(Estimator):
         if self.particles:
             carry = self.pf._init(model, batch_shape, generators)
             net = self.core.init(batch_shape, carry.particles.dtype, carry.particles.device,
-                                 generators.init)  # fmt: skip
+                                 generators.init, model)  # fmt: skip
             return carry._replace(aux=net)
         inner = self.inner._init(model, batch_shape, generators)
-        net = self.core.init(batch_shape, inner.mean.dtype, inner.mean.device, generators.init)
+        net = self.core.init(batch_shape, inner.mean.dtype, inner.mean.device, generators.init,
+                             model)  # fmt: skip
         plain = self.inner._init(model, batch_shape, generators) if self.plain else None
         return NeuralCarry(inner, net, model, plain)
 
@@ -593,7 +634,8 @@ class NeuralCompensation(Estimator):
         """Particles drawn elsewhere as this estimator's carry (particle filter only)."""
         carry = self.pf.attach(state._replace(aux=None), model, generators)
         lead = state.log_weights.shape[:-1]
-        net = self.core.init(lead, state.particles.dtype, state.particles.device, generators.init)
+        net = self.core.init(lead, state.particles.dtype, state.particles.device, generators.init,
+                             model)  # fmt: skip
         return carry._replace(aux=net)
 
     def _check_carry(self, carry):
@@ -603,7 +645,9 @@ class NeuralCompensation(Estimator):
             self.inner._check_carry(carry.inner)
 
     def _step(self, carry, y, u, mask):
-        if self.particles:
+        if self.particles:  # the open-loop mean to step k + 1 first: the likelihood reads it
+            carry = carry._replace(aux=self.core.advance_open_loop(carry.aux, carry.model, u,
+                                                                   carry.k))  # fmt: skip
             carry, out = self.pf._step(carry, y, u, mask)
             x = dict(out.extras)
             attack, logit, scale = x.pop("attack"), x.pop("logit", None), x.pop("scale")
@@ -631,8 +675,11 @@ class NeuralCompensation(Estimator):
                 if self.confirm is not None:
                     confirmed = nis > self._chi2_threshold(dof, self.confirm)
                 plain = _gated_copy(plain, plain_pred, quiet)
-        net, attack, logit, scale, delta = core.step(carry.net, nu, S, mask, log_likelihood=ell,
-                                                     plain=plain_feature)  # fmt: skip
+        net = core.advance_open_loop(carry.net, carry.model, u, carry.inner.k)
+        net, attack, logit, scale, delta = core.step(
+            net, nu, S, mask, log_likelihood=ell, plain=plain_feature,
+            open_loop=core.open_loop_feature(net, carry.model, y, carry.inner.k + 1),
+        )  # fmt: skip
         applied = applied_estimate(attack, logit, self.compensation)
         if self.channel is Channel.ACTUATOR:
             if u is None:
