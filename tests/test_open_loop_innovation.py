@@ -97,3 +97,15 @@ def test_the_feature_is_per_area_and_a_network_must_have_its_width():
     narrow = NeuralFDIEstimator(num_areas=2, area_dim=1, a=2, b=2, hidden=4, extra_inputs=0)
     with pytest.raises(ValueError, match="extra_inputs is 0 but features"):
         NeuralCompensation(narrow, df.KalmanFilter(), features=FEATURE)
+
+
+def test_particles_attached_after_the_first_step_are_named():
+    """The trajectory starts at E[x_0]: particles of a later step cannot join it."""
+    model = FourTankModel(dtype=torch.float64)
+    net = NeuralFDIEstimator(num_areas=1, area_dim=4, a=1, b=1, hidden=3,
+                             extra_inputs=feature_dim(FEATURE, 4), seed=1)  # fmt: skip
+    est = NeuralCompensation(net, df.ParticleFilter(8), features=FEATURE)
+    carry = est.init(model, (2,), torch.Generator().manual_seed(0))
+    assert est.attach(carry, model, df.Generators()).aux.open_loop is not None
+    with pytest.raises(ValueError, match="attach particles of step k = 0 \\(got k = 3\\)"):
+        est.attach(carry._replace(k=3), model, df.Generators())

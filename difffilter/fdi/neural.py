@@ -632,6 +632,11 @@ class NeuralCompensation(Estimator):
 
     def attach(self, state: ParticleState, model, generators: Generators) -> ParticleState:
         """Particles drawn elsewhere as this estimator's carry (particle filter only)."""
+        if state.k and "open_loop_innovation" in self.core.features:
+            raise ValueError(
+                "the open_loop_innovation feature starts its trajectory at E[x_0]: attach "
+                f"particles of step k = 0 (got k = {state.k}), or run from init"
+            )
         carry = self.pf.attach(state._replace(aux=None), model, generators)
         lead = state.log_weights.shape[:-1]
         net = self.core.init(lead, state.particles.dtype, state.particles.device, generators.init,
