@@ -54,7 +54,7 @@ def test_each_area_reads_the_measurement_against_the_open_loop_trajectory(masked
     seen = _captured_inputs(net)
     est = NeuralCompensation(net, df.KalmanFilter(), features=FEATURE, residual="innovation")
     carry = est.init(model, (runs,))
-    out = open_loop(est, model, ys, us, mask=mask, carry=carry)
+    open_loop(est, model, ys, us, mask=mask, carry=carry)
     x = model.initial.mean.expand(runs, 2)
     want = []
     for k in range(steps):
@@ -65,7 +65,6 @@ def test_each_area_reads_the_measurement_against_the_open_loop_trajectory(masked
         want = torch.where(mask, want, 0.0)
     got = torch.stack([d[..., -1] for d in seen], dim=1)  # [B, T, J]
     torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
-    assert out.attack.abs().max() > 0  # the network ran on it
 
 
 def test_the_particle_filter_reads_the_open_loop_trajectory_of_a_nonlinear_model():

@@ -305,7 +305,8 @@ class _Core:
 
     def init(self, batch: torch.Size, dtype, device, generator, model=None) -> NeuralState:
         """The histories at zero, the learners at their start and, with the
-        ``"open_loop_innovation"`` feature, ``x̄°_0 = E[x_0]`` of ``model`` for every run."""
+        ``"open_loop_innovation"`` feature, ``x̄°_0 = E[x_0]`` of ``model`` for every run
+        (``model`` is read only then)."""
         net = self.network
         J = net.num_areas
         # per-area layout: δⁱ is the two histories of area i flattened (no transposes per step)
