@@ -133,3 +133,23 @@ def test_a_threat_batch_gives_each_run_its_own_threat_and_the_test_keeps_the_sce
     assert isinstance(
         ThreatDistribution({"r": {"weight": 1, "kind": "ramp", "slope": 0.1}}).sample(g)[1], Ramp
     )
+
+
+@pytest.mark.parametrize(
+    "scenario_name, width", [("four_tank_bias", 4), ("robot_actuator_attack", 2)]
+)
+def test_a_batch_of_attack_free_runs_records_zeros_as_wide_as_the_scenarios_attack(
+    scenario_name, width
+):
+    """Every run of a batch drawn attack-free (``none``: a likely batch when ``none`` has a
+    large weight) records the attack as zeros on the entries the scenario's own attack takes
+    (the sensors; the robot's inputs), which the estimator's attack estimate is compared with
+    (once, with no channels, the training loss failed on it)."""
+    from difffilter.models import registry
+
+    scenario = registry.get(scenario_name)
+    dist = ThreatDistribution({"none": {"weight": 1}}, model=scenario.system(),
+                              own=scenario.threat)  # fmt: skip
+    batch = threat_batch(scenario, dist, 3, seed=5, dtype=torch.float64)
+    assert batch["attack"].shape == (3, scenario.steps, width)
+    assert not batch["attack"].any() and not batch["flags"].any()
