@@ -132,14 +132,15 @@ class GainSchedule:
         self._row_maps: list[tuple[Tensor, Tensor, Tensor]] = []
         self._neg_log_norms: list[Tensor] = []  # −log_norm of each k: the one-run step's
         self._chunks = CovarianceChunks(self.F, self.H, self.Q, self.R, model.initial.cov, tol)
-        # the last chunk's moments [n, ...] (and log-norms [n]) not yet handed out, from
-        # index _ahead_next, and the block of rows unbound from it (each step's moments as
-        # views, made BLOCK steps at a time: one `unbind` per moment instead of an index per
-        # step), of which _block_next is next: a filter keeps the tensors of the steps it
-        # ran and of at most one block ahead, not of the whole chunk computed ahead
+        # the last chunk's moments [n, ...] (and log-norms and their negatives [n]) not yet
+        # handed out, from index _ahead_next, and the block of rows unbound from it (each
+        # step's SharedMoments of views and its −log_norm, made BLOCK steps at a time: one
+        # `unbind` per moment instead of an index per step), of which _block_next is next: a
+        # filter keeps the tensors of the steps it ran and of at most one block ahead, not of
+        # the whole chunk computed ahead
         self._ahead: tuple[Tensor, ...] | None = None
         self._ahead_next = 0
-        self._block: list[tuple[Tensor, ...]] = []
+        self._block: list[tuple[SharedMoments, Tensor]] = []
         self._block_next = 0
 
     @property
