@@ -21,11 +21,15 @@
    thread and with two, alternating in one process: which is faster.
 
 Every ratio is of two figures timed in the same process, their rounds alternating
-(:func:`timing.best_times`), so that both see the same load.
+(:func:`timing.best_times`), so that both see the same load: each figure with rounds of the
+numpy loop of its own (:func:`_paired`). Alternating with all of a section's workloads at once
+made the numpy loop itself slower (its rounds followed the torch ones: 10 k against 15–17 k
+steps/s for 1c on 2026-11-29), which flattered every ratio.
 """
 
 from __future__ import annotations
 
+import math
 import os
 
 import numpy as np
@@ -85,15 +89,27 @@ def bench_online_kf(steps: int = 200) -> dict:
         run_from(kf, kf.init(model))
 
     with torch.no_grad():
-        t = best_times({"numpy": numpy_run, "online": online("online", kf), "cold": cold,
-                        "checked": online("checked", checked)})  # fmt: skip
+        seconds, ratios = _paired(numpy_run, {"online": online("online", kf), "cold": cold,
+                                              "checked": online("checked", checked)})  # fmt: skip
         # equal filters: the cold run's last mean against the numpy loop's
         (_, out), (ref, _) = run_from(kf, kf.init(model)), numpy_run()
         diff = float(np.abs(out.mean.numpy() - ref).max())
-    rates = {name: steps / seconds for name, seconds in t.items()}
-    return {"B": 1, "T": steps, **{f"{k}_rate": v for k, v in rates.items()},
-            **{f"{k}_ratio": rates[k] / rates["numpy"] for k in ("online", "cold", "checked")},
+    return {"B": 1, "T": steps, **{f"{k}_rate": steps / v for k, v in seconds.items()},
+            **{f"{k}_ratio": v for k, v in ratios.items()},
             "max_abs_diff_vs_numpy": diff, "load_average": os.getloadavg()[0]}  # fmt: skip
+
+
+def _paired(numpy_run, fns: dict, **timing) -> tuple[dict, dict]:
+    """``({name: seconds per call}, {name: ratio})`` of each of ``fns`` timed alternating
+    with rounds of ``numpy_run`` of its own (:func:`timing.best_times` of the pair), its
+    ratio the numpy time over its time; ``seconds["numpy"]`` the best numpy time over the
+    pairs."""
+    seconds, ratios = {"numpy": math.inf}, {}
+    for name, fn in fns.items():
+        pair = best_times({"numpy": numpy_run, name: fn}, **timing)
+        seconds[name], ratios[name] = pair[name], pair["numpy"] / pair[name]
+        seconds["numpy"] = min(seconds["numpy"], pair["numpy"])
+    return seconds, ratios
 
 
 def _pf_setup(steps: int, n: int):
@@ -127,11 +143,10 @@ def bench_online_pf(steps: int = 50, n: int = 100) -> dict:
         return go
 
     with torch.no_grad():
-        t = best_times({"numpy": numpy_run, **{k: run(v) for k, v in filters.items()}},
-                       repeats=3, min_time=0.3)  # fmt: skip
-    rates = {name: n * steps / seconds for name, seconds in t.items()}
-    return {"B": 1, "N": n, "T": steps, **{f"{k}_rate": v for k, v in rates.items()},
-            **{f"{k}_ratio": rates[k] / rates["numpy"] for k in filters},
+        seconds, ratios = _paired(numpy_run, {k: run(v) for k, v in filters.items()},
+                                  repeats=3, min_time=0.3)  # fmt: skip
+    return {"B": 1, "N": n, "T": steps, **{f"{k}_rate": n * steps / v for k, v in seconds.items()},
+            **{f"{k}_ratio": v for k, v in ratios.items()},
             "load_average": os.getloadavg()[0]}  # fmt: skip
 
 
@@ -170,9 +185,10 @@ def print_online_pf(figures: dict) -> None:
 
 
 def _print_rates(r: dict, rows, target: float) -> None:
-    """The numpy loop's rate, then each ``(label, key, judged)`` row's rate and ratio to it
-    (with the verdict against ``target`` where ``judged``)."""
-    print(f"   numpy loop                      {_fmt(r['numpy_rate']):>10s}")
+    """The numpy loop's best rate, then each ``(label, key, judged)`` row's rate and its
+    ratio to the numpy rounds timed beside it (:func:`_paired`; with the verdict against
+    ``target`` where ``judged``)."""
+    print(f"   numpy loop (best of its rounds) {_fmt(r['numpy_rate']):>10s}")
     for label, key, judged in rows:
         ratio = r[f"{key}_ratio"]
         verdict = f"  target ≥ {target:g}× numpy: {_verdict(ratio, target)}" if judged else ""
