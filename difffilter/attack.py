@@ -42,7 +42,7 @@ from torch import Tensor
 
 from ._checks import Choice
 
-__all__ = ["Channel", "Attack", "TabulatedAttack", "inject", "same_side"]
+__all__ = ["Channel", "Attack", "TabulatedAttack", "attack_dim", "inject", "same_side"]
 
 
 class Channel(Choice):
@@ -60,6 +60,13 @@ def same_side(a: Channel | str, b: Channel | str) -> bool:
     a sensor estimate against an actuator signal is a comparison of two different
     quantities, whatever their shapes."""
     return (Channel(a) is Channel.ACTUATOR) == (Channel(b) is Channel.ACTUATOR)
+
+
+def attack_dim(model, channel: Channel | str) -> int:
+    """The entries an attack on ``channel`` takes in ``model`` (its ``dim`` at ``init``, the
+    width of its recorded signal): the inputs (``dim_u``) on the actuators, else the
+    measurements (``dim_y``)."""
+    return model.dim_u if Channel(channel) is Channel.ACTUATOR else model.dim_y
 
 
 class Attack:

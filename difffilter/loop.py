@@ -51,7 +51,7 @@ import torch
 from torch import Tensor
 
 from ._checks import NonFinite, check_model, check_sequence_inputs
-from .attack import Attack, Channel, TabulatedAttack, inject
+from .attack import Attack, Channel, TabulatedAttack, attack_dim, inject
 from .estimator import Estimator, EstimatorOutput, Generators, stack_steps
 
 __all__ = [
@@ -442,7 +442,7 @@ def _start(plant, steps, horizon, x0, estimator, model, controller, attack, atta
     u = None if controller is None else controller.init(batch, dtype, device)
     a_state = None
     if attack is not None:
-        dim = plant.dim_u if Channel(attack.channel) is Channel.ACTUATOR else plant.dim_y
+        dim = attack_dim(plant, attack.channel)
         a_state = attack.init(batch, steps, dim, attack_generator, dtype=dtype, device=device)
     carry = None
     if estimator is not None:
@@ -465,7 +465,7 @@ def _resume(fork: LoopFork, plant, attack, attack_generator, channel, horizon):
             f"continue a loop without attack; got {type(attack).__name__}"
         )
     x = state.x
-    dim = plant.dim_u if channel is Channel.ACTUATOR else plant.dim_y
+    dim = attack_dim(plant, channel)
     a_state = attack.init(x.shape[:-1], horizon, dim, attack_generator, dtype=x.dtype,
                           device=x.device)  # fmt: skip
     k, time = state.k, a_state[0].dim() - 2  # the tables' first k rows are steps 1 … k

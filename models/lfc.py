@@ -41,7 +41,7 @@ from torch import Tensor, nn
 
 import difffilter
 from difffilter._checks import Choice, check_finite_number
-from difffilter.attack import Channel, TabulatedAttack
+from difffilter.attack import TabulatedAttack, attack_dim
 from difffilter.control import zoh_discretize
 from difffilter.kalman import KalmanFilter
 from difffilter.loop import LoopResult, ReplayedNoise, closed_loop
@@ -729,7 +729,7 @@ class LFCScenario(Scenario):
             return None
         xi = draws["xi"]
         model = LFCPlant(dt=self.dt, dtype=xi.dtype).model()
-        dim = model.dim_u if Channel(attack.channel) is Channel.ACTUATOR else model.dim_y
+        dim = attack_dim(model, attack.channel)
         _, flags = attack.init(xi.shape[:1], xi.shape[1], dim, generator, dtype=xi.dtype,
                                device=xi.device)  # fmt: skip
         acting = flags.reshape(*flags.shape[:2], -1).any(-1).any(0).nonzero()

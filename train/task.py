@@ -51,7 +51,7 @@ import torch
 from lightning.fabric.utilities.apply_func import move_data_to_device
 
 from difffilter import resampling
-from difffilter.attack import Channel
+from difffilter.attack import Channel, attack_dim
 from difffilter.estimator import Generators
 from difffilter.loop import open_loop
 from difffilter.metrics import after_attack, finite_scores, roc_auc, threshold_for
@@ -123,20 +123,13 @@ def threat_batch(scenario, threats: ThreatDistribution, runs: int, seed: int,
         sc = scenario if name == "own" else scenario.with_threat(attack)
         parts.append(training_batch(sc, 1, mix_seed(seed, i), dtype))
     width = max(p["attack"].shape[-1] for p in parts)
-    if width == 0:  # every run attack-free: the entries the scenario's attack would take
-        width = _attack_width(scenario)
+    if width == 0:  # every run attack-free: the entries the scenario's own attack takes
+        channel = getattr(scenario.attack_model(), "channel", Channel.SENSOR)
+        width = attack_dim(scenario.system(), channel)
     for p in parts:  # an attack-free run records an attack of no channels
         if p["attack"].shape[-1] != width:
             p["attack"] = p["attack"].new_zeros(p["attack"].shape[:-1] + (width,))
     return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
-
-
-def _attack_width(scenario) -> int:
-    """Entries of ``scenario``'s own attack, what its estimators estimate: the inputs
-    (``dim_u``) for an actuator attack, else the sensors (``dim_y``)."""
-    model, attack = scenario.system(), scenario.attack_model()
-    actuator = Channel(getattr(attack, "channel", Channel.SENSOR)) is Channel.ACTUATOR
-    return model.dim_u if actuator else model.dim_y
 
 
 class _Keys(torch.utils.data.Dataset):
