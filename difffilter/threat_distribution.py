@@ -79,6 +79,18 @@ def _check_draw(where: str, value: dict) -> None:
         raise ValueError(f"{where}: signed applies to uniform and loguniform only")
 
 
+def _extremes(value) -> list:
+    """The values of a random field that bound what it can draw (every ``choice``; ``lo``
+    and ``hi`` of a range, negated too with ``signed``), so that construction checks a
+    threat with each of them, not only with one draw (a constant has none)."""
+    if not _is_draw(value):
+        return []
+    if "choice" in value:
+        return list(value["choice"])
+    bounds = list(value.get("uniform") or value.get("loguniform") or value["randint"])
+    return bounds + [-b for b in bounds] if value.get("signed") else bounds
+
+
 def _draw(value, generator: torch.Generator):
     """One value of a field (a constant is itself)."""
     if not _is_draw(value):
@@ -126,8 +138,8 @@ class ThreatDistribution:
             if not isinstance(entry, dict) or "weight" not in entry:
                 raise ValueError(f"{where}: needs a mapping with a weight; got {entry!r}")
             w = entry["weight"]
-            if isinstance(w, bool) or not isinstance(w, (int, float)) or not w >= 0:
-                raise ValueError(f"{where}.weight must be a number >= 0; got {w!r}")
+            if isinstance(w, bool) or not isinstance(w, (int, float)) or not 0 <= w < math.inf:
+                raise ValueError(f"{where}.weight must be a finite number >= 0; got {w!r}")
             if name in _RESERVED:
                 if set(entry) != {"weight"}:
                     raise ValueError(f"{where}: the reserved name {name!r} takes a weight only")
@@ -142,6 +154,9 @@ class ThreatDistribution:
                 if _is_draw(value):
                     _check_draw(f"{where}.{field}", value)
             self._build(name, entry, torch.Generator().manual_seed(0))  # fields checked now
+            for field, value in entry.items():  # ... and each random one at its extremes
+                for extreme in _extremes(value):
+                    self._build(name, {**entry, field: extreme}, torch.Generator().manual_seed(0))
         if sum(float(e["weight"]) for e in self.spec.values()) <= 0:
             raise ValueError("threats: the weights must not all be 0")
 

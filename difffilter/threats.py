@@ -67,6 +67,8 @@ __all__ = [
 def _numbers(value, name: str) -> tuple[float, ...]:
     """One finite number or a non-empty sequence of them, as a tuple."""
     seq = (value,) if isinstance(value, (int, float)) and not isinstance(value, bool) else value
+    if isinstance(seq, (str, bytes)):  # iterable, but "10" is not the vector (1, 0)
+        raise ValueError(f"{name} must be a number or a sequence of numbers; got {value!r}")
     try:
         out = tuple(float(v) for v in seq)
     except (TypeError, ValueError):
@@ -296,8 +298,13 @@ class Chirp(Shaped):
         super().__post_init__()
         object.__setattr__(self, "amplitude", _numbers(self.amplitude, "amplitude"))
         _count(self.sweep, "sweep", 1)
-        if not (self.f0 >= 0 and self.f1 >= 0 and self.dt > 0):
-            raise ValueError(f"f0, f1 must be >= 0 and dt > 0; got {self.f0}, {self.f1}, {self.dt}")
+        finite = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                     for v in (self.f0, self.f1, self.dt))  # fmt: skip
+        if not (finite and self.f0 >= 0 and self.f1 >= 0 and self.dt > 0):
+            raise ValueError(
+                f"f0, f1 must be finite and >= 0, dt finite and > 0; got {self.f0}, {self.f1}, "
+                f"{self.dt}"
+            )
 
     def phase(self, s: Tensor) -> Tensor:
         """``2π ∫ f`` at ``s`` steps after the onset (continuous past the sweep)."""

@@ -283,6 +283,12 @@ def test_every_threat_is_built_from_data_and_bad_data_is_named():
         Pulses(1.0, period=2, width=3)
     with pytest.raises(ValueError, match="value has 3 entries; the channel has 2"):
         _run(Bias((1.0, 2.0, 3.0)))
+    # a quoted number is not read character by character (once the vector (1, 0))
+    with pytest.raises(ValueError, match="value must be a number or a sequence of numbers"):
+        threat_from_dict({"kind": "bias", "value": "10"})
+    for bad in ({"f0": math.inf}, {"f1": math.nan}, {"dt": math.inf}, {"f0": -0.1}):
+        with pytest.raises(ValueError, match="f0, f1 must be finite and >= 0, dt finite"):
+            threat_from_dict({"kind": "chirp", **bad})
 
 
 def test_a_library_threat_on_the_tracking_scenario_keeps_its_plant_and_its_schedule():
@@ -303,3 +309,11 @@ def test_a_library_threat_on_the_tracking_scenario_keeps_its_plant_and_its_sched
     sent = ramp.mask[:, 40]  # the packet of step 41: its entries carry 0.5 · 12
     delta = ramp.info["y_all"][:, 40] - free.info["y_all"][:, 40]
     torch.testing.assert_close(delta[sent], torch.full_like(delta[sent], 6.0))
+    # attacked steps are the threat's window, as on every other scenario: a pulse train's
+    # quiet steps count (once only the steps whose packet changed did)
+    pulses = sc.with_threat(Pulses(2.0, period=12, width=4, onset=30))
+    got = pulses.simulate(3, gens())
+    quiet = (torch.arange(29, got.flags.shape[1]) - 29) % 12 >= 4
+    assert not got.flags[:, :29].any() and got.flags[:, 29:].all()
+    assert got.info["sensor_flags"][:, 29:].all() and not got.info["sensor_flags"][:, :29].any()
+    assert torch.equal(got.info["y_all"][:, 29:][:, quiet], free.info["y_all"][:, 29:][:, quiet])
