@@ -20,6 +20,7 @@ __all__ = [
     "detection_delay",
     "threshold_for",
     "finite_scores",
+    "nan_as_lowest",
     "after_attack",
     "steps_since_attack",
     "alarm_rate_since_attack",
@@ -159,8 +160,15 @@ def detection_delay(alarms: Tensor, attacked: Tensor) -> dict[str, float | int]:
 
 
 def finite_scores(scores: Tensor) -> Tensor:
-    """``scores`` flattened in float64, NaN (no score: a step without data) as ``−∞``."""
-    return torch.nan_to_num(scores.double().flatten(), nan=-math.inf)
+    """``scores`` flattened in float64, NaN (no score: a step without data) as ``−∞``;
+    ``±∞`` stay themselves (``nan_to_num`` alone would clamp them to the largest finite
+    float: a threshold of 1.8e308 where ``#{s > τ} ≤ ⌊α n⌋`` needs ``+∞``)."""
+    return nan_as_lowest(scores.double().flatten())
+
+
+def nan_as_lowest(scores: Tensor) -> Tensor:
+    """``scores`` with NaN as ``−∞`` and every other value, ``±∞`` included, kept."""
+    return torch.nan_to_num(scores, nan=-math.inf, posinf=math.inf, neginf=-math.inf)
 
 
 def threshold_for(scores: Tensor, far: float) -> float:

@@ -14,12 +14,11 @@ as the analytic ones. :func:`calibrated_metrics` then reads the study's scores a
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import torch
 
-from difffilter.metrics import after_attack, threshold_for
+from difffilter.metrics import after_attack, nan_as_lowest, threshold_for
 from difffilter.metrics import finite_scores as _finite_scores
 from difffilter.models.streams import Streams
 
@@ -114,7 +113,7 @@ def calibrate(
 def alarms_at(scores: torch.Tensor, threshold: float) -> torch.Tensor:
     """The alarms ``scores > threshold`` (bool, ``scores``' shape), compared in float64; a
     NaN score (no data at that step) never alarms."""
-    return torch.nan_to_num(scores.double(), nan=-math.inf) > threshold
+    return nan_as_lowest(scores.double()) > threshold
 
 
 def calibrated_metrics(output, traj, threshold: float | None, *, attacked_input: bool = True):

@@ -165,12 +165,13 @@ def _study_and_resamples(runs: int, resamples: int, seed: int) -> Tensor:
 
 
 def _best(values: dict[str, Tensor], higher: bool) -> Tensor | None:
-    """Per resample the best of ``values`` ``{estimator: [R]}`` (NaN ignored), or ``None``."""
+    """Per resample the best of ``values`` ``{estimator: [R]}`` (NaN and ``±∞`` ignored, as
+    :func:`eval.acceptance.best_analytic` drops a value that is not finite), or ``None``."""
     if not values:
         return None
     stacked = torch.stack(list(values.values()))
     fill = -math.inf if higher else math.inf
-    stacked = torch.nan_to_num(stacked, nan=fill)
+    stacked = torch.where(torch.isfinite(stacked), stacked, fill)
     best = stacked.amax(0) if higher else stacked.amin(0)
     return torch.where(torch.isinf(best), torch.nan, best)
 

@@ -132,7 +132,7 @@ def _rmse(a: Tensor, b: Tensor) -> float:
 
 def _nan_lowest(scores: Tensor) -> Tensor:
     """``scores`` in float64 with NaN (no score) below every score."""
-    return torch.nan_to_num(scores.double(), nan=-math.inf)
+    return dm.nan_as_lowest(scores.double())
 
 
 def auc(scores: Tensor, flags: Tensor) -> float | None:

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from difffilter.eval.calibration import (
+    alarms_at,
     calibrate,
     calibrated_metrics,
     calibration_seed,
@@ -26,6 +27,13 @@ def test_the_threshold_lets_through_at_most_the_target_share_of_scores():
     assert threshold_for(torch.full((50,), 3.0), 0.05) == 3.0  # ties never alarm
     nan_first = torch.tensor([math.nan, 1.0, 2.0, 3.0])  # NaN scores rank lowest
     assert threshold_for(nan_first, 0.3) == 2.0
+    # infinite scores stay infinite: with 3 of 100 at +inf the threshold at 1 % is +inf (not
+    # the largest float, over which the raw scores would alarm 3 % of the time)
+    three_inf = torch.cat([torch.full((3,), math.inf), torch.arange(97.0)]).double()
+    tau = threshold_for(three_inf, 0.01)
+    assert tau == math.inf and float((three_inf > tau).double().mean()) == 0.0
+    assert alarms_at(three_inf, tau).sum() == 0
+    assert threshold_for(torch.tensor([-math.inf, -math.inf, 1.0]), 0.34) == -math.inf
     for bad in (0.0, 1.0, -0.1):
         with pytest.raises(ValueError, match="far must lie in"):
             threshold_for(scores, bad)

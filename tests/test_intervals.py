@@ -5,6 +5,7 @@ chosen again in each resample."""
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import pytest
@@ -192,3 +193,13 @@ def test_the_worst_case_over_threats_is_taken_again_in_every_resample():
         assert got["state"][threat]["holds_share"] == pytest.approx(
             float((ratio[1:] <= 1.1).double().mean())
         )
+
+
+def test_the_best_of_a_resample_ignores_values_that_are_not_finite_as_the_point_check_does():
+    inf, nan = math.inf, math.nan
+    values = {"a": torch.tensor([inf, nan, 2.0, inf]), "b": torch.tensor([nan, nan, 3.0, 1.0])}
+    lowest = iv._best(values, higher=False)
+    assert torch.equal(lowest.isnan(), torch.tensor([True, True, False, False]))
+    assert lowest[2:].tolist() == [2.0, 1.0]  # an infinite error is no best (never 1.8e308)
+    highest = iv._best(values, higher=True)
+    assert highest.isnan()[:2].all() and highest[2:].tolist() == [3.0, 1.0]
