@@ -82,7 +82,9 @@ class Trajectories(NamedTuple):
             ``da = dy`` for sensor-side attacks, ``du`` for actuator attacks).
         flags: attacked steps ``[B, T]`` (bool).
         info: extras: ``"attack_values"`` ``[B, T, da]`` (what the attacker would inject
-            at every step, also where it does not), ``"attack_channel"`` (its
+            at every step, also where it does not), ``"attack_flags"`` (the attack's own
+            flags ``l_k``, ``[B, T]`` or per entry ``[B, T, da]``, before any mask: where it
+            acts, injected value zero or not; under an attack only), ``"attack_channel"`` (its
             :class:`~difffilter.attack.Channel`, ``None`` attack-free),
             ``"attack_concealment"`` ``[B, T, dy]`` (a covert attack's sensor correction
             ``ỹ − y``, only under one), ``"x0"`` ``[B, dx]`` and what a
@@ -493,11 +495,13 @@ def _trajectories(rec, mask, k0, k1, channel) -> Trajectories:
         values = attack
     else:
         attack, values = torch.stack(rec["attack"], 1), torch.stack(rec["value"], 1)
-        flags = torch.stack(rec["flag"], 1)
-        flags = flags.any(-1) if flags.dim() == 3 else flags
+        own_flags = torch.stack(rec["flag"], 1)
+        flags = own_flags.any(-1) if own_flags.dim() == 3 else own_flags
         if channel is not Channel.ACTUATOR and m is not None:
             flags = flags & m.any(-1)  # an attack on a packet never sent is none
     info = {"attack_values": values, "attack_channel": channel}
+    if channel is not None:
+        info["attack_flags"] = own_flags
     if rec["concealment"]:
         info["attack_concealment"] = torch.stack(rec["concealment"], 1)
     return Trajectories(x, y, recv, us, m, attack, flags, info)

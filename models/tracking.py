@@ -472,8 +472,11 @@ class TrackingScenario(Scenario):
         y_true, mask, groups = base.y_true, base.mask, self.groups
         if threat:  # applied by the loop to every entry; a sensor's packet carries its entries
             y_all, values = base.y_recv, base.info["attack_values"]
-            changed = y_all != y_true
-            sensor_flags = torch.stack([changed[..., list(g)].any(-1) for g in groups], -1)
+            # the threat's own flags l_k (its window, on its runs and entries), as every
+            # other scenario counts attacked steps: a pulse train's quiet steps included
+            own = base.info["attack_flags"]
+            own = own.unsqueeze(-1).expand_as(y_all) if own.dim() == 2 else own
+            sensor_flags = torch.stack([own[..., list(g)].any(-1) for g in groups], -1)
         elif attack is None:
             values = torch.zeros_like(y_true)
             sensor_flags = torch.zeros(runs, self.steps, len(groups), dtype=torch.bool)
