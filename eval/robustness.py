@@ -118,6 +118,9 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
                 threats[name] = StealthySpec.from_dict(spec)
             else:
                 threats[name] = threat_from_dict(spec, model=model)
+            onset, steps = getattr(threats[name], "onset", None), getattr(scenario, "steps", None)
+            if onset is not None and steps is not None and onset > steps:
+                raise ValueError(f"onset {onset} is after the last step ({steps}): it never acts")
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{path}: threat {name!r}: {exc}") from None
     estimators = data.get("estimators")

@@ -47,6 +47,11 @@ def test_unknown_threats_and_bad_specs_are_named(tmp_path):
     bad.write_text("threats:\n  slow: {kind: ramp, slop: 1.0}\n")
     with pytest.raises(ValueError, match="threat 'slow'.*slop"):
         load_threat_set(sc, path=bad)
+    late = tmp_path / "late.yaml"  # a threat that would never act is named, not run
+    late.write_text("threats:\n  late: {kind: bias, value: 0.5, onset: 61}\n")
+    with pytest.raises(ValueError, match=r"threat 'late': onset 61 is after the last step \(60\)"):
+        load_threat_set(sc.with_steps(60), path=late)
+    assert load_threat_set(sc.with_steps(61), path=late).threats["late"].onset == 61
 
 
 def test_a_study_scores_every_estimator_against_every_threat_at_the_calibrated_rate(tmp_path):
