@@ -152,7 +152,10 @@ def judge_robustness(
     ``{learned: {"worst_tpr": (value, threat), "best_analytic_worst_tpr": (value,
     estimator, threat), "tpr_holds", "worst_threat_undetected", "state": {threat:
     {"value", "best", "best_estimator", "ratio", "holds"}}, "state_holds", "holds"}}``;
-    threats where nobody detects (no TPR) count only for the state error.
+    threats where nobody detects (no TPR) count only for the state error. A check with
+    nothing to compare does not hold (as a missing number in :func:`judge`): a threat where
+    no analytic estimator has a state error (``best`` ``None``), the worst-case TPR where
+    no analytic estimator detects at all (``best_analytic_worst_tpr`` ``None``).
 
     ``blind``: the estimators that read no measurement (:func:`reading_no_measurements`).
     Where one of them is a threat's best analytic, the threat's entry also holds
@@ -187,7 +190,9 @@ def judge_robustness(
             rivals = [(row[n]["state_rmse"], n) for n in sorted(analytic)
                       if n in row and _finite(row[n].get("state_rmse"))]  # fmt: skip
             value = row.get(name, {}).get("state_rmse")
-            if not rivals:
+            if not rivals:  # nothing to compare with: not judged, so it does not hold
+                state[threat] = {"value": value, "best": None, "best_estimator": None,
+                                 "ratio": None, "holds": False}  # fmt: skip
                 continue
             best, who = min(rivals)
             ok = _finite(value) and value <= ROBUST_STATE_FACTOR * best
@@ -201,7 +206,8 @@ def judge_robustness(
                                      best_reading_estimator=reader,
                                      ratio_reading=_ratio(value, best_reading),
                                      holds_reading=bool(held))  # fmt: skip
-        tpr_holds = best_worst is None or (mine is not None and mine[0] >= best_worst[0])
+        # without an analytic worst case (no analytic detector) nothing is compared: fails
+        tpr_holds = best_worst is not None and mine is not None and mine[0] >= best_worst[0]
         state_holds = all(c["holds"] for c in state.values())
         out[name] = {"worst_tpr": mine, "best_analytic_worst_tpr": best_worst,
                      "tpr_holds": bool(tpr_holds), "worst_threat_undetected": undetected,

@@ -328,7 +328,12 @@ def _acceptance_section(name: str, a: dict) -> str:
         f"## `{name}` against the best analytic over the threats\n",
         f"Analytic: {ANALYTIC} (`difffilter.eval.acceptance`).\n",
     ]
-    if best is not None:
+    if best is None:
+        lines.append(
+            "- Worst TPR over the threats: no analytic detector in the study to compare "
+            "with: **not judged** (the check does not hold)."
+        )
+    else:
         lines.append(
             f"- Worst TPR over the threats: {format_number(mine[0] if mine else None, 4)}"
             f"{f' ({mine[1]})' if mine else ''}, against the best analytic worst case "
@@ -341,8 +346,9 @@ def _acceptance_section(name: str, a: dict) -> str:
         )  # fmt: skip
     blind = any(c.get("best_reads_no_measurements") for c in a["state"].values())
     rows = [[t, format_number(c["value"], 4),
-             f"{format_number(c['best'], 4)} (`{c['best_estimator']}`"
-             f"{'†' if c.get('best_reads_no_measurements') else ''})",
+             (f"{format_number(c['best'], 4)} (`{c['best_estimator']}`"
+              f"{'†' if c.get('best_reads_no_measurements') else ''})"
+              if c["best"] is not None else "— (no analytic estimator: not judged)"),
              format_number(c["ratio"], 3), _interval_cell(c.get("interval")),
              "yes" if c["holds"] else "**no**", seen.get(t, "—"),
              *([_reading_cell(c)] if blind else [])]

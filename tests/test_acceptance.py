@@ -4,6 +4,7 @@ analytic estimator of a study, and each check at its boundary."""
 from __future__ import annotations
 
 import inspect
+import math
 
 import pytest
 
@@ -227,3 +228,27 @@ def test_the_evaluations_acceptance_summary_has_a_row_per_judged_learned_estimat
     assert cells[2].endswith("✓ (53 %)" if checks["tpr_at_far"].holds else "✗ (53 %)")
     assert cells[5] == "0.03 ✗ (0 %)" and cells[6] == "**fails**"  # outside [0.5 %, 2 %]
     assert write_acceptance_summary(tmp_path / "none", {"other": uncalibrated}) is None
+
+
+def test_a_robustness_check_with_nothing_to_compare_does_not_hold():
+    """The learned estimator alone, or a threat where no analytic estimator has a number:
+    not judged, so not held (once "holds" over an empty comparison)."""
+    from difffilter.eval.robustness import _acceptance_section
+
+    alone = judge_robustness({"bias": {"net": {"tpr_at_far": 1.0, "state_rmse": 0.02}}},
+                             {"net": "learned"}, 0.01)["net"]  # fmt: skip
+    assert alone["best_analytic_worst_tpr"] is None and alone["tpr_holds"] is False
+    assert alone["state"]["bias"]["best"] is None and alone["state"]["bias"]["holds"] is False
+    assert alone["state_holds"] is False and alone["holds"] is False
+    text = _acceptance_section("net", alone)
+    assert "no analytic detector in the study" in text and "**not judged**" in text
+    assert "| bias | 0.02 | — (no analytic estimator: not judged) |" in text
+    # one threat where the analytic estimator has no state error: that threat fails
+    role_of = {"net": "learned", "chi": "analytic"}
+    cells = {"a": {"net": {"tpr_at_far": 0.9, "state_rmse": 1.0},
+                   "chi": {"tpr_at_far": 0.8, "state_rmse": 1.0}},
+             "b": {"net": {"tpr_at_far": 0.9, "state_rmse": 5.0},
+                   "chi": {"tpr_at_far": 0.8, "state_rmse": math.nan}}}  # fmt: skip
+    judged = judge_robustness(cells, role_of, 0.01)["net"]
+    assert judged["tpr_holds"] is True and judged["state"]["a"]["holds"] is True
+    assert judged["state"]["b"]["holds"] is False and judged["holds"] is False
