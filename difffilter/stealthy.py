@@ -44,17 +44,19 @@ __all__ = ["CraftedAttack", "StealthySettings", "craft_stealthy_attack"]
 
 class CraftedAttack(TabulatedAttack):
     """A crafted sensor attack: ``values [T, dy]`` (the same for every run), injected at
-    every step from ``onset`` on (flag where the step is attacked)."""
+    every step from ``onset`` on (flag where the step is attacked). ``budget``: the hard
+    alarm rate an iterate had to keep, ``p(0) + ε`` (module docstring), when crafted."""
 
     channel = Channel.SENSOR
 
-    def __init__(self, values: Tensor, onset: int, history: list | None = None, settings=None):
+    def __init__(self, values: Tensor, onset: int, history: list | None = None, settings=None,
+                 budget: float | None = None):  # fmt: skip
         if not isinstance(values, Tensor) or values.dim() != 2:
             raise ValueError(
                 f"values must be a tensor [T, dy]; got {getattr(values, 'shape', values)!r}"
             )
         self.values, self.onset = values.detach().clone(), int(onset)
-        self.history, self.settings = list(history or []), settings
+        self.history, self.settings, self.budget = list(history or []), settings, budget
 
     def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
         if tuple(self.values.shape) != (num_steps, dim):
@@ -126,7 +128,8 @@ def craft_stealthy_attack(
         progress: ``(iteration, J, alarm rate) → None`` after every iteration, or ``None``.
 
     Returns a :class:`CraftedAttack` with ``history`` ``[(iteration, J, p̃(a) − p̃(0),
-    p(a))]`` (zero if no iterate kept the budget).
+    p(a))]`` and ``budget`` ``p(0) + ε`` (zero if no iterate kept the budget, ``p(a) ≤
+    budget``).
     """
     T, dy = ys.shape[-2:]
     if not 1 <= onset <= T:
@@ -187,4 +190,4 @@ def craft_stealthy_attack(
         history.append((it, value, float(p.detach() - bound + s.slack), rate))
         if progress is not None:
             progress(it, value, rate)
-    return CraftedAttack(best[1], onset, history, s)
+    return CraftedAttack(best[1], onset, history, s, budget=hard_bound)

@@ -137,7 +137,9 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
             progress=advance,
         )  # fmt: skip
     bar.close()
-    kept = [h for h in attack.history if h[3] <= attack.history[0][3] + spec.settings.slack]
+    # the budget the crafting kept, p(0) + ε on the attack-free batch (not the first
+    # iterate's rate, which already carries the starting bias)
+    kept = [h for h in attack.history if h[3] <= attack.budget]
     report = {
         "against": spec.against, "threshold": tau, "train_runs": spec.train_runs,
         "settings": {f.name: getattr(spec.settings, f.name) for f in fields(StealthySettings)},

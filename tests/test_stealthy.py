@@ -68,6 +68,14 @@ def test_the_crafted_attack_acts_only_in_its_window(crafted):
     assert torch.equal(attack.values[: ONSET - 1], torch.zeros(ONSET - 1, 2, dtype=F64))
     assert attack.values[ONSET - 1 :].abs().sum() > 0
     assert len(attack.history) == 150
+    # the budget it kept: the attack-free training batch's hard alarm rate plus ε (not the
+    # first iterate's rate, which carries the starting bias)
+    estimator, tau, _ = crafted
+    out = open_loop(estimator, _plant(), _runs(32, 2).y_true)
+    on = torch.arange(1, T + 1) >= ONSET
+    free_rate = float((out.detection.scores > tau)[:, on].double().mean())
+    assert attack.budget == pytest.approx(free_rate + 0.005, abs=1e-12)
+    assert attack.history[0][3] != free_rate  # the start (0.3 σ) alarms otherwise
 
 
 def test_the_statistic_stays_within_its_budget_on_fresh_noise_and_drags_the_estimate(crafted):
