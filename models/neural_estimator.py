@@ -494,6 +494,9 @@ def load_estimator_checkpoint(
     with the ``"sha256"`` of the card beside it (``path`` with suffix ``.json``, written
     by ``ExportEstimator``) when that card exists; every weight must be finite.
 
+    ``dtype``: the estimator's; ``None`` keeps the stored weights' (what an export or a
+    recalibration writes back unchanged).
+
     Returns ``(estimator, card)`` (:class:`EstimatorCard`). ``FileNotFoundError`` if ``path`` does not
     exist; ``ValueError`` naming ``path`` if it is not such a checkpoint (wrong format,
     missing keys, shapes that do not match the stored configuration, a sha256 that does
@@ -528,6 +531,10 @@ def load_estimator_checkpoint(
         raise ValueError(f"ckpt: {path} has unknown estimator settings {sorted(unknown)}")
     try:
         kwargs = {k: _CONFIG_TYPES[k](v) for k, v in cfg.items()}
+        if dtype is None:  # the stored weights' own
+            stored = [v.dtype for v in blob["state_dict"].values()
+                      if isinstance(v, Tensor) and v.is_floating_point()]  # fmt: skip
+            dtype = stored[0] if stored else torch.float32
         estimator = NeuralFDIEstimator(**kwargs, dtype=dtype)
         state = {
             k: v.to(dtype) if v.is_floating_point() else v for k, v in blob["state_dict"].items()

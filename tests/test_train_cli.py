@@ -89,3 +89,47 @@ def test_every_command_runs_on_one_thread_unless_difffilter_threads_says(
         assert main(missing) == 2 and torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(before)
+
+
+def test_export_never_writes_over_a_card_without_force(tmp_path, capsys):
+    """The card is ``--out`` with suffix ``.json``: an ``--out`` without ``.ckpt`` once
+    replaced the card of another file, and a card alone was overwritten silently."""
+    import shutil
+
+    shipped = ROOT / "checkpoints" / "four_tank_nn_grad.ckpt"
+    ship = tmp_path / "ship"
+    ship.mkdir()
+    for suffix in (".ckpt", ".json"):
+        shutil.copyfile(
+            shipped.with_suffix(suffix), (ship / "four_tank_nn_grad").with_suffix(suffix)
+        )
+    card = (ship / "four_tank_nn_grad.json").read_text()
+    other = ROOT / "checkpoints" / "four_tank_nn_ekf.ckpt"
+    assert main(["export", str(other), "--out", str(ship / "four_tank_nn_grad")]) == 2
+    assert "--out must name a .ckpt file" in capsys.readouterr().err
+    (ship / "four_tank_nn_grad.ckpt").unlink()  # the card alone is there
+    assert main(["export", str(other), "--out", str(ship / "four_tank_nn_grad.ckpt")]) == 2
+    assert "four_tank_nn_grad.json exists; pass --force" in capsys.readouterr().err
+    assert (ship / "four_tank_nn_grad.json").read_text() == card
+
+
+def test_export_keeps_the_weights_dtype(tmp_path):
+    """A float64 network trained under Lightning is exported in float64 (once cast to
+    float32 on the way)."""
+    import torch
+
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+    from difffilter.train.export import export
+
+    net, card = load_estimator_checkpoint(ROOT / "checkpoints" / "four_tank_nn_grad.ckpt")
+    assert next(net.parameters()).dtype == torch.float64  # loaded in float64 by default
+    state = {k: v + 1e-12 for k, v in net.state_dict().items()}  # below float32's resolution
+    src = tmp_path / "last.ckpt"  # what a training run's ModelCheckpoint holds
+    torch.save({"pytorch-lightning_version": "2.5.0", "epoch": 3, "global_step": 48,
+                "state_dict": {f"estimator.{k}": v for k, v in state.items()},
+                "hyper_parameters": {}, "difffilter_estimator_config": net.config(),
+                "difffilter_observer": card.to_dict()}, src)  # fmt: skip
+    export(src, tmp_path / "out.ckpt")
+    back, _ = load_estimator_checkpoint(tmp_path / "out.ckpt", dtype=None)
+    for (name, a), b in zip(state.items(), back.state_dict().values(), strict=True):
+        assert b.dtype == torch.float64 and torch.equal(a, b), name

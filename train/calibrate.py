@@ -44,9 +44,9 @@ import tempfile
 import time
 from pathlib import Path
 
-import torch
-
 from difffilter._checks import check_rate
+
+from .common import check_checkpoint_out
 
 __all__ = ["calibrate_checkpoint", "estimator_name", "main"]
 
@@ -131,11 +131,8 @@ def calibrate_checkpoint(
         raise ValueError(f"--far must lie in (0, 1) (a rate per step); got {far!r}")
     if runs is not None and (isinstance(runs, bool) or not isinstance(runs, int) or runs < 1):
         raise ValueError(f"--runs must be a positive integer; got {runs!r}")
-    if out.exists() and not force and out.resolve() != src.resolve():
-        raise ValueError(f"--out: {out} exists; pass --force to replace it")
-    if out.resolve() == src.resolve() and not force:
-        raise ValueError(f"--out: {out} is the source itself; pass --force to rewrite it")
-    estimator, card = load_estimator_checkpoint(src, dtype=torch.float32)
+    check_checkpoint_out(out, force=force, replacing=src)
+    estimator, card = load_estimator_checkpoint(src, dtype=None)  # the weights unchanged
     if card.scenario is None:
         raise ValueError(f"{src}: its card names no training scenario to calibrate on")
     as_shipped = card

@@ -1,11 +1,14 @@
-"""Small helpers the training modules share: dtype names and seed mixing."""
+"""Small helpers the training modules share: dtype names, seed mixing and where an
+exported checkpoint may be written."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import torch
 
-__all__ = ["DTYPES", "dtype_of", "mix_seed"]
+__all__ = ["DTYPES", "check_checkpoint_out", "dtype_of", "mix_seed"]
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
@@ -15,6 +18,25 @@ def dtype_of(name: str) -> torch.dtype:
     if name not in DTYPES:
         raise ValueError(f"dtype must be one of {sorted(DTYPES)}; got {name!r}")
     return DTYPES[name]
+
+
+def check_checkpoint_out(out: Path, *, force: bool, replacing: Path | None = None) -> None:
+    """``ValueError`` (naming ``--out``) unless an exported checkpoint may be written to
+    ``out``: a ``.ckpt`` file (its card is ``out`` with suffix ``.json``, so any other name
+    could make the card land on a file of another name, a shipped card among them) of which
+    neither the file nor the card exists, unless ``force``. ``replacing``: the source being
+    rewritten in place, allowed with ``force`` only (its own card is rewritten with it)."""
+    if out.suffix != ".ckpt":
+        raise ValueError(
+            f"--out must name a .ckpt file (its card is the .json beside it); got {out}"
+        )
+    if replacing is not None and out.resolve() == replacing.resolve():
+        if not force:
+            raise ValueError(f"--out: {out} is the source itself; pass --force to rewrite it")
+        return
+    for path in (out, out.with_suffix(".json")):
+        if path.exists() and not force:
+            raise ValueError(f"--out: {path} exists; pass --force to replace it")
 
 
 def mix_seed(*parts: int) -> int:

@@ -31,6 +31,8 @@ from difffilter.models.neural_estimator import (
     save_estimator_checkpoint,
 )
 
+from .common import check_checkpoint_out
+
 __all__ = ["export", "main", "ExportEstimator", "check_metric"]
 
 
@@ -65,11 +67,11 @@ def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
     checkpoint (``FileNotFoundError`` if it does not exist). Returns ``out``.
     """
     src, out = Path(src), Path(out)
-    if out.exists() and not force:
-        raise ValueError(f"--out: {out} exists; pass --force to replace it")
     if out.resolve() == src.resolve():
         raise ValueError(f"--out: {out} is the source itself")
-    estimator, est_card = load_estimator_checkpoint(src, dtype=torch.float32)  # verifies it
+    check_checkpoint_out(out, force=force)
+    # verified; its weights in their own dtype (a float64 network stays float64)
+    estimator, est_card = load_estimator_checkpoint(src, dtype=None)
     out.parent.mkdir(parents=True, exist_ok=True)
     card_src = src.with_suffix(".json")
     blob = torch.load(src, map_location="cpu", weights_only=True)
