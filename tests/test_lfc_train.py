@@ -286,11 +286,13 @@ def test_validate_and_test_take_the_exported_checkpoint(tmp_path, monkeypatch, c
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr("sys.argv", ["difffilter-train"])
     config = ["--config", str(ROOT / "train" / "configs" / "lfc.yaml"), "--ckpt_path", str(CKPT)]
-    # the shipped network was trained before the config's gating, plain innovation, restart
-    # and confirmation
-    config += ["--model.gating=false", "--model.features=null", "--model.restart=null",
-               "--model.confirm=null"]  # fmt: skip
+    # the shipped network was trained before the config's gating and plain innovation (its
+    # card's restart and confirmation, the config's, were set by difffilter-train calibrate)
+    config += ["--model.gating=false", "--model.features=null"]
     small = ["--data.val_runs=2", "--data.steps=60", "--data.test_runs=2"]
+    # a module that would score it otherwise than its threshold was chosen for is refused
+    assert main(["validate", *config, *small, "--model.confirm=null"]) == 2
+    assert "confirm = 0.01, the configured model has None" in capsys.readouterr().err
     assert main(["validate", *config, *small]) == 0
     assert main(["test", *config, *small]) == 0
     out = capsys.readouterr().out

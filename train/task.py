@@ -785,9 +785,12 @@ class FilterEstimatorTask(pl.LightningModule):
 
     def check_exported(self, card: EstimatorCard, path) -> None:
         """``ValueError`` unless an exported estimator was trained with this module's filter,
-        family, features and trainer; its operating threshold becomes this module's."""
+        family, features, trainer, residual, standardisation, gating and compensation and
+        runs with its restart, confirmation and rejection (the card's threshold was chosen
+        for the score they give); its operating threshold becomes this module's."""
         mine = self.card()
-        for key in ("filter", "scenario_family", "features", "trainer", "residual"):
+        for key in ("filter", "scenario_family", "features", "trainer", "residual", "standardize",
+                    "gating", "compensation", "restart", "confirm", "reject"):  # fmt: skip
             if getattr(card, key) != getattr(mine, key):
                 raise ValueError(
                     f"--ckpt_path: {path} was trained with {key} = {getattr(card, key)!r}, the "
