@@ -57,3 +57,23 @@ def test_a_short_run_logs_hparams_learning_rate_loss_and_figures(config, tmp_pat
     assert any(t.startswith("lr-") for t in tags["scalars"]), tags["scalars"]
     assert "train/loss" in tags["scalars"] and "val/threshold" in tags["scalars"]
     assert tags["images"], "no figure"
+
+
+def test_a_run_with_another_logger_ends_cleanly_and_records_its_best_score(tmp_path, monkeypatch):
+    """The best validation score goes beside the settings with any logger (TensorBoard's
+    HPARAMS view takes both; a CSV logger once failed at the end of fit on the pair)."""
+    import csv
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    argv = ["fit", "--config", str(ROOT / "train" / "configs" / "four_tank.yaml"),
+            "--data.init_args.batch_size=2", "--data.init_args.batches_per_epoch=1",
+            "--data.init_args.val_runs=4", "--data.init_args.steps=20",
+            "--model.init_args.hidden=4", "--trainer.max_epochs=1",
+            "--model.init_args.num_particles=20",
+            "--trainer.logger=lightning.pytorch.loggers.CSVLogger",
+            "--trainer.logger.save_dir=csv_logs"]  # fmt: skip
+    assert main(argv) == 0
+    (metrics,) = (tmp_path / "csv_logs").rglob("metrics.csv")
+    rows = list(csv.DictReader(metrics.open()))
+    assert any(r.get("hp/best_val_score") for r in rows)

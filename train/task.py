@@ -49,6 +49,7 @@ import math
 import lightning.pytorch as pl
 import torch
 from lightning.fabric.utilities.apply_func import move_data_to_device
+from lightning.pytorch.loggers import TensorBoardLogger
 
 from difffilter import resampling
 from difffilter.attack import Channel, attack_dim
@@ -733,10 +734,16 @@ class FilterEstimatorTask(pl.LightningModule):
         for cb in self.trainer.callbacks if self.trainer is not None else ():
             if isinstance(cb, pl.callbacks.ModelCheckpoint) and cb.best_model_score is not None:
                 best = float(cb.best_model_score)
-        if self.logger is not None and best is not None:  # the run's settings beside its result
-            dm = getattr(self.trainer, "datamodule", None)
-            params = {**({} if dm is None else dict(dm.hparams)), **dict(self.hparams)}
-            self.logger.log_hyperparams(params, {"hp/best_val_score": best})
+        if best is None:
+            return
+        dm = getattr(self.trainer, "datamodule", None)
+        params = {**({} if dm is None else dict(dm.hparams)), **dict(self.hparams)}
+        for logger in self.loggers:  # the run's settings beside its result
+            if isinstance(logger, TensorBoardLogger):  # its HPARAMS view pairs them
+                logger.log_hyperparams(params, {"hp/best_val_score": best})
+            else:  # the others take the settings alone (a CSV logger, a custom one)
+                logger.log_hyperparams(params)
+                logger.log_metrics({"hp/best_val_score": best}, step=self.global_step)
 
     # -- export (difffilter.train.export.ExportEstimator) ----------------------------------
     def export_name(self) -> str:
