@@ -51,3 +51,13 @@ def test_the_bce_weighs_the_steps_after_an_attack():
 def test_bad_after_attack_options_are_refused_by_name(option, value):
     with pytest.raises(ValueError, match=option):
         FilterEstimatorTask("four_tank_bias", num_particles=20, hidden=4, **{option: value})
+
+
+def test_truncated_backpropagation_is_refused_on_an_open_loop():
+    """An open loop trains on whole sequences: ``tbptt_steps`` there once only stretched the
+    one-cycle schedule (20 steps of a 80-step schedule, the rate never annealed)."""
+    with pytest.raises(
+        ValueError, match="tbptt_steps needs a closed-loop scenario; four_tank_bias"
+    ):
+        FilterEstimatorTask("four_tank_bias", num_particles=20, hidden=4, tbptt_steps=5)
+    FilterEstimatorTask("lfc_random_attacks", filter="kf", tbptt_steps=5)  # a closed loop takes it

@@ -306,7 +306,7 @@ class FilterEstimatorTask(pl.LightningModule):
             (``pct_start`` warm-up share; ``None``: a constant rate) stepped after every
             chunk, and the global gradient-norm clip (``None``: none).
         tbptt_steps: chunk length of truncated backpropagation through a closed loop
-            (``None``: whole sequences; open loops always run whole).
+            (``None``: whole sequences; open loops always run whole and refuse it).
         ekf_lr, ekf_init_cov, ekf_init_noise, ekf_process_noise: ``η``, ``ρ(0)``, ``Υ(0)``
             and ``Q_ρ`` of the EKF trainer.
         attack_weight, bce_weight, state_weight, control_weight: loss weights (module
@@ -868,6 +868,9 @@ def _check_options(hp, sc, channel: Channel) -> float:
         raise ValueError(f"after_attack_steps must be an integer >= 1; got {steps!r}")
     if hp.tbptt_steps is not None and hp.tbptt_steps < 1:
         raise ValueError(f"tbptt_steps must be >= 1 or None; got {hp.tbptt_steps!r}")
+    if hp.tbptt_steps is not None and not sc.closed_loop:  # (it would only stretch the schedule)
+        raise ValueError(f"tbptt_steps needs a closed-loop scenario; {sc.name} is open-loop and "
+                         "trains on whole sequences")  # fmt: skip
     far = sc.false_alarm_rate if hp.target_false_alarm_rate is None else hp.target_false_alarm_rate
     if not 0 < far < 1:
         raise ValueError(f"target_false_alarm_rate must be in (0, 1); got {far!r}")
