@@ -7,13 +7,14 @@ a last.ckpt copy whenever a checkpoint file gets saved"), that is, only in an ep
 the monitored metric improved. A run stopped after a few epochs without improvement then
 resumes from the last improvement and trains those epochs again (an LFC training of 30
 epochs, two or three minutes each, stopped in epoch 10 with its ``last.ckpt`` at epoch 5).
-:class:`LastCheckpointEveryEpoch` writes the same file at the end of every epoch, after the
-checkpoint callbacks have updated their own state (it runs after them, which is why
-``difffilter-train fit`` appends it rather than a module's ``configure_callbacks``, whose
-callbacks Lightning places before the checkpoint callbacks), so ``--ckpt_path
-<run>/checkpoints/last.ckpt`` resumes from the epoch the run reached. ``difffilter-train
-fit`` adds one beside every such callback
-(:meth:`~difffilter.train.lightning_cli.DifffilterCLI.before_fit`).
+:class:`LastCheckpointEveryEpoch` writes the same file at the end of every epoch, so
+``--ckpt_path <run>/checkpoints/last.ckpt`` resumes from the epoch the run reached.
+``difffilter-train fit`` adds one beside every such callback
+(:meth:`~difffilter.train.lightning_cli.DifffilterCLI.before_fit`). Lightning runs the
+checkpoint callbacks after every other (its ``_reorder_callbacks``), so this one writes the
+file before they see the epoch; the file still holds their state of the epoch: a
+``ModelCheckpoint`` changes its state only in an epoch where the monitored metric improved,
+and then writes ``last.ckpt`` itself, after this one, with that state.
 """
 
 from __future__ import annotations
@@ -29,8 +30,8 @@ __all__ = ["LastCheckpointEveryEpoch", "add_last_every_epoch"]
 class LastCheckpointEveryEpoch(pl.Callback):
     """Write ``checkpoint``'s ``last.ckpt`` at the end of every training epoch (after its
     validation, where the epoch has one), where ``checkpoint`` keeps it for improvements
-    only (module docstring). Placed after the checkpoint callbacks, so that the file holds
-    their state of this epoch."""
+    only (module docstring; why the file holds the checkpoint callbacks' state of the epoch
+    though Lightning runs them after this one)."""
 
     def __init__(self, checkpoint: ModelCheckpoint):
         if not isinstance(checkpoint, ModelCheckpoint):
