@@ -555,25 +555,36 @@ def _normalise(joint: Tensor, prior_lw: Tensor):
     weights: logsumexp by hand, keeping its exponentials (``e = exp(joint − max)`` gives the
     weights ``e / Σe`` and the increment ``log Σe + max`` without a second exp pass).
     Degenerate runs (every joint weight −inf, or NaN) reset to the predictive weights
-    ``prior_lw`` (module docstring): one host sync per step, the reset only when needed."""
+    ``prior_lw`` (module docstring): one host sync per step, the reset only when needed.
+    The reset keeps the other runs' gradients finite: its graph holds no NaN of the
+    degenerate runs (a ``torch.where`` over a NaN branch passes ``0 · NaN`` back)."""
+    increment, log_w, w = _normalised(joint)
+    degenerate = ~torch.isfinite(increment)
+    if bool(degenerate if degenerate.dim() == 0 else degenerate.any()):
+        reset = degenerate.unsqueeze(-1)
+        # −inf (not NaN) where all are −inf; no gradient through a degenerate run's
+        increment = torch.logsumexp(torch.where(reset, joint.detach(), joint), dim=-1)
+        # the other runs' weights as a batch without the degenerate ones gives them,
+        # recomputed beside finite stand-ins
+        _, kept_log_w, kept_w = _normalised(torch.where(reset, prior_lw.detach(), joint))
+        log_w = torch.where(reset, prior_lw, kept_log_w)
+        w = torch.where(reset, torch.exp(prior_lw), kept_w)
+    return increment, log_w, w, degenerate
+
+
+def _normalised(joint: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(log Σ exp joint [...], log w [..., N], w [..., N])`` by hand (:func:`_normalise`)."""
     if joint.dim() == 1:  # one run: the same numbers without the keepdim reshapes
         top = joint.detach().amax(-1)
         e = torch.exp(joint - top)
         total = e.sum(-1)
         increment = torch.log(total) + top
-        log_w, w = joint - increment, e / total
-    else:
-        top = joint.detach().amax(-1, keepdim=True)
-        e = torch.exp(joint - top)
-        total = e.sum(-1, keepdim=True)
-        increment = (torch.log(total) + top).squeeze(-1)
-        log_w, w = joint - increment.unsqueeze(-1), e / total
-    degenerate = ~torch.isfinite(increment)
-    if bool(degenerate if degenerate.dim() == 0 else degenerate.any()):
-        increment = torch.logsumexp(joint, dim=-1)  # −inf (not NaN) where all are −inf
-        log_w = torch.where(degenerate.unsqueeze(-1), prior_lw, log_w)
-        w = torch.exp(log_w)
-    return increment, log_w, w, degenerate
+        return increment, joint - increment, e / total
+    top = joint.detach().amax(-1, keepdim=True)
+    e = torch.exp(joint - top)
+    total = e.sum(-1, keepdim=True)
+    increment = (torch.log(total) + top).squeeze(-1)
+    return increment, joint - increment.unsqueeze(-1), e / total
 
 
 def _predictive(model, y, mask, k, obs, pred_w, prior_lw, pred_mean) -> Predictive:

@@ -531,6 +531,30 @@ def test_particle_step_flags_the_degenerate_run_only():
     assert torch.isfinite(new.log_weights).all() and out.extras["ess"][0] == pytest.approx(50.0)
 
 
+def test_a_degenerate_run_leaves_the_other_runs_gradients_finite_and_unchanged():
+    """One run's impossible measurement once turned every parameter's gradient NaN (the
+    reset's graph held the degenerate run's NaN, passed back as 0 · NaN)."""
+    model = constant_velocity()
+    model.F.requires_grad_(True)
+    _, ys, _ = model.simulate(8, (2,), generator=torch.Generator().manual_seed(3))
+    ys = ys.detach()
+    bad = ys.clone()
+    bad[1, 3, 0] = 1e200  # run 1: every particle's likelihood underflows at step 4
+
+    def run(data):
+        res = df.particle_filter(model, data, num_particles=20,
+                                 generator=torch.Generator().manual_seed(1))  # fmt: skip
+        (grad,) = torch.autograd.grad(res.means[0].square().sum(), model.F)
+        return res, grad
+
+    (clean, g_clean), (res, g_bad) = run(ys), run(bad)
+    assert res.degenerate[1, 3] and not res.degenerate[0].any()
+    assert torch.isfinite(g_bad).all()
+    # run 0 neither sees run 1's data nor its draws: the same numbers and the same gradient
+    assert torch.equal(res.means[0], clean.means[0]) and torch.equal(g_bad, g_clean)
+    assert res.log_likelihood_increments[1, 3] == -INF
+
+
 # --------------------------------------------------------------------- checkpoints
 
 
