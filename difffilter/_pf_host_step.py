@@ -39,7 +39,7 @@ from torch import Tensor
 from . import _pf_single_run as _single_run
 from .estimator import Generators
 from .noise import Gaussian
-from .particle import ParticleState
+from .particle import ParticleState, _ess
 from .results import StepOutput
 from .ssm import StateSpaceModel
 
@@ -101,7 +101,9 @@ def host_step(pf, carry, y: Tensor, u: Tensor | None, density) -> tuple[Particle
     x_t, log_w = carry.particles, carry.log_weights.numpy()
     w = None if carry.weights is None else carry.weights.numpy()
     n, dtype = log_w.shape[0], log_w.dtype.type
-    ess = _host_ess(log_w) if carry.ess is None else carry.ess.item()
+    # a carry without its ESS (from init): torch's, so that the first decision to resample
+    # is the torch steps' (a host log-sum-exp rounds otherwise: ess_threshold = 1 split them)
+    ess = (carry.ess if carry.ess is not None else _ess(carry.log_weights)).item()
     # the torch step compares in the weights' dtype: so does this one
     resampled = ess < float(dtype(pf.ess_threshold * n))
     if resampled:
@@ -200,14 +202,6 @@ def _uniform(n: int, dtype) -> tuple[np.ndarray, np.ndarray]:
 def _flag(value: bool) -> Tensor:
     """A 0-dimensional bool tensor (a new one: callers may stack or modify it)."""
     return torch.from_numpy(np.array(value))
-
-
-def _host_ess(log_w: np.ndarray):
-    """``1 / Σᵢ exp(2 log wᵢ)`` for normalised log-weights ``[N]`` (as the torch step's
-    ``exp(−logsumexp(2 log w))``)."""
-    twice = log_w * log_w.dtype.type(2.0)
-    top = twice.max()
-    return np.exp(-(np.log(np.exp(twice - top).sum()) + top))
 
 
 def _systematic_ancestors(weights: np.ndarray, generator) -> np.ndarray:

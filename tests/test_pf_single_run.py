@@ -200,6 +200,21 @@ def test_the_host_step_in_float32_follows_the_general_step():
         torch.testing.assert_close(a.innovation_cov, b.innovation_cov, atol=1e-4, rtol=1e-4)
 
 
+@pytest.mark.parametrize("n", [19, 53])
+def test_the_first_decision_to_resample_is_the_general_steps_at_every_threshold(n):
+    """A carry from init has no ESS: the host step once took its own log-sum-exp of the
+    equal weights, which rounds otherwise than torch's in float32 (N = 19 at ess_threshold
+    1: the host resampled at the first step, the general step did not)."""
+    model = FourTankModel(dtype=torch.float32)
+    ys, _ = _data(model, steps=5)
+    pf = df.ParticleFilter(n, ess_threshold=1.0)
+    oh = _run(pf, model, ys.float(), None, False, host=True)[1]
+    og = _run(pf, model, ys.float(), None, True, host=True)[1]
+    assert [bool(o.extras["resampled"]) for o in oh] == [bool(o.extras["resampled"]) for o in og]
+    for a, b in zip(oh, og):
+        torch.testing.assert_close(a.mean, b.mean, atol=1e-4, rtol=1e-4)
+
+
 def test_a_degenerate_host_step_resets_as_the_general_step():
     model = _linear_model()
     ys, _ = _data(model, steps=6)
