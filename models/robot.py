@@ -224,7 +224,7 @@ class RobotScenario(Scenario):
 
     family: str = "robot"
     state_unit: ClassVar[str] = "cm, rad"  # (s_x, s_y, θ) pooled
-    attack_unit: ClassVar[str] = "cm/s, deg/s"  # (a_p, a_r) on the actuators
+    attack_unit: ClassVar[str] = "cm/s, rad/s"  # (a_p, a_r) on the actuators, as simulated
     description: str = ""
     paper: str = "Tan, Weng, Chen & Yu, nonlinear fusion estimation of FDI attacks, App. B"
     runs: int = 100
