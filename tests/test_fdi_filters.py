@@ -404,3 +404,31 @@ def test_fused_rejects_bad_input():
             model, y, mask=torch.ones_like(y, dtype=torch.bool), num_particles=10,
             detector=fdi.PoADetector(0.2, 0.5), gamma_hat=y, fused=True,
         )  # fmt: skip
+
+
+class _AngleModel(df.LinearGaussianModel):
+    """The scalar random walk measured as an angle: residuals wrapped into (−π, π]."""
+
+    def measurement_residual(self, y, y_hat):
+        return (
+            torch.remainder(super().measurement_residual(y, y_hat) + math.pi, 2 * math.pi) - math.pi
+        )
+
+
+def test_the_probability_of_attack_reads_the_models_wrapped_residuals():
+    """An angle measured 2π away is the same angle: the PoA (eq. 17) and the literal
+    likelihood see the residual the model defines (once the raw difference, ~2π: every
+    particle 'exceeded η' without any attack)."""
+    one = torch.ones(1, 1, dtype=torch.float64)
+    model = _AngleModel(one, one, 1e-4 * one, 1e-2 * one, torch.zeros(1, dtype=torch.float64),
+                        1e-4 * one)  # fmt: skip
+    _, ys, _ = model.simulate(6, (3,), generator=torch.Generator().manual_seed(0))
+    det = fdi.PoADetector(0.5, 0.5)
+    for literal in (False, True):
+        plain = fdi.particle_filter_poa(
+            model, ys, detector=det, literal=literal, **streams(model, 3, 40)
+        )
+        turned = fdi.particle_filter_poa(model, ys + 2 * math.pi, detector=det, literal=literal,
+                                         **streams(model, 3, 40))  # fmt: skip
+        torch.testing.assert_close(turned.detection.scores, plain.detection.scores)
+        assert not turned.alarms.any()

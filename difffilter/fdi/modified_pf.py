@@ -130,7 +130,7 @@ class LiteralGaussianLikelihood:
             raise ValueError(
                 "LiteralGaussianLikelihood does not support a measurement mask (mask must be None)"
             )
-        residuals = y.unsqueeze(-2) - model.observe(particles, k)
+        residuals = model.measurement_residual(y.unsqueeze(-2), model.observe(particles, k))
         dens = literal_gaussian_density(residuals, model.measurement_cov(k))
         log_dens = torch.log(dens)
         dead = (dens == 0).all(-1, keepdim=True)
@@ -251,7 +251,7 @@ class ModifiedPFWeighting:
                 particles, y if mask is None else y * mask.to(y.dtype), G, K
             )
         else:  # z̃⁺ = (I − G K)(ỹ − h(x^i)), G the Jacobian at the predictive mean
-            innov = y.unsqueeze(-2) - model.observe(particles, k)
+            innov = model.measurement_residual(y.unsqueeze(-2), model.observe(particles, k))
             if mask is not None:
                 innov = innov * mask.unsqueeze(-2).to(innov.dtype)
             eye = torch.eye(G.shape[-2], dtype=G.dtype, device=G.device)
@@ -480,7 +480,10 @@ class PoAParticleFilter(ParticleFilter):
         )
 
     def _poa(self, model, y, m, state, out):
-        residuals = y.unsqueeze(-2) - model.observe(state.particles, state.k)
+        # through the model's residual: a bearing near ±π is wrapped (else ~2π: a false PoA)
+        residuals = model.measurement_residual(
+            y.unsqueeze(-2), model.observe(state.particles, state.k)
+        )
         if m is not None:
             residuals = residuals * m.unsqueeze(-2).to(residuals.dtype)
         if self.literal:

@@ -44,8 +44,10 @@ p_k ν_k``.
                         uncompensated measurement (about 1 per entry without attack; one
                         area only)
     "poa"               β_k = Σ_{i: ‖z^i‖ > η} w^i_{k−1},  z^i = ỹ_k − h(x^i_k): the
-                        probability of attack of the modified-PF paper (eq. 14); particle
-                        filter only
+                        probability of attack of the modified-PF paper in the form of its
+                        modified PF, eq. (58) over the predictive weights of eq. (29) (not
+                        eq. 14's likelihood weights), on the raw residuals; particle filter
+                        only
     "plain_innovation"  ν°_k / √diag S°_k (0 where unreceived): the standardised innovation
                         of a second copy of the filter that reads ỹ_k uncompensated, each
                         area its own channels; Gaussian filters only
