@@ -106,8 +106,9 @@ class RobotModel(StateSpaceModel):
     def transition(self, x, u, k):
         if u is None:
             return x
-        th = x[..., 2]
-        step = torch.stack((u[..., 0] * torch.cos(th), u[..., 0] * torch.sin(th), u[..., 1]), -1)
+        # u may be one row for many particles ([..., 1, 2] against [..., N, 3])
+        speed, turn, th = torch.broadcast_tensors(u[..., 0], u[..., 1], x[..., 2])
+        step = torch.stack((speed * torch.cos(th), speed * torch.sin(th), turn), -1)
         return x + self.dt * step
 
     def transition_jacobian(self, x, u, k):

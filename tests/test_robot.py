@@ -13,6 +13,7 @@ import torch
 from conftest import constant_velocity
 
 import difffilter as df
+from difffilter import fdi
 from difffilter.fdi import _components as C
 from difffilter.fdi.adaptive_kf import adaptive_kalman_filter, adaptive_update
 from difffilter.fdi.fusion import _fused, covariance_intersection, fuse, information_fusion
@@ -472,3 +473,21 @@ def test_fused_locals_fast_path_equals_the_composed_steps(rule):
                  (fast.scores, steps.scores), (fast.extras["local_means"], steps.extras["local_means"])):  # fmt: skip
         torch.testing.assert_close(a, b, rtol=0, atol=1e-10)
     assert torch.equal(fast.alarms, steps.alarms)
+
+
+def test_the_particle_filters_step_the_robot_with_one_input_row_for_all_particles():
+    """A particle filter hands the model one input row per run for all its particles
+    (``u [B, 1, 2]`` against ``x [B, N, 3]``): once a stack of unequal shapes."""
+    m = RobotModel()
+    x = torch.randn(2, 7, 3, generator=torch.Generator().manual_seed(0), dtype=F64)
+    u = torch.tensor([[[5.0, 0.1]], [[3.0, -0.2]]], dtype=F64)
+    torch.testing.assert_close(m.transition(x, u, 0), m.transition(x, u.expand(2, 7, 2), 0),
+                               rtol=0, atol=0)  # fmt: skip
+    us = torch.tensor([5.0, 5.0 * DEG], dtype=F64).expand(2, 6, 2).clone()
+    _, ys, _ = m.simulate(6, (2,), us=us, generator=torch.Generator().manual_seed(1))
+    for run in (lambda: df.particle_filter(m, ys, us, num_particles=50,
+                                           generator=torch.Generator().manual_seed(2)),
+                lambda: fdi.particle_filter_poa(m, ys, us, num_particles=50,
+                                                detector=fdi.PoADetector(1.0, 0.5),
+                                                generator=torch.Generator().manual_seed(2))):  # fmt: skip
+        assert torch.isfinite(run().means).all()
