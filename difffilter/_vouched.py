@@ -17,7 +17,10 @@ torch's tensor metaclass at every step).
 dicts) must be the very objects vouched for (by identity), and its tensors must not have
 been modified in place since (their autograd version counters). ``carry._replace(mean=…)``,
 a carry built by hand, a tensor written in place, or a carry of another estimator object:
-each is validated in full again, with the same errors as before.
+each is validated in full again, with the same errors as before. One exception: the
+inference tensors of ``torch.inference_mode()`` keep no version counter, so there identity
+alone is checked, and a carry written in place is not validated again (the speed inference
+mode is chosen for; ``full_checks = True`` validates every step).
 
 The registry holds weak references to the tensors (a vouched carry keeps no particle
 cloud and no autograd graph alive) and plain references to the other leaves (models, gain

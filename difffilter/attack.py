@@ -4,7 +4,8 @@ An attack is data plus a step. At measurement ``k`` of the loop
 (:func:`difffilter.loop.closed_loop`) it reads what its threat model allows — the true
 measurement ``y_k``, the true state ``x_k``, the commanded input ``u_{k−1}`` and, for an
 adaptive attacker, the estimator's output of the previous step (``view``) — and returns
-what it injects and where::
+what it injects and where (an actuator attack acts on the transition to ``x_k``, so it
+steps before it: it reads ``x_{k−1}`` and no measurement)::
 
     A_0            = attack.init(batch_shape, T, dim, generator, dtype=, device=)
     A_k, a_k, l_k  = attack.step(A_{k−1}, k, y=y_k, x=x_k, u=u_{k−1}, view=out_{k−1})

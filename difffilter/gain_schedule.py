@@ -81,12 +81,14 @@ def shared_gains_apply(model) -> bool:
     needed = ("transition_matrix", "observation_matrix", "control_matrix", "process_cov")
     if not all(hasattr(model, name) for name in needed) or getattr(model, "time_varying", False):
         return False
-    mats = (model.transition_matrix(0), model.observation_matrix(1), model.initial.cov)
+    B = model.control_matrix(0)
+    mats = (model.transition_matrix(0), model.observation_matrix(1), model.initial.cov,
+            model.process_cov(0), model.measurement_cov(1), *(() if B is None else (B,)))  # fmt: skip
+    # every one unbatched (a per-run Q, R or B is per-run covariances or a per-run map)
     if not (all(m.dim() == 2 for m in mats) and model.initial.mean.dim() == 1):
         return False
-    B = model.control_matrix(0)
-    every = (*mats, model.process_cov(0), model.measurement_cov(1), model.initial.mean)
-    return not any(m.requires_grad for m in (*every, *(() if B is None else (B,))))
+    every = (*mats, model.initial.mean)
+    return not any(m.requires_grad for m in every)
 
 
 class GainSchedule:
@@ -129,6 +131,7 @@ class GainSchedule:
         self.Ft, self.Ht = self.F.transpose(0, 1), self.H.transpose(0, 1)
         self.Bt = None if self.B is None else self.B.transpose(0, 1)
         self._moments: list[SharedMoments] = []
+        self._cov_versions: list[int] = []  # each handed-out covariance's version then
         self._row_maps: list[tuple[Tensor, Tensor, Tensor]] = []
         self._neg_log_norms: list[Tensor] = []  # −log_norm of each k: the one-run step's
         self._chunks = CovarianceChunks(self.F, self.H, self.Q, self.R, model.initial.cov, tol)
@@ -171,8 +174,15 @@ class GainSchedule:
         moments, neg_log_norm = self._block[self._block_next]
         self._block_next += 1
         self._moments.append(moments)
+        self._cov_versions.append(_version(moments.cov))
         self._neg_log_norms.append(neg_log_norm)
         return moments
+
+    def intact(self, k: int) -> bool:
+        """Whether the covariance of measurement ``k ≥ 1`` (handed out) is as it was handed
+        out: not written in place since (an inference tensor keeps no version: assumed)."""
+        index = min(k, len(self._moments)) - 1
+        return _version(self._moments[index].cov) == self._cov_versions[index]
 
     def _all_handed_out(self) -> bool:
         return (self.converged and self._ahead is None
@@ -454,6 +464,11 @@ def _add_product(c: Tensor, a: Tensor, b: Tensor, *, subtract: bool = False) -> 
     if a.dim() == 2 and b.dim() == 2:
         return torch.addmm(c, a, b, alpha=-1.0 if subtract else 1.0)
     return c - a @ b if subtract else c + a @ b
+
+
+def _version(t: Tensor) -> int:
+    """``t``'s autograd version counter, ``-1`` for an inference tensor (it keeps none)."""
+    return -1 if t.is_inference() else t._version
 
 
 def _symmetric(matrix: Tensor) -> Tensor:

@@ -271,11 +271,23 @@ class KalmanFilter(GaussianFilter):
     def _check_carry(self, carry):
         super()._check_carry(carry)
         if carry.gains is not None:
+            if carry.gains.model is not carry.model:  # the step would filter with the other
+                raise ValueError(
+                    "carry.gains is the gain schedule of another model: drop the gains "
+                    "(carry._replace(gains=None)) when changing the model"
+                )
             shared = carry.model.initial.cov if carry.k == 0 else carry.gains.moments(carry.k).cov
             if carry.cov is not shared:
                 raise ValueError(
                     "carry.cov is not the shared covariance of carry.gains: drop the gains "
                     "(carry._replace(gains=None)) when changing the covariance"
+                )
+            if carry.k and not carry.gains.intact(carry.k):
+                raise ValueError(
+                    "carry.cov was written in place, and it is the gain schedule's covariance, "
+                    "shared by every run (and every later step once the gain has converged): "
+                    "change a copy without the gains (carry._replace(cov=carry.cov.clone(), "
+                    "gains=None))"
                 )
 
     def _run(self, carry, ys, us, mask):

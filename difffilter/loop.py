@@ -21,6 +21,7 @@ attack may read the plant and the estimator::
     x_k    = f(x_{k−1}, ũ_{k−1}) + w_k,     ũ_{k−1} = u_{k−1} (+ l_k a_k: an actuator attack)
     y_k    = h(x_k) + v_k
     A_k, a_k, l_k = attack.step(A_{k−1}, k, y=y_k, x=x_k, u=u_{k−1}, view=out_{k−1})
+                   (an actuator attack steps before the transition it drives: x=x_{k−1}, no y)
     ỹ_k, m_k = channel(y_k, a_k, l_k), mask_k                 (sensor or replacement attack)
     ỹ_k = y_k + c_k,  A_k, c_k = attack.conceal(A_k, k, y_k, x_k)   (a covert actuator attack)
     E_k, out_k = estimator.step(E_{k−1}, ỹ_k, u_{k−1}, m_k)

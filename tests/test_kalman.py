@@ -725,3 +725,49 @@ def test_the_shared_schedule_has_no_moments_to_share_and_skips_its_evidence_too(
     assert without_out.log_likelihood is None and with_out.log_likelihood is not None
     assert torch.equal(with_state.mean, without_state.mean)
     assert without_state.gains is carry.gains
+
+
+@pytest.mark.parametrize("batched", ["Q", "R", "B"])
+def test_a_model_with_a_per_run_noise_or_input_map_takes_the_general_update(batched, cv_model,
+                                                                             generator):  # fmt: skip
+    """Per-run Q, R or B (F, H shared) once took the shared gain schedule: a batched B gave
+    outputs of the wrong shape and values, a batched Q or R an error."""
+    from difffilter.gain_schedule import shared_gains_apply
+
+    m = cv_model
+    B0 = torch.eye(4, 2, dtype=m.F.dtype)
+    Q, R, B = m.process_noise.cov, m.measurement_noise.cov, B0
+    if batched == "Q":
+        Q = torch.stack([Q, 2.0 * Q, 3.0 * Q])
+    elif batched == "R":
+        R = torch.stack([R, 2.0 * R, 3.0 * R])
+    else:
+        B = torch.stack([B0, 2.0 * B0, 3.0 * B0])
+    model = df.LinearGaussianModel(m.F, m.H, Q, R, m.initial.mean, m.initial.cov, B=B)
+    assert not shared_gains_apply(model)
+    _, ys, _ = cv_model.simulate(6, (3,), generator=generator)
+    us = torch.randn(3, 6, 2, generator=generator, dtype=ys.dtype)
+    got = df.kalman_filter(model, ys, us)
+    general = df.kalman_filter(model, ys, us, mask=torch.ones(3, 6, 2, dtype=torch.bool))
+    assert got.means.shape == (3, 6, 4)
+    torch.testing.assert_close(got.means, general.means)
+    kf = df.KalmanFilter()
+    carry = kf.init(model, (3,))
+    carry, out = kf.step(carry, ys[:, 0], us[:, 0])
+    torch.testing.assert_close(out.mean, general.means[:, 0])
+
+
+def test_a_carry_whose_gains_no_longer_hold_is_refused_when_validated(cv_model, generator):
+    """The shared step reads the schedule, not the carry: a carry with another model, or whose
+    covariance was written in place, must not run on it silently."""
+    _, ys, _ = cv_model.simulate(4, (), generator=generator)
+    kf = df.KalmanFilter()
+    carry, _ = kf.step(kf.init(cv_model), ys[0])
+    other = constant_velocity()
+    with pytest.raises(ValueError, match="gain schedule of another model"):
+        kf.step(carry._replace(model=other), ys[1])
+    assert kf.step(carry._replace(model=other, gains=None), ys[1])[1].mean.shape == (4,)
+    with torch.no_grad():
+        carry.cov.mul_(100.0)
+    with pytest.raises(ValueError, match="carry.cov was written in place"):
+        kf.step(carry, ys[1])
