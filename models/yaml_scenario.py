@@ -61,7 +61,8 @@ from typing import Any
 
 import torch
 
-from difffilter.ssm import LinearGaussianModel, NonlinearGaussianModel
+from difffilter.attack import Channel, TabulatedAttack
+from difffilter.ssm import LinearGaussianModel, NonlinearGaussianModel, _arity
 from difffilter.threats import THREATS, threat_from_dict
 
 from .attacks import ActuatorInjection, Replacement, SensorBias
@@ -117,29 +118,66 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
         if key not in doc:
             raise ValueError(f"{where}: the field {key!r} is required")
     plant = _plant(doc["plant"], f"{where}: plant")
-    probe = plant(torch.float64)
+    try:  # built once now: its shapes and functions checked (_probe) before any run
+        probe = plant(torch.float64)
+    except (ValueError, TypeError, KeyError, IndexError, RuntimeError) as error:
+        raise ValueError(f"{where}: plant: {error}") from None
     units = doc.get("units") or {}
     if not isinstance(units, Mapping) or set(units) - {"state", "attack"}:
         raise ValueError(f"{where}: units must be {{state: ..., attack: ...}}; got {units!r}")
     settings = {k: doc[k] for k in ("runs", "steps", "num_particles") if k in doc}
-    settings.update({k: float(doc[k]) for k in ("dt", "false_alarm_rate", "gamma_min")
-                     if doc.get(k) is not None})  # fmt: skip
-    return CustomScenario(
-        name=str(doc["name"]),
-        family=str(doc.get("family", "custom")),
-        description=str(doc.get("description", f"a scenario from {where}")),
-        paper=str(doc.get("paper", "")),
-        notes=tuple(doc.get("notes", ()) or ()),
-        model_fn=plant,
-        attack=_attack(doc.get("attack"), probe, f"{where}: attack"),
-        protocol=_schedule(doc.get("schedule"), f"{where}: schedule"),
-        known_inputs=_inputs(doc.get("inputs"), float(doc.get("dt", 1.0)), f"{where}: inputs"),
-        estimators=tuple(doc.get("estimators", ()) or ()),
-        options=dict(doc.get("options", {}) or {}),
-        state_unit=str(units.get("state", "state units")),
-        attack_unit=str(units.get("attack", "attack units")),
-        **settings,
-    )
+    for key in ("runs", "steps", "num_particles"):
+        value = settings.get(key)
+        if value is not None and (
+            isinstance(value, bool) or not isinstance(value, int) or value < 1
+        ):
+            raise ValueError(f"{where}: {key} must be an integer >= 1; got {value!r}")
+    for key in ("dt", "false_alarm_rate", "gamma_min"):
+        if doc.get(key) is not None:
+            settings[key] = _number(doc[key], f"{where}: {key}")
+    if not settings.get("dt", 1.0) > 0:
+        raise ValueError(f"{where}: dt must be a sampling period > 0 (s); got {doc['dt']!r}")
+    steps = settings.get("steps", CustomScenario.steps)
+    attack = _attack(doc.get("attack"), probe, steps, f"{where}: attack")
+    try:
+        return CustomScenario(
+            name=str(doc["name"]),
+            family=str(doc.get("family", "custom")),
+            description=str(doc.get("description", f"a scenario from {where}")),
+            paper=str(doc.get("paper", "")),
+            notes=_names(doc.get("notes"), f"{where}: notes"),
+            model_fn=plant,
+            attack=attack,
+            protocol=_schedule(doc.get("schedule"), f"{where}: schedule"),
+            known_inputs=_inputs(doc.get("inputs"), settings.get("dt", 1.0), f"{where}: inputs"),
+            estimators=_names(doc.get("estimators"), f"{where}: estimators"),
+            options=dict(doc.get("options", {}) or {}),
+            state_unit=str(units.get("state", "state units")),
+            attack_unit=str(units.get("attack", "attack units")),
+            **settings,
+        )
+    except (ValueError, TypeError) as error:
+        message = str(error)
+        raise ValueError(message if message.startswith(where) else f"{where}: {message}") from None
+
+
+def _number(value: Any, where: str) -> float:
+    """A finite number of the YAML file (``ValueError`` starting with ``where`` otherwise)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{where} must be a finite number; got {value!r}")
+    return float(value)
+
+
+def _names(value: Any, where: str) -> tuple:
+    """A list of strings of the YAML file as a tuple; one string is a list of one (never its
+    characters)."""
+    if value is None:
+        return ()
+    if isinstance(value, str):
+        return (value,)
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+        raise ValueError(f"{where} must be a list of strings; got {value!r}")
+    return tuple(value)
 
 
 def import_object(path: str, where: str):
@@ -201,7 +239,19 @@ def _plant(spec: Any, where: str):
         raise ValueError(f"{where} must be a mapping (module docstring); got {spec!r}")
     _check_fields(spec, _PLANT, where)
     if "model" in spec:
+        ignored = sorted(set(spec) - {"model"})
+        if ignored:  # the function makes the whole model: these would not be read
+            raise ValueError(f"{where}: model gives the whole plant; remove {', '.join(ignored)} "
+                             "(set them in the model's function)")  # fmt: skip
         return _import(spec["model"], f"{where}.model")
+    for given, ignored in (("transition", ("F", "B")), ("observe", ("H",))):
+        clash = [k for k in ignored if given in spec and k in spec]
+        if clash:
+            raise ValueError(f"{where}: {given} replaces {' and '.join(clash)}; give one or the "
+                             "other")  # fmt: skip
+    if "dim_u" in spec and "transition" not in spec:
+        raise ValueError(f"{where}.dim_u is for a transition function (a linear plant's inputs "
+                         "are B's columns)")  # fmt: skip
     transition = (
         _import(spec["transition"], f"{where}.transition") if "transition" in spec else None
     )
@@ -218,27 +268,112 @@ def _plant(spec: Any, where: str):
     def build(dtype):
         H = None if observe is not None else _matrix(spec["H"], None, f"{where}.H", dtype)
         F = None if transition is not None else _matrix(spec["F"], None, f"{where}.F", dtype)
-        dx = F.shape[0] if F is not None else len(spec.get("m0") or [])
+        m0 = _vector(spec["m0"], f"{where}.m0", dtype) if spec.get("m0") is not None else None
+        dx = F.shape[0] if F is not None else (0 if m0 is None else m0.shape[0])
         if dx == 0:
             raise ValueError(f"{where}.m0 is required with a transition function (it sets dx)")
-        m0 = torch.tensor(spec.get("m0") or [0.0] * dx, dtype=dtype)
-        Q = _matrix(spec["Q"], dx, f"{where}.Q", dtype)
-        P0 = _matrix(spec.get("P0", 1.0), dx, f"{where}.P0", dtype)
-        dy = H.shape[0] if H is not None else observe(m0).shape[-1]
-        R = _matrix(spec["R"], dy, f"{where}.R", dtype)
+        m0 = torch.zeros(dx, dtype=dtype) if m0 is None else m0
+        if F is not None and F.shape != (dx, dx):
+            raise ValueError(f"{where}.F must be square (dx × dx); got {list(F.shape)}")
+        if m0.shape[0] != dx:
+            raise ValueError(f"{where}.m0 has {m0.shape[0]} entries; the state has {dx} (F is "
+                             f"{dx} × {dx})")  # fmt: skip
+        if H is not None and H.shape[1] != dx:
+            raise ValueError(f"{where}.H must have dx = {dx} columns; got {list(H.shape)}")
+        Q = _shaped(_matrix(spec["Q"], dx, f"{where}.Q", dtype), dx, f"{where}.Q")
+        P0 = _shaped(_matrix(spec.get("P0", 1.0), dx, f"{where}.P0", dtype), dx, f"{where}.P0")
+        if H is not None:
+            dy = H.shape[0]
+        else:  # h(x) or h(x, k)
+            args = (m0,) if _arity(observe) <= 1 else (m0, 1)
+            out = _call(observe, args, f"{where}.observe")
+            if not isinstance(out, torch.Tensor) or out.dim() != 1:
+                raise ValueError(f"{where}.observe must map m0 [{dx}] to a vector [dy]; got "
+                                 f"{getattr(out, 'shape', type(out).__name__)}")  # fmt: skip
+            dy = out.shape[-1]
+        R = _shaped(_matrix(spec["R"], dy, f"{where}.R", dtype), dy, f"{where}.R")
         if transition is None and observe is None:
             B = _matrix(spec["B"], None, f"{where}.B", dtype) if "B" in spec else None
+            if B is not None and B.shape[0] != dx:
+                raise ValueError(f"{where}.B must have dx = {dx} rows; got {list(B.shape)}")
             return LinearGaussianModel(F, H, Q, R, m0, P0, B=B)
         if transition is None:
             raise ValueError(f"{where}: a nonlinear observation needs a transition function too")
         h = observe if observe is not None else (lambda x: x @ H.transpose(-1, -2))
-        return NonlinearGaussianModel(transition, h, Q, R, m0, P0,
-                                      dim_u=int(spec.get("dim_u", 0)))  # fmt: skip
+        dim_u = spec.get("dim_u", 0)
+        if isinstance(dim_u, bool) or not isinstance(dim_u, int) or dim_u < 0:
+            raise ValueError(f"{where}.dim_u must be an integer >= 0; got {dim_u!r}")
+        model = NonlinearGaussianModel(transition, h, Q, R, m0, P0, dim_u=dim_u)
+        if dim_u and model._f_arity < 2:
+            raise ValueError(f"{where}: dim_u = {dim_u} but transition takes x alone: f(x, u) "
+                             "(or f(x, u, k)) reads the input")  # fmt: skip
+        _probe(model, where)
+        return model
 
     return build
 
 
-def _attack(spec: Any, model, where: str):
+def _vector(value: Any, where: str, dtype) -> torch.Tensor:
+    """A finite vector of the YAML file."""
+    try:
+        t = torch.tensor(value, dtype=dtype)
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(f"{where} must be a list of numbers; got {value!r}") from None
+    if t.dim() != 1 or not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{where} must be a list of finite numbers; got {value!r}")
+    return t
+
+
+def _shaped(matrix: torch.Tensor, n: int, where: str) -> torch.Tensor:
+    if matrix.shape != (n, n):
+        raise ValueError(f"{where} must be {n} × {n} (a number × I, a diagonal of {n} or the "
+                         f"matrix); got {list(matrix.shape)}")  # fmt: skip
+    return matrix
+
+
+def _call(fn, args: tuple, where: str):
+    """``fn(*args)``, its error named (a user's function failing on the prior mean)."""
+    try:
+        return fn(*args)
+    except Exception as error:  # a user's function may raise anything
+        raise ValueError(f"{where} failed on m0: {type(error).__name__}: {error}") from None
+
+
+def _probe(model, where: str) -> None:
+    """``f(m0, 0_u, 0)`` of width ``dx`` and ``h(m0)`` of ``dy``: the plant's functions run
+    on its prior mean, their errors and widths named now, not deep inside a run."""
+    m0 = model.initial.mean
+    u = torch.zeros(model.dim_u, dtype=m0.dtype) if model.dim_u else None
+    for name, out, width in (("transition", _call(model.transition, (m0, u, 0), f"{where}.transition"),
+                              model.dim_x),
+                             ("observe", _call(model.observe, (m0, 1), f"{where}.observe"),
+                              model.dim_y)):  # fmt: skip
+        if not isinstance(out, torch.Tensor) or out.shape[-1:] != (width,) or out.dim() != 1:
+            shape = list(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
+            raise ValueError(
+                f"{where}.{name} must map m0 [{model.dim_x}] to [{width}]; got {shape}"
+            )
+
+
+def _attack(spec: Any, model, steps: int, where: str):
+    attack = _attack_object(spec, model, where)
+    if attack is None:
+        return None
+    onset, start = getattr(attack, "onset", None), getattr(attack, "start", None)
+    if (onset is not None and onset > steps) or (start is not None and start >= steps):
+        first = onset if onset is not None else start + 1
+        raise ValueError(f"{where}: it starts at step {first}, after the last step ({steps}): it "
+                         "would never act")  # fmt: skip
+    if isinstance(attack, TabulatedAttack):  # its width against the channel's, now
+        dim = model.dim_u if attack.channel is Channel.ACTUATOR else model.dim_y
+        try:
+            attack.sample((1,), steps, dim, torch.Generator().manual_seed(0), dtype=torch.float64)
+        except (ValueError, TypeError) as error:
+            raise ValueError(f"{where}: {error}") from None
+    return attack
+
+
+def _attack_object(spec: Any, model, where: str):
     if spec is None:
         return None
     if not isinstance(spec, Mapping) or "kind" not in spec:
@@ -262,10 +397,25 @@ def _attack(spec: Any, model, where: str):
 def _schedule(spec: Any, where: str):
     if spec is None or spec == "all":
         return AllSensors()
-    if isinstance(spec, Mapping) and spec.get("kind") == "round_robin":
-        return RoundRobin(tuple(tuple(g) for g in spec["groups"]), int(spec.get("start", 0)))
-    if isinstance(spec, Mapping) and spec.get("kind") == "packet_loss":
-        return PacketLoss(float(spec["rate"]))
+    kind = spec.get("kind") if isinstance(spec, Mapping) else None
+    fields = {"round_robin": ({"groups"}, {"start"}), "packet_loss": ({"rate"}, set())}
+    if kind in fields:
+        required, optional = fields[kind]
+        _check_fields(spec, {"kind"} | required | optional, where)
+        missing = sorted(required - set(spec))
+        if missing:
+            raise ValueError(f"{where}: {kind} needs {', '.join(missing)}")
+        try:
+            if kind == "round_robin":
+                return RoundRobin(
+                    tuple(tuple(g) for g in spec["groups"]), int(spec.get("start", 0))
+                )
+            return PacketLoss(_number(spec["rate"], f"{where}.rate"))
+        except (TypeError, ValueError) as error:
+            message = str(error)
+            raise ValueError(
+                message if message.startswith(where) else f"{where}: {message}"
+            ) from None
     raise ValueError(f"{where} must be 'all', {{kind: round_robin, groups: [[...], ...]}} or "
                      f"{{kind: packet_loss, rate: r}}; got {spec!r}")  # fmt: skip
 
@@ -275,17 +425,36 @@ def _inputs(spec: Any, dt: float, where: str):
         return None
     if not isinstance(spec, Mapping):
         raise ValueError(f"{where} must be a mapping (module docstring); got {spec!r}")
-    if "function" in spec:
+    forms = {"function": ({"function"}, set()), "values": ({"values"}, set()),
+             "sinusoid": ({"kind", "amplitude", "frequency"}, {"phase"}),
+             "constant": ({"kind", "value"}, set())}  # fmt: skip
+    form = next((f for f in ("function", "values") if f in spec), spec.get("kind"))
+    if form in forms:
+        required, optional = forms[form]
+        _check_fields(spec, required | optional, where)
+        missing = sorted(required - set(spec))
+        if missing:
+            raise ValueError(f"{where}: {form} needs {', '.join(missing)}")
+    if form == "function":
         return _import(spec["function"], f"{where}.function")
-    if "values" in spec:
-        return torch.tensor(spec["values"], dtype=torch.float64)
-    kind = spec.get("kind")
-    if kind == "sinusoid":
-        amplitude, frequency = float(spec["amplitude"]), float(spec["frequency"])
-        phase = float(spec.get("phase", 0.0))
+    if form == "values":  # [T, du] or [runs, T, du]
+        try:
+            values = torch.tensor(spec["values"], dtype=torch.float64)
+        except (TypeError, ValueError, RuntimeError):
+            values = None
+        if values is None or values.dim() not in (2, 3) or not bool(torch.isfinite(values).all()):
+            raise ValueError(f"{where}.values must be finite numbers [T, du] or [runs, T, du]; "
+                             f"got {spec['values']!r}")  # fmt: skip
+        return values
+    if form == "sinusoid":
+        amplitude, frequency = (
+            _number(spec[k], f"{where}.{k}") for k in ("amplitude", "frequency")
+        )
+        phase = _number(spec.get("phase", 0.0), f"{where}.phase")
         return lambda k: amplitude * torch.sin(2 * math.pi * frequency * dt * k + phase)
-    if kind == "constant":
-        value = torch.tensor(spec["value"], dtype=torch.float64).reshape(-1)
+    if form == "constant":
+        value = _vector([spec["value"]] if isinstance(spec["value"], (int, float)) else spec["value"],
+                        f"{where}.value", torch.float64)  # fmt: skip
         return lambda k: value.to(k.dtype).expand(k.shape[0], value.shape[0])
     raise ValueError(f"{where} must be {{kind: sinusoid, amplitude, frequency}}, {{kind: "
                      f"constant, value}}, {{values: [...]}} or {{function: module:fn}}; got {spec!r}")  # fmt: skip

@@ -247,3 +247,86 @@ def test_known_inputs_that_do_not_fit_say_so(plants):
     with pytest.raises(ValueError, match=r"known_inputs .* \[50, 1\]"):
         wrong.inputs(2, torch.float64)
     assert scenario.inputs(3, torch.float64).shape == (3, 50, 1)
+
+
+@pytest.mark.parametrize(
+    ("change", "why"),
+    [
+        # the plant: shapes, functions on m0, fields another field replaces
+        ({"plant": {"m0": [0.0, 0.0, 0.0]}}, r"plant.m0 has 3 entries; the state has 2"),
+        ({"plant": {"H": [[1.0, 0.0, 0.0]]}}, r"plant.H must have dx = 2 columns"),
+        ({"plant": {"R": [[1.0, 0.0], [0.0, 1.0]]}}, r"plant.R must be 1 × 1"),
+        ({"plant": {"B": [[0.2]]}}, r"plant.B must have dx = 2 rows"),
+        ({"plant": {"transition": "user_vdp:vdp_step"}}, r"plant: transition replaces F and B"),
+        ({"plant": {"model": "user_vdp:vdp"}}, r"plant: model gives the whole plant; remove B, F"),
+        ({"plant": {"dim_u": 1}}, r"plant.dim_u is for a transition function"),
+        ({"plant": {"m0": "zero"}}, r"plant.m0 must be a list of numbers"),
+        # the run's settings
+        ({"dt": 0}, r"dt must be a sampling period > 0"),
+        ({"dt": "fast"}, r"dt must be a finite number"),
+        ({"runs": "4"}, r"motor.yaml: runs must be an integer >= 1"),
+        # the attack: never acting, wider than its channel
+        ({"attack": {"onset": 60}}, r"attack: it starts at step 60, after the last step \(50\)"),
+        ({"attack": {"entries": [5]}}, r"motor.yaml: attack: entries \(5,\) name entries beyond"),
+        ({"attack": {"value": [0.5, 0.5, 0.5]}}, r"motor.yaml: attack: value has 3 entries"),
+        # the known inputs and the schedule
+        ({"inputs": {"amplitud": 1.0}}, r"inputs: unknown field\(s\) amplitud"),
+        ({"inputs": {"phse": 1.0}}, r"inputs: unknown field\(s\) phse"),
+        ({"inputs": {"amplitude": float("nan")}}, r"inputs.amplitude must be a finite number"),
+        ({"schedule": {"kind": "packet_loss", "rat": 0.1}}, r"schedule: unknown field\(s\) rat"),
+        ({"schedule": {"kind": "round_robin"}}, r"schedule: round_robin needs groups"),
+    ],
+)  # fmt: skip
+def test_a_bad_field_is_named_with_its_file_before_anything_runs(change, why, plants):
+    """The documented motor with one field changed: each of these once ran on something
+    else (an input typo dropped, an attack after the horizon) or failed deep inside torch."""
+    import yaml
+
+    from difffilter.models.yaml_scenario import scenario_from_yaml
+
+    doc = yaml.safe_load(MOTOR_YAML)
+    for key, value in change.items():
+        if isinstance(value, dict) and isinstance(doc.get(key), dict):
+            doc[key] = {**doc[key], **value}
+        else:
+            doc[key] = value
+    path = plants / "motor.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ValueError, match=why):
+        scenario_from_yaml(path)
+
+
+def test_a_plant_function_of_the_wrong_width_or_failing_is_named(plants):
+    """A transition returning one of two states (broadcast into both) or failing, and an
+    observation of more entries than R: named at load."""
+    import yaml
+
+    from difffilter.models.yaml_scenario import scenario_from_yaml
+
+    (plants / "user_bad.py").write_text(textwrap.dedent("""
+        import torch
+        def narrow(x):
+            return x[..., :1]
+        def broken(x):
+            raise RuntimeError("no")
+        def three(x):
+            return torch.cat([x, x[..., :1]], -1)
+    """))  # fmt: skip
+    base = yaml.safe_load(VDP_YAML)
+    cases = [({"transition": "user_bad:narrow"}, r"plant.transition must map m0 \[2\] to \[2\]; got \[1\]"),
+             ({"transition": "user_bad:broken"}, r"plant.transition failed on m0: RuntimeError: no"),
+             ({"observe": "user_bad:three", "R": [[1.0, 0.0], [0.0, 1.0]]}, r"plant.R must be 3 × 3")]  # fmt: skip
+    for change, why in cases:
+        doc = {**base, "plant": {**base["plant"], **change}}
+        if "observe" in change:
+            doc["plant"].pop("H")
+        path = plants / "vdp_bad.yaml"
+        path.write_text(yaml.safe_dump(doc))
+        with pytest.raises(ValueError, match=why):
+            scenario_from_yaml(path)
+    # one string is a list of one, never its characters
+    doc = {**base, "estimators": "chi_square_kf", "notes": "one note"}
+    path.write_text(yaml.safe_dump(doc))
+    scenario = scenario_from_yaml(path)
+    assert scenario.estimators == ("chi_square_kf",) and scenario.notes == ("one note",)
+    sys.modules.pop("user_bad", None)
