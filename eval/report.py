@@ -400,8 +400,12 @@ def write_acceptance_summary(out: str | Path, docs: dict[str, dict]) -> Path | N
         for name, checks in judged.items():
             cells = dict.fromkeys(columns, "—")
             for c in checks:
-                cells[_COLUMN_OF.get(c.metric, "state")] = (
-                    f"{format_number(c.value, 4)} {'✓' if c.holds else '✗'}"
+                column = _COLUMN_OF.get(c.metric, "state")
+                # the state column holds each scenario's own state metric: named where it is
+                # not state_rmse (tracking's rmse_p)
+                named = f" (`{c.metric}`)" if column == "state" and c.metric != "state_rmse" else ""
+                cells[column] = (
+                    f"{format_number(c.value, 4)}{named} {'✓' if c.holds else '✗'}"
                     + share_suffix(sure.get(name, {}).get(c.metric))
                 )
             every = "holds" if all(c.holds for c in checks) else "**fails**"

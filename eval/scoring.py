@@ -96,7 +96,9 @@ METRICS: dict[str, Metric] = {
     "attack_episodes": Metric("count", "attack episodes over all runs", "integer"),
     "episodes_detected": Metric("count", "episodes with an alarm inside them", "integer"),
     "time_per_step_s": Metric(
-        "s", "wall time of the batched run / (runs * steps): time per run and step"
+        "s",
+        "wall time of the batched run / (runs * steps): time per run and step, what it "
+        "cost in this study (work reused from an earlier scenario is not counted again)",
     ),
     "threshold_at_far": Metric(
         "score units",

@@ -228,6 +228,13 @@ def test_the_evaluations_acceptance_summary_has_a_row_per_judged_learned_estimat
     assert cells[2].endswith("✓ (53 %)" if checks["tpr_at_far"].holds else "✗ (53 %)")
     assert cells[5] == "0.03 ✗ (0 %)" and cells[6] == "**fails**"  # outside [0.5 %, 2 %]
     assert write_acceptance_summary(tmp_path / "none", {"other": uncalibrated}) is None
+    # a scenario judged on another state metric (tracking's rmse_p) names it in its cell
+    ests = {n: {**m, "rmse_p": m["state_rmse"]} for n, m in judged["estimators"].items()}
+    (tmp_path / "p").mkdir()
+    path = write_acceptance_summary(tmp_path / "p", {"tracking": {**judged, "estimators": ests}})
+    (row,) = [line for line in path.read_text().splitlines() if line.startswith("| tracking")]
+    assert "(`rmse_p`)" in row.split("|")[4]
+    assert "(`" not in rows[0].split("|")[4]  # state_rmse: the column's own
 
 
 def test_a_robustness_check_with_nothing_to_compare_does_not_hold():

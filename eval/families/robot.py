@@ -265,7 +265,13 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
         rows = [[f"`{n}`", f(v["ratio_all"]), f(v["ratio_late"]), f(v["runs_lower_late"]), f(v["wilcoxon_p_late"])]
                 for n, v in fus.items() if n != "better_local"]  # fmt: skip
         body = markdown_table(
-            ["fused", "RMSE / better local (all k)", "k ≥ 40", "runs lower (k ≥ 40)", "Wilcoxon p"],
+            [
+                "fused",
+                "RMSE / better local (all k)",
+                "k ≥ 40",
+                "share of runs lower (k ≥ 40)",
+                "Wilcoxon p",
+            ],
             rows,
         )
         body += (
