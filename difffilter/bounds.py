@@ -66,7 +66,7 @@ class PCRBResult(NamedTuple):
 
     def rmse(self, index) -> Tensor:
         """``sqrt(tr J_k⁻¹[index, index])`` ``[..., T]``: the RMSE floor of components ``index``."""
-        idx = torch.as_tensor(index, device=self.bound.device)
+        idx = torch.as_tensor(index, device=self.bound.device).reshape(-1)  # an int: [1]
         return self.bound[..., idx, idx].sum(-1).sqrt()
 
 

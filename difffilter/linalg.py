@@ -41,20 +41,25 @@ def safe_cholesky(matrix: Tensor, *, name: str = "matrix", max_tries: int = 6) -
 
     Jitter fallback: when the factorisation fails (a matrix that is positive
     semidefinite up to round-off), ``ε·mean(diag)·I`` is added with ε growing from
-    1e-10 (float64) or 1e-6 (float32) by factors of 10, at most ``max_tries`` times.
-    If that still fails the matrix is not positive definite and a ``ValueError`` naming
-    ``name`` is raised.
+    1e-10 (float64) or 1e-6 (float32) by factors of 10, at most ``max_tries`` times (up
+    to 1e-5 and 1e-1 of the mean diagonal). If that still fails the matrix is not positive
+    definite and a ``ValueError`` naming ``name`` is raised. In a batch only the members
+    that fail are jittered, each with the first ε that works for it: the others keep
+    their own factors.
     """
     factor, info = torch.linalg.cholesky_ex(matrix)
     if matrix.device.type == "meta" or not bool((info != 0).any()):
         return factor  # (meta tensors hold no values: shapes only, nothing to check)
+    failing = info != 0
     eps = 1e-10 if matrix.dtype == torch.float64 else 1e-6
     eye = torch.eye(matrix.shape[-1], dtype=matrix.dtype, device=matrix.device)
     scale = matrix.diagonal(dim1=-2, dim2=-1).mean(-1).abs().clamp_min(1e-30)
     for _ in range(max_tries):
         jittered = matrix + (eps * scale)[..., None, None] * eye
-        factor, info = torch.linalg.cholesky_ex(jittered)
-        if not bool((info != 0).any()):
+        retried, info = torch.linalg.cholesky_ex(jittered)
+        factor = torch.where(failing[..., None, None], retried, factor)
+        failing = failing & (info != 0)
+        if not bool(failing.any()):
             return factor
         eps *= 10.0
     raise ValueError(
@@ -173,7 +178,7 @@ def rowwise(op, a: Tensor, b: Tensor) -> Tensor:
     divisible, other broadcast patterns) and below :data:`_ROWWISE_MIN` entries.
     """
     full, row, swap = (a, b, False) if a.numel() >= b.numel() else (b, a, True)
-    if full.numel() < _ROWWISE_MIN or full.dim() < 2:
+    if full.numel() < _ROWWISE_MIN or full.dim() < 2 or row.dim() == 0:
         return op(a, b)
     if not full.is_contiguous() or full.device.type != "cpu":
         return op(a, b)

@@ -142,14 +142,22 @@ class Gaussian(NoiseModel):
 
         For covariances that do not require gradients the factor is cached against the
         tensor's version counter (filters call it at every step); a diagonal factor
-        lets sampling and densities skip the triangular matrix products.
+        lets sampling and densities skip the triangular matrix products. (So edit a
+        covariance in place under ``torch.no_grad()`` or assign a new one: a write through
+        ``.data`` or ``.numpy()`` bumps no version and leaves the old factor cached.)
         """
         src = _registered(self, "_cov" if self._given == "cov" else "_scale_tril")
         if src.requires_grad or src.is_inference():  # inference tensors have no version
             return self._compute_scale_tril(), None
         key = (src.data_ptr(), src._version, src.dtype, src.device, tuple(src.shape))
         cached = getattr(self, "_factor_cache", None)
-        if cached is not None and cached[0] == key:
+        # a factor made under torch.inference_mode() is an inference tensor, which autograd
+        # cannot save: outside that mode it is made again
+        if (
+            cached is not None
+            and cached[0] == key
+            and (not cached[1].is_inference() or torch.is_inference_mode_enabled())
+        ):
             return cached[1], cached[2]
         L = self._compute_scale_tril()
         diag = None

@@ -54,6 +54,8 @@ def test_pcrb_scalar_closed_form():
     j2 = 1 / (q + a * a / j1) + 1 / r
     np.testing.assert_allclose(res.information[:, 0, 0].numpy(), [j1, j2], rtol=1e-12)
     np.testing.assert_allclose(res.rmse([0]).numpy(), [j1**-0.5, j2**-0.5], rtol=1e-12)
+    # a component given as an int is the same per-step floor (once summed over the steps)
+    np.testing.assert_allclose(res.rmse(0).numpy(), [j1**-0.5, j2**-0.5], rtol=1e-12)
 
 
 def test_gaussian_information_mask_is_inverse_of_received_block():

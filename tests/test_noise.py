@@ -163,3 +163,38 @@ def test_a_density_first_evaluated_in_inference_mode_still_takes_gradients():
     x = torch.randn(4, 3, requires_grad=True)
     g.log_prob(x).sum().backward()
     torch.testing.assert_close(x.grad, -x.detach() / torch.tensor([1.0, 2.0, 3.0]))
+
+
+def test_a_factor_cached_under_inference_mode_does_not_break_autograd_later():
+    """A full covariance's factor first made under ``torch.inference_mode()`` is an inference
+    tensor, which autograd cannot save: once reused from the cache, it failed a later
+    gradient through the density."""
+    R = torch.tensor([[2.0, 0.5], [0.5, 1.0]], dtype=torch.float64)
+    g = Gaussian(torch.zeros(2, dtype=torch.float64), R)
+    v = torch.tensor([[0.3, -0.2]], dtype=torch.float64)
+    with torch.inference_mode():
+        g.log_prob(v)
+    x = v.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(g.log_prob(x).sum(), x)
+    torch.testing.assert_close(grad, -(torch.linalg.solve(R, v.T)).T)
+
+
+def test_safe_cholesky_jitters_only_the_members_that_need_it():
+    """One failing matrix of a batch once jittered every member (by the largest ε any
+    needed): the others keep their own factors."""
+    from difffilter.linalg import safe_cholesky
+
+    good = torch.tensor([[1.0, 0.0], [0.0, 1e-3]])
+    bad = torch.tensor([[1.0, 0.0], [0.0, -1e-3]])  # needs ε·mean(diag) > 1e-3: ε = 1e-2
+    L = safe_cholesky(torch.stack([good, bad]))
+    assert torch.equal(L[0], torch.linalg.cholesky(good))
+    assert torch.isfinite(L[1]).all() and (L[1] @ L[1].T)[1, 1] > 0
+    with pytest.raises(ValueError, match="factor must be symmetric positive definite"):
+        safe_cholesky(torch.stack([good, -torch.eye(2)]), name="factor")
+
+
+def test_rowwise_takes_a_scalar_operand_as_broadcasting_does():
+    from difffilter.linalg import rowwise
+
+    a = torch.randn(4096, 2, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(rowwise(torch.mul, a, torch.tensor(2.0)), a * 2.0)
