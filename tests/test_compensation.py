@@ -74,3 +74,38 @@ def test_the_card_carries_the_compensation():
     card = EstimatorCard(filter="kf", compensation="detected")
     assert EstimatorCard.from_dict(card.to_dict()).compensation == "detected"
     assert EstimatorCard.from_dict({"filter": "kf"}).compensation == "full"  # older cards
+
+
+def test_the_predicted_residual_is_standardised_and_masked_after_the_estimate_is_taken_off():
+    """``ν_k − â_{k−1}``, then ``/ √diag S``, then 0 where unreceived (the docstring's
+    order): once ``â`` (measurement units) came off the standardised, masked ν, so an
+    unreceived entry read ``−â``."""
+    net = NeuralFDIEstimator(num_areas=1, area_dim=2, a=1, b=1, hidden=4, init="symmetric",
+                             init_scale=0.5, seed=1, dtype=torch.float64)  # fmt: skip
+    nu = torch.tensor([[1.0, 2.0]], dtype=torch.float64)
+    S = torch.diag(torch.tensor([4.0, 16.0], dtype=torch.float64))[None]
+    mask = torch.tensor([[True, False]])
+    for standardize, expected in ((False, [0.7, 0.0]), (True, [0.35, 0.0])):
+        core = NeuralCompensation(net, df.KalmanFilter(), residual="predicted",
+                                  standardize=standardize).core  # fmt: skip
+        state = core.init(torch.Size([1]), torch.float64, "cpu", None)
+        state = state._replace(attack_hist=torch.tensor([[[[0.3, -0.2]]]], dtype=torch.float64))
+        *_, delta = core.step(state, nu, S, mask)
+        torch.testing.assert_close(delta[0, 0, 2:], torch.tensor(expected, dtype=torch.float64))
+
+
+def test_an_actuator_estimate_is_not_subtracted_from_the_measurements_innovation():
+    net = NeuralFDIEstimator(num_areas=1, area_dim=1, resid_dim=2, a=1, b=1, hidden=4,
+                             dtype=torch.float64)  # fmt: skip
+    for residual in ("predicted", "lagged"):
+        with pytest.raises(
+            ValueError, match=f"residual='{residual}' subtracts the attack estimate"
+        ):
+            NeuralCompensation(net, df.KalmanFilter(), channel="actuator", residual=residual)
+    NeuralCompensation(net, df.KalmanFilter(), channel="actuator")  # the innovation: fine
+    from difffilter.fdi.neural import OnlineLearning
+    from difffilter.param_ekf import EKFRule
+
+    with pytest.raises(ValueError, match="online learning fits the estimate to the innovation"):
+        NeuralCompensation(net, df.KalmanFilter(), channel="actuator",
+                           learning=OnlineLearning(EKFRule()))  # fmt: skip

@@ -21,7 +21,9 @@ The residual history (``residual``, :class:`Residual`):
 * ``PREDICTED``: the same of ``ν_k − â_{k−1}`` (the residual if the attack kept its last
   estimate: the LFC paper's network with lag 0, ``kf_nn_grad``);
 * ``LAGGED``: ``e_{k−1} … e_{k−b}``, ``e = ν − â`` after compensation (eq. 9 as printed,
-  lag 1: the paper's online-learned network).
+  lag 1: the paper's online-learned network; with online learning ``â`` is the estimate
+  before the step's weight update, the learner's own error of eq. 11, whatever
+  ``posterior`` reports and subtracts).
 
 Online learning (``learning``, :class:`OnlineLearning`): before estimating, the weights of
 each run and area take one step of a rule of :mod:`difffilter.param_ekf` (the EKF over the
@@ -388,12 +390,12 @@ class _Core:
         # √diag S: read by the standardisation and, without a head, by the score
         if innovation_cov is not None and (self.standardize or not net.detection_head):
             scale = _std(innovation_cov)
+        if self.residual is Residual.PREDICTED:  # ν_k − â_{k−1}, then standardised and masked
+            e = e - state.attack_hist[..., 0, :].flatten(-2)
         if self.standardize:
-            e = innovation / scale
+            e = e / scale
         if mask is not None:
             e = e * mask.to(e.dtype)
-        if self.residual is Residual.PREDICTED:
-            e = e - state.attack_hist[..., 0, :].flatten(-2)
         if self.residual is Residual.LAGGED:
             resid_in = state.resid_hist
         else:
@@ -803,6 +805,12 @@ def _gated(new, out: StepOutput, pred, g: Tensor):
 
 def _check_step_options(network, channel, residual, gating, compensation) -> None:
     """``ValueError`` for a residual, gating or compensation the network cannot serve."""
+    if channel is Channel.ACTUATOR and residual is not Residual.INNOVATION:
+        raise ValueError(
+            f"residual={residual.value!r} subtracts the attack estimate from the innovation: it "
+            "needs a sensor attack (an actuator estimate lives in the input's channels); use "
+            "residual='innovation'"
+        )
     if residual is Residual.PREDICTED and network.a < 1:
         raise ValueError(
             "residual='predicted' subtracts the last attack estimate: it needs a network "
@@ -916,4 +924,9 @@ def _check_options(network, inner, channel, features, poa_eta, learning, decepti
     if learning is not None and not isinstance(learning, OnlineLearning):
         raise TypeError(
             f"learning must be an OnlineLearning(rule=...) or None; got {type(learning).__name__}"
+        )
+    if learning is not None and channel is not Channel.SENSOR:
+        raise ValueError(
+            "online learning fits the estimate to the innovation (eq. 5): it needs a sensor "
+            f"attack; got channel {channel.value!r}"
         )
