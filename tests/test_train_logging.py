@@ -77,3 +77,24 @@ def test_a_run_with_another_logger_ends_cleanly_and_records_its_best_score(tmp_p
     (metrics,) = (tmp_path / "csv_logs").rglob("metrics.csv")
     rows = list(csv.DictReader(metrics.open()))
     assert any(r.get("hp/best_val_score") for r in rows)
+
+
+def test_a_finished_run_resumed_for_more_epochs_exports_a_matching_pair(tmp_path, monkeypatch):
+    """Its first export's card once stayed beside the new file during the second export,
+    whose own loads checked against it: 'does not match the sha256', exit 2."""
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    small = ["--config", str(ROOT / "train" / "configs" / "four_tank.yaml"),
+             "--data.init_args.batch_size=2", "--data.init_args.batches_per_epoch=1",
+             "--data.init_args.val_runs=4", "--data.init_args.steps=20",
+             "--model.init_args.hidden=4", "--model.init_args.num_particles=20"]  # fmt: skip
+    assert main(["fit", *small, "--trainer.max_epochs=1"]) == 0
+    run = tmp_path / "lightning_logs" / "four_tank_nn_grad" / "version_0"
+    last = run / "checkpoints" / "last.ckpt"
+    assert main(["fit", *small, "--trainer.max_epochs=2", f"--ckpt_path={last}"]) == 0
+    exported = sorted((tmp_path / "lightning_logs").rglob("four_tank_nn_grad.ckpt"))
+    assert exported
+    for path in exported:
+        load_estimator_checkpoint(path)  # each pair matches

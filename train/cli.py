@@ -8,8 +8,7 @@ Usage::
     difffilter-train fit --config train/configs/lfc.yaml --ckpt_path <run>/checkpoints/last.ckpt
     difffilter-train export <run>/lfc_nn_grad.ckpt --out checkpoints/lfc_nn_grad.ckpt --force
     difffilter-train test --config train/configs/lfc.yaml --ckpt_path checkpoints/lfc_nn_grad.ckpt \
-        --model.gating=false --model.features=null --model.restart=null \
-        --model.confirm=null  # the shipped network's
+        --model.gating=false --model.features=null  # the shipped network's
 
 The YAML files in ``train/configs/`` hold every setting (model, data, trainer, callbacks):
 one per scenario family, each naming its LightningModule and data module (``class_path``,

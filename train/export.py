@@ -149,9 +149,11 @@ class ExportEstimator(pl.Callback):
             blob = torch.load(best_path, map_location="cpu", weights_only=True)
             pl_module.load_state_dict(blob["state_dict"])
         est_card = pl_module.card()
+        # a card of an earlier export (a resumed run that had finished) would not match the
+        # new file, and every load below (the check's evaluation too) checks the card beside
+        # it: it goes now, and is written again below
+        path.with_suffix(".json").unlink(missing_ok=True)
         digest = save_estimator_checkpoint(path, pl_module.estimator, est_card)
-        # verify against the digest just computed (a card from an earlier export may still
-        # lie beside the file; it is rewritten below)
         estimator, _ = load_estimator_checkpoint(path, expected_sha256=digest)
         dm = trainer.datamodule
         metrics = {
