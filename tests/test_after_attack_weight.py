@@ -61,3 +61,9 @@ def test_truncated_backpropagation_is_refused_on_an_open_loop():
     ):
         FilterEstimatorTask("four_tank_bias", num_particles=20, hidden=4, tbptt_steps=5)
     FilterEstimatorTask("lfc_random_attacks", filter="kf", tbptt_steps=5)  # a closed loop takes it
+
+
+def test_no_particles_is_refused_not_replaced_by_the_default():
+    for n in (0, -3):  # 0 once fell back to the scenario's number silently
+        with pytest.raises(ValueError, match=f"num_particles must be a positive integer.*got {n}"):
+            FilterEstimatorTask("four_tank_bias", num_particles=n, hidden=4)

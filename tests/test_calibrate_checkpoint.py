@@ -197,3 +197,13 @@ def test_calibrate_sets_the_restart_it_runs_and_chooses_the_threshold_with(
     assert main(["checkpoints/lfc_nn_grad.ckpt", "--out", str(tmp_path / "x.ckpt"),
                  "--reject", "2"]) == 2  # fmt: skip
     assert "--reject must be a false-alarm rate in" in capsys.readouterr().err
+
+
+def test_calibrate_to_a_place_it_cannot_write_says_so_before_scoring(tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    assert main([SHIPPED, "--out", str(blocker / "x.ckpt"), "--runs", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--out: cannot make the folder" in err[0]
+    assert main([SHIPPED, "--out", str(tmp_path / "x.json")]) == 2
+    assert "--out must name a .ckpt file" in capsys.readouterr().err

@@ -134,3 +134,16 @@ def test_a_sweep_refuses_bad_options(tmp_path, capsys):
     assert not (tmp_path / "sw").exists()
     assert main(["--config", str(tmp_path / "no.yaml"), "--out", str(tmp_path)]) == 2
     assert "no.yaml does not exist" in capsys.readouterr().err
+    # what the evaluation after each training would refuse, said before the first one
+    file = tmp_path / "sw.log"
+    file.write_text("")
+    assert main(["--config", config, "--out", str(file)]) == 2
+    assert "sw.log is a file; a sweep writes a folder" in capsys.readouterr().err
+    out = ["--config", config, "--out", str(tmp_path / "sw2")]
+    assert main([*out, "--runs", "0"]) == 2
+    assert "--runs must be an integer >= 1" in capsys.readouterr().err
+    assert main([*out, "--scenarios", "nope"]) == 2
+    assert "unknown scenario 'nope'" in capsys.readouterr().err
+    assert main([*out, "--scenarios", "lfc_step"]) == 2
+    assert "--scenarios: lfc_step is a lfc scenario" in capsys.readouterr().err
+    assert not (tmp_path / "sw2").exists()

@@ -25,7 +25,10 @@ def _error_lines(capsys) -> list[str]:
         (["fit", *CONFIG, "--model.init_args.hidden=abc"], 'Parser key "hidden"'),
         (["fit", *CONFIG, "--data.init_args.batch_size=0"], "batch_size must be a positive"),
         (["fit", *CONFIG, "--trainer.max_epochs=-2"], "max_epochs"),
-        (["fitt"], "invalid choice"),
+        (
+            ["fitt"],
+            "unknown command 'fitt'; choose from fit, validate, test, predict, export, calibrate, sweep",
+        ),
         (["fit", *CONFIG, "--scenario"], "--scenario needs a scenario name"),
     ],
 )

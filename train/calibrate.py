@@ -229,6 +229,10 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-train calibrate: error: {exc}", file=sys.stderr)
         return 2
+    except (OSError, RuntimeError) as exc:  # --out not writable after all (torch.save's error)
+        print(f"difffilter-train calibrate: error: --out {args.out}: cannot write it ({exc})",
+              file=sys.stderr)  # fmt: skip
+        return 2
     print(
         f"wrote {args.out}: {cal['estimator']} alarms above {cal['threshold']:.6g}"
         f"{' (' + cal['score'] + ')' if 'score' in cal else ''} (was "

@@ -55,6 +55,8 @@ difffilter-train COMMAND --help lists the options of each command.
 """
 
 _EXTRA = {"export": ".export", "calibrate": ".calibrate", "sweep": ".sweep"}
+#: The Lightning commands (:func:`~difffilter.train.lightning_cli.run`).
+_LIGHTNING = ("fit", "validate", "test", "predict")
 
 
 def __getattr__(name: str):
@@ -84,6 +86,10 @@ def main(args: list[str] | None = None) -> int:
         from importlib import import_module
 
         return import_module(_EXTRA[argv[0]], __package__).main(argv[1:])
+    if not argv[0].startswith("-") and argv[0] not in _LIGHTNING:  # (Lightning's list lacks ours)
+        print(f"difffilter-train: error: unknown command {argv[0]!r}; choose from "
+              f"{', '.join((*_LIGHTNING, *_EXTRA))}", file=sys.stderr)  # fmt: skip
+        return 2
     try:
         argv = _scenario_option(argv)
     except ValueError as exc:

@@ -3,6 +3,7 @@ exported checkpoint may be written."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +38,13 @@ def check_checkpoint_out(out: Path, *, force: bool, replacing: Path | None = Non
     for path in (out, out.with_suffix(".json")):
         if path.exists() and not force:
             raise ValueError(f"--out: {path} exists; pass --force to replace it")
+    # where it goes can be written: said now, before any work (a calibration scores first)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise ValueError(f"--out: cannot make the folder {out.parent} ({error.strerror})") from None
+    if not os.access(out.parent, os.W_OK):
+        raise ValueError(f"--out: the folder {out.parent} is not writable")
 
 
 def mix_seed(*parts: int) -> int:

@@ -7,7 +7,10 @@ index, ``predictions.json``, beside them. A batch file is a dict of tensors (loa
 
     means               [B, T, dx]  state estimates x̂_k
     attack_estimate     [B, T, da]  estimates of the injected signal (channel in the index)
-    attack_probability  [B, T]      the detection head's probability of attack
+    attack_probability  [B, T]      the detection score the threshold applies to: the
+                                    head's probability of attack, or, for a network without
+                                    a head (the EKF-trained ones), its squared standardised
+                                    estimate Σ (â/√S)² (not a probability: above 1 too)
     alarms              [B, T]      bool, attack_probability > threshold
 
 ``B`` runs of the predict data (the data module's ``test_runs`` drawn from ``test_seed``),
@@ -30,7 +33,8 @@ __all__ = ["PredictionFiles", "FIELDS"]
 FIELDS = {
     "means": "[B, T, dx] state estimates",
     "attack_estimate": "[B, T, da] estimates of the injected signal",
-    "attack_probability": "[B, T] the detection head's probability of attack",
+    "attack_probability": "[B, T] the detection score: the head's probability of attack, or "
+    "without a head the squared standardised estimate",
     "alarms": "[B, T] bool: attack_probability > threshold",
 }
 

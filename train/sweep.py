@@ -256,6 +256,31 @@ def _test_scores(per_seed: dict, rank_by: str) -> dict[int, float]:
     return out
 
 
+def _check_before_training(config: Path, out: Path, scenarios, runs, test: bool, extra) -> None:
+    """``ValueError`` for what the evaluation after each training would refuse, said before
+    the first training: ``--out`` a file, ``--runs`` below 1, ``--scenarios`` unknown or of
+    another family than the config's training scenario (unless ``extra`` sets another)."""
+    import yaml
+
+    from difffilter.models import registry
+
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out: {out} is a file; a sweep writes a folder there")
+    if runs is not None and (isinstance(runs, bool) or not isinstance(runs, int) or runs < 1):
+        raise ValueError(f"--runs must be an integer >= 1; got {runs!r}")
+    if not (test and scenarios):
+        return
+    model = (yaml.safe_load(config.read_text()) or {}).get("model") or {}
+    trained = (model.get("init_args") or {}).get("scenario")
+    overridden = any("scenario" in str(option) for option in extra)
+    family = None if trained is None or overridden else registry.get(trained).family
+    for name in scenarios:
+        scenario = registry.get(name)  # an unknown name: its error, listing the valid ones
+        if family is not None and scenario.family != family:
+            raise ValueError(f"--scenarios: {name} is a {scenario.family} scenario; {config} "
+                             f"trains a {family} estimator ({trained})")  # fmt: skip
+
+
 def _config_monitor(config: Path) -> dict | None:
     """``{"metric", "mode"}`` of the config's ``ModelCheckpoint`` (Lightning's mode default
     ``min``), or ``None``: for cards exported before they recorded their monitor."""
@@ -323,6 +348,7 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
         raise ValueError(f"--select-on validation ranks the seeds by the score their "
                          f"training chose its weights by, and {config} has no ModelCheckpoint "
                          "monitor; add one, or --select-on test")  # fmt: skip
+    _check_before_training(config, out, scenarios, runs, test, extra)
     runs_dir = out / "runs"
     per_seed, cards, seed_totals = {}, {}, {}
     for seed in seeds:

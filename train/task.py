@@ -389,7 +389,7 @@ class FilterEstimatorTask(pl.LightningModule):
         self.channel = _channel(sc)
         self.false_alarm_rate = _check_options(self.hparams, sc, self.channel)
         self.system = sc.system(self._dtype)
-        self.num_particles = num_particles or sc.num_particles
+        self.num_particles = sc.num_particles if num_particles is None else num_particles
         self.features, self.poa_eta = tuple(features or ()), None
         if "poa" in self.features:
             self.poa_eta = float(poa_detector_for_scenario(sc, self.system).eta)
