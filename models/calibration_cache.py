@@ -42,7 +42,8 @@ def cache_folder() -> Path | None:
 
 def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
     """Hash what determines a model's numbers: tensors by value, functions by code."""
-    if depth > 6 or id(value) in seen:
+    # (deep enough for a model inside a tuple: tuple → model → modules → noise → buffers)
+    if depth > 16 or id(value) in seen:
         return
     if isinstance(value, torch.Tensor):
         digest.update(str((value.dtype, tuple(value.shape))).encode())

@@ -269,18 +269,19 @@ class SuiteContext:
         runs = max(self.runs, 50)
         key = (self.scenario.attack_free_key(), type(self.scenario).__name__,
                self.streams.seed, runs, str(self.dtype), type(filter).__name__, far, bias)  # fmt: skip
-        if key not in _CUSUM_CACHE:
+        # what the calibration runs depend on beyond the key: the plant, its schedule and
+        # its known inputs (a user who edits them gets a new calibration, in this process
+        # as on disk: the process's cache is keyed on their fingerprint too)
+        parts = (self.model, self.scenario.schedule(), self.scenario.inputs(1, self.dtype))
+        process_key = (key, calibration_cache.model_fingerprint(parts))
+        if process_key not in _CUSUM_CACHE:
             if len(_CUSUM_CACHE) >= 64:  # a long session of many scenarios: drop the oldest
                 _CUSUM_CACHE.pop(next(iter(_CUSUM_CACHE)))
-            # what the calibration runs depend on beyond the key: the plant, its schedule
-            # and its known inputs (a user who edits them gets a new calibration)
-            inputs = self.scenario.inputs(1, self.dtype)
-            parts = (self.model, self.scenario.schedule(), inputs)
             cached = calibration_cache.cached(
                 "cusum", key, parts, lambda: self._calibrate_cusum(filter, bias, far)
             )
-            _CUSUM_CACHE[key] = fdi.CusumDetector(cached["bias"], cached["threshold"])
-        return _CUSUM_CACHE[key]
+            _CUSUM_CACHE[process_key] = fdi.CusumDetector(cached["bias"], cached["threshold"])
+        return _CUSUM_CACHE[process_key]
 
     def _calibrate_cusum(self, filter, bias, far) -> dict[str, float]:
         cal = self.calibration

@@ -69,8 +69,9 @@ def simulate(
 
     Args:
         model: any :class:`~difffilter.StateSpaceModel` (its noise models draw the noise).
-        generators: ``{"plant", "attack", "schedule"}`` → ``torch.Generator`` (missing
-            ones are needed only if used).
+        generators: ``{"plant", "attack", "schedule"}`` → ``torch.Generator``: ``"plant"``
+            always; ``"attack"`` and ``"schedule"`` where the attack or the schedule draws
+            (a random attack, a packet loss: without theirs, torch's global generator).
         attack: an :class:`~difffilter.attack.Attack` (:mod:`difffilter.models.attacks`) or
             ``None``.
         schedule: :mod:`difffilter.models.schedules` object (default all sensors).
@@ -89,6 +90,8 @@ def simulate(
     schedule = schedule if schedule is not None else AllSensors()
     dtype, device = model.initial.mean.dtype, model.initial.mean.device
     plant = generators.get("plant")
+    if plant is None:  # (never torch's global generator: every draw has its seed)
+        raise ValueError("generators must hold 'plant': the plant's noise is drawn from it")
     if attack is not None and Channel(attack.channel) is Channel.ACTUATOR and us is None:
         if model.dim_u == 0:
             raise ValueError("an actuator attack needs a model with inputs (dim_u > 0)")
@@ -353,7 +356,8 @@ class CustomScenario(Scenario):
         return self.protocol if self.protocol is not None else AllSensors()
 
     def inputs(self, runs: int, dtype: torch.dtype, device=None) -> Tensor | None:
-        """``known_inputs`` as ``[runs, steps, du]`` (a clear error when they do not fit)."""
+        """``known_inputs`` as ``[runs, steps, du]`` (their first ``steps`` rows when they
+        hold more: a shorter horizon of the scenario; a clear error when they do not fit)."""
         known = self.known_inputs
         if known is None:
             return None
@@ -366,6 +370,8 @@ class CustomScenario(Scenario):
         wanted = (runs, self.steps, du)
         if known.dim() == 2:
             known = known.unsqueeze(0)
+        if known.dim() == 3 and known.shape[1] > self.steps:  # a shorter horizon (with_steps)
+            known = known[:, : self.steps]
         if (
             known.dim() != 3
             or known.shape[1] != self.steps

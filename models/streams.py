@@ -19,8 +19,9 @@ __all__ = ["Streams"]
 class Streams:
     """Generators named by purpose, derived from one master ``seed``.
 
-    ``Streams(0)("plant")`` → a ``torch.Generator`` seeded with the first 63 bits of
-    ``sha256("0/plant")``. Names are free-form; the suite uses ``"plant"``, ``"attack"``,
+    ``Streams(0)("plant")`` → a ``torch.Generator`` seeded with 63 bits of
+    ``sha256("0/plant")``: its first 8 bytes read as a little-endian integer, shifted right
+    by one. Names are free-form; the suite uses ``"plant"``, ``"attack"``,
     ``"schedule"``, ``"calibration/plant"``, ``"particles/init"``, ``"particles/propagate"``,
     ``"particles/resample"`` and ``"estimator/<name>"``.
     """

@@ -330,3 +330,52 @@ def test_a_plant_function_of_the_wrong_width_or_failing_is_named(plants):
     scenario = scenario_from_yaml(path)
     assert scenario.estimators == ("chi_square_kf",) and scenario.notes == ("one note",)
     sys.modules.pop("user_bad", None)
+
+
+def test_a_shorter_horizon_takes_the_first_rows_of_tabulated_inputs():
+    """``with_steps`` of a scenario whose known inputs are a table of its full horizon: the
+    first rows (once an error: [1, 6, 1] against [.., 4, 1]); and the plant's noise never
+    comes from torch's global generator."""
+    import difffilter as df
+    from difffilter.models.scenario import CustomScenario
+    from difffilter.models.streams import Streams
+
+    def plant(dtype):
+        one = torch.ones(1, 1, dtype=dtype)
+        return df.LinearGaussianModel(one, one, one, one, torch.zeros(1, dtype=dtype), one, B=one)
+
+    table = torch.arange(6.0).reshape(6, 1)
+    sc = CustomScenario(name="short_inputs", family="user_plants", description="tabulated inputs",
+                        model_fn=plant, known_inputs=table, steps=6)  # fmt: skip
+    short = sc.with_steps(4)
+    torch.testing.assert_close(short.inputs(2, torch.float64), table[:4].expand(2, 4, 1).double())
+    gens = {k: Streams(0)(k) for k in ("plant", "attack", "schedule")}
+    assert short.simulate(2, gens).x.shape == (2, 4, 1)
+    with pytest.raises(ValueError, match="generators must hold 'plant'"):
+        short.simulate(2, {"attack": gens["attack"]})
+
+
+def test_a_cusum_calibration_follows_an_edited_plant_in_the_same_process(monkeypatch):
+    """The process's CUSUM cache was keyed on the scenario's name and settings only: a plant
+    edited in the same session reused the first plant's threshold."""
+    import difffilter as df
+    from difffilter.models.estimators import SuiteContext
+    from difffilter.models.scenario import CustomScenario
+    from difffilter.models.streams import Streams
+
+    monkeypatch.setenv("DIFFFILTER_CACHE", "off")
+
+    def plant(r):
+        def model(dtype):
+            e = torch.eye(1, dtype=dtype)
+            return df.LinearGaussianModel(0.5 * e, e, e, r * e, torch.zeros(1, dtype=dtype), e)
+
+        return model
+
+    thresholds = []
+    for r in (1.0, 100.0):
+        sc = CustomScenario(name="edited", family="user_plants", description="R edited",
+                            model_fn=plant(r), steps=20, runs=4)  # fmt: skip
+        ctx = SuiteContext(sc, sc.system(), 4, Streams(0))
+        thresholds.append(float(ctx.cusum(df.KalmanFilter()).threshold))
+    assert thresholds[0] != thresholds[1]
