@@ -74,8 +74,11 @@ def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
         return
     digest.update(type(value).__qualname__.encode())
     attributes = getattr(value, "__dict__", None)
-    if attributes is not None:
-        _feed(digest, attributes, seen, depth + 1)
+    if attributes is not None:  # less the memos of derived values (``*_cache``: addresses)
+        for key in sorted(attributes, key=repr):
+            if not str(key).endswith("_cache"):
+                digest.update(repr(key).encode())
+                _feed(digest, attributes[key], seen, depth + 2)
 
 
 def _feed_code(digest, code) -> None:
