@@ -120,7 +120,7 @@ class Gaussian(NoiseModel):
             loc = (
                 loc.expand(d).clone()
                 if loc.requires_grad
-                else torch.full((d,), float(loc), dtype=mat.dtype)
+                else torch.full((d,), float(loc), dtype=mat.dtype, device=mat.device)
             )
         check_vector_last(loc, "loc", d)
         check_finite(loc, "loc")

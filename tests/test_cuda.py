@@ -29,6 +29,7 @@ from difffilter.models import registry
 from difffilter.models.attacks import Signal
 from difffilter.models.learned_estimator import NeuralCompensation
 from difffilter.models.lfc import LFCPlant, lfc_loop
+from difffilter.noise import Gaussian
 
 ROOT = Path(__file__).resolve().parents[1]
 CUDA = torch.device(os.environ.get("DIFFFILTER_TEST_DEVICE", "cuda"))
@@ -134,6 +135,18 @@ def test_particle_filter_online_at_one_run_on_cuda():
     kf = df.kalman_filter(model, ys)
     error = (torch.stack(means).cpu() - kf.means).abs()
     assert float((error / kf.covs.diagonal(dim1=-2, dim2=-1).sqrt()).max()) < 0.5
+
+
+def test_a_gaussian_with_a_scalar_loc_lives_on_its_covariances_device():
+    """A scalar ``loc`` is broadcast on the covariance's device (it was made on the CPU)."""
+    cov = torch.tensor([[2.0, 0.5], [0.5, 1.0]], dtype=torch.float64)
+    cpu = Gaussian(0.25, cov=cov)
+    gpu = Gaussian(0.25, cov=cov.to(CUDA))
+    assert gpu.loc.device.type == CUDA.type
+    value = torch.tensor([[0.1, -0.3], [1.0, 2.0]], dtype=torch.float64)
+    _close(gpu.log_prob(value.to(CUDA)), cpu.log_prob(value))
+    draws = gpu.sample((3,), generator=torch.Generator(CUDA).manual_seed(0))
+    assert draws.device.type == CUDA.type and draws.shape == (3, 2)
 
 
 def test_chi_square_gated_filter_on_cuda_equals_the_cpu(data):
