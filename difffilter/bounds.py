@@ -176,6 +176,18 @@ def _pcrb_information(model, xs, x0, mask, information, num_samples, generator) 
         raise ValueError(
             f"mask must have shape [..., {T}, {dy}] (one row per step); got {tuple(mask.shape)}"
         )
+    _check_unbatched_model(model)
+    if information is None and model.time_varying:
+        if not isinstance(model.measurement_noise, Gaussian):
+            raise ValueError(
+                "a time-varying model's measurement noise is known to this bound only through "
+                "measurement_cov(k) (Gaussian): pass information= [..., T, dy, dy] for "
+                f"{type(model.measurement_noise).__name__} noise"
+            )
+        rows = [None if mask is None else mask[..., t, :] for t in range(T)]
+        parts = [gaussian_information(model.measurement_cov(t + 1), m) for t, m in enumerate(rows)]
+        batch = torch.broadcast_shapes(*(p.shape[:-2] for p in parts))
+        return torch.stack([p.expand(batch + (dy, dy)) for p in parts], dim=-3)
     if information is None:
         noise = model.measurement_noise
         if mask is None:
@@ -190,6 +202,24 @@ def _pcrb_information(model, xs, x0, mask, information, num_samples, generator) 
             f"information must have shape [..., {T}, {dy}, {dy}]; got {tuple(information.shape)}"
         )
     return information
+
+
+def _check_unbatched_model(model: StateSpaceModel) -> None:
+    """The bound's leading dimensions are its own batch (``xs [..., M, T, dx]``); a model
+    whose matrices carry a batch of their own would line it up with the ``M`` paths."""
+    mats = {"process_cov(0)": model.process_cov(0), "measurement_cov(1)": model.measurement_cov(1),
+            "initial.cov": model.initial.cov}  # fmt: skip
+    for name in ("transition_matrix", "observation_matrix", "control_matrix"):
+        if callable(getattr(model, name, None)):
+            value = getattr(model, name)(0)
+            if value is not None:
+                mats[f"{name}(0)"] = value
+    batched = [f"{n} {tuple(m.shape)}" for n, m in mats.items() if m.dim() > 2]
+    if batched:
+        raise ValueError(
+            "posterior_crb needs a model without batch dimensions of its own (one bound per "
+            "model: give the batch through xs [..., M, T, dx]); got " + ", ".join(batched)
+        )
 
 
 def posterior_crb(
@@ -208,7 +238,11 @@ def posterior_crb(
     Args:
         model: a :class:`~difffilter.StateSpaceModel` with Gaussian process noise
             (``model.process_cov``) and a Gaussian prior (``model.initial.cov``);
-            Jacobians from ``transition_jacobian``/``observation_jacobian``.
+            Jacobians from ``transition_jacobian``/``observation_jacobian``. A
+            ``time_varying`` model is read at every step (``Q_k = process_cov(k)``, ``J_v``
+            from ``measurement_cov(k + 1)``: its measurement noise must be Gaussian unless
+            ``information`` is given); the model's matrices carry no batch dimensions of
+            their own (``ValueError``).
         xs: true trajectories ``x_1 … x_T`` ``[..., M, T, dx]`` (the expectations over
             ``x`` are means over the ``M`` paths; ``M = 1`` for a linear model).
         x0: their initial states ``[..., M, dx]``.
@@ -225,13 +259,19 @@ def posterior_crb(
     dx, T = model.dim_x, xs.shape[-2]
     information = information.to(xs.dtype)
     G = measurement_information_moments(model, xs)  # [..., T, dy, dy, dx, dx]
-    Q_inv = torch.linalg.inv(model.process_cov(0).to(xs.dtype))
+
+    def q_inv(t: int) -> Tensor:  # Q_t of the transition x_t → x_{t+1}, as the filters read it
+        return torch.linalg.inv(model.process_cov(t).to(xs.dtype))
+
+    Q_inv = q_inv(0)
     J = torch.linalg.inv(model.initial.cov.to(xs.dtype))
     batch = torch.broadcast_shapes(information.shape[:-3], G.shape[:-5])
     J = J.expand(batch + (dx, dx))
     x_prev, out = x0, []
     for t in range(T):
         u = None if us is None else us[..., t, :]
+        if model.time_varying and t > 0:
+            Q_inv = q_inv(t)
         Fj = model.transition_jacobian(x_prev, u, t)  # [..., M, dx, dx]
         M = Fj.shape[-3]
         D11 = (Fj.transpose(-1, -2) @ Q_inv @ Fj).sum(-3) / M

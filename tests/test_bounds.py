@@ -126,3 +126,38 @@ def test_pcrb_bad_input_raises():
         df.posterior_crb("cv", xs, x0)
     with pytest.raises(ValueError, match="noise must be"):
         noise_information(torch.eye(2))
+
+
+class _GrowingNoise(df.LinearGaussianModel):
+    """Q_k = (1 + k) Q, R_k = (1 + k/2) R: time-varying noise as ``StateSpaceModel`` says."""
+
+    time_varying = True
+
+    def process_cov(self, k):
+        return self.process_noise.cov * (1 + k)
+
+    def measurement_cov(self, k):
+        return self.measurement_noise.cov * (1 + 0.5 * k)
+
+
+def test_pcrb_reads_a_time_varying_models_noise_at_every_step(generator):
+    """J_k⁻¹ = the Kalman filter's P_{k|k} with Q_k and R_k read per step (it used Q_0, R)."""
+    eye = torch.eye(2, dtype=torch.float64)
+    model = _GrowingNoise(
+        0.9 * eye, eye, 0.1 * eye, 0.2 * eye, torch.zeros(2, dtype=torch.float64), eye
+    )
+    T = 6
+    mask = torch.rand(T, 2, generator=generator) > 0.3
+    for m in (None, mask):
+        pcrb, kf = _run(model, T, generator, m)
+        torch.testing.assert_close(pcrb.bound, kf.covs[0], atol=1e-12, rtol=1e-10)
+
+
+def test_pcrb_refuses_a_model_with_a_batch_of_its_own():
+    """A batched Q or R lined up with the paths M (wrong bounds, or a shape error)."""
+    eye = torch.eye(2, dtype=torch.float64)
+    model = df.LinearGaussianModel(0.9 * eye, eye, 0.1 * eye.expand(2, 2, 2), 0.2 * eye,
+                                   torch.zeros(2, dtype=torch.float64), eye)  # fmt: skip
+    xs, x0 = torch.zeros(2, 3, 2, dtype=torch.float64), torch.zeros(2, 2, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"without batch dimensions of its own.*process_cov"):
+        df.posterior_crb(model, xs, x0)
