@@ -308,8 +308,7 @@ class CovarianceChunks:
         self._cov = cov
         self._tol = max(float(tol), 16 * torch.finfo(H.dtype).eps)
         self._maps: tuple[Tensor, ...] | None = None  # E(1 … BLOCK), () if none: _step_maps
-        self._last_gain: Tensor | None = None  # K of the last step done
-        self._gain_scale = 0.0  # its max |K| (the convergence test's scale)
+        self._last_gain: Tensor | None = None  # K of the last step done (P: self._cov)
         self.steps = 0  # steps done
         self.converged = False
 
@@ -323,31 +322,39 @@ class CovarianceChunks:
             moments = riccati_chunk(self._cov, maps, blocks, *self._mats)
         else:  # no scan element (H Q Hᵀ + R singular): one step at a time
             moments = riccati_steps(self._cov, blocks * self.BLOCK, *self._mats)
-        keep = self._steps_to_keep(moments[2])
+        keep = self._steps_to_keep(moments[2], moments[1])
         moments = tuple(m[:keep] for m in moments)
         self._cov, self._last_gain, self.steps = moments[1][-1], moments[2][-1], self.steps + keep
         return (*moments, half_log_det(moments[4]))
 
-    def _steps_to_keep(self, K: Tensor) -> int:
-        """How many of a chunk's gains ``K [n, dx, dy]`` to keep: up to the first step whose
-        gain converged, ``max |K_k − K_{k−1}| ≤ tol · max |K_{k−1}|`` (then
-        :attr:`converged`), else all; one read."""
+    def _steps_to_keep(self, K: Tensor, P: Tensor) -> int:
+        """How many of a chunk's steps (gains ``K [n, dx, dy]``, covariances ``P [n, dx,
+        dx]``) to keep: up to the first step whose gain and covariance both converged,
+        ``max |K_k − K_{k−1}| ≤ tol · max |K_{k−1}|`` and the same of ``P`` (then
+        :attr:`converged`), else all; one read. The gain alone is not enough: the variance
+        of a state that no measurement reaches (zero rows of ``K``) keeps moving after the
+        gain has settled, and every later step would repeat a covariance it has left."""
         n = K.shape[0]
         if K.device.type == "meta":  # shapes only: never converged
             return n
-        scales = torch.linalg.vector_norm(K, math.inf, dim=(-2, -1))
+        stacked = [K.flatten(1), P.flatten(1)]
         if self._last_gain is not None:
-            before = torch.cat([self._last_gain.unsqueeze(0), K[:-1]])
-            before_scales = torch.cat([scales.new_full((1,), self._gain_scale), scales[:-1]])
-        else:  # the first step has no previous gain: tested from the second on
-            before, before_scales = K[:-1], scales[:-1]
-        first = n - len(before)  # the chunk's first tested step
-        change = torch.linalg.vector_norm(K[first:] - before, math.inf, dim=(-2, -1))
-        hits = (change <= self._tol * before_scales).nonzero()
+            stacked = [
+                torch.cat([last.reshape(1, -1), now])
+                for last, now in zip((self._last_gain, self._cov), stacked)
+            ]
+        first = n + 1 - stacked[0].shape[0]  # the chunk's first tested step (its second
+        # without a previous one)
+        steady = None
+        for values in stacked:
+            scales = torch.linalg.vector_norm(values[:-1], math.inf, dim=-1)
+            change = torch.linalg.vector_norm(values[1:] - values[:-1], math.inf, dim=-1)
+            within = change <= self._tol * scales
+            steady = within if steady is None else steady & within
+        hits = steady.nonzero()
         keep = n
         if len(hits):
             keep, self.converged = first + int(hits[0]) + 1, True
-        self._gain_scale = scales[keep - 1].item()
         return keep
 
     def _step_maps(self) -> tuple[Tensor, Tensor, Tensor] | None:
