@@ -475,7 +475,9 @@ class Residual(Resampler):
     Particle ``i`` first gets ``c_i = ⌊N w_i⌋`` deterministic copies (``D = Σ_i c_i``
     slots); the remaining ``R = N − D`` slots are filled with ``base`` draws from the
     residual weights ``r_i = (N w_i − c_i) / R``. Offspring counts have mean ``N w_i`` and
-    are at least ``⌊N w_i⌋``. New log-weights are uniform, ``−log N``.
+    are at least ``⌊N w_i⌋`` (``N w_i`` within 32 ε below an integer counts as it: the
+    round-off of the weights' exponential, so equal weights give every particle one copy).
+    New log-weights are uniform, ``−log N``.
 
     Vectorised over rows with different ``R``: slot ``j`` gets the particle ``i`` with
     ``C_{i−1} ≤ j < C_i`` (``C`` the cumulative counts, found by ``searchsorted``) when
@@ -500,7 +502,10 @@ class Residual(Resampler):
     def _draw(self, log_w, generator):
         n = log_w.shape[-1]
         scaled = n * torch.exp(log_w)  # N w_i
-        counts = torch.floor(scaled)
+        # ⌊N w_i⌋ of the weights, not of their round-off: exp(−log N)·N can land an ulp
+        # under 1, and the floor would then send every copy to the residual draws (uniform
+        # weights resampled as multinomial draws at 157 of the N ≤ 399 in float64)
+        counts = torch.floor(scaled * (1 + 32 * torch.finfo(scaled.dtype).eps))
         cum = torch.cumsum(counts, dim=-1)
         deterministic_total = cum[..., -1:]  # D, [..., 1]
         remaining = n - deterministic_total  # R, [..., 1]
