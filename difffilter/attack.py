@@ -144,5 +144,6 @@ def inject(channel: Channel, signal: Tensor, value: Tensor, flag: Tensor) -> tup
     if channel is Channel.REPLACEMENT:
         received = torch.where(f, value, signal)
         return received, torch.where(f, received - signal, torch.zeros_like(signal))
-    change = f.to(signal.dtype) * value
+    # where, not f · value: an unflagged non-finite value is not injected (0 · inf = NaN)
+    change = torch.where(f, value, torch.zeros_like(value))
     return signal + change, change

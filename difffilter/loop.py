@@ -79,9 +79,11 @@ class Trajectories(NamedTuple):
             entries are whatever ``mask`` says not to read).
         us: inputs the estimator knows ``u_0 … u_{T−1}`` ``[B, T, du]`` or ``None``.
         mask: received entries ``[B, T, dy]`` (bool) or ``None`` (all received).
-        attack: the injected attack signal ``[B, T, da]`` (zero where none is injected;
-            ``da = dy`` for sensor-side attacks, ``du`` for actuator attacks).
-        flags: attacked steps ``[B, T]`` (bool).
+        attack: the injected attack signal ``[B, T, da]`` (zero where none is injected and
+            on entries not received; ``da = dy`` for sensor-side attacks, ``du`` for
+            actuator attacks).
+        flags: attacked steps ``[B, T]`` (bool): an attacked entry was received (under a
+            mask; an actuator attack's steps whatever the mask).
         info: extras: ``"attack_values"`` ``[B, T, da]`` (what the attacker would inject
             at every step, also where it does not), ``"attack_flags"`` (the attack's own
             flags ``l_k``, ``[B, T]`` or per entry ``[B, T, da]``, before any mask: where it
@@ -234,7 +236,9 @@ class Controller(Protocol):
     """The input of the next step from what the loop has: ``init(batch_shape, dtype, device)
     → u_0 [..., du]`` (or ``None`` for a plant without input) and ``__call__(k, y, out) →
     u_k [..., du]`` after measurement ``k`` (``y`` the received ``ỹ_k``, ``out`` the
-    estimator's :class:`~difffilter.results.StepOutput` or ``None``)."""
+    estimator's :class:`~difffilter.results.StepOutput` or ``None``). Under a schedule
+    (``mask``) ``y`` holds values at the entries not received this step too (the loop's
+    ``y_recv``): a controller that reads ``y`` itself, not ``out``, reads them."""
 
     def init(self, batch_shape, dtype, device) -> Tensor | None: ...
 
@@ -251,7 +255,14 @@ class KnownInputs:
         return self.us[:, 0]
 
     def __call__(self, k: int, y: Tensor, out) -> Tensor:
-        return self.us[:, min(k, self.us.shape[1] - 1)]
+        T = self.us.shape[1]
+        if k > T:
+            raise ValueError(
+                f"the known inputs us [B, T, du] cover u_0 … u_{T - 1} (T = {T}); step {k} of "
+                "the loop needs more: give us one row per step run"
+            )
+        # after the last step (k = T) the loop asks for u_T, which no step uses
+        return self.us[:, min(k, T - 1)]
 
 
 class LoopState(NamedTuple):
@@ -396,6 +407,7 @@ def closed_loop(
                            attack_generator, generator)  # fmt: skip
         keys = ("x", "y", "recv", "u", "attack", "value", "flag", "concealment")
         rec, outs = {key: [] for key in keys}, []
+    _check_lengths(plant, noise, mask, state, steps)
     first = state.k - len(rec["x"])  # the step before the first one recorded
     k, x, u, a_state, carry, view = state
     for _ in range(steps):
@@ -434,12 +446,45 @@ def closed_loop(
     return LoopResult(traj, output, LoopState(k, x, u, a_state, carry, view))
 
 
+def _check_lengths(plant, noise, mask, state: LoopState, steps: int) -> None:
+    """What the loop reads row by row (the schedule, replayed noise) covers its steps
+    ``state.k + 1 … state.k + steps``, and replayed noise fits the plant and the runs."""
+    end, B = state.k + steps, state.x.shape[0]
+    if mask is not None and (mask.dim() != 3 or mask.shape[1] < end):
+        raise ValueError(
+            f"mask must be [B, T, dy] with a row for every step up to {end} (indexed by the "
+            f"absolute step); got {tuple(mask.shape)}"
+        )
+    if isinstance(noise, ReplayedNoise):
+        dims = (plant.dim_x, plant.dim_y)
+        for name, draws, dim in zip(
+            ("process", "measurement"), (noise.process, noise.measurement), dims
+        ):
+            if (
+                draws.dim() != 3
+                or draws.shape[0] != B
+                or draws.shape[1] < end
+                or draws.shape[2] != dim
+            ):
+                raise ValueError(
+                    f"ReplayedNoise's {name} noise must be [{B}, T >= {end}, {dim}] (the runs, "
+                    f"a row for every step up to {end}, the plant's width); got "
+                    f"{tuple(draws.shape)}"
+                )  # fmt: skip
+
+
 def _start(plant, steps, horizon, x0, estimator, model, controller, attack, attack_generator,
            generator) -> LoopState:  # fmt: skip
     """The state before step 1 (after checking the plant and ``x0``)."""
     check_model(plant)
-    if x0 is None:
-        raise ValueError("x0 [B, dx] is needed to start a loop (or pass state= to resume)")
+    if not isinstance(x0, Tensor) or x0.dim() != 2 or x0.shape[-1] != plant.dim_x:
+        got = tuple(x0.shape) if isinstance(x0, Tensor) else x0
+        raise ValueError(
+            f"x0 [B, {plant.dim_x}] (one initial state per run) is needed to start a loop (or "
+            f"pass state= to resume); got {got!r}"
+        )
+    if horizon is not None and horizon < steps:
+        raise ValueError(f"horizon (the whole loop's T) must be >= steps={steps}; got {horizon!r}")
     steps = horizon or steps
     batch, dtype, device = x0.shape[:-1], x0.dtype, x0.device
     u = None if controller is None else controller.init(batch, dtype, device)
@@ -497,9 +542,15 @@ def _trajectories(rec, mask, k0, k1, channel) -> Trajectories:
     else:
         attack, values = torch.stack(rec["attack"], 1), torch.stack(rec["value"], 1)
         own_flags = torch.stack(rec["flag"], 1)
-        flags = own_flags.any(-1) if own_flags.dim() == 3 else own_flags
+        entrywise = own_flags.dim() == 3
         if channel is not Channel.ACTUATOR and m is not None:
-            flags = flags & m.any(-1)  # an attack on a packet never sent is none
+            # an attack on a packet never sent is none: entry by entry (an attack on a
+            # sensor whose reading was lost this step is not one, whatever else arrived)
+            seen = own_flags & m if entrywise else own_flags.unsqueeze(-1) & m
+            flags = seen.any(-1)
+            attack = torch.where(m, attack, torch.zeros_like(attack))
+        else:
+            flags = own_flags.any(-1) if entrywise else own_flags
     info = {"attack_values": values, "attack_channel": channel}
     if channel is not None:
         info["attack_flags"] = own_flags

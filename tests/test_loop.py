@@ -231,3 +231,51 @@ def test_replay_and_the_loop_refuse_bad_arguments():
         closed_loop(_linear(), 3, noise=DrawnNoise(None))
     with pytest.raises(TypeError, match="Estimator"):
         open_loop(df.kalman_step, _linear(), torch.zeros(1, 3, 2, dtype=torch.float64))
+    f64 = torch.float64
+    x0 = torch.zeros(3, 2, dtype=f64)
+    with pytest.raises(ValueError, match=r"x0 \[B, 2\]"):  # two batch dimensions: time misplaced
+        closed_loop(_linear(), 3, noise=DrawnNoise(None), x0=torch.zeros(2, 3, 2, dtype=f64))
+    with pytest.raises(ValueError, match="horizon"):
+        closed_loop(_linear(), 6, noise=DrawnNoise(None), x0=x0, horizon=3)
+    with pytest.raises(ValueError, match="mask must be"):
+        closed_loop(_linear(), 6, noise=DrawnNoise(None), x0=x0,
+                    mask=torch.ones(3, 4, 2, dtype=torch.bool))  # fmt: skip
+    for process, measurement in [
+        (torch.zeros(3, 6, 1, dtype=f64), torch.zeros(3, 6, 2, dtype=f64)),  # width 1, dx = 2
+        (torch.zeros(1, 6, 2, dtype=f64), torch.zeros(1, 6, 2, dtype=f64)),  # one run of three
+        (torch.zeros(3, 4, 2, dtype=f64), torch.zeros(3, 4, 2, dtype=f64)),  # 4 rows, 6 steps
+    ]:
+        with pytest.raises(ValueError, match="ReplayedNoise's process noise must be"):
+            closed_loop(_linear(), 6, noise=ReplayedNoise(process, measurement), x0=x0)
+    us = torch.ones(3, 3, 1, dtype=f64)
+    with pytest.raises(ValueError, match="known inputs"):  # it repeated u_2 for u_3 … u_5
+        closed_loop(_linear(), 6, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                    controller=KnownInputs(us))  # fmt: skip
+
+
+def test_a_step_is_attacked_where_an_attacked_entry_was_received():
+    """A per-entry attack under a schedule: the attack on entry 1 counts at the steps entry
+    1 arrives, not wherever any entry arrives, and a lost entry records no attack (the flags
+    were reduced over entries before the mask: every step counted)."""
+    from difffilter.models.scenario import simulate
+    from difffilter.models.schedules import RoundRobin
+    from difffilter.threats import Bias
+
+    tr = simulate(_linear(), 2, 6, generators={"plant": torch.Generator().manual_seed(0)},
+                  attack=Bias(value=1.0, onset=1, entries=(1,)),
+                  schedule=RoundRobin(groups=((0,), (1,))))  # fmt: skip
+    assert tr.mask[0, :, 1].tolist() == [False, True] * 3
+    assert tr.flags.tolist() == [[False, True] * 3] * 2
+    expected = torch.zeros(2, 6, 2, dtype=torch.float64)
+    expected[:, 1::2, 1] = 1.0
+    assert torch.equal(tr.attack, expected)
+    assert bool(tr.info["attack_flags"][..., 1].all())  # the attack's own flags, before the mask
+
+
+def test_an_unflagged_non_finite_value_is_not_injected():
+    from difffilter.attack import inject
+
+    y = torch.zeros(2, dtype=torch.float64)
+    value = torch.tensor([float("inf"), 1.0], dtype=torch.float64)
+    received, change = inject(Channel.SENSOR, y, value, torch.tensor([False, True]))
+    assert received.tolist() == [0.0, 1.0] and change.tolist() == [0.0, 1.0]
