@@ -123,6 +123,7 @@ class GainSchedule:
             model.control_matrix(0),
         )
         self.Q, self.R = model.process_cov(0), model.measurement_cov(1)
+        self._sources = _source_versions(model, (self.F, self.H, self.B, self.Q, self.R))
         dy, dx = self.H.shape
         eye = torch.eye(dx, dtype=self.H.dtype, device=self.H.device)
         # H = I (a fully measured state) saves a product per step
@@ -134,7 +135,10 @@ class GainSchedule:
         self._cov_versions: list[int] = []  # each handed-out covariance's version then
         self._row_maps: list[tuple[Tensor, Tensor, Tensor]] = []
         self._neg_log_norms: list[Tensor] = []  # −log_norm of each k: the one-run step's
-        self._chunks = CovarianceChunks(self.F, self.H, self.Q, self.R, model.initial.cov, tol)
+        # the prior covariance the recursion starts from, as the carries at k = 0 hold it (a
+        # prior given by its factor makes a new `cov` tensor at every read)
+        self.initial_cov = model.initial.cov
+        self._chunks = CovarianceChunks(self.F, self.H, self.Q, self.R, self.initial_cov, tol)
         # the last chunk's moments [n, ...] (and log-norms and their negatives [n]) not yet
         # handed out, from index _ahead_next, and the block of rows unbound from it (each
         # step's SharedMoments of views and its −log_norm, made BLOCK steps at a time: one
@@ -150,6 +154,13 @@ class GainSchedule:
     def converged(self) -> bool:
         """Whether the gain has converged (every later step reuses the last moments)."""
         return self._chunks.converged
+
+    def current(self) -> bool:
+        """Whether the model's matrices and noise are as they were when the schedule was
+        made (no tensor of them written in place since: the moments computed ahead would
+        mix the old model with the new). A Kalman filter's step drops a schedule that is not
+        and goes on with the general update, which reads the model at every step."""
+        return all(t._version == v for t, v in self._sources)
 
     def moments(self, k: int) -> SharedMoments:
         """The :class:`SharedMoments` of measurement ``k ≥ 1``."""
@@ -188,10 +199,15 @@ class GainSchedule:
         return (self.converged and self._ahead is None
                 and self._block_next == len(self._block))  # fmt: skip
 
-    @torch.no_grad()
     def _next_block(self) -> None:
         """Unbind the next ``BLOCK`` steps' moments from the chunk ahead (computing the next
-        chunk first if none is left), each with its ``−log_norm``."""
+        chunk first if none is left), each with its ``−log_norm``: plain tensors without
+        autograd history, also under ``torch.inference_mode()`` (inference tensors could
+        not be saved for the backward of a later step that records gradients)."""
+        with torch.inference_mode(False), torch.no_grad():
+            self._unbind_next_block()
+
+    def _unbind_next_block(self) -> None:
         if self._ahead is None:
             *moments, half_logdet = self._chunks.next()
             log_norms = half_logdet + 0.5 * self.H.shape[0] * LOG_2PI
@@ -471,6 +487,20 @@ def _add_product(c: Tensor, a: Tensor, b: Tensor, *, subtract: bool = False) -> 
     if a.dim() == 2 and b.dim() == 2:
         return torch.addmm(c, a, b, alpha=-1.0 if subtract else 1.0)
     return c - a @ b if subtract else c + a @ b
+
+
+def _source_versions(model, mats) -> tuple[tuple[Tensor, int], ...]:
+    """``(tensor, version)`` of every tensor the schedule's moments are made from: the
+    matrices as the model gave them and the tensors of its noise models (a covariance
+    given by its factor is made from it at every read). Inference tensors keep no version:
+    left out (assumed unchanged)."""
+    tensors = [m for m in mats if m is not None]
+    for name in ("process_noise", "measurement_noise"):
+        noise = getattr(model, name, None)
+        if isinstance(noise, torch.nn.Module):
+            tensors += [*noise.parameters(), *noise.buffers()]
+    unique = {id(t): t for t in tensors if not t.is_inference()}
+    return tuple((t, t._version) for t in unique.values())
 
 
 def _version(t: Tensor) -> int:

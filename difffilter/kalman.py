@@ -216,7 +216,9 @@ class KalmanFilter(GaussianFilter):
     covariances are shared by every run (an unbatched time-invariant model whose matrices
     require no gradients: the schedule is computed outside autograd), used by
     every unmasked step: the same numbers, the covariance recursion computed once for all
-    runs (a masked step falls back to the general update and drops it).
+    runs (a masked step falls back to the general update and drops it, as does any step
+    after the model's matrices or noise were written in place: the schedule's moments are
+    computed ahead, from the model as it was).
     """
 
     def __init__(self, method: Method | str = Method.SEQUENTIAL):
@@ -226,10 +228,12 @@ class KalmanFilter(GaussianFilter):
         _check_linear(model)
         state = gaussian_init(model, batch_shape)
         if shared_gains_apply(model):
-            state = state._replace(gains=GainSchedule(model))
+            gains = GainSchedule(model)
+            state = state._replace(cov=gains.initial_cov, gains=gains)
         return state
 
     def _step(self, carry, y, u, mask):
+        carry = _live(carry)
         if carry.gains is not None and mask is None:
             # the fused step of the shared gains: about eight tensor operations per step
             mean, pred, nu, log_lik, m = carry.gains.filter_step(carry.mean, y, u, carry.k + 1)
@@ -238,12 +242,14 @@ class KalmanFilter(GaussianFilter):
         return self.update(carry, self.predict(carry, u), y, mask)
 
     def predict(self, carry, u):
+        carry = _live(carry)
         if carry.gains is not None:
             return Prediction(carry.gains.predict(carry.mean, u),
                               carry.gains.moments(carry.k + 1).pred_cov)  # fmt: skip
         return Prediction(*kalman_predict(carry.model, carry, u))
 
     def moments(self, carry, prediction, mask):
+        carry = _live(carry)
         if carry.gains is not None and mask is None:
             return None  # the shared schedule holds them, computed once for all runs
         model, k = carry.model, carry.k + 1
@@ -254,11 +260,13 @@ class KalmanFilter(GaussianFilter):
         return y - matvec(carry.model.observation_matrix(carry.k + 1), prediction.mean)
 
     def update(self, carry, prediction, y, mask, *, evidence=True, moments=None):
+        carry = _live(carry)
         if carry.gains is not None and mask is None:
             return _shared_update(carry, prediction.mean, y, evidence)
         return self._moments_update(carry, prediction, y, mask, evidence, moments)
 
     def innovation(self, carry, prediction, y, mask, *, evidence: bool = True, moments=None):
+        carry = _live(carry)
         if carry.gains is None or mask is not None:
             # the update's own ν and S (and density), without its gain and posterior
             return super().innovation(carry, prediction, y, mask, evidence=evidence,
@@ -276,7 +284,7 @@ class KalmanFilter(GaussianFilter):
                     "carry.gains is the gain schedule of another model: drop the gains "
                     "(carry._replace(gains=None)) when changing the model"
                 )
-            shared = carry.model.initial.cov if carry.k == 0 else carry.gains.moments(carry.k).cov
+            shared = carry.gains.initial_cov if carry.k == 0 else carry.gains.moments(carry.k).cov
             if carry.cov is not shared:
                 raise ValueError(
                     "carry.cov is not the shared covariance of carry.gains: drop the gains "
@@ -297,6 +305,16 @@ class KalmanFilter(GaussianFilter):
         if shared_covariance_applies(model, mask):
             return output_of(shared_covariance_kalman_filter(model, ys, us))
         return None
+
+
+def _live(carry: GaussianState) -> GaussianState:
+    """``carry`` without its gain schedule where the model was written in place since the
+    schedule was made (:meth:`~difffilter.GainSchedule.current`): the general update reads
+    the model as it is now, from the covariance the schedule had reached."""
+    gains = carry.gains
+    if gains is not None and not gains.current():
+        return carry._replace(gains=None)
+    return carry
 
 
 def _shared_update(carry: GaussianState, pred_mean: Tensor, y: Tensor, evidence: bool = True):

@@ -803,3 +803,78 @@ def test_the_shared_covariance_path_follows_a_variance_the_gain_does_not_see():
     for t in range(1000):
         carry, out = kf.step(carry, ys[0, t])
     torch.testing.assert_close(out.cov, general.covs[0, -1], rtol=1e-10, atol=0)
+
+
+def _two_state(dtype=torch.float64):
+    F = torch.tensor([[1.0, 0.1], [0.0, 1.0]], dtype=dtype)
+    H = torch.tensor([[1.0, 0.0]], dtype=dtype)
+    return df.LinearGaussianModel(F, H, 0.01 * torch.eye(2, dtype=dtype), torch.eye(1, dtype=dtype),
+                                  torch.zeros(2, dtype=dtype), torch.eye(2, dtype=dtype))  # fmt: skip
+
+
+def test_the_online_step_reads_a_model_written_in_place_as_the_general_step_does():
+    """R (then F) edited in place between steps: the step drops the gain schedule, whose
+    moments were computed ahead from the old model, and goes on with the general update
+    (its chunk had mixed the old prediction covariance with the new R)."""
+    model = _two_state()
+    _, ys, _ = model.simulate(20, (), generator=torch.Generator().manual_seed(0))
+    kf = df.KalmanFilter()
+    fast = kf.init(model, ())
+    slow = fast._replace(gains=None)
+    assert fast.gains is not None and fast.gains.current()
+    for t in range(20):
+        if t in (5, 12):
+            with torch.no_grad():
+                (model.measurement_noise.cov if t == 5 else model.F).mul_(1.5 if t == 12 else 100.0)
+        fast, of = kf.step(fast, ys[t])
+        slow, os_ = kf.step(slow, ys[t])
+        torch.testing.assert_close(of.mean, os_.mean, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(of.innovation_cov, os_.innovation_cov, rtol=1e-12, atol=0)
+    assert fast.gains is None
+
+
+def test_a_prior_given_by_its_factor_keeps_the_shared_gains():
+    """``Gaussian(m0, scale_tril=L)`` makes a new ``cov`` at every read: ``init`` refused
+    its own carry (identity check against a fresh tensor)."""
+    from difffilter.noise import Gaussian
+
+    model = _two_state()
+    model.initial = Gaussian(
+        torch.zeros(2, dtype=torch.float64), scale_tril=2 * torch.eye(2, dtype=torch.float64)
+    )
+    _, ys, _ = model.simulate(6, (3,), generator=torch.Generator().manual_seed(1))
+    kf = df.KalmanFilter()
+    carry = kf.init(model, (3,))
+    assert carry.gains is not None
+    for t in range(6):
+        carry, out = kf.step(carry, ys[:, t])
+    torch.testing.assert_close(
+        out.mean, df.kalman_filter(model, ys).means[:, -1], rtol=1e-12, atol=1e-12
+    )
+
+
+def test_a_carry_stepped_under_inference_mode_goes_on_with_gradients():
+    model = _two_state()
+    _, ys, _ = model.simulate(6, (), generator=torch.Generator().manual_seed(2))
+    kf = df.KalmanFilter()
+    for batch in ((), (2,)):
+        carry = kf.init(model, batch)
+        with torch.inference_mode():
+            for t in range(3):
+                carry, _ = kf.step(carry, ys[t].expand(batch + (1,)))
+        y = ys[3].expand(batch + (1,)).clone().requires_grad_(True)
+        carry, out = kf.step(carry, y)
+        out.log_likelihood.sum().backward()  # inference tensors could not be saved for it
+        m = carry.gains.moments(4)
+        expected = -(
+            torch.linalg.solve(m.innovation_cov, out.innovation.detach().unsqueeze(-1))
+        ).squeeze(-1)
+        torch.testing.assert_close(y.grad, expected, rtol=1e-12, atol=1e-12)
+
+
+def test_open_loop_refuses_a_carry_of_another_model():
+    from difffilter.loop import open_loop
+
+    kf, a, b = df.KalmanFilter(), _two_state(), _two_state()
+    with pytest.raises(ValueError, match="carry holds another model"):
+        open_loop(kf, b, torch.zeros(1, 3, 1, dtype=torch.float64), carry=kf.init(a, (1,)))
