@@ -134,7 +134,12 @@ def host_step(pf, carry, y: Tensor, u: Tensor | None, density) -> tuple[Particle
     mean = w_new @ new
     dev = new - mean
     cov = (dev.T * w_new) @ dev
-    ess_new = torch.from_numpy(np.asarray(dtype(1.0) / (w_new @ w_new)))
+    if degenerate:  # predictive weights, equal after a resampling: an ESS of N up to
+        # round-off, which decides the next resampling at ess_threshold = 1: torch's
+        w_t = torch.from_numpy(w_new)
+        ess_new = torch.dot(w_t, w_t).reciprocal()
+    else:
+        ess_new = torch.from_numpy(np.asarray(dtype(1.0) / (w_new @ w_new)))
     out = StepOutput(
         torch.from_numpy(mean), torch.from_numpy(_symmetrize(cov)), torch.from_numpy(pred_mean),
         None, innovation, innovation_cov, torch.from_numpy(increment),
@@ -172,7 +177,9 @@ def _weigh(residual, log_w, inv_var: np.ndarray, constant):
         joint = np.subtract(log_w, ((residual * residual) @ inv_var) * dtype(0.5))
     top = joint.max()
     if not math.isfinite(top):
-        return np.asarray(top - constant), log_w.copy(), np.exp(log_w), True
+        # the reset's weights by torch's exp, as the torch steps' (numpy's rounds otherwise)
+        kept = log_w.copy()  # (equal log-weights are a shared read-only array)
+        return np.asarray(top - constant), kept, torch.exp(torch.from_numpy(kept)).numpy(), True
     e = np.exp(joint - top)
     total = e.sum()
     increment = np.log(total) + top

@@ -53,7 +53,7 @@ from .linalg import (
     symmetrize,
 )
 from .loop import open_loop
-from .resampling import Resampler, Systematic, keep_unmarked_rows
+from .resampling import Resampler, Systematic, effective_sample_size, keep_unmarked_rows
 from .results import ParticleFilterResult, StepOutput
 from .ssm import StateSpaceModel
 
@@ -317,7 +317,8 @@ class ParticleFilter(Estimator):
             k, mask) → [..., N]`` (``uses_predictive = True``: also passed ``predictive=``),
             or a :class:`StepLikelihood` whose state lives in the carry's ``aux``.
         ess_threshold: resample when ``ESS < ess_threshold · N`` (``1.0`` resamples at
-            every step with non-uniform weights, ``0`` never: plain SIS).
+            every step with non-uniform weights, and with equal weights where their ESS
+            rounds below ``N``, as it does for some ``N``; ``0`` never: plain SIS).
         hooks: callables ``hook(model, y, mask, carry, out) → {name: tensor [...]}`` run
             after every step (``carry``: the new carry, ``out``: its step output); what
             they return goes into the step's ``extras`` (what a detector needs, without
@@ -395,6 +396,33 @@ class ParticleFilter(Estimator):
             )
         if bool(torch.isnan(carry.log_weights).any()):
             raise ValueError("carry.log_weights contains NaN values")
+        log_w = carry.log_weights.detach()
+        # normalised as the steps leave them (round-off of a sum over N aside): the steps
+        # add to them, so unnormalised ones scale every mean and shift the evidence
+        tol = 1e4 * torch.finfo(log_w.dtype).eps
+        if not bool((torch.logsumexp(log_w, dim=-1).abs() <= tol).all()):
+            raise ValueError(
+                "carry.log_weights must be normalised (logsumexp over the N particles = 0; "
+                "e.g. torch.log_softmax(…, dim=-1))"
+            )
+        if carry.weights is not None:
+            if carry.weights.shape != log_w.shape or not torch.allclose(
+                carry.weights.detach(), log_w.exp(), rtol=1e3 * torch.finfo(log_w.dtype).eps, atol=0
+            ):
+                raise ValueError(
+                    "carry.weights is not exp(carry.log_weights) (a cache of the step that "
+                    "made the carry): give new log_weights with weights=None, ess=None"
+                )
+        if carry.ess is not None:
+            ess = effective_sample_size(log_w)
+            if carry.ess.shape != ess.shape or not torch.allclose(
+                carry.ess.detach(), ess, rtol=1e3 * torch.finfo(log_w.dtype).eps, atol=0
+            ):
+                raise ValueError(
+                    "carry.ess is not the effective sample size of carry.log_weights (a cache "
+                    "of the step that made the carry): give new log_weights with ess=None, "
+                    "weights=None"
+                )
 
     def _step(self, carry, y, u, mask):
         if _single_run.applies(self, carry, mask):  # one run on the defaults: a leaner step

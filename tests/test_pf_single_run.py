@@ -231,6 +231,52 @@ def test_a_degenerate_host_step_resets_as_the_general_step():
     _assert_same(host, general)
 
 
+@pytest.mark.parametrize(
+    "dtype, n", [(torch.float32, 1000), (torch.float32, 3), (torch.float64, 300)]
+)
+def test_after_a_degenerate_host_step_the_next_decision_is_the_general_steps(dtype, n):
+    """ess_threshold = 1 after a reset to equal weights: ESS = N up to round-off decides
+    the next resampling. The host took numpy's exp and dot (1000.00006 against torch's
+    999.9998 in float32): other decisions, other draws, means 0.08–0.6 apart."""
+    model = _linear_model(dtype)
+    ys, _ = _data(model, steps=12)
+    ys = ys.clone().to(dtype)
+    ys[4] = ys[8] = 1e30 if dtype == torch.float32 else 1e200
+    pf = df.ParticleFilter(n, ess_threshold=1.0)
+    host, general = (_run(pf, model, ys, None, flag, host=True) for flag in (False, True))
+    assert bool(host[1][4].extras["degenerate"])
+    flags = [[bool(o.extras["resampled"]) for o in run[1]] for run in (host, general)]
+    assert flags[0] == flags[1]
+    if dtype == torch.float64:  # (float32: the resampling's round-off picks other ancestors)
+        for a, b in zip(host[1], general[1]):
+            torch.testing.assert_close(a.mean, b.mean, atol=1e-12, rtol=1e-12)
+
+
+def test_a_carry_of_unnormalised_or_stale_weights_is_refused():
+    """A carry made by hand: log-weights that do not sum to one scaled every mean (the
+    steps add to them), and a replaced log_weights with the old ess/weights caches kept
+    fed the stale weights to the prediction and the resampling decision."""
+    model = _linear_model()
+    pf = df.ParticleFilter(20, ess_threshold=0.0)
+    carry = pf.init(model, (), torch.Generator().manual_seed(0))
+    y = torch.tensor([2.0, 0.0], dtype=torch.float64)
+    with torch.no_grad():
+        carry, _ = pf.step(carry, y)
+    uniform = torch.full((20,), -math.log(20), dtype=torch.float64)
+    with pytest.raises(ValueError, match="log_weights must be normalised"):
+        pf.step(
+            carry._replace(
+                log_weights=torch.zeros(20, dtype=torch.float64), ess=None, weights=None
+            ),
+            y,
+        )
+    with pytest.raises(ValueError, match="carry.weights is not exp"):
+        pf.step(carry._replace(log_weights=uniform), y)
+    with pytest.raises(ValueError, match="carry.ess is not"):
+        pf.step(carry._replace(log_weights=uniform, weights=None), y)
+    pf.step(carry._replace(log_weights=uniform, ess=None, weights=None), y)  # accepted
+
+
 def test_the_host_step_reads_a_measurement_noise_changed_in_place():
     """The host copies of ``1/σ²`` follow the noise model's covariance (cached against
     its version): scaling ``R`` in place between steps changes the next step's weights
