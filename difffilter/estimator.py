@@ -276,6 +276,12 @@ class Estimator:
     def _step(self, carry, y, u, mask) -> tuple[Any, StepOutput]:
         raise NotImplementedError
 
+    def _model_of(self, carry):
+        """The model ``carry``'s steps filter with, where it is the model the estimator was
+        started from (``open_loop`` refuses a carry of another one); ``None``: not said (an
+        estimator whose carry holds a model made from it, a view or a grouping)."""
+        return None
+
     def _check_carry(self, carry) -> None:
         """``ValueError`` naming what is wrong with a carry built elsewhere (default: none)."""
 

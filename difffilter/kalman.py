@@ -199,6 +199,9 @@ class GaussianFilter(Estimator):
     def _step(self, carry, y, u, mask):
         return self.update(carry, self.predict(carry, u), y, mask)
 
+    def _model_of(self, carry):
+        return carry.model
+
     def _check_carry(self, carry):
         dx = carry.model.dim_x
         check_carry_tensor(carry.mean, "mean", dim=dx)

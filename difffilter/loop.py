@@ -171,8 +171,8 @@ def open_loop(
                 f"{type(estimator).__name__}.init; got {type(carry).__name__}"
             )
         estimator._check_carry(carry)
-        held = getattr(carry, "model", None)
-        if held is not None and held is not model:  # the steps filter with carry.model
+        held = estimator._model_of(carry)
+        if held is not None and held is not model:  # the steps filter with the carry's
             raise ValueError(
                 "carry holds another model than the model given (its steps would filter with "
                 "the carry's): start the carry from this model (estimator.init(model, …))"

@@ -381,6 +381,9 @@ class ParticleFilter(Estimator):
     def batch_of(self, carry):
         return carry.log_weights.shape[:-1]
 
+    def _model_of(self, carry):
+        return carry.model
+
     def _check_carry(self, carry):
         n, dx = self.num_particles, carry.model.dim_x
         check_carry_tensor(carry.particles, "particles", dim=None)
