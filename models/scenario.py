@@ -266,7 +266,8 @@ class Scenario:
         smallest attack norm the detector must catch.
 
         ``gamma_min`` if set; else half the steady-state norm of a sensor attack that has
-        one (``γ̄`` of eq. 4, a bias's value) [DEF]; else (a ramp or a random walk, which
+        one (``γ̄`` of eq. 4, a bias's value, as injected: one value on every entry, zero
+        outside ``entries``) [DEF]; else (a ramp or a random walk, which
         have no steady state, an actuator attack, whose size is in input units, or no
         attack) one measurement-noise standard deviation, ``‖√diag R‖`` of ``model``
         [DEF]: an attack as large as the noise. ``ValueError`` when that is needed and no
@@ -278,8 +279,19 @@ class Scenario:
         values = getattr(attack, "gamma_bar", None) or getattr(attack, "value", None)
         on_sensors = Channel(getattr(attack, "channel", Channel.SENSOR)) is not Channel.ACTUATOR
         if values is not None and on_sensors:
-            values = (values,) if isinstance(values, (int, float)) else values
-            return 0.5 * math.sqrt(sum(float(v) ** 2 for v in values))
+            values = [float(v) for v in ((values,) if isinstance(values, (int, float)) else values)]
+            entries = getattr(attack, "entries", None)
+            if len(values) == 1 or entries is not None:  # the vector the attack injects
+                if model is None:
+                    raise ValueError(
+                        f"scenario {self.name!r}: pass the model (its attack's value is "
+                        "broadcast over the measurement's entries) or set gamma_min"
+                    )
+                dy = model.dim_y
+                values = values * dy if len(values) == 1 else values
+                if entries is not None:
+                    values = [v if i in entries else 0.0 for i, v in enumerate(values)]
+            return 0.5 * math.sqrt(sum(v**2 for v in values))
         if model is None:
             raise ValueError(
                 f"scenario {self.name!r}: set gamma_min (its attack has no steady-state value "

@@ -76,3 +76,23 @@ def test_every_generic_estimator_runs_on_a_new_nonlinear_plant(tmp_path):
     # compensating the oracle attack beats ignoring it
     assert est["modified_pf"]["state_rmse"] < est["normal_pf"]["state_rmse"]
     assert est["modified_pf_est"]["attack_rmse"] < 0.4  # below the bias itself
+
+
+def test_the_poa_floor_is_half_the_norm_of_the_bias_as_injected():
+    """γ_min: one value is a bias on every entry, ``entries`` zero the others (it read the
+    stored tuple: Bias(0.5) gave 0.25 where Bias((0.5, 0.5)), the same attack, gave 0.354)."""
+    import dataclasses
+    import math
+
+    from difffilter.threats import Bias
+
+    model = pendulum(torch.float64)
+    expected = {
+        Bias(value=0.5): 0.5 * math.hypot(0.5, 0.5),
+        Bias(value=(0.5, 0.5)): 0.5 * math.hypot(0.5, 0.5),
+        Bias(value=(0.5, 0.3), entries=(0,)): 0.25,
+        Bias(value=0.5, entries=(1,)): 0.25,
+    }
+    for attack, floor in expected.items():
+        scenario = dataclasses.replace(SCENARIO, attack=attack)
+        assert math.isclose(scenario.attack_norm_floor(model), floor, rel_tol=1e-12), attack
