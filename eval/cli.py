@@ -151,7 +151,12 @@ def _option(text: str) -> tuple[str, object]:
     key, sep, value = text.partition("=")
     if not sep or not key:
         raise argparse.ArgumentTypeError(f"expected KEY=VALUE; got {text!r}")
-    return key, yaml.safe_load(value)
+    try:
+        return key, yaml.safe_load(value)
+    except yaml.YAMLError as error:  # argparse turns only these into a usage error
+        raise argparse.ArgumentTypeError(
+            f"{key}: {value!r} is not a YAML value ({str(error).splitlines()[0]})"
+        ) from None
 
 
 def resolve_scenarios(name: str) -> list[str]:
@@ -276,7 +281,10 @@ def check_arguments(*, runs: int | None = None, ckpt=None, devices: int = 1,
     from difffilter.models.neural_estimator import load_estimator_checkpoint
 
     for _, path in _checkpoint_paths(ckpt):
-        load_estimator_checkpoint(path)  # a missing or bad file fails here
+        try:
+            load_estimator_checkpoint(path)  # a missing or bad file fails here
+        except (ValueError, FileNotFoundError) as error:
+            raise type(error)(f"--ckpt: {str(error).removeprefix('ckpt: ')}") from None
 
 
 def parse_checkpoints(values: Sequence[str] | None):
@@ -416,6 +424,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_output_folder(args.out)  # before any work, not after the whole evaluation
         check_arguments(runs=args.runs, ckpt=args.ckpt, devices=args.devices,
                         calibration_runs=args.calibration_runs)  # fmt: skip
+        if args.far is None and args.calibration_runs is not None:
+            raise ValueError("--calibration-runs with --far off: nothing is calibrated")
         check_checkpoint_fits(args.ckpt, names)
         threats = args.threats or ("all" if args.scenario == "robustness" else None)
         if threats is not None:

@@ -43,7 +43,11 @@ def leaderboard_rows(results: dict[str, dict[str, Any]]) -> list[dict[str, Any]]
             named = doc.get("scenario_units") or {}
             row["units"] = {"state": named.get("state", "state units"),
                             "attack": named.get("attack", "attack units")}  # fmt: skip
-            row["checkpoint"] = ckpt.get("sha256", "")[:12] if used else None
+            own = (doc.get("checkpoints") or {}).get(name)  # --ckpt NAME=PATH: its own file
+            if own is not None:
+                row["checkpoint"] = own["sha256"][:12]
+            else:
+                row["checkpoint"] = ckpt.get("sha256", "")[:12] if used else None
             row.update({m: entry.get(m) for m in COLUMNS})
             worst = (doc.get("worst_case") or {}).get(name)
             if worst is not None:  # a robustness study: the worst case over its threats

@@ -256,6 +256,13 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     for name, png in images:  # the file and TensorBoard's image are the same PNG
         (out / name).write_bytes(png)
     (out / "report.md").write_text(_markdown(doc, sc, sections))
+    # the family's own figures too (its sections saved them in the folder)
+    drawn = {name for name, _ in images}
+    for section in sections:
+        for name in section.figures:
+            if name not in drawn and name.endswith(".png") and (out / name).is_file():
+                images.append((name, (out / name).read_bytes()))
+                drawn.add(name)
     log_suite(out / "tb", result, doc, images)
     import matplotlib.pyplot as plt
 

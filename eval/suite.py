@@ -150,6 +150,9 @@ def run_suite(
             built[name] = registry.get(name).factory(ctx)
         except registry.SkipEstimator as exc:
             raise ValueError(f"--ckpt {name}={path}: {exc}") from None
+        if name not in ctx.checkpoint_users:  # built without reading it: the report would
+            # say it used the file
+            raise ValueError(f"--ckpt {name}={path}: {name} reads no checkpoint")
     result = SuiteResult(scenario, runs, seed, traj, context=ctx, calibration=calibration,
                          progress=progress)  # fmt: skip
     rank, world = process_group()

@@ -66,6 +66,11 @@ def test_cli_end_to_end_on_three_runs(tmp_path):
         assert (out / png).stat().st_size > 1000
         assert f"]({png})" in report
     assert any(p.name.startswith("events.out.tfevents") for p in (out / "tb").iterdir())
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(out / "tb"), size_guidance={"images": 0}).Reload()
+    # every report figure, the family's own (Fig. 9's sweep) too
+    assert {"rmse_over_time", "roc", "detection_vs_attack_size"} <= set(events.Tags()["images"])
 
 
 def test_cli_and_suite_reject_bad_input(tmp_path, capsys):
@@ -168,9 +173,15 @@ def test_two_checkpoints_are_compared_in_one_run_and_a_misfit_is_an_error(tmp_pa
     }  # fmt: skip
     report = (tmp_path / "both" / "four_tank_bias" / "report.md").read_text()
     assert "Checkpoint of `pf_nn_ekf`" in report
+    board = json.loads((tmp_path / "both" / "leaderboard.json").read_text())
+    own = {r["estimator"]: r["checkpoint"] for r in board}  # each its own file (it read None)
+    assert own["pf_nn_grad"] == doc["checkpoints"]["pf_nn_grad"]["sha256"][:12]
+    assert own["pf_nn_ekf"] == doc["checkpoints"]["pf_nn_ekf"]["sha256"][:12]
+    assert own["chi_square_ekf"] is None
     capsys.readouterr()
     for bad, why in (
         ([f"pf_nn_ekf={grad}"], "needs filter pf by ekf"),
+        ([f"chi_square_ekf={grad}"], "chi_square_ekf reads no checkpoint"),
         (["nope=x.ckpt"], "'nope' is not a registered estimator"),
         ([str(grad), str(ekf)], "one checkpoint for every estimator at most"),
     ):

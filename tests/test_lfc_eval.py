@@ -134,6 +134,27 @@ def test_per_channel_validation_is_opt_in_on_the_cli():
     assert dict(args.option) == {"per_channel": True, "per_channel_runs": 2}
     with pytest.raises(SystemExit):
         build_parser().parse_args(["lfc", "--option", "per_channel"])
+    with pytest.raises(SystemExit):  # a YAML syntax error: a usage error, not a traceback
+        build_parser().parse_args(["lfc", "--option", "per_channel=["])
+
+
+@pytest.mark.parametrize(
+    "option, why",
+    [
+        ("per_channel=maybe", "--option per_channel: true or false"),
+        ("per_channel_runs=abc", "--option per_channel_runs: an integer >= 1"),
+        ("per_channel_runs=0", "--option per_channel_runs: an integer >= 1"),
+        ("watermark_std=abc", "--option watermark_std: a number > 0"),
+    ],
+)
+def test_a_bad_lfc_option_value_is_named_before_any_work(option, why, tmp_path, capsys):
+    """Values were read where they were used: a TypeError traceback, "num_runs and steps
+    must be >= 1" or "could not convert string to float" (and "maybe" read as true)."""
+    from difffilter.eval.cli import main
+
+    argv = ["lfc_step", "--runs", "1", "--out", str(tmp_path), "--no-progress", "--far", "off"]
+    assert main([*argv, "-o", "per_channel=true", "-o", option]) == 2
+    assert why in capsys.readouterr().err
 
 
 def test_without_ckpt_the_shipped_checkpoint_is_used_and_recorded(tmp_path):

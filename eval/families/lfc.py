@@ -10,6 +10,7 @@ mean over runs; ``_std``, ``_per_channel``), ``state5_rmse`` (Table II, and
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 
@@ -251,6 +252,7 @@ def _prepare(names, *, out: Path, seed: int, checkpoint, progress: bool, options
                               "watermark", "watermark_std"}  # fmt: skip
     if unknown:
         raise ValueError(f"--option: unknown lfc option(s) {sorted(unknown)}")
+    options = _checked_options(options)
     tuning = json.loads(TUNING.read_text()) if TUNING.is_file() else None
     doc = None
     default, named = split_checkpoints(checkpoint)
@@ -268,6 +270,23 @@ def _prepare(names, *, out: Path, seed: int, checkpoint, progress: bool, options
                                 std=float(options.get("watermark_std", 0.08)))  # fmt: skip
         write_watermark(out, study)
     return {"per_channel": doc, "tuning": tuning}
+
+
+def _checked_options(options: dict) -> dict:
+    """The LFC report options with their types and ranges checked (``ValueError`` naming the
+    key): ``per_channel``/``watermark`` booleans, ``per_channel_runs``/``_steps`` integers
+    >= 1, ``watermark_std`` a number > 0."""
+    for key in ("per_channel", "watermark"):
+        if key in options and not isinstance(options[key], bool):
+            raise ValueError(f"--option {key}: true or false; got {options[key]!r}")
+    for key in ("per_channel_runs", "per_channel_steps"):
+        value = options.get(key, 1)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"--option {key}: an integer >= 1; got {value!r}")
+    std = options.get("watermark_std", 1.0)
+    if isinstance(std, bool) or not isinstance(std, (int, float)) or not 0 < std < math.inf:
+        raise ValueError(f"--option watermark_std: a number > 0 (p.u.); got {std!r}")
+    return options
 
 
 def per_channel_attack_rmse(
