@@ -88,7 +88,9 @@ def roc_curve(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """ROC by sweeping the threshold over every distinct score (alarm when score ≥ threshold).
 
-    Returns ``(fpr [M], tpr [M], thresholds [M])`` starting at (0, 0) and ending at (1, 1),
+    Returns ``(fpr [M], tpr [M], thresholds [M])`` starting at (0, 0) and ending at (1, 1)
+    (at (1, 0) without a positive label, at (0, 1) without a negative one: a rate with
+    no denominator stays 0),
     computed in float64. Ties are grouped, so the curve is exact for discrete scores.
     """
     v = _valid(scores, valid)
@@ -133,6 +135,8 @@ def detection_delay(alarms: Tensor, attacked: Tensor) -> dict[str, float | int]:
     the episode is missed. Returns ``{"mean_delay" (steps, nan if none detected),
     "episodes", "detected", "missed"}``. Vectorised over runs and steps.
     """
+    if alarms.shape[-1] == 0 or alarms.numel() == 0:  # no step (or no run): no episode
+        return {"mean_delay": math.nan, "episodes": 0, "detected": 0, "missed": 0}
     a = alarms.bool().reshape(-1, alarms.shape[-1])
     y = attacked.bool().expand(alarms.shape).reshape(-1, alarms.shape[-1])
     T = y.shape[-1]
@@ -182,7 +186,8 @@ def threshold_for(scores: Tensor, far: float) -> float:
     s = finite_scores(scores)
     if s.numel() == 0:
         raise ValueError("scores must hold at least one attack-free step")
-    allowed = int(math.floor(far * s.numel()))
+    # ⌊α n⌋ of α and n, not of their product's round-off (0.29 · 100 = 28.999999999999996)
+    allowed = int(math.floor(far * s.numel() * (1 + 1e-12)))
     ranked = torch.sort(s, descending=True).values
     return float(ranked[allowed]) if allowed < s.numel() else -math.inf
 

@@ -30,6 +30,7 @@ noise, where the detector's real alarm rate and the error it caused are measured
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -144,7 +145,10 @@ def craft_stealthy_attack(
     window = attacked.unsqueeze(-1) * picked  # [T, dy]
     sigma = model.measurement_cov(1).diagonal(dim1=-2, dim2=-1).sqrt().reshape(-1, dy)[0]
     # increments in units of σ: a_k = σ Σ_{j ≤ k} d_j, so a slow drift (what a filter
-    # without a bias state follows without alarm) is a constant d, easy for Adam to find
+    # without a bias state follows without alarm) is a constant d, easy for Adam to find.
+    # The rows before the onset inject nothing themselves but sum into the level at onset
+    # (every one gets the onset row's gradient): Adam moves that level up to onset × lr an
+    # iteration. Kept so, the crafted attacks of the reports were made this way.
     raw = torch.zeros(T, dy, **like)
     raw[onset - 1] = s.init
     raw.requires_grad_(True)
@@ -159,7 +163,15 @@ def craft_stealthy_attack(
     with torch.no_grad():
         free = run(ys)
     # t in units of the attack-free statistic's spread: one setting fits any detector
-    temperature = s.temperature * float(free.detection.scores[:, on].std()) + 1e-12
+    quiet = free.detection.scores[:, on]
+    spread = float(quiet.std()) if quiet.numel() > 1 else math.nan
+    if not math.isfinite(spread):
+        raise ValueError(
+            "craft_stealthy_attack needs the detector's attack-free scores on at least two "
+            f"attacked (run, step) pairs, all finite, to set the smoothing's temperature; got "
+            f"{quiet.numel()} (runs {tuple(ys.shape[:-2])}, onset {onset} of {T} steps)"
+        )
+    temperature = s.temperature * spread + 1e-12
 
     def smoothed_rate(out) -> Tensor:
         return torch.sigmoid((out.detection.scores - threshold) / temperature)[:, on].mean()

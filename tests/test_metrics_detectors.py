@@ -43,6 +43,16 @@ def test_detection_delay_episodes():
     d = metrics.detection_delay(alarms, attacked)
     assert d["episodes"] == 3 and d["detected"] == 2 and d["missed"] == 1
     assert d["mean_delay"] == pytest.approx((2 + 0) / 2)
+    empty = metrics.detection_delay(alarms[:, :0], attacked[:, :0])  # T = 0: no episode
+    assert empty["episodes"] == 0 and math.isnan(empty["mean_delay"])
+
+
+def test_the_threshold_allows_floor_of_alpha_n_alarms_whatever_the_round_off():
+    """0.29 · 100 = 28.999999999999996: the floor dropped one allowed alarm."""
+    scores = torch.arange(100, dtype=torch.float64)
+    tau = metrics.threshold_for(scores, 0.29)
+    assert int((scores > tau).sum()) == 29
+    assert int((scores > metrics.threshold_for(scores, 0.01)).sum()) == 1
 
 
 def test_steps_since_attack_hand_counted_and_against_a_loop():

@@ -101,6 +101,10 @@ def test_bad_arguments_are_named():
         craft_stealthy_attack(estimator, _plant(), tr.y_true, tr.x, 9.0, far=0.01, onset=0)
     with pytest.raises(ValueError, match="values must be a tensor"):
         CraftedAttack(torch.zeros(3), 1)
+    # one run attacked at its last step only: the spread of one score is NaN (Adam then
+    # turned the attack into NaN and the filter refused its input)
+    with pytest.raises(ValueError, match="at least two attacked"):
+        craft_stealthy_attack(estimator, _plant(), tr.y_true[:1], tr.x[:1], 9.0, far=0.01, onset=T)
 
 
 @pytest.mark.parametrize("against", ["pf_nn_grad", "normal_pf"])

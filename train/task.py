@@ -55,7 +55,7 @@ from difffilter import resampling
 from difffilter.attack import Channel, attack_dim
 from difffilter.estimator import Generators
 from difffilter.loop import open_loop
-from difffilter.metrics import after_attack, finite_scores, roc_auc, threshold_for
+from difffilter.metrics import after_attack, finite_scores, nan_as_lowest, roc_auc, threshold_for
 from difffilter.models import registry
 from difffilter.models.estimators import poa_detector_for_scenario
 from difffilter.models.generic_estimators import GAUSSIAN_FILTERS, deception_of
@@ -673,7 +673,7 @@ class FilterEstimatorTask(pl.LightningModule):
         scores = {
             "attack_rmse": float((out.attack - truth["attack"]).square().mean().sqrt()),
             "state_rmse": float((out.means - truth["x"]).square().mean().sqrt()),
-            "auc": roc_auc(score, flags),
+            "auc": roc_auc(nan_as_lowest(score), flags),  # a step without a score: lowest
             "tpr": float(alarms[flags].double().mean()) if bool(flags.any()) else float("nan"),
             "fpr": float(alarms[~flags].double().mean()) if bool((~flags).any()) else float("nan"),
             "threshold": threshold,
