@@ -362,6 +362,21 @@ def test_ot_uniform_weights_small_epsilon_is_near_identity():
     assert float((out.particles - particles).abs().max()) < 0.05 * float(particles.std())
 
 
+def test_ot_kernel_method_stays_finite_where_the_scaled_costs_are_huge():
+    """float32 particles of spread 1e4 without standardising, ε = 0.1 (|C/ε| ~ 1e9): the
+    kernel was made twice while absorbing the potentials, and the two products rounded
+    88 apart: an infinite kernel, NaN particles. (Unconverged at this ε, as the log
+    method is: each new particle a convex combination of the old.)"""
+    g = torch.Generator().manual_seed(0)
+    particles = 1e4 * torch.randn(2, 50, 3, generator=g)
+    log_w = torch.log_softmax(torch.randn(2, 50, generator=g), -1)
+    kernel = OptimalTransport(0.1, scale=False)(particles, log_w).particles
+    log = OptimalTransport(0.1, scale=False, method="log")(particles, log_w).particles
+    assert bool(torch.isfinite(kernel).all()) and bool(torch.isfinite(log).all())
+    low, high = particles.amin(-2, keepdim=True), particles.amax(-2, keepdim=True)
+    assert bool(((kernel >= low - 1e-2) & (kernel <= high + 1e-2)).all())
+
+
 def test_ot_degenerate_weights_collapse_to_one_particle():
     particles, _ = _ot_case(batch=(2,), n=15)
     log_w = torch.full((2, 15), -math.inf, dtype=torch.float64)
