@@ -12,6 +12,8 @@ import sys
 import types
 from pathlib import Path
 
+import pytest
+
 from difffilter.eval.cli import main as eval_main
 from difffilter.models import registry
 from difffilter.train.cli import main as train_main
@@ -77,3 +79,20 @@ def test_every_snippet_of_the_page_runs(tmp_path, monkeypatch, capsys):
     assert "linear model" in vdp["skipped"]["chi_square_kf"]
     out = capsys.readouterr().out
     assert "vdp_drift" in out and "vdp_damping" in out
+
+
+def test_a_module_beside_the_user_imports_as_from_a_console_script(tmp_path, monkeypatch):
+    """A console script's sys.path lacks the working folder (``difffilter-eval --scenario
+    my_plants:vdp`` exited 2 from the folder holding my_plants.py); it is tried last."""
+    import os
+    import sys
+
+    from difffilter.models.yaml_scenario import import_object
+
+    (tmp_path / "beside_the_user_plants.py").write_text("VALUE = 3\n")
+    monkeypatch.chdir(tmp_path)
+    here = os.getcwd()
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", here, str(tmp_path))])
+    assert import_object("beside_the_user_plants:VALUE", "scenario") == 3
+    with pytest.raises(ValueError, match="cannot import 'no_such_module_here'"):
+        import_object("no_such_module_here:x", "scenario")
