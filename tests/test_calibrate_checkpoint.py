@@ -130,6 +130,33 @@ def test_calibrate_refuses_what_it_cannot_do(tmp_path, capsys):
     assert "exists; pass --force" in capsys.readouterr().err
     assert main([str(tmp_path / "missing.ckpt"), "--out", str(tmp_path / "y.ckpt")]) == 2
     assert "missing.ckpt" in capsys.readouterr().err
+    # --scenario: where a card's training scenario is not registered (a plant of your own)
+    out.unlink()
+    assert main([SHIPPED, "--out", str(out), "--scenario", "lfc_step"]) == 2
+    assert "trained on 'four_tank' scenarios" in capsys.readouterr().err
+    assert main([SHIPPED, "--out", str(out), "--scenario", "no_such_plant"]) == 2
+    assert "--scenario: unknown scenario 'no_such_plant'" in capsys.readouterr().err
+
+
+def test_a_card_of_an_unregistered_scenario_is_calibrated_on_the_scenario_named(tmp_path, capsys):
+    """A checkpoint trained on a plant of one's own records the scenario's registered name,
+    which a new process does not know: it said 'unknown scenario' with no way round it."""
+    import dataclasses
+
+    from difffilter.models.neural_estimator import (
+        load_estimator_checkpoint,
+        save_estimator_checkpoint,
+    )
+
+    net, card = load_estimator_checkpoint(SHIPPED, dtype=None)
+    renamed = tmp_path / "own.ckpt"
+    save_estimator_checkpoint(renamed, net, dataclasses.replace(card, scenario="my_own_tanks"))
+    out = tmp_path / "calibrated.ckpt"
+    assert main([str(renamed), "--out", str(out), "--runs", "2", "--no-progress"]) == 2
+    assert "--scenario package.module:object or FILE.yaml" in capsys.readouterr().err
+    argv = [str(renamed), "--out", str(out), "--runs", "2", "--no-progress"]
+    assert main([*argv, "--scenario", "four_tank_bias"]) == 0
+    assert "of four_tank_bias" in capsys.readouterr().out
 
 
 def test_old_cards_name_the_entry_that_evaluates_them():

@@ -111,9 +111,13 @@ def calibrate_checkpoint(
     restart: float | None | str = KEEP,
     confirm: float | None | str = KEEP,
     reject: float | None | str = KEEP,
+    scenario: str | None = None,
 ) -> dict:
     """Calibrate the checkpoint ``src`` to the false-alarm rate ``far`` and write it to
-    ``out`` (module docstring); ``runs`` per set (default the scenario's); ``restart``: the
+    ``out`` (module docstring); ``runs`` per set (default the scenario's); ``scenario``:
+    where the attack-free runs come from, a name, ``package.module:object`` or YAML file
+    (default: the card's training scenario, by its registered name: a scenario of your own
+    is named here as it was to ``fit``); ``restart``: the
     card's restart rate to calibrate with (``None``: none; default: the card's); ``confirm``
     likewise the card's confirmation rate, ``reject`` its rejection rate. Returns
     the card's ``calibration`` entry. ``ValueError`` for a bad argument or a checkpoint
@@ -143,7 +147,20 @@ def calibrate_checkpoint(
     if card.confirm is not None and card.restart is None:
         raise ValueError("--confirm reads the χ² test of the restart's gated copy: the card "
                          "needs a restart rate too (--restart RATE)")  # fmt: skip
-    scenario = registry.get(card.scenario)
+    try:
+        scenario = registry.get(scenario or card.scenario)
+    except ValueError as error:
+        if scenario is not None:
+            raise ValueError(f"--scenario: {error}") from None
+        raise ValueError(
+            f"the card's training scenario {card.scenario!r} is not registered here ({error}); "
+            "name it as it was given to fit: --scenario package.module:object or FILE.yaml"
+        ) from None
+    if scenario.family != card.scenario_family:
+        raise ValueError(
+            f"--scenario {scenario.name}: of family {scenario.family!r}; the checkpoint was "
+            f"trained on {card.scenario_family!r} scenarios"
+        )
     name, runs = estimator_name(card), runs or scenario.runs
     streams, start = Streams(seed), time.time()
     fit_seed = streams.seed_of("checkpoint-calibration")
@@ -210,6 +227,9 @@ def main(argv: list[str] | None = None) -> int:
                    help=f"master seed of the calibration runs ({CALIBRATION_SEED})")  # fmt: skip
     p.add_argument("--force", action="store_true", help="replace an existing --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--scenario", default=None, metavar="NAME|module:object|FILE.yaml",
+                   help="the scenario of the attack-free runs (default: the card's training "
+                        "scenario; a scenario of your own is named as it was to fit)")  # fmt: skip
     p.add_argument("--restart", default=KEEP, metavar="RATE|off",
                    help="the restart rate to run and calibrate with (default: the card's)")  # fmt: skip
     p.add_argument("--confirm", default=KEEP, metavar="RATE|off",
@@ -225,7 +245,8 @@ def main(argv: list[str] | None = None) -> int:
                                    progress=not args.no_progress,
                                    restart=_rate_option(args.restart, "restart"),
                                    confirm=_rate_option(args.confirm, "confirm"),
-                                   reject=_rate_option(args.reject, "reject"))  # fmt: skip
+                                   reject=_rate_option(args.reject, "reject"),
+                                   scenario=args.scenario)  # fmt: skip
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-train calibrate: error: {exc}", file=sys.stderr)
         return 2
