@@ -121,6 +121,14 @@ def build_parser() -> argparse.ArgumentParser:
         "these threats of the scenario's threat set (eval/threats/*.yaml), at --far; the "
         "scenario 'robustness' runs it on every headline scenario (default: all threats)",
     )
+    p.add_argument(
+        "--threat-set",
+        type=Path,
+        default=None,
+        metavar="FILE.yaml",
+        help="with --threats: the threat set to read instead of the scenario's in "
+        "eval/threats/ (a scenario of your own; the format of docs/threats.md)",
+    )
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     p.add_argument("--list", action="store_true", help="list the registered scenarios and exit")
     return p
@@ -428,6 +436,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ValueError("--calibration-runs with --far off: nothing is calibrated")
         check_checkpoint_fits(args.ckpt, names)
         threats = args.threats or ("all" if args.scenario == "robustness" else None)
+        if args.threat_set is not None and threats is None:
+            raise ValueError("--threat-set names the threats of --threats: give --threats too")
         if threats is not None:
             return _robustness(names, threats, args)
         if args.devices > 1:  # checked here; the workers run the rest
@@ -481,7 +491,10 @@ def _robustness(names: list[str], threats, args) -> int:
     if args.devices > 1:
         raise ValueError("--devices: the robustness study runs in one process")
     chosen = robustness_scenarios(names)
-    sets = {n: load_threat_set(registry.get(n), threats) for n in chosen}  # errors first
+    if args.threat_set is not None and not args.threat_set.is_file():
+        raise ValueError(f"--threat-set: no file {args.threat_set}")
+    sets = {n: load_threat_set(registry.get(n), threats, path=args.threat_set)
+            for n in chosen}  # errors first  # fmt: skip
     cache: dict = {}
     docs = {}
     for name, threat_set in sets.items():

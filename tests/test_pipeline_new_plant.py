@@ -3,6 +3,7 @@
 import json
 
 import jsonschema
+import pytest
 import torch
 
 import difffilter as df
@@ -96,3 +97,22 @@ def test_the_poa_floor_is_half_the_norm_of_the_bias_as_injected():
     for attack, floor in expected.items():
         scenario = dataclasses.replace(SCENARIO, attack=attack)
         assert math.isclose(scenario.attack_norm_floor(model), floor, rel_tol=1e-12), attack
+
+
+@pytest.mark.slow
+def test_a_scenario_of_ones_own_runs_the_robustness_study_on_its_own_threat_set(tmp_path, capsys):
+    """``--threat-set FILE``: the threats of a scenario without a set in eval/threats (it
+    could not be studied without editing the repository)."""
+    from difffilter.eval.cli import main
+
+    threats = tmp_path / "pendulum.yaml"
+    threats.write_text("runs: 2\nthreats:\n  ramp: {kind: ramp, slope: 0.02, onset: 21}\n")
+    argv = ["--scenario", "test_pipeline_new_plant:SCENARIO", "--threats", "all", "--runs", "2",
+            "--out", str(tmp_path / "out"), "--no-progress"]  # fmt: skip
+    assert main(argv) == 2
+    assert "has no threat set" in capsys.readouterr().err
+    assert main([*argv, "--threat-set", str(tmp_path / "missing.yaml")]) == 2
+    assert "--threat-set: no file" in capsys.readouterr().err
+    assert main([*argv, "--threat-set", str(threats)]) == 0
+    doc = json.loads((tmp_path / "out" / "pendulum_bias" / "robustness.json").read_text())
+    assert "ramp" in json.dumps(doc)
