@@ -160,8 +160,16 @@ class Generators(NamedTuple):
     def of(cls, generator) -> Generators:
         """``None`` → no generators; a ``torch.Generator`` → that one for every purpose;
         a :class:`Generators` → itself. ``TypeError`` otherwise."""
-        if generator is None or isinstance(generator, Generators):
-            return generator or cls()
+        if isinstance(generator, Generators):
+            for name, value in zip(generator._fields, generator):
+                if value is not None and not isinstance(value, torch.Generator):
+                    raise TypeError(
+                        f"Generators.{name} must be a torch.Generator or None; got "
+                        f"{type(value).__name__}"
+                    )
+            return generator
+        if generator is None:
+            return cls()
         if isinstance(generator, torch.Generator):
             return cls(generator, generator, generator)
         raise TypeError(

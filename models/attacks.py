@@ -187,7 +187,13 @@ class Replacement(TabulatedAttack):
     def __post_init__(self):
         if not 0.0 <= float(self.rate) <= 1.0:
             raise ValueError(f"rate must lie in [0, 1] (a probability); got {self.rate!r}")
-        lo, hi = tuple(float(v) for v in self.low), tuple(float(v) for v in self.high)
+        try:
+            lo, hi = tuple(float(v) for v in self.low), tuple(float(v) for v in self.high)
+        except TypeError:
+            raise ValueError(
+                f"low and high must be lists of numbers, one bound per measurement entry; got "
+                f"{self.low!r}, {self.high!r}"
+            ) from None
         if len(lo) != len(hi) or not lo or not all(a < b for a, b in zip(lo, hi)):
             raise ValueError(
                 f"low and high must be equal-length boxes with low < high; got {lo}, {hi}"

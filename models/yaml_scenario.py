@@ -123,7 +123,10 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
     try:  # built once now: its shapes and functions checked (_probe) before any run
         probe = plant(torch.float64)
     except (ValueError, TypeError, KeyError, IndexError, RuntimeError) as error:
-        raise ValueError(f"{where}: plant: {error}") from None
+        message = str(error)  # (a message that names the file and the field already: as is)
+        raise ValueError(
+            message if message.startswith(where) else f"{where}: plant: {message}"
+        ) from None
     units = doc.get("units") or {}
     if not isinstance(units, Mapping) or set(units) - {"state", "attack"}:
         raise ValueError(f"{where}: units must be {{state: ..., attack: ...}}; got {units!r}")
@@ -405,7 +408,7 @@ def _attack_object(spec: Any, model, where: str):
         params = {k: v for k, v in spec.items() if k != "kind"}
         try:
             return PAPER_ATTACKS[kind](**params)
-        except TypeError as error:
+        except (TypeError, ValueError) as error:
             raise ValueError(f"{where} ({kind}): {error}") from None
     if kind not in THREATS:
         valid = ", ".join(sorted((*THREATS, *PAPER_ATTACKS)))

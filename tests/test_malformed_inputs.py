@@ -381,3 +381,15 @@ def test_meta_inputs_still_get_shape_and_dtype_checks():
         df.kalman_filter(model, torch.empty(3, 5, 2, device="meta"))
     with pytest.raises(ValueError, match="ys must be on the model's device meta"):
         df.kalman_filter(model, torch.zeros(3, 5, 2, dtype=F64))
+
+
+def test_generators_of_another_type_are_named():
+    """``Generators(0)`` reached torch's own ``randn()`` TypeError."""
+    from difffilter.estimator import Generators
+
+    with pytest.raises(TypeError, match="Generators.init must be a torch.Generator or None"):
+        Generators.of(Generators(0))
+    with pytest.raises(TypeError, match="Generators.resample must be"):
+        Generators.of(Generators(None, torch.Generator(), "seed"))
+    g = torch.Generator()
+    assert Generators.of(Generators(g, None, g)) == Generators(g, None, g)

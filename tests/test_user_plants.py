@@ -379,3 +379,24 @@ def test_a_cusum_calibration_follows_an_edited_plant_in_the_same_process(monkeyp
         ctx = SuiteContext(sc, sc.system(), 4, Streams(0))
         thresholds.append(float(ctx.cusum(df.KalmanFilter()).threshold))
     assert thresholds[0] != thresholds[1]
+
+
+def test_a_bad_field_is_named_once_and_a_replacement_box_by_its_fields(plants):
+    """The file and field once, not twice (``motor.yaml: plant: …motor.yaml: plant.R``); a
+    replacement's scalar bounds said "'int' object is not iterable"."""
+    import yaml
+
+    from difffilter.models.yaml_scenario import scenario_from_yaml
+
+    doc = yaml.safe_load(MOTOR_YAML)
+    doc["plant"] = {**doc["plant"], "R": [[1.0, 0.0], [0.0, 1.0]]}
+    path = plants / "motor.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ValueError) as error:
+        scenario_from_yaml(path)
+    assert str(error.value).count("motor.yaml") == 1 and "plant.R must be 1 × 1" in str(error.value)
+    doc = yaml.safe_load(MOTOR_YAML)
+    doc["attack"] = {"kind": "replacement", "rate": 0.2, "low": -1, "high": 1}
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ValueError, match=r"attack \(replacement\): low and high must be lists"):
+        scenario_from_yaml(path)
