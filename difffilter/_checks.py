@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from enum import Enum
 
 import torch
@@ -181,9 +182,10 @@ def check_rate(value, name: str, *, unset: str = "None") -> float:
 
 
 def check_positive_int(value, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+    # numbers.Integral: numpy's integers too (a count read from an array)
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
         raise ValueError(f"{name} must be a positive integer (>= 1); got {value!r}")
-    return value
+    return int(value)
 
 
 # ------------------------------------------------------------------ filter inputs ----

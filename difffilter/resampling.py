@@ -31,6 +31,7 @@ both particles and weights.
 from __future__ import annotations
 
 import math
+import numbers
 from numbers import Real
 from typing import ClassVar, NamedTuple
 
@@ -161,9 +162,9 @@ def _check_positive_float(value, name: str) -> float:
 
 
 def _check_nonnegative_int(value, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:
         raise ValueError(f"{name} must be a non-negative integer (>= 0); got {value!r}")
-    return value
+    return int(value)
 
 
 def _check_bool(value, name: str) -> bool:
@@ -1224,6 +1225,8 @@ class OptimalTransport(Resampler):
         self.epsilon = _check_positive_float(epsilon, "epsilon")
         self.max_iterations = check_positive_int(max_iterations, "max_iterations")
         self.tolerance = _check_positive_float(tolerance, "tolerance")
+        if self.tolerance >= 2.0:  # the L1 row error is at most 2: it would stop at once
+            raise ValueError(f"tolerance must be below 2 (an L1 marginal error); got {tolerance!r}")
         self.grad_iterations = _check_nonnegative_int(grad_iterations, "grad_iterations")
         self.scale = _check_bool(scale, "scale")
         self.checkpoint = _check_bool(checkpoint, "checkpoint")

@@ -628,6 +628,7 @@ def test_bad_log_weights_in_ancestors_and_ess():
         (lambda: OptimalTransport(max_iterations=0), "max_iterations"),
         (lambda: OptimalTransport(max_iterations=2.5), "max_iterations"),
         (lambda: OptimalTransport(tolerance=-1e-3), "tolerance"),
+        (lambda: OptimalTransport(tolerance=2.0), "tolerance must be below 2"),
         (lambda: OptimalTransport(grad_iterations=-1), "grad_iterations"),
         (lambda: OptimalTransport(scale="yes"), "scale"),
         (lambda: OptimalTransport(checkpoint=1), "checkpoint"),
@@ -637,6 +638,14 @@ def test_bad_log_weights_in_ancestors_and_ess():
 def test_bad_constructor_arguments(factory, argument):
     with pytest.raises(ValueError, match=argument):
         factory()
+
+
+def test_counts_from_numpy_are_integers():
+    import numpy as np
+
+    ot = OptimalTransport(max_iterations=np.int64(50), grad_iterations=np.int32(2))
+    assert (ot.max_iterations, ot.grad_iterations) == (50, 2)
+    assert type(ot.max_iterations) is int
 
 
 @pytest.mark.parametrize("resampler", [Systematic(), StopGradient(), OptimalTransport()], ids=repr)
