@@ -180,7 +180,8 @@ def effective_sample_size(log_weights: Tensor) -> Tensor:
     """Effective sample size ``ESS = 1 / Σ_i w_i²`` of normalised weights.
 
     Computed in log space as ``exp(−logsumexp(2·log w))`` with ``log w`` the normalised
-    log-weights, so it is stable for very uneven weights. ``1 ≤ ESS ≤ N`` (up to round-off: equal weights may give N plus an ulp).
+    log-weights, so it is stable for very uneven weights. ``1 ≤ ESS ≤ N`` (up to
+    round-off: equal weights may give N plus an ulp).
 
     Shapes: ``log_weights [..., N]`` (possibly unnormalised) → ``[...]``.
     """
