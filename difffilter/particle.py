@@ -409,8 +409,9 @@ class ParticleFilter(Estimator):
                 "e.g. torch.log_softmax(…, dim=-1))"
             )
         if carry.weights is not None:
+            info = torch.finfo(log_w.dtype)  # (a subnormal weight keeps fewer digits)
             if carry.weights.shape != log_w.shape or not torch.allclose(
-                carry.weights.detach(), log_w.exp(), rtol=1e3 * torch.finfo(log_w.dtype).eps, atol=0
+                carry.weights.detach(), log_w.exp(), rtol=1e3 * info.eps, atol=info.tiny
             ):
                 raise ValueError(
                     "carry.weights is not exp(carry.log_weights) (a cache of the step that "

@@ -359,3 +359,27 @@ def test_inference_mode_gives_the_no_grad_numbers_and_keeps_carries_vouched():
     for a, b in zip(run(torch.inference_mode), run(torch.no_grad)):
         torch.testing.assert_close(a.mean, b.mean, atol=0, rtol=0)
         torch.testing.assert_close(a.log_likelihood, b.log_likelihood, atol=0, rtol=0)
+
+
+def test_checked_steps_accept_the_filters_own_carries_with_subnormal_weights():
+    """float32, four-tank: a weight of 5.48e-42 (subnormal, fewer digits) differed from
+    exp(log w) by 0.03 % relative, and every checked step (full_checks, or a carry copied)
+    refused the carry the filter had just made (`make bench` stopped at section 2b)."""
+    import copy
+
+    model = FourTankModel(dtype=torch.float32)
+    with torch.no_grad():
+        _, ys, _ = model.simulate(50, (1,), generator=torch.Generator().manual_seed(0))
+    pf = df.ParticleFilter(100)
+    pf.full_checks = True
+    gen = torch.Generator().manual_seed(1)
+    subnormal = False
+    with torch.no_grad():
+        for _ in range(2):
+            carry = pf.init(model, (), gen)
+            for y in ys[0]:
+                carry, _ = pf.step(carry, y)
+                w = carry.weights
+                subnormal |= bool(((w > 0) & (w < torch.finfo(w.dtype).tiny)).any())
+                pf.step(copy.deepcopy(carry), y)  # a copy is checked in full too
+    assert subnormal  # the case met
