@@ -31,6 +31,8 @@ Prints, in one run:
 4. The modified PF of the four-tank paper (when its benchmark module is present).
 5. ``rrp_pf_da`` of the tracking paper, 50 runs × 500 particles × 120 steps batched
    (target ≥ 1e7 particle-steps/s), float64 and float32 (``bench_tracking.py``).
+6. ``mdpf_fused_ci`` of the robot paper, 100 runs × 100 particles × 2 locals × 100 steps,
+   float64 and float32 (target ≥ 5,000 run-steps/s; ``bench_robot.py``, ``--only-robot``).
 7. The LFC online learners (EKF over the network's weights inside the closed loop), seconds
    per scenario of each (its registry entry through ``run_suite``: the attack-free and the
    attacked loop), the algorithm before (the dense EKF, ``dense_reference``, every loop from
@@ -49,7 +51,8 @@ Prints, in one run:
    100 steps), forward and backward apart (``bench_training.py``; ``--only-training``).
 
 Targets (2-core CPU) are printed beside the figures; a missed target says so. Everything
-runs with one intra-op thread (``--threads``), the faster in section 9 on the shared 2-core
+runs with one intra-op thread (``--threads``; numpy's OpenBLAS on one too, unless
+``OPENBLAS_NUM_THREADS`` says otherwise), the faster in section 9 on the shared 2-core
 machine: for every KF workload in every run (by 1.1× to 100×), for every PF workload but
 in the quietest run, where two threads won the PF at B·N = 1e5 by 1.4× (README).
 """
@@ -66,8 +69,13 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-import torch
+# numpy's OpenBLAS on one thread, as torch's operations (its pool takes every core by
+# default: at [1e5, 4] its products went threaded and 50× slower beside a busy core, which
+# flattered every ratio to numpy); set before numpy loads it
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
