@@ -43,6 +43,7 @@ __all__ = [
     "kalman_gain",
     "joseph_covariance",
     "gaussian_update",
+    "update_given",
     "predict_covariance",
     "linear_predict",
     "linear_innovation",
@@ -115,11 +116,11 @@ def gaussian_update(
     Returns ``(m⁺, P⁺, S, log N(r; 0, S) or None)``.
     """
     S = symmetrize(pred_obs_cov + noise_cov)
-    return _update_given(pred_mean, pred_cov, residual, cross_cov, S, obs_matrix, noise_cov,
+    return update_given(pred_mean, pred_cov, residual, cross_cov, S, obs_matrix, noise_cov,
                          observed, evidence)  # fmt: skip
 
 
-def _update_given(pred_mean, pred_cov, residual, cross_cov, S, obs_matrix, noise_cov, observed,
+def update_given(pred_mean, pred_cov, residual, cross_cov, S, obs_matrix, noise_cov, observed,
                   evidence):  # fmt: skip
     """:func:`gaussian_update` from its innovation covariance ``S`` (symmetrised)."""
     gain, chol = _gain(cross_cov, S)  # K = C S⁻¹  [..., dx, dy]
@@ -245,7 +246,7 @@ def moments_update(
     unmasked; returns ``(m⁺, P⁺, r', S, log N(r'; 0, S) or None)``."""
     m = moments
     residual = masked_residual(residual, m.mask)
-    mean, cov, S, log_lik = _update_given(
+    mean, cov, S, log_lik = update_given(
         pred_mean, pred_cov, residual, m.cross_cov, m.innovation_cov, m.obs_matrix,
         m.noise_cov, m.observed, evidence,
     )  # fmt: skip

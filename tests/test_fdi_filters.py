@@ -432,3 +432,17 @@ def test_the_probability_of_attack_reads_the_models_wrapped_residuals():
                                          **streams(model, 3, 40))  # fmt: skip
         torch.testing.assert_close(turned.detection.scores, plain.detection.scores)
         assert not turned.alarms.any()
+
+
+def test_corrected_residuals_are_the_measurement_minus_the_corrected_particles():
+    """z̃ = ỹ − G x̃⁺ (eqs. 36 and 58) with a G K that is not symmetric (every other case's
+    is, so a dropped transpose went unseen)."""
+    from difffilter.fdi.modified_pf import corrected_residuals, kalman_corrected_particles
+
+    g = torch.Generator().manual_seed(0)
+    G = torch.randn(3, 2, generator=g, dtype=torch.float64)
+    K = torch.randn(2, 3, generator=g, dtype=torch.float64)
+    x = torch.randn(5, 2, generator=g, dtype=torch.float64)
+    y = torch.randn(3, generator=g, dtype=torch.float64)
+    direct = y - kalman_corrected_particles(x, y, G, K) @ G.T
+    torch.testing.assert_close(corrected_residuals(x, y, G, K), direct, rtol=0, atol=1e-12)

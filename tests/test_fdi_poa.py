@@ -155,3 +155,10 @@ def test_running_attack_rate_remark6():
         fdi.RunningAttackRate(100, alpha0=1.0)
     with pytest.raises(ValueError, match="warmup"):
         fdi.RunningAttackRate(100, warmup=0)
+
+
+def test_a_residual_on_the_threshold_is_no_exceedance():
+    """Eq. (14) counts ‖z‖ > η strictly: z = (3, 4) at η = 5 is a tie, not an attack."""
+    z = torch.tensor([[[3.0, 4.0], [0.0, 0.0]]], dtype=torch.float64)
+    assert float(fdi.probability_of_attack(z, 5.0)) == 0.0
+    assert float(fdi.probability_of_attack(z, 4.999)) == 0.5

@@ -9,6 +9,7 @@ from conftest import constant_velocity
 from reference import dense_joint_gaussian, numpy_kalman_filter
 
 import difffilter as df
+from difffilter.noise import Gaussian
 
 METHODS = ["sequential", "parallel"]
 
@@ -836,8 +837,6 @@ def test_the_online_step_reads_a_model_written_in_place_as_the_general_step_does
 def test_a_prior_given_by_its_factor_keeps_the_shared_gains():
     """``Gaussian(m0, scale_tril=L)`` makes a new ``cov`` at every read: ``init`` refused
     its own carry (identity check against a fresh tensor)."""
-    from difffilter.noise import Gaussian
-
     model = _two_state()
     model.initial = Gaussian(
         torch.zeros(2, dtype=torch.float64), scale_tril=2 * torch.eye(2, dtype=torch.float64)
@@ -878,3 +877,117 @@ def test_open_loop_refuses_a_carry_of_another_model():
     kf, a, b = df.KalmanFilter(), _two_state(), _two_state()
     with pytest.raises(ValueError, match="carry holds another model"):
         open_loop(kf, b, torch.zeros(1, 3, 1, dtype=torch.float64), carry=kf.init(a, (1,)))
+
+
+class _Bent(df.StateSpaceModel):
+    """A nonlinear 2-state model (the UKF's sigma points see its curvature)."""
+
+    dim_x, dim_y = 2, 2
+
+    def __init__(self):
+        super().__init__()
+        f64 = torch.float64
+        self.process_noise = Gaussian(
+            torch.zeros(2, dtype=f64), torch.diag(torch.tensor([0.05, 0.02], dtype=f64))
+        )
+        self.measurement_noise = Gaussian(
+            torch.zeros(2, dtype=f64), torch.diag(torch.tensor([0.1, 0.2], dtype=f64))
+        )
+        self.initial = Gaussian(
+            torch.tensor([0.7, -0.4], dtype=f64), torch.tensor([[0.5, 0.1], [0.1, 0.3]], dtype=f64)
+        )
+
+    def transition(self, x, u, k):
+        return torch.stack(
+            [torch.sin(x[..., 0]) + 0.5 * x[..., 1] ** 2, x[..., 0] * x[..., 1] + x[..., 1]], -1
+        )
+
+    def observe(self, x, k):
+        return torch.stack([x[..., 0] ** 2, torch.exp(0.3 * x[..., 1])], -1)
+
+
+@pytest.mark.parametrize("alpha, beta, kappa", [(1.0, 2.0, 0.0), (0.5, 2.0, 1.0)])
+def test_ukf_step_on_a_nonlinear_model_equals_filterpys(alpha, beta, kappa):
+    """One UKF step against filterpy's (Merwe's scaled sigma points, redrawn from (m⁻, P⁻)):
+    the weights (λ = α²(n + κ) − n, w₀ᶜ = w₀ + 1 − α² + β) and the posterior P = P⁻ − K S Kᵀ.
+    Linear models (every other UKF test) see neither: the centre weight and λ cancel there,
+    and the Joseph form with R alone left P smaller by K Ω Kᵀ (Var 0.062 against 0.113)."""
+    filterpy = pytest.importorskip("filterpy.kalman")
+    model = _Bent()
+    m0, P0 = model.initial.mean.numpy(), model.initial.cov.numpy()
+    Q, R = model.process_cov(0).numpy(), model.measurement_cov(1).numpy()
+    y = np.array([0.9, 1.1])
+    state = df.GaussianState(model.initial.mean, model.initial.cov, 0, model)
+    sp = df.SigmaPoints(alpha=alpha, beta=beta, kappa=kappa)
+    _, out = df.UnscentedKalmanFilter(sp).step(state, torch.tensor(y))
+    points = filterpy.MerweScaledSigmaPoints(2, alpha=alpha, beta=beta, kappa=kappa)
+
+    def f(x, dt):
+        return model.transition(torch.tensor(x), None, 0).numpy()
+
+    def h(x):
+        return model.observe(torch.tensor(x), 1).numpy()
+
+    ref = filterpy.UnscentedKalmanFilter(dim_x=2, dim_z=2, dt=1.0, hx=h, fx=f, points=points)
+    ref.x, ref.P, ref.Q, ref.R = m0.copy(), P0.copy(), Q, R
+    ref.predict()
+    pred_mean, pred_cov = ref.x.copy(), ref.P.copy()
+    ref.sigmas_f = points.sigma_points(ref.x, ref.P)  # redrawn from (m⁻, P⁻), as ours
+    ref.update(y)
+    for ours, theirs in ((out.pred_mean, pred_mean), (out.pred_cov, pred_cov),
+                         (out.innovation_cov, ref.S), (out.mean, ref.x), (out.cov, ref.P)):  # fmt: skip
+        np.testing.assert_allclose(ours.numpy(), theirs, rtol=1e-10, atol=1e-12)
+
+
+def test_kf_reads_a_time_varying_observation_matrix_at_the_measurements_step():
+    """H_k varying with k (every other time-varying test model varies F and R): the residual
+    reads H at k, as a plain numpy Kalman filter does, with and without a mask."""
+    F, Q, R = np.array([[1.0, 0.1], [0.0, 0.95]]), np.diag([0.01, 0.02]), np.diag([0.05, 0.08])
+
+    def H_of(k):
+        return np.array([[1.0, 0.3 * k], [np.cos(k), 1.0]])
+
+    class TV(df.LinearGaussianModel):
+        time_varying = True
+
+        def observation_matrix(self, k):
+            return torch.tensor(H_of(k), dtype=self.F.dtype)
+
+    model = TV(*(torch.tensor(a) for a in (F, H_of(0), Q, R, np.zeros(2), np.eye(2))))
+    ys = torch.randn(6, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    for mask in (None, torch.ones(6, 2, dtype=torch.bool)):
+        res = df.kalman_filter(model, ys, mask=mask)
+        m, P, ll = np.zeros(2), np.eye(2), 0.0
+        for k in range(1, 7):
+            m, P = F @ m, F @ P @ F.T + Q
+            H = H_of(k)
+            S = H @ P @ H.T + R
+            K = P @ H.T @ np.linalg.inv(S)
+            r = ys[k - 1].numpy() - H @ m
+            ll += -0.5 * (r @ np.linalg.solve(S, r) + np.log(np.linalg.det(2 * np.pi * S)))
+            m, P = m + K @ r, P - K @ S @ K.T
+            np.testing.assert_allclose(res.means[k - 1].numpy(), m, rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(res.covs[k - 1].numpy(), P, rtol=1e-9, atol=1e-12)
+        assert abs(float(res.log_likelihood) - ll) < 1e-9
+
+
+def test_the_shared_gain_update_gives_the_gaussian_evidence():
+    """predict + update on the shared gains (the halves the attack-aware wrappers call):
+    log N(y; H m⁻, S) as scipy computes it, and innovation()'s the same."""
+    from scipy.stats import multivariate_normal
+
+    F, H = np.array([[1.0, 0.1], [0.0, 0.95]]), np.array([[1.0, 0.0], [0.5, 1.0]])
+    Q, R, m0 = np.diag([0.01, 0.02]), np.diag([0.05, 0.08]), np.array([0.2, -0.1])
+    model = df.LinearGaussianModel(*(torch.tensor(a) for a in (F, H, Q, R, m0, np.eye(2))))
+    kf = df.KalmanFilter()
+    carry = kf.init(model, (3,))
+    assert carry.gains is not None
+    ys = torch.randn(3, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    pred = kf.predict(carry, None)
+    _, out = kf.update(carry, pred, ys, None)
+    pm, pP = F @ m0, F @ np.eye(2) @ F.T + Q
+    ref = np.array([multivariate_normal(H @ pm, H @ pP @ H.T + R).logpdf(y) for y in ys.numpy()])
+    np.testing.assert_allclose(out.log_likelihood.numpy(), ref, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(
+        kf.innovation(carry, pred, ys, None)[2].numpy(), ref, rtol=0, atol=1e-10
+    )

@@ -141,3 +141,17 @@ def test_cusum_hand_computed_and_calibration():
     tau = det.calibrate(free, 0.01)
     rate = det.run(free)[1].double().mean().item()
     assert tau > 0 and rate <= 0.01 + 1e-9 and rate > 0.005
+
+
+def test_cusum_scores_reset_at_zero_and_a_late_alarm_is_a_miss():
+    """S_k = max(0, S_{k−1} + g_k − b): g = (0, 0, 5), b = 1 → (0, 0, 4) in ``scores`` (the
+    ROC's statistic; only ``run`` was checked by hand). An alarm after its episode ended
+    detects nothing: the episode is missed."""
+    s = CusumDetector(bias=1.0).scores(torch.tensor([0.0, 0.0, 5.0], dtype=torch.float64))
+    assert s.tolist() == [0.0, 0.0, 4.0]
+    attacked = torch.zeros(1, 10, dtype=torch.bool)
+    attacked[0, 2:5] = True
+    alarms = torch.zeros(1, 10, dtype=torch.bool)
+    alarms[0, 6] = True
+    d = metrics.detection_delay(alarms, attacked)
+    assert (d["episodes"], d["detected"], d["missed"]) == (1, 0, 1)

@@ -675,3 +675,15 @@ def test_gather_keeps_a_component_major_layout():
     want = _gather_particles(particles.contiguous(), ancestors)
     assert torch.equal(out, want) and out.transpose(-1, -2).is_contiguous()
     assert torch.equal(out[1, 7], particles[1, ancestors[1, 7]])
+
+
+def test_stratified_draws_each_stratum_apart_and_systematic_does_not():
+    """w = (1/6, 2/3, 1/6), N = 3: with independent strata particle 1 gets 3 copies with
+    probability 1/4; one shared offset (systematic) always gives it exactly 2. Both have
+    the same mean counts, all the other tests compared."""
+    lw = torch.tensor([1 / 6, 2 / 3, 1 / 6], dtype=torch.float64).log().expand(4000, 3)
+    share = {}
+    for name, r in (("stratified", Stratified()), ("systematic", Systematic())):
+        ancestors = r.ancestors(lw, torch.Generator().manual_seed(2))
+        share[name] = float(((ancestors == 1).sum(-1) == 3).double().mean())
+    assert abs(share["stratified"] - 0.25) < 0.03 and share["systematic"] == 0.0
