@@ -78,6 +78,7 @@ def local_pair(ctx: SuiteContext, tr) -> EstimatorOutput:
     model = ctx.model.group(GROUPS)
     return adaptive_particle_filter(
         model, group_measurements(tr.y_recv), tr.us, num_particles=sc.num_particles,
+        mask=None if tr.mask is None else group_measurements(tr.mask),
         reading=sc.reading, generator=ctx.streams("particles/propagate"),
         resample_generator=ctx.streams("particles/resample"),
         initial_state=adaptive_particle_init(
@@ -190,7 +191,9 @@ class FusedLocals(Estimator):
     def _step(self, carry, y, u, mask):
         G = len(self.groups)
         u = None if u is None else u.expand((G,) + u.shape)
-        carry, out = self.local._step(carry, group_measurements(y, self.groups), u, None)
+        # the mask too, grouped as the measurements (it was dropped: a lost entry read as 0)
+        grouped_mask = None if mask is None else group_measurements(mask, self.groups)
+        carry, out = self.local._step(carry, group_measurements(y, self.groups), u, grouped_mask)
         x, P, a, S, omega = fuse_pair(out.mean, out.cov, out.attack, out.extras["attack_covs"],
                                       self.rule)  # fmt: skip
         score = wald_statistic(a, S)

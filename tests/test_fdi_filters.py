@@ -14,7 +14,7 @@ from difffilter import fdi
 from difffilter.fdi.fused import FusedModifiedPF
 from difffilter.models.attacks import BiasAttack
 from difffilter.models.four_tank import FourTankModel
-from difffilter.noise import UniformBox
+from difffilter.noise import Gaussian, UniformBox
 from difffilter.particle import ModelLikelihood, particle_filter, particle_init
 
 ETA, ZETA = 0.28 * 5 / 6, 0.5
@@ -389,6 +389,59 @@ def test_fused_modified_pf_equals_the_composed_filter(B, N):
     assert torch.equal(out.alarms, ref.alarms)
     assert torch.equal(out.scores, ref.scores)
     assert torch.allclose(out.means, ref.means, atol=1e-10)
+
+
+def _fused_and_steps(model, ys, gamma_hat, detector, n):
+    """The fused modified PF's whole-sequence path and its composed steps (a carry given),
+    from identically seeded generators."""
+    from difffilter.estimator import Generators
+    from difffilter.loop import open_loop
+
+    def gens():
+        return Generators(*(torch.Generator().manual_seed(i) for i in range(3)))
+
+    est = fdi.ModifiedParticleFilter(n, detector, gamma_hat, fused=True)
+    fused = open_loop(est, model, ys, generator=gens())
+    steps = open_loop(est, model, ys, carry=est.init(model, ys.shape[:-2], gens()))
+    return fused, steps
+
+
+def test_the_fused_modified_pf_alarms_as_its_steps_where_beta_meets_zeta():
+    """β̃ = 100/200 against ζ = 0.499999999: the fused path compared the int64 count with ζN
+    in float32 (99.9999998 read as 100: no alarm where the steps alarm), and the runs then
+    parted (29 alarms, means 0.34 apart). And ζ of eq. (53) is p_l itself (0.5 at N = 200
+    came out an ulp below: β = p_l alarmed)."""
+    assert fdi.detection_threshold(0.5, 200) == 0.5 and fdi.detection_threshold(0.5, 500) == 0.5
+    model = FourTankModel(dtype=torch.float64)
+    g = torch.Generator().manual_seed(0)
+    ys = model.initial.mean + 0.03 * torch.randn(8, 30, 4, dtype=torch.float64, generator=g)
+    gamma_hat = torch.full((8, 30, 4), 0.3, dtype=torch.float64)
+    fused, steps = _fused_and_steps(model, ys, gamma_hat, fdi.PoADetector(0.175, 0.499999999), 200)
+    assert bool((steps.detection.scores == 0.5).any())  # the tie is met
+    assert torch.equal(fused.detection.alarms, steps.detection.alarms)
+    torch.testing.assert_close(fused.means, steps.means, rtol=0, atol=1e-10)
+
+
+def test_the_fused_modified_pf_steps_where_its_assumptions_fail():
+    """A measurement noise other than N(0, R) (an offset; the fused weights are written for
+    eq. (59)'s), γ̂ of one row for every run, runs of two batch dimensions: the same numbers
+    as the steps (the noise gave other weights, means 4.6 apart; the others raised)."""
+    model = FourTankModel(dtype=torch.float64)
+    g = torch.Generator().manual_seed(1)
+    ys = model.initial.mean + 0.03 * torch.randn(3, 10, 4, dtype=torch.float64, generator=g)
+    det = fdi.PoADetector(0.2, 0.5)
+    gamma_rows = torch.full((10, 4), 0.3, dtype=torch.float64)
+    fused, steps = _fused_and_steps(model, ys, gamma_rows, det, 50)
+    torch.testing.assert_close(fused.means, steps.means, rtol=0, atol=1e-10)
+    shifted = FourTankModel(dtype=torch.float64)
+    cov = shifted.measurement_noise.cov
+    shifted.measurement_noise = Gaussian(torch.full((4,), 0.05, dtype=torch.float64), cov)
+    fused, steps = _fused_and_steps(shifted, ys, gamma_rows.expand(3, 10, 4), det, 50)
+    assert fused.covs is not None  # stepped
+    torch.testing.assert_close(fused.means, steps.means, rtol=0, atol=0)
+    fused, steps = _fused_and_steps(model, ys.expand(2, 3, 10, 4), gamma_rows, det, 50)
+    assert fused.means.shape == (2, 3, 10, 4)
+    torch.testing.assert_close(fused.means, steps.means, rtol=0, atol=0)
 
 
 def test_fused_rejects_bad_input():

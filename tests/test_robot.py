@@ -491,3 +491,35 @@ def test_the_particle_filters_step_the_robot_with_one_input_row_for_all_particle
                                                 detector=fdi.PoADetector(1.0, 0.5),
                                                 generator=torch.Generator().manual_seed(2))):  # fmt: skip
         assert torch.isfinite(run().means).all()
+
+
+@one_thread()
+def test_the_fused_locals_read_a_schedules_mask_as_the_locals_alone_do():
+    """Under a mask the fused estimator's locals are the adaptive PF run alone with that
+    mask, and values at unreceived entries change nothing (the mask was dropped: a lost
+    entry read as 0, its locals 108 away from the masked ones)."""
+    from difffilter.estimator import Generators
+    from difffilter.fdi.mdpf import AdaptiveParticleFilter
+    from difffilter.loop import open_loop
+    from difffilter.models.robot_estimators import FusedLocals
+
+    def gens():
+        return Generators(*(torch.Generator().manual_seed(i) for i in range(3)))
+
+    model, f64 = RobotModel(), torch.float64
+    us = torch.tensor([5.0, 5.0 * DEG], dtype=f64).expand(3, 6, 2).clone()
+    _, ys, _ = model.simulate(6, (3,), us=us, generator=torch.Generator().manual_seed(1))
+    mask = torch.ones(3, 6, 12, dtype=torch.bool)
+    mask[:, 2, :4] = False
+    mask[:, 4, :] = False
+    garbage = ys.masked_fill(~mask, 1e3)
+    est = FusedLocals(AdaptiveParticleFilter(20), "ci")
+    fused = open_loop(est, model, ys, us, mask=mask, generator=gens())
+    other = open_loop(est, model, garbage, us, mask=mask, generator=gens())
+    torch.testing.assert_close(fused.means, other.means, rtol=0, atol=0)
+    grouped = model.group(GROUPS)
+    alone = open_loop(AdaptiveParticleFilter(20), grouped, group_measurements(ys),
+                      us.expand(2, 3, 6, 2), mask=group_measurements(mask), generator=gens())  # fmt: skip
+    torch.testing.assert_close(
+        fused.extras["local_means"].movedim(-2, 0), alone.means, rtol=0, atol=1e-12
+    )

@@ -184,7 +184,7 @@ class FusedModifiedPF:
         # eq. (59) without forming r − l̂γ̂: Σ_d p_d (r_d − c_d)² = Σ p_d r_d² − 2 Σ p_d c_d r_d + const
         # (p = −½ diag R⁻¹ after whitening); the constant cancels in the normalisation.
         comp = (-2.0 * nhp) * (gamma_hat if whiten is None else gamma_hat @ whiten)  # [B, T, dy]
-        eta2, zn = self.eta**2, self.zeta * n
+        eta2 = self.eta**2
         both = torch.stack([dsq, nhp], -1) if (dmap is None and whiten is None) else None
         means, counts, alarms = [], [], []
         for t in range(T):
@@ -200,7 +200,9 @@ class FusedModifiedPF:
                 rr_p = quad[..., 1:]
             else:
                 count = (zz @ dsq > eta2).sum(-1)
-            alarm = count > zn
+            # β̃ = count/N > ζ in the particles' dtype, as the steps compare it (count > ζN
+            # compared an int64 count with a float in float32: 99.9999998 read as 100)
+            alarm = count.to(dtype) / n > self.zeta
             # Step 3-1: weights of the uncorrected particles with ỹ − l̂ γ̂ (59)
             if both is None:
                 if whiten is not None:

@@ -43,8 +43,10 @@ from ..estimator import EstimatorOutput, Generators
 from ..gaussian import kalman_gain
 from ..linalg import masked_measurement
 from ..loop import open_loop
+from ..noise import Gaussian
 from ..particle import ModelLikelihood, ParticleFilter, ParticleState
 from ..resampling import Systematic
+from ..ssm import StateSpaceModel
 from .attack_estimation import BiasAttackEstimator
 from .poa import (
     PoADetector,
@@ -297,7 +299,11 @@ class ModifiedParticleFilter(ParticleFilter):
             :mod:`difffilter.fdi.fused` (the same algorithm and random numbers, equal up to
             round-off); it needs a tensor ``gamma_hat``, a time-invariant model, systematic
             resampling at every step and none of ``us``, ``mask``, ``attack_rate``,
-            ``base_likelihood``.
+            ``base_likelihood``. Where its other assumptions fail (runs not ``[B, T,
+            dy]``, one ``η`` per run, a measurement noise other than ``N(0, R)``) the run
+            steps instead. It returns ``means``, ``attack``, ``detection`` (a float
+            threshold ``ζ``) and ``extras["gamma_hat"]`` only, without gradients
+            (``covs`` ``None``; none of the steps' other extras).
 
     Step output: the weighted mean (eq. 60), ``attack = l̂_k γ̂_k`` (the compensation
     applied), ``score`` ``β̃_k`` (eq. 58), ``alarm`` ``l̂_k``, ``threshold`` ``ζ_k [...]``,
@@ -340,8 +346,8 @@ class ModifiedParticleFilter(ParticleFilter):
         if us is not None or mask is not None:
             bad = "us" if us is not None else "mask"
             raise ValueError(f"fused=True does not support {bad}; use fused=False")
-        if ys.dim() != 3:
-            raise ValueError(f"fused=True needs ys of shape [B, T, dy]; got {tuple(ys.shape)}")
+        if not _fusable(carry.model, ys, self.detector, self.gamma_hat):
+            return None  # step by step: the same numbers, without the fused path's assumptions
         from .fused import FusedModifiedPF
 
         pf = FusedModifiedPF(
@@ -350,9 +356,29 @@ class ModifiedParticleFilter(ParticleFilter):
         )  # fmt: skip
         gens = carry.generators or Generators()
         return pf.run(
-            ys, self.gamma_hat, generator=gens.propagate, resample_generator=gens.resample,
-            initial_particles=carry.particles,
+            ys, self.gamma_hat.expand(ys.shape), generator=gens.propagate,
+            resample_generator=gens.resample, initial_particles=carry.particles,
         )  # fmt: skip
+
+
+def _fusable(model, ys: Tensor, detector, gamma_hat: Tensor) -> bool:
+    """Whether the fused path computes what the steps do: runs ``[B, T, dy]``, one ``η`` for
+    every run, ``γ̂`` broadcasting to ``ys``, and the measurement density ``N(y − h(x); 0,
+    R)`` of eq. (59) (a zero-mean Gaussian noise, the model's own density and residual: the
+    fused weights are written for it; another noise, a glint mixture or an offset, gave
+    other weights)."""
+    noise = model.measurement_noise
+    plain = (
+        type(noise) is Gaussian
+        and noise._zero_loc()
+        and type(model).measurement_log_prob is StateSpaceModel.measurement_log_prob
+        and type(model).measurement_residual is StateSpaceModel.measurement_residual
+    )
+    try:
+        fits = torch.broadcast_shapes(gamma_hat.shape, ys.shape) == ys.shape
+    except RuntimeError:
+        fits = False
+    return plain and fits and ys.dim() == 3 and torch.as_tensor(detector.eta).numel() == 1
 
 
 def _check_fused(gamma_hat, attack_rate, base_likelihood, resampler, ess_threshold) -> None:
@@ -417,7 +443,8 @@ def modified_particle_filter(
     ``covs``, ``attack = l̂_k γ̂_k`` ``[..., T, dy]`` (the compensation applied),
     ``detection`` (scores ``β̃_k``, eq. 58; alarms ``l̂_k``; threshold ``ζ_k [..., T]``)
     and ``extras``: ``gamma_hat [..., T, dy]``, ``pred_means [..., T, dx]``,
-    ``ess [..., T]`` and, with ``attack_rate``, ``attack_rate`` (final ``p̂_l`` ``[...]``).
+    ``ess [..., T]`` and, with ``attack_rate``, ``attack_rate`` (final ``p̂_l`` ``[...]``);
+    with ``fused=True`` what :class:`ModifiedParticleFilter` says of it.
     """
     ys, us, mask = check_filter_inputs(
         model, ys, us, mask, resampler=resampler, ess_threshold=ess_threshold, gamma_hat=gamma_hat

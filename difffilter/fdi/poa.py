@@ -136,6 +136,9 @@ def detection_threshold(
                 f"eq. (53) needs p_l N/(N-1) < 1; got p_l = {p_l}, N = {n} (alpha = {alpha:.4g}); "
                 "use more particles or pass alpha"
             )
+        # ζ = α(N − 1)/N = p_l exactly: computed, it could land an ulp below p_l (0.5 at
+        # N = 200, 500), and β = p_l, which must not alarm, did
+        return float(p_l)
     elif not 0.0 < float(alpha) < 1.0:
         raise ValueError(f"alpha must lie in (0, 1) (eq. 46); got {alpha!r}")
     return float(alpha) * (n - 1) / n
