@@ -13,24 +13,20 @@ import difffilter as df
 from difffilter import fdi
 
 
+def _two_states():
+    """``(F, Q, R, m0, P0)`` as numpy arrays and the linear model of them (H = I)."""
+    F, Q, R = np.array([[1.0, 0.1], [0.0, 0.95]]), np.diag([0.01, 0.02]), np.diag([0.05, 0.08])
+    m0, P0 = np.zeros(2), np.eye(2)
+    model = df.LinearGaussianModel(*(torch.tensor(a) for a in (F, np.eye(2), Q, R, m0, P0)))
+    return F, Q, R, m0, P0, model
+
+
 def test_gated_filters_under_a_mask_equal_a_numpy_gated_kf():
     """The χ² gate's quantile has the received count's degrees of freedom, CUSUM adds the
     missing entries' (m − m_k) to g_k, and cusum_detector_for calibrates on the same: against
     a numpy gated Kalman filter (a mutation review found none of the three pinned)."""
 
-    F = np.array([[1.0, 0.1], [0.0, 0.95]])
-    Q = np.diag([0.01, 0.02])
-    R = np.diag([0.05, 0.08])
-    m0 = np.zeros(2)
-    P0 = np.eye(2)
-    model = df.LinearGaussianModel(
-        torch.tensor(F),
-        torch.eye(2, dtype=torch.float64),
-        torch.tensor(Q),
-        torch.tensor(R),
-        torch.tensor(m0),
-        torch.tensor(P0),
-    )
+    F, Q, R, m0, P0, model = _two_states()
     T = 12
     rng = np.random.default_rng(0)
     mask = np.array([[1, 0], [0, 1], [1, 1]] * 4, dtype=bool)[:T]
@@ -208,17 +204,15 @@ def test_the_mdpf_draw_reading_draws_from_the_particles_gaussian():
     lw = torch.full((B, N), -np.log(N), dtype=torch.float64)
     ok = True
     for form in ("covariance", "information"):
-        s_draw = ParticleState(packed(x0.expand(B, N, 3)), lw, 0)
-        _, out_d = adaptive_particle_step(
-            model,
-            s_draw,
-            y,
-            u,
-            reading="draw",
-            form=form,
-            generator=torch.Generator().manual_seed(7),
-            resample_generator=torch.Generator().manual_seed(1),
-        )
+
+        def step(particles, reading, seed, form=form):
+            return adaptive_particle_step(
+                model, ParticleState(packed(particles), lw, 0), y, u, reading=reading, form=form,
+                generator=torch.Generator().manual_seed(seed),
+                resample_generator=torch.Generator().manual_seed(1),
+            )[1]  # fmt: skip
+
+        out_d = step(x0.expand(B, N, 3), "draw", 7)
         if form == "covariance":
             eps = torch.randn(
                 (B, N, 3), generator=torch.Generator().manual_seed(7), dtype=torch.float64
@@ -232,17 +226,7 @@ def test_the_mdpf_draw_reading_draws_from_the_particles_gaussian():
                 -1,
             )
         xs = torch.tensor(x0.numpy() + eps @ L.T)
-        s_copy = ParticleState(packed(xs), lw, 0)
-        _, out_c = adaptive_particle_step(
-            model,
-            s_copy,
-            y,
-            u,
-            reading="copy",
-            form=form,
-            generator=torch.Generator().manual_seed(99),
-            resample_generator=torch.Generator().manual_seed(1),
-        )
+        out_c = step(xs, "copy", 99)
 
         e = abs(out_d.mean - out_c.mean).max().item()
 
@@ -296,19 +280,7 @@ def test_the_log_likelihood_feature_divides_by_the_received_count():
     from difffilter.models.learned_estimator import NeuralCompensation
     from difffilter.models.neural_estimator import NeuralFDIEstimator
 
-    F = np.array([[1.0, 0.1], [0.0, 0.95]])
-    Q = np.diag([0.01, 0.02])
-    R = np.diag([0.05, 0.08])
-    m0 = np.zeros(2)
-    P0 = np.eye(2)
-    model = df.LinearGaussianModel(
-        torch.tensor(F),
-        torch.eye(2, dtype=torch.float64),
-        torch.tensor(Q),
-        torch.tensor(R),
-        torch.tensor(m0),
-        torch.tensor(P0),
-    )
+    F, Q, R, m0, P0, model = _two_states()
     T = 6
     _, ys, _ = model.simulate(T, (1,), generator=torch.Generator().manual_seed(0))
     mask = torch.tensor([[1, 0], [1, 1], [0, 1], [1, 0], [1, 1], [0, 1]], dtype=torch.bool)[None]
