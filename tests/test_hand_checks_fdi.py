@@ -69,7 +69,6 @@ def test_gated_filters_under_a_mask_equal_a_numpy_gated_kf():
             means.append(m.copy())
         return np.array(ys), np.array(alarms), np.array(scores), np.array(means)
 
-    ok = True
     for kind in ("chi2", "cusum"):
         ys, alarms, scores, means = truth(kind)
         det = (
@@ -82,10 +81,9 @@ def test_gated_filters_under_a_mask_equal_a_numpy_gated_kf():
         )
         a = out.detection.alarms.numpy()
         s = out.detection.scores.numpy()
-        e = abs(out.means.numpy() - means).max()
-        good = (a == alarms).all() and abs(s - scores).max() < 1e-8 and e < 1e-8
-
-        ok &= bool(good)
+        assert (a == alarms).all(), f"{kind}: alarms differ at {np.argwhere(a != alarms)}"
+        assert abs(s - scores).max() < 1e-8, f"{kind}: scores differ"
+        assert abs(out.means.numpy() - means).max() < 1e-8, f"{kind}: means differ"
 
     # cusum_detector_for on masked attack-free data: tau calibrated on g + (m - m_k)
     rng2 = np.random.default_rng(1)
@@ -113,8 +111,9 @@ def test_gated_filters_under_a_mask_equal_a_numpy_gated_kf():
         model, false_alarm_rate=0.05, filter=df.KalmanFilter(), ys=ysim, mask=mk
     )
 
-    ok &= abs(got.threshold - ref.threshold) < 1e-6 * max(1, ref.threshold)
-    assert ok
+    assert abs(got.threshold - ref.threshold) < 1e-6 * max(1, ref.threshold), (
+        got.threshold, ref.threshold,
+    )  # fmt: skip
 
 
 def test_zhangs_wald_test_has_the_attacks_degrees_of_freedom():
@@ -133,10 +132,9 @@ def test_zhangs_wald_test_has_the_attacks_degrees_of_freedom():
     a = out.attack[0].numpy()
     S = out.extras["attack_covs"][0].numpy()
     score = np.array([a[t] @ np.linalg.solve(S[t], a[t]) for t in range(T)])
-    ok = np.allclose(thr, ref) and np.allclose(out.detection.scores[0].numpy(), score, rtol=1e-6)
-    ok &= bool((out.detection.alarms[0].numpy() == (score > ref)).all())
-
-    assert ok
+    assert np.allclose(thr, ref), (thr, ref)
+    assert np.allclose(out.detection.scores[0].numpy(), score, rtol=1e-6)
+    assert (out.detection.alarms[0].numpy() == (score > ref)).all()
 
 
 def test_the_bias_attack_estimator_is_a_kalman_filter_on_gamma_and_gamma_bar():
@@ -159,7 +157,6 @@ def test_the_bias_attack_estimator_is_a_kalman_filter_on_gamma_and_gamma_bar():
     flags = np.array([1, 1, 0, 1, 1, 1], dtype=bool)
     est = BiasAttackEstimator(d, tau)
     st = est.init(())
-    ok = True
     for k in range(T):
         m, P = F @ m, F @ P @ F.T + Q
         if flags[k]:
@@ -168,10 +165,8 @@ def test_the_bias_attack_estimator_is_a_kalman_filter_on_gamma_and_gamma_bar():
             m = m + K @ (res[k] - H @ m)
             P = P - K @ S @ K.T
         st, g, gc = est.step(st, torch.tensor(res[k]), torch.tensor(Sk[k]), torch.tensor(flags[k]))
-        e = max(abs(g.numpy() - m[:d]).max(), abs(gc.numpy() - P[:d, :d]).max())
-
-        ok &= e < 1e-6
-    assert ok
+        assert abs(g.numpy() - m[:d]).max() < 1e-6, f"gamma differs at step {k}"
+        assert abs(gc.numpy() - P[:d, :d]).max() < 1e-6, f"its covariance differs at step {k}"
 
 
 def test_the_mdpf_draw_reading_draws_from_the_particles_gaussian():
@@ -202,7 +197,6 @@ def test_the_mdpf_draw_reading_draws_from_the_particles_gaussian():
     y = model.observe(x0 + torch.tensor([5.0, 0.0, 0.1], dtype=torch.float64), 1).expand(B, -1)
     u = torch.tensor([5.0, 0.1], dtype=torch.float64).expand(B, 2)
     lw = torch.full((B, N), -np.log(N), dtype=torch.float64)
-    ok = True
     for form in ("covariance", "information"):
 
         def step(particles, reading, seed, form=form):
@@ -228,10 +222,7 @@ def test_the_mdpf_draw_reading_draws_from_the_particles_gaussian():
         xs = torch.tensor(x0.numpy() + eps @ L.T)
         out_c = step(xs, "copy", 99)
 
-        e = abs(out_d.mean - out_c.mean).max().item()
-
-        ok &= e < 1e-8
-    assert ok
+        assert abs(out_d.mean - out_c.mean).max().item() < 1e-8, form
 
 
 def test_the_mdpf_local_estimate_is_the_mixture_of_its_particles_gaussians():
@@ -248,7 +239,6 @@ def test_the_mdpf_local_estimate_is_the_mixture_of_its_particles_gaussians():
     _, ys, _ = model.simulate(T, (2,), us, generator=torch.Generator().manual_seed(1))
     state = adaptive_particle_init(model, 50, (2,), g)
     lay = ParticleLayout(3, 2)
-    ok = True
     for form in ("covariance", "information"):
         st = state
         for t in range(T):
@@ -261,15 +251,10 @@ def test_the_mdpf_local_estimate_is_the_mixture_of_its_particles_gaussians():
         daa = a - am[:, None]
         Pm = np.einsum("bn,bnij->bij", w, P + dxx[..., :, None] * dxx[..., None, :])
         Sm = np.einsum("bn,bnij->bij", w, S + daa[..., :, None] * daa[..., None, :])
-        errs = [
-            abs(out.mean.numpy() - xm).max(),
-            abs(out.cov.numpy() - Pm).max(),
-            abs(out.attack.numpy() - am).max(),
-            abs(out.extras["attack_covs"].numpy() - Sm).max(),
-        ]
-
-        ok &= max(errs) < 1e-8
-    assert ok
+        assert abs(out.mean.numpy() - xm).max() < 1e-8, f"{form}: mean"
+        assert abs(out.cov.numpy() - Pm).max() < 1e-8, f"{form}: cov"
+        assert abs(out.attack.numpy() - am).max() < 1e-8, f"{form}: attack"
+        assert abs(out.extras["attack_covs"].numpy() - Sm).max() < 1e-8, f"{form}: attack cov"
 
 
 def test_the_log_likelihood_feature_divides_by_the_received_count():

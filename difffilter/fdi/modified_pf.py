@@ -44,7 +44,7 @@ from ..gaussian import kalman_gain
 from ..linalg import masked_measurement
 from ..loop import open_loop
 from ..noise import Gaussian
-from ..particle import ModelLikelihood, ParticleFilter, ParticleState
+from ..particle import ModelLikelihood, ParticleFilter, ParticleState, _default_measurement_density
 from ..resampling import Systematic
 from ..ssm import StateSpaceModel
 from .attack_estimation import BiasAttackEstimator
@@ -371,7 +371,7 @@ def _fusable(model, ys: Tensor, detector, gamma_hat: Tensor) -> bool:
     plain = (
         type(noise) is Gaussian
         and noise._zero_loc()
-        and type(model).measurement_log_prob is StateSpaceModel.measurement_log_prob
+        and _default_measurement_density(model)
         and type(model).measurement_residual is StateSpaceModel.measurement_residual
     )
     try:
