@@ -43,7 +43,14 @@ from torch import Tensor
 
 from .estimator import Generators
 from .noise import Gaussian
-from .particle import BootstrapProposal, ModelLikelihood, ParticleState, _ess, _predictive
+from .particle import (
+    BootstrapProposal,
+    ModelLikelihood,
+    ParticleState,
+    _default_measurement_density,
+    _ess,
+    _predictive,
+)
 from .resampling import Systematic
 from .results import StepOutput
 from .ssm import StateSpaceModel
@@ -66,7 +73,7 @@ def applies(pf, carry, mask) -> bool:
         and not pf.hooks
         and not pf.record_prior
         and pf.cov_dims is None
-        and type(carry.model).measurement_log_prob is StateSpaceModel.measurement_log_prob
+        and _default_measurement_density(carry.model)
     )
 
 
