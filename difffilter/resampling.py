@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import warnings
 from numbers import Real
 from typing import ClassVar, NamedTuple
 
@@ -1178,7 +1179,9 @@ class OptimalTransport(Resampler):
             (the kernel domain's ε-scaling adds one iteration per stage before them,
             3 for standardised ``d = 4`` at ``ε = 0.1``).
         tolerance: stop when the L1 row-marginal error of every batch row is below it;
-            default 1e-3.
+            default 1e-3. Where ``max_iterations`` comes first, a call warns
+            (``RuntimeWarning``); every call keeps ``last_iterations`` and ``last_error``
+            (the largest row error when it stopped) on the object.
         grad_iterations: Sinkhorn iterations differentiated through (``≥ 0``);
             default 5. Each costs two products forward and two backward in the kernel
             domain (about four no-grad iterations in the log domain). Measured against
@@ -1234,6 +1237,8 @@ class OptimalTransport(Resampler):
         if method not in ("kernel", "log"):
             raise ValueError(f"method must be 'kernel' or 'log', got {method!r}")
         self.method = method
+        self.last_iterations: int | None = None  # how the last call's Sinkhorn stopped
+        self.last_error: float | None = None
 
     def __repr__(self) -> str:
         return (
@@ -1257,15 +1262,33 @@ class OptimalTransport(Resampler):
             a = torch.exp(log_a)
             fe = torch.zeros_like(log_a)  # f / ε
             ge = torch.zeros_like(log_a)  # g / ε
-            for _ in range(self.max_iterations):
+            iterations = 0
+            while iterations < self.max_iterations:
+                iterations += 1
                 fe_new = -_lse_shift(ge + log_b, k, out=buf)
                 # Row sums of the plan before this update: a_i exp(f_i/ε − f'_i/ε).
-                error = (a * torch.expm1(fe - fe_new)).abs().sum(-1)
+                error = float((a * torch.expm1(fe - fe_new)).abs().sum(-1).max())
                 fe = fe_new
                 ge = -_lse_shift(log_a + fe, k, out=buf)
-                if float(error.max()) < self.tolerance:
+                if error < self.tolerance:
                     break
+        self._record(iterations, error)
         return ge
+
+    def _record(self, iterations: int, error: float) -> None:
+        """Keep how the last no-grad Sinkhorn stopped (:attr:`last_iterations`,
+        :attr:`last_error`) and warn where it stopped at ``max_iterations`` above
+        ``tolerance``: the columns are still exact (the barycentric projection normalises
+        them) but the rows are off by ``last_error``, so the transported cloud's mean is
+        not the weighted mean to the tolerance the object promises."""
+        self.last_iterations, self.last_error = iterations, error
+        if not error < self.tolerance:  # NaN included
+            warnings.warn(
+                "OptimalTransport: Sinkhorn stopped at max_iterations with its row-marginal "
+                "error above tolerance (see .last_error); raise max_iterations or epsilon",
+                RuntimeWarning,
+                stacklevel=2,  # one place: Python's default filter shows it once a process
+            )
 
     def _refine(self, k: Tensor, log_a: Tensor, ge: Tensor) -> Tensor:
         """``grad_iterations`` differentiable iterations from ``ge``, then the final ``f/ε``."""
@@ -1313,9 +1336,11 @@ class OptimalTransport(Resampler):
 
     def _kernel_potentials(self, xs: Tensor, log_a: Tensor) -> _SinkhornState:
         """No-grad kernel-domain Sinkhorn (:func:`_kernel_sinkhorn`) at this object's settings."""
-        return _kernel_sinkhorn(
+        state = _kernel_sinkhorn(
             xs.detach(), log_a.detach(), self.epsilon, self.tolerance, self.max_iterations
         )
+        self._record(state.iterations, state.error)
+        return state
 
     def _log_transport(self, xs: Tensor, x: Tensor, log_a: Tensor) -> Tensor:
         """``method="log"``: log-domain potentials, then :meth:`_transport` → ``[M, N, d]``."""

@@ -4,6 +4,7 @@ differentiable corrections (soft, stop-gradient) and entropy-regularised OT."""
 from __future__ import annotations
 
 import math
+import warnings
 
 import pytest
 import torch
@@ -687,3 +688,27 @@ def test_stratified_draws_each_stratum_apart_and_systematic_does_not():
         ancestors = r.ancestors(lw, torch.Generator().manual_seed(2))
         share[name] = float(((ancestors == 1).sum(-1) == 3).double().mean())
     assert abs(share["stratified"] - 0.25) < 0.03 and share["systematic"] == 0.0
+
+
+@pytest.mark.parametrize("method", ["kernel", "log"])
+def test_optimal_transport_reports_how_sinkhorn_stopped(method):
+    """A Sinkhorn cut at max_iterations above tolerance warns and says by how much (the
+    transported mean is then off the weighted mean); a converged one is silent."""
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(3, 50, 2, generator=g, dtype=torch.float64)
+    lw = torch.randn(3, 50, generator=g, dtype=torch.float64)
+    w = torch.softmax(lw, -1)
+    cut = OptimalTransport(max_iterations=1, tolerance=1e-9, grad_iterations=0, method=method)
+    with pytest.warns(RuntimeWarning, match="max_iterations"):
+        out = cut(x, lw)
+    assert cut.last_iterations == 1 and cut.last_error > 1e-9
+    # the error it reports is the row-marginal error behind the mean's shift
+    shift = (out.particles.mean(-2) - (w.unsqueeze(-1) * x).sum(-2)).abs().max()
+    assert shift > 1e-6
+    fine = OptimalTransport(max_iterations=1000, tolerance=1e-9, method=method)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = fine(x, lw)
+    assert fine.last_error < 1e-9 and 1 < fine.last_iterations < 1000
+    shift = (out.particles.mean(-2) - (w.unsqueeze(-1) * x).sum(-2)).abs().max()
+    assert shift < 1e-7
