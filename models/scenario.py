@@ -36,6 +36,7 @@ from torch import Tensor
 
 from difffilter.attack import Attack, Channel
 from difffilter.loop import DrawnNoise, KnownInputs, Trajectories, closed_loop
+from difffilter.threats import KSigmaBias
 
 from .schedules import AllSensors
 
@@ -267,7 +268,7 @@ class Scenario:
 
         ``gamma_min`` if set; else half the steady-state norm of a sensor attack that has
         one (``γ̄`` of eq. 4, a bias's value, as injected: one value on every entry, zero
-        outside ``entries``) [DEF]; else (a ramp or a random walk, which
+        outside ``entries``; a :class:`~difffilter.threats.KSigmaBias`'s ``k σ``) [DEF]; else (a ramp or a random walk, which
         have no steady state, an actuator attack, whose size is in input units, or no
         attack) one measurement-noise standard deviation, ``‖√diag R‖`` of ``model``
         [DEF]: an attack as large as the noise. ``ValueError`` when that is needed and no
@@ -277,6 +278,8 @@ class Scenario:
             return float(self.gamma_min)
         attack = self.attack_model()
         values = getattr(attack, "gamma_bar", None) or getattr(attack, "value", None)
+        if isinstance(attack, KSigmaBias):  # a bias too: k σ on every attacked entry
+            values = tuple(float(attack.k) * float(v) for v in attack.sigma)
         on_sensors = Channel(getattr(attack, "channel", Channel.SENSOR)) is not Channel.ACTUATOR
         if values is not None and on_sensors:
             values = [float(v) for v in ((values,) if isinstance(values, (int, float)) else values)]

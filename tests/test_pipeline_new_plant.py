@@ -85,10 +85,14 @@ def test_the_poa_floor_is_half_the_norm_of_the_bias_as_injected():
     import dataclasses
     import math
 
-    from difffilter.threats import Bias
+    from difffilter.threats import Bias, KSigmaBias
 
     model = pendulum(torch.float64)
+    sigma = model.measurement_cov(1).diagonal().sqrt().tolist()
     expected = {
+        # a k-sigma bias is a bias of k σ (it fell back to one noise std, ‖σ‖, for any k)
+        KSigmaBias.of(model, 3.0): 0.5 * 3.0 * math.hypot(*sigma),
+        KSigmaBias.of(model, 3.0, entries=(0,)): 0.5 * 3.0 * sigma[0],
         Bias(value=0.5): 0.5 * math.hypot(0.5, 0.5),
         Bias(value=(0.5, 0.5)): 0.5 * math.hypot(0.5, 0.5),
         Bias(value=(0.5, 0.3), entries=(0,)): 0.25,
