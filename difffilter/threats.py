@@ -40,6 +40,7 @@ entry), by the names of :data:`THREATS`.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -60,6 +61,7 @@ __all__ = [
     "Replay",
     "Covert",
     "THREATS",
+    "check_attack_fits",
     "threat_from_dict",
 ]
 
@@ -83,6 +85,14 @@ def _numbers(value, name: str) -> tuple[float, ...]:
 def _count(value, name: str, minimum: int) -> None:
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}")
+
+
+def _share(value) -> float:
+    """``value`` as a share of runs: a number in ``[0, 1]`` (a string such as YAML's
+    quoted ``"0.5"`` failed only at sampling, with a message that did not name it)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0.0 <= value <= 1.0:
+        raise ValueError(f"share must be a number in [0, 1] (a share of runs); got {value!r}")
+    return float(value)
 
 
 def _batch(batch_shape) -> torch.Size:
@@ -109,8 +119,7 @@ class Shaped(TabulatedAttack):
         _count(self.onset, "onset", 1)
         if self.duration is not None:
             _count(self.duration, "duration", 1)
-        if not 0.0 <= float(self.share) <= 1.0:
-            raise ValueError(f"share must lie in [0, 1] (a share of runs); got {self.share!r}")
+        object.__setattr__(self, "share", _share(self.share))
         object.__setattr__(self, "channel", Channel(self.channel))
         if self.entries is not None:
             entries = tuple(self.entries)
@@ -381,8 +390,7 @@ class Replay(Attack):
             )
         if self.duration is not None:
             _count(self.duration, "duration", 1)
-        if not 0.0 <= float(self.share) <= 1.0:
-            raise ValueError(f"share must lie in [0, 1] (a share of runs); got {self.share!r}")
+        object.__setattr__(self, "share", _share(self.share))
         if not isinstance(self.live, bool):
             raise ValueError(f"live must be True or False; got {self.live!r}")
         _count(self.level_window, "level_window", 1)
@@ -526,6 +534,33 @@ class Covert(Attack):
     def conceal(self, state, k, *, y, x):
         _, attacked, nominal, _ = state
         return state, self.plant.observe(nominal, k) - self.plant.observe(attacked, k)
+
+
+def check_attack_fits(attack: Attack | None, model, num_steps: int | None = None) -> None:
+    """Raise ``ValueError`` where ``attack`` cannot act on ``model`` over ``num_steps``
+    measurements: what would otherwise fail (or do nothing) only when a run is simulated.
+
+    - an actuator attack (a covert attack's signal included) on a model without inputs;
+    - a tabulated attack (a :class:`Shaped` one, a covert attack's signal) whose values or
+      ``entries`` do not fit its channel's width (``dy`` on the sensors, ``du`` on the
+      actuators): tabulated once, one run, to its onset;
+    - with ``num_steps``: an onset after the last step (it would never act).
+    """
+    if attack is None:
+        return
+    signal = attack.signal if isinstance(attack, Covert) else attack
+    onset = getattr(signal, "onset", None)
+    if num_steps is not None and onset is not None and onset > num_steps:
+        raise ValueError(f"it starts at step {onset}, after the last step ({num_steps}): it "
+                         "would never act")  # fmt: skip
+    if not isinstance(signal, TabulatedAttack):
+        return
+    actuator = Channel(signal.channel) is Channel.ACTUATOR
+    dim = model.dim_u if actuator else model.dim_y
+    if actuator and not dim:
+        raise ValueError("an actuator attack needs a model with inputs (dim_u > 0)")
+    steps = max(onset or 1, 1) if num_steps is None else num_steps
+    signal.sample((1,), steps, dim, torch.Generator().manual_seed(0), dtype=torch.float64)
 
 
 #: The threat library by name (the ``kind`` of a YAML entry, :func:`threat_from_dict`).

@@ -63,9 +63,8 @@ from typing import Any
 
 import torch
 
-from difffilter.attack import Channel, TabulatedAttack
 from difffilter.ssm import LinearGaussianModel, NonlinearGaussianModel, _arity
-from difffilter.threats import THREATS, threat_from_dict
+from difffilter.threats import THREATS, check_attack_fits, threat_from_dict
 
 from .attacks import ActuatorInjection, Replacement, SensorBias
 from .scenario import CustomScenario
@@ -145,7 +144,7 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
     steps = settings.get("steps", CustomScenario.steps)
     attack = _attack(doc.get("attack"), probe, steps, f"{where}: attack")
     try:
-        return CustomScenario(
+        scenario = CustomScenario(
             name=str(doc["name"]),
             family=str(doc.get("family", "custom")),
             description=str(doc.get("description", f"a scenario from {where}")),
@@ -164,6 +163,23 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
     except (ValueError, TypeError) as error:
         message = str(error)
         raise ValueError(message if message.startswith(where) else f"{where}: {message}") from None
+    _check_against_plant(scenario, probe, where)
+    return scenario
+
+
+def _check_against_plant(scenario: CustomScenario, probe, where: str) -> None:
+    """The schedule's groups and the known inputs against the plant's widths, now: they
+    failed at the first run, with messages that named neither the file nor the field."""
+    try:
+        scenario.schedule().mask((1,), 1, probe.dim_y, torch.Generator().manual_seed(0))
+    except (ValueError, TypeError, IndexError) as error:
+        raise ValueError(f"{where}: schedule: {error}") from None
+    known = scenario.known_inputs
+    runs = known.shape[0] if isinstance(known, torch.Tensor) and known.dim() == 3 else 1
+    try:
+        scenario.inputs(runs, torch.float64)
+    except (ValueError, TypeError, IndexError, RuntimeError) as error:
+        raise ValueError(f"{where}: inputs: {error}") from None
 
 
 def _number(value: Any, where: str) -> float:
@@ -384,17 +400,14 @@ def _attack(spec: Any, model, steps: int, where: str):
     attack = _attack_object(spec, model, where)
     if attack is None:
         return None
-    onset, start = getattr(attack, "onset", None), getattr(attack, "start", None)
-    if (onset is not None and onset > steps) or (start is not None and start >= steps):
-        first = onset if onset is not None else start + 1
-        raise ValueError(f"{where}: it starts at step {first}, after the last step ({steps}): it "
-                         "would never act")  # fmt: skip
-    if isinstance(attack, TabulatedAttack):  # its width against the channel's, now
-        dim = model.dim_u if attack.channel is Channel.ACTUATOR else model.dim_y
-        try:
-            attack.sample((1,), steps, dim, torch.Generator().manual_seed(0), dtype=torch.float64)
-        except (ValueError, TypeError) as error:
-            raise ValueError(f"{where}: {error}") from None
+    start = getattr(attack, "start", None)  # a paper attack's first step, 0-based
+    if start is not None and start >= steps:
+        raise ValueError(f"{where}: it starts at step {start + 1}, after the last step ({steps}): "
+                         "it would never act")  # fmt: skip
+    try:  # its onset, its width against the channel's, a model with inputs: now, not at a run
+        check_attack_fits(attack, model, steps)
+    except (ValueError, TypeError) as error:
+        raise ValueError(f"{where}: {error}") from None
     return attack
 
 
@@ -432,9 +445,7 @@ def _schedule(spec: Any, where: str):
             raise ValueError(f"{where}: {kind} needs {', '.join(missing)}")
         try:
             if kind == "round_robin":
-                return RoundRobin(
-                    tuple(tuple(g) for g in spec["groups"]), int(spec.get("start", 0))
-                )
+                return RoundRobin(tuple(tuple(g) for g in spec["groups"]), spec.get("start", 0))
             return PacketLoss(_number(spec["rate"], f"{where}.rate"))
         except (TypeError, ValueError) as error:
             message = str(error)

@@ -93,11 +93,36 @@ def test_every_threat_the_distribution_draws_is_within_it_and_others_are_named()
         ({"b": {"weight": 1, "kind": "bias", "value": {"uniform": [1, 2], "sine": 1}}}, "a random field is one of"),
         ({"b": {"weight": 1, "kind": "bias", "speed": 3}}, r"threats.b: threat 'bias' has no field\(s\) speed"),
         ({"b": {"weight": 0, "kind": "bias"}}, "must not all be 0"),
+        # two random fields that constrain each other, at their extremes together (one at a
+        # time, 26 of 500 draws of the replay failed at sampling, mid-training)
+        ({"r": {"weight": 1, "kind": "replay", "delay": {"randint": [1, 20]}, "onset": {"randint": [15, 40]}}},
+         r"threats.r: onset must exceed delay"),
+        ({"p": {"weight": 1, "kind": "pulses", "period": {"randint": [4, 10]}, "width": {"randint": [1, 6]}}},
+         r"threats.p: width must be <= period"),
     ],
 )  # fmt: skip
 def test_a_bad_distribution_names_the_threat_and_the_field(spec, why):
     with pytest.raises(ValueError, match=why):
         ThreatDistribution(spec)
+
+
+@pytest.mark.parametrize(
+    "threat, why",
+    [
+        ({"kind": "bias", "value": 0.5, "entries": {"choice": [[0], [7]]}},
+         r"threats.x: entries \(7,\) name entries beyond the channel's 4"),
+        ({"kind": "bias", "value": [0.1, 0.2]}, r"threats.x: value has 2 entries; the channel has 4"),
+    ],
+)  # fmt: skip
+def test_a_threat_that_does_not_fit_the_model_is_named_at_construction(threat, why):
+    """With the model given, entries and widths are checked against its channels now, not
+    when a training batch first tabulates the attack."""
+    from difffilter.models.four_tank import FourTankModel
+
+    model = FourTankModel()  # dy = 4
+    with pytest.raises(ValueError, match=why):
+        ThreatDistribution({"x": {"weight": 1, **threat}}, model=model)
+    ThreatDistribution({"x": {"weight": 1, **threat}})  # without the model it cannot know
 
 
 def test_a_threat_batch_gives_each_run_its_own_threat_and_the_test_keeps_the_scenarios():

@@ -296,6 +296,42 @@ def test_a_bad_field_is_named_with_its_file_before_anything_runs(change, why, pl
         scenario_from_yaml(path)
 
 
+@pytest.mark.parametrize(
+    "file, replace, why",
+    [
+        # a covert attack's signal: its onset and width (it ran with no attacked step, or
+        # failed at the first run with a message that named neither file nor field)
+        ("motor.yaml", {"attack": {"kind": "covert", "signal": {"kind": "bias", "value": 0.5, "onset": 500}}},
+         r"motor.yaml: attack: it starts at step 500, after the last step \(50\)"),
+        ("motor.yaml", {"attack": {"kind": "covert", "signal": {"kind": "bias", "value": 0.5, "entries": [3]}}},
+         r"motor.yaml: attack: entries \(3,\) name entries beyond the channel's 1"),
+        ("vdp.yaml", {"attack": {"kind": "bias", "channel": "actuator", "value": 0.5}},
+         r"vdp.yaml: attack: an actuator attack needs a model with inputs"),
+        ("motor.yaml", {"attack": {"kind": "bias", "value": 0.5, "share": "0.5"}},
+         r"motor.yaml: attack: share must be a number in \[0, 1\]"),
+        # the schedule's groups and the known inputs against the plant's widths
+        ("motor.yaml", {"schedule": {"kind": "round_robin", "groups": [[0], [1]]}},
+         r"motor.yaml: schedule: groups must cover the 1 measurement entries"),
+        ("motor.yaml", {"schedule": {"kind": "round_robin", "groups": [[0]], "start": True}},
+         r"motor.yaml: schedule: start must be an integer"),
+        ("motor.yaml", {"inputs": {"kind": "constant", "value": [1.0, 2.0]}},
+         r"motor.yaml: inputs: known_inputs .* got \[1, 50, 2\]"),
+        ("motor.yaml", {"inputs": {"values": [[1.0, 2.0]] * 50}},
+         r"motor.yaml: inputs: known_inputs .* got \[1, 50, 2\]"),
+    ],
+)  # fmt: skip
+def test_what_must_fit_the_plant_is_checked_when_the_file_loads(file, replace, why, plants):
+    import yaml
+
+    from difffilter.models.yaml_scenario import scenario_from_yaml
+
+    doc = {**yaml.safe_load((plants / file).read_text()), **replace}
+    path = plants / file
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ValueError, match=why):
+        scenario_from_yaml(path)
+
+
 def test_a_plant_function_of_the_wrong_width_or_failing_is_named(plants):
     """A transition returning one of two states (broadcast into both) or failing, and an
     observation of more entries than R: named at load."""
