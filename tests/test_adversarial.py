@@ -86,3 +86,63 @@ def test_an_adversarial_fit_crafts_after_the_first_validation_and_logs_it(tmp_pa
     events = EventAccumulator(str(run)).Reload()
     crafted = events.Scalars("train/adversarial_error")
     assert [e.step for e in crafted] == [2, 3]  # epoch 1's two steps, none before validation
+
+
+def test_a_crafting_that_keeps_no_attack_adds_no_runs_and_logs_zero(monkeypatch):
+    """Where every iterate broke the alarm budget the crafting returns zeros: its runs would
+    be attack-free runs flagged as attacked (the BCE taught to flag clean data), and the
+    logged error was the largest over the iterates over budget."""
+    import difffilter.train.adversarial as adversarial
+    from difffilter.stealthy import CraftedAttack
+
+    def over_budget(estimator, model, ys, xs, threshold, *, onset, **kw):
+        T, dy = ys.shape[-2:]
+        history = [(0, 5.0, 0.1, 0.30), (1, 7.0, 0.2, 0.40)]  # (it, J, excess, alarm rate)
+        return CraftedAttack(torch.zeros(T, dy), onset, history, None, budget=0.02)
+
+    monkeypatch.setattr(adversarial, "craft_stealthy_attack", over_budget)
+    task = FilterEstimatorTask("four_tank_bias", num_particles=20, hidden=4, adversarial_runs=2)
+    logs = task.adversary.craft(task, step=0)
+    assert logs["adversarial_error"] == 0.0
+    scenario = registry.get("four_tank_bias")
+    batch = training_batch(scenario, 2, 7, F32)
+    out = task.adversary.augment(batch, scenario, 5, F32)
+    assert all(torch.equal(out[k], batch[k]) for k in batch)
+
+
+def test_the_crafting_draws_particles_and_proposals_one_after_the_other(monkeypatch):
+    """The prior particles and the first proposal noise are independent draws (two
+    generators of one stream drew the same numbers: correlation 1)."""
+    import difffilter.train.adversarial as adversarial
+    from difffilter.stealthy import CraftedAttack
+
+    seen = {}
+
+    def capture(estimator, model, ys, xs, threshold, *, onset, generator, **kw):
+        gens = generator()
+        seen["init"] = torch.randn(1000, generator=gens.init)
+        seen["propagate"] = torch.randn(1000, generator=gens.propagate)
+        return CraftedAttack(torch.zeros(ys.shape[-2:]), onset, [], None, budget=0.02)
+
+    monkeypatch.setattr(adversarial, "craft_stealthy_attack", capture)
+    task = FilterEstimatorTask("four_tank_bias", num_particles=20, hidden=4, adversarial_runs=2)
+    task.adversary.craft(task, step=0)
+    r = torch.corrcoef(torch.stack([seen["init"], seen["propagate"]]))[0, 1]
+    assert abs(float(r)) < 0.2
+
+
+def test_the_adversarys_attack_survives_a_checkpoint(tmp_path):
+    """A resumed run goes on with the attack it had (it crafted a new one at once, at other
+    steps than the uninterrupted run: weights 1.5e-3 apart)."""
+    task = FilterEstimatorTask("four_tank_bias", num_particles=20, hidden=4, adversarial_runs=2)
+    task.adversary.attack = torch.arange(400.0).reshape(100, 4)
+    task.adversary.onset, task.adversary.history = 30, [(16, 30, 0.5)]
+    checkpoint = {}
+    task.on_save_checkpoint(checkpoint)
+    torch.save(checkpoint, tmp_path / "c.ckpt")
+    loaded = torch.load(tmp_path / "c.ckpt", weights_only=True)
+    fresh = FilterEstimatorTask("four_tank_bias", num_particles=20, hidden=4, adversarial_runs=2)
+    fresh.on_load_checkpoint(loaded)
+    assert torch.equal(fresh.adversary.attack, task.adversary.attack)
+    assert fresh.adversary.onset == 30 and fresh.adversary.history == [(16, 30, 0.5)]
+    assert not fresh.adversary.due(17) and fresh.adversary.due(32)

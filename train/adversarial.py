@@ -85,9 +85,11 @@ class Adversary:
         device = task.device  # drawn on the CPU, crafted where the weights are
 
         def generators():
-            return Generators(streams("adversary/particles", device),
-                              streams("adversary/particles", device),
-                              streams("adversary/resample", device))  # fmt: skip
+            # one generator for the prior particles and the proposals, drawn one after the
+            # other (as the task's own runs do): two generators of one stream drew the same
+            # numbers twice, proposal noise equal to the initial particles' deviations
+            particles = streams("adversary/particles", device)
+            return Generators(particles, particles, streams("adversary/resample", device))
 
         us = None if tr.us is None else tr.us.to(device)
 
@@ -102,14 +104,29 @@ class Adversary:
             for p, f in zip(params, flags, strict=True):
                 p.requires_grad_(f)
         self.attack, self.onset = crafted.values.to(task._dtype), onset
-        best = max((h[1] for h in crafted.history), default=0.0)
-        self.history.append((step, onset, best))
-        return {"adversarial_error": best, "adversarial_onset": float(onset)}
+        # the error of the attack kept: the best iterate within the alarm budget (zero, and
+        # no attack, where none was; an iterate over the budget is not what the batches get)
+        kept = max((h[1] for h in crafted.history if h[3] <= crafted.budget), default=0.0)
+        self.history.append((step, onset, kept))
+        return {"adversarial_error": kept, "adversarial_onset": float(onset)}
+
+    def state_dict(self) -> dict:
+        """What a resumed run needs to go on with the same attack (a checkpoint's entry)."""
+        return {"attack": self.attack, "onset": self.onset, "history": list(self.history)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.attack, self.onset = state["attack"], state["onset"]
+        self.history = [tuple(h) for h in state["history"]]
 
     def augment(self, batch: dict, scenario, seed: int, dtype) -> dict:
         """``batch`` with :attr:`runs` runs under the current attack appended (fresh
-        attack-free runs of stream ``seed``, the attack added to what is received)."""
+        attack-free runs of stream ``seed``, the attack added to what is received); ``batch``
+        itself where the crafting kept no attack (every iterate broke the alarm budget: a
+        zero attack, whose runs would be attack-free runs flagged as attacked)."""
         from .task import training_batch
+
+        if not bool(self.attack.any()):
+            return batch
 
         extra = training_batch(scenario.with_threat(None), self.runs, seed, dtype)
         T, dy = self.attack.shape

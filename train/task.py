@@ -841,6 +841,12 @@ class FilterEstimatorTask(pl.LightningModule):
         # a Lightning checkpoint of this task loads as an estimator (difffilter-eval --ckpt)
         checkpoint["difffilter_observer"] = self.card().to_dict()
         checkpoint["difffilter_estimator_config"] = self.estimator.config()
+        if self.adversary is not None:  # a resumed run goes on with the same crafted attack
+            checkpoint["difffilter_adversary"] = self.adversary.state_dict()
+
+    def on_load_checkpoint(self, checkpoint):
+        if self.adversary is not None and "difffilter_adversary" in checkpoint:
+            self.adversary.load_state_dict(checkpoint["difffilter_adversary"])
 
 
 def _channel(scenario) -> Channel:
