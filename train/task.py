@@ -214,6 +214,10 @@ class ScenarioDataModule(pl.LightningDataModule):
         ):
             if isinstance(val, bool) or not isinstance(val, int) or val < 1:
                 raise ValueError(f"{name} must be a positive integer; got {val!r}")
+        for name, val in (("train_seed", train_seed), ("val_seed", val_seed),
+                          ("test_seed", test_seed)):  # fmt: skip
+            if isinstance(val, bool) or not isinstance(val, int) or val < 0:
+                raise ValueError(f"{name} must be an integer >= 0; got {val!r}")
         if train_seed == val_seed:
             raise ValueError("train_seed and val_seed must differ (validation data must be unseen)")
         if test_seed in (train_seed, val_seed):
@@ -867,6 +871,34 @@ def _check_options(hp, sc, channel: Channel) -> float:
         raise ValueError(f"trainer must be 'grad' or 'ekf'; got {hp.trainer!r}")
     if sc.closed_loop and hp.trainer == "ekf":
         raise ValueError(f"trainer: {sc.name} is a closed loop; the EKF trainer runs open loops")
+    if sc.closed_loop and hp.filter != "kf":  # it trained to the end, then failed at export
+        raise ValueError(
+            f"filter: {sc.name} is a closed loop, whose learned estimator (kf_nn_{hp.trainer}) "
+            f"runs the Kalman filter; got {hp.filter!r}"
+        )
+    _check_count(hp.areas, "areas")
+    if hp.trainer == "ekf" and hp.areas != 1:  # the EKF over the weights is one area's
+        raise ValueError(f"areas: the EKF trainer trains one area's network; got {hp.areas}")
+    _check_count(hp.monitor_runs, "monitor_runs")
+    if not 0.0 < hp.soft_alpha <= 1.0:
+        raise ValueError(f"soft_alpha must be in (0, 1] (the soft resampler's mixture "
+                         f"weight); got {hp.soft_alpha!r}")  # fmt: skip
+    for name in ("attack_weight", "bce_weight", "state_weight", "control_weight"):
+        value = getattr(hp, name)
+        if not 0.0 <= value < math.inf:
+            raise ValueError(f"{name} must be a finite number >= 0; got {value!r}")
+    if hp.grad_clip is not None and not 0.0 < hp.grad_clip < math.inf:
+        # 0 froze the network; a negative limit reversed every step (gradient ascent)
+        raise ValueError(f"grad_clip must be a finite number > 0 or None; got {hp.grad_clip!r}")
+    if not 0.0 < hp.lr < math.inf:
+        raise ValueError(f"lr must be a finite number > 0; got {hp.lr!r}")
+    if not 0.0 <= hp.weight_decay < math.inf:
+        raise ValueError(f"weight_decay must be a finite number >= 0; got {hp.weight_decay!r}")
+    for name in ("ekf_lr", "ekf_init_cov"):
+        if not 0.0 < getattr(hp, name) < math.inf:
+            raise ValueError(f"{name} must be a finite number > 0; got {getattr(hp, name)!r}")
+    if hp.pct_start is not None and not 0.0 <= hp.pct_start <= 1.0:
+        raise ValueError(f"pct_start must be in [0, 1] or None; got {hp.pct_start!r}")
     if hp.control_weight > 0 and not sc.closed_loop:
         raise ValueError("control_weight needs a closed-loop scenario (its feedback gain)")
     if hp.adversarial_runs and (hp.trainer != "grad" or sc.closed_loop
@@ -876,8 +908,10 @@ def _check_options(hp, sc, channel: Channel) -> float:
             f"sensor attack; {sc.name} is {'closed' if sc.closed_loop else 'open'}-loop with a "
             f"{channel.value} attack, trainer {hp.trainer!r}"
         )
-    if not hp.after_attack_weight > 0:
-        raise ValueError(f"after_attack_weight must be positive; got {hp.after_attack_weight!r}")
+    if not 0.0 < hp.after_attack_weight < math.inf:
+        raise ValueError(
+            f"after_attack_weight must be a finite number > 0; got {hp.after_attack_weight!r}"
+        )
     steps = hp.after_attack_steps
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"after_attack_steps must be an integer >= 1; got {steps!r}")
@@ -890,6 +924,11 @@ def _check_options(hp, sc, channel: Channel) -> float:
     if not 0 < far < 1:
         raise ValueError(f"target_false_alarm_rate must be in (0, 1); got {far!r}")
     return float(far)
+
+
+def _check_count(value, name: str) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
 
 
 def _area_flags(truth: dict, logits: torch.Tensor) -> torch.Tensor:

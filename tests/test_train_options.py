@@ -1,0 +1,49 @@
+"""The training task refuses, by name and at construction, what would fail or train wrongly
+later: each of these was accepted and failed at the first step, at export, or trained on."""
+
+from __future__ import annotations
+
+import pytest
+
+from difffilter.train.task import FilterEstimatorTask, ScenarioDataModule
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "why"),
+    [
+        # 0 froze the network and a negative limit reversed every step (gradient ascent)
+        ({"grad_clip": 0.0}, r"grad_clip must be a finite number > 0 or None"),
+        ({"grad_clip": -1.0}, r"grad_clip must be a finite number > 0 or None"),
+        ({"attack_weight": float("nan")}, r"attack_weight must be a finite number >= 0"),
+        ({"bce_weight": -1.0}, r"bce_weight must be a finite number >= 0"),
+        ({"state_weight": -1.0}, r"state_weight must be a finite number >= 0"),
+        ({"after_attack_weight": float("inf")}, r"after_attack_weight must be a finite number"),
+        # refused only at the first training step, or by torch without the option's name
+        ({"soft_alpha": 1.5}, r"soft_alpha must be in \(0, 1\]"),
+        ({"lr": -1.0}, r"lr must be a finite number > 0"),
+        ({"weight_decay": -1.0}, r"weight_decay must be a finite number >= 0"),
+        ({"pct_start": 1.5}, r"pct_start must be in \[0, 1\]"),
+        ({"ekf_lr": -1.0, "trainer": "ekf"}, r"ekf_lr must be a finite number > 0"),
+        # "integer modulo by zero"; a shape error at the EKF trainer's first step
+        ({"areas": 0}, r"areas must be an integer >= 1"),
+        ({"areas": 2, "trainer": "ekf"}, r"areas: the EKF trainer trains one area's network"),
+        # named only at the first validation, as "runs"
+        ({"monitor_runs": 0}, r"monitor_runs must be an integer >= 1"),
+    ],
+)
+def test_a_bad_option_is_named_at_construction(kwargs, why):
+    with pytest.raises(ValueError, match=why):
+        FilterEstimatorTask("four_tank_bias", **kwargs)
+
+
+def test_a_closed_loop_trains_the_kalman_filter_it_exports():
+    """LFC with another filter trained to the end, then failed at export (kf_nn_*)."""
+    with pytest.raises(ValueError, match=r"filter: lfc_random_attacks is a closed loop"):
+        FilterEstimatorTask("lfc_random_attacks", filter="ekf", areas=2)
+
+
+@pytest.mark.parametrize("name", ["train_seed", "val_seed", "test_seed"])
+def test_a_seed_must_be_a_non_negative_integer(name):
+    for bad in (-1, 2.5):
+        with pytest.raises(ValueError, match=f"{name} must be an integer >= 0"):
+            ScenarioDataModule("four_tank_bias", **{name: bad})
