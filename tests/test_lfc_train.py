@@ -256,6 +256,16 @@ def test_fit_writes_only_inside_its_run_and_export_ships_it(tmp_path, monkeypatc
     resume = ["--ckpt_path", str(run / "checkpoints" / "last.ckpt")]
     assert main(["fit", "--config", config, "--trainer.max_epochs=1", *tiny, *resume]) == 0
     assert sorted(p.name for p in run.parent.iterdir()) == ["version_0"]
+    # ... but from another folder it logs into a new version there: it took the
+    # checkpoint's version_0 and overwrote that folder's own run's export and card
+    other = tmp_path / "other" / "lightning_logs" / "lfc_nn_grad" / "version_0"
+    other.mkdir(parents=True)
+    (other / "lfc_nn_grad.json").write_text("another run's card")
+    monkeypatch.chdir(tmp_path / "other")
+    assert main(["fit", "--config", config, "--trainer.max_epochs=1", *tiny, *resume]) == 0
+    assert (other / "lfc_nn_grad.json").read_text() == "another run's card"
+    assert (other.parent / "version_1" / "lfc_nn_grad.ckpt").is_file()
+    monkeypatch.chdir(tmp_path)
 
     assert main(["export", str(run / "lfc_nn_grad.ckpt"), "--out", "ship/a.ckpt"]) == 0
     assert main(["export", str(run / "lfc_nn_grad.ckpt"), "--out", "ship/a.ckpt"]) == 2  # exists

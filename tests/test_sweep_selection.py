@@ -16,11 +16,15 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_the_median_seed_ranks_best_first_and_nan_last():
     assert _median({0: 0.3, 1: 0.1, 2: 0.2}, higher_is_better=False) == 2
     assert _median({0: 0.3, 1: 0.1, 2: 0.2}, higher_is_better=True) == 2
-    # an even count: the lower median counted from the best
-    assert _median({0: 0.4, 1: 0.1, 2: 0.2, 3: 0.3}, higher_is_better=False) == 2
-    assert _median({0: 0.4, 1: 0.1, 2: 0.2, 3: 0.3}, higher_is_better=True) == 3
+    # an even count: the worse of the two middle seeds, never the best (two seeds shipped
+    # the better one)
+    assert _median({0: 0.4, 1: 0.1, 2: 0.2, 3: 0.3}, higher_is_better=False) == 3
+    assert _median({0: 0.4, 1: 0.1, 2: 0.2, 3: 0.3}, higher_is_better=True) == 2
+    assert _median({0: 0.1, 1: 0.2}, higher_is_better=False) == 1
+    assert _median({0: 0.1, 1: 0.2}, higher_is_better=True) == 0
     # a seed without a score is never the median of three scored ones
     assert _median({0: float("nan"), 1: 0.1, 2: 0.2, 3: 0.3}, higher_is_better=True) == 2
+    assert _median({0: float("nan"), 1: float("nan")}, higher_is_better=True) == 1
 
 
 def test_the_validation_scores_come_from_the_cards_or_their_config():
@@ -37,3 +41,37 @@ def test_the_validation_scores_come_from_the_cards_or_their_config():
     cards[0] = {"best_val_score": None}
     with pytest.raises(ValueError, match="names no validation score.*--select-on test"):
         _validation_scores(cards, config)
+
+
+def test_a_sweep_takes_only_its_own_configs_finished_run(tmp_path, monkeypatch):
+    """Another config's finished seed in the same --out (a grad network beside the EKF
+    config's) was taken as "trained already" and its network reported."""
+    from difffilter.train import sweep
+
+    runs = tmp_path / "runs"
+
+    def export_into(name):
+        folder = runs / name / "seed_0"
+        folder.mkdir(parents=True)
+        (folder / f"{name}.ckpt").write_bytes(b"")
+        (folder / f"{name}.json").write_text("{}")
+        return folder / f"{name}.ckpt"
+
+    export_into("four_tank_nn_grad")
+    fits = []
+
+    def fake_fit(args):
+        fits.append(args)
+        export_into("four_tank_nn_ekf")
+        return 0
+
+    monkeypatch.setattr("difffilter.train.cli.main", fake_fit)
+    ekf = ROOT / "train" / "configs" / "four_tank_ekf.yaml"
+    done = sweep._fit(ekf, 0, runs, [], progress=False)
+    assert done == runs / "four_tank_nn_ekf" / "seed_0" / "four_tank_nn_ekf.ckpt" and fits
+    assert sweep._fit(ekf, 0, runs, [], progress=False) == done and len(fits) == 1  # reused
+    renamed = ["--trainer.logger.init_args.name=mine"]
+    assert sweep._run_name(ekf, renamed) == "mine"
+    assert sweep._run_name(ROOT / "train" / "configs" / "four_tank.yaml", []) == (
+        "four_tank_nn_grad"
+    )

@@ -24,7 +24,10 @@ class DifffilterCLI(LightningCLI):
     its weights are loaded into the configured module, whose estimator settings must match."""
 
     def before_instantiate_classes(self):
-        """Resuming ``fit`` from ``<save_dir>/<name>/version_<n>/checkpoints/*.ckpt`` logs into
+        """``fit`` logs under an absolute ``save_dir`` (the checkpoints then record absolute
+        paths: a run resumed from another folder found its best checkpoint by a path
+        relative to the first run's folder, and exported another run's network or failed),
+        and resuming from ``<save_dir>/<name>/version_<n>/checkpoints/*.ckpt`` logs into
         that same ``version_<n>`` (TensorBoard curves continue) instead of a new folder."""
         if self.subcommand != "fit":
             return
@@ -33,13 +36,25 @@ class DifffilterCLI(LightningCLI):
         args = (
             None if logger is None or isinstance(logger, (bool, list)) else logger.get("init_args")
         )
-        if not ckpt or args is None:
+        if args is None:
+            return
+        if args.get("save_dir"):
+            args["save_dir"] = str(Path(args["save_dir"]).resolve())
+        if not ckpt:
             return
         path = Path(ckpt).resolve()
         run = path.parent.parent  # .../version_<n>/checkpoints/x.ckpt → .../version_<n>
-        if path.parent.name == "checkpoints" and run.name.startswith("version_"):
-            if args.get("version") is None and run.parent.name == args.get("name"):
-                args["version"] = int(run.name.removeprefix("version_"))
+        # the same save_dir and name only: a checkpoint of another folder's run set this
+        # run's version, and the resumed fit overwrote that version's export and card here
+        save_dir = Path(args.get("save_dir") or ".").resolve()
+        if (
+            path.parent.name == "checkpoints"
+            and run.name.startswith("version_")
+            and args.get("version") is None
+            and run.parent.name == args.get("name")
+            and run.parent.parent == save_dir
+        ):
+            args["version"] = int(run.name.removeprefix("version_"))
 
     def before_fit(self):
         """A ``fast_dev_run`` writes no checkpoint (its ``last.ckpt`` landed in

@@ -22,8 +22,8 @@ chosen on validation, not on the numbers the sweep reports: by default
 (``--select-on validation``) each seed is ranked by the score its training chose its
 weights by (the card's ``best_val_score``, the config's ``ModelCheckpoint`` monitor, e.g.
 ``val/auc``, on the config's validation runs, ``val_seed``), in the monitor's direction,
-and the median of that ranking ships (the lower median, counted from the best, for an even
-count). ``--select-on test`` ranks by the evaluation's ``--rank-by`` metric averaged over
+and the median of that ranking ships (for an even count the worse of the two middle seeds:
+never the best). ``--select-on test`` ranks by the evaluation's ``--rank-by`` metric averaged over
 the scenarios instead (what earlier sweeps did: a choice made on the test's own draws);
 the sweep names that seed too, so a reader sees whether the two choices differ.
 
@@ -80,7 +80,10 @@ def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str], progress: bo
     ``progress=False`` turns the trainer's progress bar off as well."""
     from .cli import main as cli_main
 
-    existing = list(runs_dir.glob(f"*/seed_{seed}"))
+    # this config's run only: another config's run in the same folder (a grad and an EKF
+    # config, one --out) was taken as "trained already", the other network reported
+    folder = runs_dir / _run_name(config, extra) / f"seed_{seed}"
+    existing = [folder] if folder.is_dir() else []
     if existing and (done := _exported(existing[0])) is not None:
         print(f"seed {seed}: trained already ({done})")
         return done
@@ -98,11 +101,28 @@ def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str], progress: bo
         args += ["--ckpt_path", str(last)]
     if cli_main(args) != 0:
         raise ValueError(f"seed {seed}: difffilter-train fit failed (its error is above)")
-    found = list(runs_dir.glob(f"*/seed_{seed}"))
-    done = _exported(found[0]) if found else None
+    done = _exported(folder) if folder.is_dir() else None
     if done is None:
-        raise ValueError(f"seed {seed}: fit exported no estimator under {runs_dir}")
+        raise ValueError(f"seed {seed}: fit exported no estimator under {folder}")
     return done
+
+
+def _run_name(config: Path, extra: list[str]) -> str:
+    """The logger's run name of ``config`` (``trainer.logger.init_args.name``), or of an
+    option in ``extra`` that sets it; Lightning's ``lightning_logs`` without one."""
+    import yaml
+
+    name = None
+    for option in extra:
+        key, _, value = option.partition("=")
+        if key == "--trainer.logger.init_args.name" and value:
+            name = value
+    if name is None:
+        doc = yaml.safe_load(Path(config).read_text()) or {}
+        logger = (doc.get("trainer") or {}).get("logger")
+        if isinstance(logger, dict):
+            name = (logger.get("init_args") or {}).get("name")
+    return str(name) if name else "lightning_logs"
 
 
 def _family_metrics(result, name: str) -> dict:
@@ -236,15 +256,13 @@ def _summary(per_seed: dict) -> dict:
 
 
 def _median(scores: dict[int, float], higher_is_better: bool) -> int:
-    """The seed whose score is the median, ranked best first (the lower median, counted
-    from the best, for an even count; a NaN score ranks last, ties keep the seeds' order)."""
-
-    def key(seed):
-        value = scores[seed]
-        return (math.isnan(value), -value if higher_is_better else value)
-
-    ranked = sorted(scores, key=key)
-    return ranked[(len(ranked) - 1) // 2]
+    """The seed whose score is the median of the scored seeds, ranked best first (for an
+    even count the worse of the two middle ones, so that the best never ships where there
+    are two or more; a seed with a NaN score is not ranked, unless none has a score; ties
+    keep the seeds' order)."""
+    scored = [seed for seed in scores if not math.isnan(scores[seed])] or list(scores)
+    ranked = sorted(scored, key=lambda seed: -scores[seed] if higher_is_better else scores[seed])
+    return ranked[len(ranked) // 2]
 
 
 def _test_scores(per_seed: dict, rank_by: str) -> dict[int, float]:
