@@ -136,3 +136,16 @@ def test_export_keeps_the_weights_dtype(tmp_path):
     back, _ = load_estimator_checkpoint(tmp_path / "out.ckpt", dtype=None)
     for (name, a), b in zip(state.items(), back.state_dict().values(), strict=True):
         assert b.dtype == torch.float64 and torch.equal(a, b), name
+
+
+def test_export_names_its_source_argument(tmp_path, capsys):
+    """A missing or foreign source is named as the command names it (``src``, not ``ckpt``)."""
+    from difffilter.train.export import main as export_main
+
+    assert export_main([str(tmp_path / "none.ckpt"), "--out", str(tmp_path / "o.ckpt")]) == 2
+    assert "error: src: no checkpoint file at" in capsys.readouterr().err
+    (tmp_path / "text.ckpt").write_text("hello")
+    assert export_main([str(tmp_path / "text.ckpt"), "--out", str(tmp_path / "o.ckpt")]) == 2
+    err = capsys.readouterr().err
+    assert "error: src: " in err and "not a weights-only torch checkpoint" in err
+    assert len(err.strip().splitlines()) == 1

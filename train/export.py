@@ -71,7 +71,10 @@ def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
         raise ValueError(f"--out: {out} is the source itself")
     check_checkpoint_out(out, force=force)
     # verified; its weights in their own dtype (a float64 network stays float64)
-    estimator, est_card = load_estimator_checkpoint(src, dtype=None)
+    try:
+        estimator, est_card = load_estimator_checkpoint(src, dtype=None)
+    except (ValueError, FileNotFoundError) as exc:  # named as the command names it
+        raise type(exc)(f"src: {str(exc).removeprefix('ckpt: ')}") from None
     out.parent.mkdir(parents=True, exist_ok=True)
     card_src = src.with_suffix(".json")
     blob = torch.load(src, map_location="cpu", weights_only=True)
