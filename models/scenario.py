@@ -268,10 +268,10 @@ class Scenario:
 
         ``gamma_min`` if set; else half the steady-state norm of a sensor attack that has
         one (``γ̄`` of eq. 4, a bias's value, as injected: one value on every entry, zero
-        outside ``entries``; a :class:`~difffilter.threats.KSigmaBias`'s ``k σ``) [DEF]; else (a ramp or a random walk, which
-        have no steady state, an actuator attack, whose size is in input units, or no
-        attack) one measurement-noise standard deviation, ``‖√diag R‖`` of ``model``
-        [DEF]: an attack as large as the noise. ``ValueError`` when that is needed and no
+        outside ``entries``; a :class:`~difffilter.threats.KSigmaBias`'s ``k σ``) [DEF];
+        else (a ramp or a random walk, which have no steady state, an actuator attack,
+        whose size is in input units, or no attack) one measurement-noise standard
+        deviation, ``‖√diag R‖`` of ``model`` [DEF]: an attack as large as the noise. ``ValueError`` when that is needed and no
         ``model`` is given.
         """
         if self.gamma_min is not None:
