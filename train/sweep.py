@@ -118,8 +118,11 @@ def _run_name(config: Path, extra: list[str]) -> str:
         if key == "--trainer.logger.init_args.name" and value:
             name = value
     if name is None:
-        doc = yaml.safe_load(Path(config).read_text()) or {}
-        logger = (doc.get("trainer") or {}).get("logger")
+        try:
+            doc = yaml.safe_load(Path(config).read_text()) or {}
+        except (OSError, yaml.YAMLError):  # fit itself then says what is wrong with it
+            doc = {}
+        logger = (doc.get("trainer") or {}).get("logger") if isinstance(doc, dict) else None
         if isinstance(logger, dict):
             name = (logger.get("init_args") or {}).get("name")
     return str(name) if name else "lightning_logs"
