@@ -280,7 +280,7 @@ def _summary_section(doc: dict, sc) -> Section:
         + (f"Attack-free reference: `{doc['reference']}`.\n" if doc.get("reference") else "\n")
     )
     far = doc.get("far")
-    if far:
+    if far and far.get("measured_on_calibration"):  # a scenario without detectors: no rate
         body += (
             f"\nDetectors are compared at one false-alarm rate, {100 * far['target']:g} %: each "
             f"threshold (`threshold_at_far`) comes from {far['calibration_runs']} attack-free "

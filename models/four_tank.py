@@ -444,6 +444,7 @@ register(
         description="the library's filters on the attack-free four-tank plant: state RMSE (cm) and time per step",
         model_fn=lambda dtype: FourTankModel(dtype=dtype),
         state_unit="cm",
+        attack_unit="cm",  # the level sensors' (no attack here; the leaderboard names it)
         estimators=("kf_linearised", "ekf", "ukf", "bootstrap_pf", "kalman_proposal_pf"),
         num_particles=1000,
         notes=(
