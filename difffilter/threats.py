@@ -544,14 +544,16 @@ def check_attack_fits(attack: Attack | None, model, num_steps: int | None = None
     - a tabulated attack (a :class:`Shaped` one, a covert attack's signal) whose values or
       ``entries`` do not fit its channel's width (``dy`` on the sensors, ``du`` on the
       actuators): tabulated once, one run, to its onset;
-    - with ``num_steps``: an onset after the last step (it would never act).
+    - with ``num_steps``: a first attacked step (``onset``, 1-based, or a paper attack's
+      0-based ``start``) after the last step (it would never act).
     """
     if attack is None:
         return
     signal = attack.signal if isinstance(attack, Covert) else attack
-    onset = getattr(signal, "onset", None)
-    if num_steps is not None and onset is not None and onset > num_steps:
-        raise ValueError(f"it starts at step {onset}, after the last step ({num_steps}): it "
+    onset, start = getattr(signal, "onset", None), getattr(signal, "start", None)
+    first = onset if onset is not None else None if start is None else start + 1
+    if num_steps is not None and first is not None and first > num_steps:
+        raise ValueError(f"it starts at step {first}, after the last step ({num_steps}): it "
                          "would never act")  # fmt: skip
     if not isinstance(signal, TabulatedAttack):
         return

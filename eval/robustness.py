@@ -28,7 +28,7 @@ from typing import Any
 
 import yaml
 
-from difffilter.threats import threat_from_dict
+from difffilter.threats import check_attack_fits, threat_from_dict
 
 from .acceptance import (
     ANALYTIC,
@@ -118,9 +118,8 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
                 threats[name] = StealthySpec.from_dict(spec)
             else:
                 threats[name] = threat_from_dict(spec, model=model)
-            onset, steps = getattr(threats[name], "onset", None), getattr(scenario, "steps", None)
-            if onset is not None and steps is not None and onset > steps:
-                raise ValueError(f"onset {onset} is after the last step ({steps}): it never acts")
+            # (a crafted threat: its onset only; a library threat: its widths too)
+            check_attack_fits(threats[name], model, getattr(scenario, "steps", None))
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{path}: threat {name!r}: {exc}") from None
     estimators = data.get("estimators")

@@ -400,11 +400,7 @@ def _attack(spec: Any, model, steps: int, where: str):
     attack = _attack_object(spec, model, where)
     if attack is None:
         return None
-    start = getattr(attack, "start", None)  # a paper attack's first step, 0-based
-    if start is not None and start >= steps:
-        raise ValueError(f"{where}: it starts at step {start + 1}, after the last step ({steps}): "
-                         "it would never act")  # fmt: skip
-    try:  # its onset, its width against the channel's, a model with inputs: now, not at a run
+    try:  # its first step, its width against the channel's, a model with inputs: now
         check_attack_fits(attack, model, steps)
     except (ValueError, TypeError) as error:
         raise ValueError(f"{where}: {error}") from None

@@ -49,7 +49,9 @@ def test_unknown_threats_and_bad_specs_are_named(tmp_path):
         load_threat_set(sc, path=bad)
     late = tmp_path / "late.yaml"  # a threat that would never act is named, not run
     late.write_text("threats:\n  late: {kind: bias, value: 0.5, onset: 61}\n")
-    with pytest.raises(ValueError, match=r"threat 'late': onset 61 is after the last step \(60\)"):
+    with pytest.raises(
+        ValueError, match=r"threat 'late': it starts at step 61, after the last step \(60\)"
+    ):
         load_threat_set(sc.with_steps(60), path=late)
     assert load_threat_set(sc.with_steps(61), path=late).threats["late"].onset == 61
 
