@@ -59,6 +59,12 @@ class CraftedAttack(TabulatedAttack):
         self.values, self.onset = values.detach().clone(), int(onset)
         self.history, self.settings, self.budget = list(history or []), settings, budget
 
+    def within_budget(self) -> list:
+        """The ``history`` rows of the iterates that kept the alarm budget (rate ≤
+        :attr:`budget`; every row without one): :attr:`values` is the best of them by J,
+        zeros where there is none."""
+        return [h for h in self.history if self.budget is None or h[3] <= self.budget]
+
     def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
         if tuple(self.values.shape) != (num_steps, dim):
             raise ValueError(

@@ -139,7 +139,7 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
     bar.close()
     # the budget the crafting kept, p(0) + ε on the attack-free batch (not the first
     # iterate's rate, which already carries the starting bias)
-    kept = [h for h in attack.history if h[3] <= attack.budget]
+    kept = attack.within_budget()
     report = {
         "against": spec.against, "threshold": tau, "train_runs": spec.train_runs,
         "settings": {f.name: getattr(spec.settings, f.name) for f in fields(StealthySettings)},

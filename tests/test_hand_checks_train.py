@@ -378,14 +378,14 @@ def test_the_adversarys_onset_is_drawn_from_first_to_last_both_included(monkeypa
     (docstring): (5, 6) draws both, (8, 60) draws 8, 9 and 10; the log is the error of the
     best iterate within the budget (the crafting mocked; the upper end was unpinned)."""
     import difffilter.train.adversarial as adv
+    from difffilter.stealthy import CraftedAttack
 
     seen = []
 
     def fake_craft(est, model, ys, xs, tau, *, far, us=None, onset, settings, generator):
         seen.append(onset)
         history = [(0, 1.0, 0.0, 0.0), (1, 5.0, 0.0, 0.5), (2, 2.0, 0.0, 0.1)]
-        return types.SimpleNamespace(values=torch.ones(ys.shape[-2:]), history=history,
-                                     budget=0.1)  # fmt: skip
+        return CraftedAttack(torch.ones(ys.shape[-2:]), onset, history, budget=0.1)
 
     monkeypatch.setattr(adv, "craft_stealthy_attack", fake_craft)
     tr = types.SimpleNamespace(y_true=torch.zeros(1, 10, 2), x=torch.zeros(1, 10, 2), us=None)

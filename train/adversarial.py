@@ -106,7 +106,7 @@ class Adversary:
         self.attack, self.onset = crafted.values.to(task._dtype), onset
         # the error of the attack kept: the best iterate within the alarm budget (zero, and
         # no attack, where none was; an iterate over the budget is not what the batches get)
-        kept = max((h[1] for h in crafted.history if h[3] <= crafted.budget), default=0.0)
+        kept = max((h[1] for h in crafted.within_budget()), default=0.0)
         self.history.append((step, onset, kept))
         return {"adversarial_error": kept, "adversarial_onset": float(onset)}
 
