@@ -25,10 +25,10 @@ from difffilter.train.task import FilterEstimatorTask, ScenarioDataModule
         ({"pct_start": 1.5}, r"pct_start must be in \[0, 1\]"),
         ({"ekf_lr": -1.0, "trainer": "ekf"}, r"ekf_lr must be a finite number > 0"),
         # "integer modulo by zero"; a shape error at the EKF trainer's first step
-        ({"areas": 0}, r"areas must be an integer >= 1"),
+        ({"areas": 0}, r"areas must be a positive integer \(>= 1\)"),
         ({"areas": 2, "trainer": "ekf"}, r"areas: the EKF trainer trains one area's network"),
         # named only at the first validation, as "runs"
-        ({"monitor_runs": 0}, r"monitor_runs must be an integer >= 1"),
+        ({"monitor_runs": 0}, r"monitor_runs must be a positive integer \(>= 1\)"),
     ],
 )
 def test_a_bad_option_is_named_at_construction(kwargs, why):

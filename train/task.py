@@ -52,6 +52,7 @@ from lightning.fabric.utilities.apply_func import move_data_to_device
 from lightning.pytorch.loggers import TensorBoardLogger
 
 from difffilter import resampling
+from difffilter._checks import check_positive_int
 from difffilter.attack import Channel, attack_dim
 from difffilter.estimator import Generators
 from difffilter.loop import open_loop
@@ -858,6 +859,16 @@ def _channel(scenario) -> Channel:
     return Channel.SENSOR if attack is None else Channel(attack.channel)
 
 
+#: Options that must be finite numbers, and whether 0 is allowed (a loss term switched off)
+#: or not (``grad_clip`` 0 froze the network, and a negative one reversed every step:
+#: gradient ascent; ``grad_clip`` may also be ``None``).
+_FINITE_OPTIONS = {
+    "attack_weight": True, "bce_weight": True, "state_weight": True, "control_weight": True,
+    "weight_decay": True, "after_attack_weight": False, "grad_clip": False, "lr": False,
+    "ekf_lr": False, "ekf_init_cov": False,
+}  # fmt: skip
+
+
 def _check_options(hp, sc, channel: Channel) -> float:
     """The option combinations the task refuses, each with the reason; returns the FAR.
     (What the estimator itself refuses, :class:`NeuralCompensation` says on construction.)"""
@@ -876,27 +887,21 @@ def _check_options(hp, sc, channel: Channel) -> float:
             f"filter: {sc.name} is a closed loop, whose learned estimator (kf_nn_{hp.trainer}) "
             f"runs the Kalman filter; got {hp.filter!r}"
         )
-    _check_count(hp.areas, "areas")
+    check_positive_int(hp.areas, "areas")
     if hp.trainer == "ekf" and hp.areas != 1:  # the EKF over the weights is one area's
         raise ValueError(f"areas: the EKF trainer trains one area's network; got {hp.areas}")
-    _check_count(hp.monitor_runs, "monitor_runs")
+    check_positive_int(hp.monitor_runs, "monitor_runs")
     if not 0.0 < hp.soft_alpha <= 1.0:
         raise ValueError(f"soft_alpha must be in (0, 1] (the soft resampler's mixture "
                          f"weight); got {hp.soft_alpha!r}")  # fmt: skip
-    for name in ("attack_weight", "bce_weight", "state_weight", "control_weight"):
-        value = getattr(hp, name)
-        if not 0.0 <= value < math.inf:
-            raise ValueError(f"{name} must be a finite number >= 0; got {value!r}")
-    if hp.grad_clip is not None and not 0.0 < hp.grad_clip < math.inf:
-        # 0 froze the network; a negative limit reversed every step (gradient ascent)
-        raise ValueError(f"grad_clip must be a finite number > 0 or None; got {hp.grad_clip!r}")
-    if not 0.0 < hp.lr < math.inf:
-        raise ValueError(f"lr must be a finite number > 0; got {hp.lr!r}")
-    if not 0.0 <= hp.weight_decay < math.inf:
-        raise ValueError(f"weight_decay must be a finite number >= 0; got {hp.weight_decay!r}")
-    for name in ("ekf_lr", "ekf_init_cov"):
-        if not 0.0 < getattr(hp, name) < math.inf:
-            raise ValueError(f"{name} must be a finite number > 0; got {getattr(hp, name)!r}")
+    for name, zero_allowed in _FINITE_OPTIONS.items():
+        value, optional = getattr(hp, name), name == "grad_clip"
+        if value is None and optional:
+            continue
+        if not (0.0 <= value if zero_allowed else 0.0 < value) or not value < math.inf:
+            bound = ">= 0" if zero_allowed else "> 0"
+            raise ValueError(f"{name} must be a finite number {bound}"
+                             f"{' or None' if optional else ''}; got {value!r}")  # fmt: skip
     if hp.pct_start is not None and not 0.0 <= hp.pct_start <= 1.0:
         raise ValueError(f"pct_start must be in [0, 1] or None; got {hp.pct_start!r}")
     if hp.control_weight > 0 and not sc.closed_loop:
@@ -907,10 +912,6 @@ def _check_options(hp, sc, channel: Channel) -> float:
             "adversarial_runs needs the gradient trainer on an open-loop scenario with a "
             f"sensor attack; {sc.name} is {'closed' if sc.closed_loop else 'open'}-loop with a "
             f"{channel.value} attack, trainer {hp.trainer!r}"
-        )
-    if not 0.0 < hp.after_attack_weight < math.inf:
-        raise ValueError(
-            f"after_attack_weight must be a finite number > 0; got {hp.after_attack_weight!r}"
         )
     steps = hp.after_attack_steps
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
@@ -924,11 +925,6 @@ def _check_options(hp, sc, channel: Channel) -> float:
     if not 0 < far < 1:
         raise ValueError(f"target_false_alarm_rate must be in (0, 1); got {far!r}")
     return float(far)
-
-
-def _check_count(value, name: str) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
 
 
 def _area_flags(truth: dict, logits: torch.Tensor) -> torch.Tensor:
