@@ -76,11 +76,9 @@ class FusedModifiedPF:
         K = modified_pf_gain(G, model.process_cov(0), R).to(G.dtype)
         dy = G.shape[-2]
         eye = torch.eye(dy, dtype=G.dtype, device=G.device)
-        self.G_t = (
-            None
-            if torch.equal(G, torch.eye(*G.shape, dtype=G.dtype, device=G.device))
-            else G.transpose(0, 1)
-        )
+        # r = y − x only where G is the square identity (a rectangular [I 0] measures a part)
+        identity = G.shape[0] == G.shape[1] and torch.equal(G, eye)
+        self.G_t = None if identity else G.transpose(0, 1)
         detect = eye - G @ K  # z̃⁺ = (I − GK) r, eqs 36, 58
         if torch.equal(detect, torch.diag(torch.diagonal(detect))):
             # ‖(I − GK) r‖² = (r ⊙ r) · diag(I − GK)²: no matrix product
