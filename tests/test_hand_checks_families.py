@@ -1,0 +1,318 @@
+"""Hand checks of what the scenario families report and how the estimators are wired.
+
+The families' numbers (the four-tank paper figures, LFC's eq. 43 and Table II state, the
+robot's late RMSE, fusion and attack at k = 44, tracking's RMSE and bounds), the leaderboard's
+columns, the schedules and streams, and the registry's wiring of estimators (noise of γ̂,
+score standardisation, thresholds of old cards, per-local scores, resampling every step),
+each against a value computed by hand on a synthetic case or an independent recomputation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import math
+from types import SimpleNamespace as NS
+
+import pytest
+import torch
+
+from difffilter.models import estimators, registry
+from difffilter.models.estimators import SuiteContext
+from difffilter.models.streams import Streams
+
+F64 = torch.float64
+DEG = math.pi / 180
+
+
+def _simulate(scenario, runs, seed):
+    model, streams = scenario.system(), Streams(seed)
+    gens = {k: streams(k) for k in ("plant", "attack", "schedule")}
+    traj = scenario.simulate(runs, gens, model=model)
+    return traj, SuiteContext(scenario, model, runs, streams, scenario.estimator_options())
+
+
+# ---------------------------------------------------------------- four-tank family
+
+
+def test_four_tank_paper_figures_by_hand():
+    """k > 20 leaves out k = 20 (index 19); false alarms are alarms on attack-free steps per
+    run, missed attacks the attacked steps without alarm per run."""
+    from difffilter.eval.families.four_tank import _paper_figures
+
+    B, T = 2, 30
+    ref = torch.zeros(B, T, 4)
+    means = ref.clone()
+    means[:, 19] = 1.0  # an error at k = 20 only
+    flags = torch.zeros(B, T, dtype=torch.bool)
+    flags[:, 10:15] = True  # 10 attacked steps
+    alarms = torch.zeros(B, T, dtype=torch.bool)
+    alarms[0, 2] = alarms[1, 3] = alarms[1, 5] = True  # 3 false alarms
+    alarms[:, 10] = True  # 2 detections, so 8 attacked steps missed
+    out = NS(means=means, detection=NS(alarms=alarms))
+    traj = NS(flags=flags, info={"attack_values": torch.ones(B, T, 4)})
+    figures = _paper_figures(out, traj, ref, NS(gamma_min=0.28))
+    assert figures["state_rmse_vs_attack_free_k_gt_20"] == 0.0
+    assert figures["false_alarms_per_run"] == 3 / 2
+    assert figures["missed_attacks_per_run"] == 8 / 2
+    assert figures["tpr_detectable"] == 2 / 10
+
+
+def test_four_tank_rate_over_a_range_of_attack_sizes_includes_its_first_bin():
+    """``‖γ‖ ≤ 0.28``: the bins inside [0, 0.28], weighted by their steps (first bin included)."""
+    from difffilter.eval.families.four_tank import _rate
+
+    binned = {"v": [{"lo": 0.0, "hi": 0.1, "steps": 10, "rate": 1.0},
+                    {"lo": 0.1, "hi": 0.2, "steps": 30, "rate": 0.0},
+                    {"lo": 0.2, "hi": 0.28, "steps": 0, "rate": None},
+                    {"lo": 0.28, "hi": 0.4, "steps": 5, "rate": 1.0}]}  # fmt: skip
+    assert _rate(binned, "v", 0, 0.28) == 10 / 40
+
+
+def test_modified_pf_noisy_gamma_is_the_noisy_estimate_scenarios_filter():
+    """Table 3's third column, γ̂ = γ + N(0, 1e-2 I): the registered estimator equals the
+    modified PF given the ``four_tank_bias_noisy_estimate`` scenario's noise variance."""
+    scenario = registry.get("four_tank_bias")
+    noise_var = registry.get("four_tank_bias_noisy_estimate").gamma_hat_noise_var
+    assert noise_var == 1e-2
+    traj, ctx = _simulate(scenario, 2, 3)
+    noisy = estimators.get("modified_pf_noisy_gamma").factory(ctx)(traj)
+    options = {**scenario.estimator_options(), "gamma_hat_noise_var": noise_var}
+    ctx2 = SuiteContext(scenario, ctx.model, 2, Streams(3), options)
+    plain = estimators.get("modified_pf").factory(ctx2)(traj)
+    assert torch.equal(noisy.means, plain.means)
+
+
+def test_suite_particle_filters_resample_at_every_step():
+    """``particle_kwargs``: systematic resampling at every step (the papers' setting)."""
+    from difffilter.particle import particle_filter
+
+    traj, ctx = _simulate(registry.get("four_tank_bias"), 2, 0)
+    kwargs = ctx.particle_kwargs()
+    assert type(kwargs["resampler"]).__name__ == "Systematic"
+    hook = (lambda model, y, mask, state, out: {"r": out.extras["resampled"]},)
+    result = particle_filter(ctx.model, traj.y_true, hooks=hook, **kwargs)
+    assert bool(result.records["r"][:, 1:].all())  # step 1 starts from the prior's equal weights
+
+
+# ---------------------------------------------------------------- LFC family
+
+
+def test_lfc_extra_metrics_by_hand():
+    """eq. 43 per attacked channel summed over the channels (3 + 4), Table II's state 5
+    (index 4), and the wall time per step (T steps)."""
+    from difffilter.eval.families.lfc import _extra
+
+    B, T, D = 2, 8, 10
+    attack = torch.zeros(B, T, D)
+    estimate = attack.clone()
+    estimate[..., 2], estimate[..., 7] = 3.0, 4.0
+    x = torch.zeros(B, T, D)
+    x[..., 4], x[..., 5] = 2.0, 100.0
+    out = NS(attack=estimate, extras={}, means=x)
+    result = NS(scenario=NS(attacked_channels=(2, 7), dt=0.01),
+                traj=NS(attack=attack, flags=torch.zeros(B, T, dtype=torch.bool)),
+                outputs={"kf_nn_ekf": out}, metrics={"kf_nn_ekf": {}}, wall_s={"kf_nn_ekf": 4.0},
+                traj_of=lambda name: NS(x=x))  # fmt: skip
+    _extra(result)
+    metrics = result.metrics["kf_nn_ekf"]
+    assert metrics["attack_rmse_eq43"] == pytest.approx(7.0)
+    assert metrics["state5_rmse"] == pytest.approx(2.0)
+    assert metrics["time_per_batch_step_s"] == pytest.approx(4.0 / T, rel=1e-12)
+
+
+def test_lfc_network_score_is_its_estimate_over_its_own_attack_free_spread(monkeypatch):
+    """``max_c |α̂_c| / σ_c``, ``σ_c`` the spread of the same estimator's estimate on the same
+    draws without the attack (lfc_estimators' "Detection")."""
+    from difffilter.eval.suite import run_suite
+
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
+    base = registry.get("lfc_simultaneous")
+    scenario = dataclasses.replace(base, name="lfc_sim_1s_check", duration=1.0, headline=False)
+    registry.register(scenario)
+    free_scenario = dataclasses.replace(scenario.with_threat(None), name="lfc_sim_1s_free_check")
+    registry.register(free_scenario)
+    run = dict(runs=2, seed=4, estimators=("kf_nn_ekf",), progress=False)
+    out = run_suite(scenario, **run).outputs["kf_nn_ekf"]
+    free = run_suite(free_scenario, **run).outputs["kf_nn_ekf"]
+    assert float((out.attack - free.attack).abs().max()) > 0
+    sigma = free.attack.std(dim=(0, 1)).clamp_min(1e-12)
+    expected = (out.attack.abs() / sigma).amax(-1)
+    torch.testing.assert_close(out.detection.scores, expected, rtol=1e-9, atol=1e-12)
+
+
+def test_lfc_card_without_a_score_record_was_calibrated_for_the_estimate():
+    """A card calibrated before the statistic was recorded: its threshold serves the
+    standardised estimate; a probability-scored entry keeps 0.5, another entry its default."""
+    from difffilter.models.lfc_estimators import ESTIMATE, PROBABILITY, _alarm_threshold
+
+    card = NS(threshold=7.25, extra={"calibration": {"estimator": "kf_nn_grad"}})
+    ctx = SuiteContext(scenario=None, model=None, runs=1, streams=Streams(0), checkpoint="old.ckpt")
+    ctx.cache[("lfc/ckpt", "old.ckpt")] = (None, card)
+    assert _alarm_threshold(ctx, "kf_nn_grad", True, ESTIMATE, ESTIMATE) == 7.25
+    assert _alarm_threshold(ctx, "kf_nn_grad", True, PROBABILITY, PROBABILITY) == 0.5
+    assert _alarm_threshold(ctx, "kf_nn_grad_ekf", True, ESTIMATE, ESTIMATE) == 3.0
+
+
+# ---------------------------------------------------------------- robot family
+
+
+def test_robot_extra_metrics_by_hand():
+    """k ≥ 40 includes k = 40 (index 39); the better local has the lower position RMSE; a
+    run counts as lower late by its RMS over k ≥ 40; â at k = attack_from + 14 in cm/s, deg/s."""
+    from difffilter.eval.families.robot import _extra
+
+    B, T, attack_from = 6, 49, 5
+    x = torch.zeros(B, T, 3, dtype=F64)
+
+    def estimate(error_x):
+        means = x.clone()
+        means[..., 0] = error_x
+        return NS(means=means, covs=None, attack=None)
+
+    late = torch.zeros(T, dtype=F64)
+    late[40::2] = 2.0  # on k ≥ 40: five zeros, five twos: RMS √2
+    fused = estimate(late.expand(B, T))
+    fused.attack = torch.zeros(B, T, 2, dtype=F64)
+    fused.attack[:, attack_from + 13] = torch.tensor([2.0, 20 * DEG], dtype=F64)
+    spike = torch.zeros(T, dtype=F64)
+    spike[39] = 10.0  # at k = 40 only
+    outs = {"mdpf_local_1": estimate(torch.full((B, T), 1.2, dtype=F64)),
+            "mdpf_local_2": estimate(torch.full((B, T), 5.0, dtype=F64)),
+            "mdpf_fused_ci": fused, "zhang_akf": estimate(spike.expand(B, T))}  # fmt: skip
+    traj = NS(x=x, attack=torch.tensor([2.0, 20 * DEG], dtype=F64).expand(B, T, 2).clone(), us=None)
+    result = NS(traj=traj, outputs=outs, scenario=NS(attack_from=attack_from),
+                metrics={n: {} for n in outs}, traj_of=lambda name: traj,
+                context=NS(model=NS(sensor_pos=torch.tensor([[100.0, 0.0]], dtype=F64))))  # fmt: skip
+    extra = _extra(result)
+    assert result.metrics["zhang_akf"]["position_rmse_late"] == pytest.approx(math.sqrt(100 / 10))
+    assert extra["fusion"]["better_local"] == "mdpf_local_1"
+    assert extra["fusion"]["mdpf_fused_ci"]["runs_lower_late"] == 0.0  # √2 > 1.2 on every run
+    assert extra["attack"]["mean_attack_k44"] == pytest.approx([2.0, 20.0])
+
+
+def test_robot_locals_score_their_own_wald_statistic():
+    """Each local estimator's score is ``âᵀ Ŝ⁻¹ â`` of its own attack estimate."""
+    from difffilter.fdi.adaptive_kf import wald_statistic
+
+    scenario = dataclasses.replace(
+        registry.get("robot_actuator_attack"), steps=45, num_particles=50
+    )
+    traj, ctx = _simulate(scenario, 3, 2)
+    for name in ("mdpf_local_1", "mdpf_local_2"):
+        out = estimators.get(name).factory(ctx)(traj)
+        own = wald_statistic(out.attack, out.extras["attack_covs"])
+        torch.testing.assert_close(out.detection.scores, own, rtol=1e-9, atol=0)
+
+
+# ---------------------------------------------------------------- tracking family
+
+
+def test_tracking_rmse_of_position_and_velocity_by_hand():
+    """RMSE_p(k) = √(mean over runs ‖p̂ − p‖²), state [p_x, v_x, p_y, v_y]."""
+    from difffilter.eval.families.tracking import _rmse_pv
+
+    x = torch.zeros(2, 1, 4, dtype=F64)
+    means = x.clone()
+    means[0, 0] = torch.tensor([3.0, 1.0, 4.0, 0.0], dtype=F64)
+    rmse_p, rmse_v = _rmse_pv(means, x)
+    assert float(rmse_p[0]) == pytest.approx(math.sqrt(25 / 2))
+    assert float(rmse_v[0]) == pytest.approx(math.sqrt(1 / 2))
+
+
+def test_tracking_bounds_follow_what_each_estimator_reads():
+    """The clean-data filter against the Round-Robin clean bound, an estimator that reads
+    every sensor against the all-sensor bound, the others against the attack-oracle bound."""
+    from difffilter.eval.families.tracking import _bound_for
+
+    for name in registry.get("tracking_rrp_deception").estimators:
+        spec = estimators.get(name)
+        want = "rr_clean" if spec.clean_input else "all_oracle" if spec.more_data else "rr_oracle"
+        assert _bound_for(name) == want, name
+
+
+# ---------------------------------------------------------------- schedules, streams, needs
+
+
+def test_packet_loss_drops_entries_at_its_rate():
+    from difffilter.models.schedules import PacketLoss
+
+    mask = PacketLoss(0.3).mask(200, 500, 2, torch.Generator().manual_seed(0))
+    assert float(mask.double().mean()) == pytest.approx(0.7, abs=0.01)
+
+
+def test_round_robin_follows_the_rrp_papers_eq_3():
+    """γ_k = mod(k + γ_ini − 2, n) + 1 (1-based groups), ``start = γ_ini − 1``."""
+    from difffilter.models.schedules import RoundRobin
+
+    n, T = 3, 7
+    for start in range(n):
+        want = [(k + start - 1) % n for k in range(1, T + 1)]
+        assert RoundRobin(((0,), (1,), (2,)), start=start).scheduled(T).tolist() == want
+
+
+def test_stream_seeds_are_the_documented_hash():
+    """``seed_of(name)``: the first 8 bytes of sha256("<seed>/<name>"), little-endian, >> 1."""
+    for seed, name in ((0, "plant"), (7, "particles/init")):
+        digest = hashlib.sha256(f"{seed}/{name}".encode()).digest()
+        assert Streams(seed).seed_of(name) == int.from_bytes(digest[:8], "little") >> 1
+
+
+def test_deception_density_need_names_a_scenario_without_attack():
+    from difffilter.models.needs import ASSUMES_DECEPTION_DENSITY
+
+    scenario = registry.get("four_tank_filters")
+    assert scenario.attack_model() is None
+    reason = ASSUMES_DECEPTION_DENSITY.unmet(scenario, scenario.system())
+    assert isinstance(reason, str) and "no attack" in reason
+
+
+# ---------------------------------------------------------------- stealthy judge, leaderboard
+
+
+def test_crafted_error_is_pooled_over_the_attacked_steps():
+    """The share of attacked steps where the detector alarms and the RMS error over them."""
+    from difffilter.eval.stealthy import crafted_error
+    from difffilter.threats import KSigmaBias
+
+    scenario = registry.get("four_tank_bias")
+    attack = KSigmaBias.of(scenario.system(), 3.0, onset=20)
+    got = crafted_error(scenario, "chi_square_ekf", attack, 9.0, runs=6, seed=3)
+    traj, ctx = _simulate(scenario.with_threat(attack), 6, 3)
+    out = estimators.get("chi_square_ekf").factory(ctx)(traj)
+    on = traj.flags
+    assert 0 < int(on.sum()) < on.numel()
+    rate = float((out.detection.scores > 9.0)[on].double().mean())
+    error = math.sqrt(float((out.means - traj.x).square().sum(-1)[on].mean()))
+    assert got["alarm_rate"] == pytest.approx(rate, abs=1e-12)
+    assert got["state_error"] == pytest.approx(error, rel=1e-9)
+
+
+def _leaderboard_doc(entry, **more):
+    from difffilter.eval.scoring import METRICS
+
+    return {"estimators": {"kf": dict.fromkeys(METRICS) | entry}, **more}
+
+
+def test_leaderboard_worst_columns_are_the_robustness_worst_case():
+    from difffilter.eval.leaderboard import leaderboard_rows
+
+    doc = _leaderboard_doc({"tpr_at_far": 0.9, "state_error_ratio": 1.1},
+                           worst_case={"kf": {"tpr_at_far": 0.2, "state_error_ratio": 7.5}})  # fmt: skip
+    row = leaderboard_rows({"s": doc})[0]
+    assert row["worst_tpr_at_far"] == 0.2
+    assert row["worst_state_error_ratio"] == 7.5
+
+
+def test_leaderboard_names_a_unit_in_the_header_only_where_all_share_it(tmp_path):
+    from difffilter.eval.leaderboard import write_leaderboard
+
+    def doc(state, attack):
+        return _leaderboard_doc({"state_rmse": 1.0, "attack_rmse": 2.0},
+                                scenario_units={"state": state, "attack": attack})  # fmt: skip
+
+    text = write_leaderboard(tmp_path, {"a": doc("cm", "cm"), "b": doc("cm", "p.u.")}).read_text()
+    assert "state_rmse [cm]" in text
+    assert "attack_rmse [attack units]" in text
+    assert "units (state; attack)" in text
+    assert "| b | `kf` | cm; p.u. |" in text
