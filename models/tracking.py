@@ -353,7 +353,10 @@ class PerSensorDeception:
 
     def __init__(self, rate: float, low, high, sensors: int):
         self.rate, self.sensors = float(rate), sensors
-        self.low, self.high = torch.tensor(low), torch.tensor(high)
+        # the box in float64, cast to the packets' dtype where compared (its area and the
+        # attacked term in the filter's precision, not torch's default float32)
+        self.low = torch.as_tensor(low, dtype=torch.float64)
+        self.high = torch.as_tensor(high, dtype=torch.float64)
         self.log_q = math.log1p(-self.rate)
         self.log_pa = (math.log(self.rate) if self.rate > 0 else -math.inf) - math.log(
             float((self.high - self.low).prod())
@@ -364,7 +367,8 @@ class PerSensorDeception:
         clean = model.measurement_noise.block_log_prob(r) + self.log_q  # [..., N, S]
         yb = y.reshape(y.shape[:-1] + (self.sensors, 2))
         inside = ((yb >= self.low.to(y)) & (yb <= self.high.to(y))).all(-1)
-        att = torch.where(inside, self.log_pa, -math.inf).unsqueeze(-2).expand_as(clean)
+        att = torch.full(inside.shape, -math.inf, dtype=clean.dtype, device=clean.device)
+        att = att.masked_fill(inside, self.log_pa).unsqueeze(-2).expand_as(clean)
         recv = torch.ones_like(inside) if mask is None else mask.reshape(yb.shape).any(-1)
         return clean, att, recv.unsqueeze(-2)
 
