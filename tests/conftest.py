@@ -48,6 +48,7 @@ SLOW = (
     "test_step_objects.py::test_every_module_imports_alone",
     "test_kalman.py::test_gradcheck_kf_log_likelihood_wrt_F_Q_R",
     "test_particle.py::test_pf_means_agree_with_kf_within_monte_carlo_error",
+    "test_hand_checks_internals.py::test_watermark_thresholds_come_from_the_calibration_seeds_runs",
 )  # fmt: skip
 
 
