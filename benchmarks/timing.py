@@ -71,7 +71,7 @@ def time_registered_estimator(scenario: str, estimator: str, runs: int, *, cpu: 
     try:
         for dtype in (torch.float64, torch.float32):
             model, streams = sc.system(dtype), Streams(0)
-            gens = {k: streams(k) for k in ("plant", "attack", "schedule")}
+            gens = streams.simulation()
             tr = sc.simulate(runs, gens, dtype=dtype, model=model)
             run = get(estimator).factory(SuiteContext(sc, model, runs, streams))
             with torch.no_grad():

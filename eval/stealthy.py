@@ -116,7 +116,7 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
     free = scenario.with_threat(None)
 
     def batch(it: int):
-        gens = {k: streams(f"stealthy/{name}/{it}/{k}") for k in ("plant", "attack", "schedule")}
+        gens = streams.simulation(f"stealthy/{name}/{it}/")
         tr = free.simulate(spec.train_runs, gens, model=ctx.model)
         return tr.y_true, tr.x
 
@@ -157,7 +157,7 @@ def _judge(scenario, against: str, threshold: float, *, runs: int, seed: int, ch
     (estimator, start), streams = detector_step(ctx, against), Streams(seed)
 
     def judge(attack) -> dict[str, float]:
-        gens = {n: streams(n) for n in ("plant", "attack", "schedule")}
+        gens = streams.simulation()
         tr = scenario.with_threat(attack).simulate(runs, gens, model=ctx.model)
         carry = None if start is None else start(runs)
         with torch.no_grad():

@@ -127,7 +127,7 @@ def run_suite(
         raise ValueError(f"runs must be an integer >= 1; got {runs!r}")
     streams = Streams(seed)
     model = scenario.system(dtype)
-    gens = {k: streams(k) for k in ("plant", "attack", "schedule")}
+    gens = streams.simulation()
     traj = scenario.simulate(runs, gens, dtype=dtype, model=model)
     source = "--ckpt"
     checkpoint, named = registry.split_checkpoints(checkpoint)

@@ -13,7 +13,10 @@ import hashlib
 
 import torch
 
-__all__ = ["Streams"]
+__all__ = ["SIMULATION_STREAMS", "Streams"]
+
+#: the streams a scenario's simulation draws from (``Scenario.simulate``'s ``generators``)
+SIMULATION_STREAMS = ("plant", "attack", "schedule")
 
 
 class Streams:
@@ -42,6 +45,12 @@ class Streams:
         """A fresh generator of stream ``name`` (on ``device``, default CPU)."""
         gen = torch.Generator(device=device) if device is not None else torch.Generator()
         return gen.manual_seed(self.seed_of(name))
+
+    def simulation(self, prefix: str = "") -> dict[str, torch.Generator]:
+        """The generators :meth:`~difffilter.models.scenario.Scenario.simulate` reads:
+        ``{"plant", "attack", "schedule"}`` → a fresh generator of stream ``prefix + name``
+        (``prefix`` keeps a study's draws apart from the suite's, e.g. ``"adversary/"``)."""
+        return {name: self(prefix + name) for name in SIMULATION_STREAMS}
 
     def __repr__(self) -> str:
         return f"Streams(seed={self.seed})"

@@ -258,6 +258,17 @@ def test_stream_seeds_are_the_documented_hash():
         assert Streams(seed).seed_of(name) == int.from_bytes(digest[:8], "little") >> 1
 
 
+def test_simulation_streams_are_the_named_streams_under_a_prefix():
+    """``simulation(prefix)``: the plant, attack and schedule generators, each the stream
+    ``prefix + name`` (the same first draws as ``Streams(seed)(prefix + name)``)."""
+    for prefix in ("", "adversary/"):
+        gens = Streams(3).simulation(prefix)
+        assert sorted(gens) == ["attack", "plant", "schedule"]
+        for name, gen in gens.items():
+            want = torch.Generator().manual_seed(Streams(3).seed_of(prefix + name))
+            assert torch.equal(torch.rand(4, generator=gen), torch.rand(4, generator=want))
+
+
 def test_deception_density_need_names_a_scenario_without_attack():
     from difffilter.models.needs import ASSUMES_DECEPTION_DENSITY
 

@@ -73,9 +73,7 @@ class Adversary:
         onset = int(torch.randint(min(self.onsets[0], hi), hi + 1, (),
                                   generator=streams("adversary/onset")))  # fmt: skip
         free = scenario.with_threat(None)
-        tr = free.simulate(self.crafting_runs, {k: streams(f"adversary/{k}")
-                                                for k in ("plant", "attack", "schedule")},
-                           dtype=task._dtype)  # fmt: skip
+        tr = free.simulate(self.crafting_runs, streams.simulation("adversary/"), dtype=task._dtype)
         estimator = task.estimator_object(training=True)
         params = list(task.estimator.parameters())
         flags = [p.requires_grad for p in params]

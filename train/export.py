@@ -49,8 +49,7 @@ def check_metric(path, *, seed: int = 20, runs: int = 4) -> dict:
     scenario, streams = registry.get(card.scenario), Streams(seed)
     model = scenario.system(torch.float64)
     with torch.no_grad():  # the one process that exports runs it (no process group)
-        traj = scenario.simulate(runs, {k: streams(k) for k in ("plant", "attack", "schedule")},
-                                 model=model)  # fmt: skip
+        traj = scenario.simulate(runs, streams.simulation(), model=model)
         ctx = estimators.SuiteContext(scenario, model, runs, streams, checkpoint=path)
         out = estimators.get(card.estimator).factory(ctx)(traj)
     if isinstance(out, LoopResult):  # its own closed loop: its own truth

@@ -99,7 +99,7 @@ def training_batch(scenario, runs: int, seed: int, dtype: torch.dtype) -> dict:
     open-loop scenario, or the exogenous draws of a closed-loop one
     (:meth:`~difffilter.models.scenario.Scenario.exogenous`)."""
     streams = Streams(seed)
-    gens = {k: streams(k) for k in ("plant", "attack", "schedule")}
+    gens = streams.simulation()
     if scenario.closed_loop:
         return scenario.exogenous(runs, gens, dtype=dtype)
     tr = scenario.simulate(runs, gens, dtype=dtype)

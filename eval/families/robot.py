@@ -81,8 +81,7 @@ def _extra(result) -> dict:
         ctx, name = result.context, "mdpf_fused_ci_compensated"
         loop, est = result.traj_of(name), outs[name].means  # its own closed loop
         applied = loop.us + loop.attack  # the sent input u − â plus the attack
-        free = sc.simulate(B, {k: ctx.streams(k) for k in ("plant", "attack", "schedule")},
-                           attack=None, model=ctx.model)  # fmt: skip
+        free = sc.simulate(B, ctx.streams.simulation(), attack=None, model=ctx.model)
         units = torch.tensor([1.0, DEG], dtype=applied.dtype)
         full = (applied - tr.us) / units  # a − â of the previous step, cm/s and deg/s
         err = full[:, k0:]

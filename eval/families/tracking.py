@@ -82,11 +82,7 @@ def _sweep(result) -> list[dict]:
     sc, ctx, rows = result.scenario, result.context, []
     for eta in SWEEP:
         s = replace(sc, eta_bar=eta)
-        tr = s.simulate(
-            result.runs,
-            {k: ctx.streams(k) for k in ("plant", "attack", "schedule")},
-            model=ctx.model,
-        )
+        tr = s.simulate(result.runs, ctx.streams.simulation(), model=ctx.model)
         sctx = SuiteContext(s, ctx.model, result.runs, ctx.streams, ctx.options)
         out = get("rrp_pf_da").factory(sctx)(tr)
         p, v = _rmse_pv(out.means, tr.x)
