@@ -218,6 +218,29 @@ class ThreatDistribution:
                 return WITHIN
         return KIND_ONLY
 
+    def onsets_past(self, steps: int) -> dict[str, float]:
+        """``{name: share}``: the components of positive weight whose ``onset`` (the first
+        attacked measurement, 1-based) can fall after the last of ``steps`` measurements,
+        with the share of their draws that do. Such a draw acts on nothing: its run trains
+        as an attack-free one (a horizon shortened with ``--data.steps``, say)."""
+        past = {}
+        for name, entry in self.spec.items():
+            if name in _RESERVED or float(entry["weight"]) <= 0:
+                continue
+            onset = entry.get("onset", _default(entry["kind"], "onset"))
+            if onset is _NO_DEFAULT:
+                continue
+            if not _is_draw(onset):
+                share = float(onset > steps)
+            elif "choice" in onset:
+                share = sum(o > steps for o in onset["choice"]) / len(onset["choice"])
+            else:  # randint [lo, hi], both included
+                lo, hi = onset["randint"]
+                share = max(0, hi - max(lo, steps + 1) + 1) / (hi - lo + 1)
+            if share > 0:
+                past[name] = share
+        return past
+
     def sample(self, generator: torch.Generator) -> tuple[str, Any]:
         """``(name, attack)``: a threat by weight and its drawn fields; ``own`` gives
         :attr:`own`, ``none`` gives ``None``."""

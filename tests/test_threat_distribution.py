@@ -183,3 +183,31 @@ def test_a_batch_of_attack_free_runs_records_zeros_as_wide_as_the_scenarios_atta
     batch = threat_batch(scenario, dist, 3, seed=5, dtype=torch.float64)
     assert batch["attack"].shape == (3, scenario.steps, width)
     assert not batch["attack"].any() and not batch["flags"].any()
+
+
+def test_onsets_past_the_horizon_are_counted_and_the_data_module_warns():
+    """A component whose 1-based onset can exceed the horizon acts on nothing in those
+    draws (its runs train attack-free): ``onsets_past`` gives the share of such draws, the
+    same share that sampling finds, and a data module with a shortened horizon warns."""
+    spec = {
+        **MIX,  # bias onsets 5…9; the ramp has weight 0 (never drawn: not named)
+        "pick": {"weight": 1, "kind": "ramp", "slope": 0.1, "onset": {"choice": [2, 7, 8, 9]}},
+        "late": {"weight": 1, "kind": "ramp", "slope": 0.1, "onset": 12},
+        "early": {"weight": 1, "kind": "ramp", "slope": 0.1},  # the class default, onset 1
+    }
+    dist = ThreatDistribution(spec)
+    assert dist.onsets_past(6) == {"bias": 3 / 5, "pick": 3 / 4, "late": 1.0}
+    assert dist.onsets_past(9) == {"late": 1.0} and dist.onsets_past(12) == {}
+    g = torch.Generator().manual_seed(4)
+    draws = [dist.sample(g) for _ in range(3000)]
+    for name, share in dist.onsets_past(6).items():
+        onsets = [a.onset for n, a in draws if n == name]
+        assert abs(sum(o > 6 for o in onsets) / len(onsets) - share) < 0.05, name
+
+    with pytest.warns(UserWarning, match=r"threats\.bias: 60% of its onsets fall after"):
+        ScenarioDataModule("four_tank_bias", val_runs=2, test_runs=1, steps=6, threats=MIX)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the full horizon: nothing to say
+        ScenarioDataModule("four_tank_bias", val_runs=2, test_runs=1, threats=MIX)

@@ -45,6 +45,7 @@ detection head; it alarms on its standardised attack estimate.
 from __future__ import annotations
 
 import math
+import warnings
 
 import lightning.pytorch as pl
 import torch
@@ -225,6 +226,13 @@ class ScenarioDataModule(pl.LightningDataModule):
             raise ValueError("test_seed must differ from train_seed and val_seed")
         if steps is not None:
             self.scenario = self.scenario.with_steps(steps)
+        if self.threats is not None:
+            for name, share in self.threats.onsets_past(self.scenario.steps).items():
+                warnings.warn(
+                    f"threats.{name}: {share:.0%} of its onsets fall after the last of the "
+                    f"{self.scenario.steps} steps; those runs train attack-free",
+                    stacklevel=2,
+                )
         self.save_hyperparameters()
         self._dtype = dtype_of(dtype)
         self._val = self._calibration = None
