@@ -175,8 +175,11 @@ def check_finite_number(
 
 def check_rate(value, name: str, *, unset: str = "None") -> float:
     """``value`` must be a false-alarm rate, a number in (0, 1) (``unset``: how the caller
-    spells "no rate" in the message); returns it as ``float``."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
+    spells "no rate" in the message); returns it as ``float``. Numpy's numbers and a
+    one-element tensor count as numbers, as in :func:`check_finite_number`."""
+    if isinstance(value, Tensor) and value.numel() == 1:
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0 < value < 1:
         raise ValueError(f"{name} must be a false-alarm rate in (0, 1) or {unset}; got {value!r}")
     return float(value)
 

@@ -142,16 +142,18 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
 
 
 def _roc_figure(result, detecting, colour) -> plt.Figure:
-    """ROC curves on a logarithmic false-alarm axis, each operating point marked."""
-    traj = result.traj
-    flags = traj.flags
-    floor = 1.0 / max(1, int((~flags).sum()))  # the smallest non-zero false-alarm rate
+    """ROC curves on a logarithmic false-alarm axis, each operating point marked; each
+    estimator's against the flags of the trajectories it ran on (its own closed loop's,
+    as its AUC and operating point are scored)."""
+    flags = {name: result.traj_of(name).flags for name in detecting}
+    # the smallest non-zero false-alarm rate any curve can show
+    floor = 1.0 / max(1, max(int((~f).sum()) for f in flags.values()))
     fig, ax = plt.subplots(figsize=(7.5, 5))
     for name, out in detecting.items():
         metrics = result.metrics[name]
         if metrics.get("auc") is None:
             continue
-        fpr, tpr = roc(out.detection.scores, flags)
+        fpr, tpr = roc(out.detection.scores, flags[name])
         ax.plot(fpr.clamp_min(floor).numpy(), tpr.numpy(), lw=1, color=colour[name],
                 label=f"{name} (AUC {metrics['auc']:.3f})")  # fmt: skip
         point = (metrics.get("fpr_at_far"), metrics.get("tpr_at_far"))

@@ -1,0 +1,294 @@
+"""Hand checks of what the command lines, figures and files pass on: ``difffilter-eval``'s
+options reaching the study and the calibration, the figures' time axes and spans, the
+TensorBoard curves, the prediction files, resuming and loading exported weights, the LFC
+tuning file, and the inputs' finiteness check under a mask.
+
+Each value here is written down by hand (a tiny case) or is what the module's docstring
+promises; every test failed on a mutant of mutation round 10 that the rest of the suite
+let through.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace as NS
+
+import pytest
+import torch
+
+import difffilter as df
+
+# ---------------------------------------------------------------- difffilter-eval options
+
+
+def test_a_plain_checkpoint_among_named_ones_is_the_others_default():
+    from difffilter.eval.cli import parse_checkpoints
+    from difffilter.models import registry
+
+    registry.names()  # the estimators' names are known once the families are registered
+    parsed = parse_checkpoints(["pf_nn_grad=a.ckpt", "b.ckpt"])
+    assert parsed == {"pf_nn_grad": Path("a.ckpt"), "*": Path("b.ckpt")}
+
+
+@pytest.mark.parametrize("text", ["0", "1", "-0.1", "nan", "1.5"])
+def test_far_is_a_rate_strictly_between_zero_and_one(text):
+    import argparse
+
+    from difffilter.eval.cli import _far
+
+    with pytest.raises(argparse.ArgumentTypeError, match="a rate in"):
+        _far(text)
+    assert _far("0.05") == 0.05 and _far("off") is None
+
+
+def test_calibration_runs_and_the_checkpoint_reach_the_calibration(monkeypatch, tmp_path):
+    """``evaluate``: the detectors are calibrated on ``calibration_runs`` runs (``runs``
+    when not given), with the checkpoint the study ran (its detectors are those calibrated)."""
+    from difffilter.eval import calibration, cli, leaderboard, report, suite
+
+    seen = {"suite": [], "calibrate": []}
+    monkeypatch.setattr(cli, "check_arguments", lambda **kw: None)
+    monkeypatch.setattr(cli, "_write_family", lambda family, results, out, prep: {})
+    monkeypatch.setattr(suite, "run_suite", lambda sc, **kw: seen["suite"].append(kw) or NS())
+    monkeypatch.setattr(suite, "apply_calibration", lambda result, cal: None)
+    monkeypatch.setattr(suite, "detectors", lambda result: ["chi_square_ekf"])
+    monkeypatch.setattr(suite, "process_group", lambda: (0, 1))
+    monkeypatch.setattr(calibration, "calibrate",
+                        lambda sc, **kw: seen["calibrate"].append(kw))  # fmt: skip
+    monkeypatch.setattr(report, "family_report", lambda f: NS(prepare=None, finish=None))
+    monkeypatch.setattr(
+        report, "report_writers", lambda families, world: dict.fromkeys(families, 0)
+    )
+    monkeypatch.setattr(report, "write_acceptance_summary", lambda out, docs: None)
+    monkeypatch.setattr(leaderboard, "write_leaderboard", lambda out, docs: None)
+    ckpt = Path("given.ckpt")
+    for calibration_runs in (7, None):
+        cli.evaluate(["four_tank_bias"], ckpt=ckpt, runs=3, out=tmp_path, seed=4,
+                     progress=False, far=0.01, calibration_runs=calibration_runs)  # fmt: skip
+    assert [c["runs"] for c in seen["calibrate"]] == [7, 3]
+    assert all(c["checkpoint"] == ckpt and c["far"] == 0.01 for c in seen["calibrate"])
+    assert all(s["checkpoint"] == ckpt and s["runs"] == 3 for s in seen["suite"])
+
+
+def test_the_scenario_robustness_runs_the_robustness_study_on_every_threat(monkeypatch, tmp_path):
+    from difffilter.eval import cli
+
+    called = {}
+    monkeypatch.setattr(cli, "_robustness",
+                        lambda names, threats, args: called.setdefault("robustness", threats) and 0)  # fmt: skip
+    monkeypatch.setattr(cli, "evaluate", lambda *a, **kw: called.setdefault("evaluate", True))
+    cli.main(["robustness", "--out", str(tmp_path / "out"), "--no-progress"])
+    assert called == {"robustness": "all"}
+
+
+# ---------------------------------------------------------------- figures and TensorBoard
+
+
+def test_alarm_spans_are_consecutive_alarms_centred_on_their_steps():
+    from difffilter.eval.plots import _alarm_spans
+
+    dt = 0.1
+    t = [dt * (k + 1) for k in range(5)]
+    for alarms, want in (
+        ([True, True, False, False, True], [(0.05, 0.2), (0.45, 0.1)]),
+        ([False, True, True, True, False], [(0.15, 0.3)]),
+    ):
+        spans = _alarm_spans(torch.tensor(alarms), t, dt)
+        assert len(spans) == len(want)
+        for got, expected in zip(spans, want):
+            assert got == pytest.approx(expected, abs=1e-12)
+
+
+def test_the_attack_figure_shows_run_0s_most_attacked_channel():
+    from difffilter.eval.plots import _attacked_channel
+
+    attack = torch.zeros(2, 4, 3)
+    attack[0, 2, 1], attack[0, 1, 0], attack[1, :, 2] = 5.0, -1.0, 9.0  # run 1 is not run 0
+    assert _attacked_channel(attack) == 1
+    attack[0, 3, 0] = -6.0  # by magnitude
+    assert _attacked_channel(attack) == 0
+
+
+def test_the_rmse_figure_plots_step_k_at_time_k_dt():
+    """Step ``t`` of a trajectory is measurement ``k = t + 1``, at time ``k · dt``."""
+    from difffilter.eval.plots import standard_figures
+
+    B, T = 2, 4
+    x = torch.randn(B, T, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    traj = NS(flags=torch.zeros(B, T, dtype=torch.bool), attack=torch.zeros(B, T, 0), x=x)
+    out = NS(means=x + 0.1, detection=None, attack=None)
+    result = NS(traj=traj, outputs={"kf": out}, scenario=NS(dt=0.5, state_unit="m"),
+                traj_of=lambda name: traj, metrics={"kf": {}})  # fmt: skip
+    name, fig = standard_figures(result)[0]
+    line = fig.axes[0].lines[0]
+    assert name == "rmse_over_time.png"
+    assert list(line.get_xdata()) == pytest.approx([0.5, 1.0, 1.5, 2.0])
+    assert list(line.get_ydata()) == pytest.approx([0.1] * T)
+
+
+def test_each_roc_curve_is_drawn_against_the_flags_its_estimator_ran_on():
+    """In a closed loop each estimator has its own trajectories: its ROC curve (like its
+    AUC in the legend) is against its own flags, not the study's."""
+    from difffilter.eval.plots import _roc_figure
+    from difffilter.eval.scoring import roc
+
+    study = torch.tensor([[False, True, True, False]])
+    own = torch.tensor([[True, False, False, True]])  # "loop"'s own closed loop
+    scores = torch.tensor([[0.9, 0.1, 0.2, 0.8]])
+    outputs = {n: NS(detection=NS(scores=scores)) for n in ("open", "loop")}
+    flags = {"open": study, "loop": own}
+    result = NS(traj=NS(flags=study), traj_of=lambda n: NS(flags=flags[n]),
+                metrics={n: {"auc": 0.5} for n in outputs}, calibration=None)  # fmt: skip
+    fig = _roc_figure(result, outputs, {"open": "C0", "loop": "C1"})
+    curves = {line.get_label().split()[0]: line for line in fig.axes[0].lines}
+    for name in outputs:
+        fpr, tpr = roc(scores, flags[name])
+        assert list(curves[name].get_ydata()) == pytest.approx(tpr.tolist())
+    # the same scores: perfect against its own flags (every detection before the first
+    # false alarm), inverted against the study's (none)
+    for name, want in (("loop", 1.0), ("open", 0.0)):
+        x, y = curves[name].get_xdata(), curves[name].get_ydata()
+        assert max(yi for xi, yi in zip(x, y) if xi == x.min()) == want
+
+
+def test_tensorboard_curves_are_means_over_runs_at_steps_from_one(tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from difffilter.eval.tensorboard import log_suite
+
+    alarms = torch.tensor([[1, 0, 0], [1, 1, 0], [0, 1, 0], [1, 1, 1]], dtype=torch.bool)
+    x = torch.zeros(4, 3, 1, dtype=torch.float64)
+    traj = NS(x=x, attack=torch.zeros(4, 3, 0))
+    out = NS(means=x + 2.0, detection=NS(alarms=alarms), attack=None)
+    result = NS(outputs={"chi": out}, traj_of=lambda name: traj)
+    log_suite(tmp_path, result, {"estimators": {"chi": {}}, "scenario": "s", "runs": 4, "seed": 0},
+              [])  # fmt: skip
+    events = EventAccumulator(str(tmp_path))
+    events.Reload()
+    curve = lambda tag: [(e.step, round(e.value, 6)) for e in events.Scalars(tag)]  # noqa: E731
+    assert curve("alarm_rate_per_step/chi") == [(1, 0.75), (2, 0.75), (3, 0.25)]
+    assert curve("state_rmse_per_step/chi") == [(1, 2.0), (2, 2.0), (3, 2.0)]
+
+
+# ---------------------------------------------------------------- training's files
+
+
+def test_predictions_write_one_file_per_batch_and_the_test_seed(tmp_path):
+    from difffilter.train.predictions import PredictionFiles
+
+    writer = PredictionFiles(tmp_path / "pred")
+    trainer = NS(log_dir=str(tmp_path), datamodule=NS(hparams={"seed": 3, "test_seed": 11}))
+    module = NS(scenario_of_data=lambda: NS(name="s", dt=0.1), alarm_threshold=0.5,
+                channel=NS(value="sensor"))  # fmt: skip
+    for i, runs in enumerate((2, 3)):
+        prediction = {
+            "means": torch.full((runs, 4, 2), float(i)),
+            "attack_estimate": torch.zeros(runs, 4, 1),
+            "attack_probability": torch.full((runs, 4), 0.1 * i),
+            "alarms": torch.zeros(runs, 4, dtype=torch.bool),
+        }
+        writer.write_on_batch_end(trainer, module, prediction, None, None, i, 0)
+    writer.on_predict_end(trainer, module)
+    index = json.loads((tmp_path / "pred" / "predictions.json").read_text())
+    files = sorted(p.name for p in (tmp_path / "pred").glob("batch_*.pt"))
+    assert files == ["batch_00000.pt", "batch_00001.pt"]
+    assert [(f["file"], f["runs"]) for f in index["files"]] == list(zip(files, (2, 3)))
+    second = torch.load(tmp_path / "pred" / files[1], weights_only=True)
+    assert second["means"].shape[0] == 3 and bool((second["means"] == 1.0).all())
+    assert index["seed"] == 11
+
+
+def test_resuming_another_runs_checkpoint_does_not_take_its_version(tmp_path):
+    """``fit --ckpt_path <save_dir>/<name>/version_3/checkpoints/last.ckpt`` logs into
+    version 3 only when ``<name>`` is this run's logger name."""
+    from difffilter.train.lightning_cli import DifffilterCLI
+
+    ckpt = str(tmp_path / "other" / "version_3" / "checkpoints" / "last.ckpt")
+    for name, version in (("mine", None), ("other", 3)):
+        logger = {"init_args": {"save_dir": str(tmp_path), "name": name}}
+        cli = NS(
+            subcommand="fit", config={"fit": {"ckpt_path": ckpt, "trainer": {"logger": logger}}}
+        )
+        DifffilterCLI.before_instantiate_classes(cli)
+        assert logger["init_args"].get("version") == version, name
+
+
+def test_an_exported_checkpoint_given_as_ckpt_path_loads_its_weights(capsys):
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+    from difffilter.train.lightning_cli import DifffilterCLI
+
+    path = Path("checkpoints/four_tank_nn_ekf.ckpt")
+    shipped, _ = load_estimator_checkpoint(path)
+    mine, _ = load_estimator_checkpoint(path)
+    with torch.no_grad():
+        for p in mine.parameters():
+            p.add_(1.0)
+    cli = NS(config_init={"predict": {"ckpt_path": str(path)}},
+             model=NS(estimator=mine, check_exported=lambda card, path: None))  # fmt: skip
+    DifffilterCLI._load_exported(cli, "predict")
+    for got, want in zip(mine.state_dict().values(), shipped.state_dict().values()):
+        assert torch.equal(got, want)
+    assert cli.config_init["predict"]["ckpt_path"] is None  # nothing left for Lightning
+    assert "loaded the exported estimator" in capsys.readouterr().out
+
+
+def test_the_attack_figure_draws_the_two_most_attacked_channels_from_time_dt():
+    from difffilter.train.figures import attack_figure
+
+    attack = torch.zeros(5, 4)
+    attack[:, 2], attack[:, 0], attack[0, 3] = 3.0, 1.0, 0.5
+    lines = attack_figure(attack, 0.9 * attack, 0.1).axes[0].lines
+    labels = [line.get_label() for line in lines]
+    assert labels[0] == "attack ch3" and labels[2] == "attack ch1"
+    assert lines[0].get_xdata()[0] == pytest.approx(0.1)
+
+
+def test_lfc_tuning_merges_into_an_existing_file(monkeypatch, tmp_path, capsys):
+    from difffilter.train import lfc_tuning
+
+    out = tmp_path / "tuning.json"
+    out.write_text(json.dumps({"grids": {"kf_nn_ekf": [{"a": 1}]},
+                               "chosen": {"kf_nn_ekf": {"init_scale": 0.1}}}))  # fmt: skip
+    monkeypatch.setattr(lfc_tuning, "tune", lambda estimators, runs, ckpt: {
+        "grids": {"traditional_ad": [{"b": 2}]}, "chosen": {"traditional_ad": {"lr": 0.01}},
+        "validation": {"runs": runs},
+    })  # fmt: skip
+    lfc_tuning.main(["--runs", "2", "--out", str(out), "--estimators", "traditional_ad"])
+    document = json.loads(out.read_text())
+    assert document["chosen"] == {"kf_nn_ekf": {"init_scale": 0.1}, "traditional_ad": {"lr": 0.01}}
+    assert set(document["grids"]) == {"kf_nn_ekf", "traditional_ad"}
+
+
+# ---------------------------------------------------------------- inputs under a mask
+
+
+def test_a_non_finite_measurement_counts_only_where_it_is_received():
+    from difffilter._checks import check_sequence_inputs
+
+    d = torch.float64
+    eye = torch.eye(2, dtype=d)
+    model = df.LinearGaussianModel(eye, eye, eye, eye, torch.zeros(2, dtype=d), eye)
+    ys = torch.zeros(2, 3, 2, dtype=d)
+    mask = torch.ones(2, 3, 2, dtype=torch.bool)
+    ys[0, 1, 0], mask[0, 1, 0] = float("nan"), False  # unreceived: never read
+    clean, _, _, _ = check_sequence_inputs(model, ys, mask=mask)
+    assert bool(torch.isfinite(clean).all())
+    ys[1, 2, 1] = float("inf")  # received
+    with pytest.raises(ValueError, match="ys"):
+        check_sequence_inputs(model, ys, mask=mask)
+    _, _, folded, skipped = check_sequence_inputs(model, ys, mask=mask, nonfinite="skip")
+    assert skipped.tolist() == [0, 1] and not folded[1, 2, 1] and not folded[0, 1, 0]
+    assert int(folded.sum()) == 12 - 2
+
+
+def test_a_rate_may_be_any_real_number_in_the_open_unit_interval():
+    import numpy as np
+
+    from difffilter._checks import check_rate
+
+    for value in (0.1, np.float32(0.1), np.float64(0.1), torch.tensor(0.1)):
+        assert check_rate(value, "far") == pytest.approx(0.1)
+    for bad in (0, 1, 0.0, 1.0, -0.5, 2, True, np.float32(1.0), torch.tensor(0.0), "0.1", None):
+        with pytest.raises(ValueError, match="far must be a false-alarm rate in"):
+            check_rate(bad, "far")
