@@ -615,6 +615,6 @@ def threat_from_dict(spec: dict, model=None) -> Attack:
     if cls is KSigmaBias and "sigma" not in params:
         if model is None:
             raise ValueError("ksigma_bias without sigma needs the model (sigma = sqrt(diag R))")
-        k = params.pop("k", 1.5)
+        k = params.pop("k", KSigmaBias.k)  # the class default, said once
         return KSigmaBias.of(model, k, **params)
     return cls(**params)

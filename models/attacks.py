@@ -275,11 +275,16 @@ class Signal(TabulatedAttack):
     def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
         _check_steps(num_steps)
         shape = torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
+        wrong = ValueError(
+            f"the signal has shape {tuple(self.values.shape)}; the loop needs "
+            f"[{num_steps}, {dim}] or {list(shape) + [num_steps, dim]}"
+        )
+        # a value per step and entry, exactly: a [1, dim] signal or a [T, 1] one would
+        # broadcast to a constant attack or onto every entry, which nobody meant
+        if tuple(self.values.shape[-2:]) != (num_steps, dim):
+            raise wrong
         try:
             values = self.values.to(dtype=dtype, device=device).expand(shape + (num_steps, dim))
         except RuntimeError:
-            raise ValueError(
-                f"the signal has shape {tuple(self.values.shape)}; the loop needs "
-                f"[{num_steps}, {dim}] or {list(shape) + [num_steps, dim]}"
-            ) from None
+            raise wrong from None
         return values, (values != 0).any(-1)

@@ -79,6 +79,19 @@ def pytest_collection_modifyitems(config, items):
         )
 
 
+@pytest.fixture
+def isolated_registry(monkeypatch):
+    """The scenario registry, loaded, then replaced by a copy for this test: what the test
+    registers leaves with it. (A copy taken before the registry was loaded would receive
+    the built-in scenarios and take them away with it, leaving the real registry empty but
+    marked loaded for every later test of the process.)"""
+    from difffilter.models import registry
+
+    registry.names()
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
+    return registry
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _calibration_cache(tmp_path_factory):
     """Calibrations cached on disk go to a folder of this test session, not the user's."""

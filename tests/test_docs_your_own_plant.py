@@ -15,7 +15,6 @@ from pathlib import Path
 import pytest
 
 from difffilter.eval.cli import main as eval_main
-from difffilter.models import registry
 from difffilter.train.cli import main as train_main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,12 +34,10 @@ def _commands(block: str) -> list[list[str]]:
     return [shlex.split(line) for line in joined.splitlines() if line.strip()]
 
 
-def test_every_snippet_of_the_page_runs(tmp_path, monkeypatch, capsys):
+def test_every_snippet_of_the_page_runs(tmp_path, monkeypatch, capsys, isolated_registry):
     monkeypatch.chdir(tmp_path)
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.setattr("sys.argv", ["difffilter-train"])
-    registry.names()
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
     (tmp_path / "train").symlink_to(ROOT / "train")  # the page's train/configs/generic.yaml
     snippet = types.ModuleType("docs_snippet")  # a module: dataclasses look theirs up
     monkeypatch.setitem(sys.modules, "docs_snippet", snippet)

@@ -121,12 +121,11 @@ def test_lfc_extra_metrics_by_hand():
     assert metrics["time_per_batch_step_s"] == pytest.approx(4.0 / T, rel=1e-12)
 
 
-def test_lfc_network_score_is_its_estimate_over_its_own_attack_free_spread(monkeypatch):
+def test_lfc_network_score_is_its_estimate_over_its_own_attack_free_spread(isolated_registry):
     """``max_c |α̂_c| / σ_c``, ``σ_c`` the spread of the same estimator's estimate on the same
     draws without the attack (lfc_estimators' "Detection")."""
     from difffilter.eval.suite import run_suite
 
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
     base = registry.get("lfc_simultaneous")
     scenario = dataclasses.replace(base, name="lfc_sim_1s_check", duration=1.0, headline=False)
     registry.register(scenario)

@@ -105,16 +105,15 @@ def test_the_poa_floor_is_half_the_norm_of_the_bias_as_injected():
 
 @pytest.mark.slow
 def test_a_scenario_of_ones_own_runs_the_robustness_study_on_its_own_threat_set(
-    tmp_path, capsys, monkeypatch
+    tmp_path, capsys, isolated_registry
 ):
     """``--threat-set FILE``: the threats of a scenario without a set in eval/threats (it
     could not be studied without editing the repository)."""
     from difffilter.eval.cli import main
-    from difffilter.models import registry
 
     # module:object registers the scenario: in this test's registry only (a headline
-    # scenario without a threat set would stay for every later test of the process)
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
+    # scenario without a threat set would stay for every later test of the process:
+    # the isolated_registry fixture)
 
     threats = tmp_path / "pendulum.yaml"
     threats.write_text("runs: 2\nthreats:\n  ramp: {kind: ramp, slope: 0.02, onset: 21}\n")

@@ -45,12 +45,11 @@ PLUGIN = textwrap.dedent("""
 
 
 @pytest.fixture
-def plugin(tmp_path, monkeypatch):
+def plugin(tmp_path, monkeypatch, isolated_registry):
     (tmp_path / "difffilter_user_plugin.py").write_text(PLUGIN)
     monkeypatch.syspath_prepend(str(tmp_path))
-    registry.names()  # the built-in families, before the snapshot
-    # the user's scenarios leave with the test (other tests list every headline scenario)
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
+    # the user's scenarios leave with the test (other tests list every headline scenario):
+    # the isolated_registry fixture
     yield "difffilter_user_plugin"
     sys.modules.pop("difffilter_user_plugin", None)
 

@@ -112,15 +112,13 @@ MOTOR_YAML = textwrap.dedent("""
 
 
 @pytest.fixture
-def plants(tmp_path, monkeypatch):
+def plants(tmp_path, monkeypatch, isolated_registry):
     """The two modules and the two YAML files in a folder outside the package."""
     (tmp_path / "user_vdp.py").write_text(VDP)
     (tmp_path / "user_motor.py").write_text(MOTOR)
     (tmp_path / "vdp.yaml").write_text(VDP_YAML)
     (tmp_path / "motor.yaml").write_text(MOTOR_YAML)
     monkeypatch.syspath_prepend(str(tmp_path))
-    registry.names()  # the built-in families, before the snapshot
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
     monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path / "cache"))
     yield tmp_path
     for name in ("user_vdp", "user_motor"):
