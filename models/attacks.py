@@ -275,16 +275,19 @@ class Signal(TabulatedAttack):
     def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
         _check_steps(num_steps)
         shape = torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
-        wrong = ValueError(
-            f"the signal has shape {tuple(self.values.shape)}; the loop needs "
-            f"[{num_steps}, {dim}] or {list(shape) + [num_steps, dim]}"
-        )
         # a value per step and entry, exactly: a [1, dim] signal or a [T, 1] one would
-        # broadcast to a constant attack or onto every entry, which nobody meant
+        # broadcast to a constant attack or onto every entry, which nobody meant; the batch
+        # dimensions may broadcast (one signal for every run)
         if tuple(self.values.shape[-2:]) != (num_steps, dim):
-            raise wrong
+            raise self._shape_error(shape, num_steps, dim)
         try:
             values = self.values.to(dtype=dtype, device=device).expand(shape + (num_steps, dim))
         except RuntimeError:
-            raise wrong from None
+            raise self._shape_error(shape, num_steps, dim) from None
         return values, (values != 0).any(-1)
+
+    def _shape_error(self, shape: torch.Size, num_steps: int, dim: int) -> ValueError:
+        return ValueError(
+            f"the signal has shape {tuple(self.values.shape)}; the loop needs "
+            f"[{num_steps}, {dim}] or {list(shape) + [num_steps, dim]}"
+        )
