@@ -43,6 +43,20 @@ from .loop import open_loop
 __all__ = ["CraftedAttack", "StealthySettings", "craft_stealthy_attack"]
 
 
+#: Round-off allowed when a hard alarm rate is held to ``p(0) + ε``. A rate is a count over
+#: ``n`` (run, step) pairs, ``k/n``, so one more alarm moves it by ``1/n`` (above 1e-9 for
+#: any batch that fits in memory), while the bound ``k₀/n + ε`` is rounded on its addition:
+#: an attack exactly ``ε`` above ``p(0)`` (``(k₀ + εn)/n``) can compare above it (115 of
+#: 1,500 such cases at n = 100–10,000, k₀ < 60, ε = 0.001–0.01). The tolerance admits
+#: that round-off and no further alarm.
+_BUDGET_ROUND_OFF = 1e-12
+
+
+def _keeps_budget(rate: float, budget: float) -> bool:
+    """``rate ≤ budget`` up to the round-off of the budget's sum (:data:`_BUDGET_ROUND_OFF`)."""
+    return rate <= budget + _BUDGET_ROUND_OFF
+
+
 class CraftedAttack(TabulatedAttack):
     """A crafted sensor attack: ``values [T, dy]`` (the same for every run), injected at
     every step from ``onset`` on (flag where the step is attacked). ``budget``: the hard
@@ -63,7 +77,7 @@ class CraftedAttack(TabulatedAttack):
         """The ``history`` rows of the iterates that kept the alarm budget (rate ≤
         :attr:`budget`; every row without one): :attr:`values` is the best of them by J,
         zeros where there is none."""
-        return [h for h in self.history if self.budget is None or h[3] <= self.budget]
+        return [h for h in self.history if self.budget is None or _keeps_budget(h[3], self.budget)]
 
     def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
         if tuple(self.values.shape) != (num_steps, dim):
@@ -200,7 +214,7 @@ def craft_stealthy_attack(
         excess = torch.relu(p - bound) / s.slack
         loss = -error / scale + s.penalty * excess.square()
         rate, value = hard_rate(out), float(error.detach())
-        if rate <= hard_bound and value > best[0]:
+        if _keeps_budget(rate, hard_bound) and value > best[0]:
             best = (value, a.detach().clone())
         optimiser.zero_grad()
         loss.backward()

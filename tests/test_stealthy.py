@@ -13,7 +13,12 @@ import difffilter as df
 from difffilter import fdi
 from difffilter.eval.calibration import threshold_for
 from difffilter.loop import DrawnNoise, closed_loop, open_loop
-from difffilter.stealthy import CraftedAttack, StealthySettings, craft_stealthy_attack
+from difffilter.stealthy import (
+    CraftedAttack,
+    StealthySettings,
+    _keeps_budget,
+    craft_stealthy_attack,
+)
 from difffilter.threats import KSigmaBias
 
 F64 = torch.float64
@@ -105,6 +110,20 @@ def test_bad_arguments_are_named():
     # turned the attack into NaN and the filter refused its input)
     with pytest.raises(ValueError, match="at least two attacked"):
         craft_stealthy_attack(estimator, _plant(), tr.y_true[:1], tr.x[:1], 9.0, far=0.01, onset=T)
+
+
+def test_an_attack_exactly_on_its_budget_keeps_it():
+    # 58 alarms of 10,000 attack-free, ε = 0.003: 88 alarms are exactly ε more, yet
+    # 88/10,000 > 58/10,000 + 0.003 in floating point (0.0088 > 0.008799999999999999)
+    n, free, slack = 10_000, 58, 0.003
+    budget = free / n + slack
+    on_budget, over = (free + round(slack * n)) / n, (free + round(slack * n) + 1) / n
+    assert on_budget > budget  # the round-off the predicate admits
+    assert _keeps_budget(on_budget, budget) and not _keeps_budget(over, budget)
+    history = [(0, 1.0, 0.0, on_budget), (1, 2.0, 0.0, over), (2, 0.5, 0.0, free / n)]
+    attack = CraftedAttack(torch.zeros(3, 1, dtype=F64), 1, history, budget=budget)
+    assert [h[0] for h in attack.within_budget()] == [0, 2]
+    assert CraftedAttack(torch.zeros(3, 1), 1, history).within_budget() == history  # no budget
 
 
 @pytest.mark.parametrize("against", ["pf_nn_grad", "normal_pf"])
