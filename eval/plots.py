@@ -121,7 +121,7 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
     detecting = {n: o for n, o in outs.items() if o.detection is not None}
     if detecting and bool(traj.flags.any()) and not bool(traj.flags.all()):
         figs.append(("roc.png", _roc_figure(result, detecting, colour)))
-        figs.append(("alarms_run0.png", _alarm_figure(traj, detecting, colour, t, dt)))
+        figs.append(("alarms_run0.png", _alarm_figure(result, detecting, colour, t, dt)))
     after = [n for n in detecting if result.metrics[n].get("fpr_at_far_after_attack") is not None]
     if after:
         figs.append(("false_alarms_after_attack.png", _after_attack_figure(result, after, colour)))
@@ -130,10 +130,16 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
     if estimating and traj.attack.shape[-1] > 0:
         c = _attacked_channel(traj.attack)
         fig, ax = plt.subplots(figsize=(8, 4))
-        ax.plot(t, traj.attack[0, :, c].numpy(), "k", lw=1.5, label="injected")
+        injected = traj.attack[0, :, c]
+        ax.plot(t, injected.numpy(), "k", lw=1.5, label="injected")
         for name, out in estimating.items():
-            if comparable_attack(out, traj):
-                ax.plot(t, out.attack[0, :, c].numpy(), lw=0.9, label=name, color=colour[name])
+            own = result.traj_of(name)
+            if own.attack.shape[-1] != traj.attack.shape[-1] or not comparable_attack(out, own):
+                continue
+            if not torch.equal(own.attack[0, :, c], injected):  # its own closed loop's attack
+                ax.plot(t, own.attack[0, :, c].numpy(), "--", lw=1.2, color=colour[name],
+                        label=f"injected in {name}'s loop")  # fmt: skip
+            ax.plot(t, out.attack[0, :, c].numpy(), lw=0.9, label=name, color=colour[name])
         ax.set(xlabel="time [s]", ylabel=f"attack, channel {c + 1} [{result.scenario.attack_unit}]",
                title=f"Run 0: attack estimates (channel {c + 1}, the most attacked)")  # fmt: skip
         _legend(ax)
@@ -212,12 +218,21 @@ def _after_attack_figure(result, names, colour) -> plt.Figure:
     return fig
 
 
-def _alarm_figure(traj, detecting, colour, t, dt) -> plt.Figure:
-    """Run 0's attacked steps and each detector's alarms as bars of consecutive steps."""
+def _alarm_figure(result, detecting, colour, t, dt) -> plt.Figure:
+    """Run 0's attacked steps and each detector's alarms as bars of consecutive steps.
+
+    The top row is the study's attacked steps. A detector that ran on trajectories of its
+    own (its closed loop, :meth:`~difffilter.eval.suite.SuiteResult.traj_of`) whose run 0
+    was attacked at other steps gets its own attacked steps as a grey band behind its
+    alarms: each row reads against the attack it faced."""
+    study = result.traj.flags[0]
     rows = len(detecting) + 1
     fig, ax = plt.subplots(figsize=(8, 0.32 * rows + 1.2))
-    ax.broken_barh(_alarm_spans(traj.flags[0], t, dt), (rows - 1 - 0.35, 0.7), color="k")
+    ax.broken_barh(_alarm_spans(study, t, dt), (rows - 1 - 0.35, 0.7), color="k")
     for i, (name, out) in enumerate(detecting.items(), start=1):
+        own = result.traj_of(name).flags[0]
+        if not torch.equal(own, study):
+            ax.broken_barh(_alarm_spans(own, t, dt), (rows - 1 - i - 0.5, 1.0), color="0.85")
         spans = _alarm_spans(out.detection.alarms[0], t, dt)
         ax.broken_barh(spans, (rows - 1 - i - 0.35, 0.7), color=colour[name])
     ax.set_yticks(range(rows - 1, -1, -1), ["attacked", *detecting], fontsize=7)

@@ -152,6 +152,71 @@ def test_each_roc_curve_is_drawn_against_the_flags_its_estimator_ran_on():
         assert max(yi for xi, yi in zip(x, y) if xi == x.min()) == want
 
 
+def test_run_0s_alarm_rows_show_the_attack_each_detector_faced():
+    """A detector of its own closed loop, attacked at other steps than the study's run 0,
+    gets its own attacked steps as a grey band behind its alarms; one on the study's
+    trajectories gets none (the top row is its truth)."""
+    import matplotlib.pyplot as plt
+    from matplotlib import colors as mcolors
+
+    from difffilter.eval.plots import _alarm_figure
+
+    study = torch.tensor([[False, True, True, False, False]])
+    own = torch.tensor([[False, False, False, True, True]])
+    alarms = torch.tensor([[False, False, True, True, False]])
+    outputs = {n: NS(detection=NS(alarms=alarms)) for n in ("open", "loop")}
+    flags = {"open": study, "loop": own}
+    result = NS(traj=NS(flags=study), traj_of=lambda n: NS(flags=flags[n]))
+    t = [0.5 * (k + 1) for k in range(5)]
+    fig = _alarm_figure(result, outputs, {"open": "C0", "loop": "C1"}, t, 0.5)
+    bars = [(tuple(c.get_facecolor()[0][:3]), c.get_paths()) for c in fig.axes[0].collections]
+
+    def spans(colour):
+        rgb = mcolors.to_rgb(colour)
+        return [[tuple(path.get_extents().intervalx) for path in paths]
+                for face, paths in bars if face == pytest.approx(rgb)]  # fmt: skip
+
+    # step k at time k·dt, its bar half a step either side
+    assert spans("k") == [[(0.75, 1.75)]]  # the study's steps 2-3
+    assert spans("0.85") == [[(1.75, 2.75)]]  # "loop"'s own steps 4-5, once (not "open")
+    assert spans("C0") == spans("C1") == [[(1.25, 2.25)]]
+    plt.close(fig)
+
+
+def test_the_attack_figure_draws_the_attack_injected_in_an_estimators_own_loop():
+    import matplotlib.pyplot as plt
+
+    from difffilter.attack import Channel
+    from difffilter.eval.plots import standard_figures
+
+    B, T = 1, 4
+    x = torch.zeros(B, T, 1, dtype=torch.float64)
+    study_attack = torch.tensor([[[0.0], [1.0], [1.0], [1.0]]], dtype=torch.float64)
+    own_attack = torch.tensor([[[0.0], [2.0], [3.0], [4.0]]], dtype=torch.float64)
+    info = {"attack_channel": Channel.SENSOR}
+    study = NS(flags=torch.zeros(B, T, dtype=torch.bool), attack=study_attack, x=x, info=info)
+    own = NS(flags=study.flags, attack=own_attack, x=x, info=info)
+    est = lambda a: NS(means=x + 0.1, detection=None, attack=a, attack_channel=Channel.SENSOR)  # noqa: E731
+    outputs = {"open": est(study_attack + 0.1), "loop": est(own_attack - 0.1)}
+    result = NS(
+        traj=study,
+        outputs=outputs,
+        scenario=NS(dt=1.0, state_unit="m", attack_unit="V"),
+        traj_of=lambda n: own if n == "loop" else study,
+        metrics={n: {} for n in outputs},
+    )
+    figs = dict(standard_figures(result))
+    lines = {
+        line.get_label(): list(line.get_ydata())
+        for line in figs["attack_estimates_run0.png"].axes[0].lines
+    }
+    assert lines == {"injected": [0.0, 1.0, 1.0, 1.0], "open": pytest.approx([0.1, 1.1, 1.1, 1.1]),
+                     "injected in loop's loop": [0.0, 2.0, 3.0, 4.0],
+                     "loop": pytest.approx([-0.1, 1.9, 2.9, 3.9])}  # fmt: skip
+    for fig in figs.values():
+        plt.close(fig)
+
+
 def test_tensorboard_curves_are_means_over_runs_at_steps_from_one(tmp_path):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
