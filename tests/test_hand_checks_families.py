@@ -100,25 +100,32 @@ def test_suite_particle_filters_resample_at_every_step():
 
 def test_lfc_extra_metrics_by_hand():
     """eq. 43 per attacked channel summed over the channels (3 + 4), Table II's state 5
-    (index 4), and the wall time per step (T steps)."""
+    (index 4), and the wall time per step (T steps), each against the trajectories the
+    estimator ran on: its own closed loop's (here attacked otherwise than the study's)."""
     from difffilter.eval.families.lfc import _extra
 
     B, T, D = 2, 8, 10
-    attack = torch.zeros(B, T, D)
-    estimate = attack.clone()
+    study_attack = torch.zeros(B, T, D)
+    own_attack = study_attack.clone()
+    own_attack[..., 2] = 1.0  # what the attack injected in the loop the estimators ran
+    estimate = study_attack.clone()
     estimate[..., 2], estimate[..., 7] = 3.0, 4.0
     x = torch.zeros(B, T, D)
     x[..., 4], x[..., 5] = 2.0, 100.0
-    out = NS(attack=estimate, extras={}, means=x)
+    outputs = {"kf_nn_ekf": NS(attack=estimate, extras={}, means=x),
+               "uncompensated": NS(attack=None, extras={}, means=x)}  # fmt: skip
     result = NS(scenario=NS(attacked_channels=(2, 7), dt=0.01),
-                traj=NS(attack=attack, flags=torch.zeros(B, T, dtype=torch.bool)),
-                outputs={"kf_nn_ekf": out}, metrics={"kf_nn_ekf": {}}, wall_s={"kf_nn_ekf": 4.0},
-                traj_of=lambda name: NS(x=x))  # fmt: skip
+                traj=NS(attack=study_attack, flags=torch.zeros(B, T, dtype=torch.bool)),
+                outputs=outputs, metrics={n: {} for n in outputs},
+                wall_s={n: 4.0 for n in outputs},
+                traj_of=lambda name: NS(x=x, attack=own_attack))  # fmt: skip
     _extra(result)
     metrics = result.metrics["kf_nn_ekf"]
-    assert metrics["attack_rmse_eq43"] == pytest.approx(7.0)
+    assert metrics["attack_rmse_eq43"] == pytest.approx(2.0 + 4.0)  # (3 − 1) + (4 − 0)
     assert metrics["state5_rmse"] == pytest.approx(2.0)
     assert metrics["time_per_batch_step_s"] == pytest.approx(4.0 / T, rel=1e-12)
+    # the zero estimate against what was injected in the uncompensated loop
+    assert result.metrics["uncompensated"]["attack_rmse_eq43_zero_estimate"] == pytest.approx(1.0)
 
 
 def test_lfc_network_score_is_its_estimate_over_its_own_attack_free_spread(isolated_registry):

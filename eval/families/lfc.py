@@ -72,13 +72,15 @@ def _extra(result) -> dict:
     sc, tr = result.scenario, result.traj
     chans = sc.attacked_channels
     for name, out in result.outputs.items():
-        m, extras = result.metrics[name], out.extras or {}
-        m["state5_rmse"] = _state5(result.traj_of(name).x)
+        # against the trajectories it ran on: its own closed loop's (an attack that reacts
+        # to the plant injects there what it would not in the study's), or the study's
+        m, extras, own = result.metrics[name], out.extras or {}, result.traj_of(name)
+        m["state5_rmse"] = _state5(own.x)
         if "x_attack_free" in extras:
             m["state5_rmse_attack_free"] = _state5(extras["x_attack_free"])
         m["time_per_batch_step_s"] = result.wall_s[name] / tr.flags.shape[1]
         if out.attack is not None:
-            mean, sd, per = _eq43(out.attack, tr.attack, chans)
+            mean, sd, per = _eq43(out.attack, own.attack, chans)
             m.update(
                 attack_rmse_eq43=mean,
                 attack_rmse_eq43_std=sd,
@@ -87,10 +89,11 @@ def _extra(result) -> dict:
         if "attack_logit" in extras:
             logit = extras["attack_logit"]
             head = EstimatorOutput(out.means, detection=Detection(logit, logit > 0, 0.0))
-            s = score(head, tr, dt=sc.dt, wall_s=0.0)
+            s = score(head, own, dt=sc.dt, wall_s=0.0)
             m.update({f"{k}_prob": s[k] for k in ("tpr", "fpr", "auc", "detection_delay_s")})
     if "uncompensated" in result.metrics:
-        zero = _eq43(torch.zeros_like(tr.attack), tr.attack, chans)[0]
+        injected = result.traj_of("uncompensated").attack
+        zero = _eq43(torch.zeros_like(injected), injected, chans)[0]
         result.metrics["uncompensated"]["attack_rmse_eq43_zero_estimate"] = zero
     return {"attacked_channels": [STATE_NAMES[c] for c in chans]}
 
