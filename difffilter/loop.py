@@ -400,6 +400,7 @@ def closed_loop(
     if (forks or fork) and not isinstance(noise, ReplayedNoise):
         raise ValueError("forks= and fork= need ReplayedNoise: drawn noise's generator is "
                          "not part of the loop's state, so a fork could not replay it")  # fmt: skip
+    _check_parts(estimator, attack)
     channel = None if attack is None else Channel(attack.channel)
     conceals = channel is Channel.ACTUATOR and bool(getattr(attack, "conceals", False))
     if fork is not None:
@@ -422,6 +423,7 @@ def closed_loop(
         applied, a, value, flag = u, None, None, None
         if channel is Channel.ACTUATOR:
             a_state, value, flag = attack.step(a_state, k, x=x, u=u, view=view)
+            _check_value(attack, value, u, k)
             applied, a = inject(channel, u, value, flag)
         x = noise.transition(plant, x, applied, k - 1)
         y = noise.measure(plant, x, k - 1)
@@ -432,9 +434,10 @@ def closed_loop(
             rec["concealment"].append(correction)
         if channel is not None and channel is not Channel.ACTUATOR:
             a_state, value, flag = attack.step(a_state, k, y=y, x=x, u=u, view=view)
+            _check_value(attack, value, y, k)
             received, a = inject(channel, y, value, flag)
         if estimator is not None:
-            carry, view = estimator._step(carry, received, u, m)
+            carry, view = estimator._step(carry, _estimator_input(received, m, k, attack), u, m)
             outs.append(view)
         for key, val in (("x", x), ("y", y), ("recv", received), ("u", u), ("attack", a),
                          ("value", value), ("flag", flag)):  # fmt: skip
@@ -450,6 +453,70 @@ def closed_loop(
     batch = x.shape[:-1]
     output = stack_steps(outs, batch, attack_channel=estimator.attack_channel) if outs else None
     return LoopResult(traj, output, LoopState(k, x, u, a_state, carry, view))
+
+
+def _check_parts(estimator, attack) -> None:
+    """The estimator and the attack are the library's objects, and an attack that reads the
+    estimator's output (:attr:`~difffilter.attack.Attack.reads_view`) has one to read."""
+    if estimator is not None and not isinstance(estimator, Estimator):
+        raise TypeError(
+            "estimator must be a difffilter.estimator.Estimator (e.g. difffilter.KalmanFilter()) "
+            f"or None; got {type(estimator).__name__}"
+        )
+    if attack is None:
+        return
+    if not isinstance(attack, Attack):
+        raise TypeError(
+            "attack must be a difffilter.attack.Attack (e.g. difffilter.threats.Bias(...); "
+            f"a dict names one only in a threat set: threat_from_dict) or None; got "
+            f"{type(attack).__name__}"
+        )
+    if attack.reads_view and estimator is None:
+        raise ValueError(
+            f"attack {type(attack).__name__} reads the estimator's output (reads_view = True), "
+            "and this loop has no estimator: it would read None at every step. Give the loop "
+            "its estimator (closed_loop(..., estimator=...)); an open-loop scenario simulates "
+            "its runs once for every estimator, without one, so an adaptive attack runs only "
+            "in a loop of its own or a closed-loop scenario"
+        )
+
+
+def _check_value(attack, value: Tensor, signal: Tensor, k: int) -> None:
+    """The attack's value at step ``k`` has the attacked signal's entries."""
+    if not isinstance(value, Tensor) or value.shape[-1:] != signal.shape[-1:]:
+        got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
+        raise ValueError(
+            f"attack {type(attack).__name__}.step returned a value of shape {got} at step {k}; "
+            f"the signal it attacks is {tuple(signal.shape)}: a value [..., {signal.shape[-1]}]"
+        )
+
+
+def _estimator_input(received: Tensor, mask: Tensor | None, k: int, attack) -> Tensor:
+    """Step ``k``'s measurement as the estimator's step takes it (unchecked): a NaN or Inf
+    in a received entry raises, as :func:`open_loop` refuses it in ``ys``; one in an entry
+    the schedule drops is replaced by zero, as there (``0 · NaN`` would still be NaN in the
+    masked update). One reduction a step; nothing is checked where values are unknown
+    (the ``meta`` device)."""
+    if received.device.type == "meta":
+        return received
+    finite = torch.isfinite(received)
+    if bool(finite.all()):
+        return received
+    bad = ~finite if mask is None else ~finite & mask
+    if bool(bad.any()):
+        where = [int(i) for i in bad.nonzero()[0]]
+        run = where[0] if len(where) == 2 else tuple(where[:-1])
+        source = (
+            "the plant" if attack is None else f"the attack ({type(attack).__name__}) or the plant"
+        )
+        raise ValueError(
+            f"the measurement received at step {k} contains NaN or Inf (first in run {run}, "
+            f"entry {where[-1]}): {source} produced it, and an estimator cannot take it "
+            "(open_loop refuses the same in ys)"
+        )
+    return torch.where(
+        mask, received, torch.zeros((), dtype=received.dtype, device=received.device)
+    )
 
 
 def _check_lengths(plant, noise, mask, state: LoopState, steps: int) -> None:

@@ -203,6 +203,14 @@ class Scenario:
                 f"attack must be a difffilter.attack.Attack, None or OWN_ATTACK; got "
                 f"{type(attack).__name__}"
             )
+        if isinstance(attack, Attack) and attack.reads_view and not self.closed_loop:
+            raise ValueError(
+                f"attack {type(attack).__name__} reads the estimator's output (reads_view = "
+                f"True), and scenario {self.name!r} simulates its runs once, without an "
+                "estimator, for every estimator to run on: the attack would read nothing. Run "
+                "it in difffilter.loop.closed_loop with the estimator, or on a closed-loop "
+                "scenario (each estimator in a loop of its own)"
+            )
         return dataclasses.replace(self, threat=attack)
 
     def attack_free_key(self) -> tuple:

@@ -222,6 +222,77 @@ def test_an_adaptive_attack_reads_the_estimators_previous_output():
     torch.testing.assert_close(loop.trajectories.attack[:, 1:], -loop.output.means[:, :-1])
 
 
+class _Poison(Attack):
+    """Injects ``value`` on entry 1 of every run at step 3 (``width``: the value's entries)."""
+
+    channel = Channel.SENSOR
+
+    def __init__(self, value, width=None):
+        self.value, self.width = value, width
+
+    def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        return None
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        width = y.shape[-1] if self.width is None else self.width
+        value = torch.zeros(*y.shape[:-1], width, dtype=y.dtype)
+        value[..., min(1, width - 1)] = self.value
+        return state, value, torch.full(y.shape[:-1], k == 3)
+
+
+def test_a_nan_or_inf_injected_into_the_loop_is_refused_where_it_is_received():
+    """The estimator's step takes the received measurement unchecked: the loop refuses a
+    non-finite received entry as open_loop refuses it in ys (an EKF filtered it into NaN
+    estimates); an entry the schedule drops may hold anything."""
+    model = _linear()
+    x0 = model.initial.mean.expand(3, 2).clone()
+
+    def run(value, mask=None, estimator=None):
+        estimator = estimator or df.ExtendedKalmanFilter()
+        return closed_loop(model, 5, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                           estimator=estimator, attack=_Poison(value), mask=mask)  # fmt: skip
+
+    for value in (float("nan"), float("inf"), -float("inf")):
+        with pytest.raises(ValueError, match=r"received at step 3 .*run 0, entry 1.*\(_Poison\)"):
+            run(value)
+    dropped = torch.ones(3, 5, 2, dtype=torch.bool)
+    dropped[:, 2, 1] = False  # entry 1 of step 3 never arrives
+    loop = run(float("nan"), dropped, df.KalmanFilter())
+    assert loop.trajectories.y_recv[:, 2, 1].isnan().all() and loop.output.means.isfinite().all()
+    # without an estimator nothing reads it: the simulation records it
+    sim = closed_loop(model, 5, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                      attack=_Poison(float("nan")))  # fmt: skip
+    assert sim.trajectories.y_recv[:, 2, 1].isnan().all()
+
+
+def test_the_loop_names_a_wrong_attack_estimator_or_attack_value():
+    model = _linear()
+    x0 = model.initial.mean.expand(2, 2).clone()
+    loop = lambda **kw: closed_loop(model, 4, noise=DrawnNoise(None), x0=x0, **kw)  # noqa: E731
+    with pytest.raises(TypeError, match="attack must be a difffilter.attack.Attack.*got dict"):
+        loop(attack={"kind": "bias"})
+    with pytest.raises(TypeError, match="estimator must be a difffilter.estimator.Estimator"):
+        loop(estimator=df.kalman_step)
+    with pytest.raises(
+        ValueError, match=r"_Poison.step returned a value of shape \(2, 3\) at step 1"
+    ):
+        loop(attack=_Poison(1.0, width=3), estimator=df.KalmanFilter())
+    # an adaptive attack without an estimator to read
+    with pytest.raises(ValueError, match="_Adaptive reads the estimator's output.*no estimator"):
+        loop(attack=_Adaptive())
+
+
+def test_an_adaptive_attack_is_refused_where_no_estimator_is_in_the_loop():
+    """An open-loop scenario simulates its runs once, without an estimator: an attack that
+    reads the estimator's output would read None there (it silently acted as a plain
+    attack). A closed-loop scenario runs each estimator in its own loop: accepted."""
+    with pytest.raises(
+        ValueError, match="_Adaptive reads the estimator's output.*'four_tank_bias'"
+    ):
+        registry.get("four_tank_bias").with_threat(_Adaptive())
+    assert registry.get("lfc_step").with_threat(_Adaptive()).threat is not None
+
+
 def test_replay_and_the_loop_refuse_bad_arguments():
     with pytest.raises(ValueError, match="onset must exceed delay"):
         Replay(delay=5, onset=5)
