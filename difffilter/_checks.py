@@ -163,7 +163,8 @@ def check_finite_number(
     """``value`` must be a finite real number (``> 0`` / ``>= 0`` when asked); returns a ``float``."""
     if isinstance(value, Tensor) and value.numel() == 1:
         value = value.item()
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
+    # numbers.Real: numpy's numbers too (np.float32 is no float, np.int64 no int)
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise TypeError(f"{name} must be a real number; got {type(value).__name__}")
     value = float(value)
     ok = math.isfinite(value) and (not positive or value > 0) and (not nonnegative or value >= 0)

@@ -31,16 +31,50 @@ noise, where the detector's real alarm rate and the error it caused are measured
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from ._checks import check_finite_number, check_positive_int, check_rate
 from .attack import Channel, TabulatedAttack
 from .estimator import Estimator
 from .loop import open_loop
 
 __all__ = ["CraftedAttack", "StealthySettings", "craft_stealthy_attack"]
+
+
+def _check_batch(model, ys, xs) -> None:
+    """``ys [B, T, dy]`` and ``xs [B, T, dx]`` of ``model``'s sizes, one batch dimension."""
+    for name, t, d, what in (("ys", ys, model.dim_y, "dy"), ("xs", xs, model.dim_x, "dx")):
+        if not isinstance(t, Tensor) or t.dim() != 3 or t.shape[-1] != d:
+            got = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+            raise ValueError(f"{name} must be a tensor [B, T, {what} = {d}]; got {got}")
+    if xs.shape[:2] != ys.shape[:2]:
+        raise ValueError(
+            f"xs must hold the states of ys's runs and steps, [{ys.shape[0]}, {ys.shape[1]}, "
+            f"{model.dim_x}]; got {tuple(xs.shape)}"
+        )
+
+
+def _check_entries(entries, dy: int) -> tuple[int, ...]:
+    """Distinct measurement entries in ``[0, dy)`` (no negative index: ``-1`` is not
+    taken for the last entry), at least one."""
+    try:
+        picked = tuple(entries)
+    except TypeError:
+        raise ValueError(
+            f"entries must be a list of measurement entries in [0, {dy}); got {entries!r}"
+        ) from None
+    bad = [e for e in picked
+           if isinstance(e, bool) or not isinstance(e, numbers.Integral) or not 0 <= e < dy]  # fmt: skip
+    if not picked or bad or len(set(picked)) != len(picked):
+        raise ValueError(
+            f"entries must be distinct measurement entries in [0, {dy}), at least one; got "
+            f"{entries!r}"
+        )
+    return tuple(int(e) for e in picked)
 
 
 #: Round-off allowed when a hard alarm rate is held to ``p(0) + ε``. A rate is a count over
@@ -69,6 +103,15 @@ class CraftedAttack(TabulatedAttack):
         if not isinstance(values, Tensor) or values.dim() != 2:
             raise ValueError(
                 f"values must be a tensor [T, dy]; got {getattr(values, 'shape', values)!r}"
+            )
+        T = values.shape[0]
+        if (
+            isinstance(onset, bool)
+            or not isinstance(onset, numbers.Integral)
+            or not 1 <= onset <= T
+        ):
+            raise ValueError(
+                f"onset must be an integer in [1, {T}] (1-based, T = values' rows); got {onset!r}"
             )
         self.values, self.onset = values.detach().clone(), int(onset)
         self.history, self.settings, self.budget = list(history or []), settings, budget
@@ -108,6 +151,22 @@ class StealthySettings:
     penalty: float = 50.0
     slack: float = 0.003
     init: float = 0.3
+
+    def __post_init__(self):
+        # frozen: the checked values are set through object.__setattr__ (a number from
+        # YAML or numpy becomes the plain int or float the optimiser expects)
+        set_ = object.__setattr__
+        set_(self, "iterations", check_positive_int(self.iterations, "iterations"))
+        for name in ("lr", "temperature"):
+            set_(self, name, check_finite_number(getattr(self, name), name, positive=True))
+        set_(self, "penalty", check_finite_number(self.penalty, "penalty", nonnegative=True))
+        set_(self, "init", check_finite_number(self.init, "init"))
+        slack = check_finite_number(self.slack, "slack", positive=True)
+        if slack >= 1:  # ε is an increase of a rate: 1 would allow every step to alarm
+            raise ValueError(
+                f"slack (ε, an increase of the alarm rate) must be in (0, 1); got {slack!r}"
+            )
+        set_(self, "slack", slack)
 
 
 def craft_stealthy_attack(
@@ -152,9 +211,16 @@ def craft_stealthy_attack(
     p(a))]`` and ``budget`` ``p(0) + ε`` (zero if no iterate kept the budget, ``p(a) ≤
     budget``).
     """
+    _check_batch(model, ys, xs)
+    check_rate(far, "far")
+    threshold = check_finite_number(threshold, "threshold")
     T, dy = ys.shape[-2:]
-    if not 1 <= onset <= T:
-        raise ValueError(f"onset must lie in [1, {T}]; got {onset!r}")
+    if isinstance(onset, bool) or not isinstance(onset, numbers.Integral) or not 1 <= onset <= T:
+        raise ValueError(f"onset must be an integer in [1, {T}]; got {onset!r}")
+    if entries is not None:
+        entries = _check_entries(entries, dy)
+    if not isinstance(settings, StealthySettings):
+        raise TypeError(f"settings must be a StealthySettings; got {type(settings).__name__}")
     s = settings
     like = dict(dtype=ys.dtype, device=ys.device)
     attacked = (torch.arange(1, T + 1, device=ys.device) >= onset).to(ys.dtype)

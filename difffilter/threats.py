@@ -47,6 +47,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ._checks import check_finite_number
 from .attack import Attack, Channel, TabulatedAttack
 
 __all__ = [
@@ -80,6 +81,15 @@ def _numbers(value, name: str) -> tuple[float, ...]:
     if not out or not all(math.isfinite(v) for v in out):
         raise ValueError(f"{name} must be finite numbers (at least one); got {value!r}")
     return out
+
+
+def _scalar(value, name: str, *, positive: bool = False, nonnegative: bool = False) -> float:
+    """One finite real number (a string from YAML, ``None`` or a list is named, not left
+    to fail at sampling), as a ``float``."""
+    try:
+        return check_finite_number(value, name, positive=positive, nonnegative=nonnegative)
+    except TypeError:
+        raise ValueError(f"{name} must be a finite number; got {value!r}") from None
 
 
 def _count(value, name: str, minimum: int) -> None:
@@ -122,6 +132,11 @@ class Shaped(TabulatedAttack):
         object.__setattr__(self, "share", _share(self.share))
         object.__setattr__(self, "channel", Channel(self.channel))
         if self.entries is not None:
+            if isinstance(self.entries, (str, bytes)) or not hasattr(self.entries, "__iter__"):
+                raise ValueError(
+                    f"entries must be None or a list of indices >= 0 (e.g. [0, 2]); got "
+                    f"{self.entries!r}"
+                )
             entries = tuple(self.entries)
             if not entries or any(isinstance(i, bool) or not isinstance(i, int) or i < 0
                                   for i in entries):  # fmt: skip
@@ -186,8 +201,7 @@ class KSigmaBias(Shaped):
 
     def __post_init__(self):
         super().__post_init__()
-        if not math.isfinite(float(self.k)):
-            raise ValueError(f"k must be a finite number; got {self.k!r}")
+        object.__setattr__(self, "k", _scalar(self.k, "k"))
         sigma = _numbers(self.sigma, "sigma")
         if any(v <= 0 for v in sigma):
             raise ValueError(f"sigma must be positive; got {self.sigma!r}")
@@ -280,11 +294,9 @@ class Sinusoid(Shaped):
     def __post_init__(self):
         super().__post_init__()
         object.__setattr__(self, "amplitude", _numbers(self.amplitude, "amplitude"))
-        for name in ("omega", "phase", "dt"):
-            if not math.isfinite(float(getattr(self, name))):
-                raise ValueError(f"{name} must be a finite number; got {getattr(self, name)!r}")
-        if self.dt <= 0:
-            raise ValueError(f"dt must be positive; got {self.dt!r}")
+        for name in ("omega", "phase"):
+            object.__setattr__(self, name, _scalar(getattr(self, name), name))
+        object.__setattr__(self, "dt", _scalar(self.dt, "dt", positive=True))
 
     def shape(self, s, dim, batch, generator, dtype):
         amp = self._vector(self.amplitude, dim, "amplitude", dtype, s.device)
@@ -307,13 +319,9 @@ class Chirp(Shaped):
         super().__post_init__()
         object.__setattr__(self, "amplitude", _numbers(self.amplitude, "amplitude"))
         _count(self.sweep, "sweep", 1)
-        finite = all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-                     for v in (self.f0, self.f1, self.dt))  # fmt: skip
-        if not (finite and self.f0 >= 0 and self.f1 >= 0 and self.dt > 0):
-            raise ValueError(
-                f"f0, f1 must be finite and >= 0, dt finite and > 0; got {self.f0}, {self.f1}, "
-                f"{self.dt}"
-            )
+        for name in ("f0", "f1"):
+            object.__setattr__(self, name, _scalar(getattr(self, name), name, nonnegative=True))
+        object.__setattr__(self, "dt", _scalar(self.dt, "dt", positive=True))
 
     def phase(self, s: Tensor) -> Tensor:
         """``2π ∫ f`` at ``s`` steps after the onset (continuous past the sweep)."""
@@ -599,9 +607,12 @@ def threat_from_dict(spec: dict, model=None) -> Attack:
         raise ValueError(
             f"threat {kind!r} has no field(s) {', '.join(unknown)}; valid: {', '.join(sorted(valid))}"
         )
-    if "entries" in params and params["entries"] is not None:
-        params["entries"] = tuple(params["entries"])
     if cls is Covert:
+        if "plant" in params:  # (it was silently replaced by the model)
+            raise ValueError(
+                "a covert threat's plant is the model of the scenario it runs on, given by the "
+                "caller (Kerckhoffs: the defender's); remove plant from the threat"
+            )
         if model is None:
             raise ValueError("a covert threat needs the model (the attacker's model of the plant)")
         signal = params.get("signal")

@@ -393,3 +393,29 @@ def test_generators_of_another_type_are_named():
         Generators.of(Generators(None, torch.Generator(), "seed"))
     g = torch.Generator()
     assert Generators.of(Generators(g, None, g)) == Generators(g, None, g)
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [("iterations", -5, "iterations must be a positive integer"),
+     ("iterations", "x", "iterations must be a positive integer"),
+     ("slack", 0.0, "slack must be a finite number > 0"),  # (a 0/0 in the penalty)
+     ("slack", 1.0, r"slack \(ε, an increase of the alarm rate\) must be in \(0, 1\)"),
+     ("temperature", -1.0, "temperature must be a finite number > 0"),
+     ("lr", math.nan, "lr must be a finite number > 0"),
+     ("penalty", -1.0, "penalty must be a finite number >= 0"),
+     ("init", math.inf, "init must be a finite number")],
+)  # fmt: skip
+def test_stealthy_settings_refuse_what_the_optimiser_cannot_use(field, value, message):
+    from difffilter.stealthy import StealthySettings
+
+    with pytest.raises((ValueError, TypeError), match=message):
+        StealthySettings(**{field: value})
+
+
+def test_stealthy_settings_take_numbers_of_any_kind_as_plain_ones():
+    from difffilter.stealthy import StealthySettings
+
+    s = StealthySettings(iterations=np.int64(4), slack=np.float32(0.25), penalty=0)
+    assert type(s.iterations) is int and s.iterations == 4
+    assert type(s.slack) is float and s.slack == 0.25 and s.penalty == 0.0

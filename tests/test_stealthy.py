@@ -110,6 +110,31 @@ def test_bad_arguments_are_named():
     # turned the attack into NaN and the filter refused its input)
     with pytest.raises(ValueError, match="at least two attacked"):
         craft_stealthy_attack(estimator, _plant(), tr.y_true[:1], tr.x[:1], 9.0, far=0.01, onset=T)
+    # what a user trial found accepted or failing far from its cause
+    craft = lambda **kw: craft_stealthy_attack(  # noqa: E731
+        estimator, _plant(), kw.pop("ys", tr.y_true), kw.pop("xs", tr.x), kw.pop("tau", 9.0),
+        far=kw.pop("far", 0.01), onset=ONSET, **kw,
+    )  # fmt: skip
+    for tau in (math.nan, math.inf):  # (it failed as "ys contains NaN")
+        with pytest.raises(ValueError, match="threshold must be a finite number"):
+            craft(tau=tau)
+    with pytest.raises(ValueError, match="far must be a false-alarm rate"):
+        craft(far=-5)
+    for entries in ((7,), (-1,), (), (0, 0)):  # an IndexError; -1 attacked the last entry
+        with pytest.raises(
+            ValueError, match=r"entries must be distinct measurement entries in \[0, 2\)"
+        ):
+            craft(entries=entries)
+    with pytest.raises(ValueError, match=r"ys must be a tensor \[B, T, dy = 2\]"):
+        craft(ys=tr.y_true[0])
+    with pytest.raises(ValueError, match=r"xs must be a tensor \[B, T, dx = 2\]"):
+        craft(xs=tr.x[..., :1])
+    with pytest.raises(ValueError, match="xs must hold the states of ys's runs"):
+        craft(xs=tr.x[:2])
+    with pytest.raises(TypeError, match="settings must be a StealthySettings"):
+        craft(settings={"iterations": 3})
+    with pytest.raises(ValueError, match=r"onset must be an integer in \[1, 3\]"):
+        CraftedAttack(torch.zeros(3, 2), 0)
 
 
 def test_an_attack_exactly_on_its_budget_keeps_it():

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -286,9 +287,36 @@ def test_every_threat_is_built_from_data_and_bad_data_is_named():
     # a quoted number is not read character by character (once the vector (1, 0))
     with pytest.raises(ValueError, match="value must be a number or a sequence of numbers"):
         threat_from_dict({"kind": "bias", "value": "10"})
-    for bad in ({"f0": math.inf}, {"f1": math.nan}, {"dt": math.inf}, {"f0": -0.1}):
-        with pytest.raises(ValueError, match="f0, f1 must be finite and >= 0, dt finite"):
+    for bad, message in (({"f0": math.inf}, "f0 must be a finite number >= 0"),
+                         ({"f1": math.nan}, "f1 must be a finite number >= 0"),
+                         ({"dt": math.inf}, "dt must be a finite number > 0"),
+                         ({"f0": -0.1}, "f0 must be a finite number >= 0")):  # fmt: skip
+        with pytest.raises(ValueError, match=message):
             threat_from_dict({"kind": "chirp", **bad})
+    # fields of the wrong type are named where they are given (a user trial found them
+    # failing at sampling, or as "could not convert string to float")
+    for kind, bad, message in (
+        ("ksigma_bias", {"k": "x", "sigma": 1.0}, "k must be a finite number; got 'x'"),
+        ("ksigma_bias", {"k": None, "sigma": 1.0}, "k must be a finite number; got None"),
+        ("sinusoid", {"omega": "1"}, "omega must be a finite number; got '1'"),
+        ("sinusoid", {"dt": "1"}, "dt must be a finite number; got '1'"),
+        ("sinusoid", {"dt": 0.0}, "dt must be a finite number > 0"),
+        ("chirp", {"f1": [0.1]}, r"f1 must be a finite number; got \[0.1\]"),
+        (
+            "bias",
+            {"entries": 2},
+            r"entries must be None or a list of indices >= 0 \(e.g. \[0, 2\]\); got 2",
+        ),
+        ("bias", {"entries": "02"}, "entries must be None or a list of indices"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            threat_from_dict({"kind": kind, **bad})
+    assert Sinusoid(omega=np.float32(2.0), dt=np.int64(1)).omega == 2.0  # numpy numbers: plain
+    assert threat_from_dict({"kind": "bias", "entries": [1]}).entries == (1,)  # a list: a tuple
+    with pytest.raises(ValueError, match="covert threat's plant is the model of the scenario"):
+        threat_from_dict(
+            {"kind": "covert", "signal": {"kind": "bias"}, "plant": "x"}, model=_plant()
+        )
 
 
 def test_a_library_threat_on_the_tracking_scenario_keeps_its_plant_and_its_schedule():
