@@ -598,6 +598,12 @@ def threat_from_dict(spec: dict, model=None) -> Attack:
         raise ValueError(f"a threat must be a mapping with a 'kind'; got {spec!r}")
     params = dict(spec)
     kind = params.pop("kind")
+    if kind == "stealthy":  # a threat set's entry, not a library attack
+        raise ValueError(
+            "a 'stealthy' threat is crafted against an estimator when a robustness study runs "
+            "(an entry of a threat set: difffilter.eval.stealthy.StealthySpec), or by "
+            "difffilter.stealthy.craft_stealthy_attack; it is not built from data here"
+        )
     if kind not in THREATS:
         raise ValueError(f"unknown threat kind {kind!r}; valid: {', '.join(sorted(THREATS))}")
     cls = THREATS[kind]

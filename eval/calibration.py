@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from difffilter._checks import check_rate
 from difffilter.metrics import after_attack, nan_as_lowest, threshold_for
 from difffilter.metrics import finite_scores as _finite_scores
 from difffilter.models.streams import Streams
@@ -81,10 +82,10 @@ def calibrate(
     ``cache`` (a dict shared by one evaluation) keeps the result for the same scenario,
     runs, estimators, checkpoint and target.
     """
-    from .suite import run_suite
+    from .suite import estimator_names, run_suite
 
-    if not 0.0 < float(far) < 1.0:
-        raise ValueError(f"far must lie in (0, 1); got {far!r}")
+    far = check_rate(far, "far")
+    estimators, add = estimator_names(estimators, "estimators"), estimator_names(add, "add")
     runs = scenario.runs if runs is None else runs
     key = ("far-calibration", scenario.attack_free_key(), runs, seed, far,
            tuple(estimators or ()), tuple(add), str(checkpoint))  # fmt: skip

@@ -93,11 +93,20 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
     threat_from_dict`), or ``threats_from: <file>`` (another file's, beside it, less those
     named in ``exclude``), and optionally ``runs`` and ``estimators``."""
     path = Path(path) if path is not None else _threat_file(scenario)
-    data = yaml.safe_load(path.read_text()) or {}
+    data = _read_threat_file(path)
     if "threats_from" in data:  # another file's threats, this file's study size
-        shared = yaml.safe_load((path.parent / data["threats_from"]).read_text()) or {}
-        left_out = set(data.get("exclude") or ())
-        kept = {n: t for n, t in (shared.get("threats") or {}).items() if n not in left_out}
+        shared = _read_threat_file(path.parent / str(data["threats_from"]), origin=path)
+        offered = shared.get("threats") or {}
+        left_out = data.get("exclude") or ()
+        if isinstance(left_out, str) or not all(isinstance(n, str) for n in left_out):
+            raise ValueError(f"{path}: exclude must be a list of threat names; got {left_out!r}")
+        missing = sorted(set(left_out) - set(offered))
+        if missing:  # (a misspelt name excluded nothing, silently)
+            raise ValueError(
+                f"{path}: exclude names threat(s) {', '.join(missing)} that "
+                f"{data['threats_from']} does not define; it defines: {', '.join(offered)}"
+            )
+        kept = {n: t for n, t in offered.items() if n not in set(left_out)}
         data = {**data, "threats": kept}
     specs = data.get("threats") or {}
     if not isinstance(specs, dict) or not specs:
@@ -125,6 +134,36 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
     estimators = data.get("estimators")
     return ThreatSet(threats, {n: dict(specs[n]) for n in chosen}, data.get("runs"),
                      None if estimators is None else tuple(estimators), str(path))  # fmt: skip
+
+
+#: The keys a threat-set file may hold (:func:`load_threat_set`).
+THREAT_FILE_KEYS = ("threats", "threats_from", "exclude", "runs", "estimators")
+
+
+def _read_threat_file(path: Path, origin: Path | None = None) -> dict:
+    """A threat-set file's mapping, or a ``ValueError`` naming the file: it is missing, not
+    YAML, not a mapping, or holds a key other than :data:`THREAT_FILE_KEYS` (a misspelt
+    ``threatz:`` was ignored, and the threats looked empty)."""
+    named = f"{origin}: threats_from {path.name}" if origin is not None else str(path)
+    if not path.is_file():
+        raise ValueError(f"{named}: no such file")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{named}: not valid YAML: {exc}") from None
+    data = {} if data is None else data
+    if not isinstance(data, dict):
+        raise ValueError(
+            f"{named}: a threat set is a mapping (threats: {{name: {{kind: …}}}}, runs, "
+            f"estimators); got a {type(data).__name__}"
+        )
+    unknown = sorted(str(k) for k in data if k not in THREAT_FILE_KEYS)
+    if unknown:
+        raise ValueError(
+            f"{named}: unknown key(s) {', '.join(unknown)}; a threat set holds "
+            f"{', '.join(THREAT_FILE_KEYS)}"
+        )
+    return data
 
 
 def robustness_scenarios(names) -> list[str]:
@@ -273,7 +312,7 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
     doc["acceptance"] = _clean(acceptance)
     (out / "robustness.json").write_text(json.dumps(doc, indent=2) + "\n")
     (out / "robustness.md").write_text(_markdown(doc, sc))
-    _heatmap(out / "robustness.png", doc)
+    _heatmap(out / "robustness.png", doc, sc)
     return doc
 
 
@@ -281,7 +320,7 @@ _TITLES = {
     "tpr_at_far": "Detection rate at the calibrated threshold (`tpr_at_far`, higher is better)",
     "state_error_ratio": "State error under the threat / attack-free (`state_error_ratio`, "
     "lower is better)",
-    "impact": "Estimation error caused before the first alarm (`impact` [state units], lower "
+    "impact": "Estimation error caused before the first alarm (`impact` [{state_unit}], lower "
     "is better)",
 }
 
@@ -300,6 +339,7 @@ def _markdown(doc: dict, sc) -> str:
         f"`{Path(doc['threat_set']).name}`.\n",
     ]
     for metric, title in _TITLES.items():
+        title = title.format(state_unit=sc.state_unit)  # (the scenario's, as its other tables)
         header = ["estimator", "attack-free FPR", *threats, "worst"]
         rows = []
         for est in ests:
@@ -434,7 +474,7 @@ def _stealthy_section(name: str, r: dict) -> str:
     )
 
 
-def _heatmap(path: Path, doc: dict) -> None:
+def _heatmap(path: Path, doc: dict, sc) -> None:
     """One panel per headline cell metric: estimators × threats, coloured good → bad."""
     import matplotlib
 
@@ -461,7 +501,7 @@ def _heatmap(path: Path, doc: dict) -> None:
         ax.set_xticks(range(len(threats)), threats, rotation=45, ha="right", fontsize=7)
         ax.set_yticks(range(len(ests)), ests if ax is axes[0] else [""] * len(ests), fontsize=7)
         scale = " (colour: log10, 1 = 0)" if log else ""
-        ax.set_title(f"{metric} [{_unit(metric)}]{scale}", fontsize=8)
+        ax.set_title(f"{metric} [{sc.unit_of(_unit(metric))}]{scale}", fontsize=8)
     fig.suptitle(f"{doc['scenario']}: robustness at {100 * doc['far']['target']:g} % FAR",
                  fontsize=9)  # fmt: skip
     fig.savefig(path, dpi=120, bbox_inches="tight")
@@ -491,7 +531,7 @@ def write_robustness_summary(out: str | Path, docs: dict[str, dict]) -> Path:
             rows.append([scenario, f"`{est}`", format_number(entry.get("fpr_at_far"), 3),
                          worst("tpr_at_far"), worst("state_error_ratio"), worst("impact")])  # fmt: skip
     header = ["scenario", "estimator", "attack-free fpr_at_far", "worst tpr_at_far",
-              "worst state_error_ratio", "worst impact [state units]"]  # fmt: skip
+              "worst state_error_ratio", "worst impact [its scenario's state unit]"]  # fmt: skip
     far = next(iter(docs.values()))["far"]["target"] if docs else 0.01
     path = out / "robustness.md"
     path.write_text(

@@ -125,8 +125,10 @@ def run_suite(
     runs = scenario.runs if runs is None else runs
     if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
         raise ValueError(f"runs must be an integer >= 1; got {runs!r}")
+    estimators, add = estimator_names(estimators, "estimators"), estimator_names(add, "add")
     streams = Streams(seed)
     model = scenario.system(dtype)
+    _check_threat_fits(scenario, model)
     gens = streams.simulation()
     traj = scenario.simulate(runs, gens, dtype=dtype, model=model)
     source = "--ckpt"
@@ -183,6 +185,29 @@ def run_suite(
         }
     _score(result, specs)
     return result
+
+
+def _check_threat_fits(scenario, model) -> None:
+    """The attack the plant meets acts within the horizon and fits its channel
+    (:func:`~difffilter.threats.check_attack_fits`): an onset past the last step ran a
+    whole study with no attacked step, every detection metric ``None``, without a word."""
+    from difffilter.threats import check_attack_fits
+
+    try:
+        check_attack_fits(scenario.simulated_attack(), model, scenario.steps)
+    except ValueError as exc:
+        raise ValueError(f"scenario {scenario.name!r}: its attack does not fit: {exc}") from None
+
+
+def estimator_names(names, arg: str) -> tuple[str, ...] | None:
+    """``names`` (a list or tuple of estimator names, or ``None``) as a tuple. A single
+    string is refused: iterated, ``"chi_square_ekf"`` named the estimators ``'c'``, ``'h'``, …"""
+    if names is None:
+        return None
+    if isinstance(names, str) or not all(isinstance(n, str) for n in names):
+        hint = f" (e.g. [{names!r}])" if isinstance(names, str) else ""
+        raise ValueError(f"{arg} must be a list of estimator names{hint}; got {names!r}")
+    return tuple(names)
 
 
 def _run_estimators(result: SuiteResult, specs, progress: bool, built=None) -> None:

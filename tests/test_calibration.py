@@ -207,3 +207,23 @@ def test_a_study_calibrated_afterwards_on_its_detectors_reads_the_same_threshold
     monkeypatch.setattr(suite_module, "run_suite", no_suite)
     empty = calibrate(scenario, runs=8, estimators=[], progress=False)
     assert empty.thresholds == {} and empty.runs == 8 and empty.seed == calibration_seed(0)
+
+
+def test_calibrate_and_run_suite_name_a_string_of_estimators_and_a_bad_rate():
+    """A user trial: estimators="chi_square_ekf" failed as "unknown estimator 'c'", and
+    far="abc" as "could not convert string to float"."""
+    from difffilter.eval.calibration import calibrate
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import registry
+
+    sc = registry.get("four_tank_bias")
+    with pytest.raises(
+        ValueError,
+        match=r"estimators must be a list of estimator names \(e.g. \['chi_square_ekf'\]\)",
+    ):
+        calibrate(sc, estimators="chi_square_ekf", runs=2, progress=False)
+    with pytest.raises(ValueError, match="add must be a list of estimator names"):
+        run_suite(sc, runs=2, add="cusum_ekf", progress=False)
+    for far in ("abc", 0.0, 1.5, None):
+        with pytest.raises(ValueError, match="far must be a false-alarm rate in"):
+            calibrate(sc, far=far, runs=2, progress=False)

@@ -345,3 +345,62 @@ def test_a_library_threat_on_the_tracking_scenario_keeps_its_plant_and_its_sched
     assert not got.flags[:, :29].any() and got.flags[:, 29:].all()
     assert got.info["sensor_flags"][:, 29:].all() and not got.info["sensor_flags"][:, :29].any()
     assert torch.equal(got.info["y_all"][:, 29:][:, quiet], free.info["y_all"][:, 29:][:, quiet])
+
+
+def test_a_threat_set_file_that_is_not_one_is_named_with_its_path(tmp_path):
+    """A user trial found a raw PyYAML traceback, an AttributeError for a list, and a
+    misspelt key or excluded name ignored in silence."""
+    from difffilter.eval.robustness import load_threat_set
+    from difffilter.models import registry
+
+    sc = registry.get("four_tank_bias")
+
+    def load(text, name="set.yaml"):
+        path = tmp_path / name
+        path.write_text(text)
+        return load_threat_set(sc, "all", path=path)
+
+    for text, message in (
+        ("threats: {a: {kind: bias\n", "set.yaml: not valid YAML"),
+        ("- kind: bias\n", "set.yaml: a threat set is a mapping .* got a list"),
+        ("threatz: {a: {kind: bias}}\n", "set.yaml: unknown key.s. threatz; a threat set holds threats, threats_from"),
+        ("threats_from: nowhere.yaml\n", "set.yaml: threats_from nowhere.yaml: no such file"),
+        ("threats_from: shared.yaml\nexclude: [bais]\n", "exclude names threat.s. bais that shared.yaml .*: bias, ramp"),
+        ("threats_from: shared.yaml\nexclude: bias\n", "exclude must be a list of threat names"),
+    ):  # fmt: skip
+        (tmp_path / "shared.yaml").write_text(
+            "threats: {bias: {kind: bias, onset: 5}, ramp: {kind: ramp, onset: 5}}\n"
+        )
+        with pytest.raises(ValueError, match=message):
+            load(text)
+    kept = load("threats_from: shared.yaml\nexclude: [ramp]\nruns: 3\n")
+    assert list(kept.threats) == ["bias"] and kept.runs == 3
+    with pytest.raises(ValueError, match="no such file"):
+        load_threat_set(sc, "all", path=tmp_path / "absent.yaml")
+
+
+def test_a_study_whose_attack_starts_after_its_last_step_is_refused():
+    """run_suite checked nothing: an onset past the horizon gave a full report with no
+    attacked step and every detection metric None (the YAML and threat-set routes refuse)."""
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import registry
+
+    sc = registry.get("four_tank_bias").with_steps(20)
+    with pytest.raises(
+        ValueError, match="'four_tank_bias': its attack does not fit: it starts at step 21"
+    ):
+        run_suite(
+            sc.with_threat(Bias(0.1, onset=21)),
+            runs=2,
+            estimators=["chi_square_ekf"],
+            progress=False,
+        )
+    out = run_suite(
+        sc.with_threat(Bias(0.1, onset=20)), runs=2, estimators=["chi_square_ekf"], progress=False
+    )
+    assert int(out.traj.flags.sum()) == 2  # the last step of both runs
+
+
+def test_a_stealthy_kind_outside_a_threat_set_says_where_it_is_made():
+    with pytest.raises(ValueError, match="'stealthy' threat is crafted against an estimator"):
+        threat_from_dict({"kind": "stealthy"})
