@@ -54,8 +54,17 @@ def values_known(t: Tensor) -> bool:
     return t.device.type != "meta"
 
 
+#: torch's floating dtype of a numpy floating dtype, by its size in bytes.
+_NUMPY_FLOATS = {2: torch.float16, 4: torch.float32, 8: torch.float64}
+
+
 def as_tensor(value, name: str, *, dtype=None, device=None) -> Tensor:
-    """Convert ``value`` to a floating tensor, keeping autograd history of tensors."""
+    """Convert ``value`` to a floating tensor, keeping autograd history of tensors.
+
+    Without ``dtype``: a floating tensor or numpy floating array keeps its dtype (a model
+    built from scipy's float64 matrices stays float64, as ``torch.as_tensor`` keeps it; it
+    was rounded to float32, and then refused float64 measurements); anything else (lists,
+    numbers, integer arrays) takes torch's default dtype."""
     if isinstance(value, Tensor):
         if not value.is_floating_point():
             value = value.to(dtype or torch.get_default_dtype())
@@ -66,6 +75,9 @@ def as_tensor(value, name: str, *, dtype=None, device=None) -> Tensor:
         return value
     if isinstance(value, (list, tuple)) and value and all(isinstance(v, Tensor) for v in value):
         return torch.stack([as_tensor(v, name, dtype=dtype, device=device) for v in value])
+    array_dtype = getattr(value, "dtype", None)  # a numpy array's or number's
+    if dtype is None and getattr(array_dtype, "kind", None) == "f":
+        dtype = _NUMPY_FLOATS.get(array_dtype.itemsize)
     try:
         return torch.as_tensor(value, dtype=dtype or torch.get_default_dtype(), device=device)
     except (TypeError, ValueError, RuntimeError) as exc:

@@ -316,7 +316,11 @@ class NonlinearGaussianModel(StateSpaceModel):
         dx, dy = Q.shape[-1], R.shape[-1]
         check_positive_definite(Q, "Q", dx)
         check_positive_definite(R, "R", dy)
-        check_vector_last(m0, "m0", dx)
+        if m0.dim() < 1 or m0.shape[-1] != dx:  # (Q fixes dx: name both)
+            raise ValueError(
+                f"m0 must have shape [..., {dx}]: Q is {dx}×{dx}, so the state has {dx} entries; "
+                f"got m0 {tuple(m0.shape)}"
+            )
         check_finite(m0, "m0")
         check_positive_definite(P0, "P0", dx)
         if isinstance(dim_u, bool) or not isinstance(dim_u, numbers.Integral) or dim_u < 0:
@@ -328,6 +332,26 @@ class NonlinearGaussianModel(StateSpaceModel):
         self.initial = Gaussian(m0, P0)
         self.process_noise = Gaussian(torch.zeros(dx, dtype=dtype, device=device), Q)
         self.measurement_noise = Gaussian(torch.zeros(dy, dtype=dtype, device=device), R)
+        self._check_widths(m0.reshape(-1, dx)[:1])
+
+    def _check_widths(self, x: Tensor) -> None:
+        """``f`` and ``h`` at the prior mean ``x [1, dx]`` return ``dx`` and ``dy`` entries
+        (Q's and R's sizes): a wrong width otherwise broadcast silently in the UKF (a 1-entry
+        measurement against a 2-entry prediction) and failed deep in torch elsewhere. A
+        function that cannot run on this probe is left to fail where it is used."""
+        u = None if self.dim_u == 0 else x.new_zeros(1, self.dim_u)
+        for name, fn, want, size in (("transition", lambda: self.transition(x, u, 0), self.dim_x, "Q"),
+                                     ("observe", lambda: self.observe(x, 1), self.dim_y, "R")):  # fmt: skip
+            try:
+                with torch.no_grad():
+                    out = fn()
+            except Exception:  # noqa: BLE001 (a probe, not the model's use)
+                continue
+            if isinstance(out, Tensor) and (out.dim() < 1 or out.shape[-1] != want):
+                raise ValueError(
+                    f"{name} returns {tuple(out.shape)} for x [1, {self.dim_x}] at the prior mean; "
+                    f"{size} is {want}×{want}, so it must return [..., {want}]"
+                )
 
     def transition(self, x, u, k):
         return _dispatch(self._f, self._f_arity, x, u, k)
