@@ -272,7 +272,7 @@ class SuiteContext:
         # what the calibration runs depend on beyond the key: the plant, its schedule and
         # its known inputs (a user who edits them gets a new calibration, in this process
         # as on disk: the process's cache is keyed on their fingerprint too)
-        parts = (self.model, self.scenario.schedule(), self.scenario.inputs(1, self.dtype))
+        parts = (self.model, self.scenario.schedule(), self.scenario.inputs(runs, self.dtype))
         process_key = (key, calibration_cache.model_fingerprint(parts))
         if process_key not in _CUSUM_CACHE:
             if len(_CUSUM_CACHE) >= 64:  # a long session of many scenarios: drop the oldest

@@ -34,8 +34,10 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
+from difffilter._checks import model_dtype_device
 from difffilter.attack import Attack, Channel
 from difffilter.loop import DrawnNoise, KnownInputs, Trajectories, closed_loop
+from difffilter.ssm import StateSpaceModel
 from difffilter.threats import KSigmaBias
 
 from .schedules import AllSensors
@@ -333,7 +335,8 @@ class CustomScenario(Scenario):
             papers' (:mod:`difffilter.models.attacks`), one of your own, or ``None``.
         protocol: a schedule of :mod:`difffilter.models.schedules` (default all sensors).
         known_inputs: the commanded inputs ``u_0 … u_{T−1}`` the plant is driven with and
-            every estimator knows: a tensor ``[T, du]`` (every run) or ``[runs, T, du]``, or
+            every estimator knows: a tensor ``[T, du]`` (every run) or ``[R, T, du]`` (run
+            ``i`` its row ``i mod R``: :meth:`inputs`), or
             a function of the step index ``k`` (a tensor ``[T]`` of ``0 … T−1`` in the
             model's dtype) returning ``[T, du]`` (or ``[T]`` for one input); ``None``: no
             inputs (zeros under an actuator attack).
@@ -362,6 +365,14 @@ class CustomScenario(Scenario):
                 "attack must be a difffilter.attack.Attack (e.g. difffilter.threats.Ramp) or "
                 f"None; got {type(self.attack).__name__}"
             )
+        for name in ("runs", "steps"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
+        dt = self.dt
+        if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not 0 < dt < math.inf:
+            # (a negative dt printed detection delays of "-0" s)
+            raise ValueError(f"dt (the sampling period, s) must be a finite number > 0; got {dt!r}")
         known = self.known_inputs
         if known is not None and not callable(known) and not isinstance(known, Tensor):
             raise TypeError(
@@ -370,7 +381,21 @@ class CustomScenario(Scenario):
             )
 
     def system(self, dtype: torch.dtype = torch.float64, device=None):
-        return self.model_fn(dtype)
+        """``model_fn(dtype)``, checked: a state-space model of that dtype (one of another
+        failed ten calls deep in a matrix product, ``None`` as a missing attribute)."""
+        model = self.model_fn(dtype)
+        if not isinstance(model, StateSpaceModel):
+            raise TypeError(
+                f"scenario {self.name!r}: model_fn must return a difffilter StateSpaceModel "
+                f"(e.g. LinearGaussianModel); it returned {type(model).__name__}"
+            )
+        got = model_dtype_device(model)[0]
+        if got is not None and got != dtype:
+            raise ValueError(
+                f"scenario {self.name!r}: model_fn({dtype}) returned a model of {got}: build it "
+                "in the dtype it is given (e.g. torch.tensor(..., dtype=dtype))"
+            )
+        return model
 
     def attack_model(self):
         return self.attack
@@ -380,7 +405,11 @@ class CustomScenario(Scenario):
 
     def inputs(self, runs: int, dtype: torch.dtype, device=None) -> Tensor | None:
         """``known_inputs`` as ``[runs, steps, du]`` (their first ``steps`` rows when they
-        hold more: a shorter horizon of the scenario; a clear error when they do not fit)."""
+        hold more: a shorter horizon of the scenario; a clear error when they do not fit).
+
+        A table of ``R`` runs ``[R, steps, du]`` serves any number of runs: run ``i`` takes
+        its row ``i mod R`` (a study of fewer runs its first rows; the attack-free runs that
+        calibrate a detector, at least 50, cycle through it)."""
         known = self.known_inputs
         if known is None:
             return None
@@ -395,17 +424,14 @@ class CustomScenario(Scenario):
             known = known.unsqueeze(0)
         if known.dim() == 3 and known.shape[1] > self.steps:  # a shorter horizon (with_steps)
             known = known[:, : self.steps]
-        if (
-            known.dim() != 3
-            or known.shape[1] != self.steps
-            or known.shape[2] != du
-            or (known.shape[0] not in (1, runs))
-        ):
+        if known.dim() != 3 or known.shape[1] != self.steps or known.shape[2] != du:
             raise ValueError(
                 f"known_inputs of scenario {self.name!r} must give [steps, du] = "
-                f"[{self.steps}, {du}] or [runs, steps, du] = {list(wanted)}; got "
+                f"[{self.steps}, {du}] or [runs, steps, du] = [R, {self.steps}, {du}]; got "
                 f"{list(known.shape)}"
             )
+        if known.shape[0] not in (1, runs):  # a table of other runs: row i mod R
+            known = known[torch.arange(runs, device=known.device) % known.shape[0]]
         return known.expand(wanted).clone()
 
     def estimator_options(self) -> dict[str, Any]:

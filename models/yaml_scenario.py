@@ -141,6 +141,13 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
             settings[key] = _number(doc[key], f"{where}: {key}")
     if not settings.get("dt", 1.0) > 0:
         raise ValueError(f"{where}: dt must be a sampling period > 0 (s); got {doc['dt']!r}")
+    # checked here, by the file, not when a detector is first built from them
+    if not 0 < settings.get("false_alarm_rate", 0.01) < 1:
+        raise ValueError(
+            f"{where}: false_alarm_rate must be a rate in (0, 1); got {doc['false_alarm_rate']!r}"
+        )
+    if not settings.get("gamma_min", 1.0) > 0:
+        raise ValueError(f"{where}: gamma_min must be a number > 0; got {doc['gamma_min']!r}")
     steps = settings.get("steps", CustomScenario.steps)
     attack = _attack(doc.get("attack"), probe, steps, f"{where}: attack")
     try:
@@ -185,8 +192,27 @@ def _check_against_plant(scenario: CustomScenario, probe, where: str) -> None:
 def _number(value: Any, where: str) -> float:
     """A finite number of the YAML file (``ValueError`` starting with ``where`` otherwise)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ValueError(f"{where} must be a finite number; got {value!r}")
+        raise ValueError(
+            f"{where} must be a finite number; got {value!r}{_string_number_hint(value)}"
+        )
     return float(value)
+
+
+def _string_number_hint(value: Any) -> str:
+    """Why a number may have been read as a string: YAML 1.1 (PyYAML) takes ``1e-5``, with no
+    decimal point, for text; ``1.0e-5`` is a number."""
+    text = value if isinstance(value, str) else None
+    if isinstance(value, list):  # the first string of a (nested) list
+        stack = list(value)
+        while stack and text is None:
+            item = stack.pop(0)
+            text = item if isinstance(item, str) else None
+            stack = (item if isinstance(item, list) else []) + stack
+    try:
+        float(text)
+    except (TypeError, ValueError):
+        return ""
+    return f" (YAML reads {text!r} as text: write exponents with a decimal point, e.g. 1.0e-5)"
 
 
 def _names(value: Any, where: str) -> tuple:
@@ -262,6 +288,7 @@ def _matrix(value: Any, n: int | None, where: str, dtype) -> torch.Tensor:
     except (TypeError, ValueError, RuntimeError):
         raise ValueError(
             f"{where} must be a number or (nested) lists of numbers; got {value!r}"
+            f"{_string_number_hint(value)}"
         ) from None
     if not bool(torch.isfinite(t).all()):
         raise ValueError(f"{where} must be finite; got {value!r}")

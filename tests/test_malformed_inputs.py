@@ -482,3 +482,27 @@ def test_a_nonlinear_model_whose_functions_do_not_fit_q_and_r_is_refused():
         return x[:1]
 
     df.NonlinearGaussianModel(f, unbatched, 1e-3 * eye, [[1e-2]], np.zeros(2), eye)
+
+
+def test_a_custom_scenario_names_a_model_fn_that_does_not_give_a_model_of_its_dtype():
+    """A user trial: a model_fn that ignored its dtype failed ten calls deep in a matrix
+    product (double != float), one returning None as a missing attribute; a negative dt
+    printed detection delays of "-0" s."""
+    from difffilter.models.scenario import CustomScenario
+
+    def plant(dtype):
+        return constant_velocity(dtype=dtype)
+
+    kw = dict(name="c", family="custom", description="d")
+    assert CustomScenario(model_fn=plant, **kw).system(torch.float64).F.dtype == torch.float64
+    with pytest.raises(
+        ValueError, match=r"'c': model_fn\(torch.float64\) returned a model of torch.float32"
+    ):
+        CustomScenario(model_fn=lambda dtype: plant(torch.float32), **kw).system(torch.float64)
+    with pytest.raises(
+        TypeError, match="'c': model_fn must return a difffilter StateSpaceModel .* NoneType"
+    ):
+        CustomScenario(model_fn=lambda dtype: None, **kw).system(torch.float64)
+    for field, value in (("dt", -0.1), ("dt", 0), ("dt", math.nan), ("steps", 0), ("runs", 2.5)):
+        with pytest.raises(ValueError, match=f"{field}"):
+            CustomScenario(model_fn=plant, **{**kw, field: value})

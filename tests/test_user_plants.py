@@ -235,6 +235,18 @@ def test_a_bad_yaml_scenario_names_the_file_and_the_field(tmp_path):
         scenario_from_yaml(bad)
     with pytest.raises(ValueError, match="does not exist"):
         registry.get(str(tmp_path / "missing.yaml"))
+    # checked by the file when it loads (a user trial met them later, without the file)
+    plant = "plant: {F: [[1.0]], H: [[1.0]], Q: 1.0, R: 1.0}\n"
+    for line, why in (("false_alarm_rate: 5.0", r"bad.yaml: false_alarm_rate must be a rate in \(0, 1\); got 5.0"),
+                      ("gamma_min: -1.0", "bad.yaml: gamma_min must be a number > 0; got -1.0")):  # fmt: skip
+        bad.write_text(f"name: x\n{plant}{line}\n")
+        with pytest.raises(ValueError, match=why):
+            scenario_from_yaml(bad)
+    bad.write_text("name: x\nplant: {F: [[1.0]], H: [[1.0]], Q: 1e-5, R: 1.0}\n")
+    with pytest.raises(
+        ValueError, match=r"YAML reads '1e-5' as text: write exponents with a decimal point"
+    ):
+        scenario_from_yaml(bad)
 
 
 def test_known_inputs_that_do_not_fit_say_so(plants):
@@ -387,6 +399,34 @@ def test_a_shorter_horizon_takes_the_first_rows_of_tabulated_inputs():
     assert short.simulate(2, gens).x.shape == (2, 4, 1)
     with pytest.raises(ValueError, match="generators must hold 'plant'"):
         short.simulate(2, {"attack": gens["attack"]})
+
+
+def test_a_table_of_inputs_per_run_serves_studies_of_any_size_and_the_default_suite(monkeypatch):
+    """A ``[R, T, du]`` table: run ``i`` takes row ``i mod R``. A user trial found the
+    documented shape refused by the default suite: the CUSUM's calibration (at least 50
+    runs) asked for a table of 50 runs, its cache fingerprint for one."""
+    import difffilter as df
+    from difffilter.eval.suite import run_suite
+    from difffilter.models.scenario import CustomScenario
+    from difffilter.threats import Bias
+
+    monkeypatch.setenv("DIFFFILTER_CACHE", "off")
+
+    def plant(dtype):
+        e = torch.eye(1, dtype=dtype)
+        return df.LinearGaussianModel(
+            0.9 * e, e, 0.01 * e, 0.01 * e, torch.zeros(1, dtype=dtype), e, B=e
+        )
+
+    table = torch.arange(3 * 8, dtype=torch.float64).reshape(3, 8, 1)
+    sc = CustomScenario(name="per_run_inputs", family="user_plants", description="a table per run",
+                        model_fn=plant, known_inputs=table, steps=8, runs=3,
+                        attack=Bias(0.5, onset=4))  # fmt: skip
+    torch.testing.assert_close(sc.inputs(5, torch.float64), table[[0, 1, 2, 0, 1]])
+    torch.testing.assert_close(sc.inputs(2, torch.float64), table[:2])
+    result = run_suite(sc, progress=False, estimators=["chi_square_kf", "cusum_kf"])
+    assert set(result.metrics) == {"chi_square_kf", "cusum_kf"}
+    torch.testing.assert_close(result.traj.us, table)
 
 
 def test_a_cusum_calibration_follows_an_edited_plant_in_the_same_process(monkeypatch):
