@@ -204,7 +204,11 @@ def craft_stealthy_attack(
             and weights between resamplings, not through the resampler's discrete choice.
         resample: ``iteration → (ys, xs)``, a fresh training batch for every iteration
             (stochastic optimisation over the noise: without it the attack may fit the
-            training noise and alarm more on fresh noise); ``ys, xs`` are the first.
+            training noise and alarm more on fresh noise); ``ys, xs`` are the first. The
+            budget ``p(0) + ε`` is set on the first batch, and each iterate's hard rate is
+            that of its own batch: the iterate kept is the best one that kept the budget on
+            the batch it ran on, which another batch's noise may not confirm (judge it on
+            fresh runs: the robustness study does).
         progress: ``(iteration, J, alarm rate) → None`` after every iteration, or ``None``.
 
     Returns a :class:`CraftedAttack` with ``history`` ``[(iteration, J, p̃(a) − p̃(0),

@@ -183,7 +183,12 @@ def same_rate_bias(scenario, against: str, rate: float, threshold: float, *, ons
                    checkpoint=None) -> dict[str, Any]:  # fmt: skip
     """The constant bias ``k σ`` (on ``entries``, from ``onset``) whose alarm rate under
     ``against`` at ``threshold`` on the study's runs equals ``rate`` (bisection on ``k``),
-    with its RMS estimation error over the attacked steps."""
+    with its RMS estimation error over the attacked steps.
+
+    ``matched``: whether a bias reaches ``rate``. A rate at or below the attack-free runs'
+    (``k = 0``: a crafted attack that alarms less than no attack at all) has no such bias;
+    then ``k_sigma`` is 0 and the figures are the attack-free runs' (the bisection used to
+    collapse towards 0 and the report called that bias "the same alarm rate")."""
     model = scenario.system()
     judge_attack = _judge(scenario, against, threshold, runs=runs, seed=seed,
                           checkpoint=checkpoint)  # fmt: skip
@@ -191,10 +196,13 @@ def same_rate_bias(scenario, against: str, rate: float, threshold: float, *, ons
     def judge(k: float) -> dict[str, float]:
         return judge_attack(KSigmaBias.of(model, k, onset=onset, entries=entries))
 
+    free = judge(0.0)
+    if free["alarm_rate"] >= rate:
+        return {"k_sigma": 0.0, **free, "matched": free["alarm_rate"] == rate}
     lo, hi = 0.0, 1.0
     while judge(hi)["alarm_rate"] < rate and hi < 1e3:
         lo, hi = hi, 2 * hi
     for _ in range(iterations):
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if judge(mid)["alarm_rate"] < rate else (lo, mid)
-    return {"k_sigma": hi, **judge(hi)}
+    return {"k_sigma": hi, **judge(hi), "matched": True}

@@ -232,7 +232,10 @@ def _run_estimators(result: SuiteResult, specs, progress: bool, built=None) -> N
             result.skipped[spec.name] = str(why)
             continue
         start = time.perf_counter()
-        out = run(result.traj)
+        try:
+            out = run(result.traj)
+        except ValueError as exc:  # (which estimator of which study, e.g. on an attack's NaN)
+            raise ValueError(f"{spec.name} on {result.scenario.name}: {exc}") from exc
         result.wall_s[spec.name] = time.perf_counter() - start
         if isinstance(out, LoopResult):  # a closed loop of its own: its truth
             result.trajectories[spec.name] = out.trajectories

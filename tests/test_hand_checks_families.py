@@ -333,3 +333,32 @@ def test_leaderboard_names_a_unit_in_the_header_only_where_all_share_it(tmp_path
     assert "attack_rmse [attack units]" in text
     assert "units (state; attack)" in text
     assert "| b | `kf` | cm; p.u. |" in text
+
+
+def test_the_same_rate_bias_says_when_no_bias_alarms_as_rarely(monkeypatch):
+    """A crafted attack that alarms less than the attack-free runs has no constant bias of
+    its rate: the bisection collapsed towards k = 0 and the report still said "same alarm
+    rate" (a user trial). Here the bias's alarm rate is 0.02 + 0.01 k."""
+    from difffilter.eval import stealthy
+    from difffilter.eval.robustness import _stealthy_section
+    from difffilter.models import registry
+
+    def judge(*args, **kwargs):
+        return lambda attack: {"alarm_rate": 0.02 + 0.01 * attack.k, "state_error": 1.0 + attack.k}
+
+    monkeypatch.setattr(stealthy, "_judge", judge)
+    sc = registry.get("four_tank_bias")
+    common = dict(onset=5, runs=2, seed=0)
+    below = stealthy.same_rate_bias(sc, "chi_square_ekf", 0.015, 9.0, **common)
+    assert below == {"k_sigma": 0.0, "alarm_rate": 0.02, "state_error": 1.0, "matched": False}
+    above = stealthy.same_rate_bias(sc, "chi_square_ekf", 0.035, 9.0, **common)
+    assert above["matched"] and above["k_sigma"] == pytest.approx(1.5, abs=1e-3)
+    report = {"crafted": {"alarm_rate": 0.015, "state_error": 3.0}, "same_rate_bias": below,
+              "settings": {"slack": 0.003, "iterations": 5, "lr": 0.01, "temperature": 0.18,
+                           "penalty": 50.0},
+              "against": "chi_square_ekf", "threshold": 9.0, "train_runs": 4,
+              "iterations_within_budget": 2, "error_ratio_to_bias": 3.0}  # fmt: skip
+    text = _stealthy_section("stealthy_x", report)
+    assert "same alarm rate" not in text and "no constant bias matches its rate" in text
+    report["same_rate_bias"] = above
+    assert "constant bias 1.5 σ (same alarm rate)" in _stealthy_section("stealthy_x", report)

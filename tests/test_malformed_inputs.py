@@ -506,3 +506,22 @@ def test_a_custom_scenario_names_a_model_fn_that_does_not_give_a_model_of_its_dt
     for field, value in (("dt", -0.1), ("dt", 0), ("dt", math.nan), ("steps", 0), ("runs", 2.5)):
         with pytest.raises(ValueError, match=f"{field}"):
             CustomScenario(model_fn=plant, **{**kw, field: value})
+
+
+def test_a_study_names_the_estimator_and_scenario_an_error_came_from():
+    """A user trial's attack injected a NaN packet: the suite's error said "ys contains NaN"
+    without naming which estimator of which study met it."""
+    from difffilter.attack import TabulatedAttack
+    from difffilter.eval.suite import run_suite
+    from difffilter.models.scenario import CustomScenario
+
+    class NaNPacket(TabulatedAttack):
+        def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+            values = torch.zeros(*batch_shape, num_steps, dim, dtype=dtype)
+            values[..., 3, 0] = math.nan
+            return values, torch.ones(*batch_shape, num_steps, dtype=torch.bool)
+
+    sc = CustomScenario(name="nan_packet", family="custom", description="d", steps=6, runs=2,
+                        model_fn=lambda dtype: constant_velocity(dtype=dtype), attack=NaNPacket())  # fmt: skip
+    with pytest.raises(ValueError, match="chi_square_kf on nan_packet: ys contains NaN or Inf"):
+        run_suite(sc, estimators=["chi_square_kf"], progress=False)
