@@ -32,6 +32,7 @@ lines, ``run_suite``, the training config's ``scenario``):
 from __future__ import annotations
 
 import importlib
+import inspect
 import pkgutil
 import warnings
 from importlib.metadata import entry_points
@@ -48,7 +49,12 @@ _REGISTRY: dict[str, Scenario] = {}
 def register(scenario: Scenario) -> Scenario:
     """Add ``scenario`` under its name; registering the same name twice is an error."""
     if scenario.name in _REGISTRY and _REGISTRY[scenario.name] != scenario:
-        raise ValueError(f"scenario {scenario.name!r} is already registered")
+        raise ValueError(
+            f"scenario {scenario.name!r} is already registered, as a different scenario (another "
+            "definition of that name, or a file edited since it was loaded): a name is "
+            "registered once a process; give this one another name, or load the edited file "
+            "in a new process"
+        )
     _REGISTRY[scenario.name] = scenario
     return scenario
 
@@ -88,6 +94,15 @@ def _register_all(obj, where: str) -> list[Scenario]:
     if isinstance(obj, type(importlib)):  # a module: it registered itself when imported
         return []
     if callable(obj) and not isinstance(obj, Scenario):
+        try:
+            inspect.signature(obj).bind()
+        except TypeError:  # (a model function dtype -> model, named by mistake)
+            raise ValueError(
+                f"{where} is a function that needs arguments; name a scenario (e.g. a "
+                "CustomScenario), a list of them, or a function of no arguments returning one"
+            ) from None
+        except ValueError:  # no signature to read (a builtin): call it and see
+            pass
         obj = obj()
     items = obj if isinstance(obj, (list, tuple)) else [obj]
     bad = [type(s).__name__ for s in items if not isinstance(s, Scenario)]

@@ -515,7 +515,7 @@ def test_the_ekf_trainers_logged_attack_mse_is_per_entry():
     """The EKF trainer logs ``train/attack_mse`` = the mean over runs and ENTRIES of
     ``(a − W tanh(V δ̃))²`` before the update (one step, so at the initial weights), numpy
     (the division by the entries was unpinned)."""
-    task = _task(trainer="ekf", filter="kf", dtype="float64")
+    task = _task(trainer="ekf", filter="ekf", dtype="float64")
     net = task.estimator
     R, n_in, m = 3, net.in_dim, net.area_dim
     assert m > 1, m

@@ -72,9 +72,28 @@ def test_a_nested_carrys_tensor_written_in_place_is_validated_again():
 def test_registering_another_scenario_under_a_used_name_is_refused(isolated_registry):
     base = registry.get("four_tank_bias")
     assert registry.register(base) is base  # the same scenario again: nothing to say
-    with pytest.raises(ValueError, match="'four_tank_bias' is already registered"):
+    with pytest.raises(
+        ValueError, match="'four_tank_bias' is already registered.*in a new process"
+    ):
         registry.register(dataclasses.replace(base, headline=not base.headline))
     assert registry.get("four_tank_bias") is base
+
+
+def test_a_module_object_that_is_a_function_needing_arguments_is_named(isolated_registry, tmp_path,
+                                                                      monkeypatch):  # fmt: skip
+    """A user trial named the plant's model function (dtype -> model) as the scenario: a
+    raw TypeError traceback from the call."""
+    (tmp_path / "user_fn_plants.py").write_text(
+        "from difffilter.models import registry\n"
+        "def model(dtype):\n    raise AssertionError('never called')\n"
+        "def scenarios():\n    return [registry.get('four_tank_bias')]\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(
+        ValueError, match="'user_fn_plants:model' is a function that needs arguments"
+    ):
+        registry.get("user_fn_plants:model")
+    assert registry.get("user_fn_plants:scenarios").name == "four_tank_bias"
 
 
 def test_a_plug_in_that_fails_in_any_way_is_a_warning_and_the_built_ins_stay(

@@ -211,3 +211,26 @@ def test_onsets_past_the_horizon_are_counted_and_the_data_module_warns():
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the full horizon: nothing to say
         ScenarioDataModule("four_tank_bias", val_runs=2, test_runs=1, threats=MIX)
+
+
+def test_a_horizon_shorter_than_the_scenarios_own_attack_is_refused(isolated_registry):
+    """A user trial shortened the horizon below the attack's onset: the runs trained
+    attack-free, then Lightning failed at validation ("could not find the monitored key
+    val/auc"). Training across threats warns instead (the test above)."""
+    from conftest import constant_velocity
+
+    from difffilter.models import registry
+    from difffilter.models.scenario import CustomScenario
+    from difffilter.threats import Bias
+    from difffilter.train.task import ScenarioDataModule
+
+    registry.register(CustomScenario(
+        name="late_bias", family="custom", description="a bias from step 10", steps=30,
+        model_fn=lambda dtype: constant_velocity(dtype=dtype), attack=Bias(1.0, onset=10),
+    ))  # fmt: skip
+    with pytest.raises(
+        ValueError,
+        match=r"steps=9: scenario 'late_bias''s attack does not fit .* starts at step 10",
+    ):
+        ScenarioDataModule("late_bias", val_runs=2, steps=9)
+    assert ScenarioDataModule("late_bias", val_runs=2, steps=10).scenario.steps == 10

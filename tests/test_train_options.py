@@ -47,3 +47,15 @@ def test_a_seed_must_be_a_non_negative_integer(name):
     for bad in (-1, 2.5):
         with pytest.raises(ValueError, match=f"{name} must be an integer >= 0"):
             ScenarioDataModule("four_tank_bias", **{name: bad})
+
+
+def test_the_kalman_filter_on_a_nonlinear_plant_is_refused_before_training():
+    """A user trial: filter=kf on a nonlinear plant failed at the first training step, 24
+    frames into Lightning (the message was clear, its place was not)."""
+    from difffilter.train.task import FilterEstimatorTask
+
+    with pytest.raises(
+        ValueError,
+        match="filter: 'kf' needs a linear model, and four_tank_bias's is a FourTankModel",
+    ):
+        FilterEstimatorTask("four_tank_bias", filter="kf")

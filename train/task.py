@@ -72,6 +72,7 @@ from difffilter.models.streams import Streams
 from difffilter.param_ekf import EKFOptimizer
 from difffilter.particle import ParticleFilter
 from difffilter.threat_distribution import ThreatDistribution
+from difffilter.threats import check_attack_fits
 
 from .adversarial import Adversary
 from .common import dtype_of, mix_seed
@@ -226,6 +227,17 @@ class ScenarioDataModule(pl.LightningDataModule):
             raise ValueError("test_seed must differ from train_seed and val_seed")
         if steps is not None:
             self.scenario = self.scenario.with_steps(steps)
+        if self.threats is None and steps is not None:
+            # the scenario's own attack over a shorter horizon: an onset past its last step
+            # trained attack-free, then failed at validation ("could not find val/auc")
+            try:
+                check_attack_fits(self.scenario.attack_model(), self.scenario.system(),
+                                  self.scenario.steps)  # fmt: skip
+            except ValueError as exc:
+                raise ValueError(
+                    f"steps={steps}: scenario {self.scenario.name!r}'s attack does not fit the "
+                    f"shortened horizon: {exc}; give more steps, or train across threats"
+                ) from None
         if self.threats is not None:
             for name, share in self.threats.onsets_past(self.scenario.steps).items():
                 warnings.warn(
@@ -411,6 +423,12 @@ class FilterEstimatorTask(pl.LightningModule):
         self.channel = _channel(sc)
         self.false_alarm_rate = _check_options(self.hparams, sc, self.channel)
         self.system = sc.system(self._dtype)
+        if filter == "kf" and not hasattr(self.system, "transition_matrix"):
+            # (the Kalman filter said so at the first training step, 24 frames into Lightning)
+            raise ValueError(
+                f"filter: 'kf' needs a linear model, and {sc.name}'s is a "
+                f"{type(self.system).__name__}: use 'ekf' or 'ukf' (or 'pf')"
+            )
         self.num_particles = sc.num_particles if num_particles is None else num_particles
         self.features, self.poa_eta = tuple(features or ()), None
         if "poa" in self.features:
