@@ -370,7 +370,8 @@ def kalman_filter(
         model: :class:`~difffilter.LinearGaussianModel` (or any model with its matrix
             methods).
         ys: measurements ``y_1 … y_T`` ``[..., T, dy]``.
-        us: inputs ``u_0 … u_{T−1}`` ``[..., T, du]`` or ``None``.
+        us: inputs ``u_0 … u_{T−1}`` ``[..., T, du]`` or ``None`` (no input: on a model
+            with inputs, ``B u`` is left out, as zero inputs).
         mask: received entries ``[..., T, dy]`` (bool) or ``None`` (all received).
             Unreceived entries may be NaN.
         method: :class:`Method` or its name, ``"sequential"`` (the online step in a

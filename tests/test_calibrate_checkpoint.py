@@ -138,7 +138,9 @@ def test_calibrate_refuses_what_it_cannot_do(tmp_path, capsys):
     assert "--scenario: unknown scenario 'no_such_plant'" in capsys.readouterr().err
 
 
-def test_a_card_of_an_unregistered_scenario_is_calibrated_on_the_scenario_named(tmp_path, capsys):
+def test_a_card_of_an_unregistered_scenario_is_calibrated_on_the_scenario_named(
+    tmp_path, capsys, monkeypatch, isolated_registry
+):
     """A checkpoint trained on a plant of one's own records the scenario's registered name,
     which a new process does not know: it said 'unknown scenario' with no way round it."""
     import dataclasses
@@ -157,6 +159,24 @@ def test_a_card_of_an_unregistered_scenario_is_calibrated_on_the_scenario_named(
     argv = [str(renamed), "--out", str(out), "--runs", "2", "--no-progress"]
     assert main([*argv, "--scenario", "four_tank_bias"]) == 0
     assert "of four_tank_bias" in capsys.readouterr().out
+    # the JSON card beside it names the scenario as fit was given it (a user trial had to
+    # name it again): a YAML file here, which a new process loads
+    (tmp_path / "my_tank_plant.py").write_text(
+        "from difffilter.models.four_tank import FourTankModel\n"
+        "def tanks(dtype):\n    return FourTankModel(dtype=dtype)\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    plant = tmp_path / "my_tanks.yaml"
+    plant.write_text("name: my_own_tanks\nfamily: four_tank\nplant: {model: my_tank_plant:tanks}\n")
+    from difffilter.models.neural_estimator import checkpoint_sha256
+
+    card_json = {"sha256": checkpoint_sha256(renamed), "model_config": {"scenario": str(plant)}}
+    renamed.with_suffix(".json").write_text(json.dumps(card_json))
+    out.unlink()
+    out.with_suffix(".json").unlink()
+    code = main(argv)
+    assert code == 0, capsys.readouterr().err
+    assert "of my_own_tanks" in capsys.readouterr().out
 
 
 def test_old_cards_name_the_entry_that_evaluates_them():

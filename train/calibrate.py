@@ -99,6 +99,23 @@ def _new_check(src: Path, scored: Path, card) -> dict | None:
                     + f" (before: {old['value']:.6g})"}  # fmt: skip
 
 
+def _fit_scenario(src: Path) -> str | None:
+    """The scenario as ``fit`` was given it, from the checkpoint's JSON card
+    (``model_config.scenario``), where it names a plug-in (``module:object``) or a YAML file
+    that a new process can load (the card's ``scenario`` is the registered name, which a new
+    process knows only for the built-in scenarios); else ``None``."""
+    from difffilter.models.yaml_scenario import is_yaml_path
+
+    sidecar = Path(src).with_suffix(".json")
+    try:
+        given = json.loads(sidecar.read_text())["model_config"]["scenario"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if isinstance(given, str) and (":" in given or is_yaml_path(given)):
+        return given
+    return None
+
+
 def calibrate_checkpoint(
     src,
     out,
@@ -116,8 +133,9 @@ def calibrate_checkpoint(
     """Calibrate the checkpoint ``src`` to the false-alarm rate ``far`` and write it to
     ``out`` (module docstring); ``runs`` per set (default the scenario's); ``scenario``:
     where the attack-free runs come from, a name, ``package.module:object`` or YAML file
-    (default: the card's training scenario, by its registered name: a scenario of your own
-    is named here as it was to ``fit``); ``restart``: the
+    (default: the card's training scenario, as ``fit`` was given it where the JSON card
+    beside ``src`` names a plug-in or a YAML file, else by its registered name);
+    ``restart``: the
     card's restart rate to calibrate with (``None``: none; default: the card's); ``confirm``
     likewise the card's confirmation rate, ``reject`` its rejection rate. Returns
     the card's ``calibration`` entry. ``ValueError`` for a bad argument or a checkpoint
@@ -148,7 +166,7 @@ def calibrate_checkpoint(
         raise ValueError("--confirm reads the χ² test of the restart's gated copy: the card "
                          "needs a restart rate too (--restart RATE)")  # fmt: skip
     try:
-        scenario = registry.get(scenario or card.scenario)
+        scenario = registry.get(scenario or _fit_scenario(src) or card.scenario)
     except ValueError as error:
         if scenario is not None:
             raise ValueError(f"--scenario: {error}") from None
