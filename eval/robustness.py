@@ -26,8 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
+from difffilter.models.yaml_scenario import read_yaml
 from difffilter.threats import check_attack_fits, threat_from_dict
 
 from .acceptance import (
@@ -145,12 +144,7 @@ def _read_threat_file(path: Path, origin: Path | None = None) -> dict:
     YAML, not a mapping, or holds a key other than :data:`THREAT_FILE_KEYS` (a misspelt
     ``threatz:`` was ignored, and the threats looked empty)."""
     named = f"{origin}: threats_from {path.name}" if origin is not None else str(path)
-    if not path.is_file():
-        raise ValueError(f"{named}: no such file")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{named}: not valid YAML: {exc}") from None
+    data = read_yaml(path, named)
     data = {} if data is None else data
     if not isinstance(data, dict):
         raise ValueError(

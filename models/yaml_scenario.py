@@ -98,16 +98,23 @@ def is_yaml_path(name: str) -> bool:
 def scenario_from_yaml(path: str | Path) -> CustomScenario:
     """The :class:`~difffilter.models.scenario.CustomScenario` a YAML file describes
     (module docstring); ``ValueError`` naming the file and the field otherwise."""
+    path = Path(path)
+    doc = read_yaml(path, f"scenario file {str(path)!r}")
+    return scenario_from_dict(doc, where=str(path))
+
+
+def read_yaml(path: Path, named: str) -> Any:
+    """The YAML document in ``path`` (``None`` for an empty file), or a ``ValueError`` that
+    begins with ``named``: the file does not exist, or is not valid YAML (the parser's
+    message says where)."""
     import yaml
 
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"scenario file {str(path)!r} does not exist")
+    if not Path(path).is_file():
+        raise ValueError(f"{named} does not exist")
     try:
-        doc = yaml.safe_load(path.read_text())
+        return yaml.safe_load(Path(path).read_text())
     except yaml.YAMLError as error:
-        raise ValueError(f"scenario file {str(path)!r} is not valid YAML: {error}") from None
-    return scenario_from_dict(doc, where=str(path))
+        raise ValueError(f"{named} is not valid YAML: {error}") from None
 
 
 def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> CustomScenario:

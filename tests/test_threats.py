@@ -361,10 +361,10 @@ def test_a_threat_set_file_that_is_not_one_is_named_with_its_path(tmp_path):
         return load_threat_set(sc, "all", path=path)
 
     for text, message in (
-        ("threats: {a: {kind: bias\n", "set.yaml: not valid YAML"),
+        ("threats: {a: {kind: bias\n", "set.yaml is not valid YAML"),
         ("- kind: bias\n", "set.yaml: a threat set is a mapping .* got a list"),
         ("threatz: {a: {kind: bias}}\n", "set.yaml: unknown key.s. threatz; a threat set holds threats, threats_from"),
-        ("threats_from: nowhere.yaml\n", "set.yaml: threats_from nowhere.yaml: no such file"),
+        ("threats_from: nowhere.yaml\n", "set.yaml: threats_from nowhere.yaml does not exist"),
         ("threats_from: shared.yaml\nexclude: [bais]\n", "exclude names threat.s. bais that shared.yaml .*: bias, ramp"),
         ("threats_from: shared.yaml\nexclude: bias\n", "exclude must be a list of threat names"),
     ):  # fmt: skip
@@ -375,7 +375,7 @@ def test_a_threat_set_file_that_is_not_one_is_named_with_its_path(tmp_path):
             load(text)
     kept = load("threats_from: shared.yaml\nexclude: [ramp]\nruns: 3\n")
     assert list(kept.threats) == ["bias"] and kept.runs == 3
-    with pytest.raises(ValueError, match="no such file"):
+    with pytest.raises(ValueError, match="absent.yaml does not exist"):
         load_threat_set(sc, "all", path=tmp_path / "absent.yaml")
 
 
