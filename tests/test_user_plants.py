@@ -359,7 +359,8 @@ def test_a_plant_function_of_the_wrong_width_or_failing_is_named(plants):
             return torch.cat([x, x[..., :1]], -1)
     """))  # fmt: skip
     base = yaml.safe_load(VDP_YAML)
-    cases = [({"transition": "user_bad:narrow"}, r"plant.transition must map m0 \[2\] to \[2\]; got \[1\]"),
+    # (the model's own probe, NonlinearGaussianModel._check_widths, names the first)
+    cases = [({"transition": "user_bad:narrow"}, r"plant: transition returns \(1, 1\) for x \[1, 2\] .*Q is 2×2"),
              ({"transition": "user_bad:broken"}, r"plant.transition failed on m0: RuntimeError: no"),
              ({"observe": "user_bad:three", "R": [[1.0, 0.0], [0.0, 1.0]]}, r"plant.R must be 3 × 3")]  # fmt: skip
     for change, why in cases:
