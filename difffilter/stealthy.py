@@ -58,6 +58,12 @@ def _check_batch(model, ys, xs) -> None:
         )
 
 
+def _check_onset(onset, T: int) -> None:
+    """The first attacked measurement, 1-based, within the ``T`` steps."""
+    if isinstance(onset, bool) or not isinstance(onset, numbers.Integral) or not 1 <= onset <= T:
+        raise ValueError(f"onset must be an integer in [1, {T}] (1-based); got {onset!r}")
+
+
 def _check_entries(entries, dy: int) -> tuple[int, ...]:
     """Distinct measurement entries in ``[0, dy)`` (no negative index: ``-1`` is not
     taken for the last entry), at least one."""
@@ -104,15 +110,7 @@ class CraftedAttack(TabulatedAttack):
             raise ValueError(
                 f"values must be a tensor [T, dy]; got {getattr(values, 'shape', values)!r}"
             )
-        T = values.shape[0]
-        if (
-            isinstance(onset, bool)
-            or not isinstance(onset, numbers.Integral)
-            or not 1 <= onset <= T
-        ):
-            raise ValueError(
-                f"onset must be an integer in [1, {T}] (1-based, T = values' rows); got {onset!r}"
-            )
+        _check_onset(onset, values.shape[0])
         self.values, self.onset = values.detach().clone(), int(onset)
         self.history, self.settings, self.budget = list(history or []), settings, budget
 
@@ -219,8 +217,7 @@ def craft_stealthy_attack(
     check_rate(far, "far")
     threshold = check_finite_number(threshold, "threshold")
     T, dy = ys.shape[-2:]
-    if isinstance(onset, bool) or not isinstance(onset, numbers.Integral) or not 1 <= onset <= T:
-        raise ValueError(f"onset must be an integer in [1, {T}]; got {onset!r}")
+    _check_onset(onset, T)
     if entries is not None:
         entries = _check_entries(entries, dy)
     if not isinstance(settings, StealthySettings):

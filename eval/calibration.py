@@ -82,10 +82,9 @@ def calibrate(
     ``cache`` (a dict shared by one evaluation) keeps the result for the same scenario,
     runs, estimators, checkpoint and target.
     """
-    from .suite import estimator_names, run_suite
+    from .suite import run_suite
 
     far = check_rate(far, "far")
-    estimators, add = estimator_names(estimators, "estimators"), estimator_names(add, "add")
     runs = scenario.runs if runs is None else runs
     key = ("far-calibration", scenario.attack_free_key(), runs, seed, far,
            tuple(estimators or ()), tuple(add), str(checkpoint))  # fmt: skip

@@ -34,7 +34,7 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
-from difffilter._checks import model_dtype_device
+from difffilter._checks import check_finite_number, check_positive_int, model_dtype_device
 from difffilter.attack import Attack, Channel
 from difffilter.loop import DrawnNoise, KnownInputs, Trajectories, closed_loop
 from difffilter.ssm import StateSpaceModel
@@ -366,13 +366,8 @@ class CustomScenario(Scenario):
                 f"None; got {type(self.attack).__name__}"
             )
         for name in ("runs", "steps"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
-        dt = self.dt
-        if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not 0 < dt < math.inf:
-            # (a negative dt printed detection delays of "-0" s)
-            raise ValueError(f"dt (the sampling period, s) must be a finite number > 0; got {dt!r}")
+            check_positive_int(getattr(self, name), name)
+        check_finite_number(self.dt, "dt (the sampling period, s)", positive=True)  # (-0 s delays)
         known = self.known_inputs
         if known is not None and not callable(known) and not isinstance(known, Tensor):
             raise TypeError(

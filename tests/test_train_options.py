@@ -56,6 +56,6 @@ def test_the_kalman_filter_on_a_nonlinear_plant_is_refused_before_training():
 
     with pytest.raises(
         ValueError,
-        match="filter: 'kf' needs a linear model, and four_tank_bias's is a FourTankModel",
+        match="filter: 'kf' on four_tank_bias: the Kalman filter needs a linear model .*FourTankModel lacks",
     ):
         FilterEstimatorTask("four_tank_bias", filter="kf")

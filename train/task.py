@@ -56,6 +56,7 @@ from difffilter import resampling
 from difffilter._checks import check_positive_int
 from difffilter.attack import Channel, attack_dim
 from difffilter.estimator import Generators
+from difffilter.kalman import _check_linear as check_linear
 from difffilter.loop import open_loop
 from difffilter.metrics import after_attack, finite_scores, nan_as_lowest, roc_auc, threshold_for
 from difffilter.models import registry
@@ -423,12 +424,11 @@ class FilterEstimatorTask(pl.LightningModule):
         self.channel = _channel(sc)
         self.false_alarm_rate = _check_options(self.hparams, sc, self.channel)
         self.system = sc.system(self._dtype)
-        if filter == "kf" and not hasattr(self.system, "transition_matrix"):
-            # (the Kalman filter said so at the first training step, 24 frames into Lightning)
-            raise ValueError(
-                f"filter: 'kf' needs a linear model, and {sc.name}'s is a "
-                f"{type(self.system).__name__}: use 'ekf' or 'ukf' (or 'pf')"
-            )
+        if filter == "kf":  # (the filter said so at the first training step, deep in Lightning)
+            try:
+                check_linear(self.system)
+            except TypeError as exc:
+                raise ValueError(f"filter: 'kf' on {sc.name}: {exc}") from None
         self.num_particles = sc.num_particles if num_particles is None else num_particles
         self.features, self.poa_eta = tuple(features or ()), None
         if "poa" in self.features:
