@@ -13,6 +13,7 @@ from difffilter.eval.calibration import calibrate
 from difffilter.eval.suite import run_suite
 from difffilter.models import estimators, registry
 from difffilter.train.sweep import main, train_seed_of
+from difffilter.train.sweep import sweep as sweep_fn
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [
@@ -112,6 +113,16 @@ def test_a_sweep_reports_every_seed_the_spread_and_the_median_seed(tmp_path, mon
             } | {"baseline": baseline.stat().st_mtime_ns,
                  "totals": baseline.with_suffix(".totals.pt").stat().st_mtime_ns} == stamps  # fmt: skip
     assert again["acceptance"] == doc["acceptance"]
+    assert again["options"] == TINY  # what the seeds were trained with, recorded
+    # other settings into the same --out: refused, before anything is trained (a user trial:
+    # the first sweep's networks were reported as the hidden=8 ones)
+    other = [*args, "--model.init_args.hidden=8"]
+    with pytest.raises(ValueError, match=r"seed 0: .*seed_0 was trained with the options .*"
+                       r"hidden=4.* \(now .*hidden=8.*\); give another --out"):  # fmt: skip
+        sweep_fn(ROOT / "train" / "configs" / "four_tank.yaml", seeds=(0,), out="sw",
+                 extra=other[other.index("--") + 1:])  # fmt: skip
+    assert {s: Path(v["checkpoint"]).stat().st_mtime_ns for s, v in seeds.items()} == {
+        k: v for k, v in stamps.items() if k in seeds}  # fmt: skip
 
 
 def test_a_sweep_refuses_bad_options(tmp_path, capsys):

@@ -3,7 +3,10 @@ later: each of these was accepted and failed at the first step, at export, or tr
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
+import torch
 
 from difffilter.train.task import FilterEstimatorTask, ScenarioDataModule
 
@@ -59,3 +62,43 @@ def test_the_kalman_filter_on_a_nonlinear_plant_is_refused_before_training():
         match="filter: 'kf' on four_tank_bias: the Kalman filter needs a linear model .*FourTankModel lacks",
     ):
         FilterEstimatorTask("four_tank_bias", filter="kf")
+
+
+def _cli(tmp_path, monkeypatch, *options):
+    """The training command line parsed and its classes built, nothing run."""
+    import lightning.pytorch as pl
+
+    from difffilter.train.lightning_cli import DifffilterCLI
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])  # pytest's own flags are not ours
+    config = Path(__file__).resolve().parents[1] / "train" / "configs" / "robot.yaml"
+    return DifffilterCLI(
+        pl.LightningModule, pl.LightningDataModule, subclass_mode_model=True,
+        subclass_mode_data=True, run=False, auto_configure_optimizers=False,
+        args=["--config", str(config), "--trainer.logger=false", *options],
+    )  # fmt: skip
+
+
+def test_seed_everything_seeds_the_network_and_the_training_batches(tmp_path, monkeypatch):
+    """A user trial: ``fit --seed_everything 7`` trained bit for bit the network of seed 0,
+    every draw coming from ``model_seed`` and ``train_seed``, which the configs fixed."""
+    seeds = {}
+    for seed in (0, 7):
+        cli = _cli(tmp_path, monkeypatch, f"--seed_everything={seed}")
+        seeds[seed] = (cli.model.hparams.model_seed, cli.datamodule.hparams.train_seed,
+                       cli.datamodule.hparams.val_seed, cli.model.estimator.state_dict())  # fmt: skip
+    assert seeds[0][:3] == (0, 1, 2) and seeds[7][:3] == (7, 71, 2)  # validation stays
+    assert any(not torch.equal(seeds[0][3][k], seeds[7][3][k]) for k in seeds[0][3])
+    # a seed given explicitly is kept
+    cli = _cli(tmp_path, monkeypatch, "--seed_everything=7", "--model.init_args.model_seed=3",
+               "--data.init_args.train_seed=5")  # fmt: skip
+    assert (cli.model.hparams.model_seed, cli.datamodule.hparams.train_seed) == (3, 5)
+    # outside the command line the defaults are the configs' old ones
+    assert FilterEstimatorTask("four_tank_bias").hparams.model_seed == 0
+    assert ScenarioDataModule("four_tank_bias").hparams.train_seed == 1
+
+
+def test_model_seed_must_be_a_non_negative_integer():
+    with pytest.raises(ValueError, match="model_seed must be an integer >= 0; got -1"):
+        FilterEstimatorTask("four_tank_bias", model_seed=-1)

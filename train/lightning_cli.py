@@ -13,6 +13,7 @@ import lightning.pytorch as pl
 from lightning.pytorch.cli import LightningCLI
 
 from difffilter.runtime import tune_cpu_allocator
+from difffilter.train.common import train_seed_of
 from difffilter.train.last_checkpoint import add_last_every_epoch
 
 __all__ = ["DifffilterCLI", "run"]
@@ -28,7 +29,11 @@ class DifffilterCLI(LightningCLI):
         paths: a run resumed from another folder found its best checkpoint by a path
         relative to the first run's folder, and exported another run's network or failed),
         and resuming from ``<save_dir>/<name>/version_<n>/checkpoints/*.ckpt`` logs into
-        that same ``version_<n>`` (TensorBoard curves continue) instead of a new folder."""
+        that same ``version_<n>`` (TensorBoard curves continue) instead of a new folder.
+        Every subcommand: ``seed_everything`` seeds the network and the training batches
+        where the config leaves ``model_seed`` or ``train_seed`` unset
+        (:func:`_seeds_from_seed_everything`)."""
+        _seeds_from_seed_everything(self.config, self.subcommand)
         if self.subcommand != "fit":
             return
         cfg = self.config["fit"]
@@ -103,6 +108,26 @@ class DifffilterCLI(LightningCLI):
         mine.load_state_dict(estimator.state_dict())
         self.config_init[subcommand]["ckpt_path"] = None  # weights are in; nothing to restore
         print(f"loaded the exported estimator {path}")
+
+
+def _seeds_from_seed_everything(config, subcommand: str | None) -> None:
+    """``--seed_everything s`` reaches the draws: the task's ``model_seed`` (the network's
+    initial weights, the training's own draws) becomes ``s`` and the data's
+    ``train_seed`` ``1 + 10 s`` (:func:`~difffilter.train.common.train_seed_of`, as a
+    sweep seeds them), where the config leaves them unset. Every draw comes from those
+    seeds, not from the global generators Lightning seeds, so without this two fits of
+    different ``seed_everything`` trained the same network. Validation and test seeds
+    stay the config's: every seed is judged on the same data."""
+    cfg = config[subcommand] if subcommand else config
+    seed = cfg.get("seed_everything")
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        return  # seed_everything: false (Lightning seeds nothing): the defaults, 0 and 1
+    for part, key, value in (("model", "model_seed", seed),
+                             ("data", "train_seed", train_seed_of(seed))):  # fmt: skip
+        node = cfg.get(part)
+        args = node.get("init_args") if node is not None and "class_path" in node else node
+        if args is not None and key in args and args[key] is None:
+            args[key] = value
 
 
 def _reason(message: str) -> str:

@@ -6,7 +6,9 @@ For every seed ``s`` the sweep runs ``fit`` with ``--seed_everything s``, the ne
 stay the config's), logging into ``<out>/runs/<name>/seed_<s>/``. A seed whose exported
 estimator is already there is not trained again, and one interrupted after a Lightning
 checkpoint resumes from its ``last.ckpt`` (written at every epoch): an interrupted sweep
-loses at most the epoch it was in.
+loses at most the epoch it was in. Each seed's folder records what it was trained with
+(``sweep_settings.json``: the config's values and the options after ``--``), and a sweep
+with other settings into the same ``--out`` is refused before anything is trained.
 
 Each seed's estimator is then evaluated on the headline scenarios of its family (or
 ``--scenarios``) with ``difffilter-eval``'s draws (``--seed 0``) and its calibration (every
@@ -54,6 +56,8 @@ import statistics
 import sys
 from pathlib import Path
 
+from .common import train_seed_of
+
 __all__ = ["sweep", "main", "METRICS", "SELECT_ON", "train_seed_of"]
 
 #: The metrics the sweep reports per seed and scenario (eval.scoring's definitions).
@@ -62,12 +66,6 @@ METRICS = ("tpr_at_far", "fpr_at_far", "fpr_at_far_after_attack", "fpr", "auc", 
 _LOWER_IS_BETTER = {"fpr_at_far", "fpr_at_far_after_attack", "fpr", "state_rmse", "attack_rmse"}
 #: Where the median seed is chosen: the training's validation score, or the sweep's test.
 SELECT_ON = ("validation", "test")
-
-
-def train_seed_of(seed: int) -> int:
-    """The data's ``train_seed`` of sweep seed ``seed`` (``1 + 10 s``: never a default
-    validation (2) or test (0) seed; seed 0 keeps the configs' 1)."""
-    return 1 + 10 * int(seed)
 
 
 def _exported(folder: Path) -> Path | None:
@@ -82,8 +80,10 @@ def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str], progress: bo
 
     # this config's run only: another config's run in the same folder (a grad and an EKF
     # config, one --out) was taken as "trained already", the other network reported
-    folder = runs_dir / _run_name(config, extra) / f"seed_{seed}"
+    folder, options, settings = _seed_run(config, seed, runs_dir, extra)
     existing = [folder] if folder.is_dir() else []
+    if existing:
+        _check_same_settings(folder, settings, seed)
     if existing and (done := _exported(existing[0])) is not None:
         print(f"seed {seed}: trained already ({done})")
         return done
@@ -93,8 +93,10 @@ def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str], progress: bo
         f"--trainer.logger.init_args.save_dir={runs_dir}",
         f"--trainer.logger.init_args.version=seed_{seed}",
         *([] if progress else ["--trainer.enable_progress_bar=false"]),
-        *(option.replace("{seed}", str(seed)) for option in extra),
+        *options,
     ]  # fmt: skip
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / _SETTINGS).write_text(json.dumps(settings, indent=2) + "\n")
     last = existing[0] / "checkpoints" / "last.ckpt" if existing else None
     if last is not None and last.is_file():
         print(f"seed {seed}: resuming from {last}")
@@ -105,6 +107,51 @@ def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str], progress: bo
     if done is None:
         raise ValueError(f"seed {seed}: fit exported no estimator under {folder}")
     return done
+
+
+#: What a seed's run folder was trained with (:func:`_settings`), beside its logs.
+_SETTINGS = "sweep_settings.json"
+
+
+def _seed_run(config: Path, seed: int, runs_dir: Path, extra: list[str]):
+    """Seed ``seed``'s run folder, its ``fit`` options (``{seed}`` filled in) and settings."""
+    options = [option.replace("{seed}", str(seed)) for option in extra]
+    folder = runs_dir / _run_name(config, extra) / f"seed_{seed}"
+    return folder, options, _settings(config, options)
+
+
+def _settings(config: Path, options: list[str]) -> dict:
+    """What a seed trains with: the config's values (its YAML read, so a comment edited
+    is no change) and the ``fit`` options after ``--`` (``{seed}`` filled in)."""
+    import yaml
+
+    try:
+        values = yaml.safe_load(Path(config).read_text())
+    except (OSError, yaml.YAMLError):  # fit itself then says what is wrong with it
+        values = None
+    return {"config_file": str(config), "config": values, "options": options}
+
+
+def _check_same_settings(folder: Path, settings: dict, seed: int) -> None:
+    """A seed's folder is reused (its export taken, its ``last.ckpt`` resumed) only for the
+    settings it was trained with: a second sweep into the same ``--out`` with another
+    option (``-- --model.init_args.hidden=8``) or an edited config took the first sweep's
+    networks and reported them as the new settings'. A folder of a sweep before the record
+    existed is taken as it is."""
+    file = folder / _SETTINGS
+    if not file.is_file():
+        return
+    had = json.loads(file.read_text())
+    differ = [k for k in ("config", "options") if had.get(k) != settings[k]]
+    if differ:
+        what = " and ".join(
+            f"the options {had.get('options')} (now {settings['options']})" if k == "options"
+            else f"the config {had.get('config_file')}'s values as they were" for k in differ
+        )  # fmt: skip
+        raise ValueError(
+            f"seed {seed}: {folder} was trained with {what}; give another --out for these "
+            "settings, or delete that folder to train them there"
+        )
 
 
 def _run_name(config: Path, extra: list[str]) -> str:
@@ -371,6 +418,10 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
                          "monitor; add one, or --select-on test")  # fmt: skip
     _check_before_training(config, out, scenarios, runs, test, extra)
     runs_dir = out / "runs"
+    for seed in seeds:  # every seed's folder before the first is trained
+        folder, _, settings = _seed_run(config, seed, runs_dir, list(extra))
+        if folder.is_dir():
+            _check_same_settings(folder, settings, seed)
     per_seed, cards, seed_totals = {}, {}, {}
     for seed in seeds:
         path = _fit(config, seed, runs_dir, list(extra), progress)
@@ -389,7 +440,7 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
     else:
         scores, monitor, median = test_scores, None, by_test
     doc = {
-        "config": str(config), "seeds": seeds, "far": far, "runs": runs,
+        "config": str(config), "options": list(extra), "seeds": seeds, "far": far, "runs": runs,
         "eval_seed": 0 if test else None, "rank_by": rank_by if test else None,
         "select_on": select_on, "median_seed": median,
         "median_checkpoint": per_seed[median]["checkpoint"],

@@ -164,7 +164,8 @@ class ScenarioDataModule(pl.LightningDataModule):
         scenario: a registered scenario name (``difffilter-eval --list``).
         batch_size, batches_per_epoch: training runs per batch and batches per epoch.
         val_runs, val_seed: the fixed validation batch.
-        train_seed: master seed of the training batches (differs from ``val_seed``).
+        train_seed: master seed of the training batches (differs from ``val_seed``);
+            ``None``: ``1 + 10 s`` under ``difffilter-train --seed_everything s``, else 1.
         threats: the threats training and validation runs are drawn from, one per run (a
             :class:`~difffilter.threat_distribution.ThreatDistribution` mapping: the
             library's threats with weights and random fields, ``own`` the scenario's attack,
@@ -185,7 +186,7 @@ class ScenarioDataModule(pl.LightningDataModule):
         batch_size: int = 16,
         batches_per_epoch: int = 8,
         val_runs: int = 64,
-        train_seed: int = 1,
+        train_seed: int | None = None,
         val_seed: int = 2,
         test_runs: int | None = None,
         test_seed: int = 0,
@@ -195,6 +196,7 @@ class ScenarioDataModule(pl.LightningDataModule):
         dtype: str = "float32",
     ):
         super().__init__()
+        train_seed = 1 if train_seed is None else train_seed  # (saved as resolved)
         self.scenario = registry.get(scenario)  # ValueError listing the known names
         self.threats = None
         if threats is not None:
@@ -359,7 +361,9 @@ class FilterEstimatorTask(pl.LightningModule):
             attack RMSE is logged at every validation (``val/scenario/<name>/…``) and
             scored by ``test``.
         init_from: an exported estimator (or a Lightning checkpoint of a training run) whose
-            network weights this training starts from instead of ``model_seed``'s draw:
+            network weights this training starts from instead of ``model_seed``'s draw
+            (``model_seed``: the network's draw and the training's own; ``None``: the run's
+            ``seed_everything`` under ``difffilter-train``, else 0):
             fine-tuning, or a curriculum's second stage (its network settings must match).
         dtype: ``"float32"`` or ``"float64"``.
     """
@@ -413,11 +417,14 @@ class FilterEstimatorTask(pl.LightningModule):
         monitor_scenarios: list[str] | None = None,
         monitor_runs: int = 4,
         monitor_seed: int = 3,
-        model_seed: int = 0,
+        model_seed: int | None = None,
         init_from: str | None = None,
         dtype: str = "float32",
     ):
         super().__init__()
+        model_seed = 0 if model_seed is None else model_seed  # (saved as resolved)
+        if isinstance(model_seed, bool) or not isinstance(model_seed, int) or model_seed < 0:
+            raise ValueError(f"model_seed must be an integer >= 0; got {model_seed!r}")
         sc = registry.get(scenario)
         self.save_hyperparameters()
         self.scenario, self._dtype = sc, dtype_of(dtype)
