@@ -42,7 +42,7 @@ from torch import Tensor
 
 from difffilter.models.streams import Streams
 
-from .acceptance import ROBUST_STATE_FACTOR, TOLERANCES
+from .acceptance import ROBUST_STATE_FACTOR, TOLERANCES, at_least, at_most
 from .calibration import alarms_at
 from .scoring import comparable_attack
 
@@ -234,11 +234,11 @@ def checks_intervals(totals: dict[str, dict[str, Tensor]], role_of: dict[str, st
     tol = TOLERANCES
     lo, hi = (far * f for f in tol["fpr_band"])
     checks = (  # metric, statistic, higher is better, where a resample's statistic holds
-        ("tpr_at_far", "difference", True, lambda d: d >= -tol["tpr_margin"]),
-        (state_metric, "ratio", False, lambda r: r <= tol["state_factor"]),
-        ("attack_rmse", "ratio", False, lambda r: r <= 1.0),
+        ("tpr_at_far", "difference", True, lambda d: at_least(d, -tol["tpr_margin"])),
+        (state_metric, "ratio", False, lambda r: at_most(r, tol["state_factor"])),
+        ("attack_rmse", "ratio", False, lambda r: at_most(r, 1.0)),
     )  # fmt: skip
-    in_band = lambda v: (v >= lo) & (v <= hi)  # noqa: E731
+    in_band = lambda v: at_least(v, lo) & at_most(v, hi)  # noqa: E731
     out = {}
     for name in learned:
         rows = {}
@@ -277,7 +277,7 @@ def robustness_intervals(totals: dict[str, dict[str, dict[str, Tensor]]], role_o
     analytic = sorted(n for n in names if role_of.get(n) == "analytic")
     learned = sorted(n for n in names if role_of.get(n) == "learned")
     weights = _study_and_resamples(runs, resamples, seed)
-    within = lambda r: r <= ROBUST_STATE_FACTOR  # noqa: E731
+    within = lambda r: at_most(r, ROBUST_STATE_FACTOR)  # noqa: E731
 
     def worst_tpr(name):  # [1 + R]: the lowest TPR over the threats where it detects
         rates = [v for per in totals.values() if name in per
@@ -298,5 +298,5 @@ def robustness_intervals(totals: dict[str, dict[str, dict[str, Tensor]]], role_o
         mine = worst_tpr(name)
         gap = None if mine is None or best_worst is None else mine - best_worst
         out[name] = {"state": state,
-                     "worst_tpr": None if gap is None else _summary(gap, lambda d: d >= 0, level)}  # fmt: skip
+                     "worst_tpr": None if gap is None else _summary(gap, lambda d: at_least(d, 0.0), level)}  # fmt: skip
     return out

@@ -57,11 +57,18 @@ def leaderboard_rows(results: dict[str, dict[str, Any]]) -> list[dict[str, Any]]
 
 
 def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Path:
-    """Write the leaderboard files of ``results`` under ``out``; returns the markdown's path."""
+    """Write the leaderboard files of ``results`` under ``out``; returns the markdown's path.
+    Of a robustness study (rows with ``worst_*`` columns) the headline columns are its
+    attack-free runs', the detection columns that are empty there left out, and the
+    worst-case columns follow (in the table and its figure)."""
     out = Path(out)
     rows = leaderboard_rows(results)
     (out / "leaderboard.json").write_text(json.dumps(rows, indent=2) + "\n")
-    cols = list(COLUMNS) + [c for c in _WORST_UNITS if any(c in r for r in rows)]
+    worst = [c for c in _WORST_UNITS if any(c in r for r in rows)]
+    cols = list(COLUMNS)
+    if worst:  # attack-free runs: no attack to detect, nothing in the detection columns
+        cols = [m for m in cols if any(r.get(m) is not None for r in rows)]
+    cols += worst
     units = {**{m: METRICS[m].unit for m in COLUMNS}, **_WORST_UNITS}
     # one unit per column where every scenario shares it; else the row's units in a column
     shared = {}
@@ -80,28 +87,36 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
         if mixed:
             cell.insert(2, f"{r['units']['state']}; {r['units']['attack']}")
         cells.append(cell)
+    intro = (
+        "Every scenario × estimator of this robustness study: the first columns on its "
+        "attack-free runs, the `worst_` columns the worst case over the scenario's threats "
+        "(definitions and units: docs/metrics.md; per-scenario details in "
+        "`<scenario>/robustness.md`, the worst cases with their threats in `robustness.md`)."
+        if worst
+        else "Every scenario × estimator of this evaluation (definitions and units: "
+        "docs/metrics.md; per-scenario details in `<scenario>/report.md`)."
+    )
     path = out / "leaderboard.md"
     path.write_text(
-        "# Leaderboard\n\nEvery scenario × estimator of this evaluation (definitions and "
-        "units: docs/metrics.md; per-scenario details in `<scenario>/report.md`).\n\n"
+        f"# Leaderboard\n\n{intro}\n\n"
         + markdown_table(header, cells)
         + "\n![leaderboard.png](leaderboard.png)\n"
     )
-    _heatmaps(out / "leaderboard.png", rows)
+    _heatmaps(out / "leaderboard.png", rows, {m: units[m] for m in cols})
     _hparams(out / "tb_leaderboard", rows)
     return path
 
 
-HIGHER_IS_BETTER = {"auc", "tpr_at_1pct_fpr"}
+HIGHER_IS_BETTER = {"auc", "tpr_at_1pct_fpr", "worst_tpr_at_far"}
 
 
-def cell_goodness(grid: np.ndarray, scenarios: list[str]) -> np.ndarray:
-    """``grid [rows, COLUMNS]`` → colour in [0, 1] (1: the best of the row's scenario): for
+def cell_goodness(grid: np.ndarray, scenarios: list[str], columns=COLUMNS) -> np.ndarray:
+    """``grid [rows, columns]`` → colour in [0, 1] (1: the best of the row's scenario): for
     AUC and TPR 1 − (best − v)/0.1, so 0.1 below the best is 0; otherwise
     1 − log10((v + f)/(best + f)), so 10× the best is 0, with a floor f of 5 % of the
     scenario's largest value so that zeros and round-off differences do not paint a cell red."""
     scen, good = np.array(scenarios), np.full_like(grid, np.nan)
-    higher = np.array([m in HIGHER_IS_BETTER for m in COLUMNS])
+    higher = np.array([m in HIGHER_IS_BETTER for m in columns])
     for s in dict.fromkeys(scenarios):
         g = grid[scen == s]
         with warnings.catch_warnings():
@@ -113,20 +128,22 @@ def cell_goodness(grid: np.ndarray, scenarios: list[str]) -> np.ndarray:
     return good
 
 
-def _heatmaps(path: Path, rows: list[dict[str, Any]]) -> None:
+def _heatmaps(path: Path, rows: list[dict[str, Any]], units: dict[str, str]) -> None:
     """The leaderboard as a coloured table: a row per scenario × estimator, a column per
-    metric, each cell annotated with its value and coloured by :func:`cell_goodness`."""
-    grid = np.array([[np.nan if r[m] is None else r[m] for m in COLUMNS] for r in rows], float)
+    metric of ``units`` (``{metric: its unit as the table prints it}``), each cell annotated
+    with its value and coloured by :func:`cell_goodness`."""
+    cols = list(units)
+    grid = np.array([[np.nan if r.get(m) is None else r[m] for m in cols] for r in rows], float)
     grid[~np.isfinite(grid)], scenarios = np.nan, [r["scenario"] for r in rows]
-    fig, ax = plt.subplots(figsize=(1.1 * len(COLUMNS) + 3, 0.2 * len(rows) + 1.2))
-    ax.imshow(cell_goodness(grid, scenarios), aspect="auto", cmap="RdYlGn", vmin=0, vmax=1)
+    fig, ax = plt.subplots(figsize=(1.1 * len(cols) + 3, 0.2 * len(rows) + 1.2))
+    ax.imshow(cell_goodness(grid, scenarios, cols), aspect="auto", cmap="RdYlGn", vmin=0, vmax=1)
     for (i, j), value in np.ndenumerate(grid):
         text = "—" if np.isnan(value) else format_number(float(value), 3)
         ax.text(j, i, text, ha="center", va="center", fontsize=6)
     for i in np.flatnonzero(np.array(scenarios[1:]) != np.array(scenarios[:-1])):
         ax.axhline(i + 0.5, color="black", linewidth=0.8)  # between two scenarios
     ax.set_yticks(range(len(rows)), [f"{s} · {r['estimator']}" for s, r in zip(scenarios, rows)])
-    ax.set_xticks(range(len(COLUMNS)), [f"{m}\n[{METRICS[m].unit}]" for m in COLUMNS])
+    ax.set_xticks(range(len(cols)), [f"{m}\n[{unit}]" for m, unit in units.items()])
     ax.tick_params(labelsize=6, top=True, labeltop=True, bottom=False, labelbottom=False)
     ax.set_title("green: the best of its scenario; red: 10× it (0.1 below: AUC, TPR)", fontsize=7)
     fig.savefig(path, dpi=130, bbox_inches="tight")
@@ -134,8 +151,14 @@ def _heatmaps(path: Path, rows: list[dict[str, Any]]) -> None:
 
 
 def _hparams(logdir: Path, rows: list[dict[str, Any]]) -> None:
+    """One HPARAMS row per scenario × estimator; the folder holds this leaderboard's rows
+    only (an earlier evaluation's events into the same ``--out`` removed, as its
+    ``leaderboard.md`` is replaced)."""
     from torch.utils.tensorboard import SummaryWriter
 
+    from .tensorboard import clear_events
+
+    clear_events(logdir)
     with SummaryWriter(str(logdir)) as w:
         for r in rows:
             metrics = {f"leaderboard/{m}": r[m] for m in COLUMNS if r[m] is not None}

@@ -395,8 +395,8 @@ def _intervals_text(intervals: dict, metrics: list[str]) -> str:
 def write_acceptance_summary(out: str | Path, docs: dict[str, dict]) -> Path | None:
     """``<out>/acceptance.md``: every calibrated scenario's learned estimators against the
     best analytic one, one row each (the checks of each report's "Learned against the best
-    analytic", with the share of resamples in which each holds); ``None`` (no file) where
-    no study judges a learned estimator. ``docs``: ``{scenario: metrics.json content}``."""
+    analytic", with the share of resamples in which each holds); ``None`` where no study
+    judges a learned estimator (an earlier evaluation's file there removed). ``docs``: ``{scenario: metrics.json content}``."""
     columns = ("TPR", "state", "attack", "false alarms")
     rows = []
     for scenario, doc in docs.items():
@@ -417,9 +417,10 @@ def write_acceptance_summary(out: str | Path, docs: dict[str, dict]) -> Path | N
                 )
             every = "holds" if all(c.holds for c in checks) else "**fails**"
             rows.append([scenario, f"`{name}`", *cells.values(), every])
-    if not rows:
-        return None
     path = Path(out) / "acceptance.md"
+    if not rows:  # an earlier evaluation's summary would be printed as this one's
+        path.unlink(missing_ok=True)
+        return None
     path.write_text(
         "# Learned against the best analytic\n\nEvery learned estimator at the calibrated "
         "false-alarm rate against, per metric, the best analytic estimator of its study (TPR ≥ "

@@ -546,6 +546,9 @@ def write_robustness_summary(out: str | Path, docs: dict[str, dict]) -> Path:
         + _acceptance_summary(docs)
     )
     write_leaderboard(out, docs)
+    # the leaderboard replaced was an evaluation's, and its acceptance.md went with it: the
+    # verdicts of this study are in robustness.md (an old file was printed as current)
+    (out / "acceptance.md").unlink(missing_ok=True)
     return path
 
 

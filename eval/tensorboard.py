@@ -15,14 +15,25 @@ from pathlib import Path
 
 from .scoring import HEADLINE, comparable_attack, rmse_over_time
 
-__all__ = ["log_suite"]
+__all__ = ["clear_events", "log_suite"]
+
+
+def clear_events(logdir: Path) -> None:
+    """Remove the TensorBoard event files an earlier evaluation wrote under ``logdir`` (an
+    evaluation's own folder): a second run into the same ``--out`` added its events to the
+    first's, and TensorBoard drew two points a step and two values per HPARAMS row beside
+    a ``metrics.json`` that held only the second. Other files are left."""
+    for old in Path(logdir).rglob("events.out.tfevents.*"):
+        old.unlink()
 
 
 def log_suite(logdir: Path, result, doc: dict, images) -> None:
-    """Write the events of one suite run under ``logdir``; ``images`` ``[(file name, PNG
-    bytes)]`` are the report's figures as saved."""
+    """Write the events of one suite run under ``logdir`` (replacing an earlier run's,
+    :func:`clear_events`); ``images`` ``[(file name, PNG bytes)]`` are the report's figures
+    as saved."""
     from torch.utils.tensorboard import SummaryWriter
 
+    clear_events(logdir)
     with SummaryWriter(str(logdir)) as w:
         curves: dict[str, list[float]] = {}
         for name, out in result.outputs.items():

@@ -235,6 +235,10 @@ def test_the_evaluations_acceptance_summary_has_a_row_per_judged_learned_estimat
     (row,) = [line for line in path.read_text().splitlines() if line.startswith("| tracking")]
     assert "(`rmse_p`)" in row.split("|")[4]
     assert "(`" not in rows[0].split("|")[4]  # state_rmse: the column's own
+    # an evaluation that judges nothing into the same folder removes the earlier summary (a
+    # user trial: difffilter-eval printed the earlier one as this evaluation's verdict)
+    assert write_acceptance_summary(tmp_path / "p", {"other": uncalibrated}) is None
+    assert not (tmp_path / "p" / "acceptance.md").exists()
 
 
 def test_a_robustness_check_with_nothing_to_compare_does_not_hold():

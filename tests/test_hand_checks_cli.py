@@ -234,6 +234,17 @@ def test_tensorboard_curves_are_means_over_runs_at_steps_from_one(tmp_path):
     curve = lambda tag: [(e.step, round(e.value, 6)) for e in events.Scalars(tag)]  # noqa: E731
     assert curve("alarm_rate_per_step/chi") == [(1, 0.75), (2, 0.75), (3, 0.25)]
     assert curve("state_rmse_per_step/chi") == [(1, 2.0), (2, 2.0), (3, 2.0)]
+    # a second evaluation into the same folder replaces the first's events (a user trial:
+    # TensorBoard drew both runs' points, two per step, beside one run's metrics.json)
+    (tmp_path / "notes.txt").write_text("mine")
+    result.outputs["chi"].means = x + 1.0
+    log_suite(tmp_path, result, {"estimators": {"chi": {}}, "scenario": "s", "runs": 4, "seed": 0},
+              [])  # fmt: skip
+    events = EventAccumulator(str(tmp_path))
+    events.Reload()
+    assert curve("state_rmse_per_step/chi") == [(1, 1.0), (2, 1.0), (3, 1.0)]
+    assert len(list(tmp_path.rglob("events.out.tfevents.*"))) == 2  # the curves' and hparams/chi
+    assert (tmp_path / "notes.txt").read_text() == "mine"  # only event files go
 
 
 # ---------------------------------------------------------------- training's files

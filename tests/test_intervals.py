@@ -203,3 +203,40 @@ def test_the_best_of_a_resample_ignores_values_that_are_not_finite_as_the_point_
     assert lowest[2:].tolist() == [2.0, 1.0]  # an infinite error is no best (never 1.8e308)
     highest = iv._best(values, higher=True)
     assert highest.isnan()[:2].all() and highest[2:].tolist() == [3.0, 1.0]
+
+
+def test_a_tpr_exactly_the_margin_below_the_best_holds_in_the_check_and_every_resample():
+    """A user trial: TPR 0.99 against a best of 1.0 held in the report (``0.99 >= 1.0 -
+    0.01``) while its interval's statistic, ``0.99 - 1.0 = -0.010000000000000009``, failed
+    the interval's own rule. Here the learned detector misses one of each run's 100
+    attacked steps, so the difference is -0.01 in the study and in every resample."""
+    from difffilter.eval.acceptance import judge
+
+    runs, steps = 10, 120
+    flags = torch.zeros(runs, steps, dtype=torch.bool)
+    flags[:, 10:110] = True
+    gen = torch.Generator().manual_seed(8)
+    x = torch.randn(runs, steps, DX, generator=gen, dtype=torch.float64)
+    traj = SimpleNamespace(x=x, flags=flags, attack=torch.zeros(runs, steps, 0), info={})
+    means = x + 0.1 * torch.randn(runs, steps, DX, generator=gen, dtype=torch.float64)
+    scores = 2.0 * flags.double()
+    missed = scores.clone()
+    missed[:, 50] = 0.0
+    outputs = {NET: EstimatorOutput(means, detection=Detection(missed, missed > 1.0)),
+               A: EstimatorOutput(means, detection=Detection(scores, scores > 1.0))}  # fmt: skip
+    study = SimpleNamespace(outputs=outputs, metrics={NET: {}, A: {}}, runs=runs, seed=0,
+                            calibration=Calibration(0.01, runs, 0, {NET: 1.0, A: 1.0}),
+                            traj_of=lambda name: traj)  # fmt: skip
+    got = iv.acceptance_intervals(study, {NET: "learned", A: "analytic"}, far=0.01,
+                                  state_metric="state_rmse")["estimators"][NET]  # fmt: skip
+    assert got["tpr_at_far"]["estimate"] == pytest.approx(-0.01, abs=1e-15)
+    assert got["tpr_at_far"]["estimate"] < -0.01  # the round-off the checks forgive
+    assert got["tpr_at_far"]["holds_share"] == 1.0
+    assert got["state_rmse"]["holds_share"] == 1.0  # a ratio of exactly 1, and ≤ 1.05
+    best = {"tpr_at_far": (1.0, A), "state_rmse": (1.0, A)}
+    checks = {c.metric: c.holds for c in judge({"tpr_at_far": 0.99, "state_rmse": 1.05,
+                                                "fpr_at_far": 0.02}, best, far=0.01)}  # fmt: skip
+    assert checks == {"tpr_at_far": True, "state_rmse": True, "fpr_at_far": True}
+    checks = {c.metric: c.holds for c in judge({"tpr_at_far": 0.9899, "state_rmse": 1.0501,
+                                                "fpr_at_far": 0.0201}, best, far=0.01)}  # fmt: skip
+    assert checks == {"tpr_at_far": False, "state_rmse": False, "fpr_at_far": False}

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from difffilter.eval.leaderboard import COLUMNS, leaderboard_rows, write_leaderboard
@@ -80,3 +81,44 @@ def test_units_are_the_scenarios_shared_in_the_header_or_per_row_when_mixed(tmp_
     assert "state_rmse [state units]" in md and "units (state; attack)" in md
     assert "| tank | `kf` | cm; cm |" in md and "| grid | `kf` | p.u.; p.u. |" in md
     assert "| old | `kf` | state units; attack units |" in md  # a study that names none
+
+
+def test_a_second_leaderboard_into_the_same_folder_holds_only_its_own_rows(tmp_path):
+    """A user trial: tb_leaderboard kept the first evaluation's HPARAMS rows beside the
+    second's, while leaderboard.md held only the second's."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    write_leaderboard(tmp_path, {"plant_a": doc(["kf", "pf"], state_rmse=0.5)})
+    write_leaderboard(tmp_path, {"plant_a": doc(["kf"], state_rmse=0.25)})
+    files = list((tmp_path / "tb_leaderboard").rglob("events.out.tfevents*"))
+    runs = {p.parent.relative_to(tmp_path / "tb_leaderboard").as_posix() for p in files}
+    assert runs == {".", "plant_a/kf"} and len(files) == 2
+    row = EventAccumulator(str(tmp_path / "tb_leaderboard" / "plant_a" / "kf"))
+    row.Reload()
+    assert [e.value for e in row.Scalars("leaderboard/state_rmse")] == [0.25]
+
+
+def test_a_robustness_leaderboard_says_what_its_columns_are_and_plots_the_worst_case(
+    tmp_path, monkeypatch
+):
+    """A user trial: the robustness study's leaderboard kept the attack-free study's empty
+    detection columns unexplained, sent readers to a report.md it does not write, and its
+    figure left out the worst-case columns; the figure also printed placeholder units."""
+    from difffilter.eval import leaderboard
+
+    drawn = {}
+    monkeypatch.setattr(leaderboard, "_heatmaps", lambda path, rows, units: drawn.update(units))
+    study = doc(["kf", "net"], state_rmse=0.5, time_per_step_s=1e-4)
+    study |= {"worst_case": {"kf": {"tpr_at_far": 0.3, "state_error_ratio": 2.0},
+                             "net": {"tpr_at_far": 0.5, "state_error_ratio": 1.5}},
+              "scenario_units": {"state": "cm", "attack": "cm"}}  # fmt: skip
+    md = write_leaderboard(tmp_path, {"tank": study}).read_text()
+    assert "robustness study" in md and "`<scenario>/robustness.md`" in md
+    assert "`<scenario>/report.md`" not in md and "auc" not in md and "tpr_at_1pct_fpr" not in md
+    assert "worst_tpr_at_far [fraction]" in md and "| tank | `net` |" in md
+    # the attack-free columns with a value, then the worst case
+    assert list(drawn) == ["state_rmse", "time_per_step_s", "worst_tpr_at_far",
+                           "worst_state_error_ratio"]  # fmt: skip
+    assert drawn["state_rmse"] == "cm" and drawn["worst_state_error_ratio"] == "ratio"
+    good = leaderboard.cell_goodness(np.array([[0.3], [0.5]]), ["t", "t"], ["worst_tpr_at_far"])
+    assert good[:, 0].tolist() == pytest.approx([0.0, 1.0])  # a higher worst-case TPR is better
