@@ -106,7 +106,7 @@ class FamilyReport:
         sections: ``(SuiteResult, doc, out, prepared) → [Section]`` after the generic
             sections; ``doc`` is the metrics.json content, ``out`` the folder (for its own
             plots), ``prepared`` what ``prepare`` returned (or ``None``).
-        prepare: ``(scenarios, out=, seed=, checkpoint=, progress=, options=) → object``,
+        prepare: ``(scenarios, out=, seed=, checkpoint=, progress=, options=, far=) → object``,
             once per evaluation before the family's scenarios: a study they share (e.g.
             a validation the reports discuss). ``options`` holds the CLI's family flags.
         finish: ``(results, out, prepared) → None`` once after them: a summary across the

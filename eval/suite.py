@@ -100,7 +100,8 @@ def run_suite(
             needs the scenario does not meet (:mod:`difffilter.models.needs`: a KF on a
             nonlinear model, an attack-free reference under an actuator attack, another
             family's estimator) are skipped, with the reason, in ``skipped``.
-        add: more registered estimators to run after those.
+        add: more registered estimators to run after those (``estimators=[]``: these
+            alone; an empty list with nothing added is an error).
         progress: show a progress bar.
         dtype: of the model and the simulation.
         checkpoint: a trained estimator checkpoint for the estimators that use one
@@ -126,6 +127,7 @@ def run_suite(
     if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
         raise ValueError(f"runs must be an integer >= 1; got {runs!r}")
     estimators, add = estimator_names(estimators, "estimators"), estimator_names(add, "add")
+    _check_calibration(calibration)
     streams = Streams(seed)
     model = scenario.system(dtype)
     _check_threat_fits(scenario, model)
@@ -140,8 +142,13 @@ def run_suite(
                                 named_checkpoints=dict(named))  # fmt: skip
     if cache is not None:
         ctx.cache = cache
-    names = tuple(estimators or scenario.estimators or DEFAULT_SUITE)
+    names = tuple(scenario.estimators or DEFAULT_SUITE) if estimators is None else estimators
     names += tuple(n for n in (*add, *named) if n not in names)
+    if not names:  # [] ran the scenario's whole suite (and calibrate(estimators=[], add=…) too)
+        raise ValueError(
+            "estimators is empty and nothing is added: nothing to run; name estimators, or "
+            "give None for the scenario's own"
+        )
     specs = [registry.get(n) for n in names]  # unknown names fail before any work
     built = {}  # asked for by name: a misfit fails here, before any work, not as a skip
     for name, path in named.items():
@@ -197,6 +204,19 @@ def _check_threat_fits(scenario, model) -> None:
         check_attack_fits(scenario.simulated_attack(), model, scenario.steps)
     except ValueError as exc:
         raise ValueError(f"scenario {scenario.name!r}: its attack does not fit: {exc}") from None
+
+
+def _check_calibration(calibration) -> None:
+    """``calibration`` is ``None`` or what :func:`~difffilter.eval.calibration.calibrate`
+    returns: a rate (``calibration=0.01``) failed after the study as "'float' object has no
+    attribute 'thresholds'"."""
+    from .calibration import Calibration
+
+    if calibration is not None and not isinstance(calibration, Calibration):
+        raise ValueError(
+            "calibration must be None or the Calibration calibrate(scenario, far=…) returns "
+            f"(the thresholds, not the rate); got {type(calibration).__name__} {calibration!r}"
+        )
 
 
 def estimator_names(names, arg: str) -> tuple[str, ...] | None:

@@ -21,6 +21,7 @@ them.
 
 from __future__ import annotations
 
+import difflib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -173,7 +174,9 @@ def get(name: str) -> EstimatorSpec:
         return ESTIMATORS[name]
     except KeyError:
         known = ", ".join(sorted(ESTIMATORS))
-        raise ValueError(f"unknown estimator {name!r}; known estimators: {known}") from None
+        close = difflib.get_close_matches(str(name), ESTIMATORS, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ValueError(f"unknown estimator {name!r}{hint}; known estimators: {known}") from None
 
 
 def names() -> list[str]:

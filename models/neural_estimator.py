@@ -505,6 +505,11 @@ def load_estimator_checkpoint(
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"ckpt: no checkpoint file at {path}")
+    if path.suffix == ".json":  # the card beside a checkpoint: its sha256 did not match itself
+        raise ValueError(
+            f"ckpt: {path} is a checkpoint's card (JSON), not the checkpoint: give "
+            f"{path.with_suffix('.ckpt')}"
+        )
     _verify_sha256(path, expected_sha256)
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)

@@ -227,3 +227,25 @@ def test_calibrate_and_run_suite_name_a_string_of_estimators_and_a_bad_rate():
     for far in ("abc", 0.0, 1.5, None):
         with pytest.raises(ValueError, match="far must be a false-alarm rate in"):
             calibrate(sc, far=far, runs=2, progress=False)
+    with pytest.raises(ValueError, match=r"far must be a false-alarm rate in \(0, 1\); got None"):
+        calibrate(sc, far=None, runs=2, progress=False)  # not "… or None; got None"
+
+
+def test_run_suite_takes_an_empty_list_as_nothing_and_a_calibration_object_only():
+    """A user trial: ``run_suite(estimators=[])`` ran the scenario's whole suite (and
+    ``calibrate(estimators=[], add=[x])`` calibrated it all, not x), and ``calibration=0.01``
+    failed after the study on an AttributeError."""
+    from difffilter.eval.calibration import calibrate
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import registry
+
+    sc = registry.get("four_tank_bias")
+    with pytest.raises(ValueError, match="estimators is empty and nothing is added: nothing to"):
+        run_suite(sc, runs=2, estimators=[], progress=False)
+    only = run_suite(sc, runs=2, estimators=[], add=["chi_square_ekf"], progress=False)
+    assert list(only.outputs) == ["chi_square_ekf"]
+    cal = calibrate(sc, runs=2, estimators=[], add=["chi_square_ekf"], progress=False)
+    assert list(cal.thresholds) == ["chi_square_ekf"]
+    with pytest.raises(ValueError, match=r"calibration must be None or the Calibration "
+                       r"calibrate\(scenario, far=…\) returns .*got float 0.01"):  # fmt: skip
+        run_suite(sc, runs=2, estimators=["chi_square_ekf"], calibration=0.01, progress=False)

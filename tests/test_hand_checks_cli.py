@@ -366,5 +366,59 @@ def test_a_rate_may_be_any_real_number_in_the_open_unit_interval():
     for value in (0.1, np.float32(0.1), np.float64(0.1), torch.tensor(0.1)):
         assert check_rate(value, "far") == pytest.approx(0.1)
     for bad in (0, 1, 0.0, 1.0, -0.5, 2, True, np.float32(1.0), torch.tensor(0.0), "0.1", None):
-        with pytest.raises(ValueError, match="far must be a false-alarm rate in"):
+        with pytest.raises(ValueError, match=r"far must be a false-alarm rate in \(0, 1\); got"):
             check_rate(bad, "far")
+    # a user trial: calibrate(far=None) said "… in (0, 1) or None; got None"
+    with pytest.raises(ValueError, match=r"restart must be a false-alarm rate in \(0, 1\) or "
+                       r"None; got 2"):  # fmt: skip
+        check_rate(2, "restart", unset="None")
+
+
+def test_an_added_estimator_that_does_not_run_is_named_on_stderr(tmp_path, capsys):
+    """A user trial: ``--add-estimators kf`` on the (nonlinear) robot exited 0 with nothing
+    said; the reason was only in report.md's "Skipped" line."""
+    from difffilter.eval.cli import main
+
+    args = ["robot_actuator_attack", "--runs", "2", "--add-estimators", "kf,zhang_akf",
+            "--far", "off", "--no-progress", "--out", str(tmp_path)]  # fmt: skip
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert ("note: --add-estimators kf does not run on robot_actuator_attack: needs a linear "
+            "model") in err and "zhang" not in err  # fmt: skip
+
+
+def test_option_errors_name_the_option_and_what_it_takes(tmp_path, capsys):
+    """A user trial: ``--seed -1`` said "seed must be …", a misspelled ``--add-estimators``
+    listed 52 names without the option or the likely one, and ``--option foo=1`` on LFC did
+    not say which keys exist."""
+    from difffilter.eval.cli import main
+
+    out = ["--out", str(tmp_path), "--no-progress"]
+    assert main(["four_tank_bias", "--seed", "-1", *out]) == 2
+    assert "error: --seed must be an integer >= 0; got -1" in capsys.readouterr().err
+    assert main(["four_tank_bias", "--add-estimators", "chi_sqare_ekf", *out]) == 2
+    assert ("error: --add-estimators: unknown estimator 'chi_sqare_ekf' (did you mean "
+            "'chi_square_ekf'?)") in capsys.readouterr().err  # fmt: skip
+    assert main(["lfc_step", "--option", "foo=1", *out]) == 2
+    assert ("unknown lfc option(s) ['foo']; valid: per_channel, per_channel_runs, "
+            "per_channel_steps, watermark, watermark_std") in capsys.readouterr().err  # fmt: skip
+    assert main(["--list"]) == 0
+    assert "also: all (every headline scenario), robustness" in capsys.readouterr().out
+
+
+def test_the_watermark_study_takes_its_runs_option_and_the_evaluations_rate(monkeypatch, tmp_path):
+    """A user trial: the watermark study ran 20 runs at 1 % whatever ``--runs``/``--far``
+    said, and no option sized it."""
+    from difffilter.eval import watermark
+    from difffilter.eval.families import lfc
+
+    seen = []
+    monkeypatch.setattr(watermark, "watermark_study", lambda sc, **kw: seen.append(kw))
+    monkeypatch.setattr(watermark, "write_watermark", lambda out, study: None)
+    common = dict(out=tmp_path, seed=3, checkpoint=None, progress=False)
+    lfc._prepare(["lfc_step"], **common, options={"watermark": True, "watermark_runs": 7},
+                 far=0.05)  # fmt: skip
+    lfc._prepare(["lfc_step"], **common, options={"watermark": True}, far=None)
+    assert [(kw["runs"], kw["far"], kw["seed"]) for kw in seen] == [(7, 0.05, 3), (20, 0.01, 3)]
+    with pytest.raises(ValueError, match=r"--option watermark_runs: an integer >= 1; got 0"):
+        lfc._prepare(["lfc_step"], **common, options={"watermark_runs": 0})

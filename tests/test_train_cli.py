@@ -149,3 +149,20 @@ def test_export_names_its_source_argument(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "error: src: " in err and "not a weights-only torch checkpoint" in err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_a_checkpoints_card_given_for_the_checkpoint_is_named_as_such(capsys):
+    """A user trial: ``--ckpt checkpoints/four_tank_nn_grad.json`` (the card beside the
+    checkpoint) was refused as "does not match the sha256 recorded in the card"."""
+    from difffilter.eval.cli import main as eval_main
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+
+    card = "checkpoints/four_tank_nn_grad.json"
+    with pytest.raises(ValueError, match=r"ckpt: checkpoints/four_tank_nn_grad.json is a "
+                       r"checkpoint's card \(JSON\), not the checkpoint: give "
+                       r"checkpoints/four_tank_nn_grad.ckpt"):  # fmt: skip
+        load_estimator_checkpoint(card)
+    assert eval_main(["four_tank_bias", "--ckpt", card, "--runs", "2"]) == 2
+    assert "error: --ckpt: checkpoints/four_tank_nn_grad.json is a checkpoint's card" in (
+        capsys.readouterr().err
+    )

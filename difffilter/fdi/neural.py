@@ -836,7 +836,7 @@ def _check_restart(restart, inner, channel) -> None:
     """``ValueError`` for a ``restart`` rate out of (0, 1) or one the filter cannot serve."""
     if restart is None:
         return
-    check_rate(restart, "restart")
+    check_rate(restart, "restart", unset="None")
     if channel is not Channel.SENSOR or isinstance(inner, ParticleFilter):
         raise ValueError(
             "restart runs an uncompensated copy of a Gaussian filter against sensor attacks: "
@@ -853,7 +853,7 @@ def _check_reject(reject, channel) -> None:
     """``ValueError`` for a ``reject`` rate out of (0, 1) or one without a sensor attack."""
     if reject is None:
         return
-    check_rate(reject, "reject")
+    check_rate(reject, "reject", unset="None")
     if channel is not Channel.SENSOR:
         raise ValueError(
             "reject tests the compensated innovation of a sensor attack: channel must be "
@@ -865,7 +865,7 @@ def _check_confirm(confirm, restart) -> None:
     """``ValueError`` for a ``confirm`` rate out of (0, 1) or one without the gated copy."""
     if confirm is None:
         return
-    check_rate(confirm, "confirm")
+    check_rate(confirm, "confirm", unset="None")
     if restart is None:
         raise ValueError(
             "confirm reads the χ² test of the χ²-gated uncompensated copy, which runs only "

@@ -246,15 +246,21 @@ def _explain(sc, table: dict, est: dict) -> str:
 # ------------------------------------------------------- per-channel validation, summary
 
 
-def _prepare(names, *, out: Path, seed: int, checkpoint, progress: bool, options: dict) -> dict:
+def _prepare(names, *, out: Path, seed: int, checkpoint, progress: bool, options: dict,
+             far: float | None = 0.01) -> dict:  # fmt: skip
     """The tuning table and, with ``options["per_channel"]``, the per-channel validation
     (``per_channel_runs``, ``per_channel_steps``: its size, default 8 per channel × 1000);
-    with ``options["watermark"]``, the replay/watermark study (``watermark_std``, p.u.)
-    written to ``<out>/lfc_watermark/``."""
-    unknown = set(options) - {"per_channel", "per_channel_runs", "per_channel_steps",
-                              "watermark", "watermark_std"}  # fmt: skip
+    with ``options["watermark"]``, the replay/watermark study (``watermark_std``, p.u.;
+    ``watermark_runs``, default 20; its χ² threshold at the evaluation's ``far``, 0.01
+    where the evaluation calibrates nothing) written to ``<out>/lfc_watermark/``. Their
+    sizes are these options', not the evaluation's ``--runs``."""
+    valid = ("per_channel", "per_channel_runs", "per_channel_steps", "watermark", "watermark_std",
+             "watermark_runs")  # fmt: skip
+    unknown = set(options) - set(valid)
     if unknown:
-        raise ValueError(f"--option: unknown lfc option(s) {sorted(unknown)}")
+        raise ValueError(
+            f"--option: unknown lfc option(s) {sorted(unknown)}; valid: {', '.join(valid)}"
+        )
     options = _checked_options(options)
     tuning = json.loads(TUNING.read_text()) if TUNING.is_file() else None
     doc = None
@@ -270,6 +276,7 @@ def _prepare(names, *, out: Path, seed: int, checkpoint, progress: bool, options
         from ..watermark import watermark_study, write_watermark
 
         study = watermark_study(registry.get(names[0]), seed=seed,
+                                runs=options.get("watermark_runs", 20), far=far or 0.01,
                                 std=float(options.get("watermark_std", 0.08)))  # fmt: skip
         write_watermark(out, study)
     return {"per_channel": doc, "tuning": tuning}
@@ -277,12 +284,12 @@ def _prepare(names, *, out: Path, seed: int, checkpoint, progress: bool, options
 
 def _checked_options(options: dict) -> dict:
     """The LFC report options with their types and ranges checked (``ValueError`` naming the
-    key): ``per_channel``/``watermark`` booleans, ``per_channel_runs``/``_steps`` integers
-    >= 1, ``watermark_std`` a number > 0."""
+    key): ``per_channel``/``watermark`` booleans, ``per_channel_runs``/``_steps`` and
+    ``watermark_runs`` integers >= 1, ``watermark_std`` a number > 0."""
     for key in ("per_channel", "watermark"):
         if key in options and not isinstance(options[key], bool):
             raise ValueError(f"--option {key}: true or false; got {options[key]!r}")
-    for key in ("per_channel_runs", "per_channel_steps"):
+    for key in ("per_channel_runs", "per_channel_steps", "watermark_runs"):
         value = options.get(key, 1)
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f"--option {key}: an integer >= 1; got {value!r}")
