@@ -96,6 +96,7 @@ def calibrate(
     result = run_suite(
         scenario.with_threat(None), runs=runs, seed=cal_seed, estimators=estimators, add=add,
         progress=progress, checkpoint=checkpoint, cache=cache, calibration=None,
+        label=f"{scenario.name}: calibrating at {far:g} (attack-free runs)",
     )  # fmt: skip
     thresholds, measured = {}, {}
     for name, out in result.outputs.items():

@@ -159,8 +159,12 @@ def _summary(values: Tensor, holds: Callable[[Tensor], Tensor], level: float) ->
 
 
 def _study_and_resamples(runs: int, resamples: int, seed: int) -> Tensor:
-    """``[1 + R, B]``: a row of ones (the study, every run once), then :func:`resample_weights`."""
+    """``[1 + R, B]``: a row of ones (the study, every run once), then :func:`resample_weights`;
+    the row alone for one run, which has no spread to resample (its "intervals" were points
+    and every share 0 or 100 %: every interval and share is then ``None``)."""
     ones = torch.ones(1, runs, dtype=torch.float64)
+    if runs < 2:
+        return ones
     return torch.cat([ones, resample_weights(runs, resamples, seed)])
 
 

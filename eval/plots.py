@@ -187,7 +187,7 @@ def _after_attack_figure(result, names, colour) -> plt.Figure:
     each estimator's own trajectory), then on the steps before a run's first attack; each
     bin labelled with its number of steps (the most of any estimator: closed loops differ),
     bins without steps left out, the target rate dashed. A rate of 0 sits on the axis'
-    floor (half of one alarm in the largest bin shown)."""
+    floor (half of one alarm in the largest bin shown), a dotted line the legend names."""
     edges = AFTER_ATTACK_EDGES
     labels = [f"{a}" if b == a + 1 else f"{a}–{b - 1}" for a, b in zip(edges, edges[1:])]
     labels += [f"≥ {edges[-1]}", "before any attack"]
@@ -208,6 +208,9 @@ def _after_attack_figure(result, names, colour) -> plt.Figure:
     far = getattr(result.calibration, "far", None)
     if far is not None:
         ax.axhline(far, color="0.5", ls="--", lw=0.8, label=f"target false-alarm rate {far:g}")
+    # a log axis has no 0: said on the figure, or a detector without false alarms there
+    # read as one with a few
+    ax.axhline(floor, color="0.7", ls=":", lw=0.8, label="no alarm at all (0, drawn on this line)")
     ticks = [f"{label}\n{n:,} steps" for label, n in zip(labels, steps.tolist()) if n > 0]
     ax.set_xticks(range(len(ticks)), ticks, fontsize=7)
     ax.set(yscale="log", ylim=(floor * 0.8, 1.2),

@@ -370,6 +370,8 @@ def _intervals_text(intervals: dict, metrics: list[str]) -> str:
     learned estimator and check, the statistic, its interval and the share of resamples
     in which the check holds."""
     level, runs = intervals["level"], intervals["runs"]
+    if runs < 2:
+        return "How sure each verdict is: not estimated from one run (nothing to resample).\n"
     rows, kinds = [], {}
     for name, checks in intervals["estimators"].items():
         cells = []

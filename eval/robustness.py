@@ -215,14 +215,16 @@ def run_robustness(
     kwargs = dict(runs=runs, estimators=threat_set.estimators, add=add,
                   checkpoint=checkpoint, progress=progress, cache=cache)  # fmt: skip
     cal = calibrate(scenario, far=far, seed=seed, **{**kwargs, "runs": calibration_runs or runs})
-    free = run_suite(scenario.with_threat(None), seed=seed, calibration=cal, **kwargs)
+    free = run_suite(scenario.with_threat(None), seed=seed, calibration=cal, **kwargs,
+                     label=f"{scenario.name}: attack-free")  # fmt: skip
     result = RobustnessResult(scenario, runs, seed, threat_set, cal, free)
     bar = tqdm(threat_set.threats.items(), desc=f"{scenario.name} threats", disable=not progress)
     for name, threat in bar:
         bar.set_postfix_str(name)
         if isinstance(threat, StealthySpec):
             threat = _crafted(result, name, threat, progress, checkpoint)
-        suite = run_suite(scenario.with_threat(threat), seed=seed, calibration=cal, **kwargs)
+        suite = run_suite(scenario.with_threat(threat), seed=seed, calibration=cal, **kwargs,
+                          label=f"{scenario.name}: {name}")  # fmt: skip
         result.cells[name] = {
             est: _cell(m, free.metrics.get(est, {})) for est, m in suite.metrics.items()
         }

@@ -88,6 +88,7 @@ def run_suite(
     checkpoint=None,
     cache: dict | None = None,
     calibration=None,
+    label: str | None = None,
 ) -> SuiteResult:
     """Simulate ``runs`` runs of ``scenario`` and run every estimator on them.
 
@@ -102,7 +103,8 @@ def run_suite(
             family's estimator) are skipped, with the reason, in ``skipped``.
         add: more registered estimators to run after those (``estimators=[]``: these
             alone; an empty list with nothing added is an error).
-        progress: show a progress bar.
+        progress: show a progress bar, labelled ``label`` (default the scenario's name;
+            the calibration's says it is the calibration).
         dtype: of the model and the simulation.
         checkpoint: a trained estimator checkpoint for the estimators that use one
             (default: the scenario's shipped checkpoint, if it has one), or
@@ -171,7 +173,7 @@ def run_suite(
     ranks.update({spec.name: r for r, part in enumerate(parts) for spec in part})
     mine = parts[rank]  # each process runs its share
     with one_thread(scenario.single_thread), torch.no_grad():
-        _run_estimators(result, mine, progress and rank == 0, built)
+        _run_estimators(result, mine, progress and rank == 0, built, label)
     if world > 1:
         _gather(result, ctx, specs, world)
     seconds.update({name: wall / runs for name, wall in result.wall_s.items()})
@@ -230,7 +232,8 @@ def estimator_names(names, arg: str) -> tuple[str, ...] | None:
     return tuple(names)
 
 
-def _run_estimators(result: SuiteResult, specs, progress: bool, built=None) -> None:
+def _run_estimators(result: SuiteResult, specs, progress: bool, built=None,
+                    label: str | None = None) -> None:  # fmt: skip
     """Run every estimator of ``specs`` on the study's trajectories into ``result``
     (outputs, wall times, the trajectories of those that run their own closed loop, and
     those skipped with the reason); ``built``: ``{name: run}`` already made by their
@@ -238,7 +241,7 @@ def _run_estimators(result: SuiteResult, specs, progress: bool, built=None) -> N
     built = built or {}
     from tqdm.auto import tqdm
 
-    bar = tqdm(specs, desc=result.scenario.name, disable=not progress, leave=False)
+    bar = tqdm(specs, desc=label or result.scenario.name, disable=not progress, leave=False)
     ctx = result.context
     for spec in bar:
         bar.set_postfix_str(spec.name)

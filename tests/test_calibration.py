@@ -249,3 +249,18 @@ def test_run_suite_takes_an_empty_list_as_nothing_and_a_calibration_object_only(
     with pytest.raises(ValueError, match=r"calibration must be None or the Calibration "
                        r"calibrate\(scenario, far=…\) returns .*got float 0.01"):  # fmt: skip
         run_suite(sc, runs=2, estimators=["chi_square_ekf"], calibration=0.01, progress=False)
+
+
+def test_the_calibrations_progress_bar_says_it_is_the_calibration(capsys):
+    """A user trial: the calibration's bar and the study's both read "four_tank_bias: n/12",
+    and the calibration can take as long as the study."""
+    from difffilter.eval.calibration import calibrate
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import registry
+
+    sc = registry.get("four_tank_bias")
+    calibrate(sc, runs=2, estimators=["chi_square_ekf"], progress=True)
+    assert "four_tank_bias: calibrating at 0.01 (attack-free runs)" in capsys.readouterr().err
+    run_suite(sc, runs=2, estimators=["chi_square_ekf"], progress=True)
+    err = capsys.readouterr().err
+    assert "four_tank_bias" in err and "calibrating" not in err

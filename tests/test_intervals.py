@@ -240,3 +240,28 @@ def test_a_tpr_exactly_the_margin_below_the_best_holds_in_the_check_and_every_re
     checks = {c.metric: c.holds for c in judge({"tpr_at_far": 0.9899, "state_rmse": 1.0501,
                                                 "fpr_at_far": 0.0201}, best, far=0.01)}  # fmt: skip
     assert checks == {"tpr_at_far": False, "state_rmse": False, "fpr_at_far": False}
+
+
+def test_one_run_has_no_interval_and_no_share():
+    """A user trial: with ``--runs 1`` every "interval" was a point and every share 0 or
+    100 %, printed as "✓ (100 %)" over "these 1 runs"."""
+    from difffilter.eval.report import _intervals_text
+
+    gen = torch.Generator().manual_seed(9)
+    traj = _traj(gen)
+    one = SimpleNamespace(**{**vars(traj), "x": traj.x[:1], "flags": traj.flags[:1],
+                             "attack": traj.attack[:1]})  # fmt: skip
+    full = _output(traj, gen, 0.5)
+    out = EstimatorOutput(full.means[:1], attack=full.attack[:1],
+                          detection=Detection(full.detection.scores[:1],
+                                              full.detection.alarms[:1]))  # fmt: skip
+    net = EstimatorOutput(out.means + 0.1, attack=out.attack, detection=out.detection)
+    study = SimpleNamespace(outputs={NET: net, A: out}, metrics={NET: {}, A: {}}, runs=1,
+                            seed=0, calibration=Calibration(0.01, 1, 0, {NET: 1.0, A: 1.0}),
+                            traj_of=lambda name: one)  # fmt: skip
+    got = iv.acceptance_intervals(study, {NET: "learned", A: "analytic"}, far=0.01,
+                                  state_metric="state_rmse")  # fmt: skip
+    for check in got["estimators"][NET].values():
+        assert check["estimate"] is not None
+        assert check["low"] is check["high"] is check["holds_share"] is None
+    assert "not estimated from one run" in _intervals_text(got, ["state_rmse"])

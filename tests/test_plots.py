@@ -110,3 +110,7 @@ def test_a_calibrated_study_shows_its_false_alarms_after_an_attack(figures):
         floor = fig.axes[0].get_ylim()[0] / 0.8
         expected = [max(h / s, floor) for h, s in zip(hits, steps) if s > 0]
         assert list(drawn[: len(expected)]) == pytest.approx(expected)
+    # the floor where a rate of 0 is drawn is a line the legend names (a user trial read a
+    # detector without false alarms as one with 0.2 % of them)
+    zero = lines["no alarm at all"]
+    assert list(zero.get_ydata()) == pytest.approx([floor, floor])
