@@ -102,3 +102,18 @@ def test_seed_everything_seeds_the_network_and_the_training_batches(tmp_path, mo
 def test_model_seed_must_be_a_non_negative_integer():
     with pytest.raises(ValueError, match="model_seed must be an integer >= 0; got -1"):
         FilterEstimatorTask("four_tank_bias", model_seed=-1)
+
+
+def test_batches_that_do_not_split_evenly_over_ddp_processes_are_refused():
+    """A user trial: 3 batches an epoch on 2 DDP processes hung forever (the process with
+    the extra batch waits in the all-reduce; SIGTERM did not end it)."""
+    from types import SimpleNamespace
+
+    data = ScenarioDataModule("four_tank_bias", batches_per_epoch=3)
+    data.trainer = SimpleNamespace(global_rank=1, world_size=2)
+    with pytest.raises(ValueError, match=r"batches_per_epoch \(3\) must be a multiple of the 2 "
+                       r"processes \(--trainer.devices\)"):  # fmt: skip
+        data.train_dataloader()
+    data = ScenarioDataModule("four_tank_bias", batches_per_epoch=4)
+    data.trainer = SimpleNamespace(global_rank=1, world_size=2)
+    assert [int(b["index"]) for b in data.train_dataloader()] == [1, 3]

@@ -280,6 +280,12 @@ class ScenarioDataModule(pl.LightningDataModule):
         # DDP: each process simulates its share of the epoch's seeded batches (our own
         # split, so the data stay a function of (train_seed, epoch, batch) across resumes)
         rank, world = (trainer.global_rank, trainer.world_size) if trainer else (0, 1)
+        if n % world:  # a process with one batch more waited forever in the all-reduce
+            raise ValueError(
+                f"batches_per_epoch ({n}) must be a multiple of the {world} processes "
+                f"(--trainer.devices): each takes one batch in {world}, and all must take "
+                "as many, or the gradient all-reduce waits forever"
+            )
         return torch.utils.data.DataLoader(_Keys(range(rank, n, world)), batch_size=None)
 
     def on_after_batch_transfer(self, batch, dataloader_idx):
