@@ -61,12 +61,14 @@ class _CountBatches(pl.Callback):
         self.batches += 1
 
 
-def _trainer(folder, epochs: int, *extra, weights_only: bool = False) -> pl.Trainer:
+def _trainer(folder, epochs: int, *extra, weights_only: bool = False, max_steps: int = -1
+             ) -> pl.Trainer:  # fmt: skip
     best = ModelCheckpoint(dirpath=folder, monitor="val/metric", mode="min", save_last=True,
                            save_top_k=1, filename="best-{epoch:02d}",
                            save_weights_only=weights_only)  # fmt: skip
     trainer = pl.Trainer(
-        max_epochs=epochs, callbacks=[best, *extra], logger=False, enable_progress_bar=False,
+        max_epochs=epochs, max_steps=max_steps, callbacks=[best, *extra], logger=False,
+        enable_progress_bar=False,
         enable_model_summary=False, num_sanity_val_steps=0, accelerator="cpu", devices=1,
     )  # fmt: skip
     add_last_every_epoch(trainer)
@@ -136,3 +138,19 @@ def test_fast_dev_run_gets_none(tmp_path):
 def test_it_needs_a_model_checkpoint():
     with pytest.raises(ValueError, match="checkpoint must be a ModelCheckpoint; got str"):
         LastCheckpointEveryEpoch("last.ckpt")
+
+
+def test_an_epoch_cut_short_by_max_steps_is_trained_again_whole_on_resume(tmp_path):
+    """A user trial: ``--trainer.max_steps`` stopped epoch 1 after one of its two batches,
+    ``last.ckpt`` counted the epoch done, and the resume went on with epoch 2: a batch
+    skipped, other weights than the uninterrupted run's. Now the file stays at epoch 0."""
+    whole = _trainer(tmp_path / "whole", 4)
+    whole.fit(reference := _Worsening())
+    trainer = _trainer(tmp_path / "cut", 4, max_steps=3)
+    trainer.fit(_Worsening())
+    assert trainer.global_step == 3 and _epoch_of(tmp_path / "cut" / "last.ckpt") == 0
+    count = _CountBatches()
+    resumed = _trainer(tmp_path / "cut", 4, count)
+    resumed.fit(model := _Worsening(), ckpt_path=tmp_path / "cut" / "last.ckpt")
+    assert count.batches == 3 * BATCHES and resumed.global_step == 4 * BATCHES
+    assert torch.equal(model.w, reference.w)

@@ -3,6 +3,7 @@ no traceback; its --help names export."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -166,3 +167,21 @@ def test_a_checkpoints_card_given_for_the_checkpoint_is_named_as_such(capsys):
     assert "error: --ckpt: checkpoints/four_tank_nn_grad.json is a checkpoint's card" in (
         capsys.readouterr().err
     )
+
+
+def test_a_fit_stopped_before_its_first_validation_says_its_export_is_unvalidated(
+    tmp_path, monkeypatch, capsys
+):
+    """A user trial: ``--trainer.max_steps`` inside the first epoch exported weights no
+    validation had seen, with "ship it with: difffilter-train export …"."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    args = ["fit", "--config", str(ROOT / "train" / "configs" / "robot.yaml"),
+            "--trainer.max_epochs=2", "--data.init_args.batches_per_epoch=3",
+            "--data.init_args.val_runs=4", "--trainer.enable_progress_bar=false"]  # fmt: skip
+    assert main([*args, "--trainer.max_steps=200"]) == 0  # 100 EKF steps a batch
+    out = capsys.readouterr().out
+    assert "never validated (the run stopped before its first validation" in out
+    assert "ship it with" not in out
+    card = tmp_path / "lightning_logs" / "robot_nn_ekf" / "version_0" / "robot_nn_ekf.json"
+    assert json.loads(card.read_text())["best_val_score"] is None

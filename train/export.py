@@ -183,6 +183,13 @@ class ExportEstimator(pl.Callback):
             "check": check_metric(path),
         }
         path.with_suffix(".json").write_text(json.dumps(card, indent=2) + "\n")
+        watched = any(isinstance(cb, pl.callbacks.ModelCheckpoint) and cb.monitor
+                      for cb in trainer.callbacks)  # fmt: skip
+        if watched and not best_path:  # (max_steps/max_time before the first validation)
+            print(f"exported {path}: the weights training stopped at, never validated (the "
+                  "run stopped before its first validation, so no checkpoint was chosen and "
+                  "the card's best_val_score is null); train at least one whole epoch")  # fmt: skip
+            return
         print(f"exported {path} (ship it with: difffilter-train export {path} --out <file>)")
 
 

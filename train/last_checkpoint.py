@@ -1,5 +1,5 @@
-"""``last.ckpt`` at the end of every epoch, so that an interrupted training loses at most
-the epoch it was in.
+"""``last.ckpt`` at the end of every whole epoch, so that an interrupted training loses at
+most the epoch it was in, and a resumed one trains the weights the uninterrupted one does.
 
 A ``ModelCheckpoint`` with a ``monitor`` and ``save_last=True`` writes ``last.ckpt`` only
 when it also writes a best checkpoint (Lightning 2.6, here; 2.2 wrote it every epoch: "saves
@@ -45,6 +45,12 @@ class LastCheckpointEveryEpoch(pl.Callback):
         self._write(trainer)
 
     def on_train_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        if _cut_short(trainer):
+            # ``max_steps``/``max_time`` ended the epoch after some of its batches: written, the
+            # file counted the epoch done, and a resume skipped the rest of its batches (a
+            # user trial: other weights than the uninterrupted run's). Kept at the last whole
+            # epoch, a resume trains this one again, on the same seeded batches.
+            return
         self._write(trainer)  # an epoch without validation (written once per step count)
 
     def _write(self, trainer: pl.Trainer) -> None:
@@ -60,6 +66,13 @@ class LastCheckpointEveryEpoch(pl.Callback):
         # weights only (left unset, Lightning logs "`weights_only` was not set" every epoch)
         trainer.save_checkpoint(path, weights_only=cb.save_weights_only)
         self._written_at_step = trainer.global_step
+
+
+def _cut_short(trainer: pl.Trainer) -> bool:
+    """Whether the epoch ending now ran fewer batches than an epoch has."""
+    total = trainer.num_training_batches
+    done = trainer.fit_loop.epoch_loop.batch_progress.current.completed
+    return isinstance(total, int) and done < total
 
 
 def add_last_every_epoch(trainer: pl.Trainer) -> None:
