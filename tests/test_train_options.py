@@ -117,3 +117,38 @@ def test_batches_that_do_not_split_evenly_over_ddp_processes_are_refused():
     data = ScenarioDataModule("four_tank_bias", batches_per_epoch=4)
     data.trainer = SimpleNamespace(global_rank=1, world_size=2)
     assert [int(b["index"]) for b in data.train_dataloader()] == [1, 3]
+
+
+@pytest.mark.parametrize(
+    ("options", "why"),
+    [
+        (["--model.init_args.scenario=robot_actuator_attack"],
+         r"the model's scenario \('robot_actuator_attack'\) and the data's "
+         r"\('robot_actuator_attack_turn_rates'\) differ: give both"),
+        (["--data.init_args.dtype=float64"],
+         r"the model's dtype \('float32'\) and the data's \('float64'\) differ"),
+        (["--trainer.precision=16"],
+         r"--trainer.precision 16: the filters and the EKF over the weights run in the dtype"),
+    ],
+)  # fmt: skip
+def test_what_lightning_refused_deep_in_its_run_is_one_line_first(options, why, tmp_path,
+                                                                   monkeypatch):  # fmt: skip
+    """A user trial: these ended in 29–84-line tracebacks ("Error while merging hparams",
+    a BFloat16 error inside the EKF over the weights)."""
+    with pytest.raises(ValueError, match=why):
+        _cli(tmp_path, monkeypatch, *options)
+
+
+def test_fit_refuses_an_exported_estimator_as_the_run_to_resume(tmp_path, monkeypatch, capsys):
+    """A user trial: ``fit --ckpt_path checkpoints/robot_nn_ekf.ckpt`` ended in
+    ``KeyError: 'pytorch-lightning_version'`` 39 lines down."""
+    from difffilter.train.cli import main
+
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    assert main(["fit", "--config", str(root / "train" / "configs" / "robot.yaml"),
+                 "--ckpt_path", str(root / "checkpoints" / "robot_nn_ekf.ckpt")]) == 2  # fmt: skip
+    assert "is an exported estimator (weights only), not a training run's Lightning " in (
+        capsys.readouterr().err
+    )

@@ -34,10 +34,20 @@ class DifffilterCLI(LightningCLI):
         where the config leaves ``model_seed`` or ``train_seed`` unset
         (:func:`_seeds_from_seed_everything`)."""
         _seeds_from_seed_everything(self.config, self.subcommand)
+        _check_config(self.config, self.subcommand)
         if self.subcommand != "fit":
             return
         cfg = self.config["fit"]
         ckpt, logger = cfg.get("ckpt_path"), cfg["trainer"].get("logger")
+        if ckpt:
+            from difffilter.models.neural_estimator import is_exported_checkpoint
+
+            if Path(ckpt).is_file() and is_exported_checkpoint(ckpt):
+                raise ValueError(
+                    f"--ckpt_path: {ckpt} is an exported estimator (weights only), not a "
+                    "training run's Lightning checkpoint to resume; start a training from its "
+                    "weights with --model.init_args.init_from"
+                )
         args = (
             None if logger is None or isinstance(logger, (bool, list)) else logger.get("init_args")
         )
@@ -128,6 +138,39 @@ def _seeds_from_seed_everything(config, subcommand: str | None) -> None:
         args = node.get("init_args") if node is not None and "class_path" in node else node
         if args is not None and key in args and args[key] is None:
             args[key] = value
+
+
+#: The precisions the filters run in: the model's and data's ``dtype`` decide, not autocast.
+_PRECISIONS = (None, 32, 64, "32", "64", "32-true", "64-true")
+
+
+def _check_config(config, subcommand: str | None) -> None:
+    """What Lightning refused only deep in its run, as one line: the model and the data
+    of different scenarios or dtypes ("Error while merging hparams: the keys ['scenario']"),
+    and mixed precision (a BFloat16 error inside the EKF over the weights)."""
+    cfg = config[subcommand] if subcommand else config
+
+    def args(part):
+        node = cfg.get(part)
+        return node.get("init_args") if node is not None and "class_path" in node else node
+
+    model, data = args("model"), args("data")
+    if model is not None and data is not None:
+        for key in ("scenario", "dtype"):
+            if key in model and key in data and model[key] != data[key]:
+                # (Lightning reads a --ckpt_path's own settings into the model's)
+                whose = " (the model's from --ckpt_path)" if cfg.get("ckpt_path") else ""
+                raise ValueError(
+                    f"the model's {key} ({model[key]!r}) and the data's ({data[key]!r}) differ"
+                    f"{whose}: give both --model.init_args.{key} and --data.init_args.{key}"
+                )
+    precision = (cfg.get("trainer") or {}).get("precision")
+    if precision not in _PRECISIONS:
+        raise ValueError(
+            f"--trainer.precision {precision}: the filters and the EKF over the weights run in "
+            "the dtype of the config (--model.init_args.dtype and --data.init_args.dtype, "
+            "float32 or float64), not in mixed precision; leave --trainer.precision unset"
+        )
 
 
 def _reason(message: str) -> str:

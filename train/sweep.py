@@ -80,10 +80,9 @@ def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str], progress: bo
 
     # this config's run only: another config's run in the same folder (a grad and an EKF
     # config, one --out) was taken as "trained already", the other network reported
+    # (a folder of other settings was refused before the first seed: sweep())
     folder, options, settings = _seed_run(config, seed, runs_dir, extra)
     existing = [folder] if folder.is_dir() else []
-    if existing:
-        _check_same_settings(folder, settings, seed)
     if existing and (done := _exported(existing[0])) is not None:
         print(f"seed {seed}: trained already ({done})")
         return done
