@@ -27,6 +27,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -484,6 +485,16 @@ def _from_lightning(blob: dict, path: Path) -> dict:
     }
 
 
+def _unpickling_reason(exc: Exception) -> str:
+    """torch's reason a file did not load, without its advice (to load it with
+    ``weights_only=False``, which runs whatever the file holds, or to file an issue)."""
+    text = str(exc)
+    if "WeightsUnpickler error:" in text:
+        text = text.split("WeightsUnpickler error:", 1)[1].split("Check the documentation")[0]
+    reason = " ".join(text.split())
+    return f"{type(exc).__name__}: {reason}" if reason else type(exc).__name__
+
+
 def load_estimator_checkpoint(
     path, *, dtype=torch.float64, expected_sha256: str | None = None
 ) -> tuple[NeuralFDIEstimator, EstimatorCard]:
@@ -512,9 +523,13 @@ def load_estimator_checkpoint(
         )
     _verify_sha256(path, expected_sha256)
     try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # a file not saved by torch.save: its error says so
+            warnings.filterwarnings("ignore", "Detected pickle protocol", UserWarning)
+            blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # unpickling errors come in many types
-        raise ValueError(f"ckpt: {path} is not a weights-only torch checkpoint ({exc})") from exc
+        raise ValueError(
+            f"ckpt: {path} is not a weights-only torch checkpoint ({_unpickling_reason(exc)})"
+        ) from exc
     if _is_lightning_checkpoint(blob):
         blob = _from_lightning(blob, path)
     if not isinstance(blob, dict) or blob.get("format") != CHECKPOINT_FORMAT:

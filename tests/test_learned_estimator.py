@@ -365,6 +365,9 @@ def test_task_fit_export_and_evaluate_round_trip(tmp_path, monkeypatch, capsys):
 
     assert card["observer"]["target_false_alarm_rate"] == 0.01
     assert card["metrics_last_validation"]["val/fpr_calibration"] <= 0.01
+    # where the threshold came from, at the card's top level as calibrate writes it too
+    assert card["calibration"] == card["observer"]["extra"]["calibration"]
+    assert card["calibration"]["threshold"] == card["observer"]["threshold"]
     best_task = FilterEstimatorTask.load_from_checkpoint(
         next((run / "checkpoints").glob("best-*.ckpt"))
     )

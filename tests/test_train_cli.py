@@ -149,6 +149,22 @@ def test_export_names_its_source_argument(tmp_path, capsys):
     assert export_main([str(tmp_path / "text.ckpt"), "--out", str(tmp_path / "o.ckpt")]) == 2
     err = capsys.readouterr().err
     assert "error: src: " in err and "not a weights-only torch checkpoint" in err
+    # a user trial: torch's advice came along (load it with weights_only=False, file an
+    # issue), and calibrate named its source "ckpt" and complained of --out first
+    import pickle
+
+    with open(tmp_path / "pickled.ckpt", "wb") as f:
+        pickle.dump({"a": object}, f)  # not weights only: torch adds its advice
+    assert export_main([str(tmp_path / "pickled.ckpt"), "--out", str(tmp_path / "o.ckpt")]) == 2
+    err = capsys.readouterr().err
+    assert "not a weights-only torch checkpoint (UnpicklingError: Unsupported operand" in err
+    assert "weights_only` set to `False`" not in err and "file an issue" not in err
+    from difffilter.train.calibrate import main as calibrate_main
+
+    (tmp_path / "taken.ckpt").write_text("")
+    for run in (export_main, calibrate_main):
+        assert run([str(tmp_path / "none.ckpt"), "--out", str(tmp_path / "taken.ckpt")]) == 2
+        assert "error: src: no checkpoint file at" in capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1
 
 
@@ -185,3 +201,52 @@ def test_a_fit_stopped_before_its_first_validation_says_its_export_is_unvalidate
     assert "ship it with" not in out
     card = tmp_path / "lightning_logs" / "robot_nn_ekf" / "version_0" / "robot_nn_ekf.json"
     assert json.loads(card.read_text())["best_val_score"] is None
+
+
+def test_an_export_of_a_lightning_checkpoint_carries_the_runs_settings_and_score(tmp_path):
+    """A user trial: exported from a run's ``best-*.ckpt``, the card lacked the configs,
+    the monitor and the validation score that a fit's own export records."""
+    import torch
+
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+    from difffilter.train.export import export
+
+    net, card = load_estimator_checkpoint(ROOT / "checkpoints" / "four_tank_nn_grad.ckpt")
+    key = ("ModelCheckpoint{'monitor': 'val/auc', 'mode': 'max', 'every_n_train_steps': 0, "
+           "'every_n_epochs': 1, 'train_time_interval': None}")  # fmt: skip
+    blob = {"pytorch-lightning_version": "2.6.6", "epoch": 3, "global_step": 48,
+            "state_dict": {f"estimator.{k}": v for k, v in net.state_dict().items()},
+            "hyper_parameters": {"scenario": "four_tank_bias", "hidden": 16, "_class_path": "x"},
+            "datamodule_hyper_parameters": {"scenario": "four_tank_bias", "train_seed": 11},
+            "difffilter_estimator_config": net.config(), "difffilter_observer": card.to_dict(),
+            "callbacks": {key: {"monitor": "val/auc", "current_score": torch.tensor(0.93),
+                                "best_model_score": torch.tensor(0.93),
+                                "best_model_path": "/elsewhere/best-epoch=03.ckpt"}}}  # fmt: skip
+    torch.save(blob, tmp_path / "best-epoch=03.ckpt")
+    torch.save(blob, tmp_path / "last.ckpt")
+    for name in ("best-epoch=03.ckpt", "last.ckpt"):
+        export(tmp_path / name, tmp_path / "out" / f"{name}.ckpt".replace("=", "_"))
+    best = json.loads((tmp_path / "out" / "best-epoch_03.ckpt.json").read_text())
+    assert best["model_config"] == {"scenario": "four_tank_bias", "hidden": 16}
+    assert best["data_config"]["train_seed"] == 11 and best["epochs"] == 3
+    assert best["monitor"] == {"metric": "val/auc", "mode": "max"}
+    assert best["val_score"] == best["best_val_score"] == pytest.approx(0.93)
+    last = json.loads((tmp_path / "out" / "last.ckpt.json").read_text())
+    assert last["val_score"] == pytest.approx(0.93) and "best_val_score" not in last
+
+
+def test_training_commands_print_no_lightning_noise(tmp_path, monkeypatch, caplog, recwarn):
+    """A user trial: every command printed a cloud logger's advertisement and torch's
+    deprecation of a check inside Lightning, and each seed of a sweep Lightning's warning
+    that both ``args`` and ``sys.argv`` were given (``sys.argv`` was the sweep's)."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train", "sweep", "--seeds", "0"])
+    with caplog.at_level("INFO"):
+        assert main(["fit", "--config", str(ROOT / "train" / "configs" / "robot.yaml"),
+                     "--trainer.fast_dev_run=1"]) == 0  # fmt: skip
+    assert not [r for r in caplog.records if "Tip:" in r.getMessage()]
+    said = [str(w.message) for w in recwarn]
+    assert not [m for m in said if "LeafSpec" in m or "args parameter is intended" in m], said
+    import sys
+
+    assert sys.argv == ["difffilter-train", "sweep", "--seeds", "0"]  # given back

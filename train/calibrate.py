@@ -46,7 +46,7 @@ from pathlib import Path
 
 from difffilter._checks import check_rate
 
-from .common import check_checkpoint_out
+from .common import check_checkpoint_out, load_source
 
 __all__ = ["calibrate_checkpoint", "estimator_name", "main"]
 
@@ -153,8 +153,8 @@ def calibrate_checkpoint(
         raise ValueError(f"--far must lie in (0, 1) (a rate per step); got {far!r}")
     if runs is not None and (isinstance(runs, bool) or not isinstance(runs, int) or runs < 1):
         raise ValueError(f"--runs must be a positive integer; got {runs!r}")
+    estimator, card = load_source(src)  # the weights unchanged
     check_checkpoint_out(out, force=force, replacing=src)
-    estimator, card = load_estimator_checkpoint(src, dtype=None)  # the weights unchanged
     if card.scenario is None:
         raise ValueError(f"{src}: its card names no training scenario to calibrate on")
     as_shipped = card

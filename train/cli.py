@@ -100,7 +100,13 @@ def main(args: list[str] | None = None) -> int:
     if args is None:  # the console script: LightningCLI reads sys.argv itself
         sys.argv = [sys.argv[0], *argv]
         return run(None, argv, HELP)
-    return run(argv, argv, HELP)
+    # called with its arguments (a sweep's seeds): sys.argv is another command's, which
+    # LightningCLI warned about at every seed
+    saved, sys.argv = sys.argv, sys.argv[:1]
+    try:
+        return run(argv, argv, HELP)
+    finally:
+        sys.argv = saved
 
 
 def _scenario_option(argv: list[str]) -> list[str]:

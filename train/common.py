@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["DTYPES", "check_checkpoint_out", "dtype_of", "mix_seed", "train_seed_of"]
+__all__ = ["DTYPES", "check_checkpoint_out", "dtype_of", "load_source", "mix_seed", "train_seed_of"]
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
@@ -59,3 +59,15 @@ def train_seed_of(seed: int) -> int:
     sweep's seed): ``1 + 10 s``, never a default validation (2) or test (0) seed; seed 0
     gives the default 1."""
     return 1 + 10 * int(seed)
+
+
+def load_source(src):
+    """``(estimator, card)`` of the checkpoint a command reads (``export``, ``calibrate``),
+    its weights in their own dtype; its errors name it as the commands do, ``src``, and
+    come before any about ``--out``."""
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+
+    try:
+        return load_estimator_checkpoint(src, dtype=None)
+    except (ValueError, FileNotFoundError) as exc:
+        raise type(exc)(f"src: {str(exc).removeprefix('ckpt: ')}") from None

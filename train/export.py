@@ -31,7 +31,7 @@ from difffilter.models.neural_estimator import (
     save_estimator_checkpoint,
 )
 
-from .common import check_checkpoint_out
+from .common import check_checkpoint_out, load_source
 
 __all__ = ["export", "main", "ExportEstimator", "check_metric"]
 
@@ -68,12 +68,9 @@ def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
     src, out = Path(src), Path(out)
     if out.resolve() == src.resolve():
         raise ValueError(f"--out: {out} is the source itself")
-    check_checkpoint_out(out, force=force)
     # verified; its weights in their own dtype (a float64 network stays float64)
-    try:
-        estimator, est_card = load_estimator_checkpoint(src, dtype=None)
-    except (ValueError, FileNotFoundError) as exc:  # named as the command names it
-        raise type(exc)(f"src: {str(exc).removeprefix('ckpt: ')}") from None
+    estimator, est_card = load_source(src)
+    check_checkpoint_out(out, force=force)
     out.parent.mkdir(parents=True, exist_ok=True)
     card_src = src.with_suffix(".json")
     blob = torch.load(src, map_location="cpu", weights_only=True)
@@ -86,8 +83,7 @@ def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
         card = {
             "estimator_config": estimator.config(),
             "observer": est_card.to_dict(),
-            "epoch": blob.get("epoch"),
-            "global_step": blob.get("global_step"),
+            **_lightning_record(blob, src),
             "torch_version": torch.__version__,
         }
     card.update(checkpoint=out.name, sha256=digest, exported_from=str(src))
@@ -95,6 +91,34 @@ def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
     out.with_suffix(".json").write_text(json.dumps(card, indent=2) + "\n")
     load_estimator_checkpoint(out)  # the shipped pair loads and matches its card
     return out
+
+
+def _lightning_record(blob: dict, src: Path) -> dict:
+    """What a training run's Lightning checkpoint says of itself, for the card of its export
+    (a user trial: the card lacked the configs and the validation score a fit's export has):
+    the task's and the data's settings, its epoch and step, and the monitored validation
+    score of these weights (``val_score``: the checkpoint callback's score when the file was
+    written; also ``best_val_score`` where the file is that callback's best)."""
+    hp, data = blob.get("hyper_parameters"), blob.get("datamodule_hyper_parameters")
+    record = {
+        "selected_checkpoint": src.name,
+        "model_config": _plain(dict(hp)) if isinstance(hp, dict) else None,
+        "data_config": _plain(dict(data)) if isinstance(data, dict) else None,
+        "epochs": blob.get("epoch"),
+        "global_step": blob.get("global_step"),
+        "lightning_version": blob.get("pytorch-lightning_version"),
+    }
+    for key, state in (blob.get("callbacks") or {}).items():
+        if key.startswith("ModelCheckpoint") and state.get("monitor"):
+            mode = "max" if "'mode': 'max'" in key else "min"
+            score = state.get("current_score")
+            record["monitor"] = {"metric": state["monitor"], "mode": mode}
+            record["val_score"] = None if score is None else float(score)
+            best = state.get("best_model_path")
+            if best and Path(best).name == src.name and state.get("best_model_score") is not None:
+                record["best_val_score"] = float(state["best_model_score"])
+            break
+    return record
 
 
 def _plain(config: dict) -> dict:
@@ -180,6 +204,13 @@ class ExportEstimator(pl.Callback):
             "torch_version": torch.__version__,
             "lightning_version": pl.__version__,
             **pl_module.export_card(trainer, estimator),
+            # where the threshold came from, where `calibrate` records it as well (a user
+            # trial read card["calibration"] and found nothing after a fit)
+            **(
+                {"calibration": est_card.extra["calibration"]}
+                if "calibration" in est_card.extra
+                else {}
+            ),  # fmt: skip
             "check": check_metric(path),
         }
         path.with_suffix(".json").write_text(json.dumps(card, indent=2) + "\n")

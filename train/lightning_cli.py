@@ -173,6 +173,23 @@ def _check_config(config, subcommand: str | None) -> None:
         )
 
 
+def _quiet_lightning() -> None:
+    """Leave out what Lightning prints on every command that is not about the run (a user
+    trial called it noise): an advertisement for a cloud logger, and torch's deprecation
+    of a check inside Lightning's own code (``_pytree``)."""
+    import logging
+    import warnings
+
+    warnings.filterwarnings("ignore", r"`isinstance\(treespec, LeafSpec\)` is deprecated")
+    log = logging.getLogger("lightning.pytorch.utilities.rank_zero")
+    if _not_a_tip not in log.filters:
+        log.addFilter(_not_a_tip)
+
+
+def _not_a_tip(record) -> bool:
+    return not str(record.msg).startswith("💡 Tip:")
+
+
 def _reason(message: str) -> str:
     """jsonargparse's error on one line, a nested class's own reason pulled out of the
     "Does not validate against any of the Union subtypes" preamble."""
@@ -202,13 +219,18 @@ def run(args: list[str] | None, argv: list[str], description: str) -> int:
     ``DIFFFILTER_THREADS`` says otherwise (:func:`~difffilter.runtime.command_threads`).
     """
     tune_cpu_allocator()
+    _quiet_lightning()
     from jsonargparse import ArgumentError
     from lightning.fabric.utilities.exceptions import MisconfigurationException
 
     # a bad command line raises (one line below) instead of printing the whole usage first
     raising = {"exit_on_error": False}
     commands = DifffilterCLI.subcommands()
-    parser_kwargs = {**raising, **{name: raising for name in commands}, "description": description}
+    # each command's own --help names the shortcut train/cli.py expands (Lightning's lacks it)
+    shortcut = ("--scenario NAME (a registered name, package.module:object or a .yaml file) "
+                "sets --model.init_args.scenario and --data.init_args.scenario at once.")  # fmt: skip
+    parser_kwargs = {**raising, "description": description,
+                     **{name: {**raising, "description": shortcut} for name in commands}}  # fmt: skip
     try:
         DifffilterCLI(
             pl.LightningModule,
