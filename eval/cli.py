@@ -250,7 +250,7 @@ def evaluate(
                 ))  # fmt: skip
             if mine:
                 held.setdefault(family, {})[name] = result
-            if rank == 0:
+            if rank == 0 and add_estimators:
                 note_skipped_additions(add_estimators, result.skipped, name)
         if world == 1:  # one process: each family's reports as soon as its suites are done
             docs.update(_write_family(family, held.pop(family), out, prepared.get(family)))
@@ -531,7 +531,8 @@ def _robustness(names: list[str], threats, args) -> int:
             progress=not args.no_progress, cache=cache,
         )  # fmt: skip
         docs[name] = write_robustness(args.out / name, result)
-        note_skipped_additions(args.add_estimators, docs[name]["skipped"], name)
+        if args.add_estimators:
+            note_skipped_additions(args.add_estimators, docs[name]["skipped"], name)
     summary = write_robustness_summary(args.out, docs)
     print("\n" + summary.read_text())
     print(f"robustness reports written under {args.out}/ (<scenario>/robustness.md)")

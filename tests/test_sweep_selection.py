@@ -52,7 +52,7 @@ def test_a_sweep_takes_only_its_own_configs_finished_run(tmp_path, monkeypatch):
 
     def export_into(name):
         folder = runs / name / "seed_0"
-        folder.mkdir(parents=True)
+        folder.mkdir(parents=True, exist_ok=True)  # (the sweep made it, for its settings)
         (folder / f"{name}.ckpt").write_bytes(b"")
         (folder / f"{name}.json").write_text("{}")
         return folder / f"{name}.ckpt"
