@@ -134,10 +134,16 @@ def _seeds_from_seed_everything(config, subcommand: str | None) -> None:
         return  # seed_everything: false (Lightning seeds nothing): the defaults, 0 and 1
     for part, key, value in (("model", "model_seed", seed),
                              ("data", "train_seed", train_seed_of(seed))):  # fmt: skip
-        node = cfg.get(part)
-        args = node.get("init_args") if node is not None and "class_path" in node else node
+        args = _init_args(cfg, part)
         if args is not None and key in args and args[key] is None:
             args[key] = value
+
+
+def _init_args(cfg, part: str):
+    """The settings of the config's ``model`` or ``data`` (its ``init_args`` in subclass
+    mode), or ``None``."""
+    node = cfg.get(part)
+    return node.get("init_args") if node is not None and "class_path" in node else node
 
 
 #: The precisions the filters run in: the model's and data's ``dtype`` decide, not autocast.
@@ -149,12 +155,7 @@ def _check_config(config, subcommand: str | None) -> None:
     of different scenarios or dtypes ("Error while merging hparams: the keys ['scenario']"),
     and mixed precision (a BFloat16 error inside the EKF over the weights)."""
     cfg = config[subcommand] if subcommand else config
-
-    def args(part):
-        node = cfg.get(part)
-        return node.get("init_args") if node is not None and "class_path" in node else node
-
-    model, data = args("model"), args("data")
+    model, data = _init_args(cfg, "model"), _init_args(cfg, "data")
     if model is not None and data is not None:
         for key in ("scenario", "dtype"):
             if key in model and key in data and model[key] != data[key]:
