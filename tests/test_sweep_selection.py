@@ -39,8 +39,17 @@ def test_the_validation_scores_come_from_the_cards_or_their_config():
     with pytest.raises(ValueError, match="chosen by different validation scores"):
         _validation_scores(cards, config)
     cards[0] = {"best_val_score": None}
-    with pytest.raises(ValueError, match="names no validation score.*--select-on test"):
+    # a user trial: with max_epochs 0 the message blamed a monitor the config has
+    with pytest.raises(ValueError, match=r"names no validation score .*\(no validation ran "
+                       r"before its training stopped .*--select-on test"):  # fmt: skip
         _validation_scores(cards, config)
+
+
+def test_a_config_without_a_monitored_checkpoint_is_named_as_the_reason(tmp_path):
+    bare = tmp_path / "bare.yaml"
+    bare.write_text("trainer:\n  max_epochs: 1\n")
+    with pytest.raises(ValueError, match=r"ModelCheckpoint has no monitor"):
+        _validation_scores({0: {"best_val_score": None}}, bare)
 
 
 def test_a_sweep_takes_only_its_own_configs_finished_run(tmp_path, monkeypatch):

@@ -374,10 +374,12 @@ def _validation_scores(cards: dict[int, dict], config: Path) -> tuple[dict[int, 
         monitor = card.get("monitor") or fallback
         score = card.get("best_val_score")
         if monitor is None or score is None:
+            why = ("no validation ran before its training stopped (train at least one whole "
+                   "epoch)" if monitor is not None
+                   else "the config's ModelCheckpoint has no monitor")  # fmt: skip
             raise ValueError(
                 f"seed {seed}: its card names no validation score its weights were chosen by "
-                "(a ModelCheckpoint with a monitor); --select-on test ranks the seeds on the "
-                "sweep's evaluation instead"
+                f"({why}); --select-on test ranks the seeds on the sweep's evaluation instead"
             )
         scores[seed], monitors[seed] = float(score), (monitor["metric"], monitor["mode"])
     if len(set(monitors.values())) > 1:
