@@ -264,17 +264,23 @@ class LinearGaussianModel(StateSpaceModel):
         return H.expand(torch.broadcast_shapes(x.shape[:-1], H.shape[:-2]) + H.shape[-2:])
 
 
-def _arity(fn: Callable) -> int:
+def _arity(fn: Callable, names: tuple[str, ...] = ("x", "u", "k")) -> int:
+    """How many of ``names`` (``f``'s ``x, u, k``; ``h``'s ``x, k``) ``fn`` is called with:
+    its positional arguments without a default, and after them those with a default that
+    carry the next of ``names`` (``f(x, u=None)`` takes ``u``: counted by defaults alone,
+    it was called as ``f(x)`` and its input silently dropped; ``f(x, dt=0.1)`` still gets
+    ``x`` alone)."""
     try:
         params = inspect.signature(fn).parameters.values()
     except (TypeError, ValueError):
-        return 3
+        return len(names)
     if any(p.kind == p.VAR_POSITIONAL for p in params):
-        return 3
-    return sum(
-        p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) and p.default is p.empty
-        for p in params
-    )
+        return len(names)
+    positional = [p for p in params if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    n = sum(p.default is p.empty for p in positional)
+    while n < min(len(positional), len(names)) and positional[n].name == names[n]:
+        n += 1
+    return n
 
 
 class NonlinearGaussianModel(StateSpaceModel):
@@ -327,7 +333,12 @@ class NonlinearGaussianModel(StateSpaceModel):
             raise ValueError(f"dim_u must be an integer >= 0 (0: no input); got {dim_u!r}")
         self.dim_x, self.dim_y, self.dim_u = dx, dy, int(dim_u)
         self._f, self._h = transition, observe
-        self._f_arity, self._h_arity = _arity(transition), _arity(observe)
+        self._f_arity, self._h_arity = _arity(transition), _arity(observe, ("x", "k"))
+        if self.dim_u and self._f_arity <= 1:
+            raise ValueError(
+                f"dim_u = {self.dim_u}, but transition takes x alone, so the input would never "
+                "reach it: write f(x, u) or f(x, u, k), or leave dim_u at 0"
+            )
         self._jf, self._jh = transition_jacobian, observation_jacobian
         self.initial = Gaussian(m0, P0)
         self.process_noise = Gaussian(torch.zeros(dx, dtype=dtype, device=device), Q)

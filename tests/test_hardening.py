@@ -655,3 +655,23 @@ def test_eval_cli_refuses_a_bad_checkpoint_before_any_work(tmp_path, capsys):
     assert "bad.ckpt" in capsys.readouterr().err and not (out / "lfc_step").exists()
     missing = ["lfc_step", "--ckpt", str(tmp_path / "none.ckpt"), "--out", str(out)]
     assert eval_main(missing) == 2
+
+
+def test_a_transition_input_with_a_default_still_reaches_the_function():
+    """A user trial: ``f(x, u=None)`` was called as ``f(x)`` (only arguments without a
+    default counted), so the known inputs were dropped without a word and every filter
+    lagged the truth; ``h(x, k=0)`` never saw ``k``; ``dim_u=1`` with ``f(x)`` passed."""
+    kw = dict(Q=torch.eye(1) * 0.01, R=torch.eye(1) * 0.01, m0=torch.zeros(1), P0=torch.eye(1),
+              dim_u=1)  # fmt: skip
+    x, u = torch.zeros(1, dtype=torch.float64), torch.tensor([5.0], dtype=torch.float64)
+    kw = {k: v.double() if isinstance(v, torch.Tensor) else v for k, v in kw.items()}
+    model = df.NonlinearGaussianModel(lambda x, u=None: 0.9 * x + (0.0 if u is None else u),
+                                      lambda x, k=0: x * (1.0 + k), **kw)  # fmt: skip
+    assert model.transition(x, u, 0).item() == 5.0
+    assert model.observe(torch.ones(1, dtype=torch.float64), 3).item() == 4.0
+    # a default that is not an input stays a constant of the function
+    model = df.NonlinearGaussianModel(lambda x, u, dt=0.5: x + dt * u, lambda x: x, **kw)
+    assert model.transition(x, u, 7).item() == 2.5
+    with pytest.raises(ValueError, match=r"dim_u = 1, but transition takes x alone, so the "
+                       r"input would never reach it"):  # fmt: skip
+        df.NonlinearGaussianModel(lambda x: 0.9 * x, lambda x: x, **kw)

@@ -155,3 +155,31 @@ def test_cusum_scores_reset_at_zero_and_a_late_alarm_is_a_miss():
     alarms[0, 6] = True
     d = metrics.detection_delay(alarms, attacked)
     assert (d["episodes"], d["detected"], d["missed"]) == (1, 0, 1)
+
+
+def test_chi_square_on_a_masked_result_is_judged_by_the_entries_received():
+    """A user trial: a masked KF result (half the entries lost) fed to ``detect`` alarmed
+    at 0.016 for a nominal 0.05 (window 5: 0.002): an unreceived entry has innovation 0
+    and variance 1, so ``g_k`` has as many degrees of freedom as entries received."""
+    import difffilter as df
+
+    model = df.LinearGaussianModel(
+        torch.tensor([[0.9, 0.1], [0.0, 0.95]]), torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]),
+        0.1 * torch.eye(2), 0.2 * torch.eye(3), torch.zeros(2), torch.eye(2),
+    ).to(torch.float64)  # fmt: skip
+    gen = torch.Generator().manual_seed(1)
+    _, ys, _ = model.simulate(200, batch_shape=(250,), generator=gen)
+    mask = torch.rand(ys.shape, generator=gen, dtype=torch.float64) > 0.5
+    kf = df.kalman_filter(model, ys, mask=mask)
+    received = mask.any(-1)
+    for window in (1, 5):  # 50,000 steps: the rate's standard error is 0.001
+        det = ChiSquareDetector(3, 0.05, window=window)
+        _, blind = det.detect(kf.innovations, kf.innovation_covs)
+        assert blind.double().mean() < 0.02
+        _, alarms = det.detect(kf.innovations, kf.innovation_covs, mask=mask)
+        assert float(alarms[received].double().mean()) == pytest.approx(0.05, abs=0.0035)
+        if window == 1:
+            assert not bool(alarms[~received].any())  # nothing received: nothing to judge
+    with pytest.raises(ValueError, match=r"innovations have 3 entries a step; this detector "
+                       r"was made for dim = 1"):  # fmt: skip
+        ChiSquareDetector(1).detect(kf.innovations, kf.innovation_covs)

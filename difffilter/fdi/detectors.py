@@ -5,6 +5,11 @@ Both consume a filter's innovations ``r_k [..., T, m]`` and innovation covarianc
 normalised innovation squared ``g_k = r_kᵀ S_k⁻¹ r_k``, which is χ²_m-distributed when
 the model is right and there is no attack.
 
+**Masked results** (entries not received): a filter gives such an entry innovation 0 and
+variance 1, so ``g_k`` has as many degrees of freedom as entries received; pass the mask
+to :meth:`ChiSquareDetector.detect`, and calibrate a :class:`CusumDetector` on masked
+attack-free statistics (its drift ``b`` is for the ``m`` it was calibrated with).
+
 **Non-finite input raises.** A detector must never answer "no alarm" for a statistic it
 could not compute (``NaN > τ`` is false): NaN or ±Inf innovations, covariances or
 statistics ``g`` raise ``ValueError`` naming the argument, as do non-symmetric innovation
@@ -19,7 +24,7 @@ import numbers
 import torch
 from torch import Tensor
 
-from .._checks import check_finite_number, check_square, check_symmetric
+from .._checks import check_finite_number, check_mask, check_square, check_symmetric
 from ..linalg import mahalanobis_sq_chol, safe_cholesky
 
 __all__ = [
@@ -113,7 +118,15 @@ class ChiSquareDetector:
     def scores(self, innovations: Tensor, innovation_covs: Tensor) -> Tensor:
         """Windowed statistic ``[..., T]`` (the sum of the last ``W`` values of ``g``)."""
         _check_sequence(innovations, "innovations", 1)
-        g = normalized_innovation_squared(innovations, innovation_covs)
+        if innovations.shape[-1] != self.dim:  # χ²_dim of another m: a wrong false-alarm rate
+            raise ValueError(
+                f"innovations have {innovations.shape[-1]} entries a step; this detector was made "
+                f"for dim = {self.dim}: build ChiSquareDetector({innovations.shape[-1]}, …)"
+            )
+        return self._windowed(normalized_innovation_squared(innovations, innovation_covs))
+
+    def _windowed(self, g: Tensor) -> Tensor:
+        """``Σ`` of the last ``W`` values of ``g [..., T]`` at every step."""
         if self.window == 1:
             return g
         c = torch.cumsum(g, dim=-1)
@@ -131,10 +144,27 @@ class ChiSquareDetector:
         ]
         return torch.tensor(head + [full] * (num_steps - len(head)), dtype=dtype)
 
-    def detect(self, innovations: Tensor, innovation_covs: Tensor) -> tuple[Tensor, Tensor]:
-        """``(scores [..., T], alarms [..., T])``."""
+    def detect(
+        self, innovations: Tensor, innovation_covs: Tensor, mask: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """``(scores [..., T], alarms [..., T])``.
+
+        ``mask [..., T, m]`` (the filter's, ``True`` where received): a filter gives an
+        entry it did not receive innovation 0 and variance 1, so ``g_k`` has ``m_k``
+        degrees of freedom, the entries received; each step's window is then judged
+        against ``χ²`` of the degrees of freedom it holds (no alarm without one). Without
+        the mask a masked result was judged against ``χ²_{mW}`` and alarmed far below
+        ``α`` (0.016 for 0.05 with half the entries lost)."""
         s = self.scores(innovations, innovation_covs)
-        return s, s > self.thresholds(s.shape[-1], s.dtype).to(s.device)
+        if mask is None:
+            return s, s > self.thresholds(s.shape[-1], s.dtype).to(s.device)
+        mask = check_mask(mask, "mask", innovations.shape)
+        dof = self._windowed(mask.sum(-1).to(torch.float64)).cpu()
+        from scipy.stats import chi2
+
+        quantile = torch.as_tensor(chi2.ppf(1.0 - self.false_alarm_rate, dof.clamp_min(1).numpy()))
+        limit = torch.where(dof > 0, quantile, torch.inf).to(device=s.device, dtype=s.dtype)
+        return s, s > limit
 
     # -- online use (one step at a time, e.g. to gate a filter's update) ----------------
     def init(self, batch_shape=(), *, dtype=torch.float64, device=None) -> tuple[Tensor, int]:
