@@ -74,10 +74,26 @@ def gaussian_init(model, batch_shape=()) -> GaussianState:
     ``mean`` is ``[*batch_shape, dx]``; ``cov`` keeps the prior's own shape
     ``[*, dx, dx]`` (broadcast lazily).
     """
+    _check_zero_mean_noise(model)
     mean = model.initial.mean
     batch_shape = torch.Size(batch_shape)
     mean = mean.expand(torch.broadcast_shapes(batch_shape, mean.shape[:-1]) + mean.shape[-1:])
     return GaussianState(mean, model.initial.cov, 0, model)
+
+
+def _check_zero_mean_noise(model) -> None:
+    """The Gaussian filters read a noise model's covariance alone: a noise of non-zero mean
+    (``UniformBox(0, 2)``, a shifted mixture) was filtered as if it had mean 0, with a bias
+    of the size of that mean (a user trial), while ``simulate`` and the particle filter
+    honour it. Refused, and said how to write it."""
+    for name in ("process_noise", "measurement_noise"):
+        mean = getattr(getattr(model, name, None), "mean", None)
+        if isinstance(mean, Tensor) and mean.device.type != "meta" and bool((mean != 0).any()):
+            raise ValueError(
+                f"model.{name} has mean {mean.tolist()}, and the Gaussian filters (KF, EKF, UKF) "
+                "take every noise as zero-mean: put the mean into the model (f or h, or a known "
+                "input) and give the noise mean 0, or use the particle filter"
+            )
 
 
 def kalman_predict(model, state: GaussianState, u: Tensor | None = None) -> tuple[Tensor, Tensor]:

@@ -53,6 +53,7 @@ from .linalg import (
     symmetrize,
 )
 from .loop import open_loop
+from .noise import Gaussian
 from .resampling import Resampler, Systematic, effective_sample_size, keep_unmarked_rows
 from .results import ParticleFilterResult, StepOutput
 from .ssm import StateSpaceModel
@@ -205,6 +206,13 @@ class KalmanProposal:
         self.rho = rho
 
     def __call__(self, model, particles, u, y, k, mask, generator):
+        noise = getattr(model, "process_noise", None)
+        if noise is not None and not isinstance(noise, Gaussian):
+            # its weights p/q take p = N(f, Q): with another noise they target another model
+            raise ValueError(
+                f"KalmanProposal needs a Gaussian process noise; model.process_noise is a "
+                f"{type(noise).__name__}: use the bootstrap proposal (the default)"
+            )
         f, Q, mu, sigma = kalman_proposal_moments(model, particles, u, y, k, mask)
         chol_sigma = safe_cholesky(sigma, name="proposal covariance")
         chol_q = safe_cholesky(Q, name="Q")
