@@ -353,6 +353,7 @@ def check_sequence_inputs(
         raise ValueError(
             f"ys must hold at least one time step (T >= 1); got shape {tuple(ys.shape)}"
         )
+    check_model_batch(model, ys.shape[:-2], "the batch of ys")
     if mask is not None:
         mask = _check_bool_mask(mask, "mask", ys.shape, "ys")
     # on the meta device nothing is known to be non-finite
@@ -442,6 +443,46 @@ def check_step_inputs(
     if u is not None:
         u = _check_us(model, u, y.shape[:-1], None, dtype, device)
     return y, u, mask
+
+
+#: A linear model's matrices, which act on the state inside ``f`` and ``h``.
+_MATRICES = ("F", "B", "H")
+
+
+def model_batch_shape(model, *, matrices_only: bool = False) -> torch.Size:
+    """The batch shape of ``model``'s parameters (one set per run where it is not ``()``):
+    the broadcast of its prior's, its noise covariances' and a linear model's ``F``,
+    ``B``, ``H`` leading dimensions (``matrices_only``: of those matrices alone)."""
+    shapes = []
+    for name in _MATRICES:
+        t = getattr(model, name, None)
+        if isinstance(t, Tensor) and t.dim() >= 2:
+            shapes.append(t.shape[:-2])
+    if not matrices_only:
+        initial = getattr(model, "initial", None)
+        for t, event in ((getattr(initial, "mean", None), 1), (getattr(initial, "cov", None), 2),
+                         (getattr(getattr(model, "process_noise", None), "cov", None), 2),
+                         (getattr(getattr(model, "measurement_noise", None), "cov", None), 2)):  # fmt: skip
+            if isinstance(t, Tensor) and t.dim() >= event:
+                shapes.append(t.shape[: t.dim() - event])
+    try:
+        return torch.broadcast_shapes(*shapes) if shapes else torch.Size()
+    except RuntimeError:  # its own parameters disagree: the model's constructor is the judge
+        return torch.Size()
+
+
+def check_model_batch(model, batch: torch.Size, what: str) -> None:
+    """``batch`` (the runs' batch shape, from ``what``) broadcasts with the model's own
+    (:func:`model_batch_shape`): a model of 3 parameter sets given 4 runs failed deep in
+    torch ("The size of tensor a (3) must match …")."""
+    own = model_batch_shape(model)
+    try:
+        torch.broadcast_shapes(own, torch.Size(batch))
+    except RuntimeError:
+        raise ValueError(
+            f"{what} {tuple(batch)} does not broadcast with the batch shape {tuple(own)} of the "
+            "model's parameters (one set per run): give one model for all runs, or one per run"
+        ) from None
 
 
 def check_filter_inputs(

@@ -26,7 +26,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ._checks import NonFinite
+from ._checks import NonFinite, model_batch_shape
 from .gaussian import measurement_moments, predict_covariance, update_given
 from .kalman import GaussianFilter, Prediction
 from .linalg import masked_measurement, outer, safe_cholesky, symmetrize
@@ -160,6 +160,16 @@ class UnscentedKalmanFilter(GaussianFilter):
     def __init__(self, sigma_points: SigmaPoints | None = None):
         _check_sigma_points(sigma_points)
         self.sigma_points = sigma_points or SigmaPoints()
+
+    def _init(self, model, batch_shape, generators):
+        own = model_batch_shape(model, matrices_only=True)
+        if own:  # sigma points [..., 2n+1, n] meet F and H: a raw shape error in torch
+            raise ValueError(
+                f"the UKF evaluates f and h on sigma points, and this model's F, B or H have "
+                f"batch shape {tuple(own)} (one per run): use the Kalman filter or the EKF, "
+                "which take them (a batched prior or noise is fine here)"
+            )
+        return super()._init(model, batch_shape, generators)
 
     def predict(self, carry, u):
         model, k, sp = carry.model, carry.k, self.sigma_points

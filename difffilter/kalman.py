@@ -30,7 +30,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._checks import Choice, NonFinite, check_carry_tensor
+from ._checks import Choice, NonFinite, check_carry_tensor, check_model_batch
 from ._shared_cov import shared_covariance_applies, shared_covariance_kalman_filter
 from .estimator import Estimator, output_of
 from .gain_schedule import GainSchedule, shared_gains_apply
@@ -75,8 +75,9 @@ def gaussian_init(model, batch_shape=()) -> GaussianState:
     ``[*, dx, dx]`` (broadcast lazily).
     """
     _check_zero_mean_noise(model)
-    mean = model.initial.mean
     batch_shape = torch.Size(batch_shape)
+    check_model_batch(model, batch_shape, "batch_shape")
+    mean = model.initial.mean
     mean = mean.expand(torch.broadcast_shapes(batch_shape, mean.shape[:-1]) + mean.shape[-1:])
     return GaussianState(mean, model.initial.cov, 0, model)
 

@@ -41,6 +41,7 @@ from ._checks import (
     check_model,
     check_positive_int,
     check_strategy,
+    model_batch_shape,
 )
 from .estimator import Estimator, Generators
 from .gaussian import gaussian_update
@@ -307,6 +308,13 @@ def particle_init(
 ) -> ParticleState:
     """Draw ``N`` particles from the prior: ``[*batch_shape, N, dx]``, log-weights ``−log N``."""
     check_positive_int(num_particles, "num_particles")
+    own = model_batch_shape(model)
+    if own:  # (raw shape errors in torch, or particles of the wrong shape, before)
+        raise ValueError(
+            f"the particle filter takes one model for all runs, and this model's parameters "
+            f"have batch shape {tuple(own)} (one set per run): run a filter per parameter set, "
+            "or use the Kalman filter or the EKF, which take them"
+        )
     batch_shape = torch.Size(batch_shape)
     particles = model.sample_initial(batch_shape + (num_particles,), generator)
     log_w = particles.new_full(batch_shape + (num_particles,), -math.log(num_particles))

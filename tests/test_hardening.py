@@ -712,3 +712,32 @@ def test_the_kalman_proposal_refuses_a_process_noise_that_is_not_gaussian():
                        "model.process_noise is a GaussianMixture"):  # fmt: skip
         df.particle_filter(model, torch.zeros(2, 5, 1), num_particles=10,
                            proposal=df.KalmanProposal(), generator=torch.Generator().manual_seed(0))  # fmt: skip
+
+
+def test_a_model_batched_over_runs_is_named_where_it_does_not_fit():
+    """A user trial: 3 parameter sets given 4 runs, and any batched model in the particle
+    filter (a batched F or H in the UKF), failed in torch ("The size of tensor a (3) must
+    match …") or gave particles of the wrong shape; the KF and EKF take them."""
+    F = torch.tensor([[[0.9]], [[0.8]], [[0.7]]])
+    model = df.LinearGaussianModel(F, torch.tensor([[1.0]]), torch.tensor([[0.1]]),
+                                   torch.tensor([[0.1]]), torch.zeros(1), torch.eye(1))  # fmt: skip
+    three, four = torch.zeros(3, 5, 1), torch.zeros(4, 5, 1)
+    assert df.kalman_filter(model, three).means.shape == (3, 5, 1)
+    assert df.extended_kalman_filter(model, three).means.shape == (3, 5, 1)
+    why = r"does not broadcast with the batch shape \(3,\) of the model's parameters"
+    for run in (df.kalman_filter, df.extended_kalman_filter, df.unscented_kalman_filter):
+        with pytest.raises(ValueError, match=r"the batch of ys \(4,\) " + why):
+            run(model, four)
+    with pytest.raises(ValueError, match=r"batch_shape \(4,\) " + why):
+        df.KalmanFilter().init(model, (4,))
+    with pytest.raises(ValueError, match=r"the UKF evaluates f and h on sigma points, and this "
+                       r"model's F, B or H have batch shape \(3,\)"):  # fmt: skip
+        df.unscented_kalman_filter(model, three)
+    with pytest.raises(ValueError, match=r"the particle filter takes one model for all runs, "
+                       r"and this model's parameters have batch shape \(3,\)"):  # fmt: skip
+        df.particle_filter(model, three, num_particles=10, generator=torch.Generator())
+    # a batched prior is fine in the UKF (its sigma points carry it)
+    prior = df.LinearGaussianModel(torch.tensor([[0.9]]), torch.tensor([[1.0]]),
+                                   torch.tensor([[0.1]]), torch.tensor([[0.1]]),
+                                   torch.zeros(3, 1), torch.eye(1))  # fmt: skip
+    assert df.unscented_kalman_filter(prior, three).means.shape == (3, 5, 1)
