@@ -235,7 +235,10 @@ class Estimator:
 
     def step(self, carry, y: Tensor, u: Tensor | None = None, mask: Tensor | None = None):
         """One step ``k−1 → k`` with ``y_k``, ``u_{k−1}`` and ``mask_k``; returns
-        ``(carry, StepOutput)``. The carry given is not modified.
+        ``(carry, StepOutput)``. The carry's tensors are not modified; the generators a
+        random estimator's carry holds (a particle filter's) are advanced by its draws, so
+        two steps from one carry draw differently unless each has generators of its own
+        (:meth:`difffilter.loop.LoopState.copy`).
 
         A carry this estimator object returned (from ``init`` or an earlier ``step``),
         unchanged since, is not validated again: only ``y``, ``u`` and ``mask`` are,

@@ -190,7 +190,15 @@ class KalmanProposal:
     gaussian_update` per particle) and ``log_correction = log N(x; f, Q) − log q(x)``, so
     the weights target the same posterior as the bootstrap filter. On a linear-Gaussian
     measurement this is the exact optimal proposal (incremental weights ``N(y; H f, S)``).
-    Requires a Gaussian process noise (``model.process_cov``).
+    Requires a Gaussian process noise (``model.process_cov``; another is refused).
+
+    The filter's predictive outputs (``pred_means``, ``innovations``, ``innovation_covs``)
+    weigh particles drawn near the measurement by ``p/q``: consistent, but with
+    heavy-tailed weights, so they converge far more slowly than the bootstrap filter's (a
+    user trial, 2-D linear model: ``pred_means`` RMS error 0.105 / 0.074 / 0.084 against
+    the Kalman filter at N = 10³ / 10⁴ / 10⁵, the bootstrap's 0.024 / 0.0073 / 0.0022; the
+    posterior means converge as the bootstrap's). A χ² test on a particle filter's
+    innovations wants the bootstrap proposal.
 
     Args:
         defensive: weight ``ρ ∈ [0, 1)`` of the prior in a defensive mixture
