@@ -40,12 +40,20 @@ class LastCheckpointEveryEpoch(pl.Callback):
             )
         self.checkpoint = checkpoint
         self._written_at_step: int | None = None
+        self._whole: bytes | None = None  # last.ckpt as the last whole epoch left it
+        self._cut = False
+
+    def on_train_epoch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        path = self._path()
+        if trainer.is_global_zero and path is not None:
+            self._whole = path.read_bytes() if path.is_file() else None
 
     def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         self._write(trainer)
 
     def on_train_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        if _cut_short(trainer):
+        self._cut = _cut_short(trainer)
+        if self._cut:
             # ``max_steps``/``max_time`` ended the epoch after some of its batches: written, the
             # file counted the epoch done, and a resume skipped the rest of its batches (a
             # user trial: other weights than the uninterrupted run's). Kept at the last whole
@@ -53,13 +61,31 @@ class LastCheckpointEveryEpoch(pl.Callback):
             return
         self._write(trainer)  # an epoch without validation (written once per step count)
 
+    def on_train_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        """After a cut epoch, ``last.ckpt`` as the last whole epoch left it (or none before
+        one): Lightning 2.2's own checkpoint callback writes it at the cut epoch's end too,
+        after this one (checkpoint callbacks run last)."""
+        path = self._path()
+        if not self._cut or path is None or not trainer.is_global_zero:
+            return
+        if self._whole is None:
+            path.unlink(missing_ok=True)
+        else:
+            path.write_bytes(self._whole)
+
+    def _path(self) -> Path | None:
+        cb = self.checkpoint
+        if cb.dirpath is None:
+            return None
+        return Path(cb.dirpath) / f"{cb.CHECKPOINT_NAME_LAST}{cb.FILE_EXTENSION}"
+
     def _write(self, trainer: pl.Trainer) -> None:
         if trainer.sanity_checking or trainer.fast_dev_run or trainer.state.fn != "fit":
             return
-        if self.checkpoint.dirpath is None or self._written_at_step == trainer.global_step:
+        path = self._path()
+        if path is None or self._written_at_step == trainer.global_step:
             return
         cb = self.checkpoint
-        path = Path(cb.dirpath) / f"{cb.CHECKPOINT_NAME_LAST}{cb.FILE_EXTENSION}"
         # the callback's own idea of its last file: its next write goes to the same path
         cb.last_model_path = str(path)
         # what the callback's own writes hold: the full state to resume from, unless it keeps
