@@ -34,6 +34,7 @@ from __future__ import annotations
 import importlib
 import inspect
 import pkgutil
+import sys
 import warnings
 from importlib.metadata import entry_points
 
@@ -74,12 +75,24 @@ def _load_builtin() -> None:
         if not info.name.startswith("_"):
             importlib.import_module(f"difffilter.models.{info.name}")
     for point in entry_points(group=PLUGIN_GROUP):
+        # a module imported here for the first time that registers nothing was silently
+        # absent from every list (its scenarios defined, register() never called)
+        fresh, before = point.value.split(":")[0].strip() not in sys.modules, len(_REGISTRY)
         try:
-            _register_all(point.load(), f"entry point {point.name!r} ({point.value})")
+            obj = point.load()
+            _register_all(obj, f"entry point {point.name!r} ({point.value})")
         except Exception as error:  # a broken plug-in must not hide the built-in scenarios
             warnings.warn(
                 f"difffilter: the scenario plug-in {point.name!r} ({point.value}) failed to "
                 f"load: {type(error).__name__}: {error}",
+                stacklevel=2,
+            )
+            continue
+        if fresh and isinstance(obj, type(importlib)) and len(_REGISTRY) == before:
+            warnings.warn(
+                f"difffilter: the scenario plug-in {point.name!r} ({point.value}) registered no "
+                "scenario: a module must call difffilter.models.registry.register(scenario) "
+                "when imported, or the entry point may name its scenario (module:object)",
                 stacklevel=2,
             )
 

@@ -124,3 +124,28 @@ def test_both_command_lines_take_scenario_as_an_option(plugin, tmp_path, monkeyp
     assert train_main(["fit", "--config", config, "--scenario", f"{plugin}:SCENARIO",
                        "--model.init_args.filter=ekf", "--trainer.fast_dev_run=1",
                        "--data.init_args.val_runs=2", "--data.init_args.batch_size=2"]) == 0  # fmt: skip
+
+
+def test_a_plugin_module_that_registers_nothing_is_named(plugin, tmp_path, monkeypatch):
+    """A plug-in naming a module that defines its scenarios but never calls ``register``
+    was silently absent from every list."""
+    (tmp_path / "difffilter_user_plugin_registering.py").write_text(
+        "from difffilter.models import registry\n"
+        "from difffilter_user_plugin import make\n"
+        "registry.register(make())\n"
+    )
+    points = [EntryPoint("quiet", plugin, registry.PLUGIN_GROUP),
+              EntryPoint("loud", "difffilter_user_plugin_registering", registry.PLUGIN_GROUP)]  # fmt: skip
+    monkeypatch.setattr(
+        registry, "entry_points", lambda group: points if group == registry.PLUGIN_GROUP else []
+    )
+    monkeypatch.setattr(registry, "_LOADED", False)
+    with pytest.warns(UserWarning) as said:
+        names = registry.names()
+    quiet = [str(w.message) for w in said if "registered no scenario" in str(w.message)]
+    assert len(quiet) == 1 and quiet[0].startswith(
+        "difffilter: the scenario plug-in 'quiet' (difffilter_user_plugin) registered no "
+        "scenario: a module must call"
+    )  # and none for the module that registers its scenario
+    assert "plugin_plant_bias_made" in names and "plugin_plant_bias" not in names
+    sys.modules.pop("difffilter_user_plugin_registering", None)
