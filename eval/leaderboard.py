@@ -64,6 +64,13 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
     out = Path(out)
     rows = leaderboard_rows(results)
     (out / "leaderboard.json").write_text(json.dumps(rows, indent=2) + "\n")
+    if not rows:  # (the figure of no rows failed in matplotlib, after every report was written)
+        path = out / "leaderboard.md"
+        path.write_text("# Leaderboard\n\nNo estimator ran: each scenario's `report.md` lists "
+                        "those skipped and why.\n")  # fmt: skip
+        (out / "leaderboard.png").unlink(missing_ok=True)
+        _hparams(out / "tb_leaderboard", rows)
+        return path
     worst = [c for c in _WORST_UNITS if any(c in r for r in rows)]
     cols = list(COLUMNS)
     if worst:  # attack-free runs: no attack to detect, nothing in the detection columns

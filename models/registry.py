@@ -69,11 +69,20 @@ def _load_builtin() -> None:
     global _LOADED
     if _LOADED:
         return
-    _LOADED = True
+    _LOADED = True  # (first: a module that asks the registry while it loads finds it loading)
     package = importlib.import_module("difffilter.models")
     for info in pkgutil.iter_modules(package.__path__):
-        if not info.name.startswith("_"):
+        if info.name.startswith("_"):
+            continue
+        try:
             importlib.import_module(f"difffilter.models.{info.name}")
+        except Exception as error:
+            # a module that fails (a contributor's new family) fails every later call too,
+            # named, instead of leaving the registries without the modules after it
+            _LOADED = False
+            error.add_note(f"(while importing difffilter.models.{info.name}: every module of "
+                           "difffilter.models is imported to register its scenarios)")  # fmt: skip
+            raise
     for point in entry_points(group=PLUGIN_GROUP):
         # a module imported here for the first time that registers nothing was silently
         # absent from every list (its scenarios defined, register() never called)

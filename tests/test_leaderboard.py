@@ -122,3 +122,11 @@ def test_a_robustness_leaderboard_says_what_its_columns_are_and_plots_the_worst_
     assert drawn["state_rmse"] == "cm" and drawn["worst_state_error_ratio"] == "ratio"
     good = leaderboard.cell_goodness(np.array([[0.3], [0.5]]), ["t", "t"], ["worst_tpr_at_far"])
     assert good[:, 0].tolist() == pytest.approx([0.0, 1.0])  # a higher worst-case TPR is better
+
+
+def test_a_leaderboard_of_no_estimator_says_so(tmp_path):
+    """A contributor's trial: a scenario none of whose estimators fit it failed in
+    matplotlib ("Invalid shape (0,) for image data") after its report was written."""
+    md = write_leaderboard(tmp_path, {"plant": {"estimators": {}, "checkpoint": None}}).read_text()
+    assert "No estimator ran" in md and not (tmp_path / "leaderboard.png").exists()
+    assert json.loads((tmp_path / "leaderboard.json").read_text()) == []

@@ -149,3 +149,29 @@ def test_a_plugin_module_that_registers_nothing_is_named(plugin, tmp_path, monke
     )  # and none for the module that registers its scenario
     assert "plugin_plant_bias_made" in names and "plugin_plant_bias" not in names
     sys.modules.pop("difffilter_user_plugin_registering", None)
+
+
+def test_a_family_module_that_fails_to_import_fails_every_call_not_only_the_first(
+    isolated_registry, monkeypatch
+):
+    """A contributor's trial: one broken module of ``difffilter.models`` failed the first
+    call, and every later call found a registry marked loaded without the modules after
+    it ("unknown scenario 'four_tank_bias'; known scenarios: (none)")."""
+    import pkgutil
+
+    real = pkgutil.iter_modules
+
+    def with_a_broken_family(path):
+        yield from real(path)
+        yield pkgutil.ModuleInfo(None, "zz_broken_family_xyz", False)
+
+    monkeypatch.setattr(registry.pkgutil, "iter_modules", with_a_broken_family)
+    monkeypatch.setattr(registry, "_LOADED", False)
+    for _ in range(2):  # the same error, named, each time
+        with pytest.raises(ModuleNotFoundError) as raised:
+            registry.get("four_tank_bias")
+        assert "while importing difffilter.models.zz_broken_family_xyz" in "".join(
+            raised.value.__notes__
+        )
+    monkeypatch.setattr(registry.pkgutil, "iter_modules", real)
+    assert registry.get("four_tank_bias").name == "four_tank_bias"  # once fixed, it loads
