@@ -269,6 +269,20 @@ def evaluate(
     return docs if rank == 0 else {}
 
 
+def check_scenario_estimators(names: Sequence[str]) -> None:
+    """Every estimator the scenarios ``names`` list is registered, checked before any work:
+    a misspelt name in a scenario of one's own was found only when that scenario ran, after
+    the others, and no report was written."""
+    from difffilter.models import estimators, registry
+
+    for name in names:
+        for estimator in registry.get(name).estimators or ():
+            try:
+                estimators.get(estimator)
+            except ValueError as error:
+                raise ValueError(f"scenario {name!r} lists {error}") from None
+
+
 def note_skipped_additions(added, skipped: dict[str, str], scenario: str) -> None:
     """Say on stderr which ``--add-estimators`` a scenario left out, and why: asked for by
     name, they were dropped silently (the reason only in ``report.md`` and ``metrics.json``'s
@@ -461,6 +475,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.far is None and args.calibration_runs is not None:
             raise ValueError("--calibration-runs with --far off: nothing is calibrated")
         check_checkpoint_fits(args.ckpt, names)
+        check_scenario_estimators(names)
         threats = args.threats or ("all" if args.scenario == "robustness" else None)
         if args.threat_set is not None and threats is None:
             raise ValueError("--threat-set names the threats of --threats: give --threats too")

@@ -175,3 +175,18 @@ def test_a_family_module_that_fails_to_import_fails_every_call_not_only_the_firs
         )
     monkeypatch.setattr(registry.pkgutil, "iter_modules", real)
     assert registry.get("four_tank_bias").name == "four_tank_bias"  # once fixed, it loads
+
+
+def test_a_misspelt_estimator_of_a_scenario_is_named_before_any_work(plugin, tmp_path, capsys):
+    """A contributor's trial: a scenario listing ``cusum_ekff`` failed only when it ran,
+    after the scenarios before it, without naming it, and no report was written."""
+    import dataclasses
+
+    scenario = registry.get(f"{plugin}:SCENARIO")
+    registry.register(dataclasses.replace(scenario, name="plugin_typo",
+                                          estimators=("kf", "cusum_ekff")))  # fmt: skip
+    out = tmp_path / "reports"
+    assert eval_main(["plugin_typo", "--runs", "2", "--out", str(out), "--no-progress"]) == 2
+    assert ("error: scenario 'plugin_typo' lists unknown estimator 'cusum_ekff' (did you mean "
+            "'cusum_ekf'?)") in capsys.readouterr().err  # fmt: skip
+    assert not (out / "plugin_typo").exists()
