@@ -273,14 +273,22 @@ def check_scenario_estimators(names: Sequence[str]) -> None:
     """Every estimator the scenarios ``names`` list is registered, checked before any work:
     a misspelt name in a scenario of one's own was found only when that scenario ran, after
     the others, and no report was written."""
-    from difffilter.models import estimators, registry
+    from difffilter.models import registry
 
     for name in names:
-        for estimator in registry.get(name).estimators or ():
-            try:
-                estimators.get(estimator)
-            except ValueError as error:
-                raise ValueError(f"scenario {name!r} lists {error}") from None
+        _check_estimator_names(registry.get(name).estimators, f"scenario {name!r} lists ")
+
+
+def _check_estimator_names(names, where: str) -> None:
+    """Each of ``names`` is a registered estimator; the registry's error (the nearest name
+    included) after ``where`` otherwise."""
+    from difffilter.models import estimators
+
+    for name in names or ():
+        try:
+            estimators.get(name)
+        except ValueError as error:
+            raise ValueError(f"{where}{error}") from None
 
 
 def note_skipped_additions(added, skipped: dict[str, str], scenario: str) -> None:
@@ -316,13 +324,7 @@ def check_arguments(*, runs: int | None = None, ckpt=None, devices: int = 1,
             raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"--seed must be an integer >= 0; got {seed!r}")
-    from difffilter.models import estimators
-
-    for name in add_estimators or ():
-        try:
-            estimators.get(name)
-        except ValueError as error:
-            raise ValueError(f"--add-estimators: {error}") from None
+    _check_estimator_names(add_estimators, "--add-estimators: ")
     from difffilter.models.neural_estimator import load_estimator_checkpoint
 
     for _, path in _checkpoint_paths(ckpt):
