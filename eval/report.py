@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -130,11 +131,21 @@ class FamilyReport:
 
 
 _FAMILIES: dict[str, FamilyReport] = {}
+_FAMILY_ORIGINS: dict[str, str] = {}
 
 
 def register_family(family: str, report: FamilyReport) -> FamilyReport:
-    """Register the report additions of ``family`` (one per family)."""
+    """Register the report additions of ``family`` (one per family: another report for a
+    family that has one is an error naming both modules; it replaced the first silently)."""
+    origin = sys._getframe(1).f_globals.get("__name__", "?")
+    if family in _FAMILIES and _FAMILIES[family] != report:
+        raise ValueError(
+            f"family {family!r} already has its report additions, registered by module "
+            f"{_FAMILY_ORIGINS.get(family, '?')}; module {origin} registers others: a family "
+            "has one FamilyReport (merge them, or give the family another name)"
+        )
     _FAMILIES[family] = report
+    _FAMILY_ORIGINS.setdefault(family, origin)
     return report
 
 

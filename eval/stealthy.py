@@ -21,7 +21,12 @@ import torch
 from difffilter import fdi
 from difffilter.estimator import Generators
 from difffilter.loop import open_loop
-from difffilter.models.estimators import SkipEstimator, SuiteContext, split_checkpoints
+from difffilter.models.estimators import (
+    SkipEstimator,
+    SuiteContext,
+    check_options,
+    split_checkpoints,
+)
 from difffilter.models.generic_estimators import GATED, gated_estimator
 from difffilter.models.learned_estimator import LEARNED, learned_step
 from difffilter.models.streams import Streams
@@ -64,7 +69,7 @@ def _context(scenario, runs: int, seed: int, checkpoint=None) -> SuiteContext:
     model = scenario.system()
     default, named = split_checkpoints(checkpoint)
     default = default if default is not None else scenario.shipped_checkpoint()
-    options = scenario.estimator_options()
+    options = check_options(scenario.estimator_options(), f"scenario {scenario.name!r}")
     return SuiteContext(scenario, model, runs, Streams(seed), options, default,
                         named_checkpoints=named)  # fmt: skip
 

@@ -130,6 +130,7 @@ def run_suite(
         raise ValueError(f"runs must be an integer >= 1; got {runs!r}")
     estimators, add = estimator_names(estimators, "estimators"), estimator_names(add, "add")
     _check_calibration(calibration)
+    options = registry.check_options(scenario.estimator_options(), f"scenario {scenario.name!r}")
     streams = Streams(seed)
     model = scenario.system(dtype)
     _check_threat_fits(scenario, model)
@@ -139,7 +140,6 @@ def run_suite(
     checkpoint, named = registry.split_checkpoints(checkpoint)
     if checkpoint is None and scenario.shipped_checkpoint() is not None:
         checkpoint, source = scenario.shipped_checkpoint(), "shipped default (no --ckpt given)"
-    options = scenario.estimator_options()
     ctx = registry.SuiteContext(scenario, model, runs, streams, options, checkpoint,
                                 named_checkpoints=dict(named))  # fmt: skip
     if cache is not None:
@@ -158,7 +158,7 @@ def run_suite(
         if unmet is not None:
             raise ValueError(f"--ckpt {name}={path}: {name} does not fit {scenario.name}: {unmet}")
         try:
-            built[name] = registry.get(name).factory(ctx)
+            built[name] = registry.get(name).build(ctx)
         except registry.SkipEstimator as exc:
             raise ValueError(f"--ckpt {name}={path}: {exc}") from None
         if name not in ctx.checkpoint_users:  # built without reading it: the report would
@@ -250,13 +250,13 @@ def _run_estimators(result: SuiteResult, specs, progress: bool, built=None,
             result.skipped[spec.name] = unmet
             continue
         try:
-            run = built[spec.name] if spec.name in built else spec.factory(result.context)
+            run = built[spec.name] if spec.name in built else spec.build(result.context)
         except registry.SkipEstimator as why:
             result.skipped[spec.name] = str(why)
             continue
         start = time.perf_counter()
         try:
-            out = run(result.traj)
+            out = spec.checked(run(result.traj))
         except ValueError as exc:  # (which estimator of which study, e.g. on an attack's NaN)
             raise ValueError(f"{spec.name} on {result.scenario.name}: {exc}") from exc
         result.wall_s[spec.name] = time.perf_counter() - start

@@ -45,6 +45,9 @@ __all__ = [
     "SkipEstimator",
     "register",
     "family_register",
+    "register_option",
+    "check_options",
+    "OPTIONS",
     "get",
     "names",
     "ESTIMATORS",
@@ -110,12 +113,91 @@ class EstimatorSpec:
             return "more_data"
         return "learned" if self.learned else "analytic"
 
+    def build(self, ctx: SuiteContext) -> Run:
+        """The run of this estimator in the study ``ctx``: ``factory(ctx)``, checked to be a
+        function (a factory that returned its output, or nothing, failed later in scoring)."""
+        run = self.factory(ctx)
+        if not callable(run):
+            raise TypeError(
+                f"estimator {self.name!r} ({_origin(self)}): its factory returned "
+                f"{type(run).__name__}; it returns a function of the Trajectories (e.g. "
+                "lambda traj: ...) that returns an EstimatorOutput"
+            )
+        return run
+
+    def checked(self, out):
+        """``out``, what this estimator's run returned, if it is an
+        :class:`~difffilter.estimator.EstimatorOutput` (or a closed loop's
+        :class:`~difffilter.loop.LoopResult`); ``TypeError`` naming the estimator else."""
+        from difffilter.loop import LoopResult
+        from difffilter.results import FilterResult
+
+        if isinstance(out, (EstimatorOutput, LoopResult)):
+            return out
+        hint = (" (a filter's FilterResult becomes one by difffilter.estimator.output_of(result))"
+                if isinstance(out, FilterResult) else "")  # fmt: skip
+        raise TypeError(
+            f"estimator {self.name!r} ({_origin(self)}): its run returned {type(out).__name__}; "
+            f"it returns a difffilter.EstimatorOutput{hint}"
+        )
+
     def unmet(self, scenario, model) -> str | None:
         """Why this estimator does not fit ``scenario`` (its first unmet need), or ``None``."""
         return first_unmet(self.needs, scenario, model)
 
 
 ESTIMATORS: dict[str, EstimatorSpec] = {}
+
+
+#: What a scenario's ``estimator_options()`` may set, ``{key: what it sets}``: a study refuses
+#: any other key (a misspelt one was silently ignored). A family whose estimators read a
+#: setting of their own declares it with :func:`register_option`.
+OPTIONS: dict[str, str] = {
+    "poa_eta": "the PoA detector's threshold eta (a paper's value; with poa_zeta), instead of "
+    "Theorem 1's",
+    "poa_zeta": "the PoA detector's zeta (with poa_eta)",
+    "cusum_bias": "the CUSUM detector's bias b (default: chosen on the attack-free runs)",
+    "gamma_hat_noise_var": "variance of the noise on the oracle attack estimate of "
+    "modified_pf_noisy_gamma",
+}
+#: Options that are given together or not at all.
+_TOGETHER = (("poa_eta", "poa_zeta"),)
+
+
+def register_option(key: str, description: str) -> str:
+    """Declare ``key`` a setting that a family's estimators read from ``ctx.options`` (the
+    scenario's ``estimator_options()``); ``description``: one line for the error that lists
+    the known keys. Declaring a key again with the same description is harmless."""
+    if OPTIONS.get(key, description) != description:
+        raise ValueError(f"estimator option {key!r} is already declared: {OPTIONS[key]}")
+    OPTIONS[key] = description
+    return key
+
+
+def check_options(options: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """``options`` as a dict, if every key is declared (:data:`OPTIONS`) and the keys that go
+    together come together; ``ValueError`` naming ``where`` (the scenario) and the key else."""
+    _load_families()
+    options = dict(options)
+    for key in options:
+        if key not in OPTIONS:
+            close = difflib.get_close_matches(str(key), OPTIONS, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            known = "; ".join(f"{k}: {d}" for k, d in sorted(OPTIONS.items()))
+            raise ValueError(
+                f"{where}: unknown estimator option {key!r}{hint}; the estimators read "
+                f"{known} (a family of one's own declares its settings with "
+                "difffilter.models.estimators.register_option)"
+            )
+    for keys in _TOGETHER:
+        given = [k for k in keys if k in options]
+        if given and len(given) < len(keys):
+            missing = [k for k in keys if k not in options]
+            raise ValueError(
+                f"{where}: estimator option {' and '.join(given)} without "
+                f"{' and '.join(missing)}: they are given together"
+            )
+    return options
 
 
 class SkipEstimator(Exception):
@@ -146,13 +228,22 @@ def register(
 
     def wrap(factory):
         if name in ESTIMATORS and ESTIMATORS[name].factory is not factory:
-            raise ValueError(f"estimator {name!r} is already registered")
+            raise ValueError(
+                f"estimator {name!r} is already registered, by {_origin(ESTIMATORS[name])}; "
+                f"{_origin(factory)} registers another under that name: give it another name"
+            )
         ESTIMATORS[name] = EstimatorSpec(name, factory, description, clean_input, reference,
                                          needs, estimates, oracle, learned, more_data,
                                          reads_measurements)  # fmt: skip
         return factory
 
     return wrap
+
+
+def _origin(factory) -> str:
+    """The module a factory (or a spec's) was written in."""
+    factory = getattr(factory, "factory", factory)
+    return f"module {getattr(factory, '__module__', '?')}"
 
 
 def family_register(scenario_class: type, family: str, **defaults):
@@ -304,7 +395,8 @@ def poa_detector_for_scenario(scenario, model, options=None) -> fdi.PoADetector:
     (``poa_eta``, ``poa_zeta``: a paper's values) or else from the model by Theorem 1
     (eq. 53) with ``‖γ‖_min = scenario.attack_norm_floor(model)``, ``p_l`` of its attack (0.5
     when it has none) and its particle count. Evaluation and training share it."""
-    options = scenario.estimator_options() if options is None else options
+    if options is None:
+        options = check_options(scenario.estimator_options(), f"scenario {scenario.name!r}")
     if "poa_eta" in options:
         return fdi.PoADetector(options["poa_eta"], options["poa_zeta"])
     return fdi.poa_detector_for(

@@ -24,6 +24,11 @@ __all__ = ["linearised_four_tank"]
 
 #: Every estimator here reads the four-tank plant (its paper's settings, its linearisation).
 register = family_register(FourTankScenario, "four_tank")
+estimators.register_option(
+    "eta_theorem1",
+    "the PoA threshold of Theorem 1 for the scenario's own R, with poa_zeta "
+    "(modified_pf_eta_theorem1)",
+)
 
 
 @register("normal_pf_literal", "normal PF + PoA with the Gaussian density literally in float64")

@@ -45,19 +45,62 @@ __all__ = ["Scenario", "register", "get", "names", "families", "all_scenarios"]
 
 
 _REGISTRY: dict[str, Scenario] = {}
+#: Where each name was registered (the module, plug-in or file): a second definition of a
+#: name is blamed on itself and names the first, wherever the import order put them.
+_ORIGINS: dict[str, str] = {}
+#: Words both command lines read as selections, not scenario names (``all`` runs every
+#: headline scenario, ``robustness`` their threats); a family's name selects the family.
+RESERVED_NAMES = ("all", "robustness")
 
 
-def register(scenario: Scenario) -> Scenario:
-    """Add ``scenario`` under its name; registering the same name twice is an error."""
-    if scenario.name in _REGISTRY and _REGISTRY[scenario.name] != scenario:
+def register(scenario: Scenario, *, origin: str | None = None) -> Scenario:
+    """Add ``scenario`` under its name; registering the same name twice is an error, and so
+    is a name that the command lines would read as a selection (``all``, ``robustness``, a
+    family's name) or a family named like a registered scenario. ``origin``: where it comes
+    from, for that error (by default the module that calls this)."""
+    origin = origin or _caller_module()
+    name = scenario.name
+    if name in _REGISTRY and _REGISTRY[name] != scenario:
         raise ValueError(
-            f"scenario {scenario.name!r} is already registered, as a different scenario (another "
-            "definition of that name, or a file edited since it was loaded): a name is "
-            "registered once a process; give this one another name, or load the edited file "
-            "in a new process"
+            f"scenario {name!r} is already registered, by {_ORIGINS.get(name, '?')}, as a "
+            f"different scenario; {origin} registers another under that name (or a file "
+            "edited since it was loaded): a name is registered once a process; give this one "
+            "another name, or load the edited file in a new process"
         )
-    _REGISTRY[scenario.name] = scenario
+    clash = _selection_clash(scenario)
+    if clash:
+        raise ValueError(f"{origin}: {clash}")
+    if name not in _REGISTRY:  # (the same scenario again keeps its first origin)
+        _ORIGINS[name] = origin
+    _REGISTRY[name] = scenario
     return scenario
+
+
+def _selection_clash(scenario: Scenario) -> str | None:
+    """Why ``scenario`` could not be selected by its name, or ``None``: ``difffilter-eval
+    NAME`` reads ``all``, ``robustness`` and every family's name as a selection first."""
+    name, family = scenario.name, scenario.family
+    known = {s.family: s.name for s in _REGISTRY.values()}
+    if name in RESERVED_NAMES or name in known or name == family:
+        what = (f"{name!r} is a word of the command lines ({' and '.join(RESERVED_NAMES)} "
+                "select many scenarios)" if name in RESERVED_NAMES
+                else f"{name!r} is the name of a family ({name!r} selects its scenarios)")  # fmt: skip
+        return (f"scenario name {what}, so the scenario could never be run by name; give it "
+                "another name")  # fmt: skip
+    if family in _REGISTRY and family != name:
+        return (f"scenario {name!r} is of family {family!r}, the name of a registered "
+                f"scenario ({family!r} would select the family, never that scenario); give "
+                "the family another name")  # fmt: skip
+    return None
+
+
+def _caller_module() -> str:
+    """The module that called :func:`register` (outside this one)."""
+    frame = sys._getframe(1)
+    while frame is not None and frame.f_globals.get("__name__") == __name__:
+        frame = frame.f_back
+    module = frame.f_globals.get("__name__", "?") if frame is not None else "?"
+    return f"module {module}"
 
 
 _LOADED = False
@@ -133,7 +176,7 @@ def _register_all(obj, where: str) -> list[Scenario]:
             f"{where} is not a difffilter scenario (a Scenario, e.g. CustomScenario, a list of "
             f"them, or a function returning one); got {', '.join(bad)}"
         )
-    return [register(s) for s in items]
+    return [register(s, origin=where) for s in items]
 
 
 def _from_path(path: str) -> Scenario:

@@ -267,10 +267,6 @@ class RobotScenario(Scenario):
             u[..., 1] = rates.unsqueeze(-1)
         return u
 
-    def estimator_options(self) -> dict:
-        return {"forgetting": self.forgetting, "attack_cov0": self.attack_cov0,
-                "reading": self.reading, "groups": GROUPS}  # fmt: skip
-
     def paper_numbers(self) -> dict:
         return {"figures_only": True, "attack": {"a_p_cm_s": self.attack[0], "a_r_deg_s": self.attack[1]},
                 "attack_from_k": self.attack_from, "forgetting": self.forgetting}  # fmt: skip

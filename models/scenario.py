@@ -340,7 +340,8 @@ class CustomScenario(Scenario):
             a function of the step index ``k`` (a tensor ``[T]`` of ``0 … T−1`` in the
             model's dtype) returning ``[T, du]`` (or ``[T]`` for one input); ``None``: no
             inputs (zeros under an actuator attack).
-        options: settings the estimators read (``cusum_bias``, ``poa_eta``/``poa_zeta``, …).
+        options: settings the estimators read (``cusum_bias``, ``poa_eta`` with ``poa_zeta``,
+            …: :data:`difffilter.models.estimators.OPTIONS`; a study refuses other keys).
         state_unit, attack_unit: the units reports and plots name (e.g. ``"cm"``).
 
     Register it (:func:`difffilter.models.registry.register`) to run it from the CLI, or

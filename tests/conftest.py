@@ -89,6 +89,7 @@ def isolated_registry(monkeypatch):
 
     registry.names()
     monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
+    monkeypatch.setattr(registry, "_ORIGINS", dict(registry._ORIGINS))
     return registry
 
 

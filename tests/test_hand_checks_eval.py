@@ -322,3 +322,61 @@ def test_one_thread_only_when_enabled():
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+# ------------------------------------------- what a contributor's estimator or options give
+
+
+def _tiny_scenario(**kw):
+    from difffilter.models.scenario import CustomScenario
+
+    return CustomScenario(name="tiny", family="custom", description="d", model_fn=_plant,
+                          steps=6, runs=2, attack=Bias(value=1.0, entries=(0,)), **kw)  # fmt: skip
+
+
+def test_a_factory_or_run_that_returns_something_else_is_named(monkeypatch):
+    """A contributor's trial: a factory returning its output, or a run returning the
+    filter's FilterResult, failed in scoring with no estimator named."""
+    import pytest
+
+    import difffilter as df
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import estimators
+
+    monkeypatch.setattr(estimators, "ESTIMATORS", dict(estimators.ESTIMATORS))
+
+    @estimators.register("returns_nothing", "a factory that forgot its lambda")
+    def _(ctx):
+        return None
+
+    @estimators.register("returns_filter_result", "a run returning the filter's result")
+    def _(ctx):
+        return lambda traj: df.kalman_filter(ctx.model, traj.y_recv, traj.us, mask=traj.mask)
+
+    with pytest.raises(TypeError, match="'returns_nothing' .*its factory returned NoneType"):
+        run_suite(_tiny_scenario(), estimators=["returns_nothing"], progress=False)
+    with pytest.raises(
+        TypeError, match="'returns_filter_result' .*returned FilterResult.*output_of"
+    ):
+        run_suite(_tiny_scenario(), estimators=["returns_filter_result"], progress=False)
+
+
+def test_estimator_options_are_checked_by_name_and_together(monkeypatch):
+    """A misspelt option was ignored; ``poa_eta`` without ``poa_zeta`` was a KeyError."""
+    import pytest
+
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import estimators
+
+    run = ["kf"]
+    with pytest.raises(ValueError, match="'tiny': unknown estimator option 'cusum_bais' "
+                       r"\(did you mean 'cusum_bias'\?\)"):  # fmt: skip
+        run_suite(_tiny_scenario(options={"cusum_bais": 1.0}), estimators=run, progress=False)
+    with pytest.raises(ValueError, match="'tiny': estimator option poa_eta without poa_zeta"):
+        run_suite(_tiny_scenario(options={"poa_eta": 0.5}), estimators=run, progress=False)
+    monkeypatch.setattr(estimators, "OPTIONS", dict(estimators.OPTIONS))
+    estimators.register_option("my_gain", "the gain of my estimator")
+    result = run_suite(_tiny_scenario(options={"my_gain": 2.0}), estimators=run, progress=False)
+    assert result.context.options == {"my_gain": 2.0}
+    with pytest.raises(ValueError, match="'my_gain' is already declared: the gain of my"):
+        estimators.register_option("my_gain", "another meaning")

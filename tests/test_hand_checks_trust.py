@@ -72,11 +72,55 @@ def test_a_nested_carrys_tensor_written_in_place_is_validated_again():
 def test_registering_another_scenario_under_a_used_name_is_refused(isolated_registry):
     base = registry.get("four_tank_bias")
     assert registry.register(base) is base  # the same scenario again: nothing to say
+    # (a contributor's trial: the error blamed the library's module that came second in
+    # the import order, not the contributor's that took the name first)
     with pytest.raises(
-        ValueError, match="'four_tank_bias' is already registered.*in a new process"
-    ):
+        ValueError, match=r"'four_tank_bias' is already registered, by module "
+        r"difffilter\.models\.four_tank, .*module \S*test_hand_checks_trust registers another"
+        ".*in a new process"
+    ):  # fmt: skip
         registry.register(dataclasses.replace(base, headline=not base.headline))
     assert registry.get("four_tank_bias") is base
+
+
+@pytest.mark.parametrize("name", ["all", "robustness", "lfc", "four_tank"])
+def test_a_scenario_named_like_a_selection_is_refused(isolated_registry, name):
+    """``difffilter-eval all``/``robustness``/a family's name select many scenarios: a
+    scenario so named registered without a word and could never be run by name."""
+    base = registry.get("four_tank_bias")
+    with pytest.raises(ValueError, match=f"scenario name '{name}' is .*could never be run by name"):
+        registry.register(dataclasses.replace(base, name=name))
+    with pytest.raises(ValueError, match="of family 'lfc_step', the name of a registered scenario"):
+        registry.register(dataclasses.replace(base, name="mine", family="lfc_step"))
+    assert name not in registry._REGISTRY and "mine" not in registry._REGISTRY
+
+
+def test_an_estimator_registered_twice_names_both_modules():
+    from difffilter.models import estimators
+
+    first = estimators.get("chi_square_ekf")
+    with pytest.raises(
+        ValueError, match=r"'chi_square_ekf' is already registered, by module "
+        r"difffilter\.models\.generic_estimators; module \S*test_hand_checks_trust registers"
+    ):  # fmt: skip
+
+        @estimators.register("chi_square_ekf", "mine")
+        def _(ctx):
+            return None
+
+    assert estimators.get("chi_square_ekf") is first
+
+
+def test_a_family_report_registered_twice_names_both_modules(monkeypatch):
+    from difffilter.eval import report
+
+    monkeypatch.setattr(report, "_FAMILIES", {})
+    monkeypatch.setattr(report, "_FAMILY_ORIGINS", {"mine": "my_first_module"})
+    first = report.register_family("mine", report.FamilyReport(report_cost=2.0))
+    assert report.register_family("mine", report.FamilyReport(report_cost=2.0)) is not None
+    with pytest.raises(ValueError, match="by module my_first_module; module \\S*test_hand_"):
+        report.register_family("mine", report.FamilyReport(report_cost=3.0))
+    assert report._FAMILIES["mine"] == first and first.report_cost == 2.0
 
 
 def test_a_module_object_that_is_a_function_needing_arguments_is_named(isolated_registry, tmp_path,
