@@ -403,6 +403,10 @@ def closed_loop(
     _check_parts(estimator, attack)
     channel = None if attack is None else Channel(attack.channel)
     conceals = channel is Channel.ACTUATOR and bool(getattr(attack, "conceals", False))
+    # only an attack that says it reads the estimator's output gets it (an open-loop
+    # scenario hands such an attack nothing, so one that read it unannounced worked here
+    # and silently read None there)
+    reads = attack is not None and bool(attack.reads_view)
     if fork is not None:
         if state is not None:
             raise ValueError("give a loop either state= or fork= to resume from, not both")
@@ -422,8 +426,8 @@ def closed_loop(
         m = None if mask is None else mask[:, k - 1]
         applied, a, value, flag = u, None, None, None
         if channel is Channel.ACTUATOR:
-            a_state, value, flag = attack.step(a_state, k, x=x, u=u, view=view)
-            _check_value(attack, value, u, k)
+            a_state, value, flag = attack.step(a_state, k, x=x, u=u, view=view if reads else None)
+            value = _checked_value(attack, value, flag, u, k)
             applied, a = inject(channel, u, value, flag)
         x = noise.transition(plant, x, applied, k - 1)
         y = noise.measure(plant, x, k - 1)
@@ -433,8 +437,9 @@ def closed_loop(
             received = y + correction
             rec["concealment"].append(correction)
         if channel is not None and channel is not Channel.ACTUATOR:
-            a_state, value, flag = attack.step(a_state, k, y=y, x=x, u=u, view=view)
-            _check_value(attack, value, y, k)
+            a_state, value, flag = attack.step(a_state, k, y=y, x=x, u=u,
+                                               view=view if reads else None)  # fmt: skip
+            value = _checked_value(attack, value, flag, y, k)
             received, a = inject(channel, y, value, flag)
         if estimator is not None:
             carry, view = estimator._step(carry, _estimator_input(received, m, k, attack), u, m)
@@ -481,14 +486,47 @@ def _check_parts(estimator, attack) -> None:
         )
 
 
-def _check_value(attack, value: Tensor, signal: Tensor, k: int) -> None:
-    """The attack's value at step ``k`` has the attacked signal's entries."""
-    if not isinstance(value, Tensor) or value.shape[-1:] != signal.shape[-1:]:
+def _checked_value(attack, value: Tensor, flag: Tensor, signal: Tensor, k: int) -> Tensor:
+    """The attack's value at step ``k`` as the attacked signal's shape ``[..., d]``, after
+    checking it and its flag: a value of the signal's entries and dtype that broadcasts to
+    it (one value for every run, ``[d]``, is expanded: a flag ``[B]`` beside it was read
+    per entry where ``B = d``), and a bool flag ``[...]`` (per run) or ``[..., d]`` (per
+    entry). Shape checks only: nothing is read from the tensors."""
+    name, shape = f"attack {type(attack).__name__}.step", tuple(signal.shape)
+    if not isinstance(value, Tensor) or not _broadcasts(value.shape, signal.shape):
         got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
         raise ValueError(
-            f"attack {type(attack).__name__}.step returned a value of shape {got} at step {k}; "
-            f"the signal it attacks is {tuple(signal.shape)}: a value [..., {signal.shape[-1]}]"
+            f"{name} returned a value of shape {got} at step {k}; the signal it attacks is "
+            f"{shape}: a value of that shape (or [{shape[-1]}], one for every run)"
         )
+    if value.dtype != signal.dtype:
+        raise ValueError(
+            f"{name} returned a value of dtype {value.dtype} at step {k}; the signal it "
+            f"attacks is {signal.dtype}: make it of that dtype (init's dtype=)"
+        )
+    if not isinstance(flag, Tensor) or flag.dtype is not torch.bool:
+        got = f"dtype {flag.dtype}" if isinstance(flag, Tensor) else type(flag).__name__
+        raise ValueError(
+            f"{name} returned a flag of {got} at step {k}; a flag is a bool tensor, "
+            f"{list(shape[:-1])} (per run) or {list(shape)} (per entry), e.g. "
+            "torch.full(y.shape[:-1], True)"
+        )
+    per = flag.dim() - (len(shape) - 1)
+    if per not in (0, 1) or not _broadcasts(flag.shape, shape[: flag.dim()]):
+        raise ValueError(
+            f"{name} returned a flag of shape {tuple(flag.shape)} at step {k}; the signal it "
+            f"attacks is {shape}: a flag {list(shape[:-1])} (per run) or {list(shape)} (per "
+            "entry)"
+        )
+    return value if value.shape == signal.shape else value.expand(shape)
+
+
+def _broadcasts(shape, target) -> bool:
+    """``shape`` broadcasts to ``target`` without changing it."""
+    try:
+        return torch.broadcast_shapes(shape, target) == torch.Size(target)
+    except RuntimeError:
+        return False
 
 
 def _estimator_input(received: Tensor, mask: Tensor | None, k: int, attack) -> Tensor:

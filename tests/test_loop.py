@@ -282,6 +282,70 @@ def test_the_loop_names_a_wrong_attack_estimator_or_attack_value():
         loop(attack=_Adaptive())
 
 
+class _Returns(Attack):
+    """Returns ``make(y, k) -> (value, flag)`` at every step; counts the views it got."""
+
+    channel = Channel.SENSOR
+
+    def __init__(self, make):
+        self.make, self.views = make, 0
+
+    def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        return None
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        self.views += view is not None
+        return (state, *self.make(y, k))
+
+
+def test_an_attacks_flag_and_value_are_checked_and_one_value_for_every_run_is_expanded():
+    """A user trial: a value [dy] for every run beside a per-run flag [B] was read per entry
+    where B = dy (runs flagged clean were attacked, and the recorded attack lost its
+    entries); a Python bool, float or int flag, or one of the wrong batch, failed in torch."""
+    model = _linear()
+    x0 = model.initial.mean.expand(2, 2).clone()  # B = dy = 2
+
+    def loop(make):
+        return closed_loop(model, 3, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                           estimator=df.KalmanFilter(), attack=_Returns(make))  # fmt: skip
+
+    one = loop(lambda y, k: (torch.tensor([0.5, 0.25], dtype=y.dtype), torch.tensor([True, False])))
+    traj = one.trajectories
+    assert traj.attack.shape == (2, 3, 2)  # [B, T, dy]
+    torch.testing.assert_close(traj.attack[0], torch.tensor([[0.5, 0.25]] * 3, dtype=torch.float64))
+    assert traj.attack[1].eq(0).all() and traj.flags[:, 0].tolist() == [True, False]
+    full = lambda y: torch.zeros_like(y)  # noqa: E731
+    for make, why in (
+        (lambda y, k: (full(y), True), "a flag of bool at step 1; a flag is a bool tensor"),
+        (lambda y, k: (full(y), torch.ones(2)), "a flag of dtype torch.float32 at step 1"),
+        (lambda y, k: (full(y), torch.ones(2, dtype=torch.long)), "a flag of dtype torch.int64"),
+        (lambda y, k: (full(y), torch.ones(3, dtype=torch.bool)),
+         r"a flag of shape \(3,\) at step 1; the signal it attacks is \(2, 2\)"),
+        (lambda y, k: (full(y).float(), torch.ones(2, dtype=torch.bool)),
+         "a value of dtype torch.float32 at step 1; the signal it attacks is torch.float64"),
+        (lambda y, k: (torch.zeros(3, 2, dtype=y.dtype), torch.ones(2, dtype=torch.bool)),
+         r"a value of shape \(3, 2\) at step 1"),
+    ):  # fmt: skip
+        with pytest.raises(ValueError, match=f"attack _Returns.step returned {why}"):
+            loop(make)
+
+
+def test_only_an_attack_that_reads_the_view_gets_it():
+    """An attack without ``reads_view`` read the estimator's output in closed_loop, and got
+    None under an open-loop scenario's with_threat (a user trial: it silently injected
+    nothing there): it gets None in both."""
+    model = _linear()
+    x0 = model.initial.mean.expand(2, 2).clone()
+    quiet = _Returns(lambda y, k: (torch.zeros_like(y), torch.zeros(2, dtype=torch.bool)))
+    closed_loop(model, 4, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                estimator=df.KalmanFilter(), attack=quiet)  # fmt: skip
+    assert quiet.views == 0
+    quiet.reads_view = True
+    closed_loop(model, 4, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                estimator=df.KalmanFilter(), attack=quiet)  # fmt: skip
+    assert quiet.views == 3  # steps 2, 3, 4 read the output of the step before
+
+
 def test_an_adaptive_attack_is_refused_where_no_estimator_is_in_the_loop():
     """An open-loop scenario simulates its runs once, without an estimator: an attack that
     reads the estimator's output would read None there (it silently acted as a plain
