@@ -17,7 +17,7 @@ import torch
 from difffilter.estimator import EstimatorOutput
 from difffilter.loop import LoopResult, Trajectories
 from difffilter.models import estimators as registry
-from difffilter.models.generic_estimators import DEFAULT_SUITE
+from difffilter.models.generic_estimators import DEFAULT_SUITE, meets_adaptive_attack
 from difffilter.models.streams import Streams
 from difffilter.runtime import one_thread
 
@@ -243,6 +243,7 @@ def _run_estimators(result: SuiteResult, specs, progress: bool, built=None,
 
     bar = tqdm(specs, desc=label or result.scenario.name, disable=not progress, leave=False)
     ctx = result.context
+    adaptive = meets_adaptive_attack(ctx.scenario)
     for spec in bar:
         bar.set_postfix_str(spec.name)
         unmet = spec.unmet(ctx.scenario, ctx.model)
@@ -259,6 +260,9 @@ def _run_estimators(result: SuiteResult, specs, progress: bool, built=None,
             out = spec.checked(run(result.traj))
         except ValueError as exc:  # (which estimator of which study, e.g. on an attack's NaN)
             raise ValueError(f"{spec.name} on {result.scenario.name}: {exc}") from exc
+        if adaptive and not isinstance(out, LoopResult):
+            result.skipped[spec.name] = ADAPTIVE_SKIP
+            continue
         result.wall_s[spec.name] = time.perf_counter() - start
         if isinstance(out, LoopResult):  # a closed loop of its own: its truth
             result.trajectories[spec.name] = out.trajectories
@@ -300,6 +304,15 @@ def apply_calibration(result: SuiteResult, calibration) -> None:
             out, result.traj_of(name), thresholds.get(name), attacked_input=not clean
         ))  # fmt: skip
 
+
+#: Why an estimator is left out of a closed-loop study under an adaptive attack
+#: (:func:`~difffilter.models.generic_estimators.meets_adaptive_attack`) where it ran on the
+#: study's shared trajectories instead of a loop of its own.
+ADAPTIVE_SKIP = (
+    "the attack is adaptive (reads_view) and this estimator ran on the scenario's shared "
+    "loop, where the attack read another estimator's outputs: it is judged only in a loop "
+    "of its own"
+)
 
 #: The ``SuiteContext.cache`` key of ``{estimator: wall seconds per run}`` measured by the
 #: suites of one evaluation so far (the same on every process: measured after the gather).

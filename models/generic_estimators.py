@@ -38,6 +38,7 @@ __all__ = [
     "GAUSSIAN_FILTERS",
     "oracle_attack",
     "gated_estimator",
+    "meets_adaptive_attack",
     "modified_pf",
     "deception_of",
     "default_estimators",
@@ -83,16 +84,32 @@ GAUSSIAN_FILTERS = {
 
 
 def _gated(kind: str, detector: Callable):
-    """A factory of the ``kind`` filter gated by ``detector(ctx, filter)``."""
+    """A factory of the ``kind`` filter gated by ``detector(ctx, filter)``: on the study's
+    trajectories, or, where an adaptive attack meets it in a closed-loop scenario
+    (:func:`meets_adaptive_attack`), in a loop of its own (``scenario.loop``): there the
+    attack reads this filter's outputs, not those of the loop the trajectories came from."""
     filt = GAUSSIAN_FILTERS[kind]
 
     def factory(ctx: SuiteContext) -> Run:
         det = detector(ctx, filt)
+        if meets_adaptive_attack(ctx.scenario):
+            step = fdi.GatedFilter(det, filt)
+            return lambda tr: ctx.scenario.loop(step, tr.info)
         return lambda tr: fdi.gated_gaussian_filter(
             ctx.model, tr.y_recv, tr.us, mask=tr.mask, detector=det, filter=filt
         )
 
     return factory
+
+
+def meets_adaptive_attack(scenario) -> bool:
+    """The attack of ``scenario`` reads the estimator's output (``reads_view``) and the
+    scenario is a closed loop, which runs an estimator that has a step object in a loop of
+    its own (:meth:`~difffilter.models.scenario.Scenario.loop`): an estimator scored on the
+    study's shared trajectories would be judged against an attack that adapted to another
+    estimator (:func:`difffilter.eval.suite.run_suite` skips those)."""
+    attack = scenario.simulated_attack()
+    return bool(scenario.closed_loop and getattr(attack, "reads_view", False))
 
 
 def _chi_square(ctx: SuiteContext, filt) -> fdi.ChiSquareDetector:

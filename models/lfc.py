@@ -43,6 +43,7 @@ import difffilter
 from difffilter._checks import Choice, check_finite_number
 from difffilter.attack import TabulatedAttack, attack_dim
 from difffilter.control import zoh_discretize
+from difffilter.fdi import ChiSquareDetector, GatedFilter
 from difffilter.kalman import KalmanFilter
 from difffilter.loop import LoopResult, ReplayedNoise, closed_loop
 from difffilter.models.registry import Scenario, register
@@ -700,9 +701,22 @@ class LFCScenario(Scenario):
         ``load``) that every estimator's own closed loop replays (common random numbers).
         ``us[:, t]`` is the input applied before ``x_{t+1}`` (control and load)."""
         draws = self.exogenous(runs, generators, dtype=dtype)
-        loop = self.loop(KalmanFilter(), draws, compensate=False, attack=attack)
+        loop = self.loop(self._shared_observer(draws, attack), draws, compensate=False,
+                         attack=attack)  # fmt: skip
         info = {**loop.trajectories.info, **draws}
         return loop.trajectories._replace(info=info)
+
+    def _shared_observer(self, draws, attack):
+        """The estimator of :meth:`simulate`'s loop: a Kalman filter, χ²-gated at the
+        scenario's false-alarm rate where the attack reads the estimator's output (so that
+        an adaptive attack finds a score and an alarm there too; the traditional controller
+        reads the measurement, not the estimate, so the loop's truth does not depend on it).
+        Every estimator that an adaptive attack is judged against runs in a loop of its own
+        (:func:`~difffilter.models.generic_estimators.meets_adaptive_attack`)."""
+        if not getattr(self._attack_of(draws, attack)[0], "reads_view", False):
+            return KalmanFilter()
+        detector = ChiSquareDetector(self.system().dim_y, self.false_alarm_rate)
+        return GatedFilter(detector, KalmanFilter())
 
     def paper_numbers(self) -> dict:
         return dict(self.paper_table)

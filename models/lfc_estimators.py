@@ -294,6 +294,10 @@ def _closed_loop(name: str, build, *, compensate: bool = True, ablation: bool = 
         statistic = PROBABILITY if head else ESTIMATE
         reported = confirmed_statistic(statistic, getattr(estimator, "confirm", None))
         threshold = _alarm_threshold(ctx, name, trained, statistic, reported)
+        if statistic == PROBABILITY and isinstance(estimator, NeuralCompensation):
+            # its step scores the head as reported: its alarms (what an adaptive attack
+            # reads) at the reported threshold too, not at the step's default 0.5
+            estimator.threshold = threshold
 
         def run(tr) -> LoopResult:
             free, forks = _attack_free(ctx, name, estimator, tr, compensate)

@@ -243,3 +243,50 @@ def test_attacked_loops_run_from_the_fork_at_their_onset_are_the_whole_loops(mon
             assert torch.equal(x.detection.scores, y.detection.scores)
             for field in ("x", "y_recv", "attack", "flags"):
                 assert torch.equal(getattr(a.traj_of(name), field), getattr(b.traj_of(name), field))
+
+
+class _Watching(df.attack.Attack):
+    """0.05 p.u. on the first frequency sensor from step 10; records per loop whether each
+    view it got had a score and an alarm (``reads_view`` as given: a plain bias when it
+    does not read)."""
+
+    channel = df.attack.Channel.SENSOR
+
+    def __init__(self, reads_view: bool):
+        self.reads_view, self.loops = reads_view, []
+
+    def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        self.loops.append([])
+        return None
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        if view is not None:
+            self.loops[-1].append((view.score is not None, view.alarm is not None))
+        value = torch.zeros_like(y)
+        value[..., 0] = 0.05
+        return state, value, torch.full(y.shape[:-1], k >= 10)
+
+
+def test_an_adaptive_attack_meets_the_gated_filters_in_their_own_loops():
+    """A user trial: on LFC the χ²/CUSUM-gated filters were scored on the shared loop, where
+    an adaptive attack had read a plain Kalman filter's output (no score, no alarm; an attack
+    reading view.score crashed there). Now each runs in a loop of its own: the same numbers
+    as on the shared loop when the attack ignores what it reads, and the views of every
+    loop hold a score and an alarm. An estimator with no loop of its own is skipped."""
+    scenario = registry.get("lfc_step").with_steps(40)
+    names = ["chi_square_kf", "cusum_kf", "kf"]
+    plain = run_suite(scenario.with_threat(_Watching(False)), runs=2, estimators=names,
+                      progress=False)  # fmt: skip
+    watching = _Watching(True)
+    adaptive = run_suite(scenario.with_threat(watching), runs=2, estimators=names,
+                         progress=False)  # fmt: skip
+    assert "reads_view" in adaptive.skipped["kf"] and "kf" in plain.outputs
+    assert len(watching.loops) == 3  # the shared loop, then each gated filter's own
+    assert all(seen == [(True, True)] * 39 for seen in watching.loops)
+    for name in ("chi_square_kf", "cusum_kf"):
+        mine, shared = adaptive.outputs[name], plain.outputs[name]
+        torch.testing.assert_close(mine.means, shared.means, rtol=0, atol=1e-9)
+        torch.testing.assert_close(mine.detection.scores, shared.detection.scores, rtol=0,
+                                   atol=1e-9)  # fmt: skip
+        assert torch.equal(mine.detection.alarms, shared.detection.alarms)
+        assert adaptive.metrics[name]["tpr"] == plain.metrics[name]["tpr"]
