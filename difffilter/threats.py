@@ -39,6 +39,7 @@ entry), by the names of :data:`THREATS`.
 
 from __future__ import annotations
 
+import inspect
 import math
 import numbers
 from dataclasses import dataclass, field, fields
@@ -588,7 +589,9 @@ THREATS: dict[str, type[Attack]] = {
 
 
 def threat_from_dict(spec: dict, model=None) -> Attack:
-    """An attack of :data:`THREATS` from plain data: ``{"kind": name, **fields}``.
+    """An attack of :data:`THREATS` from plain data: ``{"kind": name, **fields}``, or an
+    attack of one's own: ``{"kind": "package.module:object", **arguments}``
+    (:func:`_attack_of_ones_own`).
 
     ``ksigma_bias`` without ``sigma`` reads ``σ = √diag R`` from ``model``; ``covert`` takes
     ``model`` as the attacker's plant and its ``signal`` as a nested mapping (put on the
@@ -604,8 +607,13 @@ def threat_from_dict(spec: dict, model=None) -> Attack:
             "(an entry of a threat set: difffilter.eval.stealthy.StealthySpec), or by "
             "difffilter.stealthy.craft_stealthy_attack; it is not built from data here"
         )
+    if isinstance(kind, str) and ":" in kind:
+        return _attack_of_ones_own(kind, params, model)
     if kind not in THREATS:
-        raise ValueError(f"unknown threat kind {kind!r}; valid: {', '.join(sorted(THREATS))}")
+        raise ValueError(
+            f"unknown threat kind {kind!r}; valid: {', '.join(sorted(THREATS))} (in a threat "
+            "set also stealthy), or an attack of your own as package.module:object"
+        )
     cls = THREATS[kind]
     valid = {f.name for f in fields(cls)}
     unknown = sorted(set(params) - valid)
@@ -635,3 +643,35 @@ def threat_from_dict(spec: dict, model=None) -> Attack:
         k = params.pop("k", KSigmaBias.k)  # the class default, said once
         return KSigmaBias.of(model, k, **params)
     return cls(**params)
+
+
+def _attack_of_ones_own(path: str, arguments: dict, model) -> Attack:
+    """The attack a ``package.module:object`` path names, made from ``arguments``: an
+    :class:`~difffilter.attack.Attack` subclass or a function returning an attack, called
+    with the arguments (and ``model=`` the scenario's model where it takes ``model`` and the
+    arguments do not give it), or an attack object (no arguments)."""
+    from ._imports import import_object
+
+    where = f"threat kind {path!r}"
+    obj = import_object(path, where)
+    if isinstance(obj, Attack):
+        if arguments:
+            raise ValueError(f"{where} is an attack object: it takes no fields; got "
+                             f"{', '.join(sorted(arguments))}")  # fmt: skip
+        return obj
+    if not callable(obj):
+        raise ValueError(f"{where} is a {type(obj).__name__}: name an Attack subclass, a "
+                         "function returning an attack, or an attack object")  # fmt: skip
+    try:
+        takes_model = "model" in inspect.signature(obj).parameters
+    except (TypeError, ValueError):  # (no signature to read)
+        takes_model = False
+    if takes_model and "model" not in arguments:
+        arguments = {**arguments, "model": model}
+    try:
+        attack = obj(**arguments)
+    except TypeError as exc:
+        raise ValueError(f"{where}: {exc}") from None
+    if not isinstance(attack, Attack):
+        raise ValueError(f"{where} made a {type(attack).__name__}, not a difffilter.attack.Attack")
+    return attack

@@ -66,10 +66,22 @@ class ThreatSet:
     (``runs``: ``None`` for the scenario's; ``estimators``: ``None`` for the scenario's)."""
 
     threats: dict[str, Any]
-    specs: dict[str, dict]
+    specs: dict[str, dict] = field(default_factory=dict)
     runs: int | None = None
     estimators: tuple[str, ...] | None = None
     source: str = ""
+
+    def __post_init__(self):
+        # the reports list the threats by their specs: a threat given in Python without one
+        # was left out of robustness.md's list and robustness.json's "threats"
+        for name, attack in self.threats.items():
+            if name not in self.specs:
+                kind = type(attack)
+                self.specs[name] = {"kind": f"{kind.__module__}:{kind.__qualname__}"}
+        extra = sorted(set(self.specs) - set(self.threats))
+        if extra:
+            raise ValueError(f"specs of no threat: {', '.join(extra)}; threats: "
+                             f"{', '.join(self.threats)}")  # fmt: skip
 
 
 def _threat_file(scenario) -> Path:

@@ -53,16 +53,14 @@ modified-PF paper), ``actuator_injection`` (``value``, ``start``) and ``replacem
 
 from __future__ import annotations
 
-import importlib
 import math
-import os
-import sys
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from difffilter._imports import import_object
 from difffilter.ssm import LinearGaussianModel, NonlinearGaussianModel, _arity
 from difffilter.threats import THREATS, check_attack_fits, threat_from_dict
 
@@ -232,41 +230,6 @@ def _names(value: Any, where: str) -> tuple:
     if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
         raise ValueError(f"{where} must be a list of strings; got {value!r}")
     return tuple(value)
-
-
-def _import_module(name: str):
-    """``importlib.import_module``, also from the folder the command runs in: a console
-    script's ``sys.path`` starts at its own folder, not the working one (``python -m`` and
-    ``python script.py`` put the working folder first), so ``my_plants:vdp`` beside the user
-    was not found. The working folder is tried last, only for a module not found elsewhere."""
-    try:
-        return importlib.import_module(name)
-    except ModuleNotFoundError as error:
-        here = os.getcwd()
-        missing = error.name or ""
-        if name.split(".")[0] != missing.split(".")[0] or here in sys.path or "" in sys.path:
-            raise
-        sys.path.append(here)
-        try:
-            return importlib.import_module(name)
-        except ModuleNotFoundError:
-            sys.path.remove(here)
-            raise error from None
-
-
-def import_object(path: str, where: str):
-    """The object a ``package.module:object`` path names (``object`` may be dotted); a
-    ``ValueError`` starting with ``where`` if the module or the object is missing."""
-    module_name, _, attribute = path.partition(":")
-    try:
-        obj = _import_module(module_name)
-    except ImportError as error:
-        raise ValueError(f"{where}: cannot import {module_name!r} ({error})") from None
-    for part in attribute.split("."):
-        if not hasattr(obj, part):
-            raise ValueError(f"{where}: {module_name} has no {attribute!r}")
-        obj = getattr(obj, part)
-    return obj
 
 
 def _check_fields(mapping: Mapping, valid: set[str], where: str) -> None:

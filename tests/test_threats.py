@@ -404,3 +404,69 @@ def test_a_study_whose_attack_starts_after_its_last_step_is_refused():
 def test_a_stealthy_kind_outside_a_threat_set_says_where_it_is_made():
     with pytest.raises(ValueError, match="'stealthy' threat is crafted against an estimator"):
         threat_from_dict({"kind": "stealthy"})
+
+
+_OWN_ATTACKS = """
+import torch
+from difffilter.attack import Attack, TabulatedAttack
+from difffilter.threats import Bias
+
+
+class Drift(TabulatedAttack):
+    def __init__(self, rate, onset=1):
+        self.rate, self.onset = rate, onset
+
+    def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        k = torch.arange(num_steps, dtype=dtype)
+        values = (self.rate * (k - self.onset + 1)).clamp_min(0)[:, None].expand(num_steps, dim)
+        flags = (k >= self.onset - 1).expand(*batch_shape, num_steps)
+        return values.expand(*batch_shape, num_steps, dim).clone(), flags.clone()
+
+
+def noise_sized(model, k=2.0, onset=1):
+    return Bias(value=k * float(model.measurement_noise.cov[0, 0].sqrt()), onset=onset)
+
+
+READY = Bias(value=0.25, onset=3)
+NOT_AN_ATTACK = 3
+"""
+
+
+def test_a_threat_of_ones_own_is_named_by_its_module_in_a_threat_set(tmp_path, monkeypatch):
+    """A user trial: a threat set took only the library's kinds, so an attack of one's own
+    could join a robustness study only through the undocumented Python API (and a ThreatSet
+    built there without specs dropped the threat from the report's list)."""
+    from difffilter.eval.robustness import ThreatSet, load_threat_set
+    from difffilter.models import registry
+    from difffilter.threats import Bias, threat_from_dict
+
+    (tmp_path / "my_trial_attacks.py").write_text(_OWN_ATTACKS)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    scenario = registry.get("four_tank_bias")
+    model = scenario.system()
+    drift = threat_from_dict({"kind": "my_trial_attacks:Drift", "rate": 0.01, "onset": 5})
+    assert type(drift).__name__ == "Drift" and drift.rate == 0.01 and drift.onset == 5
+    sized = threat_from_dict({"kind": "my_trial_attacks:noise_sized", "k": 3.0}, model)
+    sigma = float(model.measurement_noise.cov[0, 0].sqrt())
+    assert isinstance(sized, Bias) and math.isclose(sized.value[0], 3.0 * sigma, rel_tol=1e-12)
+    assert threat_from_dict({"kind": "my_trial_attacks:READY"}).value == (0.25,)
+    for spec, why in (
+        ({"kind": "my_trial_attacks:READY", "onset": 4}, "is an attack object: it takes no fields"),
+        ({"kind": "my_trial_attacks:NOT_AN_ATTACK"}, "is a int: name an Attack subclass"),
+        ({"kind": "my_trial_attacks:Drift", "slope": 1}, "unexpected keyword argument 'slope'"),
+        ({"kind": "my_trial_attacks:Nothing"}, "my_trial_attacks has no 'Nothing'"),
+        ({"kind": "rampp"}, "valid: bias.*also stealthy.*package.module:object"),
+    ):  # fmt: skip
+        with pytest.raises(ValueError, match=why):
+            threat_from_dict(spec, model)
+    (tmp_path / "set.yaml").write_text(
+        "runs: 4\nthreats:\n  drift: {kind: 'my_trial_attacks:Drift', rate: 0.01, onset: 21}\n"
+        "  ramp: {kind: ramp, slope: 0.005, onset: 21}\n"
+    )
+    loaded = load_threat_set(scenario, path=tmp_path / "set.yaml")
+    assert type(loaded.threats["drift"]).__name__ == "Drift"
+    assert loaded.specs["drift"]["kind"] == "my_trial_attacks:Drift"
+    made = ThreatSet({"drift": drift, "ramp": loaded.threats["ramp"]}, {"ramp": {"kind": "ramp"}})
+    assert made.specs["drift"] == {"kind": "my_trial_attacks:Drift"}
+    with pytest.raises(ValueError, match="specs of no threat: pulses"):
+        ThreatSet({"drift": drift}, {"pulses": {"kind": "pulses"}})

@@ -1,0 +1,45 @@
+"""``package.module:object`` paths, as both command lines and YAML files take them: a
+scenario, a plant's functions, an attack of one's own."""
+
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+
+__all__ = ["import_object"]
+
+
+def _import_module(name: str):
+    """``importlib.import_module``, also from the folder the command runs in: a console
+    script's ``sys.path`` starts at its own folder, not the working one (``python -m`` and
+    ``python script.py`` put the working folder first), so ``my_plants:vdp`` beside the user
+    was not found. The working folder is tried last, only for a module not found elsewhere."""
+    try:
+        return importlib.import_module(name)
+    except ModuleNotFoundError as error:
+        here = os.getcwd()
+        missing = error.name or ""
+        if name.split(".")[0] != missing.split(".")[0] or here in sys.path or "" in sys.path:
+            raise
+        sys.path.append(here)
+        try:
+            return importlib.import_module(name)
+        except ModuleNotFoundError:
+            sys.path.remove(here)
+            raise error from None
+
+
+def import_object(path: str, where: str):
+    """The object a ``package.module:object`` path names (``object`` may be dotted); a
+    ``ValueError`` starting with ``where`` if the module or the object is missing."""
+    module_name, _, attribute = path.partition(":")
+    try:
+        obj = _import_module(module_name)
+    except ImportError as error:
+        raise ValueError(f"{where}: cannot import {module_name!r} ({error})") from None
+    for part in attribute.split("."):
+        if not hasattr(obj, part):
+            raise ValueError(f"{where}: {module_name} has no {attribute!r}")
+        obj = getattr(obj, part)
+    return obj
