@@ -33,7 +33,14 @@ from difffilter.models.streams import Streams
 from difffilter.stealthy import StealthySettings, craft_stealthy_attack
 from difffilter.threats import KSigmaBias
 
-__all__ = ["StealthySpec", "craft_threat", "crafted_error", "detector_step", "same_rate_bias"]
+__all__ = [
+    "StealthySpec",
+    "craft_threat",
+    "crafted_error",
+    "detector_step",
+    "estimator_step",
+    "same_rate_bias",
+]
 
 
 @dataclass(frozen=True)
@@ -72,6 +79,16 @@ def _context(scenario, runs: int, seed: int, checkpoint=None) -> SuiteContext:
     options = check_options(scenario.estimator_options(), f"scenario {scenario.name!r}")
     return SuiteContext(scenario, model, runs, Streams(seed), options, default,
                         named_checkpoints=named)  # fmt: skip
+
+
+def estimator_step(scenario, name: str, *, runs: int, seed: int = 0, checkpoint=None):
+    """``(estimator, start)`` of the registered detector ``name`` on ``scenario`` as its
+    study builds it (:func:`detector_step`: a gated Gaussian filter with its calibrated or
+    nominal threshold, ``normal_pf``, a learned estimator from ``checkpoint`` or the shipped
+    one), for a loop of one's own (:func:`difffilter.loop.closed_loop`'s ``estimator``):
+    ``runs`` and ``seed`` those of the study whose draws it takes (a CUSUM's calibration,
+    the particle filters' common random numbers)."""
+    return detector_step(_context(scenario, runs, seed, checkpoint), name)
 
 
 def detector_step(ctx: SuiteContext, against: str):

@@ -182,3 +182,24 @@ def test_the_attacker_sees_the_particle_filters_of_the_suite_and_their_gradient(
     assert moved[2] != moved[0]  # the increments moved: a gradient reached them
     with pytest.raises(ValueError, match="not a gated Gaussian filter .*, normal_pf nor a learned"):
         detector_step(ctx, "kf_attack_free")
+
+
+@pytest.mark.parametrize("name", ["cusum_ekf", "chi_square_ukf"])
+def test_estimator_step_is_the_registered_detector_of_the_study(name):
+    """The public ``estimator_step`` (for a loop of one's own, a user trial found none): on
+    the study's runs its step object gives the suite's numbers, the CUSUM calibrated alike."""
+    from difffilter.eval.stealthy import estimator_step
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import registry
+
+    scenario, runs = registry.get("four_tank_bias"), 5
+    suite = run_suite(scenario, runs=runs, seed=2, estimators=[name], progress=False)
+    estimator, start = estimator_step(scenario, name, runs=runs, seed=2)
+    assert start is None
+    tr = suite.traj
+    with torch.no_grad():
+        out = open_loop(estimator, suite.context.model, tr.y_recv, tr.us, mask=tr.mask)
+    expected = suite.outputs[name]
+    torch.testing.assert_close(out.means, expected.means, rtol=0, atol=1e-9)
+    torch.testing.assert_close(out.detection.scores, expected.detection.scores, rtol=0, atol=1e-9)
+    assert torch.equal(out.detection.alarms, expected.detection.alarms)
