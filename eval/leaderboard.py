@@ -107,11 +107,20 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
     path.write_text(
         f"# Leaderboard\n\n{intro}\n\n"
         + markdown_table(header, cells)
+        + _skipped(results)
         + "\n![leaderboard.png](leaderboard.png)\n"
     )
     _heatmaps(out / "leaderboard.png", rows, {m: units[m] for m in cols})
     _hparams(out / "tb_leaderboard", rows)
     return path
+
+
+def _skipped(results: dict[str, dict[str, Any]]) -> str:
+    """The estimators a scenario left out, with why: a reader looked for a row that was not
+    there (``--ckpt`` of another estimator's checkpoint leaves the scenario's own out)."""
+    lines = [f"- {scenario}: `{name}` ({why})" for scenario, doc in results.items()
+             for name, why in (doc.get("skipped") or {}).items()]  # fmt: skip
+    return "\nNot run (no row above):\n\n" + "\n".join(lines) + "\n" if lines else ""
 
 
 HIGHER_IS_BETTER = {"auc", "tpr_at_1pct_fpr", "worst_tpr_at_far"}

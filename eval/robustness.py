@@ -404,14 +404,17 @@ def _acceptance_section(name: str, a: dict) -> str:
                  f"{'holds' if a['state_holds'] else '**does not hold**'}. The interval: the ratio's "
                  f"{100 * LEVEL:g} % interval over the runs and the share of resamples within "
                  f"{ROBUST_STATE_FACTOR:g}× (paired bootstrap over the runs, {RESAMPLES:,} "
-                 "resamples, the best analytic chosen again in each; `difffilter.eval.intervals`).\n")  # fmt: skip
+                 "resamples, the best analytic chosen again in each; `difffilter.eval.intervals`). "
+                 "This ratio is to the best analytic's RMSE under the same threat, not the "
+                 "tables' `state_error_ratio`, which divides by the estimator's own "
+                 "attack-free error.\n")  # fmt: skip
     lines.append(_training_line(training))
     if blind:
         lines.append("- † reads no measurement (an open-loop prediction): no sensor attack moves "
                      "its error, so it sets the bar wherever the attack drags every filter that "
                      "reads the sensors. The check stays against it; the last column gives the "
                      "best analytic that reads them, and the learned value's ratio to it.\n")  # fmt: skip
-    lines.append(markdown_table(["threat", name, "best analytic", "ratio", "interval", "holds",
+    lines.append(markdown_table(["threat", name, "best analytic", "ratio to it", "interval", "holds",
                                  "in training",
                                  *(["best that reads the sensors (ratio)"] if blind else [])],
                                 rows))  # fmt: skip

@@ -130,3 +130,14 @@ def test_a_leaderboard_of_no_estimator_says_so(tmp_path):
     md = write_leaderboard(tmp_path, {"plant": {"estimators": {}, "checkpoint": None}}).read_text()
     assert "No estimator ran" in md and not (tmp_path / "leaderboard.png").exists()
     assert json.loads((tmp_path / "leaderboard.json").read_text()) == []
+
+
+def test_the_leaderboard_lists_the_estimators_a_scenario_left_out(tmp_path):
+    """A reviewer looked for the shipped network's row after --ckpt of another estimator's
+    checkpoint: it was skipped, said only in metrics.json and report.md."""
+    results = {"plant_a": doc(["kf"], state_rmse=0.5) | {"skipped": {"net": "no --ckpt given"}},
+               "plant_b": doc(["kf"], state_rmse=0.5)}  # fmt: skip
+    md = write_leaderboard(tmp_path, results).read_text()
+    assert "Not run (no row above):\n\n- plant_a: `net` (no --ckpt given)\n" in md
+    alone = write_leaderboard(tmp_path, {"plant_b": doc(["kf"], state_rmse=0.5)}).read_text()
+    assert "Not run" not in alone

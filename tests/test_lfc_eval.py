@@ -111,6 +111,21 @@ def test_report_plots_tensorboard_and_summary(smoke):
     assert "lfc_simultaneous_3s" in summary and "0.1526" in summary  # the paper's mean of I–IV
 
 
+def test_the_summary_lists_scenarios_i_to_iv_in_the_papers_order(tmp_path):
+    """A reviewer matched alphabetical rows to the paper's numerals by hand."""
+    from difffilter.eval.families.lfc import _finish
+
+    names = ["lfc_sawtooth", "lfc_simultaneous", "lfc_sine", "lfc_step", "mine"]
+    results = {n: {"estimators": {"kf_nn_grad": {"attack_rmse_eq43": i + 1.0}}, "paper": {}}
+               for i, n in enumerate(names)}  # fmt: skip
+    _finish(results, tmp_path, None)
+    rows = [line.split(" | ")[0].lstrip("| ") for line in
+            (tmp_path / "lfc_summary.md").read_text().splitlines() if line.startswith("| ")][1:]  # fmt: skip
+    assert rows == ["I: lfc_step", "II: lfc_sine", "III: lfc_simultaneous", "IV: lfc_sawtooth",
+                    "mine", "mean of I–IV"]  # fmt: skip
+    assert "| 2.5 |" in (tmp_path / "lfc_summary.md").read_text()  # (4 + 3 + 2 + 1) / 4
+
+
 def test_per_channel_validation_files(smoke):
     out, _, _ = smoke
     doc = json.loads((out / "lfc_per_channel" / "metrics.json").read_text())
