@@ -417,7 +417,10 @@ def write_acceptance_summary(out: str | Path, docs: dict[str, dict]) -> Path | N
         if judged is None:
             continue
         sure = (doc.get("acceptance_intervals") or {}).get("estimators", {})
-        for name, checks in judged.items():
+        trained = _checkpoint_readers(doc)
+        # the networks of a checkpoint first: those are the library's claim; the others learn
+        # online during the run (the LFC paper's own estimators), judged alike
+        for name, checks in sorted(judged.items(), key=lambda item: item[0] not in trained):
             cells = dict.fromkeys(columns, "—")
             for c in checks:
                 column = _COLUMN_OF.get(c.metric, "state")
@@ -429,7 +432,8 @@ def write_acceptance_summary(out: str | Path, docs: dict[str, dict]) -> Path | N
                     + share_suffix(sure.get(name, {}).get(c.metric))
                 )
             every = "holds" if all(c.holds for c in checks) else "**fails**"
-            rows.append([scenario, f"`{name}`", *cells.values(), every])
+            how = "checkpoint" if name in trained else "online"
+            rows.append([scenario, f"`{name}`", how, *cells.values(), every])
     path = Path(out) / "acceptance.md"
     if not rows:  # an earlier evaluation's summary would be printed as this one's
         path.unlink(missing_ok=True)
@@ -440,10 +444,18 @@ def write_acceptance_summary(out: str | Path, docs: dict[str, dict]) -> Path | N
         "the best − 0.01, state error ≤ 1.05 × the best, attack error ≤ the best, measured "
         "false-alarm rate within [α/2, 2α]; `difffilter.eval.acceptance`). In brackets: the "
         "share of resamples of the runs in which the check holds (`difffilter.eval.intervals`). "
-        "Each scenario's `report.md` has the bests and the intervals.\n\n"
-        + markdown_table(["scenario", "learned", *columns, "every check"], rows)
+        "Each scenario's `report.md` has the bests and the intervals. Trained: from a "
+        "checkpoint (trained offline, the network the evaluation was given or the shipped "
+        "one), or online (a network that learns during the run, as the LFC paper's own).\n\n"
+        + markdown_table(["scenario", "learned", "trained", *columns, "every check"], rows)
     )
     return path
+
+
+def _checkpoint_readers(doc: dict) -> set[str]:
+    """The estimators of a study that ran a checkpoint's network (``metrics.json``'s
+    ``checkpoint.used_by`` and ``checkpoints``)."""
+    return {*((doc.get("checkpoint") or {}).get("used_by") or ()), *(doc.get("checkpoints") or {})}
 
 
 #: The summary's column of each check (the state metric's otherwise).
