@@ -492,7 +492,12 @@ def _checked_value(attack, value: Tensor, flag: Tensor, signal: Tensor, k: int) 
     it (one value for every run, ``[d]``, is expanded: a flag ``[B]`` beside it was read
     per entry where ``B = d``), and a bool flag ``[...]`` (per run) or ``[..., d]`` (per
     entry). Shape checks only: nothing is read from the tensors."""
-    name, shape = f"attack {type(attack).__name__}.step", tuple(signal.shape)
+    shape = signal.shape
+    if (type(value) is Tensor and type(flag) is Tensor and value.shape == shape
+            and value.dtype == signal.dtype and flag.dtype is torch.bool
+            and flag.shape in (shape, shape[:-1])):  # fmt: skip
+        return value  # the usual step, checked in a few comparisons (the loop's every step)
+    name, shape = f"attack {type(attack).__name__}.step", tuple(shape)
     if not isinstance(value, Tensor) or not _broadcasts(value.shape, signal.shape):
         got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
         raise ValueError(
