@@ -529,8 +529,8 @@ def check_carry_batch(batch: torch.Size, y: Tensor, u: Tensor | None, mask: Tens
         if full != batch:
             raise ValueError(
                 f"{name}'s batch shape {tuple(lead)} does not broadcast to the carry's "
-                f"runs {tuple(batch)}: pass one {name} per run ([{', '.join(map(str, batch))}, "
-                f"{value.shape[-1]}])"
+                f"runs {tuple(batch)}: pass one {name} per run "
+                f"({list((*batch, value.shape[-1]))})"
             )
 
 

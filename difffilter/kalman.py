@@ -297,6 +297,7 @@ class KalmanFilter(GaussianFilter):
         return nu, m.innovation_cov, ell
 
     def _check_carry(self, carry):
+        _check_linear(carry.model)  # (an EKF's carry on a nonlinear model: an AttributeError)
         super()._check_carry(carry)
         if carry.gains is not None:
             if carry.gains.model is not carry.model:  # the step would filter with the other

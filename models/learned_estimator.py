@@ -252,6 +252,8 @@ def load_estimator(path, *, num_particles: int | None = None, resampler=None,
     """
     from difffilter.models.neural_estimator import load_estimator_checkpoint
 
+    dtype = _weights_dtype(dtype)
+    device = _device(device)
     net, card = load_estimator_checkpoint(path, dtype=dtype)
     if card.scenario_family == "lfc":
         raise ValueError(
@@ -265,3 +267,31 @@ def load_estimator(path, *, num_particles: int | None = None, resampler=None,
         compose(net, card, num_particles=num_particles, resampler=resampler,
                 ess_threshold=ess_threshold, deception=deception), card, path,
     )  # fmt: skip
+
+
+def _weights_dtype(dtype) -> torch.dtype:
+    """``dtype`` of :func:`load_estimator` as a torch floating dtype: ``torch.float32``,
+    ``torch.float64`` or their names (a name was blamed on the file; float16 slipped by)."""
+    named = {"float32": torch.float32, "float64": torch.float64, "double": torch.float64,
+             "float": torch.float32}  # fmt: skip
+    dtype = named.get(dtype, dtype) if isinstance(dtype, str) else dtype
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(
+            f"dtype must be torch.float32 or torch.float64 (the weights'); got {dtype!r}"
+        )
+    return dtype
+
+
+def _device(device):
+    """``device`` of :func:`load_estimator` as a ``torch.device`` that this machine has, or
+    ``None`` (a CUDA device without CUDA was torch's bare AssertionError)."""
+    if device is None:
+        return None
+    try:
+        device = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise ValueError(f"device must name a torch device (e.g. 'cpu', 'cuda'); got {device!r}: "
+                         f"{exc}") from None  # fmt: skip
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {str(device)!r}: this machine's torch has no CUDA device")
+    return device

@@ -624,6 +624,12 @@ class NeuralCompensation(Estimator):
         return self.pf.batch_of(carry) if self.particles else self.inner.batch_of(carry.inner)
 
     def _init(self, model, batch_shape, generators):
+        net = self.network
+        if model.dim_y != net.num_areas * net.resid_dim:  # (it was said at the first step)
+            raise ValueError(
+                f"network.resid_dim is {net.resid_dim} (× {net.num_areas} areas) but the model "
+                f"has dim_y = {model.dim_y}: the network was made for another plant"
+            )
         if self.particles:
             carry = self.pf._init(model, batch_shape, generators)
             net = self.core.init(batch_shape, carry.particles.dtype, carry.particles.device,
@@ -648,8 +654,16 @@ class NeuralCompensation(Estimator):
                              model)  # fmt: skip
         return carry._replace(aux=net)
 
+    def _model_of(self, carry):
+        return carry.model
+
     def _check_carry(self, carry):
         if self.particles:
+            if carry.aux is None:  # (a plain particle filter's: it failed inside the step)
+                raise ValueError(
+                    "carry is a particle filter's without this estimator's network state "
+                    "(carry.aux is None): start the carry from this estimator's init"
+                )
             self.pf._check_carry(carry)
         else:
             self.inner._check_carry(carry.inner)
