@@ -98,3 +98,35 @@ def test_a_finished_run_resumed_for_more_epochs_exports_a_matching_pair(tmp_path
     assert exported
     for path in exported:
         load_estimator_checkpoint(path)  # each pair matches
+
+
+def test_resuming_a_finished_run_keeps_its_export_and_counts_the_whole_training_time(
+    tmp_path, monkeypatch, capsys
+):  # fmt: skip
+    """A user trial: resuming a run that had reached max_epochs re-exported it with a card
+    of nothing (best_val_score null, no validation metrics, train_time_s 0.009); and a
+    resumed run's card counted only its last process's seconds."""
+    import json
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    small = ["--config", str(ROOT / "train" / "configs" / "four_tank.yaml"),
+             "--data.init_args.batch_size=2", "--data.init_args.batches_per_epoch=1",
+             "--data.init_args.val_runs=4", "--data.init_args.steps=20",
+             "--model.init_args.hidden=4", "--model.init_args.num_particles=20"]  # fmt: skip
+    assert main(["fit", *small, "--trainer.max_epochs=1"]) == 0
+    run = tmp_path / "lightning_logs" / "four_tank_nn_grad" / "version_0"
+    card_path = run / "four_tank_nn_grad.json"
+    first = json.loads(card_path.read_text())
+    last = run / "checkpoints" / "last.ckpt"
+    capsys.readouterr()
+    assert main(["fit", *small, "--trainer.max_epochs=1", f"--ckpt_path={last}"]) == 0
+    assert "nothing to train" in capsys.readouterr().out
+    assert json.loads(card_path.read_text()) == first  # the card as it was
+    assert not list((tmp_path / "lightning_logs").rglob("version_1/four_tank_nn_grad.json"))
+    assert main(["fit", *small, "--trainer.max_epochs=2", f"--ckpt_path={last}"]) == 0
+    cards = [json.loads(p.read_text()) for p in
+             (tmp_path / "lightning_logs").rglob("four_tank_nn_grad.json")]  # fmt: skip
+    (resumed,) = [c for c in cards if c["global_step"] == 2 * first["global_step"]]
+    assert resumed["train_time_s"] > first["train_time_s"]  # the first epoch's seconds too
+    assert resumed["best_val_score"] is not None and resumed["metrics_last_validation"]
