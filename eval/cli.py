@@ -509,11 +509,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     given = args.ckpt.get("*") if isinstance(args.ckpt, dict) else args.ckpt
     if given is not None and unused:  # the checkpoint for every estimator, unused somewhere
         print(f"note: --ckpt {given} is used by no estimator of {', '.join(unused)}")
+    _say_shipped(results)
     print(
         f"reports written under {args.out}/ (<scenario>/report.md); open the TensorBoard "
         f"logs with: tensorboard --logdir {args.out}"
     )
     return 0
+
+
+def _say_shipped(results: dict) -> None:
+    """Name the shipped checkpoints the scenarios ran without ``--ckpt`` (a user trial found
+    them only in each ``report.md``), one line per file."""
+    shipped: dict[str, list[str]] = {}
+    for scenario, doc in results.items():
+        ckpt = doc.get("checkpoint") or {}
+        if str(ckpt.get("source", "")).startswith("shipped") and ckpt.get("used_by"):
+            shipped.setdefault(Path(ckpt["path"]).name, []).append(
+                f"{scenario} ({', '.join(ckpt['used_by'])})"
+            )
+    for name, where in shipped.items():
+        print(f"no --ckpt: the shipped checkpoints/{name} ran on {'; '.join(where)}")
 
 
 def _robustness(names: list[str], threats, args) -> int:

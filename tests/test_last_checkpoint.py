@@ -154,3 +154,16 @@ def test_an_epoch_cut_short_by_max_steps_is_trained_again_whole_on_resume(tmp_pa
     resumed.fit(model := _Worsening(), ckpt_path=tmp_path / "cut" / "last.ckpt")
     assert count.batches == 3 * BATCHES and resumed.global_step == 4 * BATCHES
     assert torch.equal(model.w, reference.w)
+
+
+def test_ctrl_c_says_how_to_resume(tmp_path, capsys):
+    """A user trial: Ctrl-C ended a fit with exit 1 and no word on resuming."""
+    cb = LastCheckpointEveryEpoch(ModelCheckpoint(dirpath=tmp_path, monitor="val", save_last=True))
+    trainer = SimpleNamespace(is_global_zero=True)
+    cb.on_exception(trainer, None, KeyboardInterrupt())
+    assert "no last.ckpt to resume from" in capsys.readouterr().out
+    (tmp_path / "last.ckpt").write_bytes(b"x")
+    cb.on_exception(trainer, None, KeyboardInterrupt())
+    assert f"--ckpt_path {tmp_path / 'last.ckpt'}" in capsys.readouterr().out
+    cb.on_exception(trainer, None, ValueError("not an interruption"))
+    assert capsys.readouterr().out == ""

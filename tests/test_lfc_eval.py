@@ -3,6 +3,7 @@ TensorBoard events, the per-channel validation and the summary."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import io
 import json
@@ -187,6 +188,14 @@ def test_without_ckpt_the_shipped_checkpoint_is_used_and_recorded(tmp_path):
     doc = write_report(tmp_path, result)
     assert doc["checkpoint"] == ckpt
     assert "shipped default" in (tmp_path / "report.md").read_text()
+    # and on the console, one line per file (a user trial found it only in report.md)
+    from difffilter.eval.cli import _say_shipped
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        _say_shipped({"lfc_step": doc, "lfc_sine": doc, "other": {"checkpoint": None}})
+    assert out.getvalue() == ("no --ckpt: the shipped checkpoints/lfc_nn_grad.ckpt ran on "
+                              "lfc_step (kf_nn_grad); lfc_sine (kf_nn_grad)\n")  # fmt: skip
 
 
 def test_checkpoint_estimators_are_skipped_and_listed_without_any_checkpoint():

@@ -73,6 +73,18 @@ class LastCheckpointEveryEpoch(pl.Callback):
         else:
             path.write_bytes(self._whole)
 
+    def on_exception(self, trainer: pl.Trainer, pl_module: pl.LightningModule,
+                     exception: BaseException) -> None:  # fmt: skip
+        """On Ctrl-C, how to resume (a user trial found Lightning's exit 1 and no word)."""
+        if not isinstance(exception, KeyboardInterrupt) or not trainer.is_global_zero:
+            return
+        path = self._path()
+        if path is not None and path.is_file():
+            print(f"interrupted: resume with the same command and --ckpt_path {path} (from "
+                  "the last whole epoch; the export is written when the run ends)")  # fmt: skip
+        else:
+            print("interrupted before the first epoch ended: no last.ckpt to resume from")
+
     def _path(self) -> Path | None:
         cb = self.checkpoint
         if cb.dirpath is None:
