@@ -79,11 +79,8 @@ def test_a_run_with_another_logger_ends_cleanly_and_records_its_best_score(tmp_p
     assert any(r.get("hp/best_val_score") for r in rows)
 
 
-def test_a_finished_run_resumed_for_more_epochs_exports_a_matching_pair(tmp_path, monkeypatch):
-    """Its first export's card once stayed beside the new file during the second export,
-    whose own loads checked against it: 'does not match the sha256', exit 2."""
-    from difffilter.models.neural_estimator import load_estimator_checkpoint
-
+def _one_epoch_run(tmp_path, monkeypatch) -> list[str]:
+    """A tiny four-tank fit of one epoch in ``tmp_path``; returns its options (to resume)."""
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr("sys.argv", ["difffilter-train"])
     small = ["--config", str(ROOT / "train" / "configs" / "four_tank.yaml"),
@@ -91,6 +88,15 @@ def test_a_finished_run_resumed_for_more_epochs_exports_a_matching_pair(tmp_path
              "--data.init_args.val_runs=4", "--data.init_args.steps=20",
              "--model.init_args.hidden=4", "--model.init_args.num_particles=20"]  # fmt: skip
     assert main(["fit", *small, "--trainer.max_epochs=1"]) == 0
+    return small
+
+
+def test_a_finished_run_resumed_for_more_epochs_exports_a_matching_pair(tmp_path, monkeypatch):
+    """Its first export's card once stayed beside the new file during the second export,
+    whose own loads checked against it: 'does not match the sha256', exit 2."""
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+
+    small = _one_epoch_run(tmp_path, monkeypatch)
     run = tmp_path / "lightning_logs" / "four_tank_nn_grad" / "version_0"
     last = run / "checkpoints" / "last.ckpt"
     assert main(["fit", *small, "--trainer.max_epochs=2", f"--ckpt_path={last}"]) == 0
@@ -108,13 +114,7 @@ def test_resuming_a_finished_run_keeps_its_export_and_counts_the_whole_training_
     resumed run's card counted only its last process's seconds."""
     import json
 
-    monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr("sys.argv", ["difffilter-train"])
-    small = ["--config", str(ROOT / "train" / "configs" / "four_tank.yaml"),
-             "--data.init_args.batch_size=2", "--data.init_args.batches_per_epoch=1",
-             "--data.init_args.val_runs=4", "--data.init_args.steps=20",
-             "--model.init_args.hidden=4", "--model.init_args.num_particles=20"]  # fmt: skip
-    assert main(["fit", *small, "--trainer.max_epochs=1"]) == 0
+    small = _one_epoch_run(tmp_path, monkeypatch)
     run = tmp_path / "lightning_logs" / "four_tank_nn_grad" / "version_0"
     card_path = run / "four_tank_nn_grad.json"
     first = json.loads(card_path.read_text())
