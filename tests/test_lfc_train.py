@@ -261,8 +261,8 @@ def test_fit_writes_only_inside_its_run_and_export_ships_it(tmp_path, monkeypatc
     other = tmp_path / "other" / "lightning_logs" / "lfc_nn_grad" / "version_0"
     other.mkdir(parents=True)
     (other / "lfc_nn_grad.json").write_text("another run's card")
-    monkeypatch.chdir(tmp_path / "other")
-    assert main(["fit", "--config", config, "--trainer.max_epochs=1", *tiny, *resume]) == 0
+    monkeypatch.chdir(tmp_path / "other")  # (one more epoch: a finished run exports nothing)
+    assert main(["fit", "--config", config, "--trainer.max_epochs=2", *tiny, *resume]) == 0
     assert (other / "lfc_nn_grad.json").read_text() == "another run's card"
     assert (other.parent / "version_1" / "lfc_nn_grad.ckpt").is_file()
     monkeypatch.chdir(tmp_path)
