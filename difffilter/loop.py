@@ -421,13 +421,19 @@ def closed_loop(
     _check_lengths(plant, noise, mask, state, steps)
     first = state.k - len(rec["x"])  # the step before the first one recorded
     k, x, u, a_state, carry, view = state
+    if channel is Channel.ACTUATOR and u is None:  # (it failed inside the step's checks)
+        raise ValueError(
+            f"attack {type(attack).__name__} acts on the actuators, and this loop has no input "
+            "to attack: give it a controller (e.g. KnownInputs(us), us [B, T, du]; zeros for "
+            "an uncontrolled plant)"
+        )
     for _ in range(steps):
         k += 1
         m = None if mask is None else mask[:, k - 1]
         applied, a, value, flag = u, None, None, None
         if channel is Channel.ACTUATOR:
             a_state, value, flag = attack.step(a_state, k, x=x, u=u, view=view if reads else None)
-            value = _checked_value(attack, value, flag, u, k)
+            value = _checked_value(attack, value, flag, u, k, "u")
             applied, a = inject(channel, u, value, flag)
         x = noise.transition(plant, x, applied, k - 1)
         y = noise.measure(plant, x, k - 1)
@@ -439,7 +445,7 @@ def closed_loop(
         if channel is not None and channel is not Channel.ACTUATOR:
             a_state, value, flag = attack.step(a_state, k, y=y, x=x, u=u,
                                                view=view if reads else None)  # fmt: skip
-            value = _checked_value(attack, value, flag, y, k)
+            value = _checked_value(attack, value, flag, y, k, "y")
             received, a = inject(channel, y, value, flag)
         if estimator is not None:
             carry, view = estimator._step(carry, _estimator_input(received, m, k, attack), u, m)
@@ -486,7 +492,8 @@ def _check_parts(estimator, attack) -> None:
         )
 
 
-def _checked_value(attack, value: Tensor, flag: Tensor, signal: Tensor, k: int) -> Tensor:
+def _checked_value(attack, value: Tensor, flag: Tensor, signal: Tensor, k: int,
+                   what: str = "y") -> Tensor:  # fmt: skip
     """The attack's value at step ``k`` as the attacked signal's shape ``[..., d]``, after
     checking it and its flag: a value of the signal's entries and dtype that broadcasts to
     it (one value for every run, ``[d]``, is expanded: a flag ``[B]`` beside it was read
@@ -514,7 +521,7 @@ def _checked_value(attack, value: Tensor, flag: Tensor, signal: Tensor, k: int) 
         raise ValueError(
             f"{name} returned a flag of {got} at step {k}; a flag is a bool tensor, "
             f"{list(shape[:-1])} (per run) or {list(shape)} (per entry), e.g. "
-            "torch.full(y.shape[:-1], True)"
+            f"torch.full({what}.shape[:-1], True)"
         )
     per = flag.dim() - (len(shape) - 1)
     if per not in (0, 1) or not _broadcasts(flag.shape, shape[: flag.dim()]):

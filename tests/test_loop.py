@@ -414,3 +414,27 @@ def test_an_unflagged_non_finite_value_is_not_injected():
     value = torch.tensor([float("inf"), 1.0], dtype=torch.float64)
     received, change = inject(Channel.SENSOR, y, value, torch.tensor([False, True]))
     assert received.tolist() == [0.0, 1.0] and change.tolist() == [0.0, 1.0]
+
+
+def test_an_actuator_attack_needs_an_input_to_attack():
+    """A docs check: without a controller the loop has no u, and the attack's step failed in
+    the loop's own checks (AttributeError on None)."""
+
+    class Push(Attack):
+        channel = Channel.ACTUATOR
+
+        def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+            return None
+
+        def step(self, state, k, *, y=None, x=None, u=None, view=None):
+            return state, torch.ones_like(u), torch.ones(u.shape[:-1], dtype=torch.bool)
+
+    model = _linear()
+    x0 = model.initial.mean.expand(2, 2).clone()
+    with pytest.raises(ValueError, match="Push acts on the actuators, and this loop has no input"):
+        closed_loop(model, 3, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                    attack=Push())  # fmt: skip
+    us = torch.zeros(2, 3, 1, dtype=torch.float64)
+    loop = closed_loop(model, 3, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                       controller=KnownInputs(us), attack=Push())  # fmt: skip
+    assert loop.trajectories.attack.eq(1).all()
