@@ -423,6 +423,12 @@ class ParticleFilter(Estimator):
             )
         if bool(torch.isnan(carry.log_weights).any()):
             raise ValueError("carry.log_weights contains NaN values")
+        if carry.aux is not None and not self.stateful:  # (it was stepped, the state ignored)
+            raise ValueError(
+                "carry.aux holds a stateful likelihood's state (another estimator's carry, e.g. "
+                "a learned particle filter's), and this particle filter's likelihood keeps "
+                "none: start the carry from this estimator's init"
+            )
         log_w = carry.log_weights.detach()
         # normalised as the steps leave them (round-off of a sum over N aside): the steps
         # add to them, so unnormalised ones scale every mean and shift the evidence

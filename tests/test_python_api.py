@@ -94,6 +94,8 @@ def test_the_loader_and_the_online_step_name_what_does_not_fit():
     plain = difffilter.ParticleFilter(100).init(model, (1,), torch.Generator().manual_seed(0))
     with pytest.raises(ValueError, match="without this estimator's network state"):
         learned.step(plain, ys[:, 0])
+    with pytest.raises(ValueError, match="carry.aux holds a stateful likelihood's state"):
+        difffilter.ParticleFilter(100).step(carry, ys[:, 0])  # (the reverse: stepped silently)
     ekf = difffilter.ExtendedKalmanFilter().init(model, (1,))
     with pytest.raises(TypeError, match="the Kalman filter needs a linear model"):
         difffilter.KalmanFilter().step(ekf, ys[:, 0])
