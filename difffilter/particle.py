@@ -18,7 +18,11 @@ increment stays ``−inf`` (the measurement had numerically zero likelihood: the
 log-likelihood says so rather than hiding it), and filtering continues.
 
 The bootstrap proposal is the transition (``c = 0``). ``log p̂(y_{1:T})`` is the sum of
-the increments; it is unbiased for ``p(y_{1:T})`` with multinomial-type resampling.
+the increments; it is unbiased for ``p(y_{1:T})`` with resampling that keeps every
+offspring count's mean ``N w_i`` and uniform new weights (multinomial, systematic,
+stratified, residual, stop-gradient), not with ``Soft``, whose new weights are
+self-normalised (a resampler trial: E[p̂/p] = 1.015 ± 0.002 with ``Soft(0.5)``, N = 4,
+T = 5).
 Gradients flow through reparameterised proposals and the weights; whether they flow
 through resampling depends on the resampler (``Soft``, ``StopGradient``,
 ``OptimalTransport`` are differentiable). Everything is vectorised over runs and

@@ -14,7 +14,7 @@ unnormalised; they are normalised with ``logsumexp`` inside). The result is a
 Index-based resamplers (:class:`Multinomial`, :class:`Systematic`, :class:`Stratified`,
 :class:`Residual`, :class:`Soft`, :class:`StopGradient`) also expose
 ``ancestors(log_weights, generator=None) -> [..., N]``; the particles are then gathered
-with a single ``torch.take_along_dim`` over the particle axis.
+once over the particle axis (one ``index_select`` on the flattened rows).
 
 Randomness comes only from the ``torch.Generator`` passed in (the global generator when
 ``None``), with uniforms drawn in the dtype and on the device of the log-weights, so every
@@ -478,8 +478,11 @@ class Residual(Resampler):
     Particle ``i`` first gets ``c_i = ⌊N w_i⌋`` deterministic copies (``D = Σ_i c_i``
     slots); the remaining ``R = N − D`` slots are filled with ``base`` draws from the
     residual weights ``r_i = (N w_i − c_i) / R``. Offspring counts have mean ``N w_i`` and
-    are at least ``⌊N w_i⌋`` (``N w_i`` within 32 ε below an integer counts as it: the
-    round-off of the weights' exponential, so equal weights give every particle one copy).
+    are at least ``⌊N w_i⌋`` (``N w_i``, computed in float64 from the log-weights
+    renormalised, within 32 ε of the log-weights' dtype, relative, below an integer counts
+    as it: the round-off of the weights' exponential, so equal weights give every particle
+    one copy; in float32 at ``N w_i ≈ 10⁵`` that is up to 0.38 of a copy, so a residual
+    that small is not drawn there).
     New log-weights are uniform, ``−log N``.
 
     Vectorised over rows with different ``R``: slot ``j`` gets the particle ``i`` with
@@ -504,18 +507,23 @@ class Residual(Resampler):
 
     def _draw(self, log_w, generator):
         n = log_w.shape[-1]
-        scaled = n * torch.exp(log_w)  # N w_i
+        # N w_i in float64, renormalised from the largest log-weight: exp(log w) of
+        # normalised float32 log-weights of magnitude 1e6 summed to 0.97–1.03 (their
+        # logsumexp rounded to the ulp of the magnitude), and the copies followed that
+        scaled = n * torch.softmax(log_w.double(), dim=-1)
         # ⌊N w_i⌋ of the weights, not of their round-off: exp(−log N)·N can land an ulp
         # under 1, and the floor would then send every copy to the residual draws (uniform
-        # weights resampled as multinomial draws at 157 of the N ≤ 399 in float64)
-        counts = torch.floor(scaled * (1 + 32 * torch.finfo(scaled.dtype).eps))
+        # weights resampled as multinomial draws at 157 of the N ≤ 399 in float64); the
+        # allowance is the log-weights' own precision (32 ε of their dtype, relative)
+        counts = torch.floor(scaled * (1 + 32 * torch.finfo(log_w.dtype).eps))
+        residual = (scaled - counts).clamp_min(0).to(log_w.dtype)
+        counts = counts.to(log_w.dtype)  # (whole numbers ≤ N: exact in the slots' dtype)
         cum = torch.cumsum(counts, dim=-1)
         deterministic_total = cum[..., -1:]  # D, [..., 1]
         remaining = n - deterministic_total  # R, [..., 1]
         slots = torch.arange(n, dtype=log_w.dtype, device=log_w.device).expand(log_w.shape)
         deterministic = torch.searchsorted(cum.contiguous(), slots.contiguous(), right=True)
         deterministic = deterministic.clamp_max(n - 1)
-        residual = (scaled - counts).clamp_min(0)
         # Rows with R = 0 have (numerically) zero residuals; give them dummy weights.
         residual = torch.where(remaining > 0, residual, torch.ones_like(residual))
         candidates = self.base._draw_from(residual, generator, count=remaining.clamp_min(1))
@@ -547,6 +555,10 @@ class Soft(Resampler):
     The corrected weights depend on ``w`` smoothly, so gradients reach the input
     log-weights (``α < 1``). ``α = 1`` is plain resampling (uniform new weights, zero
     gradient); smaller ``α`` gives more useful gradients but less effective resampling.
+    The new weights are self-normalised, so a weighted mean after soft resampling is
+    biased at finite ``N`` (consistent as ``N`` grows), and so is the particle filter's
+    likelihood ``p̂`` (for an unbiased ``p̂``, use an index-based scheme or
+    :class:`StopGradient`).
 
     Args:
         alpha: mixture coefficient ``α ∈ (0, 1]``; default 0.5.

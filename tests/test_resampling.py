@@ -712,3 +712,13 @@ def test_optimal_transport_reports_how_sinkhorn_stopped(method):
     assert fine.last_error < 1e-9 and 1 < fine.last_iterations < 1000
     shift = (out.particles.mean(-2) - (w.unsqueeze(-1) * x).sum(-2)).abs().max()
     assert shift < 1e-7
+
+
+def test_residual_reads_weights_of_large_log_magnitude_as_they_are():
+    """A resampler trial: normalised float32 log-weights near −1e6 exponentiate to weights
+    summing to 0.97–1.03 (their logsumexp rounds to the ulp of 1e6: three equal ones gave
+    N w = 0.974 each, no deterministic copy, three multinomial draws); residual resampling
+    renormalises them in float64, so equal weights keep one copy each."""
+    for offset in (0.0, -1e5, -1e6):
+        anc = Residual().ancestors(torch.full((200, 3), offset, dtype=torch.float32), _gen(3))
+        assert anc.tolist() == [[0, 1, 2]] * 200, offset
