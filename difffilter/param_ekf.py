@@ -87,6 +87,7 @@ __all__ = [
     "ParamEKF",
     "OnlineGradientDescent",
     "EKFOptimizer",
+    "ekf_along_sequence",
     "ParamStepOutput",
 ]
 
@@ -702,3 +703,25 @@ class EKFOptimizer(torch.optim.Optimizer):
             p.add_(update[i : i + p.numel()].reshape(p.shape))
             i += p.numel()
         return per_sample
+
+
+def ekf_along_sequence(step, predict, inputs: Tensor, targets: Tensor,
+                       received: Tensor) -> Tensor:  # fmt: skip
+    """The EKF over the weights along a sequence of ``S`` samples (the LFC paper's
+    Algorithm 1, one measurement per time step): at each step ``t`` one update
+    ``step(jacobian=J ⊙ r, residual=(target − out) ⊙ r)`` (an :meth:`EKFOptimizer.step`, or
+    Lightning's wrapper of it) from ``predict(inputs[:, t]) → (out [S, m], J [S, m, P])``,
+    evaluated at the weights the previous update left, and ``r = received[:, t]``
+    (unreceived entries carry no information).
+
+    Shapes: ``inputs [S, T, in]``, ``targets`` and ``received`` (bool) ``[S, T, m]`` →
+    ``‖e_s‖²`` before each update, ``[T, S]``. The recursion is the time loop: each update
+    reads the weights of the one before.
+    """
+    sq_err = []
+    for t in range(inputs.shape[-2]):
+        out, jacobian = predict(inputs[:, t])
+        keep = received[:, t].to(out.dtype)
+        residual = (targets[:, t].to(out.dtype) - out) * keep
+        sq_err.append(step(jacobian=jacobian * keep[..., None], residual=residual))
+    return torch.stack(sq_err)

@@ -346,3 +346,36 @@ def test_the_lfc_learner_in_its_closed_loop_matches_the_dense_reference(single_t
     assert fast.output.attack.abs().max() > 0.01  # it learned something
     assert (fast.output.attack - ref.output.attack).abs().max() <= 1e-9
     assert (fast.trajectories.x - ref.trajectories.x).abs().max() <= 1e-9
+
+
+def test_the_ekf_along_a_sequence_learns_a_linear_map_and_skips_what_was_not_received():
+    """``ekf_along_sequence`` (the training's EKF over the weights, one update per step):
+    on ``out = X ζ`` with exact targets the weights reach the true ζ; a step whose entries
+    were all unreceived leaves them as they were; the errors are those before each update."""
+    from difffilter.param_ekf import EKFOptimizer, ekf_along_sequence
+
+    g = torch.Generator().manual_seed(0)
+    true = torch.tensor([0.5, -1.0, 2.0], dtype=torch.float64)
+    zeta = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    opt = EKFOptimizer([zeta], init_cov=10.0, init_noise=1e-3)
+    S, T = 4, 30
+    inputs = torch.randn(S, T, 3, generator=g, dtype=torch.float64)
+    targets = (inputs @ true).unsqueeze(-1)  # m = 1
+    received = torch.ones(S, T, 1, dtype=torch.bool)
+    received[:, 0] = False  # the first step carries no information
+
+    def predict(x):
+        return (x @ zeta.detach()).unsqueeze(-1), x.unsqueeze(1)  # J [S, 1, 3]
+
+    seen = []
+
+    def step(jacobian, residual):
+        seen.append(zeta.detach().clone())
+        return opt.step(jacobian, residual)
+
+    sq_err = ekf_along_sequence(step, predict, inputs, targets, received)
+    assert sq_err.shape == (T, S) and bool((sq_err[0] == 0).all())
+    torch.testing.assert_close(seen[1], torch.zeros(3, dtype=torch.float64))  # nothing learnt
+    torch.testing.assert_close(zeta.detach(), true, rtol=0, atol=1e-3)
+    expected = (inputs[:, 5] @ seen[5] - targets[:, 5, 0]) ** 2
+    torch.testing.assert_close(sq_err[5], expected)  # before step 5's update

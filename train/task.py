@@ -70,7 +70,7 @@ from difffilter.models.neural_estimator import (
     load_estimator_checkpoint,
 )
 from difffilter.models.streams import Streams
-from difffilter.param_ekf import EKFOptimizer
+from difffilter.param_ekf import EKFOptimizer, ekf_along_sequence
 from difffilter.particle import ParticleFilter
 from difffilter.threat_distribution import ThreatDistribution
 from difffilter.threats import check_attack_fits
@@ -650,15 +650,15 @@ class FilterEstimatorTask(pl.LightningModule):
             received = batch.get("mask") if self.channel is Channel.SENSOR else None
             if received is None:
                 received = torch.ones_like(truth["attack"], dtype=torch.bool)
-            optimizer, sq_err, runs = self.optimizers(), [], deltas.shape[0]
-            for t in range(deltas.shape[-2]):  # the EKF's samples, one measurement per step
-                params = {"W": self.estimator.W[0].expand(runs, -1, -1),
-                          "V": self.estimator.V[0].expand(runs, -1, -1)}  # fmt: skip
-                pred, jac = template.batched_jacobian(params, deltas[:, t].to(self.estimator.V))
-                keep = received[:, t].to(pred.dtype)
-                residual = (truth["attack"][:, t].to(pred.dtype) - pred) * keep
-                sq_err.append(optimizer.step(jacobian=jac * keep[..., None], residual=residual))
-        mse = torch.stack(sq_err).mean() / truth["attack"].shape[-1]  # per entry, before updates
+            runs, net = deltas.shape[0], self.estimator
+
+            def predict(delta):  # at the weights the last update left
+                params = {"W": net.W[0].expand(runs, -1, -1), "V": net.V[0].expand(runs, -1, -1)}
+                return template.batched_jacobian(params, delta.to(net.V))
+
+            sq_err = ekf_along_sequence(self.optimizers().step, predict, deltas, truth["attack"],
+                                        received)  # fmt: skip
+        mse = sq_err.mean() / truth["attack"].shape[-1]  # per entry, before updates
         self.log("train/attack_mse", mse, prog_bar=True, batch_size=runs)
         self.log("train/loss", mse, batch_size=runs)  # the EKF's objective: the same tag as grad
 
