@@ -73,7 +73,9 @@ class ThreatSet:
 
     def __post_init__(self):
         # the reports list the threats by their specs: a threat given in Python without one
-        # was left out of robustness.md's list and robustness.json's "threats"
+        # was left out of robustness.md's list and robustness.json's "threats" (a copy: the
+        # caller's mapping stays as it was given)
+        self.specs = dict(self.specs)
         for name, attack in self.threats.items():
             if name not in self.specs:
                 kind = type(attack)

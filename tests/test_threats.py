@@ -466,7 +466,8 @@ def test_a_threat_of_ones_own_is_named_by_its_module_in_a_threat_set(tmp_path, m
     loaded = load_threat_set(scenario, path=tmp_path / "set.yaml")
     assert type(loaded.threats["drift"]).__name__ == "Drift"
     assert loaded.specs["drift"]["kind"] == "my_trial_attacks:Drift"
-    made = ThreatSet({"drift": drift, "ramp": loaded.threats["ramp"]}, {"ramp": {"kind": "ramp"}})
-    assert made.specs["drift"] == {"kind": "my_trial_attacks:Drift"}
+    given = {"ramp": {"kind": "ramp"}}
+    made = ThreatSet({"drift": drift, "ramp": loaded.threats["ramp"]}, given)
+    assert made.specs["drift"] == {"kind": "my_trial_attacks:Drift"} and "drift" not in given
     with pytest.raises(ValueError, match="specs of no threat: pulses"):
         ThreatSet({"drift": drift}, {"pulses": {"kind": "pulses"}})
