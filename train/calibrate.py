@@ -197,7 +197,9 @@ def calibrate_checkpoint(
         "target": float(far), "estimator": name, "scenario": scenario.name, "runs": runs,
         **({} if statistic is None else {"score": statistic}),
         **{o: getattr(card, o) for o in RUN_OPTIONS if getattr(card, o) is not None},
-        "steps": int(fitted.shape[-1]), "seed": fit_seed, "check_seed": check_seed,
+        # the master seed reproduces both (``--seed``); the streams' seeds are derived
+        "steps": int(fitted.shape[-1]), "master_seed": int(seed), "seed": fit_seed,
+        "check_seed": check_seed,
         "threshold": threshold, "previous_threshold": card.threshold,
         "measured_on_calibration": float((fitted > threshold).double().mean()),
         "measured_on_check": float((checked > threshold).double().mean()),
