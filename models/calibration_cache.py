@@ -25,6 +25,8 @@ from typing import Any
 
 import torch
 
+from .atomic_write import write_atomically
+
 __all__ = ["cache_folder", "model_fingerprint", "cached", "FORMAT"]
 
 #: Bumped when what a calibration computes changes: older files are then ignored.
@@ -114,9 +116,9 @@ def cached(kind: str, key: tuple, model, compute):
     value = compute()
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        partial = path.with_suffix(f".{os.getpid()}.tmp")
-        partial.write_text(json.dumps({"kind": kind, "key": repr(key), "value": value}))
-        partial.replace(path)  # atomic: a reader never sees half a file
+        text = json.dumps({"kind": kind, "key": repr(key), "value": value})
+        # atomic: a reader never sees half a file
+        write_atomically(path, lambda partial: partial.write_text(text))
     except OSError:
         pass  # a read-only home: the calibration still holds for this process
     return value

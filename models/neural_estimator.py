@@ -36,6 +36,8 @@ from torch import Tensor, nn
 
 from difffilter._checks import Choice
 
+from .atomic_write import write_atomically
+
 __all__ = ["AreaNetwork", "WeightInit", "NeuralFDIEstimator", "EstimatorCard"]
 
 
@@ -396,16 +398,15 @@ def save_estimator_checkpoint(
     state = {k: v.detach().cpu().clone() for k, v in estimator.state_dict().items()}
     _check_finite_weights(state, f"estimator to save at {path}")
     path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(
-        {
-            "format": CHECKPOINT_FORMAT,
-            "estimator_config": estimator.config(),
-            "observer": card.to_dict() if isinstance(card, EstimatorCard) else dict(card or {}),
-            "state_dict": state,
-            "extra": dict(extra or {}),
-        },
-        path,
-    )
+    blob = {
+        "format": CHECKPOINT_FORMAT,
+        "estimator_config": estimator.config(),
+        "observer": card.to_dict() if isinstance(card, EstimatorCard) else dict(card or {}),
+        "state_dict": state,
+        "extra": dict(extra or {}),
+    }
+    # whole or not at all: ``calibrate --force`` rewrites a shipped checkpoint in place
+    write_atomically(path, lambda partial: torch.save(blob, partial))
     return checkpoint_sha256(path)
 
 

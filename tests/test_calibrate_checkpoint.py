@@ -47,8 +47,8 @@ def test_the_threshold_meets_the_rate_on_its_runs_and_the_estimator_alarms_above
     assert cal["measured_on_calibration"] == pytest.approx(above / fitted.numel())
     # the check runs are others (their own seed), and the new file alarms at τ on them
     assert cal["check_seed"] != cal["seed"] == Streams(5).seed_of("checkpoint-calibration")
-    assert cal["master_seed"] == 5 and cal["check_seed"] == Streams(5).seed_of(
-        "checkpoint-calibration/check")
+    assert cal["master_seed"] == 5
+    assert cal["check_seed"] == Streams(5).seed_of("checkpoint-calibration/check")
     det = _free_scores(scenario, "pf_nn_grad", out, 6, cal["check_seed"])
     assert torch.equal(det.alarms, det.scores > cal["threshold"])
     assert cal["measured_on_check"] == pytest.approx(float(det.alarms.double().mean()))

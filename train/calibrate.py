@@ -45,6 +45,7 @@ import time
 from pathlib import Path
 
 from difffilter._checks import check_rate
+from difffilter.models.atomic_write import write_json_atomically
 
 from .common import check_checkpoint_out, load_source
 
@@ -216,7 +217,7 @@ def calibrate_checkpoint(
                     observer=new_card.to_dict(), calibration=calibration)  # fmt: skip
     if check is not None:
         document["check"] = check
-    out.with_suffix(".json").write_text(json.dumps(document, indent=2) + "\n")
+    write_json_atomically(out.with_suffix(".json"), document)
     load_estimator_checkpoint(out)  # the pair loads and matches its card
     return calibration
 

@@ -25,6 +25,7 @@ from pathlib import Path
 import lightning.pytorch as pl
 import torch
 
+from difffilter.models.atomic_write import write_atomically, write_json_atomically
 from difffilter.models.neural_estimator import (
     checkpoint_sha256,
     load_estimator_checkpoint,
@@ -75,7 +76,7 @@ def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
     card_src = src.with_suffix(".json")
     blob = torch.load(src, map_location="cpu", weights_only=True)
     if "pytorch-lightning_version" not in blob:  # already exported: the same bytes
-        shutil.copyfile(src, out)
+        write_atomically(out, lambda partial: shutil.copyfile(src, partial))
         card = json.loads(card_src.read_text()) if card_src.is_file() else {}
         digest = checkpoint_sha256(out)
     else:
@@ -88,7 +89,7 @@ def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
         }
     card.update(checkpoint=out.name, sha256=digest, exported_from=str(src))
     card.setdefault("name", out.stem)
-    out.with_suffix(".json").write_text(json.dumps(card, indent=2) + "\n")
+    write_json_atomically(out.with_suffix(".json"), card)
     load_estimator_checkpoint(out)  # the shipped pair loads and matches its card
     return out
 
@@ -239,7 +240,7 @@ class ExportEstimator(pl.Callback):
             ),  # fmt: skip
             "check": check_metric(path),
         }
-        path.with_suffix(".json").write_text(json.dumps(card, indent=2) + "\n")
+        write_json_atomically(path.with_suffix(".json"), card)
         watched = any(isinstance(cb, pl.callbacks.ModelCheckpoint) and cb.monitor
                       for cb in trainer.callbacks)  # fmt: skip
         if watched and not best_path:  # (max_steps/max_time before the first validation)
