@@ -130,3 +130,33 @@ def test_resuming_a_finished_run_keeps_its_export_and_counts_the_whole_training_
     (resumed,) = [c for c in cards if c["global_step"] == 2 * first["global_step"]]
     assert resumed["train_time_s"] > first["train_time_s"]  # the first epoch's seconds too
     assert resumed["best_val_score"] is not None and resumed["metrics_last_validation"]
+
+
+def test_ctrl_c_while_exporting_leaves_no_card_less_file_and_says_how_to_export(
+    tmp_path, monkeypatch, capsys
+):  # fmt: skip
+    """Ctrl-C during the export's check left a checkpoint without its card and a resume hint
+    whose resume trains nothing; the file goes now and the message names the export."""
+    import signal
+
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("difffilter.train.export.check_metric", interrupt)
+    handler = signal.getsignal(signal.SIGINT)  # Lightning ignores SIGINT after an interrupt
+    try:
+        with pytest.raises(SystemExit):
+            _one_epoch_run(tmp_path, monkeypatch)
+    finally:
+        signal.signal(signal.SIGINT, handler)
+    run = tmp_path / "lightning_logs" / "four_tank_nn_grad" / "version_0"
+    assert not (run / "four_tank_nn_grad.ckpt").exists()
+    out = capsys.readouterr().out
+    source = out.split("export it with: difffilter-train export ")[1].split(" --out")[0]
+    assert Path(source).is_file() and "interrupted while exporting" in out
+    monkeypatch.undo()
+    monkeypatch.chdir(tmp_path)
+    assert main(["export", source, "--out", str(tmp_path / "shipped.ckpt")]) == 0
+    load_estimator_checkpoint(tmp_path / "shipped.ckpt")

@@ -156,6 +156,7 @@ class ExportEstimator(pl.Callback):
         self._start = None
         self._before = 0.0  # training seconds of the processes before a resume
         self._trained = False  # a batch trained in this process
+        self._exporting = None  # (file, checkpoint it comes from) while the export is written
 
     def on_fit_start(self, trainer, pl_module):
         self._start = time.time()
@@ -173,6 +174,19 @@ class ExportEstimator(pl.Callback):
 
     def load_state_dict(self, state_dict: dict) -> None:
         self._before = float(state_dict.get("train_time_s") or 0.0)
+
+    def on_exception(self, trainer, pl_module, exception):
+        """Ctrl-C while the export was written (its check runs the estimator for seconds):
+        the file without its card goes, and the message says how to export what training
+        ended with (resuming from ``last.ckpt`` trains nothing and writes no export)."""
+        if self._exporting is None or not isinstance(exception, KeyboardInterrupt):
+            return
+        path, source = self._exporting
+        self._exporting = None
+        if not path.with_suffix(".json").is_file():
+            path.unlink(missing_ok=True)
+        print(f"interrupted while exporting {path}: the training had ended, no export was "
+              f"written; export it with: difffilter-train export {source} --out <file>")  # fmt: skip
 
     def on_fit_end(self, trainer, pl_module):
         if not self.enabled or trainer.fast_dev_run:
@@ -201,6 +215,8 @@ class ExportEstimator(pl.Callback):
         if best_path:  # the selected weights (and their buffers, e.g. a threshold)
             blob = torch.load(best_path, map_location="cpu", weights_only=True)
             pl_module.load_state_dict(blob["state_dict"])
+        # the weights chosen, or else where the training ended, for Ctrl-C's message
+        self._exporting = (path, best_path or _last_checkpoint(trainer) or "<last.ckpt>")
         est_card = pl_module.card()
         # a card of an earlier export (a resumed run that had finished) would not match the
         # new file, and every load below (the check's evaluation too) checks the card beside
@@ -241,6 +257,7 @@ class ExportEstimator(pl.Callback):
             "check": check_metric(path),
         }
         write_json_atomically(path.with_suffix(".json"), card)
+        self._exporting = None
         watched = any(isinstance(cb, pl.callbacks.ModelCheckpoint) and cb.monitor
                       for cb in trainer.callbacks)  # fmt: skip
         if watched and not best_path:  # (max_steps/max_time before the first validation)
@@ -249,6 +266,14 @@ class ExportEstimator(pl.Callback):
                   "the card's best_val_score is null); train at least one whole epoch")  # fmt: skip
             return
         print(f"exported {path} (ship it with: difffilter-train export {path} --out <file>)")
+
+
+def _last_checkpoint(trainer) -> str | None:
+    """The ``last.ckpt`` a checkpoint callback of ``trainer`` wrote, if any."""
+    for cb in trainer.callbacks:
+        if isinstance(cb, pl.callbacks.ModelCheckpoint) and cb.last_model_path:
+            return cb.last_model_path
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
