@@ -383,6 +383,32 @@ def checkpoint_sha256(path) -> str:
     return digest.hexdigest()
 
 
+def weights_sha256(source) -> str:
+    """Hex sha256 of a network's weights alone: each tensor's name, dtype, shape and bytes,
+    in name order, as stored. ``source`` is an exported estimator's path (``ValueError``
+    for a training run's Lightning checkpoint: export it first) or its ``state_dict``.
+
+    The file's ``sha256`` also covers the card inside it (threshold, calibration), so a
+    retrained network with the shipped weights has another file digest; this one is the
+    same (the card's ``weights_sha256``). A network loaded in another dtype
+    (:func:`load_estimator_checkpoint` gives float64) has other bytes: digest the file."""
+    if isinstance(source, dict):
+        state = source
+    else:
+        blob = torch.load(source, map_location="cpu", weights_only=True)
+        if "pytorch-lightning_version" in blob:
+            raise ValueError(f"ckpt: {source} is a training run's Lightning checkpoint; the "
+                             "weights digest is of an exported estimator (difffilter-train "
+                             "export it first)")  # fmt: skip
+        state = blob["state_dict"]
+    digest = hashlib.sha256()
+    for name in sorted(state):
+        tensor = state[name].detach().cpu().contiguous()
+        digest.update(f"{name}|{tensor.dtype}|{tuple(tensor.shape)}|".encode())
+        digest.update(tensor.view(torch.uint8).numpy().tobytes() if tensor.numel() else b"")
+    return digest.hexdigest()
+
+
 def save_estimator_checkpoint(
     path, estimator: NeuralFDIEstimator, card: EstimatorCard | dict | None = None,
     extra: dict | None = None,

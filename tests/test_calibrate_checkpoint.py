@@ -19,6 +19,7 @@ from difffilter.models.neural_estimator import (
     checkpoint_sha256,
     load_estimator_checkpoint,
     save_estimator_checkpoint,
+    weights_sha256,
 )
 from difffilter.models.streams import Streams
 from difffilter.train.calibrate import calibrate_checkpoint, estimator_name, main
@@ -37,6 +38,8 @@ def test_the_threshold_meets_the_rate_on_its_runs_and_the_estimator_alarms_above
     cal = calibrate_checkpoint(SHIPPED, out, far=0.05, runs=6, progress=False)
     net, card = load_estimator_checkpoint(out)
     assert card.threshold == cal["threshold"] and card.target_false_alarm_rate == 0.05
+    document = json.loads(out.with_suffix(".json").read_text())
+    assert document["weights_sha256"] == weights_sha256(SHIPPED)  # the same weights
     assert card.estimator == "pf_nn_grad" == cal["estimator"]
     scenario = registry.get("four_tank_bias")
     # recomputed from the calibration runs: at most ⌊α n⌋ exceed τ, and τ is tight (a lower

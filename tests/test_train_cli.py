@@ -250,3 +250,38 @@ def test_training_commands_print_no_lightning_noise(tmp_path, monkeypatch, caplo
     import sys
 
     assert sys.argv == ["difffilter-train", "sweep", "--seeds", "0"]  # given back
+
+
+def test_the_weights_digest_is_the_same_for_the_same_weights_in_another_file(tmp_path):
+    """A retrained network's export has another file sha256 than the shipped one (the cards
+    inside differ) even with the shipped weights; ``weights_sha256`` is the same, and a
+    calibration keeps it (test_calibrate_checkpoint)."""
+    import torch
+
+    from difffilter.models.neural_estimator import (
+        checkpoint_sha256,
+        load_estimator_checkpoint,
+        weights_sha256,
+    )
+    from difffilter.train.export import export
+
+    shipped = ROOT / "checkpoints" / "robot_nn_ekf.ckpt"
+    shipped_card = json.loads(shipped.with_suffix(".json").read_text())
+    net, card = load_estimator_checkpoint(shipped, dtype=torch.float32)  # as trained
+    blob = {"pytorch-lightning_version": "2.6.6", "epoch": 1, "global_step": 8,
+            "state_dict": {f"estimator.{k}": v for k, v in net.state_dict().items()},
+            "difffilter_estimator_config": net.config(),
+            "difffilter_observer": {**card.to_dict(), "threshold": 0.5}}  # fmt: skip
+    torch.save(blob, tmp_path / "last.ckpt")
+    with pytest.raises(ValueError, match="Lightning checkpoint.*export it first"):
+        weights_sha256(tmp_path / "last.ckpt")
+    out = export(tmp_path / "last.ckpt", tmp_path / "retrained.ckpt")
+    card = json.loads(out.with_suffix(".json").read_text())
+    assert card["sha256"] == checkpoint_sha256(out) != shipped_card["sha256"]
+    assert card["weights_sha256"] == shipped_card["weights_sha256"] == weights_sha256(shipped)
+    other = dict(net.state_dict(), W=net.state_dict()["W"] + 1e-7)
+    assert weights_sha256(other) != weights_sha256(net.state_dict())
+    for name in ("four_tank_nn_ekf", "four_tank_nn_grad", "lfc_nn_grad", "tracking_nn_grad"):
+        path = ROOT / "checkpoints" / f"{name}.ckpt"
+        recorded = json.loads(path.with_suffix(".json").read_text())["weights_sha256"]
+        assert recorded == weights_sha256(path), name

@@ -94,7 +94,9 @@ def _one_epoch_run(tmp_path, monkeypatch) -> list[str]:
 def test_a_finished_run_resumed_for_more_epochs_exports_a_matching_pair(tmp_path, monkeypatch):
     """Its first export's card once stayed beside the new file during the second export,
     whose own loads checked against it: 'does not match the sha256', exit 2."""
-    from difffilter.models.neural_estimator import load_estimator_checkpoint
+    import json
+
+    from difffilter.models.neural_estimator import load_estimator_checkpoint, weights_sha256
 
     small = _one_epoch_run(tmp_path, monkeypatch)
     run = tmp_path / "lightning_logs" / "four_tank_nn_grad" / "version_0"
@@ -104,6 +106,8 @@ def test_a_finished_run_resumed_for_more_epochs_exports_a_matching_pair(tmp_path
     assert exported
     for path in exported:
         load_estimator_checkpoint(path)  # each pair matches
+        card = json.loads(path.with_suffix(".json").read_text())
+        assert card["weights_sha256"] == weights_sha256(path)
 
 
 def test_resuming_a_finished_run_keeps_its_export_and_counts_the_whole_training_time(

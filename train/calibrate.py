@@ -146,6 +146,7 @@ def calibrate_checkpoint(
     from difffilter.models.neural_estimator import (
         load_estimator_checkpoint,
         save_estimator_checkpoint,
+        weights_sha256,
     )
     from difffilter.models.streams import Streams
 
@@ -214,7 +215,8 @@ def calibrate_checkpoint(
     document = json.loads(old_json.read_text()) if old_json.is_file() else {}
     digest = save_estimator_checkpoint(out, estimator, new_card)
     document.update(name=document.get("name", out.stem), checkpoint=out.name, sha256=digest,
-                    observer=new_card.to_dict(), calibration=calibration)  # fmt: skip
+                    weights_sha256=weights_sha256(out), observer=new_card.to_dict(),
+                    calibration=calibration)  # fmt: skip
     if check is not None:
         document["check"] = check
     write_json_atomically(out.with_suffix(".json"), document)

@@ -30,6 +30,7 @@ from difffilter.models.neural_estimator import (
     checkpoint_sha256,
     load_estimator_checkpoint,
     save_estimator_checkpoint,
+    weights_sha256,
 )
 
 from .common import check_checkpoint_out, load_source
@@ -87,7 +88,8 @@ def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
             **_lightning_record(blob, src),
             "torch_version": torch.__version__,
         }
-    card.update(checkpoint=out.name, sha256=digest, exported_from=str(src))
+    card.update(checkpoint=out.name, sha256=digest, weights_sha256=weights_sha256(out),
+                exported_from=str(src))  # fmt: skip
     card.setdefault("name", out.stem)
     write_json_atomically(out.with_suffix(".json"), card)
     load_estimator_checkpoint(out)  # the shipped pair loads and matches its card
@@ -234,6 +236,7 @@ class ExportEstimator(pl.Callback):
             "name": name,
             "checkpoint": path.name,
             "sha256": digest,
+            "weights_sha256": weights_sha256(path),
             "selected_checkpoint": Path(best_path).name if best_path else None,
             "best_val_score": None if best_score is None else float(best_score),
             "monitor": monitor,
