@@ -10,9 +10,11 @@ The folder is ``$DIFFFILTER_CACHE`` if set (``off`` turns the disk cache off), e
 ``$XDG_CACHE_HOME/difffilter``, else ``~/.cache/difffilter``; each calibration is
 ``calibrations/<kind>-<sha256>.json``. The file name hashes the key and a fingerprint of
 the model: its type, every tensor it holds (matrices, noise covariances, the prior) and
-the code, constants and default arguments of the functions it holds (a nonlinear plant's
-``f`` and ``h``), so editing the plant gives a new file, never a stale number. Deleting
-the folder is always safe.
+the code, constants, default arguments and closures of the functions it holds (a nonlinear
+plant's ``f`` and ``h``) with the module-level values and helper functions they read by
+name, so editing the plant gives a new file, never a stale number. A module is hashed by
+its name only: a constant read through one (``params.G``) is not seen, and after editing
+one the folder should be deleted. Deleting the folder is always safe.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import types
 from pathlib import Path
 from typing import Any
 
@@ -65,7 +68,7 @@ def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
             _feed(digest, value[key], seen, depth + 1)
         return
     code = getattr(value, "__code__", None)
-    if code is not None:  # a function: its code, constants, defaults and closure
+    if code is not None:  # a function: its code, constants, defaults, closure and globals
         _feed_code(digest, code)
         _feed(digest, getattr(value, "__defaults__", None), seen, depth + 1)
         for cell in getattr(value, "__closure__", None) or ():
@@ -73,6 +76,13 @@ def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
                 _feed(digest, cell.cell_contents, seen, depth + 1)
             except ValueError:  # an empty cell
                 pass
+        # the module-level names it reads: a plant's constants (G = 9.81) and the helpers
+        # it calls (a user trial edited both and read a stale CUSUM threshold)
+        namespace = getattr(value, "__globals__", None) or {}
+        for name in sorted(_global_names(code)):
+            if name in namespace:
+                digest.update(name.encode())
+                _feed_global(digest, namespace[name], seen, depth + 1)
         return
     digest.update(type(value).__qualname__.encode())
     attributes = getattr(value, "__dict__", None)
@@ -83,10 +93,31 @@ def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
                 _feed(digest, attributes[key], seen, depth + 2)
 
 
+def _global_names(code) -> set[str]:
+    """The global (and attribute) names a code object and its nested functions read."""
+    names = set(code.co_names)
+    for const in code.co_consts:
+        if hasattr(const, "co_code"):
+            names |= _global_names(const)
+    return names
+
+
+def _feed_global(digest, value: Any, seen: set[int], depth: int) -> None:
+    """A module-level value a function reads: a module or a class by its name (an edit
+    inside an imported module of one's own, read as ``params.G``, is not seen: delete the
+    cache folder, or pass the value as an argument), anything else as :func:`_feed` does."""
+    if isinstance(value, (types.ModuleType, type)):
+        digest.update(f"{getattr(value, '__name__', '')}".encode())
+        return
+    _feed(digest, value, seen, depth)
+
+
 def _feed_code(digest, code) -> None:
     """A code object by its bytecode and constants, nested functions' code included (their
     ``repr`` holds a memory address, which would change the hash in every process)."""
     digest.update(code.co_code)
+    # the names it reads (torch.sin and torch.cos are the same bytecode, another name)
+    digest.update(repr(code.co_names).encode())
     for const in code.co_consts:
         if hasattr(const, "co_code"):
             _feed_code(digest, const)

@@ -165,6 +165,29 @@ def test_the_calibration_cache_tells_plants_apart(tmp_path, monkeypatch):
     assert cached("t", (1,), a, lambda: {"v": 4.0}) == {"v": 4.0}
 
 
+def test_the_fingerprint_sees_the_constants_and_helpers_a_plant_reads(tmp_path, monkeypatch):
+    """A user trial edited a plant's module-level constant (G = 9.81 → 2.0) and the body of
+    a helper its transition calls: the fingerprint did not change, and the edited plant
+    read the original's cached CUSUM threshold. (torch.sin → torch.cos, the same bytecode
+    with another name, did not change it either.)"""
+    import importlib
+
+    from difffilter.models.calibration_cache import model_fingerprint
+
+    source = (
+        "import torch\nG = {g}\n\ndef _rate(x):\n    return {rate}\n\n"
+        "def f(x):\n    return x + 0.1 * _rate(x)\n"
+    )
+    variants = {"plant_a": ("9.81", "-G * torch.sin(x)"), "plant_b": ("9.81", "-G * torch.sin(x)"),
+                "plant_g": ("2.0", "-G * torch.sin(x)"), "plant_h": ("9.81", "-G * torch.cos(x)")}  # fmt: skip
+    for name, (g, rate) in variants.items():
+        (tmp_path / f"{name}.py").write_text(source.format(g=g, rate=rate))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    prints = {n: model_fingerprint(importlib.import_module(n).f) for n in variants}
+    assert prints["plant_a"] == prints["plant_b"]  # the same plant in another module
+    assert len({prints["plant_a"], prints["plant_g"], prints["plant_h"]}) == 3
+
+
 def test_a_fingerprint_is_the_same_in_every_process(tmp_path):
     """A nested function's code object has an address in its repr: hashed by content, the
     fingerprint (and so the cache file) is the same in a later process."""
