@@ -32,6 +32,7 @@ __all__ = [
     "calibrated_metrics",
     "alarms_at",
     "calibration_seed",
+    "below_target_note",
 ]
 
 
@@ -43,6 +44,10 @@ class Calibration:
         far: the target ``α``; runs, seed: of the attack-free calibration runs.
         thresholds: ``{estimator: τ_α}`` (estimators with detection scores only).
         measured: ``{estimator: false-alarm rate at τ_α on the calibration runs}``.
+        tied: ``{estimator: share of the calibration scores equal to τ_α}`` for the
+            detectors whose rate fell below half the target: a discrete score (the PoA β of
+            the particle filters, 1 where every particle exceeds η) ties there, and no
+            threshold meets ``α`` (alarms are ``s > τ``).
     """
 
     far: float
@@ -50,11 +55,36 @@ class Calibration:
     seed: int
     thresholds: dict[str, float] = field(default_factory=dict)
     measured: dict[str, float] = field(default_factory=dict)
+    tied: dict[str, float] = field(default_factory=dict)
 
     def summary(self) -> dict:
-        """The calibration as metrics.json's ``"far"`` entry."""
+        """The calibration as metrics.json's ``"far"`` entry (``below_target`` only where a
+        detector could not meet the rate)."""
+        below = {name: {"measured_on_calibration": self.measured[name],
+                        "threshold": self.thresholds[name], "tied_at_threshold": share}
+                 for name, share in self.tied.items()}  # fmt: skip
         return {"target": self.far, "calibration_runs": self.runs, "calibration_seed": self.seed,
-                "measured_on_calibration": dict(self.measured)}  # fmt: skip
+                "measured_on_calibration": dict(self.measured),
+                **({"below_target": below} if below else {})}  # fmt: skip
+
+
+def below_target_note(far: dict | None) -> str | None:
+    """One sentence for a report naming the detectors whose calibrated rate fell short of
+    the target because their scores tie at the threshold (``far``: metrics.json's entry)."""
+    below = (far or {}).get("below_target")
+    if not below:
+        return None
+    each = "; ".join(
+        f"`{name}` alarms on {100 * b['measured_on_calibration']:.2f} % of them, "
+        f"{100 * b['tied_at_threshold']:.1f} % of its scores being equal to its threshold "
+        f"{b['threshold']:.6g}"
+        for name, b in below.items()
+    )
+    return (
+        f"Below the {100 * far['target']:g} % target on the calibration runs: {each}. Their "
+        "scores are discrete and tie there (alarms are s > τ), so no threshold meets the "
+        "rate; their `*_at_far` metrics are at that lower rate, not at the target."
+    )
 
 
 def calibration_seed(seed: int) -> int:
@@ -98,14 +128,16 @@ def calibrate(
         progress=progress, checkpoint=checkpoint, cache=cache, calibration=None,
         label=f"{scenario.name}: calibrating at {far:g} (attack-free runs)",
     )  # fmt: skip
-    thresholds, measured = {}, {}
+    thresholds, measured, tied = {}, {}, {}
     for name, out in result.outputs.items():
         if out.detection is None or out.detection.scores is None:
             continue
-        scores = out.detection.scores
+        scores = _finite_scores(out.detection.scores)
         thresholds[name] = threshold_for(scores, far)
-        measured[name] = float((_finite_scores(scores) > thresholds[name]).double().mean())
-    calibration = Calibration(far, runs, cal_seed, thresholds, measured)
+        measured[name] = float((scores > thresholds[name]).double().mean())
+        if measured[name] < far / 2:  # ties at τ: the rate cannot be met (class docstring)
+            tied[name] = float((scores == thresholds[name]).double().mean())
+    calibration = Calibration(far, runs, cal_seed, thresholds, measured, tied)
     if cache is not None:
         cache[key] = calibration
     return calibration

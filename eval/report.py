@@ -30,6 +30,7 @@ from typing import Any
 from difffilter.models import estimators as registry
 
 from .acceptance import ANALYTIC, best_analytic, judge, roles, state_metric
+from .calibration import below_target_note
 from .intervals import acceptance_intervals
 from .scoring import METRICS
 
@@ -298,6 +299,9 @@ def _summary_section(doc: dict, sc) -> Section:
             f"runs of their own seed ({far['calibration_seed']}), never from these runs; "
             "`fpr_at_far` is the rate met on this study's attack-free steps.\n"
         )
+        below = below_target_note(far)
+        if below:
+            body += f"\n{below}\n"
     if doc.get("skipped"):
         body += "\nSkipped: " + "; ".join(f"`{k}` ({v})" for k, v in doc["skipped"].items())
         body += ".\n"

@@ -36,7 +36,7 @@ from .acceptance import (
     reading_no_measurements,
     roles,
 )
-from .calibration import calibrate
+from .calibration import below_target_note, calibrate
 from .coverage import checkpoint_of, training_coverage
 from .intervals import LEVEL, RESAMPLES, robustness_intervals, threat_totals
 from .report import _clean, format_number, markdown_table, share_suffix
@@ -348,6 +348,9 @@ def _markdown(doc: dict, sc) -> str:
         "assumptions about attacks. Threat set: "
         f"`{Path(doc['threat_set']).name}`.\n",
     ]
+    below = below_target_note(far)
+    if below:
+        parts.append(f"{below}\n")
     for metric, title in _TITLES.items():
         title = title.format(state_unit=sc.state_unit)  # (the scenario's, as its other tables)
         header = ["estimator", "attack-free FPR", *threats, "worst"]

@@ -108,6 +108,19 @@ def test_poa_equal_weights_are_counted_exactly():
         fdi.PoADetector(0.2, 1.0)
 
 
+def test_poa_never_exceeds_one_when_every_particle_exceeds():
+    """A user trial: the softmax's weights summed to 1 + 4.4e-16 where every particle
+    exceeded η, and a threshold calibrated at β = 1 read those steps as alarms."""
+    g = torch.Generator().manual_seed(0)
+    lw = torch.randn(1000, 200, generator=g, dtype=torch.float64)
+    assert bool((torch.softmax(lw, -1).sum(-1) > 1).any())  # the round-off is there
+    z = torch.ones(1000, 200, 2, dtype=torch.float64)
+    beta = fdi.probability_of_attack(z, 0.5, lw)
+    assert bool((beta == 1.0).all())
+    assert bool((fdi.probability_of_attack(-z, 0.5, lw) == 1.0).all())
+    assert bool((fdi.probability_of_attack(0 * z, 0.5, lw) == 0.0).all())
+
+
 def test_literal_density_matches_log_density_until_it_underflows():
     R = R_PAPER
     noise = Gaussian(torch.zeros(4, dtype=torch.float64), R)

@@ -181,7 +181,11 @@ def probability_of_attack(residuals: Tensor, eta, log_weights: Tensor | None = N
 
     Returns ``β`` ``[...]`` in ``[0, 1]``. Rows whose weights are all equal use the exact
     count ``#{‖z^i‖ > η}/N`` (a float sum of ``1/N``'s is not exact, and ``β = ζ`` must
-    not raise an alarm by round-off).
+    not raise an alarm by round-off); a row where every particle (none) exceeds ``η`` is
+    exactly 1 (0), and weighted sums are clipped to ``[0, 1]`` (the softmax's weights sum
+    to ``1 ± 4.4e-16``: a threshold calibrated at ``β = 1`` read the steps where every
+    particle exceeded as alarms or not by round-off, and a user trial's calibrated
+    detection rate came from those alone).
 
     Never silently "no attack": NaN residuals raise ``ValueError`` (``±Inf`` residuals
     exceed any ``η``), as do log-weights that are NaN or all ``−inf`` in a row (``β``
@@ -201,7 +205,8 @@ def probability_of_attack(residuals: Tensor, eta, log_weights: Tensor | None = N
             "(normalisable log-weights needed)"
         )
     equal = (log_weights == log_weights[..., :1]).all(-1)
-    return torch.where(equal, exceed.mean(-1), beta)
+    counted = equal | (exceed == exceed[..., :1]).all(-1)  # equal weights, or all or none
+    return torch.where(counted, exceed.mean(-1), beta.clamp(0.0, 1.0))
 
 
 class PoADetector:
