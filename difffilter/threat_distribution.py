@@ -38,7 +38,7 @@ import torch
 from .attack import Attack
 from .threats import THREATS, check_attack_fits, threat_from_dict
 
-__all__ = ["ThreatDistribution", "WITHIN", "KIND_ONLY", "HELD_OUT"]
+__all__ = ["ThreatDistribution", "WITHIN", "KIND_ONLY", "HELD_OUT", "threat_spec"]
 
 #: How a threat stands to a distribution (:meth:`ThreatDistribution.covers`).
 WITHIN, KIND_ONLY, HELD_OUT = "within", "kind only", "held out"
@@ -204,11 +204,17 @@ class ThreatDistribution:
         ``uniform``/``loguniform`` interval holding it (its magnitude with ``signed``; a
         vector only with every entry equal, as a drawn number is the same on every
         entry), a ``randint`` range holding the integer, a ``choice`` listing it. A field
-        that one side leaves out is the threat class's default on that side."""
+        that one side leaves out is the threat class's default on that side. The reserved
+        ``own`` counts as :attr:`own` where that is a threat of the library
+        (:func:`threat_spec`)."""
         kind = spec.get("kind")
         same_kind = [entry for name, entry in self.spec.items()
                      if name not in _RESERVED and entry.get("kind") == kind
                      and float(entry["weight"]) > 0]  # fmt: skip
+        own = threat_spec(self.own)  # ``own``: the scenario's attack, where the library's
+        if own is not None and own["kind"] == kind and float(self.spec.get("own", {}).get(
+                "weight", 0)) > 0:  # fmt: skip
+            same_kind.append(own)
         if not same_kind:
             return HELD_OUT
         for entry in same_kind:
@@ -255,6 +261,27 @@ class ThreatDistribution:
 
 
 _NO_DEFAULT = object()
+
+
+def threat_spec(attack) -> dict | None:
+    """``{"kind", **fields}`` of a threat of the library (exactly one of its classes, as
+    :func:`~difffilter.threats.threat_from_dict` builds from that data), for
+    :meth:`ThreatDistribution.covers`; ``None`` for anything else (``None``, a paper's
+    attack, a covert attack, whose fields hold a model, an attack of one's own)."""
+    kinds = {cls: kind for kind, cls in THREATS.items() if kind != "covert"}
+    kind = kinds.get(type(attack))
+    if kind is None:
+        return None
+    return {"kind": kind, **{f.name: _plain(getattr(attack, f.name)) for f in fields(attack)}}
+
+
+def _plain(value):
+    """A field's value as plain data (tuples as lists, tensors as nested lists)."""
+    if isinstance(value, torch.Tensor):
+        return value.tolist()
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
 
 
 def _default(kind: str, name: str):

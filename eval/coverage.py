@@ -12,8 +12,9 @@ within        a component of the training distribution could draw it (kind and e
 kind only     its kind was drawn, with other fields (another size, onset, share, …); a crafted
               attack when the network was trained adversarially (crafted against the network
               of the moment, fewer iterations)
-held out      its kind was never drawn: every threat of a network trained on its scenario's
-              attack alone
+held out      its kind was never drawn (for a network trained on its scenario's attack
+              alone: every threat but those of that attack's kind, where it is a threat of
+              the library)
 ============  ================================================================================
 """
 
@@ -23,7 +24,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from difffilter.threat_distribution import HELD_OUT, KIND_ONLY, ThreatDistribution
+from difffilter.threat_distribution import HELD_OUT, KIND_ONLY, ThreatDistribution, threat_spec
 
 __all__ = ["training_coverage", "checkpoint_of"]
 
@@ -42,24 +43,33 @@ def checkpoint_of(name: str, suite) -> str | None:
     return default.get("path") if name in default.get("used_by", ()) else None
 
 
-def training_coverage(checkpoint, threats: dict[str, dict], model=None) -> dict[str, Any] | None:
+def training_coverage(
+    checkpoint, threats: dict[str, dict], model=None, own=None
+) -> dict[str, Any] | None:
     """``{"trained_on", "adversarial", "threats": {threat: label}}`` for the estimator of
     ``checkpoint`` against the study's ``threats`` (``{name: {"kind", **fields}}``), or
     ``None`` where no card beside the checkpoint says how it was trained (a Lightning
     checkpoint of a run, a file copied alone). ``model``: the scenario's, for threat kinds
-    that read it (``ksigma_bias``, ``covert``)."""
+    that read it (``ksigma_bias``, ``covert``). ``own``: the scenario's attack, what a
+    network trained on it alone (or on a distribution's ``own``) met: where it is a threat
+    of the library, a threat of its kind is "kind only" or "within", not "held out" (a
+    user trial's ramp network read "held out" on a ramp that differed only in its share)."""
     card_path = Path(checkpoint).with_suffix(".json") if checkpoint else None
     if card_path is None or not card_path.is_file():
         return None
     card = json.loads(card_path.read_text())
     spec = (card.get("data_config") or {}).get("threats")
     adversarial = bool((card.get("model_config") or {}).get("adversarial_runs"))
-    distribution = ThreatDistribution(spec, model=model) if spec else None
+    if not spec:  # trained on the scenario's attack alone: a distribution of that one
+        spec = {"own": {"weight": 1.0}} if threat_spec(own) is not None else None
+        trained_on = SCENARIO_ATTACK
+    else:
+        trained_on = DISTRIBUTION
+    distribution = ThreatDistribution(spec, model=model, own=own) if spec else None
     labels = {}
     for name, threat in threats.items():
         if threat.get("kind") == "stealthy":  # crafted when the study runs, not drawn
             labels[name] = KIND_ONLY if adversarial else HELD_OUT
         else:
             labels[name] = HELD_OUT if distribution is None else distribution.covers(threat)
-    return {"trained_on": DISTRIBUTION if spec else SCENARIO_ATTACK,
-            "adversarial": adversarial, "threats": labels}  # fmt: skip
+    return {"trained_on": trained_on, "adversarial": adversarial, "threats": labels}

@@ -314,7 +314,8 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
                                      runs=result.runs, seed=result.seed)  # fmt: skip
     model = sc.system() if acceptance else None  # for threat kinds that read it
     for name, judged in acceptance.items():
-        judged["training"] = training_coverage(checkpoint_of(name, free), doc["threats"], model)
+        judged["training"] = training_coverage(checkpoint_of(name, free), doc["threats"], model,
+                                               own=sc.attack_model())  # fmt: skip
         mine = intervals.get(name, {})
         judged["worst_tpr_interval"] = mine.get("worst_tpr")
         for threat, check in judged["state"].items():

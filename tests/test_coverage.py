@@ -47,6 +47,20 @@ def test_a_network_trained_across_threats_has_its_threats_labelled_from_its_card
     assert training_coverage(plain, THREATS) == {
         "trained_on": "its scenario's attack", "adversarial": False,
         "threats": dict.fromkeys(THREATS, "held out")}  # fmt: skip
+    # trained on its scenario's attack alone, a ramp of the library (a user trial's plant):
+    # a ramp differing only in its share is "kind only", the same ramp "within", not
+    # "held out"; with the distribution's own, likewise
+    from difffilter.threats import Ramp
+
+    own = Ramp(slope=0.005, onset=21, share=0.5)
+    assert training_coverage(plain, THREATS, own=own)["threats"] == {
+        "bias": "held out", "bias_half_runs": "held out", "ramp": "kind only",
+        "replay": "held out", "crafted": "held out"}  # fmt: skip
+    same = {"ramp": {"kind": "ramp", "slope": 0.005, "onset": 21, "share": 0.5}}
+    assert training_coverage(plain, same, own=own)["threats"] == {"ramp": "within"}
+    across = _with_card(tmp_path, {"threats": threats}, {"adversarial_runs": 0})  # own: 0.5
+    assert training_coverage(across, same, own=own)["threats"] == {"ramp": "within"}
+    assert training_coverage(across, same)["threats"] == {"ramp": "kind only"}  # slope drawn
     # no card beside the file: nothing is claimed
     alone = tmp_path / "alone" / "net.ckpt"
     alone.parent.mkdir()
