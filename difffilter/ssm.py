@@ -33,13 +33,16 @@ from .noise import Gaussian, NoiseModel, register_tensor
 __all__ = ["StateSpaceModel", "LinearGaussianModel", "NonlinearGaussianModel", "batched_jacobian"]
 
 
-def batched_jacobian(fn: Callable[..., Tensor], x: Tensor, *args: Tensor | None) -> Tensor:
+def batched_jacobian(
+    fn: Callable[..., Tensor], x: Tensor, *args: Tensor | None, what: str | None = None
+) -> Tensor:
     """Jacobian ``∂fn(x, *args)/∂x`` for every row of ``x [..., n]`` → ``[..., m, n]``.
 
     Uses ``torch.func.vmap(torch.func.jacfwd(fn))`` over the flattened leading dimensions,
     so ``fn`` must act on a single vector ``[n]`` (every model function in difffilter
     broadcasts over leading dimensions, so it does). ``args`` broadcast with ``x``'s
-    leading dimensions; ``None`` arguments are passed through unbatched.
+    leading dimensions; ``None`` arguments are passed through unbatched. ``what`` names
+    ``fn`` in the error where ``torch.func`` cannot trace it.
     """
     lead = x.shape[:-1]
     for a in args:
@@ -55,9 +58,19 @@ def batched_jacobian(fn: Callable[..., Tensor], x: Tensor, *args: Tensor | None)
         else:
             flat_args.append(a.expand(lead + a.shape[-1:]).reshape(-1, a.shape[-1]))
             in_dims.append(0)
-    jac = torch.func.vmap(torch.func.jacfwd(fn, argnums=0), in_dims=tuple(in_dims))(
-        flat_x, *flat_args
-    )
+    try:
+        jac = torch.func.vmap(torch.func.jacfwd(fn, argnums=0), in_dims=tuple(in_dims))(
+            flat_x, *flat_args
+        )
+    except RuntimeError as error:  # what torch.func says of numpy, .item(), ... is cryptic
+        name = what or getattr(fn, "__qualname__", None) or type(fn).__name__
+        raise RuntimeError(
+            f"differentiating {name} with torch.func (an extended or unscented Kalman filter "
+            "needs its Jacobian) failed: it must be written in torch operations on its input "
+            "tensor (no numpy, .item(), .tolist(), .numpy() or Python branches on values); "
+            "or give the model closed-form transition_jacobian/observation_jacobian. "
+            f"torch said: {error}"
+        ) from error
     # In x's dtype: a function that promotes (e.g. builds a float64 constant from a Python
     # float) would otherwise hand float64 Jacobians to a float32 filter.
     return jac.reshape(lead + jac.shape[-2:]).to(x.dtype)
@@ -98,11 +111,13 @@ class StateSpaceModel(nn.Module):
 
     def transition_jacobian(self, x: Tensor, u: Tensor | None, k: int) -> Tensor:
         """``∂f/∂x`` at ``x [..., dx]`` → ``[..., dx, dx]`` (autodiff by default)."""
-        return batched_jacobian(lambda xi, ui: self.transition(xi, ui, k), x, u)
+        return batched_jacobian(lambda xi, ui: self.transition(xi, ui, k), x, u,
+                                what=f"the transition of {type(self).__name__}")  # fmt: skip
 
     def observation_jacobian(self, x: Tensor, k: int) -> Tensor:
         """``∂h/∂x`` at ``x [..., dx]`` → ``[..., dy, dx]`` (autodiff by default)."""
-        return batched_jacobian(lambda xi: self.observe(xi, k), x)
+        return batched_jacobian(lambda xi: self.observe(xi, k), x,
+                                what=f"the observation of {type(self).__name__}")  # fmt: skip
 
     # -- noise -----------------------------------------------------------------------
     def process_cov(self, k: int) -> Tensor:

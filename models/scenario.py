@@ -24,6 +24,7 @@ realisation therefore does not depend on the attack, and vice versa.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -114,7 +115,29 @@ def simulate(
         attack_generator=generators.get("attack"), mask=mask,
     )  # fmt: skip
     traj = loop.trajectories
+    _check_simulated(traj, model)
     return traj._replace(info={**traj.info, "x0": x0})
+
+
+def _check_simulated(traj, model) -> None:
+    """``ValueError`` naming the plant where its simulated states or (received)
+    measurements are NaN or Inf: a user trial's transition took ``sqrt`` of a negative
+    number, and every estimator then blamed the measurements it was handed."""
+    bad_x = ~torch.isfinite(traj.x).all(-1)
+    bad_y = ~torch.isfinite(traj.y_true)
+    if traj.mask is not None:
+        bad_y = bad_y & traj.mask
+    bad_y = bad_y.any(-1)
+    for bad, what, function in ((bad_x, "state", "transition"), (bad_y, "measurement",
+                                                                 "measurement function")):  # fmt: skip
+        if bool(bad.any()):
+            run, t = (int(i) for i in bad.nonzero()[0])
+            raise ValueError(
+                f"the simulated plant's {what} is NaN or Inf at step k = {t + 1} of run {run} "
+                f"(of {traj.x.shape[0]}): the model's {function} ({type(model).__name__}) gave "
+                "it, from finite states; check it there (e.g. sqrt or log of a negative "
+                "number, a division by zero, a plant that diverges)"
+            )
 
 
 @dataclass(frozen=True)
@@ -361,6 +384,16 @@ class CustomScenario(Scenario):
     def __post_init__(self):
         if not callable(self.model_fn):
             raise ValueError("model_fn must be a callable dtype -> StateSpaceModel")
+        try:  # (a function of no argument failed later as "<lambda>() takes 0 positional …")
+            inspect.signature(self.model_fn).bind(torch.float64)
+        except TypeError:
+            raise TypeError(
+                f"scenario {self.name!r}: model_fn must take the dtype, model_fn(dtype) -> "
+                f"StateSpaceModel (the suite builds float64 and float32 models); got a "
+                f"function of signature {inspect.signature(self.model_fn)}"
+            ) from None
+        except ValueError:  # no signature to read (a builtin): the call will tell
+            pass
         if self.attack is not None and not isinstance(self.attack, Attack):
             raise TypeError(
                 "attack must be a difffilter.attack.Attack (e.g. difffilter.threats.Ramp) or "

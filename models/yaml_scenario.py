@@ -318,8 +318,13 @@ def _plant(spec: Any, where: str):
                              f"{dx} × {dx})")  # fmt: skip
         if H is not None and H.shape[1] != dx:
             raise ValueError(f"{where}.H must have dx = {dx} columns; got {list(H.shape)}")
-        Q = _shaped(_matrix(spec["Q"], dx, f"{where}.Q", dtype), dx, f"{where}.Q")
-        P0 = _shaped(_matrix(spec.get("P0", 1.0), dx, f"{where}.P0", dtype), dx, f"{where}.P0")
+        # the state's size comes from F, else m0: say which (a user trial gave m0 three
+        # entries and read "Q must be 3 × 3")
+        states = (f"the state has {dx} entries, as F is {dx} × {dx}" if F is not None
+                  else f"the state has {dx} entries, as m0 has")  # fmt: skip
+        Q = _shaped(_matrix(spec["Q"], dx, f"{where}.Q", dtype), dx, f"{where}.Q", states)
+        P0 = _shaped(_matrix(spec.get("P0", 1.0), dx, f"{where}.P0", dtype), dx, f"{where}.P0",
+                     states)  # fmt: skip
         if H is not None:
             dy = H.shape[0]
         else:  # h(x) or h(x, k)
@@ -329,7 +334,9 @@ def _plant(spec: Any, where: str):
                 raise ValueError(f"{where}.observe must map m0 [{dx}] to a vector [dy]; got "
                                  f"{getattr(out, 'shape', type(out).__name__)}")  # fmt: skip
             dy = out.shape[-1]
-        R = _shaped(_matrix(spec["R"], dy, f"{where}.R", dtype), dy, f"{where}.R")
+        outputs = (f"there are {dy} outputs, as H has {dy} rows" if H is not None
+                   else f"there are {dy} outputs, as observe returns at m0")  # fmt: skip
+        R = _shaped(_matrix(spec["R"], dy, f"{where}.R", dtype), dy, f"{where}.R", outputs)
         if transition is None and observe is None:
             B = _matrix(spec["B"], None, f"{where}.B", dtype) if "B" in spec else None
             if B is not None and B.shape[0] != dx:
@@ -362,10 +369,10 @@ def _vector(value: Any, where: str, dtype) -> torch.Tensor:
     return t
 
 
-def _shaped(matrix: torch.Tensor, n: int, where: str) -> torch.Tensor:
+def _shaped(matrix: torch.Tensor, n: int, where: str, because: str) -> torch.Tensor:
     if matrix.shape != (n, n):
-        raise ValueError(f"{where} must be {n} × {n} (a number × I, a diagonal of {n} or the "
-                         f"matrix); got {list(matrix.shape)}")  # fmt: skip
+        raise ValueError(f"{where} must be {n} × {n} ({because}; a number × I, a diagonal of "
+                         f"{n} or the matrix); got {list(matrix.shape)}")  # fmt: skip
     return matrix
 
 

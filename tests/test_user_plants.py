@@ -362,7 +362,11 @@ def test_a_plant_function_of_the_wrong_width_or_failing_is_named(plants):
     # (the model's own probe, NonlinearGaussianModel._check_widths, names the first)
     cases = [({"transition": "user_bad:narrow"}, r"plant: transition returns \(1, 1\) for x \[1, 2\] .*Q is 2×2"),
              ({"transition": "user_bad:broken"}, r"plant.transition failed on m0: RuntimeError: no"),
-             ({"observe": "user_bad:three", "R": [[1.0, 0.0], [0.0, 1.0]]}, r"plant.R must be 3 × 3")]  # fmt: skip
+             ({"observe": "user_bad:three", "R": [[1.0, 0.0], [0.0, 1.0]]},
+              r"plant.R must be 3 × 3 \(there are 3 outputs, as observe returns at m0"),
+             # the state's size came from m0, and the error blamed Q alone
+             ({"m0": [2.0, 0.0, 0.0], "H": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], "Q": [1e-4, 1e-4]},
+              r"plant.Q must be 3 × 3 \(the state has 3 entries, as m0 has")]  # fmt: skip
     for change, why in cases:
         doc = {**base, "plant": {**base["plant"], **change}}
         if "observe" in change:
@@ -377,6 +381,53 @@ def test_a_plant_function_of_the_wrong_width_or_failing_is_named(plants):
     scenario = scenario_from_yaml(path)
     assert scenario.estimators == ("chi_square_kf",) and scenario.notes == ("one note",)
     sys.modules.pop("user_bad", None)
+
+
+def test_a_plant_that_gives_nan_or_is_not_torch_is_named_not_the_measurements(plants):
+    """A user trial: a transition that took sqrt of a negative number was reported as NaN
+    measurements ("Pass nonfinite='skip'"), and one written with numpy failed inside
+    torch.func ("Cannot access data pointer of Tensor that doesn't have storage")."""
+    import dataclasses
+
+    import numpy as np
+
+    import difffilter as df
+
+    vdp = registry.get("user_vdp:vdp_ramp")
+
+    def nan_model(dtype):  # x = 2.0, 1.8, 1.6, 1.4: NaN from k = 4 (sqrt(1.4 - 1.5))
+        eye = torch.eye(2, dtype=dtype)
+        return df.NonlinearGaussianModel(
+            lambda x: torch.stack([x[..., 0] - 0.2 + 0.0 * torch.sqrt(x[..., 0] - 1.5),
+                                   x[..., 1]], -1),
+            lambda x: x, 1e-4 * eye, 1e-2 * eye, torch.tensor([2.0, 0.0], dtype=dtype),
+            1e-6 * eye)  # fmt: skip
+
+    with pytest.raises(ValueError, match=r"simulated plant's state is NaN or Inf at step k = 4 "
+                                         r"of run 0 .* the model's transition"):  # fmt: skip
+        run_suite(dataclasses.replace(vdp, model_fn=nan_model), runs=2, estimators=["ekf"],
+                  progress=False)  # fmt: skip
+
+    def numpy_step(x):
+        return torch.as_tensor(np.asarray(x) * 0.9)
+
+    def numpy_model(dtype):
+        eye = torch.eye(2, dtype=dtype)
+        return df.NonlinearGaussianModel(numpy_step, lambda x: x, 1e-4 * eye, 1e-2 * eye,
+                                         torch.tensor([2.0, 0.0], dtype=dtype), 1e-2 * eye)  # fmt: skip
+
+    with pytest.raises(RuntimeError, match=r"differentiating the transition of "
+                                           r"NonlinearGaussianModel with torch.func.*no numpy"):  # fmt: skip
+        run_suite(dataclasses.replace(vdp, model_fn=numpy_model), runs=2, estimators=["ekf"],
+                  progress=False)  # fmt: skip
+
+
+def test_a_model_function_without_the_dtype_is_named(plants):
+    import dataclasses
+
+    vdp = registry.get("user_vdp:vdp_ramp")
+    with pytest.raises(TypeError, match=r"'vdp_ramp': model_fn must take the dtype.*\(\)"):
+        dataclasses.replace(vdp, model_fn=lambda: None)
 
 
 def test_a_shorter_horizon_takes_the_first_rows_of_tabulated_inputs():
