@@ -66,6 +66,20 @@ def as_tensor(value, name: str, *, dtype=None, device=None) -> Tensor:
     was rounded to float32, and then refused float64 measurements); anything else (lists,
     numbers, integer arrays) takes torch's default dtype."""
     if isinstance(value, Tensor):
+        if isinstance(value, torch.nn.Parameter) and (
+            (dtype is not None and value.dtype != dtype)
+            or (device is not None and value.device != torch.device(device))
+        ):  # fmt: skip
+            # a cast copy is no parameter: the model would list none, and an optimiser
+            # built from model.parameters() would leave it untrained (a user trial)
+            where = f"{value.dtype} on {value.device}"
+            raise ValueError(
+                f"{name} is an nn.Parameter of {where}, but the model is "
+                f"{dtype or value.dtype} on {device or value.device}: converting it would make "
+                "a copy that is no parameter of the model (an optimiser of "
+                "model.parameters() would not train it); make the Parameter in the model's "
+                "dtype and device"
+            )
         if not value.is_floating_point():
             value = value.to(dtype or torch.get_default_dtype())
         elif dtype is not None and value.dtype != dtype:

@@ -100,7 +100,9 @@ class Gaussian(NoiseModel):
     Args:
         loc: mean ``[*batch, d]`` (or a scalar ``0`` with ``cov`` given, meaning zeros).
         cov: covariance ``[*batch, d, d]``, symmetric positive definite.
-        scale_tril: alternatively the lower Cholesky factor ``L`` with ``cov = L Lᵀ``.
+        scale_tril: alternatively the lower Cholesky factor ``L`` with ``cov = L Lᵀ``
+            (a positive diagonal when built; one that training later turns negative is
+            read with its columns' signs normalised: the same ``cov``).
 
     ``log_prob(v) = −½ (v−μ)ᵀ Σ⁻¹ (v−μ) − Σᵢ log Lᵢᵢ − (d/2) log 2π``;
     ``sample = μ + L ε`` with ``ε ~ N(0, I)``.
@@ -183,7 +185,19 @@ class Gaussian(NoiseModel):
 
     def _compute_scale_tril(self) -> Tensor:
         if self._given == "scale_tril":
-            return self._scale_tril.tril()
+            L = self._scale_tril.tril()
+            # a factor whose diagonal an optimiser step made negative is the same cov = L Lᵀ:
+            # its columns' signs are normalised, so that log Lᵢᵢ exists (a user trial's
+            # particle filter read NaN densities there while the Kalman filters, reading
+            # cov, ran on); a zero on the diagonal is a singular cov
+            diag = L.detach().diagonal(dim1=-2, dim2=-1)
+            if bool((diag == 0).any()):
+                raise ValueError("scale_tril has a zero on its diagonal: cov = L Lᵀ is "
+                                 "singular (parameterise the diagonal through exp or "
+                                 "softplus to keep it away from 0)")  # fmt: skip
+            if bool((diag < 0).any()):
+                L = L * torch.where(diag < 0, -1.0, 1.0).to(L.dtype).unsqueeze(-2)
+            return L
         return safe_cholesky(self._cov, name="cov")
 
     @property

@@ -525,3 +525,18 @@ def test_a_study_names_the_estimator_and_scenario_an_error_came_from():
                         model_fn=lambda dtype: constant_velocity(dtype=dtype), attack=NaNPacket())  # fmt: skip
     with pytest.raises(ValueError, match="chi_square_kf on nan_packet: ys contains NaN or Inf"):
         run_suite(sc, estimators=["chi_square_kf"], progress=False)
+
+
+def test_a_parameter_of_another_dtype_is_refused_not_copied():
+    """A user trial: a float32 nn.Parameter in a float64 model was cast to a copy, so the
+    model listed no parameter and an optimiser of model.parameters() left Q untrained."""
+    eye = torch.eye(2, dtype=torch.float64)
+    Q = torch.nn.Parameter(0.1 * torch.eye(2, dtype=torch.float32))
+    with pytest.raises(ValueError, match=r"Q is an nn.Parameter of torch.float32 .* model is "
+                                         r"torch.float64"):  # fmt: skip
+        df.LinearGaussianModel(eye, eye, Q, eye, torch.zeros(2, dtype=torch.float64), eye)
+    Q = torch.nn.Parameter(0.1 * eye)
+    model = df.LinearGaussianModel(eye, eye, Q, eye, torch.zeros(2, dtype=torch.float64), eye)
+    assert [p is Q for p in model.parameters()] == [True]
+    model.to(torch.float32)  # the module's own cast keeps it a parameter
+    assert [p.dtype for p in model.parameters()] == [torch.float32]

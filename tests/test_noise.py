@@ -58,6 +58,50 @@ def test_gaussian_scale_tril_and_gradient():
     assert torch.isfinite(L.grad).all()
 
 
+def test_a_scale_tril_whose_diagonal_training_made_negative_is_the_same_covariance():
+    """A user trial: an optimiser step took a scale_tril Parameter's diagonal to -0.7; the
+    Kalman filters (reading cov = L Lᵀ) ran on, the particle filter's densities were NaN
+    (log of a negative diagonal) and it ignored every measurement without a word."""
+    import difffilter as df
+
+    L = torch.nn.Parameter(torch.tensor([[0.7, 0.0], [0.2, 0.4]], dtype=D))
+    g = Gaussian(torch.zeros(2, dtype=D), scale_tril=L)
+    x = torch.randn(5, 2, dtype=D, generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        L[0, 0] = -0.7
+    after = g.log_prob(x)  # the density of cov = L Lᵀ, as the Kalman filters read it
+    cov = (L @ L.T).detach()
+    ref = torch.distributions.MultivariateNormal(torch.zeros(2, dtype=D), cov).log_prob(x)
+    torch.testing.assert_close(after, ref, rtol=1e-13, atol=0)
+    torch.testing.assert_close(g.cov, L @ L.T)
+    after.sum().backward()  # the gradient of the same density, with the sign
+    flipped = L.detach().clone()
+    flipped[:, 0] *= -1
+    ref = torch.nn.Parameter(flipped)
+    Gaussian(torch.zeros(2, dtype=D), scale_tril=ref).log_prob(x).sum().backward()
+    torch.testing.assert_close(L.grad[:, 1], ref.grad[:, 1])
+    torch.testing.assert_close(L.grad[:, 0], -ref.grad[:, 0])
+    # a particle filter's likelihood is then the one of the positive factor
+    F, H = torch.tensor([[1.0, 0.1], [0.0, 1.0]], dtype=D), torch.eye(2, dtype=D)
+    model = df.LinearGaussianModel(F, H, 1e-2 * torch.eye(2, dtype=D), torch.eye(2, dtype=D),
+                                   torch.zeros(2, dtype=D), torch.eye(2, dtype=D))  # fmt: skip
+    model.measurement_noise = g  # (how a noise model of one's own is given)
+    ys = torch.randn(2, 10, 2, dtype=D, generator=torch.Generator().manual_seed(6))
+    lls = []
+    for sign in (-1.0, 1.0):  # column 0 negated: the same cov, a negative diagonal
+        with torch.no_grad():
+            L[:, 0] = sign * torch.tensor([0.7, 0.2], dtype=D)
+            run = df.particle_filter(model, ys, num_particles=64,
+                                     generator=torch.Generator().manual_seed(7))  # fmt: skip
+            lls.append(run.log_likelihood)
+    assert bool(torch.isfinite(lls[0]).all())
+    torch.testing.assert_close(lls[0], lls[1], rtol=1e-12, atol=0)
+    with torch.no_grad():
+        L[1, 1] = 0.0
+    with pytest.raises(ValueError, match="scale_tril has a zero on its diagonal"):
+        g.log_prob(x)
+
+
 def test_mixture_log_prob_moments_and_sampling():
     weights = torch.tensor([0.8, 0.2], dtype=D)
     locs = torch.zeros(2, 2, dtype=D)
