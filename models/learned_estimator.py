@@ -56,7 +56,9 @@ def _trained_network(ctx, name: str, filters, trainer: str):
 
     path = ctx.checkpoint_for(name)
     if path is None:
-        raise SkipEstimator("no --ckpt given and no shipped checkpoint")
+        raise SkipEstimator(
+            "no checkpoint given (--ckpt; checkpoint= in Python) and no shipped one"
+        )
     key = ("learned/ckpt", str(path))
     if key not in ctx.cache:
         ctx.cache[key] = load_estimator_checkpoint(path, dtype=ctx.dtype)

@@ -184,7 +184,9 @@ def _checkpoint_network(ctx: SuiteContext, name: str):
     one, or for a checkpoint of another family or sampling time)."""
     path = ctx.checkpoint_for(name)
     if path is None:
-        raise SkipEstimator("no --ckpt given and no shipped checkpoint")
+        raise SkipEstimator(
+            "no checkpoint given (--ckpt; checkpoint= in Python) and no shipped one"
+        )
     net, obs = _cached(ctx, ("lfc/ckpt", str(path)), lambda: load_estimator_checkpoint(path))
     if obs.filter != "kf" or obs.scenario_family != "lfc":
         raise SkipEstimator(

@@ -201,7 +201,7 @@ def test_without_ckpt_the_shipped_checkpoint_is_used_and_recorded(tmp_path):
 def test_checkpoint_estimators_are_skipped_and_listed_without_any_checkpoint():
     sc = dataclasses.replace(registry.get("lfc_step"), duration=0.6, checkpoint=None)
     result = run_suite(sc, runs=1, progress=False)
-    why = "no --ckpt given and no shipped checkpoint"
+    why = "no checkpoint given (--ckpt; checkpoint= in Python) and no shipped one"
     assert result.skipped == {"kf_nn_grad": why, "kf_nn_grad_ekf": why}
     assert "kf_nn_grad" not in result.outputs and "kf_nn_ekf" in result.outputs
     assert result.checkpoint is None
