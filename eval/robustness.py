@@ -347,8 +347,9 @@ def _markdown(doc: dict, sc) -> str:
         f"({far['calibration_seed']}). Every threat runs on the same plant noise as the "
         "attack-free column (common random numbers); the estimators keep their own "
         "assumptions about attacks. Threat set: "
-        f"`{Path(doc['threat_set']).name}`.\n",
-    ]
+        + (f"`{Path(doc['threat_set']).name}`.\n" if doc.get("threat_set")
+           else "built in Python (no file).\n"),
+    ]  # fmt: skip
     below = below_target_note(far)
     if below:
         parts.append(f"{below}\n")

@@ -187,8 +187,9 @@ for _name, (_particles, _trainer) in LEARNED.items():
     register(
         _name,
         f"neural FDI estimator {_HOW[_trainer].format('PF' if _particles else 'KF/EKF/UKF')} "
-        "(checkpoint), compensating the filter's measurements; alarm at its "
-        "validation-chosen threshold",
+        "(checkpoint), compensating the channel its card names (the measurements, or the "
+        "input under an actuator attack); alarm at its card's threshold (calibrated on "
+        "attack-free runs where the card has a calibration, else its training's choice)",
         learned=True,
     )(_learned(_name, _particles, _trainer))
 
