@@ -42,7 +42,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .linalg import LOG_2PI, matvec, safe_cholesky
+from .linalg import INNOVATION_COV, LOG_2PI, matvec, safe_cholesky
 from .parallel_kalman import combine_covariance, covariance_elements
 
 __all__ = [
@@ -419,7 +419,7 @@ def riccati_step(
     chol, info = torch.linalg.cholesky_ex(S)
     if S.device.type != "meta" and (info.item() if info.dim() == 0 else info.any().item()):
         # not numerically positive definite: jitter, or a clear error
-        chol = safe_cholesky(S, name="innovation covariance S")
+        chol = safe_cholesky(S, name=INNOVATION_COV)
     whiten = torch.linalg.solve_triangular(chol, eye_y.expand_as(chol), upper=False)  # L⁻¹
     K = (cross @ whiten.mT) @ whiten  # P⁻ Hᵀ S⁻¹ with S⁻¹ = L⁻ᵀ L⁻¹
     i_kh = _add_product(eye_x, K, H, subtract=True)  # I − K H

@@ -31,6 +31,7 @@ import torch
 from torch import Tensor
 
 from .linalg import (
+    INNOVATION_COV,
     cholesky_solve_right,
     gaussian_log_prob_chol,
     masked_measurement,
@@ -67,7 +68,7 @@ def kalman_gain(cross_cov: Tensor, innovation_cov: Tensor) -> tuple[Tensor, Tens
 
 def _gain(cross_cov: Tensor, S: Tensor) -> tuple[Tensor, Tensor]:
     """:func:`kalman_gain` of an ``S`` symmetrised already (symmetrising twice changes no bit)."""
-    chol = safe_cholesky(S, name="innovation covariance S")
+    chol = safe_cholesky(S, name=INNOVATION_COV)
     return cholesky_solve_right(cross_cov, chol), chol
 
 
@@ -208,7 +209,7 @@ def innovation_log_prob(residual: Tensor, innovation_cov: Tensor, observed: Tens
     """``log N(r; 0, S)`` ``[...]`` as :func:`gaussian_update` computes it (the same Cholesky
     factor of ``sym(S)``, the same density): for a caller that needs the evidence of a
     measurement without its update."""
-    chol = safe_cholesky(symmetrize(innovation_cov), name="innovation covariance S")
+    chol = safe_cholesky(symmetrize(innovation_cov), name=INNOVATION_COV)
     return gaussian_log_prob_chol(residual, chol, observed)
 
 

@@ -24,6 +24,12 @@ __all__ = [
     "rowwise_addcmul",
 ]
 
+#: How the filters name the innovation covariance in :func:`safe_cholesky`'s error: it is
+#: made from the model's covariances, which a user's optimiser may have made indefinite.
+INNOVATION_COV = ("innovation covariance S = H P⁻ Hᵀ + R (made from the model's Q, R and "
+                  "P0: each must stay positive definite, which training may have broken; "
+                  "docs/gradients.md)")  # fmt: skip
+
 LOG_2PI = math.log(2.0 * math.pi)
 
 

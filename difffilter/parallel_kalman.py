@@ -31,6 +31,7 @@ from torch import Tensor
 
 from .gaussian import joseph_covariance, kalman_gain
 from .linalg import (
+    INNOVATION_COV,
     gaussian_log_prob_chol,
     masked_measurement,
     matvec,
@@ -185,7 +186,7 @@ def parallel_kalman_filter(
     innovations = ys_m - matvec(H_m, pred_means)
     innov_covs = symmetrize(H_m @ pred_covs @ H_m.transpose(-1, -2) + R_m)
     increments = gaussian_log_prob_chol(
-        innovations, safe_cholesky(innov_covs, name="innovation covariance S"), observed
+        innovations, safe_cholesky(innov_covs, name=INNOVATION_COV), observed
     )
     increments = increments.expand(batch + (T,))
     return FilterResult(

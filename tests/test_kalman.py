@@ -991,3 +991,40 @@ def test_the_shared_gain_update_gives_the_gaussian_evidence():
     np.testing.assert_allclose(
         kf.innovation(carry, pred, ys, None)[2].numpy(), ref, rtol=0, atol=1e-10
     )
+
+
+def test_a_time_varying_model_without_the_flag_is_named():
+    """A user trial overrode transition_matrix(k) and forgot ``time_varying = True``: the
+    filters read the first step's F at every step (0.88 nats off at T = 60), silently."""
+    base = constant_velocity()
+
+    class Rotating(df.LinearGaussianModel):
+        def transition_matrix(self, k):
+            return self.F * (1.0 + 0.01 * k)
+
+    class Constant(df.LinearGaussianModel):  # overridden, but the same at every k
+        def transition_matrix(self, k):
+            return self.F
+
+    args = (base.F, base.H, base.process_noise.cov, base.measurement_noise.cov,
+            base.initial.mean, base.initial.cov)  # fmt: skip
+    ys = torch.zeros(2, 5, base.dim_y, dtype=base.F.dtype)
+    with pytest.raises(ValueError, match=r"Rotating.transition_matrix\(k\) differs .* set "
+                                         r"time_varying = True"):  # fmt: skip
+        df.kalman_filter(Rotating(*args), ys)
+    torch.testing.assert_close(df.kalman_filter(Constant(*args), ys).means,
+                               df.kalman_filter(base, ys).means)  # fmt: skip
+    Rotating.time_varying = True
+    df.kalman_filter(Rotating(*args), ys)  # declared: filtered with F_k
+
+
+def test_an_innovation_covariance_that_fails_names_the_models_covariances():
+    """A user trial's optimiser walked Q indefinite: the error named S alone and said to
+    check "the covariance you passed", which was Q."""
+    model = constant_velocity()
+    with torch.no_grad():
+        model.process_noise._cov.copy_(-10.0 * torch.eye(model.dim_x, dtype=model.F.dtype))
+    ys = torch.zeros(1, 3, model.dim_y, dtype=model.F.dtype)
+    with pytest.raises(ValueError, match=r"innovation covariance S = H P⁻ Hᵀ \+ R \(made from "
+                                         r"the model's Q, R and P0"):  # fmt: skip
+        df.kalman_filter(model, ys)
