@@ -86,9 +86,17 @@ def _alarm_spans(alarms: torch.Tensor, t: list[float], dt: float) -> list[tuple[
     return spans
 
 
-def _attacked_channel(attack: torch.Tensor) -> int:
-    """The channel of run 0 with the largest injected attack (channel 0 if none)."""
-    size = attack[0].abs().amax(dim=0)
+def shown_run(flags: torch.Tensor) -> int:
+    """The run the one-run figures show: the first with an attacked step (0 if none). A
+    scenario attacking a share of its runs may leave run 0 clean, and a user trial's
+    figures then showed an injected signal of zeros and no attacked step."""
+    attacked = flags.reshape(flags.shape[0], -1).any(-1).nonzero()
+    return int(attacked[0]) if attacked.numel() else 0
+
+
+def _attacked_channel(attack: torch.Tensor, run: int) -> int:
+    """The channel of ``run`` with the largest injected attack (channel 0 if none)."""
+    size = attack[run].abs().amax(dim=0)
     return int(size.argmax()) if attack.shape[-1] > 0 else 0
 
 
@@ -100,7 +108,8 @@ def png_bytes(fig: plt.Figure, dpi: int = 110) -> bytes:
 
 
 def standard_figures(result) -> list[tuple[str, plt.Figure]]:
-    """State RMSE over time, ROC curves, and run 0's alarms and attack estimates."""
+    """State RMSE over time, ROC curves, and one run's alarms and attack estimates (the
+    first attacked run, :func:`shown_run`; the files keep their names ``*_run0.png``)."""
     traj, outs = result.traj, result.outputs
     dt = result.scenario.dt
     T = traj.flags.shape[1]
@@ -128,20 +137,21 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
 
     estimating = {n: o for n, o in outs.items() if o.attack is not None}
     if estimating and traj.attack.shape[-1] > 0:
-        c = _attacked_channel(traj.attack)
+        r = shown_run(traj.flags)
+        c = _attacked_channel(traj.attack, r)
         fig, ax = plt.subplots(figsize=(8, 4))
-        injected = traj.attack[0, :, c]
+        injected = traj.attack[r, :, c]
         ax.plot(t, injected.numpy(), "k", lw=1.5, label="injected")
         for name, out in estimating.items():
             own = result.traj_of(name)
             if own.attack.shape[-1] != traj.attack.shape[-1] or not comparable_attack(out, own):
                 continue
-            if not torch.equal(own.attack[0, :, c], injected):  # its own closed loop's attack
-                ax.plot(t, own.attack[0, :, c].numpy(), "--", lw=1.2, color=colour[name],
+            if not torch.equal(own.attack[r, :, c], injected):  # its own closed loop's attack
+                ax.plot(t, own.attack[r, :, c].numpy(), "--", lw=1.2, color=colour[name],
                         label=f"injected in {name}'s loop")  # fmt: skip
-            ax.plot(t, out.attack[0, :, c].numpy(), lw=0.9, label=name, color=colour[name])
+            ax.plot(t, out.attack[r, :, c].numpy(), lw=0.9, label=name, color=colour[name])
         ax.set(xlabel="time [s]", ylabel=f"attack, channel {c + 1} [{result.scenario.attack_unit}]",
-               title=f"Run 0: attack estimates (channel {c + 1}, the most attacked)")  # fmt: skip
+               title=f"Run {r}: attack estimates (channel {c + 1}, the most attacked)")  # fmt: skip
         _legend(ax)
         figs.append(("attack_estimates_run0.png", fig))
     return figs
@@ -222,24 +232,26 @@ def _after_attack_figure(result, names, colour) -> plt.Figure:
 
 
 def _alarm_figure(result, detecting, colour, t, dt) -> plt.Figure:
-    """Run 0's attacked steps and each detector's alarms as bars of consecutive steps.
+    """One run's attacked steps and each detector's alarms as bars of consecutive steps
+    (the first attacked run, :func:`shown_run`).
 
     The top row is the study's attacked steps. A detector that ran on trajectories of its
-    own (its closed loop, :meth:`~difffilter.eval.suite.SuiteResult.traj_of`) whose run 0
+    own (its closed loop, :meth:`~difffilter.eval.suite.SuiteResult.traj_of`) whose run
     was attacked at other steps gets its own attacked steps as a grey band behind its
     alarms: each row reads against the attack it faced."""
-    study = result.traj.flags[0]
+    r = shown_run(result.traj.flags)
+    study = result.traj.flags[r]
     rows = len(detecting) + 1
     fig, ax = plt.subplots(figsize=(8, 0.32 * rows + 1.2))
     ax.broken_barh(_alarm_spans(study, t, dt), (rows - 1 - 0.35, 0.7), color="k")
     for i, (name, out) in enumerate(detecting.items(), start=1):
-        own = result.traj_of(name).flags[0]
+        own = result.traj_of(name).flags[r]
         if not torch.equal(own, study):
             ax.broken_barh(_alarm_spans(own, t, dt), (rows - 1 - i - 0.5, 1.0), color="0.85")
-        spans = _alarm_spans(out.detection.alarms[0], t, dt)
+        spans = _alarm_spans(out.detection.alarms[r], t, dt)
         ax.broken_barh(spans, (rows - 1 - i - 0.35, 0.7), color=colour[name])
     ax.set_yticks(range(rows - 1, -1, -1), ["attacked", *detecting], fontsize=7)
     ax.set(xlabel="time [s]", xlim=(0, t[-1] + dt), ylim=(-0.6, rows - 0.4),
-           title="Run 0: attacked steps and alarms")  # fmt: skip
+           title=f"Run {r}: attacked steps and alarms")  # fmt: skip
     ax.grid(axis="x", lw=0.3, color="0.85")
     return fig

@@ -114,3 +114,20 @@ def test_a_calibrated_study_shows_its_false_alarms_after_an_attack(figures):
     # detector without false alarms as one with 0.2 % of them)
     zero = lines["no alarm at all"]
     assert list(zero.get_ydata()) == pytest.approx([floor, floor])
+
+
+def test_the_one_run_figures_show_the_first_attacked_run():
+    """A user trial's scenario attacked half its runs, run 0 not: its figures showed an
+    injected signal of zeros and an empty attacked row."""
+    import torch
+
+    from difffilter.eval.plots import shown_run
+
+    flags = torch.zeros(4, 6, dtype=torch.bool)
+    assert shown_run(flags) == 0  # nothing attacked: run 0
+    flags[2, 3] = True
+    flags[3, 1] = True
+    assert shown_run(flags) == 2
+    per_entry = torch.zeros(3, 6, 2, dtype=torch.bool)
+    per_entry[1, 4, 1] = True
+    assert shown_run(per_entry) == 1
