@@ -146,3 +146,53 @@ def test_the_adversarys_attack_survives_a_checkpoint(tmp_path):
     assert torch.equal(fresh.adversary.attack, task.adversary.attack)
     assert fresh.adversary.onset == 30 and fresh.adversary.history == [(16, 30, 0.5)]
     assert not fresh.adversary.due(17) and fresh.adversary.due(32)
+
+
+def test_a_crafting_between_validations_crafts_under_the_current_networks_threshold(
+    tmp_path, monkeypatch
+):  # fmt: skip
+    """A user trial crafted every 3 steps of 4-batch epochs: between validations the
+    adversary read the threshold of older weights, at which the current network alarmed on
+    100 % of the attack-free crafting runs, so the alarm budget constrained nothing."""
+    from pathlib import Path
+
+    from difffilter.metrics import finite_scores, threshold_for
+    from difffilter.train import adversarial
+    from difffilter.train.cli import main
+
+    seen = []
+    real = adversarial.craft_stealthy_attack
+
+    def recording(estimator, system, *args, **kwargs):
+        task = recording.task
+        free, _ = task._evaluate(*task.trainer.datamodule.calibration_data())
+        fresh = threshold_for(finite_scores(free.detection.scores), task.false_alarm_rate)
+        seen.append((task.global_step, args[2], fresh, float(task.alarm_threshold)))
+        return real(estimator, system, *args, **kwargs)
+
+    original_craft = adversarial.Adversary.craft
+
+    def craft(self, task, step):
+        recording.task = task
+        return original_craft(self, task, step)
+
+    monkeypatch.setattr(adversarial, "craft_stealthy_attack", recording)
+    monkeypatch.setattr(adversarial.Adversary, "craft", craft)
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    args = [
+        "fit", "--config", str(root / "train" / "configs" / "four_tank.yaml"),
+        "--data.init_args.batch_size=2", "--data.init_args.batches_per_epoch=2",
+        "--data.init_args.val_runs=4", "--model.init_args.num_particles=20",
+        "--model.init_args.hidden=4", "--trainer.max_epochs=2",
+        "--model.init_args.adversarial_runs=2", "--model.init_args.adversarial_iterations=2",
+        "--model.init_args.adversarial_every=1",
+    ]  # fmt: skip
+    assert main(args) == 0
+    assert [s[0] for s in seen] == [2, 3]
+    for _, used, fresh, _ in seen:
+        assert used == fresh  # the threshold of the weights the attack is crafted against
+    (_, _, _, validated), (_, used_later, _, stale) = seen
+    assert seen[0][1] == validated  # right after the validation: its own threshold
+    assert used_later != stale  # a step later, the weights moved: chosen again

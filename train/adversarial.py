@@ -3,7 +3,8 @@
 A min–max alternation. Every ``every`` training steps the adversary crafts one stealthy
 sensor attack against the network as it is (:func:`difffilter.stealthy.craft_stealthy_
 attack`: maximise the state error through the training filter, with the network's own
-detection score held under its current threshold, the validation's calibrated one),
+detection score held under its current threshold: chosen for the weights as they are,
+as the validation chooses it, ``task.current_threshold()``),
 ``iterations`` Adam steps on ``crafting_runs`` attack-free runs, from a random onset. Until
 the next crafting, every training batch gets ``runs`` more runs under that attack, on
 fresh noise::
@@ -95,7 +96,7 @@ class Adversary:
             with torch.enable_grad():
                 crafted = craft_stealthy_attack(
                     estimator, task.system, tr.y_true.to(device), tr.x.to(device),
-                    float(task.alarm_threshold), far=task.false_alarm_rate, us=us, onset=onset,
+                    task.current_threshold(), far=task.false_alarm_rate, us=us, onset=onset,
                     settings=StealthySettings(iterations=self.iterations), generator=generators,
                 )  # fmt: skip
         finally:

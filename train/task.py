@@ -712,6 +712,20 @@ class FilterEstimatorTask(pl.LightningModule):
         threshold = threshold_for(quiet, self.false_alarm_rate)
         return threshold, float((quiet > threshold).double().mean()), False
 
+    def current_threshold(self) -> float:
+        """τ for the weights as they are now, chosen as validation chooses it, on the data
+        module's attack-free calibration runs (the same number as the last validation's
+        where the weights have not changed since); the last validation's where there are
+        no such runs. What the adversary crafts under: a crafting between validations
+        had read the threshold of older weights (a user trial: every 3 steps of 4 a
+        batch, the current network alarmed on 100 % of the crafting runs at it, and the
+        alarm budget constrained nothing)."""
+        dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        if dm is None or not hasattr(dm, "calibration_data") or dm.calibration_data() is None:
+            return float(self.alarm_threshold)
+        empty = torch.zeros(0, dtype=torch.bool)  # (not read: the calibration runs decide)
+        return self._choose_threshold(empty, empty)[0]
+
     def _scores(self, stage: str, scenario, batch, threshold: float | None) -> dict:
         """Evaluate on ``batch``; with ``threshold=None`` choose it (validation)."""
         out, truth = self._evaluate(scenario, batch)
