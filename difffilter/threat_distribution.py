@@ -78,6 +78,8 @@ def _check_draw(where: str, value: dict) -> None:
         )
     if "signed" in value and kind not in ("uniform", "loguniform"):
         raise ValueError(f"{where}: signed applies to uniform and loguniform only")
+    if not isinstance(value.get("signed", False), bool):  # ("no" was read as true)
+        raise ValueError(f"{where}: signed must be true or false; got {value['signed']!r}")
 
 
 def _extremes(value) -> list:
@@ -217,12 +219,33 @@ class ThreatDistribution:
             same_kind.append(own)
         if not same_kind:
             return HELD_OUT
+        spec = self._entries_listed(spec)
         for entry in same_kind:
+            entry = self._entries_listed(entry)
             names = (set(spec) | set(entry)) - {"kind", "weight"}
             if all(_drawable(entry.get(f, _default(kind, f)), spec.get(f, _default(kind, f)))
                    for f in names):  # fmt: skip
                 return WITHIN
         return KIND_ONLY
+
+    def _entries_listed(self, spec: dict) -> dict:
+        """``spec`` with ``entries: null`` (every entry of the channel) written as the list
+        of them, where :attr:`model` gives the channel's width: ``[0, 1, 2, 3]`` and
+        ``null`` are the same attack on the four-tank's sensors (a trial read them as
+        another). Unchanged without a model."""
+        if self.model is None or spec.get("kind") in (None, "covert"):
+            return spec
+        actuator = str(spec.get("channel", "sensor")) in ("actuator", "Channel.ACTUATOR")
+        width = self.model.dim_u if actuator else self.model.dim_y
+        every = list(range(width))
+        value = spec.get("entries", _default(spec["kind"], "entries"))
+        if value is _NO_DEFAULT:
+            return spec
+        if _is_draw(value) and "choice" in value:
+            value = {**value, "choice": [every if o is None else o for o in value["choice"]]}
+        elif value is None:
+            value = every
+        return {**spec, "entries": value}
 
     def onsets_past(self, steps: int) -> dict[str, float]:
         """``{name: share}``: the components of positive weight whose ``onset`` (the first
@@ -330,6 +353,7 @@ def _drawable(field_spec, value) -> bool:
         lo, hi = field_spec["randint"]
         return x == int(x) and lo <= x <= hi
     lo, hi = field_spec.get("uniform") or field_spec["loguniform"]
-    magnitude = abs(x) if field_spec.get("signed") else x
     slack = 1e-9 * max(abs(lo), abs(hi), 1.0)
-    return lo - slack <= magnitude <= hi + slack
+    # signed: the draw from [lo, hi] or its negative (a magnitude test held only for lo >= 0)
+    candidates = (x, -x) if field_spec.get("signed") else (x,)
+    return any(lo - slack <= c <= hi + slack for c in candidates)

@@ -138,6 +138,7 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
             spec = dict(specs[name])
             if spec.get("kind") == "stealthy":  # crafted when the study runs (eval.stealthy)
                 threats[name] = StealthySpec.from_dict(spec)
+                threats[name].check_fits(model)
             else:
                 threats[name] = threat_from_dict(spec, model=model)
             # (a crafted threat: its onset only; a library threat: its widths too)

@@ -55,6 +55,33 @@ class StealthySpec:
     train_runs: int = 64
     settings: StealthySettings = field(default_factory=StealthySettings)
 
+    def __post_init__(self):
+        # named when the threat set loads (a trial's onset 0, train_runs 0, entries [9] and
+        # against: nope failed after the calibration and the earlier threats had run, as
+        # "runs must be an integer >= 1", naming neither the threat nor the field)
+        craftable = (*GATED, "normal_pf", *LEARNED)
+        if self.against not in craftable:
+            raise ValueError(f"against must be a detector to craft against: one of "
+                             f"{', '.join(craftable)}; got {self.against!r}")  # fmt: skip
+        for name in ("onset", "train_runs"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
+        entries = self.entries
+        if entries is not None and not (
+            isinstance(entries, tuple) and entries
+            and all(isinstance(e, int) and not isinstance(e, bool) and e >= 0 for e in entries)
+        ):  # fmt: skip
+            raise ValueError(f"entries must be a list of measurement indices >= 0 or null; "
+                             f"got {entries!r}")  # fmt: skip
+
+    def check_fits(self, model) -> None:
+        """``ValueError`` where ``entries`` name a measurement ``model`` does not have."""
+        wide = [e for e in self.entries or () if e >= model.dim_y]
+        if wide:
+            raise ValueError(f"entries {list(self.entries)} name entries beyond the "
+                             f"{model.dim_y} measurements")  # fmt: skip
+
     @classmethod
     def from_dict(cls, spec: dict) -> StealthySpec:
         params = {k: v for k, v in spec.items() if k != "kind"}
@@ -67,7 +94,7 @@ class StealthySpec:
                 f"stealthy threat has no field(s) {', '.join(unknown)}; valid: "
                 f"{', '.join(sorted(valid | names))}"
             )
-        if params.get("entries") is not None:
+        if isinstance(params.get("entries"), list):
             params["entries"] = tuple(params["entries"])
         return cls(settings=settings, **params)
 

@@ -168,6 +168,18 @@ def test_a_stealthy_threat_is_data_crafted_when_the_study_runs():
     assert spec.onset == 21 and spec.settings.iterations == 250
     with pytest.raises(ValueError, match="no field.*target.*valid"):
         StealthySpec.from_dict({"kind": "stealthy", "target": "x"})
+    # named when the set loads (a trial's entries failed after the calibration had run,
+    # as "runs must be an integer >= 1", naming neither the threat nor the field)
+    for change, why in (({"onset": 0}, "onset must be an integer >= 1; got 0"),
+                        ({"train_runs": 0}, "train_runs must be an integer >= 1"),
+                        ({"against": "nope"}, "against must be a detector .*chi_square_ekf"),
+                        ({"entries": ["a"]}, "entries must be a list of measurement indices")):  # fmt: skip
+        with pytest.raises(ValueError, match=why):
+            StealthySpec.from_dict({"kind": "stealthy", **change})
+    with pytest.raises(ValueError, match=r"entries \[9\] name entries beyond the 4 measurements"):
+        StealthySpec.from_dict({"kind": "stealthy", "entries": [9]}).check_fits(
+            registry.get("four_tank_bias").system()
+        )
 
 
 def test_a_random_threat_meets_every_lfc_estimator_with_the_same_draws():

@@ -73,6 +73,28 @@ def test_every_threat_the_distribution_draws_is_within_it_and_others_are_named()
     assert ramp.covers({"kind": "ramp", "slope": 0.05, "onset": 3}) == WITHIN
     assert ramp.covers({"kind": "ramp", "slope": -0.05, "onset": 3}) == KIND_ONLY  # unsigned
     assert ramp.covers({"kind": "ramp", "slope": 0.05}) == KIND_ONLY  # onset defaults to 1
+    # a signed range of negative numbers draws [lo, hi] and its negative (a trial: 0.5 and
+    # -0.5 read "kind only" under [-1, -0.2], signed)
+    negative = ThreatDistribution({"b": {"weight": 1, "kind": "bias",
+                                         "value": {"uniform": [-1.0, -0.2], "signed": True}}})  # fmt: skip
+    assert [negative.covers({"kind": "bias", "value": v}) for v in (0.5, -0.5, 0.1, -1.5)] == [
+        WITHIN, WITHIN, KIND_ONLY, KIND_ONLY]  # fmt: skip
+
+
+def test_every_entry_listed_is_the_attack_on_every_entry_where_the_model_says_how_many():
+    """A trial: entries [0, 1, 2, 3] against a component of entries null (all four, the
+    same attack on the four-tank's sensors) read "kind only"."""
+    from difffilter.models import registry
+
+    model = registry.get("four_tank_bias").system()
+    every = ThreatDistribution({"b": {"weight": 1, "kind": "bias", "value": 0.5}}, model=model)
+    assert every.covers({"kind": "bias", "value": 0.5, "entries": [0, 1, 2, 3]}) == WITHIN
+    assert every.covers({"kind": "bias", "value": 0.5, "entries": [0]}) == KIND_ONLY
+    chosen = ThreatDistribution({"b": {"weight": 1, "kind": "bias", "value": 0.5,
+                                       "entries": {"choice": [[0], None]}}}, model=model)  # fmt: skip
+    assert chosen.covers({"kind": "bias", "value": 0.5, "entries": [0, 1, 2, 3]}) == WITHIN
+    assert chosen.covers({"kind": "bias", "value": 0.5}) == WITHIN
+    assert chosen.covers({"kind": "bias", "value": 0.5, "entries": [2]}) == KIND_ONLY
 
 
 @pytest.mark.parametrize(
@@ -93,6 +115,8 @@ def test_every_threat_the_distribution_draws_is_within_it_and_others_are_named()
         ({"b": {"weight": 1, "kind": "bias", "value": {"uniform": [1, 2], "sine": 1}}}, "a random field is one of"),
         ({"b": {"weight": 1, "kind": "bias", "speed": 3}}, r"threats.b: threat 'bias' has no field\(s\) speed"),
         ({"b": {"weight": 0, "kind": "bias"}}, "must not all be 0"),
+        ({"b": {"weight": 1, "kind": "bias", "value": {"uniform": [1, 2], "signed": "no"}}},
+         r"threats.b.value: signed must be true or false; got 'no'"),
         # two random fields that constrain each other, at their extremes together (one at a
         # time, 26 of 500 draws of the replay failed at sampling, mid-training)
         ({"r": {"weight": 1, "kind": "replay", "delay": {"randint": [1, 20]}, "onset": {"randint": [15, 40]}}},
