@@ -37,6 +37,22 @@ def test_roc_auc_matches_pairwise_definition():
     assert math.isnan(metrics.roc_auc(scores, torch.ones(400, dtype=torch.bool)))
 
 
+def test_a_perfect_detectors_auc_is_one_not_one_plus_round_off():
+    """A statistician's trial read AUC = 1.0000000000000002 in lfc_step's metrics.json."""
+    g = torch.Generator().manual_seed(0)
+    hits = 0
+    for _ in range(60):  # perfectly separated scores of random sizes and class shares
+        n = int(torch.randint(20, 3000, (1,), generator=g))
+        labels = torch.rand(n, generator=g) < torch.rand(1, generator=g)
+        if bool(labels.all()) or not bool(labels.any()):
+            continue
+        scores = labels.double() * 2 + torch.rand(n, generator=g, dtype=torch.float64)
+        fpr, tpr, _ = metrics.roc_curve(scores, labels)
+        hits += float(torch.trapezoid(tpr, fpr)) > 1.0  # the round-off is there
+        assert metrics.roc_auc(scores, labels) == 1.0
+    assert hits >= 1
+
+
 def test_detection_delay_episodes():
     attacked = torch.tensor([[0, 1, 1, 1, 0, 0, 1, 1], [1, 1, 0, 0, 0, 0, 0, 0]], dtype=torch.bool)
     alarms = torch.tensor([[0, 0, 0, 1, 0, 1, 0, 0], [1, 0, 0, 0, 0, 0, 0, 0]], dtype=torch.bool)
