@@ -403,7 +403,7 @@ def test_the_adversarys_onset_is_drawn_from_first_to_last_both_included(monkeypa
         scenario_of_data=lambda: scenario, hparams=types.SimpleNamespace(model_seed=0),
         estimator_object=lambda training: None,
         estimator=types.SimpleNamespace(parameters=lambda: [Param()]), device="cpu",
-        system=None, alarm_threshold=torch.tensor(1.0), false_alarm_rate=0.01,
+        system=None, current_threshold=lambda: 1.0, false_alarm_rate=0.01,
         _dtype=torch.float32,
     )  # fmt: skip
     for onsets, want in (((5, 6), {5, 6}), ((8, 60), {8, 9, 10})):
