@@ -9,13 +9,16 @@ One step ``k−1 → k`` (weights in log space throughout)::
     normalise  log w_k^i = log w^i + log α^i − log p̂(y_k | y_{1:k−1})
 
 **Degenerate steps.** When every ``log w^i + log α^i`` of a run is ``−inf`` (a measurement
-so far from every particle that its likelihood underflows, e.g. one reading of 1e19 on
-a float32 model), the normalisation is ``−inf − (−inf) = NaN`` and would poison the run
+so far from every particle that its log-likelihood overflows, e.g. one reading of 1e20
+on a float32 model with noise of order one; at 1e19 it is still a finite −5e37 and the
+step is not flagged), the normalisation is ``−inf − (−inf) = NaN`` and would poison the run
 forever. Policy: that run's weights are reset to the predictive weights (``w^i`` times
 the proposal correction, normalised; uniform after resampling), the particles are kept,
 the step is flagged in ``degenerate`` (step output and filter result), its evidence
 increment stays ``−inf`` (the measurement had numerically zero likelihood: the
-log-likelihood says so rather than hiding it), and filtering continues.
+log-likelihood says so rather than hiding it), and filtering continues. A collapse
+without underflow (one particle holding nearly all the weight at every step, under a
+likelihood much narrower than the cloud) is not flagged: the ``ess`` output shows it.
 
 The bootstrap proposal is the transition (``c = 0``). ``log p̂(y_{1:T})`` is the sum of
 the increments; it is unbiased for ``p(y_{1:T})`` with resampling that keeps every
