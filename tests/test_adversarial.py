@@ -63,25 +63,30 @@ def test_adversarial_options_are_checked(kwargs, why):
         FilterEstimatorTask("robot_actuator_attack", filter="ekf", adversarial_runs=2)
 
 
-def test_an_adversarial_fit_crafts_after_the_first_validation_and_logs_it(tmp_path, monkeypatch):
+def _small_adversarial_fit(tmp_path, monkeypatch, *more: str) -> list[str]:
+    """A tiny four-tank fit in ``tmp_path``, crafting at every step from epoch 1 on."""
     from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    return [
+        "fit", "--config", str(root / "train" / "configs" / "four_tank.yaml"),
+        "--data.init_args.batch_size=2", "--data.init_args.batches_per_epoch=2",
+        "--data.init_args.val_runs=4", "--model.init_args.num_particles=20",
+        "--model.init_args.hidden=4", "--trainer.max_epochs=2",
+        "--model.init_args.adversarial_runs=2", "--model.init_args.adversarial_iterations=2",
+        "--model.init_args.adversarial_every=1", *more,
+    ]  # fmt: skip
+
+
+def test_an_adversarial_fit_crafts_after_the_first_validation_and_logs_it(tmp_path, monkeypatch):
 
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     from difffilter.train.cli import main
 
-    root = Path(__file__).resolve().parents[1]
-    monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr("sys.argv", ["difffilter-train"])
-    args = [
-        "fit", "--config", str(root / "train" / "configs" / "four_tank.yaml"),
-        "--data.init_args.batch_size=2", "--data.init_args.batches_per_epoch=2",
-        "--data.init_args.val_runs=4", "--model.init_args.num_particles=20",
-        "--model.init_args.hidden=4", "--trainer.max_epochs=2", "--trainer.log_every_n_steps=1",
-        "--model.init_args.adversarial_runs=2", "--model.init_args.adversarial_iterations=2",
-        "--model.init_args.adversarial_every=1",
-    ]  # fmt: skip
-    assert main(args) == 0
+    assert main(_small_adversarial_fit(tmp_path, monkeypatch, "--trainer.log_every_n_steps=1")) == 0
     run = tmp_path / "lightning_logs" / "four_tank_nn_grad" / "version_0"
     events = EventAccumulator(str(run)).Reload()
     crafted = events.Scalars("train/adversarial_error")
@@ -154,7 +159,6 @@ def test_a_crafting_between_validations_crafts_under_the_current_networks_thresh
     """A user trial crafted every 3 steps of 4-batch epochs: between validations the
     adversary read the threshold of older weights, at which the current network alarmed on
     100 % of the attack-free crafting runs, so the alarm budget constrained nothing."""
-    from pathlib import Path
 
     from difffilter.metrics import finite_scores, threshold_for
     from difffilter.train import adversarial
@@ -178,18 +182,7 @@ def test_a_crafting_between_validations_crafts_under_the_current_networks_thresh
 
     monkeypatch.setattr(adversarial, "craft_stealthy_attack", recording)
     monkeypatch.setattr(adversarial.Adversary, "craft", craft)
-    root = Path(__file__).resolve().parents[1]
-    monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr("sys.argv", ["difffilter-train"])
-    args = [
-        "fit", "--config", str(root / "train" / "configs" / "four_tank.yaml"),
-        "--data.init_args.batch_size=2", "--data.init_args.batches_per_epoch=2",
-        "--data.init_args.val_runs=4", "--model.init_args.num_particles=20",
-        "--model.init_args.hidden=4", "--trainer.max_epochs=2",
-        "--model.init_args.adversarial_runs=2", "--model.init_args.adversarial_iterations=2",
-        "--model.init_args.adversarial_every=1",
-    ]  # fmt: skip
-    assert main(args) == 0
+    assert main(_small_adversarial_fit(tmp_path, monkeypatch)) == 0
     assert [s[0] for s in seen] == [2, 3]
     for _, used, fresh, _ in seen:
         assert used == fresh  # the threshold of the weights the attack is crafted against
