@@ -28,8 +28,10 @@ counterpart of the whole-sequence shared-covariance path of
 :func:`difffilter.kalman_filter`: :class:`~difffilter.KalmanFilter` uses it by itself
 for an unbatched time-invariant model, so a closed loop (where ``u_k`` depends on the
 estimate) pays the covariance recursion once, not once per step of every loop. Once the
-gain has converged (largest relative change of ``K`` at most ``tol``) the last moments
-are reused for every later step. :meth:`GainSchedule.filter_step` is the whole step of
+gain and the covariance have converged (relative changes at most ``tol``, each entry of
+``P`` against its own scale and tighter for a slow recursion:
+:meth:`CovarianceChunks._steps_to_keep`) the last moments are reused for every later step.
+:meth:`GainSchedule.filter_step` is the whole step of
 every run fused (about eight tensor operations: the online Kalman step at B = 1 costs
 little more than the Python call).
 """
@@ -100,9 +102,10 @@ class GainSchedule:
             ``process_cov``, ``measurement_cov``, ``control_matrix``; e.g.
             :class:`~difffilter.LinearGaussianModel`) whose matrices and prior carry no batch
             dimension.
-        tol: relative change of ``K`` below which the gain counts as converged (at least
-            16 ε of the matrices' dtype: a chunk's steps are computed from its first by
-            different products, so below that the change is round-off; 1.9e-6 in float32).
+        tol: relative change of ``K`` and of each entry of ``P`` below which the recursion
+            counts as converged (at least 16 ε of the matrices' dtype: a chunk's steps are
+            computed from its first by different products, so below that the change is
+            round-off; 1.9e-6 in float32; :meth:`CovarianceChunks._steps_to_keep`).
     """
 
     def __init__(self, model, *, tol: float = 1e-12):
@@ -304,14 +307,15 @@ class CovarianceChunks:
     Args:
         F, H, Q, R: ``[dx, dx]``, ``[dy, dx]``, ``[dx, dx]``, ``[dy, dy]``.
         cov: the prior covariance ``P_0 [dx, dx]``.
-        tol: the convergence test's relative change of ``K``, ``max |K_k − K_{k−1}| ≤ tol ·
-            max |K_{k−1}|``, at least 16 ε of the dtype (:class:`GainSchedule`).
+        tol: the convergence test's relative change (:meth:`_steps_to_keep`), at least
+            16 ε of the dtype (:class:`GainSchedule`).
     """
 
     #: Blocks of ``BLOCK`` steps (the maps ``E(1 … BLOCK)``); the first chunk one block (a
     #: filter run for a few steps computes little ahead), each later one ``GROWTH`` times
-    #: the steps done, at most ``MAX_BLOCKS`` blocks (the benchmark's model converges in 110
-    #: steps: two chunks; one chunk of 128 steps measured no faster).
+    #: the steps done, at most ``MAX_BLOCKS`` blocks (the benchmark's model converged in 110
+    #: steps, two chunks, and in about 150 since the per-entry test of 2026-11-30; one chunk
+    #: of 128 steps measured no faster).
     BLOCK, GROWTH, MAX_BLOCKS = 16, 7, 8
 
     def __init__(self, F: Tensor, H: Tensor, Q: Tensor, R: Tensor, cov: Tensor, tol: float):
