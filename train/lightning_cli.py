@@ -233,7 +233,7 @@ def run(args: list[str] | None, argv: list[str], description: str) -> int:
     parser_kwargs = {**raising, "description": description,
                      **{name: {**raising, "description": shortcut} for name in commands}}  # fmt: skip
     try:
-        DifffilterCLI(
+        cli = DifffilterCLI(
             pl.LightningModule,
             pl.LightningDataModule,
             subclass_mode_model=True,
@@ -252,4 +252,5 @@ def run(args: list[str] | None, argv: list[str], description: str) -> int:
         # a user error (a setting out of range, a missing file): one line, no traceback
         print(f"difffilter-train: error: {_reason(str(exc))}", file=sys.stderr)
         return 2
-    return 0
+    # Ctrl-C: Lightning from 2.3 exits 1 itself; 2.2 returned from fit as if it had ended
+    return 1 if getattr(getattr(cli, "trainer", None), "interrupted", False) else 0
