@@ -313,9 +313,9 @@ class CovarianceChunks:
 
     #: Blocks of ``BLOCK`` steps (the maps ``E(1 … BLOCK)``); the first chunk one block (a
     #: filter run for a few steps computes little ahead), each later one ``GROWTH`` times
-    #: the steps done, at most ``MAX_BLOCKS`` blocks (the benchmark's model converged in 110
-    #: steps, two chunks, and in about 150 since the per-entry test of 2026-11-30; one chunk
-    #: of 128 steps measured no faster).
+    #: the steps done, at most ``MAX_BLOCKS`` blocks (the benchmark's model converges in 110
+    #: steps, 123 since the per-entry test of 2026-11-30: two chunks; one chunk of 128 steps
+    #: measured no faster).
     BLOCK, GROWTH, MAX_BLOCKS = 16, 7, 8
 
     def __init__(self, F: Tensor, H: Tensor, Q: Tensor, R: Tensor, cov: Tensor, tol: float):
