@@ -9,8 +9,8 @@ the cache folder for every later process.
 The folder is ``$DIFFFILTER_CACHE`` if set (``off`` turns the disk cache off), else
 ``$XDG_CACHE_HOME/difffilter``, else ``~/.cache/difffilter``; each calibration is
 ``calibrations/<kind>-<sha256>.json``. The file name hashes the key and a fingerprint of
-the model: its type, every tensor it holds (matrices, noise covariances, the prior) and
-the code, constants, default arguments and closures of the functions it holds (a nonlinear
+the model: its type, every tensor or numpy array it holds (matrices, noise covariances,
+the prior) and the code, constants, default arguments and closures of the functions it holds (a nonlinear
 plant's ``f`` and ``h``) with the module-level values and helper functions they read by
 name, so editing the plant gives a new file, never a stale number. A module is hashed by
 its name only: a constant read through one (``params.G``) is not seen, and after editing
@@ -26,6 +26,7 @@ import types
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from .atomic_write import write_atomically
@@ -53,6 +54,11 @@ def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
     if isinstance(value, torch.Tensor):
         digest.update(str((value.dtype, tuple(value.shape))).encode())
         digest.update(value.detach().cpu().contiguous().numpy().tobytes())
+        return
+    if isinstance(value, (np.ndarray, np.generic)):  # (a plant's constants in numpy)
+        array = np.ascontiguousarray(value)
+        digest.update(str((array.dtype, array.shape)).encode())
+        digest.update(array.tobytes())
         return
     if isinstance(value, (int, float, str, bool, type(None))):
         digest.update(repr(value).encode())

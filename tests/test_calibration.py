@@ -179,13 +179,17 @@ def test_the_fingerprint_sees_the_constants_and_helpers_a_plant_reads(tmp_path, 
         "def f(x):\n    return x + 0.1 * _rate(x)\n"
     )
     variants = {"plant_a": ("9.81", "-G * torch.sin(x)"), "plant_b": ("9.81", "-G * torch.sin(x)"),
-                "plant_g": ("2.0", "-G * torch.sin(x)"), "plant_h": ("9.81", "-G * torch.cos(x)")}  # fmt: skip
+                "plant_g": ("2.0", "-G * torch.sin(x)"), "plant_h": ("9.81", "-G * torch.cos(x)"),
+                # a constant in numpy, read as a module-level array
+                "plant_n": ("__import__('numpy').array([9.81])", "-float(G[0]) * torch.sin(x)"),
+                "plant_m": ("__import__('numpy').array([2.0])", "-float(G[0]) * torch.sin(x)")}  # fmt: skip
     for name, (g, rate) in variants.items():
         (tmp_path / f"{name}.py").write_text(source.format(g=g, rate=rate))
     monkeypatch.syspath_prepend(str(tmp_path))
     prints = {n: model_fingerprint(importlib.import_module(n).f) for n in variants}
     assert prints["plant_a"] == prints["plant_b"]  # the same plant in another module
     assert len({prints["plant_a"], prints["plant_g"], prints["plant_h"]}) == 3
+    assert prints["plant_n"] != prints["plant_m"]  # a numpy constant by its values
 
 
 def test_a_fingerprint_is_the_same_in_every_process(tmp_path):
