@@ -35,7 +35,7 @@ from typing import Any
 
 import torch
 
-from .attack import Attack
+from .attack import Attack, Channel
 from .threats import THREATS, check_attack_fits, threat_from_dict
 
 __all__ = ["ThreatDistribution", "WITHIN", "KIND_ONLY", "HELD_OUT", "threat_spec"]
@@ -235,7 +235,7 @@ class ThreatDistribution:
         another). Unchanged without a model."""
         if self.model is None or spec.get("kind") in (None, "covert"):
             return spec
-        actuator = str(spec.get("channel", "sensor")) in ("actuator", "Channel.ACTUATOR")
+        actuator = Channel(spec.get("channel", Channel.SENSOR)) is Channel.ACTUATOR
         width = self.model.dim_u if actuator else self.model.dim_y
         every = list(range(width))
         value = spec.get("entries", _default(spec["kind"], "entries"))

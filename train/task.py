@@ -469,6 +469,8 @@ class FilterEstimatorTask(pl.LightningModule):
                 )
         self.automatic_optimization = False
         self.adversary = None
+        self._calibrated_at: int | None = None  # the step of the last threshold chosen on
+        # calibration runs (current_threshold reuses it while no step has trained since)
         if adversarial_runs:
             self.adversary = Adversary(
                 adversarial_runs, adversarial_iterations, adversarial_every,
@@ -699,32 +701,40 @@ class FilterEstimatorTask(pl.LightningModule):
         for ``target_false_alarm_rate`` on the data module's attack-free calibration runs
         (:func:`~difffilter.metrics.threshold_for`, as ``difffilter-train calibrate`` and
         the evaluation choose it), else on the attack-free steps of ``score``."""
-        dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
-        data = dm.calibration_data() if hasattr(dm, "calibration_data") else None
-        if data is not None:
-            free, _ = self._evaluate(*data)
-            calibration = finite_scores(free.detection.scores)
-            threshold = threshold_for(calibration, self.false_alarm_rate)
-            return threshold, float((calibration > threshold).double().mean()), True
+        chosen = self._calibrated_threshold()
+        if chosen is not None:
+            return (*chosen, True)
         quiet = finite_scores(score[~flags])
         if not quiet.numel():
             return 0.5, math.nan, False
         threshold = threshold_for(quiet, self.false_alarm_rate)
         return threshold, float((quiet > threshold).double().mean()), False
 
+    def _calibrated_threshold(self) -> tuple[float, float] | None:
+        """``(τ, its false-alarm rate there)`` for ``target_false_alarm_rate`` on the data
+        module's attack-free calibration runs, for the weights as they are; ``None`` without
+        such runs."""
+        dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        data = dm.calibration_data() if hasattr(dm, "calibration_data") else None
+        if data is None:
+            return None
+        free, _ = self._evaluate(*data)
+        calibration = finite_scores(free.detection.scores)
+        threshold = threshold_for(calibration, self.false_alarm_rate)
+        return threshold, float((calibration > threshold).double().mean())
+
     def current_threshold(self) -> float:
         """τ for the weights as they are now, chosen as validation chooses it, on the data
-        module's attack-free calibration runs (the same number as the last validation's
-        where the weights have not changed since); the last validation's where there are
-        no such runs. What the adversary crafts under: a crafting between validations
-        had read the threshold of older weights (a user trial: every 3 steps of 4 a
-        batch, the current network alarmed on 100 % of the crafting runs at it, and the
-        alarm budget constrained nothing)."""
-        dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
-        if dm is None or not hasattr(dm, "calibration_data") or dm.calibration_data() is None:
+        module's attack-free calibration runs: the last validation's where the weights have
+        not changed since (no training step after it), else chosen again; the last
+        validation's where there are no such runs. What the adversary crafts under: a
+        crafting between validations had read the threshold of older weights (a user
+        trial: every 3 steps of 4 a batch, the current network alarmed on 100 % of the
+        crafting runs at it, and the alarm budget constrained nothing)."""
+        if self._calibrated_at == self.global_step:
             return float(self.alarm_threshold)
-        empty = torch.zeros(0, dtype=torch.bool)  # (not read: the calibration runs decide)
-        return self._choose_threshold(empty, empty)[0]
+        chosen = self._calibrated_threshold()
+        return float(self.alarm_threshold) if chosen is None else chosen[0]
 
     def _scores(self, stage: str, scenario, batch, threshold: float | None) -> dict:
         """Evaluate on ``batch``; with ``threshold=None`` choose it (validation)."""
@@ -733,6 +743,8 @@ class FilterEstimatorTask(pl.LightningModule):
         calibration_fpr = None
         if threshold is None:
             threshold, rate, on_calibration_runs = self._choose_threshold(score, flags)
+            # (the training step it was chosen at, for the weights of that step)
+            self._calibrated_at = self.global_step if on_calibration_runs else None
             self.alarm_threshold.fill_(threshold)
             self.alarm_threshold_rate.fill_(rate)
             calibration_fpr = rate if on_calibration_runs else None
