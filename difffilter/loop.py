@@ -240,11 +240,22 @@ class ReplayedNoise:
 
 class Controller(Protocol):
     """The input of the next step from what the loop has: ``init(batch_shape, dtype, device)
-    → u_0 [..., du]`` (or ``None`` for a plant without input) and ``__call__(k, y, out) →
-    u_k [..., du]`` after measurement ``k`` (``y`` the received ``ỹ_k``, ``out`` the
-    estimator's :class:`~difffilter.results.StepOutput` or ``None``). Under a schedule
-    (``mask``) ``y`` holds values at the entries not received this step too (the loop's
-    ``y_recv``): a controller that reads ``y`` itself, not ``out``, reads them."""
+    → u_0 [B, du]`` (``None`` only for a plant without input, ``dim_u = 0``) and
+    ``__call__(k, y, out) → u_k [B, du]`` after measurement ``k`` (``y`` the received
+    ``ỹ_k``, ``out`` the estimator's :class:`~difffilter.results.StepOutput` or ``None``),
+    in the plant's dtype, on its device; the loop checks each (a wrong shape, dtype or a
+    NaN is named at the step it came from).
+
+    Timing: ``u_k`` is computed from measurement ``k`` and drives the transition to
+    ``x_{k+1}``, with no computation delay; for a delay of one step, return the input the
+    previous call computed (keep it in the controller). Under a schedule (``mask``) ``y``
+    holds values at the entries not received this step too (the loop's ``y_recv``): a
+    controller that reads ``y`` itself, not ``out``, reads them. A controller may keep
+    state of its own (an integrator, a delay line) in a loop run in one call; a loop
+    resumed from a :class:`LoopState` or continued from a :class:`LoopFork` holds none of
+    it (it holds the plant's, the attack's and the estimator's), so give the resumed loop a
+    controller whose state is where it was at that step, or keep the controller a function
+    of ``k``, ``y`` and ``out``."""
 
     def init(self, batch_shape, dtype, device) -> Tensor | None: ...
 
@@ -386,8 +397,8 @@ def closed_loop(
             the result covers steps ``1 … fork.state.k + L``, the fork's steps as this
             loop's ``attack`` would have left them (a tabulated attack that flags none of
             them; ``ValueError`` otherwise). ``state`` must then be ``None``; the plant,
-            noise, estimator, model and controller are the forked loop's (a controller
-            keeps no state of its own: the fork holds only the loop's).
+            noise, estimator, model and controller are the forked loop's (the fork holds
+            no controller state: :class:`Controller`).
 
     Returns a :class:`LoopResult`: the trajectories of these ``L`` steps
     (``us`` = the inputs the estimator knew, ``attack``/``flags``/``info["attack_values"]``
@@ -448,13 +459,14 @@ def closed_loop(
             value = _checked_value(attack, value, flag, y, k, "y")
             received, a = inject(channel, y, value, flag)
         if estimator is not None:
-            carry, view = estimator._step(carry, _estimator_input(received, m, k, attack), u, m)
+            step_input = _estimator_input(received, m, k, attack, u, controller)
+            carry, view = estimator._step(carry, step_input, u, m)
             outs.append(view)
         for key, val in (("x", x), ("y", y), ("recv", received), ("u", u), ("attack", a),
                          ("value", value), ("flag", flag)):  # fmt: skip
             rec[key].append(val)
         if controller is not None:
-            u = controller(k, received, view)
+            u = _checked_input(controller, controller(k, received, view), x, plant, k)
         if progress is not None:
             progress(1)
         if forks is not None and k in forks:
@@ -533,6 +545,49 @@ def _checked_value(attack, value: Tensor, flag: Tensor, signal: Tensor, k: int,
     return value if value.shape == signal.shape else value.expand(shape)
 
 
+def _checked_input(controller, u, x: Tensor, plant, k: int):
+    """The controller's input ``u_k`` after checking it against the loop: ``[B, du]`` (the
+    runs of ``x [B, dx]``, the plant's ``dim_u``) in ``x``'s dtype and on its device, or
+    ``None`` for a plant without input (``dim_u = 0``). A ``[B, 1, du]`` grew the plant's
+    state by an axis a step (memory ×B a step, then an error at the end naming nothing).
+    Shape checks only: NaN is found with the next step's measurement
+    (:func:`_estimator_input`)."""
+    du = plant.dim_u
+    if type(u) is Tensor and u.dim() == 2 and u.shape[1] == du and u.shape[0] == x.shape[0] \
+            and u.dtype == x.dtype and u.device == x.device:  # fmt: skip
+        return u  # the usual step, in a few comparisons
+    name = f"{type(controller).__name__}.{'init' if k == 0 else '__call__'}"
+    when = "(u_0)" if k == 0 else f"at step {k} (u_{k})"
+    if u is None:
+        if du == 0:
+            return None
+        raise ValueError(
+            f"{name} returned None {when}, and the plant has {du} input(s) (dim_u = {du}): "
+            f"return u [{x.shape[0]}, {du}] (zeros for no input; the loop would record no "
+            "input at that step)"
+        )
+    if du == 0:
+        raise ValueError(
+            f"{name} returned an input {when}, and the plant has none (dim_u = 0): return "
+            "None, or give the loop a plant with inputs"
+        )
+    if not isinstance(u, Tensor):
+        raise TypeError(
+            f"{name} returned a {type(u).__name__} {when}; an input is a tensor "
+            f"[{x.shape[0]}, {du}] (one row per run)"
+        )
+    if tuple(u.shape) != (x.shape[0], du):
+        raise ValueError(
+            f"{name} returned an input of shape {tuple(u.shape)} {when}; the loop needs "
+            f"[{x.shape[0]}, {du}] (one row per run, the plant's dim_u = {du})"
+        )
+    raise ValueError(
+        f"{name} returned an input of dtype {u.dtype} on {u.device} {when}; the loop's "
+        f"state is {x.dtype} on {x.device}: return it in that dtype, on that device "
+        "(init's dtype= and device=)"
+    )
+
+
 def _broadcasts(shape, target) -> bool:
     """``shape`` broadcasts to ``target`` without changing it."""
     try:
@@ -541,17 +596,31 @@ def _broadcasts(shape, target) -> bool:
         return False
 
 
-def _estimator_input(received: Tensor, mask: Tensor | None, k: int, attack) -> Tensor:
+def _estimator_input(received: Tensor, mask: Tensor | None, k: int, attack,
+                     u: Tensor | None = None, controller=None) -> Tensor:  # fmt: skip
     """Step ``k``'s measurement as the estimator's step takes it (unchecked): a NaN or Inf
     in a received entry raises, as :func:`open_loop` refuses it in ``ys``; one in an entry
     the schedule drops is replaced by zero, as there (``0 · NaN`` would still be NaN in the
-    masked update). One reduction a step; nothing is checked where values are unknown
-    (the ``meta`` device)."""
+    masked update). The input ``u = u_{k−1}`` the estimator reads beside it is checked in
+    the same reduction: a controller's NaN was blamed on the plant a step later, or, on
+    dropped entries, ran through the loop unnamed. One reduction a step; nothing is
+    checked where values are unknown (the ``meta`` device)."""
     if received.device.type == "meta":
         return received
     finite = torch.isfinite(received)
-    if bool(finite.all()):
+    if u is None:
+        if bool(finite.all()):
+            return received
+    elif bool(finite.all() & torch.isfinite(u).all()):
         return received
+    elif not bool(torch.isfinite(u).all()):
+        run = int((~torch.isfinite(u)).any(-1).nonzero()[0, 0])
+        source = ("controller.init" if k == 1 else f"the controller at step {k - 1}"
+                  ) if controller is not None else "the loop's state"  # fmt: skip
+        raise ValueError(
+            f"the input u_{k - 1} that drives step {k} contains NaN or Inf (first in run {run}): "
+            f"{source} returned it ({type(controller).__name__})"
+        )
     bad = ~finite if mask is None else ~finite & mask
     if bool(bad.any()):
         where = [int(i) for i in bad.nonzero()[0]]
@@ -572,12 +641,20 @@ def _estimator_input(received: Tensor, mask: Tensor | None, k: int, attack) -> T
 def _check_lengths(plant, noise, mask, state: LoopState, steps: int) -> None:
     """What the loop reads row by row (the schedule, replayed noise) covers its steps
     ``state.k + 1 … state.k + steps``, and replayed noise fits the plant and the runs."""
-    end, B = state.k + steps, state.x.shape[0]
-    if mask is not None and (mask.dim() != 3 or mask.shape[1] < end):
-        raise ValueError(
-            f"mask must be [B, T, dy] with a row for every step up to {end} (indexed by the "
-            f"absolute step); got {tuple(mask.shape)}"
-        )
+    end, B, dy = state.k + steps, state.x.shape[0], plant.dim_y
+    if mask is not None:
+        if not isinstance(mask, Tensor) or mask.dtype is not torch.bool:
+            got = f"dtype {mask.dtype}" if isinstance(mask, Tensor) else type(mask).__name__
+            raise ValueError(
+                f"mask must be a bool tensor [B, T, dy] (True where an entry is received); "
+                f"got {got} (a float mask was read as a weight: open_loop refuses it too)"
+            )
+        if mask.dim() != 3 or mask.shape[0] != B or mask.shape[1] < end or mask.shape[2] != dy:
+            raise ValueError(
+                f"mask must be [{B}, T >= {end}, {dy}] (the runs, a row for every step up to "
+                f"{end}, indexed by the absolute step, and the plant's dim_y); got "
+                f"{tuple(mask.shape)}"
+            )
     if isinstance(noise, ReplayedNoise):
         dims = (plant.dim_x, plant.dim_y)
         for name, draws, dim in zip(
@@ -594,6 +671,11 @@ def _check_lengths(plant, noise, mask, state: LoopState, steps: int) -> None:
                     f"a row for every step up to {end}, the plant's width); got "
                     f"{tuple(draws.shape)}"
                 )  # fmt: skip
+            if draws.dtype != state.x.dtype:
+                raise ValueError(
+                    f"ReplayedNoise's {name} noise is {draws.dtype}, the loop's state "
+                    f"{state.x.dtype}: draw it in the plant's dtype"
+                )
 
 
 def _start(plant, steps, horizon, x0, estimator, model, controller, attack, attack_generator,
@@ -606,11 +688,20 @@ def _start(plant, steps, horizon, x0, estimator, model, controller, attack, atta
             f"x0 [B, {plant.dim_x}] (one initial state per run) is needed to start a loop (or "
             f"pass state= to resume); got {got!r}"
         )
+    for what, m in (("the plant", plant), ("the estimator's model", model)):
+        held = _dtype_of(m)
+        if held is not None and held != x0.dtype:
+            raise ValueError(
+                f"x0 is {x0.dtype} and {what} is {held}: give the loop one dtype (x0 = "
+                f"x0.to({held}), or the model in x0's dtype)"
+            )
     if horizon is not None and horizon < steps:
         raise ValueError(f"horizon (the whole loop's T) must be >= steps={steps}; got {horizon!r}")
     steps = horizon or steps
     batch, dtype, device = x0.shape[:-1], x0.dtype, x0.device
-    u = None if controller is None else controller.init(batch, dtype, device)
+    u = None
+    if controller is not None:
+        u = _checked_input(controller, controller.init(batch, dtype, device), x0, plant, 0)
     a_state = None
     if attack is not None:
         dim = attack_dim(plant, attack.channel)
@@ -619,6 +710,13 @@ def _start(plant, steps, horizon, x0, estimator, model, controller, attack, atta
     if estimator is not None:
         carry = estimator._init(model, batch, Generators.of(generator))
     return LoopState(0, x0, u, a_state, carry, None)
+
+
+def _dtype_of(model) -> torch.dtype | None:
+    """The dtype of ``model``'s initial mean (a :class:`~difffilter.StateSpaceModel`'s), or
+    ``None`` where it has none to read."""
+    mean = getattr(getattr(model, "initial", None), "mean", None)
+    return mean.dtype if isinstance(mean, Tensor) else None
 
 
 def _resume(fork: LoopFork, plant, attack, attack_generator, channel, horizon):
@@ -643,8 +741,8 @@ def _resume(fork: LoopFork, plant, attack, attack_generator, channel, horizon):
     values, flags = (table.narrow(time, 0, k) for table in a_state)  # TabulatedAttack.step
     acting = flags.movedim(time, 0).reshape(k, -1).any(-1)
     if bool(acting.any()):
-        raise ValueError(f"fork: the attack acts at step {int(acting.nonzero()[0]) + 1}, before "
-                         f"the fork's step {k}: those steps are not the loop's without attack")  # fmt: skip
+        raise ValueError(f"fork: the attack acts at step {int(acting.nonzero()[0]) + 1}, at or "
+                         f"before the fork's step {k}: those steps are not the loop's without attack")  # fmt: skip
     signal = torch.stack(records["u" if channel is Channel.ACTUATOR else "y"], time)
     _, injected = inject(channel, signal, values, flags)  # every step before the fork at once
     for key, table in (("attack", injected), ("value", values), ("flag", flags)):

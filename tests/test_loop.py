@@ -156,7 +156,7 @@ def test_a_loop_continued_from_the_fork_of_its_loop_without_attack_is_the_loop_a
 def test_a_fork_refuses_what_it_cannot_replay():
     alpha = torch.zeros(30, 2, dtype=torch.float64)
     alpha[5, 0] = 1.0  # acts before the fork at 12
-    with pytest.raises(ValueError, match="acts at step 6, before the fork's step 12"):
+    with pytest.raises(ValueError, match="acts at step 6, at or before the fork.s step 12"):
         _forked_pair(Signal(alpha))
     with pytest.raises(ValueError, match="must read nothing"):
         _forked_pair(Replay(delay=3, onset=20))
@@ -438,3 +438,88 @@ def test_an_actuator_attack_needs_an_input_to_attack():
     loop = closed_loop(model, 3, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
                        controller=KnownInputs(us), attack=Push())  # fmt: skip
     assert loop.trajectories.attack.eq(1).all()
+
+
+class _Feedback:
+    """``u_k = −K x̂_k`` on the estimate, or what ``make(k, out)`` returns where given."""
+
+    def __init__(self, make=None, first=None):
+        self.make, self.first = make, first
+
+    def init(self, batch_shape, dtype, device):
+        if self.first is not None:
+            return self.first(batch_shape, dtype, device)
+        return torch.zeros(*batch_shape, 1, dtype=dtype, device=device)
+
+    def __call__(self, k, y, out):
+        if self.make is not None:
+            return self.make(k, out)
+        return -0.5 * out.mean[..., 1:]
+
+
+def test_the_closed_loop_checks_the_controllers_input_and_names_it():
+    """A controller's input of the wrong shape grew the plant's state by an axis a step
+    (memory ×B a step, then an error at the final stack naming nothing); a ``None`` from
+    ``init`` on a plant with inputs dropped the record of the inputs; a NaN input was
+    blamed on the plant a step later, or ran through the loop where the measurements it
+    spoiled were dropped."""
+    model = _linear()
+    x0 = model.initial.mean.expand(4, 2).clone()
+
+    def loop(controller, **kw):
+        return closed_loop(model, 6, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                           estimator=df.KalmanFilter(), controller=controller, **kw)  # fmt: skip
+
+    good = loop(_Feedback())
+    assert good.trajectories.us.shape == (4, 6, 1) and good.output.means.isfinite().all()
+    for make, match in (
+        (lambda k, out: -0.5 * out.mean[..., 1:, None], r"__call__ returned an input of shape "
+                                                        r"\(4, 1, 1\) at step 1 \(u_1\)"),
+        (lambda k, out: torch.zeros(1, dtype=torch.float64), r"shape \(1,\) at step 1.*\[4, 1\]"),
+        (lambda k, out: torch.zeros(4, 2, dtype=torch.float64), r"shape \(4, 2\).*dim_u = 1"),
+        (lambda k, out: torch.zeros(4, 1, dtype=torch.float32), "dtype torch.float32"),
+        (lambda k, out: 0.0, "returned a float at step 1"),
+    ):  # fmt: skip
+        with pytest.raises((ValueError, TypeError), match=match):
+            loop(_Feedback(make))
+    with pytest.raises(ValueError, match=r"_Feedback.init returned None \(u_0\).*1 input"):
+        loop(_Feedback(first=lambda *a: None))
+
+    def nan_from(step):
+        return lambda k, out: torch.full((4, 1), float("nan") if k >= step else 0.0,
+                                         dtype=torch.float64)  # fmt: skip
+
+    with pytest.raises(ValueError, match=r"u_3 that drives step 4 .*the controller at step 3"):
+        loop(_Feedback(nan_from(3)))
+    dropped = torch.zeros(4, 6, 2, dtype=torch.bool)  # nothing arrives: the NaN hid before
+    with pytest.raises(ValueError, match=r"u_3 that drives step 4"):
+        loop(_Feedback(nan_from(3)), mask=dropped)
+    nan_first = lambda b, dtype, device: torch.full((*b, 1), float("nan"), dtype=dtype)  # noqa: E731
+    with pytest.raises(ValueError, match=r"u_0 that drives step 1 .*controller.init"):
+        loop(_Feedback(first=nan_first))
+
+
+def test_the_closed_loop_refuses_a_mask_or_dtypes_it_would_misread():
+    """A mask wider than ``dy`` or of floats ran (a float mask weighted the update: 0.32
+    off a masked filter's estimates; 0.54 with extra columns); dtypes that differ failed
+    deep in torch naming no argument."""
+    model = _linear()
+    x0 = model.initial.mean.expand(3, 2).clone()
+
+    def loop(**kw):
+        kw = {"x0": x0, "estimator": df.KalmanFilter(), **kw}
+        return closed_loop(model, 5, noise=DrawnNoise(torch.Generator().manual_seed(0)), **kw)
+
+    with pytest.raises(ValueError, match=r"mask must be \[3, T >= 5, 2\].*got \(3, 5, 3\)"):
+        loop(mask=torch.ones(3, 5, 3, dtype=torch.bool))
+    with pytest.raises(ValueError, match=r"mask must be \[3, T >= 5, 2\].*got \(1, 5, 2\)"):
+        loop(mask=torch.ones(1, 5, 2, dtype=torch.bool))
+    with pytest.raises(ValueError, match="mask must be a bool tensor.*torch.float64"):
+        loop(mask=torch.full((3, 5, 2), 0.5, dtype=torch.float64))
+    with pytest.raises(ValueError, match="x0 is torch.float32 and the plant is torch.float64"):
+        loop(x0=x0.float())
+    with pytest.raises(ValueError, match="the estimator's model is torch.float32"):
+        loop(model=_linear(torch.float32))
+    noise = ReplayedNoise(torch.zeros(3, 5, 2), torch.zeros(3, 5, 2))
+    with pytest.raises(ValueError, match="process noise is torch.float32, the loop's state"):
+        closed_loop(model, 5, noise=noise, x0=x0)
