@@ -25,8 +25,18 @@ from .scoring import HEADLINE, METRICS  # noqa: E402
 
 __all__ = ["COLUMNS", "leaderboard_rows", "write_leaderboard"]
 
-#: The leaderboard's columns: the headline metrics (the vs-attack-free RMSE is per scenario).
-COLUMNS = tuple(m for m in HEADLINE if m != "state_rmse_vs_attack_free")
+#: The leaderboard's columns: the headline metrics (the vs-attack-free RMSE is per
+#: scenario), with the detection rate at the calibrated threshold (``tpr_at_far``, the
+#: rate every detector is judged at) beside the ROC's ``tpr_at_1pct_fpr`` (its threshold
+#: chosen on the study's own runs, attacked ones included).
+COLUMNS = tuple(
+    c for m in HEADLINE if m != "state_rmse_vs_attack_free"
+    for c in ((m, "tpr_at_far") if m == "tpr_at_1pct_fpr" else (m,))
+)  # fmt: skip
+#: Roles marked beside an estimator's name (an analytic one is unmarked); the best of a
+#: scenario, green in the figure, is that of the estimators that are neither
+#: (:data:`UNRANKED`).
+UNRANKED = ("oracle", "reference")
 #: The worst case over a robustness study's threats, as ``worst_<metric>`` columns.
 WORST = ("tpr_at_far", "state_error_ratio")
 _WORST_UNITS = {"worst_tpr_at_far": "fraction", "worst_state_error_ratio": "ratio"}
@@ -39,7 +49,8 @@ def leaderboard_rows(results: dict[str, dict[str, Any]]) -> list[dict[str, Any]]
         ckpt = doc.get("checkpoint") or {}
         for name, entry in (doc.get("estimators") or {}).items():
             used = name in ckpt.get("used_by", ())
-            row = {"scenario": scenario, "estimator": name}
+            row = {"scenario": scenario, "estimator": name,
+                   "role": (doc.get("estimator_roles") or {}).get(name)}  # fmt: skip
             named = doc.get("scenario_units") or {}
             row["units"] = {"state": named.get("state", "state units"),
                             "attack": named.get("attack", "attack units")}  # fmt: skip
@@ -90,7 +101,8 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
         header.insert(2, "units (state; attack)")
     cells = []
     for r in rows:
-        cell = [r["scenario"], f"`{r['estimator']}`", *(format_number(r.get(m), 3) for m in cols)]
+        cell = [r["scenario"], f"`{r['estimator']}`{_role_mark(r)}",
+                *(format_number(r.get(m), 3) for m in cols)]  # fmt: skip
         if mixed:
             cell.insert(2, f"{r['units']['state']}; {r['units']['attack']}")
         cells.append(cell)
@@ -101,8 +113,15 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
         "`<scenario>/robustness.md`, the worst cases with their threats in `robustness.md`)."
         if worst
         else "Every scenario × estimator of this evaluation (definitions and units: "
-        "docs/metrics.md; per-scenario details in `<scenario>/report.md`)."
+        "docs/metrics.md; per-scenario details in `<scenario>/report.md`). `tpr_at_far` is "
+        "the detection rate at the threshold calibrated on attack-free runs, the rate every "
+        "detector is judged at; `tpr_at_1pct_fpr` reads the ROC of the study's own runs."
     )
+    if any(r.get("role") not in (None, "analytic") for r in rows):
+        intro += (" An estimator's role is marked beside its name where it is not an analytic "
+                  "one: an oracle reads what no deployed estimator knows (the true attack's "
+                  "size, the plant's load), a reference runs on the attack-free measurements; "
+                  "neither sets the best of a scenario in the figure.")  # fmt: skip
     path = out / "leaderboard.md"
     path.write_text(
         f"# Leaderboard\n\n{intro}\n\n"
@@ -115,6 +134,13 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
     return path
 
 
+def _role_mark(row: dict[str, Any]) -> str:
+    """``" (oracle)"`` beside a name whose role is not analytic (``""`` for one that is,
+    or whose study recorded no roles)."""
+    role = row.get("role")
+    return "" if role in (None, "analytic") else f" ({role})"
+
+
 def _skipped(results: dict[str, dict[str, Any]]) -> str:
     """The estimators a scenario left out, with why: a reader looked for a row that was not
     there (``--ckpt`` of another estimator's checkpoint leaves the scenario's own out)."""
@@ -123,24 +149,40 @@ def _skipped(results: dict[str, dict[str, Any]]) -> str:
     return "\nNot run (no row above):\n\n" + "\n".join(lines) + "\n" if lines else ""
 
 
-HIGHER_IS_BETTER = {"auc", "tpr_at_1pct_fpr", "worst_tpr_at_far"}
+HIGHER_IS_BETTER = {"auc", "tpr_at_1pct_fpr", "tpr_at_far", "worst_tpr_at_far"}
+#: Detection rates: a column of a scenario whose best is at most this (twice the 1 %
+#: false-alarm budget, the top of the calibrated false-alarm band) is left uncoloured:
+#: no estimator detects, and every 0 beside a best of 0.005 was painted "best".
+DETECTION_RATES = {"tpr_at_1pct_fpr", "tpr_at_far", "worst_tpr_at_far"}
+UNDETECTED = 0.02
 
 
-def cell_goodness(grid: np.ndarray, scenarios: list[str], columns=COLUMNS) -> np.ndarray:
+def cell_goodness(grid: np.ndarray, scenarios: list[str], columns=COLUMNS,
+                  ranked: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
     """``grid [rows, columns]`` → colour in [0, 1] (1: the best of the row's scenario): for
     AUC and TPR 1 − (best − v)/0.1, so 0.1 below the best is 0; otherwise
     1 − log10((v + f)/(best + f)), so 10× the best is 0, with a floor f of 5 % of the
-    scenario's largest value so that zeros and round-off differences do not paint a cell red."""
+    scenario's largest value so that zeros and round-off differences do not paint a cell red.
+    ``ranked [rows]`` (bool): the rows that may set the best (not an oracle nor the
+    reference; all rows where none of a scenario is, or without it); a row that is not
+    may be better than the best and reads 1. NaN (no colour) where the value is missing,
+    and in a detection-rate column whose best is at most :data:`UNDETECTED`."""
     scen, good = np.array(scenarios), np.full_like(grid, np.nan)
+    ranked = np.ones(len(scenarios), bool) if ranked is None else np.asarray(ranked, bool)
     higher = np.array([m in HIGHER_IS_BETTER for m in columns])
+    rates = np.array([m in DETECTION_RATES for m in columns])
     for s in dict.fromkeys(scenarios):
-        g = grid[scen == s]
+        rows = scen == s
+        g = grid[rows]
+        judged = g[ranked[rows]] if ranked[rows].any() else g
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns
-            lo, hi = np.nanmin(g, 0), np.nanmax(g, 0)
-            floor = np.maximum(0.05 * np.abs(hi), 1e-300)
+            lo, hi = np.nanmin(judged, 0), np.nanmax(judged, 0)
+            floor = np.maximum(0.05 * np.abs(np.nanmax(g, 0)), 1e-300)
             shortfall = np.where(higher, (hi - g) / 0.1, np.log10((g + floor) / (lo + floor)))
-        good[scen == s] = np.clip(1 - shortfall, 0, 1)
+        colour = np.clip(1 - shortfall, 0, 1)
+        colour[:, rates & ~(hi > UNDETECTED)] = np.nan
+        good[rows] = colour
     return good
 
 
@@ -152,16 +194,23 @@ def _heatmaps(path: Path, rows: list[dict[str, Any]], units: dict[str, str]) -> 
     grid = np.array([[np.nan if r.get(m) is None else r[m] for m in cols] for r in rows], float)
     grid[~np.isfinite(grid)], scenarios = np.nan, [r["scenario"] for r in rows]
     fig, ax = plt.subplots(figsize=(1.1 * len(cols) + 3, 0.2 * len(rows) + 1.2))
-    ax.imshow(cell_goodness(grid, scenarios, cols), aspect="auto", cmap="RdYlGn", vmin=0, vmax=1)
+    ranked = np.array([r.get("role") not in UNRANKED for r in rows])
+    cmap = plt.get_cmap("RdYlGn").with_extremes(bad="white")
+    goodness = cell_goodness(grid, scenarios, cols, ranked)
+    ax.imshow(goodness, aspect="auto", cmap=cmap, vmin=0, vmax=1)
     for (i, j), value in np.ndenumerate(grid):
         text = "—" if np.isnan(value) else format_number(float(value), 3)
         ax.text(j, i, text, ha="center", va="center", fontsize=6)
     for i in np.flatnonzero(np.array(scenarios[1:]) != np.array(scenarios[:-1])):
         ax.axhline(i + 0.5, color="black", linewidth=0.8)  # between two scenarios
-    ax.set_yticks(range(len(rows)), [f"{s} · {r['estimator']}" for s, r in zip(scenarios, rows)])
+    ax.set_yticks(range(len(rows)),
+                  [f"{s} · {r['estimator']}{_role_mark(r)}" for s, r in zip(scenarios, rows)])  # fmt: skip
     ax.set_xticks(range(len(cols)), [f"{m}\n[{unit}]" for m, unit in units.items()])
     ax.tick_params(labelsize=6, top=True, labeltop=True, bottom=False, labelbottom=False)
-    ax.set_title("green: the best of its scenario; red: 10× it (0.1 below: AUC, TPR)", fontsize=7)
+    ax.set_title("green: the best of its scenario (of the estimators not marked oracle or "
+                 "reference); red: 10× it (0.1 below: AUC, TPR);\nwhite: no value, or a "
+                 f"detection rate no estimator of the scenario lifts above {UNDETECTED:g}",
+                 fontsize=7)  # fmt: skip
     fig.savefig(path, dpi=130, bbox_inches="tight")
     plt.close(fig)
 
@@ -177,6 +226,8 @@ def _hparams(logdir: Path, rows: list[dict[str, Any]]) -> None:
     clear_events(logdir)
     with SummaryWriter(str(logdir)) as w:
         for r in rows:
-            metrics = {f"leaderboard/{m}": r[m] for m in COLUMNS if r[m] is not None}
+            metrics = {
+                f"leaderboard/{m}": r[m] for m in (*COLUMNS, *_WORST_UNITS) if r.get(m) is not None
+            }  # (a robustness study's worst case too)
             hparams = {k: r[k] or "none" for k in ("scenario", "estimator", "checkpoint")}
             w.add_hparams(hparams, metrics, run_name=f"{r['scenario']}/{r['estimator']}")

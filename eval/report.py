@@ -73,7 +73,13 @@ def format_number(value: Any, digits: int = 4) -> str:
         return str(value)
     if isinstance(value, float):
         if value == 0 or 1e-3 <= abs(value) < 1e4:
-            return f"{value:.{digits}g}"
+            text = f"{value:.{digits}g}"
+            # a fraction just below 1 gets the digits that show it is not 1 (an AUC of
+            # 0.99992 printed "1", a perfect detector's): at most 8
+            while abs(float(text)) == 1 != abs(value) and digits < 8:
+                digits += 1
+                text = f"{value:.{digits}g}"
+            return text
         return f"{value:.{max(digits - 1, 1)}e}"
     return str(value)
 

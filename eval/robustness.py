@@ -251,7 +251,7 @@ def run_robustness(
 def _crafted(result: RobustnessResult, name: str, spec: StealthySpec, progress: bool,
              checkpoint=None):  # fmt: skip
     """Craft stealthy threat ``name`` against its detector, and compare it on the study's
-    runs with the constant bias of the same alarm rate (``result.stealthy[name]``)."""
+    runs with the weakest constant bias that alarms as often (``result.stealthy[name]``)."""
     sc, cal = result.scenario, result.calibration
     common = dict(seed=result.seed, checkpoint=checkpoint)
     attack, report = craft_threat(name, spec, sc, cal, progress=progress, **common)
@@ -467,11 +467,14 @@ def _interval_cell(interval: dict | None) -> str:
 def _stealthy_section(name: str, r: dict) -> str:
     c, b, st = r["crafted"], r["same_rate_bias"], r["settings"]
     matched = b.get("matched", True)
-    bias_row = (f"constant bias {format_number(b['k_sigma'], 3)} σ (same alarm rate)" if matched
+    bias_row = (f"constant bias {format_number(b['k_sigma'], 3)} σ (the weakest that alarms "
+                "as often)" if matched
                 else "no attack (no constant bias alarms as rarely)")  # fmt: skip
     verdict = (
-        f"\nThe crafted attack's error is {format_number(r['error_ratio_to_bias'], 3)}× the "
-        "constant bias's at the same alarm rate."
+        f"\nThe crafted attack's error is {format_number(r['error_ratio_to_bias'], 3)}× that "
+        "of the weakest constant bias that alarms at least as often (alarm rates are counts of "
+        f"steps, so the two differ: {format_number(b['alarm_rate'], 4)} against "
+        f"{format_number(c['alarm_rate'], 4)})."
         if matched
         else f"\nThe crafted attack alarms less often than the runs without attack "
         f"({format_number(c['alarm_rate'], 4)} against {format_number(b['alarm_rate'], 4)}): "

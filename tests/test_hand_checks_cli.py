@@ -166,7 +166,9 @@ def test_run_0s_alarm_rows_show_the_attack_each_detector_faced():
     alarms = torch.tensor([[False, False, True, True, False]])
     outputs = {n: NS(detection=NS(alarms=alarms)) for n in ("open", "loop")}
     flags = {"open": study, "loop": own}
-    result = NS(traj=NS(flags=study), traj_of=lambda n: NS(flags=flags[n]))
+    result = NS(
+        traj=NS(flags=study), traj_of=lambda n: NS(flags=flags[n]), metrics={n: {} for n in outputs}
+    )  # not calibrated: their own alarms
     t = [0.5 * (k + 1) for k in range(5)]
     fig = _alarm_figure(result, outputs, {"open": "C0", "loop": "C1"}, t, 0.5)
     bars = [(tuple(c.get_facecolor()[0][:3]), c.get_paths()) for c in fig.axes[0].collections]

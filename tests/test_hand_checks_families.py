@@ -361,4 +361,6 @@ def test_the_same_rate_bias_says_when_no_bias_alarms_as_rarely(monkeypatch):
     text = _stealthy_section("stealthy_x", report)
     assert "same alarm rate" not in text and "no constant bias matches its rate" in text
     report["same_rate_bias"] = above
-    assert "constant bias 1.5 σ (same alarm rate)" in _stealthy_section("stealthy_x", report)
+    assert "constant bias 1.5 σ (the weakest that alarms as often)" in _stealthy_section(
+        "stealthy_x", report
+    )

@@ -141,3 +141,58 @@ def test_the_leaderboard_lists_the_estimators_a_scenario_left_out(tmp_path):
     assert "Not run (no row above):\n\n- plant_a: `net` (no --ckpt given)\n" in md
     alone = write_leaderboard(tmp_path, {"plant_b": doc(["kf"], state_rmse=0.5)}).read_text()
     assert "Not run" not in alone
+
+
+def test_the_best_is_set_by_the_ranked_estimators_and_roles_are_marked(tmp_path):
+    """A reviewer: the best of a scenario (green) was set by an oracle's attack RMSE and the
+    attack-free reference's state RMSE, unmarked; a worst-case TPR whose best is 0.005 (no
+    one detects) painted every 0 green; the robustness leaderboard's TensorBoard rows left
+    out the worst-case columns, its point."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from difffilter.eval.leaderboard import UNDETECTED, cell_goodness
+
+    col = {m: i for i, m in enumerate(COLUMNS)}
+    grid = np.full((3, len(COLUMNS)), np.nan)
+    grid[:, col["attack_rmse"]] = [0.01, 0.1, 1.0]  # the oracle, then two others
+    grid[:, col["tpr_at_far"]] = [0.9, 0.5, 0.4]
+    grid[:, col["tpr_at_1pct_fpr"]] = [0.0, UNDETECTED, 0.0]
+    good = cell_goodness(grid, ["a"] * 3, ranked=np.array([False, True, True]))
+    assert good[:, col["attack_rmse"]] == pytest.approx([1.0, 1.0, 1 - np.log10(1.05 / 0.15)])
+    assert good[:, col["tpr_at_far"]] == pytest.approx([1.0, 1.0, 0.0])  # 0.1 below the ranked best
+    assert np.isnan(good[:, col["tpr_at_1pct_fpr"]]).all()  # no one detects: no colour
+    unranked = cell_goodness(grid, ["a"] * 3)
+    assert unranked[1, col["attack_rmse"]] < 1  # the oracle is the best when it may be
+
+    study = doc(["oracle_pf", "reference_pf", "kf"], attack_rmse=0.5, tpr_at_far=0.7)
+    study["estimator_roles"] = {
+        "oracle_pf": "oracle",
+        "reference_pf": "reference",
+        "kf": "analytic",
+    }
+    rows = leaderboard_rows({"tank": study})
+    assert [r["role"] for r in rows] == ["oracle", "reference", "analytic"]
+    (tmp_path / "a").mkdir(), (tmp_path / "b").mkdir()
+    md = write_leaderboard(tmp_path / "a", {"tank": study}).read_text()
+    assert "`oracle_pf` (oracle)" in md and "`reference_pf` (reference)" in md
+    assert "| `kf` |" in md and "tpr_at_far [fraction]" in md and "role is marked" in md
+
+    robust = doc(["kf"], state_rmse=0.5) | {
+        "worst_case": {"kf": {"tpr_at_far": 0.3, "state_error_ratio": 2.0}}
+    }
+    write_leaderboard(tmp_path / "b", {"tank": robust})
+    row = EventAccumulator(str(tmp_path / "b" / "tb_leaderboard" / "tank" / "kf"))
+    row.Reload()
+    tags = set(row.Tags()["scalars"])
+    assert {"leaderboard/worst_tpr_at_far", "leaderboard/worst_state_error_ratio"} <= tags
+
+
+def test_a_fraction_just_below_one_is_not_printed_as_one():
+    """An AUC of 0.999924 printed "1" in report.md and the leaderboard, a perfect
+    detector's figure."""
+    from difffilter.eval.report import format_number
+
+    assert format_number(0.999924, 3) == "0.9999" and format_number(0.999924) == "0.9999"
+    assert format_number(1.0, 3) == "1" and format_number(0.9996) == "0.9996"
+    assert format_number(1.00004) == "1.00004" and format_number(12.0004) == "12"
+    assert format_number(1 - 1e-12) == "1"  # at most eight digits

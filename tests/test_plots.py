@@ -69,6 +69,48 @@ def test_the_roc_has_a_log_false_alarm_axis_and_marks_operating_points(figures):
     assert markers  # one dot per detector with an operating point
 
 
+def test_the_roc_is_drawn_as_steps_the_best_rate_at_each_false_alarm_rate(figures):
+    """A reviewer: straight segments on the log axis crossed the 1 % line at 0.298 for a
+    detector whose ``tpr_at_1pct_fpr`` is 0 (its scores tie from (0, 0) to (0.37, 0.97)).
+    Drawn as steps, the curve at 1 % reads ``tpr_at_1pct_fpr``."""
+    import numpy as np
+
+    suite, figs = figures
+    ax = figs["roc.png"].axes[0]
+    curves = {line.get_label().split(" (AUC")[0]: line for line in ax.get_lines()
+              if "(AUC" in line.get_label()}  # fmt: skip
+    assert curves and all(c.get_drawstyle() == "steps-post" for c in curves.values())
+    for name, line in curves.items():
+        x, y = (np.asarray(v, float) for v in line.get_data())
+        at = y[np.searchsorted(x, 0.01, side="right") - 1]  # the step in force at 1 %
+        assert at == pytest.approx(suite.metrics[name]["tpr_at_1pct_fpr"]), name
+
+
+def test_the_alarm_raster_is_at_the_calibrated_thresholds_and_says_so():
+    """The alarm figure drew each detector's own alarms beside the calibrated rates of the
+    other figures (0.378 against 0.6 for one detector), without saying which."""
+    import numpy as np
+
+    from difffilter.eval.calibration import calibrate
+    from difffilter.eval.suite import apply_calibration
+
+    sc, names = registry.get("four_tank_bias"), ["chi_square_ekf", "cusum_ekf"]
+    suite = run_suite(sc, runs=3, estimators=names, progress=False)
+    own = dict(standard_figures(suite))["alarms_run0.png"]
+    assert "at each detector's own threshold" in own.axes[0].get_title()
+    apply_calibration(suite, calibrate(sc, far=0.2, runs=3, estimators=names, progress=False))
+    fig = dict(standard_figures(suite))["alarms_run0.png"]
+    assert "at the calibrated thresholds" in fig.axes[0].get_title()
+    bars = fig.axes[0].collections  # the attacked row, then one per detector
+    run = int(suite.traj.flags.any(1).nonzero()[0])
+    for name, bar in zip(names, bars[1:]):
+        alarms = suite.outputs[name].detection.scores[run] > suite.metrics[name]["threshold_at_far"]
+        widths = np.array([p.get_extents().width for p in bar.get_paths()])
+        assert len(widths) == int((alarms[1:] & ~alarms[:-1]).sum() + alarms[0]), name
+    for f in (own, fig):
+        plt.close(f)
+
+
 def test_the_alarm_raster_has_a_row_per_detector(figures):
     suite, figs = figures
     ax = figs["alarms_run0.png"].axes[0]
