@@ -151,8 +151,10 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
                 ax.plot(t, own.attack[r, :, c].numpy(), "--", lw=1.2, color=colour[name],
                         label=f"injected in {name}'s loop")  # fmt: skip
             ax.plot(t, out.attack[r, :, c].numpy(), lw=0.9, label=name, color=colour[name])
-        ax.set(xlabel="time [s]", ylabel=f"attack, channel {c + 1} [{result.scenario.attack_unit}]",
-               title=f"Run {r}: attack estimates (channel {c + 1}, the most attacked)")  # fmt: skip
+        names = getattr(result.scenario, "attack_entry_names", None)
+        entry = f"channel {c + 1}" if not names else f"channel {c + 1}, {names[c]}"
+        ax.set(xlabel="time [s]", ylabel=f"attack, {entry} [{result.scenario.attack_unit}]",
+               title=f"Run {r}: attack estimates ({entry}, the most attacked)")  # fmt: skip
         _legend(ax)
         figs.append(("attack_estimates_run0.png", fig))
     return figs

@@ -624,6 +624,7 @@ class LFCScenario(Scenario):
     closed_loop = True
     state_unit: ClassVar[str] = "p.u. (Δf in Hz)"  # the paper's per-unit system
     attack_unit: ClassVar[str] = "p.u. (Δf in Hz)"  # on the measured states
+    attack_entry_names: ClassVar[tuple[str, ...]] = STATE_NAMES  # C = I: every state measured
 
     def __post_init__(self):
         object.__setattr__(self, "attack", LFCAttack(self.attack))

@@ -193,6 +193,9 @@ class Scenario:
     #: them; pooled metrics over components of several units name each).
     state_unit: ClassVar[str] = "state units"
     attack_unit: ClassVar[str] = "attack units"
+    #: The names of the attacked signal's entries (``None``: numbered only), for plots: a
+    #: reader of "channel 3 [p.u. (Δf in Hz)]" took the LFC's turbine power for a frequency.
+    attack_entry_names: ClassVar[tuple[str, ...] | None] = None
 
     def unit_of(self, metric_unit: str) -> str:
         """``metric_unit`` of :data:`~difffilter.eval.scoring.METRICS` in this scenario's

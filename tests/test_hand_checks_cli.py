@@ -215,7 +215,15 @@ def test_the_attack_figure_draws_the_attack_injected_in_an_estimators_own_loop()
     assert lines == {"injected": [0.0, 1.0, 1.0, 1.0], "open": pytest.approx([0.1, 1.1, 1.1, 1.1]),
                      "injected in loop's loop": [0.0, 2.0, 3.0, 4.0],
                      "loop": pytest.approx([-0.1, 1.9, 2.9, 3.9])}  # fmt: skip
-    for fig in figs.values():
+    assert figs["attack_estimates_run0.png"].axes[0].get_ylabel() == "attack, channel 1 [V]"
+    # a scenario that names its entries: the channel by its name (a reviewer took the LFC's
+    # turbine power, channel 3 in "p.u. (Δf in Hz)", for a frequency)
+    result.scenario.attack_entry_names = ("dPtu_1",)
+    named = dict(standard_figures(result))
+    assert (
+        named["attack_estimates_run0.png"].axes[0].get_ylabel() == "attack, channel 1, dPtu_1 [V]"
+    )
+    for fig in (*figs.values(), *named.values()):
         plt.close(fig)
 
 
