@@ -68,14 +68,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--add-estimators",
-        type=lambda text: [n for n in text.split(",") if n],
+        type=_estimator_list,
         default=[],
         metavar="A,B,…",
         help="registered estimators to run beside each scenario's own (e.g. pf_nn_ekf with an "
         "EKF-trained --ckpt)",
     )
     p.add_argument(
-        "--out", type=Path, default=Path("reports"), help="output folder (default: reports/)"
+        "--out", type=_folder, default=Path("reports"), help="output folder (default: reports/)"
     )
     p.add_argument(
         "--seed", type=int, default=0, help="master seed of every random draw (default 0)"
@@ -147,6 +147,19 @@ def _far(text: str) -> float | None:
     return value
 
 
+def _estimator_list(text: str) -> list[str]:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:  # ("" ran the scenario's own, as if the option were not given)
+        raise argparse.ArgumentTypeError("expected estimator names separated by commas")
+    return names
+
+
+def _folder(text: str) -> Path:
+    if not text.strip():  # (Path("") is ".": the reports went into the current folder)
+        raise argparse.ArgumentTypeError("expected a folder; got an empty name")
+    return Path(text)
+
+
 def _threats(text: str):
     if text.strip() == "all":
         return "all"
@@ -181,7 +194,20 @@ def resolve_scenarios(name: str) -> list[str]:
         return registry.names(headline_only=True)
     if name in registry.families():
         return registry.names(name, headline_only=True) or registry.names(name)
-    return [registry.get(name).name]  # raises ValueError listing the known names
+    if ":" in name or name.endswith((".yaml", ".yml")):
+        return [registry.get(name).name]  # a scenario of the user's: its own errors
+    try:
+        return [registry.get(name).name]
+    except ValueError:
+        import difflib
+
+        targets = ["all", "robustness", *registry.families()]
+        close = difflib.get_close_matches(name, [*registry.names(), *targets], n=3, cutoff=0.6)
+        hint = f"did you mean {' or '.join(close)}? " if close else ""
+        raise ValueError(
+            f"unknown scenario {name!r}; {hint}known scenarios: {', '.join(registry.names())}; "
+            f"also {', '.join(targets)} (difffilter-eval --list)"
+        ) from None
 
 
 def evaluate(
@@ -219,8 +245,7 @@ def evaluate(
     families: dict[str, list[str]] = {}
     for name in scenarios:
         families.setdefault(registry.get(name).family, []).append(name)
-    if family_options and not any(family_report(f).prepare for f in families):
-        raise ValueError(f"--option: no family of {', '.join(families)} takes options")
+    check_family_options(list((family_options or {}).items()), scenarios)
     cache: dict = {}  # shared by the suites of this call (e.g. common attack-free runs)
     rank, world = process_group()
     # With --devices N every process holds every result after each suite's gather; each
@@ -267,6 +292,34 @@ def evaluate(
         write_leaderboard(out, docs)
         write_acceptance_summary(out, docs)
     return docs if rank == 0 else {}
+
+
+def check_family_options(options, scenarios: Sequence[str]) -> None:
+    """``--option`` pairs ``[(key, value)]`` checked before any work, by every family of
+    ``scenarios`` that takes options (:attr:`FamilyReport.check_options`): a bad key for
+    the LFC family in ``all`` failed after the four-tank suites had run and written their
+    reports. A key given twice is refused (the last won, silently)."""
+    if not options:
+        return
+    from difffilter.models import registry
+
+    from .report import family_report
+
+    keys = [key for key, _ in options]
+    twice = sorted({k for k in keys if keys.count(k) > 1})
+    if twice:
+        raise ValueError(f"--option {', '.join(twice)}: given twice; give each key once")
+    families = list(dict.fromkeys(registry.get(name).family for name in scenarios))
+    takers = [f for f in families if family_report(f).prepare is not None]
+    if not takers:
+        raise ValueError(
+            f"--option: the families evaluated ({', '.join(families)}) take no options; "
+            "lfc does (docs/scenarios.md)"
+        )
+    for family in takers:
+        check = family_report(family).check_options
+        if check is not None:
+            check(dict(options))
 
 
 def check_scenario_estimators(names: Sequence[str]) -> None:
@@ -322,6 +375,13 @@ def check_arguments(*, runs: int | None = None, ckpt=None, devices: int = 1,
     for name, value in checked:
         if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):  # fmt: skip
             raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
+    cpus = os.cpu_count() or 1
+    if devices is not None and devices > max(cpus, 2):
+        # each process runs on one core and holds ~0.4 GB: 100 sat silent for minutes
+        raise ValueError(
+            f"--devices {devices}: this machine has {cpus} CPU(s); each process runs on one "
+            f"core (and holds about 0.4 GB), so use at most {max(cpus, 2)}"
+        )
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"--seed must be an integer >= 0; got {seed!r}")
     _check_estimator_names(add_estimators, "--add-estimators: ")
@@ -347,6 +407,12 @@ def parse_checkpoints(values: Sequence[str] | None):
     for value in values:
         name, sep, path = str(value).partition("=")
         if sep and name in known.ESTIMATORS:
+            if name in named:  # (the first was dropped without a word)
+                raise ValueError(
+                    f"--ckpt: {name} is given twice ({named[name]} and {path}): one checkpoint "
+                    "per estimator in one evaluation; compare two of one kind in two "
+                    "evaluations with their own --out, or one as pf_nn_ekf=… if trained by EKF"
+                )
             named[name] = Path(path)
         elif sep and not Path(value).exists() and "/" not in name:
             raise ValueError(
@@ -384,11 +450,11 @@ def check_checkpoint_fits(ckpt, names: Sequence[str]) -> None:
     for given, path in _checkpoint_paths(ckpt):
         card = load_estimator_checkpoint(path)[1]
         if card.scenario_family is not None and card.scenario_family not in families:
-            what = names[0] if len(names) == 1 else f"{len(names)} scenarios"
+            what = (f"{names[0]} is a {families[0]} scenario" if len(names) == 1 else
+                    f"the {len(names)} scenarios evaluated are {'/'.join(families)} ones")  # fmt: skip
             raise ValueError(
-                f"--ckpt {given} was trained on {card.scenario_family} scenarios (its card); "
-                f"{what} {'is' if len(families) == 1 else 'are'} {'/'.join(families)}: no "
-                "estimator can use it"
+                f"--ckpt {given} was trained on {card.scenario_family} scenarios (its card), "
+                f"and {what}: none of their estimators can use it"
             )
 
 
@@ -478,6 +544,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ValueError("--calibration-runs with --far off: nothing is calibrated")
         check_checkpoint_fits(args.ckpt, names)
         check_scenario_estimators(names)
+        check_family_options(args.option, names)
         threats = args.threats or ("all" if args.scenario == "robustness" else None)
         if args.threat_set is not None and threats is None:
             raise ValueError("--threat-set names the threats of --threats: give --threats too")
@@ -492,7 +559,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             out=args.out,
             seed=args.seed,
             progress=not args.no_progress,
-            family_options=dict(args.option),
+            family_options=dict(args.option or ()),
             add_estimators=args.add_estimators,
             far=args.far,
             calibration_runs=args.calibration_runs,

@@ -119,6 +119,8 @@ class FamilyReport:
             a validation the reports discuss). ``options`` holds the CLI's family flags.
         finish: ``(results, out, prepared) → None`` once after them: a summary across the
             family's scenarios (``results``: ``{scenario: metrics.json content}``).
+        check_options: ``options → None``, ``ValueError`` naming a bad ``--option``: run
+            before any scenario of the evaluation (``prepare`` checks them again).
         estimator_metrics: ``(SuiteResult, estimator) → dict``: cheap numbers of one
             estimator's outputs that the family reports beside the generic ones (tracking's
             position RMSE ``rmse_p``), for the studies that write no report (a training
@@ -133,6 +135,7 @@ class FamilyReport:
     sections: Callable[..., list[Section]] | None = None
     prepare: Callable[..., Any] | None = None
     finish: Callable[..., None] | None = None
+    check_options: Callable[[dict], None] | None = None
     estimator_metrics: Callable[..., dict[str, Any]] | None = None
     report_cost: float = 1.0
 

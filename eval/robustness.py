@@ -145,8 +145,12 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
             check_attack_fits(threats[name], model, getattr(scenario, "steps", None))
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{path}: threat {name!r}: {exc}") from None
-    estimators = data.get("estimators")
-    return ThreatSet(threats, {n: dict(specs[n]) for n in chosen}, data.get("runs"),
+    estimators, runs = data.get("estimators"), data.get("runs")
+    if runs is not None and (isinstance(runs, bool) or not isinstance(runs, int) or runs < 1):
+        # (0 read as "not given": the scenario's 100 runs ran; -3 failed naming no file)
+        raise ValueError(f"{path}: runs must be an integer >= 1 (or left out: the "
+                         f"scenario's); got {runs!r}")  # fmt: skip
+    return ThreatSet(threats, {n: dict(specs[n]) for n in chosen}, runs,
                      None if estimators is None else tuple(estimators), str(path))  # fmt: skip
 
 

@@ -262,6 +262,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="the rate of the compensated innovation's χ² test where failing it keeps "
                         "the prediction (default: the card's)")  # fmt: skip
     args = p.parse_args(argv)
+    if args.seed < 0:  # (Streams said "seed must be …", naming no option)
+        p.error(f"--seed must be an integer >= 0; got {args.seed}")
     try:
         cal = calibrate_checkpoint(args.src, args.out, far=args.far, runs=args.runs,
                                    seed=args.seed, force=args.force,
@@ -282,7 +284,8 @@ def main(argv: list[str] | None = None) -> int:
         f"{' (' + cal['score'] + ')' if 'score' in cal else ''} (was "
         f"{cal['previous_threshold']:.6g}); false alarms {100 * cal['measured_on_calibration']:.2f} % "
         f"on the calibration runs, {100 * cal['measured_on_check']:.2f} % on {cal['runs']} other "
-        f"attack-free runs of {cal['scenario']} (target {100 * cal['target']:g} %)"
+        f"attack-free run{'s' if cal['runs'] != 1 else ''} of {cal['scenario']} (target "
+        f"{100 * cal['target']:g} %)"
     )
     return 0
 

@@ -35,14 +35,14 @@ class DifffilterCLI(LightningCLI):
         (:func:`_seeds_from_seed_everything`)."""
         _seeds_from_seed_everything(self.config, self.subcommand)
         _check_config(self.config, self.subcommand)
+        kind = _check_ckpt_path(self.config[self.subcommand] if self.subcommand else self.config,
+                                self.subcommand)  # fmt: skip
         if self.subcommand != "fit":
             return
         cfg = self.config["fit"]
         ckpt, logger = cfg.get("ckpt_path"), cfg["trainer"].get("logger")
         if ckpt:
-            from difffilter.models.neural_estimator import is_exported_checkpoint
-
-            if Path(ckpt).is_file() and is_exported_checkpoint(ckpt):
+            if kind == "exported":
                 raise ValueError(
                     f"--ckpt_path: {ckpt} is an exported estimator (weights only), not a "
                     "training run's Lightning checkpoint to resume; start a training from its "
@@ -118,6 +118,61 @@ class DifffilterCLI(LightningCLI):
         mine.load_state_dict(estimator.state_dict())
         self.config_init[subcommand]["ckpt_path"] = None  # weights are in; nothing to restore
         print(f"loaded the exported estimator {path}")
+
+
+#: What ``validate``, ``test`` and ``predict`` do with the weights of ``--ckpt_path``.
+_JUDGES = {"validate": "validate", "test": "test", "predict": "predict with"}
+
+
+def _check_ckpt_path(cfg, subcommand: str | None) -> str | None:
+    """``--ckpt_path`` read before any work: ``"exported"``, ``"lightning"`` or ``None``
+    (none given, or a name Lightning resolves itself, e.g. ``last``). ``ValueError`` naming
+    the option for a file torch cannot read with ``weights_only=True`` or one that is
+    neither kind (both failed in Lightning with a traceback, the first advising an unsafe
+    load, and left a run folder behind), and for ``validate``, ``test`` or ``predict``
+    without one (they judged the configured network's initial weights, without a word)."""
+    ckpt = cfg.get("ckpt_path")
+    if not ckpt:
+        if subcommand in _JUDGES:
+            raise ValueError(
+                f"--ckpt_path: {subcommand} needs the weights to {_JUDGES[subcommand]}: a "
+                "training run's Lightning checkpoint (<run>/checkpoints/*.ckpt) or an exported "
+                "estimator (checkpoints/*.ckpt); without one it would judge the configured "
+                "network's initial weights"
+            )
+        return None
+    path = Path(ckpt)
+    if not path.is_file():
+        return None  # Lightning names a missing file, and resolves "last", "best", …
+    import torch
+
+    from difffilter.models.neural_estimator import CHECKPOINT_FORMAT
+
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # unpickling errors come in many types
+        # (torch's own text advises weights_only=False, an arbitrary-code load: not repeated)
+        raise ValueError(
+            f"--ckpt_path: {ckpt} is no checkpoint torch can load with weights_only=True "
+            f"({type(exc).__name__}); a training run's Lightning checkpoint or an exported "
+            "estimator is expected"
+        ) from None
+    if isinstance(blob, dict) and blob.get("format") == CHECKPOINT_FORMAT:
+        return "exported"
+    if isinstance(blob, dict) and "pytorch-lightning_version" in blob and "state_dict" in blob:
+        return "lightning"
+    raise ValueError(
+        f"--ckpt_path: {ckpt} is neither a training run's Lightning checkpoint nor an exported "
+        f"estimator (a {type(blob).__name__} of torch.save without their keys)"
+    )
+
+
+def _ckpt_paths_in(argv) -> list[str]:
+    """The values of ``--ckpt_path`` in the command line ``argv`` (both spellings)."""
+    argv = list(argv or ())
+    found = [a.split("=", 1)[1] for a in argv if a.startswith("--ckpt_path=")]
+    found += [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--ckpt_path"]
+    return found
 
 
 def _seeds_from_seed_everything(config, subcommand: str | None) -> None:
@@ -233,6 +288,9 @@ def run(args: list[str] | None, argv: list[str], description: str) -> int:
     parser_kwargs = {**raising, "description": description,
                      **{name: {**raising, "description": shortcut} for name in commands}}  # fmt: skip
     try:
+        # Lightning reads a --ckpt_path's settings while it parses, before any hook
+        for given in _ckpt_paths_in(argv):
+            _check_ckpt_path({"ckpt_path": given}, None)
         cli = DifffilterCLI(
             pl.LightningModule,
             pl.LightningDataModule,

@@ -101,6 +101,9 @@ def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str], progress: bo
         print(f"seed {seed}: resuming from {last}")
         args += ["--ckpt_path", str(last)]
     if cli_main(args) != 0:
+        if not (folder / "checkpoints").is_dir():  # nothing trained (e.g. a misspelt option):
+            # its settings are no record of a run, and refused the corrected command after it
+            (folder / _SETTINGS).unlink(missing_ok=True)
         raise ValueError(f"seed {seed}: difffilter-train fit failed (its error is above)")
     done = _exported(folder) if folder.is_dir() else None
     if done is None:
@@ -150,6 +153,25 @@ def _check_same_settings(folder: Path, settings: dict, seed: int) -> None:
         raise ValueError(
             f"seed {seed}: {folder} was trained with {what}; give another --out for these "
             "settings, or delete that folder to train them there"
+        )
+
+
+def _check_same_sweep(out: Path, config: Path, extra: list[str]) -> None:
+    """``--out`` holds no sweep of another config or other options: a second sweep of
+    another config into it (its seeds' folders apart) replaced the first's ``sweep.json``
+    and ``sweep.md`` without a word. More seeds of the same sweep are welcome."""
+    file = out / "sweep.json"
+    if not file.is_file():
+        return
+    try:
+        had = json.loads(file.read_text())
+    except (OSError, json.JSONDecodeError):
+        return  # not a sweep's: the seeds' own checks still hold
+    same_config = Path(str(had.get("config"))).resolve() == Path(config).resolve()
+    if not same_config or had.get("options", []) != extra:
+        raise ValueError(
+            f"--out {out} holds the sweep of {had.get('config')} with the options "
+            f"{had.get('options', [])}; this one is {config} with {extra}: give another --out"
         )
 
 
@@ -418,6 +440,7 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
                          f"training chose its weights by, and {config} has no ModelCheckpoint "
                          "monitor; add one, or --select-on test")  # fmt: skip
     _check_before_training(config, out, scenarios, runs, test, extra)
+    _check_same_sweep(out, config, list(extra))
     runs_dir = out / "runs"
     for seed in seeds:  # every seed's folder before the first is trained
         folder, _, settings = _seed_run(config, seed, runs_dir, list(extra))

@@ -255,13 +255,6 @@ def _prepare(names, *, out: Path, seed: int, checkpoint, progress: bool, options
     ``watermark_runs``, default 20; its χ² threshold at the evaluation's ``far``, 0.01
     where the evaluation calibrates nothing) written to ``<out>/lfc_watermark/``. Their
     sizes are these options', not the evaluation's ``--runs``."""
-    valid = ("per_channel", "per_channel_runs", "per_channel_steps", "watermark", "watermark_std",
-             "watermark_runs")  # fmt: skip
-    unknown = set(options) - set(valid)
-    if unknown:
-        raise ValueError(
-            f"--option: unknown lfc option(s) {sorted(unknown)}; valid: {', '.join(valid)}"
-        )
     options = _checked_options(options)
     tuning = json.loads(TUNING.read_text()) if TUNING.is_file() else None
     doc = None
@@ -283,10 +276,23 @@ def _prepare(names, *, out: Path, seed: int, checkpoint, progress: bool, options
     return {"per_channel": doc, "tuning": tuning}
 
 
+#: The LFC family's report options (``--option KEY=VALUE``): each study's switch, then the
+#: options that size it (refused without their switch: they were ignored silently).
+OPTIONS = {"per_channel": ("per_channel_runs", "per_channel_steps"),
+           "watermark": ("watermark_std", "watermark_runs")}  # fmt: skip
+
+
 def _checked_options(options: dict) -> dict:
-    """The LFC report options with their types and ranges checked (``ValueError`` naming the
-    key): ``per_channel``/``watermark`` booleans, ``per_channel_runs``/``_steps`` and
-    ``watermark_runs`` integers >= 1, ``watermark_std`` a number > 0."""
+    """The LFC report options with their keys, types and ranges checked (``ValueError``
+    naming the key): ``per_channel``/``watermark`` booleans, ``per_channel_runs``/``_steps``
+    and ``watermark_runs`` integers >= 1, ``watermark_std`` a number > 0, each sizing
+    option only with its study switched on."""
+    valid = [k for switch, sizes in OPTIONS.items() for k in (switch, *sizes)]
+    unknown = set(options) - set(valid)
+    if unknown:
+        raise ValueError(
+            f"--option: unknown lfc option(s) {sorted(unknown)}; valid: {', '.join(valid)}"
+        )
     for key in ("per_channel", "watermark"):
         if key in options and not isinstance(options[key], bool):
             raise ValueError(f"--option {key}: true or false; got {options[key]!r}")
@@ -297,6 +303,11 @@ def _checked_options(options: dict) -> dict:
     std = options.get("watermark_std", 1.0)
     if isinstance(std, bool) or not isinstance(std, (int, float)) or not 0 < std < math.inf:
         raise ValueError(f"--option watermark_std: a number > 0 (p.u.); got {std!r}")
+    for switch, sizes in OPTIONS.items():
+        for key in sizes:
+            if key in options and options.get(switch) is not True:
+                raise ValueError(f"--option {key}: sizes the {switch} study, which runs only "
+                                 f"with {switch}=true; give that too")  # fmt: skip
     return options
 
 
@@ -445,5 +456,12 @@ def _finish(results: dict, out: Path, prepared) -> None:
 
 
 register_family(
-    "lfc", FamilyReport(extra=_extra, sections=_sections, prepare=_prepare, finish=_finish)
+    "lfc",
+    FamilyReport(
+        extra=_extra,
+        sections=_sections,
+        prepare=_prepare,
+        finish=_finish,
+        check_options=_checked_options,
+    ),
 )

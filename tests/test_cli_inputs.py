@@ -1,0 +1,135 @@
+"""A command-line fuzzer's findings (a user trial of ~170 invocations): each input that was
+accepted silently, dropped, or failed with a traceback or after minutes of work is refused
+up front with one line naming the option."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from difffilter.eval import cli as eval_cli
+from difffilter.train.cli import main as train_main
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED = ROOT / "checkpoints" / "four_tank_nn_grad.ckpt"
+
+
+def _eval_error(argv, capsys) -> str:
+    assert eval_cli.main(argv) == 2
+    return capsys.readouterr().err
+
+
+def test_difffilter_eval_refuses_what_it_dropped_or_ran_without_a_word(
+    tmp_path, monkeypatch, capsys
+):
+    out = ["--out", str(tmp_path / "o"), "--runs", "2", "--far", "off", "--no-progress"]
+    # one estimator given two checkpoints: the first was dropped, metrics.json named the second
+    err = _eval_error(["four_tank_bias", *out, "--ckpt", f"pf_nn_grad={SHIPPED}",
+                       "--ckpt", f"pf_nn_grad={tmp_path / 'b.ckpt'}"], capsys)  # fmt: skip
+    assert "pf_nn_grad is given twice" in err
+    with pytest.raises(SystemExit):  # an empty --out wrote the reports into the current folder
+        eval_cli.main(["four_tank_bias", "--out", ""])
+    assert "--out: expected a folder" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # "" ran the scenario's own estimators
+        eval_cli.main(["four_tank_bias", "--add-estimators", ""])
+    assert "--add-estimators: expected estimator names" in capsys.readouterr().err
+    monkeypatch.setattr(eval_cli.os, "cpu_count", lambda: 2)  # 100 processes sat silent
+    assert "--devices 100: this machine has 2 CPU(s)" in _eval_error(
+        ["four_tank_bias", *out, "--devices", "100"], capsys
+    )
+    # a typo gets a suggestion and the names beside the scenarios
+    err = _eval_error(["four_tank_bia", *out], capsys)
+    assert "did you mean four_tank_bias" in err and "also all, robustness" in err
+
+
+def test_family_options_are_checked_for_every_family_before_any_suite(
+    tmp_path, monkeypatch, capsys
+):
+    """``all -o nosuch=true`` failed after the four-tank suites had run and written their
+    reports; a sizing option without its study was ignored; a repeated key, the last won."""
+
+    def no_suite(*args, **kwargs):
+        raise AssertionError("a suite ran before the options were checked")
+
+    monkeypatch.setattr("difffilter.eval.suite.run_suite", no_suite)
+    out = ["--out", str(tmp_path / "o"), "--runs", "2", "--far", "off"]
+    assert "unknown lfc option(s) ['nosuch']" in _eval_error(
+        ["all", *out, "-o", "nosuch=1"], capsys
+    )
+    err = _eval_error(["lfc_step", *out, "-o", "per_channel_runs=5"], capsys)
+    assert "per_channel_runs: sizes the per_channel study" in err
+    err = _eval_error(["lfc_step", *out, "-o", "watermark=true", "-o", "watermark=false"], capsys)
+    assert "--option watermark: given twice" in err
+    err = _eval_error(["four_tank_bias", *out, "-o", "x=1"], capsys)
+    assert "the families evaluated (four_tank) take no options; lfc does" in err
+    assert not any((tmp_path / "o").rglob("*.md"))  # nothing written
+
+
+def test_a_threat_sets_runs_must_be_a_positive_integer_named_by_its_file(tmp_path):
+    """``runs: 0`` read as "not given" (the scenario's 100 runs ran); -3 failed naming no file."""
+    from difffilter.eval.robustness import load_threat_set
+    from difffilter.models import registry
+
+    for runs in (0, -3, "abc", True):
+        path = tmp_path / f"set_{runs}.yaml"
+        path.write_text(f"runs: {json.dumps(runs)}\nthreats:\n  b: {{kind: bias, value: 0.5}}\n")
+        with pytest.raises(ValueError, match=rf"{path.name}: runs must be an integer >= 1"):
+            load_threat_set(registry.get("four_tank_bias"), "all", path=path)
+
+
+def _train_error(argv, capsys, tmp_path, monkeypatch) -> str:
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    assert train_main(argv) == 2
+    return capsys.readouterr().err
+
+
+def test_difffilter_train_names_a_ckpt_path_that_is_no_checkpoint(tmp_path, monkeypatch, capsys):
+    """A file torch cannot load with ``weights_only=True`` gave Lightning's traceback, whose
+    advice was an unsafe load; a torch file of other keys a ``KeyError`` traceback; both left
+    a run folder. ``validate``/``test``/``predict`` without one judged untrained weights."""
+    config = ["--config", str(ROOT / "train" / "configs" / "robot.yaml")]
+    (tmp_path / "garbage.ckpt").write_bytes(bytes(range(256)) * 4)
+    torch.save({"a": torch.ones(2)}, tmp_path / "dict.ckpt")
+    for command in ("fit", "validate"):
+        err = _train_error([command, *config, "--ckpt_path", str(tmp_path / "garbage.ckpt")],
+                           capsys, tmp_path, monkeypatch)  # fmt: skip
+        assert "garbage.ckpt is no checkpoint torch can load with weights_only=True" in err
+        assert "Traceback" not in err and "weights_only` set to `False`" not in err
+    err = _train_error(["fit", *config, f"--ckpt_path={tmp_path / 'dict.ckpt'}"], capsys,
+                       tmp_path, monkeypatch)  # fmt: skip
+    assert "dict.ckpt is neither a training run's Lightning checkpoint" in err
+    for command in ("validate", "test", "predict"):
+        err = _train_error([command, *config], capsys, tmp_path, monkeypatch)
+        assert f"--ckpt_path: {command} needs the weights" in err
+    assert not (tmp_path / "lightning_logs").exists()
+
+
+def test_a_sweep_forgets_a_seed_that_trained_nothing_and_keeps_its_out_to_one_sweep(
+    tmp_path, monkeypatch, capsys
+):
+    """A misspelt option failed the fit but left the seed's settings, and the corrected
+    command was refused as "trained with the options [...]"; a sweep of another config into
+    the same --out replaced the first sweep's summary."""
+    from difffilter.train import sweep as sweep_module
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    config = ROOT / "train" / "configs" / "robot.yaml"
+    out = tmp_path / "sw"
+    with pytest.raises(ValueError, match="seed 0: difffilter-train fit failed"):
+        sweep_module._fit(config, 0, out / "runs", ["--nosuch.option=1"], progress=False)
+    folder = sweep_module._seed_run(config, 0, out / "runs", [])[0]
+    assert not (folder / sweep_module._SETTINGS).exists()
+    sweep_module._check_same_settings(folder, sweep_module._settings(config, []), 0)  # accepted
+    out.mkdir(exist_ok=True)
+    (out / "sweep.json").write_text(json.dumps({"config": str(config), "options": []}))
+    sweep_module._check_same_sweep(out, config, [])  # more seeds of the same sweep
+    other = ROOT / "train" / "configs" / "four_tank_ekf.yaml"
+    with pytest.raises(ValueError, match="holds the sweep of .*robot.yaml"):
+        sweep_module._check_same_sweep(out, other, [])
+    with pytest.raises(ValueError, match="give another --out"):
+        sweep_module._check_same_sweep(out, config, ["--trainer.max_epochs=2"])
