@@ -147,7 +147,12 @@ class Proposal(Protocol):
 
 class Likelihood(Protocol):
     """A measurement log-likelihood: ``(model, y [..., dy], particles [..., N, dx], k, mask
-    [..., dy] | None) → log p(y_k | x_k^i)`` ``[..., N]``.
+    [..., dy] | None) → log p(y_k | x_k^i)`` ``[..., N]``, one per run and particle (summed
+    over the received entries), in the particles' dtype, finite or ``−inf`` (a zero
+    density); ``k`` is the index of the measurement (the proposal's ``k`` plus one). The
+    step checks the shape and dtype at every step, and names the likelihood where a NaN or
+    ``+inf`` makes a step degenerate (it was taken for an underflow, the measurement
+    dropped).
 
     A likelihood with ``uses_predictive = True`` is also passed ``predictive=``, the step's
     :class:`Predictive` (predictive weights and moments): the hook through which the
@@ -540,17 +545,52 @@ def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator):
     rows = None if count == need.numel() else need
     # weights here are normalised and finite by construction: skip re-validation
     fast = getattr(resampler, "resample_normalized", None)
-    if fast is None:  # a user resampler with only __call__
-        res = resampler(particles, log_w, generator)
+    kind = type(resampler)
+    if fast is None or (  # a user resampler with only __call__ (a Resampler subclass too:
+        # its __call__ was never run, the base's resample_normalized asked for _draw)
+        isinstance(resampler, Resampler) and kind.__call__ is not Resampler.__call__
+        and kind.resample_normalized is Resampler.resample_normalized
+        and kind._draw is Resampler._draw
+    ):  # fmt: skip
+        res = _checked_resampled(resampler(particles, log_w, generator), particles, log_w)
         if rows is not None:
             res = keep_unmarked_rows(res, particles, log_w, rows)
-    elif type(resampler).resample_normalized is Resampler.resample_normalized:
+    elif kind.resample_normalized is Resampler.resample_normalized:
         # the library's index resamplers also take the weights this step has (no exp)
         res = fast(particles, log_w, generator, rows=rows, weights=w)
-        uniform = rows is None and type(resampler)._new_log_weights is _UNIFORM
+        uniform = rows is None and kind._new_log_weights is _UNIFORM
     else:
         res = fast(particles, log_w, generator, rows=rows)
     return res.particles, res.log_weights, None, need, uniform
+
+
+def _checked_resampled(res, particles: Tensor, log_w: Tensor):
+    """A user resampler's result, checked: a :class:`~difffilter.resampling.Resampled`
+    (``.particles``, ``.log_weights``) of the particles' shape and dtype, its log-weights
+    normalised (``logsumexp = 0`` per run). One returning N − 1 particles shrank the
+    online carry a particle a step; unnormalised log-weights shifted the evidence by their
+    sum at every resampling, all without a word. One reduction per resampling."""
+    name = type(res).__name__
+    got = getattr(res, "particles", None), getattr(res, "log_weights", None)
+    if not all(isinstance(t, Tensor) for t in got):
+        raise TypeError(f"the resampler returned a {name}; it returns a Resampled(particles, "
+                        "log_weights, ancestors) (difffilter.resampling.Resampled)")  # fmt: skip
+    new, new_lw = got
+    if new.shape != particles.shape or new_lw.shape != log_w.shape or new.dtype != particles.dtype:
+        raise ValueError(
+            f"the resampler returned particles {tuple(new.shape)} {new.dtype} and log-weights "
+            f"{tuple(new_lw.shape)}; it was given {tuple(particles.shape)} {particles.dtype} "
+            f"and {tuple(log_w.shape)}: the same number of particles, of the same dtype"
+        )
+    total = torch.logsumexp(new_lw.detach(), dim=-1)
+    if not bool((total.abs() <= 1e-4 if new_lw.dtype != torch.float64 else
+                 total.abs() <= 1e-9).all()):  # fmt: skip
+        raise ValueError(
+            f"the resampler returned log-weights whose logsumexp per run is up to "
+            f"{float(total.abs().max()):.3g} from 0: return normalised log-weights (e.g. "
+            "log_w - logsumexp(log_w)); unnormalised ones shift the evidence at each resampling"
+        )
+    return res
 
 
 def _particle_step(pf: ParticleFilter, carry: ParticleState, y, u, mask):
@@ -578,11 +618,18 @@ def _particle_step(pf: ParticleFilter, carry: ParticleState, y, u, mask):
         obs = model.observe(new, k + 1)
         predictive = _predictive(model, y, mask, k, obs, pred_w, prior_lw, pred_mean)
 
-    aux, log_alpha, record = _weigh(pf, carry.aux, model, y, new, k + 1, mask, obs, predictive,
-                                    uses_predictive)  # fmt: skip
-    if correction is not None:
-        log_alpha = log_alpha + correction
-    increment, log_w_new, w_new, degenerate = _normalise(log_w + log_alpha, prior_lw)
+    aux, log_lik, record = _weigh(pf, carry.aux, model, y, new, k + 1, mask, obs, predictive,
+                                  uses_predictive)  # fmt: skip
+    _check_log_density(log_lik, log_w, pf.likelihood, "likelihood", k + 1)
+    log_alpha = log_lik if correction is None else log_lik + correction
+
+    def blame() -> None:  # a degenerate step: a plug-in's NaN or +inf, not an underflow
+        _blame_nonfinite(log_lik, pf.likelihood, "likelihood", k + 1)
+        if correction is not None:
+            _blame_nonfinite(correction, pf.proposal, "proposal's correction", k)
+        _blame_nonfinite(log_w, pf.resampler, "resampler's log-weights", k)
+
+    increment, log_w_new, w_new, degenerate = _normalise(log_w + log_alpha, prior_lw, blame)
     ess_new = torch.linalg.vecdot(w_new, w_new).reciprocal()
     mean, cov = _moments(new, w_new, pf.cov_dims)
     extras = {"ess": ess_new, "resampled": need, "degenerate": degenerate, **record}
@@ -619,7 +666,39 @@ def _weigh(pf, aux, model, y, particles, k, mask, obs, predictive, uses_predicti
     return aux, likelihood(model, y, particles, k, mask), {}
 
 
-def _normalise(joint: Tensor, prior_lw: Tensor):
+def _check_log_density(value, log_w: Tensor, plugin, what: str, k: int) -> None:
+    """A plug-in's log-densities are a floating tensor of the particles' shape and dtype,
+    ``[..., N]`` as ``log_w``: a likelihood that forgot the runs (``[N]``) gave every run
+    the first run's likelihood, an integer one was truncated, all without a word. Shape
+    and dtype only (a few comparisons a step); values are read only on a degenerate step
+    (:func:`_blame_nonfinite`)."""
+    if type(value) is Tensor and value.shape == log_w.shape and value.dtype == log_w.dtype:
+        return
+    name = f"{what} {type(plugin).__name__}"
+    if not isinstance(value, Tensor):
+        raise TypeError(f"the {name} returned a {type(value).__name__} at step {k}; it returns "
+                        f"log p(y_k | x_k^i), a tensor {list(log_w.shape)}")  # fmt: skip
+    raise ValueError(
+        f"the {name} returned log-densities of shape {tuple(value.shape)} and dtype "
+        f"{value.dtype} at step {k}; the particles' weights are {tuple(log_w.shape)} "
+        f"{log_w.dtype} ([..., N]: one per run and particle, summed over the measurement)"
+    )
+
+
+def _blame_nonfinite(value: Tensor, plugin, what: str, k: int) -> None:
+    """``ValueError`` naming ``plugin`` where ``value`` holds NaN or +inf: a density is
+    finite or −inf (zero). Such a step was taken for an underflow, its run's weights reset
+    to the predictive ones, and the measurement silently ignored."""
+    bad = torch.isnan(value) | (value == math.inf)
+    if bool(bad.any()):
+        where = [int(i) for i in bad.nonzero()[0]]
+        raise ValueError(
+            f"the {what} of {type(plugin).__name__} holds NaN or +inf at step {k} (first at "
+            f"index {tuple(where)}): log-densities and log-weights are finite or -inf"
+        )
+
+
+def _normalise(joint: Tensor, prior_lw: Tensor, blame=None):
     """``(increment [...], log w [..., N], w [..., N], degenerate [...])`` from the joint log
     weights: logsumexp by hand, keeping its exponentials (``e = exp(joint − max)`` gives the
     weights ``e / Σe`` and the increment ``log Σe + max`` without a second exp pass).
@@ -630,6 +709,8 @@ def _normalise(joint: Tensor, prior_lw: Tensor):
     increment, log_w, w = _normalised(joint)
     degenerate = ~torch.isfinite(increment)
     if bool(degenerate if degenerate.dim() == 0 else degenerate.any()):
+        if blame is not None:  # ``blame()`` raises where a plug-in, not underflow, is why
+            blame()
         reset = degenerate.unsqueeze(-1)
         # −inf (not NaN) where all are −inf; no gradient through a degenerate run's
         increment = torch.logsumexp(torch.where(reset, joint.detach(), joint), dim=-1)

@@ -117,6 +117,11 @@ def test_a_sweep_reports_every_seed_the_spread_and_the_median_seed(tmp_path, mon
     # other settings into the same --out: refused, before anything is trained (a user trial:
     # the first sweep's networks were reported as the hidden=8 ones)
     other = [*args, "--model.init_args.hidden=8"]
+    with pytest.raises(ValueError, match=r"--out sw holds the sweep of .*four_tank.yaml with "
+                       r"the options .*hidden=4.*; this one is .*hidden=8.*give another --out"):  # fmt: skip
+        sweep_fn(ROOT / "train" / "configs" / "four_tank.yaml", seeds=(0,), out="sw",
+                 extra=other[other.index("--") + 1:])  # fmt: skip
+    (tmp_path / "sw" / "sweep.json").unlink()  # a sweep stopped before its summary: the seeds'
     with pytest.raises(ValueError, match=r"seed 0: .*seed_0 was trained with the options .*"
                        r"hidden=4.* \(now .*hidden=8.*\); give another --out"):  # fmt: skip
         sweep_fn(ROOT / "train" / "configs" / "four_tank.yaml", seeds=(0,), out="sw",
