@@ -14,6 +14,7 @@ as the analytic ones. :func:`calibrated_metrics` then reads the study's scores a
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -48,6 +49,9 @@ class Calibration:
             detectors whose rate fell below half the target: a discrete score (the PoA β of
             the particle filters, 1 where every particle exceeds η) ties there, and no
             threshold meets ``α`` (alarms are ``s > τ``).
+        steps: ``{estimator: calibration steps with a score}`` (NaN: no data, left out):
+            with ``α n < 1`` no step may alarm at all, and fewer than
+            :data:`RESOLVED` expected alarms leave ``τ_α`` to a handful of scores.
     """
 
     far: float
@@ -56,35 +60,77 @@ class Calibration:
     thresholds: dict[str, float] = field(default_factory=dict)
     measured: dict[str, float] = field(default_factory=dict)
     tied: dict[str, float] = field(default_factory=dict)
+    steps: dict[str, int] = field(default_factory=dict)
 
     def summary(self) -> dict:
         """The calibration as metrics.json's ``"far"`` entry (``below_target`` only where a
-        detector could not meet the rate)."""
+        detector could not meet the rate, with its ``cause``: ``"ties"``, ``"too few
+        steps"`` (``α n < 1``) or ``"no score"``; ``unresolved`` where fewer than
+        :data:`RESOLVED` alarms are expected on the calibration steps)."""
         below = {name: {"measured_on_calibration": self.measured[name],
-                        "threshold": self.thresholds[name], "tied_at_threshold": share}
+                        "threshold": self.thresholds[name], "tied_at_threshold": share,
+                        "cause": self._cause(name)}
                  for name, share in self.tied.items()}  # fmt: skip
+        few = {name: n for name, n in self.steps.items() if 0 < self.far * n < RESOLVED}
         return {"target": self.far, "calibration_runs": self.runs, "calibration_seed": self.seed,
                 "measured_on_calibration": dict(self.measured),
-                **({"below_target": below} if below else {})}  # fmt: skip
+                **({"below_target": below} if below else {}),
+                **({"unresolved": few} if few else {})}  # fmt: skip
+
+    def _cause(self, name: str) -> str:
+        n = self.steps.get(name)
+        if n == 0:
+            return "no score"
+        if n is not None and self.far * n < 1:
+            return "too few steps"
+        return "ties"
+
+
+#: Fewer expected alarms than this on the calibration steps (``α n``) leave the threshold to
+#: a handful of scores: its rate on fresh runs is ``(⌊α n⌋ + 1)/(n + 1)`` in expectation
+#: for continuous scores, and varies widely from one calibration draw to another (an
+#: auditor's trial: at α = 0.001 on 2,000 steps, 17–29 % of calibrations above 2α).
+RESOLVED = 10
+
+_CAUSES = {
+    "ties": "its scores are discrete and tie there (alarms are s > τ), so no threshold "
+    "meets the rate",
+    "too few steps": "too few calibration steps for the target (α n < 1: not one step may "
+    "alarm); give more --calibration-runs",
+    "no score": "it scored no calibration step (every score NaN)",
+}
 
 
 def below_target_note(far: dict | None) -> str | None:
-    """One sentence for a report naming the detectors whose calibrated rate fell short of
-    the target because their scores tie at the threshold (``far``: metrics.json's entry)."""
-    below = (far or {}).get("below_target")
-    if not below:
-        return None
-    each = "; ".join(
-        f"`{name}` alarms on {100 * b['measured_on_calibration']:.2f} % of them, "
-        f"{100 * b['tied_at_threshold']:.1f} % of its scores being equal to its threshold "
-        f"{b['threshold']:.6g}"
-        for name, b in below.items()
-    )
-    return (
-        f"Below the {100 * far['target']:g} % target on the calibration runs: {each}. Their "
-        "scores are discrete and tie there (alarms are s > τ), so no threshold meets the "
-        "rate; their `*_at_far` metrics are at that lower rate, not at the target."
-    )
+    """Sentences for a report naming the detectors whose calibrated rate fell short of the
+    target, each with why (``far``: metrics.json's entry; a ``below_target`` entry without
+    ``cause``, of an older file, is read as ties), and the calibration's resolution where
+    fewer than :data:`RESOLVED` alarms are expected on its steps."""
+    far = far or {}
+    below, few = far.get("below_target"), far.get("unresolved")
+    notes = []
+    if below:
+        each = "; ".join(
+            f"`{name}` alarms on {100 * b['measured_on_calibration']:.2f} % of them, "
+            f"{100 * b['tied_at_threshold']:.1f} % of its scores being equal to its threshold "
+            f"{b['threshold']:.6g}: {_CAUSES[b.get('cause', 'ties')]}"
+            for name, b in below.items()
+        )
+        notes.append(
+            f"Below the {100 * far['target']:g} % target on the calibration runs: {each}. "
+            "Their `*_at_far` metrics are at that lower rate, not at the target."
+        )
+    if few:
+        n = min(few.values())
+        expected = (math.floor(far["target"] * n + 1e-9) + 1) / (n + 1)
+        notes.append(
+            f"Few calibration steps for the {100 * far['target']:g} % target ({n:,} scored "
+            f"steps: {far['target'] * n:.3g} alarms expected, fewer than {RESOLVED}): each "
+            f"threshold rests on a handful of scores, and its rate on fresh runs is about "
+            f"{100 * expected:.2g} % in expectation and varies widely between calibration "
+            "draws; give more --calibration-runs."
+        )
+    return " ".join(notes) or None
 
 
 def calibration_seed(seed: int) -> int:
@@ -128,16 +174,17 @@ def calibrate(
         progress=progress, checkpoint=checkpoint, cache=cache, calibration=None,
         label=f"{scenario.name}: calibrating at {far:g} (attack-free runs)",
     )  # fmt: skip
-    thresholds, measured, tied = {}, {}, {}
+    thresholds, measured, tied, steps = {}, {}, {}, {}
     for name, out in result.outputs.items():
         if out.detection is None or out.detection.scores is None:
             continue
         scores = _finite_scores(out.detection.scores)
         thresholds[name] = threshold_for(scores, far)
         measured[name] = float((scores > thresholds[name]).double().mean())
+        steps[name] = int((~torch.isnan(out.detection.scores)).sum())
         if measured[name] < far / 2:  # ties at τ: the rate cannot be met (class docstring)
             tied[name] = float((scores == thresholds[name]).double().mean())
-    calibration = Calibration(far, runs, cal_seed, thresholds, measured, tied)
+    calibration = Calibration(far, runs, cal_seed, thresholds, measured, tied, steps)
     if cache is not None:
         cache[key] = calibration
     return calibration

@@ -336,3 +336,34 @@ def test_a_detector_whose_scores_tie_at_the_threshold_is_named_below_the_target(
     assert "below_target" not in calibrate(
         registry.get("four_tank_bias").with_steps(40), runs=4, estimators=["chi_square_ekf"],
         progress=False).summary()  # fmt: skip
+
+
+def test_the_note_names_why_a_rate_fell_short_and_when_the_calibration_is_coarse():
+    """An auditor's trial: "their scores are discrete and tie there" was said of continuous
+    χ² and CUSUM scores calibrated at 0.1 % on 500 steps (not one step may alarm), and of a
+    detector with no score at all; a calibration on 2,000 steps at 0.1 % (two expected
+    alarms) said nothing, though its thresholds met 0.15 % on average on fresh runs."""
+    from difffilter.eval.calibration import RESOLVED, Calibration, below_target_note
+
+    cal = Calibration(0.001, 5, 0, thresholds={"chi": 9.0, "pf": 1.0, "nan": -math.inf},
+                      measured={"chi": 0.0, "pf": 0.0, "nan": 0.0},
+                      tied={"chi": 0.002, "pf": 0.3, "nan": 0.0},
+                      steps={"chi": 500, "pf": 5000, "nan": 0})  # fmt: skip
+    below = cal.summary()["below_target"]
+    assert {n: b["cause"] for n, b in below.items()} == {
+        "chi": "too few steps", "pf": "ties", "nan": "no score"}  # fmt: skip
+    note = below_target_note(cal.summary())
+    assert "`chi` alarms on 0.00 %" in note and "α n < 1" in note
+    assert "`pf` alarms on 0.00 %" in note and "tie there" in note and "every score NaN" in note
+    coarse = Calibration(0.001, 20, 0, thresholds={"chi": 9.0}, measured={"chi": 0.001},
+                         steps={"chi": 2000})  # fmt: skip
+    assert coarse.summary()["unresolved"] == {"chi": 2000} and 0.001 * 2000 < RESOLVED
+    note = below_target_note(coarse.summary())
+    assert "2,000 scored steps: 2 alarms expected" in note and "about 0.15 %" in note
+    fine = Calibration(0.01, 100, 0, thresholds={"chi": 9.0}, measured={"chi": 0.01},
+                       steps={"chi": 10_000})  # fmt: skip
+    assert "unresolved" not in fine.summary() and below_target_note(fine.summary()) is None
+    # an older metrics.json's entry has no cause: read as ties
+    old = {"target": 0.01, "below_target": {"pf": {"measured_on_calibration": 0.0,
+                                                  "threshold": 1.0, "tied_at_threshold": 0.1}}}  # fmt: skip
+    assert "tie there" in below_target_note(old)
