@@ -618,6 +618,14 @@ def _robustness(names: list[str], threats, args) -> int:
     chosen = robustness_scenarios(names)
     if args.threat_set is not None and not args.threat_set.is_file():
         raise ValueError(f"--threat-set: no file {args.threat_set}")
+    families = sorted({registry.get(n).family for n in chosen})
+    if args.threat_set is not None and len(families) > 1:
+        # (the four-tank set's 0.005 cm ramp went to the LFC, robot and tracking plants)
+        raise ValueError(
+            f"--threat-set: one file's threats for the scenarios of {len(families)} families "
+            f"({', '.join(families)}); a threat set is in one plant's units: evaluate one "
+            "family (e.g. difffilter-eval lfc --threats all --threat-set FILE)"
+        )
     sets = {n: load_threat_set(registry.get(n), threats, path=args.threat_set)
             for n in chosen}  # errors first  # fmt: skip
     cache: dict = {}

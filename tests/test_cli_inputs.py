@@ -68,6 +68,14 @@ def test_family_options_are_checked_for_every_family_before_any_suite(
     assert not any((tmp_path / "o").rglob("*.md"))  # nothing written
 
 
+def test_one_threat_set_is_refused_for_several_families(tmp_path, capsys):
+    """``robustness --threat-set four_tank.yaml`` applied the four-tank set (a 0.005 cm
+    ramp) to the LFC, robot and tracking plants without a word."""
+    argv = ["robustness", "--threats", "ramp", "--threat-set",
+            str(ROOT / "eval" / "threats" / "four_tank.yaml"), "--out", str(tmp_path)]  # fmt: skip
+    assert "one file's threats for the scenarios of 5 families" in _eval_error(argv, capsys)
+
+
 def test_a_threat_sets_runs_must_be_a_positive_integer_named_by_its_file(tmp_path):
     """``runs: 0`` read as "not given" (the scenario's 100 runs ran); -3 failed naming no file."""
     from difffilter.eval.robustness import load_threat_set
