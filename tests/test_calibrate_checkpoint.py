@@ -141,6 +141,19 @@ def test_calibrate_refuses_what_it_cannot_do(tmp_path, capsys):
     assert "trained on 'four_tank' scenarios" in capsys.readouterr().err
     assert main([SHIPPED, "--out", str(out), "--scenario", "no_such_plant"]) == 2
     assert "--scenario: unknown scenario 'no_such_plant'" in capsys.readouterr().err
+    # a CLI fuzzer: --seed -1 was refused as "seed must be …", naming no option
+    with pytest.raises(SystemExit):
+        main([SHIPPED, "--out", str(out), "--seed", "-1"])
+    assert "--seed must be an integer >= 0; got -1" in capsys.readouterr().err
+
+
+def test_calibrate_says_when_its_runs_are_too_few_for_the_target(tmp_path, capsys):
+    """``--runs 1 --far 1e-6`` succeeded without a word: 2 runs × 100 steps expect 2 alarms
+    at 1 %, and the threshold rests on a handful of scores."""
+    assert main([SHIPPED, "--out", str(tmp_path / "x.ckpt"), "--runs", "2", "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "on 2 other attack-free runs" in out
+    assert "note: 200 calibration steps expect 2 alarms at the target, fewer than 10" in out
 
 
 def test_a_card_of_an_unregistered_scenario_is_calibrated_on_the_scenario_named(

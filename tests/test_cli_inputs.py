@@ -141,3 +141,14 @@ def test_a_sweep_forgets_a_seed_that_trained_nothing_and_keeps_its_out_to_one_sw
         sweep_module._check_same_sweep(out, other, [])
     with pytest.raises(ValueError, match="give another --out"):
         sweep_module._check_same_sweep(out, config, ["--trainer.max_epochs=2"])
+
+
+def test_fit_takes_no_progress_as_sweep_and_calibrate_do():
+    """``fit`` had no ``--no-progress`` (``sweep`` and ``calibrate`` do): the trainer's
+    option it stands for is set."""
+    from difffilter.train.cli import _scenario_option
+
+    assert _scenario_option(["fit", "--no-progress", "--scenario", "lfc_step"]) == [
+        "fit", "--trainer.enable_progress_bar=false", "--model.init_args.scenario=lfc_step",
+        "--data.init_args.scenario=lfc_step",
+    ]  # fmt: skip

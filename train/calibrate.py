@@ -241,7 +241,8 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("src", type=Path, help="an exported estimator (.ckpt, with its card)")
+    p.add_argument("src", type=Path, help="an exported estimator (.ckpt, with its card), or a "
+                   "training run's Lightning checkpoint")  # fmt: skip
     p.add_argument("--out", type=Path, required=True, help="where to write it (and its card)")
     p.add_argument("--far", type=float, default=0.01, help="target false-alarm rate (0.01)")
     p.add_argument("--runs", type=int, default=None,
@@ -287,6 +288,13 @@ def main(argv: list[str] | None = None) -> int:
         f"attack-free run{'s' if cal['runs'] != 1 else ''} of {cal['scenario']} (target "
         f"{100 * cal['target']:g} %)"
     )
+    from difffilter.eval.calibration import RESOLVED
+
+    n = cal["runs"] * cal["steps"]
+    if cal["target"] * n < RESOLVED:  # (said by difffilter-eval's reports, not here)
+        print(f"note: {n:,} calibration steps expect {cal['target'] * n:.3g} alarms at the "
+              f"target, fewer than {RESOLVED}: the threshold rests on a handful of scores, and "
+              "its rate on fresh runs varies widely; give more --runs")  # fmt: skip
     return 0
 
 

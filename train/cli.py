@@ -111,10 +111,16 @@ def main(args: list[str] | None = None) -> int:
 
 def _scenario_option(argv: list[str]) -> list[str]:
     """``--scenario NAME`` (or ``--scenario=NAME``; a registered name or
-    ``package.module:object``) sets the model's and the data's scenario at once."""
+    ``package.module:object``) sets the model's and the data's scenario at once;
+    ``--no-progress`` turns the trainer's progress bar off, as in ``sweep`` and
+    ``calibrate`` (``--trainer.enable_progress_bar=false``)."""
     out, i = [], 0
     while i < len(argv):
         arg = argv[i]
+        if arg == "--no-progress":
+            out.append("--trainer.enable_progress_bar=false")
+            i += 1
+            continue
         if arg == "--scenario" or arg.startswith("--scenario="):
             value = (
                 arg.partition("=")[2] if "=" in arg else (argv[i + 1] if i + 1 < len(argv) else "")

@@ -284,7 +284,8 @@ def run(args: list[str] | None, argv: list[str], description: str) -> int:
     commands = DifffilterCLI.subcommands()
     # each command's own --help names the shortcut train/cli.py expands (Lightning's lacks it)
     shortcut = ("--scenario NAME (a registered name, package.module:object or a .yaml file) "
-                "sets --model.init_args.scenario and --data.init_args.scenario at once.")  # fmt: skip
+                "sets --model.init_args.scenario and --data.init_args.scenario at once; "
+                "--no-progress sets --trainer.enable_progress_bar=false.")  # fmt: skip
     parser_kwargs = {**raising, "description": description,
                      **{name: {**raising, "description": shortcut} for name in commands}}  # fmt: skip
     try:
