@@ -9,7 +9,7 @@ RUNS ?=
 OUT ?= reports
 # DEVICES=N: processes that share each scenario's estimators in `make demo` (difffilter-eval
 # --devices; the same numbers as one process). Default 2 on a machine with 2 CPUs or more:
-# 1.33x faster than one process on the 2-core machine (README).
+# 1.33x faster than one process on the 2-core machine (docs/timings.md).
 DEVICES ?= $(shell [ "$$(nproc 2>/dev/null || echo 1)" -ge 2 ] && echo 2 || echo 1)
 # TEST_JOBS=N: pytest worker processes (pytest-xdist; each on one intra-op thread, a file's
 # tests in one worker so that its module fixtures are built once). Default: one per CPU, at

@@ -54,7 +54,7 @@ Targets (2-core CPU) are printed beside the figures; a missed target says so. Ev
 runs with one intra-op thread (``--threads``; numpy's OpenBLAS on one too, unless
 ``OPENBLAS_NUM_THREADS`` says otherwise), the faster in section 9 on the shared 2-core
 machine: for every KF workload in every run (by 1.1× to 100×), for every PF workload but
-in the quietest run, where two threads won the PF at B·N = 1e5 by 1.4× (README).
+in the quietest run, where two threads won the PF at B·N = 1e5 by 1.4× (docs/benchmarks.md).
 """
 
 from __future__ import annotations
