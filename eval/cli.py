@@ -496,11 +496,25 @@ def _worker(rank: int, world: int, rendezvous: str, argv: list[str]) -> None:
         raise SystemExit(code)
 
 
-def check_output_folder(out: Path) -> None:
-    """Create ``out`` and prove it writable; ``ValueError`` naming ``--out`` otherwise."""
+#: The files an evaluation writes at the top of ``--out`` (a folder by one of these names
+#: failed the evaluation after its suites had run).
+TOP_FILES = ("leaderboard.md", "leaderboard.json", "leaderboard.png", "acceptance.md",
+             "robustness.md", "robustness.json")  # fmt: skip
+
+
+def check_output_folder(out: Path, scenarios: Sequence[str] = ()) -> None:
+    """Create ``out`` and prove it writable, with no folder where a file will go and no
+    file where a scenario's folder will go; ``ValueError`` naming ``--out`` otherwise."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out: {out} exists and is not a folder")
+    for name in TOP_FILES:
+        if (out / name).is_dir():
+            raise ValueError(f"--out: {out / name} is a folder; the evaluation writes a file there")
+    for name in scenarios:
+        if (out / name).exists() and not (out / name).is_dir():
+            raise ValueError(f"--out: {out / name} is a file; scenario {name}'s reports go in a "
+                             "folder of that name")  # fmt: skip
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / f".difffilter-write-check-{os.getpid()}"  # one per process (--devices)
@@ -536,7 +550,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         names = resolve_scenarios(args.scenario)
         args.ckpt = parse_checkpoints(args.ckpt)
-        check_output_folder(args.out)  # before any work, not after the whole evaluation
+        check_output_folder(args.out, names)  # before any work, not after the evaluation
         check_arguments(runs=args.runs, ckpt=args.ckpt, devices=args.devices,
                         calibration_runs=args.calibration_runs, seed=args.seed,
                         add_estimators=args.add_estimators)  # fmt: skip

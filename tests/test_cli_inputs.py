@@ -152,3 +152,15 @@ def test_fit_takes_no_progress_as_sweep_and_calibrate_do():
         "fit", "--trainer.enable_progress_bar=false", "--model.init_args.scenario=lfc_step",
         "--data.init_args.scenario=lfc_step",
     ]  # fmt: skip
+
+
+def test_an_out_folder_with_a_folder_where_a_report_goes_is_refused_first(tmp_path, capsys):
+    """A folder named leaderboard.md, or a file named like a scenario, failed the
+    evaluation with a traceback after its suites had run."""
+    out = tmp_path / "o"
+    (out / "leaderboard.md").mkdir(parents=True)
+    argv = ["four_tank_bias", "--out", str(out), "--runs", "2", "--far", "off"]
+    assert "leaderboard.md is a folder" in _eval_error(argv, capsys)
+    (out / "leaderboard.md").rmdir()
+    (out / "four_tank_bias").write_text("")
+    assert "four_tank_bias is a file" in _eval_error(argv, capsys)
