@@ -167,3 +167,15 @@ def test_ctrl_c_says_how_to_resume(tmp_path, capsys):
     assert f"--ckpt_path {tmp_path / 'last.ckpt'}" in capsys.readouterr().out
     cb.on_exception(trainer, None, ValueError("not an interruption"))
     assert capsys.readouterr().out == ""
+    # a sweep runs the fit: --ckpt_path is none of its options (a trial followed the advice)
+    import os
+
+    from difffilter.train.last_checkpoint import RESUME_HINT
+
+    os.environ[RESUME_HINT] = "rerun the same difffilter-train sweep command"
+    try:
+        cb.on_exception(trainer, None, KeyboardInterrupt())
+    finally:
+        del os.environ[RESUME_HINT]
+    said = capsys.readouterr().out
+    assert "rerun the same difffilter-train sweep command" in said and "--ckpt_path" not in said

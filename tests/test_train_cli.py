@@ -200,7 +200,10 @@ def test_a_fit_stopped_before_its_first_validation_says_its_export_is_unvalidate
     assert "never validated (the run stopped before its first validation" in out
     assert "ship it with" not in out
     card = tmp_path / "lightning_logs" / "robot_nn_ekf" / "version_0" / "robot_nn_ekf.json"
-    assert json.loads(card.read_text())["best_val_score"] is None
+    doc = json.loads(card.read_text())
+    assert doc["best_val_score"] is None
+    # no epoch was trained whole (a trial: Lightning's current_epoch counts the cut one)
+    assert doc["epochs"] == 0 and doc["global_step"] == 200
 
 
 def test_an_export_of_a_lightning_checkpoint_carries_the_runs_settings_and_score(tmp_path):
@@ -221,14 +224,17 @@ def test_an_export_of_a_lightning_checkpoint_carries_the_runs_settings_and_score
             "difffilter_estimator_config": net.config(), "difffilter_observer": card.to_dict(),
             "callbacks": {key: {"monitor": "val/auc", "current_score": torch.tensor(0.93),
                                 "best_model_score": torch.tensor(0.93),
-                                "best_model_path": "/elsewhere/best-epoch=03.ckpt"}}}  # fmt: skip
+                                "best_model_path": "/elsewhere/best-epoch=03.ckpt"},
+                          "ExportEstimator": {"train_time_s": 12.5}}}  # fmt: skip
     torch.save(blob, tmp_path / "best-epoch=03.ckpt")
     torch.save(blob, tmp_path / "last.ckpt")
     for name in ("best-epoch=03.ckpt", "last.ckpt"):
         export(tmp_path / name, tmp_path / "out" / f"{name}.ckpt".replace("=", "_"))
     best = json.loads((tmp_path / "out" / "best-epoch_03.ckpt.json").read_text())
     assert best["model_config"] == {"scenario": "four_tank_bias", "hidden": 16}
-    assert best["data_config"]["train_seed"] == 11 and best["epochs"] == 3
+    # written at the end of epoch index 3: four epochs, as a fit's own card counts them
+    assert best["data_config"]["train_seed"] == 11 and best["epochs"] == 4
+    assert best["train_time_s"] == 12.5  # the time so far, which the checkpoint carries
     assert best["monitor"] == {"metric": "val/auc", "mode": "max"}
     assert best["val_score"] == best["best_val_score"] == pytest.approx(0.93)
     last = json.loads((tmp_path / "out" / "last.ckpt.json").read_text())

@@ -107,10 +107,15 @@ def _lightning_record(blob: dict, src: Path) -> dict:
         "selected_checkpoint": src.name,
         "model_config": _plain(dict(hp)) if isinstance(hp, dict) else None,
         "data_config": _plain(dict(data)) if isinstance(data, dict) else None,
-        "epochs": blob.get("epoch"),
+        # a Lightning checkpoint is written at an epoch's end and records its 0-based index
+        # (a fit's card counts the epochs: 3 where the same weights' last.ckpt said 2)
+        "epochs": None if blob.get("epoch") is None else int(blob["epoch"]) + 1,
         "global_step": blob.get("global_step"),
         "lightning_version": blob.get("pytorch-lightning_version"),
     }
+    for state in (blob.get("callbacks") or {}).values():  # the training time so far
+        if isinstance(state, dict) and state.get("train_time_s") is not None:
+            record["train_time_s"] = float(state["train_time_s"])
     for key, state in (blob.get("callbacks") or {}).items():
         if key.startswith("ModelCheckpoint") and state.get("monitor"):
             mode = "max" if "'mode': 'max'" in key else "min"
@@ -122,6 +127,19 @@ def _lightning_record(blob: dict, src: Path) -> dict:
                 record["best_val_score"] = float(state["best_model_score"])
             break
     return record
+
+
+def _whole_epochs(trainer) -> int:
+    """The epochs trained whole: ``current_epoch``, less the last one where ``max_steps`` or
+    ``max_time`` cut it short (Lightning advances ``current_epoch`` past a cut epoch: a
+    card said 2 epochs of a run whose last whole epoch was its first)."""
+    epochs = int(trainer.current_epoch)
+    progress = getattr(getattr(trainer.fit_loop, "epoch_loop", None), "batch_progress", None)
+    ready = getattr(getattr(progress, "current", None), "ready", None)
+    total = trainer.num_training_batches
+    if isinstance(ready, int) and isinstance(total, int) and 0 < ready < total and epochs > 0:
+        return epochs - 1
+    return epochs
 
 
 def _plain(config: dict) -> dict:
@@ -244,7 +262,7 @@ class ExportEstimator(pl.Callback):
             "model_config": _plain(dict(pl_module.hparams)),
             "data_config": None if dm is None else _plain(dict(dm.hparams)),
             "observer": est_card.to_dict(),
-            "epochs": trainer.current_epoch,
+            "epochs": _whole_epochs(trainer),
             "global_step": trainer.global_step,
             "train_time_s": self._train_time(),
             "torch_version": torch.__version__,

@@ -19,12 +19,18 @@ and then writes ``last.ckpt`` itself, after this one, with that state.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import lightning.pytorch as pl
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 __all__ = ["LastCheckpointEveryEpoch", "add_last_every_epoch"]
+
+
+#: The environment variable through which a command that runs ``fit`` for its user (a
+#: sweep) says how to resume after Ctrl-C: "--ckpt_path" is no option of ``sweep``.
+RESUME_HINT = "DIFFFILTER_RESUME_HINT"
 
 
 class LastCheckpointEveryEpoch(pl.Callback):
@@ -79,7 +85,9 @@ class LastCheckpointEveryEpoch(pl.Callback):
         if not isinstance(exception, KeyboardInterrupt) or not trainer.is_global_zero:
             return
         path = self._path()
-        if path is not None and path.is_file():
+        if path is not None and path.is_file() and os.environ.get(RESUME_HINT):
+            print(f"interrupted: {os.environ[RESUME_HINT]} (from {path}, the last whole epoch)")
+        elif path is not None and path.is_file():
             print(f"interrupted: resume with the same command and --ckpt_path {path} (from "
                   "the last whole epoch; the export is written when the run ends)")  # fmt: skip
         else:

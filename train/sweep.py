@@ -52,6 +52,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import statistics
 import sys
 from pathlib import Path
@@ -100,7 +101,14 @@ def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str], progress: bo
     if last is not None and last.is_file():
         print(f"seed {seed}: resuming from {last}")
         args += ["--ckpt_path", str(last)]
-    if cli_main(args) != 0:
+    from .last_checkpoint import RESUME_HINT
+
+    os.environ[RESUME_HINT] = "rerun the same difffilter-train sweep command: it resumes this seed"
+    try:
+        code = cli_main(args)
+    finally:
+        del os.environ[RESUME_HINT]
+    if code != 0:
         if not (folder / "checkpoints").is_dir():  # nothing trained (e.g. a misspelt option):
             # its settings are no record of a run, and refused the corrected command after it
             (folder / _SETTINGS).unlink(missing_ok=True)
