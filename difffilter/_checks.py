@@ -268,7 +268,7 @@ def _check_float_tensor(t, name: str, want: str, dtype, device) -> None:
         raise ValueError(f"{name} must be on the model's device {device}; got {t.device}")
 
 
-def _check_bool_mask(mask, name: str, shape: torch.Size, of: str) -> Tensor:
+def _check_bool_mask(mask, name: str, shape: torch.Size, of: str, device=None) -> Tensor:
     if not isinstance(mask, Tensor):
         raise TypeError(
             f"{name} must be a bool torch.Tensor of shape {tuple(shape)}; got {type(mask).__name__}"
@@ -282,6 +282,9 @@ def _check_bool_mask(mask, name: str, shape: torch.Size, of: str) -> Tensor:
         raise ValueError(
             f"{name} must have the shape of {of} {tuple(shape)}; got {tuple(mask.shape)}"
         )
+    if device is not None and mask.device != device:  # (torch's error named no argument)
+        raise ValueError(f"{name} is on {mask.device} and {of} on {device}: put {name} on "
+                         f"{of}'s device")  # fmt: skip
     return mask
 
 
@@ -369,7 +372,7 @@ def check_sequence_inputs(
         )
     check_model_batch(model, ys.shape[:-2], "the batch of ys")
     if mask is not None:
-        mask = _check_bool_mask(mask, "mask", ys.shape, "ys")
+        mask = _check_bool_mask(mask, "mask", ys.shape, "ys", ys.device)
     # on the meta device nothing is known to be non-finite
     bad = None
     if values_known(ys) and not _all_finite(ys):
@@ -444,7 +447,7 @@ def check_step_inputs(
             f"state must hold a mean [..., {dx}]; got {getattr(state_mean, 'shape', type(state_mean).__name__)}"
         )
     if mask is not None:
-        mask = _check_bool_mask(mask, "mask", y.shape, "y")
+        mask = _check_bool_mask(mask, "mask", y.shape, "y", y.device)
     finite = torch.isfinite(y)
     bad = ~finite if mask is None else ~finite & mask
     if values_known(y) and bool(bad.any()):

@@ -63,7 +63,8 @@ class Method(Choice):
     """How :class:`KalmanFilter` runs a whole sequence: step by step (``SEQUENTIAL``, with
     the shared-covariance path when it applies) or by the associative scan of Särkkä &
     García-Fernández (``PARALLEL``: ``O(log T)`` batched operations, fastest for a few
-    long runs; equal up to round-off)."""
+    long runs; equal up to round-off on well-conditioned models:
+    :mod:`difffilter.parallel_kalman`)."""
 
     SEQUENTIAL = "sequential"
     PARALLEL = "parallel"
@@ -430,7 +431,8 @@ def kalman_filter(
             loop; Joseph form) or ``"parallel"`` (the associative-scan filter of Särkkä &
             García-Fernández, IEEE TAC 2021: ``O(log T)`` batched operations instead of
             ``T`` small ones, fastest for a few long runs; equal to the sequential filter
-            up to round-off). The sequential filter picks the shared-covariance fast path
+            up to round-off on well-conditioned models, not on strongly non-normal ones
+            with a small R: :mod:`difffilter.parallel_kalman`). The sequential filter picks the shared-covariance fast path
             (:mod:`difffilter._shared_cov`) by itself when the model's matrices have no
             batch dimension, the model is time-invariant and nothing is masked: the
             covariance recursion runs once for all runs and the covariances come back

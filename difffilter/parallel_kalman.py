@@ -17,9 +17,13 @@ Combining ``a_i ⊗ a_j`` (``i`` earlier) with ``X = I + C_i J_j``::
     J = (X⁻¹ A_i)ᵀ J_j A_i + J_i
 
 (``(I + J_j C_i)⁻¹ = X⁻ᵀ`` because ``C`` and ``J`` are symmetric). ``X`` has all
-eigenvalues ≥ 1 (product of two PSD matrices plus ``I``), so its inverse is well
-conditioned. Innovations and the log-likelihood follow afterwards from the filtered
-moments, vectorised over time.
+eigenvalues ≥ 1 (``C_i J_j`` is similar to a PSD matrix), but it need not be well
+conditioned: ``X`` is not normal, and where ``F`` is strongly non-normal and ``R`` small,
+``J`` is huge and ``cond(X)`` reaches 1e12 (an auditor's trial: a stable 3-state model,
+‖F‖ = 339, R = 1.3e-7, whose parallel filter was 8e5 posterior sd and 1.4e12 nats off
+while the sequential one agreed with a 40-digit filter; about 2 % of such random models).
+Prefer the sequential filter for such models. Innovations and the log-likelihood follow
+afterwards from the filtered moments, vectorised over time.
 """
 
 from __future__ import annotations

@@ -88,8 +88,10 @@ class FilterResult:
         covs: filtered covariances ``[..., T, dx, dx]``.
         pred_means: one-step predictions ``E[x_t | y_{1:t−1}]`` ``[..., T, dx]``.
         pred_covs: ``[..., T, dx, dx]``.
-        innovations: ``y_t − E[y_t | y_{1:t−1}]`` ``[..., T, dy]``.
-        innovation_covs: ``S_t`` ``[..., T, dy, dy]``.
+        innovations: ``y_t − E[y_t | y_{1:t−1}]`` ``[..., T, dy]`` (0 on an entry not
+            received: :func:`~difffilter.linalg.masked_measurement`).
+        innovation_covs: ``S_t`` ``[..., T, dy, dy]`` (an entry not received has the row
+            and column of the identity: unit variance, uncorrelated).
         log_likelihood_increments: ``log p(y_t | y_{1:t−1})`` ``[..., T]``.
         log_likelihood: ``log p(y_{1:T})`` ``[...]``.
         nonfinite_skipped: with ``nonfinite="skip"``, the number of non-finite received

@@ -164,3 +164,17 @@ def test_an_out_folder_with_a_folder_where_a_report_goes_is_refused_first(tmp_pa
     (out / "leaderboard.md").rmdir()
     (out / "four_tank_bias").write_text("")
     assert "four_tank_bias is a file" in _eval_error(argv, capsys)
+
+
+def test_a_mask_on_another_device_than_the_measurements_is_named():
+    """torch said "Tensor on device cpu is not on the expected device meta!", naming no
+    argument (an auditor's trial; the meta device stands in for a GPU here)."""
+    from conftest import constant_velocity
+
+    import difffilter as df
+
+    model = constant_velocity().to("meta")
+    ys = torch.zeros(2, 5, model.dim_y, device="meta", dtype=torch.float64)
+    mask = torch.ones(2, 5, model.dim_y, dtype=torch.bool)
+    with pytest.raises(ValueError, match=r"mask is on cpu and ys on meta: put mask on ys's device"):
+        df.kalman_filter(model, ys, mask=mask)
