@@ -608,13 +608,11 @@ def _estimator_input(received: Tensor, mask: Tensor | None, k: int, attack,
     if received.device.type == "meta":
         return received
     finite = torch.isfinite(received)
-    if u is None:
-        if bool(finite.all()):
-            return received
-    elif bool(finite.all() & torch.isfinite(u).all()):
-        return received
-    elif not bool(torch.isfinite(u).all()):
-        run = int((~torch.isfinite(u)).any(-1).nonzero()[0, 0])
+    u_finite = None if u is None else torch.isfinite(u)
+    if bool(finite.all() if u_finite is None else finite.all() & u_finite.all()):
+        return received  # one host read a step
+    if u_finite is not None and not bool(u_finite.all()):
+        run = int((~u_finite).any(-1).nonzero()[0, 0])
         source = ("controller.init" if k == 1 else f"the controller at step {k - 1}"
                   ) if controller is not None else "the loop's state"  # fmt: skip
         raise ValueError(

@@ -121,16 +121,21 @@ def below_target_note(far: dict | None) -> str | None:
             "Their `*_at_far` metrics are at that lower rate, not at the target."
         )
     if few:
-        n = min(few.values())
-        expected = (math.floor(far["target"] * n + 1e-9) + 1) / (n + 1)
-        notes.append(
-            f"Few calibration steps for the {100 * far['target']:g} % target ({n:,} scored "
-            f"steps: {far['target'] * n:.3g} alarms expected, fewer than {RESOLVED}): each "
-            f"threshold rests on a handful of scores, and its rate on fresh runs is about "
-            f"{100 * expected:.2g} % in expectation and varies widely between calibration "
-            "draws; give more --calibration-runs."
-        )
+        notes.append(resolution_note(far["target"], min(few.values()), "--calibration-runs"))
     return " ".join(notes) or None
+
+
+def resolution_note(target: float, steps: int, more: str) -> str:
+    """The sentence for a calibration of ``steps`` scored steps at ``target`` that expects
+    fewer than :data:`RESOLVED` alarms (``more``: the option that gives more runs): its
+    threshold's expected rate on fresh runs, ``(⌊α n⌋ + 1)/(n + 1)`` for continuous scores."""
+    expected = (math.floor(target * steps + 1e-9) + 1) / (steps + 1)
+    return (
+        f"Few calibration steps for the {100 * target:g} % target ({steps:,} scored steps: "
+        f"{target * steps:.3g} alarms expected, fewer than {RESOLVED}): each threshold rests "
+        f"on a handful of scores, and its rate on fresh runs is about {100 * expected:.2g} % "
+        f"in expectation and varies widely between calibration draws; give more {more}."
+    )
 
 
 def calibration_seed(seed: int) -> int:

@@ -481,11 +481,23 @@ def is_exported_checkpoint(path) -> bool:
         blob = torch.load(Path(path), map_location="cpu", weights_only=True)
     except Exception:  # unpickling errors come in many types
         return False
-    return isinstance(blob, dict) and blob.get("format") == CHECKPOINT_FORMAT
+    return checkpoint_kind(blob) == "exported"
+
+
+def checkpoint_kind(blob) -> str | None:
+    """What a loaded checkpoint ``blob`` is: ``"exported"`` (:func:`save_estimator_checkpoint`),
+    ``"lightning"`` (a training run's Lightning checkpoint) or ``None`` (neither)."""
+    if not isinstance(blob, dict):
+        return None
+    if blob.get("format") == CHECKPOINT_FORMAT:
+        return "exported"
+    if "pytorch-lightning_version" in blob and "state_dict" in blob:
+        return "lightning"
+    return None
 
 
 def _is_lightning_checkpoint(blob) -> bool:
-    return isinstance(blob, dict) and "pytorch-lightning_version" in blob and "state_dict" in blob
+    return checkpoint_kind(blob) == "lightning"
 
 
 def _from_lightning(blob: dict, path: Path) -> dict:

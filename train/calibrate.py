@@ -288,13 +288,11 @@ def main(argv: list[str] | None = None) -> int:
         f"attack-free run{'s' if cal['runs'] != 1 else ''} of {cal['scenario']} (target "
         f"{100 * cal['target']:g} %)"
     )
-    from difffilter.eval.calibration import RESOLVED
+    from difffilter.eval.calibration import RESOLVED, resolution_note
 
     n = cal["runs"] * cal["steps"]
-    if cal["target"] * n < RESOLVED:  # (said by difffilter-eval's reports, not here)
-        print(f"note: {n:,} calibration steps expect {cal['target'] * n:.3g} alarms at the "
-              f"target, fewer than {RESOLVED}: the threshold rests on a handful of scores, and "
-              "its rate on fresh runs varies widely; give more --runs")  # fmt: skip
+    if cal["target"] * n < RESOLVED:  # (as difffilter-eval's reports say it)
+        print(f"note: {resolution_note(cal['target'], n, '--runs')}")
     return 0
 
 

@@ -5,6 +5,7 @@ importing Lightning)."""
 
 from __future__ import annotations
 
+import functools
 import re
 import sys
 from pathlib import Path
@@ -98,13 +99,10 @@ class DifffilterCLI(LightningCLI):
             self.trainer.callbacks.append(PredictionFiles())
 
     def _load_exported(self, subcommand: str) -> None:
-        from difffilter.models.neural_estimator import (
-            is_exported_checkpoint,
-            load_estimator_checkpoint,
-        )
+        from difffilter.models.neural_estimator import load_estimator_checkpoint
 
         path = self.config_init[subcommand].get("ckpt_path")
-        if not path or not is_exported_checkpoint(path):
+        if not path or _check_ckpt_path({"ckpt_path": path}, None) != "exported":
             return  # a Lightning checkpoint: Lightning restores it
         mine = self.model.estimator
         dtype = next(mine.parameters()).dtype
@@ -144,27 +142,36 @@ def _check_ckpt_path(cfg, subcommand: str | None) -> str | None:
     path = Path(ckpt)
     if not path.is_file():
         return None  # Lightning names a missing file, and resolves "last", "best", …
+    stat = path.stat()
+    kind, what = _kind_of_file(str(path.resolve()), stat.st_mtime_ns, stat.st_size)
+    if kind is not None:
+        return kind
+    if what is None:  # (torch's own text advises weights_only=False, an arbitrary-code load)
+        raise ValueError(
+            f"--ckpt_path: {ckpt} is no checkpoint torch can load with weights_only=True; a "
+            "training run's Lightning checkpoint or an exported estimator is expected"
+        )
+    raise ValueError(
+        f"--ckpt_path: {ckpt} is neither a training run's Lightning checkpoint nor an exported "
+        f"estimator (a {what} of torch.save without their keys)"
+    )
+
+
+@functools.lru_cache(maxsize=8)
+def _kind_of_file(path: str, mtime_ns: int, size: int) -> tuple[str | None, str | None]:
+    """``(checkpoint_kind, type name of what was loaded)`` of the file ``path``, ``(None,
+    None)`` where torch cannot load it with ``weights_only=True``; read once per version of
+    the file (the command line's check and the configuration's, before any hook, ask for
+    the same file)."""
     import torch
 
-    from difffilter.models.neural_estimator import CHECKPOINT_FORMAT
+    from difffilter.models.neural_estimator import checkpoint_kind
 
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # unpickling errors come in many types
-        # (torch's own text advises weights_only=False, an arbitrary-code load: not repeated)
-        raise ValueError(
-            f"--ckpt_path: {ckpt} is no checkpoint torch can load with weights_only=True "
-            f"({type(exc).__name__}); a training run's Lightning checkpoint or an exported "
-            "estimator is expected"
-        ) from None
-    if isinstance(blob, dict) and blob.get("format") == CHECKPOINT_FORMAT:
-        return "exported"
-    if isinstance(blob, dict) and "pytorch-lightning_version" in blob and "state_dict" in blob:
-        return "lightning"
-    raise ValueError(
-        f"--ckpt_path: {ckpt} is neither a training run's Lightning checkpoint nor an exported "
-        f"estimator (a {type(blob).__name__} of torch.save without their keys)"
-    )
+    except Exception:  # unpickling errors come in many types
+        return None, None
+    return checkpoint_kind(blob), type(blob).__name__
 
 
 def _ckpt_paths_in(argv) -> list[str]:
