@@ -431,8 +431,10 @@ def kalman_filter(
             loop; Joseph form) or ``"parallel"`` (the associative-scan filter of Särkkä &
             García-Fernández, IEEE TAC 2021: ``O(log T)`` batched operations instead of
             ``T`` small ones, fastest for a few long runs; equal to the sequential filter
-            up to round-off on well-conditioned models, not on strongly non-normal ones
-            with a small R: :mod:`difffilter.parallel_kalman`). The sequential filter picks the shared-covariance fast path
+            up to round-off on well-conditioned models; on a strongly non-normal ``F``
+            with a small R, where its scan loses the filter, it raises a ValueError:
+            :mod:`difffilter.parallel_kalman`). The sequential filter picks the
+            shared-covariance fast path
             (:mod:`difffilter._shared_cov`) by itself when the model's matrices have no
             batch dimension, the model is time-invariant and nothing is masked: the
             covariance recursion runs once for all runs and the covariances come back

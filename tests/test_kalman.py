@@ -1062,3 +1062,81 @@ def test_the_shared_path_is_the_general_one_for_a_slow_small_state_in_any_units(
         scale = (var.unsqueeze(-1) * var.unsqueeze(-2)).sqrt()  # each entry's own scale
         assert float(((shared - general).abs() / scale).max()) < rtol, dtype
         model = model.to(torch.float64)
+
+
+def _non_normal_model() -> df.LinearGaussianModel:
+    """A stable 3-state model (spectral radius 0.61) with a strongly non-normal ``F``
+    (‖F‖ = 339) and ``R`` = 1.3e-7, from an audit of the parallel filter: its scan's means
+    were 4e4 posterior sd from the sequential filter's, which agreed with a 40-digit one."""
+    t = lambda rows: torch.tensor(rows, dtype=torch.float64)  # noqa: E731
+    F = t([[115.49660641552107, -80.10676229981439, -273.3237482262779],
+           [-33.12536371826567, -7.438854638538687, 63.45428466895664],
+           [107.38576885223549, 224.43412233216588, -107.32408656858522]])  # fmt: skip
+    H = t([[4.0900970415879145, -7.541696923107736, -0.3975266165806837]])
+    Q = t([[0.2956041304240801, 0.2610824527856727, -0.3724803929329614],
+           [0.2610824527856727, 0.23062622808073402, -0.3290858511138251],
+           [-0.3724803929329614, -0.3290858511138251, 0.46967628513469556]])  # fmt: skip
+    P0 = t([[57.45204790188038, -42.385727435002764, -66.08762471078795],
+            [-42.385727435002764, 42.974490014795975, 43.46831162651479],
+            [-66.08762471078795, 43.46831162651479, 78.45168392565675]])  # fmt: skip
+    m0 = t([-1.1722986527217387, 0.9823427190095897, 0.561812289936042])
+    return df.LinearGaussianModel(F, H, Q, t([[1.3411677652561856e-07]]), m0, P0)
+
+
+def test_parallel_refuses_a_model_where_its_scan_loses_the_filter(generator):
+    model = _non_normal_model()
+    _, ys, _ = model.simulate(120, (2,), generator=generator)
+    seq = df.kalman_filter(model, ys)
+    F, H, Q, R, m0, P0 = _np(model)
+    ref = numpy_kalman_filter(F, H, Q, R, m0, P0, ys[0].numpy())
+    sd = seq.covs[0].diagonal(dim1=-2, dim2=-1).sqrt().numpy()
+    assert (np.abs(seq.means[0].numpy() - ref[0]) / sd).max() < 1e-3  # sequential holds
+    with pytest.raises(ValueError, match=r"method='parallel' lost accuracy.*method='sequential'"):
+        df.kalman_filter(model, ys, method="parallel")
+
+
+def test_parallel_says_to_use_sequential_where_its_covariances_fail():
+    """A model whose scan's covariances give an innovation covariance that is not positive
+    definite, while the sequential filter runs (random ill-conditioned models: 12 in 287)."""
+    t = lambda rows: torch.tensor(rows, dtype=torch.float64)  # noqa: E731
+    F = t([[-1570.9234888554274, 6300.012750628963, 5045.759257703835],
+           [7.706796308948433, 3781.8749425795595, -2435.661669257922],
+           [-86.88285447916427, 4285.812235381665, -2210.627441647205]])  # fmt: skip
+    H = t([[-0.07849189524008714, 0.3347831636543589, 0.00727629036537213]])
+    Q = t([[9.955809853550992, 3.806700621427957, 7.511767426002586],
+           [3.806700621427957, 1.6679968509991137, 2.9427748809701786],
+           [7.511767426002586, 2.9427748809701786, 5.691155176338932]])  # fmt: skip
+    P0 = t([[48093.44818640651, -140597.47289932062, 40195.95506979226],
+            [-140597.47289932062, 411025.8789867269, -117509.75747816157],
+            [40195.95506979226, -117509.75747816157, 33595.321391865145]])  # fmt: skip
+    m0 = t([-0.2697543945973462, 1.1407801616733964, 0.4520117311517948])
+    model = df.LinearGaussianModel(F, H, Q, t([[0.00064515072880271]]), m0, P0)
+    _, ys, _ = model.simulate(120, (2,), generator=torch.Generator().manual_seed(0))
+    assert torch.isfinite(df.kalman_filter(model, ys).log_likelihood).all()
+    with pytest.raises(ValueError, match=r"innovation covariance.*try method='sequential'"):
+        df.kalman_filter(model, ys, method="parallel")
+
+
+def test_parallel_names_a_singular_combination(monkeypatch, generator):
+    model = constant_velocity()
+    _, ys, _ = model.simulate(6, (), generator=generator)
+
+    def singular(*args, **kwargs):
+        raise torch.linalg.LinAlgError("linalg.inv: The diagonal element 2 is zero")
+
+    monkeypatch.setattr(torch.linalg, "inv", singular)
+    with pytest.raises(ValueError, match=r"method='parallel' failed.*method='sequential'"):
+        df.kalman_filter(model, ys, method="parallel")
+
+
+def test_parallel_consistency_check_holds_on_float32(generator):
+    """The check's float32 tolerance leaves round-off through: float32 against float64."""
+    model = constant_velocity()
+    _, ys, _ = model.simulate(400, (3,), generator=generator)
+    exact = df.kalman_filter(model, ys)
+    fields = (model.F, model.H, model.process_noise.cov, model.measurement_noise.cov,
+              model.initial.mean, model.initial.cov)  # fmt: skip
+    single = df.LinearGaussianModel(*(f.float() for f in fields))
+    res = df.kalman_filter(single, ys.float(), method="parallel")
+    sd = exact.covs.diagonal(dim1=-2, dim2=-1).sqrt()
+    assert ((res.means.double() - exact.means).abs() / sd).max() < 1e-2
