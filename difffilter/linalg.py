@@ -70,8 +70,34 @@ def safe_cholesky(matrix: Tensor, *, name: str = "matrix", max_tries: int = 6) -
         eps *= 10.0
     raise ValueError(
         f"{name} must be symmetric positive definite; its Cholesky factorisation failed "
-        "even with jitter. Check the covariance you passed (all eigenvalues > 0)."
+        f"even with jitter{_why_it_fails(matrix, failing)}"
     )
+
+
+def _why_it_fails(matrix: Tensor, failing: Tensor) -> str:
+    """The end of :func:`safe_cholesky`'s error: which member fails first (its batch
+    index and eigenvalues), and, in float32, that the precision may be the cause (a
+    float32 Kalman filter with a diffuse prior, P0 = 1e8 I, made an innovation covariance
+    with eigenvalues from -3.5e7 to 4.75 out of positive definite Q, R and P0)."""
+    index = tuple(int(i) for i in failing.nonzero()[0]) if failing.dim() else ()
+    where = f" at batch index {index}" if index else ""
+    with torch.no_grad():
+        member = matrix[index].detach()
+        if not bool(torch.isfinite(member).all()):
+            return f"{where}: it holds NaN or inf."
+        eig = torch.linalg.eigvalsh(member.double())
+    text = (
+        f"{where} (eigenvalues from {float(eig[0]):.3g} to {float(eig[-1]):.3g}). Check the "
+        "covariance you passed (all eigenvalues > 0)"
+    )
+    eps = torch.finfo(matrix.dtype).eps
+    if eps > 1e-10:
+        text += (
+            f"; in {str(matrix.dtype).replace('torch.', '')} a covariance whose scales span "
+            "many orders of magnitude (a diffuse prior, a tiny R beside a large P) can lose "
+            "its positive definiteness to round-off: float64 may hold it"
+        )
+    return text + "."
 
 
 def cholesky_solve_right(rhs: Tensor, chol: Tensor) -> Tensor:

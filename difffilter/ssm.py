@@ -205,8 +205,11 @@ class LinearGaussianModel(StateSpaceModel):
         m0, P0: prior mean ``[*, dx]`` and covariance ``[*, dx, dx]`` of ``x_0``.
         B: optional input matrix ``[*, dx, du]``.
 
-    ``nn.Parameter`` arguments become learnable parameters; other tensors are buffers
-    (and keep their autograd history). Time-varying linear models override
+    ``F`` sets the model's dtype and device: the other arguments are converted to them (a
+    float32 ``F``, e.g. ``torch.tensor`` of Python floats, makes a float32 model of float64
+    ``Q`` and ``R``; build ``F`` in the dtype you mean). ``nn.Parameter`` arguments become
+    learnable parameters; other tensors are buffers (and keep their autograd history).
+    Time-varying linear models override
     ``transition_matrix(k)``, ``observation_matrix(k)``, ``control_matrix(k)`` and the
     covariance methods, and set ``time_varying = True``.
     """

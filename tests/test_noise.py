@@ -237,6 +237,22 @@ def test_safe_cholesky_jitters_only_the_members_that_need_it():
         safe_cholesky(torch.stack([good, -torch.eye(2)]), name="factor")
 
 
+def test_safe_cholesky_error_names_the_failing_member_and_its_eigenvalues():
+    """Which member of a batch fails, its eigenvalues, and in float32 (not float64) that
+    round-off may be the cause; a NaN member is named as such."""
+    from difffilter.linalg import safe_cholesky
+
+    for dtype in (torch.float64, torch.float32):
+        batch = torch.stack([torch.eye(2), torch.tensor([[1.0, 2.0], [2.0, 1.0]])]).to(dtype)
+        with pytest.raises(ValueError) as err:
+            safe_cholesky(batch.expand(3, 2, 2, 2), name="S")
+        assert "at batch index (0, 1) (eigenvalues from -1 to 3)" in str(err.value)
+        assert ("float64 may hold it" in str(err.value)) == (dtype == torch.float32)
+    nan = torch.tensor([[1.0, float("nan")], [float("nan"), 1.0]], dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"jitter: it holds NaN or inf\.$"):
+        safe_cholesky(nan, name="S")
+
+
 def test_rowwise_takes_a_scalar_operand_as_broadcasting_does():
     from difffilter.linalg import rowwise
 
