@@ -308,8 +308,10 @@ class KalmanFilter(GaussianFilter):
                     "carry.gains is the gain schedule of another model: drop the gains "
                     "(carry._replace(gains=None)) when changing the model"
                 )
-            shared = carry.gains.initial_cov if carry.k == 0 else carry.gains.moments(carry.k).cov
-            if carry.cov is not shared:
+            gains = carry.gains
+            held = carry.k == 0 or gains.held(carry.k)  # (a step from a dropped one: _live)
+            shared = gains.initial_cov if carry.k == 0 else held and gains.moments(carry.k).cov
+            if held and carry.cov is not shared:
                 raise ValueError(
                     "carry.cov is not the shared covariance of carry.gains: drop the gains "
                     "(carry._replace(gains=None)) when changing the covariance"
@@ -334,9 +336,11 @@ class KalmanFilter(GaussianFilter):
 def _live(carry: GaussianState) -> GaussianState:
     """``carry`` without its gain schedule where the model was written in place since the
     schedule was made (:meth:`~difffilter.GainSchedule.current`): the general update reads
-    the model as it is now, from the covariance the schedule had reached."""
+    the model as it is now, from the covariance the schedule had reached; or where the
+    schedule no longer holds the carry's next step (a carry kept from thousands of steps
+    before: :attr:`~difffilter.GainSchedule.KEEP`), from the covariance the carry holds."""
     gains = carry.gains
-    if gains is not None and not gains.current():
+    if gains is not None and not (gains.current() and gains.held(carry.k + 1)):
         return carry._replace(gains=None)
     return carry
 

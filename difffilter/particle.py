@@ -354,7 +354,10 @@ class ParticleFilter(Estimator):
             or a :class:`StepLikelihood` whose state lives in the carry's ``aux``.
         ess_threshold: resample when ``ESS < ess_threshold · N`` (``1.0`` resamples at
             every step with non-uniform weights, and with equal weights where their ESS
-            rounds below ``N``, as it does for some ``N``; ``0`` never: plain SIS).
+            rounds below ``N``, as it does for some ``N`` and batch layouts: one run
+            unbatched and as a batch of one, 200.00000000000003 against 199.9999999999999
+            at N = 200, resample at different steps and then draw different numbers;
+            ``0`` never: plain SIS).
         hooks: callables ``hook(model, y, mask, carry, out) → {name: tensor [...]}`` run
             after every step (``carry``: the new carry, ``out``: its step output); what
             they return goes into the step's ``extras`` (what a detector needs, without

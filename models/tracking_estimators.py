@@ -10,7 +10,7 @@ rrp_pf_da                 bootstrap PF, mixture likelihood of eq. (15) on the sc
 rrp_spf_da                bootstrap PF, glint likelihood only, on the attacked data
 rrp_spf_nm                the same on the attack-free data (the reference)
 pf_da                     all four sensors every step, product of per-sensor mixtures
-rrp_pf_da_ekf_proposal    eq. (15) with an EKF-step proposal (the paper's future work)
+rrp_pf_da_ekf_proposal    eq. (15) with an EKF-step proposal (Remark 2: a UKF one is future work)
 ukf_chi_square            UKF gated by a χ² test (the analytic baseline)
 ========================  =====================================================================
 

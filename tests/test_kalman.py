@@ -840,6 +840,37 @@ def test_the_online_step_reads_a_model_written_in_place_as_the_general_step_does
     assert fast.gains is None
 
 
+def test_a_schedule_that_never_converges_keeps_a_bounded_window(monkeypatch):
+    """An unobserved random walk's variance grows forever: the gain schedule never converges,
+    and it kept every step's moments (4.8 kB a step, 1 GB in 200,000 online steps). It keeps
+    the last KEEP to 2 KEEP; the steps equal the general update's, also from a carry older
+    than the window (which goes on without the schedule), and a dropped step is named."""
+    monkeypatch.setattr(df.GainSchedule, "KEEP", 8)
+    eye = torch.eye(2, dtype=torch.float64)
+    H = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
+    R = torch.ones(1, 1, dtype=torch.float64)
+    model = df.LinearGaussianModel(eye, H, 1e-2 * eye, R, torch.zeros(2, dtype=torch.float64), eye)
+    _, ys, _ = model.simulate(100, (), generator=torch.Generator().manual_seed(0))
+    kf = df.KalmanFilter()
+    fast = kf.init(model, ())
+    slow, kept = fast._replace(gains=None), {}
+    for t in range(100):
+        fast, of = kf.step(fast, ys[t])
+        slow, os_ = kf.step(slow, ys[t])
+        torch.testing.assert_close(of.mean, os_.mean, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(of.cov, os_.cov, rtol=1e-12, atol=0)
+        kept[t + 1] = (fast, slow)
+    schedule = fast.gains
+    assert schedule is not None and not schedule.converged
+    assert 8 <= len(schedule._moments) <= 16 and schedule.held(100) and not schedule.held(3)
+    with pytest.raises(ValueError, match="moments of measurement 3 were dropped"):
+        schedule.moments(3)
+    old_fast, old_slow = kept[3]  # its next step's moments were dropped
+    stepped, out = kf.step(old_fast, ys[3])
+    torch.testing.assert_close(out.mean, kf.step(old_slow, ys[3])[1].mean, rtol=1e-12, atol=0)
+    assert stepped.gains is None
+
+
 def test_a_prior_given_by_its_factor_keeps_the_shared_gains():
     """``Gaussian(m0, scale_tril=L)`` makes a new ``cov`` at every read: ``init`` refused
     its own carry (identity check against a fresh tensor)."""

@@ -280,7 +280,7 @@ def _proposal_section(result, doc: dict) -> Section | None:
              f"({f(b['rmse_p'])} vs {f(a['rmse_p'])}); for its wall time the bootstrap filter runs "
              f"{eq['num_particles']} particles (measured time in the last column): at equal wall time "
              f"the EKF proposal {same_t}.\n")  # fmt: skip
-    return Section("EKF proposal (the paper's future work)", body)
+    return Section("EKF proposal (the paper's Remark 2 leaves a UKF one to future work)", body)
 
 
 # its report times every estimator on one run and runs the equal-wall-time study: about
