@@ -79,6 +79,23 @@ def test_a_run_with_another_logger_ends_cleanly_and_records_its_best_score(tmp_p
     assert any(r.get("hp/best_val_score") for r in rows)
 
 
+def test_the_best_score_beside_the_settings_is_at_the_step_the_run_ended(tmp_path, monkeypatch):
+    """TensorBoard's hp/best_val_score went to step 0 (a resumed run's too), left of every
+    curve; with a Lightning whose log_hyperparams takes a step it is at the run's last."""
+    import inspect
+    import json
+
+    from lightning.pytorch.loggers import TensorBoardLogger
+
+    _one_epoch_run(tmp_path, monkeypatch)
+    run = tmp_path / "lightning_logs" / "four_tank_nn_grad" / "version_0"
+    (event,) = EventAccumulator(str(run)).Reload().Scalars("hp/best_val_score")
+    takes_step = "step" in inspect.signature(TensorBoardLogger.log_hyperparams).parameters
+    card = json.loads((run / "four_tank_nn_grad.json").read_text())
+    assert event.step == (card["global_step"] if takes_step else 0)
+    assert event.value == pytest.approx(card["best_val_score"])
+
+
 def _one_epoch_run(tmp_path, monkeypatch, code: int = 0) -> list[str]:
     """A tiny four-tank fit of one epoch in ``tmp_path``, ending with exit ``code`` (Ctrl-C:
     1, returned or raised as ``SystemExit`` as the Lightning version does); returns its

@@ -44,6 +44,7 @@ detection head; it alarms on its standardised attack estimate.
 
 from __future__ import annotations
 
+import inspect
 import math
 import warnings
 
@@ -819,7 +820,10 @@ class FilterEstimatorTask(pl.LightningModule):
         params = {**({} if dm is None else dict(dm.hparams)), **dict(self.hparams)}
         for logger in self.loggers:  # the run's settings beside its result
             if isinstance(logger, TensorBoardLogger):  # its HPARAMS view pairs them
-                logger.log_hyperparams(params, {"hp/best_val_score": best})
+                # at the step the run ended (a resumed run's score had gone to step 0);
+                # Lightning before 2.3 takes no step: step 0 there
+                at = {"step": self.global_step} if _takes_step(logger.log_hyperparams) else {}
+                logger.log_hyperparams(params, {"hp/best_val_score": best}, **at)
             else:  # the others take the settings alone (a CSV logger, a custom one)
                 logger.log_hyperparams(params)
                 logger.log_metrics({"hp/best_val_score": best}, step=self.global_step)
@@ -1008,3 +1012,8 @@ def _runs(batch: dict) -> int:
 
 def _horizon(scenario, batch: dict) -> int:
     return batch["xi" if scenario.closed_loop else "y_recv"].shape[1]
+
+
+def _takes_step(log_hyperparams) -> bool:
+    """Whether a logger's ``log_hyperparams`` takes ``step`` (Lightning ≥ 2.3)."""
+    return "step" in inspect.signature(log_hyperparams).parameters
