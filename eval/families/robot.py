@@ -330,8 +330,18 @@ def _claims(doc) -> str:
         ra, rl = format_number(ci["ratio_all"]), format_number(ci["ratio_late"])
         verdict = "holds" if holds else "does not hold"
         lines.append(
-            f"- Fusion below both locals (Fig. B2): {verdict} (CI/better local {ra}, k ≥ 40: {rl})."
+            f"- Fusion below both locals (Fig. B2): {verdict} for the position, pooled over the "
+            f"steps (CI/better local {ra}, k ≥ 40: {rl})."
         )
+        attack = {n: est.get(n, {}).get("attack_rmse") for n in
+                  ("mdpf_fused_ci", "mdpf_local_1", "mdpf_local_2")}  # fmt: skip
+        if all(v is not None for v in attack.values()):
+            fused, best = attack.pop("mdpf_fused_ci"), min(attack, key=attack.get)
+            below = "below" if fused < attack[best] else "not below"
+            lines.append(
+                f"- The fused attack estimate is {below} the better local's: attack RMSE "
+                f"{format_number(fused)} against `{best}`'s {format_number(attack[best])}."
+            )
     if "zhang_akf" in est and "mdpf_fused_ci" in est:
         z, fz = est["zhang_akf"]["position_rmse"], est["mdpf_fused_ci"]["position_rmse"]
         zg = min(
