@@ -329,7 +329,8 @@ class KalmanFilter(GaussianFilter):
         if self.method is Method.PARALLEL:
             return output_of(parallel_kalman_filter(model, ys, us, mask))
         if shared_covariance_applies(model, mask):
-            return output_of(shared_covariance_kalman_filter(model, ys, us))
+            result = shared_covariance_kalman_filter(model, ys, us)
+            return None if result is None else output_of(result)  # None: step by step
         return None
 
 
@@ -442,7 +443,9 @@ def kalman_filter(
             (:mod:`difffilter._shared_cov`) by itself when the model's matrices have no
             batch dimension, the model is time-invariant and nothing is masked: the
             covariance recursion runs once for all runs and the covariances come back
-            as expanded views ``[..., T, dx, dx]`` of one ``[T, dx, dx]`` tensor.
+            as expanded views ``[..., T, dx, dx]`` of one ``[T, dx, dx]`` tensor (where
+            its means fail a check of one Kalman update a step, on a strongly non-normal
+            ``F``, it steps through the sequence instead).
         nonfinite: :class:`~difffilter.NonFinite` ``RAISE`` (default): a NaN or
             ±Inf in a received entry of ``ys`` raises ``ValueError``; ``SKIP``: such
             entries are treated as unreceived

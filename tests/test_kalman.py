@@ -1171,3 +1171,51 @@ def test_parallel_consistency_check_holds_on_float32(generator):
     res = df.kalman_filter(single, ys.float(), method="parallel")
     sd = exact.covs.diagonal(dim1=-2, dim2=-1).sqrt()
     assert ((res.means.double() - exact.means).abs() / sd).max() < 1e-2
+
+
+def _non_normal_model_4x4() -> df.LinearGaussianModel:
+    """A stable 4-state model with a strongly non-normal ``F`` (entries to 4.5e3) and an
+    almost singular ``R``, from a random search: the whole-sequence shared-covariance
+    path's means were 1e4 posterior sd from a 40-digit filter, the step-by-step filter's
+    0.015."""
+    t = lambda rows: torch.tensor(rows, dtype=torch.float64)  # noqa: E731
+    F = t([[-4538.406098138516, -4312.320937945678, -4367.839150868573, 2133.5955347464155],
+           [3941.645376645797, 3835.9459955916486, 3764.9698664634557, -1709.2901596255651],
+           [3004.5433160295293, 3040.762813487212, 3033.73171573708, -1743.400438077506],
+           [3167.547734470196, 4051.577884399208, 3520.680086005546, -2332.408210353128]])  # fmt: skip
+    H = t([[-0.07842859429166536, 0.10243836276504573, 0.07124987591497303, 0.08393611625505146],
+           [44.07631558812914, -18.541539189502156, -47.432351715544584, 6.912564283383646],
+           [0.08390436304257987, -0.0468171598112165, -0.0973328377329518, 0.017910457339651693],
+           [0.318803145829228, 0.9670465627986514, -0.1004295896385563, -0.5973454262805306]])  # fmt: skip
+    Q = t([[1.3517434168823101, -0.1461675131769296, 0.16978126769520166, -2.6683818195738116],
+           [-0.1461675131769296, 0.6790147961007019, 2.0035617870998648, 1.3572093103020075],
+           [0.16978126769520166, 2.0035617870998648, 6.1861640469940875, 2.9230855858356843],
+           [-2.6683818195738116, 1.3572093103020075, 2.9230855858356843, 6.989584103293906]])  # fmt: skip
+    R = t([[0.32034980933656765, 0.40507201702037876, -0.36058450648894813, 0.2518932787817101],
+           [0.40507201702037876, 0.5133725818689534, -0.45775569932991167, 0.31932722799087565],
+           [-0.36058450648894813, -0.45775569932991167, 0.4087100731690809, -0.284812197420443],
+           [0.2518932787817101, 0.31932722799087565, -0.284812197420443, 0.19864503804297742]])  # fmt: skip
+    m0 = t([0.7438303988167724, -1.3259014368899744, 0.03843237972438399, -0.6422458371843208])  # fmt: skip
+    P0 = t([[641.3546029272898, -415.3561835214181, -965.1503236588337, -1028.8268167687556],
+           [-415.3561835214181, 269.47611510730053, 625.9071258491401, 666.9569423664533],
+           [-965.1503236588337, 625.9071258491401, 1454.0473739795634, 1549.4382618513528],
+           [-1028.8268167687556, 666.9569423664533, 1549.4382618513528, 1651.3107829612968]])  # fmt: skip
+    return df.LinearGaussianModel(F, H, Q, R, m0, P0)
+
+
+def test_the_default_filter_steps_where_the_shared_blocks_lose_the_means(generator):
+    """The shared-covariance path sums coefficients formed ahead (``F − K H F``…), whose
+    cancellation a strongly non-normal F makes large: where its means are not one Kalman
+    update of their predecessors it gives way to the step-by-step filter."""
+    from difffilter._shared_cov import shared_covariance_kalman_filter
+
+    model = _non_normal_model_4x4()
+    _, ys, _ = model.simulate(120, (3,), generator=generator)
+    assert shared_covariance_kalman_filter(model, ys) is None  # refused: too far off
+    default = df.kalman_filter(model, ys)
+    general = df.kalman_filter(model, ys, mask=torch.ones(ys.shape, dtype=torch.bool))
+    sd = general.covs.diagonal(dim1=-2, dim2=-1).sqrt()
+    assert ((default.means - general.means).abs() / sd).max() < 1.0
+    cv = constant_velocity()  # a well-conditioned model keeps the fast path
+    _, ys_cv, _ = cv.simulate(50, (40,), generator=generator)
+    assert shared_covariance_kalman_filter(cv, ys_cv) is not None
