@@ -268,8 +268,9 @@ class FourTankScenario(Scenario):
         gamma_bar, tau, p_l: the attack of eqs (3)–(4) [P].
         gamma_min: ``‖γ‖_min`` of Theorem 1 [P 0.28].
         eta_design_R: the ``R`` from which the PoA threshold ``η`` is computed by
-            Theorem 1: the nominal ``R`` gives the paper's ``η = 0.233`` [P], which the
-            paper keeps in the high-noise case.
+            Theorem 1: the nominal ``R`` gives the paper's ``η = 0.233`` [P], kept in the
+            high-noise case [DEF: the paper does not say; Theorem 1 for that R gives
+            0.2692, which the report also runs].
         gamma_hat_noise_var: ``γ̂ = γ + e``, ``e ~ N(0, var I)`` for the oracle estimate
             (0: ``γ̂ = γ``; 1e-2 in the paper's third scenario [P, text]).
         false_alarm_rate: target per-step false-alarm rate of the χ² and CUSUM

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import jsonschema
@@ -57,6 +58,8 @@ def test_cli_end_to_end_on_three_runs(tmp_path):
     report = (out / "report.md").read_text()
     for text in ("Table 3", "Table 4", "RMSE: pooled", "Fig. 9", "R × 5", "## Estimators"):
         assert text in report
+    # no f-string left unformatted (a sentence printed "{_pct(m['runs_identical_…'])}")
+    assert re.search(r"\{[A-Za-z_][\w.]*[(\[]", report) is None
     for png in (
         "rmse_over_time.png",
         "roc.png",
@@ -71,6 +74,19 @@ def test_cli_end_to_end_on_three_runs(tmp_path):
     events = EventAccumulator(str(out / "tb"), size_guidance={"images": 0}).Reload()
     # every report figure, the family's own (Fig. 9's sweep) too
     assert {"rmse_over_time", "roc", "detection_vs_attack_size"} <= set(events.Tags()["images"])
+
+
+@pytest.mark.slow
+def test_a_setting_outside_table_3_says_so_instead_of_an_empty_table(tmp_path):
+    """four_tank_bias_large (γ̄ = 1.5) matches no column of the paper's Table 3: its report
+    printed the table's header over no row."""
+    assert (
+        main(["four_tank_bias_large", "--runs", "2", "--out", str(tmp_path), "--no-progress"]) == 0
+    )
+    report = (tmp_path / "four_tank_bias_large" / "report.md").read_text()
+    assert "### Table 3" not in report
+    assert "Table 3 of the paper has no column with this attack size and noise." in report
+    assert re.search(r"\{[A-Za-z_][\w.]*[(\[]", report) is None
 
 
 def test_cli_and_suite_reject_bad_input(tmp_path, capsys):

@@ -185,8 +185,10 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
             )
     head = ["column", "paper RMSE", "ours vs attack-free: pooled (median run)", "paper false alarms",
             "ours / run (FPR)", "paper stealthy", "ours missed / run"]  # fmt: skip
-    table = "### Table 3 (paper: one realisation; ours: Monte Carlo)\n\n" + markdown_table(
-        head, rows
+    table = (  # none of Table 3's columns is this setting (another attack size): no table
+        "### Table 3 (paper: one realisation; ours: Monte Carlo)\n\n" + markdown_table(head, rows)
+        if rows
+        else "Table 3 of the paper has no column with this attack size and noise.\n"
     )
     if nominal and not noisy:
         head = ["method", "paper RMSE", "ours vs attack-free (median run)", "paper CPU s/step",
@@ -203,7 +205,7 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
         f"random numbers; over k > 20 the modified PF gives {f(m['state_rmse_vs_attack_free_k_gt_20'])}. The paper's "
         "figures come from one realisation: the per-run RMSE of the modified PF has 10/50/90 % quantiles "
         f"{f(q[0])} / {f(q[1])} / {f(q[2])} (interpolated between runs; a table's median run is one run's, the "
-        "lower middle one of an even count), and {_pct(m['runs_identical_to_attack_free'])} of the runs equal the "
+        f"lower middle one of an even count), and {_pct(m['runs_identical_to_attack_free'])} of the runs equal the "
         "attack-free PF exactly (every attack detected, no false alarm). The paper leaves dt, the horizon, x₀, "
         "the resampling scheme and how RMSE is pooled unstated (our [DEF] values are in the setting); its method "
         "[31] is an open-loop particle mean by its own account, so both readings are reported.\n"
