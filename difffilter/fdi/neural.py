@@ -20,8 +20,9 @@ The residual history (``residual``, :class:`Residual`):
 * ``INNOVATION``: ``r_k, r_{k−1}, …, r_{k−b+1}`` of the innovations (ours; eq. 9 with lag 0);
 * ``PREDICTED``: the same of ``ν_k − â_{k−1}`` (the residual if the attack kept its last
   estimate: the LFC paper's network with lag 0, ``kf_nn_grad``);
-* ``LAGGED``: ``e_{k−1} … e_{k−b}``, ``e = ν − â`` after compensation (eq. 9 as printed,
-  lag 1: the paper's online-learned network; with online learning ``â`` is the estimate
+* ``LAGGED``: ``e_{k−1} … e_{k−b}``, ``e = ν − â`` after compensation (lag 1, as the
+  definition of δ and eq. 13 read it; eq. 9 as printed has lags a+1 … a+b: the paper's
+  online-learned network; with online learning ``â`` is the estimate
   before the step's weight update, the learner's own error of eq. 11, whatever
   ``posterior`` reports and subtracts).
 
