@@ -318,7 +318,11 @@ def sawtooth_pulse_train(
     rise = (tau >= -half - _T_EPS) & (tau < peak - _T_EPS)
     fall = (tau >= peak - _T_EPS) & (tau < half - _T_EPS)
     out = torch.zeros_like(tau)
-    out = torch.where(rise, (tau + half) / (half * (1.0 + skew)), out)
+    # from the pulse's start on the time grid: exactly 0 there (k·dt − d + w/2 was ±1e-16,
+    # a ramp value of 1e-15 that counted the step as attacked, 16 steps a run on lfc_sawtooth)
+    lead = tau + half
+    lead = torch.where(lead.abs() <= _T_EPS, torch.zeros_like(lead), lead)
+    out = torch.where(rise, lead / (half * (1.0 + skew)), out)
     if skew < 1.0:
         out = torch.where(fall, (half - tau) / (half * (1.0 - skew)), out)
     return amplitude * out.clamp(0.0, 1.0).sum(dim=1)
