@@ -503,6 +503,10 @@ def _stealthy_section(name: str, r: dict) -> str:
             ],
         )  # fmt: skip
         + verdict
+        + " The budget is kept on the training batches, whose own noise is about half of it: "
+        "on the study's runs (above) and other fresh noise the rise can exceed it. A constant "
+        "bias is the simplest yardstick, not the strongest: a ramp or a constant innovation "
+        "offset at the same rate comes closer to the crafted error (docs/threats.md)."
         + " Every other estimator meets it as a threat of the tables above (transfer: it was "
         "crafted against one detector only).\n"
     )

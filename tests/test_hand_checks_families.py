@@ -364,3 +364,5 @@ def test_the_same_rate_bias_says_when_no_bias_alarms_as_rarely(monkeypatch):
     assert "constant bias 1.5 σ (the weakest that alarms as often)" in _stealthy_section(
         "stealthy_x", report
     )
+    # a trial: the budget held on the crafting batches, not always on fresh noise
+    assert "the rise can exceed it" in text and "not the strongest" in text
