@@ -74,7 +74,7 @@ def test_chi_square_detect_raises_on_nan_innovations():
 def test_chi_square_online_step_raises_on_nan_statistic():
     det = fdi.ChiSquareDetector(2, window=3)
     state = det.init((2,))
-    with pytest.raises(ValueError, match="g contains NaN or Inf"):
+    with pytest.raises(ValueError, match="g contains NaN or −inf"):  # (+inf: an alarm)
         det.step(state, torch.tensor([1.0, NAN], dtype=F64))
 
 
@@ -106,7 +106,7 @@ def test_cusum_raises_on_nan_statistics():
     for call in (det.run, det.scores):
         with pytest.raises(ValueError, match="g contains NaN or Inf"):
             call(g)
-    with pytest.raises(ValueError, match="g contains NaN or Inf"):
+    with pytest.raises(ValueError, match="g contains NaN or −inf"):  # (+inf: an alarm)
         det.step(det.init((2,)), g[:, 2])
     with pytest.raises(ValueError, match="g_attack_free contains NaN"):
         det.calibrate(g, 0.1)
@@ -741,3 +741,52 @@ def test_a_model_batched_over_runs_is_named_where_it_does_not_fit():
                                    torch.tensor([[0.1]]), torch.tensor([[0.1]]),
                                    torch.zeros(3, 1), torch.eye(1))  # fmt: skip
     assert df.unscented_kalman_filter(prior, three).means.shape == (3, 5, 1)
+
+
+@pytest.mark.parametrize("dtype, big", [(torch.float32, 1e20), (torch.float64, 1e155)])
+def test_a_gated_filter_alarms_on_a_measurement_whose_statistic_overflows(dtype, big):
+    """A huge but finite measurement overflows νᵀS⁻¹ν to +inf: the χ² and CUSUM gates
+    raised "g contains NaN or Inf values" where they should alarm (a deployment trial)."""
+    import difffilter.fdi as fdi
+
+    eye = torch.eye(2, dtype=dtype)
+    F = torch.tensor([[1.0, 0.01], [0.0, 1.0]], dtype=dtype)
+    H = torch.tensor([[1.0, 0.0]], dtype=dtype)
+    model = df.LinearGaussianModel(
+        F, H, 0.01 * eye, torch.eye(1, dtype=dtype), torch.zeros(2, dtype=dtype), eye
+    )
+    for detector in (fdi.ChiSquareDetector(1, 0.01), fdi.CusumDetector(1, threshold=5.0)):
+        gated = fdi.GatedFilter(detector, df.KalmanFilter())
+        carry, _ = gated.step(gated.init(model, ()), torch.zeros(1, dtype=dtype))
+        carry, out = gated.step(carry, torch.tensor([big], dtype=dtype))
+        assert bool(out.alarm) and bool(torch.isfinite(out.mean).all())
+        carry, out = gated.step(carry, torch.zeros(1, dtype=dtype))
+        assert not bool(out.alarm)  # (the CUSUM reset after its alarm)
+    with pytest.raises(ValueError, match="NaN or −inf"):
+        fdi.ChiSquareDetector(1, 0.01).step(((torch.zeros(1, 0)), 0), torch.tensor([float("nan")]))
+
+
+def test_the_running_attack_rate_counts_past_float32s_integers():
+    """Remark 6's count took the model's dtype: in float32 it stopped at 2^24 alarms."""
+    rate = fdi.RunningAttackRate(100)
+    state = rate.init((), dtype=torch.float32)
+    state = state._replace(count=torch.tensor(2.0**24, dtype=state.count.dtype), steps=2**25)
+    for _ in range(3):
+        state = rate.update(state, torch.tensor(True))
+    assert float(state.count) == 2**24 + 3
+
+
+def test_the_modified_pf_names_a_gamma_hat_table_that_does_not_fit():
+    """A 1-D γ̂ failed at step 1 and a T-row table at step T + 1 with a bare IndexError."""
+    detector = fdi.PoADetector(eta=0.2, zeta=0.5)
+    with pytest.raises(ValueError, match=r"gamma_hat must be a tensor \[..., T, dy\]"):
+        fdi.ModifiedPFWeighting(detector, torch.zeros(2))
+    model = constant_velocity()
+    _, ys, _ = model.simulate(4, (), generator=torch.Generator().manual_seed(0))
+    weighting = fdi.ModifiedPFWeighting(detector, torch.zeros(3, 2, dtype=torch.float64))
+    pf = df.ParticleFilter(20, likelihood=weighting)
+    carry = pf.init(model, (), generator=torch.Generator().manual_seed(1))
+    for k in range(3):
+        carry, _ = pf.step(carry, ys[k])
+    with pytest.raises(ValueError, match="gamma_hat has 3 rows .* step 4 needs"):
+        pf.step(carry, ys[3])

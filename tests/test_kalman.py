@@ -843,9 +843,10 @@ def test_the_online_step_reads_a_model_written_in_place_as_the_general_step_does
 def test_a_schedule_that_never_converges_keeps_a_bounded_window(monkeypatch):
     """An unobserved random walk's variance grows forever: the gain schedule never converges,
     and it kept every step's moments (4.8 kB a step, 1 GB in 200,000 online steps). It keeps
-    the last KEEP to 2 KEEP; the steps equal the general update's, also from a carry older
+    the last KEEP to KEEP + TRIM; the steps equal the general update's, also from a carry older
     than the window (which goes on without the schedule), and a dropped step is named."""
     monkeypatch.setattr(df.GainSchedule, "KEEP", 8)
+    monkeypatch.setattr(df.GainSchedule, "TRIM", 8)
     eye = torch.eye(2, dtype=torch.float64)
     H = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
     R = torch.ones(1, 1, dtype=torch.float64)

@@ -20,6 +20,7 @@ filters) before detection.
 from __future__ import annotations
 
 import functools
+import math
 import numbers
 
 import torch
@@ -36,15 +37,20 @@ __all__ = [
 ]
 
 
-def _check_statistic(t, name: str) -> Tensor:
-    """``t`` must be a floating tensor with finite entries (a NaN would read as "no alarm")."""
+def _check_statistic(t, name: str, *, alarm_on_inf: bool = False) -> Tensor:
+    """``t`` must be a floating tensor with finite entries (a NaN would read as "no alarm");
+    with ``alarm_on_inf`` a detector's statistic may be ``+inf``, beyond every threshold:
+    a huge but finite measurement overflows ``νᵀS⁻¹ν`` (from 1e20 in float32, 1e155 in
+    float64), and the gated filters raised on it where they should alarm (a user trial)."""
     if not isinstance(t, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor; got {type(t).__name__}")
     if not t.is_floating_point():
         raise TypeError(f"{name} must be a floating-point tensor; got {t.dtype}")
-    if not bool(torch.isfinite(t).all()):
+    ok = ~torch.isnan(t) & (t != -math.inf) if alarm_on_inf else torch.isfinite(t)
+    if not bool(ok.all()):
+        what = "NaN or −inf" if alarm_on_inf else "NaN or Inf"
         raise ValueError(
-            f"{name} contains NaN or Inf values; a detector cannot decide on a statistic it "
+            f"{name} contains {what} values; a detector cannot decide on a statistic it "
             "could not compute (it raises instead of returning 'no alarm')"
         )
     return t
@@ -190,7 +196,7 @@ class ChiSquareDetector:
         """Feed ``g_k [...]``; returns ``(state, score [...], alarm [...])`` as :meth:`detect` would.
 
         ``ValueError`` for a non-finite ``g``."""
-        _check_statistic(g, "g")
+        _check_statistic(g, "g", alarm_on_inf=True)
         past, count = state
         score = g + past.sum(-1)
         dof = self.dim * min(count + 1, self.window)
@@ -263,7 +269,7 @@ class CusumDetector:
         """``S_k = max(0, S_{k−1} + g_k − b)``; returns ``(state, S_k, alarm)``, resetting after an alarm."""
         if self.threshold is None:
             raise ValueError("threshold is not set: pass threshold= or call calibrate() first")
-        _check_statistic(g, "g")
+        _check_statistic(g, "g", alarm_on_inf=True)
         s = torch.clamp(state + g - self.bias, min=0.0)
         alarm = s > self.threshold
         return torch.where(alarm, torch.zeros_like(s), s), s, alarm

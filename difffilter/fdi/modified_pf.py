@@ -222,6 +222,11 @@ class ModifiedPFWeighting:
                 "gamma_hat must be a BiasAttackEstimator or a tensor [..., T, dy]; got "
                 f"{type(gamma_hat).__name__}"
             )
+        if isinstance(gamma_hat, Tensor) and gamma_hat.dim() < 2:  # a bare IndexError at step 1
+            raise ValueError(
+                "gamma_hat must be a tensor [..., T, dy] (one row per step); got shape "
+                f"{tuple(gamma_hat.shape)}: for one γ̂ for every step, expand it to [T, dy]"
+            )
         self.detector, self.gamma_hat, self.attack_rate = detector, gamma_hat, attack_rate
         self.gain, self.base = gain, base_likelihood
         self.estimator = gamma_hat if isinstance(gamma_hat, BiasAttackEstimator) else None
@@ -241,7 +246,7 @@ class ModifiedPFWeighting:
     def weigh(self, state: WeightingState, model, y, particles, k, mask, predictive):
         batch = y.shape[:-1]
         if self.attack_rate is not None:
-            zeta = self.attack_rate.zeta(state.rate)
+            zeta = self.attack_rate.zeta(state.rate).to(y.dtype)  # (counted in float64)
         else:
             zeta = torch.full(batch, self.detector.zeta, dtype=y.dtype, device=y.device)
         gain = state.gain if mask is None else None
@@ -264,7 +269,7 @@ class ModifiedPFWeighting:
         record = {"beta": beta, "alarm": alarm, "zeta": zeta}
         if self.attack_rate is not None:
             rate = self.attack_rate.update(rate, alarm)
-            record["attack_rate"] = self.attack_rate.estimate(rate)
+            record["attack_rate"] = self.attack_rate.estimate(rate).to(y.dtype)
         if self.estimator is not None:
             flag = alarm if mask is None else alarm.unsqueeze(-1) & mask
             est, g_hat, _ = self.estimator.step(
@@ -272,6 +277,11 @@ class ModifiedPFWeighting:
             )
         else:
             # a shared γ̂ [T, dy] is recorded per run, so the records stack after the batch
+            if k > self.gamma_hat.shape[-2]:  # (a bare IndexError at step T + 1)
+                raise ValueError(
+                    f"gamma_hat has {self.gamma_hat.shape[-2]} rows (steps) and step {k} needs "
+                    "row k: give a row for every step the filter runs"
+                )
             g_hat = self.gamma_hat[..., k - 1, :].to(y.dtype)
             g_hat = g_hat.expand(torch.broadcast_shapes(g_hat.shape, zeta.shape + y.shape[-1:]))
         record["gamma_hat"] = g_hat
