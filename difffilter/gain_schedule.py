@@ -206,7 +206,6 @@ class GainSchedule:
             if self._block_next == len(self._block):
                 self._next_block()
             self._hand_out()
-            known = self._moments  # (a trim makes a new list)
         return known[min(k - self._dropped, len(known)) - 1]
 
     def _index(self, k: int) -> int:
@@ -227,13 +226,10 @@ class GainSchedule:
 
     def _trim(self) -> None:
         """Drop the oldest :attr:`TRIM` handed-out steps (a schedule that never converges
-        would keep every step's tensors); new lists, so a caller's reference to the old
-        ones stays valid."""
+        would keep every step's tensors)."""
         n = self.TRIM
-        self._moments = self._moments[n:]
-        self._cov_versions = self._cov_versions[n:]
-        self._neg_log_norms = self._neg_log_norms[n:]
-        self._row_maps = self._row_maps[n:]  # (made up to some step, perhaps none)
+        for kept in (self._moments, self._cov_versions, self._neg_log_norms, self._row_maps):
+            del kept[:n]  # (the row maps are made up to some step, perhaps none)
         self._dropped += n
 
     def intact(self, k: int) -> bool:

@@ -309,9 +309,13 @@ class KalmanFilter(GaussianFilter):
                     "(carry._replace(gains=None)) when changing the model"
                 )
             gains = carry.gains
-            held = carry.k == 0 or gains.held(carry.k)  # (a step from a dropped one: _live)
-            shared = gains.initial_cov if carry.k == 0 else held and gains.moments(carry.k).cov
-            if held and carry.cov is not shared:
+            if carry.k == 0:
+                shared = gains.initial_cov
+            elif gains.held(carry.k):
+                shared = gains.moments(carry.k).cov
+            else:  # dropped (KEEP): its step goes on without the schedule (_live)
+                shared = None
+            if shared is not None and carry.cov is not shared:
                 raise ValueError(
                     "carry.cov is not the shared covariance of carry.gains: drop the gains "
                     "(carry._replace(gains=None)) when changing the covariance"

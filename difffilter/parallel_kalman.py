@@ -235,6 +235,11 @@ PARALLEL_INNOVATION_COV = (
 CONSISTENCY_TOLERANCE = {torch.float64: 1e-4, torch.float32: 0.1}
 
 
+def consistency_tolerance(dtype: torch.dtype) -> float:
+    """:data:`CONSISTENCY_TOLERANCE` of ``dtype`` (0.1 for any other float)."""
+    return CONSISTENCY_TOLERANCE.get(dtype, 0.1)
+
+
 def _check_one_step_consistency(
     means, covs, pred_means, pred_covs, innovations, innov_chols, H, R
 ) -> None:
@@ -260,13 +265,13 @@ def _check_one_step_consistency(
         cov = joseph_covariance(pred_covs, gain, H, R)
         scale = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0.0).sqrt()
         tiny = torch.finfo(means.dtype).tiny
-        mean_gap = _scaled_gap(mean - means, scale.expand(mean.shape) + tiny)
-        cov_gap = _scaled_gap(cov - covs, scale.unsqueeze(-1) * scale.unsqueeze(-2) + tiny)
+        mean_gap = scaled_gap(mean - means, scale.expand(mean.shape) + tiny)
+        cov_gap = scaled_gap(cov - covs, scale.unsqueeze(-1) * scale.unsqueeze(-2) + tiny)
         T = means.shape[-2]
         per_step = torch.maximum(  # the worst gap of each step over runs and entries
             mean_gap.amax(-1).reshape(-1, T).amax(0), cov_gap.amax((-2, -1)).reshape(-1, T).amax(0)
         )
-        tol = CONSISTENCY_TOLERANCE.get(means.dtype, 0.1)
+        tol = consistency_tolerance(means.dtype)
         if bool(per_step.max() > tol):
             worst_mean, worst_cov = mean_gap.max(), cov_gap.max()
             step = int((per_step > tol).nonzero()[0, 0]) + 1
@@ -280,7 +285,7 @@ def _check_one_step_consistency(
             )
 
 
-def _scaled_gap(gap: Tensor, scale: Tensor) -> Tensor:
+def scaled_gap(gap: Tensor, scale: Tensor) -> Tensor:
     """``|gap| / scale``, 0 where ``gap`` is 0 and NaN taken as 0 (a NaN is the data's)."""
     return torch.nan_to_num(gap.abs() / scale, nan=0.0)
 

@@ -334,7 +334,7 @@ class RunningAttackRate:
         about five days of a 10 ms loop alarming on 39 % of the steps, a user trial), and the
         estimate ``p̂_l`` then fell; :meth:`zeta` and :meth:`estimate` come back in float64
         (the caller casts them)."""
-        del dtype  # the count's dtype is float64 on every device that has it
+        del dtype  # (kept for the callers: the count is float64 whatever the filter's)
         count = torch.zeros(torch.Size(batch_shape), dtype=torch.float64, device=device)
         return AttackRateState(count, 0)
 
