@@ -41,7 +41,7 @@ from .gaussian import (
     measurement_moments,
     moments_update,
 )
-from .linalg import matvec
+from .linalg import matvec, under_transform
 from .loop import open_loop
 from .parallel_kalman import parallel_kalman_filter
 from .results import FilterResult, GaussianState, StepOutput
@@ -330,12 +330,24 @@ class KalmanFilter(GaussianFilter):
 
     def _run(self, carry, ys, us, mask):
         model = carry.model
+        if ys.numel() == 0:  # no runs or no steps: the steps' empty results
+            return None
         if self.method is Method.PARALLEL:
             return output_of(parallel_kalman_filter(model, ys, us, mask))
-        if shared_covariance_applies(model, mask):
+        if shared_covariance_applies(model, mask) and not _forward_traced(model, ys, us):
             result = shared_covariance_kalman_filter(model, ys, us)
             return None if result is None else output_of(result)  # None: step by step
         return None
+
+
+def _forward_traced(model, ys: Tensor, us: Tensor | None) -> bool:
+    """Whether forward-mode AD or a ``torch.func`` transform traces this call
+    (:func:`~difffilter.linalg.under_transform`): the shared-covariance path's no-gradient
+    branch writes into preallocated tensors, which forward mode cannot follow."""
+    return under_transform(
+        ys, us, model.transition_matrix(0), model.observation_matrix(1), model.control_matrix(0),
+        model.process_cov(0), model.measurement_cov(1), model.initial.mean, model.initial.cov,
+    )  # fmt: skip
 
 
 def _live(carry: GaussianState) -> GaussianState:

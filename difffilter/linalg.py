@@ -33,6 +33,23 @@ INNOVATION_COV = ("innovation covariance S = H P⁻ Hᵀ + R (made from the mode
 LOG_2PI = math.log(2.0 * math.pi)
 
 
+def under_transform(*tensors: Tensor | None) -> bool:
+    """Whether any of ``tensors`` carries a forward-mode tangent (``torch.autograd.forward_ad``)
+    or is wrapped by a ``torch.func`` transform (``jvp``, ``jacfwd``, ``vmap``, ``grad``).
+    Such tensors report ``requires_grad=False``, so a path chosen for "no gradient" would
+    write them into preallocated outputs (``out=``, in place), which forward mode refuses:
+    the whole-sequence Kalman filter steps through instead."""
+    level = torch.autograd.forward_ad._current_level
+    for t in tensors:
+        if not isinstance(t, Tensor):
+            continue
+        if torch._C._functorch.is_functorch_wrapped_tensor(t):
+            return True
+        if level >= 0 and torch.autograd.forward_ad.unpack_dual(t).tangent is not None:
+            return True
+    return False
+
+
 def symmetrize(matrix: Tensor) -> Tensor:
     """Return ``(A + Aᵀ) / 2`` for ``matrix`` of shape ``[..., d, d]``.
 
