@@ -113,6 +113,19 @@ def check_square(t: Tensor, name: str, dim: int | None = None) -> None:
         raise ValueError(f"{name} must have shape {want}; got {tuple(t.shape)}")
 
 
+def check_batch_shapes(**shapes: torch.Size) -> None:
+    """A model's parameters' batch shapes (one set per run) must broadcast together: F for
+    3 runs and Q for 4 failed later, deep in a filter ("The size of tensor a (3) …")."""
+    try:
+        torch.broadcast_shapes(*shapes.values())
+    except RuntimeError:
+        listed = ", ".join(f"{name} {tuple(shape)}" for name, shape in shapes.items())
+        raise ValueError(
+            "the model's parameters must share one batch shape (one set per run) or broadcast "
+            f"to one; got the batch shapes {listed}"
+        ) from None
+
+
 def check_finite(t: Tensor, name: str) -> None:
     if values_known(t) and not bool(torch.isfinite(t).all()):
         raise ValueError(f"{name} contains NaN or Inf values; every entry must be finite")
@@ -409,7 +422,8 @@ def _check_us(model, us, batch: torch.Size, num_steps: int | None, dtype, device
     if us.dim() < (2 if seq else 1) or us.shape[-1] != du:
         raise ValueError(f"{name} must have shape {want}; got {tuple(us.shape)}")
     if seq and us.shape[-2] != num_steps:
-        raise ValueError(f"us must have T = {num_steps} steps like ys; got {us.shape[-2]}")
+        raise ValueError(f"us must have T = {num_steps} steps, one per measurement; "
+                         f"got {us.shape[-2]}")  # fmt: skip
     lead = us.shape[:-2] if seq else us.shape[:-1]
     try:
         torch.broadcast_shapes(lead, batch)

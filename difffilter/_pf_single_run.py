@@ -137,6 +137,7 @@ def _propagate(model, particles: Tensor, u: Tensor | None, k: int, generator) ->
     if (
         type(model).sample_transition is StateSpaceModel.sample_transition
         and type(noise) is Gaussian
+        and not model._varying_noise("process_cov")
     ):
         _, diag = noise._factor()
         if diag is not None and diag.dim() == 1 and noise._zero_loc():

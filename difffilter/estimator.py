@@ -24,7 +24,13 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from ._checks import check_carry_batch, check_model, check_step_inputs, model_dtype_device
+from ._checks import (
+    check_carry_batch,
+    check_model,
+    check_step_inputs,
+    model_batch_shape,
+    model_dtype_device,
+)
 from ._vouched import Established, hold_whole, vouch, vouched
 from .attack import Channel
 from .results import FilterResult, StepOutput
@@ -262,7 +268,7 @@ class Estimator:
         model = carry.model
         self._check_carry(carry)
         y, u, mask = check_step_inputs(model, None, y, u, mask)
-        check_carry_batch(self.batch_of(carry), y, u, mask)
+        check_carry_batch(self._runs_of(carry), y, u, mask)
         new, out = self._step(carry, y, u, mask)
         self._vouch(new, y.dtype, y.device)
         return new, out
@@ -279,6 +285,16 @@ class Estimator:
     def batch_of(self, carry) -> torch.Size:
         """The batch shape of the runs a carry holds."""
         return carry.mean.shape[:-1]
+
+    def _runs_of(self, carry) -> torch.Size:
+        """The runs a step from ``carry`` makes: its own batch broadcast with its model's
+        parameter sets (a carry of ``init(model, ())`` on a model of 3 sets steps 3 runs,
+        so it takes one measurement per run as well as one for all)."""
+        own = self.batch_of(carry)
+        try:
+            return torch.broadcast_shapes(own, model_batch_shape(carry.model))
+        except (RuntimeError, AttributeError):
+            return own
 
     # -- what a subclass provides ------------------------------------------------------
     def _init(self, model, batch_shape: torch.Size, generators: Generators):

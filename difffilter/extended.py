@@ -26,7 +26,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ._checks import NonFinite, model_batch_shape
+from ._checks import NonFinite, check_finite_number, model_batch_shape
 from .gaussian import measurement_moments, predict_covariance, update_given
 from .kalman import GaussianFilter, Prediction
 from .linalg import masked_measurement, outer, safe_cholesky, symmetrize
@@ -115,9 +115,10 @@ class SigmaPoints:
     """
 
     def __init__(self, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0):
-        if not alpha > 0:
-            raise ValueError(f"alpha must be > 0; got {alpha}")
-        self.alpha, self.beta, self.kappa = float(alpha), float(beta), float(kappa)
+        # finite numbers: a NaN or inf made a NaN covariance, blamed on P at the first step
+        self.alpha = check_finite_number(alpha, "alpha", positive=True)
+        self.beta = check_finite_number(beta, "beta")
+        self.kappa = check_finite_number(kappa, "kappa")
 
     def weights(self, n: int, dtype, device) -> tuple[Tensor, Tensor, float]:
         """Mean weights ``[2n+1]``, covariance weights ``[2n+1]`` and the scale ``√(n+λ)``."""

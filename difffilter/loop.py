@@ -177,7 +177,13 @@ def open_loop(
                 "carry holds another model than the model given (its steps would filter with "
                 "the carry's): start the carry from this model (estimator.init(model, …))"
             )
-        batch = torch.broadcast_shapes(batch, estimator.batch_of(carry))
+        try:
+            batch = torch.broadcast_shapes(batch, estimator.batch_of(carry))
+        except RuntimeError:
+            raise ValueError(
+                f"the carry holds runs {tuple(estimator.batch_of(carry))} and the measurements "
+                f"(ys, us, mask) runs {tuple(batch)}: they must broadcast (one carry per run of ys)"
+            ) from None
     if result is None:
         result = _step_through(estimator, carry, ys, us, mask, batch, collect)
     if skipped is not None:
@@ -408,6 +414,13 @@ def closed_loop(
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"steps must be an integer >= 1; got {steps!r}")
     model = plant if model is None else model
+    if not (
+        callable(getattr(noise, "transition", None)) and callable(getattr(noise, "measure", None))
+    ):
+        raise TypeError(
+            "noise must be a DrawnNoise(generator) or a ReplayedNoise(process, measurement) "
+            f"(an object with transition and measure); got {type(noise).__name__}"
+        )
     if (forks or fork) and not isinstance(noise, ReplayedNoise):
         raise ValueError("forks= and fork= need ReplayedNoise: drawn noise's generator is "
                          "not part of the loop's state, so a fork could not replay it")  # fmt: skip

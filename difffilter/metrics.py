@@ -36,6 +36,21 @@ def rmse(estimate: Tensor, truth: Tensor, *, dim=None) -> Tensor:
     return torch.sqrt(sq.mean() if dim is None else sq.mean(dim=dim))
 
 
+def _check_fits(primary: str, shape: torch.Size, **others: Tensor | None) -> None:
+    """Each of ``others`` has the shape of ``primary`` or broadcasts to it (a labels tensor
+    of 5 steps against scores of 17 failed inside torch's expand)."""
+    for name, t in others.items():
+        if t is None:
+            continue
+        try:
+            fits = torch.broadcast_shapes(t.shape, shape) == shape
+        except RuntimeError:
+            fits = False
+        if not fits:
+            raise ValueError(f"{name} {tuple(t.shape)} must have the shape of {primary} "
+                             f"{tuple(shape)} (or broadcast to it)")  # fmt: skip
+
+
 def _valid(alarms: Tensor, valid: Tensor | None) -> Tensor:
     return (
         torch.ones_like(alarms, dtype=torch.bool)
@@ -51,6 +66,7 @@ def detection_counts(
 
     Returns ``{"tp", "fp", "tn", "fn"}`` pooled over every run and step in ``valid``.
     """
+    _check_fits("alarms", alarms.shape, attacked=attacked, valid=valid)
     a, y = alarms.bool(), attacked.bool()
     v = _valid(a, valid)
     return {
@@ -100,6 +116,7 @@ def roc_curve(
 def _roc_counts(scores: Tensor, labels: Tensor, valid: Tensor | None = None):
     """``(tp [M], fp [M], thresholds [M], positives, negatives)``: the true- and false-alarm
     counts of :func:`roc_curve`'s points (float64, exact integers), from (0, 0)."""
+    _check_scores(scores, labels, valid)
     v = _valid(scores, valid)
     s = scores[v].double().flatten()
     y = labels.bool().expand(scores.shape)[v].flatten()
@@ -118,12 +135,23 @@ def _roc_counts(scores: Tensor, labels: Tensor, valid: Tensor | None = None):
     return torch.cat([zero, tp]), torch.cat([zero, fp]), thr, pos, neg
 
 
+def _check_scores(scores: Tensor, labels: Tensor, valid: Tensor | None) -> None:
+    """Labels and ``valid`` fit ``scores``, and no valid score is NaN: a NaN sorted among
+    the scores as it happened to fall (an AUC of 0.4877 where mapping NaN to the lowest
+    score gives 0.4508)."""
+    _check_fits("scores", scores.shape, labels=labels, valid=valid)
+    if bool(torch.isnan(scores[_valid(scores, valid)]).any()):
+        raise ValueError("scores contain NaN (a step without a score): map them first, e.g. "
+                         "difffilter.metrics.nan_as_lowest(scores), or mark them invalid")  # fmt: skip
+
+
 def roc_auc(scores: Tensor, labels: Tensor, valid: Tensor | None = None) -> float:
     """Area under the ROC curve (trapezoid rule, summed in counts: exact for a perfect
     detector); ``nan`` if one class is absent.
 
     ``scores`` (higher means attack; finite: map NaN first), bool ``labels`` and ``valid``: equal
     shapes, for example ``[B, T]``; every valid entry is one sample."""
+    _check_scores(scores, labels, valid)
     y = labels.bool().expand(scores.shape)[_valid(scores, valid)]
     if bool(y.all()) or not bool(y.any()):
         return math.nan
@@ -147,6 +175,7 @@ def detection_delay(alarms: Tensor, attacked: Tensor) -> dict[str, float | int]:
     """
     if alarms.shape[-1] == 0 or alarms.numel() == 0:  # no step (or no run): no episode
         return {"mean_delay": math.nan, "episodes": 0, "detected": 0, "missed": 0}
+    _check_fits("alarms", alarms.shape, attacked=attacked)
     a = alarms.bool().reshape(-1, alarms.shape[-1])
     y = attacked.bool().expand(alarms.shape).reshape(-1, alarms.shape[-1])
     T = y.shape[-1]

@@ -394,6 +394,9 @@ class UniformBox(NoiseModel):
 
     def log_prob(self, value: Tensor, mask: Tensor | None = None) -> Tensor:
         """``−Σ log(high − low)`` inside the box, ``−inf`` outside (marginal on ``mask``)."""
+        if value.shape[-1:] != (self.dim,):  # a shorter value would broadcast to the box
+            raise ValueError(f"value must have shape [..., {self.dim}] (the box's dimension); "
+                             f"got {tuple(value.shape)}")  # fmt: skip
         outside = ~((value >= self.low) & (value <= self.high))  # NaN counts as outside
         log_len = self._log_lengths()
         if mask is not None:

@@ -756,8 +756,10 @@ def _predictive(model, y, mask, k, obs, pred_w, prior_lw, pred_mean) -> Predicti
 
 
 def _default_measurement_density(model: StateSpaceModel) -> bool:
-    """Whether ``model.measurement_log_prob`` is the base class's ``log p(y − h(x))``."""
-    return type(model).measurement_log_prob is StateSpaceModel.measurement_log_prob
+    """Whether ``model.measurement_log_prob`` is the base class's ``log p(y − h(x))`` with
+    the noise module at every step (no ``measurement_cov`` of a subclass to follow)."""
+    return (type(model).measurement_log_prob is StateSpaceModel.measurement_log_prob
+            and not model._varying_noise("measurement_cov"))  # fmt: skip
 
 
 def _moments(

@@ -21,11 +21,15 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import (
+    _check_us,
     as_tensor,
+    check_batch_shapes,
     check_finite,
     check_positive_definite,
+    check_positive_int,
     check_square,
     check_vector_last,
+    model_dtype_device,
 )
 from .linalg import matvec, rowwise
 from .noise import Gaussian, NoiseModel, register_tensor
@@ -87,9 +91,14 @@ class StateSpaceModel(nn.Module):
 
     Jacobians default to ``torch.func`` automatic differentiation; override
     ``transition_jacobian``/``observation_jacobian`` with closed forms when known.
-    Time-varying noise: override ``process_cov(k)``/``measurement_cov(k)`` (and the
-    sampling/log-density hooks) and set ``time_varying = True`` so filters do not cache
-    them across steps.
+    Time-varying noise: override ``process_cov(k)``/``measurement_cov(k)`` and set
+    ``time_varying = True`` so filters do not cache them across steps. With Gaussian noise
+    that is all: the default sampling and density hooks then draw from and evaluate
+    ``N(loc, process_cov(k))``/``N(loc, measurement_cov(k))`` (:meth:`process_noise_at`,
+    :meth:`measurement_noise_at`), so simulation, the particle filters and the Gaussian
+    filters see one model. A non-Gaussian noise's hooks (``sample_transition``,
+    ``sample_measurement``, ``measurement_log_prob``) are the subclass's to override too:
+    its ``*_cov`` methods are read by the Gaussian filters only.
     """
 
     dim_x: int
@@ -128,6 +137,30 @@ class StateSpaceModel(nn.Module):
         """Covariance ``R_k`` of ``v_k`` ``[..., dy, dy]``."""
         return self.measurement_noise.cov
 
+    def process_noise_at(self, k: int) -> NoiseModel:
+        """The noise model of ``w_k``: ``process_noise``, or a Gaussian of covariance
+        ``process_cov(k)`` about its mean where a subclass overrides :meth:`process_cov` and
+        the noise is Gaussian (time-varying noise, one override)."""
+        return self._noise_at("process_noise", "process_cov", k)
+
+    def measurement_noise_at(self, k: int) -> NoiseModel:
+        """The noise model of ``v_k``: ``measurement_noise``, or a Gaussian of covariance
+        ``measurement_cov(k)`` about its mean where a subclass overrides
+        :meth:`measurement_cov` and the noise is Gaussian."""
+        return self._noise_at("measurement_noise", "measurement_cov", k)
+
+    def _varying_noise(self, cov_method: str) -> bool:
+        """Whether this model's class overrides ``cov_method`` (``"process_cov"`` or
+        ``"measurement_cov"``), i.e. its noise may differ from the noise module's at
+        some step: fast paths that read the noise module directly step aside."""
+        return getattr(type(self), cov_method) is not getattr(StateSpaceModel, cov_method)
+
+    def _noise_at(self, noise_name: str, cov_method: str, k: int) -> NoiseModel:
+        noise = getattr(self, noise_name)
+        if not (isinstance(noise, Gaussian) and self._varying_noise(cov_method)):
+            return noise
+        return Gaussian(noise.loc, getattr(self, cov_method)(k))
+
     def sample_initial(self, sample_shape=(), generator: torch.Generator | None = None) -> Tensor:
         """Draw ``x_0`` ``[*sample_shape, dx]``."""
         return self.initial.sample(sample_shape, generator)
@@ -135,16 +168,17 @@ class StateSpaceModel(nn.Module):
     def sample_transition(self, x: Tensor, u: Tensor | None, k: int, generator=None) -> Tensor:
         """Draw ``x_{k+1} ~ p(· | x_k)`` for ``x [..., dx]`` → ``[..., dx]``."""
         mean = self.transition(x, u, k)
-        perturb = getattr(self.process_noise, "perturb", None)
+        process_noise = self.process_noise_at(k)
+        perturb = getattr(process_noise, "perturb", None)
         if perturb is not None:  # fused mean + noise where the noise model offers it
             return perturb(mean, generator)
-        noise = self.process_noise.sample(mean.shape[:-1], generator)
+        noise = process_noise.sample(mean.shape[:-1], generator)
         return mean + noise.reshape(mean.shape)
 
     def sample_measurement(self, x: Tensor, k: int, generator=None) -> Tensor:
         """Draw ``y_k ~ p(· | x_k)`` for ``x [..., dx]`` → ``[..., dy]``."""
         mean = self.observe(x, k)
-        noise = self.measurement_noise.sample(mean.shape[:-1], generator)
+        noise = self.measurement_noise_at(k).sample(mean.shape[:-1], generator)
         return mean + noise.reshape(mean.shape)
 
     def measurement_residual(self, y: Tensor, y_hat: Tensor) -> Tensor:
@@ -162,7 +196,7 @@ class StateSpaceModel(nn.Module):
 
         ``mask [..., dy]`` marks received entries; unreceived ones are marginalised out.
         """
-        return self.measurement_noise.log_prob(
+        return self.measurement_noise_at(k).log_prob(
             self.measurement_residual(y, self.observe(x, k)), mask=mask
         )
 
@@ -180,9 +214,13 @@ class StateSpaceModel(nn.Module):
         Returns ``(xs [*batch, T, dx], ys [*batch, T, dy], x0 [*batch, dx])`` where
         ``xs[..., t, :] = x_{t+1}`` is the state measured by ``ys[..., t, :]``.
         """
+        num_steps = check_positive_int(num_steps, "num_steps")
         batch_shape = torch.Size(
             batch_shape if not isinstance(batch_shape, int) else (batch_shape,)
         )
+        if us is not None:  # ignored before on a model without input; a short one raised late
+            dtype, device = model_dtype_device(self)
+            us = _check_us(self, us, batch_shape, num_steps, dtype, device)
         x = self.sample_initial(batch_shape, generator)
         x0 = x
         xs, ys = [], []
@@ -211,7 +249,8 @@ class LinearGaussianModel(StateSpaceModel):
     learnable parameters; other tensors are buffers (and keep their autograd history).
     Time-varying linear models override
     ``transition_matrix(k)``, ``observation_matrix(k)``, ``control_matrix(k)`` and the
-    covariance methods, and set ``time_varying = True``.
+    covariance methods (``process_cov(k)``, ``measurement_cov(k)``: simulation and the
+    particle filters follow them too), and set ``time_varying = True``.
     """
 
     def __init__(self, F, H, Q, R, m0, P0, B=None):
@@ -247,6 +286,9 @@ class LinearGaussianModel(StateSpaceModel):
             register_tensor(self, "B", B)
         else:
             self.B = None
+        check_batch_shapes(F=F.shape[:-2], H=H.shape[:-2], Q=Q.shape[:-2], R=R.shape[:-2],
+                           m0=m0.shape[:-1], P0=P0.shape[:-2],
+                           **({} if B is None else {"B": B.shape[:-2]}))  # fmt: skip
         self.initial = Gaussian(m0, P0)
         self.process_noise = Gaussian(torch.zeros(dx, dtype=dtype, device=device), Q)
         self.measurement_noise = Gaussian(torch.zeros(dy, dtype=dtype, device=device), R)
@@ -347,6 +389,7 @@ class NonlinearGaussianModel(StateSpaceModel):
             )
         check_finite(m0, "m0")
         check_positive_definite(P0, "P0", dx)
+        check_batch_shapes(Q=Q.shape[:-2], R=R.shape[:-2], m0=m0.shape[:-1], P0=P0.shape[:-2])
         if isinstance(dim_u, bool) or not isinstance(dim_u, numbers.Integral) or dim_u < 0:
             raise ValueError(f"dim_u must be an integer >= 0 (0: no input); got {dim_u!r}")
         self.dim_x, self.dim_y, self.dim_u = dx, dy, int(dim_u)
@@ -380,6 +423,11 @@ class NonlinearGaussianModel(StateSpaceModel):
                 raise ValueError(
                     f"{name} returns {tuple(out.shape)} for x [1, {self.dim_x}] at the prior mean; "
                     f"{size} is {want}×{want}, so it must return [..., {want}]"
+                )
+            if isinstance(out, Tensor) and out.dtype != x.dtype:  # the EKF failed in torch
+                raise ValueError(
+                    f"{name} returns {out.dtype} for x of the model's {x.dtype}: return the "
+                    "dtype of x (e.g. build constants with x.new_tensor or dtype=x.dtype)"
                 )
 
     def transition(self, x, u, k):

@@ -40,7 +40,14 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from .._checks import check_carry_tensor
+from .._checks import (
+    as_tensor,
+    check_carry_tensor,
+    check_finite,
+    check_finite_number,
+    check_rate,
+    check_vector_last,
+)
 from ..estimator import Estimator, EstimatorOutput
 from ..gaussian import joseph_covariance, kalman_gain, predict_covariance
 from ..linalg import gaussian_log_prob_chol, masked_measurement, matvec, symmetrize
@@ -173,10 +180,19 @@ def adaptive_kalman_init(
     dx, da = model.dim_x, model.dim_u
     mean = m0.expand(batch + (dx,))
     cov = p0.expand(batch + (dx, dx))
-    attack = (
-        m0.new_zeros(batch + (da,)) if attack0 is None else attack0.to(m0).expand(batch + (da,))
-    )
-    s0 = float(attack_cov0) * torch.eye(da, dtype=m0.dtype, device=m0.device)
+    omega = check_finite_number(attack_cov0, "attack_cov0", nonnegative=True)
+    if attack0 is None:
+        attack = m0.new_zeros(batch + (da,))
+    else:
+        attack0 = as_tensor(attack0, "attack0", dtype=m0.dtype, device=m0.device)
+        check_vector_last(attack0, "attack0", da)  # θ has the input's dimension
+        check_finite(attack0, "attack0")
+        try:
+            attack = attack0.expand(batch + (da,))
+        except RuntimeError:
+            raise ValueError(f"attack0 {tuple(attack0.shape)} must be [{da}] or one per run "
+                             f"[*{tuple(batch)}, {da}]") from None  # fmt: skip
+    s0 = omega * torch.eye(da, dtype=m0.dtype, device=m0.device)
     sens = m0.new_zeros(batch + (dx, da))
     return AdaptiveKFState(mean, cov, attack, s0.expand(batch + (da, da)), sens, 0, model)
 
@@ -210,12 +226,12 @@ class AdaptiveKalmanFilter(Estimator):
         false_alarm_rate: float = 0.01,
     ):
         self.forgetting = _check_forgetting(forgetting)
-        if not float(attack_cov0) >= 0:
-            raise ValueError(f"attack_cov0 must be >= 0; got {attack_cov0!r}")
-        if not 0.0 < float(false_alarm_rate) < 1.0:
-            raise ValueError(f"false_alarm_rate must lie in (0, 1); got {false_alarm_rate!r}")
-        self.attack_cov0, self.attack0 = float(attack_cov0), attack0
-        self.false_alarm_rate = float(false_alarm_rate)
+        attack_cov0 = check_finite_number(attack_cov0, "attack_cov0", nonnegative=True)
+        if attack0 is not None:  # its width is checked against the model at init
+            attack0 = as_tensor(attack0, "attack0")
+            check_finite(attack0, "attack0")
+        self.attack_cov0, self.attack0 = attack_cov0, attack0
+        self.false_alarm_rate = check_rate(false_alarm_rate, "false_alarm_rate")
 
     def _init(self, model, batch_shape, generators):
         if model.dim_u < 1:

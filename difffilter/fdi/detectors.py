@@ -26,7 +26,13 @@ import numbers
 import torch
 from torch import Tensor
 
-from .._checks import check_finite_number, check_mask, check_square, check_symmetric
+from .._checks import (
+    check_finite_number,
+    check_mask,
+    check_rate,
+    check_square,
+    check_symmetric,
+)
 from ..linalg import mahalanobis_sq_chol, safe_cholesky
 
 __all__ = [
@@ -76,6 +82,14 @@ def normalized_innovation_squared(innovations: Tensor, innovation_covs: Tensor) 
     _check_statistic(innovation_covs, "innovation_covs")
     check_square(innovation_covs, "innovation_covs", innovations.shape[-1])
     check_symmetric(innovation_covs, "innovation_covs")
+    try:
+        torch.broadcast_shapes(innovations.shape[:-1], innovation_covs.shape[:-2])
+    except RuntimeError:
+        raise ValueError(
+            f"innovations {tuple(innovations.shape)} [..., T, m] and innovation_covs "
+            f"{tuple(innovation_covs.shape)} [..., T, m, m] must share their leading dimensions "
+            "(or broadcast)"
+        ) from None
     return _nis(innovations, innovation_covs)
 
 
@@ -120,8 +134,7 @@ class ChiSquareDetector:
         for name, value in (("dim", dim), ("window", window)):
             if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
-        if not 0.0 < false_alarm_rate < 1.0:  # also rejects NaN
-            raise ValueError(f"false_alarm_rate must lie in (0, 1); got {false_alarm_rate}")
+        false_alarm_rate = check_rate(false_alarm_rate, "false_alarm_rate")  # rejects NaN, "0.01"
         self.dim, self.false_alarm_rate, self.window = dim, false_alarm_rate, window
 
     @property

@@ -23,10 +23,12 @@ pick a different ancestor.
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 from torch import Tensor
 
+from .._checks import check_finite
 from ..estimator import Detection, EstimatorOutput
 from ..noise import Gaussian
 from ..particle import _ess, particle_init
@@ -61,10 +63,11 @@ class FusedModifiedPF:
             )
         if (
             isinstance(num_particles, bool)
-            or not isinstance(num_particles, int)
+            or not isinstance(num_particles, numbers.Integral)  # numpy's integers too
             or num_particles < 2
         ):
             raise ValueError(f"num_particles must be an integer >= 2; got {num_particles!r}")
+        num_particles = int(num_particles)
         if not float(eta) >= 0:
             raise ValueError(f"eta must be a number >= 0; got {eta!r}")
         if not 0.0 <= float(zeta) < 1.0:
@@ -170,6 +173,9 @@ class FusedModifiedPF:
             raise ValueError(
                 f"ys must be [B, T, dy] and gamma_hat the same shape; got {tuple(ys.shape)}, {tuple(gamma_hat.shape)}"
             )
+        # (a NaN made every weight NaN and the resampler an index of −2⁶³)
+        check_finite(ys, "ys")
+        check_finite(gamma_hat, "gamma_hat")
         n, (B, T, _) = self.n, ys.shape
         x, uniforms, resample = self._start(B, T, generator, resample_generator,
                                             initial_particles)  # fmt: skip

@@ -30,6 +30,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
+from .._checks import model_batch_shape
 from ..estimator import Estimator, EstimatorOutput
 from ..extended import ExtendedKalmanFilter
 from ..kalman import GaussianFilter
@@ -116,7 +117,9 @@ class GatedFilter(Estimator):
             )
         inner = self.filter._init(model, batch_shape, generators)
         dtype, device = inner.mean.dtype, inner.mean.device
-        return GatedState(inner, self.detector.init(batch_shape, dtype=dtype, device=device), model)
+        # one window per run: a model with a parameter set per run makes runs of unbatched ys
+        runs = torch.broadcast_shapes(torch.Size(batch_shape), model_batch_shape(model))
+        return GatedState(inner, self.detector.init(runs, dtype=dtype, device=device), model)
 
     def _check_carry(self, carry):
         self.filter._check_carry(carry.inner)

@@ -140,6 +140,9 @@ class ParticleView(StateSpaceModel):
     def process_cov(self, k):
         return self.base.process_cov(k)
 
+    def _varying_noise(self, cov_method):
+        return self.base._varying_noise(cov_method)
+
 
 def information_form_applies(model: StateSpaceModel) -> bool:
     """Whether ``model`` has the time-invariant, diagonal ``R`` the information form needs."""

@@ -58,6 +58,9 @@ class BiasDeception:
         self.rho = rho
 
     def __call__(self, model, y: Tensor, particles: Tensor, k: int, mask) -> Tensor:
+        if self.rho.shape[-1] != model.dim_y:  # one entry would broadcast to every channel
+            raise ValueError(f"rho must have shape [..., {model.dim_y}] (the model's dim_y); "
+                             f"got {tuple(self.rho.shape)}")  # fmt: skip
         rho = self.rho.to(dtype=y.dtype, device=y.device)
         m = None if mask is None else mask.unsqueeze(-2)
         return model.measurement_log_prob((y - rho).unsqueeze(-2), particles, k, m)
@@ -79,6 +82,10 @@ class ReplacementDeception:
         self._last = None
 
     def __call__(self, model, y: Tensor, particles: Tensor, k: int, mask) -> Tensor:
+        dim = getattr(self.density, "dim", None)
+        if dim is not None and dim != model.dim_y:
+            raise ValueError(f"density has dimension {dim}; the model's measurements have "
+                             f"dim_y = {model.dim_y}: they must be the same")  # fmt: skip
         return self.log_density(y, mask).unsqueeze(-1).expand(particles.shape[:-1])
 
     def log_density(self, y: Tensor, mask=None) -> Tensor:

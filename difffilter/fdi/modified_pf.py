@@ -351,6 +351,16 @@ class ModifiedParticleFilter(ParticleFilter):
         return carry, out._replace(attack=attack, score=beta, alarm=alarm, threshold=zeta, extras=x)
 
     def _run(self, carry, ys, us, mask):
+        gamma_hat = self.gamma_hat
+        if isinstance(gamma_hat, Tensor):  # one table for all runs, or one per run
+            try:
+                torch.broadcast_shapes(gamma_hat.shape[:-2], ys.shape[:-2])
+            except RuntimeError:
+                raise ValueError(
+                    f"gamma_hat's runs {tuple(gamma_hat.shape[:-2])} do not broadcast with ys' "
+                    f"{tuple(ys.shape[:-2])}: give gamma_hat [T, dy] for all runs or one per "
+                    "run"
+                ) from None
         if not self.fused:
             return None
         if us is not None or mask is not None:

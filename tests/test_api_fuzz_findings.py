@@ -1,0 +1,204 @@
+"""What an API fuzzing trial found, each checked: inputs that gave silently wrong numbers
+now raise or compute the right ones, and inputs that crashed deep in torch (a bare
+RuntimeError, IndexError or AttributeError) get an error naming the argument."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import difffilter as df
+from difffilter import fdi, metrics
+from difffilter.extended import SigmaPoints
+from difffilter.loop import closed_loop
+from difffilter.noise import UniformBox
+
+F64 = torch.float64
+EYE = torch.eye(2, dtype=F64)
+H = torch.tensor([[1.0, 0.0]], dtype=F64)
+
+
+def _model(F=None, Q=None, B=None):
+    F = 0.9 * EYE if F is None else F
+    Q = 0.1 * EYE if Q is None else Q
+    return df.LinearGaussianModel(F, H, Q, torch.eye(1, dtype=F64), torch.zeros(2, dtype=F64),
+                                  EYE, B=B)  # fmt: skip
+
+
+def _per_run_model():
+    g = torch.Generator().manual_seed(0)
+    return _model(F=0.9 * EYE + 0.05 * torch.randn(3, 2, 2, generator=g, dtype=F64))
+
+
+def _data(*shape, seed=0):
+    return torch.randn(*shape, generator=torch.Generator().manual_seed(seed), dtype=F64)
+
+
+# -- silently wrong numbers before ------------------------------------------------------
+
+
+def test_a_replacement_density_of_another_dimension_is_refused():
+    """A 3-entry box on a 1-sensor model broadcast the measurement to 3 entries: attack
+    probability 0.081 where the right box gives 0.263."""
+    ys = _data(4, 10, 1)
+    box = UniformBox(-torch.ones(3, dtype=F64), torch.ones(3, dtype=F64))
+    with pytest.raises(ValueError, match=r"shape \[\.\.\., 3\]"):
+        box.log_prob(torch.zeros(1, dtype=F64))
+    lik = fdi.DeceptionMixtureLikelihood(0.2, fdi.ReplacementDeception(box))
+    with pytest.raises(ValueError, match="dimension 3|shape"):
+        fdi.mixture_likelihood_particle_filter(_model(), ys, num_particles=50, likelihood=lik)
+
+
+def test_a_bias_deception_of_another_width_is_refused():
+    ys = _data(4, 10, 1)
+    lik = fdi.DeceptionMixtureLikelihood(0.2, fdi.BiasDeception(torch.zeros(3, dtype=F64)))
+    with pytest.raises(ValueError, match=r"rho must have shape \[\.\.\., 1\]"):
+        fdi.mixture_likelihood_particle_filter(_model(), ys, num_particles=50, likelihood=lik)
+
+
+def test_the_adaptive_filters_initial_attack_is_checked():
+    """attack0 = NaN gave NaN means and scores and no alarm, without a word."""
+    model = _model(B=torch.tensor([[0.0], [0.1]], dtype=F64))
+    ys = _data(3, 10, 1)
+    with pytest.raises(ValueError, match="attack0 contains NaN"):
+        fdi.adaptive_kalman_filter(model, ys, attack0=torch.tensor([float("nan")], dtype=F64))
+    with pytest.raises(ValueError, match=r"attack0 must have shape \[\.\.\., 1\]"):
+        fdi.adaptive_kalman_filter(model, ys, attack0=torch.zeros(3, dtype=F64))
+    with pytest.raises(ValueError, match="attack_cov0 must be a finite number"):
+        fdi.adaptive_kalman_filter(model, ys, attack_cov0=float("inf"))
+    # a list is a vector like any other argument's
+    listed = fdi.adaptive_kalman_filter(model, ys, attack0=[0.5])
+    tensor = fdi.adaptive_kalman_filter(model, ys, attack0=torch.tensor([0.5], dtype=F64))
+    torch.testing.assert_close(listed.means, tensor.means)
+
+
+def test_nan_scores_are_refused_by_the_roc():
+    g = torch.Generator().manual_seed(0)
+    scores, labels = torch.randn(3, 17, generator=g), torch.rand(3, 17, generator=g) > 0.5
+    scores[0, :5] = float("nan")
+    with pytest.raises(ValueError, match="nan_as_lowest"):
+        metrics.roc_auc(scores, labels)
+    with pytest.raises(ValueError, match="nan_as_lowest"):
+        metrics.roc_curve(scores, labels)
+    # marked invalid, or mapped, they are fine
+    valid = ~torch.isnan(scores)
+    assert 0 <= metrics.roc_auc(scores, labels, valid) <= 1
+    assert 0 <= metrics.roc_auc(metrics.nan_as_lowest(scores), labels) <= 1
+
+
+# -- per-run models and unbatched measurements -------------------------------------------
+
+
+def test_a_gated_filter_of_a_per_run_model_on_unbatched_measurements_windows_each_run():
+    model, ys = _per_run_model(), _data(8, 1)
+    det = fdi.ChiSquareDetector(1, 0.05, window=3)
+    one = fdi.gated_gaussian_filter(model, ys, detector=det, filter=df.KalmanFilter())
+    each = fdi.gated_gaussian_filter(model, ys.expand(3, 8, 1), detector=det,
+                                     filter=df.KalmanFilter())  # fmt: skip
+    torch.testing.assert_close(one.means, each.means)
+    torch.testing.assert_close(one.detection.scores, each.detection.scores)
+
+
+def test_an_online_carry_of_a_per_run_model_takes_one_measurement_per_run():
+    model, kf = _per_run_model(), df.KalmanFilter()
+    carry = kf.init(model, ())
+    y = torch.tensor([0.7], dtype=F64)
+    _, shared = kf.step(carry, y)
+    _, per_run = kf.step(carry, y.expand(3, 1))
+    torch.testing.assert_close(per_run.mean, shared.mean)
+    assert per_run.mean.shape == (3, 2)
+
+
+def test_model_parameters_of_disagreeing_batch_shapes_are_refused_at_construction():
+    with pytest.raises(ValueError, match=r"F \(3,\).*Q \(4,\)"):
+        _model(F=EYE.expand(3, 2, 2), Q=0.1 * EYE.expand(4, 2, 2))
+    with pytest.raises(ValueError, match="batch shape"):
+        df.NonlinearGaussianModel(lambda x: x, lambda x: x[..., :1], 0.1 * EYE.expand(3, 2, 2),
+                                  torch.eye(1, dtype=F64).expand(4, 1, 1),
+                                  torch.zeros(2, dtype=F64), EYE)  # fmt: skip
+    _model(F=EYE.expand(3, 2, 2), Q=0.1 * EYE.expand(1, 2, 2))  # broadcasting sets are fine
+
+
+@pytest.mark.parametrize("method", ["sequential", "parallel"])
+def test_the_kalman_filter_on_no_runs_returns_empty_results(method):
+    out = df.kalman_filter(_model(), torch.zeros(0, 6, 1, dtype=F64), method=method)
+    assert out.means.shape == (0, 6, 2) and out.log_likelihood.shape == (0,)
+
+
+def test_a_modified_pf_table_for_other_runs_is_named():
+    ys = _data(12, 15, 1)
+    det = fdi.poa_detector_for(_model(), gamma_min=2.0, p_l=0.2, num_particles=50)
+    with pytest.raises(ValueError, match=r"gamma_hat's runs \(5,\)"):
+        fdi.modified_particle_filter(_model(), ys, num_particles=50, detector=det,
+                                     gamma_hat=torch.zeros(5, 15, 1, dtype=F64))  # fmt: skip
+
+
+def test_a_particle_filter_started_from_a_state_of_other_runs_is_named():
+    state = df.particle_init(_model(), 50, (3,), torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match=r"carry holds runs \(3,\).*\(2,\)"):
+        df.particle_filter(_model(), _data(2, 6, 1), num_particles=50, initial_state=state)
+
+
+# -- arguments -------------------------------------------------------------------------------
+
+
+def test_simulate_checks_its_steps_and_inputs():
+    model = _model()
+    for steps in (0, -1):
+        with pytest.raises(ValueError, match="num_steps must be a positive integer"):
+            model.simulate(steps, (3,))
+    with pytest.raises(ValueError, match="no input"):  # it was silently ignored
+        model.simulate(5, (3,), us=torch.ones(3, 5, 1, dtype=F64))
+    with_input = _model(B=torch.tensor([[0.0], [0.1]], dtype=F64))
+    with pytest.raises(ValueError, match="T = 5 steps"):
+        with_input.simulate(5, (3,), us=torch.ones(3, 4, 1, dtype=F64))
+
+
+def test_non_finite_or_non_numeric_settings_are_named():
+    for kwargs in ({"beta": float("nan")}, {"kappa": float("inf")}, {"alpha": float("inf")}):
+        with pytest.raises(ValueError, match=next(iter(kwargs))):
+            SigmaPoints(**kwargs)
+    with pytest.raises(TypeError, match="alpha must be a real number"):
+        SigmaPoints(alpha="1")
+    with pytest.raises(ValueError, match="false_alarm_rate"):
+        fdi.ChiSquareDetector(1, "0.01")
+
+
+def test_the_fused_modified_pf_names_nan_data_and_takes_numpy_counts():
+    model, ys = _model(), _data(4, 10, 1)
+    pf = fdi.FusedModifiedPF(model, num_particles=np.int64(50), eta=1.0, zeta=0.2)
+    assert pf.n == 50 and type(pf.n) is int
+    with pytest.raises(ValueError, match="ys contains NaN"):
+        pf.run(torch.full_like(ys, float("nan")), torch.zeros_like(ys),
+               generator=torch.Generator().manual_seed(0))  # fmt: skip
+
+
+def test_a_transition_of_another_dtype_is_named_at_construction():
+    def f(x):  # a float64 model whose transition returns float32 (the EKF failed in torch)
+        return torch.stack([x[..., 0] + 0.1 * x[..., 1], x[..., 1]], -1).float()
+
+    with pytest.raises(ValueError, match="transition returns torch.float32"):
+        df.NonlinearGaussianModel(f, lambda x: x, 0.1 * EYE, 0.1 * EYE,
+                                  torch.zeros(2, dtype=F64), EYE)  # fmt: skip
+
+
+def test_a_closed_loop_without_noise_is_named():
+    with pytest.raises(TypeError, match="noise must be a DrawnNoise"):
+        closed_loop(_model(), 5, noise=None, x0=torch.zeros(3, 2, dtype=F64),
+                    estimator=df.KalmanFilter())  # fmt: skip
+
+
+def test_metrics_of_mismatched_shapes_are_named():
+    s, y = torch.randn(3, 17), torch.rand(3, 17) > 0.5
+    with pytest.raises(ValueError, match=r"labels \(3, 5\)"):
+        metrics.roc_auc(s, y[:, :5])
+    with pytest.raises(ValueError, match=r"attacked \(3, 5\)"):
+        metrics.detection_rates(s > 0, y[:, :5])
+    with pytest.raises(ValueError, match=r"attacked \(3, 5\)"):
+        metrics.detection_delay(s > 0, y[:, :5])
+    with pytest.raises(ValueError, match="leading dimensions"):
+        fdi.normalized_innovation_squared(torch.zeros(3, 5, 1, dtype=F64),
+                                          torch.ones(4, 5, 1, 1, dtype=F64))  # fmt: skip
+    # labels for every run at once still broadcast
+    metrics.detection_rates(s > 0, y[:1])
