@@ -280,8 +280,10 @@ def _cell(m: dict, free: dict) -> dict[str, Any]:
 
 
 def _worst_cases(cells) -> dict[str, dict[str, Any]]:
+    """Each estimator's worst value of each metric over the threats, with the threat; of
+    threats tied at it, the first by name (not by the order ``--threats`` listed them)."""
     worst: dict[str, dict[str, Any]] = {}
-    for threat, row in cells.items():
+    for threat, row in sorted(cells.items()):
         for est, cell in row.items():
             w = worst.setdefault(est, {})
             for key in LOWER_IS_WORSE + HIGHER_IS_WORSE:

@@ -26,7 +26,8 @@ F64 = torch.float64
 
 def test_robustness_worst_case_by_hand():
     """Lowest TPR and AUC, highest state-error ratio and impact over the threats; a
-    non-finite value is no worst case; a tie keeps the first threat."""
+    non-finite value is no worst case; a tie names the first threat by name, whatever the
+    order the threats were listed in."""
     from difffilter.eval.robustness import _cell, _worst_cases
 
     cell = _cell({"state_rmse": 3.0, "tpr_at_far": 0.5, "impact": 1.0}, {"state_rmse": 2.0})
@@ -41,6 +42,8 @@ def test_robustness_worst_case_by_hand():
     assert (worst["auc"], worst["auc_threat"]) == (0.7, "b")
     assert (worst["state_error_ratio"], worst["state_error_ratio_threat"]) == (3.0, "c")
     assert (worst["tpr_at_far"], worst["tpr_at_far_threat"]) == (0.2, "a")
+    listed_otherwise = _worst_cases(dict(reversed(cells.items())))["kf"]
+    assert listed_otherwise == worst
 
 
 def test_robustness_takes_the_runs_it_is_given(monkeypatch):
