@@ -46,7 +46,7 @@ from .estimator import Generators
 from .noise import Gaussian
 from .particle import ParticleState, _ess
 from .results import StepOutput
-from .ssm import StateSpaceModel
+from .ssm import StateSpaceModel, wrapped_spread
 
 __all__ = ["density", "host_step"]
 
@@ -159,8 +159,13 @@ def _predictive(model, y, y_np, k: int, obs, pred_w, plain: bool):
     """``(innovation [dy], S [dy, dy])`` as torch tensors from the predicted measurements
     ``obs [N, dy]`` under the predictive weights ``pred_w [N]``:
     ``ŷ = Σᵢ wᵢ h_i``, ``y − ŷ``, ``S = sym(Σᵢ wᵢ (h_i − ŷ)(h_i − ŷ)ᵀ + R)``."""
-    y_hat = pred_w @ obs
-    dev = obs - y_hat
+    if plain:
+        y_hat = pred_w @ obs
+        dev = obs - y_hat
+    else:  # angles: averaged as residuals about one particle's (the torch step's way)
+        # (a copy of the weights: equal ones are a shared read-only array)
+        y_hat_t, dev_t = wrapped_spread(model, torch.from_numpy(obs), torch.tensor(pred_w))
+        y_hat, dev = y_hat_t.numpy(), dev_t.numpy()
     y_cov = (dev.T * pred_w) @ dev
     y_cov = y_cov + model.measurement_cov(k + 1).detach().numpy()  # (a learnable R: its values)
     if plain:

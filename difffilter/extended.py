@@ -32,7 +32,7 @@ from .kalman import GaussianFilter, Prediction
 from .linalg import masked_measurement, outer, safe_cholesky, symmetrize
 from .loop import open_loop
 from .results import FilterResult, GaussianState, StepOutput
-from .ssm import StateSpaceModel
+from .ssm import StateSpaceModel, plain_residual, wrapped_spread
 
 __all__ = [
     "ExtendedKalmanFilter",
@@ -74,7 +74,19 @@ class ExtendedKalmanFilter(GaussianFilter):
         return model.measurement_residual(y, model.observe(prediction.mean, k))
 
     def update(self, carry, prediction, y, mask, *, evidence=True, moments=None):
-        return self._moments_update(carry, prediction, y, mask, evidence, moments)
+        try:
+            return self._moments_update(carry, prediction, y, mask, evidence, moments)
+        except ValueError as exc:  # S failed: name the Jacobian where it is the cause
+            k = carry.k + 1
+            H = carry.model.observation_jacobian(prediction.mean, k)
+            if bool(torch.isfinite(H).all()):
+                raise
+            raise ValueError(
+                f"the observation Jacobian ∂h/∂x at step {k} holds NaN or inf at the predicted "
+                "mean: h is not differentiable there (e.g. a range or bearing measured at the "
+                "sensor's own position), so the EKF cannot linearise it (the UKF or a "
+                "particle filter can run)"
+            ) from exc
 
 
 def extended_kalman_step(
@@ -187,8 +199,11 @@ class UnscentedKalmanFilter(GaussianFilter):
         wm, wc, scale = sp.weights(pred_mean.shape[-1], pred_mean.dtype, pred_mean.device)
         Xp = sp.points(pred_mean, pred_cov, scale)
         Y = model.observe(Xp, k)  # [..., 2n+1, dy]
-        y_hat = (wm[:, None] * Y).sum(-2)
-        dy_pts = Y - y_hat.unsqueeze(-2)
+        if plain_residual(model):
+            y_hat = (wm[:, None] * Y).sum(-2)
+            dy_pts = Y - y_hat.unsqueeze(-2)
+        else:  # angles: averaged as residuals about one point, not as raw numbers
+            y_hat, dy_pts = wrapped_spread(model, Y, wm)
         dx_pts = Xp - pred_mean.unsqueeze(-2)
         residual = model.measurement_residual(y, y_hat)
         if mask is not None:

@@ -344,6 +344,8 @@ def _forward_traced(model, ys: Tensor, us: Tensor | None) -> bool:
     """Whether forward-mode AD or a ``torch.func`` transform traces this call
     (:func:`~difffilter.linalg.under_transform`): the shared-covariance path's no-gradient
     branch writes into preallocated tensors, which forward mode cannot follow."""
+    if not under_transform():  # no transform, no dual level: the model is not looked at
+        return False
     return under_transform(
         ys, us, model.transition_matrix(0), model.observation_matrix(1), model.control_matrix(0),
         model.process_cov(0), model.measurement_cov(1), model.initial.mean, model.initial.cov,

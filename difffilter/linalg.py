@@ -38,8 +38,12 @@ def under_transform(*tensors: Tensor | None) -> bool:
     or is wrapped by a ``torch.func`` transform (``jvp``, ``jacfwd``, ``vmap``, ``grad``).
     Such tensors report ``requires_grad=False``, so a path chosen for "no gradient" would
     write them into preallocated outputs (``out=``, in place), which forward mode refuses:
-    the whole-sequence Kalman filter steps through instead."""
+    the whole-sequence Kalman filter steps through instead. Without tensors: whether a
+    transform or a dual level is active at all (then none of them can be traced)."""
     level = torch.autograd.forward_ad._current_level
+    active = level >= 0 or torch._C._functorch.maybe_current_level() is not None
+    if not active or not tensors:
+        return active
     for t in tensors:
         if not isinstance(t, Tensor):
             continue

@@ -232,6 +232,33 @@ class Gaussian(NoiseModel):
         out = matvec(L, eps)
         return out if self._zero_loc() else self.loc + out
 
+    def has_batch(self) -> bool:
+        """Whether the mean or the covariance has batch dimensions (one per run)."""
+        src = _registered(self, "_cov" if self._given == "cov" else "_scale_tril")
+        return src.dim() > 2 or _registered(self, "loc").dim() > 1
+
+    def draw_like(self, shape, generator: torch.Generator | None = None) -> Tensor:
+        """Draws ``[*shape]`` (``shape = [..., d]``), independent at every entry of
+        ``shape[:-1]``, whose trailing dimensions take this distribution's batch (one
+        covariance per run: ``[B, d, d]`` for draws ``[B, d]``): ``μ + L ε``. ``sample``
+        would prepend its shape to the batch instead."""
+        shape = torch.Size(shape)
+        L = self.scale_tril
+        batch = torch.broadcast_shapes(self.loc.shape[:-1], L.shape[:-2])
+        try:
+            fits = torch.broadcast_shapes(shape[:-1], batch) == shape[:-1]
+        except RuntimeError:
+            fits = False
+        if not fits or shape[-1:] != (self.dim,):
+            raise ValueError(
+                f"this Gaussian has a covariance per run (batch {tuple(batch)}), which does not "
+                f"fit draws of shape {tuple(shape)}: its batch must match their trailing batch "
+                "dimensions (a particle filter takes one model for all runs)"
+            )
+        eps = torch.randn(shape, generator=generator, dtype=L.dtype, device=L.device)
+        out = matvec(L, eps)
+        return out if self._zero_loc() else out + self.loc
+
     def perturb(self, value: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """``value + s`` with ``s`` drawn from this distribution: ``value [..., d]`` → ``[..., d]``.
 
@@ -241,6 +268,8 @@ class Gaussian(NoiseModel):
         """
         L, diag = self._factor()
         loc = _registered(self, "loc")
+        if self.has_batch():  # a covariance per run: one draw per entry of value
+            return value + self.draw_like(value.shape, generator)
         if diag is None or diag.dim() != 1 or loc.dim() != 1 or not self._zero_loc():
             return value + self.sample(value.shape[:-1], generator).reshape(value.shape)
         eps = torch.randn(value.shape, generator=generator, dtype=L.dtype, device=L.device)

@@ -64,7 +64,7 @@ from .loop import open_loop
 from .noise import Gaussian
 from .resampling import Resampler, Systematic, effective_sample_size, keep_unmarked_rows
 from .results import ParticleFilterResult, StepOutput
-from .ssm import StateSpaceModel
+from .ssm import StateSpaceModel, plain_residual, wrapped_spread
 
 # the resampler base class's hook: uniform log-weights −log N after resampling
 _UNIFORM = Resampler._new_log_weights
@@ -742,8 +742,11 @@ def _normalised(joint: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 def _predictive(model, y, mask, k, obs, pred_w, prior_lw, pred_mean) -> Predictive:
     """The step's :class:`Predictive` from the predicted measurements ``obs [..., N, dy]``."""
-    y_hat = (pred_w @ obs).squeeze(-2)
-    obs_dev = rowwise(torch.sub, obs, y_hat.unsqueeze(-2))
+    if plain_residual(model):
+        y_hat = (pred_w @ obs).squeeze(-2)
+        obs_dev = rowwise(torch.sub, obs, y_hat.unsqueeze(-2))
+    else:  # angles: averaged as residuals about one particle's, not as raw numbers
+        y_hat, obs_dev = wrapped_spread(model, obs, pred_w.squeeze(-2))
     y_cov = (obs_dev * pred_w.transpose(-1, -2)).transpose(-1, -2) @ obs_dev
     innovation = model.measurement_residual(y, y_hat)
     R = model.measurement_cov(k + 1)

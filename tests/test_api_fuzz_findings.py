@@ -202,3 +202,37 @@ def test_metrics_of_mismatched_shapes_are_named():
                                           torch.ones(4, 5, 1, 1, dtype=F64))  # fmt: skip
     # labels for every run at once still broadcast
     metrics.detection_rates(s > 0, y[:1])
+
+
+# -- from a nonlinear-filtering trial ----------------------------------------------------
+
+
+def test_a_model_of_one_noise_covariance_per_run_simulates_each_runs_noise():
+    """Per-run Q, R ([B, d, d]) run in the Kalman filters; simulate raised a raw shape error."""
+    Q = torch.tensor([1.0, 4.0, 9.0, 16.0], dtype=F64).view(4, 1, 1)
+    R = torch.tensor([0.5, 1.0, 2.0, 3.0], dtype=F64).view(4, 1, 1)
+    one = torch.eye(1, dtype=F64)
+    model = df.LinearGaussianModel(0 * one, one, Q, R, torch.zeros(1, dtype=F64), one)
+    xs, ys, _ = model.simulate(20000, (4,), generator=torch.Generator().manual_seed(0))
+    # x_k = w_{k-1} (F = 0): the sample variances are Q and R per run (sd of each ~1 %)
+    torch.testing.assert_close(xs[..., 0].var(1), Q.flatten(), rtol=0.05, atol=0)
+    torch.testing.assert_close((ys - xs)[..., 0].var(1), R.flatten(), rtol=0.05, atol=0)
+    with pytest.raises(ValueError, match=r"batch_shape \(3,\)"):
+        model.simulate(10, (3,))
+
+
+def test_the_ekf_names_a_jacobian_that_is_nan():
+    """At the sensor's own position the range-bearing Jacobian is NaN: the message blamed
+    the innovation covariance and training."""
+    F = torch.tensor([[1, 0, 1, 0], [0, 1, 0, 1], [0, 0, 1, 0], [0, 0, 0, 1.0]], dtype=F64)
+
+    def h(x):
+        return torch.stack([torch.linalg.vector_norm(x[..., :2], dim=-1),
+                            torch.atan2(x[..., 1], x[..., 0])], -1)  # fmt: skip
+
+    model = df.NonlinearGaussianModel(lambda x: x @ F.T, h, 1e-2 * torch.eye(4, dtype=F64),
+                                      torch.diag(torch.tensor([0.01, 0.001], dtype=F64)),
+                                      torch.tensor([-1.0, 0, 1, 0], dtype=F64),
+                                      1e-2 * torch.eye(4, dtype=F64))  # fmt: skip
+    with pytest.raises(ValueError, match="observation Jacobian .* at step 1 holds NaN"):
+        df.extended_kalman_filter(model, torch.tensor([[0.5, 0.1], [0.6, 0.2]], dtype=F64))
