@@ -7,7 +7,7 @@ import importlib
 import os
 import sys
 
-__all__ = ["import_object"]
+__all__ = ["import_object", "import_plugin"]
 
 
 def _import_module(name: str):
@@ -43,3 +43,13 @@ def import_object(path: str, where: str):
             raise ValueError(f"{where}: {module_name} has no {attribute!r}")
         obj = getattr(obj, part)
     return obj
+
+
+def import_plugin(name: str, where: str):
+    """Import module ``name`` for what it registers at import (estimators, scenarios), from
+    the working folder too (:func:`_import_module`); a ``ValueError`` starting with
+    ``where`` if it cannot be imported."""
+    try:
+        return _import_module(name)
+    except ImportError as error:
+        raise ValueError(f"{where}: cannot import {name!r} ({error})") from None

@@ -69,6 +69,10 @@ class Detection:
     statistic: str | None = None
 
     def __post_init__(self):
+        for name in ("scores", "alarms"):
+            if not isinstance(getattr(self, name), torch.Tensor):  # numpy's said "got bool"
+                raise TypeError(f"{name} must be a torch tensor; got "
+                                f"{type(getattr(self, name)).__name__}")  # fmt: skip
         if self.scores.shape != self.alarms.shape:
             raise ValueError(
                 f"scores and alarms must have the same shape [..., T]; got "

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import torch
 
 from difffilter._checks import check_rate
-from difffilter.metrics import after_attack, nan_as_lowest, threshold_for
+from difffilter.metrics import after_attack, detection_delay, nan_as_lowest, threshold_for
 from difffilter.metrics import finite_scores as _finite_scores
 from difffilter.models.streams import Streams
 
@@ -113,7 +113,7 @@ def below_target_note(far: dict | None) -> str | None:
         each = "; ".join(
             f"`{name}` alarms on {100 * b['measured_on_calibration']:.2f} % of them, "
             f"{100 * b['tied_at_threshold']:.1f} % of its scores being equal to its threshold "
-            f"{b['threshold']:.6g}: {_CAUSES[b.get('cause', 'ties')]}"
+            f"{_threshold_text(b['threshold'])}: {_CAUSES[b.get('cause', 'ties')]}"
             for name, b in below.items()
         )
         notes.append(
@@ -123,6 +123,15 @@ def below_target_note(far: dict | None) -> str | None:
     if few:
         notes.append(resolution_note(far["target"], min(few.values()), "--calibration-runs"))
     return " ".join(notes) or None
+
+
+def _threshold_text(threshold) -> str:
+    """A threshold for a sentence: ``±∞`` (metrics.json's ``null``: JSON has no infinity) is
+    what a detector gets whose scores are infinite on more than the target share of the
+    calibration steps (or all NaN)."""
+    if threshold is None or not math.isfinite(threshold):
+        return "±∞ (infinite scores on more than the target share of the steps, or none finite)"
+    return f"{threshold:.6g}"
 
 
 def resolution_note(target: float, steps: int, more: str) -> str:
@@ -201,10 +210,14 @@ def alarms_at(scores: torch.Tensor, threshold: float) -> torch.Tensor:
     return nan_as_lowest(scores.double()) > threshold
 
 
-def calibrated_metrics(output, traj, threshold: float | None, *, attacked_input: bool = True):
-    """``threshold_at_far``, ``tpr_at_far``, ``fpr_at_far``, ``fpr_at_far_after_attack`` and
-    ``impact`` of one estimator's ``output`` on ``traj`` at ``threshold`` (``None``: all
-    ``None``).
+def calibrated_metrics(output, traj, threshold: float | None, *, attacked_input: bool = True,
+                       dt: float | None = None):  # fmt: skip
+    """``threshold_at_far``, ``tpr_at_far``, ``fpr_at_far``, ``fpr_at_far_after_attack``,
+    ``impact`` and ``detection_delay_at_far_steps`` (``_s`` with ``dt``, the sampling period)
+    of one estimator's ``output`` on ``traj`` at ``threshold`` (``None``: all ``None``).
+    The delay is that of :func:`difffilter.metrics.detection_delay` with the alarms at the
+    calibrated threshold, not the estimator's own (an estimator alarming at every step had
+    the best delay, 0, beside every detector judged at the common rate).
 
     ``fpr_at_far_after_attack``: the alarm rate on the attack-free steps 1 to
     :data:`AFTER_ATTACK_STEPS` after an attacked step of the same run (the false alarms an
@@ -213,7 +226,8 @@ def calibrated_metrics(output, traj, threshold: float | None, *, attacked_input:
     ``‖x̂_k − x_k‖`` at attacked steps before the run's first alarm on an attacked step at
     the threshold (the error an attacker causes while the detector has not seen it)."""
     out = dict.fromkeys(("threshold_at_far", "tpr_at_far", "fpr_at_far",
-                         "fpr_at_far_after_attack", "impact"))  # fmt: skip
+                         "fpr_at_far_after_attack", "impact", "detection_delay_at_far_steps",
+                         "detection_delay_at_far_s"))  # fmt: skip
     det = output.detection
     if threshold is None or det is None or det.scores is None:
         return out
@@ -234,4 +248,8 @@ def calibrated_metrics(output, traj, threshold: float | None, *, attacked_input:
         worst = torch.where(unseen, error, torch.zeros_like(error)).amax(-1)
         attacked_runs = flags.any(-1)
         out["impact"] = float(worst[attacked_runs].mean())
+        steps = detection_delay(alarms, flags)["mean_delay"]
+        if math.isfinite(steps):  # (no episode detected: no delay)
+            out["detection_delay_at_far_steps"] = steps
+            out["detection_delay_at_far_s"] = None if dt is None else steps * dt
     return out

@@ -130,6 +130,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --threats: the threat set to read instead of the scenario's in "
         "eval/threats/ (a scenario of your own; the format of docs/threats.md)",
     )
+    p.add_argument(
+        "--import",
+        dest="imports",
+        action="append",
+        default=[],
+        metavar="MODULE",
+        help="import MODULE first (repeatable; from the working folder too): a module of your "
+        "own that registers estimators (difffilter.models.estimators.register) to run with "
+        "--add-estimators, or scenarios (docs/adding-a-scenario.md)",
+    )
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     p.add_argument("--list", action="store_true", help="list the registered scenarios and exit")
     return p
@@ -533,9 +543,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"two scenarios given: {args.scenario!r} and --scenario {args.scenario_option!r}"
             )
         args.scenario = args.scenario_option
+    from difffilter._imports import import_plugin
     from difffilter.models import registry
     from difffilter.runtime import tune_cpu_allocator
 
+    for module in args.imports:  # (each worker of --devices imports them too: it reruns main)
+        try:
+            import_plugin(module, f"--import {module}")
+        except ValueError as exc:
+            parser.error(str(exc))
     if args.list:
         for s in registry.all_scenarios():
             print(f"{s.name:28s} [{s.family}] {s.description}")

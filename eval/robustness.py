@@ -281,19 +281,42 @@ def _cell(m: dict, free: dict) -> dict[str, Any]:
 
 def _worst_cases(cells) -> dict[str, dict[str, Any]]:
     """Each estimator's worst value of each metric over the threats, with the threat; of
-    threats tied at it, the first by name (not by the order ``--threats`` listed them)."""
+    threats tied at it, the first by name (not by the order ``--threats`` listed them).
+
+    A state error or impact that is not finite (an estimate that diverged to NaN or inf
+    under a threat) is the worst there is: ``inf``, with ``<metric>_diverged`` set (it was
+    passed over, so an estimator that diverged looked more robust than one that did not:
+    13.7 against 30 in a trial). A TPR or AUC that is not finite (no attacked step) is no
+    worst case, nor is a missing value."""
     worst: dict[str, dict[str, Any]] = {}
     for threat, row in sorted(cells.items()):
         for est, cell in row.items():
             w = worst.setdefault(est, {})
             for key in LOWER_IS_WORSE + HIGHER_IS_WORSE:
                 value = cell.get(key)
-                if value is None or not math.isfinite(value):
+                if value is None:
+                    continue
+                if not math.isfinite(value):
+                    if key in LOWER_IS_WORSE:
+                        continue
+                    if not w.get(f"{key}_diverged"):  # the first threat by name it diverged on
+                        w[key], w[f"{key}_threat"], w[f"{key}_diverged"] = math.inf, threat, True
                     continue
                 sign = -1 if key in LOWER_IS_WORSE else 1
                 if key not in w or sign * value > sign * w[key]:
                     w[key], w[f"{key}_threat"] = value, threat
     return worst
+
+
+def _worst_text(worst: dict[str, Any], key: str) -> str:
+    """A worst case for a table: ``value (threat)``, ``diverged (threat)`` where the
+    estimate was not finite (robustness.json's ``null`` with ``<key>_diverged``), ``—``
+    where there is none."""
+    threat = worst.get(f"{key}_threat")
+    if worst.get(f"{key}_diverged"):
+        return f"diverged ({threat})"
+    value = worst.get(key)
+    return "—" if value is None else f"{format_number(value, 3)} ({threat})"
 
 
 def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any]:
@@ -366,12 +389,10 @@ def _markdown(doc: dict, sc) -> str:
         rows = []
         for est in ests:
             worst = doc["worst_case"].get(est, {})
-            w = worst.get(metric)
-            wt = worst.get(f"{metric}_threat")
             rows.append([f"`{est}`", format_number(doc["estimators"][est].get("fpr_at_far"), 3),
                          *(format_number(doc["cells"][t].get(est, {}).get(metric), 3)
                            for t in threats),
-                         "—" if w is None else f"{format_number(w, 3)} ({wt})"])  # fmt: skip
+                         _worst_text(worst, metric)])  # fmt: skip
         parts.append(f"## {title}\n\n{markdown_table(header, rows)}")
     specs = "\n".join(f"- `{n}`: {s}" for n, s in doc["threats"].items())
     parts.append(f"## Threats\n\n{specs}\n\n![robustness.png](robustness.png)\n")
@@ -565,8 +586,7 @@ def write_robustness_summary(out: str | Path, docs: dict[str, dict]) -> Path:
             w = doc["worst_case"].get(est, {})
 
             def worst(key, w=w):
-                v = w.get(key)
-                return "—" if v is None else f"{format_number(v, 3)} ({w[key + '_threat']})"
+                return _worst_text(w, key)
 
             rows.append([scenario, f"`{est}`", format_number(entry.get("fpr_at_far"), 3),
                          worst("tpr_at_far"), worst("state_error_ratio"), worst("impact")])  # fmt: skip

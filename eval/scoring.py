@@ -119,6 +119,12 @@ METRICS: dict[str, Metric] = {
         "run with score > threshold_at_far / such steps: the false alarms an attack leaves behind (fpr_at_far "
         "counts them with the rest)",
     ),
+    "detection_delay_at_far_steps": Metric(
+        "steps",
+        "detection_delay_steps with the alarms at threshold_at_far (score > threshold_at_far): "
+        "every detector's delay at the one false-alarm rate",
+    ),
+    "detection_delay_at_far_s": Metric("s", "detection_delay_at_far_steps * dt"),
     "impact": Metric(
         "state units",
         "mean over attacked runs of the largest |x_hat_k - x_k| at attacked steps before the "

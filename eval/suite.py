@@ -9,6 +9,7 @@ master seed, runs each estimator on the same trajectories with the same random n
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -269,7 +270,34 @@ def _run_estimators(result: SuiteResult, specs, progress: bool, built=None,
             out = out.output
         if spec.estimates is not None:
             out.attack_channel = spec.estimates
+        _check_fits(spec.name, result.scenario.name, out, result.traj_of(spec.name))
         result.outputs[spec.name] = out
+
+
+def _check_fits(name: str, scenario: str, out, traj) -> None:
+    """``out`` estimates the study's runs and steps: means ``[B, T, dx]`` like the true
+    states, scores ``[B, T]``. A state estimate of one component on a four-state plant was
+    scored against all four by broadcasting (a state RMSE of 7.76, without a word), and a
+    step too few failed inside the scoring."""
+    want = tuple(traj.x.shape)
+    if tuple(out.means.shape) != want:
+        raise ValueError(
+            f"estimator {name!r} on {scenario}: its means have shape {tuple(out.means.shape)}; "
+            f"the study's states are {want} [runs, steps, dx]: one estimate per run and step"
+        )
+    bad = ~torch.isfinite(out.means).all(-1)
+    if bool(bad.any()):  # a diverged estimate: its RMSEs are NaN, null in metrics.json
+        warnings.warn(
+            f"estimator {name!r} on {scenario}: its state estimate is NaN or infinite at "
+            f"{int(bad.sum())} of {bad.numel()} run-steps, so its state metrics are null "
+            "(not 'does not apply': it diverged)", stacklevel=2,
+        )  # fmt: skip
+    if out.detection is not None and out.detection.scores.shape != traj.flags.shape:
+        raise ValueError(  # (the output's own check ties scores to its means; kept for clarity)
+            f"estimator {name!r} on {scenario}: its detection scores have shape "
+            f"{tuple(out.detection.scores.shape)}; the study's steps are "
+            f"{tuple(traj.flags.shape)} [runs, steps]"
+        )
 
 
 def _score(result: SuiteResult, specs) -> None:
@@ -301,7 +329,8 @@ def apply_calibration(result: SuiteResult, calibration) -> None:
     for name, out in result.outputs.items():
         clean = registry.get(name).clean_input
         result.metrics[name].update(calibrated_metrics(
-            out, result.traj_of(name), thresholds.get(name), attacked_input=not clean
+            out, result.traj_of(name), thresholds.get(name), attacked_input=not clean,
+            dt=result.scenario.dt,
         ))  # fmt: skip
 
 

@@ -367,3 +367,35 @@ def test_the_note_names_why_a_rate_fell_short_and_when_the_calibration_is_coarse
     old = {"target": 0.01, "below_target": {"pf": {"measured_on_calibration": 0.0,
                                                   "threshold": 1.0, "tied_at_threshold": 0.1}}}  # fmt: skip
     assert "tie there" in below_target_note(old)
+
+
+def test_the_delay_at_the_calibrated_threshold_reads_those_alarms_not_the_estimators():
+    """An estimator alarming at every step has its own delay 0; at the common threshold
+    its delay is that of its scores (a plug-in author's trial: the leaderboard's delay was
+    the estimator's own)."""
+    from difffilter.estimator import Detection, EstimatorOutput
+    from difffilter.loop import Trajectories
+
+    scores = torch.tensor([[0.0, 1.0, 1.0, 4.0, 0.0, 3.0], [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]],
+                          dtype=torch.float64)  # fmt: skip
+    flags = torch.tensor([[False, True, True, True, False, True], [False, True, True, False,
+                                                                  False, False]])  # fmt: skip
+    x = torch.zeros(2, 6, 1, dtype=torch.float64)
+    out = EstimatorOutput(x, detection=Detection(scores, torch.ones_like(flags), -math.inf))
+    traj = Trajectories(x, x, x, None, None, x, flags, {})
+    # episodes: run 1 steps 1-3 (first score > 2 at step 3: delay 2) and step 5 (delay 0);
+    # run 2 steps 1-2 never above 2 (missed): mean (2 + 0) / 2 = 1
+    m = calibrated_metrics(out, traj, 2.0, dt=0.5)
+    assert (m["detection_delay_at_far_steps"], m["detection_delay_at_far_s"]) == (1.0, 0.5)
+    assert calibrated_metrics(out, traj, 10.0, dt=0.5)["detection_delay_at_far_s"] is None
+
+
+def test_a_below_target_note_takes_an_infinite_threshold():
+    """+inf scores on 40 % of the calibration steps made the threshold +inf, null in
+    metrics.json, and the report writer raised formatting it."""
+    from difffilter.eval.calibration import below_target_note
+
+    far = {"target": 0.01, "below_target": {"mine": {
+        "measured_on_calibration": 0.0, "threshold": None, "tied_at_threshold": 0.4,
+        "cause": "ties"}}}  # fmt: skip
+    assert "±∞" in below_target_note(far)

@@ -25,9 +25,10 @@ F64 = torch.float64
 
 
 def test_robustness_worst_case_by_hand():
-    """Lowest TPR and AUC, highest state-error ratio and impact over the threats; a
-    non-finite value is no worst case; a tie names the first threat by name, whatever the
-    order the threats were listed in."""
+    """Lowest TPR and AUC, highest state-error ratio and impact over the threats; a state
+    error that is not finite (a diverged estimate) is the worst, a TPR that is not finite no
+    worst case; a tie names the first threat by name, whatever the order the threats were
+    listed in."""
     from difffilter.eval.robustness import _cell, _worst_cases
 
     cell = _cell({"state_rmse": 3.0, "tpr_at_far": 0.5, "impact": 1.0}, {"state_rmse": 2.0})
@@ -40,10 +41,15 @@ def test_robustness_worst_case_by_hand():
     worst = _worst_cases(cells)["kf"]
     assert (worst["impact"], worst["impact_threat"]) == (9.0, "b")
     assert (worst["auc"], worst["auc_threat"]) == (0.7, "b")
-    assert (worst["state_error_ratio"], worst["state_error_ratio_threat"]) == (3.0, "c")
+    assert (worst["state_error_ratio"], worst["state_error_ratio_threat"]) == (math.inf, "b")
+    assert worst["state_error_ratio_diverged"] and "impact_diverged" not in worst
     assert (worst["tpr_at_far"], worst["tpr_at_far_threat"]) == (0.2, "a")
     listed_otherwise = _worst_cases(dict(reversed(cells.items())))["kf"]
     assert listed_otherwise == worst
+    cells["c"]["kf"]["state_error_ratio"] = math.nan  # diverged on two: the first by name
+    assert _worst_cases(cells)["kf"]["state_error_ratio_threat"] == "b"
+    cells["a"]["kf"]["tpr_at_far"] = math.nan  # no attacked step: no worst case
+    assert _worst_cases(cells)["kf"]["tpr_at_far_threat"] == "b"
 
 
 def test_robustness_takes_the_runs_it_is_given(monkeypatch):

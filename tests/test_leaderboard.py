@@ -51,7 +51,7 @@ def test_colours_measure_the_distance_to_the_best_of_each_scenario():
     grid = np.full((4, len(COLUMNS)), np.nan)
     grid[:, col["auc"]] = [0.999, 0.997, 0.949, 0.5]
     grid[:, col["state_rmse"]] = [0.1, 0.1, 1.0, np.sqrt(10) * 0.1]
-    grid[:, col["detection_delay_s"]] = [0.0, 0.01, 1.0, 0.0]
+    grid[:, col["detection_delay_at_far_s"]] = [0.0, 0.01, 1.0, 0.0]
     good = cell_goodness(grid, ["a"] * 4)
     assert good[:, col["auc"]] == pytest.approx([1.0, 0.98, 0.5, 0.0])  # 0.1 below the best: red
     rmse = good[:, col["state_rmse"]]  # log10 of the ratio, with a floor of 5 % of the largest
@@ -59,7 +59,7 @@ def test_colours_measure_the_distance_to_the_best_of_each_scenario():
     assert rmse == pytest.approx(
         [1, 1, 1 - np.log10(1.05 / (0.1 + f)), 1 - np.log10((0.316 + f) / 0.15)], abs=1e-3
     )
-    delay = good[:, col["detection_delay_s"]]  # zeros are the best; 0.01 is near them
+    delay = good[:, col["detection_delay_at_far_s"]]  # zeros are the best; 0.01 is near them
     assert delay == pytest.approx([1, 1 - np.log10(0.06 / 0.05), 0, 1])
     assert np.isnan(good[:, col["attack_rmse"]]).all()  # n/a stays blank
     other = cell_goodness(np.vstack([grid, grid * 10]), ["a"] * 4 + ["b"] * 4)

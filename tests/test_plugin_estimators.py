@@ -1,0 +1,64 @@
+"""An estimator of one's own, from a module outside the package, run beside a built-in
+scenario's: ``difffilter-eval <scenario> --import <module> --add-estimators <name>``
+(nothing imported the module before, so the name was unknown)."""
+
+from __future__ import annotations
+
+import sys
+import textwrap
+
+import pytest
+
+from difffilter.eval.cli import main as eval_main
+from difffilter.models import estimators as registry
+
+MODULE = textwrap.dedent("""
+    from difffilter.models.estimators import register
+
+
+    @register("my_plugin_kf", "a plug-in author's estimator (a test)")
+    def my_plugin_kf(ctx):
+        raise AssertionError("not run by the test")
+""")
+
+
+def test_import_registers_a_plugins_estimators(tmp_path, monkeypatch, capsys):
+    (tmp_path / "my_plugin_estimators.py").write_text(MODULE)
+    monkeypatch.chdir(tmp_path)  # importable from the working folder, as a user runs it
+    monkeypatch.setattr(sys, "path", list(sys.path))  # (the working folder is appended)
+    try:
+        assert eval_main(["--import", "my_plugin_estimators", "--list"]) == 0
+        assert "my_plugin_kf" in registry.ESTIMATORS
+    finally:  # (the registry is the process's: the families loaded meanwhile stay)
+        registry.ESTIMATORS.pop("my_plugin_kf", None)
+        sys.modules.pop("my_plugin_estimators", None)
+
+
+def test_a_module_that_does_not_import_is_named(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit):
+        eval_main(["--import", "no_such_plugin_module", "--list"])
+    assert "--import no_such_plugin_module: cannot import" in capsys.readouterr().err
+
+
+def test_an_output_that_does_not_fit_the_study_is_named_and_a_diverged_one_warned():
+    """A one-component state estimate on a four-state plant was scored against all four
+    states by broadcasting (state RMSE 7.76, silently); a NaN estimate's RMSEs turned
+    null, read as "does not apply"."""
+    import torch
+
+    from difffilter.estimator import EstimatorOutput
+    from difffilter.eval.suite import _check_fits
+    from difffilter.loop import Trajectories
+
+    x = torch.zeros(3, 5, 4, dtype=torch.float64)
+    traj = Trajectories(x, x, x, None, None, x, torch.zeros(3, 5, dtype=torch.bool), {})
+    with pytest.raises(ValueError, match=r"'mine' on plant: its means have shape \(3, 5, 1\)"):
+        _check_fits("mine", "plant", EstimatorOutput(x[..., :1]), traj)
+    with pytest.raises(ValueError, match=r"its means have shape \(3, 4, 4\)"):
+        _check_fits("mine", "plant", EstimatorOutput(x[:, 1:]), traj)
+    diverged = x.clone()
+    diverged[0, 2] = float("nan")
+    with pytest.warns(UserWarning, match="NaN or infinite at 1 of 15 run-steps"):
+        _check_fits("mine", "plant", EstimatorOutput(diverged), traj)
+    _check_fits("mine", "plant", EstimatorOutput(x), traj)  # fits: silent
