@@ -113,17 +113,24 @@ def check_square(t: Tensor, name: str, dim: int | None = None) -> None:
         raise ValueError(f"{name} must have shape {want}; got {tuple(t.shape)}")
 
 
+def broadcast_or_none(*shapes) -> torch.Size | None:
+    """``torch.broadcast_shapes(*shapes)``, or ``None`` where they do not broadcast: for
+    the checks that name what does not fit instead of torch's "The size of tensor a …"."""
+    try:
+        return torch.broadcast_shapes(*shapes)
+    except RuntimeError:
+        return None
+
+
 def check_batch_shapes(**shapes: torch.Size) -> None:
     """A model's parameters' batch shapes (one set per run) must broadcast together: F for
     3 runs and Q for 4 failed later, deep in a filter ("The size of tensor a (3) …")."""
-    try:
-        torch.broadcast_shapes(*shapes.values())
-    except RuntimeError:
+    if broadcast_or_none(*shapes.values()) is None:
         listed = ", ".join(f"{name} {tuple(shape)}" for name, shape in shapes.items())
         raise ValueError(
             "the model's parameters must share one batch shape (one set per run) or broadcast "
             f"to one; got the batch shapes {listed}"
-        ) from None
+        )
 
 
 def check_finite(t: Tensor, name: str) -> None:

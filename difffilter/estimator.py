@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from ._checks import (
+    broadcast_or_none,
     check_carry_batch,
     check_model,
     check_step_inputs,
@@ -295,10 +296,7 @@ class Estimator:
         parameter sets (a carry of ``init(model, ())`` on a model of 3 sets steps 3 runs,
         so it takes one measurement per run as well as one for all)."""
         own = self.batch_of(carry)
-        try:
-            return torch.broadcast_shapes(own, model_batch_shape(carry.model))
-        except (RuntimeError, AttributeError):
-            return own
+        return broadcast_or_none(own, model_batch_shape(carry.model)) or own
 
     # -- what a subclass provides ------------------------------------------------------
     def _init(self, model, batch_shape: torch.Size, generators: Generators):

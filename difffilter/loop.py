@@ -51,7 +51,7 @@ from typing import Any, NamedTuple, Protocol
 import torch
 from torch import Tensor
 
-from ._checks import NonFinite, check_model, check_sequence_inputs
+from ._checks import NonFinite, broadcast_or_none, check_model, check_sequence_inputs
 from .attack import Attack, Channel, TabulatedAttack, attack_dim, inject
 from .estimator import Estimator, EstimatorOutput, Generators, stack_steps
 
@@ -177,13 +177,13 @@ def open_loop(
                 "carry holds another model than the model given (its steps would filter with "
                 "the carry's): start the carry from this model (estimator.init(model, …))"
             )
-        try:
-            batch = torch.broadcast_shapes(batch, estimator.batch_of(carry))
-        except RuntimeError:
+        both = broadcast_or_none(batch, estimator.batch_of(carry))
+        if both is None:
             raise ValueError(
                 f"the carry holds runs {tuple(estimator.batch_of(carry))} and the measurements "
                 f"(ys, us, mask) runs {tuple(batch)}: they must broadcast (one carry per run of ys)"
-            ) from None
+            )
+        batch = both
     if result is None:
         result = _step_through(estimator, carry, ys, us, mask, batch, collect)
     if skipped is not None:

@@ -11,6 +11,8 @@ import math
 import torch
 from torch import Tensor
 
+from ._checks import broadcast_or_none
+
 __all__ = [
     "rmse",
     "detection_counts",
@@ -42,11 +44,7 @@ def _check_fits(primary: str, shape: torch.Size, **others: Tensor | None) -> Non
     for name, t in others.items():
         if t is None:
             continue
-        try:
-            fits = torch.broadcast_shapes(t.shape, shape) == shape
-        except RuntimeError:
-            fits = False
-        if not fits:
+        if broadcast_or_none(t.shape, shape) != shape:
             raise ValueError(f"{name} {tuple(t.shape)} must have the shape of {primary} "
                              f"{tuple(shape)} (or broadcast to it)")  # fmt: skip
 

@@ -24,6 +24,7 @@ from torch import Tensor, nn
 
 from ._checks import (
     as_tensor,
+    broadcast_or_none,
     check_finite,
     check_positive_definite,
     check_square,
@@ -245,11 +246,7 @@ class Gaussian(NoiseModel):
         shape = torch.Size(shape)
         L = self.scale_tril
         batch = torch.broadcast_shapes(self.loc.shape[:-1], L.shape[:-2])
-        try:
-            fits = torch.broadcast_shapes(shape[:-1], batch) == shape[:-1]
-        except RuntimeError:
-            fits = False
-        if not fits or shape[-1:] != (self.dim,):
+        if broadcast_or_none(shape[:-1], batch) != shape[:-1] or shape[-1:] != (self.dim,):
             raise ValueError(
                 f"this Gaussian has a covariance per run (batch {tuple(batch)}), which does not "
                 f"fit draws of shape {tuple(shape)}: its batch must match their trailing batch "

@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from .._checks import (
+    broadcast_or_none,
     check_finite_number,
     check_mask,
     check_rate,
@@ -82,14 +83,12 @@ def normalized_innovation_squared(innovations: Tensor, innovation_covs: Tensor) 
     _check_statistic(innovation_covs, "innovation_covs")
     check_square(innovation_covs, "innovation_covs", innovations.shape[-1])
     check_symmetric(innovation_covs, "innovation_covs")
-    try:
-        torch.broadcast_shapes(innovations.shape[:-1], innovation_covs.shape[:-2])
-    except RuntimeError:
+    if broadcast_or_none(innovations.shape[:-1], innovation_covs.shape[:-2]) is None:
         raise ValueError(
             f"innovations {tuple(innovations.shape)} [..., T, m] and innovation_covs "
             f"{tuple(innovation_covs.shape)} [..., T, m, m] must share their leading dimensions "
             "(or broadcast)"
-        ) from None
+        )
     return _nis(innovations, innovation_covs)
 
 

@@ -38,7 +38,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from .._checks import check_filter_inputs
+from .._checks import broadcast_or_none, check_filter_inputs
 from ..estimator import EstimatorOutput, Generators
 from ..gaussian import kalman_gain
 from ..linalg import masked_measurement
@@ -352,15 +352,13 @@ class ModifiedParticleFilter(ParticleFilter):
 
     def _run(self, carry, ys, us, mask):
         gamma_hat = self.gamma_hat
-        if isinstance(gamma_hat, Tensor):  # one table for all runs, or one per run
-            try:
-                torch.broadcast_shapes(gamma_hat.shape[:-2], ys.shape[:-2])
-            except RuntimeError:
-                raise ValueError(
-                    f"gamma_hat's runs {tuple(gamma_hat.shape[:-2])} do not broadcast with ys' "
-                    f"{tuple(ys.shape[:-2])}: give gamma_hat [T, dy] for all runs or one per "
-                    "run"
-                ) from None
+        # one table for all runs, or one per run
+        if isinstance(gamma_hat, Tensor) and broadcast_or_none(gamma_hat.shape[:-2],
+                                                               ys.shape[:-2]) is None:  # fmt: skip
+            raise ValueError(
+                f"gamma_hat's runs {tuple(gamma_hat.shape[:-2])} do not broadcast with ys' "
+                f"{tuple(ys.shape[:-2])}: give gamma_hat [T, dy] for all runs or one per run"
+            )
         if not self.fused:
             return None
         if us is not None or mask is not None:
