@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -208,6 +209,20 @@ class RobustnessResult:
     stealthy: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: ``{threat: {estimator: per-run totals}}`` (:func:`~.intervals.threat_totals`)
     run_totals: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: ``{threat: {"attacked_runs", "runs", "attacked_steps", "injected"}}``: what each
+    #: threat did on the study's runs (:func:`_activity`)
+    activity: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    def idle(self) -> list[str]:
+        """The threats that attacked no run, or injected nothing where they flagged steps:
+        left out of the worst case and the acceptance (a 50 % draw that attacked none of 3
+        runs was counted as a threat the learned estimator withstood)."""
+        return [t for t, a in self.activity.items() if not (a["attacked_runs"] and a["injected"])]
+
+    def acting(self, table: dict[str, Any]) -> dict[str, Any]:
+        """``table`` (``{threat: …}``) without the :meth:`idle` threats."""
+        idle = set(self.idle())
+        return {t: v for t, v in table.items() if t not in idle}
 
 
 def run_robustness(
@@ -248,8 +263,28 @@ def run_robustness(
             est: _cell(m, free.metrics.get(est, {})) for est, m in suite.metrics.items()
         }
         result.run_totals[name] = threat_totals(suite, roles(suite.metrics))
-    result.worst_case = _worst_cases(result.cells)
+        result.activity[name] = _activity(suite.traj)
+        if name in result.idle():
+            warnings.warn(f"{scenario.name}: threat {name!r} {_idle_text(result.activity[name])}: "
+                          "it is left out of the worst case and the acceptance", stacklevel=2)  # fmt: skip
+    result.worst_case = _worst_cases(result.acting(result.cells))
     return result
+
+
+def _activity(traj) -> dict[str, Any]:
+    """What a threat did on a study's trajectories: the runs and steps it flagged as
+    attacked, and whether it injected anything non-zero there."""
+    flags = traj.flags
+    injected = bool(flags.any()) and bool((traj.attack[flags] != 0).any())
+    return {"attacked_runs": int(flags.any(-1).sum()), "runs": int(flags.shape[0]),
+            "attacked_steps": int(flags.sum()), "injected": injected}  # fmt: skip
+
+
+def _idle_text(activity: dict[str, Any]) -> str:
+    if not activity["attacked_runs"]:
+        return f"attacked none of the {activity['runs']} runs"
+    return (f"flagged {activity['attacked_steps']} steps of {activity['attacked_runs']} runs "
+            "as attacked but injected nothing there (a value of 0)")  # fmt: skip
 
 
 def _crafted(result: RobustnessResult, name: str, spec: StealthySpec, progress: bool,
@@ -338,9 +373,10 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
         "estimator_roles": roles(free.metrics),
         "reads_no_measurements": reading_no_measurements(free.metrics),
     })  # fmt: skip
-    acceptance = judge_robustness(doc["cells"], doc["estimator_roles"], result.calibration.far,
-                                  blind=doc["reads_no_measurements"])  # fmt: skip
-    intervals = robustness_intervals(result.run_totals, doc["estimator_roles"],
+    doc["threat_activity"] = result.activity
+    acceptance = judge_robustness(result.acting(doc["cells"]), doc["estimator_roles"],
+                                  result.calibration.far, blind=doc["reads_no_measurements"])  # fmt: skip
+    intervals = robustness_intervals(result.acting(result.run_totals), doc["estimator_roles"],
                                      runs=result.runs, seed=result.seed)  # fmt: skip
     model = sc.system() if acceptance else None  # for threat kinds that read it
     for name, judged in acceptance.items():
@@ -383,6 +419,12 @@ def _markdown(doc: dict, sc) -> str:
     below = below_target_note(far)
     if below:
         parts.append(f"{below}\n")
+    idle = {t: a for t, a in (doc.get("threat_activity") or {}).items()
+            if not (a["attacked_runs"] and a["injected"])}  # fmt: skip
+    if idle:
+        parts.append("Left out of the worst case and the acceptance, as threats that did not act "
+                     "on these runs: " + "; ".join(f"`{t}` {_idle_text(a)}" for t, a in idle.items())
+                     + " (their columns are shown, not judged).\n")  # fmt: skip
     for metric, title in _TITLES.items():
         title = title.format(state_unit=sc.state_unit)  # (the scenario's, as its other tables)
         header = ["estimator", "attack-free FPR", *threats, "worst"]

@@ -389,3 +389,28 @@ def test_estimator_options_are_checked_by_name_and_together(monkeypatch):
     assert result.context.options == {"my_gain": 2.0}
     with pytest.raises(ValueError, match="'my_gain' is already declared: the gain of my"):
         estimators.register_option("my_gain", "another meaning")
+
+
+def test_a_threat_that_did_not_act_is_left_out_of_the_worst_case_and_the_acceptance():
+    """A 50 % draw that attacked none of 3 runs, and a value of 0 under its flags, were
+    judged as threats the learned estimator withstood (a threat-library audit)."""
+    import torch
+
+    from difffilter.eval.robustness import RobustnessResult, _activity
+    from difffilter.loop import Trajectories
+
+    x = torch.zeros(3, 4, 1)
+    flags = torch.zeros(3, 4, dtype=torch.bool)
+    none = Trajectories(x, x, x, None, None, torch.zeros(3, 4, 1), flags, {})
+    flags2 = flags.clone()
+    flags2[1, 2:] = True
+    zero = Trajectories(x, x, x, None, None, torch.zeros(3, 4, 1), flags2, {})
+    acts = torch.zeros(3, 4, 1)
+    acts[1, 2:] = 0.5
+    acting = Trajectories(x, x, x, None, None, acts, flags2, {})
+    result = RobustnessResult(None, 3, 0, None, None, None)
+    result.activity = {"none": _activity(none), "zero": _activity(zero), "bias": _activity(acting)}
+    assert result.activity["bias"] == {"attacked_runs": 1, "runs": 3, "attacked_steps": 2,
+                                       "injected": True}  # fmt: skip
+    assert result.idle() == ["none", "zero"]
+    assert list(result.acting({"none": 1, "zero": 2, "bias": 3})) == ["bias"]

@@ -179,3 +179,23 @@ def test_ctrl_c_says_how_to_resume(tmp_path, capsys):
         del os.environ[RESUME_HINT]
     said = capsys.readouterr().out
     assert "rerun the same difffilter-train sweep command" in said and "--ckpt_path" not in said
+
+
+def test_a_resume_that_changes_the_runs_settings_is_refused(tmp_path):
+    """A user trial resumed a threat-distribution run without its threats: the last epochs
+    trained on the scenario's own attack and the card said the network never saw the
+    threats; another --seed_everything recorded seeds that reproduce neither half."""
+    from difffilter.train.lightning_cli import _check_resumed_settings
+
+    path = tmp_path / "last.ckpt"
+    torch.save({"hyper_parameters": {"lr": 0.01, "_instantiator": "x"},
+                "datamodule_hyper_parameters": {"threats": {"own": {"weight": 0.3}},
+                                                "train_seed": 1}}, path)  # fmt: skip
+    model = SimpleNamespace(hparams={"lr": 0.01})
+    same = SimpleNamespace(hparams={"threats": {"own": {"weight": 0.3}}, "train_seed": 1})
+    _check_resumed_settings(str(path), model, same)  # the same settings: resumes
+    other = SimpleNamespace(hparams={"threats": None, "train_seed": 51})
+    with pytest.raises(ValueError, match=r"threats: \{'own'.*→ None; --data.init_args.train_seed: "
+                       r"1 → 51\): resume with the run's own settings"):  # fmt: skip
+        _check_resumed_settings(str(path), model, other)
+    _check_resumed_settings(None, model, other)  # a new run: nothing to compare

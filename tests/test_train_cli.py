@@ -31,6 +31,8 @@ def _error_lines(capsys) -> list[str]:
             "unknown command 'fitt'; choose from fit, validate, test, predict, export, calibrate, sweep",
         ),
         (["fit", *CONFIG, "--scenario"], "--scenario needs a scenario name"),
+        # no run folder: its checkpoints and export went to the working folder (a trial)
+        (["fit", *CONFIG, "--trainer.logger=false"], "give --trainer.default_root_dir DIR"),
     ],
 )
 def test_a_bad_command_line_is_one_line_and_exit_2(argv, why, tmp_path, monkeypatch, capsys):

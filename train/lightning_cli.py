@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import lightning.pytorch as pl
+import torch
 from lightning.pytorch.cli import LightningCLI
 
 from difffilter.runtime import tune_cpu_allocator
@@ -42,6 +43,17 @@ class DifffilterCLI(LightningCLI):
             return
         cfg = self.config["fit"]
         ckpt, logger = cfg.get("ckpt_path"), cfg["trainer"].get("logger")
+        if logger is False and not cfg["trainer"].get("fast_dev_run"):
+            if not cfg["trainer"].get("default_root_dir"):
+                # (a trial: two runs wrote ./<name>.ckpt, the second replacing the first, and
+                # Lightning's checkpoints went to ./checkpoints/, the shipped files' folder
+                # when run from the repository)
+                raise ValueError(
+                    "--trainer.logger false leaves the run no folder of its own: its "
+                    "checkpoints and export would go to the working folder (./checkpoints/ and "
+                    "./<estimator>.ckpt, replacing an earlier run's); give "
+                    "--trainer.default_root_dir DIR, or keep the logger"
+                )
         if ckpt:
             if kind == "exported":
                 raise ValueError(
@@ -81,6 +93,10 @@ class DifffilterCLI(LightningCLI):
             for cb in self.trainer.checkpoint_callbacks:
                 cb.save_last, cb.save_top_k = False, 0
             return
+        config = getattr(self, "config_init", None)
+        ckpt = config["fit"].get("ckpt_path") if config is not None else None
+        _check_resumed_settings(ckpt, getattr(self, "model", None),
+                                getattr(self, "datamodule", None))  # fmt: skip
         add_last_every_epoch(self.trainer)
 
     def before_validate(self):
@@ -180,6 +196,37 @@ def _ckpt_paths_in(argv) -> list[str]:
     found = [a.split("=", 1)[1] for a in argv if a.startswith("--ckpt_path=")]
     found += [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--ckpt_path"]
     return found
+
+
+def _check_resumed_settings(ckpt, model, datamodule) -> None:
+    """A run resumed from its Lightning checkpoint goes on with the settings it was started
+    with: ``ValueError`` naming each model or data setting this command gives otherwise
+    (checked before the run's ``config.yaml`` is rewritten). A run resumed without its
+    threat distribution trained its last epochs on the scenario's own attack, chose its best
+    checkpoint between two validation sets, and its card said it had never seen the
+    threats; one resumed with another ``--seed_everything`` recorded seeds that reproduce
+    neither half."""
+    if not ckpt or not Path(ckpt).is_file():
+        return  # none, or a name Lightning resolves ("last"): it names a missing one itself
+    saved = torch.load(ckpt, map_location="cpu", weights_only=True)
+    changed = []
+    for what, module, key in (("model", model, "hyper_parameters"),
+                              ("data", datamodule, "datamodule_hyper_parameters")):  # fmt: skip
+        before = saved.get(key)
+        if module is None or not isinstance(before, dict):
+            continue
+        now = dict(module.hparams)
+        changed += [f"--{what}.init_args.{name}: {before.get(name)!r} → {now.get(name)!r}"
+                    for name in sorted(set(before) | set(now))
+                    if not name.startswith("_") and before.get(name) != now.get(name)]  # fmt: skip
+    if changed:
+        raise ValueError(
+            f"--ckpt_path {ckpt}: this command changes settings the run was trained with ("
+            + "; ".join(changed)
+            + "): resume with the run's own settings (its config.yaml: "
+            "--config <run>/config.yaml --ckpt_path …), or start a new run from these weights "
+            "(--model.init_args.init_from)"
+        )
 
 
 def _seeds_from_seed_everything(config, subcommand: str | None) -> None:
