@@ -30,6 +30,7 @@ from ._checks import (
     check_positive_int,
     check_square,
     check_vector_last,
+    model_batch_shape,
     model_dtype_device,
 )
 from .linalg import matvec, rowwise
@@ -169,8 +170,14 @@ class StateSpaceModel(nn.Module):
         return Gaussian(noise.loc, getattr(self, cov_method)(k))
 
     def sample_initial(self, sample_shape=(), generator: torch.Generator | None = None) -> Tensor:
-        """Draw ``x_0`` ``[*sample_shape, dx]``."""
-        return self.initial.sample(sample_shape, generator)
+        """Draw ``x_0`` ``[*sample_shape, dx]``; a prior with one mean or covariance per run
+        (batch ``[B]``) draws ``[*broadcast(sample_shape, B), dx]``, one per run (``sample``
+        would prepend ``sample_shape`` to its batch: 16 runs for a sweep of 4)."""
+        initial = self.initial
+        if isinstance(initial, Gaussian) and initial.has_batch():
+            runs = torch.broadcast_shapes(torch.Size(sample_shape), initial.batch_shape)
+            return initial.draw_like(runs + (initial.dim,), generator)
+        return initial.sample(sample_shape, generator)
 
     def sample_transition(self, x: Tensor, u: Tensor | None, k: int, generator=None) -> Tensor:
         """Draw ``x_{k+1} ~ p(· | x_k)`` for ``x [..., dx]`` → ``[..., dx]``."""
@@ -229,6 +236,8 @@ class StateSpaceModel(nn.Module):
             batch_shape if not isinstance(batch_shape, int) else (batch_shape,)
         )
         check_model_batch(self, batch_shape, "batch_shape")  # one parameter set per run
+        # the runs: a model of B parameter sets simulates B runs (as the filters read it)
+        batch_shape = torch.broadcast_shapes(batch_shape, model_batch_shape(self))
         if us is not None:  # ignored before on a model without input; a short one raised late
             dtype, device = model_dtype_device(self)
             us = _check_us(self, us, batch_shape, num_steps, dtype, device)

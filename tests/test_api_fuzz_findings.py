@@ -236,3 +236,20 @@ def test_the_ekf_names_a_jacobian_that_is_nan():
                                       1e-2 * torch.eye(4, dtype=F64))  # fmt: skip
     with pytest.raises(ValueError, match="observation Jacobian .* at step 1 holds NaN"):
         df.extended_kalman_filter(model, torch.tensor([[0.5, 0.1], [0.6, 0.2]], dtype=F64))
+
+
+def test_a_sweep_of_priors_simulates_one_run_per_parameter_set():
+    """A prior of 4 covariances simulated 16 runs for batch_shape (4,) (sample prepends its
+    shape to the batch); a model of 4 noise covariances simulated with batch_shape ()
+    refused. Both give the model's 4 runs, as the filters read such a model."""
+    one = torch.eye(1, dtype=F64)
+    P0 = torch.tensor([1.0, 2.0, 3.0, 4.0], dtype=F64).view(4, 1, 1)
+    model = df.LinearGaussianModel(0.9 * one, one, one, one, torch.zeros(1, dtype=F64), P0)
+    for batch in ((4,), ()):
+        xs, ys, x0 = model.simulate(5, batch, generator=torch.Generator().manual_seed(0))
+        assert xs.shape == (4, 5, 1) and ys.shape == (4, 5, 1) and x0.shape == (4, 1)
+    x0 = model.simulate(1, (100000, 4), generator=torch.Generator().manual_seed(1))[2]
+    torch.testing.assert_close(x0.var(0)[:, 0], P0.flatten(), rtol=0.03, atol=0)
+    Q = torch.tensor([1.0, 4.0, 9.0, 16.0], dtype=F64).view(4, 1, 1)
+    noisy = df.LinearGaussianModel(0 * one, one, Q, one, torch.zeros(1, dtype=F64), one)
+    assert noisy.simulate(3, ())[0].shape == (4, 3, 1)
