@@ -509,6 +509,24 @@ def model_batch_shape(model, *, matrices_only: bool = False) -> torch.Size:
         return torch.Size()
 
 
+def check_one_model(model, what: str, instead: str) -> None:
+    """``model`` holds one parameter set (no batch): ``what`` (e.g. "the particle filter")
+    takes one model for all runs; ``instead`` says what to do with a sweep."""
+    own = model_batch_shape(model)
+    varying = getattr(model, "_varying_noise", None)
+    for method, k in (("process_cov", 0), ("measurement_cov", 1)):
+        if varying is not None and varying(method):  # a covariance per run from an override
+            cov = getattr(model, method)(k)
+            if isinstance(cov, Tensor) and cov.dim() > 2:
+                own = broadcast_or_none(own, cov.shape[:-2]) or cov.shape[:-2]
+    if own:  # (raw shape errors in torch, or particles of the wrong shape, before; a per-run
+        # covariance from an override was applied along the particles where N = B)
+        raise ValueError(
+            f"{what} takes one model for all runs, and this model's parameters have batch shape "
+            f"{tuple(own)} (one set per run): {instead}"
+        )
+
+
 def check_model_batch(model, batch: torch.Size, what: str) -> None:
     """``batch`` (the runs' batch shape, from ``what``) broadcasts with the model's own
     (:func:`model_batch_shape`): a model of 3 parameter sets given 4 runs failed deep in

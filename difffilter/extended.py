@@ -203,7 +203,7 @@ class UnscentedKalmanFilter(GaussianFilter):
             y_hat = (wm[:, None] * Y).sum(-2)
             dy_pts = Y - y_hat.unsqueeze(-2)
         else:  # angles: averaged as residuals about one point, not as raw numbers
-            y_hat, dy_pts = wrapped_spread(model, Y, wm)
+            y_hat, dy_pts = wrapped_spread(model, Y, wm, centre=Y[..., 0, :])
         dx_pts = Xp - pred_mean.unsqueeze(-2)
         residual = model.measurement_residual(y, y_hat)
         if mask is not None:

@@ -250,7 +250,9 @@ class KalmanFilter(GaussianFilter):
         _check_linear(model)
         _check_declared_time_varying(model)
         state = gaussian_init(model, batch_shape)
-        if shared_gains_apply(model):
+        # (the schedule is computed without a graph: under a torch.func transform an outer
+        # reverse level would lose the gains' derivative, so a traced model steps in full)
+        if shared_gains_apply(model) and not under_transform(*_model_tensors(model)):
             gains = GainSchedule(model)
             state = state._replace(cov=gains.initial_cov, gains=gains)
         return state
@@ -340,16 +342,27 @@ class KalmanFilter(GaussianFilter):
         return None
 
 
+def _model_tensors(model) -> tuple:
+    """The tensors a time-invariant linear model's moments are made of."""
+    return (model.transition_matrix(0), model.observation_matrix(1), model.control_matrix(0),
+            model.process_cov(0), model.measurement_cov(1), model.initial.mean,
+            model.initial.cov)  # fmt: skip
+
+
 def _forward_traced(model, ys: Tensor, us: Tensor | None) -> bool:
-    """Whether forward-mode AD or a ``torch.func`` transform traces this call
-    (:func:`~difffilter.linalg.under_transform`): the shared-covariance path's no-gradient
-    branch writes into preallocated tensors, which forward mode cannot follow."""
+    """Whether forward-mode AD or a ``torch.func`` transform traces this call while no
+    tensor requires a gradient at the innermost level (:func:`~difffilter.linalg.
+    under_transform`; ``jvp``, ``jacfwd``, a ``grad`` over a ``jvp``): the shared-covariance
+    path would take its no-gradient branch, which writes into preallocated tensors (forward
+    mode cannot follow them) and computes the covariances without a graph (an outer reverse
+    level would lose them). Under ``grad``/``jacrev`` innermost the tensors require a
+    gradient and the path's own gradient branch serves them."""
     if not under_transform():  # no transform, no dual level: the model is not looked at
         return False
-    return under_transform(
-        ys, us, model.transition_matrix(0), model.observation_matrix(1), model.control_matrix(0),
-        model.process_cov(0), model.measurement_cov(1), model.initial.mean, model.initial.cov,
-    )  # fmt: skip
+    tensors = (ys, us, *_model_tensors(model))
+    return under_transform(*tensors) and not any(
+        isinstance(t, Tensor) and t.requires_grad for t in tensors
+    )
 
 
 def _live(carry: GaussianState) -> GaussianState:

@@ -46,9 +46,9 @@ from ._checks import (
     check_carry_tensor,
     check_ess_threshold,
     check_model,
+    check_one_model,
     check_positive_int,
     check_strategy,
-    model_batch_shape,
 )
 from .estimator import Estimator, Generators
 from .gaussian import gaussian_update
@@ -320,6 +320,11 @@ def _ess(log_weights: Tensor) -> Tensor:
     return torch.exp(-torch.logsumexp(2.0 * log_weights, dim=-1))
 
 
+#: What to do with a sweep of parameter sets where one model for all runs is needed.
+PER_SET = ("run a filter per parameter set, or use the Kalman filter or the EKF, which take "
+           "them")  # fmt: skip
+
+
 def particle_init(
     model: StateSpaceModel,
     num_particles: int,
@@ -328,13 +333,7 @@ def particle_init(
 ) -> ParticleState:
     """Draw ``N`` particles from the prior: ``[*batch_shape, N, dx]``, log-weights ``−log N``."""
     check_positive_int(num_particles, "num_particles")
-    own = model_batch_shape(model)
-    if own:  # (raw shape errors in torch, or particles of the wrong shape, before)
-        raise ValueError(
-            f"the particle filter takes one model for all runs, and this model's parameters "
-            f"have batch shape {tuple(own)} (one set per run): run a filter per parameter set, "
-            "or use the Kalman filter or the EKF, which take them"
-        )
+    check_one_model(model, "the particle filter", PER_SET)
     batch_shape = torch.Size(batch_shape)
     particles = model.sample_initial(batch_shape + (num_particles,), generator)
     log_w = particles.new_full(batch_shape + (num_particles,), -math.log(num_particles))

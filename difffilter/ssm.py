@@ -167,7 +167,15 @@ class StateSpaceModel(nn.Module):
         noise = getattr(self, noise_name)
         if not (isinstance(noise, Gaussian) and self._varying_noise(cov_method)):
             return noise
-        return Gaussian(noise.loc, getattr(self, cov_method)(k))
+        try:
+            return Gaussian(noise.loc, getattr(self, cov_method)(k))
+        except ValueError as exc:  # (it said "cov must be …", naming neither method nor step)
+            raise ValueError(
+                f"{type(self).__name__}.{cov_method}({k}) (what simulate and the particle "
+                f"filters draw and weigh with): {exc}; a singular covariance runs in the "
+                "Kalman filters but cannot be drawn from: override sample_transition, "
+                "sample_measurement and measurement_log_prob for it"
+            ) from exc
 
     def sample_initial(self, sample_shape=(), generator: torch.Generator | None = None) -> Tensor:
         """Draw ``x_0`` ``[*sample_shape, dx]``; a prior with one mean or covariance per run
@@ -257,21 +265,49 @@ def plain_residual(model) -> bool:
     return type(model).measurement_residual is StateSpaceModel.measurement_residual
 
 
-def wrapped_spread(model, points: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
+#: Re-centring passes of :func:`wrapped_spread` after its first mean.
+RECENTRING_PASSES = 2
+
+
+def wrapped_spread(model, points: Tensor, weights: Tensor,
+                   centre: Tensor | None = None) -> tuple[Tensor, Tensor]:  # fmt: skip
     """The weighted mean ``ŷ [..., dy]`` of predicted measurements ``points [..., n, dy]``
     (sigma points' or particles') and their deviations ``[..., n, dy]`` for a model whose
-    ``measurement_residual`` wraps angles, under ``weights [..., n]`` (summing to 1):
-    residuals about a reference point ``p*`` (the largest weight's) are averaged,
-    ``ŷ = p* + Σᵢ wᵢ r(pᵢ, p*)``, and the deviations are ``r(pᵢ, ŷ)``. The plain
+    ``measurement_residual`` wraps angles, under ``weights [..., n]`` (summing to 1).
+
+    Residuals about a start ``c`` are averaged, ``ŷ = c + Σᵢ wᵢ r(pᵢ, c)``, and the mean is
+    taken again about ``ŷ`` (:data:`RECENTRING_PASSES` times: a start in the tail wraps the
+    far points the wrong way, and each pass moves it to the middle); the deviations are
+    ``r(pᵢ, ŷ)``. The start is ``centre [..., dy]`` where given (the UKF's centre sigma
+    point: the points lie symmetric about it); otherwise both the plain weighted mean
+    (right wherever nothing wraps) and the point of largest weight (right for a cloud that
+    straddles ±π, where the plain mean lies across the circle) are tried, and the mean of
+    the smaller weighted spread ``Σᵢ wᵢ ‖r(pᵢ, ŷ)‖²`` is kept, per run. The plain
     ``Σᵢ wᵢ pᵢ`` of bearings on both sides of ±π lies near 0: the UKF's innovation
     covariance made from it was 5.4 rad² where 0.005 was right (a trial). Models with the
     plain residual (:func:`plain_residual`) keep the filters' plain sums."""
     weights = weights.expand(points.shape[:-1])
-    top = weights.argmax(-1, keepdim=True).unsqueeze(-1)  # [..., 1, 1]
-    ref = torch.take_along_dim(points, top, dim=-2)  # [..., 1, dy]
-    about = model.measurement_residual(points, ref)
-    mean = ref.squeeze(-2) + (weights.unsqueeze(-2) @ about).squeeze(-2)
-    return mean, model.measurement_residual(points, mean.unsqueeze(-2))
+    w_row = weights.unsqueeze(-2)  # [..., 1, n]
+    if centre is not None:
+        starts = [centre]
+    else:
+        top = weights.argmax(-1, keepdim=True).unsqueeze(-1)  # [..., 1, 1]
+        starts = [(w_row @ points).squeeze(-2),
+                  torch.take_along_dim(points, top, dim=-2).squeeze(-2)]  # fmt: skip
+    best = None
+    for mean in starts:
+        for _ in range(1 + RECENTRING_PASSES):
+            about = model.measurement_residual(points, mean.unsqueeze(-2))
+            mean = mean + (w_row @ about).squeeze(-2)
+        dev = model.measurement_residual(points, mean.unsqueeze(-2))
+        if best is None:
+            best = (mean, dev)
+            continue
+        spread = (w_row @ dev.square().sum(-1, keepdim=True)).squeeze(-1).squeeze(-1)
+        kept = (w_row @ best[1].square().sum(-1, keepdim=True)).squeeze(-1).squeeze(-1)
+        closer = (spread < kept)[..., None]
+        best = (torch.where(closer, mean, best[0]), torch.where(closer[..., None], dev, best[1]))
+    return best
 
 
 class LinearGaussianModel(StateSpaceModel):

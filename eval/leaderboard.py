@@ -66,6 +66,7 @@ def leaderboard_rows(results: dict[str, dict[str, Any]]) -> list[dict[str, Any]]
             else:
                 row["checkpoint"] = ckpt.get("sha256", "")[:12] if used else None
             row.update({m: entry.get(m) for m in COLUMNS})
+            row["far_target"] = (doc.get("far") or {}).get("target")  # fpr_at_far's colour
             worst = (doc.get("worst_case") or {}).get(name)
             if worst is not None:  # a robustness study: the worst case over its threats
                 row.update({f"worst_{m}": worst.get(m) for m in WORST})
@@ -166,8 +167,14 @@ DETECTION_RATES = {"tpr_at_1pct_fpr", "tpr_at_far", "worst_tpr_at_far"}
 UNDETECTED = 0.02
 
 
+#: Columns coloured by their distance to the calibrated false-alarm band [α/2, 2α] (the
+#: acceptance's), not to the best: a detector that never alarms (0) is not the best there.
+ON_TARGET = {"fpr_at_far"}
+
+
 def cell_goodness(grid: np.ndarray, scenarios: list[str], columns=COLUMNS,
-                  ranked: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+                  ranked: np.ndarray | None = None,
+                  targets: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
     """``grid [rows, columns]`` → colour in [0, 1] (1: the best of the row's scenario): for
     AUC and TPR 1 − (best − v)/0.1, so 0.1 below the best is 0; otherwise
     1 − log10((v + f)/(best + f)), so 10× the best is 0, with a floor f of 5 % of the
@@ -175,7 +182,9 @@ def cell_goodness(grid: np.ndarray, scenarios: list[str], columns=COLUMNS,
     ``ranked [rows]`` (bool): the rows that may set the best (not an oracle nor the
     reference; all rows where none of a scenario is, or without it); a row that is not
     may be better than the best and reads 1. NaN (no colour) where the value is missing,
-    and in a detection-rate column whose best is at most :data:`UNDETECTED`."""
+    and in a detection-rate column whose best is at most :data:`UNDETECTED`. A column of
+    :data:`ON_TARGET` is 1 inside ``[α/2, 2α]`` of its row's target ``targets [rows]`` (the
+    calibrated rate; uncoloured without one) and falls to 0 at 10× outside it."""
     scen, good = np.array(scenarios), np.full_like(grid, np.nan)
     ranked = np.ones(len(scenarios), bool) if ranked is None else np.asarray(ranked, bool)
     higher = np.array([m in HIGHER_IS_BETTER for m in columns])
@@ -192,6 +201,15 @@ def cell_goodness(grid: np.ndarray, scenarios: list[str], columns=COLUMNS,
         colour = np.clip(1 - shortfall, 0, 1)
         colour[:, rates & ~(hi > UNDETECTED)] = np.nan
         good[rows] = colour
+    on_target = np.array([m in ON_TARGET for m in columns])
+    if on_target.any():
+        alpha = (np.full(len(scenarios), np.nan) if targets is None
+                 else np.asarray(targets, float))[:, None]  # fmt: skip
+        v = grid[:, on_target]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            outside = np.maximum(np.log10(v / (2 * alpha)), np.log10((alpha / 2) / v))
+        good[:, on_target] = np.where(np.isnan(v) | np.isnan(alpha), np.nan,
+                                      np.clip(1 - np.maximum(outside, 0), 0, 1))  # fmt: skip
     return good
 
 
@@ -205,7 +223,9 @@ def _heatmaps(path: Path, rows: list[dict[str, Any]], units: dict[str, str]) -> 
     fig, ax = plt.subplots(figsize=(1.1 * len(cols) + 3, 0.2 * len(rows) + 1.2))
     ranked = np.array([r.get("role") not in UNRANKED for r in rows])
     cmap = plt.get_cmap("RdYlGn").with_extremes(bad="white")
-    goodness = cell_goodness(grid, scenarios, cols, ranked)
+    targets = np.array([np.nan if r.get("far_target") is None else r["far_target"]
+                        for r in rows])  # fmt: skip
+    goodness = cell_goodness(grid, scenarios, cols, ranked, targets)
     ax.imshow(goodness, aspect="auto", cmap=cmap, vmin=0, vmax=1)
     for (i, j), value in np.ndenumerate(grid):
         text = "—" if np.isnan(value) else format_number(float(value), 3)

@@ -253,3 +253,26 @@ def test_a_sweep_of_priors_simulates_one_run_per_parameter_set():
     Q = torch.tensor([1.0, 4.0, 9.0, 16.0], dtype=F64).view(4, 1, 1)
     noisy = df.LinearGaussianModel(0 * one, one, Q, one, torch.zeros(1, dtype=F64), one)
     assert noisy.simulate(3, ())[0].shape == (4, 3, 1)
+
+
+def test_what_takes_one_model_refuses_a_sweep_clearly_and_the_adaptive_kf_takes_one():
+    """From a parameter-sweep trial: the adaptive particle filter, cusum_detector_for and
+    poa_detector_for failed on a per-run model with raw torch errors (or pooled one
+    threshold over every model); the adaptive KF failed on one shared sequence with a
+    per-run prior, which the other Gaussian filters take."""
+    model = _per_run_model()
+    with pytest.raises(ValueError, match="cusum_detector_for takes one model for all runs"):
+        fdi.cusum_detector_for(model, false_alarm_rate=0.01, runs=3, steps=10)
+    with pytest.raises(ValueError, match="poa_detector_for takes one model for all runs"):
+        fdi.poa_detector_for(model, gamma_min=2.0, p_l=0.2, num_particles=50)
+    with_input = _model(F=model.F, B=torch.tensor([[0.0], [0.1]], dtype=F64))
+    with pytest.raises(ValueError, match="the adaptive particle filter takes one model"):
+        fdi.AdaptiveParticleFilter(20).init(with_input, (3,))
+    P0 = EYE * torch.tensor([1.0, 2.0, 3.0], dtype=F64).view(3, 1, 1)
+    swept = df.LinearGaussianModel(0.9 * EYE, H, 0.1 * EYE, torch.eye(1, dtype=F64),
+                                   torch.zeros(2, dtype=F64), P0,
+                                   B=torch.tensor([[0.0], [0.1]], dtype=F64))  # fmt: skip
+    ys = _data(10, 1)
+    shared = fdi.adaptive_kalman_filter(swept, ys)
+    each = fdi.adaptive_kalman_filter(swept, ys.expand(3, 10, 1))
+    torch.testing.assert_close(shared.means, each.means)

@@ -70,3 +70,23 @@ def test_an_untraced_call_keeps_the_shared_path():
     with fwAD.dual_level():
         assert not under_transform(THETA)
         assert under_transform(fwAD.make_dual(THETA, DIRECTION))
+
+
+def test_second_derivatives_through_torch_func_equal_reverse_over_reverse(data):
+    """A review: under jacrev(jacfwd), jacfwd(jacfwd) and grad(jvp) the step-through path
+    still took the gain schedule, computed without a graph, and the outer level lost the
+    gains' derivative (errors up to 978, silently)."""
+    from torch.func import grad, jacfwd, jacrev, jvp
+
+    ys = data[:2, :15]
+
+    def ll(t):
+        return _log_likelihood(t, ys)
+
+    hessian = torch.autograd.functional.hessian(ll, THETA)
+    for name, got in (("jacrev(jacfwd)", jacrev(jacfwd(ll))(THETA)),
+                      ("jacfwd(jacfwd)", jacfwd(jacfwd(ll))(THETA)),
+                      ("jacfwd(jacrev)", jacfwd(jacrev(ll))(THETA))):  # fmt: skip
+        torch.testing.assert_close(got, hessian, rtol=1e-9, atol=1e-9, msg=name)
+    hvp = grad(lambda t: jvp(ll, (t,), (DIRECTION,))[1])(THETA)
+    torch.testing.assert_close(hvp, hessian @ DIRECTION, rtol=1e-9, atol=1e-9)

@@ -196,3 +196,16 @@ def test_a_fraction_just_below_one_is_not_printed_as_one():
     assert format_number(1.0, 3) == "1" and format_number(0.9996) == "0.9996"
     assert format_number(1.00004) == "1.00004" and format_number(12.0004) == "12"
     assert format_number(1 - 1e-12) == "1"  # at most eight digits
+
+
+def test_the_false_alarm_column_is_coloured_by_its_distance_to_the_calibrated_band():
+    """A review: coloured "lower is better", a detector that never alarms was green and the
+    ones calibrated to α red; the acceptance judges the rate against [α/2, 2α]."""
+    from difffilter.eval.leaderboard import cell_goodness
+
+    v = np.array([[0.0], [0.01], [0.006], [0.02], [0.2], [0.05], [np.nan]])
+    good = cell_goodness(v, ["a"] * 7, ["fpr_at_far"], targets=np.full(7, 0.01))[:, 0]
+    assert good[0] == 0 and good[1] == good[2] == good[3] == 1  # never alarms; in the band
+    assert good[4] == 0 and 0 < good[5] < 1  # 10x above 2α: red; 2.5x: between
+    assert np.isnan(good[6])
+    assert np.isnan(cell_goodness(v, ["a"] * 7, ["fpr_at_far"])[:, 0]).all()  # no target

@@ -101,3 +101,27 @@ def test_the_online_one_run_particle_step_follows_the_overrides():
         total = total + out.log_likelihood
     kf = df.kalman_filter(model, ys).log_likelihood
     assert abs(float(total - kf)) < 0.3, (float(total), float(kf))
+
+
+def test_a_covariance_that_cannot_be_drawn_from_is_named_with_its_method_and_step():
+    class Singular(_Growing):
+        def process_cov(self, k):  # noise on the second state only: PSD, singular
+            return torch.diag(torch.tensor([0.0, 0.1 * (1 + k)], dtype=F64))
+
+    model = _model(Singular)
+    ys = torch.zeros(2, 5, 1, dtype=F64)
+    df.kalman_filter(model, ys)  # the Kalman filter runs on it
+    with pytest.raises(ValueError, match=r"Singular.process_cov\(0\) \(what simulate"):
+        model.simulate(5, (2,))
+
+
+def test_a_particle_filter_refuses_a_covariance_override_of_one_set_per_run():
+    """A per-run Q from process_cov(k) was applied along the particles where N = B."""
+
+    class PerRun(_Growing):
+        def process_cov(self, k):
+            return self.process_noise.cov * torch.tensor([1.0, 2.0, 3.0], dtype=F64).view(3, 1, 1)
+
+    ys = torch.zeros(3, 5, 1, dtype=F64)
+    with pytest.raises(ValueError, match=r"takes one model for all runs.*\(3,\)"):
+        df.particle_filter(_model(PerRun), ys, num_particles=3)

@@ -47,6 +47,7 @@ from .._checks import (
     check_finite_number,
     check_rate,
     check_vector_last,
+    model_batch_shape,
 )
 from ..estimator import Estimator, EstimatorOutput
 from ..gaussian import joseph_covariance, kalman_gain, predict_covariance
@@ -174,9 +175,10 @@ def adaptive_kalman_init(
     model, batch_shape=(), *, attack_cov0: float = 10.0, attack0: Tensor | None = None
 ) -> AdaptiveKFState:
     """``x̂_0, P_0`` from the model's prior, ``θ̂_0 = attack0`` (default 0), ``S_0 = ω I``
-    (``attack_cov0 = ω ≥ 0``), ``Υ_0 = 0``; shapes ``[*batch_shape, ·]``."""
+    (``attack_cov0 = ω ≥ 0``), ``Υ_0 = 0``; shapes ``[*batch_shape, ·]``, broadcast with
+    the model's parameter sets (a prior per run on one shared sequence: B runs)."""
     m0, p0 = model.initial.mean, model.initial.cov
-    batch = torch.Size(batch_shape)
+    batch = torch.broadcast_shapes(torch.Size(batch_shape), model_batch_shape(model))
     dx, da = model.dim_x, model.dim_u
     mean = m0.expand(batch + (dx,))
     cov = p0.expand(batch + (dx, dx))

@@ -30,7 +30,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from .._checks import model_batch_shape
+from .._checks import check_one_model, model_batch_shape
 from ..estimator import Estimator, EstimatorOutput
 from ..extended import ExtendedKalmanFilter
 from ..kalman import GaussianFilter
@@ -238,7 +238,10 @@ def cusum_detector_for(
     ``false_alarm_rate``. The statistics are the NIS of the ungated filter (default the
     EKF) on ``ys`` (and ``us``, ``mask``) when given — attack-free measurements of the
     plant — else on ``runs × steps`` runs simulated from the model with ``generator``.
+    One threshold for one model: a model of several parameter sets (a sweep) is refused
+    (calibrate each set on its own; a pooled threshold would meet the rate on none).
     """
+    check_one_model(model, "cusum_detector_for", "calibrate a detector per parameter set")
     filter = ExtendedKalmanFilter() if filter is None else filter
     if ys is None:
         _, ys, _ = model.simulate(steps, (runs,), us, generator=generator)

@@ -46,11 +46,11 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._checks import Choice, check_step_inputs, check_strategy
+from .._checks import Choice, check_one_model, check_step_inputs, check_strategy
 from ..estimator import Estimator, EstimatorOutput, Generators
 from ..linalg import matvec, safe_cholesky, symmetrize
 from ..loop import open_loop
-from ..particle import ParticleFilter, ParticleState
+from ..particle import PER_SET, ParticleFilter, ParticleState
 from ..resampling import Multinomial
 from ..results import StepOutput
 from ..ssm import StateSpaceModel
@@ -344,6 +344,7 @@ def adaptive_particle_init(
     """Packed particles ``[*batch_shape, N, D]`` at ``k = 0``: ``x̄ʲ ~ p(x_0)`` (from
     ``generator``), ``āʲ = 0``, ``Υʲ = 0``, ``Sʲ = attack_cov0 · I``, ``Pʲ = 0`` (the
     components are the prior's samples), uniform log-weights."""
+    check_one_model(model, "the adaptive particle filter", PER_SET)
     layout = ParticleLayout(model.dim_x, model.dim_u)
     shape = torch.Size(batch_shape) + (num_particles,)
     x = model.sample_initial(shape, generator)

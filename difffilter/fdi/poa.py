@@ -33,6 +33,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from .._checks import check_one_model
 from ..gaussian import kalman_gain
 from ..linalg import LOG_2PI, safe_cholesky
 
@@ -367,6 +368,7 @@ def poa_detector_for(
     model's ``measurement_cov(1)`` unless given (the paper keeps the ``η`` of its
     nominal ``R`` in the high-noise case). ``ζ = p_l`` (the smallest ``α`` of eq. 53).
     """
+    check_one_model(model, "poa_detector_for", "make a detector per parameter set")
     if hasattr(model, "observation_matrix"):
         G = model.observation_matrix(1)
     else:
