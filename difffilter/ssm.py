@@ -237,7 +237,9 @@ class StateSpaceModel(nn.Module):
         """Simulate ``x_0 … x_T`` and ``y_1 … y_T``.
 
         Returns ``(xs [*batch, T, dx], ys [*batch, T, dy], x0 [*batch, dx])`` where
-        ``xs[..., t, :] = x_{t+1}`` is the state measured by ``ys[..., t, :]``.
+        ``xs[..., t, :] = x_{t+1}`` is the state measured by ``ys[..., t, :]``; ``batch`` is
+        ``batch_shape`` broadcast with the model's parameter sets (a model of ``B`` sets:
+        ``B`` runs, or ``(N, B)`` for ``batch_shape=(N, 1)``).
         """
         num_steps = check_positive_int(num_steps, "num_steps")
         batch_shape = torch.Size(
