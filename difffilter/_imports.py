@@ -25,8 +25,10 @@ def _import_module(name: str):
         sys.path.append(here)
         try:
             return importlib.import_module(name)
-        except ModuleNotFoundError:
+        except ModuleNotFoundError as again:
             sys.path.remove(here)
+            if (again.name or "").split(".")[0] != name.split(".")[0]:
+                raise  # found here, but a module it imports is missing: name that one
             raise error from None
 
 

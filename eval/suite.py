@@ -285,13 +285,16 @@ def _check_fits(name: str, scenario: str, out, traj) -> None:
             f"estimator {name!r} on {scenario}: its means have shape {tuple(out.means.shape)}; "
             f"the study's states are {want} [runs, steps, dx]: one estimate per run and step"
         )
-    bad = ~torch.isfinite(out.means).all(-1)
-    if bool(bad.any()):  # a diverged estimate: its RMSEs are NaN, null in metrics.json
-        warnings.warn(
-            f"estimator {name!r} on {scenario}: its state estimate is NaN or infinite at "
-            f"{int(bad.sum())} of {bad.numel()} run-steps, so its state metrics are null "
-            "(not 'does not apply': it diverged)", stacklevel=2,
-        )  # fmt: skip
+    for what, estimate in (("state", out.means), ("attack", out.attack)):
+        if estimate is None:
+            continue
+        bad = ~torch.isfinite(estimate).all(-1)
+        if bool(bad.any()):  # a diverged estimate: its RMSEs are NaN, null in metrics.json
+            warnings.warn(
+                f"estimator {name!r} on {scenario}: its {what} estimate is NaN or infinite "
+                f"at {int(bad.sum())} of {bad.numel()} run-steps, so its {what} RMSE is "
+                "null (not 'does not apply': it diverged)", stacklevel=2,
+            )  # fmt: skip
     if out.detection is not None and out.detection.scores.shape != traj.flags.shape:
         raise ValueError(  # (the output's own check ties scores to its means; kept for clarity)
             f"estimator {name!r} on {scenario}: its detection scores have shape "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -209,3 +210,32 @@ def test_the_false_alarm_column_is_coloured_by_its_distance_to_the_calibrated_ba
     assert good[4] == 0 and 0 < good[5] < 1  # 10x above 2α: red; 2.5x: between
     assert np.isnan(good[6])
     assert np.isnan(cell_goodness(v, ["a"] * 7, ["fpr_at_far"])[:, 0]).all()  # no target
+
+
+def test_a_delay_below_one_step_is_no_difference_and_a_diverged_worst_case_is_red():
+    """A re-check: at the calibrated threshold the χ² test was one step late in one of 243
+    episodes (0.004 s) beside detectors of delay 0, and was painted red; a diverged worst
+    state error was left uncoloured ('—')."""
+    from difffilter.eval.leaderboard import cell_goodness
+
+    delays = np.array([[0.0], [0.00412], [0.0082], [1.0], [9.0]])
+    good = cell_goodness(delays, ["a"] * 5, ["detection_delay_at_far_s"],
+                         steps_s=np.full(5, 1.0))[:, 0]  # fmt: skip
+    assert good[0] == 1 and good[1] > 0.99 and good[2] > 0.99  # within a step of the best
+    assert 0.6 < good[3] < 0.8 and good[4] == 0  # one step late: log10(2); ten: red
+    worst = np.array([[1.2], [np.inf], [3.0]])
+    good = cell_goodness(worst, ["a"] * 3, ["worst_state_error_ratio"])[:, 0]
+    assert good[0] == 1 and good[1] == 0
+
+
+def test_a_diverged_worst_case_reads_diverged_in_the_robustness_leaderboard():
+    from difffilter.eval.leaderboard import leaderboard_rows
+
+    doc = {"estimators": {"mine": {}, "kf": {}}, "far": {"target": 0.01}, "dt_s": 1.0,
+           "worst_case": {"mine": {"state_error_ratio": None, "state_error_ratio_diverged": True,
+                                   "state_error_ratio_threat": "bias"},
+                          "kf": {"state_error_ratio": 2.0}}}  # fmt: skip
+    rows = {r["estimator"]: r for r in leaderboard_rows({"s": doc})}
+    assert rows["mine"]["worst_state_error_ratio"] == math.inf
+    assert rows["mine"]["worst_state_error_ratio_diverged"] is True
+    assert rows["kf"]["worst_state_error_ratio"] == 2.0

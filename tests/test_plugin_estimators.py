@@ -62,3 +62,30 @@ def test_an_output_that_does_not_fit_the_study_is_named_and_a_diverged_one_warne
     with pytest.warns(UserWarning, match="NaN or infinite at 1 of 15 run-steps"):
         _check_fits("mine", "plant", EstimatorOutput(diverged), traj)
     _check_fits("mine", "plant", EstimatorOutput(x), traj)  # fits: silent
+
+
+def test_a_plugin_whose_own_import_fails_names_the_missing_module(tmp_path, monkeypatch, capsys):
+    """A re-check: found in the working folder, a module importing a missing package was
+    reported as missing itself."""
+    (tmp_path / "my_broken_plugin.py").write_text("import not_installed_pkg_xyz\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    with pytest.raises(SystemExit):
+        eval_main(["--import", "my_broken_plugin", "--list"])
+    assert "not_installed_pkg_xyz" in capsys.readouterr().err
+    sys.modules.pop("my_broken_plugin", None)
+
+
+def test_a_nan_attack_estimate_is_warned_too():
+    import torch
+
+    from difffilter.estimator import EstimatorOutput
+    from difffilter.eval.suite import _check_fits
+    from difffilter.loop import Trajectories
+
+    x = torch.zeros(2, 3, 1, dtype=torch.float64)
+    traj = Trajectories(x, x, x, None, None, x, torch.zeros(2, 3, dtype=torch.bool), {})
+    attack = x.clone()
+    attack[1, 1] = float("nan")
+    with pytest.warns(UserWarning, match="its attack estimate is NaN or infinite at 1 of 6"):
+        _check_fits("mine", "plant", EstimatorOutput(x, attack=attack), traj)
