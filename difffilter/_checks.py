@@ -517,7 +517,7 @@ def check_one_model(model, what: str, instead: str) -> None:
     for method, k in (("process_cov", 0), ("measurement_cov", 1)):
         if varying is not None and varying(method):  # a covariance per run from an override
             cov = getattr(model, method)(k)
-            if isinstance(cov, Tensor) and cov.dim() > 2:
+            if isinstance(cov, Tensor) and cov.shape[:-2].numel() > 1:  # ([1, d, d]: one)
                 own = broadcast_or_none(own, cov.shape[:-2]) or cov.shape[:-2]
     if own:  # (raw shape errors in torch, or particles of the wrong shape, before; a per-run
         # covariance from an override was applied along the particles where N = B)

@@ -350,19 +350,23 @@ def _model_tensors(model) -> tuple:
 
 
 def _forward_traced(model, ys: Tensor, us: Tensor | None) -> bool:
-    """Whether forward-mode AD or a ``torch.func`` transform traces this call while no
-    tensor requires a gradient at the innermost level (:func:`~difffilter.linalg.
-    under_transform`; ``jvp``, ``jacfwd``, a ``grad`` over a ``jvp``): the shared-covariance
-    path would take its no-gradient branch, which writes into preallocated tensors (forward
-    mode cannot follow them) and computes the covariances without a graph (an outer reverse
-    level would lose them). Under ``grad``/``jacrev`` innermost the tensors require a
-    gradient and the path's own gradient branch serves them."""
+    """Whether forward-mode AD or a ``torch.func`` transform traces this call in a way the
+    shared-covariance path cannot serve (:func:`~difffilter.linalg.under_transform`). That
+    path keeps a graph only where grad mode is on and its inputs require a gradient, and
+    otherwise writes into preallocated tensors (forward mode cannot follow them) and
+    computes the covariances without a graph (an outer level would lose them): it serves a
+    traced call only under reverse-mode transforms alone (``grad``, ``jacrev``, nested or
+    not) with grad mode on; a dual level, ``jvp``, ``jacfwd``, ``vmap``, any mix of them
+    with ``grad``, or a transform under ``no_grad`` step through."""
     if not under_transform():  # no transform, no dual level: the model is not looked at
         return False
-    tensors = (ys, us, *_model_tensors(model))
-    return under_transform(*tensors) and not any(
-        isinstance(t, Tensor) and t.requires_grad for t in tensors
+    if not under_transform(ys, us, *_model_tensors(model)):
+        return False  # traced elsewhere: none of this call's tensors carries a derivative
+    stack = torch._C._functorch.get_interpreter_stack() or ()
+    reverse_only = torch.autograd.forward_ad._current_level < 0 and all(
+        level.key() == torch._C._functorch.TransformType.Grad for level in stack
     )
+    return not (reverse_only and torch.is_grad_enabled())
 
 
 def _live(carry: GaussianState) -> GaussianState:

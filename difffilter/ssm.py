@@ -170,11 +170,13 @@ class StateSpaceModel(nn.Module):
         try:
             return Gaussian(noise.loc, getattr(self, cov_method)(k))
         except ValueError as exc:  # (it said "cov must be …", naming neither method nor step)
+            singular = ("; a singular covariance runs in the Kalman filters but cannot be "
+                        "drawn from: override sample_transition, sample_measurement and "
+                        "measurement_log_prob for it"
+                        if "positive definite" in str(exc) else "")  # fmt: skip
             raise ValueError(
                 f"{type(self).__name__}.{cov_method}({k}) (what simulate and the particle "
-                f"filters draw and weigh with): {exc}; a singular covariance runs in the "
-                "Kalman filters but cannot be drawn from: override sample_transition, "
-                "sample_measurement and measurement_log_prob for it"
+                f"filters draw and weigh with): {exc}{singular}"
             ) from exc
 
     def sample_initial(self, sample_shape=(), generator: torch.Generator | None = None) -> Tensor:
@@ -277,39 +279,46 @@ def wrapped_spread(model, points: Tensor, weights: Tensor,
     (sigma points' or particles') and their deviations ``[..., n, dy]`` for a model whose
     ``measurement_residual`` wraps angles, under ``weights [..., n]`` (summing to 1).
 
-    Residuals about a start ``c`` are averaged, ``ŷ = c + Σᵢ wᵢ r(pᵢ, c)``, and the mean is
-    taken again about ``ŷ`` (:data:`RECENTRING_PASSES` times: a start in the tail wraps the
-    far points the wrong way, and each pass moves it to the middle); the deviations are
-    ``r(pᵢ, ŷ)``. The start is ``centre [..., dy]`` where given (the UKF's centre sigma
-    point: the points lie symmetric about it); otherwise both the plain weighted mean
-    (right wherever nothing wraps) and the point of largest weight (right for a cloud that
-    straddles ±π, where the plain mean lies across the circle) are tried, and the mean of
-    the smaller weighted spread ``Σᵢ wᵢ ‖r(pᵢ, ŷ)‖²`` is kept, per run. The plain
-    ``Σᵢ wᵢ pᵢ`` of bearings on both sides of ±π lies near 0: the UKF's innovation
-    covariance made from it was 5.4 rad² where 0.005 was right (a trial). Models with the
-    plain residual (:func:`plain_residual`) keep the filters' plain sums."""
+    Where no deviation from the plain weighted mean wraps (the residual equals the plain
+    difference), that mean is it (two residual calls). Otherwise residuals about a start
+    ``c`` are averaged, ``ŷ = c + Σᵢ wᵢ r(pᵢ, c)``, and the mean is taken again about ``ŷ``
+    (:data:`RECENTRING_PASSES` times: a start in the tail wraps the far points the wrong
+    way, and each pass moves it to the middle); the deviations are ``r(pᵢ, ŷ)``. The starts
+    are ``centre [..., dy]`` where given (the UKF's centre sigma point: the points lie
+    symmetric about it), else both the plain weighted mean (right wherever nothing wraps)
+    and the point of largest weight (right for a cloud that straddles ±π, where the plain
+    mean lies across the circle), keeping per run and component the mean of the smaller
+    weighted spread ``Σᵢ wᵢ r(pᵢ, ŷ)²``. The plain ``Σᵢ wᵢ pᵢ`` of bearings on both sides of
+    ±π lies near 0: the UKF's innovation covariance made from it was 5.4 rad² where 0.005
+    was right (a trial). Models with the plain residual (:func:`plain_residual`) keep the
+    filters' plain sums."""
     weights = weights.expand(points.shape[:-1])
     w_row = weights.unsqueeze(-2)  # [..., 1, n]
+    plain = (w_row @ points).squeeze(-2)
+    dev = model.measurement_residual(points, plain.unsqueeze(-2))
+    diff = points - plain.unsqueeze(-2)
+    if bool(((dev - diff).abs() <= 1e-9 * (1.0 + diff.abs())).all()):  # nothing wrapped
+        return plain, dev
     if centre is not None:
         starts = [centre]
     else:
         top = weights.argmax(-1, keepdim=True).unsqueeze(-1)  # [..., 1, 1]
-        starts = [(w_row @ points).squeeze(-2),
-                  torch.take_along_dim(points, top, dim=-2).squeeze(-2)]  # fmt: skip
+        starts = [plain, torch.take_along_dim(points, top, dim=-2).squeeze(-2)]
     best = None
     for mean in starts:
         for _ in range(1 + RECENTRING_PASSES):
             about = model.measurement_residual(points, mean.unsqueeze(-2))
             mean = mean + (w_row @ about).squeeze(-2)
         dev = model.measurement_residual(points, mean.unsqueeze(-2))
+        spread = (w_row @ dev.square()).squeeze(-2)  # [..., dy]: per component
         if best is None:
-            best = (mean, dev)
+            best = (mean, dev, spread)
             continue
-        spread = (w_row @ dev.square().sum(-1, keepdim=True)).squeeze(-1).squeeze(-1)
-        kept = (w_row @ best[1].square().sum(-1, keepdim=True)).squeeze(-1).squeeze(-1)
-        closer = (spread < kept)[..., None]
-        best = (torch.where(closer, mean, best[0]), torch.where(closer[..., None], dev, best[1]))
-    return best
+        closer = spread < best[2]
+        best = (torch.where(closer, mean, best[0]),
+                torch.where(closer.unsqueeze(-2), dev, best[1]),
+                torch.where(closer, spread, best[2]))  # fmt: skip
+    return best[0], best[1]
 
 
 class LinearGaussianModel(StateSpaceModel):

@@ -261,7 +261,8 @@ def _heatmaps(path: Path, rows: list[dict[str, Any]], units: dict[str, str]) -> 
     ax.set_xticks(range(len(cols)), [f"{m}\n[{unit}]" for m, unit in units.items()])
     ax.tick_params(labelsize=6, top=True, labeltop=True, bottom=False, labelbottom=False)
     ax.set_title("green: the best of its scenario (of the estimators not marked oracle or "
-                 "reference); red: 10× it (0.1 below: AUC, TPR);\nwhite: no value, or a "
+                 "reference); red: 10× it (0.1 below: AUC, TPR; a delay: 10 steps behind);\n"
+                 "fpr_at_far: green inside [α/2, 2α], red 10× outside; white: no value, or a "
                  f"detection rate no estimator of the scenario lifts above {UNDETECTED:g}",
                  fontsize=7)  # fmt: skip
     fig.savefig(path, dpi=130, bbox_inches="tight")

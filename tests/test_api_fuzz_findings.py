@@ -276,3 +276,25 @@ def test_what_takes_one_model_refuses_a_sweep_clearly_and_the_adaptive_kf_takes_
     shared = fdi.adaptive_kalman_filter(swept, ys)
     each = fdi.adaptive_kalman_filter(swept, ys.expand(3, 10, 1))
     torch.testing.assert_close(shared.means, each.means)
+
+
+def test_a_covariance_override_of_one_element_batch_is_one_model_and_init_batches_are_named():
+    """A second review: an override returning [1, d, d] was refused as a sweep; the adaptive
+    KF's init with runs that do not fit the model's sets raised a raw torch error."""
+
+    class OneSet(df.LinearGaussianModel):
+        time_varying = True
+
+        def process_cov(self, k):
+            return (0.1 * EYE).unsqueeze(0)
+
+    model = OneSet(0.9 * EYE, H, 0.1 * EYE, torch.eye(1, dtype=F64), torch.zeros(2, dtype=F64),
+                   EYE)  # fmt: skip
+    out = df.particle_filter(model, _data(3, 6, 1), num_particles=50,
+                             generator=torch.Generator().manual_seed(0))  # fmt: skip
+    assert torch.isfinite(out.log_likelihood).all()
+    swept = df.LinearGaussianModel(0.9 * EYE, H, 0.1 * EYE, torch.eye(1, dtype=F64),
+                                   torch.zeros(2, dtype=F64), EYE.expand(3, 2, 2),
+                                   B=torch.tensor([[0.0], [0.1]], dtype=F64))  # fmt: skip
+    with pytest.raises(ValueError, match=r"batch_shape \(4,\) does not broadcast"):
+        fdi.AdaptiveKalmanFilter().init(swept, (4,))

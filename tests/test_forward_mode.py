@@ -14,7 +14,7 @@ import difffilter as df
 F64 = torch.float64
 
 
-def _log_likelihood(theta, ys, method="sequential"):
+def _log_likelihood(theta, ys, method="sequential", mask=None):
     """Total log-likelihood of a 2-state model whose ``F[0, 1]``, ``q`` and ``r`` are
     ``theta``: a time-invariant model of shared matrices, the default path's case."""
     F = torch.eye(2, dtype=F64) + theta[0] * torch.tensor([[0.0, 1.0], [0.0, 0.0]], dtype=F64)
@@ -22,7 +22,7 @@ def _log_likelihood(theta, ys, method="sequential"):
     R = theta[2] * torch.eye(1, dtype=F64)
     H = torch.tensor([[1.0, 0.0]], dtype=F64)
     model = df.LinearGaussianModel(F, H, Q, R, torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64))
-    return df.kalman_filter(model, ys, method=method).log_likelihood.sum()
+    return df.kalman_filter(model, ys, method=method, mask=mask).log_likelihood.sum()
 
 
 @pytest.fixture
@@ -90,3 +90,61 @@ def test_second_derivatives_through_torch_func_equal_reverse_over_reverse(data):
         torch.testing.assert_close(got, hessian, rtol=1e-9, atol=1e-9, msg=name)
     hvp = grad(lambda t: jvp(ll, (t,), (DIRECTION,))[1])(THETA)
     torch.testing.assert_close(hvp, hessian @ DIRECTION, rtol=1e-9, atol=1e-9)
+
+
+def test_forward_mode_under_no_grad_and_beside_tensors_that_require_grad(data):
+    """A second review: with the shared path kept wherever any input required a gradient,
+    a dual or jvp under no_grad, a jvp over parameters of data that requires a gradient,
+    and a grad over a jvp raised (mm out=). Each is checked against the same call with an
+    all-true mask, which steps through."""
+    from torch.func import grad, jvp
+
+    ys, mask = data[:2, :12], torch.ones(2, 12, 1, dtype=torch.bool)
+    dys = torch.randn(ys.shape, generator=torch.Generator().manual_seed(5), dtype=F64)
+    theta = THETA.clone().requires_grad_(True)
+
+    def trained(**kw):  # a model built with grad on, its F, Q, R requiring a gradient
+        return lambda y: _log_likelihood(theta, y, **kw)
+
+    def under_no_grad(**kw):
+        with torch.no_grad(), fwAD.dual_level():
+            dual = trained(**kw)(fwAD.make_dual(ys, dys))
+            return fwAD.unpack_dual(dual).tangent
+
+    def jvp_no_grad(**kw):
+        with torch.no_grad():
+            return jvp(trained(**kw), (ys,), (dys,))[1]
+
+    y_rg = ys.clone().requires_grad_(True)
+    cases = {
+        "dual under no_grad": under_no_grad,
+        "jvp under no_grad": jvp_no_grad,
+        "jvp beside data requiring grad": lambda **kw: jvp(
+            lambda t: _log_likelihood(t, y_rg, **kw), (THETA,), (DIRECTION,))[1],
+        "grad of jvp": lambda **kw: (grad(lambda y: jvp(
+            lambda t: _log_likelihood(t, y, **kw), (THETA,), (DIRECTION,))[1])(ys) * dys).sum(),
+    }  # fmt: skip
+    for name, f in cases.items():
+        torch.testing.assert_close(f(), f(mask=mask), rtol=1e-10, atol=1e-10, msg=name)
+
+
+def test_nested_reverse_transforms_keep_the_shared_path_and_are_right(data):
+    from torch.func import jacrev
+
+    from difffilter import kalman
+
+    ys = data[:2, :15]
+
+    def ll(t):
+        return _log_likelihood(t, ys)
+
+    hessian = torch.autograd.functional.hessian(ll, THETA)
+    torch.testing.assert_close(jacrev(jacrev(ll))(THETA), hessian, rtol=1e-9, atol=1e-9)
+    seen = []
+    original = kalman.shared_covariance_kalman_filter
+    try:
+        kalman.shared_covariance_kalman_filter = lambda *a: seen.append(1) or original(*a)
+        torch.func.grad(ll)(THETA)
+    finally:
+        kalman.shared_covariance_kalman_filter = original
+    assert seen  # first-order grad: the fast path (2x the time otherwise)

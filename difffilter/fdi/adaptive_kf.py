@@ -45,6 +45,7 @@ from .._checks import (
     check_carry_tensor,
     check_finite,
     check_finite_number,
+    check_model_batch,
     check_rate,
     check_vector_last,
     model_batch_shape,
@@ -178,6 +179,7 @@ def adaptive_kalman_init(
     (``attack_cov0 = ω ≥ 0``), ``Υ_0 = 0``; shapes ``[*batch_shape, ·]``, broadcast with
     the model's parameter sets (a prior per run on one shared sequence: B runs)."""
     m0, p0 = model.initial.mean, model.initial.cov
+    check_model_batch(model, torch.Size(batch_shape), "batch_shape")
     batch = torch.broadcast_shapes(torch.Size(batch_shape), model_batch_shape(model))
     dx, da = model.dim_x, model.dim_u
     mean = m0.expand(batch + (dx,))
