@@ -432,13 +432,11 @@ def _check_us(model, us, batch: torch.Size, num_steps: int | None, dtype, device
         raise ValueError(f"us must have T = {num_steps} steps, one per measurement; "
                          f"got {us.shape[-2]}")  # fmt: skip
     lead = us.shape[:-2] if seq else us.shape[:-1]
-    try:
-        torch.broadcast_shapes(lead, batch)
-    except RuntimeError as exc:
+    if broadcast_or_none(lead, batch) is None:
         of = "ys" if seq else "y"
         raise ValueError(
             f"{name}'s batch shape {tuple(lead)} does not broadcast with {of}'s {tuple(batch)}"
-        ) from exc
+        )
     if values_known(us) and not bool(torch.isfinite(us).all()):
         raise ValueError(f"{name} contains NaN or Inf values; every input must be finite")
     return us
@@ -527,18 +525,19 @@ def check_one_model(model, what: str, instead: str) -> None:
         )
 
 
-def check_model_batch(model, batch: torch.Size, what: str) -> None:
+def check_model_batch(model, batch: torch.Size, what: str) -> torch.Size:
     """``batch`` (the runs' batch shape, from ``what``) broadcasts with the model's own
     (:func:`model_batch_shape`): a model of 3 parameter sets given 4 runs failed deep in
-    torch ("The size of tensor a (3) must match …")."""
+    torch ("The size of tensor a (3) must match …"). Returns the runs: their broadcast (a
+    model of B parameter sets makes B runs of one shared sequence)."""
     own = model_batch_shape(model)
-    try:
-        torch.broadcast_shapes(own, torch.Size(batch))
-    except RuntimeError:
+    runs = broadcast_or_none(own, torch.Size(batch))
+    if runs is None:
         raise ValueError(
             f"{what} {tuple(batch)} does not broadcast with the batch shape {tuple(own)} of the "
             "model's parameters (one set per run): give one model for all runs, or one per run"
-        ) from None
+        )
+    return runs
 
 
 def check_filter_inputs(

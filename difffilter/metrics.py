@@ -107,14 +107,15 @@ def roc_curve(
     no denominator stays 0),
     computed in float64. Ties are grouped, so the curve is exact for discrete scores.
     """
+    _check_scores(scores, labels, valid)
     tp, fp, thr, pos, neg = _roc_counts(scores, labels, valid)
     return fp / neg.clamp_min(1), tp / pos.clamp_min(1), thr
 
 
 def _roc_counts(scores: Tensor, labels: Tensor, valid: Tensor | None = None):
     """``(tp [M], fp [M], thresholds [M], positives, negatives)``: the true- and false-alarm
-    counts of :func:`roc_curve`'s points (float64, exact integers), from (0, 0)."""
-    _check_scores(scores, labels, valid)
+    counts of :func:`roc_curve`'s points (float64, exact integers), from (0, 0); the
+    callers check the inputs (:func:`_check_scores`)."""
     v = _valid(scores, valid)
     s = scores[v].double().flatten()
     y = labels.bool().expand(scores.shape)[v].flatten()

@@ -244,8 +244,7 @@ class Gaussian(NoiseModel):
         covariance per run: ``[B, d, d]`` for draws ``[B, d]``): ``μ + L ε``. ``sample``
         would prepend its shape to the batch instead."""
         shape = torch.Size(shape)
-        L = self.scale_tril
-        batch = torch.broadcast_shapes(self.loc.shape[:-1], L.shape[:-2])
+        L, batch = self.scale_tril, self.batch_shape
         if broadcast_or_none(shape[:-1], batch) != shape[:-1] or shape[-1:] != (self.dim,):
             raise ValueError(
                 f"this Gaussian has a covariance per run (batch {tuple(batch)}), which does not "

@@ -30,7 +30,6 @@ from ._checks import (
     check_positive_int,
     check_square,
     check_vector_last,
-    model_batch_shape,
     model_dtype_device,
 )
 from .linalg import matvec, rowwise
@@ -247,9 +246,8 @@ class StateSpaceModel(nn.Module):
         batch_shape = torch.Size(
             batch_shape if not isinstance(batch_shape, int) else (batch_shape,)
         )
-        check_model_batch(self, batch_shape, "batch_shape")  # one parameter set per run
         # the runs: a model of B parameter sets simulates B runs (as the filters read it)
-        batch_shape = torch.broadcast_shapes(batch_shape, model_batch_shape(self))
+        batch_shape = check_model_batch(self, batch_shape, "batch_shape")
         if us is not None:  # ignored before on a model without input; a short one raised late
             dtype, device = model_dtype_device(self)
             us = _check_us(self, us, batch_shape, num_steps, dtype, device)

@@ -241,7 +241,7 @@ def _heatmaps(path: Path, rows: list[dict[str, Any]], units: dict[str, str]) -> 
     with its value and coloured by :func:`cell_goodness`."""
     cols = list(units)
     grid = np.array([[np.nan if r.get(m) is None else r[m] for m in cols] for r in rows], float)
-    grid[np.isnan(grid) | np.isneginf(grid)], scenarios = np.nan, [r["scenario"] for r in rows]
+    grid[np.isneginf(grid)], scenarios = np.nan, [r["scenario"] for r in rows]  # (+inf: diverged)
     fig, ax = plt.subplots(figsize=(1.1 * len(cols) + 3, 0.2 * len(rows) + 1.2))
     ranked = np.array([r.get("role") not in UNRANKED for r in rows])
     cmap = plt.get_cmap("RdYlGn").with_extremes(bad="white")

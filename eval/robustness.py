@@ -217,7 +217,7 @@ class RobustnessResult:
         """The threats that attacked no run, or injected nothing where they flagged steps:
         left out of the worst case and the acceptance (a 50 % draw that attacked none of 3
         runs was counted as a threat the learned estimator withstood)."""
-        return [t for t, a in self.activity.items() if not (a["attacked_runs"] and a["injected"])]
+        return [t for t, a in self.activity.items() if _idle(a)]
 
     def acting(self, table: dict[str, Any]) -> dict[str, Any]:
         """``table`` (``{threat: …}``) without the :meth:`idle` threats."""
@@ -278,6 +278,12 @@ def _activity(traj) -> dict[str, Any]:
     injected = bool(flags.any()) and bool((traj.attack[flags] != 0).any())
     return {"attacked_runs": int(flags.any(-1).sum()), "runs": int(flags.shape[0]),
             "attacked_steps": int(flags.sum()), "injected": injected}  # fmt: skip
+
+
+def _idle(activity: dict[str, Any]) -> bool:
+    """Whether a threat of :func:`_activity` did not act: no run attacked, or nothing
+    injected where it flagged steps."""
+    return not (activity["attacked_runs"] and activity["injected"])
 
 
 def _idle_text(activity: dict[str, Any]) -> str:
@@ -419,8 +425,7 @@ def _markdown(doc: dict, sc) -> str:
     below = below_target_note(far)
     if below:
         parts.append(f"{below}\n")
-    idle = {t: a for t, a in (doc.get("threat_activity") or {}).items()
-            if not (a["attacked_runs"] and a["injected"])}  # fmt: skip
+    idle = {t: a for t, a in (doc.get("threat_activity") or {}).items() if _idle(a)}
     if idle:
         parts.append("Left out of the worst case and the acceptance, as threats that did not act "
                      "on these runs: " + "; ".join(f"`{t}` {_idle_text(a)}" for t, a in idle.items())

@@ -200,8 +200,10 @@ def test_metrics_of_mismatched_shapes_are_named():
     with pytest.raises(ValueError, match="leading dimensions"):
         fdi.normalized_innovation_squared(torch.zeros(3, 5, 1, dtype=F64),
                                           torch.ones(4, 5, 1, 1, dtype=F64))  # fmt: skip
-    # labels for every run at once still broadcast
-    metrics.detection_rates(s > 0, y[:1])
+    # labels for every run at once still broadcast: the rates of the expanded labels
+    assert metrics.detection_rates(s > 0, y[:1]) == metrics.detection_rates(
+        s > 0, y[:1].expand(3, 17)
+    )
 
 
 # -- from a nonlinear-filtering trial ----------------------------------------------------
@@ -292,7 +294,9 @@ def test_a_covariance_override_of_one_element_batch_is_one_model_and_init_batche
                    EYE)  # fmt: skip
     out = df.particle_filter(model, _data(3, 6, 1), num_particles=50,
                              generator=torch.Generator().manual_seed(0))  # fmt: skip
-    assert torch.isfinite(out.log_likelihood).all()
+    plain = df.particle_filter(_model(), _data(3, 6, 1), num_particles=50,
+                               generator=torch.Generator().manual_seed(0))  # fmt: skip
+    torch.testing.assert_close(out.log_likelihood, plain.log_likelihood)  # the same one model
     swept = df.LinearGaussianModel(0.9 * EYE, H, 0.1 * EYE, torch.eye(1, dtype=F64),
                                    torch.zeros(2, dtype=F64), EYE.expand(3, 2, 2),
                                    B=torch.tensor([[0.0], [0.1]], dtype=F64))  # fmt: skip

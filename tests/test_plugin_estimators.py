@@ -61,7 +61,11 @@ def test_an_output_that_does_not_fit_the_study_is_named_and_a_diverged_one_warne
     diverged[0, 2] = float("nan")
     with pytest.warns(UserWarning, match="NaN or infinite at 1 of 15 run-steps"):
         _check_fits("mine", "plant", EstimatorOutput(diverged), traj)
-    _check_fits("mine", "plant", EstimatorOutput(x), traj)  # fits: silent
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # fits and finite: no error, no warning
+        _check_fits("mine", "plant", EstimatorOutput(x), traj)
 
 
 def test_a_plugin_whose_own_import_fails_names_the_missing_module(tmp_path, monkeypatch, capsys):

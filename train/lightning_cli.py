@@ -208,7 +208,8 @@ def _check_resumed_settings(ckpt, model, datamodule) -> None:
     neither half."""
     if not ckpt or not Path(ckpt).is_file():
         return  # none, or a name Lightning resolves ("last"): it names a missing one itself
-    saved = torch.load(ckpt, map_location="cpu", weights_only=True)
+    # (mapped, not read: the settings are all it needs of a file holding the weights)
+    saved = torch.load(ckpt, map_location="cpu", weights_only=True, mmap=True)
     changed = []
     for what, module, key in (("model", model, "hyper_parameters"),
                               ("data", datamodule, "datamodule_hyper_parameters")):  # fmt: skip

@@ -42,13 +42,13 @@ from torch import Tensor
 
 from .._checks import (
     as_tensor,
+    broadcast_or_none,
     check_carry_tensor,
     check_finite,
     check_finite_number,
     check_model_batch,
     check_rate,
     check_vector_last,
-    model_batch_shape,
 )
 from ..estimator import Estimator, EstimatorOutput
 from ..gaussian import joseph_covariance, kalman_gain, predict_covariance
@@ -179,8 +179,7 @@ def adaptive_kalman_init(
     (``attack_cov0 = ω ≥ 0``), ``Υ_0 = 0``; shapes ``[*batch_shape, ·]``, broadcast with
     the model's parameter sets (a prior per run on one shared sequence: B runs)."""
     m0, p0 = model.initial.mean, model.initial.cov
-    check_model_batch(model, torch.Size(batch_shape), "batch_shape")
-    batch = torch.broadcast_shapes(torch.Size(batch_shape), model_batch_shape(model))
+    batch = check_model_batch(model, torch.Size(batch_shape), "batch_shape")
     dx, da = model.dim_x, model.dim_u
     mean = m0.expand(batch + (dx,))
     cov = p0.expand(batch + (dx, dx))
@@ -191,11 +190,10 @@ def adaptive_kalman_init(
         attack0 = as_tensor(attack0, "attack0", dtype=m0.dtype, device=m0.device)
         check_vector_last(attack0, "attack0", da)  # θ has the input's dimension
         check_finite(attack0, "attack0")
-        try:
-            attack = attack0.expand(batch + (da,))
-        except RuntimeError:
+        if broadcast_or_none(attack0.shape, batch + (da,)) != batch + (da,):
             raise ValueError(f"attack0 {tuple(attack0.shape)} must be [{da}] or one per run "
-                             f"[*{tuple(batch)}, {da}]") from None  # fmt: skip
+                             f"[*{tuple(batch)}, {da}]")  # fmt: skip
+        attack = attack0.expand(batch + (da,))
     s0 = omega * torch.eye(da, dtype=m0.dtype, device=m0.device)
     sens = m0.new_zeros(batch + (dx, da))
     return AdaptiveKFState(mean, cov, attack, s0.expand(batch + (da, da)), sens, 0, model)

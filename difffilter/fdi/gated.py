@@ -30,7 +30,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from .._checks import check_one_model, model_batch_shape
+from .._checks import check_model_batch, check_one_model
 from ..estimator import Estimator, EstimatorOutput
 from ..extended import ExtendedKalmanFilter
 from ..kalman import GaussianFilter
@@ -118,7 +118,7 @@ class GatedFilter(Estimator):
         inner = self.filter._init(model, batch_shape, generators)
         dtype, device = inner.mean.dtype, inner.mean.device
         # one window per run: a model with a parameter set per run makes runs of unbatched ys
-        runs = torch.broadcast_shapes(torch.Size(batch_shape), model_batch_shape(model))
+        runs = check_model_batch(model, torch.Size(batch_shape), "batch_shape")
         return GatedState(inner, self.detector.init(runs, dtype=dtype, device=device), model)
 
     def _check_carry(self, carry):
