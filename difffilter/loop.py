@@ -51,7 +51,13 @@ from typing import Any, NamedTuple, Protocol
 import torch
 from torch import Tensor
 
-from ._checks import NonFinite, broadcast_or_none, check_model, check_sequence_inputs
+from ._checks import (
+    NonFinite,
+    broadcast_or_none,
+    check_model,
+    check_model_batch,
+    check_sequence_inputs,
+)
 from .attack import Attack, Channel, TabulatedAttack, attack_dim, inject
 from .estimator import Estimator, EstimatorOutput, Generators, stack_steps
 
@@ -709,6 +715,14 @@ def _start(plant, steps, horizon, x0, estimator, model, controller, attack, atta
     if horizon is not None and horizon < steps:
         raise ValueError(f"horizon (the whole loop's T) must be >= steps={steps}; got {horizon!r}")
     steps = horizon or steps
+    _check_controller(controller)
+    # the runs: x0's broadcast with a sweep's parameter sets (x0 [1, dx] on a plant of 3 sets
+    # makes 3 runs), so the controller, the attack and the estimator start with every run
+    # (the controller's u_0 of x0's one run failed in a torch stack after the last step)
+    runs = check_model_batch(plant, x0.shape[:-1], "x0's runs")
+    x0 = x0.expand(*runs, plant.dim_x) if runs != x0.shape[:-1] else x0
+    if estimator is not None:
+        _check_estimator_model(model, plant, controller, runs)
     batch, dtype, device = x0.shape[:-1], x0.dtype, x0.device
     u = None
     if controller is not None:
@@ -721,6 +735,40 @@ def _start(plant, steps, horizon, x0, estimator, model, controller, attack, atta
     if estimator is not None:
         carry = estimator._init(model, batch, Generators.of(generator))
     return LoopState(0, x0, u, a_state, carry, None)
+
+
+def _check_controller(controller) -> None:
+    """``controller`` is ``None`` or keeps the :class:`Controller` protocol (a plain function
+    or a gain tensor failed with "'function' object has no attribute 'init'")."""
+    if controller is None or (callable(getattr(controller, "init", None)) and callable(controller)):
+        return
+    raise TypeError(
+        "controller must be a difffilter.loop.Controller: an object with init(batch_shape, "
+        "dtype, device) -> u_0 [B, du] and __call__(k, y, out) -> u_k [B, du] (e.g. "
+        "difffilter.loop.KnownInputs(us), or a class of your own holding a gain K); got "
+        f"{type(controller).__name__}"
+    )
+
+
+def _check_estimator_model(model, plant, controller, runs: torch.Size) -> None:
+    """The estimator's model fits the loop: it measures the plant's entries, knows the
+    plant's inputs where a controller sets them, and takes its runs (a model of another
+    ``dim_y`` was fed a broadcast measurement and estimated silently wrong; one without an
+    input ignored every ``u``; one of another ``dim_u`` or ``dim_x`` failed inside torch)."""
+    if model is not plant:
+        check_model(model)
+    if model.dim_y != plant.dim_y:
+        raise ValueError(
+            f"model (the estimator's) measures {model.dim_y} entries and the plant "
+            f"{plant.dim_y}: the estimator receives the plant's measurements [B, {plant.dim_y}]"
+        )
+    if controller is not None and model.dim_u != plant.dim_u:
+        raise ValueError(
+            f"model (the estimator's) has {model.dim_u} input(s) (dim_u) and the plant "
+            f"{plant.dim_u}: the estimator is given the controller's u [B, {plant.dim_u}] at "
+            "every step (a model of the plant's inputs; B of the plant's shape)"
+        )
+    check_model_batch(model, runs, "the loop's runs (x0 broadcast with the plant's sets)")
 
 
 def _dtype_of(model) -> torch.dtype | None:

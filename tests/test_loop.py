@@ -523,3 +523,82 @@ def test_the_closed_loop_refuses_a_mask_or_dtypes_it_would_misread():
     noise = ReplayedNoise(torch.zeros(3, 5, 2), torch.zeros(3, 5, 2))
     with pytest.raises(ValueError, match="process noise is torch.float32, the loop's state"):
         closed_loop(model, 5, noise=noise, x0=x0)
+
+
+def test_the_closed_loop_refuses_an_estimator_model_that_does_not_fit_the_plant():
+    """From a closed-loop design trial: an estimator model of another ``dim_y`` was fed the
+    plant's one measurement broadcast into both entries (estimates 0.90 off, silently), one
+    without an input ignored every ``u`` (0.92 off), one of another ``dim_u`` failed inside
+    torch ("mat1 and mat2 shapes cannot be multiplied")."""
+    plant = _linear()
+    F, H, Q, R = plant.F, plant.H, plant.process_noise.cov, plant.measurement_noise.cov
+    x0 = plant.initial.mean.expand(2, 2).clone()
+
+    def loop(model):
+        return closed_loop(plant, 4, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                           estimator=df.KalmanFilter(), model=model, controller=_Feedback())  # fmt: skip
+
+    prior = (plant.initial.mean, plant.initial.cov)
+    one_sensor = df.LinearGaussianModel(F, H[:1], Q, R[:1, :1], *prior, B=plant.B)
+    with pytest.raises(ValueError, match="measures 1 entries and the plant 2"):
+        loop(one_sensor)
+    blind = df.LinearGaussianModel(F, H, Q, R, *prior)
+    with pytest.raises(ValueError, match=r"has 0 input\(s\) \(dim_u\) and the plant 1"):
+        loop(blind)
+    two_inputs = df.LinearGaussianModel(F, H, Q, R, *prior, B=plant.B.expand(2, 2))
+    with pytest.raises(ValueError, match=r"has 2 input\(s\)"):
+        loop(two_inputs)
+    sweep = df.LinearGaussianModel(F.expand(3, 2, 2), H, Q, R, *prior, B=plant.B)
+    with pytest.raises(
+        ValueError,
+        match=r"the loop's runs \(x0 broadcast.*\(2,\) does not "
+        r"broadcast with the batch shape \(3,\)",
+    ):
+        loop(sweep)
+    # without a controller the estimator gets no input: a model that knows none is right
+    free = closed_loop(plant, 4, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                       estimator=df.KalmanFilter(), model=blind)  # fmt: skip
+    assert free.output.means.shape == (2, 4, 2)
+
+
+def test_a_sweep_loop_from_one_initial_state_runs_one_loop_per_parameter_set():
+    """``x0 [1, dx]`` on a plant of 3 parameter sets with a controller ran every step and
+    failed in a torch stack at the end (the controller's ``u_0`` had x0's one run); it is
+    the loop from x0 repeated for every set, and a batch that fits neither is named."""
+    plant = _linear()
+    gains = torch.tensor([0.9, 1.0, 1.05], dtype=torch.float64)
+    sweep = df.LinearGaussianModel(plant.F * gains[:, None, None], plant.H,
+                                   plant.process_noise.cov, plant.measurement_noise.cov,
+                                   plant.initial.mean, plant.initial.cov, B=plant.B)  # fmt: skip
+    gen = torch.Generator().manual_seed(1)
+    noise = ReplayedNoise(0.03 * torch.randn(3, 5, 2, dtype=torch.float64, generator=gen),
+                          0.1 * torch.randn(3, 5, 2, dtype=torch.float64, generator=gen))  # fmt: skip
+    x0 = torch.tensor([[0.3, -0.2]], dtype=torch.float64)
+
+    def loop(x0):
+        return closed_loop(sweep, 5, noise=noise, x0=x0, estimator=df.KalmanFilter(),
+                           controller=_Feedback())  # fmt: skip
+
+    one, each = loop(x0), loop(x0.expand(3, 2).clone())
+    assert one.trajectories.x.shape == (3, 5, 2) and one.trajectories.us.shape == (3, 5, 1)
+    torch.testing.assert_close(one.trajectories.x, each.trajectories.x, rtol=0, atol=0)
+    torch.testing.assert_close(one.output.means, each.output.means, rtol=0, atol=0)
+    with pytest.raises(
+        ValueError,
+        match=r"x0's runs \(4,\) does not broadcast with the batch "
+        r"shape \(3,\)",
+    ):
+        loop(x0.expand(4, 2).clone())
+
+
+def test_the_closed_loop_names_a_controller_that_is_not_one():
+    """A plain function or a gain tensor as ``controller`` failed with "'function' object
+    has no attribute 'init'"."""
+    plant = _linear()
+    x0 = plant.initial.mean.expand(2, 2).clone()
+    for controller, name in ((lambda k, y, out: -out.mean[..., 1:], "function"),
+                             (torch.ones(1, 2, dtype=torch.float64), "Tensor")):  # fmt: skip
+        with pytest.raises(TypeError, match=rf"controller must be a difffilter.loop.Controller.*"
+                                            rf"got {name}"):  # fmt: skip
+            closed_loop(plant, 3, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                        estimator=df.KalmanFilter(), controller=controller)  # fmt: skip
