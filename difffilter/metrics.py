@@ -11,7 +11,7 @@ import math
 import torch
 from torch import Tensor
 
-from ._checks import broadcast_or_none
+from ._checks import broadcast_or_none, check_rate
 
 __all__ = [
     "rmse",
@@ -221,8 +221,12 @@ def threshold_for(scores: Tensor, far: float) -> float:
     discrete scores the rate may fall below ``α``. A NaN score (a step without data: no
     alarm possible) counts in ``n`` as the lowest score: the rate is over every step, so
     among the scored steps alone it is higher (``α / (1 − NaN share)``)."""
-    if not 0.0 < far < 1.0:
-        raise ValueError(f"far must lie in (0, 1); got {far!r}")
+    far = check_rate(far, "far")  # a string or NaN compared with 0 raised a TypeError
+    if not isinstance(scores, Tensor):  # a numpy array failed on its missing .double()
+        raise TypeError(
+            f"scores must be a torch.Tensor (torch.as_tensor(array) for a numpy array); got "
+            f"{type(scores).__name__}"
+        )
     s = finite_scores(scores)
     if s.numel() == 0:
         raise ValueError("scores must hold at least one attack-free step")

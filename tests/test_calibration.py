@@ -34,9 +34,11 @@ def test_the_threshold_lets_through_at_most_the_target_share_of_scores():
     assert tau == math.inf and float((three_inf > tau).double().mean()) == 0.0
     assert alarms_at(three_inf, tau).sum() == 0
     assert threshold_for(torch.tensor([-math.inf, -math.inf, 1.0]), 0.34) == -math.inf
-    for bad in (0.0, 1.0, -0.1):
-        with pytest.raises(ValueError, match="far must lie in"):
+    for bad in (0.0, 1.0, -0.1, "0.01", float("nan")):  # (a string raised a TypeError)
+        with pytest.raises(ValueError, match=r"far must be a false-alarm rate in \(0, 1\)"):
             threshold_for(scores, bad)
+    with pytest.raises(TypeError, match=r"scores must be a torch.Tensor \(torch.as_tensor"):
+        threshold_for(scores.numpy(), 0.01)  # (it failed on the array's missing .double())
     with pytest.raises(ValueError, match="at least one"):
         threshold_for(torch.zeros(0), 0.01)
 

@@ -22,7 +22,8 @@ def _two_states():
 
 
 def test_gated_filters_under_a_mask_equal_a_numpy_gated_kf():
-    """The χ² gate's quantile has the received count's degrees of freedom, CUSUM adds the
+    """The χ² gate's quantile has the received count's degrees of freedom (its score the
+    statistic's full-measurement equivalent), CUSUM adds the
     missing entries' (m − m_k) to g_k, and cusum_detector_for calibrates on the same: against
     a numpy gated Kalman filter (a mutation review found none of the three pinned)."""
 
@@ -53,7 +54,8 @@ def test_gated_filters_under_a_mask_equal_a_numpy_gated_kf():
             g = float(r @ np.linalg.solve(S, r))
             if kind == "chi2":
                 alarm = g > chi2.ppf(0.99, len(idx))
-                score = g
+                # the score: χ²_2's value of g's tail probability (one threshold, one rate)
+                score = g if len(idx) == 2 else float(chi2.isf(chi2.sf(g, len(idx)), 2))
             else:
                 S_c = max(0.0, S_c + g + (2 - len(idx)) - b)
                 score = S_c

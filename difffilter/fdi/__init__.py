@@ -28,7 +28,9 @@ from .attack_estimation import BiasAttackEstimator
 from .detectors import (
     ChiSquareDetector,
     CusumDetector,
+    chi_square_equivalent,
     chi_square_quantile,
+    missing_entries_counted,
     normalized_innovation_squared,
 )
 from .fused import FusedModifiedPF
@@ -87,7 +89,9 @@ __all__ = [
     "Residual",
     "ChiSquareDetector",
     "CusumDetector",
+    "chi_square_equivalent",
     "chi_square_quantile",
+    "missing_entries_counted",
     "normalized_innovation_squared",
     "gated_gaussian_filter",
     "cusum_detector_for",

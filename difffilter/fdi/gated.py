@@ -17,10 +17,12 @@ S_{k−1} + g_k − b)`` against ``τ``, reset after an alarm), both through the
 ``init``/``step`` methods.
 
 With a measurement ``mask`` only the received entries count: ``g_k`` then has
-``m_k = #received`` degrees of freedom. The χ² detector (window 1) compares it with the
-quantile for ``m_k``; for CUSUM, whose drift ``b`` is set for ``m`` degrees of freedom,
-``g_k + (m − m_k)`` keeps the attack-free mean at ``m`` (each missing entry counts its
-expectation, 1).
+``m_k = #received`` degrees of freedom. The χ² detector compares its window with the
+quantile of the degrees of freedom the window received and scores the statistic's
+full-window equivalent (:func:`~difffilter.fdi.detectors.chi_square_equivalent`), so
+the scores take one threshold for one false-alarm rate; for CUSUM, whose drift ``b`` is
+set for ``m`` degrees of freedom, ``g_k + (m − m_k)`` keeps the attack-free mean at ``m``
+(each missing entry counts its expectation, 1).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from .._checks import check_model_batch, check_one_model
+from .._checks import NonFinite, check_model_batch, check_one_model
 from ..estimator import Estimator, EstimatorOutput
 from ..extended import ExtendedKalmanFilter
 from ..kalman import GaussianFilter
@@ -41,6 +43,7 @@ from .detectors import (
     CusumDetector,
     _nis,
     chi_square_quantile,
+    missing_entries_counted,
     normalized_innovation_squared,
 )
 
@@ -101,7 +104,6 @@ class GatedFilter(Estimator):
                 f"ExtendedKalmanFilter(), UnscentedKalmanFilter()); got {type(filter).__name__}"
             )
         self.detector, self.filter, self.gate = detector, filter, bool(gate)
-        self._quantiles: dict = {}
 
     def batch_of(self, carry):
         return carry.inner.mean.shape[:-1]
@@ -124,32 +126,20 @@ class GatedFilter(Estimator):
     def _check_carry(self, carry):
         self.filter._check_carry(carry.inner)
 
-    def _chi2_quantiles(self, dim: int, like: Tensor) -> Tensor:
-        """The χ² quantile for each number of received entries ``0 … dim`` (0: never alarm)."""
-        key = (dim, like.dtype, like.device)
-        if key not in self._quantiles:
-            fa = 1.0 - self.detector.false_alarm_rate
-            q = [float("inf")] + [chi_square_quantile(m, fa) for m in range(1, dim + 1)]
-            self._quantiles[key] = torch.tensor(q, dtype=like.dtype, device=like.device)
-        return self._quantiles[key]
-
     def _detect(self, det_state, g: Tensor, mask: Tensor | None, dy: int):
         """``(detector state, score, alarm, threshold)`` of the step's NIS ``g [...]``."""
         det = self.detector
         if isinstance(det, ChiSquareDetector):
-            if mask is not None:  # one quantile per number of received entries
-                if det.window != 1:
-                    raise ValueError("a measurement mask needs a ChiSquareDetector with window=1")
-                threshold = self._chi2_quantiles(dy, g)[mask.sum(-1)]
-                return det_state, g, g > threshold, threshold
+            # under a mask the step judges the degrees of freedom received and scores the
+            # statistic's full-window equivalent (ChiSquareDetector.step): one threshold
             count = det_state[1]
             threshold = chi_square_quantile(
                 det.dim * min(count + 1, det.window), 1.0 - det.false_alarm_rate
             )
-            det_state, score, alarm = det.step(det_state, g)
+            det_state, score, alarm = det.step(det_state, g, mask)
             return det_state, score, alarm, threshold
         if mask is not None:  # CUSUM: missing entries count their mean (see module docs)
-            g = g + (dy - mask.sum(-1)).to(g.dtype)
+            g = missing_entries_counted(g, mask)
         det_state, score, alarm = det.step(det_state, g)
         return det_state, score, alarm, float(det.threshold)
 
@@ -183,6 +173,7 @@ def gated_gaussian_filter(
     detector: ChiSquareDetector | CusumDetector,
     filter: GaussianFilter | None = None,
     gate: bool = True,
+    nonfinite: NonFinite | str = NonFinite.RAISE,
 ) -> EstimatorOutput:
     """:class:`GatedFilter` on ``ys [..., T, dy]`` in the open loop.
 
@@ -192,16 +183,16 @@ def gated_gaussian_filter(
         detector: a :class:`ChiSquareDetector` or a calibrated :class:`CusumDetector`.
         filter: the Gaussian filter object (default :class:`~difffilter.ExtendedKalmanFilter`).
         gate: drop alarmed measurements (default) or only report the alarms.
+        nonfinite: ``"skip"`` treats non-finite entries of ``ys`` as not received
+            (:func:`difffilter.loop.open_loop`); ``"raise"`` (default) raises.
 
     Returns an :class:`~difffilter.EstimatorOutput` (``attack`` is ``None``; detection
-    scores = the detector statistic, threshold ``[..., T]`` for a windowed or masked
-    χ², else a number) with ``extras``: ``nis`` ``g_k`` ``[..., T]`` (and the filter's
-    stacked statistics).
+    scores = the detector statistic, under a mask the χ² window's full-window equivalent;
+    threshold ``[..., T]`` for a windowed χ², else a number) with ``extras``: ``nis``
+    ``g_k`` ``[..., T]`` (and the filter's stacked statistics).
     """
     gated = GatedFilter(detector, filter, gate=gate)
-    if mask is not None and isinstance(detector, ChiSquareDetector) and detector.window != 1:
-        raise ValueError("a measurement mask needs a ChiSquareDetector with window=1")
-    return open_loop(gated, model, ys, us, mask=mask)
+    return open_loop(gated, model, ys, us, mask=mask, nonfinite=nonfinite)
 
 
 def gated_extended_kalman_filter(
@@ -212,9 +203,11 @@ def gated_extended_kalman_filter(
     mask: Tensor | None = None,
     detector: ChiSquareDetector | CusumDetector,
     gate: bool = True,
+    nonfinite: NonFinite | str = NonFinite.RAISE,
 ) -> EstimatorOutput:
     """:func:`gated_gaussian_filter` with the EKF."""
-    return gated_gaussian_filter(model, ys, us, mask=mask, detector=detector, gate=gate)
+    return gated_gaussian_filter(model, ys, us, mask=mask, detector=detector, gate=gate,
+                                 nonfinite=nonfinite)  # fmt: skip
 
 
 def cusum_detector_for(
@@ -248,7 +241,7 @@ def cusum_detector_for(
     free = open_loop(filter, model, ys, us, mask=mask)
     g = normalized_innovation_squared(free.extras["innovations"], free.extras["innovation_covs"])
     if mask is not None:  # as in the gated filter: missing entries count their mean
-        g = g + (ys.shape[-1] - mask.sum(-1)).to(g.dtype)
+        g = missing_entries_counted(g, mask)
     detector = CusumDetector(ys.shape[-1] + 2.0 if bias is None else bias)
     detector.calibrate(g, false_alarm_rate)
     return detector
