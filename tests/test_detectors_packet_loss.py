@@ -175,3 +175,54 @@ def test_a_chi_square_detector_at_a_threshold_of_ones_own():
             ChiSquareDetector.at_threshold(4, bad)
     with pytest.raises(ValueError, match="window must be an integer"):
         ChiSquareDetector.at_threshold(4, 10.0, window=0)
+
+
+def test_an_overflowed_statistic_stays_beyond_every_threshold_under_a_mask():
+    """From the review: ``+inf`` (an overflowed νᵀS⁻¹ν, which the online step takes as an
+    alarm) mapped to NaN, the lowest score for the calibration and the ROC."""
+    g = torch.tensor([math.inf, 0.26, 3.0], dtype=F64, requires_grad=True)
+    x = chi_square_equivalent(g, torch.tensor([1.0, 1.0, 3.0]), 3)
+    assert x[0] == math.inf and not bool(x.isnan().any())
+    (grad,) = torch.autograd.grad(x[1:].sum(), g)
+    assert bool(grad.isfinite().all()) and grad[0] == 0
+    det = ChiSquareDetector(3, 0.01, window=2)
+    state = det.init((2,))
+    mask = torch.tensor([[True, False, False], [True, True, True]])
+    state, s, a = det.step(state, torch.tensor([math.inf, 1.0], dtype=F64), mask)
+    assert s[0] == math.inf and bool(a[0]) and not bool(s.isnan().any())
+    state, s, a = det.step(state, torch.tensor([1.0, 1.0], dtype=F64), mask)
+    assert s[0] == math.inf and bool(a[0])  # the window still holds it
+    with pytest.raises(ValueError, match=r"mask \[..., 3\] must be one row per run of g \(2,\)"):
+        det.step(state, torch.ones(2, dtype=F64), torch.ones(4, 2, 3, dtype=torch.bool))
+
+
+def test_a_detector_at_a_threshold_far_in_the_tail_keeps_it():
+    """From the review: the quantiles were ``ppf(1 − α)``, and ``1 − α`` keeps no digit of
+    α = 3e-17 (a threshold of 80 on χ²_3 raised "prob must lie in (0, 1)" at the first
+    step) and few of α = 4e-13 (60 read back as 59.99986)."""
+    for tau in (60.0, 80.0, 100.0):
+        det = ChiSquareDetector.at_threshold(3, tau)
+        assert det.threshold == pytest.approx(tau, rel=1e-12)
+        _, score, alarm = det.step(det.init((3,)), torch.tensor([tau - 1e-6, tau + 1e-6, 1.0],
+                                                                dtype=F64))  # fmt: skip
+        assert alarm.tolist() == [False, True, False]
+
+
+def test_a_state_made_before_masks_were_counted_still_steps():
+    """A ``(past, count)`` state (what ``init`` returned before, e.g. a saved gated carry)
+    steps as the state ``init`` makes now, with and without a mask."""
+    det = ChiSquareDetector(3, 0.05, window=3)
+    gen = torch.Generator().manual_seed(0)
+    g = torch.rand(4, 6, dtype=F64, generator=gen) * 8
+    mask = torch.rand(4, 6, 3, generator=gen) > 0.3
+    for start in (0, 1, 2):  # the old state after 0, 1, 2 unmasked steps (slots still empty)
+        new = det.init((4,))
+        for t in range(start):
+            new, _, _ = det.step(new, g[:, t])
+        old = new[:2]
+        for t in range(start, 6):
+            m = None if t < 2 else mask[:, t]
+            new, s_new, a_new = det.step(new, g[:, t], m)
+            old, s_old, a_old = det.step(old, g[:, t], m)
+            torch.testing.assert_close(s_old, s_new, rtol=0, atol=0)
+            assert torch.equal(a_old, a_new)

@@ -141,7 +141,9 @@ def chi_square_equivalent(g: Tensor, dof, full_dof) -> Tensor:
     tail = chi2.sf(gn, dn)
     # the lower tail where it is the smaller (more digits), the upper one elsewhere
     x = np.where(tail > 0.5, chi2.ppf(chi2.cdf(gn, dn), Dn), chi2.isf(tail, Dn))
-    under = tail < 1e-290
+    infinite = np.isinf(gn)  # an overflowed νᵀS⁻¹ν stays beyond every threshold
+    x[infinite] = np.inf
+    under = (tail < 1e-290) & ~infinite
     if under.any():
         gu, du, Du = gn[under], dn[under], Dn[under]
         target = _log_tail_asymptotic(gu, du)
@@ -151,14 +153,17 @@ def chi_square_equivalent(g: Tensor, dof, full_dof) -> Tensor:
         x[under] = xu
     with np.errstate(divide="ignore", invalid="ignore"):
         slope = np.exp(chi2.logpdf(gn, dn) - chi2.logpdf(x, Dn))
-    slope = np.where(np.isfinite(slope) & (gn > 0), slope, 0.0)
+    slope = np.where(np.isfinite(slope) & (gn > 0) & ~infinite, slope, 0.0)
     mapped = torch.zeros(shape, dtype=torch.float64)
     rate = torch.zeros(shape, dtype=torch.float64)
     mapped[torch.from_numpy(sel)] = torch.from_numpy(x)
     rate[torch.from_numpy(sel)] = torch.from_numpy(slope)
     mapped, rate = (t.to(dtype=g.dtype, device=g.device) for t in (mapped, rate))
     g = g.expand(shape)
-    mapped = mapped + rate * (g - g.detach())  # the value x, the derivative dx/dg
+    # the value x, the derivative dx/dg (nothing through an infinite g: inf − inf is NaN)
+    moved = torch.where(torch.isinf(g), torch.zeros((), dtype=g.dtype, device=g.device),
+                        g - g.detach())  # fmt: skip
+    mapped = mapped + rate * moved
     zero = torch.zeros((), dtype=g.dtype, device=g.device)
     return torch.where(partial, mapped, torch.where(none, zero, g))
 
@@ -191,6 +196,16 @@ def chi_square_quantile(dof: float, prob: float) -> float:
 
 
 @functools.lru_cache(maxsize=4096)
+def _chi2_isf(dof: float, rate: float) -> float:
+    """``F⁻¹_{χ²_dof}(1 − rate)`` from the upper tail (``scipy.stats.chi2.isf``): ``1 − rate``
+    keeps no digits of a rate below 1e-16 (a threshold of 80 on χ²_3, a rate of 3e-17,
+    read back as "prob 1.0"), and loses some from 1e-6 on (60 read back as 59.99986)."""
+    from scipy.stats import chi2
+
+    return float(chi2.isf(rate, dof))
+
+
+@functools.lru_cache(maxsize=4096)
 def _chi2_ppf(dof: float, prob: float) -> float:
     """``scipy.stats.chi2.ppf``, kept: a gated filter's online step asks for the same
     quantile at every step, and one call cost about 150 µs, more than the EKF's step."""
@@ -220,7 +235,8 @@ class ChiSquareDetector:
     def at_threshold(cls, dim: int, threshold: float, window: int = 1) -> ChiSquareDetector:
         """The detector whose full-window threshold is ``threshold`` (``τ``, e.g. calibrated
         on attack-free data of one's own with :func:`difffilter.metrics.threshold_for`):
-        ``α = 1 − F_{χ²_{mW}}(τ)``, the rate ``τ`` has under the model."""
+        ``α = 1 − F_{χ²_{mW}}(τ)``, the rate ``τ`` has under a Gaussian model (under
+        heavy-tailed noise the calibration's rate, not this ``α``, is the one measured)."""
         tau = check_finite_number(threshold, "threshold", positive=True)
         cls(dim, 0.5, window)  # names a wrong dim or window
         from scipy.stats import chi2
@@ -236,7 +252,13 @@ class ChiSquareDetector:
     @property
     def threshold(self) -> float:
         """Threshold of a full window: ``F⁻¹_{χ²_{mW}}(1 − α)``."""
-        return chi_square_quantile(self.dim * self.window, 1.0 - self.false_alarm_rate)
+        return self.quantile(self.dim * self.window)
+
+    def quantile(self, dof: float) -> float:
+        """``F⁻¹_{χ²_dof}(1 − α)``, the threshold of a window of ``dof`` degrees of freedom."""
+        if not dof > 0:
+            raise ValueError(f"dof must be > 0; got {dof}")
+        return _chi2_isf(float(dof), self.false_alarm_rate)
 
     def _quantile_table(self, like: Tensor) -> Tensor:
         """``F⁻¹_{χ²_d}(1 − α)`` for ``d = 0 … mW`` (``d = 0``: ``+inf``, never an alarm),
@@ -244,8 +266,7 @@ class ChiSquareDetector:
         tables = self.__dict__.setdefault("_tables", {})
         key = (like.dtype, like.device)
         if key not in tables:
-            q = [math.inf] + [chi_square_quantile(d, 1.0 - self.false_alarm_rate)
-                              for d in range(1, self.dim * self.window + 1)]  # fmt: skip
+            q = [math.inf] + [self.quantile(d) for d in range(1, self.dim * self.window + 1)]
             tables[key] = torch.tensor(q, dtype=like.dtype, device=like.device)
         return tables[key]
 
@@ -280,10 +301,7 @@ class ChiSquareDetector:
     def thresholds(self, num_steps: int, dtype=torch.float64) -> Tensor:
         """Per-step thresholds ``[T]`` (smaller windows at the start)."""
         full = self.threshold
-        head = [
-            chi_square_quantile(self.dim * (t + 1), 1.0 - self.false_alarm_rate)
-            for t in range(min(self.window - 1, num_steps))
-        ]
+        head = [self.quantile(self.dim * (t + 1)) for t in range(min(self.window - 1, num_steps))]
         return torch.tensor(head + [full] * (num_steps - len(head)), dtype=dtype)
 
     def detect(
@@ -316,6 +334,15 @@ class ChiSquareDetector:
                            device=device)  # fmt: skip
         return past, 0, torch.zeros_like(past, dtype=torch.float64)
 
+    def _all_received(self, past: Tensor, count: int) -> Tensor:
+        """The entries received of a window whose steps all arrived (a state of
+        ``(past, count)``, as :meth:`init` made before masks were counted): ``m`` for each
+        step held, ``0`` for the slots before the first step."""
+        held = torch.full(past.shape, float(self.dim), dtype=torch.float64, device=past.device)
+        empty = max(self.window - 1 - count, 0)
+        held[..., :empty] = 0.0
+        return held
+
     def step(
         self, state: tuple[Tensor, int, Tensor], g: Tensor, mask: Tensor | None = None
     ) -> tuple[tuple[Tensor, int, Tensor], Tensor, Tensor]:
@@ -326,14 +353,20 @@ class ChiSquareDetector:
 
         ``ValueError`` for a non-finite ``g``."""
         _check_statistic(g, "g", alarm_on_inf=True)
-        past, count, past_dof = state
+        past, count, *held = state
+        past_dof = held[0] if held else self._all_received(past, count)
         score = g + past.sum(-1)
         full = self.dim * min(count + 1, self.window)
         received = None
         if mask is None:
-            alarm = score > chi_square_quantile(full, 1.0 - self.false_alarm_rate)
+            alarm = score > self.quantile(full)
         else:
             mask = check_mask(mask, "mask", g.shape + (self.dim,))
+            if torch.broadcast_shapes(mask.shape[:-1], score.shape) != score.shape:
+                raise ValueError(
+                    f"mask [..., {self.dim}] must be one row per run of g {tuple(g.shape)} (or "
+                    f"broadcast to it); got {tuple(mask.shape)}"
+                )
             received = mask.sum(-1).to(torch.float64)
             dof = received + past_dof.sum(-1)
             alarm = score > self._quantile_table(score)[dof.long()]

@@ -42,7 +42,6 @@ from .detectors import (
     ChiSquareDetector,
     CusumDetector,
     _nis,
-    chi_square_quantile,
     missing_entries_counted,
     normalized_innovation_squared,
 )
@@ -75,9 +74,10 @@ class GatedFilter(Estimator):
         detector: a :class:`ChiSquareDetector` or a calibrated :class:`CusumDetector`.
         gate: drop alarmed measurements (default) or only report the alarms.
 
-    Step output: the filter's moments after gating, ``score`` the detector statistic,
-    ``alarm``, ``threshold`` (the χ² quantile of the step's window and received entries,
-    or CUSUM's ``τ``) and ``extras["nis"]`` ``g_k``.
+    Step output: the filter's moments after gating, ``score`` the detector statistic (under
+    a mask the χ² window's full-window equivalent), ``alarm``, ``threshold`` (a number: the
+    χ² quantile of the step's full window, ``m·min(k, W)`` degrees of freedom, or CUSUM's
+    ``τ``) and ``extras["nis"]`` ``g_k``.
     """
 
     carry_type = GatedState
@@ -132,10 +132,7 @@ class GatedFilter(Estimator):
         if isinstance(det, ChiSquareDetector):
             # under a mask the step judges the degrees of freedom received and scores the
             # statistic's full-window equivalent (ChiSquareDetector.step): one threshold
-            count = det_state[1]
-            threshold = chi_square_quantile(
-                det.dim * min(count + 1, det.window), 1.0 - det.false_alarm_rate
-            )
+            threshold = det.quantile(det.dim * min(det_state[1] + 1, det.window))
             det_state, score, alarm = det.step(det_state, g, mask)
             return det_state, score, alarm, threshold
         if mask is not None:  # CUSUM: missing entries count their mean (see module docs)
