@@ -497,14 +497,23 @@ def model_batch_shape(model, *, matrices_only: bool = False) -> torch.Size:
     if not matrices_only:
         initial = getattr(model, "initial", None)
         for t, event in ((getattr(initial, "mean", None), 1), (getattr(initial, "cov", None), 2),
-                         (getattr(getattr(model, "process_noise", None), "cov", None), 2),
-                         (getattr(getattr(model, "measurement_noise", None), "cov", None), 2)):  # fmt: skip
+                         (_noise_cov(getattr(model, "process_noise", None)), 2),
+                         (_noise_cov(getattr(model, "measurement_noise", None)), 2)):  # fmt: skip
             if isinstance(t, Tensor) and t.dim() >= event:
                 shapes.append(t.shape[: t.dim() - event])
     try:
         return torch.broadcast_shapes(*shapes) if shapes else torch.Size()
     except RuntimeError:  # its own parameters disagree: the model's constructor is the judge
         return torch.Size()
+
+
+def _noise_cov(noise):
+    """``noise.cov``, or ``None`` for a noise that has none (a Cauchy noise of one's own,
+    which the particle filters run; its missing ``cov`` had stopped them in the checks)."""
+    try:
+        return getattr(noise, "cov", None)
+    except NotImplementedError:
+        return None
 
 
 def check_one_model(model, what: str, instead: str) -> None:

@@ -1,4 +1,5 @@
-"""Controller and observer gains for linear plants: LQR (CARE) and Luenberger designs.
+"""Controller and observer gains for linear plants: LQR (CARE; DARE for discrete-time
+plants), the steady-state Kalman gain and Luenberger designs.
 
 The closed loop of :mod:`difffilter.loop` puts a controller after the estimator; these
 are the gains of the linear ones (the LFC secure controller ``U = −K₁(Z − M̂)``, the
@@ -39,6 +40,9 @@ __all__ = [
     "controllability_rank",
     "care_residual",
     "lqr",
+    "dlqr",
+    "dare_residual",
+    "kalman_steady_state",
     "uncontrollable_direction",
     "observer_poles",
     "luenberger_gain",
@@ -234,6 +238,82 @@ def luenberger_gain(
             i += 2
     Lp = _np(Ad) - Phi
     return torch.as_tensor(np.linalg.solve(_np(Ad), Lp), dtype=Ad.dtype)
+
+
+def _check_pair(F: Tensor, G: Tensor, names: tuple[str, str]) -> tuple[int, int]:
+    """``F [n, n]`` and ``G [n, m]`` (two-dimensional, one floating dtype); returns ``(n, m)``."""
+    a, b = names
+    for name, t in ((a, F), (b, G)):
+        if not isinstance(t, Tensor) or not t.is_floating_point() or t.dim() != 2:
+            got = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+            raise ValueError(f"{name} must be a two-dimensional floating tensor; got {got}")
+    n, m = G.shape
+    if F.shape != (n, n):
+        raise ValueError(f"{a} must have shape [{n}, {n}] to match {b} [{n}, {m}]; got "
+                         f"{tuple(F.shape)}")  # fmt: skip
+    return n, m
+
+
+def _weights(Q, R, n: int, m: int, like: Tensor) -> tuple[Tensor, Tensor]:
+    Q = torch.eye(n, dtype=like.dtype, device=like.device) if Q is None else Q
+    R = torch.eye(m, dtype=like.dtype, device=like.device) if R is None else R
+    for name, t, d in (("Q", Q, n), ("R", R, m)):
+        if not isinstance(t, Tensor) or t.shape != (d, d):
+            got = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+            raise ValueError(f"{name} must have shape [{d}, {d}]; got {got}")
+    return Q, R
+
+
+def dare_residual(F: Tensor, B: Tensor, Q: Tensor, R: Tensor, P: Tensor) -> Tensor:
+    """``FᵀPF − P + Q − FᵀPB (R + BᵀPB)⁻¹ BᵀPF`` (zero at a DARE solution) → ``[n, n]``."""
+    return F.T @ P @ F - P + Q - F.T @ P @ B @ torch.linalg.solve(R + B.T @ P @ B, B.T @ P @ F)
+
+
+def dlqr(
+    F: Tensor, B: Tensor, Q: Tensor | None = None, R: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    """Discrete-time LQR: the gain ``K [m, n]`` of ``u_k = −K x_k`` minimising
+    ``Σ_k x_kᵀ Q x_k + u_kᵀ R u_k`` on ``x_{k+1} = F x_k + B u_k``, and ``P [n, n]``:
+
+        P = FᵀPF + Q − FᵀPB (R + BᵀPB)⁻¹ BᵀPF     (the DARE; scipy's solver)
+        K = (R + BᵀPB)⁻¹ BᵀPF
+
+    ``Q``, ``R`` default to ``I``. Needs ``(F, B)`` stabilisable and ``(F, Q^{1/2})``
+    detectable (scipy raises otherwise). The gain of a state-feedback controller on the
+    estimate (:class:`difffilter.loop.StateFeedback`); with :func:`kalman_steady_state`
+    the LQG design. Not differentiable (computed in numpy): for a gain tuned by gradient,
+    make ``K`` a parameter and differentiate the closed loop.
+    """
+    n, m = _check_pair(F, B, ("F", "B"))
+    Q, R = _weights(Q, R, n, m, F)
+    P = sla.solve_discrete_are(_np(F), _np(B), _np(Q), _np(R))
+    P = torch.as_tensor(0.5 * (P + P.T), dtype=F.dtype, device=F.device)
+    K = torch.linalg.solve(R + B.T @ P @ B, B.T @ P @ F)
+    return K, P
+
+
+def kalman_steady_state(
+    F: Tensor, H: Tensor, Q: Tensor, R: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The Kalman filter's limit on ``x_{k+1} = F x_k + w``, ``y_k = H x_k + v``:
+    ``(gain K [n, p], pred_cov P⁻ [n, n], cov P [n, n])`` with
+
+        P⁻ = F P⁻ Fᵀ + Q − F P⁻ Hᵀ (H P⁻ Hᵀ + R)⁻¹ H P⁻ Fᵀ     (the filtering DARE)
+        K  = P⁻ Hᵀ (H P⁻ Hᵀ + R)⁻¹,   P = (I − K H) P⁻
+
+    the gain and covariances :func:`difffilter.kalman_filter` converges to (tested), e.g.
+    the fixed gain of :class:`difffilter.observers.FixedGainFilter` or of an LQG design.
+    Needs ``(F, H)`` detectable and ``(F, Q^{1/2})`` stabilisable.
+    """
+    n, p = _check_pair(F, H.T if isinstance(H, Tensor) else H, ("F", "Hᵀ"))
+    _weights(Q, R, n, p, F)
+    pred = sla.solve_discrete_are(_np(F).T, _np(H).T, _np(Q), _np(R))
+    pred = torch.as_tensor(0.5 * (pred + pred.T), dtype=F.dtype, device=F.device)
+    S = H @ pred @ H.T + R
+    gain = torch.linalg.solve(S, H @ pred).T
+    eye = torch.eye(n, dtype=F.dtype, device=F.device)
+    cov = (eye - gain @ H) @ pred @ (eye - gain @ H).T + gain @ R @ gain.T  # Joseph form
+    return gain, pred, 0.5 * (cov + cov.T)
 
 
 def zoh_discretize(A: Tensor, B: Tensor, dt: float) -> tuple[Tensor, Tensor]:

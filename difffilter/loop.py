@@ -72,6 +72,7 @@ __all__ = [
     "ReplayedNoise",
     "Controller",
     "KnownInputs",
+    "StateFeedback",
 ]
 
 
@@ -292,6 +293,46 @@ class KnownInputs:
             )
         # after the last step (k = T) the loop asks for u_T, which no step uses
         return self.us[:, min(k, T - 1)]
+
+
+class StateFeedback:
+    """``u_k = −K (x̂_k − x_ref)`` on the estimator's mean: the controller of an LQG or
+    observer-based design (``K`` from :func:`difffilter.control.dlqr`, or a parameter tuned
+    by gradient through the loop, which is differentiable in ``K``).
+
+    Args:
+        gain: ``K [du, dx]`` for every run, or ``[B, du, dx]``, one per run (a sweep).
+        reference: ``x_ref [dx]`` or ``[B, dx]`` (default 0).
+
+    ``u_0 = 0`` (no estimate before the first measurement). It reads the estimator's
+    output, so the loop needs an estimator.
+    """
+
+    def __init__(self, gain: Tensor, reference: Tensor | None = None):
+        if not isinstance(gain, Tensor) or not gain.is_floating_point() or gain.dim() < 2:
+            got = tuple(gain.shape) if isinstance(gain, Tensor) else type(gain).__name__
+            raise ValueError(f"gain must be a floating tensor K [du, dx] or [B, du, dx]; got {got}")
+        if reference is not None and (
+            not isinstance(reference, Tensor) or reference.shape[-1:] != gain.shape[-1:]
+        ):
+            got = tuple(reference.shape) if isinstance(reference, Tensor) else reference
+            raise ValueError(
+                f"reference must be x_ref [{gain.shape[-1]}] or [B, {gain.shape[-1]}] (the "
+                f"gain's dx); got {got!r}"
+            )
+        self.gain, self.reference = gain, reference
+
+    def init(self, batch_shape, dtype, device) -> Tensor:
+        return torch.zeros(*batch_shape, self.gain.shape[-2], dtype=dtype, device=device)
+
+    def __call__(self, k: int, y: Tensor, out) -> Tensor:
+        if out is None:
+            raise ValueError(
+                "StateFeedback reads the estimator's mean, and this loop has no estimator: "
+                "give closed_loop an estimator (e.g. difffilter.KalmanFilter())"
+            )
+        error = out.mean if self.reference is None else out.mean - self.reference
+        return -(self.gain @ error.unsqueeze(-1)).squeeze(-1)
 
 
 class LoopState(NamedTuple):
@@ -766,7 +807,8 @@ def _check_estimator_model(model, plant, controller, runs: torch.Size) -> None:
         raise ValueError(
             f"model (the estimator's) has {model.dim_u} input(s) (dim_u) and the plant "
             f"{plant.dim_u}: the estimator is given the controller's u [B, {plant.dim_u}] at "
-            "every step (a model of the plant's inputs; B of the plant's shape)"
+            f"every step; give its model the plant's B [dx, {plant.dim_u}] (zero columns for "
+            "inputs it should not know)"
         )
     check_model_batch(model, runs, "the loop's runs (x0 broadcast with the plant's sets)")
 

@@ -67,12 +67,28 @@ def _shape(sample_shape) -> torch.Size:
 
 
 class NoiseModel(nn.Module):
-    """Base class: a distribution over ``R^d`` with ``sample``, ``log_prob``, ``mean``, ``cov``."""
+    """Base class: a distribution over ``R^d`` with ``sample``, ``log_prob``, ``mean``, ``cov``.
+
+    A noise of one's own subclasses it and sets ``dim``: ``simulate`` and the particle
+    filters draw with ``sample(sample_shape, generator)`` and weigh with ``log_prob(value,
+    mask=None)`` (``mask``: the marginal of the received entries); the Gaussian filters
+    (KF, EKF, UKF) read ``mean`` (which must be 0) and ``cov`` alone, a moment match, so a
+    heavy-tailed or multi-modal noise gets the Gaussian of its covariance there. A noise
+    without a covariance (Cauchy, Student-t with ν ≤ 2) leaves ``cov`` unimplemented and
+    runs in the particle filters only.
+    """
 
     dim: int
 
+    def _missing(self, member: str) -> NotImplementedError:
+        return NotImplementedError(
+            f"{type(self).__name__}.{member} is not implemented: a NoiseModel subclass provides "
+            "sample(sample_shape, generator), log_prob(value, mask=None), mean and cov (what "
+            "the estimator in use reads; difffilter.noise.NoiseModel's docstring)"
+        )
+
     def sample(self, sample_shape=(), generator: torch.Generator | None = None) -> Tensor:
-        raise NotImplementedError
+        raise self._missing("sample(sample_shape, generator)")
 
     def log_prob(self, value: Tensor, mask: Tensor | None = None) -> Tensor:
         """``log p(value)`` for ``value [..., d]`` → ``[...]``.
@@ -80,15 +96,15 @@ class NoiseModel(nn.Module):
         ``mask [..., d]`` (bool) keeps only the marked entries: the result is the log
         density of the marginal distribution of those entries.
         """
-        raise NotImplementedError
+        raise self._missing("log_prob(value, mask=None)")
 
     @property
     def mean(self) -> Tensor:
-        raise NotImplementedError
+        raise self._missing("mean")
 
     @property
     def cov(self) -> Tensor:
-        raise NotImplementedError
+        raise self._missing("cov")
 
     @property
     def batch_shape(self) -> torch.Size:
@@ -346,7 +362,9 @@ class GaussianMixture(NoiseModel):
     def sample(self, sample_shape=(), generator=None) -> Tensor:
         """Draw ``[*sample_shape, d]``: a component index, then its Gaussian."""
         shape = _shape(sample_shape)
-        n = max(1, math.prod(shape))
+        n = math.prod(shape)
+        if n == 0:  # (torch.multinomial draws at least one)
+            return self.locs.new_zeros(shape + (self.dim,))
         comp = torch.multinomial(self.weights, n, replacement=True, generator=generator)
         L = safe_cholesky(self.covs, name="covs")
         eps = torch.randn(

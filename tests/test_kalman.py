@@ -1055,6 +1055,25 @@ def test_a_time_varying_model_without_the_flag_is_named():
     Rotating.time_varying = True
     df.kalman_filter(Rotating(*args), ys)  # declared: filtered with F_k
 
+    class Halved(df.LinearGaussianModel):  # a closed-loop trial's: F halves from step 5 on
+        def transition_matrix(self, k):
+            return self.F * (0.5 if k >= 5 else 1.0)
+
+    with pytest.raises(ValueError, match=r"Halved.transition_matrix\(k\) differs between k = 1 "
+                                         r"and k = 10"):  # fmt: skip
+        df.kalman_filter(Halved(*args), ys)
+    with pytest.raises(ValueError, match=r"Halved.transition_matrix\(k\) differs"):
+        df.KalmanFilter().init(Halved(*args), (2,))
+
+    class Tabulated(df.LinearGaussianModel):  # defined on steps 1 … 5 only (T = 5), all equal
+        def transition_matrix(self, k):
+            if k > 5:
+                raise IndexError(f"no step {k}")
+            return self.F
+
+    torch.testing.assert_close(df.kalman_filter(Tabulated(*args), ys).means,
+                               df.kalman_filter(base, ys).means)  # fmt: skip
+
 
 def test_an_innovation_covariance_that_fails_names_the_models_covariances():
     """A user trial's optimiser walked Q indefinite: the error named S alone and said to

@@ -12,7 +12,13 @@ not among our sources. Two rules are provided:
 
   ``tr P_f(ω)`` is convex in ``ω`` (the trace of the inverse of a positive-definite
   matrix affine in ``ω``); a batched golden-section search finds the minimiser to
-  ``0.618^iterations`` (6e-7 for the default 30 iterations).
+  ``0.618^iterations`` (6e-7 for the default 30 iterations). Where ``ω = ½`` is as good
+  (equal local covariances: every ``ω`` is), ``ω = ½``, so the rule is symmetric in its
+  two locals (the search had drifted to ``ω = 1``: local 1 alone). Differentiable,
+  ``ω`` included: the search runs on values, and ``ω``'s derivative is the implicit
+  function theorem's at the minimiser, ``dω = −d(J′)/J″`` with ``J′ = −tr(P_f A P_f)``,
+  ``J″ = 2 tr(P_f A P_f A P_f)``, ``A = P₁⁻¹ − P₂⁻¹`` (0 at a bound of ``[0, 1]``; a
+  fusion trial's chain KF → CI → loss had the wrong sign, ``ω`` held constant).
 * **Naive information fusion** (the ablation), exact only for independent local errors::
 
       P_f⁻¹ = P₁⁻¹ + P₂⁻¹,   x̂_f = P_f (P₁⁻¹ x̂₁ + P₂⁻¹ x̂₂)
@@ -29,7 +35,7 @@ import math
 import torch
 from torch import Tensor
 
-from .._checks import Choice
+from .._checks import Choice, check_symmetric
 from ..linalg import matvec, symmetrize
 from . import _components as C
 
@@ -39,6 +45,13 @@ _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 
 def _check_pair(means: Tensor, covs: Tensor) -> None:
+    """Two local estimates: ``means [..., 2, d]`` finite, ``covs [..., 2, d, d]`` symmetric
+    positive definite (a singular or NaN one gave NaN for d ≤ 3 and torch's own error,
+    naming nothing, beyond)."""
+    for name, t in (("means", means), ("covs", covs)):
+        if not isinstance(t, Tensor) or not t.is_floating_point():
+            raise TypeError(f"{name} must be a floating-point torch.Tensor; got "
+                            f"{getattr(t, 'dtype', type(t).__name__)}")  # fmt: skip
     if means.dim() < 2 or means.shape[-2] != 2:
         raise ValueError(
             f"means must have shape [..., 2, d] (two local estimates); got {tuple(means.shape)}"
@@ -46,6 +59,14 @@ def _check_pair(means: Tensor, covs: Tensor) -> None:
     d = means.shape[-1]
     if covs.shape[-3:] != (2, d, d):
         raise ValueError(f"covs must have shape [..., 2, {d}, {d}]; got {tuple(covs.shape)}")
+    if not bool(torch.isfinite(means).all()) or not bool(torch.isfinite(covs).all()):
+        raise ValueError("means and covs must be finite (a NaN or Inf local estimate)")
+    check_symmetric(covs, "covs")
+    if bool((torch.linalg.cholesky_ex(covs.detach()).info != 0).any()):
+        raise ValueError(
+            "covs must be positive definite: a local covariance is singular or indefinite (a "
+            "local estimate of no uncertainty in some direction cannot be fused by its inverse)"
+        )
 
 
 def _fused(info: Tensor, means: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
@@ -139,11 +160,31 @@ def covariance_intersection(
         a, b = torch.where(left, new, b), torch.where(left, a, new)
         fa, fb = torch.where(left, f_new, fb), torch.where(left, fa, f_new)
     omega = 0.5 * (lo + hi)
+    half = torch.full_like(omega, 0.5)
+    omega = torch.where(trace(half) <= trace(omega), half, omega)  # flat: the symmetric ω
+    if covs.requires_grad and torch.is_grad_enabled():
+        omega = _with_implicit_gradient(omega, covs)
     if hand:
         mean, cov = _fused_by_hand(info, means, omega, 1.0 - omega, d)
     else:
         mean, cov = _fused(info, means, torch.stack((omega, 1.0 - omega), -1))
     return mean, cov, omega
+
+
+def _with_implicit_gradient(omega: Tensor, covs: Tensor) -> Tensor:
+    """``ω`` (a value found by search) with the derivative the minimiser of ``J(ω) = tr P_f``
+    has: ``ω − (s − s.detach())`` for the Newton step ``s = J′/J″``, whose derivative at
+    ``J′ = 0`` is ``d(J′)/J″`` (module docstring); none at a bound."""
+    info = torch.linalg.inv(covs)
+    A = info[..., 0, :, :] - info[..., 1, :, :]
+    w = omega.detach()[..., None, None]
+    P = torch.linalg.inv(w * info[..., 0, :, :] + (1 - w) * info[..., 1, :, :])
+    PAP = P @ A @ P
+    first = -PAP.diagonal(dim1=-2, dim2=-1).sum(-1)
+    second = 2 * (PAP @ A @ P).diagonal(dim1=-2, dim2=-1).sum(-1)
+    inside = (omega > 1e-6) & (omega < 1 - 1e-6) & (second > 0)
+    step = torch.where(inside, first / torch.where(inside, second, 1.0), 0.0)
+    return omega.detach() - (step - step.detach())
 
 
 def information_fusion(means: Tensor, covs: Tensor) -> tuple[Tensor, Tensor]:
