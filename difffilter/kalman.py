@@ -91,20 +91,20 @@ def _check_zero_mean_noise(model) -> None:
     honour it. Refused, and said how to write it."""
     for name in ("process_noise", "measurement_noise"):
         noise = getattr(model, name, None)
+        cov = getattr(noise, "cov", None)
+        prior = getattr(getattr(model, "initial", None), "mean", None)
+        if isinstance(cov, Tensor) and isinstance(prior, Tensor) and cov.dtype != prior.dtype:
+            # (the filters read the covariance alone: it failed deep in the update, "expected
+            # m1 and m2 to have the same dtype")
+            raise ValueError(
+                f"model.{name}.cov is {cov.dtype} and the model is {prior.dtype}: give the "
+                f"noise the model's dtype (model.{name} = model.{name}.to({prior.dtype}))"
+            )
         mean = getattr(noise, "mean", None)
         if not isinstance(mean, Tensor) or mean.device.type == "meta":
             continue
         # zero up to round-off on the noise's own scale (a symmetric box's float mean of
         # −2.8e-17 was refused)
-        cov = getattr(noise, "cov", None)
-        prior = model.initial.mean
-        for what, t in (("mean", mean), ("cov", cov)):
-            if isinstance(t, Tensor) and isinstance(prior, Tensor) and t.dtype != prior.dtype:
-                # (it failed deep in the update: "expected m1 and m2 to have the same dtype")
-                raise ValueError(
-                    f"model.{name}.{what} is {t.dtype} and the model is {prior.dtype}: give "
-                    f"the noise the model's dtype (model.{name} = model.{name}.to({prior.dtype}))"
-                )
         scale = cov.diagonal(dim1=-2, dim2=-1).sqrt() if isinstance(cov, Tensor) else 1.0
         tol = 64 * torch.finfo(mean.dtype).eps * scale if mean.is_floating_point() else 0
         if bool((mean.abs() > tol).any()):
@@ -427,13 +427,14 @@ _OF_K = ("transition_matrix", "observation_matrix", "control_matrix", "process_c
          "measurement_cov")  # fmt: skip
 
 
-#: The steps at which an undeclared time-varying model is looked for (each against k = 1).
-_PROBED_STEPS = (2, 3, 10, 100, 1000)
+#: The steps at which an undeclared time-varying model is looked for (each against k = 1;
+#: 0: the transition into step 1 reads k = 0, where a model need not be defined).
+_PROBED_STEPS = (0, 2, 3, 10, 100, 1000)
 
 
 def _check_declared_time_varying(model) -> None:
     """``ValueError`` where a subclass of :class:`~difffilter.LinearGaussianModel` overrides a
-    method of ``k`` whose value at step 2, 3, 10, 100 or 1,000 differs from step 1's but
+    method of ``k`` whose value at step 0, 2, 3, 10, 100 or 1,000 differs from step 1's but
     leaves ``time_varying`` false: the filters' fast paths would read the first step's
     matrices at every step (a user trial's rotating ``F`` was filtered as constant, 0.88
     nats off at T = 60; a closed-loop trial's ``F`` halved from step 5 on gave estimates
@@ -456,6 +457,8 @@ def _check_declared_time_varying(model) -> None:
                 with torch.no_grad():
                     later = method(k)
             except Exception:  # noqa: BLE001 (e.g. a table of T steps, shorter than k)
+                if k == 0:
+                    continue
                 break
             if first is None or later is None:
                 break

@@ -323,7 +323,14 @@ class StateFeedback:
         self.gain, self.reference = gain, reference
 
     def init(self, batch_shape, dtype, device) -> Tensor:
-        return torch.zeros(*batch_shape, self.gain.shape[-2], dtype=dtype, device=device)
+        runs = torch.Size(batch_shape)
+        for name, t, event in (("gain", self.gain, 2), ("reference", self.reference, 1)):
+            if t is not None and broadcast_or_none(t.shape[: t.dim() - event], runs) != runs:
+                raise ValueError(
+                    f"StateFeedback's {name} {tuple(t.shape)} holds {tuple(t.shape[: t.dim() - event])} "
+                    f"runs, and the loop {tuple(runs)}: one for all runs, or one per run"
+                )
+        return torch.zeros(*runs, self.gain.shape[-2], dtype=dtype, device=device)
 
     def __call__(self, k: int, y: Tensor, out) -> Tensor:
         if out is None:

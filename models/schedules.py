@@ -6,7 +6,8 @@ mask and removes the unreceived entries exactly.
 
 * :class:`AllSensors` — every entry at every step (``None``);
 * :class:`RoundRobin` — sensor group ``k mod n`` at step ``k`` (the RRP paper, eq. 3);
-* :class:`PacketLoss` — each entry lost independently with probability ``rate``.
+* :class:`PacketLoss` — each entry (or each packet of entries sent together) lost
+  independently with probability ``rate``.
 """
 
 from __future__ import annotations
@@ -77,15 +78,42 @@ class RoundRobin:
 
 @dataclass(frozen=True)
 class PacketLoss:
-    """Each measurement entry is lost independently with probability ``rate`` (Bernoulli)."""
+    """Each measurement entry is lost independently with probability ``rate`` (Bernoulli),
+    or, with ``packets``, each packet: the entries a sensor sends together (e.g.
+    ``((0, 1), (2, 3))`` for two range-bearing sensors) are lost together, one draw per
+    packet and step; every entry must belong to exactly one packet."""
 
     rate: float
+    packets: tuple[tuple[int, ...], ...] | None = None
 
     def __post_init__(self):
         if not 0.0 <= float(self.rate) < 1.0:
             raise ValueError(f"rate must lie in [0, 1); got {self.rate!r}")
+        if self.packets is not None:
+            packets = tuple(tuple(int(i) for i in p) for p in self.packets)
+            flat = [i for p in packets for i in p]
+            if not packets or not all(packets) or len(set(flat)) != len(flat) or min(flat) < 0:
+                raise ValueError(
+                    "packets must be non-empty, disjoint groups of entry indices >= 0; got "
+                    f"{self.packets!r}"
+                )
+            object.__setattr__(self, "packets", packets)
 
     def mask(self, batch_shape, num_steps: int, dim: int, generator=None, *, device=None) -> Tensor:
-        shape = _shape(batch_shape) + (num_steps, dim)
-        u = torch.rand(shape, generator=generator, dtype=torch.float64, device=device)
-        return u >= self.rate
+        if self.packets is None:
+            shape = _shape(batch_shape) + (num_steps, dim)
+            u = torch.rand(shape, generator=generator, dtype=torch.float64, device=device)
+            return u >= self.rate
+        if sorted(i for p in self.packets for i in p) != list(range(dim)):
+            raise ValueError(
+                f"packets must cover the {dim} measurement entries exactly once; got "
+                f"{self.packets!r}"
+            )
+        shape = _shape(batch_shape) + (num_steps, len(self.packets))
+        arrived = (
+            torch.rand(shape, generator=generator, dtype=torch.float64, device=device) >= self.rate
+        )
+        packet_of = torch.empty(dim, dtype=torch.long, device=device)
+        for j, p in enumerate(self.packets):
+            packet_of[list(p)] = j
+        return arrived[..., packet_of]

@@ -24,7 +24,8 @@ a path ending in ``.yaml`` or ``.yml`` names a file such as::
     inputs: {kind: sinusoid, amplitude: 1.0, frequency: 0.5}   # known inputs (optional)
     attack: {kind: bias, channel: actuator, value: 0.5, onset: 50, share: 0.5}
     schedule: all                        # or {kind: round_robin, groups: [[0], [1]]},
-                                         #    {kind: packet_loss, rate: 0.1}
+                                         #    {kind: packet_loss, rate: 0.1} (packets:
+                                         #    [[0, 1], [2]]: entries lost together)
     estimators: [chi_square_kf, cusum_kf]   # optional; default: the generic suite
     options: {cusum_bias: 0.5}           # settings the estimators read (optional)
 
@@ -436,7 +437,7 @@ def _schedule(spec: Any, where: str):
     if spec is None or spec == "all":
         return AllSensors()
     kind = spec.get("kind") if isinstance(spec, Mapping) else None
-    fields = {"round_robin": ({"groups"}, {"start"}), "packet_loss": ({"rate"}, set())}
+    fields = {"round_robin": ({"groups"}, {"start"}), "packet_loss": ({"rate"}, {"packets"})}
     if kind in fields:
         required, optional = fields[kind]
         _check_fields(spec, {"kind"} | required | optional, where)
@@ -446,7 +447,9 @@ def _schedule(spec: Any, where: str):
         try:
             if kind == "round_robin":
                 return RoundRobin(tuple(tuple(g) for g in spec["groups"]), spec.get("start", 0))
-            return PacketLoss(_number(spec["rate"], f"{where}.rate"))
+            packets = spec.get("packets")
+            packets = None if packets is None else tuple(tuple(p) for p in packets)
+            return PacketLoss(_number(spec["rate"], f"{where}.rate"), packets)
         except (TypeError, ValueError) as error:
             message = str(error)
             raise ValueError(

@@ -247,6 +247,27 @@ def test_packet_loss_drops_entries_at_its_rate():
     assert float(mask.double().mean()) == pytest.approx(0.7, abs=0.01)
 
 
+def test_packet_loss_by_packet_loses_a_sensors_entries_together():
+    """A packet-loss trial: a sensor's range and bearing travel in one packet; each packet
+    arrives with probability 1 − rate on its own (the entries within one agree)."""
+    from difffilter.models.schedules import PacketLoss
+    from difffilter.models.yaml_scenario import _schedule
+
+    loss = PacketLoss(0.3, packets=((0, 2), (1,), (3, 4)))
+    mask = loss.mask((300,), 400, 5, torch.Generator().manual_seed(1))
+    assert torch.equal(mask[..., 0], mask[..., 2]) and torch.equal(mask[..., 3], mask[..., 4])
+    for entry in (0, 1, 3):
+        assert float(mask[..., entry].double().mean()) == pytest.approx(0.7, abs=0.005)
+    together = (mask[..., 0] & mask[..., 1]).double().mean()  # independent packets
+    assert float(together) == pytest.approx(0.49, abs=0.005)
+    with pytest.raises(ValueError, match="packets must cover the 4 measurement entries"):
+        loss.mask(2, 3, 4)
+    with pytest.raises(ValueError, match="packets must be non-empty, disjoint groups"):
+        PacketLoss(0.1, packets=((0, 1), (1, 2)))
+    spec = {"kind": "packet_loss", "rate": 0.3, "packets": [[0, 2], [1], [3, 4]]}
+    assert _schedule(spec, "schedule") == loss
+
+
 def test_round_robin_follows_the_rrp_papers_eq_3():
     """γ_k = mod(k + γ_ini − 2, n) + 1 (1-based groups), ``start = γ_ini − 1``."""
     from difffilter.models.schedules import RoundRobin

@@ -1065,7 +1065,15 @@ def test_a_time_varying_model_without_the_flag_is_named():
     with pytest.raises(ValueError, match=r"Halved.transition_matrix\(k\) differs"):
         df.KalmanFilter().init(Halved(*args), (2,))
 
-    class Tabulated(df.LinearGaussianModel):  # defined on steps 1 … 5 only (T = 5), all equal
+    class FirstStep(df.LinearGaussianModel):  # the transition into step 1 reads k = 0
+        def transition_matrix(self, k):
+            return self.F * (2.0 if k == 0 else 1.0)
+
+    with pytest.raises(ValueError, match=r"FirstStep.transition_matrix\(k\) differs between k = 1 "
+                                         r"and k = 0"):  # fmt: skip
+        df.kalman_filter(FirstStep(*args), ys)
+
+    class Tabulated(df.LinearGaussianModel):  # defined on steps 0 … 5 only (T = 5), all equal
         def transition_matrix(self, k):
             if k > 5:
                 raise IndexError(f"no step {k}")

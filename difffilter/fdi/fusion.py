@@ -17,8 +17,9 @@ not among our sources. Two rules are provided:
   two locals (the search had drifted to ``ω = 1``: local 1 alone). Differentiable,
   ``ω`` included: the search runs on values, and ``ω``'s derivative is the implicit
   function theorem's at the minimiser, ``dω = −d(J′)/J″`` with ``J′ = −tr(P_f A P_f)``,
-  ``J″ = 2 tr(P_f A P_f A P_f)``, ``A = P₁⁻¹ − P₂⁻¹`` (0 at a bound of ``[0, 1]``; a
-  fusion trial's chain KF → CI → loss had the wrong sign, ``ω`` held constant).
+  ``J″ = 2 tr(P_f A P_f A P_f)``, ``A = P₁⁻¹ − P₂⁻¹`` (0 where the minimiser is a bound of
+  ``[0, 1]``: ``J′(0) ≥ 0`` or ``J′(1) ≤ 0``; a fusion trial's chain KF → CI → loss had the
+  wrong sign, ``ω`` held constant). First derivatives, reverse and forward mode.
 * **Naive information fusion** (the ablation), exact only for independent local errors::
 
       P_f⁻¹ = P₁⁻¹ + P₂⁻¹,   x̂_f = P_f (P₁⁻¹ x̂₁ + P₂⁻¹ x̂₂)
@@ -36,7 +37,7 @@ import torch
 from torch import Tensor
 
 from .._checks import Choice, check_symmetric
-from ..linalg import matvec, symmetrize
+from ..linalg import matvec, symmetrize, under_transform
 from . import _components as C
 
 __all__ = ["covariance_intersection", "information_fusion", "FusionRule", "fuse"]
@@ -59,6 +60,8 @@ def _check_pair(means: Tensor, covs: Tensor) -> None:
     d = means.shape[-1]
     if covs.shape[-3:] != (2, d, d):
         raise ValueError(f"covs must have shape [..., 2, {d}, {d}]; got {tuple(covs.shape)}")
+    if under_transform(means, covs):  # (vmap and the like: their values cannot be read)
+        return
     if not bool(torch.isfinite(means).all()) or not bool(torch.isfinite(covs).all()):
         raise ValueError("means and covs must be finite (a NaN or Inf local estimate)")
     check_symmetric(covs, "covs")
@@ -162,7 +165,7 @@ def covariance_intersection(
     omega = 0.5 * (lo + hi)
     half = torch.full_like(omega, 0.5)
     omega = torch.where(trace(half) <= trace(omega), half, omega)  # flat: the symmetric ω
-    if covs.requires_grad and torch.is_grad_enabled():
+    if (covs.requires_grad and torch.is_grad_enabled()) or under_transform(covs):
         omega = _with_implicit_gradient(omega, covs)
     if hand:
         mean, cov = _fused_by_hand(info, means, omega, 1.0 - omega, d)
@@ -175,16 +178,28 @@ def _with_implicit_gradient(omega: Tensor, covs: Tensor) -> Tensor:
     """``ω`` (a value found by search) with the derivative the minimiser of ``J(ω) = tr P_f``
     has: ``ω − (s − s.detach())`` for the Newton step ``s = J′/J″``, whose derivative at
     ``J′ = 0`` is ``d(J′)/J″`` (module docstring); none at a bound."""
-    info = torch.linalg.inv(covs)
+    # in float64: near-equal covariances leave J′ and J″ of the size of float32's round-off
+    info = torch.linalg.inv(covs.to(torch.float64))
     A = info[..., 0, :, :] - info[..., 1, :, :]
-    w = omega.detach()[..., None, None]
+
+    def slope(P):  # J′ = −tr(P A P)
+        return -(P @ A @ P).diagonal(dim1=-2, dim2=-1).sum(-1)
+
+    w = omega.detach().to(torch.float64)[..., None, None]
     P = torch.linalg.inv(w * info[..., 0, :, :] + (1 - w) * info[..., 1, :, :])
     PAP = P @ A @ P
     first = -PAP.diagonal(dim1=-2, dim2=-1).sum(-1)
     second = 2 * (PAP @ A @ P).diagonal(dim1=-2, dim2=-1).sum(-1)
-    inside = (omega > 1e-6) & (omega < 1 - 1e-6) & (second > 0)
+    # the minimiser is inside [0, 1] where J falls at 0 and rises at 1 (a search stopped
+    # short of a bound, ω = 0.99997 after 20 iterations, is at the bound: no derivative)
+    with torch.no_grad():
+        inside = (slope(covs[..., 1, :, :].to(torch.float64)) < 0) & (
+            slope(covs[..., 0, :, :].to(torch.float64)) > 0
+        )
+        scale = torch.linalg.matrix_norm(covs.to(torch.float64), ord=2).amax(-1)
+        inside = inside & (second > 1e-12 * (A.abs().amax((-1, -2)) * scale) ** 2 * scale)
     step = torch.where(inside, first / torch.where(inside, second, 1.0), 0.0)
-    return omega.detach() - (step - step.detach())
+    return omega.detach() - (step - step.detach()).to(omega.dtype)
 
 
 def information_fusion(means: Tensor, covs: Tensor) -> tuple[Tensor, Tensor]:
