@@ -103,6 +103,7 @@ __all__ = [
     "NonlinearGaussianModel",
     "noise",
     "metrics",
+    "consistency",
     "bounds",
     "posterior_crb",
     "PCRBResult",

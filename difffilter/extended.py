@@ -121,8 +121,9 @@ def extended_kalman_filter(
 class SigmaPoints:
     """Scaled symmetric sigma points (van der Merwe 2004) for dimension ``n``.
 
-    Defaults ``α = 1, β = 2, κ = 0`` keep every weight non-negative (``w₀ = 0``) so
-    covariances stay positive semidefinite; a small ``α`` (e.g. 1e-3) concentrates the
+    Defaults ``α = 1, β = 2, κ = 0`` keep every weight non-negative (the centre point's mean
+    weight ``w₀ᵐ = 0``, its covariance weight ``w₀ᶜ = 1 − α² + β = 2``) so covariances stay
+    positive semidefinite; a small ``α`` (e.g. 1e-3) concentrates the
     points but makes ``w₀`` large and negative.
     """
 

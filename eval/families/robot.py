@@ -13,6 +13,7 @@ import matplotlib.pyplot as plt
 import torch
 from scipy.stats import chi2, wilcoxon
 
+from difffilter.consistency import nees
 from difffilter.models.robot import DEG
 from difffilter.runtime import one_thread
 
@@ -30,10 +31,10 @@ def _per_run(means, x, start: int) -> torch.Tensor:  # per run over k > start [B
 
 
 def _nees(out, x) -> float | None:
+    """The mean over runs and steps of ``difffilter.consistency.nees``."""
     if out.covs is None:
         return None
-    e = (out.means - x).unsqueeze(-1)
-    return float((e.mT @ torch.linalg.solve(out.covs, e)).mean())
+    return float(nees(out.means - x, out.covs).mean())
 
 
 @one_thread()

@@ -1,0 +1,117 @@
+"""Filter consistency: does a filter's reported covariance match its actual error?
+
+For a consistent filter over ``R`` independent Monte Carlo runs (Bar-Shalom, Li &
+Kirubarajan 2001, §5.4):
+
+* **NEES** ``ε_k = e_kᵀ P_k⁻¹ e_k`` with ``e_k = x_k − x̂_k`` is ``χ²_n`` (``n = dim x``);
+  its average over the runs at one step, ``ε̄_k``, lies in
+  ``[χ²_{Rn}(α/2), χ²_{Rn}(1 − α/2)] / R`` with probability ``1 − α``
+  (:func:`chi_square_bounds`).
+* **NIS** ``ν_kᵀ S_k⁻¹ ν_k`` (:func:`difffilter.fdi.normalized_innovation_squared`) is
+  ``χ²_m`` likewise.
+* **Whiteness**: the innovations of different steps are uncorrelated. With whitened
+  innovations ``w_k = L_k⁻¹ ν_k`` (``S_k = L_k L_kᵀ``), the run-averaged correlation
+
+      ρ̄_k(j) = Σ_r w_{r,k}ᵀ w_{r,k+j} / √(Σ_r |w_{r,k}|² Σ_r |w_{r,k+j}|²)
+
+  is about ``N(0, 1 / (R m))`` for a consistent filter: outside ``±z_{1−α/2}/√(Rm)``
+  at about ``α`` of the steps.
+
+Average over the **runs** at each step, not over the steps of one run: one run's errors
+are correlated in time, so its time average is no χ² of ``Tn`` degrees of freedom (a
+consistency trial: 42 % of the runs of a matched Kalman filter fell "outside" by that
+reading). :func:`ensemble_test` does the averaging and counts the steps outside the
+bounds: about ``α`` of them for a consistent filter.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from ._checks import check_rate
+from .linalg import safe_cholesky
+
+__all__ = ["nees", "chi_square_bounds", "ensemble_test", "ConsistencyTest", "whiteness"]
+
+
+def nees(errors: Tensor, covs: Tensor) -> Tensor:
+    """``eᵀ P⁻¹ e``: ``errors [..., n]`` (``x − x̂``), ``covs [..., n, n]`` → ``[...]``.
+
+    By a linear solve, not a Cholesky factor: a particle filter's collapsed covariance
+    (an eigenvalue of 1e-26) gives the huge NEES it deserves rather than an error."""
+    if not isinstance(errors, Tensor) or errors.dim() < 1:
+        raise ValueError(
+            f"errors must be a tensor [..., n]; got {getattr(errors, 'shape', errors)!r}"
+        )
+    n = errors.shape[-1]
+    if not isinstance(covs, Tensor) or covs.shape[-2:] != (n, n):
+        raise ValueError(
+            f"covs must be [..., {n}, {n}] (the filter's covariances); got "
+            f"{tuple(covs.shape) if isinstance(covs, Tensor) else covs!r}"
+        )
+    e = errors.unsqueeze(-1)
+    return (e.mT @ torch.linalg.solve(covs, e)).squeeze(-1).squeeze(-1)
+
+
+def chi_square_bounds(dof: int, runs: int, confidence: float = 0.95) -> tuple[float, float]:
+    """The two-sided ``confidence`` interval of the average of ``runs`` independent ``χ²_dof``
+    values: ``(χ²_{R·dof}((1 − c)/2), χ²_{R·dof}((1 + c)/2)) / R``."""
+    from scipy.stats import chi2
+
+    for name, value in (("dof", dof), ("runs", runs)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
+    alpha = 1.0 - check_rate(confidence, "confidence")
+    low, high = chi2.ppf([alpha / 2, 1 - alpha / 2], runs * dof) / runs
+    return float(low), float(high)
+
+
+class ConsistencyTest(NamedTuple):
+    """``mean [T]`` the run average of a statistic at each step, ``(low, high)`` its bounds,
+    ``outside`` the share of steps outside them (about ``1 − confidence`` if consistent)
+    and ``expected`` that share."""
+
+    mean: Tensor
+    low: float
+    high: float
+    outside: float
+    expected: float
+
+
+def ensemble_test(statistic: Tensor, dof: int, confidence: float = 0.95) -> ConsistencyTest:
+    """The run-averaged ``χ²_dof`` statistic ``[R, T]`` (NEES with ``dof = n``, NIS with
+    ``dof = m``) against :func:`chi_square_bounds` at every step (module docstring)."""
+    if not isinstance(statistic, Tensor) or statistic.dim() != 2:
+        raise ValueError(
+            "statistic must be [R, T] (runs, steps) of NEES or NIS values; got "
+            f"{tuple(statistic.shape) if isinstance(statistic, Tensor) else statistic!r}"
+        )
+    low, high = chi_square_bounds(dof, statistic.shape[0], confidence)
+    mean = statistic.double().mean(0)
+    outside = float(((mean < low) | (mean > high)).double().mean())
+    return ConsistencyTest(mean, low, high, outside, 1.0 - confidence)
+
+
+def whiteness(innovations: Tensor, innovation_covs: Tensor, lag: int = 1) -> tuple[Tensor, float]:
+    """``(ρ̄ [T − lag], bound)``: the run-averaged correlation of the whitened innovations
+    ``lag`` steps apart (module docstring) and its 95 % bound ``1.96 / √(R m)``, for
+    ``innovations [R, T, m]`` and ``innovation_covs [R, T, m, m]`` (or broadcasting)."""
+    if not isinstance(innovations, Tensor) or innovations.dim() != 3:
+        raise ValueError(
+            "innovations must be [R, T, m] (runs, steps, entries); got "
+            f"{tuple(innovations.shape) if isinstance(innovations, Tensor) else innovations!r}"
+        )
+    runs, steps, m = innovations.shape
+    if isinstance(lag, bool) or not isinstance(lag, int) or not 1 <= lag < steps:
+        raise ValueError(f"lag must be an integer in [1, T − 1 = {steps - 1}]; got {lag!r}")
+    chol = safe_cholesky(innovation_covs.expand(runs, steps, m, m), name="innovation_covs")
+    w = torch.linalg.solve_triangular(chol, innovations.unsqueeze(-1), upper=False).squeeze(-1)
+    w = w.double()
+    now, later = w[:, :-lag], w[:, lag:]
+    cross = (now * later).sum((-1, 0))
+    scale = (now.square().sum((-1, 0)) * later.square().sum((-1, 0))).sqrt()
+    return cross / scale, 1.959963984540054 / math.sqrt(runs * m)

@@ -1,0 +1,68 @@
+"""difffilter.consistency (a consistency trial found none): NEES against its formula, the
+χ² bounds against scipy, and the tests' verdicts against theory: a matched Kalman filter
+is consistent and white, one whose Q is 10× too small is overconfident (its NEES above
+the bounds) and one whose F is wrong has correlated innovations."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from scipy.stats import chi2
+
+import difffilter as df
+from difffilter.consistency import chi_square_bounds, ensemble_test, nees, whiteness
+from difffilter.fdi import normalized_innovation_squared
+
+F64 = torch.float64
+F = torch.tensor([[1.0, 0.1], [0.0, 0.95]], dtype=F64)
+H = torch.tensor([[1.0, 0.0]], dtype=F64)
+Q = torch.tensor([[1e-3, 0.0], [0.0, 4e-3]], dtype=F64)
+R = torch.tensor([[2e-2]], dtype=F64)
+
+
+def _model(F=F, Q=Q):
+    return df.LinearGaussianModel(F, H, Q, R, torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64))
+
+
+def _runs(runs=300, steps=60):
+    xs, ys, _ = _model().simulate(steps, (runs,), generator=torch.Generator().manual_seed(2))
+    return xs, ys
+
+
+def test_nees_and_the_bounds_are_their_formulas():
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(5, 3, 3, generator=g, dtype=F64)
+    P = A @ A.mT + 0.1 * torch.eye(3, dtype=F64)
+    e = torch.randn(5, 3, generator=g, dtype=F64)
+    want = torch.stack([e[i] @ torch.linalg.inv(P[i]) @ e[i] for i in range(5)])
+    torch.testing.assert_close(nees(e, P), want, rtol=1e-12, atol=0)
+    low, high = chi_square_bounds(2, 50, 0.95)
+    assert (low, high) == pytest.approx(tuple(chi2.ppf([0.025, 0.975], 100) / 50), rel=1e-12)
+    with pytest.raises(ValueError, match=r"covs must be \[..., 3, 3\]"):
+        nees(e, P[..., :2, :2])
+    with pytest.raises(ValueError, match="runs must be an integer >= 1"):
+        chi_square_bounds(2, 0)
+    with pytest.raises(ValueError, match=r"statistic must be \[R, T\]"):
+        ensemble_test(torch.ones(5), 2)
+
+
+def test_a_matched_kalman_filter_is_consistent_and_white():
+    xs, ys = _runs()
+    out = df.kalman_filter(_model(), ys)
+    test = ensemble_test(nees(xs - out.means, out.covs), dof=2)
+    assert test.outside <= 0.15 and float(test.mean.mean()) == pytest.approx(2.0, rel=0.05)
+    nis = normalized_innovation_squared(out.innovations, out.innovation_covs)
+    assert ensemble_test(nis, dof=1).outside <= 0.15
+    rho, bound = whiteness(out.innovations, out.innovation_covs)
+    assert bound == pytest.approx(1.96 / 300**0.5, rel=1e-3)
+    assert float((rho.abs() > bound).double().mean()) <= 0.15
+
+
+def test_mismatched_filters_fail_the_tests_theory_says_they_fail():
+    xs, ys = _runs()
+    small_q = df.kalman_filter(_model(Q=Q / 10), ys)
+    test = ensemble_test(nees(xs - small_q.means, small_q.covs), dof=2)
+    assert test.outside >= 0.8 and bool((test.mean[10:] > test.high).all())
+    wrong_f = df.kalman_filter(_model(F=torch.tensor([[1.0, 0.0], [0.0, 0.6]], dtype=F64)), ys)
+    rho, bound = whiteness(wrong_f.innovations, wrong_f.innovation_covs)
+    assert float((rho[10:] > bound).double().mean()) >= 0.8  # positively correlated
