@@ -42,6 +42,9 @@ _WHERE = {
             "KalmanFilter",
             "gaussian_init",
             "kalman_filter",
+            "kalman_smoother",
+            "rts_smoother",
+            "SmootherResult",
             "kalman_predict",
             "kalman_step",
         ),
@@ -71,6 +74,7 @@ _WHERE = {
         ),
         "results",
     ),  # fmt: skip
+    **dict.fromkeys(("SmootherResult", "kalman_smoother", "rts_smoother"), "smoother"),
     **dict.fromkeys(("LinearGaussianModel", "NonlinearGaussianModel", "StateSpaceModel"), "ssm"),
 }
 

@@ -32,3 +32,11 @@ def test_the_recorded_log_snippet_computes_what_the_page_says():
     scores, alarms = ns["gated"].detection.scores, ns["gated"].detection.alarms
     assert torch.equal(alarms[mask.all(-1)], (scores > ns["tau"] * (1 + 1e-12))[mask.all(-1)])
     assert ns["table"].shape == (600, 6)
+    smoothed = ns["smoothed"]  # the filter's at the last step, no wider anywhere
+    torch.testing.assert_close(smoothed.means[-1], ns["est"].means[-1], rtol=0, atol=0)
+    assert bool(
+        (
+            smoothed.covs.diagonal(dim1=-2, dim2=-1)
+            <= ns["est"].covs.diagonal(dim1=-2, dim2=-1) + 1e-15
+        ).all()
+    )

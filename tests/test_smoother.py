@@ -1,0 +1,109 @@
+"""The RTS smoother against the dense joint Gaussian: x_{1:T} and y_{1:T} of a linear model
+are jointly Gaussian, so E[x_k | y_{1:T}], Cov(x_k | y_{1:T}) and Cov(x_k, x_{k+1} | y_{1:T})
+are a conditional of one big Gaussian; with inputs, a time-varying F, lost entries and a
+batch of runs; and its gradient by gradcheck."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+import difffilter as df
+from difffilter.smoother import kalman_smoother, rts_smoother
+
+F64 = torch.float64
+F = torch.tensor([[1.0, 0.2], [-0.1, 0.9]], dtype=F64)
+H = torch.tensor([[1.0, 0.0]], dtype=F64)
+B = torch.tensor([[0.0], [0.5]], dtype=F64)
+Q = torch.tensor([[0.05, 0.01], [0.01, 0.08]], dtype=F64)
+R = torch.tensor([[0.3]], dtype=F64)
+M0 = torch.tensor([0.5, -1.0], dtype=F64)
+P0 = torch.tensor([[1.0, 0.2], [0.2, 0.5]], dtype=F64)
+
+
+class Turning(df.LinearGaussianModel):
+    time_varying = True
+
+    def transition_matrix(self, k):
+        return self.F * (1.0 + 0.05 * k)
+
+
+def _dense_posterior(model, ys, us, received):
+    """The conditional of x_{1:T} given the received y's, from the joint Gaussian of
+    z = (x_0, w_1 … w_T, v_1 … v_T): every x_k and y_k is linear in z (plus the inputs)."""
+    T, dx, dy = ys.shape[0], 2, 1
+    nz = dx + T * dx + T * dy
+    cov_z = torch.block_diag(P0, *([Q] * T), *([R] * T))
+    mean_z = torch.cat([M0, torch.zeros(nz - dx, dtype=F64)])
+    coef = torch.zeros(dx, nz, dtype=F64)
+    coef[:, :dx] = torch.eye(dx, dtype=F64)
+    shift = torch.zeros(dx, dtype=F64)
+    xs_c, xs_s, ys_c, ys_s = [], [], [], []
+    for k in range(1, T + 1):
+        A = model.transition_matrix(k - 1)
+        coef = A @ coef
+        coef[:, dx + (k - 1) * dx : dx + k * dx] += torch.eye(dx, dtype=F64)
+        shift = A @ shift + (B @ us[k - 1] if us is not None else 0)
+        yc = H @ coef
+        yc[:, dx + T * dx + (k - 1) * dy : dx + T * dx + k * dy] += torch.eye(dy, dtype=F64)
+        xs_c.append(coef.clone())
+        xs_s.append(shift.clone())
+        ys_c.append(yc)
+        ys_s.append(H @ shift)
+    X, Y = torch.cat(xs_c), torch.cat(ys_c)
+    mx, my = X @ mean_z + torch.cat(xs_s), Y @ mean_z + torch.cat(ys_s)
+    keep = received.reshape(-1)
+    Y, my, y = Y[keep], my[keep], ys.reshape(-1)[keep]
+    sxy, syy = X @ cov_z @ Y.T, Y @ cov_z @ Y.T
+    gain = sxy @ torch.linalg.inv(syy)
+    mean = mx + gain @ (y - my)
+    cov = X @ cov_z @ X.T - gain @ sxy.T
+    return mean.reshape(T, dx), cov
+
+
+@pytest.mark.parametrize("varying", [False, True])
+def test_the_smoother_is_the_dense_gaussian_conditional(varying):
+    cls = Turning if varying else df.LinearGaussianModel
+    model = cls(F, H, Q, R, M0, P0, B=B)
+    T, runs = 7, 3
+    gen = torch.Generator().manual_seed(0)
+    us = torch.randn(runs, T, 1, dtype=F64, generator=gen)
+    _, ys, _ = model.simulate(T, (runs,), us, generator=gen)
+    mask = torch.ones_like(ys, dtype=torch.bool)
+    mask[1, 2] = mask[2, 4:6] = False  # lost entries in two runs
+    out = kalman_smoother(model, ys, us, mask=mask)
+    for r in range(runs):
+        mean, cov = _dense_posterior(model, ys[r], us[r], mask[r])
+        torch.testing.assert_close(out.means[r], mean, rtol=1e-10, atol=1e-10)
+        for k in range(T):
+            block = cov[2 * k : 2 * k + 2, 2 * k : 2 * k + 2]
+            torch.testing.assert_close(out.covs[r, k], block, rtol=1e-9, atol=1e-11)
+            if k < T - 1:
+                cross = cov[2 * k : 2 * k + 2, 2 * k + 2 : 2 * k + 4]
+                torch.testing.assert_close(out.cross_covs[r, k], cross, rtol=1e-9, atol=1e-11)
+    whole = kalman_smoother(model, ys, us)  # every entry received: the shared-covariance path
+    for r in range(runs):
+        mean, _ = _dense_posterior(model, ys[r], us[r], torch.ones_like(mask[r]))
+        torch.testing.assert_close(whole.means[r], mean, rtol=1e-10, atol=1e-10)
+    unpredicted = dataclasses.replace(out.filtered, pred_covs=None)  # P⁻ from the model
+    again = rts_smoother(model, unpredicted)
+    torch.testing.assert_close(again.covs, out.covs, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(again.means, out.means, rtol=1e-10, atol=1e-12)
+    # the last step is the filter's, and smoothing never widens the filter's uncertainty
+    torch.testing.assert_close(out.means[:, -1], out.filtered.means[:, -1], rtol=0, atol=0)
+    shrink = out.filtered.covs.expand_as(out.covs) - out.covs
+    assert bool((torch.linalg.eigvalsh(shrink) > -1e-12).all())
+
+
+def test_the_smoother_is_differentiable_and_refuses_what_it_cannot_smooth():
+    model = df.LinearGaussianModel(F, H, Q, R, M0, P0)
+    ys = torch.randn(1, 4, 1, dtype=F64, generator=torch.Generator().manual_seed(1))
+    ys.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda y: kalman_smoother(model, y).means.sum(-1), (ys,))
+    with pytest.raises(TypeError, match="filtered must be the FilterResult"):
+        rts_smoother(model, ys)
+    vdp = df.NonlinearGaussianModel(lambda x: x, lambda x: x[..., :1], Q, R, M0, P0)
+    with pytest.raises(TypeError, match="the RTS smoother needs a linear model"):
+        rts_smoother(vdp, df.kalman_filter(model, ys.detach()))
