@@ -430,6 +430,8 @@ _OF_K = ("transition_matrix", "observation_matrix", "control_matrix", "process_c
 #: The steps at which an undeclared time-varying model is looked for (each against k = 1;
 #: 0: the transition into step 1 reads k = 0, where a model need not be defined).
 _PROBED_STEPS = (0, 2, 3, 10, 100, 1000)
+#: What the filters read at k = 0 (the transition into step 1; no measurement is taken at 0).
+_READ_AT_0 = ("transition_matrix", "control_matrix", "process_cov")
 
 
 def _check_declared_time_varying(model) -> None:
@@ -453,6 +455,8 @@ def _check_declared_time_varying(model) -> None:
         except Exception:  # noqa: BLE001 (a model of its own whose k-methods need more)
             continue
         for k in _PROBED_STEPS:
+            if k == 0 and name not in _READ_AT_0:
+                continue
             try:
                 with torch.no_grad():
                     later = method(k)

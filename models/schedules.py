@@ -12,12 +12,37 @@ mask and removes the unreceived entries exactly.
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 __all__ = ["AllSensors", "RoundRobin", "PacketLoss"]
+
+
+def _entry_groups(groups, name: str) -> tuple[tuple[int, ...], ...]:
+    """``groups`` as disjoint, non-empty tuples of entry indices (integers ``>= 0``): a float
+    (1.7), a bool or a string had been cast to an index silently, a flat list failed with
+    "'int' object is not iterable"."""
+
+    def bad():
+        return ValueError(f"{name} must be non-empty, disjoint groups (lists) of entry indices "
+                          f"(integers >= 0), e.g. [[0, 1], [2]]; got {groups!r}")  # fmt: skip
+
+    if isinstance(groups, (str, bytes)) or not isinstance(groups, (list, tuple)) or not groups:
+        raise bad()
+    out = []
+    for group in groups:
+        if isinstance(group, (str, bytes)) or not isinstance(group, (list, tuple)) or not group:
+            raise bad()
+        if any(isinstance(i, bool) or not isinstance(i, numbers.Integral) or i < 0 for i in group):
+            raise bad()
+        out.append(tuple(int(i) for i in group))
+    flat = [i for g in out for i in g]
+    if len(set(flat)) != len(flat):
+        raise bad()
+    return tuple(out)
 
 
 def _shape(batch_shape) -> torch.Size:
@@ -48,13 +73,7 @@ class RoundRobin:
     start: int = 0
 
     def __post_init__(self):
-        groups = tuple(tuple(int(i) for i in g) for g in self.groups)
-        flat = [i for g in groups for i in g]
-        if not groups or not all(groups) or len(set(flat)) != len(flat) or min(flat) < 0:
-            raise ValueError(
-                f"groups must be non-empty, disjoint groups of entry indices >= 0; got {self.groups!r}"
-            )
-        object.__setattr__(self, "groups", groups)
+        object.__setattr__(self, "groups", _entry_groups(self.groups, "groups"))
         if isinstance(self.start, bool) or not isinstance(self.start, int) or self.start < 0:
             raise ValueError(f"start must be an integer >= 0 (γ_ini − 1); got {self.start!r}")
 
@@ -90,14 +109,7 @@ class PacketLoss:
         if not 0.0 <= float(self.rate) < 1.0:
             raise ValueError(f"rate must lie in [0, 1); got {self.rate!r}")
         if self.packets is not None:
-            packets = tuple(tuple(int(i) for i in p) for p in self.packets)
-            flat = [i for p in packets for i in p]
-            if not packets or not all(packets) or len(set(flat)) != len(flat) or min(flat) < 0:
-                raise ValueError(
-                    "packets must be non-empty, disjoint groups of entry indices >= 0; got "
-                    f"{self.packets!r}"
-                )
-            object.__setattr__(self, "packets", packets)
+            object.__setattr__(self, "packets", _entry_groups(self.packets, "packets"))
 
     def mask(self, batch_shape, num_steps: int, dim: int, generator=None, *, device=None) -> Tensor:
         if self.packets is None:

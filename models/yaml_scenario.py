@@ -446,10 +446,8 @@ def _schedule(spec: Any, where: str):
             raise ValueError(f"{where}: {kind} needs {', '.join(missing)}")
         try:
             if kind == "round_robin":
-                return RoundRobin(tuple(tuple(g) for g in spec["groups"]), spec.get("start", 0))
-            packets = spec.get("packets")
-            packets = None if packets is None else tuple(tuple(p) for p in packets)
-            return PacketLoss(_number(spec["rate"], f"{where}.rate"), packets)
+                return RoundRobin(spec["groups"], spec.get("start", 0))
+            return PacketLoss(_number(spec["rate"], f"{where}.rate"), spec.get("packets"))
         except (TypeError, ValueError) as error:
             message = str(error)
             raise ValueError(

@@ -66,3 +66,30 @@ def test_mismatched_filters_fail_the_tests_theory_says_they_fail():
     wrong_f = df.kalman_filter(_model(F=torch.tensor([[1.0, 0.0], [0.0, 0.6]], dtype=F64)), ys)
     rho, bound = whiteness(wrong_f.innovations, wrong_f.innovation_covs)
     assert float((rho[10:] > bound).double().mean()) >= 0.8  # positively correlated
+
+
+def test_the_review_cases_a_diverged_run_lost_entries_and_few_runs():
+    """From the review: a NaN run average counted as inside the bounds (outside 0.0 for a
+    filter that diverged), the NIS under packet loss was judged against dof m (a matched
+    filter "inconsistent" at 98 % of the steps), and 1.96/√(Rm) never rejected at Rm ≤ 3."""
+    stat = torch.full((4, 10), 2.0, dtype=F64)
+    stat[1] = float("nan")
+    assert ensemble_test(stat, dof=2).outside == 1.0
+    from difffilter.models.schedules import PacketLoss
+
+    xs, ys = _runs()
+    mask = PacketLoss(0.5).mask(ys.shape[0], ys.shape[1], 1, torch.Generator().manual_seed(3))
+    out = df.kalman_filter(_model(), ys, mask=mask)
+    nis = normalized_innovation_squared(out.innovations, out.innovation_covs)
+    assert ensemble_test(nis, dof=1).outside >= 0.8  # lost entries add 0: below m's bounds
+    received = ensemble_test(nis, dof=mask.sum(-1))
+    assert received.outside <= 0.15 and received.low.shape == (ys.shape[1],)
+    with pytest.raises(ValueError, match=r"dof must be a number or \[R, T\]"):
+        ensemble_test(nis, dof=mask.sum(-1)[:2])
+    # three scalar runs: |ρ̄| ≤ 1 always; the exact bound rejects 5 % of white steps
+    white = torch.randn(3, 4001, 1, dtype=F64, generator=torch.Generator().manual_seed(4))
+    rho, bound = whiteness(white, torch.ones(1, 1, dtype=F64), lag=1)
+    assert bound < 1 and float((rho.abs() > bound).double().mean()) == pytest.approx(
+        0.05, abs=0.012
+    )
+    assert whiteness(white[:1], torch.ones(1, 1, dtype=F64))[1] == 1.0  # one scalar run: no test

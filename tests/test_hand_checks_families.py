@@ -266,6 +266,13 @@ def test_packet_loss_by_packet_loses_a_sensors_entries_together():
         PacketLoss(0.1, packets=((0, 1), (1, 2)))
     spec = {"kind": "packet_loss", "rate": 0.3, "packets": [[0, 2], [1], [3, 4]]}
     assert _schedule(spec, "schedule") == loss
+    for bad in ([[0, 1.7], [2]], [[0, True], [2]], "01", [0, 1], [[0], []]):  # (cast before)
+        with pytest.raises(
+            ValueError, match=r"packets must be non-empty, disjoint groups \(lists\)"
+        ):
+            _schedule({"kind": "packet_loss", "rate": 0.3, "packets": bad}, "schedule")
+    with pytest.raises(ValueError, match=r"groups must be non-empty, disjoint groups \(lists\)"):
+        _schedule({"kind": "round_robin", "groups": [0, 1]}, "schedule")
 
 
 def test_round_robin_follows_the_rrp_papers_eq_3():

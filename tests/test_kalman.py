@@ -1073,6 +1073,13 @@ def test_a_time_varying_model_without_the_flag_is_named():
                                          r"and k = 0"):  # fmt: skip
         df.kalman_filter(FirstStep(*args), ys)
 
+    class Blind(df.LinearGaussianModel):  # no measurement at k = 0, which nothing reads
+        def observation_matrix(self, k):
+            return self.H * (0.0 if k == 0 else 1.0)
+
+    torch.testing.assert_close(df.kalman_filter(Blind(*args), ys).means,
+                               df.kalman_filter(base, ys).means)  # fmt: skip
+
     class Tabulated(df.LinearGaussianModel):  # defined on steps 0 … 5 only (T = 5), all equal
         def transition_matrix(self, k):
             if k > 5:
