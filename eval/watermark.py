@@ -25,8 +25,9 @@ The two replays:
 - **seamless** (:class:`~difffilter.threats.Replay` with ``loop=(A − B K₁, I)``): the
   attacker, who knows the loop, adds the free response of the recording's level gap, so
   the splice carries no jump; this is the replay Mo & Sinopoli's analysis is about (their
-  condition holds: ``(A − BK₁)(I − KC)`` is stable, spectral radius 0.90), invisible to a
-  χ² detector, and what the watermark is for.
+  condition holds: with the controller on the received measurement its matrix is
+  ``A(I − KC)``, stable, spectral radius 0.905), invisible to a χ² detector, and what the
+  watermark is for.
 """
 
 from __future__ import annotations
@@ -175,8 +176,9 @@ def write_watermark(out, doc: dict):
         "The plain replay shows at the splice: the loop has a mode that does not decay (an "
         "eigenvalue 1 of A − BK₁), so the recording starts from another level than the live "
         "data it replaces, and the innovations show the jump until the observer has "
-        "followed it. The seamless replay hides that jump, and the replayed data answer to "
-        "the observer as fresh ones would ((A − BK₁)(I − KC) is stable): only the watermark "
-        "exposes them.\n"
+        "followed it (longer than the windows left out in the AUC after the splice). The "
+        "seamless replay hides that jump, and the replayed data answer to the observer as "
+        "fresh ones would (A(I − KC) is stable, the controller reading the replayed "
+        "measurement): only the watermark exposes them.\n"
     )
     return folder

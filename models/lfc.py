@@ -273,7 +273,13 @@ class Watermarked:
         self.inner, self.std, self.generator = inner, std, generator
 
     def init(self, batch_shape, dtype, device) -> Tensor:
-        return self.inner.init(batch_shape, dtype, device)
+        u = self.inner.init(batch_shape, dtype, device)
+        if self.std.shape[0] > u.shape[-1]:  # (a raw torch size error at the first step)
+            raise ValueError(
+                f"Watermarked: std has {self.std.shape[0]} entries and the input "
+                f"{u.shape[-1]}: one per control input marked (the first len(std) entries)"
+            )
+        return u
 
     def __call__(self, k: int, y: Tensor, out) -> Tensor:
         u = self.inner(k, y, out)

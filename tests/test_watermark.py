@@ -32,6 +32,9 @@ def test_the_watermark_is_what_the_controller_sent_to_plant_and_observer():
     assert torch.equal(us[:, 0], base[:, 0])
     with pytest.raises(ValueError, match="std must be"):
         Watermarked(None, torch.tensor([-1.0]), gen)
+    wide = lambda c: Watermarked(c, torch.full((5,), 0.1), gen)  # noqa: E731
+    with pytest.raises(ValueError, match="Watermarked: std has 5 entries and the input 4"):
+        lfc_loop(plant, df.KalmanFilter(), xi, theta, load, compensate=False, watermark=wide)
 
 
 def test_the_watermark_exposes_a_replay_at_a_stated_control_cost(tmp_path):
