@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -107,7 +108,10 @@ def ensemble_test(statistic: Tensor, dof, confidence: float = 0.95) -> Consisten
             raise ValueError(f"dof must be a number or [R, T] like statistic "
                              f"{tuple(statistic.shape)}; got {tuple(dof.shape)}")  # fmt: skip
         total = dof.double().sum(0).cpu().numpy()
-        low, high = (torch.as_tensor(chi2.ppf(p, total) / runs, device=mean.device)
+        # a step where no run received anything has statistic 0 and bounds [0, 0] (chi2 of
+        # 0 degrees of freedom is NaN in scipy: such steps had counted as outside)
+        low, high = (torch.as_tensor(np.where(total > 0, chi2.ppf(p, np.maximum(total, 1)), 0.0)
+                                     / runs, device=mean.device)
                      for p in (alpha / 2, 1 - alpha / 2))  # fmt: skip
     else:
         low, high = chi_square_bounds(dof, runs, confidence)
@@ -125,7 +129,10 @@ def whiteness(innovations: Tensor, innovation_covs: Tensor, lag: int = 1) -> tup
     the angle between two independent ``Rm``-vectors), so the bound is
     ``√(Beta⁻¹(0.95; ½, (Rm − 1)/2))``, about ``1.96/√(Rm)`` for large ``Rm`` (that
     approximation alone never rejected at ``Rm ≤ 3``, as ``|ρ̄| ≤ 1``); ``1`` where
-    ``Rm = 1`` (one scalar run: no test)."""
+    ``Rm = 1`` (one scalar run: no test). The bound assumes every entry received: a lost
+    entry's innovation is 0 (fewer effective ``Rm``: 10.8 % rejected for 5 % with 4 runs
+    and half the entries lost), and a step where every run lost everything has ``ρ̄`` NaN;
+    test whiteness on loss-free stretches."""
     if not isinstance(innovations, Tensor) or innovations.dim() != 3:
         raise ValueError(
             "innovations must be [R, T, m] (runs, steps, entries); got "

@@ -93,3 +93,12 @@ def test_the_review_cases_a_diverged_run_lost_entries_and_few_runs():
         0.05, abs=0.012
     )
     assert whiteness(white[:1], torch.ones(1, 1, dtype=F64))[1] == 1.0  # one scalar run: no test
+
+
+def test_steps_where_nothing_arrived_are_not_judged_outside():
+    """From the review: one run under loss, a step without any entry had bounds NaN and
+    counted as outside (33.7 % of a matched filter's steps)."""
+    nis = torch.tensor([[0.5, 0.0, 1.2, 0.0]], dtype=F64)
+    dof = torch.tensor([[1, 0, 1, 0]])
+    test = ensemble_test(nis, dof=dof)
+    assert test.low[1] == 0 and test.high[1] == 0 and test.outside == 0.0
