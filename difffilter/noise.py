@@ -75,7 +75,8 @@ class NoiseModel(nn.Module):
     (KF, EKF, UKF) read ``mean`` (which must be 0) and ``cov`` alone, a moment match, so a
     heavy-tailed or multi-modal noise gets the Gaussian of its covariance there. A noise
     without a covariance (Cauchy, Student-t with ν ≤ 2) leaves ``cov`` unimplemented and
-    runs in the particle filters only.
+    runs in the particle filters only: as a process noise, or as a measurement noise with
+    ``innovations=False`` (the reported innovation covariance adds the noise's).
     """
 
     dim: int

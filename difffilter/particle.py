@@ -748,7 +748,13 @@ def _predictive(model, y, mask, k, obs, pred_w, prior_lw, pred_mean) -> Predicti
         y_hat, obs_dev = wrapped_spread(model, obs, pred_w.squeeze(-2))
     y_cov = (obs_dev * pred_w.transpose(-1, -2)).transpose(-1, -2) @ obs_dev
     innovation = model.measurement_residual(y, y_hat)
-    R = model.measurement_cov(k + 1)
+    try:
+        R = model.measurement_cov(k + 1)
+    except NotImplementedError as error:  # a noise without a covariance (Cauchy)
+        raise NotImplementedError(
+            f"{error}; the particle filter's innovation covariance adds the measurement "
+            "noise's: pass innovations=False to filter without it"
+        ) from error
     if mask is not None:
         eye = torch.eye(R.shape[-1], dtype=R.dtype, device=R.device)
         innovation, _, R, _ = masked_measurement(innovation, eye, R, mask)

@@ -8,8 +8,9 @@ P⁻_{k+1}``), the backward recursion from ``m^s_T = m_T``, ``P^s_T = P_T``:
     P^s_k = P_k + G_k (P^s_{k+1} − P⁻_{k+1}) G_kᵀ
 
 with ``F_k`` the transition from step ``k`` to ``k + 1`` (``model.transition_matrix(k)``),
-and the lag-one cross-covariance ``Cov(x_k, x_{k+1} | y_{1:T}) = G_k P^s_{k+1}`` (what an
-EM update of ``F`` and ``Q`` needs). Inputs and lost measurements enter through the
+down to the prior ``x_0 ~ N(m0, P0)`` (``k = 0``), and the lag-one cross-covariance
+``Cov(x_k, x_{k+1} | y_{1:T}) = G_k P^s_{k+1}``: with the smoothed ``x_0``, what an EM
+update of ``F``, ``Q`` and the prior needs (docs/gradients.md). Inputs and lost measurements enter through the
 forward pass alone. Batched over runs, differentiable (tested equal to the dense joint
 Gaussian's conditional, and by ``gradcheck``); the backward loop over time is the only
 Python loop. For offline analysis of a recorded log (docs/recorded-logs.md): the state
@@ -25,41 +26,75 @@ from torch import Tensor
 
 from .kalman import kalman_filter
 from .linalg import symmetrize
-from .results import FilterResult
+from .results import FilterResult, ParticleFilterResult
 
 __all__ = ["SmootherResult", "rts_smoother", "kalman_smoother"]
 
 
 class SmootherResult(NamedTuple):
-    """``means [..., T, dx]`` ``E[x_k | y_{1:T}]``, ``covs [..., T, dx, dx]``, ``cross_covs
-    [..., T − 1, dx, dx]`` ``Cov(x_k, x_{k+1} | y_{1:T})``, ``gains [..., T − 1, dx, dx]``
-    the smoother gains ``G_k`` (time index ``t`` ↔ ``k = t + 1``, as the filter's), and
-    ``filtered``, the forward pass's :class:`~difffilter.results.FilterResult`. Where the
-    filter's covariances are shared by every run (an unbatched time-invariant model, every
-    entry received), ``cross_covs`` and ``gains`` are too: size 1 in those batch
-    dimensions, which broadcast (``gains[..., t, :, :]`` indexes time either way);
-    ``covs`` is expanded to the runs (a view)."""
+    """The smoothed distribution, every tensor with the runs' batch shape (views where the
+    filter's covariances are shared by every run, so sums over runs count each run):
+
+    * ``means [..., T, dx]`` ``E[x_k | y_{1:T}]`` and ``covs [..., T, dx, dx]`` for
+      ``k = 1 … T`` (time index ``t`` ↔ ``k = t + 1``, as the filter's);
+    * ``cross_covs [..., T − 1, dx, dx]`` ``Cov(x_k, x_{k+1} | y_{1:T})`` for ``k = 1 … T − 1``
+      (the transpose of Shumway & Stoffer's ``P_{k+1,k}``);
+    * ``gains [..., T − 1, dx, dx]`` the smoother gains ``G_k``, ``k = 1 … T − 1``;
+    * the initial state: ``initial_mean [..., dx]`` ``E[x_0 | y_{1:T}]``, ``initial_cov``
+      and ``initial_cross [..., dx, dx]`` ``Cov(x_0, x_1 | y_{1:T})`` (an EM update of the
+      prior, and of ``F`` and ``Q`` through the first transition, needs them: without them
+      EM stopped short of the maximum-likelihood estimate in an identification trial);
+    * ``filtered``, the forward pass's :class:`~difffilter.results.FilterResult`.
+    """
 
     means: Tensor
     covs: Tensor
     cross_covs: Tensor
     gains: Tensor
+    initial_mean: Tensor
+    initial_cov: Tensor
+    initial_cross: Tensor
     filtered: FilterResult
 
 
-def _transitions(model, steps: int) -> Tensor:
-    """``F_k`` for ``k = 1 … T − 1`` ``[(…,) T − 1, dx, dx]`` (one matrix where the model is
-    time-invariant)."""
+def _of_k(model, name: str, steps: int) -> Tensor:
+    """``model.name(k)`` for ``k = 0 … T − 1`` ``[(…,) T, d, d]`` (one, ``[(…,) 1, d, d]``,
+    where the model is time-invariant)."""
+    method = getattr(model, name)
     if getattr(model, "time_varying", False):
-        return torch.stack([model.transition_matrix(k) for k in range(1, steps)], -3)
-    return model.transition_matrix(1).unsqueeze(-3)
+        return torch.stack([method(k) for k in range(steps)], -3)
+    return method(0).unsqueeze(-3)
+
+
+def _at(t: Tensor, k: int) -> Tensor:
+    """Step ``k`` of a ``[…, T or 1, d, d]`` sequence (one matrix: every step)."""
+    return t[..., k if t.shape[-3] > 1 else 0, :, :]
+
+
+def _check_filtered_by(model, filtered: FilterResult, F: Tensor, Q: Tensor, P0: Tensor) -> None:
+    """``filtered`` is ``model``'s Kalman filter: its predicted covariances at steps 1 and T
+    are ``F P Fᵀ + Q`` of the model (a result of another model, or a stale one in an EM
+    loop, had smoothed silently wrong: means 0.48 off)."""
+    steps = filtered.means.shape[-2]
+    checks = [(0, P0)] + ([(steps - 1, filtered.covs[..., steps - 2, :, :])] if steps > 1 else [])
+    for k, before in checks:
+        F_k = _at(F, k)
+        want = F_k @ before @ F_k.mT + _at(Q, k)
+        got = filtered.pred_covs[..., k, :, :]
+        scale = want.detach().abs().amax().clamp_min(1e-300)
+        if float((got.detach() - want.detach()).abs().amax() / scale) > 1e-6:
+            raise ValueError(
+                f"filtered is not this model's Kalman filter result: its predicted covariance "
+                f"of step {k + 1} is not F P Fᵀ + Q of the model (filter with this model, e.g. "
+                "difffilter.kalman_smoother(model, ys, …), after every change to it)"
+            )
 
 
 def rts_smoother(model, filtered: FilterResult) -> SmootherResult:
     """The Rauch–Tung–Striebel smoother (module docstring) of ``filtered``, the result of
     :func:`difffilter.kalman_filter` on ``model`` (a linear model: ``transition_matrix(k)``,
-    ``process_cov(k)``)."""
-    if not isinstance(filtered, FilterResult):
+    ``process_cov(k)``), from step ``T`` back to the prior ``x_0``."""
+    if not isinstance(filtered, FilterResult) or isinstance(filtered, ParticleFilterResult):
         raise TypeError(
             "filtered must be the FilterResult of difffilter.kalman_filter(model, ys, …); got "
             f"{type(filtered).__name__}"
@@ -70,54 +105,56 @@ def rts_smoother(model, filtered: FilterResult) -> SmootherResult:
                 f"the RTS smoother needs a linear model ({type(model).__name__} has no {name}): "
                 "e.g. difffilter.LinearGaussianModel"
             )
-    means, covs = filtered.means, filtered.covs
+    means = filtered.means
     steps, dx = means.shape[-2], means.shape[-1]
     if steps < 1:
         raise ValueError("filtered holds no step (T = 0)")
-    empty = means.new_zeros(means.shape[:-2] + (0, dx, dx))
-    if steps == 1:  # the last step is the filter's (no transition to read)
-        return SmootherResult(means, covs.expand(means.shape + (dx,)), empty, empty, filtered)
-    F = _transitions(model, steps)
+    F, Q = _of_k(model, "transition_matrix", steps), _of_k(model, "process_cov", steps)
     if F.shape[-2:] != (dx, dx):
         raise ValueError(f"model's F is {tuple(F.shape[-2:])} and the filtered states have "
                          f"{dx} entries: smooth with the model that was filtered")  # fmt: skip
+    m0, P0 = model.initial.mean, model.initial.cov
+    # the prior as step 0, then the filtered steps 1 … T (covariances shared by every run,
+    # as the filter hands them out expanded, stride 0: narrowed to one, so the covariance
+    # recursion runs once, not once per run: 2,000 runs × 300 steps took 2 s and 73 MiB)
+    run_shape = means.shape[:-2]
+    shared = _shared(filtered.covs)
+    lead = torch.broadcast_shapes(shared.shape[:-3], P0.shape[:-2])
+    covs = torch.cat([P0.unsqueeze(-3).expand(lead + (1, dx, dx)),
+                      shared.expand(lead + shared.shape[-3:])], -3)  # fmt: skip
+    mean_seq = torch.cat([m0.unsqueeze(-2).expand(run_shape + (1, dx)), means], -2)
     if filtered.pred_covs is not None:
-        pred_covs = filtered.pred_covs
+        _check_filtered_by(model, filtered, F, Q, P0)
+        pred_covs = _shared(filtered.pred_covs)  # index k: P⁻_{k+1}
     else:  # P⁻_{k+1} = F_k P_k F_kᵀ + Q_k (the filter's prediction)
-        Q = torch.stack([model.process_cov(k) for k in range(1, steps)], -3) if getattr(
-            model, "time_varying", False) else model.process_cov(1).unsqueeze(-3)  # fmt: skip
-        ahead = F @ covs[..., :-1, :, :] @ F.mT + Q  # P⁻_2 … P⁻_T (P⁻_1 is not read)
-        pred_covs = torch.cat([covs[..., :1, :, :], ahead], -3)
-    # covariances shared by every run (the filter hands them out expanded, stride 0): the
-    # covariance recursion once, not once per run (2,000 runs × 300 steps took 2 s and
-    # 73 MiB for each of covs, gains and cross_covs)
-    covs, pred_covs = _shared(covs), _shared(pred_covs)
-    smooth_m, smooth_P = [means[..., -1, :]], [covs[..., -1, :, :]]
+        pred_covs = torch.stack([_at(F, k) @ covs[..., k, :, :] @ _at(F, k).mT + _at(Q, k)
+                                 for k in range(steps)], -3)  # fmt: skip
+    smooth_m, smooth_P = [mean_seq[..., -1, :]], [covs[..., -1, :, :]]
     gains, cross = [], []
-    for t in range(steps - 2, -1, -1):  # backward: index t ↔ k = t + 1
-        F_t = F[..., t if F.shape[-3] > 1 else 0, :, :]
-        P_t, P_next_pred = covs[..., t, :, :], pred_covs[..., t + 1, :, :]
+    for k in range(steps - 1, -1, -1):  # backward from k = T − 1 to the prior, k = 0
+        F_k = _at(F, k)
+        P_k, P_pred = covs[..., k, :, :], pred_covs[..., k, :, :]
         # G = P Fᵀ (P⁻)⁻¹, by a solve: Gᵀ = (P⁻)⁻¹ F P (P⁻ and P symmetric)
-        G = torch.linalg.solve(P_next_pred, F_t @ P_t).mT
+        G = torch.linalg.solve(P_pred, F_k @ P_k).mT
         m_next, P_next = smooth_m[-1], smooth_P[-1]
-        m = means[..., t, :] + (
-            G @ (m_next - filtered.pred_means[..., t + 1, :]).unsqueeze(-1)
-        ).squeeze(-1)
-        P = symmetrize(P_t + G @ (P_next - P_next_pred) @ G.mT)
-        smooth_m.append(m)
-        smooth_P.append(P)
+        step = (G @ (m_next - filtered.pred_means[..., k, :]).unsqueeze(-1)).squeeze(-1)
+        smooth_m.append(mean_seq[..., k, :] + step)
+        smooth_P.append(symmetrize(P_k + G @ (P_next - P_pred) @ G.mT))
         gains.append(G)
         cross.append(G @ P_next)
-    smooth_m.reverse()
-    smooth_P.reverse()
-    gains.reverse()
-    cross.reverse()
+    for seq in (smooth_m, smooth_P, gains, cross):
+        seq.reverse()  # index k: step k (the prior first)
+    cov_shape = run_shape + (dx, dx)
     P = torch.stack(smooth_P, -3)
+    empty = means.new_zeros(run_shape + (0, dx, dx))
     return SmootherResult(
-        torch.stack(smooth_m, -2),
-        P.expand(means.shape[:-1] + (dx, dx)),
-        torch.stack(cross, -3),
-        torch.stack(gains, -3),
+        torch.stack(smooth_m[1:], -2),
+        P[..., 1:, :, :].expand(run_shape + (steps, dx, dx)),
+        torch.stack(cross[1:], -3).expand(run_shape + (steps - 1, dx, dx)) if steps > 1 else empty,
+        torch.stack(gains[1:], -3).expand(run_shape + (steps - 1, dx, dx)) if steps > 1 else empty,
+        smooth_m[0],
+        P[..., 0, :, :].expand(cov_shape),
+        cross[0].expand(cov_shape),
         filtered,
     )
 

@@ -65,6 +65,9 @@ def test_a_noise_without_a_covariance_runs_in_the_particle_filter_and_is_named_e
     with pytest.raises(NotImplementedError, match=r"Cauchy.cov is not implemented: a NoiseModel "
                                                   r"subclass provides"):  # fmt: skip
         df.kalman_filter(model, ys)
+    with pytest.raises(NotImplementedError, match=r"Cauchy.cov is not implemented.*pass "
+                                                  r"innovations=False"):  # fmt: skip
+        df.particle_filter(model, ys, num_particles=10, generator=torch.Generator().manual_seed(0))
 
 
 def test_a_missing_member_is_named():

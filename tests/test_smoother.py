@@ -52,15 +52,20 @@ def _dense_posterior(model, ys, us, received):
         xs_s.append(shift.clone())
         ys_c.append(yc)
         ys_s.append(H @ shift)
-    X, Y = torch.cat(xs_c), torch.cat(ys_c)
-    mx, my = X @ mean_z + torch.cat(xs_s), Y @ mean_z + torch.cat(ys_s)
+    x0 = torch.zeros(dx, nz, dtype=F64)
+    x0[:, :dx] = torch.eye(dx, dtype=F64)
+    X, Y = torch.cat([x0] + xs_c), torch.cat(ys_c)  # x_0 first
+    mx, my = (
+        X @ mean_z + torch.cat([torch.zeros(dx, dtype=F64)] + xs_s),
+        Y @ mean_z + torch.cat(ys_s),
+    )
     keep = received.reshape(-1)
     Y, my, y = Y[keep], my[keep], ys.reshape(-1)[keep]
     sxy, syy = X @ cov_z @ Y.T, Y @ cov_z @ Y.T
     gain = sxy @ torch.linalg.inv(syy)
     mean = mx + gain @ (y - my)
     cov = X @ cov_z @ X.T - gain @ sxy.T
-    return mean.reshape(T, dx), cov
+    return mean.reshape(T + 1, dx), cov  # steps 0 … T
 
 
 @pytest.mark.parametrize("varying", [False, True])
@@ -76,17 +81,21 @@ def test_the_smoother_is_the_dense_gaussian_conditional(varying):
     out = kalman_smoother(model, ys, us, mask=mask)
     for r in range(runs):
         mean, cov = _dense_posterior(model, ys[r], us[r], mask[r])
-        torch.testing.assert_close(out.means[r], mean, rtol=1e-10, atol=1e-10)
-        for k in range(T):
-            block = cov[2 * k : 2 * k + 2, 2 * k : 2 * k + 2]
-            torch.testing.assert_close(out.covs[r, k], block, rtol=1e-9, atol=1e-11)
+        torch.testing.assert_close(out.means[r], mean[1:], rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(out.initial_mean[r], mean[0], rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(out.initial_cov[r], cov[:2, :2], rtol=1e-9, atol=1e-11)
+        torch.testing.assert_close(out.initial_cross[r], cov[:2, 2:4], rtol=1e-9, atol=1e-11)
+        for k in range(T):  # step k + 1: rows 2 (k + 1) on
+            j = 2 * (k + 1)
+            torch.testing.assert_close(out.covs[r, k], cov[j : j + 2, j : j + 2], rtol=1e-9,
+                                       atol=1e-11)  # fmt: skip
             if k < T - 1:
-                cross = cov[2 * k : 2 * k + 2, 2 * k + 2 : 2 * k + 4]
+                cross = cov[j : j + 2, j + 2 : j + 4]
                 torch.testing.assert_close(out.cross_covs[r, k], cross, rtol=1e-9, atol=1e-11)
     whole = kalman_smoother(model, ys, us)  # every entry received: the shared-covariance path
     for r in range(runs):
         mean, _ = _dense_posterior(model, ys[r], us[r], torch.ones_like(mask[r]))
-        torch.testing.assert_close(whole.means[r], mean, rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(whole.means[r], mean[1:], rtol=1e-10, atol=1e-10)
     unpredicted = dataclasses.replace(out.filtered, pred_covs=None)  # P⁻ from the model
     again = rts_smoother(model, unpredicted)
     torch.testing.assert_close(again.covs, out.covs, rtol=1e-10, atol=1e-12)
@@ -123,7 +132,8 @@ def test_one_step_shared_covariances_and_gradients_in_the_models_parameters():
     ys = torch.randn(50, 20, 1, dtype=F64, generator=torch.Generator().manual_seed(3))
     shared = kalman_smoother(model, ys)
     per_run = kalman_smoother(model, ys, mask=torch.ones_like(ys, dtype=torch.bool))
-    assert shared.gains.shape == (1, 19, 2, 2) and per_run.gains.shape == (50, 19, 2, 2)
+    assert shared.gains.shape == per_run.gains.shape == (50, 19, 2, 2)
+    assert shared.gains.stride(0) == 0 and shared.cross_covs.stride(0) == 0  # computed once
     torch.testing.assert_close(shared.means, per_run.means, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(shared.covs, per_run.covs, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(shared.cross_covs.expand_as(per_run.cross_covs), per_run.cross_covs,
@@ -136,3 +146,16 @@ def test_one_step_shared_covariances_and_gradients_in_the_models_parameters():
     f = F.clone().requires_grad_(True)
     q = Q.clone().requires_grad_(True)
     assert torch.autograd.gradcheck(smoothed, (f, q))
+
+
+def test_a_result_of_another_model_is_refused():
+    """From an identification trial: a Kalman filter result of another model (or a stale one
+    in an EM loop) smoothed silently wrong (means 0.48 off); a particle filter's too."""
+    model = df.LinearGaussianModel(F, H, Q, R, M0, P0)
+    ys = torch.randn(2, 6, 1, dtype=F64, generator=torch.Generator().manual_seed(4))
+    other = df.LinearGaussianModel(0.9 * F, H, Q, R, M0, P0)
+    with pytest.raises(ValueError, match="filtered is not this model's Kalman filter result"):
+        rts_smoother(model, df.kalman_filter(other, ys))
+    pf = df.particle_filter(model, ys, num_particles=50, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(TypeError, match="filtered must be the FilterResult"):
+        rts_smoother(model, pf)

@@ -13,7 +13,7 @@ against ``χ²`` of the degrees of freedom its window holds, and its score is th
 the same tail probability), so one threshold on the scores is one false-alarm rate
 whatever arrived (a threshold calibrated on the raw statistic pooled 1, 2 and 3 received
 entries and alarmed 0.07 %, 0.79 % and 1.79 % of them for 1 %: a packet-loss trial). A
-step without data scores 0 and never alarms. :class:`CusumDetector` counts a missing
+window without data scores 0 and never alarms. :class:`CusumDetector` counts a missing
 entry's mean (``g_k + m − m_k``: pass the mask to :meth:`CusumDetector.detect`, or add it
 to the ``g`` given to :meth:`CusumDetector.run`); its drift ``b`` keeps the mean, not the
 variance, so its rate still varies with ``m_k`` (a trial: 0.41 %, 0.87 %, 1.43 % for 1, 2,
