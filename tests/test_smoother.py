@@ -156,6 +156,34 @@ def test_a_result_of_another_model_is_refused():
     other = df.LinearGaussianModel(0.9 * F, H, Q, R, M0, P0)
     with pytest.raises(ValueError, match="filtered is not this model's Kalman filter result"):
         rts_smoother(model, df.kalman_filter(other, ys))
+    moved = df.LinearGaussianModel(F, H, Q, R, M0 + 2.0, P0)  # another prior mean
+    with pytest.raises(ValueError, match="filtered is not this model's Kalman filter result"):
+        rts_smoother(model, df.kalman_filter(moved, ys))
+    # one run's model other (per run, in very different units): judged per run
+    scales = torch.tensor([1.0, 1e4], dtype=F64)[:, None, None]
+    sweep = df.LinearGaussianModel(F.expand(2, 2, 2), H, Q * scales, R, M0, P0 * scales)
+    stale = df.LinearGaussianModel(torch.stack([F, 0.5 * F]), H, Q * scales, R, M0, P0 * scales)
+    with pytest.raises(ValueError, match="filtered is not this model's Kalman filter result"):
+        rts_smoother(sweep, df.kalman_filter(stale, ys))
     pf = df.particle_filter(model, ys, num_particles=50, generator=torch.Generator().manual_seed(0))
     with pytest.raises(TypeError, match="filtered must be the FilterResult"):
         rts_smoother(model, pf)
+
+
+def test_the_smoother_takes_its_own_filters_result_in_float32_and_diffuse_priors():
+    """From the review: a fixed 1e-6 check on every step refused the filter's own result
+    where its shared-covariance path differs from the plain recursion by round-off (float32
+    at T = 30; a diffuse prior with a tiny Q at T = 3 in float64)."""
+    model = df.LinearGaussianModel(F, H, Q, R, M0, P0).to(torch.float32)
+    ys = torch.randn(4, 60, 1, generator=torch.Generator().manual_seed(5))
+    for T in range(2, 61, 7):
+        kalman_smoother(model, ys[:, :T])
+    dt = 0.1
+    Fca = torch.tensor([[1, dt, dt * dt / 2], [0, 1, dt], [0, 0, 1]], dtype=F64)
+    diffuse = df.LinearGaussianModel(Fca, torch.tensor([[1.0, 0, 0]], dtype=F64),
+                                     1e-10 * torch.eye(3, dtype=F64), 1e-2 * torch.eye(1, dtype=F64),
+                                     torch.zeros(3, dtype=F64), 1e6 * torch.eye(3, dtype=F64))  # fmt: skip
+    for T in (2, 3, 4, 10):
+        kalman_smoother(
+            diffuse, torch.randn(2, T, 1, dtype=F64, generator=torch.Generator().manual_seed(T))
+        )
