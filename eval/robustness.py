@@ -95,7 +95,8 @@ def _threat_file(scenario) -> Path:
     known = sorted(p.stem for p in THREAT_DIR.glob("*.yaml"))
     raise ValueError(
         f"scenario {scenario.name!r} has no threat set (eval/threats/{scenario.name}.yaml or "
-        f"{scenario.family}.yaml); threat sets exist for: {', '.join(known)}"
+        f"{scenario.family}.yaml); threat sets exist for: {', '.join(known)}; give one of "
+        "your own with --threat-set FILE.yaml (docs/threats.md)"
     )
 
 

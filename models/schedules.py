@@ -26,22 +26,23 @@ def _entry_groups(groups, name: str) -> tuple[tuple[int, ...], ...]:
     (1.7), a bool or a string had been cast to an index silently, a flat list failed with
     "'int' object is not iterable"."""
 
-    def bad():
+    def bad(why: str):
         return ValueError(f"{name} must be non-empty, disjoint groups (lists) of entry indices "
-                          f"(integers >= 0), e.g. [[0, 1], [2]]; got {groups!r}")  # fmt: skip
+                          f"(integers >= 0), e.g. [[0, 1], [2]]: {why}; got {groups!r}")  # fmt: skip
 
     if isinstance(groups, (str, bytes)) or not isinstance(groups, (list, tuple)) or not groups:
-        raise bad()
-    out = []
+        raise bad("not a list of groups")
+    out, seen = [], set()
     for group in groups:
         if isinstance(group, (str, bytes)) or not isinstance(group, (list, tuple)) or not group:
-            raise bad()
-        if any(isinstance(i, bool) or not isinstance(i, numbers.Integral) or i < 0 for i in group):
-            raise bad()
+            raise bad(f"the group {group!r} is not a non-empty list")
+        for i in group:
+            if isinstance(i, bool) or not isinstance(i, numbers.Integral) or i < 0:
+                raise bad(f"the entry {i!r} is not an integer >= 0")
+            if i in seen:
+                raise bad(f"the entry {i} is in two groups")
+            seen.add(int(i))
         out.append(tuple(int(i) for i in group))
-    flat = [i for g in out for i in g]
-    if len(set(flat)) != len(flat):
-        raise bad()
     return tuple(out)
 
 

@@ -120,7 +120,8 @@ def test_a_scenario_of_ones_own_runs_the_robustness_study_on_its_own_threat_set(
     argv = ["--scenario", "test_pipeline_new_plant:SCENARIO", "--threats", "all", "--runs", "2",
             "--out", str(tmp_path / "out"), "--no-progress"]  # fmt: skip
     assert main(argv) == 2
-    assert "has no threat set" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "has no threat set" in err and "with --threat-set FILE.yaml" in err
     assert main([*argv, "--threat-set", str(tmp_path / "missing.yaml")]) == 2
     assert "--threat-set: no file" in capsys.readouterr().err
     assert main([*argv, "--threat-set", str(threats)]) == 0
