@@ -27,6 +27,7 @@ bounds: about ``α`` of them for a consistent filter.
 from __future__ import annotations
 
 import math
+import numbers
 from typing import NamedTuple
 
 import numpy as np
@@ -63,11 +64,11 @@ def chi_square_bounds(dof: int, runs: int, confidence: float = 0.95) -> tuple[fl
     values: ``(χ²_{R·dof}((1 − c)/2), χ²_{R·dof}((1 + c)/2)) / R``."""
     from scipy.stats import chi2
 
-    for name, value in (("dof", dof), ("runs", runs)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+    for name, value in (("dof", dof), ("runs", runs)):  # (numpy's integers too)
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
             raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
     alpha = 1.0 - check_rate(confidence, "confidence")
-    low, high = chi2.ppf([alpha / 2, 1 - alpha / 2], runs * dof) / runs
+    low, high = chi2.ppf([alpha / 2, 1 - alpha / 2], int(runs) * int(dof)) / int(runs)
     return float(low), float(high)
 
 
@@ -104,9 +105,9 @@ def ensemble_test(statistic: Tensor, dof, confidence: float = 0.95) -> Consisten
         from scipy.stats import chi2
 
         alpha = 1.0 - check_rate(confidence, "confidence")
-        if dof.shape != statistic.shape:
+        if dof.shape != statistic.shape or bool((dof < 0).any()):
             raise ValueError(f"dof must be a number or [R, T] like statistic "
-                             f"{tuple(statistic.shape)}; got {tuple(dof.shape)}")  # fmt: skip
+                             f"{tuple(statistic.shape)}, >= 0; got {tuple(dof.shape)}")  # fmt: skip
         total = dof.double().sum(0).cpu().numpy()
         # a step where no run received anything has statistic 0 and bounds [0, 0] (chi2 of
         # 0 degrees of freedom is NaN in scipy: such steps had counted as outside)

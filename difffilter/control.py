@@ -143,7 +143,8 @@ def lqr(
         Pr = sla.solve_continuous_are(Ar, Br, Qr, _np(R))
         P = T.T @ Pr @ T
     P = torch.as_tensor(0.5 * (P + P.T), dtype=A.dtype, device=A.device)
-    K = torch.linalg.solve(R, B.T @ P)
+    # detached, as dlqr's: a gradient through this product alone would hold P fixed
+    K = torch.linalg.solve(R.detach(), B.detach().T @ P)
     return K, P
 
 
@@ -237,7 +238,7 @@ def luenberger_gain(
             Phi[i : i + 2, i : i + 2] = [[z.real, z.imag], [-z.imag, z.real]]
             i += 2
     Lp = _np(Ad) - Phi
-    return torch.as_tensor(np.linalg.solve(_np(Ad), Lp), dtype=Ad.dtype)
+    return torch.as_tensor(np.linalg.solve(_np(Ad), Lp), dtype=Ad.dtype, device=Ad.device)
 
 
 def _check_pair(F: Tensor, G: Tensor, names: tuple[str, str]) -> tuple[int, int]:
@@ -262,9 +263,9 @@ def _weights(Q, R, n: int, m: int, like: Tensor) -> tuple[Tensor, Tensor]:
         if not isinstance(t, Tensor) or t.shape != (d, d):
             got = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
             raise ValueError(f"{name} must have shape [{d}, {d}]; got {got}")
-        if t.dtype != like.dtype:
-            raise ValueError(f"{name} is {t.dtype} and the plant's matrices {like.dtype}: give "
-                             "them one dtype")  # fmt: skip
+        if t.dtype != like.dtype or t.device != like.device:
+            raise ValueError(f"{name} is {t.dtype} on {t.device} and the plant's matrices "
+                             f"{like.dtype} on {like.device}: give them one dtype and device")  # fmt: skip
     return Q.detach(), R.detach()
 
 

@@ -107,8 +107,9 @@ class PacketLoss:
     packets: tuple[tuple[int, ...], ...] | None = None
 
     def __post_init__(self):
-        if not 0.0 <= float(self.rate) < 1.0:
-            raise ValueError(f"rate must lie in [0, 1); got {self.rate!r}")
+        rate = self.rate  # a number: a string passed float() here and failed in mask()
+        if isinstance(rate, bool) or not isinstance(rate, numbers.Real) or not 0.0 <= rate < 1.0:
+            raise ValueError(f"rate must be a number in [0, 1); got {self.rate!r}")
         if self.packets is not None:
             object.__setattr__(self, "packets", _entry_groups(self.packets, "packets"))
 

@@ -102,3 +102,12 @@ def test_steps_where_nothing_arrived_are_not_judged_outside():
     dof = torch.tensor([[1, 0, 1, 0]])
     test = ensemble_test(nis, dof=dof)
     assert test.low[1] == 0 and test.high[1] == 0 and test.outside == 0.0
+
+
+def test_numpy_integers_and_negative_degrees_of_freedom():
+    import numpy as np
+
+    stat = torch.full((3, 4), 2.0, dtype=F64)
+    assert ensemble_test(stat, dof=np.int64(2)).low == pytest.approx(chi_square_bounds(2, 3)[0])
+    with pytest.raises(ValueError, match=r"dof must be a number or \[R, T\] like statistic"):
+        ensemble_test(stat, dof=torch.full((3, 4), -1))

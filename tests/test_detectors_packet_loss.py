@@ -226,3 +226,32 @@ def test_a_state_made_before_masks_were_counted_still_steps():
             old, s_old, a_old = det.step(old, g[:, t], m)
             torch.testing.assert_close(s_old, s_new, rtol=0, atol=0)
             assert torch.equal(a_old, a_new)
+
+
+def test_steps_without_a_mask_after_masked_ones_count_the_windows_losses():
+    """From the whole-change review: an unmasked step whose window still held lost entries
+    was judged against χ² of the full window (score 17.0, no alarm, where the all-True mask
+    gave 23.88 and an alarm): it is the all-True mask's step."""
+    model, ys, mask = _lossy(runs=40, steps=30)
+    kf = df.kalman_filter(model, ys, mask=mask)
+    g = df.fdi.normalized_innovation_squared(kf.innovations, kf.innovation_covs)
+    given = [mask[:, t] if t % 3 else None for t in range(ys.shape[1])]  # every third unmasked
+    full_mask = torch.stack([m if m is not None else torch.ones_like(mask[:, 0]) for m in given], 1)
+    det = ChiSquareDetector(3, 0.05, window=4)
+    scores, alarms = det.detect(kf.innovations, kf.innovation_covs, mask=full_mask)
+    state = det.init((ys.shape[0],))
+    for t, m in enumerate(given):
+        state, s, a = det.step(state, g[:, t], m)
+        torch.testing.assert_close(s, scores[:, t], rtol=1e-12, atol=1e-12)
+        assert torch.equal(a, alarms[:, t])
+
+
+def test_the_upper_quantile_keeps_a_rate_in_the_far_tail():
+    from difffilter.fdi import chi_square_upper_quantile
+
+    for dof, rate in ((1, 0.01), (3, 3e-17), (6, 1e-9)):
+        assert chi_square_upper_quantile(dof, rate) == pytest.approx(
+            float(chi2.isf(rate, dof)), rel=1e-12
+        )
+    with pytest.raises(ValueError, match=r"rate must lie in \(0, 1\)"):
+        chi_square_upper_quantile(2, 0.0)

@@ -119,7 +119,7 @@ def test_the_designs_give_no_gradient_rather_than_a_wrong_one_and_name_their_inp
     with pytest.raises(ValueError, match="Q and R .* are needed"):
         kalman_steady_state(F, H, None, R)
     with pytest.raises(
-        ValueError, match="R is torch.float32 and the plant's matrices torch.float64"
+        ValueError, match="R is torch.float32 on cpu and the plant's matrices torch.float64"
     ):
         kalman_steady_state(F, H, Q, R.float())
 
@@ -132,3 +132,35 @@ def test_a_per_run_gain_of_other_runs_is_named_at_the_start():
                                          r"and the loop \(3,\)"):  # fmt: skip
         closed_loop(plant, 2, noise=noise, x0=torch.zeros(3, 2, dtype=F64),
                     estimator=df.KalmanFilter(), controller=StateFeedback(torch.ones(2, 1, 2, dtype=F64)))  # fmt: skip
+
+
+def test_the_continuous_lqr_is_detached_too_and_the_feedback_names_its_dtype():
+    from difffilter.control import lqr
+
+    A = torch.tensor([[0.0, 1.0], [-1.0, -0.5]], dtype=F64, requires_grad=True)
+    K, P = lqr(A, B.clone().requires_grad_(True))
+    assert not K.requires_grad and not P.requires_grad  # (K held a half gradient: P fixed)
+    plant = df.LinearGaussianModel(F, H, Q, R, torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64),
+                                   B=B)  # fmt: skip
+    noise = ReplayedNoise(torch.zeros(2, 2, 2, dtype=F64), torch.zeros(2, 2, 1, dtype=F64))
+    with pytest.raises(ValueError, match=r"StateFeedback's gain is torch.float32 on cpu and the "
+                                         r"loop torch.float64"):  # fmt: skip
+        closed_loop(plant, 2, noise=noise, x0=torch.zeros(2, 2, dtype=F64),
+                    estimator=df.KalmanFilter(), controller=StateFeedback(torch.ones(1, 2)))  # fmt: skip
+
+
+def test_state_feedback_is_differentiable_in_its_gain():
+    plant = df.LinearGaussianModel(F, H, Q, R, torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64),
+                                   B=B)  # fmt: skip
+    gen = torch.Generator().manual_seed(6)
+    noise = ReplayedNoise(0.03 * torch.randn(2, 6, 2, dtype=F64, generator=gen),
+                          0.1 * torch.randn(2, 6, 1, dtype=F64, generator=gen))  # fmt: skip
+    x0 = torch.tensor([[1.0, 0.0], [0.0, -1.0]], dtype=F64)
+
+    def cost(K):
+        loop = closed_loop(plant, 6, noise=noise, x0=x0, estimator=df.KalmanFilter(),
+                           controller=StateFeedback(K))  # fmt: skip
+        return loop.trajectories.x.square().sum()
+
+    K = torch.tensor([[0.5, 1.0]], dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(cost, (K,))

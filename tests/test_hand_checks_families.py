@@ -260,6 +260,8 @@ def test_packet_loss_by_packet_loses_a_sensors_entries_together():
         assert float(mask[..., entry].double().mean()) == pytest.approx(0.7, abs=0.005)
     together = (mask[..., 0] & mask[..., 1]).double().mean()  # independent packets
     assert float(together) == pytest.approx(0.49, abs=0.005)
+    with pytest.raises(ValueError, match=r"rate must be a number in \[0, 1\); got '0.1'"):
+        PacketLoss("0.1")  # (it failed later, in mask())
     with pytest.raises(ValueError, match="packets must cover the 4 measurement entries"):
         loss.mask(2, 3, 4)
     with pytest.raises(ValueError, match="packets must be non-empty, disjoint groups"):

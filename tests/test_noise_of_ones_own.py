@@ -96,8 +96,11 @@ def test_zero_mean_up_to_round_off_and_the_noises_dtype():
     box = UniformBox(torch.tensor([-0.1 - 0.2], dtype=F64), torch.tensor([0.3], dtype=F64))
     assert float(box.mean) != 0.0 and abs(float(box.mean)) < 1e-16  # −2.8e-17: round-off
     model.measurement_noise = box
-    ys = torch.zeros(1, 3, 1, dtype=F64)
+    ys = torch.tensor([[[0.4], [-0.3], [1.1]]], dtype=F64)  # (zeros gave means 0 whatever R)
     reference = df.kalman_filter(_model_with_r(box.cov), ys)
+    assert not torch.allclose(
+        reference.means, df.kalman_filter(_model_with_r(10 * box.cov), ys).means
+    )
     torch.testing.assert_close(df.kalman_filter(model, ys).means, reference.means)
     model.measurement_noise = UniformBox(
         torch.tensor([-0.3], dtype=F64), torch.tensor([0.31], dtype=F64)

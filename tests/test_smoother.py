@@ -148,6 +148,14 @@ def test_one_step_shared_covariances_and_gradients_in_the_models_parameters():
     assert torch.autograd.gradcheck(smoothed, (f, q))
 
 
+def test_the_smoother_is_public():
+    import difffilter.smoother as smoother
+
+    assert {"kalman_smoother", "rts_smoother", "SmootherResult"} <= set(df.__all__)
+    assert df.kalman_smoother is smoother.kalman_smoother
+    assert df.SmootherResult is smoother.SmootherResult
+
+
 def test_a_result_of_another_model_is_refused():
     """From an identification trial: a Kalman filter result of another model (or a stale one
     in an EM loop) smoothed silently wrong (means 0.48 off); a particle filter's too."""
@@ -176,14 +184,17 @@ def test_the_smoother_takes_its_own_filters_result_in_float32_and_diffuse_priors
     at T = 30; a diffuse prior with a tiny Q at T = 3 in float64)."""
     model = df.LinearGaussianModel(F, H, Q, R, M0, P0).to(torch.float32)
     ys = torch.randn(4, 60, 1, generator=torch.Generator().manual_seed(5))
-    for T in range(2, 61, 7):
-        kalman_smoother(model, ys[:, :T])
+    for T in range(2, 61, 7):  # its own result accepted, and the same as the per-run path's
+        shared = kalman_smoother(model, ys[:, :T])
+        every = torch.ones_like(ys[:, :T], dtype=torch.bool)
+        per_run = kalman_smoother(model, ys[:, :T], mask=every)
+        torch.testing.assert_close(shared.means, per_run.means, rtol=1e-4, atol=1e-5)
     dt = 0.1
     Fca = torch.tensor([[1, dt, dt * dt / 2], [0, 1, dt], [0, 0, 1]], dtype=F64)
     diffuse = df.LinearGaussianModel(Fca, torch.tensor([[1.0, 0, 0]], dtype=F64),
                                      1e-10 * torch.eye(3, dtype=F64), 1e-2 * torch.eye(1, dtype=F64),
                                      torch.zeros(3, dtype=F64), 1e6 * torch.eye(3, dtype=F64))  # fmt: skip
     for T in (2, 3, 4, 10):
-        kalman_smoother(
-            diffuse, torch.randn(2, T, 1, dtype=F64, generator=torch.Generator().manual_seed(T))
-        )
+        ys = torch.randn(2, T, 1, dtype=F64, generator=torch.Generator().manual_seed(T))
+        out = kalman_smoother(diffuse, ys)
+        assert bool(out.means.isfinite().all()) and bool(out.initial_cov.isfinite().all())

@@ -30,6 +30,7 @@ from .detectors import (
     CusumDetector,
     chi_square_equivalent,
     chi_square_quantile,
+    chi_square_upper_quantile,
     missing_entries_counted,
     normalized_innovation_squared,
 )
@@ -91,6 +92,7 @@ __all__ = [
     "CusumDetector",
     "chi_square_equivalent",
     "chi_square_quantile",
+    "chi_square_upper_quantile",
     "missing_entries_counted",
     "normalized_innovation_squared",
     "gated_gaussian_filter",

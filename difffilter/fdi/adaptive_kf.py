@@ -56,7 +56,7 @@ from ..linalg import gaussian_log_prob_chol, masked_measurement, matvec, symmetr
 from ..loop import open_loop
 from ..results import StepOutput
 from ..ssm import batched_jacobian
-from .detectors import chi_square_quantile
+from .detectors import chi_square_upper_quantile
 
 __all__ = [
     "AdaptiveKalmanFilter",
@@ -261,7 +261,7 @@ class AdaptiveKalmanFilter(Estimator):
             upd.mean, upd.cov, upd.attack, upd.attack_cov, upd.sensitivity, carry.k + 1, model
         )
         score = wald_statistic(upd.attack, upd.attack_cov)
-        threshold = chi_square_quantile(model.dim_u, 1.0 - self.false_alarm_rate)
+        threshold = chi_square_upper_quantile(model.dim_u, self.false_alarm_rate)
         return new, StepOutput(
             upd.mean, upd.cov, innovation=upd.residual, innovation_cov=upd.residual_cov,
             log_likelihood=upd.log_likelihood, attack=upd.attack, score=score,

@@ -50,6 +50,7 @@ __all__ = [
     "normalized_innovation_squared",
     "chi_square_equivalent",
     "chi_square_quantile",
+    "chi_square_upper_quantile",
     "ChiSquareDetector",
     "CusumDetector",
     "missing_entries_counted",
@@ -195,6 +196,17 @@ def chi_square_quantile(dof: float, prob: float) -> float:
     return _chi2_ppf(float(dof), float(prob))
 
 
+def chi_square_upper_quantile(dof: float, rate: float) -> float:
+    """``F⁻¹_{χ²_dof}(1 − rate)`` from the upper tail: the threshold of a false-alarm
+    ``rate`` (``chi_square_quantile(dof, 1 − rate)`` loses the rate's digits below 1e-6 and
+    all of them below 1e-16)."""
+    if not 0.0 < rate < 1.0:
+        raise ValueError(f"rate must lie in (0, 1); got {rate}")
+    if not dof > 0:
+        raise ValueError(f"dof must be > 0; got {dof}")
+    return _chi2_isf(float(dof), float(rate))
+
+
 @functools.lru_cache(maxsize=4096)
 def _chi2_isf(dof: float, rate: float) -> float:
     """``F⁻¹_{χ²_dof}(1 − rate)`` from the upper tail (``scipy.stats.chi2.isf``): ``1 − rate``
@@ -256,9 +268,7 @@ class ChiSquareDetector:
 
     def quantile(self, dof: float) -> float:
         """``F⁻¹_{χ²_dof}(1 − α)``, the threshold of a window of ``dof`` degrees of freedom."""
-        if not dof > 0:
-            raise ValueError(f"dof must be > 0; got {dof}")
-        return _chi2_isf(float(dof), self.false_alarm_rate)
+        return chi_square_upper_quantile(dof, self.false_alarm_rate)
 
     def _quantile_table(self, like: Tensor) -> Tensor:
         """``F⁻¹_{χ²_d}(1 − α)`` for ``d = 0 … mW`` (``d = 0``: ``+inf``, never an alarm),
@@ -358,9 +368,11 @@ class ChiSquareDetector:
         score = g + past.sum(-1)
         full = self.dim * min(count + 1, self.window)
         received = None
-        if mask is None:
-            alarm = score > self.quantile(full)
+        if mask is None and (self.window == 1 or bool((past_dof.sum(-1) == full - self.dim).all())):
+            alarm = score > self.quantile(full)  # every entry of the window received
         else:
+            if mask is None:  # this step's entries all received, earlier ones of the window not
+                mask = torch.ones(g.shape + (self.dim,), dtype=torch.bool, device=g.device)
             mask = check_mask(mask, "mask", g.shape + (self.dim,))
             if torch.broadcast_shapes(mask.shape[:-1], score.shape) != score.shape:
                 raise ValueError(

@@ -56,7 +56,7 @@ from ..results import StepOutput
 from ..ssm import StateSpaceModel
 from . import _components as C
 from .adaptive_kf import _check_forgetting, adaptive_update, input_jacobian, wald_statistic
-from .detectors import chi_square_quantile
+from .detectors import chi_square_upper_quantile
 from .modified_pf import FlatLikelihood
 
 __all__ = [
@@ -444,7 +444,7 @@ class AdaptiveParticleFilter(Estimator):
         carry, out = pf._step(carry, y, u, mask)
         est = _summary(pf.proposal.layout, out.mean, out.cov)
         score = wald_statistic(est.attack, est.attack_cov)
-        threshold = chi_square_quantile(base.dim_u, 1.0 - self.false_alarm_rate)
+        threshold = chi_square_upper_quantile(base.dim_u, self.false_alarm_rate)
         return carry, StepOutput(
             est.mean, est.cov, attack=est.attack, score=score, alarm=score > threshold,
             threshold=threshold, extras={"attack_covs": est.attack_cov, "ess": out.extras["ess"]},

@@ -159,7 +159,7 @@ from ..kalman import GaussianFilter
 from ..param_ekf import EKFRule, GradientRule, LearnerState, WeightTemplate
 from ..particle import ModelLikelihood, ParticleFilter, ParticleState
 from ..results import StepOutput
-from .detectors import _nis, chi_square_quantile
+from .detectors import _nis, chi_square_upper_quantile
 from .modified_pf import AttackCompensatedLikelihood
 from .poa import probability_of_attack
 
@@ -740,7 +740,7 @@ class NeuralCompensation(Estimator):
         restart's is quiet at or below it)."""
         key = (dof, rate)
         if key not in self._chi2_quantiles:
-            self._chi2_quantiles[key] = chi_square_quantile(dof, 1.0 - rate)
+            self._chi2_quantiles[key] = chi_square_upper_quantile(dof, rate)
         return self._chi2_quantiles[key]
 
     def _report(self, out: StepOutput, attack, logit, scale, innovation, extras,
