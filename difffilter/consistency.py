@@ -101,6 +101,8 @@ def ensemble_test(statistic: Tensor, dof, confidence: float = 0.95) -> Consisten
         )
     runs = statistic.shape[0]
     mean = statistic.double().mean(0)
+    if isinstance(dof, (np.ndarray, list, tuple)):
+        dof = torch.as_tensor(np.asarray(dof))
     if isinstance(dof, Tensor):
         from scipy.stats import chi2
 

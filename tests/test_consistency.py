@@ -111,3 +111,11 @@ def test_numpy_integers_and_negative_degrees_of_freedom():
     assert ensemble_test(stat, dof=np.int64(2)).low == pytest.approx(chi_square_bounds(2, 3)[0])
     with pytest.raises(ValueError, match=r"dof must be a number or \[R, T\] like statistic"):
         ensemble_test(stat, dof=torch.full((3, 4), -1))
+
+
+def test_degrees_of_freedom_as_a_numpy_array():
+    import numpy as np
+
+    stat = torch.full((3, 4), 1.0, dtype=F64)
+    dof = np.ones((3, 4), dtype=np.int64)
+    assert ensemble_test(stat, dof=dof).outside == ensemble_test(stat, dof=torch.ones(3, 4)).outside

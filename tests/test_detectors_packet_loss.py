@@ -255,3 +255,14 @@ def test_the_upper_quantile_keeps_a_rate_in_the_far_tail():
         )
     with pytest.raises(ValueError, match=r"rate must lie in \(0, 1\)"):
         chi_square_upper_quantile(2, 0.0)
+
+
+def test_detect_takes_one_mask_per_run_as_the_filters_do():
+    """From a multi-rate trial: a [T, m] mask of one run was broadcast to every run
+    (1.60 % alarms for 1.18 %); the filters refuse it, and now the detectors do."""
+    model, ys, mask = _lossy(runs=5, steps=20)
+    kf = df.kalman_filter(model, ys, mask=mask)
+    for det in (ChiSquareDetector(3, 0.05), CusumDetector(5.0, threshold=6.0)):
+        with pytest.raises(ValueError, match=r"mask must have the innovations' shape \(5, 20, 3\)"):
+            det.detect(kf.innovations, kf.innovation_covs, mask=mask[0])
+        det.detect(kf.innovations, kf.innovation_covs, mask=mask[0].expand(5, 20, 3))
