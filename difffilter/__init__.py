@@ -71,7 +71,10 @@ _WHERE = {
         ),
         "results",
     ),  # fmt: skip
-    **dict.fromkeys(("SmootherResult", "kalman_smoother", "rts_smoother"), "smoother"),
+    **dict.fromkeys(
+        ("SmootherResult", "extended_kalman_smoother", "kalman_smoother", "rts_smoother"),
+        "smoother",
+    ),
     **dict.fromkeys(("LinearGaussianModel", "NonlinearGaussianModel", "StateSpaceModel"), "ssm"),
 }
 
@@ -126,6 +129,7 @@ __all__ = [
     "kalman_step",
     "kalman_filter",
     "kalman_smoother",
+    "extended_kalman_smoother",
     "rts_smoother",
     "SmootherResult",
     "GainSchedule",

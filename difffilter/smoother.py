@@ -12,7 +12,9 @@ down to the prior ``x_0 ~ N(m0, P0)`` (``k = 0``), and the lag-one cross-covaria
 ``Cov(x_k, x_{k+1} | y_{1:T}) = G_k P^s_{k+1}``: with the smoothed ``x_0``, what an EM
 update of ``F``, ``Q`` and the prior needs (docs/gradients.md). Inputs and lost measurements enter through the
 forward pass alone. Batched over runs, differentiable (tested equal to the dense joint
-Gaussian's conditional, and by ``gradcheck``); the backward loop over time is the only
+Gaussian's conditional, and by ``gradcheck``). For a nonlinear model the same recursion
+on the EKF's result with ``F_k = ∂f/∂x(m_k, u_k)`` is the extended RTS smoother
+(:func:`extended_kalman_smoother`). The backward loop over time is the only
 Python loop. For offline analysis of a recorded log (docs/recorded-logs.md): the state
 at every step given the whole log, not only its past.
 """
@@ -28,7 +30,7 @@ from .kalman import kalman_filter
 from .linalg import symmetrize
 from .results import FilterResult, ParticleFilterResult
 
-__all__ = ["SmootherResult", "rts_smoother", "kalman_smoother"]
+__all__ = ["SmootherResult", "rts_smoother", "kalman_smoother", "extended_kalman_smoother"]
 
 
 class SmootherResult(NamedTuple):
@@ -67,6 +69,17 @@ def _of_k(model, name: str, steps: int) -> Tensor:
     return method(0).unsqueeze(-3)
 
 
+def _jacobians(model, m0: Tensor, means: Tensor, us: Tensor | None, steps: int) -> Tensor:
+    """``∂f/∂x`` at ``m_k`` (``m_0`` the prior mean) with ``u_k`` for ``k = 0 … T − 1``
+    ``[..., T, dx, dx]``: the transitions the EKF linearised."""
+    if us is not None and (not isinstance(us, Tensor) or us.shape[-2:-1] != (steps,)):
+        raise ValueError(f"us must be the filter's inputs [..., T = {steps}, du]; got "
+                         f"{tuple(us.shape) if isinstance(us, Tensor) else us!r}")  # fmt: skip
+    at = [m0.expand(means.shape[:-2] + m0.shape[-1:])] + list(means[..., :-1, :].unbind(-2))
+    return torch.stack([model.transition_jacobian(x, None if us is None else us[..., k, :], k)
+                        for k, x in enumerate(at)], -3)  # fmt: skip
+
+
 def _at(t: Tensor, k: int) -> Tensor:
     """Step ``k`` of a ``[…, T or 1, d, d]`` sequence (one matrix: every step)."""
     return t[..., k if t.shape[-3] > 1 else 0, :, :]
@@ -101,26 +114,33 @@ def _check_filtered_by(model, filtered: FilterResult, F: Tensor, Q: Tensor, P0: 
         )
 
 
-def rts_smoother(model, filtered: FilterResult) -> SmootherResult:
-    """The Rauch–Tung–Striebel smoother (module docstring) of ``filtered``, the result of
-    :func:`difffilter.kalman_filter` on ``model`` (a linear model: ``transition_matrix(k)``,
-    ``process_cov(k)``), from step ``T`` back to the prior ``x_0``."""
+def rts_smoother(model, filtered: FilterResult, us: Tensor | None = None) -> SmootherResult:
+    """The Rauch–Tung–Striebel smoother (module docstring) of ``filtered``, from step ``T``
+    back to the prior ``x_0``: for a linear model (``transition_matrix(k)``) the result of
+    :func:`difffilter.kalman_filter`; for a nonlinear one the result of
+    :func:`difffilter.extended_kalman_filter` on the same ``us``, with ``F_k`` the
+    Jacobian ``∂f/∂x`` at the filtered mean ``m_k`` (the prior mean at ``k = 0``), as the
+    EKF predicted with: the extended RTS smoother."""
     if not isinstance(filtered, FilterResult) or isinstance(filtered, ParticleFilterResult):
         raise TypeError(
-            "filtered must be the FilterResult of difffilter.kalman_filter(model, ys, …); got "
-            f"{type(filtered).__name__}"
+            "filtered must be the FilterResult of difffilter.kalman_filter(model, ys, …) (or "
+            f"extended_kalman_filter for a nonlinear model); got {type(filtered).__name__}"
         )
-    for name in ("transition_matrix", "process_cov"):
+    for name in ("transition_jacobian", "process_cov"):
         if not callable(getattr(model, name, None)):
             raise TypeError(
-                f"the RTS smoother needs a linear model ({type(model).__name__} has no {name}): "
-                "e.g. difffilter.LinearGaussianModel"
+                f"the RTS smoother needs a state-space model with {name} ({type(model).__name__} "
+                "has none): e.g. difffilter.LinearGaussianModel"
             )
     means = filtered.means
     steps, dx = means.shape[-2], means.shape[-1]
     if steps < 1:
         raise ValueError("filtered holds no step (T = 0)")
-    F, Q = _of_k(model, "transition_matrix", steps), _of_k(model, "process_cov", steps)
+    if callable(getattr(model, "transition_matrix", None)):
+        F = _of_k(model, "transition_matrix", steps)
+    else:  # the EKF's linearisation: at the prior mean for k = 0, the filtered mean after
+        F = _jacobians(model, model.initial.mean, means, us, steps)
+    Q = _of_k(model, "process_cov", steps)
     if F.shape[-2:] != (dx, dx):
         raise ValueError(f"model's F is {tuple(F.shape[-2:])} and the filtered states have "
                          f"{dx} entries: smooth with the model that was filtered")  # fmt: skip
@@ -177,6 +197,16 @@ def _shared(covs: Tensor) -> Tensor:
         if covs.stride(dim) == 0 and covs.shape[dim] > 1:
             covs = covs.narrow(dim, 0, 1)
     return covs
+
+
+def extended_kalman_smoother(
+    model, ys: Tensor, us: Tensor | None = None, **filter_options
+) -> SmootherResult:
+    """:func:`difffilter.extended_kalman_filter` on ``ys [..., T, dy]`` (``us``, and its
+    options), then the extended :func:`rts_smoother` (Jacobians at the filtered means)."""
+    from .extended import extended_kalman_filter
+
+    return rts_smoother(model, extended_kalman_filter(model, ys, us, **filter_options), us)
 
 
 def kalman_smoother(

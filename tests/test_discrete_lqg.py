@@ -124,14 +124,19 @@ def test_the_designs_give_no_gradient_rather_than_a_wrong_one_and_name_their_inp
         kalman_steady_state(F, H, Q, R.float())
 
 
-def test_a_per_run_gain_of_other_runs_is_named_at_the_start():
+def _refused_at_the_start(runs: int, controller, match: str) -> None:
+    """A two-step closed loop of ``runs`` runs on the plant with ``controller`` raises."""
     plant = df.LinearGaussianModel(F, H, Q, R, torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64),
                                    B=B)  # fmt: skip
-    noise = ReplayedNoise(torch.zeros(3, 2, 2, dtype=F64), torch.zeros(3, 2, 1, dtype=F64))
-    with pytest.raises(ValueError, match=r"StateFeedback's gain \(2, 1, 2\) holds \(2,\) runs, "
-                                         r"and the loop \(3,\)"):  # fmt: skip
-        closed_loop(plant, 2, noise=noise, x0=torch.zeros(3, 2, dtype=F64),
-                    estimator=df.KalmanFilter(), controller=StateFeedback(torch.ones(2, 1, 2, dtype=F64)))  # fmt: skip
+    noise = ReplayedNoise(torch.zeros(runs, 2, 2, dtype=F64), torch.zeros(runs, 2, 1, dtype=F64))
+    with pytest.raises(ValueError, match=match):
+        closed_loop(plant, 2, noise=noise, x0=torch.zeros(runs, 2, dtype=F64),
+                    estimator=df.KalmanFilter(), controller=controller)  # fmt: skip
+
+
+def test_a_per_run_gain_of_other_runs_is_named_at_the_start():
+    _refused_at_the_start(3, StateFeedback(torch.ones(2, 1, 2, dtype=F64)),
+                          r"StateFeedback's gain \(2, 1, 2\) holds \(2,\) runs, and the loop \(3,\)")  # fmt: skip
 
 
 def test_the_continuous_lqr_is_detached_too_and_the_feedback_names_its_dtype():
@@ -140,13 +145,8 @@ def test_the_continuous_lqr_is_detached_too_and_the_feedback_names_its_dtype():
     A = torch.tensor([[0.0, 1.0], [-1.0, -0.5]], dtype=F64, requires_grad=True)
     K, P = lqr(A, B.clone().requires_grad_(True))
     assert not K.requires_grad and not P.requires_grad  # (K held a half gradient: P fixed)
-    plant = df.LinearGaussianModel(F, H, Q, R, torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64),
-                                   B=B)  # fmt: skip
-    noise = ReplayedNoise(torch.zeros(2, 2, 2, dtype=F64), torch.zeros(2, 2, 1, dtype=F64))
-    with pytest.raises(ValueError, match=r"StateFeedback's gain is torch.float32 on cpu and the "
-                                         r"loop torch.float64"):  # fmt: skip
-        closed_loop(plant, 2, noise=noise, x0=torch.zeros(2, 2, dtype=F64),
-                    estimator=df.KalmanFilter(), controller=StateFeedback(torch.ones(1, 2)))  # fmt: skip
+    _refused_at_the_start(2, StateFeedback(torch.ones(1, 2)),
+                          r"StateFeedback's gain is torch.float32 on cpu and the loop torch.float64")  # fmt: skip
 
 
 def test_state_feedback_is_differentiable_in_its_gain():

@@ -113,9 +113,8 @@ def test_the_smoother_is_differentiable_and_refuses_what_it_cannot_smooth():
     assert torch.autograd.gradcheck(lambda y: kalman_smoother(model, y).means.sum(-1), (ys,))
     with pytest.raises(TypeError, match="filtered must be the FilterResult"):
         rts_smoother(model, ys)
-    vdp = df.NonlinearGaussianModel(lambda x: x, lambda x: x[..., :1], Q, R, M0, P0)
-    with pytest.raises(TypeError, match="the RTS smoother needs a linear model"):
-        rts_smoother(vdp, df.kalman_filter(model, ys.detach()))
+    with pytest.raises(TypeError, match="the RTS smoother needs a state-space model"):
+        rts_smoother(object(), df.kalman_filter(model, ys.detach()))
 
 
 def test_one_step_shared_covariances_and_gradients_in_the_models_parameters():
@@ -198,3 +197,83 @@ def test_the_smoother_takes_its_own_filters_result_in_float32_and_diffuse_priors
         ys = torch.randn(2, T, 1, dtype=F64, generator=torch.Generator().manual_seed(T))
         out = kalman_smoother(diffuse, ys)
         assert bool(out.means.isfinite().all()) and bool(out.initial_cov.isfinite().all())
+
+
+DT, GRAVITY = 0.1, 9.81
+
+
+def _swing(x, u=None):  # a pendulum: angle, rate (and a torque input)
+    rate = x[..., 1] - DT * GRAVITY * torch.sin(x[..., 0])
+    if u is not None:
+        rate = rate + DT * u[..., 0]
+    return torch.stack([x[..., 0] + DT * x[..., 1], rate], -1)
+
+
+def _sine(x):
+    return torch.sin(x[..., :1])
+
+
+def test_the_extended_smoother_is_a_numpy_extended_rts_smoother():
+    """The EKF forward and the RTS backward with Jacobians at the filtered means, written
+    out in numpy, against difffilter.extended_kalman_smoother on a pendulum with inputs;
+    and on a linear model it is the Kalman smoother."""
+    import numpy as np
+
+    Qp = np.diag([1e-4, 4e-3])
+    Rp = np.array([[0.05]])
+    m0, P0p = np.array([0.8, 0.0]), np.diag([0.1, 0.2])
+    model = df.NonlinearGaussianModel(_swing, _sine, torch.as_tensor(Qp), torch.as_tensor(Rp),
+                                      torch.as_tensor(m0), torch.as_tensor(P0p), dim_u=1)  # fmt: skip
+    T = 25
+    gen = torch.Generator().manual_seed(7)
+    us = 0.3 * torch.randn(2, T, 1, dtype=F64, generator=gen)
+    _, ys, _ = model.simulate(T, (2,), us, generator=gen)
+    out = df.extended_kalman_smoother(model, ys, us)
+
+    def f(x, u):
+        return np.array([x[0] + DT * x[1], x[1] - DT * GRAVITY * np.sin(x[0]) + DT * u[0]])
+
+    def jac(x):
+        return np.array([[1.0, DT], [-DT * GRAVITY * np.cos(x[0]), 1.0]])
+
+    for r in range(2):
+        y, u = ys[r].numpy(), us[r].numpy()
+        ms, Ps, pm, pP, Fs = [m0], [P0p], [], [], []
+        m, P = m0, P0p
+        for k in range(T):
+            J = jac(m)
+            mp, Pp = f(m, u[k]), J @ P @ J.T + Qp
+            Hk = np.array([[np.cos(mp[0]), 0.0]])
+            S = Hk @ Pp @ Hk.T + Rp
+            K = Pp @ Hk.T @ np.linalg.inv(S)
+            m = mp + K @ (y[k] - np.sin(mp[:1]))
+            P = (np.eye(2) - K @ Hk) @ Pp @ (np.eye(2) - K @ Hk).T + K @ Rp @ K.T
+            ms.append(m), Ps.append(P), pm.append(mp), pP.append(Pp), Fs.append(J)
+        sm, sP, cross = [None] * (T + 1), [None] * (T + 1), [None] * T
+        sm[T], sP[T] = ms[T], Ps[T]
+        for k in range(T - 1, -1, -1):
+            G = Ps[k] @ Fs[k].T @ np.linalg.inv(pP[k])
+            sm[k] = ms[k] + G @ (sm[k + 1] - pm[k])
+            sP[k] = Ps[k] + G @ (sP[k + 1] - pP[k]) @ G.T
+            cross[k] = G @ sP[k + 1]
+        torch.testing.assert_close(
+            out.means[r], torch.as_tensor(np.stack(sm[1:])), rtol=1e-9, atol=1e-10
+        )
+        torch.testing.assert_close(
+            out.covs[r], torch.as_tensor(np.stack(sP[1:])), rtol=1e-9, atol=1e-11
+        )
+        torch.testing.assert_close(out.cross_covs[r], torch.as_tensor(np.stack(cross[1:])),
+                                   rtol=1e-9, atol=1e-11)  # fmt: skip
+        torch.testing.assert_close(
+            out.initial_mean[r], torch.as_tensor(sm[0]), rtol=1e-9, atol=1e-10
+        )
+        torch.testing.assert_close(out.initial_cross[r], torch.as_tensor(cross[0]), rtol=1e-9,
+                                   atol=1e-11)  # fmt: skip
+    linear = df.LinearGaussianModel(F, H, Q, R, M0, P0)
+    wrapped = df.NonlinearGaussianModel(lambda x: x @ F.mT, lambda x: x @ H.mT, Q, R, M0, P0)
+    ys = torch.randn(3, 8, 1, dtype=F64, generator=torch.Generator().manual_seed(8))
+    a, b = kalman_smoother(linear, ys), df.extended_kalman_smoother(wrapped, ys)
+    torch.testing.assert_close(b.means, a.means, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(b.covs, a.covs, rtol=1e-10, atol=1e-12)
+    with pytest.raises(ValueError, match=r"us must be the filter's inputs \[..., T = 25, du\]"):
+        rts_smoother(model, out.filtered, us[:, :3])
