@@ -324,17 +324,19 @@ class StateFeedback:
 
     def init(self, batch_shape, dtype, device) -> Tensor:
         runs = torch.Size(batch_shape)
-        for name, t in (("gain", self.gain), ("reference", self.reference)):
-            if t is not None and (t.dtype != dtype or t.device != torch.device(device)):
+        for name, t, event in (("gain", self.gain, 2), ("reference", self.reference, 1)):
+            if t is None:
+                continue
+            if t.dtype != dtype or t.device != torch.device(device):
                 raise ValueError(
                     f"StateFeedback's {name} is {t.dtype} on {t.device} and the loop "
                     f"{dtype} on {device}: give it the plant's ({name}.to(x0))"
                 )
-        for name, t, event in (("gain", self.gain, 2), ("reference", self.reference, 1)):
-            if t is not None and broadcast_or_none(t.shape[: t.dim() - event], runs) != runs:
+            own = t.shape[: t.dim() - event]
+            if broadcast_or_none(own, runs) != runs:
                 raise ValueError(
-                    f"StateFeedback's {name} {tuple(t.shape)} holds {tuple(t.shape[: t.dim() - event])} "
-                    f"runs, and the loop {tuple(runs)}: one for all runs, or one per run"
+                    f"StateFeedback's {name} {tuple(t.shape)} holds {tuple(own)} runs, and the "
+                    f"loop {tuple(runs)}: one for all runs, or one per run"
                 )
         return torch.zeros(*runs, self.gain.shape[-2], dtype=dtype, device=device)
 

@@ -69,12 +69,9 @@ def _of_k(model, name: str, steps: int) -> Tensor:
     return method(0).unsqueeze(-3)
 
 
-def _jacobians(model, m0: Tensor, means: Tensor, us: Tensor | None, steps: int) -> Tensor:
+def _jacobians(model, m0: Tensor, means: Tensor, us: Tensor | None) -> Tensor:
     """``∂f/∂x`` at ``m_k`` (``m_0`` the prior mean) with ``u_k`` for ``k = 0 … T − 1``
     ``[..., T, dx, dx]``: the transitions the EKF linearised."""
-    if us is not None and (not isinstance(us, Tensor) or us.shape[-2:-1] != (steps,)):
-        raise ValueError(f"us must be the filter's inputs [..., T = {steps}, du]; got "
-                         f"{tuple(us.shape) if isinstance(us, Tensor) else us!r}")  # fmt: skip
     at = [m0.expand(means.shape[:-2] + m0.shape[-1:])] + list(means[..., :-1, :].unbind(-2))
     return torch.stack([model.transition_jacobian(x, None if us is None else us[..., k, :], k)
                         for k, x in enumerate(at)], -3)  # fmt: skip
@@ -86,22 +83,24 @@ def _at(t: Tensor, k: int) -> Tensor:
 
 
 def _check_filtered_by(model, filtered: FilterResult, F: Tensor, Q: Tensor, P0: Tensor,
-                       m0: Tensor) -> None:  # fmt: skip
+                       m0: Tensor, us: Tensor | None) -> None:  # fmt: skip
     """``filtered`` is ``model``'s Kalman filter as far as step 1 shows it, where every path
-    of the filter computes the same numbers: ``P⁻_1 = F_0 P0 F_0ᵀ + Q_0`` and, for a model
-    without inputs, ``m⁻_1 = F_0 m0`` (a result of another model, or a stale one in an EM
-    loop, had smoothed silently wrong: means 0.48 off). Per run and per matrix, to round-off
-    of the dtype (later steps of the shared-covariance path differ from the plain recursion
-    by more than that in float32). Not seen: a result filtered with another ``H``, ``R``
-    or ``B``."""
+    of the filter computes the same numbers: ``P⁻_1 = F_0 P0 F_0ᵀ + Q_0`` and, where the
+    first input is known (given, or a model without inputs), ``m⁻_1 = f(m0, u_0)`` (a result
+    of another model, or a stale one in an EM loop, had smoothed silently wrong: means 0.48
+    off). Per run and per matrix, to round-off of the dtype (later steps of the
+    shared-covariance path differ from the plain recursion by more than that in float32).
+    Not seen: a result filtered with another ``H`` or ``R``."""
     tol = 1e3 * torch.finfo(filtered.means.dtype).eps
     F_0 = _at(F, 0)
     want = F_0 @ P0 @ F_0.mT + _at(Q, 0)
     got = filtered.pred_covs[..., 0, :, :]
     scale = want.detach().abs().amax((-1, -2)).clamp_min(torch.finfo(want.dtype).tiny)
     bad = (got.detach() - want.detach()).abs().amax((-1, -2)) > tol * scale
-    if not getattr(model, "dim_u", 0):
-        pred = (F_0 @ m0.unsqueeze(-1)).squeeze(-1)
+    if us is not None or not getattr(model, "dim_u", 0):
+        # the model's own transition (F_0 m0 was a nonlinear model's linearisation, not f)
+        start = m0.expand(filtered.pred_means.shape[:-2] + m0.shape[-1:])  # every run's
+        pred = model.transition(start, None if us is None else us[..., 0, :], 0)
         spread = want.detach().diagonal(dim1=-2, dim2=-1).amax(-1).sqrt()
         size = pred.detach().abs().amax(-1) + spread
         gap = (filtered.pred_means[..., 0, :].detach() - pred.detach()).abs().amax(-1)
@@ -120,7 +119,8 @@ def rts_smoother(model, filtered: FilterResult, us: Tensor | None = None) -> Smo
     :func:`difffilter.kalman_filter`; for a nonlinear one the result of
     :func:`difffilter.extended_kalman_filter` on the same ``us``, with ``F_k`` the
     Jacobian ``∂f/∂x`` at the filtered mean ``m_k`` (the prior mean at ``k = 0``), as the
-    EKF predicted with: the extended RTS smoother."""
+    EKF predicted with: the extended RTS smoother. ``us [..., T, du]``, the filter's inputs,
+    also let the check of ``filtered`` read the first predicted mean."""
     if not isinstance(filtered, FilterResult) or isinstance(filtered, ParticleFilterResult):
         raise TypeError(
             "filtered must be the FilterResult of difffilter.kalman_filter(model, ys, …) (or "
@@ -136,10 +136,13 @@ def rts_smoother(model, filtered: FilterResult, us: Tensor | None = None) -> Smo
     steps, dx = means.shape[-2], means.shape[-1]
     if steps < 1:
         raise ValueError("filtered holds no step (T = 0)")
+    if us is not None and (not isinstance(us, Tensor) or us.shape[-2:-1] != (steps,)):
+        raise ValueError(f"us must be the filter's inputs [..., T = {steps}, du]; got "
+                         f"{tuple(us.shape) if isinstance(us, Tensor) else us!r}")  # fmt: skip
     if callable(getattr(model, "transition_matrix", None)):
         F = _of_k(model, "transition_matrix", steps)
     else:  # the EKF's linearisation: at the prior mean for k = 0, the filtered mean after
-        F = _jacobians(model, model.initial.mean, means, us, steps)
+        F = _jacobians(model, model.initial.mean, means, us)
     Q = _of_k(model, "process_cov", steps)
     if F.shape[-2:] != (dx, dx):
         raise ValueError(f"model's F is {tuple(F.shape[-2:])} and the filtered states have "
@@ -155,7 +158,7 @@ def rts_smoother(model, filtered: FilterResult, us: Tensor | None = None) -> Smo
                       shared.expand(lead + shared.shape[-3:])], -3)  # fmt: skip
     mean_seq = torch.cat([m0.unsqueeze(-2).expand(run_shape + (1, dx)), means], -2)
     if filtered.pred_covs is not None:
-        _check_filtered_by(model, filtered, F, Q, P0, m0)
+        _check_filtered_by(model, filtered, F, Q, P0, m0, us)
         pred_covs = _shared(filtered.pred_covs)  # index k: P⁻_{k+1}
     else:  # P⁻_{k+1} = F_k P_k F_kᵀ + Q_k (the filter's prediction)
         pred_covs = torch.stack([_at(F, k) @ covs[..., k, :, :] @ _at(F, k).mT + _at(Q, k)
@@ -214,4 +217,4 @@ def kalman_smoother(
 ) -> SmootherResult:
     """:func:`difffilter.kalman_filter` on ``ys [..., T, dy]`` (``us``, and its options:
     ``mask``, ``nonfinite``, …), then :func:`rts_smoother`."""
-    return rts_smoother(model, kalman_filter(model, ys, us, **filter_options))
+    return rts_smoother(model, kalman_filter(model, ys, us, **filter_options), us)

@@ -46,6 +46,19 @@ def _entry_groups(groups, name: str) -> tuple[tuple[int, ...], ...]:
     return tuple(out)
 
 
+def _membership(groups, dim: int, name: str, device) -> Tensor:
+    """``[G, dim]`` bool: which of the ``dim`` measurement entries each group holds; every
+    entry in exactly one group."""
+    if sorted(i for g in groups for i in g) != list(range(dim)):
+        raise ValueError(
+            f"{name} must cover the {dim} measurement entries exactly once; got {groups!r}"
+        )
+    table = torch.zeros(len(groups), dim, dtype=torch.bool, device=device)
+    for j, g in enumerate(groups):
+        table[j, list(g)] = True
+    return table
+
+
 def _shape(batch_shape) -> torch.Size:
     return torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
 
@@ -83,14 +96,7 @@ class RoundRobin:
         return (torch.arange(num_steps, device=device) + self.start) % len(self.groups)
 
     def mask(self, batch_shape, num_steps: int, dim: int, generator=None, *, device=None):
-        flat = sorted(i for g in self.groups for i in g)
-        if flat != list(range(dim)):
-            raise ValueError(
-                f"groups must cover the {dim} measurement entries exactly once; got {self.groups!r}"
-            )
-        table = torch.zeros(len(self.groups), dim, dtype=torch.bool, device=device)
-        for j, g in enumerate(self.groups):
-            table[j, list(g)] = True
+        table = _membership(self.groups, dim, "groups", device)
         return table[self.scheduled(num_steps, device=device)].expand(
             _shape(batch_shape) + (num_steps, dim)
         )
@@ -118,16 +124,9 @@ class PacketLoss:
             shape = _shape(batch_shape) + (num_steps, dim)
             u = torch.rand(shape, generator=generator, dtype=torch.float64, device=device)
             return u >= self.rate
-        if sorted(i for p in self.packets for i in p) != list(range(dim)):
-            raise ValueError(
-                f"packets must cover the {dim} measurement entries exactly once; got "
-                f"{self.packets!r}"
-            )
+        packet_of = _membership(self.packets, dim, "packets", device).long().argmax(0)
         shape = _shape(batch_shape) + (num_steps, len(self.packets))
         arrived = (
             torch.rand(shape, generator=generator, dtype=torch.float64, device=device) >= self.rate
         )
-        packet_of = torch.empty(dim, dtype=torch.long, device=device)
-        for j, p in enumerate(self.packets):
-            packet_of[list(p)] = j
         return arrived[..., packet_of]

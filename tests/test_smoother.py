@@ -277,3 +277,20 @@ def test_the_extended_smoother_is_a_numpy_extended_rts_smoother():
     torch.testing.assert_close(b.covs, a.covs, rtol=1e-10, atol=1e-12)
     with pytest.raises(ValueError, match=r"us must be the filter's inputs \[..., T = 25, du\]"):
         rts_smoother(model, out.filtered, us[:, :3])
+
+
+def test_a_nonlinear_models_own_result_is_taken_and_another_prior_mean_refused():
+    """From the final review: the check read the first predicted mean as F_0 m0, which for a
+    nonlinear model is its linearisation, not f(m0): an EKF result of the model itself was
+    refused. The model's own transition is the prediction (with the inputs, where given)."""
+    Qp, Rp = torch.diag(torch.tensor([1e-4, 4e-3], dtype=F64)), torch.tensor([[0.05]], dtype=F64)
+    m0, P0p = torch.tensor([0.8, 0.0], dtype=F64), torch.diag(torch.tensor([0.1, 0.2], dtype=F64))
+    free = df.NonlinearGaussianModel(_swing, _sine, Qp, Rp, m0, P0p)
+    ys = torch.randn(2, 6, 1, dtype=F64, generator=torch.Generator().manual_seed(9)) * 0.3
+    out = df.extended_kalman_smoother(free, ys)
+    torch.testing.assert_close(out.means[:, -1], out.filtered.means[:, -1], rtol=0, atol=0)
+    driven = df.NonlinearGaussianModel(_swing, _sine, Qp, Rp, m0, P0p, dim_u=1)
+    moved = df.NonlinearGaussianModel(_swing, _sine, Qp, Rp, m0 + 0.5, P0p, dim_u=1)
+    us = torch.ones(2, 6, 1, dtype=F64)
+    with pytest.raises(ValueError, match="filtered is not this model's Kalman filter result"):
+        rts_smoother(driven, df.extended_kalman_filter(moved, ys, us), us)

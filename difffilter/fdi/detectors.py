@@ -309,10 +309,10 @@ class ChiSquareDetector:
         return (c - shifted[..., : c.shape[-1]]).to(g.dtype)
 
     def thresholds(self, num_steps: int, dtype=torch.float64) -> Tensor:
-        """Per-step thresholds ``[T]`` (smaller windows at the start)."""
-        full = self.threshold
-        head = [self.quantile(self.dim * (t + 1)) for t in range(min(self.window - 1, num_steps))]
-        return torch.tensor(head + [full] * (num_steps - len(head)), dtype=dtype)
+        """Per-step thresholds ``[T]`` (smaller windows at the start): the quantile of each
+        step's full window, ``m·min(t, W)`` degrees of freedom."""
+        table = self._quantile_table(torch.empty(0, dtype=dtype))
+        return table[self._full_dof(num_steps).long()]
 
     def detect(
         self, innovations: Tensor, innovation_covs: Tensor, mask: Tensor | None = None

@@ -182,14 +182,15 @@ def _with_implicit_gradient(omega: Tensor, covs: Tensor) -> Tensor:
     info = torch.linalg.inv(covs.to(torch.float64))
     A = info[..., 0, :, :] - info[..., 1, :, :]
 
+    def trace(M):
+        return M.diagonal(dim1=-2, dim2=-1).sum(-1)
+
     def slope(P):  # J′ = −tr(P A P)
-        return -(P @ A @ P).diagonal(dim1=-2, dim2=-1).sum(-1)
+        return -trace(P @ A @ P)
 
     w = omega.detach().to(torch.float64)[..., None, None]
     P = torch.linalg.inv(w * info[..., 0, :, :] + (1 - w) * info[..., 1, :, :])
-    PAP = P @ A @ P
-    first = -PAP.diagonal(dim1=-2, dim2=-1).sum(-1)
-    second = 2 * (PAP @ A @ P).diagonal(dim1=-2, dim2=-1).sum(-1)
+    first, second = slope(P), 2 * trace(P @ A @ P @ A @ P)  # J′, J″
     # the minimiser is inside [0, 1] where J falls at 0 and rises at 1 (a search stopped
     # short of a bound, ω = 0.99997 after 20 iterations, is at the bound: no derivative)
     with torch.no_grad():
