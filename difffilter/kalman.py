@@ -42,7 +42,7 @@ from .gaussian import (
     moments_update,
 )
 from .linalg import matvec, under_transform
-from .loop import open_loop
+from .loop import _step_through, open_loop
 from .parallel_kalman import parallel_kalman_filter
 from .results import FilterResult, GaussianState, StepOutput
 from .ssm import LinearGaussianModel
@@ -355,7 +355,28 @@ class KalmanFilter(GaussianFilter):
         if shared_covariance_applies(model, mask) and not _forward_traced(model, ys, us):
             result = shared_covariance_kalman_filter(model, ys, us)
             return None if result is None else output_of(result)  # None: step by step
+        schedule = None if mask is None else _one_schedule(mask)
+        if schedule is not None:
+            # every run received the same entries: the covariance recursion (which reads
+            # the mask, never the data) is one [dx, dx] recursion for all runs, as without
+            # a mask; steps with a [dy] mask broadcast it (a [B, dy] mask made it B of them)
+            return _step_through(self, carry, ys, us, schedule, self.batch_of(carry), None)
         return None
+
+
+def _one_schedule(mask: Tensor) -> Tensor | None:
+    """The ``[T, dy]`` mask every run of ``mask [..., T, dy]`` shares, else ``None`` (and
+    ``None`` under a ``torch.func`` transform or a dual level, whose tensors cannot be
+    compared here)."""
+    lead = mask.dim() - 2
+    if lead == 0:
+        return mask
+    if under_transform():
+        return None
+    first = mask[(0,) * lead]
+    if all(s == 0 for s in mask.stride()[:lead]) or torch.equal(mask, first.expand_as(mask)):
+        return first
+    return None
 
 
 def _model_tensors(model) -> tuple:

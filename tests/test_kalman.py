@@ -1254,3 +1254,94 @@ def test_the_default_filter_steps_where_the_shared_blocks_lose_the_means(generat
     cv = constant_velocity()  # a well-conditioned model keeps the fast path
     _, ys_cv, _ = cv.simulate(50, (40,), generator=generator)
     assert shared_covariance_kalman_filter(cv, ys_cv) is not None
+
+
+# ------------------------------------- one schedule for every run (a shared mask's path)
+
+
+def _shared_schedule_case(batch, T, generator, *, with_input=False, lost_as_nan=False):
+    model = constant_velocity(with_input=with_input)
+    us = torch.randn(*batch, T, 1, dtype=torch.float64, generator=generator) if with_input else None
+    _, ys, _ = model.simulate(T, batch, us=us, generator=generator)
+    schedule = torch.rand(T, 2, generator=generator) > 0.35
+    schedule[min(2, T - 1)] = False  # a packet lost whole
+    mask = schedule.expand(*batch, T, 2)
+    if lost_as_nan:
+        ys = torch.where(mask, ys, torch.nan)
+    return model, ys, us, mask
+
+
+@pytest.mark.parametrize("materialised", [False, True])  # an expanded view, or B equal copies
+@pytest.mark.parametrize("with_input", [False, True])
+@pytest.mark.parametrize("batch, T", [((), 9), ((3,), 7), ((2, 3), 13)])
+def test_a_schedule_every_run_shares_gives_the_per_run_filters_numbers(
+    batch, T, with_input, materialised, generator
+):
+    """A mask equal in every run (round-robin scheduling, one lossy link for all runs):
+    the covariance recursion reads the mask and never the data, so it is one recursion
+    for all runs; the filter's every output equals the per-run filter's (a carry without
+    the fast paths, stepped with the ``[B, dy]`` mask), and the covariances are shared
+    views of one ``[T, dx, dx]`` tensor, as the unmasked shared path returns them."""
+    model, ys, us, mask = _shared_schedule_case(batch, T, generator, with_input=with_input,
+                                                lost_as_nan=True)  # fmt: skip
+    if materialised:
+        mask = mask.clone()
+    fast, ref = df.kalman_filter(model, ys, us, mask=mask), _general(model, ys, us, mask=mask)
+    for name in FIELDS:
+        a, b = getattr(fast, name), getattr(ref, name)
+        assert a.shape == b.shape, name
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12, msg=name)
+    if batch:
+        assert fast.covs.stride(0) == 0 and fast.innovation_covs.stride(0) == 0
+        assert ref.covs.stride(0) != 0  # (the reference computed one recursion per run)
+
+
+def test_a_mask_that_differs_in_one_run_keeps_one_recursion_per_run(generator):
+    model, ys, _, mask = _shared_schedule_case((4,), 10, generator)
+    mask = mask.clone()
+    mask[2, 5, 0] = not mask[2, 5, 0]
+    fast, ref = df.kalman_filter(model, ys, mask=mask), _general(model, ys, mask=mask)
+    assert fast.covs.stride(0) != 0
+    torch.testing.assert_close(fast.covs[2], ref.covs[2], rtol=1e-12, atol=1e-12)
+    assert not torch.allclose(fast.covs[2, 5], fast.covs[0, 5])  # its own covariance
+    torch.testing.assert_close(fast.log_likelihood, ref.log_likelihood, rtol=1e-12, atol=1e-12)
+
+
+def test_a_shared_schedules_gradients_are_the_per_run_filters(generator):
+    base, ys, _, mask = _shared_schedule_case((3,), 11, generator)
+
+    def grads(run):
+        F = base.F.clone().requires_grad_()
+        R = base.measurement_noise.cov.clone().requires_grad_()
+        y = ys.clone().requires_grad_()
+        model = df.LinearGaussianModel(F, base.H, base.process_noise.cov, R, base.initial.mean,
+                                       base.initial.cov)  # fmt: skip
+        res = run(model, y, mask=mask)
+        (res.log_likelihood.sum() + res.means.square().sum()).backward()
+        return F.grad, R.grad, y.grad
+
+    for a, b in zip(grads(df.kalman_filter), grads(_general)):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_a_shared_schedule_on_a_time_varying_model_gives_the_per_run_filters_numbers(generator):
+    class Rotating(df.LinearGaussianModel):
+        time_varying = True
+
+        def transition_matrix(self, k):
+            c, s = np.cos(0.1 * k), np.sin(0.1 * k)
+            rot = torch.tensor([[c, -s], [s, c]], dtype=self.F.dtype)
+            return 0.95 * torch.block_diag(rot, rot)
+
+        def measurement_cov(self, k):
+            return self.measurement_noise.cov * (1.0 + 0.1 * k)
+
+    base, _, _, mask = _shared_schedule_case((2, 3), 17, generator)
+    model = Rotating(base.F, base.H, base.process_noise.cov, base.measurement_noise.cov,
+                     base.initial.mean, base.initial.cov)  # fmt: skip
+    _, ys, _ = model.simulate(17, (2, 3), generator=generator)
+    fast, ref = df.kalman_filter(model, ys, mask=mask), _general(model, ys, mask=mask)
+    for name in FIELDS:
+        torch.testing.assert_close(getattr(fast, name), getattr(ref, name), rtol=1e-12,
+                                   atol=1e-12, msg=name)  # fmt: skip
+    assert fast.covs.stride(0) == 0
