@@ -72,9 +72,16 @@ _WHERE = {
         "results",
     ),  # fmt: skip
     **dict.fromkeys(
-        ("SmootherResult", "extended_kalman_smoother", "kalman_smoother", "rts_smoother"),
+        (
+            "SmootherResult",
+            "extended_kalman_smoother",
+            "kalman_smoother",
+            "rts_smoother",
+            "unscented_kalman_smoother",
+            "unscented_rts_smoother",
+        ),
         "smoother",
-    ),
+    ),  # fmt: skip
     **dict.fromkeys(("LinearGaussianModel", "NonlinearGaussianModel", "StateSpaceModel"), "ssm"),
 }
 
@@ -130,7 +137,9 @@ __all__ = [
     "kalman_filter",
     "kalman_smoother",
     "extended_kalman_smoother",
+    "unscented_kalman_smoother",
     "rts_smoother",
+    "unscented_rts_smoother",
     "SmootherResult",
     "GainSchedule",
     "extended_kalman_step",

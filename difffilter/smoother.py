@@ -14,9 +14,17 @@ update of ``F``, ``Q`` and the prior needs (docs/gradients.md). Inputs and lost 
 forward pass alone. Batched over runs, differentiable (tested equal to the dense joint
 Gaussian's conditional, and by ``gradcheck``). For a nonlinear model the same recursion
 on the EKF's result with ``F_k = ∂f/∂x(m_k, u_k)`` is the extended RTS smoother
-(:func:`extended_kalman_smoother`). The backward loop over time is the only
-Python loop. For offline analysis of a recorded log (docs/recorded-logs.md): the state
-at every step given the whole log, not only its past.
+(:func:`extended_kalman_smoother`). On the UKF's result, the unscented RTS smoother
+(Särkkä 2008, :func:`unscented_kalman_smoother`) replaces ``P_k F_kᵀ`` by the sigma
+points' cross-covariance of ``x_k`` and ``x_{k+1}``:
+
+    X_k = sigma points of N(m_k, P_k),   D_k = Σᵢ wᶜᵢ (X_k^i − m_k)(f(X_k^i, u_k) − m⁻_{k+1})ᵀ
+    G_k = D_k (P⁻_{k+1})⁻¹
+
+(the same recursion otherwise; on a linear model ``D_k = P_k F_kᵀ`` and it is the RTS
+smoother). The backward loop over time is the only Python loop. For offline analysis of
+a recorded log (docs/recorded-logs.md): the state at every step given the whole log, not
+only its past.
 """
 
 from __future__ import annotations
@@ -30,7 +38,14 @@ from .kalman import kalman_filter
 from .linalg import symmetrize
 from .results import FilterResult, ParticleFilterResult
 
-__all__ = ["SmootherResult", "rts_smoother", "kalman_smoother", "extended_kalman_smoother"]
+__all__ = [
+    "SmootherResult",
+    "rts_smoother",
+    "unscented_rts_smoother",
+    "kalman_smoother",
+    "extended_kalman_smoother",
+    "unscented_kalman_smoother",
+]
 
 
 class SmootherResult(NamedTuple):
@@ -82,29 +97,32 @@ def _at(t: Tensor, k: int) -> Tensor:
     return t[..., k if t.shape[-3] > 1 else 0, :, :]
 
 
-def _check_filtered_by(model, filtered: FilterResult, F: Tensor, Q: Tensor, P0: Tensor,
-                       m0: Tensor, us: Tensor | None) -> None:  # fmt: skip
-    """``filtered`` is ``model``'s Kalman filter as far as step 1 shows it, where every path
-    of the filter computes the same numbers: ``P⁻_1 = F_0 P0 F_0ᵀ + Q_0`` and, where the
-    first input is known (given, or a model without inputs), ``m⁻_1 = f(m0, u_0)`` (a result
-    of another model, or a stale one in an EM loop, had smoothed silently wrong: means 0.48
-    off). Per run and per matrix, to round-off of the dtype (later steps of the
-    shared-covariance path differ from the plain recursion by more than that in float32).
-    Not seen: a result filtered with another ``H`` or ``R``."""
+def _check_filtered_by(filtered: FilterResult, want: Tensor, pred: Tensor | None,
+                       unscented: bool = False) -> None:  # fmt: skip
+    """``filtered`` is ``model``'s filter result as far as step 1 shows it, where every path
+    of the filter computes the same numbers: ``P⁻_1`` is ``want`` (``F_0 P0 F_0ᵀ + Q_0``, or
+    the unscented transform's) and, where the first input is known (given, or a model
+    without inputs), ``m⁻_1`` is ``pred`` (``f(m0, u_0)``, or the sigma points' mean; ``None``:
+    not known) (a result of another model, or a stale one in an EM loop, had smoothed
+    silently wrong: means 0.48 off). Per run and per matrix, to round-off of the dtype
+    (later steps of the shared-covariance path differ from the plain recursion by more than
+    that in float32). Not seen: a result filtered with another ``H`` or ``R``."""
     tol = 1e3 * torch.finfo(filtered.means.dtype).eps
-    F_0 = _at(F, 0)
-    want = F_0 @ P0 @ F_0.mT + _at(Q, 0)
     got = filtered.pred_covs[..., 0, :, :]
     scale = want.detach().abs().amax((-1, -2)).clamp_min(torch.finfo(want.dtype).tiny)
     bad = (got.detach() - want.detach()).abs().amax((-1, -2)) > tol * scale
-    if us is not None or not getattr(model, "dim_u", 0):
-        # the model's own transition (F_0 m0 was a nonlinear model's linearisation, not f)
-        start = m0.expand(filtered.pred_means.shape[:-2] + m0.shape[-1:])  # every run's
-        pred = model.transition(start, None if us is None else us[..., 0, :], 0)
+    if pred is not None:
         spread = want.detach().diagonal(dim1=-2, dim2=-1).amax(-1).sqrt()
         size = pred.detach().abs().amax(-1) + spread
         gap = (filtered.pred_means[..., 0, :].detach() - pred.detach()).abs().amax(-1)
         bad = bad | (gap > tol * size)
+    if bool(bad.any()) and unscented:
+        raise ValueError(
+            "filtered is not this model's unscented Kalman filter result with these sigma "
+            "points: its prediction of step 1 is not the sigma points' of the prior; filter "
+            "with this model and the same SigmaPoints, e.g. "
+            "difffilter.unscented_kalman_smoother(model, ys, …, sigma_points=…)"
+        )
     if bool(bad.any()):
         raise ValueError(
             "filtered is not this model's Kalman filter result: its prediction of step 1 is "
@@ -120,25 +138,10 @@ def rts_smoother(model, filtered: FilterResult, us: Tensor | None = None) -> Smo
     :func:`difffilter.extended_kalman_filter` on the same ``us``, with ``F_k`` the
     Jacobian ``∂f/∂x`` at the filtered mean ``m_k`` (the prior mean at ``k = 0``), as the
     EKF predicted with: the extended RTS smoother. ``us [..., T, du]``, the filter's inputs,
-    also let the check of ``filtered`` read the first predicted mean."""
-    if not isinstance(filtered, FilterResult) or isinstance(filtered, ParticleFilterResult):
-        raise TypeError(
-            "filtered must be the FilterResult of difffilter.kalman_filter(model, ys, …) (or "
-            f"extended_kalman_filter for a nonlinear model); got {type(filtered).__name__}"
-        )
-    for name in ("transition_jacobian", "process_cov"):
-        if not callable(getattr(model, name, None)):
-            raise TypeError(
-                f"the RTS smoother needs a state-space model with {name} ({type(model).__name__} "
-                "has none): e.g. difffilter.LinearGaussianModel"
-            )
+    also let the check of ``filtered`` read the first predicted mean. (The UKF's result:
+    :func:`unscented_rts_smoother`.)"""
+    steps, dx = _check_arguments(model, filtered, us, "transition_jacobian")
     means = filtered.means
-    steps, dx = means.shape[-2], means.shape[-1]
-    if steps < 1:
-        raise ValueError("filtered holds no step (T = 0)")
-    if us is not None and (not isinstance(us, Tensor) or us.shape[-2:-1] != (steps,)):
-        raise ValueError(f"us must be the filter's inputs [..., T = {steps}, du]; got "
-                         f"{tuple(us.shape) if isinstance(us, Tensor) else us!r}")  # fmt: skip
     if callable(getattr(model, "transition_matrix", None)):
         F = _of_k(model, "transition_matrix", steps)
     else:  # the EKF's linearisation: at the prior mean for k = 0, the filtered mean after
@@ -147,6 +150,93 @@ def rts_smoother(model, filtered: FilterResult, us: Tensor | None = None) -> Smo
     if F.shape[-2:] != (dx, dx):
         raise ValueError(f"model's F is {tuple(F.shape[-2:])} and the filtered states have "
                          f"{dx} entries: smooth with the model that was filtered")  # fmt: skip
+    m0, P0 = model.initial.mean, model.initial.cov
+    if filtered.pred_covs is not None:
+        F_0 = _at(F, 0)
+        pred = None
+        if us is not None or not getattr(model, "dim_u", 0):
+            # the model's own transition (F_0 m0 was a nonlinear model's linearisation, not f)
+            start = m0.expand(means.shape[:-2] + m0.shape[-1:])  # every run's
+            pred = model.transition(start, None if us is None else us[..., 0, :], 0)
+        _check_filtered_by(filtered, F_0 @ P0 @ F_0.mT + _at(Q, 0), pred)
+
+    def transition(k: int, mean: Tensor, cov: Tensor, predict: bool):
+        F_k = _at(F, k)  # Cov(x_{k+1}, x_k | y_{1:k}) = F P, and P⁻ = F P Fᵀ + Q
+        cross = F_k @ cov
+        return cross, cross @ F_k.mT + _at(Q, k) if predict else None
+
+    return _backward(model, filtered, transition)
+
+
+def unscented_rts_smoother(
+    model, filtered: FilterResult, us: Tensor | None = None, sigma_points=None
+) -> SmootherResult:
+    """The unscented RTS smoother (Särkkä 2008; module docstring) of ``filtered``, the
+    result of :func:`difffilter.unscented_kalman_filter` on ``model`` with ``us
+    [..., T, du]`` and the same ``sigma_points`` (a
+    :class:`~difffilter.extended.SigmaPoints`; default ``SigmaPoints()``, the UKF's): the
+    smoother gain from the cross-covariance of the sigma points of ``N(m_k, P_k)`` and
+    their images under ``f``, with the UKF's weights. On a linear model, the RTS smoother."""
+    from .extended import SigmaPoints, _check_sigma_points
+
+    _check_sigma_points(sigma_points)
+    sp = sigma_points or SigmaPoints()
+    steps, _ = _check_arguments(model, filtered, us, "transition")
+    m0, P0 = model.initial.mean, model.initial.cov
+    means = filtered.means
+    wm, wc, scale = sp.weights(means.shape[-1], means.dtype, means.device)
+
+    def transition(k: int, mean: Tensor, cov: Tensor, predict: bool):
+        # Cov(x_{k+1}, x_k) = Σ wᶜ (f(X) − m⁻)(X − m)ᵀ and P⁻ = Σ wᶜ (f(X) − m⁻)(·)ᵀ + Q
+        X = sp.points(mean, cov, scale)  # [..., 2n+1, n]
+        u = None if us is None else us[..., k, :].unsqueeze(-2)
+        FX = model.transition(X, u, k)
+        pred_dev = FX - (wm[:, None] * FX).sum(-2, keepdim=True)
+        weighted = (wc[:, None] * pred_dev).mT  # [..., n, 2n+1]
+        cross = weighted @ (X - mean.unsqueeze(-2))
+        return cross, symmetrize(weighted @ pred_dev + model.process_cov(k)) if predict else None
+
+    if filtered.pred_covs is not None:
+        start = m0.expand(means.shape[:-2] + m0.shape[-1:])
+        X0 = sp.points(start, P0, scale)
+        _, want = transition(0, start, P0, True)
+        pred = None
+        if us is not None or not getattr(model, "dim_u", 0):
+            u0 = None if us is None else us[..., 0, :].unsqueeze(-2)
+            pred = (wm[:, None] * model.transition(X0, u0, 0)).sum(-2)
+        _check_filtered_by(filtered, want, pred, unscented=True)
+    return _backward(model, filtered, transition)
+
+
+def _check_arguments(model, filtered, us, needed: str) -> tuple[int, int]:
+    """``(T, dx)`` of ``filtered`` after checking what every smoother takes."""
+    if not isinstance(filtered, FilterResult) or isinstance(filtered, ParticleFilterResult):
+        raise TypeError(
+            "filtered must be the FilterResult of difffilter.kalman_filter(model, ys, …) (or "
+            "extended_kalman_filter, unscented_kalman_filter for a nonlinear model); got "
+            f"{type(filtered).__name__}"
+        )
+    for name in (needed, "process_cov"):
+        if not callable(getattr(model, name, None)):
+            raise TypeError(
+                f"the RTS smoother needs a state-space model with {name} ({type(model).__name__} "
+                "has none): e.g. difffilter.LinearGaussianModel"
+            )
+    steps, dx = filtered.means.shape[-2], filtered.means.shape[-1]
+    if steps < 1:
+        raise ValueError("filtered holds no step (T = 0)")
+    if us is not None and (not isinstance(us, Tensor) or us.shape[-2:-1] != (steps,)):
+        raise ValueError(f"us must be the filter's inputs [..., T = {steps}, du]; got "
+                         f"{tuple(us.shape) if isinstance(us, Tensor) else us!r}")  # fmt: skip
+    return steps, dx
+
+
+def _backward(model, filtered: FilterResult, transition) -> SmootherResult:
+    """The backward recursion (module docstring) of ``filtered``, from step ``T`` to the
+    prior, with ``transition(k, m_k, P_k) → (Cov(x_{k+1}, x_k | y_{1:k}) [..., dx, dx],
+    P⁻_{k+1})`` (the second read only where ``filtered`` holds no predicted covariances)."""
+    means = filtered.means
+    steps, dx = means.shape[-2], means.shape[-1]
     m0, P0 = model.initial.mean, model.initial.cov
     # the prior as step 0, then the filtered steps 1 … T (covariances shared by every run,
     # as the filter hands them out expanded, stride 0: narrowed to one, so the covariance
@@ -157,19 +247,16 @@ def rts_smoother(model, filtered: FilterResult, us: Tensor | None = None) -> Smo
     covs = torch.cat([P0.unsqueeze(-3).expand(lead + (1, dx, dx)),
                       shared.expand(lead + shared.shape[-3:])], -3)  # fmt: skip
     mean_seq = torch.cat([m0.unsqueeze(-2).expand(run_shape + (1, dx)), means], -2)
-    if filtered.pred_covs is not None:
-        _check_filtered_by(model, filtered, F, Q, P0, m0, us)
-        pred_covs = _shared(filtered.pred_covs)  # index k: P⁻_{k+1}
-    else:  # P⁻_{k+1} = F_k P_k F_kᵀ + Q_k (the filter's prediction)
-        pred_covs = torch.stack([_at(F, k) @ covs[..., k, :, :] @ _at(F, k).mT + _at(Q, k)
-                                 for k in range(steps)], -3)  # fmt: skip
+    pred_covs = None if filtered.pred_covs is None else _shared(filtered.pred_covs)
     smooth_m, smooth_P = [mean_seq[..., -1, :]], [covs[..., -1, :, :]]
     gains, cross = [], []
     for k in range(steps - 1, -1, -1):  # backward from k = T − 1 to the prior, k = 0
-        F_k = _at(F, k)
-        P_k, P_pred = covs[..., k, :, :], pred_covs[..., k, :, :]
-        # G = P Fᵀ (P⁻)⁻¹, by a solve: Gᵀ = (P⁻)⁻¹ F P (P⁻ and P symmetric)
-        G = torch.linalg.solve(P_pred, F_k @ P_k).mT
+        P_k = covs[..., k, :, :]
+        ahead, P_pred = transition(k, mean_seq[..., k, :], P_k, pred_covs is None)
+        if pred_covs is not None:  # index k: P⁻_{k+1}, as the filter predicted
+            P_pred = pred_covs[..., k, :, :]
+        # G = C (P⁻)⁻¹ with C = Cov(x_k, x_{k+1}) = aheadᵀ, by a solve: Gᵀ = (P⁻)⁻¹ ahead
+        G = torch.linalg.solve(P_pred, ahead).mT
         m_next, P_next = smooth_m[-1], smooth_P[-1]
         step = (G @ (m_next - filtered.pred_means[..., k, :]).unsqueeze(-1)).squeeze(-1)
         smooth_m.append(mean_seq[..., k, :] + step)
@@ -218,3 +305,16 @@ def kalman_smoother(
     """:func:`difffilter.kalman_filter` on ``ys [..., T, dy]`` (``us``, and its options:
     ``mask``, ``nonfinite``, …), then :func:`rts_smoother`."""
     return rts_smoother(model, kalman_filter(model, ys, us, **filter_options), us)
+
+
+def unscented_kalman_smoother(
+    model, ys: Tensor, us: Tensor | None = None, *, sigma_points=None, **filter_options
+) -> SmootherResult:
+    """:func:`difffilter.unscented_kalman_filter` on ``ys [..., T, dy]`` (``us``,
+    ``sigma_points`` and its options), then :func:`unscented_rts_smoother` with the same
+    sigma points."""
+    from .extended import unscented_kalman_filter
+
+    filtered = unscented_kalman_filter(model, ys, us, sigma_points=sigma_points,
+                                       **filter_options)  # fmt: skip
+    return unscented_rts_smoother(model, filtered, us, sigma_points)

@@ -294,3 +294,122 @@ def test_a_nonlinear_models_own_result_is_taken_and_another_prior_mean_refused()
     us = torch.ones(2, 6, 1, dtype=F64)
     with pytest.raises(ValueError, match="filtered is not this model's Kalman filter result"):
         rts_smoother(driven, df.extended_kalman_filter(moved, ys, us), us)
+
+
+def _numpy_unscented_rts(m0, P0, means, covs, pred_means, pred_covs, f, us, Qp, alpha, beta,
+                         kappa):  # fmt: skip
+    """Särkkä's unscented RTS smoother (2008, eqs. for D_{k+1}, G_k) written out in numpy from
+    a filter's ``m_k, P_k`` (k = 1 … T) and ``m⁻_{k+1}, P⁻_{k+1}`` (k = 0 … T − 1):
+    ``(smoothed means [T + 1], covs [T + 1], gains [T])`` with the prior first."""
+    import numpy as np
+
+    n = m0.shape[0]
+    lam = alpha**2 * (n + kappa) - n
+    wm = np.full(2 * n + 1, 0.5 / (n + lam))
+    wm[0] = lam / (n + lam)
+    wc = wm.copy()
+    wc[0] += 1.0 - alpha**2 + beta
+    ms, Ps = [m0, *means], [P0, *covs]
+    T = len(means)
+    sm, sP, G = [None] * (T + 1), [None] * (T + 1), [None] * T
+    sm[T], sP[T] = ms[T], Ps[T]
+    for k in range(T - 1, -1, -1):
+        L = np.linalg.cholesky(Ps[k]) * np.sqrt(n + lam)
+        X = np.vstack([ms[k], ms[k] + L.T, ms[k] - L.T])  # rows: the 2n + 1 points
+        FX = np.stack([f(x, us[k]) for x in X])
+        mp = wm @ FX
+        D = sum(wc[i] * np.outer(X[i] - ms[k], FX[i] - mp) for i in range(2 * n + 1))
+        Pp = sum(wc[i] * np.outer(FX[i] - mp, FX[i] - mp) for i in range(2 * n + 1)) + Qp
+        np.testing.assert_allclose(mp, pred_means[k], rtol=1e-10, atol=1e-12)  # the UKF's own
+        np.testing.assert_allclose(Pp, pred_covs[k], rtol=1e-10, atol=1e-12)
+        G[k] = D @ np.linalg.inv(Pp)
+        sm[k] = ms[k] + G[k] @ (sm[k + 1] - mp)
+        sP[k] = Ps[k] + G[k] @ (sP[k + 1] - Pp) @ G[k].T
+    return sm, sP, G
+
+
+@pytest.mark.parametrize("points", [(1.0, 2.0, 0.0), (0.5, 2.0, 1.0)])
+def test_the_unscented_smoother_is_a_numpy_unscented_rts_smoother(points):
+    """Särkkä's unscented RTS smoother written out in numpy (sigma points, weights, D_{k+1}
+    and G_k of its own) on the UKF's filtered moments, against
+    difffilter.unscented_kalman_smoother on a pendulum with inputs, for the default sigma
+    points and another (α, β, κ)."""
+    import numpy as np
+
+    Qp, Rp = np.diag([1e-4, 4e-3]), np.array([[0.05]])
+    m0, P0p = np.array([0.8, 0.0]), np.diag([0.1, 0.2])
+    model = df.NonlinearGaussianModel(_swing, _sine, torch.as_tensor(Qp), torch.as_tensor(Rp),
+                                      torch.as_tensor(m0), torch.as_tensor(P0p), dim_u=1)  # fmt: skip
+    T = 20
+    gen = torch.Generator().manual_seed(11)
+    us = 0.3 * torch.randn(2, T, 1, dtype=F64, generator=gen)
+    _, ys, _ = model.simulate(T, (2,), us, generator=gen)
+    sp = df.SigmaPoints(*points)
+    out = df.unscented_kalman_smoother(model, ys, us, sigma_points=sp)
+
+    def f(x, u):
+        return np.array([x[0] + DT * x[1], x[1] - DT * GRAVITY * np.sin(x[0]) + DT * u[0]])
+
+    filt = out.filtered
+    for r in range(2):
+        sm, sP, G = _numpy_unscented_rts(
+            m0, P0p, filt.means[r].numpy(), filt.covs[r].numpy(), filt.pred_means[r].numpy(),
+            filt.pred_covs[r].numpy(), f, us[r].numpy(), Qp, *points,
+        )  # fmt: skip
+        torch.testing.assert_close(out.means[r], torch.as_tensor(np.stack(sm[1:])), rtol=1e-9,
+                                   atol=1e-11)  # fmt: skip
+        torch.testing.assert_close(out.covs[r], torch.as_tensor(np.stack(sP[1:])), rtol=1e-9,
+                                   atol=1e-12)  # fmt: skip
+        torch.testing.assert_close(out.gains[r], torch.as_tensor(np.stack(G[1:])), rtol=1e-9,
+                                   atol=1e-11)  # fmt: skip
+        cross = [G[k] @ sP[k + 1] for k in range(T)]
+        torch.testing.assert_close(out.cross_covs[r], torch.as_tensor(np.stack(cross[1:])),
+                                   rtol=1e-9, atol=1e-12)  # fmt: skip
+        torch.testing.assert_close(out.initial_mean[r], torch.as_tensor(sm[0]), rtol=1e-9,
+                                   atol=1e-11)  # fmt: skip
+        torch.testing.assert_close(out.initial_cov[r], torch.as_tensor(sP[0]), rtol=1e-9,
+                                   atol=1e-12)  # fmt: skip
+    # the smoother moved the estimates: not the filter's (but the last step's, its own)
+    assert (out.means[:, :-1] - filt.means[:, :-1]).abs().max() > 1e-3
+    torch.testing.assert_close(out.means[:, -1], filt.means[:, -1], rtol=0, atol=0)
+
+
+def test_the_unscented_smoother_is_the_rts_smoother_on_a_linear_model():
+    """The sigma points carry a linear map exactly: D_k = P_k F_kᵀ, the Kalman smoother's
+    (with inputs, lost entries and a time-varying F, three runs)."""
+    model = Turning(F, H, Q, R, M0, P0, B=B)
+    gen = torch.Generator().manual_seed(12)
+    us = torch.randn(3, 9, 1, dtype=F64, generator=gen)
+    _, ys, _ = model.simulate(9, (3,), us, generator=gen)
+    mask = torch.rand(3, 9, 1, generator=gen) > 0.3
+    a = kalman_smoother(model, ys, us, mask=mask)
+    b = df.unscented_kalman_smoother(model, ys, us, mask=mask)
+    for name in ("means", "covs", "cross_covs", "gains", "initial_mean", "initial_cov",
+                 "initial_cross"):  # fmt: skip
+        torch.testing.assert_close(getattr(b, name), getattr(a, name), rtol=1e-9, atol=1e-12,
+                                   msg=name)  # fmt: skip
+
+
+def test_the_unscented_smoother_is_differentiable_public_and_refuses_another_filter():
+    Qp, Rp = torch.diag(torch.tensor([1e-4, 4e-3], dtype=F64)), torch.tensor([[0.05]], dtype=F64)
+    m0, P0p = torch.tensor([0.8, 0.0], dtype=F64), torch.diag(torch.tensor([0.1, 0.2], dtype=F64))
+    model = df.NonlinearGaussianModel(_swing, _sine, Qp, Rp, m0, P0p)
+    ys = 0.3 * torch.randn(2, 5, 1, dtype=F64, generator=torch.Generator().manual_seed(13))
+    assert torch.autograd.gradcheck(
+        lambda y: df.unscented_kalman_smoother(model, y).means.sum(-1), (ys.requires_grad_(),)
+    )
+    ys = ys.detach()
+    assert {"unscented_kalman_smoother", "unscented_rts_smoother"} <= set(df.__all__)
+    other_points = df.unscented_kalman_filter(model, ys, sigma_points=df.SigmaPoints(0.5))
+    with pytest.raises(ValueError, match="not this model's unscented Kalman filter result"):
+        df.unscented_rts_smoother(model, other_points)
+    moved = df.NonlinearGaussianModel(_swing, _sine, Qp, Rp, m0 + 0.3, P0p)
+    with pytest.raises(ValueError, match="not this model's unscented Kalman filter result"):
+        df.unscented_rts_smoother(model, df.unscented_kalman_filter(moved, ys))
+    with pytest.raises(TypeError, match="sigma_points must be a SigmaPoints"):
+        df.unscented_kalman_smoother(model, ys, sigma_points=(1.0, 2.0, 0.0))
+    # its own result, in float32 too
+    own = df.unscented_rts_smoother(model, df.unscented_kalman_filter(model, ys))
+    torch.testing.assert_close(own.means[:, -1], own.filtered.means[:, -1], rtol=0, atol=0)
+    single = df.NonlinearGaussianModel(_swing, _sine, *(t.float() for t in (Qp, Rp, m0, P0p)))
+    df.unscented_kalman_smoother(single, ys.float())
