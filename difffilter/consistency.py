@@ -123,7 +123,9 @@ def ensemble_test(statistic: Tensor, dof, confidence: float = 0.95) -> Consisten
     return ConsistencyTest(mean, low, high, outside, 1.0 - confidence)
 
 
-def whiteness(innovations: Tensor, innovation_covs: Tensor, lag: int = 1) -> tuple[Tensor, float]:
+def whiteness(
+    innovations: Tensor, innovation_covs: Tensor, lag: int = 1, mask: Tensor | None = None
+) -> tuple[Tensor, float | Tensor]:
     """``(ρ̄ [T − lag], bound)``: the run-averaged correlation of the whitened innovations
     ``lag`` steps apart (module docstring) and its two-sided 95 % bound, for
     ``innovations [R, T, m]`` and ``innovation_covs [R, T, m, m]`` (or broadcasting).
@@ -132,10 +134,17 @@ def whiteness(innovations: Tensor, innovation_covs: Tensor, lag: int = 1) -> tup
     the angle between two independent ``Rm``-vectors), so the bound is
     ``√(Beta⁻¹(0.95; ½, (Rm − 1)/2))``, about ``1.96/√(Rm)`` for large ``Rm`` (that
     approximation alone never rejected at ``Rm ≤ 3``, as ``|ρ̄| ≤ 1``); ``1`` where
-    ``Rm = 1`` (one scalar run: no test). The bound assumes every entry received: a lost
-    entry's innovation is 0 (fewer effective ``Rm``: 10.8 % rejected for 5 % with 4 runs
-    and half the entries lost), and a step where every run lost everything has ``ρ̄`` NaN;
-    test whiteness on loss-free stretches."""
+    ``Rm = 1`` (one scalar run: no test).
+
+    Under packet loss pass the filter's ``mask [R, T, m]`` (bool, ``True`` where an entry
+    arrived; the innovations and covariances of a difffilter filter run with it, whose lost
+    entries have a zero innovation and a unit, uncorrelated variance, so their whitened
+    entries are 0 and the received ones are the received block's own): ``ρ̄`` then sums the
+    pairs whose both entries arrived, ``n_k`` of them at step ``k``, and the bound is a
+    ``[T − lag]`` tensor of ``√(Beta⁻¹(0.95; ½, (n_k − 1)/2))`` (``1`` where ``n_k ≤ 1``,
+    ``ρ̄`` NaN where ``n_k = 0``). Without it every entry counts as received: a lost entry's
+    0 then dilutes ``ρ̄`` below the bound's ``Rm`` (10.8 % of a matched filter's steps
+    rejected for 5 % with 4 runs and half the entries lost)."""
     if not isinstance(innovations, Tensor) or innovations.dim() != 3:
         raise ValueError(
             "innovations must be [R, T, m] (runs, steps, entries); got "
@@ -144,13 +153,26 @@ def whiteness(innovations: Tensor, innovation_covs: Tensor, lag: int = 1) -> tup
     runs, steps, m = innovations.shape
     if isinstance(lag, bool) or not isinstance(lag, int) or not 1 <= lag < steps:
         raise ValueError(f"lag must be an integer in [1, T − 1 = {steps - 1}]; got {lag!r}")
+    if mask is not None and (
+        not isinstance(mask, Tensor) or mask.dtype != torch.bool or mask.shape != innovations.shape
+    ):
+        got = f"{mask.dtype} {tuple(mask.shape)}" if isinstance(mask, Tensor) else repr(mask)
+        raise ValueError(f"mask must be a bool tensor of the innovations' shape "
+                         f"{tuple(innovations.shape)} (the filter's mask); got {got}")  # fmt: skip
     chol = safe_cholesky(innovation_covs.expand(runs, steps, m, m), name="innovation_covs")
     w = torch.linalg.solve_triangular(chol, innovations.unsqueeze(-1), upper=False).squeeze(-1)
     w = w.double()
     now, later = w[:, :-lag], w[:, lag:]
+    if mask is not None:  # the pairs whose both entries arrived
+        both = (mask[:, :-lag] & mask[:, lag:]).to(w.device)
+        now, later = now * both, later * both
     cross = (now * later).sum((-1, 0))
     scale = (now.square().sum((-1, 0)) * later.square().sum((-1, 0))).sqrt()
-    return cross / scale, _white_bound(runs * m)
+    if mask is None:
+        return cross / scale, _white_bound(runs * m)
+    counts, where = torch.unique(both.sum((-1, 0)).cpu(), return_inverse=True)
+    bounds = torch.tensor([_white_bound(int(n)) for n in counts], dtype=torch.float64)
+    return cross / scale, bounds[where].to(cross.device)  # (one quantile per distinct n_k)
 
 
 def _white_bound(n: int) -> float:

@@ -119,3 +119,48 @@ def test_degrees_of_freedom_as_a_numpy_array():
     stat = torch.full((3, 4), 1.0, dtype=F64)
     dof = np.ones((3, 4), dtype=np.int64)
     assert ensemble_test(stat, dof=dof).outside == ensemble_test(stat, dof=torch.ones(3, 4)).outside
+
+
+def test_whiteness_under_packet_loss_counts_the_pairs_that_arrived():
+    """Under loss the lost entries' zero innovations diluted ρ̄ below the bound of R m
+    entries (a matched filter with 4 runs, half the entries lost: 10.8 % of the steps
+    rejected for 5 %). With the mask, ρ̄ sums the pairs whose both entries arrived and the
+    bound is the exact one for their count, per step: 5 % again, and a wrong F still fails."""
+    import numpy as np
+    from scipy.stats import beta
+
+    from difffilter.models.schedules import PacketLoss
+
+    gen = torch.Generator().manual_seed(5)
+    two = df.LinearGaussianModel(F, torch.eye(2, dtype=F64), Q, torch.diag(R[0].repeat(2)),
+                                 torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64))  # fmt: skip
+    xs, ys, _ = two.simulate(6001, (4,), generator=gen)
+    mask = PacketLoss(0.5).mask(4, 6001, 2, gen)
+    out = df.kalman_filter(two, ys, mask=mask)
+    rho, bound = whiteness(out.innovations, out.innovation_covs, mask=mask)
+    assert bound.shape == (6000,) and rho.shape == (6000,)
+    rejected = (rho.abs() > bound) & (bound < 1)
+    assert float(rejected.double().sum() / (bound < 1).sum()) == pytest.approx(0.05, abs=0.01)
+    old_rho, old_bound = whiteness(out.innovations, out.innovation_covs)
+    assert float((old_rho.abs() > old_bound).double().mean()) > 0.065  # (7.8 % here)
+    # by hand at one step: the products and squares of the pairs received at k and k + 1
+    chol = torch.linalg.cholesky(out.innovation_covs)
+    w = torch.linalg.solve_triangular(chol, out.innovations.unsqueeze(-1), upper=False)[..., 0]
+    k = 17
+    both = (mask[:, k] & mask[:, k + 1]).numpy()
+    a, b = w[:, k].numpy()[both], w[:, k + 1].numpy()[both]
+    assert float(rho[k]) == pytest.approx(a @ b / np.sqrt((a @ a) * (b @ b)), rel=1e-12)
+    n = int(both.sum())
+    assert float(bound[k]) == pytest.approx(
+        np.sqrt(beta.ppf(0.95, 0.5, (n - 1) / 2)) if n > 1 else 1.0, rel=1e-12
+    )
+    wrong = df.LinearGaussianModel(torch.tensor([[1.0, 0.0], [0.0, 0.6]], dtype=F64),
+                                   two.H, Q, two.measurement_noise.cov, torch.zeros(2, dtype=F64),
+                                   torch.eye(2, dtype=F64))  # fmt: skip
+    bad = df.kalman_filter(wrong, ys, mask=mask)
+    assert abs(float(rho.nanmean())) < 0.02  # the matched filter's
+    rho, bound = whiteness(bad.innovations, bad.innovation_covs, mask=mask)
+    assert float(rho.nanmean()) > 0.2  # positively correlated (0.33; few pairs a step: a
+    # step's own test has little power at n_k ≤ 8, 8 % rejected, so judge the average)
+    with pytest.raises(ValueError, match=r"mask must be a bool tensor of the innovations' shape"):
+        whiteness(out.innovations, out.innovation_covs, mask=mask[:, :, :1])
