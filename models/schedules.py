@@ -7,7 +7,9 @@ mask and removes the unreceived entries exactly.
 * :class:`AllSensors` — every entry at every step (``None``);
 * :class:`RoundRobin` — sensor group ``k mod n`` at step ``k`` (the RRP paper, eq. 3);
 * :class:`PacketLoss` — each entry (or each packet of entries sent together) lost
-  independently with probability ``rate``.
+  independently with probability ``rate``;
+* :class:`BurstLoss` — losses that come in bursts: the Gilbert–Elliott channel, a
+  two-state Markov chain per link (good, bad) with a loss probability in each state.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["AllSensors", "RoundRobin", "PacketLoss"]
+__all__ = ["AllSensors", "RoundRobin", "PacketLoss", "BurstLoss"]
 
 
 def _entry_groups(groups, name: str) -> tuple[tuple[int, ...], ...]:
@@ -120,13 +122,100 @@ class PacketLoss:
             object.__setattr__(self, "packets", _entry_groups(self.packets, "packets"))
 
     def mask(self, batch_shape, num_steps: int, dim: int, generator=None, *, device=None) -> Tensor:
-        if self.packets is None:
-            shape = _shape(batch_shape) + (num_steps, dim)
-            u = torch.rand(shape, generator=generator, dtype=torch.float64, device=device)
-            return u >= self.rate
-        packet_of = _membership(self.packets, dim, "packets", device).long().argmax(0)
-        shape = _shape(batch_shape) + (num_steps, len(self.packets))
+        links, packet_of = _links(self.packets, dim, device)
+        shape = _shape(batch_shape) + (num_steps, links)
         arrived = (
             torch.rand(shape, generator=generator, dtype=torch.float64, device=device) >= self.rate
         )
-        return arrived[..., packet_of]
+        return arrived if packet_of is None else arrived[..., packet_of]
+
+
+def _links(packets, dim: int, device) -> tuple[int, Tensor | None]:
+    """``(links, packet_of)``: one link per entry (``packet_of`` ``None``), or one per packet
+    with ``packet_of [dim]`` the packet each entry travels in."""
+    if packets is None:
+        return dim, None
+    return len(packets), _membership(packets, dim, "packets", device).long().argmax(0)
+
+
+def _probability(value, name: str, *, open_low: bool = False) -> float:
+    """``value`` as a probability in ``[0, 1]`` (``(0, 1]`` with ``open_low``), else a
+    ValueError naming ``name``."""
+    interval = "(0, 1]" if open_low else "[0, 1]"
+    number = not isinstance(value, bool) and isinstance(value, numbers.Real)
+    if not number or not (0.0 < value <= 1.0 if open_low else 0.0 <= value <= 1.0):
+        raise ValueError(f"{name} must be a probability in {interval}; got {value!r}")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class BurstLoss:
+    """Losses in bursts: the Gilbert–Elliott channel, one per link (each measurement entry,
+    or with ``packets`` each packet of entries sent together, as :class:`PacketLoss`).
+
+    Each link is a Markov chain over two states, good ``G`` and bad ``B``, stepping before
+    every measurement::
+
+        P(B at k | G at k−1) = to_bad,   P(G at k | B at k−1) = to_good
+
+    and a measurement is lost with probability ``loss_good`` in ``G``, ``loss_bad`` in ``B``
+    (defaults 0 and 1: Gilbert's channel, every loss in a burst). The chain starts in its
+    stationary law, ``P(B) = π_B = to_bad / (to_bad + to_good)``, so the loss rate is the
+    same at every step: ``π_B · loss_bad + (1 − π_B) · loss_good``; with the defaults a
+    burst lasts ``1 / to_good`` steps on average (geometric) and a loss follows a loss with
+    probability ``1 − to_good`` (against the rate itself for :class:`PacketLoss`). Every
+    draw from ``generator``; runs and links independent; the time loop is the only loop.
+
+    Args:
+        to_bad: ``P(G → B)`` per step, in ``(0, 1]``.
+        to_good: ``P(B → G)`` per step, in ``(0, 1]``.
+        loss_good, loss_bad: the loss probability in each state, in ``[0, 1]``, with
+            ``loss_good < 1`` (some measurement must get through).
+        packets: the entries sent together, e.g. ``((0, 1), (2, 3))`` (default: each entry
+            its own link).
+    """
+
+    to_bad: float
+    to_good: float
+    loss_good: float = 0.0
+    loss_bad: float = 1.0
+    packets: tuple[tuple[int, ...], ...] | None = None
+
+    def __post_init__(self):
+        _probability(self.to_bad, "to_bad", open_low=True)
+        _probability(self.to_good, "to_good", open_low=True)
+        _probability(self.loss_good, "loss_good")
+        _probability(self.loss_bad, "loss_bad")
+        if self.loss_good >= 1.0:
+            raise ValueError(
+                f"loss_good must be below 1 (nothing would arrive); got {self.loss_good!r}"
+            )
+        if self.packets is not None:
+            object.__setattr__(self, "packets", _entry_groups(self.packets, "packets"))
+
+    @property
+    def bad_share(self) -> float:
+        """``π_B = to_bad / (to_bad + to_good)``: the stationary share of steps in ``B``."""
+        return self.to_bad / (self.to_bad + self.to_good)
+
+    @property
+    def rate(self) -> float:
+        """The stationary loss rate ``π_B · loss_bad + (1 − π_B) · loss_good``."""
+        return self.bad_share * self.loss_bad + (1.0 - self.bad_share) * self.loss_good
+
+    def mask(self, batch_shape, num_steps: int, dim: int, generator=None, *, device=None) -> Tensor:
+        links, packet_of = _links(self.packets, dim, device)
+        shape = _shape(batch_shape) + (num_steps, links)
+        # two uniforms per link and step: the chain's move, then the loss in its state
+        move = torch.rand(shape, generator=generator, dtype=torch.float64, device=device)
+        lose = torch.rand(shape, generator=generator, dtype=torch.float64, device=device)
+        bad = torch.empty(shape, dtype=torch.bool, device=device)
+        state = move[..., 0, :] < self.bad_share  # the stationary law at the first step
+        bad[..., 0, :] = state
+        for k in range(1, num_steps):
+            u = move[..., k, :]
+            state = torch.where(state, u >= self.to_good, u < self.to_bad)
+            bad[..., k, :] = state
+        loss = torch.where(bad, self.loss_bad, self.loss_good)
+        arrived = lose >= loss
+        return arrived if packet_of is None else arrived[..., packet_of]

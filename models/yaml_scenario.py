@@ -25,7 +25,10 @@ a path ending in ``.yaml`` or ``.yml`` names a file such as::
     attack: {kind: bias, channel: actuator, value: 0.5, onset: 50, share: 0.5}
     schedule: all                        # or {kind: round_robin, groups: [[0], [1]]},
                                          #    {kind: packet_loss, rate: 0.1} (packets:
-                                         #    [[0, 1], [2]]: entries lost together)
+                                         #    [[0, 1], [2]]: entries lost together),
+                                         #    {kind: burst_loss, to_bad: 0.05, to_good:
+                                         #    0.25} (Gilbert–Elliott: losses in bursts;
+                                         #    loss_good, loss_bad, packets optional)
     estimators: [chi_square_kf, cusum_kf]   # optional; default: the generic suite
     options: {cusum_bias: 0.5}           # settings the estimators read (optional)
 
@@ -67,7 +70,7 @@ from difffilter.threats import THREATS, check_attack_fits, threat_from_dict
 
 from .attacks import ActuatorInjection, Replacement, SensorBias
 from .scenario import CustomScenario
-from .schedules import AllSensors, PacketLoss, RoundRobin
+from .schedules import AllSensors, BurstLoss, PacketLoss, RoundRobin
 
 __all__ = [
     "is_yaml_path",
@@ -437,7 +440,8 @@ def _schedule(spec: Any, where: str):
     if spec is None or spec == "all":
         return AllSensors()
     kind = spec.get("kind") if isinstance(spec, Mapping) else None
-    fields = {"round_robin": ({"groups"}, {"start"}), "packet_loss": ({"rate"}, {"packets"})}
+    fields = {"round_robin": ({"groups"}, {"start"}), "packet_loss": ({"rate"}, {"packets"}),
+              "burst_loss": ({"to_bad", "to_good"}, {"loss_good", "loss_bad", "packets"})}  # fmt: skip
     if kind in fields:
         required, optional = fields[kind]
         _check_fields(spec, {"kind"} | required | optional, where)
@@ -447,14 +451,19 @@ def _schedule(spec: Any, where: str):
         try:
             if kind == "round_robin":
                 return RoundRobin(spec["groups"], spec.get("start", 0))
+            if kind == "burst_loss":
+                numbers = {name: _number(spec[name], f"{where}.{name}")
+                           for name in ("to_bad", "to_good", "loss_good", "loss_bad") if name in spec}  # fmt: skip
+                return BurstLoss(**numbers, packets=spec.get("packets"))
             return PacketLoss(_number(spec["rate"], f"{where}.rate"), spec.get("packets"))
         except (TypeError, ValueError) as error:
             message = str(error)
             raise ValueError(
                 message if message.startswith(where) else f"{where}: {message}"
             ) from None
-    raise ValueError(f"{where} must be 'all', {{kind: round_robin, groups: [[...], ...]}} or "
-                     f"{{kind: packet_loss, rate: r}}; got {spec!r}")  # fmt: skip
+    raise ValueError(f"{where} must be 'all', {{kind: round_robin, groups: [[...], ...]}}, "
+                     f"{{kind: packet_loss, rate: r}} or {{kind: burst_loss, to_bad: p, to_good: "
+                     f"q}}; got {spec!r}")  # fmt: skip
 
 
 def _inputs(spec: Any, dt: float, where: str):

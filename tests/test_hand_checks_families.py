@@ -277,6 +277,92 @@ def test_packet_loss_by_packet_loses_a_sensors_entries_together():
         _schedule({"kind": "round_robin", "groups": [0, 1]}, "schedule")
 
 
+def _burst_lengths(lost):
+    """The lengths of the runs of consecutive losses in each row of ``lost [R, T]`` (bool),
+    the runs cut by either end left out (their lengths are censored)."""
+    import numpy as np
+
+    lengths = []
+    for row in lost.numpy():
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], row.astype(np.int8), [0]])))
+        starts, ends = edges[::2], edges[1::2]
+        inner = (starts > 0) & (ends < row.size)
+        lengths.extend((ends - starts)[inner])
+    return np.asarray(lengths)
+
+
+def test_burst_loss_is_the_gilbert_elliott_chains_law():
+    """Gilbert's channel (lost in B, received in G): the stationary loss rate
+    π_B = p / (p + r) at every step, a loss after a loss with probability 1 − r, bursts
+    geometric with mean 1 / r; with Elliott's loss probabilities in both states the rate
+    π_B l_B + (1 − π_B) l_G and P(lost | lost) = (π_B (1 − r) l_B² + π_B r l_B l_G + (1 − π_B)
+    p l_G l_B + (1 − π_B)(1 − p) l_G²) / rate, the two-step law of the chain; packets lost
+    together; the same generator, the same mask."""
+    from difffilter.models.schedules import BurstLoss
+
+    p, r = 0.05, 0.25
+    gilbert = BurstLoss(p, r)
+    mask = gilbert.mask((400,), 1000, 1, torch.Generator().manual_seed(2))[..., 0]
+    lost = ~mask
+    assert gilbert.rate == pytest.approx(p / (p + r)) and gilbert.bad_share == gilbert.rate
+    for k in (0, 1, 500, 999):  # stationary from the first step (400 runs: ±0.06)
+        assert float(lost[:, k].double().mean()) == pytest.approx(1 / 6, abs=0.06)
+    assert float(lost.double().mean()) == pytest.approx(1 / 6, abs=0.005)
+    after = (lost[:, 1:] & lost[:, :-1]).double().sum() / lost[:, :-1].double().sum()
+    assert float(after) == pytest.approx(1 - r, abs=0.01)
+    bursts = _burst_lengths(lost)
+    assert bursts.mean() == pytest.approx(1 / r, rel=0.03)
+    assert (bursts == 1).mean() == pytest.approx(r, abs=0.01)  # geometric: P(L = 1) = r
+    assert torch.equal(
+        mask, gilbert.mask((400,), 1000, 1, torch.Generator().manual_seed(2))[..., 0]
+    )
+
+    lg, lb = 0.1, 0.7
+    elliott = BurstLoss(p, r, loss_good=lg, loss_bad=lb, packets=((0, 1), (2,)))
+    mask = elliott.mask((400,), 1000, 3, torch.Generator().manual_seed(3))
+    assert torch.equal(mask[..., 0], mask[..., 1])
+    lost = ~mask[..., 2]
+    pb = p / (p + r)
+    rate = pb * lb + (1 - pb) * lg
+    assert elliott.rate == pytest.approx(rate)
+    assert float(lost.double().mean()) == pytest.approx(rate, abs=0.005)
+    both = (
+        pb * (1 - r) * lb**2
+        + pb * r * lb * lg
+        + (1 - pb) * p * lg * lb
+        + (1 - pb) * (1 - p) * lg**2
+    )
+    after = (lost[:, 1:] & lost[:, :-1]).double().sum() / lost[:, :-1].double().sum()
+    assert float(after) == pytest.approx(both / rate, abs=0.012)
+    # links independent: the two packets' losses agree as two independent chains' would
+    assert float((~mask[..., 0] & lost).double().mean()) == pytest.approx(rate**2, abs=0.005)
+
+
+def test_burst_loss_refuses_what_is_no_channel_and_reads_yaml():
+    from difffilter.models.schedules import BurstLoss
+    from difffilter.models.yaml_scenario import _schedule
+
+    for bad, match in (
+        (dict(to_bad=0.0, to_good=0.5), r"to_bad must be a probability in \(0, 1\]; got 0.0"),
+        (dict(to_bad=0.1, to_good=1.5), r"to_good must be a probability in \(0, 1\]"),
+        (dict(to_bad=0.1, to_good="0.5"), r"to_good must be a probability in \(0, 1\]; got '0.5'"),
+        (dict(to_bad=0.1, to_good=0.5, loss_bad=-0.1), r"loss_bad must be a probability in \[0, 1\]"),
+        (dict(to_bad=0.1, to_good=0.5, loss_good=1.0), "loss_good must be below 1"),
+        (dict(to_bad=0.1, to_good=0.5, packets=[[0, 1], [1]]), "packets must be non-empty, disjoint"),
+    ):  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            BurstLoss(**bad)
+    spec = {"kind": "burst_loss", "to_bad": 0.05, "to_good": 0.25, "loss_good": 0.1,
+            "packets": [[0, 1], [2]]}  # fmt: skip
+    assert _schedule(spec, "schedule") == BurstLoss(0.05, 0.25, 0.1, 1.0, ((0, 1), (2,)))
+    with pytest.raises(ValueError, match="schedule: burst_loss needs to_good"):
+        _schedule({"kind": "burst_loss", "to_bad": 0.05}, "schedule")
+    with pytest.raises(ValueError, match=r"schedule: unknown field\(s\) rate"):
+        _schedule({"kind": "burst_loss", "to_bad": 0.05, "to_good": 0.2, "rate": 0.1}, "schedule")
+    with pytest.raises(ValueError, match="schedule.to_good must be a finite number"):
+        _schedule({"kind": "burst_loss", "to_bad": 0.05, "to_good": "fast"}, "schedule")
+
+
 def test_round_robin_follows_the_rrp_papers_eq_3():
     """γ_k = mod(k + γ_ini − 2, n) + 1 (1-based groups), ``start = γ_ini − 1``."""
     from difffilter.models.schedules import RoundRobin
