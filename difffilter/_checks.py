@@ -159,7 +159,14 @@ def check_positive_definite(t: Tensor, name: str, dim: int | None = None) -> Non
         return
     _, info = torch.linalg.cholesky_ex(t.detach())
     if bool((info != 0).any()):
-        raise ValueError(f"{name} must be positive definite (all eigenvalues > 0)")
+        low = float(torch.linalg.eigvalsh(t.detach().double()).amin())
+        raise ValueError(
+            f"{name} must be positive definite (all eigenvalues > 0; its smallest is {low:.3g}): "
+            "a rank-deficient covariance (Q = 0, P0 = 0, the textbook q g gᵀ of a "
+            "constant-velocity model) needs a small variance added to make it definite, e.g. "
+            f"{name} + 1e-12 · max(diag) · I, or the full-rank discretised noise "
+            "(README, Numerical limits)"
+        )
 
 
 def check_sequence(t: Tensor, name: str, dim: int, *, allow_nan: Tensor | None = None) -> None:

@@ -141,7 +141,9 @@ def kalman_step(
         model: a linear model (``transition_matrix``, ``observation_matrix``,
             ``control_matrix``, ``process_cov``, ``measurement_cov``).
         state: posterior of ``x_{k−1}`` (mean ``[..., dx]``, cov ``[..., dx, dx]``).
-        y: ``[..., dy]``; u: ``[..., du]`` or ``None``; mask: ``[..., dy]`` bool or ``None``.
+        y: ``y_k [..., dy]``; u: ``u_{k−1} [..., du]`` (the input of the transition into
+            ``x_k``: ``us[..., t, :]`` with ``ys[..., t, :]``) or ``None``; mask: ``[..., dy]``
+            bool or ``None``.
 
     The inputs are validated (:func:`difffilter._checks.check_step_inputs`): a NaN or Inf
     in a received entry of ``y`` raises ``ValueError`` instead of poisoning every later

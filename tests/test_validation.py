@@ -143,3 +143,19 @@ def test_noise_model_errors():
         df.noise.UniformBox([0.0, 1.0], [1.0, 1.0])
     with pytest.raises(ValueError, match="loc contains NaN"):
         df.noise.Gaussian(torch.tensor([float("nan"), 0.0]), torch.eye(2))
+
+
+def test_the_textbook_rank_one_noise_is_refused_with_its_eigenvalue_and_the_fix():
+    """A course trial: the white-noise-acceleration Q = q g gᵀ (rank 1) was refused with
+    "must be positive definite" alone; the remedy was in the README only."""
+    dt = 0.1
+    g = torch.tensor([[dt**2 / 2], [dt]], dtype=torch.float64)
+    rank_one = g @ g.T
+    smallest = float(torch.linalg.eigvalsh(rank_one).min())
+    with pytest.raises(ValueError, match=r"Q must be positive definite") as error:
+        df.LinearGaussianModel(torch.eye(2, dtype=torch.float64), torch.tensor([[1.0, 0.0]],
+                               dtype=torch.float64), rank_one, torch.eye(1, dtype=torch.float64),
+                               torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64))  # fmt: skip
+    message = str(error.value)
+    assert f"its smallest is {smallest:.3g}" in message
+    assert "Q + 1e-12 · max(diag) · I" in message and "Numerical limits" in message
