@@ -159,7 +159,16 @@ def check_positive_definite(t: Tensor, name: str, dim: int | None = None) -> Non
         return
     _, info = torch.linalg.cholesky_ex(t.detach())
     if bool((info != 0).any()):
-        low = float(torch.linalg.eigvalsh(t.detach().double()).amin())
+        eig = torch.linalg.eigvalsh(t.detach().double())
+        low, high = float(eig.amin()), float(eig.amax())
+        dtype = str(t.dtype).replace("torch.", "")
+        if low > 0 and t.dtype != torch.float64:  # definite, but not to this dtype's precision
+            raise ValueError(
+                f"{name} is positive definite (eigenvalues from {low:.3g} to {high:.3g}: "
+                f"condition number {high / low:.3g}) but too ill-conditioned for a Cholesky "
+                f"factorisation in {dtype} (relative precision {torch.finfo(t.dtype).eps:.2g}): "
+                "build the model in float64, or in units that bring the variances closer"
+            )
         raise ValueError(
             f"{name} must be positive definite (all eigenvalues > 0; its smallest is {low:.3g}): "
             "a rank-deficient covariance (Q = 0, P0 = 0, the textbook q g gᵀ of a "

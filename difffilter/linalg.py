@@ -63,25 +63,33 @@ def symmetrize(matrix: Tensor) -> Tensor:
     return 0.5 * (matrix + matrix.transpose(-1, -2))
 
 
-def safe_cholesky(matrix: Tensor, *, name: str = "matrix", max_tries: int = 6) -> Tensor:
+#: The first and the largest jitter :func:`safe_cholesky` adds, relative to the mean
+#: diagonal, by dtype (others: float32's).
+JITTER_LADDER = {torch.float64: (1e-14, 1e-5), torch.float32: (1e-6, 1e-1)}
+
+
+def safe_cholesky(matrix: Tensor, *, name: str = "matrix") -> Tensor:
     """Lower Cholesky factor of a symmetric positive-definite ``[..., d, d]`` matrix.
 
     Jitter fallback: when the factorisation fails (a matrix that is positive
-    semidefinite up to round-off), ``ε·mean(diag)·I`` is added with ε growing from
-    1e-10 (float64) or 1e-6 (float32) by factors of 10, at most ``max_tries`` times (up
-    to 1e-5 and 1e-1 of the mean diagonal). If that still fails the matrix is not positive
-    definite and a ``ValueError`` naming ``name`` is raised. In a batch only the members
-    that fail are jittered, each with the first ε that works for it: the others keep
-    their own factors.
+    semidefinite up to round-off), ``ε·mean(diag)·I`` is added with ε growing by factors of
+    10 through :data:`JITTER_LADDER`, from round-off (1e-14 in float64, about 45 machine
+    epsilons; 1e-6 in float32) up to 1e-5 and 1e-1 of the mean diagonal. If that still
+    fails the matrix is not positive definite and a ``ValueError`` naming ``name`` is
+    raised. In a batch only the members that fail are jittered, each with the first ε
+    that works for it: the others keep their own factors. (The ladder began at 1e-10 in
+    float64: on a state covariance with variances from 2.5e-15 to 200 that jitter was 2e6
+    times the smallest variance, and a numerics trial's UKF came out 4.25 nats off with a
+    5 % wrong gradient; from round-off up, 2.4e-3 nats.)
     """
     factor, info = torch.linalg.cholesky_ex(matrix)
     if matrix.device.type == "meta" or not bool((info != 0).any()):
         return factor  # (meta tensors hold no values: shapes only, nothing to check)
     failing = info != 0
-    eps = 1e-10 if matrix.dtype == torch.float64 else 1e-6
+    eps, ceiling = JITTER_LADDER.get(matrix.dtype, JITTER_LADDER[torch.float32])
     eye = torch.eye(matrix.shape[-1], dtype=matrix.dtype, device=matrix.device)
     scale = matrix.diagonal(dim1=-2, dim2=-1).mean(-1).abs().clamp_min(1e-30)
-    for _ in range(max_tries):
+    while eps <= ceiling * 1.0001:
         jittered = matrix + (eps * scale)[..., None, None] * eye
         retried, info = torch.linalg.cholesky_ex(jittered)
         factor = torch.where(failing[..., None, None], retried, factor)

@@ -1345,3 +1345,40 @@ def test_a_shared_schedule_on_a_time_varying_model_gives_the_per_run_filters_num
         torch.testing.assert_close(getattr(fast, name), getattr(ref, name), rtol=1e-12,
                                    atol=1e-12, msg=name)  # fmt: skip
     assert fast.covs.stride(0) == 0
+
+
+def test_the_ukf_posterior_stays_positive_semidefinite_beside_a_tiny_r():
+    """From a numerics trial: a diffuse, badly scaled prior and a precise measurement of a
+    combination of the states (R = 1e-10); the UKF's Joseph-form noise R + Ω with Ω a
+    difference (Pyy − H̃ Pxy) came out negative in round-off and its posterior indefinite
+    (normalised eigenvalue −7.4e-9 for +5e-11), where the EKF's was exact. Ω is now the
+    weighted sum of the points' linearisation residuals: the posterior equals the exact one
+    (rational arithmetic) as the EKF's does."""
+    from fractions import Fraction
+
+    P0, Q = np.diag([1e-8, 1e8]), np.diag([1e-20, 1e-8])
+    H, R = np.array([[1e4, 1.0]]), np.array([[1e-10]])
+
+    def lin(M):
+        M = torch.tensor(M)
+        return lambda x: x @ M.mT
+
+    model = df.NonlinearGaussianModel(lin(np.eye(2)), lin(H), torch.tensor(Q), torch.tensor(R),
+                                      torch.zeros(2, dtype=torch.float64), torch.tensor(P0))  # fmt: skip
+    ys = torch.tensor([[[3.0]]], dtype=torch.float64)
+    # the exact posterior: P⁻ = P0 + Q, P = P⁻ − P⁻Hᵀ (H P⁻ Hᵀ + R)⁻¹ H P⁻, in rationals
+    fr = np.vectorize(Fraction)
+    Pm, Hf = fr(P0) + fr(Q), fr(H)
+    S = (Hf @ Pm @ Hf.T)[0, 0] + Fraction(R[0, 0])
+    C = Pm @ Hf.T
+    exact = (Pm - (C @ C.T) / S).astype(float)
+    sd = np.sqrt(np.diag(exact))
+    want = np.linalg.eigvalsh(exact / np.outer(sd, sd))
+    for run in (df.unscented_kalman_filter, df.extended_kalman_filter):
+        P = run(model, ys).covs[0, 0].numpy()
+        np.testing.assert_allclose(P, exact, rtol=1e-6)
+        got = np.linalg.eigvalsh(P / np.outer(sd, sd))
+        np.testing.assert_allclose(got, want, rtol=1e-4)  # the smallest 5e-11, not negative
+    ukf = df.unscented_kalman_filter(model, ys.expand(1, 3, 1))
+    ekf = df.extended_kalman_filter(model, ys.expand(1, 3, 1))
+    torch.testing.assert_close(ukf.log_likelihood, ekf.log_likelihood, rtol=1e-9, atol=1e-9)

@@ -159,3 +159,15 @@ def test_the_textbook_rank_one_noise_is_refused_with_its_eigenvalue_and_the_fix(
     message = str(error.value)
     assert f"its smallest is {smallest:.3g}" in message
     assert "Q + 1e-12 · max(diag) · I" in message and "Numerical limits" in message
+
+
+def test_a_definite_covariance_too_ill_conditioned_for_float32_says_so():
+    """From a numerics trial: a float32 Q with eigenvalues 1.5e-6 and 125 was refused as "must
+    be positive definite (all eigenvalues > 0)", which it is."""
+    g = torch.tensor([[0.5], [1.0]], dtype=torch.float64)
+    Q = (1e2 * g @ g.T + 1e-6 * torch.eye(2, dtype=torch.float64)).float()
+    with pytest.raises(ValueError, match=r"Q is positive definite \(eigenvalues from 1.5\de-06 to "
+                       r"125: condition number 8.\d+e\+07\) but too ill-conditioned for a "
+                       r"Cholesky factorisation in float32.*build the model in float64"):  # fmt: skip
+        df.LinearGaussianModel(torch.eye(2), torch.eye(2)[:1], Q, torch.eye(1), torch.zeros(2),
+                               torch.eye(2))  # fmt: skip
