@@ -97,6 +97,23 @@ def is_yaml_path(name: str) -> bool:
     return str(name).lower().endswith((".yaml", ".yml"))
 
 
+def scenario_file_digest(name) -> str | None:
+    """The sha256 of a YAML scenario file's bytes (what its plant, attack and schedule are),
+    or ``None`` for a name that is no YAML file's path or a file that cannot be read. What a
+    run trained or a study computed on a scenario file is reused only for the same bytes (a
+    training trial: a sweep judged a plant whose R was edited against the old plant's
+    baselines, and resumed runs across the edit). Python functions a nonlinear plant names
+    are not part of it."""
+    import hashlib
+
+    if not is_yaml_path(str(name)):
+        return None
+    try:
+        return hashlib.sha256(Path(name).read_bytes()).hexdigest()
+    except OSError:
+        return None
+
+
 def scenario_from_yaml(path: str | Path) -> CustomScenario:
     """The :class:`~difffilter.models.scenario.CustomScenario` a YAML file describes
     (module docstring); ``ValueError`` naming the file and the field otherwise."""

@@ -199,3 +199,34 @@ def test_a_resume_that_changes_the_runs_settings_is_refused(tmp_path):
                        r"1 → 51\): resume with the run's own settings"):  # fmt: skip
         _check_resumed_settings(str(path), model, other)
     _check_resumed_settings(None, model, other)  # a new run: nothing to compare
+
+
+def test_a_new_fit_into_a_folder_that_holds_a_run_is_refused(tmp_path):
+    """A training trial: two fits with --trainer.logger false --trainer.default_root_dir run
+    (or a TensorBoard logger given the same version) ended with the second run's
+    last.ckpt, config.yaml, export and card in place of the first's, silently."""
+    from difffilter.train.lightning_cli import _fixed_run_folder, _refuse_a_used_run_folder
+
+    run = tmp_path / "run"
+    no_logger = {"trainer": {"default_root_dir": str(run)}}
+    assert _fixed_run_folder(no_logger, False, None) == run
+    tb = {"save_dir": str(tmp_path), "name": "mass", "version": 0}
+    assert _fixed_run_folder({"trainer": {}}, {}, tb) == tmp_path / "mass" / "version_0"
+    named = {**tb, "version": "seed_3"}
+    assert _fixed_run_folder({"trainer": {}}, {}, named) == tmp_path / "mass" / "seed_3"
+    assert _fixed_run_folder({"trainer": {}}, {}, {**tb, "version": None}) is None  # the next free
+    _refuse_a_used_run_folder(run)  # nothing there yet
+    run.mkdir()
+    (run / "config.yaml").write_text("x: 1\n")  # a run that died before its first checkpoint
+    _refuse_a_used_run_folder(run)
+    (run / "checkpoints").mkdir()
+    (run / "checkpoints" / "last.ckpt").write_bytes(b"")
+    with pytest.raises(ValueError, match=r"holds a run already \(checkpoints/last.ckpt\): a new "
+                       r"fit would replace its checkpoints, export and card; resume it with "
+                       r"--ckpt_path .*last.ckpt"):  # fmt: skip
+        _refuse_a_used_run_folder(run)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "mass_nn_grad.ckpt").write_bytes(b"")  # an export alone
+    with pytest.raises(ValueError, match=r"holds a run already \(mass_nn_grad.ckpt\)"):
+        _refuse_a_used_run_folder(other)

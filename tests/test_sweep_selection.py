@@ -84,3 +84,88 @@ def test_a_sweep_takes_only_its_own_configs_finished_run(tmp_path, monkeypatch):
     assert sweep._run_name(ROOT / "train" / "configs" / "four_tank.yaml", []) == (
         "four_tank_nn_grad"
     )
+
+
+def test_a_scenario_files_baselines_stay_in_the_folder_and_follow_its_contents(
+    tmp_path, monkeypatch
+):
+    """A training trial: with an absolute scenario path the baselines landed beside the plant
+    file (the path replaced the folder), keyed by the path alone, and a later sweep of the
+    edited plant, into a new --out, was judged against the old plant's numbers."""
+    import torch
+
+    from difffilter.train import sweep
+
+    plant = tmp_path / "plants" / "plant.yaml"
+    plant.parent.mkdir()
+    plant.write_text("R: 0.1\n")
+    computed = []
+
+    def fake(scenario, names, runs, far, progress, **kwargs):
+        computed.append(plant.read_text())
+        return {"cusum_kf": {"tpr_at_far": len(computed)}}, {"cusum_kf": torch.zeros(2)}
+
+    monkeypatch.setattr(sweep, "_calibrated_metrics", fake)
+    monkeypatch.setattr(
+        "difffilter.models.registry.get", lambda name: type("S", (), {"estimators": ["cusum_kf"]})
+    )
+    folder = tmp_path / "out" / "baselines"
+    first, _ = sweep._baseline(str(plant), 4, 0.01, False, folder)
+    assert sorted(p.name for p in plant.parent.iterdir()) == ["plant.yaml"]  # nothing beside it
+    assert (
+        len(list(folder.glob("plant-*.json"))) == 1
+        and len(list(folder.glob("plant-*.totals.pt"))) == 1
+    )
+    again, _ = sweep._baseline(str(plant), 4, 0.01, False, folder)
+    assert again == first and len(computed) == 1  # the same file: read back
+    plant.write_text("R: 0.01\n")
+    edited, _ = sweep._baseline(str(plant), 4, 0.01, False, folder)
+    assert edited != first and computed == ["R: 0.1\n", "R: 0.01\n"]  # the edited plant: run
+    assert sweep._cache_stem("pkg.mod:obj") == "pkg.mod_obj"
+
+
+def test_a_seed_trained_on_a_scenario_file_is_not_reused_after_the_file_changed(
+    tmp_path, monkeypatch
+):
+    """The same trial: after R was edited in the plant's YAML a sweep into the same --out said
+    "seed 0: trained already" and reported the network trained on the old plant; a resume
+    across the edit was accepted too."""
+    import json
+
+    import torch
+
+    from difffilter.train.lightning_cli import _check_resumed_settings
+    from difffilter.train.sweep import _SETTINGS, _check_same_settings, _settings
+    from difffilter.train.task import SCENARIO_FILE_DIGEST
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "plant.yaml").write_text("R: 0.1\n")
+    config = tmp_path / "cfg.yaml"
+    config.write_text("model:\n  init_args:\n    scenario: plant.yaml\n")
+    folder = tmp_path / "seed_0"
+    folder.mkdir()
+    before = _settings(config, [])
+    assert set(before["scenario_files"]) == {"plant.yaml"}
+    (folder / _SETTINGS).write_text(json.dumps(before))
+    _check_same_settings(folder, _settings(config, []), 0)  # unchanged: reused
+    (tmp_path / "plant.yaml").write_text("R: 0.01\n")
+    with pytest.raises(ValueError, match=r"was trained with the scenario file\(s\) plant.yaml as "
+                       r"they were \(their contents changed since\)"):  # fmt: skip
+        _check_same_settings(folder, _settings(config, []), 0)
+    old = {k: v for k, v in before.items() if k != "scenario_files"}  # a sweep before the record
+    (folder / _SETTINGS).write_text(json.dumps(old))
+    _check_same_settings(folder, _settings(config, []), 0)
+
+    from types import SimpleNamespace
+
+    from difffilter.models.yaml_scenario import scenario_file_digest
+
+    ckpt = tmp_path / "last.ckpt"
+    torch.save({"hyper_parameters": {"scenario": "plant.yaml"},
+                SCENARIO_FILE_DIGEST: scenario_file_digest("plant.yaml")}, ckpt)  # fmt: skip
+    model = SimpleNamespace(hparams={"scenario": "plant.yaml"})
+    _check_resumed_settings(str(ckpt), model, None)  # the same bytes: resumes
+    (tmp_path / "plant.yaml").write_text("R: 0.001\n")
+    with pytest.raises(ValueError, match=r"the scenario file plant.yaml \(its contents changed "
+                       r"since the run began\)"):  # fmt: skip
+        _check_resumed_settings(str(ckpt), model, None)

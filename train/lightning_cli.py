@@ -64,6 +64,8 @@ class DifffilterCLI(LightningCLI):
         args = (
             None if logger is None or isinstance(logger, (bool, list)) else logger.get("init_args")
         )
+        if not ckpt and not cfg["trainer"].get("fast_dev_run"):
+            _refuse_a_used_run_folder(_fixed_run_folder(cfg, logger, args))
         if args is None:
             return
         if args.get("save_dir"):
@@ -198,6 +200,40 @@ def _ckpt_paths_in(argv) -> list[str]:
     return found
 
 
+def _fixed_run_folder(cfg, logger, args) -> Path | None:
+    """The folder a ``fit`` writes its run into where the command fixes it (``--trainer.logger
+    false`` with ``default_root_dir``; a logger given an explicit ``version``), else ``None``
+    (the logger's next free ``version_<n>``)."""
+    if logger is False:
+        root = cfg["trainer"].get("default_root_dir")
+        return Path(root) if root else None
+    if args is None or args.get("version") is None:
+        return None
+    version = args["version"]
+    name = args.get("name") or "lightning_logs"
+    folder = version if isinstance(version, str) else f"version_{version}"
+    return Path(args.get("save_dir") or ".") / name / folder
+
+
+def _refuse_a_used_run_folder(folder: Path | None) -> None:
+    """A new ``fit`` (no ``--ckpt_path``) into a folder that holds a run already is refused:
+    it replaced that run's ``last.ckpt``, ``config.yaml``, export and card without a word
+    (a training trial: ``--trainer.logger false --trainer.default_root_dir run`` twice; or
+    an explicit ``--trainer.logger.init_args.version``, which also mixed two runs' curves in
+    one TensorBoard folder). A folder whose run saved nothing yet (died before its first
+    checkpoint: a ``config.yaml`` and logs alone) is taken: there is nothing to lose."""
+    if folder is None:
+        return
+    held = [f"checkpoints/{p.name}" for p in sorted(folder.glob("checkpoints/*.ckpt"))]
+    held += [p.name for p in sorted(folder.glob("*.ckpt"))]
+    if held:
+        raise ValueError(
+            f"the run folder {folder} holds a run already ({', '.join(held)}): a new fit would "
+            f"replace its checkpoints, export and card; resume it with --ckpt_path "
+            f"{folder / 'checkpoints' / 'last.ckpt'}, or give another folder or version"
+        )
+
+
 def _check_resumed_settings(ckpt, model, datamodule) -> None:
     """A run resumed from its Lightning checkpoint goes on with the settings it was started
     with: ``ValueError`` naming each model or data setting this command gives otherwise
@@ -220,6 +256,15 @@ def _check_resumed_settings(ckpt, model, datamodule) -> None:
         changed += [f"--{what}.init_args.{name}: {before.get(name)!r} → {now.get(name)!r}"
                     for name in sorted(set(before) | set(now))
                     if not name.startswith("_") and before.get(name) != now.get(name)]  # fmt: skip
+    from difffilter.models.yaml_scenario import scenario_file_digest
+
+    from .task import SCENARIO_FILE_DIGEST
+
+    scenario = dict(getattr(model, "hparams", None) or {}).get("scenario")
+    was = saved.get(SCENARIO_FILE_DIGEST)
+    if was is not None and scenario is not None and scenario_file_digest(scenario) != was:
+        # (a training trial: R edited between the epochs, the card naming the path alone)
+        changed.append(f"the scenario file {scenario} (its contents changed since the run began)")
     if changed:
         raise ValueError(
             f"--ckpt_path {ckpt}: this command changes settings the run was trained with ("

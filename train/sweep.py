@@ -32,8 +32,9 @@ the sweep names that seed too, so a reader sees whether the two choices differ.
 The sweep also judges every seed as the headline acceptance does
 (:mod:`difffilter.eval.acceptance`): the scenario's analytic estimators run once on the
 same draws, calibrated the same way (kept in ``<out>/baselines/<scenario>.json`` for the
-next sweep with the same runs, rate and evaluation seed, with their per-run totals in
-``<scenario>.totals.pt``), and each seed's TPR, state error, attack error and measured
+next sweep with the same runs, rate and evaluation seed, and for a YAML scenario file the
+same bytes, with their per-run totals in ``<scenario>.totals.pt``; a file's path is kept as
+its stem and a digest of the path), and each seed's TPR, state error, attack error and measured
 false-alarm rate are held against the best of them, with how sure each check is over the
 runs (:func:`difffilter.eval.intervals.checks_intervals`: the seeds' runs are the
 baselines' runs, so the comparison is paired)::
@@ -135,11 +136,33 @@ def _settings(config: Path, options: list[str]) -> dict:
     is no change) and the ``fit`` options after ``--`` (``{seed}`` filled in)."""
     import yaml
 
+    from difffilter.models.yaml_scenario import is_yaml_path, scenario_file_digest
+
     try:
         values = yaml.safe_load(Path(config).read_text())
     except (OSError, yaml.YAMLError):  # fit itself then says what is wrong with it
         values = None
-    return {"config_file": str(config), "config": values, "options": options}
+    # the scenario files named, by their bytes: an edited plant is another training
+    named = [s for s in _strings(values) if is_yaml_path(s)]
+    named += [option.split("=")[-1] for option in options if is_yaml_path(option.split("=")[-1])]
+    files = {name: scenario_file_digest(name) for name in named}
+    return {
+        "config_file": str(config),
+        "config": values,
+        "options": options,
+        "scenario_files": files,
+    }
+
+
+def _strings(value) -> list[str]:
+    """Every string inside a YAML document's values (mappings and lists walked)."""
+    if isinstance(value, str):
+        return [value]
+    if isinstance(value, dict):
+        return [s for v in value.values() for s in _strings(v)]
+    if isinstance(value, list):
+        return [s for v in value for s in _strings(v)]
+    return []
 
 
 def _check_same_settings(folder: Path, settings: dict, seed: int) -> None:
@@ -153,11 +176,18 @@ def _check_same_settings(folder: Path, settings: dict, seed: int) -> None:
         return
     had = json.loads(file.read_text())
     differ = [k for k in ("config", "options") if had.get(k) != settings[k]]
+    # (a folder of a sweep before the files were recorded is judged on the rest)
+    if "scenario_files" in had and had["scenario_files"] != settings["scenario_files"]:
+        differ.append("scenario_files")
+    described = {
+        "options": f"the options {had.get('options')} (now {settings['options']})",
+        "config": f"the config {had.get('config_file')}'s values as they were",
+        "scenario_files": "the scenario file(s) "
+        + ", ".join(sorted(set(had.get("scenario_files", {})) | set(settings["scenario_files"])))
+        + " as they were (their contents changed since)",
+    }
     if differ:
-        what = " and ".join(
-            f"the options {had.get('options')} (now {settings['options']})" if k == "options"
-            else f"the config {had.get('config_file')}'s values as they were" for k in differ
-        )  # fmt: skip
+        what = " and ".join(described[k] for k in differ)
         raise ValueError(
             f"seed {seed}: {folder} was trained with {what}; give another --out for these "
             "settings, or delete that folder to train them there"
@@ -271,9 +301,12 @@ def _baseline(scenario_name: str, runs, far: float, progress: bool,
     from difffilter.eval.acceptance import roles
     from difffilter.models import registry
     from difffilter.models.generic_estimators import DEFAULT_SUITE
+    from difffilter.models.yaml_scenario import scenario_file_digest
 
-    key = {"scenario": scenario_name, "runs": runs, "far": far, "eval_seed": 0}
-    file, totals_file = folder / f"{scenario_name}.json", folder / f"{scenario_name}.totals.pt"
+    key = {"scenario": scenario_name, "runs": runs, "far": far, "eval_seed": 0,
+           "scenario_file_sha256": scenario_file_digest(scenario_name)}  # fmt: skip
+    stem = _cache_stem(scenario_name)
+    file, totals_file = folder / f"{stem}.json", folder / f"{stem}.totals.pt"
     if (file.is_file() and totals_file.is_file()
             and (cached := json.loads(file.read_text())).get("key") == key):  # fmt: skip
         return cached["estimators"], torch.load(totals_file, weights_only=True)
@@ -285,6 +318,21 @@ def _baseline(scenario_name: str, runs, far: float, progress: bool,
     file.write_text(json.dumps({"key": key, "estimators": table}, indent=2) + "\n")
     torch.save(totals, totals_file)
     return table, totals
+
+
+def _cache_stem(scenario_name: str) -> str:
+    """A file name in the baselines folder for ``scenario_name``: a YAML file's path by its
+    stem and a digest of its absolute path (an absolute path had replaced the folder, so the
+    baselines landed beside the plant's file and every later sweep of it read them), a
+    ``module:object`` path with its separators replaced."""
+    import hashlib
+
+    from difffilter.models.yaml_scenario import is_yaml_path
+
+    if is_yaml_path(scenario_name):
+        where = hashlib.sha256(str(Path(scenario_name).resolve()).encode()).hexdigest()[:12]
+        return f"{Path(scenario_name).stem}-{where}"
+    return scenario_name.replace("/", "_").replace(":", "_").replace("\\", "_")
 
 
 def _acceptance(per_seed: dict, baselines: dict, far: float, seed_totals: dict) -> dict:

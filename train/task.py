@@ -71,6 +71,7 @@ from difffilter.models.neural_estimator import (
     load_estimator_checkpoint,
 )
 from difffilter.models.streams import Streams
+from difffilter.models.yaml_scenario import scenario_file_digest
 from difffilter.param_ekf import EKFOptimizer, ekf_along_sequence
 from difffilter.particle import ParticleFilter
 from difffilter.threat_distribution import ThreatDistribution
@@ -95,6 +96,10 @@ RESAMPLERS = {
     "ot": lambda alpha: resampling.OptimalTransport(),
 }
 _FIELDS = ("x", "y_recv", "us", "mask", "attack", "flags")
+
+
+#: The Lightning checkpoint's key for the sha256 of a YAML scenario file's bytes.
+SCENARIO_FILE_DIGEST = "difffilter_scenario_file_sha256"
 
 
 def training_batch(scenario, runs: int, seed: int, dtype: torch.dtype) -> dict:
@@ -915,6 +920,9 @@ class FilterEstimatorTask(pl.LightningModule):
         # a Lightning checkpoint of this task loads as an estimator (difffilter-eval --ckpt)
         checkpoint["difffilter_observer"] = self.card().to_dict()
         checkpoint["difffilter_estimator_config"] = self.estimator.config()
+        digest = scenario_file_digest(self.hparams.scenario)
+        if digest is not None:  # a resume checks that the plant's file is the same
+            checkpoint[SCENARIO_FILE_DIGEST] = digest
         if self.adversary is not None:  # a resumed run goes on with the same crafted attack
             checkpoint["difffilter_adversary"] = self.adversary.state_dict()
 
