@@ -82,6 +82,7 @@ _WHERE = {
         ),
         "smoother",
     ),  # fmt: skip
+    **dict.fromkeys(("ParticleSmootherResult", "particle_smoother"), "particle_smoother"),
     **dict.fromkeys(("LinearGaussianModel", "NonlinearGaussianModel", "StateSpaceModel"), "ssm"),
 }
 
@@ -141,6 +142,8 @@ __all__ = [
     "rts_smoother",
     "unscented_rts_smoother",
     "SmootherResult",
+    "particle_smoother",
+    "ParticleSmootherResult",
     "GainSchedule",
     "extended_kalman_step",
     "extended_kalman_filter",

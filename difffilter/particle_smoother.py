@@ -1,0 +1,121 @@
+"""The particle filter's marginal smoother: ``p(x_k | y_{1:T})`` on the filter's own particles.
+
+Forward filtering, backward smoothing (FFBSm; Doucet, Godsill & Andrieu 2000; Doucet &
+Johansen 2009, §5.1): the filter's particles ``x_k^i`` and normalised weights ``w_k^i``
+(after step ``k``'s update) are reweighted from the last step back,
+
+    w_{T|T}^i = w_T^i
+    w_{k|T}^i = w_k^i Σ_j w_{k+1|T}^j f(x_{k+1}^j | x_k^i) / Σ_l w_k^l f(x_{k+1}^j | x_k^l)
+
+with ``f`` the transition density, ``x_{k+1} = f(x_k, u_k, k) + w`` under the model's
+process noise (``model.process_noise_at(k).log_prob``). Computed in the log domain (two
+log-sum-exps a step); ``O(N² T)`` per run, the ``[runs, N, N, dx]`` differences a step in
+chunks of runs that keep them under :data:`CHUNK_ELEMENTS` entries. Whatever proposal,
+likelihood and resampler the filter used: the smoother reads only its filtering
+approximations. As every particle smoother on the filter's particles, it cannot put weight
+where the filter had no particle (a filter that resampled down to few distinct particles
+gives a smoother of few distinct points).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from .results import ParticleFilterResult
+from .ssm import StateSpaceModel
+
+__all__ = ["ParticleSmootherResult", "particle_smoother"]
+
+#: The most entries of the ``[runs, N, N, dx]`` transition differences computed at once.
+CHUNK_ELEMENTS = 1 << 24
+
+
+class ParticleSmootherResult(NamedTuple):
+    """The smoothed marginals, with the runs' batch shape: ``means [..., T, dx]``
+    ``E[x_k | y_{1:T}]`` and ``covs [..., T, dx, dx]`` (the weighted moments of the filter's
+    particles under the smoothing weights), ``log_weights [..., T, N]`` the normalised
+    smoothing log-weights ``log w_{k|T}^i`` of ``filtered.particles``, and ``filtered``."""
+
+    means: Tensor
+    covs: Tensor
+    log_weights: Tensor
+    filtered: ParticleFilterResult
+
+
+def particle_smoother(
+    model: StateSpaceModel, filtered: ParticleFilterResult, us: Tensor | None = None
+) -> ParticleSmootherResult:
+    """FFBSm (module docstring) of ``filtered``, the result of
+    :func:`difffilter.particle_filter` on ``model`` with ``return_particles=True`` and the same
+    inputs ``us [..., T, du]`` (``u_k`` drives ``x_k → x_{k+1}``: the filter's own pairing).
+    Differentiable in the particles, weights and the model's parameters."""
+    if not isinstance(filtered, ParticleFilterResult):
+        raise TypeError(
+            "filtered must be the ParticleFilterResult of difffilter.particle_filter(model, "
+            f"ys, …, return_particles=True); got {type(filtered).__name__}"
+        )
+    if filtered.particles is None or filtered.log_weights is None:
+        raise ValueError(
+            "filtered holds no particles: run the particle filter with return_particles=True"
+        )
+    custom = type(model).sample_transition is not StateSpaceModel.sample_transition
+    if not isinstance(model, StateSpaceModel) or custom:
+        raise TypeError(
+            "the particle smoother needs the transition density of x_{k+1} = f(x_k, u_k, k) + w "
+            "(a StateSpaceModel with the default sample_transition, its process noise's "
+            f"log_prob); {type(model).__name__} "
+            + ("draws its transition its own way" if custom else "is no StateSpaceModel")
+        )
+    particles, log_w = filtered.particles, filtered.log_weights
+    steps = particles.shape[-3]
+    if us is not None and (not isinstance(us, Tensor) or us.shape[-2:-1] != (steps,)):
+        raise ValueError(f"us must be the filter's inputs [..., T = {steps}, du]; got "
+                         f"{tuple(us.shape) if isinstance(us, Tensor) else us!r}")  # fmt: skip
+    smoothed = [log_w[..., -1, :]]
+    for t in range(steps - 2, -1, -1):  # index t holds x_{t+1}; its successor x_{t+2}
+        u = None if us is None else us[..., t + 1, :]
+        smoothed.append(_backward_step(model, particles[..., t, :, :], log_w[..., t, :],
+                                       particles[..., t + 1, :, :], smoothed[-1], u, t + 1))  # fmt: skip
+    smoothed.reverse()
+    log_ws = torch.stack(smoothed, -2)  # [..., T, N]
+    w = log_ws.exp()
+    means = (w.unsqueeze(-1) * particles).sum(-2)
+    dev = particles - means.unsqueeze(-2)
+    covs = (w[..., None, None] * dev.unsqueeze(-1) * dev.unsqueeze(-2)).sum(-3)
+    return ParticleSmootherResult(means, 0.5 * (covs + covs.mT), log_ws, filtered)
+
+
+def _backward_step(model, now: Tensor, log_w: Tensor, later: Tensor, later_smoothed: Tensor,
+                   u: Tensor | None, k: int) -> Tensor:  # fmt: skip
+    """``log w_{k|T} [..., N]`` from the filter's ``now [..., N, dx]`` and ``log_w [..., N]``
+    at step ``k``, the particles ``later [..., N, dx]`` of step ``k + 1`` and their smoothing
+    log-weights ``later_smoothed [..., N]``, by chunks of runs (module docstring)."""
+    batch, (n, dx) = now.shape[:-2], now.shape[-2:]
+    runs = math.prod(batch)
+    now_r, later_r = _runs(now, batch, 2), _runs(later, batch, 2)
+    log_w_r, smooth_r = _runs(log_w, batch, 1), _runs(later_smoothed, batch, 1)
+    u_r = None if u is None else _runs(u, batch, 1)
+    noise = model.process_noise_at(k)
+    chunk = max(1, CHUNK_ELEMENTS // max(1, n * n * dx))
+    out = []
+    for start in range(0, runs, chunk):
+        rows = slice(start, min(runs, start + chunk))
+        u_c = None if u_r is None else u_r[rows].unsqueeze(-2)
+        ahead = model.transition(now_r[rows], u_c, k)  # [c, N_i, dx]: f(x_k^i, u_k)
+        # log f(x_{k+1}^j | x_k^i) [c, N_i, N_j]
+        log_f = noise.log_prob(later_r[rows].unsqueeze(-3) - ahead.unsqueeze(-2))
+        joint = log_w_r[rows].unsqueeze(-1) + log_f  # log w_k^i f(x_{k+1}^j | x_k^i)
+        # Σ_j w_{k+1|T}^j f_ij / Σ_l w_k^l f_lj: a log-sum-exp over l, then over j
+        per_j = smooth_r[rows].unsqueeze(-2) - torch.logsumexp(joint, -2, keepdim=True)
+        log_new = torch.logsumexp(joint + per_j, -1)
+        out.append(log_new - torch.logsumexp(log_new, -1, keepdim=True))
+    return torch.cat(out).reshape(batch + (n,))
+
+
+def _runs(t: Tensor, batch: torch.Size, tail: int) -> Tensor:
+    """``t [..., *tail dims]`` broadcast to the runs ``batch`` and flattened: ``[runs, ...]``."""
+    return t.expand(batch + t.shape[t.dim() - tail :]).reshape((-1, *t.shape[t.dim() - tail :]))
