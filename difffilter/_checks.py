@@ -159,23 +159,38 @@ def check_positive_definite(t: Tensor, name: str, dim: int | None = None) -> Non
         return
     _, info = torch.linalg.cholesky_ex(t.detach())
     if bool((info != 0).any()):
-        eig = torch.linalg.eigvalsh(t.detach().double())
-        low, high = float(eig.amin()), float(eig.amax())
-        dtype = str(t.dtype).replace("torch.", "")
-        if low > 0 and t.dtype != torch.float64:  # definite, but not to this dtype's precision
-            raise ValueError(
-                f"{name} is positive definite (eigenvalues from {low:.3g} to {high:.3g}: "
-                f"condition number {high / low:.3g}) but too ill-conditioned for a Cholesky "
-                f"factorisation in {dtype} (relative precision {torch.finfo(t.dtype).eps:.2g}): "
-                "build the model in float64, or in units that bring the variances closer"
-            )
-        raise ValueError(
-            f"{name} must be positive definite (all eigenvalues > 0; its smallest is {low:.3g}): "
-            "a rank-deficient covariance (Q = 0, P0 = 0, the textbook q g gᵀ of a "
-            "constant-velocity model) needs a small variance added to make it definite, e.g. "
-            f"{name} + 1e-12 · max(diag) · I, or the full-rank discretised noise "
-            "(README, Numerical limits)"
+        raise ValueError(_not_definite(t, info != 0, name))
+
+
+def _not_definite(t: Tensor, failing: Tensor, name: str) -> str:
+    """Why ``t`` (its first member whose Cholesky factorisation failed) is refused, and what
+    to do: a rank-deficient covariance needs a variance added, one definite in exact
+    arithmetic but beyond the dtype's precision float64 (or the variance). The suggested
+    variance is one the dtype resolves (1e-12 of the largest was below float32's spacing:
+    the "fixed" matrix was the same, bit for bit)."""
+    index = tuple(int(i) for i in failing.nonzero()[0]) if failing.dim() else ()
+    member = t.detach()[index].double()
+    eig = torch.linalg.eigvalsh(member)
+    low, high = float(eig[0]), float(eig[-1])
+    where = f" (batch index {index})" if index else ""
+    dtype, eps = str(t.dtype).replace("torch.", ""), torch.finfo(t.dtype).eps
+    jitter = f"{name} + {1e-12 if t.dtype == torch.float64 else 1e3 * eps:.0e} · max(diag) · I"
+    # definite beyond float64's round-off of its eigenvalues (a rank-one matrix's smallest
+    # came out 3e-21 for 0): then too ill-conditioned for its own dtype alone
+    if low > 10 * member.shape[-1] * torch.finfo(torch.float64).eps * high:
+        return (
+            f"{name}{where} is positive definite in exact arithmetic (eigenvalues from "
+            f"{low:.3g} to {high:.3g}: condition number {high / low:.3g}) but its Cholesky "
+            f"factorisation fails in {dtype} (relative precision {eps:.2g}): build the model "
+            f"in float64, use units that bring the variances closer, or add a variance ("
+            f"{jitter}) if it was meant to be singular"
         )
+    return (
+        f"{name}{where} must be positive definite (all eigenvalues > 0; its smallest is "
+        f"{low:.3g}): a rank-deficient covariance (Q = 0, P0 = 0, the textbook q g gᵀ of a "
+        "constant-velocity model) needs a small variance added to make it definite, e.g. "
+        f"{jitter}, or the full-rank discretised noise (README, Numerical limits)"
+    )
 
 
 def check_sequence(t: Tensor, name: str, dim: int, *, allow_nan: Tensor | None = None) -> None:

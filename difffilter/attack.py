@@ -73,10 +73,20 @@ def attack_dim(model, channel: Channel | str) -> int:
 class Attack:
     """Base of every attack (module docstring). Subclasses set :attr:`channel` and
     implement :meth:`init` and :meth:`step`; an adaptive attack (one that reads the
-    estimator's last output) sets :attr:`reads_view`."""
+    estimator's last output) sets :attr:`reads_view`.
+
+    :attr:`reads_state` declares whether the attack reads the true state ``x`` (an insider,
+    or an attacker with a perfect model of the plant: from ``x_k`` and ``y_k`` it knows the
+    measurement noise exactly, and a trial's attack that subtracted it carried twice the
+    bias with fewer χ² alarms than no attack at all). ``True`` by default, so that an attack
+    of one's own keeps reading ``x``; an attack that sets it ``False`` (a network attacker:
+    what it intercepts, ``y`` and ``u``) gets ``x=None``, and the robustness report lists
+    which threats read the state. The library's tabulated attacks and ``Replay`` read no
+    state; ``Covert`` does (its copies start from it)."""
 
     channel: Channel = Channel.SENSOR
     reads_view: bool = False
+    reads_state: bool = True
     conceals: bool = False
 
     def init(
@@ -102,6 +112,8 @@ class TabulatedAttack(Attack):
     Subclasses implement ``sample(batch_shape, num_steps, dim, generator, *, dtype,
     device) -> (values, flags)`` (:meth:`sample`).
     """
+
+    reads_state = False  # (it reads nothing at all)
 
     def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
         """The whole attack at once: ``(values, flags)``.

@@ -373,7 +373,7 @@ def _one_schedule(mask: Tensor) -> Tensor | None:
     lead = mask.dim() - 2
     if lead == 0:
         return mask
-    if under_transform():
+    if under_transform() or mask.device.type == "meta":  # (meta tensors hold no values)
         return None
     first = mask[(0,) * lead]
     if all(s == 0 for s in mask.stride()[:lead]) or torch.equal(mask, first.expand_as(mask)):

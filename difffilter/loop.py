@@ -493,6 +493,8 @@ def closed_loop(
     # scenario hands such an attack nothing, so one that read it unannounced worked here
     # and silently read None there)
     reads = attack is not None and bool(attack.reads_view)
+    # the true state only to an attack that declares it reads it (Attack.reads_state)
+    shows_state = attack is not None and bool(attack.reads_state)
     if fork is not None:
         if state is not None:
             raise ValueError("give a loop either state= or fork= to resume from, not both")
@@ -518,19 +520,26 @@ def closed_loop(
         m = None if mask is None else mask[:, k - 1]
         applied, a, value, flag = u, None, None, None
         if channel is Channel.ACTUATOR:
-            a_state, value, flag = attack.step(a_state, k, x=x, u=u, view=view if reads else None)
+            seen = _Untouched(attack, x, u, view if reads else None)
+            a_state, value, flag = attack.step(a_state, k, x=x if shows_state else None, u=u,
+                                               view=view if reads else None)  # fmt: skip
+            seen.check(k, "step")
             value = _checked_value(attack, value, flag, u, k, "u")
             applied, a = inject(channel, u, value, flag)
         x = noise.transition(plant, x, applied, k - 1)
         y = noise.measure(plant, x, k - 1)
         received = y
         if conceals:
-            a_state, correction = attack.conceal(a_state, k, y=y, x=x)
+            seen = _Untouched(attack, x, y)
+            a_state, correction = attack.conceal(a_state, k, y=y, x=x if shows_state else None)
+            seen.check(k, "conceal")
             received = y + correction
             rec["concealment"].append(correction)
         if channel is not None and channel is not Channel.ACTUATOR:
-            a_state, value, flag = attack.step(a_state, k, y=y, x=x, u=u,
+            seen = _Untouched(attack, x, y, u, view if reads else None)
+            a_state, value, flag = attack.step(a_state, k, y=y, x=x if shows_state else None, u=u,
                                                view=view if reads else None)  # fmt: skip
+            seen.check(k, "step")
             value = _checked_value(attack, value, flag, y, k, "y")
             received, a = inject(channel, y, value, flag)
         if estimator is not None:
@@ -551,6 +560,43 @@ def closed_loop(
     batch = x.shape[:-1]
     output = stack_steps(outs, batch, attack_channel=estimator.attack_channel) if outs else None
     return LoopResult(traj, output, LoopState(k, x, u, a_state, carry, view))
+
+
+class _Untouched:
+    """The version counters of what the loop hands an attack (``x``, ``y``, ``u`` and the
+    estimator's :class:`~difffilter.results.StepOutput`), checked after its call: an attack
+    reads them and acts only through what it returns. A trial's attack that wrote into
+    them in place (``x.add_``, ``y.clamp_``, ``view.mean +=``) moved the plant's true
+    state, the recorded measurement or the estimator's carry, while the loop recorded no
+    attack and flagged no step (the runs scored against wrong labels). Inference tensors
+    keep no counter and are not checked."""
+
+    def __init__(self, attack, *values):
+        self.attack, self.stamps = attack, []
+        for value in values:
+            tensors = [value] if isinstance(value, Tensor) else _tensors_of(value)
+            for t in tensors:
+                if not t.is_inference():
+                    self.stamps.append((t, t._version))
+
+    def check(self, k: int, call: str) -> None:
+        if any(t._version != version for t, version in self.stamps):
+            raise ValueError(
+                f"attack {type(self.attack).__name__}.{call} wrote in place into a tensor the "
+                f"loop handed it at step {k} (the true state, the measurement, the input or "
+                "the estimator's output): that changes the plant, the records or the "
+                "estimator without being recorded as an attack. An attack acts only through "
+                "what it returns: compute out of place (x + 1, not x.add_(1)) or on a copy"
+            )
+
+
+def _tensors_of(output) -> list[Tensor]:
+    """The tensors of a step output (its fields and ``extras``), or none (``None``)."""
+    if output is None:
+        return []
+    fields = [v for v in output if isinstance(v, Tensor)]
+    extras = getattr(output, "extras", None) or {}
+    return fields + [v for v in extras.values() if isinstance(v, Tensor)]
 
 
 def _check_parts(estimator, attack) -> None:

@@ -34,6 +34,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from ._checks import model_batch_shape
 from .kalman import kalman_filter
 from .linalg import symmetrize
 from .results import FilterResult, ParticleFilterResult
@@ -127,7 +128,8 @@ def _check_filtered_by(filtered: FilterResult, want: Tensor, pred: Tensor | None
         raise ValueError(
             "filtered is not this model's Kalman filter result: its prediction of step 1 is "
             "not the model's (F P0 Fᵀ + Q, F m0); filter with this model, e.g. "
-            "difffilter.kalman_smoother(model, ys, …), after every change to it"
+            "difffilter.kalman_smoother(model, ys, …), after every change to it (a UKF's "
+            "result: difffilter.unscented_rts_smoother)"
         )
 
 
@@ -177,34 +179,40 @@ def unscented_rts_smoother(
     :class:`~difffilter.extended.SigmaPoints`; default ``SigmaPoints()``, the UKF's): the
     smoother gain from the cross-covariance of the sigma points of ``N(m_k, P_k)`` and
     their images under ``f``, with the UKF's weights. On a linear model, the RTS smoother."""
-    from .extended import SigmaPoints, _check_sigma_points
+    from .extended import SigmaPoints, _check_sigma_points, _moments
 
     _check_sigma_points(sigma_points)
+    if model_batch_shape(model, matrices_only=True):  # (as the UKF refuses it)
+        raise ValueError(
+            "the unscented smoother evaluates f on sigma points, and this model's matrices "
+            "have a batch shape (one per run): smooth its Kalman filter's result with "
+            "difffilter.rts_smoother"
+        )
     sp = sigma_points or SigmaPoints()
     steps, _ = _check_arguments(model, filtered, us, "transition")
     m0, P0 = model.initial.mean, model.initial.cov
     means = filtered.means
     wm, wc, scale = sp.weights(means.shape[-1], means.dtype, means.device)
 
-    def transition(k: int, mean: Tensor, cov: Tensor, predict: bool):
-        # Cov(x_{k+1}, x_k) = Σ wᶜ (f(X) − m⁻)(X − m)ᵀ and P⁻ = Σ wᶜ (f(X) − m⁻)(·)ᵀ + Q
+    def predicted(k: int, mean: Tensor, cov: Tensor):
+        """The sigma points ``X``, ``f(X)`` and the UKF's own prediction ``(m⁻, P⁻)``."""
         X = sp.points(mean, cov, scale)  # [..., 2n+1, n]
         u = None if us is None else us[..., k, :].unsqueeze(-2)
         FX = model.transition(X, u, k)
-        pred_dev = FX - (wm[:, None] * FX).sum(-2, keepdim=True)
-        weighted = (wc[:, None] * pred_dev).mT  # [..., n, 2n+1]
-        cross = weighted @ (X - mean.unsqueeze(-2))
-        return cross, symmetrize(weighted @ pred_dev + model.process_cov(k)) if predict else None
+        pred_mean, pred_cov = _moments(FX, wm, wc)  # (the filter's sums, in its order)
+        return X, FX, pred_mean, symmetrize(pred_cov + model.process_cov(k))
+
+    def transition(k: int, mean: Tensor, cov: Tensor, predict: bool):
+        # Cov(x_{k+1}, x_k) = Σ wᶜ (f(X) − m⁻)(X − m)ᵀ
+        X, FX, pred_mean, pred_cov = predicted(k, mean, cov)
+        weighted = (wc[:, None] * (FX - pred_mean.unsqueeze(-2))).mT  # [..., n, 2n+1]
+        return weighted @ (X - mean.unsqueeze(-2)), pred_cov if predict else None
 
     if filtered.pred_covs is not None:
         start = m0.expand(means.shape[:-2] + m0.shape[-1:])
-        X0 = sp.points(start, P0, scale)
-        _, want = transition(0, start, P0, True)
-        pred = None
-        if us is not None or not getattr(model, "dim_u", 0):
-            u0 = None if us is None else us[..., 0, :].unsqueeze(-2)
-            pred = (wm[:, None] * model.transition(X0, u0, 0)).sum(-2)
-        _check_filtered_by(filtered, want, pred, unscented=True)
+        _, _, pred, want = predicted(0, start, P0)
+        known = us is not None or not getattr(model, "dim_u", 0)
+        _check_filtered_by(filtered, want, pred if known else None, unscented=True)
     return _backward(model, filtered, transition)
 
 

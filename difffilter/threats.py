@@ -388,6 +388,7 @@ class Replay(Attack):
     loop: Any = field(default=None, repr=False, compare=False)
     level_window: int = 5
     channel = Channel.REPLACEMENT
+    reads_state = False  # (what it intercepts: the measurements)
 
     def __post_init__(self):
         _count(self.delay, "delay", 1)
@@ -499,6 +500,7 @@ class Covert(Attack):
     plant: Any = field(repr=False, compare=False)
     channel = Channel.ACTUATOR
     conceals = True
+    reads_state = True  # (its copies start from the true state)
 
     def __post_init__(self):
         if not isinstance(self.signal, Shaped):

@@ -381,6 +381,9 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
         "reads_no_measurements": reading_no_measurements(free.metrics),
     })  # fmt: skip
     doc["threat_activity"] = result.activity
+    # which threats read the true state x (Attack.reads_state: an insider, who knows the noise)
+    doc["threat_reads_state"] = {name: bool(getattr(attack, "reads_state", True))
+                                 for name, attack in result.threat_set.threats.items()}  # fmt: skip
     acceptance = judge_robustness(result.acting(doc["cells"]), doc["estimator_roles"],
                                   result.calibration.far, blind=doc["reads_no_measurements"])  # fmt: skip
     intervals = robustness_intervals(result.acting(result.run_totals), doc["estimator_roles"],
@@ -442,7 +445,10 @@ def _markdown(doc: dict, sc) -> str:
                            for t in threats),
                          _worst_text(worst, metric)])  # fmt: skip
         parts.append(f"## {title}\n\n{markdown_table(header, rows)}")
-    specs = "\n".join(f"- `{n}`: {s}" for n, s in doc["threats"].items())
+    insiders = doc.get("threat_reads_state") or {}
+    insider = " (reads the true state x_k: an insider, who knows the measurement noise)"
+    specs = "\n".join(f"- `{n}`: {s}{insider if insiders.get(n) else ''}"
+                      for n, s in doc["threats"].items())  # fmt: skip
     parts.append(f"## Threats\n\n{specs}\n\n![robustness.png](robustness.png)\n")
     parts += [_stealthy_section(n, r) for n, r in (doc.get("stealthy") or {}).items()]
     parts += [_acceptance_section(n, a) for n, a in (doc.get("acceptance") or {}).items()]

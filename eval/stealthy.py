@@ -160,6 +160,10 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
             f"the threat set's estimators)"
         )
     ctx = _context(scenario, spec.train_runs, seed, checkpoint)
+    # a particle filter's draws of the attacker's own: the study's (its common random
+    # numbers) are the defender's, which no attacker knows (a threat-model trial: the
+    # crafting's initial particles were the first 64 study runs', bit for bit)
+    ctx.particle_prefix = f"stealthy/{name}/"
     (estimator, start), tau = detector_step(ctx, spec.against), calibration.thresholds[spec.against]
     streams = Streams(seed)
     free = scenario.with_threat(None)

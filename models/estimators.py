@@ -301,6 +301,10 @@ class SuiteContext:
             several scenarios have in common).
         named_checkpoints: ``{estimator: path}``, checkpoints of one estimator each
             (``difffilter-eval --ckpt name=path``), ahead of ``checkpoint``.
+        particle_prefix: put before the particle filters' stream names
+            (:meth:`particle_kwargs`): ``""`` for the study's common random numbers; an
+            attacker crafting against a particle filter runs it on draws of its own
+            (:func:`difffilter.eval.stealthy.craft_threat`), not the defender's.
     """
 
     scenario: Any
@@ -312,6 +316,7 @@ class SuiteContext:
     cache: dict[Any, Any] = field(default_factory=dict)
     checkpoint_users: list[str] = field(default_factory=list)
     named_checkpoints: dict[str, Any] = field(default_factory=dict)
+    particle_prefix: str = ""
 
     def checkpoint_for(self, name: str):
         """The checkpoint estimator ``name`` uses: its own (``--ckpt name=path``), else
@@ -323,11 +328,12 @@ class SuiteContext:
         propagation noise and resampling uniforms, systematic resampling at every step."""
         n = self.scenario.num_particles
         b = self.runs if runs is None else runs
+        name = f"{self.particle_prefix}particles/"
         return {
             "num_particles": n,
-            "initial_state": particle_init(self.model, n, (b,), self.streams("particles/init")),
-            "generator": self.streams("particles/propagate"),
-            "resample_generator": self.streams("particles/resample"),
+            "initial_state": particle_init(self.model, n, (b,), self.streams(name + "init")),
+            "generator": self.streams(name + "propagate"),
+            "resample_generator": self.streams(name + "resample"),
             "resampler": Systematic(),
             "ess_threshold": 1.0,
         }

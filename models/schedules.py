@@ -159,7 +159,7 @@ class BurstLoss:
         P(B at k | G at k−1) = to_bad,   P(G at k | B at k−1) = to_good
 
     and a measurement is lost with probability ``loss_good`` in ``G``, ``loss_bad`` in ``B``
-    (defaults 0 and 1: Gilbert's channel, every loss in a burst). The chain starts in its
+    (defaults 0 and 1: the simplified Gilbert channel, every loss in a burst). The chain starts in its
     stationary law, ``P(B) = π_B = to_bad / (to_bad + to_good)``, so the loss rate is the
     same at every step: ``π_B · loss_bad + (1 − π_B) · loss_good``; with the defaults a
     burst lasts ``1 / to_good`` steps on average (geometric) and a loss follows a loss with
@@ -210,12 +210,15 @@ class BurstLoss:
         move = torch.rand(shape, generator=generator, dtype=torch.float64, device=device)
         lose = torch.rand(shape, generator=generator, dtype=torch.float64, device=device)
         bad = torch.empty(shape, dtype=torch.bool, device=device)
+        if num_steps == 0:  # (no step: an empty mask, as PacketLoss gives)
+            return bad if packet_of is None else bad[..., packet_of]
         state = move[..., 0, :] < self.bad_share  # the stationary law at the first step
         bad[..., 0, :] = state
         for k in range(1, num_steps):
             u = move[..., k, :]
             state = torch.where(state, u >= self.to_good, u < self.to_bad)
             bad[..., k, :] = state
-        loss = torch.where(bad, self.loss_bad, self.loss_good)
+        loss = torch.where(bad, torch.tensor(self.loss_bad, dtype=torch.float64, device=device),
+                           torch.tensor(self.loss_good, dtype=torch.float64, device=device))  # fmt: skip
         arrived = lose >= loss
         return arrived if packet_of is None else arrived[..., packet_of]

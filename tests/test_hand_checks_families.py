@@ -352,6 +352,8 @@ def test_burst_loss_refuses_what_is_no_channel_and_reads_yaml():
     ):  # fmt: skip
         with pytest.raises(ValueError, match=match):
             BurstLoss(**bad)
+    assert BurstLoss(0.1, 0.5).mask(3, 0, 2).shape == (3, 0, 2)  # no step (it raised)
+    assert BurstLoss(0.1, 0.5, packets=((0, 1),)).mask((2,), 0, 2).shape == (2, 0, 2)
     spec = {"kind": "burst_loss", "to_bad": 0.05, "to_good": 0.25, "loss_good": 0.1,
             "packets": [[0, 1], [2]]}  # fmt: skip
     assert _schedule(spec, "schedule") == BurstLoss(0.05, 0.25, 0.1, 1.0, ((0, 1), (2,)))

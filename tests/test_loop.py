@@ -602,3 +602,86 @@ def test_the_closed_loop_names_a_controller_that_is_not_one():
                                             rf"got {name}"):  # fmt: skip
             closed_loop(plant, 3, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
                         estimator=df.KalmanFilter(), controller=controller)  # fmt: skip
+
+
+class _WritesInPlace(Attack):
+    """Writes into what the loop hands it at step 3 and reports no attack (a trial's)."""
+
+    channel, reads_view = Channel.SENSOR, True
+
+    def __init__(self, what):
+        self.what = what
+
+    def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        return None
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        if k == 3 and self.what != "nothing":
+            {"x": x, "y": y, "u": u, "view": None if view is None else view.mean}[self.what].add_(
+                1.0
+            )
+        return state, torch.zeros_like(y), torch.zeros(y.shape[:-1], dtype=torch.bool)
+
+
+@pytest.mark.parametrize("what", ["x", "y", "u", "view"])
+def test_an_attack_that_writes_into_the_loops_tensors_is_refused(what):
+    """An attack writing x, y, u or the estimator's output in place moved the plant, the
+    recorded measurement or the estimator's carry (by 12.8, 10 and 10 in a trial) while
+    the loop recorded no attack and flagged no step: named at the step it did it."""
+    from difffilter.loop import StateFeedback
+
+    F64 = torch.float64
+    model = df.LinearGaussianModel(torch.tensor([[1.0, 0.1], [0.0, 0.95]], dtype=F64),
+                                   torch.tensor([[1.0, 0.0]], dtype=F64), 0.01 * torch.eye(2, dtype=F64),
+                                   0.04 * torch.eye(1, dtype=F64), torch.zeros(2, dtype=F64),
+                                   0.1 * torch.eye(2, dtype=F64), B=torch.tensor([[0.0], [0.1]], dtype=F64))  # fmt: skip
+    g = torch.Generator().manual_seed(1)
+    noise = ReplayedNoise(0.1 * torch.randn(2, 6, 2, dtype=F64, generator=g),
+                          0.2 * torch.randn(2, 6, 1, dtype=F64, generator=g))  # fmt: skip
+
+    def run(attack):
+        return closed_loop(model, 6, noise=noise, x0=torch.zeros(2, 2, dtype=F64),
+                           estimator=df.KalmanFilter(), controller=StateFeedback(torch.tensor([[1.0, 1.0]], dtype=F64)),
+                           attack=attack)  # fmt: skip
+
+    with pytest.raises(ValueError, match=r"attack _WritesInPlace.step wrote in place into a tensor "
+                       r"the loop handed it at step 3.*compute out of place"):  # fmt: skip
+        run(_WritesInPlace(what))
+    reads = run(_WritesInPlace("nothing")).trajectories  # reading alone: the attack-free loop
+    torch.testing.assert_close(reads.x, run(None).trajectories.x, rtol=0, atol=0)
+
+
+class _Records(Attack):
+    """Records the x it is handed; injects nothing."""
+
+    def __init__(self, channel, reads_state):
+        self.channel, self.reads_state, self.seen = Channel(channel), reads_state, []
+
+    def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        return None
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        self.seen.append(x)
+        signal = u if self.channel is Channel.ACTUATOR else y
+        return state, torch.zeros_like(signal), torch.zeros(signal.shape[:-1], dtype=torch.bool)
+
+
+@pytest.mark.parametrize("channel", ["sensor", "actuator"])
+def test_only_an_attack_that_declares_it_reads_the_true_state(channel):
+    """From a threat-model trial: every attack got the true x_k beside y_k, so the noise
+    v_k = y_k − h(x_k) exactly (an attack subtracting it carried twice the bias with fewer
+    alarms than no attack), undeclared. Attack.reads_state declares it (True by default: an
+    attack of one's own keeps reading x); one that sets it False gets x=None."""
+    from difffilter.threats import Bias, Covert, Replay
+
+    model = _linear()
+    us = torch.zeros(2, 5, 1, dtype=torch.float64)
+    for reads, none in ((True, False), (False, True)):
+        attack = _Records(channel, reads)
+        closed_loop(model, 5, noise=DrawnNoise(torch.Generator().manual_seed(0)),
+                    x0=torch.zeros(2, model.dim_x, dtype=torch.float64), controller=KnownInputs(us),
+                    attack=attack)  # fmt: skip
+        assert len(attack.seen) == 5 and all((x is None) == none for x in attack.seen)
+    assert Attack.reads_state and not Bias(0.1, onset=2).reads_state
+    assert not Replay(delay=2, onset=3).reads_state
+    assert Covert(Bias(0.1, onset=2, channel="actuator"), plant=model).reads_state

@@ -408,6 +408,9 @@ def test_the_unscented_smoother_is_differentiable_public_and_refuses_another_fil
         df.unscented_rts_smoother(model, df.unscented_kalman_filter(moved, ys))
     with pytest.raises(TypeError, match="sigma_points must be a SigmaPoints"):
         df.unscented_kalman_smoother(model, ys, sigma_points=(1.0, 2.0, 0.0))
+    # its own result at a small α too (its weights ~1e6: the check's prediction is summed as
+    # the filter's, not in another order, which differed by 1.35e-12 and refused it)
+    df.unscented_kalman_smoother(model, ys, sigma_points=df.SigmaPoints(1e-3))
     # its own result, in float32 too
     own = df.unscented_rts_smoother(model, df.unscented_kalman_filter(model, ys))
     torch.testing.assert_close(own.means[:, -1], own.filtered.means[:, -1], rtol=0, atol=0)

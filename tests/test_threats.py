@@ -471,3 +471,32 @@ def test_a_threat_of_ones_own_is_named_by_its_module_in_a_threat_set(tmp_path, m
     assert made.specs["drift"] == {"kind": "my_trial_attacks:Drift"} and "drift" not in given
     with pytest.raises(ValueError, match="specs of no threat: pulses"):
         ThreatSet({"drift": drift}, {"pulses": {"kind": "pulses"}})
+
+
+def test_an_attacker_crafts_against_a_particle_filter_on_draws_of_its_own(monkeypatch):
+    """From a threat-model trial: the crafting against normal_pf started from the study's
+    own initial particles (the first 64 runs', bit for bit): the attacker optimised against
+    the defender's random draws, which no attacker knows. Its draws are its own now; the
+    study's are unchanged."""
+    from types import SimpleNamespace
+
+    from difffilter.eval import stealthy
+    from difffilter.models import registry
+
+    scenario = registry.get("four_tank_bias")
+    captured = {}
+
+    def fake_craft(estimator, model, ys, xs, tau, *, start, **kwargs):
+        captured["start"] = start
+        return SimpleNamespace(within_budget=lambda: [], history=[])
+
+    monkeypatch.setattr(stealthy, "craft_stealthy_attack", fake_craft)
+    calibration = SimpleNamespace(thresholds={"normal_pf": 0.5}, far=0.01)
+    spec = stealthy.StealthySpec(against="normal_pf", onset=21, train_runs=8)
+    stealthy.craft_threat("probe", spec, scenario, calibration, seed=0)
+    crafting = captured["start"](8).particles
+    _, study_start = stealthy.estimator_step(scenario, "normal_pf", runs=8, seed=0)
+    study = study_start(8).particles
+    assert crafting.shape == study.shape and not torch.equal(crafting, study)
+    again = stealthy.estimator_step(scenario, "normal_pf", runs=8, seed=0)[1](8).particles
+    assert torch.equal(again, study)  # the study's common random numbers as they were

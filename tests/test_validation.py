@@ -166,8 +166,18 @@ def test_a_definite_covariance_too_ill_conditioned_for_float32_says_so():
     be positive definite (all eigenvalues > 0)", which it is."""
     g = torch.tensor([[0.5], [1.0]], dtype=torch.float64)
     Q = (1e2 * g @ g.T + 1e-6 * torch.eye(2, dtype=torch.float64)).float()
-    with pytest.raises(ValueError, match=r"Q is positive definite \(eigenvalues from 1.5\de-06 to "
-                       r"125: condition number 8.\d+e\+07\) but too ill-conditioned for a "
-                       r"Cholesky factorisation in float32.*build the model in float64"):  # fmt: skip
+    with pytest.raises(ValueError, match=r"Q is positive definite in exact arithmetic \(eigenvalues "
+                       r"from 1.5\de-06 to 125: condition number 8.\d+e\+07\) but its Cholesky "
+                       r"factorisation fails in float32.*build the model in float64"):  # fmt: skip
         df.LinearGaussianModel(torch.eye(2), torch.eye(2)[:1], Q, torch.eye(1), torch.zeros(2),
                                torch.eye(2))  # fmt: skip
+    # the variance the message suggests in float32 is one float32 resolves (1e-12 of the
+    # largest was below its spacing: the same matrix, refused again)
+    rank_one = (g @ g.T).float()
+    with pytest.raises(ValueError, match=r"Q \+ 1e-04 · max\(diag\) · I") as error:
+        df.LinearGaussianModel(torch.eye(2), torch.eye(2)[:1], rank_one, torch.eye(1),
+                               torch.zeros(2), torch.eye(2))  # fmt: skip
+    del error
+    fixed = rank_one + 1e-4 * rank_one.diagonal().max() * torch.eye(2)
+    df.LinearGaussianModel(torch.eye(2), torch.eye(2)[:1], fixed, torch.eye(1), torch.zeros(2),
+                           torch.eye(2))  # fmt: skip
