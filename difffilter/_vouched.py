@@ -23,10 +23,11 @@ alone is checked, and a carry written in place is not validated again (the speed
 mode is chosen for; ``full_checks = True`` validates every step).
 
 The registry holds weak references to the tensors (a vouched carry keeps no particle
-cloud and no autograd graph alive) and plain references to the other leaves (models, gain
-schedules, step indices: small and usually alive anyway); it keeps the last
-:data:`_LIMIT` carries, so an estimator stepping more independent carries than that in
-turn just validates them in full.
+cloud and no autograd graph alive) and to every other leaf that takes one (models, gain
+schedules, generators: a deployment trial's process that rebuilt 40 MB models kept the
+last 64 alive, 1.2 GB, through this registry), and plain references to the rest (step
+indices, ``None``, tuples); it keeps the last :data:`_LIMIT` carries, so an estimator
+stepping more independent carries than that in turn just validates them in full.
 """
 
 from __future__ import annotations
@@ -216,13 +217,15 @@ def vouch(carry, established: Established) -> None:
         leaves = _flat_leaves(carry)
         tensors = [v for v in leaves if isinstance(v, Tensor)]
         others = [v for v in leaves if not isinstance(v, Tensor)]
+    weak, held = _split(others)
     entry = (
         established,
         tuple(map(id, leaves)),
         tuple(map(weakref.ref, tensors)),
         _versions(tensors),
-        others,  # held: their ids stay theirs
+        held,  # held: their ids stay theirs
         flat,
+        tuple(map(weakref.ref, weak)),  # alive, or the entry is void: their ids may be reused
     )
     key = id(carry)
     _VOUCHED.pop(key, None)  # re-inserted at the end: the oldest entries go first
@@ -240,7 +243,7 @@ def vouched(owner, carry) -> Established | None:
     entry = _VOUCHED.get(id(carry))
     if entry is None:
         return None
-    established, ids, refs, versions, _, flat = entry
+    established, ids, refs, versions, _, flat, weak = entry
     # a flat entry's fields, if the same objects, are as flat as they were
     leaves = carry if flat else _flat_leaves(carry)
     if established.owner() is not owner or tuple(map(id, leaves)) != ids:
@@ -249,8 +252,31 @@ def vouched(owner, carry) -> Established | None:
     tensors = tuple(map(_DEREF, refs))
     if any(map(operator.is_, tensors, _NONES)):  # one was freed: its id may be another's
         return None
+    if weak and any(map(operator.is_, map(_DEREF, weak), _NONES)):
+        return None
     return established if _versions(tensors) == versions else None
 
 
 _DEREF = weakref.ReferenceType.__call__
+
+
+def _split(others) -> tuple[list, list]:
+    """``(weakly, strongly)``: the leaves whose type takes a weak reference, and the rest."""
+    weak, held = [], []
+    for v in others:
+        (weak if _weakly(type(v)) else held).append(v)
+    return weak, held
+
+
+#: Whether instances of a type take weak references (by type: asked once each).
+_WEAKLY: dict[type, bool] = {}
+
+
+def _weakly(cls: type) -> bool:
+    known = _WEAKLY.get(cls)
+    if known is None:
+        known = _WEAKLY[cls] = bool(getattr(cls, "__weakrefoffset__", 0))
+    return known
+
+
 _NONES = itertools.repeat(None)

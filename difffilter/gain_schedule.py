@@ -44,6 +44,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from ._assignments import assignments
 from .linalg import INNOVATION_COV, LOG_2PI, matvec, safe_cholesky
 from .parallel_kalman import combine_covariance, covariance_elements
 
@@ -127,6 +128,7 @@ class GainSchedule:
         )
         self.Q, self.R = model.process_cov(0), model.measurement_cov(1)
         self._sources = _source_versions(model, (self.F, self.H, self.B, self.Q, self.R))
+        self._assignments = assignments()  # (models' assignments so far: current())
         dy, dx = self.H.shape
         eye = torch.eye(dx, dtype=self.H.dtype, device=self.H.device)
         # H = I (a fully measured state) saves a product per step
@@ -166,8 +168,24 @@ class GainSchedule:
         """Whether the model's matrices and noise are as they were when the schedule was
         made (no tensor of them written in place since: the moments computed ahead would
         mix the old model with the new). A Kalman filter's step drops a schedule that is not
-        and goes on with the general update, which reads the model at every step."""
+        and goes on with the general update, which reads the model at every step. A tensor
+        or noise model assigned anew (``model.F = …``, ``model.to(…)``: any assignment to any
+        model since, :mod:`difffilter._assignments`) has the model's matrices read again and
+        compared with the schedule's (an online KF had gone on with the old ones)."""
+        if self._assignments != assignments():
+            if not self._reads_the_same():
+                return False
+            self._assignments = assignments()
         return all(t._version == v for t, v in self._sources)
+
+    def _reads_the_same(self) -> bool:
+        """Whether the model's matrices and noise covariances now are the schedule's: the
+        same dtype, device, shape and values."""
+        model = self.model
+        now = (model.transition_matrix(0), model.observation_matrix(1), model.control_matrix(0),
+               model.process_cov(0), model.measurement_cov(1), model.initial.cov)  # fmt: skip
+        had = (self.F, self.H, self.B, self.Q, self.R, self.initial_cov)
+        return all(_same(a, b) for a, b in zip(now, had))
 
     #: How many handed-out steps' moments a schedule whose recursion has not converged
     #: keeps at least (at most :attr:`TRIM` more): a carry more than that many steps behind
@@ -574,6 +592,13 @@ def _source_versions(model, mats) -> tuple[tuple[Tensor, int], ...]:
             tensors += [*noise.parameters(), *noise.buffers()]
     unique = {id(t): t for t in tensors if not t.is_inference()}
     return tuple((t, t._version) for t in unique.values())
+
+
+def _same(a: Tensor | None, b: Tensor | None) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return (a.dtype == b.dtype and a.device == b.device and a.shape == b.shape
+            and bool(torch.equal(a.detach(), b.detach())))  # fmt: skip
 
 
 def _version(t: Tensor) -> int:

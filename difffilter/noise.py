@@ -22,6 +22,7 @@ import math
 import torch
 from torch import Tensor, nn
 
+from ._assignments import CountsAssignments
 from ._checks import (
     as_tensor,
     broadcast_or_none,
@@ -66,7 +67,7 @@ def _shape(sample_shape) -> torch.Size:
     return torch.Size(sample_shape)
 
 
-class NoiseModel(nn.Module):
+class NoiseModel(CountsAssignments):
     """Base class: a distribution over ``R^d`` with ``sample``, ``log_prob``, ``mean``, ``cov``.
 
     A noise of one's own subclasses it and sets ``dim``: ``simulate`` and the particle

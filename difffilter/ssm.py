@@ -15,11 +15,13 @@ from __future__ import annotations
 
 import inspect
 import numbers
+import threading
 from collections.abc import Callable
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
+from ._assignments import CountsAssignments
 from ._checks import (
     _check_us,
     as_tensor,
@@ -42,6 +44,14 @@ __all__ = [
     "batched_jacobian",
     "wrapped_spread",
 ]
+
+
+#: One thread at a time differentiates by ``torch.func``: its forward-mode levels are the
+#: process's, and two threads' EKFs (one estimator, two carries, two models) interleaved
+#: them: "invalid forward AD level" errors blamed on the model, results up to 0.85
+#: posterior standard deviations off without an error, a segmentation fault (a deployment
+#: trial). Re-entrant: a model function may itself take a Jacobian.
+_JACOBIAN_LOCK = threading.RLock()
 
 
 def batched_jacobian(
@@ -70,9 +80,10 @@ def batched_jacobian(
             flat_args.append(a.expand(lead + a.shape[-1:]).reshape(-1, a.shape[-1]))
             in_dims.append(0)
     try:
-        jac = torch.func.vmap(torch.func.jacfwd(fn, argnums=0), in_dims=tuple(in_dims))(
-            flat_x, *flat_args
-        )
+        with _JACOBIAN_LOCK:
+            jac = torch.func.vmap(torch.func.jacfwd(fn, argnums=0), in_dims=tuple(in_dims))(
+                flat_x, *flat_args
+            )
     except RuntimeError as error:  # what torch.func says of numpy, .item(), ... is cryptic
         name = what or getattr(fn, "__qualname__", None) or type(fn).__name__
         raise RuntimeError(
@@ -87,7 +98,7 @@ def batched_jacobian(
     return jac.reshape(lead + jac.shape[-2:]).to(x.dtype)
 
 
-class StateSpaceModel(nn.Module):
+class StateSpaceModel(CountsAssignments):
     """Base class of all state-space models (see the module docstring for the equations).
 
     Subclasses set ``dim_x``, ``dim_y``, ``dim_u`` (0 when there is no input) and the

@@ -840,6 +840,40 @@ def test_the_online_step_reads_a_model_written_in_place_as_the_general_step_does
     assert fast.gains is None
 
 
+@pytest.mark.parametrize("change", ["F", "noise", "to"])
+def test_the_online_step_reads_a_model_whose_tensors_were_assigned_anew(change):
+    """From a deployment trial: after ``model.F = new_F`` or ``model.measurement_noise =
+    Gaussian(…)`` (a tensor or noise replaced, not written in place) the Kalman filter's
+    step went on with the old matrices (equal to a filter never told, 2.7e-13), while the
+    EKF on the same model followed. The step now follows as the general update does; and a
+    change elsewhere (another model built) keeps the schedule."""
+    from difffilter.noise import Gaussian
+
+    model = _two_state()
+    _, ys, _ = model.simulate(20, (), generator=torch.Generator().manual_seed(0))
+    kf = df.KalmanFilter()
+    fast = kf.init(model, ())
+    slow = fast._replace(gains=None)
+    for t in range(20):
+        if t == 4:
+            _two_state()  # another model built: nothing of this one changed
+        if t == 8:
+            if change == "F":
+                model.F = 1.5 * model.F
+            elif change == "noise":
+                model.measurement_noise = Gaussian(torch.zeros(1, dtype=torch.float64),
+                                                   100 * model.measurement_noise.cov)  # fmt: skip
+            else:  # the same values in another tensor: the schedule still holds
+                model.to(torch.float64)
+                model.F = model.F.clone()
+        fast, of = kf.step(fast, ys[t])
+        slow, os_ = kf.step(slow, ys[t])
+        torch.testing.assert_close(of.mean, os_.mean, rtol=1e-12, atol=1e-12)
+        if t < 8:
+            assert fast.gains is not None
+    assert (fast.gains is None) == (change != "to")
+
+
 def test_a_schedule_that_never_converges_keeps_a_bounded_window(monkeypatch):
     """An unobserved random walk's variance grows forever: the gain schedule never converges,
     and it kept every step's moments (4.8 kB a step, 1 GB in 200,000 online steps). It keeps

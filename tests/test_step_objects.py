@@ -462,3 +462,64 @@ def test_every_module_imports_alone():
     )
     assert run.returncode == 0, run.stderr[-2000:]
     assert run.stdout == "", run.stdout
+
+
+def _swinging(x, u):
+    dt = 0.05
+    return torch.stack([x[..., 0] + dt * x[..., 1],
+                        x[..., 1] - dt * 9.81 * torch.sin(x[..., 0]) + dt * u[..., 0]], -1)  # fmt: skip
+
+
+def _sine_and_rate(x):
+    return torch.stack([torch.sin(x[..., 0]), x[..., 1]], -1)
+
+
+def test_one_ekf_object_steps_two_threads_carries_as_one_thread_does():
+    """From a deployment trial: one ExtendedKalmanFilter, two threads, two carries and
+    models with autodiff Jacobians failed ("invalid forward AD level", blamed on the model),
+    or ended up to 0.85 posterior sd off without an error, or crashed the process: torch.func's
+    forward-mode levels are the process's. One thread differentiates at a time now."""
+    import threading
+
+    F64 = torch.float64
+
+    def model():
+        return df.NonlinearGaussianModel(_swinging, _sine_and_rate, 1e-3 * torch.eye(2, dtype=F64),
+                                         torch.diag(torch.tensor([0.01, 0.04], dtype=F64)),
+                                         torch.tensor([0.3, 0.0], dtype=F64), 0.1 * torch.eye(2, dtype=F64),
+                                         dim_u=1)  # fmt: skip
+
+    models = [model(), model()]
+    data = []
+    for i, m in enumerate(models):
+        g = torch.Generator().manual_seed(20 + i)
+        us = 0.5 * torch.randn(120, 1, dtype=F64, generator=g)
+        data.append((m.simulate(120, (), us=us, generator=g)[1], us))
+    ekf = df.ExtendedKalmanFilter()
+
+    def run(i, out, barrier=None):
+        try:
+            if barrier is not None:
+                barrier.wait()
+            with torch.no_grad():
+                carry, means = ekf.init(models[i], ()), []
+                for y, u in zip(*data[i]):
+                    carry, step = ekf.step(carry, y, u)
+                    means.append(step.mean)
+            out[i] = torch.stack(means)
+        except Exception as error:  # (reported below, with the thread's result)
+            out[i] = error
+
+    alone = {}
+    run(0, alone)
+    run(1, alone)
+    for _ in range(3):
+        out, barrier = {}, threading.Barrier(2)
+        threads = [threading.Thread(target=run, args=(i, out, barrier)) for i in range(2)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        for i in range(2):
+            assert not isinstance(out[i], Exception), out[i]
+            assert torch.equal(out[i], alone[i])
