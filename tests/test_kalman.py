@@ -100,18 +100,21 @@ def test_kf_matches_filterpy(generator):
         np.testing.assert_allclose(res.covs[t].numpy(), kf.P, atol=1e-9)
 
 
+class RotatingModel(df.LinearGaussianModel):
+    """A time-varying model: F rotates with k, R grows with k."""
+
+    time_varying = True
+
+    def transition_matrix(self, k):
+        c, s = np.cos(0.1 * k), np.sin(0.1 * k)
+        rot = torch.tensor([[c, -s], [s, c]], dtype=self.F.dtype)
+        return 0.95 * torch.block_diag(rot, rot)
+
+    def measurement_cov(self, k):
+        return self.measurement_noise.cov * (1.0 + 0.1 * k)
+
+
 def test_parallel_equals_sequential_batched_time_varying(generator):
-    class RotatingModel(df.LinearGaussianModel):
-        time_varying = True
-
-        def transition_matrix(self, k):
-            c, s = np.cos(0.1 * k), np.sin(0.1 * k)
-            rot = torch.tensor([[c, -s], [s, c]], dtype=self.F.dtype)
-            return 0.95 * torch.block_diag(rot, rot)
-
-        def measurement_cov(self, k):
-            return self.measurement_noise.cov * (1.0 + 0.1 * k)
-
     base = constant_velocity()
     model = RotatingModel(
         base.F,
@@ -1359,19 +1362,8 @@ def test_a_shared_schedules_gradients_are_the_per_run_filters(generator):
 
 
 def test_a_shared_schedule_on_a_time_varying_model_gives_the_per_run_filters_numbers(generator):
-    class Rotating(df.LinearGaussianModel):
-        time_varying = True
-
-        def transition_matrix(self, k):
-            c, s = np.cos(0.1 * k), np.sin(0.1 * k)
-            rot = torch.tensor([[c, -s], [s, c]], dtype=self.F.dtype)
-            return 0.95 * torch.block_diag(rot, rot)
-
-        def measurement_cov(self, k):
-            return self.measurement_noise.cov * (1.0 + 0.1 * k)
-
     base, _, _, mask = _shared_schedule_case((2, 3), 17, generator)
-    model = Rotating(base.F, base.H, base.process_noise.cov, base.measurement_noise.cov,
+    model = RotatingModel(base.F, base.H, base.process_noise.cov, base.measurement_noise.cov,
                      base.initial.mean, base.initial.cov)  # fmt: skip
     _, ys, _ = model.simulate(17, (2, 3), generator=generator)
     fast, ref = df.kalman_filter(model, ys, mask=mask), _general(model, ys, mask=mask)

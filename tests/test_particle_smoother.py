@@ -8,18 +8,11 @@ import numpy as np
 import pytest
 import torch
 from scipy.stats import multivariate_normal
+from test_smoother import DT, GRAVITY, _swing
 
 import difffilter as df
 
 F64 = torch.float64
-DT, GRAVITY = 0.1, 9.81
-
-
-def _swing(x, u=None):  # a pendulum: angle, rate (and a torque input)
-    rate = x[..., 1] - DT * GRAVITY * torch.sin(x[..., 0])
-    if u is not None:
-        rate = rate + DT * u[..., 0]
-    return torch.stack([x[..., 0] + DT * x[..., 1], rate], -1)
 
 
 def _pendulum():
