@@ -140,9 +140,11 @@ def whiteness(
     arrived; the innovations and covariances of a difffilter filter run with it, whose lost
     entries have a zero innovation and a unit, uncorrelated variance, so their whitened
     entries are 0 and the received ones are the received block's own): ``ρ̄`` then sums the
-    pairs whose both entries arrived, ``n_k`` of them at step ``k``, and the bound is a
-    ``[T − lag]`` tensor of ``√(Beta⁻¹(0.95; ½, (n_k − 1)/2))`` (``1`` where ``n_k ≤ 1``,
-    ``ρ̄`` NaN where ``n_k = 0``). Without it every entry counts as received: a lost entry's
+    pairs whose both entries arrived (an entry and the same entry ``lag`` steps later:
+    under round-robin scheduling of ``n`` groups only multiples of ``n`` pair anything),
+    ``n_k`` of them at step ``k``, and the bound is a ``[T − lag]`` tensor of
+    ``√(Beta⁻¹(0.95; ½, (n_k − 1)/2))`` (``1`` where ``n_k ≤ 1``, ``ρ̄`` NaN where
+    ``n_k = 0``). Without it every entry counts as received: a lost entry's
     0 then dilutes ``ρ̄`` below the bound's ``Rm`` (7.8 % of a matched filter's steps
     rejected for 5 % with 4 runs, 2 entries, half of them lost; with it 4.6 % of the steps
     it tests, those with ``n_k ≥ 2``)."""

@@ -121,6 +121,8 @@ class GainSchedule:
         if not tol >= 0:
             raise ValueError(f"tol must be >= 0; got {tol!r}")
         self.model, self.tol = model, float(tol)
+        # the count before the model is read: an assignment while it is read counts as after
+        self._assignments = assignments()
         self.F, self.H, self.B = (
             model.transition_matrix(0),
             model.observation_matrix(1),
@@ -128,7 +130,6 @@ class GainSchedule:
         )
         self.Q, self.R = model.process_cov(0), model.measurement_cov(1)
         self._sources = _source_versions(model, (self.F, self.H, self.B, self.Q, self.R))
-        self._assignments = assignments()  # (models' assignments so far: current())
         dy, dx = self.H.shape
         eye = torch.eye(dx, dtype=self.H.dtype, device=self.H.device)
         # H = I (a fully measured state) saves a product per step
@@ -172,20 +173,29 @@ class GainSchedule:
         or noise model assigned anew (``model.F = …``, ``model.to(…)``: any assignment to any
         model since, :mod:`difffilter._assignments`) has the model's matrices read again and
         compared with the schedule's (an online KF had gone on with the old ones)."""
-        if self._assignments != assignments():
+        count = assignments()  # (read first: an assignment from now on moves it again)
+        if self._assignments != count:
             if not self._reads_the_same():
                 return False
-            self._assignments = assignments()
+            self._assignments = count
         return all(t._version == v for t, v in self._sources)
 
     def _reads_the_same(self) -> bool:
-        """Whether the model's matrices and noise covariances now are the schedule's: the
-        same dtype, device, shape and values."""
+        """Whether the model's matrices and noise covariances now are the schedule's (the
+        same dtype, device, shape and values) and still take a schedule (none requires a
+        gradient: a parameter assigned in place of a tensor is to be trained, through the
+        general update). If so, the schedule follows the tensors the model now holds: a
+        later in-place write into one of them is then seen (it watched the old ones)."""
         model = self.model
+        if not shared_gains_apply(model):
+            return False
         now = (model.transition_matrix(0), model.observation_matrix(1), model.control_matrix(0),
                model.process_cov(0), model.measurement_cov(1), model.initial.cov)  # fmt: skip
         had = (self.F, self.H, self.B, self.Q, self.R, self.initial_cov)
-        return all(_same(a, b) for a, b in zip(now, had))
+        if not all(_same(a, b) for a, b in zip(now, had)):
+            return False
+        self._sources = _source_versions(model, now[:5])
+        return True
 
     #: How many handed-out steps' moments a schedule whose recursion has not converged
     #: keeps at least (at most :attr:`TRIM` more): a carry more than that many steps behind

@@ -27,8 +27,9 @@ __all__ = [
 #: How the filters name the innovation covariance in :func:`safe_cholesky`'s error: it is
 #: made from the model's covariances, which a user's optimiser may have made indefinite.
 INNOVATION_COV = ("innovation covariance S = H P⁻ Hᵀ + R (made from the model's Q, R and "
-                  "P0: each must stay positive definite, which training may have broken; "
-                  "docs/gradients.md)")  # fmt: skip
+                  "P0 and the filter's covariance: each must stay positive definite and finite; "
+                  "training may break Q, R or P0, docs/gradients.md, and an unstable plant's "
+                  "covariance overflows over a long run of lost measurements)")  # fmt: skip
 
 LOG_2PI = math.log(2.0 * math.pi)
 
@@ -117,7 +118,9 @@ def _why_it_fails(matrix: Tensor, failing: Tensor) -> str:
     with torch.no_grad():
         member = matrix[index].detach()
         if not bool(torch.isfinite(member).all()):
-            return f"{where}: it holds NaN or inf."
+            return (f"{where}: it holds NaN or inf (a covariance that overflowed: an unstable "
+                    "plant left unmeasured for long, P⁻ growing as ρ(F)^2k; or a model trained "
+                    "out of range).")  # fmt: skip
         eig = torch.linalg.eigvalsh(member.double())
     text = (
         f"{where} (eigenvalues from {float(eig[0]):.3g} to {float(eig[-1]):.3g}). Check the "

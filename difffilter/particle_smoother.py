@@ -47,12 +47,17 @@ class ParticleSmootherResult(NamedTuple):
 
 
 def particle_smoother(
-    model: StateSpaceModel, filtered: ParticleFilterResult, us: Tensor | None = None
-) -> ParticleSmootherResult:
+    model: StateSpaceModel, filtered: ParticleFilterResult, us: Tensor | None = None, *,
+    start: int = 0,
+) -> ParticleSmootherResult:  # fmt: skip
     """FFBSm (module docstring) of ``filtered``, the result of
     :func:`difffilter.particle_filter` on ``model`` with ``return_particles=True`` and the same
     inputs ``us [..., T, du]`` (``u_k`` drives ``x_k → x_{k+1}``: the filter's own pairing).
-    Differentiable in the particles, weights and the model's parameters."""
+    ``start``: the step ``k`` the filter started from (its ``initial_state``'s; 0 from the
+    prior), so that a time-varying model's step ``k`` is read at its own ``k``. Zero
+    filtering weights (``−inf`` log-weights, a particle a bounded noise cannot reach) weigh
+    nothing, and their derivatives are 0. Differentiable in the particles, weights and the
+    model's parameters."""
     if not isinstance(filtered, ParticleFilterResult):
         raise TypeError(
             "filtered must be the ParticleFilterResult of difffilter.particle_filter(model, "
@@ -70,6 +75,8 @@ def particle_smoother(
             f"log_prob); {type(model).__name__} "
             + ("draws its transition its own way" if custom else "is no StateSpaceModel")
         )
+    if isinstance(start, bool) or not isinstance(start, int) or start < 0:
+        raise ValueError(f"start must be an integer >= 0 (the filter's first k); got {start!r}")
     particles, log_w = filtered.particles, filtered.log_weights
     steps = particles.shape[-3]
     if us is not None and (not isinstance(us, Tensor) or us.shape[-2:-1] != (steps,)):
@@ -79,7 +86,8 @@ def particle_smoother(
     for t in range(steps - 2, -1, -1):  # index t holds x_{t+1}; its successor x_{t+2}
         u = None if us is None else us[..., t + 1, :]
         smoothed.append(_backward_step(model, particles[..., t, :, :], log_w[..., t, :],
-                                       particles[..., t + 1, :, :], smoothed[-1], u, t + 1))  # fmt: skip
+                                       particles[..., t + 1, :, :], smoothed[-1], u,
+                                       start + t + 1))  # fmt: skip
     smoothed.reverse()
     log_ws = torch.stack(smoothed, -2)  # [..., T, N]
     w = log_ws.exp()
@@ -96,6 +104,8 @@ def _backward_step(model, now: Tensor, log_w: Tensor, later: Tensor, later_smoot
     log-weights ``later_smoothed [..., N]``, by chunks of runs (module docstring)."""
     batch, (n, dx) = now.shape[:-2], now.shape[-2:]
     runs = math.prod(batch)
+    if runs == 0:  # no run: nothing to weigh
+        return log_w.new_empty(batch + (n,))
     now_r, later_r = _runs(now, batch, 2), _runs(later, batch, 2)
     log_w_r, smooth_r = _runs(log_w, batch, 1), _runs(later_smoothed, batch, 1)
     u_r = None if u is None else _runs(u, batch, 1)
@@ -110,12 +120,25 @@ def _backward_step(model, now: Tensor, log_w: Tensor, later: Tensor, later_smoot
         log_f = noise.log_prob(later_r[rows].unsqueeze(-3) - ahead.unsqueeze(-2))
         joint = log_w_r[rows].unsqueeze(-1) + log_f  # log w_k^i f(x_{k+1}^j | x_k^i)
         # Σ_j w_{k+1|T}^j f_ij / Σ_l w_k^l f_lj: a log-sum-exp over l, then over j
-        per_j = smooth_r[rows].unsqueeze(-2) - torch.logsumexp(joint, -2, keepdim=True)
-        log_new = torch.logsumexp(joint + per_j, -1)
-        out.append(log_new - torch.logsumexp(log_new, -1, keepdim=True))
+        reach = _logsumexp(joint, -2)  # −inf: no weighted particle reaches x_{k+1}^j
+        unreached = reach == float("-inf")
+        per_j = (smooth_r[rows].unsqueeze(-2) - reach.masked_fill(unreached, 0.0)).masked_fill(
+            unreached, float("-inf")
+        )
+        log_new = _logsumexp(joint + per_j, -1).squeeze(-1)
+        out.append(log_new - _logsumexp(log_new, -1))
     return torch.cat(out).reshape(batch + (n,))
 
 
 def _runs(t: Tensor, batch: torch.Size, tail: int) -> Tensor:
     """``t [..., *tail dims]`` broadcast to the runs ``batch`` and flattened: ``[runs, ...]``."""
     return t.expand(batch + t.shape[t.dim() - tail :]).reshape((-1, *t.shape[t.dim() - tail :]))
+
+
+def _logsumexp(x: Tensor, dim: int) -> Tensor:
+    """``log Σ exp x`` over ``dim`` (kept), ``−inf`` where every term is ``−inf`` (a particle
+    that no weighted particle reaches, one of zero weight), with a derivative of 0 there:
+    torch's is NaN on an all-``−inf`` slice (its ``exp(x − lse)`` is ``exp(−inf + inf)``)."""
+    some = torch.isfinite(x).any(dim, keepdim=True) | torch.isnan(x).any(dim, keepdim=True)
+    safe = torch.logsumexp(x.masked_fill(~some, 0.0), dim, keepdim=True)
+    return safe.masked_fill(~some, float("-inf"))

@@ -1408,3 +1408,32 @@ def test_the_ukf_posterior_stays_positive_semidefinite_beside_a_tiny_r():
     ukf = df.unscented_kalman_filter(model, ys.expand(1, 3, 1))
     ekf = df.extended_kalman_filter(model, ys.expand(1, 3, 1))
     torch.testing.assert_close(ukf.log_likelihood, ekf.log_likelihood, rtol=1e-9, atol=1e-9)
+
+
+def test_a_schedule_kept_after_an_assignment_watches_the_new_tensors_and_gradients():
+    """From a review: after ``model.F = model.F.clone()`` (equal values: the schedule kept)
+    an in-place write into the new F went unseen (the schedule watched the old tensor; the
+    mean 7.69 off the general update), and F replaced by a Parameter of the same values kept
+    the schedule, computed outside autograd (no gradient in F)."""
+    model = _two_state()
+    _, ys, _ = model.simulate(12, (), generator=torch.Generator().manual_seed(1))
+    kf = df.KalmanFilter()
+    fast = kf.init(model, ())
+    slow = fast._replace(gains=None)
+    for t in range(12):
+        if t == 3:
+            model.F = model.F.clone()
+        if t == 6:
+            with torch.no_grad():
+                model.F.mul_(1.5)
+        fast, of = kf.step(fast, ys[t])
+        slow, os_ = kf.step(slow, ys[t])
+        torch.testing.assert_close(of.mean, os_.mean, rtol=1e-12, atol=1e-12)
+        assert (fast.gains is not None) == (t < 6)
+    trained = _two_state()
+    carry = kf.init(trained, ())
+    trained.F = torch.nn.Parameter(trained.F.clone())
+    for t in range(4):
+        carry, out = kf.step(carry, ys[t])
+    (grad,) = torch.autograd.grad(out.mean.sum(), trained.F)
+    assert carry.gains is None and bool(grad.abs().sum() > 0)

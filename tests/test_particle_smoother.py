@@ -115,3 +115,78 @@ def test_the_smoother_says_what_it_needs():
     with pytest.raises(TypeError, match="draws its transition its own way"):
         df.particle_smoother(odd, kept, us)
     assert {"particle_smoother", "ParticleSmootherResult"} <= set(df.__all__)
+
+
+def test_zero_weights_of_a_bounded_noise_weigh_nothing_with_finite_gradients():
+    """From a review: with a bounded process noise (UniformBox) and no resampling most
+    filtering weights are 0 (log −inf) and particles of step k + 1 that no weighted particle
+    reaches have a zero denominator: 36 of 40 smoothed means were NaN, and any −inf weight
+    made the gradients NaN. Against FFBSm in numpy, a term 0/0 taken as 0; an empty batch;
+    a filter started at k = 3 (``start``)."""
+    import dataclasses
+
+    from difffilter.noise import UniformBox
+
+    F = torch.tensor([[1.0, 0.1], [0.0, 1.0]], dtype=F64)
+    model = df.LinearGaussianModel(F, torch.tensor([[1.0, 0.0]], dtype=F64),
+                                   0.01 * torch.eye(2, dtype=F64), 0.04 * torch.eye(1, dtype=F64),
+                                   torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64))  # fmt: skip
+    half = 0.1
+    model.process_noise = UniformBox(
+        torch.full((2,), -half, dtype=F64), torch.full((2,), half, dtype=F64)
+    )
+    model.measurement_noise = UniformBox(
+        torch.full((1,), -0.3, dtype=F64), torch.full((1,), 0.3, dtype=F64)
+    )
+    _, ys, _ = model.simulate(6, (2,), generator=torch.Generator().manual_seed(0))
+    pf = df.particle_filter(model, ys, num_particles=30, return_particles=True, ess_threshold=0.0,
+                            generator=torch.Generator().manual_seed(1))  # fmt: skip
+    assert bool(torch.isinf(pf.log_weights).any())
+    parts = pf.particles.clone().requires_grad_(True)
+    log_w = pf.log_weights.clone().requires_grad_(True)
+    out = df.particle_smoother(model, dataclasses.replace(pf, particles=parts, log_weights=log_w))
+    assert not bool(out.means.isnan().any())
+    out.means.sum().backward()
+    assert not bool(parts.grad.isnan().any() or log_w.grad.isnan().any())
+    Fn = F.numpy()
+    for r in range(2):
+        X, W = pf.particles[r].numpy(), pf.log_weights[r].exp().numpy()
+        smooth = [None] * 6
+        smooth[5] = W[5]
+        for k in range(4, -1, -1):
+            ahead = X[k] @ Fn.T  # [i, dx]
+            inside = (np.abs(X[k + 1][None, :, :] - ahead[:, None, :]) <= half).all(-1)
+            dens = inside / (2 * half) ** 2  # [i, j]
+            norm = W[k] @ dens
+            ratio = np.divide(smooth[k + 1], norm, out=np.zeros_like(norm), where=norm > 0)
+            smooth[k] = W[k] * (dens @ ratio)
+            smooth[k] = smooth[k] / smooth[k].sum()
+        np.testing.assert_allclose(out.log_weights[r].exp().detach().numpy(), np.stack(smooth),
+                                   rtol=1e-9, atol=1e-12)  # fmt: skip
+    empty = df.particle_filter(model, ys[:0], num_particles=5, return_particles=True,
+                               generator=torch.Generator().manual_seed(2))  # fmt: skip
+    assert df.particle_smoother(model, empty).means.shape == (0, 6, 2)
+    with pytest.raises(ValueError, match="start must be an integer >= 0"):
+        df.particle_smoother(model, pf, start=-1)
+
+
+def test_each_backward_step_reads_the_noise_at_its_own_k():
+    """x_{k+1} = f(x_k, u_k, k) + w_k: the step from the stored index t (x_{t+1}) reads k = t + 1,
+    and t + 1 + start for a filter started at step ``start`` (a review: a time-varying model
+    was read at the wrong k)."""
+    model = _pendulum()
+    us = torch.zeros(1, 5, 1, dtype=F64)
+    _, ys, _ = model.simulate(5, (1,), us, generator=torch.Generator().manual_seed(9))
+    pf = df.particle_filter(model, ys, us, num_particles=6, return_particles=True,
+                            generator=torch.Generator().manual_seed(10))  # fmt: skip
+    read = []
+    original = model.process_noise_at
+
+    def recording(k):
+        read.append(k)
+        return original(k)
+
+    model.process_noise_at = recording
+    df.particle_smoother(model, pf, us)
+    df.particle_smoother(model, pf, us, start=3)
+    assert read == [4, 3, 2, 1, 7, 6, 5, 4]

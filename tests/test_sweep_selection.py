@@ -169,3 +169,23 @@ def test_a_seed_trained_on_a_scenario_file_is_not_reused_after_the_file_changed(
     with pytest.raises(ValueError, match=r"the scenario file plant.yaml \(its contents changed "
                        r"since the run began\)"):  # fmt: skip
         _check_resumed_settings(str(ckpt), model, None)
+
+
+def test_a_seed_that_saved_no_last_checkpoint_resumes_from_its_newest(tmp_path):
+    """From a review: a seed whose run saved a checkpoint but no last.ckpt (a config without
+    save_last, or cut between Lightning's two saves) was refused on every rerun (a new fit
+    into a folder holding a run); it resumes from its newest checkpoint."""
+    import os
+
+    from difffilter.train.sweep import _newest_checkpoint
+
+    seed = tmp_path / "seed_0"
+    assert _newest_checkpoint(seed) is None
+    (seed / "checkpoints").mkdir(parents=True)
+    older, newer = seed / "checkpoints" / "epoch=1.ckpt", seed / "checkpoints" / "best.ckpt"
+    older.write_bytes(b"")
+    newer.write_bytes(b"")
+    os.utime(older, ns=(1_000_000_000, 1_000_000_000))
+    assert _newest_checkpoint(seed) == newer
+    (seed / "checkpoints" / "last.ckpt").write_bytes(b"")
+    assert _newest_checkpoint(seed) == seed / "checkpoints" / "last.ckpt"

@@ -224,13 +224,18 @@ def _refuse_a_used_run_folder(folder: Path | None) -> None:
     checkpoint: a ``config.yaml`` and logs alone) is taken: there is nothing to lose."""
     if folder is None:
         return
-    held = [f"checkpoints/{p.name}" for p in sorted(folder.glob("checkpoints/*.ckpt"))]
-    held += [p.name for p in sorted(folder.glob("*.ckpt"))]
+    saved = sorted(folder.glob("checkpoints/*.ckpt"), key=lambda p: p.stat().st_mtime_ns)
+    held = [f"checkpoints/{p.name}" for p in saved] + [
+        p.name for p in sorted(folder.glob("*.ckpt"))
+    ]
     if held:
+        last = folder / "checkpoints" / "last.ckpt"
+        resume = (f"resume it with --ckpt_path {last if last.is_file() else saved[-1]}"
+                  if saved else "it saved no checkpoint to resume from")  # fmt: skip
         raise ValueError(
             f"the run folder {folder} holds a run already ({', '.join(held)}): a new fit would "
-            f"replace its checkpoints, export and card; resume it with --ckpt_path "
-            f"{folder / 'checkpoints' / 'last.ckpt'}, or give another folder or version"
+            f"replace its checkpoints, export and card; {resume}, or give another folder or "
+            "version"
         )
 
 

@@ -98,8 +98,8 @@ def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str], progress: bo
     ]  # fmt: skip
     folder.mkdir(parents=True, exist_ok=True)
     (folder / _SETTINGS).write_text(json.dumps(settings, indent=2) + "\n")
-    last = existing[0] / "checkpoints" / "last.ckpt" if existing else None
-    if last is not None and last.is_file():
+    last = _newest_checkpoint(existing[0]) if existing else None
+    if last is not None:
         print(f"seed {seed}: resuming from {last}")
         args += ["--ckpt_path", str(last)]
     from .last_checkpoint import RESUME_HINT
@@ -118,6 +118,17 @@ def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str], progress: bo
     if done is None:
         raise ValueError(f"seed {seed}: fit exported no estimator under {folder}")
     return done
+
+
+def _newest_checkpoint(folder: Path) -> Path | None:
+    """The checkpoint a seed's interrupted run resumes from: its ``last.ckpt``, else the
+    newest of its checkpoints (a run that saved one but no ``last.ckpt``: a config without
+    ``save_last``, or cut between Lightning's two saves), else ``None``."""
+    last = folder / "checkpoints" / "last.ckpt"
+    if last.is_file():
+        return last
+    saved = sorted(folder.glob("checkpoints/*.ckpt"), key=lambda p: p.stat().st_mtime_ns)
+    return saved[-1] if saved else None
 
 
 #: What a seed's run folder was trained with (:func:`_settings`), beside its logs.

@@ -437,6 +437,9 @@ class FilterEstimatorTask(pl.LightningModule):
         model_seed = 0 if model_seed is None else model_seed  # (saved as resolved)
         if isinstance(model_seed, bool) or not isinstance(model_seed, int) or model_seed < 0:
             raise ValueError(f"model_seed must be an integer >= 0; got {model_seed!r}")
+        # the plant's file as it is read here, not as it is when a checkpoint is saved (an edit
+        # during training then resumed unseen: a review)
+        self._scenario_digest = scenario_file_digest(scenario)
         sc = registry.get(scenario)
         self.save_hyperparameters()
         self.scenario, self._dtype = sc, dtype_of(dtype)
@@ -920,9 +923,8 @@ class FilterEstimatorTask(pl.LightningModule):
         # a Lightning checkpoint of this task loads as an estimator (difffilter-eval --ckpt)
         checkpoint["difffilter_observer"] = self.card().to_dict()
         checkpoint["difffilter_estimator_config"] = self.estimator.config()
-        digest = scenario_file_digest(self.hparams.scenario)
-        if digest is not None:  # a resume checks that the plant's file is the same
-            checkpoint[SCENARIO_FILE_DIGEST] = digest
+        if self._scenario_digest is not None:  # a resume checks the plant's file is the same
+            checkpoint[SCENARIO_FILE_DIGEST] = self._scenario_digest
         if self.adversary is not None:  # a resumed run goes on with the same crafted attack
             checkpoint["difffilter_adversary"] = self.adversary.state_dict()
 
