@@ -26,14 +26,26 @@ def assignments() -> int:
 
 
 class CountsAssignments(nn.Module):
-    """An ``nn.Module`` whose tensor and module assignments, and ``_apply``, bump the count."""
+    """An ``nn.Module`` whose tensor and module assignments in place of an attribute it
+    holds, and ``_apply``, bump the count. A first assignment (what ``__init__`` does) does
+    not: building a model changes no other model (an estimator that builds a view of its
+    model at its first step had every carry validated in full again)."""
 
     def __setattr__(self, name: str, value) -> None:
+        replacing = isinstance(value, (Tensor, nn.Module)) and _holds(self, name)
         super().__setattr__(name, value)
-        if isinstance(value, (Tensor, nn.Module)):
+        if replacing:
             _COUNT[0] += 1
 
     def _apply(self, fn, *args, **kwargs):
         out = super()._apply(fn, *args, **kwargs)
         _COUNT[0] += 1
         return out
+
+
+def _holds(module: nn.Module, name: str) -> bool:
+    """Whether ``module`` already has an attribute, parameter, buffer or submodule ``name``."""
+    own = module.__dict__
+    return name in own or any(
+        name in own.get(table, ()) for table in ("_parameters", "_buffers", "_modules")
+    )

@@ -629,6 +629,26 @@ def check_carry_batch(batch: torch.Size, y: Tensor, u: Tensor | None, mask: Tens
             )
 
 
+def check_carry_fits_model(model, **tensors) -> None:
+    """The carry's floating tensors are of the model's dtype and device: a model moved with
+    ``.to()`` after ``init`` (the carry keeps the old tensors) failed inside torch, "expected
+    m1 and m2 to have the same dtype" (a deployment trial)."""
+    dtype, device = model_dtype_device(model)
+    if dtype is None:
+        return
+    for name, t in tensors.items():
+        if (
+            isinstance(t, Tensor)
+            and t.is_floating_point()
+            and (t.dtype, t.device) != (dtype, device)
+        ):
+            raise ValueError(
+                f"carry.{name} is {t.dtype} on {t.device} and its model's tensors {dtype} on "
+                f"{device} (a model moved with .to() after init keeps its carries as they "
+                "were): start a new carry with init(model, …)"
+            )
+
+
 def check_carry_tensor(t, name: str, *, dim: int | None = None, symmetric: bool = False) -> None:
     """A tensor of a carry built outside its estimator: finite (a NaN would poison every
     later step), of last dimension ``dim``, symmetric when a covariance."""

@@ -41,6 +41,8 @@ from math import isfinite
 import torch
 from torch import Tensor
 
+from ._assignments import assignments
+
 __all__ = ["Established", "hold_whole", "vouch", "vouched"]
 
 #: How many vouched carries the registry keeps (the oldest go first).
@@ -62,10 +64,14 @@ class Established:
     finiteness is not checked).
     """
 
-    __slots__ = ("owner", "dtype", "device", "y_shape", "u_shape", "known", "_host_sum")
+    __slots__ = ("owner", "dtype", "device", "y_shape", "u_shape", "known", "_host_sum",
+                 "assigned")  # fmt: skip
 
     def __init__(self, owner, dtype: torch.dtype, device, batch, dim_y: int, dim_u: int):
         self.owner = weakref.ref(owner)
+        # models' tensor assignments so far: after one (``model.to(torch.float32)``, ``model.F
+        # = …``) a step validates in full again (its carry may no longer fit its model)
+        self.assigned = assignments()
         self.dtype, self.device = dtype, torch.device(device)
         self.y_shape = tuple(batch) + (dim_y,)
         self.u_shape = tuple(batch) + (dim_u,) if dim_u > 0 else None
@@ -244,6 +250,8 @@ def vouched(owner, carry) -> Established | None:
     if entry is None:
         return None
     established, ids, refs, versions, _, flat, weak = entry
+    if established.assigned != assignments():  # a model was assigned to since: check in full
+        return None
     # a flat entry's fields, if the same objects, are as flat as they were
     leaves = carry if flat else _flat_leaves(carry)
     if established.owner() is not owner or tuple(map(id, leaves)) != ids:

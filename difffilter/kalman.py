@@ -30,7 +30,13 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._checks import Choice, NonFinite, check_carry_tensor, check_model_batch
+from ._checks import (
+    Choice,
+    NonFinite,
+    check_carry_fits_model,
+    check_carry_tensor,
+    check_model_batch,
+)
 from ._shared_cov import shared_covariance_applies, shared_covariance_kalman_filter
 from .estimator import Estimator, output_of
 from .gain_schedule import GainSchedule, shared_gains_apply
@@ -243,6 +249,7 @@ class GaussianFilter(Estimator):
         dx = carry.model.dim_x
         check_carry_tensor(carry.mean, "mean", dim=dx)
         check_carry_tensor(carry.cov, "cov", dim=dx, symmetric=True)
+        check_carry_fits_model(carry.model, mean=carry.mean, cov=carry.cov)
 
 
 class KalmanFilter(GaussianFilter):

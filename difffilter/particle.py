@@ -43,6 +43,7 @@ from torch import Tensor
 
 from ._checks import (
     NonFinite,
+    check_carry_fits_model,
     check_carry_tensor,
     check_ess_threshold,
     check_model,
@@ -425,6 +426,8 @@ class ParticleFilter(Estimator):
     def _check_carry(self, carry):
         n, dx = self.num_particles, carry.model.dim_x
         check_carry_tensor(carry.particles, "particles", dim=None)
+        check_carry_fits_model(carry.model, particles=carry.particles,
+                               log_weights=carry.log_weights)  # fmt: skip
         if carry.particles.dim() < 2 or carry.particles.shape[-2:] != (n, dx):
             raise ValueError(
                 f"carry.particles must have shape [..., {n}, {dx}] (num_particles = {n}); got "
