@@ -173,19 +173,24 @@ class GainSchedule:
         or noise model assigned anew (``model.F = …``, ``model.to(…)``: any assignment to any
         model since, :mod:`difffilter._assignments`) has the model's matrices read again and
         compared with the schedule's (an online KF had gone on with the old ones)."""
+        # the tensors it watches first: an in-place write, then an assignment anywhere, had the
+        # re-read compare the written tensor with itself and forget the write (a review)
+        if not all(t._version == v for t, v in self._sources):
+            return False
         count = assignments()  # (read first: an assignment from now on moves it again)
         if self._assignments != count:
             if not self._reads_the_same():
                 return False
             self._assignments = count
-        return all(t._version == v for t, v in self._sources)
+        return True
 
     def _reads_the_same(self) -> bool:
         """Whether the model's matrices and noise covariances now are the schedule's (the
         same dtype, device, shape and values) and still take a schedule (none requires a
         gradient: a parameter assigned in place of a tensor is to be trained, through the
-        general update). If so, the schedule follows the tensors the model now holds: a
-        later in-place write into one of them is then seen (it watched the old ones)."""
+        general update). If so, the schedule watches the tensors the model now holds as well
+        as those it computes with (a later in-place write into either is then seen: another
+        model sharing the old F could change it under the schedule)."""
         model = self.model
         if not shared_gains_apply(model):
             return False
@@ -194,7 +199,8 @@ class GainSchedule:
         had = (self.F, self.H, self.B, self.Q, self.R, self.initial_cov)
         if not all(_same(a, b) for a, b in zip(now, had)):
             return False
-        self._sources = _source_versions(model, now[:5])
+        watched = {id(t): (t, v) for t, v in (*self._sources, *_source_versions(model, now[:5]))}
+        self._sources = tuple(watched.values())
         return True
 
     #: How many handed-out steps' moments a schedule whose recursion has not converged

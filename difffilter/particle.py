@@ -606,6 +606,7 @@ def _particle_step(pf: ParticleFilter, carry: ParticleState, y, u, mask):
         pf, carry.particles, carry.log_weights, carry.ess, carry.weights, resample_gen
     )
     new, correction = pf.proposal(model, particles, u, y, k, mask, gens.propagate)
+    _check_proposed(new, correction, particles, log_w, pf.proposal, k)
 
     # Predictive weights of the proposed particles: w_{k−1}·p/q (just w_{k−1} for the
     # bootstrap proposal, whose correction is None), and the predictive moments.
@@ -629,6 +630,12 @@ def _particle_step(pf: ParticleFilter, carry: ParticleState, y, u, mask):
     log_alpha = log_lik if correction is None else log_lik + correction
 
     def blame() -> None:  # a degenerate step: a plug-in's NaN or +inf, not an underflow
+        bad = ~torch.isfinite(new)
+        if bool(bad.any()):  # (the likelihood of a NaN particle is NaN: not its fault)
+            raise ValueError(
+                f"the particles proposed by {type(pf.proposal).__name__} hold NaN or inf at step "
+                f"{k + 1} (first at index {tuple(int(i) for i in bad.nonzero()[0])})"
+            )
         _blame_nonfinite(log_lik, pf.likelihood, "likelihood", k + 1)
         if correction is not None:
             _blame_nonfinite(correction, pf.proposal, "proposal's correction", k)
@@ -688,6 +695,38 @@ def _check_log_density(value, log_w: Tensor, plugin, what: str, k: int) -> None:
         f"{value.dtype} at step {k}; the particles' weights are {tuple(log_w.shape)} "
         f"{log_w.dtype} ([..., N]: one per run and particle, summed over the measurement)"
     )
+
+
+def _check_proposed(new, correction, particles: Tensor, log_w: Tensor, proposal, k: int) -> None:
+    """A proposal returns particles of the shape and dtype it was given and a correction
+    ``None`` or of the weights' (:func:`_check_log_density`): one run's particles ``[N, dx]``
+    for a batch broadcast into every run (the means came out ``[3, 3, T, dx]``), a
+    correction of the first run alone (``[N]``) gave every run its evidence (15 nats off),
+    float32 particles failed inside torch (a plug-in trial). Shapes and dtypes only."""
+    if type(new) is Tensor and new.shape == particles.shape and new.dtype == particles.dtype:
+        pass  # (the usual step: three comparisons)
+    elif not (isinstance(new, Tensor) and new.dtype == particles.dtype
+              and new.shape[-2:] == particles.shape[-2:]
+              and _broadcasts_into(particles.shape[:-2], new.shape[:-2])):  # fmt: skip
+        # (a carry of one set of runs on a model of several grows to the model's sets)
+        got = (f"{tuple(new.shape)} {new.dtype}" if isinstance(new, Tensor)
+               else type(new).__name__)  # fmt: skip
+        raise ValueError(
+            f"the proposal {type(proposal).__name__} returned particles {got} at step {k + 1}; "
+            f"it was given {tuple(particles.shape)} {particles.dtype}: the same shape ([..., N, "
+            "dx], every run) and dtype"
+        )
+    if correction is not None:  # one per run (the proposed runs) and particle
+        weights = log_w if log_w.shape == new.shape[:-1] else log_w.expand(new.shape[:-1])
+        _check_log_density(correction, weights, proposal, "proposal's correction", k + 1)
+
+
+def _broadcasts_into(small, big) -> bool:
+    """Whether batch shape ``small`` broadcasts to exactly ``big``."""
+    try:
+        return torch.broadcast_shapes(small, big) == big
+    except RuntimeError:
+        return False
 
 
 def _blame_nonfinite(value: Tensor, plugin, what: str, k: int) -> None:

@@ -20,11 +20,13 @@ gives a smoother of few distinct points).
 from __future__ import annotations
 
 import math
+import numbers
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
+from .noise import Gaussian
 from .results import ParticleFilterResult
 from .ssm import StateSpaceModel
 
@@ -75,7 +77,7 @@ def particle_smoother(
             f"log_prob); {type(model).__name__} "
             + ("draws its transition its own way" if custom else "is no StateSpaceModel")
         )
-    if isinstance(start, bool) or not isinstance(start, int) or start < 0:
+    if isinstance(start, bool) or not isinstance(start, numbers.Integral) or start < 0:
         raise ValueError(f"start must be an integer >= 0 (the filter's first k); got {start!r}")
     particles, log_w = filtered.particles, filtered.log_weights
     steps = particles.shape[-3]
@@ -110,6 +112,7 @@ def _backward_step(model, now: Tensor, log_w: Tensor, later: Tensor, later_smoot
     log_w_r, smooth_r = _runs(log_w, batch, 1), _runs(later_smoothed, batch, 1)
     u_r = None if u is None else _runs(u, batch, 1)
     noise = model.process_noise_at(k)
+    gaussian = type(noise) is Gaussian
     chunk = max(1, CHUNK_ELEMENTS // max(1, n * n * dx))
     out = []
     for start in range(0, runs, chunk):
@@ -119,14 +122,22 @@ def _backward_step(model, now: Tensor, log_w: Tensor, later: Tensor, later_smoot
         # log f(x_{k+1}^j | x_k^i) [c, N_i, N_j]
         log_f = noise.log_prob(later_r[rows].unsqueeze(-3) - ahead.unsqueeze(-2))
         joint = log_w_r[rows].unsqueeze(-1) + log_f  # log w_k^i f(x_{k+1}^j | x_k^i)
-        # Σ_j w_{k+1|T}^j f_ij / Σ_l w_k^l f_lj: a log-sum-exp over l, then over j
-        reach = _logsumexp(joint, -2)  # −inf: no weighted particle reaches x_{k+1}^j
-        unreached = reach == float("-inf")
-        per_j = (smooth_r[rows].unsqueeze(-2) - reach.masked_fill(unreached, 0.0)).masked_fill(
-            unreached, float("-inf")
+        # no −inf term: finite weights and a Gaussian density (finite everywhere)
+        exact = (
+            gaussian
+            and bool(torch.isfinite(log_w_r[rows]).all())
+            and bool(torch.isfinite(smooth_r[rows]).all())
         )
-        log_new = _logsumexp(joint + per_j, -1).squeeze(-1)
-        out.append(log_new - _logsumexp(log_new, -1))
+        # Σ_j w_{k+1|T}^j f_ij / Σ_l w_k^l f_lj: a log-sum-exp over l, then over j
+        reach = _logsumexp(joint, -2, exact)  # −inf: no weighted particle reaches x_{k+1}^j
+        if exact:
+            per_j = smooth_r[rows].unsqueeze(-2) - reach
+        else:
+            unreached = reach == float("-inf")
+            per_j = smooth_r[rows].unsqueeze(-2) - reach.masked_fill(unreached, 0.0)
+            per_j = per_j.masked_fill(unreached, float("-inf"))
+        log_new = _logsumexp(joint + per_j, -1, exact).squeeze(-1)
+        out.append(log_new - _logsumexp(log_new, -1, exact))
     return torch.cat(out).reshape(batch + (n,))
 
 
@@ -135,10 +146,14 @@ def _runs(t: Tensor, batch: torch.Size, tail: int) -> Tensor:
     return t.expand(batch + t.shape[t.dim() - tail :]).reshape((-1, *t.shape[t.dim() - tail :]))
 
 
-def _logsumexp(x: Tensor, dim: int) -> Tensor:
+def _logsumexp(x: Tensor, dim: int, exact: bool = False) -> Tensor:
     """``log Σ exp x`` over ``dim`` (kept), ``−inf`` where every term is ``−inf`` (a particle
     that no weighted particle reaches, one of zero weight), with a derivative of 0 there:
-    torch's is NaN on an all-``−inf`` slice (its ``exp(x − lse)`` is ``exp(−inf + inf)``)."""
-    some = torch.isfinite(x).any(dim, keepdim=True) | torch.isnan(x).any(dim, keepdim=True)
+    torch's is NaN on an all-``−inf`` slice (its ``exp(x − lse)`` is ``exp(−inf + inf)``).
+    ``exact``: no term is ``−inf`` (finite weights, a Gaussian noise): torch's alone (the
+    masking cost 1.9× on the ``[N, N]`` terms)."""
+    if exact:
+        return torch.logsumexp(x, dim, keepdim=True)
+    some = (x != float("-inf")).any(dim, keepdim=True)
     safe = torch.logsumexp(x.masked_fill(~some, 0.0), dim, keepdim=True)
     return safe.masked_fill(~some, float("-inf"))

@@ -412,9 +412,14 @@ class _InverseCDFResampler(Resampler):
         return _inverse_cdf(weights, self._uniforms(weights, count, generator))
 
     def _draw(self, log_w: Tensor, generator: torch.Generator | None) -> Tensor:
-        return self._draw_given(log_w, None, generator)
+        return self._draw_from(torch.exp(log_w), generator)
 
     def _draw_given(self, log_w, weights, generator):
+        if type(self)._draw is not _InverseCDFResampler._draw:
+            # a subclass's own `_draw` (the documented hook): a plugin trial's overriding
+            # `_draw` of a Multinomial subclass was used by `ancestors` alone, while the
+            # filter drew from the parent's inverse CDF
+            return self._draw(log_w, generator)
         return self._draw_from(torch.exp(log_w) if weights is None else weights, generator)
 
 
@@ -454,7 +459,10 @@ class Systematic(_InverseCDFResampler):
 
     def _draw_from(self, weights, generator, count=None):
         # Same single uniform per row as `_uniforms`, mapped by offspring counting
-        # (`systematic_ancestors`) instead of a binary search per target.
+        # (`systematic_ancestors`) instead of a binary search per target; a subclass's own
+        # `_uniforms` through the inverse CDF, as the other schemes
+        if type(self)._uniforms is not Systematic._uniforms:
+            return super()._draw_from(weights, generator, count)
         offset = _rand((*weights.shape[:-1], 1), weights, generator)
         return systematic_ancestors(torch.cumsum(weights, dim=-1), offset, count)
 

@@ -1437,3 +1437,40 @@ def test_a_schedule_kept_after_an_assignment_watches_the_new_tensors_and_gradien
         carry, out = kf.step(carry, ys[t])
     (grad,) = torch.autograd.grad(out.mean.sum(), trained.F)
     assert carry.gains is None and bool(grad.abs().sum() > 0)
+
+
+def test_a_schedule_sees_a_write_before_an_assignment_and_into_the_tensor_it_computes_with():
+    """From a second review: an in-place write into F followed by any assignment (another
+    model built and assigned to) had the re-read compare F with itself and forget the write
+    (the mean 6.27 off after six steps); after ``model.F = model.F.clone()`` the schedule
+    watched the clone alone, while it multiplies by the old F, which another model sharing
+    it could change (2.86 off)."""
+    from difffilter.noise import Gaussian
+
+    for case in ("write then assign", "old F shared"):
+        model = _two_state()
+        other = df.LinearGaussianModel(model.F, model.H, model.process_noise.cov,
+                                       model.measurement_noise.cov, model.initial.mean,
+                                       model.initial.cov)  # fmt: skip
+        _, ys, _ = model.simulate(10, (), generator=torch.Generator().manual_seed(2))
+        kf = df.KalmanFilter()
+        fast = kf.init(model, ())
+        slow = fast._replace(gains=None)
+        for t in range(10):
+            if t == 3:
+                if case == "write then assign":
+                    with torch.no_grad():
+                        model.F.mul_(1.2)
+                    spare = _two_state()
+                    spare.measurement_noise = Gaussian(torch.zeros(1, dtype=torch.float64),
+                                                       spare.measurement_noise.cov)  # fmt: skip
+                else:
+                    model.F = model.F.clone()  # equal values: the schedule is kept
+            if t == 5 and case == "old F shared":
+                with torch.no_grad():
+                    other.F.mul_(1.2)  # the old F, which the schedule multiplies by
+                    model.F.mul_(1.2)  # and the model's own, as the general update reads
+            fast, of = kf.step(fast, ys[t])
+            slow, os_ = kf.step(slow, ys[t])
+            torch.testing.assert_close(of.mean, os_.mean, rtol=1e-12, atol=1e-12, msg=case)
+        assert fast.gains is None, case

@@ -123,3 +123,76 @@ def test_a_resampler_of_ones_own_is_checked_and_a_call_only_subclass_is_called()
     assert CallOnly.calls == ys.shape[1]  # at ess_threshold 1 every step resamples
     plain = _run(model, ys, resampler=Systematic(), ess_threshold=1.0)
     torch.testing.assert_close(mine.means, plain.means)  # the same draws, the same filter
+
+
+class _OneRunCorrection(df.KalmanProposal):
+    def __call__(self, *args):
+        new, correction = super().__call__(*args)
+        return new, correction[0]  # the first run's alone
+
+
+class _OneRunParticles:
+    def __call__(self, model, particles, u, y, k, mask, generator):
+        return model.sample_transition(particles[0], None, k, generator), None
+
+
+class _Float32Particles:
+    def __call__(self, model, particles, u, y, k, mask, generator):
+        return model.sample_transition(particles, None, k, generator).float(), None
+
+
+class _NaNParticles:
+    def __call__(self, model, particles, u, y, k, mask, generator):
+        new = model.sample_transition(particles, None, k, generator).clone()
+        new[0, 0, 0] = float("nan")
+        return new, None
+
+
+@pytest.mark.parametrize(
+    "proposal, match",
+    [
+        (_OneRunCorrection(), r"the proposal's correction _OneRunCorrection returned log-densities of shape"),
+        (_OneRunParticles(), r"the proposal _OneRunParticles returned particles \(16, 4\)"),
+        (_Float32Particles(), r"the proposal _Float32Particles returned particles .* torch.float32"),
+        (_NaNParticles(), r"the particles proposed by _NaNParticles hold NaN or inf at step 1"),
+    ],
+)  # fmt: skip
+def test_a_proposal_that_breaks_its_contract_is_named(proposal, match):
+    """From a plug-in trial: a proposal's output was never checked: one run's correction for
+    a batch gave every run its evidence (15 nats off), one run's particles came out as means
+    [3, 3, T, dx], float32 particles failed inside torch, NaN particles were blamed on the
+    likelihood."""
+    model, ys = _data()
+    with pytest.raises(ValueError, match=match):
+        _run(model, ys, proposal=proposal)
+
+
+def test_a_resampler_subclass_draws_with_its_own_draw():
+    """From the same trial: the documented hook ``_draw`` of a Multinomial (Systematic,
+    Stratified) subclass was used by ``ancestors`` alone; calling the resampler, and the
+    filter, drew from the parent's inverse CDF (12 of 20 particles distinct for 1)."""
+    from difffilter.resampling import Multinomial
+
+    class Heaviest(Multinomial):
+        def _draw(self, log_w, generator):
+            return log_w.argmax(-1, keepdim=True).expand(log_w.shape).clone()
+
+    class Spaced(Systematic):  # a subclass's own uniforms are honoured too
+        def _uniforms(self, weights, count, generator):
+            n = weights.shape[-1]
+            return (torch.arange(n, dtype=weights.dtype) + 0.5) / n
+
+    log_w = torch.log(torch.tensor([0.1, 0.6, 0.3], dtype=torch.float64))
+    x = torch.arange(3, dtype=torch.float64).reshape(3, 1)
+    assert Heaviest()(x, log_w).ancestors.tolist() == [1, 1, 1]
+    assert Spaced()(x, log_w).ancestors.tolist() == [1, 1, 2]  # targets 1/6, 1/2, 5/6
+    model, ys = _data()
+
+    def keep(model, particles, u, y, k, mask, generator):  # shows the resampled cloud
+        return particles.clone(), None
+
+    out = _run(model, ys, resampler=Heaviest(), proposal=keep, return_particles=True,
+               ess_threshold=1.0)  # fmt: skip
+    # (the first step resamples at ess_threshold = 1): every run down to one particle
+    assert bool(out.resampled[:, 0].all())
+    assert all(len(torch.unique(p, dim=0)) == 1 for p in out.particles[:, 0])
