@@ -557,7 +557,8 @@ def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator):
         and kind.resample_normalized is Resampler.resample_normalized
         and kind._draw is Resampler._draw
     ):  # fmt: skip
-        res = _checked_resampled(resampler(particles, log_w, generator), particles, log_w)
+        res = _checked_resampled(resampler(particles, log_w, generator), particles, log_w,
+                                 resampler)  # fmt: skip
         if rows is not None:
             res = keep_unmarked_rows(res, particles, log_w, rows)
     elif kind.resample_normalized is Resampler.resample_normalized:
@@ -569,29 +570,36 @@ def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator):
     return res.particles, res.log_weights, None, need, uniform
 
 
-def _checked_resampled(res, particles: Tensor, log_w: Tensor):
+def _checked_resampled(res, particles: Tensor, log_w: Tensor, resampler=None):
     """A user resampler's result, checked: a :class:`~difffilter.resampling.Resampled`
     (``.particles``, ``.log_weights``) of the particles' shape and dtype, its log-weights
     normalised (``logsumexp = 0`` per run). One returning N − 1 particles shrank the
     online carry a particle a step; unnormalised log-weights shifted the evidence by their
-    sum at every resampling, all without a word. One reduction per resampling."""
+    sum at every resampling, all without a word. One reduction per resampling. Its errors
+    name the resampler, and its NaN (a plug-in trial: blamed on the likelihood, a step
+    later)."""
     name = type(res).__name__
+    who = "the resampler" if resampler is None else f"the resampler {type(resampler).__name__}"
     got = getattr(res, "particles", None), getattr(res, "log_weights", None)
     if not all(isinstance(t, Tensor) for t in got):
-        raise TypeError(f"the resampler returned a {name}; it returns a Resampled(particles, "
+        raise TypeError(f"{who} returned a {name}; it returns a Resampled(particles, "
                         "log_weights, ancestors) (difffilter.resampling.Resampled)")  # fmt: skip
     new, new_lw = got
-    if new.shape != particles.shape or new_lw.shape != log_w.shape or new.dtype != particles.dtype:
+    if (new.shape != particles.shape or new_lw.shape != log_w.shape
+            or new.dtype != particles.dtype or new_lw.dtype != log_w.dtype):  # fmt: skip
         raise ValueError(
-            f"the resampler returned particles {tuple(new.shape)} {new.dtype} and log-weights "
-            f"{tuple(new_lw.shape)}; it was given {tuple(particles.shape)} {particles.dtype} "
-            f"and {tuple(log_w.shape)}: the same number of particles, of the same dtype"
+            f"{who} returned particles {tuple(new.shape)} {new.dtype} and log-weights "
+            f"{tuple(new_lw.shape)} {new_lw.dtype}; it was given {tuple(particles.shape)} "
+            f"{particles.dtype} and {tuple(log_w.shape)} {log_w.dtype}: the same number of "
+            "particles, of the same dtype"
         )
     total = torch.logsumexp(new_lw.detach(), dim=-1)
+    if bool(total.isnan().any()) or not bool(torch.isfinite(new).all()):
+        raise ValueError(f"{who} returned NaN or inf particles or NaN log-weights")
     if not bool((total.abs() <= 1e-4 if new_lw.dtype != torch.float64 else
                  total.abs() <= 1e-9).all()):  # fmt: skip
         raise ValueError(
-            f"the resampler returned log-weights whose logsumexp per run is up to "
+            f"{who} returned log-weights whose logsumexp per run is up to "
             f"{float(total.abs().max()):.3g} from 0: return normalised log-weights (e.g. "
             "log_w - logsumexp(log_w)); unnormalised ones shift the evidence at each resampling"
         )

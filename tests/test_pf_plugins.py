@@ -196,3 +196,27 @@ def test_a_resampler_subclass_draws_with_its_own_draw():
     # (the first step resamples at ess_threshold = 1): every run down to one particle
     assert bool(out.resampled[:, 0].all())
     assert all(len(torch.unique(p, dim=0)) == 1 for p in out.particles[:, 0])
+
+
+def test_a_resampler_that_breaks_its_contract_is_named():
+    """From the plug-in trial: float32 log-weights failed inside torch, NaN particles were
+    blamed on the likelihood a step later, and no resampler error named the resampler."""
+
+    class Spoiled:
+        def __init__(self, spoil):
+            self.spoil = spoil
+
+        def __call__(self, particles, log_weights, generator=None):
+            res = Systematic()(particles, log_weights, generator)
+            return Resampled(*self.spoil(res.particles, res.log_weights), res.ancestors)
+
+    model, ys = _data()
+    cases = {
+        "float32 log-weights": (lambda p, lw: (p, lw.float()), r"the resampler Spoiled returned "
+                                r"particles .* and log-weights \(3, 16\) torch.float32"),
+        "NaN particles": (lambda p, lw: (p * float("nan"), lw),
+                          r"the resampler Spoiled returned NaN or inf particles"),
+    }  # fmt: skip
+    for spoil, match in cases.values():
+        with pytest.raises(ValueError, match=match):
+            _run(model, ys, resampler=Spoiled(spoil), ess_threshold=1.0)
