@@ -37,6 +37,12 @@ class CountsAssignments(nn.Module):
         if replacing:
             _COUNT[0] += 1
 
+    def __delattr__(self, name: str) -> None:
+        # a deletion changes the model too (``del model.F; model.F = F2``: the second is a
+        # first assignment, which is not counted)
+        super().__delattr__(name)
+        _COUNT[0] += 1
+
     def _apply(self, fn, *args, **kwargs):
         out = super()._apply(fn, *args, **kwargs)
         _COUNT[0] += 1

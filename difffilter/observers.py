@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from ._checks import check_carry_tensor
+from ._checks import check_carry_fits_model, check_carry_tensor
 from .kalman import GaussianFilter, Prediction, _check_linear, gaussian_init
 from .linalg import matvec
 from .results import GaussianState, StepOutput
@@ -49,6 +49,7 @@ class FixedGainFilter(GaussianFilter):
 
     def _check_carry(self, carry):
         check_carry_tensor(carry.mean, "mean", dim=carry.model.dim_x)
+        check_carry_fits_model(carry.model, mean=carry.mean)
 
     def predict(self, carry, u):
         model, k = carry.model, carry.k

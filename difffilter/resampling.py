@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import threading
 import warnings
 from numbers import Real
 from typing import ClassVar, NamedTuple
@@ -415,12 +416,22 @@ class _InverseCDFResampler(Resampler):
         return self._draw_from(torch.exp(log_w), generator)
 
     def _draw_given(self, log_w, weights, generator):
-        if type(self)._draw is not _InverseCDFResampler._draw:
+        drawing = _DRAWING.__dict__.setdefault("ids", set())
+        if type(self)._draw is not _InverseCDFResampler._draw and id(self) not in drawing:
             # a subclass's own `_draw` (the documented hook): a plugin trial's overriding
             # `_draw` of a Multinomial subclass was used by `ancestors` alone, while the
-            # filter drew from the parent's inverse CDF
-            return self._draw(log_w, generator)
+            # filter drew from the parent's inverse CDF (an override that itself goes
+            # through `_draw_given` gets the parent's draw: no recursion)
+            drawing.add(id(self))
+            try:
+                return self._draw(log_w, generator)
+            finally:
+                drawing.discard(id(self))
         return self._draw_from(torch.exp(log_w) if weights is None else weights, generator)
+
+
+#: The resamplers (by id) inside their own ``_draw`` override, per thread.
+_DRAWING = threading.local()
 
 
 def _rand(shape, like: Tensor, generator: torch.Generator | None) -> Tensor:

@@ -220,3 +220,19 @@ def test_a_resampler_that_breaks_its_contract_is_named():
     for spoil, match in cases.values():
         with pytest.raises(ValueError, match=match):
             _run(model, ys, resampler=Spoiled(spoil), ess_threshold=1.0)
+
+
+def test_a_draw_override_that_goes_through_draw_given_does_not_recurse():
+    """From a review: the parent's own ``_draw`` had gone through ``_draw_given``; an override
+    written the same way recursed forever once ``_draw_given`` honoured overrides."""
+    from difffilter.resampling import Multinomial
+
+    class Through(Multinomial):
+        def _draw(self, log_w, generator):
+            return self._draw_given(log_w, None, generator)  # the parent's draw
+
+    log_w = torch.log(torch.tensor([0.2, 0.5, 0.3], dtype=torch.float64))
+    x = torch.arange(3, dtype=torch.float64).reshape(3, 1)
+    got = Through()(x, log_w, torch.Generator().manual_seed(0)).ancestors
+    want = Multinomial()(x, log_w, torch.Generator().manual_seed(0)).ancestors
+    assert torch.equal(got, want)

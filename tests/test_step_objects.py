@@ -547,3 +547,22 @@ def test_a_carry_whose_model_was_moved_to_another_dtype_is_named(kind):
             estimator.step(carry, y)
     fresh = estimator.init(model, (), gen) if kind == "pf" else estimator.init(model, ())
     estimator.step(fresh, torch.ones(2))  # a new carry of the moved model steps
+
+
+@pytest.mark.parametrize("kind", ["fixed_gain", "adaptive"])
+def test_the_other_gaussian_filters_name_a_carry_their_moved_model_no_longer_fits(kind):
+    """From a review: FixedGainFilter and AdaptiveKalmanFilter skipped the carry-against-model
+    dtype check and failed inside torch after model.to(torch.float32)."""
+    from difffilter.observers import FixedGainFilter
+
+    F64 = torch.float64
+    eye = torch.eye(2, dtype=F64)
+    model = df.LinearGaussianModel(0.9 * eye, eye, 0.1 * eye, 0.2 * eye, torch.zeros(2, dtype=F64),
+                                   eye, B=torch.ones(2, 1, dtype=F64))  # fmt: skip
+    est = FixedGainFilter(0.5 * eye) if kind == "fixed_gain" else fdi.AdaptiveKalmanFilter()
+    carry = est.init(model, ())
+    u = torch.zeros(1, dtype=F64)
+    carry, _ = est.step(carry, torch.ones(2, dtype=F64), u)
+    model.to(torch.float32)
+    with pytest.raises(ValueError, match=r"carry\.mean is torch.float64 on cpu and its model's"):
+        est.step(carry, torch.ones(2), u.float())

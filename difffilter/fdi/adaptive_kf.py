@@ -43,6 +43,7 @@ from torch import Tensor
 from .._checks import (
     as_tensor,
     broadcast_or_none,
+    check_carry_fits_model,
     check_carry_tensor,
     check_finite,
     check_finite_number,
@@ -248,6 +249,8 @@ class AdaptiveKalmanFilter(Estimator):
         check_carry_tensor(carry.cov, "cov", dim=dx, symmetric=True)
         check_carry_tensor(carry.attack, "attack", dim=da)
         check_carry_tensor(carry.attack_cov, "attack_cov", dim=da, symmetric=True)
+        check_carry_fits_model(carry.model, mean=carry.mean, cov=carry.cov, attack=carry.attack,
+                               attack_cov=carry.attack_cov)  # fmt: skip
 
     def _step(self, carry, y, u, mask):
         model = carry.model
