@@ -32,6 +32,7 @@ stepping more independent carries than that in turn just validates them in full.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import operator
@@ -276,15 +277,10 @@ def _split(others) -> tuple[list, list]:
     return weak, held
 
 
-#: Whether instances of a type take weak references (by type: asked once each).
-_WEAKLY: dict[type, bool] = {}
-
-
+@functools.cache
 def _weakly(cls: type) -> bool:
-    known = _WEAKLY.get(cls)
-    if known is None:
-        known = _WEAKLY[cls] = bool(getattr(cls, "__weakrefoffset__", 0))
-    return known
+    """Whether instances of ``cls`` take weak references (asked once per type)."""
+    return bool(getattr(cls, "__weakrefoffset__", 0))
 
 
 _NONES = itertools.repeat(None)

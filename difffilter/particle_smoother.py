@@ -69,7 +69,9 @@ def particle_smoother(
         raise ValueError(
             "filtered holds no particles: run the particle filter with return_particles=True"
         )
-    custom = type(model).sample_transition is not StateSpaceModel.sample_transition
+    custom = isinstance(model, StateSpaceModel) and (
+        type(model).sample_transition is not StateSpaceModel.sample_transition
+    )
     if not isinstance(model, StateSpaceModel) or custom:
         raise TypeError(
             "the particle smoother needs the transition density of x_{k+1} = f(x_k, u_k, k) + w "

@@ -241,8 +241,9 @@ def _check_arguments(model, filtered, us, needed: str) -> tuple[int, int]:
 
 def _backward(model, filtered: FilterResult, transition) -> SmootherResult:
     """The backward recursion (module docstring) of ``filtered``, from step ``T`` to the
-    prior, with ``transition(k, m_k, P_k) → (Cov(x_{k+1}, x_k | y_{1:k}) [..., dx, dx],
-    P⁻_{k+1})`` (the second read only where ``filtered`` holds no predicted covariances)."""
+    prior, with ``transition(k, m_k, P_k, predict) → (Cov(x_{k+1}, x_k | y_{1:k})
+    [..., dx, dx], P⁻_{k+1} or None)``, asked for ``P⁻_{k+1}`` (``predict``) only where
+    ``filtered`` holds no predicted covariances."""
     means = filtered.means
     steps, dx = means.shape[-2], means.shape[-1]
     m0, P0 = model.initial.mean, model.initial.cov

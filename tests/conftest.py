@@ -125,3 +125,21 @@ def cv_model():
 @pytest.fixture
 def generator():
     return torch.Generator().manual_seed(1234)
+
+
+def online_pair(kind: str, num_particles: int = 10):
+    """``(model, estimator, carry)``: a 2-state float64 linear model, a KF, EKF or particle
+    filter (``kind``: ``"kf"``, ``"ekf"``, ``"pf"``) and its carry from ``init`` (the PF's
+    with a generator of its own), for the online-step tests."""
+    import difffilter as df
+
+    F64 = torch.float64
+    eye = torch.eye(2, dtype=F64)
+    model = df.LinearGaussianModel(
+        0.9 * eye, eye, 0.1 * eye, 0.2 * eye, torch.zeros(2, dtype=F64), eye
+    )
+    estimator = {"kf": df.KalmanFilter(), "ekf": df.ExtendedKalmanFilter(),
+                 "pf": df.ParticleFilter(num_particles)}[kind]  # fmt: skip
+    if kind == "pf":
+        return model, estimator, estimator.init(model, (), torch.Generator().manual_seed(0))
+    return model, estimator, estimator.init(model, ())

@@ -314,15 +314,10 @@ def test_a_dropped_carry_and_model_are_freed(kind):
     import gc
     import weakref
 
+    from conftest import online_pair
+
     F64 = torch.float64
-    eye = torch.eye(2, dtype=F64)
-    model = df.LinearGaussianModel(
-        0.9 * eye, eye, 0.1 * eye, 0.2 * eye, torch.zeros(2, dtype=F64), eye
-    )
-    estimator = {"kf": df.KalmanFilter(), "ekf": df.ExtendedKalmanFilter(),
-                 "pf": df.ParticleFilter(20)}[kind]  # fmt: skip
-    gen = torch.Generator().manual_seed(0) if kind == "pf" else None
-    carry = estimator.init(model, (), gen) if gen is not None else estimator.init(model, ())
+    model, estimator, carry = online_pair(kind, num_particles=20)
     for _ in range(3):
         carry, out = estimator.step(carry, torch.ones(2, dtype=F64))
     again, _ = estimator.step(carry, torch.ones(2, dtype=F64))  # (still vouched for: lean)

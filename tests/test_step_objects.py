@@ -530,21 +530,17 @@ def test_a_carry_whose_model_was_moved_to_another_dtype_is_named(kind):
     """From a deployment trial: after model.to(torch.float32) mid-stream the next step failed
     inside torch ("expected m1 and m2 to have the same dtype"); the step validates in full
     after any assignment to a model and names the carry that no longer fits it."""
+    from conftest import online_pair
+
     F64 = torch.float64
-    eye = torch.eye(2, dtype=F64)
-    model = df.LinearGaussianModel(
-        0.9 * eye, eye, 0.1 * eye, 0.2 * eye, torch.zeros(2, dtype=F64), eye
-    )
-    estimator = {"kf": df.KalmanFilter(), "ekf": df.ExtendedKalmanFilter(),
-                 "pf": df.ParticleFilter(10)}[kind]  # fmt: skip
-    gen = torch.Generator().manual_seed(0)
-    carry = estimator.init(model, (), gen) if kind == "pf" else estimator.init(model, ())
+    model, estimator, carry = online_pair(kind)
     carry, _ = estimator.step(carry, torch.ones(2, dtype=F64))
     model.to(torch.float32)
     for y in (torch.ones(2, dtype=F64), torch.ones(2)):
         with pytest.raises(ValueError, match=r"carry\.\w+ is torch.float64 on cpu and its model's "
                            r"tensors torch.float32 on cpu .*start a new carry with init"):  # fmt: skip
             estimator.step(carry, y)
+    gen = torch.Generator().manual_seed(1)
     fresh = estimator.init(model, (), gen) if kind == "pf" else estimator.init(model, ())
     estimator.step(fresh, torch.ones(2))  # a new carry of the moved model steps
 
