@@ -19,6 +19,8 @@ parallel-in-time scan, the fused modified PF), tested equal to the composed step
 attack may read the plant and the estimator::
 
     x_k    = f(x_{k−1}, ũ_{k−1}) + w_k,     ũ_{k−1} = u_{k−1} (+ l_k a_k: an actuator attack)
+                   (with input_loss=: ũ_{k−1} held or zeroed where its packet is lost,
+                    :mod:`difffilter.input_loss`)
     y_k    = h(x_k) + v_k
     A_k, a_k, l_k = attack.step(A_{k−1}, k, y=y_k, x=x_k, u=u_{k−1}, view=out_{k−1})
                    (an actuator attack steps before the transition it drives: x=x_{k−1}, no y)
@@ -60,6 +62,7 @@ from ._checks import (
 )
 from .attack import Attack, Channel, TabulatedAttack, attack_dim, inject
 from .estimator import Estimator, EstimatorOutput, Generators, stack_steps
+from .input_loss import InputLoss, OnLoss
 
 __all__ = [
     "open_loop",
@@ -73,6 +76,7 @@ __all__ = [
     "Controller",
     "KnownInputs",
     "StateFeedback",
+    "InputLoss",
 ]
 
 
@@ -353,7 +357,10 @@ class StateFeedback:
 class LoopState(NamedTuple):
     """Where a closed loop stands after ``k`` steps: the plant's state ``x [B, dx]``, the
     next input ``u [B, du]`` (or ``None``), the attacker's state, the estimator's carry
-    (or ``None``) and its last output ``view`` (what an adaptive attacker reads)."""
+    (or ``None``) and its last output ``view`` (what an adaptive attacker reads); under an
+    :class:`~difffilter.input_loss.InputLoss` that holds, the input the actuators applied
+    last (``held [B, du]``) and the estimator's knowledge of it (``known_held``), else
+    ``None``."""
 
     k: int
     x: Tensor
@@ -361,6 +368,8 @@ class LoopState(NamedTuple):
     attack: Any
     carry: Any
     view: Any
+    held: Tensor | None = None
+    known_held: Tensor | None = None
 
     def detach(self) -> LoopState:
         """The same state cut from the autograd graph (truncated backpropagation)."""
@@ -439,6 +448,7 @@ def closed_loop(
     progress: Callable[[int], None] | None = None,
     forks: dict[int, LoopFork | None] | None = None,
     fork: LoopFork | None = None,
+    input_loss: InputLoss | None = None,
 ) -> LoopResult:
     """Run ``steps`` steps of plant → attack → channel → estimator → controller.
 
@@ -467,10 +477,15 @@ def closed_loop(
             them; ``ValueError`` otherwise). ``state`` must then be ``None``; the plant,
             noise, estimator, model and controller are the forked loop's (the fork holds
             no controller state: :class:`Controller`).
+        input_loss: an :class:`~difffilter.input_loss.InputLoss`: the controller's packets
+            lost on the way to the actuators (held or zeroed there; the estimator told of
+            each arrival or not), or ``None`` (every input arrives).
 
     Returns a :class:`LoopResult`: the trajectories of these ``L`` steps
     (``us`` = the inputs the estimator knew, ``attack``/``flags``/``info["attack_values"]``
-    as the attack made them), the estimator's output over them and the final state.
+    as the attack made them; under ``input_loss`` ``info["inputs_applied"]``, what drove the
+    plant, and ``info["input_mask"]``, the arrivals), the estimator's output over them and
+    the final state.
     Differentiable end to end (the loop records no tensor in place).
     """
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
@@ -487,6 +502,11 @@ def closed_loop(
         raise ValueError("forks= and fork= need ReplayedNoise: drawn noise's generator is "
                          "not part of the loop's state, so a fork could not replay it")  # fmt: skip
     _check_parts(estimator, attack)
+    if input_loss is not None and not isinstance(input_loss, InputLoss):
+        raise TypeError(
+            "input_loss must be a difffilter.loop.InputLoss(mask, on_loss, acknowledged=...) or "
+            f"None; got {type(input_loss).__name__}"
+        )
     channel = None if attack is None else Channel(attack.channel)
     conceals = channel is Channel.ACTUATOR and bool(getattr(attack, "conceals", False))
     # only an attack that says it reads the estimator's output gets it (an open-loop
@@ -504,11 +524,17 @@ def closed_loop(
         if state is None:
             state = _start(plant, steps, horizon, x0, estimator, model, controller, attack,
                            attack_generator, generator)  # fmt: skip
-        keys = ("x", "y", "recv", "u", "attack", "value", "flag", "concealment")
+        keys = ("x", "y", "recv", "u", "attack", "value", "flag", "concealment", "applied",
+                "arrived")  # fmt: skip
         rec, outs = {key: [] for key in keys}, []
     _check_lengths(plant, noise, mask, state, steps)
+    if input_loss is not None:
+        state = _with_input_memory(input_loss, plant, state, steps)
+    if rec["x"] and bool(rec["applied"]) != (input_loss is not None):
+        raise ValueError("fork: continue a fork with the input_loss of the loop that kept it "
+                         "(or without one, as it was kept)")  # fmt: skip
     first = state.k - len(rec["x"])  # the step before the first one recorded
-    k, x, u, a_state, carry, view = state
+    k, x, u, a_state, carry, view, held, known_held = state
     if channel is Channel.ACTUATOR and u is None:  # (it failed inside the step's checks)
         raise ValueError(
             f"attack {type(attack).__name__} acts on the actuators, and this loop has no input "
@@ -526,6 +552,14 @@ def closed_loop(
             seen.check(k, "step")
             value = _checked_value(attack, value, flag, u, k, "u")
             applied, a = inject(channel, u, value, flag)
+        known = u
+        if input_loss is not None:
+            sent = input_loss.deliver(k, applied, u, held, known_held)
+            applied, known, held, known_held = sent.applied, sent.known, sent.held, sent.known_held
+            if a is not None:  # an attack on a lost packet is none
+                a = torch.where(sent.arrived, a, torch.zeros((), dtype=a.dtype, device=a.device))
+            rec["applied"].append(applied)
+            rec["arrived"].append(sent.arrived)
         x = noise.transition(plant, x, applied, k - 1)
         y = noise.measure(plant, x, k - 1)
         received = y
@@ -543,10 +577,10 @@ def closed_loop(
             value = _checked_value(attack, value, flag, y, k, "y")
             received, a = inject(channel, y, value, flag)
         if estimator is not None:
-            step_input = _estimator_input(received, m, k, attack, u, controller)
-            carry, view = estimator._step(carry, step_input, u, m)
+            step_input = _estimator_input(received, m, k, attack, known, controller)
+            carry, view = estimator._step(carry, step_input, known, m)
             outs.append(view)
-        for key, val in (("x", x), ("y", y), ("recv", received), ("u", u), ("attack", a),
+        for key, val in (("x", x), ("y", y), ("recv", received), ("u", known), ("attack", a),
                          ("value", value), ("flag", flag)):  # fmt: skip
             rec[key].append(val)
         if controller is not None:
@@ -554,12 +588,12 @@ def closed_loop(
         if progress is not None:
             progress(1)
         if forks is not None and k in forks:
-            kept = LoopState(k, x, u, a_state, carry, view).copy()
+            kept = LoopState(k, x, u, a_state, carry, view, held, known_held).copy()
             forks[k] = LoopFork(kept, {key: list(v) for key, v in rec.items()}, list(outs))
     traj = _trajectories(rec, mask, first, k, channel)
     batch = x.shape[:-1]
     output = stack_steps(outs, batch, attack_channel=estimator.attack_channel) if outs else None
-    return LoopResult(traj, output, LoopState(k, x, u, a_state, carry, view))
+    return LoopResult(traj, output, LoopState(k, x, u, a_state, carry, view, held, known_held))
 
 
 class _Untouched:
@@ -797,6 +831,29 @@ def _check_lengths(plant, noise, mask, state: LoopState, steps: int) -> None:
                 )
 
 
+def _with_input_memory(input_loss: InputLoss, plant, state: LoopState, steps: int) -> LoopState:
+    """``state`` with the input channel's memories (the actuators' last applied input and
+    the estimator's knowledge of it) after checking ``input_loss``'s mask against the loop:
+    zero for a new loop; a loop resumed under a holding channel must have kept them."""
+    u = state.u
+    input_loss.check(state.x.shape[0], 0 if u is None else plant.dim_u, state.k + steps)
+    if input_loss.mask.device != state.x.device:
+        raise ValueError(
+            f"InputLoss's mask is on {input_loss.mask.device} and the loop on "
+            f"{state.x.device}: give it the plant's device"
+        )
+    if input_loss.on_loss is OnLoss.ZERO or state.held is not None:
+        return state
+    if state.k > 0:
+        raise ValueError(
+            "input_loss holds the last input that arrived, and state= comes from a loop run "
+            "without input_loss (its LoopState has no held input): resume a loop run with the "
+            "same input_loss, or start this one from step 0"
+        )
+    held, known_held = input_loss.start(u)
+    return state._replace(held=held, known_held=known_held)
+
+
 def _start(plant, steps, horizon, x0, estimator, model, controller, attack, attack_generator,
            generator) -> LoopState:  # fmt: skip
     """The state before step 1 (after checking the plant and ``x0``)."""
@@ -934,9 +991,17 @@ def _trajectories(rec, mask, k0, k1, channel) -> Trajectories:
             attack = torch.where(m, attack, torch.zeros_like(attack))
         else:
             flags = own_flags.any(-1) if entrywise else own_flags
+            if channel is Channel.ACTUATOR and rec["arrived"]:
+                # an attack on an input packet that was lost is none, actuator by actuator
+                arrived = torch.stack(rec["arrived"], 1)
+                flags = (own_flags & arrived if entrywise
+                         else own_flags.unsqueeze(-1) & arrived).any(-1)  # fmt: skip
     info = {"attack_values": values, "attack_channel": channel}
     if channel is not None:
         info["attack_flags"] = own_flags
     if rec["concealment"]:
         info["attack_concealment"] = torch.stack(rec["concealment"], 1)
+    if rec["applied"]:
+        info["inputs_applied"] = torch.stack(rec["applied"], 1)
+        info["input_mask"] = torch.stack(rec["arrived"], 1)
     return Trajectories(x, y, recv, us, m, attack, flags, info)

@@ -26,6 +26,13 @@ def test_readme_python_example_runs():
     recorded = 39 + torch.arange(41) % 20  # steps 40..59, cycled from step 60 on
     torch.testing.assert_close(loop.y_recv[:, 59:], loop.y_true[:, recorded], rtol=0, atol=0)
     torch.testing.assert_close(loop.y_recv[:, :59], loop.y_true[:, :59], rtol=0, atol=0)
+    # the input-loss example: acknowledged and unattacked, the estimator knows what was
+    # applied; the actuators held their input wherever a packet was lost
+    lossy = namespace["lossy"].trajectories
+    applied = lossy.info["inputs_applied"]
+    torch.testing.assert_close(lossy.us, applied, rtol=0, atol=0)
+    lost = ~namespace["arrived"][:, 1:]
+    assert bool(lost.any()) and torch.equal(applied[:, 1:][lost], applied[:, :-1][lost])
     # the online example: one run's last PF estimate within 3 posterior sd of the KF's
     online = namespace["online_out"]
     sd = kf.covs[0, -1].diagonal().sqrt()
