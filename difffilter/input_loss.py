@@ -10,8 +10,10 @@ or per actuator)::
     ū_{k−1} = ν_k (u_{k−1} + l_k a_k)                         (it applies zero: ZERO)
     x_k     = f(x_{k−1}, ū_{k−1}) + w_k                        (ū_{−1} = 0)
 
-with ``a_k`` an actuator attack (injected into the packet, so lost with it). What the
-estimator knows of ``ū`` depends on the protocol:
+with ``a_k`` an actuator attack, injected into the packet: lost with it, and held with it
+(the actuators that hold keep applying the attack they last received: the loop records
+that attack, ``ū − û`` of the held inputs, as the step's). What the estimator knows of
+``ū`` depends on the protocol:
 
 * **acknowledged** (TCP-like): the actuator acknowledges each packet, so the estimator
   steps with ``û_{k−1} = ν_k u_{k−1} + (1 − ν_k) û_{k−2}`` (HOLD) or ``ν_k u_{k−1}`` (ZERO):
@@ -19,24 +21,28 @@ estimator knows of ``ū`` depends on the protocol:
   filter on that input is then the optimal estimator, as without loss.
 * **unacknowledged** (UDP-like): the estimator steps with the sent ``u_{k−1}``, unaware of
   the loss: where a packet is lost the plant moved under another input than the model's.
+  (Schenato et al.'s UDP-like estimator knows the arrival rate ``ν̄`` instead, and predicts
+  with ``ν̄ u`` and ``P⁻ + ν̄(1 − ν̄) B u uᵀ Bᵀ``, for ``ZERO``; an estimator of one's own
+  can, with the sent ``u`` it is given.)
 
 :class:`InputLoss` is that channel, given to :func:`difffilter.loop.closed_loop` as
 ``input_loss=``; ``mask`` says which packets arrived, e.g. from
 :class:`~difffilter.models.schedules.PacketLoss` or
 :class:`~difffilter.models.schedules.BurstLoss` with ``dim = du`` (one packet per
-actuator) or ``dim = 1`` (one packet for all).
+actuator) or ``dim = 1`` (one packet for all: ``[B, T, 1]`` is taken as ``[B, T]``).
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
 
 from ._checks import Choice
 
-__all__ = ["InputLoss", "OnLoss", "Delivery"]
+__all__ = ["InputLoss", "InputLossSchedule", "OnLoss", "Delivery", "InputMemory"]
 
 
 class OnLoss(Choice):
@@ -47,17 +53,33 @@ class OnLoss(Choice):
     ZERO = "zero"
 
 
+class InputMemory(NamedTuple):
+    """What the input channel remembers between steps under ``HOLD`` (each ``[B, du]``): the
+    input the actuators apply (``held``), the estimator's knowledge of it (``known_held``:
+    the sent inputs that arrived, kept whether or not the estimator is told, so that a
+    loop resumed acknowledged goes on from it), and the attack in it (``attack``, and
+    ``acting``: bool, where the attack acts): a held input keeps its attack."""
+
+    held: Tensor
+    known_held: Tensor
+    attack: Tensor
+    acting: Tensor
+
+
 class Delivery(NamedTuple):
     """One step of the input channel: ``applied`` ``ū_{k−1} [B, du]`` (what drives the
     plant), ``known`` (what the estimator steps with), ``arrived`` ``ν_k`` ``[B, du]``
-    (bool) and the actuator's and the estimator's memories for the next step (``None``
-    under ``ZERO``)."""
+    (bool), ``attack`` (the attack in ``applied``: ``ū − u`` of the inputs held, zero where
+    none; ``None`` without an attack), ``acting`` (bool ``[B, du]``: where an attack is in
+    ``applied``; ``None`` without an attack) and the :class:`InputMemory` of the next step
+    (``None`` under ``ZERO``)."""
 
     applied: Tensor
     known: Tensor
     arrived: Tensor
-    held: Tensor | None
-    known_held: Tensor | None
+    attack: Tensor | None
+    acting: Tensor | None
+    memory: InputMemory | None
 
 
 class InputLoss:
@@ -75,7 +97,10 @@ class InputLoss:
 
     The loop records the estimator's input as ``Trajectories.us``, what drove the plant as
     ``info["inputs_applied"]`` and the arrivals as ``info["input_mask"]`` ``[B, T, du]``; an
-    actuator attack on a lost packet is no attack (zero in ``attack``, unflagged).
+    actuator attack is recorded where it is in the applied input (``attack`` and ``flags``):
+    not where its packet was lost and the actuators apply zero, and where they hold an input
+    that carries it. A covert attack's concealment assumes its packets arrive, so a loop
+    refuses one under input loss.
     """
 
     def __init__(self, mask: Tensor, on_loss: OnLoss | str = OnLoss.HOLD, *,
@@ -91,6 +116,8 @@ class InputLoss:
                 f"InputLoss's mask must be [B, T] (one packet per step) or [B, T, du] (one per "
                 f"actuator); got {tuple(mask.shape)}"
             )
+        if mask.dim() == 3 and mask.shape[-1] == 1:  # one link: a schedule's mask(…, dim=1)
+            mask = mask[..., 0]
         if not isinstance(acknowledged, bool):
             raise ValueError(f"acknowledged must be True or False; got {acknowledged!r}")
         self.mask, self.on_loss, self.acknowledged = mask, OnLoss(on_loss), acknowledged
@@ -117,31 +144,75 @@ class InputLoss:
                 + f"); got {tuple(mask.shape)}"
             )
 
-    def start(self, u0: Tensor) -> tuple[Tensor | None, Tensor | None]:
-        """The actuator's and the estimator's memories before step 1 (``ū_{−1} = 0``;
-        ``None`` under ``ZERO``, which keeps none)."""
+    def start(self, u0: Tensor) -> InputMemory | None:
+        """The memory before step 1 (``ū_{−1} = 0``, no attack; ``None`` under ``ZERO``,
+        which keeps none)."""
         if self.on_loss is OnLoss.ZERO:
-            return None, None
+            return None
         zero = torch.zeros_like(u0)
-        return zero, zero
+        return InputMemory(zero, zero, zero, torch.zeros_like(u0, dtype=torch.bool))
 
-    def deliver(self, k: int, attempted: Tensor, sent: Tensor, held: Tensor | None,
-                known_held: Tensor | None) -> Delivery:  # fmt: skip
-        """Step ``k``: ``attempted`` ``[B, du]`` is the packet's content (``u_{k−1}``, plus
-        the attack where one acts on the actuators), ``sent`` the controller's ``u_{k−1}``;
-        ``held`` and ``known_held`` the memories of step ``k − 1``."""
+    def deliver(self, k: int, sent: Tensor, attack: Tensor | None, flag: Tensor | None,
+                memory: InputMemory | None) -> Delivery:  # fmt: skip
+        """Step ``k``: ``sent`` is the controller's ``u_{k−1} [B, du]``, ``attack`` the value
+        an actuator attack injects into its packet (``[B, du]``, zero where it does not act)
+        and ``flag`` its flag (``[B]`` or ``[B, du]``), or both ``None``; ``memory`` that of
+        step ``k − 1``."""
         arrived = self.mask[:, k - 1]
-        arrived = arrived.unsqueeze(-1).expand_as(sent) if arrived.dim() == 1 else arrived
+        arrived = arrived.unsqueeze(-1).expand_as(sent) if arrived.shape != sent.shape else arrived
+        acting = None
+        if flag is not None:
+            acting = flag.unsqueeze(-1).expand_as(sent) if flag.shape != sent.shape else flag
+        attempted = sent if attack is None else sent + attack
         if self.on_loss is OnLoss.HOLD:
-            applied = torch.where(arrived, attempted, held)
-            known = torch.where(arrived, sent, known_held) if self.acknowledged else sent
-            return Delivery(applied, known, arrived, applied, known if self.acknowledged
-                            else known_held)  # fmt: skip
+            applied = torch.where(arrived, attempted, memory.held)
+            known_held = torch.where(arrived, sent, memory.known_held)
+            if attack is not None:
+                attack = torch.where(arrived, attack, memory.attack)
+                acting = torch.where(arrived, acting, memory.acting)
+            memory = InputMemory(applied, known_held,
+                                 memory.attack if attack is None else attack,
+                                 memory.acting if acting is None else acting)  # fmt: skip
+            known = known_held if self.acknowledged else sent
+            return Delivery(applied, known, arrived, attack, acting, memory)
         zero = torch.zeros((), dtype=sent.dtype, device=sent.device)
         applied = torch.where(arrived, attempted, zero)
         known = torch.where(arrived, sent, zero) if self.acknowledged else sent
-        return Delivery(applied, known, arrived, None, None)
+        if attack is not None:
+            attack, acting = torch.where(arrived, attack, zero), acting & arrived
+        return Delivery(applied, known, arrived, attack, acting, None)
 
     def __repr__(self) -> str:
         return (f"InputLoss(mask {tuple(self.mask.shape)}, on_loss={self.on_loss.value!r}, "
                 f"acknowledged={self.acknowledged})")  # fmt: skip
+
+
+@dataclass(frozen=True)
+class InputLossSchedule:
+    """A random input channel, drawn afresh for each study: the arrivals of the ``du``
+    actuators' packets from ``schedule`` (an object with ``mask(batch_shape, num_steps, dim,
+    generator, device=)``, e.g. :class:`~difffilter.models.schedules.PacketLoss`, whose
+    ``packets`` send actuators together, or
+    :class:`~difffilter.models.schedules.BurstLoss`), with ``on_loss`` and ``acknowledged``
+    as in :class:`InputLoss`. A scenario's ``input_loss`` (YAML ``input_loss:``)."""
+
+    schedule: Any
+    on_loss: OnLoss | str = OnLoss.HOLD
+    acknowledged: bool = True
+
+    def __post_init__(self):
+        if not callable(getattr(self.schedule, "mask", None)):
+            raise TypeError(
+                "InputLossSchedule's schedule must have mask(batch_shape, num_steps, dim, "
+                "generator, device=) (e.g. difffilter.models.schedules.PacketLoss(0.1)); got "
+                f"{type(self.schedule).__name__}"
+            )
+        object.__setattr__(self, "on_loss", OnLoss(self.on_loss))
+        if not isinstance(self.acknowledged, bool):
+            raise ValueError(f"acknowledged must be True or False; got {self.acknowledged!r}")
+
+    def draw(self, runs: int, steps: int, du: int, generator=None, *, device=None) -> InputLoss:
+        """The :class:`InputLoss` of ``runs`` runs of ``steps`` steps (``mask [runs, steps,
+        du]``) from ``generator``."""
+        mask = self.schedule.mask((runs,), steps, du, generator, device=device)
+        return InputLoss(mask, self.on_loss, acknowledged=self.acknowledged)

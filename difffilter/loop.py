@@ -92,7 +92,8 @@ class Trajectories(NamedTuple):
         mask: received entries ``[B, T, dy]`` (bool) or ``None`` (all received).
         attack: the injected attack signal ``[B, T, da]`` (zero where none is injected and
             on entries not received; ``da = dy`` for sensor-side attacks, ``du`` for
-            actuator attacks).
+            actuator attacks, ``0`` without an attack: ``[B, T, 0]``, so compare an attack
+            estimate with it only under an attack).
         flags: attacked steps ``[B, T]`` (bool): an attacked entry was received (under a
             mask; an actuator attack's steps whatever the mask).
         info: extras: ``"attack_values"`` ``[B, T, da]`` (what the attacker would inject
@@ -350,6 +351,11 @@ class StateFeedback:
                 "StateFeedback reads the estimator's mean, and this loop has no estimator: "
                 "give closed_loop an estimator (e.g. difffilter.KalmanFilter())"
             )
+        if out.mean.shape[-1] != self.gain.shape[-1]:  # (else a bare torch matmul error)
+            raise ValueError(
+                f"StateFeedback's gain K is {tuple(self.gain.shape)}, and the estimator's state has "
+                f"{out.mean.shape[-1]} entries: K must be [du, dx] = [du, {out.mean.shape[-1]}]"
+            )
         error = out.mean if self.reference is None else out.mean - self.reference
         return -(self.gain @ error.unsqueeze(-1)).squeeze(-1)
 
@@ -358,9 +364,9 @@ class LoopState(NamedTuple):
     """Where a closed loop stands after ``k`` steps: the plant's state ``x [B, dx]``, the
     next input ``u [B, du]`` (or ``None``), the attacker's state, the estimator's carry
     (or ``None``) and its last output ``view`` (what an adaptive attacker reads); under an
-    :class:`~difffilter.input_loss.InputLoss` that holds, the input the actuators applied
-    last (``held [B, du]``) and the estimator's knowledge of it (``known_held``), else
-    ``None``."""
+    :class:`~difffilter.input_loss.InputLoss` that holds, its
+    :class:`~difffilter.input_loss.InputMemory` (the input the actuators hold, the
+    estimator's knowledge of it, the attack in it), else ``None``."""
 
     k: int
     x: Tensor
@@ -368,8 +374,7 @@ class LoopState(NamedTuple):
     attack: Any
     carry: Any
     view: Any
-    held: Tensor | None = None
-    known_held: Tensor | None = None
+    inputs: Any = None
 
     def detach(self) -> LoopState:
         """The same state cut from the autograd graph (truncated backpropagation)."""
@@ -459,7 +464,8 @@ def closed_loop(
         x0: initial states ``[B, dx]`` (a new loop).
         estimator, model: the :class:`~difffilter.estimator.Estimator` and its model (the
             plant's, or what the estimator believes; default the plant), or ``None``.
-        controller: a :class:`Controller` (``None``: a plant without input).
+        controller: a :class:`Controller`, or ``None``: no input (a plant that has inputs
+            runs with ``u = 0``, without a word, and ``Trajectories.us`` is ``None``).
         attack: an :class:`~difffilter.attack.Attack` or ``None``; attack_generator its
             draws.
         mask: received entries ``[B, T, dy]`` (the schedule) or ``None``, indexed by the
@@ -509,6 +515,13 @@ def closed_loop(
         )
     channel = None if attack is None else Channel(attack.channel)
     conceals = channel is Channel.ACTUATOR and bool(getattr(attack, "conceals", False))
+    if input_loss is not None and conceals:
+        raise ValueError(
+            f"attack {type(attack).__name__} conceals its effect on the measurements by "
+            "simulating it as if its packets arrived; under input_loss they may not (the "
+            "concealment then shows: 0.12 off under hold in a review): run a covert attack "
+            "without input_loss"
+        )
     # only an attack that says it reads the estimator's output gets it (an open-loop
     # scenario hands such an attack nothing, so one that read it unannounced worked here
     # and silently read None there)
@@ -525,7 +538,7 @@ def closed_loop(
             state = _start(plant, steps, horizon, x0, estimator, model, controller, attack,
                            attack_generator, generator)  # fmt: skip
         keys = ("x", "y", "recv", "u", "attack", "value", "flag", "concealment", "applied",
-                "arrived")  # fmt: skip
+                "arrived", "acting")  # fmt: skip
         rec, outs = {key: [] for key in keys}, []
     _check_lengths(plant, noise, mask, state, steps)
     if input_loss is not None:
@@ -534,66 +547,73 @@ def closed_loop(
         raise ValueError("fork: continue a fork with the input_loss of the loop that kept it "
                          "(or without one, as it was kept)")  # fmt: skip
     first = state.k - len(rec["x"])  # the step before the first one recorded
-    k, x, u, a_state, carry, view, held, known_held = state
+    k, x, u, a_state, carry, view, memory = state
     if channel is Channel.ACTUATOR and u is None:  # (it failed inside the step's checks)
         raise ValueError(
             f"attack {type(attack).__name__} acts on the actuators, and this loop has no input "
             "to attack: give it a controller (e.g. KnownInputs(us), us [B, T, du]; zeros for "
             "an uncontrolled plant)"
         )
-    for _ in range(steps):
-        k += 1
-        m = None if mask is None else mask[:, k - 1]
-        applied, a, value, flag = u, None, None, None
-        if channel is Channel.ACTUATOR:
-            seen = _Untouched(attack, x, u, view if reads else None)
-            a_state, value, flag = attack.step(a_state, k, x=x if shows_state else None, u=u,
-                                               view=view if reads else None)  # fmt: skip
-            seen.check(k, "step")
-            value = _checked_value(attack, value, flag, u, k, "u")
-            applied, a = inject(channel, u, value, flag)
-        known = u
-        if input_loss is not None:
-            sent = input_loss.deliver(k, applied, u, held, known_held)
-            applied, known, held, known_held = sent.applied, sent.known, sent.held, sent.known_held
-            if a is not None:  # an attack on a lost packet is none
-                a = torch.where(sent.arrived, a, torch.zeros((), dtype=a.dtype, device=a.device))
-            rec["applied"].append(applied)
-            rec["arrived"].append(sent.arrived)
-        x = noise.transition(plant, x, applied, k - 1)
-        y = noise.measure(plant, x, k - 1)
-        received = y
-        if conceals:
-            seen = _Untouched(attack, x, y)
-            a_state, correction = attack.conceal(a_state, k, y=y, x=x if shows_state else None)
-            seen.check(k, "conceal")
-            received = y + correction
-            rec["concealment"].append(correction)
-        if channel is not None and channel is not Channel.ACTUATOR:
-            seen = _Untouched(attack, x, y, u, view if reads else None)
-            a_state, value, flag = attack.step(a_state, k, y=y, x=x if shows_state else None, u=u,
-                                               view=view if reads else None)  # fmt: skip
-            seen.check(k, "step")
-            value = _checked_value(attack, value, flag, y, k, "y")
-            received, a = inject(channel, y, value, flag)
-        if estimator is not None:
-            step_input = _estimator_input(received, m, k, attack, known, controller)
-            carry, view = estimator._step(carry, step_input, known, m)
-            outs.append(view)
-        for key, val in (("x", x), ("y", y), ("recv", received), ("u", known), ("attack", a),
-                         ("value", value), ("flag", flag)):  # fmt: skip
-            rec[key].append(val)
-        if controller is not None:
-            u = _checked_input(controller, controller(k, received, view), x, plant, k)
-        if progress is not None:
-            progress(1)
-        if forks is not None and k in forks:
-            kept = LoopState(k, x, u, a_state, carry, view, held, known_held).copy()
-            forks[k] = LoopFork(kept, {key: list(v) for key, v in rec.items()}, list(outs))
+    try:
+        for _ in range(steps):
+            k += 1
+            m = None if mask is None else mask[:, k - 1]
+            applied, a, value, flag = u, None, None, None
+            if channel is Channel.ACTUATOR:
+                seen = _Untouched(attack, x, u, view if reads else None)
+                a_state, value, flag = attack.step(a_state, k, x=x if shows_state else None, u=u,
+                                                   view=view if reads else None)  # fmt: skip
+                seen.check(k, "step")
+                value = _checked_value(attack, value, flag, u, k, "u")
+                applied, a = inject(channel, u, value, flag)
+            known = u
+            if input_loss is not None:
+                sent = input_loss.deliver(k, u, a, flag, memory)
+                applied, known, a, memory = sent.applied, sent.known, sent.attack, sent.memory
+                rec["applied"].append(applied)
+                rec["arrived"].append(sent.arrived)
+                rec["acting"].append(sent.acting)
+            x = noise.transition(plant, x, applied, k - 1)
+            y = noise.measure(plant, x, k - 1)
+            received = y
+            if conceals:
+                seen = _Untouched(attack, x, y)
+                a_state, correction = attack.conceal(a_state, k, y=y, x=x if shows_state else None)
+                seen.check(k, "conceal")
+                received = y + correction
+                rec["concealment"].append(correction)
+            if channel is not None and channel is not Channel.ACTUATOR:
+                seen = _Untouched(attack, x, y, u, view if reads else None)
+                a_state, value, flag = attack.step(a_state, k, y=y, x=x if shows_state else None, u=u,
+                                                   view=view if reads else None)  # fmt: skip
+                seen.check(k, "step")
+                value = _checked_value(attack, value, flag, y, k, "y")
+                received, a = inject(channel, y, value, flag)
+            if estimator is not None:
+                step_input = _estimator_input(received, m, k, attack, known, controller)
+                carry, view = estimator._step(carry, step_input, known, m)
+                outs.append(view)
+            for key, val in (("x", x), ("y", y), ("recv", received), ("u", known), ("attack", a),
+                             ("value", value), ("flag", flag)):  # fmt: skip
+                rec[key].append(val)
+            if controller is not None:
+                u = _checked_input(controller, controller(k, received, view), x, plant, k)
+            if progress is not None:
+                progress(1)
+            if forks is not None and k in forks:
+                kept = LoopState(k, x, u, a_state, carry, view, memory).copy()
+                forks[k] = LoopFork(kept, {key: list(v) for key, v in rec.items()}, list(outs))
+    except (TypeError, AttributeError) as error:
+        if attack is not None and not shows_state and _raised_in(error, attack):
+            error.add_note(
+                f"(attack {type(attack).__name__} declares reads_state = False, so the loop "
+                "hands it x=None: set reads_state = True on the class to read the true state)"
+            )
+        raise
     traj = _trajectories(rec, mask, first, k, channel)
     batch = x.shape[:-1]
     output = stack_steps(outs, batch, attack_channel=estimator.attack_channel) if outs else None
-    return LoopResult(traj, output, LoopState(k, x, u, a_state, carry, view, held, known_held))
+    return LoopResult(traj, output, LoopState(k, x, u, a_state, carry, view, memory))
 
 
 class _Untouched:
@@ -622,6 +642,19 @@ class _Untouched:
                 "estimator without being recorded as an attack. An attack acts only through "
                 "what it returns: compute out of place (x + 1, not x.add_(1)) or on a copy"
             )
+
+
+def _raised_in(error: BaseException, attack) -> bool:
+    """Whether ``error`` was raised inside ``attack``'s ``step`` or ``conceal`` (or what they
+    called): a frame of their code in its traceback."""
+    codes = {getattr(getattr(type(attack), name, None), "__code__", None)
+             for name in ("step", "conceal")} - {None}  # fmt: skip
+    tb = error.__traceback__
+    while tb is not None:
+        if tb.tb_frame.f_code in codes:
+            return True
+        tb = tb.tb_next
+    return False
 
 
 def _tensors_of(output) -> list[Tensor]:
@@ -732,9 +765,12 @@ def _checked_input(controller, u, x: Tensor, plant, k: int):
             f"[{x.shape[0]}, {du}] (one row per run)"
         )
     if tuple(u.shape) != (x.shape[0], du):
+        gain = getattr(controller, "gain", None)
+        hint = (f" (its gain K is {tuple(gain.shape)}: K must be [du, dx] = [{du}, "
+                f"{x.shape[-1]}])" if isinstance(gain, Tensor) else "")  # fmt: skip
         raise ValueError(
             f"{name} returned an input of shape {tuple(u.shape)} {when}; the loop needs "
-            f"[{x.shape[0]}, {du}] (one row per run, the plant's dim_u = {du})"
+            f"[{x.shape[0]}, {du}] (one row per run, the plant's dim_u = {du}){hint}"
         )
     raise ValueError(
         f"{name} returned an input of dtype {u.dtype} on {u.device} {when}; the loop's "
@@ -842,16 +878,16 @@ def _with_input_memory(input_loss: InputLoss, plant, state: LoopState, steps: in
             f"InputLoss's mask is on {input_loss.mask.device} and the loop on "
             f"{state.x.device}: give it the plant's device"
         )
-    if input_loss.on_loss is OnLoss.ZERO or state.held is not None:
+    if input_loss.on_loss is OnLoss.ZERO or state.inputs is not None:
         return state
     if state.k > 0:
         raise ValueError(
-            "input_loss holds the last input that arrived, and state= comes from a loop run "
-            "without input_loss (its LoopState has no held input): resume a loop run with the "
-            "same input_loss, or start this one from step 0"
+            "input_loss holds the last input that arrived, and the loop's state (state= or "
+            "fork=) holds none: it comes from a loop without input_loss or with "
+            "on_loss='zero'. Resume a loop run with a holding input_loss, or start this one "
+            "from step 0"
         )
-    held, known_held = input_loss.start(u)
-    return state._replace(held=held, known_held=known_held)
+    return state._replace(inputs=input_loss.start(u))
 
 
 def _start(plant, steps, horizon, x0, estimator, model, controller, attack, attack_generator,
@@ -888,12 +924,32 @@ def _start(plant, steps, horizon, x0, estimator, model, controller, attack, atta
         u = _checked_input(controller, controller.init(batch, dtype, device), x0, plant, 0)
     a_state = None
     if attack is not None:
+        first = _first_attacked_step(attack)
+        if first is not None and first > steps:
+            # (a typed onset beyond the horizon ran an "attacked" study without an attack)
+            raise ValueError(
+                f"attack {type(attack).__name__} starts at step {first}, after the loop's last "
+                f"step ({steps}{', the horizon' if horizon else ''}): it would never act"
+            )
         dim = attack_dim(plant, attack.channel)
         a_state = attack.init(batch, steps, dim, attack_generator, dtype=dtype, device=device)
     carry = None
     if estimator is not None:
         carry = estimator._init(model, batch, Generators.of(generator))
     return LoopState(0, x0, u, a_state, carry, None)
+
+
+def _first_attacked_step(attack) -> int | None:
+    """The first step (1-based) an attack with an ``onset`` (the threat library's) or a
+    0-based ``start`` (the papers' actuator injection) acts at, also inside a covert
+    attack's ``signal``; ``None`` where it says none."""
+    signal = getattr(attack, "signal", attack) if getattr(attack, "conceals", False) else attack
+    onset, start = getattr(signal, "onset", None), getattr(signal, "start", None)
+    if isinstance(onset, int) and not isinstance(onset, bool):
+        return onset
+    if isinstance(start, int) and not isinstance(start, bool):
+        return start + 1
+    return None
 
 
 def _check_controller(controller) -> None:
@@ -966,6 +1022,8 @@ def _resume(fork: LoopFork, plant, attack, attack_generator, channel, horizon):
     _, injected = inject(channel, signal, values, flags)  # every step before the fork at once
     for key, table in (("attack", injected), ("value", values), ("flag", flags)):
         records[key] = list(table.unbind(time))
+    if channel is Channel.ACTUATOR and records["arrived"]:  # (under input_loss: none acted)
+        records["acting"] = [torch.zeros_like(arrived) for arrived in records["arrived"]]
     return state._replace(attack=a_state), records, list(fork.outputs)
 
 
@@ -991,11 +1049,10 @@ def _trajectories(rec, mask, k0, k1, channel) -> Trajectories:
             attack = torch.where(m, attack, torch.zeros_like(attack))
         else:
             flags = own_flags.any(-1) if entrywise else own_flags
-            if channel is Channel.ACTUATOR and rec["arrived"]:
-                # an attack on an input packet that was lost is none, actuator by actuator
-                arrived = torch.stack(rec["arrived"], 1)
-                flags = (own_flags & arrived if entrywise
-                         else own_flags.unsqueeze(-1) & arrived).any(-1)  # fmt: skip
+            if channel is Channel.ACTUATOR and rec["acting"]:
+                # where the attack is in the applied input (input_loss: not in a zeroed lost
+                # packet, in a held one), actuator by actuator
+                flags = torch.stack(rec["acting"], 1).any(-1)
     info = {"attack_values": values, "attack_channel": channel}
     if channel is not None:
         info["attack_flags"] = own_flags

@@ -373,6 +373,8 @@ class SuiteContext:
         # its known inputs (a user who edits them gets a new calibration, in this process
         # as on disk: the process's cache is keyed on their fingerprint too)
         parts = (self.model, self.scenario.schedule(), self.scenario.inputs(runs, self.dtype))
+        loss = self.scenario.input_loss_schedule()
+        parts += () if loss is None else (loss,)  # (no loss: the keys cached before it)
         process_key = (key, calibration_cache.model_fingerprint(parts))
         if process_key not in _CUSUM_CACHE:
             if len(_CUSUM_CACHE) >= 64:  # a long session of many scenarios: drop the oldest

@@ -37,6 +37,7 @@ from torch import Tensor
 
 from difffilter._checks import check_finite_number, check_positive_int, model_dtype_device
 from difffilter.attack import Attack, Channel
+from difffilter.input_loss import InputLossSchedule
 from difffilter.loop import DrawnNoise, KnownInputs, Trajectories, closed_loop
 from difffilter.ssm import StateSpaceModel
 from difffilter.threats import KSigmaBias
@@ -66,6 +67,7 @@ def simulate(
     schedule=None,
     us: Tensor | None = None,
     random_initial: bool = False,
+    input_loss=None,
 ) -> Trajectories:
     """Simulate ``runs`` runs of ``steps`` steps of ``model`` under ``attack`` and ``schedule``:
     the closed loop of :func:`difffilter.loop.closed_loop` without an estimator, driven by
@@ -80,8 +82,12 @@ def simulate(
             ``None``.
         schedule: :mod:`difffilter.models.schedules` object (default all sensors).
         us: commanded inputs ``[runs, steps, du]`` or ``None`` (zero inputs under an
-            actuator attack).
+            actuator attack or ``input_loss``).
         random_initial: draw ``x_0`` from the prior instead of taking its mean.
+        input_loss: a :class:`~difffilter.input_loss.InputLossSchedule` (the controller's
+            packets lost on the way to the actuators, drawn from ``generators
+            ["input_schedule"]``) or ``None``; the trajectories' ``us`` are then the inputs
+            the estimators know (applied as acknowledged, or sent).
     """
     for name, value in (("runs", runs), ("steps", steps)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -96,9 +102,11 @@ def simulate(
     plant = generators.get("plant")
     if plant is None:  # (never torch's global generator: every draw has its seed)
         raise ValueError("generators must hold 'plant': the plant's noise is drawn from it")
-    if attack is not None and Channel(attack.channel) is Channel.ACTUATOR and us is None:
+    actuated = attack is not None and Channel(attack.channel) is Channel.ACTUATOR
+    if (actuated or input_loss is not None) and us is None:
         if model.dim_u == 0:
-            raise ValueError("an actuator attack needs a model with inputs (dim_u > 0)")
+            what = "an actuator attack" if actuated else "input_loss"
+            raise ValueError(f"{what} needs a model with inputs (dim_u > 0)")
         us = torch.zeros(runs, steps, model.dim_u, dtype=dtype, device=device)
     if us is not None and tuple(us.shape) != (runs, steps, model.dim_u):
         raise ValueError(
@@ -109,10 +117,13 @@ def simulate(
     else:
         x0 = model.initial.mean.expand(runs, model.dim_x).clone()
     mask = schedule.mask((runs,), steps, model.dim_y, generators.get("schedule"), device=device)
+    if input_loss is not None:
+        input_loss = input_loss.draw(runs, steps, model.dim_u, generators.get("input_schedule"),
+                                     device=device)  # fmt: skip
     loop = closed_loop(
         model, steps, noise=DrawnNoise(plant), x0=x0,
         controller=None if us is None else KnownInputs(us), attack=attack,
-        attack_generator=generators.get("attack"), mask=mask,
+        attack_generator=generators.get("attack"), mask=mask, input_loss=input_loss,
     )  # fmt: skip
     traj = loop.trajectories
     _check_simulated(traj, model)
@@ -270,7 +281,13 @@ class Scenario:
             attack=self.simulated_attack() if attack is OWN_ATTACK else attack,
             schedule=self.schedule(),
             us=self.inputs(runs, dtype),
+            input_loss=self.input_loss_schedule(),
         )
+
+    def input_loss_schedule(self):
+        """The loss of the controller's packets on their way to the actuators
+        (:class:`~difffilter.input_loss.InputLossSchedule`), or ``None`` (default: none)."""
+        return None
 
     def with_steps(self, steps: int) -> Scenario:
         """The same scenario over a horizon of ``steps`` steps (tests, quick runs)."""
@@ -360,6 +377,9 @@ class CustomScenario(Scenario):
             ``entries`` and ``channel`` "sensor", "actuator" or "replacement"), the
             papers' (:mod:`difffilter.models.attacks`), one of your own, or ``None``.
         protocol: a schedule of :mod:`difffilter.models.schedules` (default all sensors).
+        input_loss: a :class:`~difffilter.input_loss.InputLossSchedule` (the known inputs'
+            packets lost on the way to the actuators: held or zeroed there; the estimators
+            told of each arrival or not) or ``None``.
         known_inputs: the commanded inputs ``u_0 … u_{T−1}`` the plant is driven with and
             every estimator knows: a tensor ``[T, du]`` (every run) or ``[R, T, du]`` (run
             ``i`` its row ``i mod R``: :meth:`inputs`), or
@@ -381,6 +401,7 @@ class CustomScenario(Scenario):
     protocol: Any = None
     known_inputs: Any = field(default=None, compare=False)
     options: Mapping[str, Any] = field(default_factory=dict, compare=False)
+    input_loss: Any = None
     state_unit: str = "state units"
     attack_unit: str = "attack units"
 
@@ -405,6 +426,11 @@ class CustomScenario(Scenario):
         for name in ("runs", "steps"):
             check_positive_int(getattr(self, name), name)
         check_finite_number(self.dt, "dt (the sampling period, s)", positive=True)  # (-0 s delays)
+        if self.input_loss is not None and not isinstance(self.input_loss, InputLossSchedule):
+            raise TypeError(
+                "input_loss must be a difffilter.input_loss.InputLossSchedule(schedule, on_loss, "
+                f"acknowledged) or None; got {type(self.input_loss).__name__}"
+            )
         known = self.known_inputs
         if known is not None and not callable(known) and not isinstance(known, Tensor):
             raise TypeError(
@@ -434,6 +460,9 @@ class CustomScenario(Scenario):
 
     def schedule(self):
         return self.protocol if self.protocol is not None else AllSensors()
+
+    def input_loss_schedule(self):
+        return self.input_loss
 
     def inputs(self, runs: int, dtype: torch.dtype, device=None) -> Tensor | None:
         """``known_inputs`` as ``[runs, steps, du]`` (their first ``steps`` rows when they

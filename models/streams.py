@@ -16,7 +16,7 @@ import torch
 __all__ = ["SIMULATION_STREAMS", "Streams"]
 
 #: the streams a scenario's simulation draws from (``Scenario.simulate``'s ``generators``)
-SIMULATION_STREAMS = ("plant", "attack", "schedule")
+SIMULATION_STREAMS = ("plant", "attack", "schedule", "input_schedule")
 
 
 class Streams:
@@ -25,7 +25,7 @@ class Streams:
     ``Streams(0)("plant")`` → a ``torch.Generator`` seeded with 63 bits of
     ``sha256("0/plant")``: its first 8 bytes read as a little-endian integer, shifted right
     by one. Names are free-form; the suite uses ``"plant"``, ``"attack"``,
-    ``"schedule"``, ``"calibration/plant"``, ``"particles/init"``, ``"particles/propagate"``,
+    ``"schedule"``, ``"input_schedule"``, ``"calibration/plant"``, ``"particles/init"``, ``"particles/propagate"``,
     ``"particles/resample"`` and ``"estimator/<name>"``.
     """
 
@@ -48,8 +48,9 @@ class Streams:
 
     def simulation(self, prefix: str = "") -> dict[str, torch.Generator]:
         """The generators :meth:`~difffilter.models.scenario.Scenario.simulate` reads:
-        ``{"plant", "attack", "schedule"}`` → a fresh generator of stream ``prefix + name``
-        (``prefix`` keeps a study's draws apart from the suite's, e.g. ``"adversary/"``)."""
+        ``{"plant", "attack", "schedule", "input_schedule"}`` → a fresh generator of stream
+        ``prefix + name`` (``prefix`` keeps a study's draws apart from the suite's, e.g.
+        ``"adversary/"``)."""
         return {name: self(prefix + name) for name in SIMULATION_STREAMS}
 
     def __repr__(self) -> str:

@@ -29,6 +29,11 @@ a path ending in ``.yaml`` or ``.yml`` names a file such as::
                                          #    {kind: burst_loss, to_bad: 0.05, to_good:
                                          #    0.25} (Gilbert–Elliott: losses in bursts;
                                          #    loss_good, loss_bad, packets optional)
+    input_loss: {kind: packet_loss, rate: 0.1, on_loss: hold, acknowledged: true}
+                                         # optional: the inputs' packets lost on the way
+                                         #    to the actuators (any schedule kind above,
+                                         #    over the inputs; on_loss hold or zero;
+                                         #    acknowledged true: TCP-like, false: UDP-like)
     estimators: [chi_square_kf, cusum_kf]   # optional; default: the generic suite
     options: {cusum_bias: 0.5}           # settings the estimators read (optional)
 
@@ -65,6 +70,7 @@ from typing import Any
 import torch
 
 from difffilter._imports import import_object
+from difffilter.input_loss import InputLossSchedule
 from difffilter.ssm import LinearGaussianModel, NonlinearGaussianModel, _arity
 from difffilter.threats import THREATS, check_attack_fits, threat_from_dict
 
@@ -88,7 +94,7 @@ PAPER_ATTACKS = {
 }
 _TOP = {"name", "family", "description", "dt", "runs", "steps", "num_particles",
         "false_alarm_rate", "gamma_min", "units", "plant", "inputs", "attack", "schedule",
-        "estimators", "options", "paper", "notes"}  # fmt: skip
+        "input_loss", "estimators", "options", "paper", "notes"}  # fmt: skip
 _PLANT = {"F", "B", "H", "Q", "R", "m0", "P0", "transition", "observe", "dim_u", "model"}
 
 
@@ -187,6 +193,7 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
             attack=attack,
             protocol=_schedule(doc.get("schedule"), f"{where}: schedule"),
             known_inputs=_inputs(doc.get("inputs"), settings.get("dt", 1.0), f"{where}: inputs"),
+            input_loss=_input_loss(doc.get("input_loss"), f"{where}: input_loss"),
             estimators=_names(doc.get("estimators"), f"{where}: estimators"),
             options=dict(doc.get("options", {}) or {}),
             state_unit=str(units.get("state", "state units")),
@@ -207,6 +214,14 @@ def _check_against_plant(scenario: CustomScenario, probe, where: str) -> None:
         scenario.schedule().mask((1,), 1, probe.dim_y, torch.Generator().manual_seed(0))
     except (ValueError, TypeError, IndexError) as error:
         raise ValueError(f"{where}: schedule: {error}") from None
+    if scenario.input_loss is not None:
+        if probe.dim_u == 0:
+            raise ValueError(f"{where}: input_loss: the plant has no input to lose (dim_u = 0)")
+        try:
+            scenario.input_loss.draw(1, 1, probe.dim_u, torch.Generator().manual_seed(0))
+        except (ValueError, TypeError, IndexError) as error:
+            raise ValueError(f"{where}: input_loss: {error} (over the plant's {probe.dim_u} "
+                             "input(s))") from None  # fmt: skip
     known = scenario.known_inputs
     runs = known.shape[0] if isinstance(known, torch.Tensor) and known.dim() == 3 else 1
     try:
@@ -481,6 +496,28 @@ def _schedule(spec: Any, where: str):
     raise ValueError(f"{where} must be 'all', {{kind: round_robin, groups: [[...], ...]}}, "
                      f"{{kind: packet_loss, rate: r}} or {{kind: burst_loss, to_bad: p, to_good: "
                      f"q}}; got {spec!r}")  # fmt: skip
+
+
+def _input_loss(spec: Any, where: str):
+    """``{kind: packet_loss | burst_loss | round_robin, …, on_loss: hold | zero,
+    acknowledged: true | false}`` → an :class:`~difffilter.input_loss.InputLossSchedule`
+    (the schedule's fields as ``schedule:``'s, over the plant's inputs), or ``None``."""
+    if spec is None:
+        return None
+    if not isinstance(spec, Mapping) or spec.get("kind") not in ("packet_loss", "burst_loss",
+                                                                 "round_robin"):  # fmt: skip
+        raise ValueError(
+            f"{where} must be {{kind: packet_loss, rate: r}}, {{kind: burst_loss, to_bad: p, "
+            f"to_good: q}} or {{kind: round_robin, groups: [[...], ...]}}, with on_loss "
+            f"(hold or zero) and acknowledged (true or false) optional; got {spec!r}"
+        )
+    channel = {k: v for k, v in spec.items() if k not in ("on_loss", "acknowledged")}
+    schedule = _schedule(channel, where)
+    try:
+        return InputLossSchedule(schedule, spec.get("on_loss", "hold"),
+                                 spec.get("acknowledged", True))  # fmt: skip
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{where}: {error}") from None
 
 
 def _inputs(spec: Any, dt: float, where: str):

@@ -383,11 +383,12 @@ def test_stream_seeds_are_the_documented_hash():
 
 
 def test_simulation_streams_are_the_named_streams_under_a_prefix():
-    """``simulation(prefix)``: the plant, attack and schedule generators, each the stream
-    ``prefix + name`` (the same first draws as ``Streams(seed)(prefix + name)``)."""
+    """``simulation(prefix)``: the plant, attack, schedule and input-schedule generators,
+    each the stream ``prefix + name`` (the same first draws as ``Streams(seed)(prefix +
+    name)``)."""
     for prefix in ("", "adversary/"):
         gens = Streams(3).simulation(prefix)
-        assert sorted(gens) == ["attack", "plant", "schedule"]
+        assert sorted(gens) == ["attack", "input_schedule", "plant", "schedule"]
         for name, gen in gens.items():
             want = torch.Generator().manual_seed(Streams(3).seed_of(prefix + name))
             assert torch.equal(torch.rand(4, generator=gen), torch.rand(4, generator=want))

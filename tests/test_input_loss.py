@@ -36,18 +36,34 @@ def _setup(per_actuator=False, seed=0):
 
 
 def _by_hand(plant, noise, us, arrived, x0, hold, attack=None):
-    """The loop of the module docstring, step by step: (states, applied inputs)."""
+    """The loop of the module docstring, step by step: (states, applied inputs, the attack
+    in them, where it acts)."""
     x, held, xs, applied_all = x0, torch.zeros_like(us[:, 0]), [], []
+    held_a, held_on, attacks, acting = (
+        torch.zeros_like(held),
+        torch.zeros_like(held, dtype=bool),
+        [],
+        [],
+    )
     nu = arrived if arrived.dim() == 3 else arrived.unsqueeze(-1).expand_as(us)
+    values = torch.zeros(T, us.shape[-1], dtype=us.dtype) if attack is None else attack
     for t in range(T):
-        content = us[:, t] if attack is None else us[:, t] + attack[t]
-        fallback = held if hold else torch.zeros_like(held)
-        applied = torch.where(nu[:, t], content, fallback)
-        held = applied
+        a = values[t].expand_as(held)
+        on = (values[t] != 0).expand_as(held)  # (a per-run flag: the attacks here act on both)
+        on = on.any(-1, keepdim=True).expand_as(held)
+        content = us[:, t] + a
+        arrive = nu[:, t]
+        applied = torch.where(arrive, content, held if hold else torch.zeros_like(held))
+        recorded = torch.where(arrive, a, held_a if hold else torch.zeros_like(a))
+        on = torch.where(arrive, on, held_on if hold else torch.zeros_like(on))
+        held, held_a, held_on = applied, recorded, on
         x = x @ plant.F.T + applied @ plant.B.T + noise.process[:, t]
         xs.append(x)
         applied_all.append(applied)
-    return torch.stack(xs, 1), torch.stack(applied_all, 1)
+        attacks.append(recorded)
+        acting.append(on)
+    return (torch.stack(xs, 1), torch.stack(applied_all, 1), torch.stack(attacks, 1),
+            torch.stack(acting, 1))  # fmt: skip
 
 
 def _known(us, arrived, hold):
@@ -67,11 +83,12 @@ def test_the_plant_moves_under_the_input_the_actuators_apply(per_actuator, on_lo
     noise, us, arrived, x0 = _setup(per_actuator)
     got = closed_loop(plant, T, noise=noise, x0=x0, controller=KnownInputs(us),
                       input_loss=InputLoss(arrived, on_loss))  # fmt: skip
-    xs, applied = _by_hand(plant, noise, us, arrived, x0, on_loss == "hold")
+    xs, applied, _, _ = _by_hand(plant, noise, us, arrived, x0, on_loss == "hold")
     tr = got.trajectories
     torch.testing.assert_close(tr.x, xs, rtol=0, atol=1e-13)
     torch.testing.assert_close(tr.info["inputs_applied"], applied, rtol=0, atol=0)
-    assert tr.info["input_mask"].shape == (B, T, 2)
+    nu = arrived if per_actuator else arrived.unsqueeze(-1).expand(B, T, 2)
+    assert torch.equal(tr.info["input_mask"], nu)
     # acknowledged by default: the estimator's inputs are the applied ones (no attack)
     torch.testing.assert_close(tr.us, applied, rtol=0, atol=0)
     # the loss made a difference: held and zeroed inputs differ from the sent ones
@@ -114,26 +131,35 @@ def test_every_packet_arriving_is_the_loop_without_loss():
         assert torch.equal(plain.output.means, lossless.output.means)
 
 
-def test_an_actuator_attack_is_lost_with_its_packet():
-    """The attack rides in the packet: lost with it (no attack recorded, no flag), held by
-    the actuators where they hold; an acknowledged estimator holds the sent input, never
-    the attack."""
+@pytest.mark.parametrize("on_loss", ["hold", "zero"])
+def test_an_actuator_attack_travels_in_its_packet(on_loss):
+    """The attack rides in the packet: lost with it where the actuators apply zero, and
+    held with it where they hold (recorded and flagged where it is in the applied input);
+    an acknowledged estimator steps with the sent inputs that arrived, never the attack."""
     plant = _plant()
     noise, us, arrived, x0 = _setup(seed=2)
     values = torch.zeros(T, 2, dtype=torch.float64)
-    values[8:20] = torch.tensor([0.7, -0.4], dtype=torch.float64)
+    values[8:12] = torch.tensor([0.7, -0.4], dtype=torch.float64)
     got = closed_loop(plant, T, noise=noise, x0=x0, controller=KnownInputs(us),
-                      attack=Signal(values, Channel.ACTUATOR),
-                      input_loss=InputLoss(arrived, "hold"))  # fmt: skip
-    xs, applied = _by_hand(plant, noise, us, arrived, x0, True, attack=values)
+                      estimator=df.KalmanFilter(), attack=Signal(values, Channel.ACTUATOR),
+                      input_loss=InputLoss(arrived, on_loss))  # fmt: skip
+    hold = on_loss == "hold"
+    xs, applied, attack, acting = _by_hand(plant, noise, us, arrived, x0, hold, attack=values)
     tr = got.trajectories
     torch.testing.assert_close(tr.x, xs, rtol=0, atol=1e-13)
     torch.testing.assert_close(tr.info["inputs_applied"], applied, rtol=0, atol=1e-15)
-    acting = (values.abs().sum(-1) > 0).expand(B, T)
-    assert torch.equal(tr.flags, acting & arrived)
-    expected = torch.where(arrived.unsqueeze(-1), values.expand(B, T, 2), torch.zeros(()))
-    torch.testing.assert_close(tr.attack, expected.to(torch.float64), rtol=0, atol=0)
-    torch.testing.assert_close(tr.us, _known(us, arrived, True), rtol=0, atol=0)
+    torch.testing.assert_close(tr.attack, attack, rtol=0, atol=0)
+    assert torch.equal(tr.flags, acting.any(-1))
+    known = _known(us, arrived, hold)
+    torch.testing.assert_close(tr.us, known, rtol=0, atol=0)
+    torch.testing.assert_close(tr.info["inputs_applied"] - tr.us, attack, rtol=0, atol=1e-15)
+    ref = open_loop(df.KalmanFilter(), plant, tr.y_recv, known)
+    torch.testing.assert_close(got.output.means, ref.means, rtol=0, atol=1e-12)
+    window = (values.abs().sum(-1) > 0).expand(B, T)
+    if hold:  # the attack outlasts its window where the packets after it were lost
+        assert bool((tr.flags & ~window).any())
+    else:  # and is absent where its packet was lost
+        assert torch.equal(tr.flags, window & arrived)
 
 
 def test_a_loop_with_input_loss_run_in_chunks_or_from_a_fork_is_the_loop_at_once():
@@ -223,10 +249,31 @@ def test_an_attack_on_one_actuator_is_flagged_where_that_actuators_packet_arrive
     values[5:22, 0] = 0.9  # the first actuator alone
     got = closed_loop(plant, T, noise=noise, x0=x0, controller=KnownInputs(us),
                       attack=_FirstActuator(values), input_loss=InputLoss(arrived, "zero"))  # fmt: skip
-    xs, _ = _by_hand(plant, noise, us, arrived, x0, False, attack=values)
+    xs = _by_hand(plant, noise, us, arrived, x0, False, attack=values)[0]
     tr = got.trajectories
     torch.testing.assert_close(tr.x, xs, rtol=0, atol=1e-13)
     expected = (values[:, 0] != 0).expand(B, T) & arrived[..., 0]
     assert torch.equal(tr.flags, expected)
     assert bool(expected.any()) and not torch.equal(expected, (values[:, 0] != 0).expand(B, T))
     assert not torch.equal(expected, arrived.any(-1) & (values[:, 0] != 0))
+
+
+def test_one_link_for_every_actuator_and_what_input_loss_refuses():
+    """A schedule's [B, T, 1] mask is one packet for every actuator; a covert attack (its
+    concealment assumes its packets arrive) and a holding loop resumed from a state that
+    holds nothing are refused, naming why."""
+    from difffilter.threats import Bias, Covert
+
+    plant = _plant()
+    noise, us, arrived, x0 = _setup()
+    kw = dict(noise=noise, x0=x0, controller=KnownInputs(us))
+    one = closed_loop(plant, T, input_loss=InputLoss(arrived.unsqueeze(-1)), **kw)
+    two = closed_loop(plant, T, input_loss=InputLoss(arrived), **kw)
+    assert torch.equal(one.trajectories.x, two.trajectories.x)
+    covert = Covert(Bias(0.5, channel="actuator", onset=3), plant)
+    with pytest.raises(ValueError, match="conceals"):
+        closed_loop(plant, T, attack=covert, input_loss=InputLoss(arrived), **kw)
+    zero = closed_loop(plant, 10, horizon=T, input_loss=InputLoss(arrived, "zero"), **kw)
+    with pytest.raises(ValueError, match="on_loss='zero'"):
+        closed_loop(plant, 5, state=zero.state, noise=noise, controller=KnownInputs(us),
+                    input_loss=InputLoss(arrived, "hold"))  # fmt: skip

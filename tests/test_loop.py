@@ -685,3 +685,41 @@ def test_only_an_attack_that_declares_it_reads_the_true_state(channel):
     assert Attack.reads_state and not Bias(0.1, onset=2).reads_state
     assert not Replay(delay=2, onset=3).reads_state
     assert Covert(Bias(0.1, onset=2, channel="actuator"), plant=model).reads_state
+
+
+class _ReadsX(_Records):
+    """Reads the true state without declaring it (reads_state = False)."""
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        shift = x[..., :1]  # a TypeError where the loop hands it x=None
+        return state, torch.zeros_like(y) + 0 * shift, torch.zeros(y.shape[:-1], dtype=torch.bool)
+
+
+def test_what_a_power_systems_trial_could_not_tell_from_the_errors():
+    """An onset beyond the loop's steps ran an "attacked" study without an attack; a gain of
+    another width failed in a torch matmul, or named the input's shape alone; an attack that
+    reads x undeclared failed with "'NoneType' object is not subscriptable" alone."""
+    from difffilter.loop import StateFeedback
+    from difffilter.threats import Ramp
+
+    model = _linear()
+    x0 = torch.zeros(2, model.dim_x, dtype=torch.float64)
+    noise = DrawnNoise(torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match="starts at step 80, after the loop's last step \\(50\\)"):
+        closed_loop(model, 50, noise=noise, x0=x0, attack=Ramp(0.1, onset=80))
+    with pytest.raises(ValueError, match="after the loop's last step \\(60, the horizon\\)"):
+        closed_loop(model, 10, horizon=60, noise=noise, x0=x0, attack=Ramp(0.1, onset=80))
+    wide = StateFeedback(torch.ones(1, 3, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"gain K is \(1, 3\).*\[du, 2\]"):
+        closed_loop(model, 5, noise=noise, x0=x0, estimator=df.KalmanFilter(), controller=wide)
+    transposed = StateFeedback(torch.ones(2, 1, dtype=torch.float64))
+    with pytest.raises(
+        ValueError, match=r"its gain K is \(2, 1\): K must be \[du, dx\] = \[1, 2\]"
+    ):
+        closed_loop(model, 5, noise=noise, x0=x0, estimator=df.KalmanFilter(),
+                    controller=transposed)  # fmt: skip
+    with pytest.raises(TypeError) as error:
+        closed_loop(model, 5, noise=noise, x0=x0, attack=_ReadsX("sensor", False))
+    assert "reads_state = False" in "".join(getattr(error.value, "__notes__", []))
+    with pytest.raises(ZeroDivisionError):  # another error of the attack's own: no note
+        closed_loop(model, 5, noise=noise, x0=x0, attack=_Returns(lambda y, k: 1 / 0))

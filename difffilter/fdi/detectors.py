@@ -231,7 +231,10 @@ class ChiSquareDetector:
 
     Args:
         dim: measurement dimension ``m`` (degrees of freedom of one ``g_k``).
-        false_alarm_rate: per-step false-alarm probability ``α`` under the model.
+        false_alarm_rate: per-step false-alarm probability ``α`` under the model, of a
+            filter that keeps every measurement (a filter gated by this detector drops
+            those it alarms on and runs above ``α``: 1.04–1.12 % for 1 % in a trial,
+            docs/metrics.md).
         window: ``W`` ≥ 1 steps summed (the first ``W−1`` steps use the steps available
             and the matching ``χ²`` quantile).
     """

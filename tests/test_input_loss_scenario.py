@@ -1,0 +1,124 @@
+"""A scenario whose known inputs are lost on the way to the actuators (YAML ``input_loss``,
+``CustomScenario.input_loss``): parsed and checked by the file, drawn from its own seed
+stream, and what the estimators are given."""
+
+from __future__ import annotations
+
+import textwrap
+
+import pytest
+import torch
+
+from difffilter.input_loss import InputLossSchedule, OnLoss
+from difffilter.models.schedules import BurstLoss, PacketLoss
+from difffilter.models.streams import Streams
+from difffilter.models.yaml_scenario import scenario_from_dict, scenario_from_yaml
+
+MOTOR = {
+    "name": "motor_lossy",
+    "runs": 6,
+    "steps": 40,
+    "dt": 0.01,
+    "plant": {
+        "F": [[0.95, 0.04], [-0.02, 0.8]],
+        "B": [[0.0], [0.2]],
+        "H": [[1.0, 0.0]],
+        "Q": 1.0e-4,
+        "R": 1.0e-3,
+        "P0": 1.0e-2,
+    },  # fmt: skip
+    "inputs": {"kind": "sinusoid", "amplitude": 1.0, "frequency": 2.0},
+}
+
+
+def _with(**fields):
+    return scenario_from_dict({**MOTOR, **fields}, "motor.yaml")
+
+
+def test_the_yaml_field_is_an_input_loss_schedule(tmp_path):
+    path = tmp_path / "motor.yaml"
+    path.write_text(
+        textwrap.dedent("""
+        name: motor_lossy
+        plant: {F: [[0.95, 0.04], [-0.02, 0.8]], B: [[0.0], [0.2]], H: [[1.0, 0.0]],
+                Q: 1.0e-4, R: 1.0e-3}
+        inputs: {kind: constant, value: 1.0}
+        input_loss: {kind: burst_loss, to_bad: 0.1, to_good: 0.3, on_loss: zero,
+                     acknowledged: false}
+    """)
+    )
+    loss = scenario_from_yaml(path).input_loss_schedule()
+    assert loss == InputLossSchedule(BurstLoss(to_bad=0.1, to_good=0.3), OnLoss.ZERO, False)
+    assert _with().input_loss_schedule() is None
+    default = _with(input_loss={"kind": "packet_loss", "rate": 0.2}).input_loss
+    assert default.on_loss is OnLoss.HOLD and default.acknowledged is True
+
+
+@pytest.mark.parametrize("spec, why", [
+    ({"kind": "all"}, "must be {kind: packet_loss"),
+    ("packet_loss", "must be {kind: packet_loss"),
+    ({"kind": "packet_loss"}, "packet_loss needs rate"),
+    ({"kind": "packet_loss", "rate": 1.5}, "rate must be a number in"),
+    ({"kind": "packet_loss", "rate": 0.1, "on_loss": "drop"}, "'drop' is not a OnLoss"),
+    ({"kind": "packet_loss", "rate": 0.1, "acknowledged": "yes"}, "acknowledged must be"),
+    ({"kind": "packet_loss", "rate": 0.1, "packets": [[0, 1]]}, "over the plant's 1 input"),
+    ({"kind": "packet_loss", "rate": 0.1, "delay": 2}, "unknown field"),
+])  # fmt: skip
+def test_a_bad_input_loss_is_named_with_the_file_and_the_field(spec, why):
+    with pytest.raises(ValueError, match="motor.yaml: input_loss") as error:
+        _with(input_loss=spec)
+    assert why in str(error.value)
+
+
+def test_a_plant_without_inputs_has_none_to_lose():
+    plant = {k: v for k, v in MOTOR["plant"].items() if k != "B"}
+    with pytest.raises(ValueError, match="no input to lose"):
+        _with(plant=plant, inputs=None, input_loss={"kind": "packet_loss", "rate": 0.1})
+
+
+def test_the_scenario_draws_the_arrivals_from_their_own_stream():
+    """The arrivals come from the stream "input_schedule": a rate of zero leaves every other
+    draw (plant noise, sensor schedule) as the scenario without input loss has it."""
+    lossy = _with(input_loss={"kind": "packet_loss", "rate": 0.4})
+    tr = lossy.simulate(6, Streams(3).simulation())
+    expected = PacketLoss(0.4).mask((6,), 40, 1, Streams(3)("input_schedule"))
+    assert torch.equal(tr.info["input_mask"], expected)
+    applied = tr.info["inputs_applied"]
+    torch.testing.assert_close(tr.us, applied, rtol=0, atol=0)  # acknowledged, no attack
+    sent = lossy.inputs(6, torch.float64)
+    assert not torch.equal(applied, sent)
+    lost = ~expected[:, 1:, 0]
+    assert torch.equal(applied[:, 1:][lost], applied[:, :-1][lost])  # held
+    plain = _with().simulate(6, Streams(3).simulation())
+    never = _with(input_loss={"kind": "packet_loss", "rate": 0.0}).simulate(
+        6, Streams(3).simulation()
+    )
+    assert torch.equal(plain.x, never.x) and torch.equal(plain.y_recv, never.y_recv)
+    udp = _with(input_loss={"kind": "packet_loss", "rate": 0.4, "acknowledged": False})
+    tr_udp = udp.simulate(6, Streams(3).simulation())
+    assert torch.equal(tr_udp.x, tr.x) and torch.equal(tr_udp.us, sent)
+
+
+def test_the_suite_gives_the_estimators_the_inputs_they_know(monkeypatch, tmp_path):
+    """Through run_suite: the Kalman filter steps with the acknowledged inputs (its means are
+    the filter's on tr.us, the applied inputs) and, unacknowledged, with the sent ones,
+    which a lost packet makes wrong (its state error several times larger)."""
+    from difffilter import kalman_filter
+    from difffilter.eval.suite import run_suite
+
+    monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path))
+    rmse = {}
+    for acked in (True, False):
+        sc = _with(input_loss={"kind": "packet_loss", "rate": 0.3, "on_loss": "zero",
+                               "acknowledged": acked},
+                   inputs={"kind": "sinusoid", "amplitude": 3.0, "frequency": 2.0},
+                   estimators=["kf"])  # fmt: skip
+        result = run_suite(sc, runs=6, progress=False)
+        tr = result.traj
+        ref = kalman_filter(sc.system(torch.float64), tr.y_recv, tr.us)
+        torch.testing.assert_close(result.outputs["kf"].means, ref.means,
+                                   rtol=0, atol=1e-10)  # fmt: skip
+        rmse[acked] = result.metrics["kf"]["state_rmse"]
+        us = tr.info["inputs_applied"] if acked else sc.inputs(6, torch.float64)
+        assert torch.equal(tr.us, us)
+    assert rmse[False] > 3 * rmse[True]
