@@ -35,6 +35,7 @@ _WHERE = {
         ),
         "extended",
     ),  # fmt: skip
+    "ExpectedInputKalmanFilter": "expected_input",
     "GainSchedule": "gain_schedule",
     **dict.fromkeys(
         (

@@ -21,9 +21,9 @@ that attack, ``ū − û`` of the held inputs, as the step's). What the estimato
   filter on that input is then the optimal estimator, as without loss.
 * **unacknowledged** (UDP-like): the estimator steps with the sent ``u_{k−1}``, unaware of
   the loss: where a packet is lost the plant moved under another input than the model's.
-  (Schenato et al.'s UDP-like estimator knows the arrival rate ``ν̄`` instead, and predicts
-  with ``ν̄ u`` and ``P⁻ + ν̄(1 − ν̄) B u uᵀ Bᵀ``, for ``ZERO``; an estimator of one's own
-  can, with the sent ``u`` it is given.)
+  Schenato et al.'s UDP-like estimator, for ``ZERO``, knows the arrival rate ``ν̄`` and
+  predicts with ``ν̄ B u`` and ``P⁻ + ν̄(1 − ν̄) B u uᵀ Bᵀ``:
+  :class:`~difffilter.expected_input.ExpectedInputKalmanFilter`, given the sent ``u``.
 
 :class:`InputLoss` is that channel, given to :func:`difffilter.loop.closed_loop` as
 ``input_loss=``; ``mask`` says which packets arrived, e.g. from

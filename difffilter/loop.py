@@ -467,7 +467,9 @@ def closed_loop(
         controller: a :class:`Controller`, or ``None``: no input (a plant that has inputs
             runs with ``u = 0``, without a word, and ``Trajectories.us`` is ``None``).
         attack: an :class:`~difffilter.attack.Attack` or ``None``; attack_generator its
-            draws.
+            draws. One whose onset lies after the last step runs and never acts (training
+            draws such onsets on purpose; ``difffilter.threats.check_attack_fits(attack,
+            plant, T)`` refuses them, as the evaluation does for a scenario's own attack).
         mask: received entries ``[B, T, dy]`` (the schedule) or ``None``, indexed by the
             absolute step.
         generator: the estimator's draws (a ``torch.Generator`` or
@@ -604,11 +606,10 @@ def closed_loop(
                 kept = LoopState(k, x, u, a_state, carry, view, memory).copy()
                 forks[k] = LoopFork(kept, {key: list(v) for key, v in rec.items()}, list(outs))
     except (TypeError, AttributeError) as error:
-        if attack is not None and not shows_state and _raised_in(error, attack):
-            error.add_note(
-                f"(attack {type(attack).__name__} declares reads_state = False, so the loop "
-                "hands it x=None: set reads_state = True on the class to read the true state)"
-            )
+        if attack is not None and hasattr(error, "add_note"):  # (Python ≥ 3.11)
+            hint = _undeclared_read(error, attack, shows_state, reads)
+            if hint is not None:
+                error.add_note(hint)
         raise
     traj = _trajectories(rec, mask, first, k, channel)
     batch = x.shape[:-1]
@@ -644,17 +645,31 @@ class _Untouched:
             )
 
 
-def _raised_in(error: BaseException, attack) -> bool:
-    """Whether ``error`` was raised inside ``attack``'s ``step`` or ``conceal`` (or what they
-    called): a frame of their code in its traceback."""
+def _undeclared_read(error: BaseException, attack, shows_state: bool, reads: bool) -> str | None:
+    """A note for a ``None`` error raised inside ``attack``'s ``step`` or ``conceal`` that
+    was handed ``x=None`` (``reads_state`` False) or ``view=None`` (``reads_view`` False),
+    naming the declaration; ``None`` for any other error (an attack's own bug)."""
+    if "NoneType" not in str(error):
+        return None
     codes = {getattr(getattr(type(attack), name, None), "__code__", None)
              for name in ("step", "conceal")} - {None}  # fmt: skip
-    tb = error.__traceback__
+    tb, frame = error.__traceback__, None
     while tb is not None:
         if tb.tb_frame.f_code in codes:
-            return True
+            frame = tb.tb_frame
         tb = tb.tb_next
-    return False
+    if frame is None:
+        return None
+    local = frame.f_locals
+    undeclared = [f"{name}=None because {flag} = False" for name, flag, given in
+                  (("x", "reads_state", shows_state), ("view", "reads_view", reads))
+                  if not given and name in local and local[name] is None]  # fmt: skip
+    if not undeclared:
+        return None
+    return (
+        f"(attack {type(attack).__name__} was handed {' and '.join(undeclared)}: an attack "
+        "reads the true state or the estimator's output only where its class declares it)"
+    )
 
 
 def _tensors_of(output) -> list[Tensor]:
@@ -924,32 +939,12 @@ def _start(plant, steps, horizon, x0, estimator, model, controller, attack, atta
         u = _checked_input(controller, controller.init(batch, dtype, device), x0, plant, 0)
     a_state = None
     if attack is not None:
-        first = _first_attacked_step(attack)
-        if first is not None and first > steps:
-            # (a typed onset beyond the horizon ran an "attacked" study without an attack)
-            raise ValueError(
-                f"attack {type(attack).__name__} starts at step {first}, after the loop's last "
-                f"step ({steps}{', the horizon' if horizon else ''}): it would never act"
-            )
         dim = attack_dim(plant, attack.channel)
         a_state = attack.init(batch, steps, dim, attack_generator, dtype=dtype, device=device)
     carry = None
     if estimator is not None:
         carry = estimator._init(model, batch, Generators.of(generator))
     return LoopState(0, x0, u, a_state, carry, None)
-
-
-def _first_attacked_step(attack) -> int | None:
-    """The first step (1-based) an attack with an ``onset`` (the threat library's) or a
-    0-based ``start`` (the papers' actuator injection) acts at, also inside a covert
-    attack's ``signal``; ``None`` where it says none."""
-    signal = getattr(attack, "signal", attack) if getattr(attack, "conceals", False) else attack
-    onset, start = getattr(signal, "onset", None), getattr(signal, "start", None)
-    if isinstance(onset, int) and not isinstance(onset, bool):
-        return onset
-    if isinstance(start, int) and not isinstance(start, bool):
-        return start + 1
-    return None
 
 
 def _check_controller(controller) -> None:

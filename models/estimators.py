@@ -341,7 +341,8 @@ class SuiteContext:
     @cached_property
     def calibration(self):
         """Attack-free runs of the plant from their own streams (at least 50 runs)."""
-        streams = {k: self.streams(f"calibration/{k}") for k in ("plant", "schedule")}
+        streams = {k: self.streams(f"calibration/{k}")
+                   for k in ("plant", "schedule", "input_schedule")}  # fmt: skip
         runs = max(self.runs, 50)
         return self.scenario.simulate(
             runs, streams, dtype=self.dtype, attack=None, model=self.model

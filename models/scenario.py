@@ -431,6 +431,12 @@ class CustomScenario(Scenario):
                 "input_loss must be a difffilter.input_loss.InputLossSchedule(schedule, on_loss, "
                 f"acknowledged) or None; got {type(self.input_loss).__name__}"
             )
+        if self.input_loss is not None and getattr(self.attack, "conceals", False):
+            raise ValueError(
+                f"attack {type(self.attack).__name__} conceals its effect by simulating it as if "
+                "its input packets arrived, and input_loss loses some: a covert attack runs "
+                "without input_loss"
+            )
         known = self.known_inputs
         if known is not None and not callable(known) and not isinstance(known, Tensor):
             raise TypeError(

@@ -468,14 +468,20 @@ def _attack_object(spec: Any, model, where: str):
         raise ValueError(f"{where}: {error}") from None
 
 
+#: The fields of each schedule kind: (required, optional).
+_SCHEDULE_FIELDS = {
+    "round_robin": ({"groups"}, {"start"}),
+    "packet_loss": ({"rate"}, {"packets"}),
+    "burst_loss": ({"to_bad", "to_good"}, {"loss_good", "loss_bad", "packets"}),
+}
+
+
 def _schedule(spec: Any, where: str):
     if spec is None or spec == "all":
         return AllSensors()
     kind = spec.get("kind") if isinstance(spec, Mapping) else None
-    fields = {"round_robin": ({"groups"}, {"start"}), "packet_loss": ({"rate"}, {"packets"}),
-              "burst_loss": ({"to_bad", "to_good"}, {"loss_good", "loss_bad", "packets"})}  # fmt: skip
-    if kind in fields:
-        required, optional = fields[kind]
+    if kind in _SCHEDULE_FIELDS:
+        required, optional = _SCHEDULE_FIELDS[kind]
         _check_fields(spec, {"kind"} | required | optional, where)
         missing = sorted(required - set(spec))
         if missing:
@@ -504,13 +510,14 @@ def _input_loss(spec: Any, where: str):
     (the schedule's fields as ``schedule:``'s, over the plant's inputs), or ``None``."""
     if spec is None:
         return None
-    if not isinstance(spec, Mapping) or spec.get("kind") not in ("packet_loss", "burst_loss",
-                                                                 "round_robin"):  # fmt: skip
+    if not isinstance(spec, Mapping) or spec.get("kind") not in _SCHEDULE_FIELDS:
         raise ValueError(
             f"{where} must be {{kind: packet_loss, rate: r}}, {{kind: burst_loss, to_bad: p, "
             f"to_good: q}} or {{kind: round_robin, groups: [[...], ...]}}, with on_loss "
             f"(hold or zero) and acknowledged (true or false) optional; got {spec!r}"
         )
+    required, optional = _SCHEDULE_FIELDS[spec["kind"]]
+    _check_fields(spec, {"kind", "on_loss", "acknowledged"} | required | optional, where)
     channel = {k: v for k, v in spec.items() if k not in ("on_loss", "acknowledged")}
     schedule = _schedule(channel, where)
     try:

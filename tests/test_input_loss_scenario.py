@@ -122,3 +122,31 @@ def test_the_suite_gives_the_estimators_the_inputs_they_know(monkeypatch, tmp_pa
         us = tr.info["inputs_applied"] if acked else sc.inputs(6, torch.float64)
         assert torch.equal(tr.us, us)
     assert rmse[False] > 3 * rmse[True]
+
+
+def test_a_misspelt_field_lists_every_field_and_a_covert_attack_is_refused_at_load():
+    with pytest.raises(ValueError, match="unknown field.*acknowleged.*valid: acknowledged, kind, "
+                                         "on_loss, packets, rate"):  # fmt: skip
+        _with(input_loss={"kind": "packet_loss", "rate": 0.1, "acknowleged": False})
+    with pytest.raises(ValueError, match="motor.yaml.*conceals"):
+        _with(input_loss={"kind": "packet_loss", "rate": 0.1},
+              attack={"kind": "covert", "signal": {"kind": "bias", "value": 0.5,
+                                                   "channel": "actuator"}})  # fmt: skip
+
+
+def test_the_calibration_draws_its_arrivals_from_its_own_stream(monkeypatch, tmp_path):
+    """The detectors' attack-free calibration runs draw the input arrivals from the stream
+    calibration/input_schedule (they came from torch's global generator: a CUSUM threshold
+    of 18.48 or 14.73 by the global seed)."""
+    from difffilter.models.estimators import SuiteContext
+
+    sc = _with(input_loss={"kind": "packet_loss", "rate": 0.4, "acknowledged": False})
+    masks = []
+    for global_seed in (0, 1):
+        torch.manual_seed(global_seed)
+        ctx = SuiteContext(scenario=sc, model=sc.system(torch.float64), runs=6,
+                           streams=Streams(3))  # fmt: skip
+        masks.append(ctx.calibration.info["input_mask"])
+    assert torch.equal(masks[0], masks[1])
+    expected = PacketLoss(0.4).mask((50,), 40, 1, Streams(3)("calibration/input_schedule"))
+    assert torch.equal(masks[0], expected)

@@ -695,20 +695,40 @@ class _ReadsX(_Records):
         return state, torch.zeros_like(y) + 0 * shift, torch.zeros(y.shape[:-1], dtype=torch.bool)
 
 
+class _ReadsView(_Records):
+    """Reads the estimator's output without declaring it (reads_view = False)."""
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        return (
+            state,
+            torch.zeros_like(y) + 0 * view.mean[..., :1],
+            torch.zeros(y.shape[:-1], dtype=torch.bool),
+        )
+
+
+class _OwnBug(_Records):
+    """Fails by a TypeError of its own."""
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        return state, y + "oops", None
+
+
 def test_what_a_power_systems_trial_could_not_tell_from_the_errors():
-    """An onset beyond the loop's steps ran an "attacked" study without an attack; a gain of
-    another width failed in a torch matmul, or named the input's shape alone; an attack that
-    reads x undeclared failed with "'NoneType' object is not subscriptable" alone."""
+    """A gain of another width failed in a torch matmul, or named the input's shape alone;
+    an attack that reads x or the view undeclared failed with "'NoneType' object is not
+    subscriptable" alone (a note names the declaration now; an attack's own TypeError gets
+    none). An onset after the last step runs and never acts (training draws such onsets);
+    check_attack_fits names it."""
     from difffilter.loop import StateFeedback
-    from difffilter.threats import Ramp
+    from difffilter.threats import Ramp, check_attack_fits
 
     model = _linear()
     x0 = torch.zeros(2, model.dim_x, dtype=torch.float64)
     noise = DrawnNoise(torch.Generator().manual_seed(0))
-    with pytest.raises(ValueError, match="starts at step 80, after the loop's last step \\(50\\)"):
-        closed_loop(model, 50, noise=noise, x0=x0, attack=Ramp(0.1, onset=80))
-    with pytest.raises(ValueError, match="after the loop's last step \\(60, the horizon\\)"):
-        closed_loop(model, 10, horizon=60, noise=noise, x0=x0, attack=Ramp(0.1, onset=80))
+    late = closed_loop(model, 50, noise=noise, x0=x0, attack=Ramp(0.1, onset=80))
+    assert not bool(late.trajectories.flags.any())
+    with pytest.raises(ValueError, match="starts at step 80, after the last step \\(50\\)"):
+        check_attack_fits(Ramp(0.1, onset=80), model, 50)
     wide = StateFeedback(torch.ones(1, 3, dtype=torch.float64))
     with pytest.raises(ValueError, match=r"gain K is \(1, 3\).*\[du, 2\]"):
         closed_loop(model, 5, noise=noise, x0=x0, estimator=df.KalmanFilter(), controller=wide)
@@ -718,8 +738,13 @@ def test_what_a_power_systems_trial_could_not_tell_from_the_errors():
     ):
         closed_loop(model, 5, noise=noise, x0=x0, estimator=df.KalmanFilter(),
                     controller=transposed)  # fmt: skip
-    with pytest.raises(TypeError) as error:
-        closed_loop(model, 5, noise=noise, x0=x0, attack=_ReadsX("sensor", False))
-    assert "reads_state = False" in "".join(getattr(error.value, "__notes__", []))
-    with pytest.raises(ZeroDivisionError):  # another error of the attack's own: no note
-        closed_loop(model, 5, noise=noise, x0=x0, attack=_Returns(lambda y, k: 1 / 0))
+
+    def notes(attack, **kw):
+        with pytest.raises((TypeError, AttributeError)) as error:
+            closed_loop(model, 5, noise=noise, x0=x0, attack=attack, **kw)
+        return "".join(getattr(error.value, "__notes__", []))
+
+    assert "x=None because reads_state = False" in notes(_ReadsX("sensor", False))
+    said = notes(_ReadsView("sensor", True), estimator=df.KalmanFilter())
+    assert "view=None because reads_view = False" in said and "reads_state" not in said
+    assert notes(_OwnBug("sensor", False)) == ""

@@ -229,7 +229,9 @@ def test_onsets_past_the_horizon_are_counted_and_the_data_module_warns():
         assert abs(sum(o > 6 for o in onsets) / len(onsets) - share) < 0.05, name
 
     with pytest.warns(UserWarning, match=r"threats\.bias: 60% of its onsets fall after"):
-        ScenarioDataModule("four_tank_bias", val_runs=2, test_runs=1, steps=6, threats=MIX)
+        short = ScenarioDataModule("four_tank_bias", val_runs=2, test_runs=1, steps=6, threats=MIX)
+    batch = short.train_batch(0, 0)  # drawn as warned: the late onsets' runs attack-free
+    assert batch["flags"].shape[-1] == 6 and not bool(batch["flags"].all())
     import warnings
 
     with warnings.catch_warnings():
