@@ -95,7 +95,8 @@ class Trajectories(NamedTuple):
             actuator attacks, ``0`` without an attack: ``[B, T, 0]``, so compare an attack
             estimate with it only under an attack).
         flags: attacked steps ``[B, T]`` (bool): an attacked entry was received (under a
-            mask; an actuator attack's steps whatever the mask).
+            mask; an actuator attack's steps whatever the mask, and, under an input loss
+            that holds, the steps after them where a held input still carries it).
         info: extras: ``"attack_values"`` ``[B, T, da]`` (what the attacker would inject
             at every step, also where it does not), ``"attack_flags"`` (the attack's own
             flags ``l_k``, ``[B, T]`` or per entry ``[B, T, da]``, before any mask: where it
@@ -491,9 +492,10 @@ def closed_loop(
 
     Returns a :class:`LoopResult`: the trajectories of these ``L`` steps
     (``us`` = the inputs the estimator knew, ``attack``/``flags``/``info["attack_values"]``
-    as the attack made them; under ``input_loss`` ``info["inputs_applied"]``, what drove the
-    plant, and ``info["input_mask"]``, the arrivals), the estimator's output over them and
-    the final state.
+    as the attack made them, or, under ``input_loss``, as they reached the plant (module
+    :mod:`difffilter.input_loss`), with ``info["inputs_applied"]``, what drove the plant,
+    ``info["inputs_sent"]``, the controller's, and ``info["input_mask"]``, the arrivals),
+    the estimator's output over them and the final state.
     Differentiable end to end (the loop records no tensor in place).
     """
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
@@ -511,9 +513,11 @@ def closed_loop(
                          "not part of the loop's state, so a fork could not replay it")  # fmt: skip
     _check_parts(estimator, attack)
     if input_loss is not None and not isinstance(input_loss, InputLoss):
+        drawn = (" (a scenario's InputLossSchedule: its .draw(runs, steps, du, generator))"
+                 if callable(getattr(input_loss, "draw", None)) else "")  # fmt: skip
         raise TypeError(
             "input_loss must be a difffilter.loop.InputLoss(mask, on_loss, acknowledged=...) or "
-            f"None; got {type(input_loss).__name__}"
+            f"None; got {type(input_loss).__name__}{drawn}"
         )
     channel = None if attack is None else Channel(attack.channel)
     conceals = channel is Channel.ACTUATOR and bool(getattr(attack, "conceals", False))
@@ -540,7 +544,7 @@ def closed_loop(
             state = _start(plant, steps, horizon, x0, estimator, model, controller, attack,
                            attack_generator, generator)  # fmt: skip
         keys = ("x", "y", "recv", "u", "attack", "value", "flag", "concealment", "applied",
-                "arrived", "acting")  # fmt: skip
+                "sent", "arrived", "acting")  # fmt: skip
         rec, outs = {key: [] for key in keys}, []
     _check_lengths(plant, noise, mask, state, steps)
     if input_loss is not None:
@@ -573,6 +577,7 @@ def closed_loop(
                 sent = input_loss.deliver(k, u, a, flag, memory)
                 applied, known, a, memory = sent.applied, sent.known, sent.attack, sent.memory
                 rec["applied"].append(applied)
+                rec["sent"].append(u)
                 rec["arrived"].append(sent.arrived)
                 rec["acting"].append(sent.acting)
             x = noise.transition(plant, x, applied, k - 1)
@@ -1055,5 +1060,6 @@ def _trajectories(rec, mask, k0, k1, channel) -> Trajectories:
         info["attack_concealment"] = torch.stack(rec["concealment"], 1)
     if rec["applied"]:
         info["inputs_applied"] = torch.stack(rec["applied"], 1)
+        info["inputs_sent"] = torch.stack(rec["sent"], 1)
         info["input_mask"] = torch.stack(rec["arrived"], 1)
     return Trajectories(x, y, recv, us, m, attack, flags, info)

@@ -247,6 +247,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
         "scenario": sc.name, "runs": result.runs, "steps": sc.steps, "seed": result.seed,
         "units": {name: m.unit for name, m in METRICS.items()},
         "scenario_units": {"state": sc.state_unit, "attack": sc.attack_unit},
+        "network": network_of(sc),
         "paper": sc.paper_numbers(),
         "estimators": {n: {**dict.fromkeys(METRICS), **m} for n, m in result.metrics.items()},
         "description": sc.description, "dt_s": sc.dt, "reference": result.reference,
@@ -292,6 +293,34 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     return doc
 
 
+def network_of(sc) -> dict:
+    """``{"sensors": the schedule, "inputs": the input packets' loss or None}`` of a
+    scenario, as metrics.json records it (a TCP-like and a UDP-like study differed by their
+    names alone)."""
+    loss = sc.input_loss_schedule()
+    inputs = None if loss is None else {
+        "schedule": repr(loss.schedule), "on_loss": loss.on_loss.value,
+        "acknowledged": loss.acknowledged,
+    }  # fmt: skip
+    return {"sensors": repr(sc.schedule()), "inputs": inputs}
+
+
+def _network_line(network: dict | None) -> str:
+    """The report's sentence on a lossy network ("" where every packet arrives)."""
+    if not network or (network["sensors"] == "AllSensors()" and network["inputs"] is None):
+        return ""
+    line = f"\nNetwork: measurements `{network['sensors']}`"
+    inputs = network["inputs"]
+    if inputs is not None:
+        told = ("acknowledged (TCP-like: the estimators step with the inputs applied)"
+                if inputs["acknowledged"] else
+                "unacknowledged (UDP-like: the estimators step with the inputs sent)")  # fmt: skip
+        line += (f"; input packets `{inputs['schedule']}`, the actuators "
+                 f"{'holding their last input' if inputs['on_loss'] == 'hold' else 'applying zero'}"
+                 f" where one is lost, {told}")  # fmt: skip
+    return line + ".\n"
+
+
 def _summary_section(doc: dict, sc) -> Section:
     body = (
         f"{doc['runs']} Monte Carlo runs × {doc['steps']} steps (dt = {doc['dt_s']} s), seed "
@@ -311,6 +340,7 @@ def _summary_section(doc: dict, sc) -> Section:
         below = below_target_note(far)
         if below:
             body += f"\n{below}\n"
+    body += _network_line(doc.get("network"))
     if doc.get("skipped"):
         body += "\nSkipped: " + "; ".join(f"`{k}` ({v})" for k, v in doc["skipped"].items())
         body += ".\n"

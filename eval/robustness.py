@@ -145,6 +145,12 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
                 threats[name] = threat_from_dict(spec, model=model)
             # (a crafted threat: its onset only; a library threat: its widths too)
             check_attack_fits(threats[name], model, getattr(scenario, "steps", None))
+            if getattr(threats[name], "conceals", False) and scenario.input_loss_schedule():
+                raise ValueError(
+                    "a covert attack's concealment assumes its input packets arrive, and "
+                    f"{scenario.name} loses some (input_loss): leave it out of this scenario's "
+                    "study (exclude:)"
+                )
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{path}: threat {name!r}: {exc}") from None
     estimators, runs = data.get("estimators"), data.get("runs")

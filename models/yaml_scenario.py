@@ -51,7 +51,8 @@ noise as above::
 
 or the whole model by one path, ``plant: {model: my_plants:vdp}`` (a function ``dtype →
 StateSpaceModel``). ``inputs`` is ``{kind: sinusoid, amplitude, frequency (Hz), phase
-(rad)}``, ``{kind: constant, value}``, ``{values: [[...], ...]}`` (``[T, du]``) or
+(rad)}`` (each a number, or a list with one per input for several), ``{kind: constant,
+value}`` (a number or one per input), ``{values: [[...], ...]}`` (``[T, du]``) or
 ``{function: module:function}`` (of the step index tensor ``k``, as
 :class:`~difffilter.models.scenario.CustomScenario`'s ``known_inputs``). ``attack`` is
 any threat of :data:`difffilter.threats.THREATS` (``kind`` and its fields), or one of
@@ -554,11 +555,23 @@ def _inputs(spec: Any, dt: float, where: str):
                              f"got {spec['values']!r}")  # fmt: skip
         return values
     if form == "sinusoid":
-        amplitude, frequency = (
-            _number(spec[k], f"{where}.{k}") for k in ("amplitude", "frequency")
+        parts = {k: spec.get(k, 0.0) for k in ("amplitude", "frequency", "phase")}
+        if not any(isinstance(v, list) for v in parts.values()):  # one input: k [T] → [T]
+            amplitude, frequency, phase = (_number(v, f"{where}.{k}") for k, v in parts.items())
+            return lambda k: amplitude * torch.sin(2 * math.pi * frequency * dt * k + phase)
+        # one sinusoid per input: a list of du numbers (a number: the same for every input)
+        amplitude, frequency, phase = (
+            _vector(v if isinstance(v, list) else [v], f"{where}.{k}", torch.float64)
+            for k, v in parts.items()
         )
-        phase = _number(spec.get("phase", 0.0), f"{where}.phase")
-        return lambda k: amplitude * torch.sin(2 * math.pi * frequency * dt * k + phase)
+        try:
+            width = torch.broadcast_shapes(amplitude.shape, frequency.shape, phase.shape)
+        except RuntimeError:
+            raise ValueError(f"{where}: amplitude, frequency and phase must hold one number, or "
+                             f"one per input (the same count); got {dict(parts)!r}") from None  # fmt: skip
+        return lambda k: (amplitude.to(k.dtype) * torch.sin(
+            2 * math.pi * frequency.to(k.dtype) * dt * k.unsqueeze(-1) + phase.to(k.dtype)
+        )).expand(k.shape[0], width[0])  # fmt: skip
     if form == "constant":
         value = _vector([spec["value"]] if isinstance(spec["value"], (int, float)) else spec["value"],
                         f"{where}.value", torch.float64)  # fmt: skip

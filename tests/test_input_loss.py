@@ -37,7 +37,7 @@ def _setup(per_actuator=False, seed=0):
 
 def _by_hand(plant, noise, us, arrived, x0, hold, attack=None):
     """The loop of the module docstring, step by step: (states, applied inputs, the attack
-    in them, where it acts)."""
+    in them, the attacked steps: its own, and where a held input carries it)."""
     x, held, xs, applied_all = x0, torch.zeros_like(us[:, 0]), [], []
     held_a, held_on, attacks, acting = (
         torch.zeros_like(held),
@@ -55,8 +55,9 @@ def _by_hand(plant, noise, us, arrived, x0, hold, attack=None):
         arrive = nu[:, t]
         applied = torch.where(arrive, content, held if hold else torch.zeros_like(held))
         recorded = torch.where(arrive, a, held_a if hold else torch.zeros_like(a))
-        on = torch.where(arrive, on, held_on if hold else torch.zeros_like(on))
-        held, held_a, held_on = applied, recorded, on
+        carried = torch.where(arrive, on, held_on if hold else torch.zeros_like(on))
+        held, held_a, held_on = applied, recorded, carried
+        on = on | carried
         x = x @ plant.F.T + applied @ plant.B.T + noise.process[:, t]
         xs.append(x)
         applied_all.append(applied)
@@ -134,8 +135,9 @@ def test_every_packet_arriving_is_the_loop_without_loss():
 @pytest.mark.parametrize("on_loss", ["hold", "zero"])
 def test_an_actuator_attack_travels_in_its_packet(on_loss):
     """The attack rides in the packet: lost with it where the actuators apply zero, and
-    held with it where they hold (recorded and flagged where it is in the applied input);
-    an acknowledged estimator steps with the sent inputs that arrived, never the attack."""
+    held with it where they hold (recorded where it is in the applied input; flagged on its
+    own steps, lost packet or not, and where a held input carries it beyond them); an
+    acknowledged estimator steps with the sent inputs that arrived, never the attack."""
     plant = _plant()
     noise, us, arrived, x0 = _setup(seed=2)
     values = torch.zeros(T, 2, dtype=torch.float64)
@@ -158,8 +160,9 @@ def test_an_actuator_attack_travels_in_its_packet(on_loss):
     window = (values.abs().sum(-1) > 0).expand(B, T)
     if hold:  # the attack outlasts its window where the packets after it were lost
         assert bool((tr.flags & ~window).any())
-    else:  # and is absent where its packet was lost
-        assert torch.equal(tr.flags, window & arrived)
+    else:  # flagged on its own steps: one attack, not one per arrived packet
+        assert torch.equal(tr.flags, window)
+        assert bool((tr.attack[window & ~arrived] == 0).all())
 
 
 def test_a_loop_with_input_loss_run_in_chunks_or_from_a_fork_is_the_loop_at_once():
@@ -240,22 +243,30 @@ class _FirstActuator(Attack):
         return state, value, value != 0
 
 
-def test_an_attack_on_one_actuator_is_flagged_where_that_actuators_packet_arrived():
-    """Flags entry by entry: a step is attacked where an attacked actuator's packet arrived
-    (not where only the other actuator's did)."""
+def test_an_attack_on_one_actuator_is_carried_by_that_actuators_held_input():
+    """Flags entry by entry: under hold a step after the attack's own is attacked where the
+    attacked actuator still holds an input that carries it (its own packets decide, not
+    the other actuator's)."""
     plant = _plant()
     noise, us, arrived, x0 = _setup(per_actuator=True, seed=5)
     values = torch.zeros(T, 2, dtype=torch.float64)
-    values[5:22, 0] = 0.9  # the first actuator alone
+    values[4:6, 0] = 0.9  # the first actuator alone
     got = closed_loop(plant, T, noise=noise, x0=x0, controller=KnownInputs(us),
-                      attack=_FirstActuator(values), input_loss=InputLoss(arrived, "zero"))  # fmt: skip
-    xs = _by_hand(plant, noise, us, arrived, x0, False, attack=values)[0]
+                      attack=_FirstActuator(values), input_loss=InputLoss(arrived, "hold"))  # fmt: skip
     tr = got.trajectories
-    torch.testing.assert_close(tr.x, xs, rtol=0, atol=1e-13)
-    expected = (values[:, 0] != 0).expand(B, T) & arrived[..., 0]
+    own, carried, expected = values[:, 0] != 0, torch.zeros(B, dtype=torch.bool), []
+    for t in range(T):
+        carried = torch.where(arrived[:, t, 0], own[t].expand(B), carried)
+        expected.append(own[t] | carried)
+    expected = torch.stack(expected, 1)
     assert torch.equal(tr.flags, expected)
-    assert bool(expected.any()) and not torch.equal(expected, (values[:, 0] != 0).expand(B, T))
-    assert not torch.equal(expected, arrived.any(-1) & (values[:, 0] != 0))
+    assert bool((expected & ~own).any())  # carried beyond its window somewhere
+    either = []  # had any actuator's arrival decided, the flags would differ
+    carried = torch.zeros(B, dtype=torch.bool)
+    for t in range(T):
+        carried = torch.where(arrived[:, t].any(-1), own[t].expand(B), carried)
+        either.append(own[t] | carried)
+    assert not torch.equal(expected, torch.stack(either, 1))
 
 
 def test_one_link_for_every_actuator_and_what_input_loss_refuses():

@@ -150,3 +150,63 @@ def test_the_calibration_draws_its_arrivals_from_its_own_stream(monkeypatch, tmp
     assert torch.equal(masks[0], masks[1])
     expected = PacketLoss(0.4).mask((50,), 40, 1, Streams(3)("calibration/input_schedule"))
     assert torch.equal(masks[0], expected)
+
+
+def test_the_report_records_the_network_and_a_covert_threat_is_named_in_the_threat_set(
+    monkeypatch, tmp_path
+):
+    """metrics.json and report.md say what the network lost (a TCP-like and a UDP-like study
+    were told apart by their names alone); a threat set's covert attack on a scenario that
+    loses inputs is named with the file and the threat before the study runs."""
+    import json
+
+    from difffilter.eval.report import network_of, write_report
+    from difffilter.eval.robustness import load_threat_set
+    from difffilter.eval.suite import run_suite
+
+    monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path))
+    sc = _with(input_loss={"kind": "packet_loss", "rate": 0.3, "on_loss": "zero",
+                           "acknowledged": False}, estimators=["kf"])  # fmt: skip
+    assert network_of(sc) == {
+        "sensors": "AllSensors()",
+        "inputs": {
+            "schedule": "PacketLoss(rate=0.3, packets=None)",
+            "on_loss": "zero",
+            "acknowledged": False,
+        },
+    }
+    assert network_of(_with())["inputs"] is None
+    write_report(tmp_path / "out", run_suite(sc, runs=4, progress=False))
+    doc = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert doc["network"] == network_of(sc)
+    text = (tmp_path / "out" / "report.md").read_text()
+    assert "applying zero where one is lost, unacknowledged (UDP-like" in text
+    threats = tmp_path / "threats.yaml"
+    threats.write_text(
+        textwrap.dedent("""
+        threats:
+          bias: {kind: bias, value: 0.5, channel: actuator, onset: 5}
+          hidden: {kind: covert, signal: {kind: bias, value: 0.5, channel: actuator, onset: 5}}
+    """)
+    )
+    assert set(load_threat_set(sc, ["bias"], path=threats).threats) == {"bias"}
+    with pytest.raises(ValueError, match=r"threats.yaml: threat 'hidden'.*input packets arrive"):
+        load_threat_set(sc, "all", path=threats)
+
+
+def test_a_sinusoid_per_input_from_yaml():
+    """A networked-control trial's two-input plant could not take a YAML sinusoid (one input
+    only, 'got [1, 80, 1]'): a list gives one per input; numbers keep the one input."""
+    plant = {**MOTOR["plant"], "B": [[0.0, 0.1], [0.2, 0.0]]}
+    sc = _with(plant=plant, inputs={"kind": "sinusoid", "amplitude": [1.0, 0.5],
+                                    "frequency": 2.0, "phase": [0.0, 1.0]})  # fmt: skip
+    us = sc.inputs(3, torch.float64)
+    k = torch.arange(40, dtype=torch.float64)
+    expected = torch.stack([torch.sin(2 * torch.pi * 2.0 * 0.01 * k),
+                            0.5 * torch.sin(2 * torch.pi * 2.0 * 0.01 * k + 1.0)], -1)  # fmt: skip
+    torch.testing.assert_close(us, expected.expand(3, 40, 2), rtol=0, atol=1e-15)
+    with pytest.raises(ValueError, match="one per input"):
+        _with(plant=plant, inputs={"kind": "sinusoid", "amplitude": [1.0, 0.5, 2.0],
+                                   "frequency": [1.0, 2.0]})  # fmt: skip
+    one = _with().inputs(2, torch.float64)
+    assert one.shape == (2, 40, 1)
