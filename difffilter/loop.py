@@ -47,6 +47,8 @@ inject nothing up to ``k``: a :class:`~difffilter.attack.TabulatedAttack`, check
 
 from __future__ import annotations
 
+import linecache
+import re
 from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple, Protocol
 
@@ -651,24 +653,27 @@ class _Untouched:
 
 
 def _undeclared_read(error: BaseException, attack, shows_state: bool, reads: bool) -> str | None:
-    """A note for a ``None`` error raised inside ``attack``'s ``step`` or ``conceal`` that
-    was handed ``x=None`` (``reads_state`` False) or ``view=None`` (``reads_view`` False),
-    naming the declaration; ``None`` for any other error (an attack's own bug)."""
+    """A note for a ``None`` error raised inside ``attack``'s ``step`` or ``conceal`` on a
+    line that reads ``x`` it was handed as ``None`` (``reads_state`` False) or ``view``
+    (``reads_view`` False), naming the declaration; ``None`` for any other error (an
+    attack's own bug, another argument that was ``None``)."""
     if "NoneType" not in str(error):
         return None
     codes = {getattr(getattr(type(attack), name, None), "__code__", None)
              for name in ("step", "conceal")} - {None}  # fmt: skip
-    tb, frame = error.__traceback__, None
+    tb, frame, line = error.__traceback__, None, ""
     while tb is not None:
         if tb.tb_frame.f_code in codes:
             frame = tb.tb_frame
+            line = linecache.getline(frame.f_code.co_filename, tb.tb_lineno)
         tb = tb.tb_next
     if frame is None:
         return None
     local = frame.f_locals
     undeclared = [f"{name}=None because {flag} = False" for name, flag, given in
                   (("x", "reads_state", shows_state), ("view", "reads_view", reads))
-                  if not given and name in local and local[name] is None]  # fmt: skip
+                  if not given and local.get(name, 0) is None
+                  and re.search(rf"\b{name}\b", line)]  # fmt: skip
     if not undeclared:
         return None
     return (

@@ -299,10 +299,18 @@ def network_of(sc) -> dict:
     names alone)."""
     loss = sc.input_loss_schedule()
     inputs = None if loss is None else {
-        "schedule": repr(loss.schedule), "on_loss": loss.on_loss.value,
+        "schedule": _described(loss.schedule), "on_loss": loss.on_loss.value,
         "acknowledged": loss.acknowledged,
     }  # fmt: skip
-    return {"sensors": repr(sc.schedule()), "inputs": inputs}
+    return {"sensors": _described(sc.schedule()), "inputs": inputs}
+
+
+def _described(schedule) -> str:
+    """A schedule's repr, or its class's name where the repr is object's own (it holds a
+    memory address: metrics.json would differ between identical runs)."""
+    if type(schedule).__repr__ is object.__repr__:
+        return type(schedule).__qualname__
+    return repr(schedule)
 
 
 def _network_line(network: dict | None) -> str:

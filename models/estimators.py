@@ -375,7 +375,9 @@ class SuiteContext:
         # as on disk: the process's cache is keyed on their fingerprint too)
         parts = (self.model, self.scenario.schedule(), self.scenario.inputs(runs, self.dtype))
         loss = self.scenario.input_loss_schedule()
-        parts += () if loss is None else (loss,)  # (no loss: the keys cached before it)
+        # (no loss: the keys cached before it; with one, a mark of the arrivals drawn from
+        # calibration/input_schedule, not the global generator as before 2026-12-01)
+        parts += () if loss is None else (loss, "calibration/input_schedule")
         process_key = (key, calibration_cache.model_fingerprint(parts))
         if process_key not in _CUSUM_CACHE:
             if len(_CUSUM_CACHE) >= 64:  # a long session of many scenarios: drop the oldest

@@ -102,3 +102,22 @@ def test_bad_arrival_rates_are_named():
         df.ExpectedInputKalmanFilter(0.5, independent=1)
     with pytest.raises(ValueError, match="holds 3 rates, and the model has 2"):
         df.ExpectedInputKalmanFilter((0.5, 0.5, 0.5), independent=True).init(_plant())
+
+
+def test_a_kalman_filters_carry_with_shared_gains_is_stepped_without_them():
+    """A KF carry on a time-invariant model holds the shared gain schedule, whose covariances
+    ignore the inputs: given to this filter it went on with the KF's covariances (a review:
+    pred_cov 0.249 off). The filter drops the schedule and steps as from a plain carry."""
+    model = _plant()
+    gen = torch.Generator().manual_seed(3)
+    _, ys, _ = model.simulate(5, (2,), generator=gen)
+    us = torch.randn(2, 5, 2, generator=gen, dtype=torch.float64)
+    est = df.ExpectedInputKalmanFilter(0.5)
+    gained = df.KalmanFilter().init(model, (2,))
+    assert gained.gains is not None
+    ref = open_loop(est, model, ys, us)
+    for t in range(5):
+        gained, out = est.step(gained, ys[:, t], us[:, t])
+        torch.testing.assert_close(out.pred_cov.expand(2, 2, 2), ref.extras["pred_covs"][:, t],
+                                   rtol=0, atol=1e-12)  # fmt: skip
+        torch.testing.assert_close(out.mean, ref.means[:, t], rtol=0, atol=1e-12)

@@ -4,7 +4,9 @@ stream, and what the estimators are given."""
 
 from __future__ import annotations
 
+import dataclasses
 import textwrap
+from pathlib import Path
 
 import pytest
 import torch
@@ -179,6 +181,23 @@ def test_the_report_records_the_network_and_a_covert_threat_is_named_in_the_thre
     write_report(tmp_path / "out", run_suite(sc, runs=4, progress=False))
     doc = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert doc["network"] == network_of(sc)
+    import jsonschema
+
+    schema = json.loads(
+        (Path(__file__).resolve().parents[1] / "eval" / "metrics.schema.json").read_text()
+    )
+    jsonschema.validate(doc, schema)
+
+    class EveryOther:  # a schedule of one's own, with object's repr (a memory address)
+        def mask(self, batch_shape, num_steps, dim, generator=None, *, device=None):
+            return (
+                (torch.arange(num_steps) % 2 == 0)
+                .unsqueeze(-1)
+                .expand(*batch_shape, num_steps, dim)
+            )
+
+    own = dataclasses.replace(sc, protocol=EveryOther())
+    assert network_of(own)["sensors"].endswith("EveryOther")
     text = (tmp_path / "out" / "report.md").read_text()
     assert "applying zero where one is lost, unacknowledged (UDP-like" in text
     threats = tmp_path / "threats.yaml"

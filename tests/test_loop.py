@@ -706,6 +706,17 @@ class _ReadsView(_Records):
         )
 
 
+class _ReadsU(_Records):
+    """Reads u, which a loop without a controller hands it as None."""
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        return (
+            state,
+            torch.zeros_like(y) + 0 * u[..., :1],
+            torch.zeros(y.shape[:-1], dtype=torch.bool),
+        )
+
+
 class _OwnBug(_Records):
     """Fails by a TypeError of its own."""
 
@@ -748,3 +759,4 @@ def test_what_a_power_systems_trial_could_not_tell_from_the_errors():
     said = notes(_ReadsView("sensor", True), estimator=df.KalmanFilter())
     assert "view=None because reads_view = False" in said and "reads_state" not in said
     assert notes(_OwnBug("sensor", False)) == ""
+    assert notes(_ReadsU("sensor", False)) == ""  # x and view were None too, but not read

@@ -1,0 +1,104 @@
+"""The modified Riccati equations of difffilter.lossy_control against their independent
+truths: the DAREs at rate 1, the scalar critical rate 1 − 1/a², the Kalman filter's mean
+prediction covariance under Bernoulli losses between Sinopoli's bounds, and the TCP-like
+controller's expected cost tr(S W) in Monte Carlo."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import difffilter as df
+from difffilter.control import dlqr, kalman_steady_state
+from difffilter.lossy_control import critical_arrival_rate, intermittent_kalman_bounds, lossy_dlqr
+
+F = torch.tensor([[1.1, 0.2], [0.0, 0.95]], dtype=torch.float64)
+H = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
+B = torch.tensor([[0.0], [1.0]], dtype=torch.float64)
+Q = torch.diag(torch.tensor([0.1, 0.05], dtype=torch.float64))
+R = torch.tensor([[0.2]], dtype=torch.float64)
+
+
+def test_every_packet_arriving_is_the_dare():
+    K, S = lossy_dlqr(F, B, Q, R, arrival_rate=1.0)
+    K0, S0 = dlqr(F, B, Q, R)
+    torch.testing.assert_close(K, K0, rtol=1e-8, atol=1e-10)
+    torch.testing.assert_close(S, S0, rtol=1e-8, atol=1e-10)
+    lower, upper = intermittent_kalman_bounds(F, H, Q, R, 1.0)
+    pred = kalman_steady_state(F, H, Q, R)[1]
+    torch.testing.assert_close(upper, pred, rtol=1e-8, atol=1e-10)
+    torch.testing.assert_close(lower, pred, rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize("a", [1.2, 2.0])
+def test_the_scalar_critical_rate_is_one_minus_one_over_a_squared(a):
+    Fs = torch.tensor([[a]], dtype=torch.float64)
+    one = torch.ones(1, 1, dtype=torch.float64)
+    rate = critical_arrival_rate(Fs, one, one, one)
+    assert rate.lower == pytest.approx(1 - 1 / a**2)
+    assert rate.lower <= rate.upper <= rate.lower + 2e-3  # (the MARE converges slowly near it)
+    with pytest.raises(ValueError, match="critical rate"):
+        intermittent_kalman_bounds(Fs, one, one, one, 0.9 * (1 - 1 / a**2))
+
+
+def test_the_filters_mean_covariance_lies_between_sinopolis_bounds():
+    """4,000 runs with measurements lost at 35 %: the mean of the Kalman filter's prediction
+    covariance after 150 steps lies between the lower and the upper bound (traces, and the
+    matrices in the positive semidefinite order)."""
+    lam, runs, T = 0.65, 4000, 150
+    model = df.LinearGaussianModel(F, H, Q, R, torch.zeros(2, dtype=torch.float64),
+                                   torch.eye(2, dtype=torch.float64))  # fmt: skip
+    gen = torch.Generator().manual_seed(0)
+    ys = torch.zeros(runs, T, 1, dtype=torch.float64)  # (P⁻ never reads the data)
+    mask = torch.rand(runs, T, 1, generator=gen) < lam
+    out = open_pred_covs(model, ys, mask)
+    mean = out[:, -1].mean(0)
+    lower, upper = intermittent_kalman_bounds(F, H, Q, R, lam)
+    assert float(torch.linalg.eigvalsh(mean - lower).min()) > 0
+    assert float(torch.linalg.eigvalsh(upper - mean).min()) > 0
+    assert float(lower.trace()) < float(mean.trace()) < float(upper.trace())
+
+
+def open_pred_covs(model, ys, mask):
+    from difffilter.loop import open_loop
+
+    return open_loop(df.KalmanFilter(), model, ys, mask=mask).extras["pred_covs"]
+
+
+def test_the_tcp_like_controller_costs_tr_s_w_and_beats_the_lossless_gain():
+    """x_{k+1} = F x + ν B u + w with u = −K x (the state known), inputs lost at 30 %: over
+    4,000 runs the mean cost per step of the last 100 of 300 steps is tr(S W) within Monte
+    Carlo error, and the lossless LQR gain costs more."""
+    rate, runs, T = 0.7, 4000, 300
+    K, S = lossy_dlqr(F, B, Q, R, arrival_rate=rate)
+    K0, _ = dlqr(F, B, Q, R)
+    W = 0.01 * torch.eye(2, dtype=torch.float64)
+    costs = {}
+    for name, gain in (("lossy", K), ("lossless", K0)):
+        gen = torch.Generator().manual_seed(1)
+        x = torch.zeros(runs, 2, dtype=torch.float64)
+        total = torch.zeros(runs, dtype=torch.float64)
+        for t in range(T):
+            u = -x @ gain.T
+            nu = (torch.rand(runs, 1, generator=gen) < rate).to(torch.float64)
+            if t >= T - 100:
+                total += (x @ Q * x).sum(-1) + ((nu * u) @ R * (nu * u)).sum(-1)
+            w = torch.randn(runs, 2, generator=gen, dtype=torch.float64) @ W.sqrt()
+            x = x @ F.T + (nu * u) @ B.T + w
+        costs[name] = total / 100
+    expected = float((S @ W).trace())
+    mean, se = float(costs["lossy"].mean()), float(costs["lossy"].std()) / runs**0.5
+    assert abs(mean - expected) < 4 * se + 0.01 * expected
+    assert float(costs["lossless"].mean()) > mean
+
+
+def test_bad_rates_and_undetectable_pairs_are_named():
+    for bad in (0.0, 1.2, True, "0.5"):
+        with pytest.raises(ValueError, match="arrival_rate must be a probability"):
+            lossy_dlqr(F, B, Q, R, arrival_rate=bad)
+    with pytest.raises(ValueError, match="too low"):
+        lossy_dlqr(torch.tensor([[3.0]], dtype=torch.float64), torch.ones(1, 1, dtype=torch.float64),
+                   arrival_rate=0.5)  # fmt: skip
+    blind = torch.tensor([[0.0, 1.0]], dtype=torch.float64)  # sees the stable state alone
+    with pytest.raises(ValueError, match="not detectable"):
+        critical_arrival_rate(F, blind)
