@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import linecache
 import re
+import traceback
 from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple, Protocol
 
@@ -652,6 +653,20 @@ class _Untouched:
             )
 
 
+def _failing_source(tb) -> str:
+    """The source of the expression a traceback entry was executing: its lines and columns
+    where Python records them (a call over several lines reads ``x`` on a later one), else
+    its line."""
+    summary = traceback.extract_tb(tb, limit=1)[0]
+    first, last = summary.lineno, getattr(summary, "end_lineno", None) or summary.lineno
+    lines = [linecache.getline(summary.filename, n) for n in range(first, last + 1)]
+    start, end = getattr(summary, "colno", None), getattr(summary, "end_colno", None)
+    if lines and start is not None and end is not None:
+        lines[-1] = lines[-1][:end]
+        lines[0] = lines[0][start:]
+    return "".join(lines)
+
+
 def _undeclared_read(error: BaseException, attack, shows_state: bool, reads: bool) -> str | None:
     """A note for a ``None`` error raised inside ``attack``'s ``step`` or ``conceal`` on a
     line that reads ``x`` it was handed as ``None`` (``reads_state`` False) or ``view``
@@ -661,11 +676,10 @@ def _undeclared_read(error: BaseException, attack, shows_state: bool, reads: boo
         return None
     codes = {getattr(getattr(type(attack), name, None), "__code__", None)
              for name in ("step", "conceal")} - {None}  # fmt: skip
-    tb, frame, line = error.__traceback__, None, ""
+    tb, frame, text = error.__traceback__, None, ""
     while tb is not None:
         if tb.tb_frame.f_code in codes:
-            frame = tb.tb_frame
-            line = linecache.getline(frame.f_code.co_filename, tb.tb_lineno)
+            frame, text = tb.tb_frame, _failing_source(tb)
         tb = tb.tb_next
     if frame is None:
         return None
@@ -673,7 +687,7 @@ def _undeclared_read(error: BaseException, attack, shows_state: bool, reads: boo
     undeclared = [f"{name}=None because {flag} = False" for name, flag, given in
                   (("x", "reads_state", shows_state), ("view", "reads_view", reads))
                   if not given and local.get(name, 0) is None
-                  and re.search(rf"\b{name}\b", line)]  # fmt: skip
+                  and re.search(rf"(?<![\w.]){name}\b", text)]  # fmt: skip
     if not undeclared:
         return None
     return (

@@ -32,6 +32,7 @@ from __future__ import annotations
 import numbers
 
 import numpy as np
+import scipy.linalg as sla
 import torch
 from torch import Tensor
 
@@ -51,11 +52,17 @@ def _rate(rate, name: str) -> float:
     return float(rate)
 
 
+#: Why :func:`_mare` gave no fixed point: its iteration grew without bound, or had not
+#: settled after ``max_iter`` steps (near the critical rate it moves slowly either way).
+DIVERGED, UNSETTLED = "diverged", "unsettled"
+
+
 def _mare(F: np.ndarray, G: np.ndarray, Q: np.ndarray, R: np.ndarray, rate: float,
-          tol: float = 1e-12, max_iter: int = 100_000) -> np.ndarray | None:  # fmt: skip
+          tol: float = 1e-12, max_iter: int = 100_000) -> np.ndarray | str:  # fmt: skip
     """The fixed point of ``X = F X Fᵀ + Q − rate · F X Gᵀ (G X Gᵀ + R)⁻¹ G X Fᵀ`` (the
-    filtering form; the control form is its dual, ``F → Fᵀ``, ``G → Bᵀ``), or ``None``
-    where the iteration from ``Q`` grows without bound (no fixed point)."""
+    filtering form; the control form is its dual, ``F → Fᵀ``, ``G → Bᵀ``), or why there is
+    none: :data:`DIVERGED` where the iteration from ``Q`` grows without bound,
+    :data:`UNSETTLED` where it has not settled after ``max_iter`` steps."""
     X = Q.copy()
     scale = max(float(np.trace(Q)), 1e-300)
     for _ in range(max_iter):
@@ -64,11 +71,29 @@ def _mare(F: np.ndarray, G: np.ndarray, Q: np.ndarray, R: np.ndarray, rate: floa
         nxt = FX @ F.T + Q - rate * FX @ G.T @ np.linalg.solve(S, G @ X @ F.T)
         nxt = 0.5 * (nxt + nxt.T)
         if not np.isfinite(nxt).all() or np.trace(nxt) > 1e15 * scale:
-            return None
+            return DIVERGED
         if np.abs(nxt - X).max() <= tol * max(np.abs(nxt).max(), 1e-300):
             return nxt
         X = nxt
-    return None
+    return UNSETTLED
+
+
+def _found(X) -> bool:
+    return not isinstance(X, str)
+
+
+def _no_fixed_point(why: str, rate: float, what: str) -> ValueError:
+    if why == UNSETTLED:
+        return ValueError(
+            f"{what}: the modified Riccati iteration at rate {rate} had not settled after "
+            "100,000 steps: the rate is at or just above the critical rate (critical_arrival_rate "
+            "gives it), where the mean covariance, if bounded, is very large"
+        )
+    return ValueError(
+        f"{what}: rate {rate} is at or below the critical rate: the modified Riccati equation "
+        "has no fixed point and the mean covariance may grow without bound "
+        "(critical_arrival_rate gives the rates)"
+    )
 
 
 def _as(X: np.ndarray, like: Tensor) -> Tensor:
@@ -79,24 +104,23 @@ def intermittent_kalman_bounds(F: Tensor, H: Tensor, Q: Tensor, R: Tensor,
                                arrival_rate: float) -> tuple[Tensor, Tensor]:  # fmt: skip
     """``(S̄, V̄)`` ``[n, n]``: the lower and upper bounds on the limit of the Kalman filter's
     mean prediction covariance ``E[P⁻_k]`` when each measurement arrives with probability
-    ``arrival_rate`` (module docstring, Sinopoli et al. 2004). ``ValueError`` where a bound
-    does not exist (the rate at or below the critical rate: :func:`critical_arrival_rate`)."""
+    ``arrival_rate`` (module docstring, Sinopoli et al. 2004): ``S̄`` the Lyapunov equation's
+    solution (scipy), ``V̄`` the MARE's fixed point. At rate 1 both are the Kalman limit
+    (the filter's covariance is then deterministic; the formula's ``S̄ = Q`` bounds it
+    too, loosely). ``ValueError`` where ``V̄`` does not exist or the iteration has not
+    settled (a rate at or just above the critical rate: :func:`critical_arrival_rate`)."""
     n, p = _check_pair(F, H.T if isinstance(H, Tensor) else H, ("F", "Hᵀ"))
     lam = _rate(arrival_rate, "arrival_rate")
     Q, R = _weights(Q, R, n, p, F)
     Fn, Hn, Qn, Rn = (_np(t.detach()) for t in (F, H, Q, R))
     upper = _mare(Fn, Hn, Qn, Rn, lam)
-    # S = (1 − λ) F S Fᵀ + Q: the MARE's map with the update never taken, scaled
-    lower = _mare(np.sqrt(1.0 - lam) * Fn, np.zeros_like(Hn), Qn, Rn, 0.0) if lam < 1 else None
-    if upper is None:
-        raise ValueError(
-            f"arrival_rate {lam} is at or below the critical rate of (F, H): the modified "
-            "Riccati equation has no fixed point and the mean prediction covariance may grow "
-            "without bound (critical_arrival_rate gives the rates)"
-        )
-    if lower is None:  # every measurement arrives: both bounds are the Kalman limit
-        lower = upper
-    return _as(lower, F), _as(upper, F)
+    if not _found(upper):
+        raise _no_fixed_point(upper, lam, "intermittent_kalman_bounds")
+    if lam == 1.0:
+        return _as(upper, F), _as(upper, F)
+    # S = (1 − λ) F S Fᵀ + Q (exists: V̄ does, so (1 − λ) ρ(F)² < 1)
+    lower = sla.solve_discrete_lyapunov(np.sqrt(1.0 - lam) * Fn, Qn)
+    return _as(0.5 * (lower + lower.T), F), _as(upper, F)
 
 
 def lossy_dlqr(F: Tensor, B: Tensor, Q: Tensor | None = None, R: Tensor | None = None, *,
@@ -111,12 +135,9 @@ def lossy_dlqr(F: Tensor, B: Tensor, Q: Tensor | None = None, R: Tensor | None =
     Q, R = _weights(Q, R, n, m, F)
     Fn, Bn, Qn, Rn = (_np(t.detach()) for t in (F, B, Q, R))
     S = _mare(Fn.T, Bn.T, Qn, Rn, rate)
-    if S is None:
-        raise ValueError(
-            f"arrival_rate {rate} is too low for (F, B): the control Riccati equation with "
-            "lost inputs has no fixed point, and no controller keeps the expected cost "
-            "bounded (critical_arrival_rate(F.T, B.T) gives the rates)"
-        )
+    if not _found(S):
+        raise _no_fixed_point(S, rate, "lossy_dlqr (the control Riccati equation of (F, B) "
+                                       "with lost inputs; the rates: critical_arrival_rate(F.T, B.T))")  # fmt: skip
     K = np.linalg.solve(Bn.T @ S @ Bn + Rn, Bn.T @ S @ Fn)
     return _as(K, F), _as(S, F)
 
@@ -159,17 +180,19 @@ def critical_arrival_rate(F: Tensor, H: Tensor, Q: Tensor | None = None, R: Tens
     Q, R = _weights(Q, R, n, p, F)
     Fn, Hn, Qn, Rn = (_np(t.detach()) for t in (F, H, Q, R))
     radius = float(np.abs(np.linalg.eigvals(Fn)).max())
-    lower = max(0.0, 1.0 - 1.0 / radius**2) if radius > 0 else 0.0
-    if _mare(Fn, Hn, Qn, Rn, 1.0) is None:
+    if radius < 1.0:  # a stable F: the Lyapunov equation bounds it at every rate
+        return CriticalRate(0.0, 0.0)
+    lower = 1.0 - 1.0 / radius**2
+    if not _found(_mare(Fn, Hn, Qn, Rn, 1.0)):
         raise ValueError("(F, H) is not detectable: no arrival rate keeps the Kalman filter's "
                          "covariance bounded")  # fmt: skip
     lo, hi = lower, 1.0  # the MARE has no fixed point at or below lo (ρ² (1 − λ) ≥ 1)
     cap = BISECTION_ITERATIONS
-    if lo > 0 and _mare(Fn, Hn, Qn, Rn, min(1.0, lo + tol), max_iter=cap) is not None:
+    if lo > 0 and _found(_mare(Fn, Hn, Qn, Rn, min(1.0, lo + tol), max_iter=cap)):
         return CriticalRate(lower, min(1.0, lo + tol))
     while hi - lo > tol:
         mid = 0.5 * (lo + hi)
-        if _mare(Fn, Hn, Qn, Rn, mid, max_iter=cap) is None:
+        if not _found(_mare(Fn, Hn, Qn, Rn, mid, max_iter=cap)):
             lo = mid
         else:
             hi = mid

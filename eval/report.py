@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -306,11 +307,11 @@ def network_of(sc) -> dict:
 
 
 def _described(schedule) -> str:
-    """A schedule's repr, or its class's name where the repr is object's own (it holds a
-    memory address: metrics.json would differ between identical runs)."""
+    """A schedule's repr, or its class's name where the repr is object's own, without the
+    memory addresses a repr may hold (metrics.json would differ between identical runs)."""
     if type(schedule).__repr__ is object.__repr__:
         return type(schedule).__qualname__
-    return repr(schedule)
+    return re.sub(r" at 0x[0-9a-fA-F]+", "", repr(schedule))
 
 
 def _network_line(network: dict | None) -> str:

@@ -717,6 +717,22 @@ class _ReadsU(_Records):
         )
 
 
+class _ReadsXOverLines(_Records):
+    """Reads x undeclared in a call written over several lines, and its own self.x."""
+
+    x = None
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        if self.seen:  # (_Records' list: its own self.x on the first call)
+            return state, torch.zeros_like(
+                y
+            ) + 0 * self.x[..., :1], None  # fmt: skip
+        self.seen.append(k)
+        return state, torch.zeros_like(
+            y
+        ) + 0 * x[..., :1], None  # fmt: skip
+
+
 class _OwnBug(_Records):
     """Fails by a TypeError of its own."""
 
@@ -760,3 +776,7 @@ def test_what_a_power_systems_trial_could_not_tell_from_the_errors():
     assert "view=None because reads_view = False" in said and "reads_state" not in said
     assert notes(_OwnBug("sensor", False)) == ""
     assert notes(_ReadsU("sensor", False)) == ""  # x and view were None too, but not read
+    assert "x=None because reads_state" in notes(_ReadsXOverLines("sensor", False))
+    own = _ReadsXOverLines("sensor", False)
+    own.seen.append(0)  # fails on its own self.x: no note
+    assert notes(own) == ""

@@ -96,9 +96,40 @@ def test_bad_rates_and_undetectable_pairs_are_named():
     for bad in (0.0, 1.2, True, "0.5"):
         with pytest.raises(ValueError, match="arrival_rate must be a probability"):
             lossy_dlqr(F, B, Q, R, arrival_rate=bad)
-    with pytest.raises(ValueError, match="too low"):
+    with pytest.raises(ValueError, match="lossy_dlqr.*at or below the critical rate"):
         lossy_dlqr(torch.tensor([[3.0]], dtype=torch.float64), torch.ones(1, 1, dtype=torch.float64),
                    arrival_rate=0.5)  # fmt: skip
     blind = torch.tensor([[0.0, 1.0]], dtype=torch.float64)  # sees the stable state alone
     with pytest.raises(ValueError, match="not detectable"):
         critical_arrival_rate(F, blind)
+
+
+def test_the_bounds_solve_their_equations_and_the_scalar_mare_its_closed_form():
+    """Below rate 1: S̄ − (1 − λ) F S̄ Fᵀ − Q = 0 and V̄ − g_λ(V̄) = 0 (residuals); in the
+    scalar case V̄ is the positive root of (1 − a² + λa²) v² + ((1 − a²) r − q) v − q r = 0."""
+    lam = 0.7
+    lower, upper = intermittent_kalman_bounds(F, H, Q, R, lam)
+    torch.testing.assert_close(lower - (1 - lam) * F @ lower @ F.T, Q, rtol=0, atol=1e-12)
+    gain = F @ upper @ H.T @ torch.linalg.inv(H @ upper @ H.T + R) @ H @ upper @ F.T
+    torch.testing.assert_close(F @ upper @ F.T + Q - lam * gain, upper, rtol=0, atol=1e-9)
+    assert float(torch.linalg.eigvalsh(upper - lower).min()) > 0
+    a, q, r = 1.5, 0.3, 0.7
+    one = torch.ones(1, 1, dtype=torch.float64)
+    for lam in (0.6, 0.8, 0.95):
+        _, v = intermittent_kalman_bounds(a * one, one, q * one, r * one, lam)
+        c2, c1, c0 = 1 - a * a + lam * a * a, (1 - a * a) * r - q, -q * r
+        root = (-c1 + (c1 * c1 - 4 * c2 * c0) ** 0.5) / (2 * c2)
+        assert float(v) == pytest.approx(root, rel=1e-9)
+
+
+def test_sinopolis_example_has_a_critical_interval():
+    """Sinopoli et al. 2004's example, A = [[1.25, 0], [1, 1.1]], C = [1, 1], Q = 20 I,
+    R = 2.5: λ_min = 1 − 1/1.25² = 0.36 and the MARE's threshold λ̄ about 0.47 (a review's
+    2-million-step iteration put it between 0.471 and 0.475); a stable F has 0 for both."""
+    A = torch.tensor([[1.25, 0.0], [1.0, 1.1]], dtype=torch.float64)
+    C = torch.tensor([[1.0, 1.0]], dtype=torch.float64)
+    rate = critical_arrival_rate(A, C, 20 * torch.eye(2, dtype=torch.float64),
+                                 2.5 * torch.ones(1, 1, dtype=torch.float64))  # fmt: skip
+    assert rate.lower == pytest.approx(0.36)
+    assert 0.47 <= rate.upper <= 0.476
+    assert critical_arrival_rate(0.5 * A, C) == (0.0, 0.0)
