@@ -75,7 +75,10 @@ def test_every_snippet_of_the_page_runs(tmp_path, monkeypatch, capsys, isolated_
     finally:
         sys.modules.pop("my_plants", None)
         sys.modules.pop("my_attacks", None)
-    assert ran == {"python": 4, "yaml": 2, "eval": 5, "train": 2}
+    assert ran == {"python": 4, "yaml": 3, "eval": 6, "train": 2}
+    lossy = json.loads((tmp_path / "reports" / "motor_lossy_yaml" / "metrics.json").read_text())
+    assert lossy["network"]["inputs"]["acknowledged"] is False
+    assert lossy["network"]["sensors"] == "PacketLoss(rate=0.1, packets=None)"
     # what the page says happened, happened
     motor = json.loads((tmp_path / "reports" / "motor_actuator" / "metrics.json").read_text())
     learned = motor["estimators"]["gaussian_nn_grad"]  # the last command: the trained network
