@@ -50,8 +50,29 @@ class Choice(str, Enum):
 def values_known(t: Tensor) -> bool:
     """Whether ``t`` holds values: ``False`` on the ``meta`` device (shapes and dtypes
     only), where value checks (finiteness, symmetry, definiteness) are skipped so that a
-    filter can be traced there; shape, dtype and device checks still apply."""
+    filter can be traced there; shape, dtype and device checks still apply. A tensor
+    batched by ``torch.func.vmap`` is refused here, naming the way that works (vmap forbids
+    reading values: a system-identification trial got torch's "data-dependent control
+    flow" error alone)."""
+    if _vmapped(t):
+        raise ValueError(
+            "torch.func.vmap over a model's parameters or data is not supported: the filters "
+            "check values (finiteness, symmetry, definiteness) and choose paths by them. "
+            "Batch the parameters instead: a model of per-run matrices (e.g. Q [B, d, d]) "
+            "runs B parameter sets in one call, and gradients flow to each "
+            "(docs/gradients.md)"
+        )
     return t.device.type != "meta"
+
+
+def _vmapped(t: Tensor) -> bool:
+    """Whether ``t`` is batched by ``torch.func.vmap`` at any of its functorch levels."""
+    functorch = torch._C._functorch
+    while functorch.is_functorch_wrapped_tensor(t):
+        if functorch.is_batchedtensor(t):
+            return True
+        t = functorch.get_unwrapped(t)
+    return False
 
 
 #: torch's floating dtype of a numpy floating dtype, by its size in bytes.

@@ -148,3 +148,14 @@ def test_nested_reverse_transforms_keep_the_shared_path_and_are_right(data):
     finally:
         kalman.shared_covariance_kalman_filter = original
     assert seen  # first-order grad: the fast path (2x the time otherwise)
+
+
+def test_vmap_over_the_parameters_is_refused_naming_the_batched_model(data):
+    """vmap cannot read values, which the checks do: torch's "data-dependent control flow"
+    error alone reached a system-identification trial; the refusal names the batched
+    model that works, and jacfwd (vmap over tangents only) still runs."""
+    ys = data
+    with pytest.raises(ValueError, match="vmap over a model's parameters.*per-run matrices"):
+        torch.func.vmap(lambda t: _log_likelihood(t, ys))(torch.stack([THETA, THETA * 1.1]))
+    jac = torch.func.jacfwd(lambda t: _log_likelihood(t, ys))(THETA)
+    assert jac.shape == THETA.shape and bool(torch.isfinite(jac).all())
