@@ -58,9 +58,9 @@ def values_known(t: Tensor) -> bool:
         raise ValueError(
             "torch.func.vmap over a model's parameters or data is not supported: the filters "
             "check values (finiteness, symmetry, definiteness) and choose paths by them. "
-            "Batch the parameters instead: a model of per-run matrices (e.g. Q [B, d, d]) "
-            "runs B parameter sets in one call, and gradients flow to each "
-            "(docs/gradients.md)"
+            "Batch instead: a model of per-run matrices (e.g. Q [B, d, d]) runs B parameter "
+            "sets in one call, and measurements ys [B, T, dy] B data sets; gradients flow to "
+            "each (docs/gradients.md)"
         )
     return t.device.type != "meta"
 

@@ -148,14 +148,17 @@ def _blocks_autograd(W, m_prev, Y, U, L, dims):
     dx, dy, du = dims
     n, T = Y.shape[0], Y.shape[1] // dy
     parts = []
-    # the blocks by one unbind: each W[b] alone had sent back a zero-filled gradient the
-    # size of all of W (O(T²) in the backward pass: 317 s at T = 100,000, 30 s unbound)
+    # the blocks, data and inputs split once: each W[b] or Y[:, s:e] alone had sent back a
+    # zero-filled gradient the size of all of it (O(T²) in the backward pass: 317 s at
+    # T = 100,000 for a gradient in Q, 30 s split; the same for one in the data)
     blocks = W.unbind(0)
+    data = Y.split(L * dy, dim=1)
+    inputs = None if U is None else U.split(L * du, dim=1)
     for b, Wb in enumerate(blocks):
-        s, Lb = b * L, min(L, T - b * L)
-        X = [m_prev, F_pad(Y[:, s * dy : (s + Lb) * dy], (0, (L - Lb) * dy))]
-        if U is not None:
-            X.append(F_pad(U[:, s * du : (s + Lb) * du], (0, (L - Lb) * du)))
+        Lb = min(L, T - b * L)
+        X = [m_prev, F_pad(data[b], (0, (L - Lb) * dy))]
+        if inputs is not None:
+            X.append(F_pad(inputs[b], (0, (L - Lb) * du)))
         out = torch.cat(X, dim=-1) @ Wb.transpose(0, 1)
         parts.append([out[:, row : row + Lb * w] for row, w in _row_groups(L, dx, dy)])
         m_prev = parts[-1][0][:, -dx:]

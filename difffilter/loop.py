@@ -659,12 +659,12 @@ def _failing_source(tb) -> str:
     its line."""
     summary = traceback.extract_tb(tb, limit=1)[0]
     first, last = summary.lineno, getattr(summary, "end_lineno", None) or summary.lineno
-    lines = [linecache.getline(summary.filename, n) for n in range(first, last + 1)]
+    lines = [linecache.getline(summary.filename, n).encode() for n in range(first, last + 1)]
     start, end = getattr(summary, "colno", None), getattr(summary, "end_colno", None)
-    if lines and start is not None and end is not None:
+    if lines and start is not None and end is not None:  # (UTF-8 byte offsets: δ = x[…])
         lines[-1] = lines[-1][:end]
         lines[0] = lines[0][start:]
-    return "".join(lines)
+    return b"".join(lines).decode(errors="replace")
 
 
 def _undeclared_read(error: BaseException, attack, shows_state: bool, reads: bool) -> str | None:
@@ -687,7 +687,7 @@ def _undeclared_read(error: BaseException, attack, shows_state: bool, reads: boo
     undeclared = [f"{name}=None because {flag} = False" for name, flag, given in
                   (("x", "reads_state", shows_state), ("view", "reads_view", reads))
                   if not given and local.get(name, 0) is None
-                  and re.search(rf"(?<![\w.]){name}\b", text)]  # fmt: skip
+                  and re.search(rf"(?<![\w.]){name}\b(?!\s*=(?!=))", text)]  # fmt: skip
     if not undeclared:
         return None
     return (

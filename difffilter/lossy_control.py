@@ -68,7 +68,13 @@ def _mare(F: np.ndarray, G: np.ndarray, Q: np.ndarray, R: np.ndarray, rate: floa
     for _ in range(max_iter):
         FX = F @ X
         S = G @ X @ G.T + R
-        nxt = FX @ F.T + Q - rate * FX @ G.T @ np.linalg.solve(S, G @ X @ F.T)
+        try:
+            nxt = FX @ F.T + Q - rate * FX @ G.T @ np.linalg.solve(S, G @ X @ F.T)
+        except np.linalg.LinAlgError:
+            raise ValueError(
+                "the modified Riccati iteration met a singular G X Gᵀ + R (R, or its control "
+                "weight, singular along a direction the noise Q does not reach): give R > 0"
+            ) from None
         nxt = 0.5 * (nxt + nxt.T)
         if not np.isfinite(nxt).all() or np.trace(nxt) > 1e15 * scale:
             return DIVERGED
@@ -86,8 +92,9 @@ def _no_fixed_point(why: str, rate: float, what: str) -> ValueError:
     if why == UNSETTLED:
         return ValueError(
             f"{what}: the modified Riccati iteration at rate {rate} had not settled after "
-            "100,000 steps: the rate is at or just above the critical rate (critical_arrival_rate "
-            "gives it), where the mean covariance, if bounded, is very large"
+            "100,000 steps: the rate is near (or below) the critical rate "
+            "(critical_arrival_rate gives it), or the pair has an undetectable mode on the "
+            "unit circle"
         )
     return ValueError(
         f"{what}: rate {rate} is at or below the critical rate: the modified Riccati equation "
@@ -180,12 +187,12 @@ def critical_arrival_rate(F: Tensor, H: Tensor, Q: Tensor | None = None, R: Tens
     Q, R = _weights(Q, R, n, p, F)
     Fn, Hn, Qn, Rn = (_np(t.detach()) for t in (F, H, Q, R))
     radius = float(np.abs(np.linalg.eigvals(Fn)).max())
-    if radius < 1.0:  # a stable F: the Lyapunov equation bounds it at every rate
-        return CriticalRate(0.0, 0.0)
-    lower = 1.0 - 1.0 / radius**2
     if not _found(_mare(Fn, Hn, Qn, Rn, 1.0)):
         raise ValueError("(F, H) is not detectable: no arrival rate keeps the Kalman filter's "
                          "covariance bounded")  # fmt: skip
+    if radius <= 1.0 + 1e-12:  # stable (or marginal, detectable): bounded at every rate
+        return CriticalRate(0.0, 0.0)
+    lower = 1.0 - 1.0 / radius**2
     lo, hi = lower, 1.0  # the MARE has no fixed point at or below lo (ρ² (1 − λ) ≥ 1)
     cap = BISECTION_ITERATIONS
     if lo > 0 and _found(_mare(Fn, Hn, Qn, Rn, min(1.0, lo + tol), max_iter=cap)):

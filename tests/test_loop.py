@@ -733,6 +733,24 @@ class _ReadsXOverLines(_Records):
         ) + 0 * x[..., :1], None  # fmt: skip
 
 
+class _ReadsXAfterGreek(_Records):
+    """Reads x undeclared after a non-ASCII name (traceback columns count UTF-8 bytes), and
+    passes x= as a keyword, which reads nothing, when told to."""
+
+    def __init__(self, channel, reads_state, keyword=False):
+        super().__init__(channel, reads_state)
+        self.keyword = keyword
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        if self.keyword:
+            return state, self.shifted(x=None, y=y), None
+        δ = x[..., :1]  # noqa: PLC2401
+        return state, torch.zeros_like(y) + 0 * δ, None
+
+    def shifted(self, *, x, y):
+        return y + None
+
+
 class _OwnBug(_Records):
     """Fails by a TypeError of its own."""
 
@@ -777,6 +795,8 @@ def test_what_a_power_systems_trial_could_not_tell_from_the_errors():
     assert notes(_OwnBug("sensor", False)) == ""
     assert notes(_ReadsU("sensor", False)) == ""  # x and view were None too, but not read
     assert "x=None because reads_state" in notes(_ReadsXOverLines("sensor", False))
+    assert "x=None because reads_state" in notes(_ReadsXAfterGreek("sensor", False))
+    assert notes(_ReadsXAfterGreek("sensor", False, keyword=True)) == ""
     own = _ReadsXOverLines("sensor", False)
     own.seen.append(0)  # fails on its own self.x: no note
     assert notes(own) == ""

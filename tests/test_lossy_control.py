@@ -133,3 +133,5 @@ def test_sinopolis_example_has_a_critical_interval():
     assert rate.lower == pytest.approx(0.36)
     assert 0.47 <= rate.upper <= 0.476
     assert critical_arrival_rate(0.5 * A, C) == (0.0, 0.0)
+    eye = torch.eye(2, dtype=torch.float64)  # marginal and detectable: 0 too (not 0.002)
+    assert critical_arrival_rate(eye, eye) == (0.0, 0.0)
