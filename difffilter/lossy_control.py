@@ -30,6 +30,7 @@ gradient, like :func:`difffilter.control.dlqr`.
 from __future__ import annotations
 
 import numbers
+from typing import NamedTuple
 
 import numpy as np
 import scipy.linalg as sla
@@ -149,21 +150,13 @@ def lossy_dlqr(F: Tensor, B: Tensor, Q: Tensor | None = None, R: Tensor | None =
     return _as(K, F), _as(S, F)
 
 
-class CriticalRate(tuple):
+class CriticalRate(NamedTuple):
     """``(lower, upper)``: the critical arrival rate lies in ``[lower, upper]`` (module
     docstring): ``lower = 1 − 1/ρ(F)²`` (0 for a stable ``F``), ``upper`` the rate below which
     the modified Riccati equation has no fixed point (to ``tol``)."""
 
-    def __new__(cls, lower: float, upper: float):
-        return super().__new__(cls, (lower, upper))
-
-    @property
-    def lower(self) -> float:
-        return self[0]
-
-    @property
-    def upper(self) -> float:
-        return self[1]
+    lower: float
+    upper: float
 
 
 #: Iterations of the MARE per bisection step of :func:`critical_arrival_rate`: near ``λ̄``

@@ -822,15 +822,22 @@ def _two_state(dtype=torch.float64):
                                   torch.zeros(2, dtype=dtype), torch.eye(2, dtype=dtype))  # fmt: skip
 
 
+def _scheduled_and_plain(model, steps: int, seed: int):
+    """``(ys, kf, fast, slow)``: ``steps`` simulated measurements of ``model`` and a Kalman
+    filter's carry with its gain schedule (``fast``) and the same carry without it
+    (``slow``, the general update), to step side by side."""
+    _, ys, _ = model.simulate(steps, (), generator=torch.Generator().manual_seed(seed))
+    kf = df.KalmanFilter()
+    fast = kf.init(model, ())
+    return ys, kf, fast, fast._replace(gains=None)
+
+
 def test_the_online_step_reads_a_model_written_in_place_as_the_general_step_does():
     """R (then F) edited in place between steps: the step drops the gain schedule, whose
     moments were computed ahead from the old model, and goes on with the general update
     (its chunk had mixed the old prediction covariance with the new R)."""
     model = _two_state()
-    _, ys, _ = model.simulate(20, (), generator=torch.Generator().manual_seed(0))
-    kf = df.KalmanFilter()
-    fast = kf.init(model, ())
-    slow = fast._replace(gains=None)
+    ys, kf, fast, slow = _scheduled_and_plain(model, 20, 0)
     assert fast.gains is not None and fast.gains.current()
     for t in range(20):
         if t in (5, 12):
@@ -853,10 +860,7 @@ def test_the_online_step_reads_a_model_whose_tensors_were_assigned_anew(change):
     from difffilter.noise import Gaussian
 
     model = _two_state()
-    _, ys, _ = model.simulate(20, (), generator=torch.Generator().manual_seed(0))
-    kf = df.KalmanFilter()
-    fast = kf.init(model, ())
-    slow = fast._replace(gains=None)
+    ys, kf, fast, slow = _scheduled_and_plain(model, 20, 0)
     for t in range(20):
         if t == 4:
             _two_state()  # another model built: nothing of this one changed
@@ -1416,10 +1420,7 @@ def test_a_schedule_kept_after_an_assignment_watches_the_new_tensors_and_gradien
     mean 7.69 off the general update), and F replaced by a Parameter of the same values kept
     the schedule, computed outside autograd (no gradient in F)."""
     model = _two_state()
-    _, ys, _ = model.simulate(12, (), generator=torch.Generator().manual_seed(1))
-    kf = df.KalmanFilter()
-    fast = kf.init(model, ())
-    slow = fast._replace(gains=None)
+    ys, kf, fast, slow = _scheduled_and_plain(model, 12, 1)
     for t in range(12):
         if t == 3:
             model.F = model.F.clone()
@@ -1452,10 +1453,7 @@ def test_a_schedule_sees_a_write_before_an_assignment_and_into_the_tensor_it_com
         other = df.LinearGaussianModel(model.F, model.H, model.process_noise.cov,
                                        model.measurement_noise.cov, model.initial.mean,
                                        model.initial.cov)  # fmt: skip
-        _, ys, _ = model.simulate(10, (), generator=torch.Generator().manual_seed(2))
-        kf = df.KalmanFilter()
-        fast = kf.init(model, ())
-        slow = fast._replace(gains=None)
+        ys, kf, fast, slow = _scheduled_and_plain(model, 10, 2)
         for t in range(10):
             if t == 3:
                 if case == "write then assign":
