@@ -21,6 +21,25 @@ then the Kalman update. The input-dependent term is the variance of ``B N_k u`` 
 mean: the filter is consistent (its ``P`` the mean squared error over the arrivals) where
 a Kalman filter given the sent input is not. Its covariances depend on the inputs, so
 there is no shared gain schedule: every run keeps its own.
+
+Where the actuators hold their last applied input instead (``on_loss="hold"``; Schenato,
+"To zero or to hold control inputs with lossy links?", IEEE TAC 54(5), 2009, compares the
+two), the applied input is a state of its own, ``z_{k−1} = N_k u_{k−1} + (I − N_k) z_{k−2}``
+(``z_{−1} = 0``, the loop's ``ū``), so the filter runs on ``s_k = [x_k; z_{k−1}]``
+(``[dx + du]``). With ``δ = N_k − E[N_k]`` independent of ``s``, ``s_k = Ā s_{k−1} + ν̄ G u
++ G δ (u − z) + [w; 0]`` for ``G = [B; I]`` and ``Ā = [[F, B(I − ν̄)], [0, I − ν̄]]``, so the
+same linear minimum-mean-square-error predictor is::
+
+    m_z⁻ = m_z + ν̄ ⊙ (u − m_z),             m_x⁻ = F m_x + B m_z⁻
+    P⁻   = Ā P Āᵀ + blkdiag(Q, 0) + G V Gᵀ,  d = u − m_z
+    V    = ν̄(1 − ν̄) (d dᵀ + P_zz)                     (one packet)
+    V    = diag(ν̄ ⊙ (1 − ν̄) ⊙ (d ⊙ d + diag P_zz))    (one per actuator)
+
+and the Kalman update with ``[H, 0]``. The steps report ``x``'s moments; the held input's
+mean and covariance are in ``extras`` (``"held_input"``, ``"held_input_cov"``). Both
+predictors take the arrivals independent from step to step (a Bernoulli channel); under
+bursts of loss (:class:`~difffilter.models.schedules.BurstLoss`) they are a linear
+estimator that ignores the bursts, not a consistent one.
 """
 
 from __future__ import annotations
@@ -30,7 +49,9 @@ import numbers
 import torch
 from torch import Tensor
 
-from .gaussian import predict_covariance
+from ._checks import check_carry_fits_model, check_carry_tensor
+from .gaussian import measurement_moments, predict_covariance
+from .input_loss import OnLoss, on_loss_of
 from .kalman import (
     KalmanFilter,
     Prediction,
@@ -39,6 +60,7 @@ from .kalman import (
     gaussian_init,
 )
 from .linalg import matvec, symmetrize
+from .results import GaussianState
 
 __all__ = ["ExpectedInputKalmanFilter"]
 
@@ -52,19 +74,24 @@ class ExpectedInputKalmanFilter(KalmanFilter):
             ``[du]``.
         independent: ``False`` (default): one packet carries every actuator's input;
             ``True``: each actuator's packet arrives on its own.
+        on_loss: what the actuators apply when a packet is lost, as the loop's
+            :class:`~difffilter.input_loss.InputLoss`: ``"zero"`` (default) or ``"hold"``
+            (the held input estimated with the state: module docstring).
 
     Steps with the sent input ``u`` (``closed_loop``'s ``Trajectories.us`` under an
     unacknowledged :class:`~difffilter.input_loss.InputLoss`); ``arrival_rate=1`` is the
-    Kalman filter. Its model of the loss is the actuators' ``"zero"``: where they hold
-    their last input the plant moves otherwise, and the filter is not consistent (a review:
-    NEES 9.05 for ``dx = 2`` under ``"hold"``, 2.00 under ``"zero"``). The rate is a number,
-    not a parameter: no gradient reaches it. Carry:
-    :class:`~difffilter.results.GaussianState`; a Kalman filter's carry with a shared gain
-    schedule is stepped without it (the schedule's covariances ignore the inputs).
+    Kalman filter. Give it the loop's ``on_loss``: a filter of zeroed inputs on a plant
+    that holds them is not consistent (NEES 9.05 for ``dx = 2`` in a review, 2.00 with the
+    matching filter). The rate is a number, not a parameter: no gradient reaches it.
+    Carry: :class:`~difffilter.results.GaussianState`, of ``x`` (``"zero"``) or of
+    ``[x; z]`` (``"hold"``: ``mean [..., dx + du]``); a Kalman filter's carry with a shared
+    gain schedule is stepped without it (the schedule's covariances ignore the inputs).
     """
 
-    def __init__(self, arrival_rate, *, independent: bool = False):
+    def __init__(self, arrival_rate, *, independent: bool = False,
+                 on_loss: OnLoss | str = OnLoss.ZERO):  # fmt: skip
         super().__init__()
+        on_loss = on_loss_of(on_loss)
         if not isinstance(independent, bool):
             raise ValueError(f"independent must be True or False; got {independent!r}")
         if isinstance(arrival_rate, Tensor) and arrival_rate.dim() == 0:
@@ -85,7 +112,8 @@ class ExpectedInputKalmanFilter(KalmanFilter):
             )
         if not bool(((rate > 0) & (rate <= 1)).all()):
             raise ValueError(f"arrival_rate must lie in (0, 1]; got {arrival_rate!r}")
-        self.arrival_rate, self.independent = rate, independent
+        self.arrival_rate, self.independent, self.on_loss = rate, independent, on_loss
+        self.carry_is_state = on_loss is OnLoss.ZERO
 
     def _init(self, model, batch_shape, generators):
         _check_linear(model)
@@ -96,24 +124,61 @@ class ExpectedInputKalmanFilter(KalmanFilter):
                 f"arrival_rate holds {rate.shape[0]} rates, and the model has {model.dim_u} "
                 "input(s): one rate per actuator"
             )
-        return gaussian_init(model, batch_shape)  # (no shared gains: P⁻ reads the inputs)
+        state = gaussian_init(model, batch_shape)  # (no shared gains: P⁻ reads the inputs)
+        if self.on_loss is OnLoss.ZERO:
+            return state
+        if model.control_matrix(0) is None or model.dim_u == 0:
+            raise ValueError(
+                "ExpectedInputKalmanFilter(on_loss='hold') estimates the input the actuators "
+                "hold, and this model has no input (B is None): use on_loss='zero' or a "
+                "KalmanFilter"
+            )
+        # s_0 = [x_0; z_{−1}] with z_{−1} = 0 known (the loop's actuators start at zero)
+        mean, cov, du = state.mean, state.cov, model.dim_u
+        held = mean.new_zeros(mean.shape[:-1] + (du,))
+        corner = cov.new_zeros(cov.shape[:-1] + (du,))
+        joint_cov = torch.cat([torch.cat([cov, corner], -1),
+                               torch.cat([corner.mT, cov.new_zeros(cov.shape[:-2] + (du, du))], -1)],
+                              -2)  # fmt: skip
+        return GaussianState(torch.cat([mean, held], -1), joint_cov, 0, model)
 
     def _step(self, carry, y, u, mask):
         carry = _ungained(carry)
         return self.update(carry, self.predict(carry, u), y, mask)
 
     def update(self, carry, prediction, y, mask, *, evidence=True, moments=None):
-        return super().update(_ungained(carry), prediction, y, mask, evidence=evidence,
-                              moments=moments)  # fmt: skip
+        new, out = super().update(_ungained(carry), prediction, y, mask, evidence=evidence,
+                                  moments=moments)  # fmt: skip
+        if self.on_loss is OnLoss.ZERO:
+            return new, out
+        dx = carry.model.dim_x
+        held = {"held_input": new.mean[..., dx:], "held_input_cov": new.cov[..., dx:, dx:]}
+        return new, out._replace(
+            mean=out.mean[..., :dx], cov=out.cov[..., :dx, :dx],
+            pred_mean=out.pred_mean[..., :dx], pred_cov=out.pred_cov[..., :dx, :dx],
+            extras={**(out.extras or {}), **held},
+        )  # fmt: skip
 
     def moments(self, carry, prediction, mask):
-        return super().moments(_ungained(carry), prediction, mask)
+        carry = _ungained(carry)
+        if self.on_loss is OnLoss.ZERO:
+            return super().moments(carry, prediction, mask)
+        model, k = carry.model, carry.k + 1
+        H = model.observation_matrix(k)
+        H = torch.cat([H, H.new_zeros(H.shape[:-1] + (model.dim_u,))], -1)  # [H, 0]
+        return measurement_moments(prediction.cov, H, model.measurement_cov(k), mask)
+
+    def residual(self, carry, prediction, y):
+        dx = carry.model.dim_x
+        return y - matvec(carry.model.observation_matrix(carry.k + 1), prediction.mean[..., :dx])
 
     def innovation(self, carry, prediction, y, mask, *, evidence: bool = True, moments=None):
         return super().innovation(_ungained(carry), prediction, y, mask, evidence=evidence,
                                   moments=moments)  # fmt: skip
 
     def predict(self, carry, u):
+        if self.on_loss is OnLoss.HOLD:
+            return self._predict_held(carry, u)
         model, k = carry.model, carry.k
         F, Q = model.transition_matrix(k), model.process_cov(k)
         mean, cov = matvec(F, carry.mean), predict_covariance(carry.cov, F, Q)
@@ -131,6 +196,58 @@ class ExpectedInputKalmanFilter(KalmanFilter):
             mean = mean + rate * Bu
             extra = spread * Bu.unsqueeze(-1) * Bu.unsqueeze(-2)
         return Prediction(mean, symmetrize(cov + extra))
+
+    def _predict_held(self, carry, u):
+        """The prediction of ``s = [x; z]`` under held inputs (module docstring)."""
+        if u is None:
+            raise ValueError(
+                "ExpectedInputKalmanFilter(on_loss='hold') steps with the sent input u [..., du]; "
+                "got None"
+            )
+        model, k = carry.model, carry.k
+        F, Q, B = model.transition_matrix(k), model.process_cov(k), model.control_matrix(k)
+        dx, du = model.dim_x, model.dim_u
+        rate = self.arrival_rate.to(dtype=u.dtype, device=u.device)
+        keep, spread = 1.0 - rate, rate * (1.0 - rate)
+        mean, cov = carry.mean, carry.cov
+        held, held_cov = mean[..., dx:], cov[..., dx:, dx:]
+        gap = u - held  # d = u − m_z
+        new_held = held + rate * gap
+        new_x = matvec(F, mean[..., :dx]) + matvec(B, new_held)
+        # Ā = [[F, B(I − ν̄)], [0, I − ν̄]] and G = [B; I], batched as F and B are
+        lead = torch.broadcast_shapes(F.shape[:-2], B.shape[:-2])
+        F, B = F.expand(lead + F.shape[-2:]), B.expand(lead + B.shape[-2:])
+        eye = torch.eye(du, dtype=u.dtype, device=u.device).expand(lead + (du, du))
+        kept = eye * keep  # I − ν̄ (diag(1 − ν̄) per actuator)
+        A = torch.cat([torch.cat([F, B @ kept], -1),
+                       torch.cat([F.new_zeros(lead + (du, dx)), kept], -1)], -2)  # fmt: skip
+        G = torch.cat([B, eye], -2)
+        Qs = torch.cat([torch.cat([Q, Q.new_zeros(Q.shape[:-1] + (du,))], -1),
+                        Q.new_zeros(Q.shape[:-2] + (du, dx + du))], -2)  # fmt: skip
+        if self.independent:  # V = diag(ν̄(1 − ν̄)(d² + diag P_zz))
+            variance = spread * (gap.square() + torch.diagonal(held_cov, dim1=-2, dim2=-1))
+            V = torch.diag_embed(variance)
+        else:  # V = ν̄(1 − ν̄)(d dᵀ + P_zz)
+            V = spread * (gap.unsqueeze(-1) * gap.unsqueeze(-2) + held_cov)
+        pred_cov = predict_covariance(cov, A, Qs) + G @ V @ G.transpose(-1, -2)
+        return Prediction(torch.cat([new_x, new_held], -1), symmetrize(pred_cov))
+
+    def _check_carry(self, carry):
+        if self.on_loss is OnLoss.ZERO:
+            return super()._check_carry(carry)
+        _check_linear(carry.model)
+        width = carry.model.dim_x + carry.model.dim_u
+        for name, t in (("mean", carry.mean), ("cov", carry.cov)):
+            if not isinstance(t, Tensor) or t.dim() < 1 or t.shape[-1] != width:
+                got = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+                raise ValueError(
+                    f"carry.{name} of ExpectedInputKalmanFilter(on_loss='hold') holds [x; z], the "
+                    f"state and the input the actuators hold: [..., dx + du] = [..., {width}]; "
+                    f"got {got} (a Kalman filter's carry? start from this filter's init)"
+                )
+        check_carry_tensor(carry.mean, "mean", dim=width)
+        check_carry_tensor(carry.cov, "cov", dim=width, symmetric=True)
+        check_carry_fits_model(carry.model, mean=carry.mean, cov=carry.cov)
 
     def _run(self, carry, ys, us, mask):
         return None  # step by step: the covariances read the inputs

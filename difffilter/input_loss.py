@@ -23,7 +23,8 @@ that attack, ``ū − û`` of the held inputs, as the step's). What the estimato
   the loss: where a packet is lost the plant moved under another input than the model's.
   Schenato et al.'s UDP-like estimator, for ``ZERO``, knows the arrival rate ``ν̄`` and
   predicts with ``ν̄ B u`` and ``P⁻ + ν̄(1 − ν̄) B u uᵀ Bᵀ``:
-  :class:`~difffilter.expected_input.ExpectedInputKalmanFilter`, given the sent ``u``.
+  :class:`~difffilter.expected_input.ExpectedInputKalmanFilter`, given the sent ``u``
+  (with ``on_loss="hold"``, the same estimator of the state and the held input).
 
 :class:`InputLoss` is that channel, given to :func:`difffilter.loop.closed_loop` as
 ``input_loss=``; ``mask`` says which packets arrived, e.g. from
@@ -51,6 +52,14 @@ class OnLoss(Choice):
 
     HOLD = "hold"
     ZERO = "zero"
+
+
+def on_loss_of(value) -> OnLoss:
+    """``OnLoss(value)``, its error naming the argument ``on_loss``."""
+    try:
+        return OnLoss(value)
+    except ValueError as error:
+        raise ValueError(f"on_loss: {error}") from None
 
 
 class InputMemory(NamedTuple):
@@ -126,7 +135,7 @@ class InputLoss:
             mask = mask[..., 0]
         if not isinstance(acknowledged, bool):
             raise ValueError(f"acknowledged must be True or False; got {acknowledged!r}")
-        self.mask, self.on_loss, self.acknowledged = mask, OnLoss(on_loss), acknowledged
+        self.mask, self.on_loss, self.acknowledged = mask, on_loss_of(on_loss), acknowledged
 
     def check(self, runs: int, du: int, end: int) -> None:
         """``ValueError`` unless the mask covers the loop's ``runs`` and steps ``1 … end`` and
@@ -214,7 +223,7 @@ class InputLossSchedule:
                 "generator, device=) (e.g. difffilter.models.schedules.PacketLoss(0.1)); got "
                 f"{type(self.schedule).__name__}"
             )
-        object.__setattr__(self, "on_loss", OnLoss(self.on_loss))
+        object.__setattr__(self, "on_loss", on_loss_of(self.on_loss))
         if not isinstance(self.acknowledged, bool):
             raise ValueError(f"acknowledged must be True or False; got {self.acknowledged!r}")
 

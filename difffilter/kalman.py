@@ -191,6 +191,10 @@ class GaussianFilter(Estimator):
     """
 
     carry_type = GaussianState
+    #: Whether a carry's ``mean`` and ``cov`` are the state's alone (``[..., dx]``): a
+    #: wrapper that reports them reports the state. ``False`` for a filter whose carry holds
+    #: more (:class:`~difffilter.ExpectedInputKalmanFilter` on held inputs: ``[x; z]``).
+    carry_is_state = True
 
     def _init(self, model, batch_shape, generators):
         return gaussian_init(model, batch_shape)

@@ -154,10 +154,14 @@ class GatedFilter(Estimator):
             inner = GaussianState(mean, cov, updated.k, carry.model)
         else:
             inner = updated
+        mean, cov, extras = inner.mean, inner.cov, {"nis": g}
+        if not self.filter.carry_is_state:  # the state's part; the rest as the filter's extras
+            dx = carry.model.dim_x
+            mean, cov = mean[..., :dx], cov[..., :dx, :dx]
+            extras = {**(out.extras or {}), **extras}
         out = out._replace(
-            mean=inner.mean, cov=inner.cov, score=score, alarm=alarm, threshold=threshold,
-            extras={"nis": g},
-        )  # fmt: skip
+            mean=mean, cov=cov, score=score, alarm=alarm, threshold=threshold, extras=extras
+        )
         return GatedState(inner, det_state, carry.model), out
 
 

@@ -595,6 +595,12 @@ class NeuralCompensation(Estimator):
         _check_restart(restart, inner, channel)
         _check_confirm(confirm, restart)
         _check_reject(reject, channel)
+        if not getattr(inner, "carry_is_state", True):  # (its steps report the carry's mean)
+            raise ValueError(
+                f"inner: {type(inner).__name__}'s carry holds more than the state (on held "
+                "inputs, [x; z]), and the learned estimator compensates and reports the "
+                "carry's moments: give it a KalmanFilter, or the filter with on_loss='zero'"
+            )
         self.gating, self.compensation, self.evidence = bool(gating), compensation, bool(evidence)
         self.restart = None if restart is None else float(restart)
         self.confirm = None if confirm is None else float(confirm)
