@@ -12,6 +12,7 @@ Detector thresholds come from the model (:meth:`SuiteContext.poa_detector`,
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable
 
 import torch
@@ -20,6 +21,7 @@ import difffilter as df
 from difffilter import fdi
 from difffilter.attack import Channel
 from difffilter.estimator import EstimatorOutput
+from difffilter.expected_input import ExpectedInputKalmanFilter
 from difffilter.extended import ExtendedKalmanFilter, UnscentedKalmanFilter
 from difffilter.kalman import KalmanFilter
 from difffilter.noise import UniformBox
@@ -32,6 +34,7 @@ from .needs import (
     ATTACK_FREE_MEASUREMENTS,
     LINEAR_MODEL,
     SENSOR_ATTACK,
+    UNACKNOWLEDGED_INPUT_LOSS,
 )
 
 __all__ = [
@@ -41,6 +44,7 @@ __all__ = [
     "meets_adaptive_attack",
     "modified_pf",
     "deception_of",
+    "expected_input_filter",
     "default_estimators",
     "DEFAULT_SUITE",
 ]
@@ -131,6 +135,80 @@ for _kind, _label in (("kf", "KF"), ("ekf", "EKF"), ("ukf", "UKF")):
              needs=_needs)(_gated(_kind, _chi_square))  # fmt: skip
     register(f"cusum_{_kind}", f"{_label} gated by CUSUM on its innovations (τ calibrated)",
              needs=_needs)(_gated(_kind, _cusum))  # fmt: skip
+
+
+def expected_input_filter(scenario, model) -> ExpectedInputKalmanFilter:
+    """The UDP-like Kalman filter of ``scenario``'s input loss on ``model``: arrival rate
+    ``1 −`` its schedule's loss rate (a burst channel's stationary rate: the filter takes
+    the arrivals independent, a linear estimator that ignores the bursts), one packet for
+    every actuator or one per actuator as the schedule's ``packets`` say, and the
+    scenario's ``on_loss``. ``ValueError`` with the reason where there is no such filter:
+    a nonlinear model, no input loss, acknowledged packets (the Kalman filter on the
+    acknowledged inputs is then the optimal filter), a schedule without a rate (a round
+    robin) or packets that group some actuators but not all."""
+    if not hasattr(model, "transition_matrix"):
+        raise ValueError(f"needs a linear model (LinearGaussianModel); this one is a "
+                         f"{type(model).__name__}")  # fmt: skip
+    loss = scenario.input_loss_schedule()
+    if loss is None:
+        raise ValueError("estimates lost input packets, and this scenario loses none")
+    if loss.acknowledged:
+        raise ValueError(
+            "estimates the inputs of unacknowledged (UDP-like) packets; this scenario's are "
+            "acknowledged, where the Kalman filter on the acknowledged inputs is optimal"
+        )
+    rate = getattr(loss.schedule, "rate", None)
+    if isinstance(rate, bool) or not isinstance(rate, numbers.Real):
+        raise ValueError(
+            "needs a random arrival rate (packet_loss, burst_loss); this scenario's input "
+            f"packets follow a {type(loss.schedule).__name__}"
+        )
+    packets = getattr(loss.schedule, "packets", None)
+    if packets is None or all(len(p) == 1 for p in packets):
+        independent = model.dim_u > 1
+    elif len(packets) == 1:
+        independent = False
+    else:
+        raise ValueError(
+            f"models one packet for every actuator or one per actuator; this scenario's "
+            f"input packets are {packets}"
+        )
+    return ExpectedInputKalmanFilter(1.0 - float(rate), independent=independent,
+                                     on_loss=loss.on_loss)  # fmt: skip
+
+
+def _moments(out: EstimatorOutput) -> EstimatorOutput:
+    """The means and covariances of ``out`` alone (a filter without detection)."""
+    return EstimatorOutput(out.means, out.covs)
+
+
+def _expected_input(detector: Callable | None):
+    """A factory of the scenario's :func:`expected_input_filter`, alone (``detector``
+    ``None``) or gated by ``detector(ctx, filter)`` (as :func:`_gated`)."""
+
+    def factory(ctx: SuiteContext) -> Run:
+        filt = expected_input_filter(ctx.scenario, ctx.model)
+        if detector is None:
+            return lambda tr: _moments(
+                df.open_loop(filt, ctx.model, tr.y_recv, tr.us, mask=tr.mask)
+            )
+        det = detector(ctx, filt)
+        if meets_adaptive_attack(ctx.scenario):
+            step = fdi.GatedFilter(det, filt)
+            return lambda tr: ctx.scenario.loop(step, tr.info)
+        return lambda tr: fdi.gated_gaussian_filter(
+            ctx.model, tr.y_recv, tr.us, mask=tr.mask, detector=det, filter=filt
+        )
+
+    return factory
+
+
+register("udp_kf", "UDP-like KF: the expected input and its variance (input loss unacknowledged)",
+         needs=(UNACKNOWLEDGED_INPUT_LOSS,))(_expected_input(None))  # fmt: skip
+register("chi_square_udp_kf", "UDP-like KF gated by a χ² test on its innovations",
+         needs=(UNACKNOWLEDGED_INPUT_LOSS,))(_expected_input(_chi_square))  # fmt: skip
+register("cusum_udp_kf", "UDP-like KF gated by CUSUM on its innovations (τ calibrated)",
+         needs=(UNACKNOWLEDGED_INPUT_LOSS,))(_expected_input(_cusum))  # fmt: skip
 
 
 def gated_estimator(ctx: SuiteContext, name: str) -> fdi.GatedFilter:
@@ -259,8 +337,9 @@ def _mixture_pf(ctx: SuiteContext) -> Run:
 #: reason (:mod:`difffilter.models.needs`).
 DEFAULT_SUITE = (
     "normal_pf_attack_free", "normal_pf", "modified_pf", "modified_pf_est",
-    "mixture_likelihood_pf", "chi_square_kf", "cusum_kf", "chi_square_ekf", "cusum_ekf",
-    "chi_square_ukf", "cusum_ukf", "pf_nn_grad", "gaussian_nn_grad",
+    "mixture_likelihood_pf", "chi_square_kf", "cusum_kf", "chi_square_udp_kf", "cusum_udp_kf",
+    "chi_square_ekf", "cusum_ekf", "chi_square_ukf", "cusum_ukf", "pf_nn_grad",
+    "gaussian_nn_grad",
 )  # fmt: skip
 
 

@@ -38,6 +38,7 @@ __all__ = [
     "ATTACK_FREE_MEASUREMENTS",
     "ASSUMES_SENSOR_ATTACK",
     "ASSUMES_DECEPTION_DENSITY",
+    "UNACKNOWLEDGED_INPUT_LOSS",
     "scenario_of",
     "model_of",
     "first_unmet",
@@ -127,6 +128,24 @@ def _assumes_deception(scenario, model) -> str | None:
 #: The scenario's attack has a density the mixture likelihood can use
 #: (:func:`~difffilter.models.generic_estimators.deception_of`).
 ASSUMES_DECEPTION_DENSITY = Need("assumes a known deception density", _assumes_deception)
+
+
+def _unacknowledged_loss(scenario, model) -> str | None:
+    from .generic_estimators import expected_input_filter
+
+    try:
+        expected_input_filter(scenario, model)
+    except ValueError as error:
+        return str(error)
+    return None
+
+
+#: The scenario loses input packets at random, unacknowledged (UDP-like), on a linear
+#: model: what the expected-input Kalman filter of its arrival rate needs
+#: (:func:`~difffilter.models.generic_estimators.expected_input_filter`).
+UNACKNOWLEDGED_INPUT_LOSS = Need(
+    "random, unacknowledged input loss on a linear model (UDP-like)", _unacknowledged_loss
+)
 
 
 def _instance_of(cls: type, of_model: bool, what: str, why) -> Need:

@@ -229,3 +229,41 @@ def test_a_sinusoid_per_input_from_yaml():
                                    "frequency": [1.0, 2.0]})  # fmt: skip
     one = _with().inputs(2, torch.float64)
     assert one.shape == (2, 40, 1)
+
+
+def test_the_udp_like_filters_run_where_inputs_are_lost_unacknowledged(monkeypatch, tmp_path):
+    """udp_kf and its gated pair: the scenario's ExpectedInputKalmanFilter (arrival rate
+    1 − the loss rate, the scenario's on_loss) on the study's trajectories, in the default
+    suite; skipped with the reason where there is no such filter."""
+    from difffilter import ExpectedInputKalmanFilter, open_loop
+    from difffilter.eval.suite import run_suite
+    from difffilter.models.generic_estimators import default_estimators, expected_input_filter
+
+    monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path))
+    lossy = {"kind": "packet_loss", "rate": 0.3, "on_loss": "hold", "acknowledged": False}
+    sc = _with(input_loss=lossy, estimators=["udp_kf", "chi_square_udp_kf", "kf"],
+               inputs={"kind": "sinusoid", "amplitude": 3.0, "frequency": 2.0})  # fmt: skip
+    result = run_suite(sc, runs=40, progress=False)
+    tr = result.traj
+    model = sc.system(torch.float64)
+    ref = open_loop(ExpectedInputKalmanFilter(0.7, on_loss="hold"), model, tr.y_recv, tr.us)
+    torch.testing.assert_close(result.outputs["udp_kf"].means, ref.means, rtol=0, atol=1e-12)
+    gated = result.outputs["chi_square_udp_kf"]
+    assert gated.means.shape == ref.means.shape and gated.scores.shape == ref.means.shape[:-1]
+    assert result.metrics["udp_kf"]["state_rmse"] < result.metrics["kf"]["state_rmse"]
+    assert {"chi_square_udp_kf", "cusum_udp_kf"} <= set(default_estimators(sc))
+    two = {**MOTOR["plant"], "B": [[0.0, 0.1], [0.2, 0.0]]}
+    own = _with(plant=two, inputs={"kind": "constant", "value": [1.0, 0.5]}, input_loss=lossy)
+    one = _with(plant=two, inputs={"kind": "constant", "value": [1.0, 0.5]},
+                input_loss={**lossy, "packets": [[0, 1]]})  # fmt: skip
+    assert expected_input_filter(own, own.system()).independent is True
+    assert expected_input_filter(one, one.system()).independent is False
+    for scenario, why in (
+        (_with(), "this scenario loses none"),
+        (_with(input_loss={**lossy, "acknowledged": True}), "are acknowledged"),
+        (_with(input_loss={"kind": "round_robin", "groups": [[0]], "acknowledged": False}),
+         "follow a RoundRobin"),
+    ):  # fmt: skip
+        assert "udp_kf" not in "".join(default_estimators(scenario))
+        with pytest.raises(ValueError, match=why):
+            expected_input_filter(scenario, scenario.system())
