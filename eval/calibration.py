@@ -187,6 +187,7 @@ def calibrate(
         scenario.with_threat(None), runs=runs, seed=cal_seed, estimators=estimators, add=add,
         progress=progress, checkpoint=checkpoint, cache=cache, calibration=None,
         label=f"{scenario.name}: calibrating at {far:g} (attack-free runs)",
+        detector_seed=seed,  # the study's detectors (a CUSUM's τ), on runs of their own
     )  # fmt: skip
     thresholds, measured, tied, steps = {}, {}, {}, {}
     for name, out in result.outputs.items():

@@ -40,7 +40,7 @@ from .acceptance import (
 from .calibration import below_target_note, calibrate
 from .coverage import checkpoint_of, training_coverage
 from .intervals import LEVEL, RESAMPLES, robustness_intervals, threat_totals
-from .report import _clean, format_number, markdown_table, share_suffix
+from .report import _clean, _network_line, format_number, markdown_table, network_of, share_suffix
 from .scoring import METRICS
 from .stealthy import StealthySpec, craft_threat, crafted_error, same_rate_bias
 from .suite import run_suite
@@ -385,6 +385,7 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
         "checkpoint": free.checkpoint,
         "estimator_roles": roles(free.metrics),
         "reads_no_measurements": reading_no_measurements(free.metrics),
+        "network": network_of(sc),
     })  # fmt: skip
     doc["threat_activity"] = result.activity
     # which threats read the true state x (Attack.reads_state: an insider, who knows the noise)
@@ -430,7 +431,8 @@ def _markdown(doc: dict, sc) -> str:
         "attack-free column (common random numbers); the estimators keep their own "
         "assumptions about attacks. Threat set: "
         + (f"`{Path(doc['threat_set']).name}`.\n" if doc.get("threat_set")
-           else "built in Python (no file).\n"),
+           else "built in Python (no file).\n")
+        + _network_line(doc.get("network")),
     ]  # fmt: skip
     below = below_target_note(far)
     if below:

@@ -90,6 +90,7 @@ def run_suite(
     cache: dict | None = None,
     calibration=None,
     label: str | None = None,
+    detector_seed: int | None = None,
 ) -> SuiteResult:
     """Simulate ``runs`` runs of ``scenario`` and run every estimator on them.
 
@@ -116,6 +117,9 @@ def run_suite(
         calibration: a :class:`~difffilter.eval.calibration.Calibration` (thresholds
             from attack-free runs of their own seed): adds the metrics at the target
             false-alarm rate (``tpr_at_far``, ``fpr_at_far``, ``impact``), or ``None``.
+        detector_seed: the seed of the detectors' own attack-free runs (a CUSUM's τ;
+            default ``seed``): the false-alarm calibration gives the study's, so that it
+            picks its threshold on the scores of the detector the study judges.
 
     Runs with one intra-op thread unless the scenario says otherwise
     (:func:`difffilter.runtime.one_thread`). Inside a torch.distributed process group
@@ -142,7 +146,9 @@ def run_suite(
     if checkpoint is None and scenario.shipped_checkpoint() is not None:
         checkpoint, source = scenario.shipped_checkpoint(), "shipped default (no --ckpt given)"
     ctx = registry.SuiteContext(scenario, model, runs, streams, options, checkpoint,
-                                named_checkpoints=dict(named))  # fmt: skip
+                                named_checkpoints=dict(named),
+                                detector_streams=None if detector_seed is None
+                                else Streams(detector_seed))  # fmt: skip
     if cache is not None:
         ctx.cache = cache
     names = tuple(scenario.estimators or DEFAULT_SUITE) if estimators is None else estimators

@@ -71,6 +71,7 @@ from typing import Any
 import torch
 
 from difffilter._imports import import_object
+from difffilter.attack import Channel
 from difffilter.input_loss import InputLossSchedule
 from difffilter.ssm import LinearGaussianModel, NonlinearGaussianModel, _arity
 from difffilter.threats import THREATS, check_attack_fits, threat_from_dict
@@ -218,6 +219,17 @@ def _check_against_plant(scenario: CustomScenario, probe, where: str) -> None:
     if scenario.input_loss is not None:
         if probe.dim_u == 0:
             raise ValueError(f"{where}: input_loss: the plant has no input to lose (dim_u = 0)")
+        actuated = (
+            scenario.attack is not None and Channel(scenario.attack.channel) is Channel.ACTUATOR
+        )
+        if scenario.known_inputs is None and not actuated:
+            # (a trial's report announced a loss that changed nothing)
+            raise ValueError(
+                f"{where}: input_loss: the plant has no inputs: (it runs on zero inputs, which "
+                "a lost packet leaves as they are, and no actuator attack rides in them): give "
+                "it inputs: (for a threat study of actuator attacks, {kind: constant, value: "
+                "0.0}), or drop input_loss"
+            )
         try:
             scenario.input_loss.draw(1, 1, probe.dim_u, torch.Generator().manual_seed(0))
         except (ValueError, TypeError, IndexError) as error:

@@ -401,3 +401,36 @@ def test_a_below_target_note_takes_an_infinite_threshold():
         "measured_on_calibration": 0.0, "threshold": None, "tied_at_threshold": 0.4,
         "cause": "ties"}}}  # fmt: skip
     assert "±∞" in below_target_note(far)
+
+
+def test_the_threshold_is_picked_on_the_scores_of_the_detector_judged(tmp_path, monkeypatch):
+    """From a threat-model trial: the calibration's suite built its CUSUM from the
+    calibration seed's attack-free runs, another τ than the study's CUSUM (23.58 against
+    26.52), and picked the threshold on that detector's scores (where scores pass τ, its
+    resets and gating differ: here a Kalman filter overconfident under unacknowledged input
+    loss). It runs the study's detector now: the same τ, and the threshold the study
+    detector's scores on the calibration runs give."""
+    from difffilter.eval.calibration import _finite_scores
+    from difffilter.models.yaml_scenario import scenario_from_dict
+
+    monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path))
+    sc = scenario_from_dict({
+        "name": "motor_udp", "runs": 50, "steps": 100, "dt": 0.1,
+        "plant": {"F": [[0.9, 0.1], [0.0, 0.85]], "B": [[0.0], [0.5]],
+                  "H": [[1.0, 0.0], [0.0, 1.0]], "Q": 1.0e-2, "R": 4.0e-2, "P0": 0.1},
+        "inputs": {"kind": "sinusoid", "amplitude": 1.0, "frequency": 0.5},
+        "input_loss": {"kind": "packet_loss", "rate": 0.3, "on_loss": "zero",
+                       "acknowledged": False},
+        "estimators": ["cusum_kf"],
+    }, "motor.yaml")  # fmt: skip
+    study = run_suite(sc, estimators=["cusum_kf"], progress=False)
+    judged = run_suite(sc.with_threat(None), seed=calibration_seed(0), detector_seed=0,
+                       estimators=["cusum_kf"], progress=False)  # fmt: skip
+    own = run_suite(sc.with_threat(None), seed=calibration_seed(0), estimators=["cusum_kf"],
+                    progress=False)  # fmt: skip
+    tau = [r.outputs["cusum_kf"].detection.threshold for r in (study, judged, own)]
+    assert tau[0] == tau[1] != tau[2]
+    cal = calibrate(sc, estimators=["cusum_kf"], progress=False)
+    picked = [threshold_for(_finite_scores(r.outputs["cusum_kf"].detection.scores), 0.01)
+              for r in (judged, own)]  # fmt: skip
+    assert picked[0] != picked[1] and cal.thresholds["cusum_kf"] == picked[0]

@@ -267,3 +267,44 @@ def test_the_udp_like_filters_run_where_inputs_are_lost_unacknowledged(monkeypat
         assert "udp_kf" not in "".join(default_estimators(scenario))
         with pytest.raises(ValueError, match=why):
             expected_input_filter(scenario, scenario.system())
+
+
+def test_the_robustness_report_records_the_network_and_no_crafted_insider(monkeypatch, tmp_path):
+    """From a threat-model trial: robustness.json and .md did not say what the network lost
+    (report.md and metrics.json did), and a crafted stealthy threat was marked an insider
+    that reads the true state (read from its spec, which has no reads_state: True)."""
+    import json
+
+    from difffilter.eval.report import network_of
+    from difffilter.eval.robustness import load_threat_set, run_robustness, write_robustness
+    from difffilter.eval.stealthy import StealthySpec
+
+    monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path))
+    sc = _with(input_loss={"kind": "packet_loss", "rate": 0.3, "on_loss": "zero",
+                           "acknowledged": False}, estimators=["chi_square_kf"])  # fmt: skip
+    threats = tmp_path / "threats.yaml"
+    threats.write_text("threats:\n  bias: {kind: bias, value: 0.5, channel: actuator, onset: 5}\n")
+    result = run_robustness(sc, load_threat_set(sc, ["bias"], path=threats), runs=6,
+                            progress=False)  # fmt: skip
+    doc = write_robustness(tmp_path / "out", result)
+    assert doc["network"] == network_of(sc)
+    assert json.loads((tmp_path / "out" / "robustness.json").read_text())["network"]["inputs"] == {
+        "schedule": "PacketLoss(rate=0.3, packets=None)",
+        "on_loss": "zero",
+        "acknowledged": False,
+    }
+    text = (tmp_path / "out" / "robustness.md").read_text()
+    assert "applying zero where one is lost, unacknowledged (UDP-like" in text
+    assert StealthySpec().reads_state is False
+
+
+def test_input_loss_on_a_plant_without_inputs_is_refused_unless_an_attack_rides_in_them():
+    """A trial's plant with B and no inputs: ran on zero inputs, the loss changing nothing
+    while the report announced it. Refused now; an actuator attack in the packets is a loss
+    that matters."""
+    lossy = {"kind": "packet_loss", "rate": 0.3}
+    with pytest.raises(ValueError, match="motor.yaml: input_loss: the plant has no inputs:"):
+        _with(inputs=None, input_loss=lossy)
+    sc = _with(inputs=None, input_loss=lossy,
+               attack={"kind": "bias", "value": 0.5, "channel": "actuator", "onset": 5})  # fmt: skip
+    assert sc.input_loss_schedule() is not None
