@@ -24,7 +24,7 @@ from difffilter.metrics import after_attack, detection_delay, nan_as_lowest, thr
 from difffilter.metrics import finite_scores as _finite_scores
 from difffilter.models.streams import Streams
 
-from .scoring import AFTER_ATTACK_STEPS
+from .scoring import AFTER_ATTACK_STEPS, episode_steps
 
 __all__ = [
     "Calibration",
@@ -249,7 +249,7 @@ def calibrated_metrics(output, traj, threshold: float | None, *, attacked_input:
         worst = torch.where(unseen, error, torch.zeros_like(error)).amax(-1)
         attacked_runs = flags.any(-1)
         out["impact"] = float(worst[attacked_runs].mean())
-        steps = detection_delay(alarms, flags)["mean_delay"]
+        steps = detection_delay(alarms, episode_steps(traj))["mean_delay"]
         if math.isfinite(steps):  # (no episode detected: no delay)
             out["detection_delay_at_far_steps"] = steps
             out["detection_delay_at_far_s"] = None if dt is None else steps * dt

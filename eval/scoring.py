@@ -36,6 +36,7 @@ __all__ = [
     "rmse_over_time",
     "rates_by_size",
     "comparable_attack",
+    "episode_steps",
 ]
 
 #: The headline metrics (the leaderboard's columns and the TensorBoard HPARAMS table's).
@@ -211,7 +212,7 @@ def score(
         false_alarms_per_1000_steps=1000.0 * rates["false_alarms"] / (B * T),
     )
     if attacked_input and bool(flags.any()):
-        delay = dm.detection_delay(alarms, flags)
+        delay = dm.detection_delay(alarms, episode_steps(traj))
         steps = _finite(delay["mean_delay"])
         out.update(
             tpr=_finite(rates["tpr"]),
@@ -224,6 +225,21 @@ def score(
             episodes_detected=delay["detected"],
         )
     return out
+
+
+def episode_steps(traj) -> Tensor:
+    """The steps ``[B, T]`` (bool) whose runs of consecutive steps are the attack's episodes,
+    for the detection delay: ``traj.flags``, and under a sensor schedule the attack's own
+    steps (``info["attack_flags"]``), the ones whose attacked readings were lost included.
+    A lost reading does not end an attack: labelled step by step, a threat-model trial's 33
+    attacked runs under 20 % sensor loss split into 242 episodes, each timed from its own
+    start (a delay of 2.1 steps against 10.8 from the attacks' onsets). The labels of TPR
+    and FPR stay ``traj.flags``."""
+    own = traj.info.get("attack_flags")
+    if traj.mask is None or own is None or traj.info.get("attack_channel") is Channel.ACTUATOR:
+        return traj.flags
+    own = own.any(-1) if own.dim() == 3 else own
+    return traj.flags | own.expand_as(traj.flags)
 
 
 def comparable_attack(output: EstimatorOutput, traj) -> bool:
