@@ -235,8 +235,13 @@ def episode_steps(traj) -> Tensor:
     attacked runs under 20 % sensor loss split into 242 episodes, each timed from its own
     start (a delay of 2.1 steps against 10.8 from the attacks' onsets). The labels of TPR
     and FPR stay ``traj.flags``."""
-    own = traj.info.get("attack_flags")
-    if traj.mask is None or own is None or traj.info.get("attack_channel") is Channel.ACTUATOR:
+    info = getattr(traj, "info", None) or {}  # (what holds flags alone: no schedule)
+    own = info.get("attack_flags")
+    if (
+        getattr(traj, "mask", None) is None
+        or own is None
+        or (info.get("attack_channel") is Channel.ACTUATOR)
+    ):
         return traj.flags
     own = own.any(-1) if own.dim() == 3 else own
     return traj.flags | own.expand_as(traj.flags)
