@@ -22,9 +22,14 @@ of ``Σ xᵀ Q x + (ν u)ᵀ R (ν u)`` is ``u_k = −K x̂_k`` with::
     K = (Bᵀ S B + R)⁻¹ Bᵀ S F
 
 (with the state known, the expected cost per step tends to ``tr(S W)``, ``W`` the process
-noise covariance). Every fixed point is found by iterating its map from ``Q`` (monotone,
-convergent where it exists: Sinopoli et al., Lemma 1) in float64 numpy; detached, no
-gradient, like :func:`difffilter.control.dlqr`.
+noise covariance). Every fixed point is found by iterating its map (convergent where it
+exists: Sinopoli et al., Lemma 1) in float64 numpy, from ``Q + c I`` with ``c`` the
+problem's scale (:func:`_scale`): from ``Q`` itself a singular ``Q`` could hold the
+iteration at the fixed point 0 of a mode it does not excite (an API trial: an LQR gain that
+left an unstable mode alone, a zero upper bound where the filter's covariance settles at
+``a² − 1``); from a positive definite start it reaches the stabilising solution, as the
+filter from a positive ``P₀`` does and as :func:`difffilter.control.dlqr` returns it.
+Detached, no gradient, like :func:`difffilter.control.dlqr`.
 """
 
 from __future__ import annotations
@@ -48,9 +53,47 @@ __all__ = [
 
 
 def _rate(rate, name: str) -> float:
+    if isinstance(rate, Tensor) and rate.dim() == 0 and not rate.dtype == torch.bool:
+        rate = rate.item()
     if isinstance(rate, bool) or not isinstance(rate, numbers.Real) or not 0.0 < rate <= 1.0:
         raise ValueError(f"{name} must be a probability in (0, 1]; got {rate!r}")
     return float(rate)
+
+
+def _arrays(F: Tensor, G: Tensor, Q: Tensor, R: Tensor, names: tuple[str, ...]):
+    """``F``, ``G`` (``[p, n]``), ``Q``, ``R`` as float64 numpy arrays after checking their
+    values: finite, ``Q`` symmetric positive semidefinite, ``R`` symmetric positive definite
+    (a NaN had been reported as a rate below the critical one, an indefinite ``Q`` accepted,
+    a negative ``R`` iterated for seconds)."""
+    arrays = [_np(t.detach()) for t in (F, G, Q, R)]
+    if arrays[0].shape[0] == 0:
+        raise ValueError(f"{names[0]} has no state (n = 0): nothing to estimate or control")
+    for name, a in zip(names, arrays):
+        if not np.isfinite(a).all():
+            raise ValueError(f"{name} contains NaN or Inf values")
+    for name, a, least in (
+        (names[2], arrays[2], "semidefinite"),
+        (names[3], arrays[3], "definite"),
+    ):
+        if np.abs(a - a.T).max() > 1e-10 * max(np.abs(a).max(), 1e-300):
+            raise ValueError(f"{name} must be symmetric")
+        low = float(np.linalg.eigvalsh(a).min())
+        floor = -1e-12 * max(np.abs(a).max(), 1e-300)
+        bad = low < floor if least == "semidefinite" else low <= 0.0
+        if bad:
+            raise ValueError(f"{name} must be positive {least}; its least eigenvalue is {low:.3g}")
+    return arrays
+
+
+def _scale(F: np.ndarray, G: np.ndarray, Q: np.ndarray, R: np.ndarray) -> float:
+    """The size of the MARE's solutions: ``(tr Q + tr R ‖G⁺‖²) · max(1, ρ(F)²)`` (``R`` in
+    the state's units through ``G``'s pseudo-inverse; an unstable ``F`` multiplies the
+    noise). Where the iterate passes ``10¹⁵`` times it, it diverges: measured against ``Q``
+    alone, a tiny ``Q`` with a large ``R`` (``1e-12`` and ``1e6``, a fixed point of 3e5) was
+    called divergent, and ``F = 1e8`` undetectable."""
+    radius = float(np.abs(np.linalg.eigvals(F)).max())
+    gain = float(np.linalg.norm(np.linalg.pinv(G), 2)) ** 2 if G.size else 0.0
+    return (float(np.trace(Q)) + float(np.trace(R)) * gain) * max(1.0, radius**2) or 1.0
 
 
 #: Why :func:`_mare` gave no fixed point: its iteration grew without bound, or had not
@@ -64,18 +107,23 @@ def _mare(F: np.ndarray, G: np.ndarray, Q: np.ndarray, R: np.ndarray, rate: floa
     filtering form; the control form is its dual, ``F → Fᵀ``, ``G → Bᵀ``), or why there is
     none: :data:`DIVERGED` where the iteration from ``Q`` grows without bound,
     :data:`UNSETTLED` where it has not settled after ``max_iter`` steps."""
-    X = Q.copy()
-    scale = max(float(np.trace(Q)), 1e-300)
+    scale = _scale(F, G, Q, R)
+    X = Q + (scale / F.shape[0]) * np.eye(F.shape[0])  # (module docstring: not Q alone)
     for _ in range(max_iter):
-        FX = F @ X
         S = G @ X @ G.T + R
         try:
-            nxt = FX @ F.T + Q - rate * FX @ G.T @ np.linalg.solve(S, G @ X @ F.T)
+            # F((1 − rate) X + rate P⁺)Fᵀ + Q with P⁺ = (I − KG) X (I − KG)ᵀ + K R Kᵀ (the
+            # Joseph form): the same map without subtracting two products of F X Fᵀ's size
+            # (F = 1e8: 1e32 each, their difference 1e16, round-off as large: never settled)
+            K = np.linalg.solve(S, G @ X).T
         except np.linalg.LinAlgError:
             raise ValueError(
                 "the modified Riccati iteration met a singular G X Gᵀ + R (R, or its control "
                 "weight, singular along a direction the noise Q does not reach): give R > 0"
             ) from None
+        IKG = np.eye(X.shape[0]) - K @ G
+        posterior = IKG @ X @ IKG.T + K @ R @ K.T
+        nxt = F @ ((1.0 - rate) * X + rate * posterior) @ F.T + Q
         nxt = 0.5 * (nxt + nxt.T)
         if not np.isfinite(nxt).all() or np.trace(nxt) > 1e15 * scale:
             return DIVERGED
@@ -83,6 +131,10 @@ def _mare(F: np.ndarray, G: np.ndarray, Q: np.ndarray, R: np.ndarray, rate: floa
             return nxt
         X = nxt
     return UNSETTLED
+
+
+_UNDETECTABLE = ("(F, H) is not detectable (an unstable mode the measurements do not see): "
+                 "no arrival rate keeps the Kalman filter's covariance bounded")  # fmt: skip
 
 
 def _found(X) -> bool:
@@ -120,9 +172,11 @@ def intermittent_kalman_bounds(F: Tensor, H: Tensor, Q: Tensor, R: Tensor,
     n, p = _check_pair(F, H.T if isinstance(H, Tensor) else H, ("F", "Hᵀ"))
     lam = _rate(arrival_rate, "arrival_rate")
     Q, R = _weights(Q, R, n, p, F)
-    Fn, Hn, Qn, Rn = (_np(t.detach()) for t in (F, H, Q, R))
+    Fn, Hn, Qn, Rn = _arrays(F, H, Q, R, ("F", "H", "Q", "R"))
     upper = _mare(Fn, Hn, Qn, Rn, lam)
     if not _found(upper):
+        if lam < 1.0 and not _found(_mare(Fn, Hn, Qn, Rn, 1.0)):
+            raise ValueError(f"intermittent_kalman_bounds: {_UNDETECTABLE}")
         raise _no_fixed_point(upper, lam, "intermittent_kalman_bounds")
     if lam == 1.0:
         return _as(upper, F), _as(upper, F)
@@ -141,9 +195,14 @@ def lossy_dlqr(F: Tensor, B: Tensor, Q: Tensor | None = None, R: Tensor | None =
     n, m = _check_pair(F, B, ("F", "B"))
     rate = _rate(arrival_rate, "arrival_rate")
     Q, R = _weights(Q, R, n, m, F)
-    Fn, Bn, Qn, Rn = (_np(t.detach()) for t in (F, B, Q, R))
+    Fn, Bn, Qn, Rn = _arrays(F, B, Q, R, ("F", "B", "Q", "R"))
     S = _mare(Fn.T, Bn.T, Qn, Rn, rate)
     if not _found(S):
+        if rate < 1.0 and not _found(_mare(Fn.T, Bn.T, Qn, Rn, 1.0)):
+            raise ValueError(
+                "lossy_dlqr: (F, B) is not stabilizable (an unstable mode the inputs do not "
+                "reach): no arrival rate makes the cost finite"
+            )
         raise _no_fixed_point(S, rate, "lossy_dlqr (the control Riccati equation of (F, B) "
                                        "with lost inputs; the rates: critical_arrival_rate(F.T, B.T))")  # fmt: skip
     K = np.linalg.solve(Bn.T @ S @ Bn + Rn, Bn.T @ S @ Fn)
@@ -177,12 +236,14 @@ def critical_arrival_rate(F: Tensor, H: Tensor, Q: Tensor | None = None, R: Tens
     default to ``I`` (``λ̄`` does not depend on them where ``(F, Q^{1/2})`` is
     controllable)."""
     n, p = _check_pair(F, H.T if isinstance(H, Tensor) else H, ("F", "Hᵀ"))
+    if isinstance(tol, bool) or not isinstance(tol, numbers.Real) or not 0.0 < tol < 0.5:
+        # (0 or less bisected forever; NaN or 2 returned an upper end of 1 unsearched)
+        raise ValueError(f"tol must be a number in (0, 0.5); got {tol!r}")
     Q, R = _weights(Q, R, n, p, F)
-    Fn, Hn, Qn, Rn = (_np(t.detach()) for t in (F, H, Q, R))
+    Fn, Hn, Qn, Rn = _arrays(F, H, Q, R, ("F", "H", "Q", "R"))
     radius = float(np.abs(np.linalg.eigvals(Fn)).max())
     if not _found(_mare(Fn, Hn, Qn, Rn, 1.0)):
-        raise ValueError("(F, H) is not detectable: no arrival rate keeps the Kalman filter's "
-                         "covariance bounded")  # fmt: skip
+        raise ValueError(_UNDETECTABLE)
     if radius <= 1.0 + 1e-12:  # stable (or marginal, detectable): bounded at every rate
         return CriticalRate(0.0, 0.0)
     lower = 1.0 - 1.0 / radius**2

@@ -135,3 +135,72 @@ def test_sinopolis_example_has_a_critical_interval():
     assert critical_arrival_rate(0.5 * A, C) == (0.0, 0.0)
     eye = torch.eye(2, dtype=torch.float64)  # marginal and detectable: 0 too (not 0.002)
     assert critical_arrival_rate(eye, eye) == (0.0, 0.0)
+
+
+def _t(*rows):
+    return torch.tensor(rows, dtype=torch.float64)
+
+
+def test_a_singular_q_reaches_the_stabilising_solution():
+    """An API trial: from Q the iteration stayed at the fixed point 0 of the modes Q does not
+    excite: an LQR gain that left the unstable mode 1.2 alone (ρ 1.2 in closed loop), an
+    upper bound of 0 where the filter settles at a² − 1. Started positive definite now."""
+    F, B = _t([1.2, 0.0], [0.0, 0.5]), _t([1.0], [1.0])
+    Q = torch.diag(_t(0.0, 1.0))
+    K, _ = lossy_dlqr(F, B, Q, arrival_rate=1.0)
+    ref, _ = dlqr(F, B, Q)
+    torch.testing.assert_close(K, ref, rtol=0, atol=1e-9)
+    assert float(torch.linalg.eigvals(F - B @ K).abs().max()) < 0.9
+    a, one, zero = _t([1.05]), _t([1.0]), _t([0.0])
+    for lam in (1.0, 0.9):  # Q = 0: V = R (a² − 1) / (1 − a² (1 − λ)), the MARE's positive root
+        _, upper = intermittent_kalman_bounds(a, one, zero, one, lam)
+        assert float(upper) == pytest.approx(0.1025 / (1 - 1.1025 * (1 - lam)), rel=1e-9)
+
+
+def test_the_solutions_do_not_depend_on_the_units():
+    """An API trial: the divergence test compared the iterate with tr Q alone, so Q = 1e-12
+    and R = 1e6 (a fixed point of 4.4e5) was called divergent even at rate 1, and F = 1e8
+    undetectable (its MARE also lost its answer to cancellation: the Joseph form now)."""
+    a, one = _t([1.2]), _t([1.0])
+    Q, R = 1e-12 * one, 1e6 * one
+    exact = 1e6 * 0.44  # V² + V (R (1 − a²) − Q) − Q R = 0, to 1e-12 relative
+    for lam in (1.0, 0.8):
+        _, upper = intermittent_kalman_bounds(a, one, Q, R, lam)
+        closed = 1e6 * 0.44 / (1 - 1.44 * (1 - lam))
+        assert float(upper) == pytest.approx(exact if lam == 1.0 else closed, rel=1e-9)
+    K, _ = lossy_dlqr(a, one, Q, R, arrival_rate=1.0)
+    assert float(K) == pytest.approx(1.2 * exact / (exact + 1e6), rel=1e-9)
+    rate = critical_arrival_rate(a, one, Q, R)
+    assert rate.lower == pytest.approx(1 - 1 / 1.44) and rate.upper - rate.lower < 2e-3
+    assert critical_arrival_rate(_t([1e8]), one).lower == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("tol", [0.0, -1.0, float("nan"), 2.0, "0.01", True])
+def test_a_bad_tolerance_is_named(tol):
+    with pytest.raises(ValueError, match="tol must be a number in"):  # (0 had looped forever)
+        critical_arrival_rate(_t([1.2]), _t([1.0]), tol=tol)
+
+
+def test_bad_values_are_named():
+    F, H, eye = _t([0.9, 0.1], [0.0, 1.1]), _t([1.0, 0.0]), torch.eye(2, dtype=torch.float64)
+    one = _t([1.0])
+    cases = [
+        (lambda: intermittent_kalman_bounds(F * float("nan"), H, eye, one, 0.9), "F contains NaN"),
+        (lambda: intermittent_kalman_bounds(F, H, eye, -one, 0.9), "R must be positive definite"),
+        (lambda: intermittent_kalman_bounds(F, H, torch.diag(_t(1.0, -1.0)), one, 0.9),
+         "Q must be positive semidefinite"),
+        (lambda: intermittent_kalman_bounds(F, H, _t([1.0, 0.5], [0.0, 1.0]), one, 0.9),
+         "Q must be symmetric"),
+        (lambda: critical_arrival_rate(F, H, eye, one * float("nan")), "R contains NaN"),
+        (lambda: intermittent_kalman_bounds(_t([1.1, 0.0], [0.0, 0.5]), _t([0.0, 1.0]), eye, one,
+                                            0.9), "not detectable"),
+        (lambda: lossy_dlqr(_t([1.1, 0.0], [0.0, 0.5]), _t([0.0], [1.0]), arrival_rate=0.9),
+         "not stabilizable"),
+        (lambda: lossy_dlqr(torch.zeros(0, 0, dtype=torch.float64),
+                            torch.zeros(0, 1, dtype=torch.float64), arrival_rate=0.9), "n = 0"),
+    ]  # fmt: skip
+    for call, why in cases:
+        with pytest.raises(ValueError, match=why):
+            call()
+    lower, _ = intermittent_kalman_bounds(F, H, eye, one, torch.tensor(0.9, dtype=torch.float64))
+    assert lower.shape == (2, 2)
