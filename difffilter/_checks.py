@@ -43,6 +43,10 @@ class Choice(str, Enum):
 
     @classmethod
     def _missing_(cls, value):
+        if isinstance(value, str):  # its name in any case ("HOLD", "Hold": the member's name)
+            for member in cls:
+                if value.lower() in (member.value.lower(), member.name.lower()):
+                    return member
         names = ", ".join(repr(m.value) for m in cls)
         raise ValueError(f"{value!r} is not a {cls.__name__}: one of {names}")
 

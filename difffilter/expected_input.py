@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import numbers
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -98,9 +99,16 @@ class ExpectedInputKalmanFilter(KalmanFilter):
             arrival_rate = float(arrival_rate)
         if isinstance(arrival_rate, numbers.Real) and not isinstance(arrival_rate, bool):
             rate = torch.tensor(float(arrival_rate), dtype=torch.float64)
-        elif isinstance(arrival_rate, (Tensor, list, tuple)) and independent:
+        elif isinstance(arrival_rate, (Tensor, list, tuple, np.ndarray)) and independent:
+            listed = arrival_rate if isinstance(arrival_rate, (list, tuple)) else ()
+            if getattr(arrival_rate, "dtype", None) in (torch.bool, np.bool_) or any(
+                isinstance(r, (bool, np.bool_)) for r in listed
+            ):  # (True, True) had been taken as rates of 1
+                raise ValueError(f"arrival_rate must hold probabilities, not booleans; got "
+                                 f"{arrival_rate!r}")  # fmt: skip
+            # (float64 from the numbers given: a tuple through float32 moved 0.3 by 1e-8)
             rate = torch.as_tensor(arrival_rate, dtype=torch.float64).detach().clone()
-            if rate.dim() != 1:
+            if rate.dim() != 1 or rate.numel() == 0:
                 raise ValueError(
                     f"arrival_rate must be a number or, with independent=True, one rate per "
                     f"actuator [du]; got shape {tuple(rate.shape)}"

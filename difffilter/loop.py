@@ -511,6 +511,10 @@ def closed_loop(
             "noise must be a DrawnNoise(generator) or a ReplayedNoise(process, measurement) "
             f"(an object with transition and measure); got {type(noise).__name__}"
         )
+    if horizon is not None and (isinstance(horizon, bool) or not isinstance(horizon, int)):
+        raise ValueError(
+            f"horizon must be an integer (the whole loop's T) or None; got {horizon!r}"
+        )
     if (forks or fork) and not isinstance(noise, ReplayedNoise):
         raise ValueError("forks= and fork= need ReplayedNoise: drawn noise's generator is "
                          "not part of the loop's state, so a fork could not replay it")  # fmt: skip
@@ -550,6 +554,12 @@ def closed_loop(
                 "sent", "arrived", "acting")  # fmt: skip
         rec, outs = {key: [] for key in keys}, []
     _check_lengths(plant, noise, mask, state, steps)
+    unreached = sorted(k for k in forks or () if not state.k < k <= state.k + steps)
+    if unreached:  # (they stayed None, unsaid)
+        raise ValueError(
+            f"forks: its keys must be steps this loop runs ({state.k + 1} … {state.k + steps}), "
+            f"after which it keeps a fork; got {unreached}"
+        )
     if input_loss is not None:
         state = _with_input_memory(input_loss, plant, state, steps)
     if rec["x"] and bool(rec["applied"]) != (input_loss is not None):

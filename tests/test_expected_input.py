@@ -271,3 +271,14 @@ def test_held_inputs_refusals_are_named():
 
     with pytest.raises(ValueError, match="carry holds more than the state"):
         NeuralCompensation(_net(), est)
+
+
+def test_rates_from_numpy_and_no_boolean_or_empty_rates():
+    """An API trial: a numpy array of rates was refused, [] and [True, True] accepted."""
+    est = df.ExpectedInputKalmanFilter(np.array([0.3, 0.9]), independent=True)
+    assert est.arrival_rate.tolist() == [0.3, 0.9]
+    for bad, why in (([], "one rate per actuator"), ([True, True], "not booleans"),
+                     (np.array([True, False]), "not booleans")):  # fmt: skip
+        with pytest.raises(ValueError, match=why):
+            df.ExpectedInputKalmanFilter(bad, independent=True)
+    assert df.ExpectedInputKalmanFilter(0.5, on_loss="HOLD").on_loss.value == "hold"  # any case

@@ -800,3 +800,27 @@ def test_what_a_power_systems_trial_could_not_tell_from_the_errors():
     own = _ReadsXOverLines("sensor", False)
     own.seen.append(0)  # fails on its own self.x: no note
     assert notes(own) == ""
+
+
+def test_forks_outside_the_loop_and_a_fractional_horizon_are_named():
+    """An API trial: fork keys the loop never reaches stayed None, unsaid; horizon=6.5 was
+    taken and "8" failed in a comparison."""
+    F = torch.tensor([[0.9]], dtype=torch.float64)
+    eye = torch.eye(1, dtype=torch.float64)
+    plant = df.LinearGaussianModel(
+        F, eye, 0.01 * eye, 0.01 * eye, torch.zeros(1, dtype=torch.float64), eye
+    )
+    noise = ReplayedNoise(
+        torch.zeros(2, 3, 1, dtype=torch.float64), torch.zeros(2, 3, 1, dtype=torch.float64)
+    )
+    x0 = torch.zeros(2, 1, dtype=torch.float64)
+    with pytest.raises(
+        ValueError, match=r"forks: its keys must be steps this loop runs \(1 … 3\).*\[0, 99\]"
+    ):
+        closed_loop(plant, 3, noise=noise, x0=x0, forks={0: None, 2: None, 99: None})
+    kept = {3: None}
+    closed_loop(plant, 3, noise=noise, x0=x0, forks=kept)
+    assert kept[3] is not None
+    for bad in (6.5, "8", True):
+        with pytest.raises(ValueError, match="horizon must be an integer"):
+            closed_loop(plant, 3, noise=noise, x0=x0, horizon=bad)

@@ -157,6 +157,11 @@ def test_cusum_hand_computed_and_calibration():
     tau = det.calibrate(free, 0.01)
     rate = det.run(free)[1].double().mean().item()
     assert tau > 0 and rate <= 0.01 + 1e-9 and rate > 0.005
+    # a rate above what the statistic reaches at τ = 0 (an API trial: 0.99 gave τ ≈ 0 and a
+    # rate of 0.21, unsaid)
+    most = det.run(free, 0.0)[1].double().mean().item()
+    with pytest.raises(ValueError, match=f"out of reach.*at most {most:.4g}"):
+        CusumDetector(bias=3.0).calibrate(free, 0.99)
 
 
 def test_cusum_scores_reset_at_zero_and_a_late_alarm_is_a_miss():

@@ -484,6 +484,12 @@ class CusumDetector:
         if not 0.0 < false_alarm_rate < 1.0:
             raise ValueError(f"false_alarm_rate must lie in (0, 1); got {false_alarm_rate}")
         _check_sequence(g_attack_free, "g_attack_free", 0)
+        most = float(self.run(g_attack_free, 0.0)[1].double().mean())
+        if most < false_alarm_rate:  # (it returned τ ≈ 0 at that lower rate, unsaid)
+            raise ValueError(
+                f"false_alarm_rate {false_alarm_rate} is out of reach: this CUSUM (drift b = "
+                f"{float(self.bias):.4g}) alarms on at most {most:.4g} of these steps, at τ = 0"
+            )
         lo, hi = 0.0, max(1.0, float(g_attack_free.sum(-1).max()))
         for _ in range(iterations):
             mid = 0.5 * (lo + hi)
