@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._checks import check_rate
+from ._checks import broadcast_or_none, check_rate
 from .linalg import safe_cholesky
 
 __all__ = ["nees", "chi_square_bounds", "ensemble_test", "ConsistencyTest", "whiteness"]
@@ -54,6 +54,14 @@ def nees(errors: Tensor, covs: Tensor) -> Tensor:
         raise ValueError(
             f"covs must be [..., {n}, {n}] (the filter's covariances); got "
             f"{tuple(covs.shape) if isinstance(covs, Tensor) else covs!r}"
+        )
+    if covs.dtype != errors.dtype or covs.device != errors.device:
+        raise ValueError(f"covs are {covs.dtype} on {covs.device} and errors {errors.dtype} on "
+                         f"{errors.device}: give them one dtype and device")  # fmt: skip
+    if broadcast_or_none(covs.shape[:-2], errors.shape[:-1]) is None:
+        raise ValueError(
+            f"covs [..., {n}, {n}] must have the errors' batch {tuple(errors.shape[:-1])} (or "
+            f"broadcast to it); got {tuple(covs.shape)}"
         )
     e = errors.unsqueeze(-1)
     return (e.mT @ torch.linalg.solve(covs, e)).squeeze(-1).squeeze(-1)
@@ -100,6 +108,8 @@ def ensemble_test(statistic: Tensor, dof, confidence: float = 0.95) -> Consisten
             f"{tuple(statistic.shape) if isinstance(statistic, Tensor) else statistic!r}"
         )
     runs = statistic.shape[0]
+    if runs == 0 or statistic.shape[1] == 0:
+        raise ValueError(f"statistic has no runs or no steps: {tuple(statistic.shape)}")
     mean = statistic.double().mean(0)
     if isinstance(dof, (np.ndarray, list, tuple)):
         dof = torch.as_tensor(np.asarray(dof))
@@ -162,6 +172,19 @@ def whiteness(
         got = f"{mask.dtype} {tuple(mask.shape)}" if isinstance(mask, Tensor) else repr(mask)
         raise ValueError(f"mask must be a bool tensor of the innovations' shape "
                          f"{tuple(innovations.shape)} (the filter's mask); got {got}")  # fmt: skip
+    if (
+        not isinstance(innovation_covs, Tensor)
+        or innovation_covs.shape[-2:] != (m, m)
+        or (broadcast_or_none(innovation_covs.shape[:-2], (runs, steps)) != (runs, steps))
+    ):
+        got = (
+            tuple(innovation_covs.shape) if isinstance(innovation_covs, Tensor) else innovation_covs
+        )
+        raise ValueError(f"innovation_covs must be [R, T, {m}, {m}] like the innovations (or "
+                         f"broadcast to it); got {got!r}")  # fmt: skip
+    if bool((torch.linalg.eigvalsh(innovation_covs.double()) <= 0).any()):
+        # (a zero S had been taken, its Cholesky jittered, and a normal-looking ρ̄ returned)
+        raise ValueError("innovation_covs must be positive definite (a filter's S)")
     chol = safe_cholesky(innovation_covs.expand(runs, steps, m, m), name="innovation_covs")
     w = torch.linalg.solve_triangular(chol, innovations.unsqueeze(-1), upper=False).squeeze(-1)
     w = w.double()

@@ -27,6 +27,7 @@ choice (docs/scenarios.md, LFC pitfalls).
 from __future__ import annotations
 
 import math
+import numbers
 
 import numpy as np
 import scipy.linalg as sla
@@ -109,13 +110,8 @@ def lqr(
     ``P = Tᵀ P_r T`` with ``T`` the coordinate map of the projection, so it satisfies the
     CARE on the controllable subspace (``Vᵀ·care_residual·V = 0`` for its basis ``V``).
     """
-    n, m = B.shape
-    if A.shape != (n, n):
-        raise ValueError(
-            f"A must have shape [{n}, {n}] to match B [{n}, {m}]; got {tuple(A.shape)}"
-        )
-    Q = torch.eye(n, dtype=A.dtype, device=A.device) if Q is None else Q
-    R = torch.eye(m, dtype=A.dtype, device=A.device) if R is None else R
+    n, m = _check_pair(A, B, ("A", "B"))
+    Q, R = _weights(Q, R, n, m, A)
     method = LQRMethod(method)
     if method is LQRMethod.SHIFT and not shift > 0:
         raise ValueError(f"shift must be positive; got {shift!r}")
@@ -216,6 +212,9 @@ def luenberger_gain(
         raise ValueError(f"A_closed must have shape [{n}, {n}]; got {tuple(A_closed.shape)}")
     if not dt > 0:
         raise ValueError(f"dt must be positive; got {dt!r}")
+    if isinstance(factor, bool) or not isinstance(factor, numbers.Real) or not factor > 0:
+        raise ValueError(f"factor must be a positive number (how much faster the observer's "
+                         f"poles are); got {factor!r}")  # fmt: skip
     design = LuenbergerDesign(design)
     lam, V = _observer_spectrum(A_closed, factor, zero_pole)
     p = np.exp(lam * dt)
@@ -335,6 +334,9 @@ def zoh_discretize(A: Tensor, B: Tensor, dt: float) -> tuple[Tensor, Tensor]:
     """
     if not (isinstance(dt, (int, float)) and dt > 0 and math.isfinite(dt)):
         raise ValueError(f"dt must be a positive finite number of seconds; got {dt!r}")
+    for name, t in (("A", A), ("B", B)):
+        if not isinstance(t, Tensor) or not t.is_floating_point():
+            raise ValueError(f"{name} must be a floating tensor; got {type(t).__name__}")
     if A.dim() != 2 or A.shape[0] != A.shape[1]:
         raise ValueError(f"A must be square [n, n]; got {tuple(A.shape)}")
     if B.dim() != 2 or B.shape[0] != A.shape[0]:

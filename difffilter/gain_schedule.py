@@ -39,6 +39,7 @@ little more than the Python call).
 from __future__ import annotations
 
 import math
+import numbers
 from typing import NamedTuple
 
 import torch
@@ -117,9 +118,13 @@ class GainSchedule:
         if getattr(model, "time_varying", False):
             raise ValueError("model must be time-invariant (its gains are shared by every step)")
         if not shared_gains_apply(model):
-            raise ValueError("model's matrices and prior must carry no batch dimension")
-        if not tol >= 0:
-            raise ValueError(f"tol must be >= 0; got {tol!r}")
+            raise ValueError(
+                "model's matrices and prior must carry no batch dimension and require no "
+                "gradient (the schedule is computed outside autograd: a model being trained "
+                "takes KalmanFilter's general update)"
+            )
+        if isinstance(tol, bool) or not isinstance(tol, numbers.Real) or not tol >= 0:
+            raise ValueError(f"tol must be a number >= 0; got {tol!r}")
         self.model, self.tol = model, float(tol)
         # the count before the model is read: an assignment while it is read counts as after
         self._assignments = assignments()

@@ -790,3 +790,42 @@ def test_the_modified_pf_names_a_gamma_hat_table_that_does_not_fit():
         carry, _ = pf.step(carry, ys[k])
     with pytest.raises(ValueError, match="gamma_hat has 3 rows .* step 4 needs"):
         pf.step(carry, ys[3])
+
+
+def test_the_newer_helpers_name_bad_arguments():
+    """An API trial of the newer modules: each of these failed in torch, numpy or scipy
+    (or gave a number: a zero S, iterations=-1, zero steps) without naming the argument."""
+    from difffilter.consistency import ensemble_test, nees, whiteness
+    from difffilter.control import lqr, luenberger_gain, zoh_discretize
+    from difffilter.fdi import BiasAttackEstimator, covariance_intersection
+    from difffilter.gain_schedule import GainSchedule
+
+    d = torch.float64
+    A = torch.tensor([[0.0, 1.0], [-2.0, -0.3]], dtype=d)
+    B = torch.tensor([[0.0], [1.0]], dtype=d)
+    inn = torch.randn(5, 6, 2, dtype=d, generator=torch.Generator().manual_seed(0))
+    eye = torch.eye(2, dtype=d)
+    F = torch.nn.Parameter(0.9 * eye)
+    trained = df.LinearGaussianModel(F, eye[:1], 0.1 * eye, 0.5 * eye[:1, :1],
+                                     torch.zeros(2, dtype=d), eye)  # fmt: skip
+    means = torch.zeros(2, 2, dtype=d)
+    covs = torch.stack([eye, 2 * eye])
+    cases = [
+        (lambda: whiteness(inn, torch.zeros(2, 2, dtype=d)), "positive definite"),
+        (lambda: whiteness(inn, torch.eye(3, dtype=d)), r"innovation_covs must be \[R, T, 2, 2\]"),
+        (lambda: nees(torch.zeros(4, 3, dtype=d), torch.eye(3, dtype=d).expand(2, 3, 3)),
+         "errors' batch"),
+        (lambda: nees(torch.zeros(4, 3), torch.eye(3, dtype=d)), "one dtype"),
+        (lambda: ensemble_test(torch.ones(5, 0, dtype=d), 2), "no runs or no steps"),
+        (lambda: lqr(A, B[:, 0]), "B must be a two-dimensional"),
+        (lambda: lqr(A, B, R=torch.eye(1)), "R is torch.float32"),
+        (lambda: lqr(A, B, Q=torch.eye(3, dtype=d)), r"Q must have shape \[2, 2\]"),
+        (lambda: zoh_discretize(A.tolist(), B, 0.1), "A must be a floating tensor"),
+        (lambda: luenberger_gain(eye, A, 0.1, factor=0.0), "factor must be a positive"),
+        (lambda: GainSchedule(trained), "require no gradient"),
+        (lambda: covariance_intersection(means, covs, iterations=-1), "iterations must be"),
+        (lambda: BiasAttackEstimator(2, "0.9"), "tau must lie in"),
+    ]  # fmt: skip
+    for call, why in cases:
+        with pytest.raises(ValueError, match=why):
+            call()

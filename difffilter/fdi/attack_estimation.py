@@ -15,6 +15,8 @@ v I)`` ([DEF] ``v = 1``); ``τ`` is assumed known (part of the attack model, eq.
 
 from __future__ import annotations
 
+import numbers
+
 import torch
 from torch import Tensor
 
@@ -57,7 +59,7 @@ class BiasAttackEstimator:
     ):
         if isinstance(dim, bool) or not isinstance(dim, int) or dim < 1:
             raise ValueError(f"dim must be an integer >= 1; got {dim!r}")
-        if not 0.0 < float(tau) < 1.0:
+        if isinstance(tau, bool) or not isinstance(tau, numbers.Real) or not 0.0 < tau < 1.0:
             raise ValueError(f"tau must lie in (0, 1) (eq. 4); got {tau!r}")
         if not gamma_bar_var > 0:
             raise ValueError(f"gamma_bar_var must be > 0; got {gamma_bar_var!r}")

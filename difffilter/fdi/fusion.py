@@ -132,6 +132,9 @@ def covariance_intersection(
     means: Tensor, covs: Tensor, *, iterations: int = 30
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Covariance intersection of two estimates (module docstring) → ``(mean, cov, ω)``."""
+    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
+        # (-1 returned ω = 0.5 unsearched)
+        raise ValueError(f"iterations must be an integer >= 1; got {iterations!r}")
     _check_pair(means, covs)
     d = means.shape[-1]
     hand = d <= _HAND_MAX_DIM
