@@ -95,15 +95,20 @@ def _gated(kind: str, detector: Callable):
     filt = GAUSSIAN_FILTERS[kind]
 
     def factory(ctx: SuiteContext) -> Run:
-        det = detector(ctx, filt)
-        if meets_adaptive_attack(ctx.scenario):
-            step = fdi.GatedFilter(det, filt)
-            return lambda tr: ctx.scenario.loop(step, tr.info)
-        return lambda tr: fdi.gated_gaussian_filter(
-            ctx.model, tr.y_recv, tr.us, mask=tr.mask, detector=det, filter=filt
-        )
+        return _gated_run(ctx, filt, detector(ctx, filt))
 
     return factory
+
+
+def _gated_run(ctx: SuiteContext, filt, det) -> Run:
+    """``filt`` gated by ``det`` on the study's trajectories, or in a loop of its own where an
+    adaptive attack meets it (:func:`_gated`)."""
+    if meets_adaptive_attack(ctx.scenario):
+        step = fdi.GatedFilter(det, filt)
+        return lambda tr: ctx.scenario.loop(step, tr.info)
+    return lambda tr: fdi.gated_gaussian_filter(
+        ctx.model, tr.y_recv, tr.us, mask=tr.mask, detector=det, filter=filt
+    )
 
 
 def meets_adaptive_attack(scenario) -> bool:
@@ -192,13 +197,7 @@ def _expected_input(detector: Callable | None):
             return lambda tr: _moments(
                 df.open_loop(filt, ctx.model, tr.y_recv, tr.us, mask=tr.mask)
             )
-        det = detector(ctx, filt)
-        if meets_adaptive_attack(ctx.scenario):
-            step = fdi.GatedFilter(det, filt)
-            return lambda tr: ctx.scenario.loop(step, tr.info)
-        return lambda tr: fdi.gated_gaussian_filter(
-            ctx.model, tr.y_recv, tr.us, mask=tr.mask, detector=det, filter=filt
-        )
+        return _gated_run(ctx, filt, detector(ctx, filt))
 
     return factory
 
