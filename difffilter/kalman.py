@@ -196,6 +196,12 @@ class GaussianFilter(Estimator):
     #: more (:class:`~difffilter.ExpectedInputKalmanFilter` on held inputs: ``[x; z]``).
     carry_is_state = True
 
+    def reported(self, model, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor, dict]:
+        """``(x̂ [..., dx], P [..., dx, dx], extras)``: what a step reports of a carry's
+        ``mean`` and ``cov`` (a wrapper that chooses between the prediction and the update,
+        as the gated filter, reports through it). The moments themselves here, no extras."""
+        return mean, cov, {}
+
     def _init(self, model, batch_shape, generators):
         return gaussian_init(model, batch_shape)
 

@@ -379,7 +379,7 @@ class SuiteContext:
         runs = max(self.runs, 50)
         key = (self.scenario.attack_free_key(), type(self.scenario).__name__,
                (self.detector_streams or self.streams).seed, runs, str(self.dtype),
-               type(filter).__name__, far, bias)  # fmt: skip
+               _filter_key(filter), far, bias)  # fmt: skip
         # what the calibration runs depend on beyond the key: the plant, its schedule and
         # its known inputs (a user who edits them gets a new calibration, in this process
         # as on disk: the process's cache is keyed on their fingerprint too)
@@ -405,6 +405,15 @@ class SuiteContext:
             us=cal.us, mask=cal.mask,
         )  # fmt: skip
         return {"bias": float(det.bias), "threshold": float(det.threshold)}
+
+
+def _filter_key(filter) -> str:
+    """The filter in a calibration's key: its class's name, or its ``repr`` where the class
+    writes one with its settings (two ExpectedInputKalmanFilter settings had shared one
+    CUSUM τ, 5.71 where the second's own is 12.5: a review)."""
+    if type(filter).__repr__ is object.__repr__:
+        return type(filter).__name__
+    return repr(filter)
 
 
 #: CUSUM detectors calibrated in this process (:meth:`SuiteContext.cusum`).

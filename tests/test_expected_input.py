@@ -282,3 +282,37 @@ def test_rates_from_numpy_and_no_boolean_or_empty_rates():
         with pytest.raises(ValueError, match=why):
             df.ExpectedInputKalmanFilter(bad, independent=True)
     assert df.ExpectedInputKalmanFilter(0.5, on_loss="HOLD").on_loss.value == "hold"  # any case
+
+
+def test_held_inputs_gated_report_the_carry_kept_and_per_run_models_broadcast():
+    """A review: at an alarmed step the gated filter keeps the prediction, and reported x's
+    moments of it but the held input of the dropped update (55.9 where the carry held 1.75);
+    a model of per-run matrices on an unbatched carry failed in torch.cat."""
+    model = _plant()
+    gen = torch.Generator().manual_seed(8)
+    _, ys, _ = model.simulate(12, (3,), generator=gen)
+    ys[:, 6] += 50.0  # an outlier every run's test rejects
+    us = torch.randn(3, 12, 2, generator=gen, dtype=torch.float64)
+    gated = GatedFilter(
+        ChiSquareDetector(1, 0.01), df.ExpectedInputKalmanFilter(0.7, on_loss="hold")
+    )
+    carry, alarmed = gated.init(model, (3,)), 0
+    for t in range(12):
+        carry, out = gated.step(carry, ys[:, t], us[:, t])
+        torch.testing.assert_close(
+            out.extras["held_input"], carry.inner.mean[..., 2:], rtol=0, atol=0
+        )
+        torch.testing.assert_close(out.mean, carry.inner.mean[..., :2], rtol=0, atol=0)
+        alarmed += int(out.alarm.sum())
+    assert alarmed >= 3
+    F = torch.stack([model.F, 0.9 * model.F, 1.1 * model.F])
+    batched = df.LinearGaussianModel(F, model.H, model.process_cov(0), model.measurement_cov(0),
+                                     model.initial.mean, model.initial.cov, B=model.B)  # fmt: skip
+    est = df.ExpectedInputKalmanFilter(0.6, on_loss="hold")
+    out = open_loop(est, batched, ys[0], us[0])
+    assert out.means.shape == (3, 12, 2)
+    for r in range(3):
+        one = df.LinearGaussianModel(F[r], model.H, model.process_cov(0), model.measurement_cov(0),
+                                     model.initial.mean, model.initial.cov, B=model.B)  # fmt: skip
+        torch.testing.assert_close(out.means[r], open_loop(est, one, ys[0], us[0]).means,
+                                   rtol=1e-12, atol=1e-12)  # fmt: skip

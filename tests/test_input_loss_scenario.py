@@ -341,3 +341,30 @@ def test_a_lost_reading_does_not_split_a_sensor_attacks_episode(monkeypatch, tmp
     assert metrics["attack_episodes"] == episodes and metrics["episodes_detected"] == len(delays)
     assert metrics["detection_delay_steps"] == pytest.approx(sum(delays) / len(delays), abs=1e-12)
     assert metrics["tpr"] == pytest.approx(float(alarms[tr.flags].double().mean()), abs=1e-12)
+
+
+def test_cusum_calibrations_of_two_filter_settings_are_two(monkeypatch, tmp_path):
+    """A review: the CUSUM cache keyed a filter by its class's name, so two settings of the
+    UDP-like filter shared one τ (5.71 where the second's own is 12.5); bursts of input loss
+    leave the UDP-like filters out, with the reason."""
+    from difffilter import ExpectedInputKalmanFilter
+    from difffilter.models.estimators import SuiteContext
+    from difffilter.models.generic_estimators import default_estimators
+
+    monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path))
+    sc = _with(input_loss={"kind": "packet_loss", "rate": 0.3, "on_loss": "hold",
+                           "acknowledged": False},
+               inputs={"kind": "sinusoid", "amplitude": 3.0, "frequency": 2.0})  # fmt: skip
+    ctx = SuiteContext(sc, sc.system(torch.float64), 8, Streams(0))
+    first = ctx.cusum(ExpectedInputKalmanFilter(0.7, on_loss="hold"))
+    second = ctx.cusum(ExpectedInputKalmanFilter(0.1, on_loss="zero"))
+    fresh = SuiteContext(sc, sc.system(torch.float64), 8, Streams(0))
+    monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path / "other"))
+    alone = fresh.cusum(ExpectedInputKalmanFilter(0.1, on_loss="zero"))
+    assert second.threshold == alone.threshold != first.threshold
+    bursts = _with(input_loss={"kind": "burst_loss", "to_bad": 0.1, "to_good": 0.3,
+                               "acknowledged": False})  # fmt: skip
+    assert "chi_square_udp_kf" not in default_estimators(bursts)
+    from difffilter.models.estimators import get
+
+    assert "in bursts" in get("udp_kf").unmet(bursts, bursts.system())

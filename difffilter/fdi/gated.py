@@ -154,14 +154,14 @@ class GatedFilter(Estimator):
             inner = GaussianState(mean, cov, updated.k, carry.model)
         else:
             inner = updated
-        mean, cov, extras = inner.mean, inner.cov, {"nis": g}
-        if not self.filter.carry_is_state:  # the state's part; the rest as the filter's extras
-            dx = carry.model.dim_x
-            mean, cov = mean[..., :dx], cov[..., :dx, :dx]
-            extras = {**(out.extras or {}), **extras}
+        # what the filter reports of the carry kept (a held-input filter: x's part, the held
+        # input's in extras, both of the gated carry: a review found the held input of the
+        # dropped update reported at alarmed steps)
+        mean, cov, extras = self.filter.reported(carry.model, inner.mean, inner.cov)
         out = out._replace(
-            mean=mean, cov=cov, score=score, alarm=alarm, threshold=threshold, extras=extras
-        )
+            mean=mean, cov=cov, score=score, alarm=alarm, threshold=threshold,
+            extras={**extras, "nis": g},
+        )  # fmt: skip
         return GatedState(inner, det_state, carry.model), out
 
 
