@@ -105,10 +105,33 @@ def _mare(F: np.ndarray, G: np.ndarray, Q: np.ndarray, R: np.ndarray, rate: floa
           tol: float = 1e-12, max_iter: int = 100_000) -> np.ndarray | str:  # fmt: skip
     """The fixed point of ``X = F X Fᵀ + Q − rate · F X Gᵀ (G X Gᵀ + R)⁻¹ G X Fᵀ`` (the
     filtering form; the control form is its dual, ``F → Fᵀ``, ``G → Bᵀ``), or why there is
-    none: :data:`DIVERGED` where the iteration from ``Q`` grows without bound,
-    :data:`UNSETTLED` where it has not settled after ``max_iter`` steps."""
+    none: :data:`DIVERGED` where the iteration grows without bound, :data:`UNSETTLED` where
+    it has not settled after ``max_iter`` steps.
+
+    From ``Q`` first; where that fixed point leaves an unstable mode unestimated
+    (``ρ(F − F K G) > 1``, ``K = X Gᵀ (G X Gᵀ + R)⁻¹``: a mode ``Q`` does not excite, held
+    at 0), again from ``Q + c I`` (module docstring), which reaches the stabilising
+    solution. Not from ``Q + c I`` alone: on a marginal mode ``Q`` does not excite (a
+    constant bias state) the covariance from a positive start shrinks like ``1/k`` and
+    never settles (a review), where from ``Q`` it is 0 at once, the limit either way."""
+    X = _mare_from(F, G, Q, R, rate, Q.copy(), tol, max_iter)
+    if _found(X) and _unstable_closed_loop(F, G, R, X):
+        n = F.shape[0]
+        X = _mare_from(F, G, Q, R, rate, Q + (_scale(F, G, Q, R) / n) * np.eye(n), tol, max_iter)
+    return X
+
+
+def _unstable_closed_loop(F: np.ndarray, G: np.ndarray, R: np.ndarray, X: np.ndarray) -> bool:
+    """Whether ``F − F K G`` with ``K = X Gᵀ (G X Gᵀ + R)⁻¹`` has a mode outside the unit
+    circle (the fixed point ``X`` leaves an unstable mode unestimated)."""
+    K = np.linalg.solve(G @ X @ G.T + R, G @ X).T
+    closed = F - F @ K @ G
+    return float(np.abs(np.linalg.eigvals(closed)).max()) > 1.0 + 1e-9
+
+
+def _mare_from(F, G, Q, R, rate: float, X: np.ndarray, tol: float, max_iter: int):
+    """:func:`_mare`'s iteration from ``X``."""
     scale = _scale(F, G, Q, R)
-    X = Q + (scale / F.shape[0]) * np.eye(F.shape[0])  # (module docstring: not Q alone)
     for _ in range(max_iter):
         S = G @ X @ G.T + R
         try:
@@ -139,6 +162,10 @@ _UNDETECTABLE = ("(F, H) is not detectable (an unstable mode the measurements do
 
 def _found(X) -> bool:
     return not isinstance(X, str)
+
+
+def _diverged(X) -> bool:
+    return isinstance(X, str) and X == DIVERGED
 
 
 def _no_fixed_point(why: str, rate: float, what: str) -> ValueError:
@@ -175,7 +202,7 @@ def intermittent_kalman_bounds(F: Tensor, H: Tensor, Q: Tensor, R: Tensor,
     Fn, Hn, Qn, Rn = _arrays(F, H, Q, R, ("F", "H", "Q", "R"))
     upper = _mare(Fn, Hn, Qn, Rn, lam)
     if not _found(upper):
-        if lam < 1.0 and not _found(_mare(Fn, Hn, Qn, Rn, 1.0)):
+        if lam < 1.0 and _diverged(_mare(Fn, Hn, Qn, Rn, 1.0)):
             raise ValueError(f"intermittent_kalman_bounds: {_UNDETECTABLE}")
         raise _no_fixed_point(upper, lam, "intermittent_kalman_bounds")
     if lam == 1.0:
@@ -198,7 +225,7 @@ def lossy_dlqr(F: Tensor, B: Tensor, Q: Tensor | None = None, R: Tensor | None =
     Fn, Bn, Qn, Rn = _arrays(F, B, Q, R, ("F", "B", "Q", "R"))
     S = _mare(Fn.T, Bn.T, Qn, Rn, rate)
     if not _found(S):
-        if rate < 1.0 and not _found(_mare(Fn.T, Bn.T, Qn, Rn, 1.0)):
+        if rate < 1.0 and _diverged(_mare(Fn.T, Bn.T, Qn, Rn, 1.0)):
             raise ValueError(
                 "lossy_dlqr: (F, B) is not stabilizable (an unstable mode the inputs do not "
                 "reach): no arrival rate makes the cost finite"
@@ -242,8 +269,11 @@ def critical_arrival_rate(F: Tensor, H: Tensor, Q: Tensor | None = None, R: Tens
     Q, R = _weights(Q, R, n, p, F)
     Fn, Hn, Qn, Rn = _arrays(F, H, Q, R, ("F", "H", "Q", "R"))
     radius = float(np.abs(np.linalg.eigvals(Fn)).max())
-    if not _found(_mare(Fn, Hn, Qn, Rn, 1.0)):
+    at_one = _mare(Fn, Hn, Qn, Rn, 1.0)
+    if _diverged(at_one):
         raise ValueError(_UNDETECTABLE)
+    if not _found(at_one):
+        raise _no_fixed_point(at_one, 1.0, "critical_arrival_rate")
     if radius <= 1.0 + 1e-12:  # stable (or marginal, detectable): bounded at every rate
         return CriticalRate(0.0, 0.0)
     lower = 1.0 - 1.0 / radius**2

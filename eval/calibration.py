@@ -20,11 +20,11 @@ from dataclasses import dataclass, field
 import torch
 
 from difffilter._checks import check_rate
-from difffilter.metrics import after_attack, detection_delay, nan_as_lowest, threshold_for
+from difffilter.metrics import after_attack, nan_as_lowest, threshold_for
 from difffilter.metrics import finite_scores as _finite_scores
 from difffilter.models.streams import Streams
 
-from .scoring import AFTER_ATTACK_STEPS, episode_steps
+from .scoring import AFTER_ATTACK_STEPS, episode_delay
 
 __all__ = [
     "Calibration",
@@ -163,6 +163,7 @@ def calibrate(
     checkpoint=None,
     progress: bool = True,
     cache: dict | None = None,
+    study_runs: int | None = None,
 ) -> Calibration:
     """Run ``scenario``'s estimators on attack-free runs and pick every detector's ``τ_α``.
 
@@ -170,14 +171,17 @@ def calibrate(
     :func:`~difffilter.eval.suite.run_suite` (an empty list of ``estimators`` and no
     ``add``: no detector, nothing to run); the runs come from :func:`calibration_seed`.
     ``cache`` (a dict shared by one evaluation) keeps the result for the same scenario,
-    runs, estimators, checkpoint and target.
+    runs, estimators, checkpoint and target. ``study_runs``: the runs of the study the
+    thresholds are for (default ``runs``): its detectors' own calibrations (a CUSUM's τ)
+    follow its seed and its runs, so the threshold is picked for the detector judged.
     """
     from .suite import run_suite
 
     far = check_rate(far, "far")
     runs = scenario.runs if runs is None else runs
+    study_runs = runs if study_runs is None else study_runs
     key = ("far-calibration", scenario.attack_free_key(), runs, seed, far,
-           tuple(estimators or ()), tuple(add), str(checkpoint))  # fmt: skip
+           tuple(estimators or ()), tuple(add), str(checkpoint), study_runs)  # fmt: skip
     if cache is not None and key in cache:
         return cache[key]
     cal_seed = calibration_seed(seed)
@@ -187,7 +191,7 @@ def calibrate(
         scenario.with_threat(None), runs=runs, seed=cal_seed, estimators=estimators, add=add,
         progress=progress, checkpoint=checkpoint, cache=cache, calibration=None,
         label=f"{scenario.name}: calibrating at {far:g} (attack-free runs)",
-        detector_seed=seed,  # the study's detectors (a CUSUM's τ), on runs of their own
+        detector_seed=seed, detector_runs=study_runs,  # the study's detectors (a CUSUM's τ)
     )  # fmt: skip
     thresholds, measured, tied, steps = {}, {}, {}, {}
     for name, out in result.outputs.items():
@@ -249,7 +253,7 @@ def calibrated_metrics(output, traj, threshold: float | None, *, attacked_input:
         worst = torch.where(unseen, error, torch.zeros_like(error)).amax(-1)
         attacked_runs = flags.any(-1)
         out["impact"] = float(worst[attacked_runs].mean())
-        steps = detection_delay(alarms, episode_steps(traj))["mean_delay"]
+        steps = episode_delay(alarms, traj)["mean_delay"]
         if math.isfinite(steps):  # (no episode detected: no delay)
             out["detection_delay_at_far_steps"] = steps
             out["detection_delay_at_far_s"] = None if dt is None else steps * dt

@@ -281,7 +281,7 @@ def evaluate(
                 apply_calibration(result, calibrate(
                     scenario, far=far, runs=calibration_runs or runs, seed=seed,
                     estimators=detectors(result), checkpoint=ckpt, progress=progress,
-                    cache=cache,
+                    cache=cache, study_runs=scenario.runs if runs is None else runs,
                 ))  # fmt: skip
             if mine:
                 held.setdefault(family, {})[name] = result

@@ -255,7 +255,8 @@ def run_robustness(
     add = tuple(dict.fromkeys((*add, *targets)))  # a crafted attack's detector is calibrated
     kwargs = dict(runs=runs, estimators=threat_set.estimators, add=add,
                   checkpoint=checkpoint, progress=progress, cache=cache)  # fmt: skip
-    cal = calibrate(scenario, far=far, seed=seed, **{**kwargs, "runs": calibration_runs or runs})
+    cal = calibrate(scenario, far=far, seed=seed, study_runs=runs,
+                    **{**kwargs, "runs": calibration_runs or runs})  # fmt: skip
     free = run_suite(scenario.with_threat(None), seed=seed, calibration=cal, **kwargs,
                      label=f"{scenario.name}: attack-free")  # fmt: skip
     result = RobustnessResult(scenario, runs, seed, threat_set, cal, free)

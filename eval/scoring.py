@@ -37,6 +37,7 @@ __all__ = [
     "rates_by_size",
     "comparable_attack",
     "episode_steps",
+    "episode_delay",
 ]
 
 #: The headline metrics (the leaderboard's columns and the TensorBoard HPARAMS table's).
@@ -212,7 +213,7 @@ def score(
         false_alarms_per_1000_steps=1000.0 * rates["false_alarms"] / (B * T),
     )
     if attacked_input and bool(flags.any()):
-        delay = dm.detection_delay(alarms, episode_steps(traj))
+        delay = episode_delay(alarms, traj)
         steps = _finite(delay["mean_delay"])
         out.update(
             tpr=_finite(rates["tpr"]),
@@ -230,21 +231,38 @@ def score(
 def episode_steps(traj) -> Tensor:
     """The steps ``[B, T]`` (bool) whose runs of consecutive steps are the attack's episodes,
     for the detection delay: ``traj.flags``, and under a sensor schedule the attack's own
-    steps (``info["attack_flags"]``), the ones whose attacked readings were lost included.
-    A lost reading does not end an attack: labelled step by step, a threat-model trial's 33
-    attacked runs under 20 % sensor loss split into 242 episodes, each timed from its own
-    start (a delay of 2.1 steps against 10.8 from the attacks' onsets). The labels of TPR
-    and FPR stay ``traj.flags``."""
+    steps (``info["attack_flags"]``) in the episodes of which at least one attacked reading
+    arrived, the lost ones included. A lost reading does not end an attack: labelled step
+    by step, a threat-model trial's 33 attacked runs under 20 % sensor loss split into 242
+    episodes, each timed from its own start (a delay of 2.1 steps against 10.8 from the
+    attacks' onsets); an attack none of whose readings arrived is none for the estimator
+    (a review: 122 of 400 runs of a two-step attack under 50 % loss had counted as missed).
+    The labels of TPR and FPR stay ``traj.flags``; :func:`episode_delay` times them."""
     info = getattr(traj, "info", None) or {}  # (what holds flags alone: no schedule)
     own = info.get("attack_flags")
+    flags = traj.flags
     if (
         getattr(traj, "mask", None) is None
         or own is None
         or (info.get("attack_channel") is Channel.ACTUATOR)
     ):
-        return traj.flags
+        return flags
     own = own.any(-1) if own.dim() == 3 else own
-    return traj.flags | own.expand_as(traj.flags)
+    steps = flags | own.expand_as(flags)
+    onset = steps & ~torch.cat([torch.zeros_like(steps[..., :1]), steps[..., :-1]], -1)
+    episode = torch.cumsum(onset.long(), -1)  # [B, T]: the episode of each step, per run
+    count = int(episode.max()) + 1
+    key = torch.arange(steps.shape[0], device=steps.device).unsqueeze(-1) * count + episode
+    seen = torch.zeros(steps.shape[0] * count, dtype=torch.bool, device=steps.device)
+    seen[key[flags]] = True  # an episode with an attacked reading received
+    return steps & seen[key]
+
+
+def episode_delay(alarms: Tensor, traj) -> dict[str, float | int]:
+    """:func:`difffilter.metrics.detection_delay` of ``alarms [B, T]`` over the episodes of
+    :func:`episode_steps`, an episode detected at its first alarm on a step labelled
+    attacked (``traj.flags``: a reading that arrived), as ``impact`` reads it."""
+    return dm.detection_delay(alarms & traj.flags, episode_steps(traj))
 
 
 def comparable_attack(output: EstimatorOutput, traj) -> bool:

@@ -91,6 +91,7 @@ def run_suite(
     calibration=None,
     label: str | None = None,
     detector_seed: int | None = None,
+    detector_runs: int | None = None,
 ) -> SuiteResult:
     """Simulate ``runs`` runs of ``scenario`` and run every estimator on them.
 
@@ -120,6 +121,8 @@ def run_suite(
         detector_seed: the seed of the detectors' own attack-free runs (a CUSUM's τ;
             default ``seed``): the false-alarm calibration gives the study's, so that it
             picks its threshold on the scores of the detector the study judges.
+        detector_runs: the study's runs, which set how many attack-free runs the detectors'
+            own calibrations use (default ``runs``; given by the false-alarm calibration).
 
     Runs with one intra-op thread unless the scenario says otherwise
     (:func:`difffilter.runtime.one_thread`). Inside a torch.distributed process group
@@ -148,7 +151,7 @@ def run_suite(
     ctx = registry.SuiteContext(scenario, model, runs, streams, options, checkpoint,
                                 named_checkpoints=dict(named),
                                 detector_streams=None if detector_seed is None
-                                else Streams(detector_seed))  # fmt: skip
+                                else Streams(detector_seed), detector_runs=detector_runs)  # fmt: skip
     if cache is not None:
         ctx.cache = cache
     names = tuple(scenario.estimators or DEFAULT_SUITE) if estimators is None else estimators

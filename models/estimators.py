@@ -312,6 +312,9 @@ class SuiteContext:
             threat-model trial: a CUSUM calibrated on the calibration seed's runs had another
             τ, and the threshold picked on its scores moved the study's false-alarm rate
             by −0.13 to +0.23 points).
+        detector_runs: the study's runs, whose count sets the detectors' own attack-free
+            runs (``max(runs, 50)``), ``None``: :attr:`runs` (a calibration on more runs
+            than the study had built a CUSUM of another τ: a review).
     """
 
     scenario: Any
@@ -325,6 +328,7 @@ class SuiteContext:
     named_checkpoints: dict[str, Any] = field(default_factory=dict)
     particle_prefix: str = ""
     detector_streams: Streams | None = None
+    detector_runs: int | None = None
 
     def checkpoint_for(self, name: str):
         """The checkpoint estimator ``name`` uses: its own (``--ckpt name=path``), else
@@ -352,7 +356,7 @@ class SuiteContext:
         own = self.detector_streams or self.streams
         streams = {k: own(f"calibration/{k}")
                    for k in ("plant", "schedule", "input_schedule")}  # fmt: skip
-        runs = max(self.runs, 50)
+        runs = max(self.detector_runs or self.runs, 50)
         return self.scenario.simulate(
             runs, streams, dtype=self.dtype, attack=None, model=self.model
         )
@@ -376,7 +380,7 @@ class SuiteContext:
         under the cache folder (:mod:`difffilter.models.calibration_cache`), so a second
         ``run_suite`` of the scenario, in this process or a later one, reuses it."""
         bias, far = self.options.get("cusum_bias"), self.scenario.false_alarm_rate
-        runs = max(self.runs, 50)
+        runs = max(self.detector_runs or self.runs, 50)
         key = (self.scenario.attack_free_key(), type(self.scenario).__name__,
                (self.detector_streams or self.streams).seed, runs, str(self.dtype),
                _filter_key(filter), far, bias)  # fmt: skip

@@ -67,6 +67,7 @@ def test_calibration_runs_and_the_checkpoint_reach_the_calibration(monkeypatch, 
         cli.evaluate(["four_tank_bias"], ckpt=ckpt, runs=3, out=tmp_path, seed=4,
                      progress=False, far=0.01, calibration_runs=calibration_runs)  # fmt: skip
     assert [c["runs"] for c in seen["calibrate"]] == [7, 3]
+    assert [c["study_runs"] for c in seen["calibrate"]] == [3, 3]  # the study's detectors
     assert all(c["checkpoint"] == ckpt and c["far"] == 0.01 for c in seen["calibrate"])
     assert all(s["checkpoint"] == ckpt and s["runs"] == 3 for s in seen["suite"])
 

@@ -5,7 +5,9 @@ controller's expected cost tr(S W) in Monte Carlo."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
+import scipy.linalg as sla
 import torch
 
 import difffilter as df
@@ -204,3 +206,20 @@ def test_bad_values_are_named():
             call()
     lower, _ = intermittent_kalman_bounds(F, H, eye, one, torch.tensor(0.9, dtype=torch.float64))
     assert lower.shape == (2, 2)
+
+
+def test_a_marginal_mode_q_does_not_excite_settles_at_zero():
+    """A review of the positive definite start: a constant bias state (eigenvalue 1, no
+    noise) shrank like 1/k from it and never settled ("not detectable" at rate 0.8); from Q
+    its covariance is 0 at once, scipy's DARE's limit. The start is Q, and Q + c I only where
+    that fixed point leaves an unstable mode unestimated."""
+    F, H = torch.diag(_t(0.9, 1.0)), _t([1.0, 1.0])
+    Q, R = torch.diag(_t(1.0, 0.0)), _t([1.0])
+    _, upper = intermittent_kalman_bounds(F, H, Q, R, 1.0)
+    ref = sla.solve_discrete_are(F.numpy().T, H.numpy().T, Q.numpy(), R.numpy())
+    np.testing.assert_allclose(upper.numpy(), ref, rtol=0, atol=1e-9)
+    lower, upper = intermittent_kalman_bounds(F, H, Q, R, 0.8)
+    assert float(upper[1, 1]) == 0.0 and float(upper[0, 0]) > float(lower[0, 0]) > 0
+    assert critical_arrival_rate(F, H, Q, R) == (0.0, 0.0)
+    K, _ = lossy_dlqr(F.T, H.T, Q, R, arrival_rate=1.0)
+    assert K.shape == (1, 2)
