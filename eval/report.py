@@ -248,7 +248,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
         "scenario": sc.name, "runs": result.runs, "steps": sc.steps, "seed": result.seed,
         "units": {name: m.unit for name, m in METRICS.items()},
         "scenario_units": {"state": sc.state_unit, "attack": sc.attack_unit},
-        "network": network_of(sc),
+        "network": network_of(sc, result.traj),
         "paper": sc.paper_numbers(),
         "estimators": {n: {**dict.fromkeys(METRICS), **m} for n, m in result.metrics.items()},
         "description": sc.description, "dt_s": sc.dt, "reference": result.reference,
@@ -294,16 +294,25 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     return doc
 
 
-def network_of(sc) -> dict:
+def network_of(sc, traj=None) -> dict:
     """``{"sensors": the schedule, "inputs": the input packets' loss or None}`` of a
     scenario, as metrics.json records it (a TCP-like and a UDP-like study differed by their
-    names alone)."""
+    names alone), and with the study's trajectories ``traj`` the share of its steps (run ×
+    step) that received no measurement entry at all, ``"steps_without_data"`` (0 without a
+    schedule): such a step scores no evidence, and an unattacked one counts among FPR's and
+    AUC's negatives (a robotics trial at 90 % loss: 64 % of the steps, an FPR of 1.14 %
+    over all of them against 3.46 % over the steps that received data)."""
     loss = sc.input_loss_schedule()
     inputs = None if loss is None else {
         "schedule": _described(loss.schedule), "on_loss": loss.on_loss.value,
         "acknowledged": loss.acknowledged,
     }  # fmt: skip
-    return {"sensors": _described(sc.schedule()), "inputs": inputs}
+    network = {"sensors": _described(sc.schedule()), "inputs": inputs}
+    if traj is not None:
+        mask = getattr(traj, "mask", None)
+        empty = 0.0 if mask is None else float((~mask.any(-1)).double().mean())
+        network["steps_without_data"] = empty
+    return network
 
 
 def _described(schedule) -> str:
@@ -319,6 +328,10 @@ def _network_line(network: dict | None) -> str:
     if not network or (network["sensors"] == "AllSensors()" and network["inputs"] is None):
         return ""
     line = f"\nNetwork: measurements `{network['sensors']}`"
+    empty = network.get("steps_without_data")
+    if empty:
+        line += (f" ({100 * empty:.3g} % of the steps received no measurement: an unattacked "
+                 "one counts among the negatives of FPR and AUC)")  # fmt: skip
     inputs = network["inputs"]
     if inputs is not None:
         told = ("acknowledged (TCP-like: the estimators step with the inputs applied)"
