@@ -333,7 +333,18 @@ def _plant(spec: Any, where: str):
         if ignored:  # the function makes the whole model: these would not be read
             raise ValueError(f"{where}: model gives the whole plant; remove {', '.join(ignored)} "
                              "(set them in the model's function)")  # fmt: skip
-        return _import(spec["model"], f"{where}.model")
+        made = _import(spec["model"], f"{where}.model")
+
+        def model(dtype):
+            try:
+                return made(dtype)
+            except Exception as error:  # a user's function may raise anything
+                raise ValueError(
+                    f"{where}.model {spec['model']} failed when called with the dtype (it must "
+                    f"be a function dtype → StateSpaceModel): {type(error).__name__}: {error}"
+                ) from None
+
+        return model
     for given, ignored in (("transition", ("F", "B")), ("observe", ("H",))):
         clash = [k for k in ignored if given in spec and k in spec]
         if clash:
@@ -482,8 +493,14 @@ def _probe(model, where: str) -> None:
     on its prior mean, their errors and widths named now, not deep inside a run."""
     m0 = model.initial.mean
     u = torch.zeros(model.dim_u, dtype=m0.dtype) if model.dim_u else None
-    for name, out, width in (("transition", _call(model.transition, (m0, u, 0), f"{where}.transition"),
-                              model.dim_x),
+    try:
+        moved = _call(model.transition, (m0, u, 0), f"{where}.transition")
+    except ValueError as error:
+        if u is None and model._f_arity >= 2:  # f(x, u) read the missing input
+            raise ValueError(f"{error} (transition takes u, and plant.dim_u is 0: set dim_u "
+                             "to the number of inputs)") from None  # fmt: skip
+        raise
+    for name, out, width in (("transition", moved, model.dim_x),
                              ("observe", _call(model.observe, (m0, 1), f"{where}.observe"),
                               model.dim_y)):  # fmt: skip
         if not isinstance(out, torch.Tensor) or out.shape[-1:] != (width,) or out.dim() != 1:

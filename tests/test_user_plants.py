@@ -357,6 +357,8 @@ def test_a_plant_function_of_the_wrong_width_or_failing_is_named(plants):
             raise RuntimeError("no")
         def three(x):
             return torch.cat([x, x[..., :1]], -1)
+        def driven(x, u):
+            return x + u[..., :1]
     """))  # fmt: skip
     base = yaml.safe_load(VDP_YAML)
     # (the model's own probe, NonlinearGaussianModel._check_widths, names the first)
@@ -366,7 +368,9 @@ def test_a_plant_function_of_the_wrong_width_or_failing_is_named(plants):
               r"plant.R must be 3 × 3 \(there are 3 outputs, as observe returns at m0"),
              # the state's size came from m0, and the error blamed Q alone
              ({"m0": [2.0, 0.0, 0.0], "H": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], "Q": [1e-4, 1e-4]},
-              r"plant.Q must be 3 × 3 \(the state has 3 entries, as m0 has")]  # fmt: skip
+              r"plant.Q must be 3 × 3 \(the state has 3 entries, as m0 has"),
+             # (a robotics trial: "'NoneType' object is not subscriptable" alone)
+             ({"transition": "user_bad:driven"}, r"transition takes u, and plant.dim_u is 0")]  # fmt: skip
     for change, why in cases:
         doc = {**base, "plant": {**base["plant"], **change}}
         if "observe" in change:
@@ -375,6 +379,12 @@ def test_a_plant_function_of_the_wrong_width_or_failing_is_named(plants):
         path.write_text(yaml.safe_dump(doc))
         with pytest.raises(ValueError, match=why):
             scenario_from_yaml(path)
+    # a model: that is no function of the dtype (a trial: "'torch.dtype' object is not
+    # subscriptable" alone)
+    path.write_text(yaml.safe_dump({**base, "plant": {"model": "user_bad:three"}}))
+    with pytest.raises(ValueError, match=r"plant.model user_bad:three failed when called with "
+                                         r"the dtype \(it must be a function dtype"):  # fmt: skip
+        scenario_from_yaml(path)
     # one string is a list of one, never its characters
     doc = {**base, "estimators": "chi_square_kf", "notes": "one note"}
     path.write_text(yaml.safe_dump(doc))
