@@ -23,12 +23,13 @@ of ``Σ xᵀ Q x + (ν u)ᵀ R (ν u)`` is ``u_k = −K x̂_k`` with::
 
 (with the state known, the expected cost per step tends to ``tr(S W)``, ``W`` the process
 noise covariance). Every fixed point is found by iterating its map (convergent where it
-exists: Sinopoli et al., Lemma 1) in float64 numpy, from ``Q + c I`` with ``c`` the
-problem's scale (:func:`_scale`): from ``Q`` itself a singular ``Q`` could hold the
-iteration at the fixed point 0 of a mode it does not excite (an API trial: an LQR gain that
-left an unstable mode alone, a zero upper bound where the filter's covariance settles at
-``a² − 1``); from a positive definite start it reaches the stabilising solution, as the
-filter from a positive ``P₀`` does and as :func:`difffilter.control.dlqr` returns it.
+exists: Sinopoli et al., Lemma 1) in float64 numpy, from ``Q``; a singular ``Q`` can hold
+the iteration at the fixed point 0 of an unstable mode it does not excite (an API trial: an
+LQR gain that left an unstable mode alone, a zero upper bound where the filter's covariance
+settles at ``a² − 1``), so where the fixed point leaves an unstable mode unestimated it
+starts again from ``Q + c Π``, ``Π`` the projector onto those modes and ``c`` the
+problem's scale (:func:`_scale`), and reaches the stabilising solution, as the filter from
+a positive ``P₀`` does and as :func:`difffilter.control.dlqr` returns it.
 Detached, no gradient, like :func:`difffilter.control.dlqr`.
 """
 
@@ -110,23 +111,36 @@ def _mare(F: np.ndarray, G: np.ndarray, Q: np.ndarray, R: np.ndarray, rate: floa
 
     From ``Q`` first; where that fixed point leaves an unstable mode unestimated
     (``ρ(F − F K G) > 1``, ``K = X Gᵀ (G X Gᵀ + R)⁻¹``: a mode ``Q`` does not excite, held
-    at 0), again from ``Q + c I`` (module docstring), which reaches the stabilising
-    solution. Not from ``Q + c I`` alone: on a marginal mode ``Q`` does not excite (a
-    constant bias state) the covariance from a positive start shrinks like ``1/k`` and
-    never settles (a review), where from ``Q`` it is 0 at once, the limit either way."""
+    at 0), again from ``Q + c Π``, ``Π`` the projector onto those modes
+    (:func:`_unestimated`), which reaches the stabilising solution. Not from ``Q + c I``:
+    on a marginal mode ``Q`` does not excite (a constant bias state) the covariance from a
+    positive start shrinks like ``1/k`` and never settles (a review), where from ``Q`` it is
+    0 at once, the limit either way."""
     X = _mare_from(F, G, Q, R, rate, Q.copy(), tol, max_iter)
-    if _found(X) and _unstable_closed_loop(F, G, R, X):
-        n = F.shape[0]
-        X = _mare_from(F, G, Q, R, rate, Q + (_scale(F, G, Q, R) / n) * np.eye(n), tol, max_iter)
+    if _found(X):
+        unstable = _unestimated(F, G, R, X)
+        if unstable is not None:
+            n = F.shape[0]
+            start = Q + (_scale(F, G, Q, R) / n) * unstable
+            X = _mare_from(F, G, Q, R, rate, start, tol, max_iter)
     return X
 
 
-def _unstable_closed_loop(F: np.ndarray, G: np.ndarray, R: np.ndarray, X: np.ndarray) -> bool:
-    """Whether ``F − F K G`` with ``K = X Gᵀ (G X Gᵀ + R)⁻¹`` has a mode outside the unit
-    circle (the fixed point ``X`` leaves an unstable mode unestimated)."""
+def _unestimated(F: np.ndarray, G: np.ndarray, R: np.ndarray, X: np.ndarray):
+    """The projector ``[n, n]`` (largest eigenvalue 1) onto the modes of ``F − F K G``
+    (``K = X Gᵀ (G X Gᵀ + R)⁻¹``) outside the unit circle, or ``None`` where there is none:
+    the unstable modes the fixed point ``X`` leaves unestimated. The restart adds them alone
+    (along all of ``I`` a constant-bias mode beside them shrank like ``1/k`` again and never
+    settled: a review, F = diag(1, 2), Q = 0)."""
     K = np.linalg.solve(G @ X @ G.T + R, G @ X).T
-    closed = F - F @ K @ G
-    return float(np.abs(np.linalg.eigvals(closed)).max()) > 1.0 + 1e-9
+    lam, V = np.linalg.eig(F - F @ K @ G)
+    outside = np.abs(lam) > 1.0 + 1e-9
+    if not outside.any():
+        return None
+    Vu = V[:, outside]
+    P = (Vu @ Vu.conj().T).real
+    P = 0.5 * (P + P.T)
+    return P / float(np.linalg.eigvalsh(P).max())
 
 
 def _mare_from(F, G, Q, R, rate: float, X: np.ndarray, tol: float, max_iter: int):

@@ -75,7 +75,7 @@ import torch
 from difffilter._imports import import_object
 from difffilter.attack import Channel
 from difffilter.input_loss import InputLossSchedule
-from difffilter.ssm import LinearGaussianModel, NonlinearGaussianModel, _arity
+from difffilter.ssm import LinearGaussianModel, NonlinearGaussianModel, StateSpaceModel, _arity
 from difffilter.threats import THREATS, check_attack_fits, threat_from_dict
 
 from .attacks import ActuatorInjection, Replacement, SensorBias
@@ -333,18 +333,7 @@ def _plant(spec: Any, where: str):
         if ignored:  # the function makes the whole model: these would not be read
             raise ValueError(f"{where}: model gives the whole plant; remove {', '.join(ignored)} "
                              "(set them in the model's function)")  # fmt: skip
-        made = _import(spec["model"], f"{where}.model")
-
-        def model(dtype):
-            try:
-                return made(dtype)
-            except Exception as error:  # a user's function may raise anything
-                raise ValueError(
-                    f"{where}.model {spec['model']} failed when called with the dtype (it must "
-                    f"be a function dtype → StateSpaceModel): {type(error).__name__}: {error}"
-                ) from None
-
-        return model
+        return _ModelFunction(_import(spec["model"], f"{where}.model"), spec["model"], where)
     for given, ignored in (("transition", ("F", "B")), ("observe", ("H",))):
         clash = [k for k in ignored if given in spec and k in spec]
         if clash:
@@ -430,6 +419,31 @@ def _plant(spec: Any, where: str):
     return build
 
 
+class _ModelFunction:
+    """A YAML ``plant: {model: path}``: ``dtype → StateSpaceModel`` by the user's function,
+    its failures and a result that is no model named with the file and the field (a trial:
+    "'torch.dtype' object is not subscriptable" alone). A class, not a closure: it pickles
+    as the function it wraps does."""
+
+    def __init__(self, function, path: str, where: str):
+        self.function, self.path, self.where = function, path, where
+
+    def __call__(self, dtype):
+        try:
+            model = self.function(dtype)
+        except Exception as error:  # a user's function may raise anything
+            raise ValueError(
+                f"{self.where}.model: {self.path}(dtype) raised {type(error).__name__}: {error} "
+                "(model: names a function dtype → StateSpaceModel)"
+            ) from error
+        if not isinstance(model, StateSpaceModel):
+            raise ValueError(
+                f"{self.where}.model: {self.path}(dtype) returned a {type(model).__name__}; it "
+                "must return a StateSpaceModel (e.g. difffilter.NonlinearGaussianModel)"
+            )
+        return model
+
+
 def _angles(value: Any, dy: int, where: str) -> tuple[int, ...]:
     """The measurement entries of YAML ``angles:`` (distinct, in ``[0, dy)``), or ``()``."""
     if value is None:
@@ -458,7 +472,8 @@ class _AngleMeasured(NonlinearGaussianModel):
     def measurement_residual(self, y, y_hat):
         d = y - y_hat
         index = torch.tensor(self.angles, device=d.device)
-        wrapped = torch.remainder(d.index_select(-1, index) + math.pi, 2 * math.pi) - math.pi
+        # π − ((π − d) mod 2π) ∈ (−π, π]: +π stays +π, as the tracking model's wrap_angle
+        wrapped = math.pi - torch.remainder(math.pi - d.index_select(-1, index), 2 * math.pi)
         return d.index_copy(-1, index, wrapped)
 
 
@@ -496,7 +511,8 @@ def _probe(model, where: str) -> None:
     try:
         moved = _call(model.transition, (m0, u, 0), f"{where}.transition")
     except ValueError as error:
-        if u is None and model._f_arity >= 2:  # f(x, u) read the missing input
+        # f(x, u) read the missing input (only then: another bug of a function of u is its own)
+        if u is None and model._f_arity >= 2 and "'NoneType'" in str(error):
             raise ValueError(f"{error} (transition takes u, and plant.dim_u is 0: set dim_u "
                              "to the number of inputs)") from None  # fmt: skip
         raise

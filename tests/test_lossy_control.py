@@ -223,3 +223,21 @@ def test_a_marginal_mode_q_does_not_excite_settles_at_zero():
     assert critical_arrival_rate(F, H, Q, R) == (0.0, 0.0)
     K, _ = lossy_dlqr(F.T, H.T, Q, R, arrival_rate=1.0)
     assert K.shape == (1, 2)
+
+
+def test_a_bias_mode_beside_an_unexcited_unstable_one():
+    """A review: with Q = 0 on F = diag(1, 2) the restart from Q + c I brought back the bias
+    mode's 1/k decay (never settled); the restart adds the unstable mode alone now."""
+    F, H, Q, R = (
+        torch.diag(_t(1.0, 2.0)),
+        torch.eye(2, dtype=torch.float64),
+        torch.zeros(2, 2, dtype=torch.float64),
+        torch.eye(2, dtype=torch.float64),
+    )
+    for lam, unstable in ((1.0, 3.0), (0.9, 5.0)):  # 3 / (1 − 4 (1 − λ))
+        _, upper = intermittent_kalman_bounds(F, H, Q, R, lam)
+        torch.testing.assert_close(upper, torch.diag(_t(0.0, unstable)), rtol=0, atol=1e-9)
+    K, S = lossy_dlqr(F, H, Q, R, arrival_rate=1.0)
+    ref_K, ref_S = dlqr(F, H, Q, R)
+    torch.testing.assert_close(S, ref_S, rtol=0, atol=1e-9)
+    assert critical_arrival_rate(F, H, Q, R).lower == pytest.approx(0.75)

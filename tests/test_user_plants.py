@@ -359,6 +359,10 @@ def test_a_plant_function_of_the_wrong_width_or_failing_is_named(plants):
             return torch.cat([x, x[..., :1]], -1)
         def driven(x, u):
             return x + u[..., :1]
+        def number(dtype):
+            return 3
+        def own_bug(x, u, k):
+            raise RuntimeError("own bug")
     """))  # fmt: skip
     base = yaml.safe_load(VDP_YAML)
     # (the model's own probe, NonlinearGaussianModel._check_widths, names the first)
@@ -382,9 +386,17 @@ def test_a_plant_function_of_the_wrong_width_or_failing_is_named(plants):
     # a model: that is no function of the dtype (a trial: "'torch.dtype' object is not
     # subscriptable" alone)
     path.write_text(yaml.safe_dump({**base, "plant": {"model": "user_bad:three"}}))
-    with pytest.raises(ValueError, match=r"plant.model user_bad:three failed when called with "
-                                         r"the dtype \(it must be a function dtype"):  # fmt: skip
+    with pytest.raises(ValueError, match=r"plant.model: user_bad:three\(dtype\) raised TypeError"):
         scenario_from_yaml(path)
+    path.write_text(yaml.safe_dump({**base, "plant": {"model": "user_bad:number"}}))
+    with pytest.raises(ValueError, match=r"plant.model: user_bad:number\(dtype\) returned a int"):
+        scenario_from_yaml(path)
+    # the dim_u hint only where the missing input was read (not on a bug of its own)
+    doc = {**base, "plant": {**base["plant"], "transition": "user_bad:own_bug"}}
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ValueError, match="own bug") as error:
+        scenario_from_yaml(path)
+    assert "dim_u" not in str(error.value)
     # one string is a list of one, never its characters
     doc = {**base, "estimators": "chi_square_kf", "notes": "one note"}
     path.write_text(yaml.safe_dump(doc))

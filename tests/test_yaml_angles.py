@@ -74,3 +74,17 @@ def test_a_linear_plant_takes_no_angles():
     spec = {"F": [[1.0]], "H": [[1.0]], "Q": 1e-4, "R": 1e-2, "angles": [0]}
     with pytest.raises(ValueError, match="angles wraps the residuals of a nonlinear plant"):
         scenario_from_dict({"name": "lin", "plant": spec}, "lin.yaml")
+
+
+def test_an_angle_of_exactly_pi_stays_pi_and_the_model_pickles(tmp_path, monkeypatch):
+    """A review: the wrap gave [−π, π), −π for a difference of +π, where the docs and the
+    tracking model's wrap_angle give (−π, π]."""
+    import pickle
+
+    model = _plant(tmp_path, monkeypatch, angles=[1]).system(torch.float64)
+    y = torch.tensor([[0.0, math.pi], [0.0, -math.pi], [0.0, 3 * math.pi]], dtype=torch.float64)
+    wrapped = model.measurement_residual(y, torch.zeros_like(y))[:, 1]
+    torch.testing.assert_close(wrapped, torch.full((3,), math.pi, dtype=torch.float64),
+                               rtol=0, atol=1e-12)  # fmt: skip
+    again = pickle.loads(pickle.dumps(model))
+    assert again.angles == (1,)
