@@ -162,7 +162,7 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
         message = str(error)  # (a message that names the file and the field already: as is)
         raise ValueError(
             message if message.startswith(where) else f"{where}: plant: {message}"
-        ) from None
+        ) from error.__cause__  # (a user's function's own error, where it was kept: its traceback)
     units = doc.get("units") or {}
     if not isinstance(units, Mapping) or set(units) - {"state", "attack"}:
         raise ValueError(f"{where}: units must be {{state: ..., attack: ...}}; got {units!r}")
@@ -512,7 +512,7 @@ def _probe(model, where: str) -> None:
         moved = _call(model.transition, (m0, u, 0), f"{where}.transition")
     except ValueError as error:
         # f(x, u) read the missing input (only then: another bug of a function of u is its own)
-        if u is None and model._f_arity >= 2 and "'NoneType'" in str(error):
+        if u is None and model._f_arity >= 2 and "NoneType" in str(error):
             raise ValueError(f"{error} (transition takes u, and plant.dim_u is 0: set dim_u "
                              "to the number of inputs)") from None  # fmt: skip
         raise

@@ -241,3 +241,20 @@ def test_a_bias_mode_beside_an_unexcited_unstable_one():
     ref_K, ref_S = dlqr(F, H, Q, R)
     torch.testing.assert_close(S, ref_S, rtol=0, atol=1e-9)
     assert critical_arrival_rate(F, H, Q, R).lower == pytest.approx(0.75)
+
+
+def test_a_jordan_block_q_does_not_excite_reaches_the_stabilising_solution():
+    """A review: the restart's projector came from eigenvectors, which on a Jordan block are
+    parallel (rank 1 for a 2 × 2 block), and the fixed point reached left the loop at 1.2.
+    From the ordered Schur form's invariant subspace now: scipy's DARE, filter and control."""
+    F, Q = _t([1.2, 1.0], [0.0, 1.2]), torch.zeros(2, 2, dtype=torch.float64)
+    for H in (_t([1.0, 0.0]), torch.eye(2, dtype=torch.float64)):
+        R = torch.eye(H.shape[0], dtype=torch.float64)
+        _, upper = intermittent_kalman_bounds(F, H, Q, R, 1.0)
+        ref = sla.solve_discrete_are(F.numpy().T, H.numpy().T, Q.numpy(), R.numpy())
+        np.testing.assert_allclose(upper.numpy(), ref, rtol=1e-9, atol=1e-9)
+    B = _t([0.0], [1.0])
+    K, S = lossy_dlqr(F, B, Q, _t([1.0]), arrival_rate=1.0)
+    ref = sla.solve_discrete_are(F.numpy(), B.numpy(), Q.numpy(), np.eye(1))
+    np.testing.assert_allclose(S.numpy(), ref, rtol=1e-9, atol=1e-9)
+    assert float(torch.linalg.eigvals(F - B @ K).abs().max()) < 1.0
