@@ -124,7 +124,11 @@ class ExpectedInputKalmanFilter(KalmanFilter):
         if not bool(((rate > 0) & (rate <= 1)).all()):
             raise ValueError(f"arrival_rate must lie in (0, 1]; got {arrival_rate!r}")
         self.arrival_rate, self.independent, self.on_loss = rate, independent, on_loss
-        self.carry_is_state = on_loss is OnLoss.ZERO
+
+    @property
+    def carry_is_state(self) -> bool:
+        """``False`` under ``"hold"``: the carry holds ``[x; z]``."""
+        return self.on_loss is OnLoss.ZERO
 
     def _init(self, model, batch_shape, generators):
         _check_linear(model)
@@ -145,13 +149,9 @@ class ExpectedInputKalmanFilter(KalmanFilter):
                 "KalmanFilter"
             )
         # s_0 = [x_0; z_{−1}] with z_{−1} = 0 known (the loop's actuators start at zero)
-        mean, cov, du = state.mean, state.cov, model.dim_u
+        mean, du = state.mean, model.dim_u
         held = mean.new_zeros(mean.shape[:-1] + (du,))
-        corner = cov.new_zeros(cov.shape[:-1] + (du,))
-        joint_cov = torch.cat([torch.cat([cov, corner], -1),
-                               torch.cat([corner.mT, cov.new_zeros(cov.shape[:-2] + (du, du))], -1)],
-                              -2)  # fmt: skip
-        return GaussianState(torch.cat([mean, held], -1), joint_cov, 0, model)
+        return GaussianState(torch.cat([mean, held], -1), _padded(state.cov, du), 0, model)
 
     def _step(self, carry, y, u, mask):
         carry = _ungained(carry)
@@ -163,12 +163,9 @@ class ExpectedInputKalmanFilter(KalmanFilter):
         if self.on_loss is OnLoss.ZERO:
             return new, out
         mean, cov, held = self.reported(carry.model, new.mean, new.cov)
-        dx = carry.model.dim_x
-        return new, out._replace(
-            mean=mean, cov=cov,
-            pred_mean=out.pred_mean[..., :dx], pred_cov=out.pred_cov[..., :dx, :dx],
-            extras={**(out.extras or {}), **held},
-        )  # fmt: skip
+        pred_mean, pred_cov, _ = self.reported(carry.model, out.pred_mean, out.pred_cov)
+        return new, out._replace(mean=mean, cov=cov, pred_mean=pred_mean, pred_cov=pred_cov,
+                                 extras={**(out.extras or {}), **held})  # fmt: skip
 
     def reported(self, model, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor, dict]:
         """Under ``"hold"``: ``x``'s moments of a carry's ``[x; z]`` and the held input's as
@@ -247,14 +244,12 @@ class ExpectedInputKalmanFilter(KalmanFilter):
         A = torch.cat([torch.cat([F, B @ kept], -1),
                        torch.cat([F.new_zeros(lead + (du, dx)), kept], -1)], -2)  # fmt: skip
         G = torch.cat([B, eye], -2)
-        Qs = torch.cat([torch.cat([Q, Q.new_zeros(Q.shape[:-1] + (du,))], -1),
-                        Q.new_zeros(Q.shape[:-2] + (du, dx + du))], -2)  # fmt: skip
         if self.independent:  # V = diag(ν̄(1 − ν̄)(d² + diag P_zz))
             variance = spread * (gap.square() + torch.diagonal(held_cov, dim1=-2, dim2=-1))
             V = torch.diag_embed(variance)
         else:  # V = ν̄(1 − ν̄)(d dᵀ + P_zz)
             V = spread * (gap.unsqueeze(-1) * gap.unsqueeze(-2) + held_cov)
-        pred_cov = predict_covariance(cov, A, Qs) + G @ V @ G.transpose(-1, -2)
+        pred_cov = predict_covariance(cov, A, _padded(Q, du)) + G @ V @ G.transpose(-1, -2)
         # (a model of per-run matrices on an unbatched carry: x's mean takes F's runs first)
         runs = torch.broadcast_shapes(new_x.shape[:-1], new_held.shape[:-1])
         joint = torch.cat([new_x.expand(runs + (dx,)), new_held.expand(runs + (du,))], -1)
@@ -279,6 +274,13 @@ class ExpectedInputKalmanFilter(KalmanFilter):
 
     def _run(self, carry, ys, us, mask):
         return None  # step by step: the covariances read the inputs
+
+
+def _padded(a: Tensor, extra: int) -> Tensor:
+    """``[[a, 0], [0, 0]]`` ``[..., n + extra, n + extra]`` of ``a [..., n, n]``: a covariance
+    of ``x`` as one of ``[x; z]`` with ``z`` known (the prior's ``z_{−1} = 0``) or noiseless
+    (``Q``)."""
+    return torch.nn.functional.pad(a, (0, extra, 0, extra))
 
 
 def _ungained(carry):

@@ -148,13 +148,10 @@ def expected_input_filter(scenario, model) -> ExpectedInputKalmanFilter:
     ``1 −`` its schedule's loss rate, one packet for
     every actuator or one per actuator as the schedule's ``packets`` say, and the
     scenario's ``on_loss``. ``ValueError`` with the reason where there is no such filter:
-    a nonlinear model, no input loss, acknowledged packets (the Kalman filter on the
-    acknowledged inputs is then the optimal filter), a schedule without a rate (a round
-    robin), losses in bursts (the filter takes the arrivals independent) or packets that
-    group some actuators but not all."""
-    if not hasattr(model, "transition_matrix"):
-        raise ValueError(f"needs a linear model (LinearGaussianModel); this one is a "
-                         f"{type(model).__name__}")  # fmt: skip
+    no input loss, acknowledged packets (the Kalman filter on the acknowledged inputs is
+    then the optimal filter), a schedule without a rate (a round robin), losses in bursts
+    (the filter takes the arrivals independent) or packets that group some actuators but
+    not all (a nonlinear model: the registry's LINEAR_MODEL need, and the filter's init)."""
     loss = scenario.input_loss_schedule()
     if loss is None:
         raise ValueError("estimates lost input packets, and this scenario loses none")
@@ -172,7 +169,7 @@ def expected_input_filter(scenario, model) -> ExpectedInputKalmanFilter:
     rate = getattr(loss.schedule, "rate", None)
     if isinstance(rate, bool) or not isinstance(rate, numbers.Real):
         raise ValueError(
-            "needs a random arrival rate (packet_loss, burst_loss); this scenario's input "
+            "needs a random arrival rate (packet_loss); this scenario's input "
             f"packets follow a {type(loss.schedule).__name__}"
         )
     packets = getattr(loss.schedule, "packets", None)
@@ -189,32 +186,26 @@ def expected_input_filter(scenario, model) -> ExpectedInputKalmanFilter:
                                      on_loss=loss.on_loss)  # fmt: skip
 
 
-def _moments(out: EstimatorOutput) -> EstimatorOutput:
-    """The means and covariances of ``out`` alone (a filter without detection)."""
-    return EstimatorOutput(out.means, out.covs)
-
-
-def _expected_input(detector: Callable | None):
-    """A factory of the scenario's :func:`expected_input_filter`, alone (``detector``
-    ``None``) or gated by ``detector(ctx, filter)`` (as :func:`_gated`)."""
+def _expected_input(detector: Callable):
+    """A factory of the scenario's :func:`expected_input_filter` gated by
+    ``detector(ctx, filter)`` (as :func:`_gated`)."""
 
     def factory(ctx: SuiteContext) -> Run:
         filt = expected_input_filter(ctx.scenario, ctx.model)
-        if detector is None:
-            return lambda tr: _moments(
-                df.open_loop(filt, ctx.model, tr.y_recv, tr.us, mask=tr.mask)
-            )
         return _gated_run(ctx, filt, detector(ctx, filt))
 
     return factory
 
 
+_UDP_NEEDS = (LINEAR_MODEL, UNACKNOWLEDGED_INPUT_LOSS)
 register("udp_kf", "UDP-like KF: the expected input and its variance (input loss unacknowledged)",
-         needs=(UNACKNOWLEDGED_INPUT_LOSS,))(_expected_input(None))  # fmt: skip
+         needs=_UDP_NEEDS)(_plain(lambda ctx, tr: df.open_loop(
+             expected_input_filter(ctx.scenario, ctx.model), ctx.model, tr.y_recv, tr.us,
+             mask=tr.mask)))  # fmt: skip
 register("chi_square_udp_kf", "UDP-like KF gated by a χ² test on its innovations",
-         needs=(UNACKNOWLEDGED_INPUT_LOSS,))(_expected_input(_chi_square))  # fmt: skip
+         needs=_UDP_NEEDS)(_expected_input(_chi_square))  # fmt: skip
 register("cusum_udp_kf", "UDP-like KF gated by CUSUM on its innovations (τ calibrated)",
-         needs=(UNACKNOWLEDGED_INPUT_LOSS,))(_expected_input(_cusum))  # fmt: skip
+         needs=_UDP_NEEDS)(_expected_input(_cusum))  # fmt: skip
 
 
 def gated_estimator(ctx: SuiteContext, name: str) -> fdi.GatedFilter:

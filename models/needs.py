@@ -140,11 +140,11 @@ def _unacknowledged_loss(scenario, model) -> str | None:
     return None
 
 
-#: The scenario loses input packets at random, unacknowledged (UDP-like), on a linear
-#: model: what the expected-input Kalman filter of its arrival rate needs
-#: (:func:`~difffilter.models.generic_estimators.expected_input_filter`).
+#: The scenario loses input packets at random, unacknowledged (UDP-like): what the
+#: expected-input Kalman filter of its arrival rate needs (with :data:`LINEAR_MODEL`;
+#: :func:`~difffilter.models.generic_estimators.expected_input_filter`).
 UNACKNOWLEDGED_INPUT_LOSS = Need(
-    "random, unacknowledged input loss on a linear model (UDP-like)", _unacknowledged_loss
+    "random, independent, unacknowledged input loss (UDP-like)", _unacknowledged_loss
 )
 
 

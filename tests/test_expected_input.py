@@ -23,6 +23,21 @@ def _plant():
                                   torch.zeros(2, dtype=torch.float64), 0.1 * eye, B=Bu)  # fmt: skip
 
 
+def _one_run(seed: int):
+    """``(model, ys [1, 30, 1], us [1, 30, 2], generator)``: one run of the plant, random
+    inputs."""
+    model, gen = _plant(), torch.Generator().manual_seed(seed)
+    _, ys, _ = model.simulate(30, (1,), generator=gen)
+    return model, ys, torch.randn(1, 30, 2, generator=gen, dtype=torch.float64), gen
+
+
+def _numpy_update(m, P, y, H, R):
+    """The Kalman update of ``(m, P)`` with ``y = H x + v``, ``v ~ N(0, R)`` (Joseph form)."""
+    K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+    I_KH = np.eye(len(m)) - K @ H
+    return m + K @ (y - H @ m), I_KH @ P @ I_KH.T + K @ R @ K.T
+
+
 def _numpy(model, ys, us, rate, independent):
     F, H, B = (t.numpy() for t in (model.F, model.H, model.B))
     Q, R = model.process_cov(0).numpy(), model.measurement_cov(0).numpy()
@@ -37,11 +52,7 @@ def _numpy(model, ys, us, rate, independent):
         else:
             Bu = B @ u
             m, P = F @ m + rate * Bu, F @ P @ F.T + Q + rate * (1 - rate) * np.outer(Bu, Bu)
-        S = H @ P @ H.T + R
-        K = P @ H.T @ np.linalg.inv(S)
-        m = m + K @ (y - H @ m)
-        I_KH = np.eye(2) - K @ H
-        P = I_KH @ P @ I_KH.T + K @ R @ K.T
+        m, P = _numpy_update(m, P, y, H, R)
         means.append(m)
         covs.append(P)
     return np.array(means), np.array(covs)
@@ -49,10 +60,7 @@ def _numpy(model, ys, us, rate, independent):
 
 @pytest.mark.parametrize("independent, rate", [(False, 0.6), (True, 0.6), (True, (0.3, 0.9))])
 def test_the_predictor_is_schenatos_written_out(independent, rate):
-    model = _plant()
-    gen = torch.Generator().manual_seed(0)
-    _, ys, _ = model.simulate(30, (1,), generator=gen)
-    us = torch.randn(1, 30, 2, generator=gen, dtype=torch.float64)
+    model, ys, us, _ = _one_run(0)
     out = open_loop(df.ExpectedInputKalmanFilter(rate, independent=independent), model, ys, us)
     means, covs = _numpy(model, ys[0].numpy(), us[0].numpy(), rate, independent)
     np.testing.assert_allclose(out.means[0].numpy(), means, rtol=0, atol=1e-12)
@@ -152,22 +160,14 @@ def _numpy_held(model, ys, us, mask, rate, independent):
         z = m[dx:] + nu * d
         m = np.concatenate([F @ m[:dx] + B @ z, z])
         P = A @ P @ A.T + Qs + G @ V @ G.T
-        h, r = Hs[seen], R[np.ix_(seen, seen)]
-        S = h @ P @ h.T + r
-        K = P @ h.T @ np.linalg.inv(S)
-        m = m + K @ (y[seen] - h @ m)
-        I_KH = np.eye(dx + du) - K @ h
-        P = I_KH @ P @ I_KH.T + K @ r @ K.T
+        m, P = _numpy_update(m, P, y[seen], Hs[seen], R[np.ix_(seen, seen)])
         out.append((m.copy(), P.copy()))
     return out
 
 
 @pytest.mark.parametrize("independent, rate", [(False, 0.6), (True, 0.6), (True, (0.3, 0.9))])
 def test_held_inputs_are_the_augmented_predictor_written_out(independent, rate):
-    model = _plant()
-    gen = torch.Generator().manual_seed(4)
-    _, ys, _ = model.simulate(30, (1,), generator=gen)
-    us = torch.randn(1, 30, 2, generator=gen, dtype=torch.float64)
+    model, ys, us, gen = _one_run(4)
     mask = torch.rand(1, 30, 1, generator=gen) > 0.3
     est = df.ExpectedInputKalmanFilter(rate, independent=independent, on_loss="hold")
     out = open_loop(est, model, ys, us, mask=mask)
