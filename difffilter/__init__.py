@@ -21,6 +21,7 @@ from importlib import import_module as _import_module
 # command lines' ``--help`` do not pay for torch until something needs it.
 _WHERE = {
     "NonFinite": "_checks",
+    "NumericalBreakdown": "linalg",
     **dict.fromkeys(("PCRBResult", "posterior_crb"), "bounds"),
     **dict.fromkeys(("Detection", "Estimator", "EstimatorOutput", "Generators"), "estimator"),
     **dict.fromkeys(
@@ -111,6 +112,7 @@ __version__ = "0.1.0"
 __all__ = [
     "load_estimator",
     "NonFinite",
+    "NumericalBreakdown",
     "StateSpaceModel",
     "LinearGaussianModel",
     "NonlinearGaussianModel",

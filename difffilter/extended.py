@@ -32,7 +32,7 @@ from torch import Tensor
 from ._checks import NonFinite, check_finite_number, model_batch_shape
 from .gaussian import measurement_moments, predict_covariance, update_given
 from .kalman import GaussianFilter, Prediction
-from .linalg import masked_measurement, outer, safe_cholesky, symmetrize
+from .linalg import NumericalBreakdown, masked_measurement, outer, safe_cholesky, symmetrize
 from .loop import open_loop
 from .results import FilterResult, GaussianState, StepOutput
 from .ssm import StateSpaceModel, plain_residual, wrapped_spread
@@ -84,7 +84,7 @@ class ExtendedKalmanFilter(GaussianFilter):
             H = carry.model.observation_jacobian(prediction.mean, k)
             if bool(torch.isfinite(H).all()):
                 raise
-            raise ValueError(
+            raise NumericalBreakdown(
                 f"the observation Jacobian ∂h/∂x at step {k} holds NaN or inf at the predicted "
                 "mean: h is not differentiable there (e.g. a range or bearing measured at the "
                 "sensor's own position), so the EKF cannot linearise it (the UKF or a "

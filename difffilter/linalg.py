@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "NumericalBreakdown",
     "symmetrize",
     "safe_cholesky",
     "cholesky_solve_right",
@@ -23,6 +24,22 @@ __all__ = [
     "rowwise",
     "rowwise_addcmul",
 ]
+
+
+class NumericalBreakdown(ValueError):
+    """A filter's arithmetic cannot go on from the values it reached: a matrix it must
+    factorise is not positive definite even with :func:`safe_cholesky`'s jitter (a
+    covariance that overflowed or lost definiteness to round-off), or the EKF's
+    linearisation is undefined at its estimate (a NaN or infinite Jacobian: a range or
+    bearing measured at the sensor's own position).
+
+    A ``ValueError`` (every ``except ValueError`` catches it), raised by the step that met
+    it; its message says which matrix or Jacobian, at which step or batch member, and what
+    to do. The evaluation suites catch it alone: an estimator that breaks down on a study's
+    data is listed among the skipped ones with this message and the others are reported,
+    where any other error (a shape, a wrong argument) stops the evaluation.
+    """
+
 
 #: How the filters name the innovation covariance in :func:`safe_cholesky`'s error: it is
 #: made from the model's covariances, which a user's optimiser may have made indefinite.
@@ -76,8 +93,8 @@ def safe_cholesky(matrix: Tensor, *, name: str = "matrix", max_tries: int | None
     semidefinite up to round-off), ``ε·mean(diag)·I`` is added with ε growing by factors of
     10 through :data:`JITTER_LADDER`, from round-off (1e-14 in float64, about 45 machine
     epsilons; 1e-6 in float32) up to 1e-5 and 1e-1 of the mean diagonal. If that still
-    fails the matrix is not positive definite and a ``ValueError`` naming ``name`` is
-    raised. In a batch only the members that fail are jittered, each with the first ε
+    fails the matrix is not positive definite and a :class:`NumericalBreakdown` (a
+    ``ValueError``) naming ``name`` is raised. In a batch only the members that fail are jittered, each with the first ε
     that works for it: the others keep their own factors. (The ladder began at 1e-10 in
     float64: on a state covariance with variances from 2.5e-15 to 200 that jitter was 2e6
     times the smallest variance, and a numerics trial's UKF came out 4.25 nats off with a
@@ -102,7 +119,7 @@ def safe_cholesky(matrix: Tensor, *, name: str = "matrix", max_tries: int | None
         if not bool(failing.any()):
             return factor
         eps *= 10.0
-    raise ValueError(
+    raise NumericalBreakdown(
         f"{name} must be symmetric positive definite; its Cholesky factorisation failed "
         f"even with jitter{_why_it_fails(matrix, failing)}"
     )

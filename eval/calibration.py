@@ -52,6 +52,9 @@ class Calibration:
         steps: ``{estimator: calibration steps with a score}`` (NaN: no data, left out):
             with ``α n < 1`` no step may alarm at all, and fewer than
             :data:`RESOLVED` expected alarms leave ``τ_α`` to a handful of scores.
+        broke_down: ``{estimator: why}`` for those that broke down on the calibration runs
+            (:class:`~difffilter.linalg.NumericalBreakdown`): no threshold, so no
+            ``*_at_far`` metrics in a study where they ran.
     """
 
     far: float
@@ -61,12 +64,14 @@ class Calibration:
     measured: dict[str, float] = field(default_factory=dict)
     tied: dict[str, float] = field(default_factory=dict)
     steps: dict[str, int] = field(default_factory=dict)
+    broke_down: dict[str, str] = field(default_factory=dict)
 
     def summary(self) -> dict:
         """The calibration as metrics.json's ``"far"`` entry (``below_target`` only where a
         detector could not meet the rate, with its ``cause``: ``"ties"``, ``"too few
         steps"`` (``α n < 1``) or ``"no score"``; ``unresolved`` where fewer than
-        :data:`RESOLVED` alarms are expected on the calibration steps)."""
+        :data:`RESOLVED` alarms are expected on the calibration steps; ``broke_down``,
+        ``{estimator: why}``, only where one broke down on the calibration runs)."""
         below = {name: {"measured_on_calibration": self.measured[name],
                         "threshold": self.thresholds[name], "tied_at_threshold": share,
                         "cause": self._cause(name)}
@@ -75,7 +80,8 @@ class Calibration:
         return {"target": self.far, "calibration_runs": self.runs, "calibration_seed": self.seed,
                 "measured_on_calibration": dict(self.measured),
                 **({"below_target": below} if below else {}),
-                **({"unresolved": few} if few else {})}  # fmt: skip
+                **({"unresolved": few} if few else {}),
+                **({"broke_down": dict(self.broke_down)} if self.broke_down else {})}  # fmt: skip
 
     def _cause(self, name: str) -> str:
         n = self.steps.get(name)
@@ -104,8 +110,9 @@ _CAUSES = {
 def below_target_note(far: dict | None) -> str | None:
     """Sentences for a report naming the detectors whose calibrated rate fell short of the
     target, each with why (``far``: metrics.json's entry; a ``below_target`` entry without
-    ``cause``, of an older file, is read as ties), and the calibration's resolution where
-    fewer than :data:`RESOLVED` alarms are expected on its steps."""
+    ``cause``, of an older file, is read as ties), the calibration's resolution where
+    fewer than :data:`RESOLVED` alarms are expected on its steps, and the estimators that
+    broke down on the calibration runs."""
     far = far or {}
     below, few = far.get("below_target"), far.get("unresolved")
     notes = []
@@ -122,6 +129,9 @@ def below_target_note(far: dict | None) -> str | None:
         )
     if few:
         notes.append(resolution_note(far["target"], min(few.values()), "--calibration-runs"))
+    for name, why in (far.get("broke_down") or {}).items():
+        notes.append(f"`{name}` has no threshold: it broke down on the attack-free calibration "
+                     f"runs ({why}), so it has no `*_at_far` metrics.")  # fmt: skip
     return " ".join(notes) or None
 
 
@@ -175,7 +185,7 @@ def calibrate(
     thresholds are for (default ``runs``): its detectors' own calibrations (a CUSUM's τ)
     follow its seed and its runs, so the threshold is picked for the detector judged.
     """
-    from .suite import run_suite
+    from .suite import BROKE_DOWN, run_suite
 
     far = check_rate(far, "far")
     runs = scenario.runs if runs is None else runs
@@ -203,7 +213,9 @@ def calibrate(
         steps[name] = int((~torch.isnan(out.detection.scores)).sum())
         if measured[name] < far / 2:  # ties at τ: the rate cannot be met (class docstring)
             tied[name] = float((scores == thresholds[name]).double().mean())
-    calibration = Calibration(far, runs, cal_seed, thresholds, measured, tied, steps)
+    broke = {name: why[len(BROKE_DOWN) + 2:] for name, why in result.skipped.items()
+             if why.startswith(BROKE_DOWN)}  # fmt: skip
+    calibration = Calibration(far, runs, cal_seed, thresholds, measured, tied, steps, broke)
     if cache is not None:
         cache[key] = calibration
     return calibration

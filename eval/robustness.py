@@ -43,7 +43,7 @@ from .intervals import LEVEL, RESAMPLES, robustness_intervals, threat_totals
 from .report import _clean, _network_line, format_number, markdown_table, network_of, share_suffix
 from .scoring import METRICS
 from .stealthy import StealthySpec, craft_threat, crafted_error, same_rate_bias
-from .suite import run_suite
+from .suite import BROKE_DOWN, run_suite
 
 __all__ = ["ThreatSet", "load_threat_set", "run_robustness", "write_robustness", "CELL_METRICS",
            "robustness_scenarios", "write_robustness_summary"]  # fmt: skip
@@ -270,6 +270,8 @@ def run_robustness(
         result.cells[name] = {
             est: _cell(m, free.metrics.get(est, {})) for est, m in suite.metrics.items()
         }
+        result.cells[name].update({est: _broken_cell(why) for est, why in suite.skipped.items()
+                                   if why.startswith(BROKE_DOWN) and est in free.metrics})  # fmt: skip
         result.run_totals[name] = threat_totals(suite, roles(suite.metrics))
         result.activity[name] = _activity(suite.traj)
         if name in result.idle():
@@ -318,6 +320,14 @@ def _crafted(result: RobustnessResult, name: str, spec: StealthySpec, progress: 
     return attack
 
 
+def _broken_cell(why: str) -> dict[str, Any]:
+    """The cell of an estimator that ran attack-free and broke down under a threat
+    (:class:`~difffilter.linalg.NumericalBreakdown`): it raised no alarm, so a TPR of 0,
+    and its state error and impact count as diverged in the worst case
+    (:func:`_worst_cases`); left out, it made the worst case over the other threats alone."""
+    return {**dict.fromkeys(CELL_METRICS), "tpr_at_far": 0.0, "broke_down": why}
+
+
 def _cell(m: dict, free: dict) -> dict[str, Any]:
     cell = {k: m.get(k) for k in CELL_METRICS if k != "state_error_ratio"}
     base = free.get("state_rmse")
@@ -335,14 +345,16 @@ def _worst_cases(cells) -> dict[str, dict[str, Any]]:
     A state error or impact that is not finite (an estimate that diverged to NaN or inf
     under a threat) is the worst there is: ``inf``, with ``<metric>_diverged`` set (it was
     passed over, so an estimator that diverged looked more robust than one that did not:
-    13.7 against 30 in a trial). A TPR or AUC that is not finite (no attacked step) is no
-    worst case, nor is a missing value."""
+    13.7 against 30 in a trial), and so is one that broke down (:func:`_broken_cell`:
+    ``<metric>_broke_down`` set too). A TPR or AUC that is not finite (no attacked step) is
+    no worst case, nor is a missing value."""
     worst: dict[str, dict[str, Any]] = {}
     for threat, row in sorted(cells.items()):
         for est, cell in row.items():
             w = worst.setdefault(est, {})
+            broke = bool(cell.get("broke_down"))
             for key in LOWER_IS_WORSE + HIGHER_IS_WORSE:
-                value = cell.get(key)
+                value = math.inf if broke and key in HIGHER_IS_WORSE else cell.get(key)
                 if value is None:
                     continue
                 if not math.isfinite(value):
@@ -350,6 +362,8 @@ def _worst_cases(cells) -> dict[str, dict[str, Any]]:
                         continue
                     if not w.get(f"{key}_diverged"):  # the first threat by name it diverged on
                         w[key], w[f"{key}_threat"], w[f"{key}_diverged"] = math.inf, threat, True
+                        if broke:
+                            w[f"{key}_broke_down"] = True
                     continue
                 sign = -1 if key in LOWER_IS_WORSE else 1
                 if key not in w or sign * value > sign * w[key]:
@@ -362,6 +376,8 @@ def _worst_text(worst: dict[str, Any], key: str) -> str:
     estimate was not finite (robustness.json's ``null`` with ``<key>_diverged``), ``—``
     where there is none."""
     threat = worst.get(f"{key}_threat")
+    if worst.get(f"{key}_broke_down"):
+        return f"broke down ({threat})"
     if worst.get(f"{key}_diverged"):
         return f"diverged ({threat})"
     value = worst.get(key)
@@ -443,6 +459,13 @@ def _markdown(doc: dict, sc) -> str:
         parts.append("Left out of the worst case and the acceptance, as threats that did not act "
                      "on these runs: " + "; ".join(f"`{t}` {_idle_text(a)}" for t, a in idle.items())
                      + " (their columns are shown, not judged).\n")  # fmt: skip
+    broke = [f"`{est}` under `{t}` ({cell['broke_down']})" for t, row in doc["cells"].items()
+             for est, cell in row.items() if cell.get("broke_down")]  # fmt: skip
+    if broke:
+        parts.append(
+            "Broke down under a threat (no alarm: TPR 0; its state error and impact "
+            "count as diverged in the worst case): " + "; ".join(broke) + ".\n"
+        )
     for metric, title in _TITLES.items():
         title = title.format(state_unit=sc.state_unit)  # (the scenario's, as its other tables)
         header = ["estimator", "attack-free FPR", *threats, "worst"]

@@ -16,6 +16,7 @@ from typing import Any
 import torch
 
 from difffilter.estimator import EstimatorOutput
+from difffilter.linalg import NumericalBreakdown
 from difffilter.loop import LoopResult, Trajectories
 from difffilter.models import estimators as registry
 from difffilter.models.generic_estimators import DEFAULT_SUITE, meets_adaptive_attack
@@ -131,7 +132,11 @@ def run_suite(
     so far) and the outputs are gathered: the same numbers as one process, since every
     estimator sees the same trajectories and named streams wherever it runs. An estimator
     whose factory raises :class:`~difffilter.models.estimators.SkipEstimator` is left out
-    and listed in ``skipped``.
+    and listed in ``skipped``; so is one whose run breaks down on the study's data
+    (:class:`~difffilter.linalg.NumericalBreakdown`: an EKF whose Jacobian is undefined at
+    its estimate, a covariance no longer positive definite), with a warning and the
+    reason prefixed :data:`BROKE_DOWN`, and the others run. Any other error of an
+    estimator stops the suite, naming the estimator and the scenario.
     """
     runs = scenario.runs if runs is None else runs
     if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
@@ -265,9 +270,15 @@ def _run_estimators(result: SuiteResult, specs, progress: bool, built=None,
         except registry.SkipEstimator as why:
             result.skipped[spec.name] = str(why)
             continue
+        except NumericalBreakdown as exc:  # (a factory's own runs: a CUSUM's calibration)
+            _broke_down(result, spec.name, exc)
+            continue
         start = time.perf_counter()
         try:
             out = spec.checked(run(result.traj))
+        except NumericalBreakdown as exc:  # this estimator cannot run here; the others can
+            _broke_down(result, spec.name, exc)
+            continue
         except ValueError as exc:  # (which estimator of which study, e.g. on an attack's NaN)
             raise ValueError(f"{spec.name} on {result.scenario.name}: {exc}") from exc
         if adaptive and not isinstance(out, LoopResult):
@@ -281,6 +292,13 @@ def _run_estimators(result: SuiteResult, specs, progress: bool, built=None,
             out.attack_channel = spec.estimates
         _check_fits(spec.name, result.scenario.name, out, result.traj_of(spec.name))
         result.outputs[spec.name] = out
+
+
+def _broke_down(result: SuiteResult, name: str, exc: NumericalBreakdown) -> None:
+    """List ``name`` in ``result.skipped`` as broken down on the study's data, and warn."""
+    result.skipped[name] = f"{BROKE_DOWN}: {exc}"
+    warnings.warn(f"{name} on {result.scenario.name} {BROKE_DOWN} and is left out: {exc}",
+                  stacklevel=3)  # fmt: skip
 
 
 def _check_fits(name: str, scenario: str, out, traj) -> None:
@@ -345,6 +363,10 @@ def apply_calibration(result: SuiteResult, calibration) -> None:
             dt=result.scenario.dt,
         ))  # fmt: skip
 
+
+#: How ``skipped`` begins the reason of an estimator that ran and broke down on the study's
+#: data (:class:`~difffilter.linalg.NumericalBreakdown`), not one that does not apply.
+BROKE_DOWN = "broke down on this study's data"
 
 #: Why an estimator is left out of a closed-loop study under an adaptive attack
 #: (:func:`~difffilter.models.generic_estimators.meets_adaptive_attack`) where it ran on the
