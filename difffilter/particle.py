@@ -551,12 +551,8 @@ def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator):
     # weights here are normalised and finite by construction: skip re-validation
     fast = getattr(resampler, "resample_normalized", None)
     kind = type(resampler)
-    if fast is None or (  # a user resampler with only __call__ (a Resampler subclass too:
-        # its __call__ was never run, the base's resample_normalized asked for _draw)
-        isinstance(resampler, Resampler) and kind.__call__ is not Resampler.__call__
-        and kind.resample_normalized is Resampler.resample_normalized
-        and kind._draw is Resampler._draw
-    ):  # fmt: skip
+    calls, own_weights = _resampler_hooks(kind) if isinstance(resampler, Resampler) else (0, 0)
+    if fast is None or calls:  # a user resampler's own __call__
         res = _checked_resampled(resampler(particles, log_w, generator), particles, log_w,
                                  resampler)  # fmt: skip
         if rows is not None:
@@ -567,7 +563,37 @@ def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator):
         uniform = rows is None and kind._new_log_weights is _UNIFORM
     else:
         res = fast(particles, log_w, generator, rows=rows)
+    if own_weights:  # a user's _new_log_weights: normalised? (the library's are by design)
+        res = _checked_resampled(res, particles, log_w, resampler)
     return res.particles, res.log_weights, None, need, uniform
+
+
+def _resampler_hooks(kind: type) -> tuple[bool, bool]:
+    """``(calls, own_weights)`` for a :class:`~difffilter.resampling.Resampler` subclass
+    ``kind``: ``calls`` where its ``__call__`` is its own, defined below the classes that
+    define its ``resample_normalized`` and ``_draw`` (a user's override of a library
+    scheme's ``__call__``: a ``Systematic`` subclass's was never run, since it inherits a
+    ``_draw``), so the filter calls it; ``own_weights`` where its ``_new_log_weights`` is
+    not the library's, so the filter checks that they are normalised (an override that
+    returned zeros moved the evidence by log N at every resampling, silently)."""
+    hooks = _RESAMPLER_HOOKS.get(kind)
+    if hooks is None:
+
+        def owner(attr: str) -> type:
+            return next(c for c in kind.__mro__ if attr in c.__dict__)
+
+        def below(a: type, b: type) -> bool:
+            return a is not b and issubclass(a, b)
+
+        call = owner("__call__")
+        calls = below(call, owner("resample_normalized")) and below(call, owner("_draw"))
+        own_weights = owner("_new_log_weights").__module__ != Resampler.__module__
+        hooks = _RESAMPLER_HOOKS[kind] = (calls, own_weights)
+    return hooks
+
+
+#: :func:`_resampler_hooks` by resampler class (classes are few; read at every resampling).
+_RESAMPLER_HOOKS: dict[type, tuple[bool, bool]] = {}
 
 
 def _checked_resampled(res, particles: Tensor, log_w: Tensor, resampler=None):
@@ -613,12 +639,15 @@ def _particle_step(pf: ParticleFilter, carry: ParticleState, y, u, mask):
     particles, log_w, w, need, uniform = _resample(
         pf, carry.particles, carry.log_weights, carry.ess, carry.weights, resample_gen
     )
-    new, correction = pf.proposal(model, particles, u, y, k, mask, gens.propagate)
+    proposed = pf.proposal(model, particles, u, y, k, mask, gens.propagate)
+    if type(proposed) is not tuple:
+        _check_proposal_pair(proposed, pf.proposal, k + 1)
+    new, correction = proposed
     _check_proposed(new, correction, particles, log_w, pf.proposal, k)
 
     # Predictive weights of the proposed particles: w_{k−1}·p/q (just w_{k−1} for the
     # bootstrap proposal, whose correction is None), and the predictive moments.
-    prior_lw = log_w if correction is None else torch.log_softmax(log_w + correction, dim=-1)
+    prior_lw = log_w if correction is None else _corrected(log_w, correction)
     uses_predictive = pf.stateful or getattr(pf.likelihood, "uses_predictive", False)
     obs = predictive = pred_w = None
     if correction is None and uniform:
@@ -646,8 +675,8 @@ def _particle_step(pf: ParticleFilter, carry: ParticleState, y, u, mask):
             )
         _blame_nonfinite(log_lik, pf.likelihood, "likelihood", k + 1)
         if correction is not None:
-            _blame_nonfinite(correction, pf.proposal, "proposal's correction", k)
-        _blame_nonfinite(log_w, pf.resampler, "resampler's log-weights", k)
+            _blame_nonfinite(correction, pf.proposal, "proposal's correction", k + 1)
+        _blame_nonfinite(log_w, pf.resampler, "resampler's log-weights", k + 1)
 
     increment, log_w_new, w_new, degenerate = _normalise(log_w + log_alpha, prior_lw, blame)
     ess_new = torch.linalg.vecdot(w_new, w_new).reciprocal()
@@ -702,6 +731,34 @@ def _check_log_density(value, log_w: Tensor, plugin, what: str, k: int) -> None:
         f"the {name} returned log-densities of shape {tuple(value.shape)} and dtype "
         f"{value.dtype} at step {k}; the particles' weights are {tuple(log_w.shape)} "
         f"{log_w.dtype} ([..., N]: one per run and particle, summed over the measurement)"
+    )
+
+
+def _corrected(log_w: Tensor, correction: Tensor) -> Tensor:
+    """The predictive log-weights ``log_softmax(log w + log p/q)`` ``[..., N]``; a run whose
+    every proposed particle has zero transition density (``correction`` all −inf) keeps
+    ``log w`` (a normalised softmax of all −inf is NaN: those NaNs became the run's reset
+    weights and failed the next resampling, blamed on the resampler), and its step is then
+    degenerate, its evidence −inf, as for a likelihood that is zero everywhere. Selected
+    before the softmax, so that no NaN enters the graph (other runs' gradients stay
+    finite). Elementwise: no host sync."""
+    joint = log_w + correction
+    void = (joint == -math.inf).all(-1, keepdim=True)
+    safe = torch.where(void, log_w, joint)
+    return torch.where(void, log_w, torch.log_softmax(safe, dim=-1))
+
+
+def _check_proposal_pair(proposed, proposal, k: int) -> None:
+    """A proposal returns ``(particles, log_correction or None)``; a bare tensor failed as
+    'too many values to unpack', naming neither the proposal nor what it returns."""
+    if isinstance(proposed, Sequence) and not isinstance(proposed, Tensor) and len(proposed) == 2:
+        return
+    got = (f"a tensor {tuple(proposed.shape)}" if isinstance(proposed, Tensor)
+           else f"a {type(proposed).__name__}")  # fmt: skip
+    raise TypeError(
+        f"the proposal {type(proposal).__name__} returned {got} at step {k}; it returns a "
+        "pair (particles [..., N, dx], log_correction [..., N] or None: log p(x_k | x_{k−1})"
+        " − log q(x_k | x_{k−1}, y_k), None for the bootstrap proposal)"
     )
 
 

@@ -141,7 +141,9 @@ class ParticleFilterResult(FilterResult):
 
     Attributes:
         ess: effective sample size after weighting ``[..., T]``.
-        resampled: whether the particles were resampled before step ``t`` ``[..., T]``.
+        resampled: whether the particles were resampled before step ``t`` ``[..., T]``:
+            the ESS fell below the threshold and the resampler was called (a resampler of
+            your own that decides for itself, from ``__call__``, may have kept them).
         degenerate: whether every weight of the run underflowed at step ``t`` and was
             reset to the predictive weights ``[..., T]`` (see :mod:`difffilter.particle`).
         particles: ``[..., T, N, dx]`` when requested (``return_particles=True``), else ``None``.
