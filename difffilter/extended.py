@@ -81,6 +81,12 @@ class ExtendedKalmanFilter(GaussianFilter):
             return self._moments_update(carry, prediction, y, mask, evidence, moments)
         except ValueError as exc:  # S failed: name the Jacobian where it is the cause
             k = carry.k + 1
+            if not bool(torch.isfinite(prediction.mean).all()):  # (h was blamed for f's NaN)
+                raise NumericalBreakdown(
+                    f"the EKF's predicted mean at step {k} is NaN or inf: the transition f (or "
+                    "its Jacobian) gave it from the previous estimate (e.g. a square root of a "
+                    "negative level), so nothing could be linearised there"
+                ) from exc
             H = carry.model.observation_jacobian(prediction.mean, k)
             if bool(torch.isfinite(H).all()):
                 raise

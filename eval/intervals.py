@@ -295,7 +295,9 @@ def robustness_intervals(totals: dict[str, dict[str, dict[str, Tensor]]], role_o
         state = {}
         for threat, per in totals.items():
             present = [n for n in analytic if n in per]
-            if name in per and present:
+            if name in per and per[name].get("broke_down"):  # no estimate: holds nowhere
+                state[threat] = {"estimate": None, "low": None, "high": None, "holds_share": 0.0}
+            elif name in per and present:
                 ratio = _paired(per, name, present, "state_rmse", "ratio", False, weights)
                 if ratio is not None:
                     state[threat] = _summary(ratio, within, level)

@@ -23,11 +23,13 @@ import json
 import math
 import re
 import sys
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from difffilter.linalg import NumericalBreakdown
 from difffilter.models import estimators as registry
 
 from .acceptance import ANALYTIC, best_analytic, judge, roles, state_metric
@@ -130,6 +132,12 @@ class FamilyReport:
             (the generic sections alone, about 2 s on a 2-core machine): how
             ``difffilter-eval --devices N`` shares the families' reports between its
             processes (:func:`report_writers`). Measured, not exact.
+        needs: the estimators whose outputs ``extra`` and ``sections`` read: where one did
+            not run (skipped, broken down, or left out of the run) the family's numbers
+            and sections are left out with the reason (metrics.json's
+            ``family_report_skipped``), as they are where ``extra``'s own runs break down
+            (:class:`~difffilter.linalg.NumericalBreakdown`), and the generic report is
+            written.
     """
 
     extra: Callable[..., dict[str, Any]] | None = None
@@ -139,6 +147,7 @@ class FamilyReport:
     check_options: Callable[[dict], None] | None = None
     estimator_metrics: Callable[..., dict[str, Any]] | None = None
     report_cost: float = 1.0
+    needs: tuple[str, ...] = ()
 
 
 _FAMILIES: dict[str, FamilyReport] = {}
@@ -243,7 +252,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     out.mkdir(parents=True, exist_ok=True)
     sc = result.scenario
     family = family_report(sc.family)
-    family_numbers = family.extra(result) if family.extra else {}  # may add estimator keys
+    family_numbers, family_skipped = _family_numbers(family, result)  # may add estimator keys
     doc = _clean({
         "scenario": sc.name, "runs": result.runs, "steps": sc.steps, "seed": result.seed,
         "units": {name: m.unit for name, m in METRICS.items()},
@@ -260,6 +269,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
         "skipped": dict(result.skipped), "checkpoint": result.checkpoint,
         "far": None if result.calibration is None else result.calibration.summary(),
         **({"checkpoints": result.checkpoints} if result.checkpoints else {}),
+        **({"family_report_skipped": family_skipped} if family_skipped else {}),
         **family_numbers,
     })  # fmt: skip
     if doc["far"] is not None and (intervals := acceptance_intervals(
@@ -273,7 +283,11 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     if (judged := _acceptance_section(doc)) is not None:
         sections.append(judged)
     sections.append(Section("Plots", "", [name for name, _ in figures]))
-    if family.sections:
+    if family_skipped:
+        sections.append(
+            Section(f"The {sc.family} family's sections", f"Left out: {family_skipped}.")
+        )
+    elif family.sections:
         sections += family.sections(result, doc, out, prepared)
     images = [(name, png_bytes(fig)) for name, fig in figures]  # each drawn once:
     for name, png in images:  # the file and TensorBoard's image are the same PNG
@@ -292,6 +306,23 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     for _, fig in figures:
         plt.close(fig)
     return doc
+
+
+def _family_numbers(family: FamilyReport, result) -> tuple[dict[str, Any], str | None]:
+    """``(family numbers, None)``, or ``({}, why)`` where an estimator the family reads did
+    not run (:attr:`FamilyReport.needs`) or the family's own runs broke down."""
+    missing = [n for n in family.needs if n not in result.outputs]
+    if missing:
+        why = "; ".join(f"`{n}` ({result.skipped.get(n, 'not in this run')})" for n in missing)
+        return {}, f"they read estimators that did not run here: {why}"
+    if family.extra is None:
+        return {}, None
+    try:
+        return family.extra(result), None
+    except NumericalBreakdown as exc:
+        warnings.warn(f"{result.scenario.name}: the {result.scenario.family} family's report "
+                      f"broke down and is left out: {exc}", stacklevel=3)  # fmt: skip
+        return {}, f"an estimator broke down in the family's own runs: {exc}"
 
 
 def network_of(sc, traj=None) -> dict:
@@ -404,13 +435,24 @@ def _judged(doc: dict) -> dict[str, list] | None:
     ``None`` where there is nothing to judge."""
     est, role = doc["estimators"], doc.get("estimator_roles", {})
     learned = [n for n in est if role.get(n) == "learned" and est[n].get("tpr_at_far") is not None]
-    if doc.get("far") is None or not learned:
+    broke = [n for n, role in _broken_down(doc).items() if role == "learned"]
+    if doc.get("far") is None or not (learned or broke):
         return None
     far, metric = doc["far"]["target"], state_metric(est)
     best = best_analytic(est, role_of=role)
     if not best:
         return None
-    return {name: judge(est[name], best, far, metric) for name in learned}
+    # one that broke down on the study's data has no number: every check fails (left out,
+    # it vanished from the verdicts while its rivals were judged)
+    return {name: judge(est.get(name, {}), best, far, metric) for name in learned + broke}
+
+
+def _broken_down(doc: dict) -> dict[str, str]:
+    """``{estimator: role}`` of those that broke down on the study's data (``skipped``)."""
+    from .suite import BROKE_DOWN
+
+    broke = [n for n, why in (doc.get("skipped") or {}).items() if why.startswith(BROKE_DOWN)]
+    return {n: registry.get(n).role for n in broke if n in registry.names()}
 
 
 def _acceptance_section(doc: dict) -> Section | None:
@@ -425,12 +467,17 @@ def _acceptance_section(doc: dict) -> Section | None:
     rows = [["best analytic",
              *(f"{format_number(c.best, 4)} (`{c.best_estimator}`)" if c.best_estimator else "—"
                for c in checks), ""]]  # fmt: skip
+    broke = _broken_down(doc)
     for name, mine in judged.items():
         cells = [f"{format_number(c.value, 4)} {'✓' if c.holds else '✗'}" for c in mine]
-        rows.append([f"`{name}`", *cells, "holds" if all(c.holds for c in mine) else "**fails**"])
+        every = "holds" if all(c.holds for c in mine) else "**fails**"
+        rows.append([f"`{name}`", *cells, "**fails** (broke down)" if name in broke else every])
     text = ("Each learned estimator at the calibrated rate against the best analytic one (per "
             f"metric the best of the estimators that are {ANALYTIC}; "
             "`difffilter.eval.acceptance`).\n\n")  # fmt: skip
+    if rivals := [n for n, role in broke.items() if role == "analytic"]:
+        text += ("Broke down on this study's data, so not among the analytic estimators "
+                 "compared: " + ", ".join(f"`{n}`" for n in rivals) + ".\n\n")  # fmt: skip
     body = text + markdown_table(header, rows) + "\n"
     if doc.get("acceptance_intervals"):
         body += "\n" + _intervals_text(doc["acceptance_intervals"], [c.metric for c in checks])

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from difffilter.linalg import NumericalBreakdown
 from difffilter.models.yaml_scenario import read_yaml
 from difffilter.threats import check_attack_fits, threat_from_dict
 
@@ -270,9 +271,13 @@ def run_robustness(
         result.cells[name] = {
             est: _cell(m, free.metrics.get(est, {})) for est, m in suite.metrics.items()
         }
-        result.cells[name].update({est: _broken_cell(why) for est, why in suite.skipped.items()
-                                   if why.startswith(BROKE_DOWN) and est in free.metrics})  # fmt: skip
+        broke = {est: why for est, why in suite.skipped.items()
+                 if why.startswith(BROKE_DOWN) and est in free.metrics}  # fmt: skip
+        result.cells[name].update({est: _broken_cell(why, est in cal.thresholds)
+                                   for est, why in broke.items()})  # fmt: skip
         result.run_totals[name] = threat_totals(suite, roles(suite.metrics))
+        result.run_totals[name].update({est: _broken_totals(suite.traj, est in cal.thresholds)
+                                        for est in broke})  # fmt: skip
         result.activity[name] = _activity(suite.traj)
         if name in result.idle():
             warnings.warn(f"{scenario.name}: threat {name!r} {_idle_text(result.activity[name])}: "
@@ -309,23 +314,40 @@ def _crafted(result: RobustnessResult, name: str, spec: StealthySpec, progress: 
     runs with the weakest constant bias that alarms as often (``result.stealthy[name]``)."""
     sc, cal = result.scenario, result.calibration
     common = dict(seed=result.seed, checkpoint=checkpoint)
-    attack, report = craft_threat(name, spec, sc, cal, progress=progress, **common)
-    tau = report["threshold"]
-    judged = crafted_error(sc, spec.against, attack, tau, runs=result.runs, **common)
-    bias = same_rate_bias(sc, spec.against, judged["alarm_rate"], tau, onset=spec.onset,
-                          entries=spec.entries, runs=result.runs, **common)  # fmt: skip
+    try:
+        attack, report = craft_threat(name, spec, sc, cal, progress=progress, **common)
+        tau = report["threshold"]
+        judged = crafted_error(sc, spec.against, attack, tau, runs=result.runs, **common)
+        bias = same_rate_bias(sc, spec.against, judged["alarm_rate"], tau, onset=spec.onset,
+                              entries=spec.entries, runs=result.runs, **common)  # fmt: skip
+    except NumericalBreakdown as exc:  # (a threat that cannot be made: not one estimator's skip)
+        raise ValueError(f"threat {name!r}: {spec.against!r}, which it is crafted against, "
+                         f"broke down while it was crafted and judged: {exc}") from exc  # fmt: skip
     report.update(crafted=judged, same_rate_bias=bias,
                   error_ratio_to_bias=judged["state_error"] / bias["state_error"])  # fmt: skip
     result.stealthy[name] = report
     return attack
 
 
-def _broken_cell(why: str) -> dict[str, Any]:
+def _broken_cell(why: str, detects: bool) -> dict[str, Any]:
     """The cell of an estimator that ran attack-free and broke down under a threat
-    (:class:`~difffilter.linalg.NumericalBreakdown`): it raised no alarm, so a TPR of 0,
-    and its state error and impact count as diverged in the worst case
-    (:func:`_worst_cases`); left out, it made the worst case over the other threats alone."""
-    return {**dict.fromkeys(CELL_METRICS), "tpr_at_far": 0.0, "broke_down": why}
+    (:class:`~difffilter.linalg.NumericalBreakdown`): its state error counts as diverged in
+    the worst case (:func:`_worst_cases`) and, where it detects at a calibrated threshold,
+    it raised no alarm, so a TPR of 0 and an impact counted as diverged too; left out, it
+    made its worst case over the other threats alone."""
+    return {**dict.fromkeys(CELL_METRICS), "tpr_at_far": 0.0 if detects else None,
+            "broke_down": why}  # fmt: skip
+
+
+def _broken_totals(traj, detects: bool) -> dict[str, Any]:
+    """The per-run totals of :func:`_broken_cell` for the intervals
+    (:func:`~difffilter.eval.intervals.robustness_intervals`): no hit on any attacked step
+    where it detects, and ``broke_down`` (its state check holds in no resample)."""
+    totals: dict[str, Any] = {"broke_down": True}
+    if detects:
+        attacked = traj.flags.sum(1).double()
+        totals.update(hits=attacked.new_zeros(attacked.shape), attacked=attacked)
+    return totals
 
 
 def _cell(m: dict, free: dict) -> dict[str, Any]:
@@ -353,8 +375,11 @@ def _worst_cases(cells) -> dict[str, dict[str, Any]]:
         for est, cell in row.items():
             w = worst.setdefault(est, {})
             broke = bool(cell.get("broke_down"))
+            detects = cell.get("tpr_at_far") is not None  # (a broken cell's: where it detects)
             for key in LOWER_IS_WORSE + HIGHER_IS_WORSE:
-                value = math.inf if broke and key in HIGHER_IS_WORSE else cell.get(key)
+                value = cell.get(key)
+                if broke and (key == "state_error_ratio" or (key == "impact" and detects)):
+                    value = math.inf
                 if value is None:
                     continue
                 if not math.isfinite(value):
@@ -473,8 +498,7 @@ def _markdown(doc: dict, sc) -> str:
         for est in ests:
             worst = doc["worst_case"].get(est, {})
             rows.append([f"`{est}`", format_number(doc["estimators"][est].get("fpr_at_far"), 3),
-                         *(format_number(doc["cells"][t].get(est, {}).get(metric), 3)
-                           for t in threats),
+                         *(_cell_text(doc["cells"][t].get(est, {}), metric) for t in threats),
                          _worst_text(worst, metric)])  # fmt: skip
         parts.append(f"## {title}\n\n{markdown_table(header, rows)}")
     insiders = doc.get("threat_reads_state") or {}
@@ -485,6 +509,15 @@ def _markdown(doc: dict, sc) -> str:
     parts += [_stealthy_section(n, r) for n, r in (doc.get("stealthy") or {}).items()]
     parts += [_acceptance_section(n, a) for n, a in (doc.get("acceptance") or {}).items()]
     return "\n".join(parts)
+
+
+def _cell_text(cell: dict, metric: str) -> str:
+    """One estimator's ``metric`` under one threat for a table: ``broke down`` where it
+    broke down there and has no such number (``—`` read as "does not apply")."""
+    value = cell.get(metric)
+    if value is None and cell.get("broke_down"):
+        return "broke down"
+    return format_number(value, 3)
 
 
 def _acceptance_section(name: str, a: dict) -> str:

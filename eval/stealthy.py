@@ -159,6 +159,14 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
     """The crafted attack of threat ``name`` and what to report of its crafting:
     ``(attack, {"against", "threshold", "settings", "train_runs", "iterations_kept",
     "history"})``."""
+    broke = getattr(calibration, "broke_down", {})  # (a Calibration's; a stand-in may lack it)
+    if spec.against in broke:
+        raise ValueError(
+            f"threat {name!r} is crafted against {spec.against!r}, which broke down on the "
+            f"calibration runs ({broke[spec.against]}): no attack can be "
+            "crafted against it; leave the threat out (--threats) or craft against another "
+            "detector"
+        )
     if spec.against not in calibration.thresholds:
         raise ValueError(
             f"threat {name!r}: {spec.against!r} was not calibrated in this study (add it to "

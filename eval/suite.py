@@ -271,13 +271,13 @@ def _run_estimators(result: SuiteResult, specs, progress: bool, built=None,
             result.skipped[spec.name] = str(why)
             continue
         except NumericalBreakdown as exc:  # (a factory's own runs: a CUSUM's calibration)
-            _broke_down(result, spec.name, exc)
+            _broke_down(result, spec.name, exc, label)
             continue
         start = time.perf_counter()
         try:
             out = spec.checked(run(result.traj))
         except NumericalBreakdown as exc:  # this estimator cannot run here; the others can
-            _broke_down(result, spec.name, exc)
+            _broke_down(result, spec.name, exc, label)
             continue
         except ValueError as exc:  # (which estimator of which study, e.g. on an attack's NaN)
             raise ValueError(f"{spec.name} on {result.scenario.name}: {exc}") from exc
@@ -294,11 +294,13 @@ def _run_estimators(result: SuiteResult, specs, progress: bool, built=None,
         result.outputs[spec.name] = out
 
 
-def _broke_down(result: SuiteResult, name: str, exc: NumericalBreakdown) -> None:
-    """List ``name`` in ``result.skipped`` as broken down on the study's data, and warn."""
+def _broke_down(result: SuiteResult, name: str, exc: NumericalBreakdown,
+                label: str | None = None) -> None:  # fmt: skip
+    """List ``name`` in ``result.skipped`` as broken down on the study's data, and warn,
+    naming the study by its ``label`` where it has one (the calibration's runs)."""
     result.skipped[name] = f"{BROKE_DOWN}: {exc}"
-    warnings.warn(f"{name} on {result.scenario.name} {BROKE_DOWN} and is left out: {exc}",
-                  stacklevel=3)  # fmt: skip
+    where = label or result.scenario.name  # (a label begins with the scenario's name)
+    warnings.warn(f"{name} broke down on {where} and is left out: {exc}", stacklevel=3)
 
 
 def _check_fits(name: str, scenario: str, out, traj) -> None:

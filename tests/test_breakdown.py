@@ -94,7 +94,7 @@ def test_the_ekf_that_cannot_linearise_is_left_out_and_the_others_reported(at_th
 def _broke_down(warned) -> set[str]:
     """The estimators named by the breakdown warnings of ``warned`` (each names its study)."""
     texts = [str(w.message) for w in warned]
-    return {t.split(" on at_the_sensor broke down")[0] for t in texts if " broke down" in t}
+    return {t.split(" broke down on at_the_sensor")[0] for t in texts if " broke down on" in t}
 
 
 def test_any_other_error_of_an_estimator_still_stops_the_study(at_the_sensor, monkeypatch):
@@ -131,7 +131,8 @@ def test_a_breakdown_under_one_threat_is_that_estimators_worst_case(tmp_path, mo
     threat_set.estimators = ("chi_square_ekf", "normal_pf")
     with pytest.warns(UserWarning) as warned:
         result = run_robustness(sc, threat_set, runs=6, progress=False)
-    assert any("chi_square_ekf on four_tank_bias broke down" in str(w.message) for w in warned)
+    assert any("chi_square_ekf broke down on four_tank_bias: huge" in str(w.message)
+               for w in warned)  # fmt: skip
     cell = result.cells["huge"]["chi_square_ekf"]
     assert cell["broke_down"].startswith(f"{BROKE_DOWN}: a reading out of range")
     assert cell["tpr_at_far"] == 0.0 and cell["state_error_ratio"] is None
@@ -147,3 +148,140 @@ def test_a_breakdown_under_one_threat_is_that_estimators_worst_case(tmp_path, mo
     text = (tmp_path / "out" / "robustness.md").read_text()
     assert "Broke down under a threat" in text and "`chi_square_ekf` under `huge`" in text
     assert "broke down (huge)" in text
+
+
+def test_the_default_suite_runs_where_the_poa_thresholds_cannot_be_computed(at_the_sensor):
+    """From a review: the probability-of-attack detector's factory linearises h at the
+    prior mean, where it has no derivative here; 'G contains NaN or Inf' stopped the default
+    suite before any estimator ran."""
+    with pytest.warns(UserWarning):
+        result = run_suite(at_the_sensor, runs=3, progress=False)
+    assert result.skipped["normal_pf"].startswith(f"{BROKE_DOWN}: the observation Jacobian")
+    assert "PoA detector" in result.skipped["normal_pf"]
+    assert "chi_square_ukf" in result.outputs and "normal_pf" not in result.outputs
+
+
+def test_a_learned_estimator_that_broke_down_fails_the_acceptance_and_a_rival_is_named():
+    """From a review: a learned estimator that broke down vanished from the verdicts (no
+    row, acceptance.md removed); an analytic one vanished from the comparison unsaid."""
+    from difffilter.eval.report import _acceptance_section, _judged
+
+    metrics = {"tpr_at_far": 0.9, "state_rmse": 1.0, "fpr_at_far": 0.01, "auc": 0.99}
+    doc = {"estimators": {"chi_square_kf": metrics}, "far": {"target": 0.01},
+           "estimator_roles": {"chi_square_kf": "analytic"},
+           "skipped": {"kf_nn_grad": f"{BROKE_DOWN}: S lost definiteness",
+                       "cusum_kf": f"{BROKE_DOWN}: S lost definiteness",
+                       "udp_kf": "needs lost input packets"}}  # fmt: skip
+    judged = _judged(doc)
+    assert list(judged) == ["kf_nn_grad"] and not any(c.holds for c in judged["kf_nn_grad"])
+    text = _acceptance_section(doc).body
+    assert "| `kf_nn_grad` |" in text and "**fails** (broke down)" in text
+    assert "not among the analytic estimators compared: `cusum_kf`" in text
+
+
+def test_a_broken_estimator_without_a_threshold_gets_no_tpr_and_the_intervals_agree():
+    """From a review: an estimator with no detector was given a TPR of 0 where it broke
+    down (and so a worst-case TPR); the robustness intervals left its threat out (the check
+    failed at −1 while its interval said 0, holding in every resample)."""
+    import torch
+
+    from difffilter.eval.intervals import robustness_intervals
+    from difffilter.eval.robustness import _broken_cell, _broken_totals, _worst_cases
+    from difffilter.loop import Trajectories
+
+    plain, gated = _broken_cell("why", detects=False), _broken_cell("why", detects=True)
+    assert plain["tpr_at_far"] is None and gated["tpr_at_far"] == 0.0
+    ran = {"tpr_at_far": 1.0, "state_error_ratio": 1.2, "impact": 0.3, "state_rmse": 0.1}
+    worst = _worst_cases({"a": {"ekf": ran, "kf": ran}, "b": {"ekf": plain, "kf": gated}})
+    assert worst["ekf"]["tpr_at_far"] == 1.0 and worst["ekf"]["impact"] == 0.3  # no detector
+    assert worst["ekf"]["state_error_ratio_broke_down"]
+    assert worst["kf"]["tpr_at_far"] == 0.0 and worst["kf"]["impact_broke_down"]
+
+    runs = 6
+    flags = torch.zeros(runs, 5, dtype=torch.bool)
+    flags[:, 2:] = True
+    x = torch.zeros(runs, 5, 1)
+    traj = Trajectories(x, x, x, None, None, x, flags, {})
+    ok = {"se": torch.ones(runs).double(), "n": torch.full((runs,), 5.0).double(),
+          "hits": flags.sum(1).double(),
+          "attacked": flags.sum(1).double()}  # fmt: skip
+    totals = {"a": {"chi": ok, "net": ok}, "b": {"chi": ok, "net": _broken_totals(traj, True)}}
+    out = robustness_intervals(totals, {"chi": "analytic", "net": "learned"}, runs=runs, seed=0)
+    assert out["net"]["worst_tpr"]["estimate"] == -1.0  # 0 against 1, as the check
+    assert out["net"]["worst_tpr"]["holds_share"] == 0.0
+    assert out["net"]["state"]["b"]["holds_share"] == 0.0
+    assert out["net"]["state"]["a"]["estimate"] == pytest.approx(1.0)
+
+
+def test_a_threat_crafted_against_a_broken_detector_is_refused_by_name():
+    from difffilter.eval.calibration import Calibration
+    from difffilter.eval.stealthy import StealthySpec, craft_threat
+    from difffilter.models import registry
+
+    cal = Calibration(0.01, 4, 0, broke_down={"chi_square_ekf": "S lost definiteness"})
+    spec = StealthySpec(against="chi_square_ekf", onset=5)
+    with pytest.raises(ValueError, match="threat 'st' is crafted against 'chi_square_ekf', "
+                                         "which broke down on the calibration runs"):  # fmt: skip
+        craft_threat("st", spec, registry.get("four_tank_bias"), cal, seed=0)
+
+
+def test_the_ekf_names_a_transition_that_gave_nan_not_h():
+    """From a review: a NaN predicted mean (f's square root of a negative level) was blamed
+    on h's Jacobian, 'e.g. a range measured at the sensor's own position'."""
+    model = df.NonlinearGaussianModel(
+        lambda x: torch.sqrt(x - 1.0), lambda x: x, torch.eye(1, dtype=torch.float64),
+        torch.eye(1, dtype=torch.float64), torch.zeros(1, dtype=torch.float64),
+        torch.eye(1, dtype=torch.float64),
+    )  # fmt: skip
+    with pytest.raises(df.NumericalBreakdown, match="predicted mean at step 1 is NaN or inf: "
+                                                    "the transition f"):  # fmt: skip
+        df.extended_kalman_filter(model, torch.zeros(1, 2, 1, dtype=torch.float64))
+
+
+def test_a_family_report_that_reads_a_broken_estimator_is_left_out_with_the_reason(
+    at_the_sensor, tmp_path, monkeypatch
+):
+    """From a review: the four-tank report reran every estimator of its attack-size sweep,
+    the one the study had left out too, and its breakdown there stopped the evaluation."""
+    from difffilter.eval import report as report_module
+    from difffilter.eval.report import FamilyReport
+
+    def sections(result, doc, out, prepared):
+        raise AssertionError("not written: it reads an estimator that did not run")
+
+    family = FamilyReport(extra=lambda result: {"mine": 1}, sections=sections,
+                          needs=("chi_square_ekf", "chi_square_ukf"))  # fmt: skip
+    monkeypatch.setitem(report_module._FAMILIES, "breakdown_tests", family)
+    with pytest.warns(UserWarning):
+        result = run_suite(at_the_sensor, runs=3, progress=False,
+                           estimators=["chi_square_ekf", "chi_square_ukf"])  # fmt: skip
+    doc = write_report(tmp_path, result)
+    assert "mine" not in doc and doc["family_report_skipped"].startswith(
+        "they read estimators that did not run here: `chi_square_ekf` (broke down"
+    )
+    assert (
+        "## The breakdown_tests family's sections\n\nLeft out: they read"
+        in (tmp_path / "report.md").read_text()
+    )
+
+    def breaks(result):
+        raise df.NumericalBreakdown("its own sweep broke down")
+
+    family = FamilyReport(extra=breaks, sections=sections, needs=("chi_square_ukf",))
+    monkeypatch.setitem(report_module._FAMILIES, "breakdown_tests", family)
+    with pytest.warns(UserWarning, match="family's report broke down"):
+        doc = write_report(tmp_path, result)
+    assert "its own sweep broke down" in doc["family_report_skipped"]
+
+
+def test_a_sweep_names_a_learned_checkpoint_that_broke_down(at_the_sensor):
+    """From a review: a bare KeyError where the judged estimator broke down."""
+    from difffilter.train.sweep import _calibrated_metrics
+
+    with (
+        pytest.warns(UserWarning),
+        pytest.raises(
+            ValueError, match="chi_square_ekf did not run on at_the_sensor: broke down on this"
+        ),
+    ):
+        _calibrated_metrics(at_the_sensor, ["chi_square_ekf"], 3, 0.05, False, required=True)

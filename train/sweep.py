@@ -267,12 +267,15 @@ def _scenarios_of(path: Path, scenarios) -> tuple[str, list[str]]:
 
 
 def _calibrated_metrics(scenario, names, runs, far: float, progress: bool,
-                        checkpoint=None) -> tuple[dict, dict]:  # fmt: skip
+                        checkpoint=None, required: bool = False) -> tuple[dict, dict]:  # fmt: skip
     """``({estimator: {metric: value}}, {estimator: per-run totals})`` of ``names`` on
     ``scenario``'s draws (``--seed 0``), their detectors calibrated at ``far`` as
     ``difffilter-eval`` calibrates them, with the family's own numbers
     (:func:`_family_metrics`); the totals (:func:`difffilter.eval.intervals.run_totals`)
-    give the acceptance's intervals over the runs."""
+    give the acceptance's intervals over the runs. ``required``: each of ``names`` must run
+    (a learned checkpoint judged), else a ``ValueError`` with why it did not (it broke down
+    on the scenario's runs: a bare ``KeyError`` before); otherwise those that did not run
+    are left out (a baseline's analytic estimators)."""
     from difffilter.eval.acceptance import state_metric
     from difffilter.eval.calibration import calibrate
     from difffilter.eval.intervals import study_totals
@@ -280,6 +283,10 @@ def _calibrated_metrics(scenario, names, runs, far: float, progress: bool,
 
     kwargs = dict(runs=runs, checkpoint=checkpoint, progress=progress)
     result = run_suite(scenario, estimators=list(names), **kwargs)
+    for name in names if required else ():
+        if name not in result.outputs:
+            raise ValueError(f"{name} did not run on {scenario.name}: "
+                             f"{result.skipped.get(name, 'it was left out')}")  # fmt: skip
     apply_calibration(result, calibrate(scenario, far=far, estimators=detectors(result), **kwargs))
     table = {name: {**{m: metrics.get(m) for m in METRICS}, **_family_metrics(result, name)}
              for name, metrics in result.metrics.items()}  # fmt: skip
@@ -296,7 +303,8 @@ def _evaluate(path: Path, scenarios, runs, far: float, progress: bool) -> tuple[
     table, totals = {}, {}
     for scenario_name in scenarios:
         metrics, run_totals = _calibrated_metrics(registry.get(scenario_name), [name], runs, far,
-                                                  progress, checkpoint={name: str(path)})  # fmt: skip
+                                                  progress, checkpoint={name: str(path)},
+                                                  required=True)  # fmt: skip
         table[scenario_name], totals[scenario_name] = metrics[name], run_totals[name]
     return {"estimator": name, "scenarios": table}, totals
 

@@ -35,7 +35,7 @@ from torch import Tensor
 
 from .._checks import check_one_model
 from ..gaussian import kalman_gain
-from ..linalg import LOG_2PI, safe_cholesky
+from ..linalg import LOG_2PI, NumericalBreakdown, safe_cholesky
 
 __all__ = [
     "modified_pf_gain",
@@ -373,6 +373,13 @@ def poa_detector_for(
         G = model.observation_matrix(1)
     else:
         G = model.observation_jacobian(model.initial.mean, 1)
+        if not bool(torch.isfinite(G).all()):  # (it failed as "G contains NaN or Inf")
+            raise NumericalBreakdown(
+                "the observation Jacobian ∂h/∂x at the prior mean, the PoA detector's G "
+                "(Theorem 1), holds NaN or inf: h is not differentiable there (e.g. a range "
+                "or bearing measured at the sensor's own position), so the thresholds of "
+                "eqs (45)/(46) cannot be computed (start the prior mean elsewhere)"
+            )
     G = G.detach().to(torch.float64)
     R = model.measurement_cov(1) if R is None else torch.as_tensor(R)
     K = modified_pf_gain(G, model.process_cov(0).detach().double(), R.detach().double())

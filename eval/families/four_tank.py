@@ -314,4 +314,7 @@ def _fig9_section(doc: dict, out) -> Section:
 
 # four_tank_bias's report runs the detection-versus-size sweep and single-run timings: about
 # 17 s against 2.4 s for a plain report (2026-11-27, difffilter-eval all --devices 1)
-register_family("four_tank", FamilyReport(extra=_extra, sections=_sections, report_cost=7.0))
+register_family("four_tank", FamilyReport(
+    extra=_extra, sections=_sections, report_cost=7.0,
+    needs=tuple(dict.fromkeys((*SWEPT, "modified_pf", "normal_pf_attack_free"))),
+))  # fmt: skip
