@@ -86,6 +86,40 @@ class DifffilterCLI(LightningCLI):
         ):
             args["version"] = int(run.name.removeprefix("version_"))
 
+    def _parse_ckpt_path(self) -> None:
+        """Lightning (from 2.3) reads a Lightning ``--ckpt_path``'s model settings into the
+        config before any hook, so a resumed ``fit`` (or a ``test`` of that checkpoint) ran
+        with the checkpoint's settings where the command gave others, without a word, and
+        :func:`_check_resumed_settings` compared the checkpoint with itself (a training
+        trial: ``--model.init_args.hidden 32 --model.init_args.filter ukf`` on resume kept 16
+        and ekf; ``test --model.init_args.restart 0.01`` scored the network without it):
+        ``ValueError`` naming each model setting the command gives otherwise
+        (:func:`_settings_given`) and a ``--seed_everything`` other than the checkpoint's
+        network seed."""
+        parse = getattr(super(), "_parse_ckpt_path", None)
+        subcommand = self.config.get("subcommand")
+        if parse is None or not subcommand:
+            return
+        cfg = self.config[subcommand]
+        given = _settings_given(cfg)
+        parse()
+        ckpt = cfg.get("ckpt_path")
+        merged = _plain(_init_args(self.config[subcommand], "model"))
+        changed = [f"--model.init_args.{key}: {merged.get(key)!r} → {value!r}"
+                   for key, value in sorted(given.items()) if merged.get(key) != value]  # fmt: skip
+        seed, trained = cfg.get("seed_everything"), merged.get("model_seed")
+        if (isinstance(seed, int) and not isinstance(seed, bool) and trained is not None
+                and given.get("model_seed") is None and seed != trained):  # fmt: skip
+            changed.append(f"--seed_everything: the network's seed {trained!r} → {seed!r}")
+        if changed:
+            raise ValueError(
+                f"--ckpt_path {ckpt}: this command gives the model other settings than the "
+                "checkpoint was trained with (" + "; ".join(changed) + "): Lightning would run "
+                "the checkpoint's; resume or score it with its own (its config.yaml: --config "
+                "<run>/config.yaml --ckpt_path …), or start a new run from these weights "
+                "(--model.init_args.init_from)"
+            )
+
     def before_fit(self):
         """A ``fast_dev_run`` writes no checkpoint (its ``last.ckpt`` landed in
         ``./checkpoints/``, beside the shipped files); otherwise a checkpoint callback that
@@ -297,6 +331,48 @@ def _seeds_from_seed_everything(config, subcommand: str | None) -> None:
         args = _init_args(cfg, part)
         if args is not None and key in args and args[key] is None:
             args[key] = value
+
+
+def _settings_given(cfg) -> dict:
+    """The model settings a command gives: its ``init_args`` that are set (not ``None``)
+    and differ from the class's own default (a default is not a setting the command chose,
+    and a resumed run takes the checkpoint's there)."""
+    import importlib
+    import inspect
+
+    node = cfg.get("model")
+    args = _plain(_init_args(cfg, "model"))
+    path = node.get("class_path") if node is not None else None
+    try:
+        module, _, name = str(path).rpartition(".")
+        params = inspect.signature(getattr(importlib.import_module(module), name)).parameters
+    except (ImportError, AttributeError, ValueError, TypeError):
+        return {}  # (an unknown class: Lightning names it itself)
+    defaults = {k: p.default for k, p in params.items() if p.default is not inspect.Parameter.empty}
+    return {k: v for k, v in args.items()
+            if v is not None and (k not in defaults or _plain(defaults[k]) != v)}  # fmt: skip
+
+
+def _plain(value):
+    """A config value as plain Python (jsonargparse's namespaces as dicts, tuples as lists),
+    so that a command's settings compare with a checkpoint's."""
+    if value is None:
+        return {}
+    if hasattr(value, "as_dict"):
+        value = value.as_dict()
+    if isinstance(value, dict):
+        return {k: _plain_item(v) for k, v in value.items()}
+    return value
+
+
+def _plain_item(value):
+    if hasattr(value, "as_dict"):
+        return _plain(value)
+    if isinstance(value, (list, tuple)):
+        return [_plain_item(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _plain_item(v) for k, v in value.items()}
+    return value
 
 
 def _init_args(cfg, part: str):
