@@ -538,9 +538,10 @@ def _check_strategies(resampler, proposal, likelihood, ess_threshold) -> float:
     return check_ess_threshold(ess_threshold)
 
 
-def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator):
+def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator, k: int = 0):
     """Resample the rows whose ESS fell below the threshold: ``(particles, log_w, w,
-    need [...], uniform)`` (``uniform``: the weights are now exactly −log N in every row)."""
+    need [...], uniform)`` (``uniform``: the weights are now exactly −log N in every row);
+    ``k`` the measurement step it precedes (named in a user resampler's errors)."""
     n = particles.shape[-2]
     need = (_ess(log_w) if ess is None else ess) < pf.ess_threshold * n
     count = int(need.item()) if need.dim() == 0 else int(need.sum())  # one run: one read
@@ -549,54 +550,39 @@ def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator):
     resampler, uniform = pf.resampler, False
     rows = None if count == need.numel() else need
     # weights here are normalised and finite by construction: skip re-validation
-    fast = getattr(resampler, "resample_normalized", None)
     kind = type(resampler)
-    calls, own_weights = _resampler_hooks(kind) if isinstance(resampler, Resampler) else (0, 0)
-    if fast is None or calls:  # a user resampler's own __call__
+    if not isinstance(resampler, Resampler) or _own(kind, "__call__"):  # a user's __call__
         res = _checked_resampled(resampler(particles, log_w, generator), particles, log_w,
-                                 resampler)  # fmt: skip
+                                 resampler, k)  # fmt: skip
         if rows is not None:
             res = keep_unmarked_rows(res, particles, log_w, rows)
-    elif kind.resample_normalized is Resampler.resample_normalized:
+        return res.particles, res.log_weights, None, need, uniform
+    fast = resampler.resample_normalized
+    if kind.resample_normalized is Resampler.resample_normalized:
         # the library's index resamplers also take the weights this step has (no exp)
         res = fast(particles, log_w, generator, rows=rows, weights=w)
         uniform = rows is None and kind._new_log_weights is _UNIFORM
     else:
         res = fast(particles, log_w, generator, rows=rows)
-    if own_weights:  # a user's _new_log_weights: normalised? (the library's are by design)
-        res = _checked_resampled(res, particles, log_w, resampler)
+    if _own(kind, "_new_log_weights"):  # normalised? (the library's are by design)
+        res = _checked_resampled(res, particles, log_w, resampler, k)
     return res.particles, res.log_weights, None, need, uniform
 
 
-def _resampler_hooks(kind: type) -> tuple[bool, bool]:
-    """``(calls, own_weights)`` for a :class:`~difffilter.resampling.Resampler` subclass
-    ``kind``: ``calls`` where its ``__call__`` is its own, defined below the classes that
-    define its ``resample_normalized`` and ``_draw`` (a user's override of a library
-    scheme's ``__call__``: a ``Systematic`` subclass's was never run, since it inherits a
-    ``_draw``), so the filter calls it; ``own_weights`` where its ``_new_log_weights`` is
-    not the library's, so the filter checks that they are normalised (an override that
-    returned zeros moved the evidence by log N at every resampling, silently)."""
-    hooks = _RESAMPLER_HOOKS.get(kind)
-    if hooks is None:
-
-        def owner(attr: str) -> type:
-            return next(c for c in kind.__mro__ if attr in c.__dict__)
-
-        def below(a: type, b: type) -> bool:
-            return a is not b and issubclass(a, b)
-
-        call = owner("__call__")
-        calls = below(call, owner("resample_normalized")) and below(call, owner("_draw"))
-        own_weights = owner("_new_log_weights").__module__ != Resampler.__module__
-        hooks = _RESAMPLER_HOOKS[kind] = (calls, own_weights)
-    return hooks
+def _own(kind: type, attr: str) -> bool:
+    """Whether ``kind`` (a :class:`~difffilter.resampling.Resampler` subclass) takes ``attr``
+    from a class outside :mod:`difffilter.resampling`: a user's. A user's ``__call__`` is
+    what Python calls, so the filter calls it too, wherever it is defined (a ``Systematic``
+    subclass's, a mixin's, beside an own ``_draw``: the filter drew with the inherited
+    scheme instead); a user's ``_new_log_weights`` is checked to be normalised (zeros for
+    −log N moved the evidence by log N at every resampling, silently). Read at every
+    resampling (a class changed after a first run is read as it is now)."""
+    owner = next(c for c in kind.__mro__ if attr in c.__dict__)
+    return owner.__module__ != Resampler.__module__
 
 
-#: :func:`_resampler_hooks` by resampler class (classes are few; read at every resampling).
-_RESAMPLER_HOOKS: dict[type, tuple[bool, bool]] = {}
-
-
-def _checked_resampled(res, particles: Tensor, log_w: Tensor, resampler=None):
+def _checked_resampled(res, particles: Tensor, log_w: Tensor, resampler=None,
+                       k: int | None = None):  # fmt: skip
     """A user resampler's result, checked: a :class:`~difffilter.resampling.Resampled`
     (``.particles``, ``.log_weights``) of the particles' shape and dtype, its log-weights
     normalised (``logsumexp = 0`` per run). One returning N − 1 particles shrank the
@@ -606,6 +592,8 @@ def _checked_resampled(res, particles: Tensor, log_w: Tensor, resampler=None):
     later)."""
     name = type(res).__name__
     who = "the resampler" if resampler is None else f"the resampler {type(resampler).__name__}"
+    if k is not None:
+        who += f" (before step {k})"
     got = getattr(res, "particles", None), getattr(res, "log_weights", None)
     if not all(isinstance(t, Tensor) for t in got):
         raise TypeError(f"{who} returned a {name}; it returns a Resampled(particles, "
@@ -637,10 +625,10 @@ def _particle_step(pf: ParticleFilter, carry: ParticleState, y, u, mask):
     model, gens, k = carry.model, carry.generators or Generators(), carry.k
     resample_gen = gens.resample if gens.resample is not None else gens.propagate
     particles, log_w, w, need, uniform = _resample(
-        pf, carry.particles, carry.log_weights, carry.ess, carry.weights, resample_gen
+        pf, carry.particles, carry.log_weights, carry.ess, carry.weights, resample_gen, k + 1
     )
     proposed = pf.proposal(model, particles, u, y, k, mask, gens.propagate)
-    if type(proposed) is not tuple:
+    if type(proposed) is not tuple or len(proposed) != 2:
         _check_proposal_pair(proposed, pf.proposal, k + 1)
     new, correction = proposed
     _check_proposed(new, correction, particles, log_w, pf.proposal, k)
@@ -754,6 +742,7 @@ def _check_proposal_pair(proposed, proposal, k: int) -> None:
     if isinstance(proposed, Sequence) and not isinstance(proposed, Tensor) and len(proposed) == 2:
         return
     got = (f"a tensor {tuple(proposed.shape)}" if isinstance(proposed, Tensor)
+           else f"a {type(proposed).__name__} of {len(proposed)}" if isinstance(proposed, Sequence)
            else f"a {type(proposed).__name__}")  # fmt: skip
     raise TypeError(
         f"the proposal {type(proposal).__name__} returned {got} at step {k}; it returns a "

@@ -313,10 +313,12 @@ class Resampler:
 
     Subclasses implement ``_draw(log_w, generator) -> [..., N]`` (index-based schemes)
     and may override ``_new_log_weights``; :class:`OptimalTransport` overrides
-    ``__call__`` and ``resample_normalized``. A resampler of your own may instead override
-    ``__call__`` alone (or be any object with ``__call__(particles, log_weights, generator)
-    → Resampled``): the particle filter then calls it, and checks what it returns (the
-    particles' shape and dtype, log-weights normalised per run).
+    ``__call__`` and ``resample_normalized``. A resampler of your own may instead define a
+    ``__call__`` (in its class, a parent or a mixin of its own; or be any object with
+    ``__call__(particles, log_weights, generator) → Resampled``): the particle filter then
+    calls it, as Python would, and checks what it returns (the particles' shape and dtype,
+    log-weights normalised per run), as it checks the log-weights of a
+    ``_new_log_weights`` of your own (docs/plugins.md).
 
     Attributes:
         differentiable: ``True`` when gradients flow from the returned log-weights (or

@@ -212,10 +212,10 @@ def test_a_resampler_that_breaks_its_contract_is_named():
 
     model, ys = _data()
     cases = {
-        "float32 log-weights": (lambda p, lw: (p, lw.float()), r"the resampler Spoiled returned "
+        "float32 log-weights": (lambda p, lw: (p, lw.float()), r"the resampler Spoiled \(before step 1\) returned "
                                 r"particles .* and log-weights \(3, 16\) torch.float32"),
         "NaN particles": (lambda p, lw: (p * float("nan"), lw),
-                          r"the resampler Spoiled returned NaN or inf particles"),
+                          r"the resampler Spoiled \(before step 1\) returned NaN or inf particles"),
     }  # fmt: skip
     for spoil, match in cases.values():
         with pytest.raises(ValueError, match=match):
@@ -306,7 +306,9 @@ def test_an_own_new_log_weights_hook_is_checked_for_normalisation():
         def _new_log_weights(self, log_w, ancestors):
             return torch.zeros_like(log_w)
 
-    with pytest.raises(ValueError, match="resampler Zeros returned log-weights whose logsumexp"):
+    with pytest.raises(
+        ValueError, match=r"resampler Zeros \(before step 1\) returned log-weights whose"
+    ):
         _run(model, ys, resampler=Zeros(), ess_threshold=1.0)
 
     class Uniform(Systematic):  # normalised: runs, the same as the base
@@ -337,3 +339,64 @@ def test_a_plug_ins_step_is_the_measurements_and_a_bare_tensor_is_named():
     with pytest.raises(TypeError, match=r"proposal Bare returned a tensor \(3, 16, 4\) at step 1;"
                                         r" it returns a pair"):  # fmt: skip
         _run(model, ys, proposal=Bare())
+
+
+class _KeepMixin:
+    """A ``__call__`` of one's own that never resamples (kept particles, normalised weights)."""
+
+    calls = 0
+
+    def __call__(self, particles, log_weights, generator=None):
+        type(self).calls += 1
+        return Resampled(particles, log_weights - torch.logsumexp(log_weights, -1, keepdim=True),
+                         None)  # fmt: skip
+
+
+@pytest.mark.parametrize("layout", ["mixin", "beside_draw", "inherited", "plain_object"])
+def test_a_call_of_ones_own_is_called_wherever_python_finds_it(layout):
+    """From a review: a ``__call__`` beside an own ``_draw``, from a mixin, or inherited by a
+    subclass that overrides ``_draw`` was skipped (the filter drew with the scheme); a
+    wrapper that delegates attributes failed on ``resample_normalized``."""
+    model, ys = _data(B=2, T=6)
+
+    class Inherits(_KeepMixin, Systematic):
+        pass
+
+    kinds = {
+        "mixin": Inherits,
+        "beside_draw": type("Beside", (Systematic,), {"__call__": _KeepMixin.__call__,
+                                                       "_draw": Systematic._draw, "calls": 0}),
+        "inherited": type("Sub", (Inherits,), {"_draw": Systematic._draw, "calls": 0}),
+        "plain_object": type("Delegates", (_KeepMixin,), {
+            "calls": 0, "__getattr__": lambda self, name: getattr(Systematic(), name)}),
+    }  # fmt: skip
+    kind = kinds[layout]
+    mine = _run(model, ys, resampler=kind(), ess_threshold=1.0)
+    assert kind.calls == ys.shape[1]
+    never = _run(model, ys, resampler=Systematic(), ess_threshold=0.0)  # nothing resampled
+    torch.testing.assert_close(mine.means, never.means, rtol=0, atol=0)
+
+
+def test_a_class_changed_after_a_run_is_read_as_it_is_now():
+    model, ys = _data(B=2, T=6)
+
+    class Later(Systematic):
+        calls = 0
+
+    _run(model, ys, resampler=Later(), ess_threshold=1.0)
+    Later.__call__ = _KeepMixin.__call__
+    _run(model, ys, resampler=Later(), ess_threshold=1.0)
+    assert Later.calls == ys.shape[1]
+
+
+def test_a_resamplers_error_names_the_step_and_a_wrong_tuple_is_named():
+    model, ys = _data()
+    with pytest.raises(ValueError, match=r"the resampler _Unnormalised \(before step 1\) returned"):
+        _run(model, ys, resampler=_Unnormalised(shift=5.0), ess_threshold=1.0)
+
+    class Three(df.KalmanProposal):
+        def __call__(self, *args):
+            return (*super().__call__(*args), None)
+
+    with pytest.raises(TypeError, match="proposal Three returned a tuple of 3 at step 1"):
+        _run(model, ys, proposal=Three())
