@@ -195,15 +195,21 @@ def run_suite(
     result.reference = next(
         (s.name for s in specs if s.reference and s.name in result.outputs), None
     )
-    from difffilter.models.neural_estimator import checkpoint_sha256
+    from difffilter.models.neural_estimator import checkpoint_sha256, checkpoint_trained_on
+
+    def provenance(path) -> dict:  # (the scenario it was trained on: another plant of the
+        # family runs without a word, so the report says what the network was trained on)
+        trained = checkpoint_trained_on(path)
+        return {"sha256": checkpoint_sha256(path),
+                **({"trained_on": trained} if trained is not None else {})}  # fmt: skip
 
     for name, path in named.items():
-        result.checkpoints[name] = {"path": str(path), "sha256": checkpoint_sha256(path)}
+        result.checkpoints[name] = {"path": str(path), **provenance(path)}
     users = [n for n in ctx.checkpoint_users if n not in named]
     if checkpoint is not None and (users or not named or source == "--ckpt"):
         result.checkpoint = {
             "path": str(checkpoint),
-            "sha256": checkpoint_sha256(checkpoint),
+            **provenance(checkpoint),
             "source": source,
             "used_by": users,
         }

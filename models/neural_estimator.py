@@ -383,6 +383,20 @@ def checkpoint_sha256(path) -> str:
     return digest.hexdigest()
 
 
+def checkpoint_trained_on(path) -> str | None:
+    """The scenario an exported estimator's network was trained on (its card's
+    ``scenario``: a registered name or the YAML path its training was given), or ``None``
+    where the file holds no card (a Lightning checkpoint, an older export). Read without
+    the weights (the file mapped)."""
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception:  # (not a torch file: the loaders name it themselves)
+        return None
+    observer = blob.get("observer") if isinstance(blob, dict) else None
+    scenario = observer.get("scenario") if isinstance(observer, dict) else None
+    return None if scenario is None else str(scenario)
+
+
 def weights_sha256(source) -> str:
     """Hex sha256 of a network's weights alone: each tensor's name, dtype, shape and bytes,
     in name order, as stored. ``source`` is an exported estimator's path (``ValueError``

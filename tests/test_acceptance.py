@@ -178,6 +178,10 @@ def test_a_calibrated_report_judges_its_learned_estimator_against_the_best_analy
         roles_written["gaussian_nn_ekf"] == "learned" and roles_written["zhang_akf"] == "analytic"
     )
     report = (tmp_path / "report.md").read_text()
+    # the scenario its network was trained on, from its card (a trial's network of another
+    # motor of the same family ran without a word)
+    assert doc["checkpoint"]["trained_on"] == "robot_actuator_attack_turn_rates"
+    assert "; trained on `robot_actuator_attack_turn_rates`), used by `gaussian_nn_ekf`" in report
     section = report.split("## Learned against the best analytic")[1]
     m = doc["estimators"]
     analytic = [n for n, r in roles_written.items() if r == "analytic"]
