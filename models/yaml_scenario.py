@@ -240,10 +240,35 @@ def _check_against_plant(scenario: CustomScenario, probe, where: str) -> None:
                              "input(s))") from None  # fmt: skip
     known = scenario.known_inputs
     runs = known.shape[0] if isinstance(known, torch.Tensor) and known.dim() == 3 else 1
+    width = _input_width(known)
+    if width is not None and width != probe.dim_u:  # (it said known_inputs [1, 100, 2])
+        raise ValueError(
+            f"{where}: inputs: they give {width} value(s) per step and the plant has "
+            f"{probe.dim_u} input(s) (dim_u: plant.B's columns): give one per input "
+            "(amplitude, frequency, phase or value: a number, or a list of dim_u; values: "
+            "[T, dim_u])"
+        )
     try:
         scenario.inputs(runs, torch.float64)
     except (ValueError, TypeError, IndexError, RuntimeError) as error:
         raise ValueError(f"{where}: inputs: {error}") from None
+
+
+def _input_width(known) -> int | None:
+    """The values per step of YAML ``inputs:`` (a table ``[.., T, du]`` or a sinusoid's or
+    constant's function of the step), or ``None`` where it cannot be read cheaply (a
+    function of the user's: the scenario's own check names it)."""
+    if isinstance(known, torch.Tensor):
+        return int(known.shape[-1])
+    if not callable(known):
+        return None
+    try:
+        value = known(torch.arange(1, dtype=torch.float64))
+    except Exception:  # (the scenario's own check below names it)
+        return None
+    if not isinstance(value, torch.Tensor):
+        return None
+    return 1 if value.dim() < 2 else int(value.shape[-1])
 
 
 def _number(value: Any, where: str) -> float:
@@ -308,6 +333,14 @@ def _matrix(value: Any, n: int | None, where: str, dtype) -> torch.Tensor:
     try:
         t = torch.tensor(value, dtype=dtype)
     except (TypeError, ValueError, RuntimeError):
+        rows = (
+            [len(r) for r in value]
+            if isinstance(value, list) and value and all(isinstance(r, list) for r in value)
+            else None
+        )
+        if rows is not None and len(set(rows)) > 1:  # (it said only "(nested) lists of numbers")
+            raise ValueError(f"{where}: its rows have {rows} entries: every row of a matrix "
+                             f"needs the same number; got {value!r}") from None  # fmt: skip
         raise ValueError(
             f"{where} must be a number or (nested) lists of numbers; got {value!r}"
             f"{_string_number_hint(value)}"

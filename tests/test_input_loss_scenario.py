@@ -414,3 +414,22 @@ def test_the_report_says_how_many_steps_received_nothing(monkeypatch, tmp_path):
     assert 0.4 < expected < 0.8 and doc["network"]["steps_without_data"] == expected
     text = (tmp_path / "out" / "report.md").read_text()
     assert f"({100 * expected:.3g} % of the steps received no measurement" in text
+
+
+def test_inputs_of_the_wrong_width_and_a_ragged_matrix_are_named():
+    """From a training trial: two amplitudes on a one-input plant said only "known_inputs
+    ... got [1, 100, 2]"; a ragged row of F only "(nested) lists of numbers"."""
+    two = {"kind": "sinusoid", "amplitude": [2.0, 1.0], "frequency": 0.2}
+    with pytest.raises(ValueError, match=r"motor.yaml: inputs: they give 2 value\(s\) per step "
+                                         r"and the plant has 1 input\(s\)"):  # fmt: skip
+        _with(inputs=two)
+    with pytest.raises(ValueError, match=r"they give 3 value\(s\)"):
+        _with(inputs={"values": [[1.0, 2.0, 3.0]] * 40})
+    ragged = {**MOTOR["plant"], "F": [[0.95], [-0.02, 0.8]]}
+    with pytest.raises(ValueError, match=r"plant.F: its rows have \[1, 2\] entries: every row"):
+        _with(plant=ragged)
+    assert _with(inputs={"kind": "constant", "value": [0.5]}).inputs(2, torch.float64).shape == (
+        2,
+        40,
+        1,
+    )
