@@ -308,11 +308,11 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     return doc
 
 
-def _trained_on(ckpt: dict, doc: dict) -> str:
+def _trained_on(ckpt: dict) -> str:
     """``; trained on `X``` for a report's checkpoint line, where its card names the
     scenario of its training (a network of another plant of the family runs without a
     word: a trial's, trained on one motor, scored an AUC of 0.55 on a noisier one)."""
-    trained = ckpt.get("trained_on")
+    trained = ckpt.get("training_scenario")
     return "" if trained is None else f"; trained on `{trained}`"
 
 
@@ -410,11 +410,11 @@ def _summary_section(doc: dict, sc) -> Section:
         users = ", ".join(f"`{n}`" for n in ckpt["used_by"]) or "no estimator (ignored)"
         body += (
             f"\nCheckpoint: `{ckpt['path']}` ({ckpt['source']}; sha256 "
-            f"{ckpt['sha256'][:16]}…{_trained_on(ckpt, doc)}), used by {users}.\n"
+            f"{ckpt['sha256'][:16]}…{_trained_on(ckpt)}), used by {users}.\n"
         )
     for name, own in (doc.get("checkpoints") or {}).items():
         body += (f"\nCheckpoint of `{name}`: `{own['path']}` (sha256 {own['sha256'][:16]}…"
-                 f"{_trained_on(own, doc)}).\n")  # fmt: skip
+                 f"{_trained_on(own)}).\n")  # fmt: skip
     if sc.paper:
         body += f"\nPaper: {sc.paper}.\n"
     if doc["notes"]:

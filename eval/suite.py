@@ -195,13 +195,13 @@ def run_suite(
     result.reference = next(
         (s.name for s in specs if s.reference and s.name in result.outputs), None
     )
-    from difffilter.models.neural_estimator import checkpoint_sha256, checkpoint_trained_on
+    from difffilter.models.neural_estimator import checkpoint_sha256, checkpoint_training_scenario
 
     def provenance(path) -> dict:  # (the scenario it was trained on: another plant of the
         # family runs without a word, so the report says what the network was trained on)
-        trained = checkpoint_trained_on(path)
+        trained = checkpoint_training_scenario(path)
         return {"sha256": checkpoint_sha256(path),
-                **({"trained_on": trained} if trained is not None else {})}  # fmt: skip
+                **({"training_scenario": trained} if trained is not None else {})}  # fmt: skip
 
     for name, path in named.items():
         result.checkpoints[name] = {"path": str(path), **provenance(path)}

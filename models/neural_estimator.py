@@ -383,17 +383,30 @@ def checkpoint_sha256(path) -> str:
     return digest.hexdigest()
 
 
-def checkpoint_trained_on(path) -> str | None:
-    """The scenario an exported estimator's network was trained on (its card's
-    ``scenario``: a registered name or the YAML path its training was given), or ``None``
-    where the file holds no card (a Lightning checkpoint, an older export). Read without
-    the weights (the file mapped)."""
+def checkpoint_training_scenario(path) -> str | None:
+    """The scenario an estimator checkpoint's network was trained on: its card's
+    ``scenario`` (the name its training was given: a registered scenario, or a YAML file's
+    ``name:``), from an export's ``observer`` or a Lightning checkpoint's
+    ``difffilter_observer``, read as :class:`EstimatorCard` reads it (an older card's
+    default included); ``None`` where the file holds no card or does not load."""
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except RuntimeError:  # (a file of the legacy, non-zip format cannot be mapped)
+        try:
+            blob = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception:
+            return None
     except Exception:  # (not a torch file: the loaders name it themselves)
         return None
-    observer = blob.get("observer") if isinstance(blob, dict) else None
-    scenario = observer.get("scenario") if isinstance(observer, dict) else None
+    if not isinstance(blob, dict):
+        return None
+    observer = blob.get("observer") or blob.get("difffilter_observer")
+    if not isinstance(observer, dict):
+        return None
+    try:
+        scenario = EstimatorCard.from_dict(observer).scenario
+    except Exception:  # (a card that does not read: the loader names it)
+        scenario = observer.get("scenario")
     return None if scenario is None else str(scenario)
 
 

@@ -180,7 +180,7 @@ def test_a_calibrated_report_judges_its_learned_estimator_against_the_best_analy
     report = (tmp_path / "report.md").read_text()
     # the scenario its network was trained on, from its card (a trial's network of another
     # motor of the same family ran without a word)
-    assert doc["checkpoint"]["trained_on"] == "robot_actuator_attack_turn_rates"
+    assert doc["checkpoint"]["training_scenario"] == "robot_actuator_attack_turn_rates"
     assert "; trained on `robot_actuator_attack_turn_rates`), used by `gaussian_nn_ekf`" in report
     section = report.split("## Learned against the best analytic")[1]
     m = doc["estimators"]

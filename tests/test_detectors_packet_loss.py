@@ -266,3 +266,25 @@ def test_detect_takes_one_mask_per_run_as_the_filters_do():
         with pytest.raises(ValueError, match=r"mask must have the innovations' shape \(5, 20, 3\)"):
             det.detect(kf.innovations, kf.innovation_covs, mask=mask[0])
         det.detect(kf.innovations, kf.innovation_covs, mask=mask[0].expand(5, 20, 3))
+
+
+def test_cusum_online_step_takes_the_mask_as_detect_does():
+    """From a recorded-log trial: the online step had no mask (ChiSquareDetector.step has
+    one), so a stream under packet loss fed the raw NIS and alarmed otherwise than detect."""
+    model, ys, mask = _lossy(runs=20, steps=40)
+    det = CusumDetector(5.0, threshold=6.0)
+    kf = df.kalman_filter(model, ys, mask=mask)
+    g = df.fdi.normalized_innovation_squared(kf.innovations, kf.innovation_covs)
+    _, alarms = det.detect(kf.innovations, kf.innovation_covs, mask=mask)
+    state, online = det.init((20,)), []
+    for t in range(40):
+        state, _, alarm = det.step(state, g[:, t], mask=mask[:, t])
+        online.append(alarm)
+    assert torch.equal(torch.stack(online, -1), alarms)
+    state, raw = det.init((20,)), []
+    for t in range(40):  # without it: the raw NIS, as before
+        state, _, alarm = det.step(state, g[:, t])
+        raw.append(alarm)
+    assert not torch.equal(torch.stack(raw, -1), alarms)
+    with pytest.raises(ValueError, match=r"mask must broadcast to \(20, 20\); got \(2, 20\)"):
+        det.step(det.init((20,)), g[:, 0], mask=mask[:, 0, :2].T)

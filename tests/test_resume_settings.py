@@ -7,6 +7,7 @@ compared the checkpoint with itself)."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -33,14 +34,44 @@ def test_a_checkpoint_given_other_model_settings_is_refused_and_its_own_resume(
         ("fit", ["--model.init_args.hidden=32", "--model.init_args.filter=ukf"],
          "--model.init_args.filter: 'ekf' → 'ukf'; --model.init_args.hidden: 16 → 32"),
         ("test", ["--model.init_args.restart=0.01"], "--model.init_args.restart: None → 0.01"),
-        ("fit", ["--seed_everything=3"], "--seed_everything: the network's seed 0 → 3"),
+        # a class default spelled where the run had another (robot.yaml's ekf_lr is 1.0)
+        ("fit", ["--model.init_args.ekf_lr=0.5"], "--model.init_args.ekf_lr: 1.0 → 0.5"),
+        ("fit", ["--seed_everything=3"], "--seed_everything 3: the run's network was seeded 0"),
     ):  # fmt: skip
         assert main([command, *base, "--trainer.max_epochs=2", *given, ckpt]) == 2, command
         err = capsys.readouterr().err
-        assert "this command gives the model other settings than the checkpoint" in err
+        assert "this command's model settings are not the checkpoint's" in err
         assert named in err
     assert main(["fit", *base, "--trainer.max_epochs=2", ckpt]) == 0  # its own: resumes
     assert main(["test", *base, ckpt]) == 0
+    # a test draws from its own seed: another --seed_everything scores the same network
+    assert main(["test", *base, "--seed_everything=3", ckpt]) == 0
+
+
+def test_a_run_with_a_setting_of_its_own_resumes_only_with_it(tmp_path, monkeypatch, capsys):
+    """The run's settings are the checkpoint's: a command that leaves one out describes
+    another run (the class's default), and is refused naming it; with it, or with the
+    run's config.yaml, it resumes."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    base = ["--config", str(ROOT / "train" / "configs" / "robot.yaml"),
+            "--data.init_args.batches_per_epoch=2", "--data.init_args.batch_size=2",
+            "--data.init_args.val_runs=4", "--data.init_args.calibration_runs=4",
+            "--trainer.enable_progress_bar=false"]  # fmt: skip
+    own = "--model.init_args.adversarial_onsets=[10, 50]"
+    assert main(["fit", *base, own, "--trainer.max_epochs=1"]) == 0
+    run = tmp_path / "lightning_logs" / "robot_nn_ekf" / "version_0"
+    ckpt = f"--ckpt_path={run / 'checkpoints' / 'last.ckpt'}"
+    capsys.readouterr()
+    assert main(["fit", *base, "--trainer.max_epochs=2", ckpt]) == 2
+    assert "--model.init_args.adversarial_onsets: [10, 50] → [5, 60]" in capsys.readouterr().err
+    assert main(["fit", *base, own, "--trainer.max_epochs=2", ckpt]) == 0
+    # a test of the run's best checkpoint writes config_test.yaml, not over the run's
+    best = next((run / "checkpoints").glob("best*.ckpt"))
+    assert main(["test", "--config", str(run / "config.yaml"), f"--ckpt_path={best}"]) == 0
+    assert list(run.parent.glob("version_*/config_test.yaml"))  # (the test's own folder)
+    assert not re.search(r"^verbose:", (run / "config.yaml").read_text(), flags=re.M)
+    assert main(["fit", "--config", str(run / "config.yaml"), "--trainer.max_epochs=3", ckpt]) == 0
 
 
 @pytest.mark.parametrize("value, expected", [(None, {}), ({"a": (1, 2)}, {"a": [1, 2]})])
@@ -48,3 +79,24 @@ def test_settings_compare_as_plain_values(value, expected):
     from difffilter.train.lightning_cli import _plain
 
     assert _plain(value) == expected
+
+
+def test_the_training_scenario_is_read_from_every_kind_of_checkpoint(tmp_path, monkeypatch):
+    """From a review: a Lightning checkpoint (its card under ``difffilter_observer``) and an
+    export in torch's legacy format (which cannot be mapped) gave none."""
+    import torch
+
+    from difffilter.models.neural_estimator import checkpoint_training_scenario
+
+    shipped = ROOT / "checkpoints" / "robot_nn_ekf.ckpt"
+    assert checkpoint_training_scenario(shipped) == "robot_actuator_attack_turn_rates"
+    blob = torch.load(shipped, map_location="cpu", weights_only=True)
+    legacy = tmp_path / "legacy.ckpt"
+    torch.save(blob, legacy, _use_new_zipfile_serialization=False)
+    assert checkpoint_training_scenario(legacy) == "robot_actuator_attack_turn_rates"
+    lightning = tmp_path / "run.ckpt"
+    torch.save({"state_dict": {}, "difffilter_observer": {**blob["observer"], "scenario": "mine"}},
+               lightning)  # fmt: skip
+    assert checkpoint_training_scenario(lightning) == "mine"
+    (tmp_path / "junk.ckpt").write_bytes(b"not a checkpoint")
+    assert checkpoint_training_scenario(tmp_path / "junk.ckpt") is None

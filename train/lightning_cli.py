@@ -12,13 +12,27 @@ from pathlib import Path
 
 import lightning.pytorch as pl
 import torch
-from lightning.pytorch.cli import LightningCLI
+from lightning.pytorch.cli import LightningCLI, SaveConfigCallback
 
 from difffilter.runtime import tune_cpu_allocator
 from difffilter.train.common import train_seed_of
 from difffilter.train.last_checkpoint import add_last_every_epoch
 
 __all__ = ["DifffilterCLI", "run"]
+
+
+class _SaveConfigOfItsStage(SaveConfigCallback):
+    """``config.yaml`` is the ``fit``'s: another subcommand writes ``config_<stage>.yaml``
+    beside it (a ``test --config <run>/config.yaml`` of a run's best checkpoint rewrote the
+    run's ``config.yaml`` as its own, ``verbose: true`` and all, and the README's resume from
+    it then failed: "Subcommand 'fit' does not accept option 'verbose'")."""
+
+    def setup(self, trainer, pl_module, stage: str) -> None:
+        name = getattr(stage, "value", stage)  # (a TrainerFn: formatted, 'TrainerFn.TESTING')
+        if name != "fit":
+            stem, dot, ext = self.config_filename.rpartition(".")
+            self.config_filename = f"{stem}_{name}{dot}{ext}" if dot else f"{ext}_{name}"
+        super().setup(trainer, pl_module, stage)
 
 
 class DifffilterCLI(LightningCLI):
@@ -87,15 +101,17 @@ class DifffilterCLI(LightningCLI):
             args["version"] = int(run.name.removeprefix("version_"))
 
     def _parse_ckpt_path(self) -> None:
-        """Lightning (from 2.3) reads a Lightning ``--ckpt_path``'s model settings into the
+        """Lightning (from 2.5.5) reads a Lightning ``--ckpt_path``'s model settings into the
         config before any hook, so a resumed ``fit`` (or a ``test`` of that checkpoint) ran
         with the checkpoint's settings where the command gave others, without a word, and
         :func:`_check_resumed_settings` compared the checkpoint with itself (a training
         trial: ``--model.init_args.hidden 32 --model.init_args.filter ukf`` on resume kept 16
         and ekf; ``test --model.init_args.restart 0.01`` scored the network without it):
-        ``ValueError`` naming each model setting the command gives otherwise
-        (:func:`_settings_given`) and a ``--seed_everything`` other than the checkpoint's
-        network seed."""
+        ``ValueError`` naming each model setting of the command (its config's, given or by
+        default; unset ``None`` ones aside) that is not the checkpoint's, and, for ``fit``,
+        a ``--seed_everything`` other than the one the network was seeded with. Lightning
+        releases without this step (2.2 to 2.5.4) leave the config as the command gave it,
+        and :func:`_check_resumed_settings` compares it."""
         parse = getattr(super(), "_parse_ckpt_path", None)
         subcommand = self.config.get("subcommand")
         if parse is None or not subcommand:
@@ -108,16 +124,18 @@ class DifffilterCLI(LightningCLI):
         changed = [f"--model.init_args.{key}: {merged.get(key)!r} → {value!r}"
                    for key, value in sorted(given.items()) if merged.get(key) != value]  # fmt: skip
         seed, trained = cfg.get("seed_everything"), merged.get("model_seed")
-        if (isinstance(seed, int) and not isinstance(seed, bool) and trained is not None
-                and given.get("model_seed") is None and seed != trained):  # fmt: skip
-            changed.append(f"--seed_everything: the network's seed {trained!r} → {seed!r}")
+        if (subcommand == "fit" and isinstance(seed, int) and not isinstance(seed, bool)
+                and trained is not None and "model_seed" not in given and seed != trained):  # fmt: skip
+            # (the data's train_seed differs too, and the data check names that alone)
+            changed.append(f"--seed_everything {seed}: the run's network was seeded {trained}")
         if changed:
             raise ValueError(
-                f"--ckpt_path {ckpt}: this command gives the model other settings than the "
-                "checkpoint was trained with (" + "; ".join(changed) + "): Lightning would run "
-                "the checkpoint's; resume or score it with its own (its config.yaml: --config "
-                "<run>/config.yaml --ckpt_path …), or start a new run from these weights "
-                "(--model.init_args.init_from)"
+                f"--ckpt_path {ckpt}: this command's model settings are not the checkpoint's ("
+                + "; ".join(changed)
+                + "; the checkpoint's first): Lightning would run the "
+                "checkpoint's; resume or score it with its own (the same command, or its run's "
+                "config.yaml: --config <run>/config.yaml --ckpt_path …), or start a new run from "
+                "these weights (--model.init_args.init_from)"
             )
 
     def before_fit(self):
@@ -334,23 +352,13 @@ def _seeds_from_seed_everything(config, subcommand: str | None) -> None:
 
 
 def _settings_given(cfg) -> dict:
-    """The model settings a command gives: its ``init_args`` that are set (not ``None``)
-    and differ from the class's own default (a default is not a setting the command chose,
-    and a resumed run takes the checkpoint's there)."""
-    import importlib
-    import inspect
-
-    node = cfg.get("model")
-    args = _plain(_init_args(cfg, "model"))
-    path = node.get("class_path") if node is not None else None
-    try:
-        module, _, name = str(path).rpartition(".")
-        params = inspect.signature(getattr(importlib.import_module(module), name)).parameters
-    except (ImportError, AttributeError, ValueError, TypeError):
-        return {}  # (an unknown class: Lightning names it itself)
-    defaults = {k: p.default for k, p in params.items() if p.default is not inspect.Parameter.empty}
-    return {k: v for k, v in args.items()
-            if v is not None and (k not in defaults or _plain(defaults[k]) != v)}  # fmt: skip
+    """The model settings of a command: its config's ``init_args`` as plain values, those
+    given and those left at the class's default alike (the same command, or the run's
+    ``config.yaml``, describes the checkpoint's run; a default is a setting too: a command
+    that spelled a default where the run had another resumed with the run's), but for the
+    unset ``None`` ones, which a run resolves later (``model_seed`` from
+    ``--seed_everything``) or takes from the checkpoint."""
+    return {k: v for k, v in _plain(_init_args(cfg, "model")).items() if v is not None}
 
 
 def _plain(value):
@@ -479,6 +487,7 @@ def run(args: list[str] | None, argv: list[str], description: str) -> int:
             subclass_mode_model=True,
             subclass_mode_data=True,
             args=args,
+            save_config_callback=_SaveConfigOfItsStage,
             save_config_kwargs={"overwrite": True},
             auto_configure_optimizers=False,
             parser_kwargs=parser_kwargs,
