@@ -245,8 +245,8 @@ def _check_against_plant(scenario: CustomScenario, probe, where: str) -> None:
         raise ValueError(
             f"{where}: inputs: they give {width} value(s) per step and the plant has "
             f"{probe.dim_u} input(s) (dim_u: plant.B's columns): give one per input "
-            "(amplitude, frequency, phase or value: a number, or a list of dim_u; values: "
-            "[T, dim_u])"
+            "(amplitude, frequency, phase or value: a list of dim_u numbers, or a number on a "
+            "one-input plant; values: [T, dim_u])"
         )
     try:
         scenario.inputs(runs, torch.float64)
@@ -256,11 +256,12 @@ def _check_against_plant(scenario: CustomScenario, probe, where: str) -> None:
 
 def _input_width(known) -> int | None:
     """The values per step of YAML ``inputs:`` (a table ``[.., T, du]`` or a sinusoid's or
-    constant's function of the step), or ``None`` where it cannot be read cheaply (a
-    function of the user's: the scenario's own check names it)."""
+    constant's function of the step, this module's), or ``None`` for a function of the
+    user's (called once for a step, one that squeezed its output read as one input: the
+    scenario's own check, at the study's length, names such a function's misfit)."""
     if isinstance(known, torch.Tensor):
         return int(known.shape[-1])
-    if not callable(known):
+    if not callable(known) or getattr(known, "__module__", None) != __name__:
         return None
     try:
         value = known(torch.arange(1, dtype=torch.float64))

@@ -288,3 +288,6 @@ def test_cusum_online_step_takes_the_mask_as_detect_does():
     assert not torch.equal(torch.stack(raw, -1), alarms)
     with pytest.raises(ValueError, match=r"mask must broadcast to \(20, 20\); got \(2, 20\)"):
         det.step(det.init((20,)), g[:, 0], mask=mask[:, 0, :2].T)
+    # a whole [T, m] mask given to one run's step grew the state to [T] (a review)
+    with pytest.raises(ValueError, match=r"must be one row per run of g \(\)"):
+        det.step(det.init(()), g[0, 0], mask=mask[0])

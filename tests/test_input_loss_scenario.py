@@ -433,3 +433,16 @@ def test_inputs_of_the_wrong_width_and_a_ragged_matrix_are_named():
         40,
         1,
     )
+
+
+def test_a_users_input_function_is_judged_at_the_studys_length(tmp_path, monkeypatch):
+    """From a review: the width check called the user's function for one step, where one
+    that squeezes its output gives [2] for two inputs, read as one input per step."""
+    (tmp_path / "squeezed_inputs.py").write_text(
+        "import torch\n\n\ndef two(k):\n"
+        "    return torch.stack([torch.sin(k), torch.cos(k)], -1).squeeze()\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    plant = {**MOTOR["plant"], "B": [[0.1, 0.0], [0.0, 0.2]]}
+    sc = _with(plant=plant, inputs={"function": "squeezed_inputs:two"})
+    assert sc.inputs(4, torch.float64).shape == (4, 40, 2)

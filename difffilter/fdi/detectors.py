@@ -480,7 +480,14 @@ class CusumDetector:
             mask = torch.as_tensor(mask, device=g.device)
             if mask.dim() == 0:
                 raise ValueError("mask must be [..., m]: the step's received entries")
-            g = missing_entries_counted(g, check_mask(mask, "mask", g.shape + mask.shape[-1:]))
+            mask = check_mask(mask, "mask", g.shape + mask.shape[-1:])
+            if torch.broadcast_shapes(mask.shape[:-1], g.shape) != g.shape:
+                # (a whole [T, m] mask given to a step grew the state to [T] unsaid)
+                raise ValueError(
+                    f"mask [..., m] must be one row per run of g {tuple(g.shape)} (or "
+                    f"broadcast to it); got {tuple(mask.shape)}"
+                )
+            g = missing_entries_counted(g, mask)
         s = torch.clamp(state + g - self.bias, min=0.0)
         alarm = s > self.threshold
         return torch.where(alarm, torch.zeros_like(s), s), s, alarm
