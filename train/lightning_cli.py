@@ -23,7 +23,7 @@ __all__ = ["DifffilterCLI", "run"]
 
 class _SaveConfigOfItsStage(SaveConfigCallback):
     """``config.yaml`` is the ``fit``'s: another subcommand writes ``config_<stage>.yaml``
-    beside it (a ``test --config <run>/config.yaml`` of a run's best checkpoint rewrote the
+    in the folder it logs to, the run's where the config pins its version (a ``test --config <run>/config.yaml`` of a run's best checkpoint rewrote the
     run's ``config.yaml`` as its own, ``verbose: true`` and all, and the README's resume from
     it then failed: "Subcommand 'fit' does not accept option 'verbose'")."""
 
