@@ -23,9 +23,10 @@ __all__ = ["DifffilterCLI", "run"]
 
 class _SaveConfigOfItsStage(SaveConfigCallback):
     """``config.yaml`` is the ``fit``'s: another subcommand writes ``config_<stage>.yaml``
-    in the folder it logs to, the run's where the config pins its version (a ``test --config <run>/config.yaml`` of a run's best checkpoint rewrote the
-    run's ``config.yaml`` as its own, ``verbose: true`` and all, and the README's resume from
-    it then failed: "Subcommand 'fit' does not accept option 'verbose'")."""
+    in the folder it logs to, the run's where the config pins its version (a ``test
+    --config <run>/config.yaml`` of a run's best checkpoint rewrote the run's
+    ``config.yaml`` as its own, ``verbose: true`` and all, and the README's resume from it
+    then failed: "Subcommand 'fit' does not accept option 'verbose'")."""
 
     def setup(self, trainer, pl_module, stage: str) -> None:
         name = getattr(stage, "value", stage)  # (a TrainerFn: formatted, 'TrainerFn.TESTING')
