@@ -1,9 +1,10 @@
 """A Lightning checkpoint runs with the model settings it was trained with: a command that
-gives others is refused, naming each. Lightning (from 2.3) reads the checkpoint's settings
-into the config before any hook, so a training trial's resumed fit with ``hidden 32``,
-``lr 0.001`` and ``filter ukf`` trained on with 16, 0.01 and ekf, and a ``test`` with
-``restart 0.01`` scored the network without it, both without a word (the settings check
-compared the checkpoint with itself)."""
+gives others is refused, naming each. Lightning (from 2.5.5) reads the checkpoint's
+settings into the config before any hook, so a training trial's resumed fit with ``hidden
+32``, ``lr 0.001`` and ``filter ukf`` trained on with 16, 0.01 and ekf, and a ``test``
+with ``restart 0.01`` scored the network without it, both without a word (the settings
+check compared the checkpoint with itself). Older releases (2.2, test-min) build the
+module from the command's settings."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import pytest
 from lightning.pytorch.cli import LightningCLI
 
 from difffilter.train.cli import main
+from difffilter.train.lightning_cli import DifffilterCLI
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Whether this Lightning reads a --ckpt_path's settings into the config (2.5.5 on: our
@@ -51,8 +53,18 @@ def test_a_checkpoint_given_other_model_settings_is_refused_and_its_own_resume(
         assert REFUSED in err and named in err
     # a test with another setting: refused where Lightning would run the checkpoint's; an
     # older Lightning runs the command's own, as asked
+    ran_with = []  # the setting the tested module holds (a spy: the exit code alone
+    # could not tell the command's 0.05 from the checkpoint's 0.01)
+    before_test = DifffilterCLI.before_test
+
+    def spy(cli):
+        ran_with.append(cli.model.hparams["target_false_alarm_rate"])
+        before_test(cli)
+
+    monkeypatch.setattr(DifffilterCLI, "before_test", spy)
     rate = ["test", *base, "--model.init_args.target_false_alarm_rate=0.05", ckpt]
     assert main(rate) == (2 if MERGES else 0)
+    assert ran_with == ([] if MERGES else [0.05])
     if MERGES:
         assert "--model.init_args.target_false_alarm_rate: 0.01 → 0.05" in capsys.readouterr().err
     assert main(["fit", *base, "--trainer.max_epochs=2", ckpt]) == 0  # its own: resumes
