@@ -538,7 +538,7 @@ def _check_strategies(resampler, proposal, likelihood, ess_threshold) -> float:
     return check_ess_threshold(ess_threshold)
 
 
-def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator, k: int = 0):
+def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator, k: int):
     """Resample the rows whose ESS fell below the threshold: ``(particles, log_w, w,
     need [...], uniform)`` (``uniform``: the weights are now exactly −log N in every row);
     ``k`` the measurement step it precedes (named in a user resampler's errors)."""

@@ -185,7 +185,7 @@ def calibrate(
     thresholds are for (default ``runs``): its detectors' own calibrations (a CUSUM's τ)
     follow its seed and its runs, so the threshold is picked for the detector judged.
     """
-    from .suite import BROKE_DOWN, run_suite
+    from .suite import broken_down, run_suite
 
     far = check_rate(far, "far")
     runs = scenario.runs if runs is None else runs
@@ -213,9 +213,8 @@ def calibrate(
         steps[name] = int((~torch.isnan(out.detection.scores)).sum())
         if measured[name] < far / 2:  # ties at τ: the rate cannot be met (class docstring)
             tied[name] = float((scores == thresholds[name]).double().mean())
-    broke = {name: why[len(BROKE_DOWN) + 2:] for name, why in result.skipped.items()
-             if why.startswith(BROKE_DOWN)}  # fmt: skip
-    calibration = Calibration(far, runs, cal_seed, thresholds, measured, tied, steps, broke)
+    calibration = Calibration(far, runs, cal_seed, thresholds, measured, tied, steps,
+                              broken_down(result.skipped))  # fmt: skip
     if cache is not None:
         cache[key] = calibration
     return calibration

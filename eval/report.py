@@ -458,10 +458,10 @@ def _judged(doc: dict) -> dict[str, list] | None:
 
 def _broken_down(doc: dict) -> dict[str, str]:
     """``{estimator: role}`` of those that broke down on the study's data (``skipped``)."""
-    from .suite import BROKE_DOWN
+    from .suite import broken_down
 
-    broke = [n for n, why in (doc.get("skipped") or {}).items() if why.startswith(BROKE_DOWN)]
-    return {n: registry.get(n).role for n in broke if n in registry.names()}
+    known = registry.names()
+    return {n: registry.get(n).role for n in broken_down(doc.get("skipped") or {}) if n in known}
 
 
 def _acceptance_section(doc: dict) -> Section | None:

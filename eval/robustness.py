@@ -44,7 +44,7 @@ from .intervals import LEVEL, RESAMPLES, robustness_intervals, threat_totals
 from .report import _clean, _network_line, format_number, markdown_table, network_of, share_suffix
 from .scoring import METRICS
 from .stealthy import StealthySpec, craft_threat, crafted_error, same_rate_bias
-from .suite import BROKE_DOWN, run_suite
+from .suite import broken_down, run_suite
 
 __all__ = ["ThreatSet", "load_threat_set", "run_robustness", "write_robustness", "CELL_METRICS",
            "robustness_scenarios", "write_robustness_summary"]  # fmt: skip
@@ -271,8 +271,7 @@ def run_robustness(
         result.cells[name] = {
             est: _cell(m, free.metrics.get(est, {})) for est, m in suite.metrics.items()
         }
-        broke = {est: why for est, why in suite.skipped.items()
-                 if why.startswith(BROKE_DOWN) and est in free.metrics}  # fmt: skip
+        broke = {est: why for est, why in broken_down(suite.skipped).items() if est in free.metrics}
         result.cells[name].update({est: _broken_cell(why, est in cal.thresholds)
                                    for est, why in broke.items()})  # fmt: skip
         result.run_totals[name] = threat_totals(suite, roles(suite.metrics))

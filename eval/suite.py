@@ -26,7 +26,7 @@ from difffilter.runtime import one_thread
 from .calibration import calibrated_metrics
 from .scoring import score
 
-__all__ = ["SuiteResult", "run_suite", "process_group", "single_run_time_per_step"]
+__all__ = ["SuiteResult", "run_suite", "process_group", "single_run_time_per_step", "broken_down"]
 
 
 @dataclass
@@ -375,6 +375,14 @@ def apply_calibration(result: SuiteResult, calibration) -> None:
 #: How ``skipped`` begins the reason of an estimator that ran and broke down on the study's
 #: data (:class:`~difffilter.linalg.NumericalBreakdown`), not one that does not apply.
 BROKE_DOWN = "broke down on this study's data"
+
+
+def broken_down(skipped: dict[str, str]) -> dict[str, str]:
+    """``{estimator: why}`` of the estimators of ``skipped`` (a suite's, or metrics.json's)
+    that broke down on the study's data, ``why`` without :data:`BROKE_DOWN`'s prefix."""
+    prefix = f"{BROKE_DOWN}: "
+    return {n: why[len(prefix) :] for n, why in skipped.items() if why.startswith(prefix)}
+
 
 #: Why an estimator is left out of a closed-loop study under an adaptive attack
 #: (:func:`~difffilter.models.generic_estimators.meets_adaptive_attack`) where it ran on the

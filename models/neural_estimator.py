@@ -389,15 +389,13 @@ def checkpoint_training_scenario(path) -> str | None:
     ``name:``), from an export's ``observer`` or a Lightning checkpoint's
     ``difffilter_observer``, read as :class:`EstimatorCard` reads it (an older card's
     default included); ``None`` where the file holds no card or does not load."""
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
-    except RuntimeError:  # (a file of the legacy, non-zip format cannot be mapped)
+    blob = None
+    for mapped in (True, False):  # (a file of the legacy, non-zip format cannot be mapped)
         try:
-            blob = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception:
-            return None
-    except Exception:  # (not a torch file: the loaders name it themselves)
-        return None
+            blob = torch.load(path, map_location="cpu", weights_only=True, mmap=mapped)
+            break
+        except Exception:  # (not a torch file: the loaders name it themselves)
+            continue
     if not isinstance(blob, dict):
         return None
     observer = blob.get("observer") or blob.get("difffilter_observer")

@@ -102,7 +102,10 @@ def test_a_run_with_a_setting_of_its_own_resumes_only_with_it(tmp_path, monkeypa
     assert main(["fit", "--config", str(run / "config.yaml"), "--trainer.max_epochs=3", ckpt]) == 0
 
 
-@pytest.mark.parametrize("value, expected", [(None, {}), ({"a": (1, 2)}, {"a": [1, 2]})])
+@pytest.mark.parametrize(
+    "value, expected",
+    [({"a": (1, 2)}, {"a": [1, 2]}), ({"a": [(1, {"b": (3,)})]}, {"a": [[1, {"b": [3]}]]})],
+)
 def test_settings_compare_as_plain_values(value, expected):
     from difffilter.train.lightning_cli import _plain
 

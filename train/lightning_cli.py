@@ -121,7 +121,7 @@ class DifffilterCLI(LightningCLI):
         given = _settings_given(cfg)
         parse()
         ckpt = cfg.get("ckpt_path")
-        merged = _plain(_init_args(self.config[subcommand], "model"))
+        merged = _plain(_init_args(self.config[subcommand], "model") or {})
         changed = [f"--model.init_args.{key}: {merged.get(key)!r} → {value!r}"
                    for key, value in sorted(given.items()) if merged.get(key) != value]  # fmt: skip
         seed, trained = cfg.get("seed_everything"), merged.get("model_seed")
@@ -130,14 +130,12 @@ class DifffilterCLI(LightningCLI):
             # (the data's train_seed differs too, and the data check names that alone)
             changed.append(f"--seed_everything {seed}: the run's network was seeded {trained}")
         if changed:
-            raise ValueError(
-                f"--ckpt_path {ckpt}: this command's model settings are not the checkpoint's ("
-                + "; ".join(changed)
-                + "; the checkpoint's first): Lightning would run the "
-                "checkpoint's; resume or score it with its own (the same command, or its run's "
-                "config.yaml: --config <run>/config.yaml --ckpt_path …), or start a new run from "
-                "these weights (--model.init_args.init_from)"
-            )
+            raise _settings_refused(
+                ckpt, "this command's model settings are not the checkpoint's", changed,
+                "Lightning would run the checkpoint's (each shown first); resume or score it "
+                "with its own (the same command, or its run's config.yaml: --config "
+                "<run>/config.yaml --ckpt_path …)",
+            )  # fmt: skip
 
     def before_fit(self):
         """A ``fast_dev_run`` writes no checkpoint (its ``last.ckpt`` landed in
@@ -324,13 +322,20 @@ def _check_resumed_settings(ckpt, model, datamodule) -> None:
         # (a training trial: R edited between the epochs, the card naming the path alone)
         changed.append(f"the scenario file {scenario} (its contents changed since the run began)")
     if changed:
-        raise ValueError(
-            f"--ckpt_path {ckpt}: this command changes settings the run was trained with ("
-            + "; ".join(changed)
-            + "): resume with the run's own settings (its config.yaml: "
-            "--config <run>/config.yaml --ckpt_path …), or start a new run from these weights "
-            "(--model.init_args.init_from)"
-        )
+        raise _settings_refused(
+            ckpt, "this command changes settings the run was trained with", changed,
+            "resume with the run's own settings (its config.yaml: --config <run>/config.yaml "
+            "--ckpt_path …)",
+        )  # fmt: skip
+
+
+def _settings_refused(ckpt, what: str, changed: list[str], remedy: str) -> ValueError:
+    """The error of a ``--ckpt_path`` given other settings than its run's: ``what``, each of
+    ``changed``, the ``remedy`` and the other way out (a new run from these weights)."""
+    return ValueError(
+        f"--ckpt_path {ckpt}: {what} (" + "; ".join(changed) + f"): {remedy}, or start a new "
+        "run from these weights (--model.init_args.init_from)"
+    )
 
 
 def _seeds_from_seed_everything(config, subcommand: str | None) -> None:
@@ -359,28 +364,18 @@ def _settings_given(cfg) -> dict:
     that spelled a default where the run had another resumed with the run's), but for the
     unset ``None`` ones, which a run resolves later (``model_seed`` from
     ``--seed_everything``) or takes from the checkpoint."""
-    return {k: v for k, v in _plain(_init_args(cfg, "model")).items() if v is not None}
+    return {k: v for k, v in _plain(_init_args(cfg, "model") or {}).items() if v is not None}
 
 
 def _plain(value):
     """A config value as plain Python (jsonargparse's namespaces as dicts, tuples as lists),
     so that a command's settings compare with a checkpoint's."""
-    if value is None:
-        return {}
     if hasattr(value, "as_dict"):
         value = value.as_dict()
     if isinstance(value, dict):
-        return {k: _plain_item(v) for k, v in value.items()}
-    return value
-
-
-def _plain_item(value):
-    if hasattr(value, "as_dict"):
-        return _plain(value)
+        return {k: _plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_plain_item(v) for v in value]
-    if isinstance(value, dict):
-        return {k: _plain_item(v) for k, v in value.items()}
+        return [_plain(v) for v in value]
     return value
 
 

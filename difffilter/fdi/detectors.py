@@ -376,12 +376,7 @@ class ChiSquareDetector:
         else:
             if mask is None:  # this step's entries all received, earlier ones of the window not
                 mask = torch.ones(g.shape + (self.dim,), dtype=torch.bool, device=g.device)
-            mask = check_mask(mask, "mask", g.shape + (self.dim,))
-            if torch.broadcast_shapes(mask.shape[:-1], score.shape) != score.shape:
-                raise ValueError(
-                    f"mask [..., {self.dim}] must be one row per run of g {tuple(g.shape)} (or "
-                    f"broadcast to it); got {tuple(mask.shape)}"
-                )
+            mask = _step_mask(mask, g, self.dim, score.shape)
             received = mask.sum(-1).to(torch.float64)
             dof = received + past_dof.sum(-1)
             alarm = score > self._quantile_table(score)[dof.long()]
@@ -480,14 +475,8 @@ class CusumDetector:
             mask = torch.as_tensor(mask, device=g.device)
             if mask.dim() == 0:
                 raise ValueError("mask must be [..., m]: the step's received entries")
-            mask = check_mask(mask, "mask", g.shape + mask.shape[-1:])
-            if torch.broadcast_shapes(mask.shape[:-1], g.shape) != g.shape:
-                # (a whole [T, m] mask given to a step grew the state to [T] unsaid)
-                raise ValueError(
-                    f"mask [..., m] must be one row per run of g {tuple(g.shape)} (or "
-                    f"broadcast to it); got {tuple(mask.shape)}"
-                )
-            g = missing_entries_counted(g, mask)
+            # (CUSUM does not know m: the mask's width is taken for it)
+            g = missing_entries_counted(g, _step_mask(mask, g, mask.shape[-1], g.shape))
         s = torch.clamp(state + g - self.bias, min=0.0)
         alarm = s > self.threshold
         return torch.where(alarm, torch.zeros_like(s), s), s, alarm
@@ -530,6 +519,20 @@ def _check_whole_mask(mask: Tensor, innovations: Tensor) -> Tensor:
             f"mask must have the innovations' shape {tuple(innovations.shape)} (one per run "
             f"and step; mask.expand(...) for one schedule shared by every run); got "
             f"{tuple(mask.shape)}"
+        )
+    return mask
+
+
+def _step_mask(mask, g: Tensor, dim: int, runs: torch.Size) -> Tensor:
+    """One step's ``mask [..., dim]`` for the statistic ``g``, checked (boolean or 0/1,
+    broadcasting to ``g``'s runs and ``dim``) and one row per run: a mask of more runs than
+    the state (``runs``; a whole ``[T, m]`` mask given to one run's step) grew the state
+    without a word."""
+    mask = check_mask(mask, "mask", g.shape + (dim,))
+    if torch.broadcast_shapes(mask.shape[:-1], runs) != runs:
+        raise ValueError(
+            f"mask [..., {dim}] must be one row per run of g {tuple(g.shape)} (or broadcast "
+            f"to it); got {tuple(mask.shape)}"
         )
     return mask
 
