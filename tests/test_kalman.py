@@ -525,6 +525,11 @@ def test_the_chunked_recursion_is_the_step_by_step_one(case):
     if case == "unobservable_unstable":
         assert not schedule.converged and converged_at is None and n == 300
         converged_at = 300
+    elif case == "float32":
+        # (whether float32's one-step recursion ever meets the test above is the CPU's
+        # round-off: it repeated exactly on one machine, kept changing its last bit on an
+        # AVX-512 one; the schedule's stop is checked against the recursion below)
+        assert schedule.converged
     else:
         assert schedule.converged and converged_at is not None
     if case != "float32":

@@ -148,7 +148,9 @@ def test_noise_model_errors():
 def test_the_textbook_rank_one_noise_is_refused_with_its_eigenvalue_and_the_fix():
     """A course trial: the white-noise-acceleration Q = q g gᵀ (rank 1) was refused with
     "must be positive definite" alone; the remedy was in the README only."""
-    dt = 0.1
+    # (dt a power of two: g gᵀ's second Cholesky pivot is exactly 0 on every CPU; at dt =
+    # 0.1 round-off left it positive on an AVX-512 one, and the matrix passed)
+    dt = 0.5
     g = torch.tensor([[dt**2 / 2], [dt]], dtype=torch.float64)
     rank_one = g @ g.T
     smallest = float(torch.linalg.eigvalsh(rank_one).min())
