@@ -9,7 +9,10 @@
     * *cold start*: ``init`` and the first T = 200 steps of a fresh carry, the covariance
       recursion (until its gain converges, 110 steps here) included;
     * *online, full_checks*: the first figure with every step validated in full (what every
-      step paid before the carries were vouched for, :mod:`difffilter._vouched`).
+      step paid before the carries were vouched for, :mod:`difffilter._vouched`);
+    * *20 % lost*: init and T steps with a mask at every step (each entry lost with
+      probability 0.2): the general update, on host arrays (:mod:`difffilter._kf_host_step`),
+      beside the same stream through the torch update (its yardstick).
 
 2b. The bootstrap PF of section 2 at (B, N) = (1, 100) through its public online step
     (``init`` then T = 50 steps per run, as the numpy loop draws its prior per run), with
@@ -88,15 +91,44 @@ def bench_online_kf(steps: int = 200) -> dict:
     def cold():
         run_from(kf, kf.init(model))
 
+    # lost packets: each entry lost with probability 0.2, a mask at every step
+    masks = list((torch.rand(steps, rows[0].shape[-1], generator=torch.Generator().manual_seed(2))
+                  >= 0.2).unbind(0))  # fmt: skip
+    torch_update = _TorchUpdateKalmanFilter()
+
+    def lossy(est):
+        def run():
+            carry = est.init(model)
+            for y, mask in zip(rows, masks):
+                carry, out = est.step(carry, y, None, mask)
+            return out
+
+        return run
+
     with torch.no_grad():
         seconds, ratios = _paired(numpy_run, {"online": online("online", kf), "cold": cold,
-                                              "checked": online("checked", checked)})  # fmt: skip
+                                              "checked": online("checked", checked),
+                                              "masked": lossy(kf),
+                                              "masked_torch": lossy(torch_update)})  # fmt: skip
         # equal filters: the cold run's last mean against the numpy loop's
         (_, out), (ref, _) = run_from(kf, kf.init(model)), numpy_run()
         diff = float(np.abs(out.mean.numpy() - ref).max())
+        host, torch_out = lossy(kf)(), lossy(torch_update)()
+        masked_diff = float((host.mean - torch_out.mean).abs().max())
     return {"B": 1, "T": steps, **{f"{k}_rate": steps / v for k, v in seconds.items()},
             **{f"{k}_ratio": v for k, v in ratios.items()},
-            "max_abs_diff_vs_numpy": diff, "load_average": os.getloadavg()[0]}  # fmt: skip
+            "masked_speedup": seconds["masked_torch"] / seconds["masked"],
+            "max_abs_diff_vs_numpy": diff, "masked_max_abs_diff_host_vs_torch": masked_diff,
+            "load_average": os.getloadavg()[0]}  # fmt: skip
+
+
+class _TorchUpdateKalmanFilter(df.KalmanFilter):
+    """The Kalman filter with its general update in torch at every step (its own
+    ``predict``, the same, keeps it off the host-array step of
+    :mod:`difffilter._kf_host_step`): the yardstick of the masked rows."""
+
+    def predict(self, carry, u):
+        return super().predict(carry, u)
 
 
 def _paired(numpy_run, fns: dict, **timing) -> tuple[dict, dict]:
@@ -166,9 +198,13 @@ def print_online_kf(figures: dict) -> None:
         f"measurement at a time), T = {r['T']}, float64 (steps/s; load {r['load_average']:.1f})"
     )
     rows = (("online (gains converged)", "online", True), ("cold start (init + T steps)", "cold", True),
-            ("online, full_checks = True", "checked", False))  # fmt: skip
+            ("online, full_checks = True", "checked", False),
+            ("20 % lost (a mask every step)", "masked", False),
+            ("  the same, torch update", "masked_torch", False))  # fmt: skip
     _print_rates(r, rows, KF_TARGET)
-    print(f"   (max |difference| of the last mean to numpy: {r['max_abs_diff_vs_numpy']:.2g})")
+    print(f"   (max |difference| of the last mean to numpy: {r['max_abs_diff_vs_numpy']:.2g}; "
+          f"with lost packets the host-array step {r['masked_speedup']:.2f}× the torch update, "
+          f"max |difference| {r['masked_max_abs_diff_host_vs_torch']:.2g})")  # fmt: skip
 
 
 def print_online_pf(figures: dict) -> None:

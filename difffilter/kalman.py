@@ -30,6 +30,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from . import _kf_host_step as _host_step
 from ._checks import (
     Choice,
     NonFinite,
@@ -299,6 +300,10 @@ class KalmanFilter(GaussianFilter):
             mean, pred, nu, log_lik, m = carry.gains.filter_step(carry.mean, y, u, carry.k + 1)
             out = StepOutput(mean, m.cov, pred, m.pred_cov, nu, m.innovation_cov, log_lik)
             return GaussianState(mean, m.cov, carry.k + 1, carry.model, carry.gains), out
+        if _own_update(type(self)):  # one run where nothing is recorded: on host arrays
+            stepped = _host_step.host_step(carry, y, u, mask)
+            if stepped is not None:
+                return stepped
         return self.update(carry, self.predict(carry, u), y, mask)
 
     def predict(self, carry, u):
@@ -423,6 +428,17 @@ def _forward_traced(model, ys: Tensor, us: Tensor | None) -> bool:
         level.key() == torch._C._functorch.TransformType.Grad for level in stack
     )
     return not (reverse_only and torch.is_grad_enabled())
+
+
+#: The methods whose numbers :func:`difffilter._kf_host_step.host_step` computes.
+_UPDATE_METHODS = ("predict", "moments", "residual", "update", "_moments_update")
+
+
+def _own_update(cls) -> bool:
+    """Whether ``cls`` (a :class:`KalmanFilter`) predicts and updates as the Kalman filter
+    does (a subclass that overrides one of them, e.g. the expected-input filter's
+    prediction, steps in torch)."""
+    return all(getattr(cls, name) is getattr(KalmanFilter, name) for name in _UPDATE_METHODS)
 
 
 def _live(carry: GaussianState) -> GaussianState:
