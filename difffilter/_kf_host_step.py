@@ -21,8 +21,9 @@ computes the same update on numpy views of the same memory (no copies in, one
 the same equations, the same outputs; tests compare the two to round-off in float64 and
 float32.) The inverse of ``S`` is formed from its triangular factor, ``S⁻¹ = L⁻ᵀ L⁻¹``,
 where the torch update solves with it: the same numbers up to round-off at these sizes.
-Left to the torch update: an ``S`` that is not positive definite or not finite (its
-jitter and its :class:`~difffilter.NumericalBreakdown`), models whose matrices are batched
+Left to the torch update: an ``S`` that is not positive definite, nearly singular (a
+Cholesky pivot ``L_ii² ≤ 1000 ε S_ii``, where the two factorisations may decide apart)
+or not finite (its jitter and its :class:`~difffilter.NumericalBreakdown`), models whose matrices are batched
 or of another dtype, half precision, other devices, a batched carry, and any step that
 could record a gradient.
 """
@@ -39,6 +40,11 @@ from .results import GaussianState, StepOutput
 __all__ = ["host_step"]
 
 _HOST_DTYPES = (torch.float32, torch.float64)
+
+#: A Cholesky pivot ``L_ii²`` at or below this share of ``S_ii`` (a thousand machine
+#: epsilons) leaves the step to the torch update.
+_NEAR_SINGULAR = {np.float32: 1e3 * np.finfo(np.float32).eps,
+                  np.float64: 1e3 * np.finfo(np.float64).eps}  # fmt: skip
 
 
 def host_step(
@@ -58,6 +64,8 @@ def host_step(
     ):  # fmt: skip
         return None
     if mean_t.dim() != 1 or mean_t.dtype not in _HOST_DTYPES or mean_t.device.type != "cpu":
+        return None
+    if cov_t.dim() != 2 or y.dim() != 1:  # (a carry of one mean and a batch of covariances)
         return None
     if mask is not None and mask.dim() != 1:
         return None
@@ -107,6 +115,12 @@ def host_step(
     try:
         chol = np.linalg.cholesky(S)
     except np.linalg.LinAlgError:  # the torch update jitters it, or names the breakdown
+        return None
+    # nearly singular: numpy's and torch's factorisations may decide it differently (a
+    # review: numpy factored 12 % of random rank-deficient S that torch refuses); the torch
+    # update's decision, jitter or breakdown, is the step's
+    pivots = np.diagonal(chol)
+    if (pivots * pivots <= _NEAR_SINGULAR[m0.dtype.type] * np.diagonal(S)).any():
         return None
     chol_inv = np.linalg.inv(chol)
     gain = cross @ (chol_inv.T @ chol_inv)

@@ -300,7 +300,7 @@ class KalmanFilter(GaussianFilter):
             mean, pred, nu, log_lik, m = carry.gains.filter_step(carry.mean, y, u, carry.k + 1)
             out = StepOutput(mean, m.cov, pred, m.pred_cov, nu, m.innovation_cov, log_lik)
             return GaussianState(mean, m.cov, carry.k + 1, carry.model, carry.gains), out
-        if _own_update(type(self)):  # one run where nothing is recorded: on host arrays
+        if _own_update(self):  # one run where nothing is recorded: on host arrays
             stepped = _host_step.host_step(carry, y, u, mask)
             if stepped is not None:
                 return stepped
@@ -434,10 +434,18 @@ def _forward_traced(model, ys: Tensor, us: Tensor | None) -> bool:
 _UPDATE_METHODS = ("predict", "moments", "residual", "update", "_moments_update")
 
 
-def _own_update(cls) -> bool:
-    """Whether ``cls`` (a :class:`KalmanFilter`) predicts and updates as the Kalman filter
-    does (a subclass that overrides one of them, e.g. the expected-input filter's
-    prediction, steps in torch)."""
+def _own_update(kf) -> bool:
+    """Whether ``kf`` (a :class:`KalmanFilter` or a subclass, or the class itself) predicts and
+    updates as the Kalman filter does: a subclass that overrides one of them (the
+    expected-input filter's prediction) or an object given a method of its own
+    (``kf.update = wrapper``) steps in torch, through it."""
+    cls = kf if isinstance(kf, type) else type(kf)
+    if (
+        not isinstance(kf, type)
+        and getattr(kf, "__dict__", None)
+        and any(name in kf.__dict__ for name in _UPDATE_METHODS)
+    ):
+        return False
     return all(getattr(cls, name) is getattr(KalmanFilter, name) for name in _UPDATE_METHODS)
 
 

@@ -181,3 +181,60 @@ def test_a_gradient_flows_through_a_masked_step():
     want = -torch.linalg.solve(S, out.innovation[[0, 2]])
     torch.testing.assert_close(grad[[0, 2]], want.detach(), rtol=1e-10, atol=1e-12)
     assert float(grad[1]) == 0.0 and math.isfinite(out.log_likelihood.item())
+
+
+def test_a_review_s_three_cases_take_the_torch_update():
+    """A review of the host step: a carry of one mean and a batch of covariances (the torch
+    update broadcasts it; numpy's ``.T`` reversed all three axes: wrong numbers where n =
+    dx = dy), a nearly singular ``S`` (numpy factored what torch jitters: 2.6 nats apart),
+    and an update given to the object itself (bypassed) are all the torch update's."""
+    dtype = torch.float64
+    model = df.LinearGaussianModel(torch.eye(2, dtype=dtype), torch.eye(2, dtype=dtype),
+                                   0.1 * torch.eye(2, dtype=dtype), 0.2 * torch.eye(2, dtype=dtype),
+                                   torch.zeros(2, dtype=dtype), torch.eye(2, dtype=dtype))  # fmt: skip
+    kf, mask = df.KalmanFilter(), torch.tensor([True, True])
+    y = torch.tensor([0.5, -0.5], dtype=dtype)
+    covs = torch.stack(
+        [torch.eye(2, dtype=dtype), torch.tensor([[2.0, 0.3], [0.3, 1.0]], dtype=dtype)]
+    )
+    stacked = df.GaussianState(torch.zeros(2, dtype=dtype), covs, 0, model)
+    with torch.no_grad():
+        assert _kf_host_step.host_step(stacked, y, None, mask) is None
+        _, out = kf.step(stacked, y, None, mask)
+        want = kf.update(stacked, kf.predict(stacked, None), y, mask)[1]
+    assert out.log_likelihood.shape == (2,)
+    torch.testing.assert_close(out.log_likelihood, want.log_likelihood, rtol=0, atol=0)
+
+    # S = H P⁻ Hᵀ singular (R = 0 from a time-varying override, a third output the sum of
+    # the first two): numpy factors some of these (2 of the first 3 here), torch jitters
+    class NoiselessOutputs(df.LinearGaussianModel):
+        time_varying = True
+
+        def measurement_cov(self, k):
+            return torch.zeros(3, 3, dtype=dtype)
+
+    g = torch.Generator().manual_seed(5)
+    for _ in range(10):
+        F = torch.eye(4, dtype=dtype) + 0.1 * torch.randn(4, 4, generator=g, dtype=dtype)
+        H = torch.randn(3, 4, generator=g, dtype=dtype)
+        H[2] = H[0] + H[1]
+        singular = NoiselessOutputs(F, H, 0.02 * torch.eye(4, dtype=dtype), torch.eye(3, dtype=dtype),
+                                    torch.zeros(4, dtype=dtype), torch.eye(4, dtype=dtype))  # fmt: skip
+        carry = kf.init(singular, ())
+        assert _kf_host_step.host_step(carry, torch.zeros(3, dtype=dtype), None,
+                                       torch.tensor([True, True, True])) is None  # fmt: skip
+    # an update of the object's own: called at every step
+    calls = []
+    plain = df.KalmanFilter()
+
+    def update(*args, **kwargs):
+        calls.append(1)
+        return df.KalmanFilter.update(plain, *args, **kwargs)
+
+    plain.update = update
+    assert not kalman._own_update(plain) and kalman._own_update(df.KalmanFilter())
+    with torch.no_grad():
+        carry = plain.init(model, ())
+        for _ in range(3):
+            carry, _ = plain.step(carry, y, None, mask)
+    assert len(calls) == 3
