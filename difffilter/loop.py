@@ -697,12 +697,42 @@ def _undeclared_read(error: BaseException, attack, shows_state: bool, reads: boo
     undeclared = [f"{name}=None because {flag} = False" for name, flag, given in
                   (("x", "reads_state", shows_state), ("view", "reads_view", reads))
                   if not given and local.get(name, 0) is None
-                  and re.search(rf"(?<![\w.]){name}\b(?!\s*=(?!=))", text)]  # fmt: skip
-    if not undeclared:
+                  and _reads(name, text)]  # fmt: skip
+    if undeclared:
+        return (
+            f"(attack {type(attack).__name__} was handed {' and '.join(undeclared)}: an attack "
+            "reads the true state or the estimator's output only where its class declares it)"
+        )
+    return _empty_view(attack, local.get("view", 0), text) if reads else None
+
+
+def _reads(name: str, text: str) -> bool:
+    """Whether the source ``text`` reads the variable ``name`` (not an assignment to it)."""
+    return re.search(rf"(?<![\w.]){name}\b(?!\s*=(?!=))", text) is not None
+
+
+def _empty_view(attack, view, text: str) -> str | None:
+    """A note for an attack that declares ``reads_view`` and failed on a line reading
+    ``view`` where it was ``None`` (the first step: no output yet) or reading one of its
+    fields that the estimator leaves ``None`` (``view.score`` of a filter without a
+    detector); ``None`` otherwise."""
+    name = type(attack).__name__
+    if view is None and _reads("view", text):
+        return (
+            f"(attack {name} was handed view=None: at the first step the estimator has no "
+            "output yet (view is its output of the step before); check `view is None` "
+            "there)"
+        )
+    empty = [f for f in getattr(view, "_fields", ()) if getattr(view, f, 0) is None
+             and re.search(rf"(?<![\w.])view\.{f}\b", text)]  # fmt: skip
+    if not empty:
         return None
+    fields = ", ".join(f"view.{f}" for f in empty)
     return (
-        f"(attack {type(attack).__name__} was handed {' and '.join(undeclared)}: an attack "
-        "reads the true state or the estimator's output only where its class declares it)"
+        f"(attack {name} read {fields}, which this estimator's output leaves None: an "
+        "estimator without a detector has no score, alarm or threshold, and a filter that "
+        "estimates no attack no attack; read what its StepOutput holds, or run it with an "
+        "estimator that has one)"
     )
 
 

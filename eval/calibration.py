@@ -55,6 +55,13 @@ class Calibration:
         broke_down: ``{estimator: why}`` for those that broke down on the calibration runs
             (:class:`~difffilter.linalg.NumericalBreakdown`): no threshold, so no
             ``*_at_far`` metrics in a study where they ran.
+        startup: ``{estimator: {"alarms_at_first_step": share, "rate_after_first_step":
+            rate}}`` for the detectors that spend most of their false alarms
+            (:data:`STARTUP_SHARE` or more) at the first step of the calibration runs: a
+            start-up transient (the particle filters' probability of attack is above 0 at
+            step 1 of every four-tank run and 0 on nearly every later step, so at 1 % their
+            threshold is 0 and every alarm of the calibration is at step 1). Their rate over
+            all steps meets the target; their rate from step 2 on is the second number.
     """
 
     far: float
@@ -65,13 +72,16 @@ class Calibration:
     tied: dict[str, float] = field(default_factory=dict)
     steps: dict[str, int] = field(default_factory=dict)
     broke_down: dict[str, str] = field(default_factory=dict)
+    startup: dict[str, dict] = field(default_factory=dict)
 
     def summary(self) -> dict:
         """The calibration as metrics.json's ``"far"`` entry (``below_target`` only where a
         detector could not meet the rate, with its ``cause``: ``"ties"``, ``"too few
         steps"`` (``α n < 1``) or ``"no score"``; ``unresolved`` where fewer than
         :data:`RESOLVED` alarms are expected on the calibration steps; ``broke_down``,
-        ``{estimator: why}``, only where one broke down on the calibration runs)."""
+        ``{estimator: why}``, only where one broke down on the calibration runs;
+        ``startup`` only where a detector's calibration alarms fall mostly at the first
+        step)."""
         below = {name: {"measured_on_calibration": self.measured[name],
                         "threshold": self.thresholds[name], "tied_at_threshold": share,
                         "cause": self._cause(name)}
@@ -81,7 +91,8 @@ class Calibration:
                 "measured_on_calibration": dict(self.measured),
                 **({"below_target": below} if below else {}),
                 **({"unresolved": few} if few else {}),
-                **({"broke_down": dict(self.broke_down)} if self.broke_down else {})}  # fmt: skip
+                **({"broke_down": dict(self.broke_down)} if self.broke_down else {}),
+                **({"startup": dict(self.startup)} if self.startup else {})}  # fmt: skip
 
     def _cause(self, name: str) -> str:
         n = self.steps.get(name)
@@ -97,6 +108,10 @@ class Calibration:
 #: for continuous scores, and varies widely from one calibration draw to another (an
 #: auditor's trial: at α = 0.001 on 2,000 steps, 17–29 % of calibrations above 2α).
 RESOLVED = 10
+
+#: The share of a detector's calibration alarms at the runs' first step from which the
+#: calibration reports them as a start-up transient (:attr:`Calibration.startup`).
+STARTUP_SHARE = 0.5
 
 _CAUSES = {
     "ties": "its scores are discrete and tie there (alarms are s > τ), so no threshold "
@@ -129,6 +144,21 @@ def below_target_note(far: dict | None) -> str | None:
         )
     if few:
         notes.append(resolution_note(far["target"], min(few.values()), "--calibration-runs"))
+    startup = far.get("startup")
+    if startup:
+        alike: dict[str, list[str]] = {}  # detectors of the same figures: one clause
+        for name, e in startup.items():
+            figures = (f"{100 * e['alarms_at_first_step']:.0f} % of the alarms at step 1, "
+                       f"{100 * e['rate_after_first_step']:.2f} % of the steps from step 2 on")  # fmt: skip
+            alike.setdefault(figures, []).append(f"`{name}`")
+        each = "; ".join(f"{', '.join(names)}: {figures}" for figures, names in alike.items())
+        notes.append(
+            "False alarms at start-up: these detectors spend their calibrated rate mostly at "
+            f"the first step of each run ({each}), a transient of the filter's prior, so after "
+            "it they alarm far less than the target and their threshold is as low as their "
+            "scores allow; in a study their false alarms are mostly that first step, a larger "
+            "share of the unattacked steps the earlier an attack starts."
+        )
     for name, why in (far.get("broke_down") or {}).items():
         notes.append(f"`{name}` has no threshold: it broke down on the attack-free calibration "
                      f"runs ({why}), so it has no `*_at_far` metrics.")  # fmt: skip
@@ -203,7 +233,7 @@ def calibrate(
         label=f"{scenario.name}: calibrating at {far:g} (attack-free runs)",
         detector_seed=seed, detector_runs=study_runs,  # the study's detectors (a CUSUM's τ)
     )  # fmt: skip
-    thresholds, measured, tied, steps = {}, {}, {}, {}
+    thresholds, measured, tied, steps, startup = {}, {}, {}, {}, {}
     for name, out in result.outputs.items():
         if out.detection is None or out.detection.scores is None:
             continue
@@ -213,11 +243,29 @@ def calibrate(
         steps[name] = int((~torch.isnan(out.detection.scores)).sum())
         if measured[name] < far / 2:  # ties at τ: the rate cannot be met (class docstring)
             tied[name] = float((scores == thresholds[name]).double().mean())
+        transient = _startup(out.detection.scores, thresholds[name])
+        if transient is not None:
+            startup[name] = transient
     calibration = Calibration(far, runs, cal_seed, thresholds, measured, tied, steps,
-                              broken_down(result.skipped))  # fmt: skip
+                              broken_down(result.skipped), startup)  # fmt: skip
     if cache is not None:
         cache[key] = calibration
     return calibration
+
+
+def _startup(scores: torch.Tensor, threshold: float) -> dict | None:
+    """``{"alarms_at_first_step", "rate_after_first_step"}`` of ``scores [B, T, ...]`` (time
+    on dim 1) at ``threshold`` where at least :data:`STARTUP_SHARE` of the alarms are at the
+    first step, else ``None`` (no alarm, one step, or alarms spread over the run)."""
+    if scores.dim() < 2 or scores.shape[1] < 2:
+        return None
+    alarms = alarms_at(scores, threshold)
+    total = int(alarms.sum())
+    share = int(alarms[:, 0].sum()) / total if total else 0.0
+    if share < STARTUP_SHARE:
+        return None
+    return {"alarms_at_first_step": share,
+            "rate_after_first_step": float(alarms[:, 1:].double().mean())}  # fmt: skip
 
 
 def alarms_at(scores: torch.Tensor, threshold: float) -> torch.Tensor:

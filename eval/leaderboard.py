@@ -195,7 +195,8 @@ def cell_goodness(grid: np.ndarray, scenarios: list[str], columns=COLUMNS,
     ``ranked [rows]`` (bool): the rows that may set the best (not an oracle nor the
     reference; all rows where none of a scenario is, or without it); a row that is not
     may be better than the best and reads 1. NaN (no colour) where the value is missing,
-    and in a detection-rate column whose best is at most :data:`UNDETECTED`. A column of
+    and in a detection-rate column whose best is at most twice the scenario's ``targets``
+    (:data:`UNDETECTED` without one: :func:`_undetected`). A column of
     :data:`ON_TARGET` is 1 inside ``[α/2, 2α]`` of its row's target ``targets [rows]`` (the
     calibrated rate; uncoloured without one) and falls to 0 at 10× outside it. A delay
     column (:data:`DELAYS`) takes at least its scenario's sampling period ``steps_s
@@ -220,7 +221,7 @@ def cell_goodness(grid: np.ndarray, scenarios: list[str], columns=COLUMNS,
                 floor = np.where(delays, np.maximum(floor, np.nanmax(steps_s[rows])), floor)
             shortfall = np.where(higher, (hi - g) / 0.1, np.log10((g + floor) / (lo + floor)))
         colour = np.clip(1 - shortfall, 0, 1)
-        colour[:, rates & ~(hi > UNDETECTED)] = np.nan
+        colour[:, rates & ~(hi > _undetected(targets, rows))] = np.nan
         colour[diverged[rows]] = 0.0
         good[rows] = colour
     on_target = np.array([m in ON_TARGET for m in columns])
@@ -233,6 +234,18 @@ def cell_goodness(grid: np.ndarray, scenarios: list[str], columns=COLUMNS,
         good[:, on_target] = np.where(np.isnan(v) | np.isnan(alpha), np.nan,
                                       np.clip(1 - np.maximum(outside, 0), 0, 1))  # fmt: skip
     return good
+
+
+def _undetected(targets: np.ndarray | None, rows: np.ndarray) -> float:
+    """The detection rate at or below which a scenario's column is left uncoloured: twice
+    its calibrated false-alarm rate (the top of the calibrated band), :data:`UNDETECTED`
+    (twice 1 %) where the rows have none (a rate of 2 % is chance at a 2 % budget: a
+    study at ``--far 0.02`` had painted 0.026 green)."""
+    if targets is None:
+        return UNDETECTED
+    alpha = np.asarray(targets, float)[rows]
+    alpha = alpha[np.isfinite(alpha)]
+    return float(2 * alpha.max()) if alpha.size else UNDETECTED
 
 
 def _heatmaps(path: Path, rows: list[dict[str, Any]], units: dict[str, str]) -> None:
@@ -263,7 +276,8 @@ def _heatmaps(path: Path, rows: list[dict[str, Any]], units: dict[str, str]) -> 
     ax.set_title("green: the best of its scenario (of the estimators not marked oracle or "
                  "reference); red: 10× it (0.1 below: AUC, TPR; a delay: 10 steps behind);\n"
                  "fpr_at_far: green inside [α/2, 2α], red 10× outside; white: no value, or a "
-                 f"detection rate no estimator of the scenario lifts above {UNDETECTED:g}",
+                 "detection rate no estimator of the scenario lifts above 2α (2 × its "
+                 "calibrated false-alarm rate)",
                  fontsize=7)  # fmt: skip
     fig.savefig(path, dpi=130, bbox_inches="tight")
     plt.close(fig)

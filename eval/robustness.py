@@ -500,6 +500,7 @@ def _markdown(doc: dict, sc) -> str:
                          *(_cell_text(doc["cells"][t].get(est, {}), metric) for t in threats),
                          _worst_text(worst, metric)])  # fmt: skip
         parts.append(f"## {title}\n\n{markdown_table(header, rows)}")
+    parts.append(_false_alarm_table(doc, ests, threats))
     insiders = doc.get("threat_reads_state") or {}
     insider = " (reads the true state x_k: an insider, who knows the measurement noise)"
     specs = "\n".join(f"- `{n}`: {s}{insider if insiders.get(n) else ''}"
@@ -508,6 +509,23 @@ def _markdown(doc: dict, sc) -> str:
     parts += [_stealthy_section(n, r) for n, r in (doc.get("stealthy") or {}).items()]
     parts += [_acceptance_section(n, a) for n, a in (doc.get("acceptance") or {}).items()]
     return "\n".join(parts)
+
+
+def _false_alarm_table(doc: dict, ests: list, threats: list) -> str:
+    """The false-alarm rate at τ_α of each estimator under each threat, on the steps the
+    threat left unattacked (no worst case: the threats are judged by the tables above)."""
+    header = ["estimator", "attack-free FPR", *threats]
+    rows = [[f"`{est}`", format_number(doc["estimators"][est].get("fpr_at_far"), 3),
+             *(_cell_text(doc["cells"][t].get(est, {}), "fpr_at_far") for t in threats)]
+            for est in ests]  # fmt: skip
+    return (
+        "## False-alarm rate under each threat (`fpr_at_far` on the steps it left unattacked: "
+        "before its onset, after its end, and the runs it did not attack)\n\n"
+        "A detector whose calibration alarms fall at start-up reads higher here the earlier "
+        "the onset (its first steps are a larger share of the unattacked ones); one that "
+        "keeps alarming after an attack ends reads higher under the longer ones.\n\n"
+        + markdown_table(header, rows)
+    )
 
 
 def _cell_text(cell: dict, metric: str) -> str:
@@ -673,7 +691,9 @@ def _heatmap(path: Path, doc: dict, sc) -> None:
         if limits is None:
             finite = shown[np.isfinite(shown)]
             limits = (0.0, float(finite.max()) if finite.size and finite.max() > 0 else 1.0)
-        ax.imshow(shown, aspect="auto", cmap=cmap, vmin=limits[0], vmax=limits[1])
+        image = ax.imshow(shown, aspect="auto", cmap=cmap, vmin=limits[0], vmax=limits[1])
+        bar = fig.colorbar(image, ax=ax, fraction=0.046, pad=0.02)
+        bar.ax.tick_params(labelsize=6)
         for (i, j), value in np.ndenumerate(grid):
             text = "—" if np.isnan(value) else format_number(float(value), 2)
             ax.text(j, i, text, ha="center", va="center", fontsize=6)

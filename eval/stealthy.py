@@ -120,6 +120,14 @@ def estimator_step(scenario, name: str, *, runs: int, seed: int = 0, checkpoint=
     one), for a loop of one's own (:func:`difffilter.loop.closed_loop`'s ``estimator``):
     ``runs`` and ``seed`` those of the study whose draws it takes (a CUSUM's calibration,
     the particle filters' common random numbers)."""
+    if name not in (*GATED, "normal_pf", *LEARNED):  # (detector_step's words are a crafting's)
+        raise ValueError(
+            f"estimator_step has no step object for {name!r}: it builds a gated Gaussian filter "
+            f"({', '.join(GATED)}), normal_pf or a learned estimator of a PF or Gaussian family "
+            f"({', '.join(LEARNED)}); the LFC's learned estimators (kf_nn_*) run inside the LFC "
+            "closed loop with its controller only: run them in a study, run_suite(scenario."
+            "with_threat(attack)) or `difffilter-eval lfc_step --ckpt FILE`"
+        )
     return detector_step(_context(scenario, runs, seed, checkpoint), name)
 
 

@@ -455,3 +455,37 @@ def test_a_calibration_of_other_runs_judges_the_studys_cusum(tmp_path, monkeypat
     cal = calibrate(sc, runs=120, study_runs=60, estimators=["cusum_ekf"], progress=False)
     scores = _finite_scores(judged.outputs["cusum_ekf"].detection.scores)
     assert cal.thresholds["cusum_ekf"] == threshold_for(scores, 0.01)
+
+
+def test_a_detector_that_spends_its_rate_at_start_up_is_named():
+    """A threat-set trial: the four-tank particle filters' probability of attack is above 0
+    at step 1 of every attack-free run and 0 almost everywhere after, so at 1 % (T = 100)
+    their threshold is 0 and every calibration alarm is at step 1: "1 % false alarms" while
+    the rate from step 2 on is 0, said nowhere. The calibration names them, with both
+    shares counted here on scores made by hand, and the report's note says it."""
+    from difffilter.eval.calibration import Calibration, _startup, below_target_note
+
+    scores = torch.zeros(10, 100)
+    scores[:, 0] = 0.3  # every run's first step
+    scores[3, 50] = 0.2  # one later alarm: 10 of 11 alarms at step 1
+    chi = torch.rand(10, 100, generator=torch.Generator().manual_seed(0))
+    got = _startup(scores, 0.0)
+    assert got == {"alarms_at_first_step": pytest.approx(10 / 11),
+                   "rate_after_first_step": pytest.approx(1 / 990)}  # fmt: skip
+    assert _startup(chi, float(threshold_for(chi, 0.01))) is None  # spread over the run
+    assert _startup(scores, 1.0) is None  # no alarm at all
+    assert _startup(scores[:, :1], 0.0) is None  # one step: no "after"
+    cal = Calibration(0.01, 10, 0, thresholds={"pf": 0.0}, measured={"pf": 11 / 1000},
+                      steps={"pf": 1000}, startup={"pf": got})  # fmt: skip
+    assert cal.summary()["startup"] == {"pf": got}
+    note = below_target_note(cal.summary())
+    assert "`pf`: 91 % of the alarms at step 1, 0.10 % of the steps from step 2 on" in note
+    two = Calibration(0.01, 10, 0, startup={"a": got, "b": got}).summary()
+    assert "`a`, `b`: 91 % of the alarms at step 1" in below_target_note(two)
+    assert "start-up" in note
+    # a study's calibration: the four-tank particle filter's alarms all at step 1, χ²'s not
+    cal = calibrate(registry.get("four_tank_bias").with_steps(30), runs=6,
+                    estimators=["normal_pf", "chi_square_ekf"], far=0.05, progress=False)  # fmt: skip
+    assert set(cal.startup) == {"normal_pf"}
+    assert cal.startup["normal_pf"]["alarms_at_first_step"] == 1.0
+    assert cal.startup["normal_pf"]["rate_after_first_step"] == 0.0

@@ -162,6 +162,11 @@ def test_the_best_is_set_by_the_ranked_estimators_and_roles_are_marked(tmp_path)
     assert good[:, col["attack_rmse"]] == pytest.approx([1.0, 1.0, 1 - np.log10(1.05 / 0.15)])
     assert good[:, col["tpr_at_far"]] == pytest.approx([1.0, 1.0, 0.0])  # 0.1 below the ranked best
     assert np.isnan(good[:, col["tpr_at_1pct_fpr"]]).all()  # no one detects: no colour
+    # the band scales with the calibrated rate (a trial at --far 0.02: 0.026 painted green)
+    grid[:, col["tpr_at_far"]] = [0.0, 0.026, 0.01]
+    at = {far: cell_goodness(grid, ["a"] * 3, targets=np.full(3, far))[:, col["tpr_at_far"]]
+          for far in (0.01, 0.02)}  # fmt: skip
+    assert not np.isnan(at[0.01]).any() and np.isnan(at[0.02]).all()
     unranked = cell_goodness(grid, ["a"] * 3)
     assert unranked[1, col["attack_rmse"]] < 1  # the oracle is the best when it may be
 

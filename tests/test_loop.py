@@ -706,6 +706,27 @@ class _ReadsView(_Records):
         )
 
 
+class _ReadsViewAtFirst(_Records):
+    """Declares reads_view and reads view.mean at every step, the first (view None) too."""
+
+    reads_view = True
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        shift = view.mean[..., :1]
+        return state, torch.zeros_like(y) + 0 * shift, torch.zeros(y.shape[:-1], dtype=torch.bool)
+
+
+class _ReadsScore(_Records):
+    """Declares reads_view and backs off where the detector's score is high: a plain filter's
+    output has no score."""
+
+    reads_view = True
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        quiet = view is None or view.score > 3.0
+        return state, torch.zeros_like(y) + 0.0 * quiet, torch.zeros(y.shape[:-1], dtype=torch.bool)
+
+
 class _ReadsU(_Records):
     """Reads u, which a loop without a controller hands it as None."""
 
@@ -793,6 +814,12 @@ def test_what_a_power_systems_trial_could_not_tell_from_the_errors():
     said = notes(_ReadsView("sensor", True), estimator=df.KalmanFilter())
     assert "view=None because reads_view = False" in said and "reads_state" not in said
     assert notes(_OwnBug("sensor", False)) == ""
+    # declared, and read where the loop has none: the first step, a field the estimator
+    # leaves None (a closed-loop trial: bare AttributeError and TypeError)
+    said = notes(_ReadsViewAtFirst("sensor", False), estimator=df.KalmanFilter())
+    assert "view=None: at the first step the estimator has no output yet" in said
+    said = notes(_ReadsScore("sensor", False), estimator=df.KalmanFilter())
+    assert "read view.score, which this estimator's output leaves None" in said
     assert notes(_ReadsU("sensor", False)) == ""  # x and view were None too, but not read
     assert "x=None because reads_state" in notes(_ReadsXOverLines("sensor", False))
     assert "x=None because reads_state" in notes(_ReadsXAfterGreek("sensor", False))

@@ -162,6 +162,11 @@ def test_cusum_hand_computed_and_calibration():
     most = det.run(free, 0.0)[1].double().mean().item()
     with pytest.raises(ValueError, match=f"out of reach.*at most {most:.4g}"):
         CusumDetector(bias=3.0).calibrate(free, 0.99)
+    # a drift below E[g] = 2 (a closed-loop trial's b = 1, taken without a word)
+    with pytest.warns(
+        UserWarning, match=r"drift b = 1 is not above the mean of g_attack_free \(1\.99"
+    ):
+        CusumDetector(bias=1.0).calibrate(free, 0.01)
 
 
 def test_cusum_scores_reset_at_zero_and_a_late_alarm_is_a_miss():

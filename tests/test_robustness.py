@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from difffilter.eval.cli import main
-from difffilter.eval.report import metrics_schema
+from difffilter.eval.report import format_number, metrics_schema
 from difffilter.eval.robustness import (
     load_threat_set,
     robustness_scenarios,
@@ -89,6 +89,11 @@ def test_a_study_scores_every_estimator_against_every_threat_at_the_calibrated_r
     assert written["far"]["target"] == 0.01
     text = (tmp_path / "out" / "robustness.md").read_text()
     assert "tpr_at_far" in text and "| `cusum_ekf` |" in text
+    # each threat's false-alarm rate (a threat-set trial found it in robustness.json only)
+    fpr = text.split("## False-alarm rate under each threat")[1]
+    row = next(line for line in fpr.splitlines() if line.startswith("| `cusum_ekf` |"))
+    want = format_number(written["cells"]["bias"]["cusum_ekf"]["fpr_at_far"], 3)
+    assert f"| {want} |" in row
     # the learned estimator against the best analytic, threat by threat, from the cells
     mine = written["acceptance"]["pf_nn_grad"]
     analytic = ("chi_square_ekf", "cusum_ekf")  # the study's analytic estimators

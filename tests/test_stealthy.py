@@ -203,3 +203,8 @@ def test_estimator_step_is_the_registered_detector_of_the_study(name):
     torch.testing.assert_close(out.means, expected.means, rtol=0, atol=1e-9)
     torch.testing.assert_close(out.detection.scores, expected.detection.scores, rtol=0, atol=1e-9)
     assert torch.equal(out.detection.alarms, expected.detection.alarms)
+    # the LFC's learned estimator has no step object: said so (a closed-loop trial was told
+    # "cannot craft against", and crafted nothing)
+    with pytest.raises(ValueError, match=r"estimator_step has no step object for 'kf_nn_grad'.*"
+                       r"LFC closed loop"):  # fmt: skip
+        estimator_step(registry.get("lfc_step"), "kf_nn_grad", runs=2)

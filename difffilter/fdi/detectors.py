@@ -31,6 +31,7 @@ from __future__ import annotations
 import functools
 import math
 import numbers
+import warnings
 
 import numpy as np
 import torch
@@ -492,6 +493,15 @@ class CusumDetector:
         if not 0.0 < false_alarm_rate < 1.0:
             raise ValueError(f"false_alarm_rate must lie in (0, 1); got {false_alarm_rate}")
         _check_sequence(g_attack_free, "g_attack_free", 0)
+        mean = float(_finite_mean(g_attack_free))
+        if self.bias <= mean:  # (taken without a word before: a closed-loop trial)
+            warnings.warn(
+                f"CusumDetector: the drift b = {float(self.bias):.4g} is not above the mean of "
+                f"g_attack_free ({mean:.4g}): without an attack the statistic grows without "
+                "bound, so τ only sets how often it is reset; take b above E[g] (m for the NIS "
+                "of m entries)",
+                stacklevel=2,
+            )
         most = float(self.run(g_attack_free, 0.0)[1].double().mean())
         if most < false_alarm_rate:  # (it returned τ ≈ 0 at that lower rate, unsaid)
             raise ValueError(
@@ -508,6 +518,12 @@ class CusumDetector:
                 hi = mid
         self.threshold = hi
         return hi
+
+
+def _finite_mean(g: Tensor) -> Tensor:
+    """The mean of the finite entries of ``g`` (float64; NaN where there are none)."""
+    g = g.detach().double()
+    return g[torch.isfinite(g)].mean()
 
 
 def _check_whole_mask(mask: Tensor, innovations: Tensor) -> Tensor:
