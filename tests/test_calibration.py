@@ -484,8 +484,10 @@ def test_a_detector_that_spends_its_rate_at_start_up_is_named():
     assert "`a`, `b`: 91 % of the alarms at step 1" in below_target_note(two)
     assert "start-up" in note
     # a study's calibration: the four-tank particle filter's alarms all at step 1, χ²'s not
-    cal = calibrate(registry.get("four_tank_bias").with_steps(30), runs=6,
+    cal = calibrate(registry.get("four_tank_bias").with_steps(40), runs=6,
                     estimators=["normal_pf", "chi_square_ekf"], far=0.05, progress=False)  # fmt: skip
     assert set(cal.startup) == {"normal_pf"}
     assert cal.startup["normal_pf"]["alarms_at_first_step"] == 1.0
     assert cal.startup["normal_pf"]["rate_after_first_step"] == 0.0
+    # 1 step in 40 alarms: exactly half the 5 % target, below it (the trial's 1.00 % at 2 %)
+    assert cal.measured["normal_pf"] == 0.025 and set(cal.tied) == {"normal_pf"}
