@@ -703,7 +703,7 @@ def _undeclared_read(error: BaseException, attack, shows_state: bool, reads: boo
             f"(attack {type(attack).__name__} was handed {' and '.join(undeclared)}: an attack "
             "reads the true state or the estimator's output only where its class declares it)"
         )
-    return _empty_view(attack, local.get("view", 0), text) if reads else None
+    return _empty_view(error, attack, local.get("view", 0), text) if reads else None
 
 
 def _reads(name: str, text: str) -> bool:
@@ -711,20 +711,27 @@ def _reads(name: str, text: str) -> bool:
     return re.search(rf"(?<![\w.]){name}\b(?!\s*=(?!=))", text) is not None
 
 
-def _empty_view(attack, view, text: str) -> str | None:
-    """A note for an attack that declares ``reads_view`` and failed on a line reading
-    ``view`` where it was ``None`` (the first step: no output yet) or reading one of its
-    fields that the estimator leaves ``None`` (``view.score`` of a filter without a
-    detector); ``None`` otherwise."""
+def _empty_view(error: BaseException, attack, view, text: str) -> str | None:
+    """A note for an attack that declares ``reads_view`` and failed reading ``view`` where
+    it was ``None`` (the first step: no output yet; the error is that attribute's or a
+    subscript's, on an expression that reads it so) or using one of its fields that the
+    estimator leaves ``None`` (``view.score`` of a filter without a detector; a field only
+    tested with ``is``, ``view.score is None``, does not count); ``None`` otherwise (an
+    attack's own bug beside a guarded read)."""
     name = type(attack).__name__
-    if view is None and _reads("view", text):
-        return (
-            f"(attack {name} was handed view=None: at the first step the estimator has no "
-            "output yet (view is its output of the step before); check `view is None` "
-            "there)"
-        )
+    if view is None:
+        missing = re.search(r"has no attribute '(\w+)'", str(error))
+        if (missing and re.search(rf"(?<![\w.])view\s*\.\s*{missing.group(1)}\b", text)) or (
+            "not subscriptable" in str(error) and re.search(r"(?<![\w.])view\s*\[", text)
+        ):
+            return (
+                f"(attack {name} was handed view=None: at the first step the estimator has "
+                "no output yet (view is its output of the step before); check `view is None` "
+                "there)"
+            )
+        return None
     empty = [f for f in getattr(view, "_fields", ()) if getattr(view, f, 0) is None
-             and re.search(rf"(?<![\w.])view\.{f}\b", text)]  # fmt: skip
+             and re.search(rf"(?<![\w.])view\.{f}\b(?!\s*is\b)", text)]  # fmt: skip
     if not empty:
         return None
     fields = ", ".join(f"view.{f}" for f in empty)

@@ -256,9 +256,11 @@ def calibrate(
 
 
 def _startup(scores: torch.Tensor, threshold: float) -> dict | None:
-    """``{"alarms_at_first_step", "rate_after_first_step"}`` of ``scores [B, T, ...]`` (time
-    on dim 1) at ``threshold`` where at least :data:`STARTUP_SHARE` of the alarms are at the
-    first step, else ``None`` (no alarm, one step, or alarms spread over the run)."""
+    """``{"alarms_at_first_step", "rate_after_first_step"}`` of ``scores [B, T, ...]`` at
+    ``threshold`` where at least :data:`STARTUP_SHARE` of the alarms are at the first step,
+    else ``None`` (no alarm, one step, or alarms spread over the run). Time is dim 1: a
+    study's detection scores are ``[runs, T]`` (every registered detector's, the LFC's
+    too), or ``[runs, T, areas]``, as the calibration's own counting reads them."""
     if scores.dim() < 2 or scores.shape[1] < 2:
         return None
     alarms = alarms_at(scores, threshold)

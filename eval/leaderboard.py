@@ -173,6 +173,9 @@ HIGHER_IS_BETTER = {"auc", "tpr_at_1pct_fpr", "tpr_at_far", "worst_tpr_at_far"}
 #: no estimator detects, and every 0 beside a best of 0.005 was painted "best".
 DETECTION_RATES = {"tpr_at_1pct_fpr", "tpr_at_far", "worst_tpr_at_far"}
 UNDETECTED = 0.02
+#: The detection rates at the calibrated threshold, whose band is twice the calibrated rate
+#: (``tpr_at_1pct_fpr`` is read at 1 % of the study's own ROC whatever ``--far`` says).
+AT_FAR = {"tpr_at_far", "worst_tpr_at_far"}
 
 
 #: Columns coloured by their distance to the calibrated false-alarm band [α/2, 2α] (the
@@ -196,7 +199,8 @@ def cell_goodness(grid: np.ndarray, scenarios: list[str], columns=COLUMNS,
     reference; all rows where none of a scenario is, or without it); a row that is not
     may be better than the best and reads 1. NaN (no colour) where the value is missing,
     and in a detection-rate column whose best is at most twice the scenario's ``targets``
-    (:data:`UNDETECTED` without one: :func:`_undetected`). A column of
+    (the columns of :data:`AT_FAR`; :data:`UNDETECTED` for ``tpr_at_1pct_fpr`` and without
+    a target: :func:`_undetected`). A column of
     :data:`ON_TARGET` is 1 inside ``[α/2, 2α]`` of its row's target ``targets [rows]`` (the
     calibrated rate; uncoloured without one) and falls to 0 at 10× outside it. A delay
     column (:data:`DELAYS`) takes at least its scenario's sampling period ``steps_s
@@ -206,6 +210,7 @@ def cell_goodness(grid: np.ndarray, scenarios: list[str], columns=COLUMNS,
     ranked = np.ones(len(scenarios), bool) if ranked is None else np.asarray(ranked, bool)
     higher = np.array([m in HIGHER_IS_BETTER for m in columns])
     rates = np.array([m in DETECTION_RATES for m in columns])
+    calibrated = np.array([m in AT_FAR for m in columns])
     delays = np.array([m in DELAYS for m in columns])
     diverged = np.isposinf(grid) & ~higher
     grid = np.where(np.isfinite(grid), grid, np.nan)
@@ -221,7 +226,8 @@ def cell_goodness(grid: np.ndarray, scenarios: list[str], columns=COLUMNS,
                 floor = np.where(delays, np.maximum(floor, np.nanmax(steps_s[rows])), floor)
             shortfall = np.where(higher, (hi - g) / 0.1, np.log10((g + floor) / (lo + floor)))
         colour = np.clip(1 - shortfall, 0, 1)
-        colour[:, rates & ~(hi > _undetected(targets, rows))] = np.nan
+        band = np.where(calibrated, _undetected(targets, rows), UNDETECTED)
+        colour[:, rates & ~(hi > band)] = np.nan
         colour[diverged[rows]] = 0.0
         good[rows] = colour
     on_target = np.array([m in ON_TARGET for m in columns])
@@ -277,7 +283,7 @@ def _heatmaps(path: Path, rows: list[dict[str, Any]], units: dict[str, str]) -> 
                  "reference); red: 10× it (0.1 below: AUC, TPR; a delay: 10 steps behind);\n"
                  "fpr_at_far: green inside [α/2, 2α], red 10× outside; white: no value, or a "
                  "detection rate no estimator of the scenario lifts above 2α (2 × its "
-                 "calibrated false-alarm rate)",
+                 "calibrated false-alarm rate; 0.02 for tpr_at_1pct_fpr)",
                  fontsize=7)  # fmt: skip
     fig.savefig(path, dpi=130, bbox_inches="tight")
     plt.close(fig)

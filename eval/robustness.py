@@ -694,6 +694,8 @@ def _heatmap(path: Path, doc: dict, sc) -> None:
         image = ax.imshow(shown, aspect="auto", cmap=cmap, vmin=limits[0], vmax=limits[1])
         bar = fig.colorbar(image, ax=ax, fraction=0.046, pad=0.02)
         bar.ax.tick_params(labelsize=6)
+        if log:  # the colours are of log10 of the values the cells print
+            bar.set_label("log10", fontsize=6)
         for (i, j), value in np.ndenumerate(grid):
             text = "—" if np.isnan(value) else format_number(float(value), 2)
             ax.text(j, i, text, ha="center", va="center", fontsize=6)

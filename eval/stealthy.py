@@ -121,14 +121,24 @@ def estimator_step(scenario, name: str, *, runs: int, seed: int = 0, checkpoint=
     ``runs`` and ``seed`` those of the study whose draws it takes (a CUSUM's calibration,
     the particle filters' common random numbers)."""
     if name not in (*GATED, "normal_pf", *LEARNED):  # (detector_step's words are a crafting's)
+        lfc = (
+            "; the LFC's learned estimators (kf_nn_*) run inside the LFC closed loop with its "
+            "controller only: run them in a study, run_suite(scenario.with_threat(attack)) or "
+            "`difffilter-eval lfc_step --ckpt FILE`"
+            if name.startswith("kf_nn")
+            else ""
+        )
         raise ValueError(
             f"estimator_step has no step object for {name!r}: it builds a gated Gaussian filter "
             f"({', '.join(GATED)}), normal_pf or a learned estimator of a PF or Gaussian family "
-            f"({', '.join(LEARNED)}); the LFC's learned estimators (kf_nn_*) run inside the LFC "
-            "closed loop with its controller only: run them in a study, run_suite(scenario."
-            "with_threat(attack)) or `difffilter-eval lfc_step --ckpt FILE`"
+            f"({', '.join(LEARNED)}){lfc}"
         )
-    return detector_step(_context(scenario, runs, seed, checkpoint), name)
+    try:
+        return detector_step(_context(scenario, runs, seed, checkpoint), name)
+    except ValueError as err:  # (a learned estimator whose checkpoint does not fit: its why)
+        raise ValueError(
+            str(err).replace("cannot craft against", "no step object for", 1)
+        ) from None
 
 
 def detector_step(ctx: SuiteContext, against: str):

@@ -35,7 +35,8 @@ a path ending in ``.yaml`` or ``.yml`` names a file such as::
                                          #    over the inputs; on_loss hold or zero;
                                          #    acknowledged true: TCP-like, false: UDP-like)
     estimators: [chi_square_kf, cusum_kf]   # optional; default: the generic suite
-    options: {cusum_bias: 0.5}           # settings the estimators read (optional)
+    options: {cusum_bias: 2.0}           # settings the estimators read (optional; the
+                                         #    CUSUM's drift b above E[g] = dy)
 
 A nonlinear plant names its functions by ``package.module:function`` paths, with the
 noise as above::

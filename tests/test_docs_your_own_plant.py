@@ -75,7 +75,15 @@ def test_every_snippet_of_the_page_runs(tmp_path, monkeypatch, capsys, isolated_
     finally:
         sys.modules.pop("my_plants", None)
         sys.modules.pop("my_attacks", None)
-    assert ran == {"python": 4, "yaml": 3, "eval": 6, "train": 2}
+    assert ran == {"python": 5, "yaml": 3, "eval": 6, "train": 2}
+    # §6 prints its closed-loop study's rates: the page's figures, to round-off
+    out = capsys.readouterr().out
+    printed = re.findall(r"^(?:chi2|cusum) FPR .*$", out, flags=re.M)
+    shown = re.search(r"This prints.*?```text\n(.*?)```", PAGE.read_text(), flags=re.S).group(1)
+    numbers = [float(v) for v in re.findall(r"\d\.\d+", "\n".join(printed))]
+    assert len(printed) == 2 and numbers == pytest.approx(
+        [float(v) for v in re.findall(r"\d\.\d+", shown)], abs=0.003
+    )
     lossy = json.loads((tmp_path / "reports" / "motor_lossy_yaml" / "metrics.json").read_text())
     assert lossy["network"]["inputs"]["acknowledged"] is False
     assert lossy["network"]["sensors"] == "PacketLoss(rate=0.1, packets=None)"
@@ -86,7 +94,6 @@ def test_every_snippet_of_the_page_runs(tmp_path, monkeypatch, capsys, isolated_
     assert "no attack-free reference" in motor["skipped"]["normal_pf_attack_free"]
     vdp = json.loads((tmp_path / "reports" / "vdp_ramp_yaml" / "metrics.json").read_text())
     assert "linear model" in vdp["skipped"]["chi_square_kf"]
-    out = capsys.readouterr().out
     assert "vdp_drift" in out and "vdp_damping" in out
 
 

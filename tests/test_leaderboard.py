@@ -167,6 +167,10 @@ def test_the_best_is_set_by_the_ranked_estimators_and_roles_are_marked(tmp_path)
     at = {far: cell_goodness(grid, ["a"] * 3, targets=np.full(3, far))[:, col["tpr_at_far"]]
           for far in (0.01, 0.02)}  # fmt: skip
     assert not np.isnan(at[0.01]).any() and np.isnan(at[0.02]).all()
+    # ... and tpr_at_1pct_fpr, read at 1 % whatever the calibrated rate, keeps 0.02 (a review)
+    grid[:, col["tpr_at_1pct_fpr"]] = [0.0, 0.015, 0.0]
+    low = cell_goodness(grid, ["a"] * 3, targets=np.full(3, 0.001))[:, col["tpr_at_1pct_fpr"]]
+    assert np.isnan(low).all()
     unranked = cell_goodness(grid, ["a"] * 3)
     assert unranked[1, col["attack_rmse"]] < 1  # the oracle is the best when it may be
 

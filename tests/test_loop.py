@@ -727,6 +727,27 @@ class _ReadsScore(_Records):
         return state, torch.zeros_like(y) + 0.0 * quiet, torch.zeros(y.shape[:-1], dtype=torch.bool)
 
 
+class _GuardsViewOwnBug(_Records):
+    """Guards its read of view; its own ``gain`` is None (its bug)."""
+
+    reads_view, gain = True, None
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        shift = 0.0 if view is None else view.mean[..., :1]
+        own = self.gain * shift
+        return state, torch.zeros_like(y) + own, torch.zeros(y.shape[:-1], dtype=torch.bool)
+
+
+class _TestsScoreOwnBug(_Records):
+    """Tests ``view.score is not None``; its own ``level`` is None (its bug)."""
+
+    reads_view, level = True, None
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        quiet = k > 1 and self.level > 3 and view.score is not None
+        return state, torch.zeros_like(y) * quiet, torch.zeros(y.shape[:-1], dtype=torch.bool)
+
+
 class _ReadsU(_Records):
     """Reads u, which a loop without a controller hands it as None."""
 
@@ -820,6 +841,9 @@ def test_what_a_power_systems_trial_could_not_tell_from_the_errors():
     assert "view=None: at the first step the estimator has no output yet" in said
     said = notes(_ReadsScore("sensor", False), estimator=df.KalmanFilter())
     assert "read view.score, which this estimator's output leaves None" in said
+    # its own bug beside a guarded read: no note (a review)
+    assert notes(_GuardsViewOwnBug("sensor", False), estimator=df.KalmanFilter()) == ""
+    assert notes(_TestsScoreOwnBug("sensor", False), estimator=df.KalmanFilter()) == ""
     assert notes(_ReadsU("sensor", False)) == ""  # x and view were None too, but not read
     assert "x=None because reads_state" in notes(_ReadsXOverLines("sensor", False))
     assert "x=None because reads_state" in notes(_ReadsXAfterGreek("sensor", False))
