@@ -469,15 +469,15 @@ def test_a_nonlinear_model_whose_functions_do_not_fit_q_and_r_is_refused():
     f = lambda x, u, k: 0.9 * x  # noqa: E731
     h = lambda x, k: x[..., :1]  # noqa: E731
     df.NonlinearGaussianModel(f, h, 1e-3 * eye, [[1e-2]], np.zeros(2), eye)  # fits
-    with pytest.raises(ValueError, match=r"observe returns \(1, 2\) for x \[1, 2\] .*R is 1×1"):
+    with pytest.raises(ValueError, match=r"observe returns \(4, 2\) for x \[4, 2\] .*R is 1×1"):
         df.NonlinearGaussianModel(f, lambda x, k: x, 1e-3 * eye, [[1e-2]], np.zeros(2), eye)
-    with pytest.raises(ValueError, match=r"transition returns \(1, 3\) .*Q is 2×2"):
+    with pytest.raises(ValueError, match=r"transition returns \(4, 3\) .*Q is 2×2"):
         df.NonlinearGaussianModel(lambda x, u, k: torch.cat([x, x[..., :1]], -1), h, 1e-3 * eye, [[1e-2]],
                                   np.zeros(2), eye)  # fmt: skip
     with pytest.raises(ValueError, match=r"m0 must have shape \[..., 3\]: Q is 3×3"):
         df.NonlinearGaussianModel(f, h, 1e-3 * np.eye(3), [[1e-2]], np.zeros(2), np.eye(3))
 
-    def unbatched(x, k):  # cannot run on the probe's [1, dx]: left to fail where used
+    def unbatched(x, k):  # cannot run on the probe's [n, dx]: left to fail where used
         assert x.dim() == 1
         return x[:1]
 
