@@ -15,6 +15,7 @@ as the analytic ones. :func:`calibrated_metrics` then reads the study's scores a
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 
 import torch
@@ -250,6 +251,11 @@ def calibrate(
             startup[name] = transient
     calibration = Calibration(far, runs, cal_seed, thresholds, measured, tied, steps,
                               broken_down(result.skipped), startup)  # fmt: skip
+    if tied:  # (from Python the note was in summary() alone: a teaching trial read "0.0" as
+        # "detects nothing")
+        below = calibration.summary()
+        warnings.warn(below_target_note({k: below[k] for k in ("target", "below_target")}),
+                      stacklevel=2)  # fmt: skip
     if cache is not None:
         cache[key] = calibration
     return calibration
