@@ -502,45 +502,64 @@ class NonlinearGaussianModel(StateSpaceModel):
         self.initial = Gaussian(m0, P0)
         self.process_noise = Gaussian(torch.zeros(dx, dtype=dtype, device=device), Q)
         self.measurement_noise = Gaussian(torch.zeros(dy, dtype=dtype, device=device), R)
-        # a probe of n runs at the prior mean, n unlike dx and dy (a function written for one
-        # state, x[0] and x[1], indexes runs there and returns another shape)
-        runs = dx + dy + 1
-        self._check_widths(m0.reshape(-1, dx)[:1].expand(runs, dx))
+        self._check_widths(m0.reshape(-1, dx)[:1])
 
-    def _check_widths(self, x: Tensor) -> None:
-        """``f`` and ``h`` at ``x [n, dx]`` (``n`` runs at the prior mean) return ``[n, dx]``
-        and ``[n, dy]`` (Q's and R's sizes): a wrong width otherwise broadcast silently in the
-        UKF (a 1-entry measurement against a 2-entry prediction) and failed deep in torch
-        elsewhere, and a function written for one state (``x[0]``, ``x[1]``: rows, not entries,
-        of a batch) ran on a batch of two runs of two states with wrong numbers and no error
-        (a teaching trial: EKF RMSE 3.85 against 0.18). A function that cannot run on this
-        probe is left to fail where it is used."""
+    def _check_widths(self, mean: Tensor) -> None:
+        """``f`` and ``h`` at ``n`` runs at the prior mean ``mean [1, dx]`` return ``[n, dx]``
+        and ``[n, dy]`` (Q's and R's sizes; a result that broadcasts to the runs, a constant
+        ``[dx]``, too): a wrong width otherwise broadcast silently in the UKF (a 1-entry
+        measurement against a 2-entry prediction) and failed deep in torch elsewhere, and a
+        function written for one state (``x[0]``, ``x[1]``: rows, not entries, of a batch)
+        ran on a batch of two runs of two states with wrong numbers and no error (a
+        teaching trial: EKF RMSE 3.85 against 0.18). ``n`` (:func:`_probe_runs`) is neither
+        ``dx`` nor ``dy``. A function that cannot run on ``n`` runs (one that captures
+        per-run parameters of another batch) is probed on the mean alone, as before; one
+        that cannot run on that either is left to fail where it is used."""
+        n = _probe_runs(self.dim_x, self.dim_y)
+        if not self._check_widths_at(mean.expand(n, self.dim_x).clone(), runs=True):
+            self._check_widths_at(mean.clone(), runs=False)  # widths and dtypes alone
+
+    def _check_widths_at(self, x: Tensor, runs: bool) -> bool:
+        """:meth:`_check_widths` on ``x [n, dx]``: whether both functions ran (``False``: one
+        raised, a probe to retry on the mean alone); raises on a wrong width or dtype and,
+        with ``runs``, on a result that does not keep ``x``'s runs."""
         n = x.shape[0]
         u = None if self.dim_u == 0 else x.new_zeros(n, self.dim_u)
+        ran = True
         for name, fn, want, size in (("transition", lambda: self.transition(x, u, 0), self.dim_x, "Q"),
                                      ("observe", lambda: self.observe(x, 1), self.dim_y, "R")):  # fmt: skip
             try:
                 with torch.no_grad():
                     out = fn()
             except Exception:  # noqa: BLE001 (a probe, not the model's use)
+                ran = False
                 continue
-            if isinstance(out, Tensor) and (out.dim() < 1 or out.shape[-1] != want):
+            if not isinstance(out, Tensor):
+                continue
+            # the runs as its last axis, or runs lost (x[0]: one run's dx entries)
+            hint = (
+                _ONE_STATE_HINT.format(n=n)
+                if runs and (out.shape[-1:] == (n,) or out.shape[:-1] != x.shape[:-1])
+                else ""
+            )
+            if out.dim() < 1 or out.shape[-1] != want:
                 raise ValueError(
-                    f"{name} returns {tuple(out.shape)} for x [{n}, {self.dim_x}] ({n} runs at the "
-                    f"prior mean); {size} is {want}×{want}, so it must return [..., {want}]"
-                    + (_ONE_STATE_HINT.format(n=n) if out.shape[-1] == n else "")
+                    f"{name} returns {tuple(out.shape)} for x [{n}, {self.dim_x}] ({n} run(s) at "
+                    f"the prior mean); {size} is {want}×{want}, so it must return [..., {want}]"
+                    + hint
                 )
-            if isinstance(out, Tensor) and out.shape[:-1] != x.shape[:-1]:
+            if runs and not _broadcasts(out.shape[:-1], x.shape[:-1]):
                 raise ValueError(
                     f"{name} returns {tuple(out.shape)} for x [{n}, {self.dim_x}] ({n} runs at the "
                     f"prior mean); it must keep x's runs: [{n}, {want}]"
                     + _ONE_STATE_HINT.format(n=n)
                 )
-            if isinstance(out, Tensor) and out.dtype != x.dtype:  # the EKF failed in torch
+            if out.dtype != x.dtype:  # the EKF failed in torch
                 raise ValueError(
                     f"{name} returns {out.dtype} for x of the model's {x.dtype}: return the "
                     "dtype of x (e.g. build constants with x.new_tensor or dtype=x.dtype)"
                 )
+        return ran
 
     def transition(self, x, u, k):
         return _dispatch(self._f, self._f_arity, x, u, k)
@@ -557,6 +576,24 @@ class NonlinearGaussianModel(StateSpaceModel):
         if self._jh is None:
             return super().observation_jacobian(x, k)
         return self._jh(x) if self._h_arity <= 1 else self._jh(x, k)
+
+
+def _probe_runs(dx: int, dy: int) -> int:
+    """The runs of :meth:`NonlinearGaussianModel._check_widths`'s probe: more than ``dx`` and
+    ``dy`` where they are small (so a function written for one state, indexing ``x[dx − 1]``,
+    runs on it), else the first of 2, 3, 4 that is neither (a plant of 400 states built
+    ``[n, 400, 400]`` per run: a probe of 801 runs took a second and a gigabyte)."""
+    if max(dx, dy) < 16:
+        return max(dx, dy) + 1
+    return next(n for n in (2, 3, 4) if n not in (dx, dy))
+
+
+def _broadcasts(shape: torch.Size, runs: torch.Size) -> bool:
+    """Whether a result's batch ``shape`` broadcasts to the probe's ``runs``, and to them alone."""
+    try:
+        return torch.broadcast_shapes(shape, runs) == runs
+    except RuntimeError:
+        return False
 
 
 #: The end of :meth:`NonlinearGaussianModel._check_widths`'s errors.

@@ -469,9 +469,9 @@ def test_a_nonlinear_model_whose_functions_do_not_fit_q_and_r_is_refused():
     f = lambda x, u, k: 0.9 * x  # noqa: E731
     h = lambda x, k: x[..., :1]  # noqa: E731
     df.NonlinearGaussianModel(f, h, 1e-3 * eye, [[1e-2]], np.zeros(2), eye)  # fits
-    with pytest.raises(ValueError, match=r"observe returns \(4, 2\) for x \[4, 2\] .*R is 1×1"):
+    with pytest.raises(ValueError, match=r"observe returns \(3, 2\) for x \[3, 2\] .*R is 1×1"):
         df.NonlinearGaussianModel(f, lambda x, k: x, 1e-3 * eye, [[1e-2]], np.zeros(2), eye)
-    with pytest.raises(ValueError, match=r"transition returns \(4, 3\) .*Q is 2×2"):
+    with pytest.raises(ValueError, match=r"transition returns \(3, 3\) .*Q is 2×2"):
         df.NonlinearGaussianModel(lambda x, u, k: torch.cat([x, x[..., :1]], -1), h, 1e-3 * eye, [[1e-2]],
                                   np.zeros(2), eye)  # fmt: skip
     with pytest.raises(ValueError, match=r"m0 must have shape \[..., 3\]: Q is 3×3"):
@@ -482,6 +482,24 @@ def test_a_nonlinear_model_whose_functions_do_not_fit_q_and_r_is_refused():
         return x[:1]
 
     df.NonlinearGaussianModel(f, unbatched, 1e-3 * eye, [[1e-2]], np.zeros(2), eye)
+    # a review of the probe of several runs: a result that broadcasts to the runs (a fixed
+    # schedule) is a plant; per-run parameters of another batch are probed on the mean
+    # alone (their wrong width still named); one-state code is named with its fix; and a
+    # large plant is probed on few runs
+    from difffilter.ssm import _probe_runs
+
+    df.NonlinearGaussianModel(lambda x, u, k: torch.tensor([0.1, 0.2], dtype=torch.float64), h,
+                              1e-3 * eye, [[1e-2]], np.zeros(2), eye)  # fmt: skip
+    gain, m0 = torch.tensor([[0.9], [0.8], [0.7]], dtype=torch.float64), np.zeros((3, 2))
+    df.NonlinearGaussianModel(lambda x: gain * x, h, 1e-3 * eye, [[1e-2]], m0, eye)
+    pair = torch.tensor([[0.9], [0.8]], dtype=torch.float64)  # two runs' gains: not 3 runs
+    with pytest.raises(ValueError, match=r"observe returns \(2, 2\) for x \[1, 2\] .*R is 1×1"):
+        df.NonlinearGaussianModel(lambda x: pair * x, lambda x: pair * x, 1e-3 * eye, [[1e-2]],
+                                  np.zeros((2, 2)), eye)  # fmt: skip
+    with pytest.raises(ValueError, match=r"observe returns \(1, 2\) .*R is 1×1.*x\[\.\.\., i\]"):
+        df.NonlinearGaussianModel(f, lambda x, k: torch.stack([torch.sin(x[0])]), 1e-3 * eye,
+                                  [[1e-2]], np.zeros(2), eye)  # fmt: skip
+    assert _probe_runs(2, 1) == 3 and _probe_runs(400, 400) == 2 and _probe_runs(2, 40) == 3
 
 
 def test_a_custom_scenario_names_a_model_fn_that_does_not_give_a_model_of_its_dtype():

@@ -371,11 +371,11 @@ def test_a_plant_function_of_the_wrong_width_or_failing_is_named(plants):
     base = yaml.safe_load(VDP_YAML)
     # (the model's own probe, NonlinearGaussianModel._check_widths, names the first)
     cases = [({"transition": "user_bad:narrow"},
-              r"plant: transition returns \(5, 1\) for x \[5, 2\] .*Q is 2×2, so it must return \[\.\.\., 2\]$"),
+              r"plant: transition returns \(3, 1\) for x \[3, 2\] .*Q is 2×2, so it must return \[\.\.\., 2\]$"),
              # written for one state: x[0], x[1] are runs (a teaching trial: wrong numbers
              # on two runs, no error)
              ({"transition": "user_bad:one_state"},
-              r"transition returns \(2, 2\) for x \[5, 2\] .*must keep x's runs: \[5, 2\].*x\[\.\.\., i\]"),
+              r"transition returns \(2, 2\) for x \[3, 2\] .*must keep x's runs: \[3, 2\].*x\[\.\.\., i\]"),
              ({"transition": "user_bad:broken"}, r"plant.transition failed on m0: RuntimeError: no"),
              ({"observe": "user_bad:three", "R": [[1.0, 0.0], [0.0, 1.0]]},
               r"plant.R must be 3 × 3 \(there are 3 outputs, as observe returns at m0"),
