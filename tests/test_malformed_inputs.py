@@ -499,7 +499,16 @@ def test_a_nonlinear_model_whose_functions_do_not_fit_q_and_r_is_refused():
     with pytest.raises(ValueError, match=r"observe returns \(1, 2\) .*R is 1×1.*x\[\.\.\., i\]"):
         df.NonlinearGaussianModel(f, lambda x, k: torch.stack([torch.sin(x[0])]), 1e-3 * eye,
                                   [[1e-2]], np.zeros(2), eye)  # fmt: skip
-    assert _probe_runs(2, 1) == 3 and _probe_runs(400, 400) == 2 and _probe_runs(2, 40) == 3
+    assert _probe_runs(2, 1) == 3 and _probe_runs(400, 400) == 2 and _probe_runs(3, 16) == 4
+    # a second review: one-state code of one state (x[0] is [1]: no constant, its value
+    # moves with the runs) and of few states beside many outputs
+    one = np.eye(1)
+    with pytest.raises(ValueError, match=r"transition returns \(1,\) .*must keep x's runs"):
+        df.NonlinearGaussianModel(lambda x: torch.sin(x[0]) + x[0], lambda x: x[..., :1] ** 2,
+                                  0.1 * one, 0.1 * one, np.ones(1), one)  # fmt: skip
+    with pytest.raises(ValueError, match=r"observe returns \(16, 3\) .*R is 16×16"):
+        df.NonlinearGaussianModel(lambda x: x, lambda x: torch.stack([x[0] + x[2]] * 16), 0.1 * np.eye(3),
+                                  0.1 * np.eye(16), np.zeros(3), np.eye(3))  # fmt: skip
 
 
 def test_a_custom_scenario_names_a_model_fn_that_does_not_give_a_model_of_its_dtype():

@@ -144,9 +144,11 @@ def chi_square_equivalent(g: Tensor, dof, full_dof) -> Tensor:
     # scipy.stats.chi2's own functions without its argument handling (about 180 µs of a
     # masked online χ² step: a recorded-log trial), the same numbers bit for bit:
     # sf = chdtrc, cdf = chdtr, ppf = 2 gammaincinv(D/2, ·), isf = chdtri
-    tail = special.chdtrc(dn, gn)
+    # (below 0, outside the support: scipy.stats's tail 1, where chdtrc gives NaN; a review)
+    at = np.maximum(gn, 0.0)
+    tail = special.chdtrc(dn, at)
     # the lower tail where it is the smaller (more digits), the upper one elsewhere
-    x = np.where(tail > 0.5, 2 * special.gammaincinv(Dn / 2, special.chdtr(dn, gn)),
+    x = np.where(tail > 0.5, 2 * special.gammaincinv(Dn / 2, special.chdtr(dn, at)),
                  special.chdtri(Dn, tail))  # fmt: skip
     infinite = np.isinf(gn)  # an overflowed νᵀS⁻¹ν stays beyond every threshold
     x[infinite] = np.inf
