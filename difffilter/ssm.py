@@ -505,60 +505,50 @@ class NonlinearGaussianModel(StateSpaceModel):
         self._check_widths(m0.reshape(-1, dx)[:1])
 
     def _check_widths(self, mean: Tensor) -> None:
-        """``f`` and ``h`` on ``n`` runs near the prior mean ``mean [1, dx]`` return ``[n, dx]``
-        and ``[n, dy]`` (Q's and R's sizes; a result that broadcasts to the runs, a constant
-        ``[dx]``, too, where it is the same on the mean alone): a wrong width otherwise
-        broadcast silently in the UKF (a 1-entry measurement against a 2-entry prediction)
-        and failed deep in torch elsewhere, and a function written for one state (``x[0]``,
-        ``x[1]``: rows, not entries, of a batch) ran on a batch of two runs of two states
-        with wrong numbers and no error (a teaching trial: EKF RMSE 3.85 against 0.18). The
-        runs are the mean moved by ``(i + 1)·10⁻³(1 + |m|)`` (so that no row is the mean:
-        ``x[0]`` of a one-state plant is then no constant), ``n`` from :func:`_probe_runs`. A
-        function that cannot run on them (one that captures per-run parameters of another
-        batch) is probed on the mean alone, widths and dtypes as before; one that cannot run
-        on that either is left to fail where it is used."""
+        """``f`` and ``h`` on ``n`` runs at the prior mean ``mean [1, dx]`` (``n`` from
+        :func:`_probe_runs`, neither ``dx`` nor ``dy``) return ``[n, dx]`` and ``[n, dy]``
+        (Q's and R's sizes), or a constant that broadcasts to them, and compute each run from
+        its own state and input. A wrong width otherwise broadcast silently in the UKF (a
+        1-entry measurement against a 2-entry prediction) and failed deep in torch elsewhere,
+        and a function written for one state (``x[0]``, ``x[1]``, ``u[0]``: rows, not entries,
+        of a batch) ran on a batch of two runs of two states with wrong numbers and no error
+        (a teaching trial: EKF RMSE 3.85 against 0.18). A result is a constant where it
+        does not depend on ``x`` or ``u`` (no gradient reaches them; ``relu(x[0])`` flat at
+        the mean still depends on them), and a run's result that has a non-zero derivative
+        in another run's state or input mixes runs (``u[0]``, ``x - x.mean(0)``). A function
+        that cannot run on ``n`` runs under autograd (per-run parameters of another batch,
+        numpy inside) is probed on the mean alone, widths and dtypes; one that cannot run on
+        that either is left to fail where it is used."""
         n = _probe_runs(self.dim_x, self.dim_y)
-        step = 1e-3 * (1 + mean.detach().abs())
-        rows = torch.arange(1, n + 1, dtype=mean.dtype, device=mean.device).unsqueeze(-1)
-        if not self._check_widths_at(mean.detach() + rows * step, mean.detach().clone()):
-            self._check_widths_at(mean.detach().clone(), None)  # widths and dtypes alone
+        if not self._check_widths_at(mean.detach().expand(n, self.dim_x).clone(), runs=True):
+            self._check_widths_at(mean.detach().clone(), runs=False)  # widths and dtypes alone
 
-    def _results(self, x: Tensor) -> tuple[Tensor | None, Tensor | None]:
-        """``(f(x, 0, 0), h(x, 1))`` without a graph, each ``None`` where it raised."""
-        u = None if self.dim_u == 0 else x.new_zeros(x.shape[0], self.dim_u)
-        results = []
-        for fn in (lambda: self.transition(x, u, 0), lambda: self.observe(x, 1)):
-            try:
-                with torch.no_grad():
-                    results.append(fn())
-            except Exception:  # noqa: BLE001 (a probe, not the model's use)
-                results.append(None)
-        return results[0], results[1]
-
-    def _check_widths_at(self, x: Tensor, mean: Tensor | None) -> bool:
+    def _check_widths_at(self, x: Tensor, runs: bool) -> bool:
         """:meth:`_check_widths` on ``x [n, dx]``: whether both functions ran (``False``: one
         raised, a probe to retry on the mean alone); raises on a wrong width or dtype and,
-        given the ``mean [1, dx]``, on a result that keeps neither the runs nor its value
-        on the mean alone (a constant)."""
+        with ``runs``, on a result that keeps neither the runs nor a constant, or mixes
+        runs."""
         n = x.shape[0]
-        outs = self._results(x)
-        for (name, want, size), out, on_mean in zip(
-            (("transition", self.dim_x, "Q"), ("observe", self.dim_y, "R")),
-            outs,
-            self._results(mean) if mean is not None else (None, None),
-        ):
+        u = None if self.dim_u == 0 else x.new_zeros(n, self.dim_u)
+        leaves = [t.requires_grad_(runs) for t in (x, u) if t is not None]
+        ran = True
+        for name, fn, want, size in (("transition", lambda: self.transition(x, u, 0), self.dim_x, "Q"),
+                                     ("observe", lambda: self.observe(x, 1), self.dim_y, "R")):  # fmt: skip
+            try:
+                with torch.set_grad_enabled(runs):
+                    out = fn()
+            except Exception:  # noqa: BLE001 (a probe, not the model's use)
+                ran = False
+                continue
             if not isinstance(out, Tensor):
                 continue
+            depends = out.requires_grad
             runs_kept = out.shape[:-1] == x.shape[:-1]
-            constant = (
-                mean is not None and not runs_kept and _broadcasts(out.shape[:-1], x.shape[:-1])
-                and isinstance(on_mean, Tensor) and on_mean.shape == out.shape
-                and bool(torch.equal(on_mean, out))
-            )  # fmt: skip
+            constant = not runs_kept and not depends and _broadcasts(out.shape[:-1], x.shape[:-1])
             # the runs as its last axis, or runs lost (x[0]: one run's dx entries)
             hint = (
                 _ONE_STATE_HINT.format(n=n)
-                if mean is not None and (out.shape[-1:] == (n,) or not (runs_kept or constant))
+                if runs and (out.shape[-1:] == (n,) or not (runs_kept or constant))
                 else ""
             )
             if out.dim() < 1 or out.shape[-1] != want:
@@ -567,17 +557,23 @@ class NonlinearGaussianModel(StateSpaceModel):
                     f"the prior mean); {size} is {want}×{want}, so it must return [..., {want}]"
                     + hint
                 )
-            if mean is not None and not (runs_kept or constant):
+            if runs and not (runs_kept or constant):
                 raise ValueError(
-                    f"{name} returns {tuple(out.shape)} for x [{n}, {self.dim_x}] ({n} runs near "
-                    f"the prior mean); it must keep x's runs: [{n}, {want}]" + hint
+                    f"{name} returns {tuple(out.shape)} for x [{n}, {self.dim_x}] ({n} runs at the "
+                    f"prior mean); it must keep x's runs: [{n}, {want}]" + hint
                 )
             if out.dtype != x.dtype:  # the EKF failed in torch
                 raise ValueError(
                     f"{name} returns {out.dtype} for x of the model's {x.dtype}: return the "
                     "dtype of x (e.g. build constants with x.new_tensor or dtype=x.dtype)"
                 )
-        return all(out is not None for out in outs)
+            if runs and runs_kept and depends and _mixes_runs(out, leaves):
+                raise ValueError(
+                    f"{name}'s result for one run depends on the states or inputs of other runs "
+                    f"(probed on {n} runs at the prior mean): a plant computes each run from its "
+                    "own x[..., :] and u[..., :]" + _ONE_STATE_HINT.format(n=n)
+                )
+        return ran
 
     def transition(self, x, u, k):
         return _dispatch(self._f, self._f_arity, x, u, k)
@@ -604,6 +600,19 @@ def _probe_runs(dx: int, dy: int) -> int:
     gigabyte; nobody indexes 16 entries one by one)."""
     first = dx + 1 if dx < 16 else 2
     return next(n for n in range(first, first + 3) if n not in (dx, dy))
+
+
+def _mixes_runs(out: Tensor, leaves: list[Tensor]) -> bool:
+    """Whether the last run's result ``out[-1]`` has a finite non-zero derivative in the other
+    runs' rows of the probe's ``leaves`` (``x [n, dx]``, ``u [n, du]``). ``False`` where no
+    derivative can be taken."""
+    try:
+        grads = torch.autograd.grad(out[-1].sum(), leaves, allow_unused=True)
+    except RuntimeError:
+        return False
+    # (finite entries alone: the backward of an elementwise function that is NaN at the
+    # mean, sqrt(x − 1) at 0, multiplies the other rows' zeros by NaN)
+    return any(g is not None and bool(((g[:-1] != 0) & g[:-1].isfinite()).any()) for g in grads)
 
 
 def _broadcasts(shape: torch.Size, runs: torch.Size) -> bool:

@@ -506,6 +506,17 @@ def test_a_nonlinear_model_whose_functions_do_not_fit_q_and_r_is_refused():
     with pytest.raises(ValueError, match=r"transition returns \(1,\) .*must keep x's runs"):
         df.NonlinearGaussianModel(lambda x: torch.sin(x[0]) + x[0], lambda x: x[..., :1] ** 2,
                                   0.1 * one, 0.1 * one, np.ones(1), one)  # fmt: skip
+    # a third: one-state code flat at the mean (relu(x[0]) at m0 < 0 had passed as a
+    # constant), one run's input read for all (u[0]), and a function mixing runs
+    with pytest.raises(ValueError, match=r"observe returns \(1, 1\) .*must keep x's runs"):
+        df.NonlinearGaussianModel(lambda x: x, lambda x: torch.stack([torch.relu(x[0])]), 0.1 * one,
+                                  0.1 * one, -np.ones(1), one)  # fmt: skip
+    for mixing, dim_u in ((lambda x, u: x + u[0], 1), (lambda x: x - x.mean(0), 0)):
+        with pytest.raises(ValueError, match=r"transition's result for one run depends on the states "
+                           r"or inputs of other runs"):  # fmt: skip
+            df.NonlinearGaussianModel(mixing, lambda x: x[..., :1], 0.1 * np.eye(2), 0.1 * one,
+                                      np.zeros(2), np.eye(2), dim_u=dim_u)  # fmt: skip
+    assert torch.is_grad_enabled()
     with pytest.raises(ValueError, match=r"observe returns \(16, 3\) .*R is 16×16"):
         df.NonlinearGaussianModel(lambda x: x, lambda x: torch.stack([x[0] + x[2]] * 16), 0.1 * np.eye(3),
                                   0.1 * np.eye(16), np.zeros(3), np.eye(3))  # fmt: skip
