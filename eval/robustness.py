@@ -478,6 +478,9 @@ def _markdown(doc: dict, sc) -> str:
     below = below_target_note(far)
     if below:
         parts.append(f"{below}\n")
+    if doc.get("skipped"):  # (a trial's threat set named `kf` on a nonlinear plant: unsaid)
+        parts.append("Not run on this scenario: " + "; ".join(
+            f"`{name}` ({why})" for name, why in doc["skipped"].items()) + ".\n")  # fmt: skip
     idle = {t: a for t, a in (doc.get("threat_activity") or {}).items() if _idle(a)}
     if idle:
         parts.append("Left out of the worst case and the acceptance, as threats that did not act "
@@ -662,12 +665,34 @@ def _stealthy_section(name: str, r: dict) -> str:
             ],
         )  # fmt: skip
         + verdict
-        + " The budget is kept on the training batches, whose own noise is about half of it: "
-        "on the study's runs (above) and other fresh noise the rise can exceed it. A constant "
+        + _batch_noise_text(r)
+        + " A constant "
         "bias is the simplest yardstick, not the strongest: a ramp or a constant innovation "
         "offset at the same rate comes closer to the crafted error (docs/threats.md)."
         + " Every other estimator meets it as a threat of the tables above (transfer: it was "
         "crafted against one detector only).\n"
+    )
+
+
+def _batch_noise_text(r: dict) -> str:
+    """How noisy the crafting's budget check is: one binomial standard deviation of a
+    training batch's alarm rate at the attack-free rate ``p(0)`` over its ``train_runs ×
+    attacked_steps`` steps, against the budget ``ε`` (a trial's 16 runs × 80 steps: a whole
+    ε; the sentence had said "about half" whatever the batch)."""
+    slack = r["settings"]["slack"]
+    if r.get("budget") is None or not r.get("attacked_steps"):  # (a report of before)
+        return (" The budget is kept on the training batches, each of its own noise: on the "
+                "study's runs (above) and other fresh noise the rise can exceed it.")  # fmt: skip
+    p0 = min(max(r["budget"] - slack, 0.0), 1.0)
+    steps = r["train_runs"] * r["attacked_steps"]
+    spread = math.sqrt(p0 * (1 - p0) / steps)
+    return (
+        f" The budget is kept on each training batch ({r['train_runs']} runs × "
+        f"{r['attacked_steps']} attacked steps), whose alarm rate without attack "
+        f"({format_number(p0, 3)}) varies by about {format_number(spread, 2)} from batch to "
+        f"batch (one binomial standard deviation), {spread / slack:.2g} of ε; the iterate kept "
+        "is the best that kept the budget on its own batch, so on the study's runs (above) "
+        "and other fresh noise the rise can exceed ε (a trial measured 1.7–3× ε)."
     )
 
 

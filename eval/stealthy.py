@@ -230,6 +230,7 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
     kept = attack.within_budget()
     report = {
         "against": spec.against, "threshold": tau, "train_runs": spec.train_runs,
+        "attacked_steps": scenario.steps - spec.onset + 1, "budget": attack.budget,
         "settings": {f.name: getattr(spec.settings, f.name) for f in fields(StealthySettings)},
         "iterations_within_budget": len(kept),
         "history": [{"iteration": h[0], "J": h[1], "alarm_rate": h[3]} for h in attack.history],

@@ -485,3 +485,9 @@ def test_the_same_rate_bias_says_when_no_bias_alarms_as_rarely(monkeypatch):
     )
     # a trial: the budget held on the crafting batches, not always on fresh noise
     assert "the rise can exceed it" in text and "not the strongest" in text
+    # how noisy a batch's rate is, computed (it said "about half" of ε whatever the batch):
+    # 16 runs × 80 steps at p(0) = 0.01: √(0.01 · 0.99 / 1280) = 0.00278, 0.93 of ε
+    report.update(train_runs=16, attacked_steps=80, budget=0.013)
+    text = _stealthy_section("stealthy_x", report)
+    assert "(16 runs × 80 attacked steps)" in text and "varies by about 0.0028" in text
+    assert "0.93 of ε" in text and "the rise can exceed ε" in text

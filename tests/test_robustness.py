@@ -67,7 +67,7 @@ def test_a_study_scores_every_estimator_against_every_threat_at_the_calibrated_r
     threat_set = load_threat_set(sc, path=spec)
     assert isinstance(threat_set.threats["bias"], Bias)
     assert isinstance(threat_set.threats["replay"], Replay)
-    threat_set.estimators = ESTIMATORS
+    threat_set.estimators = [*ESTIMATORS, "kf"]  # (kf: a linear model only, not run here)
     result = run_robustness(sc, threat_set, runs=20, progress=False)
     assert set(result.cells) == {"bias", "replay", "tiny"}
     for threat, row in result.cells.items():
@@ -89,6 +89,7 @@ def test_a_study_scores_every_estimator_against_every_threat_at_the_calibrated_r
     assert written["far"]["target"] == 0.01
     text = (tmp_path / "out" / "robustness.md").read_text()
     assert "tpr_at_far" in text and "| `cusum_ekf` |" in text
+    assert "Not run on this scenario: `kf` (" in text  # (a trial found it in the JSON alone)
     # each threat's false-alarm rate (a threat-set trial found it in robustness.json only)
     fpr = text.split("## False-alarm rate under each threat")[1]
     row = next(line for line in fpr.splitlines() if line.startswith("| `cusum_ekf` |"))
