@@ -478,9 +478,14 @@ def _markdown(doc: dict, sc) -> str:
     below = below_target_note(far)
     if below:
         parts.append(f"{below}\n")
-    if doc.get("skipped"):  # (a trial's threat set named `kf` on a nonlinear plant: unsaid)
+    broke = broken_down(doc.get("skipped") or {})
+    not_run = {k: v for k, v in (doc.get("skipped") or {}).items() if k not in broke}
+    if not_run:  # (a trial's threat set named `kf` on a nonlinear plant: unsaid)
         parts.append("Not run on this scenario: " + "; ".join(
-            f"`{name}` ({why})" for name, why in doc["skipped"].items()) + ".\n")  # fmt: skip
+            f"`{name}` ({why})" for name, why in not_run.items()) + ".\n")  # fmt: skip
+    if broke:
+        parts.append("Broke down on the attack-free runs (no cells): " + "; ".join(
+            f"`{name}` ({why})" for name, why in broke.items()) + ".\n")  # fmt: skip
     idle = {t: a for t, a in (doc.get("threat_activity") or {}).items() if _idle(a)}
     if idle:
         parts.append("Left out of the worst case and the acceptance, as threats that did not act "
@@ -509,7 +514,9 @@ def _markdown(doc: dict, sc) -> str:
     specs = "\n".join(f"- `{n}`: {s}{insider if insiders.get(n) else ''}"
                       for n, s in doc["threats"].items())  # fmt: skip
     parts.append(f"## Threats\n\n{specs}\n\n![robustness.png](robustness.png)\n")
-    parts += [_stealthy_section(n, r) for n, r in (doc.get("stealthy") or {}).items()]
+    parts += [
+        _stealthy_section(n, r, far["target"]) for n, r in (doc.get("stealthy") or {}).items()
+    ]
     parts += [_acceptance_section(n, a) for n, a in (doc.get("acceptance") or {}).items()]
     return "\n".join(parts)
 
@@ -630,7 +637,7 @@ def _interval_cell(interval: dict | None) -> str:
             + share_suffix(interval))  # fmt: skip
 
 
-def _stealthy_section(name: str, r: dict) -> str:
+def _stealthy_section(name: str, r: dict, far: float | None = None) -> str:
     c, b, st = r["crafted"], r["same_rate_bias"], r["settings"]
     matched = b.get("matched", True)
     bias_row = (f"constant bias {format_number(b['k_sigma'], 3)} σ (the weakest that alarms "
@@ -665,7 +672,7 @@ def _stealthy_section(name: str, r: dict) -> str:
             ],
         )  # fmt: skip
         + verdict
-        + _batch_noise_text(r)
+        + _batch_noise_text(r, far)
         + " A constant "
         "bias is the simplest yardstick, not the strongest: a ramp or a constant innovation "
         "offset at the same rate comes closer to the crafted error (docs/threats.md)."
@@ -674,25 +681,30 @@ def _stealthy_section(name: str, r: dict) -> str:
     )
 
 
-def _batch_noise_text(r: dict) -> str:
+def _batch_noise_text(r: dict, far: float | None = None) -> str:
     """How noisy the crafting's budget check is: one binomial standard deviation of a
-    training batch's alarm rate at the attack-free rate ``p(0)`` over its ``train_runs ×
+    training batch's alarm rate at the attack-free rate ``p(0)`` of its first batch (the
+    calibrated ``far`` where that batch had no alarm) over its ``train_runs ×
     attacked_steps`` steps, against the budget ``ε`` (a trial's 16 runs × 80 steps: a whole
     ε; the sentence had said "about half" whatever the batch)."""
     slack = r["settings"]["slack"]
     if r.get("budget") is None or not r.get("attacked_steps"):  # (a report of before)
-        return (" The budget is kept on the training batches, each of its own noise: on the "
-                "study's runs (above) and other fresh noise the rise can exceed it.")  # fmt: skip
+        return (" The budget is kept on the training batches, each with noise of its own: on "
+                "the study's runs (above) and other fresh noise the rise can exceed it.")  # fmt: skip
     p0 = min(max(r["budget"] - slack, 0.0), 1.0)
+    rate, which = p0, "its first batch's"
+    if p0 == 0 and far is not None:  # (no alarm on that batch: its noise is not zero)
+        rate, which = far, "the calibrated"
     steps = r["train_runs"] * r["attacked_steps"]
-    spread = math.sqrt(p0 * (1 - p0) / steps)
+    spread = math.sqrt(rate * (1 - rate) / steps)
     return (
         f" The budget is kept on each training batch ({r['train_runs']} runs × "
-        f"{r['attacked_steps']} attacked steps), whose alarm rate without attack "
-        f"({format_number(p0, 3)}) varies by about {format_number(spread, 2)} from batch to "
-        f"batch (one binomial standard deviation), {spread / slack:.2g} of ε; the iterate kept "
-        "is the best that kept the budget on its own batch, so on the study's runs (above) "
-        "and other fresh noise the rise can exceed ε (a trial measured 1.7–3× ε)."
+        f"{r['attacked_steps']} attacked steps), whose alarm rate without attack varies by "
+        f"about {format_number(spread, 2)} from batch to batch (one binomial standard "
+        f"deviation at {which} rate {format_number(rate, 3)}), {spread / slack:.2g} of ε; the "
+        "iterate kept is the best that kept the budget on its own batch, so on the study's "
+        "runs (above) and other fresh noise the rise can exceed ε (trials measured 1.5–3.1× "
+        "ε)."
     )
 
 

@@ -491,3 +491,7 @@ def test_the_same_rate_bias_says_when_no_bias_alarms_as_rarely(monkeypatch):
     text = _stealthy_section("stealthy_x", report)
     assert "(16 runs × 80 attacked steps)" in text and "varies by about 0.0028" in text
     assert "0.93 of ε" in text and "the rise can exceed ε" in text
+    # a first batch without alarms: the calibrated rate's noise, not 0 (a review)
+    report.update(budget=0.003)
+    text = _stealthy_section("stealthy_x", report, 0.01)
+    assert "varies by about 0.0028" in text and "at the calibrated rate 0.01" in text
