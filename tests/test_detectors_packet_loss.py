@@ -302,3 +302,18 @@ def test_cusum_online_step_takes_the_mask_as_detect_does():
     # a whole [T, m] mask given to one run's step grew the state to [T] (a review)
     with pytest.raises(ValueError, match=r"must be one row per run of g \(\)"):
         det.step(det.init(()), g[0, 0], mask=mask[0])
+
+
+def test_the_online_cusum_step_checks_its_mask_against_the_entries_measured():
+    """A recorded-log trial: a 2-wide mask on a 3-sensor NIS was taken as m = 2 (g + 1 for
+    one lost entry, where two were lost) without a word; ``dim=`` checks it."""
+    cusum = CusumDetector(bias=4.0, threshold=10.0)
+    state, g = cusum.init(), torch.tensor(2.0, dtype=F64)
+    _, s3, _ = cusum.step(state, g, torch.tensor([True, False, False]), dim=3)
+    assert float(s3) == 0.0  # g + 2 − b = 0
+    with pytest.raises(
+        ValueError, match=r"mask must be \[\.\.\., 3\] \(dim = 3 measured entries\)"
+    ):
+        cusum.step(state, g, torch.tensor([True, False]), dim=3)
+    _, s2, _ = cusum.step(state, g, torch.tensor([True, False]))  # no dim: its width is m
+    assert float(s2) == 0.0  # max(0, 2 + 1 − 4)

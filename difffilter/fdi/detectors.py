@@ -492,14 +492,17 @@ class CusumDetector:
         return torch.zeros(torch.Size(batch_shape), dtype=dtype, device=device)
 
     def step(
-        self, state: Tensor, g: Tensor, mask: Tensor | None = None
+        self, state: Tensor, g: Tensor, mask: Tensor | None = None, *, dim: int | None = None
     ) -> tuple[Tensor, Tensor, Tensor]:
         """``S_k = max(0, S_{k−1} + g_k − b)``; returns ``(state, S_k, alarm)``, resetting after an alarm.
 
         ``mask [..., m]`` (this step's, ``True`` where received; as
         :meth:`ChiSquareDetector.step` takes it): ``g_k`` counts each missing entry's
         mean, ``g_k + m − m_k``, as :meth:`detect` does (a recorded-log trial fed the raw NIS
-        online under packet loss and differed from ``detect`` on 3 alarms)."""
+        online under packet loss and differed from ``detect`` on 3 alarms). The CUSUM does
+        not know ``m``: the mask's width is taken for it, or checked against ``dim`` where
+        given (a 2-wide mask on 3 sensors counted one missing entry for two: a recorded-log
+        trial)."""
         if self.threshold is None:
             raise ValueError("threshold is not set: pass threshold= or call calibrate() first")
         _check_statistic(g, "g", alarm_on_inf=True)
@@ -507,7 +510,11 @@ class CusumDetector:
             mask = torch.as_tensor(mask, device=g.device)
             if mask.dim() == 0:
                 raise ValueError("mask must be [..., m]: the step's received entries")
-            # (CUSUM does not know m: the mask's width is taken for it)
+            if dim is not None and mask.shape[-1] != dim:
+                raise ValueError(
+                    f"mask must be [..., {dim}] (dim = {dim} measured entries); got "
+                    f"{tuple(mask.shape)}"
+                )
             g = missing_entries_counted(g, _step_mask(mask, g, mask.shape[-1], g.shape))
         s = torch.clamp(state + g - self.bias, min=0.0)
         alarm = s > self.threshold
