@@ -63,6 +63,11 @@ class Calibration:
             step 1 of every four-tank run and 0 on nearly every later step, so at 1 % their
             threshold is 0 and every alarm of the calibration is at step 1). Their rate over
             all steps meets the target; their rate from step 2 on is the second number.
+        at_floor: ``{estimator: share of its calibration scores at τ_α}`` where ``τ_α`` is
+            its lowest score and its rate is not below the target (nor explained by
+            start-up): it alarms wherever its score leaves its floor at all, its most
+            sensitive setting (a trial's 4-run LFC calibration gave the learned head τ = 0,
+            and its alarms were then exactly its χ² confirmation's).
     """
 
     far: float
@@ -74,6 +79,7 @@ class Calibration:
     steps: dict[str, int] = field(default_factory=dict)
     broke_down: dict[str, str] = field(default_factory=dict)
     startup: dict[str, dict] = field(default_factory=dict)
+    at_floor: dict[str, float] = field(default_factory=dict)
 
     def summary(self) -> dict:
         """The calibration as metrics.json's ``"far"`` entry (``below_target`` only where a
@@ -82,7 +88,7 @@ class Calibration:
         :data:`RESOLVED` alarms are expected on the calibration steps; ``broke_down``,
         ``{estimator: why}``, only where one broke down on the calibration runs;
         ``startup`` only where a detector's calibration alarms fall mostly at the first
-        step)."""
+        step; ``at_floor`` only where a threshold is its detector's lowest score)."""
         below = {name: {"measured_on_calibration": self.measured[name],
                         "threshold": self.thresholds[name], "tied_at_threshold": share,
                         "cause": self._cause(name)}
@@ -93,7 +99,8 @@ class Calibration:
                 **({"below_target": below} if below else {}),
                 **({"unresolved": few} if few else {}),
                 **({"broke_down": dict(self.broke_down)} if self.broke_down else {}),
-                **({"startup": dict(self.startup)} if self.startup else {})}  # fmt: skip
+                **({"startup": dict(self.startup)} if self.startup else {}),
+                **({"at_floor": dict(self.at_floor)} if self.at_floor else {})}  # fmt: skip
 
     def _cause(self, name: str) -> str:
         n = self.steps.get(name)
@@ -159,6 +166,16 @@ def below_target_note(far: dict | None) -> str | None:
             "it they alarm far less than the target and their threshold is as low as their "
             "scores allow; in a study their false alarms are mostly that first step, a larger "
             "share of the unattacked steps the earlier an attack starts."
+        )
+    floor = far.get("at_floor")
+    if floor:
+        each = "; ".join(f"`{name}` ({100 * share:.0f} % of its scores there)"
+                         for name, share in floor.items())  # fmt: skip
+        notes.append(
+            f"At their lowest score: {each}. Their threshold is the floor of their scores, so "
+            "they alarm wherever the score leaves it at all, their most sensitive setting; "
+            "the rate they meet is what that gives, not a threshold chosen among their "
+            "scores (more calibration runs may lift it off the floor)."
         )
     for name, why in (far.get("broke_down") or {}).items():
         notes.append(f"`{name}` has no threshold: it broke down on the attack-free calibration "
@@ -234,7 +251,7 @@ def calibrate(
         label=f"{scenario.name}: calibrating at {far:g} (attack-free runs)",
         detector_seed=seed, detector_runs=study_runs,  # the study's detectors (a CUSUM's τ)
     )  # fmt: skip
-    thresholds, measured, tied, steps, startup = {}, {}, {}, {}, {}
+    thresholds, measured, tied, steps, startup, floor = {}, {}, {}, {}, {}, {}
     for name, out in result.outputs.items():
         if out.detection is None or out.detection.scores is None:
             continue
@@ -249,8 +266,10 @@ def calibrate(
         transient = _startup(out.detection.scores, thresholds[name])
         if transient is not None:
             startup[name] = transient
+        elif name not in tied and (share := _at_floor(scores, thresholds[name])) is not None:
+            floor[name] = share
     calibration = Calibration(far, runs, cal_seed, thresholds, measured, tied, steps,
-                              broken_down(result.skipped), startup)  # fmt: skip
+                              broken_down(result.skipped), startup, floor)  # fmt: skip
     if tied:  # (from Python the note was in summary() alone: a teaching trial read "0.0" as
         # "detects nothing")
         below = calibration.summary()
@@ -276,6 +295,15 @@ def _startup(scores: torch.Tensor, threshold: float) -> dict | None:
         return None
     return {"alarms_at_first_step": share,
             "rate_after_first_step": float(alarms[:, 1:].double().mean())}  # fmt: skip
+
+
+def _at_floor(scores: torch.Tensor, threshold: float) -> float | None:
+    """The share of the calibration ``scores`` (flat, NaN as ``−∞``) equal to ``threshold``
+    where it is their lowest finite score, else ``None``."""
+    finite = scores[torch.isfinite(scores)]
+    if not finite.numel() or threshold != float(finite.min()):
+        return None
+    return float((scores == threshold).double().mean())
 
 
 def alarms_at(scores: torch.Tensor, threshold: float) -> torch.Tensor:

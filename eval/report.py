@@ -567,7 +567,10 @@ def write_acceptance_summary(out: str | Path, docs: dict[str, dict]) -> Path | N
         "share of resamples of the runs in which the check holds (`difffilter.eval.intervals`). "
         "Each scenario's `report.md` has the bests and the intervals. Trained: from a "
         "checkpoint (trained offline, the network the evaluation was given or the shipped "
-        "one), or online (a network that learns during the run, as the LFC paper's own).\n\n"
+        "one), or online (a network that learns during the run, as the LFC paper's own). "
+        "A — is a check that does not apply: an attack column without an analytic attack "
+        "estimate to compare with (the LFC's analytic estimators estimate none on the "
+        "measured states), or a metric the study does not have.\n\n"
         + markdown_table(["scenario", "learned", "trained", *columns, "every check"], rows)
     )
     return path

@@ -493,3 +493,23 @@ def test_a_detector_that_spends_its_rate_at_start_up_is_named():
     assert cal.startup["normal_pf"]["rate_after_first_step"] == 0.0
     # 1 step in 40 alarms: exactly half the 5 % target, below it (the trial's 1.00 % at 2 %)
     assert cal.measured["normal_pf"] == 0.025 and set(cal.tied) == {"normal_pf"}
+
+
+def test_a_threshold_at_the_lowest_score_is_named():
+    """An LFC trial: on 4 calibration runs the learned head's threshold was 0, its lowest
+    score, so it alarmed wherever its score was above 0 at all (exactly its χ²
+    confirmation's alarms), and nothing said so: the calibration names such a detector."""
+    from difffilter.eval.calibration import Calibration, _at_floor, below_target_note
+
+    head = torch.zeros(1000, dtype=torch.float64)
+    head[:9] = 0.4  # 0.9 % of the steps above the floor
+    assert _at_floor(head, float(threshold_for(head, 0.01))) == pytest.approx(0.991)
+    chi = torch.rand(1000, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    assert _at_floor(chi, float(threshold_for(chi, 0.01))) is None
+    nan_first = torch.cat([torch.full((5,), -math.inf, dtype=torch.float64), head])
+    assert _at_floor(nan_first, 0.0) == pytest.approx(991 / 1005)  # (NaN: no score, −∞)
+    summary = Calibration(0.01, 4, 0, thresholds={"kf_nn_grad": 0.0}, measured={"kf_nn_grad": 0.009},
+                          at_floor={"kf_nn_grad": 0.991}).summary()  # fmt: skip
+    assert summary["at_floor"] == {"kf_nn_grad": 0.991}
+    note = below_target_note(summary)
+    assert "At their lowest score: `kf_nn_grad` (99 % of its scores there)" in note

@@ -139,14 +139,18 @@ def _sections(result, doc: dict, out: Path, prepared=None) -> list[Section]:
         "the uncompensated loop gated by its χ² or CUSUM test on the innovations (a 1 % "
         "false-alarm rate [DEF]; alarmed measurements are not used). Per-step rates are "
         "strict: estimates that settle after an attack ends, or leak onto other channels, "
-        "count as false alarms. The CUSUM score is its statistic without resets, which "
-        "stays high long after an attack (AUC near 0.5 when attacks recur).\n"
+        "count as false alarms. The CUSUM score is its online statistic, reset to 0 after "
+        "each alarm at its own τ (calibrated on the study seed's attack-free runs at the "
+        "same rate): it stays high while an attack keeps raising it.\n"
     )
     if est.get("kf_nn_grad", {}).get("auc_prob") is not None:
         g = est["kf_nn_grad"]
         det += (
-            f"\n`kf_nn_grad`'s attack-probability head (alarm at p > 0.5): TPR {f(g['tpr_prob'])}, "
-            f"FPR {f(g['fpr_prob'])}, AUC {f(g['auc_prob'])}.\n"
+            f"\n`kf_nn_grad`'s attack-probability head alone (alarm at p > 0.5): TPR "
+            f"{f(g['tpr_prob'])}, FPR {f(g['fpr_prob'])}, AUC {f(g['auc_prob'])}. The table "
+            "judges `kf_nn_grad` by its detection score instead: the head's p where its χ² "
+            "confirmation alarms, 0 elsewhere, at the calibrated threshold (so its alarms "
+            "are a subset of that χ² test's).\n"
         )
     sections = [
         Section("Table I — attack-estimate RMSE (eq. 43)", t1),
