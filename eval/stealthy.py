@@ -120,34 +120,20 @@ def estimator_step(scenario, name: str, *, runs: int, seed: int = 0, checkpoint=
     one), for a loop of one's own (:func:`difffilter.loop.closed_loop`'s ``estimator``):
     ``runs`` and ``seed`` those of the study whose draws it takes (a CUSUM's calibration,
     the particle filters' common random numbers)."""
-    if name not in (*GATED, "normal_pf", *LEARNED):  # (detector_step's words are a crafting's)
-        lfc = (
-            "; the LFC's learned estimators (kf_nn_*) run inside the LFC closed loop with its "
-            "controller only: run them in a study, run_suite(scenario.with_threat(attack)) or "
-            "`difffilter-eval lfc_step --ckpt FILE`"
-            if name.startswith("kf_nn")
-            else ""
-        )
-        raise ValueError(
-            f"estimator_step has no step object for {name!r}: it builds a gated Gaussian filter "
-            f"({', '.join(GATED)}), normal_pf or a learned estimator of a PF or Gaussian family "
-            f"({', '.join(LEARNED)}){lfc}"
-        )
-    try:
-        return detector_step(_context(scenario, runs, seed, checkpoint), name)
-    except ValueError as err:  # (a learned estimator whose checkpoint does not fit: its why)
-        raise ValueError(
-            str(err).replace("cannot craft against", "no step object for", 1)
-        ) from None
+    return detector_step(
+        _context(scenario, runs, seed, checkpoint), name, refused="no step object for"
+    )
 
 
-def detector_step(ctx: SuiteContext, against: str):
+def detector_step(ctx: SuiteContext, against: str, *, refused: str = "cannot craft against"):
     """``(estimator, start)``: the step object of the detector ``against`` and its starting
     carry ``start(runs)`` (``None``: the estimator's own ``init``). A registered gated
     Gaussian filter (``chi_square_ekf``, ``cusum_kf``, …), the bootstrap particle filter with
     the probability-of-attack detector (``normal_pf``: the statistic is β_k) or a learned
     estimator (``pf_nn_grad``, …: the statistic is its detection head's probability). The
-    particle filters start from the study's common random numbers, as in the suite."""
+    particle filters start from the study's common random numbers, as in the suite.
+    ``refused``: how an error begins for a name it cannot build (a crafting's words by
+    default; :func:`estimator_step`'s "no step object for")."""
     if against in GATED:
         return gated_estimator(ctx, against), None
     if against == "normal_pf":
@@ -165,10 +151,17 @@ def detector_step(ctx: SuiteContext, against: str):
         try:
             return learned_step(ctx, against)
         except SkipEstimator as err:
-            raise ValueError(f"cannot craft against {against!r}: {err}") from None
+            raise ValueError(f"{refused} {against!r}: {err}") from None
+    lfc = (
+        "; the LFC's learned estimators (kf_nn_*) run inside the LFC closed loop with its "
+        "controller only: run them in a study, run_suite(scenario.with_threat(attack)) or "
+        "`difffilter-eval lfc_step --ckpt FILE`"
+        if against.startswith("kf_nn")
+        else ""
+    )
     raise ValueError(
-        f"cannot craft against {against!r}: not a gated Gaussian filter ({', '.join(GATED)}), "
-        f"normal_pf nor a learned estimator ({', '.join(LEARNED)})"
+        f"{refused} {against!r}: not a gated Gaussian filter ({', '.join(GATED)}), "
+        f"normal_pf nor a learned estimator ({', '.join(LEARNED)}){lfc}"
     )
 
 

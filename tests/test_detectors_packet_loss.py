@@ -311,9 +311,17 @@ def test_the_online_cusum_step_checks_its_mask_against_the_entries_measured():
     state, g = cusum.init(), torch.tensor(2.0, dtype=F64)
     _, s3, _ = cusum.step(state, g, torch.tensor([True, False, False]), dim=3)
     assert float(s3) == 0.0  # g + 2 − b = 0
+    with pytest.raises(ValueError, match=r"mask must broadcast to \(3,\); got \(2,\)"):
+        cusum.step(state, g, torch.tensor([True, False]), dim=3)
     with pytest.raises(
         ValueError, match=r"mask must be \[\.\.\., 3\] \(dim = 3 measured entries\)"
     ):
-        cusum.step(state, g, torch.tensor([True, False]), dim=3)
+        cusum.step(state, g, torch.tensor([True]), dim=3)
     _, s2, _ = cusum.step(state, g, torch.tensor([True, False]))  # no dim: its width is m
     assert float(s2) == 0.0  # max(0, 2 + 1 − 4)
+    # a one-wide mask broadcast to the χ² test's 3 entries had counted 1 or 0 received
+    chi = ChiSquareDetector(3, 0.01)
+    with pytest.raises(
+        ValueError, match=r"mask must be \[\.\.\., 3\] \(dim = 3 measured entries\)"
+    ):
+        chi.step(chi.init(()), g, torch.tensor([True]))

@@ -205,6 +205,6 @@ def test_estimator_step_is_the_registered_detector_of_the_study(name):
     assert torch.equal(out.detection.alarms, expected.detection.alarms)
     # the LFC's learned estimator has no step object: said so (a closed-loop trial was told
     # "cannot craft against", and crafted nothing)
-    with pytest.raises(ValueError, match=r"estimator_step has no step object for 'kf_nn_grad'.*"
-                       r"LFC closed loop"):  # fmt: skip
+    with pytest.raises(ValueError, match=r"no step object for 'kf_nn_grad': not a gated Gaussian "
+                       r"filter.*LFC closed loop"):  # fmt: skip
         estimator_step(registry.get("lfc_step"), "kf_nn_grad", runs=2)

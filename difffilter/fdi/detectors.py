@@ -510,12 +510,8 @@ class CusumDetector:
             mask = torch.as_tensor(mask, device=g.device)
             if mask.dim() == 0:
                 raise ValueError("mask must be [..., m]: the step's received entries")
-            if dim is not None and mask.shape[-1] != dim:
-                raise ValueError(
-                    f"mask must be [..., {dim}] (dim = {dim} measured entries); got "
-                    f"{tuple(mask.shape)}"
-                )
-            g = missing_entries_counted(g, _step_mask(mask, g, mask.shape[-1], g.shape))
+            width = mask.shape[-1] if dim is None else dim
+            g = missing_entries_counted(g, _step_mask(mask, g, width, g.shape))
         s = torch.clamp(state + g - self.bias, min=0.0)
         alarm = s > self.threshold
         return torch.where(alarm, torch.zeros_like(s), s), s, alarm
@@ -583,6 +579,10 @@ def _step_mask(mask, g: Tensor, dim: int, runs: torch.Size) -> Tensor:
     the state (``runs``; a whole ``[T, m]`` mask given to one run's step) grew the state
     without a word."""
     mask = check_mask(mask, "mask", g.shape + (dim,))
+    if mask.shape[-1] != dim:  # (a [..., 1] mask broadcast, and its sum counted 1 of m)
+        raise ValueError(
+            f"mask must be [..., {dim}] (dim = {dim} measured entries); got {tuple(mask.shape)}"
+        )
     if _broadcast_shape(mask.shape[:-1], runs) != runs:
         raise ValueError(
             f"mask [..., {dim}] must be one row per run of g {tuple(g.shape)} (or broadcast "
