@@ -58,6 +58,7 @@ class StealthySpec:
     onset: int = 1
     entries: tuple[int, ...] | None = None
     train_runs: int = 64
+    selection_runs: int = 256
     settings: StealthySettings = field(default_factory=StealthySettings)
 
     def __post_init__(self):
@@ -68,7 +69,7 @@ class StealthySpec:
         if self.against not in craftable:
             raise ValueError(f"against must be a detector to craft against: one of "
                              f"{', '.join(craftable)}; got {self.against!r}")  # fmt: skip
-        for name in ("onset", "train_runs"):
+        for name in ("onset", "train_runs", "selection_runs"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
@@ -192,9 +193,9 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
     streams = Streams(seed)
     free = scenario.with_threat(None)
 
-    def batch(it: int):
+    def batch(it, runs: int = spec.train_runs):
         gens = streams.simulation(f"stealthy/{name}/{it}/")
-        tr = free.simulate(spec.train_runs, gens, model=ctx.model)
+        tr = free.simulate(runs, gens, model=ctx.model)
         # the inputs and receptions the detector gets in the study (without them a filter
         # of a plant with known inputs alarmed on 49–73 % of its attack-free steps in a
         # threat-model trial, and the crafted attack on 47 % of the study's attacked steps)
@@ -215,7 +216,7 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
             estimator, ctx.model, ys, xs, tau, far=calibration.far, us=us, mask=mask,
             onset=spec.onset,
             entries=spec.entries, settings=spec.settings, start=start, resample=batch,
-            progress=advance,
+            select=batch("selection", spec.selection_runs), progress=advance,
         )  # fmt: skip
     bar.close()
     # the budget the crafting kept, p(0) + ε on the attack-free batch (not the first
@@ -225,7 +226,7 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
         "against": spec.against, "threshold": tau, "train_runs": spec.train_runs,
         "attacked_steps": scenario.steps - spec.onset + 1, "budget": attack.budget,
         "settings": {f.name: getattr(spec.settings, f.name) for f in fields(StealthySettings)},
-        "iterations_within_budget": len(kept),
+        "iterations_within_budget": len(kept), "selection": attack.selection,
         "history": [{"iteration": h[0], "J": h[1], "alarm_rate": h[3]} for h in attack.history],
     }  # fmt: skip
     return attack, report

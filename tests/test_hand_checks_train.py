@@ -11,6 +11,7 @@ import types
 import warnings
 
 import numpy as np
+import pytest
 import torch
 from scipy.stats import chi2, kstest
 
@@ -312,7 +313,7 @@ def test_a_crafted_attack_flags_every_step_from_its_onset_on():
 
 def test_the_first_crafting_iterate_is_the_bias_and_its_history_row_is_j_and_the_rates():
     """The first iterate is ``init·σ`` from the onset on; ``history[0] = (0, J(a), p̃(a) −
-    p̃(0), p(a))`` with ``J`` the mean squared error over runs and attacked steps, ``p̃`` the
+    p̃(0), p(a), p(0) + ε)`` with ``J`` the mean squared error over runs and attacked steps, ``p̃`` the
     mean of ``σ((s − τ)/t)`` (``t`` = temperature × std of the attack-free attacked scores)
     and ``p`` the alarm rate, all recomputed with open_loop (the ``p̃(0)`` subtracted in the
     history was unpinned)."""
@@ -337,13 +338,14 @@ def test_the_first_crafting_iterate_is_the_bias_and_its_history_row_is_j_and_the
     J0 = float((attacked.means - xs).square().sum(-1)[:, on].mean())
     p0 = float((free[:, on] > tau).double().mean())
     p1 = float((attacked.detection.scores[:, on] > tau).double().mean())
-    it, J, dp, rate = c.history[0]
+    it, J, dp, rate, budget = c.history[0]
     assert it == 0, it
     assert abs(J - J0) < 1e-12 * max(1.0, J0), f"J(a0) {J} != {J0}"
     want = smoothed(attacked.detection.scores) - smoothed(free)
     assert abs(dp - want) < 1e-9, f"p̃(a0) − p̃(0) {dp} != {want}"
     assert rate == p1, f"p(a0) {rate} != {p1}"
     assert abs(c.budget - (p0 + s.slack)) < 1e-15, f"budget {c.budget} != p(0) + ε"
+    assert budget == c.budget, f"the row's budget {budget} != the first batch's {c.budget}"
 
 
 def test_an_iterate_whose_alarm_rate_equals_the_budget_is_kept():
@@ -370,6 +372,73 @@ def test_an_iterate_whose_alarm_rate_equals_the_budget_is_kept():
     assert torch.allclose(c.values, a0, rtol=0, atol=1e-15), (
         f"the iterate at the budget was not kept: {c.values[-1].tolist()}"
     )
+
+
+def test_a_held_out_batch_chooses_the_attack_and_one_that_breaks_the_budget_there_is_none():
+    """``select``: the iterates within budget on their own batch are judged on the held-out
+    batch, its budget its own ``p(0) + ε``; the one returned keeps it there. With the bias
+    of the test above (kept, ``p(a)`` = budget): judged on its own runs it is kept, with
+    ``(iteration, J, p(a))`` recomputed; judged on one run where it alarms and the
+    attack-free run does not (a rise of 1 > ε) nothing is kept: zeros, and a warning."""
+    from difffilter.loop import open_loop
+    from difffilter.stealthy import StealthySettings, craft_stealthy_attack
+
+    plant, est, xs, ys = _stealthy_setup()
+    T = 6
+    a0 = _bias(T, T, math.sqrt(1e-3))
+    f = open_loop(est, plant, ys).detection.scores[:, -1]
+    attacked = open_loop(est, plant, ys + a0)
+    s = attacked.detection.scores[:, -1]
+    found = [(tau, int((f > tau).sum()), int((s > tau).sum()))
+             for tau in sorted(torch.cat([f, s]).tolist())]  # fmt: skip
+    tau, c0, c1 = next(x for x in found if x[2] > x[1])
+    settings = StealthySettings(iterations=1, slack=(c1 - c0) / 4)
+
+    def craft(select):
+        return craft_stealthy_attack(est, plant, ys, xs, tau, far=0.01, onset=T,
+                                     settings=settings, select=select)  # fmt: skip
+
+    c = craft((ys, xs))
+    J = float((attacked.means - xs).square().sum(-1)[:, -1].mean())
+    ((it, Jsel, rate),) = c.selection["judged"]
+    assert (it, rate, c.selection["iteration"], c.selection["runs"]) == (0, c1 / 4, 0, 4)
+    assert abs(Jsel - J) < 1e-12 * J, (Jsel, J)
+    assert c.selection["budget"] == c0 / 4 + settings.slack
+    assert torch.allclose(c.values, a0, rtol=0, atol=1e-15)
+    r = int(((s > tau) & (f <= tau)).nonzero()[0])
+    with pytest.warns(RuntimeWarning, match="none of the 1 iterates"):
+        c = craft((ys[r : r + 1], xs[r : r + 1]))
+    assert c.selection["iteration"] is None and c.selection["judged"][0][2] == 1.0
+    assert c.selection["budget"] == settings.slack
+    assert torch.equal(c.values, torch.zeros(T, 2, dtype=F64))
+    # a held-out batch that cannot be one is named before the crafting runs
+    for bad, why in [(ys, "got Tensor"), ((ys, xs, None), "got 3 items"),
+                     ((ys, xs[:, :3]), "select: xs must hold"),
+                     ((ys[:, :3], xs[:, :3]), "span the training batch's 6 steps; got 3")]:  # fmt: skip
+        with pytest.raises(ValueError, match=why):
+            craft(bad)
+
+
+def test_each_iterate_is_held_to_its_own_batchs_attack_free_rate():
+    """With ``resample`` the budget of iterate k is ``p(0) + ε`` of the batch it ran on
+    (its last history entry), recomputed here for the second batch; it had been the first
+    batch's for every iterate."""
+    from difffilter.loop import open_loop
+    from difffilter.stealthy import StealthySettings, craft_stealthy_attack
+
+    plant, est, xs, ys = _stealthy_setup()
+    xs2, ys2, _ = plant.simulate(6, (4,), generator=torch.Generator().manual_seed(11))
+    T, onset = 6, 3
+    on = torch.arange(1, T + 1) >= onset
+    tau = float(open_loop(est, plant, ys2).detection.scores[:, on].median())
+    rates = [float((open_loop(est, plant, y).detection.scores[:, on] > tau).double().mean())
+             for y in (ys, ys2)]  # fmt: skip
+    assert rates[0] != rates[1], "(setup) the two batches alarm alike"
+    c = craft_stealthy_attack(est, plant, ys, xs, tau, far=0.01, onset=onset,
+                              settings=StealthySettings(iterations=2, slack=0.01),
+                              resample=lambda it: (ys2, xs2))  # fmt: skip
+    assert [h[4] for h in c.history] == [rates[0] + 0.01, rates[1] + 0.01]
+    assert c.budget == rates[0] + 0.01
 
 
 # -- train/adversarial.py -----------------------------------------------------------------

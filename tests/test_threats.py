@@ -488,7 +488,7 @@ def test_an_attacker_crafts_against_a_particle_filter_on_draws_of_its_own(monkey
 
     def fake_craft(estimator, model, ys, xs, tau, *, start, **kwargs):
         captured["start"] = start
-        return SimpleNamespace(within_budget=lambda: [], history=[], budget=0.0)
+        return SimpleNamespace(within_budget=lambda: [], history=[], budget=0.0, selection=None)
 
     monkeypatch.setattr(stealthy, "craft_stealthy_attack", fake_craft)
     calibration = SimpleNamespace(thresholds={"normal_pf": 0.5}, far=0.01)
