@@ -4,7 +4,8 @@ A threat set entry ``{kind: stealthy, against: chi_square_ekf, onset: 21, ...}``
 when the study runs (:func:`craft_threat`): :func:`difffilter.stealthy.craft_stealthy_attack`
 through the named detector's own step object (a registered gated Gaussian filter), with
 its threshold from the study's calibration (attack-free runs of their own seed), on
-training runs drawn afresh at every iteration from the stream ``stealthy/<name>/<it>``.
+training runs drawn afresh at every iteration from the stream ``stealthy/<name>/<it>``,
+and chosen on held-out runs from ``stealthy/<name>/selection`` (``selection_runs``).
 The study then judges the crafted attack on its own runs like any threat, and
 :func:`same_rate_bias` finds the constant bias (``k σ`` on the same entries) that makes the
 detector alarm as often, for the comparison the report states.
@@ -169,8 +170,9 @@ def detector_step(ctx: SuiteContext, against: str, *, refused: str = "cannot cra
 def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: int,
                  checkpoint=None, progress: bool = False):  # fmt: skip
     """The crafted attack of threat ``name`` and what to report of its crafting:
-    ``(attack, {"against", "threshold", "settings", "train_runs", "iterations_kept",
-    "history"})``."""
+    ``(attack, {"against", "threshold", "train_runs", "attacked_steps", "budget" (the first
+    batch's p(0) + ε), "settings", "iterations_within_budget", "selection" (how the attack
+    was chosen on the held-out runs), "history"})``."""
     broke = getattr(calibration, "broke_down", {})  # (a Calibration's; a stand-in may lack it)
     if spec.against in broke:
         raise ValueError(
@@ -219,8 +221,8 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
             select=batch("selection", spec.selection_runs), progress=advance,
         )  # fmt: skip
     bar.close()
-    # the budget the crafting kept, p(0) + ε on the attack-free batch (not the first
-    # iterate's rate, which already carries the starting bias)
+    # the budgets are each batch's attack-free p(0) + ε (not the first iterate's rate, which
+    # already carries the starting bias); "budget" is the first batch's
     kept = attack.within_budget()
     report = {
         "against": spec.against, "threshold": tau, "train_runs": spec.train_runs,

@@ -496,14 +496,21 @@ def test_the_same_rate_bias_says_when_no_bias_alarms_as_rarely(monkeypatch):
     text = _stealthy_section("stealthy_x", report, 0.01)
     assert "varies by about 0.0028" in text and "at the calibrated rate 0.01" in text
     assert "the one of largest error was kept" in text  # (a report without a selection)
-    # chosen on held-out runs: a rise of ε = 0.003 over 256 runs × 80 steps varies by
-    # √(0.003 · 0.997 / 20480) = 3.8e-04, 0.13 of ε; the chosen iterate and its rate named
+    # chosen on held-out runs: the study's own noise, a rise of ε = 0.003 over its 100 runs ×
+    # 80 steps, √(0.003 · 0.997 / 8000) = 6.1e-04, 0.2 of ε; the chosen iterate and its rate
     report["selection"] = {"runs": 256, "budget": 0.0131, "iteration": 41,
                            "judged": [[50, 2.0, 0.0135], [41, 1.9, 0.0129]]}  # fmt: skip
     text = _stealthy_section("stealthy_x", report, 0.01)
-    assert "held to its own batch's attack-free rate" in text and "0.13 of ε" in text
-    assert "varies by about 3.8e-04" in text and "(256 runs × 80 attacked steps)" in text
+    assert "carry noise of their own." in text and "varies by" not in text  # (no study size)
+    report["study_runs"] = 100
+    text = _stealthy_section("stealthy_x", report, 0.01)
+    assert "held to its own batch's attack-free rate" in text and "(0.2 of ε;" in text
+    assert "varies by at least 6.1e-04" in text and "100 runs × 80 attacked steps" in text
     assert "iterate 41 (the 2nd judged) kept it there (alarm rate 0.0129 against 0.0131)" in text
     report["selection"].update(iteration=None)
     text = _stealthy_section("stealthy_x", report, 0.01)
     assert "none of the 2 of largest error judged on 256 held-out runs kept it" in text
+    assert "No attack kept the budget" in text and "about ε" not in text
+    report["selection"].update(judged=[])  # (a review: "none of the 0 … judged")
+    text = _stealthy_section("stealthy_x", report, 0.01)
+    assert "kept the budget on their own batch, so the attack is zero" in text

@@ -417,6 +417,16 @@ def test_a_held_out_batch_chooses_the_attack_and_one_that_breaks_the_budget_ther
                      ((ys[:, :3], xs[:, :3]), "span the training batch's 6 steps; got 3")]:  # fmt: skip
         with pytest.raises(ValueError, match=why):
             craft(bad)
+    # a training batch with receptions: held-out runs without their own would be judged
+    # without them (a review: a plant's known inputs dropped so, 95.9 % attack-free alarms
+    # and a held-out budget of 1.01)
+    received = torch.ones_like(ys, dtype=torch.bool)
+    with pytest.raises(ValueError, match=r"select must be \(ys, xs, us, mask\).*has mask"):
+        craft_stealthy_attack(est, plant, ys, xs, tau, far=0.01, onset=T, settings=settings,
+                              mask=received, select=(ys, xs))  # fmt: skip
+    c = craft_stealthy_attack(est, plant, ys, xs, tau, far=0.01, onset=T, settings=settings,
+                              mask=received, select=(ys, xs, None, received))  # fmt: skip
+    assert c.selection["iteration"] == 0
 
 
 def test_each_iterate_is_held_to_its_own_batchs_attack_free_rate():

@@ -73,8 +73,8 @@ def test_the_crafted_attack_acts_only_in_its_window(crafted):
     assert torch.equal(attack.values[: ONSET - 1], torch.zeros(ONSET - 1, 2, dtype=F64))
     assert attack.values[ONSET - 1 :].abs().sum() > 0
     assert len(attack.history) == 150
-    # the budget it kept: the attack-free training batch's hard alarm rate plus ε (not the
-    # first iterate's rate, which carries the starting bias)
+    # the first batch's budget: its attack-free hard alarm rate plus ε (not the first
+    # iterate's rate, which carries the starting bias); later rows hold their own batch's
     estimator, tau, _ = crafted
     out = open_loop(estimator, _plant(), _runs(32, 2).y_true)
     on = torch.arange(1, T + 1) >= ONSET
