@@ -659,7 +659,7 @@ def _stealthy_section(name: str, r: dict, far: float | None = None) -> str:
         f"Crafted by gradient through `{r['against']}` (its threshold τ = "
         f"{format_number(r['threshold'], 4)} at the calibrated rate) to maximise the "
         "estimation error while the alarm rate over the attacked steps rises by at most "
-        f"{100 * st['slack']:g} points on the training runs: Adam, {st['iterations']} "
+        f"{100 * st['slack']:g} points over the same runs without attack: Adam, {st['iterations']} "
         f"iterations at lr {st['lr']} (σ per step), {r['train_runs']} fresh training runs per "
         f"iteration, sigmoid temperature {st['temperature']}, penalty {st['penalty']}; "
         f"{r['iterations_within_budget']} iterates kept the budget on their own batch"
