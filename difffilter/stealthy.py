@@ -24,12 +24,13 @@ whole-sequence run (:func:`difffilter.loop.open_loop`)::
 The objective is ``log J``: its gradient ``∇J / J`` keeps one scale however far the error
 grows, so the penalty keeps its weight. (It had been ``J/J₀``, ``J₀`` the first iterate's:
 once the error grew 10–350× the penalty was swamped and about half the late iterates broke
-the budget on their own batch; with ``log J`` 8–21 % on four_tank_bias, seeds 0–3.) With a fresh
-training batch at every iteration (``resample``) both ``p̃(0)`` and ``p(0)`` are that
-batch's own attack-free rates, so the batch's noise cancels in the difference (the budget
-had been the first batch's ``p(0)``: a first batch with a lucky attack-free rate gave every
-later iterate more room). An iterate *keeps the budget* where its hard alarm rate on its
-batch is ``p(a) ≤ p(0) + ε`` (the smoothed rate guides the gradient; the hard one decides).
+the budget on their own batch; with ``log J`` 8–21 % on four_tank_bias, seeds 0–3.) With a
+fresh training batch at every iteration (``resample``) both ``p̃(0)`` and ``p(0)`` are
+that batch's own attack-free rates, so the batch's noise cancels in the difference (the
+budget had been the first batch's ``p(0)``: a first batch with a lucky attack-free rate
+gave every later iterate more room). An iterate *keeps the budget* where its hard alarm
+rate on its batch is ``p(a) ≤ p(0) + ε`` (the smoothed rate guides the gradient; the hard
+one decides).
 
 The attack returned is chosen on a held-out batch (``select``) where one is given: the
 iterates that kept the budget, in order of decreasing ``J``, are judged on it (at most
@@ -163,14 +164,16 @@ class CraftedAttack(TabulatedAttack):
 
     def within_budget(self) -> list:
         """The ``history`` rows of the iterates that kept the alarm budget on their own
-        batch (rate ≤ the row's budget, else :attr:`budget`; every row without either).
+        batch (rate ≤ the row's budget, else :attr:`budget`; every row without either) with a
+        finite J.
         Without a held-out selection :attr:`values` is the best of them by J, zeros where
         there is none."""
 
         def budget(h):
             return h[4] if len(h) > 4 else self.budget
 
-        return [h for h in self.history if budget(h) is None or _keeps_budget(h[3], budget(h))]
+        return [h for h in self.history if math.isfinite(h[1])
+                and (budget(h) is None or _keeps_budget(h[3], budget(h)))]  # fmt: skip
 
     def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
         if tuple(self.values.shape) != (num_steps, dim):

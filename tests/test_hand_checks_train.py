@@ -429,6 +429,18 @@ def test_a_held_out_batch_chooses_the_attack_and_one_that_breaks_the_budget_ther
     assert c.selection["iteration"] == 0
 
 
+def test_within_budget_reads_each_rows_budget_and_never_a_non_finite_error():
+    """``within_budget``: a row of five holds its own budget, a row of four (a history of
+    before) is held to ``budget``; a row whose J is not finite is never within (NaN scores
+    count as no alarm, so such an iterate would pass the rate check; a review)."""
+    from difffilter.stealthy import CraftedAttack
+
+    rows = [(0, 1.0, 0.0, 0.03, 0.04), (1, 2.0, 0.0, 0.03, 0.02), (2, math.nan, 0.0, 0.0, 0.02),
+            (3, 3.0, 0.0, 0.025), (4, 4.0, 0.0, 0.01)]  # fmt: skip
+    c = CraftedAttack(torch.zeros(3, 1, dtype=F64), 1, rows, budget=0.02)
+    assert [h[0] for h in c.within_budget()] == [0, 4]
+
+
 def test_each_iterate_is_held_to_its_own_batchs_attack_free_rate():
     """With ``resample`` the budget of iterate k is ``p(0) + ε`` of the batch it ran on
     (its last history entry), recomputed here for the second batch; it had been the first
