@@ -75,32 +75,62 @@ def _check_batch(model, ys, xs) -> None:
         )
 
 
-def _held_out(model, select, T: int, us, mask) -> tuple:
-    """``select`` as ``(ys, xs, us, mask)``: a batch of ``model``'s sizes over the same ``T``
-    steps as the training batch (the attack is one table of ``T`` rows), with inputs and
-    receptions of its own where the training batch has them (``us``, ``mask``): a filter
-    stepped without a plant's known inputs alarms on most steps, and the held-out budget
-    then bounds nothing (a review: 95.9 % against 1.6 %, a budget of 1.01)."""
-    sized = isinstance(select, (tuple, list))
-    if not sized or len(select) not in (2, 4):
-        got = f"{len(select)} items" if sized else type(select).__name__
+def _batch_of(name: str, batch, model, T: int, us, mask, *, reuse: bool = False) -> tuple:
+    """A batch given as ``(ys, xs)`` or ``(ys, xs, us, mask)`` (``name``: ``select`` or what
+    ``resample`` returned) as ``(ys, xs, us, mask)``: of ``model``'s sizes over the training
+    batch's ``T`` steps (the attack is one table of ``T`` rows), with inputs and receptions
+    where the training batch has them (``us``, ``mask``) and none where it has none: a
+    filter stepped without a plant's known inputs alarms on most steps, and the budget then
+    bounds nothing (a review: 95.9 % against 1.6 %, a held-out budget of 1.01).
+    ``reuse``: a pair keeps the training batch's ``us`` and ``mask`` (``resample``'s
+    documented form, for runs of the same number)."""
+    sized = isinstance(batch, (tuple, list))
+    if not sized or len(batch) not in (2, 4):
+        got = f"{len(batch)} items" if sized else type(batch).__name__
+        raise ValueError(f"{name} must be a batch (ys, xs) or (ys, xs, us, mask); got {got}")
+    given = [n for n, t in (("us", us), ("mask", mask)) if t is not None]
+    if len(batch) == 2 and given and not reuse:
         raise ValueError(
-            f"select must be a held-out batch (ys, xs) or (ys, xs, us, mask); got {got}"
+            f"{name} must be (ys, xs, us, mask): the training batch has {' and '.join(given)}, "
+            "and these runs need their own (None where the training batch has none)"
         )
-    if len(select) == 2 and (us is not None or mask is not None):
-        given = " and ".join(n for n, t in (("us", us), ("mask", mask)) if t is not None)
-        raise ValueError(
-            f"select must be (ys, xs, us, mask): the training batch has {given}, and the "
-            "held-out runs need their own (None where the training batch has none)"
-        )
-    ys, xs, us, mask = (*select, None, None)[:4]
+    ys, xs, *known = batch
+    if known:
+        for n, train, own in zip(("us", "mask"), (us, mask), known):
+            if (train is None) != (own is None):
+                has = ("has none", f"gives {n}") if train is None else ("has one", f"gives no {n}")
+                raise ValueError(
+                    f"{name} {has[1]} where the training batch {has[0]}: give both batches the "
+                    "same (a filter without the plant's known inputs alarms on most steps)"
+                )
+        us, mask = known
     try:
         _check_batch(model, ys, xs)
     except ValueError as err:
-        raise ValueError(f"select: {err}") from None
+        raise ValueError(f"{name}: {err}") from None
     if ys.shape[1] != T:
-        raise ValueError(f"select must span the training batch's {T} steps; got {ys.shape[1]}")
+        raise ValueError(f"{name} must span the training batch's {T} steps; got {ys.shape[1]}")
     return ys, xs, us, mask
+
+
+def _warn_far_off(rate: float, steps: int, far: float, threshold: float) -> None:
+    """Warn where the first batch's attack-free alarm rate ``p(0)`` over its ``steps``
+    attacked (run, step) pairs is far from the false-alarm rate ``far`` the threshold is
+    said to have: above ``3 far`` (at least 10 alarms), or below ``far / 3`` where ``far``
+    would give at least 10. The budget ``p(0) + ε`` is relative to ``p(0)``: a trial's
+    filter stepped without its plant's known inputs alarmed on 4.7 % at a 1 % threshold (a
+    budget that bounds little), and an uncalibrated threshold of 1e9 on none, both
+    silently."""
+    if (rate > 3 * far and rate * steps >= 10) or (far * steps >= 10 and rate < far / 3):
+        warnings.warn(
+            f"craft_stealthy_attack: the detector alarms on {100 * rate:.3g} % of the first "
+            f"batch's attack-free attacked steps at threshold {threshold:.4g}, against far = "
+            f"{100 * far:g} %, and the budget p(0) + ε is relative to that rate: is the "
+            "threshold calibrated for this estimator, and does it get the plant's known "
+            "inputs (us) and receptions (mask) as where it is judged? (A detector whose "
+            "false alarms fall at start-up alarms less after a late onset.)",
+            RuntimeWarning, stacklevel=3,
+        )  # fmt: skip
 
 
 def _check_onset(onset, T: int) -> None:
@@ -255,7 +285,10 @@ def craft_stealthy_attack(
             ``None``. Give the estimator what it gets in the study: a filter stepped
             without a plant's known inputs alarms on most attack-free steps (49–73 % at
             a 1 % threshold in a trial), and the budget ``p(0) + ε`` then bounds nothing.
-        threshold: ``τ`` of the detector at the false-alarm rate ``far``.
+        threshold: ``τ`` of the detector at the false-alarm rate ``far``. A warning where
+            the first batch's attack-free rate over the attacked steps is far from ``far``
+            (above 3 ``far``, or below ``far``/3 where ``far`` would give 10 alarms): the
+            budget is relative to that rate.
         onset: first attacked measurement (1-based); entries: attacked measurement entries
             (``None``: all).
         generator: ``() → generator`` of the estimator's own draws (the same at every
@@ -267,13 +300,16 @@ def craft_stealthy_attack(
         resample: ``iteration → (ys, xs)`` or ``(ys, xs, us, mask)``, a fresh training
             batch for every iteration (stochastic optimisation over the noise: without it
             the attack may fit the training noise and alarm more on fresh noise); ``ys, xs``
-            (``us``, ``mask``) are the first. The
-            budget of each iterate is its own batch's ``p(0) + ε``.
-        select: ``(ys, xs)`` or ``(ys, xs, us, mask)``, a held-out batch on which the
-            attack is chosen (module docstring; the robustness study gives 256 runs), or
-            ``None``: the best iterate within budget on its own batch, which another
-            batch's noise may not confirm (judge it on fresh runs: the robustness study
-            does).
+            (``us``, ``mask``) are the first. A pair keeps the first batch's ``us`` and
+            ``mask``; four give their own, ``None`` exactly where the first batch has none.
+            Every batch spans the same ``T`` steps. The budget of each iterate is its own
+            batch's ``p(0) + ε``.
+        select: ``(ys, xs)`` or ``(ys, xs, us, mask)`` (four where the training batch has
+            ``us`` or ``mask``, ``None`` exactly where it has none), a held-out batch of any
+            number of runs over the same ``T`` steps on which the attack is chosen (module
+            docstring; the robustness study gives 256 runs), or ``None``: the best iterate
+            within budget on its own batch, which another batch's noise may not confirm
+            (judge it on fresh runs: the robustness study does).
         progress: ``(iteration, J, alarm rate) → None`` after every iteration, or ``None``.
 
     Returns a :class:`CraftedAttack` (zero where no iterate kept the budget) with ``history``
@@ -291,7 +327,7 @@ def craft_stealthy_attack(
         entries = _check_entries(entries, dy)
     if not isinstance(settings, StealthySettings):
         raise TypeError(f"settings must be a StealthySettings; got {type(settings).__name__}")
-    held_out = None if select is None else _held_out(model, select, T, us, mask)
+    held_out = None if select is None else _batch_of("select", select, model, T, us, mask)
     s = settings
     like = dict(dtype=ys.dtype, device=ys.device)
     attacked = (torch.arange(1, T + 1, device=ys.device) >= onset).to(ys.dtype)
@@ -342,13 +378,13 @@ def craft_stealthy_attack(
 
     with torch.no_grad():
         reference = free_rates(free)
+    _warn_far_off(reference[1], int(on.sum()) * ys.shape[0], far, threshold)
     history, kept = [], []
     for it in range(s.iterations):
         a = raw.cumsum(0) * sigma * window
         if resample is not None and it > 0:
-            ys, xs, *known = resample(it)
-            if known:
-                us, mask = known
+            ys, xs, us, mask = _batch_of(f"resample({it})", resample(it), model, T, us, mask,
+                                         reuse=True)  # fmt: skip
             with torch.no_grad():  # this batch's own attack-free rates: its noise cancels
                 reference = free_rates(run(ys, us, mask))
         out = run(ys + a, us, mask)

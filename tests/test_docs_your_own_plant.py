@@ -75,7 +75,7 @@ def test_every_snippet_of_the_page_runs(tmp_path, monkeypatch, capsys, isolated_
     finally:
         sys.modules.pop("my_plants", None)
         sys.modules.pop("my_attacks", None)
-    assert ran == {"python": 5, "yaml": 3, "eval": 6, "train": 2}
+    assert ran == {"python": 6, "yaml": 3, "eval": 6, "train": 2}
     # §6 prints its closed-loop study's rates: the page's figures, to round-off
     out = capsys.readouterr().out
     printed = re.findall(r"^(?:chi2|cusum) FPR .*$", out, flags=re.M)
@@ -84,6 +84,12 @@ def test_every_snippet_of_the_page_runs(tmp_path, monkeypatch, capsys, isolated_
     assert len(printed) == 2 and numbers == pytest.approx(
         [float(v) for v in re.findall(r"\d\.\d+", shown)], abs=0.003
     )
+    # §7 prints its crafted attack's rates and errors on fresh runs: the page's, to round-off
+    (printed,) = re.findall(r"^stealthy: .*$", out, flags=re.M)
+    (shown,) = re.findall(r"^stealthy: .*$", PAGE.read_text(), flags=re.M)
+    assert [float(v) for v in re.findall(r"\d+\.\d+", printed)] == pytest.approx(
+        [float(v) for v in re.findall(r"\d+\.\d+", shown)], abs=0.003
+    ), (printed, shown)
     lossy = json.loads((tmp_path / "reports" / "motor_lossy_yaml" / "metrics.json").read_text())
     assert lossy["network"]["inputs"]["acknowledged"] is False
     assert lossy["network"]["sensors"] == "PacketLoss(rate=0.1, packets=None)"

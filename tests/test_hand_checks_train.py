@@ -429,6 +429,41 @@ def test_a_held_out_batch_chooses_the_attack_and_one_that_breaks_the_budget_ther
     assert c.selection["iteration"] == 0
 
 
+def test_a_batch_the_crafting_cannot_use_is_named_and_a_threshold_far_from_far_warned():
+    """From a user trial: ``resample`` returning ``(ys, xs, us)`` failed as "not enough
+    values to unpack (expected 2, got 1)", one of another length as a raw IndexError of a
+    mask, and a held-out batch without the receptions the training batch has was accepted
+    (a held-out budget of 0.05 at a 1 % threshold); a filter without its known inputs (4.7 %
+    attack-free alarms at 1 %) and a threshold of 1e9 (none) crafted without a word."""
+    from difffilter.stealthy import StealthySettings, craft_stealthy_attack
+
+    plant, est, xs, ys = _stealthy_setup()
+    settings = StealthySettings(iterations=2)
+
+    def craft(tau=5.0, far=0.01, **kw):
+        return craft_stealthy_attack(est, plant, ys, xs, tau, far=far, onset=1,
+                                     settings=settings, **kw)  # fmt: skip
+
+    for batch, why in [((ys, xs, None), r"resample\(1\) must be a batch .* got 3 items"),
+                       ((ys[:, :3], xs[:, :3]), r"resample\(1\) must span .* 6 steps; got 3")]:  # fmt: skip
+        with pytest.raises(ValueError, match=why):
+            craft(resample=lambda it, b=batch: b)
+    received = torch.ones_like(ys, dtype=torch.bool)
+    with pytest.raises(ValueError, match="select gives no mask where the training batch has one"):
+        craft(mask=received, select=(ys, xs, None, None))
+    with pytest.raises(ValueError, match=r"resample\(1\) gives mask where the training batch"):
+        craft(resample=lambda it: (ys, xs, None, received))
+    # 4 runs × 6 attacked steps: every one alarms at τ = −1 (100 % against 1 %); none at 1e9
+    # where far = 0.5 would give 12
+    with pytest.warns(RuntimeWarning, match=r"alarms on 100 % .* against far = 1 %"):
+        craft(tau=-1.0)
+    with pytest.warns(RuntimeWarning, match=r"alarms on 0 % .* against far = 50 %"):
+        craft(tau=1e9, far=0.5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        craft(tau=1e9)  # (1 % of 24 steps: no alarm is what it should give)
+
+
 def test_within_budget_reads_each_rows_budget_and_never_a_non_finite_error():
     """``within_budget``: a row of five holds its own budget, a row of four (a history of
     before) is held to ``budget``; a row whose J is not finite is never within (NaN scores
