@@ -115,6 +115,35 @@ def test_a_crafting_that_keeps_no_attack_adds_no_runs_and_logs_zero(monkeypatch)
     assert all(torch.equal(out[k], batch[k]) for k in batch)
 
 
+def test_a_crafting_logs_its_attack_free_rate_instead_of_warning_about_it(monkeypatch):
+    """The crafting warns where its runs' attack-free rate is far from the target; the
+    adversary logs that rate (the first batch's budget less ε) at every crafting instead,
+    and silences that warning only: a warning a crafting would repeat all through a run."""
+    import warnings
+
+    import difffilter.train.adversarial as adversarial
+    from difffilter.stealthy import CraftedAttack, StealthySettings
+
+    def far_off(estimator, model, ys, xs, threshold, *, onset, **kw):
+        warnings.warn(
+            "craft_stealthy_attack: the detector alarms on 7 % of …", RuntimeWarning, stacklevel=2
+        )
+        warnings.warn("something else", RuntimeWarning, stacklevel=2)
+        T, dy = ys.shape[-2:]
+        return CraftedAttack(torch.zeros(T, dy), onset, [(0, 5.0, 0.0, 0.06, 0.073)], None,
+                             budget=0.073)  # fmt: skip
+
+    monkeypatch.setattr(adversarial, "craft_stealthy_attack", far_off)
+    task = FilterEstimatorTask("four_tank_bias", num_particles=20, hidden=4, adversarial_runs=2)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        logs = task.adversary.craft(task, step=0)
+    assert [str(w.message) for w in seen] == ["something else"]
+    slack = StealthySettings().slack
+    assert logs["adversarial_attack_free_alarm_rate"] == pytest.approx(0.073 - slack, abs=1e-15)
+    assert logs["adversarial_error"] == 5.0
+
+
 def test_the_crafting_draws_particles_and_proposals_one_after_the_other(monkeypatch):
     """The prior particles and the first proposal noise are independent draws (two
     generators of one stream drew the same numbers: correlation 1)."""
