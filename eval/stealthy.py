@@ -14,6 +14,7 @@ detector alarm as often, for the comparison the report states.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar
 
@@ -213,7 +214,14 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
         bar.update(1)
         bar.set_postfix(J=f"{value:.3g}", alarm_rate=f"{rate:.4f}")
 
-    with torch.enable_grad():
+    startup = getattr(calibration, "startup", {}).get(spec.against)
+    with torch.enable_grad(), warnings.catch_warnings():
+        if startup:  # its calibrated alarms fall at start-up: the report says so, and why
+            # the rate after a late onset is far below the target (a review: normal_pf's
+            # first batch alarmed on none of its attacked steps, and the crafting warned
+            # to check a threshold and inputs that were right)
+            warnings.filterwarnings("ignore", "craft_stealthy_attack: the detector alarms",
+                                    RuntimeWarning)  # fmt: skip
         attack = craft_stealthy_attack(
             estimator, ctx.model, ys, xs, tau, far=calibration.far, us=us, mask=mask,
             onset=spec.onset,

@@ -84,12 +84,15 @@ def test_every_snippet_of_the_page_runs(tmp_path, monkeypatch, capsys, isolated_
     assert len(printed) == 2 and numbers == pytest.approx(
         [float(v) for v in re.findall(r"\d\.\d+", shown)], abs=0.003
     )
-    # §7 prints its crafted attack's rates and errors on fresh runs: the page's, to round-off
+    # §7 prints its crafted attack's rates and errors on fresh runs: the page's, each to one
+    # unit of its last printed digit (round-off; an absolute 0.003 let the 0.0226 error move
+    # 13 %: a review)
     (printed,) = re.findall(r"^stealthy: .*$", out, flags=re.M)
     (shown,) = re.findall(r"^stealthy: .*$", PAGE.read_text(), flags=re.M)
-    assert [float(v) for v in re.findall(r"\d+\.\d+", printed)] == pytest.approx(
-        [float(v) for v in re.findall(r"\d+\.\d+", shown)], abs=0.003
-    ), (printed, shown)
+    got, want = (re.findall(r"\d+\.\d+", line) for line in (printed, shown))
+    assert len(got) == len(want) == 5, (printed, shown)
+    for g, w in zip(got, want, strict=True):
+        assert abs(float(g) - float(w)) <= 1.01 * 10.0 ** -len(w.split(".")[1]), (printed, shown)
     lossy = json.loads((tmp_path / "reports" / "motor_lossy_yaml" / "metrics.json").read_text())
     assert lossy["network"]["inputs"]["acknowledged"] is False
     assert lossy["network"]["sensors"] == "PacketLoss(rate=0.1, packets=None)"

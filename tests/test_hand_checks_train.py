@@ -453,6 +453,9 @@ def test_a_batch_the_crafting_cannot_use_is_named_and_a_threshold_far_from_far_w
         craft(mask=received, select=(ys, xs, None, None))
     with pytest.raises(ValueError, match=r"resample\(1\) gives mask where the training batch"):
         craft(resample=lambda it: (ys, xs, None, received))
+    # a pair beside a training mask (or inputs) had kept the first batch's, other runs'
+    with pytest.raises(ValueError, match=r"resample\(1\) must be \(ys, xs, us, mask\).*has mask"):
+        craft(mask=received, resample=lambda it: (ys, xs))
     # 4 runs × 6 attacked steps: every one alarms at τ = −1 (100 % against 1 %); none at 1e9
     # where far = 0.5 would give 12
     with pytest.warns(RuntimeWarning, match=r"alarms on 100 % .* against far = 1 %"):

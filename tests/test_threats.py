@@ -502,6 +502,35 @@ def test_an_attacker_crafts_against_a_particle_filter_on_draws_of_its_own(monkey
     assert torch.equal(again, study)  # the study's common random numbers as they were
 
 
+def test_the_far_off_warning_is_left_out_for_a_detector_whose_alarms_fall_at_start_up(
+    monkeypatch,
+):
+    """A review: crafting against normal_pf warned that its first batch's attack-free rate
+    (none of the attacked steps) was far from the 1 % target, asking whether the threshold
+    was calibrated and the inputs given, which they were: its calibrated alarms fall at
+    start-up (``Calibration.startup``, said in the report). The warning stays for others."""
+    import warnings
+    from types import SimpleNamespace
+
+    from difffilter.eval import stealthy
+    from difffilter.models import registry
+
+    def far_off(*args, **kwargs):
+        warnings.warn("craft_stealthy_attack: the detector alarms on 0 % of …", RuntimeWarning,
+                      stacklevel=2)  # fmt: skip
+        return SimpleNamespace(within_budget=lambda: [], history=[], budget=0.0, selection=None)
+
+    monkeypatch.setattr(stealthy, "craft_stealthy_attack", far_off)
+    scenario = registry.get("four_tank_bias")
+    spec = stealthy.StealthySpec(against="normal_pf", onset=21, train_runs=2, selection_runs=2)
+    for startup, expected in (({"normal_pf": {"alarms_at_first_step": 1.0}}, 0), ({}, 1)):
+        calibration = SimpleNamespace(thresholds={"normal_pf": 0.5}, far=0.01, startup=startup)
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            stealthy.craft_threat("probe", spec, scenario, calibration, seed=0)
+        assert sum("alarms on" in str(w.message) for w in seen) == expected, startup
+
+
 def test_the_crafting_gives_the_detector_the_inputs_and_receptions_of_the_study():
     """From a threat-model trial: the crafting ran the detector without the plant's known
     inputs (and without the sensor schedule), so on a plant with inputs its attack-free
