@@ -165,6 +165,38 @@ def test_the_crafting_draws_particles_and_proposals_one_after_the_other(monkeypa
     assert abs(float(r)) < 0.2
 
 
+def test_the_crafting_gets_the_receptions_the_training_batches_get(monkeypatch):
+    """Training steps its filter with the sensor schedule's mask (task.py); the adversary
+    crafted without it, on measurements the filter never gets (a session's note). A
+    schedule that loses every fourth step of sensor 0 reaches the crafting as its mask."""
+
+    import difffilter.train.adversarial as adversarial
+    from difffilter.stealthy import CraftedAttack
+
+    seen = {}
+
+    def capture(estimator, model, ys, xs, threshold, *, onset, mask=None, **kw):
+        seen["mask"] = mask
+        return CraftedAttack(torch.zeros(ys.shape[-2:]), onset, [], None, budget=0.02)
+
+    monkeypatch.setattr(adversarial, "craft_stealthy_attack", capture)
+    task = FilterEstimatorTask("four_tank_bias", num_particles=20, hidden=4, adversarial_runs=2)
+    scenario = task.scenario_of_data()
+    free = scenario.with_threat(None)
+    lossy = torch.ones(100, 4, dtype=torch.bool)
+    lossy[::4, 0] = False
+
+    class Lossy:  # the scenario's attack-free runs, with a mask of lost entries
+        def simulate(self, runs, gens, **kw):
+            tr = free.simulate(runs, gens, **kw)
+            return tr._replace(mask=lossy.expand(runs, 100, 4).clone())
+
+    monkeypatch.setattr(type(scenario), "with_threat", lambda self, threat: Lossy())
+    task.adversary.craft(task, step=0)
+    runs = task.adversary.crafting_runs
+    assert seen["mask"] is not None and torch.equal(seen["mask"], lossy.expand(runs, 100, 4))
+
+
 def test_the_adversarys_attack_survives_a_checkpoint(tmp_path):
     """A resumed run goes on with the attack it had (it crafted a new one at once, at other
     steps than the uninterrupted run: weights 1.5e-3 apart)."""

@@ -511,13 +511,15 @@ def test_the_adversarys_onset_is_drawn_from_first_to_last_both_included(monkeypa
 
     seen = []
 
-    def fake_craft(est, model, ys, xs, tau, *, far, us=None, onset, settings, generator):
+    def fake_craft(est, model, ys, xs, tau, *, far, us=None, mask=None, onset, settings, generator):
         seen.append(onset)
         history = [(0, 1.0, 0.0, 0.0), (1, 5.0, 0.0, 0.5), (2, 2.0, 0.0, 0.1)]
         return CraftedAttack(torch.ones(ys.shape[-2:]), onset, history, budget=0.1)
 
     monkeypatch.setattr(adv, "craft_stealthy_attack", fake_craft)
-    tr = types.SimpleNamespace(y_true=torch.zeros(1, 10, 2), x=torch.zeros(1, 10, 2), us=None)
+    tr = types.SimpleNamespace(
+        y_true=torch.zeros(1, 10, 2), x=torch.zeros(1, 10, 2), us=None, mask=None
+    )
     scenario = types.SimpleNamespace(
         steps=10, with_threat=lambda t: types.SimpleNamespace(simulate=lambda *a, **k: tr)
     )

@@ -91,7 +91,10 @@ class Adversary:
             particles = streams("adversary/particles", device)
             return Generators(particles, particles, streams("adversary/resample", device))
 
+        # the inputs and the receptions the training batches give the filter (task.py): a
+        # crafting without the sensor schedule's mask ran on measurements it never gets
         us = None if tr.us is None else tr.us.to(device)
+        mask = None if tr.mask is None else tr.mask.to(device)
 
         settings = StealthySettings(iterations=self.iterations)
         try:
@@ -103,7 +106,8 @@ class Adversary:
                                         RuntimeWarning)  # fmt: skip
                 crafted = craft_stealthy_attack(
                     estimator, task.system, tr.y_true.to(device), tr.x.to(device),
-                    task.current_threshold(), far=task.false_alarm_rate, us=us, onset=onset,
+                    task.current_threshold(), far=task.false_alarm_rate, us=us, mask=mask,
+                    onset=onset,
                     settings=settings, generator=generators,
                 )  # fmt: skip
         finally:
