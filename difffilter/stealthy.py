@@ -369,6 +369,9 @@ def craft_stealthy_attack(
     def smoothed_rate(out) -> Tensor:
         return torch.sigmoid((out.detection.scores - threshold) / temperature)[:, on].mean()
 
+    def squared_error(out, xs) -> Tensor:  # J: over runs and attacked steps
+        return (out.means - xs).square().sum(-1)[:, on].mean()
+
     def hard_rate(out) -> float:
         return float((out.detection.scores > threshold)[:, on].double().mean())
 
@@ -387,7 +390,7 @@ def craft_stealthy_attack(
             with torch.no_grad():  # this batch's own attack-free rates: its noise cancels
                 reference = free_rates(run(ys, us, mask))
         out = run(ys + a, us, mask)
-        error = (out.means - xs).square().sum(-1)[:, on].mean()
+        error = squared_error(out, xs)
         p = smoothed_rate(out)
         excess = torch.relu(p - reference[0] - s.slack) / s.slack
         loss = -error.clamp_min(1e-30).log() + s.penalty * excess.square()
@@ -405,22 +408,14 @@ def craft_stealthy_attack(
         best = max(kept, key=lambda k: k[0], default=(0.0, -1, none))
         return CraftedAttack(best[2], onset, history, s, budget=history[0][4])
 
-    def judge_on_selection():
-        """``(p(0) + ε, a → (J, p(a)))`` on the held-out batch ``select``."""
-        ys, xs, us, mask = held_out
-
-        def judge(a: Tensor) -> tuple[float, float]:
-            with torch.no_grad():
-                out = run(ys + a, us, mask)
-            return float((out.means - xs).square().sum(-1)[:, on].mean()), hard_rate(out)
-
-        with torch.no_grad():
-            return hard_rate(run(ys, us, mask)) + s.slack, judge
-
-    budget, judge = judge_on_selection()
+    ys, xs, us, mask = held_out
+    with torch.no_grad():  # the held-out runs' own attack-free rate: their budget
+        budget = hard_rate(run(ys, us, mask)) + s.slack
     chosen, judged = None, []
     for _, it, a in sorted(kept, key=lambda k: -k[0])[: s.candidates]:
-        judged.append((it, *judge(a)))
+        with torch.no_grad():
+            out = run(ys + a, us, mask)
+        judged.append((it, float(squared_error(out, xs)), hard_rate(out)))
         if _keeps_budget(judged[-1][2], budget):
             chosen = (it, a)
             break
@@ -430,7 +425,7 @@ def craft_stealthy_attack(
                else "no iterate kept the budget on its own batch")  # fmt: skip
         warnings.warn(f"craft_stealthy_attack: {why}: the attack returned is zero; raise "
                       "penalty or candidates, or lower lr", RuntimeWarning, stacklevel=2)  # fmt: skip
-    selection = {"runs": int(select[0].shape[0]), "budget": budget, "judged": judged,
+    selection = {"runs": int(ys.shape[0]), "budget": budget, "judged": judged,
                  "iteration": None if chosen is None else chosen[0]}  # fmt: skip
     return CraftedAttack(none if chosen is None else chosen[1], onset, history, s,
                          budget=history[0][4], selection=selection)  # fmt: skip

@@ -514,9 +514,7 @@ def _markdown(doc: dict, sc) -> str:
     specs = "\n".join(f"- `{n}`: {s}{insider if insiders.get(n) else ''}"
                       for n, s in doc["threats"].items())  # fmt: skip
     parts.append(f"## Threats\n\n{specs}\n\n![robustness.png](robustness.png)\n")
-    parts += [
-        _stealthy_section(n, r, far["target"]) for n, r in (doc.get("stealthy") or {}).items()
-    ]
+    parts += [_stealthy_section(n, r) for n, r in (doc.get("stealthy") or {}).items()]
     parts += [_acceptance_section(n, a) for n, a in (doc.get("acceptance") or {}).items()]
     return "\n".join(parts)
 
@@ -637,7 +635,7 @@ def _interval_cell(interval: dict | None) -> str:
             + share_suffix(interval))  # fmt: skip
 
 
-def _stealthy_section(name: str, r: dict, far: float | None = None) -> str:
+def _stealthy_section(name: str, r: dict) -> str:
     c, b, st = r["crafted"], r["same_rate_bias"], r["settings"]
     matched = b.get("matched", True)
     bias_row = (f"constant bias {format_number(b['k_sigma'], 3)} σ (the weakest that alarms "
@@ -672,7 +670,7 @@ def _stealthy_section(name: str, r: dict, far: float | None = None) -> str:
             ],
         )  # fmt: skip
         + verdict
-        + _batch_noise_text(r, far)
+        + _batch_noise_text(r)
         + " A constant "
         "bias is the simplest yardstick, not the strongest: a ramp or a constant innovation "
         "offset at the same rate comes closer to the crafted error (docs/threats.md)."
@@ -683,11 +681,8 @@ def _stealthy_section(name: str, r: dict, far: float | None = None) -> str:
 
 def _selection_text(r: dict) -> str:
     """How the attack was chosen among the iterates within budget: on held-out runs
-    (``r["selection"]``, :func:`difffilter.stealthy.craft_stealthy_attack`), or, in a report
-    of before, the largest error on its own batch."""
-    sel = r.get("selection")
-    if not sel:
-        return ", the one of largest error was kept"
+    (``r["selection"]``, :func:`difffilter.stealthy.craft_stealthy_attack`)."""
+    sel = r["selection"]
     judged = len(sel["judged"])
     if not judged:
         return ", so the attack is zero"
@@ -706,54 +701,27 @@ def _ordinal(n: int) -> str:
     return f"{n}{'th' if 10 <= n % 100 <= 20 else {1: 'st', 2: 'nd', 3: 'rd'}.get(n % 10, 'th')}"
 
 
-def _batch_noise_text(r: dict, far: float | None = None) -> str:
-    """How noisy the crafting's budget check is. With a held-out selection: where an attack
-    was chosen, one standard deviation of a rise of ``ε`` over the study's own runs'
-    attacked steps (binomial at ``ε``, the steps taken as independent: a lower bound, a
-    review measured 1.45–1.8× that over fresh batches); where none was, nothing to judge.
-    In a report of before (the budget was the first batch's ``p(0) + ε``): one binomial
-    standard deviation of a training batch's alarm rate at that ``p(0)`` (the calibrated
-    ``far`` where that batch had no alarm) over its ``train_runs × attacked_steps`` steps (a
-    trial's 16 runs × 80 steps: a whole ε; the sentence had said "about half" whatever the
-    batch)."""
+def _batch_noise_text(r: dict) -> str:
+    """How far the study's runs may show the budget: where an attack was chosen, one
+    standard deviation of a rise of ``ε`` over the study's own runs' attacked steps
+    (binomial at ``ε``, the steps taken as independent: a lower bound, a review measured
+    1.45–1.8× that over fresh batches); where none was, nothing to judge. (The sentence had
+    said the training batches' noise was "about half" of ε whatever the batch; with the
+    budget of the first batch alone, a trial's 16 runs × 80 steps had a whole ε of it.)"""
     slack = r["settings"]["slack"]
-    if r.get("budget") is None or not r.get("attacked_steps"):  # (a report of before)
-        return (" The budget is kept on the training batches, each with noise of its own: on "
-                "the study's runs (above) and other fresh noise the rise can exceed it.")  # fmt: skip
-    sel = r.get("selection")
-    if sel:
-        if sel["iteration"] is None:
-            return (" No attack kept the budget, so the study's runs above meet none: raise "
-                    "the penalty or the candidates, or lower lr (docs/threats.md).")  # fmt: skip
-        text = (
-            " Each iterate is held to its own batch's attack-free rate plus ε, and the attack "
-            f"was chosen on {sel['runs']} held-out runs, so on fresh noise its rise is about ε"
-        )
-        if not r.get("study_runs"):
-            return text + "; the study's runs (above) carry noise of their own."
-        steps = r["study_runs"] * r["attacked_steps"]
-        spread = math.sqrt(slack * (1 - slack) / steps)
-        return text + (
-            f"; the study's runs (above) carry noise of their own: over their "
-            f"{r['study_runs']} runs × {r['attacked_steps']} attacked steps a rise of ε varies "
-            f"by at least {format_number(spread, 2)} ({spread / slack:.2g} of ε; one binomial "
-            "standard deviation, steps taken as independent: the spread measured over fresh "
-            "batches is larger)."
-        )
-    p0 = min(max(r["budget"] - slack, 0.0), 1.0)
-    rate, which = p0, "its first batch's"
-    if p0 == 0 and far is not None:  # (no alarm on that batch: its noise is not zero)
-        rate, which = far, "the calibrated"
-    steps = r["train_runs"] * r["attacked_steps"]
-    spread = math.sqrt(rate * (1 - rate) / steps)
+    if r["selection"]["iteration"] is None:
+        return (" No attack kept the budget, so the study's runs above meet none: raise "
+                "the penalty or the candidates, or lower lr (docs/threats.md).")  # fmt: skip
+    steps = r["study_runs"] * r["attacked_steps"]
+    spread = math.sqrt(slack * (1 - slack) / steps)
     return (
-        f" The budget is kept on each training batch ({r['train_runs']} runs × "
-        f"{r['attacked_steps']} attacked steps), whose alarm rate without attack varies by "
-        f"about {format_number(spread, 2)} from batch to batch (one binomial standard "
-        f"deviation at {which} rate {format_number(rate, 3)}), {spread / slack:.2g} of ε; the "
-        "iterate kept is the best that kept the budget on its own batch, so on the study's "
-        "runs (above) and other fresh noise the rise can exceed ε (trials measured 1.5–3.1× "
-        "ε)."
+        " Each iterate is held to its own batch's attack-free rate plus ε, and the attack "
+        f"was chosen on {r['selection']['runs']} held-out runs, so on fresh noise its rise is "
+        f"about ε; the study's runs (above) carry noise of their own: over their "
+        f"{r['study_runs']} runs × {r['attacked_steps']} attacked steps a rise of ε varies "
+        f"by at least {format_number(spread, 2)} ({spread / slack:.2g} of ε; one binomial "
+        "standard deviation, steps taken as independent: the spread measured over fresh "
+        "batches is larger)."
     )
 
 

@@ -472,45 +472,30 @@ def test_the_same_rate_bias_says_when_no_bias_alarms_as_rarely(monkeypatch):
     assert below == {"k_sigma": 0.0, "alarm_rate": 0.02, "state_error": 1.0, "matched": False}
     above = stealthy.same_rate_bias(sc, "chi_square_ekf", 0.035, 9.0, **common)
     assert above["matched"] and above["k_sigma"] == pytest.approx(1.5, abs=1e-3)
+    # chosen on held-out runs: the study's own noise, a rise of ε = 0.003 over its 100 runs ×
+    # 80 steps, √(0.003 · 0.997 / 8000) = 6.1e-04, 0.2 of ε; the chosen iterate and its rate
     report = {"crafted": {"alarm_rate": 0.015, "state_error": 3.0}, "same_rate_bias": below,
               "settings": {"slack": 0.003, "iterations": 5, "lr": 0.01, "temperature": 0.18,
                            "penalty": 50.0},
               "against": "chi_square_ekf", "threshold": 9.0, "train_runs": 4,
-              "iterations_within_budget": 2, "error_ratio_to_bias": 3.0}  # fmt: skip
+              "iterations_within_budget": 2, "error_ratio_to_bias": 3.0, "budget": 0.013,
+              "attacked_steps": 80, "study_runs": 100,
+              "selection": {"runs": 256, "budget": 0.0131, "iteration": 41,
+                            "judged": [[50, 2.0, 0.0135], [41, 1.9, 0.0129]]}}  # fmt: skip
     text = _stealthy_section("stealthy_x", report)
     assert "same alarm rate" not in text and "no constant bias matches its rate" in text
+    assert "not the strongest" in text
+    assert "held to its own batch's attack-free rate" in text and "(0.2 of ε;" in text
+    assert "varies by at least 6.1e-04" in text and "100 runs × 80 attacked steps" in text
+    assert "iterate 41 (the 2nd judged) kept it there (alarm rate 0.0129 against 0.0131)" in text
     report["same_rate_bias"] = above
     assert "constant bias 1.5 σ (the weakest that alarms as often)" in _stealthy_section(
         "stealthy_x", report
     )
-    # a trial: the budget held on the crafting batches, not always on fresh noise
-    assert "the rise can exceed it" in text and "not the strongest" in text
-    # how noisy a batch's rate is, computed (it said "about half" of ε whatever the batch):
-    # 16 runs × 80 steps at p(0) = 0.01: √(0.01 · 0.99 / 1280) = 0.00278, 0.93 of ε
-    report.update(train_runs=16, attacked_steps=80, budget=0.013)
-    text = _stealthy_section("stealthy_x", report)
-    assert "(16 runs × 80 attacked steps)" in text and "varies by about 0.0028" in text
-    assert "0.93 of ε" in text and "the rise can exceed ε" in text
-    # a first batch without alarms: the calibrated rate's noise, not 0 (a review)
-    report.update(budget=0.003)
-    text = _stealthy_section("stealthy_x", report, 0.01)
-    assert "varies by about 0.0028" in text and "at the calibrated rate 0.01" in text
-    assert "the one of largest error was kept" in text  # (a report without a selection)
-    # chosen on held-out runs: the study's own noise, a rise of ε = 0.003 over its 100 runs ×
-    # 80 steps, √(0.003 · 0.997 / 8000) = 6.1e-04, 0.2 of ε; the chosen iterate and its rate
-    report["selection"] = {"runs": 256, "budget": 0.0131, "iteration": 41,
-                           "judged": [[50, 2.0, 0.0135], [41, 1.9, 0.0129]]}  # fmt: skip
-    text = _stealthy_section("stealthy_x", report, 0.01)
-    assert "carry noise of their own." in text and "varies by" not in text  # (no study size)
-    report["study_runs"] = 100
-    text = _stealthy_section("stealthy_x", report, 0.01)
-    assert "held to its own batch's attack-free rate" in text and "(0.2 of ε;" in text
-    assert "varies by at least 6.1e-04" in text and "100 runs × 80 attacked steps" in text
-    assert "iterate 41 (the 2nd judged) kept it there (alarm rate 0.0129 against 0.0131)" in text
     report["selection"].update(iteration=None)
-    text = _stealthy_section("stealthy_x", report, 0.01)
+    text = _stealthy_section("stealthy_x", report)
     assert "none of the 2 of largest error judged on 256 held-out runs kept it" in text
     assert "No attack kept the budget" in text and "about ε" not in text
     report["selection"].update(judged=[])  # (a review: "none of the 0 … judged")
-    text = _stealthy_section("stealthy_x", report, 0.01)
+    text = _stealthy_section("stealthy_x", report)
     assert "kept the budget on their own batch, so the attack is zero" in text

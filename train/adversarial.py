@@ -120,9 +120,8 @@ class Adversary:
         self.history.append((step, onset, kept))
         # the crafting runs' attack-free alarm rate at the threshold it crafted under: far
         # from the target rate, the alarm budget bounds little (or nothing)
-        free = (crafted.budget - settings.slack) if crafted.budget is not None else float("nan")
         return {"adversarial_error": kept, "adversarial_onset": float(onset),
-                "adversarial_attack_free_alarm_rate": free}  # fmt: skip
+                "adversarial_attack_free_alarm_rate": crafted.budget - settings.slack}  # fmt: skip
 
     def state_dict(self) -> dict:
         """What a resumed run needs to go on with the same attack (a checkpoint's entry)."""
