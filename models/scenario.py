@@ -99,6 +99,11 @@ def simulate(
         )
     schedule = schedule if schedule is not None else AllSensors()
     dtype, device = model.initial.mean.dtype, model.initial.mean.device
+    if not isinstance(generators, Mapping):  # a bare generator failed on `.get` unexplained
+        raise TypeError(
+            "generators must be a mapping {'plant': torch.Generator, ...} (e.g. "
+            f"difffilter.models.streams.Streams(seed).simulation()); got {type(generators).__name__}"
+        )
     plant = generators.get("plant")
     if plant is None:  # (never torch's global generator: every draw has its seed)
         raise ValueError("generators must hold 'plant': the plant's noise is drawn from it")

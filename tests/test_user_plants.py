@@ -484,6 +484,8 @@ def test_a_shorter_horizon_takes_the_first_rows_of_tabulated_inputs():
     assert short.simulate(2, gens).x.shape == (2, 4, 1)
     with pytest.raises(ValueError, match="generators must hold 'plant'"):
         short.simulate(2, {"attack": gens["attack"]})
+    with pytest.raises(TypeError, match="generators must be a mapping .*got Generator"):
+        short.simulate(2, gens["plant"])  # a bare generator had failed on `.get`
 
 
 def test_a_table_of_inputs_per_run_serves_studies_of_any_size_and_the_default_suite(monkeypatch):
