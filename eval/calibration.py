@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from difffilter._checks import check_rate
+from difffilter._checks import check_positive_int, check_rate
 from difffilter.metrics import after_attack, nan_as_lowest, threshold_for
 from difffilter.metrics import finite_scores as _finite_scores
 from difffilter.models.streams import Streams
@@ -68,6 +68,16 @@ class Calibration:
             start-up): it alarms wherever its score leaves its floor at all, its most
             sensitive setting (a trial's 4-run LFC calibration gave the learned head τ = 0,
             and its alarms were then exactly its χ² confirmation's).
+        concentrated: ``{estimator: effective runs}`` where the calibration's alarms fall
+            in an effective fewer than :data:`RESOLVED` runs: ``(Σ c_r)² / Σ c_r²``, ``c_r``
+            the alarms of run ``r`` at ``τ_α`` (the participation ratio: ``R`` where every
+            run alarms alike, 1 where one run holds them all). Steps of one run are not
+            independent draws: where a few runs hold the alarms (the LFC online learners,
+            whose per-run EKF over the weights settles differently in each run) the
+            threshold rests on those runs, and its rate on fresh runs varies from one draw
+            of runs to the next far more than the step count says.
+        scenario: ``Scenario.attack_free_key()`` of the scenario calibrated (``None``: not
+            recorded): a study of another warns (:func:`calibration_mismatch`).
     """
 
     far: float
@@ -80,6 +90,8 @@ class Calibration:
     broke_down: dict[str, str] = field(default_factory=dict)
     startup: dict[str, dict] = field(default_factory=dict)
     at_floor: dict[str, float] = field(default_factory=dict)
+    concentrated: dict[str, float] = field(default_factory=dict)
+    scenario: tuple | None = None
 
     def summary(self) -> dict:
         """The calibration as metrics.json's ``"far"`` entry (``below_target`` only where a
@@ -88,7 +100,8 @@ class Calibration:
         :data:`RESOLVED` alarms are expected on the calibration steps; ``broke_down``,
         ``{estimator: why}``, only where one broke down on the calibration runs;
         ``startup`` only where a detector's calibration alarms fall mostly at the first
-        step; ``at_floor`` only where a threshold is its detector's lowest score)."""
+        step; ``at_floor`` only where a threshold is its detector's lowest score;
+        ``concentrated`` only where a detector's alarms fall in an effective few runs)."""
         below = {name: {"measured_on_calibration": self.measured[name],
                         "threshold": self.thresholds[name], "tied_at_threshold": share,
                         "cause": self._cause(name)}
@@ -100,7 +113,8 @@ class Calibration:
                 **({"unresolved": few} if few else {}),
                 **({"broke_down": dict(self.broke_down)} if self.broke_down else {}),
                 **({"startup": dict(self.startup)} if self.startup else {}),
-                **({"at_floor": dict(self.at_floor)} if self.at_floor else {})}  # fmt: skip
+                **({"at_floor": dict(self.at_floor)} if self.at_floor else {}),
+                **({"concentrated": dict(self.concentrated)} if self.concentrated else {})}  # fmt: skip
 
     def _cause(self, name: str) -> str:
         n = self.steps.get(name)
@@ -177,6 +191,18 @@ def below_target_note(far: dict | None) -> str | None:
             "the rate they meet is what that gives, not a threshold chosen among their "
             "scores (more calibration runs may lift it off the floor)."
         )
+    concentrated = far.get("concentrated")
+    if concentrated:
+        runs = far.get("calibration_runs")
+        of = f" of {runs}" if runs else ""
+        each = "; ".join(f"`{name}` {n:.1f}" for name, n in concentrated.items())
+        notes.append(
+            f"Alarms in few runs: the calibration's alarms of these detectors fall in an "
+            f"effective handful{of} runs ({each}; the participation ratio of alarms per run), "
+            "so each threshold rests on those runs and its rate on fresh runs varies from one "
+            "draw of runs to another far more than the steps' count suggests; give more "
+            "--calibration-runs."
+        )
     for name, why in (far.get("broke_down") or {}).items():
         notes.append(f"`{name}` has no threshold: it broke down on the attack-free calibration "
                      f"runs ({why}), so it has no `*_at_far` metrics.")  # fmt: skip
@@ -237,26 +263,30 @@ def calibrate(
 
     far = check_rate(far, "far")
     runs = scenario.runs if runs is None else runs
-    study_runs = runs if study_runs is None else study_runs
+    # (a study's size of 0, -5 or 2.5 had been taken as the default silently)
+    study_runs = runs if study_runs is None else check_positive_int(study_runs, "study_runs")
     key = ("far-calibration", scenario.attack_free_key(), runs, seed, far,
            tuple(estimators or ()), tuple(add), str(checkpoint), study_runs)  # fmt: skip
     if cache is not None and key in cache:
         return cache[key]
     cal_seed = calibration_seed(seed)
     if estimators is not None and not list(estimators) and not add:
-        return Calibration(far, runs, cal_seed)
+        return Calibration(far, runs, cal_seed, scenario=scenario.attack_free_key())
     result = run_suite(
         scenario.with_threat(None), runs=runs, seed=cal_seed, estimators=estimators, add=add,
         progress=progress, checkpoint=checkpoint, cache=cache, calibration=None,
         label=f"{scenario.name}: calibrating at {far:g} (attack-free runs)",
         detector_seed=seed, detector_runs=study_runs,  # the study's detectors (a CUSUM's τ)
     )  # fmt: skip
-    thresholds, measured, tied, steps, startup, floor = {}, {}, {}, {}, {}, {}
+    thresholds, measured, tied, steps, startup, floor, few = {}, {}, {}, {}, {}, {}, {}
     for name, out in result.outputs.items():
         if out.detection is None or out.detection.scores is None:
             continue
         scores = _finite_scores(out.detection.scores)
         thresholds[name] = threshold_for(scores, far)
+        runs_of_alarms = _effective_runs(out.detection.scores, thresholds[name])
+        if runs_of_alarms is not None and runs_of_alarms < RESOLVED:
+            few[name] = runs_of_alarms
         measured[name] = float((scores > thresholds[name]).double().mean())
         steps[name] = int((~torch.isnan(out.detection.scores)).sum())
         # ties at τ: the rate cannot be met (class docstring); at exactly half too (a trial's
@@ -269,7 +299,9 @@ def calibrate(
         elif name not in tied and (share := _at_floor(scores, thresholds[name])) is not None:
             floor[name] = share
     calibration = Calibration(far, runs, cal_seed, thresholds, measured, tied, steps,
-                              broken_down(result.skipped), startup, floor)  # fmt: skip
+                              broken_down(result.skipped), startup, floor, few,
+                              scenario.attack_free_key())  # fmt: skip
+    _warn_unthresholded(estimators, add, calibration, result)
     if tied:  # (from Python the note was in summary() alone: a teaching trial read "0.0" as
         # "detects nothing")
         below = calibration.summary()
@@ -278,6 +310,51 @@ def calibrate(
     if cache is not None:
         cache[key] = calibration
     return calibration
+
+
+def _effective_runs(scores: torch.Tensor, threshold: float) -> float | None:
+    """The participation ratio ``(Σ c_r)² / Σ c_r²`` of the alarms per run ``c_r`` of
+    ``scores [runs, T, ...]`` at ``threshold`` (:attr:`Calibration.concentrated`); ``None``
+    without an alarm."""
+    alarms = alarms_at(scores, threshold).reshape(scores.shape[0], -1).sum(1).double()
+    total = float(alarms.sum())
+    return total * total / float((alarms * alarms).sum()) if total else None
+
+
+def _warn_unthresholded(estimators, add, calibration: Calibration, result) -> None:
+    """A warning naming the estimators asked for by name (``estimators``, ``add``) that the
+    scenario could not run, with why, and, where no named estimator got a threshold, those
+    that report no detection score: another family's estimator, or one that detects
+    nothing, had left the calibration empty without a word (a calibration trial). A list
+    that mixes detectors with estimators that detect nothing (a study's own list) is
+    calibrated as it is: those get no threshold, as the class says."""
+    asked = [n for n in dict.fromkeys([*(estimators or ()), *add])
+             if n not in calibration.thresholds and n not in calibration.broke_down]  # fmt: skip
+    skipped = {n: result.skipped[n] for n in asked if n in result.skipped}
+    if not calibration.thresholds and not calibration.broke_down:
+        skipped.update({n: "it reports no detection score" for n in asked if n not in skipped})
+    if skipped:
+        each = "; ".join(f"{n!r}: {reason}" for n, reason in skipped.items())
+        warnings.warn(f"calibrate: no threshold for {each}", stacklevel=3)
+
+
+def calibration_mismatch(calibration: Calibration, scenario) -> str | None:
+    """Why ``calibration`` does not fit a study of ``scenario`` (calibrated on a scenario of
+    another ``attack_free_key``: another plant, noise or horizon), or ``None``."""
+    made, study = calibration.scenario, scenario.attack_free_key()
+    if made is None or tuple(made) == tuple(study):
+        return None
+    return (f"the calibration was made on {_key_text(made)}, the study runs {_key_text(study)}: "
+            "its thresholds meet the target rate on the attack-free runs of the scenario "
+            "calibrated, not necessarily on this one's; calibrate(scenario, far=…) on the "
+            "study's scenario, unless judging another plant at those thresholds is the point")  # fmt: skip
+
+
+def _key_text(key) -> str:
+    key = tuple(key)
+    if len(key) == 2 and isinstance(key[0], str) and isinstance(key[1], int):
+        return f"{key[0]!r} over {key[1]} steps"
+    return repr(key)
 
 
 def _startup(scores: torch.Tensor, threshold: float) -> dict | None:

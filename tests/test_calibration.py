@@ -513,3 +513,79 @@ def test_a_threshold_at_the_lowest_score_is_named():
     assert summary["at_floor"] == {"kf_nn_grad": 0.991}
     note = below_target_note(summary)
     assert "At their lowest score: `kf_nn_grad` (99 % of its scores there)" in note
+
+
+def test_alarms_held_by_a_few_runs_are_named_with_their_effective_runs():
+    """A calibration trial: the LFC online learners' alarms fall in a few runs (the top 5
+    of 20 held 69–77 %), so a 20-run calibration met 0.13–0.36 % on fresh runs while its
+    step count (200 alarms expected) read as resolved. The participation ratio of the
+    alarms per run, ``(Σ c)² / Σ c²``, by hand; the summary and the note name it."""
+    from difffilter.eval.calibration import Calibration, _effective_runs, below_target_note
+
+    scores = torch.zeros(4, 10, dtype=torch.float64)
+    scores[0, :3] = scores[1, 5] = 1.0  # alarms per run 3, 1, 0, 0 at τ = 0.5
+    assert _effective_runs(scores, 0.5) == pytest.approx(16 / 10)
+    scores[2, 0] = scores[3, 9] = scores[1, 0] = scores[2, 1] = scores[3, 0] = 1.0
+    assert _effective_runs(scores, 0.5) == pytest.approx(81 / 21)  # 3, 2, 2, 2: 9² / (9+4+4+4)
+    assert _effective_runs(scores, 2.0) is None  # no alarm
+    nan = scores.clone()
+    nan[0, 0] = math.nan  # a NaN score never alarms
+    assert _effective_runs(nan, 0.5) == pytest.approx(64 / 16)  # 2 alarms each: all four
+    summary = Calibration(0.01, 20, 0, thresholds={"kf_nn_ekf": 0.3}, measured={"kf_nn_ekf": 0.01},
+                          concentrated={"kf_nn_ekf": 3.24}).summary()  # fmt: skip
+    assert summary["concentrated"] == {"kf_nn_ekf": 3.24}
+    note = below_target_note(summary)
+    assert "Alarms in few runs" in note and "effective handful of 20 runs (`kf_nn_ekf` 3.2;" in note
+    spread = Calibration(0.01, 20, 0, thresholds={"chi": 9.0}, measured={"chi": 0.01}).summary()
+    assert "concentrated" not in spread and below_target_note(spread) is None
+    # a study's calibration of 6 runs: no detector can spread its alarms over 10 runs
+    cal = calibrate(registry.get("four_tank_bias").with_steps(40), runs=6,
+                    estimators=["chi_square_ekf"], far=0.05, progress=False)  # fmt: skip
+    assert 1 <= cal.concentrated["chi_square_ekf"] <= 6
+
+
+def test_a_calibration_of_another_scenario_or_horizon_warns_and_a_named_estimator_without_threshold_too():
+    """A calibration trial: thresholds of 100 steps judged runs of 50 (2.0 % false alarms)
+    or 300 (0.34 %), or another plant's, without a word; ``estimators=["zhang_akf"]`` on
+    the four-tank plant (another family's) or ``["open_loop_pf"]`` (no detection score)
+    gave an empty calibration silently; ``study_runs=0`` was taken as the default."""
+    import warnings
+
+    from difffilter.eval.suite import apply_calibration
+
+    scenario = registry.get("four_tank_bias").with_steps(30)
+    cal = calibrate(scenario, runs=4, estimators=["chi_square_ekf"], progress=False)
+    assert cal.scenario == scenario.attack_free_key()
+    with warnings.catch_warnings():  # the scenario calibrated, under any threat: silent
+        warnings.simplefilter("error")
+        run_suite(scenario.with_threat(None), runs=2, estimators=["chi_square_ekf"],
+                  progress=False, calibration=cal)  # fmt: skip
+        ok = run_suite(scenario, runs=2, estimators=["chi_square_ekf"], progress=False)
+        apply_calibration(ok, cal)
+    other = scenario.with_steps(20)
+    with pytest.warns(UserWarning, match="made on 'four_tank_bias' over 30 steps, the study "
+                      "runs 'four_tank_bias' over 20 steps"):  # fmt: skip
+        judged = run_suite(other, runs=2, estimators=["chi_square_ekf"], progress=False,
+                           calibration=cal)  # fmt: skip
+    assert judged.metrics["chi_square_ekf"]["threshold_at_far"] == cal.thresholds["chi_square_ekf"]
+    late = run_suite(other, runs=2, estimators=["chi_square_ekf"], progress=False)
+    with pytest.warns(UserWarning, match="calibration was made on 'four_tank_bias' over 30"):
+        apply_calibration(late, cal)
+    with pytest.warns(UserWarning, match="no threshold for 'zhang_akf': "):
+        assert (
+            calibrate(scenario, runs=2, estimators=["zhang_akf"], progress=False).thresholds == {}
+        )
+    with pytest.warns(
+        UserWarning, match="no threshold for 'open_loop_pf': it reports no detection"
+    ):
+        calibrate(scenario, runs=2, estimators=["open_loop_pf"], progress=False)
+    with warnings.catch_warnings():  # a study's own list, detectors among the rest: silent
+        warnings.simplefilter("error")
+        calibrate(scenario, runs=4, estimators=["open_loop_pf", "chi_square_ekf"], far=0.05,
+                  progress=False)  # fmt: skip
+    for bad in (0, -5, 2.5, True):
+        with pytest.raises(
+            ValueError, match=r"study_runs must be a positive integer \(>= 1\); got "
+        ):
+            calibrate(scenario, runs=2, estimators=["chi_square_ekf"], study_runs=bad,
+                      progress=False)  # fmt: skip
