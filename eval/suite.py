@@ -232,7 +232,7 @@ def _check_threat_fits(scenario, model) -> None:
 def _check_calibration(calibration, scenario) -> None:
     """``calibration`` is ``None`` or what :func:`~difffilter.eval.calibration.calibrate`
     returns: a rate (``calibration=0.01``) failed after the study as "'float' object has no
-    attribute 'thresholds'". One made on another scenario (another plant, noise or horizon:
+    attribute 'thresholds'". One made on another scenario (another name or horizon:
     :func:`~difffilter.eval.calibration.calibration_mismatch`) warns: a calibration trial's
     thresholds of 100 steps met 2.0 % on runs of 50, 0.34 % on runs of 300, unsaid (an
     error would forbid judging a plant at another's thresholds, which may be the study)."""

@@ -515,33 +515,50 @@ def test_a_threshold_at_the_lowest_score_is_named():
     assert "At their lowest score: `kf_nn_grad` (99 % of its scores there)" in note
 
 
-def test_alarms_held_by_a_few_runs_are_named_with_their_effective_runs():
+def test_alarms_held_by_a_few_runs_are_named_with_what_they_are_worth():
     """A calibration trial: the LFC online learners' alarms fall in a few runs (the top 5
     of 20 held 69–77 %), so a 20-run calibration met 0.13–0.36 % on fresh runs while its
-    step count (200 alarms expected) read as resolved. The participation ratio of the
-    alarms per run, ``(Σ c)² / Σ c²``, by hand; the summary and the note name it."""
-    from difffilter.eval.calibration import Calibration, _effective_runs, below_target_note
+    step count (200 alarms expected) read as resolved. Their dispersion over runs, by hand;
+    independent alarms are not listed (a review: the participation ratio of before listed a
+    third of independent χ² calibrations); the summary and the note name them."""
+    import jsonschema
 
-    scores = torch.zeros(4, 10, dtype=torch.float64)
-    scores[0, :3] = scores[1, 5] = 1.0  # alarms per run 3, 1, 0, 0 at τ = 0.5
-    assert _effective_runs(scores, 0.5) == pytest.approx(16 / 10)
-    scores[2, 0] = scores[3, 9] = scores[1, 0] = scores[2, 1] = scores[3, 0] = 1.0
-    assert _effective_runs(scores, 0.5) == pytest.approx(81 / 21)  # 3, 2, 2, 2: 9² / (9+4+4+4)
-    assert _effective_runs(scores, 2.0) is None  # no alarm
+    from difffilter.eval.calibration import Calibration, _clustering, below_target_note
+    from difffilter.eval.report import metrics_schema
+
+    scores = torch.zeros(20, 100, dtype=torch.float64)
+    scores[0, :15] = scores[1, :5] = 1.0  # 20 alarms at τ = 0.5, in two runs
+    counts = torch.tensor([15.0, 5.0] + [0.0] * 18)
+    dispersion = float(((counts - 1.0) ** 2).sum() / 19)  # variance / mean, mean 1
+    got = _clustering(scores, 0.5)
+    assert got == {"alarms": 20, "effective_alarms": pytest.approx(20 / dispersion)}
+    assert 20 / dispersion == pytest.approx(380 / 230)  # 14² + 4² + 18 · 1² = 230 over 19
     nan = scores.clone()
-    nan[0, 0] = math.nan  # a NaN score never alarms
-    assert _effective_runs(nan, 0.5) == pytest.approx(64 / 16)  # 2 alarms each: all four
+    nan[0, :5] = math.nan  # a NaN score never alarms: 10 and 5
+    assert _clustering(nan, 0.5)["alarms"] == 15
+    assert _clustering(scores, 2.0) is None and _clustering(scores[:1], 0.5) is None
+    spread = torch.zeros(20, 100, dtype=torch.float64)
+    spread[:, :1] = 1.0  # one alarm in every run: no dispersion at all
+    assert _clustering(spread, 0.5) is None
+    g = torch.Generator().manual_seed(0)
+    listed = 0
+    for _ in range(200):  # independent χ² alarms: 100 runs × 100 steps at 1 %
+        chi = torch.randn(100, 100, generator=g, dtype=torch.float64) ** 2
+        listed += _clustering(chi, float(threshold_for(chi.flatten(), 0.01))) is not None
+    assert listed == 0
+    entry = {"alarms": 200, "effective_alarms": 2.86}
     summary = Calibration(0.01, 20, 0, thresholds={"kf_nn_ekf": 0.3}, measured={"kf_nn_ekf": 0.01},
-                          concentrated={"kf_nn_ekf": 3.24}).summary()  # fmt: skip
-    assert summary["concentrated"] == {"kf_nn_ekf": 3.24}
+                          concentrated={"kf_nn_ekf": entry}).summary()  # fmt: skip
+    assert summary["concentrated"] == {"kf_nn_ekf": entry}
+    far_schema = metrics_schema()["properties"]["far"]
+    jsonschema.validate(summary, far_schema)
+    with pytest.raises(jsonschema.ValidationError):  # (the number of before is refused)
+        jsonschema.validate({**summary, "concentrated": {"kf_nn_ekf": 2.86}}, far_schema)
     note = below_target_note(summary)
-    assert "Alarms in few runs" in note and "effective handful of 20 runs (`kf_nn_ekf` 3.2;" in note
-    spread = Calibration(0.01, 20, 0, thresholds={"chi": 9.0}, measured={"chi": 0.01}).summary()
-    assert "concentrated" not in spread and below_target_note(spread) is None
-    # a study's calibration of 6 runs: no detector can spread its alarms over 10 runs
-    cal = calibrate(registry.get("four_tank_bias").with_steps(40), runs=6,
-                    estimators=["chi_square_ekf"], far=0.05, progress=False)  # fmt: skip
-    assert 1 <= cal.concentrated["chi_square_ekf"] <= 6
+    assert "Alarms in few runs" in note
+    assert "a few of the 20 runs (`kf_nn_ekf` 200 alarms worth 2.9 independent ones)" in note
+    plain = Calibration(0.01, 20, 0, thresholds={"chi": 9.0}, measured={"chi": 0.01}).summary()
+    assert "concentrated" not in plain and below_target_note(plain) is None
 
 
 def test_a_calibration_of_another_scenario_or_horizon_warns_and_a_named_estimator_without_threshold_too():
@@ -582,6 +599,10 @@ def test_a_calibration_of_another_scenario_or_horizon_warns_and_a_named_estimato
     with warnings.catch_warnings():  # a study's own list, detectors among the rest: silent
         warnings.simplefilter("error")
         calibrate(scenario, runs=4, estimators=["open_loop_pf", "chi_square_ekf"], far=0.05,
+                  progress=False)  # fmt: skip
+        # another family's --add-estimators entry: the CLI notes it once (a review: every
+        # scenario of a robustness study warned again)
+        calibrate(scenario, runs=4, estimators=["chi_square_ekf"], add=("zhang_akf",), far=0.05,
                   progress=False)  # fmt: skip
     for bad in (0, -5, 2.5, True):
         with pytest.raises(
