@@ -567,6 +567,11 @@ def closed_loop(
                          "(or without one, as it was kept)")  # fmt: skip
     first = state.k - len(rec["x"])  # the step before the first one recorded
     k, x, u, a_state, carry, view, memory = state
+    if channel is Channel.ACTUATOR and plant.dim_u == 0:  # (no controller could help it)
+        raise ValueError(
+            f"attack {type(attack).__name__} acts on the actuators, and the plant has no input "
+            "(dim_u = 0): an actuator attack needs a model with inputs"
+        )
     if channel is Channel.ACTUATOR and u is None:  # (it failed inside the step's checks)
         raise ValueError(
             f"attack {type(attack).__name__} acts on the actuators, and this loop has no input "
@@ -580,10 +585,11 @@ def closed_loop(
             applied, a, value, flag = u, None, None, None
             if channel is Channel.ACTUATOR:
                 seen = _Untouched(attack, x, u, view if reads else None)
-                a_state, value, flag = attack.step(a_state, k, x=x if shows_state else None, u=u,
-                                                   view=view if reads else None)  # fmt: skip
+                a_state, value, flag = _three(attack.step(
+                    a_state, k, x=x if shows_state else None, u=u, view=view if reads else None,
+                ), attack, k)  # fmt: skip
                 seen.check(k, "step")
-                value = _checked_value(attack, value, flag, u, k, "u")
+                value, flag = _checked_value(attack, value, flag, u, k, "u")
                 applied, a = inject(channel, u, value, flag)
             known = u
             if input_loss is not None:
@@ -604,10 +610,12 @@ def closed_loop(
                 rec["concealment"].append(correction)
             if channel is not None and channel is not Channel.ACTUATOR:
                 seen = _Untouched(attack, x, y, u, view if reads else None)
-                a_state, value, flag = attack.step(a_state, k, y=y, x=x if shows_state else None, u=u,
-                                                   view=view if reads else None)  # fmt: skip
+                a_state, value, flag = _three(attack.step(
+                    a_state, k, y=y, x=x if shows_state else None, u=u,
+                    view=view if reads else None,
+                ), attack, k)  # fmt: skip
                 seen.check(k, "step")
-                value = _checked_value(attack, value, flag, y, k, "y")
+                value, flag = _checked_value(attack, value, flag, y, k, "y")
                 received, a = inject(channel, y, value, flag)
             if estimator is not None:
                 step_input = _estimator_input(received, m, k, attack, known, controller)
@@ -778,24 +786,41 @@ def _check_parts(estimator, attack) -> None:
         )
 
 
+def _three(returned, attack, k: int) -> tuple:
+    """What ``attack.step`` returned at step ``k``, checked to be ``(state, value, flag)``
+    (two values had failed as a bare "not enough values to unpack", naming no attack)."""
+    if type(returned) is tuple and len(returned) == 3:
+        return returned
+    got = (
+        f"{len(returned)} values" if isinstance(returned, tuple | list) else type(returned).__name__
+    )
+    raise ValueError(
+        f"attack {type(attack).__name__}.step returned {got} at step {k}; it returns "
+        "(state, value, flag): its state for the next step, the value a_k and the flag l_k"
+    )
+
+
 def _checked_value(attack, value: Tensor, flag: Tensor, signal: Tensor, k: int,
-                   what: str = "y") -> Tensor:  # fmt: skip
-    """The attack's value at step ``k`` as the attacked signal's shape ``[..., d]``, after
-    checking it and its flag: a value of the signal's entries and dtype that broadcasts to
-    it (one value for every run, ``[d]``, is expanded: a flag ``[B]`` beside it was read
-    per entry where ``B = d``), and a bool flag ``[...]`` (per run) or ``[..., d]`` (per
-    entry). Shape checks only: nothing is read from the tensors."""
+                   what: str = "y") -> tuple[Tensor, Tensor]:  # fmt: skip
+    """The attack's value and flag at step ``k`` as the attacked signal's shape ``[..., d]``
+    (the flag ``[...]`` or ``[..., d]``), after checking them: a value of the signal's
+    entries and dtype that broadcasts to it (one value for every run, ``[d]``, is expanded:
+    a flag ``[B]`` beside it was read per entry where ``B = d``), and a bool flag that
+    broadcasts to ``[...]`` (per run) or ``[..., d]`` (per entry), expanded to it (a trial's
+    flag ``[1]`` for two runs was recorded as ``[1, T]`` flags beside ``[2, T]`` runs).
+    Shape checks only: nothing is read from the tensors."""
     shape = signal.shape
     if (type(value) is Tensor and type(flag) is Tensor and value.shape == shape
             and value.dtype == signal.dtype and flag.dtype is torch.bool
             and flag.shape in (shape, shape[:-1])):  # fmt: skip
-        return value  # the usual step, checked in a few comparisons (the loop's every step)
+        return value, flag  # the usual step, checked in a few comparisons (the loop's every step)
     name, shape = f"attack {type(attack).__name__}.step", tuple(shape)
     if not isinstance(value, Tensor) or not _broadcasts(value.shape, signal.shape):
         got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
         raise ValueError(
             f"{name} returned a value of shape {got} at step {k}; the signal it attacks is "
-            f"{shape}: a value of that shape (or [{shape[-1]}], one for every run)"
+            f"{shape}: a value that broadcasts to that shape (e.g. [{shape[-1]}], one for "
+            "every run)"
         )
     if value.dtype != signal.dtype:
         raise ValueError(
@@ -816,7 +841,9 @@ def _checked_value(attack, value: Tensor, flag: Tensor, signal: Tensor, k: int,
             f"attacks is {shape}: a flag {list(shape[:-1])} (per run) or {list(shape)} (per "
             "entry)"
         )
-    return value if value.shape == signal.shape else value.expand(shape)
+    value = value if value.shape == signal.shape else value.expand(shape)
+    full = shape[: flag.dim()]
+    return value, (flag if flag.shape == full else flag.expand(full))
 
 
 def _checked_input(controller, u, x: Tensor, plant, k: int):

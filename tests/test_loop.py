@@ -328,6 +328,26 @@ def test_an_attacks_flag_and_value_are_checked_and_one_value_for_every_run_is_ex
     ):  # fmt: skip
         with pytest.raises(ValueError, match=f"attack _Returns.step returned {why}"):
             loop(make)
+    # a flag [1] for the two runs (a closed-loop trial: recorded as flags [1, T] beside runs
+    # [2, T]) and a per-entry flag [1, 2] are expanded to the runs, as a value [2, 1] is
+    ones = loop(lambda y, k: (torch.ones(2, 1, dtype=y.dtype), torch.ones(1, dtype=torch.bool)))
+    assert ones.trajectories.flags.shape == (2, 3) and bool(ones.trajectories.flags.all())
+    assert ones.trajectories.attack.eq(1).all()
+    entry = loop(lambda y, k: (full(y) + 1, torch.tensor([[False, True]])))
+    assert entry.trajectories.info["attack_flags"].shape == (2, 3, 2)
+    assert (
+        entry.trajectories.attack[..., 0].eq(0).all()
+        and entry.trajectories.attack[..., 1].eq(1).all()
+    )
+
+    class Two(_Returns):
+        def step(self, state, k, *, y=None, x=None, u=None, view=None):
+            return state, torch.zeros_like(y)  # no flag
+
+    with pytest.raises(ValueError, match=r"attack Two.step returned 2 values at step 1; it "
+                       r"returns \(state, value, flag\)"):  # fmt: skip
+        closed_loop(model, 3, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                    estimator=df.KalmanFilter(), attack=Two(None))  # fmt: skip
 
 
 def test_only_an_attack_that_reads_the_view_gets_it():
@@ -438,6 +458,14 @@ def test_an_actuator_attack_needs_an_input_to_attack():
     loop = closed_loop(model, 3, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
                        controller=KnownInputs(us), attack=Push())  # fmt: skip
     assert loop.trajectories.attack.eq(1).all()
+    # a plant without inputs: no controller helps (a trial was told to give it one)
+    eye = torch.eye(2, dtype=torch.float64)
+    still = df.LinearGaussianModel(eye, eye, 1e-3 * eye, 1e-2 * eye,
+                                   torch.zeros(2, dtype=torch.float64), eye)  # fmt: skip
+    with pytest.raises(ValueError, match=r"Push acts on the actuators, and the plant has no "
+                       r"input \(dim_u = 0\): an actuator attack needs a model with inputs"):  # fmt: skip
+        closed_loop(still, 3, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                    attack=Push())  # fmt: skip
 
 
 class _Feedback:
