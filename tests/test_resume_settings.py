@@ -12,6 +12,7 @@ import re
 from pathlib import Path
 
 import pytest
+import torch
 from lightning.pytorch.cli import LightningCLI
 
 from difffilter.train.cli import main
@@ -100,6 +101,45 @@ def test_a_run_with_a_setting_of_its_own_resumes_only_with_it(tmp_path, monkeypa
     assert list(run.parent.glob("version_*/config_test.yaml"))  # (the test's own folder)
     assert not re.search(r"^verbose:", (run / "config.yaml").read_text(), flags=re.M)
     assert main(["fit", "--config", str(run / "config.yaml"), "--trainer.max_epochs=3", ckpt]) == 0
+
+
+def test_a_threat_distribution_in_another_order_is_another_run(tmp_path, monkeypatch, capsys):
+    """A threat distribution draws a threat by its entry's place (and an entry's random
+    fields in their order): a trial resumed its run with the YAML's entries reversed, the
+    check compared them as equal dicts, and the run trained on other data (53 of 64 runs
+    drawn otherwise) and chose its best checkpoint between two validation sets. Refused,
+    naming the setting; the run's own config.yaml resumes."""
+    import yaml
+
+    from difffilter.threat_distribution import ThreatDistribution
+
+    source = yaml.safe_load((ROOT / "train" / "configs" / "four_tank_threats.yaml").read_text())
+    threats = source["data"]["init_args"]["threats"]
+    reverse = dict(reversed(list(threats.items())))
+    first = [
+        ThreatDistribution(threats).sample(torch.Generator().manual_seed(s))[0] for s in range(20)
+    ]
+    other = [
+        ThreatDistribution(reverse).sample(torch.Generator().manual_seed(s))[0] for s in range(20)
+    ]
+    assert first != other  # the premise: the same entries in another order draw other threats
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    (tmp_path / "a.yaml").write_text(yaml.safe_dump(source, sort_keys=False))
+    source["data"]["init_args"]["threats"] = reverse
+    (tmp_path / "b.yaml").write_text(yaml.safe_dump(source, sort_keys=False))
+    small = ["--data.init_args.batch_size=2", "--data.init_args.batches_per_epoch=1",
+             "--data.init_args.val_runs=8", "--data.init_args.calibration_runs=4",
+             "--model.init_args.hidden=4", "--trainer.enable_progress_bar=false"]  # fmt: skip
+    assert main(["fit", "--config", "a.yaml", *small, "--trainer.max_epochs=1"]) == 0
+    run = tmp_path / "lightning_logs" / "four_tank_threats_nn_grad" / "version_0"
+    ckpt = f"--ckpt_path={run / 'checkpoints' / 'last.ckpt'}"
+    capsys.readouterr()
+    assert main(["fit", "--config", "b.yaml", *small, "--trainer.max_epochs=2", ckpt]) == 2
+    err = capsys.readouterr().err
+    assert "this command changes settings the run was trained with" in err
+    assert "--data.init_args.threats:" in err
+    assert main(["fit", "--config", str(run / "config.yaml"), "--trainer.max_epochs=2", ckpt]) == 0
 
 
 @pytest.mark.parametrize(

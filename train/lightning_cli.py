@@ -123,7 +123,8 @@ class DifffilterCLI(LightningCLI):
         ckpt = cfg.get("ckpt_path")
         merged = _plain(_init_args(self.config[subcommand], "model") or {})
         changed = [f"--model.init_args.{key}: {merged.get(key)!r} → {value!r}"
-                   for key, value in sorted(given.items()) if merged.get(key) != value]  # fmt: skip
+                   for key, value in sorted(given.items())
+                   if _in_order(merged.get(key)) != _in_order(value)]  # fmt: skip
         seed, trained = cfg.get("seed_everything"), merged.get("model_seed")
         if (subcommand == "fit" and isinstance(seed, int) and not isinstance(seed, bool)
                 and trained is not None and "model_seed" not in given and seed != trained):  # fmt: skip
@@ -311,7 +312,8 @@ def _check_resumed_settings(ckpt, model, datamodule) -> None:
         now = dict(module.hparams)
         changed += [f"--{what}.init_args.{name}: {before.get(name)!r} → {now.get(name)!r}"
                     for name in sorted(set(before) | set(now))
-                    if not name.startswith("_") and before.get(name) != now.get(name)]  # fmt: skip
+                    if not name.startswith("_")
+                    and _in_order(before.get(name)) != _in_order(now.get(name))]  # fmt: skip
     from difffilter.models.yaml_scenario import scenario_file_digest
 
     from .task import SCENARIO_FILE_DIGEST
@@ -327,6 +329,20 @@ def _check_resumed_settings(ckpt, model, datamodule) -> None:
             "resume with the run's own settings (its config.yaml: --config <run>/config.yaml "
             "--ckpt_path …)",
         )  # fmt: skip
+
+
+def _in_order(value):
+    """A setting with its mappings as lists of ``(key, value)`` pairs, so that settings
+    compare in their order: a threat distribution draws a threat by its entry's place and
+    an entry's random fields in their order, so the same entries in another order draw
+    other runs (a trial's resume with its YAML's entries reversed had passed the check as
+    equal dicts, trained on other data, and chosen its best checkpoint between two
+    validation sets)."""
+    if isinstance(value, dict):
+        return [(k, _in_order(v)) for k, v in value.items()]
+    if isinstance(value, (list, tuple)):
+        return [_in_order(v) for v in value]
+    return value
 
 
 def _settings_refused(ckpt, what: str, changed: list[str], remedy: str) -> ValueError:
