@@ -171,6 +171,12 @@ class ThreatDistribution:
             for field, value in entry.items():
                 if _is_draw(value):
                     _check_draw(f"{where}.{field}", value)
+            share = entry.get("share")
+            if float(entry["weight"]) > 0 and not _is_draw(share) and share == 0:
+                raise ValueError(  # (a trial's entry attacked no run and counted as trained on)
+                    f"{where}.share is 0: the threat attacks no run, so it never acts; give "
+                    "it a share above 0, or weight 0"
+                )
             self._build(name, entry, torch.Generator().manual_seed(0), check=True)  # fields now
             for corner in _corners(entry):  # ... and the random ones at their extremes, together
                 self._build(name, {**entry, **corner}, torch.Generator().manual_seed(0), check=True)

@@ -237,6 +237,16 @@ def test_onsets_past_the_horizon_are_counted_and_the_data_module_warns():
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the full horizon: nothing to say
         ScenarioDataModule("four_tank_bias", val_runs=2, test_runs=1, threats=MIX)
+    # every onset past the horizon, or a share of 0: the entry never acts (a trial's such
+    # entries trained nothing and were listed on the card as trained on)
+    with pytest.raises(ValueError, match=r"threats\.late: every onset falls after the last of "
+                       r"the 9 steps, so it never acts"):  # fmt: skip
+        ScenarioDataModule("four_tank_bias", val_runs=2, test_runs=1, steps=9,
+                           threats={"late": spec["late"]})  # fmt: skip
+    with pytest.raises(ValueError, match=r"threats\.half\.share is 0: the threat attacks no run"):
+        ThreatDistribution({"half": {"weight": 1, "kind": "bias", "value": 0.5, "share": 0}})
+    ThreatDistribution({"off": {"weight": 0, "kind": "bias", "value": 0.5, "share": 0},
+                        "none": {"weight": 1}})  # (weight 0: never drawn, nothing to say)  # fmt: skip
 
 
 def test_a_horizon_shorter_than_the_scenarios_own_attack_is_refused(isolated_registry):

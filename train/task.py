@@ -249,6 +249,13 @@ class ScenarioDataModule(pl.LightningDataModule):
                 ) from None
         if self.threats is not None:
             for name, share in self.threats.onsets_past(self.scenario.steps).items():
+                if share >= 1:  # (a trial's entry that never acted was listed as trained on)
+                    raise ValueError(
+                        f"threats.{name}: every onset falls after the last of the "
+                        f"{self.scenario.steps} steps, so it never acts (its runs would train "
+                        "attack-free, and the card would list it as a threat trained on): give "
+                        "onsets within the horizon, or weight 0"
+                    )
                 warnings.warn(
                     f"threats.{name}: {share:.0%} of its onsets fall after the last of the "
                     f"{self.scenario.steps} steps; those runs train attack-free",
