@@ -51,6 +51,19 @@ def _is_draw(value) -> bool:
     return isinstance(value, dict) and any(k in value for k in _DRAWS)
 
 
+def _near(mapping: dict, names) -> str:
+    """`` (did you mean 'weight' for 'wieght'?)`` for a key of ``mapping`` close to one of
+    ``names`` that it lacks, else ``""``."""
+    import difflib
+
+    for key in mapping:
+        if isinstance(key, str) and key not in names:
+            close = difflib.get_close_matches(key, names, n=1, cutoff=0.6)
+            if close:
+                return f" (did you mean {close[0]!r} for {key!r}?)"
+    return ""
+
+
 def _check_draw(where: str, value: dict) -> None:
     kinds = [k for k in _DRAWS if k in value]
     extra = sorted(set(value) - set(_DRAWS) - {"signed"})
@@ -154,7 +167,8 @@ class ThreatDistribution:
         for name, entry in self.spec.items():
             where = f"threats.{name}"
             if not isinstance(entry, dict) or "weight" not in entry:
-                raise ValueError(f"{where}: needs a mapping with a weight; got {entry!r}")
+                near = _near(entry, ("weight",)) if isinstance(entry, dict) else ""
+                raise ValueError(f"{where}: needs a mapping with a weight{near}; got {entry!r}")
             w = entry["weight"]
             if isinstance(w, bool) or not isinstance(w, (int, float)) or not 0 <= w < math.inf:
                 raise ValueError(f"{where}.weight must be a finite number >= 0; got {w!r}")
@@ -171,6 +185,11 @@ class ThreatDistribution:
             for field, value in entry.items():
                 if _is_draw(value):
                     _check_draw(f"{where}.{field}", value)
+                elif isinstance(value, dict):  # (a misspelt draw read "must be a number")
+                    raise ValueError(
+                        f"{where}.{field}: a mapping is a random draw, one of {{uniform|"
+                        f"loguniform|randint|choice: ...}}{_near(value, _DRAWS)}; got {value!r}"
+                    )
             share = entry.get("share")
             if float(entry["weight"]) > 0 and not _is_draw(share) and share == 0:
                 raise ValueError(  # (a trial's entry attacked no run and counted as trained on)
@@ -200,7 +219,11 @@ class ThreatDistribution:
                 check_attack_fits(attack, self.model)
             return attack
         except (TypeError, ValueError) as error:
-            raise ValueError(f"threats.{name}: {error}") from None
+            hint = ""
+            if "integer" in str(error) and any(_is_draw(v) and "randint" not in v and "choice" not in v
+                                               for v in entry.values()):  # fmt: skip
+                hint = " (an integer field is drawn with randint: [first, last], both included)"
+            raise ValueError(f"threats.{name}: {error}{hint}") from None
 
     def covers(self, spec: dict) -> str:
         """How threat ``spec`` (``{"kind", **fields}``, as the threat sets write it) stands

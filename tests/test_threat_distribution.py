@@ -270,3 +270,20 @@ def test_a_horizon_shorter_than_the_scenarios_own_attack_is_refused(isolated_reg
     ):
         ScenarioDataModule("late_bias", val_runs=2, steps=9)
     assert ScenarioDataModule("late_bias", val_runs=2, steps=10).scenario.steps == 10
+
+
+def test_a_misspelt_weight_or_draw_and_an_integer_drawn_as_a_float_say_what_to_write():
+    """A training-distribution trial: ``wieght`` gave "needs a mapping with a weight" and
+    ``unifrom`` "value must be a number or a sequence of numbers", naming neither slip; an
+    onset drawn with ``uniform`` gave one drawn value, "must be an integer", and no way on."""
+    bias = {"kind": "bias", "value": 0.5}
+    with pytest.raises(ValueError, match=r"needs a mapping with a weight \(did you mean 'weight' "
+                       r"for 'wieght'\?\)"):  # fmt: skip
+        ThreatDistribution({"b": {"wieght": 1, **bias}})
+    with pytest.raises(ValueError, match=r"threats\.b\.value: a mapping is a random draw, one of "
+                       r"\{uniform\|loguniform\|randint\|choice: \.\.\.\} \(did you mean 'uniform' for "
+                       r"'unifrom'\?\)"):  # fmt: skip
+        ThreatDistribution({"b": {"weight": 1, "kind": "bias", "value": {"unifrom": [0.1, 0.2]}}})
+    with pytest.raises(ValueError, match=r"onset must be an integer >= 1; got .* \(an integer "
+                       r"field is drawn with randint: \[first, last\], both included\)"):  # fmt: skip
+        ThreatDistribution({"b": {"weight": 1, **bias, "onset": {"uniform": [5, 20]}}})
