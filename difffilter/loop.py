@@ -791,6 +791,8 @@ def _three(returned, attack, k: int) -> tuple:
     (two values had failed as a bare "not enough values to unpack", naming no attack)."""
     if type(returned) is tuple and len(returned) == 3:
         return returned
+    if isinstance(returned, tuple | list) and len(returned) == 3:  # a list, a namedtuple
+        return tuple(returned)
     got = (
         f"{len(returned)} values" if isinstance(returned, tuple | list) else type(returned).__name__
     )

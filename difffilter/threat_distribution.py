@@ -185,7 +185,9 @@ class ThreatDistribution:
             for field, value in entry.items():
                 if _is_draw(value):
                     _check_draw(f"{where}.{field}", value)
-                elif isinstance(value, dict):  # (a misspelt draw read "must be a number")
+                elif isinstance(value, dict) and "kind" not in value:
+                    # (a misspelt draw read "must be a number"; a mapping with a kind is a
+                    # threat of its own: covert's signal)
                     raise ValueError(
                         f"{where}.{field}: a mapping is a random draw, one of {{uniform|"
                         f"loguniform|randint|choice: ...}}{_near(value, _DRAWS)}; got {value!r}"
@@ -219,9 +221,12 @@ class ThreatDistribution:
                 check_attack_fits(attack, self.model)
             return attack
         except (TypeError, ValueError) as error:
-            hint = ""
-            if "integer" in str(error) and any(_is_draw(v) and "randint" not in v and "choice" not in v
-                                               for v in entry.values()):  # fmt: skip
+            hint, drawn = "", entry.get(str(error).split(" ", 1)[0])
+            if (
+                "must be an integer" in str(error)
+                and _is_draw(drawn)
+                and ("uniform" in drawn or "loguniform" in drawn)
+            ):  # the field named, drawn so
                 hint = " (an integer field is drawn with randint: [first, last], both included)"
             raise ValueError(f"threats.{name}: {error}{hint}") from None
 

@@ -340,6 +340,13 @@ def test_an_attacks_flag_and_value_are_checked_and_one_value_for_every_run_is_ex
         and entry.trajectories.attack[..., 1].eq(1).all()
     )
 
+    class AsList(_Returns):  # a list or a namedtuple of three is three values
+        def step(self, state, k, *, y=None, x=None, u=None, view=None):
+            return [state, torch.zeros_like(y), torch.zeros(y.shape[:-1], dtype=torch.bool)]
+
+    closed_loop(model, 3, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                estimator=df.KalmanFilter(), attack=AsList(None))  # fmt: skip
+
     class Two(_Returns):
         def step(self, state, k, *, y=None, x=None, u=None, view=None):
             return state, torch.zeros_like(y)  # no flag

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from difffilter.models import registry
 from difffilter.threat_distribution import (
     HELD_OUT,
     KIND_ONLY,
@@ -239,10 +240,13 @@ def test_onsets_past_the_horizon_are_counted_and_the_data_module_warns():
         ScenarioDataModule("four_tank_bias", val_runs=2, test_runs=1, threats=MIX)
     # every onset past the horizon, or a share of 0: the entry never acts (a trial's such
     # entries trained nothing and were listed on the card as trained on)
+    with pytest.warns(UserWarning, match=r"threats\.late: 100% of its onsets"):
+        late = ScenarioDataModule("four_tank_bias", val_runs=2, test_runs=1, steps=9,
+                                  threats={"late": spec["late"]})  # fmt: skip
+    late.test_dataloader()  # a test reads the scenario's own attack: nothing refused
     with pytest.raises(ValueError, match=r"threats\.late: every onset falls after the last of "
                        r"the 9 steps, so it never acts"):  # fmt: skip
-        ScenarioDataModule("four_tank_bias", val_runs=2, test_runs=1, steps=9,
-                           threats={"late": spec["late"]})  # fmt: skip
+        late.train_dataloader()
     with pytest.raises(ValueError, match=r"threats\.half\.share is 0: the threat attacks no run"):
         ThreatDistribution({"half": {"weight": 1, "kind": "bias", "value": 0.5, "share": 0}})
     ThreatDistribution({"off": {"weight": 0, "kind": "bias", "value": 0.5, "share": 0},
@@ -287,3 +291,14 @@ def test_a_misspelt_weight_or_draw_and_an_integer_drawn_as_a_float_say_what_to_w
     with pytest.raises(ValueError, match=r"onset must be an integer >= 1; got .* \(an integer "
                        r"field is drawn with randint: \[first, last\], both included\)"):  # fmt: skip
         ThreatDistribution({"b": {"weight": 1, **bias, "onset": {"uniform": [5, 20]}}})
+    with pytest.raises(ValueError, match=r"onset must be an integer >= 1; got 2\.5$"):
+        # (a constant onset beside another field drawn with uniform: no hint about draws)
+        ThreatDistribution({"b": {"weight": 1, "kind": "bias", "value": {"uniform": [0.1, 0.2]},
+                                  "onset": 2.5}})  # fmt: skip
+    # a mapping with a kind is a threat, not a misspelt draw: covert's signal (a review)
+    robot = registry.get("robot_actuator_attack_turn_rates")
+    covert = {"weight": 1, "kind": "covert",
+              "signal": {"kind": "bias", "value": 0.01, "entries": [0], "onset": 3}}  # fmt: skip
+    name, attack = ThreatDistribution({"cov": covert}, model=robot.system()).sample(
+        torch.Generator().manual_seed(0))  # fmt: skip
+    assert name == "cov" and type(attack).__name__ == "Covert"
