@@ -78,8 +78,8 @@ class Calibration:
             :data:`RESOLVED` and ``D`` is above what independent alarms give (the dispersion
             test at :data:`CLUSTERING_LEVEL`). Steps of one run are not independent draws:
             where a few runs hold the alarms (the LFC online learners, whose per-run EKF
-            over the weights settles differently in each run: on ``lfc_step``'s 20 runs
-            200 alarms worth 1.2–2.9) the threshold rests on those runs, and its rate on
+            over the weights settles differently in each run: on two draws of
+            ``lfc_step``'s 20 runs, 200 alarms worth 1.2–9.7) the threshold rests on those runs, and its rate on
             fresh runs varies from one draw of runs to the next far more than the step
             count says. A detector already listed under ``unresolved`` (``α n`` below
             :data:`RESOLVED`) is not listed again.
@@ -324,7 +324,7 @@ def calibrate(
 #: The dispersion test's level (:func:`_clustering`). Measured on independent χ² scores
 #: (1,000 calibrations each of 100 × 100 and 200 × 50 steps at 0.1 %, 20 × 100 and 100 × 100
 #: at 1 %): 5, 0, 0 and 0 called clustered (the test's χ² approximation is coarse for a
-#: tenth of an alarm a run); the LFC online learners' statistics are 30 times the bound.
+#: tenth of an alarm a run); the LFC online learners' statistics are 8–26 times the bound.
 CLUSTERING_LEVEL = 1e-4
 
 
