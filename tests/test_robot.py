@@ -162,6 +162,50 @@ def test_mdpf_one_step_by_hand():
         torch.testing.assert_close(out.extras["attack_covs"][0, 0], S1)
 
 
+def test_mdpf_forty_five_steps_by_hand_through_the_onset():
+    """N = 1, copy reading, 45 steps through the attack's onset at k = 30, so that Υ(k−1),
+    â(k−1) and S(k−1) are far from their start (the one-step check above has Υ = 0 and
+    â = 0): (A2)–(A5) with explicit inverses, F = ∂f/∂x at (x̂, u + â) ([DEF], scenarios.md),
+    both forms. An equation audit's recursion; a wrong F (of f(x, u) alone) moved x̂ by 0.22."""
+    model, tr = _robot_data(runs=1, steps=45, seed=3)
+    local = model.group(GROUPS[0])
+    ys, us = group_measurements(tr.y_recv)[0][:, :45], tr.us[:, :45]
+    x0, S0, lam = torch.tensor([0.5, -0.3, 0.01], dtype=F64), 10.0 * torch.eye(2, dtype=F64), 0.7
+    init = adaptive_particle_init(local, 1, (1,), torch.Generator().manual_seed(0))
+    init = init._replace(particles=ParticleLayout(3, 2).pack(
+        x0[None, None], torch.zeros(1, 1, 2, dtype=F64), torch.zeros(1, 1, 3, 2, dtype=F64),
+        S0[None, None], torch.zeros(1, 1, 3, 3, dtype=F64)))  # fmt: skip
+    x, a, ups, S = x0, torch.zeros(2, dtype=F64), torch.zeros(3, 2, dtype=F64), S0
+    eye = torch.eye(3, dtype=F64)
+    xs, attacks, Ss = [], [], []
+    for k in range(45):
+        u = us[0, k]
+        Q, R = local.process_cov(k), local.measurement_cov(k + 1)
+        F = torch.tensor([[1.0, 0.0, -(u[0] + a[0]) * math.sin(x[2])],
+                          [0.0, 1.0, (u[0] + a[0]) * math.cos(x[2])],
+                          [0.0, 0.0, 1.0]], dtype=F64)  # fmt: skip
+        B = local.input_jacobian(x, u, k)
+        xp = local.transition(x, u, k) + B @ a  # (A3)
+        H = local.observation_jacobian(xp, k + 1)
+        eps = local.measurement_residual(ys[0, k], local.observe(xp, k + 1))
+        Sig = H @ Q @ H.T + R  # (A4), P_p = Q
+        K = Q @ H.T @ torch.linalg.inv(Sig)
+        new_ups = (eye - K @ H) @ (F @ ups + B)  # (A5)
+        Om = H @ (F @ ups + B)
+        Gam = S @ Om.T @ torch.linalg.inv(lam * Sig + Om @ S @ Om.T)
+        S = S / lam - Gam @ Om @ S / lam
+        a, x, ups = a + Gam @ eps, xp + (K + new_ups @ Gam) @ eps, new_ups  # (A2)
+        xs.append(x), attacks.append(a), Ss.append(S)
+    assert float(torch.stack(attacks)[-1, 0]) > 10  # the attack (20 cm/s) is being estimated
+    for form in ("information", "covariance"):
+        out = adaptive_particle_filter(local, ys, us, num_particles=1, reading="copy", form=form,
+                                       forgetting=lam, attack_cov0=10.0, initial_state=init)  # fmt: skip
+        torch.testing.assert_close(out.means[0], torch.stack(xs), atol=1e-8, rtol=1e-8)
+        torch.testing.assert_close(out.attack[0], torch.stack(attacks), atol=1e-8, rtol=1e-8)
+        torch.testing.assert_close(out.extras["attack_covs"][0], torch.stack(Ss), atol=1e-8,
+                                   rtol=1e-8)  # fmt: skip
+
+
 def test_information_form_equals_covariance_form_with_a_mask():
     model, tr = _robot_data()
     gm = model.group(GROUPS)
