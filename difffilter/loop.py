@@ -807,8 +807,8 @@ def _checked_value(attack, value: Tensor, flag: Tensor, signal: Tensor, k: int,
     """The attack's value and flag at step ``k`` as the attacked signal's shape ``[..., d]``
     (the flag ``[...]`` or ``[..., d]``), after checking them: a value of the signal's
     entries and dtype that broadcasts to it (one value for every run, ``[d]``, is expanded:
-    a flag ``[B]`` beside it was read per entry where ``B = d``), and a bool flag that
-    broadcasts to ``[...]`` (per run) or ``[..., d]`` (per entry), expanded to it (a trial's
+    a flag ``[B]`` beside it was read per entry where ``B = d``), and a bool flag of the rank
+    of ``[...]`` (per run) or ``[..., d]`` (per entry) whose sizes broadcast, expanded to it (a trial's
     flag ``[1]`` for two runs was recorded as ``[1, T]`` flags beside ``[2, T]`` runs).
     Shape checks only: nothing is read from the tensors."""
     shape = signal.shape

@@ -324,7 +324,7 @@ def calibrate(
 #: The dispersion test's level (:func:`_clustering`). Measured on independent χ² scores
 #: (1,000 calibrations each of 100 × 100 and 200 × 50 steps at 0.1 %, 20 × 100 and 100 × 100
 #: at 1 %): 5, 0, 0 and 0 called clustered (the test's χ² approximation is coarse for a
-#: tenth of an alarm a run); the LFC online learners' statistics are 8–26 times the bound.
+#: tenth of an alarm a run); the LFC online learners' statistics are 8–62 times the bound.
 CLUSTERING_LEVEL = 1e-4
 
 
@@ -359,7 +359,7 @@ def _clustering(scores: torch.Tensor, threshold: float) -> dict | None:
 
 def _warn_unthresholded(estimators, calibration: Calibration, result) -> None:
     """A warning naming the estimators asked for by name (``estimators``) that the
-    scenario could not run, with why, and, where no named estimator got a threshold, those
+    scenario could not run, with why, and, where the calibration got no threshold at all, those
     that report no detection score: another family's estimator, or one that detects
     nothing, had left the calibration empty without a word (a calibration trial). A list
     that mixes detectors with estimators that detect nothing (a study's own list) is

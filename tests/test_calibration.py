@@ -542,10 +542,12 @@ def test_alarms_held_by_a_few_runs_are_named_with_what_they_are_worth():
     assert _clustering(spread, 0.5) is None
     g = torch.Generator().manual_seed(0)
     listed = 0
-    for _ in range(200):  # independent χ² alarms: 100 runs × 100 steps at 1 %
+    for _ in range(200):  # independent χ² alarms: 100 runs × 100 steps at 0.1 %, N ≈ 10, where
+        # N / D < 10 by chance in about a third of the draws: the dispersion test must keep
+        # them off (a review: at 1 % the N / D bar alone kept every draw off)
         chi = torch.randn(100, 100, generator=g, dtype=torch.float64) ** 2
-        listed += _clustering(chi, float(threshold_for(chi.flatten(), 0.01))) is not None
-    assert listed == 0
+        listed += _clustering(chi, float(threshold_for(chi.flatten(), 0.001))) is not None
+    assert listed <= 4  # 5 in 1,000 measured
     entry = {"alarms": 200, "effective_alarms": 2.86}
     summary = Calibration(0.01, 20, 0, thresholds={"kf_nn_ekf": 0.3}, measured={"kf_nn_ekf": 0.01},
                           concentrated={"kf_nn_ekf": entry}).summary()  # fmt: skip

@@ -251,7 +251,8 @@ class ScenarioDataModule(pl.LightningDataModule):
             for name, share in self.threats.onsets_past(self.scenario.steps).items():
                 warnings.warn(
                     f"threats.{name}: {share:.0%} of its onsets fall after the last of the "
-                    f"{self.scenario.steps} steps; those runs train attack-free",
+                    f"{self.scenario.steps} steps; those runs train attack-free"
+                    + (" (all of them: a fit refuses it)" if share >= 1 else ""),
                     stacklevel=2,
                 )
         self.save_hyperparameters()
