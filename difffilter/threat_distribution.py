@@ -64,6 +64,16 @@ def _near(mapping: dict, names) -> str:
     return ""
 
 
+def _never_above_zero(value) -> bool:
+    """Whether a field (a number or a draw) is 0 in every draw: a constant 0, a choice of
+    zeros, or a uniform or loguniform range [0, 0]."""
+    if not _is_draw(value):
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and value == 0
+    options = value.get("choice") or value.get("uniform") or value.get("loguniform") or ()
+    numbers = [o for o in options if isinstance(o, (int, float)) and not isinstance(o, bool)]
+    return bool(numbers) and len(numbers) == len(options) and all(o == 0 for o in numbers)
+
+
 def _check_draw(where: str, value: dict) -> None:
     kinds = [k for k in _DRAWS if k in value]
     extra = sorted(set(value) - set(_DRAWS) - {"signed"})
@@ -193,7 +203,7 @@ class ThreatDistribution:
                         f"loguniform|randint|choice: ...}}{_near(value, _DRAWS)}; got {value!r}"
                     )
             share = entry.get("share")
-            if float(entry["weight"]) > 0 and not _is_draw(share) and share == 0:
+            if float(entry["weight"]) > 0 and _never_above_zero(share):
                 raise ValueError(  # (a trial's entry attacked no run and counted as trained on)
                     f"{where}.share is 0: the threat attacks no run, so it never acts; give "
                     "it a share above 0, or weight 0"

@@ -247,8 +247,15 @@ def test_onsets_past_the_horizon_are_counted_and_the_data_module_warns():
     with pytest.raises(ValueError, match=r"threats\.late: every onset falls after the last of "
                        r"the 9 steps, so it never acts"):  # fmt: skip
         late.train_dataloader()
-    with pytest.raises(ValueError, match=r"threats\.half\.share is 0: the threat attacks no run"):
-        ThreatDistribution({"half": {"weight": 1, "kind": "bias", "value": 0.5, "share": 0}})
+    for never in (0, {"choice": [0, 0.0]}, {"uniform": [0, 0]}):  # (drawn zeros: a review)
+        with pytest.raises(
+            ValueError, match=r"threats\.half\.share is 0: the threat attacks no run"
+        ):
+            ThreatDistribution(
+                {"half": {"weight": 1, "kind": "bias", "value": 0.5, "share": never}}
+            )
+    ThreatDistribution({"half": {"weight": 1, "kind": "bias", "value": 0.5,
+                                 "share": {"choice": [0, 0.5]}}})  # some draws act  # fmt: skip
     ThreatDistribution({"off": {"weight": 0, "kind": "bias", "value": 0.5, "share": 0},
                         "none": {"weight": 1}})  # (weight 0: never drawn, nothing to say)  # fmt: skip
 
