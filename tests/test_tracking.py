@@ -299,3 +299,56 @@ def test_the_shipped_learned_estimator_detects_the_deception():
     ours, rrp = res.metrics["pf_nn_grad"], res.metrics["rrp_pf_da"]
     assert ours["auc"] > 0.99
     assert ours["state_rmse"] < 1.1 * rrp["state_rmse"]
+
+
+def test_the_likelihood_of_eq_15_by_hand_inside_and_outside_the_attack_box():
+    """Eq. (15) for the sensor scheduled at step k: log[(1 − η̄) p_ν(ỹ − h(x)) + η̄ / (90 π)]
+    where ỹ lies in the attack box [−10, 80] × [−π/2, π/2] (ξ uniform there, eq. 7), and
+    log[(1 − η̄) p_ν(ỹ − h(x))] outside it; p_ν the glint mixture of eq. (19), h of eq.
+    (18), the bearing residual wrapped. Written out in float64 from the paper (a tracking
+    equation audit: the tests had checked the glint part alone)."""
+    from difffilter.models.tracking_estimators import mixture_likelihood
+
+    sc, ctx, _ = _setup(registry.get("tracking_rrp_deception"))
+    lik, model, eta = mixture_likelihood(ctx), ctx.model, sc.eta_bar
+    g = torch.Generator().manual_seed(5)
+
+    def log_normal(r, b, var_r, var_b):
+        return (
+            -(r**2) / (2 * var_r)
+            - b**2 / (2 * var_b)
+            - math.log(2 * math.pi * math.sqrt(var_r * var_b))
+        )
+
+    def uniform(lo, hi, n=()):
+        return lo + (hi - lo) * torch.rand(n, generator=g, dtype=torch.float64)
+
+    cases = 0
+    for where in ("near", "inside", "outside") * 4:
+        i = cases % 4
+        cases += 1
+        x = torch.stack([uniform(0, 70, 7), 0.3 + 0.1 * torch.randn(7, generator=g, dtype=torch.float64),
+                         uniform(0, 70, 7), 0.3 + 0.1 * torch.randn(7, generator=g, dtype=torch.float64)], -1)  # fmt: skip
+        sx, sy = ((10.0, 10.0), (10.0, 60.0), (60.0, 10.0), (60.0, 60.0))[i]  # [DEF] positions
+        dz, dp = x[:, 0] - sx, x[:, 2] - sy
+        rng, bearing = torch.hypot(dz, dp), torch.atan2(dp, dz)  # eq. (18)
+        if where == "near":  # a true packet about the first particle
+            y_i = torch.stack([rng[0] + uniform(-3, 3), bearing[0] + uniform(-0.03, 0.03)])
+        elif where == "inside":  # a forged packet anywhere in the box
+            y_i = torch.stack([uniform(-10, 80), uniform(-math.pi / 2, math.pi / 2)])
+        else:  # beyond the box's range, near the particle's bearing: no forged term
+            y_i = torch.stack([rng[0] + 85, bearing[0]])
+        y = torch.zeros(8, dtype=torch.float64)
+        y[2 * i : 2 * i + 2] = y_i
+        m = torch.zeros(8, dtype=torch.bool)
+        m[2 * i : 2 * i + 2] = True
+        r, b = y_i[0] - rng, wrap_angle(y_i[1] - bearing)
+        terms = [math.log(1 - eta) + math.log(0.8) + log_normal(r, b, 4.0, (math.pi / 180) ** 2),
+                 math.log(1 - eta) + math.log(0.2) + log_normal(r, b, 25.0, (math.pi / 90) ** 2)]  # fmt: skip
+        inside = bool(-10 <= y_i[0] <= 80 and -math.pi / 2 <= y_i[1] <= math.pi / 2)
+        assert where == "near" or inside == (where == "inside")  # (a true packet: either)
+        if inside:
+            terms.append(torch.full((7,), math.log(eta / (90 * math.pi)), dtype=torch.float64))
+        want = torch.logsumexp(torch.stack(terms), 0)
+        got = lik(model, y[None], x[None], 5, m[None])[0]
+        torch.testing.assert_close(got, want, atol=1e-9, rtol=1e-9)
