@@ -273,6 +273,7 @@ def craft_stealthy_attack(
     resample=None,
     select=None,
     progress=None,
+    warn_far_off: bool = True,
 ) -> CraftedAttack:
     """Craft a stealthy sensor attack against ``estimator``'s detector (module docstring).
 
@@ -311,6 +312,9 @@ def craft_stealthy_attack(
             within budget on its own batch, which another batch's noise may not confirm
             (judge it on fresh runs: the robustness study does).
         progress: ``(iteration, J, alarm rate) → None`` after every iteration, or ``None``.
+        warn_far_off: the warning of ``threshold`` above, or not (a caller that says the
+            rate elsewhere: the adversary of a training logs it at every crafting, and the
+            robustness study's report explains a detector whose alarms fall at start-up).
 
     Returns a :class:`CraftedAttack` (zero where no iterate kept the budget) with ``history``
     ``[(iteration, J, p̃(a) − p̃(0), p(a), p(0) + ε)]`` (each on its own batch), ``budget``
@@ -381,7 +385,8 @@ def craft_stealthy_attack(
 
     with torch.no_grad():
         reference = free_rates(free)
-    _warn_far_off(reference[1], int(on.sum()) * ys.shape[0], far, threshold)
+    if warn_far_off:
+        _warn_far_off(reference[1], int(on.sum()) * ys.shape[0], far, threshold)
     history, kept = [], []
     for it in range(s.iterations):
         a = raw.cumsum(0) * sigma * window

@@ -465,6 +465,7 @@ def test_a_batch_the_crafting_cannot_use_is_named_and_a_threshold_far_from_far_w
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         craft(tau=1e9)  # (1 % of 24 steps: no alarm is what it should give)
+        craft(tau=-1.0, warn_far_off=False)  # a caller that says the rate itself
 
 
 def test_within_budget_reads_each_rows_budget_and_never_a_non_finite_error():
@@ -511,7 +512,21 @@ def test_the_adversarys_onset_is_drawn_from_first_to_last_both_included(monkeypa
 
     seen = []
 
-    def fake_craft(est, model, ys, xs, tau, *, far, us=None, mask=None, onset, settings, generator):
+    def fake_craft(
+        est,
+        model,
+        ys,
+        xs,
+        tau,
+        *,
+        far,
+        us=None,
+        mask=None,
+        onset,
+        settings,
+        generator,
+        warn_far_off=True,
+    ):
         seen.append(onset)
         history = [(0, 1.0, 0.0, 0.0), (1, 5.0, 0.0, 0.5), (2, 2.0, 0.0, 0.1)]
         return CraftedAttack(torch.ones(ys.shape[-2:]), onset, history, budget=0.1)
