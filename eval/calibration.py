@@ -367,11 +367,11 @@ def _warn_unthresholded(estimators, calibration: Calibration, result) -> None:
     # (``add``'s names the CLI notes once itself, as a study of every scenario meets them)
     asked = [n for n in dict.fromkeys(estimators or ())
              if n not in calibration.thresholds and n not in calibration.broke_down]  # fmt: skip
-    skipped = {n: result.skipped[n] for n in asked if n in result.skipped}
+    why = {n: result.skipped[n] for n in asked if n in result.skipped}
     if not calibration.thresholds and not calibration.broke_down:
-        skipped.update({n: "it reports no detection score" for n in asked if n not in skipped})
-    if skipped:
-        each = "; ".join(f"{n!r}: {reason}" for n, reason in skipped.items())
+        why.update({n: "it reports no detection score" for n in asked if n not in why})
+    if why:
+        each = "; ".join(f"{n!r}: {reason}" for n, reason in why.items())
         warnings.warn(f"calibrate: no threshold for {each}", stacklevel=3)
 
 
