@@ -293,7 +293,8 @@ class ThreatDistribution:
 
     def onsets_past(self, steps: int) -> dict[str, float]:
         """``{name: share}``: the components of positive weight whose ``onset`` (the first
-        attacked measurement, 1-based) can fall after the last of ``steps`` measurements,
+        attacked measurement, 1-based; a covert attack's, its signal's) can fall after the
+        last of ``steps`` measurements,
         with the share of their draws that do. Such a draw acts on nothing: its run trains
         as an attack-free one (a horizon shortened with ``--data.steps``, say)."""
         past = {}
@@ -301,6 +302,14 @@ class ThreatDistribution:
             if name in _RESERVED or float(entry["weight"]) <= 0:
                 continue
             onset = entry.get("onset", _default(entry["kind"], "onset"))
+            signal = entry.get("signal")
+            if (
+                entry["kind"] == "covert"
+                and isinstance(signal, dict)
+                and signal.get("kind") in THREATS
+            ):
+                # a covert attack acts from its signal's onset (it has none of its own)
+                onset = signal.get("onset", _default(signal["kind"], "onset"))
             if onset is _NO_DEFAULT:
                 continue
             if not _is_draw(onset):

@@ -260,6 +260,22 @@ def test_onsets_past_the_horizon_are_counted_and_the_data_module_warns():
                         "none": {"weight": 1}})  # (weight 0: never drawn, nothing to say)  # fmt: skip
 
 
+def test_a_covert_entry_acts_from_its_signals_onset():
+    """A covert attack has no onset of its own: it acts from its signal's, which
+    ``onsets_past`` reads (it had passed a covert entry whose signal began after the
+    horizon: its runs trained attack-free, listed as trained on)."""
+    from difffilter.models import registry
+
+    model = registry.get("lfc_step").system()
+    signal = {"kind": "bias", "value": 0.01, "entries": [0], "channel": "actuator"}
+    dist = ThreatDistribution({
+        "late": {"weight": 1, "kind": "covert", "signal": {**signal, "onset": 300}},
+        "drawn": {"weight": 1, "kind": "covert", "signal": signal},  # the class default, 1
+    }, model=model)  # fmt: skip
+    assert dist.onsets_past(299) == {"late": 1.0}
+    assert dist.onsets_past(300) == {}
+
+
 def test_a_horizon_shorter_than_the_scenarios_own_attack_is_refused(isolated_registry):
     """A user trial shortened the horizon below the attack's onset: the runs trained
     attack-free, then Lightning failed at validation ("could not find the monitored key
