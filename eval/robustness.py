@@ -103,15 +103,26 @@ def _threat_file(scenario) -> Path:
 
 def load_threat_set(scenario, names="all", path: str | Path | None = None) -> ThreatSet:
     """The threats of ``scenario`` from its YAML (``path`` overrides the lookup), those named
-    in ``names`` (``"all"`` or a sequence; an unknown name is an error listing the valid).
+    in ``names`` (``"all"``, a sequence, or the command line's comma-separated string; an
+    unknown name is an error listing the valid).
 
     The YAML holds ``threats: {name: {kind: …, fields}}`` (:func:`~difffilter.threats.
     threat_from_dict`), or ``threats_from: <file>`` (another file's, beside it, less those
     named in ``exclude``), and optionally ``runs`` and ``estimators``."""
+    if isinstance(names, str) and names != "all":  # the command line's form: "bias,ramp"
+        names = [n.strip() for n in names.split(",") if n.strip()]  # (it had read letters)
     path = Path(path) if path is not None else _threat_file(scenario)
     data = _read_threat_file(path)
     if "threats_from" in data:  # another file's threats, this file's study size
-        shared = _read_threat_file(path.parent / str(data["threats_from"]), origin=path)
+        shared_path = path.parent / str(data["threats_from"])
+        if not shared_path.is_file():  # (a trial's name of a shipped set was looked for
+            # beside its own file, and the error did not say where)
+            raise ValueError(
+                f"{path}: threats_from {data['threats_from']}: no file {shared_path} (a "
+                "relative name is read beside the file that names it; the shipped threat "
+                f"sets are in {THREAT_DIR}: give such a set by its path)"
+            )
+        shared = _read_threat_file(shared_path, origin=path)
         offered = shared.get("threats") or {}
         left_out = data.get("exclude") or ()
         if isinstance(left_out, str) or not all(isinstance(n, str) for n in left_out):

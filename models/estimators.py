@@ -266,7 +266,9 @@ def get(name: str) -> EstimatorSpec:
     except KeyError:
         known = ", ".join(sorted(ESTIMATORS))
         close = difflib.get_close_matches(str(name), ESTIMATORS, n=1)
-        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        hint = (f" (did you mean {close[0]!r}?)" if close else
+                " (an estimator of your own is known once the module that registers it is "
+                "imported: --import MODULE on the command line)")  # fmt: skip
         raise ValueError(f"unknown estimator {name!r}{hint}; known estimators: {known}") from None
 
 

@@ -410,6 +410,11 @@ def test_option_errors_name_the_option_and_what_it_takes(tmp_path, capsys):
     assert main(["four_tank_bias", "--add-estimators", "chi_sqare_ekf", *out]) == 2
     assert ("error: --add-estimators: unknown estimator 'chi_sqare_ekf' (did you mean "
             "'chi_square_ekf'?)") in capsys.readouterr().err  # fmt: skip
+    # a name like none known: one's own, without the module that registers it (a trial)
+    assert main(["four_tank_bias", "--add-estimators", "glr_window_kf", *out]) == 2
+    assert ("error: --add-estimators: unknown estimator 'glr_window_kf' (an estimator of your "
+            "own is known once the module that registers it is imported: --import MODULE on "
+            "the command line)") in capsys.readouterr().err  # fmt: skip
     assert main(["lfc_step", "--option", "foo=1", *out]) == 2
     assert ("unknown lfc option(s) ['foo']; valid: per_channel, per_channel_runs, "
             "per_channel_steps, watermark, watermark_std") in capsys.readouterr().err  # fmt: skip

@@ -43,6 +43,10 @@ def test_unknown_threats_and_bad_specs_are_named(tmp_path):
     sc = registry.get("four_tank_bias")
     with pytest.raises(ValueError, match="unknown threat.*spoof.*valid: bias"):
         load_threat_set(sc, ["spoof"])
+    # the command line's form, one name or several (a string had been read as its letters:
+    # "unknown threat(s) b, i, a, s")
+    assert list(load_threat_set(sc, "ramp").threats) == ["ramp"]
+    assert list(load_threat_set(sc, "bias, ramp").threats) == ["bias", "ramp"]
     bad = tmp_path / "bad.yaml"
     bad.write_text("threats:\n  slow: {kind: ramp, slop: 1.0}\n")
     with pytest.raises(ValueError, match="threat 'slow'.*slop"):

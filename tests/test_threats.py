@@ -364,7 +364,10 @@ def test_a_threat_set_file_that_is_not_one_is_named_with_its_path(tmp_path):
         ("threats: {a: {kind: bias\n", "set.yaml is not valid YAML"),
         ("- kind: bias\n", "set.yaml: a threat set is a mapping .* got a list"),
         ("threatz: {a: {kind: bias}}\n", "set.yaml: unknown key.s. threatz; a threat set holds threats, threats_from"),
-        ("threats_from: nowhere.yaml\n", "set.yaml: threats_from nowhere.yaml does not exist"),
+        # where it looked (a trial named a shipped set beside a file of its own)
+        ("threats_from: nowhere.yaml\n", r"set.yaml: threats_from nowhere.yaml: no file "
+         r".*nowhere.yaml \(a relative name is read beside the file that names it; the "
+         r"shipped threat sets are in .*threats: give such a set by its path\)"),
         ("threats_from: shared.yaml\nexclude: [bais]\n", "exclude names threat.s. bais that shared.yaml .*: bias, ramp"),
         ("threats_from: shared.yaml\nexclude: bias\n", "exclude must be a list of threat names"),
     ):  # fmt: skip
