@@ -416,6 +416,10 @@ def parse_checkpoints(values: Sequence[str] | None):
     named, plain = {}, []
     for value in values:
         name, sep, path = str(value).partition("=")
+        if not str(value).strip() or (sep and name in known.ESTIMATORS and not path.strip()):
+            # (Path("") is "."; the error had said "no checkpoint file at .")
+            raise ValueError(f"--ckpt {value!r}: an empty path; give a checkpoint file "
+                             "(PATH or NAME=PATH)")  # fmt: skip
         if sep and name in known.ESTIMATORS:
             if name in named:  # (the first was dropped without a word)
                 raise ValueError(
@@ -499,7 +503,9 @@ def _worker(rank: int, world: int, rendezvous: str, argv: list[str]) -> None:
         os.environ["OMP_NUM_THREADS"] = str(threads)
     dist.init_process_group("gloo", init_method=rendezvous, rank=rank, world_size=world)
     try:
-        code = main([*argv, "--devices", "1"] + (["--no-progress"] if rank else []))
+        code = _main([*argv, "--devices", "1"] + (["--no-progress"] if rank else []))
+    except KeyboardInterrupt:  # the launching process says it, once
+        code = 130
     finally:
         dist.destroy_process_group()
     if code:
@@ -535,6 +541,17 @@ def check_output_folder(out: Path, scenarios: Sequence[str] = ()) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The command line (:func:`build_parser`); an interrupt (Ctrl-C) ends it with one line
+    and exit code 130, not a traceback from wherever the study was (a CLI trial)."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        print("difffilter-eval: interrupted: the reports under --out may be incomplete; "
+              "rerun the same command to evaluate again", file=sys.stderr)  # fmt: skip
+        return 130
+
+
+def _main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)  # --help and usage errors before the heavy imports
     if args.scenario_option is not None:

@@ -137,8 +137,12 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
         data = {**data, "threats": kept}
     specs = data.get("threats") or {}
     if not isinstance(specs, dict) or not specs:
-        raise ValueError(f"{path}: 'threats' must map threat names to their specs")
+        raise ValueError(f"{path}: 'threats' must be a non-empty mapping of threat names to "
+                         f"their specs; got {data.get('threats')!r}")  # fmt: skip
     chosen = list(specs) if names == "all" else list(names)
+    if names != "all" and "all" in chosen and "all" not in specs:  # (it was "unknown")
+        raise ValueError("--threats: all stands alone (every threat of the set); got "
+                         f"{','.join(chosen)}")  # fmt: skip
     unknown = [n for n in chosen if n not in specs]
     if unknown:
         raise ValueError(

@@ -84,6 +84,7 @@ from .scenario import CustomScenario
 from .schedules import AllSensors, BurstLoss, PacketLoss, RoundRobin
 
 __all__ = [
+    "check_unique_keys",
     "is_yaml_path",
     "scenario_from_yaml",
     "scenario_from_dict",
@@ -142,10 +143,43 @@ def read_yaml(path: Path, named: str) -> Any:
 
     if not Path(path).is_file():
         raise ValueError(f"{named} does not exist")
+    text = Path(path).read_text()
     try:
-        return yaml.safe_load(Path(path).read_text())
+        check_unique_keys(text, named)
+        return yaml.safe_load(text)
     except yaml.YAMLError as error:
         raise ValueError(f"{named} is not valid YAML: {error}") from None
+
+
+def check_unique_keys(text: str, named: str, loader=None) -> None:
+    """``ValueError`` beginning with ``named`` where a mapping of the YAML ``text`` holds a
+    key twice: PyYAML keeps the last one without a word (a trial's threat set with two
+    threats named ``r`` lost its ramp, and a training config's did the same). Keys compare
+    as written (scalars); ``loader``: the PyYAML loader class to compose with (SafeLoader).
+    Invalid YAML raises the parser's ``yaml.YAMLError``."""
+    import yaml
+
+    pending, visited = [yaml.compose(text, Loader=loader or yaml.SafeLoader)], set()
+    while pending:
+        node = pending.pop()
+        if id(node) in visited:  # an alias: the node it names, read once
+            continue
+        visited.add(id(node))
+        if isinstance(node, yaml.MappingNode):
+            seen: dict = {}
+            for key, value in node.value:
+                if isinstance(key, yaml.ScalarNode):
+                    if key.value in seen:
+                        line = key.start_mark.line + 1
+                        raise ValueError(
+                            f"{named}: the key {key.value!r} appears twice in one mapping "
+                            f"(lines {seen[key.value]} and {line}); YAML would keep the last "
+                            "alone: rename one"
+                        )
+                    seen[key.value] = key.start_mark.line + 1
+                pending += [key, value]
+        elif isinstance(node, yaml.SequenceNode):
+            pending += node.value
 
 
 def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> CustomScenario:

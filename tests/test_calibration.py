@@ -612,3 +612,63 @@ def test_a_calibration_of_another_scenario_or_horizon_warns_and_a_named_estimato
         ):
             calibrate(scenario, runs=2, estimators=["chi_square_ekf"], study_runs=bad,
                       progress=False)  # fmt: skip
+
+
+def _fake_suite(monkeypatch, scores):
+    """``run_suite`` replaced by one whose estimator ``d`` scores ``scores [runs, steps]``."""
+    from types import SimpleNamespace
+
+    import difffilter.eval.suite as suite
+
+    def run(*args, **kwargs):
+        return SimpleNamespace(outputs={"d": SimpleNamespace(detection=SimpleNamespace(
+            scores=scores))}, skipped={})  # fmt: skip
+
+    monkeypatch.setattr(suite, "run_suite", run)
+
+
+def test_calibrate_lists_alarms_held_by_a_few_runs_once(monkeypatch):
+    """End to end through :func:`calibrate` (a mutation review: the clustering test and the
+    summary were tested alone, and a calibration that never filled ``concentrated`` passed):
+    200 alarms held by 2 of 20 runs are listed with what they are worth; 8 alarms in one
+    run at α n = 8 are listed under ``unresolved`` alone, not twice."""
+    import warnings
+
+    monkeypatch.setenv("DIFFFILTER_CACHE", "off")
+    g = torch.Generator().manual_seed(0)
+    scores = torch.rand(20, 100, generator=g, dtype=torch.float64) * 1e-3
+    scores[:2] += 1.0  # every step of runs 0 and 1 above every other run's
+    _fake_suite(monkeypatch, scores)
+    scenario = registry.get("four_tank_bias").with_steps(100)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cal = calibrate(scenario, runs=20, far=0.1, estimators=["d"], progress=False)
+    held = cal.concentrated["d"]
+    assert set(cal.concentrated) == {"d"} and held["alarms"] == 200
+    assert 1.5 < held["effective_alarms"] < 3  # D = 90 alarms a run's variance over its mean
+    few = torch.rand(40, 10, generator=g, dtype=torch.float64) * 1e-3
+    few[0, :8] = 1.0  # 8 of 400 steps at 2 %, all in run 0: α n = 8, unresolved
+    _fake_suite(monkeypatch, few)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cal = calibrate(scenario.with_steps(10), runs=40, far=0.02, estimators=["d"],
+                        progress=False)  # fmt: skip
+    assert cal.concentrated == {} and "d" in cal.summary()["unresolved"]
+
+
+def test_a_calibration_of_another_plant_of_the_same_horizon_is_named_and_nothing_is_kept_bare():
+    """A mutation review: the mismatch had been tested on another horizon of one plant
+    only (a check of the horizon alone passed); an empty calibration keeps its scenario;
+    another family's estimator is named with the reason it did not run."""
+    from difffilter.eval.calibration import calibration_mismatch
+
+    scenario = registry.get("four_tank_bias").with_steps(30)
+    cal = calibrate(scenario, runs=2, estimators=[], progress=False)
+    assert cal.thresholds == {} and cal.scenario == scenario.attack_free_key()
+    noisy = registry.get("four_tank_bias_high_noise").with_steps(30)
+    why = calibration_mismatch(cal, noisy)
+    assert why is not None and "'four_tank_bias' over 30" in why
+    assert "'four_tank_bias_high_noise' over 30" in why
+    with pytest.warns(UserWarning, match="no threshold for 'zhang_akf': an estimator of the "
+                      "robot family"):  # fmt: skip
+        calibrate(scenario, runs=2, estimators=["zhang_akf"], progress=False)

@@ -468,6 +468,36 @@ def test_a_batch_the_crafting_cannot_use_is_named_and_a_threshold_far_from_far_w
         craft(tau=-1.0, warn_far_off=False)  # a caller that says the rate itself
 
 
+def test_the_far_off_warnings_bounds_three_times_and_a_third_of_far_with_ten_alarms():
+    """``p(0)`` above ``3 far`` with at least 10 alarms, or below ``far / 3`` where ``far``
+    gives at least 10 (a mutation review: only 100 % and 0 % against 1 % were tested, so
+    either bound could move, or the ten alarms go)."""
+    import warnings
+
+    from difffilter.stealthy import _warn_far_off
+
+    with pytest.warns(RuntimeWarning, match=r"alarms on 5 % "):
+        _warn_far_off(0.05, 1000, 0.01, 1.0)  # 5 far, 50 alarms
+    with pytest.warns(RuntimeWarning, match=r"alarms on 0\.2 % "):
+        _warn_far_off(0.002, 10000, 0.01, 1.0)  # far / 5 where far gives 100
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _warn_far_off(2 / 24, 24, 0.01, 1.0)  # 8 far, but 2 alarms: too few to say
+        _warn_far_off(0.025, 1000, 0.01, 1.0)  # 2.5 far: within
+        _warn_far_off(0.004, 10000, 0.01, 1.0)  # far / 2.5: within
+        _warn_far_off(0.0, 500, 0.01, 1.0)  # far gives 5: too few to expect any
+
+
+def test_resumed_settings_compare_in_order_at_every_depth():
+    """A threat entry's fields in another order draw other runs: refused as its entries'
+    order is (a mutation review: nested mappings and mappings in lists were unpinned)."""
+    from difffilter.train.lightning_cli import _in_order
+
+    assert _in_order({"t": {"a": 1, "b": 2}}) != _in_order({"t": {"b": 2, "a": 1}})
+    assert _in_order([{"a": 1, "b": 2}]) != _in_order([{"b": 2, "a": 1}])
+    assert _in_order({"t": [{"a": 1}], "u": (1, 2)}) == _in_order({"t": ({"a": 1},), "u": [1, 2]})
+
+
 def test_within_budget_reads_each_rows_budget_and_never_a_non_finite_error():
     """``within_budget``: a row of five holds its own budget, a row of four (a history of
     before) is held to ``budget``; a row whose J is not finite is never within (NaN scores

@@ -357,6 +357,37 @@ def test_an_attacks_flag_and_value_are_checked_and_one_value_for_every_run_is_ex
                     estimator=df.KalmanFilter(), attack=Two(None))  # fmt: skip
 
 
+def test_an_actuator_attacks_broadcast_flag_and_its_count_of_values_are_checked_too():
+    """The actuator branch of the loop (a mutation review: the flag's expansion to the runs
+    and the check of three values had been tested on the sensor branch alone)."""
+
+    class OnInputs(Attack):
+        channel = Channel.ACTUATOR
+
+        def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+            return None
+
+        def step(self, state, k, *, y=None, x=None, u=None, view=None):
+            return state, torch.ones_like(u), torch.ones(1, dtype=torch.bool)
+
+    class Two(OnInputs):
+        def step(self, state, k, *, y=None, x=None, u=None, view=None):
+            return state, torch.ones_like(u)
+
+    model = _linear()
+    x0 = model.initial.mean.expand(2, 2).clone()
+    inputs = KnownInputs(torch.zeros(2, 3, 1, dtype=torch.float64))
+
+    def run(attack):
+        return closed_loop(model, 3, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                           controller=inputs, attack=attack)  # fmt: skip
+
+    flags = run(OnInputs()).trajectories.flags
+    assert flags.shape == (2, 3) and bool(flags.all())
+    with pytest.raises(ValueError, match=r"attack Two.step returned 2 values at step 1"):
+        run(Two())
+
+
 def test_only_an_attack_that_reads_the_view_gets_it():
     """An attack without ``reads_view`` read the estimator's output in closed_loop, and got
     None under an open-loop scenario's with_threat (a user trial: it silently injected

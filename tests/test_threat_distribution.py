@@ -240,10 +240,16 @@ def test_onsets_past_the_horizon_are_counted_and_the_data_module_warns():
         ScenarioDataModule("four_tank_bias", val_runs=2, test_runs=1, threats=MIX)
     # every onset past the horizon, or a share of 0: the entry never acts (a trial's such
     # entries trained nothing and were listed on the card as trained on)
-    with pytest.warns(UserWarning, match=r"threats\.late: 100% of its onsets"):
+    with pytest.warns(UserWarning, match=r"threats\.late: 100% of its onsets.*a fit refuses it"):
         late = ScenarioDataModule("four_tank_bias", val_runs=2, test_runs=1, steps=9,
                                   threats={"late": spec["late"]})  # fmt: skip
     late.test_dataloader()  # a test reads the scenario's own attack: nothing refused
+    # some onsets past the horizon: warned (without "a fit refuses it"), and a fit trains
+    with pytest.warns(UserWarning, match=r"threats\.bias: 60% of its onsets") as said:
+        short = ScenarioDataModule("four_tank_bias", val_runs=2, test_runs=1, steps=6,
+                                   threats=MIX)  # fmt: skip
+    assert not any("a fit refuses it" in str(w.message) for w in said)
+    short.train_dataloader()
     with pytest.raises(ValueError, match=r"threats\.late: every onset falls after the last of "
                        r"the 9 steps, so it never acts"):  # fmt: skip
         late.train_dataloader()
@@ -318,6 +324,14 @@ def test_a_misspelt_weight_or_draw_and_an_integer_drawn_as_a_float_say_what_to_w
         # (a constant onset beside another field drawn with uniform: no hint about draws)
         ThreatDistribution({"b": {"weight": 1, "kind": "bias", "value": {"uniform": [0.1, 0.2]},
                                   "onset": 2.5}})  # fmt: skip
+    # no hint where nothing is near, nor randint for a choice of non-integers (a mutation
+    # review: every misspelt key had passed with a guess, and every draw with randint's)
+    with pytest.raises(ValueError, match="needs a mapping with a weight") as raised:
+        ThreatDistribution({"b": bias})
+    assert "did you mean" not in str(raised.value)
+    with pytest.raises(ValueError, match="onset must be an integer") as raised:
+        ThreatDistribution({"b": {"weight": 1, **bias, "onset": {"choice": [2.5, 3.5]}}})
+    assert "randint" not in str(raised.value)
     # a mapping with a kind is a threat, not a misspelt draw: covert's signal (a review)
     robot = registry.get("robot_actuator_attack_turn_rates")
     covert = {"weight": 1, "kind": "covert",

@@ -27,6 +27,8 @@ def check_checkpoint_out(out: Path, *, force: bool, replacing: Path | None = Non
     could make the card land on a file of another name, a shipped card among them) of which
     neither the file nor the card exists, unless ``force``. ``replacing``: the source being
     rewritten in place, allowed with ``force`` only (its own card is rewritten with it)."""
+    if out.is_dir():  # (a folder named x.ckpt failed on an internal temporary file's name)
+        raise ValueError(f"--out: {out} is a folder; give the name of a .ckpt file")
     if out.suffix != ".ckpt":
         raise ValueError(
             f"--out must name a .ckpt file (its card is the .json beside it); got {out}"

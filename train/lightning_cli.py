@@ -178,9 +178,20 @@ class DifffilterCLI(LightningCLI):
         dtype = next(mine.parameters()).dtype
         estimator, card = load_estimator_checkpoint(path, dtype=dtype)
         if estimator.config() != mine.config():
+            family = self.model.card().scenario_family
+            if card.scenario_family != family:  # (the settings alone did not say it)
+                raise ValueError(
+                    f"--ckpt_path: {path} is an estimator of the {card.scenario_family} family "
+                    f"(trained on {card.scenario}); the config trains a {family} one: give "
+                    f"a {family} checkpoint, or the {card.scenario_family} config"
+                )
+            theirs, ours = estimator.config(), mine.config()
+            differ = "; ".join(f"{k} {theirs.get(k)!r} against {ours.get(k)!r}"
+                               for k in sorted(theirs.keys() | ours.keys())
+                               if theirs.get(k) != ours.get(k))  # fmt: skip
             raise ValueError(
-                f"--ckpt_path: the estimator in {path} has settings {estimator.config()}, the "
-                f"configured model {mine.config()}; pass the matching --config/--model.* options"
+                f"--ckpt_path: the network in {path} differs from the configured model's "
+                f"({differ}); pass the matching --config/--model.* options"
             )
         self.model.check_exported(card, path)  # the filter it was trained for
         mine.load_state_dict(estimator.state_dict())
@@ -210,6 +221,13 @@ def _check_ckpt_path(cfg, subcommand: str | None) -> str | None:
             )
         return None
     path = Path(ckpt)
+    if path.is_dir():  # (Lightning failed with an IsADirectoryError traceback)
+        inside = sorted(str(p) for p in path.glob("**/*.ckpt"))[:3]
+        raise ValueError(
+            f"--ckpt_path: {ckpt} is a folder; give a checkpoint file"
+            + (f" (it holds {', '.join(inside)}" + (", …)" if len(inside) == 3 else ")")
+               if inside else "")
+        )  # fmt: skip
     if not path.is_file():
         return None  # Lightning names a missing file, and resolves "last", "best", …
     stat = path.stat()
@@ -466,6 +484,51 @@ def _reason(message: str) -> str:
     return f"{' '.join(where)}: {reason}" if where else reason
 
 
+def _check_config_files(argv) -> None:
+    """Each ``--config`` file of the command line ``argv`` with no key twice in a mapping,
+    named by its path (:func:`~difffilter.models.yaml_scenario.check_unique_keys`); one
+    that is missing or no valid YAML is left to jsonargparse's own error."""
+    import yaml
+
+    from difffilter.models.yaml_scenario import check_unique_keys
+
+    given = [a.split("=", 1)[1] for a in argv if a.startswith("--config=")]
+    given += [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--config"]
+    for path in map(Path, given):
+        if path.is_file():
+            try:
+                check_unique_keys(path.read_text(), str(path))
+            except yaml.YAMLError:
+                pass
+
+
+def _refuse_duplicate_keys() -> None:
+    """Have jsonargparse's YAML loader refuse a key given twice in one mapping of a config
+    or a value (:func:`~difffilter.models.yaml_scenario.check_unique_keys`; PyYAML keeps
+    the last one without a word: a trial's config with two threats named ``r`` trained
+    on one). The loader it wraps reads what it read before; text that is no valid YAML is
+    left to it (a plain string value)."""
+    import yaml
+    from jsonargparse import get_loader, set_loader
+
+    from difffilter.models.yaml_scenario import check_unique_keys
+
+    load = get_loader("yaml")
+    if getattr(load, "_refuses_duplicates", False):
+        return
+
+    def load_unique(text):
+        if isinstance(text, str) and ":" in text:
+            try:  # (each --config file is checked first, by its name: _check_config_files)
+                check_unique_keys(text, "a YAML value or config")
+            except yaml.YAMLError:
+                pass  # not YAML: as the loader reads it
+        return load(text)
+
+    load_unique._refuses_duplicates = True
+    set_loader("yaml", load_unique, exceptions=(yaml.YAMLError,))
+
+
 def run(args: list[str] | None, argv: list[str], description: str) -> int:
     """LightningCLI on ``args`` (``None``: ``sys.argv``; ``argv`` the same as a list):
     exit code 0, or 2 after a one-line error.
@@ -477,6 +540,7 @@ def run(args: list[str] | None, argv: list[str], description: str) -> int:
     """
     tune_cpu_allocator()
     _quiet_lightning()
+    _refuse_duplicate_keys()
     from jsonargparse import ArgumentError
     from lightning.fabric.utilities.exceptions import MisconfigurationException
 
@@ -490,6 +554,7 @@ def run(args: list[str] | None, argv: list[str], description: str) -> int:
     parser_kwargs = {**raising, "description": description,
                      **{name: {**raising, "description": shortcut} for name in commands}}  # fmt: skip
     try:
+        _check_config_files(argv)
         # Lightning reads a --ckpt_path's settings while it parses, before any hook
         for given in _ckpt_paths_in(argv):
             _check_ckpt_path({"ckpt_path": given}, None)
@@ -512,6 +577,11 @@ def run(args: list[str] | None, argv: list[str], description: str) -> int:
     except (ValueError, FileNotFoundError, MisconfigurationException) as exc:
         # a user error (a setting out of range, a missing file): one line, no traceback
         print(f"difffilter-train: error: {_reason(str(exc))}", file=sys.stderr)
+        return 2
+    except PermissionError as exc:  # a run folder it may not make (a CLI trial's traceback)
+        print(f"difffilter-train: error: cannot write {exc.filename} ({exc.strerror}): run "
+              "from a writable folder or give one with --trainer.logger.init_args.save_dir "
+              "(default: lightning_logs/ under the current folder)", file=sys.stderr)  # fmt: skip
         return 2
     # Ctrl-C: Lightning from 2.3 exits 1 itself; 2.2 returned from fit as if it had ended
     return 1 if getattr(getattr(cli, "trainer", None), "interrupted", False) else 0

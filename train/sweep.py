@@ -427,11 +427,23 @@ def _check_before_training(config: Path, out: Path, scenarios, runs, test: bool,
     import yaml
 
     from difffilter.models import registry
+    from difffilter.models.yaml_scenario import check_unique_keys
 
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out: {out} is a file; a sweep writes a folder there")
+    try:  # (a folder it could not make failed with a PermissionError traceback)
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise ValueError(f"--out: cannot make the folder {out} ({error.strerror})") from None
+    if not os.access(out, os.W_OK):
+        raise ValueError(f"--out: the folder {out} is not writable")
     if runs is not None and (isinstance(runs, bool) or not isinstance(runs, int) or runs < 1):
         raise ValueError(f"--runs must be an integer >= 1; got {runs!r}")
+    if config.is_file():  # a key twice: said now, not by the first seed's fit
+        try:
+            check_unique_keys(config.read_text(), str(config))
+        except yaml.YAMLError:
+            pass  # the fit names it
     if not (test and scenarios):
         return
     model = (yaml.safe_load(config.read_text()) or {}).get("model") or {}

@@ -500,7 +500,12 @@ class FilterEstimatorTask(pl.LightningModule):
 
     def _start_from(self, path: str) -> None:
         """Copy the network weights of the estimator at ``path`` (``init_from``)."""
-        start, _ = load_estimator_checkpoint(path, dtype=self._dtype)
+        try:
+            start, _ = load_estimator_checkpoint(path, dtype=self._dtype)
+        except (FileNotFoundError, ValueError) as error:  # named as the setting it came from
+            # (the loader names a setting "ckpt", which a training config does not have)
+            text = str(error).removeprefix("ckpt: ")
+            raise type(error)(f"model.init_args.init_from: {text}") from None
         mine, theirs = self.estimator.state_dict(), start.state_dict()
         wrong = sorted(k for k in mine.keys() | theirs.keys()
                        if k not in mine or k not in theirs or mine[k].shape != theirs[k].shape)  # fmt: skip

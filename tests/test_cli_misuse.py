@@ -1,0 +1,154 @@
+"""A hurried user's mistakes on the command lines (a CLI trial's 110 attempts; these are
+the ones that had ended in a traceback, done something else without a word, or said
+something misleading): each now fails early with one line that names the argument."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+FOUR_TANK = str(ROOT / "train" / "configs" / "four_tank.yaml")
+
+
+def test_an_interrupted_evaluation_says_so_in_one_line(monkeypatch, capsys, tmp_path):
+    """Ctrl-C had printed a traceback from wherever the study was (and two with --devices)."""
+    import difffilter.eval.cli as cli
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "evaluate", interrupted)
+    assert cli.main(["four_tank_bias", "--runs", "2", "--out", str(tmp_path)]) == 130
+    assert capsys.readouterr().err == (
+        "difffilter-eval: interrupted: the reports under --out may be incomplete; rerun the "
+        "same command to evaluate again\n"
+    )
+
+
+def test_an_empty_checkpoint_path_and_all_among_threats_are_named():
+    """``--ckpt ""`` had said "no checkpoint file at ." and ``--threats all,bias`` called
+    ``all`` unknown and then offered it; an empty threat set "must map" (it was one)."""
+    from difffilter.eval.cli import parse_checkpoints
+    from difffilter.eval.robustness import load_threat_set
+    from difffilter.models import registry
+
+    for value in ("", "pf_nn_grad="):
+        with pytest.raises(ValueError, match=rf"--ckpt '{value}': an empty path; give a "
+                           r"checkpoint file \(PATH or NAME=PATH\)"):  # fmt: skip
+            parse_checkpoints([value])
+    scenario = registry.get("four_tank_bias")
+    with pytest.raises(ValueError, match=r"--threats: all stands alone .*; got all,bias"):
+        load_threat_set(scenario, ["all", "bias"])
+
+
+def test_an_empty_threat_set_and_a_key_given_twice_are_named(tmp_path):
+    """Two threats of one name: YAML kept the last without a word (a ramp vanished from a
+    study); ``threats: {}`` was said not to be a mapping."""
+    from difffilter.eval.robustness import load_threat_set
+    from difffilter.models import registry
+
+    scenario = registry.get("four_tank_bias")
+    empty, twice = tmp_path / "empty.yaml", tmp_path / "twice.yaml"
+    empty.write_text("threats: {}\n")
+    with pytest.raises(ValueError, match=r"empty.yaml: 'threats' must be a non-empty mapping of "
+                       r"threat names to their specs; got \{\}"):  # fmt: skip
+        load_threat_set(scenario, path=empty)
+    twice.write_text("threats:\n  r: {kind: ramp, slope: 0.005, onset: 21}\n"
+                     "  r: {kind: bias, value: 0.5, onset: 21}\n")  # fmt: skip
+    with pytest.raises(ValueError, match=r"twice.yaml: the key 'r' appears twice in one mapping "
+                       r"\(lines 2 and 3\); YAML would keep the last alone: rename one"):  # fmt: skip
+        load_threat_set(scenario, path=twice)
+
+
+def test_the_check_of_keys_reads_nested_sequences_and_aliases_once():
+    from difffilter.models.yaml_scenario import check_unique_keys
+
+    check_unique_keys("a: &x {b: 1}\nc: *x\nd: [{e: 1}, {e: 2}]\n", "ok.yaml")  # distinct maps
+    with pytest.raises(ValueError, match=r"deep.yaml: the key 'e' appears twice .*lines 2 and 3"):
+        check_unique_keys("d:\n- {e: 1,\n   e: 2}\n", "deep.yaml")
+
+
+def test_a_training_config_or_value_with_a_key_twice_is_refused(tmp_path, capsys):
+    """The same in a training config (the card recorded one threat where two were written)
+    and in a value given on the command line; nothing is trained."""
+    from difffilter.train.cli import main
+
+    twice = tmp_path / "twice.yaml"
+    twice.write_text("data:\n  init_args:\n    threats:\n"
+                     "      r: {weight: 1, kind: ramp, slope: 0.005, onset: 21}\n"
+                     "      r: {weight: 1, kind: bias, value: 0.5, onset: 21}\n")  # fmt: skip
+    quick = ["--trainer.fast_dev_run=true", "--trainer.logger=false"]
+    assert main(["fit", "--config", FOUR_TANK, "--config", str(twice), *quick]) == 2
+    assert (f"difffilter-train: error: {twice}: the key 'r' appears twice in one mapping "
+            "(lines 4 and 5)") in capsys.readouterr().err  # fmt: skip
+    inline = "--data.init_args.threats={r: {weight: 1, kind: bias}, r: {weight: 1, kind: ramp}}"
+    assert main(["fit", "--config", FOUR_TANK, inline, *quick]) == 2
+    assert "the key 'r' appears twice in one mapping" in capsys.readouterr().err
+
+
+def test_checkpoint_folders_and_an_unwritable_run_folder_are_named(tmp_path, monkeypatch, capsys):
+    """A folder as ``--ckpt_path`` ended in IsADirectoryError, a folder named like the
+    export's ``--out`` named an internal temporary file, and a run folder that could not be
+    made ended in a PermissionError traceback (fit's logs, a sweep's ``--out``)."""
+    import difffilter.train.lightning_cli as lightning_cli
+    from difffilter.train.common import check_checkpoint_out
+    from difffilter.train.sweep import main as sweep_main
+
+    with pytest.raises(ValueError, match=r"--ckpt_path: .*checkpoints is a folder; give a "
+                       r"checkpoint file \(it holds .*\.ckpt"):  # fmt: skip
+        lightning_cli._check_ckpt_path({"ckpt_path": str(ROOT / "checkpoints")}, None)
+    folder = tmp_path / "d.ckpt"
+    folder.mkdir()
+    with pytest.raises(ValueError, match=r"--out: .*d.ckpt is a folder; give the name of a "):
+        check_checkpoint_out(folder, force=True)
+
+    class Denied(lightning_cli.DifffilterCLI):  # where Lightning makes the run's folder
+        def __init__(self, *args, **kwargs):
+            raise PermissionError(13, "Permission denied", "/root-owned/logs")
+
+    monkeypatch.setattr(lightning_cli, "DifffilterCLI", Denied)
+    assert lightning_cli.run(["fit", "--config", FOUR_TANK], ["fit"], "d") == 2
+    assert capsys.readouterr().err.startswith(
+        "difffilter-train: error: cannot write /root-owned/logs (Permission denied): run from a "
+        "writable folder or give one with --trainer.logger.init_args.save_dir"
+    )
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert sweep_main(["--config", FOUR_TANK, "--seeds", "0", "--out", str(blocker / "sw"),
+                       "--validation-only"]) == 2  # fmt: skip
+    assert "--out: cannot make the folder" in capsys.readouterr().err
+
+
+def test_a_start_from_nothing_and_a_checkpoint_of_another_family_are_named(capsys):
+    """``init_from`` of a missing file was named "ckpt"; ``validate`` of the four-tank
+    config with the LFC checkpoint printed two settings dicts and not the family."""
+    from difffilter.train.cli import main
+
+    quick = ["--trainer.fast_dev_run=true", "--trainer.logger=false"]
+    assert main(["fit", "--config", FOUR_TANK, "--model.init_args.init_from=/no/such.ckpt",
+                 *quick]) == 2  # fmt: skip
+    assert ("difffilter-train: error: model.init_args.init_from: no checkpoint file at "
+            "/no/such.ckpt") in capsys.readouterr().err  # fmt: skip
+    lfc = str(ROOT / "checkpoints" / "lfc_nn_grad.ckpt")
+    assert main(["validate", "--config", FOUR_TANK, "--ckpt_path", lfc,
+                 "--trainer.logger=false"]) == 2  # fmt: skip
+    assert (
+        f"--ckpt_path: {lfc} is an estimator of the lfc family (trained on "
+        "lfc_random_attacks); the config trains a four_tank one"
+    ) in capsys.readouterr().err
+    ours = str(ROOT / "checkpoints" / "four_tank_nn_grad.ckpt")
+    assert main(["validate", "--config", FOUR_TANK, "--ckpt_path", ours,
+                 "--model.init_args.hidden=8", "--trainer.logger=false"]) == 2  # fmt: skip
+    assert (f"--ckpt_path: the network in {ours} differs from the configured model's (hidden "
+            "16 against 8)") in capsys.readouterr().err  # fmt: skip
+
+
+def test_an_added_learned_estimator_that_does_not_fit_names_the_shipped_one_that_does():
+    """``--add-estimators pf_nn_ekf`` on the four-tank scenario was skipped because the
+    default checkpoint is gradient-trained, with ``four_tank_nn_ekf.ckpt`` shipped beside."""
+    from difffilter.models.learned_estimator import _shipped_fitting
+
+    assert _shipped_fitting("pf_nn_ekf", "four_tank") == "checkpoints/four_tank_nn_ekf.ckpt"
+    assert _shipped_fitting("pf_nn_ekf", "lfc") is None
