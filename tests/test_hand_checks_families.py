@@ -483,19 +483,33 @@ def test_the_same_rate_bias_says_when_no_bias_alarms_as_rarely(monkeypatch):
               "selection": {"runs": 256, "budget": 0.0131, "iteration": 41,
                             "judged": [[50, 2.0, 0.0135], [41, 1.9, 0.0129]]}}  # fmt: skip
     text = _stealthy_section("stealthy_x", report)
-    assert "same alarm rate" not in text and "no constant bias matches its rate" in text
+    assert "same alarm rate" not in text and "alarms less often than the runs without" in text
+    assert "no constant bias is as quiet, and its error is 3× the attack-free error" in text
+    assert "near ε where those runs are many and above it where they are few" in text
     assert "not the strongest" in text
     assert "held to its own batch's attack-free rate" in text and "(0.2 of ε;" in text
     assert "varies by at least 6.1e-04" in text and "100 runs × 80 attacked steps" in text
     assert "iterate 41 (the 2nd judged) kept it there (alarm rate 0.0129 against 0.0131)" in text
     report["same_rate_bias"] = above
-    assert "constant bias 1.5 σ (the weakest that alarms as often)" in _stealthy_section(
-        "stealthy_x", report
-    )
+    text = _stealthy_section("stealthy_x", report)
+    assert "constant bias 1.5 σ (the weakest that alarms as often)" in text
+    assert ("the bias's alarm rate 0.035 against the crafted attack's 0.015" in text
+            and "Below 1" not in text)  # fmt: skip
+    # as quiet as no attack: matched by the bias of 0 σ, which is none (a trial's report had
+    # "constant bias 0 σ" and "the two differ: 0.01357 against 0.01357")
+    report["same_rate_bias"] = {"k_sigma": 0.0, "alarm_rate": 0.015, "state_error": 1.0,
+                                "matched": True}  # fmt: skip
+    text = _stealthy_section("stealthy_x", report)
+    assert "0 σ" not in text and "no attack (it alarms as often)" in text
+    assert "alarms no more often than the runs without attack (0.015 against 0.015)" in text
+    # weaker than the bias that alarms as often: said
+    report.update(same_rate_bias=above, error_ratio_to_bias=0.65)
+    assert "Below 1: the crafting found no attack stronger than that bias" in (
+        _stealthy_section("stealthy_x", report))  # fmt: skip
     report["selection"].update(iteration=None)
     text = _stealthy_section("stealthy_x", report)
     assert "none of the 2 of largest error judged on 256 held-out runs kept it" in text
-    assert "No attack kept the budget" in text and "about ε" not in text
+    assert "No attack kept the budget" in text and "near ε" not in text
     report["selection"].update(judged=[])  # (a review: "none of the 0 … judged")
     text = _stealthy_section("stealthy_x", report)
     assert "kept the budget on their own batch, so the attack is zero" in text

@@ -209,3 +209,18 @@ def test_a_random_threat_meets_every_lfc_estimator_with_the_same_draws():
     assert torch.equal(first.info["attack_values"], again.info["attack_values"])
     assert torch.equal(first.flags, again.flags) and 0 < int(first.flags.any(-1).sum()) < 8
     assert not torch.equal(first.info["attack_values"], other.info["attack_values"])
+
+
+def test_a_crafted_threat_against_an_estimator_that_does_not_run_says_why(tmp_path):
+    """A trial's threat set listed its target among the estimators, and the error said to
+    add it there: the target had been skipped (no checkpoint of its kind)."""
+    from difffilter.eval.robustness import run_robustness
+
+    spec = tmp_path / "set.yaml"
+    spec.write_text("estimators: [chi_square_ekf, gaussian_nn_grad]\nthreats:\n"
+                    "  crafted: {kind: stealthy, against: gaussian_nn_grad, onset: 5}\n")  # fmt: skip
+    sc = registry.get("four_tank_bias").with_steps(10)
+    with pytest.raises(ValueError, match=r"threat 'crafted' is crafted against "
+                       r"'gaussian_nn_grad', which does not run in this study: the checkpoint "
+                       r"was trained with filter 'pf'"):  # fmt: skip
+        run_robustness(sc, load_threat_set(sc, path=spec), runs=2, progress=False)
