@@ -111,6 +111,12 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
     named in ``exclude``), and optionally ``runs`` and ``estimators``."""
     if isinstance(names, str) and names != "all":  # the command line's form: "bias,ramp"
         names = [n.strip() for n in names.split(",") if n.strip()]  # (it had read letters)
+    if not isinstance(names, str):
+        names = list(names)
+        if names == ["all"]:  # (" all", "all,": the whole set, not "all stands alone")
+            names = "all"
+        elif not names:
+            raise ValueError("--threats: no threat named; give names, or all")
     path = Path(path) if path is not None else _threat_file(scenario)
     data = _read_threat_file(path)
     if "threats_from" in data:  # another file's threats, this file's study size

@@ -83,7 +83,8 @@ def _trained_network(ctx, name: str, filters, trainer: str):
 
 def _shipped_fitting(name: str, family: str) -> str | None:
     """The shipped checkpoint (``checkpoints/*.ckpt``) whose card says it is estimator
-    ``name``'s for ``family``, as a path from the repository, else ``None`` (a trial asked
+    ``name``'s for ``family``, as a path from the current folder where it lies below it
+    (else absolute), else ``None`` (a trial asked
     for ``pf_nn_ekf`` on the four-tank scenario and was told only that the default
     checkpoint did not fit, with ``four_tank_nn_ekf.ckpt`` beside it)."""
     import json
@@ -97,7 +98,9 @@ def _shipped_fitting(name: str, family: str) -> str | None:
         ckpt = card_path.with_suffix(".ckpt")
         if (isinstance(card, dict) and card.get("estimator") == name
                 and card.get("scenario_family") == family and ckpt.is_file()):  # fmt: skip
-            return str(ckpt.relative_to(root))
+            # as the user may give it: from the folder they run in where it lies below it
+            here = Path.cwd().resolve()
+            return str(ckpt.relative_to(here) if ckpt.is_relative_to(here) else ckpt)
     return None
 
 

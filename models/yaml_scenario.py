@@ -155,10 +155,13 @@ def check_unique_keys(text: str, named: str, loader=None) -> None:
     """``ValueError`` beginning with ``named`` where a mapping of the YAML ``text`` holds a
     key twice: PyYAML keeps the last one without a word (a trial's threat set with two
     threats named ``r`` lost its ramp, and a training config's did the same). Keys compare
-    as written (scalars); ``loader``: the PyYAML loader class to compose with (SafeLoader).
-    Invalid YAML raises the parser's ``yaml.YAMLError``."""
+    as the dict PyYAML builds compares them (``1``, ``0x1`` and ``1.0`` are one key, ``1``
+    and ``'1'`` two); merge keys (``<<``) are left to YAML, which merges each. ``loader``:
+    the PyYAML loader class to compose with (SafeLoader). Invalid YAML raises the parser's
+    ``yaml.YAMLError``."""
     import yaml
 
+    construct = yaml.constructor.SafeConstructor().construct_object
     pending, visited = [yaml.compose(text, Loader=loader or yaml.SafeLoader)], set()
     while pending:
         node = pending.pop()
@@ -168,16 +171,23 @@ def check_unique_keys(text: str, named: str, loader=None) -> None:
         if isinstance(node, yaml.MappingNode):
             seen: dict = {}
             for key, value in node.value:
-                if isinstance(key, yaml.ScalarNode):
-                    if key.value in seen:
-                        line = key.start_mark.line + 1
-                        raise ValueError(
-                            f"{named}: the key {key.value!r} appears twice in one mapping "
-                            f"(lines {seen[key.value]} and {line}); YAML would keep the last "
-                            "alone: rename one"
-                        )
-                    seen[key.value] = key.start_mark.line + 1
                 pending += [key, value]
+                if not isinstance(key, yaml.ScalarNode) or key.tag == "tag:yaml.org,2002:merge":
+                    continue
+                try:
+                    as_built = construct(key)
+                    hash(as_built)
+                except (yaml.YAMLError, TypeError, ValueError):
+                    as_built = (key.tag, key.value)
+                if as_built in seen:
+                    line, first = seen[as_built]
+                    what = (f"the key {key.value!r} appears twice" if first == key.value
+                            else f"the keys {first!r} and {key.value!r} are one key")  # fmt: skip
+                    raise ValueError(
+                        f"{named}: {what} in one mapping (lines {line} and "
+                        f"{key.start_mark.line + 1}); YAML would keep the last alone: rename one"
+                    )
+                seen[as_built] = (key.start_mark.line + 1, key.value)
         elif isinstance(node, yaml.SequenceNode):
             pending += node.value
 

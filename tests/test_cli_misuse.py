@@ -41,6 +41,12 @@ def test_an_empty_checkpoint_path_and_all_among_threats_are_named():
     scenario = registry.get("four_tank_bias")
     with pytest.raises(ValueError, match=r"--threats: all stands alone .*; got all,bias"):
         load_threat_set(scenario, ["all", "bias"])
+    every = list(load_threat_set(scenario, "all").threats)
+    assert list(load_threat_set(scenario, "all,").threats) == every  # (a review: "stands alone")
+    assert list(load_threat_set(scenario, " all").threats) == every
+    for nothing in ("", ",", []):  # (they had given an empty study)
+        with pytest.raises(ValueError, match="--threats: no threat named; give names, or all"):
+            load_threat_set(scenario, nothing)
 
 
 def test_an_empty_threat_set_and_a_key_given_twice_are_named(tmp_path):
@@ -62,12 +68,21 @@ def test_an_empty_threat_set_and_a_key_given_twice_are_named(tmp_path):
         load_threat_set(scenario, path=twice)
 
 
-def test_the_check_of_keys_reads_nested_sequences_and_aliases_once():
+def test_the_check_of_keys_compares_them_as_yaml_builds_them():
+    """Keys are one where PyYAML's dict makes them one (a review: two merge keys, and 1
+    beside '1', had been refused; null beside ~ passed); nested, in sequences, aliases."""
     from difffilter.models.yaml_scenario import check_unique_keys
 
-    check_unique_keys("a: &x {b: 1}\nc: *x\nd: [{e: 1}, {e: 2}]\n", "ok.yaml")  # distinct maps
+    for fine in ("a: &x {b: 1}\nc: *x\nd: [{e: 1}, {e: 2}]\n",  # distinct maps, an alias
+                 "a: &a {x: 1}\nb: &b {y: 1}\nd:\n  <<: *a\n  <<: *b\n",  # both merged
+                 "d: {<<: [{x: 1}, {y: 2}], x: 3}\n",
+                 "m: {1: a, '1': b}\n", "m: {true: a, 'true': b}\n"):  # fmt: skip
+        check_unique_keys(fine, "ok.yaml")
     with pytest.raises(ValueError, match=r"deep.yaml: the key 'e' appears twice .*lines 2 and 3"):
         check_unique_keys("d:\n- {e: 1,\n   e: 2}\n", "deep.yaml")
+    for one, other in (("null", "~"), ("1", "0x1"), ("1", "1.0")):
+        with pytest.raises(ValueError, match=rf"the keys '{one}' and '{other}' are one key"):
+            check_unique_keys(f"m: {{{one}: a, {other}: b}}\n", "one.yaml")
 
 
 def test_a_training_config_or_value_with_a_key_twice_is_refused(tmp_path, capsys):
@@ -80,9 +95,10 @@ def test_a_training_config_or_value_with_a_key_twice_is_refused(tmp_path, capsys
                      "      r: {weight: 1, kind: ramp, slope: 0.005, onset: 21}\n"
                      "      r: {weight: 1, kind: bias, value: 0.5, onset: 21}\n")  # fmt: skip
     quick = ["--trainer.fast_dev_run=true", "--trainer.logger=false"]
-    assert main(["fit", "--config", FOUR_TANK, "--config", str(twice), *quick]) == 2
-    assert (f"difffilter-train: error: {twice}: the key 'r' appears twice in one mapping "
-            "(lines 4 and 5)") in capsys.readouterr().err  # fmt: skip
+    for option in ("--config", "-c"):
+        assert main(["fit", "--config", FOUR_TANK, option, str(twice), *quick]) == 2
+        assert (f"difffilter-train: error: {twice}: the key 'r' appears twice in one mapping "
+                "(lines 4 and 5)") in capsys.readouterr().err  # fmt: skip
     inline = "--data.init_args.threats={r: {weight: 1, kind: bias}, r: {weight: 1, kind: ramp}}"
     assert main(["fit", "--config", FOUR_TANK, inline, *quick]) == 2
     assert "the key 'r' appears twice in one mapping" in capsys.readouterr().err
@@ -119,6 +135,14 @@ def test_checkpoint_folders_and_an_unwritable_run_folder_are_named(tmp_path, mon
     assert sweep_main(["--config", FOUR_TANK, "--seeds", "0", "--out", str(blocker / "sw"),
                        "--validation-only"]) == 2  # fmt: skip
     assert "--out: cannot make the folder" in capsys.readouterr().err
+    # a sweep refused for another reason makes no folder (a review: it left an empty one)
+    assert sweep_main(["--config", FOUR_TANK, "--out", str(tmp_path / "sw"), "--runs", "0"]) == 2
+    assert "--runs must be an integer >= 1" in capsys.readouterr().err
+    assert not (tmp_path / "sw").exists()
+    twice = tmp_path / "twice.yaml"  # said before the monitor check reads the config
+    twice.write_text("a: 1\na: 2\n")
+    assert sweep_main(["--config", str(twice), "--out", str(tmp_path / "sw")]) == 2
+    assert "twice.yaml: the key 'a' appears twice" in capsys.readouterr().err
 
 
 def test_a_start_from_nothing_and_a_checkpoint_of_another_family_are_named(capsys):
@@ -145,10 +169,16 @@ def test_a_start_from_nothing_and_a_checkpoint_of_another_family_are_named(capsy
             "16 against 8)") in capsys.readouterr().err  # fmt: skip
 
 
-def test_an_added_learned_estimator_that_does_not_fit_names_the_shipped_one_that_does():
+def test_an_added_learned_estimator_that_does_not_fit_names_the_shipped_one_that_does(
+    monkeypatch, tmp_path
+):
     """``--add-estimators pf_nn_ekf`` on the four-tank scenario was skipped because the
     default checkpoint is gradient-trained, with ``four_tank_nn_ekf.ckpt`` shipped beside."""
     from difffilter.models.learned_estimator import _shipped_fitting
 
+    monkeypatch.chdir(ROOT)
     assert _shipped_fitting("pf_nn_ekf", "four_tank") == "checkpoints/four_tank_nn_ekf.ckpt"
     assert _shipped_fitting("pf_nn_ekf", "lfc") is None
+    monkeypatch.chdir(tmp_path)  # from elsewhere, a path that works there (a review)
+    assert _shipped_fitting("pf_nn_ekf", "four_tank") == str(
+        ROOT / "checkpoints" / "four_tank_nn_ekf.ckpt")  # fmt: skip

@@ -485,15 +485,15 @@ def _reason(message: str) -> str:
 
 
 def _check_config_files(argv) -> None:
-    """Each ``--config`` file of the command line ``argv`` with no key twice in a mapping,
+    """Each ``--config`` (``-c``) file of the command line ``argv`` with no key twice in a mapping,
     named by its path (:func:`~difffilter.models.yaml_scenario.check_unique_keys`); one
     that is missing or no valid YAML is left to jsonargparse's own error."""
     import yaml
 
     from difffilter.models.yaml_scenario import check_unique_keys
 
-    given = [a.split("=", 1)[1] for a in argv if a.startswith("--config=")]
-    given += [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--config"]
+    given = [a.split("=", 1)[1] for a in argv if a.startswith(("--config=", "-c="))]
+    given += [argv[i + 1] for i, a in enumerate(argv[:-1]) if a in ("--config", "-c")]
     for path in map(Path, given):
         if path.is_file():
             try:

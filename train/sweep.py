@@ -427,23 +427,11 @@ def _check_before_training(config: Path, out: Path, scenarios, runs, test: bool,
     import yaml
 
     from difffilter.models import registry
-    from difffilter.models.yaml_scenario import check_unique_keys
 
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out: {out} is a file; a sweep writes a folder there")
-    try:  # (a folder it could not make failed with a PermissionError traceback)
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        raise ValueError(f"--out: cannot make the folder {out} ({error.strerror})") from None
-    if not os.access(out, os.W_OK):
-        raise ValueError(f"--out: the folder {out} is not writable")
     if runs is not None and (isinstance(runs, bool) or not isinstance(runs, int) or runs < 1):
         raise ValueError(f"--runs must be an integer >= 1; got {runs!r}")
-    if config.is_file():  # a key twice: said now, not by the first seed's fit
-        try:
-            check_unique_keys(config.read_text(), str(config))
-        except yaml.YAMLError:
-            pass  # the fit names it
     if not (test and scenarios):
         return
     model = (yaml.safe_load(config.read_text()) or {}).get("model") or {}
@@ -455,6 +443,31 @@ def _check_before_training(config: Path, out: Path, scenarios, runs, test: bool,
         if family is not None and scenario.family != family:
             raise ValueError(f"--scenarios: {name} is a {scenario.family} scenario; {config} "
                              f"trains a {family} estimator ({trained})")  # fmt: skip
+
+
+def _check_keys_once(config: Path) -> None:
+    """``ValueError`` naming ``config`` where a mapping of it holds a key twice, said before
+    the first seed's fit (:func:`~difffilter.models.yaml_scenario.check_unique_keys`);
+    invalid YAML is left to the fit's own error."""
+    import yaml
+
+    from difffilter.models.yaml_scenario import check_unique_keys
+
+    try:
+        check_unique_keys(config.read_text(), str(config))
+    except yaml.YAMLError:
+        pass
+
+
+def _make_folder(out: Path) -> None:
+    """Make ``--out`` and prove it writable, or a ``ValueError`` naming it (a folder it
+    could not make had failed with a PermissionError traceback)."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise ValueError(f"--out: cannot make the folder {out} ({error.strerror})") from None
+    if not os.access(out, os.W_OK):
+        raise ValueError(f"--out: the folder {out} is not writable")
 
 
 def _config_monitor(config: Path) -> dict | None:
@@ -508,6 +521,7 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
     config, out = Path(config), Path(out)
     if not config.is_file():
         raise FileNotFoundError(f"--config: {config} does not exist")
+    _check_keys_once(config)  # before anything reads it (a key twice: the last alone)
     seeds = [int(s) for s in seeds]
     if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
         raise ValueError(f"--seeds must be distinct integers >= 0; got {seeds}")
@@ -528,6 +542,7 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
                          "monitor; add one, or --select-on test")  # fmt: skip
     _check_before_training(config, out, scenarios, runs, test, extra)
     _check_same_sweep(out, config, list(extra))
+    _make_folder(out)  # the last check: a refused sweep leaves no empty folder behind
     runs_dir = out / "runs"
     for seed in seeds:  # every seed's folder before the first is trained
         folder, _, settings = _seed_run(config, seed, runs_dir, list(extra))
