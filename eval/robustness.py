@@ -349,7 +349,10 @@ def _crafted(result: RobustnessResult, name: str, spec: StealthySpec, progress: 
         raise ValueError(f"threat {name!r}: {spec.against!r}, which it is crafted against, "
                          f"broke down while it was crafted and judged: {exc}") from exc  # fmt: skip
     report.update(crafted=judged, same_rate_bias=bias, study_runs=result.runs,
-                  error_ratio_to_bias=judged["state_error"] / bias["state_error"])  # fmt: skip
+                  error_ratio_to_bias=judged["state_error"] / bias["state_error"],
+                  # the attack itself, so that it can be judged again without crafting it
+                  # anew (a trial re-ran the crafting for it): CraftedAttack(values, onset)
+                  values=attack.values.tolist(), onset=attack.onset)  # fmt: skip
     result.stealthy[name] = report
     return attack
 

@@ -224,3 +224,32 @@ def test_a_crafted_threat_against_an_estimator_that_does_not_run_says_why(tmp_pa
                        r"'gaussian_nn_grad', which does not run in this study: the checkpoint "
                        r"was trained with filter 'pf'"):  # fmt: skip
         run_robustness(sc, load_threat_set(sc, path=spec), runs=2, progress=False)
+
+
+def test_a_crafted_attack_is_kept_in_robustness_json_and_judged_the_same_again(tmp_path):
+    """A trial had to craft the study's attack anew to judge it on other runs: its values
+    and onset are in robustness.json, and the attack rebuilt from them meets the study's
+    detector on the study's runs with the same rate and error."""
+    import json
+
+    from difffilter.eval.robustness import run_robustness, write_robustness
+    from difffilter.eval.suite import run_suite
+    from difffilter.stealthy import CraftedAttack
+
+    spec = tmp_path / "set.yaml"
+    spec.write_text("estimators: [chi_square_ekf]\nthreats:\n  crafted: {kind: stealthy, "
+                    "against: chi_square_ekf, onset: 5, iterations: 3, train_runs: 4, "
+                    "selection_runs: 4}\n")  # fmt: skip
+    sc = registry.get("four_tank_bias").with_steps(12)
+    result = run_robustness(sc, load_threat_set(sc, path=spec), runs=4, progress=False)
+    write_robustness(tmp_path / "out", result)
+    kept = json.loads((tmp_path / "out" / "robustness.json").read_text())["stealthy"]["crafted"]
+    values = torch.tensor(kept["values"], dtype=torch.float64)
+    assert values.shape == (12, 4) and kept["onset"] == 5 and bool(values[:4].eq(0).all())
+    assert bool(values[4:].ne(0).any())  # an attack was chosen
+    again = run_suite(sc.with_threat(CraftedAttack(values, kept["onset"])), runs=4, seed=0,
+                      estimators=["chi_square_ekf"], calibration=result.calibration,
+                      progress=False)  # fmt: skip
+    cell = result.cells["crafted"]["chi_square_ekf"]
+    for key in ("tpr_at_far", "state_rmse"):
+        assert again.metrics["chi_square_ekf"][key] == pytest.approx(cell[key], rel=1e-12), key
