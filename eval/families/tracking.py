@@ -275,12 +275,32 @@ def _proposal_section(result, doc: dict) -> Section | None:
             row("`rrp_pf_da`, equal wall time", eq["num_particles"], eq)]  # fmt: skip
     body = markdown_table(["filter", "particles", "RMSE_p", "RMSE_v", "s/run (batched)"], rows)
     same_n = "lower" if b["rmse_p"] < a["rmse_p"] else "higher"
-    same_t = "helps" if b["rmse_p"] < eq["rmse_p"] else "does not help"
     body += (f"\nAt {n} particles the EKF proposal's RMSE_p is {same_n} than the bootstrap filter's "
              f"({f(b['rmse_p'])} vs {f(a['rmse_p'])}); for its wall time the bootstrap filter runs "
-             f"{eq['num_particles']} particles (measured time in the last column): at equal wall time "
-             f"the EKF proposal {same_t}.\n")  # fmt: skip
+             f"{eq['num_particles']} particles (measured time in the last column): "
+             + _equal_time_verdict(eq, b) + "\n")  # fmt: skip
     return Section("EKF proposal (the paper's Remark 2 leaves a UKF one to future work)", body)
+
+
+def _equal_time_verdict(eq: dict, proposal: dict) -> str:
+    """Whether the EKF proposal helps at equal wall time, said as measured: the particle
+    count scales timings taken as the study runs, and under load the bootstrap filter's
+    measured time can end far from the proposal's (a demo's 6405 particles ran in 0.18 s
+    against 0.46 s, reported as "equal wall time"); within 20 % it is equal, else the
+    verdict holds only where the time favours the loser."""
+    ratio = eq["time_per_run_batched_s"] / proposal["time_per_run_batched_s"]
+    better = proposal["rmse_p"] < eq["rmse_p"]
+    if abs(ratio - 1) <= 0.2:
+        return f"at equal wall time the EKF proposal {'helps' if better else 'does not help'}."
+    took = (
+        f"not equal wall time: the bootstrap filter took {ratio:.2g}× the EKF proposal's "
+        "(the count scales timings that moved under load)"
+    )
+    if not better and ratio < 1:
+        return f"{took}, and it is better in less time: the EKF proposal does not help."
+    if better and ratio > 1:
+        return f"{took}, and the EKF proposal is better still: it helps."
+    return f"{took}: this run does not settle whether the EKF proposal helps."
 
 
 # its report times every estimator on one run and runs the equal-wall-time study: about
