@@ -113,9 +113,7 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
         names = [n.strip() for n in names.split(",") if n.strip()]  # (it had read letters)
     if not isinstance(names, str):
         names = list(names)
-        if names == ["all"]:  # (" all", "all,": the whole set, not "all stands alone")
-            names = "all"
-        elif not names:
+        if not names:  # (it gave an empty study)
             raise ValueError("--threats: no threat named; give names, or all")
     path = Path(path) if path is not None else _threat_file(scenario)
     data = _read_threat_file(path)
@@ -145,8 +143,10 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
     if not isinstance(specs, dict) or not specs:
         raise ValueError(f"{path}: 'threats' must be a non-empty mapping of threat names to "
                          f"their specs; got {data.get('threats')!r}")  # fmt: skip
-    chosen = list(specs) if names == "all" else list(names)
-    if names != "all" and "all" in chosen and "all" not in specs:  # (it was "unknown")
+    # (" all", "all,": the whole set, unless a threat of the set is named all)
+    every = names == "all" or (names == ["all"] and "all" not in specs)
+    chosen = list(specs) if every else list(names)
+    if not every and "all" in chosen and "all" not in specs:  # (it was "unknown")
         raise ValueError("--threats: all stands alone (every threat of the set); got "
                          f"{','.join(chosen)}")  # fmt: skip
     unknown = [n for n in chosen if n not in specs]
@@ -681,10 +681,10 @@ def _stealthy_section(name: str, r: dict) -> str:
         f"against the crafted attack's {format_number(c['alarm_rate'], 4)}: rates are counts "
         "of steps, so they need not be equal)."
         if bias
-        else f"\nThe crafted attack alarms {'no more' if matched else 'less'} often than the "
-        f"runs without attack ({format_number(c['alarm_rate'], 4)} against "
-        f"{format_number(b['alarm_rate'], 4)}): no constant bias is as quiet, and its error "
-        f"is {ratio}× the attack-free error."
+        else f"\nThe crafted attack alarms {'exactly as often as' if matched else 'less often than'} "
+        f"the runs without attack ({format_number(c['alarm_rate'], 4)} against "
+        f"{format_number(b['alarm_rate'], 4)}){'' if matched else ': no constant bias is as quiet'}"
+        f", and its error is {ratio}× the attack-free error."
     )
     if bias and r["error_ratio_to_bias"] is not None and r["error_ratio_to_bias"] < 1:
         verdict += (" Below 1: the crafting found no attack stronger than that bias (more "

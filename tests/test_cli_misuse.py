@@ -27,7 +27,7 @@ def test_an_interrupted_evaluation_says_so_in_one_line(monkeypatch, capsys, tmp_
     )
 
 
-def test_an_empty_checkpoint_path_and_all_among_threats_are_named():
+def test_an_empty_checkpoint_path_and_all_among_threats_are_named(tmp_path):
     """``--ckpt ""`` had said "no checkpoint file at ." and ``--threats all,bias`` called
     ``all`` unknown and then offered it; an empty threat set "must map" (it was one)."""
     from difffilter.eval.cli import parse_checkpoints
@@ -44,6 +44,11 @@ def test_an_empty_checkpoint_path_and_all_among_threats_are_named():
     every = list(load_threat_set(scenario, "all").threats)
     assert list(load_threat_set(scenario, "all,").threats) == every  # (a review: "stands alone")
     assert list(load_threat_set(scenario, " all").threats) == every
+    named_all = tmp_path / "named.yaml"  # a threat named all is still chosen by its name
+    named_all.write_text(
+        "threats:\n  all: {kind: bias, onset: 5}\n  ramp: {kind: ramp, onset: 5}\n"
+    )
+    assert list(load_threat_set(scenario, ["all"], path=named_all).threats) == ["all"]
     for nothing in ("", ",", []):  # (they had given an empty study)
         with pytest.raises(ValueError, match="--threats: no threat named; give names, or all"):
             load_threat_set(scenario, nothing)
@@ -83,6 +88,14 @@ def test_the_check_of_keys_compares_them_as_yaml_builds_them():
     for one, other in (("null", "~"), ("1", "0x1"), ("1", "1.0")):
         with pytest.raises(ValueError, match=rf"the keys '{one}' and '{other}' are one key"):
             check_unique_keys(f"m: {{{one}: a, {other}: b}}\n", "one.yaml")
+    # the training command line tells keys apart as jsonargparse's loader does (1e3 a
+    # number, where SafeLoader reads a string)
+    from difffilter.train.lightning_cli import _jsonargparse_yaml_loader
+
+    loader = _jsonargparse_yaml_loader()
+    check_unique_keys("m: {1e3: a, '1e3': b}\n", "cli", loader)
+    with pytest.raises(ValueError, match=r"the keys '1e3' and '1000.0' are one key"):
+        check_unique_keys("m: {1e3: a, 1000.0: b}\n", "cli", loader)
 
 
 def test_a_training_config_or_value_with_a_key_twice_is_refused(tmp_path, capsys):
@@ -143,6 +156,10 @@ def test_checkpoint_folders_and_an_unwritable_run_folder_are_named(tmp_path, mon
     twice.write_text("a: 1\na: 2\n")
     assert sweep_main(["--config", str(twice), "--out", str(tmp_path / "sw")]) == 2
     assert "twice.yaml: the key 'a' appears twice" in capsys.readouterr().err
+    broken = tmp_path / "broken.yaml"  # (the monitor check's parser traceback, a review)
+    broken.write_text("model: [1, 2\n")
+    assert sweep_main(["--config", str(broken), "--out", str(tmp_path / "sw")]) == 2
+    assert f"--config: {broken} is not valid YAML" in capsys.readouterr().err
 
 
 def test_a_start_from_nothing_and_a_checkpoint_of_another_family_are_named(capsys):

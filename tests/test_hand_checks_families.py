@@ -484,7 +484,8 @@ def test_the_same_rate_bias_says_when_no_bias_alarms_as_rarely(monkeypatch):
                             "judged": [[50, 2.0, 0.0135], [41, 1.9, 0.0129]]}}  # fmt: skip
     text = _stealthy_section("stealthy_x", report)
     assert "same alarm rate" not in text and "alarms less often than the runs without" in text
-    assert "no constant bias is as quiet, and its error is 3× the attack-free error" in text
+    assert ("alarms less often than the runs without attack (0.015 against 0.02): no constant "
+            "bias is as quiet, and its error is 3× the attack-free error") in text  # fmt: skip
     assert "near ε where those runs are many and above it where they are few" in text
     assert "not the strongest" in text
     assert "held to its own batch's attack-free rate" in text and "(0.2 of ε;" in text
@@ -501,7 +502,8 @@ def test_the_same_rate_bias_says_when_no_bias_alarms_as_rarely(monkeypatch):
                                 "matched": True}  # fmt: skip
     text = _stealthy_section("stealthy_x", report)
     assert "0 σ" not in text and "no attack (it alarms as often)" in text
-    assert "alarms no more often than the runs without attack (0.015 against 0.015)" in text
+    assert ("alarms exactly as often as the runs without attack (0.015 against 0.015), and its "
+            "error is 3× the attack-free error") in text and "as quiet" not in text  # fmt: skip
     # weaker than the bias that alarms as often: said
     report.update(same_rate_bias=above, error_ratio_to_bias=0.65)
     assert "Below 1: the crafting found no attack stronger than that bias" in (

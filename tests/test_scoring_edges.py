@@ -136,6 +136,8 @@ def test_state_metric_needs_rmse_p_from_every_estimator():
         ac.state_metric({"a": {"state_rmse": 1, "rmse_p": 1}, "b": {"state_rmse": 1}})
         == "state_rmse"
     )
+    every = {"a": {"state_rmse": 1, "rmse_p": 1}, "b": {"state_rmse": 1, "rmse_p": 2}}
+    assert ac.state_metric(every) == "rmse_p"
 
 
 def _judge(**learned):

@@ -370,7 +370,10 @@ def test_the_equal_wall_time_verdict_says_when_the_times_were_not_equal():
     assert verdict(0.97, 0.50) == "at equal wall time the EKF proposal does not help."
     assert verdict(1.10, 0.40) == "at equal wall time the EKF proposal helps."
     assert verdict(0.9714, 0.1834).startswith("not equal wall time: the bootstrap filter took "
-                                              "0.39× the EKF proposal's")  # fmt: skip
+                                              "0.395× the EKF proposal's")  # fmt: skip
+    assert verdict(0.97, 0.4647 * 1.204).startswith("not equal wall time: the bootstrap "
+                                                    "filter took 1.20× the")  # fmt: skip
+    assert verdict(0.97, 0.4647 / 1.19).startswith("at equal wall time")  # either way
     assert verdict(0.9714, 0.1834).endswith("better in less time: the EKF proposal does not help.")
     assert verdict(1.10, 1.0).endswith("the EKF proposal is better still: it helps.")
     assert verdict(0.97, 1.0).endswith("does not settle whether the EKF proposal helps.")

@@ -494,12 +494,26 @@ def _check_config_files(argv) -> None:
 
     given = [a.split("=", 1)[1] for a in argv if a.startswith(("--config=", "-c="))]
     given += [argv[i + 1] for i, a in enumerate(argv[:-1]) if a in ("--config", "-c")]
+    loader = _jsonargparse_yaml_loader()
     for path in map(Path, given):
         if path.is_file():
             try:
-                check_unique_keys(path.read_text(), str(path))
+                check_unique_keys(path.read_text(), str(path), loader)
             except yaml.YAMLError:
                 pass
+
+
+def _jsonargparse_yaml_loader():
+    """The PyYAML loader class jsonargparse reads configs with (it resolves ``1e3`` as a
+    number and no dates, unlike SafeLoader: keys are then told apart as it tells them), or
+    SafeLoader where this jsonargparse does not say."""
+    import yaml
+
+    try:
+        from jsonargparse._loaders_dumpers import get_yaml_default_loader
+    except ImportError:
+        return yaml.SafeLoader
+    return get_yaml_default_loader()
 
 
 def _refuse_duplicate_keys() -> None:
@@ -516,11 +530,12 @@ def _refuse_duplicate_keys() -> None:
     load = get_loader("yaml")
     if getattr(load, "_refuses_duplicates", False):
         return
+    loader = _jsonargparse_yaml_loader()
 
     def load_unique(text):
         if isinstance(text, str) and ":" in text:
             try:  # (each --config file is checked first, by its name: _check_config_files)
-                check_unique_keys(text, "a YAML value or config")
+                check_unique_keys(text, "a YAML value or config", loader)
             except yaml.YAMLError:
                 pass  # not YAML: as the loader reads it
         return load(text)

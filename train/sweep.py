@@ -446,17 +446,18 @@ def _check_before_training(config: Path, out: Path, scenarios, runs, test: bool,
 
 
 def _check_keys_once(config: Path) -> None:
-    """``ValueError`` naming ``config`` where a mapping of it holds a key twice, said before
-    the first seed's fit (:func:`~difffilter.models.yaml_scenario.check_unique_keys`);
-    invalid YAML is left to the fit's own error."""
+    """``ValueError`` naming ``config`` where it is no valid YAML (the monitor check read
+    it first, with a parser traceback) or a mapping of it holds a key twice
+    (:func:`~difffilter.models.yaml_scenario.check_unique_keys`): said before anything
+    else reads it."""
     import yaml
 
     from difffilter.models.yaml_scenario import check_unique_keys
 
     try:
         check_unique_keys(config.read_text(), str(config))
-    except yaml.YAMLError:
-        pass
+    except yaml.YAMLError as error:
+        raise ValueError(f"--config: {config} is not valid YAML: {error}") from None
 
 
 def _make_folder(out: Path) -> None:
@@ -521,7 +522,7 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
     config, out = Path(config), Path(out)
     if not config.is_file():
         raise FileNotFoundError(f"--config: {config} does not exist")
-    _check_keys_once(config)  # before anything reads it (a key twice: the last alone)
+    _check_keys_once(config)  # before anything reads it (invalid, or a key twice)
     seeds = [int(s) for s in seeds]
     if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
         raise ValueError(f"--seeds must be distinct integers >= 0; got {seeds}")
