@@ -57,6 +57,14 @@ def test_a_short_run_logs_hparams_learning_rate_loss_and_figures(config, tmp_pat
     assert any(t.startswith("lr-") for t in tags["scalars"]), tags["scalars"]
     assert "train/loss" in tags["scalars"] and "val/threshold" in tags["scalars"]
     assert tags["images"], "no figure"
+    # the card's description names a distribution over threats where one was trained on (a
+    # trial's said its scenario alone)
+    import json
+
+    (card,) = [c for c in (json.loads(p.read_text()) for p in run.glob("*.json"))
+               if "description" in c]  # fmt: skip
+    across = "its attacks drawn from a distribution over threats (" in card["description"]
+    assert across == config.endswith("_threats"), card["description"]
 
 
 def test_a_run_with_another_logger_ends_cleanly_and_records_its_best_score(tmp_path, monkeypatch):

@@ -929,11 +929,16 @@ class FilterEstimatorTask(pl.LightningModule):
             else f"by the EKF over its weights inside difffilter's {hp.filter.upper()}"
         )
         loop = " in its closed loop" if self.scenario.closed_loop else ""
+        # across threats: named (a trial's card said its scenario alone, the distribution
+        # only under data_config)
+        threats = getattr(getattr(trainer, "datamodule", None), "threats", None)
+        across = ("" if threats is None else
+                  f", its attacks drawn from a distribution over threats ({', '.join(threats.names)})")  # fmt: skip
         return {
             "scenario_family": self.scenario.family,
             "estimator": self.card().estimator,
             "description": f"Neural FDI estimator (eqs 8-9) trained {how}{loop} on "
-            f"{self.scenario.name}",
+            f"{self.scenario.name}{across}",
         }
 
     def on_save_checkpoint(self, checkpoint):
