@@ -90,9 +90,9 @@ def test_the_check_of_keys_compares_them_as_yaml_builds_them():
             check_unique_keys(f"m: {{{one}: a, {other}: b}}\n", "one.yaml")
     # the training command line tells keys apart as jsonargparse's loader does (1e3 a
     # number, where SafeLoader reads a string)
-    from difffilter.train.lightning_cli import _jsonargparse_yaml_loader
+    from difffilter.train.common import jsonargparse_yaml_loader
 
-    loader = _jsonargparse_yaml_loader()
+    loader = jsonargparse_yaml_loader()
     check_unique_keys("m: {1e3: a, '1e3': b}\n", "cli", loader)
     with pytest.raises(ValueError, match=r"the keys '1e3' and '1000.0' are one key"):
         check_unique_keys("m: {1e3: a, 1000.0: b}\n", "cli", loader)

@@ -73,3 +73,25 @@ def load_source(src):
         return load_estimator_checkpoint(src, dtype=None)
     except (ValueError, FileNotFoundError) as exc:
         raise type(exc)(f"src: {str(exc).removeprefix('ckpt: ')}") from None
+
+
+def jsonargparse_yaml_loader():
+    """The PyYAML loader class jsonargparse reads configs with (it reads ``1e3`` as a number
+    and no dates, unlike SafeLoader): keys are told apart as it tells them
+    (:func:`~difffilter.models.yaml_scenario.check_unique_keys`). Private in jsonargparse:
+    ``get_yaml_default_loader()`` from 4.36, the module's ``DefaultLoader`` before (4.27,
+    the lowest version we declare); SafeLoader where neither is found (a review: the first
+    alone fell back to SafeLoader on 4.27–4.35, and a changed one would have crashed every
+    fit)."""
+    import yaml
+
+    try:
+        from jsonargparse import _loaders_dumpers as loaders
+    except ImportError:
+        return yaml.SafeLoader
+    try:
+        loader = loaders.get_yaml_default_loader()
+    except Exception:  # absent (before 4.36) or changed: the older name, else SafeLoader
+        loader = getattr(loaders, "DefaultLoader", None)
+    is_loader = isinstance(loader, type) and issubclass(loader, yaml.resolver.BaseResolver)
+    return loader if is_loader else yaml.SafeLoader

@@ -15,7 +15,7 @@ import torch
 from lightning.pytorch.cli import LightningCLI, SaveConfigCallback
 
 from difffilter.runtime import tune_cpu_allocator
-from difffilter.train.common import train_seed_of
+from difffilter.train.common import jsonargparse_yaml_loader, train_seed_of
 from difffilter.train.last_checkpoint import add_last_every_epoch
 
 __all__ = ["DifffilterCLI", "run"]
@@ -494,7 +494,7 @@ def _check_config_files(argv) -> None:
 
     given = [a.split("=", 1)[1] for a in argv if a.startswith(("--config=", "-c="))]
     given += [argv[i + 1] for i, a in enumerate(argv[:-1]) if a in ("--config", "-c")]
-    loader = _jsonargparse_yaml_loader()
+    loader = jsonargparse_yaml_loader()
     for path in map(Path, given):
         if path.is_file():
             try:
@@ -503,34 +503,33 @@ def _check_config_files(argv) -> None:
                 pass
 
 
-def _jsonargparse_yaml_loader():
-    """The PyYAML loader class jsonargparse reads configs with (it resolves ``1e3`` as a
-    number and no dates, unlike SafeLoader: keys are then told apart as it tells them), or
-    SafeLoader where this jsonargparse does not say."""
-    import yaml
-
-    try:
-        from jsonargparse._loaders_dumpers import get_yaml_default_loader
-    except ImportError:
-        return yaml.SafeLoader
-    return get_yaml_default_loader()
-
-
 def _refuse_duplicate_keys() -> None:
     """Have jsonargparse's YAML loader refuse a key given twice in one mapping of a config
     or a value (:func:`~difffilter.models.yaml_scenario.check_unique_keys`; PyYAML keeps
     the last one without a word: a trial's config with two threats named ``r`` trained
     on one). The loader it wraps reads what it read before; text that is no valid YAML is
-    left to it (a plain string value)."""
+    left to it (a plain string value). Where this jsonargparse does not give its loader
+    (``get_loader`` from 4.28; the module's table before), values are not checked; the
+    ``--config`` files still are (:func:`_check_config_files`)."""
     import yaml
-    from jsonargparse import get_loader, set_loader
+    from jsonargparse import set_loader
 
     from difffilter.models.yaml_scenario import check_unique_keys
 
-    load = get_loader("yaml")
-    if getattr(load, "_refuses_duplicates", False):
+    try:
+        from jsonargparse import get_loader
+
+        load = get_loader("yaml")
+    except ImportError:  # (4.27, the lowest version declared: a review)
+        try:
+            from jsonargparse._loaders_dumpers import loaders
+
+            load = loaders["yaml"]
+        except (ImportError, KeyError):
+            return
+    if not callable(load) or getattr(load, "_refuses_duplicates", False):
         return
-    loader = _jsonargparse_yaml_loader()
+    loader = jsonargparse_yaml_loader()
 
     def load_unique(text):
         if isinstance(text, str) and ":" in text:

@@ -58,7 +58,7 @@ import statistics
 import sys
 from pathlib import Path
 
-from .common import train_seed_of
+from .common import jsonargparse_yaml_loader, train_seed_of
 
 __all__ = ["sweep", "main", "METRICS", "SELECT_ON", "train_seed_of"]
 
@@ -454,8 +454,8 @@ def _check_keys_once(config: Path) -> None:
 
     from difffilter.models.yaml_scenario import check_unique_keys
 
-    try:
-        check_unique_keys(config.read_text(), str(config))
+    try:  # keys told apart as the fits' loader tells them
+        check_unique_keys(config.read_text(), str(config), jsonargparse_yaml_loader())
     except yaml.YAMLError as error:
         raise ValueError(f"--config: {config} is not valid YAML: {error}") from None
 
