@@ -182,8 +182,8 @@ def test_a_start_from_nothing_and_a_checkpoint_of_another_family_are_named(capsy
     ours = str(ROOT / "checkpoints" / "four_tank_nn_grad.ckpt")
     assert main(["validate", "--config", FOUR_TANK, "--ckpt_path", ours,
                  "--model.init_args.hidden=8", "--trainer.logger=false"]) == 2  # fmt: skip
-    assert (f"--ckpt_path: the network in {ours} differs from the configured model's (hidden "
-            "16 against 8)") in capsys.readouterr().err  # fmt: skip
+    assert (f"--ckpt_path: the network in {ours} has other settings than the configured "
+            "model's (hidden 16 against 8)") in capsys.readouterr().err  # fmt: skip
 
 
 def test_an_added_learned_estimator_that_does_not_fit_names_the_shipped_one_that_does(

@@ -190,8 +190,8 @@ class DifffilterCLI(LightningCLI):
                                for k in sorted(theirs.keys() | ours.keys())
                                if theirs.get(k) != ours.get(k))  # fmt: skip
             raise ValueError(
-                f"--ckpt_path: the network in {path} differs from the configured model's "
-                f"({differ}); pass the matching --config/--model.* options"
+                f"--ckpt_path: the network in {path} has other settings than the configured "
+                f"model's ({differ}); pass the matching --config/--model.* options"
             )
         self.model.check_exported(card, path)  # the filter it was trained for
         mine.load_state_dict(estimator.state_dict())
