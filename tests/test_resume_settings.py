@@ -138,7 +138,9 @@ def test_a_threat_distribution_in_another_order_is_another_run(tmp_path, monkeyp
     assert main(["fit", "--config", "b.yaml", *small, "--trainer.max_epochs=2", ckpt]) == 2
     err = capsys.readouterr().err
     assert "this command changes settings the run was trained with" in err
-    assert "--data.init_args.threats:" in err
+    order = ", ".join(threats)  # named as the order of the keys, not two whole dicts
+    assert (f"--data.init_args.threats: the same keys in another order ({order} → "
+            f"{', '.join(reverse)})") in err  # fmt: skip
     assert main(["fit", "--config", str(run / "config.yaml"), "--trainer.max_epochs=2", ckpt]) == 0
 
 
@@ -171,3 +173,23 @@ def test_the_training_scenario_is_read_from_every_kind_of_checkpoint(tmp_path, m
     assert checkpoint_training_scenario(lightning) == "mine"
     (tmp_path / "junk.ckpt").write_bytes(b"not a checkpoint")
     assert checkpoint_training_scenario(tmp_path / "junk.ckpt") is None
+
+
+def test_a_refused_setting_is_shown_where_it_differs():
+    """A trial's refusal printed two whole threat distributions of 600 characters that
+    differed in one entry's order of fields: the first place of difference is named, and a
+    short setting is shown whole."""
+    from difffilter.train.lightning_cli import _changed_text
+
+    big = {"kind": "bias", "weight": 1, "value": {"uniform": [0.5, 1.5]}}
+    a = {"own": {"weight": 1}, "big": big, "ramp": {"kind": "ramp", "slope": 0.1}}
+    fields = {"own": {"weight": 1}, "big": dict(reversed(list(big.items()))),
+              "ramp": {"kind": "ramp", "slope": 0.1}}  # fmt: skip
+    assert _changed_text("--t", a, fields) == (
+        "--t.big: the same keys in another order (kind, weight, value → value, weight, kind)"
+    )
+    slope = {**a, "ramp": {"kind": "ramp", "slope": 0.2}}
+    assert _changed_text("--t", a, slope) == "--t.ramp.slope: 0.1 → 0.2"
+    assert _changed_text("--t", [a], [slope]) == "--t[0].ramp.slope: 0.1 → 0.2"
+    assert _changed_text("--o", (10, 50), [5, 60]) == "--o: (10, 50) → [5, 60]"
+    assert _changed_text("--t", a, None).startswith("--t: {'own': {'weight': 1}")

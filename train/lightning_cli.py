@@ -328,7 +328,7 @@ def _check_resumed_settings(ckpt, model, datamodule) -> None:
         if module is None or not isinstance(before, dict):
             continue
         now = dict(module.hparams)
-        changed += [f"--{what}.init_args.{name}: {before.get(name)!r} → {now.get(name)!r}"
+        changed += [_changed_text(f"--{what}.init_args.{name}", before.get(name), now.get(name))
                     for name in sorted(set(before) | set(now))
                     if not name.startswith("_")
                     and _in_order(before.get(name)) != _in_order(now.get(name))]  # fmt: skip
@@ -347,6 +347,39 @@ def _check_resumed_settings(ckpt, model, datamodule) -> None:
             "resume with the run's own settings (its config.yaml: --config <run>/config.yaml "
             "--ckpt_path …)",
         )  # fmt: skip
+
+
+def _changed_text(option: str, before, now) -> str:
+    """``option: before → now``, whole where both are short, else at the first place they
+    differ (a threat distribution: a trial's refusal printed two whole distributions of 600
+    characters, which differed in one entry's order of fields)."""
+    if (
+        len(repr(before)) <= 60
+        and len(repr(now)) <= 60
+        and not (isinstance(before, dict) and isinstance(now, dict))
+    ):
+        return f"{option}: {before!r} → {now!r}"
+    where, was, is_now = _first_difference(before, now)
+    if isinstance(was, dict) and isinstance(is_now, dict) and list(was) != list(is_now):
+        return (f"{option}{where}: the same keys in another order ({', '.join(map(str, was))} "
+                f"→ {', '.join(map(str, is_now))})")  # fmt: skip
+    return f"{option}{where}: {was!r} → {is_now!r}"
+
+
+def _first_difference(before, now, where: str = "") -> tuple[str, object, object]:
+    """``(path, before's part, now's part)`` of the first place ``before`` and ``now``
+    differ (:func:`_in_order`'s way: mappings in their order), descending into mappings
+    with the same keys in the same order and lists of the same length."""
+    if isinstance(before, dict) and isinstance(now, dict) and list(before) == list(now):
+        for key in before:
+            if _in_order(before[key]) != _in_order(now[key]):
+                return _first_difference(before[key], now[key], f"{where}.{key}")
+    listed = (list, tuple)
+    if isinstance(before, listed) and isinstance(now, listed) and len(before) == len(now):
+        for i, (a, b) in enumerate(zip(before, now)):
+            if _in_order(a) != _in_order(b):
+                return _first_difference(a, b, f"{where}[{i}]")
+    return where, before, now
 
 
 def _in_order(value):
