@@ -41,12 +41,18 @@ def check_checkpoint_out(out: Path, *, force: bool, replacing: Path | None = Non
         if path.exists() and not force:
             raise ValueError(f"--out: {path} exists; pass --force to replace it")
     # where it goes can be written: said now, before any work (a calibration scores first)
+    make_writable_folder(out.parent)
+
+
+def make_writable_folder(folder: Path, option: str = "--out") -> None:
+    """Make ``folder`` and prove it writable, or a ``ValueError`` naming ``option`` (a folder
+    that could not be made had failed with a PermissionError traceback)."""
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(parents=True, exist_ok=True)
     except OSError as error:
-        raise ValueError(f"--out: cannot make the folder {out.parent} ({error.strerror})") from None
-    if not os.access(out.parent, os.W_OK):
-        raise ValueError(f"--out: the folder {out.parent} is not writable")
+        raise ValueError(f"{option}: cannot make the folder {folder} ({error.strerror})") from None
+    if not os.access(folder, os.W_OK):
+        raise ValueError(f"{option}: the folder {folder} is not writable")
 
 
 def mix_seed(*parts: int) -> int:
@@ -67,12 +73,30 @@ def load_source(src):
     """``(estimator, card)`` of the checkpoint a command reads (``export``, ``calibrate``),
     its weights in their own dtype; its errors name it as the commands do, ``src``, and
     come before any about ``--out``."""
+    return load_estimator_as(src, "src")
+
+
+def load_estimator_as(path, setting: str, dtype=None):
+    """``(estimator, card)`` of the checkpoint at ``path`` (``dtype``: the weights', ``None``
+    their own), its errors naming ``setting``, where the path came from (the loader's own
+    name a setting ``ckpt`` that the commands and configs do not have)."""
     from difffilter.models.neural_estimator import load_estimator_checkpoint
 
     try:
-        return load_estimator_checkpoint(src, dtype=None)
+        return load_estimator_checkpoint(path, dtype=dtype)
     except (ValueError, FileNotFoundError) as exc:
-        raise type(exc)(f"src: {str(exc).removeprefix('ckpt: ')}") from None
+        raise type(exc)(f"{setting}: {str(exc).removeprefix('ckpt: ')}") from None
+
+
+def check_config_keys(config: Path) -> None:
+    """``ValueError`` naming ``config`` where a mapping of that YAML file holds a key twice,
+    keys told apart as the training command line's loader tells them
+    (:func:`jsonargparse_yaml_loader`,
+    :func:`~difffilter.models.yaml_scenario.check_unique_keys`); the parser's
+    ``yaml.YAMLError`` where it is no valid YAML."""
+    from difffilter.models.yaml_scenario import check_unique_keys
+
+    check_unique_keys(Path(config).read_text(), str(config), jsonargparse_yaml_loader())
 
 
 def jsonargparse_yaml_loader():

@@ -15,7 +15,7 @@ import torch
 from lightning.pytorch.cli import LightningCLI, SaveConfigCallback
 
 from difffilter.runtime import tune_cpu_allocator
-from difffilter.train.common import jsonargparse_yaml_loader, train_seed_of
+from difffilter.train.common import check_config_keys, jsonargparse_yaml_loader, train_seed_of
 from difffilter.train.last_checkpoint import add_last_every_epoch
 
 __all__ = ["DifffilterCLI", "run"]
@@ -523,15 +523,12 @@ def _check_config_files(argv) -> None:
     that is missing or no valid YAML is left to jsonargparse's own error."""
     import yaml
 
-    from difffilter.models.yaml_scenario import check_unique_keys
-
     given = [a.split("=", 1)[1] for a in argv if a.startswith(("--config=", "-c="))]
     given += [argv[i + 1] for i, a in enumerate(argv[:-1]) if a in ("--config", "-c")]
-    loader = jsonargparse_yaml_loader()
     for path in map(Path, given):
         if path.is_file():
             try:
-                check_unique_keys(path.read_text(), str(path), loader)
+                check_config_keys(path)
             except yaml.YAMLError:
                 pass
 

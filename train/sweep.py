@@ -58,7 +58,7 @@ import statistics
 import sys
 from pathlib import Path
 
-from .common import jsonargparse_yaml_loader, train_seed_of
+from .common import check_config_keys, make_writable_folder, train_seed_of
 
 __all__ = ["sweep", "main", "METRICS", "SELECT_ON", "train_seed_of"]
 
@@ -452,23 +452,10 @@ def _check_keys_once(config: Path) -> None:
     else reads it."""
     import yaml
 
-    from difffilter.models.yaml_scenario import check_unique_keys
-
-    try:  # keys told apart as the fits' loader tells them
-        check_unique_keys(config.read_text(), str(config), jsonargparse_yaml_loader())
+    try:
+        check_config_keys(config)
     except yaml.YAMLError as error:
         raise ValueError(f"--config: {config} is not valid YAML: {error}") from None
-
-
-def _make_folder(out: Path) -> None:
-    """Make ``--out`` and prove it writable, or a ``ValueError`` naming it (a folder it
-    could not make had failed with a PermissionError traceback)."""
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        raise ValueError(f"--out: cannot make the folder {out} ({error.strerror})") from None
-    if not os.access(out, os.W_OK):
-        raise ValueError(f"--out: the folder {out} is not writable")
 
 
 def _config_monitor(config: Path) -> dict | None:
@@ -543,7 +530,7 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
                          "monitor; add one, or --select-on test")  # fmt: skip
     _check_before_training(config, out, scenarios, runs, test, extra)
     _check_same_sweep(out, config, list(extra))
-    _make_folder(out)  # the last check: a refused sweep leaves no empty folder behind
+    make_writable_folder(out)  # the last check: a refused sweep leaves no empty folder behind
     runs_dir = out / "runs"
     for seed in seeds:  # every seed's folder before the first is trained
         folder, _, settings = _seed_run(config, seed, runs_dir, list(extra))

@@ -68,7 +68,6 @@ from difffilter.models.lfc_estimators import PROBABILITY, confirmed_statistic
 from difffilter.models.neural_estimator import (
     EstimatorCard,
     NeuralFDIEstimator,
-    load_estimator_checkpoint,
 )
 from difffilter.models.streams import Streams
 from difffilter.models.yaml_scenario import scenario_file_digest
@@ -78,7 +77,7 @@ from difffilter.threat_distribution import ThreatDistribution
 from difffilter.threats import check_attack_fits
 
 from .adversarial import Adversary
-from .common import dtype_of, mix_seed
+from .common import dtype_of, load_estimator_as, mix_seed
 from .figures import attack_figure
 
 __all__ = [
@@ -500,12 +499,7 @@ class FilterEstimatorTask(pl.LightningModule):
 
     def _start_from(self, path: str) -> None:
         """Copy the network weights of the estimator at ``path`` (``init_from``)."""
-        try:
-            start, _ = load_estimator_checkpoint(path, dtype=self._dtype)
-        except (FileNotFoundError, ValueError) as error:  # named as the setting it came from
-            # (the loader names a setting "ckpt", which a training config does not have)
-            text = str(error).removeprefix("ckpt: ")
-            raise type(error)(f"model.init_args.init_from: {text}") from None
+        start, _ = load_estimator_as(path, "model.init_args.init_from", dtype=self._dtype)
         mine, theirs = self.estimator.state_dict(), start.state_dict()
         wrong = sorted(k for k in mine.keys() | theirs.keys()
                        if k not in mine or k not in theirs or mine[k].shape != theirs[k].shape)  # fmt: skip
