@@ -165,6 +165,9 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
                 threats[name].check_fits(model)
             else:
                 threats[name] = threat_from_dict(spec, model=model)
+                # refused now, not when its turn comes after the calibration and the threats
+                # before it (an adaptive threat on an open-loop scenario: a trial's third)
+                scenario.with_threat(threats[name])
             # (a crafted threat: its onset only; a library threat: its widths too)
             check_attack_fits(threats[name], model, getattr(scenario, "steps", None))
             if getattr(threats[name], "conceals", False) and scenario.input_loss_schedule():
@@ -272,6 +275,12 @@ def run_robustness(
     and ``add``, every threshold at ``far`` from ``calibration_runs`` attack-free runs."""
     from tqdm.auto import tqdm
 
+    for name, threat in threat_set.threats.items():  # refused before any run, not at its turn
+        if not isinstance(threat, StealthySpec):
+            try:
+                scenario.with_threat(threat)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"threat {name!r}: {exc}") from None
     runs = runs or threat_set.runs or scenario.runs
     targets = [t.against for t in threat_set.threats.values() if isinstance(t, StealthySpec)]
     add = tuple(dict.fromkeys((*add, *targets)))  # a crafted attack's detector is calibrated
@@ -461,6 +470,9 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
     # which threats read the true state x (Attack.reads_state: an insider, who knows the noise)
     doc["threat_reads_state"] = {name: bool(getattr(attack, "reads_state", True))
                                  for name, attack in result.threat_set.threats.items()}  # fmt: skip
+    # ... and which read the estimator's output (Attack.reads_view: adaptive, in a closed loop)
+    doc["threat_reads_view"] = {name: bool(getattr(attack, "reads_view", False))
+                                for name, attack in result.threat_set.threats.items()}  # fmt: skip
     acceptance = judge_robustness(result.acting(doc["cells"]), doc["estimator_roles"],
                                   result.calibration.far, blind=doc["reads_no_measurements"])  # fmt: skip
     intervals = robustness_intervals(result.acting(result.run_totals), doc["estimator_roles"],
@@ -539,8 +551,12 @@ def _markdown(doc: dict, sc) -> str:
         parts.append(f"## {title}\n\n{markdown_table(header, rows)}")
     parts.append(_false_alarm_table(doc, ests, threats))
     insiders = doc.get("threat_reads_state") or {}
+    adaptive = doc.get("threat_reads_view") or {}
     insider = " (reads the true state x_k: an insider, who knows the measurement noise)"
+    reader = (" (adaptive: reads each estimator's last output, its estimate, score and alarm "
+              "at its own threshold)")  # fmt: skip
     specs = "\n".join(f"- `{n}`: {s}{insider if insiders.get(n) else ''}"
+                      f"{reader if adaptive.get(n) else ''}"
                       for n, s in doc["threats"].items())  # fmt: skip
     parts.append(f"## Threats\n\n{specs}\n\n![robustness.png](robustness.png)\n")
     parts += [_stealthy_section(n, r) for n, r in (doc.get("stealthy") or {}).items()]

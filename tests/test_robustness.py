@@ -12,6 +12,7 @@ import torch
 from difffilter.eval.cli import main
 from difffilter.eval.report import format_number, metrics_schema
 from difffilter.eval.robustness import (
+    ThreatSet,
     load_threat_set,
     robustness_scenarios,
     run_robustness,
@@ -257,3 +258,74 @@ def test_a_crafted_attack_is_kept_in_robustness_json_and_judged_the_same_again(t
     assert cell["tpr_at_far"] > 0  # a rate that can differ
     for key in ("tpr_at_far", "fpr_at_far", "state_rmse"):
         assert again.metrics["chi_square_ekf"][key] == pytest.approx(cell[key], rel=1e-12), key
+
+
+_PEEKING = '''
+import torch
+from difffilter.attack import Attack, Channel
+
+
+class Peeking(Attack):
+    """Adds the estimator's last mean to the measurement (reads the view)."""
+
+    channel = Channel.SENSOR
+    reads_view = True
+
+    def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        return None
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        value = torch.zeros_like(y) if view is None else view.mean[..., : y.shape[-1]]
+        return state, value, torch.full(y.shape[:-1], view is not None)
+'''
+
+
+def test_an_adaptive_threat_on_an_open_loop_scenario_is_refused_before_anything_runs(
+    tmp_path, monkeypatch
+):
+    """A threat that reads the estimator's output cannot act on a scenario simulated once
+    for every estimator: the threat set naming it is refused when read, and a ThreatSet
+    built in Python before the calibration (a trial's third threat was refused only after
+    the calibration and two threats had run)."""
+    import difffilter.eval.robustness as robustness
+
+    (tmp_path / "peeking_attack.py").write_text(_PEEKING)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    sc = registry.get("four_tank_bias")
+    path = tmp_path / "set.yaml"
+    path.write_text("threats:\n  bias: {kind: bias, value: 0.5}\n"
+                    "  peek: {kind: 'peeking_attack:Peeking'}\n")  # fmt: skip
+    with pytest.raises(ValueError, match=r"threat 'peek': attack Peeking reads the estimator's"):
+        load_threat_set(sc, path=path)
+    assert list(load_threat_set(sc, "bias", path=path).threats) == ["bias"]
+
+    from peeking_attack import Peeking
+
+    def no_calibration(*args, **kwargs):
+        raise AssertionError("calibrated before refusing the threat")
+
+    monkeypatch.setattr(robustness, "calibrate", no_calibration)
+    threats = robustness.ThreatSet({"bias": Bias(value=0.5), "peek": Peeking()})
+    with pytest.raises(ValueError, match=r"threat 'peek': attack Peeking reads the estimator's"):
+        robustness.run_robustness(sc, threats, runs=2, progress=False)
+
+
+@pytest.mark.filterwarnings("ignore:Below the 1 % target")  # 2 runs of 40 steps calibrate
+def test_the_report_marks_an_adaptive_threat(tmp_path, monkeypatch):
+    """On a closed-loop scenario an adaptive threat runs, and robustness.json and .md say
+    which threats read the estimator's output (as they say which read the true state)."""
+    (tmp_path / "peeking_attack.py").write_text(_PEEKING)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    from peeking_attack import Peeking
+
+    sc = registry.get("lfc_step").with_steps(40)
+    threats = ThreatSet({"peek": Peeking(), "bias": Bias(value=0.05, onset=10)}, runs=2,
+                        estimators=("chi_square_kf",))  # fmt: skip
+    doc = write_robustness(tmp_path / "out", run_robustness(sc, threats, progress=False))
+    assert doc["threat_reads_view"] == {"peek": True, "bias": False}
+    assert doc["threat_reads_state"] == {"peek": True, "bias": False}
+    text = (tmp_path / "out" / "robustness.md").read_text()
+    (peek,) = [line for line in text.splitlines() if line.startswith("- `peek`")]
+    (bias,) = [line for line in text.splitlines() if line.startswith("- `bias`")]
+    assert "adaptive: reads each estimator's last output" in peek
+    assert "adaptive" not in bias and "insider" not in bias
