@@ -295,7 +295,7 @@ def _hparams(logdir: Path, rows: list[dict[str, Any]]) -> None:
     ``leaderboard.md`` is replaced)."""
     from torch.utils.tensorboard import SummaryWriter
 
-    from .tensorboard import clear_events
+    from .tensorboard import add_session, clear_events
 
     clear_events(logdir)
     with SummaryWriter(str(logdir)) as w:
@@ -304,4 +304,4 @@ def _hparams(logdir: Path, rows: list[dict[str, Any]]) -> None:
                 f"leaderboard/{m}": r[m] for m in (*COLUMNS, *_WORST_UNITS) if r.get(m) is not None
             }  # (a robustness study's worst case too)
             hparams = {k: r[k] or "none" for k in ("scenario", "estimator", "checkpoint")}
-            w.add_hparams(hparams, metrics, run_name=f"{r['scenario']}/{r['estimator']}")
+            add_session(w, f"{r['scenario']}/{r['estimator']}", hparams, metrics)

@@ -1,11 +1,24 @@
 """TensorBoard events of an evaluation: figures, per-step curves and an hparams table.
 
-``<out>/<scenario>/tb`` gets, per estimator, the state RMSE at every step (a curve over
-``k``, not a single point), when it estimates the attacked channel the RMSE of its attack
-estimate at every step, and, when it detects, its alarm rate per step; every report
-figure (the PNG the report saved); and one hparams row per estimator (scenario, estimator, runs,
-seed → the headline metrics), so ``tensorboard --logdir <out>`` compares estimators and
-scenarios side by side in its HPARAMS tab.
+``<out>/<scenario>/tb`` gets, per estimator, curves over the step ``k = 1 … T`` (scalars at
+step ``k``):
+
+* ``state_rmse_per_step/<name>``: ``sqrt(mean over runs and state components of
+  (x̂_k − x_k)²)``, whose root mean square over the steps is ``state_rmse``;
+* ``attack_rmse_per_step/<name>``, where it estimates the attacked channel: the same of
+  ``â_k − a_k`` at every step, attack-free ones included (``a_k = 0`` there), so not the
+  ``attack_rmse`` of ``metrics.json``, which counts only the attacked steps;
+* ``alarm_rate_per_step/<name>``, where it detects: the share of runs that alarm at ``k``
+  at the estimator's own threshold, and ``alarm_rate_at_far_per_step/<name>`` at its
+  calibrated ``threshold_at_far`` (the one every rate of a calibrated report is read at);
+
+every report figure (the PNG the report saved); and one HPARAMS row per estimator
+(scenario, estimator, runs, seed → the headline metrics, the calibrated ones and the
+acceptance checks' ``holds_share``). The rows are sessions without an experiment summary
+of their own: TensorBoard then builds the HPARAMS table from every session under its
+``--logdir``, all columns of all estimators and scenarios (and of the leaderboard's rows,
+:mod:`difffilter.eval.leaderboard`); with one summary per row it showed one row's columns
+for all (a trial's detector rows hid the network's ``holds_share`` columns).
 """
 
 from __future__ import annotations
@@ -15,7 +28,10 @@ from pathlib import Path
 
 from .scoring import HEADLINE, comparable_attack, rmse_over_time
 
-__all__ = ["clear_events", "log_suite"]
+__all__ = ["add_session", "clear_events", "log_suite"]
+
+#: The calibrated metrics of an HPARAMS row (where the study was calibrated, ``--far``).
+AT_FAR = ("threshold_at_far", "tpr_at_far", "fpr_at_far", "detection_delay_at_far_s", "impact")
 
 
 def clear_events(logdir: Path) -> None:
@@ -42,6 +58,10 @@ def log_suite(logdir: Path, result, doc: dict, images) -> None:
             if out.detection is not None:
                 rate = out.detection.alarms.double().mean(0)
                 curves[f"alarm_rate_per_step/{name}"] = rate.tolist()
+                at_far = doc["estimators"].get(name, {}).get("threshold_at_far")
+                if at_far is not None:  # (a NaN score: no alarm, as the calibration reads it)
+                    rate = (out.detection.scores.double() > at_far).double().mean(0)
+                    curves[f"alarm_rate_at_far_per_step/{name}"] = rate.tolist()
             # the attack estimate's error, where it estimates this channel
             if traj.attack.shape[-1] > 0 and comparable_attack(out, traj):
                 curves[f"attack_rmse_per_step/{name}"] = rmse_over_time(
@@ -52,7 +72,8 @@ def log_suite(logdir: Path, result, doc: dict, images) -> None:
             _write_image(w, Path(fname).stem, png)
         sure = (doc.get("acceptance_intervals") or {}).get("estimators", {})
         for name, entry in doc["estimators"].items():
-            metrics = {f"hparam/{m}": entry[m] for m in HEADLINE if entry.get(m) is not None}
+            metrics = {f"hparam/{m}": entry[m] for m in (*HEADLINE, *AT_FAR)
+                       if entry.get(m) is not None}  # fmt: skip
             # how sure each acceptance check is (difffilter.eval.intervals), where judged
             metrics.update({f"hparam/holds_share/{m}": c["holds_share"]
                             for m, c in sure.get(name, {}).items() if c["holds_share"] is not None})  # fmt: skip
@@ -62,7 +83,23 @@ def log_suite(logdir: Path, result, doc: dict, images) -> None:
                 "runs": doc["runs"],
                 "seed": doc["seed"],
             }
-            w.add_hparams(hparams, metrics, run_name=f"hparams/{name}")
+            add_session(w, f"hparams/{name}", hparams, metrics)
+
+
+def add_session(writer, run_name: str, hparams: dict, metrics: dict) -> None:
+    """One HPARAMS row under ``<writer's logdir>/<run_name>``: the session's hyperparameters
+    and its ``metrics`` as scalars, as ``SummaryWriter.add_hparams`` writes them but without
+    its experiment summary, so that TensorBoard takes the table's columns from every session
+    (module docstring)."""
+    from torch.utils.tensorboard import SummaryWriter
+    from torch.utils.tensorboard.summary import hparams as hparams_summaries
+
+    _, start, end = hparams_summaries(hparams, metrics)
+    with SummaryWriter(str(Path(writer.get_logdir()) / run_name)) as session:
+        session.file_writer.add_summary(start)
+        session.file_writer.add_summary(end)
+        for tag, value in metrics.items():
+            session.add_scalar(tag, value)
 
 
 def _write_image(writer, tag: str, png: bytes) -> None:

@@ -258,6 +258,68 @@ def test_tensorboard_curves_are_means_over_runs_at_steps_from_one(tmp_path):
     assert (tmp_path / "notes.txt").read_text() == "mine"  # only event files go
 
 
+def _hparams_experiment(logdir):
+    """``(hparam names, metric tags)`` of the HPARAMS table TensorBoard's own backend builds
+    for ``logdir`` (what its HPARAMS tab shows)."""
+    from tensorboard import context
+    from tensorboard.backend.event_processing import data_provider, plugin_event_multiplexer
+    from tensorboard.plugins import base_plugin
+    from tensorboard.plugins.hparams import backend_context
+
+    mux = plugin_event_multiplexer.EventMultiplexer()
+    mux.AddRunsFromDirectory(str(logdir))
+    mux.Reload()
+    provider = data_provider.MultiplexerDataProvider(mux, str(logdir))
+    backend = backend_context.Context(
+        base_plugin.TBContext(logdir=str(logdir), data_provider=provider, multiplexer=mux)
+    )
+    request = context.RequestContext()
+    experiment = backend.experiment_from_metadata(
+        request, "", True, backend.hparams_metadata(request, ""),
+        backend.hparams_from_data_provider(request, "", None),
+    )  # fmt: skip
+    return (sorted(h.name for h in experiment.hparam_infos),
+            sorted(m.name.tag for m in experiment.metric_infos))  # fmt: skip
+
+
+def test_the_hparams_table_has_every_estimators_columns_and_the_calibrated_curve(tmp_path):
+    """TensorBoard's HPARAMS table of an evaluation and its leaderboard holds every column
+    of every row (a trial: each row wrote an experiment summary of its own, and TensorBoard
+    showed the first one's columns for all, hiding the network's holds_share and, under
+    the leaderboard's, every scenario column); the calibrated metrics are columns, and the
+    alarm rate at the calibrated threshold is a curve beside the one at the estimator's own
+    (means over runs of score > τ by hand)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from difffilter.eval.leaderboard import _hparams
+    from difffilter.eval.tensorboard import log_suite
+
+    x = torch.zeros(4, 3, 1, dtype=torch.float64)
+    scores = torch.tensor([[3.0, 0, 0], [3, 2, 0], [0, 2, float("nan")], [3, 2, 1]])
+    alarms = scores > 2.5  # the estimator's own threshold
+    out = NS(means=x + 2.0, detection=NS(alarms=alarms, scores=scores), attack=None)
+    reference = NS(means=x + 1.0, detection=None, attack=None)
+    traj = NS(x=x, attack=torch.zeros(4, 3, 0))
+    result = NS(outputs={"chi": out, "ref": reference}, traj_of=lambda name: traj)
+    doc = {"estimators": {"chi": {"auc": 0.9, "threshold_at_far": 1.5, "tpr_at_far": 0.5},
+                          "ref": {"state_rmse": 1.0}},
+           "scenario": "s", "runs": 4, "seed": 0,
+           "acceptance_intervals": {"estimators": {"chi": {"state_rmse": {"holds_share": 0.8}}}}}  # fmt: skip
+    log_suite(tmp_path / "s" / "tb", result, doc, [])
+    row = {"scenario": "s", "estimator": "chi", "checkpoint": None, "auc": 0.9}
+    _hparams(tmp_path / "tb_leaderboard", [row])
+    names, tags = _hparams_experiment(tmp_path)
+    assert names == ["checkpoint", "estimator", "runs", "scenario", "seed"]
+    assert tags == ["hparam/auc", "hparam/holds_share/state_rmse", "hparam/state_rmse",
+                    "hparam/threshold_at_far", "hparam/tpr_at_far", "leaderboard/auc"]  # fmt: skip
+    events = EventAccumulator(str(tmp_path / "s" / "tb"))
+    events.Reload()
+    curve = lambda tag: [(e.step, round(e.value, 6)) for e in events.Scalars(tag)]  # noqa: E731
+    assert curve("alarm_rate_per_step/chi") == [(1, 0.75), (2, 0.0), (3, 0.0)]
+    assert curve("alarm_rate_at_far_per_step/chi") == [(1, 0.75), (2, 0.75), (3, 0.0)]
+    assert "alarm_rate_at_far_per_step/ref" not in events.Tags()["scalars"]
+
+
 # ---------------------------------------------------------------- training's files
 
 

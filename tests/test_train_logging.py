@@ -57,6 +57,10 @@ def test_a_short_run_logs_hparams_learning_rate_loss_and_figures(config, tmp_pat
     assert any(t.startswith("lr-") for t in tags["scalars"]), tags["scalars"]
     assert "train/loss" in tags["scalars"] and "val/threshold" in tags["scalars"]
     assert tags["images"], "no figure"
+    # the validation's figure at the step of its scalars (it was one step later; the EKF
+    # trainer's, at its optimizer steps, one per time step, far later)
+    figure_steps = [e.step for e in events.Images("val/attack_estimate")]
+    assert figure_steps == [e.step for e in events.Scalars("val/threshold")], figure_steps
     # the card's description names a distribution over threats where one was trained on (a
     # trial's said its scenario alone)
     import json

@@ -826,7 +826,16 @@ class FilterEstimatorTask(pl.LightningModule):
         if experiment is None or not hasattr(experiment, "add_figure"):
             return
         fig = attack_figure(truth["attack"][0], out.attack[0].detach(), scenario.dt)
-        experiment.add_figure(tag, fig, global_step=self.global_step)
+        experiment.add_figure(tag, fig, global_step=self._logged_step())
+
+    def _logged_step(self) -> int:
+        """The step Lightning logs this stage's scalars at: its count of training batches
+        that stepped (a validation inside the epoch's last batch runs before that batch is
+        counted), not ``global_step``, the optimizers' steps (the EKF trainer takes one per
+        time step): the figure of a validation had landed a step after its scalars (a
+        TensorBoard trial), the EKF trainer's far after them."""
+        loop = getattr(getattr(self._trainer, "fit_loop", None), "epoch_loop", None)
+        return int(getattr(loop, "_batches_that_stepped", self.global_step))
 
     def on_fit_end(self):
         best = None
