@@ -443,7 +443,9 @@ def _judged(doc: dict) -> dict[str, list] | None:
     ``doc``) judged against the best analytic one (:mod:`difffilter.eval.acceptance`), or
     ``None`` where there is nothing to judge."""
     est, role = doc["estimators"], doc.get("estimator_roles", {})
-    learned = [n for n in est if role.get(n) == "learned" and est[n].get("tpr_at_far") is not None]
+    # one without a detection (no tpr_at_far) is judged too: its TPR check fails for want
+    # of a number (it had no row, and escaped the verdicts without a word)
+    learned = [n for n in est if role.get(n) == "learned"]
     broke = [n for n, role in _broken_down(doc).items() if role == "learned"]
     if doc.get("far") is None or not (learned or broke):
         return None
