@@ -91,7 +91,18 @@ def share_suffix(interval: dict | None) -> str:
     """``" (53 %)"``: the share of resamples of the runs in which a check holds (an
     interval of :mod:`difffilter.eval.intervals`), or ``""`` where none was measured."""
     share = (interval or {}).get("holds_share")
-    return "" if share is None else f" ({100 * share:.0f} %)"
+    return "" if share is None else f" ({share_percent(share)} %)"
+
+
+def share_percent(share: float) -> str:
+    """``100 · share`` in whole percent, with the decimals it takes not to read 0 or 100
+    where the check failed or held in some resamples (1,999 of 2,000: 99.95, not 100)."""
+    text = f"{100 * share:.0f}"
+    for digits in (1, 2, 3):
+        if share in (0.0, 1.0) or float(text) not in (0.0, 100.0):
+            break
+        text = f"{100 * share:.{digits}f}"
+    return text
 
 
 # ------------------------------------------------------------------ the generic report
@@ -516,7 +527,7 @@ def _intervals_text(intervals: dict, metrics: list[str]) -> str:
                 continue
             kinds[metric] = c["statistic"]
             cells.append(f"{format_number(c['estimate'], 4)} [{format_number(c['low'], 4)}, "
-                         f"{format_number(c['high'], 4)}], holds in {100 * c['holds_share']:.0f} %")  # fmt: skip
+                         f"{format_number(c['high'], 4)}], holds in {share_percent(c['holds_share'])} %")  # fmt: skip
         rows.append([f"`{name}`", *cells])
     header = ["learned", *(_STATISTIC_TEXT[kinds.get(m, "value")].format(m=m) for m in metrics)]
     return (

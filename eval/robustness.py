@@ -41,7 +41,15 @@ from .acceptance import (
 from .calibration import below_target_note, calibrate
 from .coverage import checkpoint_of, training_coverage
 from .intervals import LEVEL, RESAMPLES, robustness_intervals, threat_totals
-from .report import _clean, _network_line, format_number, markdown_table, network_of, share_suffix
+from .report import (
+    _clean,
+    _network_line,
+    format_number,
+    markdown_table,
+    network_of,
+    share_percent,
+    share_suffix,
+)
 from .scoring import METRICS
 from .stealthy import StealthySpec, craft_threat, crafted_error, same_rate_bias
 from .suite import broken_down, run_suite
@@ -670,7 +678,7 @@ def _gap_text(interval: dict | None) -> str:
     return (f" (the difference {format_number(interval['estimate'], 3)}, "
             f"{100 * LEVEL:g} % interval [{format_number(interval['low'], 3)}, "
             f"{format_number(interval['high'], 3)}] over the runs; it holds in "
-            f"{100 * interval['holds_share']:.0f} % of the resamples)")  # fmt: skip
+            f"{share_percent(interval['holds_share'])} % of the resamples)")  # fmt: skip
 
 
 def _interval_cell(interval: dict | None) -> str:
