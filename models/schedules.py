@@ -5,7 +5,7 @@ A schedule turns ``(batch_shape, T, dy)`` into a received-entries mask ``[*, T, 
 mask and removes the unreceived entries exactly.
 
 * :class:`AllSensors` — every entry at every step (``None``);
-* :class:`RoundRobin` — sensor group ``k mod n`` at step ``k`` (the RRP paper, eq. 3);
+* :class:`RoundRobin` — sensor group ``(k − 1 + start) mod n`` (0-based) at step ``k`` (the RRP paper, eq. 3);
 * :class:`PacketLoss` — each entry (or each packet of entries sent together) lost
   independently with probability ``rate``;
 * :class:`BurstLoss` — losses that come in bursts: the Gilbert–Elliott channel, a
