@@ -261,9 +261,10 @@ def literal_gaussian_density(residuals: Tensor, cov) -> Tensor:
 def literal_probability_of_attack(
     residuals: Tensor, cov, eta, prior_weights: Tensor | None = None
 ) -> Tensor:
-    """PoA with the weights of eq. (17) formed in linear float64 space (a naive implementation).
+    """PoA with the posterior weights formed in linear float64 space (a naive implementation).
 
-    ``w^i = p(ỹ | x^i) w^i_{k−1} / Σ_j p(ỹ | x^j) w^j_{k−1}`` with the literal density of
+    ``w^i = p(ỹ | x^i) w^i_{k−1} / Σ_j p(ỹ | x^j) w^j_{k−1}`` (eq. 7; eq. 17's weights where
+    the prior weights are uniform, as after every resampling) with the literal density of
     :func:`literal_gaussian_density`; ``β = Σ_{‖z^i‖>η} w^i``. When every density
     underflows the weights are ``0/0 = NaN`` and so is ``β`` — compare with ``β > ζ``,
     which is then false (no alarm), the IEEE semantics a MATLAB implementation shares.
