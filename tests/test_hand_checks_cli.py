@@ -261,6 +261,8 @@ def test_tensorboard_curves_are_means_over_runs_at_steps_from_one(tmp_path):
 def _hparams_experiment(logdir):
     """``(hparam names, metric tags)`` of the HPARAMS table TensorBoard's own backend builds
     for ``logdir`` (what its HPARAMS tab shows)."""
+    import inspect
+
     from tensorboard import context
     from tensorboard.backend.event_processing import data_provider, plugin_event_multiplexer
     from tensorboard.plugins import base_plugin
@@ -274,10 +276,14 @@ def _hparams_experiment(logdir):
         base_plugin.TBContext(logdir=str(logdir), data_provider=provider, multiplexer=mux)
     )
     request = context.RequestContext()
+    # (TensorBoard 2.14, the lowest declared, takes neither include_metrics nor limit)
+    takes = lambda f, name: name in inspect.signature(f).parameters  # noqa: E731
+    limit = (None,) if takes(backend.hparams_from_data_provider, "limit") else ()
+    provided = backend.hparams_from_data_provider(request, "", *limit)
+    include = (True,) if takes(backend.experiment_from_metadata, "include_metrics") else ()
     experiment = backend.experiment_from_metadata(
-        request, "", True, backend.hparams_metadata(request, ""),
-        backend.hparams_from_data_provider(request, "", None),
-    )  # fmt: skip
+        request, "", *include, backend.hparams_metadata(request, ""), provided
+    )
     return (sorted(h.name for h in experiment.hparam_infos),
             sorted(m.name.tag for m in experiment.metric_infos))  # fmt: skip
 
