@@ -372,3 +372,13 @@ def test_gated_filters_reported_chi_square_threshold_warms_up_with_the_window():
     for y, w in zip(YS, want):
         carry, out = gf.step(carry, torch.tensor(y))
         assert float(out.threshold) == pytest.approx(w, rel=1e-10)
+
+
+def test_the_gate_is_the_probability_of_the_most_likely_attacked_area():
+    """``g_k = max over areas of sigmoid(logit_k)`` (the module docstring's gate): with two
+    areas the larger probability, not their mean, by hand."""
+    from difffilter.fdi.neural import gate_of
+
+    logit = torch.tensor([[-2.0, 1.0], [0.5, -0.5]], dtype=torch.float64)
+    expected = 1.0 / (1.0 + np.exp(-np.array([1.0, 0.5])))
+    np.testing.assert_allclose(gate_of(logit).numpy(), expected, rtol=1e-15)
