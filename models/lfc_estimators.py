@@ -217,8 +217,9 @@ def _loop(ctx: SuiteContext, estimator, tr: Trajectories, compensate: bool, atta
 def _attack_free(ctx: SuiteContext, name: str, estimator, tr, compensate: bool):
     """``(loop, forks)``: ``name``'s loop without attack, shared by the scenarios with the
     same draws, and its :class:`~difffilter.loop.LoopFork` s at :func:`_fork_steps`."""
-    key = ("lfc/free", name, ctx.scenario.dt, tuple(tr.x.shape), ctx.streams.seed,
-           ctx.scenario.load)  # fmt: skip
+    # the scenario's attack-free key: its load_range too (a review: lfc_random_attacks, which
+    # draws a load per run, reused lfc_step's loops of one load where both ran in one study)
+    key = ("lfc/free", name, ctx.scenario.attack_free_key(), tuple(tr.x.shape), ctx.streams.seed)
 
     def run():
         forks = dict.fromkeys(_fork_steps(ctx.scenario, tr.info))
