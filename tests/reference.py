@@ -62,3 +62,23 @@ def dense_joint_gaussian(F, H, Q, R, m0, P0, ys, mask=None):
     _, logdet = np.linalg.slogdet(Cyy)
     ll = -0.5 * (resid @ sol + logdet + keep.sum() * np.log(2 * np.pi))
     return post.reshape(T, dx), post.reshape(T, dx)[-1], ll
+
+
+def scaled_sigma_weights(n, alpha, beta, kappa):
+    """``(λ, w_m, w_c)`` of van der Merwe's scaled sigma points in ``n`` dimensions:
+    ``λ = α²(n + κ) − n``, ``w_m = (λ/(n+λ), 1/(2(n+λ)), …)``, ``w_c`` the same but
+    ``w_c0 = w_m0 + 1 − α² + β``."""
+    lam = alpha**2 * (n + kappa) - n
+    wm = np.full(2 * n + 1, 0.5 / (n + lam))
+    wm[0] = lam / (n + lam)
+    wc = wm.copy()
+    wc[0] += 1 - alpha**2 + beta
+    return lam, wm, wc
+
+
+def scaled_sigma_points(m, P, lam):
+    """The ``2n + 1`` points ``m, m ± √(n+λ) L[:, i]`` (``L`` the Cholesky factor of ``P``)
+    as rows ``[2n+1, n]``."""
+    n = len(m)
+    L = np.linalg.cholesky(P) * np.sqrt(n + lam)
+    return np.array([m] + [m + L[:, i] for i in range(n)] + [m - L[:, i] for i in range(n)])

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from reference import scaled_sigma_points, scaled_sigma_weights
 
 from difffilter.ssm import LinearGaussianModel, NonlinearGaussianModel
 
@@ -54,15 +55,10 @@ def _ukf_by_hand(alpha, beta, kappa):
     """Scaled sigma points, their weights, the predicted moments, then K = P_xy S⁻¹ and
     P = P⁻ − K S Kᵀ (the textbook posterior)."""
     f, h, n = _numpy(_f), _numpy(_h), 2
-    lam = alpha**2 * (n + kappa) - n
-    wm = np.full(2 * n + 1, 0.5 / (n + lam))
-    wm[0] = lam / (n + lam)
-    wc = wm.copy()
-    wc[0] += 1 - alpha**2 + beta
+    lam, wm, wc = scaled_sigma_weights(n, alpha, beta, kappa)
 
     def points(m, P):
-        L = np.linalg.cholesky(P) * np.sqrt(n + lam)
-        return np.array([m] + [m + L[:, i] for i in range(n)] + [m - L[:, i] for i in range(n)])
+        return scaled_sigma_points(m, P, lam)
 
     def cov(A, a, B, b):
         return sum(wc[i] * np.outer(A[i] - a, B[i] - b) for i in range(2 * n + 1))

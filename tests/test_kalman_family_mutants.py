@@ -9,6 +9,7 @@ import dataclasses
 
 import numpy as np
 import torch
+from reference import scaled_sigma_points, scaled_sigma_weights
 
 import difffilter as df
 
@@ -256,15 +257,10 @@ def _np_ukf(ys, mask, alpha=1.0, beta=2.0, kappa=0.0):
     """A numpy UKF (van der Merwe's scaled points, additive noise, points redrawn from the
     prediction), updating with the received entries alone: P = P⁻ − K S Kᵀ."""
     n = 2
-    lam = alpha**2 * (n + kappa) - n
-    wm = np.full(2 * n + 1, 0.5 / (n + lam))
-    wm[0] = lam / (n + lam)
-    wc = wm.copy()
-    wc[0] += 1 - alpha**2 + beta
+    lam, wm, wc = scaled_sigma_weights(n, alpha, beta, kappa)
 
     def points(m, P):
-        L = np.linalg.cholesky(P) * np.sqrt(n + lam)
-        return np.array([m] + [m + L[:, i] for i in range(n)] + [m - L[:, i] for i in range(n)])
+        return scaled_sigma_points(m, P, lam)
 
     m, P, ll, out = M0.copy(), P0.copy(), 0.0, []
     for t, y in enumerate(ys):
@@ -388,11 +384,7 @@ def test_unscented_smoother_equals_numpy_sigma_point_cross_covariance():
     sp = df.SigmaPoints(a, b, kap)
     sm = df.unscented_kalman_smoother(model, ys, mask=torch.tensor(mask), sigma_points=sp)
     n = 2
-    lam = a**2 * (n + kap) - n
-    wm = np.full(2 * n + 1, 0.5 / (n + lam))
-    wm[0] = lam / (n + lam)
-    wc = wm.copy()
-    wc[0] += 1 - a**2 + b
+    lam, wm, wc = scaled_sigma_weights(n, a, b, kap)
     for run in range(2):
         steps, _ = _np_ukf(ys[run].numpy(), mask[run], a, b, kap)
 
