@@ -54,6 +54,8 @@ SLOW = (
     "test_calibration.py::test_a_fingerprint_is_the_same_in_every_process",
     "test_plugin_scenarios.py::test_difffilter_eval_runs_a_scenario_of_ones_own",
     "test_plugin_scenarios.py::test_both_command_lines_take_scenario_as_an_option",
+    "test_learned_cards_mutants.py::test_calibrate_keeps_the_cards_restart_and_confirm_and_counts_strict_exceedances",
+    "test_learned_cards_mutants.py::test_calibrate_off_on_the_command_line_removes_restart_and_confirm_and_spares_the_source",
     # single parameters (the log-domain yardstick's; the default kernel method's stay fast)
     "test_resampling.py::test_ot_gradient_matches_finite_differences[particles-log]",
     "test_resampling.py::test_ot_gradient_matches_finite_differences[log_weights-log]",
