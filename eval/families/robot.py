@@ -22,6 +22,15 @@ from ..report import FamilyReport, Section, format_number, markdown_table, regis
 LATE = 40  # the issue's "k ≥ 40"
 
 
+def _wilcoxon_p(a, b) -> float:
+    """The two-sided Wilcoxon signed-rank p-value of the per-run pairs ``a``, ``b`` ``[B]``;
+    1 where they are equal on every run (no difference to test: SciPy 1.10, the lowest
+    declared, raised there, later ones give 1)."""
+    if not bool((a != b).any()):
+        return 1.0
+    return float(wilcoxon(a.numpy(), b.numpy()).pvalue)
+
+
 def _pos_rmse_t(means, x) -> torch.Tensor:  # (B8) per step [T]
     return (means[..., :2] - x[..., :2]).square().sum(-1).mean(0).sqrt()
 
@@ -64,7 +73,7 @@ def _extra(result) -> dict:
                 "ratio_all": result.metrics[f]["position_rmse"] / result.metrics[better]["position_rmse"],
                 "ratio_late": result.metrics[f]["position_rmse_late"] / result.metrics[better]["position_rmse_late"],
                 "runs_lower_late": float((a < b).double().mean()),
-                "wilcoxon_p_late": float(wilcoxon(a.numpy(), b.numpy()).pvalue),
+                "wilcoxon_p_late": _wilcoxon_p(a, b),
             }  # fmt: skip
         extra["fusion"] = fusion
     if "mdpf_fused_ci" in outs:
