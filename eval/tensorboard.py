@@ -26,6 +26,7 @@ from __future__ import annotations
 import struct
 from pathlib import Path
 
+from .calibration import alarms_at
 from .scoring import HEADLINE, comparable_attack, rmse_over_time
 
 __all__ = ["add_session", "clear_events", "log_suite"]
@@ -59,8 +60,8 @@ def log_suite(logdir: Path, result, doc: dict, images) -> None:
                 rate = out.detection.alarms.double().mean(0)
                 curves[f"alarm_rate_per_step/{name}"] = rate.tolist()
                 at_far = doc["estimators"].get(name, {}).get("threshold_at_far")
-                if at_far is not None:  # (a NaN score: no alarm, as the calibration reads it)
-                    rate = (out.detection.scores.double() > at_far).double().mean(0)
+                if at_far is not None:
+                    rate = alarms_at(out.detection.scores, at_far).double().mean(0)
                     curves[f"alarm_rate_at_far_per_step/{name}"] = rate.tolist()
             # the attack estimate's error, where it estimates this channel
             if traj.attack.shape[-1] > 0 and comparable_attack(out, traj):
