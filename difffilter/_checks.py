@@ -138,11 +138,26 @@ def check_square(t: Tensor, name: str, dim: int | None = None) -> None:
         raise ValueError(f"{name} must have shape {want}; got {tuple(t.shape)}")
 
 
+def broadcast_shapes(*shapes) -> torch.Size:
+    """``torch.broadcast_shapes(*shapes)`` (shapes: sizes or tuples), at once where every
+    non-empty one is the same shape: the common case of one run's or one batch's tensors.
+    torch's function is written in Python and checks its arguments at length, about 8 µs
+    a call on the 2-core CPU: 16 calls were 40 % of a Kalman filter's ``init``."""
+    first = None
+    for shape in shapes:
+        if len(shape):
+            if first is None:
+                first = shape
+            elif shape != first:
+                return torch.broadcast_shapes(*shapes)  # (its error where they do not fit)
+    return torch.Size(() if first is None else first)
+
+
 def broadcast_or_none(*shapes) -> torch.Size | None:
     """``torch.broadcast_shapes(*shapes)``, or ``None`` where they do not broadcast: for
     the checks that name what does not fit instead of torch's "The size of tensor a …"."""
     try:
-        return torch.broadcast_shapes(*shapes)
+        return broadcast_shapes(*shapes)
     except RuntimeError:
         return None
 
@@ -251,7 +266,7 @@ def check_mask(mask: Tensor, name: str, shape: torch.Size) -> Tensor:
             raise ValueError(f"{name} must be boolean (True = entry received)")
         mask = mask.bool()
     try:
-        torch.broadcast_shapes(mask.shape, shape)
+        broadcast_shapes(mask.shape, shape)
     except RuntimeError as exc:
         raise ValueError(
             f"{name} must broadcast to {tuple(shape)}; got {tuple(mask.shape)}"
@@ -558,7 +573,7 @@ def model_batch_shape(model, *, matrices_only: bool = False) -> torch.Size:
             if isinstance(t, Tensor) and t.dim() >= event:
                 shapes.append(t.shape[: t.dim() - event])
     try:
-        return torch.broadcast_shapes(*shapes) if shapes else torch.Size()
+        return broadcast_shapes(*shapes)
     except RuntimeError:  # its own parameters disagree: the model's constructor is the judge
         return torch.Size()
 
@@ -643,7 +658,7 @@ def check_carry_batch(batch: torch.Size, y: Tensor, u: Tensor | None, mask: Tens
             continue
         lead = value.shape[:-1]
         try:
-            full = torch.broadcast_shapes(lead, batch)
+            full = broadcast_shapes(lead, batch)
         except RuntimeError:
             full = None
         if full != batch:

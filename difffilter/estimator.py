@@ -26,6 +26,7 @@ from torch import Tensor
 
 from ._checks import (
     broadcast_or_none,
+    broadcast_shapes,
     check_carry_batch,
     check_model,
     check_step_inputs,
@@ -345,7 +346,7 @@ _MATRICES = {"pred_cov": "pred_covs", "innovation_cov": "innovation_covs"}
 
 def _common(shapes, *more) -> torch.Size:
     """The broadcast of ``shapes`` (one per step: most are equal, so each distinct one once)."""
-    return torch.broadcast_shapes(*more, *set(shapes))
+    return broadcast_shapes(*more, *set(shapes))
 
 
 def _stack(values: Sequence[Tensor], shape: torch.Size, dim: int) -> Tensor:
@@ -365,7 +366,7 @@ def _stack_matrices(values: Sequence[Tensor], batch: torch.Size) -> Tensor:
     stacked once and expanded (a view, no copy per run)."""
     lead = _common(v.shape[:-2] for v in values)
     stacked = _stack(values, lead + values[0].shape[-2:], -3)
-    full = torch.broadcast_shapes(batch, stacked.shape[:-3])
+    full = broadcast_shapes(batch, stacked.shape[:-3])
     return stacked.expand(full + stacked.shape[-3:])
 
 

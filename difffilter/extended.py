@@ -29,7 +29,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ._checks import NonFinite, check_finite_number, model_batch_shape
+from ._checks import NonFinite, broadcast_shapes, check_finite_number, model_batch_shape
 from .gaussian import measurement_moments, predict_covariance, update_given
 from .kalman import GaussianFilter, Prediction
 from .linalg import NumericalBreakdown, masked_measurement, outer, safe_cholesky, symmetrize
@@ -159,7 +159,7 @@ class SigmaPoints:
         """Sigma points ``[..., 2n+1, n]`` of ``N(mean [..., n], cov [..., n, n])``."""
         L = safe_cholesky(cov, name="state covariance P") * scale
         cols = L.transpose(-1, -2)  # row i = i-th column of L
-        batch = torch.broadcast_shapes(mean.shape[:-1], cols.shape[:-2])
+        batch = broadcast_shapes(mean.shape[:-1], cols.shape[:-2])
         mean = mean.expand(batch + mean.shape[-1:]).unsqueeze(-2)
         cols = cols.expand(batch + cols.shape[-2:])
         return torch.cat([mean, mean + cols, mean - cols], dim=-2)

@@ -34,6 +34,7 @@ from . import _kf_host_step as _host_step
 from ._checks import (
     Choice,
     NonFinite,
+    broadcast_shapes,
     check_carry_fits_model,
     check_carry_tensor,
     check_model_batch,
@@ -87,7 +88,7 @@ def gaussian_init(model, batch_shape=()) -> GaussianState:
     batch_shape = torch.Size(batch_shape)
     check_model_batch(model, batch_shape, "batch_shape")
     mean = model.initial.mean
-    mean = mean.expand(torch.broadcast_shapes(batch_shape, mean.shape[:-1]) + mean.shape[-1:])
+    mean = mean.expand(broadcast_shapes(batch_shape, mean.shape[:-1]) + mean.shape[-1:])
     return GaussianState(mean, model.initial.cov, 0, model)
 
 

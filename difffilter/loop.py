@@ -59,6 +59,7 @@ from torch import Tensor
 from ._checks import (
     NonFinite,
     broadcast_or_none,
+    broadcast_shapes,
     check_model,
     check_model_batch,
     check_sequence_inputs,
@@ -172,7 +173,7 @@ def open_loop(
     batch = ys.shape[:-2]
     for other in (us, mask):
         if other is not None:
-            batch = torch.broadcast_shapes(batch, other.shape[:-2])
+            batch = broadcast_shapes(batch, other.shape[:-2])
     result = None
     if carry is None:
         carry = estimator._init(model, batch, Generators.of(generator))
@@ -897,7 +898,7 @@ def _checked_input(controller, u, x: Tensor, plant, k: int):
 def _broadcasts(shape, target) -> bool:
     """``shape`` broadcasts to ``target`` without changing it."""
     try:
-        return torch.broadcast_shapes(shape, target) == torch.Size(target)
+        return broadcast_shapes(shape, target) == torch.Size(target)
     except RuntimeError:
         return False
 

@@ -26,6 +26,7 @@ from ._assignments import CountsAssignments
 from ._checks import (
     as_tensor,
     broadcast_or_none,
+    broadcast_shapes,
     check_finite,
     check_positive_definite,
     check_square,
@@ -226,7 +227,7 @@ class Gaussian(NoiseModel):
 
     @property
     def mean(self) -> Tensor:
-        return self.loc.expand(torch.broadcast_shapes(self.loc.shape, self.cov.shape[:-1]))
+        return self.loc.expand(broadcast_shapes(self.loc.shape, self.cov.shape[:-1]))
 
     @property
     def cov(self) -> Tensor:
@@ -238,7 +239,7 @@ class Gaussian(NoiseModel):
     def sample(self, sample_shape=(), generator=None) -> Tensor:
         """Draw ``[*sample_shape, *batch, d]`` samples: ``μ + L ε``."""
         L, diag = self._factor()
-        batch = torch.broadcast_shapes(self.loc.shape[:-1], L.shape[:-2])
+        batch = broadcast_shapes(self.loc.shape[:-1], L.shape[:-2])
         eps = torch.randn(
             _shape(sample_shape) + batch + (self.dim,),
             generator=generator,

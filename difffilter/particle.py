@@ -43,6 +43,7 @@ from torch import Tensor
 
 from ._checks import (
     NonFinite,
+    broadcast_shapes,
     check_carry_fits_model,
     check_carry_tensor,
     check_ess_threshold,
@@ -778,7 +779,7 @@ def _check_proposed(new, correction, particles: Tensor, log_w: Tensor, proposal,
 def _broadcasts_into(small, big) -> bool:
     """Whether batch shape ``small`` broadcasts to exactly ``big``."""
     try:
-        return torch.broadcast_shapes(small, big) == big
+        return broadcast_shapes(small, big) == big
     except RuntimeError:
         return False
 

@@ -42,7 +42,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 from torch.utils.checkpoint import checkpoint as _checkpoint
 
-from ._checks import check_positive_int
+from ._checks import broadcast_shapes, check_positive_int
 
 __all__ = [
     "systematic_ancestors",
@@ -128,7 +128,7 @@ def _check_particles(particles: Tensor, log_weights: Tensor) -> tuple[Tensor, Te
             f"got particles {tuple(particles.shape)} and log_weights {tuple(log_weights.shape)}"
         )
     try:
-        batch = torch.broadcast_shapes(particles.shape[:-2], log_weights.shape[:-1])
+        batch = broadcast_shapes(particles.shape[:-2], log_weights.shape[:-1])
     except RuntimeError as exc:
         raise ValueError(
             "particles [..., N, d] and log_weights [..., N] must have broadcastable batch "
@@ -226,7 +226,7 @@ def _gather_particles(particles: Tensor, ancestors: Tensor) -> Tensor:
         return torch.gather(rows_t, -1, ancestors.unsqueeze(-2).expand(rows_t.shape)).transpose(
             -1, -2
         )
-    batch = torch.broadcast_shapes(particles.shape[:-2], ancestors.shape[:-1])
+    batch = broadcast_shapes(particles.shape[:-2], ancestors.shape[:-1])
     rows = particles.expand(batch + (n, d)).reshape(-1, d)
     flat = ancestors.expand(batch + (n,)).reshape(-1, n)
     offsets = torch.arange(0, flat.shape[0] * n, n, device=flat.device).unsqueeze(-1)

@@ -25,6 +25,7 @@ from ._assignments import CountsAssignments
 from ._checks import (
     _check_us,
     as_tensor,
+    broadcast_shapes,
     check_batch_shapes,
     check_finite,
     check_model_batch,
@@ -68,7 +69,7 @@ def batched_jacobian(
     lead = x.shape[:-1]
     for a in args:
         if a is not None:
-            lead = torch.broadcast_shapes(lead, a.shape[:-1])
+            lead = broadcast_shapes(lead, a.shape[:-1])
     flat_x = x.expand(lead + x.shape[-1:]).reshape(-1, x.shape[-1])
     flat_args = []
     in_dims = [0]
@@ -195,7 +196,7 @@ class StateSpaceModel(CountsAssignments):
         would prepend ``sample_shape`` to its batch: 16 runs for a sweep of 4)."""
         initial = self.initial
         if isinstance(initial, Gaussian) and initial.has_batch():
-            runs = torch.broadcast_shapes(torch.Size(sample_shape), initial.batch_shape)
+            runs = broadcast_shapes(torch.Size(sample_shape), initial.batch_shape)
             return initial.draw_like(runs + (initial.dim,), generator)
         return initial.sample(sample_shape, generator)
 
@@ -415,11 +416,11 @@ class LinearGaussianModel(StateSpaceModel):
 
     def transition_jacobian(self, x, u, k):
         F = self.transition_matrix(k)
-        return F.expand(torch.broadcast_shapes(x.shape[:-1], F.shape[:-2]) + F.shape[-2:])
+        return F.expand(broadcast_shapes(x.shape[:-1], F.shape[:-2]) + F.shape[-2:])
 
     def observation_jacobian(self, x, k):
         H = self.observation_matrix(k)
-        return H.expand(torch.broadcast_shapes(x.shape[:-1], H.shape[:-2]) + H.shape[-2:])
+        return H.expand(broadcast_shapes(x.shape[:-1], H.shape[:-2]) + H.shape[-2:])
 
 
 def _arity(fn: Callable, names: tuple[str, ...] = ("x", "u", "k")) -> int:
@@ -618,7 +619,7 @@ def _mixes_runs(out: Tensor, leaves: list[Tensor]) -> bool:
 def _broadcasts(shape: torch.Size, runs: torch.Size) -> bool:
     """Whether a result's batch ``shape`` broadcasts to the probe's ``runs``, and to them alone."""
     try:
-        return torch.broadcast_shapes(shape, runs) == runs
+        return broadcast_shapes(shape, runs) == runs
     except RuntimeError:
         return False
 

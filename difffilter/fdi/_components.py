@@ -19,6 +19,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._checks import broadcast_shapes
+
 __all__ = [
     "to_components",
     "from_components",
@@ -48,7 +50,7 @@ def from_components(m) -> Tensor:
 
 def _fits(acc: Tensor, t: Tensor) -> bool:
     """Whether ``acc`` can take ``t`` in place (``t`` broadcasts to ``acc``'s shape)."""
-    return t.shape == acc.shape or torch.broadcast_shapes(acc.shape, t.shape) == acc.shape
+    return t.shape == acc.shape or broadcast_shapes(acc.shape, t.shape) == acc.shape
 
 
 def lin(terms):

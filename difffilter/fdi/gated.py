@@ -32,7 +32,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from .._checks import NonFinite, check_model_batch, check_one_model
+from .._checks import NonFinite, broadcast_shapes, check_model_batch, check_one_model
 from ..estimator import Estimator, EstimatorOutput
 from ..extended import ExtendedKalmanFilter
 from ..kalman import GaussianFilter
@@ -146,7 +146,7 @@ class GatedFilter(Estimator):
         g = _nis(out.innovation, out.innovation_cov)  # the filter's own, checked output
         det_state, score, alarm, threshold = self._detect(carry.detector, g, mask, y.shape[-1])
         if self.gate:
-            cov_shape = torch.broadcast_shapes(updated.cov.shape, pred.cov.shape)
+            cov_shape = broadcast_shapes(updated.cov.shape, pred.cov.shape)
             mean = torch.where(alarm.unsqueeze(-1), pred.mean, updated.mean)
             cov = torch.where(
                 alarm[..., None, None], pred.cov.expand(cov_shape), updated.cov.expand(cov_shape)
