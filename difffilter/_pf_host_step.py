@@ -27,7 +27,9 @@ the neighbouring ancestor (about two of 1,000 per resampling there). That is a d
 same resampling law, and from it on the particles go apart as two filters' do (3e-3 in the
 four-tank mean after 10 steps at N = 1,000); float64 and N = 100 stay within round-off. A
 measurement every particle finds impossible is reset as there (the evidence ``−∞``, the
-predictive weights kept, the step flagged ``"degenerate"``). Left to the torch step: a
+predictive weights kept, the step flagged ``"degenerate"``), and a NaN particle or density
+is named in the general step's error (:func:`~difffilter.particle._blame_degenerate`), not
+taken for one. Left to the torch step: a
 measurement noise other than a zero-mean diagonal Gaussian of the particles' dtype,
 half-precision dtypes, other devices, and any step that could record a gradient.
 """
@@ -44,7 +46,7 @@ from torch import Tensor
 from . import _pf_single_run as _single_run
 from .estimator import Generators
 from .noise import Gaussian
-from .particle import ParticleState, _ess
+from .particle import ParticleState, _blame_degenerate, _ess
 from .results import StepOutput
 from .ssm import StateSpaceModel, wrapped_spread
 
@@ -136,6 +138,10 @@ def host_step(pf, carry, y: Tensor, u: Tensor | None, density) -> tuple[Particle
     # y − h(x): the host's subtraction where the model wraps no angles
     residual = np.subtract(y_np, obs) if plain else model.measurement_residual(y, obs_t).numpy()
     increment, log_w_new, w_new, degenerate = _weigh(residual, log_w, *density)
+    if degenerate:  # a NaN particle or density is named, as the general step names it
+        # (log w copied: equal log-weights are a shared read-only array)
+        log_lik = model.measurement_noise.log_prob(torch.from_numpy(residual))
+        _blame_degenerate(pf, new_t, log_lik, None, torch.tensor(log_w), k + 1)
     mean = w_new @ new
     dev = new - mean
     cov = (dev.T * w_new) @ dev

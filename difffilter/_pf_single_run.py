@@ -30,6 +30,9 @@ Two rewrites of the general step's numbers, both exact in exact arithmetic:
   (:func:`~difffilter.resampling.systematic_ancestors`), which equals it up to round-off at
   exact ties and is faster on many rows, slower on one.
 
+A degenerate step (every weight −inf or NaN) resets to the predictive weights or names
+the NaN particle or density in the general step's error, as the general step does.
+
 Gradients flow as through the general step (the same detached maximum in the
 normalisation, ancestors drawn from detached weights, uniform weights after resampling).
 """
@@ -47,6 +50,7 @@ from .particle import (
     BootstrapProposal,
     ModelLikelihood,
     ParticleState,
+    _blame_degenerate,
     _default_measurement_density,
     _ess,
     _predictive,
@@ -112,6 +116,9 @@ def single_run_step(pf, carry, y: Tensor, u: Tensor | None):
     increment, log_w_new, w_new, degenerate = _weigh_and_normalise(
         model.measurement_noise, residual, log_w
     )
+    if degenerate:  # a NaN particle or density is named, as the general step names it
+        log_lik = model.measurement_noise.log_prob(residual)
+        _blame_degenerate(pf, new, log_lik, None, log_w, k + 1)
     ess_new = torch.dot(w_new, w_new).reciprocal()
     mean = torch.mv(new.mT, w_new)
     dev = new - mean

@@ -655,17 +655,8 @@ def _particle_step(pf: ParticleFilter, carry: ParticleState, y, u, mask):
     _check_log_density(log_lik, log_w, pf.likelihood, "likelihood", k + 1)
     log_alpha = log_lik if correction is None else log_lik + correction
 
-    def blame() -> None:  # a degenerate step: a plug-in's NaN or +inf, not an underflow
-        bad = ~torch.isfinite(new)
-        if bool(bad.any()):  # (the likelihood of a NaN particle is NaN: not its fault)
-            raise ValueError(
-                f"the particles proposed by {type(pf.proposal).__name__} hold NaN or inf at step "
-                f"{k + 1} (first at index {tuple(int(i) for i in bad.nonzero()[0])})"
-            )
-        _blame_nonfinite(log_lik, pf.likelihood, "likelihood", k + 1)
-        if correction is not None:
-            _blame_nonfinite(correction, pf.proposal, "proposal's correction", k + 1)
-        _blame_nonfinite(log_w, pf.resampler, "resampler's log-weights", k + 1)
+    def blame() -> None:
+        _blame_degenerate(pf, new, log_lik, correction, log_w, k + 1)
 
     increment, log_w_new, w_new, degenerate = _normalise(log_w + log_alpha, prior_lw, blame)
     ess_new = torch.linalg.vecdot(w_new, w_new).reciprocal()
@@ -782,6 +773,26 @@ def _broadcasts_into(small, big) -> bool:
         return broadcast_shapes(small, big) == big
     except RuntimeError:
         return False
+
+
+def _blame_degenerate(pf, particles, log_lik, correction, log_w, k: int) -> None:
+    """Raise the ``ValueError`` that names the plug-in behind a degenerate step of measurement
+    ``k`` (every run's joint weight −inf or NaN) where one is: proposed ``particles`` that
+    hold NaN or inf, a NaN or +inf in the likelihood's ``log_lik``, the proposal's
+    ``correction`` (or ``None``) or the resampler's ``log_w``; else return (an underflow: the
+    step resets to the predictive weights). Called by every step that can degenerate, the
+    one-run paths included (:mod:`difffilter._pf_single_run`,
+    :mod:`difffilter._pf_host_step`), so that all of them raise where the general one does."""
+    bad = ~torch.isfinite(particles)
+    if bool(bad.any()):  # (the likelihood of a NaN particle is NaN: not its fault)
+        raise ValueError(
+            f"the particles proposed by {type(pf.proposal).__name__} hold NaN or inf at step "
+            f"{k} (first at index {tuple(int(i) for i in bad.nonzero()[0])})"
+        )
+    _blame_nonfinite(log_lik, pf.likelihood, "likelihood", k)
+    if correction is not None:
+        _blame_nonfinite(correction, pf.proposal, "proposal's correction", k)
+    _blame_nonfinite(log_w, pf.resampler, "resampler's log-weights", k)
 
 
 def _blame_nonfinite(value: Tensor, plugin, what: str, k: int) -> None:

@@ -231,6 +231,38 @@ def test_a_degenerate_host_step_resets_as_the_general_step():
     _assert_same(host, general)
 
 
+class _BlowsUp(df.LinearGaussianModel):
+    """The linear model whose transition gives NaN from step ``k = 2`` on (``nan_state``) or
+    whose observation gives NaN from measurement 3 on (a plug-in's NaN, not an underflow)."""
+
+    nan_state = True
+
+    def transition(self, x, u, k):
+        out = super().transition(x, u, k)
+        return out if not self.nan_state or k < 2 else torch.full_like(out, math.nan)
+
+    def observe(self, x, k):
+        out = super().observe(x, k)
+        return out if self.nan_state or k < 3 else torch.full_like(out, math.nan)
+
+
+@pytest.mark.parametrize("nan_state", [True, False], ids=["particles", "likelihood"])
+@pytest.mark.parametrize("path", ["general", "one-run", "host"])
+def test_a_nan_particle_or_density_is_named_on_every_path(nan_state, path):
+    """A step whose every weight is NaN because the model's transition (or observation) gave
+    NaN raises the general step's error naming the proposal (or the likelihood) at
+    measurement 3, on the one-run torch step and the host-array step alike; before, the
+    two one-run paths took it for an underflow (evidence NaN, mean NaN, flagged degenerate)
+    and filtered on. A real underflow still resets on every path (the tests above)."""
+    model = _linear_model(cls=_BlowsUp)
+    model.nan_state = nan_state
+    ys, _ = _data(_linear_model(), steps=4)
+    pf = df.ParticleFilter(20)
+    culprit = "particles proposed by BootstrapProposal" if nan_state else "likelihood of Model"
+    with pytest.raises(ValueError, match=f"the {culprit}.* at step 3"):
+        _run(pf, model, ys, None, general=path == "general", host=path == "host")
+
+
 @pytest.mark.parametrize(
     "dtype, n", [(torch.float32, 1000), (torch.float32, 3), (torch.float64, 300)]
 )
