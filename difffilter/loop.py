@@ -818,12 +818,16 @@ def _checked_value(attack, value: Tensor, flag: Tensor, signal: Tensor, k: int,
             and flag.shape in (shape, shape[:-1])):  # fmt: skip
         return value, flag  # the usual step, checked in a few comparisons (the loop's every step)
     name, shape = f"attack {type(attack).__name__}.step", tuple(shape)
-    if not isinstance(value, Tensor) or not _broadcasts(value.shape, signal.shape):
+    # one entry per entry of the signal: a [..., 1] value on a signal of two entries had
+    # been broadcast to both (a trial's attack on one of two sensors hit both, silently)
+    if (not isinstance(value, Tensor) or value.dim() == 0 or value.shape[-1] != shape[-1]
+            or not _broadcasts(value.shape, signal.shape)):  # fmt: skip
         got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
         raise ValueError(
             f"{name} returned a value of shape {got} at step {k}; the signal it attacks is "
-            f"{shape}: a value that broadcasts to that shape (e.g. [{shape[-1]}], one for "
-            "every run)"
+            f"{shape}: a value of its {shape[-1]} entries that broadcasts to that shape "
+            f"([..., {shape[-1]}], or [{shape[-1]}] for every run; zeros where an entry is "
+            "not attacked)"
         )
     if value.dtype != signal.dtype:
         raise ValueError(

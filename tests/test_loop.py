@@ -277,6 +277,11 @@ def test_the_loop_names_a_wrong_attack_estimator_or_attack_value():
         ValueError, match=r"_Poison.step returned a value of shape \(2, 3\) at step 1"
     ):
         loop(attack=_Poison(1.0, width=3), estimator=df.KalmanFilter())
+    # one value for two sensors: refused, not broadcast to both (a trial's attack on sensor 0)
+    with pytest.raises(
+        ValueError, match=r"_Poison.step returned a value of shape \(2, 1\) at step 1.*2 entries"
+    ):
+        loop(attack=_Poison(1.0, width=1), estimator=df.KalmanFilter())
     # an adaptive attack without an estimator to read
     with pytest.raises(ValueError, match="_Adaptive reads the estimator's output.*no estimator"):
         loop(attack=_Adaptive())
@@ -329,8 +334,9 @@ def test_an_attacks_flag_and_value_are_checked_and_one_value_for_every_run_is_ex
         with pytest.raises(ValueError, match=f"attack _Returns.step returned {why}"):
             loop(make)
     # a flag [1] for the two runs (a closed-loop trial: recorded as flags [1, T] beside runs
-    # [2, T]) and a per-entry flag [1, 2] are expanded to the runs, as a value [2, 1] is
-    ones = loop(lambda y, k: (torch.ones(2, 1, dtype=y.dtype), torch.ones(1, dtype=torch.bool)))
+    # [2, T]) and a per-entry flag [1, 2] are expanded to the runs, as a value [1, 2] is; a
+    # value [2, 1] is refused (one entry for two: a trial's attack on sensor 0 hit both)
+    ones = loop(lambda y, k: (torch.ones(1, 2, dtype=y.dtype), torch.ones(1, dtype=torch.bool)))
     assert ones.trajectories.flags.shape == (2, 3) and bool(ones.trajectories.flags.all())
     assert ones.trajectories.attack.eq(1).all()
     entry = loop(lambda y, k: (full(y) + 1, torch.tensor([[False, True]])))
