@@ -152,3 +152,21 @@ def test_fit_refuses_an_exported_estimator_as_the_run_to_resume(tmp_path, monkey
     assert "is an exported estimator (weights only), not a training run's Lightning " in (
         capsys.readouterr().err
     )
+
+
+def test_a_replacement_attack_without_a_density_is_refused_with_what_to_train_on(tmp_path):
+    """A network for a replacement-channel attack weighs a replaced measurement by the
+    attack's density; a replay has none. A user trial's YAML scenario under a replay stopped
+    with "no deception density for an attack of type Replay", neither cause nor way out."""
+    path = tmp_path / "replayed.yaml"
+    path.write_text(
+        "name: replayed\nfamily: mine\ndescription: a replayed position sensor\ndt: 0.05\n"
+        "runs: 4\nsteps: 40\nnum_particles: 50\nfalse_alarm_rate: 0.01\n"
+        "plant: {F: [[1.0, 0.05], [0.0, 0.95]], H: [[1.0, 0.0]], Q: 1.0e-4, R: 1.0e-2, "
+        "P0: 1.0e-2}\n"
+        "attack: {kind: replay, delay: 5, onset: 20}\n"
+    )
+    with pytest.raises(
+        ValueError, match=r"replayed's attack, a Replay, replaces.*--threats replay"
+    ):
+        FilterEstimatorTask(str(path))

@@ -467,9 +467,7 @@ class FilterEstimatorTask(pl.LightningModule):
         if "poa" in self.features:
             self.poa_eta = float(poa_detector_for_scenario(sc, self.system).eta)
         self.deception = (
-            deception_of(sc.attack_model(), self._dtype)[0]
-            if self.channel is Channel.REPLACEMENT
-            else None
+            _replacement_density(sc, self._dtype) if self.channel is Channel.REPLACEMENT else None
         )
         self.estimator = self._network()
         if init_from is not None:
@@ -956,6 +954,26 @@ class FilterEstimatorTask(pl.LightningModule):
     def on_load_checkpoint(self, checkpoint):
         if self.adversary is not None and "difffilter_adversary" in checkpoint:
             self.adversary.load_state_dict(checkpoint["difffilter_adversary"])
+
+
+def _replacement_density(sc, dtype: torch.dtype):
+    """The density of a replaced measurement that a network for a replacement-channel attack
+    weighs it by (a :class:`~difffilter.models.attacks.Replacement`'s box), or a
+    ``ValueError`` that says why there is none and what to train on instead (a trial's
+    replay stopped with "no deception density for an attack of type Replay")."""
+    attack = sc.attack_model()
+    try:
+        return deception_of(attack, dtype)[0]
+    except ValueError:
+        raise ValueError(
+            f"scenario {sc.name}'s attack, a {type(attack).__name__}, replaces the "
+            "measurements (Channel.REPLACEMENT), and a network for such an attack weighs a "
+            "replaced measurement by the attack's density, which it has none of (a "
+            "Replacement's box U(low, high) has one): train on the same plant under a "
+            "sensor attack (a bias, or an attack of your own on Channel.SENSOR), then judge "
+            "the network under the replay with difffilter-eval --scenario <that scenario> "
+            "--threats replay --ckpt <the export> (docs/threats.md)"
+        ) from None
 
 
 def _channel(scenario) -> Channel:
