@@ -15,6 +15,10 @@ kind only     its kind was drawn, with other fields (another size, onset, share,
 held out      its kind was never drawn (for a network trained on its scenario's attack
               alone: every threat but those of that attack's kind, where it is a threat of
               the library)
+not known     a threat of a class of your own (``module:object``) beside a network trained on
+              its scenario's attack alone where that attack is not a threat of the library:
+              nothing says whether it is the attack trained on (a user trial's network read
+              "held out" on its own scaling attack, the one it was trained on)
 ============  ================================================================================
 """
 
@@ -26,7 +30,10 @@ from typing import Any
 
 from difffilter.threat_distribution import HELD_OUT, KIND_ONLY, ThreatDistribution, threat_spec
 
-__all__ = ["training_coverage", "checkpoint_of"]
+__all__ = ["training_coverage", "checkpoint_of", "NOT_KNOWN"]
+
+#: The label of a threat the card cannot place (module docstring).
+NOT_KNOWN = "not known"
 
 #: What a card says the network was trained on, as the reports name it.
 SCENARIO_ATTACK, DISTRIBUTION = "its scenario's attack", "a distribution over threats"
@@ -66,10 +73,14 @@ def training_coverage(
     else:
         trained_on = DISTRIBUTION
     distribution = ThreatDistribution(spec, model=model, own=own) if spec else None
+    # a scenario attack of no library kind: a threat of a user's class may be that attack
+    unplaced = trained_on == SCENARIO_ATTACK and spec is None
     labels = {}
     for name, threat in threats.items():
         if threat.get("kind") == "stealthy":  # crafted when the study runs, not drawn
             labels[name] = KIND_ONLY if adversarial else HELD_OUT
+        elif unplaced and ":" in str(threat.get("kind", "")):
+            labels[name] = NOT_KNOWN
         else:
             labels[name] = HELD_OUT if distribution is None else distribution.covers(threat)
     return {"trained_on": trained_on, "adversarial": adversarial, "threats": labels}

@@ -669,7 +669,9 @@ def _training_line(training: dict | None) -> str:
     adversarial = ", with adversarial training" if training["adversarial"] else ""
     return (f"- Trained on {training['trained_on']}{adversarial}: \"in training\" says whether "
             "each threat could have been drawn in training (within), only its kind (kind "
-            "only) or not even that (held out); `difffilter.eval.coverage`.\n")  # fmt: skip
+            "only) or not even that (held out), or that the card cannot say (not known: a "
+            "threat of your own class beside a scenario attack of your own); "
+            "`difffilter.eval.coverage`.\n")  # fmt: skip
 
 
 def _gap_text(interval: dict | None) -> str:

@@ -61,6 +61,18 @@ def test_a_network_trained_across_threats_has_its_threats_labelled_from_its_card
     across = _with_card(tmp_path, {"threats": threats}, {"adversarial_runs": 0})  # own: 0.5
     assert training_coverage(across, same, own=own)["threats"] == {"ramp": "within"}
     assert training_coverage(across, same)["threats"] == {"ramp": "kind only"}  # slope drawn
+    # a scenario attack of a user's class: a threat of a user's class may be that attack
+    # (a user trial's network read "held out" on the scaling attack it was trained on); a
+    # library threat is still held out, and against a library own a user's class is too
+    mine = {"scale30": {"kind": "my_attacks:Scaling", "alpha": 0.3, "onset": 40},
+            "ramp": THREATS["ramp"]}  # fmt: skip
+    assert training_coverage(across, mine)["threats"]["scale30"] == "held out"
+    (tmp_path / "own").mkdir()
+    plain = _with_card(tmp_path / "own", {"threats": None}, {"adversarial_runs": 0})
+    assert training_coverage(plain, mine, own=object())["threats"] == {
+        "scale30": "not known", "ramp": "held out"}  # fmt: skip
+    assert training_coverage(plain, mine, own=own)["threats"] == {
+        "scale30": "held out", "ramp": "kind only"}  # fmt: skip
     # no card beside the file: nothing is claimed
     alone = tmp_path / "alone" / "net.ckpt"
     alone.parent.mkdir()
