@@ -393,7 +393,9 @@ class EKFRule:
     Args:
         lr: ``η`` of eq. (11) (the paper: a constant learning rate; [DEF] 1).
         init_cov: ``ρ(0) = init_cov·I`` ([DEF] 10).
-        init_noise: ``Υ(0)`` (scalar; [DEF] tr Θ).
+        init_noise: ``Υ(0)`` (scalar; [DEF] tr Θ). It is read before the first step
+            only: eq. (14b) at ``k = 1`` sets ``Υ_1 = e_1ᵀe_1`` whatever it is (the paper's
+            running mean), so a first prediction without error leaves ``Υ_1 = 0``.
         process_noise: ``Q_ρ``, added to ``ρ`` after every update (0 = the paper).
         fold_every: steps between folds of the deferred downdates (:class:`DeferredCovariance`;
             [DEF] 8: fewer make each fold a thin product, more make every step's
