@@ -20,6 +20,12 @@ def test_the_calibrated_rate_is_described_only_where_a_detector_was_calibrated()
     some = {**FAR, "measured_on_calibration": {"chi_square_ekf": 0.01}}
     body = _summary_section({**DOC, "far": some}, SCENARIO).body
     assert "one false-alarm rate, 1 %" in body and "from 100 attack-free runs" in body
+    # how far the threshold's rate may be from the target on fresh runs: 2√(α(1 − α)/n),
+    # n = 100 runs × 10 steps (a user trial's 16 × 100 steps met 1.40 % for 1 %)
+    assert "From 1,000 calibration steps" in body and "±0.63 points" in body
+    trial = _summary_section({**DOC, "steps": 100, "far": {**some, "calibration_runs": 16}},
+                             SCENARIO).body  # fmt: skip
+    assert "From 1,600 calibration steps" in trial and "±0.5 points" in trial
 
 
 def test_every_shipped_scenario_names_its_units():
