@@ -58,10 +58,12 @@ StateSpaceModel``). ``inputs`` is ``{kind: sinusoid, amplitude, frequency (Hz), 
 value}`` (a number or one per input), ``{values: [[...], ...]}`` (``[T, du]``) or
 ``{function: module:function}`` (of the step index tensor ``k``, as
 :class:`~difffilter.models.scenario.CustomScenario`'s ``known_inputs``). ``attack`` is
-any threat of :data:`difffilter.threats.THREATS` (``kind`` and its fields), or one of
-the papers' attacks: ``sensor_bias`` (``gamma_bar``, ``tau``, ``p_l``; eqs 3–4 of the
-modified-PF paper), ``actuator_injection`` (``value``, ``start``) and ``replacement``
-(``rate``, ``low``, ``high``). Every error names the file and the field.
+any threat of :data:`difffilter.threats.THREATS` (``kind`` and its fields), an attack of
+one's own (``kind: package.module:object`` and its arguments, as a threat set names one:
+:func:`~difffilter.threats.threat_from_dict`), or one of the papers' attacks:
+``sensor_bias`` (``gamma_bar``, ``tau``, ``p_l``; eqs 3–4 of the modified-PF paper),
+``actuator_injection`` (``value``, ``start``) and ``replacement`` (``rate``, ``low``,
+``high``). Every error names the file and the field.
 """
 
 from __future__ import annotations
@@ -628,9 +630,15 @@ def _attack_object(spec: Any, model, where: str):
             return PAPER_ATTACKS[kind](**params)
         except (TypeError, ValueError) as error:
             raise ValueError(f"{where} ({kind}): {error}") from None
-    if kind not in THREATS:
+    # an attack of one's own, package.module:object, as a threat set writes it (a user trial's
+    # YAML scenario could not name the attack its threat set named)
+    own = isinstance(kind, str) and ":" in kind
+    if kind not in THREATS and not own:
         valid = ", ".join(sorted((*THREATS, *PAPER_ATTACKS)))
-        raise ValueError(f"{where}: unknown kind {kind!r}; valid: {valid}")
+        raise ValueError(
+            f"{where}: unknown kind {kind!r}; valid: {valid}, or an attack of your own as "
+            "package.module:object"
+        )
     try:
         return threat_from_dict(dict(spec), model)
     except (TypeError, ValueError) as error:

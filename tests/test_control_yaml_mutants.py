@@ -194,3 +194,21 @@ def test_a_yaml_round_robin_starts_at_group_zero_by_default(tmp_path):
     mask = scenario.schedule().mask((1,), 4, 2, torch.Generator().manual_seed(0))
     want = torch.tensor([[True, False], [False, True]] * 2)
     assert torch.equal(mask.reshape(4, 2), want)
+
+
+def test_a_yaml_scenario_takes_an_attack_of_ones_own_as_a_threat_set_names_it(tmp_path):
+    """``attack: {kind: package.module:object, …}`` builds the attack the path names with its
+    arguments, as a threat set's entry does (a user trial's YAML scenario refused the
+    ``module:object`` kind its own threat set accepted): here the library's Ramp by its
+    path, the same attack as ``kind: ramp``; a path that does not import is named."""
+    from difffilter.threats import Ramp
+
+    plant = f"{_PLANT.replace('B: [[0.0], [1.0]], ', '')}Q: 1.0e-2, R: 1.0e-2}}\n"
+    by_path = _yaml_scenario(
+        f"name: own\nsteps: 30\n{plant}"
+        "attack: {kind: 'difffilter.threats:Ramp', slope: 0.02, onset: 5}\n",
+        tmp_path,
+    )
+    assert by_path.attack_model() == Ramp(slope=0.02, onset=5)
+    with pytest.raises(ValueError, match=r"attack.*no_such_module"):
+        _yaml_scenario(f"name: own\n{plant}attack: {{kind: 'no_such_module:Thing'}}\n", tmp_path)
