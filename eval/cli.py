@@ -472,6 +472,15 @@ def check_checkpoint_fits(ckpt, names: Sequence[str]) -> None:
             )
 
 
+def _note_training_plants(ckpt, names: Sequence[str]) -> None:
+    """Say on stderr where a checkpoint runs on a scenario of its family whose plant is not
+    the one it was trained on (:mod:`difffilter.models.plant_match`): a note, not an error."""
+    from difffilter.models.plant_match import training_plant_notes
+
+    for line in training_plant_notes(_checkpoint_paths(ckpt), names):
+        print(line, file=sys.stderr)
+
+
 def _launch(devices: int, argv: list[str]) -> int:
     """Run ``difffilter-eval`` in ``devices`` spawned CPU processes of one gloo group (a
     file rendezvous in a temporary folder); each process writes its share of the reports,
@@ -590,6 +599,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
         if args.far is None and args.calibration_runs is not None:
             raise ValueError("--calibration-runs with --far off: nothing is calibrated")
         check_checkpoint_fits(args.ckpt, names)
+        _note_training_plants(args.ckpt, names)
         check_scenario_estimators(names)
         check_family_options(args.option, names)
         threats = args.threats or ("all" if args.scenario == "robustness" else None)

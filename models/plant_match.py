@@ -1,0 +1,105 @@
+"""Whether a trained network meets the plant it was trained on.
+
+A checkpoint's card names the family it was trained for, and ``difffilter-eval`` refuses it
+on another family's scenarios. Within a family the scenarios usually share one plant (the
+LFC scenarios' attacks differ, their two areas do not), but a family of one's own may hold
+several: a user trial's network, trained on a two-mass-spring system of family ``mine``, ran
+on a pendulum of the same family without a word (its state error 6× the analytic ones'; only
+the report's "trained on" line said where it came from). :func:`plant_difference` compares
+the training scenario's plant with an evaluated scenario's where both can be built:
+
+    dimensions (dx, dy, du),  f(x_j, u, 0) and h(x_j, 1) at x_j ∈ {m₀, m₀ + σ_i e_i, m₀ − σ},
+    σ = √diag P₀, u = 0.1 · 1 (each to rtol 1e-6, atol 1e-9)
+
+(the noise may differ: a study of the same plant under more noise is one of transfer, not
+of another plant). :func:`training_plant_notes` turns that into the lines the command
+prints. The shipped checkpoints meet their families' scenarios except ``lfc_sine_1ms``,
+whose plant is discretised at 1 ms (the network was trained at 10 ms).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+
+__all__ = ["plant_difference", "training_scenario_of", "training_plant_notes"]
+
+
+def plant_difference(trained, evaluated) -> str | None:
+    """What differs between two models' plants (the module docstring's comparison), in
+    words, or ``None`` where they agree."""
+    dims = [(m.dim_x, m.dim_y, int(getattr(m, "dim_u", 0) or 0)) for m in (trained, evaluated)]
+    if dims[0] != dims[1]:
+        return f"its dimensions (dx, dy, du) are {dims[0]} against {dims[1]}"
+    mean = trained.initial.mean.detach().to(torch.float64)
+    spread = torch.diagonal(trained.initial.cov.detach(), dim1=-2, dim2=-1).sqrt().to(mean.dtype)
+    if mean.dim() != 1:  # a prior per run: its first
+        mean, spread = mean.reshape(-1, mean.shape[-1])[0], spread.reshape(-1, mean.shape[-1])[0]
+    # m₀, m₀ + σ_i e_i for each state (one coordinate at a time: points on the diagonal
+    # alone confused h = x₁ with h = x₂ for m₀ = 1) and m₀ − σ
+    points = torch.cat([mean[None], mean + torch.diag(spread), (mean - spread)[None]])
+    du = dims[0][2]
+    u = None if du == 0 else torch.full((len(points), du), 0.1, dtype=mean.dtype)
+    with torch.no_grad():
+        for what, read in (("transition", lambda m: m.transition(points, u, 0)),
+                           ("measurement function", lambda m: m.observe(points, 1))):  # fmt: skip
+            a, b = (read(m).to(torch.float64) for m in (trained, evaluated))
+            if a.shape != b.shape or not torch.allclose(a, b, rtol=1e-6, atol=1e-9):
+                return f"its {what} differs about the prior mean"
+    return None
+
+
+def training_scenario_of(path) -> str | None:
+    """The scenario a checkpoint's network was trained on, as its training was given it
+    (the JSON card's ``model_config.scenario``: a registered name, ``module:object`` or a
+    YAML path), else the name inside the checkpoint; ``None`` where neither says."""
+    from .neural_estimator import checkpoint_training_scenario
+
+    card = Path(path).with_suffix(".json")
+    if card.is_file():
+        try:
+            spec = (json.loads(card.read_text()).get("model_config") or {}).get("scenario")
+        except (OSError, ValueError):
+            spec = None
+        if spec:
+            return str(spec)
+    return checkpoint_training_scenario(path)
+
+
+def training_plant_notes(
+    checkpoints: Sequence[tuple[str, Path]], names: Sequence[str]
+) -> list[str]:
+    """One line for each checkpoint (``(how it was given, path)``) and evaluated scenario
+    of its family whose plant is not the one it was trained on (:func:`plant_difference`).
+    Nothing where the training scenario cannot be built here (a module not importable, a
+    YAML file moved): a note, never an error."""
+    from . import registry
+
+    notes = []
+    for given, path in checkpoints:
+        spec = training_scenario_of(path)
+        if spec is None:
+            continue
+        try:
+            trained = registry.get(spec)
+            model = trained.system(torch.float64)
+        except Exception:  # (another machine's module or file: nothing to compare)
+            continue
+        for name in names:
+            scenario = registry.get(name)
+            if scenario.family != trained.family or name == trained.name:
+                continue
+            try:
+                why = plant_difference(model, scenario.system(torch.float64))
+            except Exception:  # (a model that cannot be read so: no claim)
+                continue
+            if why:
+                notes.append(
+                    f"note: --ckpt {given} was trained on {trained.name}, whose plant is not "
+                    f"{name}'s ({why}): its numbers on {name} say how it transfers to another "
+                    "plant"
+                )
+    return notes

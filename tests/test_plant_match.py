@@ -1,0 +1,50 @@
+"""A checkpoint run on a scenario of its family whose plant is not the one it was trained
+on is named (``difffilter.models.plant_match``): a user trial's two-mass-spring network ran
+on a pendulum of the same family without a word."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+import difffilter as df
+from difffilter.models.plant_match import plant_difference, training_plant_notes
+from difffilter.noise import Gaussian
+
+ROOT = Path(__file__).resolve().parents[1]
+D = torch.float64
+
+
+def _linear(F, H=((1.0, 0.0),), B=None):
+    t = lambda a: None if a is None else torch.tensor(a, dtype=D)  # noqa: E731
+    return df.LinearGaussianModel(t(F), t(H), 0.01 * torch.eye(2, dtype=D),
+                                  0.1 * torch.eye(len(H), dtype=D), torch.ones(2, dtype=D),
+                                  torch.eye(2, dtype=D), B=t(B))  # fmt: skip
+
+
+def test_plants_are_compared_by_dimensions_and_by_f_and_h_at_the_prior():
+    F = ((1.0, 0.1), (0.0, 0.9))
+    assert plant_difference(_linear(F), _linear(F)) is None
+    # the noise may differ (a study of transfer to more noise, not another plant)
+    noisy = _linear(F)
+    noisy.measurement_noise = Gaussian(torch.zeros(1, dtype=D), torch.eye(1, dtype=D))
+    assert plant_difference(_linear(F), noisy) is None
+    assert "transition" in plant_difference(_linear(F), _linear(((1.0, 0.1), (0.0, 0.8))))
+    assert "measurement" in plant_difference(_linear(F), _linear(F, H=((0.0, 1.0),)))
+    assert "(2, 1, 0) against (2, 2, 0)" in plant_difference(
+        _linear(F), _linear(F, H=((1.0, 0.0), (0.0, 1.0)))
+    )
+    assert "(2, 1, 1)" in plant_difference(_linear(F, B=((0.0,), (1.0,))), _linear(F))
+
+
+def test_the_shipped_lfc_network_is_named_only_on_the_plant_at_another_sampling_period():
+    """The shipped LFC checkpoint was trained on lfc_random_attacks (10 ms): the headline LFC
+    scenarios share its plant, lfc_sine_1ms is discretised at 1 ms."""
+    ckpt = ROOT / "checkpoints" / "lfc_nn_grad.ckpt"
+    notes = training_plant_notes([("lfc_nn_grad.ckpt", ckpt)],
+                                 ["lfc_step", "lfc_sawtooth", "lfc_sine_1ms"])  # fmt: skip
+    assert len(notes) == 1 and "trained on lfc_random_attacks" in notes[0]
+    assert "is not lfc_sine_1ms's (its transition differs" in notes[0]
+    # a checkpoint whose training scenario cannot be read: no claim
+    assert training_plant_notes([("x", ROOT / "no_such.ckpt")], ["lfc_step"]) == []
