@@ -154,7 +154,9 @@ def test_fit_refuses_an_exported_estimator_as_the_run_to_resume(tmp_path, monkey
     )
 
 
-def test_a_replacement_attack_without_a_density_is_refused_with_what_to_train_on(tmp_path):
+def test_a_replacement_attack_without_a_density_is_refused_with_what_to_train_on(
+    tmp_path, isolated_registry
+):
     """A network for a replacement-channel attack weighs a replaced measurement by the
     attack's density; a replay has none. A user trial's YAML scenario under a replay stopped
     with "no deception density for an attack of type Replay", neither cause nor way out."""
