@@ -407,7 +407,8 @@ def _cell(m: dict, free: dict) -> dict[str, Any]:
 
 def _worst_cases(cells) -> dict[str, dict[str, Any]]:
     """Each estimator's worst value of each metric over the threats, with the threat; of
-    threats tied at it, the first by name (not by the order ``--threats`` listed them).
+    threats tied at it, the first by name (not by the order ``--threats`` listed them), and
+    ``<metric>_tied`` the number of the others (absent where none ties).
 
     A state error or impact that is not finite (an estimate that diverged to NaN or inf
     under a threat) is the worst there is: ``inf``, with ``<metric>_diverged`` set (it was
@@ -438,6 +439,11 @@ def _worst_cases(cells) -> dict[str, dict[str, Any]]:
                 sign = -1 if key in LOWER_IS_WORSE else 1
                 if key not in w or sign * value > sign * w[key]:
                     w[key], w[f"{key}_threat"] = value, threat
+                    w.pop(f"{key}_tied", None)
+                elif value == w[key] and not w.get(f"{key}_diverged"):
+                    # more threats at the worst: the one named is only the first by name (a
+                    # user trial read a TPR of 0 on every threat as the first one's alone)
+                    w[f"{key}_tied"] = w.get(f"{key}_tied", 0) + 1
     return worst
 
 
@@ -451,7 +457,9 @@ def _worst_text(worst: dict[str, Any], key: str) -> str:
     if worst.get(f"{key}_diverged"):
         return f"diverged ({threat})"
     value = worst.get(key)
-    return "—" if value is None else f"{format_number(value, 3)} ({threat})"
+    tied = worst.get(f"{key}_tied")
+    more = f"; {tied} more tied" if tied else ""
+    return "—" if value is None else f"{format_number(value, 3)} ({threat}{more})"
 
 
 def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any]:

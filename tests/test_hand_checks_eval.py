@@ -44,6 +44,12 @@ def test_robustness_worst_case_by_hand():
     assert (worst["state_error_ratio"], worst["state_error_ratio_threat"]) == (math.inf, "b")
     assert worst["state_error_ratio_diverged"] and "impact_diverged" not in worst
     assert (worst["tpr_at_far"], worst["tpr_at_far_threat"]) == (0.2, "a")
+    # b ties a at the lowest TPR: counted, and the table says so
+    assert worst["tpr_at_far_tied"] == 1 and "impact_tied" not in worst
+    from difffilter.eval.robustness import _worst_text
+
+    assert _worst_text(worst, "tpr_at_far") == "0.2 (a; 1 more tied)"
+    assert _worst_text(worst, "impact") == "9 (b)"
     listed_otherwise = _worst_cases(dict(reversed(cells.items())))["kf"]
     assert listed_otherwise == worst
     cells["c"]["kf"]["state_error_ratio"] = math.nan  # diverged on two: the first by name
