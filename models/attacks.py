@@ -194,9 +194,12 @@ class Replacement(TabulatedAttack):
                 f"low and high must be lists of numbers, one bound per measurement entry; got "
                 f"{self.low!r}, {self.high!r}"
             ) from None
-        if len(lo) != len(hi) or not lo or not all(a < b for a, b in zip(lo, hi)):
+        # finite: U(−∞, ∞) drew NaN measurements (a review), as SensorBias and
+        # ActuatorInjection refuse non-finite values
+        if (len(lo) != len(hi) or not lo or not all(a < b for a, b in zip(lo, hi))
+                or not all(math.isfinite(v) for v in lo + hi)):  # fmt: skip
             raise ValueError(
-                f"low and high must be equal-length boxes with low < high; got {lo}, {hi}"
+                f"low and high must be equal-length finite boxes with low < high; got {lo}, {hi}"
             )
         object.__setattr__(self, "low", lo)
         object.__setattr__(self, "high", hi)

@@ -56,6 +56,7 @@ SLOW = (
     "test_plugin_scenarios.py::test_both_command_lines_take_scenario_as_an_option",
     "test_learned_cards_mutants.py::test_calibrate_keeps_the_cards_restart_and_confirm_and_counts_strict_exceedances",
     "test_learned_cards_mutants.py::test_calibrate_off_on_the_command_line_removes_restart_and_confirm_and_spares_the_source",
+    "test_attacks_schedules_watermark_mutants.py::test_watermark_study_rows_against_their_definitions",
     # single parameters (the log-domain yardstick's; the default kernel method's stay fast)
     "test_resampling.py::test_ot_gradient_matches_finite_differences[particles-log]",
     "test_resampling.py::test_ot_gradient_matches_finite_differences[log_weights-log]",
