@@ -136,6 +136,13 @@ def test_replacement_refuses_degenerate_or_mismatched_boxes():
         Replacement(rate=0.1, low=(0.0, 1.0), high=(1.0, 1.0))
     with pytest.raises(ValueError):
         Replacement(rate=0.1, low=(0.0, 0.0), high=(1.0,))
+    # sensor groups that do not cover the box's entries exactly once
+    gen = torch.Generator().manual_seed(0)
+    one = Replacement(rate=0.5, low=(0.0,), high=(1.0,))
+    with pytest.raises(ValueError, match="cover the 1 measurement entries"):
+        one.sample_groups(1, 2, [[0], [1]], gen, dtype=torch.float64)
+    with pytest.raises(ValueError, match="cover the 2 measurement entries"):
+        Replacement.entry_flags(torch.zeros(1, 2, 2, dtype=torch.bool), [[1], [2]])
     # an infinite box drew NaN measurements (U(−∞, ∞)): refused, as the other attacks refuse
     # non-finite values
     for low, high in (((-math.inf,), (math.inf,)), ((0.0,), (math.inf,)), ((math.nan,), (1.0,))):
