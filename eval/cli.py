@@ -67,6 +67,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--runs", type=int, default=None, help="Monte Carlo runs (default: the scenario family's)"
     )
     p.add_argument(
+        "--estimators",
+        type=_estimator_list,
+        default=None,
+        metavar="A,B,…",
+        help="the registered estimators to run instead of each scenario's own (e.g. "
+        "chi_square_kf,cusum_kf); a family's tables that need another are left out with the "
+        "reason",
+    )
+    p.add_argument(
         "--add-estimators",
         type=_estimator_list,
         default=[],
@@ -230,6 +239,7 @@ def evaluate(
     progress: bool,
     family_options: dict | None = None,
     add_estimators: Sequence[str] = (),
+    estimators: Sequence[str] | None = None,
     far: float | None = 0.01,
     calibration_runs: int | None = None,
 ) -> dict:
@@ -238,11 +248,13 @@ def evaluate(
     Scenarios are taken family by family: the family's ``prepare`` (a study its reports
     share) runs once before its scenarios, its ``finish`` (a summary across them) once
     after (:class:`~difffilter.eval.report.FamilyReport`); ``family_options``
-    (``--option KEY=VALUE``) reach ``prepare`` as its options; ``add_estimators`` run
-    beside each scenario's own. With ``far`` every detector is judged at that false-alarm
-    rate, its threshold calibrated on ``calibration_runs`` attack-free runs of their own
-    seed (:mod:`~difffilter.eval.calibration`). Ends with the leaderboard of every scenario × estimator
-    (:mod:`~difffilter.eval.leaderboard`: ``<out>/leaderboard.{md,json,png}``, ``tb_leaderboard``).
+    (``--option KEY=VALUE``) reach ``prepare`` as its options; ``estimators`` replace each
+    scenario's own (``None``: its own), ``add_estimators`` run beside them. With ``far``
+    every detector is judged at that false-alarm rate, its threshold calibrated on
+    ``calibration_runs`` attack-free runs of their own seed
+    (:mod:`~difffilter.eval.calibration`). Ends with the leaderboard of every scenario ×
+    estimator (:mod:`~difffilter.eval.leaderboard`: ``<out>/leaderboard.{md,json,png}``,
+    ``tb_leaderboard``).
     """
     from difffilter.models import registry
 
@@ -275,7 +287,7 @@ def evaluate(
             scenario = registry.get(name)
             result = run_suite(
                 scenario, runs=runs, seed=seed, progress=progress, checkpoint=ckpt,
-                cache=cache, add=add_estimators,
+                cache=cache, add=add_estimators, estimators=estimators,
             )  # fmt: skip
             if far is not None:  # after the study: only its detectors need attack-free runs
                 apply_calibration(result, calibrate(
@@ -379,7 +391,8 @@ def _write_family(family: str, results: dict, out, prepared) -> dict:
 
 def check_arguments(*, runs: int | None = None, ckpt=None, devices: int = 1,
                     calibration_runs: int | None = None, seed: int = 0,
-                    add_estimators: Sequence[str] = ()) -> None:  # fmt: skip
+                    add_estimators: Sequence[str] = (),
+                    estimators: Sequence[str] | None = None) -> None:  # fmt: skip
     """``ValueError``/``FileNotFoundError`` naming the option, before any work."""
     checked = (("--runs", runs), ("--devices", devices), ("--calibration-runs", calibration_runs))
     for name, value in checked:
@@ -395,6 +408,9 @@ def check_arguments(*, runs: int | None = None, ckpt=None, devices: int = 1,
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"--seed must be an integer >= 0; got {seed!r}")
     _check_estimator_names(add_estimators, "--add-estimators: ")
+    _check_estimator_names(estimators, "--estimators: ")
+    if estimators is not None and not estimators:
+        raise ValueError("--estimators names no estimator: give at least one")
     from difffilter.models.neural_estimator import load_estimator_checkpoint
 
     for _, path in _checkpoint_paths(ckpt):
@@ -595,7 +611,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
         check_output_folder(args.out, names)  # before any work, not after the evaluation
         check_arguments(runs=args.runs, ckpt=args.ckpt, devices=args.devices,
                         calibration_runs=args.calibration_runs, seed=args.seed,
-                        add_estimators=args.add_estimators)  # fmt: skip
+                        add_estimators=args.add_estimators,
+                        estimators=args.estimators)  # fmt: skip
         if args.far is None and args.calibration_runs is not None:
             raise ValueError("--calibration-runs with --far off: nothing is calibrated")
         check_checkpoint_fits(args.ckpt, names)
@@ -618,6 +635,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
             progress=not args.no_progress,
             family_options=dict(args.option or ()),
             add_estimators=args.add_estimators,
+            estimators=args.estimators,
             far=args.far,
             calibration_runs=args.calibration_runs,
         )
@@ -685,6 +703,9 @@ def _robustness(names: list[str], threats, args) -> int:
         )
     sets = {n: load_threat_set(registry.get(n), threats, path=args.threat_set)
             for n in chosen}  # errors first  # fmt: skip
+    if args.estimators is not None:  # the command line's over a threat file's
+        for threat_set in sets.values():
+            threat_set.estimators = tuple(args.estimators)
     cache: dict = {}
     docs = {}
     for name, threat_set in sets.items():

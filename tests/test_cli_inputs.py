@@ -45,6 +45,22 @@ def test_difffilter_eval_refuses_what_it_dropped_or_ran_without_a_word(
     assert "did you mean four_tank_bias" in err and "also all, robustness" in err
 
 
+def test_estimators_replaces_the_scenarios_own_and_the_family_tables_that_need_others_leave(
+    tmp_path, capsys
+):
+    """``--estimators A,B`` runs those instead of the scenario's own (a user trial asked for
+    it: only --add-estimators existed); the four-tank tables, which read ``modified_pf`` and
+    others, are left out with the reason; a typo is named with the nearest name."""
+    out = tmp_path / "o"
+    argv = ["four_tank_bias", "--runs", "2", "--no-progress", "--out", str(out)]
+    assert eval_cli.main([*argv, "--estimators", "chi_square_ekf"]) == 0
+    doc = json.loads((out / "four_tank_bias" / "metrics.json").read_text())
+    assert sorted(doc["estimators"]) == ["chi_square_ekf"]
+    assert "`modified_pf` (not in this run)" in doc["family_report_skipped"]
+    err = _eval_error([*argv, "--estimators", "chi_sqare_ekf"], capsys)
+    assert "--estimators: unknown estimator 'chi_sqare_ekf' (did you mean 'chi_square_ekf'?)" in err
+
+
 def test_family_options_are_checked_for_every_family_before_any_suite(
     tmp_path, monkeypatch, capsys
 ):

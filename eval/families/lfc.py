@@ -467,5 +467,6 @@ register_family(
         prepare=_prepare,
         finish=_finish,
         check_options=_checked_options,
+        needs=("uncompensated",),  # Table II's traditional controller
     ),
 )
