@@ -409,8 +409,6 @@ def check_arguments(*, runs: int | None = None, ckpt=None, devices: int = 1,
         raise ValueError(f"--seed must be an integer >= 0; got {seed!r}")
     _check_estimator_names(add_estimators, "--add-estimators: ")
     _check_estimator_names(estimators, "--estimators: ")
-    if estimators is not None and not estimators:
-        raise ValueError("--estimators names no estimator: give at least one")
     from difffilter.models.neural_estimator import load_estimator_checkpoint
 
     for _, path in _checkpoint_paths(ckpt):

@@ -33,6 +33,8 @@ from torch import Tensor
 from difffilter.attack import Channel, TabulatedAttack
 from difffilter.threats import Replay
 
+from .schedules import check_groups_cover
+
 __all__ = [
     "BiasAttack",
     "SensorBias",
@@ -230,7 +232,9 @@ class Replacement(TabulatedAttack):
         """
         _check_steps(num_steps)
         dim = len(self.low)
-        _check_groups(groups, dim)
+        # (as the schedules require: a group list of another box drew flags of no entry, one
+        # that skipped an entry gave it to group 0, one past the box raised an IndexError)
+        check_groups_cover(groups, dim, "groups")
         shape = torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
         u = torch.rand(
             shape + (num_steps, len(groups)),
@@ -246,7 +250,7 @@ class Replacement(TabulatedAttack):
     @staticmethod
     def entry_flags(flags: Tensor, groups) -> Tensor:
         """Group flags ``[*, T, G]`` → entry flags ``[*, T, dy]`` (each entry its group's flag)."""
-        _check_groups(groups, sum(len(g) for g in groups))
+        check_groups_cover(groups, sum(len(g) for g in groups), "groups")
         owner = [0] * sum(len(g) for g in groups)
         for j, g in enumerate(groups):
             for i in g:
@@ -256,17 +260,6 @@ class Replacement(TabulatedAttack):
     def inject_groups(self, signal: Tensor, values: Tensor, flags: Tensor, groups) -> Tensor:
         """``signal [*, T, dy]`` with each flagged group's entries replaced by ``values``."""
         return torch.where(self.entry_flags(flags, groups), values, signal)
-
-
-def _check_groups(groups, dim: int) -> None:
-    """The sensor groups must hold the ``dim`` measurement entries exactly once each (as the
-    schedules require): a group list of another box drew flags of no entry, one that skipped
-    an entry gave it to group 0, one past the box raised an ``IndexError`` (a review)."""
-    entries = sorted(int(i) for g in groups for i in g)
-    if entries != list(range(dim)):
-        raise ValueError(
-            f"groups must cover the {dim} measurement entries exactly once; got {list(groups)!r}"
-        )
 
 
 class Signal(TabulatedAttack):

@@ -48,13 +48,20 @@ def _entry_groups(groups, name: str) -> tuple[tuple[int, ...], ...]:
     return tuple(out)
 
 
-def _membership(groups, dim: int, name: str, device) -> Tensor:
-    """``[G, dim]`` bool: which of the ``dim`` measurement entries each group holds; every
-    entry in exactly one group."""
-    if sorted(i for g in groups for i in g) != list(range(dim)):
+def check_groups_cover(groups, dim: int, name: str) -> None:
+    """``ValueError`` naming ``name`` unless the ``groups`` (lists of measurement entries) hold
+    the ``dim`` entries exactly once each (the schedules' groups and packets, the papers'
+    replacement attack's sensor groups)."""
+    if sorted(int(i) for g in groups for i in g) != list(range(dim)):
         raise ValueError(
             f"{name} must cover the {dim} measurement entries exactly once; got {groups!r}"
         )
+
+
+def _membership(groups, dim: int, name: str, device) -> Tensor:
+    """``[G, dim]`` bool: which of the ``dim`` measurement entries each group holds; every
+    entry in exactly one group."""
+    check_groups_cover(groups, dim, name)
     table = torch.zeros(len(groups), dim, dtype=torch.bool, device=device)
     for j, g in enumerate(groups):
         table[j, list(g)] = True
