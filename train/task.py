@@ -846,13 +846,14 @@ class FilterEstimatorTask(pl.LightningModule):
         params = {**({} if dm is None else dict(dm.hparams)), **dict(self.hparams)}
         for logger in self.loggers:  # the run's settings beside its result
             if isinstance(logger, TensorBoardLogger):  # its HPARAMS view pairs them
-                # at the step the run ended (a resumed run's score had gone to step 0);
-                # Lightning before 2.3 takes no step: step 0 there
-                at = {"step": self.global_step} if _takes_step(logger.log_hyperparams) else {}
+                # at the step the run ended, on its curves' axis (a resumed run's score had
+                # gone to step 0; the EKF trainer's, at its optimizer steps, one per time
+                # step, far right of every curve); Lightning before 2.3 takes no step
+                at = {"step": self._logged_step()} if _takes_step(logger.log_hyperparams) else {}
                 logger.log_hyperparams(params, {"hp/best_val_score": best}, **at)
             else:  # the others take the settings alone (a CSV logger, a custom one)
                 logger.log_hyperparams(params)
-                logger.log_metrics({"hp/best_val_score": best}, step=self.global_step)
+                logger.log_metrics({"hp/best_val_score": best}, step=self._logged_step())
 
     # -- export (difffilter.train.export.ExportEstimator) ----------------------------------
     def export_name(self) -> str:
