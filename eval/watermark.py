@@ -57,6 +57,18 @@ def _cost(loop) -> float:
     return float(tr.x.square().sum(-1).mean() + control.square().sum(-1).mean())
 
 
+def windows_past_splice(steps: int, window: int, onset: int) -> torch.Tensor:
+    """``[steps − window + 1]`` bool over the full windows (the one ending at 1-based step
+    ``s = window + j`` is entry ``j``): False for the windows that end at
+    ``onset ≤ s ≤ onset + window − 1``, the ``window`` windows that hold the replay's
+    first step ``onset`` (those that see the switch); True elsewhere. An ``onset`` earlier
+    than ``window`` leaves out only the windows there are (the slice had wrapped round to
+    the end of the run and left out none)."""
+    keep = torch.ones(steps - window + 1, dtype=torch.bool)
+    keep[max(onset - window, 0) : max(onset, 0)] = False
+    return keep
+
+
 def watermark_study(scenario, *, runs: int = 20, seed: int = 0, std: float = 0.08,
                     window: int = 50, delay: int = 300, onset: int = 700, far: float = 0.01,
                     progress: bool = False) -> dict[str, Any]:  # fmt: skip
@@ -88,8 +100,7 @@ def watermark_study(scenario, *, runs: int = 20, seed: int = 0, std: float = 0.0
     # only steps whose window is full: the first w − 1 sum fewer terms, so their scores
     # are smaller whatever happens, and would count as easy negatives
     full = slice(window - 1, None)
-    past_splice = torch.ones(draws["xi"].shape[1] - window + 1, dtype=torch.bool)
-    past_splice[onset - window : onset] = False  # the w windows that see the switch
+    past_splice = windows_past_splice(int(draws["xi"].shape[1]), window, onset)
     rows = {}
     for mark_label, sigma in (("without watermark", 0.0), ("with watermark", std)):
 

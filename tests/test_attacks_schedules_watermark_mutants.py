@@ -383,3 +383,18 @@ def test_watermark_study_rows_against_their_definitions(monkeypatch):
     assert doc["control_cost_increase"] == pytest.approx(increase, rel=1e-9)
     # watermark generators: calibration, study (clean), study (2 replays)
     assert len(seeds) == 4 and seeds[0] != seeds[1] and seeds[1] == seeds[2] == seeds[3]
+
+
+@pytest.mark.parametrize(
+    ("steps", "window", "onset"), [(40, 5, 12), (40, 5, 3), (40, 5, 1), (40, 5, 36), (12, 4, 9)]
+)
+def test_the_windows_left_out_after_the_splice_are_those_holding_the_onset(steps, window, onset):
+    """The windows left out of the AUC after the splice, by brute force: the full window
+    ending at 1-based step ``s`` holds steps ``s − w + 1 … s``; it is left out exactly
+    where it holds ``onset``. An onset earlier than the window had wrapped the slice round
+    to the end of the run and left out none."""
+    from difffilter.eval.watermark import windows_past_splice
+
+    ends = range(window, steps + 1)
+    expected = [not (s - window + 1 <= onset <= s) for s in ends]
+    assert windows_past_splice(steps, window, onset).tolist() == expected
