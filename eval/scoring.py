@@ -102,6 +102,12 @@ METRICS: dict[str, Metric] = {
         "wall time of the batched run / (runs * steps): time per run and step, what it "
         "cost in this study (work reused from an earlier scenario is not counted again)",
     ),
+    "threshold": Metric(
+        "score units",
+        "the detector's own threshold, the one its alarms (tpr, fpr) came from (alarm when "
+        "score > threshold; a CUSUM's tau), where it is one number for every run and step; "
+        "null where it changes with the step or the decision is not a threshold of the score",
+    ),
     "threshold_at_far": Metric(
         "score units",
         "the smallest score threshold whose false-alarm rate on attack-free calibration runs "
@@ -208,6 +214,7 @@ def score(
         flags = torch.zeros_like(flags)
     rates = dm.detection_rates(alarms, flags)
     out.update(
+        threshold=own_threshold(det),
         fpr=_finite(rates["fpr"]),
         false_alarms=rates["false_alarms"],
         false_alarms_per_1000_steps=1000.0 * rates["false_alarms"] / (B * T),
@@ -273,6 +280,18 @@ def comparable_attack(output: EstimatorOutput, traj) -> bool:
     if output.attack is None or output.attack.shape[-1] != traj.attack.shape[-1]:
         return False
     return same_side(output.attack_channel, traj.info.get("attack_channel", Channel.SENSOR))
+
+
+def own_threshold(detection) -> float | None:
+    """``detection.threshold`` as one number where it is one for every run and step (a
+    number, or a tensor of one value throughout), else ``None`` (a windowed χ²'s during its
+    first steps, a running ``ζ_k``, no threshold at all)."""
+    tau = detection.threshold
+    if isinstance(tau, torch.Tensor):
+        if tau.numel() == 0 or not bool((tau == tau.flatten()[0]).all()):
+            return None
+        tau = tau.flatten()[0].item()
+    return None if tau is None else _finite(float(tau))
 
 
 def _finite(value: float) -> float | None:

@@ -93,6 +93,35 @@ def test_false_alarms_per_1000_steps_and_time_per_step():
     assert m["time_per_step_s"] == pytest.approx(0.01)
 
 
+@pytest.mark.parametrize(
+    ("threshold", "expected"),
+    [
+        (None, None),
+        (2.5, 2.5),
+        (torch.tensor(2.5), 2.5),
+        (torch.full((2, 4), 2.5), 2.5),  # one value throughout
+        (torch.tensor([1.0, 2.0, 2.5, 2.5]), None),  # grows over the first steps
+        (torch.tensor([[2.5] * 4, [3.0] * 4]), None),  # one per run
+        (float("inf"), None),
+    ],
+)
+def test_the_own_threshold_is_reported_where_it_is_one_number(threshold, expected):
+    """``threshold`` is the detection's own τ where one number holds for every run and step
+    (else ``null``), and the alarms it reports are those ``tpr`` and ``fpr`` count: with
+    scores 0..7 and τ = 2.5, five alarms of eight steps, all on attack-free steps."""
+    scores = torch.arange(8.0).reshape(2, 4)
+    alarms = scores > 2.5
+    out = EstimatorOutput(
+        means=torch.zeros(2, 4, 1), detection=Detection(scores, alarms, threshold)
+    )
+    m = sc.score(out, _traj(torch.zeros(2, 4, dtype=torch.bool)), dt=1.0, wall_s=1.0)
+    assert m["threshold"] == expected
+    assert m["fpr"] == 5 / 8
+    no_detection = EstimatorOutput(means=torch.zeros(2, 4, 1))
+    assert sc.score(no_detection, _traj(torch.zeros(2, 4, dtype=torch.bool)), dt=1.0,
+                    wall_s=1.0)["threshold"] is None  # fmt: skip
+
+
 def test_detection_delay_s_is_steps_times_dt():
     flags = torch.tensor([[False, True, True, True]])
     alarms = torch.tensor([[False, False, True, False]])
