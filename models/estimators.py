@@ -156,7 +156,8 @@ OPTIONS: dict[str, str] = {
     "poa_eta": "the PoA detector's threshold eta (a paper's value; with poa_zeta), instead of "
     "Theorem 1's",
     "poa_zeta": "the PoA detector's zeta (with poa_eta)",
-    "cusum_bias": "the CUSUM detector's bias b (default: chosen on the attack-free runs)",
+    "cusum_bias": "the CUSUM detector's bias b (default: dy + 2, the attack-free NIS mean plus "
+    "a margin; its τ is chosen on the attack-free runs)",
     "gamma_hat_noise_var": "variance of the noise on the oracle attack estimate of "
     "modified_pf_noisy_gamma",
 }
