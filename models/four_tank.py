@@ -205,12 +205,15 @@ class FourTankModel(StateSpaceModel):
         # as much as an operation on a hundred particles)
         buffers = self._buffers
         coefs = (buffers["step_offset"], buffers["step_diag"], buffers["step_couple"])
-        if x.numel() < 4096 or any(c.requires_grad for c in coefs) or x.shape[-1] != 4:
+        if (x.numel() < 4096 or any(c.requires_grad for c in coefs) or x.shape[-1] != 4
+                or x.dtype != coefs[0].dtype or x.device != coefs[0].device):  # fmt: skip
+            # (a state of another dtype takes torch's promotion, as a small batch does: a
+            # cast copy had made the result's dtype hang on the batch size, a review)
             return coefs
-        key = (tuple(x.shape), x.dtype, x.device) + tuple((c.data_ptr(), c._version) for c in coefs)
+        key = (tuple(x.shape),) + tuple((c.data_ptr(), c._version) for c in coefs)
         cached = getattr(self, "_coef_cache", None)
         if cached is None or cached[0] != key:
-            full = tuple(c.to(x.dtype).expand(x.shape).contiguous() for c in coefs)
+            full = tuple(c.expand(x.shape).contiguous() for c in coefs)
             cached = (key, full)
             self._coef_cache = cached
         return cached[1]
