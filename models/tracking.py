@@ -80,7 +80,7 @@ class GlintNoise(NoiseModel):
             raise ValueError(
                 f"weights [C] and variances [C, 2] expected; got {tuple(weights.shape)}, {tuple(variances.shape)}"
             )
-        if bool((variances <= 0).any()) or abs(float(weights.sum()) - 1.0) > 1e-9:
+        if bool((variances <= 0).any()) or abs(float(weights.detach().sum()) - 1.0) > 1e-9:
             raise ValueError("variances must be positive and weights sum to 1")
         self.sensors, self.dim = int(sensors), 2 * int(sensors)
         register_tensor(self, "weights", weights)
