@@ -98,7 +98,10 @@ def test_a_run_with_a_setting_of_its_own_resumes_only_with_it(tmp_path, monkeypa
     # a test of the run's best checkpoint writes config_test.yaml, not over the run's
     best = next((run / "checkpoints").glob("best*.ckpt"))
     assert main(["test", "--config", str(run / "config.yaml"), f"--ckpt_path={best}"]) == 0
-    assert list(run.parent.glob("version_*/config_test.yaml"))  # (the test's own folder)
+    # (in a folder of its own: the resumed run's config.yaml pins the run's version, and a
+    # test had logged into the run, a trial)
+    (tested,) = [p.parent for p in run.parent.glob("version_*/config_test.yaml")]
+    assert tested != run and not (tested / "checkpoints").exists()
     assert not re.search(r"^verbose:", (run / "config.yaml").read_text(), flags=re.M)
     assert main(["fit", "--config", str(run / "config.yaml"), "--trainer.max_epochs=3", ckpt]) == 0
 

@@ -23,8 +23,8 @@ __all__ = ["DifffilterCLI", "run"]
 
 class _SaveConfigOfItsStage(SaveConfigCallback):
     """``config.yaml`` is the ``fit``'s: another subcommand writes ``config_<stage>.yaml``
-    in the folder it logs to, the run's where the config pins its version (a ``test
-    --config <run>/config.yaml`` of a run's best checkpoint rewrote the run's
+    in the folder it logs to (its own, :func:`_log_apart_from_a_fit_run`; a ``test
+    --config <run>/config.yaml`` of a run's best checkpoint had rewritten the run's
     ``config.yaml`` as its own, ``verbose: true`` and all, and the README's resume from it
     then failed: "Subcommand 'fit' does not accept option 'verbose'")."""
 
@@ -54,6 +54,8 @@ class DifffilterCLI(LightningCLI):
         _check_config(self.config, self.subcommand)
         kind = _check_ckpt_path(self.config[self.subcommand] if self.subcommand else self.config,
                                 self.subcommand)  # fmt: skip
+        if self.subcommand in ("validate", "test", "predict"):
+            _log_apart_from_a_fit_run(self.config[self.subcommand])
         if self.subcommand != "fit":
             return
         cfg = self.config["fit"]
@@ -283,6 +285,18 @@ def _fixed_run_folder(cfg, logger, args) -> Path | None:
     name = args.get("name") or "lightning_logs"
     folder = version if isinstance(version, str) else f"version_{version}"
     return Path(args.get("save_dir") or ".") / name / folder
+
+
+def _log_apart_from_a_fit_run(cfg) -> None:
+    """``validate``, ``test`` and ``predict`` log as a run of their own (README): a logger
+    version that names a fit's run folder (one holding its checkpoints: a resumed run's
+    ``config.yaml`` pins its version, and ``test --config <run>/config.yaml`` had logged
+    into that run, a trial) is dropped for the logger's next free ``version_<n>``."""
+    logger = cfg["trainer"].get("logger")
+    args = None if logger is None or isinstance(logger, (bool, list)) else logger.get("init_args")
+    folder = _fixed_run_folder(cfg, logger, args) if logger is not False else None
+    if folder is not None and any(folder.glob("checkpoints/*.ckpt")):
+        args["version"] = None
 
 
 def _refuse_a_used_run_folder(folder: Path | None) -> None:
