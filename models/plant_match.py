@@ -25,7 +25,12 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["plant_difference", "training_scenario_of", "training_plant_notes"]
+__all__ = [
+    "plant_difference",
+    "scenario_file_change",
+    "training_scenario_of",
+    "training_plant_notes",
+]
 
 
 def plant_difference(trained, evaluated) -> str | None:
@@ -69,17 +74,66 @@ def training_scenario_of(path) -> str | None:
     return checkpoint_training_scenario(path)
 
 
+def _recorded_file_digest(path) -> str | None:
+    """The sha256 of the YAML scenario file a checkpoint's network was trained on, as its
+    training read it: the export card's ``scenario_file_sha256``, else a Lightning
+    checkpoint's own record; ``None`` where neither holds one (a registered scenario, a
+    card written before the field)."""
+    from .yaml_scenario import SCENARIO_FILE_DIGEST
+
+    card = Path(path).with_suffix(".json")
+    if card.is_file():
+        try:
+            recorded = json.loads(card.read_text()).get("scenario_file_sha256")
+        except (OSError, ValueError, AttributeError):
+            recorded = None
+        if recorded:
+            return str(recorded)
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception:  # (not a zip-format torch file: the loaders name it themselves)
+        return None
+    recorded = blob.get(SCENARIO_FILE_DIGEST) if isinstance(blob, dict) else None
+    return None if recorded is None else str(recorded)
+
+
+def scenario_file_change(given: str, path) -> str | None:
+    """A note (naming the checkpoint as ``given``) where the YAML scenario file a checkpoint was trained on (as its training was
+    given it, read from this folder) now holds other bytes than training read: the plant
+    comparison of :func:`training_plant_notes` builds the training plant from the file as
+    it is now, so an edit after training went unseen (a trial edited F after export and
+    evaluated and calibrated without a word). ``None`` where the file is unchanged, cannot
+    be read here, or the checkpoint records no digest."""
+    from .yaml_scenario import is_yaml_path, scenario_file_digest
+
+    spec = training_scenario_of(path)
+    if spec is None or not is_yaml_path(spec):
+        return None
+    recorded, now = _recorded_file_digest(path), scenario_file_digest(spec)
+    if recorded is None or now is None or recorded == now:
+        return None
+    return (
+        f"note: {given} was trained on the scenario file {spec} as it was then "
+        f"(sha256 {recorded[:12]}…); it holds other bytes now ({now[:12]}…): the network "
+        "never saw the plant as the file describes it today"
+    )
+
+
 def training_plant_notes(
     checkpoints: Sequence[tuple[str, Path]], names: Sequence[str]
 ) -> list[str]:
     """One line for each checkpoint (``(how it was given, path)``) and evaluated scenario
-    of its family whose plant is not the one it was trained on (:func:`plant_difference`).
+    of its family whose plant is not the one it was trained on (:func:`plant_difference`),
+    and one where its training scenario file has changed since (:func:`scenario_file_change`).
     Nothing where the training scenario cannot be built here (a module not importable, a
     YAML file moved): a note, never an error."""
     from . import registry
 
     notes = []
     for given, path in checkpoints:
+        changed = scenario_file_change(f"--ckpt {given}", path)
+        if changed:
+            notes.append(changed)
         spec = training_scenario_of(path)
         if spec is None:
             continue

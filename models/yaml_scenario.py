@@ -112,6 +112,11 @@ def is_yaml_path(name: str) -> bool:
     return str(name).lower().endswith((".yaml", ".yml"))
 
 
+#: The key of a training run's Lightning checkpoint (and, as ``scenario_file_sha256``, of
+#: an export's card) for the sha256 of the YAML scenario file it trained on.
+SCENARIO_FILE_DIGEST = "difffilter_scenario_file_sha256"
+
+
 def scenario_file_digest(name) -> str | None:
     """The sha256 of a YAML scenario file's bytes (what its plant, attack and schedule are),
     or ``None`` for a name that is no YAML file's path or a file that cannot be read. What a

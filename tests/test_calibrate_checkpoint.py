@@ -174,7 +174,10 @@ def test_a_card_of_an_unregistered_scenario_is_calibrated_on_the_scenario_named(
     save_estimator_checkpoint(renamed, net, dataclasses.replace(card, scenario="my_own_tanks"))
     out = tmp_path / "calibrated.ckpt"
     assert main([str(renamed), "--out", str(out), "--runs", "2", "--no-progress"]) == 2
-    assert "--scenario package.module:object or FILE.yaml" in capsys.readouterr().err
+    assert (
+        "--scenario package.module:object, or the YAML file's path from this folder"
+        in capsys.readouterr().err
+    )
     argv = [str(renamed), "--out", str(out), "--runs", "2", "--no-progress"]
     assert main([*argv, "--scenario", "four_tank_bias"]) == 0
     assert "of four_tank_bias" in capsys.readouterr().out

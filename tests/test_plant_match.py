@@ -48,3 +48,57 @@ def test_the_shipped_lfc_network_is_named_only_on_the_plant_at_another_sampling_
     assert "is not lfc_sine_1ms's (its transition differs" in notes[0]
     # a checkpoint whose training scenario cannot be read: no claim
     assert training_plant_notes([("x", ROOT / "no_such.ckpt")], ["lfc_step"]) == []
+
+
+PLANT_YAML = """\
+name: two_rooms
+family: rooms
+description: two rooms, a bias on the first sensor
+dt: 1.0
+runs: 4
+steps: 30
+num_particles: 50
+false_alarm_rate: 0.01
+plant:
+  F: [[0.95, 0.03], [0.03, 0.96]]
+  H: [[1.0, 0.0], [0.0, 1.0]]
+  Q: 1.0e-3
+  R: 1.0e-2
+  P0: 0.1
+attack: {kind: bias, value: 0.3, entries: [0], onset: 10, share: 0.5}
+"""
+
+
+def test_a_scenario_file_edited_after_training_is_named(isolated_registry, tmp_path,
+                                                        monkeypatch, capsys):  # fmt: skip
+    """The card records the sha256 of the YAML file training read; evaluating or calibrating
+    after the file was edited says so (a trial changed F after export: the plant comparison
+    built the "training plant" from the edited file, and both ran without a word)."""
+    import hashlib
+    import json
+
+    from difffilter.train.calibrate import main as calibrate_main
+    from difffilter.train.cli import main as train_main
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    plant = tmp_path / "rooms.yaml"
+    plant.write_text(PLANT_YAML)
+    config = str(ROOT / "train" / "configs" / "generic.yaml")
+    assert train_main(["fit", "--config", config, "--scenario", "rooms.yaml",
+                       "--trainer.max_epochs=1", "--data.init_args.batches_per_epoch=1",
+                       "--data.init_args.batch_size=2", "--data.init_args.val_runs=4",
+                       "--data.init_args.steps=30", "--model.init_args.hidden=4",
+                       "--trainer.enable_progress_bar=false"]) == 0  # fmt: skip
+    (ckpt,) = (tmp_path / "lightning_logs").rglob("*/version_0/*_nn_grad.ckpt")
+    card = json.loads(ckpt.with_suffix(".json").read_text())
+    assert card["scenario_file_sha256"] == hashlib.sha256(PLANT_YAML.encode()).hexdigest()
+    given = [("run.ckpt", ckpt)]
+    assert training_plant_notes(given, ["two_rooms"]) == []  # unchanged: nothing to say
+    plant.write_text(PLANT_YAML.replace("[0.95, 0.03]", "[0.90, 0.03]"))
+    (note,) = training_plant_notes(given, ["two_rooms"])
+    assert note.startswith("note: --ckpt run.ckpt was trained on the scenario file rooms.yaml")
+    assert "holds other bytes now" in note
+    capsys.readouterr()
+    assert calibrate_main([str(ckpt), "--out", "cal.ckpt", "--runs", "4"]) == 0
+    assert "was trained on the scenario file rooms.yaml as it was then" in capsys.readouterr().err

@@ -148,6 +148,7 @@ def calibrate_checkpoint(
         save_estimator_checkpoint,
         weights_sha256,
     )
+    from difffilter.models.plant_match import scenario_file_change
     from difffilter.models.streams import Streams
 
     src, out = Path(src), Path(out)
@@ -174,13 +175,17 @@ def calibrate_checkpoint(
             raise ValueError(f"--scenario: {error}") from None
         raise ValueError(
             f"the card's training scenario {card.scenario!r} is not registered here ({error}); "
-            "name it as it was given to fit: --scenario package.module:object or FILE.yaml"
+            "give it with --scenario package.module:object, or the YAML file's path from this "
+            "folder (the card records it as fit was given it, from fit's folder)"
         ) from None
     if scenario.family != card.scenario_family:
         raise ValueError(
             f"--scenario {scenario.name}: of family {scenario.family!r}; the checkpoint was "
             f"trained on {card.scenario_family!r} scenarios"
         )
+    changed = scenario_file_change(str(src), src)
+    if changed:  # (the threshold is then for the edited plant: said, not refused)
+        print(changed, file=sys.stderr)
     name, runs = estimator_name(card), runs or scenario.runs
     streams, start = Streams(seed), time.time()
     fit_seed = streams.seed_of("checkpoint-calibration")

@@ -32,6 +32,7 @@ from difffilter.models.neural_estimator import (
     save_estimator_checkpoint,
     weights_sha256,
 )
+from difffilter.models.yaml_scenario import SCENARIO_FILE_DIGEST
 
 from .common import check_checkpoint_out, load_source
 
@@ -113,6 +114,8 @@ def _lightning_record(blob: dict, src: Path) -> dict:
         "global_step": blob.get("global_step"),
         "lightning_version": blob.get("pytorch-lightning_version"),
     }
+    if blob.get(SCENARIO_FILE_DIGEST) is not None:  # the plant file training read
+        record["scenario_file_sha256"] = blob[SCENARIO_FILE_DIGEST]
     for state in (blob.get("callbacks") or {}).values():  # the training time so far
         if isinstance(state, dict) and state.get("train_time_s") is not None:
             record["train_time_s"] = float(state["train_time_s"])

@@ -346,9 +346,7 @@ def _check_resumed_settings(ckpt, model, datamodule) -> None:
                     for name in sorted(set(before) | set(now))
                     if not name.startswith("_")
                     and _in_order(before.get(name)) != _in_order(now.get(name))]  # fmt: skip
-    from difffilter.models.yaml_scenario import scenario_file_digest
-
-    from .task import SCENARIO_FILE_DIGEST
+    from difffilter.models.yaml_scenario import SCENARIO_FILE_DIGEST, scenario_file_digest
 
     scenario = dict(getattr(model, "hparams", None) or {}).get("scenario")
     was = saved.get(SCENARIO_FILE_DIGEST)

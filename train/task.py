@@ -70,7 +70,7 @@ from difffilter.models.neural_estimator import (
     NeuralFDIEstimator,
 )
 from difffilter.models.streams import Streams
-from difffilter.models.yaml_scenario import scenario_file_digest
+from difffilter.models.yaml_scenario import SCENARIO_FILE_DIGEST, scenario_file_digest
 from difffilter.param_ekf import EKFOptimizer, ekf_along_sequence
 from difffilter.particle import ParticleFilter
 from difffilter.threat_distribution import ThreatDistribution
@@ -95,10 +95,6 @@ RESAMPLERS = {
     "ot": lambda alpha: resampling.OptimalTransport(),
 }
 _FIELDS = ("x", "y_recv", "us", "mask", "attack", "flags")
-
-
-#: The Lightning checkpoint's key for the sha256 of a YAML scenario file's bytes.
-SCENARIO_FILE_DIGEST = "difffilter_scenario_file_sha256"
 
 
 def training_batch(scenario, runs: int, seed: int, dtype: torch.dtype) -> dict:
@@ -936,7 +932,13 @@ class FilterEstimatorTask(pl.LightningModule):
         threats = getattr(getattr(trainer, "datamodule", None), "threats", None)
         across = ("" if threats is None else
                   f", its attacks drawn from a distribution over threats ({', '.join(threats.names)})")  # fmt: skip
+        # the plant file's bytes as training read them (difffilter-eval and calibrate say
+        # where the file has changed since: a trial's edit had gone unseen)
+        digest = (
+            {} if self._scenario_digest is None else {"scenario_file_sha256": self._scenario_digest}
+        )
         return {
+            **digest,
             "scenario_family": self.scenario.family,
             "estimator": self.card().estimator,
             "description": f"Neural FDI estimator (eqs 8-9) trained {how}{loop} on "
