@@ -34,6 +34,7 @@ __all__ = [
     "calibrate",
     "calibrated_metrics",
     "alarms_at",
+    "alarm_clustering",
     "calibration_seed",
     "below_target_note",
     "calibration_mismatch",
@@ -71,7 +72,7 @@ class Calibration:
             sensitive setting (a trial's 4-run LFC calibration gave the learned head τ = 0,
             and its alarms were then exactly its χ² confirmation's).
         concentrated: ``{estimator: {"alarms": N, "effective_alarms": N / D}}`` where the
-            calibration's alarms cluster in a few runs (:func:`_clustering`): ``c_r`` the
+            calibration's alarms cluster in a few runs (:func:`alarm_clustering`): ``c_r`` the
             alarms of run ``r`` at ``τ_α``, ``D`` their variance over the runs divided by
             their mean (about 1 for alarms that fall independently, as a Poisson count's),
             ``N / D`` the independent alarms they are worth, listed where it is below
@@ -295,7 +296,7 @@ def calibrate(
         measured[name] = float((scores > thresholds[name]).double().mean())
         steps[name] = int((~torch.isnan(out.detection.scores)).sum())
         # (one coarse for its steps is named as such, under unresolved, not twice)
-        clustered = _clustering(out.detection.scores, thresholds[name])
+        clustered = alarm_clustering(out.detection.scores, thresholds[name])
         if clustered is not None and far * steps[name] >= RESOLVED:
             few[name] = clustered
         # ties at τ: the rate cannot be met (class docstring); at exactly half too (a trial's
@@ -321,14 +322,14 @@ def calibrate(
     return calibration
 
 
-#: The dispersion test's level (:func:`_clustering`). Measured on independent χ² scores
+#: The dispersion test's level (:func:`alarm_clustering`). Measured on independent χ² scores
 #: (1,000 calibrations each of 100 × 100 and 200 × 50 steps at 0.1 %, 20 × 100 and 100 × 100
 #: at 1 %): 5, 0, 0 and 0 called clustered (the test's χ² approximation is coarse for a
 #: tenth of an alarm a run); the LFC online learners' statistics are 8–62 times the bound.
 CLUSTERING_LEVEL = 1e-4
 
 
-def _clustering(scores: torch.Tensor, threshold: float) -> dict | None:
+def alarm_clustering(scores: torch.Tensor, threshold: float) -> dict | None:
     """``{"alarms": N, "effective_alarms": N / D}`` where the alarms of ``scores [runs, T,
     ...]`` at ``threshold`` cluster in runs (:attr:`Calibration.concentrated`), else ``None``.
 

@@ -157,6 +157,34 @@ def test_calibrate_says_when_its_runs_are_too_few_for_the_target(tmp_path, capsy
     assert "about 1.5 % in expectation" in out and "give more --runs" in out
 
 
+def test_calibrate_says_when_its_alarms_cluster_in_a_few_runs(tmp_path, capsys, monkeypatch):
+    """Scores whose 20 calibration alarms at 1 % all fall in one of 20 runs (the other runs'
+    scores below every one of them): the dispersion of the per-run counts, (R − 1) D =
+    19² + 19 = 380 with c̄ = 1, far above χ²₁₉'s 1 − 1e-4 quantile, worth 20 · 19 / 380 = 1
+    independent alarm. The card records it and the command says to give more runs (a trial
+    met 0.35 % on the check runs, 1.39 % on 2,000 fresh ones, without a word)."""
+    import json
+
+    from difffilter.train import calibrate as cal_mod
+
+    gen = torch.Generator().manual_seed(0)
+    scores = torch.rand(20, 100, generator=gen, dtype=torch.float64)
+    scores[0, :50] = 2.0 + torch.arange(50, dtype=torch.float64)  # one run's burst
+    monkeypatch.setattr(cal_mod, "_scores", lambda *args: (scores, None))
+    out = tmp_path / "x.ckpt"
+    assert main([SHIPPED, "--out", str(out), "--runs", "20", "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "note: the 20 alarms on the calibration runs cluster in a few of the 20 runs" in printed
+    assert "(worth 1.0 independent ones)" in printed and "give more --runs" in printed
+    card = json.loads(out.with_suffix(".json").read_text())
+    assert card["calibration"]["clustered"] == {"alarms": 20, "effective_alarms": 1.0}
+    # alarms spread over the runs: nothing said, nothing recorded
+    monkeypatch.setattr(cal_mod, "_scores", lambda *args: (scores[1:].repeat(2, 1), None))
+    assert main([SHIPPED, "--out", str(out), "--runs", "38", "--no-progress", "--force"]) == 0
+    assert "cluster" not in capsys.readouterr().out
+    assert "clustered" not in json.loads(out.with_suffix(".json").read_text())["calibration"]
+
+
 def test_a_card_of_an_unregistered_scenario_is_calibrated_on_the_scenario_named(
     tmp_path, capsys, monkeypatch, isolated_registry
 ):

@@ -523,30 +523,30 @@ def test_alarms_held_by_a_few_runs_are_named_with_what_they_are_worth():
     third of independent χ² calibrations); the summary and the note name them."""
     import jsonschema
 
-    from difffilter.eval.calibration import Calibration, _clustering, below_target_note
+    from difffilter.eval.calibration import Calibration, alarm_clustering, below_target_note
     from difffilter.eval.report import metrics_schema
 
     scores = torch.zeros(20, 100, dtype=torch.float64)
     scores[0, :15] = scores[1, :5] = 1.0  # 20 alarms at τ = 0.5, in two runs
     counts = torch.tensor([15.0, 5.0] + [0.0] * 18)
     dispersion = float(((counts - 1.0) ** 2).sum() / 19)  # variance / mean, mean 1
-    got = _clustering(scores, 0.5)
+    got = alarm_clustering(scores, 0.5)
     assert got == {"alarms": 20, "effective_alarms": pytest.approx(20 / dispersion)}
     assert 20 / dispersion == pytest.approx(380 / 230)  # 14² + 4² + 18 · 1² = 230 over 19
     nan = scores.clone()
     nan[0, :5] = math.nan  # a NaN score never alarms: 10 and 5
-    assert _clustering(nan, 0.5)["alarms"] == 15
-    assert _clustering(scores, 2.0) is None and _clustering(scores[:1], 0.5) is None
+    assert alarm_clustering(nan, 0.5)["alarms"] == 15
+    assert alarm_clustering(scores, 2.0) is None and alarm_clustering(scores[:1], 0.5) is None
     spread = torch.zeros(20, 100, dtype=torch.float64)
     spread[:, :1] = 1.0  # one alarm in every run: no dispersion at all
-    assert _clustering(spread, 0.5) is None
+    assert alarm_clustering(spread, 0.5) is None
     g = torch.Generator().manual_seed(0)
     listed = 0
     for _ in range(200):  # independent χ² alarms: 100 runs × 100 steps at 0.1 %, N ≈ 10, where
         # N / D < 10 by chance in about a third of the draws: the dispersion test must keep
         # them off (a review: at 1 % the N / D bar alone kept every draw off)
         chi = torch.randn(100, 100, generator=g, dtype=torch.float64) ** 2
-        listed += _clustering(chi, float(threshold_for(chi.flatten(), 0.001))) is not None
+        listed += alarm_clustering(chi, float(threshold_for(chi.flatten(), 0.001))) is not None
     assert listed <= 4  # 5 in 1,000 measured
     entry = {"alarms": 200, "effective_alarms": 2.86}
     summary = Calibration(0.01, 20, 0, thresholds={"kf_nn_ekf": 0.3}, measured={"kf_nn_ekf": 0.01},

@@ -244,10 +244,10 @@ def test_a_dispersion_that_chance_gives_is_not_clustered():
     z = 3.719016485455709  # Φ⁻¹(1 − 1e-4)
     k = 9
     assert 14 < k * (1 - 2 / (9 * k) + z * math.sqrt(2 / (9 * k))) ** 3 < 90
-    assert cal_mod._clustering(s, 0.5) is None
+    assert cal_mod.alarm_clustering(s, 0.5) is None
     one = torch.zeros(10, 10, dtype=torch.float64)
     one[0] = 1.0
-    got = cal_mod._clustering(one, 0.5)
+    got = cal_mod.alarm_clustering(one, 0.5)
     assert got == {"alarms": 10, "effective_alarms": pytest.approx(1.0)}
 
 
