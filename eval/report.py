@@ -520,6 +520,16 @@ def _acceptance_section(doc: dict) -> Section | None:
     body = text + markdown_table(header, rows) + "\n"
     if doc.get("acceptance_intervals"):
         body += "\n" + _intervals_text(doc["acceptance_intervals"], [c.metric for c in checks])
+    clustered = [n for n in judged if n in ((doc.get("far") or {}).get("concentrated") or {})]
+    if clustered:  # (a trial: "0 [0, 0], holds in 0 %" read as certain; 1.01 % on 2,000 runs)
+        body += (
+            "\nThe thresholds of " + ", ".join(f"`{n}`" for n in clustered) + " rest on "
+            "calibration alarms that cluster in a few runs (the calibration's note above): "
+            "their false-alarm rate on fresh runs varies with the draw of calibration runs far "
+            "more than these runs show, and the intervals hold the thresholds fixed, so the "
+            "false-alarm verdict is less sure than its share says; judge it on more "
+            "--calibration-runs.\n"
+        )
     return Section("Learned against the best analytic", body)
 
 

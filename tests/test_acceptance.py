@@ -211,6 +211,18 @@ def test_a_calibrated_report_judges_its_learned_estimator_against_the_best_analy
     acc = EventAccumulator(str(tmp_path / "tb" / "hparams" / "gaussian_nn_ekf")).Reload()
     share = acc.Scalars("hparam/holds_share/state_rmse")[0].value
     assert share == pytest.approx(mine["state_rmse"]["holds_share"])
+    # a learned threshold resting on clustered calibration alarms: the verdict says its
+    # intervals do not carry that (a trial read "0 [0, 0], holds in 0 %" as certain)
+    from difffilter.eval.report import _acceptance_section
+
+    said = "The thresholds of `gaussian_nn_ekf` rest on calibration alarms that cluster"
+    concentrated = (written["far"].get("concentrated") or {}).get("gaussian_nn_ekf")
+    assert (said in section) == (concentrated is not None)
+    entry = {"alarms": 51, "effective_alarms": 4.9}
+    clustered = {**written, "far": {**written["far"], "concentrated": {"gaussian_nn_ekf": entry}}}
+    assert said in _acceptance_section(clustered).body
+    other = {**written, "far": {**written["far"], "concentrated": {"zhang_akf": entry}}}
+    assert said not in _acceptance_section(other).body
 
 
 def test_the_evaluations_acceptance_summary_has_a_row_per_judged_learned_estimator(tmp_path):
