@@ -691,7 +691,9 @@ def main(argv: list[str] | None = None) -> int:
         "{seed} in them becomes the seed (a curriculum's second stage: -- "
         "--model.init_args.init_from=stage1/runs/<name>/seed_{seed}/<name>.ckpt).",
     )
-    p.add_argument("--config", type=Path, required=True, help="the training config (YAML)")
+    p.add_argument("--config", type=Path, required=True,
+                   help="the training config (YAML); a second one, e.g. a threat "
+                        "distribution's, goes after -- (-- --config threats.yaml)")  # fmt: skip
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (0 1 2)")
     p.add_argument("--out", type=Path, required=True, help="the sweep's folder")
     p.add_argument("--scenarios", default=None,
