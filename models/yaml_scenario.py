@@ -21,6 +21,8 @@ a path ending in ``.yaml`` or ``.yml`` names a file such as::
       R: 1.0e-3
       m0: [0.0, 0.0]                     #   prior mean (default zeros) and covariance
       P0: 1.0e-2                         #   (default I)
+    random_initial: false                # true: each run starts at x_0 ~ N(m0, P0);
+                                         #    false (default): every run at m0
     inputs: {kind: sinusoid, amplitude: 1.0, frequency: 0.5}   # known inputs (optional)
     attack: {kind: bias, channel: actuator, value: 0.5, onset: 50, share: 0.5}
     schedule: all                        # or {kind: round_robin, groups: [[0], [1]]},
@@ -102,7 +104,7 @@ PAPER_ATTACKS = {
 }
 _TOP = {"name", "family", "description", "dt", "runs", "steps", "num_particles",
         "false_alarm_rate", "gamma_min", "units", "plant", "inputs", "attack", "schedule",
-        "input_loss", "estimators", "options", "paper", "notes"}  # fmt: skip
+        "input_loss", "estimators", "options", "paper", "notes", "random_initial"}  # fmt: skip
 _PLANT = {"F", "B", "H", "Q", "R", "m0", "P0", "transition", "observe", "dim_u", "model",
           "angles"}  # fmt: skip
 
@@ -237,6 +239,9 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
         )
     if not settings.get("gamma_min", 1.0) > 0:
         raise ValueError(f"{where}: gamma_min must be a number > 0; got {doc['gamma_min']!r}")
+    drawn = doc.get("random_initial", False)
+    if not isinstance(drawn, bool):
+        raise ValueError(f"{where}: random_initial must be true or false; got {drawn!r}")
     steps = settings.get("steps", CustomScenario.steps)
     attack = _attack(doc.get("attack"), probe, steps, f"{where}: attack")
     try:
@@ -255,6 +260,7 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
             options=dict(doc.get("options", {}) or {}),
             state_unit=str(units.get("state", "state units")),
             attack_unit=str(units.get("attack", "attack units")),
+            random_initial=drawn,
             **settings,
         )
     except (ValueError, TypeError) as error:
