@@ -734,12 +734,19 @@ def _stealthy_section(name: str, r: dict) -> str:
         f"{r['iterations_within_budget']} iterates kept the budget on their own batch"
         f"{_selection_text(r)}.\n\n"
         + markdown_table(
-            ["attack (the study's runs)", f"`{r['against']}` alarm rate", "RMS state error"],
+            [
+                "attack (the study's runs)",
+                f"`{r['against']}` alarm rate",
+                "RMS error ‖x̂ − x‖ over the attacked steps",
+            ],
             [
                 ["crafted", format_number(c["alarm_rate"], 4), format_number(c["state_error"], 4)],
                 [bias_row, format_number(b["alarm_rate"], 4), format_number(b["state_error"], 4)],
             ],
         )  # fmt: skip
+        + "\nThe error is √(mean over runs and attacked steps of ‖x̂_k − x_k‖²), the "
+        "crafting's objective: not the tables' `state_rmse`, which is per state component "
+        "and over every step (a trial read the two as one)."
         + verdict
         + _batch_noise_text(r)
         + " A constant "
