@@ -97,7 +97,11 @@ class EstimatorOutput:
             estimate it.
         detection: a :class:`Detection` or ``None`` for plain filters.
         extras: named per-run or per-step records of the algorithm (documented by each
-            estimator), for example ``"ess" [..., T]``.
+            estimator), for example ``"ess" [..., T]``; where the steps report them (a
+            Gaussian filter's), ``"innovations" [..., T, dy]``, ``"innovation_covs"
+            [..., T, dy, dy]``, ``"pred_means"``, ``"pred_covs"``,
+            ``"log_likelihood_increments" [..., T]`` and ``"log_likelihood"`` (a step's
+            ``innovation`` is ``extras["innovations"]`` here: :func:`stack_steps`).
         attack_channel: the :class:`~difffilter.attack.Channel` ``attack`` estimates:
             the sensors (default; a replacement attack is measured on the same side, as
             ``ỹ − y``) or the actuators (``ũ − u``). Scoring compares an estimate only with
@@ -110,6 +114,17 @@ class EstimatorOutput:
     detection: Detection | None = None
     extras: dict[str, Tensor] = field(default_factory=dict)
     attack_channel: Channel = Channel.SENSOR
+
+    def __getattr__(self, name: str):
+        # (only for names the class lacks: a trial asked for .innovation, a step's field, and
+        # got a bare AttributeError)
+        stacked = {**_STATISTICS, **_MATRICES, "log_likelihood": "log_likelihood"}
+        if name in stacked:
+            raise AttributeError(
+                f"'EstimatorOutput' has no attribute {name!r}: the steps' {name} values are "
+                f"stacked in extras[{stacked[name]!r}] (where the estimator's steps report them)"
+            )
+        raise AttributeError(f"'EstimatorOutput' object has no attribute {name!r}")
 
     def __post_init__(self):
         self.attack_channel = Channel(self.attack_channel)

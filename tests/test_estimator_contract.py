@@ -172,3 +172,24 @@ class TestAdaptiveParticleFilter(EstimatorContract):
         )
         assert out.attack.shape == out.means.shape[:-1] + (model.dim_u,)
         return out
+
+
+def test_a_stacked_output_keeps_the_steps_innovations_in_extras():
+    """A Kalman filter's stacked output holds each step's innovation ``ν_k = y_k − H F x̂_{k−1}``
+    (``x̂_0`` the prior mean; no input) in ``extras["innovations"]``, checked by hand in
+    float64; asking the output for a step's field names where it went (a trial met a bare
+    AttributeError on ``out.innovation``)."""
+    model = linear_model(torch.float64)
+    ys = torch.randn(3, T, DY, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    from difffilter.loop import open_loop
+
+    out = open_loop(df.KalmanFilter(), model, ys)
+    F, H = model.F, model.H
+    previous = torch.cat([model.initial.mean.expand(3, 1, DX), out.means[:, :-1]], dim=1)
+    expected = ys - previous @ F.T @ H.T
+    torch.testing.assert_close(out.extras["innovations"], expected, rtol=1e-12, atol=1e-12)
+    assert out.extras["innovation_covs"].shape == (3, T, DY, DY)
+    with pytest.raises(AttributeError, match=r"stacked in extras\['innovations'\]"):
+        out.innovation  # noqa: B018
+    with pytest.raises(AttributeError, match="has no attribute 'nope'"):
+        out.nope  # noqa: B018
