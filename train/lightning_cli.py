@@ -153,6 +153,7 @@ class DifffilterCLI(LightningCLI):
         ckpt = config["fit"].get("ckpt_path") if config is not None else None
         _check_resumed_settings(ckpt, getattr(self, "model", None),
                                 getattr(self, "datamodule", None))  # fmt: skip
+        _hide_the_interrupted_events(self.trainer, ckpt)
         add_last_every_epoch(self.trainer)
 
     def before_validate(self):
@@ -270,6 +271,31 @@ def _ckpt_paths_in(argv) -> list[str]:
     found = [a.split("=", 1)[1] for a in argv if a.startswith("--ckpt_path=")]
     found += [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--ckpt_path"]
     return found
+
+
+def _hide_the_interrupted_events(trainer, ckpt) -> None:
+    """A run resumed into its own folder from a checkpoint written after ``n`` training
+    batches goes on at step ``n``: the TensorBoard events the interrupted process wrote from
+    step ``n`` on (the cut epoch's points, which the resumed run logs again) are hidden, as
+    ``SummaryWriter(purge_step=n)`` hides them; TensorBoard had drawn those points twice (a
+    trial). Nothing for another logger, another folder, or a checkpoint without the count."""
+    from lightning.pytorch.loggers import TensorBoardLogger
+
+    logger = trainer.logger
+    if not ckpt or not Path(ckpt).is_file() or not isinstance(logger, TensorBoardLogger):
+        return
+    kwargs = getattr(logger, "_kwargs", None)
+    if getattr(logger, "_experiment", True) is not None or not isinstance(kwargs, dict):
+        return  # (its writer exists already: too late to purge; or a Lightning without)
+    if Path(logger.log_dir).resolve() != Path(ckpt).resolve().parent.parent:
+        return
+    try:
+        blob = torch.load(ckpt, map_location="cpu", weights_only=True, mmap=True)
+        step = blob["loops"]["fit_loop"]["epoch_loop.state_dict"]["_batches_that_stepped"]
+    except Exception:  # (a checkpoint of another layout: its curves as they are)
+        return
+    if kwargs.get("purge_step") is None:  # (the CLI passes an explicit None; a user's own kept)
+        kwargs["purge_step"] = int(step)
 
 
 def _fixed_run_folder(cfg, logger, args) -> Path | None:
