@@ -196,3 +196,45 @@ def test_a_refused_setting_is_shown_where_it_differs():
     assert _changed_text("--t", [a], [slope]) == "--t[0].ramp.slope: 0.1 → 0.2"
     assert _changed_text("--o", (10, 50), [5, 60]) == "--o: (10, 50) → [5, 60]"
     assert _changed_text("--t", a, None).startswith("--t: {'own': {'weight': 1}")
+
+
+def test_a_run_resumed_after_an_interrupted_epoch_draws_each_point_once(tmp_path, monkeypatch):
+    """Interrupted in its second epoch (after that epoch's first batch was logged) and
+    resumed from the first epoch's last.ckpt, the run logs the cut epoch again: its curves
+    hold each step once (the interrupted process's points from the checkpoint's step on are
+    purged; TensorBoard had drawn them twice, a trial), every epoch's validation kept."""
+    import signal
+
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from difffilter.train.task import FilterEstimatorTask
+
+    def interrupt(self, outputs, batch, batch_idx):
+        if self.current_epoch == 1 and batch_idx == 1:
+            raise KeyboardInterrupt
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("sys.argv", ["difffilter-train"])
+    small = ["--config", str(ROOT / "train" / "configs" / "four_tank.yaml"),
+             "--data.init_args.batch_size=2", "--data.init_args.batches_per_epoch=3",
+             "--data.init_args.val_runs=4", "--data.init_args.steps=20",
+             "--model.init_args.hidden=4", "--model.init_args.num_particles=20",
+             "--trainer.log_every_n_steps=1", "--trainer.max_epochs=3"]  # fmt: skip
+    monkeypatch.setattr(FilterEstimatorTask, "on_train_batch_end", interrupt, raising=False)
+    handler = signal.getsignal(signal.SIGINT)  # Lightning ignores SIGINT after an interrupt
+    try:
+        try:
+            got = main(["fit", *small])
+        except SystemExit as exit_:
+            got = exit_.code
+    finally:
+        signal.signal(signal.SIGINT, handler)
+    assert got == 1
+    run = tmp_path / "lightning_logs" / "four_tank_nn_grad" / "version_0"
+    interrupted = EventAccumulator(str(run)).Reload()
+    assert [e.step for e in interrupted.Scalars("train/loss")] == [0, 1, 2, 3]  # cut at 3
+    monkeypatch.delattr(FilterEstimatorTask, "on_train_batch_end")
+    assert main(["fit", *small, f"--ckpt_path={run / 'checkpoints' / 'last.ckpt'}"]) == 0
+    events = EventAccumulator(str(run)).Reload()
+    assert [e.step for e in events.Scalars("train/loss")] == list(range(9))
+    assert [e.step for e in events.Scalars("val/threshold")] == [2, 5, 8]
