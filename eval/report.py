@@ -524,7 +524,7 @@ def _acceptance_section(doc: dict) -> Section | None:
     if clustered:  # (a trial: "0 [0, 0], holds in 0 %" read as certain; 1.01 % on 2,000 runs)
         body += (
             "\nThe thresholds of " + ", ".join(f"`{n}`" for n in clustered) + " rest on "
-            "calibration alarms that cluster in a few runs (the calibration's note above): "
+            "calibration alarms that cluster in a few runs (the calibration note under Setting): "
             "their false-alarm rate on fresh runs varies with the draw of calibration runs far "
             "more than these runs show, and the intervals hold the thresholds fixed, so the "
             "false-alarm verdict is less sure than its share says; judge it on more "
