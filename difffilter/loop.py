@@ -158,7 +158,9 @@ def open_loop(
             ``extras["nonfinite_skipped"] [...]``; ``RAISE`` (default) raises.
         collect: ``collect(carry, out) → {name: tensor}`` after every step (what a run
             records beyond the step outputs, e.g. every particle): stacked into
-            ``extras`` after the batch dimensions. Runs step by step (no fast path).
+            ``extras`` after the runs' dimensions (the measurements' batch broadcast with
+            the carry's and the model's parameter sets, as the means are). Runs step by
+            step (no fast path).
 
     Every input is validated once (:func:`difffilter._checks.check_sequence_inputs`); the
     steps then run unchecked. The Python loop over time is the only loop.
@@ -181,6 +183,10 @@ def open_loop(
             result = estimator._run(carry, ys, us, mask)
             if result is not None:  # a fast path says what its attack estimate is on too
                 result.attack_channel = estimator.attack_channel
+        # the runs are the carry's too: a model of several parameter sets makes runs of
+        # them (its steps' extras and collect's records had stacked time first there, the
+        # means runs first: a review)
+        batch = broadcast_or_none(batch, estimator._runs_of(carry)) or batch
     else:
         if not isinstance(carry, estimator.carry_type):
             raise TypeError(
@@ -200,7 +206,7 @@ def open_loop(
                 f"the carry holds runs {tuple(estimator.batch_of(carry))} and the measurements "
                 f"(ys, us, mask) runs {tuple(batch)}: they must broadcast (one carry per run of ys)"
             )
-        batch = both
+        batch = broadcast_or_none(both, estimator._runs_of(carry)) or both
     if result is None:
         result = _step_through(estimator, carry, ys, us, mask, batch, collect)
     if skipped is not None:

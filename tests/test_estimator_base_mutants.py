@@ -483,3 +483,33 @@ def test_result_types_follow_their_docstrings():
         "log_likelihood", "attack", "score", "alarm", "threshold", "extras",
     )  # fmt: skip
     assert GaussianState(torch.zeros(DX), torch.eye(DX)).k == 0
+
+
+def test_records_of_a_model_of_parameter_sets_stack_runs_first_like_the_means():
+    """A model of three parameter sets makes three runs of unbatched measurements: what
+    ``collect`` records (and the steps' own extras) stacks runs first, as the means do
+    (they had stacked time first, ``[T, 3, dx]`` beside means ``[3, T, dx]``: a review);
+    each set's records are the means of that set's own filter, and a given carry agrees."""
+    from difffilter.loop import open_loop
+
+    t = lambda a: torch.tensor(a, dtype=torch.float64)  # noqa: E731
+    base = t([[1.0, 0.2], [-0.1, 0.9]])
+    Fs = torch.stack([base * s for s in (0.5, 1.0, 1.5)])
+
+    def model(F):
+        return df.LinearGaussianModel(F, t([[1.0, 0.0]]), 0.05 * torch.eye(2, dtype=torch.float64),
+                                      t([[0.2]]), t([0.5, -0.3]), torch.eye(2, dtype=torch.float64))  # fmt: skip
+
+    ys = torch.randn(6, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    record = lambda c, o: {"x": c.mean, "ll": o.log_likelihood}  # noqa: E731
+    for est in (df.KalmanFilter(), df.ExtendedKalmanFilter()):
+        out = open_loop(est, model(Fs), ys, collect=record)
+        assert out.extras["x"].shape == (3, 6, 2) and out.extras["ll"].shape == (3, 6)
+        for i in range(3):  # set i alone, filtered on its own
+            alone = open_loop(est, model(Fs[i]), ys)
+            torch.testing.assert_close(out.extras["x"][i], alone.means, rtol=1e-12, atol=1e-12)
+            torch.testing.assert_close(out.extras["ll"][i], alone.extras["log_likelihood_increments"],
+                                       rtol=1e-12, atol=1e-12)  # fmt: skip
+        sets = model(Fs)
+        given = open_loop(est, sets, ys, carry=est.init(sets), collect=record)
+        assert given.extras["x"].shape == (3, 6, 2)
