@@ -183,10 +183,6 @@ def open_loop(
             result = estimator._run(carry, ys, us, mask)
             if result is not None:  # a fast path says what its attack estimate is on too
                 result.attack_channel = estimator.attack_channel
-        # the runs are the carry's too: a model of several parameter sets makes runs of
-        # them (its steps' extras and collect's records had stacked time first there, the
-        # means runs first: a review)
-        batch = broadcast_or_none(batch, estimator._runs_of(carry)) or batch
     else:
         if not isinstance(carry, estimator.carry_type):
             raise TypeError(
@@ -206,8 +202,12 @@ def open_loop(
                 f"the carry holds runs {tuple(estimator.batch_of(carry))} and the measurements "
                 f"(ys, us, mask) runs {tuple(batch)}: they must broadcast (one carry per run of ys)"
             )
-        batch = broadcast_or_none(both, estimator._runs_of(carry)) or both
+        batch = both
     if result is None:
+        # the runs are the carry's too: a model of several parameter sets makes runs of
+        # them (its steps' extras and collect's records had stacked time first there, the
+        # means runs first: a review)
+        batch = broadcast_or_none(batch, estimator._runs_of(carry)) or batch
         result = _step_through(estimator, carry, ys, us, mask, batch, collect)
     if skipped is not None:
         result.extras["nonfinite_skipped"] = skipped

@@ -57,21 +57,23 @@ def plant_difference(trained, evaluated) -> str | None:
     return None
 
 
+def _card(path) -> dict:
+    """The JSON card beside a checkpoint, or ``{}`` where there is none that reads."""
+    try:
+        card = json.loads(Path(path).with_suffix(".json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return card if isinstance(card, dict) else {}
+
+
 def training_scenario_of(path) -> str | None:
     """The scenario a checkpoint's network was trained on, as its training was given it
     (the JSON card's ``model_config.scenario``: a registered name, ``module:object`` or a
     YAML path), else the name inside the checkpoint; ``None`` where neither says."""
     from .neural_estimator import checkpoint_training_scenario
 
-    card = Path(path).with_suffix(".json")
-    if card.is_file():
-        try:
-            spec = (json.loads(card.read_text()).get("model_config") or {}).get("scenario")
-        except (OSError, ValueError):
-            spec = None
-        if spec:
-            return str(spec)
-    return checkpoint_training_scenario(path)
+    spec = (_card(path).get("model_config") or {}).get("scenario")
+    return str(spec) if spec else checkpoint_training_scenario(path)
 
 
 def _recorded_file_digest(path) -> str | None:
@@ -81,14 +83,9 @@ def _recorded_file_digest(path) -> str | None:
     card written before the field)."""
     from .yaml_scenario import SCENARIO_FILE_DIGEST
 
-    card = Path(path).with_suffix(".json")
-    if card.is_file():
-        try:
-            recorded = json.loads(card.read_text()).get("scenario_file_sha256")
-        except (OSError, ValueError, AttributeError):
-            recorded = None
-        if recorded:
-            return str(recorded)
+    recorded = _card(path).get("scenario_file_sha256")
+    if recorded:
+        return str(recorded)
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
     except Exception:  # (not a zip-format torch file: the loaders name it themselves)
@@ -97,16 +94,17 @@ def _recorded_file_digest(path) -> str | None:
     return None if recorded is None else str(recorded)
 
 
-def scenario_file_change(given: str, path) -> str | None:
-    """A note (naming the checkpoint as ``given``) where the YAML scenario file a checkpoint was trained on (as its training was
-    given it, read from this folder) now holds other bytes than training read: the plant
-    comparison of :func:`training_plant_notes` builds the training plant from the file as
-    it is now, so an edit after training went unseen (a trial edited F after export and
-    evaluated and calibrated without a word). ``None`` where the file is unchanged, cannot
-    be read here, or the checkpoint records no digest."""
+def scenario_file_change(given: str, path, spec: str | None = None) -> str | None:
+    """A note (naming the checkpoint as ``given``) where the YAML scenario file it was
+    trained on (``spec``, default :func:`training_scenario_of`; read from this folder) now
+    holds other bytes than training read: the plant comparison of
+    :func:`training_plant_notes` builds the training plant from the file as it is now, so
+    an edit after training went unseen (a trial edited F after export and evaluated and
+    calibrated without a word). ``None`` where the file is unchanged, cannot be read here,
+    or the checkpoint records no digest."""
     from .yaml_scenario import is_yaml_path, scenario_file_digest
 
-    spec = training_scenario_of(path)
+    spec = training_scenario_of(path) if spec is None else spec
     if spec is None or not is_yaml_path(spec):
         return None
     recorded, now = _recorded_file_digest(path), scenario_file_digest(spec)
@@ -131,12 +129,12 @@ def training_plant_notes(
 
     notes = []
     for given, path in checkpoints:
-        changed = scenario_file_change(f"--ckpt {given}", path)
-        if changed:
-            notes.append(changed)
         spec = training_scenario_of(path)
         if spec is None:
             continue
+        changed = scenario_file_change(f"--ckpt {given}", path, spec)
+        if changed:
+            notes.append(changed)
         try:
             trained = registry.get(spec)
             model = trained.system(torch.float64)
