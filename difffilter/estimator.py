@@ -391,11 +391,15 @@ def _stack_scalars(values: Sequence[Tensor], batch: torch.Size) -> Tensor:
 
 
 def _stack_thresholds(values: Sequence, batch: torch.Size, like: Tensor):
-    """A number when every step used the same one, else ``[*batch, T]`` (``None``: none)."""
+    """A number when every step used the same one, else ``[*batch, T]`` (``None``: none).
+
+    A threshold that requires grad (a learnable one) stays a tensor: ``float`` would cut
+    its gradient."""
     if values[0] is None:
         return None
     numbers = [v for v in values if not isinstance(v, Tensor) or v.dim() == 0]
-    if len(numbers) == len(values):
+    learnable = any(isinstance(v, Tensor) and v.requires_grad for v in values)
+    if len(numbers) == len(values) and not learnable:
         first = float(values[0])
         if all(float(v) == first for v in values):
             return first

@@ -255,7 +255,9 @@ def oracle_attack(ctx: SuiteContext, tr, noise_var: float | None = None):
     actuator, zero."""
     values, channel = tr.info["attack_values"], tr.info.get("attack_channel", Channel.SENSOR)
     if channel is not Channel.SENSOR:  # what reached the receiver: ỹ − y (zero attack-free)
-        values = tr.y_recv - tr.y_true if channel is Channel.REPLACEMENT else tr.y_recv * 0
+        # zeros, not ỹ·0: a lost step's NaN must not reach the oracle's γ̂
+        replaced = channel is Channel.REPLACEMENT
+        values = tr.y_recv - tr.y_true if replaced else torch.zeros_like(tr.y_recv)
     var = ctx.option("gamma_hat_noise_var", 0.0) if noise_var is None else noise_var
     if var == 0:
         return values

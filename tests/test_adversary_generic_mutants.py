@@ -543,6 +543,12 @@ def test_the_oracle_of_an_actuator_attack_is_zero_and_a_small_variance_is_noise(
             "attack_channel": Channel.ACTUATOR}  # fmt: skip
     tr = types.SimpleNamespace(info=info, y_recv=y + 2.0, y_true=y)
     assert oracle_attack(Ctx(0.0), tr).abs().max() == 0
+    # an entry not received may hold anything, NaN included: γ̂ is still 0 there
+    y_lost = (y + 2.0).index_put_(
+        (torch.tensor([0]), torch.tensor([1])), torch.tensor(torch.nan, dtype=F64)
+    )
+    tr = types.SimpleNamespace(info=info, y_recv=y_lost, y_true=y)
+    assert oracle_attack(Ctx(0.0), tr).abs().max() == 0
     info = {"attack_values": torch.zeros(1, 2000, 2, dtype=F64), "attack_channel": Channel.SENSOR}
     tr = types.SimpleNamespace(info=info, y_recv=torch.zeros(1, 2000, 2, dtype=F64),
                                y_true=torch.zeros(1, 2000, 2, dtype=F64))  # fmt: skip

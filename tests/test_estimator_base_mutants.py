@@ -348,6 +348,17 @@ def test_per_step_thresholds_stack_in_the_scores_dtype():
     assert _detect([None, None]).threshold is None
 
 
+def test_a_learnable_threshold_keeps_its_gradient():
+    """A constant threshold that requires grad (a learnable one) stays a tensor ``[*batch,
+    T]``: its gradient through the stacked thresholds is T (one per step and run summed,
+    ``d/dτ Σ τ = T·B``), where collapsing it to a float would leave no gradient at all."""
+    tau = torch.tensor(0.5, dtype=torch.float64, requires_grad=True)
+    det = _detect([tau, tau, tau, tau])
+    assert isinstance(det.threshold, torch.Tensor) and det.threshold.shape == (3, 4)
+    det.threshold.sum().backward()
+    assert tau.grad.item() == 12.0
+
+
 def test_detection_of_runs_from_the_models_parameter_sets():
     """``batch=()`` on a model of 3 parameter sets: the steps' means are ``[3, dx]``, so a
     per-step threshold of one number per step, and an alarm shared by the runs, are
