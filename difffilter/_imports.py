@@ -27,8 +27,10 @@ def _import_module(name: str):
             return importlib.import_module(name)
         except ModuleNotFoundError as again:
             sys.path.remove(here)
-            if (again.name or "").split(".")[0] != name.split(".")[0]:
-                raise  # found here, but a module it imports is missing: name that one
+            if again.name != error.name:
+                # the working folder took it further (``mine`` found, ``mine.none_such`` not;
+                # or a module it imports missing): name what is missing now, not ``mine``
+                raise
             raise error from None
 
 

@@ -17,6 +17,7 @@ beyond it (the PF's ESS, the modified PF's ``ζ_k``, the NIS of a gated EKF) goe
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, NamedTuple
@@ -73,8 +74,8 @@ class Detection:
     def __post_init__(self):
         for name in ("scores", "alarms"):
             if not isinstance(getattr(self, name), torch.Tensor):  # numpy's said "got bool"
-                raise TypeError(f"{name} must be a torch tensor; got "
-                                f"{type(getattr(self, name)).__name__}")  # fmt: skip
+                raise TypeError(f"{name} must be a torch tensor (torch.as_tensor(array) for "
+                                f"a numpy array); got {type(getattr(self, name)).__name__}")  # fmt: skip
         if self.scores.shape != self.alarms.shape:
             raise ValueError(
                 f"scores and alarms must have the same shape [..., T]; got "
@@ -82,6 +83,35 @@ class Detection:
             )
         if self.alarms.dtype != torch.bool:
             raise ValueError(f"alarms must be a bool tensor; got {self.alarms.dtype}")
+        if self.scores.is_complex():  # (scoring cast them to real with a warning of torch's)
+            raise ValueError(f"scores must be real; got {self.scores.dtype}")
+        self._check_threshold()
+
+    def _check_threshold(self) -> None:
+        """A number, a tensor of one number or of ``scores``' shape (one threshold per run
+        and step, or broadcast to it), or ``None``: a trial's ``"25"`` was read as 25.0 and
+        a list or a ``[B]`` tensor (one per run) was taken without a word."""
+        th = self.threshold
+        if th is None or (isinstance(th, numbers.Real) and not isinstance(th, bool)):
+            return
+        if isinstance(th, torch.Tensor) and not th.is_complex() and th.dtype != torch.bool:
+            if th.dim() == 0:
+                return
+            try:
+                fits = torch.broadcast_shapes(th.shape, self.scores.shape) == self.scores.shape
+            except RuntimeError:
+                fits = False
+            if fits:
+                return
+            raise ValueError(
+                f"threshold must be a number or a tensor of the scores' shape "
+                f"{tuple(self.scores.shape)} [..., T] (or one that broadcasts to it); got shape "
+                f"{tuple(th.shape)}"
+            )
+        raise TypeError(
+            "threshold must be a number, a real tensor [..., T] like scores, or None (a "
+            f"decision that is not a threshold of the scores); got {th!r}"
+        )
 
 
 @dataclass
@@ -128,6 +158,11 @@ class EstimatorOutput:
 
     def __post_init__(self):
         self.attack_channel = Channel(self.attack_channel)
+        if not isinstance(self.means, Tensor):  # (None had raised a bare AttributeError)
+            raise TypeError(
+                f"means must be a torch tensor [..., T, dx]; got {type(self.means).__name__} "
+                "(an estimator that only detects reports the means of the filter it scores)"
+            )
         if self.means.dim() < 2:
             raise ValueError(f"means must have shape [..., T, dx]; got {tuple(self.means.shape)}")
         lead = self.means.shape[:-1]

@@ -405,6 +405,26 @@ def test_detection_and_output_validate_their_shapes():
     assert EstimatorOutput(means, attack_channel="actuator").attack_channel is Channel.ACTUATOR
 
 
+def test_detection_refuses_a_threshold_that_is_not_a_number_or_the_scores_shape():
+    """A trial: a threshold ``"25"`` was reported as 25.0, a list or a ``[B]`` tensor (one
+    per run, not ``[..., T]``) was taken without a word, complex scores were cast to real
+    with torch's warning. Each is refused, naming the argument; a number, a 0-d tensor, a
+    ``[B, T]`` tensor and one that broadcasts to it (``[T]``) are taken, and ``None`` too."""
+    s = torch.zeros(3, T)
+    alarms = s > 0
+    for bad in ("25", [0.5], True, np.array([0.5])):
+        with pytest.raises(TypeError, match="threshold must be a number"):
+            Detection(s, alarms, bad)
+    with pytest.raises(ValueError, match=r"threshold must be .* got shape \(3,\)"):
+        Detection(s, alarms, torch.ones(3))
+    with pytest.raises(ValueError, match="scores must be real"):
+        Detection(torch.zeros(3, T, dtype=torch.complex64), alarms)
+    for good in (0.5, np.float64(0.5), 2, torch.tensor(0.5), torch.ones(3, T), torch.ones(T), None):
+        assert Detection(s, alarms, good).threshold is good
+    with pytest.raises(TypeError, match="means must be a torch tensor .* only detects"):
+        EstimatorOutput(None, detection=Detection(s, alarms))
+
+
 def test_detach_detaches_thresholds_and_extras():
     """``detach`` leaves no tensor of the output (the threshold and extras included) on the
     autograd graph, with the same values."""

@@ -80,6 +80,23 @@ def test_a_plugin_whose_own_import_fails_names_the_missing_module(tmp_path, monk
     sys.modules.pop("my_broken_plugin", None)
 
 
+def test_a_package_found_in_the_working_folder_names_its_missing_module(
+    tmp_path, monkeypatch, capsys
+):
+    """A trial: ``--import mine.none_such`` with a folder ``mine`` in the working folder
+    said "No module named 'mine'" (the first attempt's error, from before the working
+    folder was tried); it names ``mine.none_such``, the module that is missing."""
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "__init__.py").write_text("")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    monkeypatch.setattr(sys, "modules", dict(sys.modules))
+    with pytest.raises(SystemExit):
+        eval_main(["--import", "mine.none_such", "--list"])
+    err = capsys.readouterr().err
+    assert "No module named 'mine.none_such'" in err, err
+
+
 def test_a_nan_attack_estimate_is_warned_too():
     import torch
 
