@@ -35,6 +35,7 @@ from difffilter.models import estimators as registry
 from .acceptance import ANALYTIC, best_analytic, judge, roles, state_metric
 from .calibration import below_target_note
 from .intervals import acceptance_intervals
+from .provenance import software_line, software_record
 from .scoring import METRICS
 
 __all__ = [
@@ -282,6 +283,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
         **({"checkpoints": result.checkpoints} if result.checkpoints else {}),
         **({"family_report_skipped": family_skipped} if family_skipped else {}),
         **family_numbers,
+        "software": software_record(),
     })  # fmt: skip
     if doc["far"] is not None and (intervals := acceptance_intervals(
         result, doc["estimator_roles"], far=doc["far"]["target"],
@@ -430,6 +432,7 @@ def _summary_section(doc: dict, sc) -> Section:
         if below:
             body += f"\n{below}\n"
     body += _network_line(doc.get("network"))
+    body += software_line(doc.get("software"))
     if doc.get("skipped"):
         body += "\nSkipped: " + "; ".join(f"`{k}` ({v})" for k, v in doc["skipped"].items())
         body += ".\n"

@@ -41,6 +41,7 @@ from .acceptance import (
 from .calibration import below_target_note, calibrate
 from .coverage import checkpoint_of, training_coverage
 from .intervals import LEVEL, RESAMPLES, robustness_intervals, threat_totals
+from .provenance import software_line, software_record
 from .report import (
     _clean,
     _network_line,
@@ -481,6 +482,7 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
         "estimator_roles": roles(free.metrics),
         "reads_no_measurements": reading_no_measurements(free.metrics),
         "network": network_of(sc),
+        "software": software_record(),
     })  # fmt: skip
     doc["threat_activity"] = result.activity
     # which threats read the true state x (Attack.reads_state: an insider, who knows the noise)
@@ -530,7 +532,8 @@ def _markdown(doc: dict, sc) -> str:
         "assumptions about attacks. Threat set: "
         + (f"`{Path(doc['threat_set']).name}`.\n" if doc.get("threat_set")
            else "built in Python (no file).\n")
-        + _network_line(doc.get("network")),
+        + _network_line(doc.get("network"))
+        + software_line(doc.get("software")),
     ]  # fmt: skip
     below = below_target_note(far)
     if below:

@@ -15,6 +15,7 @@ import torch
 
 import difffilter as df
 from difffilter.eval.calibration import below_target_note, calibrate
+from difffilter.eval.provenance import software_line, software_record
 from difffilter.eval.report import metrics_schema, write_report
 from difffilter.eval.suite import BROKE_DOWN, run_suite
 from difffilter.linalg import safe_cholesky
@@ -88,6 +89,9 @@ def test_the_ekf_that_cannot_linearise_is_left_out_and_the_others_reported(at_th
     assert set(doc["far"]["broke_down"]) == {"chi_square_ekf", "cusum_ekf"}
     report = (out / "report.md").read_text()
     assert "`chi_square_ekf` (broke down on this study's data" in report
+    # which code wrote it (eval/provenance.py), in the JSON and in the summary
+    assert doc["software"] == software_record()
+    assert software_line(doc["software"]).strip() in report
     assert "`cusum_ekf` has no threshold" in report
 
 
@@ -145,6 +149,7 @@ def test_a_breakdown_under_one_threat_is_that_estimators_worst_case(tmp_path, mo
     write_robustness(tmp_path / "out", result)
     written = json.loads((tmp_path / "out" / "robustness.json").read_text())
     jsonschema.validate(written, metrics_schema())
+    assert written["software"] == software_record()
     text = (tmp_path / "out" / "robustness.md").read_text()
     assert "Broke down under a threat" in text and "`chi_square_ekf` under `huge`" in text
     assert "broke down (huge)" in text
