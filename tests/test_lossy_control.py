@@ -5,6 +5,8 @@ controller's expected cost tr(S W) in Monte Carlo."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import scipy.linalg as sla
@@ -104,6 +106,13 @@ def test_bad_rates_and_undetectable_pairs_are_named():
     blind = torch.tensor([[0.0, 1.0]], dtype=torch.float64)  # sees the stable state alone
     with pytest.raises(ValueError, match="not detectable"):
         critical_arrival_rate(F, blind)
+    # at every rate, 1 included (it had said "at or below the critical rate" there)
+    for rate in (1.0, 0.9):
+        with pytest.raises(ValueError, match="not detectable"):
+            intermittent_kalman_bounds(F, blind, Q, R, rate)
+        with pytest.raises(ValueError, match="not stabilizable"):  # 1.2 not reached by u
+            lossy_dlqr(torch.diag(torch.tensor([1.2, 0.5], dtype=torch.float64)), blind.mT,
+                       arrival_rate=rate)  # fmt: skip
 
 
 def test_the_bounds_solve_their_equations_and_the_scalar_mare_its_closed_form():
@@ -175,6 +184,27 @@ def test_the_solutions_do_not_depend_on_the_units():
     rate = critical_arrival_rate(a, one, Q, R)
     assert rate.lower == pytest.approx(1 - 1 / 1.44) and rate.upper - rate.lower < 2e-3
     assert critical_arrival_rate(_t([1e8]), one).lower == pytest.approx(1.0)
+
+
+def test_an_invertible_h_gives_the_critical_rate_exactly():
+    """Where ``H`` is square and invertible the critical rate is ``1 − 1/ρ(F)²`` exactly
+    (Sinopoli et al. 2004): a review's scalar ``a = 1.01`` bisected for seconds to 1.9e-3
+    above it (the MARE settles slowly there); a 2×2 plant with a non-diagonal invertible
+    ``H`` and eigenvalues 1.5 and 0.5 gives 1 − 1/1.5² at both ends. The bounds then exist
+    right above it: the scalar MARE's fixed point at λ = λ_c + 1e-3 by hand, from
+    v = a²v + 1 − λa²v²/(v + 1) ⇔ c v² − a² v − 1 = 0 with c = 1 − a²(1 − λ)."""
+    a = 1.01
+    rate = critical_arrival_rate(_t([a]), _t([1.0]))
+    assert rate.lower == rate.upper == pytest.approx(1 - 1 / a**2, rel=1e-12)
+    F = torch.tensor([[1.5, 0.3], [0.0, 0.5]], dtype=torch.float64)
+    H = torch.tensor([[1.0, 2.0], [0.5, -1.0]], dtype=torch.float64)
+    rate = critical_arrival_rate(F, H)
+    assert rate.lower == rate.upper == pytest.approx(1 - 1 / 1.5**2, rel=1e-12)
+    lam = 1 - 1 / a**2 + 1e-3
+    c = 1 - a**2 * (1 - lam)
+    v = (a**2 + math.sqrt(a**4 + 4 * c)) / (2 * c)
+    _, upper = intermittent_kalman_bounds(_t([a]), _t([1.0]), _t([1.0]), _t([1.0]), lam)
+    assert float(upper) == pytest.approx(v, rel=1e-6)
 
 
 @pytest.mark.parametrize("tol", [0.0, -1.0, float("nan"), 2.0, "0.01", True])
