@@ -138,8 +138,12 @@ def _zhang(group):
         model = ctx.model if group is None else ctx.model.group(group)
 
         def run(tr):
-            ys = tr.y_recv if group is None else tr.y_recv[..., _entries(group)]
-            return adaptive_kalman_filter(model, ys, tr.us, **_opts(ctx))
+            # (the schedule's mask too: without it the filter read entries never received)
+            ys, mask = tr.y_recv, tr.mask
+            if group is not None:
+                ys = ys[..., _entries(group)]
+                mask = None if mask is None else mask[..., _entries(group)]
+            return adaptive_kalman_filter(model, ys, tr.us, mask=mask, **_opts(ctx))
 
         return run
 
