@@ -153,7 +153,7 @@ def cholesky(a):
     for j in range(d):
         s = lin([(1.0, a[j][j], 1.0)] + [(-1.0, low[j][k], low[j][k]) for k in range(j)])
         if not isinstance(s, Tensor):
-            s = torch.as_tensor(s)
+            s = _number_as_tensor(s, a)
         low[j][j] = torch.sqrt(torch.clamp_min(s, torch.finfo(s.dtype).tiny))
         for i in range(j + 1, d):
             num = lin([(1.0, a[i][j], 1.0)] + [(-1.0, low[i][k], low[j][k]) for k in range(j)])
@@ -228,5 +228,15 @@ def sym_inverse(a, logdet: bool = False):
             out[i][j] = out[j][i] = lin(((sign, cof[i][j], inv_det),))
     ld = None
     if logdet:
-        ld = torch.log(det) if isinstance(det, Tensor) else torch.log(torch.as_tensor(det))
+        ld = torch.log(det) if isinstance(det, Tensor) else torch.log(_number_as_tensor(det, a))
     return out, ld
+
+
+def _number_as_tensor(value: float, a) -> Tensor:
+    """A number entry as a tensor of the dtype and device of ``a``'s tensor entries (float64
+    where it has none): ``torch.as_tensor`` made float32, the default dtype, and a float64
+    matrix with a constant leading diagonal entry came out 1e-7 off (a review)."""
+    entry = next((e for row in a for e in row if isinstance(e, Tensor)), None)
+    if entry is None:
+        return torch.tensor(value, dtype=torch.float64)
+    return torch.tensor(value, dtype=entry.dtype, device=entry.device)
