@@ -48,13 +48,20 @@ class LastCheckpointEveryEpoch(pl.Callback):
         self._written_at_step: int | None = None
         self._whole: bytes | None = None  # last.ckpt as the last whole epoch left it
         self._cut = False
+        self._in_an_epoch = False  # whether _whole was read (an epoch began)
 
     def on_train_epoch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         path = self._path()
         if trainer.is_global_zero and path is not None:
             self._whole = path.read_bytes() if path.is_file() else None
+            self._in_an_epoch = True
 
     def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        if _cut_short(trainer):
+            # a validation inside the epoch (``val_check_interval`` < 1): written, the file
+            # held part of an epoch, and a resume from it trained other weights than the
+            # uninterrupted run (a review: w 1.30 against 1.56)
+            return
         self._write(trainer)
 
     def on_train_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
@@ -81,8 +88,13 @@ class LastCheckpointEveryEpoch(pl.Callback):
 
     def on_exception(self, trainer: pl.Trainer, pl_module: pl.LightningModule,
                      exception: BaseException) -> None:  # fmt: skip
-        """On Ctrl-C, how to resume (a user trial found Lightning's exit 1 and no word)."""
-        if not isinstance(exception, KeyboardInterrupt) or not trainer.is_global_zero:
+        """``last.ckpt`` back at the last whole epoch where the checkpoint callback wrote it
+        inside the epoch cut now (an improvement at a validation inside the epoch); on
+        Ctrl-C, how to resume (a user trial found Lightning's exit 1 and no word)."""
+        if not trainer.is_global_zero:
+            return
+        self._back_to_the_last_whole_epoch(trainer)
+        if not isinstance(exception, KeyboardInterrupt):
             return
         path = self._path()
         if path is not None and path.is_file() and os.environ.get(RESUME_HINT):
@@ -92,6 +104,17 @@ class LastCheckpointEveryEpoch(pl.Callback):
                   "the last whole epoch; the export is written when the run ends)")  # fmt: skip
         else:
             print("interrupted before the first epoch ended: no last.ckpt to resume from")
+
+    def _back_to_the_last_whole_epoch(self, trainer: pl.Trainer) -> None:
+        path = self._path()
+        if not self._in_an_epoch or path is None or not path.is_file():
+            return  # (before any epoch began, the file is a resumed run's own: left alone)
+        if self._written_at_step == trainer.global_step:
+            return  # written by this callback at this step: an epoch's end
+        if self._whole is None:
+            path.unlink()
+        elif path.read_bytes() != self._whole:
+            path.write_bytes(self._whole)
 
     def _path(self) -> Path | None:
         cb = self.checkpoint

@@ -93,13 +93,11 @@ class DifffilterCLI(LightningCLI):
         run = path.parent.parent  # .../version_<n>/checkpoints/x.ckpt → .../version_<n>
         # the same save_dir and name only: a checkpoint of another folder's run set this
         # run's version, and the resumed fit overwrote that version's export and card here
-        save_dir = Path(args.get("save_dir") or ".").resolve()
         if (
             path.parent.name == "checkpoints"
             and run.name.startswith("version_")
             and args.get("version") is None
-            and run.parent.name == args.get("name")
-            and run.parent.parent == save_dir
+            and run.parent == _runs_folder(args).resolve()
         ):
             args["version"] = int(run.name.removeprefix("version_"))
 
@@ -308,9 +306,18 @@ def _fixed_run_folder(cfg, logger, args) -> Path | None:
     if args is None or args.get("version") is None:
         return None
     version = args["version"]
-    name = args.get("name") or "lightning_logs"
     folder = version if isinstance(version, str) else f"version_{version}"
-    return Path(args.get("save_dir") or ".") / name / folder
+    return _runs_folder(args) / folder
+
+
+def _runs_folder(args) -> Path:
+    """The folder of a TensorBoard logger's ``version_<n>`` runs: ``save_dir/name``, or
+    ``save_dir`` itself for a ``name`` of ``null`` or ``""`` (as TensorBoardLogger logs;
+    read as ``lightning_logs`` there, a second fit of ``name: null, version: 0`` replaced the
+    first's run unrefused: a review)."""
+    root = Path(args.get("save_dir") or ".")
+    name = args.get("name", "lightning_logs")
+    return root / name if name else root
 
 
 def _log_apart_from_a_fit_run(cfg) -> None:
