@@ -57,6 +57,9 @@ SLOW = (
     "test_learned_cards_mutants.py::test_calibrate_keeps_the_cards_restart_and_confirm_and_counts_strict_exceedances",
     "test_learned_cards_mutants.py::test_calibrate_off_on_the_command_line_removes_restart_and_confirm_and_spares_the_source",
     "test_attacks_schedules_watermark_mutants.py::test_watermark_study_rows_against_their_definitions",
+    "test_train_cli_resume_mutants.py::test_a_fit_leaves_its_run_folder_as_documented",
+    "test_train_cli_resume_mutants.py::test_a_resumed_run_trains_the_uninterrupted_runs_weights_in_its_own_folder",
+    "test_train_cli_resume_mutants.py::test_validate_of_a_resumed_runs_config_logs_apart_and_writes_config_validate",
     # single parameters (the log-domain yardstick's; the default kernel method's stay fast)
     "test_resampling.py::test_ot_gradient_matches_finite_differences[particles-log]",
     "test_resampling.py::test_ot_gradient_matches_finite_differences[log_weights-log]",
