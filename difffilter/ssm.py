@@ -290,7 +290,9 @@ def wrapped_spread(model, points: Tensor, weights: Tensor,
     ``measurement_residual`` wraps angles, under ``weights [..., n]`` (summing to 1).
 
     Where no deviation from the plain weighted mean wraps (the residual equals the plain
-    difference), that mean is it (two residual calls). Otherwise residuals about a start
+    difference) and the cloud spans less than half a turn in each component (the residual
+    of its highest point about its lowest does not wrap), that mean is it (three residual
+    calls). Otherwise residuals about a start
     ``c`` are averaged, ``ŷ = c + Σᵢ wᵢ r(pᵢ, c)``, and the mean is taken again about ``ŷ``
     (:data:`RECENTRING_PASSES` times: a start in the tail wraps the far points the wrong
     way, and each pass moves it to the middle); the deviations are ``r(pᵢ, ŷ)``. The starts
@@ -307,7 +309,15 @@ def wrapped_spread(model, points: Tensor, weights: Tensor,
     plain = (w_row @ points).squeeze(-2)
     dev = model.measurement_residual(points, plain.unsqueeze(-2))
     diff = points - plain.unsqueeze(-2)
-    if bool(((dev - diff).abs() <= 1e-9 * (1.0 + diff.abs())).all()):  # nothing wrapped
+    # nothing wrapped, and the cloud narrower than half a turn in each component (the span
+    # from its lowest to its highest point does not wrap either): a cloud even on both
+    # sides of ±π has its plain mean near 0 with no deviation wrapping, and a spread of 9.3
+    # rad² where 0.01 was right (a review)
+    high, low = points.amax(-2), points.amin(-2)
+    span = model.measurement_residual(high, low)
+    if bool(((dev - diff).abs() <= 1e-9 * (1.0 + diff.abs())).all()) and bool(
+        ((span - (high - low)).abs() <= 1e-9 * (1.0 + (high - low).abs())).all()
+    ):
         return plain, dev
     if centre is not None:
         starts = [centre]
