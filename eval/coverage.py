@@ -11,7 +11,9 @@ every threat of the study (:meth:`~difffilter.threat_distribution.ThreatDistribu
 within        a component of the training distribution could draw it (kind and every field)
 kind only     its kind was drawn, with other fields (another size, onset, share, …); a crafted
               attack when the network was trained adversarially (crafted against the network
-              of the moment, fewer iterations)
+              of the moment, fewer iterations) and its weights were saved after the first
+              crafting (the card's ``adversarial_craftings``; weights chosen on an epoch
+              before it met no crafted attack: held out)
 held out      its kind was never drawn (for a network trained on its scenario's attack
               alone: every threat but those of that attack's kind, where it is a threat of
               the library)
@@ -66,7 +68,10 @@ def training_coverage(
         return None
     card = json.loads(card_path.read_text())
     spec = (card.get("data_config") or {}).get("threats")
-    adversarial = bool((card.get("model_config") or {}).get("adversarial_runs"))
+    # adversarial only where the weights met a crafted attack: configured, they may predate
+    # the first crafting (the card's count; a card written before it counted: configured)
+    crafted = card.get("adversarial_craftings")
+    adversarial = bool((card.get("model_config") or {}).get("adversarial_runs")) and crafted != 0
     if not spec:  # trained on the scenario's attack alone: a distribution of that one
         spec = {"own": {"weight": 1.0}} if threat_spec(own) is not None else None
         trained_on = SCENARIO_ATTACK

@@ -91,6 +91,27 @@ def test_an_adversarial_fit_crafts_after_the_first_validation_and_logs_it(tmp_pa
     events = EventAccumulator(str(run)).Reload()
     crafted = events.Scalars("train/adversarial_error")
     assert [e.step for e in crafted] == [2, 3]  # epoch 1's two steps, none before validation
+    # the card counts the craftings the selected weights met (a trial's card credited
+    # adversarial training to weights chosen at epoch 0, before any crafting): 0 for the
+    # weights of epoch 0, 2 for those of epoch 1 (the steps above); an export of last.ckpt
+    # (epoch 1) says 2, and the coverage calls a crafted threat "kind only" only then
+    import json
+
+    import torch
+
+    from difffilter.eval.coverage import training_coverage
+
+    card = json.loads((run / "four_tank_nn_grad.json").read_text())
+    selected = torch.load(run / "checkpoints" / card["selected_checkpoint"], weights_only=True)
+    assert card["adversarial_craftings"] == (0 if selected["epoch"] == 0 else 2)
+    stealthy = {"crafted": {"kind": "stealthy", "against": "pf_nn_grad", "onset": 21}}
+    label = training_coverage(run / "four_tank_nn_grad.ckpt", stealthy)["threats"]["crafted"]
+    assert label == ("held out" if selected["epoch"] == 0 else "kind only")
+    assert main(["export", str(run / "checkpoints" / "last.ckpt"), "--out",
+                 str(tmp_path / "last_export.ckpt")]) == 0  # fmt: skip
+    exported = json.loads((tmp_path / "last_export.json").read_text())
+    assert exported["adversarial_craftings"] == 2
+    assert training_coverage(tmp_path / "last_export.ckpt", stealthy)["adversarial"] is True
 
 
 def test_a_crafting_that_keeps_no_attack_adds_no_runs_and_logs_zero(monkeypatch):

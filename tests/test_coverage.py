@@ -43,6 +43,17 @@ def test_a_network_trained_across_threats_has_its_threats_labelled_from_its_card
                    "threats": {"bias": "within", "bias_half_runs": "kind only",
                                "ramp": "kind only", "replay": "held out",
                                "crafted": "kind only"}}  # fmt: skip
+    # configured adversarially, but the weights chosen before the first crafting (the
+    # card's count, a trial's epoch-0 weights): no crafted attack met, the crafted threat
+    # held out; a count above 0 and a card from before the count was kept: kind only
+    card = json.loads(path.with_suffix(".json").read_text())
+    for craftings, want in ((0, "held out"), (3, "kind only"), (None, "kind only")):
+        card.pop("adversarial_craftings", None)
+        if craftings is not None:
+            card["adversarial_craftings"] = craftings
+        path.with_suffix(".json").write_text(json.dumps(card))
+        got = training_coverage(path, THREATS)
+        assert got["threats"]["crafted"] == want and got["adversarial"] is (want == "kind only")
     plain = _with_card(tmp_path, {"threats": None}, {"adversarial_runs": 0})
     assert training_coverage(plain, THREATS) == {
         "trained_on": "its scenario's attack", "adversarial": False,

@@ -116,6 +116,8 @@ def _lightning_record(blob: dict, src: Path) -> dict:
     }
     if blob.get(SCENARIO_FILE_DIGEST) is not None:  # the plant file training read
         record["scenario_file_sha256"] = blob[SCENARIO_FILE_DIGEST]
+    if (craftings := adversarial_craftings(blob)) is not None:
+        record["adversarial_craftings"] = craftings
     for state in (blob.get("callbacks") or {}).values():  # the training time so far
         if isinstance(state, dict) and state.get("train_time_s") is not None:
             record["train_time_s"] = float(state["train_time_s"])
@@ -130,6 +132,16 @@ def _lightning_record(blob: dict, src: Path) -> dict:
                 record["best_val_score"] = float(state["best_model_score"])
             break
     return record
+
+
+def adversarial_craftings(blob: dict) -> int | None:
+    """How many attacks adversarial training had crafted when the weights of a Lightning
+    checkpoint were saved (``None``: no adversary). The weights a fit selects may predate
+    the first crafting (crafting starts in the second epoch, and the checkpoint is chosen on
+    the validation score): a trial's card credited adversarial training that its weights
+    never had; :func:`difffilter.eval.coverage.training_coverage` reads this."""
+    state = blob.get("difffilter_adversary")
+    return None if not isinstance(state, dict) else len(state.get("history") or ())
 
 
 def _whole_epochs(trainer) -> int:
@@ -235,9 +247,13 @@ class ExportEstimator(pl.Callback):
                 best_path, best_score = cb.best_model_path, cb.best_model_score
                 # what chose the weights, and which way is better: a sweep ranks seeds by it
                 monitor = None if cb.monitor is None else {"metric": cb.monitor, "mode": cb.mode}
+        craftings = None  # of the adversary, when the selected weights were saved
         if best_path:  # the selected weights (and their buffers, e.g. a threshold)
             blob = torch.load(best_path, map_location="cpu", weights_only=True)
             pl_module.load_state_dict(blob["state_dict"])
+            craftings = adversarial_craftings(blob)
+        elif getattr(pl_module, "adversary", None) is not None:
+            craftings = len(pl_module.adversary.history)
         # the weights chosen, or else where the training ended, for Ctrl-C's message
         self._exporting = (path, best_path or _last_checkpoint(trainer) or "<last.ckpt>")
         est_card = pl_module.card()
@@ -279,6 +295,7 @@ class ExportEstimator(pl.Callback):
                 else {}
             ),  # fmt: skip
             "check": check_metric(path),
+            **({} if craftings is None else {"adversarial_craftings": craftings}),
         }
         write_json_atomically(path.with_suffix(".json"), card)
         self._exporting = None
