@@ -91,6 +91,18 @@ def test_an_adversarial_fit_crafts_after_the_first_validation_and_logs_it(tmp_pa
     events = EventAccumulator(str(run)).Reload()
     crafted = events.Scalars("train/adversarial_error")
     assert [e.step for e in crafted] == [2, 3]  # epoch 1's two steps, none before validation
+    # once per crafting, whatever the logging interval: crafting every second step of 4
+    # steps an epoch (steps 4 and 6 of epoch 1) with a point logged every 3 steps, the
+    # craftings are at 4 and 6 alone (self.log had repeated a crafting's value at every
+    # later logging step of its epoch: a trial's one crafting read as two)
+    again = tmp_path / "again"
+    again.mkdir()
+    argv = _small_adversarial_fit(again, monkeypatch, "--trainer.log_every_n_steps=3",
+                                  "--data.init_args.batches_per_epoch=4",
+                                  "--model.init_args.adversarial_every=2")  # fmt: skip
+    assert main(argv) == 0
+    events = EventAccumulator(str(again / "lightning_logs" / "four_tank_nn_grad" / "version_0"))
+    assert [e.step for e in events.Reload().Scalars("train/adversarial_onset")] == [4, 6]
     # the card counts the craftings the selected weights met (a trial's card credited
     # adversarial training to weights chosen at epoch 0, before any crafting): 0 for the
     # weights of epoch 0, 2 for those of epoch 1 (the steps above); an export of last.ckpt

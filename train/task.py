@@ -646,8 +646,14 @@ class FilterEstimatorTask(pl.LightningModule):
         validation has calibrated the threshold the attacker must stay under)."""
         adversary = self.adversary
         if adversary.due(self.global_step) and self.current_epoch >= 1:
-            for k, v in adversary.craft(self, self.global_step).items():
-                self.log(f"train/{k}", v, batch_size=adversary.crafting_runs)
+            logs = adversary.craft(self, self.global_step)
+            # straight to the loggers, once, at the step it crafted: a value given to
+            # self.log stays in the epoch's results and went to TensorBoard again at every
+            # later logging step of the epoch (a trial's one crafting read as two)
+            for logger in self.loggers:
+                logger.log_metrics(
+                    {f"train/{k}": v for k, v in logs.items()}, step=self.global_step
+                )
         if adversary.attack is None:
             return batch
         return adversary.augment(batch, self.scenario_of_data(), mix_seed(seed, 23), self._dtype)
