@@ -21,7 +21,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from .report import format_number, markdown_table  # noqa: E402
+from .report import _clean, format_number, markdown_table  # noqa: E402
 from .scoring import HEADLINE, METRICS  # noqa: E402
 
 __all__ = ["COLUMNS", "leaderboard_rows", "write_leaderboard"]
@@ -88,7 +88,9 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
     worst-case columns follow (in the table and its figure)."""
     out = Path(out)
     rows = leaderboard_rows(results)
-    (out / "leaderboard.json").write_text(json.dumps(rows, indent=2) + "\n")
+    # (inf as null, its worst_<metric>_diverged saying why: json.dumps wrote the bare token
+    # Infinity, which strict JSON readers refuse: a review)
+    (out / "leaderboard.json").write_text(json.dumps(_clean(rows), indent=2) + "\n")
     if not rows:  # (the figure of no rows failed in matplotlib, after every report was written)
         path = out / "leaderboard.md"
         path.write_text("# Leaderboard\n\nNo estimator ran: each scenario's `report.md` lists "
