@@ -314,10 +314,7 @@ def wrapped_spread(model, points: Tensor, weights: Tensor,
     # sides of ±π has its plain mean near 0 with no deviation wrapping, and a spread of 9.3
     # rad² where 0.01 was right (a review)
     high, low = points.amax(-2), points.amin(-2)
-    span = model.measurement_residual(high, low)
-    if bool(((dev - diff).abs() <= 1e-9 * (1.0 + diff.abs())).all()) and bool(
-        ((span - (high - low)).abs() <= 1e-9 * (1.0 + (high - low).abs())).all()
-    ):
+    if _unwrapped(dev, diff) and _unwrapped(model.measurement_residual(high, low), high - low):
         return plain, dev
     if centre is not None:
         starts = [centre]
@@ -339,6 +336,11 @@ def wrapped_spread(model, points: Tensor, weights: Tensor,
                 torch.where(closer.unsqueeze(-2), dev, best[1]),
                 torch.where(closer, spread, best[2]))  # fmt: skip
     return best[0], best[1]
+
+
+def _unwrapped(residual: Tensor, difference: Tensor) -> bool:
+    """Whether a residual is the plain difference everywhere (nothing wrapped)."""
+    return bool(((residual - difference).abs() <= 1e-9 * (1.0 + difference.abs())).all())
 
 
 class LinearGaussianModel(StateSpaceModel):

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
+from test_last_checkpoint import _Worsening  # one weight pulled to 1, two batches
 from torch.utils.data import DataLoader, TensorDataset
 
 from difffilter.train import common, lightning_cli
@@ -365,29 +366,6 @@ def test_a_resume_into_its_own_folder_purges_the_interrupted_steps(tmp_path):
 
 
 # --- last.ckpt every whole epoch ----------------------------------------------------------
-
-
-class _Worsening(pl.LightningModule):
-    """One weight pulled to 1; its validation metric is the epoch number (never improves)."""
-
-    def __init__(self):
-        super().__init__()
-        self.w = torch.nn.Parameter(torch.zeros(1))
-
-    def training_step(self, batch, batch_idx):
-        return ((self.w - batch[0]) ** 2).sum()
-
-    def validation_step(self, batch, batch_idx):
-        self.log("val/metric", float(self.current_epoch))
-
-    def configure_optimizers(self):
-        return torch.optim.SGD(self.parameters(), lr=0.1)
-
-    def train_dataloader(self):
-        return DataLoader(TensorDataset(torch.ones(2, 1)), batch_size=1)
-
-    def val_dataloader(self):
-        return DataLoader(TensorDataset(torch.ones(1, 1)), batch_size=1)
 
 
 def _trainer(folder, **kwargs):

@@ -79,12 +79,8 @@ class LastCheckpointEveryEpoch(pl.Callback):
         one): Lightning 2.2's own checkpoint callback writes it at the cut epoch's end too,
         after this one (checkpoint callbacks run last)."""
         path = self._path()
-        if not self._cut or path is None or not trainer.is_global_zero:
-            return
-        if self._whole is None:
-            path.unlink(missing_ok=True)
-        else:
-            path.write_bytes(self._whole)
+        if self._cut and path is not None and trainer.is_global_zero:
+            self._restore_whole(path)
 
     def on_exception(self, trainer: pl.Trainer, pl_module: pl.LightningModule,
                      exception: BaseException) -> None:  # fmt: skip
@@ -109,11 +105,14 @@ class LastCheckpointEveryEpoch(pl.Callback):
         path = self._path()
         if not self._in_an_epoch or path is None or not path.is_file():
             return  # (before any epoch began, the file is a resumed run's own: left alone)
-        if self._written_at_step == trainer.global_step:
-            return  # written by this callback at this step: an epoch's end
+        if self._written_at_step != trainer.global_step:  # (else written here: an epoch's end)
+            self._restore_whole(path)
+
+    def _restore_whole(self, path: Path) -> None:
+        """``last.ckpt`` as the last whole epoch left it, or none where no epoch was whole."""
         if self._whole is None:
-            path.unlink()
-        elif path.read_bytes() != self._whole:
+            path.unlink(missing_ok=True)
+        elif not path.is_file() or path.read_bytes() != self._whole:
             path.write_bytes(self._whole)
 
     def _path(self) -> Path | None:
