@@ -8,7 +8,10 @@ its checkpoint (``<checkpoint>.json``: the training's data and model settings) a
 every threat of the study (:meth:`~difffilter.threat_distribution.ThreatDistribution.covers`):
 
 ============  ================================================================================
-within        a component of the training distribution could draw it (kind and every field)
+within        a component of the training distribution could draw it (kind and every field);
+              a component the weights never met in training (the card's ``threats_drawn``,
+              runs per component until the weights were saved: a small weight, few epochs)
+              counts for nothing
 kind only     its kind was drawn, with other fields (another size, onset, share, …); a crafted
               attack when the network was trained adversarially (crafted against the network
               of the moment, fewer iterations) and its weights were saved after the first
@@ -72,6 +75,10 @@ def training_coverage(
     # the first crafting (the card's count; a card written before it counted: configured)
     crafted = card.get("adversarial_craftings")
     adversarial = bool((card.get("model_config") or {}).get("adversarial_runs")) and crafted != 0
+    drawn = card.get("threats_drawn")  # runs per component the weights met (a newer card)
+    if spec and isinstance(drawn, dict):  # a component never drawn was not trained on
+        spec = {name: entry for name, entry in spec.items() if drawn.get(name, 0) > 0}
+        spec = spec or {"none": {"weight": 1.0}}  # (every draw of no component: no threat)
     if not spec:  # trained on the scenario's attack alone: a distribution of that one
         spec = {"own": {"weight": 1.0}} if threat_spec(own) is not None else None
         trained_on = SCENARIO_ATTACK

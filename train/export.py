@@ -118,6 +118,8 @@ def _lightning_record(blob: dict, src: Path) -> dict:
         record["scenario_file_sha256"] = blob[SCENARIO_FILE_DIGEST]
     if (craftings := adversarial_craftings(blob)) is not None:
         record["adversarial_craftings"] = craftings
+    if (drawn := threats_drawn(blob)) is not None:
+        record["threats_drawn"] = drawn
     for state in (blob.get("callbacks") or {}).values():  # the training time so far
         if isinstance(state, dict) and state.get("train_time_s") is not None:
             record["train_time_s"] = float(state["train_time_s"])
@@ -142,6 +144,18 @@ def adversarial_craftings(blob: dict) -> int | None:
     never had; :func:`difffilter.eval.coverage.training_coverage` reads this."""
     state = blob.get("difffilter_adversary")
     return None if not isinstance(state, dict) else len(state.get("history") or ())
+
+
+def threats_drawn(blob: dict) -> dict[str, int] | None:
+    """``{threat name: runs}`` of the training batches a network trained across threats had
+    met when a Lightning checkpoint was saved (the data module's state, which Lightning
+    keeps under the module's class name), or ``None`` (trained on its scenario's attack, or
+    a checkpoint written before it was counted). :func:`difffilter.eval.coverage.training_coverage`
+    reads it: a component never drawn was not trained on."""
+    for state in blob.values():
+        if isinstance(state, dict) and isinstance(state.get("threats_drawn"), dict):
+            return {str(k): int(v) for k, v in state["threats_drawn"].items()}
+    return None
 
 
 def _whole_epochs(trainer) -> int:
@@ -247,13 +261,18 @@ class ExportEstimator(pl.Callback):
                 best_path, best_score = cb.best_model_path, cb.best_model_score
                 # what chose the weights, and which way is better: a sweep ranks seeds by it
                 monitor = None if cb.monitor is None else {"metric": cb.monitor, "mode": cb.mode}
-        craftings = None  # of the adversary, when the selected weights were saved
+        # of the adversary and of the threats drawn, when the selected weights were saved
+        craftings = drawn = None
+        dm = trainer.datamodule
         if best_path:  # the selected weights (and their buffers, e.g. a threshold)
             blob = torch.load(best_path, map_location="cpu", weights_only=True)
             pl_module.load_state_dict(blob["state_dict"])
-            craftings = adversarial_craftings(blob)
-        elif getattr(pl_module, "adversary", None) is not None:
-            craftings = len(pl_module.adversary.history)
+            craftings, drawn = adversarial_craftings(blob), threats_drawn(blob)
+        else:
+            if getattr(pl_module, "adversary", None) is not None:
+                craftings = len(pl_module.adversary.history)
+            if getattr(dm, "threats", None) is not None:
+                drawn = dict(dm.threats_drawn)
         # the weights chosen, or else where the training ended, for Ctrl-C's message
         self._exporting = (path, best_path or _last_checkpoint(trainer) or "<last.ckpt>")
         est_card = pl_module.card()
@@ -263,7 +282,6 @@ class ExportEstimator(pl.Callback):
         path.with_suffix(".json").unlink(missing_ok=True)
         digest = save_estimator_checkpoint(path, pl_module.estimator, est_card)
         estimator, _ = load_estimator_checkpoint(path, expected_sha256=digest)
-        dm = trainer.datamodule
         metrics = {
             k: float(v)
             for k, v in trainer.callback_metrics.items()
@@ -296,6 +314,7 @@ class ExportEstimator(pl.Callback):
             ),  # fmt: skip
             "check": check_metric(path),
             **({} if craftings is None else {"adversarial_craftings": craftings}),
+            **({} if drawn is None else {"threats_drawn": drawn}),
         }
         write_json_atomically(path.with_suffix(".json"), card)
         self._exporting = None

@@ -86,6 +86,7 @@ __all__ = [
     "RESAMPLERS",
     "training_batch",
     "threat_batch",
+    "threat_draws",
 ]
 
 #: Training resamplers (``resampler=``): gradients through resampling or around it.
@@ -119,6 +120,14 @@ def evaluation_batch(scenario, runs: int, seed: int, dtype: torch.dtype) -> dict
     return {k: v.to(dtype) if v.is_floating_point() else v for k, v in batch.items()}
 
 
+def threat_draws(threats: ThreatDistribution, runs: int, seed: int) -> list[tuple[str, object]]:
+    """The ``(name, attack)`` of each of the ``runs`` runs of a batch of seed ``seed``: drawn
+    in turn from stream ``threats`` of ``Streams(seed)``, without simulating (what
+    :func:`threat_batch` simulates, and what a training records it drew)."""
+    draw = Streams(seed)("threats")
+    return [threats.sample(draw) for _ in range(runs)]
+
+
 def threat_batch(scenario, threats: ThreatDistribution, runs: int, seed: int,
                  dtype: torch.dtype) -> dict:  # fmt: skip
     """``runs`` runs of an open-loop ``scenario``, each under its own threat drawn from
@@ -131,10 +140,8 @@ def threat_batch(scenario, threats: ThreatDistribution, runs: int, seed: int,
             "attack (train on its random-attack scenario instead); threats mix open-loop "
             "scenarios' attacks"
         )
-    draw = Streams(seed)("threats")
     parts = []
-    for i in range(runs):
-        name, attack = threats.sample(draw)
+    for i, (name, attack) in enumerate(threat_draws(threats, runs, seed)):
         sc = scenario if name == "own" else scenario.with_threat(attack)
         parts.append(training_batch(sc, 1, mix_seed(seed, i), dtype))
     width = max(p["attack"].shape[-1] for p in parts)
@@ -253,6 +260,30 @@ class ScenarioDataModule(pl.LightningDataModule):
         self.save_hyperparameters()
         self._dtype = dtype_of(dtype)
         self._val = self._calibration = None
+        #: ``{threat name: runs}`` of the training batches drawn so far (every process's
+        #: share; saved in Lightning checkpoints, so a resume goes on counting): what the
+        #: weights of a checkpoint met (the card's ``threats_drawn``; a trial could not
+        #: tell which threats a training drew without internal helpers)
+        self.threats_drawn: dict[str, int] = {}
+
+    def state_dict(self) -> dict:
+        return {} if self.threats is None else {"threats_drawn": dict(self.threats_drawn)}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.threats_drawn = {k: int(v) for k, v in state_dict.get("threats_drawn", {}).items()}
+
+    def _count_drawn(self, epoch: int, index: int) -> None:
+        """Count the threats of training batch ``index`` of ``epoch`` and, under several
+        processes, of the batches the others train beside it (``world`` consecutive indices
+        from a multiple of ``world``: :meth:`train_dataloader`'s split), so that process 0,
+        whose checkpoints are written, counts every batch of the step."""
+        trainer = getattr(self, "trainer", None)
+        world = trainer.world_size if trainer else 1
+        first = index - index % world
+        for i in range(first, first + world):
+            seed = mix_seed(self.hparams.train_seed, epoch, i)
+            for name, _ in threat_draws(self.threats, self.hparams.batch_size, seed):
+                self.threats_drawn[name] = self.threats_drawn.get(name, 0) + 1
 
     def batch(self, runs: int, seed: int) -> dict:
         """Training or validation runs: under :attr:`threats` where given."""
@@ -305,6 +336,8 @@ class ScenarioDataModule(pl.LightningDataModule):
         # drawn here, from the trainer's epoch (right after a resume too)
         if isinstance(batch, dict) and "index" in batch:
             epoch = self.trainer.current_epoch if getattr(self, "trainer", None) else 0
+            if self.threats is not None:
+                self._count_drawn(epoch, int(batch["index"]))
             return self.train_batch(epoch, int(batch["index"]))
         return batch
 
