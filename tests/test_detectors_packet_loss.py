@@ -325,3 +325,46 @@ def test_the_online_cusum_step_checks_its_mask_against_the_entries_measured():
         ValueError, match=r"mask must be \[\.\.\., 3\] \(dim = 3 measured entries\)"
     ):
         chi.step(chi.init(()), g, torch.tensor([True]))
+
+
+@pytest.mark.parametrize("window", [1, 3])
+def test_an_online_step_takes_one_statistic_per_run_of_its_state(window):
+    """A deployment trial passed one run's innovation vector where its NIS belonged: with a
+    window of 1 the χ² step returned two scores for one run (its state grew), with 3 torch
+    said "Tensors must have same number of dimensions"; CUSUM's state grew likewise. Now
+    each says which ``g`` it wants; a scalar ``g`` still broadcasts to the state's runs, and
+    a right one scores as the χ² quantile says."""
+    det = ChiSquareDetector(2, 0.01, window=window)
+    with pytest.raises(ValueError, match=r"g must be one statistic per run of the state, \(\)"):
+        det.step(det.init((), dtype=F64), torch.tensor([6.0, 12.0], dtype=F64))
+    runs = det.init((3,), dtype=F64)
+    _, score, alarm = det.step(runs, torch.tensor(10.0, dtype=F64))  # one g for every run
+    assert score.shape == (3,) and bool(alarm.all()) == (10.0 > chi2.ppf(0.99, 2))
+    with pytest.raises(ValueError, match=r"state, \(3,\) .* got \(4,\)"):
+        det.step(runs, torch.ones(4, dtype=F64))
+    cusum = CusumDetector(3.0, threshold=5.0)
+    with pytest.raises(ValueError, match=r"state, \(2,\) \(the batch_shape of CusumDetector"):
+        cusum.step(cusum.init((2,)), torch.ones(5, dtype=F64))
+    with pytest.raises(TypeError, match="state must be CusumDetector.init's tensor"):
+        cusum.step(None, torch.ones(2, dtype=F64))
+
+
+def test_the_online_chi_square_detector_has_its_thresholds_before_the_first_step(monkeypatch):
+    """The quantiles (SciPy, imported on first use: 0.6–1.6 s in a deployment trial's first
+    step) are computed at ``init``: after it, a step, masked or not, asks SciPy for none (a
+    rate no other test uses, so no quantile of it is cached before ``init``)."""
+    import scipy.stats
+
+    det = ChiSquareDetector(3, 0.01234, window=2)
+    state = det.init((2,), dtype=torch.float32)
+
+    def refused(*args, **kwargs):
+        raise AssertionError("a quantile computed at a step")
+
+    monkeypatch.setattr(scipy.stats.chi2, "isf", refused)
+    g = torch.tensor([2.0, 40.0])
+    state, _, alarm = det.step(state, g)
+    assert alarm.tolist() == [False, True]
+    mask = torch.tensor([[True, False, True], [True, True, True]])
+    _, _, alarm = det.step(state, g, mask)
+    assert alarm.tolist() == [False, True]

@@ -22,7 +22,7 @@ COMPARED = ("state_rmse", "attack_rmse", "auc", "tpr", "fpr", "tpr_at_1pct_fpr",
 def test_the_documented_snippet_gives_the_metrics_of_difffilter_eval(monkeypatch):
     monkeypatch.chdir(ROOT)  # the snippet's paths are the repository's
     blocks = re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)
-    assert len(blocks) == 2
+    assert len(blocks) == 4
     namespace: dict = {}
     exec(compile(blocks[0], str(DOC), "exec"), namespace)  # noqa: S102
     out, metrics = namespace["out"], namespace["metrics"]
@@ -124,7 +124,8 @@ def test_a_chi_square_quantile_is_computed_once():
 
 def test_the_documented_judgement_and_its_intervals(monkeypatch):
     monkeypatch.chdir(ROOT)
-    block = re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)[1]
+    block = next(b for b in re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)
+                 if "study" in b)  # fmt: skip
     namespace: dict = {}
     exec(compile(block, str(DOC), "exec"), namespace)  # noqa: S102
     study, checks, sure = namespace["study"], namespace["checks"], namespace["sure"]
@@ -136,3 +137,40 @@ def test_the_documented_judgement_and_its_intervals(monkeypatch):
     mine = sure["estimators"]["gaussian_nn_ekf"]["state_rmse"]
     assert mine["estimate"] == pytest.approx(m["gaussian_nn_ekf"]["state_rmse"] / best, rel=1e-9)
     assert mine["low"] <= mine["high"] and 0.0 <= mine["holds_share"] <= 1.0
+
+
+def test_the_documented_tensors_only_restore_continues_the_run_bit_for_bit(tmp_path):
+    """The two restore snippets of "Online, across restarts" (a deployment trial's route to
+    ``weights_only=True``): a Kalman filter stepped with masks and a particle filter with a
+    generator of its own, cut at step 6, saved, rebuilt and stepped on, give the
+    uninterrupted run's means exactly."""
+    blocks = [b for b in re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S)
+              if "weights_only=True" in b]  # fmt: skip
+    assert len(blocks) == 2
+    model = difffilter.LinearGaussianModel(
+        F=torch.tensor([[1.0, 0.1], [0.0, 0.9]], dtype=torch.float64),
+        H=torch.eye(2, dtype=torch.float64), Q=0.01 * torch.eye(2, dtype=torch.float64),
+        R=0.1 * torch.eye(2, dtype=torch.float64), m0=torch.zeros(2, dtype=torch.float64),
+        P0=torch.eye(2, dtype=torch.float64),
+    )  # fmt: skip
+    ys = torch.randn(12, 3, 2, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    masks = torch.rand(12, 3, 2, generator=torch.Generator().manual_seed(5)) > 0.2
+    for block, est in zip(blocks, (difffilter.KalmanFilter(), difffilter.ParticleFilter(50))):
+
+        def run(carry, start, stop, est=est):
+            means = []
+            for t in range(start, stop):
+                carry, out = est.step(carry, ys[t], mask=masks[t])
+                means.append(out.mean)
+            return carry, torch.stack(means)
+
+        g = torch.Generator().manual_seed(7)
+        _, whole = run(est.init(model, (3,), g), 0, 12)
+        g = torch.Generator().manual_seed(7)
+        carry, _ = run(est.init(model, (3,), g), 0, 6)
+        namespace = {"torch": torch, "difffilter": difffilter, "c": carry, "g": g,
+                     "model": model, "path": tmp_path / "carry.pt"}  # fmt: skip
+        exec(compile(block, str(DOC), "exec"), namespace)  # noqa: S102
+        assert type(namespace["c"]) is type(carry) and namespace["c"] is not carry
+        _, rest = run(namespace["c"], 6, 12)
+        torch.testing.assert_close(rest, whole[6:], rtol=0, atol=0)

@@ -367,6 +367,9 @@ class ChiSquareDetector:
         count and the entries each of them received ``[*batch, W − 1]``."""
         past = torch.zeros(torch.Size(batch_shape) + (self.window - 1,), dtype=dtype,
                            device=device)  # fmt: skip
+        # the thresholds now, not at the first step (importing SciPy for the quantiles took a
+        # deployment trial's first step 0.6–1.6 s, past any real-time deadline)
+        self._quantile_table(past)
         return past, 0, torch.zeros_like(past, dtype=torch.float64)
 
     def _all_received(self, past: Tensor, count: int) -> Tensor:
@@ -389,6 +392,8 @@ class ChiSquareDetector:
         ``ValueError`` for a non-finite ``g``."""
         _check_statistic(g, "g", alarm_on_inf=True)
         past, count, *held = state
+        _check_step_runs(g, past.shape[:-1], "ChiSquareDetector")
+        g = g.expand(past.shape[:-1])  # (one g for every run: the window holds it per run)
         past_dof = held[0] if held else self._all_received(past, count)
         score = g + past.sum(-1)
         full = self.dim * min(count + 1, self.window)
@@ -496,6 +501,11 @@ class CusumDetector:
         if self.threshold is None:
             raise ValueError("threshold is not set: pass threshold= or call calibrate() first")
         _check_statistic(g, "g", alarm_on_inf=True)
+        if not isinstance(state, Tensor):
+            raise TypeError(
+                f"state must be CusumDetector.init's tensor; got {type(state).__name__}"
+            )
+        _check_step_runs(g, state.shape, "CusumDetector")
         if mask is not None:
             mask = torch.as_tensor(mask, device=g.device)
             if mask.dim() == 0:
@@ -548,6 +558,18 @@ def _finite_mean(g: Tensor) -> Tensor:
     """The mean of the finite entries of ``g`` (float64; NaN where there are none)."""
     g = g.detach().double()
     return g[torch.isfinite(g)].mean()
+
+
+def _check_step_runs(g: Tensor, runs: torch.Size, detector: str) -> None:
+    """One statistic per run of an online state of ``runs`` (``g`` broadcasting to them): a
+    ``g`` of more runs grew the state without a word, or failed in torch's own words (a
+    deployment trial passed one run's innovation vector where its NIS belonged)."""
+    if broadcast_or_none(g.shape, runs) != runs:
+        raise ValueError(
+            f"g must be one statistic per run of the state, {tuple(runs)} (the batch_shape "
+            f"of {detector}.init), e.g. each run's NIS νᵀS⁻¹ν, not its innovation; got "
+            f"{tuple(g.shape)}"
+        )
 
 
 def _check_whole_mask(mask: Tensor, innovations: Tensor) -> Tensor:
