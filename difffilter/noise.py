@@ -139,6 +139,12 @@ class Gaussian(NoiseModel):
         check_square(mat, "cov" if cov is not None else "scale_tril")
         d = mat.shape[-1]
         if loc.dim() == 0:
+            if isinstance(loc, nn.Parameter):  # its expanded copy would be a buffer, frozen
+                raise ValueError(
+                    f"loc: a 0-d nn.Parameter would be copied into a [{d}] buffer that "
+                    "training never moves (the parameter drifts, the model does not): give "
+                    f"nn.Parameter(torch.full(({d},), value)), or a fixed scalar"
+                )
             loc = (
                 loc.expand(d).clone()
                 if loc.requires_grad
