@@ -265,12 +265,9 @@ def check_mask(mask: Tensor, name: str, shape: torch.Size) -> Tensor:
         if not bool(((mask == 0) | (mask == 1)).all()):
             raise ValueError(f"{name} must be boolean (True = entry received)")
         mask = mask.bool()
-    try:
-        broadcast_shapes(mask.shape, shape)
-    except RuntimeError as exc:
-        raise ValueError(
-            f"{name} must broadcast to {tuple(shape)}; got {tuple(mask.shape)}"
-        ) from exc
+    # to it, not with it: a [2, 3] mask for a [3] shape had passed (a mutation review)
+    if broadcast_or_none(mask.shape, shape) != torch.Size(shape):
+        raise ValueError(f"{name} must broadcast to {tuple(shape)}; got {tuple(mask.shape)}")
     return mask
 
 
@@ -402,9 +399,10 @@ def check_ess_threshold(value) -> float:
     """``ess_threshold`` must be a finite real number in ``[0, 1]``; returns it as ``float``."""
     if isinstance(value, Tensor) and value.numel() == 1:
         value = float(value)
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
+    # numbers.Real: numpy's scalars too, as check_finite_number and check_rate take them
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise TypeError(f"ess_threshold must be a number in [0, 1]; got {type(value).__name__}")
-    if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+    if not (math.isfinite(float(value)) and 0.0 <= value <= 1.0):
         raise ValueError(f"ess_threshold must lie in [0, 1] (a finite number); got {value!r}")
     return float(value)
 

@@ -590,7 +590,12 @@ def _step_mask(mask, g: Tensor, dim: int, runs: torch.Size) -> Tensor:
     broadcasting to ``g``'s runs and ``dim``) and one row per run: a mask of more runs than
     the state (``runs``; a whole ``[T, m]`` mask given to one run's step) grew the state
     without a word."""
-    mask = check_mask(mask, "mask", g.shape + (dim,))
+    mask = mask if isinstance(mask, Tensor) else torch.as_tensor(mask)
+    mask = check_mask(mask, "mask", mask.shape)  # boolean or 0/1; its shape is judged below
+    if broadcast_or_none(mask.shape, g.shape + (dim,)) is None:
+        raise ValueError(
+            f"mask must broadcast to {tuple(g.shape + (dim,))}; got {tuple(mask.shape)}"
+        )
     if mask.shape[-1] != dim:  # (a [..., 1] mask broadcast, and its sum counted 1 of m)
         raise ValueError(
             f"mask must be [..., {dim}] (dim = {dim} measured entries); got {tuple(mask.shape)}"
