@@ -118,16 +118,20 @@ def _finite(value) -> bool:
     return value is not None and isinstance(value, int | float) and math.isfinite(value)
 
 
-def best_analytic(metrics: dict[str, dict], role_of: dict[str, str] | None = None) -> dict:
+def best_analytic(
+    metrics: dict[str, dict], role_of: dict[str, str] | None = None, state: str | None = None
+) -> dict:
     """``{metric: (value, estimator)}``: per metric the best value among the analytic
     estimators of ``metrics`` (``{estimator: {metric: value}}``; ``role_of`` defaults to
     the registry's roles): the highest ``tpr_at_far`` and ``auc``, the lowest state
     metric and ``attack_rmse``, a tie going to the first in the study's order. A metric
-    no analytic estimator reports is left out."""
+    no analytic estimator reports is left out. ``state``: the state metric, where the
+    caller chose it over more rows than ``metrics`` (default :func:`state_metric` of them)."""
     role_of = role_of if role_of is not None else roles(metrics)
+    state = state_metric(metrics) if state is None else state
     analytic = {n: m for n, m in metrics.items() if role_of.get(n) == "analytic"}
     best = {}
-    for metric, higher in (("tpr_at_far", True), ("auc", True), (state_metric(metrics), False),
+    for metric, higher in (("tpr_at_far", True), ("auc", True), (state, False),
                            ("attack_rmse", False)):  # fmt: skip
         sign = -1.0 if higher else 1.0
         values = [(sign * m[metric], i, n) for i, (n, m) in enumerate(analytic.items())

@@ -226,23 +226,30 @@ def _check_same_sweep(out: Path, config: Path, extra: list[str]) -> None:
 
 def _run_name(config: Path, extra: list[str]) -> str:
     """The logger's run name of ``config`` (``trainer.logger.init_args.name``), or of an
-    option in ``extra`` that sets it; Lightning's ``lightning_logs`` without one."""
+    option in ``extra`` that sets it; Lightning's ``lightning_logs`` without one, and ``""``
+    for a name of ``null`` or ``""``, where the logger writes into its ``save_dir`` itself
+    (read as the config's name, a sweep wrote its settings into one folder and trained into
+    another, then said the fit exported nothing: a review)."""
     import yaml
 
-    name = None
+    name: object = _UNSET
     for option in extra:
         key, _, value = option.partition("=")
-        if key == "--trainer.logger.init_args.name" and value:
-            name = value
-    if name is None:
+        if key == "--trainer.logger.init_args.name":
+            name = None if value in ("", "null") else value
+    if name is _UNSET:
         try:
             doc = yaml.safe_load(Path(config).read_text()) or {}
         except (OSError, yaml.YAMLError):  # fit itself then says what is wrong with it
             doc = {}
         logger = (doc.get("trainer") or {}).get("logger") if isinstance(doc, dict) else None
-        if isinstance(logger, dict):
-            name = (logger.get("init_args") or {}).get("name")
-    return str(name) if name else "lightning_logs"
+        args = (logger.get("init_args") or {}) if isinstance(logger, dict) else {}
+        name = args.get("name", "lightning_logs") if isinstance(args, dict) else "lightning_logs"
+    return str(name) if name else ""
+
+
+#: no name given (Lightning's default applies), as against a name of null
+_UNSET = object()
 
 
 def _family_metrics(result, name: str) -> dict:
@@ -365,7 +372,9 @@ def _acceptance(per_seed: dict, baselines: dict, far: float, seed_totals: dict) 
     for scenario, (table, totals) in baselines.items():
         learned = {s: v["scenarios"][scenario] for s, v in per_seed.items()}
         metric = state_metric({**table, **{f"seed {s}": m for s, m in learned.items()}})
-        best = best_analytic(table)  # the table holds the analytic estimators only
+        # the table holds the analytic estimators only; the state metric is the one chosen
+        # over the seeds' rows too (the analytic rows alone could choose another: a review)
+        best = best_analytic(table, state=metric)
         checks = {str(s): [c.as_dict() for c in judge(m, best, far, metric)]
                   for s, m in learned.items()}  # fmt: skip
         intervals = {}
