@@ -244,7 +244,10 @@ def posterior_crb(
             ``information`` is given); the model's matrices carry no batch dimensions of
             their own (``ValueError``).
         xs: true trajectories ``x_1 … x_T`` ``[..., M, T, dx]`` (the expectations over
-            ``x`` are means over the ``M`` paths; ``M = 1`` for a linear model).
+            ``x`` are means over the ``M`` paths; ``M = 1`` for a linear model). The
+            ``[B, T, dx]`` of ``model.simulate`` is read as ``M = B`` paths of ONE bound
+            ``[T, dx, dx]``, with no run dimension: ``bound[t]`` is step ``t + 1``, not run
+            ``t`` (an analyst's trial read ``bound[0]`` as run 0's).
         x0: their initial states ``[..., M, dx]``.
         us: inputs ``[..., M, T, du]`` or ``None``.
         mask: received entries ``[..., T, dy]`` (bool) or ``None`` (all received); an

@@ -141,7 +141,9 @@ def rts_smoother(model, filtered: FilterResult, us: Tensor | None = None) -> Smo
     Jacobian ``∂f/∂x`` at the filtered mean ``m_k`` (the prior mean at ``k = 0``), as the
     EKF predicted with: the extended RTS smoother. ``us [..., T, du]``, the filter's inputs,
     also let the check of ``filtered`` read the first predicted mean. (The UKF's result:
-    :func:`unscented_rts_smoother`.)"""
+    :func:`unscented_rts_smoother`.) The check sees a filter of another ``F``, ``Q`` or
+    prior, not one of another ``H``, ``R`` or ``B`` (the backward pass reads none of them):
+    smooth with the model that filtered."""
     steps, dx = _check_arguments(model, filtered, us, "transition_jacobian")
     means = filtered.means
     if callable(getattr(model, "transition_matrix", None)):
