@@ -38,7 +38,9 @@ import sys
 import warnings
 from importlib.metadata import entry_points
 
-from .scenario import Scenario
+import torch
+
+from .scenario import CustomScenario, Scenario
 from .yaml_scenario import import_object, is_yaml_path, scenario_from_yaml
 
 __all__ = ["Scenario", "register", "get", "names", "families", "all_scenarios"]
@@ -60,7 +62,9 @@ def register(scenario: Scenario, *, origin: str | None = None) -> Scenario:
     from, for that error (by default the module that calls this)."""
     origin = origin or _caller_module()
     name = scenario.name
-    if name in _REGISTRY and _REGISTRY[name] != scenario:
+    if name in _REGISTRY and (
+        _REGISTRY[name] != scenario or _unseen_difference(_REGISTRY[name], scenario)
+    ):
         raise ValueError(
             f"scenario {name!r} is already registered, by {_ORIGINS.get(name, '?')}, as a "
             f"different scenario; {origin} registers another under that name (or a file "
@@ -74,6 +78,30 @@ def register(scenario: Scenario, *, origin: str | None = None) -> Scenario:
         _ORIGINS[name] = origin
     _REGISTRY[name] = scenario
     return scenario
+
+
+def _unseen_difference(old: Scenario, new: Scenario) -> bool:
+    """Whether two scenarios that dataclass equality calls the same differ where it does not
+    look: a :class:`CustomScenario`'s plant, known inputs and options (functions and
+    mappings, left out of its ``==`` so that a YAML file read again, with fresh functions,
+    is the same scenario). The plant is compared by its class and its tensors, the inputs
+    by their values: a file whose matrices were edited since it was loaded replaced the
+    plant under its name without a word (a review), where an edited ``steps`` was refused.
+    Python functions a plant calls are not compared."""
+    if not isinstance(old, CustomScenario) or not isinstance(new, CustomScenario):
+        return False
+    if dict(old.options) != dict(new.options):
+        return True
+    a, b = old.system(torch.float64), new.system(torch.float64)
+    tensors_a, tensors_b = a.state_dict(), b.state_dict()
+    if type(a) is not type(b) or tensors_a.keys() != tensors_b.keys():
+        return True
+    if any(not torch.equal(tensors_a[k], tensors_b[k]) for k in tensors_a):
+        return True
+    inputs_a, inputs_b = old.inputs(2, torch.float64), new.inputs(2, torch.float64)
+    if inputs_a is None or inputs_b is None:
+        return (inputs_a is None) != (inputs_b is None)
+    return inputs_a.shape != inputs_b.shape or not torch.equal(inputs_a, inputs_b)
 
 
 def _selection_clash(scenario: Scenario) -> str | None:

@@ -63,7 +63,7 @@ def _gens(plant=1, attack=2, schedule=3, input_schedule=4):
 
 def _scenario(**kw):
     base = dict(name="mut_review_plant", family="mut_review", description="test", steps=6)
-    return CustomScenario(model_fn=_model, **{**base, **kw})
+    return CustomScenario(**{"model_fn": _model, **base, **kw})
 
 
 def _u_of_k(k):
@@ -375,6 +375,38 @@ def test_register_rules(isolated_registry):
         with pytest.raises(ValueError, match="another name"):
             reg.register(bad)
     assert reg.get("mut_a") is a
+
+
+def test_a_plant_inputs_or_options_of_their_own_under_a_taken_name_are_refused(
+    isolated_registry, tmp_path, monkeypatch
+):
+    """The review's bug: a CustomScenario's plant, inputs and options are left out of its
+    ``==`` (a YAML file read again builds fresh functions), so another plant under a taken
+    name replaced the first without a word, while another ``steps`` was refused. Now a
+    plant of other matrices (R read 4x), other known inputs or other options is refused;
+    the same plant by another function, and a YAML file read again unchanged, are not."""
+    reg = isolated_registry
+    first = reg.register(_named("mut_p"), origin="first")
+    reg.register(_named("mut_p", model_fn=lambda dtype: _model(dtype)), origin="same plant")
+    others = (_named("mut_p", model_fn=lambda dtype: _model(dtype, r=4 * R)),
+              _named("mut_p", known_inputs=torch.ones(1, 6, 1, dtype=torch.float64)),
+              _named("mut_p", options={"num_particles": 10}))  # fmt: skip
+    for other in others:
+        with pytest.raises(ValueError, match="by first.*registers another under that name"):
+            reg.register(other, origin="other")
+    kept = reg.get("mut_p")  # the first plant (or its equal registered again), untouched
+    assert kept == first and kept.known_inputs is None and not kept.options
+    for key, value in _model().state_dict().items():
+        assert torch.equal(kept.system().state_dict()[key], value), key
+    monkeypatch.chdir(tmp_path)
+    text = ("name: mut_yaml\nsteps: 10\nplant:\n  F: [[0.95, 0.04], [-0.02, 0.8]]\n"
+            "  H: [[1.0, 0.0]]\n  Q: 1.0e-4\n  R: 1.0e-3\n  P0: 1.0e-2\n")  # fmt: skip
+    (tmp_path / "p.yaml").write_text(text)
+    assert reg.get("p.yaml").name == reg.get("p.yaml").name == "mut_yaml"
+    (tmp_path / "p.yaml").write_text(text.replace("0.95", "0.5"))
+    with pytest.raises(ValueError, match="or a file edited since it was loaded"):
+        reg.get("p.yaml")
+    assert float(reg.get("mut_yaml").system().transition_matrix(0)[0, 0]) == 0.95
 
 
 def test_register_all_tuple_and_origin(isolated_registry):
