@@ -58,7 +58,7 @@ RESERVED_NAMES = ("all", "robustness")
 def register(scenario: Scenario, *, origin: str | None = None) -> Scenario:
     """Add ``scenario`` under its name; registering the same name twice is an error, and so
     is a name that the command lines would read as a selection (``all``, ``robustness``, a
-    family's name) or a family named like a registered scenario. ``origin``: where it comes
+    family's name) or a family named like a registered scenario or like those words. ``origin``: where it comes
     from, for that error (by default the module that calls this)."""
     origin = origin or _caller_module()
     name = scenario.name
@@ -115,6 +115,10 @@ def _selection_clash(scenario: Scenario) -> str | None:
                 else f"{name!r} is the name of a family ({name!r} selects its scenarios)")  # fmt: skip
         return (f"scenario name {what}, so the scenario could never be run by name; give it "
                 "another name")  # fmt: skip
+    if family in RESERVED_NAMES:  # `difffilter-eval all` runs every family's headline
+        return (f"scenario {name!r} is of family {family!r}, a word of the command lines "
+                f"({' and '.join(RESERVED_NAMES)} select every family's headline scenarios, "
+                "never this family alone); give the family another name")  # fmt: skip
     if family in _REGISTRY and family != name:
         return (f"scenario {name!r} is of family {family!r}, the name of a registered "
                 f"scenario ({family!r} would select the family, never that scenario); give "

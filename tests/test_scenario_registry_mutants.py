@@ -363,7 +363,8 @@ def _named(name, family="mut_review_fam", **kw):
 def test_register_rules(isolated_registry):
     """``register``: the same scenario twice is fine and keeps its first origin; another
     scenario under a taken name is refused naming the first origin; reserved words, a
-    family's name (its own or another's) and a family named like a scenario are refused."""
+    family's name (its own or another's), a family named like a scenario and a family
+    named like a reserved word are refused."""
     reg = isolated_registry
     a = _named("mut_a")
     reg.register(a, origin="first place")
@@ -374,7 +375,10 @@ def test_register_rules(isolated_registry):
                 _named("mut_b", family="mut_b"), _named("mut_c", family="mut_a")):  # fmt: skip
         with pytest.raises(ValueError, match="another name"):
             reg.register(bad)
-    assert reg.get("mut_a") is a
+    for word in ("all", "robustness"):  # the family could never be selected alone
+        with pytest.raises(ValueError, match=f"of family '{word}', a word of the command"):
+            reg.register(_named("mut_d", family=word))
+    assert reg.get("mut_a") is a and "mut_d" not in reg.names()
 
 
 def test_a_plant_inputs_or_options_of_their_own_under_a_taken_name_are_refused(

@@ -489,3 +489,87 @@ def test_a_seeds_folder_is_where_lightnings_logger_writes_for_every_run_name(tmp
     for path, extra, lightning_name in cases:
         want = TensorBoardLogger(save_dir=str(runs), name=lightning_name, version="seed_3").log_dir
         assert runs / sweep._run_name(path, extra) / "seed_3" == Path(want), (path, extra)
+
+
+# ---------------------------------------------------------------- a config among the options
+
+
+def _print_config(args: list[str]) -> dict:
+    """The settings ``difffilter-train`` itself makes of ``args`` (``--print_config``)."""
+    import contextlib
+    import io
+
+    from difffilter.train.cli import main as cli_main
+
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed), pytest.raises(SystemExit):
+        cli_main([*args, "--print_config"])
+    return yaml.safe_load(printed.getvalue())
+
+
+def test_a_config_among_the_options_names_the_folder_the_fit_logs_into(tmp_path, monkeypatch):
+    """``-- --config second.yaml`` whose logger has a name of its own: the seed's folder the
+    sweep looks in is the one the fit logs into, as the training CLI itself reads the
+    arguments the sweep gives it (``--print_config``, then TensorBoardLogger's ``log_dir``).
+    Read from the sweep's config alone, the sweep had looked in ``four_tank_nn_grad/`` and
+    said the fit exported nothing; the space-separated form of an option too."""
+    from lightning.pytorch.loggers import TensorBoardLogger
+
+    config = ROOT / "train" / "configs" / "four_tank.yaml"
+    second = _config(
+        tmp_path, "trainer:\n  logger:\n    init_args: {name: second_name}\n", "s.yaml"
+    )
+    renamed = ["--trainer.logger.init_args.name", "third_name"]
+    runs, calls = tmp_path / "runs", []
+    for extra, name in (([], "four_tank_nn_grad"), (["--config", str(second)], "second_name"),
+                        ([f"--config={second}", *renamed], "third_name"),
+                        ([*renamed, "--config", str(second)], "second_name")):  # fmt: skip
+        monkeypatch.setattr("difffilter.train.cli.main", lambda args: calls.append(args) or 1)
+        with pytest.raises(ValueError, match="fit failed"):
+            sweep._fit(config, 3, runs, extra, progress=False)
+        monkeypatch.undo()
+        logger = _print_config(calls[-1])["trainer"]["logger"]["init_args"]
+        fit_dir = TensorBoardLogger(logger["save_dir"], logger["name"], logger["version"]).log_dir
+        assert logger["name"] == name
+        assert sweep._seed_run(config, 3, runs, extra)[0] == Path(fit_dir), extra
+
+
+def test_an_edited_config_among_the_options_is_other_settings(tmp_path):
+    """A threat distribution given as ``-- --config threats.yaml`` and edited since a seed
+    was trained is other settings (the seed is not taken as trained already); the same
+    file unedited, or by the ``--config=`` spelling, is the same; a folder recorded before
+    the option configs were is judged on the rest."""
+    config = _config(tmp_path, "trainer:\n  max_epochs: 2\n")
+    threats = _config(tmp_path, "data:\n  init_args: {threats: {own: 1.0}}\n", "threats.yaml")
+    folder = tmp_path / "seed_0"
+    folder.mkdir()
+    options = ["--config", str(threats)]
+    (folder / sweep._SETTINGS).write_text(json.dumps(sweep._settings(config, options)))
+    sweep._check_same_settings(folder, sweep._settings(config, options), 0)
+    threats.write_text("data:\n  init_args: {threats: {own: 0.5, none: 0.5}}\n")
+    for now in (options, [f"--config={threats}"]):
+        with pytest.raises(ValueError, match=r"threats.yaml' values as they were"):
+            sweep._check_same_settings(folder, sweep._settings(config, now), 0)
+    recorded = sweep._settings(config, options)
+    del recorded["option_configs"]
+    (folder / sweep._SETTINGS).write_text(json.dumps(recorded))
+    sweep._check_same_settings(folder, sweep._settings(config, options), 0)
+
+
+def test_the_family_check_reads_the_training_scenario_a_config_among_the_options_sets(tmp_path):
+    """``--scenarios`` are held against the scenario the fit will train on: one a second
+    config sets (a config of the LFC family after four_tank.yaml accepts LFC scenarios and
+    refuses the four-tank's), and the ``--scenario`` shortcut and the space-separated form
+    as well; an option on a scenario it cannot read skips the check."""
+    config = ROOT / "train" / "configs" / "four_tank.yaml"
+    lfc = _config(tmp_path, "model:\n  init_args: {scenario: lfc_step}\n", "lfc.yaml")
+    check = sweep._check_before_training
+    out = tmp_path / "o"
+    for extra in (["--config", str(lfc)], ["--scenario", "lfc_step"],
+                  ["--model.init_args.scenario", "lfc_sine"]):  # fmt: skip
+        check(config, out, ["lfc_step"], None, True, extra)
+        with pytest.raises(ValueError, match="four_tank_bias is a four_tank scenario"):
+            check(config, out, ["four_tank_bias"], None, True, extra)
+    with pytest.raises(ValueError, match="lfc_step is a lfc scenario"):
+        check(config, out, ["lfc_step"], None, True, ["--config", str(config)])
+    check(config, out, ["lfc_step"], None, True, ["--data.init_args.scenario_weights=1"])

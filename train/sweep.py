@@ -7,7 +7,8 @@ stay the config's), logging into ``<out>/runs/<name>/seed_<s>/``. A seed whose e
 estimator is already there is not trained again, and one interrupted after a Lightning
 checkpoint resumes from its ``last.ckpt`` (written at every epoch): an interrupted sweep
 loses at most the epoch it was in. Each seed's folder records what it was trained with
-(``sweep_settings.json``: the config's values and the options after ``--``), and a sweep
+(``sweep_settings.json``: the config's values, the options after ``--`` and the values of a
+config among them, ``-- --config threats.yaml``), and a sweep
 with other settings into the same ``--out`` is refused before anything is trained.
 
 Each seed's estimator is then evaluated on the headline scenarios of its family (or
@@ -153,16 +154,76 @@ def _settings(config: Path, options: list[str]) -> dict:
         values = yaml.safe_load(Path(config).read_text())
     except (OSError, yaml.YAMLError):  # fit itself then says what is wrong with it
         values = None
+    # a config given among the options (a threat distribution's: -- --config threats.yaml),
+    # by its values: an edited one is another training (by its path alone, a sweep after an
+    # edit took the seeds trained on the old distribution as trained already)
+    option_configs = {path: _yaml_values(path) for path in _option_configs(options)}
     # the scenario files named, by their bytes: an edited plant is another training
-    named = [s for s in _strings(values) if is_yaml_path(s)]
+    named = [s for s in _strings([values, *option_configs.values()]) if is_yaml_path(s)]
     named += [option.split("=")[-1] for option in options if is_yaml_path(option.split("=")[-1])]
     files = {name: scenario_file_digest(name) for name in named}
     return {
         "config_file": str(config),
         "config": values,
         "options": options,
+        "option_configs": option_configs,
         "scenario_files": files,
     }
+
+
+def _yaml_values(path) -> object:
+    """A YAML file's values, or ``None`` where it cannot be read (``fit`` says why)."""
+    import yaml
+
+    try:
+        return yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError):
+        return None
+
+
+def _option_pairs(options) -> list[tuple[str, str | None]]:
+    """``(key, value)`` of every option in ``options``, in order, as the command line reads
+    them: ``--key=value`` or ``--key value`` (``None`` for a flag without a value)."""
+    options, pairs, i = [str(option) for option in options], [], 0
+    while i < len(options):
+        key, eq, value = options[i].partition("=")
+        if not eq:
+            has_value = i + 1 < len(options) and not options[i + 1].startswith("--")
+            value = options[i + 1] if has_value else None
+            i += has_value
+        pairs.append((key, value))
+        i += 1
+    return pairs
+
+
+def _option_configs(options) -> list[str]:
+    """The config files a seed's ``fit`` reads after the sweep's ``--config``: every
+    ``--config`` among the options (``-- --config threats.yaml``), in order."""
+    return [value for key, value in _option_pairs(options) if key == "--config" and value]
+
+
+def _set_last(config: Path, options, keys: tuple[str, ...]):
+    """The value a seed's ``fit`` gives the setting at the dotted path ``keys[0]`` (or one of
+    its spellings, ``keys``), read as the command line reads it: ``config``'s, then every
+    option in order, a ``--config`` among them by its file's values, the last one setting
+    it winning. ``_UNSET`` where none sets it."""
+    value = _dig(_yaml_values(config), keys[0])
+    for key, given in _option_pairs(options):
+        if key == "--config" and given:
+            found = _dig(_yaml_values(given), keys[0])
+            value = value if found is _UNSET else found
+        elif key.removeprefix("--") in keys:
+            value = None if given in (None, "", "null") else given
+    return value
+
+
+def _dig(values, dotted: str):
+    """``values[a][b]…`` for ``dotted = "a.b…"``, or ``_UNSET`` where a level is missing."""
+    for part in dotted.split("."):
+        if not isinstance(values, dict) or part not in values:
+            return _UNSET
+        values = values[part]
+    return values
 
 
 def _strings(value) -> list[str]:
@@ -188,11 +249,15 @@ def _check_same_settings(folder: Path, settings: dict, seed: int) -> None:
     had = json.loads(file.read_text())
     differ = [k for k in ("config", "options") if had.get(k) != settings[k]]
     # (a folder of a sweep before the files were recorded is judged on the rest)
-    if "scenario_files" in had and had["scenario_files"] != settings["scenario_files"]:
-        differ.append("scenario_files")
+    for key in ("option_configs", "scenario_files"):
+        if key in had and had[key] != settings[key]:
+            differ.append(key)
     described = {
         "options": f"the options {had.get('options')} (now {settings['options']})",
         "config": f"the config {had.get('config_file')}'s values as they were",
+        "option_configs": "the option config(s) "
+        + ", ".join(sorted(set(had.get("option_configs", {})) | set(settings["option_configs"])))
+        + "' values as they were (they changed since)",
         "scenario_files": "the scenario file(s) "
         + ", ".join(sorted(set(had.get("scenario_files", {})) | set(settings["scenario_files"])))
         + " as they were (their contents changed since)",
@@ -226,30 +291,23 @@ def _check_same_sweep(out: Path, config: Path, extra: list[str]) -> None:
 
 def _run_name(config: Path, extra: list[str]) -> str:
     """The logger's run name of ``config`` (``trainer.logger.init_args.name``), or of an
-    option in ``extra`` that sets it; Lightning's ``lightning_logs`` without one, and ``""``
-    for a name of ``null`` or ``""``, where the logger writes into its ``save_dir`` itself
-    (read as the config's name, a sweep wrote its settings into one folder and trained into
-    another, then said the fit exported nothing: a review)."""
-    import yaml
-
-    name: object = _UNSET
-    for option in extra:
-        key, _, value = option.partition("=")
-        if key == "--trainer.logger.init_args.name":
-            name = None if value in ("", "null") else value
+    option in ``extra`` that sets it (a ``--config`` among them included: it had been
+    missed, and the sweep looked for the fit's export in another folder); Lightning's
+    ``lightning_logs`` without one, and ``""`` for a name of ``null`` or ``""``, where the
+    logger writes into its ``save_dir`` itself (read as the config's name, a sweep wrote its
+    settings into one folder and trained into another, then said the fit exported nothing:
+    a review)."""
+    name = _set_last(config, extra, ("trainer.logger.init_args.name",))
     if name is _UNSET:
-        try:
-            doc = yaml.safe_load(Path(config).read_text()) or {}
-        except (OSError, yaml.YAMLError):  # fit itself then says what is wrong with it
-            doc = {}
-        logger = (doc.get("trainer") or {}).get("logger") if isinstance(doc, dict) else None
-        args = (logger.get("init_args") or {}) if isinstance(logger, dict) else {}
-        name = args.get("name", "lightning_logs") if isinstance(args, dict) else "lightning_logs"
+        name = "lightning_logs"
     return str(name) if name else ""
 
 
 #: no name given (Lightning's default applies), as against a name of null
 _UNSET = object()
+
+#: the options that set the training scenario (train/cli.py expands ``--scenario``)
+_SCENARIO_KEYS = ("model.init_args.scenario", "data.init_args.scenario", "scenario")
 
 
 def _family_metrics(result, name: str) -> dict:
@@ -433,8 +491,6 @@ def _check_before_training(config: Path, out: Path, scenarios, runs, test: bool,
     """``ValueError`` for what the evaluation after each training would refuse, said before
     the first training: ``--out`` a file, ``--runs`` below 1, ``--scenarios`` unknown or of
     another family than the config's training scenario (unless ``extra`` sets another)."""
-    import yaml
-
     from difffilter.models import registry
 
     if out.exists() and not out.is_dir():
@@ -443,10 +499,12 @@ def _check_before_training(config: Path, out: Path, scenarios, runs, test: bool,
         raise ValueError(f"--runs must be an integer >= 1; got {runs!r}")
     if not (test and scenarios):
         return
-    model = (yaml.safe_load(config.read_text()) or {}).get("model") or {}
-    trained = (model.get("init_args") or {}).get("scenario")
-    overridden = any("scenario" in str(option) for option in extra)
-    family = None if trained is None or overridden else registry.get(trained).family
+    # the scenario the fit trains on, as it reads its configs and options (train/cli.py's
+    # --scenario shortcut sets the model's and the data's)
+    trained = _set_last(config, extra, _SCENARIO_KEYS)
+    understood = {"--config", *(f"--{key}" for key in _SCENARIO_KEYS)}
+    unread = any("scenario" in key and key not in understood for key, _ in _option_pairs(extra))
+    family = None if trained in (None, _UNSET) or unread else registry.get(trained).family
     for name in scenarios:
         scenario = registry.get(name)  # an unknown name: its error, listing the valid ones
         if family is not None and scenario.family != family:
