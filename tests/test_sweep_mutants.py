@@ -573,3 +573,17 @@ def test_the_family_check_reads_the_training_scenario_a_config_among_the_options
     with pytest.raises(ValueError, match="lfc_step is a lfc scenario"):
         check(config, out, ["lfc_step"], None, True, ["--config", str(config)])
     check(config, out, ["lfc_step"], None, True, ["--data.init_args.scenario_weights=1"])
+
+
+def test_a_config_among_the_options_may_bring_the_checkpoint_monitor(tmp_path):
+    """A config without a ModelCheckpoint monitor is refused for ``--select-on validation``
+    before training, unless a config among the options brings callbacks of its own (the
+    run gets past that check to the next, ``--runs``, here)."""
+    bare = _config(tmp_path, "trainer:\n  max_epochs: 1\n", "bare.yaml")
+    monitored = _config(tmp_path)
+    out = tmp_path / "sw"
+    with pytest.raises(ValueError, match="has no ModelCheckpoint monitor"):
+        sweep.sweep(bare, [0], out, runs=0)
+    with pytest.raises(ValueError, match="--runs must be an integer >= 1"):
+        sweep.sweep(bare, [0], out, runs=0, extra=["--config", str(monitored)])
+    assert not out.exists()

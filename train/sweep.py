@@ -589,8 +589,11 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
     if not test and select_on != "validation":
         raise ValueError("--validation-only chooses the median seed on validation; "
                          "--select-on test needs the test's draws")  # fmt: skip
-    if (select_on == "validation" and _config_monitor(config) is None
-            and not any("callbacks" in option for option in extra)):  # fmt: skip
+    callbacks_given = any("callbacks" in option for option in extra) or any(
+        _dig(_yaml_values(path), "trainer.callbacks") is not _UNSET
+        for path in _option_configs(extra)
+    )  # (a config among the options with callbacks of its own had been refused here)
+    if select_on == "validation" and _config_monitor(config) is None and not callbacks_given:
         # said before hours of training, not after
         raise ValueError(f"--select-on validation ranks the seeds by the score their "
                          f"training chose its weights by, and {config} has no ModelCheckpoint "
