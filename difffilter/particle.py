@@ -64,7 +64,13 @@ from .linalg import (
 )
 from .loop import open_loop
 from .noise import Gaussian
-from .resampling import Resampler, Systematic, effective_sample_size, keep_unmarked_rows
+from .resampling import (
+    Resampler,
+    Systematic,
+    _AncestorError,
+    effective_sample_size,
+    keep_unmarked_rows,
+)
 from .results import ParticleFilterResult, StepOutput
 from .ssm import StateSpaceModel, plain_residual, wrapped_spread
 
@@ -559,12 +565,15 @@ def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator, k: int):
             res = keep_unmarked_rows(res, particles, log_w, rows)
         return res.particles, res.log_weights, None, need, uniform
     fast = resampler.resample_normalized
-    if kind.resample_normalized is Resampler.resample_normalized:
-        # the library's index resamplers also take the weights this step has (no exp)
-        res = fast(particles, log_w, generator, rows=rows, weights=w)
-        uniform = rows is None and kind._new_log_weights is _UNIFORM
-    else:
-        res = fast(particles, log_w, generator, rows=rows)
+    try:
+        if kind.resample_normalized is Resampler.resample_normalized:
+            # the library's index resamplers also take the weights this step has (no exp)
+            res = fast(particles, log_w, generator, rows=rows, weights=w)
+            uniform = rows is None and kind._new_log_weights is _UNIFORM
+        else:
+            res = fast(particles, log_w, generator, rows=rows)
+    except _AncestorError as error:  # a user's `_draw`: name the step too
+        raise ValueError(f"{error} (before step {k})") from None
     if _own(kind, "_new_log_weights"):  # normalised? (the library's are by design)
         res = _checked_resampled(res, particles, log_w, resampler, k)
     return res.particles, res.log_weights, None, need, uniform

@@ -322,7 +322,8 @@ class Resampler:
 
     Attributes:
         differentiable: ``True`` when gradients flow from the returned log-weights (or
-            particles) back to the input log-weights.
+            particles) back to the input log-weights (for the reader: the library does not
+            read it).
     """
 
     differentiable: ClassVar[bool] = False
@@ -335,7 +336,8 @@ class Resampler:
         ``None``).
         """
         log_w = normalize_log_weights(log_weights)
-        return self._draw(log_w.detach(), generator)
+        ancestors = self._draw(log_w.detach(), generator)
+        return _checked_ancestors(ancestors, log_w, self) if _own_draw(self) else ancestors
 
     def __call__(
         self, particles: Tensor, log_weights: Tensor, generator: torch.Generator | None = None
@@ -370,6 +372,8 @@ class Resampler:
         ancestors = self._draw_given(
             log_w.detach(), None if weights is None else weights.detach(), generator
         )
+        if _own_draw(self):  # (the library's schemes draw in range by construction)
+            ancestors = _checked_ancestors(ancestors, log_w, self)
         new_log_w = self._new_log_weights(log_w, ancestors)
         if rows is not None:
             identity = torch.arange(ancestors.shape[-1], device=ancestors.device)
@@ -394,6 +398,49 @@ class Resampler:
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}()"
+
+
+class _AncestorError(ValueError):
+    """A resampler's own ``_draw`` returned ancestors that are no ``int64 [..., N]`` indices
+    in ``[0, N)`` (:func:`_checked_ancestors`; the particle filter adds the step)."""
+
+
+def _own_draw(resampler: Resampler) -> bool:
+    """Whether ``resampler`` draws its ancestors with a ``_draw`` defined outside this module
+    (a user's): its class's, or its ``base``'s (:class:`Soft` and :class:`StopGradient`
+    draw with their base's ``_draw``)."""
+    owner = next(c for c in type(resampler).__mro__ if "_draw" in c.__dict__)
+    if owner.__module__ != __name__:
+        return True
+    base = getattr(resampler, "base", None)
+    return isinstance(base, Resampler) and _own_draw(base)
+
+
+def _checked_ancestors(ancestors, log_w: Tensor, resampler: Resampler) -> Tensor:
+    """A user ``_draw``'s ancestors, checked: an ``int64`` tensor of ``log_w``'s shape
+    ``[..., N]`` with values in ``[0, N)``. Index ``N`` of run 0 (a ``searchsorted`` without
+    the clamp at the top) was read, by the gather on the flattened rows, as particle 0 of
+    run 1, without a word; float or short ancestors failed inside torch, naming neither
+    the resampler nor what ``_draw`` returns. One reduction per resampling."""
+    n, name = log_w.shape[-1], type(resampler).__name__
+    want = f"int64 indices {tuple(log_w.shape)} ([..., N]) in [0, N) (N = {n})"
+    if not isinstance(ancestors, Tensor):
+        got = type(ancestors).__name__
+        raise _AncestorError(f"the resampler {name}'s _draw returned a {got}; it returns {want}")
+    if ancestors.dtype != torch.int64 or ancestors.shape != log_w.shape:
+        raise _AncestorError(
+            f"the resampler {name}'s _draw returned ancestors {tuple(ancestors.shape)} "
+            f"{ancestors.dtype}; it returns {want}"
+        )
+    if not ancestors.numel():
+        return ancestors
+    low, high = (int(v) for v in torch.aminmax(ancestors))
+    if low < 0 or high >= n:
+        raise _AncestorError(
+            f"the resampler {name}'s _draw returned ancestors from {low} to {high}; it returns "
+            f"{want}: an index out of range takes another run's particle"
+        )
+    return ancestors
 
 
 class _InverseCDFResampler(Resampler):
@@ -516,7 +563,10 @@ class Residual(Resampler):
 
     Args:
         base: scheme for the residual draws; :class:`Multinomial` (default),
-            :class:`Systematic` or :class:`Stratified` (the latter two use ``R`` strata).
+            :class:`Systematic` or :class:`Stratified` (the latter two use ``R`` strata),
+            or a subclass with uniforms of its own (``_uniforms``); one with a ``_draw``
+            of its own is refused (the ``R < N`` draws of a row go through the inverse
+            CDF, and would ignore it).
 
     Shapes: ``log_weights [..., N]`` → ancestors ``[..., N]``.
     """
@@ -526,6 +576,12 @@ class Residual(Resampler):
         if not isinstance(base, _InverseCDFResampler):
             raise ValueError(
                 f"base must be a Multinomial(), Systematic() or Stratified() instance; got {base!r}"
+            )
+        if _own_draw(base):  # the residual draws take a count R < N: `_draw` cannot
+            raise ValueError(
+                f"base must draw through its inverse CDF (its uniforms: override `_uniforms`); "
+                f"got {base!r}, whose own `_draw` the R < N residual draws of a row would "
+                "ignore"
             )
         self.base = base
 

@@ -1,0 +1,80 @@
+"""Findings of a plug-in author's trial: a resampler's own ``_draw`` whose
+ancestors are out of range, and a ``Residual`` whose base has a ``_draw`` of its own."""
+
+import pytest
+import torch
+
+import difffilter as df
+from difffilter.resampling import Multinomial, Resampler, Residual
+
+D = torch.float64
+
+
+class _OffByOne(Resampler):
+    """Identity ancestors, but run 0's first slot is N: an inverse CDF by ``searchsorted``
+    without the clamp at the top (what round-off at u → 1 gives)."""
+
+    def _draw(self, log_w, generator):
+        n = log_w.shape[-1]
+        a = torch.arange(n).expand(log_w.shape).clone()
+        a[0, 0] = n
+        return a
+
+
+def test_out_of_range_ancestors_of_an_own_draw_are_refused_not_taken_from_another_run():
+    """Index N of run 0 was read, through the gather on the flattened rows, as particle 0
+    of run 1: run 0 went on with another run's particle, without a word."""
+    particles = torch.stack([torch.zeros(5, 1, dtype=D), torch.full((5, 1), 7.0, dtype=D)])
+    log_w = torch.zeros(2, 5, dtype=D)
+    with pytest.raises(ValueError, match=r"_OffByOne.*\[0, N\)"):
+        _OffByOne()(particles, log_w)
+    with pytest.raises(ValueError, match=r"_OffByOne.*\[0, N\)"):
+        _OffByOne().ancestors(log_w)
+
+
+def test_the_filter_names_a_resampler_whose_draw_is_out_of_range_and_the_step():
+    model = df.LinearGaussianModel(
+        torch.eye(2, dtype=D), torch.eye(1, 2, dtype=D), 0.1 * torch.eye(2, dtype=D),
+        0.1 * torch.eye(1, dtype=D), torch.zeros(2, dtype=D), torch.eye(2, dtype=D),
+    )  # fmt: skip
+    _, ys, _ = model.simulate(4, (3,), generator=torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match=r"_OffByOne.*\[0, N\).*before step \d"):
+        df.particle_filter(model, ys, num_particles=5, resampler=_OffByOne(), ess_threshold=1.0,
+                           generator=torch.Generator().manual_seed(0))  # fmt: skip
+
+
+def test_float_or_short_ancestors_of_an_own_draw_are_named():
+    """A float or a short ancestor tensor failed inside torch (index_select's dtype, an
+    expand), naming neither the resampler nor what _draw returns."""
+
+    class Floats(Resampler):
+        def _draw(self, log_w, generator):
+            return torch.zeros(log_w.shape, dtype=log_w.dtype)
+
+    class Short(Resampler):
+        def _draw(self, log_w, generator):
+            return torch.zeros(log_w.shape[:-1] + (log_w.shape[-1] - 1,), dtype=torch.long)
+
+    x, log_w = torch.zeros(2, 4, 1, dtype=D), torch.zeros(2, 4, dtype=D)
+    for kind in (Floats, Short):
+        with pytest.raises(ValueError, match=kind.__name__ + r"'s _draw returned"):
+            kind()(x, log_w)
+
+
+def test_residual_refuses_a_base_whose_own_draw_it_would_ignore():
+    """Residual draws its R < N residual slots with the base's inverse CDF
+    (``_draw_from``): a base's own ``_draw`` was ignored, silently (a scheme that picks
+    particle 0 at every draw picked it in 60 % of the residual slots, the weights' share)."""
+
+    class Everyone0(Multinomial):
+        def _draw(self, log_w, generator):
+            return torch.zeros(log_w.shape, dtype=torch.long)
+
+    with pytest.raises(ValueError, match=r"base.*_draw"):
+        Residual(base=Everyone0())
+
+    class Spaced(Multinomial):  # own uniforms: honoured by the residual draws, accepted
+        def _uniforms(self, weights, count, generator):
+            return (torch.arange(weights.shape[-1], dtype=weights.dtype) + 0.5) / count
+
+    Residual(base=Spaced())
