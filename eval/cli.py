@@ -34,6 +34,7 @@ __all__ = ["main", "build_parser", "resolve_scenarios", "evaluate", "check_argum
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="difffilter-eval",
+        allow_abbrev=False,  # `--device cuda` had been read as --devices, "invalid int"
         description=(
             "Evaluate estimators and detectors on a scenario and write metrics.json, "
             "report.md, plots and TensorBoard logs."
@@ -576,7 +577,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)  # --help and usage errors before the heavy imports
+    args, unknown = parser.parse_known_args(argv)  # --help, usage errors before heavy imports
+    if unknown:
+        hint = ""
+        if any(a.split("=")[0] in ("--device", "--gpu", "--cuda") for a in unknown):
+            hint = (" (the evaluation runs on the CPU; --devices N is the number of CPU "
+                    "processes that share each scenario's estimators)")  # fmt: skip
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}{hint}")
     if args.scenario_option is not None:
         if args.scenario not in (None, args.scenario_option):
             parser.error(

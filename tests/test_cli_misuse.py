@@ -199,3 +199,32 @@ def test_an_added_learned_estimator_that_does_not_fit_names_the_shipped_one_that
     monkeypatch.chdir(tmp_path)  # from elsewhere, a path that works there (a review)
     assert _shipped_fitting("pf_nn_ekf", "four_tank") == str(
         ROOT / "checkpoints" / "four_tank_nn_ekf.ckpt")  # fmt: skip
+
+
+def test_an_abbreviated_option_is_refused_and_a_device_option_is_answered(tmp_path, capsys):
+    """argparse took a prefix of an option for the option: `difffilter-eval --device cuda`
+    was read as --devices and failed with "argument --devices: invalid int value: 'cuda'"
+    (a course trial). Each command line now takes its options whole."""
+    import difffilter.eval.cli as cli
+    from difffilter.train import calibrate, export, lfc_tuning, sweep
+
+    with pytest.raises(SystemExit) as stop:
+        cli.main(["four_tank_bias", "--device", "cuda", "--out", str(tmp_path)])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert (
+        "unrecognized arguments: --device cuda (the evaluation runs on the CPU; --devices N" in err
+    )
+    attempts = [
+        (cli.main, ["four_tank_bias", "--run", "2", "--out", str(tmp_path)], "--run 2"),
+        (calibrate.main, ["x.ckpt", "--out", str(tmp_path / "c.ckpt"), "--ru", "5"], "--ru 5"),
+        (export.main, ["x.ckpt", "--out", str(tmp_path / "e.ckpt"), "--forc"], "--forc"),
+        (sweep.main, ["--config", FOUR_TANK, "--out", str(tmp_path / "s"), "--seed", "0"],
+         "--seed 0"),
+        (lfc_tuning.main, ["--run", "2"], "--run 2"),
+    ]  # fmt: skip
+    for main, argv, named in attempts:
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        assert stop.value.code == 2, main
+        assert f"unrecognized arguments: {named}" in capsys.readouterr().err, main

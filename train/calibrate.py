@@ -251,6 +251,7 @@ def _rate_option(value: str, option: str):
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="difffilter-train calibrate",
+        allow_abbrev=False,  # `--device cuda` had been read as --devices, "invalid int"
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -339,6 +339,7 @@ def _last_checkpoint(trainer) -> str | None:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="difffilter-train export",
+        allow_abbrev=False,  # `--device cuda` had been read as --devices, "invalid int"
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -159,7 +159,9 @@ def tune(
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m difffilter.train.lfc_tuning", description=__doc__)
+    p = argparse.ArgumentParser(
+        prog="python -m difffilter.train.lfc_tuning", description=__doc__, allow_abbrev=False
+    )
     p.add_argument("--runs", type=int, default=16)
     p.add_argument(
         "--out",

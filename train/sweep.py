@@ -755,6 +755,7 @@ def _acceptance_markdown(doc: dict) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="difffilter-train sweep",
+        allow_abbrev=False,  # `--device cuda` had been read as --devices, "invalid int"
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="Options after -- go to every seed's fit (e.g. -- --trainer.max_epochs=5); "
