@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import inspect
 import math
 import numbers
+from collections.abc import Sequence
 from enum import Enum
 
 import torch
@@ -376,8 +378,11 @@ def _check_bool_mask(mask, name: str, shape: torch.Size, of: str, device=None) -
     return mask
 
 
-def check_strategy(obj, name: str, example: str) -> None:
-    """``obj`` must be ``None`` or a callable strategy object, never its name as a string."""
+def check_strategy(obj, name: str, example: str, params: Sequence[str] = ()) -> None:
+    """``obj`` must be ``None`` or a callable strategy object, never its name as a string;
+    with ``params``, callable with those positional arguments, as the filter calls it (a
+    resampler's ``__call__`` written without ``generator`` failed at its first resampling
+    with Python's bare "takes 3 positional arguments but 4 were given")."""
     if obj is None:
         return
     if isinstance(obj, str):
@@ -393,6 +398,18 @@ def check_strategy(obj, name: str, example: str) -> None:
         raise TypeError(
             f"{name} must be a callable object (e.g. {example}); got {type(obj).__name__}"
         )
+    if params:
+        try:
+            signature = inspect.signature(obj)
+        except (TypeError, ValueError):  # no signature to read (a builtin): the call will say
+            return
+        try:
+            signature.bind(*params)
+        except TypeError as error:
+            raise TypeError(
+                f"{name} {type(obj).__name__} is called as {name}({', '.join(params)}); its "
+                f"call takes {signature} ({error}): docs/plugins.md, The contracts"
+            ) from None
 
 
 def check_ess_threshold(value) -> float:

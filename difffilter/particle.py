@@ -538,10 +538,13 @@ def _check_cov_dims(cov_dims, dim: int) -> int | None:
 
 
 def _check_strategies(resampler, proposal, likelihood, ess_threshold) -> float:
-    check_strategy(resampler, "resampler", "difffilter.resampling.Systematic()")
-    check_strategy(proposal, "proposal", "difffilter.BootstrapProposal()")
+    check_strategy(resampler, "resampler", "difffilter.resampling.Systematic()",
+                   ("particles", "log_weights", "generator"))  # fmt: skip
+    check_strategy(proposal, "proposal", "difffilter.BootstrapProposal()",
+                   ("model", "particles", "u", "y", "k", "mask", "generator"))  # fmt: skip
     if not hasattr(likelihood, "weigh"):
-        check_strategy(likelihood, "likelihood", "difffilter.ModelLikelihood()")
+        check_strategy(likelihood, "likelihood", "difffilter.ModelLikelihood()",
+                       ("model", "y", "particles", "k", "mask"))  # fmt: skip
     return check_ess_threshold(ess_threshold)
 
 

@@ -78,3 +78,38 @@ def test_residual_refuses_a_base_whose_own_draw_it_would_ignore():
             return (torch.arange(weights.shape[-1], dtype=weights.dtype) + 0.5) / count
 
     Residual(base=Spaced())
+
+
+def test_a_plugin_whose_call_misses_an_argument_is_named_at_construction():
+    """A resampler's ``__call__`` written without ``generator`` failed at the first
+    resampling with Python's bare "__call__() takes 3 positional arguments but 4 were
+    given", naming neither the plug-in's role nor the contract."""
+
+    class NoGenerator:
+        def __call__(self, particles, log_weights):
+            raise AssertionError("never called")
+
+    class ShortProposal:
+        def __call__(self, model, particles, u, y, k, mask):
+            raise AssertionError("never called")
+
+    def short_likelihood(model, y, particles, k):
+        raise AssertionError("never called")
+
+    cases = [
+        (dict(resampler=NoGenerator()), r"resampler NoGenerator is called as resampler\("
+         r"particles, log_weights, generator\); its call takes \(particles, log_weights\)"),
+        (dict(proposal=ShortProposal()), r"proposal ShortProposal is called as proposal\("
+         r"model, particles, u, y, k, mask, generator\)"),
+        (dict(likelihood=short_likelihood), r"likelihood function is called as likelihood\("
+         r"model, y, particles, k, mask\)"),
+    ]  # fmt: skip
+    for kwargs, message in cases:
+        with pytest.raises(TypeError, match=message):
+            df.ParticleFilter(8, **kwargs)
+
+    class Flexible:  # extra keyword-only or defaulted parameters still bind: accepted
+        def __call__(self, particles, log_weights, generator=None, *, scale=1.0):
+            return Multinomial()(particles, log_weights, generator)
+
+    df.ParticleFilter(8, resampler=Flexible())
