@@ -167,6 +167,10 @@ def _check_entries(entries, dy: int) -> tuple[int, ...]:
 _BUDGET_ROUND_OFF = 1e-12
 
 
+#: Why a crafted attack is zero where no iterate kept the alarm budget (the warning's words).
+_NONE_KEPT = "no iterate kept the budget on its own batch"
+
+
 def _keeps_budget(rate: float, budget: float) -> bool:
     """``rate ≤ budget`` up to the round-off of the budget's sum (:data:`_BUDGET_ROUND_OFF`)."""
     return rate <= budget + _BUDGET_ROUND_OFF
@@ -316,7 +320,8 @@ def craft_stealthy_attack(
             rate elsewhere: the adversary of a training logs it at every crafting, and the
             robustness study's report explains a detector whose alarms fall at start-up).
 
-    Returns a :class:`CraftedAttack` (zero where no iterate kept the budget) with ``history``
+    Returns a :class:`CraftedAttack` (zero, with a ``RuntimeWarning``, where no iterate kept
+    the budget) with ``history``
     ``[(iteration, J, p̃(a) − p̃(0), p(a), p(0) + ε)]`` (each on its own batch), ``budget``
     the first batch's ``p(0) + ε`` and, with ``select``, ``selection`` ``{"runs", "budget"
     (the held-out batch's p(0) + ε), "judged" [(iteration, J, p(a))], "iteration" (the one
@@ -410,6 +415,9 @@ def craft_stealthy_attack(
             progress(it, value, rate)
     none = torch.zeros(T, dy, **like)
     if select is None:
+        if not kept:  # a zero attack read as "the detector withstood it" (say why it is zero)
+            warnings.warn(f"craft_stealthy_attack: {_NONE_KEPT}: the attack returned is zero; "
+                          "raise penalty or lower lr", RuntimeWarning, stacklevel=2)  # fmt: skip
         best = max(kept, key=lambda k: k[0], default=(0.0, -1, none))
         return CraftedAttack(best[2], onset, history, s, budget=history[0][4])
 
@@ -427,7 +435,7 @@ def craft_stealthy_attack(
     if chosen is None:
         why = (f"none of the {len(judged)} iterates of largest error that kept the budget on "
                "their own batch kept it on the held-out batch (select)" if judged
-               else "no iterate kept the budget on its own batch")  # fmt: skip
+               else _NONE_KEPT)  # fmt: skip
         warnings.warn(f"craft_stealthy_attack: {why}: the attack returned is zero; raise "
                       "penalty or candidates, or lower lr", RuntimeWarning, stacklevel=2)  # fmt: skip
     selection = {"runs": int(ys.shape[0]), "budget": budget, "judged": judged,

@@ -236,3 +236,18 @@ def test_estimator_step_is_the_registered_detector_of_the_study(name):
     with pytest.raises(ValueError, match=r"no step object for 'kf_nn_grad': not a gated Gaussian "
                        r"filter.*LFC closed loop"):  # fmt: skip
         estimator_step(registry.get("lfc_step"), "kf_nn_grad", runs=2)
+
+
+def test_a_crafting_that_kept_no_iterate_says_why_its_attack_is_zero():
+    """Without ``select``, an attack of zeros where no iterate kept the alarm budget had come
+    back without a word, to be read as a detector that withstood the attack."""
+    estimator = fdi.GatedFilter(fdi.ChiSquareDetector(2, 0.01), df.KalmanFilter())
+    tau = threshold_for(open_loop(estimator, _plant(), _runs(400, 1).y_recv).detection.scores,
+                        0.01)  # fmt: skip
+    first = _runs(32, 2)
+    loud = StealthySettings(iterations=3, lr=1e-6, init=50.0, penalty=0.0)  # alarms at once
+    with pytest.warns(RuntimeWarning, match="no iterate kept the budget on its own batch: "
+                      "the attack returned is zero"):  # fmt: skip
+        attack = craft_stealthy_attack(estimator, _plant(), first.y_true, first.x, tau,
+                                       far=0.01, onset=ONSET, settings=loud)  # fmt: skip
+    assert not bool(attack.values.any()) and attack.within_budget() == []

@@ -18,6 +18,7 @@ network, on noise of its own seed.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import torch
@@ -97,7 +98,10 @@ class Adversary:
 
         settings = StealthySettings(iterations=self.iterations)
         try:
-            with torch.enable_grad():
+            # a zero attack (no iterate within the budget) is logged as an error of 0 and
+            # leaves the batches as they are (augment): no warning at every crafting
+            with torch.enable_grad(), warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message="craft_stealthy_attack: no iterate")
                 crafted = craft_stealthy_attack(
                     estimator, task.system, tr.y_true.to(device), tr.x.to(device),
                     task.current_threshold(), far=task.false_alarm_rate, us=us, mask=mask,
