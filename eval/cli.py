@@ -540,17 +540,24 @@ def _worker(rank: int, world: int, rendezvous: str, argv: list[str]) -> None:
 #: failed the evaluation after its suites had run).
 TOP_FILES = ("leaderboard.md", "leaderboard.json", "leaderboard.png", "acceptance.md",
              "robustness.md", "robustness.json")  # fmt: skip
+#: The folders it writes there (a file by one of these names failed it the same way: the
+#: leaderboard's TensorBoard events, after every suite and report).
+TOP_FOLDERS = ("tb_leaderboard",)
 
 
 def check_output_folder(out: Path, scenarios: Sequence[str] = ()) -> None:
     """Create ``out`` and prove it writable, with no folder where a file will go and no
-    file where a scenario's folder will go; ``ValueError`` naming ``--out`` otherwise."""
+    file where a folder will go (a scenario's, ``tb_leaderboard``); ``ValueError`` naming
+    ``--out`` otherwise."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out: {out} exists and is not a folder")
     for name in TOP_FILES:
         if (out / name).is_dir():
             raise ValueError(f"--out: {out / name} is a folder; the evaluation writes a file there")
+    for name in TOP_FOLDERS:
+        if (out / name).exists() and not (out / name).is_dir():
+            raise ValueError(f"--out: {out / name} is a file; the evaluation writes a folder there")
     for name in scenarios:
         if (out / name).exists() and not (out / name).is_dir():
             raise ValueError(f"--out: {out / name} is a file; scenario {name}'s reports go in a "
@@ -695,6 +702,11 @@ def _robustness(names: list[str], threats, args) -> int:
         raise ValueError("--far off: the robustness study compares detectors at one --far")
     if args.devices > 1:
         raise ValueError("--devices: the robustness study runs in one process")
+    if args.option:  # (checked, then never read: -o watermark=true ran no watermark study)
+        raise ValueError(
+            "--option: the robustness study (--threats) writes no scenario report, so a "
+            "family's report options would go unused; drop --option, or run without --threats"
+        )
     chosen = robustness_scenarios(names)
     if args.threat_set is not None and not args.threat_set.is_file():
         raise ValueError(f"--threat-set: no file {args.threat_set}")

@@ -1,0 +1,246 @@
+"""A mutation review of eval/report.py and eval/cli.py: mutants of the report and the
+command line that the fast tests let through, and two command-line errors found with them."""
+
+from __future__ import annotations
+
+import json
+import types
+
+import pytest
+import torch
+
+from difffilter.eval.report import _network_line, _summary_section, _table_section, network_of
+
+DOC = {"runs": 4, "steps": 10, "dt_s": 1.0, "seed": 0, "attacked_steps": 12,
+       "attack_free_steps": 28, "notes": []}  # fmt: skip
+SCENARIO = types.SimpleNamespace(paper="")
+
+
+def _table_doc(state_unit: str, attack_unit: str) -> dict:
+    entry = {"state_rmse": 0.5, "attack_rmse": 0.25}
+    return {
+        "estimators": {"kf": entry},
+        "units": {"state_rmse": "state units", "attack_rmse": "attack units"},
+        "scenario_units": {"state": state_unit, "attack": attack_unit},
+        "estimator_roles": {"kf": "analytic"},
+        "estimator_descriptions": {"kf": "a Kalman filter"},
+    }
+
+
+def test_the_estimator_table_heads_each_column_with_its_own_scenario_unit():
+    """The robot's state is in cm and rad, its actuator attack in cm/s and rad/s: a header
+    that read the attack's unit for the state (or the generic "state units") survived every
+    fast test (the shipped four-tank scenario has cm for both)."""
+    text = _table_section(_table_doc("cm, rad", "cm/s, rad/s")).body
+    header = text.splitlines()[0]
+    assert "state_rmse [cm, rad]" in header
+    assert "attack_rmse [cm/s, rad/s]" in header
+
+
+def test_the_estimator_table_shows_the_metrics_it_has_without_raw_counts_and_marks_roles():
+    """The columns: every metric some estimator has, but the raw counts (they are in
+    metrics.json); definitions for those columns alone; a role beside each name that is
+    not analytic. Each of the three survived the fast tests when dropped."""
+    doc = _table_doc("cm", "cm")
+    doc["estimators"] = {"kf": {"state_rmse": 0.5, "false_alarms": 3, "attack_episodes": 2},
+                         "net": {"state_rmse": 0.4, "attack_rmse": 0.25}}  # fmt: skip
+    doc["estimator_roles"] = {"kf": "analytic", "net": "learned"}
+    doc["estimator_descriptions"] = {"kf": "a Kalman filter", "net": "a network"}
+    text = _table_section(doc).body
+    header = text.splitlines()[0]
+    assert header == "| estimator | state_rmse [cm] | attack_rmse [cm] |"
+    assert "| `kf` | 0.5 | — |" in text and "| `net` | 0.4 | 0.25 |" in text
+    assert "- `kf`: a Kalman filter" in text and "- `net` (learned): a network" in text
+    definitions = text.split("Definitions:")[1]
+    assert "`state_rmse`" in definitions and "`attack_rmse`" in definitions
+    assert "`auc`" not in definitions and "`false_alarms`" not in definitions
+
+
+def test_the_report_counts_the_attacked_steps_from_the_flags_and_records_the_seed(
+    tmp_path, monkeypatch
+):
+    """metrics.json's attacked_steps / attack_free_steps and seed, and the Setting line:
+    counted from the study's flags, the seed the study ran with (mutants that counted ~flags
+    as attacked, or wrote seed 0 whatever --seed, survived the fast tests)."""
+    from difffilter.eval.report import write_report
+    from difffilter.eval.suite import run_suite
+    from difffilter.models.yaml_scenario import scenario_from_dict
+
+    monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path))
+    sc = scenario_from_dict({
+        "name": "motor_review159", "runs": 4, "steps": 40, "dt": 0.01,
+        "plant": {"F": [[0.95, 0.04], [-0.02, 0.8]], "B": [[0.0], [0.2]], "H": [[1.0, 0.0]],
+                  "Q": 1.0e-4, "R": 1.0e-3},
+        "inputs": {"kind": "constant", "value": 1.0},
+        "attack": {"kind": "bias", "channel": "actuator", "value": 0.5, "onset": 30,
+                   "share": 1.0},
+        "estimators": ["kf"],
+    }, "motor.yaml")  # fmt: skip
+    result = run_suite(sc, runs=4, seed=3, progress=False)
+    attacked = int(result.traj.flags.sum())
+    assert 0 < attacked < 4 * 40 / 2  # the two counts differ, so a swap shows
+    doc = write_report(tmp_path / "out", result)
+    written = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert written["attacked_steps"] == doc["attacked_steps"] == attacked
+    assert written["attack_free_steps"] == 4 * 40 - attacked
+    assert written["seed"] == 3
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert f"seed 3; {attacked} attacked and {4 * 40 - attacked} attack-free steps" in report
+
+
+def test_a_step_that_received_some_entries_is_not_a_step_without_data():
+    """``steps_without_data``: the share of (run, step) that received no entry at all; a
+    step that lost one of two entries received data (``mask.all`` for ``mask.any`` survived:
+    the fast tests' plant has one sensor)."""
+    mask = torch.tensor([[[True, True], [True, False], [False, False], [False, True]]])
+    traj = types.SimpleNamespace(mask=mask)
+    sc = types.SimpleNamespace(input_loss_schedule=lambda: None, schedule=lambda: "every")
+    assert network_of(sc, traj)["steps_without_data"] == 0.25
+
+
+def test_the_network_line_says_whether_the_actuators_hold_or_zero_a_lost_input():
+    def line(on_loss):
+        inputs = {"schedule": "PacketLoss(rate=0.3)", "on_loss": on_loss, "acknowledged": True}
+        return _network_line({"sensors": "AllSensors()", "inputs": inputs})
+
+    assert "holding their last input where one is lost" in line("hold")
+    assert "applying zero where one is lost" in line("zero")
+    assert "acknowledged (TCP-like" in line("hold")
+
+
+def test_the_setting_names_an_unused_checkpoint_and_each_estimators_own():
+    ckpt = {"path": "a.ckpt", "source": "--ckpt", "sha256": "0" * 64, "used_by": []}
+    own = {"pf_nn_ekf": {"path": "b.ckpt", "sha256": "1" * 64, "training_scenario": "s"}}
+    body = _summary_section({**DOC, "checkpoint": ckpt, "checkpoints": own}, SCENARIO).body
+    assert "), used by no estimator (ignored)." in body
+    assert "Checkpoint of `pf_nn_ekf`: `b.ckpt` (sha256 1111111111111111…; trained on `s`)" in body
+
+
+def test_an_output_folder_with_a_file_where_the_leaderboards_events_go_is_refused_first(
+    tmp_path,
+):
+    """``<out>/tb_leaderboard`` a file: the evaluation ran every suite, wrote the reports and
+    the leaderboard, then failed with a FileExistsError traceback (SummaryWriter's
+    makedirs); check_output_folder refuses it before any work, as it does a folder where a
+    file goes."""
+    from difffilter.eval.cli import check_output_folder
+
+    (tmp_path / "tb_leaderboard").write_text("")
+    with pytest.raises(ValueError, match="--out: .*tb_leaderboard"):
+        check_output_folder(tmp_path, ["four_tank_bias"])
+
+
+def test_an_option_with_threats_is_refused_not_dropped(tmp_path, monkeypatch, capsys):
+    """``--threats`` runs the robustness study instead of the scenario's report, and
+    ``--option`` configures that report: ``lfc_step --threats bias -o watermark=true`` was
+    checked, accepted and never used (run_robustness takes no options)."""
+    from difffilter.eval import cli, robustness
+
+    def reached(*args, **kwargs):
+        raise AssertionError("the robustness study ran; --option was dropped without a word")
+
+    monkeypatch.setattr(robustness, "run_robustness", reached)
+    code = cli.main(["lfc_step", "--threats", "bias", "-o", "watermark=true", "--runs", "2",
+                     "--no-progress", "--out", str(tmp_path)])  # fmt: skip
+    assert code == 2
+    assert "--option" in capsys.readouterr().err
+
+
+def test_a_negative_statistic_prints_as_a_positive_one_does():
+    """The intervals' ``tpr_at_far − best`` is negative where the network detects less: a
+    range test on ``value`` instead of ``abs(value)`` printed it in scientific notation."""
+    from difffilter.eval.report import format_number
+
+    assert format_number(-0.004098) == "-0.004098"
+    assert format_number(-0.5, 3) == "-0.5" and format_number(-1234.5) == "-1234"
+
+
+def test_a_network_given_its_own_checkpoint_is_a_checkpoints_in_the_summary(tmp_path):
+    """``--ckpt pf_nn_ekf=b.ckpt``: its checkpoint is in metrics.json's ``checkpoints``, not
+    ``checkpoint.used_by``; acceptance.md must still say "checkpoint" (the library's claim)
+    and list it first (reading ``used_by`` alone survived the fast tests)."""
+    from difffilter.eval.report import write_acceptance_summary
+    from difffilter.eval.scoring import METRICS
+
+    def entry(tpr, state):
+        return {**dict.fromkeys(METRICS), "tpr_at_far": tpr, "state_rmse": state,
+                "fpr_at_far": 0.01}  # fmt: skip
+
+    doc = {"estimators": {"kf": entry(0.9, 1.0), "online_net": entry(0.9, 1.0),
+                          "pf_nn_ekf": entry(0.95, 1.0)},
+           "estimator_roles": {"kf": "analytic", "online_net": "learned", "pf_nn_ekf": "learned"},
+           "far": {"target": 0.01}, "checkpoint": None,
+           "checkpoints": {"pf_nn_ekf": {"path": "b.ckpt", "sha256": "1" * 64}}}  # fmt: skip
+    path = write_acceptance_summary(tmp_path, {"s": doc})
+    rows = [
+        line.split("|")[2:4] for line in path.read_text().splitlines() if line.startswith("| s |")
+    ]
+    assert rows == [[" `pf_nn_ekf` ", " checkpoint "], [" `online_net` ", " online "]]
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--runs", "0"], "--runs must be an integer >= 1; got 0"),
+        (["--calibration-runs", "0"], "--calibration-runs must be an integer >= 1; got 0"),
+        (["--far", "off", "--calibration-runs", "5"], "--calibration-runs with --far off"),
+        (["--threat-set", "threats.yaml"], "--threat-set names the threats of --threats"),
+        (["--threats", "all", "--far", "off"], "--far off: the robustness study"),
+        (["--threats", "all", "--devices", "2"], "--devices: the robustness study runs in one"),
+        (["--threats", "all", "--threat-set", "missing.yaml"], "--threat-set: no file"),
+    ],
+)  # fmt: skip
+def test_each_misuse_of_the_command_line_is_refused_before_any_work(
+    argv, message, tmp_path, monkeypatch, capsys
+):
+    """Each of these error paths survived the fast tests when switched off (the study then
+    ran, or took the option without a word); here each fails first, naming the option."""
+    from difffilter.eval import cli, robustness, suite
+
+    def ran(*args, **kwargs):
+        raise AssertionError("a study ran")
+
+    monkeypatch.setattr(robustness, "run_robustness", ran)
+    monkeypatch.setattr(suite, "run_suite", ran)
+    monkeypatch.chdir(tmp_path)
+    code = cli.main(["four_tank_bias", "--runs", "2", "--no-progress", "--out", "out", *argv])
+    assert code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_a_file_where_a_scenarios_folder_goes_is_refused_before_any_work(tmp_path, capsys):
+    from difffilter.eval import cli
+
+    (tmp_path / "four_tank_bias").write_text("")
+    code = cli.main(["four_tank_bias", "--runs", "2", "--out", str(tmp_path)])
+    assert code == 2
+    assert f"--out: {tmp_path / 'four_tank_bias'} is a file" in capsys.readouterr().err
+
+
+def test_an_option_without_a_key_is_a_usage_error(capsys):
+    from difffilter.eval import cli
+
+    with pytest.raises(SystemExit) as stop:
+        cli.main(["four_tank_bias", "-o", "=true"])
+    assert stop.value.code == 2
+    assert "expected KEY=VALUE; got '=true'" in capsys.readouterr().err
+
+
+def test_a_checkpoint_no_estimator_used_is_said_after_the_leaderboard(
+    tmp_path, monkeypatch, capsys
+):
+    """``--ckpt FILE`` that no estimator of a scenario read: a note names it (switched off,
+    no test noticed)."""
+    from difffilter.eval import cli
+
+    def evaluate(names, **kwargs):
+        (tmp_path / "leaderboard.md").write_text("# Leaderboard\n")
+        return {"four_tank_bias": {"checkpoint": {"used_by": [], "source": "--ckpt"}}}
+
+    monkeypatch.setattr(cli, "evaluate", evaluate)
+    code = cli.main(["four_tank_bias", "--ckpt", "checkpoints/four_tank_nn_grad.ckpt",
+                     "--no-progress", "--out", str(tmp_path)])  # fmt: skip
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "note: --ckpt checkpoints/four_tank_nn_grad.ckpt is used by no estimator of " \
+           "four_tank_bias" in out  # fmt: skip
