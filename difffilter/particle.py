@@ -68,6 +68,7 @@ from .resampling import (
     Resampler,
     Systematic,
     _AncestorError,
+    defined_outside,
     effective_sample_size,
     keep_unmarked_rows,
 )
@@ -561,7 +562,7 @@ def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator, k: int):
     rows = None if count == need.numel() else need
     # weights here are normalised and finite by construction: skip re-validation
     kind = type(resampler)
-    if not isinstance(resampler, Resampler) or _own(kind, "__call__"):  # a user's __call__
+    if not isinstance(resampler, Resampler) or defined_outside(kind, "__call__"):  # a user's
         res = _checked_resampled(resampler(particles, log_w, generator), particles, log_w,
                                  resampler, k)  # fmt: skip
         if rows is not None:
@@ -577,21 +578,9 @@ def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator, k: int):
             res = fast(particles, log_w, generator, rows=rows)
     except _AncestorError as error:  # a user's `_draw`: name the step too
         raise ValueError(f"{error} (before step {k})") from None
-    if _own(kind, "_new_log_weights"):  # normalised? (the library's are by design)
+    if defined_outside(kind, "_new_log_weights"):  # a user's: checked to be normalised
         res = _checked_resampled(res, particles, log_w, resampler, k)
     return res.particles, res.log_weights, None, need, uniform
-
-
-def _own(kind: type, attr: str) -> bool:
-    """Whether ``kind`` (a :class:`~difffilter.resampling.Resampler` subclass) takes ``attr``
-    from a class outside :mod:`difffilter.resampling`: a user's. A user's ``__call__`` is
-    what Python calls, so the filter calls it too, wherever it is defined (a ``Systematic``
-    subclass's, a mixin's, beside an own ``_draw``: the filter drew with the inherited
-    scheme instead); a user's ``_new_log_weights`` is checked to be normalised (zeros for
-    −log N moved the evidence by log N at every resampling, silently). Read at every
-    resampling (a class changed after a first run is read as it is now)."""
-    owner = next(c for c in kind.__mro__ if attr in c.__dict__)
-    return owner.__module__ != Resampler.__module__
 
 
 def _checked_resampled(res, particles: Tensor, log_w: Tensor, resampler=None,

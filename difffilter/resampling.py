@@ -405,12 +405,22 @@ class _AncestorError(ValueError):
     in ``[0, N)`` (:func:`_checked_ancestors`; the particle filter adds the step)."""
 
 
+def defined_outside(kind: type, attr: str) -> bool:
+    """Whether ``kind`` (a :class:`Resampler` subclass) takes ``attr`` from a class outside
+    this module: a user's. The particle filter calls a user's ``__call__`` wherever it is
+    defined (a ``Systematic`` subclass's, a mixin's, beside an own ``_draw``: the filter had
+    drawn with the inherited scheme instead), and checks a user's ``_new_log_weights`` to be
+    normalised (zeros for −log N moved the evidence by log N at every resampling, silently).
+    Read at every call (a class changed after a first run is read as it is now)."""
+    owner = next(c for c in kind.__mro__ if attr in c.__dict__)
+    return owner.__module__ != __name__
+
+
 def _own_draw(resampler: Resampler) -> bool:
     """Whether ``resampler`` draws its ancestors with a ``_draw`` defined outside this module
     (a user's): its class's, or its ``base``'s (:class:`Soft` and :class:`StopGradient`
     draw with their base's ``_draw``)."""
-    owner = next(c for c in type(resampler).__mro__ if "_draw" in c.__dict__)
-    if owner.__module__ != __name__:
+    if defined_outside(type(resampler), "_draw"):
         return True
     base = getattr(resampler, "base", None)
     return isinstance(base, Resampler) and _own_draw(base)

@@ -555,13 +555,13 @@ def check_output_folder(out: Path, scenarios: Sequence[str] = ()) -> None:
     for name in TOP_FILES:
         if (out / name).is_dir():
             raise ValueError(f"--out: {out / name} is a folder; the evaluation writes a file there")
-    for name in TOP_FOLDERS:
+    folders = {name: "the evaluation writes a folder there" for name in TOP_FOLDERS}
+    folders |= {
+        name: f"scenario {name}'s reports go in a folder of that name" for name in scenarios
+    }
+    for name, why in folders.items():
         if (out / name).exists() and not (out / name).is_dir():
-            raise ValueError(f"--out: {out / name} is a file; the evaluation writes a folder there")
-    for name in scenarios:
-        if (out / name).exists() and not (out / name).is_dir():
-            raise ValueError(f"--out: {out / name} is a file; scenario {name}'s reports go in a "
-                             "folder of that name")  # fmt: skip
+            raise ValueError(f"--out: {out / name} is a file; {why}")
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / f".difffilter-write-check-{os.getpid()}"  # one per process (--devices)
