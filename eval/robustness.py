@@ -358,7 +358,8 @@ def _crafted(result: RobustnessResult, name: str, spec: StealthySpec, progress: 
         raise ValueError(f"threat {name!r} is crafted against {spec.against!r}, which does not "
                          f"run in this study: {skipped}")  # fmt: skip
     try:
-        attack, report = craft_threat(name, spec, sc, cal, progress=progress, **common)
+        attack, report = craft_threat(name, spec, sc, cal, progress=progress,
+                                      study_runs=result.runs, **common)  # fmt: skip
         tau = report["threshold"]
         judged = crafted_error(sc, spec.against, attack, tau, runs=result.runs, **common)
         bias = same_rate_bias(sc, spec.against, judged["alarm_rate"], tau, onset=spec.onset,
@@ -708,8 +709,12 @@ def _stealthy_section(name: str, r: dict) -> str:
     # these runs (a trial's report had compared it with "constant bias 0 σ")
     bias = matched and bool(b["k_sigma"])
     ratio = format_number(r["error_ratio_to_bias"], 3)
+    # not matched by a bias of k > 0: no bias up to k σ alarms as often (same_rate_bias)
+    strongest = not matched and bool(b["k_sigma"])
     bias_row = (f"constant bias {format_number(b['k_sigma'], 3)} σ (the weakest that alarms "
                 "as often)" if bias
+                else f"constant bias {format_number(b['k_sigma'], 3)} σ (the strongest tried: "
+                "none alarms as often)" if strongest
                 else "no attack (no constant bias alarms as rarely)" if not matched
                 else "no attack (it alarms as often)")  # fmt: skip
     verdict = (
@@ -718,6 +723,11 @@ def _stealthy_section(name: str, r: dict) -> str:
         f"against the crafted attack's {format_number(c['alarm_rate'], 4)}: rates are counts "
         "of steps, so they need not be equal)."
         if bias
+        else f"\nNo constant bias up to {format_number(b['k_sigma'], 3)} σ alarms as often as the "
+        f"crafted attack (its alarm rate {format_number(b['alarm_rate'], 4)} against the crafted "
+        f"attack's {format_number(c['alarm_rate'], 4)}): the crafted attack's error is {ratio}× "
+        "that of the strongest bias tried."
+        if strongest
         else f"\nThe crafted attack alarms {'exactly as often as' if matched else 'less often than'} "
         f"the runs without attack ({format_number(c['alarm_rate'], 4)} against "
         f"{format_number(b['alarm_rate'], 4)}){'' if matched else ': no constant bias is as quiet'}"

@@ -168,11 +168,15 @@ def detector_step(ctx: SuiteContext, against: str, *, refused: str = "cannot cra
 
 
 def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: int,
-                 checkpoint=None, progress: bool = False):  # fmt: skip
+                 checkpoint=None, progress: bool = False, study_runs: int | None = None):  # fmt: skip
     """The crafted attack of threat ``name`` and what to report of its crafting:
     ``(attack, {"against", "threshold", "train_runs", "attacked_steps", "budget" (the first
     batch's p(0) + ε), "settings", "iterations_within_budget", "selection" (how the attack
-    was chosen on the held-out runs), "history"})``."""
+    was chosen on the held-out runs), "history"})``. ``study_runs``: the study's runs
+    (default the scenario's), which set the detector's own attack-free runs as in the study
+    (a CUSUM's τ, its resets and gate, from ``max(study_runs, 50)`` runs): the detector
+    crafted against is the one judged (it had been calibrated on ``train_runs``: on
+    four_tank_bias a CUSUM of τ 11.2605 crafted against, 11.2146 judged)."""
     broke = getattr(calibration, "broke_down", {})  # (a Calibration's; a stand-in may lack it)
     if spec.against in broke:
         raise ValueError(
@@ -187,6 +191,7 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
             f"the threat set's estimators)"
         )
     ctx = _context(scenario, spec.train_runs, seed, checkpoint)
+    ctx.detector_runs = scenario.runs if study_runs is None else study_runs
     # a particle filter's draws of the attacker's own: the study's (its common random
     # numbers) are the defender's, which no attacker knows (a threat-model trial: the
     # crafting's initial particles were the first 64 study runs', bit for bit)
@@ -279,7 +284,11 @@ def same_rate_bias(scenario, against: str, rate: float, threshold: float, *, ons
     ``matched``: whether a bias reaches ``rate``. A rate at or below the attack-free runs'
     (``k = 0``: a crafted attack that alarms less than no attack at all) has no such bias;
     then ``k_sigma`` is 0 and the figures are the attack-free runs' (the bisection used to
-    collapse towards 0 and the report called that bias "the same alarm rate")."""
+    collapse towards 0 and the report called that bias "the same alarm rate"). Nor has a
+    rate that no bias up to ``k = 1024`` reaches (a detector whose alarms under a constant
+    bias level off, as where the filter learns the bias): then ``k_sigma`` is that largest
+    bias and the figures are its own (it had been returned as matched, "the weakest that
+    alarms as often", with a lower alarm rate)."""
     model = scenario.system()
     judge_attack = _judge(scenario, against, threshold, runs=runs, seed=seed,
                           checkpoint=checkpoint)  # fmt: skip
@@ -291,8 +300,10 @@ def same_rate_bias(scenario, against: str, rate: float, threshold: float, *, ons
     if free["alarm_rate"] >= rate:
         return {"k_sigma": 0.0, **free, "matched": free["alarm_rate"] == rate}
     lo, hi = 0.0, 1.0
-    while judge(hi)["alarm_rate"] < rate and hi < 1e3:
+    while (top := judge(hi))["alarm_rate"] < rate and hi < 1e3:
         lo, hi = hi, 2 * hi
+    if top["alarm_rate"] < rate:  # no bias tried alarms as often: the bisection has no end
+        return {"k_sigma": hi, **top, "matched": False}
     for _ in range(iterations):
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if judge(mid)["alarm_rate"] < rate else (lo, mid)
