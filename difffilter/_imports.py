@@ -56,4 +56,9 @@ def import_plugin(name: str, where: str):
     try:
         return _import_module(name)
     except ImportError as error:
-        raise ValueError(f"{where}: cannot import {name!r} ({error})") from None
+        # a file's path read as a module's name ('trial/my_detectors.py'): say what it takes
+        hint = ("; give a module's name, not a file's path: from the file's folder "
+                f"{os.path.splitext(os.path.basename(name))[0]!r}, or a dotted name from "
+                "the working folder (trial.my_detectors)"
+                if name.endswith(".py") or "/" in name or os.sep in name else "")  # fmt: skip
+        raise ValueError(f"{where}: cannot import {name!r} ({error}){hint}") from None

@@ -264,8 +264,10 @@ class Estimator:
     re-checks only ``y``, ``u`` and ``mask`` (shape, dtype, device, finiteness) unless
     :attr:`full_checks` is set.
     Subclasses implement ``_init(model, batch_shape, generators)``,
-    ``_step(carry, y, u, mask)`` and ``_check_carry(carry)`` (what a valid carry is), and
-    may provide a whole-sequence fast path ``_run(carry, ys, us, mask)`` returning an
+    ``_step(carry, y, u, mask)`` and ``_check_carry(carry)`` (what a valid carry is),
+    :meth:`batch_of` where the carry has no ``mean [..., dx]`` (a wrapper whose carry holds
+    its filter's as ``inner``), and may provide a whole-sequence fast path
+    ``_run(carry, ys, us, mask)`` returning an
     :class:`EstimatorOutput` (or ``None`` where it does not apply), tested equal to the
     composed steps.
     """
@@ -339,8 +341,18 @@ class Estimator:
                                      model.dim_u))  # fmt: skip
 
     def batch_of(self, carry) -> torch.Size:
-        """The batch shape of the runs a carry holds."""
-        return carry.mean.shape[:-1]
+        """The batch shape of the runs a carry holds: its ``mean [..., dx]``'s leading
+        dimensions; a subclass whose carry has no ``mean`` overrides it (a bare
+        ``AttributeError`` had named neither the method nor the fix: a plug-in trial)."""
+        mean = getattr(carry, "mean", None)
+        if not isinstance(mean, Tensor):
+            raise TypeError(
+                f"{type(self).__name__}.batch_of: the default reads the carry's mean "
+                f"[..., dx], and its {type(carry).__name__} has none; override "
+                "batch_of(carry) to return the runs' batch shape (e.g. "
+                "carry.inner.mean.shape[:-1])"
+            )
+        return mean.shape[:-1]
 
     def _runs_of(self, carry) -> torch.Size:
         """The runs a step from ``carry`` makes: its own batch broadcast with its model's

@@ -58,6 +58,7 @@ from ._checks import check_finite_number, check_positive_int, check_rate
 from .attack import Channel, TabulatedAttack
 from .estimator import Estimator
 from .loop import open_loop
+from .metrics import nan_as_lowest
 
 __all__ = ["CraftedAttack", "StealthySettings", "craft_stealthy_attack"]
 
@@ -283,7 +284,9 @@ def craft_stealthy_attack(
 
     Args:
         estimator: a differentiable :class:`~difffilter.estimator.Estimator` whose steps
-            score (``detection.scores``: higher means attack).
+            score (``detection.scores``: higher means attack; NaN a step without a score,
+            which never alarms and counts in the rates as the lowest score, as the
+            calibration counts it).
         model: its model. ys: clean training measurements ``[B, T, dy]``; xs: the true
             states ``[B, T, dx]``; us: the inputs the estimator knows ``[B, T, du]``, or
             ``None``; mask: the entries received ``[B, T, dy]`` (a lossy network), or
@@ -364,19 +367,27 @@ def craft_stealthy_attack(
 
     with torch.no_grad():
         free = run(ys, us, mask)
-    # t in units of the attack-free statistic's spread: one setting fits any detector
+    # t in units of the attack-free statistic's spread: one setting fits any detector. A NaN
+    # score is a step without a score (a window not yet full, a step without data): as in
+    # the calibration and the scoring it never alarms, counts in the rates as the lowest
+    # score and is left out of the spread (it had made the spread NaN and the crafting refuse
+    # a detector whose warm-up the onset reached, onset 1 by default, with "got 800" pairs)
     quiet = free.detection.scores[:, on]
-    spread = float(quiet.std()) if quiet.numel() > 1 else math.nan
+    scored = quiet[torch.isfinite(quiet)]
+    spread = float(scored.std()) if scored.numel() > 1 else math.nan
     if not math.isfinite(spread):
         raise ValueError(
             "craft_stealthy_attack needs the detector's attack-free scores on at least two "
-            f"attacked (run, step) pairs, all finite, to set the smoothing's temperature; got "
-            f"{quiet.numel()} (runs {tuple(ys.shape[:-2])}, onset {onset} of {T} steps)"
+            f"attacked (run, step) pairs finite, to set the smoothing's temperature; got "
+            f"{scored.numel()} finite of {quiet.numel()} (runs {tuple(ys.shape[:-2])}, onset "
+            f"{onset} of {T} steps)"
         )
     temperature = s.temperature * spread + 1e-12
 
     def smoothed_rate(out) -> Tensor:
-        return torch.sigmoid((out.detection.scores - threshold) / temperature)[:, on].mean()
+        # σ((s − τ)/t) with a NaN score as −∞: 0, no alarm, and no gradient
+        scores = nan_as_lowest(out.detection.scores)
+        return torch.sigmoid((scores - threshold) / temperature)[:, on].mean()
 
     def squared_error(out, xs) -> Tensor:  # J: over runs and attacked steps
         return (out.means - xs).square().sum(-1)[:, on].mean()

@@ -69,7 +69,9 @@ class StealthySpec:
         craftable = (*GATED, "normal_pf", *LEARNED)
         if self.against not in craftable:
             raise ValueError(f"against must be a detector to craft against: one of "
-                             f"{', '.join(craftable)}; got {self.against!r}")  # fmt: skip
+                             f"{', '.join(craftable)}; got {self.against!r} (a detector of "
+                             "your own: difffilter.stealthy.craft_stealthy_attack from Python "
+                             "on its step object, docs/your-own-plant.md §7)")  # fmt: skip
         for name in ("onset", "train_runs", "selection_runs"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
