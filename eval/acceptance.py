@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Collection
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 __all__ = [
@@ -77,7 +77,9 @@ ANALYTIC = ("neither an oracle, a network, an attack-free reference nor fed more
 @dataclass(frozen=True)
 class Check:
     """One acceptance point: ``metric``, the learned ``value``, the ``bound`` it is held to
-    (``best`` and ``best_estimator`` for the comparisons), and whether it ``holds``."""
+    (``best`` and ``best_estimator`` for the comparisons), and whether it ``holds``.
+    ``limits``: the bound's numbers (``best − 0.01``, ``1.05 × best``, the FPR band's ends),
+    for the reports to print a value apart from them; not part of :meth:`as_dict`."""
 
     metric: str
     value: float | None
@@ -85,9 +87,12 @@ class Check:
     best: float | None
     best_estimator: str | None
     holds: bool
+    limits: tuple[float, ...] = field(default=(), repr=False)
 
     def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        row = asdict(self)
+        del row["limits"]
+        return row
 
 
 def roles(names) -> dict[str, str]:
@@ -150,23 +155,26 @@ def judge(learned: dict, best: dict, far: float, metric: str = "state_rmse") -> 
     tol = TOLERANCES
     checks = []
 
-    def compare(name, bound_text, ok):
+    def compare(name, bound_text, ok, limit):
         value = learned.get(name)
         best_value, who = best.get(name, (None, None))
         holds = _finite(value) and best_value is not None and ok(value, best_value)
-        checks.append(Check(name, value, bound_text, best_value, who, bool(holds)))
+        limits = () if best_value is None else (limit(best_value),)
+        checks.append(Check(name, value, bound_text, best_value, who, bool(holds), limits))
 
     # each as the statistic its interval resamples (eval.intervals), so that the two agree
-    compare("tpr_at_far", f"≥ best − {tol['tpr_margin']:g}",
-            lambda v, b: at_least(v - b, -tol["tpr_margin"]))  # fmt: skip
-    compare(metric, f"≤ {tol['state_factor']:g} × best",
-            lambda v, b: ratio_within(v, b, tol["state_factor"]))  # fmt: skip
+    margin, factor = tol["tpr_margin"], tol["state_factor"]
+    compare("tpr_at_far", f"≥ best − {margin:g}", lambda v, b: at_least(v - b, -margin),
+            lambda b: b - margin)  # fmt: skip
+    compare(metric, f"≤ {factor:g} × best", lambda v, b: ratio_within(v, b, factor),
+            lambda b: factor * b)  # fmt: skip
     if "attack_rmse" in best:
-        compare("attack_rmse", "≤ best", lambda v, b: ratio_within(v, b, 1.0))
+        compare("attack_rmse", "≤ best", lambda v, b: ratio_within(v, b, 1.0), lambda b: b)
     lo, hi = (far * f for f in tol["fpr_band"])
     fpr = learned.get("fpr_at_far")
     checks.append(Check("fpr_at_far", fpr, f"within [{lo:g}, {hi:g}]", None, None,
-                        bool(_finite(fpr) and at_least(fpr, lo) and at_most(fpr, hi))))  # fmt: skip
+                        bool(_finite(fpr) and at_least(fpr, lo) and at_most(fpr, hi)),
+                        (lo, hi)))  # fmt: skip
     return checks
 
 

@@ -547,15 +547,27 @@ TOP_FOLDERS = ("tb_leaderboard",)
 
 def check_output_folder(out: Path, scenarios: Sequence[str] = ()) -> None:
     """Create ``out`` and prove it writable, with no folder where a file will go and no
-    file where a folder will go (a scenario's, ``tb_leaderboard``); ``ValueError`` naming
-    ``--out`` otherwise."""
+    file where a folder will go (a scenario's, ``tb_leaderboard``, what the scenarios'
+    families write there: :attr:`~difffilter.eval.report.FamilyReport.writes`);
+    ``ValueError`` naming ``--out`` otherwise."""
+    from difffilter.models import registry
+
+    from .report import family_report
+
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out: {out} exists and is not a folder")
-    for name in TOP_FILES:
+    files = dict.fromkeys(TOP_FILES, "the evaluation writes a file there")
+    folders = dict.fromkeys(TOP_FOLDERS, "the evaluation writes a folder there")
+    for family in dict.fromkeys(registry.get(name).family for name in scenarios):
+        for path in family_report(family).writes:
+            kind = folders if path.endswith("/") else files
+            kind[path.rstrip("/")] = (
+                f"the {family} family writes a {'folder' if kind is folders else 'file'} there"
+            )
+    for name, why in files.items():
         if (out / name).is_dir():
-            raise ValueError(f"--out: {out / name} is a folder; the evaluation writes a file there")
-    folders = {name: "the evaluation writes a folder there" for name in TOP_FOLDERS}
+            raise ValueError(f"--out: {out / name} is a folder; {why}")
     folders |= {
         name: f"scenario {name}'s reports go in a folder of that name" for name in scenarios
     }
@@ -620,7 +632,6 @@ def _main(argv: Sequence[str] | None = None) -> int:
     try:
         names = resolve_scenarios(args.scenario)
         args.ckpt = parse_checkpoints(args.ckpt)
-        check_output_folder(args.out, names)  # before any work, not after the evaluation
         check_arguments(runs=args.runs, ckpt=args.ckpt, devices=args.devices,
                         calibration_runs=args.calibration_runs, seed=args.seed,
                         add_estimators=args.add_estimators,
@@ -634,6 +645,9 @@ def _main(argv: Sequence[str] | None = None) -> int:
         threats = args.threats or ("all" if args.scenario == "robustness" else None)
         if args.threat_set is not None and threats is None:
             raise ValueError("--threat-set names the threats of --threats: give --threats too")
+        # before any work, not after the evaluation; after the other checks, so that a run
+        # they refuse leaves no empty --out behind
+        check_output_folder(args.out, names)
         if threats is not None:
             return _robustness(names, threats, args)
         if args.devices > 1:  # checked here; the workers run the rest
@@ -673,16 +687,19 @@ def _main(argv: Sequence[str] | None = None) -> int:
 
 def _say_shipped(results: dict) -> None:
     """Name the shipped checkpoints the scenarios ran without ``--ckpt`` (a user trial found
-    them only in each ``report.md``), one line per file."""
-    shipped: dict[str, list[str]] = {}
+    them only in each ``report.md``), one line per file; "no --ckpt" only where none was
+    given (``--ckpt NAME=PATH`` for one estimator leaves the others the shipped one)."""
+    shipped: dict[tuple[str, str], list[str]] = {}
     for scenario, doc in results.items():
         ckpt = doc.get("checkpoint") or {}
-        if str(ckpt.get("source", "")).startswith("shipped") and ckpt.get("used_by"):
-            shipped.setdefault(Path(ckpt["path"]).name, []).append(
+        source = str(ckpt.get("source", ""))
+        if source.startswith("shipped") and ckpt.get("used_by"):
+            lead = "no --ckpt" if "no --ckpt given" in source else "not named by --ckpt"
+            shipped.setdefault((lead, Path(ckpt["path"]).name), []).append(
                 f"{scenario} ({', '.join(ckpt['used_by'])})"
             )
-    for name, where in shipped.items():
-        print(f"no --ckpt: the shipped checkpoints/{name} ran on {'; '.join(where)}")
+    for (lead, name), where in shipped.items():
+        print(f"{lead}: the shipped checkpoints/{name} ran on {'; '.join(where)}")
 
 
 def _robustness(names: list[str], threats, args) -> int:

@@ -24,7 +24,7 @@ import math
 import re
 import sys
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -69,22 +69,32 @@ def _clean(value: Any) -> Any:
     return value
 
 
-def format_number(value: Any, digits: int = 4) -> str:
-    """Compact table formatting: ``—`` for missing values, scientific for small ones."""
+def format_number(value: Any, digits: int = 4, apart_from: Sequence[float] = ()) -> str:
+    """Compact table formatting: ``—`` for missing values, scientific for small ones.
+    ``apart_from``: numbers ``value`` must not print as unless it equals them (a check's
+    bounds: an FPR of 0.020004 above a band's 0.02 printed "0.02 ✗"); digits are added, up
+    to 8, as for a fraction just below 1."""
     if value is None:
         return "—"
     if isinstance(value, (bool, int)):
         return str(value)
     if isinstance(value, float):
-        if value == 0 or 1e-3 <= abs(value) < 1e4:
-            text = f"{value:.{digits}g}"
-            # a fraction just below 1 gets the digits that show it is not 1 (an AUC of
-            # 0.99992 printed "1", a perfect detector's): at most 8
-            while abs(float(text)) == 1 != abs(value) and digits < 8:
-                digits += 1
-                text = f"{value:.{digits}g}"
-            return text
-        return f"{value:.{max(digits - 1, 1)}e}"
+        scientific = not (value == 0 or 1e-3 <= abs(value) < 1e4)
+        digits = max(digits - 1, 1) if scientific else digits
+
+        def shown(number: float) -> str:
+            return f"{number:.{digits}{'e' if scientific else 'g'}}"
+
+        def looks_like_another(text: str) -> bool:
+            # a fraction just below 1 printed "1", a perfect detector's (an AUC of 0.99992)
+            near_one = not scientific and abs(float(text)) == 1 != abs(value)
+            return near_one or any(b != value and shown(b) == text for b in apart_from)
+
+        text = shown(value)
+        while looks_like_another(text) and digits < 8:
+            digits += 1
+            text = shown(value)
+        return text
     return str(value)
 
 
@@ -150,6 +160,10 @@ class FamilyReport:
             ``family_report_skipped``), as they are where ``extra``'s own runs break down
             (:class:`~difffilter.linalg.NumericalBreakdown`), and the generic report is
             written.
+        writes: what ``prepare`` and ``finish`` write in ``<out>`` beside the scenarios'
+            folders: file names, and folder names ending in ``/``. ``difffilter-eval``
+            checks before any work that none is taken by the other kind (a folder named
+            ``lfc_summary.md`` failed an evaluation at its very end).
     """
 
     extra: Callable[..., dict[str, Any]] | None = None
@@ -160,6 +174,7 @@ class FamilyReport:
     estimator_metrics: Callable[..., dict[str, Any]] | None = None
     report_cost: float = 1.0
     needs: tuple[str, ...] = ()
+    writes: tuple[str, ...] = ()
 
 
 _FAMILIES: dict[str, FamilyReport] = {}
@@ -262,6 +277,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    shown_before = _figures_of(out / "report.md")  # an earlier evaluation's, if any
     sc = result.scenario
     family = family_report(sc.family)
     family_numbers, family_skipped = _family_numbers(family, result)  # may add estimator keys
@@ -314,11 +330,25 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
                 images.append((name, (out / name).read_bytes()))
                 drawn.add(name)
     log_suite(out / "tb", result, doc, images)
+    # an earlier evaluation's figures this one does not draw (a detector's ROC where this run
+    # has none): the folder shows one run, as the README says
+    for name in shown_before - {name for section in sections for name in section.figures}:
+        (out / name).unlink(missing_ok=True)
     import matplotlib.pyplot as plt
 
     for _, fig in figures:
         plt.close(fig)
     return doc
+
+
+def _figures_of(report: Path) -> set[str]:
+    """The figures a ``report.md`` shows: the files of its ``![name](name)`` lines (the
+    folder's own, no path), empty where there is no report."""
+    if not report.is_file():
+        return set()
+    return {name for alt, name in re.findall(r"^!\[([^\]]*)\]\(([^)/\\]+)\)$",
+                                              report.read_text(), flags=re.M)
+            if alt == name}  # fmt: skip
 
 
 def _trained_on(ckpt: dict) -> str:
@@ -511,7 +541,7 @@ def _acceptance_section(doc: dict) -> Section | None:
                for c in checks), ""]]  # fmt: skip
     broke = _broken_down(doc)
     for name, mine in judged.items():
-        cells = [f"{format_number(c.value, 4)} {'✓' if c.holds else '✗'}" for c in mine]
+        cells = [f"{format_number(c.value, 4, c.limits)} {'✓' if c.holds else '✗'}" for c in mine]
         every = "holds" if all(c.holds for c in mine) else "**fails**"
         rows.append([f"`{name}`", *cells, "**fails** (broke down)" if name in broke else every])
     text = ("Each learned estimator at the calibrated rate against the best analytic one (per "
@@ -592,7 +622,7 @@ def write_acceptance_summary(out: str | Path, docs: dict[str, dict]) -> Path | N
                 # not state_rmse (tracking's rmse_p)
                 named = f" (`{c.metric}`)" if column == "state" and c.metric != "state_rmse" else ""
                 cells[column] = (
-                    f"{format_number(c.value, 4)}{named} {'✓' if c.holds else '✗'}"
+                    f"{format_number(c.value, 4, c.limits)}{named} {'✓' if c.holds else '✗'}"
                     + share_suffix(sure.get(name, {}).get(c.metric))
                 )
             every = "holds" if all(c.holds for c in checks) else "**fails**"

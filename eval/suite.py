@@ -152,7 +152,9 @@ def run_suite(
     source = "--ckpt"
     checkpoint, named = registry.split_checkpoints(checkpoint)
     if checkpoint is None and scenario.shipped_checkpoint() is not None:
-        checkpoint, source = scenario.shipped_checkpoint(), "shipped default (no --ckpt given)"
+        # (--ckpt NAME=PATH for some estimators: the others read the shipped one)
+        why = "--ckpt named other estimators only" if named else "no --ckpt given"
+        checkpoint, source = scenario.shipped_checkpoint(), f"shipped default ({why})"
     ctx = registry.SuiteContext(scenario, model, runs, streams, options, checkpoint,
                                 named_checkpoints=dict(named),
                                 detector_streams=None if detector_seed is None

@@ -315,3 +315,24 @@ def test_an_adaptive_attack_meets_the_gated_filters_in_their_own_loops():
                                    atol=1e-9)  # fmt: skip
         assert torch.equal(mine.detection.alarms, shared.detection.alarms)
         assert adaptive.metrics[name]["tpr"] == plain.metrics[name]["tpr"]
+
+
+def test_the_shipped_checkpoint_beside_a_named_one_is_not_said_to_run_without_ckpt():
+    """``--ckpt NAME=PATH`` for one estimator leaves the others the shipped checkpoint: the
+    console said "no --ckpt: the shipped … ran", though a --ckpt was given (a review)."""
+    import contextlib
+    import io
+
+    from difffilter.eval.cli import _say_shipped
+
+    sc = dataclasses.replace(registry.get("lfc_step"), duration=0.6)
+    shipped = str(sc.shipped_checkpoint())
+    result = run_suite(sc, runs=1, progress=False, estimators=("kf_nn_grad",),
+                       checkpoint={"kf_nn_grad_ekf": shipped})  # fmt: skip
+    assert result.checkpoint["source"] == "shipped default (--ckpt named other estimators only)"
+    assert result.checkpoint["used_by"] == ["kf_nn_grad"]
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        _say_shipped({"lfc_step": {"checkpoint": result.checkpoint}})
+    assert out.getvalue() == ("not named by --ckpt: the shipped checkpoints/lfc_nn_grad.ckpt "
+                              "ran on lfc_step (kf_nn_grad)\n")  # fmt: skip

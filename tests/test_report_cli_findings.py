@@ -130,6 +130,32 @@ def test_an_output_folder_with_a_file_where_the_leaderboards_events_go_is_refuse
         check_output_folder(tmp_path, ["four_tank_bias"])
 
 
+@pytest.mark.parametrize("kind", ["file", "folder"])
+def test_what_a_family_writes_beside_the_scenarios_is_checked_first(tmp_path, kind):
+    """The LFC family writes ``lfc_summary.md`` and the folders ``lfc_per_channel`` and
+    ``lfc_watermark`` in ``--out``: a folder named ``lfc_summary.md`` passed the check and
+    the evaluation failed at its very end, in the family's summary. Another family's
+    scenarios do not claim those names."""
+    from difffilter.eval.cli import check_output_folder
+
+    taken = tmp_path / ("lfc_summary.md" if kind == "folder" else "lfc_watermark")
+    taken.mkdir() if kind == "folder" else taken.write_text("")
+    with pytest.raises(ValueError, match=rf"--out: .*{taken.name} is a {kind}; the lfc family"):
+        check_output_folder(tmp_path, ["lfc_step"])
+    check_output_folder(tmp_path, ["four_tank_bias"])
+
+
+def test_a_refused_run_leaves_no_output_folder(tmp_path, capsys):
+    """An argument the evaluation refuses (here ``--runs 0``) is refused before ``--out`` is
+    made: the output folder check, which creates it, ran first and left an empty folder."""
+    from difffilter.eval import cli
+
+    out = tmp_path / "never"
+    assert cli.main(["four_tank_bias", "--runs", "0", "--out", str(out)]) == 2
+    assert "--runs" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_an_option_with_threats_is_refused_not_dropped(tmp_path, monkeypatch, capsys):
     """``--threats`` runs the robustness study instead of the scenario's report, and
     ``--option`` configures that report: ``lfc_step --threats bias -o watermark=true`` was
@@ -244,3 +270,55 @@ def test_a_checkpoint_no_estimator_used_is_said_after_the_leaderboard(
     out = capsys.readouterr().out
     assert "note: --ckpt checkpoints/four_tank_nn_grad.ckpt is used by no estimator of " \
            "four_tank_bias" in out  # fmt: skip
+
+
+def test_a_value_that_fails_its_bound_is_printed_apart_from_it():
+    """A check printed at four digits showed an FPR of 0.020004 above the band's 0.02 as
+    "0.02 ✗", and a TPR of 0.97999 below best − 0.01 = 0.98 as "0.98 ✗": the digits grow
+    until the value no longer prints as its bound. A value equal to its bound, or far from
+    it, keeps four digits."""
+    from difffilter.eval.acceptance import judge
+    from difffilter.eval.report import _acceptance_section, format_number
+
+    assert format_number(0.020004, 4, (0.005, 0.02)) == "0.020004"
+    assert format_number(0.02, 4, (0.005, 0.02)) == "0.02"
+    assert format_number(0.0123456, 4, (0.005, 0.02)) == "0.01235"
+    assert format_number(2.00004e-5, 4, (2e-5,)) == "2.00004e-05"
+    learned = {"tpr_at_far": 0.97999, "state_rmse": 1.05, "fpr_at_far": 0.020004}
+    checks = judge(learned, {"tpr_at_far": (0.99, "kf"), "state_rmse": (1.0, "kf")}, 0.01)
+    assert [c.limits for c in checks] == [(pytest.approx(0.98),), (1.05,), (0.005, 0.02)]
+    assert "limits" not in checks[0].as_dict()
+    doc = {"estimators": {"kf": {"tpr_at_far": 0.99, "state_rmse": 1.0, "fpr_at_far": 0.01},
+                          "net": learned},
+           "estimator_roles": {"kf": "analytic", "net": "learned"},
+           "far": {"target": 0.01}}  # fmt: skip
+    row = next(r for r in _acceptance_section(doc).body.splitlines() if "`net`" in r)
+    assert "0.97999 ✗" in row and "1.05 ✓" in row and "0.020004 ✗" in row, row
+
+
+def test_a_rerun_into_the_same_folder_leaves_none_of_the_earlier_runs_figures(
+    tmp_path, monkeypatch
+):
+    """The README: "a scenario's folder always shows one run". A rerun without detectors
+    left the earlier run's roc.png and alarms_run0.png beside its own report, which shows
+    neither. A PNG the earlier report did not show (a user's) stays."""
+    from difffilter.eval.report import write_report
+    from difffilter.eval.suite import run_suite
+    from difffilter.models.yaml_scenario import scenario_from_dict
+
+    monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path))
+    sc = scenario_from_dict({
+        "name": "tank_rerun", "runs": 4, "steps": 30, "dt": 1.0,
+        "plant": {"F": [[0.9]], "H": [[1.0]], "Q": 1.0e-3, "R": 1.0e-2},
+        "attack": {"kind": "bias", "value": 1.0, "onset": 15},
+        "estimators": ["kf"],
+    }, "tank.yaml")  # fmt: skip
+    out = tmp_path / "out"
+    write_report(out, run_suite(sc, runs=4, seed=0, progress=False, add=["chi_square_kf"]))
+    assert (out / "roc.png").is_file() and (out / "alarms_run0.png").is_file()
+    (out / "mine.png").write_bytes(b"")
+    write_report(out, run_suite(sc, runs=4, seed=0, progress=False))
+    report = (out / "report.md").read_text()
+    assert "roc.png" not in report and "rmse_over_time.png" in report
+    assert not (out / "roc.png").exists() and not (out / "alarms_run0.png").exists()
+    assert (out / "rmse_over_time.png").is_file() and (out / "mine.png").is_file()

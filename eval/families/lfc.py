@@ -468,5 +468,6 @@ register_family(
         finish=_finish,
         check_options=_checked_options,
         needs=("uncompensated",),  # Table II's traditional controller
+        writes=("lfc_summary.md", "lfc_per_channel/", "lfc_watermark/"),
     ),
 )
