@@ -151,7 +151,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--add-estimators, or scenarios (docs/adding-a-scenario.md)",
     )
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
-    p.add_argument("--list", action="store_true", help="list the registered scenarios and exit")
+    p.add_argument(
+        "--list",
+        action="store_true",
+        help="list the registered scenarios and exit (with a family or all: those alone)",
+    )
     return p
 
 
@@ -619,7 +623,15 @@ def _main(argv: Sequence[str] | None = None) -> int:
         except ValueError as exc:
             parser.error(str(exc))
     if args.list:
-        for s in registry.all_scenarios():
+        shown = registry.all_scenarios()
+        if args.scenario in ("all", "robustness"):  # what that name runs: the headline ones
+            shown = [s for s in shown if s.name in registry.names(headline_only=True)]
+        elif args.scenario in registry.families():  # the family's every scenario
+            shown = [s for s in shown if s.family == args.scenario]
+        elif args.scenario is not None:  # (it was ignored: the whole list, without a word)
+            parser.error(f"--list {args.scenario}: give a family ({', '.join(registry.families())}) "
+                         "or all to list their scenarios, or --list alone for every one")  # fmt: skip
+        for s in shown:
             print(f"{s.name:28s} [{s.family}] {s.description}")
         print(f"\nalso: all (every headline scenario), robustness (their threats), and each "
               f"family's headline scenarios by its name: {', '.join(registry.families())}")  # fmt: skip

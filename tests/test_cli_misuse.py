@@ -228,3 +228,24 @@ def test_an_abbreviated_option_is_refused_and_a_device_option_is_answered(tmp_pa
             main(argv)
         assert stop.value.code == 2, main
         assert f"unrecognized arguments: {named}" in capsys.readouterr().err, main
+
+
+def test_list_with_a_name_lists_that_familys_scenarios_or_says_what_it_takes(capsys):
+    """``--list extra`` printed every scenario, the name ignored without a word; a family
+    lists its scenarios (headline or not), ``all`` the headline ones."""
+    from difffilter.eval.cli import main
+    from difffilter.models import registry
+
+    def listed(*argv):
+        assert main([*argv, "--list"]) == 0
+        lines = capsys.readouterr().out.split("\n\n")[0].splitlines()
+        return [line.split()[0] for line in lines]
+
+    assert listed("robot") == registry.names("robot")
+    assert "robot_actuator_attack_turn_rates" in listed("robot")  # a variant, not headline
+    assert set(listed("all")) == set(registry.names(headline_only=True))
+    assert len(listed()) == len(registry.all_scenarios())
+    with pytest.raises(SystemExit) as exit_:
+        main(["extra", "--list"])
+    assert exit_.value.code == 2
+    assert "--list extra: give a family (filters, four_tank" in capsys.readouterr().err
