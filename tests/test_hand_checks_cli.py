@@ -415,6 +415,16 @@ def test_lfc_tuning_merges_into_an_existing_file(monkeypatch, tmp_path, capsys):
     assert set(document["grids"]) == {"kf_nn_ekf", "traditional_ad"}
 
 
+def test_lfc_tuning_records_the_horizon_it_validated_on(monkeypatch):
+    """The tuning's JSON recorded 1,000 validation steps whatever the batch held."""
+    from difffilter.train import lfc_tuning
+
+    monkeypatch.setattr(lfc_tuning, "validation_batch",
+                        lambda runs: {"attack": torch.zeros(runs, 50, 10)})  # fmt: skip
+    out = lfc_tuning.tune(estimators=(), runs=3, progress=False)
+    assert out["validation"]["steps"] == 50 and out["validation"]["runs"] == 3
+
+
 # ---------------------------------------------------------------- inputs under a mask
 
 

@@ -136,7 +136,7 @@ def tune(
         "validation": {
             "runs": runs,
             "seed": VALIDATION_SEED,
-            "steps": 1000,
+            "steps": int(batch["attack"].shape[-2]),  # the validation scenario's horizon
             "metric": "attack RMSE over all channels and steps",
         },
         "grids": {},
