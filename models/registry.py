@@ -59,8 +59,15 @@ def register(scenario: Scenario, *, origin: str | None = None) -> Scenario:
     """Add ``scenario`` under its name; registering the same name twice is an error, and so
     is a name that the command lines would read as a selection (``all``, ``robustness``, a
     family's name) or a family named like a registered scenario or like those words. ``origin``: where it comes
-    from, for that error (by default the module that calls this)."""
+    from, for that error (by default the module that calls this).
+
+    A scenario registered from outside ``difffilter.models`` first loads the built-in
+    families (:func:`_load_builtin`), so that its name is checked against theirs: a user's
+    module registering a scenario named ``robot`` before anything had asked the registry
+    was accepted, and every later call then failed blaming ``difffilter.models.robot``."""
     origin = origin or _caller_module()
+    if not _LOADED and not origin.startswith(f"module {__package__}."):
+        _load_builtin()
     name = scenario.name
     if name in _REGISTRY and (
         _REGISTRY[name] != scenario or _unseen_difference(_REGISTRY[name], scenario)

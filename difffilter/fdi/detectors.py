@@ -289,6 +289,10 @@ class ChiSquareDetector:
             )
         return cls(dim, rate, window)
 
+    def __repr__(self) -> str:
+        return (f"ChiSquareDetector(dim={self.dim}, false_alarm_rate={self.false_alarm_rate:.4g}, "
+                f"window={self.window})")  # fmt: skip
+
     @property
     def threshold(self) -> float:
         """Threshold of a full window: ``F⁻¹_{χ²_{mW}}(1 − α)``."""
@@ -441,6 +445,10 @@ class CusumDetector:
     def __init__(self, bias: float, threshold: float | None = None):
         self.bias = check_finite_number(bias, "bias", positive=True)
         self.threshold = None if threshold is None else _check_threshold(threshold)
+
+    def __repr__(self) -> str:
+        tau = "None" if self.threshold is None else f"{self.threshold:.6g}"
+        return f"CusumDetector(bias={self.bias:.6g}, threshold={tau})"
 
     def run(self, g: Tensor, threshold: float | None = None) -> tuple[Tensor, Tensor]:
         """``(statistic [..., T], alarms [..., T])`` with reset after each alarm."""
