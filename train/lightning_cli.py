@@ -273,8 +273,10 @@ def _ckpt_paths_in(argv) -> list[str]:
 
 def _hide_the_interrupted_events(trainer, ckpt) -> None:
     """A run resumed into its own folder from a checkpoint written after ``n`` training
-    batches goes on at step ``n``: the TensorBoard events the interrupted process wrote from
-    step ``n`` on (the cut epoch's points, which the resumed run logs again) are hidden, as
+    batches goes on at step ``n`` (Lightning's ``_batches_that_stepped``, plus one for a
+    checkpoint written inside its epoch, before its last batch was counted): the TensorBoard
+    events the interrupted process wrote from step ``n`` on (the cut epoch's points, which
+    the resumed run logs again) are hidden, as
     ``SummaryWriter(purge_step=n)`` hides them; TensorBoard had drawn those points twice (a
     trial). Nothing for another logger, another folder, or a checkpoint without the count."""
     from lightning.pytorch.loggers import TensorBoardLogger
@@ -289,9 +291,17 @@ def _hide_the_interrupted_events(trainer, ckpt) -> None:
         return
     try:
         blob = torch.load(ckpt, map_location="cpu", weights_only=True, mmap=True)
-        step = blob["loops"]["fit_loop"]["epoch_loop.state_dict"]["_batches_that_stepped"]
+        loop = blob["loops"]["fit_loop"]
+        step = loop["epoch_loop.state_dict"]["_batches_that_stepped"]
+        epoch = loop.get("epoch_progress", {}).get("current", {})
     except Exception:  # (a checkpoint of another layout: its curves as they are)
         return
+    if epoch.get("processed", 0) < epoch.get("started", 0):
+        # written inside its epoch (LastCheckpointEveryEpoch at the epoch's validation's end,
+        # in an epoch that did not improve the monitored metric), before Lightning counted
+        # the batch that stepped last; the resumed run counts it, and goes on at n + 1 (at n,
+        # the epoch's validation and last training point were hidden: a trial)
+        step += 1
     if kwargs.get("purge_step") is None:  # (the CLI passes an explicit None; a user's own kept)
         kwargs["purge_step"] = int(step)
 

@@ -319,15 +319,27 @@ def _family_metrics(result, name: str) -> dict:
 
 
 def _scenarios_of(path: Path, scenarios) -> tuple[str, list[str]]:
-    """The registry name of the estimator of ``path`` and the scenarios it is judged on."""
+    """The registry name of the estimator of ``path`` and the scenarios it is judged on:
+    ``scenarios``, else its family's headline ones, else (a family of one's own, whose
+    scenarios a new process has not registered: a sweep run again after ``--validation-only``
+    had judged the seeds on none, silently) its training scenario as ``fit`` was given it."""
     from difffilter.models import registry
     from difffilter.models.neural_estimator import load_estimator_checkpoint
 
-    from .calibrate import estimator_name
+    from .calibrate import _fit_scenario, estimator_name
 
     _, card = load_estimator_checkpoint(path)
     if not scenarios:
         scenarios = registry.names(card.scenario_family, headline_only=True)
+    if not scenarios:
+        given = _fit_scenario(path)
+        if given is None:
+            raise ValueError(
+                f"{path}: its family {card.scenario_family!r} has no headline scenario "
+                "registered here and its card names no scenario file or module:object to "
+                "judge it on; give them with --scenarios"
+            )
+        scenarios = [registry.get(given).name]
     return estimator_name(card), list(scenarios)
 
 
@@ -768,7 +780,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (0 1 2)")
     p.add_argument("--out", type=Path, required=True, help="the sweep's folder")
     p.add_argument("--scenarios", default=None,
-                   help="comma-separated scenarios (default: the family's headline ones)")  # fmt: skip
+                   help="comma-separated scenarios (default: the family's headline ones; a family "
+                        "of your own: the training scenario)")  # fmt: skip
     p.add_argument("--runs", type=int, default=None, help="evaluation runs (the scenario's)")
     p.add_argument("--far", type=float, default=0.01, help="target false-alarm rate (0.01)")
     p.add_argument("--select-on", choices=SELECT_ON, default="validation",
