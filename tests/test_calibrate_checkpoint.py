@@ -185,6 +185,31 @@ def test_calibrate_says_when_its_alarms_cluster_in_a_few_runs(tmp_path, capsys, 
     assert "clustered" not in json.loads(out.with_suffix(".json").read_text())["calibration"]
 
 
+def test_calibrate_says_when_the_check_runs_miss_the_rate(tmp_path, capsys, monkeypatch):
+    """A trial's own plant (8 runs × 60 steps at 5 %): 5.00 % on the calibration runs, 13.3 %
+    on the check runs and 9.8 % on fresh ones, and no note (24 alarms expected, none
+    clustered). The check runs' rate outside the acceptance's band [α/2, 2α] now says so.
+    Scripted: uniform calibration scores; check scores from the same law (inside the band:
+    nothing said), then shifted up by half the threshold's tail (3 % at a 1 % target)."""
+    from difffilter.train import calibrate as cal_mod
+
+    gen = torch.Generator().manual_seed(0)
+    fitted = torch.rand(40, 100, generator=gen, dtype=torch.float64)
+    same = torch.rand(40, 100, generator=gen, dtype=torch.float64)
+    for checked, said in ((same, False), (same + 0.02, True)):
+        draws = iter([(fitted, None), (checked, None)])
+        monkeypatch.setattr(cal_mod, "_scores", lambda *args, d=draws: next(d))
+        out = tmp_path / "x.ckpt"
+        assert main([SHIPPED, "--out", str(out), "--runs", "40", "--no-progress", "--force"]) == 0
+        printed = capsys.readouterr().out
+        rate = json.loads(out.with_suffix(".json").read_text())["calibration"]["measured_on_check"]
+        assert (rate > 0.02) is said, rate
+        assert ("outside [0.5 %, 2 %]" in printed) is said, printed
+        assert (
+            "does not keep its rate on other runs of this size; give more --runs" in printed
+        ) is said
+
+
 def test_a_card_of_an_unregistered_scenario_is_calibrated_on_the_scenario_named(
     tmp_path, capsys, monkeypatch, isolated_registry
 ):

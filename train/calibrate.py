@@ -314,6 +314,15 @@ def main(argv: list[str] | None = None) -> int:
               f"the {cal['runs']} runs (worth {c['effective_alarms']:.1f} independent ones), "
               "so the threshold rests on those runs and its rate on fresh runs may be far "
               "from the target (the check runs' rate too); give more --runs")  # fmt: skip
+    from difffilter.eval.acceptance import TOLERANCES
+
+    low, high = (cal["target"] * f for f in TOLERANCES["fpr_band"])
+    if not low <= cal["measured_on_check"] <= high:  # (the other notes can miss it: a trial)
+        print(f"note: on the {cal['runs']} check runs the threshold alarms on "
+              f"{100 * cal['measured_on_check']:.2f} % of the steps, outside [{100 * low:g} %, "
+              f"{100 * high:g} %] (the band the evaluation's acceptance holds a calibrated "
+              "detector to): the threshold does not keep its rate on other runs of this size; "
+              "give more --runs")  # fmt: skip
     return 0
 
 
