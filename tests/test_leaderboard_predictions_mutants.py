@@ -273,8 +273,9 @@ def test_tune_scores_every_grid_point_and_chooses_the_least_rmse(monkeypatch):
 
     calls = []
     monkeypatch.setattr(lfc_tuning, "GRIDS", {"traditional_ad": {"a": [1, 2, 3], "b": ["x", "y"]}})
+    batch = {"attack": torch.zeros(3, 7, 10)}  # a stand-in batch of 7 steps
     monkeypatch.setattr(lfc_tuning, "validation_batch", lambda runs, seed=lfc_tuning.VALIDATION_SEED:
-                        calls.append((runs, seed)) or {})  # fmt: skip
+                        calls.append((runs, seed)) or batch)  # fmt: skip
     monkeypatch.setattr(lfc_tuning, "_estimator", lambda name, setting, ctx, ck: dict(setting))
     rmse = {
         (1, "x"): 3.0,
@@ -291,6 +292,7 @@ def test_tune_scores_every_grid_point_and_chooses_the_least_rmse(monkeypatch):
     assert [(r["a"], r["b"], r["attack_rmse"]) for r in rows] == [(*k, v) for k, v in rmse.items()]
     assert out["chosen"]["traditional_ad"] == {"a": 2, "b": "x", "attack_rmse": 0.5}
     assert out["validation"]["runs"] == 3 and calls == [(3, out["validation"]["seed"])]
+    assert out["validation"]["steps"] == 7  # the batch's horizon, not a constant
     with pytest.raises(ValueError, match="--ckpt"):
         lfc_tuning.tune(("kf_nn_grad_ekf",), progress=False)
 
