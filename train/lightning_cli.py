@@ -152,6 +152,7 @@ class DifffilterCLI(LightningCLI):
         _check_resumed_settings(ckpt, getattr(self, "model", None),
                                 getattr(self, "datamodule", None))  # fmt: skip
         _hide_the_interrupted_events(self.trainer, ckpt)
+        _expect_no_validation_at_the_resumed_epochs_end(ckpt)
         add_last_every_epoch(self.trainer)
 
     def before_validate(self):
@@ -289,21 +290,50 @@ def _hide_the_interrupted_events(trainer, ckpt) -> None:
         return  # (its writer exists already: too late to purge; or a Lightning without)
     if Path(logger.log_dir).resolve() != Path(ckpt).resolve().parent.parent:
         return
+    loop = _fit_loop_state(ckpt)
     try:
-        blob = torch.load(ckpt, map_location="cpu", weights_only=True, mmap=True)
-        loop = blob["loops"]["fit_loop"]
         step = loop["epoch_loop.state_dict"]["_batches_that_stepped"]
-        epoch = loop.get("epoch_progress", {}).get("current", {})
-    except Exception:  # (a checkpoint of another layout: its curves as they are)
+    except (KeyError, TypeError):  # (a checkpoint of another layout: its curves as they are)
         return
-    if epoch.get("processed", 0) < epoch.get("started", 0):
-        # written inside its epoch (LastCheckpointEveryEpoch at the epoch's validation's end,
-        # in an epoch that did not improve the monitored metric), before Lightning counted
-        # the batch that stepped last; the resumed run counts it, and goes on at n + 1 (at n,
-        # the epoch's validation and last training point were hidden: a trial)
+    if _written_inside_its_epoch(loop):
+        # (LastCheckpointEveryEpoch at the epoch's validation's end, in an epoch that did not
+        # improve the monitored metric) before Lightning counted the batch that stepped last;
+        # the resumed run counts it, and goes on at n + 1 (at n, the epoch's validation and
+        # last training point were hidden: a trial)
         step += 1
     if kwargs.get("purge_step") is None:  # (the CLI passes an explicit None; a user's own kept)
         kwargs["purge_step"] = int(step)
+
+
+def _fit_loop_state(ckpt) -> dict | None:
+    """The ``fit_loop`` state of checkpoint ``ckpt``, or ``None`` (no file, another layout)."""
+    try:
+        blob = torch.load(ckpt, map_location="cpu", weights_only=True, mmap=True)
+        return blob["loops"]["fit_loop"]
+    except Exception:
+        return None
+
+
+def _written_inside_its_epoch(loop: dict | None) -> bool:
+    """Whether a checkpoint's ``fit_loop`` state was saved before its epoch ended (its
+    epoch started and not yet processed)."""
+    epoch = (loop or {}).get("epoch_progress", {}).get("current", {})
+    return epoch.get("processed", 0) < epoch.get("started", 0)
+
+
+def _expect_no_validation_at_the_resumed_epochs_end(ckpt) -> None:
+    """A run resumed from a checkpoint written inside its epoch (after its validation) first
+    ends that epoch without validating again, and Lightning's ``ModelCheckpoint`` warns that
+    it "could not find the monitored key … HINT: Did you call `log(...)`": a bug of the
+    user's, it says, where there is none (a trial). That warning alone is left out; a key
+    really never logged still fails, as Lightning raises once a validation has run."""
+    if not ckpt or not Path(ckpt).is_file():
+        return
+    if _written_inside_its_epoch(_fit_loop_state(ckpt)):
+        import warnings
+
+        warnings.filterwarnings("ignore", r"`ModelCheckpoint\(monitor=.*\)` could not find the "
+                                "monitored key")  # fmt: skip
 
 
 def _fixed_run_folder(cfg, logger, args) -> Path | None:
