@@ -47,6 +47,9 @@ _NEAR_SINGULAR = {np.float32: 1e3 * np.finfo(np.float32).eps,
                   np.float64: 1e3 * np.finfo(np.float64).eps}  # fmt: skip
 
 
+# an overflow or a NaN (a diverging carry, a far-off y) is the torch update's to name, as
+# its NumericalBreakdown: numpy's RuntimeWarning had escaped before it (a review)
+@np.errstate(over="ignore", invalid="ignore", divide="ignore")
 def host_step(
     carry: GaussianState, y: Tensor, u: Tensor | None, mask: Tensor | None
 ) -> tuple[GaussianState, StepOutput] | None:

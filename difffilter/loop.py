@@ -478,9 +478,12 @@ def closed_loop(
         controller: a :class:`Controller`, or ``None``: no input (a plant that has inputs
             runs with ``u = 0``, without a word, and ``Trajectories.us`` is ``None``).
         attack: an :class:`~difffilter.attack.Attack` or ``None``; attack_generator its
-            draws. One whose onset lies after the last step runs and never acts (training
-            draws such onsets on purpose; ``difffilter.threats.check_attack_fits(attack,
-            plant, T)`` refuses them, as the evaluation does for a scenario's own attack).
+            draws (``None``: a random attack draws from torch's global generator, and two
+            calls differ unless ``torch.manual_seed`` comes first; ``noise``'s generator
+            is not used, so that the attack never shifts the plant's noise). One whose
+            onset lies after the last step runs and never acts (training draws such onsets
+            on purpose; ``difffilter.threats.check_attack_fits(attack, plant, T)`` refuses
+            them, as the evaluation does for a scenario's own attack).
         mask: received entries ``[B, T, dy]`` (the schedule) or ``None``, indexed by the
             absolute step.
         generator: the estimator's draws (a ``torch.Generator`` or

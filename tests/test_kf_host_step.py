@@ -238,3 +238,22 @@ def test_a_review_s_three_cases_take_the_torch_update():
         for _ in range(3):
             carry, _ = plain.step(carry, y, None, mask)
     assert len(calls) == 3
+
+
+def test_an_overflowing_step_raises_the_breakdown_without_numpy_s_warnings():
+    """A carry whose covariance overflows in the prediction (1.7e308 in float64): the host
+    step declines without numpy's "overflow encountered" RuntimeWarning (a review: it
+    escaped before the torch update's NumericalBreakdown, which names the trouble)."""
+    import warnings
+
+    model = _model(control=False)
+    kf = df.KalmanFilter()
+    y, mask = torch.ones(3, dtype=torch.float64), torch.tensor([True, True, False])
+    with torch.no_grad():
+        carry = kf.init(model, ())
+        carry = carry._replace(cov=1.7e308 * torch.eye(4, dtype=torch.float64), gains=None)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            assert _kf_host_step.host_step(carry, y, None, mask) is None
+            with pytest.raises(df.NumericalBreakdown):
+                kf.step(carry, y, None, mask)
