@@ -60,6 +60,13 @@ SLOW = (
     "test_train_cli_resume_mutants.py::test_a_fit_leaves_its_run_folder_as_documented",
     "test_train_cli_resume_mutants.py::test_a_resumed_run_trains_the_uninterrupted_runs_weights_in_its_own_folder",
     "test_train_cli_resume_mutants.py::test_validate_of_a_resumed_runs_config_logs_apart_and_writes_config_validate",
+    # end-to-end fits and resumes, a many-run statistic and a failing command line: 5-8 s
+    # each, the five longest of make test on 2026-12-03
+    "test_resume_settings.py::test_a_run_with_a_setting_of_its_own_resumes_only_with_it",
+    "test_resume_settings.py::test_a_checkpoint_given_other_model_settings_is_refused_and_its_own_resume",
+    "test_consistency.py::test_whiteness_under_packet_loss_counts_the_pairs_that_arrived",
+    "test_hand_checks_cli.py::test_an_added_estimator_that_does_not_run_is_named_on_stderr",
+    "test_threats_drawn.py::test_the_card_counts_the_threats_the_selected_weights_met_and_a_resume_counts_on",
     # single parameters (the log-domain yardstick's; the default kernel method's stay fast)
     "test_resampling.py::test_ot_gradient_matches_finite_differences[particles-log]",
     "test_resampling.py::test_ot_gradient_matches_finite_differences[log_weights-log]",
