@@ -66,6 +66,38 @@ def test_a_nested_carrys_tensor_written_in_place_is_validated_again():
         gated.step(carry, y, u)
 
 
+class _Model:
+    """A leaf that takes a weak reference (as the filters' models do)."""
+
+
+def _same_ids(monkeypatch, pairs):
+    """``_vouched``'s ``id`` answers each object of ``pairs`` ``(new, old)`` with the old
+    one's: what CPython does when a freed carry's memory is given to a new one."""
+    alias = {id(new): id(old) for new, old in pairs}
+    monkeypatch.setattr(_vouched, "id", lambda obj: alias.get(id(obj), id(obj)), raising=False)
+
+
+@pytest.mark.parametrize("freed", ["tensor", "model"])
+def test_a_carry_that_reuses_a_freed_carrys_ids_is_not_trusted(monkeypatch, freed):
+    """The registry keys carries by ``id`` and compares leaves by ``id``: a new carry made
+    where a freed one lay may answer the same numbers. Its tensors' or its model's weak
+    references are then dead, and that alone refuses it (a NaN mean would otherwise step
+    unchecked). Checked with ``id`` standing in for the reuse; the live control is trusted."""
+    owner = type("Owner", (), {})()
+    established = _vouched.Established(owner, F64, "cpu", (3,), 2, 1)
+    old = _Carry(torch.zeros(3, 2, dtype=F64), _Model())
+    _vouched.vouch(old, established)
+    assert _vouched.vouched(owner, old) is established
+    new = _Carry(torch.full((3, 2), float("nan"), dtype=F64) if freed == "tensor" else old.mean,
+                 _Model() if freed == "model" else old.aux)  # fmt: skip
+    _same_ids(monkeypatch, [(new, old), (new.mean, old.mean), (new.aux, old.aux)])
+    assert _vouched.vouched(owner, new) is established  # the old carry is still alive
+    old_leaf = old.mean if freed == "tensor" else old.aux
+    del old
+    del old_leaf  # the last strong reference: the weak one dies
+    assert _vouched.vouched(owner, new) is None
+
+
 # ---------------------------------------------------------------- the registry
 
 
