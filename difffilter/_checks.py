@@ -656,7 +656,8 @@ def check_filter_inputs(
 
 
 def check_model(model) -> None:
-    """``model`` must be a state-space model (``dim_x``, ``dim_y``, ``transition``, ``observe``)."""
+    """``model`` must be a state-space model (``dim_x``, ``dim_y``, ``transition``, ``observe``)
+    whose noise models are of its prior's dtype and device."""
     needed = ("dim_x", "dim_y", "dim_u", "transition", "observe", "initial")
     missing = [name for name in needed if not hasattr(model, name)]
     if missing:
@@ -664,6 +665,31 @@ def check_model(model) -> None:
             "model must be a difffilter.StateSpaceModel (e.g. difffilter.LinearGaussianModel); "
             f"{type(model).__name__} lacks {', '.join(missing)}"
         )
+    _check_noise_dtypes(model)
+
+
+def _check_noise_dtypes(model) -> None:
+    """The process and measurement noise models' floating tensors are of the prior mean's
+    dtype and device: every filter adds or multiplies them with the states (a float64
+    measurement noise on a float32 model failed in torch's words, "addmv input tensors must
+    have the same dtype", in every filter; a trial)."""
+    ref = getattr(model.initial, "mean", None)
+    if not isinstance(ref, Tensor) or not ref.is_floating_point():
+        return
+    for name in ("process_noise", "measurement_noise"):
+        noise = getattr(model, name, None)
+        if not isinstance(noise, torch.nn.Module):
+            continue
+        for part, t in (*noise.named_parameters(), *noise.named_buffers()):
+            if t.is_floating_point() and (t.dtype != ref.dtype or t.device != ref.device):
+                where = "" if t.device == ref.device else f" on {t.device}"
+                model_where = "" if t.device == ref.device else f" on {ref.device}"
+                raise ValueError(
+                    f"model.{name}.{part} is {t.dtype}{where} and the model is "
+                    f"{ref.dtype}{model_where} (its prior mean): give the noise the model's "
+                    f"dtype and device (model.{name} = model.{name}.to({ref.dtype}), or "
+                    "model.to(...) for every tensor)"
+                )
 
 
 def check_carry_batch(batch: torch.Size, y: Tensor, u: Tensor | None, mask: Tensor | None) -> None:

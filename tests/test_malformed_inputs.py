@@ -578,3 +578,33 @@ def test_a_parameter_of_another_dtype_is_refused_not_copied():
     assert [p is Q for p in model.parameters()] == [True]
     model.to(torch.float32)  # the module's own cast keeps it a parameter
     assert [p.dtype for p in model.parameters()] == [torch.float32]
+
+
+@pytest.mark.parametrize("noise", ["process_noise", "measurement_noise"])
+def test_a_noise_of_another_dtype_than_the_model_is_named_by_every_filter(noise):
+    """A float64 noise on a float32 model failed in every filter in torch's words ("addmv
+    input tensors must have the same dtype"); each entry point names the noise, the
+    tensor, both dtypes and the remedy."""
+    from difffilter.models.four_tank import FourTankModel
+    from difffilter.noise import Gaussian
+
+    model = FourTankModel(dtype=torch.float32)
+    setattr(model, noise, Gaussian(torch.zeros(4, dtype=torch.float64),
+                                   0.01 * torch.eye(4, dtype=torch.float64)))  # fmt: skip
+    ys = torch.ones(2, 3, 4)
+    want = (
+        rf"model\.{noise}\.\w+ is torch\.float64 and the model is torch\.float32 .*"
+        rf"model\.{noise} = model\.{noise}\.to\(torch\.float32\)"
+    )
+    calls = {
+        "particle_filter": lambda: df.particle_filter(model, ys, num_particles=10),
+        "ParticleFilter.init": lambda: df.ParticleFilter(10).init(model, (2,)),
+        "extended_kalman_filter": lambda: df.extended_kalman_filter(model, ys),
+        "UnscentedKalmanFilter.init": lambda: df.UnscentedKalmanFilter().init(model, (2,)),
+    }
+    for name, call in calls.items():
+        with pytest.raises(ValueError, match=want):
+            call()
+            pytest.fail(f"{name} ran")
+    setattr(model, noise, getattr(model, noise).to(torch.float32))  # the remedy given
+    assert torch.isfinite(df.particle_filter(model, ys, num_particles=10).means).all()

@@ -108,7 +108,7 @@ def test_zero_mean_up_to_round_off_and_the_noises_dtype():
     with pytest.raises(ValueError, match="take every noise as zero-mean"):
         df.kalman_filter(model, ys)
     model.measurement_noise = UniformBox(torch.tensor([-0.3]), torch.tensor([0.3]))  # float32
-    with pytest.raises(ValueError, match=r"model.measurement_noise.cov is torch.float32 and the "
+    with pytest.raises(ValueError, match=r"model.measurement_noise.low is torch.float32 and the "
                                          r"model is torch.float64"):  # fmt: skip
         df.kalman_filter(model, ys)
 
