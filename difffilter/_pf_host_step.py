@@ -61,7 +61,9 @@ def density(carry, y: Tensor, u: Tensor | None) -> tuple[np.ndarray, np.generic]
     :func:`host_step` may compute a one-run step from ``carry``, else ``None``: no gradient
     can be recorded (grad mode off, no input that requires one), the particles live in
     CPU memory in float32 or float64, and the measurement noise is a diagonal zero-mean
-    Gaussian of the particles' dtype (the others keep the torch step, which promotes)."""
+    Gaussian of the particles' dtype (a noise of another dtype is refused by the step's
+    full validation, :func:`~difffilter._checks.check_model`; the others keep the torch
+    step)."""
     particles = carry.particles
     if torch.is_grad_enabled() or particles.device.type != "cpu":
         return None

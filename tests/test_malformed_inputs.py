@@ -608,3 +608,18 @@ def test_a_noise_of_another_dtype_than_the_model_is_named_by_every_filter(noise)
             pytest.fail(f"{name} ran")
     setattr(model, noise, getattr(model, noise).to(torch.float32))  # the remedy given
     assert torch.isfinite(df.particle_filter(model, ys, num_particles=10).means).all()
+
+
+def test_a_noise_of_another_dtype_assigned_after_init_is_named_at_the_next_step():
+    """A noise assigned after ``init`` makes the next step validate in full (the model was
+    assigned to), which names it, as ``init`` does, rather than torch's dtype error."""
+    from difffilter.models.four_tank import FourTankModel
+    from difffilter.noise import Gaussian
+
+    model = FourTankModel(dtype=torch.float32)
+    pf = df.ParticleFilter(10)
+    carry, _ = pf.step(pf.init(model, ()), torch.ones(4))
+    model.measurement_noise = Gaussian(torch.zeros(4, dtype=torch.float64),
+                                       0.01 * torch.eye(4, dtype=torch.float64))  # fmt: skip
+    with pytest.raises(ValueError, match=r"model\.measurement_noise\.\w+ is torch\.float64"):
+        pf.step(carry, torch.ones(4))
