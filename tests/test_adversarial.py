@@ -54,6 +54,8 @@ def test_crafting_starts_at_its_onset_and_leaves_the_network_untouched():
         ({"trainer": "ekf"}, "adversarial_runs needs the gradient trainer"),
         ({"adversarial_iterations": 0}, "adversarial_iterations must be an integer >= 1"),
         ({"adversarial_onsets": (9, 3)}, "adversarial_onsets must be"),
+        ({"adversarial_selection_runs": -1}, "adversarial_selection_runs must be an integer >= 0"),
+        ({"adversarial_resample": "yes"}, "adversarial_resample must be true or false"),
     ],
 )
 def test_adversarial_options_are_checked(kwargs, why):
@@ -230,6 +232,68 @@ def test_the_crafting_gets_the_receptions_the_training_batches_get(monkeypatch):
     task.adversary.craft(task, step=0)
     runs = task.adversary.crafting_runs
     assert seen["mask"] is not None and torch.equal(seen["mask"], lossy.expand(runs, 100, 4))
+
+
+def test_the_crafting_resamples_and_selects_as_the_evaluations_attacker(monkeypatch):
+    """With ``resample`` every iteration gets fresh attack-free runs of its own (iteration 0
+    the first batch), with ``selection_runs`` the attack is chosen on that many held-out
+    runs; without them the crafting gets neither (the behaviour of before)."""
+    import difffilter.train.adversarial as adversarial
+    from difffilter.stealthy import CraftedAttack
+
+    seen = {}
+
+    def capture(estimator, model, ys, xs, threshold, *, onset, resample=None, select=None, **kw):
+        seen.update(ys=ys, xs=xs, resample=resample, select=select)
+        return CraftedAttack(torch.zeros(ys.shape[-2:]), onset, [], None, budget=0.02,
+                             selection={"runs": 5, "budget": 0.02, "judged": [],
+                                        "iteration": None})  # fmt: skip
+
+    monkeypatch.setattr(adversarial, "craft_stealthy_attack", capture)
+    plain = FilterEstimatorTask("four_tank_bias", num_particles=20, hidden=4, adversarial_runs=2,
+                                adversarial_crafting_runs=3)  # fmt: skip
+    plain.adversary.craft(plain, step=0)
+    assert seen["resample"] is None and seen["select"] is None
+    first = seen["ys"]
+    task = FilterEstimatorTask("four_tank_bias", num_particles=20, hidden=4, adversarial_runs=2,
+                               adversarial_crafting_runs=3, adversarial_resample=True,
+                               adversarial_selection_runs=5)  # fmt: skip
+    logs = task.adversary.craft(task, step=0)
+    assert torch.equal(seen["ys"], first)  # the first batch as before
+    one, two = seen["resample"](1), seen["resample"](2)
+    for batch in (one, two):
+        assert batch[0].shape == first.shape and batch[1].shape == seen["xs"].shape
+        assert batch[2] is None and batch[3] is None  # four-tank: no inputs, every entry
+    assert not torch.equal(one[0], first) and not torch.equal(one[0], two[0])
+    assert torch.equal(seen["resample"](1)[0], one[0])  # drawn from the seed, reproducible
+    held_out = seen["select"]
+    assert held_out[0].shape == (5, 100, 4) and not torch.equal(held_out[0][:3], first)
+    assert logs["adversarial_error"] == 0.0  # nothing kept on the held-out runs
+
+
+def test_a_selected_crafting_logs_the_chosen_attacks_held_out_error(monkeypatch):
+    import difffilter.train.adversarial as adversarial
+
+    real, returned = adversarial.craft_stealthy_attack, []
+
+    def spy(*args, **kw):
+        returned.append(real(*args, **kw))
+        return returned[-1]
+
+    monkeypatch.setattr(adversarial, "craft_stealthy_attack", spy)
+    task = FilterEstimatorTask("four_tank_bias", num_particles=20, hidden=4, adversarial_runs=2,
+                               adversarial_iterations=4, adversarial_crafting_runs=4,
+                               adversarial_resample=True, adversarial_selection_runs=6)  # fmt: skip
+    task.alarm_threshold.fill_(0.3)
+    logs = task.adversary.craft(task, step=0)
+    selection = returned[0].selection
+    assert selection["runs"] == 6 and selection["judged"]
+    chosen = selection["iteration"]
+    assert chosen is not None  # a loose threshold: the first candidate keeps the budget
+    judged = dict((it, j) for it, j, _ in selection["judged"])
+    assert logs["adversarial_error"] == judged[chosen] > 0.0
+    assert task.adversary.history[-1] == (0, task.adversary.onset, judged[chosen])
+    assert torch.equal(task.adversary.attack, returned[0].values)
 
 
 def test_the_adversarys_attack_survives_a_checkpoint(tmp_path):

@@ -5,7 +5,9 @@ sensor attack against the network as it is (:func:`difffilter.stealthy.craft_ste
 attack`: maximise the state error through the training filter, with the network's own
 detection score held under its current threshold: chosen for the weights as they are,
 as the validation chooses it, ``task.current_threshold()``),
-``iterations`` Adam steps on ``crafting_runs`` attack-free runs, from a random onset. Until
+``iterations`` Adam steps on ``crafting_runs`` attack-free runs, from a random onset (with
+``resample``, fresh runs at every iteration; with ``selection_runs``, the attack chosen on
+that many held-out runs, as the evaluation's attacker chooses it). Until
 the next crafting, every training batch gets ``runs`` more runs under that attack, on
 fresh noise::
 
@@ -42,6 +44,13 @@ class Adversary:
         every: training steps between craftings.
         crafting_runs: attack-free runs the attack is crafted on.
         onsets: ``(first, last)``: the onset is drawn from them (both included).
+        resample: fresh crafting runs at every iteration (``craft_stealthy_attack``'s
+            ``resample``: the attack is fitted to the noise's law, not to one batch of it),
+            or the same ``crafting_runs`` runs at every iteration.
+        selection_runs: held-out attack-free runs the attack is chosen on, the iterates of
+            largest error tried in turn until one keeps the alarm budget there
+            (``craft_stealthy_attack``'s ``select``), or 0: the best iterate within the
+            budget on its own batch.
     """
 
     runs: int
@@ -49,6 +58,8 @@ class Adversary:
     every: int = 16
     crafting_runs: int = 8
     onsets: tuple[int, int] = (5, 60)
+    resample: bool = False
+    selection_runs: int = 0
     attack: torch.Tensor | None = field(default=None, repr=False)
     onset: int | None = None
     history: list = field(default_factory=list, repr=False)
@@ -58,6 +69,11 @@ class Adversary:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"adversarial_{name} must be an integer >= 1; got {value!r}")
+        if not isinstance(self.resample, bool):
+            raise ValueError(f"adversarial_resample must be true or false; got {self.resample!r}")
+        sel = self.selection_runs
+        if isinstance(sel, bool) or not isinstance(sel, int) or sel < 0:
+            raise ValueError(f"adversarial_selection_runs must be an integer >= 0; got {sel!r}")
         lo, hi = self.onsets
         if not (isinstance(lo, int) and isinstance(hi, int) and 1 <= lo <= hi):
             raise ValueError(f"adversarial_onsets must be [first, last], 1 <= first <= last; "
@@ -75,14 +91,28 @@ class Adversary:
         onset = int(torch.randint(min(self.onsets[0], hi), hi + 1, (),
                                   generator=streams("adversary/onset")))  # fmt: skip
         free = scenario.with_threat(None)
-        tr = free.simulate(self.crafting_runs, streams.simulation("adversary/"), dtype=task._dtype)
+        device = task.device  # drawn on the CPU, crafted where the weights are
+
+        def runs_of(prefix: str, runs: int):
+            # the inputs and the receptions the training batches give the filter (task.py):
+            # a crafting without the sensor schedule's mask ran on measurements it never gets
+            tr = free.simulate(runs, streams.simulation(prefix), dtype=task._dtype)
+            us = None if tr.us is None else tr.us.to(device)
+            mask = None if tr.mask is None else tr.mask.to(device)
+            return tr.y_true.to(device), tr.x.to(device), us, mask
+
+        ys, xs, us, mask = runs_of("adversary/", self.crafting_runs)
+        # (passed only where set: the crafting of before is called exactly as before)
+        fresh = {}
+        if self.resample:  # iteration 0 keeps the first batch above
+            fresh["resample"] = lambda it: runs_of(f"adversary/{it}/", self.crafting_runs)
+        if self.selection_runs:
+            fresh["select"] = runs_of("adversary/selection/", self.selection_runs)
         estimator = task.estimator_object(training=True)
         params = list(task.estimator.parameters())
         flags = [p.requires_grad for p in params]
         for p in params:  # the attacker differentiates through the network, not into it
             p.requires_grad_(False)
-
-        device = task.device  # drawn on the CPU, crafted where the weights are
 
         def generators():
             # one generator for the prior particles and the proposals, drawn one after the
@@ -91,22 +121,19 @@ class Adversary:
             particles = streams("adversary/particles", device)
             return Generators(particles, particles, streams("adversary/resample", device))
 
-        # the inputs and the receptions the training batches give the filter (task.py): a
-        # crafting without the sensor schedule's mask ran on measurements it never gets
-        us = None if tr.us is None else tr.us.to(device)
-        mask = None if tr.mask is None else tr.mask.to(device)
-
         settings = StealthySettings(iterations=self.iterations)
         try:
-            # a zero attack (no iterate within the budget) is logged as an error of 0 and
-            # leaves the batches as they are (augment): no warning at every crafting
+            # a zero attack (no iterate within the budget, on its own batch or the held-out
+            # one) is logged as an error of 0 and leaves the batches as they are (augment):
+            # no warning at every crafting
             with torch.enable_grad(), warnings.catch_warnings():
-                warnings.filterwarnings("ignore", message="craft_stealthy_attack: no iterate")
+                warnings.filterwarnings(
+                    "ignore", message="craft_stealthy_attack: (no iterate|none of the)"
+                )
                 crafted = craft_stealthy_attack(
-                    estimator, task.system, tr.y_true.to(device), tr.x.to(device),
+                    estimator, task.system, ys, xs,
                     task.current_threshold(), far=task.false_alarm_rate, us=us, mask=mask,
-                    onset=onset,
-                    settings=settings, generator=generators,
+                    onset=onset, settings=settings, generator=generators, **fresh,
                     # the attack-free rate is logged below instead: on a few crafting runs
                     # it strays from the target at times, and a warning at every crafting
                     # of a long run would bury the rest
@@ -117,8 +144,13 @@ class Adversary:
                 p.requires_grad_(f)
         self.attack, self.onset = crafted.values.to(task._dtype), onset
         # the error of the attack kept: the best iterate within the alarm budget (zero, and
-        # no attack, where none was; an iterate over the budget is not what the batches get)
-        kept = max((h[1] for h in crafted.within_budget()), default=0.0)
+        # no attack, where none was; an iterate over the budget is not what the batches get);
+        # with a selection, the chosen iterate's error on the held-out runs
+        if "select" not in fresh:
+            kept = max((h[1] for h in crafted.within_budget()), default=0.0)
+        else:
+            chosen = crafted.selection["iteration"]
+            kept = next((j for it, j, _ in crafted.selection["judged"] if it == chosen), 0.0)
         self.history.append((step, onset, kept))
         # the crafting runs' attack-free alarm rate at the threshold it crafted under: far
         # from the target rate, the alarm budget bounds little (or nothing)

@@ -404,11 +404,13 @@ class FilterEstimatorTask(pl.LightningModule):
             after an attack and how many (module docstring; 1.0: every step alike).
         target_false_alarm_rate: of the operating threshold (default: the scenario's).
         adversarial_runs, adversarial_iterations, adversarial_every,
-        adversarial_crafting_runs, adversarial_onsets: adversarial training
+        adversarial_crafting_runs, adversarial_onsets, adversarial_resample,
+        adversarial_selection_runs: adversarial training
             (:class:`~difffilter.train.adversarial.Adversary`): every ``adversarial_every``
             steps an attack is crafted against the current network, and each batch gets
             ``adversarial_runs`` runs under it (0: off; gradient trainer, open-loop sensor
-            attacks).
+            attacks); ``adversarial_resample``: fresh crafting runs at every iteration,
+            ``adversarial_selection_runs``: held-out runs the attack is chosen on (0: none).
         monitor_scenarios, monitor_runs, monitor_seed: other registered scenarios whose
             attack RMSE is logged at every validation (``val/scenario/<name>/…``) and
             scored by ``test``.
@@ -466,6 +468,8 @@ class FilterEstimatorTask(pl.LightningModule):
         adversarial_every: int = 16,
         adversarial_crafting_runs: int = 8,
         adversarial_onsets: tuple[int, int] = (5, 60),
+        adversarial_resample: bool = False,
+        adversarial_selection_runs: int = 0,
         monitor_scenarios: list[str] | None = None,
         monitor_runs: int = 4,
         monitor_seed: int = 3,
@@ -522,6 +526,7 @@ class FilterEstimatorTask(pl.LightningModule):
             self.adversary = Adversary(
                 adversarial_runs, adversarial_iterations, adversarial_every,
                 adversarial_crafting_runs, tuple(adversarial_onsets),
+                adversarial_resample, adversarial_selection_runs,
             )  # fmt: skip
 
     def _start_from(self, path: str) -> None:
