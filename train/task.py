@@ -184,7 +184,8 @@ class ScenarioDataModule(pl.LightningDataModule):
             ``attack-free calibration``; 0: the validation batch's attack-free steps).
         test_runs, test_seed: ``test``/``predict`` runs (default the scenario's ``runs``)
             and seed: the draws of ``difffilter-eval <scenario> --seed test_seed``.
-        steps: a shorter horizon than the scenario's (tests, quick runs).
+        steps: a shorter horizon than the scenario's (tests, quick runs); the task's
+            monitored scenarios keep theirs.
         dtype: ``"float32"`` or ``"float64"``.
     """
 
@@ -413,7 +414,8 @@ class FilterEstimatorTask(pl.LightningModule):
             ``adversarial_selection_runs``: held-out runs the attack is chosen on (0: none).
         monitor_scenarios, monitor_runs, monitor_seed: other registered scenarios whose
             attack RMSE is logged at every validation (``val/scenario/<name>/…``) and
-            scored by ``test``.
+            scored by ``test``, each over its own horizon (the data module's ``steps``
+            shortens the training scenario, not these: a monitored attack may start late).
         init_from: an exported estimator (or a Lightning checkpoint of a training run) whose
             network weights this training starts from instead of ``model_seed``'s draw
             (``model_seed``: the network's draw and the training's own; ``None``: the run's
