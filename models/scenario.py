@@ -288,7 +288,8 @@ class Scenario:
             generators=generators,
             attack=self.simulated_attack() if attack is OWN_ATTACK else attack,
             schedule=self.schedule(),
-            us=self.inputs(runs, dtype),
+            # on the model's device: a model moved to a GPU had its known inputs on the CPU
+            us=self.inputs(runs, dtype, model.initial.mean.device),
             random_initial=self.draws_initial_state(),
             input_loss=self.input_loss_schedule(),
         )

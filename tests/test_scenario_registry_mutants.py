@@ -539,3 +539,24 @@ def test_plugin_that_registers_nothing_warns(isolated_registry, monkeypatch):
     said = [str(w.message) for w in caught if "registered no scenario" in str(w.message)]
     assert len(said) == 1 and "mut_empty_plugin" in said[0]
     assert "mut_p" in reg.names()
+
+
+def test_a_scenarios_known_inputs_are_made_on_its_models_device(monkeypatch):
+    """``Scenario.simulate`` asks :meth:`inputs` for the model's device (it asked for none,
+    so a model moved to a GPU got its known inputs on the CPU); CI has no GPU, so the
+    device asked for is what is checked, and the inputs the run then holds."""
+    from difffilter.models import registry
+    from difffilter.models.streams import Streams
+
+    sc = registry.get("robot_actuator_attack").with_steps(44)
+    asked = []
+    real = type(sc).inputs
+
+    def spy(self, runs, dtype, device=None):
+        asked.append(device)
+        return real(self, runs, dtype, device)
+
+    monkeypatch.setattr(type(sc), "inputs", spy)
+    model = sc.system(torch.float64)
+    tr = sc.simulate(2, Streams(0).simulation(), model=model)
+    assert asked == [model.initial.mean.device] and tr.us.device == model.initial.mean.device
