@@ -210,6 +210,16 @@ class CraftedAttack(TabulatedAttack):
         return [h for h in self.history if math.isfinite(h[1])
                 and (budget(h) is None or _keeps_budget(h[3], budget(h)))]  # fmt: skip
 
+    def kept_error(self) -> float:
+        """The crafting's objective ``J`` of the attack returned (:attr:`values`): with a
+        held-out selection, the chosen iterate's ``J`` on the held-out batch; without one,
+        the best ``J`` of :meth:`within_budget` on its own batch; 0.0 where the attack is
+        zero (no iterate kept the budget)."""
+        if self.selection is None:
+            return max((h[1] for h in self.within_budget()), default=0.0)
+        chosen = self.selection["iteration"]
+        return next((j for it, j, _ in self.selection["judged"] if it == chosen), 0.0)
+
     def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
         if tuple(self.values.shape) != (num_steps, dim):
             raise ValueError(

@@ -712,3 +712,20 @@ def test_the_ekf_trainers_logged_attack_mse_is_per_entry():
     task._ekf_step({"y_recv": torch.zeros(R, 1, task.system.dim_y)}, 0)
     got = logged["train/attack_mse"]
     assert abs(got - want) < 1e-10 * want, f"train/attack_mse {got}, want {want}"
+
+
+def test_the_error_of_the_attack_returned_is_the_one_it_was_chosen_by():
+    from difffilter.stealthy import CraftedAttack
+
+    # without a selection: the best J within budget (iterate 1 broke it, so 1.0, not 2.0)
+    history = [(0, 1.0, 0.0, 0.005), (1, 2.0, 0.0, 0.02), (2, 0.5, 0.0, 0.004)]
+    assert CraftedAttack(torch.zeros(3, 1), 1, history, budget=0.01).kept_error() == 1.0
+    assert CraftedAttack(torch.zeros(3, 1), 1, history[1:2], budget=0.01).kept_error() == 0.0
+    # with one: the chosen iterate's J on the held-out batch, not its own batch's
+    judged = [(1, 2.5, 0.03), (0, 0.9, 0.008)]
+    chosen = {"runs": 8, "budget": 0.01, "judged": judged, "iteration": 0}
+    assert CraftedAttack(torch.zeros(3, 1), 1, history, budget=0.01,
+                         selection=chosen).kept_error() == 0.9  # fmt: skip
+    none = {**chosen, "judged": judged[:1], "iteration": None}
+    assert CraftedAttack(torch.zeros(3, 1), 1, history, budget=0.01,
+                         selection=none).kept_error() == 0.0  # fmt: skip

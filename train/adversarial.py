@@ -146,11 +146,7 @@ class Adversary:
         # the error of the attack kept: the best iterate within the alarm budget (zero, and
         # no attack, where none was; an iterate over the budget is not what the batches get);
         # with a selection, the chosen iterate's error on the held-out runs
-        if "select" not in fresh:
-            kept = max((h[1] for h in crafted.within_budget()), default=0.0)
-        else:
-            chosen = crafted.selection["iteration"]
-            kept = next((j for it, j, _ in crafted.selection["judged"] if it == chosen), 0.0)
+        kept = crafted.kept_error()
         self.history.append((step, onset, kept))
         # the crafting runs' attack-free alarm rate at the threshold it crafted under: far
         # from the target rate, the alarm budget bounds little (or nothing)
