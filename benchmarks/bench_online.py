@@ -18,7 +18,10 @@
     (``init`` then T = 50 steps per run, as the numpy loop draws its prior per run), with
     the default outputs and with ``innovations=False`` (no predictive measurement moments:
     the numpy loop computes none), and with ``full_checks``; under ``torch.no_grad()``, so
-    the step is the host-array one (:mod:`difffilter._pf_host_step`).
+    the step is the host-array one (:mod:`difffilter._pf_host_step`). *20 % lost*: the
+    same with a mask at every step (each entry lost with probability 0.2), on the host-array
+    step since 2026-12-04, beside the same stream through the general particle step (its
+    yardstick, where every masked step went before).
 
 9. Each KF and bootstrap-PF workload of sections 1, 1b, 1c, 2 and 2b with one intra-op
    thread and with two, alternating in one process: which is faster.
@@ -165,21 +168,43 @@ def bench_online_pf(steps: int = 50, n: int = 100) -> dict:
     checked.full_checks = True
     filters = {"default": df.ParticleFilter(n), "lean": df.ParticleFilter(n, innovations=False),
                "checked": checked}  # fmt: skip
+    # lost packets: each entry lost with probability 0.2, a mask at every step
+    masks = list((torch.rand(steps, rows[0].shape[-1], generator=torch.Generator().manual_seed(2))
+                  >= 0.2).unbind(0))  # fmt: skip
 
-    def run(est):
+    def run(est, lossy=False):
         def go():
             carry = est.init(model, (), gen)
-            for y in rows:
-                carry, _ = est.step(carry, y)
+            for k, y in enumerate(rows):
+                carry, out = est.step(carry, y, None, masks[k] if lossy else None)
+            return out
 
         return go
 
+    jobs = {k: run(v) for k, v in filters.items()}
+    jobs.update(masked=run(filters["default"], True), masked_general=run(_GeneralStepPF(n), True))
     with torch.no_grad():
-        seconds, ratios = _paired(numpy_run, {k: run(v) for k, v in filters.items()},
-                                  repeats=3, min_time=0.3)  # fmt: skip
+        seconds, ratios = _paired(numpy_run, jobs, repeats=3, min_time=0.3)
+        # the same draws on both paths: the last means apart by round-off alone
+        gen.manual_seed(3)
+        host = jobs["masked"]()
+        gen.manual_seed(3)
+        general = jobs["masked_general"]()
     return {"B": 1, "N": n, "T": steps, **{f"{k}_rate": n * steps / v for k, v in seconds.items()},
             **{f"{k}_ratio": v for k, v in ratios.items()},
+            "masked_speedup": seconds["masked_general"] / seconds["masked"],
+            "masked_max_abs_diff_host_vs_general": float((host.mean - general.mean).abs().max()),
             "load_average": os.getloadavg()[0]}  # fmt: skip
+
+
+class _GeneralStepPF(df.ParticleFilter):
+    """The particle filter with every step through the general particle step (none of the
+    one-run steps): the yardstick of the masked rows."""
+
+    def _step(self, carry, y, u, mask):
+        from difffilter.particle import _particle_step
+
+        return _particle_step(self, carry, y, u, mask)
 
 
 def _verdict(ratio: float, target: float) -> str:
@@ -216,8 +241,14 @@ def print_online_pf(figures: dict) -> None:
         f"(particle-steps/s; load {r['load_average']:.1f})"
     )
     rows = (("default outputs", "default", True), ("innovations = False", "lean", True),
-            ("default, full_checks = True", "checked", False))  # fmt: skip
+            ("default, full_checks = True", "checked", False),
+            ("20 % lost (a mask every step)", "masked", False),
+            ("  the same, general step", "masked_general", False))  # fmt: skip
     _print_rates(r, rows, PF_TARGET)
+    print(
+        f"   (with lost packets the host-array step {r['masked_speedup']:.2f}× the general "
+        f"step, last means max |difference| {r['masked_max_abs_diff_host_vs_general']:.2g})"
+    )
 
 
 def _print_rates(r: dict, rows, target: float) -> None:

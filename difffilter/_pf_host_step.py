@@ -15,6 +15,9 @@ calls the model through torch as every other step does (``transition``, ``observ
     propose    x_k^i = f(x^i, u) + ε^i                 (torch: the model and the draw)
     predict    x̄_k = Σᵢ wᵢ x_k^i;  ŷ = Σᵢ wᵢ h(x_k^i),  S = Σᵢ wᵢ (h − ŷ)(h − ŷ)ᵀ + R
     weight     log w_k^i = log w^i − ½ r_iᵀ R⁻¹ r_i − log p̂,   r_i = y_k − h(x_k^i)
+               (under a mask of received entries, the density of those entries alone,
+               and the predictive moments of :func:`~difffilter.linalg.masked_measurement`,
+               as the general step's: a lossy network's measurement)
     report     x̂_k = Σᵢ w_k^i x_k^i,  P_k = Σᵢ w_k^i (x_k^i − x̂_k)(x_k^i − x̂_k)ᵀ,
                ESS_k = 1 / Σᵢ (w_k^i)²,  log p̂(y_k | y_{1:k−1}) (the evidence)
 
@@ -45,6 +48,7 @@ from torch import Tensor
 # the module, not its function: importing _pf_single_run imports particle, which imports this
 from . import _pf_single_run as _single_run
 from .estimator import Generators
+from .linalg import LOG_2PI
 from .noise import Gaussian
 from .particle import ParticleState, _blame_degenerate, _ess
 from .results import StepOutput
@@ -56,7 +60,7 @@ _NO_GENERATORS = Generators()
 _HOST_DTYPES = (torch.float32, torch.float64)
 
 
-def density(carry, y: Tensor, u: Tensor | None) -> tuple[np.ndarray, np.generic] | None:
+def density(carry, y: Tensor, u: Tensor | None) -> tuple[np.ndarray, np.generic, np.ndarray] | None:
     """The measurement density's diagonal terms (:func:`_diagonal_density`) when
     :func:`host_step` may compute a one-run step from ``carry``, else ``None``: no gradient
     can be recorded (grad mode off, no input that requires one), the particles live in
@@ -74,9 +78,12 @@ def density(carry, y: Tensor, u: Tensor | None) -> tuple[np.ndarray, np.generic]
     return _diagonal_density(carry.model.measurement_noise, particles.dtype)
 
 
-def _diagonal_density(noise, dtype: torch.dtype) -> tuple[np.ndarray, np.generic] | None:
-    """``(1/σ² [dy], Σ log σ + (dy/2) log 2π)`` as host arrays of a zero-mean Gaussian
-    with a diagonal factor ``σ``, else ``None``. The noise model caches its factor against
+def _diagonal_density(
+    noise, dtype: torch.dtype
+) -> tuple[np.ndarray, np.generic, np.ndarray] | None:
+    """``(1/σ² [dy], Σ log σ + (dy/2) log 2π, log σ [dy])`` as host arrays of a zero-mean
+    Gaussian with a diagonal factor ``σ``, else ``None`` (``log σ``: the constant of the
+    received entries alone, under a mask). The noise model caches its factor against
     the covariance's version (a changed covariance is a new factor); the host terms are
     kept against the very factor they were computed from. ``None`` too for a factor not
     of ``dtype``."""
@@ -90,7 +97,7 @@ def _diagonal_density(noise, dtype: torch.dtype) -> tuple[np.ndarray, np.generic
     if last is not None and last[0] is diag:
         return last[1]
     inv_var, constant = (t.detach() for t in noise._diagonal_terms(diag))
-    host = (inv_var.numpy().copy(), constant.numpy()[()])
+    host = (inv_var.numpy().copy(), constant.numpy()[()], torch.log(diag.detach()).numpy())
     _LAST_TERMS = (diag, host)  # held: its identity stays its own
     return host
 
@@ -99,12 +106,15 @@ def _diagonal_density(noise, dtype: torch.dtype) -> tuple[np.ndarray, np.generic
 _LAST_TERMS: tuple | None = None
 
 
-def host_step(pf, carry, y: Tensor, u: Tensor | None, density) -> tuple[ParticleState, StepOutput]:
+def host_step(
+    pf, carry, y: Tensor, u: Tensor | None, density, mask: Tensor | None = None
+) -> tuple[ParticleState, StepOutput]:
     """One step of ``pf`` from ``carry`` on host arrays (module docstring):
     ``(ParticleState, StepOutput)`` as the torch step returns them. ``density``: what
     :func:`density` returned for these inputs.
 
-    Shapes: particles ``[N, dx]``, log-weights ``[N]``, ``y [dy]``, ``u [du]`` or ``None``.
+    Shapes: particles ``[N, dx]``, log-weights ``[N]``, ``y [dy]`` (zero where unreceived),
+    ``u [du]`` or ``None``, ``mask [dy]`` (bool, the received entries) or ``None``.
     """
     model, gens, k = carry.model, carry.generators or _NO_GENERATORS, carry.k
     x_t, log_w = carry.particles, carry.log_weights.numpy()
@@ -135,14 +145,22 @@ def host_step(pf, carry, y: Tensor, u: Tensor | None, density) -> tuple[Particle
         pred_w = np.exp(log_w) if w is None else w
     pred_mean = pred_w @ new
     innovation = innovation_cov = None
+    received = _received(mask)
     if pf.innovations:
-        innovation, innovation_cov = _predictive(model, y, y_np, k, obs, pred_w, plain)
+        innovation, innovation_cov = _predictive(model, y, y_np, k, obs, pred_w, plain, received)
     # y − h(x): the host's subtraction where the model wraps no angles
     residual = np.subtract(y_np, obs) if plain else model.measurement_residual(y, obs_t).numpy()
-    increment, log_w_new, w_new, degenerate = _weigh(residual, log_w, *density)
+    inv_var, constant, log_sigma = density
+    weighed = residual
+    if received is not None:  # the density of the received entries alone (their marginal)
+        weighed, inv_var = residual[:, received], inv_var[received]
+        constant = log_sigma[received].sum() + dtype(0.5 * received.size * LOG_2PI)
+    increment, log_w_new, w_new, degenerate = _weigh(weighed, log_w, inv_var, constant)
     if degenerate:  # a NaN particle or density is named, as the general step names it
         # (log w copied: equal log-weights are a shared read-only array)
-        log_lik = model.measurement_noise.log_prob(torch.from_numpy(residual))
+        log_lik = model.measurement_noise.log_prob(
+            torch.from_numpy(residual), mask=None if received is None else mask
+        )
         _blame_degenerate(pf, new_t, log_lik, None, torch.tensor(log_w), k + 1)
     mean = w_new @ new
     dev = new - mean
@@ -163,10 +181,22 @@ def host_step(pf, carry, y: Tensor, u: Tensor | None, density) -> tuple[Particle
     return new_carry, out
 
 
-def _predictive(model, y, y_np, k: int, obs, pred_w, plain: bool):
+def _received(mask: Tensor | None) -> np.ndarray | None:
+    """The indices of the received entries of ``mask [dy]`` (bool), ``None`` where every
+    entry is received (no mask, or one of all ``True``: the unmasked step's numbers)."""
+    if mask is None:
+        return None
+    m = mask.numpy()
+    return None if m.all() else np.flatnonzero(m)
+
+
+def _predictive(model, y, y_np, k: int, obs, pred_w, plain: bool, received=None):
     """``(innovation [dy], S [dy, dy])`` as torch tensors from the predicted measurements
     ``obs [N, dy]`` under the predictive weights ``pred_w [N]``:
-    ``ŷ = Σᵢ wᵢ h_i``, ``y − ŷ``, ``S = sym(Σᵢ wᵢ (h_i − ŷ)(h_i − ŷ)ᵀ + R)``."""
+    ``ŷ = Σᵢ wᵢ h_i``, ``y − ŷ``, ``S = sym(Σᵢ wᵢ (h_i − ŷ)(h_i − ŷ)ᵀ + R)``. With the
+    indices of the ``received`` entries, the general step's masked moments
+    (:func:`~difffilter.linalg.masked_measurement`, ``M = diag(mask)``): ``M (y − ŷ)`` and
+    ``sym(M Σᵢ wᵢ (h_i − ŷ)(h_i − ŷ)ᵀ M + M R M + (I − M))``."""
     if plain:
         y_hat = pred_w @ obs
         dev = obs - y_hat
@@ -175,12 +205,19 @@ def _predictive(model, y, y_np, k: int, obs, pred_w, plain: bool):
         y_hat_t, dev_t = wrapped_spread(model, torch.from_numpy(obs), torch.tensor(pred_w))
         y_hat, dev = y_hat_t.numpy(), dev_t.numpy()
     y_cov = (dev.T * pred_w) @ dev
-    y_cov = y_cov + model.measurement_cov(k + 1).detach().numpy()  # (a learnable R: its values)
+    R = model.measurement_cov(k + 1).detach().numpy()  # (a learnable R: its values)
     if plain:
-        innovation = torch.from_numpy(np.subtract(y_np, y_hat))
+        innovation = np.subtract(y_np, y_hat)
     else:
-        innovation = model.measurement_residual(y, torch.from_numpy(y_hat))
-    return innovation, torch.from_numpy(_symmetrize(y_cov))
+        innovation = model.measurement_residual(y, torch.from_numpy(y_hat)).numpy()
+    if received is not None:
+        m = np.zeros(R.shape[-1], dtype=R.dtype)
+        m[received] = 1.0
+        outer = np.outer(m, m)
+        innovation = innovation * m
+        y_cov = y_cov * outer
+        R = R * outer + np.diag(1.0 - m)
+    return torch.from_numpy(innovation), torch.from_numpy(_symmetrize(y_cov + R))
 
 
 def _weigh(residual, log_w, inv_var: np.ndarray, constant):

@@ -59,18 +59,24 @@ from .resampling import Systematic
 from .results import StepOutput
 from .ssm import StateSpaceModel
 
-__all__ = ["applies", "single_run_step"]
+__all__ = ["applies", "on_defaults", "single_run_step"]
 
 _NO_GENERATORS = Generators()
 
 
 def applies(pf, carry, mask) -> bool:
-    """Whether :func:`single_run_step` computes ``pf``'s step from ``carry``: one run (particles
-    ``[N, dx]``), no mask, the default strategies and no hooks, and a model that keeps the
-    base class's measurement density."""
+    """Whether :func:`single_run_step` computes ``pf``'s step from ``carry``: no mask, and
+    :func:`on_defaults`."""
+    return mask is None and on_defaults(pf, carry)
+
+
+def on_defaults(pf, carry) -> bool:
+    """Whether ``carry`` is one run (particles ``[N, dx]``) of ``pf`` on the default
+    strategies with no hooks, and its model keeps the base class's measurement density:
+    the one-run steps' condition (:func:`single_run_step` also needs no mask; the host-array
+    step of :mod:`difffilter._pf_host_step` takes one)."""
     return (
-        mask is None
-        and carry.particles.dim() == 2
+        carry.particles.dim() == 2
         and type(pf.proposal) is BootstrapProposal
         and type(pf.likelihood) is ModelLikelihood
         and type(pf.resampler) is Systematic

@@ -484,11 +484,12 @@ class ParticleFilter(Estimator):
                 )
 
     def _step(self, carry, y, u, mask):
-        if _single_run.applies(self, carry, mask):  # one run on the defaults: a leaner step
+        if _single_run.on_defaults(self, carry):  # one run on the defaults: a leaner step
             density = _host_step.density(carry, y, u)
-            if density is not None:  # ... on host arrays where nothing is recorded
-                return _host_step.host_step(self, carry, y, u, density)
-            return _single_run.single_run_step(self, carry, y, u)
+            if density is not None:  # ... on host arrays where nothing is recorded (a mask too)
+                return _host_step.host_step(self, carry, y, u, density, mask)
+            if mask is None:
+                return _single_run.single_run_step(self, carry, y, u)
         return _particle_step(self, carry, y, u, mask)
 
 

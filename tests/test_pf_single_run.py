@@ -47,21 +47,24 @@ def _data(model, steps=STEPS, seed=0, du=0):
     return ys[0], us
 
 
-def _run(pf, model, ys, us, general: bool, host: bool = False):
+def _run(pf, model, ys, us, general: bool, host: bool = False, masks=None):
     """Step ``pf`` through ``ys`` from one seeded carry: through ``pf.step`` (the one-run
     step where it applies; with ``host``, under ``torch.no_grad()``, where the host-array
-    step applies, asserted) or the general step. Returns the carries and outputs."""
+    step applies, asserted) or the general step (given ``y`` zeroed where ``masks [T, dy]``
+    says unreceived, as the public step hands it on). Returns the carries and outputs."""
     gens = Generators.of(torch.Generator().manual_seed(7))
     carry = pf.init(model, (), gens)
     carries, outs = [], []
     with torch.set_grad_enabled(not host):
         for k, y in enumerate(ys):
             u = None if us is None else us[k]
+            mask = None if masks is None else masks[k]
             if general:
-                carry, out = particle._particle_step(pf, carry, y, u, None)
+                y = y if mask is None else y.where(mask, 0.0)
+                carry, out = particle._particle_step(pf, carry, y, u, mask)
             else:
                 assert (_pf_host_step.density(carry, y, u) is not None) == host
-                carry, out = pf.step(carry, y, u)
+                carry, out = pf.step(carry, y, u, mask)
             carries.append(carry)
             outs.append(out)
     return carries, outs
@@ -160,11 +163,10 @@ class _WrappedAngleModel(df.LinearGaussianModel):
                           r[..., 1:]], dim=-1)  # fmt: skip
 
 
-@pytest.mark.parametrize("innovations", [True, False])
-@pytest.mark.parametrize("case", ["four_tank", "linear_control", "angles"])
-def test_the_host_step_equals_the_general_step(case, innovations):
-    """Under ``torch.no_grad()`` one run takes the host-array step: the general step's
-    numbers (both resampling branches run), in float64."""
+def _host_case(case: str):
+    """``(model, ys [T, dy], us [T, du] or None)`` of a host-step case: the four-tank plant,
+    the linear model with an input, or with an angle whose measurements are off by 2π
+    (only wrapping undoes it)."""
     du = 1 if case == "linear_control" else 0
     if case == "four_tank":
         model = FourTankModel(dtype=torch.float64)
@@ -174,13 +176,94 @@ def test_the_host_step_equals_the_general_step(case, innovations):
         model = _linear_model(control=True)
     ys, us = _data(model, du=du)
     if case == "angles":
-        ys = ys + torch.tensor([2 * math.pi, 0.0], dtype=ys.dtype)  # only wrapping undoes it
+        ys = ys + torch.tensor([2 * math.pi, 0.0], dtype=ys.dtype)
+    return model, ys, us
+
+
+@pytest.mark.parametrize("innovations", [True, False])
+@pytest.mark.parametrize("case", ["four_tank", "linear_control", "angles"])
+def test_the_host_step_equals_the_general_step(case, innovations):
+    """Under ``torch.no_grad()`` one run takes the host-array step: the general step's
+    numbers (both resampling branches run), in float64."""
+    model, ys, us = _host_case(case)
     pf = df.ParticleFilter(200, innovations=innovations)
     host = _run(pf, model, ys, us, False, host=True)
     general = _run(pf, model, ys, us, True, host=True)
     assert any(bool(o.extras["resampled"]) for o in host[1])
     assert not all(bool(o.extras["resampled"]) for o in host[1])
     _assert_same(host, general)
+
+
+def _lossy(ys, seed=3, lost=0.3):
+    """``(ys with NaN where unreceived, masks [T, dy])``: each entry lost with probability
+    ``lost``, and one step with every entry lost and one with none (a lossy network)."""
+    masks = torch.rand(ys.shape, generator=torch.Generator().manual_seed(seed)) >= lost
+    masks[5], masks[6] = False, True
+    return ys.masked_fill(~masks, math.nan), masks
+
+
+@pytest.mark.parametrize("innovations", [True, False])
+@pytest.mark.parametrize("case", ["four_tank", "linear_control", "angles"])
+def test_a_masked_host_step_equals_the_general_step(case, innovations, monkeypatch):
+    """A mask of received entries (NaN in the lost ones) keeps one run on the host-array
+    step: the general step's marginal density of the received entries and its masked
+    predictive moments, in float64 (before, any mask took the general step)."""
+    taken = []
+    host_step = _pf_host_step.host_step
+    monkeypatch.setattr(_pf_host_step, "host_step", lambda *a: taken.append(a[-1]) or host_step(*a))
+    model, ys, us = _host_case(case)
+    ys, masks = _lossy(ys)
+    pf = df.ParticleFilter(200, innovations=innovations)
+    host = _run(pf, model, ys, us, False, host=True, masks=masks)
+    general = _run(pf, model, ys, us, True, host=True, masks=masks)
+    assert len(taken) == len(ys) and all(torch.equal(m, masks[k]) for k, m in enumerate(taken))
+    assert any(bool(o.extras["resampled"]) for o in host[1])
+    _assert_same(host, general)
+    if innovations:  # a lost entry: no innovation, a unit variance apart from the rest
+        out, lost = host[1][5], ~masks[5]
+        assert bool((out.innovation[lost] == 0).all())
+        torch.testing.assert_close(out.innovation_cov, torch.eye(model.dim_y, dtype=ys.dtype))
+
+
+def test_a_masked_host_steps_evidence_is_the_received_entries_density_by_hand():
+    """The evidence of a masked step against its definition, from the step's own draws:
+    ``log Σᵢ w⁻ᵢ N(y_M; h_M(xᵢ), R_MM)`` over the received entries ``M``, with ``w⁻`` the
+    carry's weights (no resampling at ess_threshold 0) and ``xᵢ`` the proposed particles;
+    the new weights ``w⁻ᵢ N(…) / Σ``; every entry lost: evidence 0, weights unchanged."""
+    model = FourTankModel(dtype=torch.float64)
+    ys, _ = _data(model, steps=3)
+    pf = df.ParticleFilter(64, ess_threshold=0.0)
+    mask = torch.tensor([True, False, True, False])
+    sd = model.measurement_noise.cov.diagonal().sqrt()
+    with torch.no_grad():
+        carry = pf.init(model, (), Generators.of(torch.Generator().manual_seed(1)))
+        carry, _ = pf.step(carry, ys[0])
+        new, out = pf.step(carry, ys[1].masked_fill(~mask, math.nan), None, mask)
+        r = (ys[1] - model.observe(new.particles, 2))[:, mask] / sd[mask]
+        log_n = -0.5 * r.square().sum(-1) - sd[mask].log().sum() - math.log(2 * math.pi)
+        joint = carry.log_weights + log_n
+        torch.testing.assert_close(out.log_likelihood, torch.logsumexp(joint, 0), rtol=1e-12,
+                                   atol=1e-12)  # fmt: skip
+        torch.testing.assert_close(new.log_weights, joint - torch.logsumexp(joint, 0),
+                                   rtol=1e-12, atol=1e-12)  # fmt: skip
+        lost = torch.zeros(4, dtype=torch.bool)
+        after, out = pf.step(new, torch.full((4,), math.nan, dtype=torch.float64), None, lost)
+    assert abs(out.log_likelihood.item()) < 1e-12
+    torch.testing.assert_close(after.log_weights, new.log_weights, rtol=0, atol=1e-12)
+    torch.testing.assert_close(out.mean, out.pred_mean, rtol=1e-12, atol=1e-12)
+
+
+def test_a_masked_host_step_in_float32_follows_the_general_step():
+    model = FourTankModel(dtype=torch.float32)
+    ys, _ = _data(model, steps=10)
+    ys, masks = _lossy(ys.float())
+    pf = df.ParticleFilter(100)
+    oh = _run(pf, model, ys, None, False, host=True, masks=masks)[1]
+    og = _run(pf, model, ys, None, True, host=True, masks=masks)[1]
+    assert [bool(o.extras["resampled"]) for o in oh] == [bool(o.extras["resampled"]) for o in og]
+    for a, b in zip(oh, og):
+        torch.testing.assert_close(a.mean, b.mean, atol=1e-4, rtol=1e-4)
+        torch.testing.assert_close(a.log_likelihood, b.log_likelihood, atol=1e-3, rtol=1e-4)
 
 
 def test_the_host_step_in_float32_follows_the_general_step():
