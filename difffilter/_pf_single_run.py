@@ -40,10 +40,13 @@ normalisation, ancestors drawn from detached weights, uniform weights after resa
 from __future__ import annotations
 
 import math
+import weakref
 
 import torch
 from torch import Tensor
 
+from ._assignments import assignments
+from ._checks import model_batch_shape
 from .estimator import Generators
 from .noise import Gaussian
 from .particle import (
@@ -59,7 +62,14 @@ from .resampling import Systematic
 from .results import StepOutput
 from .ssm import StateSpaceModel
 
-__all__ = ["applies", "on_defaults", "single_run_step"]
+__all__ = [
+    "applies",
+    "as_batch_of_one",
+    "on_defaults",
+    "one_of_a_batch",
+    "run_of",
+    "single_run_step",
+]
 
 _NO_GENERATORS = Generators()
 
@@ -70,13 +80,13 @@ def applies(pf, carry, mask) -> bool:
     return mask is None and on_defaults(pf, carry)
 
 
-def on_defaults(pf, carry) -> bool:
-    """Whether ``carry`` is one run (particles ``[N, dx]``) of ``pf`` on the default
-    strategies with no hooks, and its model keeps the base class's measurement density:
-    the one-run steps' condition (:func:`single_run_step` also needs no mask; the host-array
-    step of :mod:`difffilter._pf_host_step` takes one)."""
+def on_defaults(pf, carry, lead: int = 0) -> bool:
+    """Whether ``carry`` is one run (particles ``[N, dx]``; with ``lead = 1``, ``[1, N, dx]``)
+    of ``pf`` on the default strategies with no hooks, and its model keeps the base class's
+    measurement density: the one-run steps' condition (:func:`single_run_step` also needs
+    no mask; the host-array step of :mod:`difffilter._pf_host_step` takes one)."""
     return (
-        carry.particles.dim() == 2
+        carry.particles.dim() == 2 + lead
         and type(pf.proposal) is BootstrapProposal
         and type(pf.likelihood) is ModelLikelihood
         and type(pf.resampler) is Systematic
@@ -85,6 +95,65 @@ def on_defaults(pf, carry) -> bool:
         and pf.cov_dims is None
         and _default_measurement_density(carry.model)
     )
+
+
+def one_of_a_batch(pf, carry, y: Tensor, u: Tensor | None, mask: Tensor | None) -> bool:
+    """Whether ``carry`` is a batch of one run (particles ``[1, N, dx]``, from ``init(model,
+    (1,))``) on the defaults (:func:`on_defaults`), stepped with inputs of that batch (``y
+    [1, dy]``, ``u [1, du]``, ``mask [1, dy]``): its run takes the one-run steps
+    (:func:`run_of`, :func:`as_batch_of_one`), the same numbers as the batched general step
+    up to round-off, about twice as fast. (``init`` refuses a model with parameter sets; one
+    given a batch of one set since, ``F [1, dx, dx]``, keeps the batched step.)"""
+    p = carry.particles
+    return (
+        p.dim() == 3
+        and p.shape[0] == 1
+        and y.shape[:-1] == (1,)
+        and (u is None or u.shape[:-1] == (1,))
+        and (mask is None or mask.shape[:-1] == (1,))
+        and on_defaults(pf, carry, lead=1)
+        and _unbatched(carry.model)
+    )
+
+
+def _unbatched(model) -> bool:
+    """Whether ``model`` has no parameter sets (:func:`~difffilter._checks.model_batch_shape`
+    ``()``), read again only after a tensor was assigned to a model (a set's batch can
+    change in no other way)."""
+    global _LAST_UNBATCHED
+    count, last = assignments(), _LAST_UNBATCHED
+    if last is not None and last[0]() is model and last[1] == count:
+        return last[2]
+    answer = not model_batch_shape(model)
+    _LAST_UNBATCHED = (weakref.ref(model), count, answer)
+    return answer
+
+
+#: ``(weak reference to the model, assignments() then, unbatched)`` of the last model read.
+_LAST_UNBATCHED: tuple | None = None
+
+
+def run_of(carry):
+    """The run of a batch-of-one carry: its ``[1, …]`` tensors without the batch dimension
+    (views)."""
+    return carry._replace(
+        particles=carry.particles[0], log_weights=carry.log_weights[0],
+        ess=None if carry.ess is None else carry.ess[0],
+        weights=None if carry.weights is None else carry.weights[0],
+    )  # fmt: skip
+
+
+def as_batch_of_one(carry, out: StepOutput):
+    """A one-run step's ``(carry, output)`` with every tensor given its batch of one back
+    (views): what the batched step returns for a batch of one run."""
+    carry = carry._replace(
+        particles=carry.particles.unsqueeze(0), log_weights=carry.log_weights.unsqueeze(0),
+        ess=carry.ess.unsqueeze(0), weights=carry.weights.unsqueeze(0),
+    )  # fmt: skip
+    fields = {name: value.unsqueeze(0) for name, value in zip(out._fields, out)
+              if isinstance(value, Tensor)}  # fmt: skip
+    extras = {name: value.unsqueeze(0) for name, value in out.extras.items()}
+    return carry, out._replace(**fields, extras=extras)
 
 
 def single_run_step(pf, carry, y: Tensor, u: Tensor | None):

@@ -490,6 +490,10 @@ class ParticleFilter(Estimator):
                 return _host_step.host_step(self, carry, y, u, density, mask)
             if mask is None:
                 return _single_run.single_run_step(self, carry, y, u)
+        elif _single_run.one_of_a_batch(self, carry, y, u, mask):  # init(model, (1,)): its run
+            new, out = self._step(_single_run.run_of(carry), y[0], None if u is None else u[0],
+                                  None if mask is None else mask[0])  # fmt: skip
+            return _single_run.as_batch_of_one(new, out)
         return _particle_step(self, carry, y, u, mask)
 
 

@@ -253,6 +253,108 @@ def test_a_masked_host_steps_evidence_is_the_received_entries_density_by_hand():
     torch.testing.assert_close(out.mean, out.pred_mean, rtol=1e-12, atol=1e-12)
 
 
+def _batch_of_one_runs(pf, model, ys, us, masks, host: bool):
+    """``(through pf.step, through the general step)``: each ``(carries, outputs)`` of a
+    carry from ``init(model, (1,))`` stepped with ``ys[k][None]`` (``us``, ``masks`` alike),
+    from one seed."""
+    runs = []
+    for general in (False, True):
+        carry = pf.init(model, (1,), Generators.of(torch.Generator().manual_seed(7)))
+        carries, outs = [], []
+        with torch.set_grad_enabled(not host):
+            for k, y in enumerate(ys):
+                u = None if us is None else us[k][None]
+                mask = None if masks is None else masks[k][None]
+                if general:
+                    y = y if mask is None else y.where(masks[k], 0.0)
+                    carry, out = particle._particle_step(pf, carry, y[None], u, mask)
+                else:
+                    carry, out = pf.step(carry, y[None], u, mask)
+                carries.append(carry)
+                outs.append(out)
+        runs.append((carries, outs))
+    return runs
+
+
+@pytest.mark.parametrize("lossy", [False, True], ids=["received", "lost"])
+@pytest.mark.parametrize("host", [True, False], ids=["no_grad", "grad"])
+@pytest.mark.parametrize("case", ["four_tank", "linear_control", "angles"])
+def test_a_batch_of_one_takes_its_runs_step_with_the_batched_numbers(case, host, lossy,
+                                                                     monkeypatch):  # fmt: skip
+    """A carry of ``init(model, (1,))`` steps its one run on the one-run steps (the host
+    step without gradients, the written-out one with them; a mask takes the host step or,
+    with gradients, the general step of the run) and gives the batched general step's
+    numbers and shapes ``[1, …]`` (before, it took the batched general step, about twice
+    as slow)."""
+    model, ys, us = _host_case(case)
+    masks = None
+    if lossy:
+        ys, masks = _lossy(ys)
+    runs = []
+    monkeypatch.setattr(particle._single_run, "run_of",
+                        lambda c, f=particle._single_run.run_of: runs.append(c) or f(c))  # fmt: skip
+    pf = df.ParticleFilter(200)
+    (ca, oa), (cb, ob) = _batch_of_one_runs(pf, model, ys, us, masks, host)
+    assert len(runs) == len(ys)  # every step went through its run
+    for x, y in zip(ca, cb):
+        for name in ("particles", "log_weights", "ess", "weights"):
+            u, v = getattr(x, name), getattr(y, name)
+            if v is None:  # (the general step keeps no weights: the one-run steps do)
+                v = y.log_weights.exp()
+            assert u.shape == v.shape, name
+            torch.testing.assert_close(u, v, atol=1e-10, rtol=1e-10, msg=name)
+    for x, y in zip(oa, ob):
+        for name, u in zip(x._fields, x):
+            v = getattr(y, name)
+            if name == "extras":
+                assert set(u) == set(v)
+                u, v = list(u.values()), list(v.values())
+            else:
+                u, v = [u], [v]
+            for a, b in zip(u, v):
+                assert (a is None) == (b is None), name
+                if isinstance(a, torch.Tensor):
+                    assert a.shape == b.shape and a.dtype == b.dtype, name
+                    torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-10, msg=name)
+    assert any(bool(o.extras["resampled"]) for o in oa)
+    if not host:  # gradients flow through the run's step as through the batched one
+        y = ys[:4].where(~torch.isnan(ys[:4]), 0.0).clone().requires_grad_(True)
+        carry = pf.init(model, (1,), Generators.of(torch.Generator().manual_seed(7)))
+        loss = 0.0
+        for k in range(4):
+            carry, out = pf.step(carry, y[k][None], None if us is None else us[k][None])
+            loss = loss + out.log_likelihood.sum() + out.mean.sum()
+        assert torch.autograd.grad(loss, y)[0].abs().sum() > 0
+
+
+def test_a_batch_of_one_whose_model_was_given_one_parameter_set_keeps_the_batched_step():
+    """``init`` refuses a model with parameter sets, but one may be assigned afterwards
+    (``model.F = F[None]``): then the run's step could not read the model as it is, and the
+    step stays the batched general one (the numbers of before), until the set is gone."""
+    model = _linear_model()
+    ys, _ = _data(model, steps=6)
+    pf = df.ParticleFilter(30)
+    one_of = particle._single_run.one_of_a_batch
+    outs = {}
+    for general in (False, True):
+        carry = pf.init(model, (1,), Generators.of(torch.Generator().manual_seed(3)))
+        assert one_of(pf, carry, ys[0][None], None, None)
+        F = model.F
+        model.F = F[None]
+        assert not one_of(pf, carry, ys[0][None], None, None)
+        with torch.no_grad():
+            for y in ys:
+                step = particle._particle_step if general else pf.step
+                carry, out = (
+                    step(pf, carry, y[None], None, None) if general else step(carry, y[None])
+                )
+        model.F = F
+        assert one_of(pf, carry, ys[0][None], None, None)
+        outs[general] = out
+    assert outs[False].mean.shape == (1, 3)
+    torch.testing.assert_close(outs[False].mean, outs[True].mean, rtol=0, atol=0)
+
+
 def test_a_masked_host_step_in_float32_follows_the_general_step():
     model = FourTankModel(dtype=torch.float32)
     ys, _ = _data(model, steps=10)
