@@ -219,15 +219,32 @@ class FourTankModel(StateSpaceModel):
         return cached[1]
 
     def transition_jacobian(self, x: Tensor, u: Tensor | None, k: int) -> Tensor:
-        """Closed form: ``I + dt · ∂f_c/∂x`` with ``∂√h/∂h = 1/(2√h)`` (0 where ``h ≤ 0``)."""
+        """Closed form: ``I + dt · ∂f_c/∂x`` with ``∂√h/∂h = 1/(2√h)`` (0 where ``h ≤ 0``):
+        ``J = I + Mᵀ ⊙ d`` (column ``j`` of ``Mᵀ`` scaled by ``d_j = ∂√h_j/∂h_j``), ``M`` of
+        :meth:`sqrt_affine_form` (``dt`` folded into ``step_diag`` and ``step_couple``);
+        ``x [..., 4]`` → ``[..., 4, 4]``. Seven tensor operations (an EKF step on one run is
+        its operations' dispatch)."""
         pos = x > 0
-        d_sqrt = torch.where(
-            pos, 0.5 / torch.sqrt(torch.where(pos, x, torch.ones_like(x))), torch.zeros_like(x)
-        )
-        jac = torch.diag_embed(1.0 + self.dt * self.outflow * d_sqrt)
-        jac[..., 0, 2] = self.dt * self.couple[0] * d_sqrt[..., 2]
-        jac[..., 1, 3] = self.dt * self.couple[1] * d_sqrt[..., 3]
-        return jac
+        d_sqrt = torch.where(pos, 0.5 / torch.sqrt(torch.where(pos, x, 1.0)), 0.0)
+        eye, coef = self._jacobian_terms()
+        return eye + coef * d_sqrt.unsqueeze(-2)
+
+    def _jacobian_terms(self) -> tuple[Tensor, Tensor]:
+        """``(I, Mᵀ)`` ``[4, 4]`` of :meth:`transition_jacobian`, kept against the versions
+        of the step coefficients they are made of."""
+        buffers = self._buffers
+        diag, couple = buffers["step_diag"], buffers["step_couple"]
+        key = (diag.data_ptr(), diag._version, couple.data_ptr(), couple._version,
+               diag.dtype, diag.device, diag.requires_grad or couple.requires_grad)  # fmt: skip
+        cached = getattr(self, "_jacobian_cache", None)
+        if cached is not None and cached[0] == key and not key[-1]:
+            return cached[1]
+        coef = torch.diag_embed(diag)
+        rows, cols = (torch.tensor(i, device=diag.device) for i in ([0, 1], [2, 3]))
+        coef = coef.index_put((rows, cols), couple[:2])
+        terms = (torch.eye(4, dtype=diag.dtype, device=diag.device), coef)
+        self._jacobian_cache = (key, terms)
+        return terms
 
     def observe(self, x: Tensor, k: int) -> Tensor:
         """``G x`` with ``G = I``: ``[..., 4]`` → ``[..., 4]``."""

@@ -108,6 +108,39 @@ def test_tank_jacobian_uses_zero_root_derivative_at_empty_and_negative_levels():
     np.testing.assert_allclose(jac, want, rtol=0, atol=1e-14)
 
 
+def test_tank_jacobian_follows_coefficients_changed_in_place_and_their_gradients():
+    """The Jacobian's ``(I, Mᵀ)`` are kept against the step coefficients' versions: a
+    coefficient written in place (or replaced) is read at the next call, the Jacobian of
+    a batch is each row's, and a coefficient that requires a gradient gets one through it."""
+    dt = 0.5
+    model = FourTankModel(dt=dt, dtype=F64)
+    x = torch.tensor([[4.0, 9.0, 1.0, 16.0], [1.0, 1.0, 4.0, 0.25]], dtype=F64)
+    d = 0.5 / x.sqrt()
+
+    def want(diag, couple):
+        j = torch.eye(4, dtype=F64).expand(2, 4, 4).clone()
+        j[:, range(4), range(4)] += diag * d
+        j[:, 0, 2], j[:, 1, 3] = couple[0] * d[:, 2], couple[1] * d[:, 3]
+        return j
+
+    torch.testing.assert_close(model.transition_jacobian(x, None, 0),
+                               want(model.step_diag, model.step_couple), rtol=0, atol=0)  # fmt: skip
+    torch.testing.assert_close(model.transition_jacobian(x[1], None, 0),
+                               want(model.step_diag, model.step_couple)[1], rtol=0, atol=0)  # fmt: skip
+    model.step_diag.mul_(2.0)  # in place: the cached terms are stale now
+    model.step_couple.add_(0.125)
+    torch.testing.assert_close(model.transition_jacobian(x, None, 0),
+                               want(model.step_diag, model.step_couple), rtol=0, atol=0)  # fmt: skip
+    model.step_couple = torch.tensor([0.3, -0.2, 0.0, 0.0], dtype=F64, requires_grad=True)
+    jac = model.transition_jacobian(x, None, 0)
+    torch.testing.assert_close(jac, want(model.step_diag, model.step_couple.detach()), rtol=0,
+                               atol=0)  # fmt: skip
+    (grad,) = torch.autograd.grad(jac[:, 0, 2].sum() + 2 * jac[:, 1, 3].sum(), model.step_couple)
+    torch.testing.assert_close(grad, torch.stack([d[:, 2].sum(), 2 * d[:, 3].sum(),
+                                                  torch.zeros((), dtype=F64),
+                                                  torch.zeros((), dtype=F64)]))  # fmt: skip
+
+
 def test_large_batches_of_different_shapes_and_changed_coefficients_step_correctly():
     """Inputs of ≥ 4096 entries go through cached full-size coefficients: two shapes in a
     row, and an in-place change of the step offset, must each give numpy's Euler step."""
