@@ -355,6 +355,26 @@ def test_a_batch_of_one_whose_model_was_given_one_parameter_set_keeps_the_batche
     torch.testing.assert_close(outs[False].mean, outs[True].mean, rtol=0, atol=0)
 
 
+def test_a_masked_degenerate_host_step_resets_as_the_general_step():
+    """A received entry every particle finds impossible (the lost one holds NaN): evidence
+    −∞, the predictive weights kept, the step flagged, as the general step; a far-off value
+    in a lost entry alone is never read."""
+    model = _linear_model()
+    ys, _ = _data(model, steps=6)
+    masks = torch.ones(ys.shape, dtype=torch.bool)
+    masks[3, 1] = masks[4, 0] = False
+    ys = ys.clone()
+    ys[3, 0], ys[3, 1] = 1e200, math.nan  # impossible where received
+    ys[4, 0] = 1e200  # far off, but lost
+    pf = df.ParticleFilter(50)
+    host, general = (
+        _run(pf, model, ys, None, flag, host=True, masks=masks) for flag in (False, True)
+    )
+    assert bool(host[1][3].extras["degenerate"]) and host[1][3].log_likelihood.item() == -math.inf
+    assert not bool(host[1][4].extras["degenerate"]) and torch.isfinite(host[1][4].log_likelihood)
+    _assert_same(host, general)
+
+
 def test_a_masked_host_step_in_float32_follows_the_general_step():
     model = FourTankModel(dtype=torch.float32)
     ys, _ = _data(model, steps=10)
