@@ -102,7 +102,7 @@ def one_of_a_batch(pf, carry, y: Tensor, u: Tensor | None, mask: Tensor | None) 
     (1,))``) on the defaults (:func:`on_defaults`), stepped with inputs of that batch (``y
     [1, dy]``, ``u [1, du]``, ``mask [1, dy]``): its run takes the one-run steps
     (:func:`run_of`, :func:`as_batch_of_one`), the same numbers as the batched general step
-    up to round-off, about twice as fast. (``init`` refuses a model with parameter sets; one
+    up to round-off, about 1.7 times as fast. (``init`` refuses a model with parameter sets; one
     given a batch of one set since, ``F [1, dx, dx]``, keeps the batched step.)"""
     p = carry.particles
     return (
