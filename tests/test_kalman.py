@@ -152,6 +152,24 @@ def test_ekf_ukf_equal_kf_on_linear_model(filt, generator):
         torch.testing.assert_close(getattr(other, name), getattr(kf, name), atol=1e-10, rtol=1e-10)
 
 
+def test_an_untraceable_function_is_named_at_one_run_too():
+    """A transition that reads ``.item()`` has no torch.func Jacobian: one run online (an
+    unbatched step, the Jacobian of one row) raises the error that names it, as a batch
+    does. ``torch.func.jacfwd`` alone, without the ``vmap`` over that row, returns a wrong
+    Jacobian silently here (``0.6 I`` for ``v · Σv`` at ``(0.3, 0.2, 0.1)``: the ``.item()``
+    taken for a constant; tried as a speed-up on 2026-12-04, not kept)."""
+    eye = torch.eye(3, dtype=torch.float64)
+    model = df.NonlinearGaussianModel(lambda x: x * x.sum().item(), lambda x: x, 0.01 * eye,
+                                      0.1 * eye, torch.tensor([0.3, 0.2, 0.1],
+                                      dtype=torch.float64), eye)  # fmt: skip
+    ekf = df.ExtendedKalmanFilter()
+    for batch in [(), (2,)]:
+        carry = ekf.init(model, batch)
+        y = torch.zeros(*batch, 3, dtype=torch.float64)
+        with pytest.raises(RuntimeError, match="differentiating .* with torch.func"):
+            ekf.step(carry, y)
+
+
 def test_nonlinear_model_autodiff_jacobians_match_closed_form(generator):
     def f(x, u):
         return torch.stack(
