@@ -44,6 +44,7 @@ from timing import best_times
 
 import difffilter as df
 from difffilter.models.four_tank import FourTankModel
+from difffilter.particle import _particle_step
 
 __all__ = [
     "bench_online_kf",
@@ -70,6 +71,13 @@ def _kf_setup(steps: int):
     return model, list(ys.unbind(0)), lambda: numpy_kf_run(*mats, y_np)
 
 
+def _lost_packets(steps: int, dim: int) -> list[torch.Tensor]:
+    """``steps`` masks ``[dim]`` of received entries, each entry lost with probability 0.2
+    (seeded: a mask at every step of the lossy rows)."""
+    lost = torch.rand(steps, dim, generator=torch.Generator().manual_seed(2)) < 0.2
+    return list((~lost).unbind(0))
+
+
 def bench_online_kf(steps: int = 200) -> dict:
     """Steps per second of :class:`~difffilter.KalmanFilter`'s public ``step`` at B = 1 and
     of the numpy loop (module docstring, 1c), and the largest difference of their means."""
@@ -94,9 +102,7 @@ def bench_online_kf(steps: int = 200) -> dict:
     def cold():
         run_from(kf, kf.init(model))
 
-    # lost packets: each entry lost with probability 0.2, a mask at every step
-    masks = list((torch.rand(steps, rows[0].shape[-1], generator=torch.Generator().manual_seed(2))
-                  >= 0.2).unbind(0))  # fmt: skip
+    masks = _lost_packets(steps, rows[0].shape[-1])
     torch_update = _TorchUpdateKalmanFilter()
 
     def lossy(est):
@@ -168,9 +174,7 @@ def bench_online_pf(steps: int = 50, n: int = 100) -> dict:
     checked.full_checks = True
     filters = {"default": df.ParticleFilter(n), "lean": df.ParticleFilter(n, innovations=False),
                "checked": checked}  # fmt: skip
-    # lost packets: each entry lost with probability 0.2, a mask at every step
-    masks = list((torch.rand(steps, rows[0].shape[-1], generator=torch.Generator().manual_seed(2))
-                  >= 0.2).unbind(0))  # fmt: skip
+    masks = _lost_packets(steps, rows[0].shape[-1])
 
     def run(est, lossy=False):
         def go():
@@ -202,8 +206,6 @@ class _GeneralStepPF(df.ParticleFilter):
     one-run steps): the yardstick of the masked rows."""
 
     def _step(self, carry, y, u, mask):
-        from difffilter.particle import _particle_step
-
         return _particle_step(self, carry, y, u, mask)
 
 

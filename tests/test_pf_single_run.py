@@ -10,6 +10,7 @@ round-off cannot move a resampling decision.
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import pytest
 import torch
@@ -318,13 +319,19 @@ def test_a_batch_of_one_takes_its_runs_step_with_the_batched_numbers(case, host,
                     torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-10, msg=name)
     assert any(bool(o.extras["resampled"]) for o in oa)
     if not host:  # gradients flow through the run's step as through the batched one
-        y = ys[:4].where(~torch.isnan(ys[:4]), 0.0).clone().requires_grad_(True)
-        carry = pf.init(model, (1,), Generators.of(torch.Generator().manual_seed(7)))
-        loss = 0.0
-        for k in range(4):
-            carry, out = pf.step(carry, y[k][None], None if us is None else us[k][None])
-            loss = loss + out.log_likelihood.sum() + out.mean.sum()
-        assert torch.autograd.grad(loss, y)[0].abs().sum() > 0
+        grads = []
+        for general in (False, True):
+            y = ys[:4].where(~torch.isnan(ys[:4]), 0.0).clone().requires_grad_(True)
+            carry = pf.init(model, (1,), Generators.of(torch.Generator().manual_seed(7)))
+            loss = 0.0
+            for k in range(4):
+                u = None if us is None else us[k][None]
+                step = partial(particle._particle_step, pf) if general else pf.step
+                carry, out = step(carry, y[k][None], u, None)
+                loss = loss + out.log_likelihood.sum() + out.mean.sum()
+            grads.append(torch.autograd.grad(loss, y)[0])
+        assert grads[0].abs().sum() > 0
+        torch.testing.assert_close(grads[0], grads[1], atol=1e-10, rtol=1e-10)
 
 
 def test_particle_filter_on_one_run_is_the_online_step_to_the_last_bit_in_float32():
