@@ -39,7 +39,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._checks import check_positive_int
+from ._checks import _check_float_tensor, check_positive_int, model_dtype_device
 from .linalg import symmetrize
 from .noise import Gaussian, NoiseModel
 from .ssm import StateSpaceModel
@@ -74,8 +74,10 @@ def _check_mask(mask: Tensor | None, dim: int, name: str = "mask") -> Tensor | N
     if mask is None:
         return None
     if not isinstance(mask, Tensor) or mask.dtype != torch.bool or mask.shape[-1:] != (dim,):
-        got = tuple(mask.shape) if isinstance(mask, Tensor) else type(mask).__name__
-        raise ValueError(f"{name} must be a bool tensor [..., {dim}]; got {got}")
+        # (a docs trial: a float mask of the right shape was told only its shape)
+        got = (f"{mask.dtype} {tuple(mask.shape)}" if isinstance(mask, Tensor)
+               else type(mask).__name__)  # fmt: skip
+        raise ValueError(f"{name} must be a bool tensor [..., {dim}] (True = received); got {got}")
     return mask
 
 
@@ -168,6 +170,11 @@ def _pcrb_information(model, xs, x0, mask, information, num_samples, generator) 
         raise ValueError(
             f"x0 must have shape {tuple(xs.shape[:-2]) + (dx,)} (xs without T); got {got}"
         )
+    # the model's dtype and device, as the filters ask (a docs trial: float32 paths on a
+    # float64 model met torch's "expected scalar type Double but found Float")
+    dtype, device = model_dtype_device(model)
+    _check_float_tensor(xs, "xs", f"[..., M, T, {dx}]", dtype, device)
+    _check_float_tensor(x0, "x0", f"[..., M, {dx}]", dtype, device)
     if not bool(torch.isfinite(xs).all()) or not bool(torch.isfinite(x0).all()):
         raise ValueError("xs and x0 must be finite")
     T = xs.shape[-2]

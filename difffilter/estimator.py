@@ -154,6 +154,11 @@ class EstimatorOutput:
                 f"'EstimatorOutput' has no attribute {name!r}: the steps' {name} values are "
                 f"stacked in extras[{stacked[name]!r}] (where the estimator's steps report them)"
             )
+        if name in ("mean", "cov"):  # a step's field names (StepOutput.mean): stacked here
+            raise AttributeError(
+                f"'EstimatorOutput' has no attribute {name!r}: the steps' {name} values are "
+                f"stacked in .{name}s [..., T, ...]"
+            )
         raise AttributeError(f"'EstimatorOutput' object has no attribute {name!r}")
 
     def __post_init__(self):
@@ -383,17 +388,20 @@ class Estimator:
         return None
 
 
-def _batch_shape(batch_shape) -> torch.Size:
+def _batch_shape(batch_shape, least: int = 1) -> torch.Size:
+    """``batch_shape`` (a tuple of integers, or one integer) as a ``torch.Size``, each
+    entry at least ``least`` (the function forms, ``gaussian_init`` and ``particle_init``,
+    take 0: a filter of no runs); ``ValueError`` naming it otherwise."""
     if isinstance(batch_shape, int) and not isinstance(batch_shape, bool):
         batch_shape = (batch_shape,)
     try:
         batch = torch.Size(batch_shape)
     except TypeError as exc:
         raise ValueError(
-            f"batch_shape must be a tuple of integers >= 1; got {batch_shape!r}"
+            f"batch_shape must be a tuple of integers >= {least}; got {batch_shape!r}"
         ) from exc
-    if any(int(b) < 1 for b in batch):
-        raise ValueError(f"batch_shape must be a tuple of integers >= 1; got {tuple(batch)}")
+    if any(int(b) < least for b in batch):
+        raise ValueError(f"batch_shape must be a tuple of integers >= {least}; got {tuple(batch)}")
     return batch
 
 

@@ -40,7 +40,7 @@ from ._checks import (
     check_model_batch,
 )
 from ._shared_cov import shared_covariance_applies, shared_covariance_kalman_filter
-from .estimator import Estimator, output_of
+from .estimator import Estimator, _batch_shape, output_of
 from .gain_schedule import GainSchedule, shared_gains_apply
 from .gaussian import (
     innovation_log_prob,
@@ -85,7 +85,9 @@ def gaussian_init(model, batch_shape=()) -> GaussianState:
     ``[*, dx, dx]`` (broadcast lazily).
     """
     _check_zero_mean_noise(model)
-    batch_shape = torch.Size(batch_shape)
+    # an int too, as KalmanFilter().init takes it (a docs trial: gaussian_init(model, 32)
+    # met "'int' object is not iterable")
+    batch_shape = _batch_shape(batch_shape, least=0)
     check_model_batch(model, batch_shape, "batch_shape")
     mean = model.initial.mean
     mean = mean.expand(broadcast_shapes(batch_shape, mean.shape[:-1]) + mean.shape[-1:])

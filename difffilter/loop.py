@@ -194,7 +194,9 @@ def open_loop(
         if held is not None and held is not model:  # the steps filter with the carry's
             raise ValueError(
                 "carry holds another model than the model given (its steps would filter with "
-                "the carry's): start the carry from this model (estimator.init(model, …))"
+                "the carry's): give the carry's own, open_loop(estimator, carry.model, ys, "
+                "carry=carry) (a carry made elsewhere, e.g. a study's start(B)), or start the "
+                "carry from this model (estimator.init(model, …))"
             )
         both = broadcast_or_none(batch, estimator.batch_of(carry))
         if both is None:

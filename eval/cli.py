@@ -694,6 +694,12 @@ def _main(argv: Sequence[str] | None = None) -> int:
         f"reports written under {args.out}/ (<scenario>/report.md); open the TensorBoard "
         f"logs with: tensorboard --logdir {args.out}"
     )
+    if not any(doc.get("estimators") for doc in results.values()):
+        # (a docs trial: every estimator asked for was skipped, and the command said so only
+        # in a file and exited 0, so a script took the empty reports for results)
+        print("difffilter-eval: error: no estimator ran (each one's reason is listed under "
+              "\"Not run\" above)", file=sys.stderr)  # fmt: skip
+        return 1
     return 0
 
 

@@ -94,7 +94,7 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
     if not rows:  # (the figure of no rows failed in matplotlib, after every report was written)
         path = out / "leaderboard.md"
         path.write_text("# Leaderboard\n\nNo estimator ran: each scenario's `report.md` lists "
-                        "those skipped and why.\n")  # fmt: skip
+                        "those skipped and why.\n" + _skipped(results))  # fmt: skip
         (out / "leaderboard.png").unlink(missing_ok=True)
         _hparams(out / "tb_leaderboard", rows)
         return path

@@ -71,7 +71,10 @@ def estimator_colours(names) -> dict[str, str]:
 
 
 def _legend(ax, **kw) -> None:
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False, **kw)
+    """The legend beside ``ax``, where it has labelled artists (none: no legend, where
+    matplotlib's "No artists with labels found" warning had reached the console)."""
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False, **kw)
 
 
 def _alarm_spans(alarms: torch.Tensor, t: list[float], dt: float) -> list[tuple[float, float]]:

@@ -133,6 +133,16 @@ def compose(
         inner = ParticleFilter(int(n), resampler=resampler or Systematic(),
                                ess_threshold=ess_threshold)  # fmt: skip
     elif card.filter in GAUSSIAN_FILTERS:
+        # a particle filter's settings on a Gaussian card (a docs trial: num_particles=100 on
+        # the robot's EKF checkpoint loaded without a word, as if it had been used)
+        given = [name for name, value, unset in (("num_particles", num_particles, None),
+                 ("resampler", resampler, None), ("ess_threshold", ess_threshold, 1.0))
+                 if value != unset]  # fmt: skip
+        if given:
+            raise ValueError(
+                f"{', '.join(given)}: set a particle filter, and this checkpoint's network runs "
+                f"in the {card.filter} filter its card names (pf checkpoints take them)"
+            )
         inner = GAUSSIAN_FILTERS[card.filter]
     else:
         raise ValueError(f"the card names filter {card.filter!r}; known: pf, "

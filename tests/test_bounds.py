@@ -122,6 +122,24 @@ def test_pcrb_bad_input_raises():
         df.posterior_crb(model, xs, x0, mask=torch.ones(4, 2, dtype=torch.bool))
     with pytest.raises(ValueError, match="finite"):
         df.posterior_crb(model, xs * math.nan, x0)
+    # (a docs trial: float32 paths on a float64 model met torch's "expected scalar type
+    # Double but found Float"; a float mask was told only its shape)
+    with pytest.raises(
+        ValueError,
+        match=r"xs must have the model's dtype torch.float64; got "
+        r"torch.float32 \(convert with xs.to",
+    ):
+        df.posterior_crb(model, xs.float(), x0)
+    with pytest.raises(ValueError, match="x0 must have the model's dtype torch.float64"):
+        df.posterior_crb(model, xs, x0.float())
+    with pytest.raises(ValueError, match="xs must have a floating dtype"):
+        df.posterior_crb(model, xs.long(), x0)
+    with pytest.raises(
+        ValueError,
+        match=r"mask must be a bool tensor \[\.\.\., 2\] \(True = "
+        r"received\); got torch.float64 \(5, 2\)",
+    ):
+        df.posterior_crb(model, xs, x0, mask=torch.ones(5, 2, dtype=torch.float64))
     with pytest.raises(ValueError, match="model must be"):
         df.posterior_crb("cv", xs, x0)
     with pytest.raises(ValueError, match="noise must be"):

@@ -194,3 +194,19 @@ def test_a_mask_on_another_device_than_the_measurements_is_named():
     mask = torch.ones(2, 5, model.dim_y, dtype=torch.bool)
     with pytest.raises(ValueError, match=r"mask is on cpu and ys on meta: put mask on ys's device"):
         df.kalman_filter(model, ys, mask=mask)
+
+
+def test_a_run_in_which_no_estimator_ran_prints_why_and_fails(tmp_path, capsys):
+    """A docs trial: ``--estimators`` naming only estimators that do not fit the scenario
+    (``chi_square_kf`` needs a linear model) wrote empty reports, printed "No estimator ran"
+    without the reasons (they were in the scenario's report.md) and exited 0, so a script
+    took it for a result. Now the console lists each reason and the command exits 1."""
+    out = tmp_path / "o"
+    argv = ["four_tank_bias", "--runs", "2", "--no-progress", "--out", str(out),
+            "--estimators", "chi_square_kf"]  # fmt: skip
+    assert eval_cli.main(argv) == 1
+    printed = capsys.readouterr()
+    assert "No estimator ran" in printed.out
+    assert "- four_tank_bias: `chi_square_kf` (" in printed.out and "linear" in printed.out
+    assert "difffilter-eval: error: no estimator ran" in printed.err
+    assert "No artists with labels" not in printed.err

@@ -249,3 +249,19 @@ def test_list_with_a_name_lists_that_familys_scenarios_or_says_what_it_takes(cap
         main(["extra", "--list"])
     assert exit_.value.code == 2
     assert "--list extra: give a family (filters, four_tank" in capsys.readouterr().err
+
+
+def test_a_training_command_without_a_config_points_to_the_configs(capsys):
+    """A docs trial: ``difffilter-train fit`` alone said only "the following arguments are
+    required: fit.data, fit.model"; it now says where the model and data come from. A
+    command with a config keeps its own error, without the hint."""
+    from difffilter.train.cli import main
+
+    assert main(["fit"]) == 2
+    err = capsys.readouterr().err
+    assert "the following arguments are required: fit.data, fit.model" in err
+    assert ("no --config given: start from a training config, e.g. difffilter-train fit "
+            "--config train/configs/four_tank.yaml") in err  # fmt: skip
+    assert main(["fit", "--config", FOUR_TANK, "--model.init_args.nosuch=1"]) == 2
+    err = capsys.readouterr().err
+    assert "Option 'nosuch' is not accepted" in err and "no --config given" not in err

@@ -191,5 +191,26 @@ def test_a_stacked_output_keeps_the_steps_innovations_in_extras():
     assert out.extras["innovation_covs"].shape == (3, T, DY, DY)
     with pytest.raises(AttributeError, match=r"stacked in extras\['innovations'\]"):
         out.innovation  # noqa: B018
+    with pytest.raises(AttributeError, match=r"stacked in \.means \[\.\.\., T, \.\.\.\]"):
+        out.mean  # noqa: B018  (a docs trial: the step's name, on the stacked output)
+    with pytest.raises(AttributeError, match=r"stacked in \.covs"):
+        out.cov  # noqa: B018
     with pytest.raises(AttributeError, match="has no attribute 'nope'"):
         out.nope  # noqa: B018
+
+
+def test_the_init_functions_take_a_batch_shape_as_the_estimators_init_does():
+    """A docs trial: ``df.gaussian_init(model, 32)`` met "'int' object is not iterable"
+    while ``KalmanFilter().init(model, 32)`` took the int; the function forms now read a
+    batch shape as ``init`` does, with its error for a bad one."""
+    model = linear_model(torch.float64)
+    assert df.gaussian_init(model, 32).mean.shape == (32, model.dim_x)
+    assert df.gaussian_init(model, (2, 3)).mean.shape == (2, 3, model.dim_x)
+    gen = torch.Generator().manual_seed(0)
+    assert df.particle_init(model, 10, 4, gen).particles.shape == (4, 10, model.dim_x)
+    assert df.gaussian_init(model, 0).mean.shape == (0, model.dim_x)  # no runs: as before
+    for bad in (-1, (2, -1), "32", 2.5):
+        with pytest.raises(ValueError, match="batch_shape must be a tuple of integers >= 0"):
+            df.gaussian_init(model, bad)
+        with pytest.raises(ValueError, match="batch_shape must be a tuple of integers >= 0"):
+            df.particle_init(model, 10, bad, gen)

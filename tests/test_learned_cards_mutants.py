@@ -52,6 +52,16 @@ def test_compose_runs_the_kalman_filter_with_every_option_its_card_names():
     plain = compose(_tiny(), EstimatorCard(filter="kf"))  # the card's defaults
     assert plain.threshold == 0.5 and plain.gating is False and plain.core.standardize is True
     assert (plain.restart, plain.confirm, plain.reject) == (None, None, None)
+    # a particle filter's settings on a Gaussian card are named, not ignored (a docs trial)
+    for kw, named in (({"num_particles": 100}, "num_particles"),
+                      ({"resampler": object()}, "resampler"),
+                      ({"ess_threshold": 0.5}, "ess_threshold")):  # fmt: skip
+        with pytest.raises(
+            ValueError,
+            match=rf"^{named}: set a particle filter, and this "
+            r"checkpoint's network runs in the kf filter",
+        ):
+            compose(_tiny(), EstimatorCard(filter="kf"), **kw)
 
 
 def test_compose_gives_the_particle_filter_the_cards_size_unless_told_and_its_poa_eta():

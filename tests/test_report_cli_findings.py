@@ -261,7 +261,12 @@ def test_a_checkpoint_no_estimator_used_is_said_after_the_leaderboard(
 
     def evaluate(names, **kwargs):
         (tmp_path / "leaderboard.md").write_text("# Leaderboard\n")
-        return {"four_tank_bias": {"checkpoint": {"used_by": [], "source": "--ckpt"}}}
+        return {
+            "four_tank_bias": {
+                "checkpoint": {"used_by": [], "source": "--ckpt"},
+                "estimators": {"chi_square_ekf": {}},
+            }
+        }  # (one ran)
 
     monkeypatch.setattr(cli, "evaluate", evaluate)
     code = cli.main(["four_tank_bias", "--ckpt", "checkpoints/four_tank_nn_grad.ckpt",

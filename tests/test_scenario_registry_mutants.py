@@ -434,6 +434,11 @@ def test_lookup_and_listing(isolated_registry):
         reg.get("mut_nope")
     listed = str(info.value).split("known scenarios: ")[1].split(", ")
     assert listed == sorted(reg._REGISTRY) and len(listed) == len(reg._REGISTRY)
+    # the nearest names first, as difffilter-eval gives them (difffilter-train did not)
+    with pytest.raises(ValueError, match=r"unknown scenario 'mut_yy'; did you mean mut_y\b"):
+        reg.get("mut_yy")
+    with pytest.raises(ValueError, match=r"unknown scenario 'qqqqqqqq'; known scenarios: "):
+        reg.get("qqqqqqqq")  # nothing near: no suggestion
     assert reg.names("mut_fz") == ["mut_y", "mut_z"]
     assert reg.names("mut_fz", headline_only=True) == ["mut_y"]
     assert len(reg.names()) == len(reg._REGISTRY)

@@ -574,3 +574,23 @@ def test_the_crafting_gives_the_detector_the_inputs_and_receptions_of_the_study(
     calibration = SimpleNamespace(thresholds={"chi_square_kf": tau}, far=0.01)
     _, report = stealthy.craft_threat("probe", spec, scenario, calibration, seed=0)
     assert report["history"][0]["alarm_rate"] < 0.05
+
+
+def test_the_documented_study_start_runs_open_loop_on_the_carrys_own_model():
+    """A docs trial (docs/threats.md): ``open_loop(estimator, scenario.system(), ys,
+    carry=start(B))`` was refused, ``scenario.system()`` building a new model at every call,
+    and the error only said to start the carry from that model (losing the study's common
+    random numbers). The recipe is now ``carry = start(B)``, ``open_loop(estimator,
+    carry.model, ys, carry=carry)``, and the error names it."""
+    import difffilter as df
+    from difffilter.eval import stealthy
+    from difffilter.models import registry
+
+    scenario = registry.get("four_tank_bias")
+    estimator, start = stealthy.estimator_step(scenario, "normal_pf", runs=2, seed=0)
+    carry = start(2)
+    ys = torch.zeros(2, 3, carry.model.dim_y, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"open_loop\(estimator, carry\.model, ys, carry=carry\)"):
+        df.open_loop(estimator, scenario.system(), ys, carry=carry)
+    out = df.open_loop(estimator, carry.model, ys, carry=carry)
+    assert out.means.shape == (2, 3, carry.model.dim_x) and torch.isfinite(out.means).all()

@@ -658,6 +658,20 @@ def _refuse_duplicate_keys() -> None:
     set_loader("yaml", load_unique, exceptions=(yaml.YAMLError,))
 
 
+def _config_hint(argv: list[str], command: str) -> str:
+    """A hint where a command ran without ``--config``: the model and data come from a
+    training config (a docs trial: ``difffilter-train fit`` alone said only "the following
+    arguments are required: fit.data, fit.model")."""
+    given = any(a in ("--config", "-c") or a.startswith("--config=") for a in argv)
+    if given or not command:
+        return ""
+    return (
+        f"; no --config given: start from a training config, e.g. difffilter-train"
+        f"{command} --config train/configs/four_tank.yaml (one per family in "
+        "train/configs/; the README's section Training the neural FDI estimator)"
+    )
+
+
 def run(args: list[str] | None, argv: list[str], description: str) -> int:
     """LightningCLI on ``args`` (``None``: ``sys.argv``; ``argv`` the same as a list):
     exit code 0, or 2 after a one-line error.
@@ -701,7 +715,7 @@ def run(args: list[str] | None, argv: list[str], description: str) -> int:
     except ArgumentError as exc:
         command = f" {argv[0]}" if argv and argv[0] in commands else ""
         print(f"difffilter-train: error: {_reason(str(exc))} (difffilter-train{command} --help "
-              "lists the options)", file=sys.stderr)  # fmt: skip
+              f"lists the options){_config_hint(argv, command)}", file=sys.stderr)  # fmt: skip
         return 2
     except (ValueError, FileNotFoundError, MisconfigurationException) as exc:
         # a user error (a setting out of range, a missing file): one line, no traceback

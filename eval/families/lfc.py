@@ -185,7 +185,8 @@ def _states_figure(result, out: Path) -> str:
             if n in outs:
                 ax.plot(t, result.traj_of(n).x[0, :, s].numpy(), lw=0.9, label=n)
         ax.set_ylabel(f"X{s + 1}")
-        ax.legend(fontsize=7, loc="upper right")
+        if ax.get_legend_handles_labels()[0]:  # (none of the three ran: no legend, no warning)
+            ax.legend(fontsize=7, loc="upper right")
     axes[-1].set_xlabel("t [s]")
     fig.suptitle(f"{sc.name}: states 3 and 5 of area 1 (run 0), dt = {sc.dt * 1e3:g} ms")
     fig.savefig(out / "states.png", dpi=110, bbox_inches="tight")
