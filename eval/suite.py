@@ -141,6 +141,8 @@ def run_suite(
     runs = scenario.runs if runs is None else runs
     if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
         raise ValueError(f"runs must be an integer >= 1; got {runs!r}")
+    if dtype not in (torch.float32, torch.float64):  # (float16 met torch's cholesky error)
+        raise ValueError(f"dtype must be torch.float32 or torch.float64; got {dtype!r}")
     estimators, add = estimator_names(estimators, "estimators"), estimator_names(add, "add")
     _check_calibration(calibration, scenario)
     options = registry.check_options(scenario.estimator_options(), f"scenario {scenario.name!r}")

@@ -145,6 +145,12 @@ def test_calibrate_refuses_what_it_cannot_do(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main([SHIPPED, "--out", str(out), "--seed", "-1"])
     assert "--seed must be an integer >= 0; got -1" in capsys.readouterr().err
+    # a docs trial: the restart on a particle filter's network was refused in internal names
+    assert main([SHIPPED, "--out", str(out), "--restart", "0.01"]) == 2
+    assert (
+        "--restart: the restart runs an uncompensated copy of a Gaussian filter against "
+        "sensor attacks; this network runs in the pf filter"
+    ) in capsys.readouterr().err
 
 
 def test_calibrate_says_when_its_runs_are_too_few_for_the_target(tmp_path, capsys):

@@ -278,6 +278,13 @@ def test_run_suite_takes_an_empty_list_as_nothing_and_a_calibration_object_only(
     with pytest.raises(ValueError, match=r"calibration must be None or the Calibration "
                        r"calibrate\(scenario, far=…\) returns .*got float 0.01"):  # fmt: skip
         run_suite(sc, runs=2, estimators=["chi_square_ekf"], calibration=0.01, progress=False)
+    # a docs trial: float16 met torch's "cholesky_cpu" not implemented for 'Half'
+    with pytest.raises(
+        ValueError,
+        match=r"dtype must be torch.float32 or torch.float64; got "
+        r"torch.float16",
+    ):
+        run_suite(sc, runs=2, estimators=["chi_square_ekf"], dtype=torch.float16, progress=False)
 
 
 def test_the_calibrations_progress_bar_says_it_is_the_calibration(capsys):

@@ -182,8 +182,15 @@ def test_a_start_from_nothing_and_a_checkpoint_of_another_family_are_named(capsy
     ours = str(ROOT / "checkpoints" / "four_tank_nn_grad.ckpt")
     assert main(["validate", "--config", FOUR_TANK, "--ckpt_path", ours,
                  "--model.init_args.hidden=8", "--trainer.logger=false"]) == 2  # fmt: skip
+    err = capsys.readouterr().err
     assert (f"--ckpt_path: the network in {ours} has other settings than the configured "
-            "model's (hidden 16 against 8)") in capsys.readouterr().err  # fmt: skip
+            "model's (hidden 16 against 8)") in err and "trained by" not in err  # fmt: skip
+    # the EKF-trained network on the gradient config: its own config named (a docs trial)
+    ekf = str(ROOT / "checkpoints" / "four_tank_nn_ekf.ckpt")
+    assert main(["validate", "--config", FOUR_TANK, "--ckpt_path", ekf,
+                 "--trainer.logger=false"]) == 2  # fmt: skip
+    assert ("(it was trained by 'ekf', the config trains by 'grad': its config is "
+            "train/configs/four_tank_ekf.yaml)") in capsys.readouterr().err  # fmt: skip
 
 
 def test_an_added_learned_estimator_that_does_not_fit_names_the_shipped_one_that_does(
@@ -265,3 +272,39 @@ def test_a_training_command_without_a_config_points_to_the_configs(capsys):
     assert main(["fit", "--config", FOUR_TANK, "--model.init_args.nosuch=1"]) == 2
     err = capsys.readouterr().err
     assert "Option 'nosuch' is not accepted" in err and "no --config given" not in err
+
+
+def test_a_missing_ckpt_path_is_refused_before_a_run_folder_is_made(tmp_path, monkeypatch, capsys):
+    """A docs trial: ``fit``/``validate``/``test --ckpt_path`` of a file that is not there
+    was named by Lightning after the run folder had been made, an empty run in TensorBoard
+    at every try. Refused first now, in both spellings; Lightning's own names stay its."""
+    from difffilter.train import lightning_cli
+    from difffilter.train.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    missing = str(tmp_path / "nope.ckpt")
+    for argv in (["fit", "--config", FOUR_TANK, "--ckpt_path", missing],
+                 ["validate", "--config", FOUR_TANK, f"--ckpt_path={missing}"]):  # fmt: skip
+        assert main([*argv, "--trainer.fast_dev_run=true"]) == 2
+        assert f"--ckpt_path: no checkpoint file at {missing}" in capsys.readouterr().err
+    assert not (tmp_path / "lightning_logs").exists()
+    for name in ("last", "best", "hpc", "s3://bucket/run.ckpt"):
+        assert lightning_cli._check_ckpt_path({"ckpt_path": name}, "fit") is None
+
+
+def test_a_seed_everything_out_of_range_is_named_before_anything_runs(
+    tmp_path, monkeypatch, capsys
+):
+    """A docs trial: ``fit --seed_everything -1`` said "-1 is not in bounds, numpy accepts
+    from 0 to 4294967295", naming no option; the other commands say ``--seed must be an
+    integer >= 0``."""
+    from difffilter.train.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    for seed in ("-1", str(2**32)):
+        assert main(["fit", "--config", FOUR_TANK, "--seed_everything", seed,
+                     "--trainer.fast_dev_run=true"]) == 2  # fmt: skip
+        assert (f"difffilter-train: error: --seed_everything must be an integer from 0 to "
+                f"4294967295 (or true: a random seed; false: none); got {seed}"
+                ) in capsys.readouterr().err  # fmt: skip
+    assert not (tmp_path / "lightning_logs").exists()

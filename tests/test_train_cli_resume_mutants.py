@@ -145,14 +145,20 @@ def test_ckpt_path_values_and_config_files_are_read_in_both_spellings(tmp_path, 
 def test_ckpt_path_kinds_and_the_judges_that_need_one(tmp_path):
     """``_check_ckpt_path``: none for ``validate``/``test``/``predict`` refused (``fit``
     and no subcommand pass), a folder named with (at most three of) the checkpoints it
-    holds, a file torch cannot load and a dict of neither kind refused; a missing name is
-    Lightning's (``last``)."""
+    holds, a file torch cannot load, a missing file and a dict of neither kind refused; a
+    name Lightning resolves is its own (``last``)."""
     check = lightning_cli._check_ckpt_path
     for judge, verb in (("validate", "validate"), ("test", "test"), ("predict", "predict with")):
         with pytest.raises(ValueError, match=f"{judge} needs the weights to {verb}: "):
             check({"ckpt_path": None}, judge)
     assert check({"ckpt_path": None}, "fit") is None and check({}, None) is None
     assert check({"ckpt_path": "last"}, "test") is None
+    with pytest.raises(
+        ValueError,
+        match=r"--ckpt_path: no checkpoint file at .*nope\.ckpt; a "
+        r"training run's Lightning checkpoint",
+    ):
+        check({"ckpt_path": str(tmp_path / "nope.ckpt")}, "fit")  # (before any run folder)
     folder = tmp_path / "run"
     (folder / "checkpoints").mkdir(parents=True)
     for name in "abcd":
@@ -206,6 +212,8 @@ def test_a_resume_takes_its_runs_version_only_from_its_own_save_dir_and_name(
     ``save_dir`` resolved from the working folder), and none of another save_dir, another
     layout or an explicit version; ``--trainer.logger false`` needs a folder."""
     monkeypatch.chdir(tmp_path)
+    # (the paths name no file: the check of the file itself, which refuses a missing one)
+    monkeypatch.setattr(lightning_cli, "_check_ckpt_path", lambda cfg, subcommand: "lightning")
     before = lightning_cli.DifffilterCLI.before_instantiate_classes
     ckpt = tmp_path / "logs" / "mass" / "version_3" / "checkpoints" / "last.ckpt"
     cases = (

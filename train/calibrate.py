@@ -169,6 +169,13 @@ def calibrate_checkpoint(
         if value != KEEP:
             rate = None if value is None else check_rate(value, f"--{option}", unset="off")
             card = dataclasses.replace(card, **{option: rate})
+    if card.restart is not None and (card.filter == "pf" or card.channel != "sensor"):
+        # (a docs trial met "inner must be a Gaussian filter … (got ParticleFilter, …)")
+        raise ValueError(
+            f"--restart: the restart runs an uncompensated copy of a Gaussian filter against "
+            f"sensor attacks; this network runs in the {card.filter} filter against "
+            f"{card.channel} attacks (--restart off)"
+        )
     if card.confirm is not None and card.restart is None:
         raise ValueError("--confirm reads the χ² test of the restart's gated copy: the card "
                          "needs a restart rate too (--restart RATE)")  # fmt: skip

@@ -41,6 +41,19 @@ class DifffilterCLI(LightningCLI):
     estimator file (``difffilter-train export``, ``checkpoints/*.ckpt``) as ``--ckpt_path``:
     its weights are loaded into the configured module, whose estimator settings must match."""
 
+    def _set_seed(self) -> None:
+        """Lightning's seeding, after a check that names the option (a docs trial:
+        ``--seed_everything -1`` said only "-1 is not in bounds, numpy accepts from 0 to
+        4294967295", where the other commands say ``--seed must be an integer >= 0``)."""
+        cfg = self.config[self.subcommand] if self.subcommand else self.config
+        seed = cfg.get("seed_everything")
+        if not isinstance(seed, bool) and isinstance(seed, int) and not 0 <= seed < 2**32:
+            raise ValueError(
+                f"--seed_everything must be an integer from 0 to {2**32 - 1} (or true: a "
+                f"random seed; false: none); got {seed}"
+            )
+        super()._set_seed()
+
     def before_instantiate_classes(self):
         """``fit`` logs under an absolute ``save_dir`` (the checkpoints then record absolute
         paths: a run resumed from another folder found its best checkpoint by a path
@@ -194,6 +207,7 @@ class DifffilterCLI(LightningCLI):
             raise ValueError(
                 f"--ckpt_path: the network in {path} has other settings than the configured "
                 f"model's ({differ}); pass the matching --config/--model.* options"
+                f"{_trainer_hint(card, self.model.card())}"
             )
         self.model.check_exported(card, path)  # the filter it was trained for
         mine.load_state_dict(estimator.state_dict())
@@ -203,6 +217,10 @@ class DifffilterCLI(LightningCLI):
 
 #: What ``validate``, ``test`` and ``predict`` do with the weights of ``--ckpt_path``.
 _JUDGES = {"validate": "validate", "test": "test", "predict": "predict with"}
+
+
+#: The ``--ckpt_path`` values Lightning resolves to a file itself.
+_LIGHTNING_CKPT_NAMES = frozenset({"best", "last", "hpc"})
 
 
 def _check_ckpt_path(cfg, subcommand: str | None) -> str | None:
@@ -231,7 +249,16 @@ def _check_ckpt_path(cfg, subcommand: str | None) -> str | None:
                if inside else "")
         )  # fmt: skip
     if not path.is_file():
-        return None  # Lightning names a missing file, and resolves "last", "best", …
+        # the names Lightning resolves itself ("last", "best", …) and remote paths are its;
+        # a missing local file is refused here, before any work (Lightning named it after the
+        # run folder had been made: an empty run in TensorBoard at every try, a docs trial)
+        if ckpt in _LIGHTNING_CKPT_NAMES or str(ckpt).startswith("registry") or "://" in ckpt:
+            return None
+        raise ValueError(
+            f"--ckpt_path: no checkpoint file at {ckpt}; a training run's Lightning checkpoint "
+            "(<run>/checkpoints/*.ckpt), an exported estimator (checkpoints/*.ckpt) or one of "
+            f"Lightning's names ({', '.join(sorted(_LIGHTNING_CKPT_NAMES))}) is expected"
+        )
     stat = path.stat()
     kind, what = _kind_of_file(str(path.resolve()), stat.st_mtime_ns, stat.st_size)
     if kind is not None:
@@ -656,6 +683,19 @@ def _refuse_duplicate_keys() -> None:
 
     load_unique._refuses_duplicates = True
     set_loader("yaml", load_unique, exceptions=(yaml.YAMLError,))
+
+
+def _trainer_hint(card, ours) -> str:
+    """Where an exported network was trained otherwise than the config trains (``trainer``
+    ``"ekf"`` against ``"grad"``), the config of its training where the family ships one (a
+    docs trial met only "(detection_head False against True)")."""
+    if card.trainer == ours.trainer:
+        return ""
+    name = f"{card.scenario_family}_{card.trainer}.yaml"
+    shipped = (Path(__file__).resolve().parent / "configs" / name).is_file()
+    return f" (it was trained by {card.trainer!r}, the config trains by {ours.trainer!r}" + (
+        f": its config is train/configs/{name})" if shipped else ")"
+    )
 
 
 def _config_hint(argv: list[str], command: str) -> str:
