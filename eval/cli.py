@@ -685,6 +685,9 @@ def _main(argv: Sequence[str] | None = None) -> int:
     print("\n" + (args.out / "leaderboard.md").read_text())
     if (summary := args.out / "acceptance.md").is_file():
         print(summary.read_text())
+    elif args.far is None:  # (a docs trial looked for the summary and found no word why)
+        print("note: --far off: nothing calibrated, so no acceptance.md (the acceptance judges "
+              "every estimator at one calibrated false-alarm rate)")  # fmt: skip
     unused = [n for n, doc in results.items() if not (doc.get("checkpoint") or {}).get("used_by")]
     given = args.ckpt.get("*") if isinstance(args.ckpt, dict) else args.ckpt
     if given is not None and unused:  # the checkpoint for every estimator, unused somewhere

@@ -44,6 +44,8 @@ COLUMNS = tuple(
 #: scenario, green in the figure, is that of the estimators that are neither
 #: (:data:`UNRANKED`).
 UNRANKED = ("oracle", "reference")
+#: The columns at the calibrated threshold (none where nothing was calibrated).
+_AT_FAR = ("tpr_at_far", "fpr_at_far", "detection_delay_at_far_s")
 #: The worst case over a robustness study's threats, as ``worst_<metric>`` columns.
 WORST = ("tpr_at_far", "state_error_ratio")
 _WORST_UNITS = {"worst_tpr_at_far": "fraction", "worst_state_error_ratio": "ratio"}
@@ -100,8 +102,13 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
         return path
     worst = [c for c in _WORST_UNITS if any(c in r for r in rows)]
     cols = list(COLUMNS)
+    # nothing calibrated (--far off): no threshold, so no columns at one (a docs trial read
+    # three columns of "—" under text describing them)
+    calibrated = any(r.get(m) is not None for r in rows for m in _AT_FAR)
     if worst:  # attack-free runs: no attack to detect, nothing in the detection columns
         cols = [m for m in cols if any(r.get(m) is not None for r in rows)]
+    elif not calibrated:
+        cols = [m for m in cols if m not in _AT_FAR]
     cols += worst
     units = {**{m: METRICS[m].unit for m in COLUMNS}, **_WORST_UNITS}
     # one unit per column where every scenario shares it; else the row's units in a column
@@ -136,6 +143,12 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
         "this study's attack-free steps (those after an attack included) and "
         "`detection_delay_at_far_s` the delay at it; `tpr_at_1pct_fpr` reads the ROC of the "
         "study's own runs."
+        if calibrated
+        else "Every scenario × estimator of this evaluation (definitions and units: "
+        "docs/metrics.md; per-scenario details in `<scenario>/report.md`). Nothing was "
+        "calibrated (`--far off`): no detector has a threshold at a false-alarm rate, so "
+        "there are no `*_at_far` columns and no acceptance summary; `tpr_at_1pct_fpr` reads "
+        "the ROC of the study's own runs."
     )
     if any(r.get("role") not in (None, "analytic") for r in rows):
         intro += (" An estimator's role is marked beside its name where it is not an analytic "

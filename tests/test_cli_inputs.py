@@ -210,3 +210,15 @@ def test_a_run_in_which_no_estimator_ran_prints_why_and_fails(tmp_path, capsys):
     assert "- four_tank_bias: `chi_square_kf` (" in printed.out and "linear" in printed.out
     assert "difffilter-eval: error: no estimator ran" in printed.err
     assert "No artists with labels" not in printed.err
+
+
+def test_an_uncalibrated_evaluation_says_why_it_has_no_acceptance_summary(tmp_path, capsys):
+    """A docs trial: ``--far off`` wrote no acceptance.md and said nothing of it."""
+    out = tmp_path / "o"
+    argv = ["four_tank_bias", "--runs", "2", "--no-progress", "--out", str(out), "--far", "off",
+            "--estimators", "chi_square_ekf"]  # fmt: skip
+    assert eval_cli.main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "note: --far off: nothing calibrated, so no acceptance.md" in printed
+    assert "Nothing was calibrated (`--far off`)" in printed and "tpr_at_far [" not in printed
+    assert not (out / "acceptance.md").exists()

@@ -248,3 +248,18 @@ def test_a_diverged_worst_case_reads_diverged_in_the_robustness_leaderboard():
     assert rows["mine"]["worst_state_error_ratio"] == math.inf
     assert rows["mine"]["worst_state_error_ratio_diverged"] is True
     assert rows["kf"]["worst_state_error_ratio"] == 2.0
+
+
+def test_a_leaderboard_of_an_uncalibrated_evaluation_has_no_columns_at_a_rate(tmp_path):
+    """A docs trial: ``--far off`` left three ``*_at_far`` columns of "—" under text that
+    described them; they are left out and the text says why. Where one estimator has a
+    calibrated value, the columns stay."""
+    results = {"plant": doc(["kf", "pf"], state_rmse=0.5, auc=0.9)}
+    md = write_leaderboard(tmp_path, results).read_text()
+    header = next(line for line in md.splitlines() if line.startswith("| scenario"))
+    assert "auc" in header and "state_rmse" in header and "_at_far" not in header
+    assert "Nothing was calibrated (`--far off`)" in md and "no acceptance summary" in md
+    (tmp_path / "c").mkdir()
+    results["plant"]["estimators"]["kf"]["tpr_at_far"] = 0.7
+    md = write_leaderboard(tmp_path / "c", results).read_text()
+    assert "tpr_at_far [fraction]" in md and "Nothing was calibrated" not in md
