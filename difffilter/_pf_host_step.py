@@ -165,12 +165,13 @@ def host_step(
     mean = w_new @ new
     dev = new - mean
     cov = (dev.T * w_new) @ dev
-    if degenerate:  # predictive weights, equal after a resampling: an ESS of N up to
-        # round-off, which decides the next resampling at ess_threshold = 1: torch's
-        w_t = torch.from_numpy(w_new)
-        ess_new = torch.dot(w_t, w_t).reciprocal()
-    else:
-        ess_new = torch.from_numpy(np.asarray(dtype(1.0) / (w_new @ w_new)))
+    # ESS by torch's dot, as the torch steps take it: equal weights (a reset, a step that
+    # lost every entry, a measurement too far or too noisy to tell the particles apart) have
+    # an ESS of N up to round-off, and at ess_threshold = 1 that round-off decides the next
+    # resampling: numpy's 1/(w·w) gave 100.00000000000001 where torch's gave
+    # 99.999999999999957, and the two paths resampled apart from there (a fuzzing trial)
+    w_t = torch.from_numpy(w_new)
+    ess_new = torch.dot(w_t, w_t).reciprocal()
     out = StepOutput(
         torch.from_numpy(mean), torch.from_numpy(_symmetrize(cov)), torch.from_numpy(pred_mean),
         None, innovation, innovation_cov, torch.from_numpy(increment),

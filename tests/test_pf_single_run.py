@@ -647,3 +647,26 @@ def test_checked_steps_accept_the_filters_own_carries_with_subnormal_weights():
                 subnormal |= bool(((w > 0) & (w < torch.finfo(w.dtype).tiny)).any())
                 pf.step(copy.deepcopy(carry), y)  # a copy is checked in full too
     assert subnormal  # the case met
+
+
+def test_equal_weights_at_ess_threshold_one_resample_as_the_torch_steps_decide():
+    """A fuzzing trial: after a step whose weights come out exactly equal (every entry
+    lost; a measurement noise of 1e30 that no particle tells apart), the host step's ESS
+    by numpy, 1/(w·w) = 100.00000000000001, and the torch steps', 99.999999999999957, put
+    ESS = N on either side of ess_threshold · N = N: one path resampled and the other did
+    not, and the same seeds gave means 0.005–0.1 apart. The host step now takes torch's
+    dot, so its decisions and numbers are the torch steps'."""
+    d = torch.float64
+    eye = torch.eye(1, dtype=d)
+    ys = torch.tensor([[0.3], [0.5], [0.1], [-0.2], [0.4]], dtype=d)
+    lost = torch.tensor([[True], [False], [True], [True], [True]])
+    for R, masks in ((0.1 * eye, lost), (1e30 * eye, None)):
+        model = df.LinearGaussianModel(0.9 * eye, eye, 0.1 * eye, R, torch.zeros(1, dtype=d), eye)
+        pf = df.ParticleFilter(100, ess_threshold=1.0)
+        host = _run(pf, model, ys, None, general=False, host=True, masks=masks)
+        general = _run(pf, model, ys, None, general=True, masks=masks)
+        one_run = _run(pf, model, ys, None, general=False, host=False, masks=masks)
+        _assert_same(host, general)
+        _assert_same(host, one_run)
+        decided = [[bool(o.extras["resampled"]) for o in run[1]] for run in (host, one_run)]
+        assert decided[0] == decided[1] and any(decided[0][1:])
