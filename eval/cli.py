@@ -547,6 +547,10 @@ TOP_FILES = ("leaderboard.md", "leaderboard.json", "leaderboard.png", "acceptanc
 #: The folders it writes there (a file by one of these names failed it the same way: the
 #: leaderboard's TensorBoard events, after every suite and report).
 TOP_FOLDERS = ("tb_leaderboard",)
+#: What a scenario's report writes in ``<out>/<scenario>/`` (:func:`~difffilter.eval.report.
+#: write_report`): a folder named metrics.json, or a file named tb, failed the evaluation
+#: after its suite had run, with a traceback (a docs trial).
+SCENARIO_FILES, SCENARIO_FOLDERS = ("metrics.json", "report.md"), ("tb",)
 
 
 def check_output_folder(out: Path, scenarios: Sequence[str] = ()) -> None:
@@ -569,6 +573,11 @@ def check_output_folder(out: Path, scenarios: Sequence[str] = ()) -> None:
             kind[path.rstrip("/")] = (
                 f"the {family} family writes a {'folder' if kind is folders else 'file'} there"
             )
+    for name in scenarios:
+        files |= {f"{name}/{f}": f"scenario {name}'s report writes a file there"
+                  for f in SCENARIO_FILES}  # fmt: skip
+        folders |= {f"{name}/{f}": f"scenario {name}'s report writes a folder there"
+                    for f in SCENARIO_FOLDERS}  # fmt: skip
     for name, why in files.items():
         if (out / name).is_dir():
             raise ValueError(f"--out: {out / name} is a folder; {why}")

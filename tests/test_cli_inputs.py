@@ -180,6 +180,15 @@ def test_an_out_folder_with_a_folder_where_a_report_goes_is_refused_first(tmp_pa
     (out / "leaderboard.md").rmdir()
     (out / "four_tank_bias").write_text("")
     assert "four_tank_bias is a file" in _eval_error(argv, capsys)
+    # inside the scenario's folder too (a docs trial: a traceback after the whole suite)
+    (out / "four_tank_bias").unlink()
+    (out / "four_tank_bias" / "metrics.json").mkdir(parents=True)
+    assert ("four_tank_bias/metrics.json is a folder; scenario four_tank_bias's report "
+            "writes a file there") in _eval_error(argv, capsys)  # fmt: skip
+    (out / "four_tank_bias" / "metrics.json").rmdir()
+    (out / "four_tank_bias" / "tb").write_text("")
+    assert ("four_tank_bias/tb is a file; scenario four_tank_bias's report writes a folder "
+            "there") in _eval_error(argv, capsys)  # fmt: skip
 
 
 def test_a_mask_on_another_device_than_the_measurements_is_named():
