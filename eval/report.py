@@ -283,6 +283,8 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     family_numbers, family_skipped = _family_numbers(family, result)  # may add estimator keys
     doc = _clean({
         "scenario": sc.name, "runs": result.runs, "steps": sc.steps, "seed": result.seed,
+        # the study's dtype (a docs trial: a float32 study's report read as a float64 one's)
+        "dtype": str(result.traj.x.dtype).removeprefix("torch."),
         "units": {name: m.unit for name, m in METRICS.items()},
         "scenario_units": {"state": sc.state_unit, "attack": sc.attack_unit},
         "network": network_of(sc, result.traj),

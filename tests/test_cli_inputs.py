@@ -231,3 +231,22 @@ def test_an_uncalibrated_evaluation_says_why_it_has_no_acceptance_summary(tmp_pa
     assert "note: --far off: nothing calibrated, so no acceptance.md" in printed
     assert "Nothing was calibrated (`--far off`)" in printed and "tpr_at_far [" not in printed
     assert not (out / "acceptance.md").exists()
+
+
+def test_the_report_records_the_studys_dtype(tmp_path):
+    """A docs trial: a ``run_suite(dtype=torch.float32)`` study's metrics.json read as a
+    float64 one's; it records ``dtype`` now (schema-checked)."""
+    import jsonschema
+
+    from difffilter.eval.report import metrics_schema, write_report
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import registry
+
+    scenario = registry.get("four_tank_bias")
+    for dtype, name in ((torch.float32, "float32"), (torch.float64, "float64")):
+        result = run_suite(scenario, runs=2, estimators=["chi_square_ekf"], dtype=dtype,
+                           progress=False)  # fmt: skip
+        doc = write_report(tmp_path / name, result)
+        assert doc["dtype"] == name
+        jsonschema.validate(json.loads((tmp_path / name / "metrics.json").read_text()),
+                            metrics_schema())  # fmt: skip
