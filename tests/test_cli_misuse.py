@@ -274,7 +274,7 @@ def test_a_training_command_without_a_config_points_to_the_configs(capsys):
             "--config train/configs/four_tank.yaml") in err  # fmt: skip
     assert main(["fit", "--config", FOUR_TANK, "--model.init_args.nosuch=1"]) == 2
     err = capsys.readouterr().err
-    assert "Option 'nosuch' is not accepted" in err and "no --config given" not in err
+    assert "nosuch" in err and "no --config given" not in err  # (its words: the version's)
 
 
 def test_a_missing_ckpt_path_is_refused_before_a_run_folder_is_made(tmp_path, monkeypatch, capsys):
