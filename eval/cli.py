@@ -223,11 +223,8 @@ def resolve_scenarios(name: str) -> list[str]:
     try:
         return [registry.get(name).name]
     except ValueError:
-        import difflib
-
         targets = ["all", "robustness", *registry.families()]
-        close = difflib.get_close_matches(name, [*registry.names(), *targets], n=3, cutoff=0.6)
-        hint = f"did you mean {' or '.join(close)}? " if close else ""
+        hint = registry.nearest(name, [*registry.names(), *targets])
         raise ValueError(
             f"unknown scenario {name!r}; {hint}known scenarios: {', '.join(registry.names())}; "
             f"also {', '.join(targets)} (difffilter-eval --list)"

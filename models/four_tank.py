@@ -239,10 +239,8 @@ class FourTankModel(StateSpaceModel):
         cached = getattr(self, "_jacobian_cache", None)
         if cached is not None and cached[0] == key and not key[-1]:
             return cached[1]
-        coef = torch.diag_embed(diag)
-        rows, cols = (torch.tensor(i, device=diag.device) for i in ([0, 1], [2, 3]))
-        coef = coef.index_put((rows, cols), couple[:2])
-        terms = (torch.eye(4, dtype=diag.dtype, device=diag.device), coef)
+        terms = (torch.eye(4, dtype=diag.dtype, device=diag.device),
+                 self.sqrt_affine_form()[0].mT)  # fmt: skip
         self._jacobian_cache = (key, terms)
         return terms
 

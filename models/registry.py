@@ -43,7 +43,7 @@ import torch
 from .scenario import CustomScenario, Scenario
 from .yaml_scenario import import_object, is_yaml_path, scenario_from_yaml
 
-__all__ = ["Scenario", "register", "get", "names", "families", "all_scenarios"]
+__all__ = ["Scenario", "register", "get", "names", "families", "all_scenarios", "nearest"]
 
 
 _REGISTRY: dict[str, Scenario] = {}
@@ -239,13 +239,19 @@ def get(name: str) -> Scenario:
     try:
         return _REGISTRY[name]
     except KeyError:
-        import difflib
-
         known = ", ".join(sorted(_REGISTRY)) or "(none)"
         # (difffilter-eval suggested the nearest names, difffilter-train did not: a docs trial)
-        close = difflib.get_close_matches(str(name), sorted(_REGISTRY), n=3, cutoff=0.6)
-        hint = f"did you mean {' or '.join(close)}? " if close else ""
+        hint = nearest(name, sorted(_REGISTRY))
         raise ValueError(f"unknown scenario {name!r}; {hint}known scenarios: {known}") from None
+
+
+def nearest(name, candidates) -> str:
+    """``"did you mean A or B? "``: the (at most three) ``candidates`` closest to ``name``,
+    or ``""`` where none is close (a misspelt name in an error)."""
+    import difflib
+
+    close = difflib.get_close_matches(str(name), list(candidates), n=3, cutoff=0.6)
+    return f"did you mean {' or '.join(close)}? " if close else ""
 
 
 def names(family: str | None = None, *, headline_only: bool = False) -> list[str]:

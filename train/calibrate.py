@@ -48,6 +48,7 @@ import time
 from pathlib import Path
 
 from difffilter._checks import check_rate
+from difffilter.fdi.neural import restart_applies
 from difffilter.models.atomic_write import write_json_atomically
 
 from .common import check_checkpoint_out, load_source
@@ -169,7 +170,7 @@ def calibrate_checkpoint(
         if value != KEEP:
             rate = None if value is None else check_rate(value, f"--{option}", unset="off")
             card = dataclasses.replace(card, **{option: rate})
-    if card.restart is not None and (card.filter == "pf" or card.channel != "sensor"):
+    if card.restart is not None and not restart_applies(card.filter == "pf", card.channel):
         # (a docs trial met "inner must be a Gaussian filter … (got ParticleFilter, …)")
         raise ValueError(
             f"--restart: the restart runs an uncompensated copy of a Gaussian filter against "

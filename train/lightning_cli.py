@@ -291,12 +291,18 @@ def _kind_of_file(path: str, mtime_ns: int, size: int) -> tuple[str | None, str 
     return checkpoint_kind(blob), type(blob).__name__
 
 
+def _values_of(argv, *options: str) -> list[str]:
+    """The values of ``options`` in the command line ``argv``, in both spellings
+    (``--option=value`` and ``--option value``)."""
+    argv = list(argv or ())
+    found = [a.split("=", 1)[1] for a in argv if a.startswith(tuple(f"{o}=" for o in options))]
+    found += [argv[i + 1] for i, a in enumerate(argv[:-1]) if a in options]
+    return found
+
+
 def _ckpt_paths_in(argv) -> list[str]:
     """The values of ``--ckpt_path`` in the command line ``argv`` (both spellings)."""
-    argv = list(argv or ())
-    found = [a.split("=", 1)[1] for a in argv if a.startswith("--ckpt_path=")]
-    found += [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--ckpt_path"]
-    return found
+    return _values_of(argv, "--ckpt_path")
 
 
 def _hide_the_interrupted_events(trainer, ckpt) -> None:
@@ -635,9 +641,7 @@ def _check_config_files(argv) -> None:
     that is missing or no valid YAML is left to jsonargparse's own error."""
     import yaml
 
-    given = [a.split("=", 1)[1] for a in argv if a.startswith(("--config=", "-c="))]
-    given += [argv[i + 1] for i, a in enumerate(argv[:-1]) if a in ("--config", "-c")]
-    for path in map(Path, given):
+    for path in map(Path, _values_of(argv, "--config", "-c")):
         if path.is_file():
             try:
                 check_config_keys(path)
@@ -702,8 +706,7 @@ def _config_hint(argv: list[str], command: str) -> str:
     """A hint where a command ran without ``--config``: the model and data come from a
     training config (a docs trial: ``difffilter-train fit`` alone said only "the following
     arguments are required: fit.data, fit.model")."""
-    given = any(a in ("--config", "-c") or a.startswith("--config=") for a in argv)
-    if given or not command:
+    if _values_of(argv, "--config", "-c") or not command:
         return ""
     return (
         f"; no --config given: start from a training config, e.g. difffilter-train"

@@ -174,6 +174,7 @@ __all__ = [
     "NeuralCompensation",
     "build_delta",
     "feature_dim",
+    "restart_applies",
 ]
 
 #: The optional per-step inputs (module docstring), in the order they enter ``δ_k``.
@@ -853,12 +854,18 @@ def _check_step_options(network, channel, residual, gating, compensation) -> Non
             )
 
 
+def restart_applies(particle_filter: bool, channel) -> bool:
+    """Whether a network's filter can restart from a χ²-gated uncompensated copy: a
+    Gaussian filter (not a particle filter) against sensor attacks (``channel``)."""
+    return not particle_filter and Channel(channel) is Channel.SENSOR
+
+
 def _check_restart(restart, inner, channel) -> None:
     """``ValueError`` for a ``restart`` rate out of (0, 1) or one the filter cannot serve."""
     if restart is None:
         return
     check_rate(restart, "restart", unset="None")
-    if channel is not Channel.SENSOR or isinstance(inner, ParticleFilter):
+    if not restart_applies(isinstance(inner, ParticleFilter), channel):
         raise ValueError(
             "restart runs an uncompensated copy of a Gaussian filter against sensor attacks: "
             f"inner must be a Gaussian filter and channel 'sensor' (got {type(inner).__name__}, "
