@@ -6,7 +6,10 @@ once to PNG (:func:`png_bytes`), saves it and logs the same image to TensorBoard
 Every estimator keeps one colour across the figures of a report
 (:func:`estimator_colours`): estimators of one family (the first word of their name:
 ``modified_pf``, ``modified_pf_est``, … are ``modified``) share a hue in shades, and no
-two estimators share a colour. Legends sit outside the axes, beside the data. The ROC
+two estimators share a colour. The members of a family also differ in line style
+(:func:`estimator_line_styles`: solid, dashed, dotted, dash-dot, in the family's order), so
+that two curves which coincide, as two variants of one detector often do, still show as two.
+Legends sit outside the axes, beside the data. The ROC
 uses a logarithmic false-alarm axis, where the operating points of a 1 % budget live, and
 marks each detector's operating point at its calibrated threshold (or its own threshold
 when the study is not calibrated). A calibrated study also shows where the false alarms
@@ -33,7 +36,7 @@ from .calibration import alarms_at  # noqa: E402
 from .report import format_number  # noqa: E402
 from .scoring import comparable_attack, rmse_over_time, roc  # noqa: E402
 
-__all__ = ["standard_figures", "estimator_colours", "png_bytes"]
+__all__ = ["standard_figures", "estimator_colours", "estimator_line_styles", "png_bytes"]
 
 # one hue per family, in this order (matplotlib's tab10, then tab20's light half)
 _HUES = [mcolors.to_rgb(c) for c in plt.get_cmap("tab10").colors] + [
@@ -68,6 +71,24 @@ def estimator_colours(names) -> dict[str, str]:
         colours[name] = colour
         seen.add(colour)
     return colours
+
+
+#: The line styles of a family's members, in order (cycled beyond four).
+LINE_STYLES = ("-", "--", ":", "-.")
+
+
+def estimator_line_styles(names) -> dict[str, str]:
+    """``{name: matplotlib line style}``: the ``j``-th member of a family (the first word of
+    the name, as :func:`estimator_colours` groups them) gets ``LINE_STYLES[j % 4]``. Shades
+    of one hue are hard to tell apart, and two variants of one estimator often draw the same
+    curve (the later one hides the earlier): a dash shows the earlier beneath it."""
+    seen: dict[str, int] = {}
+    styles: dict[str, str] = {}
+    for name in names:
+        j = seen.get(_family(name), 0)
+        seen[_family(name)] = j + 1
+        styles[name] = LINE_STYLES[j % len(LINE_STYLES)]
+    return styles
 
 
 def _legend(ax, **kw) -> None:
@@ -118,13 +139,14 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
     dt = result.scenario.dt
     T = traj.flags.shape[1]
     t = [dt * (k + 1) for k in range(T)]
-    colour = estimator_colours(outs)
+    colour, style = estimator_colours(outs), estimator_line_styles(outs)
     figs = []
 
     fig, ax = plt.subplots(figsize=(8, 4.5))
     for name, out in outs.items():
         truth = result.traj_of(name).x
-        ax.plot(t, rmse_over_time(out.means, truth).numpy(), label=name, lw=1, color=colour[name])
+        ax.plot(t, rmse_over_time(out.means, truth).numpy(), label=name, lw=1, color=colour[name],
+                ls=style[name])  # fmt: skip
     state_unit = result.scenario.state_unit
     ax.set(xlabel="time [s]", ylabel=f"state RMSE over runs [{state_unit}]", yscale="log")
     ax.set_title("State RMSE over time")
@@ -133,11 +155,13 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
 
     detecting = {n: o for n, o in outs.items() if o.detection is not None}
     if detecting and bool(traj.flags.any()) and not bool(traj.flags.all()):
-        figs.append(("roc.png", _roc_figure(result, detecting, colour)))
+        figs.append(("roc.png", _roc_figure(result, detecting, colour, style)))
         figs.append(("alarms_run0.png", _alarm_figure(result, detecting, colour, t, dt)))
     after = [n for n in detecting if result.metrics[n].get("fpr_at_far_after_attack") is not None]
     if after:
-        figs.append(("false_alarms_after_attack.png", _after_attack_figure(result, after, colour)))
+        figs.append(
+            ("false_alarms_after_attack.png", _after_attack_figure(result, after, colour, style))
+        )
 
     estimating = {n: o for n, o in outs.items() if o.attack is not None}
     if estimating and traj.attack.shape[-1] > 0:
@@ -151,9 +175,11 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
             if own.attack.shape[-1] != traj.attack.shape[-1] or not comparable_attack(out, own):
                 continue
             if not torch.equal(own.attack[r, :, c], injected):  # its own closed loop's attack
-                ax.plot(t, own.attack[r, :, c].numpy(), "--", lw=1.2, color=colour[name],
-                        label=f"injected in {name}'s loop")  # fmt: skip
-            ax.plot(t, out.attack[r, :, c].numpy(), lw=0.9, label=name, color=colour[name])
+                # a wide pale band in its colour: the estimate's own style draws over it
+                ax.plot(t, own.attack[r, :, c].numpy(), lw=4, alpha=0.3, color=colour[name],
+                        solid_capstyle="butt", label=f"injected in {name}'s loop")  # fmt: skip
+            ax.plot(t, out.attack[r, :, c].numpy(), lw=0.9, label=name, color=colour[name],
+                    ls=style[name])  # fmt: skip
         names = getattr(result.scenario, "attack_entry_names", None)
         entry = f"channel {c + 1}" if not names else f"channel {c + 1}, {names[c]}"
         ax.set(xlabel="time [s]", ylabel=f"attack, {entry} [{result.scenario.attack_unit}]",
@@ -163,7 +189,7 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
     return figs
 
 
-def _roc_figure(result, detecting, colour) -> plt.Figure:
+def _roc_figure(result, detecting, colour, style=None) -> plt.Figure:
     """ROC curves on a logarithmic false-alarm axis, each operating point marked; each
     estimator's against the flags of the trajectories it ran on (its own closed loop's,
     as its AUC and operating point are scored).
@@ -173,6 +199,7 @@ def _roc_figure(result, detecting, colour) -> plt.Figure:
     on a log axis, crossed the 1 % line at 0.298 for a detector whose scores tie from
     (0, 0) to (0.372, 0.968), whose ``tpr_at_1pct_fpr`` is 0 (a trapezoid, as the AUC
     sums, would read 0.026 there, and no threshold gives it)."""
+    style = style or estimator_line_styles(detecting)
     flags = {name: result.traj_of(name).flags for name in detecting}
     # the smallest non-zero false-alarm rate any curve can show
     floor = 1.0 / max(1, max(int((~f).sum()) for f in flags.values()))
@@ -183,7 +210,7 @@ def _roc_figure(result, detecting, colour) -> plt.Figure:
             continue
         fpr, tpr = roc(out.detection.scores, flags[name])
         ax.plot(fpr.clamp_min(floor).numpy(), tpr.numpy(), lw=1, color=colour[name],
-                drawstyle="steps-post", label=f"{name} (AUC {format_number(metrics['auc'], 3)})")  # fmt: skip
+                ls=style[name], drawstyle="steps-post", label=f"{name} (AUC {format_number(metrics['auc'], 3)})")  # fmt: skip
         point = (metrics.get("fpr_at_far"), metrics.get("tpr_at_far"))
         if point[1] is None:  # not calibrated: its own threshold
             point = (metrics.get("fpr"), metrics.get("tpr"))
@@ -204,13 +231,14 @@ def _roc_figure(result, detecting, colour) -> plt.Figure:
 AFTER_ATTACK_EDGES = (1, 2, 3, 5, 10, 20, 50, 100, 200)
 
 
-def _after_attack_figure(result, names, colour) -> plt.Figure:
+def _after_attack_figure(result, names, colour, style=None) -> plt.Figure:
     """Each calibrated detector's alarm rate on the attack-free steps, by the steps since
     the run's last attacked step (:func:`difffilter.metrics.alarm_rate_since_attack`, in
     each estimator's own trajectory), then on the steps before a run's first attack; each
     bin labelled with its number of steps (the most of any estimator: closed loops differ),
     bins without steps left out, the target rate dashed. A rate of 0 sits on the axis'
     floor (half of one alarm in the largest bin shown), a dotted line the legend names."""
+    style = style or estimator_line_styles(names)
     edges = AFTER_ATTACK_EDGES
     labels = [f"{a}" if b == a + 1 else f"{a}–{b - 1}" for a, b in zip(edges, edges[1:])]
     labels += [f"≥ {edges[-1]}", "before any attack"]
@@ -225,7 +253,8 @@ def _after_attack_figure(result, names, colour) -> plt.Figure:
     floor = 0.5 / float(steps[shown].max())
     fig, ax = plt.subplots(figsize=(8, 4.5))
     for name, (rates, _) in curves.items():
-        ax.plot(rates[shown].clamp_min(floor).numpy(), "o-", ms=3.5, lw=1, color=colour[name],
+        ax.plot(rates[shown].clamp_min(floor).numpy(), marker="o", ls=style[name], ms=3.5, lw=1,
+                color=colour[name],
                 label=f"{name} ({100 * result.metrics[name]['fpr_at_far_after_attack']:.1f} % "
                       "in steps 1–10)")  # fmt: skip
     far = getattr(result.calibration, "far", None)

@@ -10,7 +10,7 @@ import matplotlib.pyplot as plt
 import pytest
 from matplotlib import colors as mcolors
 
-from difffilter.eval.plots import estimator_colours, standard_figures
+from difffilter.eval.plots import estimator_colours, estimator_line_styles, standard_figures
 from difffilter.eval.suite import run_suite
 from difffilter.models import registry
 
@@ -28,6 +28,17 @@ def test_every_estimator_gets_its_own_colour_and_a_family_shares_a_hue():
     assert hue("modified_pf") == pytest.approx(hue("modified_pf_unknown_pl"), abs=0.02)
     assert hue("modified_pf") != pytest.approx(hue("normal_pf"), abs=0.02)
     assert estimator_colours(names[:5]) == {n: colours[n] for n in names[:5]}  # stable
+
+
+def test_a_familys_members_differ_in_line_style_in_order():
+    names = ["traditional_ad", "kf_nn_grad", "traditional_ad_robust", "kf_nn_grad_ekf",
+             "traditional_ad_diagonal", "chi_square_kf", "kf_a", "kf_b", "kf_c"]  # fmt: skip
+    styles = estimator_line_styles(names)
+    assert [styles[n] for n in ("traditional_ad", "traditional_ad_robust",
+                                "traditional_ad_diagonal")] == ["-", "--", ":"]  # fmt: skip
+    assert [styles[n] for n in ("kf_nn_grad", "kf_nn_grad_ekf", "kf_a", "kf_b", "kf_c")] == [
+        "-", "--", ":", "-.", "-"]  # fmt: skip
+    assert styles["chi_square_kf"] == "-"  # a family of one is solid
 
 
 @pytest.fixture(scope="module")
@@ -55,6 +66,14 @@ def test_a_twelve_estimator_report_keeps_one_distinct_colour_per_estimator(figur
     attack = _line_colours(figs["attack_estimates_run0.png"])
     for name, colour in {**roc, **{n: c for n, c in attack.items() if n != "injected"}}.items():
         assert colour == rmse[name], name  # the same colour in every figure
+    # and the same line style: two members of a family whose curves coincide both show
+    styles = estimator_line_styles(suite.outputs)
+    assert len(set(styles.values())) > 1
+    for fig in (figs["rmse_over_time.png"], figs["roc.png"]):
+        for line in fig.axes[0].get_lines():
+            name = line.get_label().split(" (AUC")[0]
+            if name in styles:
+                assert line.get_linestyle() == styles[name], name
     for fig in figs.values():
         legend = fig.axes[0].get_legend()
         if legend is not None:  # beside the axes, not over the data
