@@ -99,6 +99,12 @@ class Attack:
         """``(state, value [..., dim], flag [...] or [..., dim])`` at measurement ``k``."""
         raise NotImplementedError
 
+    def last_step(self, state) -> int | None:
+        """The last measurement ``k`` that ``state`` (from :meth:`init`) can step, or ``None``
+        where it has no end (the default). A loop that would run past it is refused before
+        its first step, naming its ``horizon``."""
+        return None
+
     def conceal(self, state, k: int, *, y, x):
         """``(state, c_k [..., dy])``: what an actuator attack that :attr:`conceals` adds to
         the measurement ``y_k`` (module docstring); never called otherwise."""
@@ -137,6 +143,10 @@ class TabulatedAttack(Attack):
         values, flags = self.sample(batch_shape, num_steps, dim, generator, dtype=dtype,
                                     device=device)  # fmt: skip
         return values, flags.bool()
+
+    def last_step(self, state) -> int:
+        """The tables' rows: ``num_steps`` of :meth:`init`."""
+        return state[0].shape[-2]
 
     def step(self, state, k, *, y=None, x=None, u=None, view=None):
         values, flags = state

@@ -527,6 +527,11 @@ def closed_loop(
         raise ValueError(
             f"horizon must be an integer (the whole loop's T) or None; got {horizon!r}"
         )
+    if attack_generator is not None and not isinstance(attack_generator, torch.Generator):
+        raise TypeError(  # (torch's rand() named neither; the estimator's generator= takes both)
+            "attack_generator must be a torch.Generator or None (the attack's own stream, "
+            f"not difffilter.Generators); got {type(attack_generator).__name__}"
+        )
     if (forks or fork) and not isinstance(noise, ReplayedNoise):
         raise ValueError("forks= and fork= need ReplayedNoise: drawn noise's generator is "
                          "not part of the loop's state, so a fork could not replay it")  # fmt: skip
@@ -566,6 +571,7 @@ def closed_loop(
                 "sent", "arrived", "acting")  # fmt: skip
         rec, outs = {key: [] for key in keys}, []
     _check_lengths(plant, noise, mask, state, steps)
+    _check_attack_horizon(attack, state, steps)
     unreached = sorted(k for k in forks or () if not state.k < k <= state.k + steps)
     if unreached:  # (they stayed None, unsaid)
         raise ValueError(
@@ -996,6 +1002,21 @@ def _check_lengths(plant, noise, mask, state: LoopState, steps: int) -> None:
                     f"ReplayedNoise's {name} noise is {draws.dtype}, the loop's state "
                     f"{state.x.dtype}: draw it in the plant's dtype"
                 )
+
+
+def _check_attack_horizon(attack, state: LoopState, steps: int) -> None:
+    """The attacker's state reaches step ``state.k + steps``
+    (:meth:`~difffilter.attack.Attack.last_step`: a tabulated attack's rows, drawn for the
+    loop's ``horizon`` at its start); past it, torch's IndexError named neither."""
+    if attack is None or state.attack is None:
+        return
+    last, end = attack.last_step(state.attack), state.k + steps
+    if last is not None and end > last:
+        raise ValueError(
+            f"horizon: attack {type(attack).__name__} was tabulated for steps 1 … {last} when "
+            f"the loop started (its horizon, default the first call's steps), and this call runs "
+            f"to step {end}: start the loop with horizon={end} or more"
+        )
 
 
 def _with_input_memory(input_loss: InputLoss, plant, state: LoopState, steps: int) -> LoopState:

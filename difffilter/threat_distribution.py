@@ -105,6 +105,28 @@ def _check_draw(where: str, value: dict) -> None:
         raise ValueError(f"{where}: signed must be true or false; got {value['signed']!r}")
 
 
+def _is_threat(value) -> bool:
+    """Whether a field is a threat of its own (a mapping with a ``kind``: a covert attack's
+    ``signal``), whose fields may be drawn as well."""
+    return isinstance(value, dict) and "kind" in value and not _is_draw(value)
+
+
+def _check_fields(where: str, entry: dict) -> None:
+    """Each random field of ``entry`` is a well-formed draw (:func:`_check_draw`), the
+    fields of a nested threat (a covert attack's ``signal``) too, and no other mapping
+    stands where a field goes (a misspelt draw read "must be a number")."""
+    for field, value in entry.items():
+        if _is_draw(value):
+            _check_draw(f"{where}.{field}", value)
+        elif _is_threat(value):
+            _check_fields(f"{where}.{field}", value)
+        elif isinstance(value, dict):
+            raise ValueError(
+                f"{where}.{field}: a mapping is a random draw, one of {{uniform|"
+                f"loguniform|randint|choice: ...}}{_near(value, _DRAWS)}; got {value!r}"
+            )
+
+
 def _extremes(value) -> list:
     """The values of a random field that bound what it can draw (every ``choice``; ``lo``
     and ``hi`` of a range, negated too with ``signed``), so that construction checks a
@@ -123,17 +145,38 @@ _MAX_CORNERS = 4096
 
 
 def _corners(entry: dict) -> list[dict]:
-    """Every combination of the random fields' extremes (:func:`_extremes`): two fields
-    that constrain each other (a replay's ``onset > delay``, pulses' ``width ≤ period``) are
+    """``entry`` at every combination of its random fields' extremes (:func:`_extremes`;
+    a nested threat's, a covert signal's, as fields of their own): two fields that
+    constrain each other (a replay's ``onset > delay``, pulses' ``width ≤ period``) are
     checked together, where one at a time let 5 % of the draws fail mid-training."""
-    random = {k: _extremes(v) for k, v in entry.items() if _extremes(v)}
+    random = {(k,): _extremes(v) for k, v in entry.items() if _extremes(v)}
+    for k, v in entry.items():
+        if _is_threat(v):
+            random.update({(k, f): _extremes(x) for f, x in v.items() if _extremes(x)})
     if math.prod(len(v) for v in random.values()) > _MAX_CORNERS:
-        return [{k: x} for k, values in random.items() for x in values]
-    return [dict(zip(random, combo)) for combo in itertools.product(*random.values())]
+        corners = [{path: x} for path, values in random.items() for x in values]
+    else:
+        corners = [dict(zip(random, combo)) for combo in itertools.product(*random.values())]
+    return [_with_values(entry, corner) for corner in corners]
+
+
+def _with_values(entry: dict, values: dict) -> dict:
+    """``entry`` with the fields at the paths of ``values`` (``(field,)`` or ``(field,
+    nested field)``) replaced."""
+    out = dict(entry)
+    for path, x in values.items():
+        if len(path) == 1:
+            out[path[0]] = x
+        else:
+            out[path[0]] = {**out[path[0]], path[1]: x}
+    return out
 
 
 def _draw(value, generator: torch.Generator):
-    """One value of a field (a constant is itself)."""
+    """One value of a field (a constant is itself; a nested threat, its fields drawn in
+    their order)."""
+    if _is_threat(value):
+        return {k: _draw(v, generator) for k, v in value.items()}
     if not _is_draw(value):
         return value
     u = lambda: float(torch.rand((), generator=generator, dtype=torch.float64))  # noqa: E731
@@ -187,21 +230,12 @@ class ThreatDistribution:
                     raise ValueError(f"{where}: the reserved name {name!r} takes a weight only")
                 continue
             kind = entry.get("kind")
-            if kind not in THREATS:
+            if not isinstance(kind, str) or kind not in THREATS:  # (a list: "unhashable")
                 raise ValueError(
                     f"{where}.kind must be one of {', '.join(sorted(THREATS))} (or the name own "
                     f"or none); got {kind!r}"
                 )
-            for field, value in entry.items():
-                if _is_draw(value):
-                    _check_draw(f"{where}.{field}", value)
-                elif isinstance(value, dict) and "kind" not in value:
-                    # (a misspelt draw read "must be a number"; a mapping with a kind is a
-                    # threat of its own: covert's signal)
-                    raise ValueError(
-                        f"{where}.{field}: a mapping is a random draw, one of {{uniform|"
-                        f"loguniform|randint|choice: ...}}{_near(value, _DRAWS)}; got {value!r}"
-                    )
+            _check_fields(where, entry)
             share = entry.get("share")
             if float(entry["weight"]) > 0 and _never_above_zero(share):
                 raise ValueError(  # (a trial's entry attacked no run and counted as trained on)
@@ -210,7 +244,7 @@ class ThreatDistribution:
                 )
             self._build(name, entry, torch.Generator().manual_seed(0), check=True)  # fields now
             for corner in _corners(entry):  # ... and the random ones at their extremes, together
-                self._build(name, {**entry, **corner}, torch.Generator().manual_seed(0), check=True)
+                self._build(name, corner, torch.Generator().manual_seed(0), check=True)
         if sum(float(e["weight"]) for e in self.spec.values()) <= 0:
             raise ValueError("threats: the weights must not all be 0")
 
@@ -301,24 +335,7 @@ class ThreatDistribution:
         for name, entry in self.spec.items():
             if name in _RESERVED or float(entry["weight"]) <= 0:
                 continue
-            onset = entry.get("onset", _default(entry["kind"], "onset"))
-            signal = entry.get("signal")
-            if (
-                entry["kind"] == "covert"
-                and isinstance(signal, dict)
-                and signal.get("kind") in THREATS
-            ):
-                # a covert attack acts from its signal's onset (it has none of its own)
-                onset = signal.get("onset", _default(signal["kind"], "onset"))
-            if onset is _NO_DEFAULT:
-                continue
-            if not _is_draw(onset):
-                share = float(onset > steps)
-            elif "choice" in onset:
-                share = sum(o > steps for o in onset["choice"]) / len(onset["choice"])
-            else:  # randint [lo, hi], both included
-                lo, hi = onset["randint"]
-                share = max(0, hi - max(lo, steps + 1) + 1) / (hi - lo + 1)
+            share = _share_past(entry, steps)
             if share > 0:
                 past[name] = share
         return past
@@ -326,6 +343,11 @@ class ThreatDistribution:
     def sample(self, generator: torch.Generator) -> tuple[str, Any]:
         """``(name, attack)``: a threat by weight and its drawn fields; ``own`` gives
         :attr:`own`, ``none`` gives ``None``."""
+        if not isinstance(generator, torch.Generator):  # (torch's multinomial() named neither)
+            raise TypeError(
+                f"generator must be a torch.Generator (e.g. torch.Generator().manual_seed(0)); "
+                f"got {type(generator).__name__}"
+            )
         names = list(self.spec)
         weights = torch.tensor([float(self.spec[n]["weight"]) for n in names], dtype=torch.float64)
         name = names[int(torch.multinomial(weights, 1, generator=generator))]
@@ -337,6 +359,29 @@ class ThreatDistribution:
 
 
 _NO_DEFAULT = object()
+
+
+def _share_past(entry: dict, steps: int) -> float:
+    """The share of ``entry``'s draws whose onset falls after ``steps`` (0 for a threat
+    without an onset). A covert attack acts from its signal's onset (it has none of its
+    own), a signal drawn by ``choice`` from each option's equally."""
+    if entry.get("kind") == "covert":
+        signal = entry.get("signal")
+        if _is_draw(signal) and "choice" in signal:
+            options = signal["choice"]
+            return sum(_share_past(o, steps) for o in options if _is_threat(o)) / len(options)
+        return _share_past(signal, steps) if _is_threat(signal) else 0.0
+    if entry.get("kind") not in THREATS:  # (an attack of one's own: no onset it declares)
+        return 0.0
+    onset = entry.get("onset", _default(entry["kind"], "onset"))
+    if onset is _NO_DEFAULT:
+        return 0.0
+    if not _is_draw(onset):
+        return float(onset > steps)
+    if "choice" in onset:
+        return sum(o > steps for o in onset["choice"]) / len(onset["choice"])
+    lo, hi = onset["randint"]  # both included
+    return max(0, hi - max(lo, steps + 1) + 1) / (hi - lo + 1)
 
 
 def threat_spec(attack) -> dict | None:

@@ -93,9 +93,19 @@ def _scalar(value, name: str, *, positive: bool = False, nonnegative: bool = Fal
         raise ValueError(f"{name} must be a finite number; got {value!r}") from None
 
 
-def _count(value, name: str, minimum: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+def _count(value, name: str, minimum: int) -> int:
+    """``value`` as an ``int`` ``>= minimum`` (a numpy integer too: ``np.int64(3)``, from an
+    array of onsets, was refused as "not an integer")."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}")
+    return int(value)
+
+
+def _set_counts(attack, minimum: int, *names: str) -> None:
+    """Check and store each of the frozen dataclass ``attack``'s fields ``names`` as an
+    ``int >= minimum`` (:func:`_count`)."""
+    for name in names:
+        object.__setattr__(attack, name, _count(getattr(attack, name), name, minimum))
 
 
 def _share(value) -> float:
@@ -127,9 +137,7 @@ class Shaped(TabulatedAttack):
     channel: Channel = Channel.SENSOR
 
     def __post_init__(self):
-        _count(self.onset, "onset", 1)
-        if self.duration is not None:
-            _count(self.duration, "duration", 1)
+        _set_counts(self, 1, "onset", *(() if self.duration is None else ("duration",)))
         object.__setattr__(self, "share", _share(self.share))
         object.__setattr__(self, "channel", Channel(self.channel))
         if self.entries is not None:
@@ -139,10 +147,13 @@ class Shaped(TabulatedAttack):
                     f"{self.entries!r}"
                 )
             entries = tuple(self.entries)
-            if not entries or any(isinstance(i, bool) or not isinstance(i, int) or i < 0
-                                  for i in entries):  # fmt: skip
-                raise ValueError(f"entries must be None or indices >= 0; got {self.entries!r}")
-            object.__setattr__(self, "entries", entries)
+            if not entries or any(isinstance(i, bool) or not isinstance(i, numbers.Integral)
+                                  or i < 0 for i in entries):  # fmt: skip
+                raise ValueError(
+                    f"entries must be None or a non-empty list of integer indices >= 0; got "
+                    f"{self.entries!r}"
+                )
+            object.__setattr__(self, "entries", tuple(int(i) for i in entries))
 
     def shape(self, s: Tensor, dim: int, batch: torch.Size, generator, dtype) -> Tensor:
         """``a`` at the steps since the onset ``s [T]`` (negative before it): ``[T, dim]``
@@ -270,8 +281,7 @@ class Pulses(Shaped):
     def __post_init__(self):
         super().__post_init__()
         object.__setattr__(self, "amplitude", _numbers(self.amplitude, "amplitude"))
-        _count(self.period, "period", 1)
-        _count(self.width, "width", 1)
+        _set_counts(self, 1, "period", "width")
         if self.width > self.period:
             raise ValueError(
                 f"width must be <= period; got width={self.width}, period={self.period}"
@@ -319,7 +329,7 @@ class Chirp(Shaped):
     def __post_init__(self):
         super().__post_init__()
         object.__setattr__(self, "amplitude", _numbers(self.amplitude, "amplitude"))
-        _count(self.sweep, "sweep", 1)
+        _set_counts(self, 1, "sweep")
         for name in ("f0", "f1"):
             object.__setattr__(self, name, _scalar(getattr(self, name), name, nonnegative=True))
         object.__setattr__(self, "dt", _scalar(self.dt, "dt", positive=True))
@@ -391,19 +401,18 @@ class Replay(Attack):
     reads_state = False  # (what it intercepts: the measurements)
 
     def __post_init__(self):
-        _count(self.delay, "delay", 1)
-        _count(self.onset, "onset", 1)
+        _set_counts(self, 1, "delay", "onset")
         if self.onset <= self.delay:
             raise ValueError(
                 f"onset must exceed delay (y_(k-d) must exist); got onset={self.onset}, "
                 f"delay={self.delay}"
             )
         if self.duration is not None:
-            _count(self.duration, "duration", 1)
+            _set_counts(self, 1, "duration")
         object.__setattr__(self, "share", _share(self.share))
         if not isinstance(self.live, bool):
             raise ValueError(f"live must be True or False; got {self.live!r}")
-        _count(self.level_window, "level_window", 1)
+        _set_counts(self, 1, "level_window")
         if self.loop is not None:
             self._check_loop()
 
@@ -524,9 +533,18 @@ class Covert(Attack):
 
     def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
         """``(signal's table, x̄ᵃ, x̄ⁿ, injected so far [...])``; the copies start at step 1."""
+        mean = getattr(getattr(self.plant, "initial", None), "mean", None)
+        if isinstance(mean, Tensor) and mean.dtype != dtype:  # (torch's "m1 and m2" otherwise)
+            raise ValueError(
+                f"plant (the covert attacker's model) is {mean.dtype} and the loop {dtype}: "
+                f"give the attacker its model in the loop's dtype"
+            )
         table = self.signal.init(batch_shape, num_steps, dim, generator, dtype=dtype,
                                  device=device)  # fmt: skip
         return table, None, None, None
+
+    def last_step(self, state) -> int | None:
+        return self.signal.last_step(state[0])
 
     def step(self, state, k, *, y=None, x=None, u=None, view=None):
         table, attacked, nominal, injected = state
@@ -611,7 +629,7 @@ def threat_from_dict(spec: dict, model=None) -> Attack:
         )
     if isinstance(kind, str) and ":" in kind:
         return _attack_of_ones_own(kind, params, model)
-    if kind not in THREATS:
+    if not isinstance(kind, str) or kind not in THREATS:  # (a list failed as "unhashable")
         raise ValueError(
             f"unknown threat kind {kind!r}; valid: {', '.join(sorted(THREATS))} (in a threat "
             "set also stealthy), or an attack of your own as package.module:object"
@@ -636,6 +654,13 @@ def threat_from_dict(spec: dict, model=None) -> Attack:
             raise ValueError(
                 f"a covert threat needs signal: a shaped threat's mapping (e.g. {{kind: bias, "
                 f"value: 0.1}}); got {signal!r}"
+            )
+        shaped = sorted(k for k, c in THREATS.items() if issubclass(c, Shaped))
+        own = isinstance(signal.get("kind"), str) and ":" in signal["kind"]  # (Covert checks)
+        if not own and signal.get("kind") not in shaped:  # (a replay's: "no field(s) channel")
+            raise ValueError(
+                f"a covert threat's signal must be a shaped threat, one of {', '.join(shaped)} "
+                f"(it is put on the actuators); got kind {signal.get('kind')!r}"
             )
         inner = threat_from_dict({**signal, "channel": "actuator"}, model)
         return Covert(inner, model)

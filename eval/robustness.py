@@ -171,20 +171,9 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
             spec = dict(specs[name])
             if spec.get("kind") == "stealthy":  # crafted when the study runs (eval.stealthy)
                 threats[name] = StealthySpec.from_dict(spec)
-                threats[name].check_fits(model)
             else:
                 threats[name] = threat_from_dict(spec, model=model)
-                # refused now, not when its turn comes after the calibration and the threats
-                # before it (an adaptive threat on an open-loop scenario: a trial's third)
-                scenario.with_threat(threats[name])
-            # (a crafted threat: its onset only; a library threat: its widths too)
-            check_attack_fits(threats[name], model, getattr(scenario, "steps", None))
-            if getattr(threats[name], "conceals", False) and scenario.input_loss_schedule():
-                raise ValueError(
-                    "a covert attack's concealment assumes its input packets arrive, and "
-                    f"{scenario.name} loses some (input_loss): leave it out of this scenario's "
-                    "study (exclude:)"
-                )
+            _check_threat(scenario, model, threats[name])
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{path}: threat {name!r}: {exc}") from None
     estimators, runs = data.get("estimators"), data.get("runs")
@@ -194,6 +183,25 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
                          f"scenario's); got {runs!r}")  # fmt: skip
     return ThreatSet(threats, {n: dict(specs[n]) for n in chosen}, runs,
                      None if estimators is None else tuple(estimators), str(path))  # fmt: skip
+
+
+def _check_threat(scenario, model, threat) -> None:
+    """Raise where ``threat`` cannot run on ``scenario`` (``model``: its system): refused
+    before the study, not when its turn comes after the calibration and the threats before
+    it (an adaptive threat on an open-loop scenario: a trial's third; an onset past the
+    horizon, named as the scenario's own attack from inside the study)."""
+    if isinstance(threat, StealthySpec):  # crafted when the study runs (eval.stealthy)
+        threat.check_fits(model)
+    else:
+        scenario.with_threat(threat)
+    # (a crafted threat: its onset only; a library threat: its widths too)
+    check_attack_fits(threat, model, getattr(scenario, "steps", None))
+    if getattr(threat, "conceals", False) and scenario.input_loss_schedule():
+        raise ValueError(
+            "a covert attack's concealment assumes its input packets arrive, and "
+            f"{scenario.name} loses some (input_loss): leave it out of this scenario's "
+            "study (exclude:)"
+        )
 
 
 #: The keys a threat-set file may hold (:func:`load_threat_set`).
@@ -284,12 +292,12 @@ def run_robustness(
     and ``add``, every threshold at ``far`` from ``calibration_runs`` attack-free runs."""
     from tqdm.auto import tqdm
 
+    model = scenario.system()
     for name, threat in threat_set.threats.items():  # refused before any run, not at its turn
-        if not isinstance(threat, StealthySpec):
-            try:
-                scenario.with_threat(threat)
-            except (TypeError, ValueError) as exc:
-                raise ValueError(f"threat {name!r}: {exc}") from None
+        try:  # (a ThreatSet made in Python was not checked as a file's is)
+            _check_threat(scenario, model, threat)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"threat {name!r}: {exc}") from None
     runs = runs or threat_set.runs or scenario.runs
     targets = [t.against for t in threat_set.threats.values() if isinstance(t, StealthySpec)]
     add = tuple(dict.fromkeys((*add, *targets)))  # a crafted attack's detector is calibrated

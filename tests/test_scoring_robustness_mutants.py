@@ -102,7 +102,9 @@ def test_run_robustness_leaves_an_idle_threat_out_of_the_worst_case(monkeypatch)
     monkeypatch.setattr(rb, "broken_down", lambda skipped: {})
     monkeypatch.setattr(rb, "threat_totals", lambda suite, roles: {})
     monkeypatch.setattr(rb, "roles", lambda m: {})
-    scenario = SimpleNamespace(name="toy", runs=2, with_threat=lambda threat: None)
+    monkeypatch.setattr(rb, "_check_threat", lambda scenario, model, threat: None)
+    scenario = SimpleNamespace(name="toy", runs=2, with_threat=lambda threat: None,
+                               system=lambda: None)  # fmt: skip
     threats = ThreatSet({"zero": object(), "bias": object()}, {"zero": {}, "bias": {}})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -42,6 +42,7 @@ from .._checks import (
     broadcast_shapes,
     check_finite_number,
     check_mask,
+    check_positive_int,
     check_rate,
     check_square,
     check_symmetric,
@@ -535,8 +536,9 @@ class CusumDetector:
         Bisection on ``τ`` (the alarm rate is non-increasing in ``τ``); returns and
         stores ``τ``.
         """
-        if not 0.0 < false_alarm_rate < 1.0:
-            raise ValueError(f"false_alarm_rate must lie in (0, 1); got {false_alarm_rate}")
+        false_alarm_rate = check_rate(false_alarm_rate, "false_alarm_rate")  # (a "0.01" too)
+        # (0 bisections returned the bracket's top, max Σg: no alarm at all, unsaid)
+        iterations = check_positive_int(iterations, "iterations")
         _check_sequence(g_attack_free, "g_attack_free", 0)
         mean = float(_finite_mean(g_attack_free))
         if self.bias <= mean:  # (taken without a word before: a closed-loop trial)
