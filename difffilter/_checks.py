@@ -504,7 +504,12 @@ def check_sequence_inputs(
     return ys, us, mask, skipped
 
 
-def _check_us(model, us, batch: torch.Size, num_steps: int | None, dtype, device) -> Tensor:
+def _check_us(
+    model, us, batch: torch.Size, num_steps: int | None, dtype, device, against: str = ""
+) -> Tensor:
+    """``us [..., T, du]`` (``num_steps``; ``None``: one step's ``u [..., du]``) fits the
+    model, the dtype and device, and its batch broadcasts with ``batch`` (``against``: whose
+    batch, possessive, for the message; default ``ys's`` or ``y's``)."""
     du = model.dim_u
     if du == 0:
         raise ValueError("us was given but the model has no input (dim_u = 0); pass us=None")
@@ -519,9 +524,9 @@ def _check_us(model, us, batch: torch.Size, num_steps: int | None, dtype, device
                          f"got {us.shape[-2]}")  # fmt: skip
     lead = us.shape[:-2] if seq else us.shape[:-1]
     if broadcast_or_none(lead, batch) is None:
-        of = "ys" if seq else "y"
+        whose = against or ("ys'" if seq else "y's").replace("ys'", "ys's")
         raise ValueError(
-            f"{name}'s batch shape {tuple(lead)} does not broadcast with {of}'s {tuple(batch)}"
+            f"{name}'s batch shape {tuple(lead)} does not broadcast with {whose} {tuple(batch)}"
         )
     if values_known(us) and not bool(torch.isfinite(us).all()):
         raise ValueError(f"{name} contains NaN or Inf values; every input must be finite")

@@ -39,7 +39,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._checks import _check_float_tensor, check_positive_int, model_dtype_device
+from ._checks import _check_float_tensor, _check_us, check_positive_int, model_dtype_device
 from .linalg import symmetrize
 from .noise import Gaussian, NoiseModel
 from .ssm import StateSpaceModel
@@ -156,7 +156,7 @@ def measurement_information_moments(model: StateSpaceModel, xs: Tensor, k0: int 
     return torch.stack(out, dim=-5)
 
 
-def _pcrb_information(model, xs, x0, mask, information, num_samples, generator) -> Tensor:
+def _pcrb_information(model, xs, x0, us, mask, information, num_samples, generator) -> Tensor:
     """The arguments of :func:`posterior_crb` checked; ``J_v`` for every step
     ``[..., T, dy, dy]`` (given, or from the measurement noise and the mask)."""
     if not isinstance(model, StateSpaceModel):
@@ -178,8 +178,10 @@ def _pcrb_information(model, xs, x0, mask, information, num_samples, generator) 
     if not bool(torch.isfinite(xs).all()) or not bool(torch.isfinite(x0).all()):
         raise ValueError("xs and x0 must be finite")
     T = xs.shape[-2]
+    if us is not None:  # (a us without its T axis read path t's input at step t, unsaid)
+        _check_us(model, us, xs.shape[:-2], T, dtype, device, against="xs's [..., M]")
     mask = _check_mask(mask, dy)
-    if mask is not None and mask.shape[-2] != T:
+    if mask is not None and (mask.dim() < 2 or mask.shape[-2] != T):
         raise ValueError(
             f"mask must have shape [..., {T}, {dy}] (one row per step); got {tuple(mask.shape)}"
         )
@@ -265,7 +267,7 @@ def posterior_crb(
 
     Returns a :class:`PCRBResult` (``information``, ``bound``: ``[..., T, dx, dx]``).
     """
-    information = _pcrb_information(model, xs, x0, mask, information, num_samples, generator)
+    information = _pcrb_information(model, xs, x0, us, mask, information, num_samples, generator)
     dx, T = model.dim_x, xs.shape[-2]
     information = information.to(xs.dtype)
     G = measurement_information_moments(model, xs)  # [..., T, dy, dy, dx, dx]

@@ -26,6 +26,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from ._checks import _check_us, model_dtype_device
 from .noise import Gaussian
 from .results import ParticleFilterResult
 from .ssm import StateSpaceModel
@@ -87,9 +88,15 @@ def particle_smoother(
         raise ValueError(f"start must be an integer >= 0 (the filter's first k); got {start!r}")
     particles, log_w = filtered.particles, filtered.log_weights
     steps = particles.shape[-3]
-    if us is not None and (not isinstance(us, Tensor) or us.shape[-2:-1] != (steps,)):
-        raise ValueError(f"us must be the filter's inputs [..., T = {steps}, du]; got "
-                         f"{tuple(us.shape) if isinstance(us, Tensor) else us!r}")  # fmt: skip
+    if particles.shape[-1] != model.dim_x:  # (torch's "Expected size for first two …")
+        raise ValueError(
+            f"model's states have {model.dim_x} entries and the filter's particles "
+            f"{particles.shape[-1]}: smooth with the model the filter ran on"
+        )
+    if us is not None:  # the filter's inputs, checked as the filters check them
+        dtype, device = model_dtype_device(model)
+        _check_us(model, us, particles.shape[:-3], steps, dtype, device,
+                  against="the particles'")  # fmt: skip
     smoothed = [log_w[..., -1, :]]
     for t in range(steps - 2, -1, -1):  # index t holds x_{t+1}; its successor x_{t+2}
         u = None if us is None else us[..., t + 1, :]

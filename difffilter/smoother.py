@@ -34,7 +34,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._checks import model_batch_shape
+from ._checks import _check_us, model_batch_shape, model_dtype_device
 from .kalman import kalman_filter
 from .linalg import symmetrize
 from .results import FilterResult, ParticleFilterResult
@@ -235,9 +235,10 @@ def _check_arguments(model, filtered, us, needed: str) -> tuple[int, int]:
     steps, dx = filtered.means.shape[-2], filtered.means.shape[-1]
     if steps < 1:
         raise ValueError("filtered holds no step (T = 0)")
-    if us is not None and (not isinstance(us, Tensor) or us.shape[-2:-1] != (steps,)):
-        raise ValueError(f"us must be the filter's inputs [..., T = {steps}, du]; got "
-                         f"{tuple(us.shape) if isinstance(us, Tensor) else us!r}")  # fmt: skip
+    if us is not None:  # the filter's inputs, checked as the filters check them
+        dtype, device = model_dtype_device(model)
+        _check_us(model, us, filtered.means.shape[:-2], steps, dtype, device,
+                  against="the filtered means'")  # fmt: skip
     return steps, dx
 
 

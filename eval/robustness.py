@@ -292,7 +292,7 @@ def run_robustness(
     and ``add``, every threshold at ``far`` from ``calibration_runs`` attack-free runs."""
     from tqdm.auto import tqdm
 
-    model = scenario.system()
+    model = scenario.system() if threat_set.threats else None
     for name, threat in threat_set.threats.items():  # refused before any run, not at its turn
         try:  # (a ThreatSet made in Python was not checked as a file's is)
             _check_threat(scenario, model, threat)

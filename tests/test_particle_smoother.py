@@ -102,7 +102,7 @@ def test_the_smoother_says_what_it_needs():
     with pytest.raises(TypeError, match="filtered must be the ParticleFilterResult"):
         df.particle_smoother(model, df.extended_kalman_filter(model, ys, us), us)
     kept = df.particle_filter(model, ys, us, num_particles=5, generator=gen, return_particles=True)
-    with pytest.raises(ValueError, match=r"us must be the filter's inputs \[..., T = 4, du\]"):
+    with pytest.raises(ValueError, match=r"us must have T = 4 steps, one per measurement"):
         df.particle_smoother(model, kept, us[:, :2])
 
     class Multiplicative(df.NonlinearGaussianModel):

@@ -275,7 +275,7 @@ def test_the_extended_smoother_is_a_numpy_extended_rts_smoother():
     a, b = kalman_smoother(linear, ys), df.extended_kalman_smoother(wrapped, ys)
     torch.testing.assert_close(b.means, a.means, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(b.covs, a.covs, rtol=1e-10, atol=1e-12)
-    with pytest.raises(ValueError, match=r"us must be the filter's inputs \[..., T = 25, du\]"):
+    with pytest.raises(ValueError, match=r"us must have T = 25 steps, one per measurement"):
         rts_smoother(model, out.filtered, us[:, :3])
 
 
