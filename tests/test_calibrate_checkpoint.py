@@ -335,3 +335,28 @@ def test_calibrate_to_a_place_it_cannot_write_says_so_before_scoring(tmp_path, c
     assert len(err) == 1 and "--out: cannot make the folder" in err[0]
     assert main([SHIPPED, "--out", str(tmp_path / "x.json")]) == 2
     assert "--out must name a .ckpt file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("writes", [False, True])
+def test_an_interrupted_calibration_says_whether_out_was_written(
+    tmp_path, monkeypatch, capsys, writes
+):
+    """Ctrl-C in ``difffilter-train calibrate`` printed a 22-frame traceback (a training
+    trial); it now says what stands at ``--out``: nothing (rerun), or a file being written,
+    checkpoint and card possibly unmatched (rerun with ``--force``)."""
+    from difffilter.train import calibrate as calibrate_module
+
+    out = tmp_path / "cal.ckpt"
+
+    def interrupted(src, dst, **kwargs):
+        if writes:
+            dst.write_bytes(b"part")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(calibrate_module, "calibrate_checkpoint", interrupted)
+    assert calibrate_module.main([str(tmp_path / "src.ckpt"), "--out", str(out)]) == 130
+    err = capsys.readouterr().err
+    if writes:
+        assert f"interrupted: {out} was being written; rerun the same command with --force" in err
+    else:
+        assert f"interrupted: nothing was written to {out}; rerun the same command" in err

@@ -220,13 +220,70 @@ def test_a_new_fit_into_a_folder_that_holds_a_run_is_refused(tmp_path):
     (run / "config.yaml").write_text("x: 1\n")  # a run that died before its first checkpoint
     _refuse_a_used_run_folder(run)
     (run / "checkpoints").mkdir()
-    (run / "checkpoints" / "last.ckpt").write_bytes(b"")
+    (run / "checkpoints" / "last.ckpt").write_bytes(b"")  # not a checkpoint torch reads
+    with pytest.raises(ValueError, match=r"holds a run already \(checkpoints/last.ckpt\): a new "
+                       r"fit would replace its checkpoints, export and card; none of them is a "
+                       r"training run's checkpoint to resume from"):  # fmt: skip
+        _refuse_a_used_run_folder(run)
+    torch.save({"pytorch-lightning_version": "2.6.0", "state_dict": {}},
+               run / "checkpoints" / "last.ckpt")  # fmt: skip
     with pytest.raises(ValueError, match=r"holds a run already \(checkpoints/last.ckpt\): a new "
                        r"fit would replace its checkpoints, export and card; resume it with "
                        r"--ckpt_path .*last.ckpt"):  # fmt: skip
         _refuse_a_used_run_folder(run)
+    # exported estimators only (the repository's own checkpoints/, default_root_dir .): the
+    # hint had offered one of them, of another family, which the resume refused in turn
+    shipped = tmp_path / "repo"
+    (shipped / "checkpoints").mkdir(parents=True)
+    from difffilter.models.neural_estimator import CHECKPOINT_FORMAT
+
+    torch.save({"format": CHECKPOINT_FORMAT, "state_dict": {}},
+               shipped / "checkpoints" / "mass_nn_grad.ckpt")  # fmt: skip
+    with pytest.raises(ValueError, match="none of them is a training run's checkpoint") as err:
+        _refuse_a_used_run_folder(shipped)
+    assert "--ckpt_path" not in str(err.value)
     other = tmp_path / "other"
     other.mkdir()
     (other / "mass_nn_grad.ckpt").write_bytes(b"")  # an export alone
     with pytest.raises(ValueError, match=r"holds a run already \(mass_nn_grad.ckpt\)"):
         _refuse_a_used_run_folder(other)
+
+
+def test_lightnings_last_and_best_are_refused_where_nothing_stands_behind_them(tmp_path):
+    """A training trial: ``fit --ckpt_path last`` trained from scratch and ``test --ckpt_path
+    last`` scored the initial weights, with Lightning's warning alone: it looks for
+    ``last.ckpt`` in the new run's own folder. Where the command fixes a folder that holds
+    one, the name stays Lightning's (it resumes from it)."""
+    from difffilter.train.lightning_cli import _refuse_a_name_with_nothing_behind
+
+    tb = {"save_dir": str(tmp_path), "name": "mass"}
+
+    def cfg(ckpt, logger=None, root=None, dirpath=None):
+        logger = (
+            {"class_path": "TensorBoardLogger", "init_args": dict(tb)} if logger is None else logger
+        )
+        callbacks = [{"class_path": "ModelCheckpoint", "init_args": {"dirpath": dirpath}}]
+        return {"ckpt_path": ckpt, "trainer": {"logger": logger, "default_root_dir": root,
+                                               "callbacks": callbacks}}  # fmt: skip
+
+    with pytest.raises(ValueError, match=r"--ckpt_path last: .*a new version that holds none "
+                                         r"\(it would train from scratch\); give the checkpoint file"):  # fmt: skip
+        _refuse_a_name_with_nothing_behind(cfg("last"), "fit")
+    older = tmp_path / "mass" / "version_0" / "checkpoints"
+    older.mkdir(parents=True)
+    (older / "last.ckpt").write_bytes(b"x")
+    with pytest.raises(ValueError, match=r"\(it would test the initial weights\); give the file, "
+                                         r"e.g. --ckpt_path .*version_0/checkpoints/last.ckpt"):  # fmt: skip
+        _refuse_a_name_with_nothing_behind(cfg("last"), "test")
+    with pytest.raises(ValueError, match=r"--ckpt_path best: .*a fit run in this same process"):
+        _refuse_a_name_with_nothing_behind(cfg("best"), "fit")
+    # a folder the command fixes, holding last.ckpt: Lightning's name, left to it
+    _refuse_a_name_with_nothing_behind(cfg("last", {**{"init_args": {**tb, "version": 0}}}), "fit")
+    root = tmp_path / "root"
+    (root / "checkpoints").mkdir(parents=True)
+    (root / "checkpoints" / "last.ckpt").write_bytes(b"x")
+    _refuse_a_name_with_nothing_behind(cfg("last", False, root=str(root)), "fit")
+    _refuse_a_name_with_nothing_behind(cfg("last", dirpath=str(root / "checkpoints")), "fit")
+    with pytest.raises(ValueError, match="--ckpt_path last"):  # fixed, but empty
+        _refuse_a_name_with_nothing_behind(cfg("last", False, root=str(tmp_path / "new")), "fit")
+    _refuse_a_name_with_nothing_behind(cfg(str(older / "last.ckpt")), "fit")  # a path: not ours

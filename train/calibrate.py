@@ -256,6 +256,15 @@ def _rate_option(value: str, option: str):
         raise ValueError(f"--{option} must be a rate in (0, 1) or off; got {value!r}") from None
 
 
+def _signature(path: Path) -> tuple | None:
+    """``(mtime_ns, size)`` of ``path``, ``None`` where there is no file."""
+    try:
+        stat = path.stat()
+    except OSError:
+        return None
+    return stat.st_mtime_ns, stat.st_size
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="difffilter-train calibrate",
@@ -288,6 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.seed < 0:  # (Streams said "seed must be …", naming no option)
         p.error(f"--seed must be an integer >= 0; got {args.seed}")
+    before = _signature(args.out)
     try:
         cal = calibrate_checkpoint(args.src, args.out, far=args.far, runs=args.runs,
                                    seed=args.seed, force=args.force,
@@ -303,6 +313,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"difffilter-train calibrate: error: --out {args.out}: cannot write it ({exc})",
               file=sys.stderr)  # fmt: skip
         return 2
+    except KeyboardInterrupt:  # (a traceback of 22 frames before: a training trial)
+        # --out is written at the end, the checkpoint and then its card: interrupted between
+        # the two, the pair does not match and a rerun must replace it
+        touched = _signature(args.out) != before
+        print("difffilter-train calibrate: interrupted: "
+              + (f"{args.out} was being written; rerun the same command with --force"
+                 if touched else f"nothing was written to {args.out}; rerun the same command"),
+              file=sys.stderr)  # fmt: skip
+        return 130
     print(
         f"wrote {args.out}: {cal['estimator']} alarms above {cal['threshold']:.6g}"
         f"{' (' + cal['score'] + ')' if 'score' in cal else ''} (was "

@@ -67,6 +67,8 @@ class DifffilterCLI(LightningCLI):
         _check_config(self.config, self.subcommand)
         kind = _check_ckpt_path(self.config[self.subcommand] if self.subcommand else self.config,
                                 self.subcommand)  # fmt: skip
+        if self.subcommand:
+            _refuse_a_name_with_nothing_behind(self.config[self.subcommand], self.subcommand)
         if self.subcommand in ("validate", "test", "predict"):
             _log_apart_from_a_fit_run(self.config[self.subcommand])
         if self.subcommand != "fit":
@@ -256,8 +258,9 @@ def _check_ckpt_path(cfg, subcommand: str | None) -> str | None:
             return None
         raise ValueError(
             f"--ckpt_path: no checkpoint file at {ckpt}; a training run's Lightning checkpoint "
-            "(<run>/checkpoints/*.ckpt), an exported estimator (checkpoints/*.ckpt) or one of "
-            f"Lightning's names ({', '.join(sorted(_LIGHTNING_CKPT_NAMES))}) is expected"
+            "(<run>/checkpoints/*.ckpt) or an exported estimator (checkpoints/*.ckpt) is "
+            "expected (Lightning's names, last and hpc, read the run folder this command "
+            "writes)"
         )
     stat = path.stat()
     kind, what = _kind_of_file(str(path.resolve()), stat.st_mtime_ns, stat.st_size)
@@ -272,6 +275,12 @@ def _check_ckpt_path(cfg, subcommand: str | None) -> str | None:
         f"--ckpt_path: {ckpt} is neither a training run's Lightning checkpoint nor an exported "
         f"estimator (a {what} of torch.save without their keys)"
     )
+
+
+def _lightning_file(path: Path) -> bool:
+    """Whether ``path`` is a training run's Lightning checkpoint."""
+    stat = path.stat()
+    return _kind_of_file(str(path.resolve()), stat.st_mtime_ns, stat.st_size)[0] == "lightning"
 
 
 @functools.lru_cache(maxsize=8)
@@ -393,6 +402,59 @@ def _runs_folder(args) -> Path:
     return root / name if name else root
 
 
+def _refuse_a_name_with_nothing_behind(cfg, subcommand: str) -> None:
+    """``--ckpt_path last`` or ``best`` where Lightning would find nothing behind the name.
+
+    Lightning resolves ``last`` in the folder of this command's own checkpoint callback: a
+    new run's ``version_<n>`` holds none, so ``fit --ckpt_path last`` trained from scratch
+    and ``test --ckpt_path last`` judged the initial weights, each with a warning only (a
+    training trial; the missing-file error had listed these names). ``best`` is the best
+    checkpoint of a ``fit`` in the same process, which a command line never has. ``last``
+    stays Lightning's where this fit's checkpoint folder is fixed and holds one (``--trainer
+    .logger false --trainer.default_root_dir DIR``, an explicit logger version, a
+    ``ModelCheckpoint`` ``dirpath``). ``ValueError`` otherwise, with the newest
+    ``last.ckpt`` under the logger's runs as the path to give."""
+    ckpt = cfg.get("ckpt_path")
+    if ckpt not in ("last", "best"):
+        return
+    logger = cfg["trainer"].get("logger")
+    args = None if logger is None or isinstance(logger, (bool, list)) else logger.get("init_args")
+    if ckpt == "last" and subcommand == "fit":
+        folders = [Path(d) for d in _checkpoint_dirpaths(cfg)]
+        fixed = _fixed_run_folder(cfg, logger, args)
+        if fixed is not None:
+            folders.append(fixed / "checkpoints")
+        if any(any(f.glob("last*.ckpt")) for f in folders):
+            return  # Lightning's own name, with a file behind it
+    runs = _runs_folder(args) if args is not None else Path("lightning_logs")
+    found = sorted(runs.glob("*/checkpoints/last.ckpt"), key=lambda p: p.stat().st_mtime_ns)
+    give = (
+        f"give the file, e.g. --ckpt_path {found[-1]} (the newest run's)"
+        if found
+        else "give the checkpoint file (<run>/checkpoints/last.ckpt or best-*.ckpt)"
+    )
+    where = ("the best checkpoint of a fit run in this same process, which a command line "
+             "never has" if ckpt == "best" else
+             "last.ckpt in this command's own run folder, a new version that holds none")  # fmt: skip
+    raise ValueError(
+        f"--ckpt_path {ckpt}: Lightning reads this name as {where} (it would "
+        + ("train from scratch" if subcommand == "fit" else f"{_JUDGES.get(subcommand, subcommand)} the initial weights")
+        + f"); {give}"
+    )  # fmt: skip
+
+
+def _checkpoint_dirpaths(cfg) -> list[str]:
+    """The ``dirpath`` of each ``ModelCheckpoint`` the trainer's callbacks configure."""
+    callbacks = cfg["trainer"].get("callbacks") or []
+    out = []
+    for cb in callbacks if isinstance(callbacks, list) else [callbacks]:
+        init = cb.get("init_args") if hasattr(cb, "get") else getattr(cb, "init_args", None)
+        dirpath = init.get("dirpath") if hasattr(init, "get") else None
+        if dirpath:
+            out.append(str(dirpath))
+    return out
+
+
 def _log_apart_from_a_fit_run(cfg) -> None:
     """``validate``, ``test`` and ``predict`` log as a run of their own (README): a logger
     version that names a fit's run folder (one holding its checkpoints: a resumed run's
@@ -419,9 +481,14 @@ def _refuse_a_used_run_folder(folder: Path | None) -> None:
         p.name for p in sorted(folder.glob("*.ckpt"))
     ]
     if held:
+        # only a training run's Lightning checkpoint resumes (the repository's own folder,
+        # default_root_dir ., holds exported estimators in checkpoints/: one of them, of
+        # another family, had been offered, and was refused in turn)
+        resumable = [p for p in saved if _lightning_file(p)]
         last = folder / "checkpoints" / "last.ckpt"
-        resume = (f"resume it with --ckpt_path {last if last.is_file() else saved[-1]}"
-                  if saved else "it saved no checkpoint to resume from")  # fmt: skip
+        resume = (f"resume it with --ckpt_path {last if last in resumable else resumable[-1]}"
+                  if resumable else "none of them is a training run's checkpoint to resume "
+                  "from")  # fmt: skip
         raise ValueError(
             f"the run folder {folder} holds a run already ({', '.join(held)}): a new fit would "
             f"replace its checkpoints, export and card; {resume}, or give another folder or "
