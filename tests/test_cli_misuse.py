@@ -290,6 +290,10 @@ def test_a_missing_ckpt_path_is_refused_before_a_run_folder_is_made(tmp_path, mo
                  ["validate", "--config", FOUR_TANK, f"--ckpt_path={missing}"]):  # fmt: skip
         assert main([*argv, "--trainer.fast_dev_run=true"]) == 2
         assert f"--ckpt_path: no checkpoint file at {missing}" in capsys.readouterr().err
+    # Lightning's "last" in a new run's folder: nothing behind it (it trained from scratch)
+    assert main(["fit", "--config", FOUR_TANK, "--ckpt_path", "last",
+                 "--trainer.fast_dev_run=true"]) == 2  # fmt: skip
+    assert "--ckpt_path last: Lightning reads this name as" in capsys.readouterr().err
     assert not (tmp_path / "lightning_logs").exists()
     for name in ("last", "best", "hpc", "s3://bucket/run.ckpt"):
         assert lightning_cli._check_ckpt_path({"ckpt_path": name}, "fit") is None
