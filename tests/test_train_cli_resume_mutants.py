@@ -263,8 +263,8 @@ def test_a_new_fit_names_the_newest_checkpoint_where_the_run_has_no_last(tmp_pat
     folder = tmp_path / "run"
     (folder / "checkpoints").mkdir(parents=True)
     newer, older = folder / "checkpoints" / "a.ckpt", folder / "checkpoints" / "b.ckpt"
-    newer.write_bytes(b"")
-    older.write_bytes(b"")
+    for path in (newer, older):  # training checkpoints (only those resume)
+        torch.save({"pytorch-lightning_version": "2.6.0", "state_dict": {}}, path)
     os.utime(older, ns=(10**18, 10**18))
     os.utime(newer, ns=(2 * 10**18, 2 * 10**18))
     with pytest.raises(ValueError, match=r"resume it with --ckpt_path .*a\.ckpt, or give"):
