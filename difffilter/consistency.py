@@ -182,6 +182,13 @@ def whiteness(
         )
         raise ValueError(f"innovation_covs must be [R, T, {m}, {m}] like the innovations (or "
                          f"broadcast to it); got {got!r}")  # fmt: skip
+    if innovation_covs.dtype != innovations.dtype or innovation_covs.device != innovations.device:
+        # (as nees says it: float32 covariances whitened float64 innovations without a word)
+        raise ValueError(
+            f"innovation_covs are {innovation_covs.dtype} on {innovation_covs.device} and "
+            f"innovations {innovations.dtype} on {innovations.device}: give them one dtype and "
+            "device"
+        )
     if bool((torch.linalg.eigvalsh(innovation_covs.double()) <= 0).any()):
         # (a zero S had been taken, its Cholesky jittered, and a normal-looking ρ̄ returned)
         raise ValueError("innovation_covs must be positive definite (a filter's S)")

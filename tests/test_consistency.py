@@ -167,3 +167,14 @@ def test_whiteness_under_packet_loss_counts_the_pairs_that_arrived():
     # step's own test has little power at n_k ≤ 8, 8 % rejected, so judge the average)
     with pytest.raises(ValueError, match=r"mask must be a bool tensor of the innovations' shape"):
         whiteness(out.innovations, out.innovation_covs, mask=mask[:, :, :1])
+
+
+def test_whiteness_names_covariances_of_another_dtype():
+    """A fuzzing trial: float32 covariances whitened float64 innovations without a word
+    (``nees`` refuses the same mix)."""
+    nu = torch.randn(3, 5, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    S = torch.eye(2, dtype=torch.float64).expand(3, 5, 2, 2)
+    whiteness(nu, S)
+    with pytest.raises(ValueError, match="innovation_covs are torch.float32 on cpu and innovations "
+                                         "torch.float64 on cpu: give them one dtype"):  # fmt: skip
+        whiteness(nu, S.float())
