@@ -218,8 +218,12 @@ def resolve_scenarios(name: str) -> list[str]:
         return registry.names(headline_only=True)
     if name in registry.families():
         return registry.names(name, headline_only=True) or registry.names(name)
-    if ":" in name or name.endswith((".yaml", ".yml")):
-        return [registry.get(name).name]  # a scenario of the user's: its own errors
+    from difffilter.models.yaml_scenario import is_yaml_path
+
+    # a scenario of the user's: its own errors (a file's, whatever the extension's case:
+    # Bad.YAML's error had read "unknown scenario")
+    if ":" in name or is_yaml_path(name):
+        return [registry.get(name).name]
     try:
         return [registry.get(name).name]
     except ValueError:
@@ -262,7 +266,7 @@ def evaluate(
 
     from .calibration import calibrate
     from .leaderboard import write_leaderboard
-    from .report import family_report, report_writers, write_acceptance_summary
+    from .report import family_report, report_for, report_writers, write_acceptance_summary
     from .suite import apply_calibration, detectors, process_group, run_suite
 
     check_arguments(runs=runs, ckpt=ckpt, calibration_runs=calibration_runs)
@@ -280,9 +284,10 @@ def evaluate(
     for family, names in families.items():
         report = family_report(family)
         mine = writers[family] == rank
-        if report.prepare and mine:
+        native = [n for n in names if report_for(registry.get(n))[1] is None]
+        if report.prepare and mine and native:
             prepared[family] = report.prepare(
-                names, out=Path(out), seed=seed, checkpoint=ckpt, progress=progress,
+                native, out=Path(out), seed=seed, checkpoint=ckpt, progress=progress,
                 options=dict(family_options or {}), far=far,
             )  # fmt: skip
         for name in names:
@@ -381,13 +386,17 @@ def note_skipped_additions(added, skipped: dict[str, str], scenario: str) -> Non
 def _write_family(family: str, results: dict, out, prepared) -> dict:
     """Each scenario's report of ``results`` (``{scenario: SuiteResult}``) and the family's
     summary; returns ``{scenario: metrics.json content}``."""
-    from .report import family_report, write_report
+    from .report import family_report, report_for, write_report
 
     done = {name: write_report(Path(out) / name, result, prepared=prepared)
             for name, result in results.items()}  # fmt: skip
     report = family_report(family)
-    if report.finish:
-        report.finish(done, Path(out), prepared)
+    # the family's summary of its own scenarios (a plant of one's own in it: left out)
+    native = {
+        name: doc for name, doc in done.items() if report_for(results[name].scenario)[1] is None
+    }
+    if report.finish and native:
+        report.finish(native, Path(out), prepared)
     return done
 
 

@@ -222,6 +222,30 @@ def family_report(family: str) -> FamilyReport:
     return _FAMILIES.get(family, FamilyReport())
 
 
+def report_for(scenario) -> tuple[FamilyReport, str | None]:
+    """``(its family's report additions, None)`` for ``scenario``, or ``(an empty
+    FamilyReport, why they are left out)`` for a plant of one's own (a
+    :class:`~difffilter.models.scenario.CustomScenario`) in a family whose registered
+    scenarios are of another class: the sections read what only those have (a YAML plant of
+    family ``tracking`` or ``robot`` failed after its whole study, and one of family ``lfc``
+    got the LFC paper's summary table)."""
+    from difffilter.models import registry
+    from difffilter.models.scenario import CustomScenario
+
+    report = family_report(scenario.family)
+    if scenario.family not in _FAMILIES or not isinstance(scenario, CustomScenario):
+        return report, None
+    kinds = {type(registry.get(n)) for n in registry.names(family=scenario.family)
+             if n != scenario.name}  # fmt: skip
+    foreign = sorted(k.__name__ for k in kinds if not isinstance(scenario, k))
+    if not foreign:  # (a family of one's own, its report written for its own plants)
+        return report, None
+    return FamilyReport(), (
+        f"`{scenario.name}` is a plant of your own (a CustomScenario), and the {scenario.family} "
+        f"family's sections read what only its {', '.join(foreign)} scenarios have"
+    )
+
+
 def metrics_schema() -> dict[str, Any]:
     """The JSON Schema of metrics.json (``eval/metrics.schema.json``; its units and
     descriptions are those of :data:`~difffilter.eval.scoring.METRICS`, tested)."""
@@ -279,8 +303,9 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     out.mkdir(parents=True, exist_ok=True)
     shown_before = _figures_of(out / "report.md")  # an earlier evaluation's, if any
     sc = result.scenario
-    family = family_report(sc.family)
+    family, foreign = report_for(sc)
     family_numbers, family_skipped = _family_numbers(family, result)  # may add estimator keys
+    family_skipped = foreign or family_skipped
     doc = _clean({
         "scenario": sc.name, "runs": result.runs, "steps": sc.steps, "seed": result.seed,
         # the study's dtype (a docs trial: a float32 study's report read as a float64 one's)

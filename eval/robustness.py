@@ -126,6 +126,12 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
             raise ValueError("--threats: no threat named; give names, or all")
     path = Path(path) if path is not None else _threat_file(scenario)
     data = _read_threat_file(path)
+    if "exclude" in data and "threats_from" not in data:  # (it was ignored: all ran)
+        raise ValueError(f"{path}: exclude leaves out threats of threats_from's file; this file "
+                         "names no threats_from: remove the threats from 'threats' instead")  # fmt: skip
+    if "threats_from" in data and "threats" in data:  # (its own were dropped, unsaid)
+        raise ValueError(f"{path}: give threats or threats_from, not both (threats_from takes "
+                         "another file's threats whole, less those in exclude)")  # fmt: skip
     if "threats_from" in data:  # another file's threats, this file's study size
         shared_path = path.parent / str(data["threats_from"])
         if not shared_path.is_file():  # (a trial's name of a shipped set was looked for
@@ -152,6 +158,10 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
     if not isinstance(specs, dict) or not specs:
         raise ValueError(f"{path}: 'threats' must be a non-empty mapping of threat names to "
                          f"their specs; got {data.get('threats')!r}")  # fmt: skip
+    named = [n for n in specs if not isinstance(n, str)]
+    if named:  # (YAML reads 2: and on: as a number and true: --threats 2 crashed)
+        raise ValueError(f"{path}: threat names must be text; got {named[0]!r}: quote it "
+                         f"('{named[0]}':)")  # fmt: skip
     # (" all", "all,": the whole set, unless a threat of the set is named all)
     every = names == "all" or (names == ["all"] and "all" not in specs)
     chosen = list(specs) if every else list(names)
@@ -177,12 +187,33 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{path}: threat {name!r}: {exc}") from None
     estimators, runs = data.get("estimators"), data.get("runs")
+    if estimators is not None:
+        _check_set_estimators(estimators, path)
     if runs is not None and (isinstance(runs, bool) or not isinstance(runs, int) or runs < 1):
         # (0 read as "not given": the scenario's 100 runs ran; -3 failed naming no file)
         raise ValueError(f"{path}: runs must be an integer >= 1 (or left out: the "
                          f"scenario's); got {runs!r}")  # fmt: skip
     return ThreatSet(threats, {n: dict(specs[n]) for n in chosen}, runs,
                      None if estimators is None else tuple(estimators), str(path))  # fmt: skip
+
+
+def _check_set_estimators(estimators, path) -> None:
+    """A threat set's ``estimators``: a non-empty list of registered names (a string was
+    read letter by letter, "unknown estimator 'c'", and no error named the file or key)."""
+    from difffilter.models import estimators as known
+
+    if (
+        not isinstance(estimators, list)
+        or not estimators
+        or not all(isinstance(e, str) for e in estimators)
+    ):
+        raise ValueError(f"{path}: estimators must be a non-empty list of estimator names "
+                         f"(e.g. [chi_square_kf]); got {estimators!r}")  # fmt: skip
+    for name in estimators:
+        try:
+            known.get(name)
+        except ValueError as exc:
+            raise ValueError(f"{path}: estimators: {exc}") from None
 
 
 def _check_threat(scenario, model, threat) -> None:

@@ -25,6 +25,7 @@ and is re-exported here).
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import torch
@@ -144,7 +145,7 @@ class ActuatorInjection(TabulatedAttack):
     knows only the commanded ``u_k``. ``values [*, T, du]`` is ``a`` at every step.
 
     Args:
-        value: ``a`` (``du`` numbers).
+        value: ``a`` (``du`` numbers; a number alone for ``du = 1``).
         start: first attacked step index (``0 ≤ start``).
     """
 
@@ -153,7 +154,13 @@ class ActuatorInjection(TabulatedAttack):
     channel = Channel.ACTUATOR
 
     def __post_init__(self):
-        v = tuple(float(a) for a in self.value)
+        # a number alone is one value, of a plant with one input (it failed as "'float'
+        # object is not iterable", a YAML scenario's trial)
+        value = (self.value,) if isinstance(self.value, numbers.Real) else self.value
+        try:
+            v = tuple(float(a) for a in value)
+        except (TypeError, ValueError):
+            v = ()
         if not v or not all(math.isfinite(a) for a in v):
             raise ValueError(
                 f"value must be a non-empty sequence of finite numbers; got {self.value!r}"
@@ -164,7 +171,7 @@ class ActuatorInjection(TabulatedAttack):
 
     def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
         _check_steps(num_steps)
-        if dim != len(self.value):
+        if len(self.value) != dim:  # (one number is not spread over several inputs)
             raise ValueError(f"value has {len(self.value)} entries but the input has {dim}")
         shape = torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
         flags = (torch.arange(num_steps, device=device) >= self.start).expand(shape + (num_steps,))

@@ -22,6 +22,8 @@ them.
 from __future__ import annotations
 
 import difflib
+import math
+import numbers
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -165,6 +167,28 @@ OPTIONS: dict[str, str] = {
 _TOGETHER = (("poa_eta", "poa_zeta"),)
 
 
+def _real(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _reals(value) -> list | None:
+    """``value`` as a list of numbers (a number alone: one), ``None`` if it is not that."""
+    values = list(value) if isinstance(value, (list, tuple)) else [value]
+    return values if values and all(_real(v) for v in values) else None
+
+
+#: What the built-in options' values must be, ``{key: (test, expected)}``: checked when a
+#: scenario is read (a YAML file's ``cusum_bias: big`` failed mid-study with a traceback,
+#: and ``-1`` with the detector's words, naming neither the file nor the option).
+_VALUES = {
+    "poa_eta": (lambda v: _reals(v) is not None and min(_reals(v)) >= 0,
+                "a finite number >= 0, or a list of them (one per measurement entry)"),
+    "poa_zeta": (lambda v: _real(v) and 0 <= v < 1, "a number in [0, 1)"),
+    "cusum_bias": (lambda v: _real(v) and v > 0, "a finite number > 0"),
+    "gamma_hat_noise_var": (lambda v: _real(v) and v >= 0, "a finite number >= 0"),
+}  # fmt: skip
+
+
 def register_option(key: str, description: str) -> str:
     """Declare ``key`` a setting that a family's estimators read from ``ctx.options`` (the
     scenario's ``estimator_options()``); ``description``: one line for the error that lists
@@ -190,6 +214,10 @@ def check_options(options: Mapping[str, Any], where: str) -> dict[str, Any]:
                 f"{known} (a family of one's own declares its settings with "
                 "difffilter.models.estimators.register_option)"
             )
+    for key, value in options.items():
+        test, expected = _VALUES.get(key, (None, ""))
+        if test is not None and not test(value):
+            raise ValueError(f"{where}: estimator option {key} must be {expected}; got {value!r}")
     for keys in _TOGETHER:
         given = [k for k in keys if k in options]
         if given and len(given) < len(keys):

@@ -381,6 +381,20 @@ class Scenario:
         return {}
 
 
+def check_folder_name(value, field_name: str) -> None:
+    """``ValueError`` unless ``value`` can name one folder of its own under a reports folder
+    (``<out>/<scenario>/``, ``<out>/<family>_summary.md``): a non-empty string that is no
+    path (no ``/`` or ``\\``, not ``.`` or ``..``). A YAML scenario named ``/abs/dir`` or
+    ``../x`` wrote its reports outside ``--out``, and one named ``''`` over the leaderboard's
+    folder (a fuzzing trial)."""
+    if (not isinstance(value, str) or not value.strip() or value in (".", "..")
+            or "/" in value or "\\" in value):  # fmt: skip
+        raise ValueError(
+            f"{field_name} must be a non-empty name without '/' or '\\' (it names the "
+            f"scenario's report folder); got {value!r}"
+        )
+
+
 @dataclass(frozen=True)
 class CustomScenario(Scenario):
     """A scenario from plain parts, for a user's own plant (no subclass needed).
@@ -427,8 +441,15 @@ class CustomScenario(Scenario):
     random_initial: bool = False
 
     def __post_init__(self):
+        check_folder_name(self.name, "name")
+        check_folder_name(self.family, "family")
         if not isinstance(self.random_initial, bool):
             raise TypeError(f"random_initial must be True or False; got {self.random_initial!r}")
+        if not isinstance(self.options, Mapping):  # (a list failed in dict(), naming no field)
+            raise ValueError(
+                f"scenario {self.name!r}: options must be a mapping of option: value (e.g. "
+                f"{{cusum_bias: 2.0}}); got {type(self.options).__name__}"
+            )
         if not callable(self.model_fn):
             raise ValueError("model_fn must be a callable dtype -> StateSpaceModel")
         try:  # (a function of no argument failed later as "<lambda>() takes 0 positional …")

@@ -152,7 +152,10 @@ def read_yaml(path: Path, named: str) -> Any:
 
     if not Path(path).is_file():
         raise ValueError(f"{named} does not exist")
-    text = Path(path).read_text()
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError as error:  # (it had named neither the file nor the encoding)
+        raise ValueError(f"{named} is not UTF-8 text ({error}): save it as UTF-8") from None
     try:
         check_unique_keys(text, named)
         return yaml.safe_load(text)
@@ -209,6 +212,16 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
     for key in ("name", "plant"):
         if key not in doc:
             raise ValueError(f"{where}: the field {key!r} is required")
+    for key in ("name", "family"):  # (a blank name: None, read as the scenario 'None')
+        if key in doc and not isinstance(doc[key], str):
+            raise ValueError(f"{where}: {key} must be a name (text); got {doc[key]!r}")
+    options = doc.get("options") or {}
+    if not isinstance(options, Mapping):
+        raise ValueError(f"{where}: options must be a mapping of option: value (e.g. "
+                         f"{{cusum_bias: 2.0}}); got {options!r}")  # fmt: skip
+    from .estimators import check_options  # (its values too, now, not mid-study)
+
+    check_options(options, f"{where}: options")
     plant = _plant(doc["plant"], f"{where}: plant")
     try:  # built once now: its shapes and functions checked (_probe) before any run
         probe = plant(torch.float64)
@@ -256,8 +269,8 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
             protocol=_schedule(doc.get("schedule"), f"{where}: schedule"),
             known_inputs=_inputs(doc.get("inputs"), settings.get("dt", 1.0), f"{where}: inputs"),
             input_loss=_input_loss(doc.get("input_loss"), f"{where}: input_loss"),
-            estimators=_names(doc.get("estimators"), f"{where}: estimators"),
-            options=dict(doc.get("options", {}) or {}),
+            estimators=_estimators(doc.get("estimators"), f"{where}: estimators"),
+            options=dict(options),
             state_unit=str(units.get("state", "state units")),
             attack_unit=str(units.get("attack", "attack units")),
             random_initial=drawn,
@@ -366,6 +379,16 @@ def _names(value: Any, where: str) -> tuple:
     if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
         raise ValueError(f"{where} must be a list of strings; got {value!r}")
     return tuple(value)
+
+
+def _estimators(value: Any, where: str) -> tuple:
+    """The scenario's estimator names (:func:`_names`); an empty list is refused: it ran
+    the default suite, where ``--estimators ""`` is refused for that reason."""
+    names = _names(value, where)
+    if value is not None and not names:
+        raise ValueError(f"{where}: an empty list names no estimator; leave estimators out "
+                         "for the defaults")  # fmt: skip
+    return names
 
 
 def _check_fields(mapping: Mapping, valid: set[str], where: str) -> None:

@@ -312,9 +312,9 @@ _SCENARIO_KEYS = ("model.init_args.scenario", "data.init_args.scenario", "scenar
 
 def _family_metrics(result, name: str) -> dict:
     """The family's own numbers of estimator ``name`` (``FamilyReport.estimator_metrics``)."""
-    from difffilter.eval.report import family_report
+    from difffilter.eval.report import report_for
 
-    hook = family_report(result.scenario.family).estimator_metrics
+    hook = report_for(result.scenario)[0].estimator_metrics
     return hook(result, name) if hook is not None else {}
 
 
