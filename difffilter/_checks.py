@@ -651,6 +651,11 @@ def check_filter_inputs(
     """
     ys, us, mask, _ = check_sequence_inputs(model, ys, us, mask)
     check_strategy(resampler, "resampler", "difffilter.resampling.Systematic()")
+    from .resampling import missing_hook  # (resampling imports this module)
+
+    why = missing_hook(resampler)
+    if why is not None:
+        raise TypeError(why)
     if ess_threshold is not None:
         check_ess_threshold(ess_threshold)
     if isinstance(gamma_hat, Tensor) and not bool(torch.isfinite(gamma_hat).all()):

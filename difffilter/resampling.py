@@ -416,6 +416,22 @@ def defined_outside(kind: type, attr: str) -> bool:
     return owner.__module__ != __name__
 
 
+def missing_hook(resampler) -> str | None:
+    """Why ``resampler``, a :class:`Resampler`, cannot resample, or ``None``: it defines
+    none of the hooks that make ancestors or particles (``_draw``, ``_draw_given``,
+    ``resample_normalized``, ``__call__``), so the base class's ``_draw`` would raise at
+    the first resampling, many steps in or never (a misspelt ``draw``: a fuzzing trial)."""
+    if not isinstance(resampler, Resampler):
+        return None
+    hooks = ("_draw", "_draw_given", "resample_normalized", "__call__")
+    own = [h for h in hooks if getattr(type(resampler), h) is not getattr(Resampler, h)]
+    if own:
+        return None
+    return (f"resampler {type(resampler).__name__} subclasses Resampler but defines none of "
+            "its hooks: give it _draw(log_w, generator) -> ancestors [..., N] (or a "
+            "__call__(particles, log_weights, generator) -> Resampled)")  # fmt: skip
+
+
 def _own_draw(resampler: Resampler) -> bool:
     """Whether ``resampler`` draws its ancestors with a ``_draw`` defined outside this module
     (a user's): its class's, or its ``base``'s (:class:`Soft` and :class:`StopGradient`
@@ -1414,6 +1430,13 @@ class OptimalTransport(Resampler):
 
     def _flatten(self, particles: Tensor, log_weights: Tensor):
         particles, log_weights = _check_particles(particles, log_weights)
+        if particles.dtype != log_weights.dtype:
+            # (the transport mixes the two: torch's "expected scalar type Float but found
+            # Double" named neither, a fuzzing trial; the index schemes only gather)
+            raise ValueError(
+                f"particles are {particles.dtype} and log_weights {log_weights.dtype}: optimal "
+                "transport computes with both; give them one dtype"
+            )
         batch = log_weights.shape[:-1]
         n, d = particles.shape[-2:]
         x = particles.reshape(-1, n, d)

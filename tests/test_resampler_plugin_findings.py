@@ -113,3 +113,37 @@ def test_a_plugin_whose_call_misses_an_argument_is_named_at_construction():
             return Multinomial()(particles, log_weights, generator)
 
     df.ParticleFilter(8, resampler=Flexible())
+
+
+def test_a_resampler_subclass_without_a_hook_is_refused_when_the_filter_is_made():
+    """A fuzzing trial: a subclass whose ``_draw`` was misspelt ``draw`` passed the filter's
+    construction and failed at its first resampling (many steps in, or never) with a bare
+    NotImplementedError naming neither the argument nor the hook."""
+    from difffilter.fdi import PoADetector, particle_filter_poa
+    from difffilter.resampling import Systematic, missing_hook
+
+    class Misspelt(Resampler):
+        def draw(self, log_w, generator):
+            return torch.zeros_like(log_w, dtype=torch.long)
+
+    with pytest.raises(TypeError, match="resampler Misspelt subclasses Resampler but defines "
+                                        "none of its hooks: give it _draw"):  # fmt: skip
+        df.ParticleFilter(50, resampler=Misspelt())
+    model = df.LinearGaussianModel(torch.eye(1), torch.eye(1), torch.eye(1), torch.eye(1),
+                                   torch.zeros(1), torch.eye(1))  # fmt: skip
+    with pytest.raises(TypeError, match="defines none of its hooks"):  # the FDI filters too
+        particle_filter_poa(model, torch.zeros(2, 3, 1), num_particles=10,
+                            detector=PoADetector(0.1, 0.5), resampler=Misspelt())  # fmt: skip
+    assert missing_hook(Systematic()) is None and missing_hook(df.resampling.Soft()) is None
+
+
+def test_optimal_transport_names_particles_and_weights_of_two_dtypes():
+    from difffilter.resampling import OptimalTransport
+
+    x = torch.randn(2, 8, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    log_w = torch.zeros(2, 8)
+    for particles, weights in ((x, log_w), (x.float(), log_w.double())):
+        with pytest.raises(ValueError, match="particles are torch.float(64|32) and log_weights "
+                                             "torch.float(32|64): optimal transport"):  # fmt: skip
+            OptimalTransport()(particles, weights)
+    assert OptimalTransport()(x, log_w.double()).particles.shape == (2, 8, 2)
