@@ -17,6 +17,7 @@ from pathlib import Path
 
 import torch
 
+from difffilter._checks import check_positive_int
 from difffilter.attack import Channel
 from difffilter.estimator import Generators
 from difffilter.fdi.neural import (
@@ -126,11 +127,20 @@ def compose(
             "deception: this network compensates a replacement attack and needs the density "
             "it assumes (deception_of(scenario.attack_model(), dtype)[0])"
         )
+    if channel is not Channel.REPLACEMENT and deception is not None:
+        # (any value was taken and ignored, as a particle filter's settings on a Gaussian
+        # card had been: a fuzzing trial)
+        raise ValueError(
+            f"deception: this checkpoint's network compensates the {channel.value} channel and "
+            "reads no deception density (replacement-channel networks do); leave it out"
+        )
     if card.filter == "pf":
         n = num_particles if num_particles is not None else card.num_particles
         if n is None:
             raise ValueError("num_particles: the card does not say how many the filter had")
-        inner = ParticleFilter(int(n), resampler=resampler or Systematic(),
+        # (2.5 ran with 2 particles, True with 1 and "50" with 50, without a word)
+        n = check_positive_int(n, "num_particles")
+        inner = ParticleFilter(n, resampler=resampler or Systematic(),
                                ess_threshold=ess_threshold)  # fmt: skip
     elif card.filter in GAUSSIAN_FILTERS:
         # a particle filter's settings on a Gaussian card (a docs trial: num_particles=100 on
@@ -265,15 +275,15 @@ class TrainedEstimator:
             return self.estimator.step(carry, y, u, mask)
 
     def run(self, model, ys, us=None, *, mask=None, generator=None, carry=None,
-            grad: bool = False):  # fmt: skip
+            nonfinite="raise", grad: bool = False):  # fmt: skip
         """The estimator over ``ys [..., T, dy]`` (``us`` the known inputs, ``mask`` the
         received entries): an :class:`~difffilter.EstimatorOutput` with ``means``,
         ``attack`` estimates and ``detection`` (scores, alarms at the card's threshold).
-        ``generator``/``carry`` as for :func:`~difffilter.loop.open_loop` (a particle
-        filter's draws)."""
+        ``generator``/``carry``/``nonfinite`` as for :func:`~difffilter.loop.open_loop` (a
+        particle filter's draws; ``"skip"``: a NaN or Inf entry of ``ys`` as unreceived)."""
         with torch.set_grad_enabled(grad):
             return open_loop(self.estimator, model, ys, us, mask=mask, generator=generator,
-                             carry=carry)  # fmt: skip
+                             carry=carry, nonfinite=nonfinite)  # fmt: skip
 
 
 def load_estimator(path, *, num_particles: int | None = None, resampler=None,

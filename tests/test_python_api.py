@@ -174,3 +174,30 @@ def test_the_documented_tensors_only_restore_continues_the_run_bit_for_bit(tmp_p
         assert type(namespace["c"]) is type(carry) and namespace["c"] is not carry
         _, rest = run(namespace["c"], 6, 12)
         torch.testing.assert_close(rest, whole[6:], rtol=0, atol=0)
+
+
+def test_a_loaded_estimators_arguments_are_named_from_a_fuzzing_trial():
+    """``num_particles=2.5`` had run with 2 particles (``True`` with 1, ``"50"`` with 50); a
+    ``deception`` on a checkpoint that reads none was ignored; ``run`` advised
+    ``nonfinite='skip'`` for a NaN in ``ys`` and then refused the option."""
+    from difffilter.models.learned_estimator import load_estimator
+
+    for wrong in (2.5, True, "50", 0):
+        with pytest.raises(ValueError, match="num_particles must be a positive integer"):
+            load_estimator("checkpoints/four_tank_nn_grad.ckpt", num_particles=wrong)
+    with pytest.raises(ValueError, match="deception: this checkpoint's network compensates the "
+                                         "sensor channel and reads no deception density"):  # fmt: skip
+        load_estimator("checkpoints/four_tank_nn_ekf.ckpt", deception="garbage")
+    te = load_estimator("checkpoints/four_tank_nn_grad.ckpt", num_particles=20)
+    scenario = registry.get("four_tank_bias")
+    model = scenario.system()
+    gens = {k: torch.Generator().manual_seed(i) for i, k in enumerate(("plant", "attack"))}
+    traj = scenario.simulate(2, gens)
+    ys = traj.y_recv[:, :12].clone()
+    ys[0, 3, 1] = float("nan")
+    with pytest.raises(ValueError, match="nonfinite='skip'"):
+        te.run(model, ys, generator=torch.Generator().manual_seed(1))
+    skipped = te.run(model, ys, nonfinite="skip", generator=torch.Generator().manual_seed(1))
+    masked = te.run(model, ys.nan_to_num(0.0), mask=torch.isfinite(ys),
+                    generator=torch.Generator().manual_seed(1))  # fmt: skip
+    assert torch.equal(skipped.means, masked.means)  # the entry read as unreceived

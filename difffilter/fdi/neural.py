@@ -715,7 +715,8 @@ class NeuralCompensation(Estimator):
         applied = applied_estimate(attack, logit, self.compensation)
         if self.channel is Channel.ACTUATOR:
             if u is None:
-                raise ValueError("channel ACTUATOR compensates the input: step needs u_k [..., du]")
+                raise ValueError("channel ACTUATOR compensates the input: step needs u_k [..., du] "
+                                 "(a whole sequence, us [..., T, du])")  # fmt: skip
             compensated = inner.predict(carry.inner, u + applied)
             new, out = inner.update(carry.inner, compensated, y, mask, evidence=self.evidence)
         else:
