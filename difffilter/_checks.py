@@ -524,7 +524,7 @@ def _check_us(
                          f"got {us.shape[-2]}")  # fmt: skip
     lead = us.shape[:-2] if seq else us.shape[:-1]
     if broadcast_or_none(lead, batch) is None:
-        whose = against or ("ys'" if seq else "y's").replace("ys'", "ys's")
+        whose = against or ("ys's" if seq else "y's")
         raise ValueError(
             f"{name}'s batch shape {tuple(lead)} does not broadcast with {whose} {tuple(batch)}"
         )
@@ -651,11 +651,9 @@ def check_filter_inputs(
     """
     ys, us, mask, _ = check_sequence_inputs(model, ys, us, mask)
     check_strategy(resampler, "resampler", "difffilter.resampling.Systematic()")
-    from .resampling import missing_hook  # (resampling imports this module)
+    from .resampling import check_resampler_hooks  # (resampling imports this module)
 
-    why = missing_hook(resampler)
-    if why is not None:
-        raise TypeError(why)
+    check_resampler_hooks(resampler)
     if ess_threshold is not None:
         check_ess_threshold(ess_threshold)
     if isinstance(gamma_hat, Tensor) and not bool(torch.isfinite(gamma_hat).all()):

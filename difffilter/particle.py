@@ -68,6 +68,7 @@ from .resampling import (
     Resampler,
     Systematic,
     _AncestorError,
+    check_resampler_hooks,
     defined_outside,
     effective_sample_size,
     keep_unmarked_rows,
@@ -543,21 +544,10 @@ def _check_cov_dims(cov_dims, dim: int) -> int | None:
     return None if cov_dims == dim else cov_dims
 
 
-def _check_resampler_hooks(resampler) -> None:
-    """A :class:`~difffilter.resampling.Resampler` subclass of one's own defines a hook
-    that resamples (:func:`~difffilter.resampling.missing_hook`), checked when the filter is
-    made, not at its first resampling."""
-    from .resampling import missing_hook
-
-    why = missing_hook(resampler)
-    if why is not None:
-        raise TypeError(why)
-
-
 def _check_strategies(resampler, proposal, likelihood, ess_threshold) -> float:
     check_strategy(resampler, "resampler", "difffilter.resampling.Systematic()",
                    ("particles", "log_weights", "generator"))  # fmt: skip
-    _check_resampler_hooks(resampler)
+    check_resampler_hooks(resampler)
     check_strategy(proposal, "proposal", "difffilter.BootstrapProposal()",
                    ("model", "particles", "u", "y", "k", "mask", "generator"))  # fmt: skip
     if not hasattr(likelihood, "weigh"):

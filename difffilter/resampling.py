@@ -432,6 +432,15 @@ def missing_hook(resampler) -> str | None:
             "__call__(particles, log_weights, generator) -> Resampled)")  # fmt: skip
 
 
+def check_resampler_hooks(resampler) -> None:
+    """``TypeError`` where :func:`missing_hook` says ``resampler`` cannot resample: the
+    filters check it when they are made (:class:`~difffilter.ParticleFilter`, the FDI
+    filters), not at the first resampling."""
+    why = missing_hook(resampler)
+    if why is not None:
+        raise TypeError(why)
+
+
 def _own_draw(resampler: Resampler) -> bool:
     """Whether ``resampler`` draws its ancestors with a ``_draw`` defined outside this module
     (a user's): its class's, or its ``base``'s (:class:`Soft` and :class:`StopGradient`

@@ -93,9 +93,7 @@ class DifffilterCLI(LightningCLI):
                     "training run's Lightning checkpoint to resume; start a training from its "
                     "weights with --model.init_args.init_from"
                 )
-        args = (
-            None if logger is None or isinstance(logger, (bool, list)) else logger.get("init_args")
-        )
+        args = _logger_args(logger)
         if not ckpt and not cfg["trainer"].get("fast_dev_run"):
             _refuse_a_used_run_folder(_fixed_run_folder(cfg, logger, args))
         if args is None:
@@ -262,8 +260,7 @@ def _check_ckpt_path(cfg, subcommand: str | None) -> str | None:
             "expected (Lightning's names, last and hpc, read the run folder this command "
             "writes)"
         )
-    stat = path.stat()
-    kind, what = _kind_of_file(str(path.resolve()), stat.st_mtime_ns, stat.st_size)
+    kind, what = _kind_of(path)
     if kind is not None:
         return kind
     if what is None:  # (torch's own text advises weights_only=False, an arbitrary-code load)
@@ -277,10 +274,10 @@ def _check_ckpt_path(cfg, subcommand: str | None) -> str | None:
     )
 
 
-def _lightning_file(path: Path) -> bool:
-    """Whether ``path`` is a training run's Lightning checkpoint."""
+def _kind_of(path: Path) -> tuple[str | None, str | None]:
+    """:func:`_kind_of_file` of ``path``, read once per version of the file."""
     stat = path.stat()
-    return _kind_of_file(str(path.resolve()), stat.st_mtime_ns, stat.st_size)[0] == "lightning"
+    return _kind_of_file(str(path.resolve()), stat.st_mtime_ns, stat.st_size)
 
 
 @functools.lru_cache(maxsize=8)
@@ -392,6 +389,11 @@ def _fixed_run_folder(cfg, logger, args) -> Path | None:
     return _runs_folder(args) / folder
 
 
+def _logger_args(logger):
+    """The ``init_args`` of a configured logger, ``None`` for none, ``False`` or a list."""
+    return None if logger is None or isinstance(logger, (bool, list)) else logger.get("init_args")
+
+
 def _runs_folder(args) -> Path:
     """The folder of a TensorBoard logger's ``version_<n>`` runs: ``save_dir/name``, or
     ``save_dir`` itself for a ``name`` of ``null`` or ``""`` (as TensorBoardLogger logs;
@@ -418,7 +420,7 @@ def _refuse_a_name_with_nothing_behind(cfg, subcommand: str) -> None:
     if ckpt not in ("last", "best"):
         return
     logger = cfg["trainer"].get("logger")
-    args = None if logger is None or isinstance(logger, (bool, list)) else logger.get("init_args")
+    args = _logger_args(logger)
     if ckpt == "last" and subcommand == "fit":
         folders = [Path(d) for d in _checkpoint_dirpaths(cfg)]
         fixed = _fixed_run_folder(cfg, logger, args)
@@ -461,7 +463,7 @@ def _log_apart_from_a_fit_run(cfg) -> None:
     ``config.yaml`` pins its version, and ``test --config <run>/config.yaml`` had logged
     into that run, a trial) is dropped for the logger's next free ``version_<n>``."""
     logger = cfg["trainer"].get("logger")
-    args = None if logger is None or isinstance(logger, (bool, list)) else logger.get("init_args")
+    args = _logger_args(logger)
     folder = _fixed_run_folder(cfg, logger, args) if logger is not False else None
     if folder is not None and any(folder.glob("checkpoints/*.ckpt")):
         args["version"] = None
@@ -484,7 +486,7 @@ def _refuse_a_used_run_folder(folder: Path | None) -> None:
         # only a training run's Lightning checkpoint resumes (the repository's own folder,
         # default_root_dir ., holds exported estimators in checkpoints/: one of them, of
         # another family, had been offered, and was refused in turn)
-        resumable = [p for p in saved if _lightning_file(p)]
+        resumable = [p for p in saved if _kind_of(p)[0] == "lightning"]
         last = folder / "checkpoints" / "last.ckpt"
         resume = (f"resume it with --ckpt_path {last if last in resumable else resumable[-1]}"
                   if resumable else "none of them is a training run's checkpoint to resume "
