@@ -50,6 +50,27 @@ def test_a_replacement_density_of_another_dimension_is_refused():
         fdi.mixture_likelihood_particle_filter(_model(), ys, num_particles=50, likelihood=lik)
 
 
+def test_a_replacement_density_of_another_dtype_is_named():
+    """A float64 box on float32 measurements failed in the particle filter, whose error
+    blamed the likelihood's dtype (a fuzzing trial of a loaded checkpoint's deception=)."""
+    box = UniformBox(-torch.ones(1, dtype=F64), torch.ones(1, dtype=F64))
+    lik = fdi.DeceptionMixtureLikelihood(0.2, fdi.ReplacementDeception(box))
+    model = _model().to(torch.float32)
+    with pytest.raises(ValueError, match=r"deception density \(UniformBox\) is torch\.float64 "
+                       r"and the measurements are torch\.float32"):  # fmt: skip
+        fdi.mixture_likelihood_particle_filter(
+            model, _data(4, 10, 1).float(), num_particles=50, likelihood=lik
+        )
+    # in the measurements' dtype it runs
+    box32 = UniformBox(-torch.ones(1), torch.ones(1))
+    lik = fdi.DeceptionMixtureLikelihood(0.2, fdi.ReplacementDeception(box32))
+    out = fdi.mixture_likelihood_particle_filter(
+        model, _data(4, 10, 1).float(), num_particles=50, likelihood=lik,
+        generator=torch.Generator().manual_seed(0),
+    )  # fmt: skip
+    assert out.means.dtype == torch.float32 and torch.isfinite(out.means).all()
+
+
 def test_a_bias_deception_of_another_width_is_refused():
     ys = _data(4, 10, 1)
     lik = fdi.DeceptionMixtureLikelihood(0.2, fdi.BiasDeception(torch.zeros(3, dtype=F64)))

@@ -160,8 +160,19 @@ def test_cusum_hand_computed_and_calibration():
     # a rate above what the statistic reaches at τ = 0 (an API trial: 0.99 gave τ ≈ 0 and a
     # rate of 0.21, unsaid)
     most = det.run(free, 0.0)[1].double().mean().item()
-    with pytest.raises(ValueError, match=f"out of reach.*at most {most:.4g}"):
+    with pytest.raises(ValueError, match=f"out of reach.*at most {most:.4g}") as caught:
         CusumDetector(bias=3.0).calibrate(free, 0.99)
+    # 60,000 steps are enough to see 0.99: only the rate is blamed
+    assert "needs at least" not in str(caught.value)
+    # too few steps to see the rate at all (a one-step YAML scenario, 8 runs: none crossed b,
+    # and the rate alone was blamed): the sample's size is named with what it needs
+    few = torch.tensor([[0.5], [1.0], [2.9], [0.1], [0.0], [1.5], [2.0], [0.7]])
+    with pytest.raises(
+        ValueError,
+        match=r"at most 0 of these 8 steps \(g_attack_free \(8, 1\)\), at τ = 0; a rate of "
+        r"0\.01 needs at least 100 attack-free steps",
+    ):
+        CusumDetector(bias=3.0).calibrate(few, 0.01)
     # a drift below E[g] = 2 (a closed-loop trial's b = 1, taken without a word)
     with pytest.warns(
         UserWarning, match=r"drift b = 1 is not above the mean of g_attack_free \(1\.99"

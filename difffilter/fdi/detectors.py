@@ -551,9 +551,20 @@ class CusumDetector:
             )
         most = float(self.run(g_attack_free, 0.0)[1].double().mean())
         if most < false_alarm_rate:  # (it returned τ ≈ 0 at that lower rate, unsaid)
+            steps = g_attack_free.numel()
+            # too few steps to see that rate at all (a one-step YAML scenario's 8 runs read
+            # as a rate out of reach, which blamed the rate for the sample's size)
+            few = (
+                f"; a rate of {false_alarm_rate} needs at least "
+                f"{math.ceil(1.0 / false_alarm_rate)} attack-free steps to calibrate on (more "
+                "runs or steps)"
+                if steps * false_alarm_rate < 1.0
+                else ""
+            )
             raise ValueError(
                 f"false_alarm_rate {false_alarm_rate} is out of reach: this CUSUM (drift b = "
-                f"{float(self.bias):.4g}) alarms on at most {most:.4g} of these steps, at τ = 0"
+                f"{float(self.bias):.4g}) alarms on at most {most:.4g} of these {steps} steps "
+                f"(g_attack_free {tuple(g_attack_free.shape)}), at τ = 0{few}"
             )
         lo, hi = 0.0, max(1.0, float(g_attack_free.sum(-1).max()))
         for _ in range(iterations):

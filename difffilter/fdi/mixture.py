@@ -95,7 +95,7 @@ class ReplacementDeception:
         filter step and its detection hook ask for the same packet once each. The density
         follows the measurements to their device (the first call on a GPU moves it there).
         """
-        self._follow(y.device)
+        self._follow(y)
         if y.is_inference() or (mask is not None and mask.is_inference()):
             self._last = None  # inference tensors have no version counter: no cache
             return (
@@ -112,10 +112,21 @@ class ReplacementDeception:
         self._last = (key, lp)
         return lp
 
-    def _follow(self, device: torch.device) -> None:
+    def _follow(self, y: Tensor) -> None:
+        """Moves the density to ``y``'s device; refuses one of another dtype than ``y`` (a
+        float64 density on a float32 model failed in the particle filter, which blamed the
+        likelihood's dtype: a fuzzing trial)."""
         here = next(chain(self.density.buffers(), self.density.parameters()), None)
-        if here is not None and here.device != device:
-            self.density.to(device)
+        if here is None:
+            return
+        if here.is_floating_point() and here.dtype != y.dtype:
+            raise ValueError(
+                f"the deception density ({type(self.density).__name__}) is {here.dtype} and the "
+                f"measurements are {y.dtype}: make it in theirs (e.g. deception_of(attack, "
+                f"{y.dtype})[0])"
+            )
+        if here.device != y.device:
+            self.density.to(y.device)
 
 
 def _clean_log_prob(model, y, particles, k, mask) -> Tensor:
