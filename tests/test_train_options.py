@@ -30,6 +30,18 @@ from difffilter.train.task import FilterEstimatorTask, ScenarioDataModule
         # "integer modulo by zero"; a shape error at the EKF trainer's first step
         ({"areas": 0}, r"areas must be a positive integer \(>= 1\)"),
         ({"areas": 2, "trainer": "ekf"}, r"areas: the EKF trainer trains one area's network"),
+        # the EKF trains W and V alone: a head shipped at its initial draw (a training trial)
+        (
+            {"detection_head": True, "trainer": "ekf"},
+            r"detection_head: the EKF trainer trains "
+            r"the attack estimate's weights \(W, V\) alone",
+        ),
+        # the gradient trainer's options: accepted, recorded and ignored (the same weights)
+        (
+            {"lr": 0.5, "grad_clip": 0.01, "resampler": "ot", "trainer": "ekf"},
+            r"^resampler, lr, grad_clip: the gradient trainer's, which trainer: ekf does not read",
+        ),
+        ({"bce_weight": 9.0, "trainer": "ekf"}, r"^bce_weight: the gradient trainer's"),
         # named only at the first validation, as "runs"
         ({"monitor_runs": 0}, r"monitor_runs must be a positive integer \(>= 1\)"),
     ],
@@ -37,6 +49,14 @@ from difffilter.train.task import FilterEstimatorTask, ScenarioDataModule
 def test_a_bad_option_is_named_at_construction(kwargs, why):
     with pytest.raises(ValueError, match=why):
         FilterEstimatorTask("four_tank_bias", **kwargs)
+
+
+def test_the_ekf_trainer_takes_the_gradient_trainers_options_at_their_defaults():
+    """A config that spells a default out (``lr: 0.003``, ``resampler: soft``, no head) is not
+    refused: only a value the EKF trainer would ignore is."""
+    task = FilterEstimatorTask("four_tank_bias", trainer="ekf", hidden=4, lr=0.003,
+                               resampler="soft", grad_clip=1.0, detection_head=False)  # fmt: skip
+    assert not task.estimator.detection_head
 
 
 def test_a_closed_loop_trains_the_kalman_filter_it_exports():

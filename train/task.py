@@ -1059,8 +1059,8 @@ def _check_options(hp, sc, channel: Channel) -> float:
             f"runs the Kalman filter; got {hp.filter!r}"
         )
     check_positive_int(hp.areas, "areas")
-    if hp.trainer == "ekf" and hp.areas != 1:  # the EKF over the weights is one area's
-        raise ValueError(f"areas: the EKF trainer trains one area's network; got {hp.areas}")
+    if hp.trainer == "ekf":
+        _check_ekf_trainer_options(hp)
     check_positive_int(hp.monitor_runs, "monitor_runs")
     if not 0.0 < hp.soft_alpha <= 1.0:
         raise ValueError(f"soft_alpha must be in (0, 1] (the soft resampler's mixture "
@@ -1096,6 +1096,39 @@ def _check_options(hp, sc, channel: Channel) -> float:
     if not 0 < far < 1:
         raise ValueError(f"target_false_alarm_rate must be in (0, 1); got {far!r}")
     return float(far)
+
+
+#: The gradient trainer's options, which the EKF trainer never reads (its step is ``ekf_lr``,
+#: ``ekf_init_cov``, ``ekf_init_noise``, ``ekf_process_noise``; its objective the attack's
+#: squared error; the particle filter resamples systematically in its runs).
+_GRAD_TRAINER_OPTIONS = (
+    "resampler", "soft_alpha", "lr", "weight_decay", "pct_start", "grad_clip",
+    "attack_weight", "bce_weight", "state_weight", "after_attack_weight", "after_attack_steps",
+)  # fmt: skip
+
+
+def _check_ekf_trainer_options(hp) -> None:
+    """What ``trainer: ekf`` refuses: more than one area, a detection head (the EKF trains
+    ``W`` and ``V`` alone: the head shipped at its initial draw, and the card's threshold
+    was that random head's), and a gradient trainer's option set away from its default
+    (accepted, recorded on the card and ignored: a training trial's ``lr 0.5``,
+    ``grad_clip 0.01`` and ``resampler ot`` gave the default run's very weights)."""
+    if hp.areas != 1:  # the EKF over the weights is one area's
+        raise ValueError(f"areas: the EKF trainer trains one area's network; got {hp.areas}")
+    if hp.detection_head:
+        raise ValueError(
+            "detection_head: the EKF trainer trains the attack estimate's weights (W, V) alone, "
+            "so a head would ship at its initial draw; leave it out (the network then alarms on "
+            "its squared standardised estimate) or train with trainer: grad"
+        )
+    defaults = inspect.signature(FilterEstimatorTask.__init__).parameters
+    ignored = [name for name in _GRAD_TRAINER_OPTIONS if hp[name] != defaults[name].default]
+    if ignored:
+        raise ValueError(
+            f"{', '.join(ignored)}: the gradient trainer's, which trainer: ekf does not read "
+            "(it steps by ekf_lr, ekf_init_cov, ekf_init_noise and ekf_process_noise, on the "
+            "attack's squared error); leave them out, or train with trainer: grad"
+        )
 
 
 def _area_flags(truth: dict, logits: torch.Tensor) -> torch.Tensor:
