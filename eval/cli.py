@@ -197,8 +197,10 @@ def _option(text: str) -> tuple[str, object]:
     key, sep, value = text.partition("=")
     if not sep or not key:
         raise argparse.ArgumentTypeError(f"expected KEY=VALUE; got {text!r}")
+    from difffilter.models.yaml_scenario import load_yaml_text
+
     try:
-        return key, yaml.safe_load(value)
+        return key, load_yaml_text(value)  # (1e-2 a number, as in the YAML files)
     except yaml.YAMLError as error:  # argparse turns only these into a usage error
         raise argparse.ArgumentTypeError(
             f"{key}: {value!r} is not a YAML value ({str(error).splitlines()[0]})"
@@ -311,10 +313,9 @@ def evaluate(
     for family, results in held.items():
         docs.update(_write_family(family, results, out, prepared.get(family)))
     if world > 1:
-        import torch.distributed as dist
+        from .suite import gather_objects
 
-        parts: list = [None] * world
-        dist.all_gather_object(parts, docs)
+        parts = gather_objects(docs, world)
         merged = {k: v for part in parts for k, v in part.items()}
         docs = {name: merged[name] for names in families.values() for name in names}
     if rank == 0:
@@ -509,7 +510,8 @@ def _note_training_plants(ckpt, names: Sequence[str]) -> None:
 def _launch(devices: int, argv: list[str]) -> int:
     """Run ``difffilter-eval`` in ``devices`` spawned CPU processes of one gloo group (a
     file rendezvous in a temporary folder); each process writes its share of the reports,
-    rank 0 the leaderboard. Returns the first failed process's exit code, else 0.
+    rank 0 the leaderboard. Returns the exit code of the first process that failed on its
+    own (:func:`_join_workers`), else 0.
 
     Plain ``torch.multiprocessing``: a spawned process imports only what the evaluation
     needs (Lightning's launcher cost each process about 5 s of imports)."""
@@ -519,17 +521,80 @@ def _launch(devices: int, argv: list[str]) -> int:
 
     with tempfile.TemporaryDirectory(prefix="difffilter-eval-") as folder:
         store = Path(folder) / "rendezvous"
+        context = mp.start_processes(_worker, args=(devices, f"file://{store}", argv),
+                                     nprocs=devices, start_method="spawn", join=False)  # fmt: skip
         try:
-            mp.start_processes(_worker, args=(devices, f"file://{store}", argv),
-                               nprocs=devices, start_method="spawn")  # fmt: skip
-        except mp.ProcessExitedException as exc:  # the worker printed its error
-            return exc.exit_code or 1
-    return 0
+            return _join_workers(context)
+        finally:  # (an interrupt: the workers got it too; none outlives the command)
+            for process in context.processes:
+                if process.is_alive():
+                    process.terminate()
+                process.join()
+
+
+#: A worker's exit code where a gather failed because another worker had left
+#: (:class:`~difffilter.eval.suite.PeerLost`): that one failed, and says why.
+PEER_LOST = 75
+#: Seconds the other workers get to end on their own after one failed, before they are
+#: stopped (a peer waiting in a gather ends at once; one still computing is stopped).
+FAILURE_GRACE_S = 10.0
+
+
+def _join_workers(context, grace_s: float = FAILURE_GRACE_S) -> int:
+    """Wait for the workers of ``context``; the exit code of the first that failed on its
+    own, its traceback printed where it raised one (its own error line was printed by it),
+    else 0. A worker that failed because a peer had left (:data:`PEER_LOST`) is not
+    reported: ``torch.multiprocessing``'s join had reported whichever worker it saw first,
+    so the peer's gloo traceback and exit code 1 could stand for another's one-line error
+    and exit code 2 (a CLI trial: 3 runs of 8)."""
+    import multiprocessing.connection
+    import pickle
+    import time
+
+    processes = context.processes
+    waiting = {process.sentinel: i for i, process in enumerate(processes)}
+    failed, deadline = None, None
+    while waiting:
+        timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
+        ready = multiprocessing.connection.wait(list(waiting), timeout=timeout)
+        if not ready:  # the grace is over: the others are stopped (_launch)
+            break
+        for sentinel in ready:
+            i = waiting.pop(sentinel)
+            processes[i].join()
+            if processes[i].exitcode not in (0, PEER_LOST) and failed is None:
+                failed, deadline = i, time.monotonic() + grace_s
+    if failed is None:
+        if any(process.exitcode == PEER_LOST for process in processes):
+            print("difffilter-eval: error: the --devices processes lost each other in a "
+                  "gather, none having failed on its own; rerun, or with --devices 1",
+                  file=sys.stderr)  # fmt: skip
+            return 1
+        return 0
+    code, error_file = processes[failed].exitcode, context.error_files[failed]
+    if os.access(error_file, os.R_OK):  # it raised: its traceback, as one process prints it
+        with open(error_file, "rb") as fh:
+            print(pickle.load(fh), file=sys.stderr, end="")
+        return 1
+    if code < 0:  # a signal
+        import signal
+
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = str(-code)
+        print(f"difffilter-eval: error: process {failed} of --devices {len(processes)} was "
+              f"killed by signal {name} (out of memory?); rerun with --devices 1 to use "
+              "less", file=sys.stderr)  # fmt: skip
+        return 1
+    return code
 
 
 def _worker(rank: int, world: int, rendezvous: str, argv: list[str]) -> None:
     import torch
     import torch.distributed as dist
+
+    from .suite import PeerLost
 
     if "OMP_NUM_THREADS" not in os.environ:  # the cores shared out between the processes
         threads = max(1, (os.cpu_count() or 1) // world)
@@ -540,6 +605,8 @@ def _worker(rank: int, world: int, rendezvous: str, argv: list[str]) -> None:
         code = _main([*argv, "--devices", "1"] + (["--no-progress"] if rank else []))
     except KeyboardInterrupt:  # the launching process says it, once
         code = 130
+    except PeerLost:  # another process failed and says why: quietly
+        code = PEER_LOST
     finally:
         dist.destroy_process_group()
     if code:

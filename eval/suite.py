@@ -459,18 +459,35 @@ def process_group() -> tuple[int, int]:
     return 0, 1
 
 
+class PeerLost(RuntimeError):
+    """Another process of ``difffilter-eval --devices N`` left before a gather: it failed,
+    and says why itself (its peers exit quietly: :func:`difffilter.eval.cli._launch`)."""
+
+
+def gather_objects(mine, world: int) -> list:
+    """``[each process's mine]`` of the ``world`` processes of the group (rank order); a
+    collective that fails, a peer having left, raises :class:`PeerLost` (gloo's "Connection
+    closed by peer" traceback had been printed for the peer, and could hide the failed
+    process's own error and exit code: a CLI trial)."""
+    import torch.distributed as dist
+
+    parts: list = [None] * world
+    try:
+        dist.all_gather_object(parts, mine)
+    except RuntimeError as exc:
+        raise PeerLost(str(exc)) from exc
+    return parts
+
+
 def _gather(result: SuiteResult, ctx, specs, world: int) -> None:
     """Give every process every estimator's output, in the registry order of ``specs``.
 
     Each estimator ran in one process on the same trajectories and named streams as it
     would in one process, so the gathered outputs are those of a single-process run.
     """
-    import torch.distributed as dist
-
-    parts: list = [None] * world
     mine = (result.outputs, result.wall_s, result.skipped, ctx.checkpoint_users,
             result.trajectories)  # fmt: skip
-    dist.all_gather_object(parts, mine)
+    parts = gather_objects(mine, world)
     outputs, walls, skipped, users, trajs = {}, {}, {}, [], {}
     for out, wall, skip, used, own in parts:
         outputs.update(out)

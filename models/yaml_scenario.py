@@ -144,6 +144,40 @@ def scenario_from_yaml(path: str | Path) -> CustomScenario:
     return scenario_from_dict(doc, where=str(path))
 
 
+def number_loader():
+    """The PyYAML loader of the scenario files, threat sets and ``--option`` values:
+    SafeLoader, but ``1e-5`` (an exponent without a decimal point) is a number, as YAML 1.2
+    and the training configs' loader read it (PyYAML's YAML 1.1 took it for text: a noise
+    ``Q: 1e-4`` was refused, and ``-o watermark_std=1e-2`` and a threat's ``value: 5e-1``
+    were "not a number", with a hint in the first place alone: a CLI trial)."""
+    global _NUMBER_LOADER
+    if _NUMBER_LOADER is None:
+        import re
+
+        import yaml
+
+        class NumberLoader(yaml.SafeLoader):
+            pass
+
+        NumberLoader.add_implicit_resolver(
+            "tag:yaml.org,2002:float",
+            re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+            list("-+0123456789"),
+        )
+        _NUMBER_LOADER = NumberLoader
+    return _NUMBER_LOADER
+
+
+_NUMBER_LOADER = None
+
+
+def load_yaml_text(text: str) -> Any:
+    """``text`` read by :func:`number_loader` (``yaml.YAMLError`` where it is not YAML)."""
+    import yaml
+
+    return yaml.load(text, Loader=number_loader())  # noqa: S506 (a SafeLoader)
+
+
 def read_yaml(path: Path, named: str) -> Any:
     """The YAML document in ``path`` (``None`` for an empty file), or a ``ValueError`` that
     begins with ``named``: the file does not exist, or is not valid YAML (the parser's
@@ -157,8 +191,8 @@ def read_yaml(path: Path, named: str) -> Any:
     except UnicodeDecodeError as error:  # (it had named neither the file nor the encoding)
         raise ValueError(f"{named} is not UTF-8 text ({error}): save it as UTF-8") from None
     try:
-        check_unique_keys(text, named)
-        return yaml.safe_load(text)
+        check_unique_keys(text, named, number_loader())
+        return load_yaml_text(text)
     except yaml.YAMLError as error:
         raise ValueError(f"{named} is not valid YAML: {error}") from None
 
@@ -353,8 +387,7 @@ def _number(value: Any, where: str) -> float:
 
 
 def _string_number_hint(value: Any) -> str:
-    """Why a number may have been read as a string: YAML 1.1 (PyYAML) takes ``1e-5``, with no
-    decimal point, for text; ``1.0e-5`` is a number."""
+    """Why a number may have been read as a string: it was quoted (``Q: '1e-5'``)."""
     text = value if isinstance(value, str) else None
     if isinstance(value, list):  # the first string of a (nested) list
         stack = list(value)
@@ -366,7 +399,7 @@ def _string_number_hint(value: Any) -> str:
         float(text)
     except (TypeError, ValueError):
         return ""
-    return f" (YAML reads {text!r} as text: write exponents with a decimal point, e.g. 1.0e-5)"
+    return f" ({text!r} is text here: write the number without quotes)"
 
 
 def _names(value: Any, where: str) -> tuple:

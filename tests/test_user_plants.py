@@ -242,10 +242,13 @@ def test_a_bad_yaml_scenario_names_the_file_and_the_field(tmp_path):
         bad.write_text(f"name: x\n{plant}{line}\n")
         with pytest.raises(ValueError, match=why):
             scenario_from_yaml(bad)
-    bad.write_text("name: x\nplant: {F: [[1.0]], H: [[1.0]], Q: 1e-5, R: 1.0}\n")
-    with pytest.raises(
-        ValueError, match=r"YAML reads '1e-5' as text: write exponents with a decimal point"
-    ):
+    # an exponent without a decimal point is a number (YAML 1.1 read it as text), a quoted
+    # one is text, with the hint
+    bad.write_text("name: x\nplant: {F: [[1.0]], H: [[1.0]], Q: 1e-5, R: 2E+1}\n")
+    model = scenario_from_yaml(bad).system()
+    assert float(model.process_noise.cov) == 1e-5 and float(model.measurement_noise.cov) == 20.0
+    bad.write_text("name: x\nplant: {F: [[1.0]], H: [[1.0]], Q: '1e-5', R: 1.0}\n")
+    with pytest.raises(ValueError, match=r"'1e-5' is text here: write the number without quotes"):
         scenario_from_yaml(bad)
 
 

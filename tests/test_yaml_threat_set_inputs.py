@@ -135,3 +135,24 @@ def test_a_threat_set_names_its_threats_in_text_and_its_estimators_in_a_list(tmp
     path = _set(tmp_path, f"threats: {{b: {BIAS}}}\nestimators: [chi_square_ekf, nope]\n")
     with pytest.raises(ValueError, match="set.yaml: estimators: unknown estimator 'nope'"):
         load_threat_set(scenario, "all", path)
+
+
+def test_an_exponent_without_a_decimal_point_is_a_number_in_every_yaml_we_read(tmp_path, scenario):
+    """YAML 1.1 (PyYAML) reads ``5e-1`` as text: a threat's ``value: 5e-1`` was "not a
+    number" and ``-o watermark_std=1e-2`` "a number > 0 ... got '1e-2'" (a CLI trial), while
+    the training configs' loader and ``--far 1e-2`` took them as numbers."""
+    from difffilter.eval.cli import build_parser
+    from difffilter.eval.families.lfc import _checked_options
+
+    path = _set(tmp_path, "threats: {b: {kind: bias, value: 5e-1, onset: 30}}\n")
+    (threat,) = load_threat_set(scenario, "all", path).threats.values()
+    assert threat.value == (0.5,)
+    args = build_parser().parse_args(
+        ["lfc_step", "-o", "watermark=true", "-o", "watermark_std=1e-2", "-o", "x=2E+1"]
+    )
+    options = dict(args.option)
+    assert options["watermark_std"] == 0.01 and options["x"] == 20.0
+    _checked_options({"watermark": True, "watermark_std": options["watermark_std"]})
+    # text stays text, and YAML's own forms are as before
+    args = build_parser().parse_args(["lfc_step", "-o", "a=e5", "-o", "b=1e", "-o", "c=0x10"])
+    assert dict(args.option) == {"a": "e5", "b": "1e", "c": 16}
