@@ -7,9 +7,12 @@ Every estimator keeps one colour across the figures of a report
 (:func:`estimator_colours`): estimators of one family (the first word of their name:
 ``modified_pf``, ``modified_pf_est``, … are ``modified``) share a hue in shades, and no
 two estimators share a colour. The members of a family also differ in line style
-(:func:`estimator_line_styles`: solid, dashed, dotted, dash-dot, in the family's order), so
-that two curves which coincide, as two variants of one detector often do, still show as two.
-Legends sit outside the axes, beside the data. The ROC
+(:func:`estimator_line_styles`: solid, dashed, dotted, dash-dot, dash-dot-dot, long dashes,
+in the family's order), so that two curves which coincide, as two variants of one detector
+often do, still show as two. A family's own figures (:mod:`difffilter.eval.families`) draw
+each estimator in the same colour and style (:func:`estimator_looks`). Legends sit outside
+the axes, beside the data (:func:`legend_beside`). The state RMSE is on a logarithmic axis
+where its curves span a decade or more. The ROC
 uses a logarithmic false-alarm axis, where the operating points of a 1 % budget live, and
 marks each detector's operating point at its calibrated threshold (or its own threshold
 when the study is not calibrated). A calibrated study also shows where the false alarms
@@ -36,7 +39,14 @@ from .calibration import alarms_at  # noqa: E402
 from .report import format_number  # noqa: E402
 from .scoring import comparable_attack, rmse_over_time, roc  # noqa: E402
 
-__all__ = ["standard_figures", "estimator_colours", "estimator_line_styles", "png_bytes"]
+__all__ = [
+    "standard_figures",
+    "estimator_colours",
+    "estimator_line_styles",
+    "estimator_looks",
+    "legend_beside",
+    "png_bytes",
+]
 
 # one hue per family, in this order (matplotlib's tab10, then tab20's light half)
 _HUES = [mcolors.to_rgb(c) for c in plt.get_cmap("tab10").colors] + [
@@ -73,13 +83,15 @@ def estimator_colours(names) -> dict[str, str]:
     return colours
 
 
-#: The line styles of a family's members, in order (cycled beyond four).
-LINE_STYLES = ("-", "--", ":", "-.")
+#: The line styles of a family's members, in order (cycled beyond six; a fifth member had
+#: wrapped round to solid, as the first: a figure review read the LFC family's fifth
+#: variant as its reference).
+LINE_STYLES = ("-", "--", ":", "-.", (0, (5, 1.5, 1, 1.5, 1, 1.5)), (0, (9, 2.5)))
 
 
 def estimator_line_styles(names) -> dict[str, str]:
     """``{name: matplotlib line style}``: the ``j``-th member of a family (the first word of
-    the name, as :func:`estimator_colours` groups them) gets ``LINE_STYLES[j % 4]``. Shades
+    the name, as :func:`estimator_colours` groups them) gets ``LINE_STYLES[j % 6]``. Shades
     of one hue are hard to tell apart, and two variants of one estimator often draw the same
     curve (the later one hides the earlier): a dash shows the earlier beneath it."""
     seen: dict[str, int] = {}
@@ -91,7 +103,17 @@ def estimator_line_styles(names) -> dict[str, str]:
     return styles
 
 
-def _legend(ax, **kw) -> None:
+def estimator_looks(names) -> dict[str, dict]:
+    """``{name: {"color": …, "ls": …}}`` of every estimator of a report (``names``: all of
+    them, in the report's order): :func:`estimator_colours` and :func:`estimator_line_styles`
+    as keyword arguments of ``plot``, for a family's own figures of some of them (they had
+    taken matplotlib's colour cycle, so an estimator changed colour between the figures
+    of one report: a figure review)."""
+    colour, style = estimator_colours(names), estimator_line_styles(names)
+    return {name: {"color": colour[name], "ls": style[name]} for name in colour}
+
+
+def legend_beside(ax, **kw) -> None:
     """The legend beside ``ax``, where it has labelled artists (none: no legend, where
     matplotlib's "No artists with labels found" warning had reached the console)."""
     if ax.get_legend_handles_labels()[0]:
@@ -143,14 +165,15 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
     figs = []
 
     fig, ax = plt.subplots(figsize=(8, 4.5))
-    for name, out in outs.items():
-        truth = result.traj_of(name).x
-        ax.plot(t, rmse_over_time(out.means, truth).numpy(), label=name, lw=1, color=colour[name],
-                ls=style[name])  # fmt: skip
+    curves = {name: rmse_over_time(out.means, result.traj_of(name).x) for name, out in outs.items()}
+    for name, curve in curves.items():
+        ax.plot(t, curve.numpy(), label=name, lw=1, color=colour[name], ls=style[name])
     state_unit = result.scenario.state_unit
-    ax.set(xlabel="time [s]", ylabel=f"state RMSE over runs [{state_unit}]", yscale="log")
+    log = spans_a_decade(curves.values())
+    ax.set(xlabel="time [s]", yscale="log" if log else "linear",
+           ylabel=f"state RMSE over runs [{state_unit}]{' (log)' if log else ''}")  # fmt: skip
     ax.set_title("State RMSE over time")
-    _legend(ax)
+    legend_beside(ax)
     figs.append(("rmse_over_time.png", fig))
 
     detecting = {n: o for n, o in outs.items() if o.detection is not None}
@@ -169,7 +192,9 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
         c = _attacked_channel(traj.attack, r)
         fig, ax = plt.subplots(figsize=(8, 4))
         injected = traj.attack[r, :, c]
-        ax.plot(t, injected.numpy(), "k", lw=1.5, label="injected")
+        # as steps: an attack that switches on and off from one step to the next drew
+        # triangles between the steps, and its attacked steps could not be read off
+        ax.plot(t, injected.numpy(), "k", lw=1.5, label="injected", drawstyle="steps-mid")
         for name, out in estimating.items():
             own = result.traj_of(name)
             if own.attack.shape[-1] != traj.attack.shape[-1] or not comparable_attack(out, own):
@@ -177,14 +202,15 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
             if not torch.equal(own.attack[r, :, c], injected):  # its own closed loop's attack
                 # a wide pale band in its colour: the estimate's own style draws over it
                 ax.plot(t, own.attack[r, :, c].numpy(), lw=4, alpha=0.3, color=colour[name],
-                        solid_capstyle="butt", label=f"injected in {name}'s loop")  # fmt: skip
+                        solid_capstyle="butt", label=f"injected in {name}'s loop",
+                        drawstyle="steps-mid")  # fmt: skip
             ax.plot(t, out.attack[r, :, c].numpy(), lw=0.9, label=name, color=colour[name],
-                    ls=style[name])  # fmt: skip
+                    ls=style[name], drawstyle="steps-mid")  # fmt: skip
         names = getattr(result.scenario, "attack_entry_names", None)
         entry = f"channel {c + 1}" if not names else f"channel {c + 1}, {names[c]}"
         ax.set(xlabel="time [s]", ylabel=f"attack, {entry} [{result.scenario.attack_unit}]",
                title=f"Run {r}: attack estimates ({entry}, the most attacked)")  # fmt: skip
-        _legend(ax)
+        legend_beside(ax)
         figs.append(("attack_estimates_run0.png", fig))
     return figs
 
@@ -219,11 +245,16 @@ def _roc_figure(result, detecting, colour, style=None) -> plt.Figure:
     far = getattr(result.calibration, "far", None)
     if far is not None:
         ax.axvline(far, color="0.5", ls="--", lw=0.8, label=f"target false-alarm rate {far:g}")
+    aucs = [result.metrics[n].get("auc") for n in detecting]
+    # every curve on the top edge: said, or the figure read as one curve (a figure review)
+    top = all(a is not None and a >= 0.999 for a in aucs) and any(a is not None for a in aucs)
+    title = ("ROC, every run and step: the best detection rate at each false-alarm rate\n"
+             "(dots: operating points, at the calibrated thresholds where calibrated)")  # fmt: skip
+    if top:
+        title += "\nevery AUC ≥ 0.999: the curves lie on the top edge, one over another"
     ax.set(xscale="log", xlim=(floor, 1.0), ylim=(0.0, 1.02),
-           xlabel="false-alarm rate (log)", ylabel="detection rate",
-           title="ROC, every run and step: the best detection rate at each false-alarm rate\n"
-                 "(dots: operating points, at the calibrated thresholds where calibrated)")  # fmt: skip
-    _legend(ax)
+           xlabel="false-alarm rate (log)", ylabel="detection rate", title=title)  # fmt: skip
+    legend_beside(ax)
     return fig
 
 
@@ -255,7 +286,7 @@ def _after_attack_figure(result, names, colour, style=None) -> plt.Figure:
     for name, (rates, _) in curves.items():
         ax.plot(rates[shown].clamp_min(floor).numpy(), marker="o", ls=style[name], ms=3.5, lw=1,
                 color=colour[name],
-                label=f"{name} ({100 * result.metrics[name]['fpr_at_far_after_attack']:.1f} % "
+                label=f"{name} ({_percent(result.metrics[name]['fpr_at_far_after_attack'])} "
                       "in steps 1–10)")  # fmt: skip
     far = getattr(result.calibration, "far", None)
     if far is not None:
@@ -269,7 +300,7 @@ def _after_attack_figure(result, names, colour, style=None) -> plt.Figure:
            xlabel="steps since the run's last attacked step",
            ylabel="alarm rate on attack-free steps (log)",
            title="False alarms after an attack (at the calibrated thresholds)")  # fmt: skip
-    _legend(ax)
+    legend_beside(ax)
     return fig
 
 
@@ -310,4 +341,23 @@ def _alarm_figure(result, detecting, colour, t, dt) -> plt.Figure:
     ax.set(xlabel="time [s]", xlim=(0, t[-1] + dt), ylim=(-0.6, rows - 0.4),
            title=f"Run {r}: attacked steps and alarms ({which})")  # fmt: skip
     ax.grid(axis="x", lw=0.3, color="0.85")
+    ax.set_axisbelow(True)  # (over the bars it read as one-step gaps in the attack)
     return fig
+
+
+def _percent(rate: float) -> str:
+    """``rate`` in percent to three significant figures (``0.0206 %``: ``.1f`` printed a
+    rate of 2.06e-4 as ``0.0 %``, as if there had been no alarm)."""
+    return "0 %" if rate == 0 else f"{100 * rate:.3g} %"
+
+
+def spans_a_decade(curves) -> bool:
+    """Whether the finite positive values of ``curves`` (tensors) span a factor of 10 or more:
+    where a logarithmic axis shows them better than a linear one (five filters within a
+    factor of 2 of each other got ticks of 2.4×10⁻², 2.6×10⁻², … on a log axis)."""
+    curves = list(curves)
+    if not curves:
+        return False
+    values = torch.cat([c.detach().reshape(-1).double() for c in curves])
+    values = values[torch.isfinite(values) & (values > 0)]
+    return bool(values.numel()) and float(values.max() / values.min()) >= 10.0

@@ -10,7 +10,13 @@ import matplotlib.pyplot as plt
 import pytest
 from matplotlib import colors as mcolors
 
-from difffilter.eval.plots import estimator_colours, estimator_line_styles, standard_figures
+from difffilter.eval.plots import (
+    LINE_STYLES,
+    estimator_colours,
+    estimator_line_styles,
+    estimator_looks,
+    standard_figures,
+)
 from difffilter.eval.suite import run_suite
 from difffilter.models import registry
 
@@ -36,9 +42,48 @@ def test_a_familys_members_differ_in_line_style_in_order():
     styles = estimator_line_styles(names)
     assert [styles[n] for n in ("traditional_ad", "traditional_ad_robust",
                                 "traditional_ad_diagonal")] == ["-", "--", ":"]  # fmt: skip
+    # a fifth member has a style of its own (it wrapped round to the first's solid line)
     assert [styles[n] for n in ("kf_nn_grad", "kf_nn_grad_ekf", "kf_a", "kf_b", "kf_c")] == [
-        "-", "--", ":", "-.", "-"]  # fmt: skip
+        "-", "--", ":", "-.", LINE_STYLES[4]]  # fmt: skip
+    assert len(set(map(str, LINE_STYLES))) == 6
     assert styles["chi_square_kf"] == "-"  # a family of one is solid
+
+
+def test_a_familys_own_figure_draws_each_estimator_as_the_reports_figures_do(monkeypatch, tmp_path):
+    """The four-tank Fig. 9 (and the LFC, robot and tracking figures) took matplotlib's own
+    colour cycle: modified_pf was green there and brown elsewhere (a figure review)."""
+    from test_family_tables_mutants import _four_tank_doc  # (tests/ is on sys.path)
+
+    from difffilter.eval.families.four_tank import SWEPT, _fig9_section
+
+    names = ["modified_pf", "normal_pf", "normal_pf_literal", "chi_square_ekf", "cusum_ekf"]
+    looks = estimator_looks(names)
+    assert looks["normal_pf_literal"] == {
+        "color": estimator_colours(names)["normal_pf_literal"],
+        "ls": estimator_line_styles(names)["normal_pf_literal"],
+    }
+    closed, close = [], plt.close
+    monkeypatch.setattr(plt, "close", closed.append)
+    _fig9_section(_four_tank_doc(), tmp_path, names)
+    (ax,) = closed[0].axes
+    drawn = {line.get_label(): line for line in ax.get_lines()}
+    for name in SWEPT:
+        assert mcolors.to_hex(drawn[name].get_color()) == looks[name]["color"], name
+        assert drawn[name].get_linestyle() == looks[name]["ls"], name
+    assert "‖γ‖ = 0.28 cm (small attacks, below)" in drawn  # the dotted line is named
+    close(closed[0])
+
+
+def test_a_log_axis_only_for_curves_that_span_a_decade_and_rates_in_three_figures():
+    import torch
+
+    from difffilter.eval.plots import _percent, spans_a_decade
+
+    assert not spans_a_decade([torch.tensor([0.024, 0.026]), torch.tensor([0.03, float("nan")])])
+    assert spans_a_decade([torch.tensor([0.01, 0.5]), torch.tensor([0.0, 0.02])])
+    assert not spans_a_decade([])
+    # 2.06e-4 was printed "0.0 %", as if no alarm
+    assert (_percent(2.06e-4), _percent(0.0), _percent(0.125)) == ("0.0206 %", "0 %", "12.5 %")
 
 
 @pytest.fixture(scope="module")
@@ -78,6 +123,15 @@ def test_a_twelve_estimator_report_keeps_one_distinct_colour_per_estimator(figur
         legend = fig.axes[0].get_legend()
         if legend is not None:  # beside the axes, not over the data
             assert legend.get_bbox_to_anchor().x0 >= fig.axes[0].get_window_extent().x1
+
+
+def test_the_attack_is_drawn_as_steps_and_the_alarm_grid_lies_under_the_bars(figures):
+    """An attack switching on and off drew triangles between the steps; the alarm raster's
+    grid over its bars read as one-step gaps in the attack (a figure review)."""
+    _, figs = figures
+    lines = figs["attack_estimates_run0.png"].axes[0].get_lines()
+    assert lines and all(line.get_drawstyle() == "steps-mid" for line in lines)
+    assert figs["alarms_run0.png"].axes[0].get_axisbelow() is True
 
 
 def test_the_roc_has_a_log_false_alarm_axis_and_marks_operating_points(figures):

@@ -210,7 +210,8 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
         "the resampling scheme and how RMSE is pooled unstated (our [DEF] values are in the setting); its method "
         "[31] is an open-loop particle mean by its own account, so both readings are reported.\n"
     )
-    secs = [Section("Beside the paper", table), _fig9_section(doc, out)]
+    names = () if result is None else result.outputs  # (None: the tables alone, in tests)
+    secs = [Section("Beside the paper", table), _fig9_section(doc, out, names)]
     h = doc.get("high_noise_false_alarms")
     if h:
         head = ["η", "value", "FPR", "false alarms / run", "TPR ‖γ‖>‖γ‖_min",
@@ -257,7 +258,10 @@ def _rate(binned, v, lo, hi):
     return sum(r["rate"] * r["steps"] for r in rows) / n if n else None
 
 
-def _fig9_section(doc: dict, out) -> Section:
+def _fig9_section(doc: dict, out, names=()) -> Section:
+    """The detection rate by attack size (Fig. 9). ``names``: the report's estimators, whose
+    colours and styles the curves keep (:func:`~difffilter.eval.plots.estimator_looks`;
+    matplotlib's own had given two of them the colours of two others)."""
     sw = doc["detection_vs_attack_size"]
     b = sw["binned"]
     rows = [[f"({r['lo']}, {r['hi']}]", r["steps"], *(_pct(b[v][i]["rate"]) for v in SWEPT)]
@@ -291,20 +295,24 @@ def _fig9_section(doc: dict, out) -> Section:
         f"and 'NaN > ζ' is false (β_k is NaN at {_pct(nan)} of the steps for γ̄ = [1,1,1,1]). The paper's "
         "explanation ('the weights decrease considerably') cannot change normalised weights; underflow can.\n"
     )
+    from ..plots import estimator_looks, legend_beside
+
+    looks = estimator_looks([*names, *(v for v in SWEPT if v not in names)])
     fig, ax = plt.subplots(figsize=(7, 4))
     mids = [0.5 * (r["lo"] + r["hi"]) for r in b[SWEPT[0]]]
-    for v in SWEPT:
-        ax.plot(
-            mids, [r["rate"] if r["rate"] is not None else math.nan for r in b[v]], "o-", label=v
-        )
-    ax.axvline(0.28, color="k", ls=":", lw=0.8)
+    # open markers of sizes falling in SWEPT's order: a curve that coincides with a later
+    # one (normal_pf under normal_pf_literal up to 1 cm) still shows round it
+    for v, size in zip(SWEPT, (9, 7, 5, 3)):
+        rates = [r["rate"] if r["rate"] is not None else math.nan for r in b[v]]
+        ax.plot(mids, rates, marker="o", ms=size, mfc="none", lw=1, label=v, **looks[v])
+    ax.axvline(0.28, color="k", ls=":", lw=0.8, label="‖γ‖ = 0.28 cm (small attacks, below)")
     ax.set(
         xlabel="‖γ_k‖ (cm)",
         ylabel="detection rate",
         xscale="log",
         title="Detection rate versus attack size",
     )
-    ax.legend(fontsize=8)
+    legend_beside(ax)
     fig.savefig(out / "detection_vs_attack_size.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
     return Section(

@@ -176,22 +176,43 @@ def _sections(result, doc: dict, out: Path, prepared=None) -> list[Section]:
 
 
 def _states_figure(result, out: Path) -> str:
-    """States 3 and 5 of area 1, run 0: traditional vs secure controller (Figs 4, 6, 9, 11)."""
+    """States 3 and 5 of area 1, run 0: traditional vs secure controller (Figs 4, 6, 9, 11).
+
+    Each estimator in its colour and style of the report's other figures, the legend beside
+    the axes, run 0's attacked steps shaded (a figure review: matplotlib's own colours had
+    swapped two estimators' against the other figures, and the legend hid curves' ends)."""
+    from ..plots import estimator_looks, legend_beside
+
     outs, sc = result.outputs, result.scenario
     t = sc.times()[: result.traj.flags.shape[1]].numpy()
-    fig, axes = plt.subplots(2, 1, figsize=(8, 5.2))
+    looks = estimator_looks(outs)
+    attacked = result.traj.flags[0].reshape(len(t), -1).any(-1).tolist()
+    fig, axes = plt.subplots(2, 1, figsize=(8, 5.2), sharex=True)
     for ax, s in zip(axes, (2, 4)):
+        _shade(ax, t, attacked, sc.dt)
         for n in ("uncompensated", "kf_nn_ekf", "kf_nn_grad"):
             if n in outs:
-                ax.plot(t, result.traj_of(n).x[0, :, s].numpy(), lw=0.9, label=n)
-        ax.set_ylabel(f"X{s + 1}")
-        if ax.get_legend_handles_labels()[0]:  # (none of the three ran: no legend, no warning)
-            ax.legend(fontsize=7, loc="upper right")
+                ax.plot(t, result.traj_of(n).x[0, :, s].numpy(), lw=0.9, label=n, **looks[n])
+        ax.set_ylabel(f"X{s + 1}: {STATE_NAMES[s]} [p.u.]", fontsize=8)
+        legend_beside(ax)  # (none of the three ran: no legend, no warning)
     axes[-1].set_xlabel("t [s]")
-    fig.suptitle(f"{sc.name}: states 3 and 5 of area 1 (run 0), dt = {sc.dt * 1e3:g} ms")
+    fig.suptitle(f"{sc.name}: the plant's true states 3 and 5 of area 1 in each estimator's "
+                 f"closed loop (run 0; shaded: attacked), dt = {sc.dt * 1e3:g} ms",
+                 fontsize=10)  # fmt: skip
     fig.savefig(out / "states.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
     return "states.png"
+
+
+def _shade(ax, t, attacked: list[bool], dt: float) -> None:
+    """Grey spans over the attacked steps (``attacked`` per sample time ``t``), labelled once."""
+    label, start = "attacked (run 0)", None
+    for k, on in enumerate([*attacked, False]):
+        if on and start is None:
+            start = k
+        elif not on and start is not None:
+            ax.axvspan(t[start] - dt / 2, t[k - 1] + dt / 2, color="0.9", lw=0, label=label)
+            label, start = None, None
 
 
 def _explain(sc, table: dict, est: dict) -> str:

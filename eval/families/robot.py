@@ -207,11 +207,14 @@ def _figures(result, doc, out) -> list[str]:
         fig.savefig(out / "fig_b1_trajectories.png", dpi=110, bbox_inches="tight")
         plt.close(fig)
         files.append("fig_b1_trajectories.png")
+    from ..plots import estimator_looks, legend_beside
+
+    looks = estimator_looks(result.outputs)  # each in its colour of the report's figures
     fig, ax = plt.subplots(figsize=(8, 4))
     for n, c in doc["rmse_curves"].items():
-        ax.plot(t, c, lw=1, label=n)
+        ax.plot(t, c, lw=1, label=n, **looks.get(n, {}))
     ax.set(xlabel="k", ylabel="position RMSE (cm)", yscale="log", title="Fig. B2: RMSE(k), (B8)")
-    ax.legend(fontsize=7)
+    legend_beside(ax)
     fig.savefig(out / "fig_b2_rmse.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
     files.append("fig_b2_rmse.png")

@@ -209,20 +209,30 @@ def _bound_section(result, doc: dict, out) -> Section:
         "simulated trajectories; `rr_clean`: Round-Robin mask; `rr_oracle` / `all_oracle`: the attacked packets "
         "removed (an attack oracle, so a floor for filters that must infer them). Time-averaged like the RMSEs.\n"
     )
+    from ..plots import estimator_looks, legend_beside
+
     fig, ax = plt.subplots(1, 2, figsize=(11, 4))
     t = list(range(1, doc["steps"] + 1))
+    looks = estimator_looks(result.outputs)  # each in its colour of the report's figures
     for n, o in result.outputs.items():
         p, v = _rmse_pv(o.means, result.traj.x)
-        ax[0].plot(t, p.numpy(), lw=1, label=n)
-        ax[1].plot(t, v.numpy(), lw=1, label=n)
+        ax[0].plot(t, p.numpy(), lw=1, label=n, **looks[n])
+        ax[1].plot(t, v.numpy(), lw=1, label=n, **looks[n])
     styles = {"rr_clean": ":", "rr_oracle": "--", "all_oracle": "-."}
+    # which estimators each bound is the floor of (the table's "bound" column)
+    bounded: dict[str, list[str]] = {}
+    for n, e in est.items():
+        bounded.setdefault(e["bound"], []).append(n)
     for k, (bp, bv) in doc["bound_curves"].items():
         if k in styles:
-            ax[0].plot(t, bp, "k", ls=styles[k], lw=1, label=f"PCRB {k}")
+            of = f" (of {', '.join(bounded[k])})" if bounded.get(k) else ""
+            ax[0].plot(t, bp, "k", ls=styles[k], lw=1, label=f"PCRB {k}{of}")
             ax[1].plot(t, bv, "k", ls=styles[k], lw=1)
-    ax[0].set(xlabel="k", ylabel="RMSE_p", yscale="log", title="Position RMSE and bound")
-    ax[1].set(xlabel="k", ylabel="RMSE_v", yscale="log", title="Velocity RMSE and bound")
-    ax[0].legend(fontsize=7)
+    ax[0].set(xlabel="k", ylabel="RMSE_p [length (paper's, unstated)]", yscale="log",
+              title="Position RMSE and bound")  # fmt: skip
+    ax[1].set(xlabel="k", ylabel="RMSE_v [length/s (paper's, unstated)]", yscale="log",
+              title="Velocity RMSE and bound")  # fmt: skip
+    legend_beside(ax[1], handles=ax[0].get_legend_handles_labels()[0])
     fig.savefig(out / "rmse_vs_bound.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
     return Section("RMSE next to the posterior Cramér–Rao bound", body, ["rmse_vs_bound.png"])
@@ -237,9 +247,8 @@ def _eta_section(doc: dict, out) -> Section:
     fig, ax = plt.subplots(figsize=(7, 4))
     for r in sw:
         ax.plot(t, r["rmse_p_t"], lw=1, label=f"η̄ = {r['eta_bar']}")
-    ax.set(
-        xlabel="k", ylabel="RMSE_p", yscale="log", title="rrp_pf_da position RMSE versus η̄ (Fig. 5)"
-    )
+    ax.set(xlabel="k", ylabel="RMSE_p [length (paper's, unstated)]", yscale="log",
+           title="rrp_pf_da position RMSE versus η̄ (Fig. 5)")  # fmt: skip
     ax.legend(fontsize=8)
     fig.savefig(out / "eta_sweep.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
