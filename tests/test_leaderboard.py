@@ -263,3 +263,16 @@ def test_a_leaderboard_of_an_uncalibrated_evaluation_has_no_columns_at_a_rate(tm
     results["plant"]["estimators"]["kf"]["tpr_at_far"] = 0.7
     md = write_leaderboard(tmp_path / "c", results).read_text()
     assert "tpr_at_far [fraction]" in md and "Nothing was calibrated" not in md
+
+
+def test_a_rate_read_at_a_threshold_outside_its_false_alarm_band_is_hatched():
+    """The four-tank normal PF's tpr_at_far 0.991 at fpr_at_far 0.566 was painted green as
+    the best (a figure review): the cells read at such a threshold are hatched."""
+    from difffilter.eval.leaderboard import off_band_cells
+
+    cols = ["auc", "tpr_at_far", "fpr_at_far", "detection_delay_at_far_s"]
+    rows = [{"fpr_at_far": 0.566, "far_target": 0.01}, {"fpr_at_far": 0.01, "far_target": 0.01},
+            {"fpr_at_far": 0.004, "far_target": 0.01}, {"fpr_at_far": 0.0051, "far_target": 0.01},
+            {"fpr_at_far": None, "far_target": 0.01}, {"fpr_at_far": 0.5, "far_target": None},
+            {"fpr_at_far": float("nan"), "far_target": 0.01}]  # fmt: skip
+    assert off_band_cells(rows, cols) == [(0, 1), (0, 3), (2, 1), (2, 3)]
