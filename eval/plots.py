@@ -260,6 +260,9 @@ def _roc_figure(result, detecting, colour, style=None) -> plt.Figure:
 
 #: The bins of the steps since the last attack in ``false_alarms_after_attack.png``.
 AFTER_ATTACK_EDGES = (1, 2, 3, 5, 10, 20, 50, 100, 200)
+#: A bin of fewer attack-free steps is drawn with open markers (one alarm in 31 steps is
+#: 3 %: a figure review read such a bin as the figure's largest feature).
+FEW_STEPS = 100
 
 
 def _after_attack_figure(result, names, colour, style=None) -> plt.Figure:
@@ -283,21 +286,36 @@ def _after_attack_figure(result, names, colour, style=None) -> plt.Figure:
     shown = steps > 0
     floor = 0.5 / float(steps[shown].max())
     fig, ax = plt.subplots(figsize=(8, 4.5))
+    x = torch.arange(int(shown.sum()))
+    # the bins since an attack as one line, "before any attack" as a point of its own: a
+    # line into it drew a start-up transient as a rise after the attacks (a figure review)
+    since = shown.clone()
+    since[-1] = False
+    n_since = int(since.sum())
+    few = (steps[shown] < FEW_STEPS).numpy()
     for name, (rates, _) in curves.items():
-        ax.plot(rates[shown].clamp_min(floor).numpy(), marker="o", ls=style[name], ms=3.5, lw=1,
-                color=colour[name],
+        y = rates[shown].clamp_min(floor).numpy()
+        ax.plot(x[:n_since], y[:n_since], ls=style[name], lw=1, color=colour[name],
                 label=f"{name} ({_percent(result.metrics[name]['fpr_at_far_after_attack'])} "
                       "in steps 1–10)")  # fmt: skip
+        # a bin of few steps as an open marker: one alarm there is a large rate
+        for hollow in (False, True):
+            at = (few == hollow).nonzero()[0]
+            ax.plot(x[at], y[at], ls="none", marker="o", ms=3.5, color=colour[name],
+                    mfc="none" if hollow else colour[name])  # fmt: skip
+    if bool(shown[-1]) and n_since:  # the points before and after any attack apart
+        ax.axvline(n_since - 0.5, color="0.6", lw=0.6)
     far = getattr(result.calibration, "far", None)
     if far is not None:
         ax.axhline(far, color="0.5", ls="--", lw=0.8, label=f"target false-alarm rate {far:g}")
     # a log axis has no 0: said on the figure, or a detector without false alarms there
     # read as one with a few
     ax.axhline(floor, color="0.7", ls=":", lw=0.8, label="no alarm at all (0, drawn on this line)")
-    ticks = [f"{label}\n{n:,} steps" for label, n in zip(labels, steps.tolist()) if n > 0]
+    ticks = [f"{label}\nn = {n:,}" for label, n in zip(labels, steps.tolist()) if n > 0]
     ax.set_xticks(range(len(ticks)), ticks, fontsize=7)
     ax.set(yscale="log", ylim=(floor * 0.8, 1.2),
-           xlabel="steps since the run's last attacked step",
+           xlabel=f"steps since the run's last attacked step (n: attack-free steps in the bin; "
+                  f"open markers: fewer than {FEW_STEPS})",
            ylabel="alarm rate on attack-free steps (log)",
            title="False alarms after an attack (at the calibrated thresholds)")  # fmt: skip
     legend_beside(ax)

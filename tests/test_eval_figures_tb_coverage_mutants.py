@@ -204,7 +204,7 @@ def test_false_alarms_after_an_attack_are_binned_in_each_estimators_own_loop():
     here step by step in its own flags; a bin's step count is the larger of the two; bins
     without steps are left out, the last point is the steps before any attack; the floor
     is half an alarm in the largest bin shown; the ticks name ``[a, b)`` as ``a–(b−1)``."""
-    from difffilter.eval.plots import AFTER_ATTACK_EDGES, _after_attack_figure
+    from difffilter.eval.plots import AFTER_ATTACK_EDGES, FEW_STEPS, _after_attack_figure
 
     g = torch.Generator().manual_seed(3)
     B, T = 4, 30
@@ -239,16 +239,26 @@ def test_false_alarms_after_an_attack_are_binned_in_each_estimators_own_loop():
     shown = most > 0
     floor = 0.5 / most[shown].max()
     lines = {line.get_label().split(" (")[0]: line for line in ax.lines}
-    for n in flags:
+    since = int(shown[:-1].sum())  # the bins after an attack; "before any attack" apart
+    for n, colour in (("a", "C0"), ("b", "C1")):
         assert "12.5 % in steps 1–10" in lines[n].get_label()
         with np.errstate(invalid="ignore"):
             rate = hits[n] / steps[n]
         want = np.maximum(rate[shown], floor)  # NaN (no step of its own) stays NaN
-        assert lines[n].get_ydata() == pytest.approx(want, nan_ok=True)
+        # the line joins the bins since an attack, not the point before any attack
+        assert lines[n].get_ydata() == pytest.approx(want[:since], nan_ok=True)
+        # every bin a marker, open where it has fewer than FEW_STEPS steps
+        points = {}
+        for line in ax.lines:
+            if line.get_marker() == "o" and line.get_color() == colour:
+                for x, y in zip(line.get_xdata(), line.get_ydata()):
+                    points[int(x)] = (y, line.get_markerfacecolor() == "none")
+        assert [points[i][0] for i in sorted(points)] == pytest.approx(want, nan_ok=True)
+        assert [points[i][1] for i in sorted(points)] == list(most[shown] < FEW_STEPS)
     assert ax.get_ylim()[0] == pytest.approx(0.8 * floor)
     labels = ["1", "2", "3–4", "5–9", "10–19", "20–49", "50–99", "100–199", "≥ 200",
               "before any attack"]  # fmt: skip
-    want_ticks = [f"{lab}\n{n:,} steps" for lab, n in zip(labels, most) if n > 0]
+    want_ticks = [f"{lab}\nn = {n:,}" for lab, n in zip(labels, most) if n > 0]
     assert [t.get_text() for t in ax.get_xticklabels()] == want_ticks
     plt.close(fig)
 
