@@ -858,39 +858,54 @@ def _batch_noise_text(r: dict) -> str:
 
 
 def _heatmap(path: Path, doc: dict, sc) -> None:
-    """One panel per headline cell metric: estimators × threats, coloured good → bad."""
+    """One panel per headline cell metric, stacked: estimators × threats, coloured good →
+    bad. The state-error ratio on a logarithmic colour scale whose bar reads ratios (1 to
+    10 or the largest); text white on the darkest cells. (Side by side the panels made a
+    figure 24 inches wide whose 6-point text was unreadable at a page's width, and the
+    ratio's bar read log10 of what the cells printed, clipped at 10: a figure review.)"""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
+    from matplotlib.colors import LogNorm, Normalize
 
     threats, ests = list(doc["threats"]), list(doc["estimators"])
-    fig, axes = plt.subplots(1, 3, figsize=(3 + 1.3 * len(threats) * 1.5, 0.35 * len(ests) + 2))
-    panels = (("tpr_at_far", "RdYlGn", (0, 1), False), ("state_error_ratio", "RdYlGn_r",
-              (0, 1), True), ("impact", "RdYlGn_r", None, False))  # fmt: skip
-    for ax, (metric, cmap, limits, log) in zip(axes, panels):
+    height = 0.3 * len(ests) + 1.6
+    fig, axes = plt.subplots(3, 1, figsize=(max(6.0, 0.75 * len(threats) + 3), 3 * height))
+    panels = (("tpr_at_far", "RdYlGn", False), ("state_error_ratio", "RdYlGn_r", True),
+              ("impact", "RdYlGn_r", False))  # fmt: skip
+    for ax, (metric, cmap, log) in zip(axes, panels):
         grid = np.array([[np.nan if doc["cells"][t].get(e, {}).get(metric) is None
                           else doc["cells"][t][e][metric] for t in threats] for e in ests],
                         float)  # fmt: skip
-        shown = np.log10(np.clip(grid, 1e-3, None)) if log else grid
-        if limits is None:
-            finite = shown[np.isfinite(shown)]
-            limits = (0.0, float(finite.max()) if finite.size and finite.max() > 0 else 1.0)
-        image = ax.imshow(shown, aspect="auto", cmap=cmap, vmin=limits[0], vmax=limits[1])
-        bar = fig.colorbar(image, ax=ax, fraction=0.046, pad=0.02)
-        bar.ax.tick_params(labelsize=6)
-        if log:  # the colours are of log10 of the values the cells print
-            bar.set_label("log10", fontsize=6)
+        finite = grid[np.isfinite(grid)]
+        top = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
+        if log:  # a ratio: 1 (as without attack) green, 10× or the largest red
+            norm = LogNorm(vmin=1.0, vmax=max(10.0, top))
+        else:
+            norm = Normalize(0.0, 1.0 if metric == "tpr_at_far" else top)
+        shown = np.where(np.isfinite(grid), np.clip(grid, 1e-12, None), np.nan)
+        image = ax.imshow(shown, aspect="auto", cmap=cmap, norm=norm)
+        bar = fig.colorbar(image, ax=ax, fraction=0.035, pad=0.015)
+        if log:  # ticks read as ratios, not powers of ten
+            ticks = [v for v in (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000) if v <= norm.vmax]
+            bar.set_ticks(ticks, labels=[f"{v:g}" for v in ticks])
+            bar.ax.minorticks_off()
+        bar.ax.tick_params(labelsize=7)
+        colours = norm(np.clip(shown, norm.vmin, norm.vmax))
         for (i, j), value in np.ndenumerate(grid):
             text = "—" if np.isnan(value) else format_number(float(value), 2)
-            ax.text(j, i, text, ha="center", va="center", fontsize=6)
-        ax.set_xticks(range(len(threats)), threats, rotation=45, ha="right", fontsize=7)
-        ax.set_yticks(range(len(ests)), ests if ax is axes[0] else [""] * len(ests), fontsize=7)
-        scale = " (colour: log10, 1 = 0)" if log else ""
-        ax.set_title(f"{metric} [{sc.unit_of(_unit(metric))}]{scale}", fontsize=8)
+            dark = np.isfinite(value) and not 0.15 <= float(colours[i, j]) <= 0.85
+            ax.text(j, i, text, ha="center", va="center", fontsize=7,
+                    color="white" if dark else "black")  # fmt: skip
+        ax.set_xticks(range(len(threats)), threats, rotation=30, ha="right", fontsize=7)
+        ax.set_yticks(range(len(ests)), ests, fontsize=7)
+        scale = " (log colour scale)" if log else ""
+        ax.set_title(f"{metric} [{sc.unit_of(_unit(metric))}]{scale}", fontsize=9)
     fig.suptitle(f"{doc['scenario']}: robustness at {100 * doc['far']['target']:g} % FAR",
-                 fontsize=9)  # fmt: skip
+                 fontsize=10)  # fmt: skip
+    fig.tight_layout(rect=(0, 0, 1, 0.98))  # (the title of the figure above the first's)
     fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
 

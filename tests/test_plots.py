@@ -246,3 +246,31 @@ def test_the_one_run_figures_show_the_first_attacked_run():
     per_entry = torch.zeros(3, 6, 2, dtype=torch.bool)
     per_entry[1, 4, 1] = True
     assert shown_run(per_entry) == 1
+
+
+def test_the_robustness_heat_map_stacks_its_panels_and_reads_ratios_on_a_log_scale(
+    monkeypatch, tmp_path
+):
+    """Side by side the three panels made a 24-inch figure whose text was unreadable at a
+    page's width, and the ratio's colour bar read log10 of what its cells printed, clipped
+    at 10 (22 and 32 the same red as 10: a figure review)."""
+    from matplotlib.colors import LogNorm
+
+    from difffilter.eval.robustness import _heatmap
+
+    cells = {t: {e: {"tpr_at_far": 0.5, "state_error_ratio": r, "impact": 0.1}
+                 for e, r in (("a", 1.0), ("b", 32.0))} for t in ("bias", "ramp")}  # fmt: skip
+    doc = {"scenario": "s", "threats": list(cells), "estimators": {"a": {}, "b": {}},
+           "cells": cells, "far": {"target": 0.01}}  # fmt: skip
+    closed, close = [], plt.close
+    monkeypatch.setattr(plt, "close", closed.append)
+    _heatmap(tmp_path / "robustness.png", doc, registry.get("four_tank_bias"))
+    fig = closed[0]
+    panels = [ax for ax in fig.axes if ax.get_title()]
+    assert len(panels) == 3 and fig.get_size_inches()[0] < 10  # stacked, a page wide
+    ratio = panels[1].images[0]
+    assert isinstance(ratio.norm, LogNorm) and ratio.norm.vmax == 32.0  # not clipped at 10
+    bar_labels = [t.get_text() for t in ratio.colorbar.ax.get_yticklabels()]
+    assert bar_labels == ["1", "2", "5", "10", "20"]
+    assert (tmp_path / "robustness.png").stat().st_size > 10_000
+    close(fig)
