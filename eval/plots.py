@@ -113,6 +113,23 @@ def estimator_looks(names) -> dict[str, dict]:
     return {name: {"color": colour[name], "ls": style[name]} for name in colour}
 
 
+def role_marks(names) -> dict[str, str]:
+    """``{name: " (oracle)"}`` beside an estimator whose registered role is not analytic (an
+    oracle, the reference, a learned one), as the leaderboard marks it; ``""`` for an analytic
+    or unregistered one (a figure review: estimators given the true attack sat on the
+    injected signal by construction, unmarked)."""
+    from difffilter.models import estimators as registry
+
+    marks = {}
+    for name in names:
+        try:
+            role = registry.get(name).role
+        except ValueError:  # not registered
+            role = None
+        marks[name] = "" if role in (None, "analytic") else f" ({role})"
+    return marks
+
+
 def legend_beside(ax, **kw) -> None:
     """The legend beside ``ax``, where it has labelled artists (none: no legend, where
     matplotlib's "No artists with labels found" warning had reached the console)."""
@@ -162,12 +179,14 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
     T = traj.flags.shape[1]
     t = [dt * (k + 1) for k in range(T)]
     colour, style = estimator_colours(outs), estimator_line_styles(outs)
+    mark = role_marks(outs)
     figs = []
 
     fig, ax = plt.subplots(figsize=(8, 4.5))
     curves = {name: rmse_over_time(out.means, result.traj_of(name).x) for name, out in outs.items()}
     for name, curve in curves.items():
-        ax.plot(t, curve.numpy(), label=name, lw=1, color=colour[name], ls=style[name])
+        ax.plot(t, curve.numpy(), label=f"{name}{mark[name]}", lw=1, color=colour[name],
+                ls=style[name])  # fmt: skip
     state_unit = result.scenario.state_unit
     log = spans_a_decade(curves.values())
     ax.set(xlabel="time [s]", yscale="log" if log else "linear",
@@ -204,7 +223,8 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
                 ax.plot(t, own.attack[r, :, c].numpy(), lw=4, alpha=0.3, color=colour[name],
                         solid_capstyle="butt", label=f"injected in {name}'s loop",
                         drawstyle="steps-mid")  # fmt: skip
-            ax.plot(t, out.attack[r, :, c].numpy(), lw=0.9, label=name, color=colour[name],
+            ax.plot(t, out.attack[r, :, c].numpy(), lw=0.9, label=f"{name}{mark[name]}",
+                    color=colour[name],
                     ls=style[name], drawstyle="steps-mid")  # fmt: skip
         names = getattr(result.scenario, "attack_entry_names", None)
         entry = f"channel {c + 1}" if not names else f"channel {c + 1}, {names[c]}"
@@ -225,7 +245,7 @@ def _roc_figure(result, detecting, colour, style=None) -> plt.Figure:
     on a log axis, crossed the 1 % line at 0.298 for a detector whose scores tie from
     (0, 0) to (0.372, 0.968), whose ``tpr_at_1pct_fpr`` is 0 (a trapezoid, as the AUC
     sums, would read 0.026 there, and no threshold gives it)."""
-    style = style or estimator_line_styles(detecting)
+    style, mark = style or estimator_line_styles(detecting), role_marks(detecting)
     flags = {name: result.traj_of(name).flags for name in detecting}
     # the smallest non-zero false-alarm rate any curve can show
     floor = 1.0 / max(1, max(int((~f).sum()) for f in flags.values()))
@@ -235,8 +255,9 @@ def _roc_figure(result, detecting, colour, style=None) -> plt.Figure:
         if metrics.get("auc") is None:
             continue
         fpr, tpr = roc(out.detection.scores, flags[name])
+        auc = format_number(metrics["auc"], 3)
         ax.plot(fpr.clamp_min(floor).numpy(), tpr.numpy(), lw=1, color=colour[name],
-                ls=style[name], drawstyle="steps-post", label=f"{name} (AUC {format_number(metrics['auc'], 3)})")  # fmt: skip
+                ls=style[name], drawstyle="steps-post", label=f"{name}{mark[name]} (AUC {auc})")  # fmt: skip
         point = (metrics.get("fpr_at_far"), metrics.get("tpr_at_far"))
         if point[1] is None:  # not calibrated: its own threshold
             point = (metrics.get("fpr"), metrics.get("tpr"))
@@ -272,7 +293,7 @@ def _after_attack_figure(result, names, colour, style=None) -> plt.Figure:
     bin labelled with its number of steps (the most of any estimator: closed loops differ),
     bins without steps left out, the target rate dashed. A rate of 0 sits on the axis'
     floor (half of one alarm in the largest bin shown), a dotted line the legend names."""
-    style = style or estimator_line_styles(names)
+    style, mark = style or estimator_line_styles(names), role_marks(names)
     edges = AFTER_ATTACK_EDGES
     labels = [f"{a}" if b == a + 1 else f"{a}–{b - 1}" for a, b in zip(edges, edges[1:])]
     labels += [f"≥ {edges[-1]}", "before any attack"]
@@ -296,7 +317,8 @@ def _after_attack_figure(result, names, colour, style=None) -> plt.Figure:
     for name, (rates, _) in curves.items():
         y = rates[shown].clamp_min(floor).numpy()
         ax.plot(x[:n_since], y[:n_since], ls=style[name], lw=1, color=colour[name],
-                label=f"{name} ({_percent(result.metrics[name]['fpr_at_far_after_attack'])} "
+                label=f"{name}{mark[name]} "
+                      f"({_percent(result.metrics[name]['fpr_at_far_after_attack'])} "
                       "in steps 1–10)")  # fmt: skip
         # a bin of few steps as an open marker: one alarm there is a large rate
         for hollow in (False, True):

@@ -95,9 +95,14 @@ def figures():
         plt.close(fig)
 
 
+def _name(label: str) -> str:
+    """The estimator of a legend label (``name (oracle) (AUC …)``: its first word)."""
+    return label.split(" (")[0]
+
+
 def _line_colours(fig) -> dict[str, str]:
     ax = fig.axes[0]
-    return {line.get_label(): mcolors.to_hex(line.get_color()) for line in ax.get_lines()
+    return {_name(line.get_label()): mcolors.to_hex(line.get_color()) for line in ax.get_lines()
             if not line.get_label().startswith("_")}  # fmt: skip
 
 
@@ -106,8 +111,7 @@ def test_a_twelve_estimator_report_keeps_one_distinct_colour_per_estimator(figur
     assert len(suite.outputs) >= 12
     rmse = _line_colours(figs["rmse_over_time.png"])
     assert set(rmse) == set(suite.outputs) and len(set(rmse.values())) == len(rmse)
-    roc = {label.split(" (AUC")[0]: c for label, c in _line_colours(figs["roc.png"]).items()
-           if "(AUC" in label}  # fmt: skip
+    roc = {name: c for name, c in _line_colours(figs["roc.png"]).items() if name in rmse}
     attack = _line_colours(figs["attack_estimates_run0.png"])
     for name, colour in {**roc, **{n: c for n, c in attack.items() if n != "injected"}}.items():
         assert colour == rmse[name], name  # the same colour in every figure
@@ -116,7 +120,7 @@ def test_a_twelve_estimator_report_keeps_one_distinct_colour_per_estimator(figur
     assert len(set(styles.values())) > 1
     for fig in (figs["rmse_over_time.png"], figs["roc.png"]):
         for line in fig.axes[0].get_lines():
-            name = line.get_label().split(" (AUC")[0]
+            name = _name(line.get_label())
             if name in styles:
                 assert line.get_linestyle() == styles[name], name
     for fig in figs.values():
@@ -132,6 +136,17 @@ def test_the_attack_is_drawn_as_steps_and_the_alarm_grid_lies_under_the_bars(fig
     lines = figs["attack_estimates_run0.png"].axes[0].get_lines()
     assert lines and all(line.get_drawstyle() == "steps-mid" for line in lines)
     assert figs["alarms_run0.png"].axes[0].get_axisbelow() is True
+
+
+def test_legends_mark_the_oracles_the_reference_and_the_learned_as_the_leaderboard_does(figures):
+    """modified_pf, given the true attack, sat on the injected signal by construction with
+    nothing in the legend to say so (a figure review)."""
+    _, figs = figures
+    rmse = [line.get_label() for line in figs["rmse_over_time.png"].axes[0].get_lines()]
+    assert "modified_pf (oracle)" in rmse and "normal_pf_attack_free (reference)" in rmse
+    assert "pf_nn_grad (learned)" in rmse and "chi_square_ekf" in rmse  # analytic: unmarked
+    roc = [line.get_label() for line in figs["roc.png"].axes[0].get_lines()]
+    assert any(label.startswith("modified_pf (oracle) (AUC ") for label in roc)
 
 
 def test_the_roc_has_a_log_false_alarm_axis_and_marks_operating_points(figures):
@@ -150,7 +165,7 @@ def test_the_roc_is_drawn_as_steps_the_best_rate_at_each_false_alarm_rate(figure
 
     suite, figs = figures
     ax = figs["roc.png"].axes[0]
-    curves = {line.get_label().split(" (AUC")[0]: line for line in ax.get_lines()
+    curves = {_name(line.get_label()): line for line in ax.get_lines()
               if "(AUC" in line.get_label()}  # fmt: skip
     assert curves and all(c.get_drawstyle() == "steps-post" for c in curves.values())
     for name, line in curves.items():
