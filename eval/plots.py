@@ -158,12 +158,6 @@ def shown_run(flags: torch.Tensor) -> int:
     return int(attacked[0]) if attacked.numel() else 0
 
 
-def _attacked_channel(attack: torch.Tensor, run: int) -> int:
-    """The channel of ``run`` with the largest injected attack (channel 0 if none)."""
-    size = attack[run].abs().amax(dim=0)
-    return int(size.argmax()) if attack.shape[-1] > 0 else 0
-
-
 def png_bytes(fig: plt.Figure, dpi: int = 110) -> bytes:
     """``fig`` as PNG (cropped to its artists): what the report saves and TensorBoard shows."""
     buffer = io.BytesIO()
@@ -207,9 +201,29 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
 
     estimating = {n: o for n, o in outs.items() if o.attack is not None}
     if estimating and traj.attack.shape[-1] > 0:
-        r = shown_run(traj.flags)
-        c = _attacked_channel(traj.attack, r)
-        fig, ax = plt.subplots(figsize=(8, 4))
+        figs.append(("attack_estimates_run0.png", _attack_figure(result, estimating, t, mark)))
+    return figs
+
+
+#: At most this many attacked channels get a panel of their own in the attack figure.
+MAX_ATTACK_PANELS = 4
+
+
+def _attack_figure(result, estimating, t, mark) -> plt.Figure:
+    """One run's injected attack and each estimate, a panel per attacked channel (the most
+    attacked first, at most :data:`MAX_ATTACK_PANELS`), each in its own unit where the
+    scenario gives one per entry (:func:`_entry_units`). One panel of the largest channel
+    had compared cm/s with rad/s and left the robot's heading attack and the LFC's second
+    attacked area out (a figure review)."""
+    traj, outs = result.traj, result.outputs
+    colour, style = estimator_colours(outs), estimator_line_styles(outs)
+    r = shown_run(traj.flags)
+    channels = _attacked_channels(traj.attack, r)[:MAX_ATTACK_PANELS]
+    names = getattr(result.scenario, "attack_entry_names", None)
+    units = _entry_units(result.scenario, traj.attack.shape[-1])
+    fig, axes = plt.subplots(len(channels), 1, figsize=(8, 1.2 + 2.8 * len(channels)),
+                             sharex=True, squeeze=False)  # fmt: skip
+    for ax, c in zip(axes[:, 0], channels):
         injected = traj.attack[r, :, c]
         # as steps: an attack that switches on and off from one step to the next drew
         # triangles between the steps, and its attacked steps could not be read off
@@ -224,15 +238,31 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
                         solid_capstyle="butt", label=f"injected in {name}'s loop",
                         drawstyle="steps-mid")  # fmt: skip
             ax.plot(t, out.attack[r, :, c].numpy(), lw=0.9, label=f"{name}{mark[name]}",
-                    color=colour[name],
-                    ls=style[name], drawstyle="steps-mid")  # fmt: skip
-        names = getattr(result.scenario, "attack_entry_names", None)
+                    color=colour[name], ls=style[name], drawstyle="steps-mid")  # fmt: skip
         entry = f"channel {c + 1}" if not names else f"channel {c + 1}, {names[c]}"
-        ax.set(xlabel="time [s]", ylabel=f"attack, {entry} [{result.scenario.attack_unit}]",
-               title=f"Run {r}: attack estimates ({entry}, the most attacked)")  # fmt: skip
-        legend_beside(ax)
-        figs.append(("attack_estimates_run0.png", fig))
-    return figs
+        ax.set_ylabel(f"attack, {entry} [{units[c]}]", fontsize=8)
+    legend_beside(axes[0, 0])  # (the same lines in every panel)
+    axes[0, 0].set_title(f"Run {r}: attack estimates on its attacked channels (the most "
+                         "attacked first)")  # fmt: skip
+    axes[-1, 0].set_xlabel("time [s]")
+    return fig
+
+
+def _attacked_channels(attack: torch.Tensor, run: int) -> list[int]:
+    """The channels of ``run`` with an injected attack, the largest first (channel 0 where
+    none is attacked)."""
+    size = attack[run].abs().amax(dim=0)
+    order = torch.argsort(size, descending=True, stable=True).tolist()
+    attacked = [c for c in order if float(size[c]) > 0]
+    return attacked or [0]
+
+
+def _entry_units(scenario, width: int) -> list[str]:
+    """Each attack entry's unit: the scenario's ``attack_unit`` where it is one, or its
+    comma-separated units where there is one per entry (the robot's ``"cm/s, rad/s"``)."""
+    unit = str(scenario.attack_unit)
+    parts = [p.strip() for p in unit.split(",")]
+    return parts if len(parts) == width and width > 1 else [unit] * width
 
 
 def _roc_figure(result, detecting, colour, style=None) -> plt.Figure:

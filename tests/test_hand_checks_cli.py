@@ -101,14 +101,19 @@ def test_alarm_spans_are_consecutive_alarms_centred_on_their_steps():
             assert got == pytest.approx(expected, abs=1e-12)
 
 
-def test_the_attack_figure_shows_its_runs_most_attacked_channel():
-    from difffilter.eval.plots import _attacked_channel
+def test_the_attack_figure_shows_its_runs_attacked_channels_the_most_attacked_first():
+    from difffilter.eval.plots import _attacked_channels, _entry_units
 
     attack = torch.zeros(2, 4, 3)
     attack[0, 2, 1], attack[0, 1, 0], attack[1, :, 2] = 5.0, -1.0, 9.0  # run 1 is not run 0
-    assert _attacked_channel(attack, 0) == 1 and _attacked_channel(attack, 1) == 2
+    assert _attacked_channels(attack, 0) == [1, 0] and _attacked_channels(attack, 1) == [2]
     attack[0, 3, 0] = -6.0  # by magnitude
-    assert _attacked_channel(attack, 0) == 0
+    assert _attacked_channels(attack, 0) == [0, 1]
+    assert _attacked_channels(torch.zeros(1, 4, 3), 0) == [0]  # none attacked: the first
+    # one unit per entry where the scenario lists one per entry (the robot's)
+    units = {"cm/s, rad/s": ["cm/s", "rad/s"], "p.u. (Δf in Hz)": ["p.u. (Δf in Hz)"] * 2}
+    for unit, want in units.items():
+        assert _entry_units(type("S", (), {"attack_unit": unit}), 2) == want
 
 
 def test_the_rmse_figure_plots_step_k_at_time_k_dt():

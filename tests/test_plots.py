@@ -289,3 +289,18 @@ def test_the_robustness_heat_map_stacks_its_panels_and_reads_ratios_on_a_log_sca
     assert bar_labels == ["1", "2", "5", "10", "20"]
     assert (tmp_path / "robustness.png").stat().st_size > 10_000
     close(fig)
+
+
+def test_the_attack_figure_has_a_panel_per_attacked_channel(figures):
+    """One panel of the largest channel left the others out (the robot's heading attack,
+    the LFC's second attacked area: a figure review)."""
+    from difffilter.eval.plots import MAX_ATTACK_PANELS, _attacked_channels, shown_run
+
+    suite, figs = figures
+    r = shown_run(suite.traj.flags)
+    channels = _attacked_channels(suite.traj.attack, r)[:MAX_ATTACK_PANELS]
+    axes = figs["attack_estimates_run0.png"].axes
+    assert len(axes) == len(channels)
+    for ax, c in zip(axes, channels):
+        (injected,) = [line for line in ax.get_lines() if line.get_label() == "injected"]
+        assert list(injected.get_ydata()) == suite.traj.attack[r, :, c].tolist()
