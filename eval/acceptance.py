@@ -102,6 +102,13 @@ def roles(names) -> dict[str, str]:
     return {name: registry.get(name).role for name in names}
 
 
+def role_mark(role: str | None) -> str:
+    """``" (oracle)"`` beside the name of an estimator whose role is not analytic, ``""``
+    beside an analytic one or one of no recorded role: how tables, the leaderboard and the
+    figures' legends mark it."""
+    return "" if role in (None, "analytic") else f" ({role})"
+
+
 def reading_no_measurements(names) -> list[str]:
     """The estimators of ``names`` that read no measurement (sorted), from the registry
     (:attr:`EstimatorSpec.reads_measurements`)."""

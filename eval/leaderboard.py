@@ -21,6 +21,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from .acceptance import role_mark  # noqa: E402
 from .report import _clean, format_number, markdown_table  # noqa: E402
 from .scoring import HEADLINE, METRICS  # noqa: E402
 
@@ -170,8 +171,7 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
 def _role_mark(row: dict[str, Any]) -> str:
     """``" (oracle)"`` beside a name whose role is not analytic (``""`` for one that is,
     or whose study recorded no roles)."""
-    role = row.get("role")
-    return "" if role in (None, "analytic") else f" ({role})"
+    return role_mark(row.get("role"))
 
 
 def _skipped(results: dict[str, dict[str, Any]]) -> str:
@@ -311,9 +311,9 @@ def _heatmaps(path: Path, rows: list[dict[str, Any]], units: dict[str, str]) -> 
     plt.close(fig)
 
 
-#: The columns read at the calibrated threshold: their values stand only where that
-#: threshold met its false-alarm band.
-AT_CALIBRATED_THRESHOLD = ("tpr_at_far", "detection_delay_at_far_s")
+#: The columns read at the calibrated threshold (:data:`_AT_FAR` but its false-alarm rate):
+#: their values stand only where that threshold met its false-alarm band.
+AT_CALIBRATED_THRESHOLD = tuple(m for m in _AT_FAR if m != "fpr_at_far")
 
 
 def off_band_cells(rows: list[dict[str, Any]], cols: list[str]) -> list[tuple[int, int]]:

@@ -120,20 +120,23 @@ def role_marks(names) -> dict[str, str]:
     injected signal by construction, unmarked)."""
     from difffilter.models import estimators as registry
 
+    from .acceptance import role_mark
+
     marks = {}
     for name in names:
         try:
             role = registry.get(name).role
         except ValueError:  # not registered
             role = None
-        marks[name] = "" if role in (None, "analytic") else f" ({role})"
+        marks[name] = role_mark(role)
     return marks
 
 
 def legend_beside(ax, **kw) -> None:
-    """The legend beside ``ax``, where it has labelled artists (none: no legend, where
-    matplotlib's "No artists with labels found" warning had reached the console)."""
-    if ax.get_legend_handles_labels()[0]:
+    """The legend beside ``ax``, where it has labelled artists or ``handles`` are given
+    (none: no legend, where matplotlib's "No artists with labels found" warning had reached
+    the console)."""
+    if kw.get("handles") or ax.get_legend_handles_labels()[0]:
         ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False, **kw)
 
 

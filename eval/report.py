@@ -32,7 +32,7 @@ from typing import Any
 from difffilter.linalg import NumericalBreakdown
 from difffilter.models import estimators as registry
 
-from .acceptance import ANALYTIC, best_analytic, judge, roles, state_metric
+from .acceptance import ANALYTIC, best_analytic, judge, role_mark, roles, state_metric
 from .calibration import below_target_note
 from .intervals import acceptance_intervals
 from .provenance import software_line, software_record
@@ -520,7 +520,7 @@ def _table_section(doc: dict) -> Section:
     rows = [[f"`{name}`", *(format_number(e.get(c), 3) for c in cols)] for name, e in est.items()]
     table = markdown_table(["estimator", *(f"{c} [{concrete_unit(doc, c)}]" for c in cols)], rows)
     role = doc.get("estimator_roles", {})
-    desc = "\n".join(f"- `{n}`{f' ({role[n]})' if role.get(n, 'analytic') != 'analytic' else ''}: {d}"
+    desc = "\n".join(f"- `{n}`{role_mark(role.get(n))}: {d}"
                      for n, d in doc["estimator_descriptions"].items())  # fmt: skip
     defs = "\n".join(f"- `{c}` [{METRICS[c].unit}]: {METRICS[c].definition}" for c in cols)
     return Section("Estimators", f"{table}\n{desc}\n\nDefinitions:\n\n{defs}\n")

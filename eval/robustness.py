@@ -160,8 +160,11 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
                          f"their specs; got {data.get('threats')!r}")  # fmt: skip
     named = [n for n in specs if not isinstance(n, str)]
     if named:  # (YAML reads 2: and on: as a number and true: --threats 2 crashed)
-        raise ValueError(f"{path}: threat names must be text; got {named[0]!r}: quote it "
-                         f"('{named[0]}':)")  # fmt: skip
+        how = ("quote it as you wrote it" if isinstance(named[0], float)  # (1e5: 100000.0)
+               else f"quote it ('{named[0]}':)")  # fmt: skip
+        raise ValueError(f"{path}: threat names must be text; got {named[0]!r}"
+                         f"{' (YAML reads it as a number)' if isinstance(named[0], float) else ''}"
+                         f": {how}")  # fmt: skip
     # (" all", "all,": the whole set, unless a threat of the set is named all)
     every = names == "all" or (names == ["all"] and "all" not in specs)
     chosen = list(specs) if every else list(names)

@@ -468,15 +468,21 @@ def gather_objects(mine, world: int) -> list:
     """``[each process's mine]`` of the ``world`` processes of the group (rank order); a
     collective that fails, a peer having left, raises :class:`PeerLost` (gloo's "Connection
     closed by peer" traceback had been printed for the peer, and could hide the failed
-    process's own error and exit code: a CLI trial)."""
+    process's own error and exit code: a CLI trial). ``mine`` is pickled first, outside the
+    collective: an object of this process that cannot be pickled (a plug-in's scripted
+    module) is this process's own error, with its traceback, not a lost peer (gloo raises
+    a plain ``RuntimeError`` either way: a review)."""
+    import pickle
+
     import torch.distributed as dist
 
+    data = pickle.dumps(mine, protocol=pickle.HIGHEST_PROTOCOL)
     parts: list = [None] * world
     try:
-        dist.all_gather_object(parts, mine)
+        dist.all_gather_object(parts, data)
     except RuntimeError as exc:
         raise PeerLost(str(exc)) from exc
-    return parts
+    return [pickle.loads(part) for part in parts]
 
 
 def _gather(result: SuiteResult, ctx, specs, world: int) -> None:

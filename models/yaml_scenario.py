@@ -149,7 +149,10 @@ def number_loader():
     SafeLoader, but ``1e-5`` (an exponent without a decimal point) is a number, as YAML 1.2
     and the training configs' loader read it (PyYAML's YAML 1.1 took it for text: a noise
     ``Q: 1e-4`` was refused, and ``-o watermark_std=1e-2`` and a threat's ``value: 5e-1``
-    were "not a number", with a hint in the first place alone: a CLI trial)."""
+    were "not a number", with a hint in the first place alone: a CLI trial). Not the
+    training's :func:`difffilter.train.common.jsonargparse_yaml_loader`: the models sit
+    below the training in the imports, and that loader is jsonargparse's private one, with
+    SafeLoader (text again) where its name has moved."""
     global _NUMBER_LOADER
     if _NUMBER_LOADER is None:
         import re
@@ -161,8 +164,8 @@ def number_loader():
 
         NumberLoader.add_implicit_resolver(
             "tag:yaml.org,2002:float",
-            re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
-            list("-+0123456789"),
+            re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+            list("-+.0123456789"),
         )
         _NUMBER_LOADER = NumberLoader
     return _NUMBER_LOADER
@@ -387,7 +390,9 @@ def _number(value: Any, where: str) -> float:
 
 
 def _string_number_hint(value: Any) -> str:
-    """Why a number may have been read as a string: it was quoted (``Q: '1e-5'``)."""
+    """Why a number may have been read as a string: it was quoted (``Q: '1e-5'``), or it is
+    a number to Python that YAML reads as text (``inf``, ``nan``: YAML's are ``.inf``,
+    ``.nan``)."""
     text = value if isinstance(value, str) else None
     if isinstance(value, list):  # the first string of a (nested) list
         stack = list(value)
@@ -399,7 +404,9 @@ def _string_number_hint(value: Any) -> str:
         float(text)
     except (TypeError, ValueError):
         return ""
-    return f" ({text!r} is text here: write the number without quotes)"
+    if isinstance(load_yaml_text(text), str):  # text to YAML even unquoted
+        return f" (YAML reads {text!r} as text: write a number such as 1.5, 1e-5, .inf or .nan)"
+    return f" ({text!r} is text here, in quotes: write the number without them)"
 
 
 def _names(value: Any, where: str) -> tuple:

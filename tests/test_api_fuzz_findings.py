@@ -56,8 +56,8 @@ def test_a_replacement_density_of_another_dtype_is_named():
     box = UniformBox(-torch.ones(1, dtype=F64), torch.ones(1, dtype=F64))
     lik = fdi.DeceptionMixtureLikelihood(0.2, fdi.ReplacementDeception(box))
     model = _model().to(torch.float32)
-    with pytest.raises(ValueError, match=r"deception density \(UniformBox\) is torch\.float64 "
-                       r"and the measurements are torch\.float32"):  # fmt: skip
+    with pytest.raises(ValueError, match=r"deception density \(UniformBox\) returned log-densities "
+                       r"of torch\.float64 for measurements of torch\.float32"):  # fmt: skip
         fdi.mixture_likelihood_particle_filter(
             model, _data(4, 10, 1).float(), num_particles=50, likelihood=lik
         )
@@ -69,6 +69,20 @@ def test_a_replacement_density_of_another_dtype_is_named():
         generator=torch.Generator().manual_seed(0),
     )  # fmt: skip
     assert out.means.dtype == torch.float32 and torch.isfinite(out.means).all()
+
+    # a density that holds float64 and answers in the caller's dtype runs (a review)
+    class Casting(UniformBox):
+        def log_prob(self, y, mask=None):
+            return super().log_prob(y.double(), mask=mask).to(y.dtype)
+
+    lik = fdi.DeceptionMixtureLikelihood(
+        0.2, fdi.ReplacementDeception(Casting(-torch.ones(1, dtype=F64), torch.ones(1, dtype=F64)))
+    )
+    out = fdi.mixture_likelihood_particle_filter(
+        model, _data(4, 10, 1).float(), num_particles=50, likelihood=lik,
+        generator=torch.Generator().manual_seed(0),
+    )  # fmt: skip
+    assert out.means.dtype == torch.float32
 
 
 def test_a_bias_deception_of_another_width_is_refused():

@@ -98,3 +98,20 @@ def test_a_failed_gather_is_a_lost_peer(monkeypatch):
     monkeypatch.setattr(dist, "all_gather_object", closed)
     with pytest.raises(PeerLost, match="Connection closed by peer"):
         gather_objects({"a": 1}, 2)
+
+
+def test_an_object_that_cannot_be_pickled_is_the_processs_own_error_not_a_lost_peer(monkeypatch):
+    """gloo raises a plain RuntimeError for a peer gone and for an object it cannot pickle
+    alike: the object is pickled before the collective, so that its error stays this
+    process's own, with its traceback (a review: a plug-in's scripted module read as a lost
+    peer, and no process said why)."""
+    import torch.distributed as dist
+
+    def gathered(parts, obj):  # every process sent the same
+        parts[:] = [obj] * len(parts)
+
+    monkeypatch.setattr(dist, "all_gather_object", gathered)
+    assert gather_objects({"a": [1, 2]}, 2) == [{"a": [1, 2]}, {"a": [1, 2]}]
+    with pytest.raises(Exception) as caught:
+        gather_objects({"f": lambda: 0}, 2)
+    assert not isinstance(caught.value, PeerLost)

@@ -173,6 +173,9 @@ def test_cusum_hand_computed_and_calibration():
         r"0\.01 needs at least 100 attack-free steps",
     ):
         CusumDetector(bias=3.0).calibrate(few, 0.01)
+    # a subnormal rate: the error, not an OverflowError from the count (a review)
+    with pytest.raises(ValueError, match=r"out of reach.*at τ = 0$"):
+        CusumDetector(bias=3.0).calibrate(few, 1e-320)
     # a drift below E[g] = 2 (a closed-loop trial's b = 1, taken without a word)
     with pytest.warns(
         UserWarning, match=r"drift b = 1 is not above the mean of g_attack_free \(1\.99"

@@ -248,8 +248,14 @@ def test_a_bad_yaml_scenario_names_the_file_and_the_field(tmp_path):
     model = scenario_from_yaml(bad).system()
     assert float(model.process_noise.cov) == 1e-5 and float(model.measurement_noise.cov) == 20.0
     bad.write_text("name: x\nplant: {F: [[1.0]], H: [[1.0]], Q: '1e-5', R: 1.0}\n")
-    with pytest.raises(ValueError, match=r"'1e-5' is text here: write the number without quotes"):
+    with pytest.raises(ValueError, match=r"'1e-5' is text here, in quotes: write the number"):
         scenario_from_yaml(bad)
+    # a number to Python that YAML reads as text even unquoted: YAML's own spelling named
+    bad.write_text("name: x\nplant: {F: [[1.0]], H: [[1.0]], Q: inf, R: 1.0}\n")
+    with pytest.raises(ValueError, match=r"YAML reads 'inf' as text: write a number such as"):
+        scenario_from_yaml(bad)
+    bad.write_text("name: x\nplant: {F: [[1.0]], H: [[1.0]], Q: .5e-4, R: 1.0}\n")
+    assert float(scenario_from_yaml(bad).system().process_noise.cov) == 5e-5
 
 
 def test_known_inputs_that_do_not_fit_say_so(plants):

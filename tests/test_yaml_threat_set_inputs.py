@@ -153,6 +153,11 @@ def test_an_exponent_without_a_decimal_point_is_a_number_in_every_yaml_we_read(t
     options = dict(args.option)
     assert options["watermark_std"] == 0.01 and options["x"] == 20.0
     _checked_options({"watermark": True, "watermark_std": options["watermark_std"]})
+    # a threat named 1e5 is a number now: the error says so and does not spell it 100000.0
+    path = _set(tmp_path, "threats: {1e5: {kind: bias, value: 0.5, onset: 30}}\n")
+    with pytest.raises(ValueError, match=r"got 100000.0 \(YAML reads it as a number\): quote it "
+                       r"as you wrote it$"):  # fmt: skip
+        load_threat_set(scenario, "all", path)
     # text stays text, and YAML's own forms are as before
     args = build_parser().parse_args(["lfc_step", "-o", "a=e5", "-o", "b=1e", "-o", "c=0x10"])
     assert dict(args.option) == {"a": "e5", "b": "1e", "c": 16}

@@ -1108,11 +1108,14 @@ _GRAD_TRAINER_OPTIONS = (
 
 
 def _check_ekf_trainer_options(hp) -> None:
-    """What ``trainer: ekf`` refuses: more than one area, a detection head (the EKF trains
-    ``W`` and ``V`` alone: the head shipped at its initial draw, and the card's threshold
-    was that random head's), and a gradient trainer's option set away from its default
-    (accepted, recorded on the card and ignored: a training trial's ``lr 0.5``,
-    ``grad_clip 0.01`` and ``resampler ot`` gave the default run's very weights)."""
+    """What ``trainer: ekf`` refuses: more than one area, and a detection head (the EKF
+    trains ``W`` and ``V`` alone: the head shipped at its initial draw, and the card's
+    threshold was that random head's). A gradient trainer's option set away from its
+    default is said in a warning: it is recorded on the card and not read (a training
+    trial's ``lr 0.5``, ``grad_clip 0.01`` and ``resampler ot`` gave the default run's very
+    weights without a word). A warning, not a refusal: a config written for both trainers
+    (``robot_threats.yaml``) sets the gradient's, and its comment switches to the EKF on
+    the command line (a review)."""
     if hp.areas != 1:  # the EKF over the weights is one area's
         raise ValueError(f"areas: the EKF trainer trains one area's network; got {hp.areas}")
     if hp.detection_head:
@@ -1124,10 +1127,12 @@ def _check_ekf_trainer_options(hp) -> None:
     defaults = inspect.signature(FilterEstimatorTask.__init__).parameters
     ignored = [name for name in _GRAD_TRAINER_OPTIONS if hp[name] != defaults[name].default]
     if ignored:
-        raise ValueError(
-            f"{', '.join(ignored)}: the gradient trainer's, which trainer: ekf does not read "
-            "(it steps by ekf_lr, ekf_init_cov, ekf_init_noise and ekf_process_noise, on the "
-            "attack's squared error); leave them out, or train with trainer: grad"
+        warnings.warn(
+            f"{', '.join(f'{n}={hp[n]!r}' for n in ignored)}: the gradient trainer's, which "
+            "trainer: ekf does not read (it steps by ekf_lr, ekf_init_cov, ekf_init_noise and "
+            "ekf_process_noise, on the attack's squared error); the card records them as "
+            "given",
+            stacklevel=3,
         )
 
 

@@ -554,11 +554,11 @@ class CusumDetector:
             steps = g_attack_free.numel()
             # too few steps to see that rate at all (a one-step YAML scenario's 8 runs read
             # as a rate out of reach, which blamed the rate for the sample's size)
+            need = 1.0 / false_alarm_rate  # (inf for a subnormal rate: no count to give)
             few = (
-                f"; a rate of {false_alarm_rate} needs at least "
-                f"{math.ceil(1.0 / false_alarm_rate)} attack-free steps to calibrate on (more "
-                "runs or steps)"
-                if steps * false_alarm_rate < 1.0
+                f"; a rate of {false_alarm_rate} needs at least {math.ceil(need)} attack-free "
+                "steps to calibrate on (more runs or steps)"
+                if steps < need < math.inf
                 else ""
             )
             raise ValueError(

@@ -95,38 +95,37 @@ class ReplacementDeception:
         filter step and its detection hook ask for the same packet once each. The density
         follows the measurements to their device (the first call on a GPU moves it there).
         """
-        self._follow(y)
+        self._follow(y.device)
         if y.is_inference() or (mask is not None and mask.is_inference()):
             self._last = None  # inference tensors have no version counter: no cache
-            return (
-                self.density.log_prob(y, mask=mask)
-                if mask is not None
-                else self.density.log_prob(y)
-            )
+            return self._log_prob(y, mask)
         key = (y, mask, y._version, None if mask is None else mask._version)
         cached = self._last
         if cached is not None and all(a is b for a, b in zip(cached[0][:2], key[:2])):
             if cached[0][2:] == key[2:]:
                 return cached[1]
-        lp = self.density.log_prob(y, mask=mask) if mask is not None else self.density.log_prob(y)
+        lp = self._log_prob(y, mask)
         self._last = (key, lp)
         return lp
 
-    def _follow(self, y: Tensor) -> None:
-        """Moves the density to ``y``'s device; refuses one of another dtype than ``y`` (a
-        float64 density on a float32 model failed in the particle filter, which blamed the
-        likelihood's dtype: a fuzzing trial)."""
+    def _follow(self, device: torch.device) -> None:
         here = next(chain(self.density.buffers(), self.density.parameters()), None)
-        if here is None:
-            return
-        if here.is_floating_point() and here.dtype != y.dtype:
+        if here is not None and here.device != device:
+            self.density.to(device)
+
+    def _log_prob(self, y: Tensor, mask) -> Tensor:
+        """``log p_ξ(y)``, in ``y``'s dtype or refused: a float64 density on a float32 model
+        failed in the particle filter, which blamed the likelihood's dtype (a fuzzing
+        trial). The density's answer is checked, not its buffers: one that answers in the
+        caller's dtype runs whatever it holds (a review)."""
+        lp = self.density.log_prob(y, mask=mask) if mask is not None else self.density.log_prob(y)
+        if lp.dtype != y.dtype:
             raise ValueError(
-                f"the deception density ({type(self.density).__name__}) is {here.dtype} and the "
-                f"measurements are {y.dtype}: make it in theirs (e.g. deception_of(attack, "
-                f"{y.dtype})[0])"
+                f"the deception density ({type(self.density).__name__}) returned log-densities "
+                f"of {lp.dtype} for measurements of {y.dtype}: make it in theirs (e.g. "
+                f"deception_of(attack, {y.dtype})[0])"
             )
-        if here.device != y.device:
-            self.density.to(y.device)
+        return lp
 
 
 def _clean_log_prob(model, y, particles, k, mask) -> Tensor:

@@ -181,15 +181,17 @@ def _states_figure(result, out: Path) -> str:
     Each estimator in its colour and style of the report's other figures, the legend beside
     the axes, run 0's attacked steps shaded (a figure review: matplotlib's own colours had
     swapped two estimators' against the other figures, and the legend hid curves' ends)."""
-    from ..plots import estimator_looks, legend_beside
+    from ..plots import _alarm_spans, estimator_looks, legend_beside
 
     outs, sc = result.outputs, result.scenario
     t = sc.times()[: result.traj.flags.shape[1]].numpy()
     looks = estimator_looks(outs)
-    attacked = result.traj.flags[0].reshape(len(t), -1).any(-1).tolist()
+    attacked = _alarm_spans(result.traj.flags[0].reshape(len(t), -1).any(-1), list(t), sc.dt)
     fig, axes = plt.subplots(2, 1, figsize=(8, 5.2), sharex=True)
     for ax, s in zip(axes, (2, 4)):
-        _shade(ax, t, attacked, sc.dt)
+        for i, (start, width) in enumerate(attacked):  # run 0's attacked steps
+            ax.axvspan(start, start + width, color="0.9", lw=0,
+                       label="attacked (run 0)" if i == 0 else None)  # fmt: skip
         for n in ("uncompensated", "kf_nn_ekf", "kf_nn_grad"):
             if n in outs:
                 ax.plot(t, result.traj_of(n).x[0, :, s].numpy(), lw=0.9, label=n, **looks[n])
@@ -202,17 +204,6 @@ def _states_figure(result, out: Path) -> str:
     fig.savefig(out / "states.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
     return "states.png"
-
-
-def _shade(ax, t, attacked: list[bool], dt: float) -> None:
-    """Grey spans over the attacked steps (``attacked`` per sample time ``t``), labelled once."""
-    label, start = "attacked (run 0)", None
-    for k, on in enumerate([*attacked, False]):
-        if on and start is None:
-            start = k
-        elif not on and start is not None:
-            ax.axvspan(t[start] - dt / 2, t[k - 1] + dt / 2, color="0.9", lw=0, label=label)
-            label, start = None, None
 
 
 def _explain(sc, table: dict, est: dict) -> str:

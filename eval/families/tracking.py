@@ -232,6 +232,7 @@ def _bound_section(result, doc: dict, out) -> Section:
               title="Position RMSE and bound")  # fmt: skip
     ax[1].set(xlabel="k", ylabel="RMSE_v [length/s (paper's, unstated)]", yscale="log",
               title="Velocity RMSE and bound")  # fmt: skip
+    # (the bounds alone where no estimator ran)
     legend_beside(ax[1], handles=ax[0].get_legend_handles_labels()[0])
     fig.savefig(out / "rmse_vs_bound.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
