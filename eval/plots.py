@@ -12,7 +12,9 @@ in the family's order), so that two curves which coincide, as two variants of on
 often do, still show as two. A family's own figures (:mod:`difffilter.eval.families`) draw
 each estimator in the same colour and style (:func:`estimator_looks`). Legends sit outside
 the axes, beside the data (:func:`legend_beside`). The state RMSE is on a logarithmic axis
-where its curves span a decade or more. The ROC
+where its curves span a decade or more. The ROC (with the same curves below it as misses,
+1 − the detection rate, on a log axis: a DET plot, where detectors near a detection rate of
+1 are told apart)
 uses a logarithmic false-alarm axis, where the operating points of a 1 % budget live, and
 marks each detector's operating point at its calibrated threshold (or its own threshold
 when the study is not calibrated). A calibrated study also shows where the false alarms
@@ -280,25 +282,34 @@ def _roc_figure(result, detecting, colour, style=None) -> plt.Figure:
     sums, would read 0.026 there, and no threshold gives it)."""
     style, mark = style or estimator_line_styles(detecting), role_marks(detecting)
     flags = {name: result.traj_of(name).flags for name in detecting}
-    # the smallest non-zero false-alarm rate any curve can show
+    # the smallest non-zero false-alarm rate any curve can show, and half the smallest miss
     floor = 1.0 / max(1, max(int((~f).sum()) for f in flags.values()))
-    fig, ax = plt.subplots(figsize=(7.5, 5))
+    no_miss = 0.5 / max(1, max(int(f.sum()) for f in flags.values()))
+    fig, (ax, det) = plt.subplots(2, 1, figsize=(7.5, 8), sharex=True,
+                                  gridspec_kw={"height_ratios": (3, 2)})  # fmt: skip
     for name, out in detecting.items():
         metrics = result.metrics[name]
         if metrics.get("auc") is None:
             continue
         fpr, tpr = roc(out.detection.scores, flags[name])
         auc = format_number(metrics["auc"], 3)
-        ax.plot(fpr.clamp_min(floor).numpy(), tpr.numpy(), lw=1, color=colour[name],
-                ls=style[name], drawstyle="steps-post", label=f"{name}{mark[name]} (AUC {auc})")  # fmt: skip
+        look = {"color": colour[name], "ls": style[name], "drawstyle": "steps-post", "lw": 1}
+        ax.plot(fpr.clamp_min(floor).numpy(), tpr.numpy(), **look,
+                label=f"{name}{mark[name]} (AUC {auc})")  # fmt: skip
+        det.plot(fpr.clamp_min(floor).numpy(), (1.0 - tpr).clamp_min(no_miss).numpy(), **look)
         point = (metrics.get("fpr_at_far"), metrics.get("tpr_at_far"))
         if point[1] is None:  # not calibrated: its own threshold
             point = (metrics.get("fpr"), metrics.get("tpr"))
         if point[0] is not None and point[1] is not None:
             ax.plot(max(point[0], floor), point[1], "o", ms=4, color=colour[name])
+            det.plot(max(point[0], floor), max(1.0 - point[1], no_miss), "o", ms=4,
+                     color=colour[name])  # fmt: skip
     far = getattr(result.calibration, "far", None)
     if far is not None:
         ax.axvline(far, color="0.5", ls="--", lw=0.8, label=f"target false-alarm rate {far:g}")
+        det.axvline(far, color="0.5", ls="--", lw=0.8)
+    det.axhline(no_miss, color="0.7", ls=":", lw=0.8,
+                label="no miss at all (0, drawn on this line)")  # fmt: skip
     aucs = [result.metrics[n].get("auc") for n in detecting]
     # every curve on the top edge: said, or the figure read as one curve (a figure review)
     top = all(a is not None and a >= 0.999 for a in aucs) and any(a is not None for a in aucs)
@@ -306,9 +317,14 @@ def _roc_figure(result, detecting, colour, style=None) -> plt.Figure:
              "(dots: operating points, at the calibrated thresholds where calibrated)")  # fmt: skip
     if top:
         title += "\nevery AUC ≥ 0.999: the curves lie on the top edge, one over another"
-    ax.set(xscale="log", xlim=(floor, 1.0), ylim=(0.0, 1.02),
-           xlabel="false-alarm rate (log)", ylabel="detection rate", title=title)  # fmt: skip
+    ax.set(xscale="log", xlim=(floor, 1.0), ylim=(0.0, 1.02), ylabel="detection rate",
+           title=title)  # fmt: skip
+    # the same curves as misses on a log axis (a DET plot): near a detection rate of 1,
+    # where most detectors are, the ROC squeezes them into its top pixels (a figure review)
+    det.set(yscale="log", ylim=(no_miss * 0.8, 1.2), xlabel="false-alarm rate (log)",
+            ylabel="miss rate, 1 − detection rate (log)")  # fmt: skip
     legend_beside(ax)
+    legend_beside(det)
     return fig
 
 

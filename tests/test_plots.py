@@ -304,3 +304,19 @@ def test_the_attack_figure_has_a_panel_per_attacked_channel(figures):
     for ax, c in zip(axes, channels):
         (injected,) = [line for line in ax.get_lines() if line.get_label() == "injected"]
         assert list(injected.get_ydata()) == suite.traj.attack[r, :, c].tolist()
+
+
+def test_the_roc_has_a_miss_rate_panel_on_a_log_axis(figures):
+    """Most detectors sit near a detection rate of 1, squeezed into the ROC's top pixels (a
+    figure review): below it the same curves as misses, 1 − TPR, on a log axis (a DET plot)."""
+    import numpy as np
+
+    suite, figs = figures
+    roc_ax, det = figs["roc.png"].axes[:2]
+    assert det.get_yscale() == "log" and det.get_xscale() == "log"
+    curves = [line for line in roc_ax.get_lines() if "(AUC" in line.get_label()]
+    misses = [line for line in det.get_lines() if line.get_drawstyle() == "steps-post"]
+    assert len(curves) == len(misses)
+    floor = det.get_lines()[-1].get_ydata()[0]  # the "no miss" line
+    for curve, miss in zip(curves, misses):
+        np.testing.assert_allclose(miss.get_ydata(), np.maximum(1 - curve.get_ydata(), floor))
