@@ -39,9 +39,19 @@ def clear_events(logdir: Path) -> None:
     """Remove the TensorBoard event files an earlier evaluation wrote under ``logdir`` (an
     evaluation's own folder): a second run into the same ``--out`` added its events to the
     first's, and TensorBoard drew two points a step and two values per HPARAMS row beside
-    a ``metrics.json`` that held only the second. Other files are left."""
-    for old in Path(logdir).rglob("events.out.tfevents.*"):
+    a ``metrics.json`` that held only the second. The folders this leaves empty go too
+    (an estimator or scenario of the earlier run alone left an empty run in TensorBoard's
+    list); other files, and the folders that hold them, are left."""
+    logdir = Path(logdir)
+    emptied = set()
+    for old in logdir.rglob("events.out.tfevents.*"):
         old.unlink()
+        emptied.add(old.parent)
+    # the deepest first, so that a parent left empty by its children goes as well
+    for folder in sorted(emptied, key=lambda p: len(p.parts), reverse=True):
+        while folder != logdir and folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+            folder = folder.parent
 
 
 def log_suite(logdir: Path, result, doc: dict, images) -> None:

@@ -276,3 +276,20 @@ def test_a_rate_read_at_a_threshold_outside_its_false_alarm_band_is_hatched():
             {"fpr_at_far": None, "far_target": 0.01}, {"fpr_at_far": 0.5, "far_target": None},
             {"fpr_at_far": float("nan"), "far_target": 0.01}]  # fmt: skip
     assert off_band_cells(rows, cols) == [(0, 1), (0, 3), (2, 1), (2, 3)]
+
+
+def test_clearing_an_earlier_runs_events_removes_the_folders_it_leaves_empty(tmp_path):
+    """A second evaluation into one --out replaced the events but left the first run's
+    estimator and scenario folders empty: empty runs in TensorBoard's list."""
+    from difffilter.eval.tensorboard import clear_events
+
+    logdir = tmp_path / "tb_leaderboard"
+    for run in ("robot/zhang_akf", "robot/mdpf_local_1", "four_tank_bias/pf_nn_grad"):
+        (logdir / run).mkdir(parents=True)
+        (logdir / run / "events.out.tfevents.1.vm.1.0").write_bytes(b"x")
+    (logdir / "four_tank_bias" / "notes.txt").write_text("mine")  # not an event: kept
+    (logdir / "events.out.tfevents.2.vm.1.0").write_bytes(b"x")
+    clear_events(logdir)
+    assert sorted(p.relative_to(logdir).as_posix() for p in logdir.rglob("*")) == [
+        "four_tank_bias", "four_tank_bias/notes.txt"]  # fmt: skip
+    assert logdir.is_dir()
