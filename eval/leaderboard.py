@@ -22,6 +22,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from .acceptance import role_mark  # noqa: E402
+from .plots import text_colour  # noqa: E402
 from .report import _clean, format_number, markdown_table  # noqa: E402
 from .scoring import HEADLINE, METRICS  # noqa: E402
 
@@ -287,10 +288,8 @@ def _heatmaps(path: Path, rows: list[dict[str, Any]], units: dict[str, str]) -> 
     for (i, j), value in np.ndenumerate(grid):
         text = ("—" if np.isnan(value) else "diverged" if np.isposinf(value)
                 else format_number(float(value), 3))  # fmt: skip
-        # white on the darkest reds and greens, where black could hardly be read
-        dark = np.isfinite(goodness[i, j]) and not 0.15 <= goodness[i, j] <= 0.85
         ax.text(j, i, text, ha="center", va="center", fontsize=6,
-                color="white" if dark else "black")  # fmt: skip
+                color=text_colour(float(goodness[i, j])))  # fmt: skip
     for i, j in off_band_cells(rows, cols):
         ax.add_patch(plt.Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, hatch="////",
                                    edgecolor="0.35", lw=0))  # fmt: skip

@@ -134,6 +134,13 @@ def role_marks(names) -> dict[str, str]:
     return marks
 
 
+def text_colour(shade: float) -> str:
+    """The colour of a heat map cell's text on a red–yellow–green shade in [0, 1] (NaN: no
+    colour): white on the darkest ends, where black could hardly be read (a figure review),
+    black elsewhere."""
+    return "white" if shade == shade and not 0.15 <= shade <= 0.85 else "black"
+
+
 def legend_beside(ax, **kw) -> None:
     """The legend beside ``ax``, where it has labelled artists or ``handles`` are given
     (none: no legend, where matplotlib's "No artists with labels found" warning had reached
@@ -206,7 +213,8 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
 
     estimating = {n: o for n, o in outs.items() if o.attack is not None}
     if estimating and traj.attack.shape[-1] > 0:
-        figs.append(("attack_estimates_run0.png", _attack_figure(result, estimating, t, mark)))
+        figs.append(("attack_estimates_run0.png",
+                     _attack_figure(result, estimating, t, colour, style, mark)))  # fmt: skip
     return figs
 
 
@@ -214,14 +222,13 @@ def standard_figures(result) -> list[tuple[str, plt.Figure]]:
 MAX_ATTACK_PANELS = 4
 
 
-def _attack_figure(result, estimating, t, mark) -> plt.Figure:
+def _attack_figure(result, estimating, t, colour, style, mark) -> plt.Figure:
     """One run's injected attack and each estimate, a panel per attacked channel (the most
     attacked first, at most :data:`MAX_ATTACK_PANELS`), each in its own unit where the
     scenario gives one per entry (:func:`_entry_units`). One panel of the largest channel
     had compared cm/s with rad/s and left the robot's heading attack and the LFC's second
     attacked area out (a figure review)."""
-    traj, outs = result.traj, result.outputs
-    colour, style = estimator_colours(outs), estimator_line_styles(outs)
+    traj = result.traj
     r = shown_run(traj.flags)
     channels = _attacked_channels(traj.attack, r)[:MAX_ATTACK_PANELS]
     names = getattr(result.scenario, "attack_entry_names", None)
@@ -257,9 +264,8 @@ def _attacked_channels(attack: torch.Tensor, run: int) -> list[int]:
     """The channels of ``run`` with an injected attack, the largest first (channel 0 where
     none is attacked)."""
     size = attack[run].abs().amax(dim=0)
-    order = torch.argsort(size, descending=True, stable=True).tolist()
-    attacked = [c for c in order if float(size[c]) > 0]
-    return attacked or [0]
+    order = torch.argsort(size, descending=True, stable=True)
+    return order[size[order] > 0].tolist() or [0]
 
 
 def _entry_units(scenario, width: int) -> list[str]:

@@ -873,6 +873,8 @@ def _heatmap(path: Path, doc: dict, sc) -> None:
     import numpy as np
     from matplotlib.colors import LogNorm, Normalize
 
+    from .plots import text_colour
+
     threats, ests = list(doc["threats"]), list(doc["estimators"])
     height = 0.3 * len(ests) + 1.6
     fig, axes = plt.subplots(3, 1, figsize=(max(6.0, 0.75 * len(threats) + 3), 3 * height))
@@ -899,9 +901,9 @@ def _heatmap(path: Path, doc: dict, sc) -> None:
         colours = norm(np.clip(shown, norm.vmin, norm.vmax))
         for (i, j), value in np.ndenumerate(grid):
             text = "—" if np.isnan(value) else format_number(float(value), 2)
-            dark = np.isfinite(value) and not 0.15 <= float(colours[i, j]) <= 0.85
+            shade = float(colours[i, j]) if np.isfinite(value) else math.nan
             ax.text(j, i, text, ha="center", va="center", fontsize=7,
-                    color="white" if dark else "black")  # fmt: skip
+                    color=text_colour(shade))  # fmt: skip
         ax.set_xticks(range(len(threats)), threats, rotation=30, ha="right", fontsize=7)
         ax.set_yticks(range(len(ests)), ests, fontsize=7)
         scale = " (log colour scale)" if log else ""

@@ -320,3 +320,10 @@ def test_the_roc_has_a_miss_rate_panel_on_a_log_axis(figures):
     floor = det.get_lines()[-1].get_ydata()[0]  # the "no miss" line
     for curve, miss in zip(curves, misses):
         np.testing.assert_allclose(miss.get_ydata(), np.maximum(1 - curve.get_ydata(), floor))
+
+
+def test_heat_map_text_is_white_on_the_darkest_shades_alone():
+    from difffilter.eval.plots import text_colour
+
+    assert [text_colour(v) for v in (0.0, 0.1, 0.15, 0.5, 0.85, 0.9, 1.0, float("nan"))] == [
+        "white", "white", "black", "black", "black", "white", "white", "black"]  # fmt: skip
