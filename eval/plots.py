@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import colorsys
 import io
+import math
 
 import matplotlib
 
@@ -147,6 +148,33 @@ def legend_beside(ax, **kw) -> None:
     the console)."""
     if kw.get("handles") or ax.get_legend_handles_labels()[0]:
         ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False, **kw)
+
+
+def mark_off_scale(ax, t, curves, ylim: tuple[float, float], unit: str = "", at: str = "k") -> None:
+    """Set ``ylim`` on ``ax`` and write, at its top (bottom) edge, the largest (smallest)
+    value of ``curves`` (1-D tensors over ``t``) beyond it, with its ``at = t``: a figure
+    zoomed on a bound had cut off its peak without a word (the robot's input error rises to
+    about 25 cm/s in the steps after the attack starts, drawn as a wall at the edge)."""
+    lo, hi = ylim
+    ax.set_ylim(lo, hi)
+    values = torch.stack([c.detach().double().reshape(-1) for c in curves])
+    for edge, beyond, pick, other in ((hi, values > hi, torch.argmax, -math.inf),
+                                      (lo, values < lo, torch.argmin, math.inf)):  # fmt: skip
+        if not bool(beyond.any()):  # (a NaN is neither: nothing to say of it)
+            continue
+        masked = torch.where(beyond, values, other)
+        row, col = divmod(int(pick(masked)), values.shape[1])
+        extreme = float(masked[row, col])
+        ax.annotate(
+            f"{'↑' if edge == hi else '↓'} off scale: {extreme:.3g}{unit} at {at} = {t[col]:g}",
+            xy=(t[col], edge),
+            xytext=(4, -3 if edge == hi else 3),
+            textcoords="offset points",
+            fontsize=7,
+            va="top" if edge == hi else "bottom",
+            ha="left",
+            bbox={"fc": "white", "ec": "none", "alpha": 0.8, "pad": 1},  # over the grid lines
+        )
 
 
 def _alarm_spans(alarms: torch.Tensor, t: list[float], dt: float) -> list[tuple[float, float]]:

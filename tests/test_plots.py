@@ -327,3 +327,58 @@ def test_heat_map_text_is_white_on_the_darkest_shades_alone():
 
     assert [text_colour(v) for v in (0.0, 0.1, 0.15, 0.5, 0.85, 0.9, 1.0, float("nan"))] == [
         "white", "white", "black", "black", "black", "white", "white", "black"]  # fmt: skip
+
+
+def test_a_zoomed_axis_says_what_it_cuts_off_and_where():
+    """The robot's input-error figure is zoomed on its ±1 bound, and its peak of about 20
+    (the steps after the attack starts) was cut off at the edge without a word."""
+    import torch
+
+    from difffilter.eval.plots import mark_off_scale
+
+    t = list(range(1, 11))
+    mean = torch.tensor([0.0, 0.1, 7.5, 25.0, 3.0, 0.2, -3.5, 0.0, 0.0, 0.0])
+    rms = torch.tensor([0.5, 0.5, 8.0, 24.0, 3.1, 0.6, 3.5, 0.4, 0.4, float("nan")])
+    fig, ax = plt.subplots()
+    mark_off_scale(ax, t, (mean, rms), (-2, 6), " cm/s")
+    notes = {a.get_text(): a.xy for a in ax.texts}
+    assert ax.get_ylim() == (-2, 6)
+    assert notes == {"↑ off scale: 25 cm/s at k = 4": (4, 6),
+                     "↓ off scale: -3.5 cm/s at k = 7": (7, -2)}  # fmt: skip
+    plt.close(fig)
+    fig, ax = plt.subplots()
+    mark_off_scale(ax, t, (torch.zeros(10),), (-2, 6))  # nothing beyond: nothing said
+    assert len(ax.texts) == 0 and ax.get_ylim() == (-2, 6)
+    plt.close(fig)
+
+
+def test_robot_fig_b1_draws_the_compensated_path_beneath_the_estimate(monkeypatch, tmp_path):
+    """Fig. B1's compensated path and the estimate nearly coincide; at one width the
+    estimate's dashes had hidden the path (a figure review). Fig. input error names its
+    off-scale peak."""
+    from types import SimpleNamespace as NS
+
+    import torch
+
+    from difffilter.eval.families.robot import _figures
+
+    steps = 6
+    path = [[float(k), float(k)] for k in range(steps)]
+    curves = {"mean": [[0.0, 0.0]] * 3 + [[20.0, 9.0]] + [[0.0, 0.0]] * 2,
+              "rms": [[0.5, 0.5]] * steps}  # fmt: skip
+    doc = {"steps": steps, "rmse_curves": {"ekf": [1.0] * steps},
+           "compensation": {"paths": {"attack_free": path, "attacked": path,
+                                      "compensated": path, "estimate": path},
+                            "input_error_curves": curves}}  # fmt: skip
+    result = NS(context=NS(model=NS(sensor_pos=torch.zeros(2, 2))), outputs={"ekf": None})
+    figures, close = [], plt.close
+    monkeypatch.setattr(plt, "close", figures.append)
+    assert _figures(result, doc, tmp_path)[0] == "fig_b1_trajectories.png"
+    lines = {line.get_label(): (i, line) for i, line in enumerate(figures[0].axes[0].get_lines())}
+    (below, path_line), (above, estimate) = lines["compensated"], lines["estimate"]
+    assert below < above and path_line.get_linewidth() > 2 * estimate.get_linewidth()
+    errors = figures[-1].axes
+    assert [a.get_text() for a in errors[0].texts] == ["↑ off scale: 20 cm/s at k = 4"]
+    assert [a.get_text() for a in errors[1].texts] == ["↑ off scale: 9 deg/s at k = 4"]
+    for fig in figures:
+        close(fig)

@@ -196,10 +196,14 @@ def _figures(result, doc, out) -> list[str]:
     comp = doc.get("compensation")
     if comp:
         fig, ax = plt.subplots(figsize=(6, 6))
-        styles = {"attack_free": "b-", "attacked": "g-", "compensated": "k-", "estimate": "r--"}
+        # the compensated path wide beneath the estimate's dashes: the two nearly coincide,
+        # and at one width the estimate had hidden the path it compensates
+        styles = {"attack_free": ("b-", 1), "attacked": ("g-", 1), "compensated": ("k-", 3),
+                  "estimate": ("r--", 1)}  # fmt: skip
         for k, p in comp["paths"].items():
             p = torch.tensor(p)
-            ax.plot(p[:, 0], p[:, 1], styles[k], lw=1, label=k.replace("_", " "))
+            fmt, width = styles[k]
+            ax.plot(p[:, 0], p[:, 1], fmt, lw=width, label=k.replace("_", " "))
         s = result.context.model.sensor_pos
         ax.plot(s[:, 0], s[:, 1], "m^", label="lidars")
         ax.set(xlabel="s_x (cm)", ylabel="s_y (cm)", title="Fig. B1: run 0", aspect="equal")
@@ -207,7 +211,7 @@ def _figures(result, doc, out) -> list[str]:
         fig.savefig(out / "fig_b1_trajectories.png", dpi=110, bbox_inches="tight")
         plt.close(fig)
         files.append("fig_b1_trajectories.png")
-    from ..plots import estimator_looks, legend_beside
+    from ..plots import estimator_looks, legend_beside, mark_off_scale
 
     looks = estimator_looks(result.outputs)  # each in its colour of the report's figures
     fig, ax = plt.subplots(figsize=(8, 4))
@@ -243,7 +247,8 @@ def _figures(result, doc, out) -> list[str]:
             for b in (-INPUT_BOUND, INPUT_BOUND):
                 ax[i].axhline(b, color="k", lw=0.5, ls=":")
             ax[i].axvline(LATE, color="k", lw=0.5)
-            ax[i].set(xlabel="k", ylabel=f"a − â ({unit})", ylim=(-2, 6))
+            ax[i].set(xlabel="k", ylabel=f"a − â ({unit})")
+            mark_off_scale(ax[i], t, (mean[:, i], rms[:, i]), (-2, 6), f" {unit}")
             ax[i].legend(fontsize=7)
         fig.suptitle("Effective input error with compensation (bound ±1 from k = 40)")
         fig.savefig(out / "fig_input_error.png", dpi=110, bbox_inches="tight")
