@@ -29,6 +29,7 @@ from torch import Tensor
 from ._checks import _check_us, model_dtype_device
 from .noise import Gaussian
 from .results import ParticleFilterResult
+from .smoother import check_filtered_dtype
 from .ssm import StateSpaceModel
 
 __all__ = ["ParticleSmootherResult", "particle_smoother"]
@@ -93,6 +94,7 @@ def particle_smoother(
             f"model's states have {model.dim_x} entries and the filter's particles "
             f"{particles.shape[-1]}: smooth with the model the filter ran on"
         )
+    check_filtered_dtype(model, particles, "particles")
     if us is not None:  # the filter's inputs, checked as the filters check them
         dtype, device = model_dtype_device(model)
         _check_us(model, us, particles.shape[:-3], steps, dtype, device,

@@ -589,7 +589,7 @@ class NonlinearGaussianModel(StateSpaceModel):
         return ran
 
     def transition(self, x, u, k):
-        return _dispatch(self._f, self._f_arity, x, u, k)
+        return _dispatch(self._f, self._f_arity, x, self._input(x, u), k)
 
     def observe(self, x, k):
         return self._h(x) if self._h_arity <= 1 else self._h(x, k)
@@ -597,7 +597,16 @@ class NonlinearGaussianModel(StateSpaceModel):
     def transition_jacobian(self, x, u, k):
         if self._jf is None:
             return super().transition_jacobian(x, u, k)
-        return _dispatch(self._jf, self._f_arity, x, u, k)
+        return _dispatch(self._jf, self._f_arity, x, self._input(x, u), k)
+
+    def _input(self, x: Tensor, u: Tensor | None) -> Tensor | None:
+        """``u``, or zeros ``[..., du]`` for ``x [..., dx]`` where a model with inputs is
+        given none: the filters take a missing input as zero (the linear model's ``B u`` is
+        left out), and ``f(x, u)`` had been handed ``None`` (a ``TypeError`` inside the
+        user's own function, naming neither ``us`` nor what to pass)."""
+        if u is None and self.dim_u:
+            return x.new_zeros(x.shape[:-1] + (self.dim_u,))
+        return u
 
     def observation_jacobian(self, x, k):
         if self._jh is None:

@@ -450,8 +450,17 @@ class CustomScenario(Scenario):
                 f"scenario {self.name!r}: options must be a mapping of option: value (e.g. "
                 f"{{cusum_bias: 2.0}}); got {type(self.options).__name__}"
             )
-        if not callable(self.model_fn):
-            raise ValueError("model_fn must be a callable dtype -> StateSpaceModel")
+        if not callable(self.model_fn) or isinstance(self.model_fn, torch.nn.Module):
+            # (a model itself is callable, as every nn.Module, and took the dtype as its
+            # input: "missing the required forward function", from deep in torch)
+            given = (f"a {type(self.model_fn).__name__} model itself: pass the function that "
+                     "builds it, e.g. model_fn=my_plant, not my_plant(torch.float64)"
+                     if isinstance(self.model_fn, torch.nn.Module)
+                     else type(self.model_fn).__name__)  # fmt: skip
+            raise ValueError(
+                f"model_fn must be a callable dtype -> StateSpaceModel (the suite builds float64 "
+                f"and float32 models); got {given}"
+            )
         try:  # (a function of no argument failed later as "<lambda>() takes 0 positional …")
             inspect.signature(self.model_fn).bind(torch.float64)
         except TypeError:

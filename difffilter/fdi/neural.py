@@ -929,6 +929,16 @@ def _check_options(network, inner, channel, features, poa_eta, learning, decepti
         raise ValueError(
             "channel='replacement' needs a particle filter, deception= and a network with a head"
         )
+    if deception is not None and not callable(deception):
+        # (a tuple, deception_of(...) without its [0], was taken and failed at the first step
+        # as "'tuple' object is not callable": a new user's trial)
+        hint = (": deception_of(...) returns (density, rate), give its [0]"
+                if isinstance(deception, tuple) else "")  # fmt: skip
+        raise TypeError(
+            "deception must be the attacked-measurement density, a callable (model, y, "
+            "particles, k, mask) -> log p [..., N] (e.g. difffilter.fdi.ReplacementDeception); "
+            f"got {type(deception).__name__}{hint}"
+        )
     whole_run = [f for f in features if f not in PER_AREA_FEATURES]
     if whole_run and network.num_areas != 1:
         raise ValueError(
