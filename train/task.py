@@ -357,6 +357,21 @@ class ScenarioDataModule(pl.LightningDataModule):
         return self.test_dataloader()
 
 
+#: The master seed of ``difffilter-eval``'s default study: its runs are the test runs.
+EVALUATION_SEED = 0
+
+
+def _scored_monitor(seed: int, what: str) -> str:
+    """Why ``monitor_seed`` ``seed`` is refused: the monitors' ``val/scenario/…`` metrics,
+    which a checkpoint callback may select on, would be computed on the very runs the
+    evaluation scores (a seed-hygiene audit: ``monitor_seed=0`` drew them bit for bit)."""
+    return (
+        f"monitor_seed must differ from {seed}, {what}: the monitored scenarios' val/ metrics "
+        "(which a checkpoint callback may select on) would be computed on the runs the "
+        "evaluation scores; keep the default 3, or any seed no evaluation uses"
+    )
+
+
 class FilterEstimatorTask(pl.LightningModule):
     """The neural FDI estimator trained through difffilter's filter on one scenario.
 
@@ -520,6 +535,9 @@ class FilterEstimatorTask(pl.LightningModule):
                     f"monitor_scenarios: {other.name!r} is not a {sc.family} scenario at "
                     f"dt = {sc.dt} s (family {other.family!r}, dt = {other.dt} s)"
                 )
+        if self.monitors and monitor_seed == EVALUATION_SEED:
+            raise ValueError(_scored_monitor(monitor_seed, "the seed of difffilter-eval's "
+                                                           "default runs"))  # fmt: skip
         self.automatic_optimization = False
         self.adversary = None
         self._calibrated_at: int | None = None  # the step of the last threshold chosen on
@@ -826,6 +844,12 @@ class FilterEstimatorTask(pl.LightningModule):
                          sync_dist=True)  # fmt: skip
         self._figure(f"{stage}/attack_estimate", scenario, out, truth)
         return scores
+
+    def on_fit_start(self) -> None:
+        dm = getattr(self.trainer, "datamodule", None)
+        test_seed = None if dm is None else dm.hparams.get("test_seed")
+        if self.monitors and self.hparams.monitor_seed == test_seed:
+            raise ValueError(_scored_monitor(test_seed, "the data module's test_seed"))
 
     def validation_step(self, batch, batch_idx):
         self._scores("val", self.scenario_of_data(), batch, None)
