@@ -27,6 +27,7 @@ __all__ = [
     "check_rate",
     "model_dtype_device",
     "check_strategy",
+    "check_callable_as",
     "check_ess_threshold",
     "check_sequence_inputs",
     "check_step_inputs",
@@ -399,17 +400,25 @@ def check_strategy(obj, name: str, example: str, params: Sequence[str] = ()) -> 
             f"{name} must be a callable object (e.g. {example}); got {type(obj).__name__}"
         )
     if params:
-        try:
-            signature = inspect.signature(obj)
-        except (TypeError, ValueError):  # no signature to read (a builtin): the call will say
-            return
-        try:
-            signature.bind(*params)
-        except TypeError as error:
-            raise TypeError(
-                f"{name} {type(obj).__name__} is called as {name}({', '.join(params)}); its "
-                f"call takes {signature} ({error}): docs/plugins.md, The contracts"
-            ) from None
+        check_callable_as(obj, f"{name} {type(obj).__name__}", name, params)
+
+
+def check_callable_as(fn, who: str, call: str, params: Sequence[str]) -> None:
+    """``fn`` can be called with the positional arguments ``params``, as the filter calls
+    it (``call(params…)``), else a ``TypeError`` naming ``who``: checked when the filter
+    is made, not at the first call, where Python's bare "takes 3 positional arguments but
+    4 were given" named neither the plug-in nor its contract."""
+    try:
+        signature = inspect.signature(fn)
+    except (TypeError, ValueError):  # no signature to read (a builtin): the call will say
+        return
+    try:
+        signature.bind(*params)
+    except TypeError as error:
+        raise TypeError(
+            f"{who} is called as {call}({', '.join(params)}); its call takes {signature} "
+            f"({error}): docs/plugins.md, The contracts"
+        ) from None
 
 
 def check_ess_threshold(value) -> float:

@@ -34,8 +34,41 @@ def rmse(estimate: Tensor, truth: Tensor, *, dim=None) -> Tensor:
 
     ``estimate`` and ``truth`` broadcast (for example ``[B, T, d]`` each); the result is a
     0-d tensor, or the broadcast shape without ``dim``."""
+    _check_tensors(estimate=estimate, truth=truth)
+    if broadcast_or_none(estimate.shape, truth.shape) is None:  # torch's "size of tensor a"
+        raise ValueError(
+            f"estimate {tuple(estimate.shape)} and truth {tuple(truth.shape)} must have one "
+            "shape or broadcast (e.g. both [B, T, d]: the same runs and steps)"
+        )
     sq = (estimate - truth).square()
     return torch.sqrt(sq.mean() if dim is None else sq.mean(dim=dim))
+
+
+def _check_tensors(valid: object = None, **required: object) -> None:
+    """Each of ``required`` is a ``torch.Tensor``, and ``valid`` one or ``None``: a numpy
+    array (a notebook user's scores or alarms) failed on its missing ``.bool()``, in
+    ``torch.ones_like`` or at ``-``, in errors that named no argument."""
+    for name, value in (*required.items(), ("valid", valid)):
+        if not isinstance(value, Tensor) and not (name == "valid" and value is None):
+            either = " or None" if name == "valid" else ""
+            raise TypeError(
+                f"{name} must be a torch.Tensor{either} (torch.as_tensor(array) for a numpy "
+                f"array); got {type(value).__name__}"
+            )
+
+
+def _check_labels(labels: Tensor) -> None:
+    """ROC ``labels`` are bool or 0/1: ``.bool()`` took any other value (a score: the
+    arguments swapped) for an attacked step, and the AUC came out ``nan``, "one class
+    absent", without a word. One reduction, and none for bool labels."""
+    if labels.dtype == torch.bool:
+        return
+    if not bool(((labels == 0) | (labels == 1)).all()):
+        raise ValueError(
+            f"labels must be bool (True on an attacked step) or hold only 0 and 1; got "
+            f"{labels.dtype} with other values: are the arguments swapped? The scores come "
+            "first, (scores, labels)"
+        )
 
 
 def _check_fits(primary: str, shape: torch.Size, **others: Tensor | None) -> None:
@@ -64,6 +97,7 @@ def detection_counts(
 
     Returns ``{"tp", "fp", "tn", "fn"}`` pooled over every run and step in ``valid``.
     """
+    _check_tensors(alarms=alarms, attacked=attacked, valid=valid)
     _check_fits("alarms", alarms.shape, attacked=attacked, valid=valid)
     a, y = alarms.bool(), attacked.bool()
     v = _valid(a, valid)
@@ -137,8 +171,10 @@ def _roc_counts(scores: Tensor, labels: Tensor, valid: Tensor | None = None):
 def _check_scores(scores: Tensor, labels: Tensor, valid: Tensor | None) -> None:
     """Labels and ``valid`` fit ``scores``, and no valid score is NaN: a NaN sorted among
     the scores as it happened to fall (an AUC of 0.4877 where mapping NaN to the lowest
-    score gives 0.4508)."""
+    score gives 0.4508); the labels are bool or 0/1 (:func:`_check_labels`)."""
+    _check_tensors(scores=scores, labels=labels, valid=valid)
     _check_fits("scores", scores.shape, labels=labels, valid=valid)
+    _check_labels(labels)
     if bool(torch.isnan(scores[_valid(scores, valid)]).any()):
         raise ValueError("scores contain NaN (a step without a score): map them first, e.g. "
                          "difffilter.metrics.nan_as_lowest(scores), or mark them invalid")  # fmt: skip
@@ -148,8 +184,9 @@ def roc_auc(scores: Tensor, labels: Tensor, valid: Tensor | None = None) -> floa
     """Area under the ROC curve (trapezoid rule, summed in counts: exact for a perfect
     detector); ``nan`` if one class is absent.
 
-    ``scores`` (higher means attack; finite: map NaN first), bool ``labels`` and ``valid``: equal
-    shapes, for example ``[B, T]``; every valid entry is one sample."""
+    ``scores`` (higher means attack; finite: map NaN first), ``labels`` (bool, or 0/1:
+    any other value is refused, e.g. the arguments swapped) and ``valid``: equal shapes,
+    for example ``[B, T]``; every valid entry is one sample."""
     _check_scores(scores, labels, valid)
     y = labels.bool().expand(scores.shape)[_valid(scores, valid)]
     if bool(y.all()) or not bool(y.any()):
@@ -172,6 +209,7 @@ def detection_delay(alarms: Tensor, attacked: Tensor) -> dict[str, float | int]:
     the episode is missed. Returns ``{"mean_delay" (steps, nan if none detected),
     "episodes", "detected", "missed"}``. Vectorised over runs and steps.
     """
+    _check_tensors(alarms=alarms, attacked=attacked)
     if alarms.shape[-1] == 0 or alarms.numel() == 0:  # no step (or no run): no episode
         return {"mean_delay": math.nan, "episodes": 0, "detected": 0, "missed": 0}
     _check_fits("alarms", alarms.shape, attacked=attacked)
@@ -205,11 +243,13 @@ def finite_scores(scores: Tensor) -> Tensor:
     """``scores`` flattened in float64, NaN (no score: a step without data) as ``−∞``;
     ``±∞`` stay themselves (``nan_to_num`` alone would clamp them to the largest finite
     float: a threshold of 1.8e308 where ``#{s > τ} ≤ ⌊α n⌋`` needs ``+∞``)."""
+    _check_tensors(scores=scores)
     return nan_as_lowest(scores.double().flatten())
 
 
 def nan_as_lowest(scores: Tensor) -> Tensor:
     """``scores`` with NaN as ``−∞`` and every other value, ``±∞`` included, kept."""
+    _check_tensors(scores=scores)
     return torch.nan_to_num(scores, nan=-math.inf, posinf=math.inf, neginf=-math.inf)
 
 
@@ -222,11 +262,7 @@ def threshold_for(scores: Tensor, far: float) -> float:
     alarm possible) counts in ``n`` as the lowest score: the rate is over every step, so
     among the scored steps alone it is higher (``α / (1 − NaN share)``)."""
     far = check_rate(far, "far")  # a string or NaN compared with 0 raised a TypeError
-    if not isinstance(scores, Tensor):  # a numpy array failed on its missing .double()
-        raise TypeError(
-            f"scores must be a torch.Tensor (torch.as_tensor(array) for a numpy array); got "
-            f"{type(scores).__name__}"
-        )
+    _check_tensors(scores=scores)  # a numpy array failed on its missing .double()
     s = finite_scores(scores)
     if s.numel() == 0:
         raise ValueError("scores must hold at least one attack-free step")
@@ -243,6 +279,7 @@ def steps_since_attack(flags: Tensor) -> Tensor:
 
         last_k = max{j ≤ k : flags_j}    steps_k = k − last_k   (−1 without such j)
     """
+    _check_tensors(flags=flags)
     if flags.dtype != torch.bool or flags.dim() < 2:
         raise ValueError(
             f"flags must be a bool tensor [B, T, ...]; got {flags.dtype} of shape "
@@ -276,6 +313,7 @@ def alarm_rate_since_attack(
     ``fpr_at_far_after_attack`` gives one number for steps 1–10, this shows how long an
     estimator's alarms outlast the attack (the report's ``false_alarms_after_attack.png``).
     """
+    _check_tensors(alarms=alarms, flags=flags)
     if alarms.shape != flags.shape or alarms.dtype != torch.bool:
         raise ValueError(
             f"alarms must be a bool tensor of flags' shape {tuple(flags.shape)}; got "

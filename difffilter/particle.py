@@ -35,7 +35,7 @@ particles; the time loop is the only Python loop.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NamedTuple, Protocol
 
 import torch
@@ -44,6 +44,7 @@ from torch import Tensor
 from ._checks import (
     NonFinite,
     broadcast_shapes,
+    check_callable_as,
     check_carry_fits_model,
     check_carry_tensor,
     check_ess_threshold,
@@ -550,10 +551,44 @@ def _check_strategies(resampler, proposal, likelihood, ess_threshold) -> float:
     check_resampler_hooks(resampler)
     check_strategy(proposal, "proposal", "difffilter.BootstrapProposal()",
                    ("model", "particles", "u", "y", "k", "mask", "generator"))  # fmt: skip
-    if not hasattr(likelihood, "weigh"):
+    if hasattr(likelihood, "weigh"):
+        _check_step_likelihood(likelihood)
+    else:
         check_strategy(likelihood, "likelihood", "difffilter.ModelLikelihood()",
                        ("model", "y", "particles", "k", "mask"))  # fmt: skip
     return check_ess_threshold(ess_threshold)
+
+
+#: What a stateful likelihood implements (:class:`StepLikelihood`), named in its errors.
+_STEP_CONTRACT = (
+    "init(model, batch_shape, dtype, device) → state and weigh(state, model, y, particles, "
+    "k, mask, predictive) → (state, log p [..., N], record {name: tensor [...]}) "
+    "(difffilter.particle.StepLikelihood; docs/plugins.md)"
+)
+
+
+def _check_step_likelihood(likelihood) -> None:
+    """A likelihood with ``weigh`` is a stateful one (:class:`StepLikelihood`): an instance
+    whose ``init`` and ``weigh`` can be called as the filter calls them, checked when the
+    filter is made, as the other plug-ins are (one without ``init`` failed at the
+    filter's init on a bare AttributeError; a class passed for an instance, on a missing
+    argument)."""
+    if isinstance(likelihood, type):
+        raise TypeError(
+            f"likelihood must be an instance, not the class {likelihood.__name__}: pass "
+            f"likelihood={likelihood.__name__}(...)"
+        )
+    name = type(likelihood).__name__
+    for method, params in (("init", ("model", "batch_shape", "dtype", "device")),
+                           ("weigh", ("state", "model", "y", "particles", "k", "mask",
+                                      "predictive"))):  # fmt: skip
+        fn = getattr(likelihood, method, None)
+        if not callable(fn):
+            raise TypeError(
+                f"the likelihood {name} has a weigh, so it is a stateful likelihood, and it "
+                f"has no {method} method: it implements {_STEP_CONTRACT}"
+            )
+        check_callable_as(fn, f"the likelihood {name}'s {method}", method, params)
 
 
 def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator, k: int):
@@ -697,10 +732,49 @@ def _weigh(pf, aux, model, y, particles, k, mask, obs, predictive, uses_predicti
         residual = model.measurement_residual(y.unsqueeze(-2), obs)
         return aux, model.measurement_noise.log_prob(residual, mask=m), {}
     if pf.stateful:
-        return likelihood.weigh(aux, model, y, particles, k, mask, predictive)
+        weighed = likelihood.weigh(aux, model, y, particles, k, mask, predictive)
+        # (the usual step: three comparisons and a lookup per recorded key)
+        if (type(weighed) is not tuple or len(weighed) != 3 or type(weighed[2]) is not dict
+                or not _RESERVED_KEYS.isdisjoint(weighed[2])):  # fmt: skip
+            weighed = _checked_weighed(weighed, likelihood, k)
+        return weighed
     if uses_predictive:
         return aux, likelihood(model, y, particles, k, mask, predictive=predictive), {}
     return aux, likelihood(model, y, particles, k, mask), {}
+
+
+def _checked_weighed(weighed, likelihood, k: int) -> tuple:
+    """A stateful likelihood's ``weigh`` result that the step's quick test did not pass,
+    checked: a triple ``(state, log p, record)``, ``record`` a mapping none of whose keys
+    is one the filter reports itself (:data:`_RESERVED_KEYS`). A pair failed as "not
+    enough values to unpack" and a list record as "'list' object is not a mapping", naming
+    neither the likelihood nor the step; a record ``"ess"`` silently replaced the filter's
+    own ESS in ``extras`` and the result. Returns the triple with a ``dict`` record."""
+    name = type(likelihood).__name__
+    if not isinstance(weighed, Sequence) or isinstance(weighed, Tensor) or len(weighed) != 3:
+        got = (f"a tensor {tuple(weighed.shape)}" if isinstance(weighed, Tensor)
+               else f"a {type(weighed).__name__} of {len(weighed)}"
+               if isinstance(weighed, Sequence) else f"a {type(weighed).__name__}")  # fmt: skip
+        raise TypeError(
+            f"the likelihood {name}'s weigh returned {got} at step {k}; it returns a triple "
+            "(state, log p [..., N], record {name: tensor [...]}, {} for none)"
+        )
+    state, log_p, record = weighed
+    if not isinstance(record, Mapping):
+        raise TypeError(
+            f"the likelihood {name}'s weigh returned a record of type {type(record).__name__} "
+            f"at step {k}; the record is a dict {{name: tensor [...]}} ({{}} for none), "
+            "reported in the step's extras"
+        )
+    clash = sorted(_RESERVED_KEYS.intersection(record))
+    if clash:
+        raise ValueError(
+            f"the likelihood {name} recorded {', '.join(map(repr, clash))} at step {k}: the "
+            "particle filter reports such keys itself in extras (one would replace the "
+            "other); name the record's entries otherwise, none of the filter's "
+            f"{', '.join(sorted(_RESERVED_KEYS))}"
+        )
+    return state, log_p, dict(record)
 
 
 def _check_log_density(value, log_w: Tensor, plugin, what: str, k: int) -> None:
@@ -991,6 +1065,10 @@ _FILTER_KEYS = (
     "pred_means", "pred_covs", "innovations", "innovation_covs",
     "log_likelihood_increments", "log_likelihood", "nonfinite_skipped",
 )  # fmt: skip
+#: The extras a particle filter writes itself: a stateful likelihood's record of one of
+#: these names would replace the filter's own (``extras = {"ess": …, **record}``) or be
+#: replaced by it, and is refused (:func:`_checked_weighed`).
+_RESERVED_KEYS = frozenset(_PF_FIELDS + _FILTER_KEYS + ("prior_log_weights",))
 
 
 def particle_result(out) -> ParticleFilterResult:

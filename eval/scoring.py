@@ -197,6 +197,7 @@ def score(
         attacked_input: ``False`` for an estimator fed the clean measurements (its
             every alarm is false; no TPR, AUC or delay).
     """
+    _check_runs_fit(output, traj, reference_means)
     B, T = traj.flags.shape
     out: dict[str, Any] = dict.fromkeys(METRICS)
     out["state_rmse"] = _rmse(output.means, traj.x)
@@ -233,6 +234,21 @@ def score(
             episodes_detected=delay["detected"],
         )
     return out
+
+
+def _check_runs_fit(output: EstimatorOutput, traj, reference_means: Tensor | None) -> None:
+    """The estimate is of ``traj``'s runs and steps: ``output.means`` (and
+    ``reference_means``) of ``traj.x``'s shape ``[B, T, dx]``. An output of 4 of 8 runs
+    failed inside torch ("The size of tensor a (4) must match …"), one of a single run
+    ``[T, dx]`` on an IndexError about a boolean mask, naming neither argument."""
+    want = tuple(traj.x.shape)
+    for name, means in (("output.means", output.means), ("reference_means", reference_means)):
+        if means is not None and tuple(means.shape) != want:
+            raise ValueError(
+                f"{name} {tuple(means.shape)} and traj.x {want} must have the same shape "
+                "[B, T, dx]: score the output of the runs traj holds (every run, as a batch, "
+                "e.g. estimator.run(system, traj.y_recv, traj.us))"
+            )
 
 
 def episode_steps(traj) -> Tensor:
