@@ -716,7 +716,10 @@ def _particle_step(pf: ParticleFilter, carry: ParticleState, y, u, mask):
     new_carry = ParticleState(new, log_w_new, k + 1, ess_new, w_new, model, aux, carry.generators)
     if pf.hooks:
         for hook in pf.hooks:
-            extras.update(hook(model, y, mask, new_carry, out))
+            recorded = hook(model, y, mask, new_carry, out)
+            if type(recorded) is not dict or not _RESERVED_KEYS.isdisjoint(recorded):
+                recorded = _checked_hook_record(recorded, hook, k + 1)
+            extras.update(recorded)
         if not pf.record_prior:
             del extras["prior_log_weights"]
     return new_carry, out
@@ -775,6 +778,28 @@ def _checked_weighed(weighed, likelihood, k: int) -> tuple:
             f"{', '.join(sorted(_RESERVED_KEYS))}"
         )
     return state, log_p, dict(record)
+
+
+def _checked_hook_record(recorded, hook, k: int) -> dict:
+    """A step hook's record that is not a plain ``dict`` of the hook's own keys, checked as
+    a stateful likelihood's (:func:`_checked_weighed`): a mapping, none of whose keys is one
+    the filter reports itself (a hook's ``"ess"`` had silently replaced the filter's in
+    ``extras`` and the result; a list failed in ``dict.update``, naming no hook)."""
+    name = getattr(hook, "__qualname__", type(hook).__name__)
+    if not isinstance(recorded, Mapping):
+        raise TypeError(
+            f"the step hook {name} returned a {type(recorded).__name__} at step {k}; a hook "
+            "returns a dict {name: tensor [...]} ({} for none), reported in the step's extras"
+        )
+    clash = sorted(_RESERVED_KEYS.intersection(recorded))
+    if clash:
+        raise ValueError(
+            f"the step hook {name} recorded {', '.join(map(repr, clash))} at step {k}: the "
+            "particle filter reports such keys itself in extras (one would replace the "
+            f"other); name the hook's entries otherwise, none of the filter's "
+            f"{', '.join(sorted(_RESERVED_KEYS))}"
+        )
+    return dict(recorded)
 
 
 def _check_log_density(value, log_w: Tensor, plugin, what: str, k: int) -> None:

@@ -214,3 +214,26 @@ def test_a_stateful_likelihood_is_checked_when_the_filter_is_made(likelihood, ma
     raised by the constructor before any step."""
     with pytest.raises(TypeError, match=match):
         df.ParticleFilter(8, likelihood=likelihood)
+
+
+def test_a_step_hooks_record_is_checked_as_a_likelihoods():
+    """A step hook's ``"ess"`` replaced the filter's in ``extras`` and the result, and a
+    list failed in ``dict.update``, naming no hook (left over from the likelihood's fix)."""
+
+    def ess_hook(model, y, mask, carry, out):
+        return {"ess": torch.full(carry.log_weights.shape[:-1], 7.0, dtype=D)}
+
+    def list_hook(model, y, mask, carry, out):
+        return [out.mean]
+
+    def own_hook(model, y, mask, carry, out):
+        return {"spread": carry.particles.std(-2)}
+
+    with pytest.raises(ValueError, match=r"the step hook .*ess_hook recorded 'ess' at step 1"):
+        _pf(None, hooks=[ess_hook])
+    with pytest.raises(TypeError, match=r"the step hook .*list_hook returned a list at step 1"):
+        _pf(None, hooks=[list_hook])
+    out = _pf(None, hooks=[own_hook], return_particles=True)
+    w = out.log_weights.exp()
+    np.testing.assert_allclose(out.ess.numpy(), (1.0 / (w * w).sum(-1)).numpy(), rtol=1e-10)
+    np.testing.assert_allclose(out.records["spread"].numpy(), out.particles.std(-2).numpy())
