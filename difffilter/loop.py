@@ -63,6 +63,7 @@ from ._checks import (
     check_model,
     check_model_batch,
     check_sequence_inputs,
+    model_batch_shape,
 )
 from .attack import Attack, Channel, TabulatedAttack, attack_dim, inject
 from .estimator import Estimator, EstimatorOutput, Generators, stack_steps
@@ -430,8 +431,9 @@ class LoopFork(NamedTuple):
     """A closed loop stopped after ``state.k`` steps, to be continued by other loops
     (:func:`closed_loop`'s ``fork``): its :class:`LoopState` (copied: the loop that kept
     the fork went on) and what it recorded at steps ``1 … k`` (``records``: the lists
-    :func:`closed_loop` stacks into :class:`Trajectories`; ``outputs``: the estimator's
-    step outputs)."""
+    :func:`closed_loop` stacks into :class:`Trajectories`, with the schedule's rows under
+    ``"mask"``, so that a continuation is checked to run under the same; ``outputs``: the
+    estimator's step outputs)."""
 
     state: LoopState
     records: dict[str, list]
@@ -500,17 +502,22 @@ def closed_loop(
             loop's ``attack`` would have left them (a tabulated attack that flags none of
             them; ``ValueError`` otherwise). ``state`` must then be ``None``; the plant,
             noise, estimator, model and controller are the forked loop's (the fork holds
-            no controller state: :class:`Controller`).
+            no controller state: :class:`Controller`), and so is ``mask`` over the fork's
+            steps (checked) and ``input_loss`` given or not as it was (checked).
         input_loss: an :class:`~difffilter.input_loss.InputLoss`: the controller's packets
             lost on the way to the actuators (held or zeroed there; the estimator told of
             each arrival or not), or ``None`` (every input arrives).
 
     Returns a :class:`LoopResult`: the trajectories of these ``L`` steps
     (``us`` = the inputs the estimator knew, ``attack``/``flags``/``info["attack_values"]``
-    as the attack made them, or, under ``input_loss``, as they reached the plant (module
-    :mod:`difffilter.input_loss`), with ``info["inputs_applied"]``, what drove the plant,
-    ``info["inputs_sent"]``, the controller's, and ``info["input_mask"]``, the arrivals),
-    the estimator's output over them and the final state.
+    as the attack made them; under ``input_loss`` only ``attack`` is as it reached the plant
+    (zero in a lost packet the actuators zero, the held attack where they hold), while
+    ``flags`` stay the attack's own steps, lost packet or not, with, under ``"hold"``, the
+    steps where a held input still carries it, and ``info["attack_values"]`` what the
+    attacker would inject at every step: the plant still carries what it injected before,
+    :class:`~difffilter.input_loss.InputLoss`; with ``info["inputs_applied"]``, what drove
+    the plant, ``info["inputs_sent"]``, the controller's, and ``info["input_mask"]``, the
+    arrivals), the estimator's output over them and the final state.
     Differentiable end to end (the loop records no tensor in place).
     """
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
@@ -568,7 +575,7 @@ def closed_loop(
             state = _start(plant, steps, horizon, x0, estimator, model, controller, attack,
                            attack_generator, generator)  # fmt: skip
         keys = ("x", "y", "recv", "u", "attack", "value", "flag", "concealment", "applied",
-                "sent", "arrived", "acting")  # fmt: skip
+                "sent", "arrived", "acting", "mask")  # fmt: skip
         rec, outs = {key: [] for key in keys}, []
     _check_lengths(plant, noise, mask, state, steps)
     _check_attack_horizon(attack, state, steps)
@@ -584,6 +591,8 @@ def closed_loop(
         raise ValueError("fork: continue a fork with the input_loss of the loop that kept it "
                          "(or without one, as it was kept)")  # fmt: skip
     first = state.k - len(rec["x"])  # the step before the first one recorded
+    if rec["x"]:
+        _check_fork_mask(rec["mask"], mask, first)
     k, x, u, a_state, carry, view, memory = state
     if channel is Channel.ACTUATOR and plant.dim_u == 0:  # (no controller could help it)
         raise ValueError(
@@ -640,7 +649,7 @@ def closed_loop(
                 carry, view = estimator._step(carry, step_input, known, m)
                 outs.append(view)
             for key, val in (("x", x), ("y", y), ("recv", received), ("u", known), ("attack", a),
-                             ("value", value), ("flag", flag)):  # fmt: skip
+                             ("value", value), ("flag", flag), ("mask", m)):  # fmt: skip
                 rec[key].append(val)
             if controller is not None:
                 u = _checked_input(controller, controller(k, received, view), x, plant, k)
@@ -656,6 +665,8 @@ def closed_loop(
                 error.add_note(hint)
         raise
     traj = _trajectories(rec, mask, first, k, channel)
+    if estimator is None:
+        _check_finite(traj, first, attack, controller)
     batch = x.shape[:-1]
     output = stack_steps(outs, batch, attack_channel=estimator.attack_channel) if outs else None
     return LoopResult(traj, output, LoopState(k, x, u, a_state, carry, view, memory))
@@ -876,7 +887,7 @@ def _checked_input(controller, u, x: Tensor, plant, k: int):
     ``None`` for a plant without input (``dim_u = 0``). A ``[B, 1, du]`` grew the plant's
     state by an axis a step (memory ×B a step, then an error at the end naming nothing).
     Shape checks only: NaN is found with the next step's measurement
-    (:func:`_estimator_input`)."""
+    (:func:`_estimator_input`; without an estimator, :func:`_check_finite` after the loop)."""
     du = plant.dim_u
     if type(u) is Tensor and u.dim() == 2 and u.shape[1] == du and u.shape[0] == x.shape[0] \
             and u.dtype == x.dtype and u.device == x.device:  # fmt: skip
@@ -962,6 +973,35 @@ def _estimator_input(received: Tensor, mask: Tensor | None, k: int, attack,
     return torch.where(
         mask, received, torch.zeros((), dtype=received.dtype, device=received.device)
     )
+
+
+def _check_finite(traj: Trajectories, first: int, attack, controller) -> None:
+    """Without an estimator, :func:`_estimator_input`'s checks of what the controller and
+    the attacker put into the loop, made once on the records of steps ``first + 1 …`` (one
+    reduction a loop, not a host read a step: ``scenario.simulate`` runs without an
+    estimator), raising its error at the first step that fails: a controller's NaN input or
+    an attacker's NaN in a received entry had passed silently into the states and the data
+    (README, "Input validation"). A NaN the plant makes itself (its state, or its
+    measurement before any attack) ends the checks: it is the simulation's truth, recorded
+    for the caller, and ``scenario.simulate`` names the model's function that gave it at its
+    step (a user trial), which the loop could only call "the plant"."""
+    recv, mask, us = traj.y_recv, traj.mask, traj.us
+    if recv.device.type == "meta":
+        return
+    received = recv.new_ones((), dtype=torch.bool) if mask is None else mask
+    own = (~torch.isfinite(traj.y_true) & received).any(-1) | (~torch.isfinite(traj.x)).any(-1)
+    made = (~torch.isfinite(recv) & received & torch.isfinite(traj.y_true)).any(-1)
+    bad = own | made
+    if us is not None:
+        bad = bad | (~torch.isfinite(us)).any(-1)
+    if not bool(bad.any()):
+        return  # one host read a loop
+    t = int(bad.any(0).nonzero()[0, 0])
+    u = None if us is None else us[:, t]
+    if (u is None or bool(torch.isfinite(u).all())) and bool(own[:, t].any()):
+        return  # the plant's own, first (its caller names it)
+    _estimator_input(recv[:, t], None if mask is None else mask[:, t], first + t + 1, attack, u,
+                     controller)  # fmt: skip
 
 
 def _check_lengths(plant, noise, mask, state: LoopState, steps: int) -> None:
@@ -1067,6 +1107,7 @@ def _start(plant, steps, horizon, x0, estimator, model, controller, attack, atta
     # makes 3 runs), so the controller, the attack and the estimator start with every run
     # (the controller's u_0 of x0's one run failed in a torch stack after the last step)
     runs = check_model_batch(plant, x0.shape[:-1], "x0's runs")
+    _one_axis_of_runs(plant, runs, "the plant")
     x0 = x0.expand(*runs, plant.dim_x) if runs != x0.shape[:-1] else x0
     if estimator is not None:
         _check_estimator_model(model, plant, controller, runs)
@@ -1116,7 +1157,25 @@ def _check_estimator_model(model, plant, controller, runs: torch.Size) -> None:
             f"every step; give its model the plant's B [dx, {plant.dim_u}] (zero columns for "
             "inputs it should not know)"
         )
-    check_model_batch(model, runs, "the loop's runs (x0 broadcast with the plant's sets)")
+    both = check_model_batch(model, runs, "the loop's runs (x0 broadcast with the plant's sets)")
+    _one_axis_of_runs(model, both, "model (the estimator's)")
+
+
+def _one_axis_of_runs(model, runs: torch.Size, what: str) -> None:
+    """The loop's runs are one axis ``B``: its records (``[B, T, …]``), the schedule, replayed
+    noise and the controller's inputs are laid out so. A model of a 2-D batch of parameter
+    sets (``F [2, 3, dx, dx]``) had made runs ``(2, 3)`` that were recorded with time between
+    the two run axes (``x [2, T, 3, dx]`` beside the estimator's ``[2, 3, T, dx]``), scored
+    silently on misaligned axes."""
+    if len(runs) <= 1:
+        return
+    own = tuple(model_batch_shape(model))
+    raise ValueError(
+        f"{what} has parameter sets of batch shape {own}, which makes the loop's runs "
+        f"{tuple(runs)}: closed_loop runs one axis of runs, x0 [B, dx] with a model of B "
+        "parameter sets (F [B, dx, dx], …) or of one. Flatten the sets to one axis "
+        "(F.reshape(-1, dx, dx), and the other parameters alike) and reshape the results"
+    )
 
 
 def _dtype_of(model) -> torch.dtype | None:
@@ -1159,6 +1218,29 @@ def _resume(fork: LoopFork, plant, attack, attack_generator, channel, horizon):
     return state._replace(attack=a_state), records, list(fork.outputs)
 
 
+def _check_fork_mask(kept: list, mask: Tensor | None, first: int) -> None:
+    """A fork is continued under the schedule of the loop that kept it: ``kept`` (its rows
+    ``m_k`` of steps ``first + 1 …``, ``None`` without a schedule) are ``mask``'s. A fork
+    kept under a mask and continued without it (or under another) had filtered its steps
+    with entries dropped while the result said all were received (``Trajectories.mask``
+    ``None``): two loops stacked as one, as with ``input_loss`` (refused beside it)."""
+    if kept[0] is None and mask is None:
+        return
+    if kept[0] is None or mask is None:
+        raise ValueError(
+            "fork: continue a fork with the mask of the loop that kept it (or without one, as "
+            f"it was kept); the fork was kept {'without' if kept[0] is None else 'under'} a "
+            f"mask and this loop is given {'none' if mask is None else 'one'}"
+        )
+    end = first + len(kept)
+    rows = mask[:, first:end]
+    if rows.shape[0] != kept[0].shape[0] or not torch.equal(torch.stack(kept, 1), rows):
+        raise ValueError(
+            f"fork: mask differs from the mask of the loop that kept the fork at steps "
+            f"{first + 1} … {end} (the fork's steps): continue it with that loop's mask"
+        )
+
+
 def _trajectories(rec, mask, k0, k1, channel) -> Trajectories:
     """Stack the recorded steps ``k0 + 1 … k1`` into :class:`Trajectories`."""
     x, y, recv = (torch.stack(rec[key], 1) for key in ("x", "y", "recv"))
@@ -1182,8 +1264,8 @@ def _trajectories(rec, mask, k0, k1, channel) -> Trajectories:
         else:
             flags = own_flags.any(-1) if entrywise else own_flags
             if channel is Channel.ACTUATOR and rec["acting"]:
-                # where the attack is in the applied input (input_loss: not in a zeroed lost
-                # packet, in a held one), actuator by actuator
+                # input_loss: the attack's own steps, lost packet or not (the plant carries
+                # what it injected before), and those where a held input carries it
                 flags = torch.stack(rec["acting"], 1).any(-1)
     info = {"attack_values": values, "attack_channel": channel}
     if channel is not None:

@@ -259,10 +259,16 @@ def test_a_nan_or_inf_injected_into_the_loop_is_refused_where_it_is_received():
     dropped[:, 2, 1] = False  # entry 1 of step 3 never arrives
     loop = run(float("nan"), dropped, df.KalmanFilter())
     assert loop.trajectories.y_recv[:, 2, 1].isnan().all() and loop.output.means.isfinite().all()
-    # without an estimator nothing reads it: the simulation records it
-    sim = closed_loop(model, 5, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
-                      attack=_Poison(float("nan")))  # fmt: skip
-    assert sim.trajectories.y_recv[:, 2, 1].isnan().all()
+
+    # without an estimator (the simulation) the same: refused where received (README, "Input
+    # validation"; it had been recorded silently), recorded where the schedule drops it
+    def sim(mask=None):
+        return closed_loop(model, 5, noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=x0,
+                           attack=_Poison(float("nan")), mask=mask)  # fmt: skip
+
+    with pytest.raises(ValueError, match=r"received at step 3 .*run 0, entry 1.*\(_Poison\)"):
+        sim()
+    assert sim(dropped).trajectories.y_recv[:, 2, 1].isnan().all()
 
 
 def test_the_loop_names_a_wrong_attack_estimator_or_attack_value():

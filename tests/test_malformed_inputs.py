@@ -546,9 +546,11 @@ def test_a_custom_scenario_names_a_model_fn_that_does_not_give_a_model_of_its_dt
             CustomScenario(model_fn=plant, **{**kw, field: value})
 
 
-def test_a_study_names_the_estimator_and_scenario_an_error_came_from():
+def test_a_studys_nan_attack_packet_is_named_with_its_attack_and_step():
     """A user trial's attack injected a NaN packet: the suite's error said "ys contains NaN"
-    without naming which estimator of which study met it."""
+    without naming which estimator of which study met it. The simulation (closed_loop
+    without an estimator) now refuses it where the attacker makes it, before any estimator,
+    naming the attack and the step (README, "Input validation")."""
     from difffilter.attack import TabulatedAttack
     from difffilter.eval.suite import run_suite
     from difffilter.models.scenario import CustomScenario
@@ -561,7 +563,7 @@ def test_a_study_names_the_estimator_and_scenario_an_error_came_from():
 
     sc = CustomScenario(name="nan_packet", family="custom", description="d", steps=6, runs=2,
                         model_fn=lambda dtype: constant_velocity(dtype=dtype), attack=NaNPacket())  # fmt: skip
-    with pytest.raises(ValueError, match="chi_square_kf on nan_packet: ys contains NaN or Inf"):
+    with pytest.raises(ValueError, match=r"received at step 4 .* the attack \(NaNPacket\)"):
         run_suite(sc, estimators=["chi_square_kf"], progress=False)
 
 
