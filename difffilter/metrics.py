@@ -60,14 +60,20 @@ def _check_tensors(valid: object = None, **required: object) -> None:
 def _check_labels(labels: Tensor) -> None:
     """ROC ``labels`` are bool or 0/1: ``.bool()`` took any other value (a score: the
     arguments swapped) for an attacked step, and the AUC came out ``nan``, "one class
-    absent", without a word. One reduction, and none for bool labels."""
-    if labels.dtype == torch.bool:
+    absent", without a word."""
+    _check_binary(labels, "labels", "(True on an attacked step)",
+                  "are the arguments swapped? The scores come first, (scores, labels)")  # fmt: skip
+
+
+def _check_binary(t: Tensor, name: str, meaning: str, hint: str) -> None:
+    """``t`` is bool or holds only 0 and 1 (one reduction, and none for bool): ``.bool()``
+    reads any other value, a score passed for a decision, as ``True``, silently."""
+    if t.dtype == torch.bool:
         return
-    if not bool(((labels == 0) | (labels == 1)).all()):
+    if not bool(((t == 0) | (t == 1)).all()):
         raise ValueError(
-            f"labels must be bool (True on an attacked step) or hold only 0 and 1; got "
-            f"{labels.dtype} with other values: are the arguments swapped? The scores come "
-            "first, (scores, labels)"
+            f"{name} must be bool {meaning} or hold only 0 and 1; got {t.dtype} with other "
+            f"values: {hint}"
         )
 
 
@@ -80,6 +86,15 @@ def _check_fits(primary: str, shape: torch.Size, **others: Tensor | None) -> Non
         if broadcast_or_none(t.shape, shape) != shape:
             raise ValueError(f"{name} {tuple(t.shape)} must have the shape of {primary} "
                              f"{tuple(shape)} (or broadcast to it)")  # fmt: skip
+
+
+def _check_decisions(alarms: Tensor, attacked: Tensor) -> None:
+    """Per-step ``alarms`` and ``attacked`` flags are bool or 0/1 (:func:`_check_binary`):
+    scores given for the alarms (``detection_rates(scores, flags)``) were all "alarms"."""
+    _check_binary(alarms, "alarms", "(the detector's decisions, e.g. scores > threshold)",
+                  "scores are decisions only against a threshold (scores > threshold)")  # fmt: skip
+    _check_binary(attacked, "attacked", "(True on an attacked step)",
+                  "are the arguments swapped? The alarms come first, (alarms, attacked)")  # fmt: skip
 
 
 def _valid(alarms: Tensor, valid: Tensor | None) -> Tensor:
@@ -99,6 +114,7 @@ def detection_counts(
     """
     _check_tensors(alarms=alarms, attacked=attacked, valid=valid)
     _check_fits("alarms", alarms.shape, attacked=attacked, valid=valid)
+    _check_decisions(alarms, attacked)
     a, y = alarms.bool(), attacked.bool()
     v = _valid(a, valid)
     return {
@@ -213,6 +229,7 @@ def detection_delay(alarms: Tensor, attacked: Tensor) -> dict[str, float | int]:
     if alarms.shape[-1] == 0 or alarms.numel() == 0:  # no step (or no run): no episode
         return {"mean_delay": math.nan, "episodes": 0, "detected": 0, "missed": 0}
     _check_fits("alarms", alarms.shape, attacked=attacked)
+    _check_decisions(alarms, attacked)
     a = alarms.bool().reshape(-1, alarms.shape[-1])
     y = attacked.bool().expand(alarms.shape).reshape(-1, alarms.shape[-1])
     T = y.shape[-1]

@@ -237,3 +237,23 @@ def test_a_step_hooks_record_is_checked_as_a_likelihoods():
     w = out.log_weights.exp()
     np.testing.assert_allclose(out.ess.numpy(), (1.0 / (w * w).sum(-1)).numpy(), rtol=1e-10)
     np.testing.assert_allclose(out.records["spread"].numpy(), out.particles.std(-2).numpy())
+
+
+def test_detection_metrics_refuse_scores_for_decisions():
+    """``detection_rates(scores, flags)`` read every nonzero score as an alarm (``.bool()``),
+    a TPR and FPR of 1 without a word; so did a score given for ``attacked``."""
+    flags = torch.tensor([[False, False, True, True]])
+    scores = torch.tensor([[0.2, 0.0, 3.0, 0.4]], dtype=D)
+    for call in (
+        lambda: dm.detection_rates(scores, flags),
+        lambda: dm.detection_delay(scores, flags),
+    ):
+        with pytest.raises(ValueError, match="alarms must be bool .* against a threshold"):
+            call()
+    with pytest.raises(ValueError, match="attacked must be bool .* are the arguments swapped"):
+        dm.detection_counts(flags, scores)
+    # decisions as bool or 0/1: one TP, one FN, no FP, by hand
+    alarms = scores > 1.0
+    for a in (alarms, alarms.double()):
+        r = dm.detection_rates(a, flags.int())
+        assert (r["tp"], r["fn"], r["fp"], r["tn"]) == (1, 1, 0, 2) and r["tpr"] == 0.5
