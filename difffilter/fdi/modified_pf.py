@@ -310,7 +310,9 @@ class ModifiedParticleFilter(ParticleFilter):
             round-off); it needs a tensor ``gamma_hat``, a time-invariant model, systematic
             resampling at every step and none of ``us``, ``mask``, ``attack_rate``,
             ``base_likelihood``. Where its other assumptions fail (runs not ``[B, T,
-            dy]``, one ``η`` per run, a measurement noise other than ``N(0, R)``) the run
+            dy]``, one ``η`` per run, a measurement noise other than ``N(0, R)``, or one
+            random stream for the propagation and the resampling: give a
+            ``resample_generator``, as the evaluation does, for the fast path) the run
             steps instead. It returns ``means``, ``attack``, ``detection`` (a float
             threshold ``ζ``) and ``extras["gamma_hat"]`` only, without gradients
             (``covs`` ``None``; none of the steps' other extras).
@@ -366,13 +368,20 @@ class ModifiedParticleFilter(ParticleFilter):
             raise ValueError(f"fused=True does not support {bad}; use fused=False")
         if not _fusable(carry.model, ys, self.detector, self.gamma_hat):
             return None  # step by step: the same numbers, without the fused path's assumptions
+        gens = carry.generators or Generators()
+        if gens.resample is gens.propagate:
+            # one stream for both (one generator given, or torch's global one): the fused
+            # path draws the whole horizon's noise before any resampling uniform, the steps
+            # alternate them, and the two had drawn other numbers (0.27 apart in the mean
+            # at N = 4: a paper-equations check); its numbers are the steps' only with
+            # streams of their own
+            return None
         from .fused import FusedModifiedPF
 
         pf = FusedModifiedPF(
             carry.model, num_particles=self.num_particles, eta=float(self.detector.eta),
             zeta=self.detector.zeta,
         )  # fmt: skip
-        gens = carry.generators or Generators()
         return pf.run(
             ys, self.gamma_hat.expand(ys.shape), generator=gens.propagate,
             resample_generator=gens.resample, initial_particles=carry.particles,
