@@ -291,16 +291,19 @@ def check_finite_number(
     return value
 
 
-def check_rate(value, name: str, *, unset: str | None = None) -> float:
-    """``value`` must be a false-alarm rate, a number in (0, 1) (``unset``: how the caller
-    spells "no rate", where it takes one, for the message); returns it as ``float``.
+def check_rate(
+    value, name: str, *, unset: str | None = None, kind: str = "a false-alarm rate"
+) -> float:
+    """``value`` must be a false-alarm rate (or the ``kind`` of probability it is: a
+    confidence level is none), a number in (0, 1) (``unset``: how the caller spells "no
+    rate", where it takes one, for the message); returns it as ``float``.
     Numpy's numbers and a one-element tensor count as numbers, as in
     :func:`check_finite_number`."""
     if isinstance(value, Tensor) and value.numel() == 1:
         value = value.item()
     if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0 < value < 1:
         alternative = "" if unset is None else f" or {unset}"
-        raise ValueError(f"{name} must be a false-alarm rate in (0, 1){alternative}; got {value!r}")
+        raise ValueError(f"{name} must be {kind} in (0, 1){alternative}; got {value!r}")
     return float(value)
 
 

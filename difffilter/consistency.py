@@ -75,7 +75,7 @@ def chi_square_bounds(dof: int, runs: int, confidence: float = 0.95) -> tuple[fl
     for name, value in (("dof", dof), ("runs", runs)):  # (numpy's integers too)
         if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
             raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
-    alpha = 1.0 - check_rate(confidence, "confidence")
+    alpha = 1.0 - check_rate(confidence, "confidence", kind="a confidence level")
     low, high = chi2.ppf([alpha / 2, 1 - alpha / 2], int(runs) * int(dof)) / int(runs)
     return float(low), float(high)
 
@@ -116,7 +116,7 @@ def ensemble_test(statistic: Tensor, dof, confidence: float = 0.95) -> Consisten
     if isinstance(dof, Tensor):
         from scipy.stats import chi2
 
-        alpha = 1.0 - check_rate(confidence, "confidence")
+        alpha = 1.0 - check_rate(confidence, "confidence", kind="a confidence level")
         if dof.shape != statistic.shape or bool((dof < 0).any()):
             raise ValueError(f"dof must be a number or [R, T] like statistic "
                              f"{tuple(statistic.shape)}, >= 0; got {tuple(dof.shape)}")  # fmt: skip

@@ -183,3 +183,14 @@ def test_the_fused_modified_pf_equals_the_steps_with_one_generator_too():
     stepped = run(False, resample_generator=torch.Generator().manual_seed(9))
     assert fast.covs is None  # the fused path, as before
     torch.testing.assert_close(fast.means, stepped.means, rtol=0, atol=1e-12)
+
+
+def test_a_confidence_level_is_not_called_a_false_alarm_rate():
+    """A confidence of 1.5 was refused as "a false-alarm rate in (0, 1)": its complement
+    (a numerics check of the consistency tests)."""
+    from difffilter.consistency import chi_square_bounds
+
+    with pytest.raises(ValueError, match=r"confidence must be a confidence level in \(0, 1\)"):
+        chi_square_bounds(2, 3, 1.5)
+    lo, hi = chi_square_bounds(2, 3, 0.95)  # a level: accepted
+    assert 0 < lo < 2 < hi
