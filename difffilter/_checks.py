@@ -362,6 +362,25 @@ def _check_float_tensor(t, name: str, want: str, dtype, device) -> None:
         raise ValueError(f"{name} must be on the model's device {device}; got {t.device}")
 
 
+def check_filtered_dtype(model, filtered: Tensor, what: str) -> None:
+    """``ValueError`` where a filter's result tensor ``filtered`` (its ``what``), given to a
+    smoother, is not of the model's dtype and device: a float32 model given a float64
+    filter's result had failed in torch ("expected scalar type Double but found Float"),
+    naming neither. (No conversion is offered: a model converted to the result's dtype
+    keeps its own rounding, 0.95f is no 0.95, and is then refused as not the result's.)"""
+    dtype, device = model_dtype_device(model)
+    if dtype is not None and filtered.dtype != dtype:
+        raise ValueError(
+            f"filtered holds {filtered.dtype} {what} and the model is {dtype}: smooth with the "
+            "model the filter ran on, or run the filter again on this one"
+        )
+    if device is not None and filtered.device != torch.device(device):
+        raise ValueError(
+            f"filtered holds {what} on {filtered.device} and the model is on {device}: smooth "
+            "with the model the filter ran on, or run the filter again on this one"
+        )
+
+
 def _check_bool_mask(mask, name: str, shape: torch.Size, of: str, device=None) -> Tensor:
     if not isinstance(mask, Tensor):
         raise TypeError(

@@ -666,7 +666,7 @@ def closed_loop(
         raise
     traj = _trajectories(rec, mask, first, k, channel)
     if estimator is None:
-        _check_finite(traj, first, attack, controller)
+        _check_finite(traj, first, attack, controller, channel)
     batch = x.shape[:-1]
     output = stack_steps(outs, batch, attack_channel=estimator.attack_channel) if outs else None
     return LoopResult(traj, output, LoopState(k, x, u, a_state, carry, view, memory))
@@ -975,7 +975,9 @@ def _estimator_input(received: Tensor, mask: Tensor | None, k: int, attack,
     )
 
 
-def _check_finite(traj: Trajectories, first: int, attack, controller) -> None:
+def _check_finite(
+    traj: Trajectories, first: int, attack, controller, channel: Channel = Channel.SENSOR
+) -> None:
     """Without an estimator, :func:`_estimator_input`'s checks of what the controller and
     the attacker put into the loop, made once on the records of steps ``first + 1 …`` (one
     reduction a loop, not a host read a step: ``scenario.simulate`` runs without an
@@ -984,7 +986,9 @@ def _check_finite(traj: Trajectories, first: int, attack, controller) -> None:
     (README, "Input validation"). A NaN the plant makes itself (its state, or its
     measurement before any attack) ends the checks: it is the simulation's truth, recorded
     for the caller, and ``scenario.simulate`` names the model's function that gave it at its
-    step (a user trial), which the loop could only call "the plant"."""
+    step (a user trial), which the loop could only call "the plant". An attack on the
+    actuators is checked on what reached the plant (``traj.attack``) before the states it
+    made NaN are taken for the plant's own (a review: its NaN had passed as the plant's)."""
     recv, mask, us = traj.y_recv, traj.mask, traj.us
     if recv.device.type == "meta":
         return
@@ -994,9 +998,20 @@ def _check_finite(traj: Trajectories, first: int, attack, controller) -> None:
     bad = own | made
     if us is not None:
         bad = bad | (~torch.isfinite(us)).any(-1)
+    pushed = None
+    if channel is Channel.ACTUATOR and traj.attack is not None:
+        pushed = (~torch.isfinite(traj.attack)).any(-1)
+        bad = bad | pushed
     if not bool(bad.any()):
         return  # one host read a loop
     t = int(bad.any(0).nonzero()[0, 0])
+    if pushed is not None and bool(pushed[:, t].any()):
+        run = int(pushed[:, t].nonzero()[0, 0])
+        raise ValueError(
+            f"the attack ({type(attack).__name__}) put NaN or Inf into the input that drives "
+            f"step {first + t + 1} (first in run {run}): an attack on the actuators must "
+            "inject finite values"
+        )
     u = None if us is None else us[:, t]
     if (u is None or bool(torch.isfinite(u).all())) and bool(own[:, t].any()):
         return  # the plant's own, first (its caller names it)

@@ -7,6 +7,7 @@ counts and rates pool every run and step unless ``valid`` excludes some steps.
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 from torch import Tensor
@@ -32,8 +33,11 @@ __all__ = [
 def rmse(estimate: Tensor, truth: Tensor, *, dim=None) -> Tensor:
     """Root-mean-square error ``√mean((estimate − truth)²)`` over ``dim`` (all entries by default).
 
-    ``estimate`` and ``truth`` broadcast (for example ``[B, T, d]`` each); the result is a
-    0-d tensor, or the broadcast shape without ``dim``."""
+    ``estimate`` and ``truth`` broadcast (for example ``[B, T, d]`` each; ``truth`` may be
+    a number, e.g. ``rmse(errors, 0.0)``); the result is a 0-d tensor, or the broadcast
+    shape without ``dim``."""
+    if isinstance(truth, numbers.Real) and not isinstance(truth, bool):
+        truth = torch.as_tensor(truth, dtype=getattr(estimate, "dtype", None))
     _check_tensors(estimate=estimate, truth=truth)
     if broadcast_or_none(estimate.shape, truth.shape) is None:  # torch's "size of tensor a"
         raise ValueError(
@@ -57,20 +61,25 @@ def _check_tensors(valid: object = None, **required: object) -> None:
             )
 
 
-def _check_labels(labels: Tensor) -> None:
+def _check_labels(labels: Tensor, valid: Tensor | None = None) -> None:
     """ROC ``labels`` are bool or 0/1: ``.bool()`` took any other value (a score: the
     arguments swapped) for an attacked step, and the AUC came out ``nan``, "one class
     absent", without a word."""
-    _check_binary(labels, "labels", "(True on an attacked step)",
+    _check_binary(labels, valid, "labels", "(True on an attacked step)",
                   "are the arguments swapped? The scores come first, (scores, labels)")  # fmt: skip
 
 
-def _check_binary(t: Tensor, name: str, meaning: str, hint: str) -> None:
-    """``t`` is bool or holds only 0 and 1 (one reduction, and none for bool): ``.bool()``
-    reads any other value, a score passed for a decision, as ``True``, silently."""
+def _check_binary(t: Tensor, valid: Tensor | None, name: str, meaning: str, hint: str) -> None:
+    """``t`` is bool or holds only 0 and 1 where ``valid`` (the entries scored; another
+    value marks an unscored step, e.g. −1 or NaN, as it may) (one reduction, and none for
+    bool): ``.bool()`` reads any other value, a score passed for a decision, as ``True``,
+    silently."""
     if t.dtype == torch.bool:
         return
-    if not bool(((t == 0) | (t == 1)).all()):
+    binary = (t == 0) | (t == 1)
+    if valid is not None:
+        binary = binary | ~valid.bool().expand(binary.shape)
+    if not bool(binary.all()):
         raise ValueError(
             f"{name} must be bool {meaning} or hold only 0 and 1; got {t.dtype} with other "
             f"values: {hint}"
@@ -88,12 +97,12 @@ def _check_fits(primary: str, shape: torch.Size, **others: Tensor | None) -> Non
                              f"{tuple(shape)} (or broadcast to it)")  # fmt: skip
 
 
-def _check_decisions(alarms: Tensor, attacked: Tensor) -> None:
+def _check_decisions(alarms: Tensor, attacked: Tensor, valid: Tensor | None = None) -> None:
     """Per-step ``alarms`` and ``attacked`` flags are bool or 0/1 (:func:`_check_binary`):
     scores given for the alarms (``detection_rates(scores, flags)``) were all "alarms"."""
-    _check_binary(alarms, "alarms", "(the detector's decisions, e.g. scores > threshold)",
+    _check_binary(alarms, valid, "alarms", "(the detector's decisions, e.g. scores > threshold)",
                   "scores are decisions only against a threshold (scores > threshold)")  # fmt: skip
-    _check_binary(attacked, "attacked", "(True on an attacked step)",
+    _check_binary(attacked, valid, "attacked", "(True on an attacked step)",
                   "are the arguments swapped? The alarms come first, (alarms, attacked)")  # fmt: skip
 
 
@@ -114,7 +123,7 @@ def detection_counts(
     """
     _check_tensors(alarms=alarms, attacked=attacked, valid=valid)
     _check_fits("alarms", alarms.shape, attacked=attacked, valid=valid)
-    _check_decisions(alarms, attacked)
+    _check_decisions(alarms, attacked, valid)
     a, y = alarms.bool(), attacked.bool()
     v = _valid(a, valid)
     return {
@@ -190,7 +199,7 @@ def _check_scores(scores: Tensor, labels: Tensor, valid: Tensor | None) -> None:
     score gives 0.4508); the labels are bool or 0/1 (:func:`_check_labels`)."""
     _check_tensors(scores=scores, labels=labels, valid=valid)
     _check_fits("scores", scores.shape, labels=labels, valid=valid)
-    _check_labels(labels)
+    _check_labels(labels, valid)
     if bool(torch.isnan(scores[_valid(scores, valid)]).any()):
         raise ValueError("scores contain NaN (a step without a score): map them first, e.g. "
                          "difffilter.metrics.nan_as_lowest(scores), or mark them invalid")  # fmt: skip

@@ -718,7 +718,8 @@ def _particle_step(pf: ParticleFilter, carry: ParticleState, y, u, mask):
         for hook in pf.hooks:
             recorded = hook(model, y, mask, new_carry, out)
             if type(recorded) is not dict or not _RESERVED_KEYS.isdisjoint(recorded):
-                recorded = _checked_hook_record(recorded, hook, k + 1)
+                name = getattr(hook, "__qualname__", type(hook).__name__)
+                recorded = _checked_record(recorded, f"the step hook {name}", "record", k + 1)
             extras.update(recorded)
         if not pf.record_prior:
             del extras["prior_log_weights"]
@@ -748,11 +749,9 @@ def _weigh(pf, aux, model, y, particles, k, mask, obs, predictive, uses_predicti
 
 def _checked_weighed(weighed, likelihood, k: int) -> tuple:
     """A stateful likelihood's ``weigh`` result that the step's quick test did not pass,
-    checked: a triple ``(state, log p, record)``, ``record`` a mapping none of whose keys
-    is one the filter reports itself (:data:`_RESERVED_KEYS`). A pair failed as "not
-    enough values to unpack" and a list record as "'list' object is not a mapping", naming
-    neither the likelihood nor the step; a record ``"ess"`` silently replaced the filter's
-    own ESS in ``extras`` and the result. Returns the triple with a ``dict`` record."""
+    checked: a triple ``(state, log p, record)``, its record as :func:`_checked_record`
+    checks it. A pair failed as "not enough values to unpack", naming neither the
+    likelihood nor the step. Returns the triple with a ``dict`` record."""
     name = type(likelihood).__name__
     if not isinstance(weighed, Sequence) or isinstance(weighed, Tensor) or len(weighed) != 3:
         got = (f"a tensor {tuple(weighed.shape)}" if isinstance(weighed, Tensor)
@@ -763,43 +762,29 @@ def _checked_weighed(weighed, likelihood, k: int) -> tuple:
             "(state, log p [..., N], record {name: tensor [...]}, {} for none)"
         )
     state, log_p, record = weighed
+    return state, log_p, _checked_record(record, f"the likelihood {name}", "weigh's record", k)
+
+
+def _checked_record(record, who: str, what: str, k: int) -> dict:
+    """A record a plug-in reports in a step's extras (a stateful likelihood's, ``who`` "the
+    likelihood X"; a step hook's, "the step hook f"), checked where it is not a plain
+    ``dict`` of the plug-in's own keys: a mapping, none of whose keys is one the filter
+    reports itself (:data:`_RESERVED_KEYS`). A record ``"ess"`` had silently replaced the
+    filter's own ESS in ``extras`` and the result, and a list failed in ``dict.update`` or
+    unpacking, naming neither the plug-in nor the step."""
     if not isinstance(record, Mapping):
         raise TypeError(
-            f"the likelihood {name}'s weigh returned a record of type {type(record).__name__} "
-            f"at step {k}; the record is a dict {{name: tensor [...]}} ({{}} for none), "
-            "reported in the step's extras"
+            f"{who}'s {what} is a {type(record).__name__} at step {k}; it is a dict "
+            "{name: tensor [...]} ({} for none), reported in the step's extras"
         )
     clash = sorted(_RESERVED_KEYS.intersection(record))
     if clash:
         raise ValueError(
-            f"the likelihood {name} recorded {', '.join(map(repr, clash))} at step {k}: the "
-            "particle filter reports such keys itself in extras (one would replace the "
-            "other); name the record's entries otherwise, none of the filter's "
-            f"{', '.join(sorted(_RESERVED_KEYS))}"
+            f"{who} recorded {', '.join(map(repr, clash))} at step {k}: the particle filter "
+            "reports such keys itself in extras (one would replace the other); name the "
+            f"entries otherwise, none of the filter's {', '.join(sorted(_RESERVED_KEYS))}"
         )
-    return state, log_p, dict(record)
-
-
-def _checked_hook_record(recorded, hook, k: int) -> dict:
-    """A step hook's record that is not a plain ``dict`` of the hook's own keys, checked as
-    a stateful likelihood's (:func:`_checked_weighed`): a mapping, none of whose keys is one
-    the filter reports itself (a hook's ``"ess"`` had silently replaced the filter's in
-    ``extras`` and the result; a list failed in ``dict.update``, naming no hook)."""
-    name = getattr(hook, "__qualname__", type(hook).__name__)
-    if not isinstance(recorded, Mapping):
-        raise TypeError(
-            f"the step hook {name} returned a {type(recorded).__name__} at step {k}; a hook "
-            "returns a dict {name: tensor [...]} ({} for none), reported in the step's extras"
-        )
-    clash = sorted(_RESERVED_KEYS.intersection(recorded))
-    if clash:
-        raise ValueError(
-            f"the step hook {name} recorded {', '.join(map(repr, clash))} at step {k}: the "
-            "particle filter reports such keys itself in extras (one would replace the "
-            f"other); name the hook's entries otherwise, none of the filter's "
-            f"{', '.join(sorted(_RESERVED_KEYS))}"
-        )
-    return dict(recorded)
+    return dict(record)
 
 
 def _check_log_density(value, log_w: Tensor, plugin, what: str, k: int) -> None:
@@ -1090,9 +1075,9 @@ _FILTER_KEYS = (
     "pred_means", "pred_covs", "innovations", "innovation_covs",
     "log_likelihood_increments", "log_likelihood", "nonfinite_skipped",
 )  # fmt: skip
-#: The extras a particle filter writes itself: a stateful likelihood's record of one of
-#: these names would replace the filter's own (``extras = {"ess": …, **record}``) or be
-#: replaced by it, and is refused (:func:`_checked_weighed`).
+#: The extras a particle filter writes itself: a stateful likelihood's or a step hook's
+#: record of one of these names would replace the filter's own (``extras = {"ess": …,
+#: **record}``) or be replaced by it, and is refused (:func:`_checked_record`).
 _RESERVED_KEYS = frozenset(_PF_FIELDS + _FILTER_KEYS + ("prior_log_weights",))
 
 

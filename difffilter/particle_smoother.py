@@ -26,10 +26,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._checks import _check_us, model_dtype_device
+from ._checks import _check_us, check_filtered_dtype, model_dtype_device
 from .noise import Gaussian
 from .results import ParticleFilterResult
-from .smoother import check_filtered_dtype
 from .ssm import StateSpaceModel
 
 __all__ = ["ParticleSmootherResult", "particle_smoother"]

@@ -34,7 +34,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._checks import _check_us, model_batch_shape, model_dtype_device
+from ._checks import _check_us, check_filtered_dtype, model_batch_shape, model_dtype_device
 from .kalman import kalman_filter
 from .linalg import symmetrize
 from .results import FilterResult, ParticleFilterResult
@@ -241,23 +241,6 @@ def _check_arguments(model, filtered, us, needed: str) -> tuple[int, int]:
         _check_us(model, us, filtered.means.shape[:-2], steps, dtype, device,
                   against="the filtered means'")  # fmt: skip
     return steps, dx
-
-
-def check_filtered_dtype(model, filtered: Tensor, what: str) -> None:
-    """``ValueError`` where the filter's ``filtered`` tensor (its ``what``) is not of the
-    model's dtype and device: a float32 model given a float64 filter's result had failed
-    in torch ("expected scalar type Double but found Float"), naming neither."""
-    dtype, device = model_dtype_device(model)
-    if dtype is not None and filtered.dtype != dtype:
-        raise ValueError(
-            f"filtered holds {filtered.dtype} {what} and the model is {dtype}: smooth with the "
-            f"model the filter ran on (or convert it: model.to({filtered.dtype}))"
-        )
-    if device is not None and filtered.device != torch.device(device):
-        raise ValueError(
-            f"filtered holds {what} on {filtered.device} and the model is on {device}: "
-            "smooth with the model the filter ran on"
-        )
 
 
 def _backward(model, filtered: FilterResult, transition) -> SmootherResult:

@@ -28,7 +28,11 @@ import yaml
 # answers at once
 
 __all__ = ["main", "build_parser", "resolve_scenarios", "evaluate", "check_arguments",
-           "check_output_folder"]  # fmt: skip
+           "check_output_folder", "EVALUATION_SEED"]  # fmt: skip
+
+#: The master seed of the default study (``--seed``): its runs are the test runs, which
+#: no training, validation or monitor may draw (``difffilter.train.task`` refuses them).
+EVALUATION_SEED = 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -88,7 +92,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", type=_folder, default=Path("reports"), help="output folder (default: reports/)"
     )
     p.add_argument(
-        "--seed", type=int, default=0, help="master seed of every random draw (default 0)"
+        "--seed",
+        type=int,
+        default=EVALUATION_SEED,
+        help=f"master seed of every random draw (default {EVALUATION_SEED})",
     )
     p.add_argument(
         "-o",

@@ -154,7 +154,7 @@ def mark_off_scale(ax, t, curves, ylim: tuple[float, float], unit: str = "", at:
     """Set ``ylim`` on ``ax`` and write, at its top (bottom) edge, the largest (smallest)
     value of ``curves`` (1-D tensors over ``t``) beyond it, with its ``at = t``: a figure
     zoomed on a bound had cut off its peak without a word (the robot's input error rises to
-    about 25 cm/s in the steps after the attack starts, drawn as a wall at the edge)."""
+    20 cm/s at the attack's first step, drawn as a wall at the edge)."""
     lo, hi = ylim
     ax.set_ylim(lo, hi)
     values = torch.stack([c.detach().double().reshape(-1) for c in curves])

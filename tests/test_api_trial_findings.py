@@ -178,7 +178,7 @@ def test_a_record_of_its_own_keys_is_reported_beside_the_filters_ess():
     [
         (lambda s, lp: (s, lp), TypeError, r"_Lik's weigh returned a tuple of 2 at step 1; .*triple"),
         (lambda s, lp: lp, TypeError, r"_Lik's weigh returned a tensor \(2, 32\) at step 1"),
-        (lambda s, lp: (s, lp, [lp]), TypeError, r"_Lik's weigh returned a record of type list at step 1"),
+        (lambda s, lp: (s, lp, [lp]), TypeError, r"the likelihood _Lik's weigh's record is a list at step 1"),
     ],
     ids=["pair", "tensor", "list record"],
 )  # fmt: skip
@@ -231,7 +231,7 @@ def test_a_step_hooks_record_is_checked_as_a_likelihoods():
 
     with pytest.raises(ValueError, match=r"the step hook .*ess_hook recorded 'ess' at step 1"):
         _pf(None, hooks=[ess_hook])
-    with pytest.raises(TypeError, match=r"the step hook .*list_hook returned a list at step 1"):
+    with pytest.raises(TypeError, match=r"the step hook .*list_hook's record is a list at step 1"):
         _pf(None, hooks=[list_hook])
     out = _pf(None, hooks=[own_hook], return_particles=True)
     w = out.log_weights.exp()
@@ -257,3 +257,20 @@ def test_detection_metrics_refuse_scores_for_decisions():
     for a in (alarms, alarms.double()):
         r = dm.detection_rates(a, flags.int())
         assert (r["tp"], r["fn"], r["fp"], r["tn"]) == (1, 1, 0, 2) and r["tpr"] == 0.5
+
+
+def test_binary_checks_read_the_scored_entries_alone_and_rmse_takes_a_number():
+    """From a review of the fix: labels or alarms that mark unscored steps with −1 or NaN
+    and leave them out by ``valid`` were refused as "swapped"; ``rmse(errors, 0.0)`` was a
+    TypeError. The AUC of scores 0.9 > 0.8 > 0.1 against labels 1, 1, 0 is 1 by hand."""
+    scores = torch.tensor([0.9, 0.8, 0.1, 0.5], dtype=D)
+    valid = torch.tensor([True, True, True, False])
+    for unscored in (-1.0, math.nan):
+        labels = torch.tensor([1.0, 1.0, 0.0, unscored], dtype=D)
+        assert dm.roc_auc(scores, labels, valid) == 1.0
+        c = dm.detection_counts(labels.nan_to_num(-1.0) > 0.5, labels, valid)
+        assert (c["tp"], c["fp"], c["tn"], c["fn"]) == (2, 0, 1, 0)
+    with pytest.raises(ValueError, match="labels must be bool"):  # scored: refused
+        dm.roc_auc(scores, torch.tensor([1.0, 1.0, 0.0, -1.0], dtype=D))
+    errors = torch.tensor([[3.0, 4.0]], dtype=D)
+    assert float(dm.rmse(errors, 0.0)) == pytest.approx(math.sqrt(12.5))

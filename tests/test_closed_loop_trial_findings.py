@@ -191,3 +191,33 @@ def test_under_input_loss_only_the_attack_is_as_it_reached_the_plant():
     assert tr.info["attack_values"][0, 3, 0] == 0.5
     doc = " ".join(closed_loop.__doc__.split())
     assert "under ``input_loss`` only ``attack`` is as it reached the plant" in doc
+
+
+def test_an_actuator_attacks_nan_is_named_without_an_estimator():
+    """From a review: the actuator attack's NaN made the state NaN, which was taken for the
+    plant's own and passed silently without an estimator (with one, it was refused)."""
+    D = torch.float64
+    eye = torch.eye(2, dtype=D)
+    plant = df.LinearGaussianModel(
+        torch.tensor([[1.0, 0.1], [0.0, 1.02]], dtype=D), torch.tensor([[1.0, 0.0]], dtype=D),
+        0.01 * eye, 0.05 * torch.eye(1, dtype=D), torch.zeros(2, dtype=D), eye,
+        B=torch.tensor([[0.0], [0.1]], dtype=D),
+    )  # fmt: skip
+
+    class NaNOnTheActuator(TabulatedAttack):
+        channel = Channel.ACTUATOR
+
+        def sample(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+            v = torch.zeros(*batch_shape, num_steps, dim, dtype=dtype)
+            v[1, 2, 0] = float("nan")
+            f = torch.zeros(*batch_shape, num_steps, dtype=torch.bool)
+            f[:, 2] = True
+            return v, f
+
+    kw = dict(noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=torch.zeros(3, 2, dtype=D),
+              controller=KnownInputs(torch.zeros(3, 6, 1, dtype=D)))  # fmt: skip
+    with pytest.raises(ValueError, match=r"the attack \(NaNOnTheActuator\) put NaN or Inf into "
+                                         r"the input that drives step 3 \(first in run 1\)"):  # fmt: skip
+        closed_loop(plant, 6, attack=NaNOnTheActuator(), **kw)
+    clean = closed_loop(plant, 6, **kw)  # no attack: nothing said
+    assert bool(torch.isfinite(clean.trajectories.x).all())

@@ -9,16 +9,20 @@ from types import SimpleNamespace as NS
 import pytest
 import torch
 
+from difffilter.eval.cli import EVALUATION_SEED, build_parser
 from difffilter.eval.suite import run_suite
 from difffilter.models import registry
-from difffilter.train.task import EVALUATION_SEED, FilterEstimatorTask, evaluation_batch
+from difffilter.train.task import FilterEstimatorTask, evaluation_batch
 
 
 def test_the_evaluations_default_seed_draws_the_runs_it_scores():
     """Why the guard: the monitor's batch of seed 0 is the evaluation's seed-0 runs."""
     scenario = registry.get("four_tank_bias")
     monitor = evaluation_batch(scenario, 2, EVALUATION_SEED, torch.float64)
-    scored = run_suite(scenario, runs=2, seed=0, estimators=["chi_square_ekf"], progress=False)
+    default = build_parser().parse_args(["four_tank_bias"]).seed  # the command's own default
+    assert default == EVALUATION_SEED
+    scored = run_suite(scenario, runs=2, seed=default, estimators=["chi_square_ekf"],
+                       progress=False)  # fmt: skip
     assert torch.equal(monitor["y_recv"], scored.traj.y_recv)
 
 

@@ -87,11 +87,16 @@ def test_a_deception_density_must_be_callable_and_its_pair_is_named():
 
     scenario = registry.get("tracking_rrp_deception")
     pair = deception_of(scenario.attack_model(), F64)
-    with pytest.raises(TypeError, match=r"got tuple: deception_of\(...\) returns \(density, "
+    with pytest.raises(TypeError, match=r"not a tuple: deception_of\(...\) returns \(density, "
                                         r"rate\), give its \[0\]"):  # fmt: skip
         df.load_estimator("checkpoints/tracking_nn_grad.ckpt", deception=pair)
-    with pytest.raises(TypeError, match="deception must be the attacked-measurement density"):
+    with pytest.raises(TypeError, match="deception must be an object, not the string 'uniform'"):
         df.load_estimator("checkpoints/tracking_nn_grad.ckpt", deception="uniform")
+    with pytest.raises(TypeError, match="deception must be an instance, not the class "
+                                        "ReplacementDeception"):  # fmt: skip
+        df.load_estimator("checkpoints/tracking_nn_grad.ckpt", deception=type(pair[0]))
+    with pytest.raises(TypeError, match="deception"):  # too few arguments, named at load
+        df.load_estimator("checkpoints/tracking_nn_grad.ckpt", deception=lambda model, y: y)
     df.load_estimator("checkpoints/tracking_nn_grad.ckpt", deception=pair[0])  # loads
 
 

@@ -42,7 +42,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import sys
 import tempfile
 import time
@@ -331,7 +330,12 @@ def main(argv: list[str] | None = None) -> int:
         f"attack-free run{'s' if cal['runs'] != 1 else ''} of {cal['scenario']} (target "
         f"{100 * cal['target']:g} %)"
     )
-    from difffilter.eval.calibration import RESOLVED, resolution_note
+    from difffilter.eval.calibration import (
+        RESOLVED,
+        WELL_RESOLVED,
+        resolution_note,
+        sampling_note,
+    )
 
     n = cal["runs"] * cal["steps"]
     if cal["target"] * n < RESOLVED:  # (as difffilter-eval's reports say it)
@@ -354,27 +358,6 @@ def main(argv: list[str] | None = None) -> int:
               "detector to): the threshold does not keep its rate on other runs of this size; "
               "give more --runs")  # fmt: skip
     return 0
-
-
-#: Expected calibration alarms below which the command states the threshold's sampling
-#: spread (at 100 the binomial standard deviation of the rate is a tenth of the target).
-WELL_RESOLVED = 100
-
-
-def sampling_note(target: float, steps: int, run_steps: int) -> str:
-    """The sentence for a calibration of ``steps`` scored steps (``run_steps`` a run) that
-    expects fewer than :data:`WELL_RESOLVED` alarms: the binomial standard deviation of the
-    rate, ``√(α(1 − α)/n)``, and the ``--runs`` that expects about 100 alarms. A new user's
-    trial calibrated a 5 % threshold on its plant's 8 runs of 60 steps (24 alarms), met
-    7 % on fresh runs, and no note had said that the spread is that wide."""
-    spread = math.sqrt(target * (1 - target) / steps)
-    runs = math.ceil(WELL_RESOLVED / (target * run_steps))
-    return (
-        f"{steps:,} calibration steps at the {100 * target:g} % target expect "
-        f"{target * steps:.3g} alarms: the threshold's rate on fresh runs varies by about "
-        f"±{100 * spread:.2g} % between calibration draws (one binomial standard deviation; "
-        f"wider where alarms come in bursts); --runs {runs:,} expects about {WELL_RESOLVED}"
-    )
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -57,6 +57,7 @@ from difffilter import resampling
 from difffilter._checks import check_positive_int
 from difffilter.attack import Channel, attack_dim
 from difffilter.estimator import Generators
+from difffilter.eval.cli import EVALUATION_SEED
 from difffilter.kalman import _check_linear as check_linear
 from difffilter.loop import open_loop
 from difffilter.metrics import after_attack, finite_scores, nan_as_lowest, roc_auc, threshold_for
@@ -357,11 +358,7 @@ class ScenarioDataModule(pl.LightningDataModule):
         return self.test_dataloader()
 
 
-#: The master seed of ``difffilter-eval``'s default study: its runs are the test runs.
-EVALUATION_SEED = 0
-
-
-def _scored_monitor(seed: int, what: str) -> str:
+def _scored_monitor_error(seed: int, what: str) -> str:
     """Why ``monitor_seed`` ``seed`` is refused: the monitors' ``val/scenario/…`` metrics,
     which a checkpoint callback may select on, would be computed on the very runs the
     evaluation scores (a seed-hygiene audit: ``monitor_seed=0`` drew them bit for bit)."""
@@ -536,7 +533,7 @@ class FilterEstimatorTask(pl.LightningModule):
                     f"dt = {sc.dt} s (family {other.family!r}, dt = {other.dt} s)"
                 )
         if self.monitors and monitor_seed == EVALUATION_SEED:
-            raise ValueError(_scored_monitor(monitor_seed, "the seed of difffilter-eval's "
+            raise ValueError(_scored_monitor_error(monitor_seed, "the seed of difffilter-eval's "
                                                            "default runs"))  # fmt: skip
         self.automatic_optimization = False
         self.adversary = None
@@ -849,7 +846,7 @@ class FilterEstimatorTask(pl.LightningModule):
         dm = getattr(self.trainer, "datamodule", None)
         test_seed = None if dm is None else dm.hparams.get("test_seed")
         if self.monitors and self.hparams.monitor_seed == test_seed:
-            raise ValueError(_scored_monitor(test_seed, "the data module's test_seed"))
+            raise ValueError(_scored_monitor_error(test_seed, "the data module's test_seed"))
 
     def validation_step(self, batch, batch_idx):
         self._scores("val", self.scenario_of_data(), batch, None)

@@ -152,7 +152,7 @@ from typing import Any, NamedTuple, Protocol
 import torch
 from torch import Tensor, nn
 
-from .._checks import Choice, check_rate
+from .._checks import Choice, check_rate, check_strategy
 from ..attack import Channel
 from ..estimator import Estimator, Generators
 from ..kalman import GaussianFilter
@@ -929,16 +929,15 @@ def _check_options(network, inner, channel, features, poa_eta, learning, decepti
         raise ValueError(
             "channel='replacement' needs a particle filter, deception= and a network with a head"
         )
-    if deception is not None and not callable(deception):
-        # (a tuple, deception_of(...) without its [0], was taken and failed at the first step
-        # as "'tuple' object is not callable": a new user's trial)
-        hint = (": deception_of(...) returns (density, rate), give its [0]"
-                if isinstance(deception, tuple) else "")  # fmt: skip
+    if isinstance(deception, tuple):  # (taken, it failed at the first step: a user's trial)
         raise TypeError(
-            "deception must be the attacked-measurement density, a callable (model, y, "
-            "particles, k, mask) -> log p [..., N] (e.g. difffilter.fdi.ReplacementDeception); "
-            f"got {type(deception).__name__}{hint}"
+            "deception must be the attacked-measurement density, not a tuple: "
+            "deception_of(...) returns (density, rate), give its [0]"
         )
+    # an instance, callable as the particle filter calls a likelihood (a class, or a function
+    # of too few arguments, failed at the first step on Python's bare "takes 2 positional")
+    check_strategy(deception, "deception", "difffilter.fdi.ReplacementDeception(density)",
+                   ("model", "y", "particles", "k", "mask"))  # fmt: skip
     whole_run = [f for f in features if f not in PER_AREA_FEATURES]
     if whole_run and network.num_areas != 1:
         raise ValueError(
