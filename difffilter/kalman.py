@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -279,6 +280,18 @@ def _check_semidefinite(cov: Tensor) -> None:
     if cov.numel() == 0 or not values_known(cov):
         return
     c = cov.detach()
+    if c.device.type == "cpu" and c.dtype in (torch.float32, torch.float64):
+        # on the host, a third of torch's time for a 4 × 4 (11 against 30 µs): a restored
+        # carry's first step and every step under full_checks pay it
+        a = c.numpy()
+        big = np.abs(np.diagonal(a, axis1=-2, axis2=-1)).max(-1, keepdims=True)
+        info = np.finfo(a.dtype)
+        jitter = big * a.dtype.type(math.sqrt(info.eps)) + info.tiny
+        try:
+            np.linalg.cholesky(a + jitter[..., None] * np.eye(a.shape[-1], dtype=a.dtype))
+            return
+        except np.linalg.LinAlgError:
+            pass  # the torch factorisation below finds the failing matrix and says why
     scale = c.diagonal(dim1=-2, dim2=-1).abs().amax(-1, keepdim=True)
     jitter = scale * math.sqrt(torch.finfo(c.dtype).eps) + torch.finfo(c.dtype).tiny
     _, info = torch.linalg.cholesky_ex(c + torch.diag_embed(jitter.expand(c.shape[:-1])))
