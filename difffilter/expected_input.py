@@ -269,7 +269,7 @@ class ExpectedInputKalmanFilter(KalmanFilter):
                     f"got {got} (a Kalman filter's carry? start from this filter's init)"
                 )
         check_carry_tensor(carry.mean, "mean", dim=width)
-        check_carry_tensor(carry.cov, "cov", dim=width, symmetric=True)
+        check_carry_tensor(carry.cov, "cov", dim=width, covariance=True)
         check_carry_fits_model(carry.model, mean=carry.mean, cov=carry.cov)
 
     def _run(self, carry, ys, us, mask):

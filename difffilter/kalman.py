@@ -25,10 +25,8 @@ all runs, and the whole-sequence run takes the shared-covariance path
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -40,7 +38,6 @@ from ._checks import (
     check_carry_fits_model,
     check_carry_tensor,
     check_model_batch,
-    values_known,
 )
 from ._shared_cov import shared_covariance_applies, shared_covariance_kalman_filter
 from .estimator import Estimator, _batch_shape, output_of
@@ -265,45 +262,8 @@ class GaussianFilter(Estimator):
     def _check_carry(self, carry):
         dx = carry.model.dim_x
         check_carry_tensor(carry.mean, "mean", dim=dx)
-        check_carry_tensor(carry.cov, "cov", dim=dx, symmetric=True)
+        check_carry_tensor(carry.cov, "cov", dim=dx, covariance=True)
         check_carry_fits_model(carry.model, mean=carry.mean, cov=carry.cov)
-        _check_semidefinite(carry.cov)
-
-
-def _check_semidefinite(cov: Tensor) -> None:
-    """``ValueError`` where a carry's ``cov [..., dx, dx]`` (symmetric, checked before) has a
-    clearly negative eigenvalue: its Cholesky factorisation fails after a jitter of
-    ``√eps`` times its largest variance (round-off of a filter's own covariances passes;
-    ``P = 0``, a known state, too). A hand-built indefinite covariance had stepped
-    silently to a posterior of negative variance and a finite log-likelihood (a new
-    user's trial)."""
-    if cov.numel() == 0 or not values_known(cov):
-        return
-    c = cov.detach()
-    if c.device.type == "cpu" and c.dtype in (torch.float32, torch.float64):
-        # on the host, a third of torch's time for a 4 × 4 (11 against 30 µs): a restored
-        # carry's first step and every step under full_checks pay it
-        a = c.numpy()
-        big = np.abs(np.diagonal(a, axis1=-2, axis2=-1)).max(-1, keepdims=True)
-        info = np.finfo(a.dtype)
-        jitter = big * a.dtype.type(math.sqrt(info.eps)) + info.tiny
-        try:
-            np.linalg.cholesky(a + jitter[..., None] * np.eye(a.shape[-1], dtype=a.dtype))
-            return
-        except np.linalg.LinAlgError:
-            pass  # the torch factorisation below finds the failing matrix and says why
-    scale = c.diagonal(dim1=-2, dim2=-1).abs().amax(-1, keepdim=True)
-    jitter = scale * math.sqrt(torch.finfo(c.dtype).eps) + torch.finfo(c.dtype).tiny
-    _, info = torch.linalg.cholesky_ex(c + torch.diag_embed(jitter.expand(c.shape[:-1])))
-    if bool((info != 0).any()):
-        first = c.reshape(-1, *c.shape[-2:])[int((info.reshape(-1) != 0).nonzero()[0])]
-        eig = torch.linalg.eigvalsh(first)
-        where = "" if c.dim() == 2 else " (of a run)"
-        raise ValueError(
-            f"carry.cov must be a covariance, positive semi-definite; its eigenvalues{where} "
-            f"run from {float(eig[0]):.3g} to {float(eig[-1]):.3g}: a carry rebuilt by hand "
-            "needs the covariance its filter returned (or one built as L Lᵀ)"
-        )
 
 
 class KalmanFilter(GaussianFilter):

@@ -241,7 +241,8 @@ def resolution_note(target: float, steps: int, more: str) -> str:
 
 
 #: Expected calibration alarms below which ``difffilter-train calibrate`` states the
-#: threshold's sampling spread (at 100 the binomial standard deviation of the rate is a tenth of the target).
+#: threshold's sampling spread (at 100 the binomial standard deviation of the rate is a
+#: tenth of the target).
 WELL_RESOLVED = 100
 
 

@@ -128,6 +128,14 @@ def test_a_rebuilt_carry_with_an_indefinite_covariance_is_refused():
             )
         for cov in (torch.zeros(2, 2, dtype=F64), est.step(est.init(model), y)[1].cov.clone()):
             est.step(df.GaussianState(torch.zeros(2, dtype=F64), cov, 1, model), y)
+    # one check for every carry's covariance (the adaptive KF's attack_cov, the expected-
+    # input filter's cov), float32 on torch's path's twin too
+    from difffilter._checks import check_carry_tensor
+
+    for t in (indefinite, indefinite.float()):
+        with pytest.raises(ValueError, match="carry.attack_cov must be a covariance"):
+            check_carry_tensor(t, "attack_cov", dim=2, covariance=True)
+    check_carry_tensor(indefinite, "attack", dim=2)  # not a covariance: not asked
 
 
 def test_calibrate_states_the_spread_of_a_threshold_on_few_alarms(tmp_path, capsys, monkeypatch):

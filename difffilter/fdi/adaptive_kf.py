@@ -246,9 +246,9 @@ class AdaptiveKalmanFilter(Estimator):
     def _check_carry(self, carry):
         dx, da = carry.model.dim_x, carry.model.dim_u
         check_carry_tensor(carry.mean, "mean", dim=dx)
-        check_carry_tensor(carry.cov, "cov", dim=dx, symmetric=True)
+        check_carry_tensor(carry.cov, "cov", dim=dx, covariance=True)
         check_carry_tensor(carry.attack, "attack", dim=da)
-        check_carry_tensor(carry.attack_cov, "attack_cov", dim=da, symmetric=True)
+        check_carry_tensor(carry.attack_cov, "attack_cov", dim=da, covariance=True)
         check_carry_fits_model(carry.model, mean=carry.mean, cov=carry.cov, attack=carry.attack,
                                attack_cov=carry.attack_cov)  # fmt: skip
 
