@@ -12,6 +12,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .linalg import under_transform
+
 __all__ = [
     "Choice",
     "as_tensor",
@@ -789,7 +791,44 @@ def check_carry_tensor(t, name: str, *, dim: int | None = None, covariance: bool
         check_semidefinite(t, f"carry.{name}")
 
 
-def check_semidefinite(t: Tensor, name: str) -> None:
+#: What :func:`check_semidefinite` advises by default: a carry's covariance.
+_CARRY_ADVICE = (
+    "a carry rebuilt by hand needs the covariance its filter returned (or one built as L Lᵀ)"
+)
+
+
+def step_covariance(model, method: str, k: int) -> Tensor:
+    """``model.process_cov(k)`` or ``model.measurement_cov(k)`` (``method``) as the Gaussian
+    filters read it, checked where the model's class overrides the method (time-varying
+    noise, :meth:`~difffilter.StateSpaceModel._varying_noise`; the constructor checked the
+    noise modules' own covariances): finite, symmetric and positive semi-definite (a
+    singular covariance runs in the Gaussian filters; ``simulate`` and the particle
+    filters, which draw from it, need it definite). A negative-definite ``R_k`` had given
+    the EKF, the adaptive KF and the time-varying KF a posterior covariance with negative
+    eigenvalues and no error, while ``simulate`` refused the same model (a numerics
+    trial). It costs an overriding model a host factorisation per read (about 20 µs); the
+    others nothing."""
+    cov = getattr(model, method)(k)
+    varying = getattr(model, "_varying_noise", None)
+    if varying is None or not varying(method):
+        return cov
+    name = f"{type(model).__name__}.{method}({k})"
+    if not isinstance(cov, Tensor):
+        raise TypeError(f"{name} must return a torch.Tensor; got {type(cov).__name__}")
+    if cov.dim() < 2 or cov.shape[-1] != cov.shape[-2]:
+        raise ValueError(f"{name} must return a square matrix [..., d, d]; got {tuple(cov.shape)}")
+    if not values_known(cov) or under_transform(cov):  # (values a transform cannot read)
+        return cov
+    if not _all_finite(cov):
+        raise ValueError(f"{name} contains NaN or Inf values; every entry must be finite")
+    check_symmetric(cov, name)
+    check_semidefinite(
+        cov, name, advice=f"return a covariance from {method}(k), e.g. one built as L Lᵀ"
+    )
+    return cov
+
+
+def check_semidefinite(t: Tensor, name: str, *, advice: str = _CARRY_ADVICE) -> None:
     """``t [..., d, d]`` (symmetric) has no clearly negative eigenvalue: its Cholesky
     factorisation succeeds after a jitter of ``√eps`` (of ``t``'s dtype) times its largest
     variance, so the round-off of a filter's own covariances passes and so does ``P = 0``
@@ -814,6 +853,5 @@ def check_semidefinite(t: Tensor, name: str) -> None:
     where = "" if a.ndim == 2 else " (of a run)"
     raise ValueError(
         f"{name} must be a covariance, positive semi-definite; its eigenvalues{where} run "
-        f"from {float(eig[first, 0]):.3g} to {float(eig[first, -1]):.3g}: a carry rebuilt by "
-        "hand needs the covariance its filter returned (or one built as L Lᵀ)"
+        f"from {float(eig[first, 0]):.3g} to {float(eig[first, -1]):.3g}: {advice}"
     )

@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ._checks import step_covariance
 from .linalg import LOG_2PI, under_transform
 from .results import GaussianState, StepOutput
 
@@ -73,8 +74,12 @@ def host_step(
     if mask is not None and mask.dim() != 1:
         return None
     model, k = carry.model, carry.k
-    F, Q, B = model.transition_matrix(k), model.process_cov(k), model.control_matrix(k)
-    H, R = model.observation_matrix(k + 1), model.measurement_cov(k + 1)
+    F, Q, B = (
+        model.transition_matrix(k),
+        step_covariance(model, "process_cov", k),
+        model.control_matrix(k),
+    )
+    H, R = model.observation_matrix(k + 1), step_covariance(model, "measurement_cov", k + 1)
     matrices = (F, Q, H, R) if B is None or u is None else (F, Q, H, R, B)
     dtype = mean_t.dtype
     for m in matrices:

@@ -53,7 +53,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._checks import check_carry_fits_model, check_carry_tensor
+from ._checks import check_carry_fits_model, check_carry_tensor, step_covariance
 from .gaussian import measurement_moments, predict_covariance
 from .input_loss import OnLoss, on_loss_of
 from .kalman import (
@@ -188,7 +188,9 @@ class ExpectedInputKalmanFilter(KalmanFilter):
         model, k = carry.model, carry.k + 1
         H = model.observation_matrix(k)
         H = torch.cat([H, H.new_zeros(H.shape[:-1] + (model.dim_u,))], -1)  # [H, 0]
-        return measurement_moments(prediction.cov, H, model.measurement_cov(k), mask)
+        return measurement_moments(
+            prediction.cov, H, step_covariance(model, "measurement_cov", k), mask
+        )
 
     def residual(self, carry, prediction, y):
         dx = carry.model.dim_x
@@ -202,7 +204,7 @@ class ExpectedInputKalmanFilter(KalmanFilter):
         if self.on_loss is OnLoss.HOLD:
             return self._predict_held(carry, u)
         model, k = carry.model, carry.k
-        F, Q = model.transition_matrix(k), model.process_cov(k)
+        F, Q = model.transition_matrix(k), step_covariance(model, "process_cov", k)
         mean, cov = matvec(F, carry.mean), predict_covariance(carry.cov, F, Q)
         B = model.control_matrix(k)
         if u is None or B is None:
@@ -227,7 +229,11 @@ class ExpectedInputKalmanFilter(KalmanFilter):
                 "got None"
             )
         model, k = carry.model, carry.k
-        F, Q, B = model.transition_matrix(k), model.process_cov(k), model.control_matrix(k)
+        F, Q, B = (
+            model.transition_matrix(k),
+            step_covariance(model, "process_cov", k),
+            model.control_matrix(k),
+        )
         dx, du = model.dim_x, model.dim_u
         rate = self.arrival_rate.to(dtype=u.dtype, device=u.device)
         keep, spread = 1.0 - rate, rate * (1.0 - rate)

@@ -29,7 +29,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ._checks import NonFinite, broadcast_shapes, check_finite_number, model_batch_shape
+from ._checks import (
+    NonFinite,
+    broadcast_shapes,
+    check_finite_number,
+    model_batch_shape,
+    step_covariance,
+)
 from .gaussian import measurement_moments, predict_covariance, update_given
 from .kalman import GaussianFilter, Prediction
 from .linalg import NumericalBreakdown, masked_measurement, outer, safe_cholesky, symmetrize
@@ -64,12 +70,16 @@ class ExtendedKalmanFilter(GaussianFilter):
         # a float32 model stays float32 (and the products below do not mix dtypes).
         F = model.transition_jacobian(carry.mean, u, k).to(carry.mean.dtype)
         pred_mean = model.transition(carry.mean, u, k)
-        return Prediction(pred_mean, predict_covariance(carry.cov, F, model.process_cov(k)))
+        return Prediction(
+            pred_mean, predict_covariance(carry.cov, F, step_covariance(model, "process_cov", k))
+        )
 
     def moments(self, carry, prediction, mask):
         model, k = carry.model, carry.k + 1
         H = model.observation_jacobian(prediction.mean, k).to(prediction.mean.dtype)
-        return measurement_moments(prediction.cov, H, model.measurement_cov(k), mask)
+        return measurement_moments(
+            prediction.cov, H, step_covariance(model, "measurement_cov", k), mask
+        )
 
     def residual(self, carry, prediction, y):
         # the model's residual: a wrapped angle stays wrapped
@@ -200,7 +210,9 @@ class UnscentedKalmanFilter(GaussianFilter):
         X = sp.points(carry.mean, carry.cov, scale)  # [..., 2n+1, n]
         FX = model.transition(X, None if u is None else u.unsqueeze(-2), k)
         pred_mean, pred_cov = _moments(FX, wm, wc)
-        return Prediction(pred_mean, symmetrize(pred_cov + model.process_cov(k)))
+        return Prediction(
+            pred_mean, symmetrize(pred_cov + step_covariance(model, "process_cov", k))
+        )
 
     def update(self, carry, prediction, y, mask, *, evidence=True, moments=None):
         # (no shared moments: the sigma points' statistics are recomputed each update)
@@ -220,7 +232,7 @@ class UnscentedKalmanFilter(GaussianFilter):
             dy_pts = dy_pts * mask.to(dy_pts.dtype).unsqueeze(-2)
         eye_y = torch.eye(Y.shape[-1], dtype=Y.dtype, device=Y.device)
         residual, _, R, observed = masked_measurement(
-            residual, eye_y, model.measurement_cov(k), mask
+            residual, eye_y, step_covariance(model, "measurement_cov", k), mask
         )
         cross = (wc[:, None, None] * outer(dx_pts, dy_pts)).sum(-3)  # Pxy [..., n, dy]
         pyy = (wc[:, None, None] * outer(dy_pts, dy_pts)).sum(-3)

@@ -38,6 +38,7 @@ from ._checks import (
     check_carry_fits_model,
     check_carry_tensor,
     check_model_batch,
+    step_covariance,
 )
 from ._shared_cov import shared_covariance_applies, shared_covariance_kalman_filter
 from .estimator import Estimator, _batch_shape, output_of
@@ -136,7 +137,7 @@ def kalman_predict(model, state: GaussianState, u: Tensor | None = None) -> tupl
         state.mean,
         state.cov,
         model.transition_matrix(k),
-        model.process_cov(k),
+        step_covariance(model, "process_cov", k),
         model.control_matrix(k),
         u,
     )
@@ -321,7 +322,7 @@ class KalmanFilter(GaussianFilter):
         if carry.gains is not None and mask is None:
             return None  # the shared schedule holds them, computed once for all runs
         model, k = carry.model, carry.k + 1
-        H, R = model.observation_matrix(k), model.measurement_cov(k)
+        H, R = model.observation_matrix(k), step_covariance(model, "measurement_cov", k)
         return measurement_moments(prediction.cov, H, R, mask)
 
     def residual(self, carry, prediction, y):

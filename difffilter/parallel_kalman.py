@@ -32,10 +32,12 @@ filtered moments, vectorised over time.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from functools import partial
 
 import torch
 from torch import Tensor
 
+from ._checks import step_covariance
 from .gaussian import joseph_covariance, kalman_gain
 from .linalg import (
     INNOVATION_COV,
@@ -296,9 +298,9 @@ def _model_over_time(model, T: int, us: Tensor | None):
     tv = bool(getattr(model, "time_varying", False))
     steps, meas = range(0, T), range(1, T + 1)
     F = _stack_over_time(model.transition_matrix, steps, tv)
-    Q = symmetrize(_stack_over_time(model.process_cov, steps, tv))
+    Q = symmetrize(_stack_over_time(partial(step_covariance, model, "process_cov"), steps, tv))
     H = _stack_over_time(model.observation_matrix, meas, tv)
-    R = _stack_over_time(model.measurement_cov, meas, tv)
+    R = _stack_over_time(partial(step_covariance, model, "measurement_cov"), meas, tv)
     Bm = _stack_over_time(model.control_matrix, steps, tv)
     offset = matvec(Bm, us) if Bm is not None and us is not None else None
     return F, Q, H, R, offset

@@ -29,12 +29,19 @@ only its past.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from ._checks import _check_us, check_filtered_dtype, model_batch_shape, model_dtype_device
+from ._checks import (
+    _check_us,
+    check_filtered_dtype,
+    model_batch_shape,
+    model_dtype_device,
+    step_covariance,
+)
 from .kalman import kalman_filter
 from .linalg import symmetrize
 from .results import FilterResult, ParticleFilterResult
@@ -79,7 +86,10 @@ class SmootherResult(NamedTuple):
 def _of_k(model, name: str, steps: int) -> Tensor:
     """``model.name(k)`` for ``k = 0 … T − 1`` ``[(…,) T, d, d]`` (one, ``[(…,) 1, d, d]``,
     where the model is time-invariant)."""
-    method = getattr(model, name)
+    # a covariance as the filters read it (checked where a time-varying model overrides it)
+    method = (
+        partial(step_covariance, model, name) if name.endswith("_cov") else getattr(model, name)
+    )
     if getattr(model, "time_varying", False):
         return torch.stack([method(k) for k in range(steps)], -3)
     return method(0).unsqueeze(-3)
@@ -202,7 +212,7 @@ def unscented_rts_smoother(
         u = None if us is None else us[..., k, :].unsqueeze(-2)
         FX = model.transition(X, u, k)
         pred_mean, pred_cov = _moments(FX, wm, wc)  # (the filter's sums, in its order)
-        return X, FX, pred_mean, symmetrize(pred_cov + model.process_cov(k))
+        return X, FX, pred_mean, symmetrize(pred_cov + step_covariance(model, "process_cov", k))
 
     def transition(k: int, mean: Tensor, cov: Tensor, predict: bool):
         # Cov(x_{k+1}, x_k) = Σ wᶜ (f(X) − m⁻)(X − m)ᵀ

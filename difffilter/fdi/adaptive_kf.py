@@ -50,6 +50,7 @@ from .._checks import (
     check_model_batch,
     check_rate,
     check_vector_last,
+    step_covariance,
 )
 from ..estimator import Estimator, EstimatorOutput
 from ..gaussian import joseph_covariance, kalman_gain, predict_covariance
@@ -147,10 +148,11 @@ def adaptive_update(
     phi = input_jacobian(model, mean, u_eff, k).to(mean.dtype)
     x_pred = model.transition(mean, u_eff, k)
     if pred_cov is None:
-        pred_cov = predict_covariance(cov, A, model.process_cov(k))
+        pred_cov = predict_covariance(cov, A, step_covariance(model, "process_cov", k))
     C = model.observation_jacobian(x_pred, k + 1).to(mean.dtype)
     residual = model.measurement_residual(y, model.observe(x_pred, k + 1))
-    residual, C, R, observed = masked_measurement(residual, C, model.measurement_cov(k + 1), mask)
+    R = step_covariance(model, "measurement_cov", k + 1)
+    residual, C, R, observed = masked_measurement(residual, C, R, mask)
     cross = pred_cov @ C.transpose(-1, -2)
     sigma = symmetrize(C @ cross + R)
     gain, chol = kalman_gain(cross, sigma)  # K = P⁻Cᵀ Σ⁻¹

@@ -20,6 +20,7 @@ import numbers
 import torch
 from torch import Tensor
 
+from .._checks import check_finite, check_semidefinite, check_symmetric
 from ..gaussian import gaussian_update
 from ..kalman import kalman_predict
 from ..linalg import masked_measurement, matvec
@@ -91,16 +92,45 @@ class BiasAttackEstimator:
         ``[..., dy]`` and its covariance ``[..., dy, dy]``.
         """
         d = self.dim
+        for name, value in (("residual", residual), ("residual_cov", residual_cov), ("flag", flag)):
+            if not isinstance(value, Tensor):
+                raise TypeError(f"{name} must be a torch.Tensor; got {type(value).__name__}")
         if residual.shape[-1] != d or residual_cov.shape[-2:] != (d, d):
             raise ValueError(
                 f"residual must be [..., {d}] and residual_cov [..., {d}, {d}]; "
                 f"got {tuple(residual.shape)}, {tuple(residual_cov.shape)}"
             )
+        if flag.dtype != torch.bool and not bool(((flag == 0) | (flag == 1)).all()):
+            # (.bool() had read a probability of 0.3 as an attacked step, silently)
+            raise ValueError("flag must be bool or 0/1 (True = the step, or entry, is attacked)")
+        mask = self._flagged(flag, residual)
+        # a NaN residual on a flagged entry had made γ̂ NaN at that step and every later one;
+        # an entry not flagged is never read (zeroed: 0 · NaN would still be NaN)
+        residual = residual.where(mask, 0.0)
+        if not bool(torch.isfinite(residual.detach()).all()):
+            raise ValueError("residual contains NaN or Inf values on flagged entries")
+        check_finite(residual_cov, "residual_cov")
+        check_symmetric(residual_cov, "residual_cov")
+        check_semidefinite(
+            residual_cov, "residual_cov", advice="give S_k of the filter whose residual it is"
+        )
+        return self._update(state, residual, residual_cov, mask)
+
+    @staticmethod
+    def _flagged(flag: Tensor, residual: Tensor) -> Tensor:
+        """``flag`` as the ``[..., dy]`` bool mask of the updated entries: one flag per run,
+        or one per entry (an attacked step's received entries)."""
+        mask = flag.bool()
+        return (mask if mask.dim() == residual.dim() else mask.unsqueeze(-1)).expand(residual.shape)
+
+    def _update(
+        self, state: GaussianState, residual: Tensor, residual_cov: Tensor, mask: Tensor
+    ) -> tuple[GaussianState, Tensor, Tensor]:
+        """:meth:`step` on checked inputs (``mask``: :meth:`_flagged`), as a filter that
+        feeds it its own residuals calls it."""
+        d = self.dim
         pred_mean, pred_cov = kalman_predict(self.model, state)
         H = self.model.H
-        # one flag per run, or one per entry (an attacked step's received entries)
-        mask = flag.bool()
-        mask = (mask if mask.dim() == residual.dim() else mask.unsqueeze(-1)).expand(residual.shape)
         innov = residual - matvec(H, pred_mean)
         innov, Hm, Rm, observed = masked_measurement(innov, H, residual_cov, mask)
         cross = pred_cov @ Hm.transpose(-1, -2)

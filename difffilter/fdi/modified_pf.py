@@ -272,8 +272,12 @@ class ModifiedPFWeighting:
             record["attack_rate"] = self.attack_rate.estimate(rate).to(y.dtype)
         if self.estimator is not None:
             flag = alarm if mask is None else alarm.unsqueeze(-1) & mask
-            est, g_hat, _ = self.estimator.step(
-                est, predictive.innovation, predictive.innovation_cov, flag
+            innovation = predictive.innovation  # (the filter's own: no check needed)
+            est, g_hat, _ = self.estimator._update(
+                est,
+                innovation,
+                predictive.innovation_cov,
+                self.estimator._flagged(flag, innovation),
             )
         else:
             # a shared γ̂ [T, dy] is recorded per run, so the records stack after the batch
