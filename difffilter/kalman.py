@@ -52,6 +52,7 @@ from .gaussian import (
 )
 from .linalg import matvec, under_transform
 from .loop import _step_through, open_loop
+from .noise import Gaussian
 from .parallel_kalman import parallel_kalman_filter
 from .results import FilterResult, GaussianState, StepOutput
 from .ssm import LinearGaussianModel
@@ -111,6 +112,10 @@ def _check_zero_mean_noise(model) -> None:
                 f"model.{name}.cov is {cov.dtype} and the model is {prior.dtype}: give the "
                 f"noise the model's dtype (model.{name} = model.{name}.to({prior.dtype}))"
             )
+        # an exactly zero loc (the usual noise), cached against its version: nothing to read
+        if type(noise) is Gaussian and noise.loc.device.type != "meta" and not under_transform():
+            if noise._zero_loc():
+                continue
         mean = getattr(noise, "mean", None)
         if not isinstance(mean, Tensor) or mean.device.type == "meta":
             continue

@@ -195,3 +195,18 @@ def test_the_modified_pf_feeds_its_estimator_as_the_public_step_would():
         for a, b in zip(public[1:], internal[1:]):
             torch.testing.assert_close(a, b)
         state = public[0]
+
+
+def test_the_zero_mean_check_reads_a_gaussian_loc_written_in_place():
+    """``init``'s zero-mean check takes a Gaussian's cached ``loc == 0`` (no read of the
+    mean): a loc written in place after a first ``init`` is still refused."""
+    model = df.LinearGaussianModel(F, H, Q, R, torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64))
+    kf = df.KalmanFilter()
+    kf.init(model)
+    with torch.no_grad():
+        model.measurement_noise.loc[0] = 0.5
+    with pytest.raises(ValueError, match=r"measurement_noise has mean \[0.5, 0.0\]"):
+        kf.init(model)
+    with torch.no_grad():
+        model.measurement_noise.loc[0] = 0.0
+    kf.init(model)
