@@ -27,6 +27,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import numbers
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -327,6 +328,25 @@ class EstimatorCard:
     reject: float | None = None
     extra: dict = field(default_factory=dict, compare=False)
 
+    def __post_init__(self):
+        # a card read from a file is what the estimator runs with: a NaN threshold had loaded
+        # without a word and never alarmed, "no" had read as standardize = True (a trial)
+        t = self.threshold
+        if isinstance(t, bool) or not isinstance(t, numbers.Real) or math.isnan(t):
+            raise ValueError(f"threshold must be a number (±inf allowed); got {t!r}")
+        for name in ("standardize", "gating"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be true or false; got {getattr(self, name)!r}")
+        for name in ("target_false_alarm_rate", "restart", "confirm", "reject"):
+            rate = getattr(self, name)
+            if rate is not None and not (
+                isinstance(rate, numbers.Real) and not isinstance(rate, bool) and 0 < rate < 1
+            ):
+                raise ValueError(f"{name} must be a rate in (0, 1) or null; got {rate!r}")
+        n = self.num_particles
+        if n is not None and (isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1):
+            raise ValueError(f"num_particles must be a positive integer or null; got {n!r}")
+
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d["features"] = list(self.features)
@@ -471,13 +491,14 @@ def _check_finite_weights(state: dict, what: str) -> None:
         raise ValueError(f"ckpt: {what} holds non-finite (NaN/Inf) weights: {', '.join(bad)}")
 
 
-def _verify_sha256(path: Path, expected_sha256: str | None) -> None:
-    """Compare ``path``'s sha256 with ``expected_sha256``, or with the card beside it."""
-    source = "the expected_sha256 argument"
+def _verify_sha256(path: Path, expected_sha256: str | None) -> dict | None:
+    """Compare ``path``'s sha256 with ``expected_sha256``, or with the card beside it;
+    return that card (its JSON document), or ``None``."""
+    source, info = "the expected_sha256 argument", None
     if expected_sha256 is None:
         card = path.with_suffix(".json")
         if not card.is_file():
-            return  # no card: nothing recorded to compare with (weights are still checked)
+            return None  # no card: nothing recorded to compare with (weights are still checked)
         try:
             info = json.loads(card.read_text())
         except (OSError, ValueError) as exc:
@@ -496,6 +517,31 @@ def _verify_sha256(path: Path, expected_sha256: str | None) -> None:
         raise ValueError(
             f"ckpt: {path} does not match the sha256 recorded in {source} (file corrupted or "
             f"replaced): expected {expected_sha256}, got {actual}"
+        )
+    return info
+
+
+def _check_card_beside(path: Path, card: EstimatorCard, beside: dict | None) -> None:
+    """The card beside ``path`` (its JSON document ``beside``) must say what the card inside
+    the checkpoint says, which is the one that runs: a threshold edited in the JSON alone had
+    been ignored without a word (a trial). ``export`` and ``calibrate`` write both."""
+    observer = beside.get("observer") if isinstance(beside, dict) else None
+    if not isinstance(observer, dict):
+        return
+    json_path = path.with_suffix(".json")
+    try:
+        stated = EstimatorCard.from_dict(observer)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"ckpt: the card {json_path} beside {path} is unreadable ({exc})") from exc
+    if stated != card:
+        differ = [f"{f.name} = {getattr(stated, f.name)!r} there, {getattr(card, f.name)!r} inside"
+                  for f in dataclasses.fields(card)
+                  if f.compare and getattr(stated, f.name) != getattr(card, f.name)]  # fmt: skip
+        raise ValueError(
+            f"ckpt: the card {json_path} beside {path} does not say what the checkpoint's own "
+            f"card says ({'; '.join(differ)}); the checkpoint's card is the one that runs: "
+            "change a threshold with difffilter-train calibrate (it writes both), or restore "
+            "the JSON card"
         )
 
 
@@ -585,7 +631,7 @@ def load_estimator_checkpoint(
             f"ckpt: {path} is a checkpoint's card (JSON), not the checkpoint: give "
             f"{path.with_suffix('.ckpt')}"
         )
-    _verify_sha256(path, expected_sha256)
+    beside = _verify_sha256(path, expected_sha256)
     try:
         with warnings.catch_warnings():  # a file not saved by torch.save: its error says so
             warnings.filterwarnings("ignore", "Detected pickle protocol", UserWarning)
@@ -633,4 +679,5 @@ def load_estimator_checkpoint(
         card = EstimatorCard.from_dict(blob["observer"])
     except (TypeError, ValueError) as exc:
         raise ValueError(f"ckpt: {path} has an unreadable card ({exc})") from exc
+    _check_card_beside(path, card, beside)
     return estimator, card

@@ -42,6 +42,8 @@ def test_the_threshold_meets_the_rate_on_its_runs_and_the_estimator_alarms_above
     assert document["weights_sha256"] == weights_sha256(SHIPPED)  # the same weights
     assert card.estimator == "pf_nn_grad" == cal["estimator"]
     scenario = registry.get("four_tank_bias")
+    # the particles it was scored with (the scenario's), which load_estimator then runs
+    assert cal["num_particles"] == scenario.num_particles
     # recomputed from the calibration runs: at most ⌊α n⌋ exceed τ, and τ is tight (a lower
     # threshold would let more through)
     fitted = _free_scores(scenario, "pf_nn_grad", SHIPPED, 6, cal["seed"]).scores
@@ -288,9 +290,12 @@ def test_calibrate_sets_the_restart_it_runs_and_chooses_the_threshold_with(
 
     plain = _uncalibrated("checkpoints/lfc_nn_grad.ckpt", tmp_path / "plain.ckpt")
     net, card = load_estimator_checkpoint(plain)
-    save_estimator_checkpoint(plain, net, dataclasses.replace(card, restart=None))
+    card = dataclasses.replace(card, restart=None)
+    save_estimator_checkpoint(plain, net, card)
     shipped_json = Path("checkpoints/lfc_nn_grad.json").read_text()
-    document = {**json.loads(shipped_json), "sha256": checkpoint_sha256(plain)}
+    # (its JSON card says what the card inside says, as export and calibrate write it)
+    document = {**json.loads(shipped_json), "sha256": checkpoint_sha256(plain),
+                "observer": card.to_dict()}  # fmt: skip
     plain.with_suffix(".json").write_text(json.dumps(document))  # its check, to be recomputed
     on, off = tmp_path / "on.ckpt", tmp_path / "off.ckpt"
     cal_on = calibrate_checkpoint(plain, on, far=0.05, runs=2, progress=False, restart=0.01,

@@ -87,9 +87,11 @@ def _source(tmp_path, **changes):
     src = tmp_path / "src" / "net.ckpt"
     src.parent.mkdir(parents=True)
     net, card = load_estimator_checkpoint(SHIPPED, dtype=None)
-    save_estimator_checkpoint(src, net, dataclasses.replace(card, **changes))
+    card = dataclasses.replace(card, **changes)
+    save_estimator_checkpoint(src, net, card)
     document = json.loads(SHIPPED.with_suffix(".json").read_text())
-    document["sha256"] = _sha256(src)
+    # (the JSON card says what the card inside says, as export and calibrate write it)
+    document["sha256"], document["observer"] = _sha256(src), card.to_dict()
     document["check"] = {"metric": "attack_rmse", "seed": 31, "runs": 3, "value": 0.0123456789}
     src.with_suffix(".json").write_text(json.dumps(document))
     return src, document
@@ -120,7 +122,7 @@ def test_the_threshold_and_rates_are_the_hand_computed_quantile_and_counts(tmp_p
     expected = {"target": 0.1, "estimator": "pf_nn_grad", "scenario": "four_tank_bias",
                 "runs": 3, "score": "stub statistic", "steps": 25, "master_seed": 7,
                 "seed": fit_seed, "check_seed": check_seed, "threshold": tau,
-                "previous_threshold": 0.7}  # fmt: skip
+                "previous_threshold": 0.7, "num_particles": 100}  # fmt: skip
     assert {k: cal[k] for k in expected} == expected
     assert set(cal) == {*expected, "measured_on_calibration", "measured_on_check", "time_s"}
     assert 0.0 <= cal["time_s"] < 60.0

@@ -217,6 +217,9 @@ def calibrate_checkpoint(
         **({} if statistic is None else {"score": statistic}),
         **{o: getattr(card, o) for o in RUN_OPTIONS if getattr(card, o) is not None},
         # the master seed reproduces both (``--seed``); the streams' seeds are derived
+        # a particle filter's threshold is for the particles it was scored with (the
+        # scenario's: load_estimator's default, learned_estimator.calibrated_particles)
+        **({"num_particles": int(scenario.num_particles)} if card.filter == "pf" else {}),
         "steps": int(fitted.shape[-1]), "master_seed": int(seed), "seed": fit_seed,
         "check_seed": check_seed,
         "threshold": threshold, "previous_threshold": card.threshold,
