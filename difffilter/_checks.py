@@ -817,15 +817,20 @@ def step_covariance(model, method: str, k: int) -> Tensor:
         raise TypeError(f"{name} must return a torch.Tensor; got {type(cov).__name__}")
     if cov.dim() < 2 or cov.shape[-1] != cov.shape[-2]:
         raise ValueError(f"{name} must return a square matrix [..., d, d]; got {tuple(cov.shape)}")
-    if not values_known(cov) or under_transform(cov):  # (values a transform cannot read)
-        return cov
-    if not _all_finite(cov):
-        raise ValueError(f"{name} contains NaN or Inf values; every entry must be finite")
-    check_symmetric(cov, name)
-    check_semidefinite(
-        cov, name, advice=f"return a covariance from {method}(k), e.g. one built as L Lᵀ"
-    )
+    if not under_transform(cov):  # (values a transform cannot read)
+        check_covariance(cov, name, advice=f"return a covariance from {method}(k), e.g. L Lᵀ")
     return cov
+
+
+def check_covariance(t: Tensor, name: str, *, advice: str) -> None:
+    """``t [..., d, d]`` is a covariance: finite, symmetric (:func:`check_symmetric`) and
+    positive semi-definite (:func:`check_semidefinite`, whose error ends with ``advice``)."""
+    if not values_known(t):
+        return
+    if not _all_finite(t):
+        raise ValueError(f"{name} contains NaN or Inf values; every entry must be finite")
+    check_symmetric(t, name)
+    check_semidefinite(t, name, advice=advice)
 
 
 def check_semidefinite(t: Tensor, name: str, *, advice: str = _CARRY_ADVICE) -> None:

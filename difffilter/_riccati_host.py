@@ -110,13 +110,13 @@ def host_chunk(cov, maps, blocks: int, F, H, Q, R) -> tuple[np.ndarray, ...] | N
     return pred_cov, post, K, S, chol, whiten
 
 
-def steps_to_keep(K, P, last_gain, last_cov, tol: float, F, H) -> int | None:
+def steps_to_keep(K, P, last_gain, last_cov, F, H, tol: float) -> int | None:
     """How many of a chunk's steps (gains ``K [n, dx, dy]``, covariances ``P [n, dx, dx]``;
     the previous chunk's last ``last_gain``, ``last_cov`` or ``None``) to keep: the index
     after the first step whose gain and covariance both converged, or ``None`` where none
-    did (keep all). The test of
-    :meth:`~difffilter.gain_schedule.CovarianceChunks._steps_to_keep`, whose docstring
-    states it, on host arrays."""
+    did (keep all). The test
+    :meth:`~difffilter.gain_schedule.CovarianceChunks._steps_to_keep` states, for the host
+    and the torch recursion alike."""
     n, dx = K.shape[0], P.shape[-1]
     gains, covs = K.reshape(n, -1), P.reshape(n, -1)
     if last_gain is not None:

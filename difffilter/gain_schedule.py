@@ -38,10 +38,10 @@ little more than the Python call).
 
 from __future__ import annotations
 
-import math
 import numbers
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -435,16 +435,15 @@ class CovarianceChunks:
         blocks = min(max(self.GROWTH * self.steps // self.BLOCK, 1), self.MAX_BLOCKS)
         moments = self._host_chunk(blocks)
         if moments is not None:
-            keep = self._host_steps_to_keep(moments[2], moments[1])
-            moments = tuple(torch.from_numpy(m[:keep]) for m in moments)
+            moments = tuple(map(torch.from_numpy, moments))
         else:
             maps = self._step_maps()
             if maps is not None:
                 moments = riccati_chunk(self._cov, maps, blocks, *self._mats)
             else:  # no scan element (H Q Hᵀ + R singular): one step at a time
                 moments = riccati_steps(self._cov, blocks * self.BLOCK, *self._mats)
-            keep = self._steps_to_keep(moments[2], moments[1])
-            moments = tuple(m[:keep] for m in moments)
+        keep = self._steps_to_keep(moments[2], moments[1])
+        moments = tuple(m[:keep] for m in moments)
         self._cov, self._last_gain, self.steps = moments[1][-1], moments[2][-1], self.steps + keep
         return (*moments, half_log_det(moments[4]))
 
@@ -464,16 +463,6 @@ class CovarianceChunks:
         if moments is None:
             self._host = None
         return moments
-
-    def _host_steps_to_keep(self, K, P) -> int:
-        """:meth:`_steps_to_keep` of a host chunk (:func:`~difffilter._riccati_host.steps_to_keep`)."""
-        last = (None, None) if self._last_gain is None else host_arrays(self._last_gain, self._cov)
-        F, H, _, _ = self._host
-        keep = steps_to_keep(K, P, *last, self._tol, F, H)
-        if keep is None:
-            return K.shape[0]
-        self.converged = True
-        return keep
 
     def _steps_to_keep(self, K: Tensor, P: Tensor) -> int:
         """How many of a chunk's steps (gains ``K [n, dx, dy]``, covariances ``P [n, dx,
@@ -496,41 +485,15 @@ class CovarianceChunks:
         n = K.shape[0]
         if K.device.type == "meta":  # shapes only: never converged
             return n
-        dx = P.shape[-1]
-        stacked = [K.flatten(1), P.flatten(1)]
-        if self._last_gain is not None:
-            stacked = [
-                torch.cat([last.reshape(1, -1), now])
-                for last, now in zip((self._last_gain, self._cov), stacked)
-            ]
-        first = n + 1 - stacked[0].shape[0]  # the chunk's first tested step (its second
-        # without a previous one)
-        gains, covs = stacked
-        gain_scale = torch.linalg.vector_norm(gains[:-1], math.inf, dim=-1)
-        gain_change = torch.linalg.vector_norm(gains[1:] - gains[:-1], math.inf, dim=-1)
-        var = covs[:-1].reshape(-1, dx, dx).diagonal(dim1=-2, dim2=-1).clamp_min(0)
-        cov_scale = (var.unsqueeze(-1) * var.unsqueeze(-2)).sqrt().flatten(1)  # √(P_ii P_jj)
-        cov_change = (covs[1:] - covs[:-1]).abs()
-
-        def steady(tol: float) -> Tensor:
-            return (gain_change <= tol * gain_scale) & (cov_change <= tol * cov_scale).all(-1)
-
-        hits = steady(self._tol).nonzero()
-        if not len(hits):
-            return n
-        # how fast the recursion contracts there (about the same at every later step)
+        # one test for both recursions, on host arrays (views of a host chunk's moments; a
+        # copy from another device, one per chunk)
+        last = (None, None) if self._last_gain is None else (self._last_gain, self._cov)
         F, H = self._mats[0], self._mats[2]
-        gain = gains[int(hits[0]) + 1].reshape(dx, -1)
-        closed = (self._mats[6] - gain @ H) @ F
-        rho2 = float(torch.linalg.eigvals(closed.double()).abs().max()) ** 2
-        if rho2 >= 1.0:  # not contracting: never settles
+        keep = steps_to_keep(*map(_host_view, (K, P, *last, F, H)), self._tol)
+        if keep is None:
             return n
-        if rho2 > 0.5:  # (1 − ρ²)/ρ² < 1: a stricter test
-            hits = steady(self._tol * (1.0 - rho2) / rho2).nonzero()
-            if not len(hits):
-                return n
         self.converged = True
-        return first + int(hits[0]) + 1
+        return keep
 
     def _step_maps(self) -> tuple[Tensor, Tensor, Tensor] | None:
         """The ``j``-step maps ``E(j) = e ⊗ … ⊗ e`` (``j`` times) of the scan element ``e``
@@ -672,6 +635,19 @@ def _same(a: Tensor | None, b: Tensor | None) -> bool:
 def _version(t: Tensor) -> int:
     """``t``'s autograd version counter, ``-1`` for an inference tensor (it keeps none)."""
     return -1 if t.is_inference() else t._version
+
+
+def _host_view(t: Tensor | None):
+    """``t``'s values as a host array (a view in CPU memory; half precision as float32; a
+    copy of a tensor a ``torch.func`` transform wraps), or ``None``."""
+    if t is None:
+        return None
+    t = t.detach().cpu()
+    t = t if t.dtype in (torch.float32, torch.float64) else t.float()
+    try:
+        return t.numpy()
+    except RuntimeError:  # wrapped by a torch.func transform (no storage): its values
+        return np.array(t.tolist(), dtype=np.float64 if t.dtype == torch.float64 else np.float32)
 
 
 def _symmetric(matrix: Tensor) -> Tensor:

@@ -112,13 +112,13 @@ def test_keep_is_the_first_steady_step():
     K[:3] += np.arange(3)[:, None, None]  # 1, 2, 3, then 1 from index 3 on
     F, H = 0.5 * np.eye(dx), np.ones((dy, dx))  # (I − K H) F: eigenvalues ±0.5, ρ² = 0.25
     # index 4 is the first equal to its predecessor: keep steps 0 … 4
-    assert host.steps_to_keep(K, P, None, None, 1e-12, F, H) == 5
+    assert host.steps_to_keep(K, P, None, None, F, H, 1e-12) == 5
     # the previous chunk's last gain, different from the first: the same step
-    assert host.steps_to_keep(K, P, 5 * K[0], P[0], 1e-12, F, H) == 5
+    assert host.steps_to_keep(K, P, 5 * K[0], P[0], F, H, 1e-12) == 5
     # ... and equal to it: the chunk's first step is steady
-    assert host.steps_to_keep(K[3:], P[3:], K[3], P[3], 1e-12, F, H) == 1
+    assert host.steps_to_keep(K[3:], P[3:], K[3], P[3], F, H, 1e-12) == 1
     still = K + np.arange(n)[:, None, None]  # never steady
-    assert host.steps_to_keep(still, P, None, None, 1e-12, F, H) is None
+    assert host.steps_to_keep(still, P, None, None, F, H, 1e-12) is None
 
 
 def test_singular_innovation_covariance_goes_to_the_torch_steps():

@@ -20,7 +20,7 @@ import numbers
 import torch
 from torch import Tensor
 
-from .._checks import check_finite, check_semidefinite, check_symmetric
+from .._checks import check_covariance
 from ..gaussian import gaussian_update
 from ..kalman import kalman_predict
 from ..linalg import masked_measurement, matvec
@@ -109,9 +109,7 @@ class BiasAttackEstimator:
         residual = residual.where(mask, 0.0)
         if not bool(torch.isfinite(residual.detach()).all()):
             raise ValueError("residual contains NaN or Inf values on flagged entries")
-        check_finite(residual_cov, "residual_cov")
-        check_symmetric(residual_cov, "residual_cov")
-        check_semidefinite(
+        check_covariance(
             residual_cov, "residual_cov", advice="give S_k of the filter whose residual it is"
         )
         return self._update(state, residual, residual_cov, mask)
