@@ -67,6 +67,9 @@ def uncontrollable_direction(A: Tensor, B: Tensor, tol: float = 1e-9) -> Tensor 
     Shapes ``A [n, n]``, ``B [n, m]`` → ``[n]``. Such a ``w`` spans an uncontrollable mode at
     eigenvalue 0 (the case of the LFC tie-line sum).
     """
+    if isinstance(tol, bool) or not isinstance(tol, numbers.Real) or not 0 <= tol < math.inf:
+        # (a NaN tol had called every pair uncontrollable: no comparison with NaN holds)
+        raise ValueError(f"tol must be a finite number >= 0; got {tol!r}")
     M = _np(torch.cat([A, B], dim=1))
     _, s, vh = np.linalg.svd(M.T)
     if s[-1] > tol * max(s[0], 1.0):
@@ -113,8 +116,8 @@ def lqr(
     n, m = _check_pair(A, B, ("A", "B"))
     Q, R = _weights(Q, R, n, m, A)
     method = LQRMethod(method)
-    if method is LQRMethod.SHIFT and not shift > 0:
-        raise ValueError(f"shift must be positive; got {shift!r}")
+    if method is LQRMethod.SHIFT and not 0 < shift < math.inf:
+        raise ValueError(f"shift must be a finite number > 0; got {shift!r}")
     w = uncontrollable_direction(A, B) if method is LQRMethod.REDUCED else None
     if method is LQRMethod.DIRECT or (method is LQRMethod.REDUCED and w is None):
         P = sla.solve_continuous_are(_np(A), _np(B), _np(Q), _np(R))
@@ -152,6 +155,7 @@ def _observer_spectrum(A_closed: Tensor, factor: float, zero_pole: float | None)
     pole at 1: that observer error would never decay). [DEF] it is moved to ``zero_pole``
     (default: the slowest of the other scaled eigenvalues).
     """
+    _check_observer_design(factor, zero_pole)
     lam, V = np.linalg.eig(_np(A_closed))
     lam = factor * lam
     tiny = np.abs(lam) < 1e-8
@@ -161,6 +165,34 @@ def _observer_spectrum(A_closed: Tensor, factor: float, zero_pole: float | None)
     return lam, V
 
 
+def _check_observer_design(factor, zero_pole) -> None:
+    """``factor`` a finite number > 0 and ``zero_pole`` ``None`` or a finite number < 0 (a
+    continuous-time eigenvalue: at 0 or above, that observer error would never decay).
+    A NaN or negative factor had given NaN or slower poles without a word, and 0 a raw
+    numpy error (a fuzzing trial)."""
+    if (
+        isinstance(factor, bool)
+        or not isinstance(factor, numbers.Real)
+        or not 0 < factor < math.inf
+    ):
+        raise ValueError(f"factor must be a positive number (how much faster the observer's "
+                         f"poles are); got {factor!r}")  # fmt: skip
+    if zero_pole is not None and (
+        isinstance(zero_pole, bool)
+        or not isinstance(zero_pole, numbers.Real)
+        or not -math.inf < zero_pole < 0
+    ):
+        raise ValueError(
+            "zero_pole must be None or a finite number < 0 (a continuous-time eigenvalue: the "
+            f"observer error along the zero mode decays as exp(zero_pole·t)); got {zero_pole!r}"
+        )
+
+
+def _check_dt(dt) -> None:
+    if isinstance(dt, bool) or not isinstance(dt, numbers.Real) or not 0 < dt < math.inf:
+        raise ValueError(f"dt must be a finite number > 0; got {dt!r}")
+
+
 def observer_poles(
     A_closed: Tensor, dt: float, factor: float = 3.0, zero_pole: float | None = None
 ) -> Tensor:
@@ -168,6 +200,7 @@ def observer_poles(
 
     See :func:`_observer_spectrum` for the zero eigenvalue. Returns a complex tensor ``[n]``.
     """
+    _check_dt(dt)
     lam, _ = _observer_spectrum(A_closed, factor, zero_pole)
     return torch.as_tensor(np.exp(lam * dt))
 
@@ -210,11 +243,8 @@ def luenberger_gain(
     n = Ad.shape[0]
     if A_closed.shape != (n, n):
         raise ValueError(f"A_closed must have shape [{n}, {n}]; got {tuple(A_closed.shape)}")
-    if not dt > 0:
-        raise ValueError(f"dt must be positive; got {dt!r}")
-    if isinstance(factor, bool) or not isinstance(factor, numbers.Real) or not factor > 0:
-        raise ValueError(f"factor must be a positive number (how much faster the observer's "
-                         f"poles are); got {factor!r}")  # fmt: skip
+    _check_dt(dt)
+    _check_observer_design(factor, zero_pole)
     design = LuenbergerDesign(design)
     lam, V = _observer_spectrum(A_closed, factor, zero_pole)
     p = np.exp(lam * dt)

@@ -60,6 +60,7 @@ from ._checks import (
     NonFinite,
     broadcast_or_none,
     broadcast_shapes,
+    check_finite,
     check_model,
     check_model_batch,
     check_sequence_inputs,
@@ -331,6 +332,8 @@ class StateFeedback:
         if not isinstance(gain, Tensor) or not gain.is_floating_point() or gain.dim() < 2:
             got = tuple(gain.shape) if isinstance(gain, Tensor) else type(gain).__name__
             raise ValueError(f"gain must be a floating tensor K [du, dx] or [B, du, dx]; got {got}")
+        # a NaN gain had run, every input and so every state NaN from the first step (a trial)
+        check_finite(gain, "gain")
         if reference is not None and (
             not isinstance(reference, Tensor) or reference.shape[-1:] != gain.shape[-1:]
         ):
@@ -339,6 +342,8 @@ class StateFeedback:
                 f"reference must be x_ref [{gain.shape[-1]}] or [B, {gain.shape[-1]}] (the "
                 f"gain's dx); got {got!r}"
             )
+        if reference is not None:
+            check_finite(reference, "reference")
         self.gain, self.reference = gain, reference
 
     def init(self, batch_shape, dtype, device) -> Tensor:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from ._checks import check_carry_fits_model, check_carry_tensor
+from ._checks import check_carry_fits_model, check_carry_tensor, check_finite
 from .kalman import GaussianFilter, Prediction, _check_linear, gaussian_init
 from .linalg import matvec
 from .results import GaussianState, StepOutput
@@ -37,6 +37,8 @@ class FixedGainFilter(GaussianFilter):
             raise ValueError(
                 f"gain must be a tensor [dx, dy]; got {getattr(gain, 'shape', gain)!r}"
             )
+        # a NaN gain had run, every estimate NaN from its first step on (a trial)
+        check_finite(gain, "gain")
         self.gain = gain
 
     def _init(self, model, batch_shape, generators):

@@ -73,6 +73,7 @@ import torch
 from torch import Tensor, nn
 from torch.func import functional_call, jacrev, vmap
 
+from ._checks import check_finite_number
 from .gaussian import kalman_gain
 from .linalg import safe_cholesky, symmetrize
 
@@ -424,15 +425,14 @@ class EKFRule:
         donate: bool = False,
         fold_every: int = 8,
     ):
-        for name, val in (("lr", lr), ("init_cov", init_cov), ("init_noise", init_noise)):
-            if not val > 0:
-                raise ValueError(f"{name} must be positive; got {val!r}")
-        if not process_noise >= 0:
-            raise ValueError(f"process_noise must be >= 0; got {process_noise!r}")
+        # finite too: an infinite lr or covariance had been taken, every weight NaN after
+        # the first update (a fuzzing trial of the constructors)
+        self.lr = check_finite_number(lr, "lr", positive=True)
+        self.init_cov = check_finite_number(init_cov, "init_cov", positive=True)
+        self.init_noise = check_finite_number(init_noise, "init_noise", positive=True)
+        self.process_noise = check_finite_number(process_noise, "process_noise", nonnegative=True)
         if isinstance(fold_every, bool) or not isinstance(fold_every, int) or fold_every < 1:
             raise ValueError(f"fold_every must be an integer >= 1; got {fold_every!r}")
-        self.lr, self.init_cov = float(lr), float(init_cov)
-        self.init_noise, self.process_noise = float(init_noise), float(process_noise)
         self.donate, self.fold_every = bool(donate), fold_every
 
     def init(self, theta: Tensor) -> LearnerState:
@@ -527,9 +527,7 @@ class GradientRule:
     lr · H_kᵀ e_k`` (a gradient step on ``½‖e_k‖²``), ``lr`` [DEF] 0.01."""
 
     def __init__(self, *, lr: float = 0.01):
-        if not lr > 0:
-            raise ValueError(f"lr must be positive; got {lr!r}")
-        self.lr = float(lr)
+        self.lr = check_finite_number(lr, "lr", positive=True)
 
     def init(self, theta: Tensor) -> LearnerState:
         return LearnerState(theta, None, None, 0)

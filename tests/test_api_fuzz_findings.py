@@ -337,3 +337,38 @@ def test_a_covariance_override_of_one_element_batch_is_one_model_and_init_batche
                                    B=torch.tensor([[0.0], [0.1]], dtype=F64))  # fmt: skip
     with pytest.raises(ValueError, match=r"batch_shape \(4,\) does not broadcast"):
         fdi.AdaptiveKalmanFilter().init(swept, (4,))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"attack_cov0": -1.0}, "attack_cov0 must be a finite number >= 0"),
+        ({"attack_cov0": float("nan")}, "attack_cov0 must be a finite number >= 0"),
+        ({"false_alarm_rate": 2.0}, r"false_alarm_rate must be a false-alarm rate in \(0, 1\)"),
+        ({"false_alarm_rate": float("nan")}, "false_alarm_rate must be a false-alarm rate"),
+        ({"num_particles": 0}, r"num_particles must be a positive integer \(>= 1\)"),
+        ({"num_particles": 2.5}, r"num_particles must be a positive integer \(>= 1\)"),
+    ],
+)
+def test_the_adaptive_particle_filter_checks_its_arguments_as_the_adaptive_kf(kwargs, message):
+    """From a fuzzing trial of the constructors: ``AdaptiveParticleFilter`` took a negative
+    ``ω`` and ran, its ``Ŝ`` negative from then on; a NaN ``ω`` failed at the first step
+    as a bad carry; a bad rate failed only at the first step, naming no argument; a count of
+    0 or 2.5 with a raw torch error. It checks them at construction now, as
+    ``AdaptiveKalmanFilter`` does, and so does ``adaptive_particle_init``."""
+    from difffilter.fdi.mdpf import adaptive_particle_init
+
+    with pytest.raises(ValueError, match=message):
+        fdi.AdaptiveParticleFilter(**{"num_particles": 20, **kwargs})
+    model = df.LinearGaussianModel(0.9 * EYE, H, 0.1 * EYE, torch.eye(1, dtype=F64),
+                                   torch.zeros(2, dtype=F64), EYE,
+                                   B=torch.tensor([[0.0], [0.1]], dtype=F64))  # fmt: skip
+    init_kwargs = {k: v for k, v in kwargs.items() if k != "false_alarm_rate"}
+    if init_kwargs:
+        with pytest.raises(ValueError, match=message):
+            adaptive_particle_init(model, **{"num_particles": 20, **init_kwargs})
+    # ω = 0 is the adaptive KF's boundary too: it runs
+    out = fdi.adaptive_particle_filter(model, torch.zeros(2, 5, 1, dtype=F64),
+                                       torch.zeros(2, 5, 1, dtype=F64), num_particles=20,
+                                       attack_cov0=0.0, generator=torch.Generator().manual_seed(0))  # fmt: skip
+    assert bool(torch.isfinite(out.means).all())

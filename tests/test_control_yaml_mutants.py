@@ -212,3 +212,33 @@ def test_a_yaml_scenario_takes_an_attack_of_ones_own_as_a_threat_set_names_it(tm
     assert by_path.attack_model() == Ramp(slope=0.02, onset=5)
     with pytest.raises(ValueError, match=r"attack.*no_such_module"):
         _yaml_scenario(f"name: own\n{plant}attack: {{kind: 'no_such_module:Thing'}}\n", tmp_path)
+
+
+def test_the_control_design_helpers_refuse_a_nan_or_infinite_setting():
+    """From a fuzzing trial of the public functions: ``observer_poles`` had given NaN or
+    infinite poles for a NaN or infinite ``factor`` and slower ones for a negative one
+    (``luenberger_gain`` checked only the sign), ``uncontrollable_direction`` had called a
+    controllable pair uncontrollable under a NaN ``tol``, and ``lqr`` had taken an
+    infinite ``shift``; each is refused now, naming the argument."""
+    from difffilter.control import LQRMethod, lqr, luenberger_gain, uncontrollable_direction
+
+    d = torch.float64
+    A_closed = torch.diag(torch.tensor([0.0, -1.0, -2.0], dtype=d))
+    for bad in (float("nan"), float("inf"), -1.0, 0.0):
+        with pytest.raises(ValueError, match="factor must be a positive number"):
+            observer_poles(A_closed, 0.1, factor=bad)
+        with pytest.raises(ValueError, match="factor must be a positive number"):
+            luenberger_gain(torch.eye(3, dtype=d), A_closed, 0.1, factor=bad)
+        with pytest.raises(ValueError, match="dt must be a finite number > 0"):
+            observer_poles(A_closed, bad)
+    for bad in (float("nan"), 0.0, 1.0):
+        with pytest.raises(ValueError, match="zero_pole must be None or a finite number < 0"):
+            observer_poles(A_closed, 0.1, zero_pole=bad)
+    A = torch.tensor([[0.0, 1.0], [0.0, 0.0]], dtype=d)
+    B = torch.tensor([[0.0], [1.0]], dtype=d)
+    assert uncontrollable_direction(A, B) is None  # a double integrator: controllable
+    for bad in (float("nan"), float("inf"), -1.0):
+        with pytest.raises(ValueError, match="tol must be a finite number >= 0"):
+            uncontrollable_direction(A, B, tol=bad)
+    with pytest.raises(ValueError, match="shift must be a finite number > 0"):
+        lqr(A, B, method=LQRMethod.SHIFT, shift=float("inf"))

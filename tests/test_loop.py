@@ -953,3 +953,19 @@ def test_forks_outside_the_loop_and_a_fractional_horizon_are_named():
     for bad in (6.5, "8", True):
         with pytest.raises(ValueError, match="horizon must be an integer"):
             closed_loop(plant, 3, noise=noise, x0=x0, horizon=bad)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_state_feedback_refuses_a_gain_or_reference_that_is_not_finite(bad):
+    """From a fuzzing trial of the constructors: a NaN gain had run, every input and so
+    every state NaN from the first step on; a gain or reference with a NaN or infinite
+    entry is refused at construction, naming it."""
+    from difffilter.loop import StateFeedback
+
+    gain = torch.ones(1, 2, dtype=torch.float64)
+    gain[0, 1] = bad
+    with pytest.raises(ValueError, match="gain contains NaN or Inf"):
+        StateFeedback(gain)
+    with pytest.raises(ValueError, match="reference contains NaN or Inf"):
+        StateFeedback(torch.ones(1, 2, dtype=torch.float64),
+                      torch.tensor([0.0, bad], dtype=torch.float64))  # fmt: skip

@@ -399,3 +399,26 @@ def test_bias_attack_estimator_with_distinct_process_variances_and_tau_bounds():
         assert st.k == k + 1
     with pytest.raises(ValueError, match="tau"):
         BiasAttackEstimator(d, 1.0)
+
+
+@pytest.mark.parametrize("bad", [float("inf"), float("nan"), -1.0, 0.0])
+@pytest.mark.parametrize("field", ["lr", "init_cov", "init_noise"])
+def test_the_learning_rules_refuse_a_rate_or_covariance_that_is_not_finite_and_positive(field, bad):
+    """From a fuzzing trial of the constructors: ``EKFRule`` (and with it ``ParamEKF`` and
+    ``EKFOptimizer``) and ``GradientRule`` took an infinite ``lr`` or covariance, every weight
+    NaN after the first update; each is refused now, naming it."""
+    message = rf"{field} must be a finite number > 0"
+    with pytest.raises(ValueError, match=message):
+        EKFRule(**{field: bad})
+    with pytest.raises(ValueError, match=message):
+        EKFOptimizer([nn.Parameter(torch.zeros(2))], **{field: bad})
+    if field == "lr":
+        with pytest.raises(ValueError, match=message):
+            GradientRule(lr=bad)
+
+
+@pytest.mark.parametrize("bad", [float("inf"), float("nan"), -1e-3])
+def test_the_ekf_rule_refuses_a_process_noise_that_is_not_finite_and_nonnegative(bad):
+    with pytest.raises(ValueError, match=r"process_noise must be a finite number >= 0"):
+        EKFRule(process_noise=bad)
+    assert EKFRule(process_noise=0.0).process_noise == 0.0

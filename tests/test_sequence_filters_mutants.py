@@ -325,6 +325,16 @@ def test_fixed_gain_observer_refuses_a_gain_that_is_not_a_matrix(shape):
         FixedGainFilter(torch.zeros(shape, dtype=F64))
 
 
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_fixed_gain_observer_refuses_a_gain_that_is_not_finite(bad):
+    """A NaN or infinite entry of ``L`` is refused at construction, naming ``gain`` (one
+    had run, and every estimate was NaN from the first step on)."""
+    gain = 0.5 * torch.eye(4, 2, dtype=F64)
+    gain[1, 0] = bad
+    with pytest.raises(ValueError, match="gain contains NaN or Inf"):
+        FixedGainFilter(gain)
+
+
 def test_expected_input_rate_as_a_0d_tensor_is_the_number():
     """A 0-d tensor rate is a number in (0, 1] (docstring): accepted as that number, for one
     packet as well as per actuator."""

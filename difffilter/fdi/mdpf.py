@@ -46,7 +46,15 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._checks import Choice, check_one_model, check_step_inputs, check_strategy
+from .._checks import (
+    Choice,
+    check_finite_number,
+    check_one_model,
+    check_positive_int,
+    check_rate,
+    check_step_inputs,
+    check_strategy,
+)
 from ..estimator import Estimator, EstimatorOutput, Generators
 from ..linalg import matvec, safe_cholesky, symmetrize
 from ..loop import open_loop
@@ -345,6 +353,9 @@ def adaptive_particle_init(
     ``generator``), ``āʲ = 0``, ``Υʲ = 0``, ``Sʲ = attack_cov0 · I``, ``Pʲ = 0`` (the
     components are the prior's samples), uniform log-weights."""
     check_one_model(model, "the adaptive particle filter", PER_SET)
+    # as the adaptive KF's (A1): a negative ω had run, Ŝ negative from then on (a trial)
+    attack_cov0 = check_finite_number(attack_cov0, "attack_cov0", nonnegative=True)
+    num_particles = check_positive_int(num_particles, "num_particles")
     layout = ParticleLayout(model.dim_x, model.dim_u)
     shape = torch.Size(batch_shape) + (num_particles,)
     x = model.sample_initial(shape, generator)
@@ -366,7 +377,7 @@ class AdaptiveParticleFilter(Estimator):
         forgetting: ``λ ∈ (0, 1]``.
         reading: :class:`Reading` (eq. 5).
         form: :class:`Form` (:class:`AdaptiveKalmanProposal`).
-        attack_cov0: ``S_0 = ω I``.
+        attack_cov0: ``S_0 = ω I``, ``ω ≥ 0``.
         resampler: default ``Multinomial()`` (the inverse-CDF selection of App. A), at
             every step.
         false_alarm_rate: of the Wald test on ``(â, Ŝ)``.
@@ -396,10 +407,14 @@ class AdaptiveParticleFilter(Estimator):
     ):
         reading, form = Reading(reading), Form(form)
         check_strategy(resampler, "resampler", "difffilter.resampling.Multinomial()")
-        self.num_particles, self.forgetting = num_particles, _check_forgetting(forgetting)
-        self.reading, self.form, self.attack_cov0 = reading, form, float(attack_cov0)
+        # checked here, as the adaptive KF's: a bad rate had failed only at the first step,
+        # naming no argument; a count of 0 or 2.5 with a raw torch error (a trial)
+        self.num_particles = check_positive_int(num_particles, "num_particles")
+        self.forgetting = _check_forgetting(forgetting)
+        self.reading, self.form = reading, form
+        self.attack_cov0 = check_finite_number(attack_cov0, "attack_cov0", nonnegative=True)
         self.resampler = resampler if resampler is not None else Multinomial()
-        self.false_alarm_rate = float(false_alarm_rate)
+        self.false_alarm_rate = check_rate(false_alarm_rate, "false_alarm_rate")
         self._filters: dict = {}  # the particle filter of each model (derived constants only)
 
     def filter_for(self, model: StateSpaceModel) -> tuple[ParticleView, ParticleFilter]:
