@@ -65,6 +65,18 @@ class FourTankParameters:
     gamma: tuple[float, float] = (0.70, 0.60)
     v: tuple[float, float] = (3.0, 3.0)  # V
 
+    def __post_init__(self):
+        # a NaN or negative constant had built a model whose first use failed far from it
+        # ("loc contains NaN", "clamp is not supported for complex types": a fuzzing trial)
+        set_ = object.__setattr__  # frozen: the checked values are set as plain floats
+        set_(self, "g", check_finite_number(self.g, "FourTankParameters.g", positive=True))
+        for name, count in (("A", 4), ("a", 4), ("k", 2), ("v", 2), ("gamma", 2)):
+            set_(self, name, _positive_tuple(getattr(self, name), name, count))
+        if not all(0.0 < g < 1.0 for g in self.gamma):  # the valves' split (Johansson's γ)
+            raise ValueError(
+                f"FourTankParameters.gamma must be two valve splits in (0, 1); got {self.gamma!r}"
+            )
+
     def fixed_point(self) -> tuple[float, float, float, float]:
         """Exact equilibrium of the continuous model (closed form from ḣ = 0).
 
@@ -82,6 +94,18 @@ class FourTankParameters:
             (q3 / a3) ** 2 / (2 * g),
             (q4 / a4) ** 2 / (2 * g),
         )
+
+
+def _positive_tuple(value, name: str, count: int) -> tuple[float, ...]:
+    """``value`` as a tuple of ``count`` finite numbers > 0, the error naming the field."""
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != count:
+        raise ValueError(
+            f"FourTankParameters.{name} must be {count} finite numbers > 0; got {value!r}"
+        )
+    return tuple(
+        check_finite_number(x, f"FourTankParameters.{name}[{i}]", positive=True)
+        for i, x in enumerate(value)
+    )
 
 
 class FourTankModel(StateSpaceModel):

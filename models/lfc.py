@@ -99,13 +99,21 @@ class LFCParameters:
     tie_stiffness: float = 0.198  # T_12 = T_21, p.u./rad
 
     def __post_init__(self):
+        # finite too: a NaN passed "v <= 0" and built a plant of NaN matrices (a fuzzing trial)
         for name in ("inertia", "turbine_time", "governor_time", "droop"):
             vals = getattr(self, name)
-            if len(vals) != NUM_AREAS or any(v <= 0 for v in vals):
-                raise ValueError(f"{name} must hold {NUM_AREAS} positive values; got {vals!r}")
+            if len(vals) != NUM_AREAS or not all(0 < v < math.inf for v in vals):
+                raise ValueError(
+                    f"{name} must hold {NUM_AREAS} finite positive values; got {vals!r}"
+                )
         for name in ("damping", "freq_bias"):
-            if len(getattr(self, name)) != NUM_AREAS:
-                raise ValueError(f"{name} must hold {NUM_AREAS} values")
+            vals = getattr(self, name)
+            if len(vals) != NUM_AREAS or not all(math.isfinite(v) for v in vals):
+                raise ValueError(f"{name} must hold {NUM_AREAS} finite values; got {vals!r}")
+        if not 0 <= self.tie_stiffness < math.inf:  # (0: two areas without a tie line)
+            raise ValueError(
+                f"tie_stiffness must be a finite number >= 0; got {self.tie_stiffness!r}"
+            )
 
 
 def continuous_model(params: LFCParameters | None = None, *, dtype=torch.float64):

@@ -35,7 +35,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from difffilter._checks import Choice
+from difffilter._checks import Choice, check_finite_number
 
 from .atomic_write import write_atomically
 
@@ -170,16 +170,16 @@ class NeuralFDIEstimator(nn.Module):
         _check_int(resid_dim, "resid_dim")
         if num_areas > 1 and resid_dim != area_dim:
             raise ValueError("resid_dim must equal area_dim with several areas (eq. 9)")
-        if not init_scale > 0:
-            raise ValueError(f"init_scale must be positive; got {init_scale!r}")
+        # finite too: an infinite scale had built a network of infinite weights or one that
+        # reads every input as 0 (a fuzzing trial)
+        init_scale = check_finite_number(init_scale, "init_scale", positive=True)
         init = WeightInit(init)
         self.num_areas, self.area_dim, self.a, self.b = num_areas, area_dim, a, b
         self.hidden = hidden
         self.extra_inputs, self.resid_dim = extra_inputs, resid_dim
         self.in_dim = area_dim * a + resid_dim * b + extra_inputs
-        if not (attack_scale > 0 and resid_scale > 0):
-            raise ValueError("attack_scale and resid_scale must be positive")
-        self.attack_scale, self.resid_scale = float(attack_scale), float(resid_scale)
+        self.attack_scale = check_finite_number(attack_scale, "attack_scale", positive=True)
+        self.resid_scale = check_finite_number(resid_scale, "resid_scale", positive=True)
         scale = torch.cat(
             [
                 torch.full((area_dim * a,), float(attack_scale), dtype=dtype),
@@ -661,6 +661,12 @@ def load_estimator_checkpoint(
         raise ValueError(f"ckpt: {path} has unknown estimator settings {sorted(unknown)}")
     try:
         kwargs = {k: _CONFIG_TYPES[k](v) for k, v in cfg.items()}
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"ckpt: {path} does not match its own configuration ({exc})") from exc
+    for name, value in kwargs.items():  # (named with the file: the constructor would not)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError(f"ckpt: {path} has a non-finite setting {name} = {value}")
+    try:
         if dtype is None:  # the stored weights' own
             stored = [v.dtype for v in blob["state_dict"].values()
                       if isinstance(v, Tensor) and v.is_floating_point()]  # fmt: skip
@@ -672,9 +678,6 @@ def load_estimator_checkpoint(
         estimator.load_state_dict(state, strict=True)
     except (TypeError, RuntimeError) as exc:
         raise ValueError(f"ckpt: {path} does not match its own configuration ({exc})") from exc
-    for name, value in kwargs.items():
-        if isinstance(value, float) and not math.isfinite(value):
-            raise ValueError(f"ckpt: {path} has a non-finite setting {name} = {value}")
     try:
         card = EstimatorCard.from_dict(blob["observer"])
     except (TypeError, ValueError) as exc:

@@ -28,6 +28,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
+from difffilter._checks import check_finite_number
 from difffilter.fdi.mdpf import Reading
 from difffilter.linalg import matvec, rowwise
 from difffilter.noise import Gaussian
@@ -73,7 +74,9 @@ class RobotModel(StateSpaceModel):
         pos = torch.as_tensor(sensors, dtype=dtype)
         if pos.dim() not in (2, 3) or pos.shape[-1] != 2:
             raise ValueError(f"sensors must have shape [S, 2] or [G, S, 2]; got {tuple(pos.shape)}")
-        self.dt, self.num_sensors = float(dt), pos.shape[-2]
+        # (a NaN or negative dt had built a model that simulated NaN or ran backwards)
+        self.dt = check_finite_number(dt, "dt", positive=True)
+        self.num_sensors = pos.shape[-2]
         self.dim_y = 2 * self.num_sensors
         self.register_buffer("sensor_pos", pos)
         self.initial = Gaussian(

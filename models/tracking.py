@@ -31,6 +31,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
+from difffilter._checks import check_finite_number
 from difffilter.linalg import matvec, rowwise
 from difffilter.noise import Gaussian, NoiseModel, register_tensor
 from difffilter.particle import KalmanProposal
@@ -80,8 +81,18 @@ class GlintNoise(NoiseModel):
             raise ValueError(
                 f"weights [C] and variances [C, 2] expected; got {tuple(weights.shape)}, {tuple(variances.shape)}"
             )
-        if bool((variances <= 0).any()) or abs(float(weights.detach().sum()) - 1.0) > 1e-9:
-            raise ValueError("variances must be positive and weights sum to 1")
+        # finite and non-negative too: κ = NaN or −1 (weights [2, −1], which sum to 1) had
+        # passed, and failed in a draw as torch's "invalid multinomial distribution"
+        if not bool(torch.isfinite(variances).all()) or bool((variances <= 0).any()):
+            raise ValueError(f"variances must be finite and positive; got {variances.tolist()}")
+        if (
+            not bool(torch.isfinite(weights).all())
+            or bool((weights < 0).any())
+            or abs(float(weights.detach().sum()) - 1.0) > 1e-9
+        ):
+            raise ValueError(
+                f"weights must be finite, non-negative and sum to 1; got {weights.tolist()}"
+            )
         self.sensors, self.dim = int(sensors), 2 * int(sensors)
         register_tensor(self, "weights", weights)
         register_tensor(self, "variances", variances)
@@ -200,7 +211,13 @@ class TrackingModel(StateSpaceModel):
         dtype=torch.float64,
     ):
         super().__init__()
-        T = float(dt)
+        # (a NaN, zero or negative dt or σ_ω had failed as a raw Cholesky error; κ outside
+        # [0, 1] in a draw: a fuzzing trial)
+        T = check_finite_number(dt, "dt", positive=True)
+        sigma_omega = check_finite_number(sigma_omega, "sigma_omega", positive=True)
+        kappa = check_finite_number(kappa, "kappa", nonnegative=True)
+        if kappa > 1:
+            raise ValueError(f"kappa (the glint probability) must be in [0, 1]; got {kappa!r}")
         F = torch.tensor([[1, T, 0, 0], [0, 1, 0, 0], [0, 0, 1, T], [0, 0, 0, 1]], dtype=dtype)
         block = torch.tensor([[T**3 / 3, T**2 / 2], [T**2 / 2, T]], dtype=dtype)
         Q = sigma_omega**2 * torch.block_diag(block, block)

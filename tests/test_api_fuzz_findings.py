@@ -372,3 +372,83 @@ def test_the_adaptive_particle_filter_checks_its_arguments_as_the_adaptive_kf(kw
                                        torch.zeros(2, 5, 1, dtype=F64), num_particles=20,
                                        attack_cov0=0.0, generator=torch.Generator().manual_seed(0))  # fmt: skip
     assert bool(torch.isfinite(out.means).all())
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        ("four_tank_g_nan", r"FourTankParameters.g must be a finite number > 0"),
+        ("four_tank_g_negative", r"FourTankParameters.g must be a finite number > 0"),
+        ("four_tank_outlet_negative", r"FourTankParameters.a\[3\] must be a finite number > 0"),
+        ("four_tank_three_areas", r"FourTankParameters.A must be 4 finite numbers > 0"),
+        (
+            "four_tank_valve_at_one",
+            r"FourTankParameters.gamma must be two valve splits in \(0, 1\)",
+        ),
+        ("lfc_tie_nan", "tie_stiffness must be a finite number >= 0"),
+        ("lfc_inertia_nan", "inertia must hold 2 finite positive values"),
+        ("lfc_damping_inf", "damping must hold 2 finite values"),
+        ("robot_dt_nan", "dt must be a finite number > 0"),
+        ("robot_dt_negative", "dt must be a finite number > 0"),
+        ("tracking_dt_zero", "dt must be a finite number > 0"),
+        ("tracking_sigma_omega_negative", "sigma_omega must be a finite number > 0"),
+        ("tracking_kappa_nan", "kappa must be a finite number >= 0"),
+        ("tracking_kappa_above_one", r"kappa \(the glint probability\) must be in \[0, 1\]"),
+        ("glint_weights_negative", "weights must be finite, non-negative and sum to 1"),
+        ("glint_variance_nan", "variances must be finite and positive"),
+        ("network_scale_inf", "attack_scale must be a finite number > 0"),
+        ("network_init_scale_inf", "init_scale must be a finite number > 0"),
+    ],
+)
+def test_the_scenario_plants_refuse_constants_that_built_a_broken_model(make, message):
+    """From a fuzzing trial of the scenario packages' constructors: each of these had built
+    (a NaN ``g`` failed later as "loc contains NaN", a negative one as "clamp is not
+    supported for complex types"; a NaN robot ``dt`` simulated NaN and a negative one ran;
+    the tracking model's κ = NaN or −1 failed in a draw as torch's "invalid multinomial
+    distribution", a zero ``dt`` or ``σ_ω`` as a raw Cholesky error; a NaN LFC constant
+    built NaN matrices; an infinite network scale built). Each is refused at construction,
+    naming the field."""
+    from difffilter.models.four_tank import FourTankParameters
+    from difffilter.models.lfc import LFCParameters
+    from difffilter.models.neural_estimator import NeuralFDIEstimator
+    from difffilter.models.robot import RobotModel
+    from difffilter.models.tracking import GlintNoise, TrackingModel
+
+    nan, inf = float("nan"), float("inf")
+    makers = {
+        "four_tank_g_nan": lambda: FourTankParameters(g=nan),
+        "four_tank_g_negative": lambda: FourTankParameters(g=-981.0),
+        "four_tank_outlet_negative": lambda: FourTankParameters(a=(0.071, 0.057, 0.071, -0.057)),
+        "four_tank_three_areas": lambda: FourTankParameters(A=(28.0, 32.0, 28.0)),
+        "four_tank_valve_at_one": lambda: FourTankParameters(gamma=(0.7, 1.0)),
+        "lfc_tie_nan": lambda: LFCParameters(tie_stiffness=nan),
+        "lfc_inertia_nan": lambda: LFCParameters(inertia=(nan, 12.0)),
+        "lfc_damping_inf": lambda: LFCParameters(damping=(1.0, inf)),
+        "robot_dt_nan": lambda: RobotModel(dt=nan),
+        "robot_dt_negative": lambda: RobotModel(dt=-1.0),
+        "tracking_dt_zero": lambda: TrackingModel(dt=0.0),
+        "tracking_sigma_omega_negative": lambda: TrackingModel(sigma_omega=-0.055),
+        "tracking_kappa_nan": lambda: TrackingModel(kappa=nan),
+        "tracking_kappa_above_one": lambda: TrackingModel(kappa=1.5),
+        "glint_weights_negative": lambda: GlintNoise([2.0, -1.0], [[4.0, 1e-3], [25.0, 1e-3]], 2),
+        "glint_variance_nan": lambda: GlintNoise([0.8, 0.2], [[nan, 1e-3], [25.0, 1e-3]], 2),
+        "network_scale_inf": lambda: NeuralFDIEstimator(attack_scale=inf),
+        "network_init_scale_inf": lambda: NeuralFDIEstimator(init_scale=inf),
+    }
+    with pytest.raises(ValueError, match=message):
+        makers[make]()
+
+
+def test_the_scenario_plants_keep_their_boundary_constants():
+    """The checks above leave the legal ends alone: κ = 0 and 1 (no glint, all glint), two
+    LFC areas without a tie line, integer constants of the tank (read as floats)."""
+    from difffilter.models.four_tank import FourTankParameters
+    from difffilter.models.lfc import LFCParameters
+    from difffilter.models.tracking import TrackingModel
+
+    assert TrackingModel(kappa=0.0).measurement_noise.weights.tolist() == [1.0, 0.0]
+    assert TrackingModel(kappa=1).measurement_noise.weights.tolist() == [0.0, 1.0]
+    assert LFCParameters(tie_stiffness=0.0).tie_stiffness == 0.0
+    tank = FourTankParameters(A=(28, 32, 28, 32), g=981)
+    assert tank.A == (28.0, 32.0, 28.0, 32.0) and tank.g == 981.0
+    assert tank.fixed_point() == FourTankParameters().fixed_point()
