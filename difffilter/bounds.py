@@ -291,7 +291,12 @@ def posterior_crb(
         D22 = Q_inv + torch.einsum(
             "...ij,...ijab->...ab", information[..., t, :, :], G[..., t, :, :, :, :]
         )
-        J = symmetrize(D22 - D12.transpose(-1, -2) @ torch.linalg.solve(J + D11, D12))
+        A = J + D11
+        # D12 given the batch of A: torch.linalg.solve reads B [dx, dx] beside A [dx, dx, dx]
+        # (a batch of masks as long as dx) as dx vectors, not one matrix, and the bounds
+        # came out wrong, not even semi-definite (a trial: the tracking report at 4 runs)
+        D12_A = D12.expand(A.shape[:-2] + D12.shape[-2:])
+        J = symmetrize(D22 - D12.transpose(-1, -2) @ torch.linalg.solve(A, D12_A))
         out.append(J)
         x_prev = xs[..., t, :]
     info = torch.stack(out, dim=-3)

@@ -41,6 +41,23 @@ def test_pcrb_with_mask_equals_kalman_covariance(generator):
     torch.testing.assert_close(pcrb.bound[3], pred, atol=1e-10, rtol=1e-9)
 
 
+@pytest.mark.parametrize("masks", [1, 2, 3, 4, 5])
+def test_a_batch_of_masks_gives_each_masks_own_bound_whatever_its_length(generator, masks):
+    """A batch of ``B`` mask patterns gives, for each, the bound of that mask alone (the
+    Kalman covariance): ``B = dx`` (4 here) had given wrong bounds, not even semi-definite,
+    as ``torch.linalg.solve`` read the unbatched ``D12 [dx, dx]`` beside ``J [dx, dx, dx]``
+    as dx vectors (a trial: the tracking report's oracle bounds at ``--runs 4``)."""
+    model = constant_velocity()
+    T = 8
+    xs, ys, x0 = model.simulate(T, (1,), generator=generator)
+    mask = torch.rand(masks, T, 2, generator=generator) > 0.4
+    bound = df.posterior_crb(model, xs, x0, mask=mask).bound
+    assert bound.shape == (masks, T, 4, 4)
+    for b in range(masks):
+        kf = df.kalman_filter(model, ys, mask=mask[b].unsqueeze(0))
+        torch.testing.assert_close(bound[b], kf.covs[0], atol=1e-10, rtol=1e-9)
+
+
 def test_pcrb_scalar_closed_form():
     # x_{k+1} = a x_k + w, y = x + v: J_1 = 1/(q + a² p0) + 1/r, J_2 = 1/(q + a²/J_1) + 1/r
     a, q, r, p0 = 0.9, 0.3, 2.0, 1.5

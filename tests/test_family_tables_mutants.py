@@ -309,6 +309,11 @@ def test_tracking_numbers_against_numpy(monkeypatch):
     assert m["time_per_run_single_s"] == pytest.approx(0.5 * T)
     got = tracking._position_velocity_rmse(result, "rrp_pf_da")
     assert got == pytest.approx({"rmse_p": p_k.mean(), "rmse_v": v_k.mean()})
+    # a bound not finite at some step: the share is not known (a NaN step had compared
+    # False, and read as a step below the bound)
+    bp[2] = float("nan")
+    tracking._numbers(result)
+    assert math.isnan(result.metrics["rrp_pf_da"]["steps_at_or_above_bound"])
 
 
 def test_tracking_eta_sweep_rows_against_numpy(monkeypatch):

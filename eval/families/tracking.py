@@ -16,6 +16,7 @@ from dataclasses import replace
 
 import matplotlib.pyplot as plt
 import torch
+from torch import Tensor
 
 from difffilter.bounds import posterior_crb
 from difffilter.models.attacks import Replacement
@@ -109,6 +110,15 @@ def _position_velocity_rmse(result, name: str) -> dict:
     return {"rmse_p": float(p.mean()), "rmse_v": float(v.mean())}
 
 
+def _share_at_or_above(p: Tensor, v: Tensor, bp: Tensor, bv: Tensor) -> float:
+    """The share of steps whose position and velocity RMSE (``[T]``) are at or above their
+    bound's; NaN where a bound is not finite at some step (a NaN step compared False, and
+    half the steps had read as beating a lower bound: a trial)."""
+    if not (bool(torch.isfinite(bp).all()) and bool(torch.isfinite(bv).all())):
+        return float("nan")
+    return float(((p >= bp) & (v >= bv)).double().mean())
+
+
 def _numbers(result) -> dict:
     tr, ctx, sc = result.traj, result.context, result.scenario
     bounds = _bounds(result)
@@ -119,7 +129,7 @@ def _numbers(result) -> dict:
         m.update(rmse_p=float(p.mean()), rmse_v=float(v.mean()), bound=_bound_for(name),
                  bound_rmse_p=float(bp.mean()), bound_rmse_v=float(bv.mean()),
                  ratio_p=float(p.mean() / bp.mean()), ratio_v=float(v.mean() / bv.mean()),
-                 steps_at_or_above_bound=float(((p >= bp) & (v >= bv)).double().mean()),
+                 steps_at_or_above_bound=_share_at_or_above(p, v, bp, bv),
                  communication=float(_transmissions(out, tr).double().mean()),
                  time_per_run_batched_s=result.wall_s[name] / result.runs,
                  time_per_run_single_s=single_run_time_per_step(get(name), ctx, tr) * sc.steps)  # fmt: skip
