@@ -41,13 +41,14 @@ from torch import Tensor, nn
 
 import difffilter
 from difffilter._checks import Choice, check_finite_number
-from difffilter.attack import TabulatedAttack, attack_dim
+from difffilter.attack import Channel, TabulatedAttack, attack_dim
 from difffilter.control import zoh_discretize
 from difffilter.fdi import ChiSquareDetector, GatedFilter
 from difffilter.kalman import KalmanFilter
 from difffilter.loop import LoopResult, ReplayedNoise, closed_loop
 from difffilter.models.registry import Scenario, register
 from difffilter.models.scenario import OWN_ATTACK
+from difffilter.threats import Covert, Shaped
 
 from .attacks import Signal
 
@@ -496,6 +497,27 @@ def lqr_gain(plant: LFCPlant) -> Tensor:
     return K1.to(plant.dtype)
 
 
+def check_no_attack_on_loads(attack) -> None:
+    """Raise where ``attack`` (a covert attack's signal too) acts on the loads: entries
+    2 and 3 of the LFC input ``[U₁, U₂, ΔP_l1, ΔP_l2]`` (``entries`` left out: all four).
+    The loads are the plant's, carried by no network; and the observers' model, which a
+    covert attacker runs as the defender's, has no load columns (``B = [B_d, 0]``), so a
+    covert attack there concealed nothing: the received measurement 0.017 off the
+    attack-free one, against a sensor noise of 0.01 (a trial). An attack of one's own,
+    whose entries are not declared, is not checked."""
+    signal = attack.signal if isinstance(attack, Covert) else attack
+    if not isinstance(signal, Shaped) or Channel(signal.channel) is not Channel.ACTUATOR:
+        return
+    entries = signal.entries
+    if entries is None or any(i >= NUM_AREAS for i in entries):
+        raise ValueError(
+            "an actuator attack on the LFC acts on the control inputs U1, U2 (entries: [0], "
+            "[1] or [0, 1]): the input's entries 2 and 3 are the loads, which no network "
+            f"carries and the observers' model does not hold; got entries {entries!r}"
+            + (" (all four)" if entries is None else "")
+        )
+
+
 def lfc_loop(
     plant: LFCPlant,
     estimator,
@@ -524,6 +546,7 @@ def lfc_loop(
     attack's own draws (a random walk's steps, the runs a ``share`` attacks); ``forks``,
     ``fork``: keep :class:`~difffilter.loop.LoopFork` s, continue one (to the end of the
     draws unless ``steps``)."""
+    check_no_attack_on_loads(attack)
     B, T, _ = xi.shape
     K1 = lqr_gain(plant) if K1 is None else K1
     x0 = torch.zeros(B, STATE_DIM, dtype=xi.dtype, device=xi.device)
@@ -652,6 +675,13 @@ class LFCScenario(Scenario):
 
     def with_steps(self, steps: int) -> LFCScenario:
         return dataclasses.replace(self, duration=steps * self.dt)
+
+    def with_threat(self, attack) -> LFCScenario:
+        """As :meth:`Scenario.with_threat`; an actuator attack on the loads is refused here,
+        before a study (:func:`check_no_attack_on_loads`)."""
+        if attack is not OWN_ATTACK:
+            check_no_attack_on_loads(attack)
+        return super().with_threat(attack)
 
     def times(self, dtype=torch.float64) -> Tensor:
         """Sample times ``t_k = kΔt``, ``k = 1 … T`` → ``[T]``."""

@@ -190,3 +190,42 @@ def test_random_sinusoids_avoid_the_test_carrier():
     # Steps/ramps/pulse trains put their peak at low frequency; no sinusoid peaks in the band.
     lo, hi = EXCLUDED_OMEGA
     assert not bool(((peak > lo + 0.2) & (peak < hi - 0.2)).any())
+
+
+def test_an_actuator_attack_acts_on_the_control_inputs_and_a_covert_one_there_conceals():
+    """The LFC input is ``[U₁, U₂, ΔP_l1, ΔP_l2]``; the loads are the plant's, and the
+    observers' model (the covert attacker's) has no load columns. A covert attack whose
+    signal left ``entries`` out (all four) had concealed nothing: the received measurement
+    0.017 off the attack-free one (a trial). An actuator attack on the loads is refused,
+    by the loop and by ``with_threat``; on ``U₁`` the covert attack hands the receiver the
+    attack-free measurement (float64 round-off). Truth: the attack-free loop on the same
+    draws."""
+    import difffilter as df
+    from difffilter.models.lfc import LFCPlant, lfc_loop
+    from difffilter.models.streams import Streams
+    from difffilter.threats import Bias, threat_from_dict
+
+    sc = registry.get("lfc_step")
+    d = sc.exogenous(2, {k: Streams(0)(k) for k in ("plant", "attack")})
+    xi, theta = d["xi"][:, :330], d["theta"][:, :330]
+    plant, model = LFCPlant(dt=sc.dt, dtype=xi.dtype), sc.system()
+
+    def covert(entries):
+        signal = {"kind": "bias", "value": 0.01, "onset": 300}
+        if entries != "all":
+            signal["entries"] = entries
+        return threat_from_dict({"kind": "covert", "signal": signal}, model)
+
+    for attack in (covert("all"), covert([2]), covert([1, 3]),
+                   Bias(0.1, channel="actuator", onset=300)):  # fmt: skip
+        with pytest.raises(ValueError, match="acts on the control inputs U1, U2"):
+            lfc_loop(plant, df.KalmanFilter(), xi, theta, d["load"], attack=attack)
+        with pytest.raises(ValueError, match="the loads, which no network carries"):
+            sc.with_threat(attack)
+    free = lfc_loop(plant, df.KalmanFilter(), xi, theta, d["load"], compensate=False)
+    run = lfc_loop(plant, df.KalmanFilter(), xi, theta, d["load"], attack=covert([0]),
+                   compensate=False)  # fmt: skip
+    assert float((run.trajectories.x - free.trajectories.x).abs().max()) > 1e-3  # it acts
+    received = run.trajectories.y_recv - free.trajectories.y_recv
+    assert float(received.abs().max()) < 1e-12
+    sc.with_threat(covert([0, 1]))  # the control inputs: taken
