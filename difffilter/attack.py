@@ -96,7 +96,13 @@ class Attack:
         raise NotImplementedError
 
     def step(self, state, k: int, *, y=None, x=None, u=None, view=None):
-        """``(state, value [..., dim], flag [...] or [..., dim])`` at measurement ``k``."""
+        """``(state, value [..., dim], flag [...] or [..., dim])`` at measurement ``k``.
+
+        The flag's rank says what it flags: one rank less than the value's full shape
+        ``[..., dim]`` is per run, the same rank per entry; both broadcast over the runs. A
+        value ``[dim]`` is one for every run, but a flag ``[dim]`` is per run (a batch of
+        ``dim`` runs takes it so; another is refused): a flag per entry for every run is
+        ``[1, dim]``."""
         raise NotImplementedError
 
     def last_step(self, state) -> int | None:

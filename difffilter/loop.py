@@ -876,10 +876,16 @@ def _checked_value(attack, value: Tensor, flag: Tensor, signal: Tensor, k: int,
         )
     per = flag.dim() - (len(shape) - 1)
     if per not in (0, 1) or not _broadcasts(flag.shape, shape[: flag.dim()]):
+        # a flag of the entries' size one rank short reads as per run: where the runs are
+        # as many as the entries it is taken so (a trial's [dy] flag left a run unattacked)
+        every = [1] * (len(shape) - 1) + [shape[-1]]
+        hint = (f"; a flag per entry for every run is {every}, not {list(flag.shape)} (a flag "
+                "of one rank less than the signal is per run)"
+                if per == 0 and flag.shape[-1:] == shape[-1:] else "")  # fmt: skip
         raise ValueError(
             f"{name} returned a flag of shape {tuple(flag.shape)} at step {k}; the signal it "
             f"attacks is {shape}: a flag {list(shape[:-1])} (per run) or {list(shape)} (per "
-            "entry)"
+            f"entry){hint}"
         )
     value = value if value.shape == signal.shape else value.expand(shape)
     full = shape[: flag.dim()]

@@ -969,3 +969,39 @@ def test_state_feedback_refuses_a_gain_or_reference_that_is_not_finite(bad):
     with pytest.raises(ValueError, match="reference contains NaN or Inf"):
         StateFeedback(torch.ones(1, 2, dtype=torch.float64),
                       torch.tensor([0.0, bad], dtype=torch.float64))  # fmt: skip
+
+
+def test_a_flag_of_the_entries_size_one_rank_short_is_per_run_and_the_error_says_so():
+    """A flag ``[dy]`` beside a value ``[dy]`` for every run reads per run (the documented
+    rank rule): with as many runs as entries it is taken so, with others refused, and the
+    error now names the per-entry form for every run, ``[1, dy]`` (a trial's ``[dy]``
+    flag had left a run unattacked where the runs were as many as the entries)."""
+    F64 = torch.float64
+    eye = torch.eye(3, dtype=F64)
+    H = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 1.0]], dtype=F64)
+    plant = df.LinearGaussianModel(0.9 * eye, H, 1e-2 * eye, 0.04 * torch.eye(2, dtype=F64),
+                                   torch.zeros(3, dtype=F64), eye)  # fmt: skip
+
+    class EntryZero(Attack):
+        channel, reads_state = Channel.SENSOR, False
+
+        def __init__(self, flag):
+            self.flag = flag
+
+        def init(self, batch_shape, T, dim, generator=None, *, dtype, device=None):
+            return None
+
+        def step(self, state, k, *, y=None, x=None, u=None, view=None):
+            return state, torch.tensor([0.5, 0.0], dtype=y.dtype), self.flag
+
+    def run(flag, runs):
+        return closed_loop(plant, 3, noise=DrawnNoise(torch.Generator().manual_seed(0)),
+                           x0=torch.zeros(runs, 3, dtype=F64), attack=EntryZero(flag))  # fmt: skip
+
+    with pytest.raises(ValueError, match=r"a flag per entry for every run is \[1, 2\], not \[2\]"):
+        run(torch.tensor([True, False]), 3)
+    per_entry = run(torch.tensor([[True, False]]), 3).trajectories  # [1, dy]: every run
+    torch.testing.assert_close((per_entry.y_recv - per_entry.y_true)[:, :, 0],
+                               torch.full((3, 3), 0.5, dtype=F64))  # fmt: skip
+    per_run = run(torch.tensor([True, False]), 2).trajectories  # [B] with B = dy: per run
+    assert per_run.flags[:, 0].tolist() == [True, False]
