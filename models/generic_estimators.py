@@ -250,7 +250,10 @@ def oracle_attack(ctx: SuiteContext, tr, noise_var: float | None = None):
     """``γ̂ = γ + e``: the attack values with ``e ~ N(0, var I)`` from stream ``"gamma_noise"``
     (``var`` = the scenario's ``gamma_hat_noise_var`` option unless given; 0 → exact).
 
-    ``γ`` is the sensor attack's value at every step (injected or not); for a replacement
+    ``γ`` is the sensor attack's value at every step (injected or not) of a run it attacks
+    at some step, zero in a run it never does (an attack on a ``share`` of the runs: the
+    oracle knows which, and its values there had been subtracted as well, the oracle's
+    state error 7× the attack-free reference's on those runs, a trial); for a replacement
     attack (replay) it is what changed at the receiver, ``ỹ − y``; attack-free or on the
     actuator, zero."""
     values, channel = tr.info["attack_values"], tr.info.get("attack_channel", Channel.SENSOR)
@@ -258,6 +261,11 @@ def oracle_attack(ctx: SuiteContext, tr, noise_var: float | None = None):
         # zeros, not ỹ·0: a lost step's NaN must not reach the oracle's γ̂
         replaced = channel is Channel.REPLACEMENT
         values = tr.y_recv - tr.y_true if replaced else torch.zeros_like(tr.y_recv)
+    elif "attack_flags" in tr.info:  # the runs the attack never flags (its own flags)
+        own = tr.info["attack_flags"]
+        runs = values.shape[:-2]
+        attacked = own.reshape(*runs, -1).any(-1)
+        values = torch.where(attacked[..., None, None], values, torch.zeros_like(values))
     var = ctx.option("gamma_hat_noise_var", 0.0) if noise_var is None else noise_var
     if var == 0:
         return values

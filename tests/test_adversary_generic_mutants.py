@@ -556,6 +556,29 @@ def test_the_oracle_of_an_actuator_attack_is_zero_and_a_small_variance_is_noise(
     assert abs(v / 1e-4 - 1) < 0.1, f"var {v}"
 
 
+def test_the_oracle_of_an_attack_on_a_share_of_the_runs_is_zero_on_the_others():
+    """A library attack on a ``share`` of the runs records its values in every run; the
+    oracle's γ̂ is those values in the runs it flags at some step (also before and between
+    its flags: the paper's γ) and zero in the runs it never flags (a trial: the ramp's
+    values had been subtracted there, the oracle modified PF's error 7× the attack-free
+    reference's on runs that carried no attack). Truth: the flags written here."""
+    from difffilter.attack import Channel
+    from difffilter.models.generic_estimators import oracle_attack
+
+    ctx = types.SimpleNamespace(option=lambda key, default: default)
+    values = torch.arange(1.0, 3 * 4 * 2 + 1, dtype=F64).reshape(3, 4, 2)
+    for flags in (torch.tensor([[False, True, False, True], [False] * 4, [True] + [False] * 3]),
+                  torch.zeros(3, 4, 2, dtype=torch.bool).index_put_(
+                      (torch.tensor([0, 2]), torch.tensor([3, 0]), torch.tensor([1, 0])),
+                      torch.tensor(True))):  # per run, then per entry  # fmt: skip
+        info = {"attack_values": values, "attack_channel": Channel.SENSOR, "attack_flags": flags}
+        tr = types.SimpleNamespace(info=info, y_recv=None, y_true=None)
+        got = oracle_attack(ctx, tr)
+        torch.testing.assert_close(got[0], values[0])
+        torch.testing.assert_close(got[2], values[2])
+        assert got[1].abs().max() == 0
+
+
 def test_default_estimators_judges_the_needs_with_the_model_given(isolated_registry):
     """A nonlinear plant's suite leaves out the KF ones (docs/your-own-plant.md); the same
     scenario judged with a linear model given keeps the χ² and CUSUM KFs."""
