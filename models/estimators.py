@@ -38,6 +38,7 @@ from difffilter.particle import particle_init
 from difffilter.resampling import Systematic
 
 from . import calibration_cache
+from .attacks import SensorBias
 from .needs import Need, first_unmet, scenario_of
 from .streams import Streams
 
@@ -467,9 +468,15 @@ def poa_detector_for_scenario(scenario, model, options=None) -> fdi.PoADetector:
     return fdi.poa_detector_for(
         model,
         gamma_min=scenario.attack_norm_floor(model),
-        p_l=float(getattr(scenario.attack_model(), "p_l", 0.5)),
+        p_l=_attack_rate(scenario.attack_model()),
         num_particles=scenario.num_particles,
     )
+
+
+def _attack_rate(attack) -> float:
+    """``p_l`` of eq. (3) where the attack is the paper's (:class:`SensorBias`), else 0.5
+    [DEF]: another attack's field of that name is its own."""
+    return float(attack.p_l) if isinstance(attack, SensorBias) else 0.5
 
 
 def split_checkpoints(checkpoint) -> tuple[Any, dict[str, Any]]:

@@ -27,6 +27,7 @@ from difffilter.kalman import KalmanFilter
 from difffilter.noise import UniformBox
 from difffilter.particle import KalmanProposal
 
+from .attacks import SensorBias
 from .estimators import Run, SuiteContext, register
 from .needs import (
     ASSUMES_DECEPTION_DENSITY,
@@ -303,10 +304,17 @@ def _modified_pf(ctx: SuiteContext) -> Run:
     needs=(ASSUMES_SENSOR_ATTACK,),
 )
 def _modified_pf_est(ctx: SuiteContext) -> Run:
-    tau = float(getattr(ctx.scenario.attack_model(), "tau", 0.9))
+    tau = _eq4_tau(ctx.scenario.attack_model())
     return modified_pf(
         ctx, lambda tr: fdi.BiasAttackEstimator(ctx.model.dim_y, tau, dtype=ctx.dtype)
     )
+
+
+def _eq4_tau(attack) -> float:
+    """τ of eq. (4) for ``modified_pf_est``: the paper's attack's (:class:`SensorBias`),
+    else 0.9 [DEF]. Another attack's ``tau`` is its own (a trial: the docs' ``Drift`` with a
+    time constant of 20 stopped every study, and one of 0.5 ran as τ)."""
+    return float(attack.tau) if isinstance(attack, SensorBias) else 0.9
 
 
 def deception_of(attack, dtype: torch.dtype):

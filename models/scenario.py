@@ -40,8 +40,9 @@ from difffilter.attack import Attack, Channel
 from difffilter.input_loss import InputLossSchedule
 from difffilter.loop import DrawnNoise, KnownInputs, Trajectories, closed_loop
 from difffilter.ssm import StateSpaceModel
-from difffilter.threats import KSigmaBias
+from difffilter.threats import Bias, KSigmaBias
 
+from .attacks import SensorBias
 from .schedules import AllSensors
 
 __all__ = ["Trajectories", "Scenario", "CustomScenario", "simulate", "OWN_ATTACK"]
@@ -346,7 +347,10 @@ class Scenario:
         if self.gamma_min is not None:
             return float(self.gamma_min)
         attack = self.attack_model()
-        values = getattr(attack, "gamma_bar", None) or getattr(attack, "value", None)
+        # the steady state of the biases named above only: another attack's field of that
+        # name is its own (a trial's attack of its own had its ``tau`` read as eq. 4's)
+        values = (attack.gamma_bar if isinstance(attack, SensorBias)
+                  else attack.value if isinstance(attack, Bias) else None)  # fmt: skip
         if isinstance(attack, KSigmaBias):  # a bias too: k σ on every attacked entry
             values = tuple(float(attack.k) * float(v) for v in attack.sigma)
         on_sensors = Channel(getattr(attack, "channel", Channel.SENSOR)) is not Channel.ACTUATOR

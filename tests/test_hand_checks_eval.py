@@ -14,6 +14,7 @@ import json
 import math
 from types import SimpleNamespace as NS
 
+import pytest
 import torch
 
 from difffilter.ssm import LinearGaussianModel
@@ -420,3 +421,48 @@ def test_a_threat_that_did_not_act_is_left_out_of_the_worst_case_and_the_accepta
                                        "injected": True}  # fmt: skip
     assert result.idle() == ["none", "zero"]
     assert list(result.acting({"none": 1, "zero": 2, "bias": 3})) == ["bias"]
+
+
+def test_an_attack_of_ones_own_lends_no_field_to_the_papers_settings():
+    """A user's attack with fields named ``tau``, ``p_l`` and ``value`` (a trial: the
+    docs' own ``Drift(scale, tau=20.0)``) lends none of them to the settings of the
+    modified-PF paper: ``modified_pf_est``'s τ of eq. (4) stays 0.9 (20 had stopped every
+    study, 0.5 ran as τ), the PoA detector's ``p_l`` 0.5, and the norm floor is one noise
+    standard deviation, as for any attack without a steady state. The paper's attack still
+    gives its own."""
+    from dataclasses import dataclass
+
+    from difffilter.models import estimators
+    from difffilter.models.attacks import SensorBias
+    from difffilter.models.scenario import CustomScenario
+    from difffilter.threats import Shaped
+
+    @dataclass(frozen=True)
+    class Drift(Shaped):
+        scale: float = 0.01
+        tau: float = 0.5
+        p_l: float = 0.9
+        value: float = 7.0
+
+        def shape(self, s, dim, batch, generator, dtype):
+            return (
+                (self.scale * torch.expm1(s.clamp(min=0) / self.tau))
+                .unsqueeze(-1)
+                .expand(s.shape[0], dim)
+            )
+
+    def scenario(attack):
+        return CustomScenario(name="tiny", family="custom", description="d", model_fn=_plant,
+                              steps=6, runs=2, attack=attack)  # fmt: skip
+
+    own, paper = (
+        scenario(Drift(onset=2)),
+        scenario(SensorBias(gamma_bar=(1.0, 2.0), tau=0.7, p_l=0.3)),
+    )
+    assert estimators._attack_rate(own.attack_model()) == 0.5
+    assert estimators._attack_rate(paper.attack_model()) == 0.3
+    assert own.attack_norm_floor(_plant()) == pytest.approx(math.sqrt(2 * 0.04))  # ‖√diag R‖
+    assert paper.attack_norm_floor(_plant()) == pytest.approx(0.5 * math.sqrt(5.0))
+    from difffilter.models.generic_estimators import _eq4_tau
+
+    assert _eq4_tau(own.attack_model()) == 0.9 and _eq4_tau(paper.attack_model()) == 0.7
