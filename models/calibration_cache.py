@@ -10,9 +10,12 @@ The folder is ``$DIFFFILTER_CACHE`` if set (``off`` turns the disk cache off), e
 ``$XDG_CACHE_HOME/difffilter``, else ``~/.cache/difffilter``; each calibration is
 ``calibrations/<kind>-<sha256>.json``. The file name hashes the key and a fingerprint of
 the model: its type, every tensor or numpy array it holds (matrices, noise covariances,
-the prior) and the code, constants, default arguments and closures of the functions it holds (a nonlinear
+the prior), the code of the methods its class and their bases define (a plant subclass's
+``transition`` and ``observe``), and the code, constants, default arguments and closures of
+the functions it holds (a nonlinear
 plant's ``f`` and ``h``) with the module-level values and helper functions they read by
-name, so editing the plant gives a new file, never a stale number. A module is hashed by
+name, so editing the plant gives a new file, never a stale number. The module-level values
+a method reads are not seen (as for a module, below). A module is hashed by
 its name only: a constant read through one (``params.G``) is not seen, and after editing
 one the folder should be deleted. Deleting the folder is always safe.
 """
@@ -91,12 +94,44 @@ def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
                 _feed_global(digest, namespace[name], seen, depth + 1)
         return
     digest.update(type(value).__qualname__.encode())
+    digest.update(_class_code(type(value)))
     attributes = getattr(value, "__dict__", None)
     if attributes is not None:  # less the memos of derived values (``*_cache``: addresses)
         for key in sorted(attributes, key=repr):
             if not str(key).endswith("_cache"):
                 digest.update(repr(key).encode())
                 _feed(digest, attributes[key], seen, depth + 2)
+
+
+def _class_code(cls: type) -> bytes:
+    """A digest of the code of the methods ``cls`` and its bases define (torch's and the
+    builtins' aside): a plant subclass's ``observe`` or ``transition`` edited gives a new
+    file (a trial: ``h = x³`` edited to ``4x³`` had read the old CUSUM threshold, 708
+    against 3366). Their code, constants and defaults; not the module-level values they
+    read (as for a module: delete the cache folder after editing one)."""
+    known = _CLASS_CODE.get(cls)
+    if known is None:
+        digest = hashlib.sha256()
+        for klass in cls.__mro__:
+            if klass.__module__.split(".")[0] in ("builtins", "torch", "typing", "abc"):
+                continue
+            digest.update(klass.__qualname__.encode())
+            for name, attr in sorted(vars(klass).items()):
+                if isinstance(attr, (staticmethod, classmethod)):
+                    attr = attr.__func__
+                elif isinstance(attr, property):
+                    attr = attr.fget
+                code = getattr(attr, "__code__", None)
+                if code is not None:
+                    digest.update(name.encode())
+                    _feed_code(digest, code)
+                    digest.update(repr(getattr(attr, "__defaults__", None)).encode())
+        known = _CLASS_CODE[cls] = digest.digest()
+    return known
+
+
+#: :func:`_class_code` by class (a class edited and re-created is another object).
+_CLASS_CODE: dict[type, bytes] = {}
 
 
 def _global_names(code) -> set[str]:

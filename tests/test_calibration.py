@@ -194,6 +194,34 @@ def test_the_fingerprint_sees_the_constants_and_helpers_a_plant_reads(tmp_path, 
     assert prints["plant_n"] != prints["plant_m"]  # a numpy constant by its values
 
 
+def test_the_fingerprint_sees_the_methods_of_a_plant_subclass(tmp_path, monkeypatch):
+    """A user trial edited ``observe`` of a ``StateSpaceModel`` subclass (``h = x³`` →
+    ``4x³``): the fingerprint hashed the class by its name, and the edited plant read the
+    original's CUSUM threshold (708 against 3366). The same class in another module gives
+    the same fingerprint; an edited method, default or inherited method another one."""
+    import importlib
+
+    from difffilter.models.calibration_cache import model_fingerprint
+
+    source = (
+        "import torch\nfrom difffilter.ssm import LinearGaussianModel\n\n"
+        "class Base(LinearGaussianModel):\n    def transition(self, x, u, k):\n"
+        "        return {f}\n\n"
+        "class Plant(Base):\n    def observe(self, x, k, scale={scale}):\n"
+        "        return scale * x ** 3\n\n"
+        "def make():\n    eye = torch.eye(1, dtype=torch.float64)\n"
+        "    return Plant(0.9 * eye, eye, 0.1 * eye, eye, torch.zeros(1, dtype=torch.float64), eye)\n"
+    )
+    variants = {"sub_a": ("0.9 * x", "1.0"), "sub_b": ("0.9 * x", "1.0"),
+                "sub_scale": ("0.9 * x", "4.0"), "sub_base": ("0.8 * x", "1.0")}  # fmt: skip
+    for name, (f, scale) in variants.items():
+        (tmp_path / f"{name}.py").write_text(source.format(f=f, scale=scale))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    prints = {n: model_fingerprint(importlib.import_module(n).make()) for n in variants}
+    assert prints["sub_a"] == prints["sub_b"]
+    assert len({prints["sub_a"], prints["sub_scale"], prints["sub_base"]}) == 3
+
+
 def test_a_fingerprint_is_the_same_in_every_process(tmp_path):
     """A nested function's code object has an address in its repr: hashed by content, the
     fingerprint (and so the cache file) is the same in a later process."""
