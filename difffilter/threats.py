@@ -65,6 +65,7 @@ __all__ = [
     "THREATS",
     "check_attack_fits",
     "threat_from_dict",
+    "with_sampling_period",
 ]
 
 
@@ -606,6 +607,25 @@ THREATS: dict[str, type[Attack]] = {
     "replay": Replay,
     "covert": Covert,
 }
+
+
+def with_sampling_period(spec: dict, dt: float | None) -> dict:
+    """``spec`` (``{"kind", **fields}``) with ``dt`` where its kind takes one (a sinusoid's,
+    a chirp's; a covert attack's nested signal too) and the spec sets none: the scenario's
+    sampling period, so that ``omega`` and ``f0``/``f1`` are in the file's time unit, as its
+    inputs' frequencies are (a trial: ``omega: π`` at a scenario's ``dt: 0.01`` had been
+    read per step, ``A sin(π s)``, zero at every step: an attack that injected nothing).
+    Unchanged for ``dt=None`` or a kind without ``dt``."""
+    if dt is None or not isinstance(spec, dict):
+        return spec
+    kind = spec.get("kind")
+    cls = THREATS.get(kind) if isinstance(kind, str) else None
+    out = dict(spec)
+    if cls is not None and "dt" in {f.name for f in fields(cls)} and "dt" not in spec:
+        out["dt"] = dt
+    if kind == "covert" and isinstance(spec.get("signal"), dict):
+        out["signal"] = with_sampling_period(spec["signal"], dt)
+    return out
 
 
 def threat_from_dict(spec: dict, model=None) -> Attack:

@@ -29,7 +29,7 @@ from typing import Any
 
 from difffilter.linalg import NumericalBreakdown
 from difffilter.models.yaml_scenario import read_yaml
-from difffilter.threats import check_attack_fits, threat_from_dict
+from difffilter.threats import check_attack_fits, threat_from_dict, with_sampling_period
 
 from .acceptance import (
     ANALYTIC,
@@ -185,7 +185,11 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
             if spec.get("kind") == "stealthy":  # crafted when the study runs (eval.stealthy)
                 threats[name] = StealthySpec.from_dict(spec)
             else:
-                threats[name] = threat_from_dict(spec, model=model)
+                # a sinusoid's or chirp's frequency in the scenario's time unit, as its
+                # YAML file's attack reads it, where the threat sets no dt of its own
+                threats[name] = threat_from_dict(
+                    with_sampling_period(spec, getattr(scenario, "dt", None)), model=model
+                )
             _check_threat(scenario, model, threats[name])
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{path}: threat {name!r}: {exc}") from None

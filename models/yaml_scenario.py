@@ -25,6 +25,8 @@ a path ending in ``.yaml`` or ``.yml`` names a file such as::
                                          #    false (default): every run at m0
     inputs: {kind: sinusoid, amplitude: 1.0, frequency: 0.5}   # known inputs (optional)
     attack: {kind: bias, channel: actuator, value: 0.5, onset: 50, share: 0.5}
+                                         #    (a sinusoid's or chirp's dt: the file's
+                                         #    unless set: frequencies in its time unit)
     schedule: all                        # or {kind: round_robin, groups: [[0], [1]]},
                                          #    {kind: packet_loss, rate: 0.1} (packets:
                                          #    [[0, 1], [2]]: entries lost together),
@@ -81,7 +83,7 @@ from difffilter._imports import import_object
 from difffilter.attack import Channel
 from difffilter.input_loss import InputLossSchedule
 from difffilter.ssm import LinearGaussianModel, NonlinearGaussianModel, StateSpaceModel, _arity
-from difffilter.threats import THREATS, check_attack_fits, threat_from_dict
+from difffilter.threats import THREATS, check_attack_fits, threat_from_dict, with_sampling_period
 
 from .attacks import ActuatorInjection, Replacement, SensorBias
 from .scenario import CustomScenario
@@ -293,7 +295,7 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
     if not isinstance(drawn, bool):
         raise ValueError(f"{where}: random_initial must be true or false; got {drawn!r}")
     steps = settings.get("steps", CustomScenario.steps)
-    attack = _attack(doc.get("attack"), probe, steps, f"{where}: attack")
+    attack = _attack(doc.get("attack"), probe, steps, f"{where}: attack", settings.get("dt"))
     try:
         scenario = CustomScenario(
             name=str(doc["name"]),
@@ -681,8 +683,8 @@ def _probe(model, where: str) -> None:
             )
 
 
-def _attack(spec: Any, model, steps: int, where: str):
-    attack = _attack_object(spec, model, where)
+def _attack(spec: Any, model, steps: int, where: str, dt: float | None = None):
+    attack = _attack_object(spec, model, where, dt)
     if attack is None:
         return None
     try:  # its first step, its width against the channel's, a model with inputs: now
@@ -692,7 +694,9 @@ def _attack(spec: Any, model, steps: int, where: str):
     return attack
 
 
-def _attack_object(spec: Any, model, where: str):
+def _attack_object(spec: Any, model, where: str, dt: float | None = None):
+    """The attack of a ``spec`` (``dt``: the file's sampling period, a sinusoid's or a
+    chirp's unless it sets its own: :func:`~difffilter.threats.with_sampling_period`)."""
     if spec is None:
         return None
     if not isinstance(spec, Mapping) or "kind" not in spec:
@@ -714,7 +718,7 @@ def _attack_object(spec: Any, model, where: str):
             "package.module:object"
         )
     try:
-        return threat_from_dict(dict(spec), model)
+        return threat_from_dict(with_sampling_period(dict(spec), dt), model)
     except (TypeError, ValueError) as error:
         raise ValueError(f"{where}: {error}") from None
 

@@ -480,9 +480,11 @@ def test_the_attack_free_reference_reads_the_true_y_and_the_normal_pf_the_receiv
 def test_the_modified_pfs_take_a_given_detector_and_the_attack_models_tau(monkeypatch):
     """``modified_pf(ctx, γ̂, detector=d)`` runs with ``d`` (the PoA detector only when none
     is given); ``modified_pf_est`` estimates γ̂ by eq. 4 with ``dy`` and the attack model's
-    τ (0.9 for a model without one)."""
+    τ (0.9 for a model without one, and for an attack that is not the paper's, whatever
+    field of that name it has)."""
     from difffilter import fdi
     from difffilter.models import generic_estimators as ge
+    from difffilter.models.attacks import SensorBias
     from difffilter.models.estimators import get
 
     seen = {}
@@ -492,7 +494,9 @@ def test_the_modified_pfs_take_a_given_detector_and_the_attack_models_tau(monkey
     monkeypatch.setattr(fdi, "BiasAttackEstimator",
                         lambda dim, tau, dtype=None: ("est", dim, tau))  # fmt: skip
     poa, mine = object(), object()
-    for attack, tau in ((types.SimpleNamespace(tau=0.6), 0.6), (types.SimpleNamespace(), 0.9)):
+    paper = SensorBias(gamma_bar=(1.0, 1.0, 1.0), tau=0.6)
+    for attack, tau in ((paper, 0.6), (types.SimpleNamespace(tau=0.6), 0.9),
+                        (types.SimpleNamespace(), 0.9)):  # fmt: skip
         ctx = types.SimpleNamespace(
             model=types.SimpleNamespace(dim_y=3, dim_x=5), poa_detector=lambda: poa,
             particle_kwargs=lambda n: {}, dtype=F64,

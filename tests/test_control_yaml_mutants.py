@@ -242,3 +242,42 @@ def test_the_control_design_helpers_refuse_a_nan_or_infinite_setting():
             uncontrollable_direction(A, B, tol=bad)
     with pytest.raises(ValueError, match="shift must be a finite number > 0"):
         lqr(A, B, method=LQRMethod.SHIFT, shift=float("inf"))
+
+
+def test_a_yaml_sinusoid_or_chirp_attack_reads_the_files_sampling_period(tmp_path):
+    """A sinusoid's ``omega`` (rad per unit of ``dt``) and a chirp's frequencies are in the
+    file's time unit, as the inputs' frequency is: the attack's ``dt`` is the file's unless
+    it sets its own (a trial: ``omega: π`` at ``dt: 0.01`` had been read per step,
+    ``A sin(π s)``, zero at every step). A covert attack's nested signal too; a threat set
+    on the scenario reads it so."""
+    import math
+
+    from difffilter.threats import with_sampling_period
+
+    head = """
+name: yaml_sine{n}
+dt: 0.01
+plant:
+  F: [[0.9, 0.0], [0.0, 0.8]]
+  B: [[0.0], [0.2]]
+  H: [[1.0, 0.0]]
+  Q: 1.0e-4
+  R: 1.0e-3
+"""
+    cases = {
+        "": (f"attack: {{kind: sinusoid, amplitude: 1.0, omega: {math.pi}, onset: 3}}", 0.01),
+        "_own": ("attack: {kind: sinusoid, amplitude: 1.0, omega: 3.0, dt: 0.5, onset: 3}", 0.5),
+        "_chirp": ("attack: {kind: chirp, f0: 0.1, f1: 1.0, sweep: 10, onset: 3}", 0.01),
+    }
+    for n, (line, dt) in cases.items():
+        attack = _yaml_scenario(head.format(n=n) + line, tmp_path).attack
+        assert attack.dt == dt
+    covert = with_sampling_period(
+        {"kind": "covert", "signal": {"kind": "sinusoid", "omega": 1.0}}, 0.01
+    )
+    assert covert["signal"]["dt"] == 0.01 and "dt" not in covert
+    assert with_sampling_period({"kind": "bias", "value": 1.0}, 0.01) == {
+        "kind": "bias",
+        "value": 1.0,
+    }
+    assert with_sampling_period({"kind": "sinusoid"}, None) == {"kind": "sinusoid"}
