@@ -179,7 +179,9 @@ def _keeps_budget(rate: float, budget: float) -> bool:
 
 class CraftedAttack(TabulatedAttack):
     """A crafted sensor attack: ``values [T, dy]`` (the same for every run), injected at
-    every step from ``onset`` on (flag where the step is attacked). ``budget``: the hard
+    every step from ``onset`` on (flag where the step is attacked; with ``entries``, the
+    attacked measurement entries, per entry: under a mask a step where only other entries
+    arrived carries no attack, and had been flagged as attacked, a trial). ``budget``: the hard
     alarm rate the first iterate had to keep, its batch's ``p(0) + ε`` (module docstring;
     each ``history`` row ends with its own); ``selection``: how it was chosen on a held-out
     batch (:func:`craft_stealthy_attack`), or ``None``."""
@@ -187,12 +189,14 @@ class CraftedAttack(TabulatedAttack):
     channel = Channel.SENSOR
 
     def __init__(self, values: Tensor, onset: int, history: list | None = None, settings=None,
-                 budget: float | None = None, selection: dict | None = None):  # fmt: skip
+                 budget: float | None = None, selection: dict | None = None,
+                 entries: tuple[int, ...] | None = None):  # fmt: skip
         if not isinstance(values, Tensor) or values.dim() != 2:
             raise ValueError(
                 f"values must be a tensor [T, dy]; got {getattr(values, 'shape', values)!r}"
             )
         _check_onset(onset, values.shape[0])
+        self.entries = None if entries is None else _check_entries(entries, values.shape[1])
         self.values, self.onset = values.detach().clone(), int(onset)
         self.history, self.settings, self.budget = list(history or []), settings, budget
         self.selection = selection
@@ -227,9 +231,13 @@ class CraftedAttack(TabulatedAttack):
                 f"loop needs [{num_steps}, {dim}]"
             )
         shape = torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
-        flags = (torch.arange(1, num_steps + 1, device=device) >= self.onset).expand(
-            *shape, num_steps
-        )
+        on = torch.arange(1, num_steps + 1, device=device) >= self.onset
+        if self.entries is None:
+            flags = on.expand(*shape, num_steps)
+        else:  # per entry: [*, T, dy]
+            picked = torch.zeros(dim, dtype=torch.bool, device=device)
+            picked[list(self.entries)] = True
+            flags = (on.unsqueeze(-1) & picked).expand(*shape, num_steps, dim)
         values = self.values.to(dtype=dtype, device=device).expand(*shape, num_steps, dim)
         return values, flags
 
@@ -440,7 +448,7 @@ def craft_stealthy_attack(
             warnings.warn(f"craft_stealthy_attack: {_NONE_KEPT}: the attack returned is zero; "
                           "raise penalty or lower lr", RuntimeWarning, stacklevel=2)  # fmt: skip
         best = max(kept, key=lambda k: k[0], default=(0.0, -1, none))
-        return CraftedAttack(best[2], onset, history, s, budget=history[0][4])
+        return CraftedAttack(best[2], onset, history, s, budget=history[0][4], entries=entries)
 
     ys, xs, us, mask = held_out
     with torch.no_grad():  # the held-out runs' own attack-free rate: their budget
@@ -462,4 +470,4 @@ def craft_stealthy_attack(
     selection = {"runs": int(ys.shape[0]), "budget": budget, "judged": judged,
                  "iteration": None if chosen is None else chosen[0]}  # fmt: skip
     return CraftedAttack(none if chosen is None else chosen[1], onset, history, s,
-                         budget=history[0][4], selection=selection)  # fmt: skip
+                         budget=history[0][4], selection=selection, entries=entries)  # fmt: skip

@@ -416,8 +416,10 @@ def _crafted(result: RobustnessResult, name: str, spec: StealthySpec, progress: 
     report.update(crafted=judged, same_rate_bias=bias, study_runs=result.runs,
                   error_ratio_to_bias=judged["state_error"] / bias["state_error"],
                   # the attack itself, so that it can be judged again without crafting it
-                  # anew (a trial re-ran the crafting for it): CraftedAttack(values, onset)
-                  values=attack.values.tolist(), onset=attack.onset)  # fmt: skip
+                  # anew (a trial re-ran the crafting for it): CraftedAttack(values, onset,
+                  # entries=entries)
+                  values=attack.values.tolist(), onset=attack.onset,
+                  entries=None if attack.entries is None else list(attack.entries))  # fmt: skip
     result.stealthy[name] = report
     return attack
 

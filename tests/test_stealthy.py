@@ -251,3 +251,32 @@ def test_a_crafting_that_kept_no_iterate_says_why_its_attack_is_zero():
         attack = craft_stealthy_attack(estimator, _plant(), first.y_true, first.x, tau,
                                        far=0.01, onset=ONSET, settings=loud)  # fmt: skip
     assert not bool(attack.values.any()) and attack.within_budget() == []
+
+
+def test_an_attack_crafted_on_some_entries_flags_those_entries():
+    """``craft_stealthy_attack(entries=...)``'s attack flags per entry: under a mask, a step
+    where only the other entries arrived carries no attack and is not labelled attacked
+    (a trial: every step of a round-robin schedule had been, 8 of 8 where 4 carried it, as
+    ``Bias(entries=...)`` labels them right). Without ``entries`` the flags are per run, as
+    before. Truth: the steps where entry 0 arrived."""
+    estimator = fdi.GatedFilter(fdi.ChiSquareDetector(2, 0.01), df.KalmanFilter())
+    tr = _runs(8, 3)
+    attack = craft_stealthy_attack(estimator, _plant(), tr.y_true, tr.x, 9.0, far=0.01,
+                                   onset=3, entries=(0,),
+                                   settings=StealthySettings(iterations=2))  # fmt: skip
+    assert attack.entries == (0,)
+    values, flags = attack.sample((2,), T, 2, dtype=F64)
+    assert flags.shape == (2, T, 2) and not bool(flags[..., 1].any())
+    assert flags[0, :, 0].tolist() == [k >= 3 for k in range(1, T + 1)]
+    mask = torch.zeros(2, T, 2, dtype=torch.bool)
+    mask[:, 0::2, 0], mask[:, 1::2, 1] = True, True  # entry 0 at odd steps, entry 1 at even
+    loop = closed_loop(_plant(), T, noise=DrawnNoise(torch.Generator().manual_seed(0)),
+                       x0=torch.zeros(2, 2, dtype=F64), attack=CraftedAttack(
+                           torch.full((T, 2), 0.1, dtype=F64) * torch.tensor([1.0, 0.0],
+                           dtype=F64), onset=3, entries=(0,)), mask=mask)  # fmt: skip
+    expected = mask[..., 0] & (torch.arange(1, T + 1) >= 3)
+    assert torch.equal(loop.trajectories.flags, expected)
+    whole = CraftedAttack(torch.zeros(T, 2, dtype=F64), onset=3).sample((2,), T, 2, dtype=F64)
+    assert whole[1].shape == (2, T)
+    with pytest.raises(ValueError, match="entries must be distinct measurement entries"):
+        CraftedAttack(torch.zeros(T, 2, dtype=F64), onset=3, entries=(2,))
