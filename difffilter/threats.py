@@ -154,6 +154,8 @@ class Shaped(TabulatedAttack):
                     f"entries must be None or a non-empty list of integer indices >= 0; got "
                     f"{self.entries!r}"
                 )
+            if len(set(entries)) != len(entries):  # ([0, 0], a typo for [0, 1], attacked 0)
+                raise ValueError(f"entries must be distinct indices; got {self.entries!r}")
             object.__setattr__(self, "entries", tuple(int(i) for i in entries))
 
     def shape(self, s: Tensor, dim: int, batch: torch.Size, generator, dtype) -> Tensor:
@@ -681,6 +683,11 @@ def threat_from_dict(spec: dict, model=None) -> Attack:
             raise ValueError(
                 f"a covert threat's signal must be a shaped threat, one of {', '.join(shaped)} "
                 f"(it is put on the actuators); got kind {signal.get('kind')!r}"
+            )
+        if signal.get("channel", "actuator") != "actuator":  # (it was moved there silently)
+            raise ValueError(
+                "a covert threat's signal acts on the actuators: leave its channel out (or "
+                f"write actuator); got channel {signal['channel']!r}"
             )
         inner = threat_from_dict({**signal, "channel": "actuator"}, model)
         return Covert(inner, model)

@@ -83,6 +83,9 @@ class StealthySpec:
         ):  # fmt: skip
             raise ValueError(f"entries must be a list of measurement indices >= 0 or null; "
                              f"got {entries!r}")  # fmt: skip
+        if entries is not None and len(set(entries)) != len(entries):  # (refused only when
+            # crafted, after the calibration: a trial's [0, 0])
+            raise ValueError(f"entries must be distinct measurement indices; got {list(entries)}")
 
     def check_fits(self, model) -> None:
         """``ValueError`` where ``entries`` name a measurement ``model`` does not have."""

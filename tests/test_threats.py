@@ -594,3 +594,27 @@ def test_the_documented_study_start_runs_open_loop_on_the_carrys_own_model():
         df.open_loop(estimator, scenario.system(), ys, carry=carry)
     out = df.open_loop(estimator, carry.model, ys, carry=carry)
     assert out.means.shape == (2, 3, carry.model.dim_x) and torch.isfinite(out.means).all()
+
+
+def test_a_repeated_entry_and_a_covert_signal_off_the_actuators_are_refused():
+    """From a trial of the library: ``entries: [0, 0]`` (a typo for ``[0, 1]``) attacked
+    entry 0 alone, silently, in every shaped threat and a stealthy threat set's entry (which
+    failed only when crafted, after the calibration); a covert threat's signal written with
+    ``channel: sensor`` (or any other) was moved to the actuators silently. Each is refused,
+    naming the field; ``channel: actuator`` is still taken."""
+    from difffilter.eval.stealthy import StealthySpec
+
+    for kind, field in (("bias", {"value": 1.0}), ("ramp", {"slope": 0.1})):
+        with pytest.raises(ValueError, match=r"entries must be distinct indices; got \[0, 0\]"):
+            threat_from_dict({"kind": kind, **field, "entries": [0, 0]})
+    with pytest.raises(ValueError, match="entries must be distinct measurement indices"):
+        StealthySpec.from_dict({"kind": "stealthy", "against": "chi_square_kf", "entries": [1, 1]})
+    plant = _plant()
+    for channel in ("sensor", "replacement", "nonsense"):
+        with pytest.raises(ValueError, match="a covert threat's signal acts on the actuators"):
+            threat_from_dict({"kind": "covert", "signal": {"kind": "bias", "value": 0.1,
+                                                            "channel": channel}}, plant)  # fmt: skip
+    covert = threat_from_dict(
+        {"kind": "covert", "signal": {"kind": "bias", "value": 0.1, "channel": "actuator"}}, plant
+    )
+    assert covert.signal.channel is Channel.ACTUATOR
