@@ -253,7 +253,8 @@ class Ramp(Shaped):
 @dataclass(frozen=True)
 class RandomWalk(Shaped):
     """A random walk from zero at the onset, ``a_k = a_{k−1} + σ_w ε_k`` (one walk per run,
-    ``ε`` drawn from the attack's generator after the run selection)."""
+    ``ε`` drawn from the attack's generator after the run selection, one ``[*batch, T, dim]``
+    block: a loop of another length ``T`` draws the runs after the first another walk)."""
 
     step_std: Any = 0.01
 
