@@ -54,7 +54,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ._checks import check_finite_number, check_positive_int, check_rate
+from ._checks import check_finite_number, check_positive_int, check_rate, values_known
 from .attack import Channel, TabulatedAttack
 from .estimator import Estimator
 from .loop import open_loop
@@ -74,6 +74,13 @@ def _check_batch(model, ys, xs) -> None:
             f"xs must hold the states of ys's runs and steps, [{ys.shape[0]}, {ys.shape[1]}, "
             f"{model.dim_x}]; got {tuple(xs.shape)}"
         )
+    # the true states enter the objective J alone: a NaN there had made the attack NaN,
+    # then blamed ys, finite, one iteration later (or, after one, a zero attack "raise
+    # penalty or lower lr": a trial)
+    if values_known(xs) and not bool(torch.isfinite(xs).all()):
+        first = tuple(int(i) for i in (~torch.isfinite(xs)).nonzero()[0])
+        raise ValueError(f"xs contains NaN or Inf values (first at index {first}): the true "
+                         "states must be finite")  # fmt: skip
 
 
 def _batch_of(name: str, batch, model, T: int, us, mask) -> tuple:

@@ -157,6 +157,12 @@ def test_bad_arguments_are_named():
         craft(ys=tr.y_true[0])
     with pytest.raises(ValueError, match=r"xs must be a tensor \[B, T, dx = 2\]"):
         craft(xs=tr.x[..., :1])
+    bad = tr.x.clone()
+    bad[1, ONSET + 1, 0] = math.nan  # (it had been blamed on ys, finite)
+    with pytest.raises(
+        ValueError, match=rf"xs contains NaN or Inf values \(first at index \(1, {ONSET + 1}, 0\)\)"
+    ):
+        craft(xs=bad)
     with pytest.raises(ValueError, match="xs must hold the states of ys's runs"):
         craft(xs=tr.x[:2])
     with pytest.raises(TypeError, match="settings must be a StealthySettings"):
