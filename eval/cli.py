@@ -862,9 +862,14 @@ def _robustness(names: list[str], threats, args) -> int:
         docs[name] = write_robustness(args.out / name, result)
         if args.add_estimators:
             note_skipped_additions(args.add_estimators, docs[name]["skipped"], name)
+    evaluated = (args.out / "acceptance.md").is_file()  # an evaluation's, into this --out
     summary = write_robustness_summary(args.out, docs)
     print("\n" + summary.read_text())
     print(f"robustness reports written under {args.out}/ (<scenario>/robustness.md)")
+    if evaluated:  # (it went without a word: a trial)
+        print(f"note: {args.out}/leaderboard.* are now this study's, and the evaluation's "
+              "acceptance.md went with the leaderboard it judged (this study's verdicts are in "
+              "robustness.md); each scenario's report.md and metrics.json stay")  # fmt: skip
     return 0
 
 

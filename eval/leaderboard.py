@@ -71,6 +71,8 @@ def leaderboard_rows(results: dict[str, dict[str, Any]]) -> list[dict[str, Any]]
             else:
                 row["checkpoint"] = ckpt.get("sha256", "")[:12] if used else None
             row.update({m: entry.get(m) for m in COLUMNS})
+            # which study: its rows in TensorBoard told two seeds apart by nothing (a trial)
+            row["seed"], row["runs"] = doc.get("seed"), doc.get("runs")
             row["far_target"] = (doc.get("far") or {}).get("target")  # fpr_at_far's colour
             row["dt_s"] = doc.get("dt_s")  # a delay's colour: one step is its resolution
             worst = (doc.get("worst_case") or {}).get(name)
@@ -346,4 +348,5 @@ def _hparams(logdir: Path, rows: list[dict[str, Any]]) -> None:
                 f"leaderboard/{m}": r[m] for m in (*COLUMNS, *_WORST_UNITS) if r.get(m) is not None
             }  # (a robustness study's worst case too)
             hparams = {k: r[k] or "none" for k in ("scenario", "estimator", "checkpoint")}
+            hparams.update({k: r[k] for k in ("seed", "runs") if r.get(k) is not None})
             add_session(w, f"{r['scenario']}/{r['estimator']}", hparams, metrics)

@@ -321,6 +321,20 @@ def test_the_hparams_table_has_every_estimators_columns_and_the_calibrated_curve
     _hparams(tmp_path / "tb_leaderboard", [row])
     names, tags = _hparams_experiment(tmp_path)
     assert names == ["checkpoint", "estimator", "runs", "scenario", "seed"]
+    # the leaderboard's rows name their study too (two seeds' rows had been told apart by
+    # nothing but their metrics: a trial)
+    assert _hparams_experiment(tmp_path / "tb_leaderboard")[0] == [
+        "checkpoint",
+        "estimator",
+        "scenario",
+    ]
+    from difffilter.eval.leaderboard import leaderboard_rows
+
+    (board,) = [r for r in leaderboard_rows({"s": doc}) if r["estimator"] == "chi"]
+    assert (board["seed"], board["runs"]) == (0, 4)
+    _hparams(tmp_path / "tb_leaderboard", [board])
+    names = _hparams_experiment(tmp_path / "tb_leaderboard")[0]
+    assert names == ["checkpoint", "estimator", "runs", "scenario", "seed"]
     assert tags == ["hparam/auc", "hparam/holds_share/state_rmse", "hparam/state_rmse",
                     "hparam/threshold_at_far", "hparam/tpr_at_far", "leaderboard/auc"]  # fmt: skip
     events = EventAccumulator(str(tmp_path / "s" / "tb"))

@@ -134,7 +134,11 @@ def test_the_cli_runs_the_study_and_names_an_unknown_threat(tmp_path, capsys):
     assert "valid: bias" in capsys.readouterr().err
     args = ["four_tank_bias", "--threats", "bias,ramp", "--runs", "4", "--out", str(tmp_path),
             "--no-progress"]  # fmt: skip
+    # an evaluation's verdicts in this --out: they go with its leaderboard, and now say so
+    (tmp_path / "acceptance.md").write_text("# an evaluation's acceptance\n")
     assert main(args) == 0
+    assert not (tmp_path / "acceptance.md").exists()
+    assert "the evaluation's acceptance.md went with the leaderboard" in capsys.readouterr().out
     doc = json.loads((tmp_path / "four_tank_bias" / "robustness.json").read_text())
     assert list(doc["threats"]) == ["bias", "ramp"]
     board = (tmp_path / "leaderboard.md").read_text()
