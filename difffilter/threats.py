@@ -178,8 +178,19 @@ class Shaped(TabulatedAttack):
         if self.duration is not None:
             on = on & (k < self.onset + self.duration)
         s = (k - self.onset).to(dtype)
-        values = self.shape(s, dim, shape, generator, dtype).to(device)
-        values = torch.where(on.unsqueeze(-1), values, torch.zeros((), dtype=dtype, device=device))
+        values = self.shape(s, dim, shape, generator, dtype)
+        want = (num_steps, dim)
+        if (not isinstance(values, Tensor) or values.shape[-2:] != want
+                or values.shape[:-2] not in ((), tuple(shape))):  # fmt: skip
+            # (an attack of one's own: a raw expand error had escaped, naming nothing)
+            got = tuple(values.shape) if isinstance(values, Tensor) else type(values).__name__
+            raise ValueError(
+                f"{type(self).__name__}.shape returned {got}; it must return the attack's "
+                f"values [T, dim] = {list(want)} (one row per step, one column per entry of the "
+                f"channel) or [*batch, T, dim] = {[*shape, *want]}"
+            )
+        values = torch.where(on.unsqueeze(-1), values.to(device),
+                             torch.zeros((), dtype=dtype, device=device))  # fmt: skip
         flags = attacked_run.unsqueeze(-1) & on
         if self.entries is not None:
             if max(self.entries) >= dim:

@@ -618,3 +618,28 @@ def test_a_repeated_entry_and_a_covert_signal_off_the_actuators_are_refused():
         {"kind": "covert", "signal": {"kind": "bias", "value": 0.1, "channel": "actuator"}}, plant
     )
     assert covert.signal.channel is Channel.ACTUATOR
+
+
+def test_a_shaped_attack_of_ones_own_that_returns_the_wrong_shape_is_named():
+    """An attack of one's own whose ``shape`` returns a column too many or a step too few had
+    escaped ``check_attack_fits`` (and a YAML scenario's loader) as torch's raw expand
+    error; ``Shaped.sample`` names the class, what it returned and what it must."""
+    from dataclasses import dataclass
+
+    from difffilter.threats import Shaped, check_attack_fits
+
+    @dataclass(frozen=True)
+    class Wide(Shaped):
+        def shape(self, s, dim, batch, generator, dtype):
+            return torch.ones(s.shape[0], dim + 1, dtype=dtype)
+
+    @dataclass(frozen=True)
+    class Short(Shaped):
+        def shape(self, s, dim, batch, generator, dtype):
+            return torch.ones(s.shape[0] - 1, dim, dtype=dtype)
+
+    with pytest.raises(ValueError, match=r"Wide.shape returned \(30, 3\); it must return the "
+                                         r"attack's values \[T, dim\] = \[30, 2\]"):  # fmt: skip
+        check_attack_fits(Wide(), _plant(), 30)
+    with pytest.raises(ValueError, match=r"Short.shape returned \(29, 2\)"):
+        Short().sample((4,), 30, 2, dtype=F64)
