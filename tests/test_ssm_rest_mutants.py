@@ -89,6 +89,47 @@ def test_a_user_observation_jacobian_gets_the_step():
     assert auto.observation_jacobian(x, 3).item() == pytest.approx(12.0, rel=1e-12)
 
 
+def _pendulum_jacobian(x, u=None, k=0):
+    one = torch.ones_like(x[..., 0])
+    return torch.stack([torch.stack([one, 0.05 * one], -1),
+                        torch.stack([-0.05 * 9.81 * torch.cos(x[..., 0]), 0.975 * one], -1)], -2)  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("jacobian", "message"),
+    [
+        (lambda x, u=None, k=0: _pendulum_jacobian(x).mT, "is not the derivative of transition"),
+        # one state's (x[0]: a row, not an entry, of a batch)
+        (
+            lambda x, u=None, k=0: _pendulum_jacobian(x[0] if x.dim() > 1 else x),
+            "is not the derivative of transition",
+        ),
+        (
+            lambda x, u=None, k=0: torch.zeros(*x.shape[:-1], 2, 3, dtype=x.dtype),
+            r"transition_jacobian returns \(3, 2, 3\) for x \[3, 2\]; it must return \[\.\.\., 2, 2\]",
+        ),
+    ],
+)
+def test_a_closed_form_jacobian_must_be_the_derivative_it_stands_for(jacobian, message):
+    """A trial's pendulum: a transposed closed-form Jacobian, or one of run 0's state, had
+    filtered silently (means 0.028 off, 1.5 posterior standard deviations), one of the wrong
+    shape failed mid-filter as a raw matmul error. The model compares them with torch.func's
+    at states about the prior when it is built; the right one is taken."""
+
+    def f(x):
+        return torch.stack([x[..., 0] + 0.05 * x[..., 1],
+                            x[..., 1] - 0.05 * (9.81 * torch.sin(x[..., 0]) + 0.5 * x[..., 1])], -1)  # fmt: skip
+
+    eye = torch.eye(2, dtype=F64)
+    args = (f, lambda x: torch.sin(x), 1e-4 * eye, 1e-3 * eye, torch.tensor([0.5, 0.0], dtype=F64),
+            1e-2 * eye)  # fmt: skip
+    NonlinearGaussianModel(*args, transition_jacobian=_pendulum_jacobian)
+    with pytest.raises(ValueError, match=message):
+        NonlinearGaussianModel(*args, transition_jacobian=jacobian)
+    with pytest.raises(ValueError, match="observation_jacobian is not the derivative of observe"):
+        NonlinearGaussianModel(*args, observation_jacobian=lambda x: torch.diag_embed(x))
+
+
 def _x_u_default(x, u=None):
     return x
 
