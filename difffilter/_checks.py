@@ -564,7 +564,13 @@ def _check_us(
             f"{name}'s batch shape {tuple(lead)} does not broadcast with {whose} {tuple(batch)}"
         )
     if values_known(us) and not bool(torch.isfinite(us).all()):
-        raise ValueError(f"{name} contains NaN or Inf values; every input must be finite")
+        # where, as ys's are named (a recorded log's gap in its inputs: a trial)
+        where = tuple(int(i) for i in (~torch.isfinite(us)).nonzero()[0])
+        raise ValueError(
+            f"{name} contains NaN or Inf values (first at index {where}); every input must be "
+            "finite: an input the plant received is known (a gap in a recorded log's inputs "
+            "has to be filled, e.g. with the input held, before filtering)"
+        )
     return us
 
 

@@ -429,7 +429,10 @@ def test_us_length_batch_and_finiteness():
         df.kalman_filter(model, ys, torch.zeros(3, 4, 1, dtype=D))
     us = torch.zeros(4, 4, 1, dtype=D)
     us[2, 1, 0] = float("nan")
-    with pytest.raises(ValueError, match="us contains NaN or Inf values"):
+    # named where, as a NaN in ys is (a recorded log's gap in its inputs: a trial)
+    with pytest.raises(
+        ValueError, match=r"us contains NaN or Inf values \(first at index \(2, 1, 0\)\)"
+    ):
         df.kalman_filter(model, ys, us)
 
 
