@@ -325,6 +325,29 @@ class ThreatDistribution:
             value = every
         return {**spec, "entries": value}
 
+    def channels(self) -> dict[str, frozenset[Channel]]:
+        """``{name: channels}`` of every component of positive weight but ``none`` (``own``:
+        :attr:`own`'s, where it is an attack): what each can attack, the measurements (sensor,
+        replacement) or the inputs (actuator); every option of a ``channel`` drawn by
+        ``choice``."""
+        out = {}
+        for name, entry in self.spec.items():
+            if float(entry["weight"]) <= 0 or name == "none":
+                continue
+            if name == "own":  # (a marker for the scenario's attack has no channel of its own)
+                if isinstance(self.own, Attack):
+                    out[name] = frozenset({Channel(self.own.channel)})
+                continue
+            drawn = entry.get("channel")
+            options = drawn["choice"] if _is_draw(drawn) and "choice" in drawn else [drawn]
+            found = set()
+            for option in options:
+                fixed = entry if option is drawn else {**entry, "channel": option}
+                attack = self._build(name, fixed, torch.Generator().manual_seed(0))
+                found.add(Channel(getattr(attack, "channel", Channel.SENSOR)))
+            out[name] = frozenset(found)
+        return out
+
     def onsets_past(self, steps: int) -> dict[str, float]:
         """``{name: share}``: the components of positive weight whose ``onset`` (the first
         attacked measurement, 1-based; a covert attack's, its signal's) can fall after the

@@ -339,3 +339,49 @@ def test_a_misspelt_weight_or_draw_and_an_integer_drawn_as_a_float_say_what_to_w
     name, attack = ThreatDistribution({"cov": covert}, model=robot.system()).sample(
         torch.Generator().manual_seed(0))  # fmt: skip
     assert name == "cov" and type(attack).__name__ == "Covert"
+
+
+def test_every_training_threat_must_attack_the_side_of_the_scenarios_own_attack(
+    isolated_registry,
+):
+    """A user trial trained an actuator network (the scenario's attack on the input) across
+    a distribution with a sensor bias: accepted, the own runs' targets zeroed and the sensor
+    values given to the input network where the widths agreed, or a raw IndexError at
+    validation where they did not. An entry on the other side (a channel drawn by choice
+    too) is refused, naming it; one on the same side (a replacement beside a sensor attack)
+    is taken."""
+    import difffilter as df
+    from difffilter.models.scenario import CustomScenario
+
+    eye = torch.eye(2, dtype=torch.float64)
+
+    def plant(dtype):
+        return df.LinearGaussianModel((0.9 * eye).to(dtype), eye.to(dtype), (1e-3 * eye).to(dtype),
+                                      (1e-2 * eye).to(dtype), torch.zeros(2, dtype=dtype),
+                                      (1e-2 * eye).to(dtype), B=torch.ones(2, 1, dtype=dtype))  # fmt: skip
+
+    registry.register(CustomScenario(
+        name="input_bias", family="custom", description="d", steps=20, model_fn=plant,
+        attack=Bias(2.0, channel="actuator", onset=5),
+    ))  # fmt: skip
+    sensor = {"own": {"weight": 0.5}, "sens": {"weight": 0.5, "kind": "bias", "value": 0.4}}
+    with pytest.raises(ValueError, match=r"threats.sens: a sensor attack, and input_bias's own "
+                                         r"attack is on the inputs \(actuator\)"):  # fmt: skip
+        ScenarioDataModule("input_bias", val_runs=2, threats=sensor)
+    either = {"own": {"weight": 0.5}, "mix": {"weight": 0.5, "kind": "bias", "value": 0.4,
+                                              "channel": {"choice": ["actuator", "sensor"]}}}  # fmt: skip
+    with pytest.raises(ValueError, match="threats.mix: a sensor attack"):
+        ScenarioDataModule("input_bias", val_runs=2, threats=either)
+    inputs = {"own": {"weight": 0.5},
+              "ramp": {"weight": 0.5, "kind": "ramp", "slope": 0.1, "channel": "actuator"}}  # fmt: skip
+    ScenarioDataModule("input_bias", val_runs=2, threats=inputs)
+    registry.register(CustomScenario(
+        name="sensor_bias", family="custom", description="d", steps=20, model_fn=plant,
+        attack=Bias(2.0, onset=5),
+    ))  # fmt: skip
+    with pytest.raises(ValueError, match=r"threats.ramp: an actuator attack, and sensor_bias's "
+                                         r"own attack is on the measurements"):  # fmt: skip
+        ScenarioDataModule("sensor_bias", val_runs=2, threats=inputs)
+    replay = {"own": {"weight": 0.5}, "rep": {"weight": 0.5, "kind": "replay", "delay": 3,
+                                              "onset": 8}}  # fmt: skip
+    ScenarioDataModule("sensor_bias", val_runs=2, threats=replay)

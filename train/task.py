@@ -55,7 +55,7 @@ from lightning.pytorch.loggers import TensorBoardLogger
 
 from difffilter import resampling
 from difffilter._checks import check_positive_int
-from difffilter.attack import Channel, attack_dim
+from difffilter.attack import Channel, attack_dim, same_side
 from difffilter.estimator import Generators
 from difffilter.eval.cli import EVALUATION_SEED
 from difffilter.kalman import _check_linear as check_linear
@@ -155,6 +155,31 @@ def threat_batch(scenario, threats: ThreatDistribution, runs: int, seed: int,
     return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
 
 
+def _check_one_side(scenario, threats: ThreatDistribution) -> None:
+    """Raise where a component of ``threats`` attacks the other side of the plant from
+    ``scenario``'s own attack (the measurements against the inputs): the network estimates
+    the attack of one channel, its own attack's, and a run of the other side had trained on
+    the wrong target (zeros, or a sensor attack's values as an input attack's where the
+    widths agree) with its flags set, or failed at validation with a raw IndexError (a
+    trial)."""
+    own = Channel(getattr(scenario.attack_model(), "channel", Channel.SENSOR))
+    side = (
+        "the inputs (actuator)"
+        if own is Channel.ACTUATOR
+        else "the measurements (sensor, replacement)"
+    )
+    for name, channels in threats.channels().items():
+        if name == "own":  # (the side itself)
+            continue
+        other = sorted(c.value for c in channels if not same_side(c, own))
+        if other:
+            raise ValueError(
+                f"threats.{name}: a{'n' if other[0][0] in 'aeiou' else ''} {' or '.join(other)} "
+                f"attack, and {scenario.name}'s own attack is on {side}: the network estimates "
+                "the attack of that one side, so every threat of its training must act there"
+            )
+
+
 class _Keys(torch.utils.data.Dataset):
     def __init__(self, indices):
         self.indices = list(indices)
@@ -214,6 +239,7 @@ class ScenarioDataModule(pl.LightningDataModule):
             self.threats = ThreatDistribution(threats, model=self.scenario.system(), own=own)
             if self.scenario.closed_loop:
                 threat_batch(self.scenario, self.threats, 1, 0, torch.float64)  # its error
+            _check_one_side(self.scenario, self.threats)
         if calibration_runs is not None and (
             isinstance(calibration_runs, bool) or not isinstance(calibration_runs, int)
             or calibration_runs < 0
