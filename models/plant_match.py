@@ -112,8 +112,8 @@ def scenario_file_change(given: str, path, spec: str | None = None) -> str | Non
         return None
     return (
         f"note: {given} was trained on the scenario file {spec} as it was then "
-        f"(sha256 {recorded[:12]}…); it holds other bytes now ({now[:12]}…): the network "
-        "never saw the plant as the file describes it today"
+        f"(digest {recorded[:12]}…); it, or the Python code it names, differs now "
+        f"({now[:12]}…): the network never saw the plant as the file describes it today"
     )
 
 

@@ -122,20 +122,61 @@ SCENARIO_FILE_DIGEST = "difffilter_scenario_file_sha256"
 
 
 def scenario_file_digest(name) -> str | None:
-    """The sha256 of a YAML scenario file's bytes (what its plant, attack and schedule are),
-    or ``None`` for a name that is no YAML file's path or a file that cannot be read. What a
-    run trained or a study computed on a scenario file is reused only for the same bytes (a
-    training trial: a sweep judged a plant whose R was edited against the old plant's
-    baselines, and resumed runs across the edit). Python functions a nonlinear plant names
-    are not part of it."""
+    """The sha256 of a YAML scenario file's bytes (what its plant, attack and schedule are)
+    and, where it names Python objects (``module:function``: a nonlinear plant's functions,
+    its inputs' function, an attack of one's own), of their code as the calibration cache
+    fingerprints it (:func:`~difffilter.models.calibration_cache.model_fingerprint`: code,
+    constants, defaults and the module-level values the functions read); ``None`` for a name
+    that is no YAML file's path or a file that cannot be read. What a run trained or a
+    study computed on a scenario file is reused only for the same digest (a training trial:
+    a sweep judged a plant whose R was edited against the old plant's baselines, and resumed
+    runs across the edit; another's edited the pendulum's gravity in its module, and the
+    sweep re-scored the old network against the old plant's baselines). A file that names no
+    Python object has the digest of its bytes alone, as before."""
     import hashlib
 
     if not is_yaml_path(str(name)):
         return None
     try:
-        return hashlib.sha256(Path(name).read_bytes()).hexdigest()
+        data = Path(name).read_bytes()
     except OSError:
         return None
+    digest = hashlib.sha256(data)
+    named = _python_objects(data)
+    if not named:
+        return digest.hexdigest()
+    from .calibration_cache import _class_code, model_fingerprint
+
+    for path in named:
+        try:
+            obj = import_object(path, "")
+        except Exception:  # noqa: BLE001 (one that cannot be imported: its name alone)
+            digest.update(f"{path}: not importable".encode())
+            continue
+        code = _class_code(obj).hex() if isinstance(obj, type) else model_fingerprint(obj)
+        digest.update(f"{path}: {code}".encode())
+    return digest.hexdigest()
+
+
+def _python_objects(data: bytes) -> list[str]:
+    """The ``module:object`` paths a YAML scenario file's text names (sorted, each once):
+    every string value of that form; none for a file that is not readable YAML."""
+    import re
+
+    try:
+        doc = load_yaml_text(data.decode("utf-8"))
+    except Exception:  # noqa: BLE001 (read, and refused, where the scenario is built)
+        return []
+    found, stack = set(), [doc]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, dict):
+            stack.extend(item.values())
+        elif isinstance(item, list):
+            stack.extend(item)
+        elif isinstance(item, str) and re.fullmatch(r"[A-Za-z_][\w.]*:[A-Za-z_][\w.]*", item):
+            found.add(item)
+    return sorted(found)
 
 
 def scenario_from_yaml(path: str | Path) -> CustomScenario:

@@ -4,6 +4,7 @@ on a pendulum of the same family without a word."""
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import torch
@@ -98,7 +99,7 @@ def test_a_scenario_file_edited_after_training_is_named(isolated_registry, tmp_p
     plant.write_text(PLANT_YAML.replace("[0.95, 0.03]", "[0.90, 0.03]"))
     (note,) = training_plant_notes(given, ["two_rooms"])
     assert note.startswith("note: --ckpt run.ckpt was trained on the scenario file rooms.yaml")
-    assert "holds other bytes now" in note
+    assert "or the Python code it names, differs now" in note
     capsys.readouterr()
     # calibrate is a command of its own, a new process: the file as it is now is read anew
     # (in this process the registry refuses the edited plant under its taken name)
@@ -106,3 +107,38 @@ def test_a_scenario_file_edited_after_training_is_named(isolated_registry, tmp_p
     isolated_registry._ORIGINS.pop("two_rooms")
     assert calibrate_main([str(ckpt), "--out", "cal.ckpt", "--runs", "4"]) == 0
     assert "was trained on the scenario file rooms.yaml as it was then" in capsys.readouterr().err
+
+
+def test_the_scenario_file_digest_covers_the_python_code_the_file_names(tmp_path):
+    """A training trial edited the gravity in the module its YAML pendulum names
+    (``transition: myplants:pend_step``): calibrate and the evaluation said nothing, and
+    the sweep re-scored the old network against the old plant's baselines. The digest of a
+    file that names Python objects covers their code (as the calibration cache's
+    fingerprint reads it); a file that names none keeps the digest of its bytes. Truth:
+    the same file beside two modules that differ in one constant, each digested in a
+    process of its own (a module is imported once per process)."""
+    import subprocess
+    import sys
+
+    from difffilter.models.yaml_scenario import scenario_file_digest
+
+    text = (
+        "name: pend\nplant:\n  transition: tplant:step\n  observe: tplant:obs\n"
+        "  Q: 1.0e-4\n  R: 1.0e-2\n  m0: [0.5, 0.0]\n"
+    )
+    module = ("G = {g}\n\ndef step(x):\n    return x + 0.01 * G\n\n"
+              "def obs(x):\n    return x[..., :1]\n")  # fmt: skip
+    digests = {}
+    for name, g in (("a", "9.81"), ("b", "9.81"), ("c", "30.0")):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "pend.yaml").write_text(text)
+        (tmp_path / name / "tplant.py").write_text(module.format(g=g))
+        code = ("from difffilter.models.yaml_scenario import scenario_file_digest;"
+                "print(scenario_file_digest('pend.yaml'))")  # fmt: skip
+        digests[name] = subprocess.run([sys.executable, "-c", code], cwd=tmp_path / name,
+                                       capture_output=True, text=True, check=True).stdout  # fmt: skip
+    assert digests["a"] == digests["b"] and len(digests["a"].strip()) == 64
+    assert digests["a"] != digests["c"]
+    plain = tmp_path / "plain.yaml"
+    plain.write_text("name: lin\nplant:\n  F: [[0.9]]\n  H: [[1.0]]\n  Q: 0.1\n  R: 0.1\n")
+    assert scenario_file_digest(plain) == hashlib.sha256(plain.read_bytes()).hexdigest()

@@ -150,7 +150,8 @@ def test_a_seed_trained_on_a_scenario_file_is_not_reused_after_the_file_changed(
     _check_same_settings(folder, _settings(config, []), 0)  # unchanged: reused
     (tmp_path / "plant.yaml").write_text("R: 0.01\n")
     with pytest.raises(ValueError, match=r"was trained with the scenario file\(s\) plant.yaml as "
-                       r"they were \(their contents changed since\)"):  # fmt: skip
+                       r"they were \(their contents, or the Python code they name, "
+                       r"changed since\)"):  # fmt: skip
         _check_same_settings(folder, _settings(config, []), 0)
     old = {k: v for k, v in before.items() if k != "scenario_files"}  # a sweep before the record
     (folder / _SETTINGS).write_text(json.dumps(old))

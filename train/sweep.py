@@ -260,7 +260,7 @@ def _check_same_settings(folder: Path, settings: dict, seed: int) -> None:
         + "' values as they were (they changed since)",
         "scenario_files": "the scenario file(s) "
         + ", ".join(sorted(set(had.get("scenario_files", {})) | set(settings["scenario_files"])))
-        + " as they were (their contents changed since)",
+        + " as they were (their contents, or the Python code they name, changed since)",
     }
     if differ:
         what = " and ".join(described[k] for k in differ)
