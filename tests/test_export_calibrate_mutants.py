@@ -361,7 +361,17 @@ def test_a_lightning_export_records_the_first_monitor_min_mode_and_its_own_best(
     last = json.loads(export(tmp_path / "last.ckpt", tmp_path / "l.ckpt")
                       .with_suffix(".json").read_text())  # fmt: skip
     assert last["epochs"] is None and "best_val_score" not in last and "train_time_s" not in last
-    assert last["val_score"] == 0.5
+    # not the callback's best file: its current_score is the last improvement's, not these
+    # weights' (a trial: an export of last.ckpt reported the best epoch's score)
+    assert last["val_score"] is None
+    # the task's record of the validation of the epoch the file was written at: these weights'
+    other = {first: {**callbacks[first], "best_model_path": "/x/o.ckpt"}}
+    for epoch, want in ((0, 0.7), (1, None)):  # (a record of another epoch is no record)
+        torch.save(_lightning_blob(other, difffilter_validation={
+            "epoch": epoch, "metrics": {"val/loss": 0.7, "val/auc": 0.8}}), tmp_path / "own.ckpt")  # fmt: skip
+        own = json.loads(export(tmp_path / "own.ckpt", tmp_path / f"o{epoch}.ckpt")
+                         .with_suffix(".json").read_text())  # fmt: skip
+        assert own["val_score"] == want
 
 
 def test_whole_epochs_drops_only_a_cut_epoch():

@@ -107,6 +107,9 @@ def test_an_interrupted_run_resumes_at_the_epoch_it_reached(tmp_path):
     resumed.fit(_Worsening(), ckpt_path=tmp_path / "last.ckpt")
     assert count.batches == BATCHES  # it trained epoch 3 alone (not 1, 2 and 3 again)
     assert resumed.global_step == 4 * BATCHES
+    # the epoch it reached, as the uninterrupted run's: Lightning's own end-of-training
+    # write had left it at 4, counted done (a trial: an export then said 5 epochs of 4)
+    assert _epoch_of(tmp_path / "last.ckpt") == 3
     # the best checkpoint's own bookkeeping came back with it: still epoch 0's file
     best = resumed.checkpoint_callback
     assert best.best_model_path.endswith("best-epoch=00.ckpt")

@@ -69,6 +69,16 @@ def test_a_checkpoint_given_other_model_settings_is_refused_and_its_own_resume(
     if MERGES:
         assert "--model.init_args.target_false_alarm_rate: 0.01 → 0.05" in capsys.readouterr().err
     assert main(["fit", *base, "--trainer.max_epochs=2", ckpt]) == 0  # its own: resumes
+    # last.ckpt carries its epoch's own validation scores: its export's val_score is these
+    # weights', not the best epoch's (a trial: an export of last.ckpt had been given those)
+    from difffilter.train.export import _lightning_record
+
+    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    blob = torch.load(last, map_location="cpu", weights_only=False)
+    assert blob["epoch"] == 1 and blob["difffilter_validation"]["epoch"] == 1
+    record = _lightning_record(blob, last)
+    metric = record["monitor"]["metric"]
+    assert record["val_score"] == blob["difffilter_validation"]["metrics"][metric]
     assert main(["test", *base, ckpt]) == 0
     # a test draws from its own seed: another --seed_everything scores the same network
     assert main(["test", *base, "--seed_everything=3", ckpt]) == 0

@@ -101,8 +101,9 @@ def _lightning_record(blob: dict, src: Path) -> dict:
     """What a training run's Lightning checkpoint says of itself, for the card of its export
     (a user trial: the card lacked the configs and the validation score a fit's export has):
     the task's and the data's settings, its epoch and step, and the monitored validation
-    score of these weights (``val_score``: the checkpoint callback's score when the file was
-    written; also ``best_val_score`` where the file is that callback's best)."""
+    score of these weights (``val_score``: the validation of the epoch the file was written
+    at, as the task records it; for an older file, the checkpoint callback's score where the
+    file is its best, else ``None``; also ``best_val_score`` where the file is that best)."""
     hp, data = blob.get("hyper_parameters"), blob.get("datamodule_hyper_parameters")
     record = {
         "selected_checkpoint": src.name,
@@ -123,14 +124,21 @@ def _lightning_record(blob: dict, src: Path) -> dict:
     for state in (blob.get("callbacks") or {}).values():  # the training time so far
         if isinstance(state, dict) and state.get("train_time_s") is not None:
             record["train_time_s"] = float(state["train_time_s"])
+    validated = blob.get("difffilter_validation") or {}
+    own = validated.get("metrics") if validated.get("epoch") == blob.get("epoch") else None
     for key, state in (blob.get("callbacks") or {}).items():
         if key.startswith("ModelCheckpoint") and state.get("monitor"):
             mode = "max" if "'mode': 'max'" in key else "min"
-            score = state.get("current_score")
             record["monitor"] = {"metric": state["monitor"], "mode": mode}
-            record["val_score"] = None if score is None else float(score)
             best = state.get("best_model_path")
-            if best and Path(best).name == src.name and state.get("best_model_score") is not None:
+            is_best = bool(best) and Path(best).name == src.name
+            if own is not None and state["monitor"] in own:  # the score of these weights
+                score = own[state["monitor"]]
+            else:  # (an older checkpoint: the callback's score is these weights' only in
+                # its best file; a last.ckpt of an epoch that did not improve held another's)
+                score = state.get("current_score") if is_best else None
+            record["val_score"] = None if score is None else float(score)
+            if is_best and state.get("best_model_score") is not None:
                 record["best_val_score"] = float(state["best_model_score"])
             break
     return record

@@ -134,6 +134,13 @@ class LastCheckpointEveryEpoch(pl.Callback):
         # weights only (left unset, Lightning logs "`weights_only` was not set" every epoch)
         trainer.save_checkpoint(path, weights_only=cb.save_weights_only)
         self._written_at_step = trainer.global_step
+        # and the callback's own record that a last.ckpt was written in this run: without
+        # it, Lightning 2.6's on_train_end wrote the file again after a run whose epochs all
+        # failed to improve (a resumed one), with the epoch counted done, one ahead of the
+        # uninterrupted run's (a trial: epoch 4 where it had 3, an export of 5 epochs)
+        # (not under save_last="link", where that record names the file to link to)
+        if cb.save_last is True:
+            cb._last_checkpoint_saved = str(path)
 
 
 def _cut_short(trainer: pl.Trainer) -> bool:
