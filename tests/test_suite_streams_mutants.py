@@ -324,3 +324,23 @@ def test_an_open_loop_estimator_under_an_adaptive_attack_is_listed_as_skipped(mo
     monkeypatch.setattr(suite, "meets_adaptive_attack", lambda scenario: True)
     result = suite.run_suite(_scenario(), runs=2, estimators=["chi_square_ekf"], progress=False)
     assert result.skipped == {"chi_square_ekf": suite.ADAPTIVE_SKIP} and not result.outputs
+
+
+def test_the_process_warms_up_before_the_first_estimator_is_timed(monkeypatch):
+    """A trial: the first estimator of a process carried its one-time costs (torch's first
+    ``broadcast_shapes`` imports sympy, 0.45 s) in its ``time_per_step_s``, the linearised
+    KF of ``four_tank_filters`` ten times the EKF's. ``_warm_up`` runs before any
+    estimator is timed, once per process."""
+    from difffilter.eval import suite
+    from difffilter.models import registry
+
+    order = []
+    monkeypatch.setattr(suite, "_WARM", False)
+    warm = suite._warm_up
+    monkeypatch.setattr(suite, "_warm_up", lambda: (order.append("warm"), warm()))
+    real = suite.time.perf_counter
+    monkeypatch.setattr(suite.time, "perf_counter", lambda: (order.append("timed"), real())[1])
+    suite.run_suite(registry.get("four_tank_bias"), runs=2, seed=0, estimators=["chi_square_ekf"],
+              progress=False)  # fmt: skip
+    assert order.index("warm") < order.index("timed")
+    assert suite._WARM
