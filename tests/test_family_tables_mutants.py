@@ -563,3 +563,21 @@ def test_lfc_per_channel_table_is_eq43_of_the_attacked_channel_mean_over_runs(mo
     for c, s in enumerate(lfc.STATE_NAMES):
         want = np.sqrt((err[c * R : (c + 1) * R, :, c] ** 2).mean(1)).mean()
         assert table["kf_nn_ekf"][s] == pytest.approx(want)
+
+
+def test_the_robots_compensation_claim_has_a_verdict_on_the_steps_from_the_attack_on():
+    """A trial: the claim said where the compensated robot ends (92 cm from the attack-free
+    path) with no verdict, where the uncompensated robot, circling, ended nearer (22 cm);
+    over the steps from the attack on they are 78 and 75 cm. The verdict compares those
+    means."""
+    from difffilter.eval.families.robot import _claims
+
+    def claim(near, far):
+        doc = {"estimators": {}, "compensation": {
+            "deviation_from_attack_free_cm": 92.08, "mean_deviation_from_attack_free_cm": near,
+            "uncompensated_mean_deviation_from_attack_free_cm": far}}  # fmt: skip
+        return next(line for line in _claims(doc).splitlines() if "Compensation" in line)
+
+    assert "does not hold: from the attack on it is 78.38 cm" in claim(78.38, 75.0)
+    assert "holds: from the attack on it is 10 cm" in claim(10.0, 75.0)
+    assert "ends 92.08 cm from it on average" in claim(10.0, 75.0)
