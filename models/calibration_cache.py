@@ -80,6 +80,7 @@ def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
     if code is not None:  # a function: its code, constants, defaults, closure and globals
         _feed_code(digest, code)
         _feed(digest, getattr(value, "__defaults__", None), seen, depth + 1)
+        _feed(digest, getattr(value, "__kwdefaults__", None), seen, depth + 1)
         for cell in getattr(value, "__closure__", None) or ():
             try:
                 _feed(digest, cell.cell_contents, seen, depth + 1)
@@ -111,6 +112,7 @@ def _class_code(cls: type) -> bytes:
     read (as for a module: delete the cache folder after editing one)."""
     known = _CLASS_CODE.get(cls)
     if known is None:
+        _CLASS_CODE[cls] = b"(in progress)"  # (a default of the class itself: no recursion)
         digest = hashlib.sha256()
         for klass in cls.__mro__:
             if klass.__module__.split(".")[0] in ("builtins", "torch", "typing", "abc"):
@@ -125,7 +127,10 @@ def _class_code(cls: type) -> bytes:
                 if code is not None:
                     digest.update(name.encode())
                     _feed_code(digest, code)
-                    digest.update(repr(getattr(attr, "__defaults__", None)).encode())
+                    # defaults by value, keyword-only ones too (a repr holds an address
+                    # where the default is a function: a new digest in every process)
+                    _feed(digest, getattr(attr, "__defaults__", None), set())
+                    _feed(digest, getattr(attr, "__kwdefaults__", None), set())
         known = _CLASS_CODE[cls] = digest.digest()
     return known
 

@@ -160,6 +160,14 @@ def test_the_calibration_cache_tells_plants_apart(tmp_path, monkeypatch):
         return x + dt
 
     assert model_fingerprint(f) != model_fingerprint(g)  # a default argument changed
+
+    def f_kw(x, *, dt=0.1):
+        return x + dt
+
+    def g_kw(x, *, dt=0.2):
+        return x + dt
+
+    assert model_fingerprint(f_kw) != model_fingerprint(g_kw)  # a keyword-only one (a review)
     assert cached("t", (1,), a, lambda: {"v": 1.0}) == {"v": 1.0}
     assert cached("t", (1,), a, lambda: {"v": 2.0}) == {"v": 1.0}  # read back
     assert cached("t", (1,), b, lambda: {"v": 3.0}) == {"v": 3.0}  # another plant
@@ -213,13 +221,15 @@ def test_the_fingerprint_sees_the_methods_of_a_plant_subclass(tmp_path, monkeypa
         "    return Plant(0.9 * eye, eye, 0.1 * eye, eye, torch.zeros(1, dtype=torch.float64), eye)\n"
     )
     variants = {"sub_a": ("0.9 * x", "1.0"), "sub_b": ("0.9 * x", "1.0"),
-                "sub_scale": ("0.9 * x", "4.0"), "sub_base": ("0.8 * x", "1.0")}  # fmt: skip
+                "sub_scale": ("0.9 * x", "4.0"), "sub_base": ("0.8 * x", "1.0"),
+                # a default that is a function: by its code, not its repr's address (a review)
+                "sub_fn": ("0.9 * x", "lambda: 1.0")}  # fmt: skip
     for name, (f, scale) in variants.items():
         (tmp_path / f"{name}.py").write_text(source.format(f=f, scale=scale))
     monkeypatch.syspath_prepend(str(tmp_path))
     prints = {n: model_fingerprint(importlib.import_module(n).make()) for n in variants}
     assert prints["sub_a"] == prints["sub_b"]
-    assert len({prints["sub_a"], prints["sub_scale"], prints["sub_base"]}) == 3
+    assert len({prints["sub_a"], prints["sub_scale"], prints["sub_base"], prints["sub_fn"]}) == 4
 
 
 def test_a_fingerprint_is_the_same_in_every_process(tmp_path):
