@@ -67,6 +67,7 @@ def uncontrollable_direction(A: Tensor, B: Tensor, tol: float = 1e-9) -> Tensor 
     Shapes ``A [n, n]``, ``B [n, m]`` → ``[n]``. Such a ``w`` spans an uncontrollable mode at
     eigenvalue 0 (the case of the LFC tie-line sum).
     """
+    tol = _real(tol)
     if isinstance(tol, bool) or not isinstance(tol, numbers.Real) or not 0 <= tol < math.inf:
         # (a NaN tol had called every pair uncontrollable: no comparison with NaN holds)
         raise ValueError(f"tol must be a finite number >= 0; got {tol!r}")
@@ -165,11 +166,20 @@ def _observer_spectrum(A_closed: Tensor, factor: float, zero_pole: float | None)
     return lam, V
 
 
+def _real(value):
+    """A one-element tensor as its number (a setting written as ``torch.tensor(3.0)`` ran
+    before these checks, and runs), anything else as it is."""
+    if isinstance(value, Tensor) and value.numel() == 1:
+        return value.item()
+    return value
+
+
 def _check_observer_design(factor, zero_pole) -> None:
     """``factor`` a finite number > 0 and ``zero_pole`` ``None`` or a finite number < 0 (a
     continuous-time eigenvalue: at 0 or above, that observer error would never decay).
     A NaN or negative factor had given NaN or slower poles without a word, and 0 a raw
     numpy error (a fuzzing trial)."""
+    factor, zero_pole = _real(factor), _real(zero_pole)
     if (
         isinstance(factor, bool)
         or not isinstance(factor, numbers.Real)
@@ -189,6 +199,7 @@ def _check_observer_design(factor, zero_pole) -> None:
 
 
 def _check_dt(dt) -> None:
+    dt = _real(dt)
     if isinstance(dt, bool) or not isinstance(dt, numbers.Real) or not 0 < dt < math.inf:
         raise ValueError(f"dt must be a finite number > 0; got {dt!r}")
 

@@ -48,7 +48,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ._checks import check_finite_number
+from ._checks import broadcast_or_none, check_finite_number
 from .attack import Attack, Channel, TabulatedAttack
 
 __all__ = [
@@ -180,14 +180,15 @@ class Shaped(TabulatedAttack):
         s = (k - self.onset).to(dtype)
         values = self.shape(s, dim, shape, generator, dtype)
         want = (num_steps, dim)
-        if (not isinstance(values, Tensor) or values.shape[-2:] != want
-                or values.shape[:-2] not in ((), tuple(shape))):  # fmt: skip
+        full = torch.Size((*shape, *want))
+        if not isinstance(values, Tensor) or broadcast_or_none(values.shape, full) != full:
             # (an attack of one's own: a raw expand error had escaped, naming nothing)
             got = tuple(values.shape) if isinstance(values, Tensor) else type(values).__name__
             raise ValueError(
                 f"{type(self).__name__}.shape returned {got}; it must return the attack's "
                 f"values [T, dim] = {list(want)} (one row per step, one column per entry of the "
-                f"channel) or [*batch, T, dim] = {[*shape, *want]}"
+                f"channel) or [*batch, T, dim] = {[*shape, *want]}, or a shape that broadcasts "
+                "to them"
             )
         values = torch.where(on.unsqueeze(-1), values.to(device),
                              torch.zeros((), dtype=dtype, device=device))  # fmt: skip
@@ -637,8 +638,13 @@ def with_sampling_period(spec: dict, dt: float | None) -> dict:
     out = dict(spec)
     if cls is not None and "dt" in {f.name for f in fields(cls)} and "dt" not in spec:
         out["dt"] = dt
-    if kind == "covert" and isinstance(spec.get("signal"), dict):
-        out["signal"] = with_sampling_period(spec["signal"], dt)
+    signal = spec.get("signal")
+    if kind == "covert" and isinstance(signal, dict):
+        if isinstance(signal.get("choice"), list):  # a signal drawn from several (training)
+            out["signal"] = {**signal, "choice": [with_sampling_period(o, dt)
+                                                  for o in signal["choice"]]}  # fmt: skip
+        else:
+            out["signal"] = with_sampling_period(signal, dt)
     return out
 
 
@@ -696,7 +702,11 @@ def threat_from_dict(spec: dict, model=None) -> Attack:
                 f"a covert threat's signal must be a shaped threat, one of {', '.join(shaped)} "
                 f"(it is put on the actuators); got kind {signal.get('kind')!r}"
             )
-        if signal.get("channel", "actuator") != "actuator":  # (it was moved there silently)
+        try:  # (it was moved there silently; any spelling a Channel takes is read as one)
+            on_actuators = Channel(signal.get("channel", "actuator")) is Channel.ACTUATOR
+        except ValueError:
+            on_actuators = False
+        if not on_actuators:
             raise ValueError(
                 "a covert threat's signal acts on the actuators: leave its channel out (or "
                 f"write actuator); got channel {signal['channel']!r}"

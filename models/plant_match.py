@@ -102,13 +102,13 @@ def scenario_file_change(given: str, path, spec: str | None = None) -> str | Non
     an edit after training went unseen (a trial edited F after export and evaluated and
     calibrated without a word). ``None`` where the file is unchanged, cannot be read here,
     or the checkpoint records no digest."""
-    from .yaml_scenario import is_yaml_path, scenario_file_digest
+    from .yaml_scenario import is_yaml_path, scenario_file_digest, scenario_file_matches
 
     spec = training_scenario_of(path) if spec is None else spec
     if spec is None or not is_yaml_path(spec):
         return None
     recorded, now = _recorded_file_digest(path), scenario_file_digest(spec)
-    if recorded is None or now is None or recorded == now:
+    if recorded is None or now is None or scenario_file_matches(recorded, spec):
         return None
     return (
         f"note: {given} was trained on the scenario file {spec} as it was then "

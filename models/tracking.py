@@ -214,7 +214,8 @@ class TrackingModel(StateSpaceModel):
         # (a NaN, zero or negative dt or σ_ω had failed as a raw Cholesky error; κ outside
         # [0, 1] in a draw: a fuzzing trial)
         T = check_finite_number(dt, "dt", positive=True)
-        sigma_omega = check_finite_number(sigma_omega, "sigma_omega", positive=True)
+        # checked by value, kept as given: a learnable σ_ω keeps its gradient (a review)
+        check_finite_number(sigma_omega, "sigma_omega", positive=True)
         kappa = check_finite_number(kappa, "kappa", nonnegative=True)
         if kappa > 1:
             raise ValueError(f"kappa (the glint probability) must be in [0, 1]; got {kappa!r}")

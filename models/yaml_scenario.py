@@ -158,6 +158,24 @@ def scenario_file_digest(name) -> str | None:
     return digest.hexdigest()
 
 
+def scenario_file_matches(recorded: str | None, name) -> bool:
+    """Whether a digest recorded for scenario file ``name`` (a checkpoint's, a sweep's)
+    is its digest now: :func:`scenario_file_digest`, or the digest of its bytes alone where
+    the record was made before the digest covered the Python code the file names (such a
+    record cannot tell an edit of that code; read as unchanged, as it was then: a review
+    found every run recorded before the change refused as "changed")."""
+    import hashlib
+
+    if recorded is None:
+        return True
+    if recorded == scenario_file_digest(name):
+        return True
+    try:
+        return recorded == hashlib.sha256(Path(name).read_bytes()).hexdigest()
+    except OSError:
+        return False
+
+
 def _python_objects(data: bytes) -> list[str]:
     """The ``module:object`` paths a YAML scenario file's text names (sorted, each once):
     every string value of that form; none for a file that is not readable YAML."""
@@ -171,12 +189,22 @@ def _python_objects(data: bytes) -> list[str]:
     while stack:
         item = stack.pop()
         if isinstance(item, dict):
-            stack.extend(item.values())
+            for key, value in item.items():
+                if (key in _CODE_FIELDS and isinstance(value, str)
+                        and re.fullmatch(r"[A-Za-z_][\w.]*:[A-Za-z_][\w.]*", value)):  # fmt: skip
+                    found.add(value)
+                else:
+                    stack.append(value)
         elif isinstance(item, list):
             stack.extend(item)
-        elif isinstance(item, str) and re.fullmatch(r"[A-Za-z_][\w.]*:[A-Za-z_][\w.]*", item):
-            found.add(item)
     return sorted(found)
+
+
+#: The fields of a scenario file that name Python objects (``module:object``): a plant's
+#: functions or model, its inputs' function, an attack of one's own (its ``kind``). Other
+#: text (a description with a colon) is not imported to digest it (a review).
+_CODE_FIELDS = frozenset({"transition", "observe", "model", "function", "kind",
+                          "transition_jacobian", "observation_jacobian"})  # fmt: skip
 
 
 def scenario_from_yaml(path: str | Path) -> CustomScenario:

@@ -452,3 +452,17 @@ def test_the_scenario_plants_keep_their_boundary_constants():
     tank = FourTankParameters(A=(28, 32, 28, 32), g=981)
     assert tank.A == (28.0, 32.0, 28.0, 32.0) and tank.g == 981.0
     assert tank.fixed_point() == FourTankParameters().fixed_point()
+
+
+def test_a_learnable_tracking_sigma_omega_keeps_its_gradient():
+    """A review: the check of ``sigma_omega`` had read it as a float, and a learnable one
+    lost its gradient (the process noise no longer required one)."""
+    from difffilter.models.tracking import TrackingModel
+
+    sigma = torch.tensor(0.055, dtype=F64, requires_grad=True)
+    import warnings
+
+    with warnings.catch_warnings():  # (torch's, on the fast path's floats: as before)
+        warnings.simplefilter("ignore", UserWarning)
+        model = TrackingModel(sigma_omega=sigma)
+    assert model.process_noise.cov.requires_grad

@@ -281,3 +281,18 @@ plant:
         "value": 1.0,
     }
     assert with_sampling_period({"kind": "sinusoid"}, None) == {"kind": "sinusoid"}
+
+
+def test_the_control_design_helpers_take_a_setting_written_as_a_one_element_tensor():
+    """A review: ``factor=torch.tensor(3.0)`` and ``tol=torch.tensor(1e-9)`` ran before the
+    checks above, which refused them as "not a positive number"; they are read as their
+    numbers."""
+    from difffilter.control import uncontrollable_direction
+
+    d = torch.float64
+    A_closed = torch.diag(torch.tensor([0.0, -1.0, -2.0], dtype=d))
+    torch.testing.assert_close(observer_poles(A_closed, 0.1, factor=torch.tensor(3.0)),
+                               observer_poles(A_closed, 0.1, factor=3.0))  # fmt: skip
+    A = torch.tensor([[0.0, 1.0], [0.0, 0.0]], dtype=d)
+    B = torch.tensor([[0.0], [1.0]], dtype=d)
+    assert uncontrollable_direction(A, B, tol=torch.tensor(1e-9)) is None

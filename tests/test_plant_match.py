@@ -142,3 +142,34 @@ def test_the_scenario_file_digest_covers_the_python_code_the_file_names(tmp_path
     plain = tmp_path / "plain.yaml"
     plain.write_text("name: lin\nplant:\n  F: [[0.9]]\n  H: [[1.0]]\n  Q: 0.1\n  R: 0.1\n")
     assert scenario_file_digest(plain) == hashlib.sha256(plain.read_bytes()).hexdigest()
+
+
+def test_a_digest_recorded_before_it_covered_the_code_still_matches(tmp_path):
+    """A review: a run recorded before the digest covered the Python code a file names
+    held the sha256 of the file's bytes, and every such run read as "changed" (a sweep
+    refused to resume). The bytes' digest still matches; another does not; text with a
+    colon outside the fields that name code is not imported to digest it."""
+    from difffilter.models.yaml_scenario import (
+        _python_objects,
+        scenario_file_digest,
+        scenario_file_matches,
+    )
+
+    (tmp_path / "tplant2.py").write_text(
+        "def step(x):\n    return x\n\ndef obs(x):\n    return x\n"
+    )
+    path = tmp_path / "pend.yaml"
+    path.write_text("name: pend\ndescription: 'note:nothing'\nplant:\n  transition: tplant2:step\n"
+                    "  observe: tplant2:obs\n  Q: 1.0e-4\n  R: 1.0e-2\n  m0: [0.5]\n")  # fmt: skip
+    import sys
+
+    sys.path.insert(0, str(tmp_path))
+    try:
+        now = scenario_file_digest(path)
+        legacy = hashlib.sha256(path.read_bytes()).hexdigest()
+        assert now != legacy
+        assert scenario_file_matches(now, path) and scenario_file_matches(legacy, path)
+        assert not scenario_file_matches("0" * 64, path)
+        assert _python_objects(path.read_bytes()) == ["tplant2:obs", "tplant2:step"]
+    finally:
+        sys.path.remove(str(tmp_path))

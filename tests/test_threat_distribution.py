@@ -385,3 +385,35 @@ def test_every_training_threat_must_attack_the_side_of_the_scenarios_own_attack(
     replay = {"own": {"weight": 0.5}, "rep": {"weight": 0.5, "kind": "replay", "delay": 3,
                                               "onset": 8}}  # fmt: skip
     ScenarioDataModule("sensor_bias", val_runs=2, threats=replay)
+
+
+def test_training_threats_read_the_scenarios_sampling_period(isolated_registry):
+    """A review: a sinusoid's ``omega`` in a training distribution had been read per step
+    on a scenario of ``dt = 0.01`` (a zero signal with its flags set) while the robustness
+    study read it in the scenario's time unit. Training reads the scenario's ``dt`` too,
+    unless the entry sets its own; a covert signal drawn by choice as well."""
+    import difffilter as df
+    from difffilter.models.scenario import CustomScenario
+
+    eye = torch.eye(2, dtype=torch.float64)
+
+    def plant(dtype):
+        return df.LinearGaussianModel((0.9 * eye).to(dtype), eye.to(dtype), (1e-3 * eye).to(dtype),
+                                      (1e-2 * eye).to(dtype), torch.zeros(2, dtype=dtype),
+                                      (1e-2 * eye).to(dtype), B=torch.ones(2, 1, dtype=dtype))  # fmt: skip
+
+    registry.register(CustomScenario(
+        name="fast_sampled", family="custom", description="d", steps=20, model_fn=plant,
+        attack=Bias(2.0, onset=5), dt=0.01,
+    ))  # fmt: skip
+    spec = {"own": {"weight": 0.5},
+            "sine": {"weight": 0.3, "kind": "sinusoid", "omega": 3.14159, "onset": 5},
+            "own_dt": {"weight": 0.2, "kind": "chirp", "dt": 0.5, "onset": 5}}  # fmt: skip
+    dm = ScenarioDataModule("fast_sampled", val_runs=2, threats=spec)
+    assert dm.threats.spec["sine"]["dt"] == 0.01 and dm.threats.spec["own_dt"]["dt"] == 0.5
+    assert dm.hparams["threats"] == spec  # recorded as given (a resume compares those)
+    from difffilter.threats import with_sampling_period
+
+    covert = {"kind": "covert", "signal": {"choice": [{"kind": "sinusoid"}, {"kind": "bias"}]}}
+    timed = with_sampling_period(covert, 0.01)["signal"]["choice"]
+    assert timed[0]["dt"] == 0.01 and "dt" not in timed[1]

@@ -643,3 +643,32 @@ def test_a_shaped_attack_of_ones_own_that_returns_the_wrong_shape_is_named():
         check_attack_fits(Wide(), _plant(), 30)
     with pytest.raises(ValueError, match=r"Short.shape returned \(29, 2\)"):
         Short().sample((4,), 30, 2, dtype=F64)
+
+
+def test_review_a_covert_channel_in_any_case_and_a_shape_that_broadcasts_are_taken():
+    """A review of the checks above: a covert signal's ``channel: ACTUATOR`` (every other
+    threat reads a channel in any case) had been refused, and an attack of one's own whose
+    ``shape`` returns ``[T, 1]`` or ``[1, T, dim]`` (which broadcast, and ran before) too."""
+    from dataclasses import dataclass
+
+    from difffilter.threats import Shaped
+
+    covert = threat_from_dict(
+        {"kind": "covert", "signal": {"kind": "bias", "value": 0.1, "channel": "ACTUATOR"}},
+        _plant(),
+    )
+    assert covert.signal.channel is Channel.ACTUATOR
+
+    @dataclass(frozen=True)
+    class Column(Shaped):
+        def shape(self, s, dim, batch, generator, dtype):
+            return torch.ones(s.shape[0], 1, dtype=dtype)
+
+    @dataclass(frozen=True)
+    class Lead(Shaped):
+        def shape(self, s, dim, batch, generator, dtype):
+            return torch.ones(1, s.shape[0], dim, dtype=dtype)
+
+    for cls in (Column, Lead):
+        values, _ = cls(onset=1).sample((3,), 5, 2, dtype=F64)
+        assert values.shape == (3, 5, 2) and bool((values == 1).all())

@@ -237,6 +237,17 @@ def _strings(value) -> list[str]:
     return []
 
 
+def _same_scenario_files(had: dict, now: dict) -> bool:
+    """Whether the scenario files a seed recorded are the files named now, each with the
+    digest recorded (:func:`~difffilter.models.yaml_scenario.scenario_file_matches`: a
+    record made before the digest covered the code a file names is the digest of its bytes)."""
+    from difffilter.models.yaml_scenario import scenario_file_matches
+
+    if set(had) != set(now):
+        return False
+    return all(had[name] == now[name] or scenario_file_matches(had[name], name) for name in had)
+
+
 def _check_same_settings(folder: Path, settings: dict, seed: int) -> None:
     """A seed's folder is reused (its export taken, its ``last.ckpt`` resumed) only for the
     settings it was trained with: a second sweep into the same ``--out`` with another
@@ -249,9 +260,11 @@ def _check_same_settings(folder: Path, settings: dict, seed: int) -> None:
     had = json.loads(file.read_text())
     differ = [k for k in ("config", "options") if had.get(k) != settings[k]]
     # (a folder of a sweep before the files were recorded is judged on the rest)
-    for key in ("option_configs", "scenario_files"):
-        if key in had and had[key] != settings[key]:
-            differ.append(key)
+    if "option_configs" in had and had["option_configs"] != settings["option_configs"]:
+        differ.append("option_configs")
+    if "scenario_files" in had and not _same_scenario_files(had["scenario_files"],
+                                                           settings["scenario_files"]):  # fmt: skip
+        differ.append("scenario_files")
     described = {
         "options": f"the options {had.get('options')} (now {settings['options']})",
         "config": f"the config {had.get('config_file')}'s values as they were",

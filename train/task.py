@@ -75,7 +75,7 @@ from difffilter.models.yaml_scenario import SCENARIO_FILE_DIGEST, scenario_file_
 from difffilter.param_ekf import EKFOptimizer, ekf_along_sequence
 from difffilter.particle import ParticleFilter
 from difffilter.threat_distribution import ThreatDistribution
-from difffilter.threats import check_attack_fits
+from difffilter.threats import check_attack_fits, with_sampling_period
 
 from .adversarial import Adversary
 from .common import dtype_of, load_estimator_as, mix_seed
@@ -236,7 +236,13 @@ class ScenarioDataModule(pl.LightningDataModule):
         self.threats = None
         if threats is not None:
             own = self.scenario.threat
-            self.threats = ThreatDistribution(threats, model=self.scenario.system(), own=own)
+            # a sinusoid's or chirp's frequency in the scenario's time unit, as the scenario's
+            # own attack and the robustness study read it (training had drawn them per step:
+            # omega = π at dt = 0.01, a zero signal with its flags set, a review)
+            dt = getattr(self.scenario, "dt", None)
+            timed = {name: with_sampling_period(entry, dt) for name, entry in threats.items()} \
+                if isinstance(threats, dict) else threats  # fmt: skip
+            self.threats = ThreatDistribution(timed, model=self.scenario.system(), own=own)
             if self.scenario.closed_loop:
                 threat_batch(self.scenario, self.threats, 1, 0, torch.float64)  # its error
             _check_one_side(self.scenario, self.threats)
