@@ -350,18 +350,10 @@ def test_every_training_threat_must_attack_the_side_of_the_scenarios_own_attack(
     validation where they did not. An entry on the other side (a channel drawn by choice
     too) is refused, naming it; one on the same side (a replacement beside a sensor attack)
     is taken."""
-    import difffilter as df
     from difffilter.models.scenario import CustomScenario
 
-    eye = torch.eye(2, dtype=torch.float64)
-
-    def plant(dtype):
-        return df.LinearGaussianModel((0.9 * eye).to(dtype), eye.to(dtype), (1e-3 * eye).to(dtype),
-                                      (1e-2 * eye).to(dtype), torch.zeros(2, dtype=dtype),
-                                      (1e-2 * eye).to(dtype), B=torch.ones(2, 1, dtype=dtype))  # fmt: skip
-
     registry.register(CustomScenario(
-        name="input_bias", family="custom", description="d", steps=20, model_fn=plant,
+        name="input_bias", family="custom", description="d", steps=20, model_fn=_two_states_one_input,
         attack=Bias(2.0, channel="actuator", onset=5),
     ))  # fmt: skip
     sensor = {"own": {"weight": 0.5}, "sens": {"weight": 0.5, "kind": "bias", "value": 0.4}}
@@ -376,7 +368,7 @@ def test_every_training_threat_must_attack_the_side_of_the_scenarios_own_attack(
               "ramp": {"weight": 0.5, "kind": "ramp", "slope": 0.1, "channel": "actuator"}}  # fmt: skip
     ScenarioDataModule("input_bias", val_runs=2, threats=inputs)
     registry.register(CustomScenario(
-        name="sensor_bias", family="custom", description="d", steps=20, model_fn=plant,
+        name="sensor_bias", family="custom", description="d", steps=20, model_fn=_two_states_one_input,
         attack=Bias(2.0, onset=5),
     ))  # fmt: skip
     with pytest.raises(ValueError, match=r"threats.ramp: an actuator attack, and sensor_bias's "
@@ -392,18 +384,10 @@ def test_training_threats_read_the_scenarios_sampling_period(isolated_registry):
     on a scenario of ``dt = 0.01`` (a zero signal with its flags set) while the robustness
     study read it in the scenario's time unit. Training reads the scenario's ``dt`` too,
     unless the entry sets its own; a covert signal drawn by choice as well."""
-    import difffilter as df
     from difffilter.models.scenario import CustomScenario
 
-    eye = torch.eye(2, dtype=torch.float64)
-
-    def plant(dtype):
-        return df.LinearGaussianModel((0.9 * eye).to(dtype), eye.to(dtype), (1e-3 * eye).to(dtype),
-                                      (1e-2 * eye).to(dtype), torch.zeros(2, dtype=dtype),
-                                      (1e-2 * eye).to(dtype), B=torch.ones(2, 1, dtype=dtype))  # fmt: skip
-
     registry.register(CustomScenario(
-        name="fast_sampled", family="custom", description="d", steps=20, model_fn=plant,
+        name="fast_sampled", family="custom", description="d", steps=20, model_fn=_two_states_one_input,
         attack=Bias(2.0, onset=5), dt=0.01,
     ))  # fmt: skip
     spec = {"own": {"weight": 0.5},
@@ -417,3 +401,13 @@ def test_training_threats_read_the_scenarios_sampling_period(isolated_registry):
     covert = {"kind": "covert", "signal": {"choice": [{"kind": "sinusoid"}, {"kind": "bias"}]}}
     timed = with_sampling_period(covert, 0.01)["signal"]["choice"]
     assert timed[0]["dt"] == 0.01 and "dt" not in timed[1]
+
+
+def _two_states_one_input(dtype):
+    """A two-state plant, both states measured, one input: the scenarios of the tests of
+    the side and the sampling period of training threats."""
+    import difffilter as df
+
+    eye = torch.eye(2, dtype=dtype)
+    return df.LinearGaussianModel(0.9 * eye, eye, 1e-3 * eye, 1e-2 * eye, torch.zeros(2, dtype=dtype),
+                                  1e-2 * eye, B=torch.ones(2, 1, dtype=dtype))  # fmt: skip
