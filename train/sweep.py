@@ -245,7 +245,9 @@ def _same_scenario_files(had: dict, now: dict) -> bool:
 
     if set(had) != set(now):
         return False
-    return all(had[name] == now[name] or scenario_file_matches(had[name], name) for name in had)
+    return all(had[name] == now[name]
+               or (had[name] is not None and scenario_file_matches(had[name], name))
+               for name in had)  # fmt: skip
 
 
 def _check_same_settings(folder: Path, settings: dict, seed: int) -> None:
