@@ -156,6 +156,18 @@ def test_a_seed_trained_on_a_scenario_file_is_not_reused_after_the_file_changed(
     old = {k: v for k, v in before.items() if k != "scenario_files"}  # a sweep before the record
     (folder / _SETTINGS).write_text(json.dumps(old))
     _check_same_settings(folder, _settings(config, []), 0)
+    # a file naming Python code, recorded before its digest covered that code (its bytes'
+    # sha256): the same file, so reused (a review: every such seed had read as changed)
+    import hashlib
+
+    (tmp_path / "sweepplant.py").write_text("def f(x):\n    return x\n")
+    (tmp_path / "plant.yaml").write_text("plant:\n  transition: sweepplant:f\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    legacy = {**before, "scenario_files": {
+        "plant.yaml": hashlib.sha256((tmp_path / "plant.yaml").read_bytes()).hexdigest()}}  # fmt: skip
+    assert legacy["scenario_files"] != _settings(config, [])["scenario_files"]
+    (folder / _SETTINGS).write_text(json.dumps(legacy))
+    _check_same_settings(folder, _settings(config, []), 0)
 
     from types import SimpleNamespace
 
