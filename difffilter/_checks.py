@@ -209,13 +209,19 @@ def check_positive_definite(t: Tensor, name: str, dim: int | None = None) -> Non
         raise ValueError(_not_definite(t, info != 0, name))
 
 
+def first_index(flags: Tensor) -> tuple[int, ...]:
+    """The index of the first ``True`` of a bool tensor with one (row-major order): where
+    an error names the first bad entry."""
+    return tuple(int(i) for i in flags.nonzero()[0])
+
+
 def _not_definite(t: Tensor, failing: Tensor, name: str) -> str:
     """Why ``t`` (its first member whose Cholesky factorisation failed) is refused, and what
     to do: a rank-deficient covariance needs a variance added, one definite in exact
     arithmetic but beyond the dtype's precision float64 (or the variance). The suggested
     variance is one the dtype resolves (1e-12 of the largest was below float32's spacing:
     the "fixed" matrix was the same, bit for bit)."""
-    index = tuple(int(i) for i in failing.nonzero()[0]) if failing.dim() else ()
+    index = first_index(failing) if failing.dim() else ()
     member = t.detach()[index].double()
     eig = torch.linalg.eigvalsh(member)
     low, high = float(eig[0]), float(eig[-1])
@@ -526,7 +532,7 @@ def check_sequence_inputs(
         if bad is not None and bool(bad.any()):
             mask = finite if mask is None else mask & finite
     elif bad is not None and bool(bad.any()):
-        where = tuple(int(i) for i in bad.nonzero()[0])
+        where = first_index(bad)
         raise ValueError(
             f"ys contains NaN or Inf values at received entries (first at index {where}); "
             "every received measurement must be finite. Pass nonfinite='skip' to treat them "
@@ -565,7 +571,7 @@ def _check_us(
         )
     if values_known(us) and not bool(torch.isfinite(us).all()):
         # where, as ys's are named (a recorded log's gap in its inputs: a trial)
-        where = tuple(int(i) for i in (~torch.isfinite(us)).nonzero()[0])
+        where = first_index(~torch.isfinite(us))
         raise ValueError(
             f"{name} contains NaN or Inf values (first at index {where}); every input must be "
             "finite: an input the plant received is known (a gap in a recorded log's inputs "

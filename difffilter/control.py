@@ -27,14 +27,13 @@ choice (docs/scenarios.md, LFC pitfalls).
 from __future__ import annotations
 
 import math
-import numbers
 
 import numpy as np
 import scipy.linalg as sla
 import torch
 from torch import Tensor
 
-from ._checks import Choice
+from ._checks import Choice, check_finite_number
 
 __all__ = [
     "zoh_discretize",
@@ -67,10 +66,8 @@ def uncontrollable_direction(A: Tensor, B: Tensor, tol: float = 1e-9) -> Tensor 
     Shapes ``A [n, n]``, ``B [n, m]`` → ``[n]``. Such a ``w`` spans an uncontrollable mode at
     eigenvalue 0 (the case of the LFC tie-line sum).
     """
-    tol = _real(tol)
-    if isinstance(tol, bool) or not isinstance(tol, numbers.Real) or not 0 <= tol < math.inf:
-        # (a NaN tol had called every pair uncontrollable: no comparison with NaN holds)
-        raise ValueError(f"tol must be a finite number >= 0; got {tol!r}")
+    # (a NaN tol had called every pair uncontrollable: no comparison with NaN holds)
+    tol = check_finite_number(tol, "tol", nonnegative=True)
     M = _np(torch.cat([A, B], dim=1))
     _, s, vh = np.linalg.svd(M.T)
     if s[-1] > tol * max(s[0], 1.0):
@@ -117,8 +114,8 @@ def lqr(
     n, m = _check_pair(A, B, ("A", "B"))
     Q, R = _weights(Q, R, n, m, A)
     method = LQRMethod(method)
-    if method is LQRMethod.SHIFT and not 0 < shift < math.inf:
-        raise ValueError(f"shift must be a finite number > 0; got {shift!r}")
+    if method is LQRMethod.SHIFT:
+        shift = check_finite_number(shift, "shift", positive=True)
     w = uncontrollable_direction(A, B) if method is LQRMethod.REDUCED else None
     if method is LQRMethod.DIRECT or (method is LQRMethod.REDUCED and w is None):
         P = sla.solve_continuous_are(_np(A), _np(B), _np(Q), _np(R))
@@ -156,7 +153,7 @@ def _observer_spectrum(A_closed: Tensor, factor: float, zero_pole: float | None)
     pole at 1: that observer error would never decay). [DEF] it is moved to ``zero_pole``
     (default: the slowest of the other scaled eigenvalues).
     """
-    _check_observer_design(factor, zero_pole)
+    factor, zero_pole = _check_observer_design(factor, zero_pole)
     lam, V = np.linalg.eig(_np(A_closed))
     lam = factor * lam
     tiny = np.abs(lam) < 1e-8
@@ -166,42 +163,18 @@ def _observer_spectrum(A_closed: Tensor, factor: float, zero_pole: float | None)
     return lam, V
 
 
-def _real(value):
-    """A one-element tensor as its number (a setting written as ``torch.tensor(3.0)`` ran
-    before these checks, and runs), anything else as it is."""
-    if isinstance(value, Tensor) and value.numel() == 1:
-        return value.item()
-    return value
-
-
-def _check_observer_design(factor, zero_pole) -> None:
-    """``factor`` a finite number > 0 and ``zero_pole`` ``None`` or a finite number < 0 (a
-    continuous-time eigenvalue: at 0 or above, that observer error would never decay).
-    A NaN or negative factor had given NaN or slower poles without a word, and 0 a raw
-    numpy error (a fuzzing trial)."""
-    factor, zero_pole = _real(factor), _real(zero_pole)
-    if (
-        isinstance(factor, bool)
-        or not isinstance(factor, numbers.Real)
-        or not 0 < factor < math.inf
-    ):
-        raise ValueError(f"factor must be a positive number (how much faster the observer's "
-                         f"poles are); got {factor!r}")  # fmt: skip
-    if zero_pole is not None and (
-        isinstance(zero_pole, bool)
-        or not isinstance(zero_pole, numbers.Real)
-        or not -math.inf < zero_pole < 0
-    ):
+def _check_observer_design(factor, zero_pole) -> tuple[float, float | None]:
+    """``(factor, zero_pole)`` as numbers (a one-element tensor as its number): ``factor``
+    finite and > 0, ``zero_pole`` ``None`` or finite and < 0 (a continuous-time eigenvalue:
+    at 0 or above, that observer error would never decay). A NaN or negative factor had
+    given NaN or slower poles without a word, and 0 a raw numpy error (a fuzzing trial)."""
+    factor = check_finite_number(factor, "factor", positive=True)
+    if zero_pole is not None and check_finite_number(zero_pole, "zero_pole") >= 0:
         raise ValueError(
             "zero_pole must be None or a finite number < 0 (a continuous-time eigenvalue: the "
             f"observer error along the zero mode decays as exp(zero_pole·t)); got {zero_pole!r}"
         )
-
-
-def _check_dt(dt) -> None:
-    dt = _real(dt)
-    if isinstance(dt, bool) or not isinstance(dt, numbers.Real) or not 0 < dt < math.inf:
-        raise ValueError(f"dt must be a finite number > 0; got {dt!r}")
+    return factor, None if zero_pole is None else float(zero_pole)
 
 
 def observer_poles(
@@ -211,7 +184,7 @@ def observer_poles(
 
     See :func:`_observer_spectrum` for the zero eigenvalue. Returns a complex tensor ``[n]``.
     """
-    _check_dt(dt)
+    dt = check_finite_number(dt, "dt", positive=True)
     lam, _ = _observer_spectrum(A_closed, factor, zero_pole)
     return torch.as_tensor(np.exp(lam * dt))
 
@@ -254,8 +227,7 @@ def luenberger_gain(
     n = Ad.shape[0]
     if A_closed.shape != (n, n):
         raise ValueError(f"A_closed must have shape [{n}, {n}]; got {tuple(A_closed.shape)}")
-    _check_dt(dt)
-    _check_observer_design(factor, zero_pole)
+    dt = check_finite_number(dt, "dt", positive=True)
     design = LuenbergerDesign(design)
     lam, V = _observer_spectrum(A_closed, factor, zero_pole)
     p = np.exp(lam * dt)

@@ -52,6 +52,7 @@ from ._checks import (
     check_one_model,
     check_positive_int,
     check_strategy,
+    first_index,
 )
 from .estimator import Estimator, Generators, _batch_shape
 from .gaussian import gaussian_update
@@ -879,7 +880,7 @@ def _blame_degenerate(pf, particles, log_lik, correction, log_w, k: int) -> None
     if bool(bad.any()):  # (the likelihood of a NaN particle is NaN: not its fault)
         raise ValueError(
             f"the particles proposed by {type(pf.proposal).__name__} hold NaN or inf at step "
-            f"{k} (first at index {tuple(int(i) for i in bad.nonzero()[0])})"
+            f"{k} (first at index {first_index(bad)})"
         )
     _blame_nonfinite(log_lik, pf.likelihood, "likelihood", k)
     if correction is not None:

@@ -54,7 +54,13 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ._checks import check_finite_number, check_positive_int, check_rate, values_known
+from ._checks import (
+    check_finite_number,
+    check_positive_int,
+    check_rate,
+    first_index,
+    values_known,
+)
 from .attack import Channel, TabulatedAttack
 from .estimator import Estimator
 from .loop import open_loop
@@ -78,7 +84,7 @@ def _check_batch(model, ys, xs) -> None:
     # then blamed ys, finite, one iteration later (or, after one, a zero attack "raise
     # penalty or lower lr": a trial)
     if values_known(xs) and not bool(torch.isfinite(xs).all()):
-        first = tuple(int(i) for i in (~torch.isfinite(xs)).nonzero()[0])
+        first = first_index(~torch.isfinite(xs))
         raise ValueError(f"xs contains NaN or Inf values (first at index {first}): the true "
                          "states must be finite")  # fmt: skip
 

@@ -225,13 +225,15 @@ def test_the_control_design_helpers_refuse_a_nan_or_infinite_setting():
     d = torch.float64
     A_closed = torch.diag(torch.tensor([0.0, -1.0, -2.0], dtype=d))
     for bad in (float("nan"), float("inf"), -1.0, 0.0):
-        with pytest.raises(ValueError, match="factor must be a positive number"):
+        with pytest.raises(ValueError, match=r"factor must be a finite number > 0"):
             observer_poles(A_closed, 0.1, factor=bad)
-        with pytest.raises(ValueError, match="factor must be a positive number"):
+        with pytest.raises(ValueError, match=r"factor must be a finite number > 0"):
             luenberger_gain(torch.eye(3, dtype=d), A_closed, 0.1, factor=bad)
         with pytest.raises(ValueError, match="dt must be a finite number > 0"):
             observer_poles(A_closed, bad)
-    for bad in (float("nan"), 0.0, 1.0):
+    with pytest.raises(ValueError, match="zero_pole must be a finite number; got nan"):
+        observer_poles(A_closed, 0.1, zero_pole=float("nan"))
+    for bad in (0.0, 1.0):
         with pytest.raises(ValueError, match="zero_pole must be None or a finite number < 0"):
             observer_poles(A_closed, 0.1, zero_pole=bad)
     A = torch.tensor([[0.0, 1.0], [0.0, 0.0]], dtype=d)

@@ -821,7 +821,7 @@ def test_the_newer_helpers_name_bad_arguments():
         (lambda: lqr(A, B, R=torch.eye(1)), "R is torch.float32"),
         (lambda: lqr(A, B, Q=torch.eye(3, dtype=d)), r"Q must have shape \[2, 2\]"),
         (lambda: zoh_discretize(A.tolist(), B, 0.1), "A must be a floating tensor"),
-        (lambda: luenberger_gain(eye, A, 0.1, factor=0.0), "factor must be a positive"),
+        (lambda: luenberger_gain(eye, A, 0.1, factor=0.0), "factor must be a finite number > 0"),
         (lambda: GainSchedule(trained), "require no gradient"),
         (lambda: covariance_intersection(means, covs, iterations=-1), "iterations must be"),
         (lambda: BiasAttackEstimator(2, "0.9"), "tau must lie in"),
