@@ -581,3 +581,43 @@ def test_the_robots_compensation_claim_has_a_verdict_on_the_steps_from_the_attac
     assert "does not hold: from the attack on it is 78.38 cm" in claim(78.38, 75.0)
     assert "holds: from the attack on it is 10 cm" in claim(10.0, 75.0)
     assert "ends 92.08 cm from it on average" in claim(10.0, 75.0)
+
+
+def test_the_compensation_claim_gives_the_distance_to_the_path_as_a_shape_beside():
+    """A trial: on the straight scenario the attacked robot drives nearly the attack-free
+    circle, faster; its time-aligned distance (75 cm) is mostly that lag, its distance to
+    the path as a shape 7–8 cm. The claim gives both readings where the report has both."""
+    from difffilter.eval.families.robot import _claims
+
+    doc = {"estimators": {}, "compensation": {
+        "deviation_from_attack_free_cm": 92.0, "mean_deviation_from_attack_free_cm": 81.3,
+        "uncompensated_mean_deviation_from_attack_free_cm": 75.9,
+        "mean_distance_to_attack_free_path_cm": 8.2,
+        "uncompensated_mean_distance_to_attack_free_path_cm": 7.6}}  # fmt: skip
+    line = next(line for line in _claims(doc).splitlines() if "Compensation" in line)
+    assert "does not hold: from the attack on it is 81.3 cm" in line
+    assert "as a shape (wherever the robot passes there, not when): 8.2 cm against 7.6 cm" in line
+
+
+def test_distance_to_a_path_is_the_closed_form_distance_to_its_segments():
+    """Points against a polyline, by hand: to a straight segment, beyond its ends (the
+    distance to the end point), and to a finely sampled circle (|‖p‖ − r|)."""
+    from difffilter.eval.families.robot import distance_to_path
+
+    path = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [1.0, 2.0]]], dtype=torch.float64)
+    points = torch.tensor([[[0.5, 0.3], [-3.0, -4.0], [1.5, 1.0], [2.0, 3.0], [1.0, 0.0]]],
+                          dtype=torch.float64)  # fmt: skip
+    want = torch.tensor([[0.3, 5.0, 0.5, 2.0**0.5, 0.0]], dtype=torch.float64)
+    torch.testing.assert_close(distance_to_path(points, path), want, rtol=0, atol=1e-12)
+
+    # a circle of radius 57 cm in 2,000 segments, a point inside and one outside, per run
+    angle = torch.linspace(0, 2 * torch.pi, 2001, dtype=torch.float64)
+    circle = 57.0 * torch.stack([angle.cos(), angle.sin()], -1)
+    paths = torch.stack([circle, circle + 10.0])  # [2, T, 2]: run 1's circle moved
+    pts = torch.tensor([[[50.0, 0.0], [0.0, -60.0]], [[70.0, 10.0], [10.0, 10.0]]],
+                       dtype=torch.float64)  # fmt: skip
+    got = distance_to_path(pts, paths)
+    want = torch.tensor([[7.0, 3.0], [3.0, 57.0]], dtype=torch.float64)
+    torch.testing.assert_close(
+        got, want, rtol=0, atol=57.0 * (1 - torch.cos(torch.tensor(torch.pi / 2000)))
+    )
