@@ -188,13 +188,19 @@ def _diverged(X) -> bool:
     return isinstance(X, str) and X == DIVERGED
 
 
-def _no_fixed_point(why: str, rate: float, what: str) -> ValueError:
+def _no_fixed_point(why: str, rate: float, what: str, mode: str = "undetectable") -> ValueError:
+    """The error of a Riccati iteration without a fixed point; ``mode``: what a pair's
+    mode on the unit circle is called in that problem (a filter's ``undetectable``, a
+    controller's ``uncontrollable``)."""
     if why == UNSETTLED:
+        # at rate 1 nothing is lost: no critical rate to be near (a trial on the LFC plant,
+        # whose conserved tie-line sum is an uncontrollable mode at 1, read that it was)
+        cause = (f"the pair has an {mode} mode on the unit circle" if rate == 1.0 else
+                 "the rate is near (or below) the critical rate (critical_arrival_rate gives "
+                 f"it), or the pair has an {mode} mode on the unit circle")  # fmt: skip
         return ValueError(
             f"{what}: the modified Riccati iteration at rate {rate} had not settled after "
-            "100,000 steps: the rate is near (or below) the critical rate "
-            "(critical_arrival_rate gives it), or the pair has an undetectable mode on the "
-            "unit circle"
+            f"100,000 steps: {cause}"
         )
     return ValueError(
         f"{what}: rate {rate} is at or below the critical rate: the modified Riccati equation "
@@ -253,7 +259,8 @@ def lossy_dlqr(F: Tensor, B: Tensor, Q: Tensor | None = None, R: Tensor | None =
                 "reach): no arrival rate makes the cost finite"
             )
         raise _no_fixed_point(S, rate, "lossy_dlqr (the control Riccati equation of (F, B) "
-                                       "with lost inputs; the rates: critical_arrival_rate(F.T, B.T))")  # fmt: skip
+                                       "with lost inputs; the rates: critical_arrival_rate(F.T, B.T))",
+                              mode="uncontrollable")  # fmt: skip
     K = np.linalg.solve(Bn.T @ S @ Bn + Rn, Bn.T @ S @ Fn)
     return _as(K, F), _as(S, F)
 

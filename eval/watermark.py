@@ -84,6 +84,15 @@ def watermark_study(scenario, *, runs: int = 20, seed: int = 0, std: float = 0.0
     Returns the schema's header and ``rows["<plain|seamless> replay, <with|without>
     watermark"]`` with ``auc``, ``auc_after_splice``, ``threshold``, ``tpr_at_far``,
     ``fpr_at_far``, ``std`` and the attack-free ``control_cost``."""
+    steps = scenario.steps
+    # a replay that starts after the last step (a trial: onset 400 of 300) had returned an
+    # AUC of None and a TPR of NaN without a word, which metrics.json cannot hold
+    if isinstance(onset, bool) or not isinstance(onset, int) or not 1 <= onset <= steps:
+        raise ValueError(f"onset must be a step of the scenario's 1 … {steps} (the replay's "
+                         f"first replayed step); got {onset!r}")  # fmt: skip
+    if isinstance(window, bool) or not isinstance(window, int) or not 1 <= window <= steps:
+        raise ValueError(f"window must be an integer in 1 … {steps} steps (the χ² detector's); "
+                         f"got {window!r}")  # fmt: skip
     streams = Streams(seed)
     draws = scenario.exogenous(runs, {k: streams(k) for k in ("plant", "attack")})
     cal = scenario.exogenous(

@@ -115,6 +115,17 @@ def test_bad_rates_and_undetectable_pairs_are_named():
                        arrival_rate=rate)  # fmt: skip
 
 
+def test_an_uncontrollable_mode_on_the_unit_circle_is_named_as_such_at_rate_one():
+    """A trial on the LFC plant (its conserved tie-line sum a mode at 1 no input reaches):
+    at rate 1 the error had blamed a critical rate and "an undetectable mode"."""
+    F1 = torch.diag(torch.tensor([1.0, 0.5], dtype=torch.float64))
+    B1 = torch.tensor([[0.0], [1.0]], dtype=torch.float64)
+    with pytest.raises(ValueError, match="rate 1.0 had not settled") as err:
+        lossy_dlqr(F1, B1, arrival_rate=1.0)
+    assert "uncontrollable mode on the unit circle" in str(err.value)
+    assert "critical rate (" not in str(err.value) and "undetectable" not in str(err.value)
+
+
 def test_the_bounds_solve_their_equations_and_the_scalar_mare_its_closed_form():
     """Below rate 1: S̄ − (1 − λ) F S̄ Fᵀ − Q = 0 and V̄ − g_λ(V̄) = 0 (residuals); in the
     scalar case V̄ is the positive root of (1 − a² + λa²) v² + ((1 − a²) r − q) v − q r = 0."""

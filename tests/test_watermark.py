@@ -54,3 +54,16 @@ def test_the_watermark_exposes_a_replay_at_a_stated_control_cost(tmp_path):
     jsonschema.validate(written, metrics_schema())
     assert written["rows"]["seamless replay, with watermark"]["std"] == 0.08
     assert "control cost" in (folder / "report.md").read_text()
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(onset=400, delay=100), r"onset must be a step of the scenario's 1 … 300"),
+    (dict(onset=0), r"onset must be a step"),
+    (dict(onset=200, delay=100, window=301), r"window must be an integer in 1 … 300"),
+])  # fmt: skip
+def test_a_replay_or_window_outside_the_run_is_refused(kw, match):
+    """A trial: a replay from step 400 of a 300-step run had returned an AUC of None and a
+    TPR of NaN (which metrics.json cannot hold), without a word."""
+    scenario = registry.get("lfc_step").with_steps(300)
+    with pytest.raises(ValueError, match=match):
+        watermark_study(scenario, runs=2, **kw)
