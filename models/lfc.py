@@ -544,17 +544,26 @@ def lfc_loop(
     ``progress``: called after every step; ``watermark``: a :class:`Watermarked` wrapper
     factory ``controller → controller`` (``None``: none); ``attack_generator``: the
     attack's own draws (a random walk's steps, the runs a ``share`` attacks); ``forks``,
-    ``fork``: keep :class:`~difffilter.loop.LoopFork` s, continue one (to the end of the
-    draws unless ``steps``)."""
+    ``fork``: keep :class:`~difffilter.loop.LoopFork` s, continue one (a resumed loop runs
+    to the end of the draws unless ``steps``)."""
     check_no_attack_on_loads(attack)
     B, T, _ = xi.shape
+    if (
+        not isinstance(load, Tensor)
+        or load.dim() != 2
+        or load.shape[-1] != 2
+        or load.shape[0] not in (1, B)
+    ):
+        got = tuple(load.shape) if isinstance(load, Tensor) else type(load).__name__
+        raise ValueError(f"load must be a tensor [{B} or 1, 2]: one load deviation per run of xi "
+                         f"(or one for all); got {got}")  # fmt: skip
     K1 = lqr_gain(plant) if K1 is None else K1
     x0 = torch.zeros(B, STATE_DIM, dtype=xi.dtype, device=xi.device)
     controller = SecureController(K1, load, compensate=compensate)
     if watermark is not None:
         controller = watermark(controller)
-    if steps is None:
-        steps = T - (0 if fork is None else fork.state.k)
+    if steps is None:  # to the end of the draws from where the loop resumes
+        steps = T - (fork.state.k if fork is not None else state.k if state is not None else 0)
     return closed_loop(
         plant.model(), steps, noise=ReplayedNoise(xi, theta), x0=x0,
         estimator=estimator, model=plant.model(knows_load=False),

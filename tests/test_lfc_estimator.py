@@ -276,3 +276,98 @@ def test_luenberger_observer_is_the_fixed_gain_filter(plant):
     with pytest.raises(TypeError, match="OnlineLearning"):
         NeuralCompensation(paper_network(), obs, learning="gradient")
     assert OnlineLearning(GradientRule()).posterior
+
+
+@pytest.mark.parametrize("rule", [EKFRule(), GradientRule(lr=0.01)], ids=["ekf", "gradient"])
+def test_the_online_learner_learns_nothing_from_steps_that_received_nothing(plant, rule):
+    """A lossy-link trial: with every entry lost for 100 steps the per-run learner's weights
+    had moved by 27 % of their size (towards the filter's placeholder innovation 0), and Υ
+    with them. Steps that receive nothing leave the learner as it was (Q_ρ = 0)."""
+    from difffilter.loop import ReplayedNoise, closed_loop
+    from difffilter.models.attacks import Signal
+    from difffilter.models.lfc import SecureController, lqr_gain
+
+    ctx = LFCContext()
+    est = lfc_estimator(ctx, network=paper_network(0.1), rule=rule, init_scale=0.1)
+    g = torch.Generator().manual_seed(5)
+    B, T = 2, 30
+    xi, theta = plant.sample_noise(B, T, g)
+    alpha = torch.zeros(B, T, 10, dtype=torch.float64)
+    alpha[:, 5:, 2] = 0.5
+    mask = torch.ones(B, T, 10, dtype=torch.bool)
+    mask[:, 20:] = False  # steps 21–30: nothing arrives
+    mask[0, 10:20, :5] = False  # run 0, steps 11–20: the first area's entries lost
+    kw = dict(noise=ReplayedNoise(xi, theta), estimator=est, model=plant.model(knows_load=False),
+              attack=Signal(alpha), mask=mask, horizon=T,
+              controller=SecureController(lqr_gain(plant), torch.zeros(1, 2, dtype=torch.float64)))  # fmt: skip
+    with torch.no_grad():
+        head = closed_loop(plant.model(), 20, x0=torch.zeros(B, 10, dtype=torch.float64),
+                           generator=Generators(init=torch.Generator().manual_seed(4)), **kw)  # fmt: skip
+        before = head.state.carry.net.learner
+        tail = closed_loop(plant.model(), 10, state=head.state.copy(), **kw)
+    after = tail.state.carry.net.learner
+    assert torch.equal(after.theta, before.theta)
+    if before.upsilon is not None:
+        assert torch.equal(after.upsilon, before.upsilon)
+        assert torch.equal(EKFRule.covariance(after), EKFRule.covariance(before))
+    # the learner of run 0's first area (row 0 of runs × areas) was informed on 10 fewer steps
+    if before.seen is not None:
+        assert before.seen.tolist() == [10.0, 20.0, 20.0, 20.0]
+
+
+def test_two_loops_resumed_from_one_state_run_the_same_and_to_the_end(plant):
+    """A trial: resuming twice from one state (two what-ifs) gave attack estimates 0.107
+    apart, the first loop having written the learners' donated covariance buffers in the
+    state; and ``lfc_loop(state=…)`` without ``steps`` asked for draws past their end."""
+    from difffilter.models.attacks import Signal
+
+    ctx = LFCContext()
+    est = lfc_estimator(ctx, network=paper_network(0.1), rule=EKFRule(donate=True, fold_every=2),
+                        init_scale=0.1)  # fmt: skip
+    g = torch.Generator().manual_seed(6)
+    xi, theta = plant.sample_noise(2, 24, g)
+    alpha = torch.zeros(2, 24, 10, dtype=torch.float64)
+    alpha[:, 8:, 2] = 0.5
+    kw = dict(attack=Signal(alpha))
+    load = torch.zeros(1, 2, dtype=torch.float64)
+    gens = Generators(init=torch.Generator().manual_seed(4))
+    whole = lfc_loop(plant, est, xi, theta, load, generator=gens, **kw)
+    gens = Generators(init=torch.Generator().manual_seed(4))
+    head = lfc_loop(plant, est, xi, theta, load, generator=gens, steps=10, **kw)
+    first = lfc_loop(plant, est, xi, theta, load, state=head.state, **kw)  # steps 11–24
+    second = lfc_loop(plant, est, xi, theta, load, state=head.state, **kw)
+    assert first.output.attack.shape[1] == 14
+    assert torch.equal(first.output.attack, second.output.attack)
+    assert torch.equal(first.output.attack, whole.output.attack[:, 10:])
+
+
+@pytest.mark.parametrize("rule", [EKFRule(), GradientRule(lr=0.01)], ids=["ekf", "gradient"])
+def test_the_online_learners_run_on_float32_measurements(rule):
+    """A trial: the registry's learners (``kf_nn_ekf``, ``traditional_ad``,
+    ``kf_nn_grad_ekf``) failed on float32 draws with a raw matmul dtype error. The learners
+    run in the network's dtype (float64 here), as the frozen network does, and hand out
+    estimates in the measurements'; on the same draws they track the float64 loop."""
+    from difffilter.models.attacks import Signal
+
+    est = lfc_estimator(LFCContext(), network=paper_network(0.1), rule=rule, init_scale=0.1)
+    g = torch.Generator().manual_seed(7)
+    xi, theta = LFCPlant().sample_noise(2, 40, g)
+    alpha = torch.zeros(2, 40, 10, dtype=torch.float64)
+    alpha[:, 10:, 2] = 0.5
+    out = {}
+    for dtype in (torch.float64, torch.float32):
+        gens = Generators(init=torch.Generator().manual_seed(4))
+        loop = lfc_loop(LFCPlant(dtype=dtype), est, xi.to(dtype), theta.to(dtype),
+                        torch.zeros(1, 2, dtype=dtype), attack=Signal(alpha.to(dtype)),
+                        generator=gens)  # fmt: skip
+        out[dtype] = loop.output.attack
+    assert out[torch.float32].dtype == torch.float32
+    torch.testing.assert_close(out[torch.float32].double(), out[torch.float64], rtol=0, atol=1e-3)
+
+
+def test_a_load_of_other_runs_is_refused_by_name(plant):
+    """A trial: a load drawn for 8 runs beside draws of 1 failed in a raw expand error."""
+    xi, theta = plant.sample_noise(1, 5, torch.Generator().manual_seed(0))
+    est = lfc_estimator(LFCContext(), network=paper_network(0.1))
+    with pytest.raises(ValueError, match=r"load must be a tensor \[1 or 1, 2\].*got \(8, 2\)"):
+        lfc_loop(plant, est, xi, theta, torch.zeros(8, 2, dtype=torch.float64))

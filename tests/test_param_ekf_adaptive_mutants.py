@@ -188,9 +188,11 @@ def test_a_module_with_a_scalar_output_is_refused():
         ekf.step(torch.ones(2, 1, dtype=F64), torch.ones(2, 1, dtype=F64))
 
 
-def _np_pooled_ekf(zeta, rho, ups, k, H, e, lr):
-    """Eqs (11), (12), (14), (14b) with S samples stacked (EKFOptimizer's doc), numpy."""
-    ups = ups + (np.mean(np.sum(e * e, -1)) - ups) / k
+def _np_pooled_ekf(zeta, rho, ups, k, H, e, lr, ups_given=False):
+    """Eqs (11), (12), (14), (14b) with S samples stacked (EKFOptimizer's doc), numpy
+    (``ups_given``: ``Υ_k`` already updated, eq. 14b skipped)."""
+    if not ups_given:
+        ups = ups + (np.mean(np.sum(e * e, -1)) - ups) / k
     Hs, es = H.reshape(-1, H.shape[-1]), e.reshape(-1)
     lam = rho @ Hs.T @ np.linalg.inv(Hs @ rho @ Hs.T + ups * np.eye(len(es)))
     return zeta + lr * lam @ es, rho - lam @ Hs @ rho, ups
@@ -215,15 +217,24 @@ def test_ekf_along_sequence_masks_the_jacobian_of_unreceived_entries():
         return J @ zeta.detach(), J
 
     ekf_along_sequence(opt.step, predict, inputs, targets, received)
-    z, rho, ups = np.zeros(P), 5.0 * np.eye(P), 0.2
+    z, rho, ups, seen = np.zeros(P), 5.0 * np.eye(P), 0.2, 0
     X, Y, r = inputs.numpy(), targets.numpy(), received.numpy().astype(float)
     for t in range(T):
         J = np.stack([X[:, t], c.numpy() * X[:, t]], axis=1)
         H = J * r[:, t, :, None]
         e = (Y[:, t] - J @ z) * r[:, t]
-        z, rho, ups = _np_pooled_ekf(z, rho, ups, t + 1, H, e, 0.8)
+        # Υ: the running mean over the steps that received anything of the samples' energy
+        # at their received entries' rate (m / m_s), over the samples that received any
+        count = r[:, t].sum(-1)
+        if count.any():
+            seen += 1
+            energy = (e * e).sum(-1)[count > 0] * 2 / count[count > 0]
+            ups = ups + (energy.mean() - ups) / seen
+        z, rho, _ = _np_pooled_ekf(z, rho, ups, 1, H, e, 0.8, ups_given=True)
+    assert seen == T - 1  # step 3 received nothing
     np.testing.assert_allclose(zeta.detach().numpy(), z, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(opt.state[zeta]["rho"].numpy(), rho, rtol=1e-9, atol=1e-12)
+    assert float(opt.state[zeta]["upsilon"]) == pytest.approx(ups, rel=1e-12)
 
 
 def test_ekf_optimizer_calls_the_closure_and_checks_the_residual_shape():

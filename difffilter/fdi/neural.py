@@ -320,12 +320,15 @@ class _Core:
         resid_hist = torch.zeros(batch + (J, net.b, net.resid_dim), dtype=dtype, device=device)
         learner = None
         if self.learning is not None:
-            areas = batch + (J,)
-            start = {k: v.detach().to(dtype) for k, v in net.area_params().items()}
+            # the learners in the network's dtype, whatever the measurements' (as the frozen
+            # network runs): float32 data had met the float64 network's scales and head in
+            # a raw matmul error
+            areas, wdtype = batch + (J,), net.V.dtype
+            start = {k: v.detach() for k, v in net.area_params().items()}
             if self.learning.init_scale is not None:  # Algorithm 1: every run its own draw
                 s = self.learning.init_scale
                 start = {
-                    k: s * torch.rand(batch + v.shape, generator=generator, dtype=dtype)
+                    k: s * torch.rand(batch + v.shape, generator=generator, dtype=wdtype)
                     for k, v in start.items()
                 }
             theta = self.template.flatten(start, areas).to(device)
@@ -413,7 +416,7 @@ class _Core:
             attack, logit = net(delta if delta.dtype == net.V.dtype else delta.to(net.V.dtype))
             attack = attack if attack.dtype == e.dtype else attack.to(e.dtype)
         else:
-            attack, logit, learner, prior = self._learn(learner, delta, innovation)
+            attack, logit, learner, prior = self._learn(learner, delta, innovation, mask)
         attack = attack.flatten(-2)  # [..., J·d]
         if self.residual is Residual.LAGGED:
             entry = innovation - (attack if learner is None else prior)
@@ -434,25 +437,31 @@ class _Core:
         )
         return hist, attack, logit, scale, delta
 
-    def _learn(self, learner: LearnerState, delta: Tensor, innovation: Tensor):
+    def _learn(self, learner: LearnerState, delta: Tensor, innovation: Tensor,
+               mask: Tensor | None = None):  # fmt: skip
         """One step of every run's learner towards ``ν`` (eq. 5's ``e = z − ẑ``), then the
-        estimate: ``(â [..., J, d], logit, learner, prior â [..., J·d])``."""
+        estimate: ``(â [..., J, d], logit, learner, prior â [..., J·d])``. An entry not
+        received (``mask [..., dy]`` False) is no target: its innovation is the filter's
+        placeholder 0, towards which the weights had been pulled (a lossy-link trial: 27 %
+        of their size over 100 steps without a packet)."""
         net, J, d = self.network, self.network.num_areas, self.network.area_dim
         lead = delta.shape[:-2]
-        x = delta.reshape(-1, delta.shape[-1])
+        x = delta.reshape(-1, delta.shape[-1]).to(learner.theta.dtype)  # the network's dtype
         pred, H = self.template.jacobian(learner.theta, x)
         target = innovation.reshape(-1, d).to(pred.dtype)
-        learner = self.learning.rule.step(learner, H, target - pred)
-        prior = pred.reshape(lead + (J * d,))
+        received = None if mask is None else mask.expand(innovation.shape).reshape(-1, d).bool()
+        learner = self.learning.rule.step(learner, H, target - pred, received)
+        prior = pred.reshape(lead + (J * d,)).to(innovation.dtype)
         if self.learning.posterior:
             attack = self.template.forward(learner.theta, x).reshape(lead + (J, d))
         else:
             attack = pred.reshape(lead + (J, d))
+        attack = attack.to(innovation.dtype)
         logit = None
         if net.detection_head:
             params = {k: v.reshape(lead + (J,) + v.shape[1:])
                       for k, v in self.template.unflatten(learner.theta).items()}  # fmt: skip
-            _, logit = net(delta, W=params["W"], V=params["V"])
+            _, logit = net(delta.to(learner.theta.dtype), W=params["W"], V=params["V"])
         return attack, logit, learner, prior
 
     def detect(self, attack, logit, scale, innovation) -> tuple[Tensor, dict]:
