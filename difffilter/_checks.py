@@ -552,11 +552,11 @@ def _check_us(
     model, the dtype and device, and its batch broadcasts with ``batch`` (``against``: whose
     batch, possessive, for the message; default ``ys's`` or ``y's``)."""
     du = model.dim_u
-    if du == 0:
-        raise ValueError("us was given but the model has no input (dim_u = 0); pass us=None")
     seq = num_steps is not None
-    want = f"[..., T, {du}]" if seq else f"[..., {du}]"
     name = "us" if seq else "u"
+    if du == 0:
+        raise ValueError(f"{name} was given but the model has no input (dim_u = 0); pass {name}=None")
+    want = f"[..., T, {du}]" if seq else f"[..., {du}]"
     _check_float_tensor(us, name, want, dtype, device)
     if us.dim() < (2 if seq else 1) or us.shape[-1] != du:
         raise ValueError(f"{name} must have shape {want}; got {tuple(us.shape)}")

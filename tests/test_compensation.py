@@ -109,3 +109,80 @@ def test_an_actuator_estimate_is_not_subtracted_from_the_measurements_innovation
     with pytest.raises(ValueError, match="online learning fits the estimate to the innovation"):
         NeuralCompensation(net, df.KalmanFilter(), channel="actuator",
                            learning=OnlineLearning(EKFRule()))  # fmt: skip
+
+
+@pytest.mark.parametrize("kind", ["kf", "ekf", "learning"])
+def test_a_carry_of_no_runs_on_a_model_of_three_parameter_sets_steps_three_runs(kind):
+    """A trial: every estimator steps a carry of ``init(model, ())`` on a model of 3
+    parameter sets as 3 runs (the contract), but NeuralCompensation failed in a raw cat
+    error (its histories had the carry's batch, not the runs'). The same numbers as a
+    carry of ``init(model, (3,))``."""
+    from difffilter.fdi.neural import OnlineLearning
+    from difffilter.param_ekf import EKFRule
+
+    d = torch.float64
+    Q3 = 0.02 * torch.eye(2, dtype=d) * torch.tensor([0.5, 1.0, 2.0], dtype=d)[:, None, None]
+    model = df.LinearGaussianModel(torch.tensor([[1.0, 0.1], [-0.05, 0.95]], dtype=d),
+                                   torch.eye(2, dtype=d), Q3, 0.04 * torch.eye(2, dtype=d),
+                                   torch.zeros(2, dtype=d), torch.eye(2, dtype=d))  # fmt: skip
+    ys = torch.randn(3, 4, 2, generator=torch.Generator().manual_seed(0), dtype=d)
+    net = NeuralFDIEstimator(num_areas=1, area_dim=2, resid_dim=2, a=1, b=2, hidden=4, seed=1,
+                             detection_head=False)  # fmt: skip
+    inner = df.ExtendedKalmanFilter() if kind == "ekf" else df.KalmanFilter()
+    kw = dict(residual="lagged", learning=OnlineLearning(EKFRule())) if kind == "learning" else {}
+    est = NeuralCompensation(net, inner, **kw)
+    outs = []
+    for batch in ((), (3,)):
+        carry = est.init(model, batch, torch.Generator().manual_seed(2))
+        means = []
+        for k in range(4):
+            carry, out = est.step(carry, ys[:, k])
+            means.append(out.mean)
+        outs.append(torch.stack(means))
+    assert outs[0].shape == (4, 3, 2)
+    torch.testing.assert_close(outs[0], outs[1], rtol=0, atol=1e-12)
+
+
+def test_a_batch_of_no_runs_gives_empty_outputs_with_online_learning_and_the_adaptive_pf():
+    """A trial: ``open_loop`` on ``ys [0, T, dy]`` gives empty outputs for every estimator but
+    these two, which failed in raw reshape errors (a ``-1`` inferred from no elements)."""
+    from difffilter import fdi
+    from difffilter.fdi.neural import OnlineLearning
+    from difffilter.loop import open_loop
+    from difffilter.param_ekf import EKFRule
+
+    d = torch.float64
+    model = df.LinearGaussianModel(torch.tensor([[1.0, 0.1], [-0.05, 0.95]], dtype=d),
+                                   torch.eye(2, dtype=d), 0.02 * torch.eye(2, dtype=d),
+                                   0.04 * torch.eye(2, dtype=d), torch.zeros(2, dtype=d),
+                                   torch.eye(2, dtype=d), B=torch.tensor([[0.0], [0.1]], dtype=d))  # fmt: skip
+    ys, us = torch.zeros(0, 5, 2, dtype=d), torch.zeros(0, 5, 1, dtype=d)
+    net = NeuralFDIEstimator(num_areas=1, area_dim=2, resid_dim=2, a=1, b=2, hidden=4, seed=1,
+                             detection_head=False)  # fmt: skip
+    for est in (fdi.AdaptiveParticleFilter(16),
+                NeuralCompensation(net, df.KalmanFilter(), residual="lagged",
+                                   learning=OnlineLearning(EKFRule()))):  # fmt: skip
+        out = open_loop(est, model, ys, us, generator=torch.Generator().manual_seed(0))
+        assert out.means.shape == (0, 5, 2)
+
+
+@pytest.mark.parametrize("option", [{"restart": 0.05}, {"reject": 0.05}])
+def test_restart_and_reject_take_an_all_true_mask_as_no_mask(option):
+    """A trial: both refused a mask of every entry received, which every other estimator
+    reads as ``mask=None``; a mask with an entry lost is still refused."""
+    d = torch.float64
+    model = df.LinearGaussianModel(torch.tensor([[1.0, 0.1], [-0.05, 0.95]], dtype=d),
+                                   torch.eye(2, dtype=d), 0.02 * torch.eye(2, dtype=d),
+                                   0.04 * torch.eye(2, dtype=d), torch.zeros(2, dtype=d),
+                                   torch.eye(2, dtype=d))  # fmt: skip
+    net = NeuralFDIEstimator(num_areas=1, area_dim=2, resid_dim=2, a=1, b=2, hidden=4, seed=1)
+    est = NeuralCompensation(net, df.KalmanFilter(), **option)
+    y = torch.randn(3, 2, generator=torch.Generator().manual_seed(0), dtype=d)
+    with torch.no_grad():
+        _, plain = est.step(est.init(model, (3,)), y)
+        _, masked = est.step(est.init(model, (3,)), y, None, torch.ones(3, 2, dtype=torch.bool))
+        assert torch.equal(plain.mean, masked.mean)
+        lost = torch.ones(3, 2, dtype=torch.bool)
+        lost[0, 1] = False
+        with pytest.raises(ValueError, match="needs every entry received"):
+            est.step(est.init(model, (3,)), y, None, lost)

@@ -499,3 +499,25 @@ def test_corrected_residuals_are_the_measurement_minus_the_corrected_particles()
     y = torch.randn(3, generator=g, dtype=torch.float64)
     direct = y - kalman_corrected_particles(x, y, G, K) @ G.T
     torch.testing.assert_close(corrected_residuals(x, y, G, K), direct, rtol=0, atol=1e-12)
+
+
+def test_the_bias_estimator_of_a_modified_pf_hands_out_the_measurements_dtype():
+    """A trial: a float32 model with the default (float64) BiasAttackEstimator recorded
+    float64 attacks beside float32 means, and a float32 estimator on a float64 model failed
+    in a raw matmul. The estimator runs in its own dtype; γ̂ comes in the model's."""
+    from difffilter.loop import open_loop
+
+    def model(dt):
+        return df.LinearGaussianModel(torch.tensor([[1.0, 0.1], [-0.05, 0.95]], dtype=dt),
+                                      torch.eye(2, dtype=dt), 0.02 * torch.eye(2, dtype=dt),
+                                      0.04 * torch.eye(2, dtype=dt), torch.zeros(2, dtype=dt),
+                                      torch.eye(2, dtype=dt))  # fmt: skip
+
+    ys = torch.randn(2, 8, 2, generator=torch.Generator().manual_seed(0))
+    for model_dtype, est_dtype in ((torch.float32, torch.float64), (torch.float64, torch.float32)):
+        pf = fdi.ModifiedParticleFilter(32, fdi.PoADetector(0.5, 0.5),
+                                        fdi.BiasAttackEstimator(2, 0.9, dtype=est_dtype))  # fmt: skip
+        out = open_loop(pf, model(model_dtype), ys.to(model_dtype),
+                        generator=torch.Generator().manual_seed(1))  # fmt: skip
+        assert out.means.dtype == out.attack.dtype == model_dtype
+        assert bool(out.attack.isfinite().all())

@@ -625,3 +625,35 @@ def test_a_noise_of_another_dtype_assigned_after_init_is_named_at_the_next_step(
                                        0.01 * torch.eye(4, dtype=torch.float64))  # fmt: skip
     with pytest.raises(ValueError, match=r"model\.measurement_noise\.\w+ is torch\.float64"):
         pf.step(carry, torch.ones(4))
+
+
+def test_an_input_to_a_model_without_one_is_named_as_given():
+    """A trial: the online step, given ``u``, was told about ``us``."""
+    model = constant_velocity()
+    ys = torch.zeros(2, 3, model.dim_y, dtype=torch.float64)
+    kf = df.KalmanFilter()
+    with pytest.raises(ValueError, match=r"^u was given but the model has no input .*pass u=None"):
+        kf.step(kf.init(model, (2,)), ys[:, 0], torch.zeros(2, 1, dtype=torch.float64))
+    with pytest.raises(
+        ValueError, match=r"^us was given but the model has no input .*pass us=None"
+    ):
+        df.kalman_filter(model, ys, torch.zeros(2, 3, 1, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("flag_shape", [(3,), (2, 3), (4, 2)])
+def test_a_bias_estimator_flag_of_another_shape_is_named(flag_shape):
+    """A trial: ``flag [3]`` beside ``residual [2]`` failed in a raw expand error."""
+    est = fdi.BiasAttackEstimator(2, 0.9)
+    residual = (
+        torch.zeros(2, dtype=torch.float64)
+        if flag_shape == (3,)
+        else torch.zeros(3, 2, dtype=torch.float64)
+    )
+    cov = torch.eye(2, dtype=torch.float64)
+    with pytest.raises(ValueError, match="flag must be one per run"):
+        est.step(
+            est.init(residual.shape[:-1]), residual, cov, torch.ones(flag_shape, dtype=torch.bool)
+        )
+    # one per run and one per entry are taken
+    for good in (residual.shape[:-1], residual.shape):
+        est.step(est.init(residual.shape[:-1]), residual, cov, torch.ones(good, dtype=torch.bool))

@@ -95,6 +95,7 @@ def test_reject_needs_a_rate_a_sensor_attack_and_every_entry():
     model = _linear()
     _, ys = _data(model, runs=2, steps=3)
     mask = torch.ones_like(ys, dtype=torch.bool)
+    mask[0, 1, 0] = False  # an entry lost (all True is no mask)
     for inner in (df.KalmanFilter(), df.ParticleFilter(16)):
         est = NeuralCompensation(_net(), inner, reject=0.01)
         with pytest.raises(ValueError, match="reject tests every channel"):

@@ -97,6 +97,7 @@ def test_restart_needs_a_rate_a_gaussian_filter_a_sensor_attack_and_every_entry(
     _, ys = _data(model, runs=2, steps=3)
     est = NeuralCompensation(_net(), df.KalmanFilter(), restart=0.01)
     mask = torch.ones_like(ys, dtype=torch.bool)
+    mask[0, 1, 0] = False  # an entry lost (all True is no mask)
     with pytest.raises(ValueError, match="restart tests every channel"):
         df.loop.open_loop(est, model, ys, mask=mask)
 

@@ -20,7 +20,7 @@ import numbers
 import torch
 from torch import Tensor
 
-from .._checks import check_covariance
+from .._checks import broadcast_or_none, check_covariance
 from ..gaussian import gaussian_update
 from ..kalman import kalman_predict
 from ..linalg import masked_measurement, matvec
@@ -99,6 +99,14 @@ class BiasAttackEstimator:
             raise ValueError(
                 f"residual must be [..., {d}] and residual_cov [..., {d}, {d}]; "
                 f"got {tuple(residual.shape)}, {tuple(residual_cov.shape)}"
+            )
+        runs = residual.shape[:-1]
+        target = residual.shape if flag.dim() == residual.dim() else runs  # (_flagged's reading)
+        if flag.dim() > residual.dim() or broadcast_or_none(flag.shape, target) != target:
+            # (a raw expand error had come from _flagged)
+            raise ValueError(
+                f"flag must be one per run {list(runs)} or one per entry {list(residual.shape)} "
+                f"(or broadcast to one of them); got {list(flag.shape)}"
             )
         if flag.dtype != torch.bool and not bool(((flag == 0) | (flag == 1)).all()):
             # (.bool() had read a probability of 0.3 as an attacked step, silently)

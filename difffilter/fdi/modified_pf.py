@@ -273,12 +273,17 @@ class ModifiedPFWeighting:
         if self.estimator is not None:
             flag = alarm if mask is None else alarm.unsqueeze(-1) & mask
             innovation = predictive.innovation  # (the filter's own: no check needed)
+            # the estimator's Kalman filter runs in its own dtype (float64 by default) and
+            # γ̂ comes back in the measurements': a float32 model had recorded float64
+            # attacks, and an estimator of float32 on a float64 model failed in a raw matmul
+            own = self.estimator.model.H.dtype
             est, g_hat, _ = self.estimator._update(
                 est,
-                innovation,
-                predictive.innovation_cov,
+                innovation.to(own),
+                predictive.innovation_cov.to(own),
                 self.estimator._flagged(flag, innovation),
             )
+            g_hat = g_hat.to(y.dtype)
         else:
             # a shared γ̂ [T, dy] is recorded per run, so the records stack after the batch
             if k > self.gamma_hat.shape[-2]:  # (a bare IndexError at step T + 1)

@@ -152,7 +152,7 @@ from typing import Any, NamedTuple, Protocol
 import torch
 from torch import Tensor, nn
 
-from .._checks import Choice, check_rate, check_strategy
+from .._checks import Choice, broadcast_or_none, check_rate, check_strategy, model_batch_shape
 from ..attack import Channel
 from ..estimator import Estimator, Generators
 from ..kalman import GaussianFilter
@@ -523,7 +523,7 @@ class _NeuralLikelihood:
         if self.gating:  # a tempered update: kept with probability 1 − g
             log_lik = log_lik * (1.0 - gate_of(logit)).unsqueeze(-1)
         if self.reject_limit is not None:  # no update where ν − â fails its χ² test
-            if mask is not None:
+            if _partial(mask):
                 raise ValueError(_REJECT_MASK)
             kept = _nis(nu - applied, S) <= self.reject_limit(nu.shape[-1])
             log_lik = torch.where(kept.unsqueeze(-1), log_lik, torch.zeros_like(log_lik))
@@ -647,13 +647,17 @@ class NeuralCompensation(Estimator):
                 f"network.resid_dim is {net.resid_dim} (× {net.num_areas} areas) but the model "
                 f"has dim_y = {model.dim_y}: the network was made for another plant"
             )
+        # the network's histories (and learners) per run a step makes: the carry's batch
+        # broadcast with the model's parameter sets, as every estimator's step runs (a
+        # carry of init(model, ()) on a model of 3 sets had failed in a raw cat error)
+        runs = broadcast_or_none(batch_shape, model_batch_shape(model)) or batch_shape
         if self.particles:
             carry = self.pf._init(model, batch_shape, generators)
-            net = self.core.init(batch_shape, carry.particles.dtype, carry.particles.device,
+            net = self.core.init(runs, carry.particles.dtype, carry.particles.device,
                                  generators.init, model)  # fmt: skip
             return carry._replace(aux=net)
         inner = self.inner._init(model, batch_shape, generators)
-        net = self.core.init(batch_shape, inner.mean.dtype, inner.mean.device, generators.init,
+        net = self.core.init(runs, inner.mean.dtype, inner.mean.device, generators.init,
                              model)  # fmt: skip
         plain = self.inner._init(model, batch_shape, generators) if self.plain else None
         return NeuralCarry(inner, net, model, plain)
@@ -708,7 +712,7 @@ class NeuralCompensation(Estimator):
             if "plain_innovation" in core.features:
                 plain_feature = plain_nu / _std(plain_S)
             if self.restart is not None:
-                if mask is not None:
+                if _partial(mask):
                     raise ValueError("restart tests every channel of the uncompensated copy: "
                                      "it needs every entry received (mask=None)")  # fmt: skip
                 nis, dof = _nis(plain_nu, plain_S), plain_nu.shape[-1]
@@ -745,7 +749,7 @@ class NeuralCompensation(Estimator):
         """``new`` where the compensated innovation ``ν_k − â_k [..., dy]`` passes its χ²
         test at the rate ``reject`` (``S [..., dy, dy]``), the prediction ``pred`` where it
         fails (module docstring, rejection), and the step's output to match."""
-        if mask is not None:
+        if _partial(mask):
             raise ValueError(_REJECT_MASK)
         dof = compensated_nu.shape[-1]
         kept = _nis(compensated_nu, S) <= self._chi2_threshold(dof, self.reject)
@@ -881,6 +885,12 @@ def _check_restart(restart, inner, channel) -> None:
             f"inner must be a Gaussian filter and channel 'sensor' (got {type(inner).__name__}, "
             f"channel {channel.value!r})"
         )
+
+
+def _partial(mask: Tensor | None) -> bool:
+    """Whether ``mask`` leaves some entry unreceived (an all-True mask is ``mask=None``,
+    as every other estimator reads it: restart and reject had refused it)."""
+    return mask is not None and not bool(mask.all())
 
 
 _REJECT_MASK = ("reject tests every channel of the compensated innovation: it needs every "
