@@ -555,7 +555,9 @@ def _check_us(
     seq = num_steps is not None
     name = "us" if seq else "u"
     if du == 0:
-        raise ValueError(f"{name} was given but the model has no input (dim_u = 0); pass {name}=None")
+        raise ValueError(
+            f"{name} was given but the model has no input (dim_u = 0); pass {name}=None"
+        )
     want = f"[..., T, {du}]" if seq else f"[..., {du}]"
     _check_float_tensor(us, name, want, dtype, device)
     if us.dim() < (2 if seq else 1) or us.shape[-1] != du:

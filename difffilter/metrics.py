@@ -78,7 +78,7 @@ def _check_binary(t: Tensor, valid: Tensor | None, name: str, meaning: str, hint
         return
     binary = (t == 0) | (t == 1)
     if valid is not None:
-        binary = binary | ~valid.bool().expand(binary.shape)
+        binary = binary | ~valid.bool()  # broadcast both ways (labels [T] beside valid [B, T])
     if not bool(binary.all()):
         raise ValueError(
             f"{name} must be bool {meaning} or hold only 0 and 1; got {t.dtype} with other "

@@ -174,7 +174,9 @@ class KroneckerJacobian(NamedTuple):
         h, M, x = self.hidden, self.outer, self.inputs
         (N, m, hid), eye = M.shape, torch.eye(M.shape[-2], dtype=M.dtype, device=M.device)
         d_w = (eye[None, :, None, :] * h[:, None, :, None]).reshape(N, m, hid * m)  # [i, (j, k)]
-        d_v = (x[:, None, :, None] * M[:, :, None, :]).reshape(N, m, x.shape[-1] * hid)  # [i, (l, j)]
+        d_v = (x[:, None, :, None] * M[:, :, None, :]).reshape(
+            N, m, x.shape[-1] * hid
+        )  # [i, (l, j)]
         return torch.cat([d_w, d_v], dim=-1)
 
     def rows(self, rho: Tensor) -> Tensor:
@@ -305,7 +307,9 @@ class WeightTemplate:
                 raise ValueError(
                     f"params[{n!r}] must broadcast to {tuple(want)}; got {tuple(value.shape)}"
                 ) from exc
-            flat.append(value.reshape(batch_shape.numel(), self.shapes[n].numel()))  # (no -1: no runs)
+            flat.append(
+                value.reshape(batch_shape.numel(), self.shapes[n].numel())
+            )  # (no -1: no runs)
         return torch.cat(flat, dim=1).clone()
 
     def unflatten(self, theta: Tensor) -> dict[str, Tensor]:

@@ -36,6 +36,8 @@ from collections.abc import Collection
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from difffilter._checks import check_rate
+
 __all__ = [
     "Check", "TOLERANCES", "ROBUST_STATE_FACTOR", "ROUND_OFF", "ANALYTIC", "at_least", "at_most",
     "best_analytic", "judge",
@@ -159,6 +161,7 @@ def judge(learned: dict, best: dict, far: float, metric: str = "state_rmse") -> 
     (:func:`best_analytic`) at the calibrated rate ``far``; ``metric`` is the state metric
     (:func:`state_metric`). A check whose learned number is missing does not hold; the
     attack check is left out where no analytic estimator estimates the attack."""
+    far = check_rate(far, "far")  # (a far of 1, meant as 1 %, had moved the band to [0.5, 2])
     tol = TOLERANCES
     checks = []
 

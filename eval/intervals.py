@@ -40,6 +40,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from difffilter._checks import check_rate
 from difffilter.models.streams import Streams
 
 from .acceptance import ROBUST_STATE_FACTOR, TOLERANCES, at_least, at_most
@@ -232,6 +233,9 @@ def checks_intervals(totals: dict[str, dict[str, Tensor]], role_of: dict[str, st
     ``seed``) against the analytic ones, at the calibrated rate ``far``: ``{"level",
     "resamples", "runs", "seed_stream", "estimators": {learned: {metric: {"statistic",
     "estimate", "low", "high", "holds_share"}}}}``."""
+    # (a level of 95 had failed in torch.quantile, one of −0.5 given low > high; a far of 1,
+    # meant as 1 %, had judged every rate against a band of [0.5, 2] without a word)
+    far, level = check_rate(far, "far"), check_rate(level, "level", kind="a confidence level")
     analytic = [n for n in totals if role_of.get(n) == "analytic"]
     learned = [n for n in totals if role_of.get(n) == "learned"]
     weights = _study_and_resamples(runs, resamples, seed)
@@ -277,6 +281,7 @@ def robustness_intervals(totals: dict[str, dict[str, dict[str, Tensor]]], role_o
     the analytic estimators' lowest, every minimum and maximum taken again in each resample
     (holds where ≥ 0). The threats' studies share their seed, so their runs are the same
     runs (the same noise and initial draws) and resample together."""
+    level = check_rate(level, "level", kind="a confidence level")
     names = {n for per in totals.values() for n in per}
     analytic = sorted(n for n in names if role_of.get(n) == "analytic")
     learned = sorted(n for n in names if role_of.get(n) == "learned")

@@ -32,7 +32,7 @@ from typing import Any
 from difffilter.linalg import NumericalBreakdown
 from difffilter.models import estimators as registry
 
-from .acceptance import ANALYTIC, best_analytic, judge, role_mark, roles, state_metric
+from .acceptance import ANALYTIC, TOLERANCES, best_analytic, judge, role_mark, roles, state_metric
 from .calibration import below_target_note
 from .intervals import acceptance_intervals
 from .provenance import software_line, software_record
@@ -109,7 +109,7 @@ def share_percent(share: float) -> str:
     """``100 · share`` in whole percent, with the decimals it takes not to read 0 or 100
     where the check failed or held in some resamples (1,999 of 2,000: 99.95, not 100)."""
     text = f"{100 * share:.0f}"
-    for digits in (1, 2, 3):
+    for digits in range(1, 9):  # (999,999 of 10⁶ had read 100.000)
         if share in (0.0, 1.0) or float(text) not in (0.0, 100.0):
             break
         text = f"{100 * share:.{digits}f}"
@@ -597,6 +597,16 @@ def _acceptance_section(doc: dict) -> Section | None:
 _STATISTIC_TEXT = {"difference": "{m} − best", "ratio": "{m} / best", "value": "{m}"}
 
 
+def _interval_bar(metric: str, statistic: str) -> tuple[float, ...]:
+    """The bar of a headline check's statistic (:func:`~.acceptance.judge`): the TPR
+    difference's margin, the attack RMSE ratio's 1, the state metric's factor."""
+    if statistic == "difference":
+        return (-TOLERANCES["tpr_margin"],)
+    if statistic == "ratio":
+        return (1.0,) if metric == "attack_rmse" else (TOLERANCES["state_factor"],)
+    return ()
+
+
 def _intervals_text(intervals: dict, metrics: list[str]) -> str:
     """The acceptance's intervals over the runs (:mod:`difffilter.eval.intervals`): per
     learned estimator and check, the statistic, its interval and the share of resamples
@@ -613,8 +623,11 @@ def _intervals_text(intervals: dict, metrics: list[str]) -> str:
                 cells.append("—")
                 continue
             kinds[metric] = c["statistic"]
-            cells.append(f"{format_number(c['estimate'], 4)} [{format_number(c['low'], 4)}, "
-                         f"{format_number(c['high'], 4)}], holds in {share_percent(c['holds_share'])} %")  # fmt: skip
+            # not printed as the check's bar unless they are it (a ratio 1.0500012 that
+            # fails ≤ 1.05 had read "1.05 [1.05, 1.05], holds in 0 %")
+            bar = _interval_bar(metric, c["statistic"])
+            cells.append(f"{format_number(c['estimate'], 4, bar)} [{format_number(c['low'], 4, bar)}, "
+                         f"{format_number(c['high'], 4, bar)}], holds in {share_percent(c['holds_share'])} %")  # fmt: skip
         rows.append([f"`{name}`", *cells])
     header = ["learned", *(_STATISTIC_TEXT[kinds.get(m, "value")].format(m=m) for m in metrics)]
     return (

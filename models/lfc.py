@@ -808,8 +808,12 @@ class LFCScenario(Scenario):
         return int(acting[0]) if len(acting) else None
 
     def attack_free_key(self) -> tuple:
-        """The LFC scenarios differ in their attack only: without it, the same loops."""
-        return ("lfc", self.dt, self.steps, self.load, self.load_range)
+        """The built-in LFC scenarios differ in their attack only: without it, the same
+        loops. The detectors' rate and the default checkpoint are part of the key (a
+        variant of its own rate or network had been handed another scenario's calibration,
+        a CUSUM's τ of 16.7 where its own is 12.6: a trial)."""
+        return ("lfc", self.dt, self.steps, self.load, self.load_range, self.false_alarm_rate,
+                self.checkpoint)  # fmt: skip
 
 
 def _lfc(name, attack, description, channels=(2,), dt=0.01, table_key=None, headline=True):

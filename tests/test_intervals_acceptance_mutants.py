@@ -351,3 +351,49 @@ def test_a_learned_estimator_without_a_detection_is_judged_and_fails_its_tpr():
         "✓" if VERDICT["net"]["state_rmse"] else "✗"
     )
     assert cells["every check"] == "**fails**"
+
+
+def test_a_level_or_rate_given_in_percent_is_refused_by_name():
+    """A trial: ``level=95`` failed in torch.quantile, ``level=-0.5`` gave intervals with
+    low > high, and ``far=1`` (meant as 1 %) judged every rate against a band of [0.5, 2]."""
+    from difffilter.eval import intervals as iv
+    from difffilter.eval.acceptance import judge
+
+    g = torch.Generator().manual_seed(0)
+
+    def totals():
+        return {"se": torch.rand(10, generator=g, dtype=torch.float64),
+                "n": torch.ones(10, dtype=torch.float64),
+                "false": torch.ones(10, dtype=torch.float64),
+                "clear": torch.full((10,), 100.0, dtype=torch.float64)}  # fmt: skip
+
+    t, role = {"A": totals(), "L": totals()}, {"A": "analytic", "L": "learned"}
+    kw = dict(runs=10, seed=0, state_metric="state_rmse")
+    for level in (95, -0.5, 1.0):
+        with pytest.raises(ValueError, match="level must be a confidence level in"):
+            iv.checks_intervals(t, role, far=0.01, level=level, **kw)
+        with pytest.raises(ValueError, match="level must be a confidence level in"):
+            iv.robustness_intervals({"bias": t}, role, runs=10, seed=0, level=level)
+    with pytest.raises(ValueError, match="far must be a false-alarm rate in"):
+        iv.checks_intervals(t, role, far=1, **kw)
+    with pytest.raises(ValueError, match="far must be a false-alarm rate in"):
+        judge({"fpr_at_far": 0.01}, {}, far=1)
+    assert iv.checks_intervals(t, role, far=0.01, **kw)["estimators"]["L"]
+
+
+def test_an_interval_failing_its_bar_by_a_hair_does_not_print_as_the_bar():
+    """A trial: a state ratio of 1.0500012, which fails ≤ 1.05, read "1.05 [1.05, 1.05],
+    holds in 0 %" in the report's intervals row (the verdict row printed 1.050001 ✗); a
+    share of 999,999 in 10⁶ read "100.000"."""
+    from difffilter.eval.report import _intervals_text, share_percent
+
+    B, ratio = 20, 1.0500012
+    n = torch.full((B,), 100.0, dtype=torch.float64)
+    se = torch.full((B,), 100.0, dtype=torch.float64)
+    totals = {"A": {"se": se, "n": n}, "L": {"se": se * ratio**2, "n": n}}
+    out = iv.checks_intervals(totals, {"A": "analytic", "L": "learned"}, runs=B, seed=0,
+                              far=0.01, state_metric="state_rmse")  # fmt: skip
+    row = _intervals_text(out, ["state_rmse"]).strip().splitlines()[-1]
+    assert "1.050001 [1.050001, 1.050001], holds in 0 %" in row
+    assert share_percent(999_999 / 1_000_000) == "99.9999"
+    assert share_percent(1999 / 2000) == "99.95" and share_percent(1.0) == "100"

@@ -336,3 +336,38 @@ def test_the_shipped_checkpoint_beside_a_named_one_is_not_said_to_run_without_ck
         _say_shipped({"lfc_step": {"checkpoint": result.checkpoint}})
     assert out.getvalue() == ("not named by --ckpt: the shipped checkpoints/lfc_nn_grad.ckpt "
                               "ran on lfc_step (kf_nn_grad)\n")  # fmt: skip
+
+
+def test_lfc_variants_of_another_rate_or_network_share_no_calibration_or_loop(monkeypatch):
+    """A trial: a variant of lfc_step with its own false-alarm rate was handed lfc_step's
+    calibration (a CUSUM's τ 16.7 where its own is 12.6), and one with another network
+    lfc_step's attack-free loop of ``kf_nn_grad``. The four built-in scenarios still share
+    one key (their loops and calibrations), and a loop is kept per checkpoint."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from difffilter.models import lfc_estimators, registry
+
+    built_in = {registry.get(n).attack_free_key()
+                for n in ("lfc_step", "lfc_sine", "lfc_simultaneous", "lfc_sawtooth")}  # fmt: skip
+    assert len(built_in) == 1
+    step = registry.get("lfc_step")
+    rate = dataclasses.replace(step, name="lfc_step_5pct", false_alarm_rate=0.05)
+    net = dataclasses.replace(step, name="lfc_step_other_net", checkpoint="/tmp/other.ckpt")
+    assert len({step.attack_free_key(), rate.attack_free_key(), net.attack_free_key()}) == 3
+
+    calls = []
+
+    def fake_loop(ctx, estimator, tr, compensate, attack=None, forks=None, **kw):
+        calls.append(ctx.checkpoint)
+        return object()
+
+    tr = SimpleNamespace(x=torch.zeros(2, 5, 10), info={})
+    cache = {}
+    monkeypatch.setattr(lfc_estimators, "_loop", fake_loop)
+    monkeypatch.setattr(lfc_estimators, "_fork_steps", lambda scenario, draws: [])
+    for ckpt in ("a.ckpt", "b.ckpt", "a.ckpt"):
+        ctx = SimpleNamespace(scenario=step, streams=SimpleNamespace(seed=0), cache=cache,
+                              checkpoint=ckpt, checkpoint_for=lambda name, c=ckpt: c)  # fmt: skip
+        lfc_estimators._attack_free(ctx, "kf_nn_grad", None, tr, True)
+    assert calls == ["a.ckpt", "b.ckpt"]  # the third reuses the first's loop

@@ -476,3 +476,22 @@ def test_misfitting_delay_inputs_and_bad_threshold_inputs_are_refused():
         metrics.threshold_for(np.arange(10.0), 0.1)
     with pytest.raises(ValueError, match="at least one"):
         metrics.threshold_for(torch.zeros(0), 0.1)
+
+
+def test_zero_one_labels_of_every_run_beside_a_valid_mask_per_run():
+    """A trial: labels ``[T]`` as 0/1 floats beside ``valid [B, T]`` failed in a raw expand
+    error (valid was expanded to the labels' shape); bool labels worked. Both now give the
+    same AUC and counts."""
+    from difffilter import metrics as dm
+
+    g = torch.Generator().manual_seed(0)
+    s = torch.randn(3, 5, generator=g)
+    lab = torch.tensor([0.0, 1.0, 0.0, 1.0, 1.0])
+    v = torch.ones(3, 5, dtype=torch.bool)
+    v[0, 0] = False
+    assert dm.roc_auc(s, lab, v) == dm.roc_auc(s, lab.bool(), v)
+    assert dm.detection_counts(s > 0, lab, v) == dm.detection_counts(s > 0, lab.bool(), v)
+    bad = lab.clone()
+    bad[2] = 0.5  # a score passed for a label, scored in runs 1 and 2
+    with pytest.raises(ValueError, match="must be bool"):
+        dm.roc_auc(s, bad, v)

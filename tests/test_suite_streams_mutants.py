@@ -258,7 +258,9 @@ def _free_loops(monkeypatch):
     cache: dict = {}
 
     def call(scenario, seed: int, runs: int):
-        ctx = NS(scenario=scenario, streams=Streams(seed), cache=cache)
+        ctx = NS(
+            scenario=scenario, streams=Streams(seed), cache=cache, checkpoint_for=lambda name: None
+        )
         tr = NS(x=torch.zeros(runs, scenario.steps, 10), info={})
         return lfc._attack_free(ctx, "uncompensated", None, tr, False)
 

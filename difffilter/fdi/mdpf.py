@@ -110,7 +110,13 @@ class ParticleLayout:
     def pack(self, x, a, ups, S, P) -> Tensor:
         # sizes, not -1: a batch of no runs has no elements to infer -1 from
         lead, (_, _, n_ups, n_s, n_p) = x.shape[:-1], self.sizes
-        parts = (x, a, ups.reshape(lead + (n_ups,)), S.reshape(lead + (n_s,)), P.reshape(lead + (n_p,)))
+        parts = (
+            x,
+            a,
+            ups.reshape(lead + (n_ups,)),
+            S.reshape(lead + (n_s,)),
+            P.reshape(lead + (n_p,)),
+        )
         return torch.cat(parts, -1)
 
     def unpack(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
