@@ -588,7 +588,7 @@ def closed_loop(
             # somewhere else (a trial: attack estimates 0.107 apart); one copy per resume
             state = state.copy()
         keys = ("x", "y", "recv", "u", "attack", "value", "flag", "concealment", "applied",
-                "sent", "arrived", "acting", "mask")  # fmt: skip
+                "sent", "arrived", "acting", "mask", "input_channel")  # fmt: skip
         rec, outs = {key: [] for key in keys}, []
     _check_lengths(plant, noise, mask, state, steps)
     _check_attack_horizon(attack, state, steps)
@@ -606,6 +606,8 @@ def closed_loop(
     first = state.k - len(rec["x"])  # the step before the first one recorded
     if rec["x"]:
         _check_fork_mask(rec["mask"], mask, first)
+        if input_loss is not None:
+            _check_fork_input_loss(rec, input_loss, first)
     k, x, u, a_state, carry, view, memory = state
     if channel is Channel.ACTUATOR and plant.dim_u == 0:  # (no controller could help it)
         raise ValueError(
@@ -639,6 +641,7 @@ def closed_loop(
                 rec["sent"].append(u)
                 rec["arrived"].append(sent.arrived)
                 rec["acting"].append(sent.acting)
+                rec["input_channel"].append((input_loss.on_loss, input_loss.acknowledged))
             x = noise.transition(plant, x, applied, k - 1)
             y = noise.measure(plant, x, k - 1)
             received = y
@@ -1250,6 +1253,31 @@ def _resume(fork: LoopFork, plant, attack, attack_generator, channel, horizon):
     if channel is Channel.ACTUATOR and records["arrived"]:  # (under input_loss: none acted)
         records["acting"] = [torch.zeros_like(arrived) for arrived in records["arrived"]]
     return state._replace(attack=a_state), records, list(fork.outputs)
+
+
+def _check_fork_input_loss(kept: dict, input_loss, first: int) -> None:
+    """A fork kept under an :class:`~difffilter.input_loss.InputLoss` is continued under the
+    same channel: its arrivals at the fork's steps ``first + 1 …`` and what a loss does
+    (``on_loss``, ``acknowledged``). Another had been taken: the result stitched the fork's
+    steps from one channel to the rest from another (a trial: 20 of 20 recorded arrival
+    rows not the channel's given, lost packets of a "zero" channel holding an input)."""
+    end = first + len(kept["arrived"])
+    channel = (input_loss.on_loss, input_loss.acknowledged)
+    if kept.get("input_channel") and kept["input_channel"][0] != channel:
+        was = kept["input_channel"][0]
+        raise ValueError(
+            f"fork: input_loss (on_loss={channel[0].value!r}, acknowledged={channel[1]}) is not "
+            f"the channel of the loop that kept the fork (on_loss={was[0].value!r}, "
+            f"acknowledged={was[1]}): continue it with that loop's"
+        )
+    rows = input_loss.mask[:, first:end]
+    arrived = torch.stack(kept["arrived"], 1)
+    rows = rows.unsqueeze(-1).expand_as(arrived) if rows.shape != arrived.shape else rows
+    if rows.shape != arrived.shape or not torch.equal(rows, arrived):
+        raise ValueError(
+            f"fork: input_loss's arrivals differ from those of the loop that kept the fork at "
+            f"steps {first + 1} … {end} (the fork's steps): continue it with that loop's"
+        )
 
 
 def _check_fork_mask(kept: list, mask: Tensor | None, first: int) -> None:

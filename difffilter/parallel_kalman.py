@@ -57,6 +57,15 @@ __all__ = [
 ]
 
 
+#: Where the scan's ``I + C J`` is ill conditioned, and what to do (its errors' ending).
+#: A diffuse prior was named too: P0 = 1e10·I in float32 had been blamed on F and R alone,
+#: and the sequential filter advised, which failed there too (a trial).
+_ILL_CONDITIONED = (
+    "for a strongly non-normal F with a small R, or a prior covariance P0 many orders above "
+    "the noise in float32: use method='sequential' (the default), float64, or a smaller P0"
+)
+
+
 def _take(
     t: Tensor, dim: int, start: int | None, stop: int | None, step: int | None = None
 ) -> Tensor:
@@ -186,8 +195,7 @@ def parallel_kalman_filter(
     except torch.linalg.LinAlgError as exc:  # X = I + C J singular in working precision
         raise ValueError(
             f"method='parallel' failed on this model ({exc}): the associative scan inverts "
-            "I + C J, which is ill conditioned for a strongly non-normal F with a small R; "
-            "use method='sequential' (the default) for it"
+            f"I + C J, which is ill conditioned {_ILL_CONDITIONED}"
         ) from exc
     means, covs = scanned[1], scanned[2]
 
@@ -282,8 +290,7 @@ def _check_one_step_consistency(
                 f"from one Kalman update of its own prediction by up to {float(worst_mean):.3g} "
                 f"posterior standard deviations (covariance entries: {float(worst_cov):.3g} of "
                 f"their scale), first at step {step}, beyond {tol:g}. The "
-                "associative scan inverts I + C J, which is ill conditioned for a strongly "
-                "non-normal F with a small R: use method='sequential' (the default) for it"
+                f"associative scan inverts I + C J, which is ill conditioned {_ILL_CONDITIONED}"
             )
 
 

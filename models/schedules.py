@@ -14,6 +14,7 @@ mask and removes the unreceived entries exactly.
 
 from __future__ import annotations
 
+import math
 import numbers
 from dataclasses import dataclass
 
@@ -131,10 +132,23 @@ class PacketLoss:
     def mask(self, batch_shape, num_steps: int, dim: int, generator=None, *, device=None) -> Tensor:
         links, packet_of = _links(self.packets, dim, device)
         shape = _shape(batch_shape) + (num_steps, links)
+        _seeded(generator, shape, "PacketLoss")
         arrived = (
             torch.rand(shape, generator=generator, dtype=torch.float64, device=device) >= self.rate
         )
         return arrived if packet_of is None else arrived[..., packet_of]
+
+
+def _seeded(generator, shape, who: str) -> None:
+    """Every random draw from a generator of its own: a loss schedule drawn without one had
+    drawn from torch's global generator, silently (a trial: a scenario's input losses, two
+    identical calls 0.038 apart in the state)."""
+    if generator is None and math.prod(shape) > 0:
+        raise ValueError(
+            f"{who} draws its losses from generator: give one (a scenario's simulate reads "
+            "'schedule' and 'input_schedule' from its generators: "
+            "difffilter.models.streams.Streams(seed).simulation() holds both)"
+        )
 
 
 def _links(packets, dim: int, device) -> tuple[int, Tensor | None]:
@@ -213,6 +227,7 @@ class BurstLoss:
     def mask(self, batch_shape, num_steps: int, dim: int, generator=None, *, device=None) -> Tensor:
         links, packet_of = _links(self.packets, dim, device)
         shape = _shape(batch_shape) + (num_steps, links)
+        _seeded(generator, shape, "BurstLoss")
         # two uniforms per link and step: the chain's move, then the loss in its state
         move = torch.rand(shape, generator=generator, dtype=torch.float64, device=device)
         lose = torch.rand(shape, generator=generator, dtype=torch.float64, device=device)

@@ -446,3 +446,17 @@ def test_a_users_input_function_is_judged_at_the_studys_length(tmp_path, monkeyp
     plant = {**MOTOR["plant"], "B": [[0.1, 0.0], [0.0, 0.2]]}
     sc = _with(plant=plant, inputs={"function": "squeezed_inputs:two"})
     assert sc.inputs(4, torch.float64).shape == (4, 40, 2)
+
+
+def test_a_loss_schedule_without_its_generator_is_refused():
+    """A trial: a scenario's input losses, simulated from generators without
+    "input_schedule", had drawn from torch's global generator: two identical calls gave
+    other arrivals (the state 0.038 apart), neither difffilter-eval's."""
+    lossy = _with(input_loss={"kind": "packet_loss", "rate": 0.4})
+    gens = {k: Streams(3)(k) for k in ("plant", "attack", "schedule")}
+    with pytest.raises(ValueError, match="PacketLoss draws its losses from generator"):
+        lossy.simulate(6, gens)
+    for schedule in (PacketLoss(0.2), BurstLoss(0.1, 0.5)):
+        with pytest.raises(ValueError, match="draws its losses from generator"):
+            schedule.mask((2,), 5, 1)
+        assert schedule.mask((2,), 0, 1).shape == (2, 0, 1)  # nothing to draw

@@ -1221,7 +1221,10 @@ def test_parallel_refuses_a_model_where_its_scan_loses_the_filter(generator):
     ref = numpy_kalman_filter(F, H, Q, R, m0, P0, ys[0].numpy())
     sd = seq.covs[0].diagonal(dim1=-2, dim2=-1).sqrt().numpy()
     assert (np.abs(seq.means[0].numpy() - ref[0]) / sd).max() < 1e-3  # sequential holds
-    with pytest.raises(ValueError, match=r"method='parallel' lost accuracy.*method='sequential'"):
+    with pytest.raises(
+        ValueError,
+        match=r"method='parallel' lost accuracy.*method='sequential'.*float64, or a smaller P0",
+    ):
         df.kalman_filter(model, ys, method="parallel")
 
 
@@ -1255,7 +1258,9 @@ def test_parallel_names_a_singular_combination(monkeypatch, generator):
         raise torch.linalg.LinAlgError("linalg.inv: The diagonal element 2 is zero")
 
     monkeypatch.setattr(torch.linalg, "inv", singular)
-    with pytest.raises(ValueError, match=r"method='parallel' failed.*method='sequential'"):
+    with pytest.raises(
+        ValueError, match=r"method='parallel' failed.*method='sequential'.*float64, or a smaller P0"
+    ):
         df.kalman_filter(model, ys, method="parallel")
 
 

@@ -1005,3 +1005,38 @@ def test_a_flag_of_the_entries_size_one_rank_short_is_per_run_and_the_error_says
                                torch.full((3, 3), 0.5, dtype=F64))  # fmt: skip
     per_run = run(torch.tensor([True, False]), 2).trajectories  # [B] with B = dy: per run
     assert per_run.flags[:, 0].tolist() == [True, False]
+
+
+def test_a_fork_kept_under_an_input_loss_is_continued_under_the_same_channel():
+    """A trial: another arrival mask, ``on_loss`` or ``acknowledged`` had been taken when
+    continuing a fork, stitching the fork's steps of one channel to the rest of another
+    (as a sensor mask of another schedule is refused). The same channel gives the whole loop."""
+    from difffilter.input_loss import InputLoss
+    from difffilter.loop import ReplayedNoise, StateFeedback, closed_loop
+
+    d = torch.float64
+    g = torch.Generator().manual_seed(39)
+    T, B = 20, 2
+    model = df.LinearGaussianModel(torch.tensor([[1.0, 0.1], [0.0, 0.98]], dtype=d),
+                                   torch.tensor([[1.0, 0.0]], dtype=d), 0.01 * torch.eye(2, dtype=d),
+                                   0.05 * torch.eye(1, dtype=d), torch.zeros(2, dtype=d),
+                                   0.1 * torch.eye(2, dtype=d), B=torch.tensor([[0.0], [0.1]], dtype=d))  # fmt: skip
+    w = 0.1 * torch.randn(B, T, 2, generator=g, dtype=d)
+    v = 0.2 * torch.randn(B, T, 1, generator=g, dtype=d)
+    x0 = torch.randn(B, 2, generator=g, dtype=d)
+    m1 = torch.rand(B, T, generator=g) > 0.5
+    kw = dict(noise=ReplayedNoise(w, v), estimator=df.KalmanFilter(),
+              controller=StateFeedback(torch.tensor([[0.5, 1.0]], dtype=d)))  # fmt: skip
+    forks = {10: None}
+    whole = closed_loop(model, T, x0=x0, forks=forks, input_loss=InputLoss(m1, "hold"), **kw)
+    same = closed_loop(model, T - 10, fork=forks[10], input_loss=InputLoss(m1, "hold"), **kw)
+    assert torch.equal(same.trajectories.x, whole.trajectories.x)
+    with pytest.raises(ValueError, match="input_loss's arrivals differ .* steps 1 … 10"):
+        closed_loop(model, T - 10, fork=forks[10], input_loss=InputLoss(~m1, "hold"), **kw)
+    for other in (InputLoss(m1, "zero"), InputLoss(m1, "hold", acknowledged=False)):
+        with pytest.raises(ValueError, match="is not the channel of the loop that kept the fork"):
+            closed_loop(model, T - 10, fork=forks[10], input_loss=other, **kw)
+    # after the fork's steps the arrivals may be another loop's: that is the point of a fork
+    later = m1.clone()
+    later[:, 12:] = ~later[:, 12:]
+    closed_loop(model, T - 10, fork=forks[10], input_loss=InputLoss(later, "hold"), **kw)
