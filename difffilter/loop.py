@@ -497,9 +497,13 @@ def closed_loop(
             absolute step.
         generator: the estimator's draws (a ``torch.Generator`` or
             :class:`~difffilter.estimator.Generators`).
-        state: resume from this :class:`LoopState` (``x0`` and the initial draws unused);
-            the loop runs on a copy (:meth:`LoopState.copy`): ``state`` is left as it was,
-            so that two loops resumed from it run the same.
+        state: resume from this :class:`LoopState` (``x0`` and the initial draws unused).
+            The loop runs on it, not on a copy (a copy would split a generator it shares
+            with the noise, and double a learner's memory at every chunk): an estimator
+            that writes its carry in place (``EKFRule(donate=True)``) or draws from its
+            generators consumes it, so resume two loops from one state (two what-ifs) each
+            from a :meth:`LoopState.copy` made before the first (a consumed learner state
+            is refused).
         horizon: the whole loop's length ``T`` when it runs in chunks (what the attacker
             tabulates for at the start; default ``steps``).
         progress: called with 1 after every step (e.g. a progress bar's ``update``).
@@ -581,12 +585,6 @@ def closed_loop(
         if state is None:
             state = _start(plant, steps, horizon, x0, estimator, model, controller, attack,
                            attack_generator, generator)  # fmt: skip
-        else:
-            # the state given stays as it was: an estimator that writes its carry in place
-            # (the LFC learners' donated covariance buffers) or draws from the generators it
-            # holds had changed it, and a second resume from it (another what-if) ran from
-            # somewhere else (a trial: attack estimates 0.107 apart); one copy per resume
-            state = state.copy()
         keys = ("x", "y", "recv", "u", "attack", "value", "flag", "concealment", "applied",
                 "sent", "arrived", "acting", "mask", "input_channel")  # fmt: skip
         rec, outs = {key: [] for key in keys}, []

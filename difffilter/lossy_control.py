@@ -190,14 +190,14 @@ def _diverged(X) -> bool:
 
 def _no_fixed_point(why: str, rate: float, what: str, mode: str = "undetectable") -> ValueError:
     """The error of a Riccati iteration without a fixed point; ``mode``: what a pair's
-    mode on the unit circle is called in that problem (a filter's ``undetectable``, a
+    mode on (or very near) the unit circle is called in that problem (a filter's ``undetectable``, a
     controller's ``uncontrollable``)."""
     if why == UNSETTLED:
         # at rate 1 nothing is lost: no critical rate to be near (a trial on the LFC plant,
         # whose conserved tie-line sum is an uncontrollable mode at 1, read that it was)
-        cause = (f"the pair has an {mode} mode on the unit circle" if rate == 1.0 else
+        cause = (f"the pair has an {mode} mode on (or very near) the unit circle" if rate == 1.0 else
                  "the rate is near (or below) the critical rate (critical_arrival_rate gives "
-                 f"it), or the pair has an {mode} mode on the unit circle")  # fmt: skip
+                 f"it), or the pair has an {mode} mode on (or very near) the unit circle")  # fmt: skip
         return ValueError(
             f"{what}: the modified Riccati iteration at rate {rate} had not settled after "
             f"100,000 steps: {cause}"

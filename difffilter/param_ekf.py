@@ -23,7 +23,9 @@ baseline: ``ζ_k = ζ_{k−1} + lr · H_kᵀ e_k``, a gradient step on ``½‖e_
 parameter vector (the weights of a network being trained offline), observed at each step
 through a pool of ``S`` samples stacked into one measurement: ``H_k [S·m, P]``, ``e_k
 [S·m]``, and ``Υ_k`` the running mean of ``‖e‖²`` per sample. Its state (``ρ``, ``Υ``,
-``k``) lives in the optimizer's ``state_dict``, so a Lightning checkpoint resumes it.
+``k`` and, once given ``received``, ``seen``) lives in the optimizer's ``state_dict``, so a
+Lightning checkpoint resumes it (one written before ``seen`` resumes as it was). An entry
+not received (``received``) carries no information, in the update or in ``Υ``.
 
 The learning rules are pure functions of a :class:`LearnerState` (``θ``, ``ρ``, ``Υ``,
 ``k``): :class:`EKFRule` and :class:`GradientRule` step it, :class:`WeightTemplate` maps
@@ -66,6 +68,7 @@ and two threads).
 from __future__ import annotations
 
 import contextlib
+import inspect
 from functools import lru_cache
 from typing import NamedTuple
 
@@ -109,9 +112,9 @@ class LearnerState(NamedTuple):
     covariances ``rho`` (a :class:`DeferredCovariance`, or ``[N, P, P]`` under
     :func:`dense_reference`; :meth:`EKFRule.covariance` gives the matrices) and running
     noise ``upsilon [N]`` (``None`` for plain gradient steps) and the step count ``k``.
-    ``seen [N]``: how many steps informed each learner's ``Υ`` (``None`` while every step
-    has: ``k``), once a step received nothing for some learner (``received`` of
-    :meth:`EKFRule.step`)."""
+    ``seen [N]``: how many steps informed each learner's ``Υ``, counted from the first
+    step given ``received`` (:meth:`EKFRule.step`; ``None`` before: ``k``, every step
+    informed)."""
 
     theta: Tensor
     rho: Tensor | DeferredCovariance | None
@@ -208,6 +211,10 @@ class DeferredCovariance(NamedTuple):
     count: int
     shift: float
     order: Tensor | None = None
+    #: ``(id, version)`` of ``base`` and ``pending`` when a donating rule handed this state
+    #: out (``None``: not donated): a later in-place write to them, by a step that ran from
+    #: this state, marks it consumed (:meth:`EKFRule.step` refuses it).
+    stamp: tuple | None = None
 
     def dense(self) -> Tensor:
         """``ρ [N, P, P]`` in ``θ``'s order (a new tensor)."""
@@ -479,22 +486,20 @@ class EKFRule:
                 )
             else:
                 r = _received(received, e)
-                e = e * r
-                count = r.sum(-1)
-                informed = count > 0
+                e = _unreceived_zeroed(e, r)
+                energy, informed = _informed_energy(e, r)
                 before = (
-                    state.upsilon.new_full(count.shape, float(state.k))
+                    state.upsilon.new_full(informed.shape, float(state.k))
                     if state.seen is None
                     else state.seen
                 )
                 seen = before + informed.to(before.dtype)
-                energy = (e * e).sum(-1) * (e.shape[-1] / count.clamp_min(1.0))
                 ups = torch.where(informed, state.upsilon + (energy - state.upsilon) / seen.clamp_min(1.0),
                                   state.upsilon)  # fmt: skip
             if not isinstance(state.rho, DeferredCovariance):  # dense_reference()
                 dense = H.dense() if isinstance(H, KroneckerJacobian) else H
                 if received is not None:
-                    dense = dense * r[..., None]
+                    dense = _unreceived_zeroed(dense, r)
                 step, rho = ekf_weight_update(
                     state.rho, dense, e, ups, self.process_noise, k, donate=self.donate
                 )
@@ -507,7 +512,9 @@ class EKFRule:
     def _deferred(self, cov: DeferredCovariance, H, e: Tensor, ups: Tensor, k0: int,
                   keep: Tensor | None = None):  # fmt: skip
         """``(λ_k e_k [N, P] in θ's order, ρ_{k+1})`` on the deferred form (class doc);
-        ``keep [N, m]`` (0 or 1) zeroes the rows of ``H`` of the entries not received."""
+        ``keep [N, m]`` (bool) zeroes the rows of ``H`` of the entries not received."""
+        if self.donate:
+            _check_unconsumed(cov)
         kron = isinstance(H, KroneckerJacobian)
         order, inverse = H.order() if kron else (None, None)
         if not _same_order(cov.order, order):
@@ -522,7 +529,7 @@ class EKFRule:
             G = cov.pending[:, : cov.count]
             R = R.baddbmm_(torch.bmm(Ht, G.transpose(-1, -2)), G, alpha=-1.0)
         if keep is not None:  # R = H̃ ρ is linear in H̃'s rows: zeroing them at the end is exact
-            R, Ht = R * keep[..., None], Ht * keep[..., None]
+            R, Ht = _unreceived_zeroed(R, keep), _unreceived_zeroed(Ht, keep)
         S = torch.bmm(R, Ht.transpose(-1, -2))
         S.diagonal(dim1=-2, dim2=-1).add_(ups[:, None])
         L = safe_cholesky(symmetrize(S), name="innovation covariance S")
@@ -546,7 +553,8 @@ class EKFRule:
             pending = torch.cat([cov.pending[:, :count], rows], dim=1)
         count, shift = count + m, cov.shift + self.process_noise
         if count < size:
-            return cov._replace(pending=pending, count=count, shift=shift)
+            return cov._replace(pending=pending, count=count, shift=shift,
+                                stamp=_stamp(cov.base, pending) if self.donate else None)  # fmt: skip
         G = pending[:, :count]
         # one product of `size` columns: the deferral's point (m columns at a time is a
         # thin product that runs several times slower per multiply-add)
@@ -555,11 +563,43 @@ class EKFRule:
         else:
             base = torch.baddbmm(cov.base, G.transpose(-1, -2), G, alpha=-1.0)
         base.diagonal(dim1=-2, dim2=-1).add_(shift)
-        return DeferredCovariance(base, pending, 0, 0.0, cov.order)
+        return DeferredCovariance(base, pending, 0, 0.0, cov.order,
+                                  _stamp(base, pending) if self.donate else None)  # fmt: skip
+
+
+def _stamp(*tensors: Tensor) -> tuple | None:
+    """``((id, version), …)`` of ``tensors`` (``None`` for inference tensors: no version)."""
+    if any(t.is_inference() for t in tensors):
+        return None
+    return tuple((id(t), t._version) for t in tensors)
+
+
+def _check_unconsumed(cov: DeferredCovariance) -> None:
+    """``ValueError`` where a step has already written, in place, the buffers of the
+    donated ``cov`` (a copy of it has other tensors and passes)."""
+    if cov.stamp is None:
+        return
+    for t, (ident, version) in zip((cov.base, cov.pending), cov.stamp):
+        if id(t) == ident and t._version != version:
+            raise ValueError(
+                "this learner state was consumed: EKFRule(donate=True) writes its covariance "
+                "buffers in place, and a step has already run from this state (a second loop "
+                "resumed from one LoopState had run from elsewhere, silently: a trial); resume "
+                "each from a copy made before the first (LoopState.copy())"
+            )
+
+
+def _takes_received(step) -> bool:
+    """Whether the callable ``step`` takes a ``received`` keyword (or any keyword)."""
+    try:
+        params = inspect.signature(step).parameters.values()
+    except (TypeError, ValueError):  # (a builtin without a signature: assume it does not)
+        return False
+    return any(p.name == "received" or p.kind is p.VAR_KEYWORD for p in params)
 
 
 def _received(received: Tensor, e: Tensor) -> Tensor:
-    """``received`` as ``e``'s 0/1 weights ``[N, m]``, checked against ``e``'s shape."""
+    """``received`` ``[N, m]`` (bool), checked against ``e``'s shape."""
     if received.shape != e.shape:
         raise ValueError(f"received must have the residual's shape {tuple(e.shape)}; got "
                          f"{tuple(received.shape)}")  # fmt: skip
@@ -567,7 +607,22 @@ def _received(received: Tensor, e: Tensor) -> Tensor:
         raise ValueError(
             f"received must be a bool tensor (True: the entry arrived); got {received.dtype}"
         )
-    return received.to(e.dtype)
+    return received
+
+
+def _unreceived_zeroed(t: Tensor, received: Tensor) -> Tensor:
+    """``t`` ``[N, m]`` or ``[N, m, P]`` with the entries (rows) not ``received [N, m]`` 0:
+    selected, not multiplied, so that a NaN there is never read (NaN · 0 is NaN)."""
+    keep = received if t.dim() == received.dim() else received[..., None]
+    return torch.where(keep, t, torch.zeros((), dtype=t.dtype, device=t.device))
+
+
+def _informed_energy(e: Tensor, received: Tensor) -> tuple[Tensor, Tensor]:
+    """``((m / m_r) ‖e_r‖² [N], informed [N])`` of residuals ``e [N, m]`` zeroed where not
+    ``received``: each one's energy at its received entries' rate (Υ's sample), and whether
+    it received any (``m_r > 0``)."""
+    count = received.sum(-1).to(e.dtype)
+    return (e * e).sum(-1) * (e.shape[-1] / count.clamp_min(1.0)), count > 0
 
 
 def _same_order(a: Tensor | None, b: Tensor | None) -> bool:
@@ -593,7 +648,7 @@ class GradientRule:
             if isinstance(H, KroneckerJacobian):
                 H = H.dense()
             if received is not None:
-                e = e * _received(received, e)
+                e = _unreceived_zeroed(e, _received(received, e))
             step = (e.unsqueeze(-2) @ H).squeeze(-2)  # Hᵀe as eᵀH: no transposed operand
             return LearnerState(state.theta + self.lr * step, None, None, state.k + 1)
 
@@ -649,15 +704,24 @@ class _Learner:
         x = self._flat_inputs(inputs)
         return self.template.jacobian(self.theta, x, autodiff=autodiff, factored=False)
 
-    def step(self, inputs: Tensor, targets: Tensor) -> ParamStepOutput:
-        """One update from ``inputs [*batch, ...]`` and ``targets [*batch, m]``."""
+    def step(
+        self, inputs: Tensor, targets: Tensor, received: Tensor | None = None
+    ) -> ParamStepOutput:
+        """One update from ``inputs [*batch, ...]`` and ``targets [*batch, m]`` (``received
+        [*batch, m]``, bool: the targets that arrived, as in :meth:`EKFRule.step`)."""
         pred, H = self.template.jacobian(self.theta, self._flat_inputs(inputs))
         m = pred.shape[-1]
         want = self.batch_shape + (m,)
         if tuple(targets.shape) != tuple(want):
             raise ValueError(f"targets must have shape {tuple(want)}; got {tuple(targets.shape)}")
         e = targets.reshape(-1, m).to(self.dtype) - pred
-        self.state = self.rule.step(self.state, H, e)
+        if received is not None:
+            if tuple(received.shape) != tuple(want):
+                raise ValueError(
+                    f"received must have shape {tuple(want)}; got {tuple(received.shape)}"
+                )
+            received = received.reshape(-1, m)
+        self.state = self.rule.step(self.state, H, e, received)
         return ParamStepOutput(pred.reshape(want), e.reshape(want))
 
 
@@ -757,19 +821,18 @@ class EKFOptimizer(torch.optim.Optimizer):
         H = jacobian.to(e.dtype)
         if received is not None:
             r = _received(received, e)
-            e, H = e * r, H * r[..., None]
+            e, H = _unreceived_zeroed(e, r), _unreceived_zeroed(H, r)
         per_sample = e.square().sum(-1)
         state["k"] += 1
         if received is None and "seen" not in state:  # every entry of every step so far
             state["upsilon"] += (per_sample.mean() - state["upsilon"]) / state["k"]
         else:
-            count = torch.full_like(per_sample, e.shape[-1]) if received is None else r.sum(-1)
-            informed = count > 0
+            everything = torch.ones_like(e, dtype=torch.bool)
+            energy, informed = _informed_energy(e, everything if received is None else r)
             seen = state.get("seen", state["k"] - 1)
             if bool(informed.any()):
-                energy = (per_sample * (e.shape[-1] / count.clamp_min(1.0)))[informed]
                 seen += 1
-                state["upsilon"] += (energy.mean() - state["upsilon"]) / seen
+                state["upsilon"] += (energy[informed].mean() - state["upsilon"]) / seen
             state["seen"] = seen
         H = H.reshape(1, -1, P)
         update, rho = ekf_weight_update(
@@ -790,25 +853,23 @@ def ekf_along_sequence(step, predict, inputs: Tensor, targets: Tensor,
     """The EKF over the weights along a sequence of ``S`` samples (the LFC paper's
     Algorithm 1, one measurement per time step): at each step ``t`` one update
     ``step(jacobian=J ⊙ r, residual=(target − out) ⊙ r, received=r)`` (an
-    :meth:`EKFOptimizer.step`, or Lightning's wrapper of it, which passes ``received`` on)
-    from ``predict(inputs[:, t]) → (out [S, m], J [S, m, P])``, evaluated at the weights
-    the previous update left, and ``r = received[:, t]`` (unreceived entries carry no
-    information, in the update and in ``Υ``).
+    :meth:`EKFOptimizer.step`, or Lightning's wrapper of it, which passes ``received`` on;
+    a ``step`` that takes no ``received`` is called without it) from ``predict(inputs[:,
+    t]) → (out [S, m], J [S, m, P])``, evaluated at the weights the previous update left,
+    and ``r = received[:, t]`` (unreceived entries carry no information, in the update and,
+    given ``received``, in ``Υ``; their values are never read, a NaN included).
 
     Shapes: ``inputs [S, T, in]``, ``targets`` and ``received`` (bool) ``[S, T, m]`` →
     ``‖e_s‖²`` before each update, ``[T, S]``. The recursion is the time loop: each update
     reads the weights of the one before.
     """
+    takes = _takes_received(step)
     sq_err = []
     for t in range(inputs.shape[-2]):
         out, jacobian = predict(inputs[:, t])
-        keep = received[:, t].to(out.dtype)
-        residual = (targets[:, t].to(out.dtype) - out) * keep
-        sq_err.append(
-            step(
-                jacobian=jacobian * keep[..., None],
-                residual=residual,
-                received=received[:, t].bool(),
-            )
-        )  # Υ of the received entries alone
+        keep = received[:, t].bool()
+        residual = _unreceived_zeroed(targets[:, t].to(out.dtype) - out, keep)
+        jacobian = _unreceived_zeroed(jacobian, keep)
+        extra = {"received": keep} if takes else {}  # (Υ of the received entries alone)
+        sq_err.append(step(jacobian=jacobian, residual=residual, **extra))
     return torch.stack(sq_err)

@@ -90,9 +90,11 @@ def watermark_study(scenario, *, runs: int = 20, seed: int = 0, std: float = 0.0
     if isinstance(onset, bool) or not isinstance(onset, int) or not 1 <= onset <= steps:
         raise ValueError(f"onset must be a step of the scenario's 1 … {steps} (the replay's "
                          f"first replayed step); got {onset!r}")  # fmt: skip
-    if isinstance(window, bool) or not isinstance(window, int) or not 1 <= window <= steps:
-        raise ValueError(f"window must be an integer in 1 … {steps} steps (the χ² detector's); "
-                         f"got {window!r}")  # fmt: skip
+    if isinstance(window, bool) or not isinstance(window, int) or not 1 <= window < onset:
+        # (a window of onset or more leaves no full window before the replay: no negatives,
+        # an AUC of None)
+        raise ValueError(f"window must be an integer in 1 … onset − 1 = {onset - 1} (the χ² "
+                         f"detector's, with full windows before the replay); got {window!r}")  # fmt: skip
     streams = Streams(seed)
     draws = scenario.exogenous(runs, {k: streams(k) for k in ("plant", "attack")})
     cal = scenario.exogenous(

@@ -548,15 +548,10 @@ def lfc_loop(
     to the end of the draws unless ``steps``)."""
     check_no_attack_on_loads(attack)
     B, T, _ = xi.shape
-    if (
-        not isinstance(load, Tensor)
-        or load.dim() != 2
-        or load.shape[-1] != 2
-        or load.shape[0] not in (1, B)
-    ):
+    if not isinstance(load, Tensor) or tuple(load.shape) not in ((2,), (1, 2), (B, 2)):
         got = tuple(load.shape) if isinstance(load, Tensor) else type(load).__name__
-        raise ValueError(f"load must be a tensor [{B} or 1, 2]: one load deviation per run of xi "
-                         f"(or one for all); got {got}")  # fmt: skip
+        raise ValueError(f"load must be a tensor [2] or [1, 2] (one for every run) or [{B}, 2] "
+                         f"(one per run of xi); got {got}")  # fmt: skip
     K1 = lqr_gain(plant) if K1 is None else K1
     x0 = torch.zeros(B, STATE_DIM, dtype=xi.dtype, device=xi.device)
     controller = SecureController(K1, load, compensate=compensate)

@@ -219,9 +219,13 @@ def _attack_free(ctx: SuiteContext, name: str, estimator, tr, compensate: bool):
     same draws, and its :class:`~difffilter.loop.LoopFork` s at :func:`_fork_steps`."""
     # the scenario's attack-free key: its load_range too (a review: lfc_random_attacks, which
     # draws a load per run, reused lfc_step's loops of one load where both ran in one study)
-    # the network too: two checkpoints of one name (--ckpt) had shared one attack-free loop
+    # the network too, for an estimator built from a checkpoint: two checkpoints of one
+    # name (--ckpt) had shared one attack-free loop (the others' loops are the same for any)
+    network = (
+        str(ctx.checkpoint_for(name)) if name in getattr(ctx, "checkpoint_users", ()) else None
+    )
     key = ("lfc/free", name, ctx.scenario.attack_free_key(), tuple(tr.x.shape), ctx.streams.seed,
-           str(ctx.checkpoint_for(name)))  # fmt: skip
+           network)  # fmt: skip
 
     def run():
         forks = dict.fromkeys(_fork_steps(ctx.scenario, tr.info))

@@ -307,18 +307,20 @@ def test_the_online_learner_learns_nothing_from_steps_that_received_nothing(plan
         tail = closed_loop(plant.model(), 10, state=head.state.copy(), **kw)
     after = tail.state.carry.net.learner
     assert torch.equal(after.theta, before.theta)
-    if before.upsilon is not None:
+    if isinstance(rule, EKFRule):
         assert torch.equal(after.upsilon, before.upsilon)
         assert torch.equal(EKFRule.covariance(after), EKFRule.covariance(before))
-    # the learner of run 0's first area (row 0 of runs × areas) was informed on 10 fewer steps
-    if before.seen is not None:
+        # the learner of run 0's first area (row 0 of runs × areas): 10 fewer informed steps
         assert before.seen.tolist() == [10.0, 20.0, 20.0, 20.0]
+    else:  # the gradient rule keeps no noise estimate
+        assert before.upsilon is None and before.seen is None
 
 
 def test_two_loops_resumed_from_one_state_run_the_same_and_to_the_end(plant):
     """A trial: resuming twice from one state (two what-ifs) gave attack estimates 0.107
     apart, the first loop having written the learners' donated covariance buffers in the
-    state; and ``lfc_loop(state=…)`` without ``steps`` asked for draws past their end."""
+    state; and ``lfc_loop(state=…)`` without ``steps`` asked for draws past their end. A
+    consumed state is refused; two loops from copies made before run the same."""
     from difffilter.models.attacks import Signal
 
     ctx = LFCContext()
@@ -334,8 +336,11 @@ def test_two_loops_resumed_from_one_state_run_the_same_and_to_the_end(plant):
     whole = lfc_loop(plant, est, xi, theta, load, generator=gens, **kw)
     gens = Generators(init=torch.Generator().manual_seed(4))
     head = lfc_loop(plant, est, xi, theta, load, generator=gens, steps=10, **kw)
+    spare = head.state.copy()
     first = lfc_loop(plant, est, xi, theta, load, state=head.state, **kw)  # steps 11–24
-    second = lfc_loop(plant, est, xi, theta, load, state=head.state, **kw)
+    with pytest.raises(ValueError, match="this learner state was consumed"):
+        lfc_loop(plant, est, xi, theta, load, state=head.state, **kw)
+    second = lfc_loop(plant, est, xi, theta, load, state=spare, **kw)
     assert first.output.attack.shape[1] == 14
     assert torch.equal(first.output.attack, second.output.attack)
     assert torch.equal(first.output.attack, whole.output.attack[:, 10:])
@@ -369,5 +374,13 @@ def test_a_load_of_other_runs_is_refused_by_name(plant):
     """A trial: a load drawn for 8 runs beside draws of 1 failed in a raw expand error."""
     xi, theta = plant.sample_noise(1, 5, torch.Generator().manual_seed(0))
     est = lfc_estimator(LFCContext(), network=paper_network(0.1))
-    with pytest.raises(ValueError, match=r"load must be a tensor \[1 or 1, 2\].*got \(8, 2\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"load must be a tensor \[2\] or \[1, 2\] \(one for every run\) or \[1, 2\] \(one per run of xi\); got \(8, 2\)",
+    ):
         lfc_loop(plant, est, xi, theta, torch.zeros(8, 2, dtype=torch.float64))
+    for one_for_all in (
+        torch.zeros(2, dtype=torch.float64),
+        torch.zeros(1, 2, dtype=torch.float64),
+    ):
+        assert lfc_loop(plant, est, xi, theta, one_for_all).output.means.shape == (1, 5, 10)

@@ -366,8 +366,12 @@ def test_lfc_variants_of_another_rate_or_network_share_no_calibration_or_loop(mo
     cache = {}
     monkeypatch.setattr(lfc_estimators, "_loop", fake_loop)
     monkeypatch.setattr(lfc_estimators, "_fork_steps", lambda scenario, draws: [])
-    for ckpt in ("a.ckpt", "b.ckpt", "a.ckpt"):
-        ctx = SimpleNamespace(scenario=step, streams=SimpleNamespace(seed=0), cache=cache,
-                              checkpoint=ckpt, checkpoint_for=lambda name, c=ckpt: c)  # fmt: skip
-        lfc_estimators._attack_free(ctx, "kf_nn_grad", None, tr, True)
-    assert calls == ["a.ckpt", "b.ckpt"]  # the third reuses the first's loop
+    for name in ("kf_nn_grad", "uncompensated"):
+        for ckpt in ("a.ckpt", "b.ckpt", "a.ckpt"):
+            ctx = SimpleNamespace(scenario=step, streams=SimpleNamespace(seed=0), cache=cache,
+                                  checkpoint=ckpt, checkpoint_for=lambda name, c=ckpt: c,
+                                  checkpoint_users=["kf_nn_grad"])  # fmt: skip
+            lfc_estimators._attack_free(ctx, name, None, tr, True)
+    # the checkpoint's estimator: a loop per network (the third reuses the first's); one
+    # that reads none: one loop for all
+    assert calls == ["a.ckpt", "b.ckpt", "a.ckpt"]

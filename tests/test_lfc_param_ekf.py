@@ -370,9 +370,9 @@ def test_the_ekf_along_a_sequence_learns_a_linear_map_and_skips_what_was_not_rec
 
     seen = []
 
-    def step(jacobian, residual, received):
+    def step(jacobian, residual):  # a step that takes no received (called without it)
         seen.append(zeta.detach().clone())
-        return opt.step(jacobian, residual, received=received)
+        return opt.step(jacobian, residual)
 
     sq_err = ekf_along_sequence(step, predict, inputs, targets, received)
     assert sq_err.shape == (T, S) and bool((sq_err[0] == 0).all())
@@ -532,3 +532,38 @@ def test_the_ekf_optimizer_counts_no_unreceived_sample_in_its_noise():
              received=torch.tensor([[True, False], [True, True]]))  # fmt: skip
     want = (2 * 0.3**2 + (0.5**2 + 0.7**2)) / 2
     assert float(opt.state[w]["upsilon"]) == pytest.approx(want, rel=1e-14)
+
+
+def test_an_unreceived_entry_is_never_read_a_nan_included():
+    """A review: the rules zeroed unreceived entries by multiplying, and NaN · 0 is NaN (a
+    breakdown, or NaN weights, from a value nobody received). Selected now: the update
+    with NaN there is the update with 0 there; ParamEKF.step takes ``received`` too."""
+    net, tmpl = _area_template()
+    g = torch.Generator().manual_seed(14)
+    theta = 0.5 * torch.rand(3, tmpl.num_params, generator=g, dtype=torch.float64)
+    x = torch.randn(3, net.in_dim, generator=g, dtype=torch.float64)
+    target = torch.randn(3, net.area_dim, generator=g, dtype=torch.float64)
+    keep = torch.ones(3, net.area_dim, dtype=torch.bool)
+    keep[0, 1] = keep[2] = False
+    pred, H = tmpl.jacobian(theta, x)
+    for rule in (EKFRule(fold_every=2), GradientRule(lr=0.1)):
+        nan = rule.step(
+            rule.init(theta.clone()), H, (target - pred).masked_fill(~keep, float("nan")), keep
+        )
+        zero = rule.step(rule.init(theta.clone()), H, (target - pred).masked_fill(~keep, 0.0), keep)
+        assert torch.equal(nan.theta, zero.theta) and bool(nan.theta.isfinite().all())
+    w = torch.zeros(4, dtype=torch.float64)
+    opt = EKFOptimizer([w])
+    J = torch.randn(3, 2, 4, generator=g, dtype=torch.float64)
+    e = torch.tensor(
+        [[0.1, float("nan")], [0.2, 0.3], [float("nan"), float("nan")]], dtype=torch.float64
+    )
+    opt.step(J, e, received=~e.isnan())
+    assert bool(w.isfinite().all()) and bool(opt.state[w]["upsilon"].isfinite())
+    # the direct-use learner: an unreceived target moves nothing
+    ekf = ParamEKF(TwoParam(), (2,), lr=0.7)
+    before = ekf.theta.clone()
+    ekf.step(torch.randn(2, 2, generator=g, dtype=torch.float64),
+             torch.full((2, 2), float("nan"), dtype=torch.float64),
+             received=torch.zeros(2, 2, dtype=torch.bool))  # fmt: skip
+    assert torch.equal(ekf.theta, before)

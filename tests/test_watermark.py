@@ -59,7 +59,7 @@ def test_the_watermark_exposes_a_replay_at_a_stated_control_cost(tmp_path):
 @pytest.mark.parametrize("kw, match", [
     (dict(onset=400, delay=100), r"onset must be a step of the scenario's 1 … 300"),
     (dict(onset=0), r"onset must be a step"),
-    (dict(onset=200, delay=100, window=301), r"window must be an integer in 1 … 300"),
+    (dict(onset=200, delay=100, window=200), r"window must be an integer in 1 … onset − 1 = 199"),
 ])  # fmt: skip
 def test_a_replay_or_window_outside_the_run_is_refused(kw, match):
     """A trial: a replay from step 400 of a 300-step run had returned an AUC of None and a
