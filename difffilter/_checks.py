@@ -317,6 +317,14 @@ def check_rate(
     return float(value)
 
 
+def check_integer(value, name: str, minimum: int = 0) -> int:
+    """``int(value)`` for an integer ``>= minimum`` (numpy's integers too: a count read from
+    an array); ``ValueError`` naming ``name`` else (``True`` is not a count)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}")
+    return int(value)
+
+
 def check_positive_int(value, name: str) -> int:
     # numbers.Integral: numpy's integers too (a count read from an array)
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:

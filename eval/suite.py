@@ -15,6 +15,7 @@ from typing import Any
 
 import torch
 
+from difffilter._checks import check_integer
 from difffilter.estimator import EstimatorOutput
 from difffilter.linalg import NumericalBreakdown
 from difffilter.loop import LoopResult, Trajectories
@@ -139,8 +140,7 @@ def run_suite(
     estimator stops the suite, naming the estimator and the scenario.
     """
     runs = scenario.runs if runs is None else runs
-    if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
-        raise ValueError(f"runs must be an integer >= 1; got {runs!r}")
+    runs = check_integer(runs, "runs", 1)
     if dtype not in (torch.float32, torch.float64):  # (float16 met torch's cholesky error)
         raise ValueError(f"dtype must be torch.float32 or torch.float64; got {dtype!r}")
     estimators, add = estimator_names(estimators, "estimators"), estimator_names(add, "add")

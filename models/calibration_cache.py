@@ -8,7 +8,8 @@ the cache folder for every later process.
 
 The folder is ``$DIFFFILTER_CACHE`` if set (``off`` turns the disk cache off), else
 ``$XDG_CACHE_HOME/difffilter``, else ``~/.cache/difffilter``; each calibration is
-``calibrations/<kind>-<sha256>.json``. The file name hashes the key and a fingerprint of
+``calibrations/<kind>-<sha256>.json``. The file name hashes the key, the library's own
+code (:func:`library_fingerprint`: a new version calibrates again) and a fingerprint of
 the model: its type, every tensor or numpy array it holds (matrices, noise covariances,
 the prior), the code of the methods its class and their bases define (a plant subclass's
 ``transition`` and ``observe``), and the code, constants, default arguments and closures of
@@ -34,7 +35,7 @@ import torch
 
 from .atomic_write import write_atomically
 
-__all__ = ["cache_folder", "model_fingerprint", "cached", "FORMAT"]
+__all__ = ["cache_folder", "model_fingerprint", "library_fingerprint", "cached", "FORMAT"]
 
 #: Bumped when what a calibration computes changes: older files are then ignored.
 FORMAT = 1
@@ -178,18 +179,49 @@ def model_fingerprint(model) -> str:
     return digest.hexdigest()
 
 
-def cached(kind: str, key: tuple, model, compute):
+def library_fingerprint() -> str:
+    """A hash of the library's own code: every ``.py`` file of ``difffilter`` and
+    ``difffilter.models`` (the filters, detectors and scenarios a calibration runs), by
+    path and content, read once per process. In a calibration's file name, so a threshold
+    computed by an older version (a ``git pull``, an upgrade, a local fix) is not reused: a
+    trial edited ``cusum_detector_for`` and read the old τ, 10.74 against 12.42."""
+    global _LIBRARY_FINGERPRINT
+    if _LIBRARY_FINGERPRINT is None:
+        import difffilter
+        import difffilter.models
+
+        digest = hashlib.sha256()
+        for package in (difffilter, difffilter.models):
+            for root in package.__path__:
+                for path in sorted(Path(root).rglob("*.py")):
+                    digest.update(path.relative_to(root).as_posix().encode())
+                    digest.update(path.read_bytes())
+        _LIBRARY_FINGERPRINT = digest.hexdigest()
+    return _LIBRARY_FINGERPRINT
+
+
+_LIBRARY_FINGERPRINT: str | None = None
+
+
+def cached(kind: str, key: tuple, model, compute, valid=None):
     """``compute()`` (a JSON-able mapping) for ``key`` and ``model``, read from the cache
-    folder when an earlier process computed it, else computed and written there."""
+    folder when an earlier process of the same library code computed it, else computed and
+    written there. ``valid(value) -> bool`` vets a value read from disk: a file that fails
+    it (edited by hand, or by another tool) is computed again and replaced, as is one that
+    is half-written or not JSON."""
     folder = cache_folder()
     if folder is None:
         return compute()
-    name = hashlib.sha256(repr((FORMAT, kind, key, model_fingerprint(model))).encode())
+    name = hashlib.sha256(
+        repr((FORMAT, kind, key, model_fingerprint(model), library_fingerprint())).encode()
+    )
     path = folder / "calibrations" / f"{kind}-{name.hexdigest()[:32]}.json"
     try:
-        return json.loads(path.read_text())["value"]
-    except (OSError, ValueError, KeyError):
-        pass  # absent, unreadable or half-written: compute it again
+        value = json.loads(path.read_text())["value"]
+        if valid is None or valid(value):
+            return value
+    except (OSError, ValueError, KeyError, TypeError):
+        pass  # absent, unreadable, half-written or not a mapping: compute it again
     value = compute()
     try:
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -401,8 +401,12 @@ class SuiteContext:
         return self.options.get(key, default)
 
     def poa_detector(self) -> fdi.PoADetector:
-        """PoA thresholds of the scenario (:func:`poa_detector_for_scenario`)."""
-        return poa_detector_for_scenario(self.scenario, self.model, self.options)
+        """PoA thresholds of the scenario (:func:`poa_detector_for_scenario`);
+        :class:`SkipEstimator` where eq. (53) has none (an attack on almost every step)."""
+        try:
+            return poa_detector_for_scenario(self.scenario, self.model, self.options)
+        except fdi.InfeasibleThreshold as exc:
+            raise SkipEstimator(f"no PoA threshold for this scenario: {exc}") from None
 
     def cusum(self, filter) -> fdi.CusumDetector:
         """CUSUM calibrated on the attack-free calibration runs with the Gaussian ``filter``.
@@ -429,8 +433,9 @@ class SuiteContext:
             if len(_CUSUM_CACHE) >= 64:  # a long session of many scenarios: drop the oldest
                 _CUSUM_CACHE.pop(next(iter(_CUSUM_CACHE)))
             cached = calibration_cache.cached(
-                "cusum", key, parts, lambda: self._calibrate_cusum(filter, bias, far)
-            )
+                "cusum", key, parts, lambda: self._calibrate_cusum(filter, bias, far),
+                valid=_is_cusum_calibration,
+            )  # fmt: skip
             _CUSUM_CACHE[process_key] = fdi.CusumDetector(cached["bias"], cached["threshold"])
         return _CUSUM_CACHE[process_key]
 
@@ -441,6 +446,14 @@ class SuiteContext:
             us=cal.us, mask=cal.mask,
         )  # fmt: skip
         return {"bias": float(det.bias), "threshold": float(det.threshold)}
+
+
+def _is_cusum_calibration(value) -> bool:
+    """A CUSUM calibration read from disk: finite ``bias`` and ``threshold`` numbers."""
+    return isinstance(value, dict) and all(
+        isinstance(value.get(k), (int, float)) and not isinstance(value.get(k), bool)
+        and math.isfinite(value[k]) for k in ("bias", "threshold")
+    )  # fmt: skip
 
 
 def _filter_key(filter) -> str:

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from difffilter._checks import check_finite_number
-from difffilter.fdi.poa import poa_detector_for
+from difffilter.fdi.poa import InfeasibleThreshold, poa_detector_for
 from difffilter.noise import Gaussian
 from difffilter.ssm import StateSpaceModel
 
@@ -387,18 +387,27 @@ class FourTankScenario(Scenario):
         object.__setattr__(self, "estimators", tuple(names))
 
     def estimator_options(self) -> dict:
-        """PoA thresholds (η of Theorem 1 with the design R [P 0.233], ζ = p_l), CUSUM b, γ̂ noise."""
+        """PoA thresholds (η of Theorem 1 with the design R [P 0.233], ζ = p_l), CUSUM b, γ̂ noise.
+
+        Where eq. (53) has no ``ζ`` (``p_l N/(N − 1) ≥ 1``) the PoA options are left out:
+        the PoA estimators are then skipped with the reason, the others run."""
         model = self.model(torch.float64)
         kw = {"gamma_min": self.gamma_min, "p_l": self.p_l, "num_particles": self.num_particles}
-        paper = poa_detector_for(
-            model, R=torch.diag(torch.tensor(self.eta_design_R, dtype=torch.float64)), **kw
-        )
+        options = {
+            "cusum_bias": self.cusum_bias,
+            "gamma_hat_noise_var": self.gamma_hat_noise_var,
+        }
+        try:
+            paper = poa_detector_for(
+                model, R=torch.diag(torch.tensor(self.eta_design_R, dtype=torch.float64)), **kw
+            )
+        except InfeasibleThreshold:
+            return options
         return {
             "poa_eta": float(paper.eta),
             "poa_zeta": paper.zeta,
             "eta_theorem1": float(poa_detector_for(model, **kw).eta),
-            "cusum_bias": self.cusum_bias,
-            "gamma_hat_noise_var": self.gamma_hat_noise_var,
+            **options,
         }
 
     def paper_numbers(self) -> dict:

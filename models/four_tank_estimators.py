@@ -56,7 +56,7 @@ def _noisy(ctx: SuiteContext):
     "modified_pf_eta_theorem1", "modified PF, η from Theorem 1 for this scenario's R", oracle=True
 )
 def _eta_thm1(ctx: SuiteContext):
-    det = fdi.PoADetector(ctx.options["eta_theorem1"], ctx.options["poa_zeta"])
+    det = fdi.PoADetector(ctx.options["eta_theorem1"], ctx.poa_detector().zeta)
     return modified_pf(ctx, lambda tr: oracle_attack(ctx, tr), detector=det)
 
 

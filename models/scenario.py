@@ -35,7 +35,12 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
-from difffilter._checks import check_finite_number, check_positive_int, model_dtype_device
+from difffilter._checks import (
+    check_finite_number,
+    check_integer,
+    check_positive_int,
+    model_dtype_device,
+)
 from difffilter.attack import Attack, Channel
 from difffilter.input_loss import InputLossSchedule
 from difffilter.loop import DrawnNoise, KnownInputs, Trajectories, closed_loop
@@ -90,9 +95,7 @@ def simulate(
             ["input_schedule"]``) or ``None``; the trajectories' ``us`` are then the inputs
             the estimators know (applied as acknowledged, or sent).
     """
-    for name, value in (("runs", runs), ("steps", steps)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
+    runs, steps = check_integer(runs, "runs", 1), check_integer(steps, "steps", 1)
     if attack is not None and not isinstance(attack, Attack):
         raise TypeError(
             "attack must be a difffilter.attack.Attack (e.g. difffilter.models.attacks."

@@ -13,6 +13,8 @@ import hashlib
 
 import torch
 
+from difffilter._checks import check_integer
+
 __all__ = ["SIMULATION_STREAMS", "Streams"]
 
 #: the streams a scenario's simulation draws from (``Scenario.simulate``'s ``generators``)
@@ -30,9 +32,7 @@ class Streams:
     """
 
     def __init__(self, seed: int):
-        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-            raise ValueError(f"seed must be an integer >= 0; got {seed!r}")
-        self.seed = seed
+        self.seed = check_integer(seed, "seed", 0)
 
     def seed_of(self, name: str) -> int:
         """The 63-bit seed of stream ``name``."""

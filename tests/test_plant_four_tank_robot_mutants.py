@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from difffilter.models import registry
+from difffilter.models.estimators import poa_detector_for_scenario
 from difffilter.models.four_tank import (
     R_HIGH,
     R_NOMINAL,
@@ -336,15 +337,18 @@ def test_robot_scenario_horizon_check_at_its_boundary_and_sensor_shape_check():
 def test_tank_scenario_overrides_and_the_eq53_particle_condition():
     """``model(R=...)`` and ``attack(gamma_bar=...)`` use the override; the PoA threshold
     needs α = p_l N/(N − 1) < 1 (eq. 53) with the scenario's own N: p_l = 0.7, N = 3
-    gives α = 1.05 (refused), N = 4 gives α = 0.933 (ζ = p_l)."""
+    gives α = 1.05 (no PoA options: the PoA estimators are skipped), N = 4 gives
+    α = 0.933 (ζ = p_l)."""
     base = registry.get("four_tank_bias")
     np.testing.assert_allclose(
         base.model(R=R_HIGH).measurement_noise.cov.numpy(), np.diag(R_HIGH), rtol=1e-15
     )
     assert base.attack((1.0, 2.0, 3.0, 4.0)).gamma_bar == (1.0, 2.0, 3.0, 4.0)
     assert base.attack().gamma_bar == (0.5,) * 4
+    few = FourTankScenario(name="few", p_l=0.7, num_particles=3)
+    assert not {"poa_eta", "poa_zeta", "eta_theorem1"} & set(few.estimator_options())
     with pytest.raises(ValueError, match="53"):
-        FourTankScenario(name="few", p_l=0.7, num_particles=3).estimator_options()
+        poa_detector_for_scenario(few, few.system())
     opts = FourTankScenario(name="four", p_l=0.7, num_particles=4).estimator_options()
     assert opts["poa_zeta"] == pytest.approx(0.7, rel=1e-12)
 

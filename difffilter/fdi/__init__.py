@@ -66,6 +66,7 @@ from .modified_pf import (
 from .neural import NeuralCompensation, OnlineLearning, Residual
 from .poa import (
     AttackRateState,
+    InfeasibleThreshold,
     PoADetector,
     RunningAttackRate,
     attack_threshold,
@@ -99,6 +100,7 @@ __all__ = [
     "cusum_detector_for",
     "gated_extended_kalman_filter",
     "PoADetector",
+    "InfeasibleThreshold",
     "poa_detector_for",
     "RunningAttackRate",
     "AttackRateState",

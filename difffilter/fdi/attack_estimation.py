@@ -20,7 +20,7 @@ import numbers
 import torch
 from torch import Tensor
 
-from .._checks import broadcast_or_none, check_covariance
+from .._checks import broadcast_or_none, check_covariance, check_integer
 from ..gaussian import gaussian_update
 from ..kalman import kalman_predict
 from ..linalg import masked_measurement, matvec
@@ -58,8 +58,7 @@ class BiasAttackEstimator:
         dtype: torch.dtype = torch.float64,
         device=None,
     ):
-        if isinstance(dim, bool) or not isinstance(dim, int) or dim < 1:
-            raise ValueError(f"dim must be an integer >= 1; got {dim!r}")
+        dim = check_integer(dim, "dim", 1)
         if isinstance(tau, bool) or not isinstance(tau, numbers.Real) or not 0.0 < tau < 1.0:
             raise ValueError(f"tau must lie in (0, 1) (eq. 4); got {tau!r}")
         if not gamma_bar_var > 0:

@@ -232,6 +232,12 @@ class ModifiedPFWeighting:
         self.estimator = gamma_hat if isinstance(gamma_hat, BiasAttackEstimator) else None
 
     def init(self, model, batch_shape, dtype, device) -> WeightingState:
+        self.detector.check_runs(batch_shape, model)
+        if self.estimator is not None and self.estimator.dim != model.dim_y:
+            raise ValueError(
+                f"gamma_hat is a BiasAttackEstimator of dim {self.estimator.dim}; the model "
+                f"measures {model.dim_y} entries (dim must be model.dim_y)"
+            )
         rate = None
         if self.attack_rate is not None:
             rate = self.attack_rate.init(batch_shape, dtype=dtype, device=device)
@@ -496,9 +502,10 @@ def modified_particle_filter(
     )  # fmt: skip
     gens = _generators(generator, resample_generator)
     carry = _attach(pf, model, initial_state, gens)
+    out = None
     if fused and carry is not None:  # open_loop takes the fast path only from the prior
-        out = pf._run(carry, ys, us, mask)
-    else:
+        out = pf._run(carry, ys, us, mask)  # None where the fused path declines the run
+    if out is None:
         out = open_loop(pf, model, ys, us, mask=mask, generator=gens, carry=carry)
     if attack_rate is not None:
         out.extras["attack_rate"] = out.extras["attack_rate"][..., -1]
@@ -541,6 +548,10 @@ class PoAParticleFilter(ParticleFilter):
             hooks=(self._poa,),
             record_prior=record_prior,
         )
+
+    def attach(self, state: ParticleState, model, generators: Generators) -> ParticleState:
+        self.detector.check_runs(state.log_weights.shape[:-1], model)
+        return super().attach(state, model, generators)
 
     def _poa(self, model, y, m, state, out):
         # through the model's residual: a bearing near ±π is wrapped (else ~2π: a false PoA)

@@ -14,6 +14,7 @@ Thresholds (Theorem 1, Remark 3, Theorem 2)::
 
     K_k = Q Gᵀ (R + G Q Gᵀ)⁻¹                            gain of the modified proposal (35)
     η_k = ς_k ‖γ‖_min,   ς_k = |σ̄_k − 1|,  σ̄_k the singular value of G K_k nearest to 1   (45)
+          (= σ_min(I − G K_k), the bound the proof needs, when G K_k is symmetric PSD)
     ζ   = α (N − 1)/N,   p_l N/(N − 1) ≤ α < 1                                          (46, 53)
 
 so the smallest admissible ``α`` gives ``ζ = p_l``. When ``p_l`` is unknown (Remark 6) it
@@ -33,7 +34,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._checks import check_one_model
+from .._checks import broadcast_or_none, check_integer, check_one_model, model_batch_shape
 from ..gaussian import kalman_gain
 from ..linalg import LOG_2PI, NumericalBreakdown, safe_cholesky
 
@@ -41,6 +42,7 @@ __all__ = [
     "modified_pf_gain",
     "attack_threshold",
     "attack_threshold_factor",
+    "InfeasibleThreshold",
     "detection_threshold",
     "probability_of_attack",
     "PoADetector",
@@ -85,35 +87,61 @@ def modified_pf_gain(G, Q, R) -> Tensor:
     return kalman_gain(cross, R + G @ cross)[0]
 
 
-def attack_threshold_factor(G, K) -> Tensor:
-    """``ς = |σ̄ − 1|`` of Theorem 1, ``σ̄`` the singular value of ``G K`` nearest to 1.
+_THRESHOLD_RULES = ("paper", "guaranteed")
+
+
+def attack_threshold_factor(G, K, *, rule: str = "paper") -> Tensor:
+    """``ς`` of Theorem 1: ``|σ̄ − 1|``, ``σ̄`` the singular value of ``G K`` nearest to 1.
+
+    ``rule="paper"`` is eq. (45) as printed. The proof needs ``‖(I − G K) γ‖ ≥ ς ‖γ‖``
+    (eq. 41), which holds for that ``ς`` when ``G K`` is symmetric positive semi-definite
+    (``G = I`` with ``Q`` and ``R`` commuting, as in the paper and the four-tank and LFC
+    scenarios); for a non-symmetric ``G K`` (a linearised nonlinear measurement, a
+    correlated ``R`` with an anisotropic ``Q``) it can overstate the bound, and an attack of
+    norm ``‖γ‖_min`` may leave a noise-free corrected residual below ``η``.
+    ``rule="guaranteed"`` returns ``σ_min(I − G K)``, the largest ``ς`` for which eq. (41)
+    holds for every ``γ``; it equals the paper's value whenever ``G K`` is symmetric
+    positive semi-definite.
 
     Shapes: ``G [..., dy, dx]``, ``K [..., dx, dy]`` → ``[...]``.
     """
+    if rule not in _THRESHOLD_RULES:
+        raise ValueError(f"rule must be one of {_THRESHOLD_RULES}; got {rule!r}")
     G = _as_matrix(G, "G")
     K = _as_matrix(K, "K", G.dtype)
     if K.shape[-2] != G.shape[-1] or K.shape[-1] != G.shape[-2]:
         raise ValueError(
             f"K must have shape [..., {G.shape[-1]}, {G.shape[-2]}] (the transpose of G's); got {tuple(K.shape)}"
         )
-    sv = torch.linalg.svdvals(G @ K)
+    GK = G @ K
+    if rule == "guaranteed":
+        eye = torch.eye(GK.shape[-1], dtype=GK.dtype, device=GK.device)
+        return torch.linalg.svdvals(eye - GK)[..., -1]  # svdvals are in descending order
+    sv = torch.linalg.svdvals(GK)
     nearest = torch.gather(sv, -1, (sv - 1.0).abs().argmin(-1, keepdim=True)).squeeze(-1)
     return (nearest - 1.0).abs()
 
 
-def attack_threshold(G, K, gamma_min: float) -> Tensor:
+def attack_threshold(G, K, gamma_min: float, *, rule: str = "paper") -> Tensor:
     """Residual-norm threshold of Theorem 1, eq. (45): ``η = ς ‖γ‖_min``.
 
     ``gamma_min`` is the smallest attack norm to be guaranteed detectable (a lower bound
-    on ``‖γ_k‖``). Returns ``η`` ``[...]`` (a 0-dim tensor for single matrices). With
-    ``G = I``, ``Q = 1e-4 I`` and ``R = 1e-3 diag(1, 1, .5, .5)``, ``G K`` has singular
-    values 1/11 and 1/6, so ``ς = 5/6`` and ``η = 0.28·5/6 = 0.233`` (the paper's value).
+    on ``‖γ_k‖``); ``rule`` chooses ``ς`` (:func:`attack_threshold_factor`). Returns ``η``
+    ``[...]`` (a 0-dim tensor for single matrices). With ``G = I``, ``Q = 1e-4 I`` and
+    ``R = 1e-3 diag(1, 1, .5, .5)``, ``G K`` has singular values 1/11 and 1/6, so
+    ``ς = 5/6`` and ``η = 0.28·5/6 = 0.233`` (the paper's value, by either rule).
     """
     if not (isinstance(gamma_min, (int, float)) and math.isfinite(gamma_min) and gamma_min > 0):
         raise ValueError(
             f"gamma_min must be a finite number > 0 (a lower bound on ‖γ_k‖); got {gamma_min!r}"
         )
-    return attack_threshold_factor(G, K) * gamma_min
+    return attack_threshold_factor(G, K, rule=rule) * gamma_min
+
+
+class InfeasibleThreshold(ValueError):
+    """Eq. (53) has no solution: ``p_l N/(N − 1) ≥ 1`` (an attack on (almost) every step
+    for the particle count), so no PoA threshold ``ζ`` exists; a suite skips the PoA
+    estimators with this message and runs the others."""
 
 
 def detection_threshold(
@@ -125,15 +153,13 @@ def detection_threshold(
     ``ζ = p_l``; an explicit ``alpha ∈ (0, 1)`` (Remark 3, ``p_l`` unknown) gives
     ``ζ = α(N − 1)/N``. ``ValueError`` if eq. (53) has no solution (``p_l N/(N−1) ≥ 1``).
     """
-    if isinstance(num_particles, bool) or not isinstance(num_particles, int) or num_particles < 2:
-        raise ValueError(f"num_particles must be an integer >= 2; got {num_particles!r}")
-    n = num_particles
+    n = check_integer(num_particles, "num_particles", 2)
     if alpha is None:
         if p_l is None or not 0.0 <= float(p_l) <= 1.0:
             raise ValueError(f"p_l must lie in [0, 1] when alpha is not given; got {p_l!r}")
         alpha = float(p_l) * n / (n - 1)
         if not alpha < 1.0:
-            raise ValueError(
+            raise InfeasibleThreshold(
                 f"eq. (53) needs p_l N/(N-1) < 1; got p_l = {p_l}, N = {n} (alpha = {alpha:.4g}); "
                 "use more particles or pass alpha"
             )
@@ -214,7 +240,8 @@ class PoADetector:
     """The PoA detector: ``β = Σ_{‖z^i‖>η} w^i``, alarm when ``β > ζ``.
 
     Args:
-        eta: residual-norm threshold ``η`` (:func:`attack_threshold`), number or tensor.
+        eta: residual-norm threshold ``η`` (:func:`attack_threshold`), a number or one
+            per run (a tensor of the runs' batch shape, checked by the filters at ``init``).
         zeta: PoA threshold ``ζ`` (:func:`detection_threshold`), in ``[0, 1)``.
     """
 
@@ -225,6 +252,24 @@ class PoADetector:
         if not 0.0 <= float(zeta) < 1.0:
             raise ValueError(f"zeta must lie in [0, 1); got {zeta!r}")
         self.eta, self.zeta = eta, float(zeta)
+
+    def check_runs(self, batch_shape, model=None) -> None:
+        """Refuse an ``η`` per run that does not match the runs ``batch_shape`` (of a
+        ``model`` of several parameter sets, their broadcast). A tensor ``η`` needs as many
+        dimensions as the batch and must broadcast to it: with fewer, torch would align it
+        on the last batch dimension, not the first, silently."""
+        shape = torch.as_tensor(self.eta).shape
+        if len(shape) == 0:
+            return
+        batch = torch.Size(batch_shape)
+        if model is not None:
+            batch = broadcast_or_none(batch, model_batch_shape(model)) or batch
+        if len(shape) != len(batch) or broadcast_or_none(shape, batch) != batch:
+            raise ValueError(
+                f"detector.eta has shape {tuple(shape)}; a threshold per run needs the runs' "
+                f"batch shape {tuple(batch)} (or one that broadcasts to it with as many "
+                "dimensions, e.g. [B, 1]), or a single number"
+            )
 
     def __call__(
         self, residuals: Tensor, log_weights: Tensor | None = None
@@ -313,16 +358,10 @@ class RunningAttackRate:
         alpha_min: float = 0.05,
         alpha_max: float = 0.95,
     ):
-        if (
-            isinstance(num_particles, bool)
-            or not isinstance(num_particles, int)
-            or num_particles < 2
-        ):
-            raise ValueError(f"num_particles must be an integer >= 2; got {num_particles!r}")
+        num_particles = check_integer(num_particles, "num_particles", 2)
         if not 0.0 < alpha0 < 1.0:
             raise ValueError(f"alpha0 must lie in (0, 1); got {alpha0!r}")
-        if isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 1:
-            raise ValueError(f"warmup must be an integer >= 1; got {warmup!r}")
+        warmup = check_integer(warmup, "warmup", 1)
         if not 0.0 < alpha_min <= alpha_max < 1.0:
             raise ValueError(
                 f"need 0 < alpha_min <= alpha_max < 1; got {alpha_min!r}, {alpha_max!r}"
@@ -359,7 +398,7 @@ class RunningAttackRate:
 
 
 def poa_detector_for(
-    model, *, gamma_min: float, p_l: float, num_particles: int, R=None
+    model, *, gamma_min: float, p_l: float, num_particles: int, R=None, rule: str = "paper"
 ) -> PoADetector:
     """The PoA detector of a model with the paper's thresholds (Theorem 1, eqs 46/53).
 
@@ -368,6 +407,9 @@ def poa_detector_for(
     measurement, its Jacobian at the prior mean; ``Q = process_cov(0)``; ``R`` is the
     model's ``measurement_cov(1)`` unless given (the paper keeps the ``η`` of its
     nominal ``R`` in the high-noise case). ``ζ = p_l`` (the smallest ``α`` of eq. 53).
+    ``rule="guaranteed"`` takes ``ς = σ_min(I − G K)`` (:func:`attack_threshold_factor`):
+    the paper's ``ς`` is the guaranteed one only when ``G K`` is symmetric positive
+    semi-definite, which a nonlinear measurement's Jacobian rarely gives.
     """
     check_one_model(model, "poa_detector_for", "make a detector per parameter set")
     if hasattr(model, "observation_matrix"):
@@ -384,5 +426,5 @@ def poa_detector_for(
     G = G.detach().to(torch.float64)
     R = model.measurement_cov(1) if R is None else torch.as_tensor(R)
     K = modified_pf_gain(G, model.process_cov(0).detach().double(), R.detach().double())
-    eta = float(attack_threshold(G, K, gamma_min))
+    eta = float(attack_threshold(G, K, gamma_min, rule=rule))
     return PoADetector(eta, detection_threshold(p_l, num_particles))
