@@ -10,16 +10,20 @@ Usage::
 
 Each scenario writes ``<out>/<scenario>/{metrics.json, report.md, *.png}`` and
 TensorBoard events under ``<out>/<scenario>/tb`` (``tensorboard --logdir <out>``).
-A family name (``four_tank``, ``lfc``, …) selects its headline scenarios.
+A family name (``four_tank``, ``lfc``, …) selects its headline scenarios. Each file is
+replaced whole or not at all; ``INCOMPLETE.md`` marks ``<out>`` and a scenario's folder
+while an evaluation writes there (left by one that was stopped or failed), and one
+evaluation at a time writes into an ``--out`` (``<out>/.difffilter.lock``).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import yaml
@@ -28,7 +32,7 @@ import yaml
 # answers at once
 
 __all__ = ["main", "build_parser", "resolve_scenarios", "evaluate", "check_arguments",
-           "check_output_folder", "EVALUATION_SEED"]  # fmt: skip
+           "check_output_folder", "hold_output_folder", "EVALUATION_SEED"]  # fmt: skip
 
 #: The master seed of the default study (``--seed``): its runs are the test runs, which
 #: no training, validation or monitor may draw (``difffilter.train.task`` refuses them).
@@ -269,13 +273,22 @@ def evaluate(
     ``calibration_runs`` attack-free runs of their own seed
     (:mod:`~difffilter.eval.calibration`). Ends with the leaderboard of every scenario ×
     estimator (:mod:`~difffilter.eval.leaderboard`: ``<out>/leaderboard.{md,json,png}``,
-    ``tb_leaderboard``).
+    ``tb_leaderboard``). From its first write into ``out`` to the leaderboard's,
+    ``<out>/INCOMPLETE.md`` says that the folder's files may be of two evaluations
+    (:func:`~difffilter.eval.report.mark_incomplete`).
     """
     from difffilter.models import registry
 
     from .calibration import calibrate
     from .leaderboard import write_leaderboard
-    from .report import family_report, report_for, report_writers, write_acceptance_summary
+    from .report import (
+        INCOMPLETE,
+        family_report,
+        mark_incomplete,
+        report_for,
+        report_writers,
+        write_acceptance_summary,
+    )
     from .suite import apply_calibration, detectors, process_group, run_suite
 
     check_arguments(runs=runs, ckpt=ckpt, calibration_runs=calibration_runs)
@@ -290,11 +303,20 @@ def evaluate(
     # between two suites would hold the others at the next gather).
     writers = report_writers(families, world)
     prepared, held, docs = {}, {}, {}
+
+    marked: list[Path] = []
+
+    def writing() -> None:  # before this process's first write into out
+        if not marked:
+            Path(out).mkdir(parents=True, exist_ok=True)
+            marked.append(mark_incomplete(out, "An evaluation into this folder"))
+
     for family, names in families.items():
         report = family_report(family)
         mine = writers[family] == rank
         native = [n for n in names if report_for(registry.get(n))[1] is None]
         if report.prepare and mine and native:
+            writing()
             prepared[family] = report.prepare(
                 native, out=Path(out), seed=seed, checkpoint=ckpt, progress=progress,
                 options=dict(family_options or {}), far=far,
@@ -316,8 +338,10 @@ def evaluate(
             if rank == 0 and add_estimators:
                 note_skipped_additions(add_estimators, result.skipped, name)
         if world == 1:  # one process: each family's reports as soon as its suites are done
+            writing()
             docs.update(_write_family(family, held.pop(family), out, prepared.get(family)))
     for family, results in held.items():
+        writing()
         docs.update(_write_family(family, results, out, prepared.get(family)))
     if world > 1:
         from .suite import gather_objects
@@ -326,8 +350,11 @@ def evaluate(
         merged = {k: v for part in parts for k, v in part.items()}
         docs = {name: merged[name] for names in families.values() for name in names}
     if rank == 0:
+        writing()
         write_leaderboard(out, docs)
         write_acceptance_summary(out, docs)
+        # every process's reports are written (they were gathered above): the folder is whole
+        (Path(out) / INCOMPLETE).unlink(missing_ok=True)
     return docs if rank == 0 else {}
 
 
@@ -676,6 +703,49 @@ def check_output_folder(out: Path, scenarios: Sequence[str] = ()) -> None:
         raise ValueError(f"--out: cannot write to {out} ({exc.strerror or exc})") from None
 
 
+#: The file in ``--out`` an evaluation holds locked while it writes there
+#: (:func:`hold_output_folder`); it stays, the lock goes with the process.
+LOCK_FILE = ".difffilter.lock"
+
+
+@contextlib.contextmanager
+def hold_output_folder(out: Path) -> Iterator[None]:
+    """Hold an exclusive ``flock`` on ``<out>/.difffilter.lock`` (``out`` exists) while an
+    evaluation writes into ``out``; ``ValueError`` naming ``--out`` where another process
+    holds it: two evaluations into one folder at once had both exited 0, one's metrics.json
+    beside both's TensorBoard events. A no-op without ``fcntl`` (Windows) or where the file
+    system refuses locks."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX
+        yield
+        return
+    path = Path(out) / LOCK_FILE
+    try:
+        handle = open(path, "a+")  # (not truncated: the holder's process id is in it)
+    except OSError as exc:
+        raise ValueError(f"--out: cannot write {path} ({exc.strerror or exc})") from None
+    with handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            holder = handle.read().strip()
+            which = f" (process {holder})" if holder.isdigit() else ""
+            raise ValueError(
+                f"--out {out}: another difffilter-eval{which} is writing into this folder; "
+                "wait for it to end, or give another --out"
+            ) from None
+        except OSError:  # a file system without locks (some network ones): as before
+            yield
+            return
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"{os.getpid()}\n")
+        handle.flush()
+        yield
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """The command line (:func:`build_parser`); an interrupt (Ctrl-C) ends it with one line
     and exit code 130, not a traceback from wherever the study was (a CLI trial)."""
@@ -704,7 +774,6 @@ def _main(argv: Sequence[str] | None = None) -> int:
         args.scenario = args.scenario_option
     from difffilter._imports import import_plugin
     from difffilter.models import registry
-    from difffilter.runtime import tune_cpu_allocator
 
     for module in args.imports:  # (each worker of --devices imports them too: it reruns main)
         try:
@@ -727,6 +796,15 @@ def _main(argv: Sequence[str] | None = None) -> int:
         return 0
     if not args.scenario:
         parser.error("a scenario name is required (or --list)")
+    with contextlib.ExitStack() as held:  # the lock on --out, till the command ends
+        return _study(args, argv, held)
+
+
+def _study(args, argv: Sequence[str] | None, held: contextlib.ExitStack) -> int:
+    """The evaluation (or robustness study) ``args`` ask for, ``--out`` locked into ``held``
+    (:func:`hold_output_folder`); its exit code."""
+    from difffilter.runtime import tune_cpu_allocator
+
     from .suite import process_group  # the suite (torch) only for a study
 
     tune_cpu_allocator()
@@ -749,6 +827,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
         # before any work, not after the evaluation; after the other checks, so that a run
         # they refuse leaves no empty --out behind
         check_output_folder(args.out, names)
+        if process_group()[1] == 1:  # (a --devices worker: its launching process holds it)
+            held.enter_context(hold_output_folder(args.out))
         if threats is not None:
             return _robustness(names, threats, args)
         if args.devices > 1:  # checked here; the workers run the rest
@@ -768,6 +848,9 @@ def _main(argv: Sequence[str] | None = None) -> int:
         )
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-eval: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a report not written (a full disk): one line, not a traceback
+        print(f"difffilter-eval: error: {_write_error(exc, args.out)}", file=sys.stderr)
         return 2
     if process_group()[0] > 0:
         return 0
@@ -795,6 +878,19 @@ def _main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+def _write_error(exc: OSError, out: Path) -> str:
+    """The line of an ``OSError`` met during a study: the file under ``out`` it could not
+    write (the report writers name theirs, :func:`~difffilter.eval.report.write_file`) and
+    the reason; another file's, or no file's, as the error names it."""
+    reason = exc.strerror or str(exc)
+    if exc.filename is None:  # (e.g. a write of TensorBoard's names no file)
+        return f"{reason} (the reports under {out} may be incomplete)"
+    path = os.fsdecode(exc.filename)
+    if Path(os.path.abspath(path)).is_relative_to(os.path.abspath(out)):
+        return f"could not write {path}: {reason}"
+    return f"{path}: {reason}"
+
+
 def _say_shipped(results: dict) -> None:
     """Name the shipped checkpoints the scenarios ran without ``--ckpt`` (a user trial found
     them only in each ``report.md``), one line per file; "no --ckpt" only where none was
@@ -817,6 +913,7 @@ def _robustness(names: list[str], threats, args) -> int:
     attack-free setting), its files under ``<out>/<scenario>/``, and the summary."""
     from difffilter.models import registry
 
+    from .report import mark_incomplete
     from .robustness import (
         load_threat_set,
         robustness_scenarios,
@@ -851,7 +948,7 @@ def _robustness(names: list[str], threats, args) -> int:
         for threat_set in sets.values():
             threat_set.estimators = tuple(args.estimators)
     cache: dict = {}
-    docs = {}
+    docs, incomplete = {}, None
     for name, threat_set in sets.items():
         result = run_robustness(
             registry.get(name), threat_set, runs=args.runs, seed=args.seed, far=args.far,
@@ -859,11 +956,15 @@ def _robustness(names: list[str], threats, args) -> int:
             calibration_runs=args.calibration_runs, checkpoint=args.ckpt,
             progress=not args.no_progress, cache=cache,
         )  # fmt: skip
+        if incomplete is None:  # (the first write into --out: INCOMPLETE.md till the last)
+            incomplete = mark_incomplete(args.out, "A robustness study into this folder")
         docs[name] = write_robustness(args.out / name, result)
         if args.add_estimators:
             note_skipped_additions(args.add_estimators, docs[name]["skipped"], name)
     evaluated = (args.out / "acceptance.md").is_file()  # an evaluation's, into this --out
     summary = write_robustness_summary(args.out, docs)
+    if incomplete is not None:
+        incomplete.unlink(missing_ok=True)
     print("\n" + summary.read_text())
     print(f"robustness reports written under {args.out}/ (<scenario>/robustness.md)")
     if evaluated:  # (it went without a word: a trial)

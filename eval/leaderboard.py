@@ -23,7 +23,7 @@ import numpy as np  # noqa: E402
 
 from .acceptance import role_mark  # noqa: E402
 from .plots import text_colour  # noqa: E402
-from .report import _clean, format_number, markdown_table  # noqa: E402
+from .report import _clean, format_number, markdown_table, save_figure, write_file  # noqa: E402
 from .scoring import HEADLINE, METRICS  # noqa: E402
 
 __all__ = ["COLUMNS", "leaderboard_rows", "write_leaderboard"]
@@ -96,11 +96,11 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
     rows = leaderboard_rows(results)
     # (inf as null, its worst_<metric>_diverged saying why: json.dumps wrote the bare token
     # Infinity, which strict JSON readers refuse: a review)
-    (out / "leaderboard.json").write_text(json.dumps(_clean(rows), indent=2) + "\n")
+    write_file(out / "leaderboard.json", json.dumps(_clean(rows), indent=2) + "\n")
     if not rows:  # (the figure of no rows failed in matplotlib, after every report was written)
         path = out / "leaderboard.md"
-        path.write_text("# Leaderboard\n\nNo estimator ran: each scenario's `report.md` lists "
-                        "those skipped and why.\n" + _skipped(results))  # fmt: skip
+        write_file(path, "# Leaderboard\n\nNo estimator ran: each scenario's `report.md` "
+                         "lists those skipped and why.\n" + _skipped(results))  # fmt: skip
         (out / "leaderboard.png").unlink(missing_ok=True)
         _hparams(out / "tb_leaderboard", rows)
         return path
@@ -160,11 +160,12 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
                   "size, the plant's load), a reference runs on the attack-free measurements; "
                   "neither sets the best of a scenario in the figure.")  # fmt: skip
     path = out / "leaderboard.md"
-    path.write_text(
+    write_file(
+        path,
         f"# Leaderboard\n\n{intro}\n\n"
         + markdown_table(header, cells)
         + _skipped(results)
-        + "\n![leaderboard.png](leaderboard.png)\n"
+        + "\n![leaderboard.png](leaderboard.png)\n",
     )
     _heatmaps(out / "leaderboard.png", rows, {m: units[m] for m in cols})
     _hparams(out / "tb_leaderboard", rows)
@@ -308,7 +309,7 @@ def _heatmaps(path: Path, rows: list[dict[str, Any]], units: dict[str, str]) -> 
                  "calibrated false-alarm rate; 0.02 for tpr_at_1pct_fpr); hatched: read at a "
                  "threshold whose fpr_at_far is outside [α/2, 2α]",
                  fontsize=7)  # fmt: skip
-    fig.savefig(path, dpi=130, bbox_inches="tight")
+    save_figure(fig, path, dpi=130, bbox_inches="tight")
     plt.close(fig)
 
 

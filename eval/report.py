@@ -21,8 +21,10 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import sys
+import time
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -31,6 +33,7 @@ from typing import Any
 
 from difffilter.linalg import NumericalBreakdown
 from difffilter.models import estimators as registry
+from difffilter.models.atomic_write import write_atomically
 
 from .acceptance import ANALYTIC, TOLERANCES, best_analytic, judge, role_mark, roles, state_metric
 from .calibration import below_target_note
@@ -50,7 +53,59 @@ __all__ = [
     "markdown_table",
     "format_number",
     "share_suffix",
+    "write_file",
+    "save_figure",
+    "mark_incomplete",
+    "INCOMPLETE",
 ]
+
+#: The marker of a folder whose files an evaluation is writing (:func:`mark_incomplete`): left
+#: there by one that was stopped or failed, whose files may then mix with an earlier one's.
+INCOMPLETE = "INCOMPLETE.md"
+
+
+def write_file(path: str | Path, content: str | bytes | Callable[[Path], object]) -> None:
+    """``content`` (text, bytes, or a function writing the file it is given) replaces the
+    file ``path`` whole or not at all (:func:`~difffilter.models.atomic_write.
+    write_atomically`): a write that failed midway (a full disk) had left a truncated
+    metrics.json in place of the earlier good one. Its ``OSError`` names ``path`` (a full
+    disk's named no file, a failed rename the temporary one)."""
+
+    def write(partial: Path) -> None:
+        if isinstance(content, str):
+            partial.write_text(content)
+        elif isinstance(content, bytes):
+            partial.write_bytes(content)
+        else:
+            content(partial)
+
+    try:
+        write_atomically(path, write)
+    except OSError as exc:
+        exc.filename, exc.filename2 = str(path), None
+        raise
+
+
+def save_figure(fig, path: str | Path, **savefig) -> None:
+    """``fig.savefig(path, **savefig)`` as a PNG that replaces ``path`` whole or not at all
+    (:func:`write_file`)."""
+    write_file(path, lambda partial: fig.savefig(partial, format="png", **savefig))
+
+
+def mark_incomplete(folder: str | Path, what: str) -> Path:
+    """Write ``<folder>/INCOMPLETE.md`` saying that ``what`` is being written there, and
+    return its path, for the writer to remove once every file is written: an error or an
+    interrupt leaves it. An evaluation stopped midway into the folder of an earlier one had
+    left its metrics.json beside the earlier report.md and leaderboard, with nothing to say
+    that they were of two studies."""
+    path = Path(folder) / INCOMPLETE
+    write_file(path, (
+        f"# Incomplete\n\n{what} began at {time.strftime('%Y-%m-%d %H:%M:%S')} (process "
+        f"{os.getpid()}) and has not ended: it is still running, or it was stopped or failed. "
+        "Until it is run again to its end, the files here may mix its results with an "
+        "earlier evaluation's: rerun the same command.\n"
+    ))  # fmt: skip
+    return path
 
 
 def _clean(value: Any) -> Any:
@@ -294,7 +349,9 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
         result: a :class:`~difffilter.eval.suite.SuiteResult`.
         prepared: what the family's ``prepare`` returned, for its sections.
 
-    Returns the metrics.json content.
+    Returns the metrics.json content. Each file replaces the earlier evaluation's whole or
+    not at all (:func:`write_file`); ``INCOMPLETE.md`` marks the folder while they are
+    written (:func:`mark_incomplete`).
     """
     from .plots import png_bytes, standard_figures
     from .tensorboard import log_suite
@@ -333,7 +390,8 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
         state_metric=state_metric(doc["estimators"]),
     )):  # fmt: skip
         doc["acceptance_intervals"] = _clean(intervals)
-    (out / "metrics.json").write_text(json.dumps(doc, indent=2) + "\n")
+    incomplete = mark_incomplete(out, f"Writing the reports of {sc.name} into this folder")
+    write_file(out / "metrics.json", json.dumps(doc, indent=2) + "\n")
     figures = standard_figures(result)
     sections = [_summary_section(doc, sc), _table_section(doc)]
     if (judged := _acceptance_section(doc)) is not None:
@@ -347,8 +405,8 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
         sections += family.sections(result, doc, out, prepared)
     images = [(name, png_bytes(fig)) for name, fig in figures]  # each drawn once:
     for name, png in images:  # the file and TensorBoard's image are the same PNG
-        (out / name).write_bytes(png)
-    (out / "report.md").write_text(_markdown(doc, sc, sections))
+        write_file(out / name, png)
+    write_file(out / "report.md", _markdown(doc, sc, sections))
     # the family's own figures too (its sections saved them in the folder)
     drawn = {name for name, _ in images}
     for section in sections:
@@ -361,6 +419,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     # has none): the folder shows one run, as the README says
     for name in shown_before - {name for section in sections for name in section.figures}:
         (out / name).unlink(missing_ok=True)
+    incomplete.unlink(missing_ok=True)  # every file of this evaluation written
     import matplotlib.pyplot as plt
 
     for _, fig in figures:
@@ -672,7 +731,8 @@ def write_acceptance_summary(out: str | Path, docs: dict[str, dict]) -> Path | N
     if not rows:  # an earlier evaluation's summary would be printed as this one's
         path.unlink(missing_ok=True)
         return None
-    path.write_text(
+    write_file(
+        path,
         "# Learned against the best analytic\n\nEvery learned estimator at the calibrated "
         "false-alarm rate against, per metric, the best analytic estimator of its study (TPR ≥ "
         "the best − 0.01, state error ≤ 1.05 × the best, attack error ≤ the best, measured "
@@ -684,7 +744,7 @@ def write_acceptance_summary(out: str | Path, docs: dict[str, dict]) -> Path | N
         "A — is a check that does not apply: an attack column without an analytic attack "
         "estimate to compare with (the LFC's analytic estimators estimate none on the "
         "measured states), or a metric the study does not have.\n\n"
-        + markdown_table(["scenario", "learned", "trained", *columns, "every check"], rows)
+        + markdown_table(["scenario", "learned", "trained", *columns, "every check"], rows),
     )
     return path
 

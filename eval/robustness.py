@@ -46,10 +46,13 @@ from .report import (
     _clean,
     _network_line,
     format_number,
+    mark_incomplete,
     markdown_table,
     network_of,
+    save_figure,
     share_percent,
     share_suffix,
+    write_file,
 )
 from .scoring import METRICS
 from .stealthy import StealthySpec, craft_threat, crafted_error, same_rate_bias
@@ -514,7 +517,8 @@ def _worst_text(worst: dict[str, Any], key: str) -> str:
 
 def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any]:
     """Write ``robustness.json``, ``robustness.md`` and ``robustness.png`` under ``out``
-    (created); returns the JSON content."""
+    (created), each whole or not at all, ``INCOMPLETE.md`` there while they are written
+    (:func:`~difffilter.eval.report.mark_incomplete`); returns the JSON content."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     sc, free = result.scenario, result.attack_free
@@ -553,9 +557,11 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
         for threat, check in judged["state"].items():
             check["interval"] = mine.get("state", {}).get(threat)
     doc["acceptance"] = _clean(acceptance)
-    (out / "robustness.json").write_text(json.dumps(doc, indent=2) + "\n")
-    (out / "robustness.md").write_text(_markdown(doc, sc))
+    incomplete = mark_incomplete(out, f"Writing the robustness study of {sc.name} into this folder")
+    write_file(out / "robustness.json", json.dumps(doc, indent=2) + "\n")
+    write_file(out / "robustness.md", _markdown(doc, sc))
     _heatmap(out / "robustness.png", doc, sc)
+    incomplete.unlink(missing_ok=True)
     return doc
 
 
@@ -917,7 +923,7 @@ def _heatmap(path: Path, doc: dict, sc) -> None:
     fig.suptitle(f"{doc['scenario']}: robustness at {100 * doc['far']['target']:g} % FAR",
                  fontsize=10)  # fmt: skip
     fig.tight_layout(rect=(0, 0, 1, 0.98))  # (the title of the figure above the first's)
-    fig.savefig(path, dpi=120, bbox_inches="tight")
+    save_figure(fig, path, dpi=120, bbox_inches="tight")
     plt.close(fig)
 
 
@@ -946,14 +952,15 @@ def write_robustness_summary(out: str | Path, docs: dict[str, dict]) -> Path:
               "worst state_error_ratio", "worst impact [its scenario's state unit]"]  # fmt: skip
     far = next(iter(docs.values()))["far"]["target"] if docs else 0.01
     path = out / "robustness.md"
-    path.write_text(
+    write_file(
+        path,
         f"# Robustness\n\nEvery estimator's worst case over its scenario's threats, every "
         f"detector at {100 * far:g} % false alarms (thresholds from attack-free runs of "
         "their own seed); the threat that caused it in brackets. Details per scenario in "
         "`<scenario>/robustness.md`.\n\n"
         + markdown_table(header, rows)
         + "\n"
-        + _acceptance_summary(docs)
+        + _acceptance_summary(docs),
     )
     write_leaderboard(out, docs)
     # the leaderboard replaced was an evaluation's, and its acceptance.md went with it: the

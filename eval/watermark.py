@@ -160,16 +160,17 @@ def write_watermark(out, doc: dict):
     import json
     from pathlib import Path
 
-    from .report import format_number, markdown_table
+    from .report import format_number, markdown_table, write_file
 
     folder = Path(out) / "lfc_watermark"
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / "metrics.json").write_text(json.dumps(doc, indent=2) + "\n")
+    write_file(folder / "metrics.json", json.dumps(doc, indent=2) + "\n")
     f, rp = format_number, doc["replay"]
     rows = [[label, f(r["std"]), f(r["auc"]), f(r["auc_after_splice"]), f(r["tpr_at_far"]),
              f(r["fpr_at_far"]), f(r["control_cost"])]
             for label, r in doc["rows"].items()]  # fmt: skip
-    (folder / "report.md").write_text(
+    write_file(
+        folder / "report.md",
         "# Replay and the physical watermark (LFC)\n\n"
         f"The traditional loop U = −K₁Z with its Kalman observer, {doc['runs']} runs, seed "
         f"{doc['seed']}. Replay (Mo & Sinopoli 2009): from step {rp['onset']} the receiver gets "
@@ -201,6 +202,6 @@ def write_watermark(out, doc: dict):
         "followed it (longer than the windows left out in the AUC after the splice). The "
         "seamless replay hides that jump, and the replayed data answer to the observer as "
         "fresh ones would (A(I − KC) is stable, the controller reading the replayed "
-        "measurement): only the watermark exposes them.\n"
+        "measurement): only the watermark exposes them.\n",
     )
     return folder

@@ -31,7 +31,9 @@ from ..report import (
     format_number,
     markdown_table,
     register_family,
+    save_figure,
     study_metrics,
+    write_file,
 )
 from ..scoring import score
 
@@ -201,7 +203,7 @@ def _states_figure(result, out: Path) -> str:
     fig.suptitle(f"{sc.name}: the plant's true states 3 and 5 of area 1 in each estimator's "
                  f"closed loop (run 0; shaded: attacked), dt = {sc.dt * 1e3:g} ms",
                  fontsize=10)  # fmt: skip
-    fig.savefig(out / "states.png", dpi=110, bbox_inches="tight")
+    save_figure(fig, out / "states.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
     return "states.png"
 
@@ -408,7 +410,7 @@ def per_channel_validation(
     }
     folder = out / "lfc_per_channel"
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / "metrics.json").write_text(json.dumps(doc, indent=2) + "\n")
+    write_file(folder / "metrics.json", json.dumps(doc, indent=2) + "\n")
     fig, ax = plt.subplots(figsize=(10, 3.8))
     width = 0.8 / len(table)
     for i, (n, row) in enumerate(table.items()):
@@ -420,7 +422,7 @@ def per_channel_validation(
         title="random attacks on one channel at a time",
     )
     ax.legend(fontsize=7, ncol=4)
-    fig.savefig(folder / "per_channel.png", dpi=110, bbox_inches="tight")
+    save_figure(fig, folder / "per_channel.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
     best = {
         s: min((n for n in table if n != "zero_estimate"), key=lambda n: table[n][s])
@@ -436,7 +438,8 @@ def per_channel_validation(
         ]
         for s in STATE_NAMES
     ]
-    (folder / "report.md").write_text(
+    write_file(
+        folder / "report.md",
         f"# LFC per-channel validation\n\nRandom attacks (steps, ramps, sinusoids, pulse trains) on one "
         f"measurement channel at a time, {R} runs per channel, {doc['wall_time_s']:.0f} s; attack "
         "RMSE of the attacked channel (eq. 43), lowest in bold.\n\n"
@@ -444,7 +447,7 @@ def per_channel_validation(
         + "\nLowest RMSE per channel: "
         + "; ".join(f"{s}: {n}" for s, n in best.items())
         + ".\n"
-        + "\n![per_channel.png](per_channel.png)\n"
+        + "\n![per_channel.png](per_channel.png)\n",
     )
     return doc
 
@@ -467,8 +470,9 @@ def _finish(results: dict, out: Path, prepared) -> None:
     rows.append(["mean of I–IV", *(f(sum(v) / 4) if len(v) == 4 else "—" for v in means.values()),
                  f(PAPER_MEAN["proposed_ad"]), f(PAPER_MEAN["traditional_ad"])])  # fmt: skip
     table = markdown_table(["scenario", *MAIN, "paper proposed", "paper traditional"], rows)
-    (out / "lfc_summary.md").write_text(
-        f"# LFC summary\n\nAttack RMSE (eq. 43; scenario III: sum over states 3 and 8).\n\n{table}"
+    write_file(
+        out / "lfc_summary.md",
+        f"# LFC summary\n\nAttack RMSE (eq. 43; scenario III: sum over states 3 and 8).\n\n{table}",
     )
 
 
