@@ -121,7 +121,7 @@ def test_the_best_score_beside_the_settings_is_at_the_step_the_run_ended(tmp_pat
 
 def _one_epoch_run(tmp_path, monkeypatch, code: int = 0) -> list[str]:
     """A tiny four-tank fit of one epoch in ``tmp_path``, ending with exit ``code`` (Ctrl-C:
-    1, returned or raised as ``SystemExit`` as the Lightning version does); returns its
+    130, returned or raised as ``SystemExit`` as the Lightning version does); returns its
     options (to resume)."""
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr("sys.argv", ["difffilter-train"])
@@ -197,7 +197,7 @@ def test_ctrl_c_while_exporting_leaves_no_card_less_file_and_says_how_to_export(
     monkeypatch.setattr("difffilter.train.export.check_metric", interrupt)
     handler = signal.getsignal(signal.SIGINT)  # Lightning ignores SIGINT after an interrupt
     try:
-        _one_epoch_run(tmp_path, monkeypatch, code=1)
+        _one_epoch_run(tmp_path, monkeypatch, code=130)
     finally:
         signal.signal(signal.SIGINT, handler)
     run = tmp_path / "lightning_logs" / "four_tank_nn_grad" / "version_0"

@@ -22,6 +22,7 @@ inside its run folder; ``export`` (:mod:`difffilter.train.export`) ships a resul
 
 from __future__ import annotations
 
+import os
 import sys
 import textwrap
 
@@ -70,8 +71,29 @@ def __getattr__(name: str):
 def main(args: list[str] | None = None) -> int:
     """Entry point of the ``difffilter-train`` console script (``args`` for tests): the
     top-level ``--help`` at once, ``export``, ``calibrate`` and ``sweep`` by their own
-    modules, the Lightning commands by :func:`~difffilter.train.lightning_cli.run`."""
+    modules, the Lightning commands by :func:`~difffilter.train.lightning_cli.run`. An
+    interrupt (Ctrl-C) ends it with one line and exit code 130, as ``difffilter-eval``
+    (Lightning's exit code 1 had read as a failure); a fit's ``last.ckpt`` is written as
+    before (:mod:`~difffilter.train.last_checkpoint`)."""
     argv = sys.argv[1:] if args is None else list(args)
+    try:
+        return _main(args, argv)
+    except KeyboardInterrupt:
+        hints = sys.modules.get("difffilter.train.last_checkpoint")
+        if hints is not None and os.environ.get(hints.RESUME_HINT):
+            raise  # a sweep's seed: the sweep says how to go on (and exits 130)
+        command = argv[0] if argv and not argv[0].startswith("-") else "the command"
+        if command == "fit":
+            what = ("the training did not finish and exported nothing; rerun the same command "
+                    "with --ckpt_path <its run folder>/checkpoints/last.ckpt to resume from the "
+                    "last whole epoch (named above where one ended)")  # fmt: skip
+        else:
+            what = f"{command} did not finish; rerun the same command"
+        print(f"difffilter-train: interrupted: {what}", file=sys.stderr)
+        return 130
+
+
+def _main(args: list[str] | None, argv: list[str]) -> int:
     if not argv or argv[0] in ("-h", "--help"):
         print(USAGE.format(help=textwrap.fill(" ".join(HELP.split()), 90)))
         return 0 if argv else 2

@@ -786,7 +786,8 @@ def _config_hint(argv: list[str], command: str) -> str:
 
 def run(args: list[str] | None, argv: list[str], description: str) -> int:
     """LightningCLI on ``args`` (``None``: ``sys.argv``; ``argv`` the same as a list):
-    exit code 0, or 2 after a one-line error.
+    exit code 0, or 2 after a one-line error; a ``KeyboardInterrupt`` after Ctrl-C, whether
+    Lightning let it through or caught it (:func:`~difffilter.train.cli.main` exits 130).
 
     Training simulates closed loops step by step: a long chain of tiny tensor operations,
     for which intra-op threads only add synchronisation (and stall badly when another
@@ -796,6 +797,8 @@ def run(args: list[str] | None, argv: list[str], description: str) -> int:
     tune_cpu_allocator()
     _quiet_lightning()
     _refuse_duplicate_keys()
+    import signal
+
     from jsonargparse import ArgumentError
     from lightning.fabric.utilities.exceptions import MisconfigurationException
 
@@ -808,6 +811,7 @@ def run(args: list[str] | None, argv: list[str], description: str) -> int:
                 "--no-progress sets --trainer.enable_progress_bar=false.")  # fmt: skip
     parser_kwargs = {**raising, "description": description,
                      **{name: {**raising, "description": shortcut} for name in commands}}  # fmt: skip
+    sigint = signal.getsignal(signal.SIGINT)
     try:
         _check_config_files(argv)
         # Lightning reads a --ckpt_path's settings while it parses, before any hook
@@ -838,5 +842,27 @@ def run(args: list[str] | None, argv: list[str], description: str) -> int:
               "from a writable folder or give one with --trainer.logger.init_args.save_dir "
               "(default: lightning_logs/ under the current folder)", file=sys.stderr)  # fmt: skip
         return 2
-    # Ctrl-C: Lightning from 2.3 exits 1 itself; 2.2 returned from fit as if it had ended
-    return 1 if getattr(getattr(cli, "trainer", None), "interrupted", False) else 0
+    except SystemExit as exc:
+        # Ctrl-C: Lightning from 2.3 catches it, runs the callbacks' on_exception (last.ckpt
+        # kept at the last whole epoch, how to resume said), ignores SIGINT from then on and
+        # exits 1, the code of a failure: handed on as the interrupt it was (cli.main: 130)
+        if not isinstance(exc.__context__, KeyboardInterrupt):
+            raise
+        _restore_sigint(sigint)
+        raise KeyboardInterrupt from None
+    # Lightning 2.2 returned from fit as if it had ended
+    if getattr(getattr(cli, "trainer", None), "interrupted", False):
+        _restore_sigint(sigint)
+        raise KeyboardInterrupt
+    return 0
+
+
+def _restore_sigint(handler) -> None:
+    """SIGINT back to ``handler`` (Lightning left it ignored after an interrupt: a process
+    that goes on, a sweep or a test, no longer stopped at Ctrl-C)."""
+    import signal
+
+    try:
+        signal.signal(signal.SIGINT, handler if handler is not None else signal.SIG_DFL)
+    except ValueError:  # not the main thread: it cannot be set there
+        pass

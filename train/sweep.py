@@ -59,6 +59,8 @@ import statistics
 import sys
 from pathlib import Path
 
+from difffilter.models.atomic_write import write_atomically, write_json_atomically
+
 from .common import check_config_keys, make_writable_folder, train_seed_of
 
 __all__ = ["sweep", "main", "METRICS", "SELECT_ON", "train_seed_of"]
@@ -98,7 +100,8 @@ def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str], progress: bo
         *options,
     ]  # fmt: skip
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / _SETTINGS).write_text(json.dumps(settings, indent=2) + "\n")
+    # whole or not at all: a record cut short refused every later sweep into this --out
+    write_json_atomically(folder / _SETTINGS, settings)
     last = _newest_checkpoint(existing[0]) if existing else None
     if last is not None:
         print(f"seed {seed}: resuming from {last}")
@@ -108,12 +111,16 @@ def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str], progress: bo
     os.environ[RESUME_HINT] = "rerun the same difffilter-train sweep command: it resumes this seed"
     try:
         code = cli_main(args)
+    except KeyboardInterrupt:  # Ctrl-C (train/cli.py leaves it to the sweep to say)
+        code = 130
     finally:
         del os.environ[RESUME_HINT]
     if code != 0:
         if not (folder / "checkpoints").is_dir():  # nothing trained (e.g. a misspelt option):
             # its settings are no record of a run, and refused the corrected command after it
             (folder / _SETTINGS).unlink(missing_ok=True)
+        if code == 130:  # interrupted, not failed: main() ends the sweep with exit code 130
+            raise KeyboardInterrupt
         raise ValueError(f"seed {seed}: difffilter-train fit failed (its error is above)")
     done = _exported(folder) if folder.is_dir() else None
     if done is None:
@@ -259,7 +266,17 @@ def _check_same_settings(folder: Path, settings: dict, seed: int) -> None:
     file = folder / _SETTINGS
     if not file.is_file():
         return
-    had = json.loads(file.read_text())
+    try:
+        had = json.loads(file.read_text())
+        if not isinstance(had, dict):
+            raise ValueError("not a JSON object")
+    except (OSError, ValueError) as error:  # (a bad byte, bad JSON: ValueErrors)
+        # not a cache: it is what guards the resume of this seed, so nothing is guessed
+        raise ValueError(
+            f"seed {seed}: {file} cannot be read ({error}): it records what {folder} was "
+            "trained with (cut short by an interrupt or a full disk?); delete that folder to "
+            "train the seed again there, or give another --out"
+        ) from None
     differ = [k for k in ("config", "options") if had.get(k) != settings[k]]
     # (a folder of a sweep before the files were recorded is judged on the rest)
     if "option_configs" in had and had["option_configs"] != settings["option_configs"]:
@@ -406,9 +423,12 @@ def _baseline(scenario_name: str, runs, far: float, progress: bool,
     """``({estimator: {metric: value}}, {estimator: per-run totals})`` of the scenario's
     analytic estimators on the sweep's draws, calibrated as the learned one is; read from
     ``folder`` (``<scenario>.json`` and ``<scenario>.totals.pt``) if a sweep with the same
-    runs, rate and seed wrote them, else run and written there."""
-    import torch
+    runs, rate and seed wrote them, else run and written there.
 
+    Both files hold the key (runs, rate, seed, scenario digest), and each is written whole
+    or not at all, the totals first: a sweep interrupted between the two had left its key
+    beside another study's totals, which the next sweep then read as its own. A file that
+    cannot be read (cut short) is a cache: said in one line and computed again."""
     from difffilter.eval.acceptance import roles
     from difffilter.models import registry
     from difffilter.models.generic_estimators import DEFAULT_SUITE
@@ -418,17 +438,59 @@ def _baseline(scenario_name: str, runs, far: float, progress: bool,
            "scenario_file_sha256": scenario_file_digest(scenario_name)}  # fmt: skip
     stem = _cache_stem(scenario_name)
     file, totals_file = folder / f"{stem}.json", folder / f"{stem}.totals.pt"
-    if (file.is_file() and totals_file.is_file()
-            and (cached := json.loads(file.read_text())).get("key") == key):  # fmt: skip
-        return cached["estimators"], torch.load(totals_file, weights_only=True)
+    cached = _cached_baseline(file, totals_file, key)
+    if cached is not None:
+        return cached
     scenario = registry.get(scenario_name)
     names = list(scenario.estimators or DEFAULT_SUITE)
     analytic = [n for n, role in roles(names).items() if role == "analytic"]
     table, totals = _calibrated_metrics(scenario, analytic, runs, far, progress)
     folder.mkdir(parents=True, exist_ok=True)
-    file.write_text(json.dumps({"key": key, "estimators": table}, indent=2) + "\n")
-    torch.save(totals, totals_file)
+    _save_totals(totals_file, {"key": key, "totals": totals})  # the totals first, then the
+    write_json_atomically(file, {"key": key, "estimators": table})  # table that vouches for them
     return table, totals
+
+
+def _cached_baseline(file: Path, totals_file: Path, key: dict) -> tuple[dict, dict] | None:
+    """The table of ``file`` and the totals of ``totals_file`` where both were written for
+    ``key``; ``None`` where either is absent, of another key (or of a sweep before the
+    totals held theirs) or cannot be read, the last said on stderr (a cache: computed again)."""
+    import torch
+
+    if not (file.is_file() and totals_file.is_file()):
+        return None
+    try:
+        cached = json.loads(file.read_text())
+        if not isinstance(cached, dict) or not isinstance(cached.get("estimators"), dict):
+            raise ValueError("not a baselines table")
+    except (OSError, ValueError) as error:  # (a bad byte, bad JSON: ValueErrors)
+        _cache_unreadable(file, error)
+        return None
+    if cached.get("key") != key:
+        return None  # another study's: computed again for this one
+    try:
+        saved = torch.load(totals_file, weights_only=True)
+    except Exception as error:  # (torch names a file cut short in many ways)
+        _cache_unreadable(totals_file, error)
+        return None
+    if not (isinstance(saved, dict) and saved.get("key") == key
+            and isinstance(saved.get("totals"), dict)):  # fmt: skip
+        return None  # another study's totals (or a sweep's before they held their key)
+    return cached["estimators"], saved["totals"]
+
+
+def _save_totals(path: Path, document) -> None:
+    """``torch.save(document)`` to ``path``, whole or not at all."""
+    import torch
+
+    write_atomically(path, lambda partial: torch.save(document, partial))
+
+
+def _cache_unreadable(file: Path, error: BaseException) -> None:
+    said = str(error).strip()  # its first sentence (torch's runs on for lines)
+    reason = said.splitlines()[0].split(". ")[0] if said else type(error).__name__
+    print(f"difffilter-train sweep: warning: the cached baselines {file} cannot be read "
+          f"({reason}); computing them again", file=sys.stderr)  # fmt: skip
 
 
 def _cache_stem(scenario_name: str) -> str:
@@ -672,8 +734,9 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
 def _write(out: Path, doc: dict) -> dict:
     """``<out>/sweep.json`` and ``<out>/sweep.md`` of ``doc``; returns it."""
     out.mkdir(parents=True, exist_ok=True)
-    (out / "sweep.json").write_text(json.dumps(doc, indent=2) + "\n")
-    (out / "sweep.md").write_text(_markdown(doc))
+    write_json_atomically(out / "sweep.json", doc)
+    text = _markdown(doc)
+    write_atomically(out / "sweep.md", lambda partial: partial.write_text(text))
     return doc
 
 
@@ -821,6 +884,11 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-train sweep: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C: exit code 130, as difffilter-eval's (1 before)
+        print("difffilter-train sweep: interrupted: the seeds trained are kept and the one "
+              "being trained resumes from its last whole epoch; rerun the same command to go "
+              "on", file=sys.stderr)  # fmt: skip
+        return 130
     print((Path(args.out) / "sweep.md").read_text())
     if args.validation_only:
         print(f"median seed {doc['median_seed']} on validation; the test is held back")
