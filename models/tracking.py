@@ -25,6 +25,7 @@ Round-Robin filters read the scheduled one, with the same draws.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -188,6 +189,30 @@ class GlintNoise(NoiseModel):
         return torch.logsumexp(comp, dim=0)
 
 
+def _is_finite_number(value) -> bool:
+    return not isinstance(value, bool) and isinstance(value, numbers.Real) and math.isfinite(value)
+
+
+def _check_sensors(sensors) -> None:
+    """``sensors``: one or more ``(ζ, ψ)`` positions of finite numbers, else ``ValueError``
+    (three coordinates had lost the third without a word; none was blamed on gamma_ini)."""
+    try:
+        positions = torch.as_tensor(sensors, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        positions = None
+    if (
+        positions is None
+        or positions.dim() != 2
+        or positions.shape[0] < 1
+        or positions.shape[1] != 2
+        or not bool(torch.isfinite(positions).all())
+    ):
+        raise ValueError(
+            "sensors must be one or more (ζ, ψ) positions, pairs of finite numbers; "
+            f"got {sensors!r}"
+        )
+
+
 class TrackingModel(StateSpaceModel):
     """The CV target (eqs 16–17) seen by range-bearing sensors (eq. 18) with glint noise (19).
 
@@ -217,6 +242,7 @@ class TrackingModel(StateSpaceModel):
         # checked by value, kept as given: a learnable σ_ω keeps its gradient (a review)
         check_finite_number(sigma_omega, "sigma_omega", positive=True)
         kappa = check_finite_number(kappa, "kappa", nonnegative=True)
+        _check_sensors(sensors)
         if kappa > 1:
             raise ValueError(f"kappa (the glint probability) must be in [0, 1]; got {kappa!r}")
         F = torch.tensor([[1, T, 0, 0], [0, 1, 0, 0], [0, 0, 1, T], [0, 0, 0, 1]], dtype=dtype)
@@ -225,7 +251,6 @@ class TrackingModel(StateSpaceModel):
         self.dim_y = 2 * len(sensors)
         # per axis: ζ' = ζ + T ζ̇ + a ε₁, ζ̇' = ζ̇ + b ε₁ + c ε₂ with [[a, 0], [b, c]] = chol(Q block)
         chol = torch.linalg.cholesky(sigma_omega**2 * block.double())
-        self._cv = (T, float(chol[0, 0]), float(chol[1, 0]), float(chol[1, 1]))
         self.register_buffer("F", F)
         self.register_buffer("_chol_q", torch.block_diag(chol, chol).to(dtype))  # L, Q = L Lᵀ
         self.register_buffer("sensor_pos", torch.tensor(sensors, dtype=dtype))
@@ -243,6 +268,9 @@ class TrackingModel(StateSpaceModel):
             torch.tensor(x0, dtype=dtype), torch.diag(torch.tensor(p0, dtype=dtype))
         )
         self.process_noise = Gaussian(torch.zeros(4, dtype=dtype), Q)
+        # the noise the fast sampler's L (_chol_q) belongs to; not a submodule (the state
+        # dict holds it once): a noise assigned later is sampled by the generic path
+        object.__setattr__(self, "_sampled_noise", self.process_noise)
         self.measurement_noise = GlintNoise(
             torch.tensor([1 - kappa, kappa], dtype=dtype),
             torch.tensor([sigma1, sigma2], dtype=dtype),
@@ -264,6 +292,8 @@ class TrackingModel(StateSpaceModel):
         slower on CPU; per-component in-place arithmetic reads ``ε`` with stride 4 and was
         ~1.6× slower in float32). One particle ``x [..., 4]``: per axis in closed form.
         """
+        if self.process_noise is not self._sampled_noise:  # replaced: L is not its factor
+            return super().sample_transition(x, u, k, generator)
         eps = torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
         if x.dim() >= 3:
             n = x.shape[-2]
@@ -271,14 +301,14 @@ class TrackingModel(StateSpaceModel):
             noise = torch.matmul(self._chol_q, eps.transpose(-1, -2).reshape(-1, 4, n))
             out = torch.baddbmm(noise, self.F.expand(len(xt), 4, 4), xt)
             return out.reshape(x.shape[:-2] + (4, n)).transpose(-1, -2)
-        T, a, b, c = self._cv
-        out = torch.empty_like(eps)
-        (xp, xv), (ep, ev), (op, ov) = ((t[..., 0::2], t[..., 1::2]) for t in (x, eps, out))
+        # from the buffers (a loaded state dict, a learnable σ_ω's gradient: Python floats
+        # taken at construction had kept the old dt and σ_ω, and no gradient)
+        T, a, b, c = self.F[0, 1], self._chol_q[0, 0], self._chol_q[1, 0], self._chol_q[1, 1]
+        (xp, xv), (ep, ev) = ((t[..., 0::2], t[..., 1::2]) for t in (x, eps))
         # both axes at once through the strided views position (ζ, ψ) and velocity (ζ̇, ψ̇):
         # p' = p + T v + a ε_p,  v' = b ε_p + c ε_v + v
-        torch.add(xp, xv, alpha=T, out=op).add_(ep, alpha=a)
-        torch.mul(ep, b, out=ov).add_(ev, alpha=c).add_(xv)
-        return out
+        pos, vel = xp + T * xv + a * ep, b * ep + c * ev + xv
+        return torch.stack((pos, vel), -1).flatten(-2)
 
     def transition_matrix(self, k: int) -> Tensor:
         return self.F
@@ -330,7 +360,11 @@ class TrackingModel(StateSpaceModel):
         ``remainder`` pass over the particles). Otherwise the generic ``log p(y − h(x))``
         over the masked entries.
         """
-        one = self._one_sensor(y, x, mask)
+        # (the per-sensor shortcut is the glint noise's: a replaced measurement noise had
+        # failed there with a raw AttributeError)
+        one = (
+            self._one_sensor(y, x, mask) if isinstance(self.measurement_noise, GlintNoise) else None
+        )
         if one is None:
             return super().measurement_log_prob(y, x, k, mask)
         (sz, sp), (yr, yb) = one  # [..., 1] each: the sensor's position and its packet
@@ -399,7 +433,8 @@ class PerSensorDeception:
         clean, att, recv = self.components(model, y, state.particles, state.k, mask)
         resp = torch.exp(att - torch.logaddexp(clean, att))
         w = torch.softmax(state.log_weights, -1).unsqueeze(-1)
-        return torch.where(recv.squeeze(-2), (w * resp).sum(-2), 0.0)
+        # a probability: the weighted sum reached 1 + 2.4e-7 in float32 by round-off
+        return torch.where(recv.squeeze(-2), (w * resp).sum(-2).clamp(max=1.0), 0.0)
 
 
 class DeceptionEKFProposal(KalmanProposal):
@@ -454,8 +489,25 @@ class TrackingScenario(Scenario):
             raise ValueError(
                 f"holding must be 'zero_input' or 'zero_order_hold'; got {self.holding!r}"
             )
-        if not 0.0 <= float(self.eta_bar) < 1.0:
-            raise ValueError(f"eta_bar must lie in [0, 1) (eq. 6); got {self.eta_bar!r}")
+        eta_bar = self.eta_bar
+        if (
+            isinstance(eta_bar, bool)
+            or not isinstance(eta_bar, numbers.Real)
+            or not 0.0 <= eta_bar < 1.0
+        ):
+            raise ValueError(f"eta_bar must be a number in [0, 1) (eq. 6); got {eta_bar!r}")
+        _check_sensors(self.sensors)
+        for name in ("box_low", "box_high"):
+            box = getattr(self, name)
+            if len(box) != 2 or not all(_is_finite_number(v) for v in box):
+                raise ValueError(
+                    f"{name} must be one sensor's (range, bearing): two finite numbers; got {box!r}"
+                )
+        if not all(lo < hi for lo, hi in zip(self.box_low, self.box_high)):
+            raise ValueError(
+                f"box_low must lie below box_high in both entries; got {self.box_low!r}, "
+                f"{self.box_high!r}"
+            )
         if not 1 <= int(self.gamma_ini) <= len(self.sensors):
             raise ValueError(
                 f"gamma_ini must be a sensor number 1 … {len(self.sensors)}; got {self.gamma_ini!r}"

@@ -198,12 +198,13 @@ class DeceptionMixtureLikelihood:
         full sum up to round-off.
         """
         if evidence is not None and isinstance(self.attack, ReplacementDeception):
-            return torch.exp(self.replacement_term(y, mask) - evidence)
+            # ≤ 0 in exact arithmetic; clamped: round-off had given 1 + 9e-16 (a trial)
+            return torch.exp((self.replacement_term(y, mask) - evidence).clamp(max=0.0))
         clean, attacked = self.components(model, y, particles, k, mask)
         lw = torch.log_softmax(log_weights, dim=-1)
         num = torch.logsumexp(lw + attacked, dim=-1)
         den = torch.logsumexp(lw + torch.logaddexp(clean, attacked), dim=-1)
-        return torch.exp(num - den)
+        return torch.exp((num - den).clamp(max=0.0))  # a probability despite round-off
 
 
 class MixtureParticleFilter(ParticleFilter):
@@ -281,7 +282,7 @@ class MixtureParticleFilter(ParticleFilter):
         )  # fmt: skip
         batch = self.batch_of(carry)
         out = _step_through(tabulated, carry, ys, us, mask, batch, None)
-        score = torch.exp(attacked - out.extras["log_likelihood_increments"])
+        score = torch.exp((attacked - out.extras["log_likelihood_increments"]).clamp(max=0.0))
         out.detection = Detection(score, score > self.threshold, self.threshold)
         return out
 
