@@ -23,10 +23,12 @@ realisation therefore does not depend on the attack, and vice versa.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import inspect
 import math
-from collections.abc import Mapping
+import warnings
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -50,7 +52,33 @@ from difffilter.threats import Bias, KSigmaBias
 from .attacks import SensorBias
 from .schedules import AllSensors
 
-__all__ = ["Trajectories", "Scenario", "CustomScenario", "simulate", "OWN_ATTACK"]
+__all__ = [
+    "Trajectories",
+    "Scenario",
+    "CustomScenario",
+    "simulate",
+    "OWN_ATTACK",
+    "warn_on_global_draws",
+]
+
+
+@contextlib.contextmanager
+def warn_on_global_draws(generators: Mapping, names=("attack", "schedule")) -> Iterator[None]:
+    """Warn when the block drew from torch's global generator because ``generators`` lacks
+    one of ``names`` (a random attack or packet loss without its stream): two identical
+    calls then differ (a trial: a tracking study seeded with ``{"plant": g}`` alone drew
+    other attacks every time). Nothing is checked when every name has its generator."""
+    missing = [n for n in names if generators.get(n) is None]
+    before = torch.random.get_rng_state() if missing else None
+    yield
+    if before is not None and not torch.equal(before, torch.random.get_rng_state()):
+        warnings.warn(
+            f"the simulation drew from torch's global generator: generators has no "
+            f"{' or '.join(repr(n) for n in missing)} stream, so the attack or schedule "
+            "that draws is not reproducible; pass them (Streams(seed).simulation() gives "
+            "every stream)",
+            stacklevel=4,  # (the caller of the function that drew)
+        )
 
 
 class _Own(Enum):
@@ -125,15 +153,17 @@ def simulate(
         x0 = model.sample_initial((runs,), plant)
     else:
         x0 = model.initial.mean.expand(runs, model.dim_x).clone()
-    mask = schedule.mask((runs,), steps, model.dim_y, generators.get("schedule"), device=device)
-    if input_loss is not None:
-        input_loss = input_loss.draw(runs, steps, model.dim_u, generators.get("input_schedule"),
-                                     device=device)  # fmt: skip
-    loop = closed_loop(
-        model, steps, noise=DrawnNoise(plant), x0=x0,
-        controller=None if us is None else KnownInputs(us), attack=attack,
-        attack_generator=generators.get("attack"), mask=mask, input_loss=input_loss,
-    )  # fmt: skip
+    with warn_on_global_draws(generators):
+        mask = schedule.mask((runs,), steps, model.dim_y, generators.get("schedule"),
+                             device=device)  # fmt: skip
+        if input_loss is not None:
+            input_loss = input_loss.draw(runs, steps, model.dim_u,
+                                         generators.get("input_schedule"), device=device)  # fmt: skip
+        loop = closed_loop(
+            model, steps, noise=DrawnNoise(plant), x0=x0,
+            controller=None if us is None else KnownInputs(us), attack=attack,
+            attack_generator=generators.get("attack"), mask=mask, input_loss=input_loss,
+        )  # fmt: skip
     traj = loop.trajectories
     _check_simulated(traj, model)
     return traj._replace(info={**traj.info, "x0": x0})

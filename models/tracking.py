@@ -40,7 +40,7 @@ from difffilter.ssm import StateSpaceModel
 
 from .attacks import Replacement
 from .registry import register
-from .scenario import OWN_ATTACK, Scenario, Trajectories, simulate
+from .scenario import OWN_ATTACK, Scenario, Trajectories, simulate, warn_on_global_draws
 from .schedules import RoundRobin
 
 __all__ = [
@@ -556,9 +556,10 @@ class TrackingScenario(Scenario):
             sensor_flags = torch.zeros(runs, self.steps, len(groups), dtype=torch.bool)
             y_all = y_true
         else:
-            values, sensor_flags = attack.sample_groups(
-                (runs,), self.steps, groups, generators.get("attack"), dtype=dtype
-            )
+            with warn_on_global_draws(generators, ("attack",)):
+                values, sensor_flags = attack.sample_groups(
+                    (runs,), self.steps, groups, generators.get("attack"), dtype=dtype
+                )
             y_all = attack.inject_groups(y_true, values, sensor_flags, groups)
         received = Replacement.entry_flags(sensor_flags, groups) & mask
         flags = received.any(-1)

@@ -148,3 +148,24 @@ def test_the_tracking_scenarios_fields_are_checked_by_name(field, value, match):
 def test_the_tracking_model_names_sensors_of_three_coordinates():
     with pytest.raises(ValueError, match="sensors must be one or more"):
         TrackingModel(sensors=((0.0, 0.0, 1.0),))
+
+
+def test_a_simulation_that_draws_from_the_global_generator_says_so():
+    """The tracking attack without an "attack" stream drew from torch's global generator:
+    two identical calls differed, silently. It still runs (as documented), with a warning;
+    with every stream it neither warns nor touches the global generator."""
+    import warnings
+
+    sc = registry.get("tracking_rrp_deception").with_steps(20)
+    with pytest.warns(UserWarning, match="global generator: generators has no 'attack'"):
+        sc.simulate(2, {"plant": _gen(0)})
+    four_tank = registry.get("four_tank_bias").with_steps(20)  # a random (p_l) attack
+    with pytest.warns(UserWarning, match="'attack' or 'schedule'"):
+        four_tank.simulate(2, {"plant": _gen(0)})
+    state = torch.random.get_rng_state()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        a = sc.simulate(2, Streams(0).simulation())
+        b = sc.simulate(2, Streams(0).simulation())
+    assert torch.equal(a.flags, b.flags) and torch.equal(a.y_recv, b.y_recv)
+    assert torch.equal(state, torch.random.get_rng_state())
