@@ -880,7 +880,7 @@ def _study(args, argv: Sequence[str] | None, held: contextlib.ExitStack) -> int:
 
 def _write_error(exc: OSError, out: Path) -> str:
     """The line of an ``OSError`` met during a study: the file under ``out`` it could not
-    write (the report writers name theirs, :func:`~difffilter.eval.report.write_file`) and
+    write (the report writers name theirs, :func:`~difffilter.models.atomic_write.write_atomically`) and
     the reason; another file's, or no file's, as the error names it."""
     reason = exc.strerror or str(exc)
     if exc.filename is None:  # (e.g. a write of TensorBoard's names no file)

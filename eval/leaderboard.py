@@ -9,7 +9,6 @@ sha256, so that runs of different checkpoints compare side by side).
 
 from __future__ import annotations
 
-import json
 import math
 import warnings
 from pathlib import Path
@@ -21,9 +20,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from difffilter.models.atomic_write import write_atomically, write_json_atomically  # noqa: E402
+
 from .acceptance import role_mark  # noqa: E402
 from .plots import text_colour  # noqa: E402
-from .report import _clean, format_number, markdown_table, save_figure, write_file  # noqa: E402
+from .report import _clean, format_number, markdown_table, save_figure  # noqa: E402
 from .scoring import HEADLINE, METRICS  # noqa: E402
 
 __all__ = ["COLUMNS", "leaderboard_rows", "write_leaderboard"]
@@ -96,10 +97,10 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
     rows = leaderboard_rows(results)
     # (inf as null, its worst_<metric>_diverged saying why: json.dumps wrote the bare token
     # Infinity, which strict JSON readers refuse: a review)
-    write_file(out / "leaderboard.json", json.dumps(_clean(rows), indent=2) + "\n")
+    write_json_atomically(out / "leaderboard.json", _clean(rows))
     if not rows:  # (the figure of no rows failed in matplotlib, after every report was written)
         path = out / "leaderboard.md"
-        write_file(path, "# Leaderboard\n\nNo estimator ran: each scenario's `report.md` "
+        write_atomically(path, "# Leaderboard\n\nNo estimator ran: each scenario's `report.md` "
                          "lists those skipped and why.\n" + _skipped(results))  # fmt: skip
         (out / "leaderboard.png").unlink(missing_ok=True)
         _hparams(out / "tb_leaderboard", rows)
@@ -160,7 +161,7 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
                   "size, the plant's load), a reference runs on the attack-free measurements; "
                   "neither sets the best of a scenario in the figure.")  # fmt: skip
     path = out / "leaderboard.md"
-    write_file(
+    write_atomically(
         path,
         f"# Leaderboard\n\n{intro}\n\n"
         + markdown_table(header, cells)

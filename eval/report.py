@@ -33,7 +33,7 @@ from typing import Any
 
 from difffilter.linalg import NumericalBreakdown
 from difffilter.models import estimators as registry
-from difffilter.models.atomic_write import write_atomically
+from difffilter.models.atomic_write import write_atomically, write_json_atomically
 
 from .acceptance import ANALYTIC, TOLERANCES, best_analytic, judge, role_mark, roles, state_metric
 from .calibration import below_target_note
@@ -53,7 +53,6 @@ __all__ = [
     "markdown_table",
     "format_number",
     "share_suffix",
-    "write_file",
     "save_figure",
     "mark_incomplete",
     "INCOMPLETE",
@@ -64,32 +63,10 @@ __all__ = [
 INCOMPLETE = "INCOMPLETE.md"
 
 
-def write_file(path: str | Path, content: str | bytes | Callable[[Path], object]) -> None:
-    """``content`` (text, bytes, or a function writing the file it is given) replaces the
-    file ``path`` whole or not at all (:func:`~difffilter.models.atomic_write.
-    write_atomically`): a write that failed midway (a full disk) had left a truncated
-    metrics.json in place of the earlier good one. Its ``OSError`` names ``path`` (a full
-    disk's named no file, a failed rename the temporary one)."""
-
-    def write(partial: Path) -> None:
-        if isinstance(content, str):
-            partial.write_text(content)
-        elif isinstance(content, bytes):
-            partial.write_bytes(content)
-        else:
-            content(partial)
-
-    try:
-        write_atomically(path, write)
-    except OSError as exc:
-        exc.filename, exc.filename2 = str(path), None
-        raise
-
-
 def save_figure(fig, path: str | Path, **savefig) -> None:
     """``fig.savefig(path, **savefig)`` as a PNG that replaces ``path`` whole or not at all
-    (:func:`write_file`)."""
-    write_file(path, lambda partial: fig.savefig(partial, format="png", **savefig))
+    (:func:`~difffilter.models.atomic_write.write_atomically`)."""
+    write_atomically(path, lambda partial: fig.savefig(partial, format="png", **savefig))
 
 
 def mark_incomplete(folder: str | Path, what: str) -> Path:
@@ -99,7 +76,7 @@ def mark_incomplete(folder: str | Path, what: str) -> Path:
     left its metrics.json beside the earlier report.md and leaderboard, with nothing to say
     that they were of two studies."""
     path = Path(folder) / INCOMPLETE
-    write_file(path, (
+    write_atomically(path, (
         f"# Incomplete\n\n{what} began at {time.strftime('%Y-%m-%d %H:%M:%S')} (process "
         f"{os.getpid()}) and has not ended: it is still running, or it was stopped or failed. "
         "Until it is run again to its end, the files here may mix its results with an "
@@ -350,7 +327,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
         prepared: what the family's ``prepare`` returned, for its sections.
 
     Returns the metrics.json content. Each file replaces the earlier evaluation's whole or
-    not at all (:func:`write_file`); ``INCOMPLETE.md`` marks the folder while they are
+    not at all (:func:`~difffilter.models.atomic_write.write_atomically`); ``INCOMPLETE.md`` marks the folder while they are
     written (:func:`mark_incomplete`).
     """
     from .plots import png_bytes, standard_figures
@@ -391,7 +368,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     )):  # fmt: skip
         doc["acceptance_intervals"] = _clean(intervals)
     incomplete = mark_incomplete(out, f"Writing the reports of {sc.name} into this folder")
-    write_file(out / "metrics.json", json.dumps(doc, indent=2) + "\n")
+    write_json_atomically(out / "metrics.json", doc)
     figures = standard_figures(result)
     sections = [_summary_section(doc, sc), _table_section(doc)]
     if (judged := _acceptance_section(doc)) is not None:
@@ -405,8 +382,8 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
         sections += family.sections(result, doc, out, prepared)
     images = [(name, png_bytes(fig)) for name, fig in figures]  # each drawn once:
     for name, png in images:  # the file and TensorBoard's image are the same PNG
-        write_file(out / name, png)
-    write_file(out / "report.md", _markdown(doc, sc, sections))
+        write_atomically(out / name, png)
+    write_atomically(out / "report.md", _markdown(doc, sc, sections))
     # the family's own figures too (its sections saved them in the folder)
     drawn = {name for name, _ in images}
     for section in sections:
@@ -731,7 +708,7 @@ def write_acceptance_summary(out: str | Path, docs: dict[str, dict]) -> Path | N
     if not rows:  # an earlier evaluation's summary would be printed as this one's
         path.unlink(missing_ok=True)
         return None
-    write_file(
+    write_atomically(
         path,
         "# Learned against the best analytic\n\nEvery learned estimator at the calibrated "
         "false-alarm rate against, per metric, the best analytic estimator of its study (TPR ≥ "

@@ -20,7 +20,6 @@ estimator is its lowest TPR, highest ratio and highest impact over the threats.
 
 from __future__ import annotations
 
-import json
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -28,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from difffilter.linalg import NumericalBreakdown
+from difffilter.models.atomic_write import write_atomically, write_json_atomically
 from difffilter.models.yaml_scenario import read_yaml
 from difffilter.threats import check_attack_fits, threat_from_dict, with_sampling_period
 
@@ -52,7 +52,6 @@ from .report import (
     save_figure,
     share_percent,
     share_suffix,
-    write_file,
 )
 from .scoring import METRICS
 from .stealthy import StealthySpec, craft_threat, crafted_error, same_rate_bias
@@ -558,8 +557,8 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
             check["interval"] = mine.get("state", {}).get(threat)
     doc["acceptance"] = _clean(acceptance)
     incomplete = mark_incomplete(out, f"Writing the robustness study of {sc.name} into this folder")
-    write_file(out / "robustness.json", json.dumps(doc, indent=2) + "\n")
-    write_file(out / "robustness.md", _markdown(doc, sc))
+    write_json_atomically(out / "robustness.json", doc)
+    write_atomically(out / "robustness.md", _markdown(doc, sc))
     _heatmap(out / "robustness.png", doc, sc)
     incomplete.unlink(missing_ok=True)
     return doc
@@ -952,7 +951,7 @@ def write_robustness_summary(out: str | Path, docs: dict[str, dict]) -> Path:
               "worst state_error_ratio", "worst impact [its scenario's state unit]"]  # fmt: skip
     far = next(iter(docs.values()))["far"]["target"] if docs else 0.01
     path = out / "robustness.md"
-    write_file(
+    write_atomically(
         path,
         f"# Robustness\n\nEvery estimator's worst case over its scenario's threats, every "
         f"detector at {100 * far:g} % false alarms (thresholds from attack-free runs of "

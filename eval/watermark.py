@@ -157,19 +157,20 @@ def watermark_study(scenario, *, runs: int = 20, seed: int = 0, std: float = 0.0
 
 def write_watermark(out, doc: dict):
     """``<out>/lfc_watermark/{metrics.json, report.md}`` of :func:`watermark_study`."""
-    import json
     from pathlib import Path
 
-    from .report import format_number, markdown_table, write_file
+    from difffilter.models.atomic_write import write_atomically, write_json_atomically
+
+    from .report import format_number, markdown_table
 
     folder = Path(out) / "lfc_watermark"
     folder.mkdir(parents=True, exist_ok=True)
-    write_file(folder / "metrics.json", json.dumps(doc, indent=2) + "\n")
+    write_json_atomically(folder / "metrics.json", doc)
     f, rp = format_number, doc["replay"]
     rows = [[label, f(r["std"]), f(r["auc"]), f(r["auc_after_splice"]), f(r["tpr_at_far"]),
              f(r["fpr_at_far"]), f(r["control_cost"])]
             for label, r in doc["rows"].items()]  # fmt: skip
-    write_file(
+    write_atomically(
         folder / "report.md",
         "# Replay and the physical watermark (LFC)\n\n"
         f"The traditional loop U = −K₁Z with its Kalman observer, {doc['runs']} runs, seed "

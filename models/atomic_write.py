@@ -16,20 +16,29 @@ from pathlib import Path
 __all__ = ["write_atomically", "write_json_atomically"]
 
 
-def write_atomically(path: str | Path, write: Callable[[Path], object]) -> None:
-    """``write(partial)`` writes the whole file to ``partial``, which then becomes ``path``;
-    on any error or interrupt the partial file goes and ``path`` is left as it was."""
+def write_atomically(path: str | Path, content: str | bytes | Callable[[Path], object]) -> None:
+    """``content`` (text, bytes, or a function that writes the whole file to the path it is
+    given) goes to a partial file, which then becomes ``path``; on any error or interrupt
+    the partial file goes and ``path`` is left as it was. An ``OSError`` names ``path``
+    (a full disk's names no file, a failed rename the partial one: a report writer's error
+    line had to say which file was not written)."""
     path = Path(path)
     partial = path.with_name(f".{path.name}.{os.getpid()}.partial")
     try:
-        write(partial)
+        if isinstance(content, str):
+            partial.write_text(content)
+        elif isinstance(content, bytes):
+            partial.write_bytes(content)
+        else:
+            content(partial)
         os.replace(partial, path)
-    except BaseException:
+    except BaseException as exc:
         partial.unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            exc.filename, exc.filename2 = str(path), None
         raise
 
 
 def write_json_atomically(path: str | Path, document) -> None:
     """``document`` as indented JSON with a final newline, written atomically."""
-    text = json.dumps(document, indent=2) + "\n"
-    write_atomically(path, lambda partial: partial.write_text(text))
+    write_atomically(path, json.dumps(document, indent=2) + "\n")

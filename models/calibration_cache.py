@@ -227,7 +227,7 @@ def cached(kind: str, key: tuple, model, compute, valid=None):
         path.parent.mkdir(parents=True, exist_ok=True)
         text = json.dumps({"kind": kind, "key": repr(key), "value": value})
         # atomic: a reader never sees half a file
-        write_atomically(path, lambda partial: partial.write_text(text))
+        write_atomically(path, text)
     except OSError:
         pass  # a read-only home: the calibration still holds for this process
     return value

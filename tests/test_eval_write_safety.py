@@ -20,7 +20,8 @@ import matplotlib.pyplot as plt
 import pytest
 
 from difffilter.eval import cli
-from difffilter.eval.report import INCOMPLETE, write_file
+from difffilter.eval.report import INCOMPLETE
+from difffilter.models.atomic_write import write_atomically
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIO = "four_tank_bias"
@@ -239,19 +240,19 @@ def test_the_lock_is_a_no_op_without_fcntl(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_write_file_replaces_whole_or_not_at_all_and_names_its_file(tmp_path):
+def test_write_atomically_replaces_whole_or_not_at_all_and_names_its_file(tmp_path):
     path = tmp_path / "metrics.json"
-    write_file(path, '{"seed": 0}\n')
+    write_atomically(path, '{"seed": 0}\n')
 
     def half(partial: Path) -> None:
         partial.write_text('{"se')
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
     with pytest.raises(OSError) as raised:
-        write_file(path, half)
+        write_atomically(path, half)
     assert raised.value.filename == str(path) and raised.value.errno == errno.ENOSPC
     assert path.read_text() == '{"seed": 0}\n' and [p.name for p in tmp_path.iterdir()] == [
         "metrics.json"
     ]
-    write_file(path, b"\x89PNG")
+    write_atomically(path, b"\x89PNG")
     assert path.read_bytes() == b"\x89PNG"

@@ -735,8 +735,7 @@ def _write(out: Path, doc: dict) -> dict:
     """``<out>/sweep.json`` and ``<out>/sweep.md`` of ``doc``; returns it."""
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomically(out / "sweep.json", doc)
-    text = _markdown(doc)
-    write_atomically(out / "sweep.md", lambda partial: partial.write_text(text))
+    write_atomically(out / "sweep.md", _markdown(doc))
     return doc
 
 

@@ -19,6 +19,7 @@ import torch
 
 from difffilter.estimator import Detection, EstimatorOutput, Generators
 from difffilter.models import registry
+from difffilter.models.atomic_write import write_atomically, write_json_atomically
 from difffilter.models.attacks import Signal
 from difffilter.models.estimators import SuiteContext, split_checkpoints
 from difffilter.models.lfc import PAPER_TABLES, STATE_DIM, STATE_NAMES, lfc_loop, random_attacks
@@ -33,7 +34,6 @@ from ..report import (
     register_family,
     save_figure,
     study_metrics,
-    write_file,
 )
 from ..scoring import score
 
@@ -410,7 +410,7 @@ def per_channel_validation(
     }
     folder = out / "lfc_per_channel"
     folder.mkdir(parents=True, exist_ok=True)
-    write_file(folder / "metrics.json", json.dumps(doc, indent=2) + "\n")
+    write_json_atomically(folder / "metrics.json", doc)
     fig, ax = plt.subplots(figsize=(10, 3.8))
     width = 0.8 / len(table)
     for i, (n, row) in enumerate(table.items()):
@@ -438,7 +438,7 @@ def per_channel_validation(
         ]
         for s in STATE_NAMES
     ]
-    write_file(
+    write_atomically(
         folder / "report.md",
         f"# LFC per-channel validation\n\nRandom attacks (steps, ramps, sinusoids, pulse trains) on one "
         f"measurement channel at a time, {R} runs per channel, {doc['wall_time_s']:.0f} s; attack "
@@ -470,7 +470,7 @@ def _finish(results: dict, out: Path, prepared) -> None:
     rows.append(["mean of I–IV", *(f(sum(v) / 4) if len(v) == 4 else "—" for v in means.values()),
                  f(PAPER_MEAN["proposed_ad"]), f(PAPER_MEAN["traditional_ad"])])  # fmt: skip
     table = markdown_table(["scenario", *MAIN, "paper proposed", "paper traditional"], rows)
-    write_file(
+    write_atomically(
         out / "lfc_summary.md",
         f"# LFC summary\n\nAttack RMSE (eq. 43; scenario III: sum over states 3 and 8).\n\n{table}",
     )
