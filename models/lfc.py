@@ -45,6 +45,7 @@ from difffilter.attack import Channel, TabulatedAttack, attack_dim
 from difffilter.control import zoh_discretize
 from difffilter.fdi import ChiSquareDetector, GatedFilter
 from difffilter.kalman import KalmanFilter
+from difffilter.linalg import safe_cholesky
 from difffilter.loop import LoopResult, ReplayedNoise, closed_loop
 from difffilter.models.registry import Scenario, register
 from difffilter.models.scenario import OWN_ATTACK
@@ -201,12 +202,22 @@ class LFCPlant(nn.Module):
             "R": measurement_var * eye,
         }.items():
             self.register_buffer(name, value.to(dtype))
-        self.process_var = float(process_var)
-        self.measurement_var = float(measurement_var)
 
     @property
     def dtype(self):
         return self.Ad.dtype
+
+    @property
+    def process_var(self) -> float:
+        """``Ξ``'s variance as the buffer ``Q`` holds it now (loaded or edited):
+        ``ValueError`` where ``Q`` is not a multiple of ``I``."""
+        return _isotropic_variance(self.Q, "Q")
+
+    @property
+    def measurement_var(self) -> float:
+        """``Θ``'s variance as the buffer ``R`` holds it now: ``ValueError`` where ``R`` is
+        not a multiple of ``I``."""
+        return _isotropic_variance(self.R, "R")
 
     def model(self, *, init_cov: float = 1e-2, knows_load: bool = True):
         """Eq. (42) as a :class:`~difffilter.LinearGaussianModel` with the input
@@ -224,7 +235,11 @@ class LFCPlant(nn.Module):
     def sample_noise(
         self, num_runs: int, steps: int, generator: torch.Generator
     ) -> tuple[Tensor, Tensor]:
-        """Process and measurement noise ``(ξ [B, T, 10], θ [B, T, 10])`` from ``generator``.
+        """Process and measurement noise ``(ξ [B, T, 10], θ [B, T, 10])`` from ``generator``:
+        ``ξ = L_Q ε``, ``θ = L_R ε'`` with ``L`` the Cholesky factors of the buffers ``Q``
+        and ``R`` as they are now (the filter's model reads the same buffers; they had been
+        drawn from the constructor's variances, so a loaded state dict changed the model
+        and not the noise).
 
         Drawn once per Monte Carlo study and shared by every estimator (common random
         numbers): ``ξ[:, k]`` drives ``X_k → X_{k+1}``, ``θ[:, k]`` corrupts ``Z_{k+1}``.
@@ -232,11 +247,18 @@ class LFCPlant(nn.Module):
         if not isinstance(generator, torch.Generator):
             raise ValueError("generator must be a torch.Generator (every draw is seeded)")
         shape = (num_runs, steps, STATE_DIM)
-        xi = torch.randn(shape, generator=generator, dtype=self.dtype) * math.sqrt(self.process_var)
-        theta = torch.randn(shape, generator=generator, dtype=self.dtype) * math.sqrt(
-            self.measurement_var
-        )
-        return xi, theta
+        factors = [safe_cholesky(cov, name=name) for cov, name in ((self.Q, "Q"), (self.R, "R"))]
+        # ε on the generator's device (CPU), then to the buffers'; drawn ξ first, as before
+        eps = [torch.randn(shape, generator=generator, dtype=self.dtype) for _ in factors]
+        return tuple(e.to(L.device) @ L.mT for e, L in zip(eps, factors))
+
+
+def _isotropic_variance(cov: Tensor, name: str) -> float:
+    """``v`` of ``cov = v·I`` (``ValueError`` naming ``name`` otherwise)."""
+    v = cov[0, 0]
+    if not torch.equal(cov, v * torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)):
+        raise ValueError(f"{name} is not a multiple of I: read the buffer {name} itself")
+    return float(v)
 
 
 class SecureController:

@@ -70,40 +70,100 @@ class RobotModel(StateSpaceModel):
         p0=(1.0, 1.0, DEG**2),
         dtype=torch.float64,
     ):
-        super().__init__()
         pos = torch.as_tensor(sensors, dtype=dtype)
         if pos.dim() not in (2, 3) or pos.shape[-1] != 2:
             raise ValueError(f"sensors must have shape [S, 2] or [G, S, 2]; got {tuple(pos.shape)}")
+        dim_y = 2 * pos.shape[-2]
+        R = torch.tensor(meas_var, dtype=dtype).repeat(dim_y // 2)
+        self._setup(
+            pos, dt,
+            initial=Gaussian(torch.tensor(x0, dtype=dtype), torch.diag(torch.tensor(p0, dtype=dtype))),
+            process_noise=Gaussian(torch.zeros(3, dtype=dtype),
+                                   torch.diag(torch.tensor(filter_q, dtype=dtype))),
+            input_noise=Gaussian(torch.zeros(2, dtype=dtype),
+                                 torch.diag(torch.tensor(input_var, dtype=dtype))),
+            measurement_noise=Gaussian(torch.zeros(dim_y, dtype=dtype), torch.diag(R)),
+        )  # fmt: skip
+
+    def _setup(self, pos, dt, *, initial, process_noise, input_noise, measurement_noise):
+        """Set every attribute once (first assignments: building a model, e.g. a group,
+        changes no other model's validation, :mod:`difffilter._assignments`)."""
+        super().__init__()
         # (a NaN or negative dt had built a model that simulated NaN or ran backwards)
         self.dt = check_finite_number(dt, "dt", positive=True)
         self.num_sensors = pos.shape[-2]
         self.dim_y = 2 * self.num_sensors
         self.register_buffer("sensor_pos", pos)
-        self.initial = Gaussian(
-            torch.tensor(x0, dtype=dtype), torch.diag(torch.tensor(p0, dtype=dtype))
-        )
-        self.process_noise = Gaussian(
-            torch.zeros(3, dtype=dtype), torch.diag(torch.tensor(filter_q, dtype=dtype))
-        )
-        self.input_noise = Gaussian(
-            torch.zeros(2, dtype=dtype), torch.diag(torch.tensor(input_var, dtype=dtype))
-        )
-        R = torch.tensor(meas_var, dtype=dtype).repeat(self.num_sensors)
-        self.measurement_noise = Gaussian(torch.zeros(self.dim_y, dtype=dtype), torch.diag(R))
+        self.initial, self.process_noise = initial, process_noise
+        self.input_noise, self.measurement_noise = input_noise, measurement_noise
 
     def group(self, indices) -> RobotModel:
         """The same robot seen by the sensors ``indices`` only (0-based), or by several
-        groups stacked (``indices`` a sequence of equal-length sequences → ``[G, S, 2]``)."""
+        groups stacked (``indices`` a sequence of equal-length sequences → ``[G, S, 2]``).
+
+        The group keeps this model's noise as it is: its ``R`` is the rows and columns of
+        the full ``R`` that its sensors' entries index (per-lidar variances and
+        correlations included), and the prior, ``Q`` and the truth's input noise are the
+        model's own, on the same tensors (gradients and in-place edits reach them). It had
+        rebuilt ``R`` from lidar 1's variances and kept only the diagonals of ``Q`` and
+        ``P_0``: a model made noisier on lidars 4–6 gave bit-identical group estimates.
+        Stacked groups share one ``R``, so their sensors' blocks of ``R`` must be equal
+        (:meth:`groups_share_noise`); groups seen with different noise are estimated one
+        group at a time (``model.group(g)`` for each).
+        """
         pos = self.sensor_pos
-        idx = torch.as_tensor(indices)
-        dtype = pos.dtype
-        return RobotModel(
-            sensors=pos[idx], dt=self.dt, input_var=tuple(self.input_noise.cov.diagonal().tolist()),
-            filter_q=tuple(self.process_noise.cov.diagonal().tolist()),
-            meas_var=tuple(self.measurement_noise.cov.diagonal()[:2].tolist()),
-            x0=tuple(self.initial.mean.tolist()), p0=tuple(self.initial.cov.diagonal().tolist()),
-            dtype=dtype,
-        )  # fmt: skip
+        try:
+            idx = torch.as_tensor(indices)
+        except (TypeError, ValueError, RuntimeError):  # ragged groups: torch's own message
+            idx = None
+        if (
+            idx is None
+            or idx.dim() not in (1, 2)
+            or idx.numel() == 0
+            or idx.dtype.is_floating_point
+        ):
+            raise ValueError(
+                "indices must be sensor indices (a sequence of ints) or equal-length groups of "
+                f"them; got {indices!r}"
+            )
+        if pos.dim() != 2:
+            raise ValueError(
+                f"group selects from a model of one sensor set [S, 2]; this one has sensors of "
+                f"shape {tuple(pos.shape)}"
+            )
+        if bool(((idx < 0) | (idx >= self.num_sensors)).any()):
+            raise ValueError(
+                f"indices must lie in 0 … {self.num_sensors - 1} (0-based sensors); got {indices!r}"
+            )
+        noise = self.measurement_noise
+        if not isinstance(noise, Gaussian):
+            raise ValueError(
+                f"group needs a Gaussian measurement noise (its R is sliced per sensor); got "
+                f"{type(noise).__name__}"
+            )
+        locs, covs = _noise_blocks(noise, idx.tolist() if idx.dim() == 2 else [idx.tolist()])
+        if not _all_equal(locs) or not _all_equal(covs):
+            raise ValueError(
+                "the stacked groups see different measurement noise (their sensors' blocks of R "
+                "differ), and stacked groups share one R: estimate each group on its own "
+                "model, model.group(g) for each g (groups_share_noise tells which applies)"
+            )
+        out = RobotModel.__new__(RobotModel)
+        out._setup(pos[idx], self.dt, initial=_same_noise(self.initial),
+                   process_noise=_same_noise(self.process_noise),
+                   input_noise=_same_noise(self.input_noise),
+                   measurement_noise=Gaussian(locs[0], covs[0]))  # fmt: skip
+        return out
+
+    def groups_share_noise(self, groups) -> bool:
+        """Whether the sensor groups ``groups`` (equal-length sequences of 0-based indices)
+        see the same measurement noise (equal blocks of ``R`` and of its mean), so that
+        :meth:`group` can stack them."""
+        noise = self.measurement_noise
+        if not isinstance(noise, Gaussian):
+            return False
+        locs, covs = _noise_blocks(noise, [list(g) for g in groups])
+        return _all_equal(locs) and _all_equal(covs)
 
     # -- dynamics ------------------------------------------------------------------
     def transition(self, x, u, k):
@@ -210,6 +270,25 @@ class RobotModel(StateSpaceModel):
         d = rowwise(torch.sub, y, y_hat)
         d = d.reshape(d.shape[:-1] + (-1, 2))
         return torch.stack((d[..., 0], wrap_angle(d[..., 1])), -1).flatten(-2)
+
+
+def _noise_blocks(noise: Gaussian, groups) -> tuple[list[Tensor], list[Tensor]]:
+    """The mean ``[..., 2S]`` and covariance ``[..., 2S, 2S]`` blocks of each sensor group's
+    range–bearing entries (``2i``, ``2i + 1`` for sensor ``i``)."""
+    loc, cov = noise.mean, noise.cov
+    blocks = [torch.tensor([2 * i + j for i in g for j in (0, 1)], device=cov.device)
+              for g in groups]  # fmt: skip
+    return [loc[..., e] for e in blocks], [cov[..., e[:, None], e] for e in blocks]
+
+
+def _all_equal(tensors) -> bool:
+    return all(t.shape == tensors[0].shape and torch.equal(t, tensors[0]) for t in tensors[1:])
+
+
+def _same_noise(noise):
+    """The same noise in a module of its own (a Gaussian on the same tensors, so that
+    gradients and in-place edits reach the model it came from; another noise itself)."""
+    return Gaussian(noise.loc, noise.cov) if isinstance(noise, Gaussian) else noise
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,8 @@ simulated runs, so ``compensate=False`` reproduces them exactly).
 
 from __future__ import annotations
 
+from typing import Any, NamedTuple
+
 import torch
 
 from difffilter.estimator import Detection, Estimator, EstimatorOutput, Generators
@@ -49,6 +51,7 @@ __all__ = [
     "group_measurements",
     "local_pair",
     "fuse_pair",
+    "FusedCarry",
     "FusedLocals",
     "CompensatingInputs",
 ]
@@ -161,60 +164,109 @@ register("mdpf_fused_naive", "the two locals fused by naive information fusion")
 )
 
 
+class FusedCarry(NamedTuple):
+    """Carry of :class:`FusedLocals`: the locals' carry ``local_states`` (one
+    :class:`~difffilter.ParticleState` of the stacked groups ``[G, ...]``, or a tuple of one
+    per group where the groups see different noise) and the full model."""
+
+    local_states: Any
+    model: Any
+
+
 class FusedLocals(Estimator):
     """The two local estimators of the sensor groups, fused at every step (App. B).
 
     One :class:`~difffilter.fdi.AdaptiveParticleFilter` runs both locals as a batch
     ``[G, ...]`` on the grouped model (each group's range–bearing entries); the fusion
     ``rule`` (:class:`~difffilter.fdi.fusion.FusionRule`: CI or information fusion) combines
-    their states and attack estimates. Step output: the fused ``x̂, P, â``, the Wald score
-    on ``(â, Ŝ)`` with the locals' threshold, ``extras`` ``"attack_covs"`` ``Ŝ``,
-    ``"local_means" [..., G, dx]``, ``"local_attacks" [..., G, du]`` and, for CI, ``"omega"``.
+    their states and attack estimates. Groups that see different measurement noise (blocks
+    of ``R`` that differ: :meth:`~difffilter.models.robot.RobotModel.groups_share_noise`)
+    cannot share one batched model; their locals then run one group at a time, each on its
+    own group's model, from the same generators. The carry is a :class:`FusedCarry`; a step
+    takes the full model's measurement ``y [..., 2S]`` (all lidars). Step output: the fused
+    ``x̂, P, â``, the Wald score on ``(â, Ŝ)`` with the locals' threshold, ``extras``
+    ``"attack_covs"`` ``Ŝ``, ``"local_means" [..., G, dx]``, ``"local_attacks" [..., G, du]``
+    and, for CI, ``"omega"``.
 
-    Whole sequences take a private fast path: the locals over the whole sequence, then the
-    fusion of all runs and steps at once (one batched covariance intersection instead of
-    ``T``), equal to the composed steps up to round-off (tested).
+    Whole sequences of stacked groups take a private fast path: the locals over the whole
+    sequence, then the fusion of all runs and steps at once (one batched covariance
+    intersection instead of ``T``), equal to the composed steps up to round-off (tested).
     """
 
-    carry_type = ParticleState
+    carry_type = FusedCarry
 
     def __init__(self, local: AdaptiveParticleFilter, rule: FusionRule | str = FusionRule.CI,
                  groups=GROUPS):  # fmt: skip
         self.local, self.rule, self.groups = local, FusionRule(rule), tuple(groups)
 
     def _init(self, model, batch_shape, generators):
-        grouped = model.group(self.groups)
-        return self.local._init(grouped, torch.Size((len(self.groups),)) + batch_shape, generators)
+        if model.groups_share_noise(self.groups):
+            grouped = model.group(self.groups)
+            states = self.local._init(grouped, torch.Size((len(self.groups),)) + batch_shape,
+                                      generators)  # fmt: skip
+        else:
+            states = tuple(self.local._init(model.group(g), batch_shape, generators)
+                           for g in self.groups)  # fmt: skip
+        return FusedCarry(states, model)
+
+    def _model_of(self, carry):
+        return carry.model
 
     def batch_of(self, carry):
-        return carry.log_weights.shape[1:-1]
+        states = carry.local_states
+        if isinstance(states, ParticleState):
+            return states.log_weights.shape[1:-1]
+        return states[0].log_weights.shape[:-1]
 
     def _check_carry(self, carry):
-        self.local._check_carry(carry)
+        states = carry.local_states
+        for state in (states,) if isinstance(states, ParticleState) else states:
+            self.local._check_carry(state)
+
+    def _locals_step(self, states, y, u, mask):
+        """One step of the locals → (their new carry, mean, cov, attack, attack cov
+        stacked first ``[G, ...]``, threshold)."""
+        if isinstance(states, ParticleState):
+            G = len(self.groups)
+            u = None if u is None else u.expand((G,) + u.shape)
+            # the mask too, grouped as the measurements (it was dropped: a lost entry read as 0)
+            grouped_mask = None if mask is None else group_measurements(mask, self.groups)
+            states, out = self.local._step(states, group_measurements(y, self.groups), u,
+                                           grouped_mask)  # fmt: skip
+            return (states, out.mean, out.cov, out.attack, out.extras["attack_covs"],
+                    out.threshold)  # fmt: skip
+        new, outs = [], []
+        for state, g in zip(states, self.groups):
+            entries = _entries(g)
+            state, out = self.local._step(state, y[..., entries], u,
+                                          None if mask is None else mask[..., entries])  # fmt: skip
+            new.append(state)
+            outs.append(out)
+        stack = [torch.stack([getattr(o, f) for o in outs]) for f in ("mean", "cov", "attack")]
+        attack_covs = torch.stack([o.extras["attack_covs"] for o in outs])
+        return (tuple(new), *stack, attack_covs, outs[0].threshold)
 
     def _step(self, carry, y, u, mask):
-        G = len(self.groups)
-        u = None if u is None else u.expand((G,) + u.shape)
-        # the mask too, grouped as the measurements (it was dropped: a lost entry read as 0)
-        grouped_mask = None if mask is None else group_measurements(mask, self.groups)
-        carry, out = self.local._step(carry, group_measurements(y, self.groups), u, grouped_mask)
-        x, P, a, S, omega = fuse_pair(out.mean, out.cov, out.attack, out.extras["attack_covs"],
-                                      self.rule)  # fmt: skip
+        states, mean, cov, attack, attack_covs, thr = self._locals_step(
+            carry.local_states, y, u, mask
+        )
+        x, P, a, S, omega = fuse_pair(mean, cov, attack, attack_covs, self.rule)
         score = wald_statistic(a, S)
-        extras = {"attack_covs": S, "local_means": out.mean.movedim(0, -2),
-                  "local_attacks": out.attack.movedim(0, -2)}  # fmt: skip
+        extras = {"attack_covs": S, "local_means": mean.movedim(0, -2),
+                  "local_attacks": attack.movedim(0, -2)}  # fmt: skip
         if omega is not None:
             extras["omega"] = omega
-        thr = out.threshold
-        return carry, StepOutput(x, P, attack=a, score=score, alarm=score > thr, threshold=thr,
-                                 extras=extras)  # fmt: skip
+        return FusedCarry(states, carry.model), StepOutput(
+            x, P, attack=a, score=score, alarm=score > thr, threshold=thr, extras=extras
+        )
 
     def _run(self, carry, ys, us, mask):
-        if mask is not None:
+        states = carry.local_states
+        if mask is not None or not isinstance(states, ParticleState):
             return None
         G, batch = len(self.groups), self.batch_of(carry)
         us = None if us is None else us.expand((G,) + us.shape)
-        out = _step_through(self.local, carry, group_measurements(ys, self.groups), us, None,
+        out = _step_through(self.local, states, group_measurements(ys, self.groups), us, None,
                             torch.Size((G,)) + batch, None)  # fmt: skip
         x, P, a, S, omega = fuse_pair(out.means, out.covs, out.attack, out.extras["attack_covs"],
                                       self.rule)  # fmt: skip

@@ -133,15 +133,25 @@ class ParticleLayout:
 
 class ParticleView(StateSpaceModel):
     """The base model seen through packed particles (what the particle driver calls):
-    ``observe`` reads the ``x̄`` block; noise and residuals are the base model's."""
+    ``observe`` reads the ``x̄`` block; noise and residuals are the base model's, read at
+    each use (a noise assigned to the base since is the view's too)."""
 
     def __init__(self, base: StateSpaceModel, layout: ParticleLayout):
         super().__init__()
         self.base, self.layout = base, layout
         self.dim_x, self.dim_y, self.dim_u = layout.size, base.dim_y, base.dim_u
-        self.initial = base.initial
-        self.process_noise = base.process_noise
-        self.measurement_noise = base.measurement_noise
+
+    @property
+    def initial(self):
+        return self.base.initial
+
+    @property
+    def process_noise(self):
+        return self.base.process_noise
+
+    @property
+    def measurement_noise(self):
+        return self.base.measurement_noise
 
     def observe(self, x, k):
         return self.base.observe(x[..., : self.layout.dx], k)
@@ -208,23 +218,40 @@ class AdaptiveKalmanProposal:
         form: Form | str = Form.AUTO,
     ):
         reading, form = Reading(reading), Form(form)
-        if form is Form.AUTO:
-            form = Form.INFORMATION if information_form_applies(base) else Form.COVARIANCE
         self.base, self.forgetting, self.reading = base, _check_forgetting(forgetting), reading
         self.layout = ParticleLayout(base.dim_x, base.dim_u)
-        self.form = form
+        self.requested_form = form
+        self._noise_key = None
+        self._refresh()
+
+    def _refresh(self) -> None:
+        """Choose the form and derive the information form's constants from the model's
+        ``R`` and ``Q`` as they are now. Done again whenever either is another tensor or
+        was written in place since (the constants had been frozen at the first step: a
+        model made noisier under the estimator was filtered with its old ``R``, 125 cm
+        away from a fresh estimator's)."""
+        R, Q = self.base.measurement_cov(0), self.base.process_cov(0)
+        key = (R, R._version, Q, Q._version)
+        old = self._noise_key
+        if old is not None and old[0] is R and old[2] is Q and old[1::2] == key[1::2]:
+            return
+        form = self.requested_form
+        if form is Form.AUTO:
+            form = Form.INFORMATION if information_form_applies(self.base) else Form.COVARIANCE
         if form is Form.INFORMATION:
-            if not information_form_applies(base):
+            if not information_form_applies(self.base):
                 raise ValueError(
                     "form='information' needs a time-invariant, diagonal R; use form='covariance'"
                 )
-            R = base.measurement_cov(0)
-            Q = base.process_cov(0).detach().double()
+            Qd = Q.detach().double()
             self._rvar = R.diagonal().detach().tolist()
-            self._qinv = torch.linalg.inv(Q).tolist()
-            self._logdet_q = float(torch.logdet(Q))
+            self._qinv = torch.linalg.inv(Qd).tolist()
+            self._logdet_q = float(torch.logdet(Qd))
+        self.form, self._noise_key = form, key
 
     def __call__(self, model, particles, u, y, k, mask, generator):
+        if not getattr(self.base, "time_varying", False):
+            self._refresh()
         if self.form is Form.COVARIANCE:
             return self._covariance(particles, u, y, k, mask, generator)
         return self._information(particles, u, y, k, mask, generator)
