@@ -196,6 +196,29 @@ def test_an_interrupted_evaluation_leaves_incomplete_where_its_files_may_be_mixe
     assert not list(out.rglob(INCOMPLETE))
 
 
+def test_sigterm_ends_an_evaluation_as_an_interrupt_does_with_one_line_and_143(
+    out, monkeypatch, capsys
+):
+    """SIGTERM (a scheduler's stop) had ended difffilter-eval silently with 143; it now
+    closes what it holds, leaves INCOMPLETE.md, says so in one line and restores the
+    caller's SIGTERM handler."""
+    import signal
+
+    def terminated(*args, **kwargs):  # the signal arrives while the study writes its events
+        os.kill(os.getpid(), signal.SIGTERM)
+        raise AssertionError("SIGTERM was not raised where the study was")
+
+    before = signal.getsignal(signal.SIGTERM)
+    monkeypatch.setattr("difffilter.eval.tensorboard.log_suite", terminated)
+    assert _evaluate(out, 1) == 143
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        "difffilter-eval: terminated (SIGTERM): the reports under --out may be incomplete; "
+        "rerun the same command to evaluate again"
+    )
+    assert (out / INCOMPLETE).exists()
+    assert signal.getsignal(signal.SIGTERM) == before
+
+
 HOLDER = """
 import sys
 from pathlib import Path

@@ -212,3 +212,16 @@ def test_the_lfc_plants_default_draws_are_unchanged_and_a_correlated_q_is_drawn_
     xi, _ = p.sample_noise(400, 500, torch.Generator().manual_seed(1))
     corr = torch.corrcoef(xi.reshape(-1, 10).T)[0, 1]
     assert abs(corr.item() - 0.5) < 0.01  # 2·10⁵ pairs: standard error 0.002
+
+
+@pytest.mark.parametrize("rule", ["ci", "naive"])
+def test_fusion_refuses_means_and_covariances_of_two_dtypes(rule):
+    """A float64 mean with a float32 covariance had been fused in silently promoted
+    precision."""
+    from difffilter.fdi.fusion import information_fusion
+
+    fuse = covariance_intersection if rule == "ci" else information_fusion
+    means, covs = torch.zeros(2, 3, dtype=F64), torch.eye(3).expand(2, 3, 3).clone()
+    with pytest.raises(ValueError, match="means and covs must share one dtype"):
+        fuse(means, covs)
+    assert fuse(means, covs.double())[0].dtype == F64

@@ -53,6 +53,12 @@ def _check_pair(means: Tensor, covs: Tensor) -> None:
         if not isinstance(t, Tensor) or not t.is_floating_point():
             raise TypeError(f"{name} must be a floating-point torch.Tensor; got "
                             f"{getattr(t, 'dtype', type(t).__name__)}")  # fmt: skip
+    if means.dtype != covs.dtype or means.device != covs.device:
+        # (torch had promoted silently: a float32 covariance fused in float64 with the means)
+        raise ValueError(
+            f"means and covs must share one dtype and device; got means {means.dtype} on "
+            f"{means.device}, covs {covs.dtype} on {covs.device}"
+        )
     if means.dim() < 2 or means.shape[-2] != 2:
         raise ValueError(
             f"means must have shape [..., 2, d] (two local estimates); got {tuple(means.shape)}"

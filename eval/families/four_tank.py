@@ -21,7 +21,14 @@ from difffilter import fdi, metrics
 from difffilter.models.estimators import SuiteContext, get
 from difffilter.models.generic_estimators import modified_pf
 
-from ..report import FamilyReport, Section, format_number, markdown_table, register_family
+from ..report import (
+    FamilyReport,
+    Section,
+    format_number,
+    markdown_table,
+    register_family,
+    save_figure,
+)
 from ..scoring import rates_by_size, score
 from ..suite import single_run_time_per_step
 
@@ -313,7 +320,7 @@ def _fig9_section(doc: dict, out, names=()) -> Section:
         title="Detection rate versus attack size",
     )
     legend_beside(ax)
-    fig.savefig(out / "detection_vs_attack_size.png", dpi=110, bbox_inches="tight")
+    save_figure(fig, out / "detection_vs_attack_size.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
     return Section(
         "The normal PF and large attacks (Fig. 9)", body, ["detection_vs_attack_size.png"]

@@ -17,7 +17,14 @@ from difffilter.consistency import nees
 from difffilter.models.robot import DEG
 from difffilter.runtime import one_thread
 
-from ..report import FamilyReport, Section, format_number, markdown_table, register_family
+from ..report import (
+    FamilyReport,
+    Section,
+    format_number,
+    markdown_table,
+    register_family,
+    save_figure,
+)
 
 LATE = 40  # the "k ≥ 40"
 
@@ -238,7 +245,7 @@ def _figures(result, doc, out) -> list[str]:
         ax.plot(s[:, 0], s[:, 1], "m^", label="lidars")
         ax.set(xlabel="s_x (cm)", ylabel="s_y (cm)", title="Fig. B1: run 0", aspect="equal")
         ax.legend(fontsize=7)
-        fig.savefig(out / "fig_b1_trajectories.png", dpi=110, bbox_inches="tight")
+        save_figure(fig, out / "fig_b1_trajectories.png", dpi=110, bbox_inches="tight")
         plt.close(fig)
         files.append("fig_b1_trajectories.png")
     from ..plots import estimator_looks, legend_beside, mark_off_scale
@@ -249,7 +256,7 @@ def _figures(result, doc, out) -> list[str]:
         ax.plot(t, c, lw=1, label=n, **looks.get(n, {}))
     ax.set(xlabel="k", ylabel="position RMSE (cm)", yscale="log", title="Fig. B2: RMSE(k), (B8)")
     legend_beside(ax)
-    fig.savefig(out / "fig_b2_rmse.png", dpi=110, bbox_inches="tight")
+    save_figure(fig, out / "fig_b2_rmse.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
     files.append("fig_b2_rmse.png")
     att = doc.get("attack")
@@ -264,7 +271,7 @@ def _figures(result, doc, out) -> list[str]:
             ax[i].set(xlabel="k", ylabel=f"{lab} ({unit})")
             ax[i].legend(fontsize=7)
         fig.suptitle("Fig. B3: attack and its fused estimate")
-        fig.savefig(out / "fig_b3_attack.png", dpi=110, bbox_inches="tight")
+        save_figure(fig, out / "fig_b3_attack.png", dpi=110, bbox_inches="tight")
         plt.close(fig)
         files.append("fig_b3_attack.png")
     curves = (comp or {}).get("input_error_curves")
@@ -281,7 +288,7 @@ def _figures(result, doc, out) -> list[str]:
             mark_off_scale(ax[i], t, (mean[:, i], rms[:, i]), (-2, 6), f" {unit}")
             ax[i].legend(fontsize=7)
         fig.suptitle("Effective input error with compensation (bound ±1 from k = 40)")
-        fig.savefig(out / "fig_input_error.png", dpi=110, bbox_inches="tight")
+        save_figure(fig, out / "fig_input_error.png", dpi=110, bbox_inches="tight")
         plt.close(fig)
         files.append("fig_input_error.png")
     return files

@@ -25,7 +25,14 @@ from difffilter.models.tracking import communication_counts
 from difffilter.runtime import one_thread
 
 from ..intervals import register_stepwise
-from ..report import FamilyReport, Section, format_number, markdown_table, register_family
+from ..report import (
+    FamilyReport,
+    Section,
+    format_number,
+    markdown_table,
+    register_family,
+    save_figure,
+)
 from ..scoring import auc
 from ..suite import single_run_time_per_step
 
@@ -244,7 +251,7 @@ def _bound_section(result, doc: dict, out) -> Section:
               title="Velocity RMSE and bound")  # fmt: skip
     # (the bounds alone where no estimator ran)
     legend_beside(ax[1], handles=ax[0].get_legend_handles_labels()[0])
-    fig.savefig(out / "rmse_vs_bound.png", dpi=110, bbox_inches="tight")
+    save_figure(fig, out / "rmse_vs_bound.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
     return Section("RMSE next to the posterior Cramér–Rao bound", body, ["rmse_vs_bound.png"])
 
@@ -261,7 +268,7 @@ def _eta_section(doc: dict, out) -> Section:
     ax.set(xlabel="k", ylabel="RMSE_p [length (paper's, unstated)]", yscale="log",
            title="rrp_pf_da position RMSE versus η̄ (Fig. 5)")  # fmt: skip
     ax.legend(fontsize=8)
-    fig.savefig(out / "eta_sweep.png", dpi=110, bbox_inches="tight")
+    save_figure(fig, out / "eta_sweep.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
     body += (
         "\nSame plant, schedule and particle random numbers; the attack uniforms are shared, "
