@@ -746,36 +746,20 @@ def hold_output_folder(out: Path) -> Iterator[None]:
         yield
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM (a scheduler's or ``kill``'s stop), raised where the study is so that it ends
-    as an interrupt does: its ``with`` blocks closed, one line said."""
-
-
-def _raise_terminated(signum, frame):
-    raise Terminated
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """The command line (:func:`build_parser`); an interrupt (Ctrl-C) ends it with one line
     and exit code 130, SIGTERM with one line and 143, not a traceback from wherever the
     study was (a CLI trial) or, for SIGTERM, silently."""
-    import signal
-    import threading
+    from difffilter.interrupts import sigterm_as_interrupt, stop_words
 
-    handler = None
-    if threading.current_thread() is threading.main_thread():  # (signals: main thread only)
-        handler = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
-        return _main(argv)
+        with sigterm_as_interrupt():
+            return _main(argv)
     except KeyboardInterrupt as exc:
-        what, code = ("terminated (SIGTERM)", 143) if isinstance(exc, Terminated) else (
-            "interrupted", 130)  # fmt: skip
+        what, code = stop_words(exc)
         print(f"difffilter-eval: {what}: the reports under --out may be incomplete; "
               "rerun the same command to evaluate again", file=sys.stderr)  # fmt: skip
         return code
-    finally:
-        if handler is not None:
-            signal.signal(signal.SIGTERM, handler)
 
 
 def _main(argv: Sequence[str] | None = None) -> int:

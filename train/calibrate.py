@@ -49,6 +49,7 @@ from pathlib import Path
 
 from difffilter._checks import check_rate
 from difffilter.fdi.neural import restart_applies
+from difffilter.interrupts import stop_words
 from difffilter.models.atomic_write import write_json_atomically
 
 from .common import check_checkpoint_out, load_source
@@ -316,15 +317,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"difffilter-train calibrate: error: --out {args.out}: cannot write it ({exc})",
               file=sys.stderr)  # fmt: skip
         return 2
-    except KeyboardInterrupt:  # (a traceback of 22 frames before: a training trial)
+    except KeyboardInterrupt as exc:  # (a traceback of 22 frames before: a training trial)
         # --out is written at the end, the checkpoint and then its card: interrupted between
         # the two, the pair does not match and a rerun must replace it
         touched = _signature(args.out) != before
-        print("difffilter-train calibrate: interrupted: "
+        what, code = stop_words(exc)  # (SIGTERM: 143)
+        print(f"difffilter-train calibrate: {what}: "
               + (f"{args.out} was being written; rerun the same command with --force"
                  if touched else f"nothing was written to {args.out}; rerun the same command"),
               file=sys.stderr)  # fmt: skip
-        return 130
+        return code
     print(
         f"wrote {args.out}: {cal['estimator']} alarms above {cal['threshold']:.6g}"
         f"{' (' + cal['score'] + ')' if 'score' in cal else ''} (was "

@@ -72,13 +72,17 @@ def main(args: list[str] | None = None) -> int:
     """Entry point of the ``difffilter-train`` console script (``args`` for tests): the
     top-level ``--help`` at once, ``export``, ``calibrate`` and ``sweep`` by their own
     modules, the Lightning commands by :func:`~difffilter.train.lightning_cli.run`. An
-    interrupt (Ctrl-C) ends it with one line and exit code 130, as ``difffilter-eval``
-    (Lightning's exit code 1 had read as a failure); a fit's ``last.ckpt`` is written as
-    before (:mod:`~difffilter.train.last_checkpoint`)."""
+    interrupt (Ctrl-C) ends it with one line and exit code 130, SIGTERM with one line and
+    143, as ``difffilter-eval`` (Lightning's exit code 1 had read as a failure, and its
+    code 0 after SIGTERM as a finished run); a fit's ``last.ckpt`` is written as before
+    (:mod:`~difffilter.train.last_checkpoint`)."""
+    from difffilter.interrupts import sigterm_as_interrupt, stop_words
+
     argv = sys.argv[1:] if args is None else list(args)
     try:
-        return _main(args, argv)
-    except KeyboardInterrupt:
+        with sigterm_as_interrupt():
+            return _main(args, argv)
+    except KeyboardInterrupt as exc:
         hints = sys.modules.get("difffilter.train.last_checkpoint")
         if hints is not None and os.environ.get(hints.RESUME_HINT):
             raise  # a sweep's seed: the sweep says how to go on (and exits 130)
@@ -89,8 +93,9 @@ def main(args: list[str] | None = None) -> int:
                     "last whole epoch (named above where one ended)")  # fmt: skip
         else:
             what = f"{command} did not finish; rerun the same command"
-        print(f"difffilter-train: interrupted: {what}", file=sys.stderr)
-        return 130
+        said, code = stop_words(exc)
+        print(f"difffilter-train: {said}: {what}", file=sys.stderr)
+        return code
 
 
 def _main(args: list[str] | None, argv: list[str]) -> int:

@@ -90,7 +90,9 @@ class LastCheckpointEveryEpoch(pl.Callback):
         if not trainer.is_global_zero:
             return
         self._back_to_the_last_whole_epoch(trainer)
-        if not isinstance(exception, KeyboardInterrupt):
+        from lightning.pytorch.utilities.exceptions import SIGTERMException
+
+        if not isinstance(exception, (KeyboardInterrupt, SIGTERMException)):
             return
         path = self._path()
         if path is not None and path.is_file() and os.environ.get(RESUME_HINT):

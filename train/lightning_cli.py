@@ -845,11 +845,18 @@ def run(args: list[str] | None, argv: list[str], description: str) -> int:
     except SystemExit as exc:
         # Ctrl-C: Lightning from 2.3 catches it, runs the callbacks' on_exception (last.ckpt
         # kept at the last whole epoch, how to resume said), ignores SIGINT from then on and
-        # exits 1, the code of a failure: handed on as the interrupt it was (cli.main: 130)
+        # exits 1, the code of a failure: handed on as the interrupt it was (cli.main: 130;
+        # SIGTERM, raised as Terminated by cli.main's handler: 143)
+        from lightning.pytorch.utilities.exceptions import SIGTERMException
+
+        from difffilter.interrupts import Terminated
+
+        if isinstance(exc, SIGTERMException):  # Lightning's own SIGTERM stop: it exits 0
+            raise Terminated from None
         if not isinstance(exc.__context__, KeyboardInterrupt):
             raise
         _restore_sigint(sigint)
-        raise KeyboardInterrupt from None
+        raise type(exc.__context__) from None
     # Lightning 2.2 returned from fit as if it had ended
     if getattr(getattr(cli, "trainer", None), "interrupted", False):
         _restore_sigint(sigint)

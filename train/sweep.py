@@ -59,6 +59,7 @@ import statistics
 import sys
 from pathlib import Path
 
+from difffilter.interrupts import stop_words
 from difffilter.models.atomic_write import write_atomically, write_json_atomically
 
 from .common import check_config_keys, make_writable_folder, train_seed_of
@@ -109,18 +110,19 @@ def _fit(config: Path, seed: int, runs_dir: Path, extra: list[str], progress: bo
     from .last_checkpoint import RESUME_HINT
 
     os.environ[RESUME_HINT] = "rerun the same difffilter-train sweep command: it resumes this seed"
+    stopped = None
     try:
         code = cli_main(args)
-    except KeyboardInterrupt:  # Ctrl-C (train/cli.py leaves it to the sweep to say)
-        code = 130
+    except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM (train/cli.py leaves it to the sweep)
+        code, stopped = 130, exc
     finally:
         del os.environ[RESUME_HINT]
     if code != 0:
         if not (folder / "checkpoints").is_dir():  # nothing trained (e.g. a misspelt option):
             # its settings are no record of a run, and refused the corrected command after it
             (folder / _SETTINGS).unlink(missing_ok=True)
-        if code == 130:  # interrupted, not failed: main() ends the sweep with exit code 130
-            raise KeyboardInterrupt
+        if code == 130:  # interrupted, not failed: main() ends the sweep with 130 (or 143)
+            raise stopped if stopped is not None else KeyboardInterrupt()
         raise ValueError(f"seed {seed}: difffilter-train fit failed (its error is above)")
     done = _exported(folder) if folder.is_dir() else None
     if done is None:
@@ -883,11 +885,12 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as exc:
         print(f"difffilter-train sweep: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:  # Ctrl-C: exit code 130, as difffilter-eval's (1 before)
-        print("difffilter-train sweep: interrupted: the seeds trained are kept and the one "
+    except KeyboardInterrupt as exc:  # Ctrl-C: exit code 130, as difffilter-eval's (1 before)
+        what, code = stop_words(exc)  # (SIGTERM: 143)
+        print(f"difffilter-train sweep: {what}: the seeds trained are kept and the one "
               "being trained resumes from its last whole epoch; rerun the same command to go "
               "on", file=sys.stderr)  # fmt: skip
-        return 130
+        return code
     print((Path(args.out) / "sweep.md").read_text())
     if args.validation_only:
         print(f"median seed {doc['median_seed']} on validation; the test is held back")

@@ -1,0 +1,46 @@
+"""How the command-line entry points stop: SIGTERM (a batch scheduler's stop, ``kill``)
+ends a command as Ctrl-C does, with its own words and exit code (130 after Ctrl-C, 143
+after SIGTERM). Imports nothing heavy: ``--help`` runs before torch is imported."""
+
+from __future__ import annotations
+
+import signal
+import threading
+from contextlib import contextmanager
+
+__all__ = ["Terminated", "sigterm_as_interrupt", "stop_words"]
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a batch scheduler's stop, ``kill``) raised where a command is, by
+    :func:`sigterm_as_interrupt`: the command then ends as after Ctrl-C (its ``with``
+    blocks closed, a training's ``last.ckpt`` kept, one line said), with exit code 143."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated
+
+
+@contextmanager
+def sigterm_as_interrupt():
+    """Run the block with SIGTERM raising :class:`Terminated` (a ``KeyboardInterrupt``) in
+    the main thread; the previous handler afterwards. Outside the main thread, where no
+    handler can be set, the block runs as it is. (Python's default had ended the commands
+    at once and silently: ``difffilter-eval`` with 143 and nothing said, a training with
+    Lightning's exit code 0, as if it had finished.)"""
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def stop_words(interrupt: KeyboardInterrupt) -> tuple[str, int]:
+    """``(what happened, exit code)`` of a command stopped by ``interrupt``:
+    ``("terminated (SIGTERM)", 143)`` or ``("interrupted", 130)`` (Ctrl-C)."""
+    if isinstance(interrupt, Terminated):
+        return "terminated (SIGTERM)", 143
+    return "interrupted", 130
