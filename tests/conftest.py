@@ -156,3 +156,16 @@ def online_pair(kind: str, num_particles: int = 10):
     if kind == "pf":
         return model, estimator, estimator.init(model, (), torch.Generator().manual_seed(0))
     return model, estimator, estimator.init(model, ())
+
+
+def small_four_tank_fit(max_epochs: int) -> list[str]:
+    """``difffilter-train fit`` options of a four-tank training of a few seconds: three
+    batches of two runs of 20 steps an epoch, a network of 4 hidden units, 20 particles."""
+    from pathlib import Path
+
+    config = Path(__file__).resolve().parents[1] / "train" / "configs" / "four_tank.yaml"
+    return ["--config", str(config), "--data.init_args.batch_size=2",
+            "--data.init_args.batches_per_epoch=3", "--data.init_args.val_runs=4",
+            "--data.init_args.steps=20", "--model.init_args.hidden=4",
+            "--model.init_args.num_particles=20", "--trainer.log_every_n_steps=1",
+            f"--trainer.max_epochs={max_epochs}"]  # fmt: skip

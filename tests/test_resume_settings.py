@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import small_four_tank_fit
 from lightning.pytorch.cli import LightningCLI
 
 from difffilter.train.cli import main
@@ -225,11 +226,7 @@ def test_a_run_resumed_after_an_interrupted_epoch_draws_each_point_once(tmp_path
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr("sys.argv", ["difffilter-train"])
-    small = ["--config", str(ROOT / "train" / "configs" / "four_tank.yaml"),
-             "--data.init_args.batch_size=2", "--data.init_args.batches_per_epoch=3",
-             "--data.init_args.val_runs=4", "--data.init_args.steps=20",
-             "--model.init_args.hidden=4", "--model.init_args.num_particles=20",
-             "--trainer.log_every_n_steps=1", "--trainer.max_epochs=3"]  # fmt: skip
+    small = small_four_tank_fit(max_epochs=3)
     monkeypatch.setattr(FilterEstimatorTask, "on_train_batch_end", interrupt, raising=False)
     handler = signal.getsignal(signal.SIGINT)  # Lightning ignores SIGINT after an interrupt
     try:

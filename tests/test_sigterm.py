@@ -7,14 +7,12 @@ from __future__ import annotations
 
 import os
 import signal
-from pathlib import Path
 
 import pytest
+from conftest import small_four_tank_fit
 
 from difffilter.interrupts import Terminated, sigterm_as_interrupt, stop_words
 from difffilter.train.cli import main
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_sigterm_as_interrupt_raises_terminated_and_restores_the_handler():
@@ -41,11 +39,7 @@ def test_a_terminated_fit_exits_143_keeps_last_ckpt_and_resumes(tmp_path, monkey
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr("sys.argv", ["difffilter-train"])
-    small = ["--config", str(ROOT / "train" / "configs" / "four_tank.yaml"),
-             "--data.init_args.batch_size=2", "--data.init_args.batches_per_epoch=3",
-             "--data.init_args.val_runs=4", "--data.init_args.steps=20",
-             "--model.init_args.hidden=4", "--model.init_args.num_particles=20",
-             "--trainer.max_epochs=3", "--no-progress"]  # fmt: skip
+    small = [*small_four_tank_fit(max_epochs=3), "--no-progress"]
     monkeypatch.setattr(FilterEstimatorTask, "on_train_batch_end", terminate, raising=False)
     sigint, sigterm = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
     try:

@@ -8,6 +8,8 @@ import signal
 import warnings
 from pathlib import Path
 
+from conftest import small_four_tank_fit
+
 from difffilter.train.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,11 +42,7 @@ def test_a_resume_after_an_epoch_that_did_not_improve_keeps_that_epochs_points(
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr("sys.argv", ["difffilter-train"])
     monkeypatch.setattr(ModelCheckpoint, "check_monitor_top_k", only_the_first_epoch_improves)
-    small = ["--config", str(ROOT / "train" / "configs" / "four_tank.yaml"),
-             "--data.init_args.batch_size=2", "--data.init_args.batches_per_epoch=3",
-             "--data.init_args.val_runs=4", "--data.init_args.steps=20",
-             "--model.init_args.hidden=4", "--model.init_args.num_particles=20",
-             "--trainer.log_every_n_steps=1", "--trainer.max_epochs=4"]  # fmt: skip
+    small = small_four_tank_fit(max_epochs=4)
     monkeypatch.setattr(FilterEstimatorTask, "on_train_batch_end", interrupt, raising=False)
     handler = signal.getsignal(signal.SIGINT)  # Lightning ignores SIGINT after an interrupt
     try:
