@@ -53,7 +53,9 @@ class RobotModel(StateSpaceModel):
 
     ``sensors``: positions ``[S, 2]``, or ``[G, S, 2]`` for ``G`` sensor groups run as a
     leading batch dimension (``x [G, ..., dx]``, e.g. the two local estimators at once).
-    ``dim_y = 2S`` (``[r_1, b_1, …, r_S, b_S]``).
+    ``dim_y = 2S`` (``[r_1, b_1, …, r_S, b_S]``). ``meas_var``: the (range cm², bearing
+    rad²) variances of every lidar, or one pair per lidar ``[S, 2]``; ``R`` is diagonal
+    (assign ``measurement_noise`` for a correlated one).
     """
 
     dim_x, dim_u = 3, 2
@@ -74,7 +76,16 @@ class RobotModel(StateSpaceModel):
         if pos.dim() not in (2, 3) or pos.shape[-1] != 2:
             raise ValueError(f"sensors must have shape [S, 2] or [G, S, 2]; got {tuple(pos.shape)}")
         dim_y = 2 * pos.shape[-2]
-        R = torch.tensor(meas_var, dtype=dtype).repeat(dim_y // 2)
+        var = torch.tensor(meas_var, dtype=dtype)
+        if var.shape == (dim_y // 2, 2):  # one (range, bearing) pair per lidar
+            R = var.reshape(dim_y)
+        elif var.shape == (2,):
+            R = var.repeat(dim_y // 2)
+        else:
+            raise ValueError(
+                f"meas_var must be one (range, bearing) variance pair for every lidar, shape "
+                f"(2,), or one per lidar, shape ({dim_y // 2}, 2); got {tuple(var.shape)}"
+            )
         self._setup(
             pos, dt,
             initial=Gaussian(torch.tensor(x0, dtype=dtype), torch.diag(torch.tensor(p0, dtype=dtype))),

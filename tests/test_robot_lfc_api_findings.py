@@ -82,6 +82,15 @@ def test_zhangs_filter_on_a_group_equals_it_on_a_model_built_for_those_lidars():
     assert (default.means - a.means).abs().max() > 1e-3  # the edit matters
 
 
+def test_per_lidar_variances_at_construction_are_the_assigned_models():
+    per_lidar = [(1.0, DEG**2)] * 3 + [(100.0, 100 * DEG**2)] * 3
+    built = RobotModel(meas_var=per_lidar)
+    torch.testing.assert_close(built.measurement_cov(0), _noisy_second_group().measurement_cov(0),
+                               rtol=0, atol=0)  # fmt: skip
+    with pytest.raises(ValueError, match=r"meas_var must be .* shape \(6, 2\)"):
+        RobotModel(meas_var=[1.0, 2.0, 3.0])
+
+
 def test_a_group_is_differentiable_in_the_full_models_noise():
     m = RobotModel()
     cov = m.measurement_noise.cov.clone().requires_grad_(True)
