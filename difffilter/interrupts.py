@@ -8,7 +8,7 @@ import signal
 import threading
 from contextlib import contextmanager
 
-__all__ = ["Terminated", "sigterm_as_interrupt", "stop_words"]
+__all__ = ["Terminated", "sigterm_as_interrupt", "sigterm_received", "stop_words"]
 
 
 class Terminated(KeyboardInterrupt):
@@ -18,7 +18,19 @@ class Terminated(KeyboardInterrupt):
 
 
 def _raise_terminated(signum, frame):
+    _RECEIVED[0] = True
     raise Terminated
+
+
+#: Whether SIGTERM arrived in the current :func:`sigterm_as_interrupt` block (for a caller
+#: that swallowed the exception: Lightning 2.2 returns from an interrupted fit).
+_RECEIVED = [False]
+
+
+def sigterm_received() -> bool:
+    """Whether SIGTERM arrived inside the current (or last) :func:`sigterm_as_interrupt`
+    block."""
+    return _RECEIVED[0]
 
 
 @contextmanager
@@ -28,7 +40,7 @@ def sigterm_as_interrupt():
     handler can be set, the block runs as it is. (Python's default had ended the commands
     at once and silently: ``difffilter-eval`` with 143 and nothing said, a training with
     Lightning's exit code 0, as if it had finished.)"""
-    previous = None
+    previous, _RECEIVED[0] = None, False
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:

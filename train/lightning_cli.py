@@ -859,8 +859,10 @@ def run(args: list[str] | None, argv: list[str], description: str) -> int:
         raise type(exc.__context__) from None
     # Lightning 2.2 returned from fit as if it had ended
     if getattr(getattr(cli, "trainer", None), "interrupted", False):
+        from difffilter.interrupts import Terminated, sigterm_received
+
         _restore_sigint(sigint)
-        raise KeyboardInterrupt
+        raise Terminated if sigterm_received() else KeyboardInterrupt
     return 0
 
 
