@@ -39,6 +39,7 @@ entry), by the names of :data:`THREATS`.
 
 from __future__ import annotations
 
+import copy
 import inspect
 import math
 import numbers
@@ -548,22 +549,40 @@ class Covert(Attack):
             raise ValueError("a covert attack needs a plant with inputs (dim_u > 0)")
 
     def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
-        """``(signal's table, x̄ᵃ, x̄ⁿ, injected so far [...])``; the copies start at step 1."""
-        mean = getattr(getattr(self.plant, "initial", None), "mean", None)
-        if isinstance(mean, Tensor) and mean.dtype != dtype:  # (torch's "m1 and m2" otherwise)
-            raise ValueError(
-                f"plant (the covert attacker's model) is {mean.dtype} and the loop {dtype}: "
-                f"give the attacker its model in the loop's dtype"
-            )
+        """``(signal's table, x̄ᵃ, x̄ⁿ, injected so far [...], the attacker's model)``; the
+        copies start at step 1. The model is ``plant``, or a copy of it converted to the
+        loop's dtype and device where it is an ``nn.Module`` of others (a YAML scenario's
+        attacker is built from the float64 plant, and the suite and the training run
+        float32 loops: every one had stopped on the dtype)."""
         table = self.signal.init(batch_shape, num_steps, dim, generator, dtype=dtype,
                                  device=device)  # fmt: skip
-        return table, None, None, None
+        return table, None, None, None, self._plant_in(dtype, device)
+
+    def _plant_in(self, dtype, device):
+        plant = self.plant
+        mean = getattr(getattr(plant, "initial", None), "mean", None)
+        if not isinstance(mean, Tensor):
+            return plant
+        device = mean.device if device is None else torch.device(device)
+        if mean.dtype == dtype and mean.device == device:
+            return plant
+        try:
+            if isinstance(plant, torch.nn.Module):
+                return copy.deepcopy(plant).to(dtype=dtype, device=device)
+            reason = "it is not an nn.Module, which could be converted"
+        except (RuntimeError, TypeError) as error:  # (a non-leaf tensor cannot be deep-copied)
+            reason = f"it could not be converted: {error}"
+        # (torch's "m1 and m2 must have the same dtype" otherwise)
+        raise ValueError(
+            f"plant (the covert attacker's model) is {mean.dtype} on {mean.device} and the loop "
+            f"{dtype} on {device}, and {reason}: give the attacker its model in the loop's dtype"
+        )
 
     def last_step(self, state) -> int | None:
         return self.signal.last_step(state[0])
 
     def step(self, state, k, *, y=None, x=None, u=None, view=None):
-        table, attacked, nominal, injected = state
+        table, attacked, nominal, injected, plant = state
         table, value, flag = self.signal.step(table, k)
         if injected is None:  # step 1: both copies start at x_0
             attacked, nominal = x, x
@@ -572,13 +591,13 @@ class Covert(Attack):
             fresh = ~injected.unsqueeze(-1)
             attacked, nominal = torch.where(fresh, x, attacked), torch.where(fresh, x, nominal)
         on = flag if flag.dim() == value.dim() else flag.unsqueeze(-1)
-        attacked = self.plant.transition(attacked, u + on.to(value.dtype) * value, k - 1)
-        nominal = self.plant.transition(nominal, u, k - 1)
-        return (table, attacked, nominal, injected | on.any(-1)), value, flag
+        attacked = plant.transition(attacked, u + on.to(value.dtype) * value, k - 1)
+        nominal = plant.transition(nominal, u, k - 1)
+        return (table, attacked, nominal, injected | on.any(-1), plant), value, flag
 
     def conceal(self, state, k, *, y, x):
-        _, attacked, nominal, _ = state
-        return state, self.plant.observe(nominal, k) - self.plant.observe(attacked, k)
+        _, attacked, nominal, _, plant = state
+        return state, plant.observe(nominal, k) - plant.observe(attacked, k)
 
 
 def check_attack_fits(attack: Attack | None, model, num_steps: int | None = None) -> None:

@@ -119,11 +119,41 @@ def test_a_loops_attack_generator_must_be_a_torch_generator():
               attack_generator=df.Generators.of(torch.Generator()))  # fmt: skip
 
 
-def test_a_covert_attackers_model_of_another_dtype_is_named():
-    covert = Covert(Bias(0.1, channel="actuator"), _plant(F64))
-    with pytest.raises(ValueError, match="covert attacker's model. is torch.float64 and the loop "
-                                         "torch.float32"):  # fmt: skip
-        covert.init(2, 5, 1, dtype=torch.float32)
+def test_a_covert_attackers_model_of_another_dtype_is_converted_for_the_loop():
+    """A float64 attacker's model in a float32 loop (a YAML scenario's covert attack is built
+    from the float64 plant, and the suite and the training run float32 loops) is a float32
+    copy; its concealment is the float64 one's up to float32 round-off. It had stopped every
+    float32 loop."""
+    plant = _plant(F64)
+    covert = Covert(Bias(0.1, channel="actuator", onset=2), plant)
+    assert covert.init(2, 5, 1, dtype=F64)[-1] is plant
+    x = torch.tensor([[0.3, -0.2], [1.0, 0.5]], dtype=F64)
+    u = torch.tensor([[0.1], [-0.4]], dtype=F64)
+    hidden = {}
+    for dtype in (F64, torch.float32):
+        state = covert.init(2, 5, 1, dtype=dtype)
+        assert state[-1].F.dtype == dtype
+        for k in (1, 2, 3):
+            state, value, _ = covert.step(state, k, x=x.to(dtype), u=u.to(dtype))
+            state, hidden[dtype] = covert.conceal(state, k, y=None, x=x.to(dtype))
+        assert hidden[dtype].dtype == dtype
+    assert plant.F.dtype == F64  # the defender's model is left as it is
+    assert hidden[F64].abs().max() > 1e-3
+    torch.testing.assert_close(hidden[torch.float32].double(), hidden[F64], rtol=1e-5, atol=1e-6)
+
+    class Functions:  # the attacker's model as plain functions: nothing to convert
+        initial = plant.initial
+        dim_u = 1
+
+        def transition(self, x, u, k):
+            return plant.transition(x, u, k)
+
+        def observe(self, x, k):
+            return plant.observe(x, k)
+
+    with pytest.raises(ValueError, match="is torch.float64 on cpu and the loop torch.float32 "
+                                         "on cpu, and it is not an nn.Module"):  # fmt: skip
+        Covert(Bias(0.1, channel="actuator"), Functions()).init(2, 5, 1, dtype=torch.float32)
 
 
 def test_a_cusum_calibration_names_its_rate_and_its_bisections():
@@ -152,3 +182,25 @@ def test_a_threat_set_made_in_python_names_the_threat_that_does_not_fit_before_a
     with pytest.raises(ValueError, match=r"threat 'late_one': it starts at step 61, after the "
                                          r"last step \(60\)"):  # fmt: skip
         run_robustness(scenario, threats, progress=False)
+
+
+def test_a_yaml_covert_attack_runs_the_suite_in_float32(tmp_path):
+    """docs/your-own-plant.md's YAML attack of kind covert, on the float32 suite (the dtype
+    of the training): it had stopped on the attacker's float64 model."""
+    from difffilter.eval.suite import run_suite
+    from difffilter.models.yaml_scenario import scenario_from_yaml
+
+    path = tmp_path / "covert.yaml"
+    path.write_text(
+        "name: motor_covert\nfamily: my_plants\ndt: 0.01\nruns: 4\nsteps: 40\n"
+        "plant:\n  F: [[0.95, 0.04], [-0.02, 0.8]]\n  B: [[0.0], [0.2]]\n  H: [[1.0, 0.0]]\n"
+        "  Q: 1.0e-4\n  R: 1.0e-3\n  P0: 1.0e-2\n"
+        "inputs: {kind: sinusoid, amplitude: 1.0, frequency: 0.5}\n"
+        "attack: {kind: covert, signal: {kind: bias, value: 0.5, onset: 20}}\n"
+    )
+    scenario = scenario_from_yaml(str(path))
+    results = {}
+    for dtype in (F64, torch.float32):
+        out = run_suite(scenario, runs=4, progress=False, dtype=dtype, estimators=["chi_square_kf"])
+        results[dtype] = out.metrics["chi_square_kf"]["state_rmse"]
+    assert results[torch.float32] == pytest.approx(results[F64], rel=1e-3)
