@@ -31,10 +31,25 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from difffilter._checks import check_finite_number
 from difffilter.attack import Channel, TabulatedAttack
 from difffilter.threats import Replay
 
 from .schedules import check_groups_cover
+
+
+def _numbers(values, name: str, want: str) -> tuple[float, ...]:
+    """``values`` (a number, or a sequence of numbers) as a tuple of finite floats;
+    ``ValueError`` naming ``name`` and ``want`` otherwise (strings, booleans, NaN)."""
+    items = values if isinstance(values, (list, tuple)) else (values,)
+    try:
+        out = tuple(check_finite_number(v, name) for v in items)
+    except (TypeError, ValueError):
+        out = ()
+    if not out:
+        raise ValueError(f"{name} must be {want}; got {values!r}")
+    return out
+
 
 __all__ = [
     "BiasAttack",
@@ -64,16 +79,17 @@ class SensorBias(TabulatedAttack):
     channel = Channel.SENSOR
 
     def __post_init__(self):
-        gb = tuple(float(g) for g in self.gamma_bar)
-        if not gb or not all(math.isfinite(g) for g in gb):
-            raise ValueError(
-                f"gamma_bar must be a non-empty sequence of finite numbers; got {self.gamma_bar!r}"
-            )
+        # numbers, checked here: a quoted '0.9' (YAML) or a bare 0.3 had passed, to fail at
+        # the first draw in torch's or Python's words (a trial); one number is one entry
+        gb = _numbers(self.gamma_bar, "gamma_bar", "a non-empty sequence of finite numbers")
         object.__setattr__(self, "gamma_bar", gb)
-        if not 0.0 < float(self.tau) < 1.0:
+        tau, p_l = check_finite_number(self.tau, "tau"), check_finite_number(self.p_l, "p_l")
+        if not 0.0 < tau < 1.0:
             raise ValueError(f"tau must lie in (0, 1) (eq. 4); got {self.tau!r}")
-        if not 0.0 <= float(self.p_l) <= 1.0:
+        if not 0.0 <= p_l <= 1.0:
             raise ValueError(f"p_l must lie in [0, 1] (a Bernoulli probability); got {self.p_l!r}")
+        object.__setattr__(self, "tau", tau)
+        object.__setattr__(self, "p_l", p_l)
 
     @property
     def dim(self) -> int:
@@ -194,15 +210,12 @@ class Replacement(TabulatedAttack):
     channel = Channel.REPLACEMENT
 
     def __post_init__(self):
-        if not 0.0 <= float(self.rate) <= 1.0:
+        rate = check_finite_number(self.rate, "rate")  # (a quoted '0.1' failed at the first draw)
+        if not 0.0 <= rate <= 1.0:
             raise ValueError(f"rate must lie in [0, 1] (a probability); got {self.rate!r}")
-        try:
-            lo, hi = tuple(float(v) for v in self.low), tuple(float(v) for v in self.high)
-        except TypeError:
-            raise ValueError(
-                f"low and high must be lists of numbers, one bound per measurement entry; got "
-                f"{self.low!r}, {self.high!r}"
-            ) from None
+        object.__setattr__(self, "rate", rate)
+        want = "lists of finite numbers, one bound per entry (finite boxes, low < high)"
+        lo, hi = _numbers(self.low, "low", want), _numbers(self.high, "high", want)
         # finite: U(−∞, ∞) drew NaN measurements (a review), as SensorBias and
         # ActuatorInjection refuse non-finite values
         if (len(lo) != len(hi) or not lo or not all(a < b for a, b in zip(lo, hi))

@@ -374,7 +374,8 @@ class Scenario:
         outside ``entries``; a :class:`~difffilter.threats.KSigmaBias`'s ``k σ``) [DEF];
         else (a ramp or a random walk, which have no steady state, an actuator attack,
         whose size is in input units, or no attack) one measurement-noise standard
-        deviation, ``‖√diag R‖`` of ``model`` [DEF]: an attack as large as the noise. ``ValueError`` when that is needed and no
+        deviation, ``‖√diag R‖`` of ``model`` [DEF]: an attack as large as the noise (so
+        too for a bias of size 0). ``ValueError`` when that is needed and no
         ``model`` is given.
         """
         if self.gamma_min is not None:
@@ -400,10 +401,14 @@ class Scenario:
                 values = values * dy if len(values) == 1 else values
                 if entries is not None:
                     values = [v if i in entries else 0.0 for i, v in enumerate(values)]
-            return 0.5 * math.sqrt(sum(v**2 for v in values))
+            floor = 0.5 * math.sqrt(sum(v**2 for v in values))
+            # a bias of size 0 (a null attack, a control run) takes the noise default below:
+            # its γ_min of 0 had stopped the whole study at the PoA detector (a trial)
+            if floor > 0:
+                return floor
         if model is None:
             raise ValueError(
-                f"scenario {self.name!r}: set gamma_min (its attack has no steady-state value "
+                f"scenario {self.name!r}: set gamma_min (its attack has no nonzero steady-state value "
                 "on the sensors) or pass the model (one noise standard deviation is the default)"
             )
         noise_var = torch.diagonal(model.measurement_noise.cov, dim1=-2, dim2=-1)

@@ -391,6 +391,12 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
     return scenario
 
 
+def _inputs_field(model) -> str:
+    """Where a plant's number of inputs is set: a linear plant's ``B`` or ``plant.dim_u``."""
+    linear = isinstance(getattr(model, "F", None), torch.Tensor)
+    return "dim_u: plant.B's columns" if linear else "plant.dim_u"
+
+
 def _check_against_plant(scenario: CustomScenario, probe, where: str) -> None:
     """The schedule's groups and the known inputs against the plant's widths, now: they
     failed at the first run, with messages that named neither the file nor the field."""
@@ -423,7 +429,7 @@ def _check_against_plant(scenario: CustomScenario, probe, where: str) -> None:
     if width is not None and width != probe.dim_u:  # (it said known_inputs [1, 100, 2])
         raise ValueError(
             f"{where}: inputs: they give {width} value(s) per step and the plant has "
-            f"{probe.dim_u} input(s) (dim_u: plant.B's columns): give one per input "
+            f"{probe.dim_u} input(s) ({_inputs_field(probe)}): give one per input "
             "(amplitude, frequency, phase or value: a list of dim_u numbers, or a number on a "
             "one-input plant; values: [T, dim_u])"
         )
@@ -666,6 +672,15 @@ class _ModelFunction:
             raise ValueError(
                 f"{self.where}.model: {self.path}(dtype) returned a {type(model).__name__}; it "
                 "must return a StateSpaceModel (e.g. difffilter.NonlinearGaussianModel)"
+            )
+        from difffilter._checks import model_dtype_device
+
+        built, _ = model_dtype_device(model)
+        if built is not None and built != dtype:  # (blamed on inputs:, or a later error)
+            raise ValueError(
+                f"{self.where}.model: {self.path}({dtype}) returned a model of {built}: build "
+                "its tensors in the dtype it is given (the suite and the training ask for "
+                "float64 and float32)"
             )
         return model
 
