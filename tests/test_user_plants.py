@@ -568,5 +568,10 @@ def test_a_bad_field_is_named_once_and_a_replacement_box_by_its_fields(plants):
     doc = yaml.safe_load(MOTOR_YAML)
     doc["attack"] = {"kind": "replacement", "rate": 0.2, "low": -1, "high": 1}
     path.write_text(yaml.safe_dump(doc))
-    with pytest.raises(ValueError, match=r"attack \(replacement\): low and high must be lists"):
+    # one number is a one-entry bound (as gamma_bar and actuator_injection's value take it)
+    attack = scenario_from_yaml(path).attack_model()
+    assert (attack.low, attack.high) == ((-1.0,), (1.0,))
+    doc["attack"] = {"kind": "replacement", "rate": 0.2, "low": "-1", "high": 1}
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ValueError, match=r"attack \(replacement\): low must be lists of finite"):
         scenario_from_yaml(path)
