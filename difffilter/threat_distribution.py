@@ -118,6 +118,9 @@ def _check_fields(where: str, entry: dict) -> None:
     for field, value in entry.items():
         if _is_draw(value):
             _check_draw(f"{where}.{field}", value)
+            for i, option in enumerate(value.get("choice", ())):  # a choice of signals
+                if _is_threat(option):
+                    _check_fields(f"{where}.{field}.choice[{i}]", option)
         elif _is_threat(value):
             _check_fields(f"{where}.{field}", value)
         elif isinstance(value, dict):
@@ -133,8 +136,8 @@ def _extremes(value) -> list:
     threat with each of them, not only with one draw (a constant has none)."""
     if not _is_draw(value):
         return []
-    if "choice" in value:
-        return list(value["choice"])
+    if "choice" in value:  # a choice of signals: each one at its own fields' extremes
+        return [c for o in value["choice"] for c in (_corners(o) if _is_threat(o) else [o])]
     bounds = list(value.get("uniform") or value.get("loguniform") or value["randint"])
     return bounds + [-b for b in bounds] if value.get("signed") else bounds
 
@@ -174,7 +177,7 @@ def _with_values(entry: dict, values: dict) -> dict:
 
 def _draw(value, generator: torch.Generator):
     """One value of a field (a constant is itself; a nested threat, its fields drawn in
-    their order)."""
+    their order; a choice of nested threats, the one chosen with its fields drawn)."""
     if _is_threat(value):
         return {k: _draw(v, generator) for k, v in value.items()}
     if not _is_draw(value):
@@ -182,7 +185,10 @@ def _draw(value, generator: torch.Generator):
     u = lambda: float(torch.rand((), generator=generator, dtype=torch.float64))  # noqa: E731
     if "choice" in value:
         options = value["choice"]
-        return options[int(torch.randint(len(options), (), generator=generator))]
+        chosen = options[int(torch.randint(len(options), (), generator=generator))]
+        # (a chosen signal's own draws had been passed on as they were, and refused as
+        # "onset must be an integer >= 1; got {'randint': ...}")
+        return _draw(chosen, generator) if _is_threat(chosen) else chosen
     if "randint" in value:
         lo, hi = value["randint"]
         return int(torch.randint(lo, hi + 1, (), generator=generator))
@@ -297,14 +303,41 @@ class ThreatDistribution:
             same_kind.append(own)
         if not same_kind:
             return HELD_OUT
-        spec = self._entries_listed(spec)
-        for entry in same_kind:
-            entry = self._entries_listed(entry)
-            names = (set(spec) | set(entry)) - {"kind", "weight"}
-            if all(_drawable(entry.get(f, _default(kind, f)), spec.get(f, _default(kind, f)))
-                   for f in names):  # fmt: skip
-                return WITHIN
-        return KIND_ONLY
+        return WITHIN if any(self._could_draw(entry, spec) for entry in same_kind) else KIND_ONLY
+
+    def _could_draw(self, entry: dict, spec: dict) -> bool:
+        """Whether component ``entry`` could draw threat ``spec`` (:meth:`covers`): the same
+        kind and every field drawable, a field left out on one side being the class's
+        default; a covert attack's ``signal`` field by field in turn (it had been compared
+        as one mapping: a distribution of random signals covered none, nor ``value: [0.1]``
+        its ``0.1``, and a network trained across covert attacks was reported as never
+        having met one)."""
+        kind = spec.get("kind")
+        if entry.get("kind") != kind:
+            return False
+        library = isinstance(kind, str) and kind in THREATS  # (else an attack of one's own,
+        if library:  # whose defaults are unknown here: a field on one side only differs)
+            spec, entry = self._entries_listed(spec), self._entries_listed(entry)
+        for f in (set(spec) | set(entry)) - {"kind", "weight"}:
+            default = _default(kind, f) if library else _NO_DEFAULT
+            drawn, value = entry.get(f, default), spec.get(f, default)
+            if kind == "covert" and f == "signal":
+                if not self._signal_drawable(drawn, value):
+                    return False
+            elif not _drawable(drawn, value):
+                return False
+        return True
+
+    def _signal_drawable(self, drawn, signal) -> bool:
+        """Whether a covert component's ``signal`` (a threat mapping, or a ``choice`` of
+        them) can give the covert threat's ``signal``; both on the actuators, where a
+        covert signal always acts (``channel: actuator`` spelt out or not)."""
+        if not _is_threat(signal):
+            return _drawable(drawn, signal)
+        options = drawn["choice"] if _is_draw(drawn) and "choice" in drawn else [drawn]
+        on_actuators = {**signal, "channel": Channel.ACTUATOR.value}
+        return any(self._could_draw({**o, "channel": Channel.ACTUATOR.value}, on_actuators)
+                   for o in options if _is_threat(o))  # fmt: skip
 
     def _entries_listed(self, spec: dict) -> dict:
         """``spec`` with ``entries: null`` (every entry of the channel) written as the list

@@ -404,7 +404,9 @@ class Replay(Attack):
         loop: ``(Φ [n, n], C [dy, n])``, the attacker's model of the closed loop, for a
             seamless splice (default ``None``: Mo & Sinopoli's plain replay); needs
             ``live=False``.
-        level_window: ``w``, the frames averaged to estimate the gap (default 5; ``≤ d``).
+        level_window: ``w``, the frames averaged to estimate the gap (``≤ d``), with
+            ``loop`` only (default ``None``: 5 with ``loop``; without one it would do nothing,
+            and is refused).
     """
 
     delay: int
@@ -413,7 +415,7 @@ class Replay(Attack):
     share: float = 1.0
     live: bool = False
     loop: Any = field(default=None, repr=False, compare=False)
-    level_window: int = 5
+    level_window: int | None = None
     channel = Channel.REPLACEMENT
     reads_state = False  # (what it intercepts: the measurements)
 
@@ -429,9 +431,17 @@ class Replay(Attack):
         object.__setattr__(self, "share", _share(self.share))
         if not isinstance(self.live, bool):
             raise ValueError(f"live must be True or False; got {self.live!r}")
+        if self.loop is None:
+            if self.level_window is not None:  # (it had been taken and done nothing)
+                raise ValueError(
+                    f"level_window={self.level_window!r} sets the frames of a seamless splice, "
+                    "which needs loop=(Φ, C); a plain replay has no splice: leave it out"
+                )
+            return
+        if self.level_window is None:
+            object.__setattr__(self, "level_window", 5)
         _set_counts(self, 1, "level_window")
-        if self.loop is not None:
-            self._check_loop()
+        self._check_loop()
 
     def _check_loop(self):
         if self.live:
@@ -609,10 +619,17 @@ def check_attack_fits(attack: Attack | None, model, num_steps: int | None = None
       ``entries`` do not fit its channel's width (``dy`` on the sensors, ``du`` on the
       actuators): tabulated once, one run, to its onset;
     - with ``num_steps``: a first attacked step (``onset``, 1-based, or a paper attack's
-      0-based ``start``) after the last step (it would never act).
+      0-based ``start``) after the last step (it would never act);
+    - a seamless replay whose loop ``C`` has another number of rows than the measurements.
     """
     if attack is None:
         return
+    if isinstance(attack, Replay) and attack.loop is not None:  # (it failed at the first
+        rows = torch.as_tensor(attack.loop[1]).shape[0]  # replayed step, unnamed, after the
+        if rows != model.dim_y:  # calibration and every threat before it had run)
+            raise ValueError(
+                f"the replay's loop C has {rows} rows; the model has {model.dim_y} measurements"
+            )
     signal = attack.signal if isinstance(attack, Covert) else attack
     onset, start = getattr(signal, "onset", None), getattr(signal, "start", None)
     first = onset if onset is not None else None if start is None else start + 1

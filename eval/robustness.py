@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from difffilter._checks import check_positive_int
 from difffilter.linalg import NumericalBreakdown
 from difffilter.models.atomic_write import write_atomically, write_json_atomically
 from difffilter.models.yaml_scenario import read_yaml
@@ -338,6 +339,11 @@ def run_robustness(
             _check_threat(scenario, model, threat)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"threat {name!r}: {exc}") from None
+    # a size given is checked, not replaced (0 and False had fallen through to the defaults
+    # without a word; -3 had failed in calibrate() as "study_runs", not an argument here)
+    for name, size in (("runs", runs), ("calibration_runs", calibration_runs)):
+        if size is not None:
+            check_positive_int(size, name)
     runs = runs or threat_set.runs or scenario.runs
     targets = [t.against for t in threat_set.threats.values() if isinstance(t, StealthySpec)]
     add = tuple(dict.fromkeys((*add, *targets)))  # a crafted attack's detector is calibrated
@@ -856,7 +862,9 @@ def _batch_noise_text(r: dict) -> str:
     if r["selection"]["iteration"] is None:
         return (" No attack kept the budget, so the study's runs above meet none: raise "
                 "the penalty or the candidates, or lower lr (docs/threats.md).")  # fmt: skip
-    steps = r["study_runs"] * r["attacked_steps"]
+    # the study's own attacked (run, step) pairs, as the loop flags them (a report written
+    # before they were recorded: runs × the steps per run the crafting counted)
+    steps = r["crafted"].get("attacked_steps") or round(r["study_runs"] * r["attacked_steps"])
     spread = math.sqrt(slack * (1 - slack) / steps)
     return (
         " Each iterate is held to its own batch's attack-free rate plus ε, and the attack "
@@ -864,7 +872,7 @@ def _batch_noise_text(r: dict) -> str:
         "near ε where those runs are many and above it where they are few (the best of "
         "several candidates on a small batch: 0.85–1.02 ε measured with 256, 1.3–1.8 ε with "
         "64; docs/threats.md); the study's runs (above) carry noise of their own: over their "
-        f"{r['study_runs']} runs × {r['attacked_steps']} attacked steps a rise of ε varies "
+        f"{r['study_runs']} runs ({steps} attacked steps in all) a rise of ε varies "
         f"by at least {format_number(spread, 2)} ({spread / slack:.2g} of ε; one binomial "
         "standard deviation, steps taken as independent: the spread measured over fresh "
         "batches is larger)."

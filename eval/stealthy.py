@@ -242,7 +242,7 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
     kept = attack.within_budget()
     report = {
         "against": spec.against, "threshold": tau, "train_runs": spec.train_runs,
-        "attacked_steps": scenario.steps - spec.onset + 1, "budget": attack.budget,
+        "attacked_steps": _attacked_per_run(mask, scenario.steps, spec), "budget": attack.budget,
         "settings": {f.name: getattr(spec.settings, f.name) for f in fields(StealthySettings)},
         "iterations_within_budget": len(kept), "selection": attack.selection,
         "history": [{"iteration": h[0], "J": h[1], "alarm_rate": h[3]} for h in attack.history],
@@ -250,10 +250,28 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
     return attack, report
 
 
+def _attacked_per_run(mask, steps: int, spec: StealthySpec) -> float | int:
+    """The steps per run the crafted attack is labelled attacked on (the crafting's budget
+    is over them): from the onset, where an attacked entry is received, the mean over the
+    first training batch's runs (an integer where every run has as many). It had been
+    ``steps − onset + 1`` whatever the mask: 91 on tracking's Round-Robin, which attacks 22."""
+    if mask is None:
+        return steps - spec.onset + 1
+    picked = torch.ones(mask.shape[-1], dtype=torch.bool, device=mask.device)
+    if spec.entries is not None:
+        picked = torch.zeros_like(picked)
+        picked[list(spec.entries)] = True
+    on = torch.arange(1, steps + 1, device=mask.device) >= spec.onset
+    per_run = (on & (mask.bool() & picked).any(-1)).sum(-1).double()
+    mean = float(per_run.mean())
+    return int(mean) if mean.is_integer() else mean
+
+
 def _judge(scenario, against: str, threshold: float, *, runs: int, seed: int, checkpoint=None):
-    """``attack → {"alarm_rate", "state_error"}`` on the study's runs: the share of attacked
-    steps where ``against`` alarms at ``threshold``, and its RMS estimation error over them
-    (the detector is built once, however many attacks are judged)."""
+    """``attack → {"alarm_rate", "state_error", "attacked_steps"}`` on the study's runs: the
+    share of attacked steps (the loop's flags) where ``against`` alarms at ``threshold``, its
+    RMS estimation error over them, and how many (run, step) pairs they are (the detector
+    is built once, however many attacks are judged)."""
     ctx = _context(scenario, runs, seed, checkpoint)
     (estimator, start), streams = detector_step(ctx, against), Streams(seed)
 
@@ -267,6 +285,7 @@ def _judge(scenario, against: str, threshold: float, *, runs: int, seed: int, ch
         return {
             "alarm_rate": float((out.detection.scores > threshold)[on].double().mean()),
             "state_error": math.sqrt(float((out.means - tr.x).square().sum(-1)[on].mean())),
+            "attacked_steps": int(on.sum()),
         }
 
     return judge

@@ -489,7 +489,7 @@ def test_the_same_rate_bias_says_when_no_bias_alarms_as_rarely(monkeypatch):
     assert "near ε where those runs are many and above it where they are few" in text
     assert "not the strongest" in text
     assert "held to its own batch's attack-free rate" in text and "(0.2 of ε;" in text
-    assert "varies by at least 6.1e-04" in text and "100 runs × 80 attacked steps" in text
+    assert "varies by at least 6.1e-04" in text and "100 runs (8000 attacked steps in all)" in text
     assert "iterate 41 (the 2nd judged) kept it there (alarm rate 0.0129 against 0.0131)" in text
     report["same_rate_bias"] = above
     text = _stealthy_section("stealthy_x", report)
