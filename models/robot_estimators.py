@@ -246,16 +246,19 @@ class FusedLocals(Estimator):
         attack_covs = torch.stack([o.extras["attack_covs"] for o in outs])
         return (tuple(new), *stack, attack_covs, outs[0].threshold)
 
-    def _step(self, carry, y, u, mask):
-        states, mean, cov, attack, attack_covs, thr = self._locals_step(
-            carry.local_states, y, u, mask
-        )
+    def _fuse(self, mean, cov, attack, attack_covs):
+        """The locals' estimates stacked first ``[G, ...]`` (one step or whole sequences)
+        fused → ``(x̂, P, â, Wald score, extras)``."""
         x, P, a, S, omega = fuse_pair(mean, cov, attack, attack_covs, self.rule)
-        score = wald_statistic(a, S)
         extras = {"attack_covs": S, "local_means": mean.movedim(0, -2),
                   "local_attacks": attack.movedim(0, -2)}  # fmt: skip
         if omega is not None:
             extras["omega"] = omega
+        return x, P, a, wald_statistic(a, S), extras
+
+    def _step(self, carry, y, u, mask):
+        states, *local, thr = self._locals_step(carry.local_states, y, u, mask)
+        x, P, a, score, extras = self._fuse(*local)
         return FusedCarry(states, carry.model), StepOutput(
             x, P, attack=a, score=score, alarm=score > thr, threshold=thr, extras=extras
         )
@@ -268,13 +271,9 @@ class FusedLocals(Estimator):
         us = None if us is None else us.expand((G,) + us.shape)
         out = _step_through(self.local, states, group_measurements(ys, self.groups), us, None,
                             torch.Size((G,)) + batch, None)  # fmt: skip
-        x, P, a, S, omega = fuse_pair(out.means, out.covs, out.attack, out.extras["attack_covs"],
-                                      self.rule)  # fmt: skip
-        score, thr = wald_statistic(a, S), out.detection.threshold
-        extras = {"attack_covs": S, "local_means": out.means.movedim(0, -2),
-                  "local_attacks": out.attack.movedim(0, -2)}  # fmt: skip
-        if omega is not None:
-            extras["omega"] = omega
+        x, P, a, score, extras = self._fuse(out.means, out.covs, out.attack,
+                                            out.extras["attack_covs"])  # fmt: skip
+        thr = out.detection.threshold
         return EstimatorOutput(x, P, attack=a, detection=Detection(score, score > thr, thr),
                                extras=extras)  # fmt: skip
 
