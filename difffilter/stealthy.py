@@ -68,7 +68,24 @@ from .estimator import Estimator
 from .loop import open_loop
 from .metrics import nan_as_lowest
 
-__all__ = ["CraftedAttack", "StealthySettings", "craft_stealthy_attack"]
+__all__ = ["CraftedAttack", "StealthySettings", "attacked_pairs", "craft_stealthy_attack"]
+
+
+def attacked_pairs(runs: int, steps: int, onset: int, entries=None, mask=None) -> Tensor:
+    """The (run, step) pairs a sensor attack from ``onset`` (1-based) on ``entries``
+    (``None``: all) is attacked on, as the closed loop flags them ``[runs, steps]`` (bool):
+    from the onset, where an attacked entry is received (``mask [runs, steps, dy]``, the
+    entries received; ``None``: every one). Under a Round-Robin schedule or packet loss
+    that is not every step from the onset."""
+    device = None if mask is None else mask.device
+    on = torch.arange(1, steps + 1, device=device) >= onset
+    if mask is None:
+        return on.expand(runs, steps)
+    picked = torch.ones(mask.shape[-1], dtype=torch.bool, device=device)
+    if entries is not None:
+        picked = torch.zeros_like(picked)
+        picked[list(entries)] = True
+    return on & (mask.bool() & picked).any(-1)
 
 
 def _check_batch(model, ys, xs) -> None:
@@ -381,18 +398,6 @@ def craft_stealthy_attack(
         picked = torch.zeros(dy, **like)
         picked[list(entries)] = 1.0
     window = attacked.unsqueeze(-1) * picked  # [T, dy]
-    on, attacked_entries = attacked.bool(), picked.bool()
-
-    def labelled(mask: Tensor | None, runs: int) -> Tensor:
-        # the (run, step) pairs the loop calls attacked [B, T]: from the onset, where an
-        # attacked entry was received (loop flags: the attack's own flags & the mask). The
-        # rates and J had been taken over every step from the onset: under a Round-Robin
-        # schedule that delivers the attacked entries on a share f of the steps the budget
-        # ε bounded the rise over all of them, and the rise over the steps judged was ε/f
-        # (a threat-model trial: 1.5 ε with f = 1/2, 4.4 ε on tracking's four-sensor cycle)
-        if mask is None:
-            return on.expand(runs, T)
-        return on & (mask.bool() & attacked_entries).any(-1)
 
     sigma = model.measurement_cov(1).diagonal(dim1=-2, dim2=-1).sqrt().reshape(-1, dy)[0]
     # increments in units of σ: a_k = σ Σ_{j ≤ k} d_j, so a slow drift (what a filter
@@ -411,7 +416,12 @@ def craft_stealthy_attack(
         return open_loop(estimator, model, received, us, mask=mask, generator=gens, carry=carry)
 
     def pairs(name: str, mask: Tensor | None, runs: int) -> Tensor:
-        steps = labelled(mask, runs)
+        # the (run, step) pairs the loop calls attacked [B, T] (attacked_pairs). The rates
+        # and J had been taken over every step from the onset: under a Round-Robin schedule
+        # that delivers the attacked entries on a share f of the steps the budget ε bounded
+        # the rise over all of them, and the rise over the steps judged was ε/f (a
+        # threat-model trial: 1.5 ε with f = 1/2, 4.4 ε on tracking's four-sensor cycle)
+        steps = attacked_pairs(runs, T, onset, entries, mask)
         if not bool(steps.any()):  # (the rates and J of no pair are NaN: Adam would take them)
             raise ValueError(
                 f"craft_stealthy_attack: the {name} batch receives no attacked entry from onset "

@@ -31,7 +31,7 @@ from difffilter.models.estimators import (
 from difffilter.models.generic_estimators import GATED, gated_estimator
 from difffilter.models.learned_estimator import LEARNED, learned_step
 from difffilter.models.streams import Streams
-from difffilter.stealthy import StealthySettings, craft_stealthy_attack
+from difffilter.stealthy import StealthySettings, attacked_pairs, craft_stealthy_attack
 from difffilter.threats import KSigmaBias
 
 __all__ = [
@@ -252,18 +252,13 @@ def craft_threat(name: str, spec: StealthySpec, scenario, calibration, *, seed: 
 
 def _attacked_per_run(mask, steps: int, spec: StealthySpec) -> float | int:
     """The steps per run the crafted attack is labelled attacked on (the crafting's budget
-    is over them): from the onset, where an attacked entry is received, the mean over the
-    first training batch's runs (an integer where every run has as many). It had been
-    ``steps − onset + 1`` whatever the mask: 91 on tracking's Round-Robin, which attacks 22."""
-    if mask is None:
-        return steps - spec.onset + 1
-    picked = torch.ones(mask.shape[-1], dtype=torch.bool, device=mask.device)
-    if spec.entries is not None:
-        picked = torch.zeros_like(picked)
-        picked[list(spec.entries)] = True
-    on = torch.arange(1, steps + 1, device=mask.device) >= spec.onset
-    per_run = (on & (mask.bool() & picked).any(-1)).sum(-1).double()
-    mean = float(per_run.mean())
+    is over them: :func:`~difffilter.stealthy.attacked_pairs`), the mean over the first
+    training batch's runs (an integer where every run has as many). It had been ``steps −
+    onset + 1`` whatever the mask: 91 on tracking's Round-Robin, which attacks 22."""
+    runs = 1 if mask is None else mask.shape[0]
+    mean = float(
+        attacked_pairs(runs, steps, spec.onset, spec.entries, mask).sum(-1).double().mean()
+    )
     return int(mean) if mean.is_integer() else mean
 
 

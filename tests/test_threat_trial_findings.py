@@ -8,7 +8,12 @@ import torch
 import difffilter as df
 from difffilter.fdi import ChiSquareDetector, GatedFilter
 from difffilter.loop import DrawnNoise, closed_loop, open_loop
-from difffilter.stealthy import CraftedAttack, StealthySettings, craft_stealthy_attack
+from difffilter.stealthy import (
+    CraftedAttack,
+    StealthySettings,
+    attacked_pairs,
+    craft_stealthy_attack,
+)
 from difffilter.threat_distribution import HELD_OUT, KIND_ONLY, WITHIN, ThreatDistribution
 from difffilter.threats import Replay, check_attack_fits
 
@@ -53,6 +58,7 @@ def test_the_crafting_holds_the_rates_and_error_over_the_steps_the_loop_flags():
                        attack=CraftedAttack(values, onset, entries=(0,)))  # fmt: skip
     flagged = loop.trajectories.flags
     assert int(flagged.sum()) == runs * 13  # steps 5, 7, …, 29: entry 0's, from the onset
+    assert torch.equal(attacked_pairs(runs, steps, onset, (0,), mask), flagged)
     with torch.no_grad():
         free = open_loop(gated, tanks, ys, mask=mask)
         attacked = open_loop(gated, tanks, ys + values, mask=mask)
