@@ -161,11 +161,12 @@ def test_a_choice_of_covert_signals_draws_each_ones_own_fields():
 
 def test_every_chosen_signal_is_checked_at_its_extremes_at_construction():
     """An option whose fields constrain each other (pulses: a width range that reaches past
-    the period) fails at construction, at the extreme, not at the draws that reach it."""
+    the period) fails at construction, at the extreme, not at the draws that reach it (a
+    width of 1–7 against a period of 6 had been accepted: one draw of its fields checked)."""
     signals = [{"kind": "bias", "value": 0.1, "onset": 5},
                {"kind": "pulses", "amplitude": 0.1, "period": 6,
-                "width": {"randint": [1, 9]}, "onset": 5}]  # fmt: skip
-    with pytest.raises(ValueError, match="threats.covert: width must be <= period; got width=9"):
+                "width": {"randint": [1, 7]}, "onset": 5}]  # fmt: skip
+    with pytest.raises(ValueError, match="threats.covert: width must be <= period; got width=7"):
         ThreatDistribution({"covert": {"weight": 1.0, "kind": "covert",
                                        "signal": {"choice": signals}}}, model=_plant())  # fmt: skip
     signals[1]["width"] = {"randint": [1, 6]}  # within the period at both ends
