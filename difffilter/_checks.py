@@ -564,7 +564,8 @@ def _check_us(
     name = "us" if seq else "u"
     if du == 0:
         raise ValueError(
-            f"{name} was given but the model has no input (dim_u = 0); pass {name}=None"
+            f"{name} was given but the model has no input (dim_u = 0); pass {name}=None, "
+            "or give the model its input width (dim_u=…) where its transition takes u"
         )
     want = f"[..., T, {du}]" if seq else f"[..., {du}]"
     _check_float_tensor(us, name, want, dtype, device)

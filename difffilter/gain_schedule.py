@@ -182,7 +182,7 @@ class GainSchedule:
         compared with the schedule's (an online KF had gone on with the old ones)."""
         # the tensors it watches first: an in-place write, then an assignment anywhere, had the
         # re-read compare the written tensor with itself and forget the write (a review)
-        if not all(t._version == v for t, v in self._sources):
+        if not all(_unchanged(t, stamp) for t, stamp in self._sources):
             return False
         count = assignments()  # (read first: an assignment from now on moves it again)
         if self._assignments != count:
@@ -611,18 +611,30 @@ def _add_product(c: Tensor, a: Tensor, b: Tensor, *, subtract: bool = False) -> 
     return c - a @ b if subtract else c + a @ b
 
 
-def _source_versions(model, mats) -> tuple[tuple[Tensor, int], ...]:
-    """``(tensor, version)`` of every tensor the schedule's moments are made from: the
+def _source_versions(model, mats) -> tuple[tuple[Tensor, int | Tensor], ...]:
+    """``(tensor, stamp)`` of every tensor the schedule's moments are made from: the
     matrices as the model gave them and the tensors of its noise models (a covariance
-    given by its factor is made from it at every read). Inference tensors keep no version:
-    left out (assumed unchanged)."""
+    given by its factor is made from it at every read). The stamp is the tensor's version,
+    or, for an inference tensor (a model built under ``torch.inference_mode()``), which
+    keeps none, a copy of its values (:func:`_unchanged`): such tensors had been left out,
+    and a model built so and written in place (``model.F.copy_(…)``) kept its old gains
+    without a word (a core-filter trial: a covariance 0.26 off)."""
     tensors = [m for m in mats if m is not None]
     for name in ("process_noise", "measurement_noise"):
         noise = getattr(model, name, None)
         if isinstance(noise, torch.nn.Module):
             tensors += [*noise.parameters(), *noise.buffers()]
-    unique = {id(t): t for t in tensors if not t.is_inference()}
-    return tuple((t, t._version) for t in unique.values())
+    unique = {id(t): t for t in tensors}
+    return tuple((t, t.detach().clone() if t.is_inference() else t._version)
+                 for t in unique.values())  # fmt: skip
+
+
+def _unchanged(t: Tensor, stamp: int | Tensor) -> bool:
+    """Whether ``t`` is as it was stamped (:func:`_source_versions`): the same version, or
+    for an inference tensor the same values (a comparison: it has no version to read)."""
+    if isinstance(stamp, int):
+        return t._version == stamp
+    return t.shape == stamp.shape and bool(torch.equal(t, stamp))
 
 
 def _same(a: Tensor | None, b: Tensor | None) -> bool:

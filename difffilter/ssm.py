@@ -515,8 +515,29 @@ class NonlinearGaussianModel(StateSpaceModel):
         self.initial = Gaussian(m0, P0)
         self.process_noise = Gaussian(torch.zeros(dx, dtype=dtype, device=device), Q)
         self.measurement_noise = Gaussian(torch.zeros(dy, dtype=dtype, device=device), R)
+        if not self.dim_u and self._f_arity >= 2:
+            self._check_takes_no_input(m0.reshape(-1, dx)[:1])
         self._check_widths(m0.reshape(-1, dx)[:1])
         self._check_jacobians(m0.reshape(-1, dx)[0], P0.reshape(-1, dx, dx)[0])
+
+    def _check_takes_no_input(self, mean: Tensor) -> None:
+        """A transition ``f(x, u[, k])`` of a model without input (``dim_u = 0``) is given
+        ``u = None``: where that fails on ``None`` (``u @ B.T``), ``dim_u`` was forgotten,
+        and is named here (the filters had failed inside ``f`` with torch's "unsupported
+        operand type(s) for @: 'NoneType'", and giving ``us`` was refused as "the model has
+        no input": a core-filter trial). Any other failure is left to the width probes."""
+        try:
+            self.transition(mean.detach().clone(), None, 0)
+        except TypeError as error:
+            if "NoneType" not in str(error):
+                return
+            raise ValueError(
+                "transition takes an input u but fails on u=None, and the model has no input "
+                f"(dim_u = 0): give dim_u=<width of u>, or have f ignore u when it is None "
+                f"({error})"
+            ) from None
+        except Exception:  # noqa: BLE001 (a probe: the width probes name what fails)
+            return
 
     def _check_jacobians(self, mean: Tensor, cov: Tensor) -> None:
         """The closed-form Jacobians given, at ``n`` distinct states about the prior
