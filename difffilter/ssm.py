@@ -528,16 +528,14 @@ class NonlinearGaussianModel(StateSpaceModel):
         no input": a core-filter trial). Any other failure is left to the width probes."""
         try:
             self.transition(mean.detach().clone(), None, 0)
-        except TypeError as error:
-            if "NoneType" not in str(error):
+        except Exception as error:  # noqa: BLE001 (a probe: the width probes name the rest)
+            if "NoneType" not in str(error):  # (u @ B, u[..., 0], torch.sin(u), u.shape)
                 return
             raise ValueError(
                 "transition takes an input u but fails on u=None, and the model has no input "
                 f"(dim_u = 0): give dim_u=<width of u>, or have f ignore u when it is None "
-                f"({error})"
+                f"({type(error).__name__}: {error})"
             ) from None
-        except Exception:  # noqa: BLE001 (a probe: the width probes name what fails)
-            return
 
     def _check_jacobians(self, mean: Tensor, cov: Tensor) -> None:
         """The closed-form Jacobians given, at ``n`` distinct states about the prior

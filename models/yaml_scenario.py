@@ -749,14 +749,9 @@ def _probe(model, where: str) -> None:
     on its prior mean, their errors and widths named now, not deep inside a run."""
     m0 = model.initial.mean
     u = torch.zeros(model.dim_u, dtype=m0.dtype) if model.dim_u else None
-    try:
-        moved = _call(model.transition, (m0, u, 0), f"{where}.transition")
-    except ValueError as error:
-        # f(x, u) read the missing input (only then: another bug of a function of u is its own)
-        if u is None and model._f_arity >= 2 and "NoneType" in str(error):
-            raise ValueError(f"{error} (transition takes u, and plant.dim_u is 0: set dim_u "
-                             "to the number of inputs)") from None  # fmt: skip
-        raise
+    # (f(x, u) reading an input the plant does not have, dim_u 0, is named by the model
+    # itself: NonlinearGaussianModel's probe, "give dim_u=", under this file's plant:)
+    moved = _call(model.transition, (m0, u, 0), f"{where}.transition")
     for name, out, width in (("transition", moved, model.dim_x),
                              ("observe", _call(model.observe, (m0, 1), f"{where}.observe"),
                               model.dim_y)):  # fmt: skip

@@ -392,9 +392,11 @@ def test_a_plant_function_of_the_wrong_width_or_failing_is_named(plants):
              ({"m0": [2.0, 0.0, 0.0], "H": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], "Q": [1e-4, 1e-4]},
               r"plant.Q must be 3 × 3 \(the state has 3 entries, as m0 has"),
              # (a robotics trial: "'NoneType' object is not subscriptable" alone)
-             ({"transition": "user_bad:driven"}, r"transition takes u, and plant.dim_u is 0"),
+             ({"transition": "user_bad:driven"},
+              r"plant: transition takes an input u but fails on u=None.*give dim_u="),
              # (torch names it "not NoneType", without quotes: a review)
-             ({"transition": "user_bad:driven_by_torch"}, r"transition takes u, and plant.dim_u is 0")]  # fmt: skip
+             ({"transition": "user_bad:driven_by_torch"},
+              r"plant: transition takes an input u but fails on u=None.*give dim_u=")]  # fmt: skip
     for change, why in cases:
         doc = {**base, "plant": {**base["plant"], **change}}
         if "observe" in change:
