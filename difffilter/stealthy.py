@@ -81,11 +81,16 @@ def attacked_pairs(runs: int, steps: int, onset: int, entries=None, mask=None) -
     on = torch.arange(1, steps + 1, device=device) >= onset
     if mask is None:
         return on.expand(runs, steps)
-    picked = torch.ones(mask.shape[-1], dtype=torch.bool, device=device)
-    if entries is not None:
-        picked = torch.zeros_like(picked)
-        picked[list(entries)] = True
-    return on & (mask.bool() & picked).any(-1)
+    return on & (mask.bool() & _entry_mask(mask.shape[-1], entries, device)).any(-1)
+
+
+def _entry_mask(dim: int, entries, device=None) -> Tensor:
+    """``[dim]`` (bool): the attacked entries (``None``: every one)."""
+    if entries is None:
+        return torch.ones(dim, dtype=torch.bool, device=device)
+    picked = torch.zeros(dim, dtype=torch.bool, device=device)
+    picked[list(entries)] = True
+    return picked
 
 
 def _check_batch(model, ys, xs) -> None:
@@ -267,8 +272,7 @@ class CraftedAttack(TabulatedAttack):
         if self.entries is None:
             flags = on.expand(*shape, num_steps)
         else:  # per entry: [*, T, dy]
-            picked = torch.zeros(dim, dtype=torch.bool, device=device)
-            picked[list(self.entries)] = True
+            picked = _entry_mask(dim, self.entries, device)
             flags = (on.unsqueeze(-1) & picked).expand(*shape, num_steps, dim)
         values = self.values.to(dtype=dtype, device=device).expand(*shape, num_steps, dim)
         return values, flags
@@ -393,12 +397,7 @@ def craft_stealthy_attack(
     s = settings
     like = dict(dtype=ys.dtype, device=ys.device)
     attacked = (torch.arange(1, T + 1, device=ys.device) >= onset).to(ys.dtype)
-    picked = torch.ones(dy, **like)
-    if entries is not None:
-        picked = torch.zeros(dy, **like)
-        picked[list(entries)] = 1.0
-    window = attacked.unsqueeze(-1) * picked  # [T, dy]
-
+    window = attacked.unsqueeze(-1) * _entry_mask(dy, entries, ys.device).to(ys.dtype)  # [T, dy]
     sigma = model.measurement_cov(1).diagonal(dim1=-2, dim2=-1).sqrt().reshape(-1, dy)[0]
     # increments in units of σ: a_k = σ Σ_{j ≤ k} d_j, so a slow drift (what a filter
     # without a bias state follows without alarm) is a constant d, easy for Adam to find.
