@@ -39,7 +39,13 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._checks import _check_float_tensor, _check_us, check_positive_int, model_dtype_device
+from ._checks import (
+    _check_float_tensor,
+    _check_us,
+    check_inputs_given,
+    check_positive_int,
+    model_dtype_device,
+)
 from .linalg import symmetrize
 from .noise import Gaussian, NoiseModel
 from .ssm import StateSpaceModel
@@ -178,6 +184,8 @@ def _pcrb_information(model, xs, x0, us, mask, information, num_samples, generat
     if not bool(torch.isfinite(xs).all()) or not bool(torch.isfinite(x0).all()):
         raise ValueError("xs and x0 must be finite")
     T = xs.shape[-2]
+    if not callable(getattr(model, "transition_matrix", None)):  # (F does not read u)
+        check_inputs_given(model, us, "posterior_crb", "its Jacobians ∂f/∂x at u_k")
     if us is not None:  # (a us without its T axis read path t's input at step t, unsaid)
         _check_us(model, us, xs.shape[:-2], T, dtype, device, against="xs's [..., M]")
     mask = _check_mask(mask, dy)
@@ -186,7 +194,14 @@ def _pcrb_information(model, xs, x0, us, mask, information, num_samples, generat
             f"mask must have shape [..., {T}, {dy}] (one row per step); got {tuple(mask.shape)}"
         )
     _check_unbatched_model(model)
-    if information is None and model.time_varying:
+    # R_k read step by step where the model varies it, or where its class overrides
+    # measurement_cov (the filters and simulate read the override, time-varying or not:
+    # a constant override of 4 I had bounded with the constructor's I, 0.50 against the
+    # Kalman filter's 1.20, below the optimal filter; a core-filter trial)
+    overridden = isinstance(model.measurement_noise, Gaussian) and model._varying_noise(
+        "measurement_cov"
+    )
+    if information is None and (model.time_varying or overridden):
         if not isinstance(model.measurement_noise, Gaussian):
             raise ValueError(
                 "a time-varying model's measurement noise is known to this bound only through "
@@ -250,7 +265,8 @@ def posterior_crb(
             Jacobians from ``transition_jacobian``/``observation_jacobian``. A
             ``time_varying`` model is read at every step (``Q_k = process_cov(k)``, ``J_v``
             from ``measurement_cov(k + 1)``: its measurement noise must be Gaussian unless
-            ``information`` is given); the model's matrices carry no batch dimensions of
+            ``information`` is given; ``J_v`` is read from ``measurement_cov`` too where a
+            subclass overrides it, as the filters do); the model's matrices carry no batch dimensions of
             their own (``ValueError``).
         xs: true trajectories ``x_1 … x_T`` ``[..., M, T, dx]`` (the expectations over
             ``x`` are means over the ``M`` paths; ``M = 1`` for a linear model). The
@@ -258,7 +274,9 @@ def posterior_crb(
             ``[T, dx, dx]``, with no run dimension: ``bound[t]`` is step ``t + 1``, not run
             ``t`` (an analyst's trial read ``bound[0]`` as run 0's).
         x0: their initial states ``[..., M, dx]``.
-        us: inputs ``[..., M, T, du]`` or ``None``.
+        us: inputs ``[..., M, T, du]`` or ``None`` (zero inputs); required on a model with
+            inputs and without ``transition_matrix``, whose Jacobians read them
+            (``ValueError``).
         mask: received entries ``[..., T, dy]`` (bool) or ``None`` (all received); an
             all-false step adds no information.
         information: ``J_v`` for every step, ``[..., T, dy, dy]``, instead of computing

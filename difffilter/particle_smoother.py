@@ -26,7 +26,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._checks import _check_us, check_filtered_dtype, model_dtype_device
+from ._checks import _check_us, check_filtered_dtype, check_inputs_given, model_dtype_device
 from .noise import Gaussian
 from .results import ParticleFilterResult
 from .ssm import StateSpaceModel
@@ -55,7 +55,8 @@ def particle_smoother(
 ) -> ParticleSmootherResult:  # fmt: skip
     """FFBSm (module docstring) of ``filtered``, the result of
     :func:`difffilter.particle_filter` on ``model`` with ``return_particles=True`` and the same
-    inputs ``us [..., T, du]`` (``u_k`` drives ``x_k → x_{k+1}``: the filter's own pairing).
+    inputs ``us [..., T, du]`` (``u_k`` drives ``x_k → x_{k+1}``: the filter's own pairing;
+    required on a model with inputs, ``ValueError`` without: zero inputs are given as zeros).
     ``start``: the step ``k`` the filter started from (its ``initial_state``'s; 0 from the
     prior), so that a time-varying model's step ``k`` is read at its own ``k``. Zero
     filtering weights (``−inf`` log-weights, a particle a bounded noise cannot reach) weigh
@@ -94,6 +95,7 @@ def particle_smoother(
             f"{particles.shape[-1]}: smooth with the model the filter ran on"
         )
     check_filtered_dtype(model, particles, "particles")
+    check_inputs_given(model, us, "the particle smoother", "its transition density's f(x_k, u_k)")
     if us is not None:  # the filter's inputs, checked as the filters check them
         dtype, device = model_dtype_device(model)
         _check_us(model, us, particles.shape[:-3], steps, dtype, device,

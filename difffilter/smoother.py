@@ -38,6 +38,7 @@ from torch import Tensor
 from ._checks import (
     _check_us,
     check_filtered_dtype,
+    check_inputs_given,
     model_batch_shape,
     model_dtype_device,
     step_covariance,
@@ -150,7 +151,8 @@ def rts_smoother(model, filtered: FilterResult, us: Tensor | None = None) -> Smo
     :func:`difffilter.extended_kalman_filter` on the same ``us``, with ``F_k`` the
     Jacobian ``∂f/∂x`` at the filtered mean ``m_k`` (the prior mean at ``k = 0``), as the
     EKF predicted with: the extended RTS smoother. ``us [..., T, du]``, the filter's inputs,
-    also let the check of ``filtered`` read the first predicted mean. (The UKF's result:
+    also let the check of ``filtered`` read the first predicted mean; a nonlinear model with
+    inputs needs them (``ValueError`` without: zero inputs are given as zeros). (The UKF's result:
     :func:`unscented_rts_smoother`.) The check sees a filter of another ``F``, ``Q`` or
     prior, not one of another ``H``, ``R`` or ``B`` (the backward pass reads none of them):
     smooth with the model that filtered."""
@@ -159,6 +161,7 @@ def rts_smoother(model, filtered: FilterResult, us: Tensor | None = None) -> Smo
     if callable(getattr(model, "transition_matrix", None)):
         F = _of_k(model, "transition_matrix", steps)
     else:  # the EKF's linearisation: at the prior mean for k = 0, the filtered mean after
+        check_inputs_given(model, us, "the extended RTS smoother", "its Jacobians ∂f/∂x at u_k")
         F = _jacobians(model, model.initial.mean, means, us)
     Q = _of_k(model, "process_cov", steps)
     if F.shape[-2:] != (dx, dx):
@@ -190,7 +193,8 @@ def unscented_rts_smoother(
     [..., T, du]`` and the same ``sigma_points`` (a
     :class:`~difffilter.extended.SigmaPoints`; default ``SigmaPoints()``, the UKF's): the
     smoother gain from the cross-covariance of the sigma points of ``N(m_k, P_k)`` and
-    their images under ``f``, with the UKF's weights. On a linear model, the RTS smoother."""
+    their images under ``f``, with the UKF's weights (``us`` required on a model with
+    inputs: ``ValueError`` without). On a linear model, the RTS smoother."""
     from .extended import SigmaPoints, _check_sigma_points, _moments
 
     _check_sigma_points(sigma_points)
@@ -202,6 +206,7 @@ def unscented_rts_smoother(
         )
     sp = sigma_points or SigmaPoints()
     steps, _ = _check_arguments(model, filtered, us, "transition")
+    check_inputs_given(model, us, "the unscented RTS smoother", "f(X, u_k) at its sigma points")
     m0, P0 = model.initial.mean, model.initial.cov
     means = filtered.means
     wm, wc, scale = sp.weights(means.shape[-1], means.dtype, means.device)
@@ -223,8 +228,7 @@ def unscented_rts_smoother(
     if filtered.pred_covs is not None:
         start = m0.expand(means.shape[:-2] + m0.shape[-1:])
         _, _, pred, want = predicted(0, start, P0)
-        known = us is not None or not getattr(model, "dim_u", 0)
-        _check_filtered_by(filtered, want, pred if known else None, unscented=True)
+        _check_filtered_by(filtered, want, pred, unscented=True)  # (us given where used)
     return _backward(model, filtered, transition)
 
 
