@@ -76,6 +76,20 @@ def values_known(t: Tensor) -> bool:
     return t.device.type != "meta"
 
 
+def host_array(t: Tensor) -> np.ndarray:
+    """``t``'s values as a numpy array on the host (float32 and float64 kept, other dtypes
+    as float64), for reading values only (a check): also inside the ``torch.func``
+    transforms ``grad``, ``jvp``, ``jacrev``, ``jacfwd``, whose wrappers have no storage
+    (``.numpy()`` raised "Cannot access data pointer of Tensor that doesn't have storage"
+    in an online step's value checks under ``torch.func.grad``: a gradients trial)."""
+    functorch = torch._C._functorch
+    while functorch.is_functorch_wrapped_tensor(t):
+        t = functorch.get_unwrapped(t)
+    with torch._C._DisableFuncTorch():  # (the unwrapped value read outside the transform)
+        c = t.detach()
+        return (c if c.dtype in (torch.float32, torch.float64) else c.double()).cpu().numpy()
+
+
 def _vmapped(t: Tensor) -> bool:
     """Whether ``t`` is batched by ``torch.func.vmap`` at any of its functorch levels."""
     functorch = torch._C._functorch
@@ -884,10 +898,9 @@ def check_semidefinite(t: Tensor, name: str, *, advice: str = _CARRY_ADVICE) -> 
     covariance is read to the host once)."""
     if t.numel() == 0 or not values_known(t):
         return
-    c = t.detach()
-    a = (c if c.dtype in (torch.float32, torch.float64) else c.double()).cpu().numpy()
+    a = host_array(t)
     scale = np.abs(np.diagonal(a, axis1=-2, axis2=-1)).max(-1)
-    jitter = scale * math.sqrt(torch.finfo(c.dtype).eps) + torch.finfo(c.dtype).tiny
+    jitter = scale * math.sqrt(torch.finfo(t.dtype).eps) + torch.finfo(t.dtype).tiny
     try:
         np.linalg.cholesky(a + jitter[..., None, None] * np.eye(a.shape[-1], dtype=a.dtype))
         return

@@ -48,7 +48,7 @@ from torch import Tensor
 # the module, not its function: importing _pf_single_run imports particle, which imports this
 from . import _pf_single_run as _single_run
 from .estimator import Generators
-from .linalg import LOG_2PI
+from .linalg import LOG_2PI, under_transform
 from .noise import Gaussian
 from .particle import ParticleState, _blame_degenerate, _ess
 from .results import StepOutput
@@ -67,9 +67,13 @@ def density(carry, y: Tensor, u: Tensor | None) -> tuple[np.ndarray, np.generic,
     CPU memory in float32 or float64, and the measurement noise is a diagonal zero-mean
     Gaussian of the particles' dtype (a noise of another dtype is refused by the step's
     full validation, :func:`~difffilter._checks.check_model`; the others keep the torch
-    step)."""
+    step), and no forward-mode level or ``torch.func`` transform is active."""
     particles = carry.particles
     if torch.is_grad_enabled() or particles.device.type != "cpu":
+        return None
+    # forward mode under no_grad (a dual model reports requires_grad=False): numpy would
+    # drop its tangents silently (a gradients trial's online particle filter had none)
+    if under_transform():
         return None
     if particles.dtype not in _HOST_DTYPES or particles.requires_grad:
         return None

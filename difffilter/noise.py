@@ -68,6 +68,16 @@ def _shape(sample_shape) -> torch.Size:
     return torch.Size(sample_shape)
 
 
+def _uncacheable(t: Tensor) -> bool:
+    """Whether what is computed from ``t`` cannot be cached against its storage and version:
+    it requires a gradient (a factor is differentiated), it is an inference tensor (no
+    version counter) or a ``torch.func`` wrapper (``grad``, ``jvp``: no storage, its
+    ``data_ptr()`` raised in the particle filter under ``torch.func.grad``, a gradients
+    trial; the factor is then differentiated through the transform)."""
+    return (t.requires_grad or t.is_inference()
+            or torch._C._functorch.is_functorch_wrapped_tensor(t))  # fmt: skip
+
+
 class NoiseModel(CountsAssignments):
     """Base class: a distribution over ``R^d`` with ``sample``, ``log_prob``, ``mean``, ``cov``.
 
@@ -175,7 +185,7 @@ class Gaussian(NoiseModel):
         ``.data`` or ``.numpy()`` bumps no version and leaves the old factor cached.)
         """
         src = _registered(self, "_cov" if self._given == "cov" else "_scale_tril")
-        if src.requires_grad or src.is_inference():  # inference tensors have no version
+        if _uncacheable(src):
             return self._compute_scale_tril(), None
         key = (src.data_ptr(), src._version, src.dtype, src.device, tuple(src.shape))
         cached = getattr(self, "_factor_cache", None)
@@ -200,7 +210,7 @@ class Gaussian(NoiseModel):
         loc = _registered(self, "loc")
         if loc.requires_grad:
             return False
-        if loc.is_inference():  # no version counter to cache against
+        if _uncacheable(loc):
             return not bool(loc.any())
         key = (loc.data_ptr(), loc._version, loc.dtype, loc.device, tuple(loc.shape))
         cached = getattr(self, "_zero_loc_cache", None)
@@ -461,7 +471,7 @@ class UniformBox(NoiseModel):
         """``log(high − low)`` ``[*batch, d]``, kept while ``low`` and ``high`` are unchanged
         (a filter asks at every step); recomputed for learnable bounds."""
         low, high = self.low, self.high
-        if low.requires_grad or high.requires_grad or low.is_inference() or high.is_inference():
+        if _uncacheable(low) or _uncacheable(high):
             return torch.log(high - low)
         key = (low.data_ptr(), low._version, high.data_ptr(), high._version, low.dtype, low.device)
         cached = getattr(self, "_log_len_cache", None)

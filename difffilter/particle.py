@@ -552,7 +552,9 @@ def _check_strategies(resampler, proposal, likelihood, ess_threshold) -> float:
     check_resampler_hooks(resampler)
     check_strategy(proposal, "proposal", "difffilter.BootstrapProposal()",
                    ("model", "particles", "u", "y", "k", "mask", "generator"))  # fmt: skip
-    if hasattr(likelihood, "weigh"):
+    # an init without a __call__ is a stateful likelihood whose weigh is missing (a
+    # misspelt weigh had been told "must be a callable object": a gradients trial)
+    if hasattr(likelihood, "weigh") or (hasattr(likelihood, "init") and not callable(likelihood)):
         _check_step_likelihood(likelihood)
     else:
         check_strategy(likelihood, "likelihood", "difffilter.ModelLikelihood()",
@@ -569,7 +571,8 @@ _STEP_CONTRACT = (
 
 
 def _check_step_likelihood(likelihood) -> None:
-    """A likelihood with ``weigh`` is a stateful one (:class:`StepLikelihood`): an instance
+    """A likelihood with ``weigh`` (or ``init`` and no ``__call__``) is a stateful one
+    (:class:`StepLikelihood`): an instance
     whose ``init`` and ``weigh`` can be called as the filter calls them, checked when the
     filter is made, as the other plug-ins are (one without ``init`` failed at the
     filter's init on a bare AttributeError; a class passed for an instance, on a missing
@@ -585,8 +588,9 @@ def _check_step_likelihood(likelihood) -> None:
                                       "predictive"))):  # fmt: skip
         fn = getattr(likelihood, method, None)
         if not callable(fn):
+            has = "an init" if method == "weigh" else "a weigh"
             raise TypeError(
-                f"the likelihood {name} has a weigh, so it is a stateful likelihood, and it "
+                f"the likelihood {name} has {has}, so it is a stateful likelihood, and it "
                 f"has no {method} method: it implements {_STEP_CONTRACT}"
             )
         check_callable_as(fn, f"the likelihood {name}'s {method}", method, params)
