@@ -160,6 +160,7 @@ class DifffilterCLI(LightningCLI):
             for cb in self.trainer.checkpoint_callbacks:
                 cb.save_last, cb.save_top_k = False, 0
             return
+        _check_processes(self.trainer, getattr(self, "model", None))
         config = getattr(self, "config_init", None)
         ckpt = config["fit"].get("ckpt_path") if config is not None else None
         _check_resumed_settings(ckpt, getattr(self, "model", None),
@@ -221,6 +222,35 @@ _JUDGES = {"validate": "validate", "test": "test", "predict": "predict with"}
 
 #: The ``--ckpt_path`` values Lightning resolves to a file itself.
 _LIGHTNING_CKPT_NAMES = frozenset({"best", "last", "hpc"})
+
+
+def _check_processes(trainer, model) -> None:
+    """Training on several processes (``--trainer.strategy ddp --trainer.devices 2``) keeps
+    one network: its gradients are averaged, also where the loss leaves a parameter unused
+    (the tracking network's attack head under ``attack_weight: 0``: DDP's reducer had
+    waited for its gradient, the first step went unaveraged and the second died in
+    Lightning's "parameters that were not used" error; a training trial), so such a
+    parameter is left out of the average, as one process leaves it without a gradient. The
+    EKF over the weights takes no gradient to average: each process would train a network
+    of its own on its half of the batches (a trial: two digests after every epoch, the
+    export process 0's), so it is refused on more than one process."""
+    world = getattr(trainer, "world_size", 1)
+    if world <= 1:
+        return
+    hparams = getattr(model, "hparams", {})
+    if hparams.get("trainer") == "ekf":
+        raise ValueError(
+            f"--trainer.devices: the EKF over the weights (trainer: ekf) trains on one process "
+            f"({world} asked): it updates the weights step by step from each batch, with no "
+            "gradient for DDP to average, so every process would train a network of its own; "
+            "drop --trainer.strategy/--trainer.devices, or train with trainer: grad"
+        )
+    from lightning.pytorch.strategies import DDPStrategy
+
+    strategy = trainer.strategy
+    kwargs = getattr(strategy, "_ddp_kwargs", None)  # (the DistributedDataParallel options)
+    if isinstance(strategy, DDPStrategy) and isinstance(kwargs, dict):
+        kwargs.setdefault("find_unused_parameters", True)
 
 
 def _check_ckpt_path(cfg, subcommand: str | None) -> str | None:
