@@ -44,7 +44,8 @@ def nees(errors: Tensor, covs: Tensor) -> Tensor:
     """``eᵀ P⁻¹ e``: ``errors [..., n]`` (``x − x̂``), ``covs [..., n, n]`` → ``[...]``.
 
     By a linear solve, not a Cholesky factor: a particle filter's collapsed covariance
-    (an eigenvalue of 1e-26) gives the huge NEES it deserves rather than an error."""
+    (an eigenvalue of 1e-26) gives the huge NEES it deserves rather than an error, and an
+    exactly singular one ``+inf`` (``0`` where the error is exactly ``0``)."""
     if not isinstance(errors, Tensor) or errors.dim() < 1:
         raise ValueError(
             f"errors must be a tensor [..., n]; got {getattr(errors, 'shape', errors)!r}"
@@ -64,7 +65,17 @@ def nees(errors: Tensor, covs: Tensor) -> Tensor:
             f"broadcast to it); got {tuple(covs.shape)}"
         )
     e = errors.unsqueeze(-1)
-    return (e.mT @ torch.linalg.solve(covs, e)).squeeze(-1).squeeze(-1)
+    solved, info = torch.linalg.solve_ex(covs, e)
+    value = (e.mT @ solved).squeeze(-1).squeeze(-1)
+    singular = info != 0
+    if not bool(singular.any()):
+        return value
+    # an exactly singular covariance (a cloud collapsed onto one particle): +inf, or 0 for
+    # an error of exactly 0 (it had raised torch's LinAlgError for the whole batch: a trial)
+    value, singular = torch.broadcast_tensors(value, singular)
+    off = (errors != 0).any(-1).expand(value.shape)
+    worst = torch.where(off, torch.full_like(value, math.inf), torch.zeros_like(value))
+    return torch.where(singular, worst, value)
 
 
 def chi_square_bounds(dof: int, runs: int, confidence: float = 0.95) -> tuple[float, float]:

@@ -264,11 +264,33 @@ def _check_pair(F: Tensor, G: Tensor, names: tuple[str, str]) -> tuple[int, int]
     if F.shape != (n, n):
         raise ValueError(f"{a} must have shape [{n}, {n}] to match {b} [{n}, {m}]; got "
                          f"{tuple(F.shape)}")  # fmt: skip
+    if F.dtype != G.dtype:  # (torch's "expected m1 and m2 to have the same dtype" otherwise)
+        raise ValueError(f"{a} is {F.dtype} and {b} {G.dtype}: give them one dtype")
     return n, m
 
 
+def check_weight_values(Q: np.ndarray, R: np.ndarray, names: tuple[str, str] = ("Q", "R")):
+    """``Q`` and ``R`` (host arrays) finite and symmetric, ``Q`` positive semidefinite and
+    ``R`` positive definite, else a ``ValueError`` naming the matrix: a Riccati equation of
+    an indefinite ``Q`` had returned a "covariance" with a negative eigenvalue (-0.11) and
+    an LQR gain of ``R = -1`` without a word (a trial of the analysis tools), and where
+    scipy refused, its "symplectic pencil" named neither."""
+    for name, a, least in ((names[0], Q, "semidefinite"), (names[1], R, "definite")):
+        if a.size == 0:  # (no state or no input: named by the caller)
+            continue
+        if not np.isfinite(a).all():
+            raise ValueError(f"{name} contains NaN or Inf values")
+        if np.abs(a - a.T).max() > 1e-10 * max(np.abs(a).max(), 1e-300):
+            raise ValueError(f"{name} must be symmetric")
+        low = float(np.linalg.eigvalsh(a).min())
+        floor = -1e-12 * max(np.abs(a).max(), 1e-300)
+        if low < floor if least == "semidefinite" else low <= 0.0:
+            raise ValueError(f"{name} must be positive {least}; its least eigenvalue is {low:.3g}")
+
+
 def _weights(Q, R, n: int, m: int, like: Tensor) -> tuple[Tensor, Tensor]:
-    """``Q [n, n]``, ``R [m, m]`` in ``like``'s dtype (``None``: ``I``), detached."""
+    """``Q [n, n]``, ``R [m, m]`` in ``like``'s dtype (``None``: ``I``), detached, their
+    values checked (:func:`check_weight_values`)."""
     Q = torch.eye(n, dtype=like.dtype, device=like.device) if Q is None else Q
     R = torch.eye(m, dtype=like.dtype, device=like.device) if R is None else R
     for name, t, d in (("Q", Q, n), ("R", R, m)):
@@ -278,6 +300,7 @@ def _weights(Q, R, n: int, m: int, like: Tensor) -> tuple[Tensor, Tensor]:
         if t.dtype != like.dtype or t.device != like.device:
             raise ValueError(f"{name} is {t.dtype} on {t.device} and the plant's matrices "
                              f"{like.dtype} on {like.device}: give them one dtype and device")  # fmt: skip
+    check_weight_values(_np(Q.detach()), _np(R.detach()))
     return Q.detach(), R.detach()
 
 

@@ -44,7 +44,7 @@ import scipy.linalg as sla
 import torch
 from torch import Tensor
 
-from .control import _check_pair, _np, _weights
+from .control import _check_pair, _np, _weights, check_weight_values
 
 __all__ = [
     "intermittent_kalman_bounds",
@@ -70,20 +70,10 @@ def _arrays(F: Tensor, G: Tensor, Q: Tensor, R: Tensor, names: tuple[str, ...]):
     arrays = [_np(t.detach()) for t in (F, G, Q, R)]
     if arrays[0].shape[0] == 0:
         raise ValueError(f"{names[0]} has no state (n = 0): nothing to estimate or control")
-    for name, a in zip(names, arrays):
+    for name, a in zip(names[:2], arrays[:2]):
         if not np.isfinite(a).all():
             raise ValueError(f"{name} contains NaN or Inf values")
-    for name, a, least in (
-        (names[2], arrays[2], "semidefinite"),
-        (names[3], arrays[3], "definite"),
-    ):
-        if np.abs(a - a.T).max() > 1e-10 * max(np.abs(a).max(), 1e-300):
-            raise ValueError(f"{name} must be symmetric")
-        low = float(np.linalg.eigvalsh(a).min())
-        floor = -1e-12 * max(np.abs(a).max(), 1e-300)
-        bad = low < floor if least == "semidefinite" else low <= 0.0
-        if bad:
-            raise ValueError(f"{name} must be positive {least}; its least eigenvalue is {low:.3g}")
+    check_weight_values(arrays[2], arrays[3], names[2:])
     return arrays
 
 
