@@ -708,6 +708,19 @@ def check_output_folder(out: Path, scenarios: Sequence[str] = ()) -> None:
 LOCK_FILE = ".difffilter.lock"
 
 
+def _remove_if_nothing_written(out: Path) -> None:
+    """Remove ``out``, made by a study that was then refused, where nothing but its lock
+    file was written into it (checks made after the folder was held, a threat set's or a
+    checkpoint's, had left an empty ``--out`` holding ``.difffilter.lock``: an evaluation
+    trial)."""
+    try:
+        if {p.name for p in out.iterdir()} <= {LOCK_FILE}:
+            (out / LOCK_FILE).unlink(missing_ok=True)
+            out.rmdir()
+    except OSError:  # (another process writing there now, or no folder at all: left as is)
+        pass
+
+
 @contextlib.contextmanager
 def hold_output_folder(out: Path) -> Iterator[None]:
     """Hold an exclusive ``flock`` on ``<out>/.difffilter.lock`` (``out`` exists) while an
@@ -813,6 +826,7 @@ def _study(args, argv: Sequence[str] | None, held: contextlib.ExitStack) -> int:
     from .suite import process_group  # the suite (torch) only for a study
 
     tune_cpu_allocator()
+    created = not Path(args.out).exists()  # (a refusal removes the folder it made, below)
     try:
         names = resolve_scenarios(args.scenario)
         args.ckpt = parse_checkpoints(args.ckpt)
@@ -852,6 +866,8 @@ def _study(args, argv: Sequence[str] | None, held: contextlib.ExitStack) -> int:
             calibration_runs=args.calibration_runs,
         )
     except (ValueError, FileNotFoundError) as exc:
+        if created:
+            _remove_if_nothing_written(Path(args.out))
         print(f"difffilter-eval: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # a report not written (a full disk): one line, not a traceback

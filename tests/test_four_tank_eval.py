@@ -52,6 +52,8 @@ def test_cli_end_to_end_on_three_runs(tmp_path):
     high = doc["high_noise_false_alarms"]
     assert high["eta_theorem1"]["eta"] > high["eta_paper"]["eta"]
     assert high["eta_theorem1"]["false_alarms"] <= high["eta_paper"]["false_alarms"]
+    # timed as every run (an evaluation trial: 0.0, where an unknown figure is null)
+    assert high["eta_paper"]["time_per_step_s"] > 0 and high["eta_theorem1"]["time_per_step_s"] > 0
     # the Fig. 9 diagnosis: at γ̄ = 2·[1,1,1,1] the literal density misses what log space detects
     big = max(doc["detection_vs_attack_size"]["per_scale"], key=lambda r: r["scale"])
     assert big["normal_pf"]["tpr_detectable"] > 0.9 > big["normal_pf_literal"]["tpr_detectable"]
