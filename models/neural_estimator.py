@@ -28,6 +28,7 @@ import hashlib
 import json
 import math
 import numbers
+import os
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -623,13 +624,18 @@ def load_estimator_checkpoint(
     missing keys, shapes that do not match the stored configuration, a sha256 that does
     not match, non-finite weights).
     """
+    if not isinstance(path, (str, os.PathLike)):  # (torch's words named no argument)
+        raise TypeError(
+            f"ckpt: the checkpoint's path must be a str or os.PathLike; got {type(path).__name__}"
+        )
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"ckpt: no checkpoint file at {path}")
     if path.suffix == ".json":  # the card beside a checkpoint: its sha256 did not match itself
+        beside = path.with_suffix(".ckpt")
         raise ValueError(
-            f"ckpt: {path} is a checkpoint's card (JSON), not the checkpoint: give "
-            f"{path.with_suffix('.ckpt')}"
+            f"ckpt: {path} is JSON (a checkpoint's card or a table), not a checkpoint"
+            + (f": give {beside}" if beside.is_file() else "")
         )
     beside = _verify_sha256(path, expected_sha256)
     try:

@@ -127,7 +127,9 @@ it as a χ²-gated filter does, rather than absorb the part the estimate missed.
 
 Detection: ``p_k = sigmoid(logit_k)`` (the largest over areas), alarm where ``p_k >
 threshold``; a network without a detection head (trained by the EKF over its weights,
-which fits the attack estimate alone) scores ``s_k = Σ_c (â_{k,c} / √S_{k,cc})²``. Every
+which fits the attack estimate alone) scores ``s_k = Σ_c (â_{k,c} / √S_{k,cc})²`` against a
+sensor attack and ``s_k = Σ_c â_{k,c}²`` against an actuator attack (the input's channels
+have no innovation variance to divide by: the robot's card calibrates this raw score). Every
 operation is differentiable, so a loss on ``â``, ``logit`` or the state estimates
 back-propagates through the filter (through the particle weights and, with a
 differentiable resampler, through resampling): how :mod:`difffilter.train.task` trains
@@ -418,8 +420,13 @@ class _Core:
         else:
             attack, logit, learner, prior = self._learn(learner, delta, innovation, mask)
         attack = attack.flatten(-2)  # [..., J·d]
-        if self.residual is Residual.LAGGED:
+        if self.residual is Residual.LAGGED:  # e = ν − â, standardised and masked as r is
+            # (a trial: a lost entry's −â had entered the history, and standardize did nothing)
             entry = innovation - (attack if learner is None else prior)
+            if self.standardize:
+                entry = entry / scale
+            if mask is not None:
+                entry = entry * mask.to(entry.dtype)
         else:
             entry = e
         sensor = self.channel is not Channel.ACTUATOR
@@ -466,7 +473,8 @@ class _Core:
 
     def detect(self, attack, logit, scale, innovation) -> tuple[Tensor, dict]:
         """``(score [...], extras)``: ``sigmoid`` of the largest area logit, or without a
-        head the squared standardised estimate (module docstring)."""
+        head the squared estimate, standardised by ``√diag S`` against a sensor attack
+        (module docstring)."""
         if logit is not None:
             top = logit.amax(-1)
             extras = {"attack_logit": top}

@@ -1,0 +1,73 @@
+"""Findings of a trial of the neural compensation wrapper (``difffilter.fdi.neural``):
+
+* the lagged residual ``e = ν − â`` of a lost entry held ``−â`` (the estimate before it was
+  masked) where the docstring promises 0 for what was not received, and ``standardize``
+  did nothing to it. Truth: the step's reported compensated innovation ``ν − â`` (0 where
+  lost), divided by ``√diag S`` under ``standardize``, is the next step's input;
+* ``load_estimator`` of a non-path named no argument, and a JSON table was told to give a
+  ``.ckpt`` that does not exist.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import difffilter
+from difffilter.fdi.neural import NeuralCompensation
+from difffilter.models.neural_estimator import NeuralFDIEstimator
+from difffilter.ssm import LinearGaussianModel
+
+D = torch.float64
+T = 8
+
+
+def _model():
+    eye = torch.eye(2, dtype=D)
+    return LinearGaussianModel(torch.tensor([[1.0, 0.1], [0.0, 1.0]], dtype=D), eye, 0.01 * eye,
+                               0.04 * eye, torch.zeros(2, dtype=D), eye)  # fmt: skip
+
+
+def _steps(standardize, mask):
+    net = NeuralFDIEstimator(num_areas=1, area_dim=2, a=1, b=2, hidden=5, init_scale=0.5,
+                             init="symmetric", detection_head=False, seed=1)  # fmt: skip
+    est = NeuralCompensation(net, difffilter.KalmanFilter(), residual="lagged",
+                             standardize=standardize, record_inputs=True)  # fmt: skip
+    ys = 0.3 * torch.randn(1, T, 2, dtype=D, generator=torch.Generator().manual_seed(0))
+    outs = []
+    with torch.no_grad():
+        carry = est.init(_model(), (1,))
+        for k in range(T):
+            carry, out = est.step(carry, ys[:, k], None, mask[:, k])
+            outs.append(out)
+    return outs
+
+
+@pytest.mark.parametrize("standardize", [False, True])
+def test_the_lagged_residual_is_the_compensated_innovation_standardised_and_masked(standardize):
+    mask = torch.ones(1, T, 2, dtype=torch.bool)
+    mask[:, 4, 1] = False  # entry 1 lost at step 4
+    outs = _steps(standardize, mask)
+    for k in range(T - 1):
+        e = outs[k].innovation  # ν − â: the compensated innovation the step reports
+        if standardize:
+            e = e / outs[k].innovation_cov.diagonal(dim1=-2, dim2=-1).sqrt()
+        e = e * mask[:, k].to(D)
+        # δ_{k+1} = [â_k (2), e_k (2), e_{k−1} (2)]
+        torch.testing.assert_close(outs[k + 1].extras["network_inputs"][:, 2:4], e,
+                                   rtol=1e-12, atol=1e-15)  # fmt: skip
+    assert float(outs[5].extras["network_inputs"][0, 3]) == 0.0  # the lost entry's e_4
+
+
+def test_load_estimator_names_a_path_that_is_none_and_a_json_without_its_checkpoint(tmp_path):
+    for bad in (3, None):
+        with pytest.raises(TypeError, match="ckpt: the checkpoint's path must be a str or"):
+            difffilter.load_estimator(bad)
+    table = tmp_path / "table.json"
+    table.write_text("{}")
+    with pytest.raises(ValueError, match=r"is JSON \(a checkpoint's card or a table\), not a "
+                                         r"checkpoint$"):  # fmt: skip
+        difffilter.load_estimator(table)
+    (tmp_path / "table.ckpt").write_bytes(b"")
+    with pytest.raises(ValueError, match=r"not a checkpoint: give .*table\.ckpt"):
+        difffilter.load_estimator(table)
