@@ -634,8 +634,10 @@ def load_estimator_checkpoint(
     if path.suffix == ".json":  # the card beside a checkpoint: its sha256 did not match itself
         beside = path.with_suffix(".ckpt")
         raise ValueError(
-            f"ckpt: {path} is JSON (a checkpoint's card or a table), not a checkpoint"
-            + (f": give {beside}" if beside.is_file() else "")
+            f"ckpt: {path} is a checkpoint's card (JSON), not the checkpoint: give {beside}"
+            if beside.is_file()
+            else f"ckpt: {path} is JSON (a card or a table) with no checkpoint beside it, not "
+            "a checkpoint"
         )
     beside = _verify_sha256(path, expected_sha256)
     try:

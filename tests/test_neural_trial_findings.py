@@ -65,9 +65,10 @@ def test_load_estimator_names_a_path_that_is_none_and_a_json_without_its_checkpo
             difffilter.load_estimator(bad)
     table = tmp_path / "table.json"
     table.write_text("{}")
-    with pytest.raises(ValueError, match=r"is JSON \(a checkpoint's card or a table\), not a "
-                                         r"checkpoint$"):  # fmt: skip
+    with pytest.raises(ValueError, match=r"is JSON \(a card or a table\) with no checkpoint "
+                                         r"beside it, not a checkpoint$"):  # fmt: skip
         difffilter.load_estimator(table)
     (tmp_path / "table.ckpt").write_bytes(b"")
-    with pytest.raises(ValueError, match=r"not a checkpoint: give .*table\.ckpt"):
+    with pytest.raises(ValueError, match=r"is a checkpoint's card \(JSON\), not the checkpoint: "
+                                         r"give .*table\.ckpt"):  # fmt: skip
         difffilter.load_estimator(table)
