@@ -14,7 +14,12 @@ def _import_module(name: str):
     """``importlib.import_module``, also from the folder the command runs in: a console
     script's ``sys.path`` starts at its own folder, not the working one (``python -m`` and
     ``python script.py`` put the working folder first), so ``my_plants:vdp`` beside the user
-    was not found. The working folder is tried last, only for a module not found elsewhere."""
+    was not found. The working folder is tried last, only for a module not found elsewhere.
+    A file's path (``./my_plants``, ``plants/my_plants``) is an ``ImportError``: importlib's
+    own ``TypeError`` for a leading dot ("the 'package' argument is required") had reached
+    the user as a traceback naming no file or field (an adding-a-scenario trial)."""
+    if name.startswith(".") or "/" in name or os.sep in name:
+        raise ImportError("a file's path, not a module's name")
     try:
         return importlib.import_module(name)
     except ModuleNotFoundError as error:
@@ -41,7 +46,9 @@ def import_object(path: str, where: str):
     try:
         obj = _import_module(module_name)
     except ImportError as error:
-        raise ValueError(f"{where}: cannot import {module_name!r} ({error})") from None
+        raise ValueError(
+            f"{where}: cannot import {module_name!r} ({error}){_path_hint(module_name)}"
+        ) from None
     for part in attribute.split("."):
         if not hasattr(obj, part):
             raise ValueError(f"{where}: {module_name} has no {attribute!r}")
@@ -56,9 +63,17 @@ def import_plugin(name: str, where: str):
     try:
         return _import_module(name)
     except ImportError as error:
-        # a file's path read as a module's name ('trial/my_detectors.py'): say what it takes
-        hint = ("; give a module's name, not a file's path: from the file's folder "
-                f"{os.path.splitext(os.path.basename(name))[0]!r}, or a dotted name from "
-                "the working folder (trial.my_detectors)"
-                if name.endswith(".py") or "/" in name or os.sep in name else "")  # fmt: skip
-        raise ValueError(f"{where}: cannot import {name!r} ({error}){hint}") from None
+        raise ValueError(f"{where}: cannot import {name!r} ({error}){_path_hint(name)}") from None
+
+
+def _path_hint(name: str) -> str:
+    """What a module's name is, where ``name`` reads as a file's path ('trial/my_detectors.py',
+    './my_plants'), else ``""``."""
+    if not (name.endswith(".py") or name.startswith(".") or "/" in name or os.sep in name):
+        return ""
+    stem = os.path.splitext(name)[0] if name.endswith(".py") else name
+    parts = [p for p in stem.replace(os.sep, "/").split("/") if p not in ("", ".", "..")]
+    dotted = ".".join(parts) or stem
+    return ("; give a module's name, not a file's path: from the file's folder "
+            f"{parts[-1] if parts else stem!r}, or a dotted name from the working folder "
+            f"({dotted})")  # fmt: skip

@@ -252,9 +252,7 @@ def register(
     ``estimates``, ``oracle``, ``learned``, ``more_data`` and ``reads_measurements`` as in
     :class:`EstimatorSpec`."""
     estimates = None if estimates is None else Channel(estimates)
-    needs = tuple(needs)
-    if not all(isinstance(n, Need) for n in needs):
-        raise TypeError(f"needs must be difffilter.models.needs.Need objects; got {needs!r}")
+    needs = _needs_tuple(name, needs)
 
     def wrap(factory):
         if name in ESTIMATORS and ESTIMATORS[name].factory is not factory:
@@ -270,6 +268,24 @@ def register(
     return wrap
 
 
+def _needs_tuple(name: str, needs) -> tuple[Need, ...]:
+    """``needs`` as a tuple of :class:`Need`: one ``Need`` alone is one need (``needs=(X)``
+    without the comma had failed as "'Need' object is not iterable", naming neither the
+    estimator nor ``needs``: an adding-a-scenario trial)."""
+    if isinstance(needs, Need):
+        return (needs,)
+    try:
+        needs = tuple(needs)
+    except TypeError:
+        needs = None
+    if needs is None or not all(isinstance(n, Need) for n in needs):
+        raise TypeError(
+            f"estimator {name!r}: needs must be a Need of difffilter.models.needs or a tuple "
+            f"of them (needs=(LINEAR_MODEL,)); got {needs!r}"
+        )
+    return needs
+
+
 def _origin(factory) -> str:
     """The module a factory (or a spec's) was written in."""
     factory = getattr(factory, "factory", factory)
@@ -283,7 +299,8 @@ def family_register(scenario_class: type, family: str, **defaults):
     family_need = scenario_of(scenario_class, family)
 
     def register_in_family(name: str, description: str, *, needs=(), **kwargs):
-        return register(name, description, needs=(family_need, *needs), **{**defaults, **kwargs})
+        needs = (family_need, *_needs_tuple(name, needs))
+        return register(name, description, needs=needs, **{**defaults, **kwargs})
 
     return register_in_family
 
