@@ -82,22 +82,25 @@ def host_array(t: Tensor) -> np.ndarray:
     transforms ``grad``, ``jvp``, ``jacrev``, ``jacfwd``, whose wrappers have no storage
     (``.numpy()`` raised "Cannot access data pointer of Tensor that doesn't have storage"
     in an online step's value checks under ``torch.func.grad``: a gradients trial)."""
-    functorch = torch._C._functorch
-    while functorch.is_functorch_wrapped_tensor(t):
-        t = functorch.get_unwrapped(t)
+    *_, t = _functorch_levels(t)  # the innermost: the values themselves
     with torch._C._DisableFuncTorch():  # (the unwrapped value read outside the transform)
         c = t.detach()
         return (c if c.dtype in (torch.float32, torch.float64) else c.double()).cpu().numpy()
 
 
+def _functorch_levels(t: Tensor):
+    """``t`` and, one ``torch.func`` level down at a time, what each wrapper wraps (the last
+    a plain tensor)."""
+    functorch = torch._C._functorch
+    yield t
+    while functorch.is_functorch_wrapped_tensor(t):
+        t = functorch.get_unwrapped(t)
+        yield t
+
+
 def _vmapped(t: Tensor) -> bool:
     """Whether ``t`` is batched by ``torch.func.vmap`` at any of its functorch levels."""
-    functorch = torch._C._functorch
-    while functorch.is_functorch_wrapped_tensor(t):
-        if functorch.is_batchedtensor(t):
-            return True
-        t = functorch.get_unwrapped(t)
-    return False
+    return any(torch._C._functorch.is_batchedtensor(level) for level in _functorch_levels(t))
 
 
 #: torch's floating dtype of a numpy floating dtype, by its size in bytes.

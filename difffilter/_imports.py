@@ -18,7 +18,7 @@ def _import_module(name: str):
     A file's path (``./my_plants``, ``plants/my_plants``) is an ``ImportError``: importlib's
     own ``TypeError`` for a leading dot ("the 'package' argument is required") had reached
     the user as a traceback naming no file or field (an adding-a-scenario trial)."""
-    if name.startswith(".") or "/" in name or os.sep in name:
+    if _reads_as_path(name):
         raise ImportError("a file's path, not a module's name")
     try:
         return importlib.import_module(name)
@@ -69,7 +69,7 @@ def import_plugin(name: str, where: str):
 def _path_hint(name: str) -> str:
     """What a module's name is, where ``name`` reads as a file's path ('trial/my_detectors.py',
     './my_plants'), else ``""``."""
-    if not (name.endswith(".py") or name.startswith(".") or "/" in name or os.sep in name):
+    if not (name.endswith(".py") or _reads_as_path(name)):
         return ""
     stem = os.path.splitext(name)[0] if name.endswith(".py") else name
     parts = [p for p in stem.replace(os.sep, "/").split("/") if p not in ("", ".", "..")]
@@ -77,3 +77,9 @@ def _path_hint(name: str) -> str:
     return ("; give a module's name, not a file's path: from the file's folder "
             f"{parts[-1] if parts else stem!r}, or a dotted name from the working folder "
             f"({dotted})")  # fmt: skip
+
+
+def _reads_as_path(name: str) -> bool:
+    """Whether ``name`` is written as a file's path (``./x``, ``plants/x``), which no
+    module's name is."""
+    return name.startswith(".") or "/" in name or os.sep in name

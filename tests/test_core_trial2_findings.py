@@ -59,13 +59,23 @@ def test_the_particle_smoother_refuses_a_forgotten_us_and_lands_on_rts_with_it(l
 
 
 def test_zero_inputs_are_given_as_zeros(linear_run):
-    model, ys, _ = linear_run
+    """A filter run with ``us=None`` (zero inputs) is smoothed with zeros: the smoothers
+    land where the zero-input smoothers do."""
+    model = linear_run[0]
     zeros = torch.zeros(2, T, 1, dtype=D)
-    pf = df.particle_filter(model, ys, num_particles=50, return_particles=True,
+    _, ys, _ = model.simulate(T, (2,), us=zeros, generator=torch.Generator().manual_seed(5))
+    pf = df.particle_filter(model, ys, num_particles=1000, return_particles=True,
                             generator=torch.Generator().manual_seed(0))  # fmt: skip
-    df.particle_smoother(model, pf, zeros)  # the filter's us=None, said as zeros
-    ekf = df.extended_kalman_filter(_nonlinear_with_input(), ys)
-    df.rts_smoother(_nonlinear_with_input(), ekf, zeros)
+    rts = df.kalman_smoother(model, ys)  # zero inputs
+    sd = rts.covs.diagonal(dim1=-2, dim2=-1).sqrt()
+    assert (
+        float(((df.particle_smoother(model, pf, zeros).means - rts.means) / sd).abs().max()) < 0.5
+    )
+    nonlinear = _nonlinear_with_input()
+    ekf = df.extended_kalman_filter(nonlinear, ys)
+    torch.testing.assert_close(df.rts_smoother(nonlinear, ekf, zeros).means,
+                               df.extended_kalman_smoother(nonlinear, ys, zeros).means,
+                               rtol=0, atol=0)  # fmt: skip
 
 
 def test_the_linear_rts_smoother_and_bound_read_no_input_and_need_none(linear_run):
