@@ -144,9 +144,11 @@ def gram(h, weights, base):
 def cholesky(a):
     """Lower Cholesky factor of a symmetric positive-definite component matrix (no pivoting;
     diagonals clamped at the dtype's smallest normal number before the square root, so a
-    semidefinite input gives a finite factor)::
+    semidefinite input gives a finite factor). Only the upper triangle of ``a`` is read
+    (``A_ij`` as ``a[j][i]`` for ``i > j``): the products of :func:`gram` and
+    :func:`mm` with ``upper=True`` leave the lower one ``None``::
 
-        L_jj = √(A_jj − Σ_{k<j} L_jk²),   L_ij = (A_ij − Σ_{k<j} L_ik L_jk) / L_jj  (i > j)
+        L_jj = √(A_jj − Σ_{k<j} L_jk²),   L_ij = (A_ji − Σ_{k<j} L_ik L_jk) / L_jj  (i > j)
     """
     d = len(a)
     low = [[0.0] * d for _ in range(d)]
@@ -156,7 +158,7 @@ def cholesky(a):
             s = _number_as_tensor(s, a)
         low[j][j] = torch.sqrt(torch.clamp_min(s, torch.finfo(s.dtype).tiny))
         for i in range(j + 1, d):
-            num = lin([(1.0, a[i][j], 1.0)] + [(-1.0, low[i][k], low[j][k]) for k in range(j)])
+            num = lin([(1.0, a[j][i], 1.0)] + [(-1.0, low[i][k], low[j][k]) for k in range(j)])
             low[i][j] = num / low[j][j]
     return low
 
