@@ -47,7 +47,7 @@ from torch import Tensor
 
 from ._assignments import assignments
 from ._riccati_host import host_arrays, host_chunk, host_step_maps, steps_to_keep
-from .linalg import INNOVATION_COV, LOG_2PI, matvec, safe_cholesky
+from .linalg import INNOVATION_COV, LOG_2PI, NumericalBreakdown, matvec, safe_cholesky
 from .parallel_kalman import combine_covariance, covariance_elements
 
 __all__ = [
@@ -432,6 +432,11 @@ class CovarianceChunks:
         """The next chunk's ``(P⁻, P, K, S, L, L⁻¹)`` (each ``[n, ·, ·]``, as
         :func:`riccati_step` returns them) and ``Σ log diag L`` ``[n]``, up to and
         including the first step whose gain converged (then :attr:`converged`)."""
+        # an overflowing covariance is named below (_finite_steps), not in numpy's warnings
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            return self._next()
+
+    def _next(self) -> tuple[Tensor, ...]:
         blocks = min(max(self.GROWTH * self.steps // self.BLOCK, 1), self.MAX_BLOCKS)
         moments = self._host_chunk(blocks)
         if moments is not None:
@@ -442,10 +447,38 @@ class CovarianceChunks:
                 moments = riccati_chunk(self._cov, maps, blocks, *self._mats)
             else:  # no scan element (H Q Hᵀ + R singular): one step at a time
                 moments = riccati_steps(self._cov, blocks * self.BLOCK, *self._mats)
+        finite = self._finite_steps(moments[0], moments[1])
+        if finite < len(moments[0]):  # the finite steps now; the next chunk raises
+            moments = tuple(m[:finite] for m in moments)
         keep = self._steps_to_keep(moments[2], moments[1])
         moments = tuple(m[:keep] for m in moments)
         self._cov, self._last_gain, self.steps = moments[1][-1], moments[2][-1], self.steps + keep
         return (*moments, half_log_det(moments[4]))
+
+    def _finite_steps(self, pred_cov: Tensor, cov: Tensor) -> int:
+        """How many of a chunk's first steps have finite covariances ``P⁻, P [n, dx, dx]``
+        (all ``n`` in the common case; one read); raises :class:`NumericalBreakdown` where
+        the chunk's first step has none: the recursion cannot go on from it. A chunk is
+        computed ahead of the steps asked for, so its finite steps are handed out first
+        and the error comes with the step that overflowed, not a chunk before it."""
+        if cov.device.type == "meta":
+            return cov.shape[0]
+        ok = torch.isfinite(pred_cov).flatten(1).all(1) & torch.isfinite(cov).flatten(1).all(1)
+        if bool(ok.all()):
+            return ok.shape[0]
+        finite = int(ok.int().argmin())
+        if finite == 0:
+            step, dtype = self.steps + 1, cov.dtype
+            raise NumericalBreakdown(
+                f"the Kalman filter's state covariance P is not finite at step {step}: "
+                f"a variance grew past the largest {str(dtype).removeprefix('torch.')} "
+                f"number ({torch.finfo(dtype).max:.2g}), most often an unstable mode of F "
+                "(an eigenvalue of modulus above 1) that the measurements do not observe, "
+                "whose uncertainty grows without bound; no filter can go on from an "
+                "infinite variance: make that mode observable or stable, or filter in "
+                "float64 (a larger range: the same model overflows later)"
+            )
+        return finite
 
     def _host_chunk(self, blocks: int) -> tuple | None:
         """The next chunk's moments as :func:`riccati_chunk` computes them, on host arrays
