@@ -308,6 +308,17 @@ def systematic_ancestors(
 # ---------------------------------------------------------------------------- base class
 
 
+def _check_generator(generator, resampler) -> None:
+    """A resampler's ``generator`` is a ``torch.Generator`` or ``None``: a seed given there
+    (``5``) had failed inside ``torch.rand``, naming neither the resampler nor the argument
+    (a resampling trial)."""
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise TypeError(
+            f"generator of {resampler!r} must be a torch.Generator or None (e.g. "
+            f"torch.Generator().manual_seed(0)); got {type(generator).__name__}"
+        )
+
+
 class Resampler:
     """Base class of all resamplers.
 
@@ -335,6 +346,7 @@ class Resampler:
         with values in ``[0, N)``. Draws use ``generator`` only (the global RNG when
         ``None``).
         """
+        _check_generator(generator, self)
         log_w = normalize_log_weights(log_weights)
         ancestors = self._draw(log_w.detach(), generator)
         return _checked_ancestors(ancestors, log_w, self) if _own_draw(self) else ancestors
@@ -348,6 +360,7 @@ class Resampler:
         particle axis), normalised ``log_weights [..., N]`` and ``ancestors [..., N]``.
         """
         particles, log_weights = _check_particles(particles, log_weights)
+        _check_generator(generator, self)
         log_w = log_weights - torch.logsumexp(log_weights, dim=-1, keepdim=True)
         return self.resample_normalized(particles, log_w, generator)
 
@@ -655,6 +668,14 @@ def _check_index_base(base: Resampler, name: str = "base") -> Resampler:
         raise ValueError(
             f"{name} must be an index-based resampler instance (Multinomial(), Systematic(), "
             f"Stratified() or Residual()); got {base!r}"
+        )
+    # the wrapper draws with its base's _draw: one without it (a misspelt `draw`, a
+    # __call__ alone) had failed at the first resampling, naming neither (a resampling trial)
+    if type(base)._draw is Resampler._draw:
+        raise ValueError(
+            f"{name} must draw ancestors: {type(base).__name__} defines no "
+            "_draw(log_w, generator) -> ancestors [..., N] (a misspelt `draw`?), and the "
+            "wrapper resamples with its base's _draw alone, not its __call__"
         )
     return base
 
