@@ -131,6 +131,12 @@ def ensemble_test(statistic: Tensor, dof, confidence: float = 0.95) -> Consisten
         if dof.shape != statistic.shape or bool((dof < 0).any()):
             raise ValueError(f"dof must be a number or [R, T] like statistic "
                              f"{tuple(statistic.shape)}, >= 0; got {tuple(dof.shape)}")  # fmt: skip
+        if dof.is_floating_point() and bool((dof != dof.round()).any()):
+            # counts of entries received (the scalar dof is checked so too): 2.5 had passed
+            raise ValueError(
+                f"dof must be whole numbers of degrees of freedom (counts of entries "
+                f"received); got {dof[dof != dof.round()].flatten()[0].item():g}"
+            )
         total = dof.double().sum(0).cpu().numpy()
         # a step where no run received anything has statistic 0 and bounds [0, 0] (chi2 of
         # 0 degrees of freedom is NaN in scipy: such steps had counted as outside)

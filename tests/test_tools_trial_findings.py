@@ -66,3 +66,16 @@ def test_nees_of_an_exactly_singular_covariance_is_infinite_for_its_run_alone():
     torch.testing.assert_close(got, torch.tensor([1e26, math.inf, 1.0, 0.0], dtype=D))
     one = nees(errors[:1], covs[1:2].expand(1, 2, 2))  # a shared singular covariance
     assert one.tolist() == [math.inf]
+
+
+def test_an_ensemble_tests_dof_of_fractions_is_refused():
+    """Per-value degrees of freedom are counts of entries received: 2.5 had been taken
+    (the scalar dof is refused so already); whole numbers in a float tensor still go."""
+    from difffilter.consistency import ensemble_test
+
+    stat = torch.ones(4, 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"dof must be whole numbers.*got 2.5"):
+        ensemble_test(stat, torch.full((4, 3), 2.5, dtype=torch.float64))
+    whole = ensemble_test(stat, torch.full((4, 3), 2.0, dtype=torch.float64))
+    counted = ensemble_test(stat, torch.full((4, 3), 2, dtype=torch.int64))
+    assert whole.outside == counted.outside and torch.equal(whole.low, counted.low)
