@@ -67,6 +67,12 @@ class ExtendedKalmanFilter(GaussianFilter):
 
     def predict(self, carry, u):
         model, k = carry.model, carry.k
+        if torch.is_grad_enabled() and carry.mean.is_inference():
+            # a carry stepped under torch.inference_mode() (inference tensors), now stepped
+            # with gradients on: autograd cannot save its tensors for a model with
+            # parameters, so step from their values (as the UKF's sigma points do; the
+            # error had blamed the user's transition: a serialisation trial)
+            carry = carry._replace(mean=carry.mean.clone(), cov=carry.cov.clone())
         # A torch.func Jacobian can come back in another dtype than the state (a model
         # function that builds a float64 constant from a Python float promotes it): cast, so
         # a float32 model stays float32 (and the products below do not mix dtypes).

@@ -167,6 +167,29 @@ class GainSchedule:
         self._block: list[tuple[SharedMoments, Tensor]] = []
         self._block_next = 0
 
+    def __getstate__(self) -> dict:
+        """A copy (``copy.deepcopy``, ``pickle``, ``torch.save``) makes new tensors whose
+        version counters start again: each stamp is replaced by what it said at the copy
+        (unchanged or not), and :meth:`__setstate__` stamps the copies anew from that. A
+        restored carry had been refused as "written in place" at its next step, though
+        nothing had written to it (a serialisation trial)."""
+        state = self.__dict__.copy()
+        for name in ("_sources", "_own_sources"):
+            state[name] = tuple((t, _unchanged(t, stamp)) for t, stamp in state[name])
+        state["_cov_versions"] = [
+            _version(m.cov) == v for m, v in zip(self._moments, self._cov_versions)
+        ]
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        for name in ("_sources", "_own_sources"):
+            state[name] = tuple((t, _stamp(t) if ok else _STALE) for t, ok in state[name])
+        state["_cov_versions"] = [
+            _version(m.cov) if ok else _STALE
+            for m, ok in zip(state["_moments"], state["_cov_versions"])
+        ]
+        self.__dict__.update(state)
+
     @property
     def converged(self) -> bool:
         """Whether the gain has converged (every later step reuses the last moments)."""
@@ -658,15 +681,24 @@ def _source_versions(model, mats) -> tuple[tuple[Tensor, int | Tensor], ...]:
         if isinstance(noise, torch.nn.Module):
             tensors += [*noise.parameters(), *noise.buffers()]
     unique = {id(t): t for t in tensors}
-    return tuple((t, t.detach().clone() if t.is_inference() else t._version)
-                 for t in unique.values())  # fmt: skip
+    return tuple((t, _stamp(t)) for t in unique.values())
+
+
+def _stamp(t: Tensor) -> int | Tensor:
+    """``t``'s version, or for an inference tensor (it keeps none) a copy of its values."""
+    return t.detach().clone() if t.is_inference() else t._version
+
+
+#: A stamp no tensor matches (a version below any counter's, and below the ``-1`` of an
+#: inference tensor's :func:`_version`): what a copy stamps where the original had changed.
+_STALE = -2
 
 
 def _unchanged(t: Tensor, stamp: int | Tensor) -> bool:
     """Whether ``t`` is as it was stamped (:func:`_source_versions`): the same version, or
     for an inference tensor the same values (a comparison: it has no version to read)."""
-    if isinstance(stamp, int):
-        return t._version == stamp
+    if isinstance(stamp, int):  # (_STALE first: an inference tensor has no version to read)
+        return stamp != _STALE and t._version == stamp
     return t.shape == stamp.shape and bool(torch.equal(t, stamp))
 
 

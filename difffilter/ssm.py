@@ -80,6 +80,12 @@ def batched_jacobian(
         else:
             flat_args.append(a.expand(lead + a.shape[-1:]).reshape(-1, a.shape[-1]))
             in_dims.append(0)
+    if torch.is_grad_enabled() and not torch.is_inference_mode_enabled():
+        # a carry made under torch.inference_mode() holds inference tensors, which autograd
+        # cannot save for a model with parameters: its values, as normal tensors (the
+        # error had blamed the user's function: a serialisation trial)
+        flat_x = flat_x.clone() if flat_x.is_inference() else flat_x
+        flat_args = [a.clone() if a is not None and a.is_inference() else a for a in flat_args]
     try:
         with _JACOBIAN_LOCK:
             jac = torch.func.vmap(torch.func.jacfwd(fn, argnums=0), in_dims=tuple(in_dims))(
