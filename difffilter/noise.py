@@ -18,6 +18,7 @@ the output of another computation (``gradcheck`` through ``Q`` and ``R``).
 from __future__ import annotations
 
 import math
+import weakref
 
 import torch
 from torch import Tensor, nn
@@ -78,6 +79,22 @@ def _uncacheable(t: Tensor) -> bool:
             or torch._C._functorch.is_functorch_wrapped_tensor(t))  # fmt: skip
 
 
+def _held(cached, key, *tensors: Tensor) -> bool:
+    """Whether ``cached`` (a tuple ``(key, refs, …)``, refs of :func:`_refs`) was computed from
+    these very ``tensors`` as they are now: the same key (storage, version, dtype, …) and
+    the same live objects. The storage address alone had been reused by a new covariance
+    allocated where a freed one was (two replacements with no density between them: the
+    old factor served, a log-density 10 nats off; a cache trial)."""
+    return (cached is not None and cached[0] == key
+            and all(ref() is t for ref, t in zip(cached[1], tensors)))  # fmt: skip
+
+
+def _refs(*tensors: Tensor) -> tuple:
+    """Weak references to ``tensors``, the second field of a cache entry (:func:`_held`);
+    a copy or a pickle of the noise model leaves the entries out (:meth:`NoiseModel.__getstate__`)."""
+    return tuple(weakref.ref(t) for t in tensors)
+
+
 class NoiseModel(CountsAssignments):
     """Base class: a distribution over ``R^d`` with ``sample``, ``log_prob``, ``mean``, ``cov``.
 
@@ -92,6 +109,15 @@ class NoiseModel(CountsAssignments):
     """
 
     dim: int
+
+    #: Values computed from the noise's tensors and kept against them (:func:`_held`).
+    _CACHES = ("_factor_cache", "_zero_loc_cache", "_log_len_cache")
+
+    def __getstate__(self) -> dict:
+        """The module's state without the caches (their weak references neither pickle
+        nor point at a copy's tensors: a copy computes them again on first use)."""
+        state = super().__getstate__()
+        return {k: v for k, v in state.items() if k not in self._CACHES}
 
     def _missing(self, member: str) -> NotImplementedError:
         return NotImplementedError(
@@ -191,17 +217,15 @@ class Gaussian(NoiseModel):
         cached = getattr(self, "_factor_cache", None)
         # a factor made under torch.inference_mode() is an inference tensor, which autograd
         # cannot save: outside that mode it is made again
-        if (
-            cached is not None
-            and cached[0] == key
-            and (not cached[1].is_inference() or torch.is_inference_mode_enabled())
+        if _held(cached, key, src) and (
+            not cached[2].is_inference() or torch.is_inference_mode_enabled()
         ):
-            return cached[1], cached[2]
+            return cached[2], cached[3]
         L = self._compute_scale_tril()
         diag = None
         if L.dim() == 2 and bool((L == torch.diag_embed(L.diagonal())).all()):
             diag = L.diagonal()
-        self._factor_cache = (key, L, diag)
+        self._factor_cache = (key, _refs(src), L, diag)
         return L, diag
 
     def _zero_loc(self) -> bool:
@@ -214,10 +238,10 @@ class Gaussian(NoiseModel):
             return not bool(loc.any())
         key = (loc.data_ptr(), loc._version, loc.dtype, loc.device, tuple(loc.shape))
         cached = getattr(self, "_zero_loc_cache", None)
-        if cached is None or cached[0] != key:
-            cached = (key, not bool(loc.any()))
+        if not _held(cached, key, loc):
+            cached = (key, _refs(loc), not bool(loc.any()))
             self._zero_loc_cache = cached
-        return cached[1]
+        return cached[2]
 
     def _compute_scale_tril(self) -> Tensor:
         if self._given == "scale_tril":
@@ -326,12 +350,12 @@ class Gaussian(NoiseModel):
         five fewer tensor operations per call; a filter step on a hundred particles is a
         few dozen small operations, so their number is its cost)."""
         cached = getattr(self, "_factor_cache", None)
-        if cached is not None and cached[2] is diag and len(cached) > 3:
-            return cached[3]
+        if cached is not None and cached[3] is diag and len(cached) > 4:
+            return cached[4]
         terms = (diag.square().reciprocal(), torch.log(diag).sum() + 0.5 * self.dim * LOG_2PI)
         # (not inference tensors: a later density with gradients saves 1/σ² for backward)
-        if cached is not None and cached[2] is diag and not torch.is_inference_mode_enabled():
-            self._factor_cache = (*cached[:3], terms)
+        if cached is not None and cached[3] is diag and not torch.is_inference_mode_enabled():
+            self._factor_cache = (*cached[:4], terms)
         return terms
 
 
@@ -475,7 +499,7 @@ class UniformBox(NoiseModel):
             return torch.log(high - low)
         key = (low.data_ptr(), low._version, high.data_ptr(), high._version, low.dtype, low.device)
         cached = getattr(self, "_log_len_cache", None)
-        if cached is None or cached[0] != key:
-            cached = (key, torch.log(high - low))
+        if not _held(cached, key, low, high):
+            cached = (key, _refs(low, high), torch.log(high - low))
             self._log_len_cache = cached
-        return cached[1]
+        return cached[2]

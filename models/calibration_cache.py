@@ -23,6 +23,9 @@ one the folder should be deleted. Deleting the folder is always safe.
 
 from __future__ import annotations
 
+import decimal
+import fractions
+import functools
 import hashlib
 import json
 import os
@@ -64,13 +67,29 @@ def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
         digest.update(str((array.dtype, array.shape)).encode())
         digest.update(array.tobytes())
         return
-    if isinstance(value, (int, float, str, bool, type(None))):
-        digest.update(repr(value).encode())
+    if isinstance(value, (int, float, complex, str, bytes, bool, type(None), range,
+                          fractions.Fraction, decimal.Decimal)):  # fmt: skip
+        # (by repr: complex, Fraction and Decimal values had been hashed by type alone)
+        digest.update(f"{type(value).__name__}:{value!r}".encode())
         return
     seen.add(id(value))
     if isinstance(value, (list, tuple)):
         for item in value:
             _feed(digest, item, seen, depth + 1)
+        return
+    if isinstance(value, (set, frozenset)):  # in a stable order (a set's own is per process)
+        digest.update(type(value).__name__.encode())
+        for item in sorted(value, key=repr):
+            _feed(digest, item, seen, depth + 1)
+        return
+    if isinstance(value, types.MethodType):  # a bound method: the object it is bound to too
+        _feed(digest, value.__self__, seen, depth + 1)
+        _feed(digest, value.__func__, seen, depth + 1)
+        return
+    if isinstance(value, functools.partial):  # its function and the arguments it binds
+        digest.update(b"partial")
+        for part in (value.func, value.args, value.keywords):
+            _feed(digest, part, seen, depth + 1)
         return
     if isinstance(value, dict):
         for key in sorted(value, key=repr):
@@ -97,12 +116,17 @@ def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
         return
     digest.update(type(value).__qualname__.encode())
     digest.update(_class_code(type(value)))
-    attributes = getattr(value, "__dict__", None)
-    if attributes is not None:  # less the memos of derived values (``*_cache``: addresses)
-        for key in sorted(attributes, key=repr):
-            if not str(key).endswith("_cache"):
-                digest.update(repr(key).encode())
-                _feed(digest, attributes[key], seen, depth + 2)
+    attributes = dict(getattr(value, "__dict__", None) or {})
+    for klass in type(value).__mro__:  # the values of ``__slots__`` (no ``__dict__`` entry)
+        slots = vars(klass).get("__slots__", ())
+        for slot in (slots,) if isinstance(slots, str) else slots:
+            if slot not in ("__dict__", "__weakref__") and hasattr(value, slot):
+                attributes.setdefault(slot, getattr(value, slot))
+    # less the memos of derived values (``*_cache``: addresses)
+    for key in sorted(attributes, key=repr):
+        if not str(key).endswith("_cache"):
+            digest.update(repr(key).encode())
+            _feed(digest, attributes[key], seen, depth + 2)
 
 
 def _class_code(cls: type) -> bytes:
@@ -111,12 +135,18 @@ def _class_code(cls: type) -> bytes:
     file (a trial: ``h = x³`` edited to ``4x³`` had read the old CUSUM threshold, 708
     against 3366). Their code, constants and defaults; not the module-level values they
     read (as for a module: delete the cache folder after editing one)."""
-    known = _CLASS_CODE.get(cls)
+    members = _members(cls)
+    memo = _CLASS_CODE.get(cls)
+    known = None
+    if memo is not None and len(memo[0]) == len(members):
+        if all(a is b for a, b in zip(memo[0], members)):
+            known = memo[1]
     if known is None:
-        _CLASS_CODE[cls] = b"(in progress)"  # (a default of the class itself: no recursion)
+        # (a default of the class itself: no recursion)
+        _CLASS_CODE[cls] = (members, b"(in progress)")
         digest = hashlib.sha256()
         for klass in cls.__mro__:
-            if klass.__module__.split(".")[0] in ("builtins", "torch", "typing", "abc"):
+            if klass.__module__.split(".")[0] in _SKIPPED_MODULES:
                 continue
             digest.update(klass.__qualname__.encode())
             for name, attr in sorted(vars(klass).items()):
@@ -132,12 +162,26 @@ def _class_code(cls: type) -> bytes:
                     # where the default is a function: a new digest in every process)
                     _feed(digest, getattr(attr, "__defaults__", None), set())
                     _feed(digest, getattr(attr, "__kwdefaults__", None), set())
-        known = _CLASS_CODE[cls] = digest.digest()
+        known = digest.digest()
+        _CLASS_CODE[cls] = (members, known)
     return known
 
 
-#: :func:`_class_code` by class (a class edited and re-created is another object).
-_CLASS_CODE: dict[type, bytes] = {}
+def _members(cls: type) -> tuple:
+    """The attributes ``cls`` and its bases define (torch's and the builtins' aside), as
+    objects: a memo of :func:`_class_code` holds for a class whose members are these very
+    ones (a method replaced on the class, in a notebook or by a monkeypatch, had kept the
+    old digest for the process: a cache trial)."""
+    return tuple(attr for klass in cls.__mro__
+                 if klass.__module__.split(".")[0] not in _SKIPPED_MODULES
+                 for _, attr in sorted(vars(klass).items()))  # fmt: skip
+
+
+_SKIPPED_MODULES = ("builtins", "torch", "typing", "abc")
+
+#: :func:`_class_code` by class, with the members it was computed from (a class edited and
+#: re-created is another object).
+_CLASS_CODE: dict[type, tuple[tuple, bytes]] = {}
 
 
 def _global_names(code) -> set[str]:

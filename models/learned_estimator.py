@@ -62,7 +62,9 @@ def _trained_network(ctx, name: str, filters, trainer: str):
         raise SkipEstimator(
             "no checkpoint given (--ckpt; checkpoint= in Python) and no shipped one"
         )
-    key = ("learned/ckpt", str(path))
+    # the dtype too: the network is loaded in it (a float64 suite sharing the cache of a
+    # float32 one had run the float32 network: a cache trial)
+    key = ("learned/ckpt", str(path), ctx.dtype)
     if key not in ctx.cache:
         ctx.cache[key] = load_estimator_checkpoint(path, dtype=ctx.dtype)
     net, card = ctx.cache[key]

@@ -427,23 +427,30 @@ def _baseline(scenario_name: str, runs, far: float, progress: bool,
     ``folder`` (``<scenario>.json`` and ``<scenario>.totals.pt``) if a sweep with the same
     runs, rate and seed wrote them, else run and written there.
 
-    Both files hold the key (runs, rate, seed, scenario digest), and each is written whole
+    Both files hold the key (runs, rate, seed, the scenario file's digest, the plant's
+    and the library's fingerprints: :mod:`difffilter.models.calibration_cache`), and each is written whole
     or not at all, the totals first: a sweep interrupted between the two had left its key
     beside another study's totals, which the next sweep then read as its own. A file that
     cannot be read (cut short) is a cache: said in one line and computed again."""
     from difffilter.eval.acceptance import roles
     from difffilter.models import registry
+    from difffilter.models.calibration_cache import library_fingerprint, model_fingerprint
     from difffilter.models.generic_estimators import DEFAULT_SUITE
     from difffilter.models.yaml_scenario import scenario_file_digest
 
+    scenario = registry.get(scenario_name)
+    # the plant and the library's code as well as the file: a scenario given as
+    # module:object (or a registered name) had no digest, and an edited plant was judged
+    # against the old plant's baselines (a cache trial: 0.093 read where 0.153 holds)
     key = {"scenario": scenario_name, "runs": runs, "far": far, "eval_seed": 0,
-           "scenario_file_sha256": scenario_file_digest(scenario_name)}  # fmt: skip
+           "scenario_file_sha256": scenario_file_digest(scenario_name),
+           "plant_sha256": model_fingerprint(scenario),
+           "library_sha256": library_fingerprint()}  # fmt: skip
     stem = _cache_stem(scenario_name)
     file, totals_file = folder / f"{stem}.json", folder / f"{stem}.totals.pt"
     cached = _cached_baseline(file, totals_file, key)
     if cached is not None:
         return cached
-    scenario = registry.get(scenario_name)
     names = list(scenario.estimators or DEFAULT_SUITE)
     analytic = [n for n, role in roles(names).items() if role == "analytic"]
     table, totals = _calibrated_metrics(scenario, analytic, runs, far, progress)
