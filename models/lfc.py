@@ -48,7 +48,7 @@ from difffilter.kalman import KalmanFilter
 from difffilter.linalg import safe_cholesky
 from difffilter.loop import LoopResult, ReplayedNoise, closed_loop
 from difffilter.models.registry import Scenario, register
-from difffilter.models.scenario import OWN_ATTACK
+from difffilter.models.scenario import OWN_ATTACK, simulation_dtype
 from difffilter.threats import Covert, Shaped
 
 from .attacks import Signal
@@ -770,11 +770,12 @@ class LFCScenario(Scenario):
                         state=state, progress=progress, attack_generator=attack_generator,
                         forks=forks, fork=fork)  # fmt: skip
 
-    def simulate(self, runs, generators, *, dtype=torch.float64, attack=OWN_ATTACK, model=None):
+    def simulate(self, runs, generators, *, dtype=None, attack=OWN_ATTACK, model=None):
         """The traditional closed loop ``U = −K₁Z`` with its Kalman observer (``attack=None``:
         attack-free). ``info`` carries the exogenous draws (``xi, theta [B, T, 10]``,
         ``load``) that every estimator's own closed loop replays (common random numbers).
         ``us[:, t]`` is the input applied before ``x_{t+1}`` (control and load)."""
+        dtype = simulation_dtype(dtype, model)
         draws = self.exogenous(runs, generators, dtype=dtype)
         loop = self.loop(self._shared_observer(draws, attack), draws, compensate=False,
                          attack=attack)  # fmt: skip

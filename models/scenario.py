@@ -91,6 +91,14 @@ OWN_ATTACK = _Own.ATTACK
 
 
 @torch.no_grad()
+def simulation_dtype(dtype: torch.dtype | None, model) -> torch.dtype:
+    """A scenario's simulation dtype: ``dtype`` if given, else ``model``'s where one is
+    given, else float64 (:meth:`Scenario.simulate`)."""
+    if dtype is not None:
+        return dtype
+    return model.initial.mean.dtype if model is not None else torch.float64
+
+
 def simulate(
     model,
     runs: int,
@@ -309,11 +317,15 @@ class Scenario:
         runs: int,
         generators: Mapping[str, torch.Generator],
         *,
-        dtype: torch.dtype = torch.float64,
+        dtype: torch.dtype | None = None,
         attack: Any = OWN_ATTACK,
         model=None,
     ) -> Trajectories:
-        """``runs`` runs of this scenario (``attack``: :data:`OWN_ATTACK`, ``None`` or another)."""
+        """``runs`` runs of this scenario (``attack``: :data:`OWN_ATTACK`, ``None`` or another)
+        in ``dtype``: by default ``model``'s where one is given (the evaluation's side studies
+        of a float32 study had simulated float64 inputs for its float32 model and failed:
+        a float32 trial), else float64."""
+        dtype = simulation_dtype(dtype, model)
         model = model if model is not None else self.system(dtype)
         return simulate(
             model,

@@ -40,7 +40,14 @@ from difffilter.ssm import StateSpaceModel
 
 from .attacks import Replacement
 from .registry import register
-from .scenario import OWN_ATTACK, Scenario, Trajectories, simulate, warn_on_global_draws
+from .scenario import (
+    OWN_ATTACK,
+    Scenario,
+    Trajectories,
+    simulate,
+    simulation_dtype,
+    warn_on_global_draws,
+)
 from .schedules import RoundRobin
 
 __all__ = [
@@ -530,7 +537,7 @@ class TrackingScenario(Scenario):
     def schedule(self) -> RoundRobin:
         return RoundRobin(self.groups, start=self.gamma_ini - 1)
 
-    def simulate(self, runs, generators, *, dtype=torch.float64, attack=OWN_ATTACK, model=None):
+    def simulate(self, runs, generators, *, dtype=None, attack=OWN_ATTACK, model=None):
         """``runs`` runs: plant, per-sensor attacks, Round-Robin mask, held measurements.
 
         ``y_recv`` is eq. (7) under ``holding``; ``flags`` mark steps whose scheduled
@@ -538,6 +545,7 @@ class TrackingScenario(Scenario):
         ``"y_all"`` every sensor's packet as it arrives ``[B, T, dy]``, ``"sensor_flags"``
         ``[B, T, S]``, ``"attack_values"`` (the ξ draws) and ``"x0"``.
         """
+        dtype = simulation_dtype(dtype, model)
         model = model if model is not None else self.system(dtype)
         attack = self.simulated_attack() if attack is OWN_ATTACK else attack
         threat = attack is not None and not isinstance(attack, Replacement)  # of the library

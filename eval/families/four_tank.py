@@ -136,7 +136,7 @@ def _high_noise(result) -> dict[str, Any]:
     """The modified PF with R × 5 (same noise draws scaled, same flags): η of the paper and of Theorem 1."""
     sc, ctx = result.scenario, result.context
     R5 = tuple(5.0 * r for r in sc.R)
-    model5 = sc.model(torch.float64, R=R5)
+    model5 = sc.model(ctx.model.initial.mean.dtype, R=R5)  # the study's dtype (its report's)
     tr5 = sc.simulate(result.runs, {k: ctx.streams(k) for k in ("plant", "attack")}, model=model5)
     ctx5 = SuiteContext(sc, model5, result.runs, ctx.streams, ctx.options)
     free = get("normal_pf_attack_free").factory(ctx5)(tr5).means
