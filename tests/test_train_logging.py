@@ -209,3 +209,27 @@ def test_ctrl_c_while_exporting_leaves_no_card_less_file_and_says_how_to_export(
     monkeypatch.chdir(tmp_path)
     assert main(["export", source, "--out", str(tmp_path / "shipped.ckpt")]) == 0
     load_estimator_checkpoint(tmp_path / "shipped.ckpt")
+
+
+def test_resuming_a_finished_run_whose_export_was_interrupted_exports_it(
+    tmp_path, monkeypatch, capsys
+):  # fmt: skip
+    """A sweep trial: stopped while a finished run's export was written (the file without
+    its card removed), the run resumed from ``last.ckpt`` trained nothing and exported
+    nothing, and a sweep stopped at that seed for good. Now the resume exports the weights
+    the checkpoint callback had chosen."""
+    import json
+
+    small = _one_epoch_run(tmp_path, monkeypatch)
+    run = tmp_path / "lightning_logs" / "four_tank_nn_grad" / "version_0"
+    first = json.loads((run / "four_tank_nn_grad.json").read_text())
+    for suffix in (".ckpt", ".json"):  # the interrupted export
+        (run / "four_tank_nn_grad").with_suffix(suffix).unlink()
+    capsys.readouterr()
+    last = run / "checkpoints" / "last.ckpt"
+    assert main(["fit", *small, "--trainer.max_epochs=1", f"--ckpt_path={last}"]) == 0
+    assert "its export was not written: exporting it now" in capsys.readouterr().out
+    (card_path,) = (tmp_path / "lightning_logs").rglob("four_tank_nn_grad.json")
+    card = json.loads(card_path.read_text())
+    assert card["weights_sha256"] == first["weights_sha256"]
+    assert card["best_val_score"] == first["best_val_score"]

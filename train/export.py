@@ -235,7 +235,8 @@ class ExportEstimator(pl.Callback):
     def on_exception(self, trainer, pl_module, exception):
         """Ctrl-C while the export was written (its check runs the estimator for seconds):
         the file without its card goes, and the message says how to export what training
-        ended with (resuming from ``last.ckpt`` trains nothing and writes no export)."""
+        ended with (resuming from ``last.ckpt`` trains nothing and exports it then: the
+        run's folder holds no card, :meth:`on_fit_end`)."""
         if self._exporting is None or not isinstance(exception, KeyboardInterrupt):
             return
         path, source = self._exporting
@@ -243,26 +244,39 @@ class ExportEstimator(pl.Callback):
         if not path.with_suffix(".json").is_file():
             path.unlink(missing_ok=True)
         print(f"interrupted while exporting {path}: the training had ended, no export was "
-              f"written; export it with: difffilter-train export {source} --out <file>")  # fmt: skip
+              f"written; resume the run (--ckpt_path {source}) to export it, or export it "
+              f"with: difffilter-train export {source} --out <file>")  # fmt: skip
 
     def on_fit_end(self, trainer, pl_module):
         if not self.enabled or trainer.fast_dev_run:
             return
-        if not self._trained and trainer.ckpt_path:
-            # a resumed run that had finished: exporting again would replace its card with
-            # one of nothing (no validation ran here: best_val_score null, no metrics)
-            if trainer.is_global_zero:
-                print(f"nothing to train: {trainer.ckpt_path} had reached the end of its "
-                      f"training (epoch {trainer.current_epoch}, step {trainer.global_step}); "
-                      "no export written (to export it: difffilter-train export "
-                      f"{trainer.ckpt_path} --out <file>; to train on, raise "
-                      "--trainer.max_epochs)")  # fmt: skip
-            return
         # trainer.log_dir is a collective under DDP: every process asks, one writes
         name = pl_module.export_name()
         path = self.path or Path(trainer.log_dir or trainer.default_root_dir) / f"{name}.ckpt"
+        finished = not self._trained and trainer.ckpt_path
+        # the export of the run the checkpoint comes from (its folder above checkpoints/)
+        earlier = None if not finished else [
+            p for p in (path, Path(trainer.ckpt_path).resolve().parent.parent / path.name)
+            if p.with_suffix(".json").is_file()
+        ]  # fmt: skip
+        if finished and earlier:
+            # a resumed run that had finished and exported: exporting again would replace its
+            # card with one of less (no validation ran here: no metrics of the last one)
+            if trainer.is_global_zero:
+                print(f"nothing to train: {trainer.ckpt_path} had reached the end of its "
+                      f"training (epoch {trainer.current_epoch}, step {trainer.global_step}); "
+                      f"its export is {earlier[0]} (to train on, raise "
+                      "--trainer.max_epochs)")  # fmt: skip
+            return
         if not trainer.is_global_zero:
             return
+        if finished:
+            # one that had finished but whose export was interrupted (its file removed, no
+            # card): exported now, from the weights its checkpoint callback chose. A sweep
+            # had stopped at that seed for good ("fit exported no estimator": a sweep trial)
+            print(f"{trainer.ckpt_path} had reached the end of its training, and its export "
+                  f"was not written: exporting it now (the card's last-validation metrics "
+                  "are not known here)")  # fmt: skip
         best_path, best_score, monitor = None, None, None
         for cb in trainer.callbacks:
             if isinstance(cb, pl.callbacks.ModelCheckpoint) and cb.best_model_path:
