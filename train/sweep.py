@@ -398,8 +398,15 @@ def _calibrated_metrics(scenario, names, runs, far: float, progress: bool,
         if name not in result.outputs:
             raise ValueError(f"{name} did not run on {scenario.name}: "
                              f"{result.skipped.get(name, 'it was left out')}")  # fmt: skip
-    apply_calibration(result, calibrate(scenario, far=far, estimators=detectors(result), **kwargs))
-    table = {name: {**{m: metrics.get(m) for m in METRICS}, **_family_metrics(result, name)}
+    calibration = calibrate(scenario, far=far, estimators=detectors(result), **kwargs)
+    apply_calibration(result, calibration)
+    # the threshold each was judged at and its rate on the calibration runs, recorded: the
+    # sweep's numbers had been tied to no threshold, and an export's card holds the fit's
+    # own (a sweep trial)
+    table = {name: {**{m: metrics.get(m) for m in METRICS},
+                    "threshold_at_far": metrics.get("threshold_at_far"),
+                    "far_measured_on_calibration": calibration.measured.get(name),
+                    **_family_metrics(result, name)}
              for name, metrics in result.metrics.items()}  # fmt: skip
     return table, study_totals(result, list(result.outputs), state_metric(table))
 
@@ -551,18 +558,27 @@ def _acceptance(per_seed: dict, baselines: dict, far: float, seed_totals: dict) 
 
 
 def _summary(per_seed: dict) -> dict:
-    """``{scenario: {metric: {mean, min, max, spread}}}`` over the seeds."""
+    """``{scenario: {metric: {mean, min, max, spread}}}`` over the seeds. A seed whose value
+    is NaN (a filter that diverged) makes all four unknown (``None``, null in the JSON) and
+    is named in ``not_a_number``: Python's ``min``/``max`` had skipped it or not by the
+    seeds' order, and a finite spread hid it (a sweep trial)."""
     first = next(iter(per_seed.values()))["scenarios"]
     out = {}
     for scenario, metrics in first.items():
         out[scenario] = {}
         for metric in metrics:
-            values = [s["scenarios"][scenario][metric] for s in per_seed.values()]
-            values = [v for v in values if v is not None]
+            values = {seed: s["scenarios"][scenario][metric] for seed, s in per_seed.items()}
+            values = {seed: v for seed, v in values.items() if v is not None}
             if not values:
                 continue
-            out[scenario][metric] = {"mean": statistics.fmean(values), "min": min(values),
-                                     "max": max(values), "spread": max(values) - min(values)}  # fmt: skip
+            nan = [seed for seed, v in values.items() if math.isnan(v)]
+            if nan:
+                out[scenario][metric] = {"mean": None, "min": None, "max": None,
+                                         "spread": None, "not_a_number": nan}  # fmt: skip
+                continue
+            low, high = min(values.values()), max(values.values())
+            out[scenario][metric] = {"mean": statistics.fmean(values.values()), "min": low,
+                                     "max": high, "spread": high - low}  # fmt: skip
     return out
 
 
