@@ -18,7 +18,10 @@ writes ``<out>/sweep.json`` and ``<out>/sweep.md``: per seed and scenario the es
 ``tpr_at_far``, ``fpr_at_far`` (and ``fpr_at_far_after_attack``, its rate on the ten
 attack-free steps after an attacked step), ``fpr`` (at the checkpoint's own threshold), ``auc``,
 ``state_rmse`` and ``attack_rmse`` (and the family's own, e.g. tracking's position RMSE
-``rmse_p``), and per metric the mean, min, max and spread (max − min) over seeds.
+``rmse_p``), the ``threshold_at_far`` each was judged at with its rate on the calibration
+runs (``far_measured_on_calibration``), and per metric the mean, min, max and spread
+(max − min) over seeds (all four null where a seed's value is NaN, that seed named in
+``not_a_number``).
 
 The median seed is the one to ship (``difffilter-train export``), never the best, and it is
 chosen on validation, not on the numbers the sweep reports: by default
