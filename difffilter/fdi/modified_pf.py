@@ -383,6 +383,12 @@ class ModifiedParticleFilter(ParticleFilter):
             raise ValueError(f"fused=True does not support {bad}; use fused=False")
         if not _fusable(carry.model, ys, self.detector, self.gamma_hat):
             return None  # step by step: the same numbers, without the fused path's assumptions
+        log_w = carry.log_weights
+        if carry.k != 0 or not bool((log_w == log_w[..., :1]).all()):
+            # the fused path starts from equally weighted particles at k = 0: a weighted set
+            # (a state carried over) had been filtered as if its weights were equal, 0.27
+            # off the steps' numbers (a time-index trial)
+            return None
         gens = carry.generators or Generators()
         if gens.resample is gens.propagate:
             # one stream for both (one generator given, or torch's global one): the fused
@@ -496,6 +502,13 @@ def modified_particle_filter(
             f"gamma_hat must be a BiasAttackEstimator or a tensor [..., {ys.shape[-2]}, "
             f"{model.dim_y}]; got {tuple(gamma_hat.shape)}"
         )
+    start = 0 if initial_state is None else int(initial_state.k)
+    if isinstance(gamma_hat, Tensor) and start > 0:
+        # a table aligned with ys, read by each step at its absolute index k − 1: from a
+        # state at k0 its rows start at k0 (rows before it are never read). A γ̂ of T rows
+        # had been read k0 rows late and ran out at step T − k0 + 1 (a time-index trial)
+        skipped = gamma_hat.new_zeros(gamma_hat.shape[:-2] + (start, gamma_hat.shape[-1]))
+        gamma_hat = torch.cat([skipped, gamma_hat], dim=-2)
     pf = ModifiedParticleFilter(
         num_particles, detector, gamma_hat, attack_rate=attack_rate, resampler=resampler,
         ess_threshold=ess_threshold, base_likelihood=base_likelihood, fused=fused,
