@@ -8,6 +8,7 @@ master seed, runs each estimator on the same trajectories with the same random n
 
 from __future__ import annotations
 
+import contextlib
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -221,6 +222,25 @@ def run_suite(
     return result
 
 
+@contextlib.contextmanager
+def _naming(name: str, scenario: str):
+    """Errors of estimator ``name`` name it and ``scenario``: a ``ValueError`` (what the
+    command line prints in one line) by its message, ``"name on scenario: …"``, any other
+    by a note on its traceback. Only a run's ``ValueError`` had been named: a factory's, a
+    need's check's or a torch ``RuntimeError`` (a shape mismatch, a user's commonest bug)
+    came bare, and the command line printed a factory's ValueError as one line naming
+    nothing (an estimator-registration trial). Skips and breakdowns pass as they are."""
+    try:
+        yield
+    except (registry.SkipEstimator, NumericalBreakdown):
+        raise
+    except ValueError as exc:
+        raise ValueError(f"{name} on {scenario}: {exc}") from exc
+    except Exception as exc:
+        exc.add_note(f"(raised by estimator {name!r} on scenario {scenario!r})")
+        raise
+
+
 def _check_threat_fits(scenario, model) -> None:
     """The attack the plant meets acts within the horizon and fits its channel
     (:func:`~difffilter.threats.check_attack_fits`): an onset past the last step ran a
@@ -301,12 +321,14 @@ def _run_estimators(result: SuiteResult, specs, progress: bool, built=None,
     adaptive = meets_adaptive_attack(ctx.scenario)
     for spec in bar:
         bar.set_postfix_str(spec.name)
-        unmet = spec.unmet(ctx.scenario, ctx.model)
+        with _naming(spec.name, result.scenario.name):
+            unmet = spec.unmet(ctx.scenario, ctx.model)  # (a user's Need(check) may raise)
         if unmet is not None and spec.name not in built:
             result.skipped[spec.name] = unmet
             continue
         try:
-            run = built[spec.name] if spec.name in built else spec.build(result.context)
+            with _naming(spec.name, result.scenario.name):
+                run = built[spec.name] if spec.name in built else spec.build(result.context)
         except registry.SkipEstimator as why:
             result.skipped[spec.name] = str(why)
             continue
@@ -315,12 +337,11 @@ def _run_estimators(result: SuiteResult, specs, progress: bool, built=None,
             continue
         start = time.perf_counter()
         try:
-            out = spec.checked(run(result.traj))
+            with _naming(spec.name, result.scenario.name):
+                out = spec.checked(run(result.traj))
         except NumericalBreakdown as exc:  # this estimator cannot run here; the others can
             _broke_down(result, spec.name, exc, label)
             continue
-        except ValueError as exc:  # (which estimator of which study, e.g. on an attack's NaN)
-            raise ValueError(f"{spec.name} on {result.scenario.name}: {exc}") from exc
         if adaptive and not isinstance(out, LoopResult):
             result.skipped[spec.name] = ADAPTIVE_SKIP
             continue

@@ -257,8 +257,17 @@ def register(
 
     def wrap(factory):
         if name in ESTIMATORS and ESTIMATORS[name].factory is not factory:
+            earlier = ESTIMATORS[name]
+            if _of_library(factory) and not _of_library(earlier):
+                # the built-ins register when first needed: a module of one's own imported
+                # before them took the name first, and the error blamed the library's module
+                # (an estimator-registration trial)
+                raise ValueError(
+                    f"estimator {name!r} of {_origin(earlier)} takes the name of a built-in "
+                    f"estimator (of {_origin(factory)}): give yours another name"
+                )
             raise ValueError(
-                f"estimator {name!r} is already registered, by {_origin(ESTIMATORS[name])}; "
+                f"estimator {name!r} is already registered, by {_origin(earlier)}; "
                 f"{_origin(factory)} registers another under that name: give it another name"
             )
         ESTIMATORS[name] = EstimatorSpec(name, factory, description, clean_input, reference,
@@ -285,6 +294,12 @@ def _needs_tuple(name: str, needs) -> tuple[Need, ...]:
             f"of them (needs=(LINEAR_MODEL,)); got {needs!r}"
         )
     return needs
+
+
+def _of_library(factory) -> bool:
+    """Whether a factory (or a spec's) is one of the library's own estimators."""
+    module = getattr(getattr(factory, "factory", factory), "__module__", "") or ""
+    return module.split(".")[0] == "difffilter"
 
 
 def _origin(factory) -> str:
