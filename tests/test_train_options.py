@@ -76,6 +76,17 @@ def test_a_seed_must_be_a_non_negative_integer(name):
             ScenarioDataModule("four_tank_bias", **{name: bad})
 
 
+def test_a_validation_seed_of_the_evaluations_runs_is_refused():
+    """A leakage trial: with test_seed moved off 0, val_seed=0 was taken, and validation
+    (which chooses the checkpoint and a sweep's median seed) read the very runs
+    difffilter-eval scores, bit for bit."""
+    with pytest.raises(
+        ValueError, match=r"val_seed must differ from 0, the seed of difffilter-eval"
+    ):
+        ScenarioDataModule("four_tank_bias", val_seed=0, test_seed=5)
+    ScenarioDataModule("four_tank_bias", val_seed=7, test_seed=5)  # any other seed goes
+
+
 def test_the_kalman_filter_on_a_nonlinear_plant_is_refused_before_training():
     """A user trial: filter=kf on a nonlinear plant failed at the first training step, 24
     frames into Lightning (the message was clear, its place was not)."""

@@ -270,6 +270,15 @@ class ScenarioDataModule(pl.LightningDataModule):
             raise ValueError("train_seed and val_seed must differ (validation data must be unseen)")
         if test_seed in (train_seed, val_seed):
             raise ValueError("test_seed must differ from train_seed and val_seed")
+        if val_seed == EVALUATION_SEED:
+            # validation chooses the checkpoint (and a sweep's median seed): on seed 0 it
+            # read the very runs difffilter-eval scores, bit for bit, with test_seed moved
+            # off 0 (a leakage trial; the monitors' seed was refused so already)
+            raise ValueError(
+                f"val_seed must differ from {EVALUATION_SEED}, the seed of difffilter-eval's "
+                "default runs: validation chooses the checkpoint, and would choose it on the "
+                "runs the evaluation scores; keep the default 2, or any seed no evaluation uses"
+            )
         if steps is not None:
             self.scenario = self.scenario.with_steps(steps)
         if self.threats is None and steps is not None:
