@@ -330,9 +330,13 @@ def adaptive_kalman_filter(
 
 def wald_statistic(attack: Tensor, attack_cov: Tensor) -> Tensor:
     """``θ̂ᵀ S⁻¹ θ̂`` for ``attack [..., da]`` and ``attack_cov [..., da, da]`` → ``[...]``
-    (``S`` regularised by ``1e-12·tr S`` so that ``S_0 = 0`` gives a finite score)."""
+    (``S`` regularised by ``1e-12·tr S``, at least the dtype's smallest normal number, so
+    that ``S_0 = 0`` gives a score: 0 for ``θ̂ = 0``, large or ``+inf`` for an estimate held
+    certain. The floor had been 1e-312, a subnormal the solve divided by into 0·∞: NaN
+    scores, which never alarm, and NaN gradients; a gradients trial)."""
     eye = torch.eye(attack.shape[-1], dtype=attack.dtype, device=attack.device)
-    tr = attack_cov.diagonal(dim1=-2, dim2=-1).sum(-1).clamp_min(1e-300)
+    floor = torch.finfo(attack_cov.dtype).tiny * 1e12
+    tr = attack_cov.diagonal(dim1=-2, dim2=-1).sum(-1).clamp_min(floor)
     reg = attack_cov + (1e-12 * tr)[..., None, None] * eye
     sol = torch.linalg.solve(reg, attack.unsqueeze(-1)).squeeze(-1)
     return (attack * sol).sum(-1)

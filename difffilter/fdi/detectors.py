@@ -46,6 +46,7 @@ from .._checks import (
     check_rate,
     check_square,
     check_symmetric,
+    host_array,
 )
 from ..linalg import mahalanobis_sq_chol, safe_cholesky
 
@@ -139,10 +140,13 @@ def chi_square_equivalent(g: Tensor, dof, full_dof) -> Tensor:
     from scipy import special
 
     shape = broadcast_shapes(g.shape, d.shape)
-    sel = partial.expand(shape).cpu().numpy()
-    gn = g.detach().to(torch.float64).expand(shape).cpu().numpy()[sel]
-    dn = d.expand(shape).cpu().numpy()[sel]
-    Dn = full.expand(shape).cpu().numpy()[sel]
+    sel = np.broadcast_to(host_array(partial).astype(bool), shape).copy()  # (writable)
+    # g's values, also inside a torch.func transform (whose wrappers have no storage: .numpy()
+    # had raised under grad/jvp/jacrev/jacfwd with a mask; a gradients trial); its derivative
+    # rides on g itself below
+    gn = np.broadcast_to(host_array(g).astype(np.float64), shape)[sel]
+    dn = np.broadcast_to(host_array(d), shape)[sel]
+    Dn = np.broadcast_to(host_array(full), shape)[sel]
     # scipy.stats.chi2's own functions without its argument handling (about 180 µs of a
     # masked online χ² step: a recorded-log trial), the same numbers bit for bit:
     # sf = chdtrc, cdf = chdtr, ppf = 2 gammaincinv(D/2, ·), isf = chdtri
