@@ -523,6 +523,9 @@ def output_of(result: FilterResult) -> EstimatorOutput:
         "innovation_covs": result.innovation_covs,
         "log_likelihood_increments": result.log_likelihood_increments,
         "log_likelihood": result.log_likelihood,
+        # (the count of a nonfinite="skip" run: open_loop's own result had it, this one
+        # had dropped it; a results trial)
+        "nonfinite_skipped": getattr(result, "nonfinite_skipped", None),
     }
     extras = {k: v for k, v in extras.items() if v is not None}
     return EstimatorOutput(result.means, result.covs, extras=extras)

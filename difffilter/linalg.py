@@ -103,21 +103,36 @@ def safe_cholesky(matrix: Tensor, *, name: str = "matrix", max_tries: int | None
     rungs of the ladder (default: all of them).
     """
     factor, info = torch.linalg.cholesky_ex(matrix)
-    if matrix.device.type == "meta" or not bool((info != 0).any()):
+    if matrix.device.type == "meta":
         return factor  # (meta tensors hold no values: shapes only, nothing to check)
+    if not bool((info != 0).any()):
+        # an infinite variance factorises (√∞ on the diagonal, no error): a covariance that
+        # overflowed on its diagonal alone had passed (a linalg trial), as NaN does not
+        if not bool(torch.isfinite(factor.diagonal(dim1=-2, dim2=-1)).all()):
+            failing = ~torch.isfinite(factor.diagonal(dim1=-2, dim2=-1)).all(-1)
+            raise NumericalBreakdown(
+                f"{name} must be symmetric positive definite and finite"
+                f"{_why_it_fails(matrix, failing)}"
+            )
+        return factor
     failing = info != 0
     eps, ceiling = JITTER_LADDER.get(matrix.dtype, JITTER_LADDER[torch.float32])
     eye = torch.eye(matrix.shape[-1], dtype=matrix.dtype, device=matrix.device)
     scale = matrix.diagonal(dim1=-2, dim2=-1).mean(-1).abs().clamp_min(1e-30)
+    chosen = torch.zeros_like(scale)  # each member's ε (0: its own factor)
     tries = 0
     while eps <= ceiling * 1.0001 and (max_tries is None or tries < max_tries):
         tries += 1
-        jittered = matrix + (eps * scale)[..., None, None] * eye
-        retried, info = torch.linalg.cholesky_ex(jittered)
-        factor = torch.where(failing[..., None, None], retried, factor)
+        with torch.no_grad():  # (which ε works for which member: values only)
+            _, info = torch.linalg.cholesky_ex(matrix + (eps * scale)[..., None, None] * eye)
+        chosen = torch.where(failing & (info == 0), torch.full_like(chosen, eps), chosen)
         failing = failing & (info != 0)
         if not bool(failing.any()):
-            return factor
+            # one factorisation of every member with its own ε (0 adds nothing: the same
+            # numbers as its first factor): merging the failed factors with torch.where had
+            # sent 0·∞ = NaN through their backward into the matrix's gradient (a linalg
+            # trial: 35 of 89 jittered rank-2 covariances)
+            return torch.linalg.cholesky(matrix + (chosen * scale)[..., None, None] * eye)
         eps *= 10.0
     raise NumericalBreakdown(
         f"{name} must be symmetric positive definite; its Cholesky factorisation failed "
