@@ -615,7 +615,8 @@ def _acceptance_section(doc: dict) -> Section | None:
                  "compared: " + ", ".join(f"`{n}`" for n in rivals) + ".\n\n")  # fmt: skip
     body = text + markdown_table(header, rows) + "\n"
     if doc.get("acceptance_intervals"):
-        body += "\n" + _intervals_text(doc["acceptance_intervals"], [c.metric for c in checks])
+        body += "\n" + _intervals_text(doc["acceptance_intervals"], [c.metric for c in checks],
+                                       {c.metric: c.limits for c in checks})  # fmt: skip
     clustered = [n for n in judged if n in ((doc.get("far") or {}).get("concentrated") or {})]
     if clustered:  # (a trial: "0 [0, 0], holds in 0 %" read as certain; 1.01 % on 2,000 runs)
         body += (
@@ -643,10 +644,14 @@ def _interval_bar(metric: str, statistic: str) -> tuple[float, ...]:
     return ()
 
 
-def _intervals_text(intervals: dict, metrics: list[str]) -> str:
+def _intervals_text(intervals: dict, metrics: list[str], limits: dict | None = None) -> str:
     """The acceptance's intervals over the runs (:mod:`difffilter.eval.intervals`): per
     learned estimator and check, the statistic, its interval and the share of resamples
-    in which the check holds."""
+    in which the check holds. ``limits``: each check's bounds on its value (the verdict
+    cells'), which a statistic that is the value itself (``fpr_at_far``'s band) is printed
+    apart from (0.0200004 had read "0.02 [0.015, 0.02]" beside its "0.0200004 ✗": a
+    reports trial)."""
+    limits = limits or {}
     level, runs = intervals["level"], intervals["runs"]
     if runs < 2:
         return "How sure each verdict is: not estimated from one run (nothing to resample).\n"
@@ -662,6 +667,8 @@ def _intervals_text(intervals: dict, metrics: list[str]) -> str:
             # not printed as the check's bar unless they are it (a ratio 1.0500012 that
             # fails ≤ 1.05 had read "1.05 [1.05, 1.05], holds in 0 %")
             bar = _interval_bar(metric, c["statistic"])
+            if c["statistic"] == "value":
+                bar = tuple(b for b in limits.get(metric) or () if b is not None)
             cells.append(f"{format_number(c['estimate'], 4, bar)} [{format_number(c['low'], 4, bar)}, "
                          f"{format_number(c['high'], 4, bar)}], holds in {share_percent(c['holds_share'])} %")  # fmt: skip
         rows.append([f"`{name}`", *cells])
