@@ -191,7 +191,8 @@ class SigmaPoints:
         """Warn, once per ``(n, dtype)``, where the weights' magnitude costs more than
         :attr:`PRECISION_WARNING` of ``dtype``'s precision (class docstring)."""
         lost = (abs(lam) + n) / (n + lam) * torch.finfo(dtype).eps
-        warned = self.__dict__.setdefault("_warned", set())
+        # (a memo: ``*_cache``, which a settings fingerprint leaves out)
+        warned = self.__dict__.setdefault("_warning_cache", set())
         if lost <= self.PRECISION_WARNING or (n, dtype) in warned:
             return
         warned.add((n, dtype))

@@ -108,11 +108,11 @@ def safe_cholesky(matrix: Tensor, *, name: str = "matrix", max_tries: int | None
     if not bool((info != 0).any()):
         # an infinite variance factorises (√∞ on the diagonal, no error): a covariance that
         # overflowed on its diagonal alone had passed (a linalg trial), as NaN does not
-        if not bool(torch.isfinite(factor.diagonal(dim1=-2, dim2=-1)).all()):
-            failing = ~torch.isfinite(factor.diagonal(dim1=-2, dim2=-1)).all(-1)
+        finite = torch.isfinite(factor.diagonal(dim1=-2, dim2=-1))
+        if not bool(finite.all()):
             raise NumericalBreakdown(
                 f"{name} must be symmetric positive definite and finite"
-                f"{_why_it_fails(matrix, failing)}"
+                f"{_why_it_fails(matrix, ~finite.all(-1))}"
             )
         return factor
     failing = info != 0

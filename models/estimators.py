@@ -22,7 +22,6 @@ them.
 from __future__ import annotations
 
 import difflib
-import enum
 import math
 import numbers
 from collections.abc import Callable, Mapping
@@ -492,37 +491,13 @@ def _is_cusum_calibration(value) -> bool:
 def _filter_key(filter) -> str:
     """The filter in a calibration's key: its ``repr`` where the class writes one with its
     settings (two ExpectedInputKalmanFilter settings had shared one CUSUM τ, 5.71 where the
-    second's own is 12.5: a review), else its class's name with its public settings
-    (:func:`_settings`: a UKF of other sigma points had been served the default UKF's τ, in
-    memory and on disk: a cache trial)."""
-    return _settings(filter, 0)
-
-
-def _settings(value, depth: int) -> str:
-    """A text that stays the same across processes for the same settings: numbers, strings
-    and enums as themselves, a class's own ``repr``, a function by its qualified name, and
-    other objects as their class's name with their public attributes (those of a leading
-    ``_`` are memos and caches), to a few levels."""
-    if isinstance(value, (int, float, complex, str, bool, type(None))):
-        return repr(value)
-    if isinstance(value, enum.Enum):
-        return f"{type(value).__name__}.{value.name}"
-    if isinstance(value, torch.Tensor):
-        return f"tensor({value.detach().cpu().tolist()!r}, {value.dtype})"
-    if isinstance(value, (list, tuple)):
-        return "(" + ", ".join(_settings(v, depth + 1) for v in value) + ")"
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{k!r}: {_settings(v, depth + 1)}" for k, v in value.items()) + "}"
-    if callable(value) and hasattr(value, "__qualname__") and not isinstance(value, type):
-        return f"{getattr(value, '__module__', '')}.{value.__qualname__}"
-    if type(value).__repr__ is not object.__repr__:
-        return repr(value)
-    fields = {k: v for k, v in sorted(vars(value).items()) if not k.startswith("_")} if hasattr(
-        value, "__dict__") else {}  # fmt: skip
-    if depth > 3 or not fields:
-        return type(value).__name__
-    inner = ", ".join(f"{k}={_settings(v, depth + 1)}" for k, v in fields.items())
-    return f"{type(value).__name__}({inner})"
+    second's own is 12.5: a review), else its class's name and the fingerprint of its
+    settings (:func:`~difffilter.models.calibration_cache.model_fingerprint`: a UKF of other
+    sigma points had been served the default UKF's τ, in memory and on disk: a cache
+    trial)."""
+    if type(filter).__repr__ is not object.__repr__:
+        return repr(filter)
+    return f"{type(filter).__name__}:{calibration_cache.model_fingerprint(filter)}"
 
 
 #: CUSUM detectors calibrated in this process (:meth:`SuiteContext.cusum`).

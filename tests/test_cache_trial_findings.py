@@ -138,8 +138,9 @@ def test_a_filters_key_holds_its_settings():
     from difffilter.models.estimators import _filter_key
 
     default = _filter_key(df.UnscentedKalmanFilter())
-    other = _filter_key(df.UnscentedKalmanFilter(df.SigmaPoints(0.5, 2.0, 1.0)))
-    assert default != other and "alpha=0.5" in other
+    others = [_filter_key(df.UnscentedKalmanFilter(df.SigmaPoints(*p)))
+              for p in ((0.5, 2.0, 0.0), (1.0, 0.0, 0.0), (1.0, 2.0, 1.0))]  # fmt: skip
+    assert len({default, *others}) == 4  # each setting its own key
     assert _filter_key(df.UnscentedKalmanFilter()) == default
 
 

@@ -254,18 +254,18 @@ class ExportEstimator(pl.Callback):
         name = pl_module.export_name()
         path = self.path or Path(trainer.log_dir or trainer.default_root_dir) / f"{name}.ckpt"
         finished = not self._trained and trainer.ckpt_path
-        # the export of the run the checkpoint comes from (its folder above checkpoints/)
-        earlier = None if not finished else [
-            p for p in (path, Path(trainer.ckpt_path).resolve().parent.parent / path.name)
-            if p.with_suffix(".json").is_file()
-        ]  # fmt: skip
-        if finished and earlier:
+        # its export, here or in the run the checkpoint comes from (the folder above
+        # checkpoints/): a resumed fit logs to a new version folder
+        earlier = finished and next(
+            (p for p in (path, Path(trainer.ckpt_path).resolve().parent.parent / path.name)
+             if p.with_suffix(".json").is_file()), None)  # fmt: skip
+        if earlier:
             # a resumed run that had finished and exported: exporting again would replace its
             # card with one of less (no validation ran here: no metrics of the last one)
             if trainer.is_global_zero:
                 print(f"nothing to train: {trainer.ckpt_path} had reached the end of its "
                       f"training (epoch {trainer.current_epoch}, step {trainer.global_step}); "
-                      f"its export is {earlier[0]} (to train on, raise "
+                      f"its export is {earlier} (to train on, raise "
                       "--trainer.max_epochs)")  # fmt: skip
             return
         if not trainer.is_global_zero:
