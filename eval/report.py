@@ -574,9 +574,10 @@ def _judged(doc: dict) -> dict[str, list] | None:
     if doc.get("far") is None or not (learned or broke):
         return None
     far, metric = doc["far"]["target"], state_metric(est)
+    # no analytic number to compare with (--estimators listing learned ones alone): judged
+    # all the same, its checks not held (the section had vanished without a word, where the
+    # robustness report says "not judged")
     best = best_analytic(est, role_of=role)
-    if not best:
-        return None
     # one that broke down on the study's data has no number: every check fails (left out,
     # it vanished from the verdicts while its rivals were judged)
     return {name: judge(est.get(name, {}), best, far, metric) for name in learned + broke}
@@ -610,6 +611,12 @@ def _acceptance_section(doc: dict) -> Section | None:
     text = ("Each learned estimator at the calibrated rate against the best analytic one (per "
             f"metric the best of the estimators that are {ANALYTIC}; "
             "`difffilter.eval.acceptance`).\n\n")  # fmt: skip
+    if not any(c.best_estimator for c in checks):
+        text += (
+            "No analytic estimator of this study gives a number to compare with (none "
+            "ran, or none detects or estimates the state here): the learned estimators "
+            "are **not judged**, and a check not judged does not hold.\n\n"
+        )
     if rivals := [n for n, role in broke.items() if role == "analytic"]:
         text += ("Broke down on this study's data, so not among the analytic estimators "
                  "compared: " + ", ".join(f"`{n}`" for n in rivals) + ".\n\n")  # fmt: skip

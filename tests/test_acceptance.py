@@ -288,3 +288,24 @@ def test_a_robustness_check_with_nothing_to_compare_does_not_hold():
     judged = judge_robustness(cells, role_of, 0.01)["net"]
     assert judged["tpr_holds"] is True and judged["state"]["a"]["holds"] is True
     assert judged["state"]["b"]["holds"] is False and judged["holds"] is False
+
+
+def test_a_calibrated_study_with_no_analytic_number_says_its_learned_are_not_judged(tmp_path):
+    """From a red-team trial: a calibrated study whose analytic estimators gave no number
+    (``--estimators`` listing a learned one alone) had no "Learned against the best
+    analytic" section and no acceptance row, without a word (the robustness report said
+    "not judged" there)."""
+    from difffilter.eval.report import _acceptance_section, write_acceptance_summary
+
+    alone = {"estimators": {"pf_nn_grad": STUDY["pf_nn_grad"]},
+             "estimator_roles": {"pf_nn_grad": "learned"}, "far": {"target": 0.01}}  # fmt: skip
+    text = _acceptance_section(alone).body
+    assert "**not judged**" in text
+    (row,) = [line for line in text.splitlines() if line.startswith("| `pf_nn_grad`")]
+    assert row.rstrip().endswith("| **fails** |")
+    summary = write_acceptance_summary(tmp_path, {"four_tank_bias": alone}).read_text()
+    assert "| four_tank_bias | `pf_nn_grad` |" in summary and "**fails**" in summary
+    # one analytic estimator with a number: judged as before, without the note
+    judged = {**alone, "estimators": {**alone["estimators"], "cusum_ekf": STUDY["cusum_ekf"]},
+              "estimator_roles": {"pf_nn_grad": "learned", "cusum_ekf": "analytic"}}  # fmt: skip
+    assert "not judged" not in _acceptance_section(judged).body
