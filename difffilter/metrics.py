@@ -45,6 +45,8 @@ def rmse(estimate: Tensor, truth: Tensor, *, dim=None) -> Tensor:
             "shape or broadcast (e.g. both [B, T, d]: the same runs and steps)"
         )
     sq = (estimate - truth).square()
+    if not sq.is_floating_point() and not sq.is_complex():  # integer counts: in float64
+        sq = sq.double()  # (torch's mean refused a Long input, naming neither argument)
     return torch.sqrt(sq.mean() if dim is None else sq.mean(dim=dim))
 
 
@@ -165,6 +167,9 @@ def roc_curve(
     (at (1, 0) without a positive label, at (0, 1) without a negative one: a rate with
     no denominator stays 0),
     computed in float64. Ties are grouped, so the curve is exact for discrete scores.
+    ``thresholds[i]`` (``i ≥ 1``) is the score at which point ``i`` is reached; the first
+    point's ``+∞`` stands for "never alarm", also where some scores are ``+∞`` (a windowed
+    χ² score under packet loss), which point 1 then alarms on at the same ``+∞``.
     """
     _check_scores(scores, labels, valid)
     tp, fp, thr, pos, neg = _roc_counts(scores, labels, valid)
@@ -345,7 +350,10 @@ def alarm_rate_since_attack(
             f"alarms must be a bool tensor of flags' shape {tuple(flags.shape)}; got "
             f"{alarms.dtype} of shape {tuple(alarms.shape)}"
         )
-    edges = [int(e) for e in edges]
+    given = list(edges)
+    edges = [int(e) for e in given]
+    if edges != given:  # (1.5 had been taken for 1 without a word)
+        raise ValueError(f"edges must be increasing integers ≥ 1; got {given}")
     if not edges or edges[0] < 1 or any(b <= a for a, b in zip(edges, edges[1:])):
         raise ValueError(f"edges must be increasing integers ≥ 1; got {edges}")
     since = steps_since_attack(flags)

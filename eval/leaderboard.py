@@ -94,6 +94,7 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
     attack-free runs', the detection columns that are empty there left out, and the
     worst-case columns follow (in the table and its figure)."""
     out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)  # (as the other writers: a missing folder failed)
     rows = leaderboard_rows(results)
     # (inf as null, its worst_<metric>_diverged saying why: json.dumps wrote the bare token
     # Infinity, which strict JSON readers refuse: a review)
@@ -223,8 +224,9 @@ def cell_goodness(grid: np.ndarray, scenarios: list[str], columns=COLUMNS,
     a target: :func:`_undetected`). A column of
     :data:`ON_TARGET` is 1 inside ``[α/2, 2α]`` of its row's target ``targets [rows]`` (the
     calibrated rate; uncoloured without one) and falls to 0 at 10× outside it. A delay
-    column (:data:`DELAYS`) takes at least its scenario's sampling period ``steps_s
-    [rows]`` as its floor (10 steps behind the best is 0). ``+inf`` (a diverged worst case)
+    column (:data:`DELAYS`) with its scenario's sampling period ``steps_s [rows]`` falls
+    linearly with the steps behind the best: ``1 − (v − best)/(10 Δt)``, 10 steps behind
+    is 0 (without a period, the log rule). ``+inf`` (a diverged worst case)
     in a lower-is-better column is 0."""
     scen, good = np.array(scenarios), np.full_like(grid, np.nan)
     ranked = np.ones(len(scenarios), bool) if ranked is None else np.asarray(ranked, bool)
@@ -242,9 +244,12 @@ def cell_goodness(grid: np.ndarray, scenarios: list[str], columns=COLUMNS,
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns
             lo, hi = np.nanmin(judged, 0), np.nanmax(judged, 0)
             floor = np.maximum(0.05 * np.abs(np.nanmax(g, 0)), 1e-300)
-            if steps_s is not None and np.isfinite(steps_s[rows]).any():
-                floor = np.where(delays, np.maximum(floor, np.nanmax(steps_s[rows])), floor)
             shortfall = np.where(higher, (hi - g) / 0.1, np.log10((g + floor) / (lo + floor)))
+            if steps_s is not None and np.isfinite(steps_s[rows]).any():
+                # steps behind the best, linearly: the log rule read 10 steps behind a best
+                # of 20 as 0.83 (nearly green), where the legend says red
+                step = np.nanmax(steps_s[rows])
+                shortfall = np.where(delays, (g - lo) / (10 * step), shortfall)
         colour = np.clip(1 - shortfall, 0, 1)
         band = np.where(calibrated, _undetected(targets, rows), UNDETECTED)
         colour[:, rates & ~(hi > band)] = np.nan

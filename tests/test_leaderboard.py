@@ -227,11 +227,16 @@ def test_a_delay_below_one_step_is_no_difference_and_a_diverged_worst_case_is_re
     state error was left uncoloured ('—')."""
     from difffilter.eval.leaderboard import cell_goodness
 
-    delays = np.array([[0.0], [0.00412], [0.0082], [1.0], [9.0]])
+    delays = np.array([[0.0], [0.00412], [0.0082], [1.0], [10.0]])
     good = cell_goodness(delays, ["a"] * 5, ["detection_delay_at_far_s"],
                          steps_s=np.full(5, 1.0))[:, 0]  # fmt: skip
     assert good[0] == 1 and good[1] > 0.99 and good[2] > 0.99  # within a step of the best
-    assert 0.6 < good[3] < 0.8 and good[4] == 0  # one step late: log10(2); ten: red
+    assert good[3] == pytest.approx(0.9) and good[4] == 0  # one step late; ten: red
+    # ten steps behind a slow best is red too (a trial: 0.83 behind a best of 20 steps, by a
+    # log rule that reached 0 only behind a best of 0)
+    slow = cell_goodness(np.array([[2.0], [3.0], [2.5]]), ["a"] * 3, ["detection_delay_at_far_s"],
+                         steps_s=np.full(3, 0.1))[:, 0]  # fmt: skip
+    assert slow[0] == 1 and slow[1] == 0 and slow[2] == pytest.approx(0.5)
     worst = np.array([[1.2], [np.inf], [3.0]])
     good = cell_goodness(worst, ["a"] * 3, ["worst_state_error_ratio"])[:, 0]
     assert good[0] == 1 and good[1] == 0
