@@ -211,7 +211,7 @@ class DeferredCovariance(NamedTuple):
     count: int
     shift: float
     order: Tensor | None = None
-    #: ``(id, version)`` of ``base`` and ``pending`` when a donating rule handed this state
+    #: ``(data_ptr, version)`` of ``base`` and ``pending`` when a donating rule handed this state
     #: out (``None``: not donated): a later in-place write to them, by a step that ran from
     #: this state, marks it consumed (:meth:`EKFRule.step` refuses it).
     stamp: tuple | None = None
@@ -307,6 +307,12 @@ class WeightTemplate:
         flat = []
         for n in self.names:
             value = params.get(n, self.defaults[n]).detach()
+            if value.dtype != self.defaults[n].dtype:  # (float32 over a float64 network had
+                # failed deep in the factored Jacobian, or learned in float32 unsaid)
+                raise ValueError(
+                    f"params[{n!r}] must be of the module's dtype {self.defaults[n].dtype}; got "
+                    f"{value.dtype} (convert it, or the module: module.to(dtype))"
+                )
             want = batch_shape + self.shapes[n]
             try:
                 value = value.expand(want)
@@ -477,6 +483,7 @@ class EKFRule:
         its weights and covariance (``Q_ρ`` aside), and ``Υ`` is the running mean over
         the steps that informed it of ``(m / m_r) ‖e_r‖²`` (``m_r`` entries received: the
         whole residual's energy at the received entries' rate)."""
+        _check_step_shapes(state, H, e)
         with torch.no_grad():
             k = state.k + 1
             if received is None:
@@ -567,20 +574,41 @@ class EKFRule:
                                   _stamp(base, pending) if self.donate else None)  # fmt: skip
 
 
+def _check_step_shapes(state: LearnerState, H, e: Tensor) -> None:
+    """``ValueError`` unless ``e`` is ``[N, m]`` and ``H`` ``[N, m, P]`` (or factors of
+    ``N`` runs and ``m`` outputs) for ``θ [N, P]``: a residual ``[m]`` or ``[1, m]`` of
+    ``N`` runs had broadcast, every run updated with run 0's residual (a trial)."""
+    N, P = state.theta.shape
+    if isinstance(H, KroneckerJacobian):
+        m, hid, n = H.sizes
+        rows, width = H.outer.shape[0], m * hid + hid * n
+    else:
+        rows, m, width = H.shape if H.dim() == 3 else (None, None, None)
+    if (rows, width) != (N, P):
+        shape = H.sizes if isinstance(H, KroneckerJacobian) else tuple(H.shape)
+        raise ValueError(f"H must be [N, m, P] = [{N}, m, {P}] for θ [{N}, {P}]; got {shape}")
+    if tuple(e.shape) != (N, m):
+        raise ValueError(f"e must be the residual [N, m] = [{N}, {m}] (one row per run); got "
+                         f"{tuple(e.shape)}")  # fmt: skip
+
+
 def _stamp(*tensors: Tensor) -> tuple | None:
-    """``((id, version), …)`` of ``tensors`` (``None`` for inference tensors: no version)."""
+    """``((data_ptr, version), …)`` of ``tensors`` (``None`` for inference tensors: no
+    version). The memory, not the tensor object: a detached state (``LoopState.detach``, as
+    truncated backpropagation makes one) has new tensor objects over the same buffers and
+    version counters, and had passed for unconsumed after a step wrote them (a trial)."""
     if any(t.is_inference() for t in tensors):
         return None
-    return tuple((id(t), t._version) for t in tensors)
+    return tuple((t.data_ptr(), t._version) for t in tensors)
 
 
 def _check_unconsumed(cov: DeferredCovariance) -> None:
     """``ValueError`` where a step has already written, in place, the buffers of the
-    donated ``cov`` (a copy of it has other tensors and passes)."""
+    donated ``cov`` (a copy of it has other buffers and passes; a detached view, the same)."""
     if cov.stamp is None:
         return
-    for t, (ident, version) in zip((cov.base, cov.pending), cov.stamp):
-        if id(t) == ident and t._version != version:
+    for t, (address, version) in zip((cov.base, cov.pending), cov.stamp):
+        if t.data_ptr() == address and t._version != version:
             raise ValueError(
                 "this learner state was consumed: EKFRule(donate=True) writes its covariance "
                 "buffers in place, and a step has already run from this state (a second loop "
@@ -644,6 +672,7 @@ class GradientRule:
     def step(self, state: LearnerState, H: Tensor | KroneckerJacobian, e: Tensor,
              received: Tensor | None = None) -> LearnerState:  # fmt: skip
         """``received [N, m]`` (bool; ``None``: all): an entry not received adds nothing."""
+        _check_step_shapes(state, H, e)
         with torch.no_grad():
             if isinstance(H, KroneckerJacobian):
                 H = H.dense()
