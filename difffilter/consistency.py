@@ -124,6 +124,8 @@ def ensemble_test(statistic: Tensor, dof, confidence: float = 0.95) -> Consisten
     mean = statistic.double().mean(0)
     if isinstance(dof, (np.ndarray, list, tuple)):
         dof = torch.as_tensor(np.asarray(dof))
+    if isinstance(dof, Tensor) and dof.dim() == 0:  # one number (refused as no [R, T])
+        dof = dof.item()
     if isinstance(dof, Tensor):
         from scipy.stats import chi2
 
@@ -181,7 +183,8 @@ def whiteness(
             f"{tuple(innovations.shape) if isinstance(innovations, Tensor) else innovations!r}"
         )
     runs, steps, m = innovations.shape
-    if isinstance(lag, bool) or not isinstance(lag, int) or not 1 <= lag < steps:
+    # numbers.Integral: numpy's integers too (np.int64(1) had been refused as no integer)
+    if isinstance(lag, bool) or not isinstance(lag, numbers.Integral) or not 1 <= lag < steps:
         raise ValueError(f"lag must be an integer in [1, T − 1 = {steps - 1}]; got {lag!r}")
     if mask is not None and (
         not isinstance(mask, Tensor) or mask.dtype != torch.bool or mask.shape != innovations.shape

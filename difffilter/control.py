@@ -26,8 +26,6 @@ choice (docs/scenarios.md, LFC pitfalls).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import scipy.linalg as sla
 import torch
@@ -55,6 +53,26 @@ def _np(t: Tensor) -> np.ndarray:
     return t.detach().cpu().to(torch.float64).numpy()
 
 
+def _riccati(
+    solve, A: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray, *, filtering: bool = False
+) -> np.ndarray:
+    """scipy's Riccati solver ``solve(A, B, Q, R)``, its failure a ``ValueError`` that says
+    what the equation needs (scipy's "Failed to find a finite solution" or "symplectic
+    pencil" named neither the pair nor the condition)."""
+    try:
+        return solve(A, B, Q, R)
+    except (np.linalg.LinAlgError, ValueError) as error:
+        need = ("(F, H) detectable and (F, Q^{1/2}) stabilisable: every unstable or marginal "
+                "mode seen by the measurements and excited by the process noise (a constant "
+                "state with Q = 0 on it has no steady state)") if filtering else (
+                "the pair stabilisable and (A, Q^{1/2}) detectable: every unstable or marginal "
+                "mode reachable by the inputs and seen by the state weight")  # fmt: skip
+        raise ValueError(
+            f"the Riccati equation has no stabilising solution here: it needs {need} "
+            f"(scipy: {error})"
+        ) from error
+
+
 def care_residual(A: Tensor, B: Tensor, Q: Tensor, R: Tensor, P: Tensor) -> Tensor:
     """``PA + AᵀP + Q − PBR⁻¹BᵀP`` (zero at a CARE solution) → ``[n, n]``."""
     return P @ A + A.T @ P + Q - P @ B @ torch.linalg.solve(R, B.T @ P)
@@ -68,9 +86,12 @@ def uncontrollable_direction(A: Tensor, B: Tensor, tol: float = 1e-9) -> Tensor 
     """
     # (a NaN tol had called every pair uncontrollable: no comparison with NaN holds)
     tol = check_finite_number(tol, "tol", nonnegative=True)
+    _check_pair(A, B, ("A", "B"))  # (a non-square A had returned None)
     M = _np(torch.cat([A, B], dim=1))
     _, s, vh = np.linalg.svd(M.T)
-    if s[-1] > tol * max(s[0], 1.0):
+    # relative to the pair's own scale (a floor of 1 had called a controllable plant of
+    # entries 1e-9 uncontrollable, and lqr solved a sub-problem of it: a trial)
+    if s[-1] > tol * s[0]:
         return None
     w = vh[-1]
     w = w / np.linalg.norm(w)
@@ -118,9 +139,10 @@ def lqr(
         shift = check_finite_number(shift, "shift", positive=True)
     w = uncontrollable_direction(A, B) if method is LQRMethod.REDUCED else None
     if method is LQRMethod.DIRECT or (method is LQRMethod.REDUCED and w is None):
-        P = sla.solve_continuous_are(_np(A), _np(B), _np(Q), _np(R))
+        P = _riccati(sla.solve_continuous_are, _np(A), _np(B), _np(Q), _np(R))
     elif method is LQRMethod.SHIFT:
-        P = sla.solve_continuous_are(_np(A) - shift * np.eye(n), _np(B), _np(Q), _np(R))
+        P = _riccati(sla.solve_continuous_are, _np(A) - shift * np.eye(n), _np(B), _np(Q),
+                     _np(R))  # fmt: skip
     else:
         # Controllable subspace S = w⊥. Drop the coordinate where |w| is largest; on S it is
         # a linear function of the others, x_j = −Σ_{i≠j} w_i x_i / w_j.
@@ -137,7 +159,7 @@ def lqr(
         An, Bn, Qn = _np(A), _np(B), _np(Q)
         Ar, Br = T @ An @ L, T @ Bn
         Qr = L.T @ Qn @ L  # x ∈ S ⇒ xᵀQx = rᵀ(LᵀQL)r
-        Pr = sla.solve_continuous_are(Ar, Br, Qr, _np(R))
+        Pr = _riccati(sla.solve_continuous_are, Ar, Br, Qr, _np(R))
         P = T.T @ Pr @ T
     P = torch.as_tensor(0.5 * (P + P.T), dtype=A.dtype, device=A.device)
     # detached, as dlqr's: a gradient through this product alone would hold P fixed
@@ -148,7 +170,8 @@ def lqr(
 def _observer_spectrum(A_closed: Tensor, factor: float, zero_pole: float | None):
     """Eigen-decomposition of ``A − BK₁`` with eigenvalues scaled by ``factor``.
 
-    Returns ``(λ_obs [n] complex, V [n, n] complex)``. The closed loop of the LFC keeps the
+    Returns ``(λ_obs [n] complex, V [n, n] complex, moved [n] bool)`` (``moved``: the zero
+    eigenvalues, moved as below). The closed loop of the LFC keeps the
     uncontrollable eigenvalue at 0, which "``factor`` times faster" leaves at 0 (a discrete
     pole at 1: that observer error would never decay). [DEF] it is moved to ``zero_pole``
     (default: the slowest of the other scaled eigenvalues).
@@ -157,10 +180,15 @@ def _observer_spectrum(A_closed: Tensor, factor: float, zero_pole: float | None)
     lam, V = np.linalg.eig(_np(A_closed))
     lam = factor * lam
     tiny = np.abs(lam) < 1e-8
+    if tiny.all() and zero_pole is None:  # (numpy's "zero-size array" had said nothing)
+        raise ValueError(
+            "every eigenvalue of A_closed is zero: no other pole to move the zero "
+            "ones to; give zero_pole (a continuous-time eigenvalue < 0)"
+        )
     if tiny.any():
         target = lam[~tiny].real.max() if zero_pole is None else float(zero_pole)
         lam = np.where(tiny, target, lam)
-    return lam, V
+    return lam, V, tiny
 
 
 def _check_observer_design(factor, zero_pole) -> tuple[float, float | None]:
@@ -185,7 +213,7 @@ def observer_poles(
     See :func:`_observer_spectrum` for the zero eigenvalue. Returns a complex tensor ``[n]``.
     """
     dt = check_finite_number(dt, "dt", positive=True)
-    lam, _ = _observer_spectrum(A_closed, factor, zero_pole)
+    lam, _, _ = _observer_spectrum(A_closed, factor, zero_pole)
     return torch.as_tensor(np.exp(lam * dt))
 
 
@@ -224,15 +252,23 @@ def luenberger_gain(
 
     Shapes: ``Ad [n, n]``, ``A_closed [n, n]`` → ``L_f [n, n]``.
     """
+    if (
+        not isinstance(Ad, Tensor)
+        or not Ad.is_floating_point()
+        or Ad.dim() != 2
+        or (Ad.shape[0] != Ad.shape[1])
+    ):  # (a numpy array had failed on .shape's use, a non-square one in a broadcast)
+        got = tuple(Ad.shape) if isinstance(Ad, Tensor) else type(Ad).__name__
+        raise ValueError(f"Ad must be a square [n, n] floating tensor; got {got}")
     n = Ad.shape[0]
-    if A_closed.shape != (n, n):
+    if not isinstance(A_closed, Tensor) or A_closed.shape != (n, n):
         raise ValueError(f"A_closed must have shape [{n}, {n}]; got {tuple(A_closed.shape)}")
     dt = check_finite_number(dt, "dt", positive=True)
     design = LuenbergerDesign(design)
-    lam, V = _observer_spectrum(A_closed, factor, zero_pole)
+    lam, V, moved = _observer_spectrum(A_closed, factor, zero_pole)
     p = np.exp(lam * dt)
     if design is LuenbergerDesign.MODAL:
-        Phi = (V @ np.diag(p) @ np.linalg.inv(V)).real
+        Phi = _modal_transition(_np(A_closed), V, p, moved, factor * dt)
     elif design is LuenbergerDesign.ROBUST:
         import scipy.signal as ssig  # here: importing it costs 0.7 s that --list need not pay
 
@@ -251,6 +287,34 @@ def luenberger_gain(
             i += 2
     Lp = _np(Ad) - Phi
     return torch.as_tensor(np.linalg.solve(_np(Ad), Lp), dtype=Ad.dtype, device=Ad.device)
+
+
+def _modal_transition(A_closed: np.ndarray, V: np.ndarray, p: np.ndarray, moved: np.ndarray,
+                      scale: float) -> np.ndarray:  # fmt: skip
+    """``Φ = V diag(p) V⁻¹`` (``p`` the poles of :func:`_observer_spectrum`'s eigenvalues
+    and ``V`` its vectors, ``moved`` its zero eigenvalues; ``scale = factor·dt``), i.e.
+    ``exp(scale·A_closed)`` with each zero eigenvalue's pole moved. Where ``V`` is (nearly)
+    singular, a closed loop with a repeated, defective eigenvalue (a critically damped
+    design), ``V⁻¹`` is noise (the poles came out 0.29 and 0.49 for 0.55 twice, or
+    unstable: a trial): ``Φ = expm(scale·A_closed) + (p₀ − 1) Π₀`` instead, ``Π₀`` the
+    spectral projector onto the zero eigenvalue's null space (``V_r (V_lᵀ V_r)⁻¹ V_lᵀ``)."""
+    if np.linalg.cond(V) < 1e8:  # (the LFC's: 751)
+        return (V @ np.diag(p) @ np.linalg.inv(V)).real
+    Phi = sla.expm(scale * A_closed)
+    if moved.any():
+        zero = int(moved.sum())
+        _, sv, vh = np.linalg.svd(A_closed)
+        _, _, uh = np.linalg.svd(A_closed.T)
+        right, left = vh[-zero:].T, uh[-zero:].T  # null spaces of A and Aᵀ
+        overlap = left.T @ right
+        if sv[-zero] > 1e-8 * max(sv[0], 1.0) or np.linalg.cond(overlap) > 1e8:
+            raise ValueError(
+                "A_closed has a defective zero eigenvalue (or a defective eigenvalue beside a "
+                "zero one): the modal design cannot move its pole; use design='robust' or "
+                "'diagonal'"
+            )
+        Phi = Phi + (p[moved][0].real - 1.0) * (right @ np.linalg.solve(overlap, left.T))
+    return Phi
 
 
 def _check_pair(F: Tensor, G: Tensor, names: tuple[str, str]) -> tuple[int, int]:
@@ -328,7 +392,7 @@ def dlqr(
     n, m = _check_pair(F, B, ("F", "B"))
     Q, R = _weights(Q, R, n, m, F)
     F, B = F.detach(), B.detach()
-    P = sla.solve_discrete_are(_np(F), _np(B), _np(Q), _np(R))
+    P = _riccati(sla.solve_discrete_are, _np(F), _np(B), _np(Q), _np(R))
     P = torch.as_tensor(0.5 * (P + P.T), dtype=F.dtype, device=F.device)
     K = torch.linalg.solve(R + B.T @ P @ B, B.T @ P @ F)
     return K, P
@@ -353,7 +417,7 @@ def kalman_steady_state(
         raise ValueError("Q and R (the process and measurement noise covariances) are needed")
     Q, R = _weights(Q, R, n, p, F)
     F, H = F.detach(), H.detach()
-    pred = sla.solve_discrete_are(_np(F).T, _np(H).T, _np(Q), _np(R))
+    pred = _riccati(sla.solve_discrete_are, _np(F).T, _np(H).T, _np(Q), _np(R), filtering=True)
     pred = torch.as_tensor(0.5 * (pred + pred.T), dtype=F.dtype, device=F.device)
     S = H @ pred @ H.T + R
     gain = torch.linalg.solve(S, H @ pred).T
@@ -368,8 +432,8 @@ def zoh_discretize(A: Tensor, B: Tensor, dt: float) -> tuple[Tensor, Tensor]:
     ``exp([[A, B], [0, 0]]·dt) = [[A_d, B_d], [0, I]]`` with ``A_d = e^{A dt}`` and
     ``B_d = ∫₀^dt e^{Aα} dα B``. Shapes: ``A [n, n]``, ``B [n, m]`` → ``(A_d [n, n], B_d [n, m])``.
     """
-    if not (isinstance(dt, (int, float)) and dt > 0 and math.isfinite(dt)):
-        raise ValueError(f"dt must be a positive finite number of seconds; got {dt!r}")
+    # (numpy's numbers too: np.float32(0.1) had been refused; True taken for 1 s)
+    dt = check_finite_number(dt, "dt (seconds)", positive=True)
     for name, t in (("A", A), ("B", B)):
         if not isinstance(t, Tensor) or not t.is_floating_point():
             raise ValueError(f"{name} must be a floating tensor; got {type(t).__name__}")
@@ -387,13 +451,15 @@ def zoh_discretize(A: Tensor, B: Tensor, dt: float) -> tuple[Tensor, Tensor]:
 
 def controllability_rank(A: Tensor, B: Tensor, tol: float | None = None) -> int:
     """Rank of ``[B, AB, …, Aⁿ⁻¹B]`` (9 for the two-area LFC: the tie-line sum is conserved)."""
+    _check_pair(A, B, ("A", "B"))
     blocks, M = [], B
     for _ in range(A.shape[0]):
+        # columns of unit norm (the rank is theirs): A's entries span four orders of
+        # magnitude, and Aⁿ⁻¹B unscaled overflowed float32 (a chain of ten integrators)
+        M = M / M.norm(dim=0, keepdim=True).clamp_min(torch.finfo(M.dtype).tiny)
         blocks.append(M)
         M = A @ M
     ctrb = torch.cat(blocks, dim=1)
-    # Columns are scaled to unit norm first: A's entries span four orders of magnitude.
-    ctrb = ctrb / ctrb.norm(dim=0, keepdim=True).clamp_min(1e-300)
     rank = (
         torch.linalg.matrix_rank(ctrb) if tol is None else torch.linalg.matrix_rank(ctrb, atol=tol)
     )

@@ -214,6 +214,8 @@ def intermittent_kalman_bounds(F: Tensor, H: Tensor, Q: Tensor, R: Tensor,
     settled (a rate at or just above the critical rate: :func:`critical_arrival_rate`)."""
     n, p = _check_pair(F, H.T if isinstance(H, Tensor) else H, ("F", "Hᵀ"))
     lam = _rate(arrival_rate, "arrival_rate")
+    if Q is None or R is None:  # (the identity had been taken for them without a word)
+        raise ValueError("Q and R (the process and measurement noise covariances) are needed")
     Q, R = _weights(Q, R, n, p, F)
     Fn, Hn, Qn, Rn = _arrays(F, H, Q, R, ("F", "H", "Q", "R"))
     upper = _mare(Fn, Hn, Qn, Rn, lam)

@@ -1,0 +1,106 @@
+"""Findings of a red-team trial of the control and consistency tools (each failed before
+its fix)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.linalg as sla
+import torch
+
+from difffilter.consistency import ensemble_test, whiteness
+from difffilter.control import (
+    controllability_rank,
+    dlqr,
+    kalman_steady_state,
+    lqr,
+    luenberger_gain,
+    observer_poles,
+    uncontrollable_direction,
+    zoh_discretize,
+)
+from difffilter.lossy_control import intermittent_kalman_bounds
+
+
+def _t(a) -> torch.Tensor:
+    return torch.tensor(a, dtype=torch.float64)
+
+
+@pytest.mark.parametrize("poles, dt", [(-2.0, 0.1), (-1.0, 0.05)])
+def test_the_modal_observer_of_a_defective_closed_loop_has_its_poles(poles, dt):
+    """A critically damped closed loop (a double, defective eigenvalue) made V singular:
+    the modal Φ = V diag(p) V⁻¹ put the poles at 0.29 and 0.49 for 0.55 twice, or made the
+    observer unstable; it is expm(factor·A_closed·dt), as the docstring says."""
+    A_closed = _t([[0.0, 1.0], [-(poles**2), 2.0 * poles]])  # (s − poles)²
+    Ad = _t(sla.expm(np.array([[0.0, 1.0], [0.0, -0.5]]) * dt))
+    L = luenberger_gain(Ad, A_closed, dt).numpy()
+    Phi = Ad.numpy() @ (np.eye(2) - L)
+    np.testing.assert_allclose(Phi, sla.expm(3.0 * A_closed.numpy() * dt), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.eigvals(Phi), np.exp(3.0 * poles * dt), rtol=1e-6)
+
+
+def test_the_modal_observer_moves_a_zero_pole_beside_a_defective_pair():
+    """The zero eigenvalue's pole moved to the slowest other (as the LFC's) where the rest
+    of the closed loop is defective: the spectral projector onto its null space."""
+    A_closed = _t([[0.0, 1.0, 0.0], [0.0, -2.0, 1.0], [0.0, 0.0, -2.0]])
+    dt = 0.1
+    L = luenberger_gain(torch.eye(3, dtype=torch.float64), A_closed, dt).numpy()
+    Phi = np.eye(3) - L
+    want = np.full(3, np.exp(-6.0 * dt))  # the zero pole at the slowest other, 3 × (−2)
+    np.testing.assert_allclose(np.sort(np.linalg.eigvals(Phi).real), want, rtol=1e-6)
+    # a defective zero eigenvalue cannot be moved by the modal design: said so
+    with pytest.raises(ValueError, match="defective zero eigenvalue"):
+        luenberger_gain(torch.eye(3, dtype=torch.float64),
+                        _t([[0.0, 1.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, -1.0]]), dt)  # fmt: skip
+
+
+def test_lqr_of_a_small_scale_controllable_plant_is_the_plain_care():
+    """A floor of 1 in the tolerance called a controllable plant of entries 1e-9
+    uncontrollable, and lqr solved a sub-problem (K = [−0.08, 0.68] for [0.24, 0.81])."""
+    A, B = _t([[0.0, 1.0], [-2.0, -0.5]]), _t([[0.0], [1.0]])
+    want = lqr(A, B)[0]
+    for scale in (1e-9, 1e-10):
+        assert uncontrollable_direction(scale * A, scale * B) is None
+        torch.testing.assert_close(lqr(scale * A, scale * B)[0], want, rtol=1e-6, atol=0)
+
+
+def test_controllability_rank_in_float32_does_not_overflow():
+    """A chain of ten integrators of gain 2e4: Aⁿ⁻¹B overflowed float32 before the columns
+    were scaled, and the SVD failed on non-finite values."""
+    n = 10
+    A = torch.diag(torch.full((n - 1,), 2e4), -1)
+    B = torch.zeros(n, 1)
+    B[0, 0] = 1.0
+    assert controllability_rank(A, B) == n and controllability_rank(A.double(), B.double()) == n
+    with pytest.raises(ValueError, match=r"A must have shape \[10, 10\]"):
+        controllability_rank(A[:, :9], B)
+
+
+def test_edge_inputs_get_errors_that_say_what_is_wrong():
+    eye = torch.eye(2, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"\(F, H\) detectable"):
+        kalman_steady_state(_t([[2.0, 0], [0, 1]]), _t([[0.0, 1.0]]), eye, _t([[1.0]]))
+    for solve in (lqr, dlqr):
+        with pytest.raises(ValueError, match="stabilisable"):
+            solve(_t([[1.0, 0], [0, 2]]), _t([[0.0], [1.0]]))
+    with pytest.raises(ValueError, match="every eigenvalue of A_closed is zero"):
+        observer_poles(torch.zeros(2, 2, dtype=torch.float64), 0.1)
+    with pytest.raises(ValueError, match=r"Ad must be a square \[n, n\] floating tensor"):
+        luenberger_gain(np.eye(2), -eye, 0.1)
+    with pytest.raises(TypeError, match="dt"):
+        zoh_discretize(eye, _t([[0.0], [1.0]]), True)  # (taken for 1 s)
+    Ad, _ = zoh_discretize(eye, _t([[0.0], [1.0]]), np.float32(0.5))  # (refused)
+    torch.testing.assert_close(
+        Ad, torch.eye(2, dtype=torch.float64) * float(np.exp(np.float32(0.5)))
+    )
+    with pytest.raises(ValueError, match="Q and R"):
+        intermittent_kalman_bounds(0.5 * eye, _t([[1.0, 0.0]]), None, None, 0.5)
+    with pytest.raises(ValueError, match=r"A must have shape \[2, 2\]"):
+        uncontrollable_direction(torch.ones(2, 3, dtype=torch.float64), _t([[0.0], [1.0]]))
+    # numpy's integers and a one-number tensor as the numbers they are
+    nu = torch.randn(3, 10, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    S = eye.expand(3, 10, 2, 2)
+    torch.testing.assert_close(whiteness(nu, S, np.int64(2))[0], whiteness(nu, S, 2)[0])
+    stat = torch.rand(4, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    one, plain = ensemble_test(stat, torch.tensor(2)), ensemble_test(stat, 2)
+    assert (one.low, one.high, one.outside) == (plain.low, plain.high, plain.outside)
