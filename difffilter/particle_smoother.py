@@ -26,7 +26,13 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._checks import _check_us, check_filtered_dtype, check_inputs_given, model_dtype_device
+from ._checks import (
+    _check_us,
+    check_filtered_dtype,
+    check_inputs_given,
+    check_one_model,
+    model_dtype_device,
+)
 from .noise import Gaussian
 from .results import ParticleFilterResult
 from .ssm import StateSpaceModel
@@ -87,6 +93,10 @@ def particle_smoother(
         )
     if isinstance(start, bool) or not isinstance(start, numbers.Integral) or start < 0:
         raise ValueError(f"start must be an integer >= 0 (the filter's first k); got {start!r}")
+    # as the particle filter refuses it: its runs' parameter sets lined up with the particles
+    # (0.75 off where N = runs; torch's "size of tensor a" otherwise: a trial)
+    check_one_model(model, "the particle smoother", "smooth each parameter set's filter result "
+                    "with its own model")  # fmt: skip
     particles, log_w = filtered.particles, filtered.log_weights
     steps = particles.shape[-3]
     if particles.shape[-1] != model.dim_x:  # (torch's "Expected size for first two …")

@@ -39,11 +39,12 @@ from ._checks import (
     _check_us,
     check_filtered_dtype,
     check_inputs_given,
+    check_model_batch,
     model_batch_shape,
     model_dtype_device,
     step_covariance,
 )
-from .kalman import kalman_filter
+from .kalman import _check_declared_time_varying, kalman_filter
 from .linalg import symmetrize
 from .results import FilterResult, ParticleFilterResult
 
@@ -159,6 +160,9 @@ def rts_smoother(model, filtered: FilterResult, us: Tensor | None = None) -> Smo
     steps, dx = _check_arguments(model, filtered, us, "transition_jacobian")
     means = filtered.means
     if callable(getattr(model, "transition_matrix", None)):
+        # read at step 0 alone unless declared time-varying, as the Kalman filter refuses it
+        # (the EKF reads F_k at every step: its result had been smoothed with F_0, 0.8 off)
+        _check_declared_time_varying(model)
         F = _of_k(model, "transition_matrix", steps)
     else:  # the EKF's linearisation: at the prior mean for k = 0, the filtered mean after
         check_inputs_given(model, us, "the extended RTS smoother", "its Jacobians ∂f/∂x at u_k")
@@ -250,6 +254,8 @@ def _check_arguments(model, filtered, us, needed: str) -> tuple[int, int]:
     if steps < 1:
         raise ValueError("filtered holds no step (T = 0)")
     check_filtered_dtype(model, filtered.means, "means")
+    # (torch's "size of tensor a (4) must match" from the check of step 1 otherwise)
+    check_model_batch(model, filtered.means.shape[:-2], "the filtered means")
     if us is not None:  # the filter's inputs, checked as the filters check them
         dtype, device = model_dtype_device(model)
         _check_us(model, us, filtered.means.shape[:-2], steps, dtype, device,
@@ -293,6 +299,11 @@ def _backward(model, filtered: FilterResult, transition) -> SmootherResult:
     for seq in (smooth_m, smooth_P, gains, cross):
         seq.reverse()  # index k: step k (the prior first)
     cov_shape = run_shape + (dx, dx)
+    # the last step's covariance may be the filter's shared one ([1, dx, dx]) where a
+    # transition evaluated per run made every earlier one per run (a UKF's or an EKF's
+    # smoother given a Kalman filter's result: torch.stack had failed on the shapes)
+    smooth_P, gains, cross = (list(torch.broadcast_tensors(*seq)) if seq else seq
+                              for seq in (smooth_P, gains, cross))  # fmt: skip
     P = torch.stack(smooth_P, -3)
     empty = means.new_zeros(run_shape + (0, dx, dx))
     return SmootherResult(
