@@ -231,4 +231,7 @@ class InputLossSchedule:
         """The :class:`InputLoss` of ``runs`` runs of ``steps`` steps (``mask [runs, steps,
         du]``) from ``generator``."""
         mask = self.schedule.mask((runs,), steps, du, generator, device=device)
+        if mask is None:  # a schedule's "every entry arrives" (AllSensors: it had failed at
+            # every simulation, in InputLoss's check, naming neither)
+            mask = torch.ones(runs, steps, du, dtype=torch.bool, device=device)
         return InputLoss(mask, self.on_loss, acknowledged=self.acknowledged)

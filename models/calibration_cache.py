@@ -40,8 +40,9 @@ from .atomic_write import write_atomically
 
 __all__ = ["cache_folder", "model_fingerprint", "library_fingerprint", "cached", "FORMAT"]
 
-#: Bumped when what a calibration computes changes: older files are then ignored.
-FORMAT = 1
+#: Bumped when what a calibration computes, or how its key is read, changes: older files
+#: are then ignored (2: nested groups read apart).
+FORMAT = 2
 
 
 def cache_folder() -> Path | None:
@@ -56,7 +57,10 @@ def cache_folder() -> Path | None:
 def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
     """Hash what determines a model's numbers: tensors by value, functions by code."""
     # (deep enough for a model inside a tuple: tuple → model → modules → noise → buffers)
-    if depth > 16 or id(value) in seen:
+    if depth > 16:
+        return
+    if id(value) in seen:  # met before: a mark, so that (a, a) and (a,) read apart
+        digest.update(b"<again>")
         return
     if isinstance(value, torch.Tensor):
         digest.update(str((value.dtype, tuple(value.shape))).encode())
@@ -74,6 +78,9 @@ def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
         return
     seen.add(id(value))
     if isinstance(value, (list, tuple)):
+        # its type and length first: nested groups had flattened alike (((0, 1), (2,)) and
+        # ((0,), (1, 2)), two schedules, got one cached threshold: a trial)
+        digest.update(f"{type(value).__name__}[{len(value)}]".encode())
         for item in value:
             _feed(digest, item, seen, depth + 1)
         return
@@ -92,6 +99,7 @@ def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
             _feed(digest, part, seen, depth + 1)
         return
     if isinstance(value, dict):
+        digest.update(f"dict[{len(value)}]".encode())
         for key in sorted(value, key=repr):
             digest.update(repr(key).encode())
             _feed(digest, value[key], seen, depth + 1)

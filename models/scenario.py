@@ -119,7 +119,8 @@ def simulate(
         model: any :class:`~difffilter.StateSpaceModel` (its noise models draw the noise).
         generators: ``{"plant", "attack", "schedule"}`` → ``torch.Generator``: ``"plant"``
             always; ``"attack"`` and ``"schedule"`` where the attack or the schedule draws
-            (a random attack, a packet loss: without theirs, torch's global generator).
+            (a random attack without its stream draws from torch's global generator, with a
+            warning; a packet loss without its stream is refused).
         attack: an :class:`~difffilter.attack.Attack` (:mod:`difffilter.models.attacks`) or
             ``None``.
         schedule: :mod:`difffilter.models.schedules` object (default all sensors).

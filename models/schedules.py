@@ -98,8 +98,14 @@ class RoundRobin:
 
     def __post_init__(self):
         object.__setattr__(self, "groups", _entry_groups(self.groups, "groups"))
-        if isinstance(self.start, bool) or not isinstance(self.start, int) or self.start < 0:
-            raise ValueError(f"start must be an integer >= 0 (γ_ini − 1); got {self.start!r}")
+        n = len(self.groups)
+        # a group's index, 0 … n − 1: a 1-based γ_ini of 2 over two groups had wrapped to
+        # group 0 unsaid (numpy's integers taken, as in groups)
+        if (isinstance(self.start, bool) or not isinstance(self.start, numbers.Integral)
+                or not 0 <= self.start < n):  # fmt: skip
+            raise ValueError(f"start must be the 0-based index of a group, 0 … {n - 1} (γ_ini − 1, "
+                             f"γ_ini the paper's 1-based one); got {self.start!r}")  # fmt: skip
+        object.__setattr__(self, "start", int(self.start))
 
     def scheduled(self, num_steps: int, *, device=None) -> Tensor:
         """The (0-based) group transmitting at each step ``k = 1 … T``, ``[T]`` (long)."""

@@ -27,8 +27,10 @@ class Streams:
     ``Streams(0)("plant")`` → a ``torch.Generator`` seeded with 63 bits of
     ``sha256("0/plant")``: its first 8 bytes read as a little-endian integer, shifted right
     by one. Names are free-form; the suite uses ``"plant"``, ``"attack"``,
-    ``"schedule"``, ``"input_schedule"``, ``"calibration/plant"``, ``"particles/init"``, ``"particles/propagate"``,
-    ``"particles/resample"`` and ``"estimator/<name>"``.
+    ``"schedule"``, ``"input_schedule"``, ``"calibration/plant"``, ``"particles/init"``,
+    ``"particles/propagate"``, ``"particles/resample"``, ``"gamma_noise"`` (an oracle's noisy
+    attack values), ``"pcrb"`` and ``"lfc/per_channel"``; the adversarial training,
+    ``"adversary/…"``.
     """
 
     def __init__(self, seed: int):
