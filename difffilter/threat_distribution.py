@@ -290,7 +290,11 @@ class ThreatDistribution:
         ``uniform``/``loguniform`` interval holding it (its magnitude with ``signed``; a
         vector only with every entry equal, as a drawn number is the same on every
         entry), a ``randint`` range holding the integer, a ``choice`` listing it. A field
-        that one side leaves out is the threat class's default on that side. The reserved
+        that one side leaves out is the threat class's default on that side (``ksigma_bias``'s
+        ``sigma``: the model's; a sinusoid's or chirp's ``dt``: give both sides the
+        scenario's first, :func:`~difffilter.threats.with_sampling_period`, as
+        :func:`~difffilter.eval.coverage.training_coverage` does). A number equals the vector
+        of it on every entry. A channel drawn by ``choice``: each option in turn. The reserved
         ``own`` counts as :attr:`own` where that is a threat of the library
         (:func:`threat_spec`)."""
         kind = spec.get("kind")
@@ -315,6 +319,11 @@ class ThreatDistribution:
         kind = spec.get("kind")
         if entry.get("kind") != kind:
             return False
+        channel = entry.get("channel")
+        if _is_draw(channel) and "choice" in channel:  # each channel it draws, with its width
+            # (read as one Channel, the mapping had failed: a robustness study died at its end)
+            return any(self._could_draw({**entry, "channel": option}, spec)
+                       for option in channel["choice"])  # fmt: skip
         library = isinstance(kind, str) and kind in THREATS  # (else an attack of one's own,
         if library:  # whose defaults are unknown here: a field on one side only differs)
             spec, entry = self._entries_listed(spec), self._entries_listed(entry)
@@ -343,9 +352,15 @@ class ThreatDistribution:
         """``spec`` with ``entries: null`` (every entry of the channel) written as the list
         of them, where :attr:`model` gives the channel's width: ``[0, 1, 2, 3]`` and
         ``null`` are the same attack on the four-tank's sensors (a trial read them as
-        another). Unchanged without a model."""
+        another); a ``ksigma_bias`` without ``sigma`` given the model's ``√diag R``, as it
+        is built. Unchanged without a model."""
         if self.model is None or spec.get("kind") in (None, "covert"):
             return spec
+        if spec["kind"] == "ksigma_bias" and "sigma" not in spec:
+            # σ = √diag R of the model, as training and the study fill it (compared with the
+            # class's default instead, the model's own σ had read "kind only", σ = 1 "within")
+            sigma = self.model.measurement_cov(1).diagonal(dim1=-2, dim2=-1).sqrt()
+            spec = {**spec, "sigma": [float(s) for s in sigma.detach().reshape(-1)]}
         actuator = Channel(spec.get("channel", Channel.SENSOR)) is Channel.ACTUATOR
         width = self.model.dim_u if actuator else self.model.dim_y
         every = list(range(width))
@@ -406,6 +421,9 @@ class ThreatDistribution:
             )
         names = list(self.spec)
         weights = torch.tensor([float(self.spec[n]["weight"]) for n in names], dtype=torch.float64)
+        # over their largest: finite weights whose sum overflows (three of 1e308) had drawn
+        # shares of 0.47, 0.31 and 0.22 for a third each
+        weights = weights / weights.max()
         name = names[int(torch.multinomial(weights, 1, generator=generator))]
         if name == "own":
             return name, self.own
@@ -484,6 +502,8 @@ def _same(a, b) -> bool:
     """``a == b`` for plain data, numbers to 1e-9 (a number equals its 1-tuple)."""
     x, y = _floats(a), _floats(b)
     if x is not None and y is not None:
+        if len(x) != len(y) and 1 in (len(x), len(y)):  # a number and the vector of it on
+            x, y = (x * len(y), y) if len(x) == 1 else (x, y * len(x))  # every entry: one attack
         return len(x) == len(y) and all(math.isclose(u, v, rel_tol=1e-9, abs_tol=1e-12)
                                         for u, v in zip(x, y))  # fmt: skip
     if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):

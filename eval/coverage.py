@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from difffilter.threat_distribution import HELD_OUT, KIND_ONLY, ThreatDistribution, threat_spec
+from difffilter.threats import with_sampling_period
 
 __all__ = ["training_coverage", "checkpoint_of", "NOT_KNOWN"]
 
@@ -56,7 +57,7 @@ def checkpoint_of(name: str, suite) -> str | None:
 
 
 def training_coverage(
-    checkpoint, threats: dict[str, dict], model=None, own=None
+    checkpoint, threats: dict[str, dict], model=None, own=None, dt: float | None = None
 ) -> dict[str, Any] | None:
     """``{"trained_on", "adversarial", "threats": {threat: label}}`` for the estimator of
     ``checkpoint`` against the study's ``threats`` (``{name: {"kind", **fields}}``), or
@@ -65,7 +66,11 @@ def training_coverage(
     that read it (``ksigma_bias``, ``covert``). ``own``: the scenario's attack, what a
     network trained on it alone (or on a distribution's ``own``) met: where it is a threat
     of the library, a threat of its kind is "kind only" or "within", not "held out" (a
-    user trial's ramp network read "held out" on a ramp that differed only in its share)."""
+    user trial's ramp network read "held out" on a ramp that differed only in its share).
+    ``dt``: the scenario's sampling period, a sinusoid's or chirp's where it sets none, on
+    both sides, as training and the study fill it in (left out, the class's default had been
+    compared: the very attack trained on read "kind only", and one at 20× another
+    frequency "within")."""
     card_path = Path(checkpoint).with_suffix(".json") if checkpoint else None
     if card_path is None or not card_path.is_file():
         return None
@@ -84,6 +89,9 @@ def training_coverage(
         trained_on = SCENARIO_ATTACK
     else:
         trained_on = DISTRIBUTION
+    if spec:
+        spec = {name: with_sampling_period(entry, dt) for name, entry in spec.items()}
+    threats = {name: with_sampling_period(threat, dt) for name, threat in threats.items()}
     distribution = ThreatDistribution(spec, model=model, own=own) if spec else None
     # a scenario attack of no library kind: a threat of a user's class may be that attack
     unplaced = trained_on == SCENARIO_ATTACK and spec is None

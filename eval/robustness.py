@@ -556,7 +556,7 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
     model = sc.system() if acceptance else None  # for threat kinds that read it
     for name, judged in acceptance.items():
         judged["training"] = training_coverage(checkpoint_of(name, free), doc["threats"], model,
-                                               own=sc.attack_model())  # fmt: skip
+                                               own=sc.attack_model(), dt=getattr(sc, "dt", None))  # fmt: skip
         mine = intervals.get(name, {})
         judged["worst_tpr_interval"] = mine.get("worst_tpr")
         for threat, check in judged["state"].items():
