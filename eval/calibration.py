@@ -15,6 +15,7 @@ as the analytic ones. :func:`calibrated_metrics` then reads the study's scores a
 from __future__ import annotations
 
 import math
+import numbers
 import warnings
 from dataclasses import dataclass, field
 from statistics import NormalDist
@@ -53,9 +54,15 @@ class Calibration:
             detectors whose rate fell to half the target or below: a discrete score (the PoA β of
             the particle filters, 1 where every particle exceeds η) ties there, and no
             threshold meets ``α`` (alarms are ``s > τ``).
-        steps: ``{estimator: calibration steps with a score}`` (NaN: no data, left out):
-            with ``α n < 1`` no step may alarm at all, and fewer than
-            :data:`RESOLVED` expected alarms leave ``τ_α`` to a handful of scores.
+        steps: ``{estimator: calibration steps}``, the ``n`` of ``τ_α``'s ``⌊α n⌋`` alarms
+            (a step without a score, NaN, counts as its lowest, as
+            :func:`~difffilter.metrics.threshold_for` counts it): with ``α n < 1`` no step
+            may alarm at all, and fewer than :data:`RESOLVED` expected alarms leave ``τ_α``
+            to a handful of scores (the scored steps alone had been counted here, so a
+            detector scoring 5 % of 5,000 steps was said to rest on 2.35 alarms where its
+            threshold rested on 50).
+        scored: ``{estimator: calibration steps with a score}``: where fewer than ``⌊α n⌋``,
+            every scored step alarms (``τ_α = −∞``) and the rate falls short of ``α``.
         broke_down: ``{estimator: why}`` for those that broke down on the calibration runs
             (:class:`~difffilter.linalg.NumericalBreakdown`): no threshold, so no
             ``*_at_far`` metrics in a study where they ran.
@@ -101,6 +108,7 @@ class Calibration:
     at_floor: dict[str, float] = field(default_factory=dict)
     concentrated: dict[str, dict] = field(default_factory=dict)
     scenario: tuple | None = None
+    scored: dict[str, int] = field(default_factory=dict)
 
     def summary(self) -> dict:
         """The calibration as metrics.json's ``"far"`` entry (``below_target`` only where a
@@ -126,11 +134,13 @@ class Calibration:
                 **({"concentrated": dict(self.concentrated)} if self.concentrated else {})}  # fmt: skip
 
     def _cause(self, name: str) -> str:
-        n = self.steps.get(name)
-        if n == 0:
+        n, scored = self.steps.get(name), self.scored.get(name, self.steps.get(name))
+        if scored == 0:
             return "no score"
         if n is not None and self.far * n < 1:
             return "too few steps"
+        if n is not None and scored is not None and scored <= math.floor(self.far * n):
+            return "few scores"
         return "ties"
 
 
@@ -150,6 +160,8 @@ _CAUSES = {
     "too few steps": "too few calibration steps for the target (α n < 1: not one step may "
     "alarm); give more --calibration-runs",
     "no score": "it scored no calibration step (every score NaN)",
+    "few scores": "it scored fewer calibration steps than the target's share of them (the "
+    "others NaN, no data): every scored step alarms and the rate still falls short",
 }
 
 
@@ -228,12 +240,12 @@ def _threshold_text(threshold) -> str:
 
 
 def resolution_note(target: float, steps: int, more: str) -> str:
-    """The sentence for a calibration of ``steps`` scored steps at ``target`` that expects
+    """The sentence for a calibration of ``steps`` steps at ``target`` that expects
     fewer than :data:`RESOLVED` alarms (``more``: the option that gives more runs): its
     threshold's expected rate on fresh runs, ``(⌊α n⌋ + 1)/(n + 1)`` for continuous scores."""
     expected = (math.floor(target * steps + 1e-9) + 1) / (steps + 1)
     return (
-        f"Few calibration steps for the {100 * target:g} % target ({steps:,} scored steps: "
+        f"Few calibration steps for the {100 * target:g} % target ({steps:,} steps: "
         f"{target * steps:.3g} alarms expected, fewer than {RESOLVED}): each threshold rests "
         f"on a handful of scores, and its rate on fresh runs is about {100 * expected:.2g} % "
         f"in expectation and varies widely between calibration draws; give more {more}."
@@ -247,7 +259,7 @@ WELL_RESOLVED = 100
 
 
 def sampling_note(target: float, steps: int, run_steps: int) -> str:
-    """The sentence for a calibration of ``steps`` scored steps (``run_steps`` a run) that
+    """The sentence for a calibration of ``steps`` steps (``run_steps`` a run) that
     expects fewer than :data:`WELL_RESOLVED` alarms: the binomial standard deviation of the
     rate, ``√(α(1 − α)/n)``, and the ``--runs`` that expects about 100 alarms. A new user's
     trial calibrated a 5 % threshold on its plant's 8 runs of 60 steps (24 alarms), met
@@ -309,14 +321,15 @@ def calibrate(
         label=f"{scenario.name}: calibrating at {far:g} (attack-free runs)",
         detector_seed=seed, detector_runs=study_runs,  # the study's detectors (a CUSUM's τ)
     )  # fmt: skip
-    thresholds, measured, tied, steps, startup, floor, few = {}, {}, {}, {}, {}, {}, {}
+    thresholds, measured, tied, steps, startup, floor, few, scored = {}, {}, {}, {}, {}, {}, {}, {}
     for name, out in result.outputs.items():
         if out.detection is None or out.detection.scores is None:
             continue
         scores = _finite_scores(out.detection.scores)
         thresholds[name] = threshold_for(scores, far)
         measured[name] = float((scores > thresholds[name]).double().mean())
-        steps[name] = int((~torch.isnan(out.detection.scores)).sum())
+        steps[name] = scores.numel()  # the n of threshold_for, a NaN its lowest score
+        scored[name] = int((~torch.isnan(out.detection.scores)).sum())
         # (one coarse for its steps is named as such, under unresolved, not twice)
         clustered = alarm_clustering(out.detection.scores, thresholds[name])
         if clustered is not None and far * steps[name] >= RESOLVED:
@@ -332,7 +345,7 @@ def calibrate(
             floor[name] = share
     calibration = Calibration(far, runs, cal_seed, thresholds, measured, tied, steps,
                               broken_down(result.skipped), startup, floor, few,
-                              scenario.attack_free_key())  # fmt: skip
+                              scenario.attack_free_key(), scored)  # fmt: skip
     _warn_unthresholded(estimators, calibration, result)
     if tied:  # (from Python the note was in summary() alone: a teaching trial read "0.0" as
         # "detects nothing")
@@ -446,7 +459,14 @@ def _at_floor(scores: torch.Tensor, threshold: float) -> float | None:
 
 def alarms_at(scores: torch.Tensor, threshold: float) -> torch.Tensor:
     """The alarms ``scores > threshold`` (bool, ``scores``' shape), compared in float64; a
-    NaN score (no data at that step) never alarms."""
+    NaN score (no data at that step) never alarms. ``threshold``: a number, ``±∞`` allowed;
+    NaN refused (nothing had alarmed, and the metrics read 0 without a word)."""
+    if (
+        isinstance(threshold, bool)
+        or not isinstance(threshold, numbers.Real)
+        or math.isnan(threshold)
+    ):
+        raise ValueError(f"threshold must be a number (±inf allowed); got {threshold!r}")
     return nan_as_lowest(scores.double()) > threshold
 
 

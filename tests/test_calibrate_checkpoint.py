@@ -161,7 +161,7 @@ def test_calibrate_says_when_its_runs_are_too_few_for_the_target(tmp_path, capsy
     assert main([SHIPPED, "--out", str(tmp_path / "x.ckpt"), "--runs", "2", "--no-progress"]) == 0
     out = capsys.readouterr().out
     assert "on 2 other attack-free runs" in out
-    assert "note: Few calibration steps for the 1 % target (200 scored steps: 2 alarms " in out
+    assert "note: Few calibration steps for the 1 % target (200 steps: 2 alarms " in out
     assert "about 1.5 % in expectation" in out and "give more --runs" in out
 
 

@@ -408,7 +408,7 @@ def test_the_note_names_why_a_rate_fell_short_and_when_the_calibration_is_coarse
                          steps={"chi": 2000})  # fmt: skip
     assert coarse.summary()["unresolved"] == {"chi": 2000} and 0.001 * 2000 < RESOLVED
     note = below_target_note(coarse.summary())
-    assert "2,000 scored steps: 2 alarms expected" in note and "about 0.15 %" in note
+    assert "2,000 steps: 2 alarms expected" in note and "about 0.15 %" in note
     fine = Calibration(0.01, 100, 0, thresholds={"chi": 9.0}, measured={"chi": 0.01},
                        steps={"chi": 10_000})  # fmt: skip
     assert "unresolved" not in fine.summary() and below_target_note(fine.summary()) is None

@@ -167,7 +167,7 @@ def _calibrate(monkeypatch, scores, far):
 def test_threshold_rate_and_steps_are_the_order_statistic_by_hand(monkeypatch):
     """15 steps (one NaN, ranked lowest and counted in n), α = 0.2: ⌊α n⌋ = 3, so τ is the
     4th largest score, 0.7; at most 3 scores exceed it (0.2 of n; a score equal to τ never
-    alarms); 14 steps have a score. Kills: alarms counted as s ≥ τ, NaN steps counted as
+    alarms); 14 steps have a score, 15 count in n. Kills: alarms counted as s ≥ τ, NaN steps counted as
     scored."""
     nan = math.nan
     scores = [[0.5, 0.1, 0.2, 0.9, 0.3], [0.4, nan, 0.7, 0.6, 0.8], [1.5, 0.05, 0.25, 0.35, 0.45]]
@@ -175,7 +175,7 @@ def test_threshold_rate_and_steps_are_the_order_statistic_by_hand(monkeypatch):
     flat = sorted((s for row in scores for s in row if s == s), reverse=True)
     assert cal.thresholds == {"d": flat[3]} == {"d": 0.7}
     assert cal.measured == {"d": pytest.approx(3 / 15)}
-    assert cal.steps == {"d": 14}
+    assert cal.steps == {"d": 15} and cal.scored == {"d": 14}  # n counts the NaN step
     assert cal.tied == {} and cal.startup == {} and cal.at_floor == {} and cal.concentrated == {}
 
 
