@@ -34,6 +34,7 @@ of bounds, e.g. one per attack-flag pattern).
 
 from __future__ import annotations
 
+import warnings
 from typing import NamedTuple
 
 import torch
@@ -117,7 +118,9 @@ def noise_information(
     form (:func:`gaussian_information`); any other model (``GaussianMixture``, a product
     of per-sensor mixtures) the Monte Carlo estimate of the module docstring: ``v ~ p_v``
     (``num_samples`` draws from ``generator``), ``s = ∇_v log p_v(v; mask)`` by autograd,
-    computed once per distinct mask pattern.
+    computed once per distinct mask pattern (also under ``torch.inference_mode()``). A
+    noise whose log-density has no gradient in ``v`` (a uniform box: the bound's
+    regularity conditions fail) is refused (``ValueError``).
     """
     if not isinstance(noise, NoiseModel):
         raise ValueError(f"noise must be a difffilter.noise model; got {type(noise).__name__}")
@@ -136,10 +139,19 @@ def noise_information(
     unique, inverse = torch.unique(patterns, dim=0, return_inverse=True)
     infos = []
     for pattern in unique:
-        with torch.enable_grad():
+        # (enable_grad does not lift inference mode: the score had failed there in torch's
+        # "element 0 of tensors does not require grad")
+        with torch.inference_mode(False), torch.enable_grad():
             vv = v.detach().clone().requires_grad_(True)
-            m = None if bool(pattern.all()) else pattern.expand_as(vv)
-            (score,) = torch.autograd.grad(noise.log_prob(vv, mask=m).sum(), vv)
+            m = None if bool(pattern.all()) else pattern.clone().expand_as(vv)
+            log_p = noise.log_prob(vv, mask=m).sum()
+            if not log_p.requires_grad:
+                raise ValueError(
+                    f"noise_information needs a log-density differentiable in v, and "
+                    f"{type(noise).__name__}'s has no gradient (a uniform noise: the bound's "
+                    "regularity conditions fail); pass information= yourself"
+                )
+            (score,) = torch.autograd.grad(log_p, vv)
         score = score * pattern.to(score.dtype)  # unreceived entries: no information
         infos.append(symmetrize(score.transpose(-1, -2) @ score / num_samples))
     out = torch.stack(infos)[inverse]
@@ -157,7 +169,10 @@ def measurement_information_moments(model: StateSpaceModel, xs: Tensor, k0: int 
     T = xs.shape[-2]
     out = []
     for t in range(T):
-        H = model.observation_jacobian(xs[..., t, :], k0 + t)  # [..., M, dy, dx]
+        x = xs[..., t, :]
+        H = model.observation_jacobian(x, k0 + t)  # [..., M, dy, dx]
+        # (a constant Jacobian, [dy, dx], broadcasts in the filters: had failed in einsum)
+        H = H.expand(x.shape[:-1] + H.shape[-2:])
         out.append(torch.einsum("...mia,...mjb->...ijab", H, H) / H.shape[-3])
     return torch.stack(out, dim=-5)
 
@@ -167,6 +182,26 @@ def _pcrb_information(model, xs, x0, us, mask, information, num_samples, generat
     ``[..., T, dy, dy]`` (given, or from the measurement noise and the mask)."""
     if not isinstance(model, StateSpaceModel):
         raise ValueError(f"model must be a difffilter.StateSpaceModel; got {type(model).__name__}")
+    # Q⁻¹ and P0⁻¹ are the Fisher information of Gaussians alone: another law's is larger,
+    # and a mixture's process noise had given a "bound" a particle filter beat by 0.55×
+    for what, law in (("process noise", getattr(model, "process_noise", None)),
+                      ("prior (model.initial)", getattr(model, "initial", None))):  # fmt: skip
+        if not isinstance(law, Gaussian):
+            raise ValueError(
+                f"posterior_crb needs a Gaussian {what} (its information is the inverse "
+                f"covariance); got {type(law).__name__}"
+            )
+    if type(model).sample_transition is not StateSpaceModel.sample_transition and not getattr(
+        model, "samples_process_noise", False
+    ):
+        warnings.warn(
+            f"{type(model).__name__} draws its transitions its own way (sample_transition): the "
+            "bound assumes x_{k+1} = f(x_k, u_k) + w, w ~ N(0, process_cov), and where the "
+            "truth draws another noise it is no bound (the robot's input noise: its EKF came "
+            "within 0.86 of it); a class whose draw has that law says so with "
+            "samples_process_noise = True",
+            stacklevel=3,
+        )
     dx, dy = model.dim_x, model.dim_y
     if not isinstance(xs, Tensor) or xs.dim() < 3 or xs.shape[-1] != dx:
         got = tuple(xs.shape) if isinstance(xs, Tensor) else type(xs).__name__
@@ -184,6 +219,8 @@ def _pcrb_information(model, xs, x0, us, mask, information, num_samples, generat
     if not bool(torch.isfinite(xs).all()) or not bool(torch.isfinite(x0).all()):
         raise ValueError("xs and x0 must be finite")
     T = xs.shape[-2]
+    if T == 0 or xs.shape[-3] == 0:  # (a NaN bound, or torch's "non-empty TensorList")
+        raise ValueError(f"xs must hold at least one path and one step; got {tuple(xs.shape)}")
     if not callable(getattr(model, "transition_matrix", None)):  # (F does not read u)
         check_inputs_given(model, us, "posterior_crb", "its Jacobians ∂f/∂x at u_k")
     if us is not None:  # (a us without its T axis read path t's input at step t, unsaid)
@@ -211,8 +248,8 @@ def _pcrb_information(model, xs, x0, us, mask, information, num_samples, generat
         rows = [None if mask is None else mask[..., t, :] for t in range(T)]
         parts = [gaussian_information(model.measurement_cov(t + 1), m) for t, m in enumerate(rows)]
         batch = torch.broadcast_shapes(*(p.shape[:-2] for p in parts))
-        return torch.stack([p.expand(batch + (dy, dy)) for p in parts], dim=-3)
-    if information is None:
+        information = torch.stack([p.expand(batch + (dy, dy)) for p in parts], dim=-3)
+    elif information is None:
         noise = model.measurement_noise
         if mask is None:
             jv = noise_information(noise, None, num_samples=num_samples, generator=generator)
@@ -221,10 +258,33 @@ def _pcrb_information(model, xs, x0, us, mask, information, num_samples, generat
             information = noise_information(
                 noise, mask, num_samples=num_samples, generator=generator
             )
-    elif information.shape[-3:] != (T, dy, dy):
-        raise ValueError(
-            f"information must have shape [..., {T}, {dy}, {dy}]; got {tuple(information.shape)}"
+    elif not isinstance(information, Tensor) or information.shape[-3:] != (T, dy, dy):
+        got = (
+            tuple(information.shape)
+            if isinstance(information, Tensor)
+            else type(information).__name__
         )
+        raise ValueError(f"information must be a tensor [..., {T}, {dy}, {dy}]; got {got}")
+    else:  # a Fisher information: finite, symmetric, positive semi-definite
+        info = information.detach().double()
+        ok = bool(torch.isfinite(info).all())
+        if ok and info.numel():
+            scale = info.abs().amax().clamp_min(1.0)
+            ok = bool((info - info.mT).abs().amax() <= 1e-8 * scale) and bool(
+                torch.linalg.eigvalsh(symmetrize(info)).amin() >= -1e-8 * scale
+            )
+        if not ok:
+            raise ValueError("information must be finite, symmetric and positive semi-definite "
+                             "(a Fisher information)")  # fmt: skip
+    # its batch (the mask's) fits the paths' (torch's broadcast error had named neither)
+    lead, paths = information.shape[:-3], xs.shape[:-3]
+    try:
+        torch.broadcast_shapes(lead, paths)
+    except RuntimeError:
+        raise ValueError(
+            f"the mask's or information's batch {tuple(lead)} does not broadcast with the "
+            f"paths' batch {tuple(paths)} (xs [..., M, T, dx])"
+        ) from None
     return information
 
 
@@ -233,11 +293,12 @@ def _check_unbatched_model(model: StateSpaceModel) -> None:
     whose matrices carry a batch of their own would line it up with the ``M`` paths."""
     mats = {"process_cov(0)": model.process_cov(0), "measurement_cov(1)": model.measurement_cov(1),
             "initial.cov": model.initial.cov}  # fmt: skip
-    for name in ("transition_matrix", "observation_matrix", "control_matrix"):
+    # H at step 1 (no measurement at 0: a model defining H_k for k ≥ 1 alone had failed)
+    for name, k in (("transition_matrix", 0), ("observation_matrix", 1), ("control_matrix", 0)):
         if callable(getattr(model, name, None)):
-            value = getattr(model, name)(0)
+            value = getattr(model, name)(k)
             if value is not None:
-                mats[f"{name}(0)"] = value
+                mats[f"{name}({k})"] = value
     batched = [f"{n} {tuple(m.shape)}" for n, m in mats.items() if m.dim() > 2]
     if batched:
         raise ValueError(
@@ -309,6 +370,7 @@ def posterior_crb(
         if varying_q and t > 0:
             Q_inv = q_inv(t)
         Fj = model.transition_jacobian(x_prev, u, t)  # [..., M, dx, dx]
+        Fj = Fj.expand(x_prev.shape[:-1] + Fj.shape[-2:])  # (a constant one, [dx, dx])
         M = Fj.shape[-3]
         D11 = (Fj.transpose(-1, -2) @ Q_inv @ Fj).sum(-3) / M
         D12 = -(Fj.sum(-3) / M).transpose(-1, -2) @ Q_inv

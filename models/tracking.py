@@ -287,6 +287,10 @@ class TrackingModel(StateSpaceModel):
     def transition(self, x, u, k):
         return matvec(self.F, x)
 
+    #: its sample_transition draws w ~ N(0, Q), the process noise's law (a faster layout):
+    #: the posterior Cramér–Rao bound applies (difffilter.bounds.posterior_crb)
+    samples_process_noise = True
+
     def sample_transition(self, x, u, k, generator=None):
         """``x_{k+1} = F x_k + L ε`` with ``L = chol(Q)`` for ``x [..., 4]``: the same ``ε``
         (one ``randn`` of ``x``'s shape, ``[..., 4]`` per particle) as the generic path;
