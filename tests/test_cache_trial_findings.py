@@ -160,7 +160,7 @@ scenario = CustomScenario(name="{name}", family="cache_trial", description="x", 
 """
 
 
-def test_a_sweeps_baselines_follow_an_edited_plant(tmp_path, monkeypatch):
+def test_a_sweeps_baselines_follow_an_edited_plant(tmp_path, monkeypatch, isolated_registry):
     """The sweep's baselines were keyed by name, runs, rate, seed and a YAML file's digest:
     a plant given as ``module:object`` and edited was judged against the old plant's
     baselines. Now its fingerprint is in the key (and the library's)."""
@@ -176,12 +176,10 @@ def test_a_sweeps_baselines_follow_an_edited_plant(tmp_path, monkeypatch):
         computed.append(noise)
         return {"cusum_kf": {"state_rmse": noise}}, {}
 
-    from difffilter.models import registry
-
+    # the registry loaded, then a copy for this test (a copy of the unloaded registry had
+    # taken the built-in scenarios away with it: the robot's were unknown to later tests)
+    registry = isolated_registry
     monkeypatch.setattr(sweep, "_calibrated_metrics", metrics)
-    # (each edit as a new process would see it: a name is registered once a process)
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
-    monkeypatch.setattr(registry, "_ORIGINS", dict(registry._ORIGINS))
     monkeypatch.syspath_prepend(str(tmp_path))
     module = "cache_trial_plant"
     folder = tmp_path / "baselines"

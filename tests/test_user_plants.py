@@ -332,7 +332,7 @@ def test_a_bad_field_is_named_with_its_file_before_anything_runs(change, why, pl
         ("motor.yaml", {"schedule": {"kind": "round_robin", "groups": [[0], [1]]}},
          r"motor.yaml: schedule: groups must cover the 1 measurement entries"),
         ("motor.yaml", {"schedule": {"kind": "round_robin", "groups": [[0]], "start": True}},
-         r"motor.yaml: schedule: start must be an integer"),
+         r"motor.yaml: schedule: start must be the 0-based index of a group"),
         ("motor.yaml", {"inputs": {"kind": "constant", "value": [1.0, 2.0]}},
          r"motor.yaml: inputs: they give 2 value\(s\) per step and the plant has 1 input"),
         ("motor.yaml", {"inputs": {"values": [[1.0, 2.0]] * 50}},
