@@ -11,7 +11,10 @@ that many held-out runs, as the evaluation's attacker chooses it). Until
 the next crafting, every training batch gets ``runs`` more runs under that attack, on
 fresh noise::
 
-    ỹ_k = y_k + a_k,   attack = a_k,   flags = (k ≥ onset)
+    ỹ_k = y_k + a_k,   attack = a_k,   flags = (k ≥ onset) ∧ (an attacked entry received)
+
+(the closed loop's flags, :func:`difffilter.stealthy.attacked_pairs`: under packet loss
+a step that received none of the attacked entries carries no attack)
 
 so the network learns both to flag it and to subtract it. The attacker of the evaluation
 (``eval/stealthy.py``) is the same crafting with more iterations against the final
@@ -178,8 +181,12 @@ class Adversary:
         extra["attack"] = attack.clone()
         on = torch.arange(1, T + 1) >= self.onset
         flags = batch["flags"]
-        extra["flags"] = (on.expand(self.runs, T) if flags.dim() == 2
-                          else on[:, None] & (attack != 0))  # fmt: skip
+        # where an attacked entry arrived, as the closed loop flags (a lossy scenario's
+        # steps that received nothing had been flagged: 48 of 142, a trial)
+        mask = extra.get("mask")
+        hit = attack != 0 if mask is None else (attack != 0) & mask.bool()
+        extra["flags"] = (on & hit.any(-1) if flags.dim() == 2
+                          else on[:, None] & hit)  # fmt: skip
         if batch["attack"].shape[-1] != dy:
             raise ValueError("adversarial training needs a sensor attack on every channel")
         return {k: torch.cat([batch[k], extra[k].to(batch[k].dtype)]) for k in batch}
