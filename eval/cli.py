@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import datetime
 import math
 import os
 import sys
@@ -617,9 +618,11 @@ def _join_workers(context, grace_s: float = FAILURE_GRACE_S) -> int:
             name = signal.Signals(-code).name
         except ValueError:
             name = str(-code)
+        # the kernel's out-of-memory killer sends SIGKILL; a SIGTERM came from outside
+        why = ("(out of memory?); rerun with --devices 1 to use less" if name == "SIGKILL"
+               else "from outside the evaluation")  # fmt: skip
         print(f"difffilter-eval: error: process {failed} of --devices {len(processes)} was "
-              f"killed by signal {name} (out of memory?); rerun with --devices 1 to use "
-              "less", file=sys.stderr)  # fmt: skip
+              f"killed by signal {name} {why}", file=sys.stderr)  # fmt: skip
         return 1
     return code
 
@@ -634,7 +637,11 @@ def _worker(rank: int, world: int, rendezvous: str, argv: list[str]) -> None:
         threads = max(1, (os.cpu_count() or 1) // world)
         torch.set_num_threads(threads)
         os.environ["OMP_NUM_THREADS"] = str(threads)
-    dist.init_process_group("gloo", init_method=rendezvous, rank=rank, world_size=world)
+    # a gather waits as long as the other process's share takes (the LFC online learners,
+    # a family's prepare study: torch's default of 30 minutes had ended a long study as
+    # "lost each other"); a process that failed is seen by the launcher, not by this wait
+    dist.init_process_group("gloo", init_method=rendezvous, rank=rank, world_size=world,
+                            timeout=datetime.timedelta(days=7))  # fmt: skip
     try:
         code = _main([*argv, "--devices", "1"] + (["--no-progress"] if rank else []))
     except KeyboardInterrupt:  # the launching process says it, once
@@ -837,7 +844,8 @@ def _study(args, argv: Sequence[str] | None, held: contextlib.ExitStack) -> int:
         if args.far is None and args.calibration_runs is not None:
             raise ValueError("--calibration-runs with --far off: nothing is calibrated")
         check_checkpoint_fits(args.ckpt, names)
-        _note_training_plants(args.ckpt, names)
+        if process_group()[1] == 1:  # said once: by the launching process, not each worker
+            _note_training_plants(args.ckpt, names)
         check_scenario_estimators(names)
         check_family_options(args.option, names)
         threats = args.threats or ("all" if args.scenario == "robustness" else None)
@@ -851,7 +859,10 @@ def _study(args, argv: Sequence[str] | None, held: contextlib.ExitStack) -> int:
         if threats is not None:
             return _robustness(names, threats, args)
         if args.devices > 1:  # checked here; the workers run the rest
-            return _launch(args.devices, list(sys.argv[1:] if argv is None else argv))
+            code = _launch(args.devices, list(sys.argv[1:] if argv is None else argv))
+            if code != 0 and created:  # (a worker's refusal had left --out with its lock
+                _remove_if_nothing_written(Path(args.out))  # alone, as one process does not)
+            return code
         results = evaluate(
             names,
             ckpt=args.ckpt,

@@ -614,6 +614,7 @@ def _check_before_training(config: Path, out: Path, scenarios, runs, test: bool,
         raise ValueError(f"--out: {out} is a file; a sweep writes a folder there")
     if runs is not None and (isinstance(runs, bool) or not isinstance(runs, int) or runs < 1):
         raise ValueError(f"--runs must be an integer >= 1; got {runs!r}")
+    _check_one_process(config, extra)
     if not (test and scenarios):
         return
     # the scenario the fit trains on, as it reads its configs and options (train/cli.py's
@@ -627,6 +628,34 @@ def _check_before_training(config: Path, out: Path, scenarios, runs, test: bool,
         if family is not None and scenario.family != family:
             raise ValueError(f"--scenarios: {name} is a {scenario.family} scenario; {config} "
                              f"trains a {family} estimator ({trained})")  # fmt: skip
+
+
+def _check_one_process(config: Path, extra) -> None:
+    """``ValueError`` where a seed's fit would run on several processes: Lightning's DDP
+    starts its other processes by running the command line again, and a sweep's seeds are
+    fits inside the sweep's process (a trial's ``-- --trainer.strategy=ddp
+    --trainer.devices=2``: the other process ran a bare ``difffilter-train``, and Lightning
+    killed the sweep, exit 137, no error line)."""
+    devices = _set_last(config, extra, ("trainer.devices",))
+    if isinstance(devices, str):  # as given on the command line: "2", "[0, 1]", "auto"
+        import yaml
+
+        try:
+            devices = yaml.safe_load(devices)
+        except yaml.YAMLError:
+            return  # (Lightning refuses it itself)
+    try:
+        several = (len(devices) > 1 if isinstance(devices, list | tuple)
+                   else devices not in (None, _UNSET, "auto") and int(devices) > 1)  # fmt: skip
+    except (TypeError, ValueError):
+        several = False  # (a spelling Lightning reads, or refuses, itself)
+    if several:
+        raise ValueError(
+            f"a sweep trains its seeds one after another inside its own process, and a fit on "
+            f"several processes (trainer.devices = {devices}) cannot be started from there: "
+            "sweep with --trainer.devices=1, or train each seed with difffilter-train fit "
+            "--config ... --seed_everything=N on several processes"
+        )
 
 
 def _check_keys_once(config: Path) -> None:
