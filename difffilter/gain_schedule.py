@@ -667,7 +667,7 @@ def _add_product(c: Tensor, a: Tensor, b: Tensor, *, subtract: bool = False) -> 
     return c - a @ b if subtract else c + a @ b
 
 
-def _source_versions(model, mats) -> tuple[tuple[Tensor, int | Tensor], ...]:
+def _source_versions(model, mats) -> tuple[tuple[Tensor, tuple | Tensor], ...]:
     """``(tensor, stamp)`` of every tensor the schedule's moments are made from: the
     matrices as the model gave them and the tensors of its noise models (a covariance
     given by its factor is made from it at every read). The stamp is the tensor's version,
@@ -684,9 +684,18 @@ def _source_versions(model, mats) -> tuple[tuple[Tensor, int | Tensor], ...]:
     return tuple((t, _stamp(t)) for t in unique.values())
 
 
-def _stamp(t: Tensor) -> int | Tensor:
-    """``t``'s version, or for an inference tensor (it keeps none) a copy of its values."""
-    return t.detach().clone() if t.is_inference() else t._version
+def _stamp(t: Tensor) -> tuple | Tensor:
+    """``(version, memory, requires_grad)`` of ``t``, or for an inference tensor (it keeps no
+    version) a copy of its values. The memory: a new tensor under the old object
+    (``F.data = new``, ``torch.nn.utils.vector_to_parameters``) keeps the version counter,
+    and its old gains had gone on (0.67 off a Kalman filter's mean); ``requires_grad``: a
+    tensor made to require one since (``F.requires_grad_()``) is to be differentiated
+    through the covariances, which a schedule computed without autograd is not (a
+    gradient 1.5 off). A write in place through ``.data`` (``F.data.copy_(new)``) moves
+    neither: write through the tensor itself under ``torch.no_grad()``, or assign it."""
+    if t.is_inference():
+        return t.detach().clone()
+    return t._version, t.data_ptr(), t.requires_grad
 
 
 #: A stamp no tensor matches (a version below any counter's, and below the ``-1`` of an
@@ -694,11 +703,14 @@ def _stamp(t: Tensor) -> int | Tensor:
 _STALE = -2
 
 
-def _unchanged(t: Tensor, stamp: int | Tensor) -> bool:
-    """Whether ``t`` is as it was stamped (:func:`_source_versions`): the same version, or
-    for an inference tensor the same values (a comparison: it has no version to read)."""
-    if isinstance(stamp, int):  # (_STALE first: an inference tensor has no version to read)
-        return stamp != _STALE and t._version == stamp
+def _unchanged(t: Tensor, stamp: tuple | int | Tensor) -> bool:
+    """Whether ``t`` is as it was stamped (:func:`_stamp`): the same version, memory and
+    ``requires_grad``, or for an inference tensor the same values (a comparison: it has no
+    version to read)."""
+    if isinstance(stamp, tuple):  # (an inference tensor has no version to read)
+        return (t._version, t.data_ptr(), t.requires_grad) == stamp
+    if isinstance(stamp, int):  # _STALE
+        return False
     return t.shape == stamp.shape and bool(torch.equal(t, stamp))
 
 
