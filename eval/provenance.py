@@ -41,7 +41,11 @@ def _git(folder: Path, *args: str) -> str | None:
 def software_record() -> dict:
     """The module docstring's record (once per process: a study's reports share it)."""
     source = Path(difffilter.__file__).resolve().parent
-    commit = _git(source, "rev-parse", "HEAD")
+    # the commit of a tree that tracks these files: a copy inside another work tree (a
+    # pip install into the repository's own .venv, a vendored copy) had been given that
+    # tree's commit, as if the files that ran were the commit's
+    tracked = _git(source, "ls-files", "--error-unmatch", "__init__.py") is not None
+    commit = _git(source, "rev-parse", "HEAD") if tracked else None
     status = None if commit is None else _git(source, "status", "--porcelain",
                                                   "--untracked-files=no")  # fmt: skip
     return {
@@ -60,10 +64,9 @@ def software_line(record: dict | None) -> str:
     if not record:
         return ""
     commit = record.get("git_commit")
-    at = (
-        ""
-        if commit is None
-        else f" at {commit[:12]}" + (" + changes" if record.get("git_dirty") else "")
-    )
+    dirty = record.get("git_dirty")
+    # (a git status that failed had read as a clean tree)
+    changes = " + changes" if dirty else " + changes unknown" if dirty is None else ""
+    at = "" if commit is None else f" at {commit[:12]}{changes}"
     return (f"\nCode: difffilter {record['difffilter']}{at} (`{record['source']}`), torch "
             f"{record['torch']}, Python {record['python']}.\n")  # fmt: skip

@@ -232,18 +232,23 @@ def model_fingerprint(model) -> str:
 
 
 def library_fingerprint() -> str:
-    """A hash of the library's own code: every ``.py`` file of ``difffilter`` and
-    ``difffilter.models`` (the filters, detectors and scenarios a calibration runs), by
-    path and content, read once per process. In a calibration's file name, so a threshold
-    computed by an older version (a ``git pull``, an upgrade, a local fix) is not reused: a
-    trial edited ``cusum_detector_for`` and read the old τ, 10.74 against 12.42."""
+    """A hash of the library's own code: every ``.py`` file of ``difffilter``,
+    ``difffilter.models`` (the filters, detectors and scenarios a calibration runs) and
+    ``difffilter.eval`` (the suite, scoring and calibration a sweep's cached baselines
+    come from), by package, path and content, read once per process. In a calibration's
+    file name, so a threshold computed by an older version (a ``git pull``, an upgrade, a
+    local fix) is not reused: a trial edited ``cusum_detector_for`` and read the old τ,
+    10.74 against 12.42; in a development checkout ``eval/`` lies outside ``difffilter/``,
+    and a fix of a metric had left the sweep's baselines of before in use (a trial)."""
     global _LIBRARY_FINGERPRINT
     if _LIBRARY_FINGERPRINT is None:
         import difffilter
+        import difffilter.eval
         import difffilter.models
 
         digest = hashlib.sha256()
-        for package in (difffilter, difffilter.models):
+        for package in (difffilter, difffilter.models, difffilter.eval):
+            digest.update(package.__name__.encode())
             for root in package.__path__:
                 for path in sorted(Path(root).rglob("*.py")):
                     digest.update(path.relative_to(root).as_posix().encode())
