@@ -39,6 +39,21 @@ def write_atomically(path: str | Path, content: str | bytes | Callable[[Path], o
         raise
 
 
+def save_torch_atomically(path: str | Path, obj) -> None:
+    """``torch.save(obj)`` to ``path``, whole or not at all (:func:`write_atomically`), its
+    bytes the same in every process: saved to a buffer first, torch names the archive
+    inside the file "archive"; saved to the partial file, it named it after that file's
+    name, which holds the process id, so two identical exports had two file digests (a
+    trial: a resumed fit's card differed from the uninterrupted one's in its sha256)."""
+    import io
+
+    import torch
+
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    write_atomically(path, buffer.getvalue())
+
+
 def write_json_atomically(path: str | Path, document) -> None:
     """``document`` as indented JSON with a final newline, written atomically."""
     write_atomically(path, json.dumps(document, indent=2) + "\n")

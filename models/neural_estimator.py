@@ -38,7 +38,7 @@ from torch import Tensor, nn
 
 from difffilter._checks import Choice, check_finite_number
 
-from .atomic_write import write_atomically
+from .atomic_write import save_torch_atomically
 
 __all__ = ["AreaNetwork", "WeightInit", "NeuralFDIEstimator", "EstimatorCard"]
 
@@ -478,7 +478,7 @@ def save_estimator_checkpoint(
         "extra": dict(extra or {}),
     }
     # whole or not at all: ``calibrate --force`` rewrites a shipped checkpoint in place
-    write_atomically(path, lambda partial: torch.save(blob, partial))
+    save_torch_atomically(path, blob)
     return checkpoint_sha256(path)
 
 

@@ -86,6 +86,10 @@ def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
         card = {
             "estimator_config": estimator.config(),
             "observer": est_card.to_dict(),
+            # as a fit's card names them (the shipped-checkpoint hint matches cards on
+            # them: an export of a run's Lightning file had been offered nowhere)
+            "estimator": est_card.estimator,
+            "scenario_family": est_card.scenario_family,
             **_lightning_record(blob, src),
             "torch_version": torch.__version__,
         }

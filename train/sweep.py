@@ -63,7 +63,11 @@ import sys
 from pathlib import Path
 
 from difffilter.interrupts import stop_words
-from difffilter.models.atomic_write import write_atomically, write_json_atomically
+from difffilter.models.atomic_write import (
+    save_torch_atomically,
+    write_atomically,
+    write_json_atomically,
+)
 
 from .common import check_config_keys, make_writable_folder, train_seed_of
 
@@ -500,9 +504,8 @@ def _cached_baseline(file: Path, totals_file: Path, key: dict) -> tuple[dict, di
 
 def _save_totals(path: Path, document) -> None:
     """``torch.save(document)`` to ``path``, whole or not at all."""
-    import torch
 
-    write_atomically(path, lambda partial: torch.save(document, partial))
+    save_torch_atomically(path, document)
 
 
 def _cache_unreadable(file: Path, error: BaseException) -> None:

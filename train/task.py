@@ -933,7 +933,8 @@ class FilterEstimatorTask(pl.LightningModule):
         experiment = getattr(self.logger, "experiment", None)
         if experiment is None or not hasattr(experiment, "add_figure"):
             return
-        fig = attack_figure(truth["attack"][0], out.attack[0].detach(), scenario.dt)
+        fig = attack_figure(truth["attack"][0], out.attack[0].detach(), scenario.dt,
+                            actuator=self.channel is Channel.ACTUATOR)  # fmt: skip
         experiment.add_figure(tag, fig, global_step=self._logged_step())
 
     def _logged_step(self) -> int:

@@ -1,0 +1,66 @@
+"""Findings of a red-team trial of a training run's export, card and figures (each failed
+before its fix)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _lightning_file(tmp_path: Path) -> Path:
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+
+    net, card = load_estimator_checkpoint(ROOT / "checkpoints" / "four_tank_nn_grad.ckpt")
+    src = tmp_path / "last.ckpt"
+    torch.save({"pytorch-lightning_version": "2.5.0", "epoch": 3, "global_step": 48,
+                "state_dict": {f"estimator.{k}": v for k, v in net.state_dict().items()},
+                "hyper_parameters": {}, "difffilter_estimator_config": net.config(),
+                "difffilter_observer": card.to_dict()}, src)  # fmt: skip
+    return src
+
+
+def test_an_export_of_a_lightning_file_names_its_estimator_and_family(tmp_path):
+    """A fit's card names them; an export of a run's Lightning file had None for both, so
+    the shipped-checkpoint hint (which matches cards on them) never offered it."""
+    from difffilter.train.export import export
+
+    export(_lightning_file(tmp_path), tmp_path / "out.ckpt")
+    card = json.loads((tmp_path / "out.json").read_text())
+    assert card["estimator"] == "pf_nn_grad" and card["scenario_family"] == "four_tank"
+
+
+@pytest.mark.slow  # two processes, about 15 s
+def test_an_exported_file_is_the_same_bytes_in_every_process(tmp_path):
+    """torch.save named the archive inside the file after the partial file, whose name
+    holds the process id: two identical exports had two file digests."""
+    script = (
+        "import sys; from pathlib import Path; from difffilter.train.export import export; "
+        "export(Path(sys.argv[1]), Path(sys.argv[2]))"
+    )
+    src = _lightning_file(tmp_path)
+    digests = []
+    for name in ("a", "b"):
+        out = tmp_path / name / "x.ckpt"
+        subprocess.run([sys.executable, "-c", script, str(src), str(out)], check=True)
+        digests.append(json.loads(out.with_suffix(".json").read_text())["sha256"])
+    assert digests[0] == digests[1]
+
+
+def test_an_actuator_attack_is_drawn_in_input_units():
+    from difffilter.train.figures import attack_figure
+
+    attack = torch.zeros(10, 2)
+    attack[5:, 1] = 1.0
+    fig = attack_figure(attack, attack, 0.1, actuator=True)
+    ax = fig.axes[0]
+    assert ax.get_ylabel() == "attack [input units]"
+    assert "attack input2" in [t.get_text() for t in ax.get_legend().get_texts()]
+    fig = attack_figure(attack, attack, 0.1)
+    assert fig.axes[0].get_ylabel() == "attack [measurement units]"
