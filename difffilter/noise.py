@@ -385,8 +385,11 @@ class GaussianMixture(NoiseModel):
         if covs.shape != (c, d, d):
             raise ValueError(f"covs must have shape [{c}, {d}, {d}]; got {tuple(covs.shape)}")
         check_positive_definite(covs, "covs", d)
-        if bool((weights < 0).any()) or abs(float(weights.sum()) - 1.0) > 1e-6:
-            raise ValueError("weights must be non-negative and sum to 1")
+        # (written to fail on NaN: NaN weights had passed both comparisons, NaN locs no check)
+        if not (bool((weights >= 0).all()) and abs(float(weights.sum()) - 1.0) <= 1e-6):
+            raise ValueError("weights must be finite, non-negative and sum to 1")
+        if not bool(torch.isfinite(locs).all()):
+            raise ValueError("locs must be finite")
         self.dim = d
         register_tensor(self, "weights", weights)
         register_tensor(self, "locs", locs)
@@ -422,6 +425,8 @@ class GaussianMixture(NoiseModel):
         With ``mask`` each component is marginalised to the marked entries (the marginal
         of a mixture is the mixture of the marginals).
         """
+        if value.shape[-1:] != (self.dim,):  # a [..., 1] value had broadcast to (v, …, v)
+            raise ValueError(f"value must be [..., {self.dim}]; got {tuple(value.shape)}")
         residual = value.unsqueeze(-2) - self.locs  # [..., C, d]
         if mask is None:
             comp = gaussian_log_prob_chol(residual, safe_cholesky(self.covs, name="covs"))

@@ -78,12 +78,23 @@ class GlintNoise(NoiseModel):
 
     Each sensor: ``Σ_c π_c N(0, diag(var_c))`` with ``weights [C]`` and ``variances
     [C, 2]``; ``log_prob`` sums the sensors whose entries are received (``mask``; a
-    sensor with no received entry adds 0), in closed form for diagonal components.
+    sensor with no received entry adds 0), in closed form for diagonal components. The
+    weights and variances are read once, into the tables ``log_prob`` reads: constants
+    (a learnable or edited glint noise kept its first tables, 3.2 nats off, and a second
+    backward failed on their graph), so a tensor that requires a gradient is refused;
+    build a new ``GlintNoise`` to change them.
     """
 
     def __init__(self, weights, variances, sensors: int):
         super().__init__()
+        if any(isinstance(t, Tensor) and t.requires_grad for t in (weights, variances)):
+            raise ValueError(
+                "GlintNoise's weights and variances are constants (read once into the tables "
+                "its log-density reads): give tensors that require no gradient"
+            )
         variances = torch.as_tensor(variances)
+        if not variances.is_floating_point():  # (integers had failed in torch.multinomial)
+            variances = variances.to(torch.get_default_dtype())
         weights = torch.as_tensor(weights, dtype=variances.dtype)
         if weights.dim() != 1 or variances.shape != (weights.shape[0], 2):
             raise ValueError(
@@ -96,11 +107,15 @@ class GlintNoise(NoiseModel):
         if (
             not bool(torch.isfinite(weights).all())
             or bool((weights < 0).any())
-            or abs(float(weights.detach().sum()) - 1.0) > 1e-9
+            # in float64, to 1e-6 as GaussianMixture's (float32 weights of 0.1 × 10 sum to
+            # 1 + 1.2e-7, and a 1e-9 tolerance had refused them)
+            or abs(float(weights.detach().double().sum()) - 1.0) > 1e-6
         ):
             raise ValueError(
                 f"weights must be finite, non-negative and sum to 1; got {weights.tolist()}"
             )
+        if isinstance(sensors, bool) or not isinstance(sensors, int) or sensors < 1:
+            raise ValueError(f"sensors must be an integer >= 1; got {sensors!r}")
         self.sensors, self.dim = int(sensors), 2 * int(sensors)
         register_tensor(self, "weights", weights)
         register_tensor(self, "variances", variances)
@@ -135,7 +150,9 @@ class GlintNoise(NoiseModel):
 
     def sample(self, sample_shape=(), generator=None) -> Tensor:
         shape = torch.Size((sample_shape,) if isinstance(sample_shape, int) else sample_shape)
-        n = max(1, math.prod(shape)) * self.sensors
+        if math.prod(shape) == 0:  # (torch.multinomial draws at least one: the reshape failed)
+            return self.variances.new_zeros(shape + (self.dim,))
+        n = math.prod(shape) * self.sensors
         comp = torch.multinomial(self.weights, n, replacement=True, generator=generator)
         eps = torch.randn(
             n, 2, generator=generator, dtype=self.variances.dtype, device=self.variances.device

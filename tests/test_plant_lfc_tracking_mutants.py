@@ -566,17 +566,20 @@ def test_sawtooth_pulse_train_honours_its_start():
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
 
 
-def test_learnable_glint_noise_log_density_matches_eq_19():
-    """With learnable mixture weights (``requires_grad``) the per-sensor log density is
-    still eq. (19): ``log Σ_c π_c N(r; 0, Σ_c,r) N(b; 0, Σ_c,b)``, literal in numpy; and
-    building it warns of nothing (its check of the weights' sum had converted a tensor that
-    requires grad to a number: torch's UserWarning)."""
+def test_glint_noise_log_density_matches_eq_19_and_learnable_weights_are_refused():
+    """The per-sensor log density is eq. (19): ``log Σ_c π_c N(r; 0, Σ_c,r) N(b; 0,
+    Σ_c,b)``, literal in numpy, and building it warns of nothing. Learnable weights
+    (``requires_grad``) are refused: the tables its density reads are made once (a
+    red-team trial: an edit left them 3.2 nats off, a second backward failed)."""
     import warnings
 
+    variances = torch.tensor(np.stack([_S1, _S2]))
     w = torch.tensor([1 - _KAPPA, _KAPPA], dtype=torch.float64, requires_grad=True)
+    with pytest.raises(ValueError, match="constants"):
+        tracking.GlintNoise(w, variances, 1)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        noise = tracking.GlintNoise(w, torch.tensor(np.stack([_S1, _S2])), 1)
+        noise = tracking.GlintNoise(w.detach(), variances, 1)
     r, b = np.array([1.5, -4.0]), np.array([0.01, -0.05])
     got = noise.sensor_log_prob(torch.tensor(r), torch.tensor(b)).detach().numpy()
     want = [_glint_logpdf([ri, bi]) for ri, bi in zip(r, b)]

@@ -137,7 +137,7 @@ def test_ess_threshold_range():
 def test_noise_model_errors():
     with pytest.raises(ValueError, match="cov must be positive definite"):
         df.noise.Gaussian(torch.zeros(2), -torch.eye(2))
-    with pytest.raises(ValueError, match="weights must be non-negative and sum to 1"):
+    with pytest.raises(ValueError, match="weights must be finite, non-negative and sum to 1"):
         df.noise.GaussianMixture([0.5, 0.6], torch.zeros(2, 1), torch.ones(2, 1, 1))
     with pytest.raises(ValueError, match="high must be strictly greater"):
         df.noise.UniformBox([0.0, 1.0], [1.0, 1.0])
