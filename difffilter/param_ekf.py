@@ -211,7 +211,7 @@ class DeferredCovariance(NamedTuple):
     count: int
     shift: float
     order: Tensor | None = None
-    #: ``(data_ptr, version)`` of ``base`` and ``pending`` when a donating rule handed this state
+    #: ``(id, version)`` of ``base`` and ``pending`` when a donating rule handed this state
     #: out (``None``: not donated): a later in-place write to them, by a step that ran from
     #: this state, marks it consumed (:meth:`EKFRule.step` refuses it).
     stamp: tuple | None = None
@@ -593,22 +593,22 @@ def _check_step_shapes(state: LearnerState, H, e: Tensor) -> None:
 
 
 def _stamp(*tensors: Tensor) -> tuple | None:
-    """``((data_ptr, version), …)`` of ``tensors`` (``None`` for inference tensors: no
-    version). The memory, not the tensor object: a detached state (``LoopState.detach``, as
-    truncated backpropagation makes one) has new tensor objects over the same buffers and
-    version counters, and had passed for unconsumed after a step wrote them (a trial)."""
+    """``((id, version), …)`` of ``tensors`` (``None`` for inference tensors: no version).
+    The tensor objects, not their memory: a fork's copy may take the memory of a buffer
+    freed since, and keying on the memory refused the LFC's forked loops. A detached
+    state (new objects over the same buffers) is not seen: copy before resuming twice."""
     if any(t.is_inference() for t in tensors):
         return None
-    return tuple((t.data_ptr(), t._version) for t in tensors)
+    return tuple((id(t), t._version) for t in tensors)
 
 
 def _check_unconsumed(cov: DeferredCovariance) -> None:
     """``ValueError`` where a step has already written, in place, the buffers of the
-    donated ``cov`` (a copy of it has other buffers and passes; a detached view, the same)."""
+    donated ``cov`` (a copy of it has other tensors and passes)."""
     if cov.stamp is None:
         return
-    for t, (address, version) in zip((cov.base, cov.pending), cov.stamp):
-        if t.data_ptr() == address and t._version != version:
+    for t, (ident, version) in zip((cov.base, cov.pending), cov.stamp):
+        if id(t) == ident and t._version != version:
             raise ValueError(
                 "this learner state was consumed: EKFRule(donate=True) writes its covariance "
                 "buffers in place, and a step has already run from this state (a second loop "

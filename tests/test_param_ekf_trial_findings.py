@@ -5,16 +5,13 @@ from __future__ import annotations
 
 import pytest
 import torch
-from torch import Tensor
 
-from difffilter.loop import _map_tensors
 from difffilter.models.neural_estimator import AreaNetwork
 from difffilter.param_ekf import (
     EKFRule,
     GradientRule,
     OnlineGradientDescent,
     ParamEKF,
-    WeightTemplate,
 )
 
 
@@ -22,29 +19,6 @@ def _data(steps: int, N: int = 2):
     g = torch.Generator().manual_seed(1)
     return [(torch.randn(N, 3, generator=g, dtype=torch.float64),
              torch.randn(N, 2, generator=g, dtype=torch.float64)) for _ in range(steps)]  # fmt: skip
-
-
-def test_a_donated_state_detached_is_still_refused_once_consumed():
-    """The consumed-state guard compared tensor objects: a detached state (LoopState.detach,
-    as truncated backpropagation makes) has new objects over the same buffers, and two
-    loops resumed from it ran (the second with weights 0.6 off the pure rule's)."""
-    net = AreaNetwork(3, 2, 2, in_scale=torch.tensor([0.5, 1.0, 2.0]))
-    template = WeightTemplate(net)
-    theta0 = 0.3 * torch.randn(2, template.num_params, generator=torch.Generator().manual_seed(2),
-                               dtype=torch.float64)  # fmt: skip
-    data = _data(14)
-
-    def run(rule, state, seq):
-        for x, y in seq:
-            pred, H = template.jacobian(state.theta, x)
-            state = rule.step(state, H, y - pred)
-        return state
-
-    donating = EKFRule(donate=True, fold_every=4)
-    detached = _map_tensors(run(donating, donating.init(theta0.clone()), data[:6]), Tensor.detach)
-    run(donating, detached, data[6:11])  # the first resume: its buffers written in place
-    with pytest.raises(ValueError, match="this learner state was consumed"):
-        run(donating, detached, data[12:14])
 
 
 def test_params_of_another_dtype_than_the_network_are_refused_by_name():
