@@ -148,6 +148,7 @@ class TabulatedAttack(Attack):
     def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
         values, flags = self.sample(batch_shape, num_steps, dim, generator, dtype=dtype,
                                     device=device)  # fmt: skip
+        _check_tables(type(self).__name__, values, flags, batch_shape, num_steps, dim)
         return values, flags.bool()
 
     def last_step(self, state) -> int:
@@ -160,15 +161,42 @@ class TabulatedAttack(Attack):
         return state, values[..., k - 1, :], flag
 
 
-def _entrywise(flag: Tensor, value: Tensor) -> Tensor:
-    """A flag ``[...]`` or ``[..., d]`` as ``[..., d]``-broadcastable."""
-    return flag if flag.dim() == value.dim() else flag.unsqueeze(-1)
+def _check_tables(name: str, values, flags, batch_shape, num_steps: int, dim: int) -> None:
+    """``ValueError`` unless ``sample`` returned ``values [*batch, T, dim]`` and ``flags
+    [*batch, T]`` or ``[*batch, T, dim]`` (:meth:`TabulatedAttack.sample`). A table of one
+    value for every run (``[T, dim]``) beside flags per run (``[B, T]``) had been read with
+    the flags' rows as steps: every run flagged where run ``k − 1`` was."""
+    batch = (batch_shape,) if isinstance(batch_shape, int) else tuple(batch_shape)
+    rows = (*batch, num_steps)
+    if not isinstance(values, Tensor) or tuple(values.shape) != (*rows, dim):
+        got = tuple(values.shape) if isinstance(values, Tensor) else type(values).__name__
+        raise ValueError(
+            f"{name}.sample must return values [*batch, T, dim] = {list((*rows, dim))} (expand "
+            f"a table shared by the runs); got {got}"
+        )
+    if not isinstance(flags, Tensor) or tuple(flags.shape) not in (rows, (*rows, dim)):
+        got = tuple(flags.shape) if isinstance(flags, Tensor) else type(flags).__name__
+        raise ValueError(
+            f"{name}.sample must return flags [*batch, T] = {list(rows)} (per run) or "
+            f"[*batch, T, dim] = {list((*rows, dim))} (per entry); got {got}"
+        )
+
+
+def _entrywise(flag: Tensor, signal: Tensor, value: Tensor) -> Tensor:
+    """A flag ``[...]`` (per run) or ``[..., d]`` (per entry) as ``[..., d]``-broadcastable:
+    per entry where its rank is that of the full shape of ``signal`` and ``value`` together
+    (a value ``[d]`` shared by the runs beside per-run flags ``[B]``, B = d, had had those
+    flags read per entry)."""
+    full = len(torch.broadcast_shapes(signal.shape, value.shape))
+    return flag if flag.dim() == full else flag.unsqueeze(-1)
 
 
 def inject(channel: Channel, signal: Tensor, value: Tensor, flag: Tensor) -> tuple[Tensor, Tensor]:
     """``(attacked signal, recorded attack)`` of one step on ``channel`` (module docstring):
-    ``signal [..., d]`` (``y_k`` or ``u_{k−1}``), ``value [..., d]``, ``flag`` → both ``[..., d]``."""
-    f = _entrywise(flag, value)
+    ``signal [..., d]`` (``y_k`` or ``u_{k−1}``), ``value [..., d]``, ``flag`` → both ``[..., d]``.
+    The flag's rank says what it flags (:meth:`Attack.step`): one less than the full shape
+    of ``signal`` and ``value`` per run, the same per entry."""
+    f = _entrywise(flag, signal, value)
     if channel is Channel.REPLACEMENT:
         received = torch.where(f, value, signal)
         return received, torch.where(f, received - signal, torch.zeros_like(signal))

@@ -98,6 +98,10 @@ class ExpectedInputKalmanFilter(KalmanFilter):
         on_loss = on_loss_of(on_loss)
         if not isinstance(independent, bool):
             raise ValueError(f"independent must be True or False; got {independent!r}")
+        if isinstance(arrival_rate, Tensor) and arrival_rate.dtype == torch.bool:
+            # (a 0-d one had gone through float() to a rate of 1, where True is refused)
+            raise ValueError(f"arrival_rate must hold probabilities, not booleans; got "
+                             f"{arrival_rate!r}")  # fmt: skip
         if isinstance(arrival_rate, Tensor) and arrival_rate.dim() == 0:
             arrival_rate = float(arrival_rate)
         if isinstance(arrival_rate, numbers.Real) and not isinstance(arrival_rate, bool):
@@ -133,12 +137,7 @@ class ExpectedInputKalmanFilter(KalmanFilter):
     def _init(self, model, batch_shape, generators):
         _check_linear(model)
         _check_declared_time_varying(model)
-        rate = self.arrival_rate
-        if rate.dim() == 1 and rate.shape[0] != model.dim_u:
-            raise ValueError(
-                f"arrival_rate holds {rate.shape[0]} rates, and the model has {model.dim_u} "
-                "input(s): one rate per actuator"
-            )
+        self._check_rates(model)
         state = gaussian_init(model, batch_shape)  # (no shared gains: P⁻ reads the inputs)
         if self.on_loss is OnLoss.ZERO:
             return state
@@ -261,7 +260,19 @@ class ExpectedInputKalmanFilter(KalmanFilter):
         joint = torch.cat([new_x.expand(runs + (dx,)), new_held.expand(runs + (du,))], -1)
         return Prediction(joint, symmetrize(pred_cov))
 
+    def _check_rates(self, model) -> None:
+        """One rate per actuator of ``model`` where the rates are per actuator."""
+        rate = self.arrival_rate
+        if rate.dim() == 1 and rate.shape[0] != model.dim_u:
+            raise ValueError(
+                f"arrival_rate holds {rate.shape[0]} rates, and the model has {model.dim_u} "
+                "input(s): one rate per actuator"
+            )
+
     def _check_carry(self, carry):
+        # (here too: a Kalman filter's carry, which this filter may step, never saw _init;
+        # one rate for two inputs had been broadcast to both, three had failed in torch)
+        self._check_rates(carry.model)
         if self.on_loss is OnLoss.ZERO:
             return super()._check_carry(carry)
         _check_linear(carry.model)

@@ -328,9 +328,9 @@ def same_rate_bias(scenario, against: str, rate: float, threshold: float, *, ons
     free = judge(0.0)
     if free["alarm_rate"] >= rate:
         return {"k_sigma": 0.0, **free, "matched": free["alarm_rate"] == rate}
-    lo, hi = 0.0, 1.0
+    hi = 1.0
     while (top := judge(hi))["alarm_rate"] < rate and hi < 1e3:
-        lo, hi = hi, 2 * hi
+        hi *= 2  # (the grid below scans from 0: the last bias below the rate is not kept)
     if top["alarm_rate"] < rate:  # no bias tried alarms as often: the bisection has no end
         return {"k_sigma": hi, **top, "matched": False}
     step = hi / GRID
