@@ -9,7 +9,11 @@ the report's "trained on" line said where it came from). :func:`plant_difference
 the training scenario's plant with an evaluated scenario's where both can be built:
 
     dimensions (dx, dy, du),  f(x_j, u, 0) and h(x_j, 1) at x_j ∈ {m₀, m₀ + σ_i e_i, m₀ − σ},
-    σ = √diag P₀, u = 0.1 · 1 (each to rtol 1e-6, atol 1e-9)
+    σ = √diag P₀, u = 0.1 · 1, and f(m₀, 0.1 · e_l, 0) for each input l (each to rtol 1e-6,
+    atol 1e-9)
+
+(one input at a time, as one state at a time: ``u = 0.1 · 1`` alone read input matrices of
+the same row sums as one, actuators wired the other way round among them)
 
 (the noise may differ: a study of the same plant under more noise is one of transfer, not
 of another plant). :func:`training_plant_notes` turns that into the lines the command
@@ -47,9 +51,13 @@ def plant_difference(trained, evaluated) -> str | None:
     # alone confused h = x₁ with h = x₂ for m₀ = 1) and m₀ − σ
     points = torch.cat([mean[None], mean + torch.diag(spread), (mean - spread)[None]])
     du = dims[0][2]
-    u = None if du == 0 else torch.full((len(points), du), 0.1, dtype=mean.dtype)
+    moved, u = points, None
+    if du:  # u = 0.1 · 1 at every point, then 0.1 · e_l at m₀ for each input l
+        u = torch.cat([torch.full((len(points), du), 0.1, dtype=mean.dtype),
+                       0.1 * torch.eye(du, dtype=mean.dtype)])  # fmt: skip
+        moved = torch.cat([points, mean.expand(du, -1)])
     with torch.no_grad():
-        for what, read in (("transition", lambda m: m.transition(points, u, 0)),
+        for what, read in (("transition", lambda m: m.transition(moved, u, 0)),
                            ("measurement function", lambda m: m.observe(points, 1))):  # fmt: skip
             a, b = (read(m).to(torch.float64) for m in (trained, evaluated))
             if a.shape != b.shape or not torch.allclose(a, b, rtol=1e-6, atol=1e-9):
@@ -68,12 +76,29 @@ def _card(path) -> dict:
 
 def training_scenario_of(path) -> str | None:
     """The scenario a checkpoint's network was trained on, as its training was given it
-    (the JSON card's ``model_config.scenario``: a registered name, ``module:object`` or a
-    YAML path), else the name inside the checkpoint; ``None`` where neither says."""
+    (the JSON card's ``model_config.scenario`` beside an export, or a Lightning
+    checkpoint's ``hyper_parameters.scenario``: a registered name, ``module:object`` or a
+    YAML path), else the name inside the checkpoint; ``None`` where none says. (A run's
+    Lightning checkpoint has no card beside it: its YAML scenario's name alone could not be
+    built by another process, and both notes of :func:`training_plant_notes` went unsaid.)"""
     from .neural_estimator import checkpoint_training_scenario
 
-    spec = (_card(path).get("model_config") or {}).get("scenario")
+    config = _card(path).get("model_config")
+    # (a card whose model_config is not a mapping says nothing: it had raised AttributeError)
+    spec = config.get("scenario") if isinstance(config, dict) else None
+    spec = spec or _lightning_scenario(path)
     return str(spec) if spec else checkpoint_training_scenario(path)
+
+
+def _lightning_scenario(path) -> str | None:
+    """The ``scenario`` hyperparameter a Lightning checkpoint records, else ``None``."""
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception:  # (not a zip-format torch file: the loaders name it themselves)
+        return None
+    hparams = blob.get("hyper_parameters") if isinstance(blob, dict) else None
+    spec = hparams.get("scenario") if isinstance(hparams, dict) else None
+    return spec if isinstance(spec, str) and spec else None
 
 
 def _recorded_file_digest(path) -> str | None:
