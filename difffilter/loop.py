@@ -69,6 +69,7 @@ from ._checks import (
 from .attack import Attack, Channel, TabulatedAttack, attack_dim, inject
 from .estimator import Estimator, EstimatorOutput, Generators, stack_steps
 from .input_loss import InputLoss, OnLoss
+from .results import GaussianState
 
 __all__ = [
     "open_loop",
@@ -228,8 +229,29 @@ def _step_through(estimator, carry, ys, us, mask, batch, collect) -> EstimatorOu
         if collect is not None:
             for name, value in collect(carry, out).items():
                 records.setdefault(name, []).append(value)
-    collected = {k: torch.stack(v, dim=len(batch)) for k, v in records.items()}
+    collected = {k: torch.stack(_per_run(k, v, batch), dim=len(batch)) for k, v in records.items()}
     return stack_steps(outs, batch, collected, estimator.attack_channel)
+
+
+def _per_run(name: str, values: list, batch: torch.Size) -> list:
+    """``collect``'s record ``name`` at every step as ``[*batch, …]``: leading dimensions
+    of size 1 expanded to the runs'; a value without the runs' leading dimensions refused
+    (a Kalman filter's covariance shared by the runs, ``[dx, dx]``, had been stacked as
+    ``[dx, T, dx]``: row 0 of every step's matrix read as run 0's)."""
+    n = len(batch)
+    out = []
+    for t, value in enumerate(values):
+        lead = tuple(value.shape[:n]) if isinstance(value, Tensor) else None
+        if lead is None or len(lead) < n or broadcast_or_none(lead, batch) != batch:
+            got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
+            raise ValueError(
+                f"collect: its record {name!r} at step {t + 1} has shape {got}; each record "
+                f"leads with the runs' dimensions {tuple(batch)} (a value shared by the runs, "
+                f"e.g. a Kalman filter's shared covariance: value.expand(*{tuple(batch)}, "
+                "*value.shape))"
+            )
+        out.append(value if lead == tuple(batch) else value.expand(*batch, *value.shape[n:]))
+    return out
 
 
 # ------------------------------------------------------------------------ the closed loop
@@ -311,8 +333,11 @@ class KnownInputs:
                 f"the known inputs us [B, T, du] cover u_0 … u_{T - 1} (T = {T}); step {k} of "
                 "the loop needs more: give us one row per step run"
             )
-        # after the last step (k = T) the loop asks for u_T, which no step uses
-        return self.us[:, min(k, T - 1)]
+        if k == T:  # after the last step the loop asks for u_T, which the table lacks:
+            # NaN, so that a loop resumed from this state is refused (closed_loop), where a
+            # copy of u_{T−1} had driven step T + 1 (0.23 off in a trial)
+            return torch.full_like(self.us[:, T - 1], float("nan"))
+        return self.us[:, k]
 
 
 class StateFeedback:
@@ -422,6 +447,12 @@ def _map_tensors(value, on_tensor, on_generator=None):
         return on_tensor(value)
     if on_generator is not None and isinstance(value, torch.Generator):
         return on_generator(value)
+    if isinstance(value, GaussianState) and value.gains is not None:
+        # the gain schedule's covariance is shared by the runs and the steps, never written
+        # (the Kalman filter refuses a carry whose cov is not that very tensor: a copied
+        # carry had been refused by KalmanFilter.step and open_loop, "changed")
+        return type(value)(*(v if name == "cov" else _map_tensors(v, on_tensor, on_generator)
+                             for name, v in zip(value._fields, value)))  # fmt: skip
     if isinstance(value, tuple) and not isinstance(value, torch.Size):
         items = [_map_tensors(v, on_tensor, on_generator) for v in value]
         return type(value)(*items) if hasattr(value, "_fields") else type(value)(items)
@@ -533,6 +564,7 @@ def closed_loop(
     """
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"steps must be an integer >= 1; got {steps!r}")
+    given_model = model
     model = plant if model is None else model
     if not (
         callable(getattr(noise, "transition", None)) and callable(getattr(noise, "measure", None))
@@ -576,9 +608,12 @@ def closed_loop(
     reads = attack is not None and bool(attack.reads_view)
     # the true state only to an attack that declares it reads it (Attack.reads_state)
     shows_state = attack is not None and bool(attack.reads_state)
+    if fork is not None and state is not None:
+        raise ValueError("give a loop either state= or fork= to resume from, not both")
+    if fork is not None or state is not None:
+        _check_resumed(fork.state if fork is not None else state, "fork" if fork else "state",
+                       estimator, given_model)  # fmt: skip
     if fork is not None:
-        if state is not None:
-            raise ValueError("give a loop either state= or fork= to resume from, not both")
         state, rec, outs = _resume(fork, plant, attack, attack_generator, channel,
                                    horizon or fork.state.k + steps)  # fmt: skip
     else:
@@ -1117,6 +1152,52 @@ def _with_input_memory(input_loss: InputLoss, plant, state: LoopState, steps: in
     return state._replace(inputs=input_loss.start(u))
 
 
+def _check_resumed(kept: LoopState, given: str, estimator, model) -> None:
+    """A loop resumed from ``kept`` (``given``: ``"state"`` or ``"fork"``) runs its
+    estimator on the carry kept (one exactly where the kept loop had an estimator), with
+    ``model`` (where given) the model that carry filters with, and from a finite last input
+    (:class:`KnownInputs` leaves NaN after its table's last row). Each had been taken
+    unsaid or failed deep inside: a resumed estimator with no carry (an ``AttributeError``
+    on ``None``), another ``model`` ignored (the carry's filtered on), the input after a
+    known-inputs table a copy of its last row."""
+    carry = kept.carry
+    if (carry is None) != (estimator is None):
+        had, has = ("no", "an") if carry is None else ("an", "no")
+        raise ValueError(
+            f"{given}: the loop kept had {had} estimator and this one has {has}: resume a "
+            "loop with the estimator it ran (its carry is the estimator's state), or start a "
+            "new loop"
+        )
+    held = None if carry is None else estimator._model_of(carry)
+    if model is not None and held is not None and not _same_model(held, model):
+        raise ValueError(
+            f"model: the {given}'s estimator carry filters with its own model, and another "
+            "was given (its steps would have ignored it): resume with model=None (the "
+            "carry's), or start a new loop on the new model"
+        )
+    u = kept.u
+    if isinstance(u, Tensor) and not bool(torch.isfinite(u).all()):
+        raise ValueError(
+            f"{given}: its last input u_{kept.k} is not finite: a KnownInputs(us) table ends "
+            f"before step {kept.k + 1} (give the first chunk the whole table, us [B, horizon, "
+            "du], so that it leaves the input of the next step)"
+        )
+
+
+def _same_model(a, b) -> bool:
+    """Whether two models are one, or two modules of one type holding equal tensors (a
+    chunked loop may build its model anew for every chunk); models that are not modules
+    are not compared (no claim)."""
+    if a is b or not (isinstance(a, torch.nn.Module) and isinstance(b, torch.nn.Module)):
+        return True
+    if type(a) is not type(b):
+        return False
+    sa, sb = a.state_dict(keep_vars=True), b.state_dict(keep_vars=True)
+    return sa.keys() == sb.keys() and all(
+        sa[k].shape == sb[k].shape and bool(torch.equal(sa[k].detach(), sb[k].detach())) for k in sa
+    )
+
+
 def _start(plant, steps, horizon, x0, estimator, model, controller, attack, attack_generator,
            generator) -> LoopState:  # fmt: skip
     """The state before step 1 (after checking the plant and ``x0``)."""
@@ -1244,6 +1325,10 @@ def _resume(fork: LoopFork, plant, attack, attack_generator, channel, horizon):
     if bool(acting.any()):
         raise ValueError(f"fork: the attack acts at step {int(acting.nonzero()[0]) + 1}, at or "
                          f"before the fork's step {k}: those steps are not the loop's without attack")  # fmt: skip
+    # the fork recorded the steps of its own loop, first + 1 … k (a loop resumed in chunks
+    # records from its chunk's first step: all k rows had been stacked beside them)
+    recorded = len(records["x"])
+    values, flags = (table.narrow(time, k - recorded, recorded) for table in (values, flags))
     signal = torch.stack(records["u" if channel is Channel.ACTUATOR else "y"], time)
     _, injected = inject(channel, signal, values, flags)  # every step before the fork at once
     for key, table in (("attack", injected), ("value", values), ("flag", flags)):

@@ -360,12 +360,13 @@ def _fake_plant(calls, *, mean, cov, du=1, scale=1.0, h_shape=None):
 
 def test_plants_are_compared_at_the_docstrings_points_input_and_times():
     """``f(x_j, u, 0)`` and ``h(x_j, 1)`` at ``m₀``, ``m₀ + σ_i e_i``, ``m₀ − σ`` with
-    ``σ = √diag P₀`` and ``u = 0.1``, written out for m₀ = (1, −2), P₀ = diag(4, 9) (a
-    prior per run: its first); a relative difference of 1e-5 is one (rtol 1e-6); an
-    output of another shape is one."""
+    ``σ = √diag P₀`` and ``u = 0.1``, and ``f(m₀, 0.1 e_l, 0)`` for each input ``l``,
+    written out for m₀ = (1, −2), P₀ = diag(4, 9) (a prior per run: its first); a relative
+    difference of 1e-5 is one (rtol 1e-6); an output of another shape is one."""
     from difffilter.models.plant_match import plant_difference
 
     want = np.array([[1.0, -2.0], [3.0, -2.0], [1.0, 1.0], [-1.0, -5.0]])
+    with_inputs = np.concatenate([want, [[1.0, -2.0]]])  # m₀ with u = 0.1 e_1 (du = 1)
     mean = torch.tensor([[1.0, -2.0], [5.0, 5.0]], dtype=D)  # per run: the first
     cov = torch.stack([torch.diag(torch.tensor([4.0, 9.0], dtype=D)), 100 * torch.eye(2, dtype=D)])
     calls = []
@@ -374,9 +375,9 @@ def test_plants_are_compared_at_the_docstrings_points_input_and_times():
     assert plant_difference(a, b) is None
     assert [(c[0], c[3]) for c in calls] == [("f", 0), ("f", 0), ("h", 1), ("h", 1)]
     for what, x, u, _ in calls:
-        assert x.numpy() == pytest.approx(want), what
+        assert x.numpy() == pytest.approx(with_inputs if what == "f" else want), what
         if what == "f":
-            assert u.numpy() == pytest.approx(np.full((4, 1), 0.1))
+            assert u.numpy() == pytest.approx(np.full((5, 1), 0.1))
     off = _fake_plant([], mean=mean, cov=cov, scale=1 + 1e-5)
     assert "transition" in plant_difference(a, off)
     column = _fake_plant([], mean=mean, cov=cov, h_shape=(-1, 1))
