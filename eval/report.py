@@ -130,6 +130,22 @@ def format_number(value: Any, digits: int = 4, apart_from: Sequence[float] = ())
     return str(value)
 
 
+def less(a: Any, b: Any) -> bool | None:
+    """``a < b`` of two report numbers, ``None`` where either is missing (a metric that
+    was not finite is written ``null``: one diverged run makes an RMSE so, and a family's
+    claim had compared ``None < 1`` and stopped the report)."""
+    return None if a is None or b is None else a < b
+
+
+#: What a claim says where a number it compares is missing (:func:`less`).
+NOT_JUDGED = "cannot be judged (a number is missing: an estimate was not finite)"
+
+
+def verdict(holds: bool | None, yes: str = "holds", no: str = "does not hold") -> str:
+    """``yes``, ``no``, or :data:`NOT_JUDGED` for ``None`` (:func:`less`)."""
+    return NOT_JUDGED if holds is None else (yes if holds else no)
+
+
 def share_suffix(interval: dict | None) -> str:
     """``" (53 %)"``: the share of resamples of the runs in which a check holds (an
     interval of :mod:`difffilter.eval.intervals`), or ``""`` where none was measured."""

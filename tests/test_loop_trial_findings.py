@@ -8,7 +8,7 @@ import torch
 
 import difffilter as df
 from difffilter.loop import KnownInputs, ReplayedNoise, StateFeedback, closed_loop, open_loop
-from models.attacks import Signal
+from difffilter.models.attacks import Signal
 
 D = torch.float64
 I2 = torch.eye(2, dtype=D)

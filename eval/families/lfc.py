@@ -30,6 +30,7 @@ from ..report import (
     FamilyReport,
     Section,
     format_number,
+    less,
     markdown_table,
     register_family,
     save_figure,
@@ -213,12 +214,14 @@ def _explain(sc, table: dict, est: dict) -> str:
     names, f = [n for n in PER_CHANNEL if n in table], format_number
     text = []
     for c in sc.attacked_channels:
-        ranked = sorted(names, key=lambda n: table[n][STATE_NAMES[c]])
+        # (a missing number ranks last: a diverged estimate's null had stopped the report)
+        ranked = sorted(names, key=lambda n: (table[n][STATE_NAMES[c]] is None,
+                                              table[n][STATE_NAMES[c]] or 0.0))  # fmt: skip
         vals = ", ".join(f"{n} {f(table[n][STATE_NAMES[c]])}" for n in ranked)
         text.append(
             f"On channel {STATE_NAMES[c]}, which this scenario attacks, random attacks rank the estimators {vals}."
         )
-    wins = [s for s in STATE_NAMES if table["kf_nn_ekf"][s] < table["traditional_ad"][s]]
+    wins = [s for s in STATE_NAMES if less(table["kf_nn_ekf"][s], table["traditional_ad"][s])]
     verdict = {
         10: "the paper's ordering (EKF-trained better than traditional) holds on every channel",
         0: "the paper's ordering is reversed on every channel",
@@ -230,13 +233,17 @@ def _explain(sc, table: dict, est: dict) -> str:
     if "kf_nn_ekf" in est and "traditional_ad" in est:
         a, b = est["kf_nn_ekf"]["attack_rmse_eq43"], est["traditional_ad"]["attack_rmse_eq43"]
         says = {
-            table["kf_nn_ekf"][STATE_NAMES[c]] < table["traditional_ad"][STATE_NAMES[c]]
+            less(table["kf_nn_ekf"][STATE_NAMES[c]], table["traditional_ad"][STATE_NAMES[c]])
             for c in sc.attacked_channels
         }
         disagree = len(says) > 1
-        same = disagree or (a < b) == next(iter(says))
+        here = less(a, b)
+        unknown = here is None or None in says
+        same = disagree or unknown or here == next(iter(says))
         relation = (
-            "its channels disagree on random attacks, so no order is predicted"
+            "a number is missing (an estimate was not finite), so no order is compared"
+            if unknown
+            else "its channels disagree on random attacks, so no order is predicted"
             if disagree
             else ("the same order as" if same else "the opposite order to")
             + " the random attacks on its channel"
@@ -245,7 +252,7 @@ def _explain(sc, table: dict, est: dict) -> str:
             f"In this scenario kf_nn_ekf scores {f(a)} and traditional_ad {f(b)}: {relation}."
         )
         unc, s5 = est["uncompensated"]["state5_rmse"], est["kf_nn_ekf"]["state5_rmse"]
-        if not same and unc and s5 > 2 * unc:
+        if not same and unc and s5 is not None and s5 > 2 * unc:
             text.append(
                 f"kf_nn_ekf's compensated loop drifts here (state-5 RMSE {f(s5)} against {f(unc)} "
                 "without compensation): the estimate it learns online is fed back through "
@@ -461,8 +468,8 @@ def _finish(results: dict, out: Path, prepared) -> None:
     for name in order:
         est = results[name]["estimators"]
         paper = results[name]["paper"]
-        for n in MAIN:
-            if name in CORE and n in est:
+        for n in MAIN:  # (a null, a diverged estimate, leaves the mean out: it had raised)
+            if name in CORE and est.get(n, {}).get("attack_rmse_eq43") is not None:
                 means[n].append(est[n]["attack_rmse_eq43"])
         label = f"{_NUMERALS[CORE.index(name)]}: {name}" if name in CORE else name
         rows.append([label, *(f(est.get(n, {}).get("attack_rmse_eq43")) for n in MAIN),

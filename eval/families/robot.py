@@ -18,12 +18,15 @@ from difffilter.models.robot import DEG
 from difffilter.runtime import one_thread
 
 from ..report import (
+    NOT_JUDGED,
     FamilyReport,
     Section,
     format_number,
+    less,
     markdown_table,
     register_family,
     save_figure,
+    verdict,
 )
 
 LATE = 40  # the issue's "k ≥ 40"
@@ -341,9 +344,9 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
                 f"{f(att['max_rel_error_at_end'][0])}, {f(att['max_rel_error_at_end'][1])}).\n")  # fmt: skip
         if comp:
             ie, oe = comp["input_error"], comp["open_loop_attack_error"]
-            verdict = (
-                "holds" if all(v <= INPUT_BOUND for v in ie[INPUT_READING]) else "does not hold"
-            )
+            reading = ie[INPUT_READING]
+            input_bound = verdict(None if any(v is None for v in reading)
+                                  else all(v <= INPUT_BOUND for v in reading))  # fmt: skip
             lam = result.scenario.forgetting
             body += ("\nCompensated loop (u ← u − â_f with the fused estimate of the previous step, same plant "
                      "noise): the effective input error e = a − â for k ≥ 40 by every reading, beside the "
@@ -352,7 +355,7 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
                      + _input_error_table(ie, oe)
                      + f"\nCriterion (issue 11: ≤ 1 cm/s and ≤ 1 deg/s after k = 40), read as (a), the RMS over "
                      f"runs and steps (a per-step bound would contradict the 10 % = 2 cm/s the issue allows at "
-                     f"k = 44): **{verdict}**. The stricter per-step reading (c), the ensemble's error at every "
+                     f"k = 44): **{input_bound}**. The stricter per-step reading (c), the ensemble's error at every "
                      f"step, peaks at {f(ie['max_step_mean'][0])} cm/s (k = {ie['argmax_k']['max_step_mean'][0]}) "
                      f"and {f(ie['max_step_mean'][1])} deg/s (k = {ie['argmax_k']['max_step_mean'][1]}) and stays "
                      f"≤ 1 from k = {ie['settle_k']['max_step_mean'][0]} / {ie['settle_k']['max_step_mean'][1]} on "
@@ -381,12 +384,12 @@ def _claims(doc) -> str:
     lines = []
     ci = fus.get("mdpf_fused_ci")
     if ci:
-        holds = ci["ratio_all"] < 1 and ci["ratio_late"] < 1
+        pooled, late = less(ci["ratio_all"], 1), less(ci["ratio_late"], 1)
+        holds = None if pooled is None or late is None else pooled and late
         ra, rl = format_number(ci["ratio_all"]), format_number(ci["ratio_late"])
-        verdict = "holds" if holds else "does not hold"
         lines.append(
-            f"- Fusion below both locals (Fig. B2): {verdict} for the position, pooled over the "
-            f"steps (CI/better local {ra}, k ≥ 40: {rl})."
+            f"- Fusion below both locals (Fig. B2): {verdict(holds)} for the position, pooled "
+            f"over the steps (CI/better local {ra}, k ≥ 40: {rl})."
         )
         attack = {n: est.get(n, {}).get("attack_rmse") for n in
                   ("mdpf_fused_ci", "mdpf_local_1", "mdpf_local_2")}  # fmt: skip
@@ -399,27 +402,32 @@ def _claims(doc) -> str:
             )
     if "zhang_akf" in est and "mdpf_fused_ci" in est:
         z, fz = est["zhang_akf"]["position_rmse"], est["mdpf_fused_ci"]["position_rmse"]
-        zg = min(
-            est.get("zhang_akf_group1", {}).get("position_rmse", 1e9),
-            est.get("zhang_akf_group2", {}).get("position_rmse", 1e9),
-        )
-        lines.append(f"- Fusion below Zhang's filter (Fig. B2): {'holds' if fz < z else 'does not hold'} against Zhang "
-                     f"with all six lidars ({format_number(fz)} vs {format_number(z)} cm); against Zhang on one group "
-                     f"({format_number(zg)} cm) it {'holds' if fz < zg else 'does not hold'}. One EKF on all twelve "
+        # the group filters that ran and have a number (none: no clause; a 1e9 stand-in had
+        # been reported as a win "against Zhang on one group (1.000e+09 cm)")
+        groups = [est[g]["position_rmse"] for g in ("zhang_akf_group1", "zhang_akf_group2")
+                  if est.get(g, {}).get("position_rmse") is not None]  # fmt: skip
+        zg = min(groups) if groups else None
+        group = "" if zg is None else (f"; against Zhang on one group ({format_number(zg)} cm) it "
+                                       f"{verdict(less(fz, zg))}")  # fmt: skip
+        lines.append(f"- Fusion below Zhang's filter (Fig. B2): {verdict(less(fz, z))} against Zhang "
+                     f"with all six lidars ({format_number(fz)} vs {format_number(z)} cm){group}. One EKF on all twelve "
                      "measurements uses the joint information exactly, while the fusion combines two 3-lidar "
                      "estimates conservatively (CI) from particle approximations, so the six-lidar Zhang filter "
                      "is the stronger baseline; the paper does not say which sensors its Zhang run used.")  # fmt: skip
     if att:
-        ok = max(att["mean_rel_error_k44"]) < 0.1
-        lines.append(
-            f"- â(k) converges to a (Fig. B3): {'holds' if ok and att['all_runs_within_10pct_at_end'] else 'partly'}."
-        )
+        errors = att["mean_rel_error_k44"]
+        if any(e is None for e in errors):
+            said = NOT_JUDGED
+        else:
+            ok = max(errors) < 0.1 and att["all_runs_within_10pct_at_end"]
+            said = "holds" if ok else "partly"
+        lines.append(f"- â(k) converges to a (Fig. B3): {said}.")
     comp = doc.get("compensation")
     if comp:
         near = comp.get("mean_deviation_from_attack_free_cm")
         far = comp.get("uncompensated_mean_deviation_from_attack_free_cm")
-        verdict = "" if near is None or far is None else (
-            f"{'holds' if near < far else 'does not hold'}: from the attack on it is "
+        said = "" if near is None or far is None else (
+            f"{verdict(less(near, far))}: from the attack on it is "
             f"{format_number(near)} cm from it on average against the uncompensated robot's "
             f"{format_number(far)} cm; ")  # fmt: skip
         shape_near = comp.get("mean_distance_to_attack_free_path_cm")
@@ -428,7 +436,7 @@ def _claims(doc) -> str:
             f" From the path as a shape (wherever the robot passes there, not when): "
             f"{format_number(shape_near)} cm against {format_number(shape_far)} cm.")  # fmt: skip
         lines.append("- Compensation keeps the robot near the attack-free path (Fig. B1): "
-                     f"{verdict}the compensated robot ends "
+                     f"{said}the compensated robot ends "
                      f"{format_number(comp['deviation_from_attack_free_cm'])} cm from it on average.{shape}")  # fmt: skip
     return "\n".join(lines) + "\n"
 

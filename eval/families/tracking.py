@@ -26,12 +26,15 @@ from difffilter.runtime import one_thread
 
 from ..intervals import register_stepwise
 from ..report import (
+    NOT_JUDGED,
     FamilyReport,
     Section,
     format_number,
+    less,
     markdown_table,
     register_family,
     save_figure,
+    verdict,
 )
 from ..scoring import auc
 from ..suite import single_run_time_per_step
@@ -301,7 +304,7 @@ def _proposal_section(result, doc: dict) -> Section | None:
     rows = [row("`rrp_pf_da`", n, a), row("`rrp_pf_da_ekf_proposal`", n, b),
             row("`rrp_pf_da`, particles for the proposal's wall time", eq["num_particles"], eq)]  # fmt: skip
     body = markdown_table(["filter", "particles", "RMSE_p", "RMSE_v", "s/run (batched)"], rows)
-    same_n = "lower" if b["rmse_p"] < a["rmse_p"] else "higher"
+    same_n = verdict(less(b["rmse_p"], a["rmse_p"]), "lower", "higher")
     body += (f"\nAt {n} particles the EKF proposal's RMSE_p is {same_n} than the bootstrap filter's "
              f"({f(b['rmse_p'])} vs {f(a['rmse_p'])}); for its wall time the bootstrap filter runs "
              f"{eq['num_particles']} particles (measured time in the last column): "
@@ -324,7 +327,9 @@ def _equal_time_verdict(eq: dict, proposal: dict) -> str:
     loser."""
     seconds, target = eq["time_per_run_batched_s"], proposal["time_per_run_batched_s"]
     ratio = seconds / target
-    better = proposal["rmse_p"] < eq["rmse_p"]
+    better = less(proposal["rmse_p"], eq["rmse_p"])
+    if better is None:  # (a diverged run: its RMSE_p is null, and None < x had stopped the report)
+        return f"whether the EKF proposal helps {NOT_JUDGED}."
     if _equal_times(seconds, target):
         return f"at equal wall time the EKF proposal {'helps' if better else 'does not help'}."
     times = f"{ratio:#.3g}" if ratio < 10 else f"{ratio:.0f}"  # (1.20, not 1.2; 123, not 123.)
