@@ -460,20 +460,23 @@ def check_strategy(obj, name: str, example: str, params: Sequence[str] = ()) -> 
         check_callable_as(obj, f"{name} {type(obj).__name__}", name, params)
 
 
-def check_callable_as(fn, who: str, call: str, params: Sequence[str]) -> None:
-    """``fn`` can be called with the positional arguments ``params``, as the filter calls
-    it (``call(params…)``), else a ``TypeError`` naming ``who``: checked when the filter
-    is made, not at the first call, where Python's bare "takes 3 positional arguments but
-    4 were given" named neither the plug-in nor its contract."""
+def check_callable_as(fn, who: str, call: str, params: Sequence[str],
+                      keywords: Sequence[str] = ()) -> None:  # fmt: skip
+    """``fn`` can be called with the positional arguments ``params`` (and the keyword
+    arguments ``keywords``), as the filter calls it (``call(params…)``), else a
+    ``TypeError`` naming ``who``: checked when the filter is made, not at the first call,
+    where Python's bare "takes 3 positional arguments but 4 were given" named neither the
+    plug-in nor its contract."""
     try:
         signature = inspect.signature(fn)
     except (TypeError, ValueError):  # no signature to read (a builtin): the call will say
         return
     try:
-        signature.bind(*params)
+        signature.bind(*params, **dict.fromkeys(keywords))
     except TypeError as error:
+        args = ", ".join((*params, *(f"{k}=" for k in keywords)))
         raise TypeError(
-            f"{who} is called as {call}({', '.join(params)}); its call takes {signature} "
+            f"{who} is called as {call}({args}); its call takes {signature} "
             f"({error}): docs/plugins.md, The contracts"
         ) from None
 

@@ -49,6 +49,7 @@ from ._checks import (
 )
 from .linalg import symmetrize
 from .noise import Gaussian, NoiseModel
+from .particle import transition_law_unsaid
 from .ssm import StateSpaceModel
 
 __all__ = [
@@ -191,9 +192,7 @@ def _pcrb_information(model, xs, x0, us, mask, information, num_samples, generat
                 f"posterior_crb needs a Gaussian {what} (its information is the inverse "
                 f"covariance); got {type(law).__name__}"
             )
-    if type(model).sample_transition is not StateSpaceModel.sample_transition and not getattr(
-        model, "samples_process_noise", False
-    ):
+    if transition_law_unsaid(model):
         warnings.warn(
             f"{type(model).__name__} draws its transitions its own way (sample_transition): the "
             "bound assumes x_{k+1} = f(x_k, u_k) + w, w ~ N(0, process_cov), and where the "

@@ -214,7 +214,11 @@ class KalmanProposal:
     gaussian_update` per particle) and ``log_correction = log N(x; f, Q) − log q(x)``, so
     the weights target the same posterior as the bootstrap filter. On a linear-Gaussian
     measurement this is the exact optimal proposal (incremental weights ``N(y; H f, S)``).
-    Requires a Gaussian process noise (``model.process_cov``; another is refused).
+    Requires a Gaussian process noise (``model.process_cov``; another is refused), whose
+    mean joins ``f``, and a model that draws its transitions so: one that overrides
+    ``sample_transition`` is refused unless it declares ``samples_process_noise = True``
+    (the robot draws ``f + B(θ) n`` from its inputs' noise: the weights had targeted
+    ``N(f, Q)``'s posterior, 4 nats from the bootstrap filter's).
 
     The filter's predictive outputs (``pred_means``, ``innovations``, ``innovation_covs``)
     weigh particles drawn near the measurement by ``p/q``: consistent, but with
@@ -246,6 +250,9 @@ class KalmanProposal:
                 f"KalmanProposal needs a Gaussian process noise; model.process_noise is a "
                 f"{type(noise).__name__}: use the bootstrap proposal (the default)"
             )
+        why = transition_law_unsaid(model)
+        if why:
+            raise ValueError(f"KalmanProposal: {why}: use the bootstrap proposal (the default)")
         f, Q, mu, sigma = kalman_proposal_moments(model, particles, u, y, k, mask)
         chol_sigma = safe_cholesky(sigma, name="proposal covariance")
         chol_q = safe_cholesky(Q, name="Q")
@@ -268,8 +275,10 @@ def kalman_proposal_moments(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Moments of the Kalman proposal of every particle: ``(f, Q, μ, Σ)``.
 
-    ``f = f(x_{k−1}, u) [..., N, dx]`` and ``Q [dx, dx]`` (the transition), ``μ [..., N, dx]``
-    and ``Σ [..., N, dx, dx]``: one :func:`~difffilter.kalman.gaussian_update` of the prior
+    ``f = f(x_{k−1}, u) + E[w_k] [..., N, dx]`` (the prior mean: a process noise of nonzero
+    mean had been left out, 32 nats off the Kalman filter) and ``Q [dx, dx]`` (the
+    transition), ``μ [..., N, dx]`` and ``Σ`` (``[..., N, dx, dx]``, or broadcastable to
+    it: one ``[dx, dx]`` for a linear model): one :func:`~difffilter.kalman.gaussian_update` of the prior
     ``N(f, Q)`` with ``y [..., dy]`` on the received entries (``mask [..., dy]``), ``H`` the
     model's ``observation_matrix`` when it has one (one gain for every particle) and its
     Jacobian at ``f`` otherwise; the residual is the model's (a wrapped bearing stays
@@ -277,6 +286,9 @@ def kalman_proposal_moments(
     """
     u = None if u is None else u.unsqueeze(-2)
     f = model.transition(particles, u, k)
+    noise = model.process_noise_at(k)
+    if isinstance(noise, Gaussian) and not noise._zero_loc():
+        f = f + noise.mean.unsqueeze(-2)
     Q = model.process_cov(k)
     if hasattr(model, "observation_matrix"):
         H = model.observation_matrix(k + 1)
@@ -297,6 +309,19 @@ def kalman_proposal_moments(
     mu, sigma, _, _ = gaussian_update(f, Q, residual, cross, H @ cross, H, R, observed,
                                       evidence=False)  # fmt: skip
     return f, Q, mu, sigma
+
+
+def transition_law_unsaid(model) -> str | None:
+    """Why ``model``'s transition draws may not be ``f + w``, ``w`` its process noise (it
+    overrides ``sample_transition`` and does not declare ``samples_process_noise = True``),
+    or ``None``: what a proposal or a bound that weighs by ``N(f, Q)`` needs."""
+    if type(model).sample_transition is StateSpaceModel.sample_transition or getattr(
+        model, "samples_process_noise", False
+    ):
+        return None
+    return (f"{type(model).__name__} draws its transitions its own way (sample_transition), "
+            "and the weights take them as f + w, w ~ its process_noise (a class whose draw "
+            "has that law says so with samples_process_noise = True)")  # fmt: skip
 
 
 def _shared_received(mask: Tensor | None) -> Tensor | None:
@@ -406,7 +431,8 @@ class ParticleFilter(Estimator):
         self.proposal = proposal if proposal is not None else BootstrapProposal()
         self.likelihood = likelihood if likelihood is not None else ModelLikelihood()
         self.stateful = hasattr(self.likelihood, "weigh")
-        self.hooks, self.innovations, self.cov_dims = tuple(hooks), bool(innovations), cov_dims
+        self.hooks = _check_hooks(hooks)
+        self.innovations, self.cov_dims = bool(innovations), _check_cov_dims(cov_dims, None)
         self.record_prior = bool(record_prior)
 
     def _init(self, model, batch_shape, generators):
@@ -422,6 +448,7 @@ class ParticleFilter(Estimator):
                 f"state must be a ParticleState of {self.num_particles} particles (num_particles); "
                 f"got {'a ' + type(state).__name__ if n is None else f'{n} particles'}"
             )
+        _check_cov_dims(self.cov_dims, model.dim_x)
         aux = state.aux
         if self.stateful and aux is None:
             lead = state.log_weights.shape[:-1]
@@ -436,6 +463,7 @@ class ParticleFilter(Estimator):
 
     def _check_carry(self, carry):
         n, dx = self.num_particles, carry.model.dim_x
+        _check_cov_dims(self.cov_dims, dx)
         check_carry_tensor(carry.particles, "particles", dim=None)
         check_carry_fits_model(carry.model, particles=carry.particles,
                                log_weights=carry.log_weights)  # fmt: skip
@@ -544,12 +572,40 @@ def particle_step(
     return pf.step(pf.attach(state, model, gens), y, u, mask)
 
 
-def _check_cov_dims(cov_dims, dim: int) -> int | None:
+def _check_cov_dims(cov_dims, dim: int | None) -> int | None:
+    """``cov_dims`` as the steps take it (``None`` for every state), or a ``ValueError``;
+    ``dim = None``: the state's dimension is not known yet (a filter object is made before
+    its model: its ``init`` checks it against ``dx``, and keeps what was given). The object
+    had taken ``-1`` (the first ``dx − 1`` states, unsaid) and ``0``."""
     if cov_dims is None:
         return None
-    if isinstance(cov_dims, bool) or not isinstance(cov_dims, int) or not 1 <= cov_dims <= dim:
-        raise ValueError(f"cov_dims must be None or an integer in [1, {dim}]; got {cov_dims!r}")
+    top = "dx" if dim is None else dim
+    if (isinstance(cov_dims, bool) or not isinstance(cov_dims, int) or cov_dims < 1
+            or (dim is not None and cov_dims > dim)):  # fmt: skip
+        raise ValueError(f"cov_dims must be None or an integer in [1, {top}]; got {cov_dims!r}")
     return None if cov_dims == dim else cov_dims
+
+
+#: How the filter calls a hook (:class:`ParticleFilter`'s ``hooks``).
+_HOOK_ARGS = ("model", "y", "mask", "carry", "out")
+
+
+def _check_hooks(hooks) -> tuple:
+    """``hooks`` as a tuple of callables that take ``hook(model, y, mask, carry, out)``,
+    checked when the filter is made (a bare function had failed as "not iterable", a
+    ``None`` at the first step as "not callable")."""
+    if callable(hooks) or isinstance(hooks, (str, bytes)) or not hasattr(hooks, "__iter__"):
+        raise TypeError(
+            f"hooks must be a sequence of callables hook({', '.join(_HOOK_ARGS)}) → {{name: "
+            f"tensor}}; got {type(hooks).__name__} (one hook: hooks=[hook])"
+        )
+    hooks = tuple(hooks)
+    for i, hook in enumerate(hooks):
+        if not callable(hook):
+            raise TypeError(f"hooks[{i}] must be callable as hook({', '.join(_HOOK_ARGS)}); "
+                            f"got {type(hook).__name__}")  # fmt: skip
+        check_callable_as(hook, f"hooks[{i}]", "hook", _HOOK_ARGS)
+    return hooks
 
 
 def _check_strategies(resampler, proposal, likelihood, ess_threshold) -> float:
@@ -565,6 +621,10 @@ def _check_strategies(resampler, proposal, likelihood, ess_threshold) -> float:
     else:
         check_strategy(likelihood, "likelihood", "difffilter.ModelLikelihood()",
                        ("model", "y", "particles", "k", "mask"))  # fmt: skip
+        if getattr(likelihood, "uses_predictive", False):  # (it failed at the first step)
+            check_callable_as(likelihood, f"the likelihood {type(likelihood).__name__} "
+                              "(uses_predictive = True)", "likelihood",
+                              ("model", "y", "particles", "k", "mask"), ("predictive",))  # fmt: skip
     return check_ess_threshold(ess_threshold)
 
 

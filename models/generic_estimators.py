@@ -35,6 +35,7 @@ from .needs import (
     ATTACK_FREE_MEASUREMENTS,
     LINEAR_MODEL,
     SENSOR_ATTACK,
+    TRANSITION_IS_PROCESS_NOISE,
     UNACKNOWLEDGED_INPUT_LOSS,
 )
 from .schedules import BurstLoss
@@ -73,7 +74,8 @@ for _name, _filter in (("kf", df.kalman_filter), ("ekf", df.extended_kalman_filt
         needs=(LINEAR_MODEL,) if _name == "kf" else (),
     )(_plain(lambda ctx, tr, f=_filter: f(ctx.model, tr.y_recv, tr.us, mask=tr.mask)))
 for _name, _proposal in (("bootstrap_pf", None), ("kalman_proposal_pf", KalmanProposal())):
-    register(_name, f"the library's particle filter, {_name[:-3].replace('_', ' ')} proposal")(
+    register(_name, f"the library's particle filter, {_name[:-3].replace('_', ' ')} proposal",
+             needs=(TRANSITION_IS_PROCESS_NOISE,) if _proposal else ())(
         _plain(lambda ctx, tr, p=_proposal: df.particle_filter(
             ctx.model, tr.y_recv, tr.us, mask=tr.mask, **({"proposal": p} if p else {}),
             **ctx.particle_kwargs(len(tr.y_recv))))

@@ -31,6 +31,7 @@ from typing import Any
 
 from difffilter.attack import Channel
 from difffilter.kalman import _check_linear
+from difffilter.particle import transition_law_unsaid
 
 __all__ = [
     "Need",
@@ -75,6 +76,16 @@ def _linear(scenario, model) -> str | None:
 
 #: A linear-Gaussian model (the Kalman filter's).
 LINEAR_MODEL = Need("a linear model (LinearGaussianModel)", _linear)
+
+
+def _transition_law(scenario, model) -> str | None:
+    why = transition_law_unsaid(model)
+    return None if why is None else f"weighs its particles by N(f, Q), and {why}"
+
+
+#: The model draws its transitions as ``f + w``, ``w`` its process noise (the Kalman
+#: proposal's weights take them so).
+TRANSITION_IS_PROCESS_NOISE = Need("transitions drawn as f + its process noise", _transition_law)
 
 
 def _sensor_attack(scenario, model) -> str | None:
