@@ -171,6 +171,9 @@ class FusedCarry(NamedTuple):
 
     local_states: Any
     model: Any
+    #: The :class:`_ModelStamp` of ``model`` when the locals' grouped models were made from
+    #: it (``None``: not checked).
+    model_stamp: Any = None
 
 
 class FusedLocals(Estimator):
@@ -198,6 +201,12 @@ class FusedLocals(Estimator):
     def __init__(self, local: AdaptiveParticleFilter, rule: FusionRule | str = FusionRule.CI,
                  groups=GROUPS):  # fmt: skip
         self.local, self.rule, self.groups = local, FusionRule(rule), tuple(groups)
+        if len(self.groups) != 2:  # (three had run every local, then failed in the fusion)
+            raise ValueError(f"groups must be two sensor groups (the fusion of a pair); got "
+                             f"{len(self.groups)}: {self.groups!r}")  # fmt: skip
+        if getattr(local, "attack_cov0", None) == 0:
+            raise ValueError("local.attack_cov0 must be > 0: the fusion inverts each local's "
+                             "attack covariance S, which S₀ = 0 keeps at 0")  # fmt: skip
 
     def _init(self, model, batch_shape, generators):
         if model.groups_share_noise(self.groups):
@@ -207,7 +216,7 @@ class FusedLocals(Estimator):
         else:
             states = tuple(self.local._init(model.group(g), batch_shape, generators)
                            for g in self.groups)  # fmt: skip
-        return FusedCarry(states, model)
+        return FusedCarry(states, model, _ModelStamp(model))
 
     def _model_of(self, carry):
         return carry.model
@@ -257,9 +266,17 @@ class FusedLocals(Estimator):
         return x, P, a, wald_statistic(a, S), extras
 
     def _step(self, carry, y, u, mask):
+        stamp = carry.model_stamp
+        if stamp is not None and not stamp.holds(carry.model):
+            raise ValueError(
+                "FusedLocals: the model changed since init (a noise or tensor of it assigned "
+                "or written in place), and the locals step grouped copies made at init from "
+                "it (they would filter the model as it was): init a new carry from the model "
+                "as it is now"
+            )
         states, *local, thr = self._locals_step(carry.local_states, y, u, mask)
         x, P, a, score, extras = self._fuse(*local)
-        return FusedCarry(states, carry.model), StepOutput(
+        return FusedCarry(states, carry.model, stamp), StepOutput(
             x, P, attack=a, score=score, alarm=score > thr, threshold=thr, extras=extras
         )
 
@@ -276,6 +293,43 @@ class FusedLocals(Estimator):
         thr = out.detection.threshold
         return EstimatorOutput(x, P, attack=a, detection=Detection(score, score > thr, thr),
                                extras=extras)  # fmt: skip
+
+
+class _ModelStamp:
+    """The tensors a model holds (its noises' included), each with its version then: an
+    assignment (``model.measurement_noise = …``: other tensors) or an in-place write (a
+    version moved) is seen by :meth:`holds`. It holds the tensors themselves (an id could
+    be a freed tensor's, taken by its replacement); a copy or a pickle of a carry copies them
+    with the model, and :meth:`__setstate__` stamps the copies anew where they were
+    unchanged (their version counters start again)."""
+
+    __slots__ = ("entries",)
+
+    def __init__(self, model):
+        self.entries = tuple((t, _version(t)) for t in _tensors_of(model))
+
+    def holds(self, model) -> bool:
+        now = _tensors_of(model)
+        return len(now) == len(self.entries) and all(
+            t is held and _version(t) == version for t, (held, version) in zip(now, self.entries)
+        )
+
+    def __getstate__(self):
+        return tuple((t, _version(t) == version) for t, version in self.entries)
+
+    def __setstate__(self, state):
+        self.entries = tuple((t, _version(t) if same else -2) for t, same in state)
+
+
+def _tensors_of(model) -> list:
+    return list(model.state_dict(keep_vars=True).values())
+
+
+def _version(t) -> int:
+    try:
+        return t._version
+    except RuntimeError:  # an inference tensor keeps no version: its identity alone
+        return -1
 
 
 class CompensatingInputs:

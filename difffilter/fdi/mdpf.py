@@ -449,8 +449,15 @@ class AdaptiveParticleFilter(Estimator):
         # naming no argument; a count of 0 or 2.5 with a raw torch error (a trial)
         self.num_particles = check_positive_int(num_particles, "num_particles")
         self.forgetting = _check_forgetting(forgetting)
-        self.reading, self.form = reading, form
         self.attack_cov0 = check_finite_number(attack_cov0, "attack_cov0", nonnegative=True)
+        if self.attack_cov0 == 0:
+            # the information form inverts S (S⁺ = (λ S⁻¹ + DᵀJD)⁻¹): with S₀ = 0 every
+            # proposed particle was NaN at step 2; the covariance form keeps â = 0
+            if form is Form.INFORMATION:
+                raise ValueError("attack_cov0 = 0 (S₀ = 0) needs form='covariance': the "
+                                 "information form inverts the attack covariance S")  # fmt: skip
+            form = Form.COVARIANCE
+        self.reading, self.form = reading, form
         self.resampler = resampler if resampler is not None else Multinomial()
         self.false_alarm_rate = check_rate(false_alarm_rate, "false_alarm_rate")
         # (model, its packed view, the particle filter that steps it) of the last model
