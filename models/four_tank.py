@@ -31,7 +31,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from difffilter._checks import check_finite_number
+from difffilter._checks import check_finite_number, check_positive_definite
 from difffilter.fdi.poa import InfeasibleThreshold, poa_detector_for
 from difffilter.noise import Gaussian
 from difffilter.ssm import StateSpaceModel
@@ -283,13 +283,20 @@ class FourTankModel(StateSpaceModel):
 
 
 def _cov(value, kw, name) -> Tensor:
+    """A ``[4, 4]`` covariance from a number (isotropic), 4 variances or the matrix itself,
+    named in its errors (a ``[3, 3]`` R or a singular P0 had been named by ``Gaussian`` as
+    "loc" or "cov")."""
     t = torch.as_tensor(value, **kw)
     if t.dim() == 0:
-        return t * torch.eye(4, **kw)
-    if t.dim() == 1:
+        t = t * torch.eye(4, **kw)
+    elif t.dim() == 1:
         if t.shape[0] != 4:
             raise ValueError(f"{name} must have 4 diagonal entries; got {t.shape[0]}")
-        return torch.diag(t)
+        t = torch.diag(t)
+    check_positive_definite(t, name, 4)
+    if t.dim() != 2:
+        raise ValueError(f"{name} must be a number, 4 variances or a [4, 4] covariance; got "
+                         f"shape {tuple(t.shape)}")  # fmt: skip
     return t
 
 

@@ -244,7 +244,9 @@ class _NoiseSampler:
 
     def __init__(self, noise, shape, T, generator):
         self.noise, self.shape, self.generator = noise, shape, generator
-        self._shifted = None
+        # (set before the early return: plus() read it, and a full Q failed on a missing
+        # attribute where the small-set propagation shifts the draws)
+        self._shifted, self.all = None, None
         L = noise.scale_tril if isinstance(noise, Gaussian) else None
         self.diag = L is not None and L.dim() == 2 and torch.equal(L, torch.diag(torch.diagonal(L)))
         if not self.diag:
