@@ -279,12 +279,13 @@ class TrackingModel(StateSpaceModel):
         self.register_buffer("_chol_q", torch.block_diag(chol, chol).to(dtype))  # L, Q = L Lᵀ
         self.register_buffer("sensor_pos", torch.tensor(sensors, dtype=dtype))
         # Round-Robin fast path (_one_sensor): entry e of sensor s = e // 2 contributes
-        # [1, is range, ±(s + 1) (+ range, − bearing), ζ_s / 2, ψ_s / 2]; a row that receives
-        # exactly one whole sensor sums to [2, 1, 0, ζ_s, ψ_s] (halves: exact in binary)
+        # [1, is range, ±(s + 1) (+ range, − bearing)]; a row that receives exactly one whole
+        # sensor sums to [2, 1, 0] (the sensor's position is read from sensor_pos at each
+        # call: kept here, a position moved after construction had been read as it was)
         e = torch.arange(self.dim_y)
         s, is_range = e // 2, (e % 2 == 0).to(dtype)
-        code = torch.stack((torch.ones(self.dim_y, dtype=dtype), is_range, (s + 1).to(dtype) * (2 * is_range - 1),
-                            self.sensor_pos[s, 0] / 2, self.sensor_pos[s, 1] / 2), -1)  # fmt: skip
+        code = torch.stack((torch.ones(self.dim_y, dtype=dtype), is_range,
+                            (s + 1).to(dtype) * (2 * is_range - 1)), -1)  # fmt: skip
         self.register_buffer("_schedule_code", code)
         self.register_buffer("_one_whole_sensor", torch.tensor([2.0, 1.0, 0.0], dtype=dtype))
         self.register_buffer("_entry_kind", torch.stack((is_range, 1 - is_range), -1))
@@ -390,8 +391,14 @@ class TrackingModel(StateSpaceModel):
         """
         # (the per-sensor shortcut is the glint noise's: a replaced measurement noise had
         # failed there with a raw AttributeError)
+        # (and the plant's own h: a subclass's observe or residual takes the generic path,
+        # which calls them; the shortcut had computed the plain range and bearing)
+        own = (type(self).observe is TrackingModel.observe
+               and type(self).measurement_residual is TrackingModel.measurement_residual)  # fmt: skip
         one = (
-            self._one_sensor(y, x, mask) if isinstance(self.measurement_noise, GlintNoise) else None
+            self._one_sensor(y, x, mask)
+            if own and isinstance(self.measurement_noise, GlintNoise)
+            else None
         )
         if one is None:
             return super().measurement_log_prob(y, x, k, mask)
@@ -408,20 +415,29 @@ class TrackingModel(StateSpaceModel):
         fast path; ``None`` unless every row receives exactly one whole sensor."""
         if mask is None or x.dim() < 2 or mask.dim() != x.dim() or mask.shape[-2] != 1:
             return None
-        # one product gives [received, ranges, Σ ±sensor, ζ_s, ψ_s] per row (_schedule_code)
-        code = mask.to(self._schedule_code.dtype) @ self._schedule_code
-        if not torch.equal(code[..., :3], self._one_whole_sensor.expand(code.shape[:-1] + (3,))):
+        # one product gives [received, ranges, Σ ±sensor] per row (_schedule_code)
+        received = mask.to(self._schedule_code.dtype)
+        code = received @ self._schedule_code
+        if not torch.equal(code, self._one_whole_sensor.expand(code.shape)):
             return None
-        # the packet: sums with one nonzero term, exact
+        # the sensor's position (halves of its two entries: exact, and differentiable in a
+        # learnable sensor_pos) and the packet (sums with one nonzero term: exact)
+        position = received @ (self.sensor_pos.repeat_interleave(2, 0) * 0.5)
         packet = torch.where(mask, y, 0.0) @ self._entry_kind
-        return code[..., 3:].unbind(-1), packet.unbind(-1)
+        return position.unbind(-1), packet.unbind(-1)
 
 
 def communication_counts(mask: Tensor | None, runs: int, steps: int, sensors: int = 4) -> Tensor:
     """Packets sent per run ``[runs]``: sensors with a received entry, summed over steps
-    (every sensor at every step when ``mask`` is ``None``)."""
+    (every sensor at every step when ``mask`` is ``None``). ``mask [runs, T, 2·sensors]``
+    or one for every run, ``[T, 2·sensors]`` (it had given one count, not one per run); a
+    mask of another sensor count is refused (it had been regrouped by 4 sensors)."""
     if mask is None:
         return torch.full((runs,), sensors * steps, dtype=torch.long)
+    if mask.shape[-1] != 2 * sensors:
+        raise ValueError(f"mask holds {mask.shape[-1]} entries; {sensors} sensors send "
+                         f"{2 * sensors} (range and bearing each): pass sensors=")  # fmt: skip
+    mask = mask.expand(runs, *mask.shape[-2:]) if mask.dim() == 2 else mask
     return mask.reshape(mask.shape[:-1] + (sensors, -1)).any(-1).sum((-1, -2)).long()
 
 
@@ -432,7 +448,21 @@ class PerSensorDeception:
     """
 
     def __init__(self, rate: float, low, high, sensors: int):
-        self.rate, self.sensors = float(rate), sensors
+        # (a rate of −0.1 had added log 1.1 per sensor, 1.5 failed in math.log, and a box
+        # of low > high had a positive area and counted every packet outside)
+        rate = check_finite_number(rate, "rate")
+        if not 0.0 <= rate <= 1.0:
+            raise ValueError(f"rate (η̄, the attack probability per sensor) must lie in [0, 1]; "
+                             f"got {rate!r}")  # fmt: skip
+        if isinstance(sensors, bool) or not isinstance(sensors, numbers.Integral) or sensors < 1:
+            raise ValueError(f"sensors must be an integer >= 1; got {sensors!r}")
+        box = [torch.as_tensor(b, dtype=torch.float64) for b in (low, high)]
+        if any(b.shape != (2,) or not bool(torch.isfinite(b).all()) for b in box) or not bool(
+            (box[0] < box[1]).all()
+        ):
+            raise ValueError(f"low and high must be two finite (range, bearing) entries each, "
+                             f"low below high; got {low!r}, {high!r}")  # fmt: skip
+        self.rate, self.sensors = float(rate), int(sensors)
         # the box in float64, cast to the packets' dtype where compared (its area and the
         # attacked term in the filter's precision, not torch's default float32)
         self.low = torch.as_tensor(low, dtype=torch.float64)
@@ -443,6 +473,9 @@ class PerSensorDeception:
         )
 
     def components(self, model, y, particles, k, mask):
+        if y.shape[-1] != 2 * self.sensors:
+            raise ValueError(f"y holds {y.shape[-1]} entries; this likelihood's {self.sensors} "
+                             f"sensors send {2 * self.sensors} (its sensors=)")  # fmt: skip
         r = model.measurement_residual(y.unsqueeze(-2), model.observe(particles, k))
         clean = model.measurement_noise.block_log_prob(r) + self.log_q  # [..., N, S]
         yb = y.reshape(y.shape[:-1] + (self.sensors, 2))
@@ -536,7 +569,8 @@ class TrackingScenario(Scenario):
                 f"box_low must lie below box_high in both entries; got {self.box_low!r}, "
                 f"{self.box_high!r}"
             )
-        if not 1 <= int(self.gamma_ini) <= len(self.sensors):
+        if (isinstance(self.gamma_ini, bool) or not isinstance(self.gamma_ini, numbers.Integral)
+                or not 1 <= self.gamma_ini <= len(self.sensors)):  # fmt: skip
             raise ValueError(
                 f"gamma_ini must be a sensor number 1 … {len(self.sensors)}; got {self.gamma_ini!r}"
             )
