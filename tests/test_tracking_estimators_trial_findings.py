@@ -87,3 +87,13 @@ def test_communication_counts_are_per_run_of_the_sensors_given():
         communication_counts(torch.ones(3, 8, 4, dtype=torch.bool), 3, 8, sensors=2).tolist()
         == [16] * 3
     )
+
+
+@pytest.mark.parametrize("gamma_ini", ["2", True, 2.0])
+def test_the_first_sensor_is_an_integer(gamma_ini):
+    import dataclasses
+
+    from difffilter.models import registry
+
+    with pytest.raises(ValueError, match="gamma_ini must be a sensor number"):
+        dataclasses.replace(registry.get("tracking_rrp_deception"), gamma_ini=gamma_ini)
