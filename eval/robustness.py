@@ -30,6 +30,7 @@ from difffilter._checks import check_positive_int
 from difffilter.linalg import NumericalBreakdown
 from difffilter.models.atomic_write import write_atomically, write_json_atomically
 from difffilter.models.yaml_scenario import read_yaml
+from difffilter.threat_distribution import threat_spec
 from difffilter.threats import check_attack_fits, threat_from_dict, with_sampling_period
 
 from .acceptance import (
@@ -89,11 +90,19 @@ class ThreatSet:
         # the reports list the threats by their specs: a threat given in Python without one
         # was left out of robustness.md's list and robustness.json's "threats" (a copy: the
         # caller's mapping stays as it was given)
+        if self.runs is not None:  # (0 had fallen through to the scenario's 100 runs)
+            check_positive_int(self.runs, "ThreatSet.runs")
         self.specs = dict(self.specs)
         for name, attack in self.threats.items():
             if name not in self.specs:
-                kind = type(attack)
-                self.specs[name] = {"kind": f"{kind.__module__}:{kind.__qualname__}"}
+                # a threat of the library by its spec, as a file gives it (the class path
+                # alone lost its fields, and training coverage read it as one's own: "held
+                # out" for the very bias trained on)
+                spec = threat_spec(attack)
+                if spec is None:
+                    kind = type(attack)
+                    spec = {"kind": f"{kind.__module__}:{kind.__qualname__}"}
+                self.specs[name] = spec
         extra = sorted(set(self.specs) - set(self.threats))
         if extra:
             raise ValueError(f"specs of no threat: {', '.join(extra)}; threats: "
@@ -157,6 +166,7 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
             )
         kept = {n: t for n, t in offered.items() if n not in set(left_out)}
         data = {**data, "threats": kept}
+    _check_set_period(data, path, scenario)
     specs = data.get("threats") or {}
     if not isinstance(specs, dict) or not specs:
         raise ValueError(f"{path}: 'threats' must be a non-empty mapping of threat names to "
@@ -183,6 +193,9 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
     model = scenario.system()
     threats = {}
     for name in chosen:
+        if not isinstance(specs[name], dict):  # (a bare "a:" had failed as "not iterable")
+            raise ValueError(f"{path}: threat {name!r}: a threat is a mapping {{kind: …, "
+                             f"fields}}; got {specs[name]!r}")  # fmt: skip
         try:
             spec = dict(specs[name])
             if spec.get("kind") == "stealthy":  # crafted when the study runs (eval.stealthy)
@@ -205,6 +218,26 @@ def load_threat_set(scenario, names="all", path: str | Path | None = None) -> Th
                          f"scenario's); got {runs!r}")  # fmt: skip
     return ThreatSet(threats, {n: dict(specs[n]) for n in chosen}, runs,
                      None if estimators is None else tuple(estimators), str(path))  # fmt: skip
+
+
+def _check_set_period(data: dict, path: Path, scenario) -> None:
+    """A threat set that says its sampling period (``dt:``, its onsets, delays and slopes
+    are in steps of it) runs only on scenarios of that period: ``lfc_sine_1ms`` had run
+    the LFC set written for 10 ms steps, its onsets, replay and chirp ten times as early
+    and its sinusoid ten times as fast, without a word."""
+    period = data.get("dt")
+    if period is None:
+        return
+    if isinstance(period, bool) or not isinstance(period, (int, float)) or not period > 0:
+        raise ValueError(f"{path}: dt must be the set's sampling period in seconds (> 0); "
+                         f"got {period!r}")  # fmt: skip
+    own = getattr(scenario, "dt", None)
+    if own is not None and not math.isclose(float(own), float(period), rel_tol=1e-9):
+        raise ValueError(
+            f"{path}: its threats are written for steps of dt = {period:g} s (onsets, delays "
+            f"and slopes in steps of it), and {scenario.name} steps {float(own):g} s: give "
+            "it a threat set of its own (--threat-set FILE.yaml, docs/threats.md)"
+        )
 
 
 def _check_set_estimators(estimators, path) -> None:
@@ -246,7 +279,7 @@ def _check_threat(scenario, model, threat) -> None:
 
 
 #: The keys a threat-set file may hold (:func:`load_threat_set`).
-THREAT_FILE_KEYS = ("threats", "threats_from", "exclude", "runs", "estimators")
+THREAT_FILE_KEYS = ("threats", "threats_from", "exclude", "runs", "estimators", "dt")
 
 
 def _read_threat_file(path: Path, origin: Path | None = None) -> dict:
@@ -367,6 +400,11 @@ def run_robustness(
         broke = {est: why for est, why in broken_down(suite.skipped).items() if est in free.metrics}
         result.cells[name].update({est: _broken_cell(why, est in cal.thresholds)
                                    for est, why in broke.items()})  # fmt: skip
+        # ran attack-free, skipped under this threat (an adaptive threat meets only the
+        # estimators with a loop of their own): a cell that says so, and no worst case over
+        # the other threats alone (kf's read 29 where the same observer's was 290)
+        result.cells[name].update({est: _not_run_cell(why) for est, why in suite.skipped.items()
+                                   if est in free.metrics and est not in result.cells[name]})  # fmt: skip
         result.run_totals[name] = threat_totals(suite, roles(suite.metrics))
         result.run_totals[name].update({est: _broken_totals(suite.traj, est in cal.thresholds)
                                         for est in broke})  # fmt: skip
@@ -442,6 +480,12 @@ def _broken_cell(why: str, detects: bool) -> dict[str, Any]:
             "broke_down": why}  # fmt: skip
 
 
+def _not_run_cell(why: str) -> dict[str, Any]:
+    """The cell of an estimator that ran attack-free and was skipped under a threat (``why``):
+    no number, and no worst case of any metric (:func:`_worst_cases`: ``<metric>_not_run``)."""
+    return {**dict.fromkeys(CELL_METRICS), "not_run": why}
+
+
 def _broken_totals(traj, detects: bool) -> dict[str, Any]:
     """The per-run totals of :func:`_broken_cell` for the intervals
     (:func:`~difffilter.eval.intervals.robustness_intervals`): no hit on any attacked step
@@ -454,12 +498,18 @@ def _broken_totals(traj, detects: bool) -> dict[str, Any]:
 
 
 def _cell(m: dict, free: dict) -> dict[str, Any]:
+    """One estimator's numbers under one threat; ``diverged``: the metrics that are not
+    finite (written ``null``, they had read "—" in the tables, as a number that does not
+    apply)."""
     cell = {k: m.get(k) for k in CELL_METRICS if k != "state_error_ratio"}
     base = free.get("state_rmse")
     ratio = None
     if base and m.get("state_rmse") is not None and base > 0:
         ratio = m["state_rmse"] / base
     cell["state_error_ratio"] = ratio
+    diverged = [k for k, v in cell.items() if isinstance(v, float) and not math.isfinite(v)]
+    if diverged:
+        cell["diverged"] = diverged
     return cell
 
 
@@ -478,21 +528,31 @@ def _worst_cases(cells) -> dict[str, dict[str, Any]]:
     for threat, row in sorted(cells.items()):
         for est, cell in row.items():
             w = worst.setdefault(est, {})
+            if cell.get("not_run"):  # no number there: no worst case (the first such threat)
+                for key in LOWER_IS_WORSE + HIGHER_IS_WORSE:
+                    if not w.get(f"{key}_not_run"):
+                        w[key], w[f"{key}_threat"], w[f"{key}_not_run"] = None, threat, True
+                        for flag in ("tied", "diverged", "broke_down"):
+                            w.pop(f"{key}_{flag}", None)
+                continue
             broke = bool(cell.get("broke_down"))
             detects = cell.get("tpr_at_far") is not None  # (a broken cell's: where it detects)
             for key in LOWER_IS_WORSE + HIGHER_IS_WORSE:
                 value = cell.get(key)
                 if broke and (key == "state_error_ratio" or (key == "impact" and detects)):
                     value = math.inf
-                if value is None:
+                if value is None or w.get(f"{key}_not_run"):
                     continue
                 if not math.isfinite(value):
                     if key in LOWER_IS_WORSE:
                         continue
                     if not w.get(f"{key}_diverged"):  # the first threat by name it diverged on
                         w[key], w[f"{key}_threat"], w[f"{key}_diverged"] = math.inf, threat, True
+                        w.pop(f"{key}_tied", None)  # (a tie of finite values had stayed)
                         if broke:
                             w[f"{key}_broke_down"] = True
+                    else:  # more threats it diverged on
+                        w[f"{key}_tied"] = w.get(f"{key}_tied", 0) + 1
                     continue
                 sign = -1 if key in LOWER_IS_WORSE else 1
                 if key not in w or sign * value > sign * w[key]:
@@ -510,13 +570,15 @@ def _worst_text(worst: dict[str, Any], key: str) -> str:
     estimate was not finite (robustness.json's ``null`` with ``<key>_diverged``), ``—``
     where there is none."""
     threat = worst.get(f"{key}_threat")
-    if worst.get(f"{key}_broke_down"):
-        return f"broke down ({threat})"
-    if worst.get(f"{key}_diverged"):
-        return f"diverged ({threat})"
-    value = worst.get(key)
     tied = worst.get(f"{key}_tied")
     more = f"; {tied} more tied" if tied else ""
+    if worst.get(f"{key}_not_run"):
+        return f"not run ({threat})"
+    if worst.get(f"{key}_broke_down"):
+        return f"broke down ({threat}{more})"
+    if worst.get(f"{key}_diverged"):
+        return f"diverged ({threat}{more})"
+    value = worst.get(key)
     return "—" if value is None else f"{format_number(value, 3)} ({threat}{more})"
 
 
@@ -666,6 +728,10 @@ def _cell_text(cell: dict, metric: str) -> str:
     value = cell.get(metric)
     if value is None and cell.get("broke_down"):
         return "broke down"
+    if value is None and cell.get("not_run"):
+        return "not run"
+    if metric in (cell.get("diverged") or ()):  # (null in the JSON: it had read "—",
+        return "diverged"  # which says "does not apply")
     return format_number(value, 3)
 
 

@@ -1,0 +1,106 @@
+"""Findings of a red-team trial of the robustness report (2026-12-06)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from difffilter.attack import Attack, Channel
+from difffilter.models import registry
+from difffilter.threats import Bias
+from eval.robustness import (
+    ThreatSet,
+    _cell,
+    _cell_text,
+    _worst_cases,
+    _worst_text,
+    load_threat_set,
+    run_robustness,
+)
+
+
+def test_a_threat_an_estimator_was_not_run_under_leaves_no_worst_case():
+    # its worst case had been taken over the other threats alone (29 where 290 was due)
+    cells = {"bias": {"kf": {"state_error_ratio": 29.0, "tpr_at_far": 0.5}},
+             "adaptive": {"kf": {"state_error_ratio": None, "tpr_at_far": None,
+                                 "not_run": "no closed loop of its own"}}}  # fmt: skip
+    worst = _worst_cases(cells)["kf"]
+    assert worst["state_error_ratio"] is None and worst["state_error_ratio_not_run"]
+    assert worst["tpr_at_far"] is None and worst["tpr_at_far_threat"] == "adaptive"
+    assert _worst_text(worst, "state_error_ratio") == "not run (adaptive)"
+    assert _cell_text(cells["adaptive"]["kf"], "tpr_at_far") == "not run"
+
+
+def test_a_tie_is_counted_among_diverged_threats_and_dropped_for_finite_ones():
+    # a = b = 2 tied, then c diverged: the tie of the finite values had stayed beside it
+    cells = {t: {"e": {"state_error_ratio": v}} for t, v in
+             (("a", 2.0), ("b", 2.0), ("c", math.nan), ("d", math.inf))}  # fmt: skip
+    worst = _worst_cases(cells)["e"]
+    assert worst["state_error_ratio_diverged"] and worst["state_error_ratio_threat"] == "c"
+    assert worst["state_error_ratio_tied"] == 1  # d: diverged too
+    assert _worst_text(worst, "state_error_ratio") == "diverged (c; 1 more tied)"
+
+
+def test_a_diverged_cell_says_so():
+    cell = _cell({"state_rmse": math.inf, "tpr_at_far": 0.5}, {"state_rmse": 1.0})
+    assert cell["diverged"] == ["state_rmse", "state_error_ratio"]
+    assert _cell_text(cell, "state_error_ratio") == "diverged"  # it had read "—"
+    assert _cell_text(cell, "attack_rmse") == "—"
+
+
+def test_a_threat_set_built_in_python_keeps_its_library_specs():
+    # the class path alone had lost the fields: training coverage read it as one's own
+    ts = ThreatSet({"bias": Bias(value=0.5, onset=21)})
+    assert ts.specs["bias"]["kind"] == "bias" and ts.specs["bias"]["value"] == [0.5]
+    assert ts.specs["bias"]["onset"] == 21
+
+
+@pytest.mark.parametrize("runs", [0, -2])
+def test_a_threat_sets_runs_are_checked(runs):
+    with pytest.raises(ValueError, match="ThreatSet.runs"):
+        ThreatSet({"bias": Bias(value=0.5)}, runs=runs)
+
+
+def test_a_threat_set_of_another_sampling_period_is_refused():
+    # the LFC set counts its onsets, delays and slopes in 10 ms steps; lfc_sine_1ms had run it
+    with pytest.raises(
+        ValueError, match=r"written for steps of dt = 0\.01 s .* lfc_sine_1ms steps 0\.001 s"
+    ):
+        load_threat_set(registry.get("lfc_sine_1ms"))
+    assert load_threat_set(registry.get("lfc_step"), "bias").threats
+
+
+@pytest.mark.parametrize("entry", ["a:", "a: 5"])
+def test_a_threat_that_is_not_a_mapping_is_named(tmp_path, entry):
+    path = tmp_path / "set.yaml"
+    path.write_text(f"threats:\n  {entry}\n")
+    with pytest.raises(ValueError, match="threat 'a': a threat is a mapping"):
+        load_threat_set(registry.get("four_tank_bias"), path=path)
+
+
+class _AdaptiveBias(Attack):
+    """A constant bias that declares it reads the estimator's output."""
+
+    channel = Channel.SENSOR
+    reads_state = False
+    reads_view = True
+
+    def init(self, batch_shape, num_steps, dim, generator=None, *, dtype, device=None):
+        return torch.zeros(batch_shape, dtype=dtype, device=device)
+
+    def step(self, state, k, *, y=None, x=None, u=None, view=None):
+        value = torch.zeros_like(y)
+        value[..., 2] = 4.0
+        return state, value, torch.full(y.shape[:-1], k >= 300)
+
+
+@pytest.mark.slow
+def test_an_estimator_skipped_under_an_adaptive_threat_has_a_cell_that_says_so():
+    threats = ThreatSet({"bias": Bias(value=0.4, entries=(2,), onset=300), "adaptive": _AdaptiveBias()},
+                        runs=2, estimators=("chi_square_kf", "kf", "uncompensated"))  # fmt: skip
+    result = run_robustness(registry.get("lfc_step"), threats, progress=False)
+    cell = result.cells["adaptive"]["kf"]
+    assert cell["not_run"] and cell["state_error_ratio"] is None
+    assert result.worst_case["kf"]["state_error_ratio_not_run"]
