@@ -52,7 +52,7 @@ from .linalg import LOG_2PI, under_transform
 from .noise import Gaussian
 from .particle import ParticleState, _blame_degenerate, _ess
 from .results import StepOutput
-from .ssm import StateSpaceModel, wrapped_spread
+from .ssm import StateSpaceModel, inputs_per_point, wrapped_spread
 
 __all__ = ["density", "host_step"]
 
@@ -135,9 +135,7 @@ def host_step(
         x_t = torch.from_numpy(x_t.numpy()[ancestors])
         log_w, w = _uniform(n, log_w.dtype)[0], None
 
-    new_t = _single_run._propagate(
-        model, x_t, None if u is None else u.unsqueeze(0), k, gens.propagate
-    )
+    new_t = _single_run._propagate(model, x_t, inputs_per_point(u, x_t), k, gens.propagate)
     new = new_t.numpy()
     obs_t = model.observe(new_t, k + 1)
     plain = type(model).measurement_residual is StateSpaceModel.measurement_residual

@@ -60,7 +60,7 @@ from .particle import (
 )
 from .resampling import Systematic
 from .results import StepOutput
-from .ssm import StateSpaceModel
+from .ssm import StateSpaceModel, inputs_per_point
 
 __all__ = [
     "applies",
@@ -175,7 +175,7 @@ def single_run_step(pf, carry, y: Tensor, u: Tensor | None):
         log_w = torch.full_like(log_w, 0.0 - math.log(n)).detach()
         w = None
 
-    new = _propagate(model, particles, None if u is None else u.unsqueeze(0), k, gens.propagate)
+    new = _propagate(model, particles, inputs_per_point(u, particles), k, gens.propagate)
     obs = model.observe(new, k + 1)
     if resampled:
         pred_mean = new.mean(0)  # equal weights: the average (no exp, no product)

@@ -43,7 +43,7 @@ from .kalman import GaussianFilter, Prediction
 from .linalg import NumericalBreakdown, masked_measurement, outer, safe_cholesky, symmetrize
 from .loop import open_loop
 from .results import FilterResult, GaussianState, StepOutput
-from .ssm import StateSpaceModel, plain_residual, wrapped_spread
+from .ssm import StateSpaceModel, inputs_per_point, plain_residual, wrapped_spread
 
 __all__ = [
     "ExtendedKalmanFilter",
@@ -237,7 +237,7 @@ class UnscentedKalmanFilter(GaussianFilter):
         self.sigma_points = sigma_points or SigmaPoints()
 
     def _init(self, model, batch_shape, generators):
-        own = model_batch_shape(model, matrices_only=True)
+        own = model_batch_shape(model, matrices_only=True) or _method_matrices_batch(model)
         if own:  # sigma points [..., 2n+1, n] meet F and H: a raw shape error in torch
             raise ValueError(
                 f"the UKF evaluates f and h on sigma points, and this model's F, B or H have "
@@ -249,8 +249,14 @@ class UnscentedKalmanFilter(GaussianFilter):
     def predict(self, carry, u):
         model, k, sp = carry.model, carry.k, self.sigma_points
         wm, wc, scale = sp.weights(carry.mean.shape[-1], carry.mean.dtype, carry.mean.device)
-        X = sp.points(carry.mean, carry.cov, scale)  # [..., 2n+1, n]
-        FX = model.transition(X, None if u is None else u.unsqueeze(-2), k)
+        try:
+            X = sp.points(carry.mean, carry.cov, scale)  # [..., 2n+1, n]
+        except ValueError as exc:
+            _blame_nonfinite(exc, carry.mean, carry.cov, f"the UKF's estimate at step {k}",
+                             "the measurement function h (or the transition f before it) gave "
+                             "it on the sigma points")  # fmt: skip
+            raise
+        FX = model.transition(X, inputs_per_point(u, X), k)
         pred_mean, pred_cov = _moments(FX, wm, wc)
         return Prediction(
             pred_mean, symmetrize(pred_cov + step_covariance(model, "process_cov", k))
@@ -261,7 +267,13 @@ class UnscentedKalmanFilter(GaussianFilter):
         model, k, sp = carry.model, carry.k + 1, self.sigma_points
         pred_mean, pred_cov = prediction
         wm, wc, scale = sp.weights(pred_mean.shape[-1], pred_mean.dtype, pred_mean.device)
-        Xp = sp.points(pred_mean, pred_cov, scale)
+        try:
+            Xp = sp.points(pred_mean, pred_cov, scale)
+        except ValueError as exc:  # (it had read as a covariance that overflowed)
+            _blame_nonfinite(exc, pred_mean, pred_cov, f"the UKF's prediction at step {k}",
+                             "the transition f gave it on the sigma points of the previous "
+                             "estimate (e.g. a square root of a negative level)")  # fmt: skip
+            raise
         Y = model.observe(Xp, k)  # [..., 2n+1, dy]
         if plain_residual(model):
             y_hat = (wm[:, None] * Y).sum(-2)
@@ -282,7 +294,7 @@ class UnscentedKalmanFilter(GaussianFilter):
         # the linearisation's error Ω = Pyy − H̃ P⁻ H̃ᵀ: then P = P⁻ − K S Kᵀ, the UKF's
         # posterior (with R alone it came out smaller by K Ω Kᵀ: overconfident on a
         # nonlinear model, Var 0.062 where the UKF's is 0.113 in one review's step)
-        H_stat = torch.linalg.solve(pred_cov, cross).transpose(-1, -2)
+        H_stat = _statistical_gain(pred_cov, cross).transpose(-1, -2)
         # Ω = Pyy − H̃ Pxy (H̃ P⁻ H̃ᵀ = H̃ Pxy), formed as the weighted sum of the points'
         # linearisation residuals e = dy − H̃ dx, Ω = Σ wᶜ e eᵀ (equal, since Σ wᶜ dx dxᵀ =
         # P⁻): positive semidefinite by construction for non-negative weights. The
@@ -296,6 +308,42 @@ class UnscentedKalmanFilter(GaussianFilter):
         )  # fmt: skip
         out = StepOutput(mean, cov, pred_mean, pred_cov, residual, S, log_lik)
         return GaussianState(mean, cov, k, model), out
+
+
+def _statistical_gain(pred_cov: Tensor, cross: Tensor) -> Tensor:
+    """``P⁻⁻¹ Pxy`` ``[..., n, dy]``, by the pseudo-inverse where ``P⁻`` is singular (a
+    process noise that leaves a state known, a reset: it raised in the solve, where the
+    Kalman filter and the EKF run). On the range of ``P⁻``, where ``Pxy`` lies, it is the
+    same map: ``Ω`` and the Joseph form are unchanged."""
+    gain, info = torch.linalg.solve_ex(pred_cov, cross)
+    if info.device.type != "meta" and bool(info.any()):  # (shapes only: nothing to read)
+        gain = torch.linalg.pinv(pred_cov, hermitian=True) @ cross
+    return gain
+
+
+def _blame_nonfinite(exc: Exception, mean: Tensor, cov: Tensor, what: str, cause: str) -> None:
+    """A :class:`NumericalBreakdown` naming ``what`` and its ``cause`` where ``mean`` or
+    ``cov`` is not finite (the error ``exc`` had named an overflowed covariance, not the
+    step or the function); nothing otherwise."""
+    if mean.device.type == "meta" or (bool(torch.isfinite(mean).all())
+                                      and bool(torch.isfinite(cov).all())):  # fmt: skip
+        return
+    raise NumericalBreakdown(f"{what} is NaN or inf: {cause}") from exc
+
+
+def _method_matrices_batch(model) -> torch.Size:
+    """The batch shape of a linear model's ``F``, ``H``, ``B`` as its methods give them at
+    the first step (a time-varying model of per-run matrices holds none as attributes: its
+    ``[B, n, n]`` had met the sigma points ``[B, 2n+1, n]``, each run's matrix applied to a
+    sigma point where B = 2n + 1, 3 to 5 off the Kalman filter)."""
+    shapes = []
+    for name, k in (("transition_matrix", 0), ("observation_matrix", 1), ("control_matrix", 0)):
+        method = getattr(model, name, None)
+        if callable(method):
+            m = method(k)
+            if isinstance(m, Tensor) and m.dim() > 2:
+                shapes.append(m.shape[:-2])
+    return torch.broadcast_shapes(*shapes) if shapes else torch.Size()
 
 
 def unscented_kalman_step(

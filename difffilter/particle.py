@@ -76,7 +76,7 @@ from .resampling import (
     keep_unmarked_rows,
 )
 from .results import ParticleFilterResult, StepOutput
-from .ssm import StateSpaceModel, plain_residual, wrapped_spread
+from .ssm import StateSpaceModel, inputs_per_point, plain_residual, wrapped_spread
 
 # the resampler base class's hook: uniform log-weights −log N after resampling
 _UNIFORM = Resampler._new_log_weights
@@ -199,8 +199,9 @@ class BootstrapProposal:
     """``q = p(x_k | x_{k−1})``: propagate through the model; zero correction (``None``)."""
 
     def __call__(self, model, particles, u, y, k, mask, generator):
-        u = None if u is None else u.unsqueeze(-2)
-        return model.sample_transition(particles, u, k, generator), None
+        return model.sample_transition(
+            particles, inputs_per_point(u, particles), k, generator
+        ), None
 
 
 class KalmanProposal:
@@ -284,8 +285,7 @@ def kalman_proposal_moments(
     Jacobian at ``f`` otherwise; the residual is the model's (a wrapped bearing stays
     wrapped). ``u [..., du]`` or ``None``.
     """
-    u = None if u is None else u.unsqueeze(-2)
-    f = model.transition(particles, u, k)
+    f = model.transition(particles, inputs_per_point(u, particles), k)
     noise = model.process_noise_at(k)
     if isinstance(noise, Gaussian) and not noise._zero_loc():
         f = f + noise.mean.unsqueeze(-2)

@@ -35,7 +35,7 @@ from ._checks import (
     check_vector_last,
     model_dtype_device,
 )
-from .linalg import matvec, rowwise
+from .linalg import matvec, rowwise, under_transform
 from .noise import Gaussian, NoiseModel, register_tensor
 
 __all__ = [
@@ -278,6 +278,17 @@ class StateSpaceModel(CountsAssignments):
             xs.append(x)
             ys.append(self.sample_measurement(x, t + 1, generator))
         return torch.stack(xs, -2), torch.stack(ys, -2), x0
+
+
+def inputs_per_point(u: Tensor | None, points: Tensor) -> Tensor | None:
+    """``u [..., du]`` beside ``points [..., M, dx]`` (sigma points, particles): one row per
+    point, ``[..., M, du]`` (a view). A transition that joins ``x`` and ``u`` (``torch.cat``)
+    had failed on ``[..., 1, du]`` in the UKF and the particle filters, where the EKF and
+    the model's own width check take it."""
+    if u is None:
+        return None
+    lead = torch.broadcast_shapes(u.shape[:-1] + (1,), points.shape[:-1])
+    return u.unsqueeze(-2).expand(*lead, u.shape[-1])
 
 
 def plain_residual(model) -> bool:
@@ -614,6 +625,10 @@ class NonlinearGaussianModel(StateSpaceModel):
         numpy inside) is probed on the mean alone, widths and dtypes; one that cannot run on
         that either is left to fail where it is used."""
         n = _probe_runs(self.dim_x, self.dim_y)
+        if under_transform():  # (requires_grad_ is refused inside torch.func's transforms: a
+            # model built inside one had failed there; its widths and dtypes are still probed)
+            self._check_widths_at(mean.detach().expand(n, self.dim_x).clone(), runs=False)
+            return
         if not self._check_widths_at(mean.detach().expand(n, self.dim_x).clone(), runs=True):
             self._check_widths_at(mean.detach().clone(), runs=False)  # widths and dtypes alone
 
@@ -624,7 +639,7 @@ class NonlinearGaussianModel(StateSpaceModel):
         runs."""
         n = x.shape[0]
         u = None if self.dim_u == 0 else x.new_zeros(n, self.dim_u)
-        leaves = [t.requires_grad_(runs) for t in (x, u) if t is not None]
+        leaves = [t.requires_grad_(True) if runs else t for t in (x, u) if t is not None]
         ran = True
         for name, fn, want, size in (("transition", lambda: self.transition(x, u, 0), self.dim_x, "Q"),
                                      ("observe", lambda: self.observe(x, 1), self.dim_y, "R")):  # fmt: skip
