@@ -345,8 +345,10 @@ def sawtooth_pulse_train(
     ramp from 0 to (just under) ``amplitude`` over ``width`` seconds, centred on its delay,
     followed by an instant drop. Shape: ``t [T]`` → ``[T]``.
     """
-    if not (width > 0 and period > 0 and -1.0 <= skew <= 1.0):
-        raise ValueError("width and period must be positive and skew must lie in [-1, 1]")
+    if not (0 < width < math.inf and 0 < period < math.inf and -1.0 <= skew <= 1.0):
+        raise ValueError("width and period must be positive and finite and skew must lie in [-1, 1]")
+    if not (math.isfinite(start) and math.isfinite(stop) and stop >= start):
+        raise ValueError(f"start and stop must be finite with stop >= start; got {start!r}, {stop!r}")
     n_pulses = int(math.floor((stop - start) / period + 1e-9)) + 1
     delays = start + period * torch.arange(n_pulses, dtype=t.dtype)
     tau = t[:, None] - delays[None, :]
@@ -395,8 +397,9 @@ def scenario_attack(kind: LFCAttack | str, t: Tensor) -> Tensor:
     kind = LFCAttack(kind)
     if kind is LFCAttack.RANDOM:
         raise ValueError("kind RANDOM is drawn per run by random_attacks, not a fixed signal")
-    if t.dim() != 1:
-        raise ValueError(f"t must be a 1-D tensor of sample times [T]; got {tuple(t.shape)}")
+    if t.dim() != 1 or not t.is_floating_point():  # (integer times truncated every value)
+        raise ValueError(f"t must be a 1-D floating tensor of sample times [T]; got "
+                         f"{tuple(t.shape)} {t.dtype}")  # fmt: skip
     alpha = torch.zeros(t.shape[0], STATE_DIM, dtype=t.dtype)
     if kind is LFCAttack.STEP:
         alpha[:, 2] = 0.4 * _between(t, 3.0, 5.0) + 0.9 * _between(t, 7.0, 8.0)
@@ -445,6 +448,7 @@ def random_attacks(
     """
     chans = _check_random_attacks(num_runs, steps, generator, channels, min_events, max_events,
                                   amplitude)  # fmt: skip
+    check_finite_number(dt, "dt", positive=True)  # (NaN made every entry NaN; 0 every onset 0)
     lo_amp, hi_amp = amplitude
     g = generator
     B, E = num_runs, max(max_events, 1)
@@ -503,8 +507,11 @@ def _check_random_attacks(num_runs, steps, generator, channels, min_events, max_
     chans = torch.arange(STATE_DIM) if channels is None else torch.as_tensor(channels)
     if chans.numel() == 0 or bool(((chans < 0) | (chans >= STATE_DIM)).any()):
         raise ValueError(f"channels must be indices in 0..{STATE_DIM - 1}; got {channels!r}")
-    if not 0 <= amplitude[0] <= amplitude[1]:
-        raise ValueError(f"amplitude must be (low, high) with 0 <= low <= high; got {amplitude!r}")
+    if not 0 <= amplitude[0] <= amplitude[1] < math.inf:  # (inf had made every entry NaN)
+        raise ValueError(f"amplitude must be (low, high) with 0 <= low <= high < inf; got "
+                         f"{amplitude!r}")  # fmt: skip
+    if chans.is_floating_point() or chans.dtype == torch.bool:
+        raise ValueError(f"channels must be integer indices in 0..{STATE_DIM - 1}; got {channels!r}")
     return chans
 
 
@@ -695,8 +702,9 @@ class LFCScenario(Scenario):
 
     def __post_init__(self):
         object.__setattr__(self, "attack", LFCAttack(self.attack))
-        if not (self.dt > 0 and self.duration >= self.dt):
-            raise ValueError("dt must be positive and duration >= dt")
+        if not (0 < self.dt < math.inf and self.dt <= self.duration < math.inf):
+            raise ValueError(f"dt must be positive and duration >= dt, both finite; got dt = "
+                             f"{self.dt!r}, duration = {self.duration!r}")  # fmt: skip
         object.__setattr__(self, "steps", int(round(self.duration / self.dt)))
 
     def with_steps(self, steps: int) -> LFCScenario:
