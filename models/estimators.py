@@ -172,18 +172,13 @@ def _real(value) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
 
 
-def _reals(value) -> list | None:
-    """``value`` as a list of numbers (a number alone: one), ``None`` if it is not that."""
-    values = list(value) if isinstance(value, (list, tuple)) else [value]
-    return values if values and all(_real(v) for v in values) else None
-
-
 #: What the built-in options' values must be, ``{key: (test, expected)}``: checked when a
 #: scenario is read (a YAML file's ``cusum_bias: big`` failed mid-study with a traceback,
 #: and ``-1`` with the detector's words, naming neither the file nor the option).
 _VALUES = {
-    "poa_eta": (lambda v: _reals(v) is not None and min(_reals(v)) >= 0,
-                "a finite number >= 0, or a list of them (one per measurement entry)"),
+    # one number: η bounds the norm of a residual (a list "one per measurement entry" had
+    # been applied one per run: run i judged at entry i's η, or refused for another count)
+    "poa_eta": (lambda v: _real(v) and v >= 0, "a finite number >= 0"),
     "poa_zeta": (lambda v: _real(v) and 0 <= v < 1, "a number in [0, 1)"),
     "cusum_bias": (lambda v: _real(v) and v > 0, "a finite number > 0"),
     "gamma_hat_noise_var": (lambda v: _real(v) and v >= 0, "a finite number >= 0"),

@@ -346,9 +346,13 @@ def sawtooth_pulse_train(
     followed by an instant drop. Shape: ``t [T]`` → ``[T]``.
     """
     if not (0 < width < math.inf and 0 < period < math.inf and -1.0 <= skew <= 1.0):
-        raise ValueError("width and period must be positive and finite and skew must lie in [-1, 1]")
+        raise ValueError(
+            "width and period must be positive and finite and skew must lie in [-1, 1]"
+        )
     if not (math.isfinite(start) and math.isfinite(stop) and stop >= start):
-        raise ValueError(f"start and stop must be finite with stop >= start; got {start!r}, {stop!r}")
+        raise ValueError(
+            f"start and stop must be finite with stop >= start; got {start!r}, {stop!r}"
+        )
     n_pulses = int(math.floor((stop - start) / period + 1e-9)) + 1
     delays = start + period * torch.arange(n_pulses, dtype=t.dtype)
     tau = t[:, None] - delays[None, :]
@@ -511,7 +515,9 @@ def _check_random_attacks(num_runs, steps, generator, channels, min_events, max_
         raise ValueError(f"amplitude must be (low, high) with 0 <= low <= high < inf; got "
                          f"{amplitude!r}")  # fmt: skip
     if chans.is_floating_point() or chans.dtype == torch.bool:
-        raise ValueError(f"channels must be integer indices in 0..{STATE_DIM - 1}; got {channels!r}")
+        raise ValueError(
+            f"channels must be integer indices in 0..{STATE_DIM - 1}; got {channels!r}"
+        )
     return chans
 
 

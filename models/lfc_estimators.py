@@ -224,8 +224,10 @@ def _attack_free(ctx: SuiteContext, name: str, estimator, tr, compensate: bool):
     network = (
         str(ctx.checkpoint_for(name)) if name in getattr(ctx, "checkpoint_users", ()) else None
     )
+    # (the dtype and device too: a float32 study had taken a float64 study's loop from its
+    # cache, drawn from other noise, 13x off in every state_rmse_vs_attack_free)
     key = ("lfc/free", name, ctx.scenario.attack_free_key(), tuple(tr.x.shape), ctx.streams.seed,
-           network)  # fmt: skip
+           network, str(tr.x.dtype), str(tr.x.device))  # fmt: skip
 
     def run():
         forks = dict.fromkeys(_fork_steps(ctx.scenario, tr.info))

@@ -40,8 +40,8 @@ def test_a_blank_name_is_named_not_read_as_none():
     [({"cusum_bias": "big"}, "cusum_bias must be a finite number > 0; got 'big'"),
      ({"cusum_bias": [1, 2]}, "cusum_bias must be a finite number > 0"),
      ({"cusum_bias": -1}, "cusum_bias must be a finite number > 0; got -1"),
-     ({"poa_eta": "abc", "poa_zeta": 0.5}, "poa_eta must be a finite number >= 0, or a list"),
-     ({"poa_eta": [0.1, 0.2], "poa_zeta": 1}, r"poa_zeta must be a number in \[0, 1\); got 1"),
+     ({"poa_eta": "abc", "poa_zeta": 0.5}, "poa_eta must be a finite number >= 0; got 'abc'"),
+     ({"poa_eta": 0.1, "poa_zeta": 1}, r"poa_zeta must be a number in \[0, 1\); got 1"),
      (["cusum_bias", 2.0], "options must be a mapping of option: value")],
 )  # fmt: skip
 def test_option_values_are_checked_when_the_file_is_read(options, message):
