@@ -68,6 +68,7 @@ from ._checks import (
 )
 from .attack import Attack, Channel, TabulatedAttack, attack_dim, inject
 from .estimator import Estimator, EstimatorOutput, Generators, stack_steps
+from .gain_schedule import _same
 from .input_loss import InputLoss, OnLoss
 from .results import GaussianState
 
@@ -1193,9 +1194,7 @@ def _same_model(a, b) -> bool:
     if type(a) is not type(b):
         return False
     sa, sb = a.state_dict(keep_vars=True), b.state_dict(keep_vars=True)
-    return sa.keys() == sb.keys() and all(
-        sa[k].shape == sb[k].shape and bool(torch.equal(sa[k].detach(), sb[k].detach())) for k in sa
-    )
+    return sa.keys() == sb.keys() and all(_same(sa[k], sb[k]) for k in sa)
 
 
 def _start(plant, steps, horizon, x0, estimator, model, controller, attack, attack_generator,

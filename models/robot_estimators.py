@@ -40,6 +40,7 @@ from difffilter.fdi.mdpf import (
     adaptive_particle_filter,
     adaptive_particle_init,
 )
+from difffilter.gain_schedule import _STALE, _stamp, _unchanged
 from difffilter.loop import DrawnNoise, LoopResult, _step_through, closed_loop, open_loop
 from difffilter.models.estimators import SuiteContext, family_register
 from difffilter.particle import ParticleState
@@ -296,40 +297,34 @@ class FusedLocals(Estimator):
 
 
 class _ModelStamp:
-    """The tensors a model holds (its noises' included), each with its version then: an
-    assignment (``model.measurement_noise = …``: other tensors) or an in-place write (a
-    version moved) is seen by :meth:`holds`. It holds the tensors themselves (an id could
-    be a freed tensor's, taken by its replacement); a copy or a pickle of a carry copies them
-    with the model, and :meth:`__setstate__` stamps the copies anew where they were
-    unchanged (their version counters start again)."""
+    """The tensors a model holds (its noises' included), each with the gain schedule's stamp
+    (:func:`~difffilter.gain_schedule._stamp`: version, memory, ``requires_grad``): an
+    assignment (``model.measurement_noise = …``: other tensors) or a write in place is seen
+    by :meth:`holds`. It holds the tensors themselves (an id could be a freed tensor's,
+    taken by its replacement); a copy or a pickle of a carry copies them with the model,
+    and :meth:`__setstate__` stamps the copies anew where they were unchanged, as the gain
+    schedule does."""
 
     __slots__ = ("entries",)
 
     def __init__(self, model):
-        self.entries = tuple((t, _version(t)) for t in _tensors_of(model))
+        self.entries = tuple((t, _stamp(t)) for t in _tensors_of(model))
 
     def holds(self, model) -> bool:
         now = _tensors_of(model)
         return len(now) == len(self.entries) and all(
-            t is held and _version(t) == version for t, (held, version) in zip(now, self.entries)
+            t is held and _unchanged(t, stamp) for t, (held, stamp) in zip(now, self.entries)
         )
 
     def __getstate__(self):
-        return tuple((t, _version(t) == version) for t, version in self.entries)
+        return tuple((t, _unchanged(t, stamp)) for t, stamp in self.entries)
 
     def __setstate__(self, state):
-        self.entries = tuple((t, _version(t) if same else -2) for t, same in state)
+        self.entries = tuple((t, _stamp(t) if same else _STALE) for t, same in state)
 
 
 def _tensors_of(model) -> list:
     return list(model.state_dict(keep_vars=True).values())
-
-
-def _version(t) -> int:
-    try:
-        return t._version
-    except RuntimeError:  # an inference tensor keeps no version: its identity alone
-        return -1
 
 
 class CompensatingInputs:

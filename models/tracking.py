@@ -465,8 +465,7 @@ class PerSensorDeception:
         self.rate, self.sensors = float(rate), int(sensors)
         # the box in float64, cast to the packets' dtype where compared (its area and the
         # attacked term in the filter's precision, not torch's default float32)
-        self.low = torch.as_tensor(low, dtype=torch.float64)
-        self.high = torch.as_tensor(high, dtype=torch.float64)
+        self.low, self.high = box
         self.log_q = math.log1p(-self.rate)
         self.log_pa = (math.log(self.rate) if self.rate > 0 else -math.inf) - math.log(
             float((self.high - self.low).prod())
