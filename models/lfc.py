@@ -733,7 +733,7 @@ class LFCScenario(Scenario):
 
     def system(self, dtype: torch.dtype = torch.float64, device=None):
         """The observers' model (:meth:`LFCPlant.model` without the load)."""
-        return LFCPlant(dt=self.dt, dtype=dtype).model(knows_load=False)
+        return self._on_device(LFCPlant(dt=self.dt, dtype=dtype).model(knows_load=False), device)
 
     def attack_model(self):
         """The scenario's attack: the known signal ``α [T, 10]`` on the sensors (``None``

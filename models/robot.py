@@ -345,7 +345,7 @@ class RobotScenario(Scenario):
             )
 
     def system(self, dtype: torch.dtype = torch.float64, device=None) -> RobotModel:
-        return RobotModel(dt=self.dt, dtype=dtype)
+        return self._on_device(RobotModel(dt=self.dt, dtype=dtype), device)
 
     def attack_model(self) -> ActuatorInjection:
         return ActuatorInjection((self.attack[0], self.attack[1] * DEG), start=self.attack_from - 1)

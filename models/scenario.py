@@ -272,6 +272,21 @@ class Scenario:
         """The attack (:mod:`difffilter.models.attacks`) or ``None``."""
         return None
 
+    def _on_device(self, model, device):
+        """``model``, refused where ``device`` is given and the model was not built there:
+        a family whose plant is built on the CPU alone returned a CPU model for
+        ``system(device="cuda")``, and the first step failed far from the cause (or a
+        study ran on the CPU while its user believed it ran on the GPU)."""
+        if device is None:
+            return model
+        want, got = torch.device(device), model_dtype_device(model)[1]
+        if got is not None and (got.type, got.index) != (want.type, want.index or got.index):
+            raise ValueError(
+                f"scenario {self.name!r}: system(device={str(device)!r}) built its model on "
+                f"{got}: this scenario's plant is built on the CPU only (device=None)"
+            )
+        return model
+
     def schedule(self):
         """The communication schedule (:mod:`difffilter.models.schedules`)."""
         return AllSensors()
@@ -567,7 +582,7 @@ class CustomScenario(Scenario):
                 f"scenario {self.name!r}: model_fn({dtype}) returned a model of {got}: build it "
                 "in the dtype it is given (e.g. torch.tensor(..., dtype=dtype))"
             )
-        return model
+        return self._on_device(model, device)
 
     def draws_initial_state(self) -> bool:
         return self.random_initial

@@ -579,10 +579,11 @@ class TrackingScenario(Scenario):
         return tuple((2 * i, 2 * i + 1) for i in range(len(self.sensors)))
 
     def system(self, dtype: torch.dtype = torch.float64, device=None) -> TrackingModel:
-        return TrackingModel(
+        model = TrackingModel(
             sigma_omega=self.sigma_omega, dt=self.dt, sensors=self.sensors, kappa=self.kappa,
             x0=self.x0, p0=self.p0, dtype=dtype,
         )  # fmt: skip
+        return self._on_device(model, device)
 
     def attack_model(self) -> Replacement:
         n = len(self.sensors)
