@@ -33,6 +33,7 @@ The two replays:
 from __future__ import annotations
 
 import math
+import numbers
 from typing import Any
 
 import torch
@@ -69,8 +70,16 @@ def windows_past_splice(steps: int, window: int, onset: int) -> torch.Tensor:
     return keep
 
 
+#: The study's times in seconds (window, recording, first replayed step), converted to
+#: the scenario's steps: at 10 ms 50, 300 and 700 steps. Counted in steps, the 1 ms
+#: scenario had a window of 0.05 s and a recording of 0.4–0.7 s replayed 31 times over
+#: (a red-team trial).
+DEFAULT_SECONDS = {"window": 0.5, "delay": 3.0, "onset": 7.0}
+
+
 def watermark_study(scenario, *, runs: int = 20, seed: int = 0, std: float = 0.08,
-                    window: int = 50, delay: int = 300, onset: int = 700, far: float = 0.01,
+                    window: int | None = None, delay: int | None = None,
+                    onset: int | None = None, far: float = 0.01,
                     progress: bool = False) -> dict[str, Any]:  # fmt: skip
     """The plain and the seamless replay on the LFC loop, without and with the watermark
     (module docstring).
@@ -78,13 +87,24 @@ def watermark_study(scenario, *, runs: int = 20, seed: int = 0, std: float = 0.0
     ``std``: the watermark's standard deviation per control input (p.u.); ``window``: of
     the χ² detector (0.5 s); the replay records from ``onset − delay`` and replays from
     ``onset`` (1-based steps); the thresholds come from attack-free runs of their own seed
-    at ``far``. Defaults: the replay records 4–7 s and replays them over 7–10 s; ``std``
-    0.08 p.u. keeps the control cost within 10 % (measured: +7.4 %).
+    at ``far``. Defaults (``None``): a window of 0.5 s, and the replay records 4–7 s and
+    replays them over 7–10 s, in the scenario's steps (:data:`DEFAULT_SECONDS`: 50, 300,
+    700 at 10 ms); ``std`` 0.08 p.u. keeps the control cost within 10 % (measured: +7.4 %).
 
     Returns the schema's header and ``rows["<plain|seamless> replay, <with|without>
     watermark"]`` with ``auc``, ``auc_after_splice``, ``threshold``, ``tpr_at_far``,
     ``fpr_at_far``, ``std`` and the attack-free ``control_cost``."""
     steps = scenario.steps
+    given = {"window": window, "delay": delay, "onset": onset}
+    window, delay, onset = (round(DEFAULT_SECONDS[k] / scenario.dt) if v is None else v
+                            for k, v in given.items())  # fmt: skip
+    # (a std of 0 or less, or NaN, had run the "with watermark" rows without one, labelled
+    # with it; a runs of 2.5 failed inside torch.randn)
+    if isinstance(std, bool) or not isinstance(std, numbers.Real) or not 0 < std < math.inf:
+        raise ValueError(f"std must be a finite number > 0 (the watermark's standard "
+                         f"deviation per control input, p.u.); got {std!r}")  # fmt: skip
+    if isinstance(runs, bool) or not isinstance(runs, numbers.Integral) or runs < 1:
+        raise ValueError(f"runs must be an integer >= 1; got {runs!r}")
     # a replay that starts after the last step (a trial: onset 400 of 300) had returned an
     # AUC of None and a TPR of NaN without a word, which metrics.json cannot hold
     if isinstance(onset, bool) or not isinstance(onset, int) or not 1 <= onset <= steps:
