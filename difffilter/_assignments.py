@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from torch import Tensor, nn
 
-__all__ = ["CountsAssignments", "assignments"]
+__all__ = ["CountsAssignments", "assignments", "note_assignment"]
 
 _COUNT = [0]
 
@@ -23,6 +23,13 @@ _COUNT = [0]
 def assignments() -> int:
     """How many tensors and modules have been assigned to models so far (in this process)."""
     return _COUNT[0]
+
+
+def note_assignment() -> None:
+    """Count one assignment that changes what a carry was made for (an estimator's own
+    setting: a particle filter's ``num_particles``), so that the next step of every carry
+    validates it in full (:mod:`difffilter._vouched`)."""
+    _COUNT[0] += 1
 
 
 class CountsAssignments(nn.Module):

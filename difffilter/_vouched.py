@@ -100,6 +100,7 @@ class Established:
                 not isinstance(mask, Tensor)
                 or mask.dtype is not torch.bool
                 or mask.shape != y.shape
+                or mask.device != self.device  # (torch's bare device error otherwise)
             ):
                 return None
             # unreceived entries are never read, but 0·NaN would still be NaN in an update

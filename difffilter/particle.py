@@ -41,6 +41,7 @@ from typing import Any, NamedTuple, Protocol
 import torch
 from torch import Tensor
 
+from ._assignments import note_assignment
 from ._checks import (
     NonFinite,
     broadcast_shapes,
@@ -520,6 +521,25 @@ class ParticleFilter(Estimator):
                     "weights=None"
                 )
 
+    #: Settings a carry is made for: one replaced after ``init`` is checked as ``__init__``
+    #: checks it, and the next step validates its carry against it in full (a lean step had
+    #: gone on with 50 particles for ``num_particles = 20`` and returned a 0 × 0 covariance
+    #: for ``cov_dims = 0``: a red-team trial); a new likelihood's statefulness is read again.
+    _CARRY_SETTINGS = frozenset({"num_particles", "cov_dims", "likelihood"})
+
+    def __setattr__(self, name, value):
+        if name not in self._CARRY_SETTINGS or name not in self.__dict__:
+            super().__setattr__(name, value)
+            return
+        if name == "num_particles":
+            value = check_positive_int(value, "num_particles")
+        elif name == "cov_dims":
+            value = _check_cov_dims(value, None)
+        super().__setattr__(name, value)
+        if name == "likelihood":
+            super().__setattr__("stateful", hasattr(value, "weigh"))
+        note_assignment()
+
     def _step(self, carry, y, u, mask):
         if _single_run.on_defaults(self, carry):  # one run on the defaults: a leaner step
             density = _host_step.density(carry, y, u)
@@ -528,8 +548,11 @@ class ParticleFilter(Estimator):
             if mask is None:
                 return _single_run.single_run_step(self, carry, y, u)
         elif _single_run.one_of_a_batch(self, carry, y, u, mask):  # init(model, (1,)): its run
-            new, out = self._step(_single_run.run_of(carry), y[0], None if u is None else u[0],
-                                  None if mask is None else mask[0])  # fmt: skip
+            # ParticleFilter's own step, not a subclass's override: a subclass adjusting
+            # super()._step's output had it applied twice at batch (1,) (a red-team trial)
+            new, out = ParticleFilter._step(self, _single_run.run_of(carry), y[0],
+                                            None if u is None else u[0],
+                                            None if mask is None else mask[0])  # fmt: skip
             return _single_run.as_batch_of_one(new, out)
         return _particle_step(self, carry, y, u, mask)
 
