@@ -37,6 +37,7 @@ from ..estimator import Estimator, EstimatorOutput
 from ..extended import ExtendedKalmanFilter
 from ..kalman import GaussianFilter
 from ..loop import open_loop
+from ..observers import FixedGainFilter
 from ..results import GaussianState
 from .detectors import (
     ChiSquareDetector,
@@ -103,6 +104,12 @@ class GatedFilter(Estimator):
                 "filter must be a Gaussian filter object (difffilter.KalmanFilter(), "
                 f"ExtendedKalmanFilter(), UnscentedKalmanFilter()); got {type(filter).__name__}"
             )
+        if isinstance(filter, FixedGainFilter):  # (it failed inside torch at the first step)
+            raise TypeError(
+                "filter: a FixedGainFilter reports no innovation covariance S_k, which the "
+                "detector's statistic g_k = r_kᵀ S_k⁻¹ r_k needs: give a KalmanFilter, "
+                "ExtendedKalmanFilter or UnscentedKalmanFilter"
+            )
         self.detector, self.filter, self.gate = detector, filter, bool(gate)
 
     def batch_of(self, carry):
@@ -143,6 +150,11 @@ class GatedFilter(Estimator):
     def _step(self, carry, y, u, mask):
         pred = self.filter.predict(carry.inner, u)
         updated, out = self.filter.update(carry.inner, pred, y, mask)
+        if out.innovation_cov is None:
+            raise ValueError(
+                f"filter: {type(self.filter).__name__} reported no innovation covariance S_k, "
+                "which the detector's statistic g_k = r_kᵀ S_k⁻¹ r_k needs"
+            )
         g = _nis(out.innovation, out.innovation_cov)  # the filter's own, checked output
         det_state, score, alarm, threshold = self._detect(carry.detector, g, mask, y.shape[-1])
         if self.gate:

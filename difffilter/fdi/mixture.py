@@ -27,6 +27,7 @@ from itertools import chain
 import torch
 from torch import Tensor
 
+from .._assignments import assignments
 from .._checks import check_filter_inputs
 from ..estimator import Detection, EstimatorOutput
 from ..loop import _step_through, open_loop
@@ -82,24 +83,41 @@ class ReplacementDeception:
         self._last = None
 
     def __call__(self, model, y: Tensor, particles: Tensor, k: int, mask) -> Tensor:
-        dim = getattr(self.density, "dim", None)
-        if dim is not None and dim != model.dim_y:
-            raise ValueError(f"density has dimension {dim}; the model's measurements have "
-                             f"dim_y = {model.dim_y}: they must be the same")  # fmt: skip
         return self.log_density(y, mask).unsqueeze(-1).expand(particles.shape[:-1])
+
+    def _check_dim(self, y: Tensor) -> None:
+        """The density's dimension against the measurements' (checked on every path to the
+        density: the mixture likelihood's and the particle filter's tabulated one had met
+        torch's size mismatch)."""
+        dim = getattr(self.density, "dim", None)
+        if dim is not None and dim != y.shape[-1]:
+            raise ValueError(f"density has dimension {dim}; the model's measurements have "
+                             f"dim_y = {y.shape[-1]}: they must be the same")  # fmt: skip
 
     def log_density(self, y: Tensor, mask=None) -> Tensor:
         """``log p_ξ(ỹ)`` of the received entries ``[...]`` (the same for every particle).
 
-        The last value is kept for the same ``y`` and ``mask`` tensors (unmodified): the
-        filter step and its detection hook ask for the same packet once each. The density
-        follows the measurements to their device (the first call on a GPU moves it there).
+        The last value is kept for the same ``y`` and ``mask`` tensors (unmodified) and the
+        same density (its tensors unmodified, none learned) in the same grad mode: the
+        filter step and its detection hook ask for the same packet once each. (Keyed on
+        ``y`` and ``mask`` alone, a density changed by ``load_state_dict`` answered with its
+        old values, one learned crashed the second ``backward``, and a value made under
+        ``no_grad`` carried no gradient to the next training step: a red-team trial.) The
+        density follows the measurements to their device (the first call on a GPU moves it
+        there).
         """
+        self._check_dim(y)
         self._follow(y.device)
-        if y.is_inference() or (mask is not None and mask.is_inference()):
-            self._last = None  # inference tensors have no version counter: no cache
+        tensors = list(chain(self.density.parameters(), self.density.buffers()))
+        if (y.is_inference() or (mask is not None and mask.is_inference())
+                or any(t.requires_grad or t.is_inference() for t in tensors)):  # fmt: skip
+            # inference tensors have no version counter, and a learned density's value belongs
+            # to one graph: no cache
+            self._last = None
             return self._log_prob(y, mask)
-        key = (y, mask, y._version, None if mask is None else mask._version)
+        key = (y, mask, y._version, None if mask is None else mask._version,
+               assignments(), torch.is_grad_enabled(),
+               tuple((t.data_ptr(), t._version) for t in tensors))  # fmt: skip
         cached = self._last
         if cached is not None and all(a is b for a, b in zip(cached[0][:2], key[:2])):
             if cached[0][2:] == key[2:]:

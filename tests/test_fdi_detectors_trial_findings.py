@@ -1,0 +1,122 @@
+"""Detectors, the gated filter and the replacement deception's cache (a red-team trial).
+
+* ``ReplacementDeception.log_density`` kept its value keyed on ``y`` and ``mask`` alone: a
+  density changed by ``load_state_dict`` answered with its old values (the mixture PF's
+  log-likelihood 1 nat off), a learned one crashed the second ``backward``, and a value made
+  under ``no_grad`` left the next training step without a gradient.
+* Its dimension check ran only in ``__call__``, not on the paths that tabulate it.
+* ``ChiSquareDetector`` kept the quantile table of its first use after ``false_alarm_rate``
+  or ``window`` were set (235 alarms for 4, or an IndexError); a NaN ``CusumDetector``
+  threshold assigned after ``__init__`` never alarmed.
+* ``GatedFilter`` took a ``FixedGainFilter`` (no innovation covariance) and failed in torch.
+"""
+
+import math
+
+import pytest
+import torch
+from scipy.stats import chi2
+
+import difffilter as df
+from difffilter.fdi.detectors import ChiSquareDetector, CusumDetector
+from difffilter.fdi.gated import GatedFilter
+from difffilter.fdi.mixture import (
+    DeceptionMixtureLikelihood,
+    ReplacementDeception,
+    mixture_likelihood_particle_filter,
+)
+from difffilter.noise import Gaussian
+from difffilter.observers import FixedGainFilter
+
+d = torch.float64
+
+
+def _model():
+    one = torch.eye(1, dtype=d)
+    return df.LinearGaussianModel(
+        0.9 * one, one, 0.3 * one, 0.5 * one, torch.zeros(1, dtype=d), one
+    )
+
+
+def _ys():
+    return _model().simulate(6, batch_shape=(2,), generator=torch.Generator().manual_seed(0))[1]
+
+
+def _loglik(likelihood, ys):
+    out = mixture_likelihood_particle_filter(_model(), ys, num_particles=200, likelihood=likelihood,
+                                             generator=torch.Generator().manual_seed(1))  # fmt: skip
+    return out.extras["log_likelihood"]
+
+
+def test_a_reloaded_density_is_read_again():
+    ys = _ys()
+    density = Gaussian(torch.zeros(1, dtype=d), 4.0 * torch.eye(1, dtype=d))
+    attack = ReplacementDeception(density)
+    likelihood = DeceptionMixtureLikelihood(0.3, attack)
+    attack.log_density(ys)
+    state = density.state_dict()
+    state["loc"] = state["loc"] + 3.0
+    density.load_state_dict(state)
+    torch.testing.assert_close(attack.log_density(ys), density.log_prob(ys))
+    fresh = DeceptionMixtureLikelihood(0.3, ReplacementDeception(density))
+    torch.testing.assert_close(_loglik(likelihood, ys), _loglik(fresh, ys))
+
+
+def test_a_learned_density_trains_after_a_no_grad_pass_and_twice():
+    ys = _ys()
+    density = Gaussian(torch.nn.Parameter(torch.zeros(1, dtype=d)), 4.0 * torch.eye(1, dtype=d))
+    likelihood = DeceptionMixtureLikelihood(0.3, ReplacementDeception(density))
+    with torch.no_grad():
+        _loglik(likelihood, ys)
+    grads = [torch.autograd.grad(_loglik(likelihood, ys).sum(), density.loc)[0] for _ in range(2)]
+    fresh = DeceptionMixtureLikelihood(0.3, ReplacementDeception(density))
+    truth = torch.autograd.grad(_loglik(fresh, ys).sum(), density.loc)[0]
+    for grad in grads:
+        torch.testing.assert_close(grad, truth)
+    assert truth.abs().item() > 1e-3
+
+
+def test_a_density_of_another_dimension_is_named_on_every_path():
+    one = torch.eye(1, dtype=d)
+    two = torch.eye(2, dtype=d)
+    model = df.LinearGaussianModel(
+        0.9 * two, two, 0.3 * two, 0.5 * two, torch.zeros(2, dtype=d), two
+    )
+    ys = model.simulate(4, batch_shape=(2,), generator=torch.Generator().manual_seed(0))[1]
+    likelihood = DeceptionMixtureLikelihood(
+        0.3, ReplacementDeception(Gaussian(torch.zeros(1, dtype=d), one))
+    )
+    with pytest.raises(ValueError, match="density has dimension 1.*dim_y = 2"):
+        mixture_likelihood_particle_filter(model, ys, num_particles=20, likelihood=likelihood,
+                                           generator=torch.Generator().manual_seed(1))  # fmt: skip
+
+
+def test_a_chi_square_detector_set_after_use_thresholds_at_its_new_setting():
+    r = torch.randn(200, 20, 2, dtype=d, generator=torch.Generator().manual_seed(0))
+    S = torch.eye(2, dtype=d).expand(200, 20, 2, 2)
+    g = r.square().sum(-1)
+    det = ChiSquareDetector(2, 0.05)
+    det.detect(r, S)
+    det.false_alarm_rate = 0.001
+    assert int(det.detect(r, S)[1].sum()) == int((g > chi2.isf(0.001, 2)).sum())  # was 235
+    det.window = 3
+    fresh = ChiSquareDetector(2, 0.001, window=3)
+    torch.testing.assert_close(det.detect(r, S)[1], fresh.detect(r, S)[1])
+    with pytest.raises(ValueError, match="false_alarm_rate"):
+        det.false_alarm_rate = math.nan
+    with pytest.raises(ValueError, match="window must be an integer >= 1"):
+        det.window = 0
+
+
+def test_a_cusum_threshold_assigned_later_is_checked():
+    det = CusumDetector(3.0, 1.0)
+    with pytest.raises(ValueError, match="threshold must be a finite number"):
+        det.threshold = math.nan
+    with pytest.raises(ValueError, match="bias"):
+        det.bias = -1.0
+    det.threshold = None  # (uncalibrated: allowed, as at __init__)
+
+
+def test_a_gated_filter_refuses_an_observer_without_innovation_covariance():
+    with pytest.raises(TypeError, match="FixedGainFilter reports no innovation covariance"):
+        GatedFilter(ChiSquareDetector(1), FixedGainFilter(torch.ones(1, 1, dtype=d)))
