@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import torch
@@ -172,15 +173,11 @@ class ActuatorInjection(TabulatedAttack):
     def __post_init__(self):
         # a number alone is one value, of a plant with one input (it failed as "'float'
         # object is not iterable", a YAML scenario's trial)
-        value = (self.value,) if isinstance(self.value, numbers.Real) else self.value
-        try:
-            v = tuple(float(a) for a in value)
-        except (TypeError, ValueError):
-            v = ()
-        if not v or not all(math.isfinite(a) for a in v):
-            raise ValueError(
-                f"value must be a non-empty sequence of finite numbers; got {self.value!r}"
-            )
+        # (a string had been split into its characters: "20" → (2, 0); booleans taken)
+        value = self.value
+        if not isinstance(value, (str, bytes, numbers.Real)) and isinstance(value, Iterable):
+            value = tuple(value)  # a tensor's or an array's entries
+        v = _numbers(value, "value", "a non-empty sequence of finite numbers")
         if isinstance(self.start, bool) or not isinstance(self.start, int) or self.start < 0:
             raise ValueError(f"start must be an integer >= 0; got {self.start!r}")
         object.__setattr__(self, "value", v)
@@ -284,8 +281,8 @@ class Replacement(TabulatedAttack):
 
 class Signal(TabulatedAttack):
     """A known, deterministic attack signal: ``values [T, dim]`` (the same for every run)
-    or ``[B, T, dim]`` (one per run), ``a_k = values[..., k − 1, :]``, flagged where it is
-    non-zero, on ``channel`` (default the sensor channel).
+    or ``[B, T, dim]`` (one per run), ``a_k = values[..., k − 1, :]``, flagged entry by
+    entry where it is non-zero, on ``channel`` (default the sensor channel).
 
     The LFC scenarios' attacks (steps, sinusoids, sawtooth pulse trains of eqs 44–47)
     are such signals, and so are the random attacks the LFC estimator is trained on.
@@ -313,7 +310,10 @@ class Signal(TabulatedAttack):
             values = self.values.to(dtype=dtype, device=device).expand(shape + (num_steps, dim))
         except RuntimeError:
             raise self._shape_error(shape, num_steps, dim) from None
-        return values, (values != 0).any(-1)
+        # flagged entry by entry: under a schedule a step whose attacked entries were all
+        # lost is attack-free for the estimator (one flag per step had labelled a Round-Robin
+        # step that received only clean entries as attacked: a red-team trial)
+        return values, values != 0
 
     def _shape_error(self, shape: torch.Size, num_steps: int, dim: int) -> ValueError:
         return ValueError(

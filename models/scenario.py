@@ -546,6 +546,15 @@ class CustomScenario(Scenario):
                 "attack must be a difffilter.attack.Attack (e.g. difffilter.threats.Ramp) or "
                 f"None; got {type(self.attack).__name__}"
             )
+        protocol = self.protocol
+        if protocol is not None and (
+            isinstance(protocol, type) or not callable(getattr(protocol, "mask", None))
+        ):  # (a string or a class failed at the first simulate, on a missing attribute)
+            raise TypeError(
+                "protocol must be a schedule object with a mask(...) method (e.g. "
+                "difffilter.models.schedules.RoundRobin(((0,), (1,))) or PacketLoss(0.2)) or "
+                f"None; got {protocol!r}"
+            )
         for name in ("runs", "steps"):
             check_positive_int(getattr(self, name), name)
         check_finite_number(self.dt, "dt (the sampling period, s)", positive=True)  # (-0 s delays)

@@ -153,13 +153,13 @@ def test_replacement_refuses_degenerate_or_mismatched_boxes():
 # ------------------------------------------------------------------ known signal
 
 
-def test_signal_flags_any_nonzero_entry_and_refuses_malformed_signals():
-    """A step is flagged where the signal is non-zero in any entry; a ``[1, dim]`` signal
-    (would broadcast to a constant attack), a 1-D one and a non-finite one are refused; the
-    signal acts on the channel it is given (default the sensor channel)."""
+def test_signal_flags_its_nonzero_entries_and_refuses_malformed_signals():
+    """An entry is flagged where the signal is non-zero (a step where any is); a ``[1, dim]``
+    signal (would broadcast to a constant attack), a 1-D one and a non-finite one are
+    refused; the signal acts on the channel it is given (default the sensor channel)."""
     values = torch.tensor([[0.0, 0.0], [0.0, 2.0], [3.0, 4.0]])
     _, flags = Signal(values).sample(2, 3, 2, dtype=torch.float64)
-    assert flags.tolist() == [[False, True, True]] * 2
+    assert flags.tolist() == [[[False, False], [False, True], [True, True]]] * 2
     with pytest.raises(ValueError):
         Signal(torch.ones(1, 2)).sample(2, 3, 2, dtype=torch.float64)
     with pytest.raises(ValueError):
