@@ -122,6 +122,8 @@ def steps_to_keep(K, P, last_gain, last_cov, F, H, tol: float) -> int | None:
     if last_gain is not None:
         gains = np.concatenate([last_gain.reshape(1, -1), gains])
         covs = np.concatenate([last_cov.reshape(1, -1), covs])
+    if gains.shape[0] < 2:  # one step and nothing before it (a chunk cut short): no test
+        return None
     first = n + 1 - gains.shape[0]  # the chunk's first tested step
     gain_scale = np.abs(gains[:-1]).max(-1)
     gain_change = np.abs(gains[1:] - gains[:-1]).max(-1)
