@@ -40,6 +40,18 @@ __all__ = ["main", "build_parser", "resolve_scenarios", "evaluate", "check_argum
 EVALUATION_SEED = 0
 
 
+class _GivenOnce(argparse.Action):
+    """An option whose value is one list: given twice, the first list had been dropped
+    without a word (``--estimators a --estimators b`` ran ``b`` alone; a red-team trial)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        seen = namespace.__dict__.setdefault("_given_once", set())
+        if self.dest in seen:
+            parser.error(f"{option_string}: given twice; give one comma-separated list (A,B,…)")
+        seen.add(self.dest)
+        setattr(namespace, self.dest, values)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="difffilter-eval",
@@ -78,6 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--estimators",
+        action=_GivenOnce,
         type=_estimator_list,
         default=None,
         metavar="A,B,…",
@@ -87,6 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--add-estimators",
+        action=_GivenOnce,
         type=_estimator_list,
         default=[],
         metavar="A,B,…",
@@ -137,6 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--threats",
+        action=_GivenOnce,
         type=_threats,
         default=None,
         metavar="all|A,B,…",
@@ -368,15 +383,26 @@ def check_family_options(options, scenarios: Sequence[str]) -> None:
         return
     from difffilter.models import registry
 
-    from .report import family_report
+    from .report import family_report, report_for
 
     keys = [key for key, _ in options]
     twice = sorted({k for k in keys if keys.count(k) > 1})
     if twice:
         raise ValueError(f"--option {', '.join(twice)}: given twice; give each key once")
     families = list(dict.fromkeys(registry.get(name).family for name in scenarios))
-    takers = [f for f in families if family_report(f).prepare is not None]
+    # a family takes options through its own scenarios only (its studies run on them): a
+    # plant of one's own declared in the lfc family had -o watermark=true accepted and no
+    # study run (a red-team trial)
+    native = {registry.get(n).family for n in scenarios if report_for(registry.get(n))[1] is None}
+    takers = [f for f in families if family_report(f).prepare is not None and f in native]
     if not takers:
+        own = [f for f in families if family_report(f).prepare is not None]
+        if own:
+            raise ValueError(
+                f"--option: the {', '.join(own)} family's options run its studies on its own "
+                f"scenarios, and {', '.join(scenarios)} are plants of your own: no option "
+                "would take effect (docs/scenarios.md)"
+            )
         raise ValueError(
             f"--option: the families evaluated ({', '.join(families)}) take no options; "
             "lfc does (docs/scenarios.md)"
@@ -674,7 +700,7 @@ def check_output_folder(out: Path, scenarios: Sequence[str] = ()) -> None:
     ``ValueError`` naming ``--out`` otherwise."""
     from difffilter.models import registry
 
-    from .report import family_report
+    from .report import INCOMPLETE, family_report
 
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -686,6 +712,18 @@ def check_output_folder(out: Path, scenarios: Sequence[str] = ()) -> None:
             kind = folders if path.endswith("/") else files
             kind[path.rstrip("/")] = (
                 f"the {family} family writes a {'folder' if kind is folders else 'file'} there"
+            )
+    # a scenario named like what the evaluation writes at the top of --out: its folder
+    # would be that file (the study ran, then failed), or the leaderboard's clean-up of
+    # tb_leaderboard/ removed the scenario's own events (a red-team trial)
+    taken = {path.split("/")[0]: why for path, why in (files | folders).items()}
+    taken |= {INCOMPLETE: "it marks an unfinished evaluation with a file of that name",
+              LOCK_FILE: "it holds a lock file of that name"}  # fmt: skip
+    for name in scenarios:
+        if name in taken:
+            raise ValueError(
+                f"scenario {name!r}: its reports go in {out / name}/, and {taken[name]}: "
+                "give the scenario another name"
             )
     for name in scenarios:
         files |= {f"{name}/{f}": f"scenario {name}'s report writes a file there"

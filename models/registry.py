@@ -192,9 +192,12 @@ def _load_builtin() -> None:
 PLUGIN_GROUP = "difffilter.scenarios"
 
 
-def _register_all(obj, where: str) -> list[Scenario]:
+def _register_all(obj, where: str, *, one: bool = False) -> list[Scenario]:
     """Register what a plug-in or a ``module:object`` path gave: a scenario, a list of
-    them, a function of no arguments returning either, or a module (already registered)."""
+    them, a function of no arguments returning either, or a module (already registered);
+    ``one``: exactly one scenario, or ``ValueError`` before any is registered (a path names
+    one: a function returning two had its first evaluated and the other dropped silently,
+    a red-team trial)."""
     if isinstance(obj, type(importlib)):  # a module: it registered itself when imported
         return []
     if callable(obj) and not isinstance(obj, Scenario):
@@ -209,6 +212,11 @@ def _register_all(obj, where: str) -> list[Scenario]:
             pass
         obj = obj()
     items = obj if isinstance(obj, (list, tuple)) else [obj]
+    if one and len(items) != 1:
+        raise ValueError(
+            f"{where} gave {len(items)} scenarios; a path names one: name each on its own "
+            "(e.g. package.module:first_plant), or register them in the module and name them"
+        )
     bad = [type(s).__name__ for s in items if not isinstance(s, Scenario)]
     if bad:
         raise ValueError(
@@ -225,7 +233,7 @@ def _from_path(path: str) -> Scenario:
         raise ValueError(
             f"scenario {path!r}: name one scenario (module:object), not a module or list"
         )
-    return _register_all(obj, f"scenario {path!r}")[0]
+    return _register_all(obj, f"scenario {path!r}", one=True)[0]
 
 
 def get(name: str) -> Scenario:
