@@ -213,9 +213,11 @@ def test_craftings_at_other_steps_draw_other_onsets_and_runs(monkeypatch):
             assert not torch.equal(seen[i][1], seen[j][1]), f"steps {j} and {i}: same runs"
 
 
-def test_onsets_beyond_the_horizon_give_the_last_step(monkeypatch):
-    """``onsets = (40, 50)`` on a horizon of T = 30 steps: the onset is clipped to the
-    horizon, k = 30 (an onset the runs have; not a failed draw)."""
+def test_onsets_past_the_horizon_are_clipped_or_refused(monkeypatch):
+    """``onsets = (25, 50)`` on a horizon of T = 30 steps: the last onset is clipped to the
+    horizon (onsets the runs have, 25 … 30); ``(40, 50)`` starts after it and is refused by
+    name (clipped to k = 30, an attack of one row, a crafting an epoch later had failed on
+    too few attacked steps: a red-team trial)."""
     import difffilter.train.adversarial as adv
     from difffilter.stealthy import CraftedAttack
 
@@ -226,10 +228,12 @@ def test_onsets_beyond_the_horizon_give_the_last_step(monkeypatch):
         return CraftedAttack(torch.zeros(ys.shape[-2:]), onset, [], None, budget=0.05)
 
     monkeypatch.setattr(adv, "craft_stealthy_attack", fake)
-    a = Adversary(runs=1, onsets=(40, 50))
-    for step in range(3):
+    a = Adversary(runs=1, onsets=(25, 50))
+    for step in range(6):
         a.craft(_fake_task(steps=30), step)
-    assert seen == [30, 30, 30]
+    assert all(25 <= k <= 30 for k in seen) and len(seen) == 6
+    with pytest.raises(ValueError, match="first onset is after the scenario's last step"):
+        Adversary(runs=1, onsets=(40, 50)).craft(_fake_task(steps=30), 0)
 
 
 def test_the_adversarys_state_is_a_snapshot_and_restores_attack_onset_history():

@@ -82,6 +82,17 @@ class Adversary:
             raise ValueError(f"adversarial_onsets must be [first, last], 1 <= first <= last; "
                              f"got {self.onsets!r}")  # fmt: skip
 
+    def check_horizon(self, steps: int) -> None:
+        """Refuse onsets that start after the scenario's last step: the draw had been clamped
+        to the last step, an attack of one row, and a crafting an epoch later failed on too
+        few attacked steps, naming no adversarial option (a red-team trial). ``last`` past the
+        horizon is clamped (the draw covers the steps there are)."""
+        if self.onsets[0] > steps:
+            raise ValueError(
+                f"adversarial_onsets {list(self.onsets)}: the first onset is after the "
+                f"scenario's last step ({steps}): give onsets within 1 … {steps}"
+            )
+
     def due(self, step: int) -> bool:
         return self.attack is None or step % self.every == 0
 
@@ -90,9 +101,9 @@ class Adversary:
         scenario, seed = task.scenario_of_data(), mix_seed(task.hparams.model_seed, step, 17)
         streams = Streams(seed)
         T = scenario.steps
+        self.check_horizon(T)
         hi = min(self.onsets[1], T)
-        onset = int(torch.randint(min(self.onsets[0], hi), hi + 1, (),
-                                  generator=streams("adversary/onset")))  # fmt: skip
+        onset = int(torch.randint(self.onsets[0], hi + 1, (), generator=streams("adversary/onset")))
         free = scenario.with_threat(None)
         device = task.device  # drawn on the CPU, crafted where the weights are
 
@@ -164,6 +175,11 @@ class Adversary:
         self.attack, self.onset = state["attack"], state["onset"]
         self.history = [tuple(h) for h in state["history"]]
 
+    def kept_craftings(self) -> int:
+        """The craftings that kept an attack (an error above zero: one that kept none, a zero
+        attack of error 0, left the batches as they were)."""
+        return sum(1 for entry in self.history if kept_an_attack(entry))
+
     def augment(self, batch: dict, scenario, seed: int, dtype) -> dict:
         """``batch`` with :attr:`runs` runs under the current attack appended (fresh
         attack-free runs of stream ``seed``, the attack added to what is received); ``batch``
@@ -178,15 +194,24 @@ class Adversary:
         T, dy = self.attack.shape
         attack = self.attack.to(extra["y_recv"]).expand(self.runs, T, dy)
         extra["y_recv"] = extra["y_recv"] + attack
-        extra["attack"] = attack.clone()
+        mask = extra.get("mask")
+        # the attack on the entries received, zero on the others (Trajectories.attack): the
+        # network's estimate is zero there by construction, so a label there was a loss no
+        # weights could lower (a red-team trial: attack_mse 0.05 for a perfect estimator)
+        extra["attack"] = attack.clone() if mask is None else attack * mask.to(attack.dtype)
         on = torch.arange(1, T + 1) >= self.onset
         flags = batch["flags"]
         # where an attacked entry arrived, as the closed loop flags (a lossy scenario's
         # steps that received nothing had been flagged: 48 of 142, a trial)
-        mask = extra.get("mask")
         hit = attack != 0 if mask is None else (attack != 0) & mask.bool()
         extra["flags"] = (on & hit.any(-1) if flags.dim() == 2
                           else on[:, None] & hit)  # fmt: skip
         if batch["attack"].shape[-1] != dy:
             raise ValueError("adversarial training needs a sensor attack on every channel")
         return {k: torch.cat([batch[k], extra[k].to(batch[k].dtype)]) for k in batch}
+
+
+def kept_an_attack(entry) -> bool:
+    """Whether a crafting of :attr:`Adversary.history`, ``(step, onset, kept error)``, kept an
+    attack: the error of the attack kept is 0 exactly where none was (a zero attack)."""
+    return float(entry[2]) > 0

@@ -34,6 +34,7 @@ from difffilter.models.neural_estimator import (
 )
 from difffilter.models.yaml_scenario import SCENARIO_FILE_DIGEST
 
+from .adversarial import kept_an_attack
 from .common import check_checkpoint_out, load_source
 
 __all__ = ["export", "main", "ExportEstimator", "check_metric"]
@@ -153,9 +154,14 @@ def adversarial_craftings(blob: dict) -> int | None:
     checkpoint were saved (``None``: no adversary). The weights a fit selects may predate
     the first crafting (crafting starts in the second epoch, and the checkpoint is chosen on
     the validation score): a trial's card credited adversarial training that its weights
-    never had; :func:`difffilter.eval.coverage.training_coverage` reads this."""
+    never had; :func:`difffilter.eval.coverage.training_coverage` reads this. Only the
+    craftings that kept an attack count: one that kept none left the batches as they were
+    (counted, a card had credited an adversary whose weights met no attack: a red-team
+    trial)."""
     state = blob.get("difffilter_adversary")
-    return None if not isinstance(state, dict) else len(state.get("history") or ())
+    if not isinstance(state, dict):
+        return None
+    return sum(1 for entry in state.get("history") or () if kept_an_attack(entry))
 
 
 def threats_drawn(blob: dict) -> dict[str, int] | None:
@@ -296,7 +302,7 @@ class ExportEstimator(pl.Callback):
             craftings, drawn = adversarial_craftings(blob), threats_drawn(blob)
         else:
             if getattr(pl_module, "adversary", None) is not None:
-                craftings = len(pl_module.adversary.history)
+                craftings = pl_module.adversary.kept_craftings()
             if getattr(dm, "threats", None) is not None:
                 drawn = dict(dm.threats_drawn)
         # the weights chosen, or else where the training ended, for Ctrl-C's message

@@ -45,8 +45,15 @@ class PredictionFiles(BasePredictionWriter):
 
     def __init__(self, folder: str | Path | None = None):
         super().__init__(write_interval="batch")
-        self.folder = None if folder is None else Path(folder)
+        self._given = None if folder is None else Path(folder)
+        self.folder = self._given
         self.files: list[dict] = []
+
+    def on_predict_start(self, trainer, pl_module):
+        # one index per prediction: a second trainer.predict with this callback had listed
+        # its batch files twice (6 runs counted for 3) and written into the first trainer's
+        # folder (a red-team trial)
+        self.files, self.folder = [], self._given
 
     def _target(self, trainer) -> Path:
         if self.folder is None:

@@ -586,6 +586,7 @@ class FilterEstimatorTask(pl.LightningModule):
                 adversarial_crafting_runs, tuple(adversarial_onsets),
                 adversarial_resample, adversarial_selection_runs,
             )  # fmt: skip
+            self.adversary.check_horizon(sc.steps)
 
     def _start_from(self, path: str) -> None:
         """Copy the network weights of the estimator at ``path`` (``init_from``)."""
