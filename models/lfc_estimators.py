@@ -59,7 +59,11 @@ from difffilter.loop import LoopResult, Trajectories
 from difffilter.models.estimators import SkipEstimator, SuiteContext, family_register
 from difffilter.models.learned_estimator import NeuralCompensation, OnlineLearning, Residual
 from difffilter.models.lfc import LFCPlant, LFCScenario, lqr_gain
-from difffilter.models.neural_estimator import NeuralFDIEstimator, load_estimator_checkpoint
+from difffilter.models.neural_estimator import (
+    RUN_OPTIONS,
+    NeuralFDIEstimator,
+    load_estimator_checkpoint,
+)
 from difffilter.models.scenario import OWN_ATTACK
 from difffilter.observers import FixedGainFilter
 from difffilter.param_ekf import EKFRule, GradientRule
@@ -188,14 +192,9 @@ def _checkpoint_network(ctx: SuiteContext, name: str):
             "no checkpoint given (--ckpt; checkpoint= in Python) and no shipped one"
         )
     net, obs = _cached(ctx, ("lfc/ckpt", str(path)), lambda: load_estimator_checkpoint(path))
-    if obs.filter != "kf" or obs.scenario_family != "lfc":
-        raise SkipEstimator(
-            f"the checkpoint is not an LFC closed-loop estimator (filter {obs.filter!r}, "
-            f"family {obs.scenario_family!r})"
-        )
-    dt = 0.01 if obs.dt is None else float(obs.dt)
-    if abs(dt - ctx.scenario.dt) > 1e-12:
-        raise SkipEstimator(f"checkpoint trained at dt = {dt} s, scenario dt = {ctx.scenario.dt} s")
+    why = check_lfc_card(obs, ctx.scenario.dt)
+    if why is not None:
+        raise SkipEstimator(why)
     ctx.checkpoint_users.append(name)
     return net, obs
 
@@ -287,9 +286,26 @@ def _alarm_threshold(ctx: SuiteContext, name: str, trained: bool, statistic: str
     path = ctx.checkpoint_for(name)  # loaded (and checked) by the entry's build already
     _, card = _cached(ctx, ("lfc/ckpt", str(path)), lambda: load_estimator_checkpoint(path))
     calibration = card.extra.get("calibration", {})
+    # for this entry, statistic and run options (the reported name encodes confirm alone: a
+    # card re-saved with another restart or reject had kept the threshold of before)
     calibrated = (calibration.get("estimator") == name
-                  and calibration.get("score", ESTIMATE) == reported)  # fmt: skip
+                  and calibration.get("score", ESTIMATE) == reported
+                  and all(calibration.get(o) == getattr(card, o) for o in RUN_OPTIONS))  # fmt: skip
     return float(card.threshold) if calibrated else DEFAULT_THRESHOLD[statistic]
+
+
+def _set_threshold(ctx: SuiteContext, name: str, estimator, trained: bool):
+    """``(statistic, reported, threshold)`` of entry ``name``'s ``estimator``; a network
+    with a detection head alarms at that threshold from its own step on."""
+    head = trained and getattr(estimator.network, "detection_head", False)
+    statistic = PROBABILITY if head else ESTIMATE
+    reported = confirmed_statistic(statistic, getattr(estimator, "confirm", None))
+    threshold = _alarm_threshold(ctx, name, trained, statistic, reported)
+    if statistic == PROBABILITY and isinstance(estimator, NeuralCompensation):
+        # its step scores the head as reported: its alarms (what an adaptive attack
+        # reads) at the reported threshold too, not at the step's default 0.5
+        estimator.threshold = threshold
+    return statistic, reported, threshold
 
 
 def _closed_loop(name: str, build, *, compensate: bool = True, ablation: bool = False,
@@ -301,14 +317,7 @@ def _closed_loop(name: str, build, *, compensate: bool = True, ablation: bool = 
         if ablation and abs(ctx.scenario.dt - 0.01) > 1e-12:
             raise SkipEstimator("ablation run at dt = 10 ms only")
         estimator = build(ctx)
-        head = trained and getattr(estimator.network, "detection_head", False)
-        statistic = PROBABILITY if head else ESTIMATE
-        reported = confirmed_statistic(statistic, getattr(estimator, "confirm", None))
-        threshold = _alarm_threshold(ctx, name, trained, statistic, reported)
-        if statistic == PROBABILITY and isinstance(estimator, NeuralCompensation):
-            # its step scores the head as reported: its alarms (what an adaptive attack
-            # reads) at the reported threshold too, not at the step's default 0.5
-            estimator.threshold = threshold
+        statistic, reported, threshold = _set_threshold(ctx, name, estimator, trained)
 
         def run(tr) -> LoopResult:
             free, forks = _attack_free(ctx, name, estimator, tr, compensate)
@@ -345,12 +354,32 @@ def _paper(ctx, *, luenberger=None, rule=None, residual=Residual.LAGGED):
                          rule=rule, init_scale=0.01, residual=residual)  # fmt: skip
 
 
+def card_options(card) -> dict:
+    """The :func:`lfc_estimator` options a checkpoint's card sets (how its network was
+    trained to run): its entries and the online tuning (:mod:`difffilter.train.lfc_tuning`)
+    build the same observer from them (the tuning had read two of them and scored an
+    observer without the card's restart: 0.0176 against the entry's 0.0152, a red-team
+    trial)."""
+    return {"residual": Residual(card.residual), "standardize": card.standardize,
+            "gating": card.gating, "compensation": card.compensation, "features": card.features,
+            "restart": card.restart, "confirm": card.confirm, "reject": card.reject}  # fmt: skip
+
+
+def check_lfc_card(card, dt: float) -> str | None:
+    """Why a checkpoint's card is not an LFC closed-loop estimator at sampling time ``dt``
+    (``None`` where it is one)."""
+    if card.filter != "kf" or card.scenario_family != "lfc":
+        return (f"the checkpoint is not an LFC closed-loop estimator (filter {card.filter!r}, "
+                f"family {card.scenario_family!r})")  # fmt: skip
+    trained_dt = 0.01 if card.dt is None else float(card.dt)
+    if abs(trained_dt - dt) > 1e-12:
+        return f"checkpoint trained at dt = {trained_dt} s, scenario dt = {dt} s"
+    return None
+
+
 def _trained(ctx, name, *, rule=None):
     net, card = _checkpoint_network(ctx, name)
-    return lfc_estimator(_context(ctx), network=net, rule=rule, residual=Residual(card.residual),
-                         standardize=card.standardize, gating=card.gating,
-                         compensation=card.compensation, features=card.features,
-                         restart=card.restart, confirm=card.confirm, reject=card.reject)  # fmt: skip
+    return lfc_estimator(_context(ctx), network=net, rule=rule, **card_options(card))
 
 
 # The evaluation's learners donate their ρ to the next step (each loop owns its carry).
@@ -389,8 +418,13 @@ for _name, (_role, _build, _kw) in _BUILDERS.items():
 
 
 def build_estimator(name: str, ctx: SuiteContext):
-    """The estimator object of the closed-loop entry ``name``, built as its entry builds it."""
-    return _BUILDERS[name][1](ctx)
+    """The estimator object of the closed-loop entry ``name``, built as its entry builds it:
+    its alarm threshold too (the card's calibrated one; it had alarmed at the step's default
+    0.5: 200 alarms for the entry's 205 on the same runs, a red-team trial)."""
+    _, build, options = _BUILDERS[name]
+    estimator = build(ctx)
+    _set_threshold(ctx, name, estimator, options.get("trained", False))
+    return estimator
 
 
 @register(

@@ -271,6 +271,11 @@ def _per_area(x: Tensor, M: Tensor) -> Tensor:
 # -- checkpoints -----------------------------------------------------------------------------
 
 
+#: The card's options that change how the estimator runs (``difffilter-train calibrate``
+#: records them beside the threshold it chose: the threshold is for them).
+RUN_OPTIONS = ("restart", "confirm", "reject")
+
+
 @dataclass(frozen=True)
 class EstimatorCard:
     """What evaluation needs beside a trained network's weights: one typed card for

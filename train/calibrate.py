@@ -51,6 +51,7 @@ from difffilter._checks import check_rate
 from difffilter.fdi.neural import restart_applies
 from difffilter.interrupts import stop_words
 from difffilter.models.atomic_write import write_json_atomically
+from difffilter.models.neural_estimator import RUN_OPTIONS
 
 from .common import check_checkpoint_out, load_source
 
@@ -60,8 +61,6 @@ __all__ = ["calibrate_checkpoint", "estimator_name", "main"]
 CALIBRATION_SEED = 5
 #: ``restart`` / ``confirm`` / ``reject`` left as the card has it.
 KEEP = "keep"
-#: The card's options that change how the estimator runs, set by the command's flags.
-RUN_OPTIONS = ("restart", "confirm", "reject")
 
 
 def estimator_name(card) -> str:

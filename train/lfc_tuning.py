@@ -29,12 +29,13 @@ import torch
 from difffilter.control import LuenbergerDesign
 from difffilter.estimator import Generators
 from difffilter.models import registry
-from difffilter.models.learned_estimator import Residual
 from difffilter.models.lfc_estimators import (
     EKF_DEFAULTS,
     FINETUNE_DEFAULTS,
     GD_DEFAULTS,
     LFCContext,
+    card_options,
+    check_lfc_card,
     lfc_estimator,
     paper_network,
 )
@@ -112,8 +113,8 @@ def _estimator(name: str, setting: dict, ctx: LFCContext, checkpoint):
                              posterior=posterior)  # fmt: skip
     net, card = checkpoint
     rule = EKFRule(**{**FINETUNE_DEFAULTS, **rule_kw}, donate=True)
-    return lfc_estimator(ctx, network=net, rule=rule, posterior=posterior,
-                         residual=Residual(card.residual), standardize=card.standardize)  # fmt: skip
+    # the observer of the kf_nn_grad_ekf entry, every option of the card (card_options)
+    return lfc_estimator(ctx, network=net, rule=rule, posterior=posterior, **card_options(card))
 
 
 def tune(
@@ -125,12 +126,14 @@ def tune(
     log=print,
 ) -> dict:
     """Score every grid point of ``GRIDS[name]``; returns the table and the chosen settings."""
-    from difffilter.models.neural_estimator import load_estimator_checkpoint
+    from difffilter.models.neural_estimator import checkpoint_sha256, load_estimator_checkpoint
 
     checkpoint = None if ckpt is None else load_estimator_checkpoint(ckpt)
     if "kf_nn_grad_ekf" in estimators and checkpoint is None:
         raise ValueError("tuning kf_nn_grad_ekf needs --ckpt (the trained network)")
     ctx = LFCContext(dt=0.01)
+    if checkpoint is not None and (why := check_lfc_card(checkpoint[1], ctx.dt)) is not None:
+        raise ValueError(f"--ckpt {ckpt}: {why}")
     batch = validation_batch(runs)
     out = {
         "validation": {
@@ -141,6 +144,7 @@ def tune(
         },
         "grids": {},
         "chosen": {},
+        "validated_on": {},
     }
     for name in estimators:
         grid = GRIDS[name]
@@ -154,6 +158,11 @@ def tune(
                 log(f"{name} {setting} -> {res['attack_rmse']:.4f} ({res['wall_s']:.0f}s)")
         best = min(rows, key=lambda r: r["attack_rmse"])
         out["grids"][name] = rows
+        # each grid's own validation (a later run of one grid had relabelled the others'),
+        # and the network a fine-tuning grid tuned
+        out["validated_on"][name] = dict(out["validation"]) | (
+            {"checkpoint_sha256": checkpoint_sha256(ckpt)} if name == "kf_nn_grad_ekf" else {}
+        )
         out["chosen"][name] = {k: best[k] for k in keys} | {"attack_rmse": best["attack_rmse"]}
     return out
 
@@ -180,7 +189,8 @@ def main(argv=None) -> int:
     previous = json.loads(args.out.read_text()) if args.out.is_file() else {}
     previous.setdefault("grids", {}).update(result["grids"])
     previous.setdefault("chosen", {}).update(result["chosen"])
-    previous["validation"] = result["validation"]
+    previous["validation"] = result["validation"]  # this run's (each grid's: validated_on)
+    previous.setdefault("validated_on", {}).update(result.get("validated_on", {}))
     previous["ekf_fixed"] = {k: v for k, v in EKF_DEFAULTS.items() if k != "process_noise"}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(previous, indent=2) + "\n")

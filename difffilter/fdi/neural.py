@@ -158,6 +158,7 @@ from .._checks import Choice, broadcast_or_none, check_rate, check_strategy, mod
 from ..attack import Channel
 from ..estimator import Estimator, Generators
 from ..kalman import GaussianFilter
+from ..observers import FixedGainFilter
 from ..param_ekf import EKFRule, GradientRule, LearnerState, WeightTemplate
 from ..particle import ModelLikelihood, ParticleFilter, ParticleState
 from ..results import StepOutput
@@ -613,6 +614,7 @@ class NeuralCompensation(Estimator):
         _check_restart(restart, inner, channel)
         _check_confirm(confirm, restart)
         _check_reject(reject, channel)
+        _check_needs_innovation_cov(inner, standardize=standardize, restart=restart, reject=reject)
         if not getattr(inner, "carry_is_state", True):  # (its steps report the carry's mean)
             raise ValueError(
                 f"inner: {type(inner).__name__}'s carry holds more than the state (on held "
@@ -903,6 +905,22 @@ def _partial(mask: Tensor | None) -> bool:
 
 _REJECT_MASK = ("reject tests every channel of the compensated innovation: it needs every "
                 "entry received (mask=None)")  # fmt: skip
+
+
+def _check_needs_innovation_cov(inner, **options) -> None:
+    """``ValueError`` naming the options that read the innovation covariance ``S_k`` where
+    ``inner`` reports none (a fixed-gain observer: they had failed at the first step inside
+    torch, "must be Tensor, not NoneType"; a red-team trial)."""
+    if not isinstance(inner, FixedGainFilter):
+        return
+    used = [name for name, value in options.items() if value not in (None, False)]
+    if used:
+        raise ValueError(
+            f"{', '.join(used)}: {'these read' if len(used) > 1 else 'it reads'} the innovation "
+            "covariance S_k, which a FixedGainFilter (a Luenberger observer) does not report: "
+            "give a KalmanFilter (or leave them out: standardize=False, restart=None, "
+            "reject=None)"
+        )
 
 
 def _check_reject(reject, channel) -> None:
