@@ -169,12 +169,35 @@ class ParticleView(StateSpaceModel):
         return self.base._varying_noise(cov_method)
 
 
+#: The largest condition number of ``Q`` the information form takes: it inverts ``Q`` (the
+#: covariance form does not), and its error grows like ``cond(Q)`` (4.8e-4 cm at 1e14
+#: against a 50-digit filter, the covariance form 3e-12; a red-team trial).
+INFORMATION_MAX_COND_Q = 1e8
+
+
 def information_form_applies(model: StateSpaceModel) -> bool:
-    """Whether ``model`` has the time-invariant, diagonal ``R`` the information form needs."""
+    """Whether ``model`` has what the information form needs: time-invariant noise (declared
+    or not: a model whose ``R(k)`` varies without ``time_varying`` had been filtered with
+    ``R(0)`` at every step, 6.5 off the covariance form's mean, a red-team trial), a diagonal
+    ``R``, and a ``Q`` positive definite with a condition number up to
+    :data:`INFORMATION_MAX_COND_Q` (the form inverts it)."""
     if getattr(model, "time_varying", False):
         return False
+    varying = getattr(model, "_varying_noise", None)
+    if varying is not None and (varying("process_cov") or varying("measurement_cov")):
+        return False
     R = model.measurement_cov(0)
-    return R.dim() == 2 and not bool((R - torch.diag_embed(R.diagonal())).abs().max() > 0)
+    if R.dim() != 2 or bool((R - torch.diag_embed(R.diagonal())).abs().max() > 0):
+        return False
+    return _well_conditioned(model.process_cov(0))
+
+
+def _well_conditioned(Q: Tensor) -> bool:
+    """Whether ``Q`` is positive definite with ``cond(Q) ≤`` :data:`INFORMATION_MAX_COND_Q`."""
+    if Q.dim() != 2 or Q.device.type == "meta":
+        return Q.dim() == 2
+    eig = torch.linalg.eigvalsh(Q.detach().double())
+    return bool(eig[0] > 0) and float(eig[-1] / eig[0]) <= INFORMATION_MAX_COND_Q
 
 
 class AdaptiveKalmanProposal:
@@ -241,7 +264,9 @@ class AdaptiveKalmanProposal:
         if form is Form.INFORMATION:
             if not information_form_applies(self.base):
                 raise ValueError(
-                    "form='information' needs a time-invariant, diagonal R; use form='covariance'"
+                    "form='information' needs time-invariant noise, a diagonal R and a "
+                    f"positive definite Q of condition number up to {INFORMATION_MAX_COND_Q:g} "
+                    "(it inverts Q); use form='covariance'"
                 )
             Qd = Q.detach().double()
             self._rvar = R.diagonal().detach().tolist()
