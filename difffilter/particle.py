@@ -450,10 +450,12 @@ class ParticleFilter(Estimator):
                 f"got {'a ' + type(state).__name__ if n is None else f'{n} particles'}"
             )
         _check_cov_dims(self.cov_dims, model.dim_x)
-        aux = state.aux
+        aux, lead = state.aux, state.log_weights.shape[:-1]
         if self.stateful and aux is None:
-            lead = state.log_weights.shape[:-1]
             aux = self.likelihood.init(model, lead, state.particles.dtype, state.particles.device)
+        elif self.stateful and hasattr(self.likelihood, "resume"):  # a carry's own, for model
+            aux = self.likelihood.resume(aux, model, lead, state.particles.dtype,
+                                         state.particles.device)  # fmt: skip
         return state._replace(model=model, aux=aux, generators=generators)
 
     def batch_of(self, carry):

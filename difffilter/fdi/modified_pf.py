@@ -242,12 +242,29 @@ class ModifiedPFWeighting:
         if self.attack_rate is not None:
             rate = self.attack_rate.init(batch_shape, dtype=dtype, device=device)
         est = None if self.estimator is None else self.estimator.init(batch_shape)
+        return WeightingState(rate, est, self._gain_for(model, dtype))
+
+    def _gain_for(self, model, dtype):
+        """``(G, K)`` of eq. (35) shared by every step of ``model``, or ``None`` (per step)."""
         gain = self.gain
         if gain is None and _shared_gain_applies(model):
             gain = _linear_measurement(model, 1, None)
-        if gain is not None:
-            gain = tuple(m.to(dtype) for m in gain)
-        return WeightingState(rate, est, gain)
+        return None if gain is None else tuple(m.to(dtype) for m in gain)
+
+    def resume(self, state: WeightingState, model, batch_shape, dtype, device) -> WeightingState:
+        """``state`` of a carry given as ``initial_state`` for ``model``: its gain that
+        model's (the gain of the model the carry came from had tested another model's
+        particles: β 0.72 for 0.66), and refused where it lacks the state this weighting
+        keeps (a carry of a run without ``attack_rate`` or the bias estimator failed with an
+        AttributeError: a red-team trial)."""
+        for kept, have, what in ((self.attack_rate, state.rate, "attack_rate"),
+                                 (self.estimator, state.estimator, "a BiasAttackEstimator")):  # fmt: skip
+            if kept is not None and have is None:
+                raise ValueError(
+                    f"initial_state: the carry comes from a run without {what}, which this "
+                    "filter keeps: start this filter from its own initial state (initial_state=None)"
+                )
+        return state._replace(gain=self._gain_for(model, dtype))
 
     def weigh(self, state: WeightingState, model, y, particles, k, mask, predictive):
         batch = y.shape[:-1]
@@ -349,6 +366,12 @@ class ModifiedParticleFilter(ParticleFilter):
         base_likelihood=None,
         fused: bool = False,
     ):
+        if attack_rate is not None and getattr(attack_rate, "n", num_particles) != num_particles:
+            # (its warm-up ζ is eq. 46's for its own N: 0.25 for 0.49 in a trial)
+            raise ValueError(
+                f"attack_rate is a RunningAttackRate of {attack_rate.n} particles; this filter "
+                f"has num_particles = {num_particles}: make it RunningAttackRate({num_particles})"
+            )
         weighting = ModifiedPFWeighting(
             detector, gamma_hat, attack_rate=attack_rate, base_likelihood=base_likelihood
         )

@@ -34,7 +34,13 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._checks import broadcast_or_none, check_integer, check_one_model, model_batch_shape
+from .._checks import (
+    broadcast_or_none,
+    check_finite_number,
+    check_integer,
+    check_one_model,
+    model_batch_shape,
+)
 from ..gaussian import kalman_gain
 from ..linalg import LOG_2PI, NumericalBreakdown, safe_cholesky
 
@@ -131,10 +137,12 @@ def attack_threshold(G, K, gamma_min: float, *, rule: str = "paper") -> Tensor:
     ``R = 1e-3 diag(1, 1, .5, .5)``, ``G K`` has singular values 1/11 and 1/6, so
     ``ς = 5/6`` and ``η = 0.28·5/6 = 0.233`` (the paper's value, by either rule).
     """
-    if not (isinstance(gamma_min, (int, float)) and math.isfinite(gamma_min) and gamma_min > 0):
+    try:  # any real number: numpy's and a 0-dim tensor's too (np.float32 had been refused)
+        gamma_min = check_finite_number(gamma_min, "gamma_min", positive=True)
+    except (TypeError, ValueError):
         raise ValueError(
             f"gamma_min must be a finite number > 0 (a lower bound on ‖γ_k‖); got {gamma_min!r}"
-        )
+        ) from None
     return attack_threshold_factor(G, K, rule=rule) * gamma_min
 
 
@@ -168,6 +176,15 @@ def detection_threshold(
         return float(p_l)
     elif not 0.0 < float(alpha) < 1.0:
         raise ValueError(f"alpha must lie in (0, 1) (eq. 46); got {alpha!r}")
+    if p_l is not None:  # both given: α must meet eq. (53) for p_l (it had been ignored)
+        if not 0.0 <= float(p_l) <= 1.0:
+            raise ValueError(f"p_l must lie in [0, 1]; got {p_l!r}")
+        least = float(p_l) * n / (n - 1)
+        if float(alpha) < least:
+            raise ValueError(
+                f"alpha = {alpha} is below eq. (53)'s p_l N/(N-1) = {least:.4g} for p_l = {p_l}, "
+                f"N = {n}: Theorem 2's guarantee needs alpha >= it (or pass p_l=None, Remark 3)"
+            )
     return float(alpha) * (n - 1) / n
 
 
@@ -385,8 +402,12 @@ class RunningAttackRate:
         if state.steps < self.warmup:
             return torch.full_like(state.count, self.alpha0 * scale)
         p_hat = state.count / state.steps
-        alpha = (p_hat * self.n / (self.n - 1)).clamp(self.alpha_min, self.alpha_max)
-        return alpha * scale
+        raw = p_hat * self.n / (self.n - 1)
+        alpha = raw.clamp(self.alpha_min, self.alpha_max)
+        # unclipped, ζ = α(N − 1)/N is p̂_l exactly (eqs 46, 53): computed, it landed an ulp
+        # below p̂_l (0.49999999999999994 for 0.5 at N = 200), and β = p̂_l alarmed (a
+        # red-team trial), as detection_threshold has it for a known p_l
+        return torch.where(alpha == raw, p_hat, alpha * scale)
 
     def update(self, state: AttackRateState, alarms: Tensor) -> AttackRateState:
         """Count this step's decisions ``alarms [...]``."""
