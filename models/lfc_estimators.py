@@ -290,7 +290,7 @@ def _alarm_threshold(ctx: SuiteContext, name: str, trained: bool, statistic: str
     # card re-saved with another restart or reject had kept the threshold of before)
     calibrated = (calibration.get("estimator") == name
                   and calibration.get("score", ESTIMATE) == reported
-                  and all(calibration.get(o) == getattr(card, o) for o in RUN_OPTIONS))  # fmt: skip
+                  and all(calibration.get(o) == getattr(card, o, None) for o in RUN_OPTIONS))  # fmt: skip
     return float(card.threshold) if calibrated else DEFAULT_THRESHOLD[statistic]
 
 
