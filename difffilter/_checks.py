@@ -221,6 +221,20 @@ def check_positive_definite(t: Tensor, name: str, dim: int | None = None) -> Non
     check_symmetric(t, name)
     if not values_known(t):
         return
+    # a variance below the dtype's normal range: its Cholesky factorisation failed or not by
+    # where it sat on the diagonal (float32 diag(1e-39, 1) refused, diag(1, 1e-39) taken: a
+    # docs trial), so it is refused wherever it is
+    diagonal = t.detach().diagonal(dim1=-2, dim2=-1)
+    tiny = torch.finfo(t.dtype).tiny
+    below = (diagonal > 0) & (diagonal < tiny)
+    if bool(below.any()):
+        index = first_index(below)
+        raise ValueError(
+            f"{name} has a variance of {float(diagonal[index]):.3g} (diagonal entry "
+            f"{index[-1]}), below {str(t.dtype).removeprefix('torch.')}'s normal range "
+            f"({tiny:.3g}), which its factorisation does not resolve: build the model in "
+            "float64 or choose units that bring the variances closer"
+        )
     _, info = torch.linalg.cholesky_ex(t.detach())
     if bool((info != 0).any()):
         raise ValueError(_not_definite(t, info != 0, name))
