@@ -526,8 +526,9 @@ class CovarianceChunks:
         if n < 2 or cov.device.type == "meta":
             return n
         F, Ft, Q = self._mats[0], self._mats[1], self._mats[4]
-        again = F @ cov[:-1] @ Ft + Q
-        pred = pred_cov[1:]
+        with torch.no_grad():  # a test of the numbers, not part of any gradient
+            again = F.detach() @ cov[:-1].detach() @ Ft.detach() + Q.detach()
+        pred = pred_cov[1:].detach()
         root = pred.diagonal(dim1=-2, dim2=-1).clamp_min(0.0).sqrt()
         finfo = torch.finfo(pred.dtype)
         bound = (self.CHAIN_TOL * finfo.eps**0.5) * (root.unsqueeze(-1) * root.unsqueeze(-2))
