@@ -205,6 +205,9 @@ class GaussianFilter(Estimator):
     #: wrapper that reports them reports the state. ``False`` for a filter whose carry holds
     #: more (:class:`~difffilter.ExpectedInputKalmanFilter` on held inputs: ``[x; z]``).
     carry_is_state = True
+    #: Whether its update reports the innovation covariance ``S_k`` (``innovation_cov``), which
+    #: a residual detector's statistic and a learned estimator's standardisation read.
+    reports_innovation_cov = True
 
     def reported(self, model, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor, dict]:
         """``(x̂ [..., dx], P [..., dx, dx], extras)``: what a step reports of a carry's

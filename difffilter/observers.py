@@ -32,6 +32,8 @@ class FixedGainFilter(GaussianFilter):
     never changes).
     """
 
+    reports_innovation_cov = False  # a fixed gain, no S_k
+
     def __init__(self, gain: Tensor):
         if not isinstance(gain, Tensor) or gain.dim() != 2:
             raise ValueError(

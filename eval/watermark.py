@@ -33,12 +33,12 @@ The two replays:
 from __future__ import annotations
 
 import math
-import numbers
 from typing import Any
 
 import torch
 
 from difffilter import fdi
+from difffilter._checks import check_finite_number, check_positive_int
 from difffilter.kalman import KalmanFilter
 from difffilter.models.lfc import LFCPlant, Watermarked, lfc_loop, lqr_gain
 from difffilter.models.streams import Streams
@@ -100,11 +100,11 @@ def watermark_study(scenario, *, runs: int = 20, seed: int = 0, std: float = 0.0
                             for k, v in given.items())  # fmt: skip
     # (a std of 0 or less, or NaN, had run the "with watermark" rows without one, labelled
     # with it; a runs of 2.5 failed inside torch.randn)
-    if isinstance(std, bool) or not isinstance(std, numbers.Real) or not 0 < std < math.inf:
-        raise ValueError(f"std must be a finite number > 0 (the watermark's standard "
-                         f"deviation per control input, p.u.); got {std!r}")  # fmt: skip
-    if isinstance(runs, bool) or not isinstance(runs, numbers.Integral) or runs < 1:
-        raise ValueError(f"runs must be an integer >= 1; got {runs!r}")
+    try:
+        std = check_finite_number(std, "std", positive=True)
+    except TypeError as exc:  # (a bool or a string: one kind of error for every bad std)
+        raise ValueError(str(exc)) from None
+    runs = check_positive_int(runs, "runs")
     # a replay that starts after the last step (a trial: onset 400 of 300) had returned an
     # AUC of None and a TPR of NaN without a word, which metrics.json cannot hold
     if isinstance(onset, bool) or not isinstance(onset, int) or not 1 <= onset <= steps:

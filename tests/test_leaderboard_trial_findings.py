@@ -54,13 +54,13 @@ def test_a_worst_case_detection_rate_at_an_off_band_threshold_is_hatched():
 
 @pytest.mark.parametrize("std", [0.0, -0.1, math.nan, math.inf, True])
 def test_a_watermark_of_no_size_is_refused(std):
-    with pytest.raises(ValueError, match="std must be a finite number > 0"):
+    with pytest.raises(ValueError, match="std must be a (finite|real) number"):
         watermark.watermark_study(registry.get("lfc_step"), runs=1, std=std)
 
 
 @pytest.mark.parametrize("runs", [0, 2.5, True])
 def test_the_watermark_study_runs_must_be_a_count(runs):
-    with pytest.raises(ValueError, match="runs must be an integer >= 1"):
+    with pytest.raises(ValueError, match="runs must be a positive integer"):
         watermark.watermark_study(registry.get("lfc_step"), runs=runs)
 
 

@@ -270,10 +270,7 @@ class ChiSquareDetector:
     """
 
     def __init__(self, dim: int, false_alarm_rate: float = 0.01, window: int = 1):
-        for name, value in (("dim", dim), ("window", window)):
-            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
-                raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
-        self.dim, self.false_alarm_rate, self.window = dim, false_alarm_rate, window
+        self.dim, self.false_alarm_rate, self.window = dim, false_alarm_rate, window  # checked
 
     def __setattr__(self, name, value):
         # checked whenever set, not at __init__ alone (a NaN rate assigned later had run)

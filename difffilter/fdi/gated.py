@@ -37,7 +37,6 @@ from ..estimator import Estimator, EstimatorOutput
 from ..extended import ExtendedKalmanFilter
 from ..kalman import GaussianFilter
 from ..loop import open_loop
-from ..observers import FixedGainFilter
 from ..results import GaussianState
 from .detectors import (
     ChiSquareDetector,
@@ -104,10 +103,10 @@ class GatedFilter(Estimator):
                 "filter must be a Gaussian filter object (difffilter.KalmanFilter(), "
                 f"ExtendedKalmanFilter(), UnscentedKalmanFilter()); got {type(filter).__name__}"
             )
-        if isinstance(filter, FixedGainFilter):  # (it failed inside torch at the first step)
+        if not filter.reports_innovation_cov:  # (it failed inside torch at the first step)
             raise TypeError(
-                "filter: a FixedGainFilter reports no innovation covariance S_k, which the "
-                "detector's statistic g_k = r_kᵀ S_k⁻¹ r_k needs: give a KalmanFilter, "
+                f"filter: a {type(filter).__name__} reports no innovation covariance S_k, which "
+                "the detector's statistic g_k = r_kᵀ S_k⁻¹ r_k needs: give a KalmanFilter, "
                 "ExtendedKalmanFilter or UnscentedKalmanFilter"
             )
         self.detector, self.filter, self.gate = detector, filter, bool(gate)

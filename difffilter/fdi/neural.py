@@ -158,7 +158,6 @@ from .._checks import Choice, broadcast_or_none, check_rate, check_strategy, mod
 from ..attack import Channel
 from ..estimator import Estimator, Generators
 from ..kalman import GaussianFilter
-from ..observers import FixedGainFilter
 from ..param_ekf import EKFRule, GradientRule, LearnerState, WeightTemplate
 from ..particle import ModelLikelihood, ParticleFilter, ParticleState
 from ..results import StepOutput
@@ -911,13 +910,14 @@ def _check_needs_innovation_cov(inner, **options) -> None:
     """``ValueError`` naming the options that read the innovation covariance ``S_k`` where
     ``inner`` reports none (a fixed-gain observer: they had failed at the first step inside
     torch, "must be Tensor, not NoneType"; a red-team trial)."""
-    if not isinstance(inner, FixedGainFilter):
+    if getattr(inner, "reports_innovation_cov", True):  # (a particle filter reads none)
         return
     used = [name for name, value in options.items() if value not in (None, False)]
     if used:
         raise ValueError(
             f"{', '.join(used)}: {'these read' if len(used) > 1 else 'it reads'} the innovation "
-            "covariance S_k, which a FixedGainFilter (a Luenberger observer) does not report: "
+            f"covariance S_k, which a {type(inner).__name__} (a Luenberger observer) does not "
+            "report: "
             "give a KalmanFilter (or leave them out: standardize=False, restart=None, "
             "reject=None)"
         )
