@@ -63,8 +63,8 @@ def _riccati(
         return solve(A, B, Q, R)
     except (np.linalg.LinAlgError, ValueError) as error:
         need = ("(F, H) detectable and (F, Q^{1/2}) stabilisable: every unstable or marginal "
-                "mode seen by the measurements and excited by the process noise (a constant "
-                "state with Q = 0 on it has no steady state)") if filtering else (
+                "mode seen by the measurements, and excited by the process noise (scipy finds "
+                "no solution for a constant state with Q = 0 on it: give it some)") if filtering else (
                 "the pair stabilisable and (A, Q^{1/2}) detectable: every unstable or marginal "
                 "mode reachable by the inputs and seen by the state weight")  # fmt: skip
         raise ValueError(
@@ -179,7 +179,9 @@ def _observer_spectrum(A_closed: Tensor, factor: float, zero_pole: float | None)
     factor, zero_pole = _check_observer_design(factor, zero_pole)
     lam, V = np.linalg.eig(_np(A_closed))
     lam = factor * lam
-    tiny = np.abs(lam) < 1e-8
+    # zero relative to the spectrum's own scale (an absolute 1e-8 had taken every pole of a
+    # plant in slow units for a zero mode, and missed the zero of one in fast units: a trial)
+    tiny = np.abs(lam) <= 1e-8 * np.abs(lam).max()
     if tiny.all() and zero_pole is None:  # (numpy's "zero-size array" had said nothing)
         raise ValueError(
             "every eigenvalue of A_closed is zero: no other pole to move the zero "
@@ -382,8 +384,10 @@ def dlqr(
         P = FᵀPF + Q − FᵀPB (R + BᵀPB)⁻¹ BᵀPF     (the DARE; scipy's solver)
         K = (R + BᵀPB)⁻¹ BᵀPF
 
-    ``Q``, ``R`` default to ``I``. Needs ``(F, B)`` stabilisable and ``(F, Q^{1/2})``
-    detectable (scipy raises otherwise). The gain of a state-feedback controller on the
+    ``Q``, ``R`` default to ``I``. Needs ``(F, B)`` stabilisable (scipy raises otherwise).
+    A marginal mode (``|λ| = 1``) that ``Q`` does not weigh is left where it is: the
+    cost-optimal gain spends nothing on a mode that costs nothing (``F = diag(1, 0.5)``,
+    ``Q = diag(0, 1)``: the pole stays at 1), so weigh every mode to be stabilised. The gain of a state-feedback controller on the
     estimate (:class:`difffilter.loop.StateFeedback`); with :func:`kalman_steady_state`
     the LQG design. Not differentiable (computed in numpy): the results are detached, with
     no gradient (one through the products alone held ``P`` fixed and was wrong: 1.32 for
@@ -409,14 +413,18 @@ def kalman_steady_state(
 
     the gain and covariances :func:`difffilter.kalman_filter` converges to (tested), e.g.
     the fixed gain of :class:`difffilter.observers.FixedGainFilter` or of an LQG design.
-    Needs ``(F, H)`` detectable and ``(F, Q^{1/2})`` stabilisable. Computed in numpy:
-    detached, no gradient (as :func:`dlqr`).
+    Needs ``(F, H)`` detectable (refused otherwise, :func:`_check_detectable`); a
+    marginal mode the process noise does not excite (``Q = 0`` on an undisturbed rotation)
+    has the limit ``P⁻ = 0`` and gain 0 along it, as the filter's variance decays to 0 there
+    (slowly, as 1/k: not a stabilising gain). Computed in numpy: detached, no gradient (as
+    :func:`dlqr`).
     """
     n, p = _check_pair(F, H.T if isinstance(H, Tensor) else H, ("F", "Hᵀ"))
     if Q is None or R is None:
         raise ValueError("Q and R (the process and measurement noise covariances) are needed")
     Q, R = _weights(Q, R, n, p, F)
     F, H = F.detach(), H.detach()
+    _check_detectable(_np(F), _np(H))
     pred = _riccati(sla.solve_discrete_are, _np(F).T, _np(H).T, _np(Q), _np(R), filtering=True)
     pred = torch.as_tensor(0.5 * (pred + pred.T), dtype=F.dtype, device=F.device)
     S = H @ pred @ H.T + R
@@ -424,6 +432,29 @@ def kalman_steady_state(
     eye = torch.eye(n, dtype=F.dtype, device=F.device)
     cov = (eye - gain @ H) @ pred @ (eye - gain @ H).T + gain @ R @ gain.T  # Joseph form
     return gain, pred, 0.5 * (cov + cov.T)
+
+
+def _check_detectable(F: np.ndarray, H: np.ndarray, tol: float = 1e-9) -> None:
+    """Refuse ``(F, H)`` with a mode of ``|λ| ≥ 1`` that no measurement sees (PBH:
+    ``[λI − F; H]`` of rank below ``n``, its smallest singular value at most ``tol`` times its
+    largest). scipy refuses such a mode where the process noise excites it, and where it
+    does not returns a covariance of 0 on it: a constant state that nothing measures, with
+    ``Q = 0`` on it, was given ``P⁻ = 0`` and the gain 0, where the filter keeps its prior
+    variance on it for ever (a trial: the steady state depends on the prior there)."""
+    n = F.shape[0]
+    for lam in np.linalg.eigvals(F):
+        if abs(lam) < 1.0 - 1e-12:
+            continue
+        pencil = np.vstack([lam * np.eye(n) - F, H.astype(complex)])
+        s = np.linalg.svd(pencil, compute_uv=False)
+        if s[-1] <= tol * max(s[0], np.finfo(np.float64).tiny):
+            raise ValueError(
+                f"kalman_steady_state needs (F, H) detectable: the mode of F at eigenvalue "
+                f"{complex(lam):.6g} "
+                "(on or outside the unit circle) is seen by no measurement, so the filter's "
+                "covariance along it has no steady state (it stays at the prior's, or grows): "
+                "measure that mode, or leave it out of the model"
+            )
 
 
 def zoh_discretize(A: Tensor, B: Tensor, dt: float) -> tuple[Tensor, Tensor]:

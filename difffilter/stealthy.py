@@ -485,8 +485,10 @@ def craft_stealthy_attack(
         value, budget = float(error.detach()), reference[1] + s.slack
         if _keeps_budget(rate, budget) and math.isfinite(value):
             kept.append((value, it, a.detach().clone()))
-        optimiser.zero_grad()
-        loss.backward()
+        # the gradient of the attack alone: backward() had also filled the .grad of every
+        # other leaf that requires one (ys, a learned estimator's weights, a model's
+        # parameters), added to at every iteration under the caller's feet (a trial)
+        (raw.grad,) = torch.autograd.grad(loss, raw, allow_unused=True)
         optimiser.step()
         history.append((it, value, float(p.detach() - reference[0]), rate, budget))
         if progress is not None:

@@ -203,7 +203,9 @@ def judge_robustness(
     threats where nobody detects (no TPR) count only for the state error. A check with
     nothing to compare does not hold (as a missing number in :func:`judge`): a threat where
     no analytic estimator has a state error (``best`` ``None``), the worst-case TPR where
-    no analytic estimator detects at all (``best_analytic_worst_tpr`` ``None``).
+    no analytic estimator detects at all (``best_analytic_worst_tpr`` ``None``), and the
+    worst-case TPR of a learned estimator without a TPR on a threat where an analytic one
+    has one (not run there, or broken down: ``"tpr_missing"`` lists those threats).
 
     ``blind``: the estimators that read no measurement (:func:`reading_no_measurements`).
     Where one of them is a threat's best analytic, the threat's entry also holds
@@ -216,6 +218,8 @@ def judge_robustness(
     analytic worst-case TPR is at most the top of the false-alarm band, ``2α``, so no
     analytic detector sees its worst threat better than a calibrated detector alarms
     without attack, and the worst-case TPR check compares false-alarm rates there."""
+    # (as judge's: far=1, meant as 1 %, had read a worst-case TPR of 0.5 as undetected)
+    far = None if far is None else check_rate(far, "far")
     names = {n for row in cells.values() for n in row}
     analytic = [n for n in names if role_of.get(n) == "analytic"]
     learned = [n for n in names if role_of.get(n) == "learned"]
@@ -254,12 +258,19 @@ def judge_robustness(
                                      best_reading_estimator=reader,
                                      ratio_reading=_ratio(value, best_reading),
                                      holds_reading=bool(held))  # fmt: skip
+        # threats an analytic detector has a TPR on and this one none (not run, broke down):
+        # its worst case over the rest is not its worst case (a cell not run there had left
+        # 0.90 on an easy threat to pass against 0.05 on the hard one: a trial)
+        missing = [t for t, row in cells.items()
+                   if not _finite(row.get(name, {}).get("tpr_at_far"))
+                   and any(_finite(row[n].get("tpr_at_far")) for n in analytic if n in row)]  # fmt: skip
         # without an analytic worst case (no analytic detector) nothing is compared: fails
-        tpr_holds = (best_worst is not None and mine is not None
+        tpr_holds = (best_worst is not None and mine is not None and not missing
                      and at_least(mine[0] - best_worst[0], 0.0))  # fmt: skip
         state_holds = all(c["holds"] for c in state.values())
         out[name] = {"worst_tpr": mine, "best_analytic_worst_tpr": best_worst,
-                     "tpr_holds": bool(tpr_holds), "worst_threat_undetected": undetected,
+                     "tpr_holds": bool(tpr_holds), "tpr_missing": missing,
+                     "worst_threat_undetected": undetected,
                      "state": state,
                      "state_holds": bool(state_holds), "holds": bool(tpr_holds and state_holds)}  # fmt: skip
     return out

@@ -761,6 +761,8 @@ def _acceptance_section(name: str, a: dict) -> str:
             f"{best_text} (`{best[1]}`, {best[2]}): "
             f"{'holds' if a['tpr_holds'] else '**does not hold**'}"
             + _gap_text(a.get("worst_tpr_interval")) + "."
+            + (f" No TPR of its own on {', '.join(a['tpr_missing'])}, where an analytic "
+               "detector has one: not judged." if a.get("tpr_missing") else "")
             + (f" No analytic detector sees its worst threat above {UNSEEN_TEXT}: this check "
                "compares false-alarm rates on it, not detection."
                if a.get("worst_threat_undetected") else "")

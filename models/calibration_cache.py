@@ -41,8 +41,8 @@ from .atomic_write import write_atomically
 __all__ = ["cache_folder", "model_fingerprint", "library_fingerprint", "cached", "FORMAT"]
 
 #: Bumped when what a calibration computes, or how its key is read, changes: older files
-#: are then ignored (2: nested groups read apart).
-FORMAT = 2
+#: are then ignored (2: nested groups read apart; 3: a repeat names what it repeats).
+FORMAT = 3
 
 
 def cache_folder() -> Path | None:
@@ -54,13 +54,16 @@ def cache_folder() -> Path | None:
     return Path(base) / "difffilter"
 
 
-def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
+def _feed(digest, value: Any, seen: dict[int, tuple[int, Any]], depth: int = 0) -> None:
     """Hash what determines a model's numbers: tensors by value, functions by code."""
     # (deep enough for a model inside a tuple: tuple → model → modules → noise → buffers)
     if depth > 16:
         return
-    if id(value) in seen:  # met before: a mark, so that (a, a) and (a,) read apart
-        digest.update(b"<again>")
+    met = seen.get(id(value))
+    if met is not None:  # met before: a mark naming which, so that (a, a) and (a,) read
+        # apart, and (a, b, a) and (a, b, b) too (a bare mark had read them alike: a plant
+        # reading [SLOW, FAST, SLOW] edited to [SLOW, FAST, FAST] kept its CUSUM τ, a trial)
+        digest.update(f"<again {met[0]}>".encode())
         return
     if isinstance(value, torch.Tensor):
         digest.update(str((value.dtype, tuple(value.shape))).encode())
@@ -76,7 +79,9 @@ def _feed(digest, value: Any, seen: set[int], depth: int = 0) -> None:
         # (by repr: complex, Fraction and Decimal values had been hashed by type alone)
         digest.update(f"{type(value).__name__}:{value!r}".encode())
         return
-    seen.add(id(value))
+    # its order of first meeting, and the object itself: held, so that its id is not
+    # reused by an object made while hashing (a bound method read twice is two objects)
+    seen[id(value)] = (len(seen), value)
     if isinstance(value, (list, tuple)):
         # its type and length first: nested groups had flattened alike (((0, 1), (2,)) and
         # ((0,), (1, 2)), two schedules, got one cached threshold: a trial)
@@ -168,8 +173,8 @@ def _class_code(cls: type) -> bytes:
                     _feed_code(digest, code)
                     # defaults by value, keyword-only ones too (a repr holds an address
                     # where the default is a function: a new digest in every process)
-                    _feed(digest, getattr(attr, "__defaults__", None), set())
-                    _feed(digest, getattr(attr, "__kwdefaults__", None), set())
+                    _feed(digest, getattr(attr, "__defaults__", None), {})
+                    _feed(digest, getattr(attr, "__kwdefaults__", None), {})
         known = digest.digest()
         _CLASS_CODE[cls] = (members, known)
     return known
@@ -201,7 +206,7 @@ def _global_names(code) -> set[str]:
     return names
 
 
-def _feed_global(digest, value: Any, seen: set[int], depth: int) -> None:
+def _feed_global(digest, value: Any, seen: dict[int, tuple[int, Any]], depth: int) -> None:
     """A module-level value a function reads: a module or a class by its name (an edit
     inside an imported module of one's own, read as ``params.G``, is not seen: delete the
     cache folder, or pass the value as an argument), anything else as :func:`_feed` does."""
@@ -227,7 +232,7 @@ def _feed_code(digest, code) -> None:
 def model_fingerprint(model) -> str:
     """A hash of everything that determines ``model``'s numbers (module docstring)."""
     digest = hashlib.sha256()
-    _feed(digest, model, set())
+    _feed(digest, model, {})
     return digest.hexdigest()
 
 

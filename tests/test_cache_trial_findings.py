@@ -218,3 +218,17 @@ def test_a_suites_checkpoint_cache_holds_one_network_per_dtype():
         net = [v[0] for v in cache.values()][-1]
         dtypes.append(next(net.parameters()).dtype)
     assert dtypes == [torch.float32, torch.float64]
+
+
+def test_a_repeat_is_named_so_what_repeats_changes_the_fingerprint():
+    """A repeated object had been hashed as a bare mark: ``(a, b, a)`` and ``(a, b, b)``
+    read alike, so a plant whose transition reads ``STAGES = [SLOW, FAST, SLOW]``, edited to
+    ``[SLOW, FAST, FAST]``, kept its cached CUSUM threshold (a trial)."""
+    from difffilter.models.calibration_cache import model_fingerprint
+
+    slow, fast = {"rate": 0.1}, {"rate": 0.9}
+    assert model_fingerprint([slow, fast, slow]) != model_fingerprint([slow, fast, fast])
+    assert model_fingerprint((slow, slow)) != model_fingerprint((slow,))
+    # equal values in other objects, repeated alike, are the same fingerprint (by value)
+    again = {"rate": 0.1}
+    assert model_fingerprint([slow, fast, slow]) == model_fingerprint([again, {"rate": 0.9}, again])

@@ -3,6 +3,9 @@ its fix)."""
 
 from __future__ import annotations
 
+import math
+from functools import partial
+
 import numpy as np
 import pytest
 import scipy.linalg as sla
@@ -104,3 +107,46 @@ def test_edge_inputs_get_errors_that_say_what_is_wrong():
     stat = torch.rand(4, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
     one, plain = ensemble_test(stat, torch.tensor(2)), ensemble_test(stat, 2)
     assert (one.low, one.high, one.outside) == (plain.low, plain.high, plain.outside)
+
+
+def test_observer_poles_do_not_depend_on_the_plants_time_units():
+    """The zero mode had been any eigenvalue below an absolute 1e-8: a plant in slow units
+    (every number × 1e-9, dt / 1e-9: the same discrete poles) had every pole moved to
+    ``zero_pole`` (0.82 where 0.49 is designed), or refused as all zero (a trial)."""
+    import numpy as np
+
+    from difffilter.control import lqr, luenberger_gain, observer_poles, zoh_discretize
+
+    A0 = torch.tensor([[-1, 1.0, 0.5], [1, -1.0, -0.5], [0.3, 0.2, -2]], dtype=torch.float64)
+    B0 = torch.tensor([[1.0], [-1.0], [1.0]], dtype=torch.float64)  # w = (1, 1, 0): a zero mode
+    poles, errors = [], []
+    for s in (1.0, 1e-9, 1e10):
+        A, B, dt = s * A0, s * B0, 0.1 / s
+        K, _ = lqr(A, B)
+        closed = A - B @ K
+        poles.append(np.sort(np.abs(observer_poles(closed, dt, zero_pole=-2.0 * s).numpy())))
+        Ad, _ = zoh_discretize(A, B, dt)
+        L = luenberger_gain(Ad, closed, dt, zero_pole=-2.0 * s).numpy()
+        errors.append(np.sort(np.abs(np.linalg.eigvals(Ad.numpy() @ (np.eye(3) - L)))))
+        observer_poles(closed, dt)  # one zero eigenvalue: the others give its pole
+    assert poles[0] == pytest.approx([0.49087053, 0.49087053, math.exp(-0.2)], abs=1e-7)
+    for p, e in zip(poles, errors):
+        assert p == pytest.approx(poles[0], abs=1e-6) and e == pytest.approx(poles[0], abs=1e-6)
+
+
+def test_the_steady_kalman_filter_refuses_a_marginal_mode_no_measurement_sees():
+    """A constant state that nothing measures, with Q = 0 on it, had been given P⁻ = 0 and
+    the gain 0 by scipy, where the filter keeps its prior variance on it for ever (the
+    steady state depends on the prior: none; a trial). A marginal mode that is measured
+    but not excited has the limit the filter's decaying variance reaches: gain 0."""
+    from difffilter.control import kalman_steady_state
+
+    t = partial(torch.tensor, dtype=torch.float64)
+    F, Q, R = t([[1.0, 0.0], [0.0, 0.5]]), t([[0.0, 0.0], [0.0, 1.0]]), t([[1.0]])
+    with pytest.raises(ValueError, match=r"\(F, H\) detectable: the mode of F at eigenvalue 1"):
+        kalman_steady_state(F, t([[0.0, 1.0]]), Q, R)
+    # measured, the same constant state has a steady state (its variance goes to 0)
+    c, s = math.cos(0.3), math.sin(0.3)
+    gain, pred, _ = kalman_steady_state(t([[c, -s], [s, c]]), t([[1.0, 0.0]]),
+                                        torch.zeros(2, 2, dtype=torch.float64), R)  # fmt: skip
+    assert float(gain.abs().max()) < 1e-6 and float(pred.abs().max()) < 1e-6

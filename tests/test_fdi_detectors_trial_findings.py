@@ -120,3 +120,13 @@ def test_a_cusum_threshold_assigned_later_is_checked():
 def test_a_gated_filter_refuses_an_observer_without_innovation_covariance():
     with pytest.raises(TypeError, match="FixedGainFilter reports no innovation covariance"):
         GatedFilter(ChiSquareDetector(1), FixedGainFilter(torch.ones(1, 1, dtype=d)))
+
+
+@pytest.mark.parametrize("dof", [math.inf, math.nan, 0.0, -1.0])
+def test_the_chi_square_quantiles_refuse_a_dof_that_is_not_finite_and_positive(dof):
+    """``chi_square_quantile(inf, p)`` had returned NaN (a threshold no score exceeds)."""
+    from difffilter.fdi.detectors import chi_square_quantile, chi_square_upper_quantile
+
+    for quantile in (chi_square_quantile, chi_square_upper_quantile):
+        with pytest.raises(ValueError, match="dof must be a finite number > 0"):
+            quantile(dof, 0.01)

@@ -104,3 +104,32 @@ def test_an_estimator_skipped_under_an_adaptive_threat_has_a_cell_that_says_so()
     cell = result.cells["adaptive"]["kf"]
     assert cell["not_run"] and cell["state_error_ratio"] is None
     assert result.worst_case["kf"]["state_error_ratio_not_run"]
+
+
+def test_the_worst_case_tpr_is_not_judged_without_a_tpr_where_an_analytic_one_detects():
+    """A learned estimator not run under a threat had that threat left out of its worst
+    case while the analytic ones kept it: 0.90 on an easy threat passed against the bar of
+    0.05 set on the hard one (a trial)."""
+    from difffilter.eval.acceptance import judge_robustness
+
+    role = {"net": "learned", "chi": "analytic"}
+    cells = {"bias": {"net": {"tpr_at_far": 0.9, "state_rmse": 1.0},
+                      "chi": {"tpr_at_far": 0.8, "state_rmse": 1.0}},
+             "replay": {"net": {"tpr_at_far": None, "state_rmse": None, "not_run": "no loop"},
+                        "chi": {"tpr_at_far": 0.05, "state_rmse": 2.0}}}  # fmt: skip
+    verdict = judge_robustness(cells, role, far=0.01)["net"]
+    assert verdict["tpr_missing"] == ["replay"] and not verdict["tpr_holds"]
+    # where nobody detects the threat, it counts for the state error alone, as before
+    cells["replay"]["chi"]["tpr_at_far"] = None
+    cells["replay"]["net"] = {"tpr_at_far": None, "state_rmse": 2.0}
+    verdict = judge_robustness(cells, role, far=0.01)["net"]
+    assert verdict["tpr_missing"] == [] and verdict["tpr_holds"] and verdict["holds"]
+
+
+@pytest.mark.parametrize("far", [1.0, -0.3, math.nan])
+def test_judge_robustness_refuses_a_false_alarm_rate_outside_zero_one(far):
+    """``far=1`` (meant as 1 %) had marked a worst-case TPR of 0.5 "undetected" (a trial)."""
+    from difffilter.eval.acceptance import judge_robustness
+
+    with pytest.raises(ValueError, match="far"):
+        judge_robustness({}, {}, far=far)

@@ -64,3 +64,37 @@ def test_the_adversarys_runs_are_flagged_where_an_attacked_entry_arrived():
     flags, mask = out["flags"][2:], out["mask"][2:]
     want = (torch.arange(1, 101) >= 30) & mask.any(-1)
     assert torch.equal(flags, want) and int(flags.sum()) == 2 * 47
+
+
+def test_crafting_leaves_the_callers_gradients_alone():
+    """``loss.backward()`` had filled the ``.grad`` of every leaf that requires one: the
+    measurements given and the model's matrices took the attack's gradients, added to at
+    every iteration (a trial). The attack itself is the same as crafted from plain tensors."""
+    import difffilter as df
+    from difffilter import fdi
+    from difffilter.loop import DrawnNoise, closed_loop
+    from difffilter.stealthy import StealthySettings, craft_stealthy_attack
+
+    f64, steps = torch.float64, 30
+
+    def plant(F):
+        eye = torch.eye(2, dtype=f64)
+        return df.LinearGaussianModel(F, eye, 1e-4 * eye, 1e-3 * eye,
+                                      torch.zeros(2, dtype=f64), 1e-3 * eye)  # fmt: skip
+
+    F = torch.diag(torch.tensor([0.95, 0.98], dtype=f64))
+    loop = closed_loop(plant(F), steps, noise=DrawnNoise(torch.Generator().manual_seed(3)),
+                       x0=torch.zeros(8, 2, dtype=f64))  # fmt: skip
+    ys, xs = loop.trajectories.y_true, loop.trajectories.x
+    settings = StealthySettings(iterations=4, lr=0.05)
+
+    def craft(model, ys):
+        estimator = fdi.GatedFilter(fdi.ChiSquareDetector(2, 0.01), df.KalmanFilter())
+        return craft_stealthy_attack(estimator, model, ys, xs, 9.2, far=0.01, onset=10,
+                                     settings=settings, warn_far_off=False)  # fmt: skip
+
+    plain = craft(plant(F), ys)
+    learnable_F, watched_ys = F.clone().requires_grad_(True), ys.clone().requires_grad_(True)
+    watched = craft(plant(learnable_F), watched_ys)
+    assert watched_ys.grad is None and learnable_F.grad is None
+    assert torch.equal(watched.values, plain.values) and plain.values.abs().sum() > 0

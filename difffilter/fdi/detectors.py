@@ -218,8 +218,8 @@ def chi_square_quantile(dof: float, prob: float) -> float:
     """
     if not 0.0 < prob < 1.0:
         raise ValueError(f"prob must lie in (0, 1); got {prob}")
-    if not dof > 0:
-        raise ValueError(f"dof must be > 0; got {dof}")
+    if not 0 < dof < math.inf:  # (an infinite dof had returned NaN)
+        raise ValueError(f"dof must be a finite number > 0; got {dof}")
     return _chi2_ppf(float(dof), float(prob))
 
 
@@ -229,8 +229,8 @@ def chi_square_upper_quantile(dof: float, rate: float) -> float:
     all of them below 1e-16)."""
     if not 0.0 < rate < 1.0:
         raise ValueError(f"rate must lie in (0, 1); got {rate}")
-    if not dof > 0:
-        raise ValueError(f"dof must be > 0; got {dof}")
+    if not 0 < dof < math.inf:  # (an infinite dof had returned NaN)
+        raise ValueError(f"dof must be a finite number > 0; got {dof}")
     return _chi2_isf(float(dof), float(rate))
 
 
