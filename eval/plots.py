@@ -316,8 +316,10 @@ def _roc_figure(result, detecting, colour, style=None) -> plt.Figure:
     sums, would read 0.026 there, and no threshold gives it)."""
     style, mark = style or estimator_line_styles(detecting), role_marks(detecting)
     flags = {name: result.traj_of(name).flags for name in detecting}
-    # the smallest non-zero false-alarm rate any curve can show, and half the smallest miss
-    floor = 1.0 / max(1, max(int((~f).sum()) for f in flags.values()))
+    # half the smallest non-zero false-alarm rate and miss any curve can show: the lines
+    # where 0 is drawn (the smallest rate itself, one false alarm, had been where a rate
+    # of 0 was drawn, unlabelled: a figure trial)
+    floor = 0.5 / max(1, max(int((~f).sum()) for f in flags.values()))
     no_miss = 0.5 / max(1, max(int(f.sum()) for f in flags.values()))
     fig, (ax, det) = plt.subplots(2, 1, figsize=(7.5, 8), sharex=True,
                                   gridspec_kw={"height_ratios": (3, 2)})  # fmt: skip
@@ -344,6 +346,9 @@ def _roc_figure(result, detecting, colour, style=None) -> plt.Figure:
         det.axvline(far, color="0.5", ls="--", lw=0.8)
     det.axhline(no_miss, color="0.7", ls=":", lw=0.8,
                 label="no miss at all (0, drawn on this line)")  # fmt: skip
+    for panel in (ax, det):
+        panel.axvline(floor, color="0.7", ls="-.", lw=0.8,
+                      label="no false alarm at all (0, drawn on this line)")  # fmt: skip
     aucs = [result.metrics[n].get("auc") for n in detecting]
     # every curve on the top edge: said, or the figure read as one curve (a figure review)
     top = all(a is not None and a >= 0.999 for a in aucs) and any(a is not None for a in aucs)
@@ -351,7 +356,7 @@ def _roc_figure(result, detecting, colour, style=None) -> plt.Figure:
              "(dots: operating points, at the calibrated thresholds where calibrated)")  # fmt: skip
     if top:
         title += "\nevery AUC ≥ 0.999: the curves lie on the top edge, one over another"
-    ax.set(xscale="log", xlim=(floor, 1.0), ylim=(0.0, 1.02), ylabel="detection rate",
+    ax.set(xscale="log", xlim=(0.8 * floor, 1.0), ylim=(0.0, 1.02), ylabel="detection rate",
            title=title)  # fmt: skip
     # the same curves as misses on a log axis (a DET plot): near a detection rate of 1,
     # where most detectors are, the ROC squeezes them into its top pixels (a figure review)

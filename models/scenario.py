@@ -569,6 +569,15 @@ class CustomScenario(Scenario):
                 "its input packets arrived, and input_loss loses some: a covert attack runs "
                 "without input_loss"
             )
+        actuated = Channel(getattr(self.attack, "channel", Channel.SENSOR)) is Channel.ACTUATOR
+        if self.input_loss is not None and self.known_inputs is None and not actuated:
+            # (as the YAML form refuses it: the report announced a loss that changed nothing)
+            raise ValueError(
+                f"scenario {self.name!r}: input_loss needs inputs to lose: without known_inputs "
+                "the plant runs on zero inputs, which a lost packet leaves as they are, and no "
+                "actuator attack rides in them; give known_inputs (for a threat study of "
+                "actuator attacks, torch.zeros(steps, du)), or drop input_loss"
+            )
         known = self.known_inputs
         if known is not None and not callable(known) and not isinstance(known, Tensor):
             raise TypeError(

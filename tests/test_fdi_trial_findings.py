@@ -58,3 +58,42 @@ def test_the_component_inverse_reads_only_the_upper_triangle():
     full = torch.stack([torch.stack(row, -1) for row in inv], -2)
     torch.testing.assert_close(full, torch.linalg.inv(a), rtol=0, atol=1e-12)
     torch.testing.assert_close(logdet, torch.linalg.slogdet(a)[1], rtol=0, atol=1e-12)
+
+
+def test_fusion_of_ill_conditioned_or_far_scaled_locals_keeps_its_accuracy():
+    """The 3 × 3 adjugate's error grows as cond²: two locals of cond 1e12 (float64) had
+    fused to a mean 103 % off, and float32 locals of scale 1e13 to NaN (a trial). Such
+    locals take the torch.linalg route; well-conditioned ones keep the by-hand one."""
+    import mpmath
+    import numpy as np
+
+    from difffilter.fdi.fusion import _by_hand, covariance_intersection, information_fusion
+
+    gen = torch.Generator().manual_seed(4)
+    q, _ = torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=torch.float64))
+    P1 = q @ torch.diag(torch.tensor([1.0, 1e-4, 1e-8], dtype=torch.float64)) @ q.T
+    P2 = 1.5 * P1 + 1e-3 * torch.eye(3, dtype=torch.float64)
+    covs = torch.stack([P1, P2])
+    means = torch.randn(2, 3, generator=gen, dtype=torch.float64)
+    mean, cov = information_fusion(means, covs)
+    mpmath.mp.dps = 40  # the truth: the closed form in 40 digits on the same inputs
+    i1, i2 = (mpmath.matrix(P.tolist()) ** -1 for P in (P1, P2))
+    exact_cov = (i1 + i2) ** -1
+    exact = exact_cov * (
+        i1 * mpmath.matrix(means[0].tolist()) + i2 * mpmath.matrix(means[1].tolist())
+    )
+    ref_mean = np.array([float(v) for v in exact])
+    ref_cov = np.array([[float(exact_cov[i, j]) for j in range(3)] for i in range(3)])
+    # (the adjugate's: 1e-6 and worse; the LU route's 1e-10)
+    assert np.abs(mean.numpy() - ref_mean).max() <= 1e-8 * np.abs(ref_mean).max()
+    assert np.abs(cov.numpy() - ref_cov).max() <= 1e-8 * np.abs(ref_cov).max()
+    assert not _by_hand(covs, 3) and _by_hand(torch.stack([torch.eye(3)] * 2), 3)
+    for scale in (1e-14, 1e13):  # float32 determinants out of range: fused, not NaN
+        eye = torch.eye(3)
+        m = torch.stack([torch.ones(3), torch.zeros(3)])
+        naive_mean, naive_cov = information_fusion(m, torch.stack([scale * eye, 2 * scale * eye]))
+        torch.testing.assert_close(naive_mean, torch.full((3,), 2 / 3))
+        torch.testing.assert_close(naive_cov / scale, 2 / 3 * eye)
+        ci_mean, ci_cov, omega = covariance_intersection(m, torch.stack([scale * eye,
+                                                                         2 * scale * eye]))  # fmt: skip
+        torch.testing.assert_close(ci_mean, torch.ones(3), rtol=0, atol=1e-5)

@@ -7,6 +7,7 @@ not iterable", naming neither the estimator nor ``needs``."""
 from __future__ import annotations
 
 import pytest
+import torch
 
 from difffilter._imports import import_object, import_plugin
 from difffilter.models import estimators
@@ -44,3 +45,26 @@ def test_one_need_alone_is_a_need_and_anything_else_is_named(monkeypatch):
         with pytest.raises(TypeError, match=r"estimator 'trial_bad': needs must be a Need of "
                                             r"difffilter.models.needs or a tuple"):  # fmt: skip
             register("trial_bad", "bad needs", needs=bad)
+
+
+def test_a_python_scenario_with_input_loss_and_no_inputs_is_refused_as_the_yaml_one():
+    """A CustomScenario with input_loss, no known_inputs and no actuator attack ran on zero
+    inputs, so a lost packet changed nothing while the report announced the loss (udp_kf
+    equal to kf to 1e-17); the YAML form of the same scenario is refused (a trial)."""
+    import difffilter as df
+    from difffilter.input_loss import InputLossSchedule
+    from difffilter.models.scenario import CustomScenario
+    from difffilter.models.schedules import PacketLoss
+
+    def plant(dtype):
+        eye = torch.eye(2, dtype=dtype)
+        return df.LinearGaussianModel(0.9 * eye, eye, 0.01 * eye, 0.01 * eye,
+                                      torch.zeros(2, dtype=dtype), eye,
+                                      B=torch.ones(2, 1, dtype=dtype))  # fmt: skip
+
+    loss = InputLossSchedule(PacketLoss(0.3))
+    with pytest.raises(ValueError, match="input_loss needs inputs to lose"):
+        CustomScenario(name="motor", family="mine", description="", model_fn=plant,
+                       input_loss=loss)  # fmt: skip
+    CustomScenario(name="motor", family="mine", description="", model_fn=plant, input_loss=loss,
+                   known_inputs=torch.zeros(100, 1, dtype=torch.float64))  # fmt: skip

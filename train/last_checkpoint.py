@@ -19,11 +19,14 @@ and then writes ``last.ckpt`` itself, after this one, with that state.
 
 from __future__ import annotations
 
+import hashlib
 import os
 from pathlib import Path
 
 import lightning.pytorch as pl
 from lightning.pytorch.callbacks import ModelCheckpoint
+
+from difffilter.models.atomic_write import write_atomically
 
 __all__ = ["LastCheckpointEveryEpoch", "add_last_every_epoch"]
 
@@ -46,6 +49,10 @@ class LastCheckpointEveryEpoch(pl.Callback):
             )
         self.checkpoint = checkpoint
         self._written_at_step: int | None = None
+        # what the file written at that step holds of the checkpoint callback, and its bytes'
+        # digest (whether the callback has rewritten it since)
+        self._written_record: tuple | None = None
+        self._written_digest: bytes | None = None
         self._whole: bytes | None = None  # last.ckpt as the last whole epoch left it
         self._cut = False
         self._in_an_epoch = False  # whether _whole was read (an epoch began)
@@ -109,13 +116,28 @@ class LastCheckpointEveryEpoch(pl.Callback):
             return  # (before any epoch began, the file is a resumed run's own: left alone)
         if self._written_at_step != trainer.global_step:  # (else written here: an epoch's end)
             self._restore_whole(path)
+        elif self._callback_moved_on(path):
+            # written here, before the checkpoint callback's turn, which the interrupt cut: the
+            # file counts the epoch done with the callback's state of before it (a new best
+            # of this epoch unrecorded: a resume exported another epoch's network, a trial)
+            self._restore_whole(path)
+
+    def _callback_moved_on(self, path: Path) -> bool:
+        """Whether the checkpoint callback's record changed since this callback wrote
+        ``path`` (it began saving a new best) and the file is still the one written (the
+        callback's own ``last.ckpt``, with its new record, was not written yet)."""
+        if _record(self.checkpoint) == self._written_record:
+            return False
+        return hashlib.sha256(path.read_bytes()).digest() == self._written_digest
 
     def _restore_whole(self, path: Path) -> None:
         """``last.ckpt`` as the last whole epoch left it, or none where no epoch was whole."""
         if self._whole is None:
             path.unlink(missing_ok=True)
         elif not path.is_file() or path.read_bytes() != self._whole:
-            path.write_bytes(self._whole)
+            # (whole or not at all: a kill during a plain write had left a truncated file,
+            # the run's only resume point, a trial)
+            write_atomically(path, self._whole)
 
     def _path(self) -> Path | None:
         cb = self.checkpoint
@@ -134,8 +156,10 @@ class LastCheckpointEveryEpoch(pl.Callback):
         cb.last_model_path = str(path)
         # what the callback's own writes hold: the full state to resume from, unless it keeps
         # weights only (left unset, Lightning logs "`weights_only` was not set" every epoch)
+        self._written_record = _record(cb)
         trainer.save_checkpoint(path, weights_only=cb.save_weights_only)
         self._written_at_step = trainer.global_step
+        self._written_digest = hashlib.sha256(path.read_bytes()).digest()
         # and the callback's own record that a last.ckpt was written in this run: without
         # it, Lightning 2.6's on_train_end wrote the file again after a run whose epochs all
         # failed to improve (a resumed one), with the epoch counted done, one ahead of the
@@ -143,6 +167,13 @@ class LastCheckpointEveryEpoch(pl.Callback):
         # (not under save_last="link", where that record names the file to link to)
         if cb.save_last is True:
             cb._last_checkpoint_saved = str(path)
+
+
+def _record(cb: ModelCheckpoint) -> tuple:
+    """What ``cb`` keeps of its best checkpoints (changed as it begins saving a new one)."""
+    score = cb.best_model_score
+    return (cb.best_model_path, cb.kth_best_model_path, tuple(sorted(cb.best_k_models)),
+            None if score is None else float(score))  # fmt: skip
 
 
 def _cut_short(trainer: pl.Trainer) -> bool:
