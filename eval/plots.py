@@ -344,11 +344,11 @@ def _roc_figure(result, detecting, colour, style=None) -> plt.Figure:
     if far is not None:
         ax.axvline(far, color="0.5", ls="--", lw=0.8, label=f"target false-alarm rate {far:g}")
         det.axvline(far, color="0.5", ls="--", lw=0.8)
-    det.axhline(no_miss, color="0.7", ls=":", lw=0.8,
-                label="no miss at all (0, drawn on this line)")  # fmt: skip
     for panel in (ax, det):
         panel.axvline(floor, color="0.7", ls="-.", lw=0.8,
                       label="no false alarm at all (0, drawn on this line)")  # fmt: skip
+    det.axhline(no_miss, color="0.7", ls=":", lw=0.8,
+                label="no miss at all (0, drawn on this line)")  # fmt: skip
     aucs = [result.metrics[n].get("auc") for n in detecting]
     # every curve on the top edge: said, or the figure read as one curve (a figure review)
     top = all(a is not None and a >= 0.999 for a in aucs) and any(a is not None for a in aucs)

@@ -365,6 +365,9 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
         raise ValueError(f"{where}: random_initial must be true or false; got {drawn!r}")
     steps = settings.get("steps", CustomScenario.steps)
     attack = _attack(doc.get("attack"), probe, steps, f"{where}: attack", settings.get("dt"))
+    known = _inputs(doc.get("inputs"), settings.get("dt", 1.0), f"{where}: inputs")
+    loss = _input_loss(doc.get("input_loss"), f"{where}: input_loss")
+    _check_inputs_to_lose(loss, known, attack, probe, where)  # (in the file's words)
     try:
         scenario = CustomScenario(
             name=str(doc["name"]),
@@ -375,8 +378,8 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
             model_fn=plant,
             attack=attack,
             protocol=_schedule(doc.get("schedule"), f"{where}: schedule"),
-            known_inputs=_inputs(doc.get("inputs"), settings.get("dt", 1.0), f"{where}: inputs"),
-            input_loss=_input_loss(doc.get("input_loss"), f"{where}: input_loss"),
+            known_inputs=known,
+            input_loss=loss,
             estimators=_estimators(doc.get("estimators"), f"{where}: estimators"),
             options=dict(options),
             state_unit=str(units.get("state", "state units")),
@@ -389,6 +392,24 @@ def scenario_from_dict(doc: Mapping[str, Any], where: str = "scenario") -> Custo
         raise ValueError(message if message.startswith(where) else f"{where}: {message}") from None
     _check_against_plant(scenario, probe, where)
     return scenario
+
+
+def _check_inputs_to_lose(loss, known, attack, probe, where: str) -> None:
+    """An ``input_loss`` needs inputs to lose: the plant's, and given ones (``inputs:``) or
+    an actuator attack riding in them (a trial's report announced a loss that changed
+    nothing); said in the file's words before :class:`CustomScenario` says it in Python's."""
+    if loss is None:
+        return
+    if probe.dim_u == 0:
+        raise ValueError(f"{where}: input_loss: the plant has no input to lose (dim_u = 0)")
+    actuated = attack is not None and Channel(attack.channel) is Channel.ACTUATOR
+    if known is None and not actuated:
+        raise ValueError(
+            f"{where}: input_loss: the plant has no inputs: (it runs on zero inputs, which "
+            "a lost packet leaves as they are, and no actuator attack rides in them): give "
+            "it inputs: (for a threat study of actuator attacks, {kind: constant, value: "
+            "0.0}), or drop input_loss"
+        )
 
 
 def _inputs_field(model) -> str:
@@ -405,19 +426,6 @@ def _check_against_plant(scenario: CustomScenario, probe, where: str) -> None:
     except (ValueError, TypeError, IndexError) as error:
         raise ValueError(f"{where}: schedule: {error}") from None
     if scenario.input_loss is not None:
-        if probe.dim_u == 0:
-            raise ValueError(f"{where}: input_loss: the plant has no input to lose (dim_u = 0)")
-        actuated = (
-            scenario.attack is not None and Channel(scenario.attack.channel) is Channel.ACTUATOR
-        )
-        if scenario.known_inputs is None and not actuated:
-            # (a trial's report announced a loss that changed nothing)
-            raise ValueError(
-                f"{where}: input_loss: the plant has no inputs: (it runs on zero inputs, which "
-                "a lost packet leaves as they are, and no actuator attack rides in them): give "
-                "it inputs: (for a threat study of actuator attacks, {kind: constant, value: "
-                "0.0}), or drop input_loss"
-            )
         try:
             scenario.input_loss.draw(1, 1, probe.dim_u, torch.Generator().manual_seed(0))
         except (ValueError, TypeError, IndexError) as error:

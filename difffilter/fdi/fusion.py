@@ -112,8 +112,8 @@ def _by_hand(covs: Tensor, d: int) -> bool:
     determinant a normal number of the dtype (one read)."""
     if d > _HAND_MAX_DIM:
         return False
-    if d == 1:
-        return True
+    if d == 1 or torch._C._functorch.is_functorch_wrapped_tensor(covs):
+        return True  # (under vmap no value can choose a route: the by-hand one, as before)
     with torch.no_grad():
         det = torch.linalg.det(covs.detach())
         ratio = det / covs.detach().diagonal(dim1=-2, dim2=-1).prod(-1)
