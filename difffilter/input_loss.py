@@ -230,7 +230,12 @@ class InputLossSchedule:
     def draw(self, runs: int, steps: int, du: int, generator=None, *, device=None) -> InputLoss:
         """The :class:`InputLoss` of ``runs`` runs of ``steps`` steps (``mask [runs, steps,
         du]``) from ``generator``."""
-        mask = self.schedule.mask((runs,), steps, du, generator, device=device)
+        try:
+            mask = self.schedule.mask((runs,), steps, du, generator, device=device)
+        except (ValueError, IndexError) as error:  # (the schedule speaks of measurements:
+            # "packets must cover the 1 measurement entries" for a plant of 2 sensors, 1 input)
+            raise type(error)(f"input_loss: {error} (its entries here are the plant's {du} "
+                              "input(s), not its measurements)") from error  # fmt: skip
         if mask is None:  # a schedule's "every entry arrives" (AllSensors: it had failed at
             # every simulation, in InputLoss's check, naming neither)
             mask = torch.ones(runs, steps, du, dtype=torch.bool, device=device)

@@ -429,8 +429,7 @@ def _check_against_plant(scenario: CustomScenario, probe, where: str) -> None:
         try:
             scenario.input_loss.draw(1, 1, probe.dim_u, torch.Generator().manual_seed(0))
         except (ValueError, TypeError, IndexError) as error:
-            raise ValueError(f"{where}: input_loss: {error} (over the plant's {probe.dim_u} "
-                             "input(s))") from None  # fmt: skip
+            raise ValueError(f"{where}: {error}") from None  # (draw names input_loss, du)
     known = scenario.known_inputs
     runs = known.shape[0] if isinstance(known, torch.Tensor) and known.dim() == 3 else 1
     width = _input_width(known)

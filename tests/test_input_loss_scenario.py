@@ -63,7 +63,7 @@ def test_the_yaml_field_is_an_input_loss_schedule(tmp_path):
     ({"kind": "packet_loss", "rate": 1.5}, "rate must be a number in"),
     ({"kind": "packet_loss", "rate": 0.1, "on_loss": "drop"}, "'drop' is not a OnLoss"),
     ({"kind": "packet_loss", "rate": 0.1, "acknowledged": "yes"}, "acknowledged must be"),
-    ({"kind": "packet_loss", "rate": 0.1, "packets": [[0, 1]]}, "over the plant's 1 input"),
+    ({"kind": "packet_loss", "rate": 0.1, "packets": [[0, 1]]}, "the plant's 1 input(s), not its measurements"),
     ({"kind": "packet_loss", "rate": 0.1, "delay": 2}, "unknown field"),
 ])  # fmt: skip
 def test_a_bad_input_loss_is_named_with_the_file_and_the_field(spec, why):

@@ -68,3 +68,14 @@ def test_a_python_scenario_with_input_loss_and_no_inputs_is_refused_as_the_yaml_
                        input_loss=loss)  # fmt: skip
     CustomScenario(name="motor", family="mine", description="", model_fn=plant, input_loss=loss,
                    known_inputs=torch.zeros(100, 1, dtype=torch.float64))  # fmt: skip
+
+
+def test_an_input_loss_schedule_that_does_not_fit_the_inputs_says_so():
+    """Its error spoke of "the 1 measurement entries" for a plant of two sensors and one
+    input, and named no input_loss (a trial)."""
+    from difffilter.input_loss import InputLossSchedule
+    from difffilter.models.schedules import PacketLoss
+
+    loss = InputLossSchedule(PacketLoss(0.3, packets=((0,), (1,))))
+    with pytest.raises(ValueError, match=r"^input_loss: .*the plant's 1 input\(s\), not its"):
+        loss.draw(2, 5, 1, torch.Generator().manual_seed(0))
