@@ -63,8 +63,9 @@ def _riccati(
         return solve(A, B, Q, R)
     except (np.linalg.LinAlgError, ValueError) as error:
         need = ("(F, H) detectable and (F, Q^{1/2}) stabilisable: every unstable or marginal "
-                "mode seen by the measurements, and excited by the process noise (scipy finds "
-                "no solution for a constant state with Q = 0 on it: give it some)") if filtering else (
+                "mode seen by the measurements, and excited by the process noise (scipy "
+                "finds no solution for a measured constant state with Q = 0 on it: give it "
+                "some)") if filtering else (
                 "the pair stabilisable and (A, Q^{1/2}) detectable: every unstable or marginal "
                 "mode reachable by the inputs and seen by the state weight")  # fmt: skip
         raise ValueError(
@@ -387,8 +388,8 @@ def dlqr(
     ``Q``, ``R`` default to ``I``. Needs ``(F, B)`` stabilisable (scipy raises otherwise).
     A marginal mode (``|λ| = 1``) that ``Q`` does not weigh is left where it is: the
     cost-optimal gain spends nothing on a mode that costs nothing (``F = diag(1, 0.5)``,
-    ``Q = diag(0, 1)``: the pole stays at 1), so weigh every mode to be stabilised. The gain of a state-feedback controller on the
-    estimate (:class:`difffilter.loop.StateFeedback`); with :func:`kalman_steady_state`
+    ``Q = diag(0, 1)``: the pole stays at 1), so weigh every mode to be stabilised. The
+    gain of a state-feedback controller on the estimate (:class:`difffilter.loop.StateFeedback`); with :func:`kalman_steady_state`
     the LQG design. Not differentiable (computed in numpy): the results are detached, with
     no gradient (one through the products alone held ``P`` fixed and was wrong: 1.32 for
     23.9); for a gain tuned by gradient, make ``K`` a parameter and differentiate the loop.
@@ -450,8 +451,8 @@ def _check_detectable(F: np.ndarray, H: np.ndarray, tol: float = 1e-9) -> None:
         if s[-1] <= tol * max(s[0], np.finfo(np.float64).tiny):
             raise ValueError(
                 f"kalman_steady_state needs (F, H) detectable: the mode of F at eigenvalue "
-                f"{complex(lam):.6g} "
-                "(on or outside the unit circle) is seen by no measurement, so the filter's "
+                f"{complex(lam):.6g} (on or outside the unit circle) is seen by no "
+                "measurement, so the filter's "
                 "covariance along it has no steady state (it stays at the prior's, or grows): "
                 "measure that mode, or leave it out of the model"
             )
