@@ -103,7 +103,7 @@ def test_the_figure_gets_missing_as_nan_diverged_as_inf_and_the_roles_ranked(tmp
     reference are ranked; the TensorBoard row carries the checkpoint's short sha256."""
     seen, sessions = {}, {}
 
-    def spy(grid, scenarios, columns, ranked, targets, steps_s):
+    def spy(grid, scenarios, columns, ranked, targets, steps_s, off_band=None):
         seen.update(grid=grid.copy(), columns=list(columns), ranked=ranked.tolist())
         return np.full_like(grid, np.nan)
 
