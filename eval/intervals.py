@@ -293,7 +293,10 @@ def robustness_intervals(totals: dict[str, dict[str, dict[str, Tensor]]], role_o
                  if (v := resampled_metric(per[name], "tpr_at_far", weights)) is not None]  # fmt: skip
         return _best(dict(enumerate(rates)), higher=False)
 
-    rivals = {n: w for n in analytic if (w := worst_tpr(n)) is not None}
+    def run_everywhere(name) -> bool:  # not run under a threat (absent there): no worst case
+        return all(name in per for per in totals.values())
+
+    rivals = {n: w for n in analytic if run_everywhere(n) and (w := worst_tpr(n)) is not None}
     best_worst = _best(rivals, higher=True)
     out = {}
     for name in learned:
@@ -306,7 +309,7 @@ def robustness_intervals(totals: dict[str, dict[str, dict[str, Tensor]]], role_o
                 ratio = _paired(per, name, present, "state_rmse", "ratio", False, weights)
                 if ratio is not None:
                     state[threat] = _summary(ratio, within, level)
-        mine = worst_tpr(name)
+        mine = worst_tpr(name) if run_everywhere(name) else None  # (as judge_robustness)
         gap = None if mine is None or best_worst is None else mine - best_worst
         out[name] = {"state": state,
                      "worst_tpr": None if gap is None else _summary(gap, lambda d: at_least(d, 0.0), level)}  # fmt: skip

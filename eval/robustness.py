@@ -805,7 +805,7 @@ def _reading_cell(check: dict) -> str:
     if not check.get("best_reads_no_measurements"):
         return ""
     return (f"{format_number(check['best_reading'], 4)} (`{check['best_reading_estimator']}`), "
-            f"{format_number(check['ratio_reading'], 3)}×")  # fmt: skip
+            f"{format_number(check['ratio_reading'], 3, apart_from=(ROBUST_STATE_FACTOR,))}×")  # fmt: skip
 
 
 def _training_line(training: dict | None) -> str:

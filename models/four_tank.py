@@ -25,6 +25,7 @@ variants) live here too; the attack itself is
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -392,6 +393,13 @@ class FourTankScenario(Scenario):
         if tuple(self.R) == tuple(self.eta_design_R):
             names = [n for n in names if n != "modified_pf_eta_theorem1"]
         object.__setattr__(self, "estimators", tuple(names))
+        scales = self.sweep_scales
+        if (not isinstance(scales, (tuple, list)) or not scales
+                or any(isinstance(v, bool) or not isinstance(v, (int, float))
+                       or not 0 < v < math.inf for v in scales)):  # fmt: skip
+            # (an empty sweep had run the whole study and then failed in its report)
+            raise ValueError("sweep_scales must be a non-empty tuple of finite numbers > 0 "
+                             f"(the attack sizes of the detection sweep); got {scales!r}")  # fmt: skip
 
     def estimator_options(self) -> dict:
         """PoA thresholds (η of Theorem 1 with the design R [P 0.233], ζ = p_l), CUSUM b, γ̂ noise.

@@ -712,6 +712,7 @@ class LFCScenario(Scenario):
             raise ValueError(f"dt must be positive and duration >= dt, both finite; got dt = "
                              f"{self.dt!r}, duration = {self.duration!r}")  # fmt: skip
         object.__setattr__(self, "steps", int(round(self.duration / self.dt)))
+        _check_attacked_channels(self.attacked_channels, self.attack)
 
     def with_steps(self, steps: int) -> LFCScenario:
         return dataclasses.replace(self, duration=steps * self.dt)
@@ -846,6 +847,29 @@ class LFCScenario(Scenario):
         a CUSUM's τ of 16.7 where its own is 12.6: a trial)."""
         return ("lfc", self.dt, self.steps, self.load, self.load_range, self.false_alarm_rate,
                 self.checkpoint)  # fmt: skip
+
+
+#: The channels the paper's signals attack (eqs 44–47: state 3 of area 1; scenario III also
+#: state 8, of area 2), where eq. 43 is scored.
+PAPER_ATTACK_CHANNELS = {LFCAttack.STEP: (2,), LFCAttack.SINE: (2,),
+                         LFCAttack.SIMULTANEOUS: (2, 7), LFCAttack.SAWTOOTH: (2,)}  # fmt: skip
+
+
+def _check_attacked_channels(channels, attack: LFCAttack) -> None:
+    """``attacked_channels``: distinct channels ``0 … 9``, those of the paper's signal where
+    the attack is one (eq. 43 had been scored on channel 2 alone of scenario III's two, 0.57
+    where 1.02 is its zero estimate's, on a doubled channel twice, and on ``-1`` as ace_int_2:
+    a trial)."""
+    given = tuple(channels) if isinstance(channels, (tuple, list)) else None
+    if (given is None or not given or len(set(given)) != len(given)
+            or any(isinstance(c, bool) or not isinstance(c, int) or not 0 <= c < STATE_DIM
+                   for c in given)):  # fmt: skip
+        raise ValueError(f"attacked_channels must be distinct channels 0 … {STATE_DIM - 1} (a "
+                         f"tuple of integers); got {channels!r}")  # fmt: skip
+    signal = PAPER_ATTACK_CHANNELS.get(attack)
+    if signal is not None and tuple(sorted(given)) != signal:
+        raise ValueError(f"attacked_channels of the paper's {attack.value} attack are {signal} "
+                         f"(the channels its signal attacks, where eq. 43 is scored); got {given}")  # fmt: skip
 
 
 def _lfc(name, attack, description, channels=(2,), dt=0.01, table_key=None, headline=True):

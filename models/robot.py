@@ -343,6 +343,13 @@ class RobotScenario(Scenario):
                 f"report reads â at k = attack_from + 14 and the errors from k = 40); got "
                 f"steps={self.steps!r}, attack_from={self.attack_from!r}"
             )
+        attack = self.attack
+        if (not isinstance(attack, (tuple, list)) or len(attack) != 2
+                or any(isinstance(a, bool) or not isinstance(a, (int, float))
+                       or not math.isfinite(a) for a in attack)):  # fmt: skip
+            # (a third entry had been dropped without a word: a trial)
+            raise ValueError("attack must be two finite numbers (a_p cm/s on the speed, a_r "
+                             f"deg/s on the turn rate); got {attack!r}")  # fmt: skip
 
     def system(self, dtype: torch.dtype = torch.float64, device=None) -> RobotModel:
         return self._on_device(RobotModel(dt=self.dt, dtype=dtype), device)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import pytest
 import torch
@@ -133,3 +134,46 @@ def test_judge_robustness_refuses_a_false_alarm_rate_outside_zero_one(far):
 
     with pytest.raises(ValueError, match="far"):
         judge_robustness({}, {}, far=far)
+
+
+def test_an_analytic_detector_not_run_under_a_threat_sets_no_worst_case_bar():
+    """Its minimum over the other threats alone (0.359 on a ramp) had become the bar, which
+    the learned estimator's 0.05 failed against the only real analytic worst case, 0.0125
+    (a trial); the resampled gap of the intervals took the same partial minimum."""
+    from difffilter.eval.acceptance import judge_robustness
+    from difffilter.eval.intervals import robustness_intervals
+    from difffilter.eval.robustness import _not_run_cell
+
+    roles = {"chi": "analytic", "cusum": "analytic", "net": "learned"}
+    cells = {"ramp": {"chi": {"tpr_at_far": 0.359, "state_rmse": 0.16},
+                      "cusum": {"tpr_at_far": 0.406, "state_rmse": 0.16},
+                      "net": {"tpr_at_far": 0.544, "state_rmse": 0.16}},
+             "replay": {"chi": _not_run_cell("skipped under this threat"),
+                        "cusum": {"tpr_at_far": 0.0125, "state_rmse": 0.038},
+                        "net": {"tpr_at_far": 0.05, "state_rmse": 0.038}}}  # fmt: skip
+    verdict = judge_robustness(cells, roles, 0.01)["net"]
+    assert verdict["best_analytic_worst_tpr"] == (0.0125, "cusum", "replay")
+    assert verdict["tpr_holds"] and verdict["worst_threat_undetected"]
+    # the intervals: the not-run detector is absent from that threat's per-run totals
+    runs = 4
+
+    def totals(tpr, rmse):  # each run: 10 attacked steps, 10 steps of state error
+        full = partial(torch.full, (runs,), dtype=torch.float64)
+        return {"hits": full(tpr * 10), "attacked": full(10.0), "se": full(rmse**2 * 10),
+                "n": full(10.0)}  # fmt: skip
+
+    per_run = {"ramp": {n: totals(c["tpr_at_far"], c["state_rmse"])
+                        for n, c in cells["ramp"].items()},
+               "replay": {n: totals(c["tpr_at_far"], c["state_rmse"])
+                          for n, c in cells["replay"].items() if n != "chi"}}  # fmt: skip
+    gap = robustness_intervals(per_run, roles, runs=runs, resamples=20, seed=0)["net"]["worst_tpr"]
+    assert gap["estimate"] == pytest.approx(0.05 - 0.0125)
+
+
+def test_the_reading_ratio_prints_apart_from_the_bar():
+    """1.1004, over the 1.1× bar (not counted within it), had printed "1.1×" (a trial)."""
+    from difffilter.eval.robustness import _reading_cell
+
+    check = {"best_reads_no_measurements": True, "best_reading": 0.16,
+             "best_reading_estimator": "chi", "ratio_reading": 1.1004}  # fmt: skip
+    assert _reading_cell(check).endswith("1.1004×")

@@ -20,6 +20,7 @@ from tqdm.auto import tqdm
 
 from difffilter import fdi, metrics
 from difffilter.models.estimators import SuiteContext, get
+from difffilter.models.four_tank import R_HIGH, R_NOMINAL
 from difffilter.models.generic_estimators import modified_pf
 
 from ..report import (
@@ -97,9 +98,20 @@ def _extra(result) -> dict[str, Any]:
         "settings": {k: v for k, v in asdict(sc).items() if k in SETTINGS},
         "detection_vs_attack_size": _sweep(result),
         "high_noise_false_alarms": _high_noise(result)
-        if tuple(sc.R) == tuple(sc.eta_design_R)
+        if _paper_setting(sc.R, sc.eta_design_R) == "nominal"
         else None,
     }
+
+
+def _paper_setting(R, eta_design_R) -> str | None:
+    """Which of the paper's settings a study's noise is: ``"nominal"`` (tr R = 0.003) or
+    ``"high"`` (tr R = 0.015, R × 5), each with the paper's η (designed for the nominal R),
+    else ``None`` (no column of Tables 3–4 applies). A scenario of R × 5 with its own η had
+    been put in the nominal column, beside the paper's 0.0028 and no false alarms, and its
+    "R × 5" section had run R × 25 (a trial)."""
+    if tuple(eta_design_R) != tuple(R_NOMINAL):
+        return None
+    return {tuple(R_NOMINAL): "nominal", tuple(R_HIGH): "high"}.get(tuple(R))
 
 
 def _sweep(result) -> dict[str, Any]:
@@ -162,7 +174,8 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
     f = format_number
     est, st = doc["estimators"], doc["settings"]
     p3, p4 = doc["paper"]["table3"], doc["paper"]["table4"]
-    nominal = tuple(st["R"]) == tuple(st["eta_design_R"]) and list(st["gamma_bar"]) == [0.5] * 4
+    setting = _paper_setting(st["R"], st["eta_design_R"])
+    nominal = setting == "nominal" and list(st["gamma_bar"]) == [0.5] * 4
     rows = []
 
     def row(label, paper, e):
@@ -172,9 +185,9 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
                      f(e.get("missed_attacks_per_run"))])  # fmt: skip
 
     noisy = st["gamma_hat_noise_var"] > 0
-    if tuple(st["R"]) != tuple(st["eta_design_R"]):
+    if setting == "high":
         row("tr R = 0.015, γ̂ = γ (paper's η)", p3["trR_0.015_oracle"], est["modified_pf"])
-    elif list(st["gamma_bar"]) == [0.5] * 4:
+    elif nominal:
         row(
             "tr R = 0.003, γ̂ = γ + e" if noisy else "tr R = 0.003, γ̂ = γ",
             p3["trR_0.003_noisy_gamma" if noisy else "trR_0.003_oracle"],
@@ -226,7 +239,7 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
     )
     names = () if result is None else result.outputs  # (None: the tables alone, in tests)
     secs = [Section("Beside the paper", table), _fig9_section(doc, out, names)]
-    h = doc.get("high_noise_false_alarms")
+    h = doc.get("high_noise_false_alarms") if setting == "nominal" else None
     if h:
         head = ["η", "value", "FPR", "false alarms / run", "TPR ‖γ‖>‖γ‖_min",
                 "RMSE vs attack-free (all / k > 20)"]  # fmt: skip

@@ -9,6 +9,8 @@ The paired test compares, run by run, the fused and the better local's position 
 
 from __future__ import annotations
 
+import math
+
 import matplotlib.pyplot as plt
 import torch
 from scipy.stats import chi2, wilcoxon
@@ -39,6 +41,15 @@ def _wilcoxon_p(a, b) -> float:
     if not bool((a != b).any()):
         return 1.0
     return float(wilcoxon(a.numpy(), b.numpy()).pvalue)
+
+
+def _share_lower(a, b) -> float:
+    """The share of the runs with both numbers (``a``, ``b`` ``[B]`` finite) where ``a < b``;
+    NaN where no run has both (a diverged run had counted as not lower: a trial)."""
+    both = torch.isfinite(a) & torch.isfinite(b)
+    if not bool(both.any()):
+        return math.nan
+    return float((a[both] < b[both]).double().mean())
 
 
 def _pos_rmse_t(means, x) -> torch.Tensor:  # (B8) per step [T]
@@ -88,8 +99,11 @@ def _extra(result) -> dict:
                  nan_runs=int((~o.means.isfinite()).flatten(1).any(1).sum()))  # fmt: skip
     extra: dict = {"rmse_curves": {n: c.tolist() for n, c in curves.items()}}
     locals_ = [n for n in ("mdpf_local_1", "mdpf_local_2") if n in outs]
-    if len(locals_) == 2:
-        better = min(locals_, key=lambda n: result.metrics[n]["position_rmse"])
+    finite = [n for n in locals_ if math.isfinite(result.metrics[n]["position_rmse"])]
+    if len(locals_) == 2 and finite:
+        # of the locals with a number (min() had kept a diverged NaN local when it came
+        # first, and every ratio read "—": a trial)
+        better = min(finite, key=lambda n: result.metrics[n]["position_rmse"])
         fusion = {"better_local": better}
         for f in ("mdpf_fused_ci", "mdpf_fused_naive"):
             if f not in outs:
@@ -98,7 +112,7 @@ def _extra(result) -> dict:
             fusion[f] = {
                 "ratio_all": result.metrics[f]["position_rmse"] / result.metrics[better]["position_rmse"],
                 "ratio_late": result.metrics[f]["position_rmse_late"] / result.metrics[better]["position_rmse_late"],
-                "runs_lower_late": float((a < b).double().mean()),
+                "runs_lower_late": _share_lower(a, b),
                 "wilcoxon_p_late": _wilcoxon_p(a, b),
             }  # fmt: skip
         extra["fusion"] = fusion

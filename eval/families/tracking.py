@@ -122,9 +122,10 @@ def _position_velocity_rmse(result, name: str) -> dict:
 
 def _share_at_or_above(p: Tensor, v: Tensor, bp: Tensor, bv: Tensor) -> float:
     """The share of steps whose position and velocity RMSE (``[T]``) are at or above their
-    bound's; NaN where a bound is not finite at some step (a NaN step compared False, and
-    half the steps had read as beating a lower bound: a trial)."""
-    if not (bool(torch.isfinite(bp).all()) and bool(torch.isfinite(bv).all())):
+    bound's; NaN where a bound or an RMSE is not finite at some step (a NaN step compared
+    False, and half the steps had read as beating a lower bound: a trial; a diverged
+    estimate's NaN RMSE, the same: another)."""
+    if not all(bool(torch.isfinite(t).all()) for t in (p, v, bp, bv)):
         return float("nan")
     return float(((p >= bp) & (v >= bv)).double().mean())
 
