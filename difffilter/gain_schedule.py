@@ -46,7 +46,14 @@ import torch
 from torch import Tensor
 
 from ._assignments import assignments
-from ._riccati_host import host_arrays, host_chunk, host_step_maps, steps_to_keep
+from ._riccati_host import (
+    chained_steps,
+    finite_steps,
+    host_arrays,
+    host_chunk,
+    host_step_maps,
+    steps_to_keep,
+)
 from .linalg import INNOVATION_COV, LOG_2PI, NumericalBreakdown, matvec, safe_cholesky
 from .parallel_kalman import combine_covariance, covariance_elements
 
@@ -167,6 +174,10 @@ class GainSchedule:
         self._block: list[tuple[SharedMoments, Tensor]] = []
         self._block_next = 0
 
+    # the watched tensors and their stamps as a list (:meth:`current`), of `_sources` then
+    _stamps_of: tuple | None = None
+    _stamps: tuple | None = None
+
     def __getstate__(self) -> dict:
         """A copy (``copy.deepcopy``, ``pickle``, ``torch.save``) makes new tensors whose
         version counters start again: each stamp is replaced by what it said at the copy
@@ -174,6 +185,8 @@ class GainSchedule:
         restored carry had been refused as "written in place" at its next step, though
         nothing had written to it (a serialisation trial)."""
         state = self.__dict__.copy()
+        for name in ("_stamps_of", "_stamps"):  # (remade from _sources at the next use)
+            state.pop(name, None)
         for name in ("_sources", "_own_sources"):
             state[name] = tuple((t, _unchanged(t, stamp)) for t, stamp in state[name])
         state["_cov_versions"] = [
@@ -205,7 +218,14 @@ class GainSchedule:
         compared with the schedule's (an online KF had gone on with the old ones)."""
         # the tensors it watches first: an in-place write, then an assignment anywhere, had the
         # re-read compare the written tensor with itself and forget the write (a review)
-        if not all(_unchanged(t, stamp) for t, stamp in self._sources):
+        sources = self._sources
+        if sources is not self._stamps_of:  # (made anew: a re-read, a copy)
+            self._stamps_of, self._stamps = sources, _plain_stamps(sources)
+        plain = self._stamps
+        if plain is not None:  # every stamp a (version, memory, requires_grad): one list
+            if [(t._version, t.data_ptr(), t.requires_grad) for t in plain[0]] != plain[1]:
+                return False
+        elif not all(_unchanged(t, stamp) for t, stamp in sources):
             return False
         count = assignments()  # (read first: an assignment from now on moves it again)
         if self._assignments != count:
@@ -463,14 +483,13 @@ class CovarianceChunks:
     def _next(self) -> tuple[Tensor, ...]:
         blocks = min(max(self.GROWTH * self.steps // self.BLOCK, 1), self.MAX_BLOCKS)
         moments = None if self._stepwise else self._host_chunk(blocks)
-        if moments is not None:
-            moments = tuple(map(torch.from_numpy, moments))
-        else:
-            maps = None if self._stepwise else self._step_maps()
-            if maps is not None:
-                moments = riccati_chunk(self._cov, maps, blocks, *self._mats)
-            else:  # no scan element (H Q Hᵀ + R singular), or the maps broke the chain
-                moments = riccati_steps(self._cov, blocks * self.BLOCK, *self._mats)
+        if moments is not None:  # the same tests on the host arrays, in one pass
+            return self._checked_host(moments)
+        maps = None if self._stepwise else self._step_maps()
+        if maps is not None:
+            moments = riccati_chunk(self._cov, maps, blocks, *self._mats)
+        else:  # no scan element (H Q Hᵀ + R singular), or the maps broke the chain
+            moments = riccati_steps(self._cov, blocks * self.BLOCK, *self._mats)
         finite = self._finite_steps(moments[0], moments[1])
         if finite < len(moments[0]):  # the finite steps now; the next chunk raises
             moments = tuple(m[:finite] for m in moments)
@@ -482,6 +501,44 @@ class CovarianceChunks:
         moments = tuple(m[:keep] for m in moments)
         self._cov, self._last_gain, self.steps = moments[1][-1], moments[2][-1], self.steps + keep
         return (*moments, half_log_det(moments[4]))
+
+    def _checked_host(self, moments: tuple) -> tuple[Tensor, ...]:
+        """:meth:`_next`'s tests (:meth:`_finite_steps`, :meth:`_chained_steps`,
+        :meth:`_steps_to_keep`: the same tests, tolerances and cuts) on a host chunk's
+        arrays before they become tensors: a few numpy calls instead of about 40 torch ones
+        on ``[n, d, d]`` batches."""
+        finite = finite_steps(moments[0], moments[1])
+        if finite == 0:
+            raise self._overflow(torch.from_numpy(moments[1][:0]).dtype)
+        if finite < len(moments[0]):  # the finite steps now; the next chunk raises
+            moments = tuple(m[:finite] for m in moments)
+        F, _, Q, _ = self._host
+        chained = chained_steps(moments[0], moments[1], F, Q, self.CHAIN_TOL)
+        if chained < len(moments[0]):  # the steps the chain holds; then step by step
+            moments, self._stepwise = tuple(m[:chained] for m in moments), True
+        K, P = moments[2], moments[1]
+        last = (None, None) if self._last_gain is None else (self._last_gain, self._cov)
+        keep = steps_to_keep(K, P, *map(_host_view, last), F, self._host[1], self._tol)
+        if keep is None:
+            keep = K.shape[0]
+        else:
+            self.converged = True
+        moments = tuple(torch.from_numpy(m[:keep]) for m in moments)
+        self._cov, self._last_gain, self.steps = moments[1][-1], moments[2][-1], self.steps + keep
+        return (*moments, half_log_det(moments[4]))
+
+    def _overflow(self, dtype) -> NumericalBreakdown:
+        """The error of a chunk whose first step has no finite covariance."""
+        step = self.steps + 1
+        return NumericalBreakdown(
+            f"the Kalman filter's state covariance P is not finite at step {step}: "
+            f"a variance grew past the largest {str(dtype).removeprefix('torch.')} "
+            f"number ({torch.finfo(dtype).max:.2g}), most often an unstable mode of F "
+            "(an eigenvalue of modulus above 1) that the measurements do not observe, "
+            "whose uncertainty grows without bound; no filter can go on from an "
+            "infinite variance: make that mode observable or stable, or filter in "
+            "float64 (a larger range: the same model overflows later)"
+        )
 
     def _finite_steps(self, pred_cov: Tensor, cov: Tensor) -> int:
         """How many of a chunk's first steps have finite covariances ``P⁻, P [n, dx, dx]``
@@ -496,16 +553,7 @@ class CovarianceChunks:
             return ok.shape[0]
         finite = int(ok.int().argmin())
         if finite == 0:
-            step, dtype = self.steps + 1, cov.dtype
-            raise NumericalBreakdown(
-                f"the Kalman filter's state covariance P is not finite at step {step}: "
-                f"a variance grew past the largest {str(dtype).removeprefix('torch.')} "
-                f"number ({torch.finfo(dtype).max:.2g}), most often an unstable mode of F "
-                "(an eigenvalue of modulus above 1) that the measurements do not observe, "
-                "whose uncertainty grows without bound; no filter can go on from an "
-                "infinite variance: make that mode observable or stable, or filter in "
-                "float64 (a larger range: the same model overflows later)"
-            )
+            raise self._overflow(cov.dtype)
         return finite
 
     #: The chain test's tolerance per entry, against ``√(P⁻ᵢᵢ P⁻ⱼⱼ)``, times ``√ε`` of the
@@ -737,6 +785,14 @@ def _stamp(t: Tensor) -> tuple | Tensor:
 #: A stamp no tensor matches (a version below any counter's, and below the ``-1`` of an
 #: inference tensor's :func:`_version`): what a copy stamps where the original had changed.
 _STALE = -2
+
+
+def _plain_stamps(sources) -> tuple[tuple[Tensor, ...], list[tuple]] | None:
+    """``(tensors, stamps)`` of ``(tensor, stamp)`` pairs where every stamp is a ``(version,
+    memory, requires_grad)`` tuple (:func:`_stamp`; compared as one list), else ``None``."""
+    if not all(type(stamp) is tuple for _, stamp in sources):
+        return None
+    return tuple(t for t, _ in sources), [stamp for _, stamp in sources]
 
 
 def _unchanged(t: Tensor, stamp: tuple | int | Tensor) -> bool:

@@ -183,3 +183,25 @@ def test_gain_schedule_on_the_host_is_the_kalman_filter():
     torch.testing.assert_close(
         torch.stack(lls).sum(), reference.log_likelihood.detach(), rtol=1e-12, atol=1e-10
     )
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_host_chunk_tests_equal_the_torch_ones(dtype):
+    """The finite and chain tests a host chunk passes on its arrays (one pass before they
+    become tensors) cut where the torch tests cut: a chunk that holds, one broken by a step
+    off the chain, one with an overflowed step."""
+    F, H, Q, R, P0 = _matrices(4, dtype=dtype)
+    chunks = CovarianceChunks(F, H, Q, R, P0, 1e-12)
+    arrays = host.host_arrays(F, H, Q, R)
+    maps = host.host_step_maps(*arrays, CovarianceChunks.BLOCK)
+    pred, post = (m.copy() for m in host.host_chunk(P0.numpy(), maps, 2, *arrays)[:2])
+    broken_pred = pred.copy()
+    broken_pred[9, 1, 2] *= 1.1  # step 10 off the chain
+    overflowed = post.copy()
+    overflowed[5, 0, 0] = np.inf
+    for p, c, n_finite, n_chained in [(pred, post, 32, 32), (broken_pred, post, 32, 9),
+                                      (pred, overflowed, 5, 6)]:  # fmt: skip
+        tp, tc = torch.from_numpy(p), torch.from_numpy(c)
+        assert host.finite_steps(p, c) == chunks._finite_steps(tp, tc) == n_finite
+        chained = host.chained_steps(p, c, arrays[0], arrays[2], CovarianceChunks.CHAIN_TOL)
+        assert chained == chunks._chained_steps(tp, tc) == n_chained
