@@ -81,9 +81,11 @@ def test_four_tank_runs_identical_means_a_run_equal_to_the_reference():
     assert got["runs_identical_to_attack_free"] == 0.5
 
 
-def _four_tank_doc(R=(0.001,) * 3, gamma_bar=(0.5,) * 4, noise=0.0):
+def _four_tank_doc(R=None, gamma_bar=(0.5,) * 4, noise=0.0):
     from difffilter.eval.families.four_tank import SWEPT, TABLE4
-    from difffilter.models.four_tank import PAPER_NUMBERS
+    from difffilter.models.four_tank import PAPER_NUMBERS, R_NOMINAL
+
+    R = R_NOMINAL if R is None else R  # (the paper's columns are its own noise levels)
 
     names = {n for _, _, n in TABLE4} | {"modified_pf"}
     est = {}
@@ -101,7 +103,7 @@ def _four_tank_doc(R=(0.001,) * 3, gamma_bar=(0.5,) * 4, noise=0.0):
                   for i, (lo, hi) in enumerate(bins)] for v in SWEPT}  # fmt: skip
     return {
         "estimators": est,
-        "settings": {"R": list(R), "eta_design_R": [0.001] * 3, "gamma_bar": list(gamma_bar),
+        "settings": {"R": list(R), "eta_design_R": list(R_NOMINAL), "gamma_bar": list(gamma_bar),
                      "gamma_hat_noise_var": noise},  # fmt: skip
         "paper": PAPER_NUMBERS,
         "detection_vs_attack_size": {"binned": binned, "per_scale": [{"scale": 1.0, "literal_beta_nan_rate": 0.0}]},
@@ -132,7 +134,9 @@ def test_four_tank_tables_3_and_4_rows_read_back(tmp_path):
                           f"({est[n]['state_rmse_vs_attack_free_median_run']:.4g})"), label  # fmt: skip
     text = _sections(None, _four_tank_doc(noise=0.01), tmp_path)[0].body
     assert _cells(text, "tr R = 0.003, γ̂ = γ + e")[1] == "0.008"
-    text = _sections(None, _four_tank_doc(R=(0.005,) * 3), tmp_path)[0].body
+    from difffilter.models.four_tank import R_HIGH
+
+    text = _sections(None, _four_tank_doc(R=R_HIGH), tmp_path)[0].body
     row = _cells(text, "tr R = 0.015, γ̂ = γ (paper's η)")
     assert row[1] == "0.0046" and row[3] == "5"
 
