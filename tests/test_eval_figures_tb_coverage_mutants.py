@@ -174,26 +174,29 @@ def _roc_result(far=0.1):
               calibration=NS(far=far)), outputs  # fmt: skip
 
 
-def test_the_roc_clamps_to_one_false_alarm_and_marks_the_operating_points():
-    """Six attack-free steps: the smallest rate a curve shows is 1/6 (the axis' left
-    edge, where a rate of 0 is drawn); the calibrated dot at (max(0, 1/6), 0.5), the
-    uncalibrated one at its own (fpr, tpr) = (0.2, 0.75); the target rate a vertical line
-    at 0.1. The curve's x values: each threshold's share of attack-free steps alarming,
-    counted here."""
+def test_the_roc_clamps_to_half_a_false_alarm_and_marks_the_operating_points():
+    """Six attack-free steps: the smallest non-zero rate a curve shows is 1/6, and a rate
+    of 0 is drawn at half of it, 1/12, on its labelled line (it had been drawn at 1/6, where
+    one false alarm is); the axis' left edge just beyond it; the calibrated dot at (max(0,
+    1/12), 0.5), the uncalibrated one at its own (fpr, tpr) = (0.2, 0.75); the target rate a
+    vertical line at 0.1. The curve's x values: each threshold's share of attack-free steps
+    alarming, counted here."""
     from difffilter.eval.plots import _roc_figure
 
     result, outputs = _roc_result()
     fig = _roc_figure(result, outputs, {"cal": "C0", "own": "C1"})
     ax = fig.axes[0]
-    assert ax.get_xlim()[0] == pytest.approx(1 / 6)
+    assert ax.get_xlim()[0] == pytest.approx(0.8 / 12)
     curve = next(line for line in ax.lines if line.get_label().startswith("cal (AUC"))
     s, f = (v.numpy().ravel() for v in (outputs["cal"].detection.scores, result.traj.flags))
-    fprs = {max((s[~f] >= th).mean(), 1 / 6) for th in s} | {1 / 6}
+    fprs = {max((s[~f] >= th).mean(), 1 / 12) for th in s} | {1 / 12}
     assert set(np.round(curve.get_xdata(), 9)) <= set(np.round(list(fprs), 9))
-    assert min(curve.get_xdata()) == pytest.approx(1 / 6)
+    assert min(curve.get_xdata()) == pytest.approx(1 / 12)
     dots = [v for line in ax.lines if line.get_marker() == "o"
             for v in (float(line.get_xdata()[0]), float(line.get_ydata()[0]))]  # fmt: skip
-    assert dots == pytest.approx([1 / 6, 0.5, 0.2, 0.75])
+    assert dots == pytest.approx([1 / 12, 0.5, 0.2, 0.75])
+    (zero,) = [line for line in ax.lines if line.get_label().startswith("no false alarm")]
+    assert list(zero.get_xdata()) == pytest.approx([1 / 12, 1 / 12])
     (target,) = [line for line in ax.lines if line.get_label().startswith("target")]
     assert list(target.get_xdata()) == pytest.approx([0.1, 0.1])
     plt.close(fig)
