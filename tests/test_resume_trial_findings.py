@@ -68,8 +68,10 @@ def test_an_interrupt_while_the_new_best_is_saved_resumes_to_the_same_best(tmp_p
     the file counting epoch 2 done with the callback's record of before it, and the resumed
     run picked epoch 1's network as its best (a trial: another export)."""
     whole = _fit(tmp_path / "whole")
-    with pytest.raises((KeyboardInterrupt, SystemExit)):  # (Lightning exits on Ctrl-C)
+    try:  # (Lightning 2.6 exits on Ctrl-C; 2.2 shuts down gracefully and returns)
         _fit(tmp_path / "cut", window=window)
+    except (KeyboardInterrupt, SystemExit):
+        pass
     resumed = _fit(tmp_path / "cut", ckpt_path=tmp_path / "cut" / "last.ckpt")
     assert float(resumed.best_model_score) == float(whole.best_model_score) == 1.0
     assert os.path.basename(resumed.best_model_path).startswith("best-epoch=02")
