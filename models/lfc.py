@@ -58,6 +58,7 @@ __all__ = [
     "AREA_DIM",
     "STATE_DIM",
     "STATE_NAMES",
+    "STATE_UNITS",
     "LFCParameters",
     "continuous_model",
     "LFCPlant",
@@ -77,6 +78,10 @@ STATE_DIM = NUM_AREAS * AREA_DIM
 STATE_NAMES = tuple(
     f"{n}_{i + 1}" for i in range(NUM_AREAS) for n in ("df", "dPg", "dPtu", "dPtie", "ace_int")
 )
+#: Each state's unit, in STATE_NAMES' order: the frequency deviation in Hz, the powers in
+#: p.u., and the integral of the area control error ACE = β Δf + ΔP_tie (p.u.) in p.u.·s
+#: (a figure had labelled it p.u.).
+STATE_UNITS = ("Hz", "p.u.", "p.u.", "p.u.", "p.u.·s") * NUM_AREAS
 
 # Tolerance for comparing sample times with interval ends: k·Δt is not exact in binary
 # floating point (300·0.01 may round below 3), and the paper's intervals are closed.

@@ -375,3 +375,28 @@ def test_lfc_variants_of_another_rate_or_network_share_no_calibration_or_loop(mo
     # the checkpoint's estimator: a loop per network (the third reuses the first's); one
     # that reads none: one loop for all
     assert calls == ["a.ckpt", "b.ckpt", "a.ckpt"]
+
+
+def test_the_states_figure_names_each_states_own_unit(tmp_path, monkeypatch):
+    """The integral of the area control error ACE = β Δf + ΔP_tie (p.u.) is in p.u.·s, not
+    p.u. as the figure had it; the unit follows from the model's own row (d x5/dt = β x1 + x4)."""
+    from types import SimpleNamespace
+
+    from difffilter.eval.families import lfc as family
+    from difffilter.models.lfc import STATE_NAMES, STATE_UNITS, continuous_model
+
+    A, _, _ = continuous_model()
+    assert A[4].nonzero().flatten().tolist() == [0, 3]  # ∫ACE: Δf (Hz) × β (p.u./Hz) + ΔP_tie
+    assert STATE_NAMES[4] == "ace_int_1" and STATE_UNITS[4] == "p.u.·s"
+    assert STATE_UNITS[0] == "Hz" and STATE_UNITS[5:] == STATE_UNITS[:5]
+    steps, sc = 20, registry.get("lfc_step")
+    run = SimpleNamespace(x=torch.zeros(1, steps, 10), flags=torch.zeros(1, steps, 10, dtype=bool))
+    result = SimpleNamespace(outputs=["kf_nn_grad"], scenario=sc, traj=run, traj_of=lambda n: run)
+    labels = []
+    monkeypatch.setattr(
+        family,
+        "save_figure",
+        lambda fig, *a, **k: labels.extend(ax.get_ylabel() for ax in fig.axes),
+    )
+    family._states_figure(result, tmp_path)
+    assert labels == ["X3: dPtu_1 [p.u.]", "X5: ace_int_1 [p.u.·s]"]

@@ -22,7 +22,14 @@ from difffilter.models import registry
 from difffilter.models.atomic_write import write_atomically, write_json_atomically
 from difffilter.models.attacks import Signal
 from difffilter.models.estimators import SuiteContext, split_checkpoints
-from difffilter.models.lfc import PAPER_TABLES, STATE_DIM, STATE_NAMES, lfc_loop, random_attacks
+from difffilter.models.lfc import (
+    PAPER_TABLES,
+    STATE_DIM,
+    STATE_NAMES,
+    STATE_UNITS,
+    lfc_loop,
+    random_attacks,
+)
 from difffilter.models.lfc_estimators import ABLATIONS, LFCContext, build_estimator
 from difffilter.models.streams import Streams
 
@@ -198,7 +205,7 @@ def _states_figure(result, out: Path) -> str:
         for n in ("uncompensated", "kf_nn_ekf", "kf_nn_grad"):
             if n in outs:
                 ax.plot(t, result.traj_of(n).x[0, :, s].numpy(), lw=0.9, label=n, **looks[n])
-        ax.set_ylabel(f"X{s + 1}: {STATE_NAMES[s]} [p.u.]", fontsize=8)
+        ax.set_ylabel(f"X{s + 1}: {STATE_NAMES[s]} [{STATE_UNITS[s]}]", fontsize=8)
         legend_beside(ax)  # (none of the three ran: no legend, no warning)
     axes[-1].set_xlabel("t [s]")
     fig.suptitle(f"{sc.name}: the plant's true states 3 and 5 of area 1 in each estimator's "
