@@ -44,9 +44,11 @@ def rmse(estimate: Tensor, truth: Tensor, *, dim=None) -> Tensor:
             f"estimate {tuple(estimate.shape)} and truth {tuple(truth.shape)} must have one "
             "shape or broadcast (e.g. both [B, T, d]: the same runs and steps)"
         )
+    if not estimate.is_floating_point() and not estimate.is_complex():  # integer counts:
+        estimate = estimate.double()  # in float64 before the difference (torch's mean had
+    if not truth.is_floating_point() and not truth.is_complex():  # refused a Long input;
+        truth = truth.double()  # uint8 had wrapped at −, int16 overflowed at the square)
     sq = (estimate - truth).square()
-    if not sq.is_floating_point() and not sq.is_complex():  # integer counts: in float64
-        sq = sq.double()  # (torch's mean refused a Long input, naming neither argument)
     return torch.sqrt(sq.mean() if dim is None else sq.mean(dim=dim))
 
 

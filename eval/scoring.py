@@ -320,6 +320,11 @@ def rates_by_size(alarms: Tensor, flags: Tensor, sizes: Tensor, bins) -> list[di
     ``alarms``, ``flags``, ``sizes`` (e.g. ``‖γ_k‖``): ``[B, T]``; ``bins``: increasing
     edges. Returns one ``{"lo", "hi", "steps", "rate"}`` per bin (``rate`` ``None`` if empty).
     """
+    # 0/1 integer flags as a mask: ``alarms[m]`` with an integer ``m`` picked whole runs
+    # (a metrics trial: rate 0.125 where 1 of 4 attacked steps alarmed is 0.25)
+    dm._check_binary(flags, None, "flags", "(True on an attacked step)", "the attack's flags")
+    dm._check_binary(alarms, None, "alarms", "(True on an alarmed step)", "a detector's decisions")
+    flags = flags.bool()
     rows = []
     for lo, hi in zip(bins[:-1], bins[1:]):
         m = flags & (sizes > lo) & (sizes <= hi)

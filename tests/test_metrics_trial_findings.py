@@ -45,3 +45,38 @@ def test_the_leaderboard_writes_into_a_folder_it_makes(tmp_path):
     results = {"a": {"estimators": {"kf": {"state_rmse": 0.1}}, "far": None}}
     path = write_leaderboard(tmp_path / "new" / "deeper", results)
     assert path.exists() and (tmp_path / "new" / "deeper" / "leaderboard.json").exists()
+
+
+@pytest.mark.parametrize(
+    ("dtype", "values", "truth"),
+    [
+        (torch.uint8, [20, 0], math.sqrt(200)),  # 0 − 20 wrapped to 236 in uint8
+        (torch.int8, [20, 0], math.sqrt(200)),  # 20² overflowed int8
+        (torch.int16, [200], 200.0),
+        (torch.int32, [50000], 50000.0),  # 50000² overflowed int32: NaN
+    ],
+)
+def test_rmse_of_small_integer_types_takes_the_difference_in_floating_point(dtype, values, truth):
+    """A second trial: the cast came after the difference and the square, in the input's own
+    integer type (by hand: √mean(e²) in Python floats)."""
+    e = torch.tensor(values, dtype=dtype)
+    assert rmse(e, torch.zeros_like(e)).item() == pytest.approx(truth, rel=1e-15)
+    assert rmse(torch.zeros_like(e), e).item() == pytest.approx(truth, rel=1e-15)
+
+
+def test_rates_by_size_reads_0_1_integer_flags_as_a_mask_and_refuses_other_values():
+    """Integer flags had indexed whole runs: 0.125 where 1 alarmed of 4 attacked steps is
+    0.25, and with one run an IndexError that named nothing."""
+    from difffilter.eval.scoring import rates_by_size
+
+    flags = torch.tensor([[1, 1, 0, 0], [0, 0, 1, 1]])
+    alarms = torch.tensor([[True, False, False, False], [False] * 4])
+    sizes = torch.ones(2, 4)
+    (row,) = rates_by_size(alarms, flags, sizes, [0, 2])
+    assert (row["steps"], row["rate"]) == (4, 0.25)
+    (row,) = rates_by_size(alarms[:1], flags[:1], sizes[:1], [0, 2])
+    assert (row["steps"], row["rate"]) == (2, 0.5)
+    with pytest.raises(ValueError, match="flags must be bool"):
+        rates_by_size(alarms, flags * 2, sizes, [0, 2])
+    with pytest.raises(ValueError, match="alarms must be bool"):
+        rates_by_size(alarms.double() * 0.5, flags, sizes, [0, 2])
