@@ -83,6 +83,10 @@ def _check_draw(where: str, value: dict) -> None:
             f"(uniform and loguniform may add signed: true); got {value!r}"
         )
     kind, args = kinds[0], value[kinds[0]]
+    # before choice's return: {choice: [0.5, 1], signed: true} had been taken and drawn
+    # unsigned (a threats trial: no negative value in 2,000 draws)
+    if "signed" in value and kind not in ("uniform", "loguniform"):
+        raise ValueError(f"{where}: signed applies to uniform and loguniform only; got {value!r}")
     if kind == "choice":
         if not isinstance(args, list) or not args:
             raise ValueError(f"{where}: choice needs a non-empty list of values; got {args!r}")
@@ -99,8 +103,6 @@ def _check_draw(where: str, value: dict) -> None:
             + (" as integers" if kind == "randint" else "")
             + f"; got {args!r}"
         )
-    if "signed" in value and kind not in ("uniform", "loguniform"):
-        raise ValueError(f"{where}: signed applies to uniform and loguniform only")
     if not isinstance(value.get("signed", False), bool):  # ("no" was read as true)
         raise ValueError(f"{where}: signed must be true or false; got {value['signed']!r}")
 

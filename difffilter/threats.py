@@ -71,8 +71,12 @@ __all__ = [
 
 
 def _numbers(value, name: str) -> tuple[float, ...]:
-    """One finite number or a non-empty sequence of them, as a tuple."""
-    seq = (value,) if isinstance(value, (int, float)) and not isinstance(value, bool) else value
+    """One finite number (numpy's and 0-d arrays and tensors too) or a non-empty sequence of
+    them, as a tuple."""
+    if getattr(value, "ndim", None) == 0 and not isinstance(value, (str, bytes)):
+        value = value.item()  # np.int64(2), torch.tensor(0.5): one number, not "not a sequence"
+    one = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    seq = (value,) if one else value
     if isinstance(seq, (str, bytes)):  # iterable, but "10" is not the vector (1, 0)
         raise ValueError(f"{name} must be a number or a sequence of numbers; got {value!r}")
     try:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from collections import Counter
 
+import pytest
 import torch
 
 from difffilter.eval.coverage import training_coverage
@@ -86,3 +87,16 @@ def test_weights_whose_sum_overflows_draw_their_shares():
     g = torch.Generator().manual_seed(0)
     shares = Counter(d.sample(g)[0] for _ in range(3000))
     assert all(abs(n / 3000 - 1 / 3) < 0.04 for n in shares.values()) and len(shares) == 3
+
+
+@pytest.mark.parametrize("signed", [True, "no"])
+def test_signed_on_a_choice_is_refused_as_on_randint(signed):
+    """A second trial: ``{choice: [0.5, 1.0], signed: true}`` had been taken and drawn with
+    one sign only (no negative value in 2,000 draws); choice returned before the check."""
+    entry = {"weight": 1, "kind": "bias", "value": {"choice": [0.5, 1.0], "signed": signed}}
+    with pytest.raises(ValueError, match="signed applies to uniform and loguniform only"):
+        ThreatDistribution({"b": entry})
+    entry["value"] = {"uniform": [0.5, 1.0], "signed": True}  # where it belongs: both signs
+    g = torch.Generator().manual_seed(0)
+    draws = [ThreatDistribution({"b": entry}).sample(g)[1].value[0] for _ in range(200)]
+    assert 60 < sum(v < 0 for v in draws) < 140

@@ -211,3 +211,19 @@ def test_a_level_window_without_a_splice_is_refused():
     assert Replay(delay=5, onset=10).level_window is None
     assert Replay(delay=5, onset=10, loop=(EYE, EYE)).level_window == 5
     assert Replay(delay=5, onset=10, loop=(EYE, EYE), level_window=2).level_window == 2
+
+
+def test_numpy_scalars_and_0d_tensors_are_one_number_for_a_threats_values():
+    """A second trial: ``Bias(value=np.int64(2))`` and ``Ramp(slope=np.float32(0.1))`` were
+    refused as "not a number or a sequence of numbers" (only ``int``/``float`` counted)."""
+    import numpy as np
+
+    from difffilter.threats import Bias, Ramp
+
+    assert Bias(value=np.int64(2)).value == Bias(value=2).value == (2.0,)
+    assert Bias(value=torch.tensor(0.5)).value == (0.5,)
+    assert Bias(value=np.array(0.25)).value == (0.25,)
+    assert Ramp(slope=np.float32(0.5)).slope == Ramp(slope=0.5).slope
+    assert [Bias(value=b).value for b in np.arange(1, 3)] == [(1.0,), (2.0,)]
+    with pytest.raises(ValueError, match="must be a number or a sequence of numbers"):
+        Bias(value="2")
