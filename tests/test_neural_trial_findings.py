@@ -72,3 +72,25 @@ def test_load_estimator_names_a_path_that_is_none_and_a_json_without_its_checkpo
     with pytest.raises(ValueError, match=r"is a checkpoint's card \(JSON\), not the checkpoint: "
                                          r"give .*table\.ckpt"):  # fmt: skip
         difffilter.load_estimator(table)
+
+
+@pytest.mark.parametrize("dim_u", [1, 3])
+def test_an_actuator_network_on_a_plant_of_another_input_width_is_refused(dim_u):
+    """A checkpoint trial: the estimate is added to the input, ``u + â``; a 2-wide network on
+    a 1-input plant had broadcast the input to 2 without a word (or failed in torch's raw
+    matmul error on a linear plant), where the sensor twin is refused by name."""
+    net = NeuralFDIEstimator(num_areas=1, area_dim=2, a=1, b=1, hidden=3, resid_dim=2,
+                             detection_head=False, seed=0)  # fmt: skip
+    est = NeuralCompensation(net, difffilter.KalmanFilter(), channel="actuator",
+                             residual="innovation")  # fmt: skip
+    eye = torch.eye(2, dtype=D)
+    B = torch.ones(2, dim_u, dtype=D)
+    plant = LinearGaussianModel(0.9 * eye, eye, 0.01 * eye, 0.04 * eye, torch.zeros(2, dtype=D),
+                                eye, B=B)  # fmt: skip
+    with pytest.raises(ValueError, match=f"dim_u = {dim_u}: the network was made for another"):
+        est.init(plant, (1,))
+    fits = LinearGaussianModel(0.9 * eye, eye, 0.01 * eye, 0.04 * eye, torch.zeros(2, dtype=D),
+                               eye, B=eye)  # fmt: skip
+    carry = est.init(fits, (1,))
+    _, out = est.step(carry, torch.zeros(1, 2, dtype=D), torch.zeros(1, 2, dtype=D))
+    assert out.attack.shape == (1, 2)

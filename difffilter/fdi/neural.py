@@ -656,6 +656,15 @@ class NeuralCompensation(Estimator):
                 f"network.resid_dim is {net.resid_dim} (× {net.num_areas} areas) but the model "
                 f"has dim_y = {model.dim_y}: the network was made for another plant"
             )
+        attack_width = net.num_areas * net.area_dim
+        if self.channel is Channel.ACTUATOR and model.dim_u != attack_width:
+            # its estimate is added to the input: ``u + â`` had broadcast a 1-wide input to
+            # 2 without a word, or failed in torch's raw matmul error (a checkpoint trial)
+            raise ValueError(
+                f"network.area_dim is {net.area_dim} (× {net.num_areas} areas): an actuator "
+                f"attack estimate {attack_width} wide, but the model has dim_u = "
+                f"{model.dim_u}: the network was made for another plant"
+            )
         # the network's histories (and learners) per run a step makes: the carry's batch
         # broadcast with the model's parameter sets, as every estimator's step runs (a
         # carry of init(model, ()) on a model of 3 sets had failed in a raw cat error)
