@@ -25,6 +25,7 @@ from ._assignments import CountsAssignments
 from ._checks import (
     _check_us,
     as_tensor,
+    broadcast_or_none,
     broadcast_shapes,
     check_batch_shapes,
     check_finite,
@@ -529,6 +530,7 @@ class NonlinearGaussianModel(StateSpaceModel):
                 "reach it: write f(x, u) or f(x, u, k), or leave dim_u at 0"
             )
         self._jf, self._jh = transition_jacobian, observation_jacobian
+        self._rows_of_its_own: dict[str, torch.Size] = {}  # (found by _check_widths)
         self.initial = Gaussian(m0, P0)
         self.process_noise = Gaussian(torch.zeros(dx, dtype=dtype, device=device), Q)
         self.measurement_noise = Gaussian(torch.zeros(dy, dtype=dtype, device=device), R)
@@ -631,6 +633,24 @@ class NonlinearGaussianModel(StateSpaceModel):
             return
         if not self._check_widths_at(mean.detach().expand(n, self.dim_x).clone(), runs=True):
             self._check_widths_at(mean.detach().clone(), runs=False)  # widths and dtypes alone
+        self._find_rows_of_its_own(mean.detach().clone())
+
+    def _find_rows_of_its_own(self, x: Tensor) -> None:
+        """Records in ``_rows_of_its_own`` a function that returns more rows than the one
+        state ``x [1, dx]`` it is given: it holds values per run (``gain [B, 1] * x``), right
+        on the runs' states alone (:meth:`_check_rows_of_its_own`). The probe on ``n`` runs
+        cannot see it where ``n = B``."""
+        u = None if self.dim_u == 0 else x.new_zeros(1, self.dim_u)
+        for name, fn in (("transition", lambda: _dispatch(self._f, self._f_arity, x, u, 0)),
+                         ("observe", lambda: self._h(x) if self._h_arity <= 1 else self._h(x, 1))):  # fmt: skip
+            try:
+                with torch.no_grad():
+                    out = fn()
+            except Exception:  # noqa: BLE001 (a probe: left to fail where it is used)
+                continue
+            if isinstance(out, Tensor) and out.dim() >= 1:
+                if broadcast_or_none(out.shape[:-1], x.shape[:-1]) != x.shape[:-1]:
+                    self._rows_of_its_own[name] = out.shape[:-1]
 
     def _check_widths_at(self, x: Tensor, runs: bool) -> bool:
         """:meth:`_check_widths` on ``x [n, dx]``: whether both functions ran (``False``: one
@@ -685,10 +705,33 @@ class NonlinearGaussianModel(StateSpaceModel):
         return ran
 
     def transition(self, x, u, k):
+        if self._rows_of_its_own:
+            self._check_rows_of_its_own("transition", x)
         return _dispatch(self._f, self._f_arity, x, self._input(x, u), k)
 
     def observe(self, x, k):
+        if self._rows_of_its_own:
+            self._check_rows_of_its_own("observe", x)
         return self._h(x) if self._h_arity <= 1 else self._h(x, k)
+
+    def _check_rows_of_its_own(self, name: str, x: Tensor) -> None:
+        """A function holding values per run (``gain [B, 1] * x``) is right on the runs'
+        states ``x [B, dx]`` alone: on a stack of them (the UKF's sigma points
+        ``[B, 2n+1, dx]``, particles ``[B, N, dx]``, the EKF's Jacobian of one state) its
+        values meet the wrong axis. At ``B = 2n+1`` the UKF had moved sigma point ``i`` of
+        every run with run ``i``'s gain, silently (an EKF/UKF trial); elsewhere torch's raw
+        shape errors."""
+        rows = self._rows_of_its_own.get(name)
+        if rows is not None and x.shape[:-1] != rows:
+            raise ValueError(
+                f"{name} holds values of its own per run ({tuple(rows)} rows for one state "
+                f"[1, {self.dim_x}]), so it applies to the runs' states [{', '.join(map(str, rows))}, "
+                f"{self.dim_x}] alone; it was given x {list(x.shape)} (sigma points, particles "
+                "or one state for its Jacobian), where those values would meet the wrong axis. "
+                "Write it for x [..., dx] of any leading shape with one parameter set, and run "
+                "one model per set; an EKF can take it with closed-form transition_jacobian "
+                "and observation_jacobian"
+            )
 
     def transition_jacobian(self, x, u, k):
         if self._jf is None:

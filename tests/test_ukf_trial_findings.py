@@ -105,3 +105,32 @@ def test_a_transition_that_gives_nan_is_named_with_its_step():
         NumericalBreakdown, match=r"the UKF's (prediction|estimate) at step \d+ is NaN or inf"
     ):
         df.unscented_kalman_filter(model, torch.zeros(1, 10, 1, dtype=D))
+
+
+def _gains_model(a, jacobians=False):
+    """``f(x) = a sin x + x / 2`` with one gain row per run (``a [B, 2]``)."""
+    eye = torch.eye(2, dtype=D)
+    jf = (lambda x: torch.diag_embed(a * torch.cos(x) + 0.5)) if jacobians else None
+    jh = (lambda x: torch.diag_embed(x / 2 + 1)) if jacobians else None
+    return df.NonlinearGaussianModel(lambda x: a * torch.sin(x) + 0.5 * x,
+                                     lambda x: x**2 / 4 + x, 0.1 * eye, 0.2 * eye,
+                                     torch.zeros(a.shape[0], 2, dtype=D), eye,
+                                     transition_jacobian=jf, observation_jacobian=jh)  # fmt: skip
+
+
+def test_a_function_holding_values_per_run_is_refused_on_stacks_of_states():
+    """A second trial: with gains per run ``a [B, 2]`` and ``B = 2n + 1 = 5`` the UKF moved
+    sigma point ``i`` of every run with run ``i``'s gain (means up to 1.36 from each run
+    filtered alone); at other ``B`` torch's raw shape errors. Truth: each run filtered alone."""
+    g = torch.Generator().manual_seed(2)
+    a, ys = torch.randn(5, 2, generator=g, dtype=D), torch.randn(5, 6, 2, generator=g, dtype=D)
+    with pytest.raises(
+        ValueError, match=r"transition holds values of its own per run.*\[5, 5, 2\]"
+    ):
+        df.unscented_kalman_filter(_gains_model(a), ys)
+    with pytest.raises(ValueError, match="holds values of its own per run.*closed-form"):
+        df.extended_kalman_filter(_gains_model(a[:3]), ys[:3])  # its Jacobian, one state
+    batched = df.extended_kalman_filter(_gains_model(a, jacobians=True), ys)  # on x [B, 2]
+    for b in range(5):
+        alone = df.extended_kalman_filter(_gains_model(a[b : b + 1], jacobians=True), ys[b : b + 1])
+        torch.testing.assert_close(batched.means[b], alone.means[0], rtol=1e-13, atol=1e-14)
