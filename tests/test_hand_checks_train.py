@@ -729,3 +729,20 @@ def test_the_error_of_the_attack_returned_is_the_one_it_was_chosen_by():
     none = {**chosen, "judged": judged[:1], "iteration": None}
     assert CraftedAttack(torch.zeros(3, 1), 1, history, budget=0.01,
                          selection=none).kept_error() == 0.0  # fmt: skip
+
+
+def test_the_evaluations_particles_are_no_training_steps():
+    """A seeds trial: validation, calibration and test ran the filter on
+    ``mix_seed(model_seed, 7)``, training step 7's own seed, so that step's particles were
+    the validation's. The seed the evaluation passes is now none of the training steps' and
+    adversaries' (by hand over the first 10,000 steps)."""
+    from difffilter.train.common import mix_seed
+
+    task = _task(num_particles=20)
+    seeds = []
+    task.run = lambda scenario, batch, est, seed: seeds.append(seed) or (None, None, None)
+    task._evaluate(task.scenario, None)
+    model_seed = task.hparams.model_seed
+    (used,) = seeds
+    assert used not in {mix_seed(model_seed, s) for s in range(10_000)}
+    assert used not in {mix_seed(model_seed, s, 17) for s in range(10_000)}
