@@ -109,7 +109,9 @@ def normalize_log_weights(log_weights: Tensor) -> Tensor:
     equal to 0. Raises ``ValueError`` on NaN, ``+inf`` or rows that are all ``-inf``.
     """
     _check_log_weights(log_weights)
-    return log_weights - torch.logsumexp(log_weights, dim=-1, keepdim=True)
+    # log_softmax subtracts the largest first: ``ℓ − logsumexp ℓ`` rounded logsumexp to the
+    # ulp of ℓ (float32 log-weights about 1e6 summed to 1.017 as weights: a resamplers trial)
+    return torch.log_softmax(log_weights, dim=-1)
 
 
 def _check_particles(particles: Tensor, log_weights: Tensor) -> tuple[Tensor, Tensor]:
@@ -122,6 +124,11 @@ def _check_particles(particles: Tensor, log_weights: Tensor) -> tuple[Tensor, Te
         raise ValueError(f"particles must be a floating-point tensor; got dtype {particles.dtype}")
     _check_log_weights(log_weights)
     n = log_weights.shape[-1]
+    if particles.dim() >= 2 and particles.shape[-1] == 0:  # (a raw reshape error, batched)
+        raise ValueError(
+            f"particles must have at least one entry each, [..., N, d] with d >= 1; got "
+            f"{tuple(particles.shape)}"
+        )
     if particles.dim() < 2 or particles.shape[-2] != n:
         raise ValueError(
             f"particles must have shape [..., N, d] with N = {n} (the last dim of log_weights); "
@@ -361,7 +368,7 @@ class Resampler:
         """
         particles, log_weights = _check_particles(particles, log_weights)
         _check_generator(generator, self)
-        log_w = log_weights - torch.logsumexp(log_weights, dim=-1, keepdim=True)
+        log_w = torch.log_softmax(log_weights, dim=-1)  # (as normalize_log_weights)
         return self.resample_normalized(particles, log_w, generator)
 
     def resample_normalized(
@@ -1471,8 +1478,8 @@ class OptimalTransport(Resampler):
         n, d = particles.shape[-2:]
         x = particles.reshape(-1, n, d)
         log_a = log_weights.reshape(-1, n)
-        log_a = log_a - torch.logsumexp(log_a, dim=-1, keepdim=True)
-        xs = _standardise(x, log_a, self.scale)
+        log_a = torch.log_softmax(log_a, dim=-1)  # (as normalize_log_weights: balanced)
+        xs = _standardise(x, log_a, self.scale) if x.shape[0] else x  # (no runs: no spread)
         return batch, x, xs, log_a
 
     def __call__(self, particles, log_weights, generator=None) -> Resampled:
@@ -1480,8 +1487,13 @@ class OptimalTransport(Resampler):
 
         ``generator`` is accepted for the common signature and unused (deterministic).
         """
+        _check_generator(generator, self)  # (generator=5 had been taken: the index schemes')
         batch, x, xs, log_a = self._flatten(particles, log_weights)
         n, d = x.shape[-2:]
+        if x.shape[0] == 0:  # no runs: nothing to transport (the ε-scaling's max had failed)
+            return Resampled(
+                x.reshape(*batch, n, d), _uniform_log_weights(log_a.reshape(*batch, n)), None
+            )
         if self.method == "log":
             new = self._log_transport(xs, x, log_a)
         else:
@@ -1534,6 +1546,8 @@ class OptimalTransport(Resampler):
         """
         batch, x, xs, log_a = self._flatten(particles, log_weights)
         n = x.shape[-2]
+        if x.shape[0] == 0:  # no runs (as __call__)
+            return x.new_zeros(*batch, n, n)
         if self.method == "log":
             with torch.no_grad():
                 ge = self._potentials(_scaled_cost(xs.detach(), self.epsilon), log_a.detach())
