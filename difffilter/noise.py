@@ -332,6 +332,8 @@ class Gaussian(NoiseModel):
 
     def log_prob(self, value: Tensor, mask: Tensor | None = None) -> Tensor:
         """``log N(value; μ, Σ)`` for ``value [..., d]`` → ``[...]`` (marginal on ``mask``)."""
+        if value.shape[-1:] != (self.dim,):  # a [..., 1] value had broadcast to (v, …, v)
+            raise ValueError(f"value must be [..., {self.dim}]; got {tuple(value.shape)}")
         residual = value if self._zero_loc() else rowwise(torch.sub, value, self.loc)
         if mask is not None:
             return _masked_gaussian_log_prob(residual, self.cov, mask)
@@ -437,6 +439,13 @@ class GaussianMixture(NoiseModel):
 
 def _masked_gaussian_log_prob(residual: Tensor, cov: Tensor, mask: Tensor) -> Tensor:
     """Log density of the received entries of ``N(residual; 0, cov)`` (see ``masked_measurement``)."""
+    if mask.dtype != torch.bool or mask.shape[-1:] != residual.shape[-1:]:
+        # an all-True [N, 1] mask had counted one received entry of d (a density (d − 1)/2 ·
+        # log 2π off), and an integer mask holding 2 weighed its entry twice (a linalg trial)
+        raise ValueError(
+            f"mask must be bool [..., {residual.shape[-1]}] (True where an entry was received);"
+            f" got {mask.dtype} {tuple(mask.shape)}"
+        )
     eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
     r, _, c, count = masked_measurement(residual, eye, cov, mask)
     return gaussian_log_prob_chol(r, safe_cholesky(c, name="cov"), count)

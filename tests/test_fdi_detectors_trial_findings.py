@@ -130,3 +130,47 @@ def test_the_chi_square_quantiles_refuse_a_dof_that_is_not_finite_and_positive(d
     for quantile in (chi_square_quantile, chi_square_upper_quantile):
         with pytest.raises(ValueError, match="dof must be a finite number > 0"):
             quantile(dof, 0.01)
+
+
+def test_a_windowed_chi2_after_an_overflowed_statistic_sums_the_window_and_alarms():
+    """A second trial: one reading whose NIS overflowed to +∞ made the running total +∞,
+    and every window from W steps later NaN (∞ − ∞), which never alarms: an attack four
+    steps later was missed. Truth: :meth:`ChiSquareDetector.step`, the last W values of g."""
+    from difffilter.fdi.detectors import ChiSquareDetector, normalized_innovation_squared
+
+    r = torch.full((8, 2), 0.5, dtype=torch.float32)
+    r[2, 0], r[6] = 2e19, 4.0  # g_2 = +∞; g_6 = 32
+    S = torch.eye(2, dtype=torch.float32).expand(8, 2, 2)
+    det = ChiSquareDetector(2, 0.01, 3)
+    g = normalized_innovation_squared(r, S)
+    scores, alarms = det.detect(r, S)
+    state, want = det.init((), dtype=torch.float32), []
+    for k in range(8):
+        state, s, _ = det.step(state, g[k])
+        want.append(float(s))
+    assert scores.tolist() == pytest.approx(want, rel=1e-6)
+    assert scores[2:5].isinf().all() and alarms.tolist()[5:] == [False, True, True]
+
+
+def test_the_mixture_attack_posterior_of_a_reading_no_hypothesis_explains_is_an_alarm():
+    """A second trial: a float32 reading of 1e20 under a bias deception underflowed both
+    densities, and ``−∞ − (−∞)`` scored NaN, no alarm; in float64 it scores 1 (the closed
+    form ρᵀR⁻¹(y − h) − ρᵀR⁻¹ρ/2 ≈ 6e20: certainly attacked)."""
+    from difffilter.fdi.mixture import (
+        BiasDeception,
+        DeceptionMixtureLikelihood,
+        mixture_likelihood_particle_filter,
+    )
+
+    for dtype in (torch.float32, torch.float64):
+        eye = torch.eye(2, dtype=dtype)
+        model = df.LinearGaussianModel(
+            eye, eye, 0.1 * eye, 0.5 * eye, torch.zeros(2, dtype=dtype), eye
+        )
+        ys = torch.zeros(1, 5, 2, dtype=dtype)
+        ys[0, 2, 0] = 1e20
+        lik = DeceptionMixtureLikelihood(0.1, BiasDeception(torch.tensor([3.0, 0.0], dtype=dtype)))
+        out = mixture_likelihood_particle_filter(model, ys, num_particles=20, likelihood=lik,
+                                                 generator=torch.Generator().manual_seed(0))  # fmt: skip
+        assert float(out.detection.scores[0, 2]) == 1.0 and bool(out.detection.alarms[0, 2])
+        assert not out.detection.scores.isnan().any()

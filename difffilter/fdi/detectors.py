@@ -253,6 +253,16 @@ def _chi2_ppf(dof: float, prob: float) -> float:
     return float(chi2.ppf(prob, dof))
 
 
+def _window_sums(g: Tensor, window: int) -> Tensor:
+    """``Σ`` of the last ``window`` values of ``g [..., T]`` at every step (fewer at the
+    start), as a difference of running totals summed in float64: in float32 over a long run
+    the totals' round-off swamped the window's sum (a numerics trial: score errors of 0.25
+    and 2 % of the alarms flipped at T = 4e6)."""
+    c = torch.cumsum(g.to(torch.float64), dim=-1)
+    shifted = torch.cat([torch.zeros_like(c[..., :window]), c[..., :-window]], dim=-1)
+    return (c - shifted[..., : c.shape[-1]]).to(g.dtype)
+
+
 class ChiSquareDetector:
     """χ² detector (Mo & Sinopoli 2009): alarm when ``Σ_{j=k−W+1}^{k} g_j > F⁻¹_{χ²_{mW}}(1 − α)``.
 
@@ -343,14 +353,15 @@ class ChiSquareDetector:
         """``Σ`` of the last ``W`` values of ``g [..., T]`` at every step."""
         if self.window == 1:
             return g
-        # a difference of running totals, summed in float64: in float32 over a long run the
-        # totals' round-off swamped the window's sum (a numerics trial: score errors of 0.25
-        # and 2 % of the alarms flipped at T = 4e6)
-        c = torch.cumsum(g.to(torch.float64), dim=-1)
-        shifted = torch.cat(
-            [torch.zeros_like(c[..., : self.window]), c[..., : -self.window]], dim=-1
-        )
-        return (c - shifted[..., : c.shape[-1]]).to(g.dtype)
+        overflowed = torch.isinf(g)  # (g ≥ 0: +∞, beyond every threshold)
+        if not bool(overflowed.any()):
+            return _window_sums(g, self.window)
+        # the running total stays +∞ after one overflowed g, and ∞ − ∞ had made every later
+        # window NaN, which never alarms (an FDI trial: an attack W steps on missed): the
+        # finite values' sums, +∞ where the window holds an overflowed one
+        sums = _window_sums(torch.where(overflowed, torch.zeros_like(g), g), self.window)
+        held = _window_sums(overflowed.to(g.dtype), self.window) > 0
+        return torch.where(held, torch.full_like(sums, math.inf), sums)
 
     def thresholds(self, num_steps: int, dtype=torch.float64) -> Tensor:
         """Per-step thresholds ``[T]`` (smaller windows at the start): the quantile of each

@@ -216,13 +216,22 @@ class DeceptionMixtureLikelihood:
         full sum up to round-off.
         """
         if evidence is not None and isinstance(self.attack, ReplacementDeception):
-            # ≤ 0 in exact arithmetic; clamped: round-off had given 1 + 9e-16 (a trial)
-            return torch.exp((self.replacement_term(y, mask) - evidence).clamp(max=0.0))
+            return _attack_posterior(self.replacement_term(y, mask), evidence)
         clean, attacked = self.components(model, y, particles, k, mask)
         lw = torch.log_softmax(log_weights, dim=-1)
         num = torch.logsumexp(lw + attacked, dim=-1)
         den = torch.logsumexp(lw + torch.logaddexp(clean, attacked), dim=-1)
-        return torch.exp((num - den).clamp(max=0.0))  # a probability despite round-off
+        return _attack_posterior(num, den)
+
+
+def _attack_posterior(log_attacked: Tensor, log_evidence: Tensor) -> Tensor:
+    """``exp(log_attacked − log_evidence)``, the attack's posterior probability, clamped to
+    at most 1 (≤ 1 in exact arithmetic; round-off had given 1 + 9e-16: a trial), and 1 where
+    the evidence is 0 (``−∞``): a reading that no hypothesis of the model can explain is an
+    alarm. There ``−∞ − (−∞)`` had been NaN, which never alarms (an FDI trial: a float32
+    reading of 1e20 under a bias deception, certainly attacked, scored NaN)."""
+    p = torch.exp((log_attacked - log_evidence).clamp(max=0.0))
+    return torch.where(log_evidence == -math.inf, torch.ones_like(p), p)
 
 
 class MixtureParticleFilter(ParticleFilter):
@@ -300,7 +309,7 @@ class MixtureParticleFilter(ParticleFilter):
         )  # fmt: skip
         batch = self.batch_of(carry)
         out = _step_through(tabulated, carry, ys, us, mask, batch, None)
-        score = torch.exp((attacked - out.extras["log_likelihood_increments"]).clamp(max=0.0))
+        score = _attack_posterior(attacked, out.extras["log_likelihood_increments"])
         out.detection = Detection(score, score > self.threshold, self.threshold)
         return out
 
