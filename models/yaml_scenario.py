@@ -533,9 +533,25 @@ def _import(path: Any, where: str):
     return obj
 
 
+def _refuse_booleans(value: Any, where: str) -> None:
+    """No entry of ``value`` (a number or nested lists) is a boolean: YAML reads ``yes``,
+    ``no``, ``on``, ``off``, ``true`` and ``false`` as ones, and ``torch.tensor`` had taken
+    them for 1 and 0 (``Q: yes`` an identity; a YAML trial), where a scalar field refuses
+    them by name."""
+    if isinstance(value, bool):
+        raise ValueError(
+            f"{where}: {value!r} is a boolean (YAML reads yes/no/on/off/true/false so), not a "
+            "number: write the number"
+        )
+    if isinstance(value, list):
+        for entry in value:
+            _refuse_booleans(entry, where)
+
+
 def _matrix(value: Any, n: int | None, where: str, dtype) -> torch.Tensor:
     """A covariance or matrix from YAML: a number (× I of size ``n``), a list (its diagonal,
     when ``n`` is given) or a nested list (the matrix)."""
+    _refuse_booleans(value, where)
     try:
         t = torch.tensor(value, dtype=dtype)
     except (TypeError, ValueError, RuntimeError):
@@ -727,6 +743,7 @@ class _AngleMeasured(NonlinearGaussianModel):
 
 def _vector(value: Any, where: str, dtype) -> torch.Tensor:
     """A finite vector of the YAML file."""
+    _refuse_booleans(value, where)
     try:
         t = torch.tensor(value, dtype=dtype)
     except (TypeError, ValueError, RuntimeError):
@@ -886,6 +903,7 @@ def _inputs(spec: Any, dt: float, where: str):
     if form == "function":
         return _import(spec["function"], f"{where}.function")
     if form == "values":  # [T, du] or [runs, T, du]
+        _refuse_booleans(spec["values"], f"{where}.values")
         try:
             values = torch.tensor(spec["values"], dtype=torch.float64)
         except (TypeError, ValueError, RuntimeError):

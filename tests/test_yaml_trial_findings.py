@@ -97,3 +97,29 @@ def test_a_plant_function_of_the_wrong_dtype_and_a_nonlinear_plants_inputs_name_
                     "m0: [1.0], Q: 1.0e-3, R: 1.0e-2}\ninputs: {kind: constant, value: 1.0}\n")  # fmt: skip
     with pytest.raises(ValueError, match=r"the plant has 0 input\(s\) \(plant.dim_u\)"):
         scenario_from_yaml(str(path))
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "named"),
+    [
+        ("Q", True, "plant.Q"),  # `Q: yes` had been an identity
+        ("R", [True], "plant.R"),  # `R: [on]`
+        ("m0", [True, False], "plant.m0"),  # `m0: [on, off]`: [1, 0]
+        ("F", [[0.95, True], [-0.02, 0.8]], "plant.F"),
+    ],
+)
+def test_booleans_in_a_plants_matrices_are_refused_by_name(field, value, named):
+    """A second trial: YAML reads yes/no/on/off as booleans, and ``torch.tensor`` took them
+    for 1 and 0 without a word, where ``dt: true`` is refused by name."""
+    plant = dict(PLANT, **{field: value})
+    with pytest.raises(ValueError, match=rf"{named}: True is a boolean"):
+        scenario_from_dict({"name": "b", "steps": 20, "plant": plant})
+
+
+@pytest.mark.parametrize(
+    "inputs", [{"kind": "constant", "value": True}, {"values": [[1.0], [False]]}]
+)
+def test_booleans_in_a_plants_inputs_are_refused_by_name(inputs):
+    plant = dict(PLANT, B=[[0.0], [0.2]])
+    with pytest.raises(ValueError, match=r"inputs.* is a boolean"):
+        scenario_from_dict({"name": "b", "steps": 2, "plant": plant, "inputs": inputs})
