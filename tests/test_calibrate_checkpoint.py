@@ -365,3 +365,20 @@ def test_an_interrupted_calibration_says_whether_out_was_written(
         assert f"interrupted: {out} was being written; rerun the same command with --force" in err
     else:
         assert f"interrupted: nothing was written to {out}; rerun the same command" in err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(p.stem for p in Path("checkpoints").glob("*.ckpt")))
+def test_every_shipped_threshold_is_what_its_cards_calibration_computes_today(name, tmp_path):
+    """Calibrating a shipped checkpoint again, on the runs and seed its card records, gives
+    the threshold it carries (a checkpoint trial: the tracking card's 0.119265 had been
+    chosen before the particle filter averaged wrapped bearings as residuals about one point,
+    6bc5bba; the same runs now give 0.118682, recalibrated)."""
+    src = Path("checkpoints") / f"{name}.ckpt"
+    recorded = json.loads(src.with_suffix(".json").read_text())["calibration"]
+    entry = calibrate_checkpoint(src, tmp_path / "again.ckpt", far=recorded["target"],
+                                 runs=recorded["runs"], seed=recorded.get("master_seed", 5),
+                                 progress=False)  # fmt: skip
+    assert entry["seed"] == recorded["seed"] and entry["check_seed"] == recorded["check_seed"]
+    assert entry["threshold"] == pytest.approx(recorded["threshold"], rel=1e-9, abs=1e-12)
+    assert entry["measured_on_check"] == pytest.approx(recorded["measured_on_check"], abs=1e-12)
