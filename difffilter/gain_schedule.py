@@ -498,8 +498,13 @@ class CovarianceChunks:
             if chained < len(moments[0]):  # the steps the chain holds; then step by step
                 moments, self._stepwise = tuple(m[:chained] for m in moments), True
         keep = self._steps_to_keep(moments[2], moments[1])
-        moments = tuple(m[:keep] for m in moments)
-        self._cov, self._last_gain, self.steps = moments[1][-1], moments[2][-1], self.steps + keep
+        return self._accepted(tuple(m[:keep] for m in moments))
+
+    def _accepted(self, moments: tuple) -> tuple[Tensor, ...]:
+        """A chunk's kept steps ``moments``: the recursion goes on from its last covariance
+        and gain, and they come back with their ``½ log det S``."""
+        self._cov, self._last_gain = moments[1][-1], moments[2][-1]
+        self.steps += len(moments[0])
         return (*moments, half_log_det(moments[4]))
 
     def _checked_host(self, moments: tuple) -> tuple[Tensor, ...]:
@@ -523,9 +528,7 @@ class CovarianceChunks:
             keep = K.shape[0]
         else:
             self.converged = True
-        moments = tuple(torch.from_numpy(m[:keep]) for m in moments)
-        self._cov, self._last_gain, self.steps = moments[1][-1], moments[2][-1], self.steps + keep
-        return (*moments, half_log_det(moments[4]))
+        return self._accepted(tuple(torch.from_numpy(m[:keep]) for m in moments))
 
     def _overflow(self, dtype) -> NumericalBreakdown:
         """The error of a chunk whose first step has no finite covariance."""
