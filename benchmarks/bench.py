@@ -491,6 +491,17 @@ def _fmt(x: float) -> str:
     return f"{x:,.3g}" if x < 1e3 else f"{x:,.0f}"
 
 
+def _positive_int(text: str) -> int:
+    """``--threads``: an integer >= 1 (0 had reached torch.set_num_threads: a traceback)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1; got {text!r}")
+    return value
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--skip-memory", action="store_true")
@@ -505,7 +516,7 @@ def main(argv=None) -> int:
     p.add_argument("--only-cuda", action="store_true", help="only section 10 (CUDA)")
     p.add_argument("--only-training", action="store_true",
                    help="only section 11 (an LFC training step)")  # fmt: skip
-    p.add_argument("--threads", type=int, default=1,
+    p.add_argument("--threads", type=_positive_int, default=1,
                    help="intra-op threads (default 1: the faster one measured, section 9)")  # fmt: skip
     p.add_argument("--json", type=Path, default=None, help="also write the figures as JSON")
     args = p.parse_args(argv)

@@ -668,8 +668,13 @@ def _worker(rank: int, world: int, rendezvous: str, argv: list[str]) -> None:
     # "lost each other"); a process that failed is seen by the launcher, not by this wait
     dist.init_process_group("gloo", init_method=rendezvous, rank=rank, world_size=world,
                             timeout=datetime.timedelta(days=7))  # fmt: skip
+    from difffilter.interrupts import sigterm_as_interrupt
+
     try:
-        code = _main([*argv, "--devices", "1"] + (["--no-progress"] if rank else []))
+        # SIGTERM (how the launcher stops its workers) as an interrupt, so that a file
+        # being written is removed, not left as a stray .partial (an interrupts trial)
+        with sigterm_as_interrupt():
+            code = _main([*argv, "--devices", "1"] + (["--no-progress"] if rank else []))
     except KeyboardInterrupt:  # the launching process says it, once
         code = 130
     except PeerLost:  # another process failed and says why: quietly
@@ -818,6 +823,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"difffilter-eval: {what}: the reports under --out may be incomplete; "
               "rerun the same command to evaluate again", file=sys.stderr)  # fmt: skip
         return code
+    except BrokenPipeError:  # `… | head`: the reader left after the reports were written;
+        # a traceback and exit 1 had read as a failed run under pipefail (an interrupts trial)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 def _main(argv: Sequence[str] | None = None) -> int:

@@ -315,3 +315,63 @@ def test_a_seed_everything_out_of_range_is_named_before_anything_runs(
                 f"4294967295 (or true: a random seed; false: none); got {seed}"
                 ) in capsys.readouterr().err  # fmt: skip
     assert not (tmp_path / "lightning_logs").exists()
+
+
+def test_a_worker_of_several_processes_takes_sigterm_as_an_interrupt(monkeypatch):
+    """An interrupts trial: the launcher stops its workers with SIGTERM, which killed a
+    worker on the spot (it ran ``_main``, not ``main``), and a report being written stayed
+    as a stray ``.partial`` file. The worker now raises the interrupt that removes it."""
+    import signal
+
+    import torch.distributed as dist
+
+    from difffilter.eval import cli
+    from difffilter.interrupts import Terminated
+
+    monkeypatch.setattr(dist, "init_process_group", lambda *a, **k: None)
+    monkeypatch.setattr(dist, "destroy_process_group", lambda: None)
+
+    def study(argv):
+        signal.raise_signal(signal.SIGTERM)  # as the launcher's cleanup sends it
+        raise AssertionError("SIGTERM did not interrupt the worker")
+
+    monkeypatch.setattr(cli, "_main", study)
+    # where the worker set no handler of its own, this one is hit (not the default, which
+    # would end the test run)
+    previous = signal.signal(signal.SIGTERM, lambda *_: None)
+    try:
+        with pytest.raises(SystemExit) as stopped:
+            cli._worker(1, 2, "tcp://127.0.0.1:1", [])
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert stopped.value.code == 130 and issubclass(Terminated, KeyboardInterrupt)
+
+
+def test_a_reader_that_leaves_early_is_no_failure(tmp_path):
+    """An interrupts trial: ``difffilter-eval … | head -c 1`` ended a finished run with a
+    BrokenPipeError traceback and exit 1, a failure under pipefail."""
+    import subprocess
+    import sys
+
+    script = (
+        "import sys\nfrom difffilter.eval import cli\n"
+        "def study(argv):\n    raise BrokenPipeError(32, 'Broken pipe')\n"
+        "cli._main = study\nsys.exit(cli.main([]))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0 and "Traceback" not in done.stderr
+
+
+def test_the_benchmarks_threads_must_be_positive():
+    """``bench.py --threads 0`` reached ``torch.set_num_threads``: a traceback."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    bench = pytest.importorskip("bench")
+    for bad in ("0", "-1", "two"):
+        with pytest.raises(SystemExit) as stopped:
+            bench.main(["--threads", bad])
+        assert stopped.value.code == 2
