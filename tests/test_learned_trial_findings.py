@@ -35,12 +35,15 @@ ROOT = Path(__file__).resolve().parents[1] / "checkpoints"
 def test_a_pf_checkpoint_runs_with_the_particles_its_threshold_was_calibrated_with():
     _, tracking = load_estimator_checkpoint(ROOT / "tracking_nn_grad.ckpt")
     assert tracking.num_particles == 200  # the training filter's
-    assert "num_particles" not in tracking.extra["calibration"]  # calibrated before recorded
-    # calibrate scored it through its scenario's registered entry: the scenario's particles
+    # recorded since its recalibration of 2026-12-06: the scenario's particles
+    assert tracking.extra["calibration"]["num_particles"] == 500
+    assert calibrated_particles(tracking) == 500
+    # a card calibrated before they were recorded was scored through its scenario's
+    # registered entry: the scenario's particles
+    unrecorded = {k: v for k, v in tracking.extra["calibration"].items() if k != "num_particles"}
+    before = dataclasses.replace(tracking, extra={**tracking.extra, "calibration": unrecorded})
     assert (
-        calibrated_particles(tracking)
-        == registry.get("tracking_rrp_deception").num_particles
-        == 500
+        calibrated_particles(before) == registry.get("tracking_rrp_deception").num_particles == 500
     )
     scenario = registry.get("tracking_rrp_deception")
     deception = deception_of(scenario.attack_model(), torch.float64)[0]
