@@ -201,6 +201,10 @@ class GainSchedule:
             _version(m.cov) if ok else _STALE
             for m, ok in zip(state["_moments"], state["_cov_versions"])
         ]
+        # the count of assignments is this process's, from 0: the stored one could equal it
+        # after a first `model.F = …` here, which then went unseen (a KF trial: the old gains
+        # and a mean 0.17 off); -1 has the model read again at the first use
+        state["_assignments"] = -1
         self.__dict__.update(state)
 
     @property
