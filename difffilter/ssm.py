@@ -641,8 +641,8 @@ class NonlinearGaussianModel(StateSpaceModel):
         on the runs' states alone (:meth:`_check_rows_of_its_own`). The probe on ``n`` runs
         cannot see it where ``n = B``."""
         u = None if self.dim_u == 0 else x.new_zeros(1, self.dim_u)
-        for name, fn in (("transition", lambda: _dispatch(self._f, self._f_arity, x, u, 0)),
-                         ("observe", lambda: self._h(x) if self._h_arity <= 1 else self._h(x, 1))):  # fmt: skip
+        for name, fn in (("transition", lambda: self.transition(x, u, 0)),
+                         ("observe", lambda: self.observe(x, 1))):  # fmt: skip
             try:
                 with torch.no_grad():
                     out = fn()

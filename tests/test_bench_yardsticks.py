@@ -67,3 +67,12 @@ def test_the_numpy_particle_loop_draws_in_the_particles_float32():
     rng = Recording()
     bench.numpy_bootstrap_pf_run(model, ys, 100, rng)
     assert rng.dtypes and set(rng.dtypes) == {np.dtype(np.float32)}
+
+
+def test_the_benchmarks_threads_must_be_positive():
+    """An interrupts trial: ``bench.py --threads 0`` reached ``torch.set_num_threads``, a
+    traceback where a usage error is due."""
+    for bad in ("0", "-1", "two"):
+        with pytest.raises(SystemExit) as stopped:
+            bench.main(["--threads", bad])
+        assert stopped.value.code == 2
