@@ -29,7 +29,8 @@ report), never on the four test scenarios.
 
 Detection. The paper's networks (no detection head) score their attack estimate,
 ``max_c |α̂_c| / σ_c`` (:data:`ESTIMATE`), ``σ_c`` the spread of the same estimator's estimate
-on the same draws without attack, and alarm above 3 ([DEF]). A checkpoint's network with a
+without attack on runs of its own (:func:`_score_scale`: never the runs it scores), and
+alarm above 3 ([DEF]). A checkpoint's network with a
 detection head scores its head instead (:data:`PROBABILITY`, ``p = sigmoid(max over areas
 of the logit)``), as the learned estimators of the other families do, and alarms above
 ``p = 0.5``: on validation attacks the head alarms less often after an attack than the
@@ -65,6 +66,7 @@ from difffilter.models.neural_estimator import (
     load_estimator_checkpoint,
 )
 from difffilter.models.scenario import OWN_ATTACK
+from difffilter.models.streams import Streams
 from difffilter.observers import FixedGainFilter
 from difffilter.param_ekf import EKFRule, GradientRule
 
@@ -77,6 +79,7 @@ __all__ = [
     "lfc_estimator",
     "build_estimator",
     "ABLATIONS",
+    "score_scale_seed",
 ]
 
 #: Every estimator here runs in the LFC closed loop (its plant, LQR and observers).
@@ -205,10 +208,11 @@ def _context(ctx: SuiteContext) -> LFCContext:
 
 
 def _loop(ctx: SuiteContext, estimator, tr: Trajectories, compensate: bool, attack=OWN_ATTACK,
-          steps=None, forks=None, fork=None):  # fmt: skip
+          steps=None, forks=None, fork=None, init_seed=None):  # fmt: skip
     """``estimator``'s closed loop on ``tr``'s draws (:meth:`LFCScenario.loop`; its per-run
-    initial weights from the stream ``lfc/initial_weights``)."""
-    seed = ctx.streams.seed_of("lfc/initial_weights")
+    initial weights from the seed ``init_seed``, default the study's stream
+    ``lfc/initial_weights``)."""
+    seed = ctx.streams.seed_of("lfc/initial_weights") if init_seed is None else init_seed
     gens = Generators(init=torch.Generator().manual_seed(seed))
     return ctx.scenario.loop(estimator, tr.info, generator=gens, compensate=compensate,
                              attack=attack, steps=steps, forks=forks, fork=fork)  # fmt: skip
@@ -219,21 +223,66 @@ def _attack_free(ctx: SuiteContext, name: str, estimator, tr, compensate: bool):
     same draws, and its :class:`~difffilter.loop.LoopFork` s at :func:`_fork_steps`."""
     # the scenario's attack-free key: its load_range too (a review: lfc_random_attacks, which
     # draws a load per run, reused lfc_step's loops of one load where both ran in one study)
-    # the network too, for an estimator built from a checkpoint: two checkpoints of one
-    # name (--ckpt) had shared one attack-free loop (the others' loops are the same for any)
-    network = (
-        str(ctx.checkpoint_for(name)) if name in getattr(ctx, "checkpoint_users", ()) else None
-    )
-    # (the dtype and device too: a float32 study had taken a float64 study's loop from its
-    # cache, drawn from other noise, 13x off in every state_rmse_vs_attack_free)
     key = ("lfc/free", name, ctx.scenario.attack_free_key(), tuple(tr.x.shape), ctx.streams.seed,
-           network, str(tr.x.dtype), str(tr.x.device))  # fmt: skip
+           _network_key(ctx, name), str(tr.x.dtype), str(tr.x.device))  # fmt: skip
 
     def run():
         forks = dict.fromkeys(_fork_steps(ctx.scenario, tr.info))
         return _loop(ctx, estimator, tr, compensate, attack=None, forks=forks), forks
 
     return _cached(ctx, key, run)
+
+
+def score_scale_seed(seed: int) -> int:
+    """The master seed of the attack-free runs that standardise the LFC attack estimates of
+    a study whose detectors' streams have master seed ``seed`` (:func:`_score_scale`)."""
+    return Streams(seed).seed_of("score-scale")
+
+
+def _network_key(ctx: SuiteContext, name: str) -> str | None:
+    """What sets entry ``name``'s network beyond its name, for the keys of its cached loops:
+    the checkpoint it was built from (two checkpoints of one name, ``--ckpt``, had shared
+    one attack-free loop; the other entries' networks are the same for any), else None."""
+    return str(ctx.checkpoint_for(name)) if name in getattr(ctx, "checkpoint_users", ()) else None
+
+
+def _score_scale(ctx: SuiteContext, name: str, estimator, like: Trajectories,
+                 compensate: bool) -> Tensor:  # fmt: skip
+    """``σ_c [M]``: the spread of ``name``'s attack estimate over every step of every run of
+    its loop without attack on runs of its own, which standardises the score
+    ``max_c |α̂_c| / σ_c``.
+
+    Those runs are the attack-free study of master seed ``score_scale_seed(s)``
+    (:func:`score_scale_seed`, ``s`` the seed of the detectors' streams,
+    :attr:`SuiteContext.detector_streams`), of the study's number of runs: exactly what
+    ``run_suite(scenario.with_threat(None), runs=…, seed=score_scale_seed(s))`` runs for
+    ``name``. They are the same for a study and for its false-alarm calibration, so the
+    threshold picked on the calibration's scores reads the study's scores on one scale, and
+    they are never the runs scored. (It had been the spread on the scored runs' own draws
+    without attack: on ``lfc_step`` the spread per channel of one 20-run study was 0.42–2.03
+    times that of other runs, and the scale fitted on the runs judged pulled their
+    false-alarm rate onto the calibrated 1 %: 1.09 % where a scale from other runs measures
+    1.82 %.) ``like``: a trajectory of the study (its dtype and device).
+    """
+    own = ctx.detector_streams or ctx.streams
+    reference = Streams(score_scale_seed(own.seed))
+    runs = ctx.detector_runs or ctx.runs
+    free = ctx.scenario.with_threat(None)
+    dtype, device = like.x.dtype, like.x.device
+    draws_key = ("lfc/score-scale draws", free.attack_free_key(), reference.seed, runs,
+                 str(dtype), str(device))  # fmt: skip
+
+    def simulate() -> Trajectories:
+        return free.simulate(runs, reference.simulation(), dtype=dtype, model=ctx.model)
+
+    def spread() -> Tensor:
+        draws = _cached(ctx, draws_key, simulate)
+        init_seed = reference.seed_of("lfc/initial_weights")
+        loop = _loop(ctx, estimator, draws, compensate, attack=None, init_seed=init_seed)
+        return loop.output.attack.std(dim=(0, 1)).clamp_min(1e-12)
+
+    key = ("lfc/score-scale", name, *draws_key[1:], _network_key(ctx, name))
+    return _cached(ctx, key, spread)
 
 
 def _fork_steps(scenario: LFCScenario, draws: dict) -> list[int]:
@@ -336,7 +385,7 @@ def _closed_loop(name: str, build, *, compensate: bool = True, ablation: bool = 
             if statistic == PROBABILITY:
                 scores = torch.sigmoid(out.extras["attack_logit"])
             else:
-                sigma = free.output.attack.std(dim=(0, 1)).clamp_min(1e-12)
+                sigma = _score_scale(ctx, name, estimator, tr, compensate)
                 scores = (out.attack.abs() / sigma).amax(-1)
             if "confirmed" in out.extras:  # the card's confirm: where the copy's test alarms
                 extras["confirmed"] = confirmed = out.extras["confirmed"]

@@ -29,8 +29,8 @@ class Streams:
     by one. Names are free-form; the suite uses ``"plant"``, ``"attack"``,
     ``"schedule"``, ``"input_schedule"``, ``"calibration/plant"``, ``"particles/init"``,
     ``"particles/propagate"``, ``"particles/resample"``, ``"gamma_noise"`` (an oracle's noisy
-    attack values), ``"pcrb"`` and ``"lfc/per_channel"``; the adversarial training,
-    ``"adversary/…"``.
+    attack values), ``"pcrb"``, ``"lfc/per_channel"`` and ``"score-scale"`` (the master seed of the runs
+    that standardise the LFC attack estimates); the adversarial training, ``"adversary/…"``.
     """
 
     def __init__(self, seed: int):

@@ -128,23 +128,41 @@ def test_lfc_extra_metrics_by_hand():
     assert result.metrics["uncompensated"]["attack_rmse_eq43_zero_estimate"] == pytest.approx(1.0)
 
 
-def test_lfc_network_score_is_its_estimate_over_its_own_attack_free_spread(isolated_registry):
-    """``max_c |α̂_c| / σ_c``, ``σ_c`` the spread of the same estimator's estimate on the same
-    draws without the attack (lfc_estimators' "Detection")."""
+def test_lfc_network_score_is_its_estimate_over_the_spread_on_runs_of_its_own(isolated_registry):
+    """``max_c |α̂_c| / σ_c``, ``σ_c`` the spread of the same estimator's estimate on the
+    attack-free study of seed ``score_scale_seed(seed)`` (lfc_estimators' "Detection"): one
+    scale for the study, its attack-free twin and its false-alarm calibration, and never
+    fitted on the runs scored."""
+    from difffilter.eval.calibration import calibrate, calibration_seed
     from difffilter.eval.suite import run_suite
+    from difffilter.metrics import threshold_for
+    from difffilter.models.lfc_estimators import score_scale_seed
 
     base = registry.get("lfc_simultaneous")
     scenario = dataclasses.replace(base, name="lfc_sim_1s_check", duration=1.0, headline=False)
     registry.register(scenario)
     free_scenario = dataclasses.replace(scenario.with_threat(None), name="lfc_sim_1s_free_check")
     registry.register(free_scenario)
-    run = dict(runs=2, seed=4, estimators=("kf_nn_ekf",), progress=False)
-    out = run_suite(scenario, **run).outputs["kf_nn_ekf"]
-    free = run_suite(free_scenario, **run).outputs["kf_nn_ekf"]
+    run = dict(runs=2, estimators=("kf_nn_ekf",), progress=False)
+    out = run_suite(scenario, seed=4, **run).outputs["kf_nn_ekf"]
+    free = run_suite(free_scenario, seed=4, **run).outputs["kf_nn_ekf"]
+    reference = run_suite(free_scenario, seed=score_scale_seed(4), **run).outputs["kf_nn_ekf"]
     assert float((out.attack - free.attack).abs().max()) > 0
-    sigma = free.attack.std(dim=(0, 1)).clamp_min(1e-12)
-    expected = (out.attack.abs() / sigma).amax(-1)
-    torch.testing.assert_close(out.detection.scores, expected, rtol=1e-9, atol=1e-12)
+    assert float((free.attack - reference.attack).abs().max()) > 0  # other draws
+    sigma = reference.attack.std(dim=(0, 1)).clamp_min(1e-12)
+    for scored in (out, free):
+        expected = (scored.attack.abs() / sigma).amax(-1)
+        torch.testing.assert_close(scored.detection.scores, expected, rtol=1e-9, atol=1e-12)
+    # its false-alarm calibration scores its own runs on the same scale (the study's seed)
+    calibration_runs = run_suite(free_scenario, seed=calibration_seed(4), detector_seed=4,
+                                 detector_runs=2, **run).outputs["kf_nn_ekf"]  # fmt: skip
+    expected = (calibration_runs.attack.abs() / sigma).amax(-1)
+    torch.testing.assert_close(calibration_runs.detection.scores, expected, rtol=1e-9, atol=1e-12)
+    cal = calibrate(scenario, far=0.05, runs=2, seed=4, estimators=["kf_nn_ekf"])
+    assert cal.thresholds["kf_nn_ekf"] == pytest.approx(threshold_for(expected, 0.05), rel=1e-9)
+    # (the scale of before, the scored runs' own spread, reads other scores)
+    self_scaled = (free.attack.abs() / free.attack.std(dim=(0, 1))).amax(-1)
+    assert float((self_scaled - free.detection.scores).abs().max()) > 1e-3
 
 
 def test_lfc_card_without_a_score_record_was_calibrated_for_the_estimate():
