@@ -25,7 +25,7 @@ import torch
 from difffilter._checks import check_positive_int, check_rate
 from difffilter.metrics import after_attack, nan_as_lowest, threshold_for
 from difffilter.metrics import finite_scores as _finite_scores
-from difffilter.models.streams import Streams
+from difffilter.models.streams import far_calibration_seed
 
 from .scoring import AFTER_ATTACK_STEPS, episode_delay
 
@@ -276,7 +276,7 @@ def sampling_note(target: float, steps: int, run_steps: int) -> str:
 
 def calibration_seed(seed: int) -> int:
     """The master seed of the calibration runs of a study of master seed ``seed``."""
-    return Streams(seed).seed_of("far-calibration")
+    return far_calibration_seed(seed)
 
 
 def calibrate(

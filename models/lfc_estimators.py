@@ -66,7 +66,7 @@ from difffilter.models.neural_estimator import (
     load_estimator_checkpoint,
 )
 from difffilter.models.scenario import OWN_ATTACK
-from difffilter.models.streams import Streams
+from difffilter.models.streams import Streams, far_calibration_seed
 from difffilter.observers import FixedGainFilter
 from difffilter.param_ekf import EKFRule, GradientRule
 
@@ -218,25 +218,35 @@ def _loop(ctx: SuiteContext, estimator, tr: Trajectories, compensate: bool, atta
                              attack=attack, steps=steps, forks=forks, fork=fork)  # fmt: skip
 
 
-def _attack_free(ctx: SuiteContext, name: str, estimator, tr, compensate: bool):
-    """``(loop, forks)``: ``name``'s loop without attack, shared by the scenarios with the
-    same draws, and its :class:`~difffilter.loop.LoopFork` s at :func:`_fork_steps`."""
+def _attack_free(ctx: SuiteContext, name: str, estimator, tr, compensate: bool,
+                 seed: int | None = None):  # fmt: skip
+    """``(loop, forks)``: ``name``'s loop without attack on ``tr``, the draws of master seed
+    ``seed`` (default the study's), shared by the scenarios with the same draws (and by the
+    studies of that seed: a calibration's), and its :class:`~difffilter.loop.LoopFork` s at
+    :func:`_fork_steps` (none for another seed's draws: no attack continues them)."""
+    seed = ctx.streams.seed if seed is None else seed
     # the scenario's attack-free key: its load_range too (a review: lfc_random_attacks, which
     # draws a load per run, reused lfc_step's loops of one load where both ran in one study)
-    key = ("lfc/free", name, ctx.scenario.attack_free_key(), tuple(tr.x.shape), ctx.streams.seed,
+    # (the dtype and device too: a float32 study had taken a float64 study's loop from its
+    # cache, drawn from other noise, 13x off in every state_rmse_vs_attack_free)
+    key = ("lfc/free", name, ctx.scenario.attack_free_key(), tuple(tr.x.shape), seed,
            _network_key(ctx, name), str(tr.x.dtype), str(tr.x.device))  # fmt: skip
 
     def run():
-        forks = dict.fromkeys(_fork_steps(ctx.scenario, tr.info))
-        return _loop(ctx, estimator, tr, compensate, attack=None, forks=forks), forks
+        own = seed == ctx.streams.seed
+        forks = dict.fromkeys(_fork_steps(ctx.scenario, tr.info) if own else [])
+        init_seed = Streams(seed).seed_of("lfc/initial_weights")
+        loop = _loop(ctx, estimator, tr, compensate, attack=None, forks=forks, init_seed=init_seed)
+        return loop, forks
 
     return _cached(ctx, key, run)
 
 
 def score_scale_seed(seed: int) -> int:
     """The master seed of the attack-free runs that standardise the LFC attack estimates of
-    a study whose detectors' streams have master seed ``seed`` (:func:`_score_scale`)."""
-    return Streams(seed).seed_of("score-scale")
+    a study whose detectors' streams have master seed ``seed`` (:func:`_score_scale`): its
+    false-alarm calibration's (:func:`~difffilter.models.streams.far_calibration_seed`)."""
+    return far_calibration_seed(seed)
 
 
 def _network_key(ctx: SuiteContext, name: str) -> str | None:
@@ -249,36 +259,35 @@ def _network_key(ctx: SuiteContext, name: str) -> str | None:
 def _score_scale(ctx: SuiteContext, name: str, estimator, like: Trajectories,
                  compensate: bool) -> Tensor:  # fmt: skip
     """``σ_c [M]``: the spread of ``name``'s attack estimate over every step of every run of
-    its loop without attack on runs of its own, which standardises the score
+    its loop without attack on runs it does not score, which standardises the score
     ``max_c |α̂_c| / σ_c``.
 
-    Those runs are the attack-free study of master seed ``score_scale_seed(s)``
-    (:func:`score_scale_seed`, ``s`` the seed of the detectors' streams,
-    :attr:`SuiteContext.detector_streams`), of the study's number of runs: exactly what
-    ``run_suite(scenario.with_threat(None), runs=…, seed=score_scale_seed(s))`` runs for
-    ``name``. They are the same for a study and for its false-alarm calibration, so the
-    threshold picked on the calibration's scores reads the study's scores on one scale, and
-    they are never the runs scored. (It had been the spread on the scored runs' own draws
-    without attack: on ``lfc_step`` the spread per channel of one 20-run study was 0.42–2.03
-    times that of other runs, and the scale fitted on the runs judged pulled their
-    false-alarm rate onto the calibrated 1 %: 1.09 % where a scale from other runs measures
-    1.82 %.) ``like``: a trajectory of the study (its dtype and device).
+    Those runs are the false-alarm calibration's: the attack-free study of master seed
+    ``score_scale_seed(s)`` (:func:`score_scale_seed`, ``s`` the seed of the detectors'
+    streams, :attr:`SuiteContext.detector_streams`, the study's) and of the study's number
+    of runs, exactly what ``run_suite(scenario.with_threat(None), runs=…,
+    seed=score_scale_seed(s))`` runs for ``name``. A study and its calibration so score on
+    one scale, the threshold picked on the calibration's scores reads the study's, and a
+    calibrated evaluation runs no loop more for it (the calibration's loop is the same,
+    cached). It had been the spread on the scored runs' own draws without attack: on
+    ``lfc_step`` the spread per channel of one 20-run study was 0.42–2.03 times that of
+    other runs, and a scale fitted on the runs judged pulled their false-alarm rate onto
+    the calibrated 1 % (1.09 %, where a scale from other runs measures 1.82 %).
+    ``like``: a trajectory of the study (its dtype and device).
     """
     own = ctx.detector_streams or ctx.streams
-    reference = Streams(score_scale_seed(own.seed))
-    runs = ctx.detector_runs or ctx.runs
+    seed, runs = score_scale_seed(own.seed), ctx.detector_runs or ctx.runs
     free = ctx.scenario.with_threat(None)
     dtype, device = like.x.dtype, like.x.device
-    draws_key = ("lfc/score-scale draws", free.attack_free_key(), reference.seed, runs,
-                 str(dtype), str(device))  # fmt: skip
+    draws_key = ("lfc/score-scale draws", free.attack_free_key(), seed, runs, str(dtype),
+                 str(device))  # fmt: skip
 
     def simulate() -> Trajectories:
-        return free.simulate(runs, reference.simulation(), dtype=dtype, model=ctx.model)
+        return free.simulate(runs, Streams(seed).simulation(), dtype=dtype, model=ctx.model)
 
     def spread() -> Tensor:
         draws = _cached(ctx, draws_key, simulate)
-        init_seed = reference.seed_of("lfc/initial_weights")
-        loop = _loop(ctx, estimator, draws, compensate, attack=None, init_seed=init_seed)
+        loop, _ = _attack_free(ctx, name, estimator, draws, compensate, seed=seed)
         return loop.output.attack.std(dim=(0, 1)).clamp_min(1e-12)
 
     key = ("lfc/score-scale", name, *draws_key[1:], _network_key(ctx, name))

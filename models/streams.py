@@ -15,7 +15,7 @@ import torch
 
 from difffilter._checks import check_integer
 
-__all__ = ["SIMULATION_STREAMS", "Streams"]
+__all__ = ["SIMULATION_STREAMS", "Streams", "far_calibration_seed"]
 
 #: the streams a scenario's simulation draws from (``Scenario.simulate``'s ``generators``)
 SIMULATION_STREAMS = ("plant", "attack", "schedule", "input_schedule")
@@ -29,8 +29,8 @@ class Streams:
     by one. Names are free-form; the suite uses ``"plant"``, ``"attack"``,
     ``"schedule"``, ``"input_schedule"``, ``"calibration/plant"``, ``"particles/init"``,
     ``"particles/propagate"``, ``"particles/resample"``, ``"gamma_noise"`` (an oracle's noisy
-    attack values), ``"pcrb"``, ``"lfc/per_channel"`` and ``"score-scale"`` (the master seed of the runs
-    that standardise the LFC attack estimates); the adversarial training, ``"adversary/…"``.
+    attack values), ``"pcrb"``, ``"lfc/per_channel"`` and ``"far-calibration"`` (the master seed of the
+    false-alarm calibration's runs, :func:`far_calibration_seed`); the adversarial training, ``"adversary/…"``.
     """
 
     def __init__(self, seed: int):
@@ -57,3 +57,10 @@ class Streams:
 
     def __repr__(self) -> str:
         return f"Streams(seed={self.seed})"
+
+
+def far_calibration_seed(seed: int) -> int:
+    """The master seed of the false-alarm calibration runs of a study of master seed
+    ``seed`` (:func:`difffilter.eval.calibration.calibration_seed`): their noise, attacks
+    and particles are fresh for the study."""
+    return Streams(seed).seed_of("far-calibration")

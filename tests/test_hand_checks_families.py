@@ -165,6 +165,28 @@ def test_lfc_network_score_is_its_estimate_over_the_spread_on_runs_of_its_own(is
     assert float((self_scaled - free.detection.scores).abs().max()) > 1e-3
 
 
+def test_lfc_score_scale_costs_a_calibrated_study_no_loop(isolated_registry, monkeypatch):
+    """The runs that standardise the estimate are the calibration's: a study calibrated in
+    one evaluation (one cache) runs the estimator's loop three times, as it did when the
+    scale came from the study's own loop without attack: the study's loop without attack,
+    its attacked loop, and the calibration's (which is the scale's)."""
+    from difffilter.eval.calibration import calibrate
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import lfc_estimators
+
+    base = registry.get("lfc_step")
+    scenario = dataclasses.replace(base, name="lfc_step_1s_check", duration=1.0, headline=False)
+    registry.register(scenario)
+    loops = []
+    inner = lfc_estimators._loop
+    monkeypatch.setattr(lfc_estimators, "_loop", lambda *a, **k: loops.append(1) or inner(*a, **k))
+    cache, run = {}, dict(runs=2, seed=4, estimators=["traditional_ad"], progress=False)
+    study = run_suite(scenario, cache=cache, **run)
+    cal = calibrate(scenario, far=0.05, cache=cache, **run)
+    assert study.outputs["traditional_ad"].detection is not None and cal.thresholds
+    assert len(loops) == 3
+
+
 def test_lfc_card_without_a_score_record_was_calibrated_for_the_estimate():
     """A card calibrated before the statistic was recorded: its threshold serves the
     standardised estimate; a probability-scored entry keeps 0.5, another entry its default."""
