@@ -143,7 +143,8 @@ def _sections(result, doc: dict, out: Path, prepared=None) -> list[Section]:
     )
     det = (
         "The paper's NN estimators alarm when some |α̂_c| exceeds 3σ_c of the same "
-        "estimator's attack-free run [DEF]; `kf_nn_grad` and `kf_nn_grad_ekf` (a trained "
+        "estimator's attack-free runs (the false-alarm calibration's, not the runs scored) "
+        "[DEF]; `kf_nn_grad` and `kf_nn_grad_ekf` (a trained "
         "network with a detection head) alarm on the head's attack probability, above 0.5 "
         "or the threshold the checkpoint's card was calibrated to; `chi_square_kf` and `cusum_kf` are the Kalman observer of "
         "the uncompensated loop gated by its χ² or CUSUM test on the innovations (a 1 % "
