@@ -26,7 +26,7 @@ import re
 import sys
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -69,20 +69,55 @@ def save_figure(fig, path: str | Path, **savefig) -> None:
     write_atomically(path, lambda partial: fig.savefig(partial, format="png", **savefig))
 
 
-def mark_incomplete(folder: str | Path, what: str) -> Path:
+#: The line of an ``INCOMPLETE.md`` that records the PNGs a folder held before the write.
+_BEFORE = "Figures here before it began (a rerun removes the others): "
+
+
+def mark_incomplete(
+    folder: str | Path, what: str, *, figures_before: Iterable[str] | None = None
+) -> Path:
     """Write ``<folder>/INCOMPLETE.md`` saying that ``what`` is being written there, and
     return its path, for the writer to remove once every file is written: an error or an
     interrupt leaves it. An evaluation stopped midway into the folder of an earlier one had
     left its metrics.json beside the earlier report.md and leaderboard, with nothing to say
-    that they were of two studies."""
+    that they were of two studies.
+
+    ``figures_before``: the PNGs in the folder before this write, recorded on one line
+    (:func:`_figures_before` reads it back) so that a rerun knows every other PNG there as
+    the stopped write's, though no report.md lists it."""
     path = Path(folder) / INCOMPLETE
+    record = "" if figures_before is None else (
+        f"\n{_BEFORE}{json.dumps(sorted(figures_before), ensure_ascii=False)}\n"
+    )  # fmt: skip
     write_atomically(path, (
         f"# Incomplete\n\n{what} began at {time.strftime('%Y-%m-%d %H:%M:%S')} (process "
         f"{os.getpid()}) and has not ended: it is still running, or it was stopped or failed. "
         "Until it is run again to its end, the files here may mix its results with an "
-        "earlier evaluation's: rerun the same command.\n"
+        "earlier evaluation's: rerun the same command.\n" + record
     ))  # fmt: skip
     return path
+
+
+def _figures_before(folder: Path) -> set[str] | None:
+    """The PNGs ``<folder>/INCOMPLETE.md`` records as there before its write
+    (:func:`mark_incomplete`), or ``None`` where there is no such record (no marker, or one
+    of another kind of write)."""
+    marker = folder / INCOMPLETE
+    if not marker.is_file():
+        return None
+    for line in marker.read_text().splitlines():
+        if line.startswith(_BEFORE):
+            try:
+                names = json.loads(line.removeprefix(_BEFORE))
+            except ValueError:  # (an edited marker: read as one without a record)
+                return None
+            return {n for n in names if isinstance(n, str)} if isinstance(names, list) else None
+    return None
+
+
+def _pngs(folder: Path) -> set[str]:
+    """The PNG files directly in ``folder``."""
+    return {p.name for p in folder.glob("*.png") if p.is_file()}
 
 
 def _clean(value: Any) -> Any:
@@ -383,7 +418,16 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
         state_metric=state_metric(doc["estimators"]),
     )):  # fmt: skip
         doc["acceptance_intervals"] = _clean(intervals)
-    incomplete = mark_incomplete(out, f"Writing the reports of {sc.name} into this folder")
+    # The figures of a write stopped here before its report.md (the PNGs and the family's
+    # figures come first) are listed by no report.md: its INCOMPLETE.md recorded the PNGs
+    # that were here before it, so the others are its own. Kept in this write's record too,
+    # so that a rerun stopped again still knows them.
+    present, recorded = _pngs(out), _figures_before(out)
+    before = present if recorded is None else present & recorded
+    stopped = present - before  # a stopped write's figures (none without its record)
+    incomplete = mark_incomplete(
+        out, f"Writing the reports of {sc.name} into this folder", figures_before=before
+    )
     write_json_atomically(out / "metrics.json", doc)
     figures = standard_figures(result)
     sections = [_summary_section(doc, sc), _table_section(doc)]
@@ -409,8 +453,8 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
                 drawn.add(name)
     log_suite(out / "tb", result, doc, images)
     # an earlier evaluation's figures this one does not draw (a detector's ROC where this run
-    # has none): the folder shows one run, as the README says
-    for name in shown_before - {name for section in sections for name in section.figures}:
+    # has none), and a stopped one's: the folder shows one run, as the README says
+    for name in (shown_before | stopped) - {n for section in sections for n in section.figures}:
         (out / name).unlink(missing_ok=True)
     incomplete.unlink(missing_ok=True)  # every file of this evaluation written
     import matplotlib.pyplot as plt

@@ -327,3 +327,63 @@ def test_a_rerun_into_the_same_folder_leaves_none_of_the_earlier_runs_figures(
     assert "roc.png" not in report and "rmse_over_time.png" in report
     assert not (out / "roc.png").exists() and not (out / "alarms_run0.png").exists()
     assert (out / "rmse_over_time.png").is_file() and (out / "mine.png").is_file()
+
+
+def test_a_rerun_after_a_stopped_evaluation_leaves_none_of_the_stopped_runs_figures(
+    tmp_path, monkeypatch
+):
+    """An evaluation stopped after its PNGs, before its report.md, left roc.png and
+    alarms_run0.png, which the earlier report.md (the one a rerun reads) does not list: the
+    rerun kept them and removed INCOMPLETE.md, a folder that looked whole with a figure of
+    another run. Truth: the same runs with no stop between them (README: "a scenario's
+    folder always shows one run of each kind"); a PNG that was there before (a user's)
+    stays, and so does the record through a second stop."""
+    from pathlib import Path
+
+    from difffilter.eval import report as report_module
+    from difffilter.eval.report import INCOMPLETE, _figures_of, write_report
+    from difffilter.eval.suite import run_suite
+    from difffilter.models.yaml_scenario import scenario_from_dict
+
+    monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path))
+    sc = scenario_from_dict({
+        "name": "tank_stopped", "runs": 4, "steps": 30, "dt": 1.0,
+        "plant": {"F": [[0.9]], "H": [[1.0]], "Q": 1.0e-3, "R": 1.0e-2},
+        "attack": {"kind": "bias", "value": 1.0, "onset": 15},
+        "estimators": ["kf"],
+    }, "tank.yaml")  # fmt: skip
+    plain = run_suite(sc, runs=4, seed=0, progress=False)  # draws no ROC, no alarms
+    detecting = run_suite(sc, runs=4, seed=1, progress=False, add=["chi_square_kf"])
+    real = report_module.write_atomically
+
+    def stopped(folder: Path, result) -> None:  # stopped as report.md is about to be written
+        def write(path, content):
+            if Path(path).name == "report.md":
+                raise KeyboardInterrupt
+            return real(path, content)
+
+        with monkeypatch.context() as m:
+            m.setattr(report_module, "write_atomically", write)
+            with pytest.raises(KeyboardInterrupt):
+                write_report(folder, result)
+        assert (folder / INCOMPLETE).is_file()
+
+    def pngs(folder: Path) -> set[str]:
+        return {p.name for p in folder.glob("*.png")}
+
+    expected = tmp_path / "expected"  # the same runs, none stopped
+    write_report(expected, plain)
+    (expected / "mine.png").write_bytes(b"")
+    write_report(expected, plain)
+
+    out = tmp_path / "out"
+    write_report(out, plain)
+    (out / "mine.png").write_bytes(b"")
+    stopped(out, detecting)
+    assert {"roc.png", "alarms_run0.png"} <= pngs(out)  # the stopped run's, listed nowhere
+    stopped(out, plain)  # a rerun stopped too: the record carries the stopped run's figures
+    write_report(out, plain)
+    assert pngs(out) == pngs(expected)
+    assert "roc.png" not in pngs(out) and "mine.png" in pngs(out)
+    assert _figures_of(out / "report.md") == pngs(out) - {"mine.png"}
+    assert not (out / INCOMPLETE).exists()
