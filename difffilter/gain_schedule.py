@@ -142,7 +142,11 @@ class GainSchedule:
             model.control_matrix(0),
         )
         self.Q, self.R = model.process_cov(0), model.measurement_cov(1)
-        self._sources = _source_versions(model, (self.F, self.H, self.B, self.Q, self.R))
+        # the prior covariance the recursion starts from, as the carries at k = 0 hold it (a
+        # prior given by its factor makes a new `cov` tensor at every read)
+        self.initial_cov = model.initial.cov
+        mats = (self.F, self.H, self.B, self.Q, self.R, self.initial_cov)
+        self._sources = _source_versions(model, mats)
         self._own_sources = self._sources  # what it computes with, as first read
         dy, dx = self.H.shape
         eye = torch.eye(dx, dtype=self.H.dtype, device=self.H.device)
@@ -159,9 +163,6 @@ class GainSchedule:
         self._cov_versions: list[int] = []  # each handed-out covariance's version then
         self._row_maps: list[tuple[Tensor, Tensor, Tensor]] = []
         self._neg_log_norms: list[Tensor] = []  # −log_norm of each k: the one-run step's
-        # the prior covariance the recursion starts from, as the carries at k = 0 hold it (a
-        # prior given by its factor makes a new `cov` tensor at every read)
-        self.initial_cov = model.initial.cov
         self._chunks = CovarianceChunks(self.F, self.H, self.Q, self.R, self.initial_cov, tol)
         # the last chunk's moments [n, ...] (and log-norms and their negatives [n]) not yet
         # handed out, from index _ahead_next, and the block of rows unbound from it (each
@@ -213,13 +214,14 @@ class GainSchedule:
         return self._chunks.converged
 
     def current(self) -> bool:
-        """Whether the model's matrices and noise are as they were when the schedule was
-        made (no tensor of them written in place since: the moments computed ahead would
-        mix the old model with the new). A Kalman filter's step drops a schedule that is not
-        and goes on with the general update, which reads the model at every step. A tensor
-        or noise model assigned anew (``model.F = …``, ``model.to(…)``: any assignment to any
-        model since, :mod:`difffilter._assignments`) has the model's matrices read again and
-        compared with the schedule's (an online KF had gone on with the old ones)."""
+        """Whether the model's matrices, noise and prior are as they were when the schedule
+        was made (no tensor of them, nor any parameter or buffer of the model, written in
+        place since: the moments computed ahead would mix the old model with the new). A
+        Kalman filter's step drops a schedule that is not and goes on with the general
+        update, which reads the model at every step. A tensor or noise model assigned anew
+        (``model.F = …``, ``model.to(…)``: any assignment to any model since,
+        :mod:`difffilter._assignments`) has the model's matrices read again and compared
+        with the schedule's (an online KF had gone on with the old ones)."""
         # the tensors it watches first: an in-place write, then an assignment anywhere, had the
         # re-read compare the written tensor with itself and forget the write (a review)
         sources = self._sources
@@ -257,7 +259,7 @@ class GainSchedule:
         # not every tensor the model ever held (a review: one more per re-read, 4,000 after
         # 4,000 steps of a covariance rebuilt at each read, 2.8 ms a step)
         own = self._own_sources
-        watched = {id(t): (t, v) for t, v in (*own, *_source_versions(model, now[:5]))}
+        watched = {id(t): (t, v) for t, v in (*own, *_source_versions(model, now))}
         self._sources = tuple(watched.values())
         return True
 
@@ -759,18 +761,27 @@ def _add_product(c: Tensor, a: Tensor, b: Tensor, *, subtract: bool = False) -> 
 
 
 def _source_versions(model, mats) -> tuple[tuple[Tensor, tuple | Tensor], ...]:
-    """``(tensor, stamp)`` of every tensor the schedule's moments are made from: the
-    matrices as the model gave them and the tensors of its noise models (a covariance
-    given by its factor is made from it at every read). The stamp is the tensor's version,
-    or, for an inference tensor (a model built under ``torch.inference_mode()``), which
-    keeps none, a copy of its values (:func:`_unchanged`): such tensors had been left out,
-    and a model built so and written in place (``model.F.copy_(…)``) kept its old gains
-    without a word (a core-filter trial: a covariance 0.26 off)."""
+    """``(tensor, stamp)`` of every tensor the schedule's moments may be made from: the
+    matrices and the prior covariance as the model gave them, every parameter and buffer
+    of the model itself (its submodules' too) and the tensors of its noise models and
+    prior. The model's own: a subclass may make a matrix from a tensor of its own at every
+    read (``F = expm(A dt)`` of a buffer ``A``), which the returned matrix is not, and an
+    in-place write into it had gone unseen (a KF trial: the old ``F``, the mean 0.1 and the
+    covariance 0.40 off). The prior: a ``k = 0`` carry kept as a start point holds its
+    covariance, and after ``model.initial.cov.copy_(…)`` stepped with the schedule of the
+    old one (8.9 off). A tensor kept as a plain attribute, not registered, and a number
+    (``model.dt = 0.3``) go unseen. The stamp is the tensor's version, or, for an inference
+    tensor (a model built under ``torch.inference_mode()``), which keeps none, a copy of
+    its values (:func:`_unchanged`): such tensors had been left out, and a model built so
+    and written in place (``model.F.copy_(…)``) kept its old gains without a word (a
+    core-filter trial: a covariance 0.26 off)."""
     tensors = [m for m in mats if m is not None]
-    for name in ("process_noise", "measurement_noise"):
-        noise = getattr(model, name, None)
-        if isinstance(noise, torch.nn.Module):
-            tensors += [*noise.parameters(), *noise.buffers()]
+    if isinstance(model, torch.nn.Module):
+        tensors += [*model.parameters(), *model.buffers()]
+    for name in ("process_noise", "measurement_noise", "initial"):  # (a model not a Module)
+        part = getattr(model, name, None)
+        if isinstance(part, torch.nn.Module):
+            tensors += [*part.parameters(), *part.buffers()]
     unique = {id(t): t for t in tensors}
     return tuple((t, _stamp(t)) for t in unique.values())
 

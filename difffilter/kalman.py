@@ -290,8 +290,10 @@ class KalmanFilter(GaussianFilter):
     require no gradients: the schedule is computed outside autograd), used by
     every unmasked step: the same numbers, the covariance recursion computed once for all
     runs (a masked step falls back to the general update and drops it, as does any step
-    after the model's matrices or noise were written in place: the schedule's moments are
-    computed ahead, from the model as it was).
+    after a tensor of the model was written in place: its matrices, noise and prior, and
+    every parameter or buffer of it, which a subclass may make its matrices from at each
+    read; the schedule's moments are computed ahead, from the model as it was. A number
+    changed mid-run, ``model.dt = 0.3``, is not seen: start a new carry).
     """
 
     def __init__(self, method: Method | str = Method.SEQUENTIAL):

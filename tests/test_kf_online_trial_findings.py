@@ -145,3 +145,79 @@ print(repr(out.mean.tolist()))
     mean, _ = _textbook(lambda t: F if t < 30 else F2, H, Q, R, P0, ys)
     got = ast.literal_eval(done.stdout.strip().splitlines()[-1])
     np.testing.assert_allclose(got, mean, rtol=1e-9)
+
+
+class _DerivedF(df.LinearGaussianModel):
+    """Time-invariant, ``F = expm(A dt)`` read from a buffer ``A`` at every call (a fresh
+    tensor each time: nothing the schedule was handed is written when ``A`` is)."""
+
+    def __init__(self, A, dt, *rest):
+        super().__init__(torch.matrix_exp(A * dt), *rest)
+        self.register_buffer("A", A)
+        self.dt = dt
+
+    def transition_matrix(self, k):
+        return torch.matrix_exp(self.A * self.dt)
+
+
+def test_a_buffer_the_transition_is_made_from_written_in_place_drops_the_gain_schedule():
+    """A third trial: the schedule watched the tensors the model's methods returned and the
+    noise models', not the model's own buffer ``A`` of ``F = expm(A dt)``: after
+    ``model.A.copy_(A2)`` under ``no_grad`` the online step went on with the old ``F`` (the
+    mean 0.1 and the covariance 0.40 off the textbook filter with the new one)."""
+    import numpy as np
+
+    A = torch.tensor([[0.0, 1.0], [-1.0, -0.2]], dtype=D)
+    A2 = torch.tensor([[0.0, 2.0], [-3.0, -0.5]], dtype=D)
+    H, Q, R, P0 = np.array([[1.0, 0.0]]), 0.1 * np.eye(2), np.array([[0.5]]), np.eye(2)
+    model = _DerivedF(
+        A.clone(), 0.1, *(torch.tensor(a, dtype=D) for a in (H, Q, R, [0.0, 0.0], P0))
+    )
+    ys = np.random.default_rng(12).standard_normal((100, 1))
+    kf = df.KalmanFilter()
+    carry = kf.init(model)
+    for t, y in enumerate(ys):
+        if t == 40:
+            assert carry.gains is not None  # (the schedule's path until the write)
+            with torch.no_grad():
+                model.A.copy_(A2)
+        carry, _ = kf.step(carry, torch.tensor(y))
+    F_of = [torch.matrix_exp(a * 0.1).numpy() for a in (A, A2)]
+    mean, cov = _textbook(lambda t: F_of[t >= 40], H, Q, R, P0, ys)
+    np.testing.assert_allclose(carry.mean.numpy(), mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(carry.cov.numpy(), cov, rtol=1e-9, atol=1e-12)
+
+
+def test_a_start_carry_reused_after_the_prior_covariance_written_in_place_filters_from_it():
+    """A third trial: a ``k = 0`` carry kept as the start of each episode holds the prior's
+    covariance tensor itself; after ``model.initial.cov.copy_(10 I)`` it held the new prior
+    but stepped with the schedule computed from the old one (the first covariance 8.9 and
+    the mean 0.29 off the textbook filter from the new prior)."""
+    import numpy as np
+
+    F, H = np.array([[1.0, 0.1], [0.0, 1.0]]), np.array([[1.0, 0.0]])
+    Q, R, P0 = 0.1 * np.eye(2), np.array([[0.5]]), np.eye(2)
+    model = df.LinearGaussianModel(
+        *(torch.tensor(a, dtype=D) for a in (F, H, Q, R, [0.0, 0.0], P0))
+    )
+    ys = np.random.default_rng(17).standard_normal((3, 1))
+    kf = df.KalmanFilter()
+    start = kf.init(model)
+
+    def episode(carry):
+        for y in ys:
+            carry, _ = kf.step(carry, torch.tensor(y))
+        return carry
+
+    first = episode(start)
+    assert first.gains is not None  # (the schedule's path: its moments computed and kept)
+    with torch.no_grad():
+        model.initial.cov.copy_(10 * torch.eye(2, dtype=D))
+    second = episode(start)
+    mean, cov = _textbook(lambda t: F, H, Q, R, 10 * np.eye(2), ys)
+    np.testing.assert_allclose(second.mean.numpy(), mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(second.cov.numpy(), cov, rtol=1e-9, atol=1e-12)
+    # and a new start from the model so changed takes a schedule of the new prior
+    again = episode(kf.init(model))
+    assert again.gains is not None
+    np.testing.assert_allclose(again.cov.numpy(), cov, rtol=1e-9, atol=1e-12)
