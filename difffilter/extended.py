@@ -304,7 +304,7 @@ class UnscentedKalmanFilter(GaussianFilter):
         omega = symmetrize((wc[:, None, None] * outer(lin_err, lin_err)).sum(-3))
         mean, cov, S, log_lik = update_given(
             pred_mean, pred_cov, residual, cross, symmetrize(pyy + R), H_stat, R + omega,
-            observed, evidence,
+            observed, evidence, mask,
         )  # fmt: skip
         out = StepOutput(mean, cov, pred_mean, pred_cov, residual, S, log_lik)
         return GaussianState(mean, cov, k, model), out

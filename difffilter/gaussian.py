@@ -57,18 +57,23 @@ __all__ = [
 ]
 
 
-def kalman_gain(cross_cov: Tensor, innovation_cov: Tensor) -> tuple[Tensor, Tensor]:
+def kalman_gain(
+    cross_cov: Tensor, innovation_cov: Tensor, mask: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
     """Gain ``K = C S⁻¹`` by a Cholesky solve (``S`` is never inverted).
 
     Shapes: ``cross_cov`` ``C = Cov(x, y)`` ``[..., dx, dy]``, ``innovation_cov`` ``S``
     ``[..., dy, dy]`` (symmetrised here) → ``(K [..., dx, dy], chol(S) [..., dy, dy])``.
+    ``mask [..., dy]``: the received entries of an ``S`` masked by
+    :func:`~difffilter.linalg.masked_measurement` (its jitter, if any, is the received
+    entries' own: :func:`~difffilter.linalg.safe_cholesky`), or ``None``.
     """
-    return _gain(cross_cov, symmetrize(innovation_cov))
+    return _gain(cross_cov, symmetrize(innovation_cov), mask)
 
 
-def _gain(cross_cov: Tensor, S: Tensor) -> tuple[Tensor, Tensor]:
+def _gain(cross_cov: Tensor, S: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """:func:`kalman_gain` of an ``S`` symmetrised already (symmetrising twice changes no bit)."""
-    chol = safe_cholesky(S, name=INNOVATION_COV)
+    chol = safe_cholesky(S, name=INNOVATION_COV, mask=mask)
     return cholesky_solve_right(cross_cov, chol), chol
 
 
@@ -97,6 +102,7 @@ def gaussian_update(
     observed: Tensor | int,
     *,
     evidence: bool = True,
+    mask: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
     """Measurement update shared by every Gaussian filter.
 
@@ -113,18 +119,22 @@ def gaussian_update(
         observed: number of received entries (scalar or ``[...]``).
         evidence: compute ``log N(r; 0, S)``; ``False`` returns ``None`` in its place (a
             caller that never reads the density saves its operations).
+        mask: the received entries ``[..., dy]`` (bool) that ``residual`` and
+            ``noise_cov`` were masked with, or ``None`` (then a jitter of ``S`` is scaled
+            by all its entries, the unit placeholders of lost ones too:
+            :func:`~difffilter.linalg.safe_cholesky`).
 
     Returns ``(m⁺, P⁺, S, log N(r; 0, S) or None)``.
     """
     S = symmetrize(pred_obs_cov + noise_cov)
     return update_given(pred_mean, pred_cov, residual, cross_cov, S, obs_matrix, noise_cov,
-                         observed, evidence)  # fmt: skip
+                         observed, evidence, mask)  # fmt: skip
 
 
 def update_given(pred_mean, pred_cov, residual, cross_cov, S, obs_matrix, noise_cov, observed,
-                  evidence):  # fmt: skip
+                  evidence, mask=None):  # fmt: skip
     """:func:`gaussian_update` from its innovation covariance ``S`` (symmetrised)."""
-    gain, chol = _gain(cross_cov, S)  # K = C S⁻¹  [..., dx, dy]
+    gain, chol = _gain(cross_cov, S, mask)  # K = C S⁻¹  [..., dx, dy]
     mean = pred_mean + matvec(gain, residual)
     cov = joseph_covariance(pred_cov, gain, obs_matrix, noise_cov)
     log_lik = gaussian_log_prob_chol(residual, chol, observed) if evidence else None
@@ -205,11 +215,13 @@ def linear_innovation(
     return residual, m.innovation_cov, m.cross_cov, m.obs_matrix, m.noise_cov, m.observed
 
 
-def innovation_log_prob(residual: Tensor, innovation_cov: Tensor, observed: Tensor | int) -> Tensor:
+def innovation_log_prob(
+    residual: Tensor, innovation_cov: Tensor, observed: Tensor | int, mask: Tensor | None = None
+) -> Tensor:
     """``log N(r; 0, S)`` ``[...]`` as :func:`gaussian_update` computes it (the same Cholesky
-    factor of ``sym(S)``, the same density): for a caller that needs the evidence of a
-    measurement without its update."""
-    chol = safe_cholesky(symmetrize(innovation_cov), name=INNOVATION_COV)
+    factor of ``sym(S)``, the same density, ``mask`` as there): for a caller that needs the
+    evidence of a measurement without its update."""
+    chol = safe_cholesky(symmetrize(innovation_cov), name=INNOVATION_COV, mask=mask)
     return gaussian_log_prob_chol(residual, chol, observed)
 
 
@@ -249,6 +261,6 @@ def moments_update(
     residual = masked_residual(residual, m.mask)
     mean, cov, S, log_lik = update_given(
         pred_mean, pred_cov, residual, m.cross_cov, m.innovation_cov, m.obs_matrix,
-        m.noise_cov, m.observed, evidence,
+        m.noise_cov, m.observed, evidence, m.mask,
     )  # fmt: skip
     return mean, cov, residual, S, log_lik

@@ -248,7 +248,8 @@ class GaussianFilter(Estimator):
             return out.innovation, out.innovation_cov, out.log_likelihood
         nu = masked_residual(self.residual(carry, prediction, y), mask)
         S = moments.innovation_cov
-        return nu, S, innovation_log_prob(nu, S, moments.observed) if evidence else None
+        return nu, S, (innovation_log_prob(nu, S, moments.observed, moments.mask)
+                         if evidence else None)  # fmt: skip
 
     def _moments_update(self, carry, prediction: Prediction, y, mask, evidence, moments):
         """The KF/EKF update (:func:`~difffilter.gaussian.moments_update`) from this filter's

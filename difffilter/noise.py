@@ -448,7 +448,7 @@ def _masked_gaussian_log_prob(residual: Tensor, cov: Tensor, mask: Tensor) -> Te
         )
     eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
     r, _, c, count = masked_measurement(residual, eye, cov, mask)
-    return gaussian_log_prob_chol(r, safe_cholesky(c, name="cov"), count)
+    return gaussian_log_prob_chol(r, safe_cholesky(c, name="cov", mask=mask), count)
 
 
 class UniformBox(NoiseModel):

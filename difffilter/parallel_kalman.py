@@ -209,7 +209,7 @@ def parallel_kalman_filter(
     pred_covs = symmetrize(F @ prev_covs @ F.transpose(-1, -2) + Q)
     innovations = ys_m - matvec(H_m, pred_means)
     innov_covs = symmetrize(H_m @ pred_covs @ H_m.transpose(-1, -2) + R_m)
-    innov_chols = safe_cholesky(innov_covs, name=PARALLEL_INNOVATION_COV)
+    innov_chols = safe_cholesky(innov_covs, name=PARALLEL_INNOVATION_COV, mask=mask)
     increments = gaussian_log_prob_chol(innovations, innov_chols, observed)
     increments = increments.expand(batch + (T,))
     _check_one_step_consistency(means, covs, pred_means, pred_covs, innovations, innov_chols,

@@ -297,7 +297,7 @@ def kalman_proposal_moments(
         H = model.observation_jacobian(f, k + 1)
     residual = model.measurement_residual(y.unsqueeze(-2), model.observe(f, k + 1))
     R = model.measurement_cov(k + 1)
-    keep = _shared_received(mask)
+    keep, m = _shared_received(mask), None
     if keep is not None:  # every run receives the same entries: update on those alone
         if keep.numel() == 0:
             return f, Q, f, Q.expand(f.shape + f.shape[-1:])
@@ -308,7 +308,7 @@ def kalman_proposal_moments(
         residual, H, R, observed = masked_measurement(residual, H, R, m)
     cross = Q @ H.transpose(-1, -2)
     mu, sigma, _, _ = gaussian_update(f, Q, residual, cross, H @ cross, H, R, observed,
-                                      evidence=False)  # fmt: skip
+                                      evidence=False, mask=m)  # fmt: skip
     return f, Q, mu, sigma
 
 

@@ -103,3 +103,69 @@ def test_a_correlation_written_in_one_triangle_is_refused():
     Gaussian(0, cov)
     psd = torch.diag(torch.tensor([1.0, 0.0], dtype=D))  # a zero variance has no scale: taken
     Gaussian(0, psd + 1e-12 * torch.eye(2, dtype=D))
+
+
+def _redundant_pairs(unit, dtype):
+    """Two redundant pairs of precise sensors on a 2-state prior, in a measurement unit:
+    ``S`` of a received pair is singular in float32 up to R = 1e-9·unit², so it is jittered."""
+    P = unit**2 * torch.eye(2, dtype=dtype)
+    H = torch.tensor([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, 1.0]], dtype=dtype)
+    R = unit**2 * 1e-9 * torch.eye(4, dtype=dtype)
+    r = unit * torch.tensor([1.0, 1.0, 0.3, 0.3], dtype=dtype)
+    return torch.zeros(2, dtype=dtype), P, r, H, R
+
+
+def _closed_form(m0, P, r, H, R):
+    """``m⁺ = m⁻ + K r``, ``P⁺ = P − K H P`` with ``K = P Hᵀ (H P Hᵀ + R)⁻¹`` in float64."""
+    m0, P, r, H, R = (t.double() for t in (m0, P, r, H, R))
+    S = H @ P @ H.T + R
+    K = torch.linalg.solve(S, H @ P).T
+    return m0 + K @ r, P - K @ H @ P
+
+
+@pytest.mark.parametrize("unit", [1.0, 1e-3])
+def test_a_masked_update_is_the_received_sub_models_in_any_unit(unit):
+    """The jitter of a masked ``S`` was scaled by the mean diagonal over all entries, the
+    lost entries' unit placeholders too: in units with variances near 1e-6 it was 5e5
+    times the received sub-model's own (the mean 20 % off, P⁺ 8e7 times too large, 6.6
+    nats). Now the masked update is the sub-model's (``H[:2]``, ``R[:2, :2]``) in both units,
+    and its mean and P⁺ those of the float64 closed form."""
+    m0, P, r, H, R = _redundant_pairs(unit, torch.float32)
+    mask = torch.tensor([True, True, False, False])
+    masked = df.gaussian.linear_update(m0, P, r, H, R, mask)
+    sub = df.gaussian.linear_update(m0, P, r[:2], H[:2], R[:2, :2])
+    for got, want in zip((masked[0], masked[1], masked[4]), (sub[0], sub[1], sub[4])):
+        torch.testing.assert_close(got, want, rtol=1e-6, atol=0)
+    mean, cov = _closed_form(m0, P, r[:2], H[:2], R[:2, :2])
+    torch.testing.assert_close(masked[0].double() / unit, mean / unit, rtol=0, atol=1e-5)
+    torch.testing.assert_close(masked[1].double() / unit**2, cov / unit**2, rtol=1e-2, atol=0)
+
+
+def test_each_runs_mask_gets_its_own_received_entries_jitter():
+    """A batch of runs, each with its own mask (one pair, the other, none, all): each run's
+    update is its received sub-model's (float32, variances near 1e-6; its mean and P⁺ those
+    of the float64 closed form), and a run that
+    received nothing keeps its prior with a zero log-likelihood."""
+    unit = 1e-3
+    m0, P, r, H, R = _redundant_pairs(unit, torch.float32)
+    masks = torch.tensor(
+        [[True, True, False, False], [False, False, True, True], [False] * 4, [True] * 4]
+    )
+    mean, cov, _, _, log_lik = df.gaussian.linear_update(m0, P, r, H, R, masks)
+    for i, keep in enumerate(masks):
+        if not bool(keep.any()):
+            torch.testing.assert_close(mean[i], m0, rtol=0, atol=0)
+            torch.testing.assert_close(cov[i], P, rtol=0, atol=0)
+            assert float(log_lik[i]) == 0.0
+            continue
+        idx = keep.nonzero().squeeze(-1)
+        sub = df.gaussian.linear_update(m0, P, r[idx], H[idx], R[idx][:, idx])
+        torch.testing.assert_close(mean[i], sub[0], rtol=1e-6, atol=0)
+        torch.testing.assert_close(cov[i], sub[1], rtol=1e-3, atol=0)  # (float32 round-off)
+        # (the jittered pivot, about 1e-12 beside variances of 1e-6, holds float32's
+        # round-off of 1e-13: the factor of the 4×4 and of the 2×2 round it apart by 0.06
+        # nats; the placeholders' jitter had made it 6.6)
+        torch.testing.assert_close(log_lik[i], sub[4], rtol=0, atol=0.2)
+        want_mean, want_cov = _closed_form(m0, P, r[idx], H[idx], R[idx][:, idx])
+        torch.testing.assert_close(mean[i].double() / unit, want_mean / unit, rtol=0, atol=1e-5)
+        torch.testing.assert_close(cov[i].double() / unit**2, want_cov / unit**2, rtol=1e-2, atol=0)

@@ -155,7 +155,7 @@ def adaptive_update(
     residual, C, R, observed = masked_measurement(residual, C, R, mask)
     cross = pred_cov @ C.transpose(-1, -2)
     sigma = symmetrize(C @ cross + R)
-    gain, chol = kalman_gain(cross, sigma)  # K = P⁻Cᵀ Σ⁻¹
+    gain, chol = kalman_gain(cross, sigma, mask)  # K = P⁻Cᵀ Σ⁻¹
     post_cov = joseph_covariance(pred_cov, gain, C, R)
     drive = A @ sensitivity + phi  # A Υ_{k−1} + Φ  [..., dx, da]
     eye = torch.eye(mean.shape[-1], dtype=mean.dtype, device=mean.device)
@@ -163,7 +163,7 @@ def adaptive_update(
     omega = C @ drive  # (5f)  [..., dy, da]
     s_pred = attack_cov / forgetting
     attack_gain, _ = kalman_gain(
-        s_pred @ omega.transpose(-1, -2), omega @ s_pred @ omega.transpose(-1, -2) + sigma
+        s_pred @ omega.transpose(-1, -2), omega @ s_pred @ omega.transpose(-1, -2) + sigma, mask
     )  # (5g)–(5h): Γ = S Ωᵀ (λΣ + ΩSΩᵀ)⁻¹
     new_attack_cov = joseph_covariance(s_pred, attack_gain, omega, sigma)  # (5i)
     step = matvec(attack_gain, residual)

@@ -140,6 +140,15 @@ class BiasAttackEstimator:
         innov, Hm, Rm, observed = masked_measurement(innov, H, residual_cov, mask)
         cross = pred_cov @ Hm.transpose(-1, -2)
         mean, cov, _, _ = gaussian_update(
-            pred_mean, pred_cov, innov, cross, Hm @ cross, Hm, Rm, observed, evidence=False
+            pred_mean,
+            pred_cov,
+            innov,
+            cross,
+            Hm @ cross,
+            Hm,
+            Rm,
+            observed,
+            evidence=False,
+            mask=mask,
         )
         return GaussianState(mean, cov, state.k + 1), mean[..., :d], cov[..., :d, :d]

@@ -170,7 +170,7 @@ def _linear_measurement(
     if mask is not None:
         G = G.expand(mask.shape[:-1] + G.shape[-2:])
         _, G, R, _ = masked_measurement(torch.zeros_like(mask, dtype=G.dtype), G, R, mask)
-    K, _ = kalman_gain(Q @ G.transpose(-1, -2), G @ Q @ G.transpose(-1, -2) + R)
+    K, _ = kalman_gain(Q @ G.transpose(-1, -2), G @ Q @ G.transpose(-1, -2) + R, mask)
     return G, K
 
 
