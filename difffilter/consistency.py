@@ -212,7 +212,10 @@ def whiteness(
     if bool((torch.linalg.eigvalsh(innovation_covs.double()) <= 0).any()):
         # (a zero S had been taken, its Cholesky jittered, and a normal-looking ρ̄ returned)
         raise ValueError("innovation_covs must be positive definite (a filter's S)")
-    chol = safe_cholesky(innovation_covs.expand(runs, steps, m, m), name="innovation_covs")
+    # (with the mask, a jittered S takes the received entries' own jitter: scaled by the
+    # lost entries' unit placeholders too, the received block's whitening was off)
+    chol = safe_cholesky(innovation_covs.expand(runs, steps, m, m), name="innovation_covs",
+                         mask=mask)  # fmt: skip
     w = torch.linalg.solve_triangular(chol, innovations.unsqueeze(-1), upper=False).squeeze(-1)
     w = w.double()
     now, later = w[:, :-lag], w[:, lag:]

@@ -368,3 +368,50 @@ def test_the_online_chi_square_detector_has_its_thresholds_before_the_first_step
     mask = torch.tensor([[True, False, True], [True, True, True]])
     _, _, alarm = det.step(state, g, mask)
     assert alarm.tolist() == [False, True]
+
+
+def _redundant_pairs_masked(unit):
+    """Two redundant pairs of precise sensors (float32, variances near ``unit² = 1e-6``: a
+    received pair's ``S`` is singular in float32, so it is jittered), over 2 runs × 3 steps,
+    run 0 losing the second pair and run 1 the first: ``(r', S', mask, the received
+    sub-models' (r [2, 3, 2], S [2, 3, 2, 2]))``, ``S'`` made as the filters make it
+    (:func:`~difffilter.linalg.masked_measurement`: unit placeholders where lost)."""
+    f32 = torch.float32
+    P = unit**2 * torch.eye(2, dtype=f32)
+    H = torch.tensor([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, 1.0]], dtype=f32)
+    R = unit**2 * 1e-9 * torch.eye(4, dtype=f32)
+    c = torch.tensor([1.0, 0.5, 2.0], dtype=f32)[:, None]  # each step's size
+    r = unit * c * torch.tensor([1.0, 1.0, 0.3, 0.3], dtype=f32)  # [3, 4]
+    r = r.expand(2, 3, 4)
+    mask = torch.tensor([[True, True, False, False], [False, False, True, True]])
+    mask = mask[:, None, :].expand(2, 3, 4).clone()
+    rm, Hm, Rm, _ = df.linalg.masked_measurement(r, H, R, mask)
+    S = Hm @ P @ Hm.transpose(-1, -2) + Rm
+    keep = torch.tensor([[0, 1], [2, 3]])  # each run's received pair
+    r_sub = torch.stack([r[i][:, keep[i]] for i in range(2)])
+    S_sub = torch.stack([(H[keep[i]] @ P @ H[keep[i]].T + R[keep[i]][:, keep[i]]).expand(3, 2, 2)
+                         for i in range(2)])  # fmt: skip
+    return rm, S, mask, r_sub, S_sub
+
+
+def test_the_nis_and_detectors_of_a_masked_result_are_the_received_sub_models():
+    """The NIS of a masked result in small units: ``S`` of the received pair fails to
+    factorise in float32 and is jittered; the jitter had been scaled by the mean diagonal
+    over every entry, the lost ones' unit placeholders too (5e5 times the received
+    entries' own), and ``g`` was 0.8 where the received sub-model's is 1. With the mask
+    ``g`` is the sub-model's, and the float64 closed form ``2 c² / (2 + 1e-9)`` of each
+    pair (``r = c·unit·(1, 1)``); so are the χ² detector's and CUSUM's scores."""
+    unit = 1e-3
+    r, S, mask, r_sub, S_sub = _redundant_pairs_masked(unit)
+    g_sub = df.fdi.normalized_innovation_squared(r_sub, S_sub)
+    c = torch.tensor([1.0, 0.5, 2.0], dtype=F64)
+    closed = torch.stack([2 * c**2 / (2 + 1e-9), 2 * (0.3 * c) ** 2 / (2 + 1e-9)])
+    torch.testing.assert_close(g_sub.double(), closed, rtol=1e-4, atol=0)
+    scores, alarms = ChiSquareDetector(4).detect(r, S, mask)
+    torch.testing.assert_close(scores, chi_square_equivalent(g_sub, 2, 4), rtol=1e-5, atol=0)
+    assert torch.equal(alarms, g_sub > chi2.ppf(0.99, 2))
+    cusum = CusumDetector(bias=4.0, threshold=100.0)
+    torch.testing.assert_close(cusum.detect(r, S, mask)[0], cusum.scores(g_sub + 2.0),
+                               rtol=1e-5, atol=0)  # fmt: skip
+    g = df.fdi.normalized_innovation_squared(r, S, mask=mask)
+    torch.testing.assert_close(g, g_sub, rtol=1e-5, atol=0)

@@ -89,8 +89,18 @@ def _check_sequence(t, name: str, event_dims: int) -> Tensor:
     return t
 
 
-def normalized_innovation_squared(innovations: Tensor, innovation_covs: Tensor) -> Tensor:
+def normalized_innovation_squared(
+    innovations: Tensor, innovation_covs: Tensor, *, mask: Tensor | None = None
+) -> Tensor:
     """``g_k = r_kᵀ S_k⁻¹ r_k``: ``[..., T, m]``, ``[..., T, m, m]`` → ``[..., T]``.
+
+    ``mask [..., T, m]`` (bool, broadcasting to the innovations) or ``None``: the entries
+    received, for a masked result (a filter run with a mask: lost entries have innovation 0
+    and a unit placeholder variance). Where ``S`` must be jittered to factorise, the jitter
+    is then the received entries' own (:func:`~difffilter.linalg.safe_cholesky`), so ``g``
+    is the received sub-model's in any unit (scaled by the placeholders' 1s too, a float32
+    ``g`` of redundant sensors with variances near 1e-6 was 0.8 for 1). Where ``S``
+    factorises the mask changes no number.
 
     ``ValueError`` for non-finite entries, non-symmetric or non-positive-definite ``S``.
     """
@@ -106,12 +116,21 @@ def normalized_innovation_squared(innovations: Tensor, innovation_covs: Tensor) 
             f"{tuple(innovation_covs.shape)} [..., T, m, m] must share their leading dimensions "
             "(or broadcast)"
         )
-    return _nis(innovations, innovation_covs)
+    if mask is not None:
+        mask = check_mask(mask, "mask", innovations.shape)
+    return _nis(innovations, innovation_covs, mask)
 
 
-def _nis(innovations: Tensor, innovation_covs: Tensor) -> Tensor:
+def _nis(innovations: Tensor, innovation_covs: Tensor, mask: Tensor | None = None) -> Tensor:
     """:func:`normalized_innovation_squared` without the checks (a filter's own output)."""
-    return mahalanobis_sq_chol(innovations, safe_cholesky(innovation_covs, name="innovation_covs"))
+    if mask is not None:
+        # the jitter's scale is one per matrix: S spans the mask's runs (an S shared by
+        # runs with their own masks gets one factor per run, only where it is jittered)
+        batch = broadcast_shapes(innovation_covs.shape[:-2], mask.shape[:-1])
+        if batch != innovation_covs.shape[:-2]:
+            innovation_covs = innovation_covs.expand(batch + innovation_covs.shape[-2:])
+    chol = safe_cholesky(innovation_covs, name="innovation_covs", mask=mask)
+    return mahalanobis_sq_chol(innovations, chol)
 
 
 def chi_square_equivalent(g: Tensor, dof, full_dof) -> Tensor:
@@ -339,15 +358,20 @@ class ChiSquareDetector:
         t = torch.arange(1, num_steps + 1, dtype=torch.float64).clamp(max=self.window)
         return self.dim * t
 
-    def scores(self, innovations: Tensor, innovation_covs: Tensor) -> Tensor:
-        """Windowed statistic ``[..., T]`` (the sum of the last ``W`` values of ``g``)."""
+    def scores(
+        self, innovations: Tensor, innovation_covs: Tensor, *, mask: Tensor | None = None
+    ) -> Tensor:
+        """Windowed statistic ``[..., T]`` (the sum of the last ``W`` values of ``g``);
+        ``mask``: the received entries of a masked result, for a jittered ``S``
+        (:func:`normalized_innovation_squared`)."""
         _check_sequence(innovations, "innovations", 1)
         if innovations.shape[-1] != self.dim:  # χ²_dim of another m: a wrong false-alarm rate
             raise ValueError(
                 f"innovations have {innovations.shape[-1]} entries a step; this detector was made "
                 f"for dim = {self.dim}: build ChiSquareDetector({innovations.shape[-1]}, …)"
             )
-        return self._windowed(normalized_innovation_squared(innovations, innovation_covs))
+        return self._windowed(normalized_innovation_squared(innovations, innovation_covs,
+                                                            mask=mask))  # fmt: skip
 
     def _windowed(self, g: Tensor) -> Tensor:
         """``Σ`` of the last ``W`` values of ``g [..., T]`` at every step."""
@@ -380,10 +404,12 @@ class ChiSquareDetector:
         against ``χ²`` of the degrees of freedom it holds (no alarm without one). Without
         the mask a masked result was judged against ``χ²_{mW}`` and alarmed far below
         ``α`` (0.016 for 0.05 with half the entries lost)."""
-        s = self.scores(innovations, innovation_covs)
         if mask is None:
+            s = self.scores(innovations, innovation_covs)
             return s, s > self.thresholds(s.shape[-1], s.dtype).to(s.device)
+        _check_sequence(innovations, "innovations", 1)
         mask = _check_whole_mask(mask, innovations)
+        s = self.scores(innovations, innovation_covs, mask=mask)
         dof = self._windowed(mask.sum(-1).to(torch.float64))
         limit = self._quantile_table(s)[dof.long()]
         full = self._full_dof(s.shape[-1]).to(s.device)
@@ -516,9 +542,11 @@ class CusumDetector:
         gated filter and :func:`~difffilter.fdi.gated.cusum_detector_for` do (a threshold
         they calibrated alarmed 0.69 % for 1 % here before)."""
         _check_sequence(innovations, "innovations", 1)
-        g = normalized_innovation_squared(innovations, innovation_covs)
         if mask is not None:
-            g = missing_entries_counted(g, _check_whole_mask(mask, innovations))
+            mask = _check_whole_mask(mask, innovations)
+        g = normalized_innovation_squared(innovations, innovation_covs, mask=mask)
+        if mask is not None:
+            g = missing_entries_counted(g, mask)
         _, alarms = self.run(g)
         return self.scores(g), alarms
 

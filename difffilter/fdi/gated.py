@@ -154,7 +154,9 @@ class GatedFilter(Estimator):
                 f"filter: {type(self.filter).__name__} reported no innovation covariance S_k, "
                 "which the detector's statistic g_k = r_kᵀ S_k⁻¹ r_k needs"
             )
-        g = _nis(out.innovation, out.innovation_cov)  # the filter's own, checked output
+        # the filter's own, checked output (its mask: a jittered S's jitter is the received
+        # entries' own, not scaled by the lost ones' unit placeholders)
+        g = _nis(out.innovation, out.innovation_cov, mask)
         det_state, score, alarm, threshold = self._detect(carry.detector, g, mask, y.shape[-1])
         if self.gate:
             cov_shape = broadcast_shapes(updated.cov.shape, pred.cov.shape)
