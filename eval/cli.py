@@ -12,7 +12,8 @@ Each scenario writes ``<out>/<scenario>/{metrics.json, report.md, *.png}`` and
 TensorBoard events under ``<out>/<scenario>/tb`` (``tensorboard --logdir <out>``).
 A family name (``four_tank``, ``lfc``, …) selects its headline scenarios. Each file is
 replaced whole or not at all; ``INCOMPLETE.md`` marks ``<out>`` and a scenario's folder
-while an evaluation writes there (left by one that was stopped or failed), and one
+while an evaluation or a robustness study writes there (left by one that was stopped or
+failed, with a section per kind that only a run of that kind to its end removes), and one
 evaluation at a time writes into an ``--out`` (``<out>/.difffilter.lock``).
 """
 
@@ -291,14 +292,15 @@ def evaluate(
     estimator (:mod:`~difffilter.eval.leaderboard`: ``<out>/leaderboard.{md,json,png}``,
     ``tb_leaderboard``). From its first write into ``out`` to the leaderboard's,
     ``<out>/INCOMPLETE.md`` says that the folder's files may be of two evaluations
-    (:func:`~difffilter.eval.report.mark_incomplete`).
+    (:func:`~difffilter.eval.report.mark_incomplete`, its ``evaluation`` section: a stopped
+    robustness study's stays).
     """
     from difffilter.models import registry
 
     from .calibration import calibrate
     from .leaderboard import write_leaderboard
     from .report import (
-        INCOMPLETE,
+        clear_incomplete,
         family_report,
         mark_incomplete,
         report_for,
@@ -370,7 +372,8 @@ def evaluate(
         write_leaderboard(out, docs)
         write_acceptance_summary(out, docs)
         # every process's reports are written (they were gathered above): the folder is whole
-        (Path(out) / INCOMPLETE).unlink(missing_ok=True)
+        # as far as evaluations go (a stopped robustness study's section stays)
+        clear_incomplete(out)
     return docs if rank == 0 else {}
 
 
@@ -992,8 +995,9 @@ def _robustness(names: list[str], threats, args) -> int:
     attack-free setting), its files under ``<out>/<scenario>/``, and the summary."""
     from difffilter.models import registry
 
-    from .report import mark_incomplete
+    from .report import clear_incomplete, mark_incomplete
     from .robustness import (
+        MARKER_KIND,
         load_threat_set,
         robustness_scenarios,
         run_robustness,
@@ -1036,14 +1040,16 @@ def _robustness(names: list[str], threats, args) -> int:
             progress=not args.no_progress, cache=cache,
         )  # fmt: skip
         if incomplete is None:  # (the first write into --out: INCOMPLETE.md till the last)
-            incomplete = mark_incomplete(args.out, "A robustness study into this folder")
+            incomplete = mark_incomplete(
+                args.out, "A robustness study into this folder", kind=MARKER_KIND
+            )
         docs[name] = write_robustness(args.out / name, result)
         if args.add_estimators:
             note_skipped_additions(args.add_estimators, docs[name]["skipped"], name)
     evaluated = (args.out / "acceptance.md").is_file()  # an evaluation's, into this --out
     summary = write_robustness_summary(args.out, docs)
-    if incomplete is not None:
-        incomplete.unlink(missing_ok=True)
+    if incomplete is not None:  # (an evaluation's section, left by one stopped here, stays)
+        clear_incomplete(args.out, MARKER_KIND)
     print("\n" + summary.read_text())
     print(f"robustness reports written under {args.out}/ (<scenario>/robustness.md)")
     if evaluated:  # (it went without a word: a trial)

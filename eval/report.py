@@ -55,12 +55,23 @@ __all__ = [
     "share_suffix",
     "save_figure",
     "mark_incomplete",
+    "clear_incomplete",
     "INCOMPLETE",
+    "INCOMPLETE_KINDS",
 ]
 
-#: The marker of a folder whose files an evaluation is writing (:func:`mark_incomplete`): left
-#: there by one that was stopped or failed, whose files may then mix with an earlier one's.
+#: The marker of a folder whose files an evaluation or a robustness study is writing
+#: (:func:`mark_incomplete`): left there by one that was stopped or failed, whose files may
+#: then mix with an earlier one's.
 INCOMPLETE = "INCOMPLETE.md"
+
+#: The kinds of run that mark a folder, each under a heading of its own in the one
+#: ``INCOMPLETE.md``: an evaluation's and a robustness study's files lie side by side in
+#: ``<out>`` and in a scenario's folder, and one kind run to its end had removed the marker
+#: of the other, stopped there (its mixed files then unflagged).
+INCOMPLETE_KINDS = ("evaluation", "robustness study")
+
+_HEADINGS = {f"## {kind}": kind for kind in INCOMPLETE_KINDS}
 
 
 def save_figure(fig, path: str | Path, **savefig) -> None:
@@ -73,39 +84,96 @@ def save_figure(fig, path: str | Path, **savefig) -> None:
 _BEFORE = "Figures here before it began (a rerun removes the others): "
 
 
+def _check_kind(kind: str) -> None:
+    if kind not in INCOMPLETE_KINDS:
+        raise ValueError(f"kind: {kind!r} is not one of {', '.join(INCOMPLETE_KINDS)}")
+
+
+def _marked(folder: Path) -> dict[str, str]:
+    """The sections of ``<folder>/INCOMPLETE.md`` by kind, in the file's order (``{}`` where
+    there is none). A marker of an earlier version, with no kind's heading, is one section:
+    a robustness study's where its text says so, an evaluation's otherwise."""
+    marker = folder / INCOMPLETE
+    if not marker.is_file():
+        return {}
+    text = marker.read_text()
+    sections: dict[str, list[str]] = {}
+    kind, unheaded = None, []
+    for line in text.splitlines():
+        if line.strip() in _HEADINGS:
+            kind = _HEADINGS[line.strip()]
+            sections[kind] = []
+        elif kind is not None:
+            sections[kind].append(line)
+        elif not line.startswith("# "):
+            unheaded.append(line)
+    if not sections and "".join(unheaded).strip():
+        sections["robustness study" if "robustness study" in text else "evaluation"] = unheaded
+    return {k: "\n".join(lines).strip("\n") for k, lines in sections.items()}
+
+
+def _write_marker(folder: Path, sections: dict[str, str]) -> None:
+    """``<folder>/INCOMPLETE.md`` holding ``sections`` (kind: text), removed where none."""
+    marker = folder / INCOMPLETE
+    if not sections:
+        marker.unlink(missing_ok=True)
+        return
+    write_atomically(marker, "# Incomplete\n" + "".join(
+        f"\n## {kind}\n\n{text}\n" for kind, text in sections.items()
+    ))  # fmt: skip
+
+
 def mark_incomplete(
-    folder: str | Path, what: str, *, figures_before: Iterable[str] | None = None
+    folder: str | Path,
+    what: str,
+    *,
+    figures_before: Iterable[str] | None = None,
+    kind: str = "evaluation",
 ) -> Path:
     """Write ``<folder>/INCOMPLETE.md`` saying that ``what`` is being written there, and
-    return its path, for the writer to remove once every file is written: an error or an
-    interrupt leaves it. An evaluation stopped midway into the folder of an earlier one had
-    left its metrics.json beside the earlier report.md and leaderboard, with nothing to say
-    that they were of two studies.
+    return its path, for the writer to call :func:`clear_incomplete` once every file is
+    written: an error or an interrupt leaves it. An evaluation stopped midway into the folder
+    of an earlier one had left its metrics.json beside the earlier report.md and
+    leaderboard, with nothing to say that they were of two studies.
+
+    ``kind`` (one of :data:`INCOMPLETE_KINDS`): the section of the file this write replaces;
+    the other kind's section, left by a run of that kind stopped here, is kept, for only a
+    run of its own kind to clear.
 
     ``figures_before``: the PNGs in the folder before this write, recorded on one line
     (:func:`_figures_before` reads it back) so that a rerun knows every other PNG there as
     the stopped write's, though no report.md lists it."""
-    path = Path(folder) / INCOMPLETE
+    _check_kind(kind)
+    folder = Path(folder)
     record = "" if figures_before is None else (
-        f"\n{_BEFORE}{json.dumps(sorted(figures_before), ensure_ascii=False)}\n"
+        f"\n\n{_BEFORE}{json.dumps(sorted(figures_before), ensure_ascii=False)}"
     )  # fmt: skip
-    write_atomically(path, (
-        f"# Incomplete\n\n{what} began at {time.strftime('%Y-%m-%d %H:%M:%S')} (process "
-        f"{os.getpid()}) and has not ended: it is still running, or it was stopped or failed. "
-        "Until it is run again to its end, the files here may mix its results with an "
-        "earlier evaluation's: rerun the same command.\n" + record
-    ))  # fmt: skip
-    return path
+    sections = _marked(folder)
+    sections[kind] = (
+        f"{what} began at {time.strftime('%Y-%m-%d %H:%M:%S')} (process {os.getpid()}) and has "
+        "not ended: it is still running, or it was stopped or failed. Until it is run again to "
+        f"its end, the files here may mix its results with an earlier {kind}'s: rerun the same "
+        "command." + record
+    )
+    _write_marker(folder, sections)
+    return folder / INCOMPLETE
+
+
+def clear_incomplete(folder: str | Path, kind: str = "evaluation") -> None:
+    """Remove ``kind``'s section of ``<folder>/INCOMPLETE.md`` (:func:`mark_incomplete`), and
+    the file where no other kind's is left: a run of that kind has written every file."""
+    _check_kind(kind)
+    folder = Path(folder)
+    sections = _marked(folder)
+    if sections.pop(kind, None) is not None:  # (another kind's marker alone: left as it is)
+        _write_marker(folder, sections)
 
 
 def _figures_before(folder: Path) -> set[str] | None:
-    """The PNGs ``<folder>/INCOMPLETE.md`` records as there before its write
-    (:func:`mark_incomplete`), or ``None`` where there is no such record (no marker, or one
-    of another kind of write)."""
-    marker = folder / INCOMPLETE
-    if not marker.is_file():
-        return None
-    for line in marker.read_text().splitlines():
+    """The PNGs the evaluation's section of ``<folder>/INCOMPLETE.md`` records as there
+    before its write (:func:`mark_incomplete`), or ``None`` where there is no such record (no
+    marker, or one of another kind of write)."""
+    for line in _marked(folder).get("evaluation", "").splitlines():
         if line.startswith(_BEFORE):
             try:
                 names = json.loads(line.removeprefix(_BEFORE))
@@ -379,7 +447,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
 
     Returns the metrics.json content. Each file replaces the earlier evaluation's whole or
     not at all (:func:`~difffilter.models.atomic_write.write_atomically`); ``INCOMPLETE.md`` marks the folder while they are
-    written (:func:`mark_incomplete`).
+    written (:func:`mark_incomplete`, the evaluation's section).
     """
     from .plots import png_bytes, standard_figures
     from .tensorboard import log_suite
@@ -422,10 +490,12 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     # figures come first) are listed by no report.md: its INCOMPLETE.md recorded the PNGs
     # that were here before it, so the others are its own. Kept in this write's record too,
     # so that a rerun stopped again still knows them.
+    # A robustness study's heat map, drawn here after that stop (its section of the marker
+    # leaves the evaluation's record as it was), is the study's own: its robustness.md shows it.
     present, recorded = _pngs(out), _figures_before(out)
     before = present if recorded is None else present & recorded
-    stopped = present - before  # a stopped write's figures (none without its record)
-    incomplete = mark_incomplete(
+    stopped = present - before - _figures_of(out / "robustness.md")  # (none without a record)
+    mark_incomplete(
         out, f"Writing the reports of {sc.name} into this folder", figures_before=before
     )
     write_json_atomically(out / "metrics.json", doc)
@@ -456,7 +526,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     # has none), and a stopped one's: the folder shows one run, as the README says
     for name in (shown_before | stopped) - {n for section in sections for n in section.figures}:
         (out / name).unlink(missing_ok=True)
-    incomplete.unlink(missing_ok=True)  # every file of this evaluation written
+    clear_incomplete(out)  # every file of this evaluation written (a robustness study's stays)
     import matplotlib.pyplot as plt
 
     for _, fig in figures:

@@ -47,6 +47,7 @@ from .provenance import software_line, software_record
 from .report import (
     _clean,
     _network_line,
+    clear_incomplete,
     format_number,
     mark_incomplete,
     markdown_table,
@@ -73,6 +74,10 @@ CELL_METRICS = ("tpr_at_far", "state_error_ratio", "impact", "auc", "fpr_at_far"
 LOWER_IS_WORSE = ("tpr_at_far", "auc")
 #: … and the highest of these.
 HIGHER_IS_WORSE = ("state_error_ratio", "impact")
+
+#: A robustness study's section of an ``INCOMPLETE.md``
+#: (:func:`~difffilter.eval.report.mark_incomplete`): an evaluation's is its own.
+MARKER_KIND = "robustness study"
 
 
 @dataclass
@@ -585,7 +590,8 @@ def _worst_text(worst: dict[str, Any], key: str) -> str:
 def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any]:
     """Write ``robustness.json``, ``robustness.md`` and ``robustness.png`` under ``out``
     (created), each whole or not at all, ``INCOMPLETE.md`` there while they are written
-    (:func:`~difffilter.eval.report.mark_incomplete`); returns the JSON content."""
+    (:func:`~difffilter.eval.report.mark_incomplete`, its ``robustness study`` section, which
+    leaves an evaluation's alone); returns the JSON content."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     sc, free = result.scenario, result.attack_free
@@ -624,11 +630,13 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
         for threat, check in judged["state"].items():
             check["interval"] = mine.get("state", {}).get(threat)
     doc["acceptance"] = _clean(acceptance)
-    incomplete = mark_incomplete(out, f"Writing the robustness study of {sc.name} into this folder")
+    mark_incomplete(
+        out, f"Writing the robustness study of {sc.name} into this folder", kind=MARKER_KIND
+    )
     write_json_atomically(out / "robustness.json", doc)
     write_atomically(out / "robustness.md", _markdown(doc, sc))
     _heatmap(out / "robustness.png", doc, sc)
-    incomplete.unlink(missing_ok=True)
+    clear_incomplete(out, MARKER_KIND)  # (an evaluation's section, left by one stopped here, stays)
     return doc
 
 

@@ -330,7 +330,7 @@ def test_a_rerun_into_the_same_folder_leaves_none_of_the_earlier_runs_figures(
 
 
 def test_a_rerun_after_a_stopped_evaluation_leaves_none_of_the_stopped_runs_figures(
-    tmp_path, monkeypatch
+    tmp_path, monkeypatch, isolated_registry
 ):
     """An evaluation stopped after its PNGs, before its report.md, left roc.png and
     alarms_run0.png, which the earlier report.md (the one a rerun reads) does not list: the
@@ -387,3 +387,180 @@ def test_a_rerun_after_a_stopped_evaluation_leaves_none_of_the_stopped_runs_figu
     assert "roc.png" not in pngs(out) and "mine.png" in pngs(out)
     assert _figures_of(out / "report.md") == pngs(out) - {"mine.png"}
     assert not (out / INCOMPLETE).exists()
+
+
+def _one_tank(tmp_path, monkeypatch):
+    """The one-tank scenario of the test above, its YAML file and a threat set of one bias."""
+    from difffilter.models.yaml_scenario import scenario_from_dict
+
+    monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path))
+    spec = {
+        "name": "tank_stopped", "runs": 4, "steps": 30, "dt": 1.0,
+        "plant": {"F": [[0.9]], "H": [[1.0]], "Q": 1.0e-3, "R": 1.0e-2},
+        "attack": {"kind": "bias", "value": 1.0, "onset": 15},
+        "estimators": ["kf", "chi_square_kf"],
+    }  # fmt: skip
+    (tmp_path / "tank.yaml").write_text(json.dumps(spec))  # (JSON is YAML)
+    (tmp_path / "threats.yaml").write_text(
+        "threats:\n  bias: {kind: bias, value: 1.0, onset: 15}\n"
+    )
+    return scenario_from_dict(spec, "tank.yaml"), tmp_path / "tank.yaml", tmp_path / "threats.yaml"
+
+
+def _kinds_marked(folder) -> list[str]:
+    """The kinds of run whose section ``<folder>/INCOMPLETE.md`` holds ([] where none)."""
+    from difffilter.eval.report import INCOMPLETE
+
+    marker = folder / INCOMPLETE
+    lines = marker.read_text().splitlines() if marker.is_file() else []
+    return [kind for kind in ("evaluation", "robustness study") if f"## {kind}" in lines]
+
+
+def _interrupted(*args, **kwargs):
+    raise KeyboardInterrupt
+
+
+def _stop_writing(monkeypatch, module, name: str, write, stop=_interrupted) -> None:
+    """``write()`` stopped by a KeyboardInterrupt where ``stop`` in place of ``module.name``
+    raises one (at its first call by default)."""
+    with monkeypatch.context() as m:
+        m.setattr(module, name, stop)
+        with pytest.raises(KeyboardInterrupt):
+            write()
+
+
+def test_a_robustness_study_to_its_end_keeps_a_stopped_evaluations_marker_and_record(
+    tmp_path, monkeypatch, isolated_registry
+):
+    """An evaluation and a robustness study marked a scenario's folder with the same
+    INCOMPLETE.md, and each removed it at its end: a study run to its end after a stopped
+    evaluation removed the evaluation's marker (the stopped run's metrics.json and figures
+    unflagged), and with it the record of the PNGs there before the evaluation's write.
+    Truth: the README ("an INCOMPLETE.md left in a scenario's folder says that an evaluation
+    stopped there midway", until rerun to its end) and the same runs with no stop between
+    them, the study's robustness.png included."""
+    from pathlib import Path
+
+    from difffilter.eval import report as report_module
+    from difffilter.eval.report import INCOMPLETE, _figures_before, write_report
+    from difffilter.eval.robustness import load_threat_set, run_robustness, write_robustness
+    from difffilter.eval.suite import run_suite
+
+    sc, _, threats = _one_tank(tmp_path, monkeypatch)
+    plain = run_suite(sc, runs=4, seed=0, progress=False)  # draws no ROC, no alarms
+    detecting = run_suite(sc, runs=4, seed=1, progress=False, add=["chi_square_kf"])
+    study = run_robustness(sc, load_threat_set(sc, path=threats), runs=4, progress=False)
+
+    def pngs(folder) -> set[str]:
+        return {p.name for p in folder.glob("*.png")}
+
+    expected = tmp_path / "expected"  # the same runs, none stopped
+    write_report(expected, plain)
+    write_robustness(expected, study)
+    write_report(expected, plain)
+
+    out = tmp_path / "out"
+    write_report(out, plain)
+    real = report_module.write_atomically
+
+    def write(path, content):  # stopped as report.md is about to be written: no report
+        if Path(path).name == "report.md":  # lists the stopped run's figures, its record does
+            raise KeyboardInterrupt
+        return real(path, content)
+
+    _stop_writing(monkeypatch, report_module, "write_atomically",
+                  lambda: write_report(out, detecting), stop=write)  # fmt: skip
+    record = _figures_before(out)
+    assert record == pngs(expected) - {"robustness.png"}
+    assert {"roc.png", "alarms_run0.png"} <= pngs(out)  # the stopped run's, listed nowhere
+    write_robustness(out, study)  # to its end
+    assert (out / INCOMPLETE).is_file()
+    assert _kinds_marked(out) == ["evaluation"]  # the stopped evaluation's still flagged
+    assert _figures_before(out) == record  # ... with its record whole
+    write_report(out, plain)  # the evaluation run again to its end
+    assert pngs(out) == pngs(expected)  # the study's heat map kept, the stopped run's gone
+    assert not (out / INCOMPLETE).exists()
+
+
+def test_an_evaluation_to_its_end_keeps_a_stopped_robustness_studys_marker(
+    tmp_path, monkeypatch, isolated_registry
+):
+    """The other way round: an evaluation run to its end removed the INCOMPLETE.md of a
+    robustness study stopped in the folder before its heat map (its robustness.json and .md
+    of this study beside the earlier heat map, unflagged). Truth: the README (the marker says
+    so until that run is repeated to its end)."""
+    from difffilter.eval import robustness
+    from difffilter.eval.report import INCOMPLETE, write_report
+    from difffilter.eval.suite import run_suite
+
+    sc, _, threats = _one_tank(tmp_path, monkeypatch)
+    plain = run_suite(sc, runs=4, seed=0, progress=False)
+    study = robustness.run_robustness(sc, robustness.load_threat_set(sc, path=threats), runs=4,
+                                      progress=False)  # fmt: skip
+    out = tmp_path / "out"
+    _stop_writing(
+        monkeypatch, robustness, "_heatmap", lambda: robustness.write_robustness(out, study)
+    )
+    assert (out / INCOMPLETE).is_file()  # the stopped study's
+    write_report(out, plain)  # to its end
+    assert (out / INCOMPLETE).is_file()
+    assert _kinds_marked(out) == ["robustness study"]
+    assert "Writing the robustness study of tank_stopped" in (out / INCOMPLETE).read_text()
+    robustness.write_robustness(out, study)  # the study run again to its end
+    assert not (out / INCOMPLETE).exists()
+
+
+def test_each_kind_of_run_into_out_clears_only_its_own_incomplete_md(
+    tmp_path, monkeypatch, isolated_registry
+):
+    """``difffilter-eval``: an evaluation and a robustness study (--threats) into one --out,
+    each stopped and then the other run to its end, the stopped one's INCOMPLETE.md stays in
+    <out> and in the scenario's folder until it is run again to its end (README); both had
+    been removed by the other kind's run."""
+    from difffilter.eval import cli, robustness, tensorboard
+    from difffilter.eval.report import INCOMPLETE
+
+    _, scenario, threats = _one_tank(tmp_path, monkeypatch)
+    out = tmp_path / "out"
+    evaluation = [str(scenario), "--runs", "4", "--no-progress", "--out", str(out)]
+    study = [*evaluation, "--threats", "all", "--threat-set", str(threats)]
+    folders = (out, out / "tank_stopped")
+
+    def stopped(module, name, args) -> None:
+        with monkeypatch.context() as m:
+            m.setattr(module, name, _interrupted)
+            assert cli.main(args) == 130
+
+    stopped(tensorboard, "log_suite", evaluation)
+    assert cli.main(study) == 0
+    assert [(f / INCOMPLETE).is_file() for f in folders] == [True, True]
+    assert [_kinds_marked(f) for f in folders] == [["evaluation"]] * 2
+    assert cli.main(evaluation) == 0
+    assert not list(out.rglob(INCOMPLETE))
+    stopped(robustness, "_heatmap", study)
+    assert cli.main(evaluation) == 0
+    assert [(f / INCOMPLETE).is_file() for f in folders] == [True, True]
+    assert [_kinds_marked(f) for f in folders] == [["robustness study"]] * 2
+    assert cli.main(study) == 0
+    assert not list(out.rglob(INCOMPLETE))
+
+
+def test_a_marker_of_the_earlier_version_is_cleared_by_its_own_kind_alone(tmp_path):
+    """An INCOMPLETE.md written before the markers had sections (no kind's heading) is read as
+    the kind its text names: an evaluation's clear leaves a stopped study's, the study's own
+    removes it; an unknown kind is refused by name."""
+    from difffilter.eval.report import INCOMPLETE, clear_incomplete, mark_incomplete
+
+    marker = tmp_path / INCOMPLETE
+    marker.write_text("# Incomplete\n\nWriting the robustness study of tank into this folder "
+                      "began at 2024-01-01 00:00:00 (process 1) and has not ended.\n")  # fmt: skip
+    clear_incomplete(tmp_path)  # an evaluation to its end
+    assert marker.is_file()
+    mark_incomplete(tmp_path, "An evaluation into this folder")
+    assert _kinds_marked(tmp_path) == ["evaluation", "robustness study"]
+    clear_incomplete(tmp_path, "robustness study")
+    assert _kinds_marked(tmp_path) == ["evaluation"]
+    clear_incomplete(tmp_path)
+    assert not marker.exists()
+    with pytest.raises(ValueError, match="kind: 'robustness'"):
+        mark_incomplete(tmp_path, "A study", kind="robustness")
