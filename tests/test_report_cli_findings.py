@@ -301,6 +301,16 @@ def test_a_value_that_fails_its_bound_is_printed_apart_from_it():
     assert "0.97999 ✗" in row and "1.05 ✓" in row and "0.020004 ✗" in row, row
 
 
+def _one_tank_spec(name: str, estimators: list[str]) -> dict:
+    """A one-tank YAML scenario (4 runs of 30 steps, a bias of 1 from step 15)."""
+    return {
+        "name": name, "runs": 4, "steps": 30, "dt": 1.0,
+        "plant": {"F": [[0.9]], "H": [[1.0]], "Q": 1.0e-3, "R": 1.0e-2},
+        "attack": {"kind": "bias", "value": 1.0, "onset": 15},
+        "estimators": estimators,
+    }  # fmt: skip
+
+
 def test_a_rerun_into_the_same_folder_leaves_none_of_the_earlier_runs_figures(
     tmp_path, monkeypatch
 ):
@@ -312,12 +322,7 @@ def test_a_rerun_into_the_same_folder_leaves_none_of_the_earlier_runs_figures(
     from difffilter.models.yaml_scenario import scenario_from_dict
 
     monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path))
-    sc = scenario_from_dict({
-        "name": "tank_rerun", "runs": 4, "steps": 30, "dt": 1.0,
-        "plant": {"F": [[0.9]], "H": [[1.0]], "Q": 1.0e-3, "R": 1.0e-2},
-        "attack": {"kind": "bias", "value": 1.0, "onset": 15},
-        "estimators": ["kf"],
-    }, "tank.yaml")  # fmt: skip
+    sc = scenario_from_dict(_one_tank_spec("tank_rerun", ["kf"]), "tank.yaml")
     out = tmp_path / "out"
     write_report(out, run_suite(sc, runs=4, seed=0, progress=False, add=["chi_square_kf"]))
     assert (out / "roc.png").is_file() and (out / "alarms_run0.png").is_file()
@@ -346,12 +351,7 @@ def test_a_rerun_after_a_stopped_evaluation_leaves_none_of_the_stopped_runs_figu
     from difffilter.models.yaml_scenario import scenario_from_dict
 
     monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path))
-    sc = scenario_from_dict({
-        "name": "tank_stopped", "runs": 4, "steps": 30, "dt": 1.0,
-        "plant": {"F": [[0.9]], "H": [[1.0]], "Q": 1.0e-3, "R": 1.0e-2},
-        "attack": {"kind": "bias", "value": 1.0, "onset": 15},
-        "estimators": ["kf"],
-    }, "tank.yaml")  # fmt: skip
+    sc = scenario_from_dict(_one_tank_spec("tank_stopped", ["kf"]), "tank.yaml")
     plain = run_suite(sc, runs=4, seed=0, progress=False)  # draws no ROC, no alarms
     detecting = run_suite(sc, runs=4, seed=1, progress=False, add=["chi_square_kf"])
     real = report_module.write_atomically
@@ -394,12 +394,7 @@ def _one_tank(tmp_path, monkeypatch):
     from difffilter.models.yaml_scenario import scenario_from_dict
 
     monkeypatch.setenv("DIFFFILTER_CACHE", str(tmp_path))
-    spec = {
-        "name": "tank_stopped", "runs": 4, "steps": 30, "dt": 1.0,
-        "plant": {"F": [[0.9]], "H": [[1.0]], "Q": 1.0e-3, "R": 1.0e-2},
-        "attack": {"kind": "bias", "value": 1.0, "onset": 15},
-        "estimators": ["kf", "chi_square_kf"],
-    }  # fmt: skip
+    spec = _one_tank_spec("tank_stopped", ["kf", "chi_square_kf"])
     (tmp_path / "tank.yaml").write_text(json.dumps(spec))  # (JSON is YAML)
     (tmp_path / "threats.yaml").write_text(
         "threats:\n  bias: {kind: bias, value: 1.0, onset: 15}\n"
