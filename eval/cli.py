@@ -725,7 +725,8 @@ def check_output_folder(out: Path, scenarios: Sequence[str] = ()) -> None:
     # would be that file (the study ran, then failed), or the leaderboard's clean-up of
     # tb_leaderboard/ removed the scenario's own events (a red-team trial)
     taken = {path.split("/")[0]: why for path, why in (files | folders).items()}
-    taken |= {INCOMPLETE: "it marks an unfinished evaluation with a file of that name",
+    taken |= {INCOMPLETE: "it marks an unfinished evaluation or robustness study with a file "
+                          "of that name",
               LOCK_FILE: "it holds a lock file of that name"}  # fmt: skip
     for name in scenarios:
         if name in taken:
