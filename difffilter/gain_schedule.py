@@ -776,10 +776,11 @@ def _source_versions(model, mats) -> tuple[tuple[Tensor, tuple | Tensor], ...]:
     and written in place (``model.F.copy_(…)``) kept its old gains without a word (a
     core-filter trial: a covariance 0.26 off)."""
     tensors = [m for m in mats if m is not None]
-    if isinstance(model, torch.nn.Module):
-        tensors += [*model.parameters(), *model.buffers()]
-    for name in ("process_noise", "measurement_noise", "initial"):  # (a model not a Module)
-        part = getattr(model, name, None)
+    # (a Module's parameters and buffers hold its noise models' and prior's, submodules)
+    parts = [model] if isinstance(model, torch.nn.Module) else [
+        getattr(model, name, None) for name in ("process_noise", "measurement_noise", "initial")
+    ]  # fmt: skip
+    for part in parts:
         if isinstance(part, torch.nn.Module):
             tensors += [*part.parameters(), *part.buffers()]
     unique = {id(t): t for t in tensors}

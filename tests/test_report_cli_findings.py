@@ -526,18 +526,15 @@ def test_each_kind_of_run_into_out_clears_only_its_own_incomplete_md(
             m.setattr(module, name, _interrupted)
             assert cli.main(args) == 130
 
-    stopped(tensorboard, "log_suite", evaluation)
-    assert cli.main(study) == 0
-    assert [(f / INCOMPLETE).is_file() for f in folders] == [True, True]
-    assert [_kinds_marked(f) for f in folders] == [["evaluation"]] * 2
-    assert cli.main(evaluation) == 0
-    assert not list(out.rglob(INCOMPLETE))
-    stopped(robustness, "_heatmap", study)
-    assert cli.main(evaluation) == 0
-    assert [(f / INCOMPLETE).is_file() for f in folders] == [True, True]
-    assert [_kinds_marked(f) for f in folders] == [["robustness study"]] * 2
-    assert cli.main(study) == 0
-    assert not list(out.rglob(INCOMPLETE))
+    for (module, name, kind, run), other in (
+        ((tensorboard, "log_suite", "evaluation", evaluation), study),
+        ((robustness, "_heatmap", "robustness study", study), evaluation),
+    ):
+        stopped(module, name, run)
+        assert cli.main(other) == 0  # the other kind to its end: the marker stays
+        assert [_kinds_marked(f) for f in folders] == [[kind]] * 2
+        assert cli.main(run) == 0  # its own kind to its end: gone
+        assert not list(out.rglob(INCOMPLETE))
 
 
 def test_a_marker_of_the_earlier_version_is_cleared_by_its_own_kind_alone(tmp_path):
