@@ -383,6 +383,7 @@ class FourTankScenario(Scenario):
         return SensorBias(self.gamma_bar if gamma_bar is None else gamma_bar, self.tau, self.p_l)
 
     def __post_init__(self):
+        self._check_fields()
         # Table 3's noisy-γ̂ column is its own scenario when γ̂ is already noisy, and the
         # Theorem-1 η is a separate estimator only where it differs from the paper's.
         names = [
@@ -400,6 +401,26 @@ class FourTankScenario(Scenario):
             # (an empty sweep had run the whole study and then failed in its report)
             raise ValueError("sweep_scales must be a non-empty tuple of finite numbers > 0 "
                              f"(the attack sizes of the detection sweep); got {scales!r}")  # fmt: skip
+
+    def _check_fields(self) -> None:
+        """The attack's and the detectors' fields, named at build: ``γ̄`` of four sensors,
+        ``τ`` and ``p_l`` (:class:`~.attacks.SensorBias`'s own checks), a false-alarm rate
+        in (0, 1), a non-negative ``γ̂`` noise variance and a positive CUSUM bias (a trial:
+        a two-entry ``γ̄``, a rate of 1.5 or a negative variance had been accepted here and
+        failed, if at all, deep inside the study)."""
+        attack = self.attack()  # (ValueError naming gamma_bar, tau or p_l)
+        if attack.dim != 4:
+            raise ValueError(
+                f"gamma_bar must be 4 numbers (one bias per level sensor, eq. 4); got "
+                f"{self.gamma_bar!r}"
+            )
+        rate = check_finite_number(self.false_alarm_rate, "false_alarm_rate")
+        if not 0.0 < rate < 1.0:
+            raise ValueError(
+                f"false_alarm_rate must lie in (0, 1) (a per-step rate); got {self.false_alarm_rate!r}"
+            )
+        check_finite_number(self.gamma_hat_noise_var, "gamma_hat_noise_var", nonnegative=True)
+        check_finite_number(self.cusum_bias, "cusum_bias", positive=True)
 
     def estimator_options(self) -> dict:
         """PoA thresholds (η of Theorem 1 with the design R [P 0.233], ζ = p_l), CUSUM b, γ̂ noise.

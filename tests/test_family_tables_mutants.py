@@ -479,6 +479,31 @@ def test_robot_attack_estimate_figures_against_numpy():
     assert a["mean_curve"] == pytest.approx(att.numpy().mean(0) / np.array([1.0, math.pi / 180]))
 
 
+def test_robot_attack_on_one_actuator_judges_the_attacked_one_alone():
+    """An attack on the speed alone, a = (2, 0): the turn rate has no relative error (None:
+    |â|/0 had been inf, "every run within 10 %" False and the verdict "partly" for any â),
+    and the speed's figures and the verdict are those of the attacked actuator."""
+    from difffilter.eval.families.robot import _claims, _extra
+
+    rng = np.random.default_rng(9)
+    result = _robot_result(rng)
+    result.traj.attack[..., 1] = 0.0
+    a_hat = result.outputs["mdpf_fused_ci"].attack.numpy()
+    a_hat[..., 0] = 2.0 * (1 + 0.01 * rng.normal(size=a_hat.shape[:2]))  # within 10 %: holds
+    a_hat[..., 1] = 0.3  # an estimate on the unattacked actuator: no relative error
+    result.outputs["mdpf_fused_ci"].attack = torch.tensor(a_hat)
+    a = _extra(result)["attack"]
+    rel = np.abs(a_hat[..., 0] - 2.0) / 2.0
+    assert a["attacked_channels"] == [True, False]
+    assert a["mean_rel_error_k44"][0] == pytest.approx(rel.mean(0)[5 + 14 - 1])
+    assert a["max_rel_error_at_end"][0] == pytest.approx(rel[:, -1].max())
+    assert a["mean_rel_error_k44"][1] is None and a["max_rel_error_at_end"][1] is None
+    assert a["all_runs_within_10pct_at_end"] is True
+    doc = {"estimators": {"zhang_akf": {"position_rmse": 1.0},
+                          "mdpf_fused_ci": {"position_rmse": 1.0}}, "attack": a}  # fmt: skip
+    assert "- â(k) converges to a (Fig. B3): holds." in _claims(doc)
+
+
 def test_robot_input_error_readings_against_numpy():
     """Every reading of ``_input_error_readings`` on a random error: pooled RMS, per-step RMS
     max, |mean| max, worst run-step, share within ±1 (|e| = 1 included), population

@@ -10,6 +10,7 @@ in the papers / docs/scenarios.md, never the code under test.
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -394,3 +395,23 @@ def test_tank_step_of_a_float32_state_on_a_float64_model_promotes_at_every_batch
     rows_alone = torch.cat([m.transition(x32[i : i + 1], None, 0) for i in (0, rows - 1)])
     torch.testing.assert_close(out[[0, rows - 1]], rows_alone, rtol=0, atol=0)
     torch.testing.assert_close(out, m.transition(x32.double(), None, 0), rtol=1e-7, atol=0)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "named"),
+    [("gamma_bar", (1.0, 2.0), "gamma_bar must be 4 numbers"),
+     ("tau", 5.0, "tau must lie in (0, 1)"), ("p_l", 2.0, "p_l must lie in [0, 1]"),
+     ("false_alarm_rate", 1.5, "false_alarm_rate must lie in (0, 1)"),
+     ("false_alarm_rate", 0.0, "false_alarm_rate must lie in (0, 1)"),
+     ("gamma_hat_noise_var", -1.0, "gamma_hat_noise_var must be a finite number >= 0"),
+     ("cusum_bias", 0.0, "cusum_bias must be a finite number > 0")],
+)  # fmt: skip
+def test_four_tank_scenario_names_a_bad_attack_or_detector_field_at_build(field, value, named):
+    """A four-tank scenario refuses, when built, an attack or detector field its study would
+    have failed on deep inside (or, for a two-entry γ̄, a rate of 1.5 or a negative γ̂ noise
+    variance, been accepted until then: a trial)."""
+    from difffilter.models.four_tank import FourTankScenario
+
+    with pytest.raises(ValueError, match=re.escape(named)):
+        FourTankScenario(name="bad", **{field: value})
+    FourTankScenario(name="good")  # the defaults build

@@ -76,6 +76,12 @@ def distance_to_path(points: torch.Tensor, path: torch.Tensor) -> torch.Tensor:
     return (points[:, :, None] - nearest).norm(dim=-1).amin(-1)
 
 
+def _on(attacked: list[bool], values: torch.Tensor) -> list[float | None]:
+    """``values [2]`` as a list, ``None`` on an actuator the attack leaves (no relative
+    error there)."""
+    return [float(v) if on else None for on, v in zip(attacked, values.tolist())]
+
+
 def _nees(out, x) -> float | None:
     """The mean over runs and steps of ``difffilter.consistency.nees``."""
     if out.covs is None:
@@ -120,12 +126,16 @@ def _extra(result) -> dict:
         a_hat, a_true = outs["mdpf_fused_ci"].attack, tr.attack[0, -1]
         rel = (a_hat - a_true).abs() / a_true.abs()  # [B, T, 2]
         k44 = sc.attack_from + 14 - 1
+        # a relative error of the attacked actuators alone: an actuator the attack leaves
+        # (a = (20, 0)) has none (|â|/0 had been inf and the verdict "partly" for any â)
+        attacked = (a_true != 0).tolist()
         extra["attack"] = {
-            "mean_rel_error_k44": rel.mean(0)[k44].tolist(),
+            "mean_rel_error_k44": _on(attacked, rel.mean(0)[k44]),
             "mean_attack_k44": (a_hat.mean(0)[k44] / torch.tensor([1.0, DEG])).tolist(),
-            "all_runs_within_10pct_at_end": bool((rel[:, -1] < 0.1).all()),
-            "max_rel_error_at_end": rel[:, -1].amax(0).tolist(),
+            "all_runs_within_10pct_at_end": bool((rel[:, -1, a_true != 0] < 0.1).all()),
+            "max_rel_error_at_end": _on(attacked, rel[:, -1].amax(0)),
             "mean_curve": (a_hat.mean(0) / torch.tensor([1.0, DEG])).tolist(),
+            "attacked_channels": attacked,
         }
     if "mdpf_fused_ci" in outs and "mdpf_fused_ci_compensated" in outs:
         ctx, name = result.context, "mdpf_fused_ci_compensated"
@@ -352,10 +362,18 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
     att, comp = doc.get("attack"), doc.get("compensation")
     if att:
         k44 = result.scenario.attack_from + 14
+        attacked = att.get("attacked_channels", [True, True])
+        rel = [
+            f(e) if on else "— (not attacked)" for on, e in zip(attacked, att["mean_rel_error_k44"])
+        ]
+        worst = [
+            f(e) if on else "— (not attacked)"
+            for on, e in zip(attacked, att["max_rel_error_at_end"])
+        ]
         body = (f"Mean fused â at k = {k44}: {f(att['mean_attack_k44'][0])} cm/s, {f(att['mean_attack_k44'][1])} deg/s "
-                f"(relative errors {f(att['mean_rel_error_k44'][0])}, {f(att['mean_rel_error_k44'][1])}; target < 0.1). "
+                f"(relative errors {rel[0]}, {rel[1]}; target < 0.1). "
                 f"Every run within 10 % at k = {doc['steps']}: {att['all_runs_within_10pct_at_end']} (largest relative errors "
-                f"{f(att['max_rel_error_at_end'][0])}, {f(att['max_rel_error_at_end'][1])}).\n")  # fmt: skip
+                f"{worst[0]}, {worst[1]}).\n")  # fmt: skip
         if comp:
             ie, oe = comp["input_error"], comp["open_loop_attack_error"]
             reading = ie[INPUT_READING]
@@ -429,8 +447,10 @@ def _claims(doc) -> str:
                      "estimates conservatively (CI) from particle approximations, so the six-lidar Zhang filter "
                      "is the stronger baseline; the paper does not say which sensors its Zhang run used.")  # fmt: skip
     if att:
-        errors = att["mean_rel_error_k44"]
-        if any(e is None for e in errors):
+        # the attacked actuators' errors (an unattacked one has no relative error)
+        attacked = att.get("attacked_channels", [True, True])
+        errors = [e for on, e in zip(attacked, att["mean_rel_error_k44"]) if on]
+        if not errors or any(e is None for e in errors):
             said = NOT_JUDGED
         else:
             ok = max(errors) < 0.1 and att["all_runs_within_10pct_at_end"]
