@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -23,7 +24,9 @@ def write_atomically(path: str | Path, content: str | bytes | Callable[[Path], o
     (a full disk's names no file, a failed rename the partial one: a report writer's error
     line had to say which file was not written)."""
     path = Path(path)
-    partial = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    # a partial file of this process and thread: two threads writing one path had shared
+    # it, and the first to finish moved the other's half-written file into place
+    partial = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.partial")
     try:
         if isinstance(content, str):
             partial.write_text(content)

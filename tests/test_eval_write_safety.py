@@ -279,3 +279,25 @@ def test_write_atomically_replaces_whole_or_not_at_all_and_names_its_file(tmp_pa
     ]
     write_atomically(path, b"\x89PNG")
     assert path.read_bytes() == b"\x89PNG"
+
+
+def test_write_atomically_keeps_two_threads_writing_one_path_apart(tmp_path):
+    """Two threads of one process writing the same path: each has its own partial file, so
+    the one that finishes first does not move the other's half-written file into place
+    (with one partial file per process, the other's replace then found no file)."""
+    import threading
+
+    path = tmp_path / "report.md"
+
+    def slow(partial: Path) -> None:
+        with partial.open("w") as f:
+            f.write("first half, ")
+            f.flush()
+            other = threading.Thread(target=write_atomically, args=(path, "the other thread\n"))
+            other.start()
+            other.join()
+            f.write("second half\n")
+
+    write_atomically(path, slow)
+    assert path.read_text() == "first half, second half\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["report.md"]
