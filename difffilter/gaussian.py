@@ -197,8 +197,9 @@ def measurement_moments(
 
 def masked_residual(residual: Tensor, mask: Tensor | None) -> Tensor:
     """``r' = M r``: the residual ``[..., dy]`` with unreceived entries zeroed (as
-    :func:`~difffilter.linalg.masked_measurement` zeroes it)."""
-    return residual if mask is None else residual * mask.to(residual.dtype)
+    :func:`~difffilter.linalg.masked_measurement` zeroes it: by selection, so that a lost
+    entry's NaN or inf is dropped, where ``r · 0`` had kept it and made the update NaN)."""
+    return residual if mask is None else torch.where(mask, residual, 0.0)
 
 
 def linear_innovation(

@@ -131,6 +131,13 @@ def safe_cholesky(
             )
         return factor
     failing = info != 0
+    if mask is not None and mask.dim() > 1:
+        batch = torch.broadcast_shapes(matrix.shape[:-2], mask.shape[:-1])
+        if batch != matrix.shape[:-2]:
+            # one matrix shared by runs with masks of their own: each run's jitter is its
+            # received entries' (the jitter's scale had been expanded to the matrix's own
+            # batch: a bare expand error, only where the matrix needed jitter)
+            matrix, failing = matrix.expand(batch + matrix.shape[-2:]), failing.expand(batch)
     eps, ceiling = JITTER_LADDER.get(matrix.dtype, JITTER_LADDER[torch.float32])
     eye, scale = _jitter_direction(matrix, mask)
     chosen = torch.zeros_like(scale)  # each member's ε (0: its own factor)

@@ -169,3 +169,58 @@ def test_each_runs_mask_gets_its_own_received_entries_jitter():
         want_mean, want_cov = _closed_form(m0, P, r[idx], H[idx], R[idx][:, idx])
         torch.testing.assert_close(mean[i].double() / unit, want_mean / unit, rtol=0, atol=1e-5)
         torch.testing.assert_close(cov[i].double() / unit**2, want_cov / unit**2, rtol=1e-2, atol=0)
+
+
+def test_one_jittered_matrix_shared_by_runs_with_masks_of_their_own():
+    """``safe_cholesky(S [d, d], mask [B, d])`` where ``S`` needs jitter: one factor per run,
+    each with its received entries' jitter, as ``S`` expanded to the runs by hand gives (a
+    bare expand error before; the public ``kalman_gain`` and ``innovation_log_prob`` took
+    the same path). Where ``S`` factorises it stays one shared factor."""
+    from difffilter.gaussian import innovation_log_prob, kalman_gain
+    from difffilter.linalg import masked_measurement
+
+    u = 1e-3  # redundant precise pairs: S is singular on the received pair in float32
+    H = torch.tensor([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, 1.0]])
+    P, R = u**2 * torch.eye(2), u**2 * 1e-9 * torch.eye(4)
+    received = torch.tensor([True, True, False, False])
+    masks = received.expand(3, 4)
+    _, Hm, Rm, count = masked_measurement(None, H, R, received)
+    S = Hm @ P @ Hm.T + Rm
+    assert torch.linalg.cholesky_ex(S).info.item() != 0  # the jitter branch
+    by_hand = safe_cholesky(S.expand(3, 4, 4), mask=masks)
+    assert torch.equal(safe_cholesky(S, mask=masks), by_hand)
+    assert safe_cholesky(S + torch.eye(4), mask=masks).shape == (4, 4)  # no jitter: shared
+    cross = P @ Hm.T
+    for shared, expanded in zip(kalman_gain(cross, S, masks),
+                                kalman_gain(cross, S.expand(3, 4, 4), masks)):  # fmt: skip
+        assert torch.equal(shared, expanded)
+    r = torch.zeros(3, 4)
+    assert torch.equal(innovation_log_prob(r, S, count, masks),
+                       innovation_log_prob(r, S.expand(3, 4, 4), count, masks))  # fmt: skip
+
+
+def test_a_lost_entry_holding_nan_leaves_the_kf_and_ekf_update_halves_alone():
+    """``update`` and ``innovation`` called directly (the halves wrappers recombine) with a
+    lost entry stored as NaN: the received sub-model's float64 update (``r · mask`` had kept
+    the NaN: mean, innovation and log-likelihood NaN; the step API, which cleans ``y``, and
+    the UKF's update were right)."""
+    d = torch.float64
+    H = torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]], dtype=d)
+    Q, R, P0 = 0.1 * torch.eye(2, dtype=d), 0.5 * torch.eye(3, dtype=d), torch.eye(2, dtype=d)
+    model = df.LinearGaussianModel(torch.eye(2, dtype=d), H, Q, R, torch.zeros(2, dtype=d), P0)
+    y = torch.tensor([[0.3, float("nan"), 0.7]], dtype=d)
+    mask = torch.tensor([[True, False, True]])
+    keep = torch.tensor([0, 2])
+    Pm, Hs, Rs, ys = P0 + Q, H[keep], R[keep][:, keep], y[0, keep]
+    S = Hs @ Pm @ Hs.T + Rs
+    mean = Pm @ Hs.T @ torch.linalg.solve(S, ys)
+    ll = torch.distributions.MultivariateNormal(torch.zeros(2, dtype=d), S).log_prob(ys)
+    for est in (df.KalmanFilter(), df.ExtendedKalmanFilter(), df.UnscentedKalmanFilter()):
+        carry = est.init(model, (1,))
+        pred = est.predict(carry, None)
+        _, out = est.update(carry, pred, y, mask)
+        nu, _, ell = est.innovation(carry, pred, y, mask)
+        torch.testing.assert_close(out.mean[0], mean, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(out.log_likelihood[0], ll, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(ell[0], ll, rtol=1e-12, atol=1e-12)
+        assert bool(torch.isfinite(nu).all()) and nu[0, 1] == 0
