@@ -634,6 +634,13 @@ class TrackingScenario(Scenario):
             "y_all": y_all,
             "sensor_flags": sensor_flags,
         }
+        if threat:
+            # the threat's own steps, lost readings included, as every other scenario keeps
+            # them: the detection delay's episodes (without them, the received attacked
+            # readings: under the Round-Robin a threat on one sensor made an episode of
+            # each of its readings, 22 a run where there is one, and a delay of 0 for 23)
+            info.update({k: base.info[k] for k in ("attack_flags", "attack_channel")
+                         if k in base.info})  # fmt: skip
         return Trajectories(base.x, y_true, y_recv, None, mask, injected, flags, info)
 
     def _hold(self, y_all: Tensor, mask: Tensor) -> Tensor:

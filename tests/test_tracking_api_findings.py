@@ -169,3 +169,29 @@ def test_a_simulation_that_draws_from_the_global_generator_says_so():
         b = sc.simulate(2, Streams(0).simulation())
     assert torch.equal(a.flags, b.flags) and torch.equal(a.y_recv, b.y_recv)
     assert torch.equal(state, torch.random.get_rng_state())
+
+
+def test_a_threat_on_one_sensor_keeps_its_own_steps_for_the_detection_delay():
+    """A library threat on one tracking sensor (entries 0 and 1 from k = 30): the
+    trajectories keep the threat's own flags, as the generic simulation on the same model,
+    schedule and streams does, so the detection delay's episodes are one a run (under the
+    Round-Robin each received attacked reading had been an episode of its own: 22 a run,
+    and a delay of 0 where the first alarm comes 20 steps into the attack)."""
+    from difffilter.eval.scoring import episode_delay
+    from difffilter.models import registry
+    from difffilter.models.scenario import simulate
+    from difffilter.models.streams import Streams
+    from difffilter.threats import Bias
+
+    sc = registry.get("tracking_rrp_deception")
+    threat = Bias(value=[40.0, 0.3] + [0.0] * 6, entries=[0, 1], onset=30)
+    tr = sc.with_threat(threat).simulate(4, Streams(0).simulation())
+    generic = simulate(sc.system(), 4, sc.steps, generators=Streams(0).simulation(),
+                       attack=threat, schedule=sc.schedule())  # fmt: skip
+    assert torch.equal(tr.flags, generic.flags)
+    assert torch.equal(tr.info["attack_flags"], generic.info["attack_flags"])
+    alarms = tr.flags & (torch.arange(1, sc.steps + 1) >= 50)
+    delay = episode_delay(alarms, tr)
+    assert delay["episodes"] == 4 and delay["detected"] == 4
+    first = [int(alarms[i].nonzero()[0]) + 1 for i in range(4)]  # k of each run's first alarm
+    assert delay["mean_delay"] == pytest.approx(sum(k - 30 for k in first) / 4)
