@@ -47,6 +47,7 @@ inject nothing up to ``k``: a :class:`~difffilter.attack.TabulatedAttack`, check
 
 from __future__ import annotations
 
+import dataclasses
 import linecache
 import re
 import traceback
@@ -411,7 +412,9 @@ class LoopState(NamedTuple):
     (or ``None``) and its last output ``view`` (what an adaptive attacker reads); under an
     :class:`~difffilter.input_loss.InputLoss` that holds, its
     :class:`~difffilter.input_loss.InputMemory` (the input the actuators hold, the
-    estimator's knowledge of it, the attack in it), else ``None``."""
+    estimator's knowledge of it, the attack in it), else ``None``; ``attacker``: the
+    :class:`~difffilter.attack.Attack` whose state ``attack`` is (a loop resumed from it
+    with another attack is refused: the other's name had stepped this one's tables)."""
 
     k: int
     x: Tensor
@@ -420,6 +423,7 @@ class LoopState(NamedTuple):
     carry: Any
     view: Any
     inputs: Any = None
+    attacker: Any = None
 
     def detach(self) -> LoopState:
         """The same state cut from the autograd graph (truncated backpropagation)."""
@@ -614,6 +618,8 @@ def closed_loop(
     if fork is not None or state is not None:
         _check_resumed(fork.state if fork is not None else state, "fork" if fork else "state",
                        estimator, given_model)  # fmt: skip
+    if state is not None:
+        _check_resumed_attack(state, attack)
     if fork is not None:
         state, rec, outs = _resume(fork, plant, attack, attack_generator, channel,
                                    horizon or fork.state.k + steps)  # fmt: skip
@@ -642,7 +648,8 @@ def closed_loop(
         _check_fork_mask(rec["mask"], mask, first)
         if input_loss is not None:
             _check_fork_input_loss(rec, input_loss, first)
-    k, x, u, a_state, carry, view, memory = state
+    k, x, u, a_state, carry, view, memory, attacker = state
+    attacker = attacker if attack is None else attack  # (None: the kept attacker's state stays)
     if channel is Channel.ACTUATOR and plant.dim_u == 0:  # (no controller could help it)
         raise ValueError(
             f"attack {type(attack).__name__} acts on the actuators, and the plant has no input "
@@ -706,7 +713,7 @@ def closed_loop(
             if progress is not None:
                 progress(1)
             if forks is not None and k in forks:
-                kept = LoopState(k, x, u, a_state, carry, view, memory).copy()
+                kept = LoopState(k, x, u, a_state, carry, view, memory, attacker).copy()
                 forks[k] = LoopFork(kept, {key: list(v) for key, v in rec.items()}, list(outs))
     except (TypeError, AttributeError) as error:
         if attack is not None and hasattr(error, "add_note"):  # (Python ≥ 3.11)
@@ -719,7 +726,7 @@ def closed_loop(
         _check_finite(traj, first, attack, controller, channel)
     batch = x.shape[:-1]
     output = stack_steps(outs, batch, attack_channel=estimator.attack_channel) if outs else None
-    return LoopResult(traj, output, LoopState(k, x, u, a_state, carry, view, memory))
+    return LoopResult(traj, output, LoopState(k, x, u, a_state, carry, view, memory, attacker))
 
 
 class _Untouched:
@@ -1153,6 +1160,60 @@ def _with_input_memory(input_loss: InputLoss, plant, state: LoopState, steps: in
     return state._replace(inputs=input_loss.start(u))
 
 
+def _check_resumed_attack(kept: LoopState, attack) -> None:
+    """A loop resumed from ``state=`` goes on with the attack whose state it kept (none
+    where it ran without one, then ``attack=None``), not another: the attacker's state is
+    that attack's own tables, so another attack had stepped them under its name (a ramp
+    resumed on a bias's state injected the bias), and an attack on a loop kept without one
+    had no state to step (a bare ``TypeError`` on ``None``)."""
+    if attack is None or kept.k == 0:
+        return
+    if kept.attack is None:
+        raise ValueError(
+            f"state: the loop kept ran without attack, so attack {type(attack).__name__} has "
+            "no state to go on from: start the loop with the attack (its onset after this "
+            "chunk's first step), or continue a fork of the loop without attack (fork=, "
+            "with ReplayedNoise)"
+        )
+    made = kept.attacker
+    if made is not None and made is not attack and _differ(made, attack):
+        raise ValueError(
+            f"state: the loop kept ran under {type(made).__name__} and this call gives "
+            f"{type(attack).__name__}: a resumed loop goes on with the attack it kept (its "
+            "state is that attack's own), the same object or one equal to it; to change the "
+            "attack, start a new loop or continue a fork of the loop without attack"
+        )
+
+
+def _differ(made, given) -> bool:
+    """Whether ``given`` is shown to be another attack than ``made``: another class, or a
+    dataclass of other field values (tensors compared by value). An attack of the same
+    class whose values cannot be compared (an attack of one's own without ``__eq__``, a
+    :class:`~difffilter.models.attacks.Signal` made anew from the same table) is taken for
+    the same: a loop run in chunks may build its attack again for each."""
+    if type(made) is not type(given):
+        return True
+    if not dataclasses.is_dataclass(made):
+        return False
+    return any(_values_differ(getattr(made, f.name), getattr(given, f.name))
+               for f in dataclasses.fields(made))  # fmt: skip
+
+
+def _values_differ(a, b) -> bool:
+    """Whether two field values are shown to differ (``False`` where they cannot be told
+    apart or compared)."""
+    if isinstance(a, Tensor) or isinstance(b, Tensor):
+        if not (isinstance(a, Tensor) and isinstance(b, Tensor)):
+            return True
+        return a.shape != b.shape or a.dtype != b.dtype or not torch.equal(a.cpu(), b.cpu())
+    if isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)):
+        return len(a) != len(b) or any(_values_differ(x, y) for x, y in zip(a, b))
+    try:
+        return not bool(a == b)
+    except (RuntimeError, TypeError, ValueError):
+        return False
+
+
 def _check_resumed(kept: LoopState, given: str, estimator, model) -> None:
     """A loop resumed from ``kept`` (``given``: ``"state"`` or ``"fork"``) runs its
     estimator on the carry kept (one exactly where the kept loop had an estimator), with
@@ -1237,7 +1298,7 @@ def _start(plant, steps, horizon, x0, estimator, model, controller, attack, atta
     carry = None
     if estimator is not None:
         carry = estimator._init(model, batch, Generators.of(generator))
-    return LoopState(0, x0, u, a_state, carry, None)
+    return LoopState(0, x0, u, a_state, carry, None, None, attack)
 
 
 def _check_controller(controller) -> None:
@@ -1334,7 +1395,7 @@ def _resume(fork: LoopFork, plant, attack, attack_generator, channel, horizon):
         records[key] = list(table.unbind(time))
     if channel is Channel.ACTUATOR and records["arrived"]:  # (under input_loss: none acted)
         records["acting"] = [torch.zeros_like(arrived) for arrived in records["arrived"]]
-    return state._replace(attack=a_state), records, list(fork.outputs)
+    return state._replace(attack=a_state, attacker=attack), records, list(fork.outputs)
 
 
 def _check_fork_input_loss(kept: dict, input_loss, first: int) -> None:

@@ -221,3 +221,43 @@ def test_an_actuator_attacks_nan_is_named_without_an_estimator():
         closed_loop(plant, 6, attack=NaNOnTheActuator(), **kw)
     clean = closed_loop(plant, 6, **kw)  # no attack: nothing said
     assert bool(torch.isfinite(clean.trajectories.x).all())
+
+
+def _resumable_loop():
+    """A small controlled plant with a Kalman filter and state feedback, its noise
+    replayed (so that chunks and forks are the same loop)."""
+    from difffilter.loop import ReplayedNoise, StateFeedback
+
+    D = torch.float64
+    F = torch.tensor([[1.0, 0.1], [0.0, 0.98]], dtype=D)
+    plant = df.LinearGaussianModel(F, torch.eye(2, dtype=D), 0.01 * torch.eye(2, dtype=D),
+                                   0.04 * torch.eye(2, dtype=D), torch.zeros(2, dtype=D),
+                                   torch.eye(2, dtype=D), B=torch.tensor([[0.0], [0.1]], dtype=D))  # fmt: skip
+    g = torch.Generator().manual_seed(0)
+    w, v = (s * torch.randn(2, 20, 2, generator=g, dtype=D) for s in (0.1, 0.2))
+    kw = dict(noise=ReplayedNoise(w, v), estimator=df.KalmanFilter(),
+              controller=StateFeedback(torch.tensor([[0.5, 1.0]], dtype=D)))  # fmt: skip
+    return plant, torch.zeros(2, 2, dtype=D), kw
+
+
+def test_a_resumed_loop_goes_on_with_the_attack_it_kept():
+    """``closed_loop(state=…)`` with another attack than the one the state was kept under
+    is refused (a ramp resumed on a bias's state had injected the bias under the ramp's
+    name); the same attack, or one equal to it, goes on as one loop; an attack on a loop
+    kept without one is refused by name (a bare TypeError on None before)."""
+    from difffilter.loop import closed_loop
+    from difffilter.threats import Bias, Ramp
+
+    plant, x0, kw = _resumable_loop()
+    whole = closed_loop(plant, 20, x0=x0, attack=Bias(value=1.0, onset=2), **kw)
+    first = closed_loop(plant, 10, x0=x0, horizon=20, attack=Bias(value=1.0, onset=2), **kw)
+    with pytest.raises(ValueError, match="ran under Bias and this call gives Ramp"):
+        closed_loop(plant, 10, state=first.state, attack=Ramp(slope=0.5, onset=12), **kw)
+    with pytest.raises(ValueError, match="ran under Bias and this call gives Bias"):
+        closed_loop(plant, 10, state=first.state, attack=Bias(value=2.0, onset=2), **kw)
+    again = closed_loop(plant, 10, state=first.state, attack=Bias(value=1.0, onset=2), **kw)
+    assert torch.equal(again.trajectories.attack, whole.trajectories.attack[:, 10:])
+    assert torch.equal(again.trajectories.x, whole.trajectories.x[:, 10:])
+    free = closed_loop(plant, 10, x0=x0, horizon=20, **kw)
+    with pytest.raises(ValueError, match="the loop kept ran without attack"):
+        closed_loop(plant, 10, state=free.state, attack=Bias(value=1.0, onset=12), **kw)
