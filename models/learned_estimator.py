@@ -303,7 +303,7 @@ def load_estimator(path, *, num_particles: int | None = None, resampler=None,
     LFC checkpoints run inside the LFC closed loop (the secure controller and the online
     learners): evaluate them with ``difffilter-eval lfc``. Errors name the argument.
     """
-    from difffilter.models.neural_estimator import load_estimator_checkpoint
+    from difffilter.models.neural_estimator import _weights_dtype, load_estimator_checkpoint
 
     dtype = _weights_dtype(dtype)
     device = _device(device)
@@ -343,19 +343,6 @@ def calibrated_particles(card) -> int | None:
         except ValueError:  # a scenario of one's own not registered here: the card's
             n = None
     return card.num_particles if n is None else int(n)
-
-
-def _weights_dtype(dtype) -> torch.dtype:
-    """``dtype`` of :func:`load_estimator` as a torch floating dtype: ``torch.float32``,
-    ``torch.float64`` or their names (a name was blamed on the file; float16 slipped by)."""
-    named = {"float32": torch.float32, "float64": torch.float64, "double": torch.float64,
-             "float": torch.float32}  # fmt: skip
-    dtype = named.get(dtype, dtype) if isinstance(dtype, str) else dtype
-    if dtype not in (torch.float32, torch.float64):
-        raise ValueError(
-            f"dtype must be torch.float32 or torch.float64 (the weights'); got {dtype!r}"
-        )
-    return dtype
 
 
 def _device(device):

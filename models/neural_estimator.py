@@ -621,8 +621,9 @@ def load_estimator_checkpoint(
     with the ``"sha256"`` of the card beside it (``path`` with suffix ``.json``, written
     by ``ExportEstimator``) when that card exists; every weight must be finite.
 
-    ``dtype``: the estimator's; ``None`` keeps the stored weights' (what an export or a
-    recalibration writes back unchanged).
+    ``dtype``: the estimator's, ``torch.float32`` or ``torch.float64`` (or their names);
+    ``None`` keeps the stored weights' (what an export or a recalibration writes back
+    unchanged).
 
     Returns ``(estimator, card)`` (:class:`EstimatorCard`). ``FileNotFoundError`` if ``path`` does not
     exist; ``ValueError`` naming ``path`` if it is not such a checkpoint (wrong format,
@@ -633,6 +634,9 @@ def load_estimator_checkpoint(
         raise TypeError(
             f"ckpt: the checkpoint's path must be a str or os.PathLike; got {type(path).__name__}"
         )
+    # before the file is read: a name had been blamed on the file ("does not match its own
+    # configuration"), and float16 or complex64 built a network of that dtype
+    dtype = None if dtype is None else _weights_dtype(dtype)
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"ckpt: no checkpoint file at {path}")
@@ -697,3 +701,16 @@ def load_estimator_checkpoint(
         raise ValueError(f"ckpt: {path} has an unreadable card ({exc})") from exc
     _check_card_beside(path, card, beside)
     return estimator, card
+
+
+def _weights_dtype(dtype) -> torch.dtype:
+    """``dtype`` of :func:`load_estimator` as a torch floating dtype: ``torch.float32``,
+    ``torch.float64`` or their names (a name was blamed on the file; float16 slipped by)."""
+    named = {"float32": torch.float32, "float64": torch.float64, "double": torch.float64,
+             "float": torch.float32}  # fmt: skip
+    dtype = named.get(dtype, dtype) if isinstance(dtype, str) else dtype
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(
+            f"dtype must be torch.float32 or torch.float64 (the weights'); got {dtype!r}"
+        )
+    return dtype

@@ -201,3 +201,18 @@ def test_a_loaded_estimators_arguments_are_named_from_a_fuzzing_trial():
     masked = te.run(model, ys.nan_to_num(0.0), mask=torch.isfinite(ys),
                     generator=torch.Generator().manual_seed(1))  # fmt: skip
     assert torch.equal(skipped.means, masked.means)  # the entry read as unreceived
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.complex64, torch.int64, "half"])
+def test_the_checkpoint_loader_names_a_dtype_it_cannot_build_before_reading_the_file(dtype):
+    """``load_estimator_checkpoint(path, dtype=…)`` (the loader under ``load_estimator``,
+    which the train commands call) refuses a dtype other than float32 and float64 by name:
+    float16 and complex64 had built a network of that dtype, a name or an integer dtype had
+    been blamed on the file ("does not match its own configuration"). Names of the two work."""
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+
+    ckpt = registry.get("robot_actuator_attack").shipped_checkpoint()
+    with pytest.raises(ValueError, match="dtype must be torch.float32 or torch.float64"):
+        load_estimator_checkpoint(ckpt, dtype=dtype)
+    est, _ = load_estimator_checkpoint(ckpt, dtype="float32")
+    assert {p.dtype for p in est.parameters()} == {torch.float32}
