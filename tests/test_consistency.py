@@ -5,6 +5,8 @@ the bounds) and one whose F is wrong has correlated innovations."""
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from scipy.stats import chi2
@@ -178,3 +180,23 @@ def test_whiteness_names_covariances_of_another_dtype():
     with pytest.raises(ValueError, match="innovation_covs are torch.float32 on cpu and innovations "
                                          "torch.float64 on cpu: give them one dtype"):  # fmt: skip
         whiteness(nu, S.float())
+
+
+def test_the_share_outside_is_of_the_steps_with_data():
+    """A sensor read every 10th step (``dof = mask.sum(-1)``, 0 in between): ``outside`` is
+    the share of the tested steps outside the bounds, counted by hand from the returned
+    average and bounds, not diluted by the 90 % of steps that test nothing (counted as
+    inside, a filter whose S was 25 % too small had read 3–5 %, as a consistent one); NaN
+    where no step has data."""
+    R, T = 50, 600
+    recv = torch.zeros(R, T, 2, dtype=torch.bool)
+    recv[:, ::10] = True
+    dof = recv.sum(-1)
+    z = torch.randn(R, T, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    nis = 1.25 * (z.square() * recv).sum(-1)
+    r = ensemble_test(nis, dof)
+    tested = dof.sum(0) > 0
+    inside = (r.mean >= r.low) & (r.mean <= r.high)
+    assert r.outside == pytest.approx(float((~inside[tested]).double().mean()))
+    assert r.outside > 0.2  # the miscalibrated S shows (0.3-0.5 on the tested steps)
+    assert math.isnan(ensemble_test(torch.zeros(3, 5), torch.zeros(3, 5, dtype=torch.long)).outside)
