@@ -97,6 +97,8 @@ class ThreatSet:
         # caller's mapping stays as it was given)
         if self.runs is not None:  # (0 had fallen through to the scenario's 100 runs)
             check_positive_int(self.runs, "ThreatSet.runs")
+        if not self.threats:  # (the study had run and written empty tables: no verdict)
+            raise ValueError("ThreatSet.threats names no threat: give {name: attack}, at least one")
         self.specs = dict(self.specs)
         for name, attack in self.threats.items():
             if name not in self.specs:

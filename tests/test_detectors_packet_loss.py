@@ -429,3 +429,20 @@ def test_a_mask_of_every_entry_changes_no_nis_of_a_shared_s():
     every = torch.ones(6, 50, 4, dtype=torch.bool)
     assert torch.equal(df.fdi.normalized_innovation_squared(nu, S, mask=every),
                        df.fdi.normalized_innovation_squared(nu, S))  # fmt: skip
+
+
+def test_the_nis_and_the_detectors_refuse_innovations_and_s_of_two_dtypes():
+    """float64 innovations with a float32 S (and the reverse): refused by name, as
+    ``whiteness`` and ``nees`` refuse them (the NIS had come out float32, 1.5e-5 off the
+    float64 statistic, and the χ² and CUSUM alarms were decided on it)."""
+    g = torch.Generator().manual_seed(4)
+    nu = torch.randn(3, 20, 2, generator=g, dtype=torch.float64)
+    S = torch.eye(2, dtype=torch.float64).expand(3, 20, 2, 2) * 1.3
+    calls = (lambda n, s: df.fdi.normalized_innovation_squared(n, s),
+             lambda n, s: df.fdi.ChiSquareDetector(2, 0.01).detect(n, s),
+             lambda n, s: df.fdi.CusumDetector(4.0, 5.0).detect(n, s))  # fmt: skip
+    for call in calls:
+        for n, s in ((nu, S.float()), (nu.float(), S)):
+            with pytest.raises(ValueError, match="give them one dtype and device"):
+                call(n, s)
+        call(nu, S)  # one dtype: runs

@@ -211,6 +211,20 @@ def test_literal_normal_pf_misses_what_the_log_space_pf_detects():
 # ------------------------------------------------------------------------- γ̂ estimator
 
 
+def test_bias_attack_estimator_names_residuals_of_another_dtype():
+    """A float32 estimator fed float64 residuals, and a float64 one fed float32: refused by
+    name, with the constructor's dtype to use (torch's "expected scalar type Float but found
+    Double" had named neither; the other way round γ̂ came back float64, silently)."""
+    for own, other in ((torch.float32, torch.float64), (torch.float64, torch.float32)):
+        est = fdi.BiasAttackEstimator(2, 0.9, dtype=own)
+        state = est.init((1,))
+        r, S = torch.zeros(1, 2, dtype=other), torch.eye(2, dtype=other)
+        with pytest.raises(ValueError, match=rf"residual is {other} .* dtype={other}"):
+            est.step(state, r, S, torch.ones(1, dtype=torch.bool))
+        _, g_hat, _ = est.step(state, r.to(own), S.to(own), torch.ones(1, dtype=torch.bool))
+        assert g_hat.dtype == own
+
+
 def test_bias_attack_estimator_tracks_eq4_from_flagged_residuals():
     attack = BiasAttack((0.5, -0.3), tau=0.9)
     gammas = attack.values(40).unsqueeze(0)  # [1, T, 2]

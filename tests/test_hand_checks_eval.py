@@ -77,7 +77,9 @@ def test_robustness_takes_the_runs_it_is_given(monkeypatch):
     monkeypatch.setattr(robustness, "calibrate", calibrate)
     monkeypatch.setattr(robustness, "run_suite", run_suite)
     scenario = NS(name="s", runs=100, with_threat=lambda threat: None)
-    threat_set = robustness.ThreatSet(threats={}, specs={}, runs=40)
+    threat_set = robustness.ThreatSet(threats={"b": object()}, specs={"b": {"kind": "b"}}, runs=40)
+    threat_set.threats.clear()  # (the sizes alone: no threat's run to fake)
+    threat_set.specs.clear()
     result = robustness.run_robustness(
         scenario, threat_set, runs=7, calibration_runs=13, progress=False
     )

@@ -177,3 +177,12 @@ def test_the_reading_ratio_prints_apart_from_the_bar():
     check = {"best_reads_no_measurements": True, "best_reading": 0.16,
              "best_reading_estimator": "chi", "ratio_reading": 1.1004}  # fmt: skip
     assert _reading_cell(check).endswith("1.1004×")
+
+
+def test_a_threat_set_of_no_threat_is_refused_when_made():
+    """``ThreatSet({})`` in Python: refused by name, as the command line's empty --threats
+    and a file's empty threat mapping are (it had run the calibration and the attack-free
+    study, then written empty tables and heat maps, and no verdict for the learned
+    estimator)."""
+    with pytest.raises(ValueError, match="ThreatSet.threats names no threat"):
+        ThreatSet({})

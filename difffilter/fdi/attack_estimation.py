@@ -94,6 +94,16 @@ class BiasAttackEstimator:
         for name, value in (("residual", residual), ("residual_cov", residual_cov), ("flag", flag)):
             if not isinstance(value, Tensor):
                 raise TypeError(f"{name} must be a torch.Tensor; got {type(value).__name__}")
+        own = self.model.initial.mean
+        for name, value in (("residual", residual), ("residual_cov", residual_cov)):
+            if (value.dtype, value.device) != (own.dtype, own.device):
+                # (torch's "expected scalar type Float but found Double" had named neither;
+                # the other way round, γ̂ came back in the residual's dtype, silently)
+                raise ValueError(
+                    f"{name} is {value.dtype} on {value.device} and this estimator "
+                    f"{own.dtype} on {own.device}: give the residuals in the estimator's dtype, "
+                    f"or build it with BiasAttackEstimator(..., dtype={value.dtype})"
+                )
         if residual.shape[-1] != d or residual_cov.shape[-2:] != (d, d):
             raise ValueError(
                 f"residual must be [..., {d}] and residual_cov [..., {d}, {d}]; "
