@@ -409,10 +409,27 @@ def craft_stealthy_attack(
     raw.requires_grad_(True)
     optimiser = torch.optim.Adam([raw], lr=s.lr)
 
+    unseeded = generator is None and start is None
+
     def run(received: Tensor, us: Tensor | None, mask: Tensor | None):
         carry = None if start is None else start(received.shape[0])
         gens = None if generator is None or carry is not None else generator()
-        return open_loop(estimator, model, received, us, mask=mask, generator=gens, carry=carry)
+        if not unseeded:
+            return open_loop(estimator, model, received, us, mask=mask, generator=gens,
+                             carry=carry)  # fmt: skip
+        before = torch.random.get_rng_state()
+        out = open_loop(estimator, model, received, us, mask=mask)
+        if not torch.equal(before, torch.random.get_rng_state()):
+            # the attacked and attack-free runs would filter with other draws: the noise the
+            # budget's p(a) − p(0) cancels did not (0.31 points, about ε, at the zero attack
+            # of a particle filter), and no crafting repeated itself (a trial)
+            raise ValueError(
+                f"estimator {type(estimator).__name__} draws random numbers, and neither "
+                "generator nor start is given: its runs drew from torch's global generator, "
+                "so the attacked and attack-free runs filtered with other draws; give "
+                "generator=lambda: torch.Generator().manual_seed(s) (or start=, its carry)"
+            )
+        return out
 
     def pairs(name: str, mask: Tensor | None, runs: int) -> Tensor:
         # the (run, step) pairs the loop calls attacked [B, T] (attacked_pairs). The rates
