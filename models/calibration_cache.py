@@ -58,6 +58,18 @@ def _feed(digest, value: Any, seen: dict[int, tuple[int, Any]], depth: int = 0) 
     """Hash what determines a model's numbers: tensors by value, functions by code."""
     # (deep enough for a model inside a tuple: tuple → model → modules → noise → buffers)
     if depth > 16:
+        # a network nested deeper (blocks of blocks of layers) by its weights, not skipped:
+        # another network loaded under the same name had kept the old CUSUM τ (a trial);
+        # the walk meets it as a module or in a module's `_modules`
+        items = value.values() if isinstance(value, dict) else value
+        group = items if isinstance(value, (dict, list, tuple)) else (value,)
+        for module in group:
+            if isinstance(module, torch.nn.Module) and id(module) not in seen:
+                seen[id(module)] = (len(seen), module)
+                digest.update(f"module {type(module).__qualname__}".encode())
+                for name, tensor in module.state_dict().items():
+                    digest.update(name.encode())
+                    _feed(digest, tensor, seen, 0)
         return
     met = seen.get(id(value))
     if met is not None:  # met before: a mark naming which, so that (a, a) and (a,) read
@@ -108,6 +120,13 @@ def _feed(digest, value: Any, seen: dict[int, tuple[int, Any]], depth: int = 0) 
         for key in sorted(value, key=repr):
             digest.update(repr(key).encode())
             _feed(digest, value[key], seen, depth + 1)
+        return
+    if isinstance(value, (types.BuiltinFunctionType, types.BuiltinMethodType)):
+        # by name: torch.sin and torch.cos have no code to hash, and had both been hashed
+        # as their type (a plant reading ACT = torch.sin edited to torch.cos kept its τ)
+        owner = getattr(value, "__self__", None)
+        where = getattr(value, "__module__", None) or type(owner).__qualname__
+        digest.update(f"builtin {where}.{getattr(value, '__qualname__', value.__name__)}".encode())
         return
     code = getattr(value, "__code__", None)
     if code is not None:  # a function: its code, constants, defaults, closure and globals
@@ -175,9 +194,28 @@ def _class_code(cls: type) -> bytes:
                     # where the default is a function: a new digest in every process)
                     _feed(digest, getattr(attr, "__defaults__", None), {})
                     _feed(digest, getattr(attr, "__kwdefaults__", None), {})
+                elif not name.startswith("__") and _plain_value(attr):
+                    # a constant of the class (G = 9.81 read as self.G): edited, it had kept
+                    # its CUSUM τ; numbers, strings and tensors, and groups of them
+                    digest.update(name.encode())
+                    _feed(digest, attr, {})
         known = digest.digest()
         _CLASS_CODE[cls] = (members, known)
     return known
+
+
+def _plain_value(value) -> bool:
+    """Whether a class attribute is a constant to hash by value: a number, string, tensor
+    or array, or a tuple, list or dict of them (not a class, descriptor or object, whose
+    hashing is the generic one's)."""
+    if isinstance(value, (int, float, complex, str, bytes, bool, type(None), torch.Tensor,
+                          np.ndarray, np.generic)):  # fmt: skip
+        return True
+    if isinstance(value, (tuple, list)):
+        return all(_plain_value(v) for v in value)
+    if isinstance(value, dict):
+        return all(_plain_value(v) for v in value.values())
+    return False
 
 
 def _members(cls: type) -> tuple:

@@ -476,11 +476,13 @@ class SuiteContext:
 
 
 def _is_cusum_calibration(value) -> bool:
-    """A CUSUM calibration read from disk: finite ``bias`` and ``threshold`` numbers."""
+    """A CUSUM calibration read from disk: finite ``bias > 0`` and ``threshold >= 0`` (what
+    :class:`~difffilter.fdi.CusumDetector` takes: a file edited to a bias of 0 had passed
+    here and failed the evaluation in the detector's words, naming no cache file)."""
     return isinstance(value, dict) and all(
         isinstance(value.get(k), (int, float)) and not isinstance(value.get(k), bool)
         and math.isfinite(value[k]) for k in ("bias", "threshold")
-    )  # fmt: skip
+    ) and value["bias"] > 0 and value["threshold"] >= 0  # fmt: skip
 
 
 def _filter_key(filter) -> str:

@@ -232,3 +232,48 @@ def test_a_repeat_is_named_so_what_repeats_changes_the_fingerprint():
     # equal values in other objects, repeated alike, are the same fingerprint (by value)
     again = {"rate": 0.1}
     assert model_fingerprint([slow, fast, slow]) == model_fingerprint([again, {"rate": 0.9}, again])
+
+
+def test_the_plant_fingerprint_sees_class_constants_builtins_and_deep_networks():
+    """Three plants' edits that had kept the old fingerprint, and so the old cached CUSUM
+    τ (a cache trial): a constant kept on the class (``G = 9.81`` read as ``self.G``), a
+    torch builtin read as a function (``torch.sin`` edited to ``torch.cos``: hashed by their
+    type alone), and a network nested deeper than the fingerprint's walk (blocks of blocks of
+    layers: its weights had never been hashed)."""
+    from difffilter.models.calibration_cache import model_fingerprint
+
+    def plant_class(g):
+        class Pendulum:
+            G = g
+
+            def transition(self, x):
+                return x - self.G * x
+
+        return Pendulum
+
+    assert model_fingerprint(plant_class(9.81)()) != model_fingerprint(plant_class(3.0)())
+    assert model_fingerprint(plant_class(9.81)()) == model_fingerprint(plant_class(9.81)())
+    assert model_fingerprint((torch.sin,)) != model_fingerprint((torch.cos,))
+    assert model_fingerprint((torch.sin,)) == model_fingerprint((torch.sin,))
+
+    def deep(seed):
+        torch.manual_seed(seed)
+        net = torch.nn.Linear(2, 2)
+        for _ in range(12):  # each Sequential two levels deeper (the module, its _modules)
+            net = torch.nn.Sequential(net)
+        return net
+
+    assert model_fingerprint((deep(0),)) != model_fingerprint((deep(1),))
+    assert model_fingerprint((deep(0),)) == model_fingerprint((deep(0),))
+
+
+def test_a_cusum_cache_file_out_of_the_detectors_range_is_computed_again():
+    """A cached CUSUM calibration with a bias of 0 or a negative threshold is not a
+    calibration (the evaluation had failed in the detector's words, naming no file)."""
+    from difffilter.models.estimators import _is_cusum_calibration
+
+    assert _is_cusum_calibration({"bias": 6.0, "threshold": 3.4})
+    assert _is_cusum_calibration({"bias": 6.0, "threshold": 0.0})
+    for bad in ({"bias": 0.0, "threshold": 3.4}, {"bias": 6.0, "threshold": -1.0},
+                {"bias": -2.0, "threshold": 1.0}):  # fmt: skip
+        assert not _is_cusum_calibration(bad)
