@@ -127,6 +127,8 @@ def _feed(digest, value: Any, seen: dict[int, tuple[int, Any]], depth: int = 0) 
         owner = getattr(value, "__self__", None)
         where = getattr(value, "__module__", None) or type(owner).__qualname__
         digest.update(f"builtin {where}.{getattr(value, '__qualname__', value.__name__)}".encode())
+        if owner is not None and not isinstance(owner, (types.ModuleType, type)):
+            _feed(digest, owner, seen, depth + 1)  # bound to an object: its values too (x.add)
         return
     code = getattr(value, "__code__", None)
     if code is not None:  # a function: its code, constants, defaults, closure and globals

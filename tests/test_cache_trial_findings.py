@@ -255,6 +255,7 @@ def test_the_plant_fingerprint_sees_class_constants_builtins_and_deep_networks()
     assert model_fingerprint(plant_class(9.81)()) == model_fingerprint(plant_class(9.81)())
     assert model_fingerprint((torch.sin,)) != model_fingerprint((torch.cos,))
     assert model_fingerprint((torch.sin,)) == model_fingerprint((torch.sin,))
+    assert model_fingerprint((torch.ones(2).add,)) != model_fingerprint((torch.zeros(2).add,))
 
     def deep(seed):
         torch.manual_seed(seed)
