@@ -324,6 +324,17 @@ def check_sequence(t: Tensor, name: str, dim: int, *, allow_nan: Tensor | None =
         )
 
 
+def check_one_dtype_device(data: Tensor, data_name: str, covs: Tensor, covs_name: str) -> None:
+    """``ValueError`` where ``covs`` are of another dtype or device than ``data`` (a
+    statistic whitened by covariances of another dtype came out in theirs, or promoted,
+    without a word: float32 covariances of float64 innovations, 1.5e-5 off)."""
+    if covs.dtype != data.dtype or covs.device != data.device:
+        raise ValueError(
+            f"{covs_name} are {covs.dtype} on {covs.device} and {data_name} {data.dtype} on "
+            f"{data.device}: give them one dtype and device"
+        )
+
+
 def check_mask(mask: Tensor, name: str, shape: torch.Size) -> Tensor:
     """``mask`` must be boolean (or 0/1) and broadcast to ``shape``; returns it as bool."""
     if not isinstance(mask, Tensor):

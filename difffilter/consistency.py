@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._checks import broadcast_or_none, check_rate
+from ._checks import broadcast_or_none, check_one_dtype_device, check_rate
 from .linalg import safe_cholesky
 
 __all__ = ["nees", "chi_square_bounds", "ensemble_test", "ConsistencyTest", "whiteness"]
@@ -56,9 +56,7 @@ def nees(errors: Tensor, covs: Tensor) -> Tensor:
             f"covs must be [..., {n}, {n}] (the filter's covariances); got "
             f"{tuple(covs.shape) if isinstance(covs, Tensor) else covs!r}"
         )
-    if covs.dtype != errors.dtype or covs.device != errors.device:
-        raise ValueError(f"covs are {covs.dtype} on {covs.device} and errors {errors.dtype} on "
-                         f"{errors.device}: give them one dtype and device")  # fmt: skip
+    check_one_dtype_device(errors, "errors", covs, "covs")
     if broadcast_or_none(covs.shape[:-2], errors.shape[:-1]) is None:
         raise ValueError(
             f"covs [..., {n}, {n}] must have the errors' batch {tuple(errors.shape[:-1])} (or "
@@ -209,13 +207,7 @@ def whiteness(
         )
         raise ValueError(f"innovation_covs must be [R, T, {m}, {m}] like the innovations (or "
                          f"broadcast to it); got {got!r}")  # fmt: skip
-    if innovation_covs.dtype != innovations.dtype or innovation_covs.device != innovations.device:
-        # (as nees says it: float32 covariances whitened float64 innovations without a word)
-        raise ValueError(
-            f"innovation_covs are {innovation_covs.dtype} on {innovation_covs.device} and "
-            f"innovations {innovations.dtype} on {innovations.device}: give them one dtype and "
-            "device"
-        )
+    check_one_dtype_device(innovations, "innovations", innovation_covs, "innovation_covs")
     if bool((torch.linalg.eigvalsh(innovation_covs.double()) <= 0).any()):
         # (a zero S had been taken, its Cholesky jittered, and a normal-looking ρ̄ returned)
         raise ValueError("innovation_covs must be positive definite (a filter's S)")

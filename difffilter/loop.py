@@ -1203,9 +1203,7 @@ def _values_differ(a, b) -> bool:
     """Whether two field values are shown to differ (``False`` where they cannot be told
     apart or compared)."""
     if isinstance(a, Tensor) or isinstance(b, Tensor):
-        if not (isinstance(a, Tensor) and isinstance(b, Tensor)):
-            return True
-        return a.shape != b.shape or a.dtype != b.dtype or not torch.equal(a.cpu(), b.cpu())
+        return not (isinstance(a, Tensor) and isinstance(b, Tensor) and _same(a, b))
     if isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)):
         return len(a) != len(b) or any(_values_differ(x, y) for x, y in zip(a, b))
     try:

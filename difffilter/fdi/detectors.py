@@ -42,6 +42,7 @@ from .._checks import (
     broadcast_shapes,
     check_finite_number,
     check_mask,
+    check_one_dtype_device,
     check_positive_int,
     check_rate,
     check_square,
@@ -116,14 +117,9 @@ def normalized_innovation_squared(
             f"{tuple(innovation_covs.shape)} [..., T, m, m] must share their leading dimensions "
             "(or broadcast)"
         )
-    if (innovation_covs.dtype, innovation_covs.device) != (innovations.dtype, innovations.device):
-        # (as whiteness and nees say it: float32 covariances had whitened float64
-        # innovations into a float32 statistic, 1.5e-5 off, and the alarms decided on it)
-        raise ValueError(
-            f"innovation_covs are {innovation_covs.dtype} on {innovation_covs.device} and "
-            f"innovations {innovations.dtype} on {innovations.device}: give them one dtype and "
-            "device"
-        )
+    # (as whiteness and nees: a float32 S had whitened float64 innovations into a float32
+    # statistic, 1.5e-5 off, and the alarms were decided on it)
+    check_one_dtype_device(innovations, "innovations", innovation_covs, "innovation_covs")
     if mask is not None:
         mask = check_mask(mask, "mask", innovations.shape)
     return _nis(innovations, innovation_covs, mask)
