@@ -79,7 +79,7 @@ def _feed(digest, value: Any, seen: dict[int, tuple[int, Any]], depth: int = 0) 
         return
     if isinstance(value, torch.Tensor):
         digest.update(str((value.dtype, tuple(value.shape))).encode())
-        digest.update(value.detach().cpu().contiguous().numpy().tobytes())
+        digest.update(_tensor_bytes(value))
         return
     if isinstance(value, (np.ndarray, np.generic)):  # (a plant's constants in numpy)
         array = np.ascontiguousarray(value)
@@ -161,6 +161,17 @@ def _feed(digest, value: Any, seen: dict[int, tuple[int, Any]], depth: int = 0) 
         if not str(key).endswith("_cache"):
             digest.update(repr(key).encode())
             _feed(digest, attributes[key], seen, depth + 2)
+
+
+def _tensor_bytes(tensor: torch.Tensor) -> bytes:
+    """A tensor's values as bytes, for every dtype: numpy has no bfloat16 or float8, so those
+    are read as their raw bytes (a plant holding a bfloat16 tensor had crashed the
+    fingerprint, and with it the evaluation)."""
+    values = tensor.detach().cpu().contiguous()
+    try:
+        return values.numpy().tobytes()
+    except TypeError:  # (no numpy dtype: the same bytes through uint8)
+        return values.reshape(-1).view(torch.uint8).numpy().tobytes()
 
 
 def _class_code(cls: type) -> bytes:
@@ -278,9 +289,11 @@ def model_fingerprint(model) -> str:
 
 def library_fingerprint() -> str:
     """A hash of the library's own code: every ``.py`` file of ``difffilter``,
-    ``difffilter.models`` (the filters, detectors and scenarios a calibration runs) and
+    ``difffilter.models`` (the filters, detectors and scenarios a calibration runs),
     ``difffilter.eval`` (the suite, scoring and calibration a sweep's cached baselines
-    come from), by package, path and content, read once per process. In a calibration's
+    come from) and ``difffilter.train`` (the sweep that computes those baselines), by
+    package, path and content, with the versions of torch and numpy that compute the
+    numbers, read once per process. In a calibration's
     file name, so a threshold computed by an older version (a ``git pull``, an upgrade, a
     local fix) is not reused: a trial edited ``cusum_detector_for`` and read the old τ,
     10.74 against 12.42; in a development checkout ``eval/`` lies outside ``difffilter/``,
@@ -290,9 +303,12 @@ def library_fingerprint() -> str:
         import difffilter
         import difffilter.eval
         import difffilter.models
+        import difffilter.train
 
         digest = hashlib.sha256()
-        for package in (difffilter, difffilter.models, difffilter.eval):
+        # another torch or numpy can round otherwise (an upgrade calibrates again)
+        digest.update(f"torch {torch.__version__} numpy {np.__version__}".encode())
+        for package in (difffilter, difffilter.models, difffilter.eval, difffilter.train):
             digest.update(package.__name__.encode())
             for root in package.__path__:
                 for path in sorted(Path(root).rglob("*.py")):

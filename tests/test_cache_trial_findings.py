@@ -278,3 +278,42 @@ def test_a_cusum_cache_file_out_of_the_detectors_range_is_computed_again():
     for bad in ({"bias": 0.0, "threshold": 3.4}, {"bias": 6.0, "threshold": -1.0},
                 {"bias": -2.0, "threshold": 1.0}):  # fmt: skip
         assert not _is_cusum_calibration(bad)
+
+
+def test_the_plant_fingerprint_reads_tensors_numpy_cannot_hold():
+    """A plant holding a bfloat16 tensor had crashed the fingerprint (numpy has no
+    bfloat16), and with it the evaluation; its values are hashed as its bytes."""
+    from difffilter.models.calibration_cache import model_fingerprint
+
+    half = torch.tensor([1.0, 2.0], dtype=torch.bfloat16)
+    assert model_fingerprint((half,)) == model_fingerprint((half.clone(),))
+    assert model_fingerprint((half,)) != model_fingerprint((half + 1,))
+    assert model_fingerprint((half,)) != model_fingerprint((half.float(),))  # (the dtype)
+    assert model_fingerprint((torch.tensor(0.5, dtype=torch.bfloat16),)) != model_fingerprint(
+        (torch.tensor(0.25, dtype=torch.bfloat16),)
+    )
+
+
+@pytest.mark.parametrize("what", ["train", "versions"])
+def test_the_library_fingerprint_covers_the_sweep_and_the_numeric_libraries(monkeypatch, what):
+    """The sweep's cached baselines are computed by ``train/sweep.py``: an edit there had
+    kept the baselines of before; and another torch or numpy can round otherwise."""
+    from pathlib import Path
+
+    import difffilter.train.sweep as sweep
+    from difffilter.models import calibration_cache as cc
+
+    monkeypatch.setattr(cc, "_LIBRARY_FINGERPRINT", None)
+    before = cc.library_fingerprint()
+    if what == "train":
+        edited, read = Path(sweep.__file__).resolve(), Path.read_bytes
+
+        def read_edited(path):
+            data = read(path)
+            return data + b"\n# edited\n" if Path(path).resolve() == edited else data
+
+        monkeypatch.setattr(Path, "read_bytes", read_edited)
+    else:
+        monkeypatch.setattr(torch, "__version__", torch.__version__ + ".other")
+    monkeypatch.setattr(cc, "_LIBRARY_FINGERPRINT", None)
+    assert cc.library_fingerprint() != before
