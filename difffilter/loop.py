@@ -474,11 +474,13 @@ class LoopFork(NamedTuple):
     the fork went on) and what it recorded at steps ``1 … k`` (``records``: the lists
     :func:`closed_loop` stacks into :class:`Trajectories`, with the schedule's rows under
     ``"mask"``, so that a continuation is checked to run under the same; ``outputs``: the
-    estimator's step outputs)."""
+    estimator's step outputs; ``noise``: the :class:`ReplayedNoise` it ran on, so that a
+    continuation is checked to replay the same draws at those steps)."""
 
     state: LoopState
     records: dict[str, list]
     outputs: list
+    noise: ReplayedNoise | None = None
 
 
 class LoopResult(NamedTuple):
@@ -646,6 +648,7 @@ def closed_loop(
     first = state.k - len(rec["x"])  # the step before the first one recorded
     if rec["x"]:
         _check_fork_mask(rec["mask"], mask, first)
+        _check_fork_noise(fork.noise, noise, first, len(rec["x"]))
         if input_loss is not None:
             _check_fork_input_loss(rec, input_loss, first)
     k, x, u, a_state, carry, view, memory, attacker = state
@@ -714,7 +717,8 @@ def closed_loop(
                 progress(1)
             if forks is not None and k in forks:
                 kept = LoopState(k, x, u, a_state, carry, view, memory, attacker).copy()
-                forks[k] = LoopFork(kept, {key: list(v) for key, v in rec.items()}, list(outs))
+                records = {key: list(v) for key, v in rec.items()}
+                forks[k] = LoopFork(kept, records, list(outs), noise)
     except (TypeError, AttributeError) as error:
         if attack is not None and hasattr(error, "add_note"):  # (Python ≥ 3.11)
             hint = _undeclared_read(error, attack, shows_state, reads)
@@ -1442,6 +1446,25 @@ def _check_fork_mask(kept: list, mask: Tensor | None, first: int) -> None:
             f"fork: mask differs from the mask of the loop that kept the fork at steps "
             f"{first + 1} … {end} (the fork's steps): continue it with that loop's mask"
         )
+
+
+def _check_fork_noise(
+    kept: ReplayedNoise | None, noise: ReplayedNoise, first: int, steps: int
+) -> None:
+    """A fork is continued on the draws of the loop that kept it (``kept``) at its steps
+    ``first + 1 … first + steps``: a continuation given other noise had joined the fork's
+    steps to steps on other draws, and the result read as one loop (a closed-loop trial)."""
+    if kept is None or kept is noise:  # (None: a fork made by hand, nothing to compare)
+        return
+    end = first + steps
+    for name in ("process", "measurement"):
+        mine, given = getattr(kept, name)[:, first:end], getattr(noise, name)[:, first:end]
+        if mine.shape != given.shape or not torch.equal(mine, given.to(mine)):
+            raise ValueError(
+                f"fork: noise differs from the ReplayedNoise of the loop that kept the fork "
+                f"({name} noise at steps {first + 1} … {end}, the fork's steps): continue it "
+                "on that loop's noise"
+            )
 
 
 def _trajectories(rec, mask, k0, k1, channel) -> Trajectories:

@@ -170,6 +170,28 @@ def test_a_fork_kept_under_a_mask_continues_only_under_it():
     assert torch.equal(cont.trajectories.flags, whole.trajectories.flags)
 
 
+def test_a_fork_continues_only_on_the_draws_it_was_kept_on():
+    """A fork continued on other noise had joined its 5 steps to steps on other draws, the
+    result read as one loop; noise that differs only after the fork's steps (or a copy of
+    the same draws) is this loop's own, as in the whole loop on it."""
+    plant, x0, loop, fork = _forked(None)
+    noise, attack = loop["noise"], Bias(0.5, onset=6)
+    rest = {key: v for key, v in loop.items() if key != "noise"}
+    for name in ("process", "measurement"):
+        other = ReplayedNoise(noise.process.clone(), noise.measurement.clone())
+        getattr(other, name)[1, 3] += 0.1
+        with pytest.raises(
+            ValueError, match=rf"fork: noise differs .*\({name} noise at steps 1 … 5"
+        ):
+            closed_loop(plant, 7, fork=fork, attack=attack, noise=other, **rest)
+    later = ReplayedNoise(noise.process.clone(), noise.measurement.clone())
+    later.process[:, 5:] *= 2.0
+    cont = closed_loop(plant, 7, fork=fork, attack=attack, noise=later, **rest)
+    whole = closed_loop(plant, 12, x0=x0, attack=attack, noise=later, **rest)
+    assert torch.equal(cont.trajectories.x, whole.trajectories.x)
+    assert torch.equal(cont.output.means, whole.output.means)
+
+
 # -- 4. the attack records under input loss ----------------------------------------------
 
 
