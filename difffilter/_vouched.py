@@ -14,8 +14,10 @@ field types is made of is cached, :class:`_Layout`, so no field is asked ``isins
 torch's tensor metaclass at every step).
 
 "Unchanged" is exact: the carry's leaves (its fields, through nested tuples, lists and
-dicts) must be the very objects vouched for (by identity), and its tensors must not have
-been modified in place since (their autograd version counters). ``carry._replace(mean=…)``,
+dicts) must be the very objects vouched for (by identity), and its tensors, and those of
+its model whose values the full validation read (the Gaussian filters' noise means:
+:meth:`~difffilter.Estimator._watched`), must not have been modified in place since
+(their autograd version counters). ``carry._replace(mean=…)``,
 a carry built by hand, a tensor written in place, or a carry of another estimator object:
 each is validated in full again, with the same errors as before. One exception: the
 inference tensors of ``torch.inference_mode()`` keep no version counter, so there identity
@@ -66,13 +68,23 @@ class Established:
     """
 
     __slots__ = ("owner", "dtype", "device", "y_shape", "u_shape", "known", "_host_sum",
-                 "assigned")  # fmt: skip
+                 "assigned", "model_refs", "model_versions")  # fmt: skip
 
-    def __init__(self, owner, dtype: torch.dtype, device, batch, dim_y: int, dim_u: int):
+    def __init__(self, owner, dtype: torch.dtype, device, batch, dim_y: int, dim_u: int,
+                 watched=()):  # fmt: skip
         self.owner = weakref.ref(owner)
         # models' tensor assignments so far: after one (``model.to(torch.float32)``, ``model.F
         # = …``) a step validates in full again (its carry may no longer fit its model)
         self.assigned = assignments()
+        # and the versions of the model's tensors whose values the full checks read
+        # (``watched``: the Gaussian filters' noise means; a mean written in place,
+        # ``noise.loc.add_(5)``, is refused there, and the lean step had dropped it without a
+        # word: an online-step trial). Inference tensors keep no version and cannot be
+        # written in place outside inference mode: left out (within it, identity alone is
+        # checked, as for the carry)
+        tensors = [t for t in watched if not t.is_inference()]
+        self.model_refs = tuple(map(weakref.ref, tensors))
+        self.model_versions = tuple(map(_VERSIONS, tensors))
         self.dtype, self.device = dtype, torch.device(device)
         self.y_shape = tuple(batch) + (dim_y,)
         self.u_shape = tuple(batch) + (dim_u,) if dim_u > 0 else None
@@ -80,6 +92,13 @@ class Established:
         # one run's small y and u on the CPU: summed on the host, no question asked of them
         self._host_sum = (self.device.type == "cpu" and len(self.y_shape) == 1
                           and max(dim_y, dim_u) <= _HOST_SUM)  # fmt: skip
+
+    def model_intact(self) -> bool:
+        """Whether no tensor of the model was written in place (nor freed: replaced) since."""
+        try:
+            return tuple(map(_VERSIONS, map(_DEREF, self.model_refs))) == self.model_versions
+        except AttributeError:  # one was freed (None has no version): the model changed
+            return False
 
     def admits(self, y, u, mask) -> tuple[Tensor, Tensor | None, Tensor | None] | None:
         """``(y, u, mask)`` ready for the unchecked step (``y`` zeroed where unreceived) when
@@ -253,6 +272,8 @@ def vouched(owner, carry) -> Established | None:
         return None
     established, ids, refs, versions, _, flat, weak = entry
     if established.assigned != assignments():  # a model was assigned to since: check in full
+        return None
+    if established.model_refs and not established.model_intact():  # written in place since
         return None
     # a flat entry's fields, if the same objects, are as flat as they were
     leaves = carry if flat else _flat_leaves(carry)

@@ -344,7 +344,13 @@ class Estimator:
         if not self.full_checks:
             model = carry.model
             vouch(carry, Established(self, dtype, device, self.batch_of(carry), model.dim_y,
-                                     model.dim_u))  # fmt: skip
+                                     model.dim_u, self._watched(model)))  # fmt: skip
+
+    def _watched(self, model) -> tuple[Tensor, ...]:
+        """The model's tensors whose values the full validation reads (not only their
+        shapes, dtype and device): a vouched carry is validated in full again once one of
+        them is written in place (:mod:`difffilter._vouched`). None by default."""
+        return ()
 
     def batch_of(self, carry) -> torch.Size:
         """The batch shape of the runs a carry holds: its ``mean [..., dx]``'s leading

@@ -66,6 +66,34 @@ def test_a_nested_carrys_tensor_written_in_place_is_validated_again():
         gated.step(carry, y, u)
 
 
+@pytest.mark.parametrize("make", [df.KalmanFilter, df.ExtendedKalmanFilter,
+                                  df.UnscentedKalmanFilter])  # fmt: skip
+@pytest.mark.parametrize("how", ["add_", "load_state_dict"])
+def test_a_noise_mean_written_in_place_is_refused_at_the_next_step(make, how):
+    """The Gaussian filters take every noise as zero-mean and refuse one that is not, at
+    init and in the full checks; a mean written in place between steps (``loc.add_``, or
+    ``load_state_dict`` of a model whose noise has a mean, which copies in place) had been
+    dropped by the lean step without a word (an online-step trial: the mean 3.5 off). Set
+    back to zero, the carry steps again and is vouched for."""
+    model = _model_with_input()
+    est = make()
+    y, u = torch.ones(2, dtype=F64), torch.zeros(1, dtype=F64)
+    carry, _ = est.step(est.init(model), y, u)
+    with torch.no_grad():
+        if how == "add_":
+            model.measurement_noise.loc.add_(5.0)
+        else:
+            state = {k: v.clone() for k, v in model.state_dict().items()}
+            state["measurement_noise.loc"] += 5.0
+            model.load_state_dict(state)
+    with pytest.raises(ValueError, match=r"model.measurement_noise has mean \[5.0, 5.0\]"):
+        est.step(carry, y, u)
+    with torch.no_grad():
+        model.measurement_noise.loc.zero_()  # back to zero: stepped again, validated in full
+    carry, out = est.step(carry, y, u)
+    assert _vouched.vouched(est, carry) is not None and torch.isfinite(out.mean).all()
+
+
 class _Model:
     """A leaf that takes a weak reference (as the filters' models do)."""
 
