@@ -161,6 +161,9 @@ class GainSchedule:
         self._dropped = 0
         self._moments: list[SharedMoments] = []
         self._cov_versions: list[int] = []  # each handed-out covariance's version then
+        # and of its P⁻ and S, which a step's output hands out as they are (shared: a write
+        # through one, `out.innovation_cov += …`, had changed every later step's S)
+        self._out_versions: list[tuple[int, int]] = []
         self._row_maps: list[tuple[Tensor, Tensor, Tensor]] = []
         self._neg_log_norms: list[Tensor] = []  # −log_norm of each k: the one-run step's
         self._chunks = CovarianceChunks(self.F, self.H, self.Q, self.R, self.initial_cov, tol)
@@ -193,6 +196,9 @@ class GainSchedule:
         state["_cov_versions"] = [
             _version(m.cov) == v for m, v in zip(self._moments, self._cov_versions)
         ]
+        state["_out_versions"] = [
+            _out_versions(m) == v for m, v in zip(self._moments, self._out_versions)
+        ]
         return state
 
     def __setstate__(self, state: dict) -> None:
@@ -201,6 +207,10 @@ class GainSchedule:
         state["_cov_versions"] = [
             _version(m.cov) if ok else _STALE
             for m, ok in zip(state["_moments"], state["_cov_versions"])
+        ]
+        state["_out_versions"] = [
+            _out_versions(m) if ok else (_STALE, _STALE)
+            for m, ok in zip(state["_moments"], state["_out_versions"])
         ]
         # the count of assignments is this process's, from 0: the stored one could equal it
         # after a first `model.F = …` here, which then went unseen (a KF trial: the old gains
@@ -313,6 +323,7 @@ class GainSchedule:
         self._block_next += 1
         self._moments.append(moments)
         self._cov_versions.append(_version(moments.cov))
+        self._out_versions.append(_out_versions(moments))
         self._neg_log_norms.append(neg_log_norm)
         if len(self._moments) > self.KEEP + self.TRIM:
             self._trim()
@@ -322,7 +333,8 @@ class GainSchedule:
         """Drop the oldest :attr:`TRIM` handed-out steps (a schedule that never converges
         would keep every step's tensors)."""
         n = self.TRIM
-        for kept in (self._moments, self._cov_versions, self._neg_log_norms, self._row_maps):
+        for kept in (self._moments, self._cov_versions, self._out_versions, self._neg_log_norms,
+                     self._row_maps):  # fmt: skip
             del kept[:n]  # (the row maps are made up to some step, perhaps none)
         self._dropped += n
 
@@ -333,6 +345,19 @@ class GainSchedule:
             return True  # dropped: a step from it does not use the schedule (KEEP)
         index = self._index(k)
         return _version(self._moments[index].cov) == self._cov_versions[index]
+
+    def outputs_intact(self, k: int) -> bool:
+        """Whether the ``P⁻`` and ``S`` that measurement ``k ≥ 1`` (held) uses are as they
+        were handed out: a step's output holds them as they are, shared by every run and,
+        once the gain has converged, by every later step (a write through one, ``S +=
+        …``, had become every later step's ``S``). Moments not handed out yet are."""
+        i = k - self._dropped  # its position in the handed-out list, from 1
+        known = self._moments
+        if i > len(known):
+            if not self._all_handed_out():
+                return True  # still to come: nobody has had them
+            i = len(known)  # converged: the last ones, reused
+        return _out_versions(known[i - 1]) == self._out_versions[i - 1]
 
     def _all_handed_out(self) -> bool:
         return (self.converged and self._ahead is None
@@ -830,6 +855,12 @@ def _same(a: Tensor | None, b: Tensor | None) -> bool:
         return a is None and b is None
     return (a.dtype == b.dtype and a.device == b.device and a.shape == b.shape
             and bool(torch.equal(a.detach(), b.detach())))  # fmt: skip
+
+
+def _out_versions(m: SharedMoments) -> tuple[int, int]:
+    """The versions of the moments' ``P⁻`` and ``S`` (what a step's output hands out besides
+    ``P``)."""
+    return _version(m.pred_cov), _version(m.innovation_cov)
 
 
 def _version(t: Tensor) -> int:

@@ -489,9 +489,13 @@ def _live(carry: GaussianState) -> GaussianState:
     schedule was made (:meth:`~difffilter.GainSchedule.current`): the general update reads
     the model as it is now, from the covariance the schedule had reached; or where the
     schedule no longer holds the carry's next step (a carry kept from thousands of steps
-    before: :attr:`~difffilter.GainSchedule.KEEP`), from the covariance the carry holds."""
+    before: :attr:`~difffilter.GainSchedule.KEEP`), from the covariance the carry holds; or
+    where a step's output ``P⁻`` or ``S`` that the next step would share was written in place
+    (:meth:`~difffilter.GainSchedule.outputs_intact`): the general update computes its own."""
     gains = carry.gains
-    if gains is not None and not (gains.current() and gains.held(carry.k + 1)):
+    if gains is not None and not (
+        gains.current() and gains.held(carry.k + 1) and gains.outputs_intact(carry.k + 1)
+    ):
         return carry._replace(gains=None)
     return carry
 

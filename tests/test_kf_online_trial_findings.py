@@ -221,3 +221,39 @@ def test_a_start_carry_reused_after_the_prior_covariance_written_in_place_filter
     again = episode(kf.init(model))
     assert again.gains is not None
     np.testing.assert_allclose(again.cov.numpy(), cov, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("field", ["innovation_cov", "pred_cov"])
+def test_a_step_outputs_s_or_prior_covariance_written_in_place_changes_no_later_step(field):
+    """Once the gain has converged every step's output holds the schedule's own ``S`` and
+    ``P⁻``, shared with the later steps: ``S = out.innovation_cov; S += 100`` (a caller's own
+    inflated S, thought a copy) had become every later step's S (100.24 against 0.24) beside
+    an unchanged log-likelihood (an online-step trial). The later steps now compute their
+    own, equal (to round-off) to those of the run without the write; a write before convergence, to
+    moments no later step shares, leaves the schedule on."""
+    model = _model()
+    ys = model.simulate(260, (), generator=torch.Generator().manual_seed(4))[1]
+    kf = df.KalmanFilter()
+    runs = {}
+    for write in (False, True):
+        carry, outs = kf.init(model), []
+        for k, y in enumerate(ys):
+            carry, out = kf.step(carry, y)
+            outs.append(out)
+            if write and k == 199:
+                assert carry.gains is not None and carry.gains.converged
+                getattr(out, field).add_(100.0)
+        runs[write] = (carry, outs)
+    (_, clean), (carry, written) = runs[False], runs[True]
+    for a, b in zip(clean[200:], written[200:]):
+        for name in ("mean", "cov", "pred_cov", "innovation_cov", "log_likelihood"):
+            torch.testing.assert_close(getattr(b, name), getattr(a, name), rtol=1e-9, atol=1e-12)
+    assert carry.gains is None  # (the general update from then on)
+    # before convergence: step 3's S is step 3's alone, the schedule goes on
+    carry = kf.init(model)
+    for k, y in enumerate(ys[:5]):
+        carry, out = kf.step(carry, y)
+        if k == 2:
+            assert not carry.gains.converged
+            getattr(out, field).add_(100.0)
+    assert carry.gains is not None
