@@ -15,8 +15,8 @@ torch's tensor metaclass at every step).
 
 "Unchanged" is exact: the carry's leaves (its fields, through nested tuples, lists and
 dicts) must be the very objects vouched for (by identity), and its tensors, and those of
-its model whose values the full validation read (the Gaussian filters' noise means:
-:meth:`~difffilter.Estimator._watched`), must not have been modified in place since
+its model whose values the full validation reads (its noise models', whose means the
+Gaussian filters read: :meth:`~difffilter.Estimator._watched`), must not have been modified in place since
 (their autograd version counters). ``carry._replace(mean=…)``,
 a carry built by hand, a tensor written in place, or a carry of another estimator object:
 each is validated in full again, with the same errors as before. One exception: the
@@ -77,11 +77,11 @@ class Established:
         # = …``) a step validates in full again (its carry may no longer fit its model)
         self.assigned = assignments()
         # and the versions of the model's tensors whose values the full checks read
-        # (``watched``: the Gaussian filters' noise means; a mean written in place,
-        # ``noise.loc.add_(5)``, is refused there, and the lean step had dropped it without a
-        # word: an online-step trial). Inference tensors keep no version and cannot be
-        # written in place outside inference mode: left out (within it, identity alone is
-        # checked, as for the carry)
+        # (``watched``: the noise models', whose means the Gaussian filters read; a mean
+        # written in place, ``noise.loc.add_(5)``, is refused there, and the lean step had
+        # dropped it without a word: an online-step trial). Inference tensors keep no
+        # version and cannot be written in place outside inference mode: left out (within
+        # it, identity alone is checked, as for the carry)
         tensors = [t for t in watched if not t.is_inference()]
         self.model_refs = tuple(map(weakref.ref, tensors))
         self.model_versions = tuple(map(_VERSIONS, tensors))

@@ -36,6 +36,7 @@ from ._checks import (
 )
 from ._vouched import Established, hold_whole, vouch, vouched
 from .attack import Channel
+from .noise import Gaussian
 from .results import FilterResult, StepOutput
 
 __all__ = [
@@ -349,8 +350,18 @@ class Estimator:
     def _watched(self, model) -> tuple[Tensor, ...]:
         """The model's tensors whose values the full validation reads (not only their
         shapes, dtype and device): a vouched carry is validated in full again once one of
-        them is written in place (:mod:`difffilter._vouched`). None by default."""
-        return ()
+        them is written in place (:mod:`difffilter._vouched`). By default its noise models'
+        (the Gaussian filters refuse a noise of non-zero mean, and so do the estimators
+        built on them: a Gaussian noise's ``loc``, every parameter and buffer of another
+        noise model)."""
+        tensors = []
+        for name in ("process_noise", "measurement_noise"):
+            noise = getattr(model, name, None)
+            if type(noise) is Gaussian:
+                tensors.append(noise.loc)
+            elif isinstance(noise, torch.nn.Module):
+                tensors += [*noise.parameters(), *noise.buffers()]
+        return tuple(tensors)
 
     def batch_of(self, carry) -> torch.Size:
         """The batch shape of the runs a carry holds: its ``mean [..., dx]``'s leading

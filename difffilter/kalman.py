@@ -131,20 +131,6 @@ def _check_zero_mean_noise(model) -> None:
             )
 
 
-def _noise_mean_tensors(model) -> tuple[Tensor, ...]:
-    """The tensors :func:`_check_zero_mean_noise` reads the noise means from: a
-    :class:`~difffilter.noise.Gaussian`'s ``loc``, every parameter and buffer of another
-    noise model (a box's bounds, a mixture's means and weights)."""
-    tensors = []
-    for name in ("process_noise", "measurement_noise"):
-        noise = getattr(model, name, None)
-        if type(noise) is Gaussian:
-            tensors.append(noise.loc)
-        elif isinstance(noise, torch.nn.Module):
-            tensors += [*noise.parameters(), *noise.buffers()]
-    return tuple(tensors)
-
-
 def kalman_predict(model, state: GaussianState, u: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """``m⁻ = F m + B u``, ``P⁻ = F P Fᵀ + Q`` for a linear model → ``([..., dx], [..., dx, dx])``.
 
@@ -282,9 +268,6 @@ class GaussianFilter(Estimator):
 
     def _model_of(self, carry):
         return carry.model
-
-    def _watched(self, model) -> tuple[Tensor, ...]:
-        return _noise_mean_tensors(model)
 
     def _check_carry(self, carry):
         # a noise of non-zero mean assigned between steps (init refuses one) had its mean

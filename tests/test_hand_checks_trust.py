@@ -67,7 +67,8 @@ def test_a_nested_carrys_tensor_written_in_place_is_validated_again():
 
 
 @pytest.mark.parametrize("make", [df.KalmanFilter, df.ExtendedKalmanFilter,
-                                  df.UnscentedKalmanFilter])  # fmt: skip
+                                  df.UnscentedKalmanFilter,
+                                  lambda: fdi.GatedFilter(fdi.ChiSquareDetector(2))])  # fmt: skip
 @pytest.mark.parametrize("how", ["add_", "load_state_dict"])
 def test_a_noise_mean_written_in_place_is_refused_at_the_next_step(make, how):
     """The Gaussian filters take every noise as zero-mean and refuse one that is not, at
