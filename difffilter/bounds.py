@@ -46,6 +46,7 @@ from ._checks import (
     check_inputs_given,
     check_positive_int,
     model_dtype_device,
+    step_covariance,
 )
 from .linalg import symmetrize
 from .noise import Gaussian, NoiseModel
@@ -94,15 +95,17 @@ def gaussian_information(R: Tensor, mask: Tensor | None = None) -> Tensor:
 
     Unreceived entries get zero rows and columns (the information of the marginal of the
     received entries; an entry correlated with an unreceived one loses that correlation).
+    Symmetric to the bit (``torch.linalg.inv`` of a symmetric matrix is not: a float32
+    result had failed ``posterior_crb``'s check of ``information=``).
     """
     if mask is None:
-        return torch.linalg.inv(R)
+        return symmetrize(torch.linalg.inv(R))
     _check_mask(mask, R.shape[-1])
     m = mask.to(R.dtype)
     mm = m.unsqueeze(-1) * m.unsqueeze(-2)
     eye = torch.eye(R.shape[-1], dtype=R.dtype, device=R.device)
     padded = R * mm + torch.diag_embed(1.0 - m) * eye  # R_mm on the received block, I elsewhere
-    return torch.linalg.inv(padded) * mm
+    return symmetrize(torch.linalg.inv(padded) * mm)
 
 
 def noise_information(
@@ -121,7 +124,10 @@ def noise_information(
     (``num_samples`` draws from ``generator``), ``s = ∇_v log p_v(v; mask)`` by autograd,
     computed once per distinct mask pattern (also under ``torch.inference_mode()``). A
     noise whose log-density has no gradient in ``v`` (a uniform box: the bound's
-    regularity conditions fail) is refused (``ValueError``).
+    regularity conditions fail) is refused (``ValueError``), and so is one whose score in
+    a received entry is zero on every draw (uniform in that entry: it would get no
+    information, the "bound" of a Gaussian × uniform noise 5–7× above a particle filter's
+    MSE); declare such an entry's information with ``posterior_crb(information=…)``.
     """
     if not isinstance(noise, NoiseModel):
         raise ValueError(f"noise must be a difffilter.noise model; got {type(noise).__name__}")
@@ -154,11 +160,39 @@ def noise_information(
                 )
             (score,) = torch.autograd.grad(log_p, vv)
         score = score * pattern.to(score.dtype)  # unreceived entries: no information
+        _check_every_entry_scored(noise, score, pattern)
         infos.append(symmetrize(score.transpose(-1, -2) @ score / num_samples))
     out = torch.stack(infos)[inverse]
     if mask is None:
         return out[0]
     return out.reshape(mask.shape + (dim,))
+
+
+def _check_every_entry_scored(noise: NoiseModel, score: Tensor, pattern: Tensor) -> None:
+    """Refuse a received entry whose score ``score [num_samples, dy]`` is zero on every
+    draw: the sum's gradient alone had let a noise uniform in one entry through (the
+    Gaussian entries gave the sum a graph), and that entry got zero information."""
+    flat = pattern & (score == 0).all(0)
+    if bool(flat.any()):
+        entries = ", ".join(str(int(j)) for j in flat.nonzero().flatten())
+        raise ValueError(
+            f"noise_information needs a log-density differentiable in every received entry "
+            f"of v, and {type(noise).__name__}'s score in entry {entries} is zero on all "
+            f"{score.shape[0]} draws (uniform there: the bound's regularity conditions fail); "
+            "pass information= yourself"
+        )
+
+
+def _measurement_law_unsaid(model: StateSpaceModel) -> bool:
+    """Whether ``model`` draws or weighs its measurements its own way (its class overrides
+    ``sample_measurement`` or ``measurement_log_prob``) without declaring
+    ``samples_measurement_noise = True`` (its draw is ``h(x) + v``, ``v ~`` its
+    ``measurement_noise``): the measurement side of
+    :func:`~difffilter.particle.transition_law_unsaid`."""
+    cls = type(model)
+    own = (cls.sample_measurement is not StateSpaceModel.sample_measurement
+           or cls.measurement_log_prob is not StateSpaceModel.measurement_log_prob)  # fmt: skip
+    return own and not getattr(model, "samples_measurement_noise", False)
 
 
 def measurement_information_moments(model: StateSpaceModel, xs: Tensor, k0: int = 1) -> Tensor:
@@ -199,6 +233,17 @@ def _pcrb_information(model, xs, x0, us, mask, information, num_samples, generat
             "truth draws another noise it is no bound (the robot's input noise: its EKF came "
             "within 0.86 of it); a class whose draw has that law says so with "
             "samples_process_noise = True",
+            stacklevel=3,
+        )
+    if information is None and _measurement_law_unsaid(model):
+        warnings.warn(
+            f"{type(model).__name__} draws or weighs its measurements its own way "
+            "(sample_measurement / measurement_log_prob): the bound takes J_v from "
+            f"measurement_noise ({type(model.measurement_noise).__name__}), and where the truth "
+            "has another law it is no bound (a Laplace noise of the same variance has twice "
+            "the information: a particle filter reached 0.84 of it); pass that law's "
+            "information=, or a class whose draw and density are measurement_noise's says so "
+            "with samples_measurement_noise = True",
             stacklevel=3,
         )
     dx, dy = model.dim_x, model.dim_y
@@ -245,7 +290,9 @@ def _pcrb_information(model, xs, x0, us, mask, information, num_samples, generat
                 f"{type(model.measurement_noise).__name__} noise"
             )
         rows = [None if mask is None else mask[..., t, :] for t in range(T)]
-        parts = [gaussian_information(model.measurement_cov(t + 1), m) for t, m in enumerate(rows)]
+        # checked as the filters read it (an indefinite R_3 had given a "bound", no error)
+        parts = [gaussian_information(step_covariance(model, "measurement_cov", t + 1), m)
+                 for t, m in enumerate(rows)]  # fmt: skip
         batch = torch.broadcast_shapes(*(p.shape[:-2] for p in parts))
         information = torch.stack([p.expand(batch + (dy, dy)) for p in parts], dim=-3)
     elif information is None:
@@ -268,9 +315,12 @@ def _pcrb_information(model, xs, x0, us, mask, information, num_samples, generat
         info = information.detach().double()
         ok = bool(torch.isfinite(info).all())
         if ok and info.numel():
-            scale = info.abs().amax().clamp_min(1.0)
-            ok = bool((info - info.mT).abs().amax() <= 1e-8 * scale) and bool(
-                torch.linalg.eigvalsh(symmetrize(info)).amin() >= -1e-8 * scale
+            # round-off of the given dtype passes (a fixed 1e-8 had refused float32's, the
+            # library's own gaussian_information among them); float64 keeps 1e-8
+            eps = torch.finfo(information.dtype).eps if information.is_floating_point() else 0.0
+            tol = max(1e-8, 100 * eps) * info.abs().amax().clamp_min(1.0)
+            ok = bool((info - info.mT).abs().amax() <= tol) and bool(
+                torch.linalg.eigvalsh(symmetrize(info)).amin() >= -tol
             )
         if not ok:
             raise ValueError("information must be finite, symmetric and positive semi-definite "
@@ -326,8 +376,13 @@ def posterior_crb(
             ``time_varying`` model is read at every step (``Q_k = process_cov(k)``, ``J_v``
             from ``measurement_cov(k + 1)``: its measurement noise must be Gaussian unless
             ``information`` is given; ``J_v`` is read from ``measurement_cov`` too where a
-            subclass overrides it, as the filters do); the model's matrices carry no batch dimensions of
-            their own (``ValueError``).
+            subclass overrides it, as the filters do; an overriding ``Q_k`` or ``R_k`` is
+            checked as the filters check it, and a singular ``Q_k``, which the recursion
+            inverts, is refused by name); the model's matrices carry no batch dimensions of
+            their own (``ValueError``). A model whose class draws or weighs its measurements
+            its own way (``sample_measurement``, ``measurement_log_prob``) is warned unless
+            it declares ``samples_measurement_noise = True`` or ``information`` is given,
+            as one drawing its transitions is unless ``samples_process_noise = True``.
         xs: true trajectories ``x_1 … x_T`` ``[..., M, T, dx]`` (the expectations over
             ``x`` are means over the ``M`` paths; ``M = 1`` for a linear model). The
             ``[B, T, dx]`` of ``model.simulate`` is read as ``M = B`` paths of ONE bound
@@ -343,15 +398,26 @@ def posterior_crb(
             it from ``model.measurement_noise`` and ``mask`` with :func:`noise_information`.
         num_samples, generator: of the Monte Carlo Fisher information (non-Gaussian noise).
 
-    Returns a :class:`PCRBResult` (``information``, ``bound``: ``[..., T, dx, dx]``).
+    Returns a :class:`PCRBResult` (``information``, ``bound``: ``[..., T, dx, dx]``), in
+    ``xs``' dtype; the recursion runs in float64 (:func:`_recursion_dtype`).
     """
     information = _pcrb_information(model, xs, x0, us, mask, information, num_samples, generator)
     dx, T = model.dim_x, xs.shape[-2]
-    information = information.to(xs.dtype)
-    G = measurement_information_moments(model, xs)  # [..., T, dy, dy, dx, dx]
+    work = _recursion_dtype(xs)
+    information = information.to(work)
+    G = measurement_information_moments(model, xs).to(work)  # [..., T, dy, dy, dx, dx]
 
     def q_inv(t: int) -> Tensor:  # Q_t of the transition x_t → x_{t+1}, as the filters read it
-        return torch.linalg.inv(model.process_cov(t).to(xs.dtype))
+        Q = step_covariance(model, "process_cov", t)  # (an indefinite Q_k had been read)
+        inverse, singular = torch.linalg.inv_ex(Q.to(work))
+        if bool(singular.any()):  # (torch's "linalg.inv: The diagonal element 1 is zero")
+            raise ValueError(
+                f"{type(model).__name__}.process_cov({t}) is singular: the PCRB recursion needs "
+                "Q_k⁻¹ (the information of the transition noise, infinite along a noiseless "
+                "direction); add a small jitter to Q_k (e.g. 1e-9 I) or bound a reduced state "
+                "without the noiseless components"
+            )
+        return inverse
 
     Q_inv = q_inv(0)
     # Q_t read step by step where the model varies it or its class overrides process_cov, as
@@ -360,7 +426,7 @@ def posterior_crb(
     varying_q = model.time_varying or (
         isinstance(model.process_noise, Gaussian) and model._varying_noise("process_cov")
     )
-    J = torch.linalg.inv(model.initial.cov.to(xs.dtype))
+    J = torch.linalg.inv(model.initial.cov.to(work))
     batch = torch.broadcast_shapes(information.shape[:-3], G.shape[:-5])
     J = J.expand(batch + (dx, dx))
     x_prev, out = x0, []
@@ -368,7 +434,7 @@ def posterior_crb(
         u = None if us is None else us[..., t, :]
         if varying_q and t > 0:
             Q_inv = q_inv(t)
-        Fj = model.transition_jacobian(x_prev, u, t)  # [..., M, dx, dx]
+        Fj = model.transition_jacobian(x_prev, u, t).to(work)  # [..., M, dx, dx]
         Fj = Fj.expand(x_prev.shape[:-1] + Fj.shape[-2:])  # (a constant one, [dx, dx])
         M = Fj.shape[-3]
         D11 = (Fj.transpose(-1, -2) @ Q_inv @ Fj).sum(-3) / M
@@ -385,4 +451,14 @@ def posterior_crb(
         out.append(J)
         x_prev = xs[..., t, :]
     info = torch.stack(out, dim=-3)
-    return PCRBResult(info, symmetrize(torch.linalg.inv(info)))
+    bound = symmetrize(torch.linalg.inv(info))
+    return PCRBResult(info.to(xs.dtype), bound.to(xs.dtype))
+
+
+def _recursion_dtype(xs: Tensor) -> torch.dtype:
+    """float64, where the device has it (mps has not: ``xs``' dtype). ``J = D22 − D21 (J +
+    D11)⁻¹ D12`` subtracts two matrices of size ``‖Q⁻¹‖`` to get one of size ``‖J‖``: in
+    float32 (``cond Q`` 1.2e5) the "bound" had been 0.79×–1.78× the Kalman filter's
+    covariance, above the optimal filter's MSE at step 1; ``dx × dx`` matrices, cheap in
+    float64. A float64 ``xs`` runs as before, to the bit."""
+    return xs.dtype if xs.device.type == "mps" else torch.float64

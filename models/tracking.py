@@ -372,6 +372,10 @@ class TrackingModel(StateSpaceModel):
         d = d.reshape(d.shape[:-1] + (-1, 2))
         return torch.stack((d[..., 0], wrap_angle(d[..., 1])), -1).flatten(-2)
 
+    #: its measurement_log_prob is the glint noise's density (a per-sensor fast path), and it
+    #: draws y = h(x) + v, v ~ measurement_noise: the bound's J_v is that noise's
+    samples_measurement_noise = True
+
     def measurement_log_prob(self, y, x, k, mask=None):
         """``log p(y_k | x_k)`` of the received entries, ``y [..., dy]``, ``x [..., dx]`` → ``[...]``.
 
