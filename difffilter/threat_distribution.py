@@ -66,12 +66,18 @@ def _near(mapping: dict, names) -> str:
 
 def _never_above_zero(value) -> bool:
     """Whether a field (a number or a draw) is 0 in every draw: a constant 0, a choice of
-    zeros, or a uniform or loguniform range [0, 0]."""
+    zeros, or a uniform, loguniform or randint range [0, 0]."""
     if not _is_draw(value):
         return isinstance(value, (int, float)) and not isinstance(value, bool) and value == 0
-    options = value.get("choice") or value.get("uniform") or value.get("loguniform") or ()
+    options = (value.get("choice") or value.get("uniform") or value.get("loguniform")
+               or value.get("randint") or ())  # fmt: skip
     numbers = [o for o in options if isinstance(o, (int, float)) and not isinstance(o, bool)]
     return bool(numbers) and len(numbers) == len(options) and all(o == 0 for o in numbers)
+
+
+#: The integers ``randint`` may give: torch draws them as int64, ``hi + 1`` included (out of
+#: range, torch's "Overflow when unpacking long long" had named neither entry nor field).
+_RANDINT_RANGE = (-(2**63), 2**63 - 2)
 
 
 def _check_draw(where: str, value: dict) -> None:
@@ -103,6 +109,11 @@ def _check_draw(where: str, value: dict) -> None:
             + (" as integers" if kind == "randint" else "")
             + f"; got {args!r}"
         )
+    if kind == "randint" and not _RANDINT_RANGE[0] <= lo <= hi <= _RANDINT_RANGE[1]:
+        raise ValueError(
+            f"{where}: randint needs lo and hi within [{_RANDINT_RANGE[0]}, "
+            f"{_RANDINT_RANGE[1]}] (torch draws int64); got {args!r}"
+        )
     if not isinstance(value.get("signed", False), bool):  # ("no" was read as true)
         raise ValueError(f"{where}: signed must be true or false; got {value['signed']!r}")
 
@@ -111,6 +122,20 @@ def _is_threat(value) -> bool:
     """Whether a field is a threat of its own (a mapping with a ``kind``: a covert attack's
     ``signal``), whose fields may be drawn as well."""
     return isinstance(value, dict) and "kind" in value and not _is_draw(value)
+
+
+def _share_never_above_zero(entry: dict) -> str:
+    """The path of ``entry``'s share that is 0 in every draw (``"share"``; a covert attack's
+    ``"signal.share"``, with a signal drawn by ``choice``: every option's), else ``""``.
+    (A covert signal's ``share: 0`` had passed: its runs trained attack-free, counted as
+    trained on.)"""
+    if _never_above_zero(entry.get("share")):
+        return "share"
+    signal = entry.get("signal")
+    options = signal["choice"] if _is_draw(signal) and "choice" in signal else [signal]
+    if options and all(_is_threat(o) and _never_above_zero(o.get("share")) for o in options):
+        return "signal.share"
+    return ""
 
 
 def _check_fields(where: str, entry: dict) -> None:
@@ -135,12 +160,18 @@ def _check_fields(where: str, entry: dict) -> None:
 def _extremes(value) -> list:
     """The values of a random field that bound what it can draw (every ``choice``; ``lo``
     and ``hi`` of a range, negated too with ``signed``), so that construction checks a
-    threat with each of them, not only with one draw (a constant has none)."""
+    threat with each of them, not only with one draw (a constant has none). A ``uniform``'s
+    or ``loguniform``'s as floats, as it draws them: an integer field drawn so is refused
+    in every option of a choice of signals (written ``[20, 40]``, the ints had passed, and
+    the option the one seed-0 check did not draw failed mid-training)."""
     if not _is_draw(value):
         return []
     if "choice" in value:  # a choice of signals: each one at its own fields' extremes
         return [c for o in value["choice"] for c in (_corners(o) if _is_threat(o) else [o])]
-    bounds = list(value.get("uniform") or value.get("loguniform") or value["randint"])
+    if "randint" in value:
+        bounds = list(value["randint"])
+    else:
+        bounds = [float(b) for b in value.get("uniform") or value["loguniform"]]
     return bounds + [-b for b in bounds] if value.get("signed") else bounds
 
 
@@ -244,10 +275,10 @@ class ThreatDistribution:
                     f"or none); got {kind!r}"
                 )
             _check_fields(where, entry)
-            share = entry.get("share")
-            if float(entry["weight"]) > 0 and _never_above_zero(share):
+            silent = _share_never_above_zero(entry)
+            if float(entry["weight"]) > 0 and silent:
                 raise ValueError(  # (a trial's entry attacked no run and counted as trained on)
-                    f"{where}.share is 0: the threat attacks no run, so it never acts; give "
+                    f"{where}.{silent} is 0: the threat attacks no run, so it never acts; give "
                     "it a share above 0, or weight 0"
                 )
             self._build(name, entry, torch.Generator().manual_seed(0), check=True)  # fields now
@@ -328,7 +359,7 @@ class ThreatDistribution:
                        for option in channel["choice"])  # fmt: skip
         library = isinstance(kind, str) and kind in THREATS  # (else an attack of one's own,
         if library:  # whose defaults are unknown here: a field on one side only differs)
-            spec, entry = self._entries_listed(spec), self._entries_listed(entry)
+            spec, entry = (_entries_sorted(self._entries_listed(x)) for x in (spec, entry))
         for f in (set(spec) | set(entry)) - {"kind", "weight"}:
             default = _default(kind, f) if library else _NO_DEFAULT
             drawn, value = entry.get(f, default), spec.get(f, default)
@@ -458,6 +489,27 @@ def _share_past(entry: dict, steps: int) -> float:
         return sum(o > steps for o in onset["choice"]) / len(onset["choice"])
     lo, hi = onset["randint"]  # both included
     return max(0, hi - max(lo, steps + 1) + 1) / (hi - lo + 1)
+
+
+def _entries_sorted(spec: dict) -> dict:
+    """``spec`` with its ``entries`` (each option of a ``choice`` too) sorted: a shaped
+    attack reads them as a set, so ``[3, 2]`` and ``[2, 3]`` are one attack (a trial's
+    ``[3, 2]`` read "kind only" where ``[2, 3]`` was drawn). Lists of other than integers
+    stay as they are (the threat refuses them when it is built)."""
+
+    def _sorted(value):
+        if (
+            isinstance(value, (list, tuple))
+            and value
+            and all(isinstance(i, int) and not isinstance(i, bool) for i in value)
+        ):
+            return sorted(set(value))
+        return value
+
+    value = spec.get("entries")
+    if _is_draw(value) and "choice" in value:
+        return {**spec, "entries": {**value, "choice": [_sorted(o) for o in value["choice"]]}}
+    return {**spec, "entries": _sorted(value)} if "entries" in spec else spec
 
 
 def threat_spec(attack) -> dict | None:

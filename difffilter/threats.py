@@ -43,7 +43,7 @@ import copy
 import inspect
 import math
 import numbers
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import torch
@@ -614,6 +614,20 @@ class Covert(Attack):
         return state, plant.observe(nominal, k) - plant.observe(attacked, k)
 
 
+def _at_first_step(signal: TabulatedAttack) -> tuple[TabulatedAttack, int]:
+    """``(signal, steps)`` to tabulate ``signal`` through its onset: a :class:`Shaped` one
+    moved to onset 1 and one step (its shape reads ``s = k − onset`` alone, so the onset
+    step is the same), another to its onset (a class whose fields ``replace`` cannot copy,
+    too)."""
+    onset = getattr(signal, "onset", None)
+    if isinstance(signal, Shaped) and onset != 1:
+        try:
+            return replace(signal, onset=1), 1
+        except TypeError:  # (a subclass of one's own with an __init__ of its own)
+            pass
+    return signal, max(onset or 1, 1)
+
+
 def check_attack_fits(attack: Attack | None, model, num_steps: int | None = None) -> None:
     """Raise ``ValueError`` where ``attack`` cannot act on ``model`` over ``num_steps``
     measurements: what would otherwise fail (or do nothing) only when a run is simulated.
@@ -621,7 +635,9 @@ def check_attack_fits(attack: Attack | None, model, num_steps: int | None = None
     - an actuator attack (a covert attack's signal included) on a model without inputs;
     - a tabulated attack (a :class:`Shaped` one, a covert attack's signal) whose values or
       ``entries`` do not fit its channel's width (``dy`` on the sensors, ``du`` on the
-      actuators): tabulated once, one run, to its onset;
+      actuators): tabulated once, one run, through its onset (a :class:`Shaped` one at
+      onset 1, one step: :func:`_at_first_step`; tabulated to an onset of 2**62, it had
+      asked for 7e18 bytes);
     - with ``num_steps``: a first attacked step (``onset``, 1-based, or a paper attack's
       0-based ``start``) after the last step (it would never act);
     - a seamless replay whose loop ``C`` has another number of rows than the measurements.
@@ -646,7 +662,9 @@ def check_attack_fits(attack: Attack | None, model, num_steps: int | None = None
     dim = model.dim_u if actuator else model.dim_y
     if actuator and not dim:
         raise ValueError("an actuator attack needs a model with inputs (dim_u > 0)")
-    steps = max(onset or 1, 1) if num_steps is None else num_steps
+    steps = num_steps
+    if num_steps is None:
+        signal, steps = _at_first_step(signal)
     signal.sample((1,), steps, dim, torch.Generator().manual_seed(0), dtype=torch.float64)
 
 

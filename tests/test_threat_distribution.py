@@ -411,3 +411,127 @@ def _two_states_one_input(dtype):
     eye = torch.eye(2, dtype=dtype)
     return df.LinearGaussianModel(0.9 * eye, eye, 1e-3 * eye, 1e-2 * eye, torch.zeros(2, dtype=dtype),
                                   1e-2 * eye, B=torch.ones(2, 1, dtype=dtype))  # fmt: skip
+
+
+def test_own_past_the_horizon_is_warned_and_refused_as_the_same_library_entry_is(
+    isolated_registry,
+):
+    """A red-team trial: ``own`` whose attack starts past a shortened horizon was neither
+    warned about nor refused (every ``own`` run trained attack-free, counted as ``own``),
+    and ``own`` on a scenario without an attack was ``none`` under another name. Truth: the
+    same attack written as a library entry, which is warned about and refused by a fit."""
+    import warnings
+
+    from conftest import constant_velocity
+
+    from difffilter.models.scenario import CustomScenario
+
+    registry.register(CustomScenario(
+        name="late_bias", family="custom", description="a bias from step 10", steps=30,
+        model_fn=lambda dtype: constant_velocity(dtype=dtype), attack=Bias(1.0, onset=10),
+    ))  # fmt: skip
+    said = {}
+    for name, entry in (("own", {"weight": 1}),
+                        ("b", {"weight": 1, "kind": "bias", "value": 1.0, "onset": 10})):  # fmt: skip
+        with pytest.warns(UserWarning) as w:
+            dm = ScenarioDataModule("late_bias", val_runs=2, steps=9,
+                                    threats={name: entry, "none": {"weight": 1}})  # fmt: skip
+        said[name] = [str(x.message).replace(f"threats.{name}:", "") for x in w]
+        with pytest.raises(ValueError, match=rf"threats\.{name}: every onset falls after the "
+                           r"last of the 9 steps, so it never acts"):  # fmt: skip
+            dm.train_dataloader()
+    assert said["own"] == said["b"] and "100% of its onsets" in said["own"][0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # onset 10 within 10 steps: nothing to say
+        ScenarioDataModule("late_bias", val_runs=2, steps=10,
+                           threats={"own": {"weight": 1}}).train_dataloader()  # fmt: skip
+    assert registry.get("four_tank_filters").attack_model() is None
+    with pytest.raises(ValueError, match=r"threats\.own: scenario 'four_tank_filters' has no "
+                       r"attack of its own"):  # fmt: skip
+        ScenarioDataModule("four_tank_filters", val_runs=2, steps=20,
+                           threats={"own": {"weight": 1}, "none": {"weight": 1}})  # fmt: skip
+    ScenarioDataModule("four_tank_filters", val_runs=2, steps=20,  # weight 0: never drawn
+                       threats={"own": {"weight": 0}, "none": {"weight": 1}})  # fmt: skip
+
+
+def test_a_share_of_zero_is_refused_however_it_is_written():
+    """A red-team trial: ``share: {randint: [0, 0]}`` and a covert signal's ``share: 0``
+    (every draw attacks no run) passed where ``share: 0`` is refused."""
+    robot = registry.get("robot_actuator_attack_turn_rates").system()  # covert: inputs
+    bias = {"kind": "bias", "value": 0.1}
+    cases = {
+        "b.share": {"kind": "bias", "value": 0.5, "share": {"randint": [0, 0]}},
+        "b.signal.share": {"kind": "covert", "signal": {**bias, "share": 0}},
+        "b.signal.share ": {"kind": "covert", "signal": {**bias, "share": {"choice": [0]}}},
+        "b.signal.share  ": {"kind": "covert", "signal": {"choice": [
+            {**bias, "share": 0}, {"kind": "ramp", "slope": 0.01, "share": {"randint": [0, 0]}}]}},
+    }  # fmt: skip
+    for where, entry in cases.items():
+        with pytest.raises(ValueError, match=rf"threats\.{where.strip()} is 0: the threat "
+                           r"attacks no run"):  # fmt: skip
+            ThreatDistribution({"b": {"weight": 1, **entry}}, model=robot)
+    # some draw acts: accepted (one signal of a choice with a share above 0, randint to 1)
+    ThreatDistribution({"b": {"weight": 1, "kind": "covert", "signal": {"choice": [
+        {**bias, "share": 0}, bias]}}}, model=robot)  # fmt: skip
+    ThreatDistribution({"b": {"weight": 1, "kind": "bias", "value": 0.5,
+                              "share": {"randint": [0, 1]}}}, model=robot)  # fmt: skip
+
+
+def test_a_bad_signal_option_is_refused_whatever_its_place_in_the_choice():
+    """A red-team trial: an integer field drawn by ``uniform`` in one option of a covert
+    signal's ``choice`` passed construction when the check's one draw picked the other
+    option, then failed at a later ``sample``. Truth: the order of a choice's options
+    cannot change whether it is valid; the top-level analog is refused."""
+    robot = registry.get("robot_actuator_attack_turn_rates").system()
+    bias = {"kind": "bias", "value": 0.1, "onset": {"randint": [20, 40]}}
+    ramp = {"kind": "ramp", "slope": 0.01, "onset": {"uniform": [20, 40]}}
+    with pytest.raises(ValueError, match=r"threats\.r.*onset must be an integer"):
+        ThreatDistribution({"r": {"weight": 1, **ramp}}, model=robot)
+    for options in ([bias, ramp], [ramp, bias]):
+        with pytest.raises(ValueError, match=r"threats\.c.*onset must be an integer"):
+            ThreatDistribution({"c": {"weight": 1, "kind": "covert",
+                                      "signal": {"choice": options}}}, model=robot)  # fmt: skip
+
+
+def test_randint_bounds_beyond_int64_are_refused_and_a_huge_onset_is_checked_cheaply():
+    """A red-team trial: ``randint: [1, 2**63 - 1]`` failed in torch's words ("Overflow
+    when unpacking long long"), naming nothing, and an onset range to 2**62 made the
+    construction check tabulate one run to its onset (7e18 bytes)."""
+    from difffilter.threats import check_attack_fits
+
+    four_tank = registry.get("four_tank_bias").system()
+    for bounds in ([1, 2**63 - 1], [-(2**63) - 1, 3]):
+        with pytest.raises(ValueError, match=r"threats\.a\.onset: randint needs .*int64"):
+            ThreatDistribution({"a": {"weight": 1, "kind": "bias", "value": 0.5,
+                                      "onset": {"randint": bounds}}}, model=four_tank)  # fmt: skip
+    top = 2**63 - 2  # the largest hi that torch.randint(lo, hi + 1) takes
+    assert _draw({"randint": [top, top]}, torch.Generator().manual_seed(0)) == top
+    late = ThreatDistribution({"a": {"weight": 1, "kind": "bias", "value": 0.5,
+                                     "onset": {"randint": [1, 2**62]}}}, model=four_tank)  # fmt: skip
+    assert late.onsets_past(60) == {"a": (2**62 - 60) / 2**62}
+    # a huge onset still has its width checked: 2 values on the 4 measurements
+    with pytest.raises(ValueError, match=r"value has 2 entries; the channel has 4"):
+        check_attack_fits(Bias([0.1, 0.2], onset=10**12), four_tank)
+    with pytest.raises(ValueError, match=r"entries \(5,\) name entries beyond"):
+        check_attack_fits(Bias(0.1, entries=[5], onset=2**62), four_tank)
+    check_attack_fits(Bias(0.1, onset=2**62), four_tank)  # fits: nothing tabulated to 2**62
+
+
+def test_covers_reads_entries_as_a_set():
+    """A red-team trial: ``entries: [3, 2]`` read "kind only" where the distribution draws
+    ``[2, 3]``, the same attack. Truth: the two attacks' tables are identical, so their
+    labels are too; in either order on either side."""
+    from difffilter.threats import threat_from_dict
+
+    four_tank = registry.get("four_tank_bias").system()
+    specs = [{"kind": "bias", "value": 0.5, "entries": e, "onset": 10} for e in ([2, 3], [3, 2])]
+    tables = [threat_from_dict(s).sample((1,), 20, 4, torch.Generator().manual_seed(0),
+                                         dtype=torch.float64) for s in specs]  # fmt: skip
+    assert all(torch.equal(a, b) for a, b in zip(*tables))
+    for drawn in ({"choice": [[2, 3], None]}, {"choice": [[3, 2]]}, [3, 2]):
+        for model in (four_tank, None):
+            dist = ThreatDistribution({"b": {"weight": 1, "kind": "bias", "value": {
+                "uniform": [0.1, 1.0]}, "entries": drawn, "onset": {"randint": [5, 60]}}},
+                model=model)  # fmt: skip
+            assert [dist.covers(s) for s in specs] == [WITHIN, WITHIN], (drawn, model)
+            assert dist.covers({**specs[0], "entries": [2]}) == KIND_ONLY

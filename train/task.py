@@ -211,8 +211,9 @@ class ScenarioDataModule(pl.LightningDataModule):
             ``None``: ``1 + 10 s`` under ``difffilter-train --seed_everything s``, else 1.
         threats: the threats training and validation runs are drawn from, one per run (a
             :class:`~difffilter.threat_distribution.ThreatDistribution` mapping: the
-            library's threats with weights and random fields, ``own`` the scenario's attack,
-            ``none`` attack-free; open-loop scenarios); ``None``: the scenario's own attack.
+            library's threats with weights and random fields, ``own`` the scenario's attack
+            (refused where it has none), ``none`` attack-free; open-loop scenarios);
+            ``None``: the scenario's own attack.
             ``test`` keeps the scenario's attack (the evaluation's draws).
         calibration_runs: attack-free runs on which validation chooses the alarm threshold
             (default ``val_runs``; their own seed, ``Streams(val_seed)`` stream
@@ -252,6 +253,13 @@ class ScenarioDataModule(pl.LightningDataModule):
             timed = {name: with_sampling_period(entry, dt) for name, entry in threats.items()} \
                 if isinstance(threats, dict) else threats  # fmt: skip
             self.threats = ThreatDistribution(timed, model=self.scenario.system(), own=own)
+            if self._own_weight() > 0 and self.scenario.simulated_attack() is None:
+                # (it had been accepted: attack-free runs, counted on the card as "own")
+                raise ValueError(
+                    f"threats.own: scenario {self.scenario.name!r} has no attack of its own, so "
+                    "own would be an attack-free run counted as an attacked one; give own "
+                    "weight 0 (none is the attack-free run), or name the attacks to train on"
+                )
             if self.scenario.closed_loop:
                 threat_batch(self.scenario, self.threats, 1, 0, torch.float64)  # its error
             _check_one_side(self.scenario, self.threats)
@@ -302,7 +310,7 @@ class ScenarioDataModule(pl.LightningDataModule):
                     f"shortened horizon: {exc}; give more steps, or train across threats"
                 ) from None
         if self.threats is not None:
-            for name, share in self.threats.onsets_past(self.scenario.steps).items():
+            for name, share in self._onsets_past().items():
                 warnings.warn(
                     f"threats.{name}: {share:.0%} of its onsets fall after the last of the "
                     f"{self.scenario.steps} steps; those runs train attack-free"
@@ -317,6 +325,26 @@ class ScenarioDataModule(pl.LightningDataModule):
         #: weights of a checkpoint met (the card's ``threats_drawn``; a trial could not
         #: tell which threats a training drew without internal helpers)
         self.threats_drawn: dict[str, int] = {}
+
+    def _own_weight(self) -> float:
+        return float(self.threats.spec.get("own", {}).get("weight", 0))
+
+    def _onsets_past(self) -> dict[str, float]:
+        """``{name: share}`` of the threats' draws whose onset falls after the horizon
+        (:meth:`~difffilter.threat_distribution.ThreatDistribution.onsets_past`), ``own``
+        too: the scenario's attack, all of its runs where it starts after the last step (a
+        trial's ``own`` past a shortened horizon had been neither warned about nor refused,
+        where the same attack as a library entry was)."""
+        past = self.threats.onsets_past(self.scenario.steps)
+        if self._own_weight() > 0:
+            try:
+                check_attack_fits(self.scenario.simulated_attack(), self.scenario.system(),
+                                  self.scenario.steps)  # fmt: skip
+            except ValueError as exc:
+                if "after the last step" not in str(exc):
+                    raise ValueError(f"threats.own: the scenario's attack: {exc}") from None
+                past["own"] = 1.0
+        return past
 
     def state_dict(self) -> dict:
         return {} if self.threats is None else {"threats_drawn": dict(self.threats_drawn)}
@@ -362,7 +390,7 @@ class ScenarioDataModule(pl.LightningDataModule):
 
     def train_dataloader(self):
         n, trainer = self.hparams.batches_per_epoch, getattr(self, "trainer", None)
-        never = [name for name, share in (self.threats.onsets_past(self.scenario.steps).items()
+        never = [name for name, share in (self._onsets_past().items()
                                           if self.threats is not None else ()) if share >= 1]  # fmt: skip
         if never:  # (a trial's such entry trained nothing and was listed on the card as trained
             # on; refused for training only: a test of a shortened horizon reads the scenario's
