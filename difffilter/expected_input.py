@@ -53,6 +53,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ._assignments import note_assignment
 from ._checks import check_carry_fits_model, check_carry_tensor, step_covariance
 from .gaussian import measurement_moments, predict_covariance
 from .input_loss import OnLoss, on_loss_of
@@ -96,38 +97,29 @@ class ExpectedInputKalmanFilter(KalmanFilter):
                  on_loss: OnLoss | str = OnLoss.ZERO):  # fmt: skip
         super().__init__()
         on_loss = on_loss_of(on_loss)
-        if not isinstance(independent, bool):
-            raise ValueError(f"independent must be True or False; got {independent!r}")
-        if isinstance(arrival_rate, Tensor) and arrival_rate.dtype == torch.bool:
-            # (a 0-d one had gone through float() to a rate of 1, where True is refused)
-            raise ValueError(f"arrival_rate must hold probabilities, not booleans; got "
-                             f"{arrival_rate!r}")  # fmt: skip
-        if isinstance(arrival_rate, Tensor) and arrival_rate.dim() == 0:
-            arrival_rate = float(arrival_rate)
-        if isinstance(arrival_rate, numbers.Real) and not isinstance(arrival_rate, bool):
-            rate = torch.tensor(float(arrival_rate), dtype=torch.float64)
-        elif isinstance(arrival_rate, (Tensor, list, tuple, np.ndarray)) and independent:
-            listed = arrival_rate if isinstance(arrival_rate, (list, tuple)) else ()
-            if getattr(arrival_rate, "dtype", None) in (torch.bool, np.bool_) or any(
-                isinstance(r, (bool, np.bool_)) for r in listed
-            ):  # (True, True) had been taken as rates of 1
-                raise ValueError(f"arrival_rate must hold probabilities, not booleans; got "
-                                 f"{arrival_rate!r}")  # fmt: skip
-            # (float64 from the numbers given: a tuple through float32 moved 0.3 by 1e-8)
-            rate = torch.as_tensor(arrival_rate, dtype=torch.float64).detach().clone()
-            if rate.dim() != 1 or rate.numel() == 0:
-                raise ValueError(
-                    f"arrival_rate must be a number or, with independent=True, one rate per "
-                    f"actuator [du]; got shape {tuple(rate.shape)}"
-                )
-        else:
-            raise ValueError(
-                "arrival_rate must be a number in (0, 1] (or, with independent=True, one per "
-                f"actuator [du]); got {arrival_rate!r}"
-            )
-        if not bool(((rate > 0) & (rate <= 1)).all()):
-            raise ValueError(f"arrival_rate must lie in (0, 1]; got {arrival_rate!r}")
+        independent = _independent(independent)
+        rate = _arrival_rate(arrival_rate, independent)
         self.arrival_rate, self.independent, self.on_loss = rate, independent, on_loss
+
+    #: Settings a carry is made for: one replaced after ``__init__`` is checked as
+    #: ``__init__`` checks it, and the next step validates its carry against it in full (a
+    #: lean step had broadcast one rate to two actuators, and stepped a ``"hold"`` carry
+    #: ``[x; z]`` as ``"zero"``'s ``x`` into torch's shape error: a red-team trial).
+    _CARRY_SETTINGS = frozenset({"arrival_rate", "independent", "on_loss"})
+
+    def __setattr__(self, name, value):
+        if name not in self._CARRY_SETTINGS or name not in self.__dict__:
+            super().__setattr__(name, value)
+            return
+        if name == "arrival_rate":
+            value = _arrival_rate(value, self.independent)
+        elif name == "independent":  # the rates held, as __init__ takes them with it
+            value = _independent(value)
+            super().__setattr__("arrival_rate", _arrival_rate(self.arrival_rate, value))
+        else:
+            value = on_loss_of(value)
+        super().__setattr__(name, value)
+        note_assignment()
 
     @property
     def carry_is_state(self) -> bool:
@@ -291,6 +283,46 @@ class ExpectedInputKalmanFilter(KalmanFilter):
 
     def _run(self, carry, ys, us, mask):
         return None  # step by step: the covariances read the inputs
+
+
+def _independent(independent) -> bool:
+    if not isinstance(independent, bool):
+        raise ValueError(f"independent must be True or False; got {independent!r}")
+    return independent
+
+
+def _arrival_rate(arrival_rate, independent: bool) -> Tensor:
+    """``ν̄`` as a float64 tensor, ``[]`` or (``independent``) ``[du]``, checked."""
+    if isinstance(arrival_rate, Tensor) and arrival_rate.dtype == torch.bool:
+        # (a 0-d one had gone through float() to a rate of 1, where True is refused)
+        raise ValueError(f"arrival_rate must hold probabilities, not booleans; got "
+                         f"{arrival_rate!r}")  # fmt: skip
+    if isinstance(arrival_rate, Tensor) and arrival_rate.dim() == 0:
+        arrival_rate = float(arrival_rate)
+    if isinstance(arrival_rate, numbers.Real) and not isinstance(arrival_rate, bool):
+        rate = torch.tensor(float(arrival_rate), dtype=torch.float64)
+    elif isinstance(arrival_rate, (Tensor, list, tuple, np.ndarray)) and independent:
+        listed = arrival_rate if isinstance(arrival_rate, (list, tuple)) else ()
+        if getattr(arrival_rate, "dtype", None) in (torch.bool, np.bool_) or any(
+            isinstance(r, (bool, np.bool_)) for r in listed
+        ):  # (True, True) had been taken as rates of 1
+            raise ValueError(f"arrival_rate must hold probabilities, not booleans; got "
+                             f"{arrival_rate!r}")  # fmt: skip
+        # (float64 from the numbers given: a tuple through float32 moved 0.3 by 1e-8)
+        rate = torch.as_tensor(arrival_rate, dtype=torch.float64).detach().clone()
+        if rate.dim() != 1 or rate.numel() == 0:
+            raise ValueError(
+                f"arrival_rate must be a number or, with independent=True, one rate per "
+                f"actuator [du]; got shape {tuple(rate.shape)}"
+            )
+    else:
+        raise ValueError(
+            "arrival_rate must be a number in (0, 1] (or, with independent=True, one per "
+            f"actuator [du]); got {arrival_rate!r}"
+        )
+    if not bool(((rate > 0) & (rate <= 1)).all()):
+        raise ValueError(f"arrival_rate must lie in (0, 1]; got {arrival_rate!r}")
+    return rate
 
 
 def _padded(a: Tensor, extra: int) -> Tensor:

@@ -316,3 +316,56 @@ def test_held_inputs_gated_report_the_carry_kept_and_per_run_models_broadcast():
                                      model.initial.mean, model.initial.cov, B=model.B)  # fmt: skip
         torch.testing.assert_close(out.means[r], open_loop(est, one, ys[0], us[0]).means,
                                    rtol=1e-12, atol=1e-12)  # fmt: skip
+
+
+def _eikf_last(rate, assign=None, owner=None, **options):
+    """The last step's (mean, cov) of ``ExpectedInputKalmanFilter(rate, **options)`` on the
+    plant, its carry after one step stepped by the same object with ``assign(f)`` applied,
+    or by ``owner``."""
+    model, ys, us, _ = _one_run(5)
+    f = df.ExpectedInputKalmanFilter(rate, **options)
+    carry = f.init(model)
+    carry, _ = f.step(carry, ys[0, 0], us[0, 0])
+    if assign is not None:
+        assign(f)
+    f = owner if owner is not None else f
+    for k in range(1, 6):
+        carry, out = f.step(carry, ys[0, k], us[0, k])
+    return torch.cat([out.mean, out.cov.reshape(-1)])
+
+
+def test_settings_replaced_after_a_step_are_checked_and_stepped():
+    # A rate replaced after init was checked only by the full validation, which the lean
+    # step skips for a carry it vouched for: one rate for two actuators had been broadcast
+    # to both, and a "hold" carry stepped as "zero"'s failed in torch's shape error.
+    for full in (False, True):
+        f = df.ExpectedInputKalmanFilter([0.5, 0.9], independent=True)
+        f.full_checks = full
+        model, ys, us, _ = _one_run(5)
+        carry, _ = f.step(f.init(model), ys[0, 0], us[0, 0])
+        f.arrival_rate = torch.tensor([0.5], dtype=torch.float64)
+        with pytest.raises(ValueError, match=r"arrival_rate holds 1 rates, and the model has 2"):
+            f.step(carry, ys[0, 1], us[0, 1])
+        g = df.ExpectedInputKalmanFilter(0.5, on_loss="hold")
+        g.full_checks = full
+        carry, _ = g.step(g.init(model), ys[0, 0], us[0, 0])
+        g.on_loss = "zero"
+        with pytest.raises(ValueError, match=r"carry.mean must have shape \[..., 2\]; got \(4,\)"):
+            g.step(carry, ys[0, 1], us[0, 1])
+    # a valid replacement is the filter built with it, stepping the same carry
+    for rate, new, options in [(0.5, 0.8, {}), ([0.5, 0.9], [0.3, 0.7], {"independent": True}),
+                               (0.5, 0.8, {"on_loss": "hold"})]:  # fmt: skip
+        fresh = df.ExpectedInputKalmanFilter(new, **options)
+        assigned = _eikf_last(rate, lambda f, new=new: setattr(f, "arrival_rate", new), **options)
+        assert torch.equal(assigned, _eikf_last(rate, owner=fresh, **options))
+        assert (assigned - _eikf_last(rate, **options)).abs().max() > 1e-6
+    # and what __init__ refuses is refused, with its words, the filter left as it was
+    f = df.ExpectedInputKalmanFilter([0.5, 0.9], independent=True)
+    for name, value, match in [("arrival_rate", 1.5, r"must lie in \(0, 1\]"),
+                               ("arrival_rate", True, "must be a number"),
+                               ("independent", "yes", "independent must be True or False"),
+                               ("independent", False, "or, with independent=True, one per"),
+                               ("on_loss", "drop", "on_loss")]:  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            setattr(f, name, value)
+    assert f.arrival_rate.tolist() == [0.5, 0.9] and f.independent and f.on_loss.value == "zero"

@@ -12,6 +12,7 @@ from attacked import simulate_attacked
 import difffilter as df
 from difffilter import fdi
 from difffilter.fdi.fused import FusedModifiedPF
+from difffilter.loop import open_loop
 from difffilter.models.attacks import BiasAttack
 from difffilter.models.four_tank import FourTankModel
 from difffilter.noise import Gaussian, UniformBox
@@ -535,3 +536,87 @@ def test_the_bias_estimator_of_a_modified_pf_hands_out_the_measurements_dtype():
                         generator=torch.Generator().manual_seed(1))  # fmt: skip
         assert out.means.dtype == out.attack.dtype == model_dtype
         assert bool(out.attack.isfinite().all())
+
+
+# ------------------------------------------ settings assigned after construction (a trial)
+
+
+def _mixture_last(p, assign=None, owner=None):
+    """The last step's (mean, score) of a ``MixtureParticleFilter`` at attack probability
+    ``p`` whose carry, after one step, goes on with ``assign(likelihood)`` applied or under
+    ``owner``."""
+    model = scalar_model(0.1)
+    ys = torch.randn(5, 1, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    bias = lambda: fdi.BiasDeception(torch.tensor([2.0], dtype=torch.float64))  # noqa: E731
+    lik = fdi.DeceptionMixtureLikelihood(p, bias())
+    pf = fdi.MixtureParticleFilter(100, lik)
+    carry = pf.init(model, generator=torch.Generator().manual_seed(2))
+    carry, _ = pf.step(carry, ys[0])
+    if assign is not None:
+        assign(lik)
+    pf = owner(bias()) if owner is not None else pf
+    for k in range(1, 5):
+        carry, out = pf.step(carry, ys[k])
+    return torch.cat([out.mean, out.score.reshape(1)])
+
+
+def test_a_mixture_attack_probability_assigned_is_the_one_weighed_with():
+    # log p and log(1 − p) were made once at __init__: likelihood.p = 0.5 had weighed with
+    # p = 0.1 bit for bit (and 1.5 was taken). Truth: a filter built with the new p
+    # stepping the very same carry (same particles and generator states).
+    for new in (0.5, 0.0, 1.0):
+        assigned = _mixture_last(0.1, lambda lik, new=new: setattr(lik, "p", new))
+        built = _mixture_last(0.1, owner=lambda attack, new=new: fdi.MixtureParticleFilter(
+            100, fdi.DeceptionMixtureLikelihood(new, attack)))  # fmt: skip
+        assert torch.equal(assigned, built)
+        assert (assigned - _mixture_last(0.1)).abs().max() > 1e-3
+    lik = fdi.DeceptionMixtureLikelihood(0.1, fdi.BiasDeception([1.0]))
+    for bad in (1.5, -0.1, float("nan")):
+        with pytest.raises(ValueError, match=r"attack_probability must lie in \[0, 1\]"):
+            lik.p = bad
+    assert lik.p == 0.1
+
+
+def _modified_pf_last(pf, T=8):
+    model = df.LinearGaussianModel(
+        torch.tensor([[1.0, 0.1], [-0.05, 0.95]], dtype=torch.float64),
+        torch.eye(2, dtype=torch.float64), 0.02 * torch.eye(2, dtype=torch.float64),
+        0.04 * torch.eye(2, dtype=torch.float64), torch.zeros(2, dtype=torch.float64),
+        torch.eye(2, dtype=torch.float64),
+    )  # fmt: skip
+    ys = 0.2 * torch.randn(T, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    ys[4:, 0] += 1.5  # a bias of 1.5 on sensor 0 from step 4
+    carry = pf.init(model, generator=torch.Generator().manual_seed(1))
+    for k in range(T):
+        carry, out = pf.step(carry, ys[k])
+    run = open_loop(pf, model, ys, generator=torch.Generator().manual_seed(1))
+    return torch.cat([out.mean, out.attack, run.means[-1], run.attack[-1]]), (model, ys)
+
+
+def test_a_modified_pf_gamma_hat_or_detector_assigned_is_the_one_used():
+    # pf.gamma_hat = table was kept beside the weighting's copy, which the steps read: the
+    # new table was never used (attack 0 where it says 1.5). Truth: the filter built with it.
+    old, new = torch.zeros(8, 2, dtype=torch.float64), torch.zeros(8, 2, dtype=torch.float64)
+    new[:, 0] = 1.5
+    pf = fdi.ModifiedParticleFilter(64, fdi.PoADetector(0.5, 0.5), old)
+    pf.gamma_hat = new
+    assigned, _ = _modified_pf_last(pf)
+    built, _ = _modified_pf_last(fdi.ModifiedParticleFilter(64, fdi.PoADetector(0.5, 0.5), new))
+    assert torch.equal(assigned, built) and assigned[2] == 1.5 and pf.likelihood.gamma_hat is new
+    pf.detector = fdi.PoADetector(0.3, 0.2)
+    assigned, (model, ys) = _modified_pf_last(pf)
+    built, _ = _modified_pf_last(fdi.ModifiedParticleFilter(64, fdi.PoADetector(0.3, 0.2), new))
+    assert torch.equal(assigned, built)
+    # refused with __init__'s words; a γ̂ estimator assigned under a carry of a table: its
+    # next step (lean or not) names the carry's missing state, not a raw AttributeError
+    with pytest.raises(ValueError, match=r"gamma_hat must be a tensor \[..., T, dy\]"):
+        pf.gamma_hat = torch.zeros(2)
+    with pytest.raises(ValueError, match="detector must be a PoADetector"):
+        pf.detector = "poa"
+    with pytest.raises(ValueError, match=r"fused=True does not support gamma_hat \(an estimator"):
+        fdi.ModifiedParticleFilter(8, pf.detector, new, fused=True).gamma_hat = (
+            fdi.BiasAttackEstimator(2, 0.9))  # fmt: skip
+    carry, _ = pf.step(pf.init(model, generator=torch.Generator().manual_seed(1)), ys[0])
+    pf.gamma_hat = fdi.BiasAttackEstimator(2, 0.9)
+    with pytest.raises(ValueError, match="carry.aux: the carry comes from a run without a Bias"):
+        pf.step(carry, ys[1])

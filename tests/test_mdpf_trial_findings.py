@@ -51,3 +51,76 @@ def test_auto_takes_the_covariance_form_for_a_singular_process_noise():
     torch.testing.assert_close(_run(model, ys, "auto").means, _run(model, ys, "covariance").means)
     with pytest.raises(ValueError, match="positive definite Q.*it inverts Q"):
         _run(model, ys, "information")
+
+
+# ------------------------------------------- options assigned after the first step (a trial)
+
+
+def _apf_plant():
+    eye = torch.eye(2, dtype=d)
+    return LinearGaussianModel(0.9 * eye, eye, 0.01 * eye, 0.1 * eye, torch.zeros(2, dtype=d),
+                               eye, B=eye)  # fmt: skip
+
+
+def _apf_data():
+    g = torch.Generator().manual_seed(1)
+    return torch.randn(5, 2, generator=g, dtype=d), torch.randn(5, 2, generator=g, dtype=d)
+
+
+def _apf_last(assign=None, owner=None):
+    """The last step's (mean, attack) of an ``AdaptiveParticleFilter(40)`` whose carry, after
+    one step, is stepped on by the same object with ``assign(apf)`` applied, or by ``owner``."""
+    from difffilter.fdi import AdaptiveParticleFilter
+
+    model, (ys, us) = _apf_plant(), _apf_data()
+    apf = AdaptiveParticleFilter(40)
+    carry = apf.init(model, generator=torch.Generator().manual_seed(3))
+    carry, _ = apf.step(carry, ys[0], us[0])
+    if assign is not None:
+        assign(apf)
+    apf = owner if owner is not None else apf
+    for k in range(1, 5):
+        carry, out = apf.step(carry, ys[k], us[k])
+    return torch.cat([out.mean, out.attack])
+
+
+@pytest.mark.parametrize("name, value", [
+    ("forgetting", 0.99), ("reading", "copy"), ("form", "covariance"),
+    ("attack_cov0", 0.0), ("resampler", "systematic"),
+])  # fmt: skip
+def test_an_adaptive_pf_option_assigned_after_a_step_is_the_one_stepped(name, value):
+    # apf.forgetting = 0.99 had been cached away with the first model's filter: the steps
+    # went on at 0.7 bit for bit. Truth: a filter built with the new option stepping the
+    # very same carry (same particles and generator states) from the same point.
+    from difffilter.fdi import AdaptiveParticleFilter
+    from difffilter.resampling import Systematic
+
+    value = Systematic() if value == "systematic" else value
+    fresh = AdaptiveParticleFilter(40, **{name: value})
+    assigned = _apf_last(lambda apf: setattr(apf, name, value))
+    assert torch.equal(assigned, _apf_last(owner=fresh))
+    if name in ("forgetting", "reading", "resampler"):  # (not a round-off apart: other numbers)
+        assert (assigned - _apf_last()).abs().max() > 1e-3
+
+
+def test_an_adaptive_pf_refuses_what_its_constructor_refuses_and_a_carry_of_other_size():
+    from difffilter.fdi import AdaptiveParticleFilter
+
+    apf = AdaptiveParticleFilter(40, form="information")
+    for name, value, match in [("forgetting", 1.5, r"forgetting \(λ\) must lie in \(0, 1\]"),
+                               ("num_particles", 0, "num_particles"),
+                               ("attack_cov0", 0.0, "needs form='covariance'"),
+                               ("resampler", "multinomial", "resampler must be an object"),
+                               ("false_alarm_rate", float("nan"), "false_alarm_rate")]:  # fmt: skip
+        with pytest.raises((ValueError, TypeError), match=match):
+            setattr(apf, name, value)
+    assert (apf.forgetting, apf.num_particles, apf.attack_cov0) == (0.7, 40, 10.0)
+    model, (ys, us) = _apf_plant(), _apf_data()
+    for full in (False, True):  # the lean step too: it had stepped 40 particles for 20
+        apf = AdaptiveParticleFilter(40)
+        apf.full_checks = full
+        carry = apf.init(model, generator=torch.Generator().manual_seed(3))
+        carry, _ = apf.step(carry, ys[0], us[0])
+        apf.num_particles = 20
+        with pytest.raises(ValueError, match=r"num_particles = 20"):
+            apf.step(carry, ys[1], us[1])

@@ -46,6 +46,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from .._assignments import note_assignment
 from .._checks import (
     Choice,
     check_finite_number,
@@ -404,6 +405,18 @@ def _summary(layout: ParticleLayout, mean: Tensor, cov: Tensor) -> LocalEstimate
     return LocalEstimate(x, symmetrize(P + cx), a, symmetrize(S + ca))
 
 
+def _form_for(form: Form, attack_cov0: float) -> Form:
+    """The form run for ``form`` at ``S₀ = attack_cov0 · I``: the covariance form where
+    ``S₀ = 0``. The information form inverts S (S⁺ = (λ S⁻¹ + DᵀJD)⁻¹): with S₀ = 0 every
+    proposed particle was NaN at step 2; the covariance form keeps â = 0."""
+    if attack_cov0 != 0:
+        return form
+    if form is Form.INFORMATION:
+        raise ValueError("attack_cov0 = 0 (S₀ = 0) needs form='covariance': the "
+                         "information form inverts the attack covariance S")  # fmt: skip
+    return Form.COVARIANCE
+
+
 def adaptive_particle_init(
     model: StateSpaceModel,
     num_particles: int,
@@ -475,14 +488,9 @@ class AdaptiveParticleFilter(Estimator):
         self.num_particles = check_positive_int(num_particles, "num_particles")
         self.forgetting = _check_forgetting(forgetting)
         self.attack_cov0 = check_finite_number(attack_cov0, "attack_cov0", nonnegative=True)
-        if self.attack_cov0 == 0:
-            # the information form inverts S (S⁺ = (λ S⁻¹ + DᵀJD)⁻¹): with S₀ = 0 every
-            # proposed particle was NaN at step 2; the covariance form keeps â = 0
-            if form is Form.INFORMATION:
-                raise ValueError("attack_cov0 = 0 (S₀ = 0) needs form='covariance': the "
-                                 "information form inverts the attack covariance S")  # fmt: skip
-            form = Form.COVARIANCE
-        self.reading, self.form = reading, form
+        # the form asked for, kept: ``form`` is the one run, which attack_cov0 = 0 decides
+        self._form_asked = form
+        self.reading, self.form = reading, _form_for(form, self.attack_cov0)
         self.resampler = resampler if resampler is not None else Multinomial()
         self.false_alarm_rate = check_rate(false_alarm_rate, "false_alarm_rate")
         # (model, its packed view, the particle filter that steps it) of the last model
@@ -495,6 +503,44 @@ class AdaptiveParticleFilter(Estimator):
         """The options alone (the estimator holds nothing else): the last model's filter is
         made again on first use."""
         return {**self.__dict__, "_last": None}
+
+    #: The options the particle filter of :meth:`filter_for` is made from. One replaced
+    #: after ``__init__`` is checked as ``__init__`` checks it, the cached filter is made
+    #: again, and the next step validates its carry in full (cached on the model alone,
+    #: ``apf.forgetting = 0.99`` had never been read, and ``num_particles = 20`` had gone on
+    #: stepping 50 particles: a red-team trial).
+    _FILTER_OPTIONS = frozenset(
+        {"num_particles", "forgetting", "reading", "form", "attack_cov0", "resampler"}
+    )
+    _CHECKED_OPTIONS = _FILTER_OPTIONS | {"false_alarm_rate"}
+
+    def __setattr__(self, name, value):
+        if name not in self._CHECKED_OPTIONS or name not in self.__dict__:
+            super().__setattr__(name, value)
+            return
+        if name == "false_alarm_rate":  # read at every step: checked, nothing to make again
+            super().__setattr__(name, check_rate(value, "false_alarm_rate"))
+            return
+        if name == "num_particles":
+            value = check_positive_int(value, "num_particles")
+        elif name == "forgetting":
+            value = _check_forgetting(value)
+        elif name == "reading":
+            value = Reading(value)
+        elif name == "form":  # (the asked form against the current S₀)
+            asked = Form(value)
+            value = _form_for(asked, self.attack_cov0)
+            super().__setattr__("_form_asked", asked)
+        elif name == "attack_cov0":  # (the form S₀ = 0 allows, checked before either is set)
+            value = check_finite_number(value, "attack_cov0", nonnegative=True)
+            form = _form_for(self.__dict__.get("_form_asked", self.form), value)
+            super().__setattr__("form", form)
+        else:  # resampler
+            check_strategy(value, "resampler", "difffilter.resampling.Multinomial()")
+            value = value if value is not None else Multinomial()
+        super().__setattr__(name, value)
+        super().__setattr__("_last", None)
+        note_assignment()
 
     def filter_for(self, model: StateSpaceModel) -> tuple[ParticleView, ParticleFilter]:
         """The packed view of ``model`` and the particle filter that steps it."""

@@ -164,12 +164,25 @@ class DeceptionMixtureLikelihood:
     """
 
     def __init__(self, attack_probability: float, attack):
+        self.p = attack_probability
+        if not callable(attack):
+            raise ValueError("attack must be a callable (model, y, particles, k, mask) -> [..., N]")
+        self.attack = attack
+
+    @property
+    def p(self) -> float:
+        """``p``, the attack probability; assigned, it is checked and its logs made again (the
+        weighting adds ``log p`` and ``log(1 − p)`` made once: ``likelihood.p = 0.5`` had
+        weighed with the old ``p`` while its ``p == 0`` branch read the new one, and 1.5
+        was taken: a red-team trial)."""
+        return self._p
+
+    @p.setter
+    def p(self, attack_probability: float) -> None:
         p = float(attack_probability)
         if not 0.0 <= p <= 1.0:
             raise ValueError(f"attack_probability must lie in [0, 1]; got {attack_probability!r}")
-        if not callable(attack):
-            raise ValueError("attack must be a callable (model, y, particles, k, mask) -> [..., N]")
-        self.p, self.attack = p, attack
+        self._p = p
         self._log_p = math.log(p) if p > 0 else -math.inf
         self._log_q = math.log1p(-p) if p < 1 else -math.inf
 
@@ -187,7 +200,7 @@ class DeceptionMixtureLikelihood:
     def __call__(self, model, y, particles, k, mask, *, attacked=None) -> Tensor:
         """``attacked``: ``log[p p_a(ỹ)]`` ``[..., 1]`` when the caller has it (a replacement
         attack: one number per run, e.g. tabulated for a whole sequence)."""
-        if self.p == 0.0:  # log(1 − p) = 0 and p p_a = 0: the clean density, exactly
+        if self._p == 0.0:  # log(1 − p) = 0 and p p_a = 0: the clean density, exactly
             return _clean_log_prob(model, y, particles, k, mask)
         if attacked is None and isinstance(self.attack, ReplacementDeception):
             attacked = self.replacement_term(y, mask).unsqueeze(-1)

@@ -38,6 +38,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
+from .._assignments import note_assignment
 from .._checks import broadcast_or_none, check_filter_inputs
 from ..estimator import EstimatorOutput, Generators
 from ..gaussian import kalman_gain
@@ -215,29 +216,52 @@ class ModifiedPFWeighting:
     """
 
     def __init__(self, detector, gamma_hat, *, attack_rate=None, gain=None, base_likelihood=None):
-        if not isinstance(detector, PoADetector):
-            raise ValueError(f"detector must be a PoADetector; got {type(detector).__name__}")
-        if not isinstance(gamma_hat, (BiasAttackEstimator, Tensor)):
-            raise ValueError(
-                "gamma_hat must be a BiasAttackEstimator or a tensor [..., T, dy]; got "
-                f"{type(gamma_hat).__name__}"
-            )
-        if isinstance(gamma_hat, Tensor) and gamma_hat.dim() < 2:  # a bare IndexError at step 1
-            raise ValueError(
-                "gamma_hat must be a tensor [..., T, dy] (one row per step); got shape "
-                f"{tuple(gamma_hat.shape)}: for one γ̂ for every step, expand it to [T, dy]"
-            )
         self.detector, self.gamma_hat, self.attack_rate = detector, gamma_hat, attack_rate
         self.gain, self.base = gain, base_likelihood
-        self.estimator = gamma_hat if isinstance(gamma_hat, BiasAttackEstimator) else None
 
-    def init(self, model, batch_shape, dtype, device) -> WeightingState:
+    def __setattr__(self, name, value):
+        # detector and gamma_hat checked whenever set, and a replacement counted: the next
+        # step validates its carry against them in full (a table assigned after __init__
+        # had never been read through ModifiedParticleFilter.gamma_hat: a red-team trial)
+        if name == "detector":
+            if not isinstance(value, PoADetector):
+                raise ValueError(f"detector must be a PoADetector; got {type(value).__name__}")
+        elif name == "gamma_hat":
+            _check_gamma_hat(value)
+            super().__setattr__(
+                "estimator", value if isinstance(value, BiasAttackEstimator) else None
+            )
+        elif name == "estimator":  # (derived from gamma_hat: one source of truth)
+            raise AttributeError("estimator follows gamma_hat: assign gamma_hat instead")
+        replacing = name in ("detector", "gamma_hat") and name in self.__dict__
+        super().__setattr__(name, value)
+        if replacing:
+            note_assignment()
+
+    def check_fits(self, model, batch_shape) -> None:
+        """The detector's ``η`` against ``batch_shape`` runs of ``model``, and the bias
+        estimator's dimension against ``model.dim_y``."""
         self.detector.check_runs(batch_shape, model)
         if self.estimator is not None and self.estimator.dim != model.dim_y:
             raise ValueError(
                 f"gamma_hat is a BiasAttackEstimator of dim {self.estimator.dim}; the model "
                 f"measures {model.dim_y} entries (dim must be model.dim_y)"
             )
+
+    def check_state(self, state: WeightingState, what: str) -> None:
+        """``state`` must hold the running state this weighting keeps (``what`` names it)."""
+        for kept, have, name in ((self.attack_rate, state.rate, "attack_rate"),
+                                 (self.estimator, state.estimator, "a BiasAttackEstimator")):  # fmt: skip
+            if kept is not None and have is None:
+                start = ("its own initial state (initial_state=None)" if what == "initial_state"
+                         else "its init (a detector or gamma_hat assigned since?)")  # fmt: skip
+                raise ValueError(
+                    f"{what}: the carry comes from a run without {name}, which this "
+                    f"filter keeps: start this filter from {start}"
+                )
+
+    def init(self, model, batch_shape, dtype, device) -> WeightingState:
+        self.check_fits(model, batch_shape)
         rate = None
         if self.attack_rate is not None:
             rate = self.attack_rate.init(batch_shape, dtype=dtype, device=device)
@@ -257,13 +281,7 @@ class ModifiedPFWeighting:
         particles: β 0.72 for 0.66), and refused where it lacks the state this weighting
         keeps (a carry of a run without ``attack_rate`` or the bias estimator failed with an
         AttributeError: a red-team trial)."""
-        for kept, have, what in ((self.attack_rate, state.rate, "attack_rate"),
-                                 (self.estimator, state.estimator, "a BiasAttackEstimator")):  # fmt: skip
-            if kept is not None and have is None:
-                raise ValueError(
-                    f"initial_state: the carry comes from a run without {what}, which this "
-                    "filter keeps: start this filter from its own initial state (initial_state=None)"
-                )
+        self.check_state(state, "initial_state")
         return state._replace(gain=self._gain_for(model, dtype))
 
     def weigh(self, state: WeightingState, model, y, particles, k, mask, predictive):
@@ -319,6 +337,19 @@ class ModifiedPFWeighting:
         record["gamma_hat"] = g_hat
         log_p = AttackCompensatedLikelihood(alarm, g_hat, self.base)(model, y, particles, k, mask)
         return WeightingState(rate, est, state.gain), log_p, record
+
+
+def _check_gamma_hat(gamma_hat) -> None:
+    if not isinstance(gamma_hat, (BiasAttackEstimator, Tensor)):
+        raise ValueError(
+            "gamma_hat must be a BiasAttackEstimator or a tensor [..., T, dy]; got "
+            f"{type(gamma_hat).__name__}"
+        )
+    if isinstance(gamma_hat, Tensor) and gamma_hat.dim() < 2:  # a bare IndexError at step 1
+        raise ValueError(
+            "gamma_hat must be a tensor [..., T, dy] (one row per step); got shape "
+            f"{tuple(gamma_hat.shape)}: for one γ̂ for every step, expand it to [T, dy]"
+        )
 
 
 def _shared_gain_applies(model) -> bool:
@@ -379,9 +410,40 @@ class ModifiedParticleFilter(ParticleFilter):
         super().__init__(
             num_particles, resampler=resampler, likelihood=weighting, ess_threshold=ess_threshold
         )
-        self.detector, self.gamma_hat, self.fused = detector, gamma_hat, bool(fused)
+        self.fused = bool(fused)  # (detector and gamma_hat: the weighting's, below)
         if self.fused:
             _check_fused(gamma_hat, attack_rate, base_likelihood, resampler, ess_threshold)
+
+    # The detector and γ̂ are the weighting's (the likelihood's) alone, read and assigned
+    # through it: a copy kept here as well had been assigned and never read by the steps,
+    # which weigh with the weighting's (a red-team trial).
+    @property
+    def detector(self) -> PoADetector:
+        """The weighting's :class:`PoADetector` (``η``, ``ζ``)."""
+        return self.likelihood.detector
+
+    @detector.setter
+    def detector(self, detector: PoADetector) -> None:
+        self.likelihood.detector = detector  # (checked there, and the carries validated again)
+
+    @property
+    def gamma_hat(self):
+        """The weighting's ``γ̂``: a tensor ``[..., T, dy]`` or a :class:`BiasAttackEstimator`."""
+        return self.likelihood.gamma_hat
+
+    @gamma_hat.setter
+    def gamma_hat(self, gamma_hat) -> None:
+        if self.fused:
+            w = self.likelihood
+            _check_gamma_hat(gamma_hat)
+            _check_fused(gamma_hat, w.attack_rate, w.base, self.resampler, self.ess_threshold)
+        self.likelihood.gamma_hat = gamma_hat
+
+    def _check_carry(self, carry):
+        super()._check_carry(carry)
+        if isinstance(carry.aux, WeightingState):  # (a detector or γ̂ assigned since its init)
+            self.likelihood.check_fits(carry.model, carry.log_weights.shape[:-1])
+            self.likelihood.check_state(carry.aux, "carry.aux")
 
     def _step(self, carry, y, u, mask):
         carry, out = super()._step(carry, y, u, mask)
