@@ -62,6 +62,7 @@ from .kalman import (
     Prediction,
     _check_declared_time_varying,
     _check_linear,
+    _check_zero_mean_noise,
     gaussian_init,
 )
 from .linalg import matvec, symmetrize
@@ -267,6 +268,9 @@ class ExpectedInputKalmanFilter(KalmanFilter):
         self._check_rates(carry.model)
         if self.on_loss is OnLoss.ZERO:
             return super()._check_carry(carry)
+        # what the Kalman filter's checks hold of the model, its noise means (a noise of
+        # non-zero mean assigned between steps had been dropped here: a red-team trial)
+        _check_zero_mean_noise(carry.model)
         _check_linear(carry.model)
         width = carry.model.dim_x + carry.model.dim_u
         for name, t in (("mean", carry.mean), ("cov", carry.cov)):
