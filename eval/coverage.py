@@ -21,9 +21,10 @@ held out      its kind was never drawn (for a network trained on its scenario's 
               alone: every threat but those of that attack's kind, where it is a threat of
               the library)
 not known     a threat of a class of your own (``module:object``) beside a network trained on
-              its scenario's attack alone where that attack is not a threat of the library:
-              nothing says whether it is the attack trained on (a user trial's network read
-              "held out" on its own scaling attack, the one it was trained on)
+              its scenario's attack (alone, or as a distribution's ``own`` it drew) where that
+              attack is not a threat of the library: nothing says whether it is the attack
+              trained on (a user trial's network read "held out" on its own scaling attack,
+              the one it was trained on)
 ============  ================================================================================
 """
 
@@ -93,8 +94,13 @@ def training_coverage(
         spec = {name: with_sampling_period(entry, dt) for name, entry in spec.items()}
     threats = {name: with_sampling_period(threat, dt) for name, threat in threats.items()}
     distribution = ThreatDistribution(spec, model=model, own=own) if spec else None
-    # a scenario attack of no library kind: a threat of a user's class may be that attack
-    unplaced = trained_on == SCENARIO_ATTACK and spec is None
+    # a scenario attack of no library kind, met alone or as a distribution's drawn `own`: a
+    # threat of a user's class may be that attack (the distribution's had read "held out")
+    if trained_on == SCENARIO_ATTACK:
+        unplaced = spec is None
+    else:
+        drawn_own = float((spec.get("own") or {}).get("weight", 0)) > 0
+        unplaced = drawn_own and own is not None and threat_spec(own) is None
     labels = {}
     for name, threat in threats.items():
         if threat.get("kind") == "stealthy":  # crafted when the study runs, not drawn

@@ -84,6 +84,13 @@ def test_a_network_trained_across_threats_has_its_threats_labelled_from_its_card
         "scale30": "not known", "ramp": "held out"}  # fmt: skip
     assert training_coverage(plain, mine, own=own)["threats"] == {
         "scale30": "held out", "ramp": "kind only"}  # fmt: skip
+    # and so for a distribution whose own (of a user's class) was drawn: it met that attack
+    # (it had read "held out" where the same network trained on it alone reads "not known")
+    assert training_coverage(across, mine, own=object())["threats"]["scale30"] == "not known"
+    card = json.loads(across.with_suffix(".json").read_text())
+    card["threats_drawn"] = {"own": 0, "bias": 5, "ramp": 3}  # own never drawn: held out
+    across.with_suffix(".json").write_text(json.dumps(card))
+    assert training_coverage(across, mine, own=object())["threats"]["scale30"] == "held out"
     # no card beside the file: nothing is claimed
     alone = tmp_path / "alone" / "net.ckpt"
     alone.parent.mkdir()
