@@ -85,8 +85,10 @@ def leaderboard_rows(results: dict[str, dict[str, Any]]) -> list[dict[str, Any]]
                 # with worst_<metric>_diverged)
                 row.update({f"worst_{m}": math.inf if worst.get(f"{m}_diverged") else worst.get(m)
                             for m in WORST})  # fmt: skip
-                row.update({f"worst_{m}_diverged": True for m in WORST
-                            if worst.get(f"{m}_diverged")})  # fmt: skip
+                # (and why there is no number: not run under a threat, broken down; a
+                # "not run" had printed "—", as a metric that does not apply)
+                row.update({f"worst_{m}_{flag}": True for m in WORST for flag in _FLAGS
+                            if worst.get(f"{m}_{flag}")})  # fmt: skip
             rows.append(row)
     return rows
 
@@ -134,8 +136,7 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
     cells = []
     for r in rows:
         cell = [r["scenario"], f"`{r['estimator']}`{_role_mark(r)}",
-                *("diverged" if r.get(f"{m}_diverged") else _value_text(r, m, r.get(m))
-                  for m in cols)]  # fmt: skip
+                *(_flag_text(r, m) or _value_text(r, m, r.get(m)) for m in cols)]  # fmt: skip
         if mixed:
             cell.insert(2, f"{r['units']['state']}; {r['units']['attack']}")
         cells.append(cell)
@@ -153,6 +154,12 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
         "`detection_delay_at_far_s` the delay at it; `tpr_at_1pct_fpr` reads the ROC of the "
         "study's own runs."
         if calibrated
+        else "Every scenario × estimator of this evaluation (definitions and units: "
+        "docs/metrics.md; per-scenario details in `<scenario>/report.md`). No estimator here "
+        "raises alarms, so none has a threshold at the target false-alarm rate: there are no "
+        "`*_at_far` columns; `tpr_at_1pct_fpr` reads the ROC of the study's own runs."
+        # (--far given, a scenario of filters alone: it had said "--far off", a trial)
+        if any(r.get("far_target") is not None for r in rows)
         else "Every scenario × estimator of this evaluation (definitions and units: "
         "docs/metrics.md; per-scenario details in `<scenario>/report.md`). Nothing was "
         "calibrated (`--far off`): no detector has a threshold at a false-alarm rate, so "
@@ -175,6 +182,20 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
     _heatmaps(out / "leaderboard.png", rows, {m: units[m] for m in cols})
     _hparams(out / "tb_leaderboard", rows)
     return path
+
+
+#: Why a worst case has no number (or an infinite one), in the order a cell says it
+#: (``worst_<metric>_<flag>``, from the robustness study's worst cases).
+_FLAGS = ("not_run", "broke_down", "diverged")
+
+
+def _flag_text(row: dict[str, Any], metric: str) -> str | None:
+    """``"not run"``, ``"broke down"`` or ``"diverged"`` where ``row``'s worst case of
+    ``metric`` carries that flag, else ``None``."""
+    for flag in _FLAGS:
+        if row.get(f"{metric}_{flag}"):
+            return flag.replace("_", " ")
+    return None
 
 
 def _role_mark(row: dict[str, Any]) -> str:
@@ -315,8 +336,8 @@ def _heatmaps(path: Path, rows: list[dict[str, Any]], units: dict[str, str]) -> 
     goodness = cell_goodness(grid, scenarios, cols, ranked, targets, steps_s, off_band)
     ax.imshow(goodness, aspect="auto", cmap=cmap, vmin=0, vmax=1)
     for (i, j), value in np.ndenumerate(grid):
-        text = ("—" if np.isnan(value) else "diverged" if np.isposinf(value)
-                else _value_text(rows[i], cols[j], float(value)))  # fmt: skip
+        text = (_flag_text(rows[i], cols[j]) or ("—" if np.isnan(value) else "diverged"
+                if np.isposinf(value) else _value_text(rows[i], cols[j], float(value))))  # fmt: skip
         ax.text(j, i, text, ha="center", va="center", fontsize=6,
                 color=text_colour(float(goodness[i, j])))  # fmt: skip
     for i, j in hatched:

@@ -255,6 +255,41 @@ def test_a_diverged_worst_case_reads_diverged_in_the_robustness_leaderboard():
     assert rows["kf"]["worst_state_error_ratio"] == 2.0
 
 
+def test_a_worst_case_not_run_or_broken_down_says_so_in_the_leaderboard(tmp_path):
+    """An estimator not run under a threat had a worst case of "—" in leaderboard.md and
+    null without a flag in leaderboard.json, as a metric that does not apply, where
+    robustness.md says "not run (ramp)" (a red-team trial)."""
+    free = {"fpr_at_far": 0.01, "state_rmse": 0.1}
+    results = {"s": {"estimators": {"kf": dict(free), "nn": dict(free), "pf": dict(free)},
+                     "far": {"target": 0.01}, "dt_s": 1.0,
+                     "worst_case": {
+                         "kf": {"tpr_at_far": 0.5, "state_error_ratio": 2.0},
+                         "nn": {m: None for m in ("tpr_at_far", "state_error_ratio")}
+                         | {"tpr_at_far_not_run": True, "state_error_ratio_not_run": True},
+                         "pf": {"tpr_at_far": 0.4, "state_error_ratio": None,
+                                "state_error_ratio_diverged": True,
+                                "state_error_ratio_broke_down": True}}}}  # fmt: skip
+    rows = {r["estimator"]: r for r in leaderboard_rows(results)}
+    assert rows["nn"]["worst_tpr_at_far_not_run"] and rows["nn"]["worst_state_error_ratio_not_run"]
+    assert rows["pf"]["worst_state_error_ratio_broke_down"]
+    md = write_leaderboard(tmp_path, results).read_text()
+    cells = {line.split("|")[2].strip(): line for line in md.splitlines()
+             if line.startswith("| s ")}  # fmt: skip
+    assert cells["`nn`"].rstrip(" |").endswith("not run | not run")
+    assert cells["`pf`"].rstrip(" |").endswith("0.4 | broke down")
+    saved = {r["estimator"]: r for r in json.loads((tmp_path / "leaderboard.json").read_text())}
+    assert saved["nn"]["worst_state_error_ratio_not_run"] is True
+
+
+def test_a_scenario_without_detectors_is_not_said_to_be_uncalibrated(tmp_path):
+    """At the default --far, a scenario of filters alone (no estimator raises alarms) had
+    its leaderboard say "Nothing was calibrated (`--far off`)" (a red-team trial)."""
+    results = {"plant": doc(["kf", "ekf"], state_rmse=0.5) | {"far": {"target": 0.01}}}
+    md = write_leaderboard(tmp_path, results).read_text()
+    assert "--far off" not in md and "No estimator here raises alarms" in md
+    assert "_at_far" not in next(line for line in md.splitlines() if line.startswith("| scen"))
+
+
 def test_a_leaderboard_of_an_uncalibrated_evaluation_has_no_columns_at_a_rate(tmp_path):
     """A docs trial: ``--far off`` left three ``*_at_far`` columns of "—" under text that
     described them; they are left out and the text says why. Where one estimator has a
