@@ -186,13 +186,14 @@ def broadcast_or_none(*shapes) -> torch.Size | None:
         return None
 
 
-def check_batch_shapes(**shapes: torch.Size) -> None:
+def check_batch_shapes(whose: str = "the model's parameters", /, **shapes: torch.Size) -> None:
     """A model's parameters' batch shapes (one set per run) must broadcast together: F for
-    3 runs and Q for 4 failed later, deep in a filter ("The size of tensor a (3) …")."""
+    3 runs and Q for 4 failed later, deep in a filter ("The size of tensor a (3) …").
+    ``whose`` names the parameters in the message (a noise model's own, e.g.)."""
     if broadcast_or_none(*shapes.values()) is None:
         listed = ", ".join(f"{name} {tuple(shape)}" for name, shape in shapes.items())
         raise ValueError(
-            "the model's parameters must share one batch shape (one set per run) or broadcast "
+            f"{whose} must share one batch shape (one set per run) or broadcast "
             f"to one; got the batch shapes {listed}"
         )
 

@@ -28,6 +28,7 @@ from ._checks import (
     as_tensor,
     broadcast_or_none,
     broadcast_shapes,
+    check_batch_shapes,
     check_finite,
     check_positive_definite,
     check_square,
@@ -100,7 +101,9 @@ class NoiseModel(CountsAssignments):
 
     A noise of one's own subclasses it and sets ``dim``: ``simulate`` and the particle
     filters draw with ``sample(sample_shape, generator)`` and weigh with ``log_prob(value,
-    mask=None)`` (``mask``: the marginal of the received entries); the Gaussian filters
+    mask=None)`` (``mask``, bool ``[..., d]``: the marginal of the received entries); a noise
+    with batch dimensions (one set per run, ``mean [*batch, d]``) is drawn one per run by
+    ``simulate``, as ``sample`` over the runs' leading dimensions; the Gaussian filters
     (KF, EKF, UKF) read ``mean`` (which must be 0) and ``cov`` alone, a moment match, so a
     heavy-tailed or multi-modal noise gets the Gaussian of its covariance there. A noise
     without a covariance (Cauchy, Student-t with ν ≤ 2) leaves ``cov`` unimplemented and
@@ -149,6 +152,16 @@ class NoiseModel(CountsAssignments):
     def batch_shape(self) -> torch.Size:
         return self.mean.shape[:-1]
 
+    def has_batch(self) -> bool:
+        """Whether the noise has batch dimensions (one set of parameters per run), which
+        ``simulate`` then draws one per run. Read from ``mean``; a noise without one is
+        taken to have none (the built-in noise models answer without computing it)."""
+        try:
+            mean = self.mean
+        except NotImplementedError:
+            return False
+        return isinstance(mean, Tensor) and mean.dim() > 1
+
 
 class Gaussian(NoiseModel):
     """Multivariate normal ``N(loc, cov)`` parameterised by its Cholesky factor.
@@ -188,6 +201,12 @@ class Gaussian(NoiseModel):
             )
         check_vector_last(loc, "loc", d)
         check_finite(loc, "loc")
+        # loc [2, d] beside cov [4, d, d] had been built, then failed in torch's words at
+        # .mean or .sample(), or (a zero loc) densities took the covariance's batch alone
+        given = "cov" if cov is not None else "scale_tril"
+        check_batch_shapes(
+            "a Gaussian's loc and " + given, loc=loc.shape[:-1], **{given: mat.shape[:-2]}
+        )
         self.dim = d
         register_tensor(self, "loc", loc)
         if cov is not None:
@@ -401,6 +420,10 @@ class GaussianMixture(NoiseModel):
     def mean(self) -> Tensor:
         return (self.weights[:, None] * self.locs).sum(0)
 
+    def has_batch(self) -> bool:
+        """``False``: one mixture for all runs (``weights [C]``, ``locs [C, d]``)."""
+        return False
+
     @property
     def cov(self) -> Tensor:
         second = (self.weights[:, None, None] * (self.covs + outer(self.locs, self.locs))).sum(0)
@@ -437,15 +460,21 @@ class GaussianMixture(NoiseModel):
         return torch.logsumexp(comp + torch.log(self.weights), dim=-1)
 
 
-def _masked_gaussian_log_prob(residual: Tensor, cov: Tensor, mask: Tensor) -> Tensor:
-    """Log density of the received entries of ``N(residual; 0, cov)`` (see ``masked_measurement``)."""
-    if mask.dtype != torch.bool or mask.shape[-1:] != residual.shape[-1:]:
+def check_log_prob_mask(mask: Tensor, dim: int) -> None:
+    """A ``log_prob`` mask must be bool ``[..., dim]`` (True where an entry was received)."""
+    if mask.dtype != torch.bool or mask.shape[-1:] != (dim,):
         # an all-True [N, 1] mask had counted one received entry of d (a density (d − 1)/2 ·
-        # log 2π off), and an integer mask holding 2 weighed its entry twice (a linalg trial)
+        # log 2π off), and an integer mask holding 2 weighed its entry twice (a linalg trial);
+        # the box's `outside & 2` was 0, a finite density outside the box (a noise trial)
         raise ValueError(
-            f"mask must be bool [..., {residual.shape[-1]}] (True where an entry was received);"
+            f"mask must be bool [..., {dim}] (True where an entry was received);"
             f" got {mask.dtype} {tuple(mask.shape)}"
         )
+
+
+def _masked_gaussian_log_prob(residual: Tensor, cov: Tensor, mask: Tensor) -> Tensor:
+    """Log density of the received entries of ``N(residual; 0, cov)`` (see ``masked_measurement``)."""
+    check_log_prob_mask(mask, residual.shape[-1])
     eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
     r, _, c, count = masked_measurement(residual, eye, cov, mask)
     return gaussian_log_prob_chol(r, safe_cholesky(c, name="cov", mask=mask), count)
@@ -478,6 +507,10 @@ class UniformBox(NoiseModel):
     def mean(self) -> Tensor:
         return 0.5 * (self.low + self.high)
 
+    def has_batch(self) -> bool:
+        """Whether ``low`` and ``high`` have batch dimensions (one box per run)."""
+        return _registered(self, "low").dim() > 1
+
     @property
     def cov(self) -> Tensor:
         return torch.diag_embed((self.high - self.low).square() / 12.0)
@@ -500,6 +533,7 @@ class UniformBox(NoiseModel):
         outside = ~((value >= self.low) & (value <= self.high))  # NaN counts as outside
         log_len = self._log_lengths()
         if mask is not None:
+            check_log_prob_mask(mask, self.dim)
             outside = outside & mask
             log_len = log_len * mask
         lp = -log_len.sum(-1)

@@ -29,6 +29,7 @@ from ._checks import (
     broadcast_shapes,
     check_batch_shapes,
     check_finite,
+    check_model,
     check_model_batch,
     check_positive_definite,
     check_positive_int,
@@ -37,7 +38,7 @@ from ._checks import (
     model_dtype_device,
 )
 from .linalg import matvec, rowwise, under_transform
-from .noise import Gaussian, NoiseModel, register_tensor
+from .noise import Gaussian, NoiseModel, _shape, register_tensor
 
 __all__ = [
     "StateSpaceModel",
@@ -202,9 +203,9 @@ class StateSpaceModel(CountsAssignments):
         (batch ``[B]``) draws ``[*broadcast(sample_shape, B), dx]``, one per run (``sample``
         would prepend ``sample_shape`` to its batch: 16 runs for a sweep of 4)."""
         initial = self.initial
-        if isinstance(initial, Gaussian) and initial.has_batch():
-            runs = broadcast_shapes(torch.Size(sample_shape), initial.batch_shape)
-            return initial.draw_like(runs + (initial.dim,), generator)
+        if _has_batch(initial):
+            runs = broadcast_shapes(_shape(sample_shape), initial.batch_shape)
+            return _draw_per_run(initial, runs + (initial.dim,), generator)
         return initial.sample(sample_shape, generator)
 
     def sample_transition(self, x: Tensor, u: Tensor | None, k: int, generator=None) -> Tensor:
@@ -214,6 +215,8 @@ class StateSpaceModel(CountsAssignments):
         perturb = getattr(process_noise, "perturb", None)
         if perturb is not None:  # fused mean + noise where the noise model offers it
             return perturb(mean, generator)
+        if _has_batch(process_noise):  # one noise per run
+            return mean + _draw_per_run(process_noise, mean.shape, generator)
         noise = process_noise.sample(mean.shape[:-1], generator)
         return mean + noise.reshape(mean.shape)
 
@@ -221,8 +224,8 @@ class StateSpaceModel(CountsAssignments):
         """Draw ``y_k ~ p(· | x_k)`` for ``x [..., dx]`` → ``[..., dy]``."""
         mean = self.observe(x, k)
         measurement_noise = self.measurement_noise_at(k)
-        if isinstance(measurement_noise, Gaussian) and measurement_noise.has_batch():
-            return mean + measurement_noise.draw_like(mean.shape, generator)  # one R per run
+        if _has_batch(measurement_noise):  # one noise (an R, a box) per run
+            return mean + _draw_per_run(measurement_noise, mean.shape, generator)
         noise = measurement_noise.sample(mean.shape[:-1], generator)
         return mean + noise.reshape(mean.shape)
 
@@ -262,6 +265,10 @@ class StateSpaceModel(CountsAssignments):
         ``B`` runs, or ``(N, B)`` for ``batch_shape=(N, 1)``).
         """
         num_steps = check_positive_int(num_steps, "num_steps")
+        # the noise models in the model's dtype, as every filter checks: a float64
+        # measurement noise on a float32 model had simulated float32 xs beside float64 ys,
+        # and a float64 process noise failed in torch's words at the second step
+        check_model(self)
         batch_shape = torch.Size(
             batch_shape if not isinstance(batch_shape, int) else (batch_shape,)
         )
@@ -279,6 +286,45 @@ class StateSpaceModel(CountsAssignments):
             xs.append(x)
             ys.append(self.sample_measurement(x, t + 1, generator))
         return torch.stack(xs, -2), torch.stack(ys, -2), x0
+
+
+def _has_batch(noise) -> bool:
+    """Whether ``noise`` has one set of parameters per run (its ``has_batch()``; a noise
+    object without that method is taken to have none)."""
+    has_batch = getattr(noise, "has_batch", None)
+    return has_batch is not None and bool(has_batch())
+
+
+def _draw_per_run(noise, shape, generator: torch.Generator | None = None) -> Tensor:
+    """Draws ``[*shape]`` (``shape = [..., d]``) from a batched noise model, independent at
+    every entry of ``shape[:-1]``, whose trailing dimensions take the noise's batch (one box
+    per run: ``[B, d]`` bounds for draws ``[B, d]``). ``sample`` prepends its shape to the
+    batch instead: a batched prior drawn as ``sample((B,))`` had made ``B × B`` runs, and a
+    batched process or measurement noise failed in a reshape (a noise trial).
+
+    A Gaussian draws through :meth:`~difffilter.noise.Gaussian.draw_like`; any other noise
+    through ``sample(lead)``, ``lead`` the runs' leading dimensions in front of its batch,
+    with one more leading dimension for each batch dimension of 1 that spreads over several
+    runs (its draws are moved onto that dimension)."""
+    if isinstance(noise, Gaussian):
+        return noise.draw_like(shape, generator)
+    shape, batch = torch.Size(shape), noise.batch_shape
+    runs = shape[:-1]
+    if broadcast_or_none(runs, batch) != runs or shape[-1:] != (noise.dim,):
+        raise ValueError(
+            f"this {type(noise).__name__} has one set of parameters per run (batch "
+            f"{tuple(batch)}), which does not fit draws of shape {tuple(shape)}: its batch must "
+            "match their trailing batch dimensions (a particle filter takes one model for all runs)"
+        )
+    at = len(runs) - len(batch)
+    lead, tail = runs[:at], runs[at:]
+    spread = [i for i in range(len(batch)) if batch[i] != tail[i]]  # a batch of 1 over runs
+    draws = noise.sample(lead + torch.Size(tail[i] for i in spread), generator)
+    if spread:  # [*lead, *spread runs, *batch, d] → [*lead, *tail, d]
+        first = len(lead) + len(spread)
+        draws = draws.squeeze(tuple(first + i for i in spread))
+        draws = draws.movedim(tuple(range(len(lead), first)), tuple(len(lead) + i for i in spread))
+    return draws.reshape(shape)
 
 
 def inputs_per_point(u: Tensor | None, points: Tensor) -> Tensor | None:
@@ -458,7 +504,11 @@ def _arity(fn: Callable, names: tuple[str, ...] = ("x", "u", "k")) -> int:
     its positional arguments without a default, and after them those with a default that
     carry the next of ``names`` (``f(x, u=None)`` takes ``u``: counted by defaults alone,
     it was called as ``f(x)`` and its input silently dropped; ``f(x, dt=0.1)`` still gets
-    ``x`` alone)."""
+    ``x`` alone). A module (a network) is called through ``forward``: its own signature is
+    ``Module.__call__``'s ``*args``, which had counted all of ``names`` and called
+    ``forward(x)`` with three arguments (a noise trial)."""
+    if isinstance(fn, torch.nn.Module):
+        fn = fn.forward
     try:
         params = inspect.signature(fn).parameters.values()
     except (TypeError, ValueError):

@@ -34,7 +34,7 @@ from torch import Tensor
 
 from difffilter._checks import check_finite_number
 from difffilter.linalg import matvec, rowwise
-from difffilter.noise import Gaussian, NoiseModel, register_tensor
+from difffilter.noise import Gaussian, NoiseModel, check_log_prob_mask, register_tensor
 from difffilter.particle import KalmanProposal
 from difffilter.ssm import StateSpaceModel
 
@@ -143,6 +143,10 @@ class GlintNoise(NoiseModel):
     def mean(self) -> Tensor:
         return self.variances.new_zeros(self.dim)
 
+    def has_batch(self) -> bool:
+        """``False``: one glint noise for all runs."""
+        return False
+
     @property
     def cov(self) -> Tensor:
         block = (self.weights[:, None] * self.variances).sum(0)
@@ -169,6 +173,7 @@ class GlintNoise(NoiseModel):
         if mask is None:
             quad, norm = sq @ self._quad, self._norm.sum(0)
         else:
+            check_log_prob_mask(mask, self.dim)  # (a 2 had weighed its entry twice, 0.5 half)
             m = mask.to(value.dtype)
             if m.dim() >= 2 and m.shape[-2] == 1 and value.dim() >= 2:  # one mask, N particles
                 m = m.squeeze(-2)

@@ -277,3 +277,58 @@ def test_safe_cholesky_jitters_from_round_off_up():
     assert 0 < gap < 2e-14
     f32 = safe_cholesky(A.float())  # float32: the ladder as before, from 1e-6
     assert float((f32 @ f32.T - A.float()).abs().max() / A.diagonal().mean()) < 2e-6
+
+
+def test_gaussian_refuses_a_loc_and_cov_whose_batches_do_not_broadcast():
+    """loc [2, d] beside cov [4, d, d] (or scale_tril) is refused by name, as
+    torch.distributions.MultivariateNormal refuses it; batches that broadcast ([1, d] or
+    [4, d] beside [4, d, d]) build, with the densities of MultivariateNormal."""
+    cov = (
+        torch.eye(3, dtype=D).expand(4, 3, 3)
+        * torch.tensor([1.0, 2.0, 3.0, 4.0], dtype=D)[:, None, None]
+    )
+    with pytest.raises(ValueError, match=r"loc and cov .*loc \(2,\), cov \(4,\)"):
+        Gaussian(torch.zeros(2, 3, dtype=D), cov)
+    with pytest.raises(ValueError, match=r"loc and scale_tril .*loc \(2,\), scale_tril \(4,\)"):
+        Gaussian(torch.ones(2, 3, dtype=D), scale_tril=cov.sqrt())
+    with pytest.raises((ValueError, RuntimeError)):  # torch's own rule, which it follows
+        torch.distributions.MultivariateNormal(torch.zeros(2, 3, dtype=D), cov)
+    x = torch.randn(5, 4, 3, dtype=D, generator=torch.Generator().manual_seed(0))
+    for loc in (torch.tensor([[1.0, -1.0, 0.5]], dtype=D), torch.randn(4, 3, dtype=D)):
+        ref = torch.distributions.MultivariateNormal(loc, cov)
+        torch.testing.assert_close(Gaussian(loc, cov).log_prob(x), ref.log_prob(x))
+
+
+@pytest.mark.parametrize("mask", [torch.tensor([2, 0]), torch.tensor([1, 0]),
+                                  torch.tensor([0.5, 0.0]), torch.tensor([True])])  # fmt: skip
+def test_uniform_box_refuses_a_mask_that_is_not_bool_of_its_dimension(mask):
+    """A mask is bool [..., d], as Gaussian's and the mixture's masked densities require:
+    an integer 2 had counted an entry's log-length twice and, through `outside & 2 == 0`,
+    given a value outside the box a finite density."""
+    box = UniformBox(torch.zeros(2, dtype=D), torch.tensor([2.0, 3.0], dtype=D))
+    with pytest.raises(ValueError, match=r"mask must be bool \[\.\.\., 2\]"):
+        box.log_prob(torch.tensor([5.0, 1.0], dtype=D), mask)
+
+
+def test_uniform_box_bool_mask_is_the_marginal_box():
+    """With a bool mask the density is the marginal box's: −log 2 on entry 0 of [0, 2]×[0, 3]
+    inside, −inf outside it on that entry, and an entry outside the box but unreceived
+    does not count."""
+    box = UniformBox(torch.zeros(2, dtype=D), torch.tensor([2.0, 3.0], dtype=D))
+    first = torch.tensor([True, False])
+    v = torch.tensor([[1.0, 1.0], [5.0, 1.0], [1.0, 7.0]], dtype=D)
+    out = box.log_prob(v, first)
+    torch.testing.assert_close(
+        out, torch.tensor([-math.log(2.0), -math.inf, -math.log(2.0)], dtype=D)
+    )
+
+
+def test_has_batch_of_the_noise_models():
+    """has_batch: a box with bounds [B, d] has one per run, one of [d] none; a mixture none;
+    a noise of one's own reads it from its mean's batch."""
+    assert UniformBox(-torch.ones(3, 2, dtype=D), torch.ones(3, 2, dtype=D)).has_batch()
+    assert not UniformBox(-torch.ones(2, dtype=D), torch.ones(2, dtype=D)).has_batch()
+    mix = GaussianMixture(torch.tensor([0.5, 0.5], dtype=D), torch.zeros(2, 1, dtype=D),
+                          torch.ones(2, 1, 1, dtype=D))  # fmt: skip
+    assert not mix.has_batch()
+    assert Gaussian(torch.zeros(3, 2, dtype=D), torch.eye(2, dtype=D)).has_batch()

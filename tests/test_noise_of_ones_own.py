@@ -116,3 +116,38 @@ def test_zero_mean_up_to_round_off_and_the_noises_dtype():
 def _model_with_r(R):
     eye = torch.eye(1, dtype=F64)
     return df.LinearGaussianModel(0.9 * eye, eye, 0.1 * eye, R, torch.zeros(1, dtype=F64), eye)
+
+
+class _LaplacePerRun(NoiseModel):
+    """Zero-mean Laplace noise of scale ``b [*batch, d]``: one scale per run."""
+
+    def __init__(self, b):
+        super().__init__()
+        self.dim, self.b = b.shape[-1], b
+
+    def sample(self, sample_shape=(), generator=None):
+        shape = torch.Size(sample_shape) + self.b.shape
+        u = torch.rand(shape, dtype=F64, generator=generator) - 0.5
+        return -self.b * torch.sign(u) * torch.log1p(-2 * u.abs())
+
+    @property
+    def mean(self):
+        return torch.zeros_like(self.b)
+
+    @property
+    def cov(self):
+        return torch.diag_embed(2 * self.b**2)
+
+
+def test_a_batched_noise_of_ones_own_is_drawn_one_per_run_in_simulate():
+    """A noise of one's own with a scale per run (mean [3, 1]) as the measurement noise: 3
+    runs (batch_shape (N, 1) → (N, 3)), each with its own variance 2 b² (a Laplace's); it had
+    failed in a reshape (a noise trial)."""
+    b = torch.tensor([[0.5], [1.0], [2.0]], dtype=F64)
+    model = _model()
+    model.measurement_noise = _LaplacePerRun(b)
+    assert model.measurement_noise.has_batch() and not Cauchy(1, 0.3).has_batch()
+    xs, ys, x0 = model.simulate(4, (5000, 1), generator=torch.Generator().manual_seed(0))
+    assert xs.shape == ys.shape == (5000, 3, 4, 1) and x0.shape == (5000, 3, 1)
+    v = (ys - xs).transpose(0, 1).reshape(3, -1)
+    torch.testing.assert_close(v.var(-1), 2 * b[:, 0] ** 2, rtol=0.05, atol=0)

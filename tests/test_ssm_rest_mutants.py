@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from difffilter.noise import Gaussian, UniformBox
 from difffilter.ssm import LinearGaussianModel, NonlinearGaussianModel, _arity, wrapped_spread
 
 F64 = torch.float64
@@ -237,3 +238,133 @@ def test_batch_shapes_and_dtypes_that_do_not_fit_are_refused():
         LinearGaussianModel(one, one, one, one, m0, torch.ones(4, 1, 1, dtype=F64), B=three)
     with pytest.raises(ValueError, match="float32"):
         NonlinearGaussianModel(lambda x: x.float(), lambda x: x, one, one, m0, one)
+
+
+# -- batched noise models, dtype check, modules as f/h (a noise trial) ------------------
+
+
+def _lg64(F=None, H=None):
+    eye = torch.eye(2, dtype=F64)
+    return LinearGaussianModel(eye * 0.0 if F is None else F, eye if H is None else H,
+                               0.1 * eye, 0.2 * eye, torch.zeros(2, dtype=F64), eye)  # fmt: skip
+
+
+def _halves():
+    return torch.tensor([[1.0, 0.5], [2.0, 1.0], [3.0, 4.0]], dtype=F64)  # three runs' boxes
+
+
+def _per_run_uniform(draws, half):
+    """draws [N, 3, 2] of Uniform(−half_b, half_b) for run b: inside each run's own box, and
+    the variance of each run's entries half²/3 (to 5%); the largest |draw| near half."""
+    assert bool((draws.abs() <= half).all())
+    var = draws.reshape(-1, 3, 2).square().mean(0)
+    torch.testing.assert_close(var, half.square() / 3, rtol=0.05, atol=0)
+    assert bool((draws.reshape(-1, 3, 2).abs().amax(0) > 0.98 * half).all())
+
+
+def test_a_batched_uniform_box_is_drawn_one_box_per_run_as_a_batched_gaussian():
+    """A UniformBox of bounds [3, d] as prior, process or measurement noise simulates 3 runs,
+    as a batched Gaussian does (the prior had made 3 × 3 runs, the other two failed in a
+    reshape): the shapes of the batched-Gaussian path, and per run the box's own bounds and
+    variance half²/3. With F = 0 and H = I, x_k = w_{k−1} and y_k − x_k = v_k."""
+    half = _halves()
+    box = UniformBox(-half, half)
+    runs, T = 2000, 3
+    gauss = _lg64()
+    gauss.initial = Gaussian(torch.zeros(3, 2, dtype=F64), torch.diag_embed(half.square() / 3))
+    gx, gy, gx0 = gauss.simulate(T, (runs, 1), generator=torch.Generator().manual_seed(0))
+    for role in ("initial", "process_noise", "measurement_noise"):
+        model = _lg64()
+        setattr(model, role, box)
+        xs, ys, x0 = model.simulate(T, (runs, 1), generator=torch.Generator().manual_seed(1))
+        assert (xs.shape, ys.shape, x0.shape) == (gx.shape, gy.shape, gx0.shape)
+        assert x0.shape == (runs, 3, 2)
+        drawn = {"initial": x0, "process_noise": xs.transpose(-2, -3),
+                 "measurement_noise": (ys - xs).transpose(-2, -3)}[role]  # fmt: skip
+        _per_run_uniform(drawn, half)
+    torch.testing.assert_close(gx0.square().mean(0), half.square() / 3, rtol=0.1, atol=0)
+    model = _lg64()
+    model.initial = box
+    assert model.simulate(T, generator=torch.Generator().manual_seed(2))[2].shape == (3, 2)
+
+
+def test_a_box_of_one_set_broadcast_over_runs_draws_independently_per_run():
+    """Bounds [1, d] over 3 runs (the prior's batch): one draw per run, not one copied to
+    all; and a box whose batch does not fit the runs is refused by name."""
+    model = _lg64()
+    model.initial = Gaussian(torch.zeros(3, 2, dtype=F64), torch.eye(2, dtype=F64))
+    model.process_noise = UniformBox(-torch.ones(1, 2, dtype=F64), torch.ones(1, 2, dtype=F64))
+    xs, _, _ = model.simulate(400, generator=torch.Generator().manual_seed(0))
+    assert xs.shape == (3, 400, 2)
+    assert not torch.equal(xs[0], xs[1]) and not torch.equal(xs[1], xs[2])
+    torch.testing.assert_close(xs.square().mean(1), torch.full((3, 2), 1 / 3, dtype=F64),
+                               rtol=0.15, atol=0)  # fmt: skip
+    model.process_noise = UniformBox(-torch.ones(4, 2, dtype=F64), torch.ones(4, 2, dtype=F64))
+    with pytest.raises(ValueError, match=r"UniformBox has one set of parameters per run"):
+        model.sample_transition(torch.zeros(3, 2, dtype=F64), None, 0)
+
+
+def test_sample_initial_takes_an_int_for_a_batched_prior():
+    """sample_initial(3) for a prior of one mean per run: what sample_initial((3,)) draws
+    (the same generator state), as for an unbatched prior; it had raised "'int' object is
+    not iterable"."""
+    one = torch.eye(1, dtype=F64)
+    m0 = torch.tensor([[-10.0], [0.0], [10.0]], dtype=F64)
+    model = LinearGaussianModel(one, one, one, one, m0, one)
+    a = model.sample_initial(3, torch.Generator().manual_seed(0))
+    b = model.sample_initial((3,), torch.Generator().manual_seed(0))
+    assert a.shape == (3, 1)
+    torch.testing.assert_close(a, b)
+
+
+@pytest.mark.parametrize("role", ["process_noise", "measurement_noise"])
+def test_simulate_refuses_a_noise_of_another_dtype_by_name(role):
+    """simulate checks the noise models' dtype as every filter does: a float64 noise on a
+    float32 model had simulated float32 xs beside float64 ys, or failed in torch's words."""
+    eye = torch.eye(2)
+    model = LinearGaussianModel(0.9 * eye, eye, 0.1 * eye, 0.2 * eye, torch.zeros(2), eye)
+    xs, ys, _ = model.simulate(3, 2, generator=torch.Generator().manual_seed(0))
+    assert xs.dtype == ys.dtype == torch.float32
+    setattr(model, role, UniformBox(-torch.ones(2, dtype=F64), torch.ones(2, dtype=F64)))
+    with pytest.raises(ValueError, match=rf"model\.{role}\.low is torch\.float64 .*float32"):
+        model.simulate(3, 2, generator=torch.Generator().manual_seed(0))
+
+
+class _Net(torch.nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.lin = torch.nn.Linear(2, 2, dtype=F64)
+
+    def forward(self, x):
+        return torch.tanh(self.lin(x))
+
+
+class _NetXUK(torch.nn.Module):
+    def forward(self, x, u, k):
+        return x
+
+
+def test_a_module_as_transition_is_called_with_its_forward_s_arguments():
+    """An nn.Module as f is called as its forward takes it (x alone): the model's transition
+    is the network's output, and a filter runs it as the same network wrapped in a lambda;
+    a forward(x, u, k) takes all three. (It had been called with three arguments.)"""
+    torch.manual_seed(0)
+    net = _Net()
+    assert _arity(net) == 1 and _arity(_NetXUK()) == 3
+    assert _arity(torch.nn.Sequential(torch.nn.Tanh())) == 1
+    eye = torch.eye(2, dtype=F64)
+    model = NonlinearGaussianModel(
+        net, lambda x: x, 0.1 * eye, 0.1 * eye, torch.zeros(2, dtype=F64), eye
+    )
+    x = torch.randn(5, 2, dtype=F64, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        torch.testing.assert_close(model.transition(x, None, 0), net(x))
+    wrapped = NonlinearGaussianModel(lambda x: net(x), lambda x: x, 0.1 * eye, 0.1 * eye,
+                                     torch.zeros(2, dtype=F64), eye)  # fmt: skip
+    xs, ys, _ = model.simulate(4, 2, generator=torch.Generator().manual_seed(2))
+    xs2, ys2, _ = wrapped.simulate(4, 2, generator=torch.Generator().manual_seed(2))
+    torch.testing.assert_close((xs, ys), (xs2, ys2))
+    from difffilter import extended_kalman_filter
+
+    torch.testing.assert_close(extended_kalman_filter(model, ys).log_likelihood,
+                               extended_kalman_filter(wrapped, ys).log_likelihood)  # fmt: skip

@@ -77,6 +77,26 @@ def test_glint_log_prob_matches_direct_mixture_density():
     assert abs(float(g.log_prob(v, mask)) - one) < 1e-10
 
 
+@pytest.mark.parametrize("mask", [[2, 0, 0, 0], [0.5, 0.0, 0.0, 0.0], [1, 1, 1, 1], [True, True]])
+def test_glint_log_prob_refuses_a_mask_that_is_not_bool_of_its_dimension(mask):
+    """A mask is bool [..., 2S], as GaussianMixture's masked density requires (the same
+    message): an integer 2 had weighed its entry twice and a 0.5 half, silently; a bool
+    mask gives the mixture's marginal (GaussianMixture of the same components)."""
+    from difffilter.noise import GaussianMixture
+
+    w = torch.tensor([0.8, 0.2], dtype=torch.float64)
+    var = torch.tensor([[1.0, 0.01], [25.0, 0.09]], dtype=torch.float64)
+    glint = GlintNoise(w, var, 2)
+    v = torch.tensor([0.5, 0.05, -2.0, 0.1], dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"mask must be bool \[\.\.\., 4\]"):
+        glint.log_prob(v, torch.tensor(mask))
+    mix = GaussianMixture(w, torch.zeros(2, 2, dtype=torch.float64), torch.diag_embed(var))
+    first = torch.tensor([True, False])  # sensor 1's range alone; sensor 2's pair whole
+    truth = mix.log_prob(v[:2], first) + mix.log_prob(v[2:])
+    got = glint.log_prob(v, torch.tensor([True, False, True, True]))
+    torch.testing.assert_close(got, truth)
+
+
 @pytest.mark.parametrize("holding", ["zero_input", "zero_order_hold"])
 def test_schedule_attack_and_holding(holding):
     sc, _, tr = _setup(
