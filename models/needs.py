@@ -31,6 +31,7 @@ from typing import Any
 
 from difffilter.attack import Channel
 from difffilter.kalman import _check_linear
+from difffilter.noise import Gaussian
 from difffilter.particle import transition_law_unsaid
 
 __all__ = [
@@ -79,13 +80,20 @@ LINEAR_MODEL = Need("a linear model (LinearGaussianModel)", _linear)
 
 
 def _transition_law(scenario, model) -> str | None:
+    # what KalmanProposal checks before its first step: a need it passed and the proposal
+    # refused (a UniformBox process noise) stopped the whole study instead of skipping it
+    noise = getattr(model, "process_noise", None)
+    if noise is not None and not isinstance(noise, Gaussian):
+        return (f"weighs its particles by N(f, Q), and the process noise is a "
+                f"{type(noise).__name__}, not Gaussian")  # fmt: skip
     why = transition_law_unsaid(model)
     return None if why is None else f"weighs its particles by N(f, Q), and {why}"
 
 
-#: The model draws its transitions as ``f + w``, ``w`` its process noise (the Kalman
-#: proposal's weights take them so).
-TRANSITION_IS_PROCESS_NOISE = Need("transitions drawn as f + its process noise", _transition_law)
+#: The model draws its transitions as ``f + w``, ``w`` its process noise, a Gaussian (the
+#: Kalman proposal's weights take them so).
+TRANSITION_IS_PROCESS_NOISE = Need("transitions drawn as f + its Gaussian process noise",
+                                   _transition_law)  # fmt: skip
 
 
 def _sensor_attack(scenario, model) -> str | None:

@@ -17,7 +17,9 @@ lines, ``run_suite``, the training config's ``scenario``):
 
 - ``"package.module:object"``: the module is imported and ``object`` (a dotted path in it)
   is a :class:`~difffilter.models.scenario.Scenario` or a function of no arguments that
-  returns one; it is registered under its own name (:func:`get` returns it);
+  returns one (called once a process: every later ``get`` of the path, or an entry point
+  naming the same function, gives that scenario); it is registered under its own name
+  (:func:`get` returns it);
 - ``"path/to/scenario.yaml"``: a scenario written in YAML (a linear plant's matrices, or a
   plant given by Python function paths; :mod:`difffilter.models.yaml_scenario`),
   registered under its ``name``;
@@ -31,11 +33,14 @@ lines, ``run_suite``, the training config's ``scenario``):
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import inspect
+import math
 import pkgutil
 import sys
 import warnings
+from collections.abc import Callable
 from importlib.metadata import entry_points
 
 import torch
@@ -69,8 +74,10 @@ def register(scenario: Scenario, *, origin: str | None = None) -> Scenario:
     if not _LOADED and not origin.startswith(f"module {__package__}."):
         _load_builtin()
     name = scenario.name
-    if name in _REGISTRY and (
-        _REGISTRY[name] != scenario or _unseen_difference(_REGISTRY[name], scenario)
+    if (
+        name in _REGISTRY
+        and _REGISTRY[name] is not scenario
+        and (_differ(_REGISTRY[name], scenario) or _unseen_difference(_REGISTRY[name], scenario))
     ):
         raise ValueError(
             f"scenario {name!r} is already registered, by {_ORIGINS.get(name, '?')}, as a "
@@ -85,6 +92,50 @@ def register(scenario: Scenario, *, origin: str | None = None) -> Scenario:
         _ORIGINS[name] = origin
     _REGISTRY[name] = scenario
     return scenario
+
+
+def _differ(old: Scenario, new: Scenario) -> bool:
+    """Whether two scenarios differ in their compared fields: by ``==``, or, where ``==``
+    says no, by content (:func:`_same_content`): an attack without value equality (the
+    library's ``Signal``, a plain class of one's own) compares by identity, so a YAML file
+    read again unchanged with such an attack read as another scenario (a red-team trial)."""
+    if old == new:
+        return False
+    if type(old) is not type(new) or not dataclasses.is_dataclass(old):
+        return True
+    return not all(
+        _same_content(getattr(old, f.name), getattr(new, f.name))
+        for f in dataclasses.fields(old)
+        if f.compare
+    )
+
+
+def _same_content(a, b, depth: int = 0) -> bool:
+    """Whether ``a`` and ``b`` hold the same values: ``==``, tensors by dtype, shape and
+    values, sequences and mappings item by item, and objects whose class keeps identity
+    equality (or whose ``==`` cannot answer, tensors inside) of one class by their
+    attributes. Functions compare by identity: a fresh closure is another object (what it
+    computes is not compared), so this errs towards "different", the refusal."""
+    if a is b:
+        return True
+    if isinstance(a, torch.Tensor) or isinstance(b, torch.Tensor):
+        return (isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor)
+                and a.dtype == b.dtype and a.shape == b.shape and torch.equal(a, b))  # fmt: skip
+    if type(a) is not type(b) or depth > 8:  # (depth: a cycle of attributes reads "different")
+        return False
+    if isinstance(a, (list, tuple)):
+        return len(a) == len(b) and all(_same_content(x, y, depth + 1) for x, y in zip(a, b))
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_same_content(a[k], b[k], depth + 1) for k in a)
+    try:
+        if bool(a == b):
+            return True
+        asked = type(a).__eq__ is not object.__eq__
+    except Exception:  # (e.g. a dataclass of tensors: "ambiguous")
+        asked = False
+    if asked or not hasattr(a, "__dict__"):  # its own equality said no: believe it
+        return False
+    return _same_content(vars(a), vars(b), depth + 1)
 
 
 def _unseen_difference(old: Scenario, new: Scenario) -> bool:
@@ -105,10 +156,20 @@ def _unseen_difference(old: Scenario, new: Scenario) -> bool:
         return True
     if any(not torch.equal(tensors_a[k], tensors_b[k]) for k in tensors_a):
         return True
-    inputs_a, inputs_b = old.inputs(2, torch.float64), new.inputs(2, torch.float64)
+    # every run of both tables: run i takes row i mod R, so the two agree on every run
+    # iff they agree on lcm(R_a, R_b) runs (2 runs had missed an edit of a third row)
+    runs = math.lcm(_input_rows(old), _input_rows(new))
+    inputs_a, inputs_b = old.inputs(runs, torch.float64), new.inputs(runs, torch.float64)
     if inputs_a is None or inputs_b is None:
         return (inputs_a is None) != (inputs_b is None)
     return inputs_a.shape != inputs_b.shape or not torch.equal(inputs_a, inputs_b)
+
+
+def _input_rows(scenario: CustomScenario) -> int:
+    """The rows ``R`` of a scenario's known-inputs table ``[R, T, du]`` (1 for a table of
+    every run ``[T, du]``, a function of ``k`` or none)."""
+    known = scenario.known_inputs
+    return known.shape[0] if isinstance(known, torch.Tensor) and known.dim() == 3 else 1
 
 
 def _selection_clash(scenario: Scenario) -> str | None:
@@ -201,16 +262,7 @@ def _register_all(obj, where: str, *, one: bool = False) -> list[Scenario]:
     if isinstance(obj, type(importlib)):  # a module: it registered itself when imported
         return []
     if callable(obj) and not isinstance(obj, Scenario):
-        try:
-            inspect.signature(obj).bind()
-        except TypeError:  # (a model function dtype -> model, named by mistake)
-            raise ValueError(
-                f"{where} is a function that needs arguments; name a scenario (e.g. a "
-                "CustomScenario), a list of them, or a function of no arguments returning one"
-            ) from None
-        except ValueError:  # no signature to read (a builtin): call it and see
-            pass
-        obj = obj()
+        obj = _called(obj, where)
     items = obj if isinstance(obj, (list, tuple)) else [obj]
     if one and len(items) != 1:
         raise ValueError(
@@ -224,6 +276,35 @@ def _register_all(obj, where: str, *, one: bool = False) -> list[Scenario]:
             f"them, or a function returning one); got {', '.join(bad)}"
         )
     return [register(s, origin=where) for s in items]
+
+
+#: What each function a path or a plug-in names returned, by the function's ``id`` (with
+#: the function, so the id is not reused): it is called once a process. A scenario built
+#: again need not equal itself (an attack without value equality, such as
+#: :class:`~difffilter.models.attacks.Signal`, compares by identity), so a second call
+#: read as another scenario under its name, "a file edited since it was loaded", and
+#: difffilter-train, which asks the registry twice, stopped (a red-team trial).
+_CALLED: dict[int, tuple[Callable, object]] = {}
+
+
+def _called(function: Callable, where: str):
+    """``function()``, once a process (:data:`_CALLED`); ``ValueError`` if it needs
+    arguments."""
+    known = _CALLED.get(id(function))
+    if known is not None and known[0] is function:
+        return known[1]
+    try:
+        inspect.signature(function).bind()
+    except TypeError:  # (a model function dtype -> model, named by mistake)
+        raise ValueError(
+            f"{where} is a function that needs arguments; name a scenario (e.g. a "
+            "CustomScenario), a list of them, or a function of no arguments returning one"
+        ) from None
+    except ValueError:  # no signature to read (a builtin): call it and see
+        pass
+    result = function()
+    _CALLED[id(function)] = (function, result)
+    return result
 
 
 def _from_path(path: str) -> Scenario:

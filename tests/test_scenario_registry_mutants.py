@@ -565,3 +565,137 @@ def test_a_scenarios_known_inputs_are_made_on_its_models_device(monkeypatch):
     model = sc.system(torch.float64)
     tr = sc.simulate(2, Streams(0).simulation(), model=model)
     assert asked == [model.initial.mean.device] and tr.us.device == model.initial.mean.device
+
+
+# -- red-team trial findings (registry and needs) ---------------------------------------------
+
+
+def test_a_function_path_is_called_once_so_an_attack_without_value_equality_reads_the_same(
+    isolated_registry, monkeypatch
+):
+    """A ``module:function`` path was called on every ``get``; a :class:`Signal` attack
+    compares by identity, so the same scenario built again read as "another under that
+    name" and difffilter-train (which asks twice) stopped. Truth: the function builds one
+    scenario; every ``get`` of its path, and an entry point naming the same function,
+    give that scenario, and the function runs once. Another scenario under the name, from
+    another function, is still refused."""
+    import sys
+    import types
+
+    from difffilter.models.attacks import Signal
+
+    calls = []
+
+    def make():
+        calls.append(1)
+        values = torch.zeros(6, 2, dtype=torch.float64)
+        values[3:, 0] = 0.3
+        return _named("mut_signal", attack=Signal(values))
+
+    mod = types.ModuleType("mut_review_signal_mod")
+    mod.make, mod.other = make, lambda: _named("mut_signal", steps=5)
+    monkeypatch.setitem(sys.modules, "mut_review_signal_mod", mod)
+    assert Signal(torch.zeros(6, 2)) != Signal(torch.zeros(6, 2))  # (why a second call failed)
+    reg = isolated_registry
+    (plugged,) = reg._register_all(mod.make, "entry point 'mut_sig'")  # a plug-in's load
+    first = reg.get("mut_review_signal_mod:make")
+    assert reg.get("mut_review_signal_mod:make") is first is plugged
+    assert reg.get("mut_signal") is first and len(calls) == 1
+    with pytest.raises(ValueError, match="by entry point 'mut_sig'.*registers another"):
+        reg.get("mut_review_signal_mod:other")
+
+
+def test_an_edit_of_any_row_of_a_known_inputs_table_is_refused(isolated_registry):
+    """The "same scenario again?" test compared 2 runs' inputs, so a table ``[R, T, du]``
+    edited in row 2 replaced the registered scenario without a word. Run ``i`` takes row
+    ``i mod R``: truth is whether the two agree on every run. ``[a, b, c]`` against
+    ``[a, b, c']`` differ on run 2; ``[a, b]`` against ``[a, b, a]`` on run 3 (row 1 = b
+    against row 0 = a); ``[a, b]`` against ``[a, b, a, b]`` on none."""
+    reg = isolated_registry
+
+    def table(*rows):
+        return torch.tensor([[[r]] * 6 for r in rows], dtype=torch.float64)
+
+    first = reg.register(_named("mut_rows", known_inputs=table(0.0, 1.0, 2.0)), origin="first")
+    for edited in (table(0.0, 1.0, -50.0), table(0.0, 1.0, 2.0, 7.0)):
+        with pytest.raises(ValueError, match="by first.*registers another under that name"):
+            reg.register(_named("mut_rows", known_inputs=edited), origin="edit")
+    assert reg.get("mut_rows") is first
+    reg.register(_named("mut_two", known_inputs=table(0.0, 1.0)), origin="two")
+    with pytest.raises(ValueError, match="by two.*registers another under that name"):
+        reg.register(_named("mut_two", known_inputs=table(0.0, 1.0, 0.0)), origin="three")
+    same = reg.register(_named("mut_two", known_inputs=table(0.0, 1.0, 0.0, 1.0)))
+    assert reg.get("mut_two") is same  # the same inputs on every run: the same scenario
+
+
+def test_the_kalman_proposals_need_is_unmet_by_a_process_noise_that_is_not_gaussian():
+    """KalmanProposal refuses a process noise that is not Gaussian (its weights take
+    ``p = N(f, Q)``), and its need had passed such a plant: the study stopped instead of
+    skipping the estimator. Truth: the need says no exactly where the proposal refuses
+    (a UniformBox), and yes where the proposal runs (the same plant, Gaussian); a study
+    skips kalman_proposal_pf with that reason and runs bootstrap_pf."""
+    from difffilter.eval.suite import run_suite
+    from difffilter.noise import UniformBox
+
+    def plant(dtype=torch.float64, box=True):
+        m = df.NonlinearGaussianModel(
+            lambda x: 0.9 * x, lambda x: x, 1e-3 * torch.eye(2, dtype=dtype),
+            1e-2 * torch.eye(2, dtype=dtype), torch.zeros(2, dtype=dtype),
+            0.1 * torch.eye(2, dtype=dtype))  # fmt: skip
+        if box:
+            m.process_noise = UniformBox(torch.full((2,), -0.05, dtype=dtype),
+                                         torch.full((2,), 0.05, dtype=dtype))  # fmt: skip
+        return m
+
+    ys = torch.zeros(1, 3, 2, dtype=torch.float64)
+    run = lambda m: df.particle_filter(m, ys, num_particles=8, proposal=df.KalmanProposal(),  # noqa: E731
+                                       generator=torch.Generator().manual_seed(0))  # fmt: skip
+    with pytest.raises(ValueError, match="needs a Gaussian process noise"):
+        run(plant())
+    reason = needs.TRANSITION_IS_PROCESS_NOISE.unmet(None, plant())
+    assert reason == ("weighs its particles by N(f, Q), and the process noise is a "
+                      "UniformBox, not Gaussian")  # fmt: skip
+    assert run(plant(box=False)).means.shape == (1, 3, 2)
+    assert needs.TRANSITION_IS_PROCESS_NOISE.unmet(None, plant(box=False)) is None
+    sc = CustomScenario(name="mut_box", family="mut_box_fam", description="d", model_fn=plant,
+                        attack=Bias(value=0.3, entries=(0,), onset=3), runs=2, steps=6,
+                        dt=1.0, num_particles=20)  # fmt: skip
+    result = run_suite(sc, estimators=["kalman_proposal_pf", "bootstrap_pf"], progress=False)
+    assert result.skipped == {"kalman_proposal_pf": reason} and "bootstrap_pf" in result.outputs
+
+
+def test_a_yaml_file_read_again_with_an_attack_without_value_equality_is_the_same(
+    isolated_registry, tmp_path, monkeypatch
+):
+    """A YAML file is read again on every ``get`` (an edit since must be seen), and an attack
+    of one's own returning a :class:`Signal` compared by identity: the unchanged file read
+    as "another scenario". Truth: the same file gives the same scenario (its Signal's values
+    equal); the file edited to another level is refused, and the first stays registered."""
+    import sys
+    import types
+
+    from difffilter.models.attacks import Signal
+
+    def sig(level=0.3):
+        values = torch.zeros(5, 1)
+        values[2:, 0] = level
+        return Signal(values)
+
+    mod = types.ModuleType("mut_review_own_attack")
+    mod.sig = sig
+    monkeypatch.setitem(sys.modules, "mut_review_own_attack", mod)
+    monkeypatch.chdir(tmp_path)
+    text = ("name: mut_yaml_signal\nsteps: 5\nplant:\n  F: [[0.95, 0.04], [-0.02, 0.8]]\n"
+            "  H: [[1.0, 0.0]]\n  Q: 1.0e-4\n  R: 1.0e-3\n  P0: 1.0e-2\n"
+            "attack: {kind: 'mut_review_own_attack:sig', level: 0.3}\n")  # fmt: skip
+    (tmp_path / "s.yaml").write_text(text)
+    reg = isolated_registry
+    first = reg.get("s.yaml")
+    again = reg.get("s.yaml")  # a fresh Signal of the same values
+    assert again.attack is not first.attack and reg.get("mut_yaml_signal") is again
+    assert torch.equal(again.attack.values, first.attack.values)
+    assert torch.equal(again.attack.values, sig(0.3).values)
+    (tmp_path / "s.yaml").write_text(text.replace("level: 0.3", "level: 0.4"))
+    with pytest.raises(ValueError, match="or a file edited since it was loaded"):
+        reg.get("s.yaml")
+    assert torch.equal(reg.get("mut_yaml_signal").attack.values, sig(0.3).values)
