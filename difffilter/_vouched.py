@@ -93,13 +93,6 @@ class Established:
         self._host_sum = (self.device.type == "cpu" and len(self.y_shape) == 1
                           and max(dim_y, dim_u) <= _HOST_SUM)  # fmt: skip
 
-    def model_intact(self) -> bool:
-        """Whether no tensor of the model was written in place (nor freed: replaced) since."""
-        try:
-            return tuple(map(_VERSIONS, map(_DEREF, self.model_refs))) == self.model_versions
-        except AttributeError:  # one was freed (None has no version): the model changed
-            return False
-
     def admits(self, y, u, mask) -> tuple[Tensor, Tensor | None, Tensor | None] | None:
         """``(y, u, mask)`` ready for the unchecked step (``y`` zeroed where unreceived) when
         they have exactly the established shapes, dtype and device and every received
@@ -248,8 +241,10 @@ def vouch(carry, established: Established) -> None:
     entry = (
         established,
         tuple(map(id, leaves)),
-        tuple(map(weakref.ref, tensors)),
-        _versions(tensors),
+        # the model's watched tensors beside the carry's (unchanged since the full check:
+        # a lean step runs only then), compared with them in one pass by vouched()
+        tuple(map(weakref.ref, tensors)) + established.model_refs,
+        _versions(tensors) + established.model_versions,
         held,  # held: their ids stay theirs
         flat,
         tuple(map(weakref.ref, weak)),  # alive, or the entry is void: their ids may be reused
@@ -272,8 +267,6 @@ def vouched(owner, carry) -> Established | None:
         return None
     established, ids, refs, versions, _, flat, weak = entry
     if established.assigned != assignments():  # a model was assigned to since: check in full
-        return None
-    if established.model_refs and not established.model_intact():  # written in place since
         return None
     # a flat entry's fields, if the same objects, are as flat as they were
     leaves = carry if flat else _flat_leaves(carry)

@@ -415,6 +415,12 @@ class GainSchedule:
         """
         m = self.moments(k)
         index = self._index(k)
+        try:
+            seen = (m.pred_cov._version, m.innovation_cov._version)
+        except RuntimeError:  # inference tensors (a copy made under inference mode)
+            seen = _out_versions(m)
+        if seen != self._out_versions[index]:
+            raise OutputsWritten(k)  # (:meth:`outputs_intact`, here where the index is known)
         control = u is not None and self.B is not None
         if mean.dim() == 1 and y.dim() == 1 and (not control or u.dim() == 1):
             # one run: matrix-vector products, the subtraction and addition fused in
@@ -855,6 +861,12 @@ def _same(a: Tensor | None, b: Tensor | None) -> bool:
         return a is None and b is None
     return (a.dtype == b.dtype and a.device == b.device and a.shape == b.shape
             and bool(torch.equal(a.detach(), b.detach())))  # fmt: skip
+
+
+class OutputsWritten(Exception):
+    """:meth:`GainSchedule.filter_step` of measurement ``k`` (its ``args[0]``) would use a
+    ``P⁻`` or ``S`` written in place since a step's output handed it out
+    (:meth:`GainSchedule.outputs_intact`): the Kalman filter's step takes the general update."""
 
 
 def _out_versions(m: SharedMoments) -> tuple[int, int]:

@@ -42,7 +42,7 @@ from ._checks import (
 )
 from ._shared_cov import shared_covariance_applies, shared_covariance_kalman_filter
 from .estimator import Estimator, _batch_shape, output_of
-from .gain_schedule import GainSchedule, shared_gains_apply
+from .gain_schedule import GainSchedule, OutputsWritten, shared_gains_apply
 from .gaussian import (
     innovation_log_prob,
     linear_predict,
@@ -312,12 +312,16 @@ class KalmanFilter(GaussianFilter):
         return state
 
     def _step(self, carry, y, u, mask):
-        carry = _live(carry)
+        carry = _live(carry, outputs=False)  # (the fused step checks those itself)
         if carry.gains is not None and mask is None:
             # the fused step of the shared gains: about eight tensor operations per step
-            mean, pred, nu, log_lik, m = carry.gains.filter_step(carry.mean, y, u, carry.k + 1)
-            out = StepOutput(mean, m.cov, pred, m.pred_cov, nu, m.innovation_cov, log_lik)
-            return GaussianState(mean, m.cov, carry.k + 1, carry.model, carry.gains), out
+            try:
+                mean, pred, nu, log_lik, m = carry.gains.filter_step(carry.mean, y, u, carry.k + 1)
+            except OutputsWritten:  # its P⁻ or S written through an output: the general update
+                carry = carry._replace(gains=None)
+            else:
+                out = StepOutput(mean, m.cov, pred, m.pred_cov, nu, m.innovation_cov, log_lik)
+                return GaussianState(mean, m.cov, carry.k + 1, carry.model, carry.gains), out
         if _own_update(self):  # one run where nothing is recorded: on host arrays
             stepped = _host_step.host_step(carry, y, u, mask)
             if stepped is not None:
@@ -467,17 +471,21 @@ def _own_update(kf) -> bool:
     return all(getattr(cls, name) is getattr(KalmanFilter, name) for name in _UPDATE_METHODS)
 
 
-def _live(carry: GaussianState) -> GaussianState:
+def _live(carry: GaussianState, outputs: bool = True) -> GaussianState:
     """``carry`` without its gain schedule where the model was written in place since the
     schedule was made (:meth:`~difffilter.GainSchedule.current`): the general update reads
     the model as it is now, from the covariance the schedule had reached; or where the
     schedule no longer holds the carry's next step (a carry kept from thousands of steps
     before: :attr:`~difffilter.GainSchedule.KEEP`), from the covariance the carry holds; or
     where a step's output ``P⁻`` or ``S`` that the next step would share was written in place
-    (:meth:`~difffilter.GainSchedule.outputs_intact`): the general update computes its own."""
+    (:meth:`~difffilter.GainSchedule.outputs_intact`; ``outputs=False``: not checked here,
+    where the fused step checks them, :class:`~difffilter.gain_schedule.OutputsWritten`): the
+    general update computes its own."""
     gains = carry.gains
     if gains is not None and not (
-        gains.current() and gains.held(carry.k + 1) and gains.outputs_intact(carry.k + 1)
+        gains.current()
+        and gains.held(carry.k + 1)
+        and (not outputs or gains.outputs_intact(carry.k + 1))
     ):
         return carry._replace(gains=None)
     return carry
