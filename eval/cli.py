@@ -569,6 +569,29 @@ def _note_training_plants(ckpt, names: Sequence[str]) -> None:
 
     for line in training_plant_notes(_checkpoint_paths(ckpt), names):
         print(line, file=sys.stderr)
+    for line in _own_checkpoint_notes(ckpt, names):
+        print(line, file=sys.stderr)
+
+
+def _own_checkpoint_notes(ckpt, names: Sequence[str]) -> list[str]:
+    """The notes of :func:`_note_training_plants` for the scenarios' own checkpoints, which
+    their learned estimators load where ``--ckpt`` gives no default (a scenario's network
+    trained on another plant of its family had run without the note ``--ckpt`` gets)."""
+    from difffilter.models import registry
+    from difffilter.models.estimators import split_checkpoints
+    from difffilter.models.plant_match import training_plant_notes
+
+    if split_checkpoints(ckpt)[0] is not None:  # --ckpt's own, noted above
+        return []
+    own: dict[Path, list[str]] = {}
+    for name in names:
+        path = registry.get(name).shipped_checkpoint()
+        if path is not None:
+            own.setdefault(path, []).append(name)
+    return [line for path, sharing in own.items()
+            for line in training_plant_notes(
+                [(f"{registry.get(sharing[0]).checkpoint} (the scenario's own, no --ckpt)",
+                  path)], sharing, flag="")]  # fmt: skip
 
 
 def _launch(devices: int, argv: list[str]) -> int:

@@ -8,16 +8,20 @@ on a pendulum of the same family without a word (its state error 6× the analyti
 the report's "trained on" line said where it came from). :func:`plant_difference` compares
 the training scenario's plant with an evaluated scenario's where both can be built:
 
-    dimensions (dx, dy, du),  f(x_j, u, 0) and h(x_j, 1) at x_j ∈ {m₀, m₀ + σ_i e_i, m₀ − σ},
-    σ = √diag P₀, u = 0.1 · 1, and f(m₀, 0.1 · e_l, 0) for each input l (each to rtol 1e-6,
-    atol 1e-9)
+    dimensions (dx, dy, du),  f(x_j, u, k) and h(x_j, k) at x_j ∈ {m₀, m₀ + σ_i e_i, m₀ − σ},
+    σ = √diag P₀, u = 0.1 · 1, and f(m₀, 0.1 · e_l, k) for each input l, at the steps
+    k ∈ {0, 1, 2, 7} (h: {1, 2, 7}), each to rtol 1e-6, atol 1e-9 (16 ε of float32, scaled,
+    where a model is float32), the same NaN in both reading as agreement
 
 (one input at a time, as one state at a time: ``u = 0.1 · 1`` alone read input matrices of
 the same row sums as one, actuators wired the other way round among them)
 
 (the noise may differ: a study of the same plant under more noise is one of transfer, not
 of another plant). :func:`training_plant_notes` turns that into the lines the command
-prints. The shipped checkpoints meet their families' scenarios except ``lfc_sine_1ms``,
+prints, building the training scenario outside the registry and deciding "another plant" by
+the plants, never by the names; and, where the checkpoint records the training plant's
+fingerprint (:func:`plant_fingerprint`, on every card since), it says where that plant
+reads otherwise now. The shipped checkpoints meet their families' scenarios except ``lfc_sine_1ms``,
 whose plant is discretised at 1 ms (the network was trained at 10 ms).
 """
 
@@ -30,16 +34,28 @@ from pathlib import Path
 import torch
 
 __all__ = [
+    "PLANT_FINGERPRINT",
+    "plant_change",
     "plant_difference",
+    "plant_fingerprint",
     "scenario_file_change",
+    "training_scenario",
     "training_scenario_of",
     "training_plant_notes",
 ]
 
 
+#: The step indices at which f(·, ·, k) and h(·, k) are probed: a plant that reads k (a
+#: forcing sin(ωkΔt)) can agree at k = 0 and differ from k = 1 on (a trial's two
+#: oscillators of ω = 1 and 5 read as one plant when f was probed at k = 0 alone)
+PROBE_STEPS = (0, 1, 2, 7)
+
+
 def plant_difference(trained, evaluated) -> str | None:
     """What differs between two models' plants (the module docstring's comparison), in
-    words, or ``None`` where they agree."""
+    words, or ``None`` where they agree. Each model is probed in its own dtype and device
+    (a float32 model had been handed float64 points: "double != float"), and where either
+    is coarser than float64 the tolerance is widened to its precision."""
     dims = [(m.dim_x, m.dim_y, int(getattr(m, "dim_u", 0) or 0)) for m in (trained, evaluated)]
     if dims[0] != dims[1]:
         return f"its dimensions (dx, dy, du) are {dims[0]} against {dims[1]}"
@@ -56,13 +72,38 @@ def plant_difference(trained, evaluated) -> str | None:
         u = torch.cat([torch.full((len(points), du), 0.1, dtype=mean.dtype),
                        0.1 * torch.eye(du, dtype=mean.dtype)])  # fmt: skip
         moved = torch.cat([points, mean.expand(du, -1)])
+    tolerance = _tolerance(trained, evaluated)
     with torch.no_grad():
-        for what, read in (("transition", lambda m: m.transition(moved, u, 0)),
-                           ("measurement function", lambda m: m.observe(points, 1))):  # fmt: skip
-            a, b = (read(m).to(torch.float64) for m in (trained, evaluated))
-            if a.shape != b.shape or not torch.allclose(a, b, rtol=1e-6, atol=1e-9):
-                return f"its {what} differs about the prior mean"
+        for what, read, steps in (
+            ("transition", lambda m, k: m.transition(_as(moved, m), _as(u, m), k), PROBE_STEPS),
+            ("measurement function", lambda m, k: m.observe(_as(points, m), k), PROBE_STEPS[1:]),
+        ):
+            for k in steps:
+                a, b = (read(m, k).to(torch.float64).cpu() for m in (trained, evaluated))
+                # (the same NaN in both is agreement: a probe point outside both plants'
+                # domain, √x at m₀ − σ < 0, had called a plant another than itself)
+                if a.shape != b.shape or not torch.allclose(a, b, equal_nan=True, **tolerance):
+                    return f"its {what} differs about the prior mean"
     return None
+
+
+def _as(value, model):
+    """``value`` (the probe points or inputs, float64) in ``model``'s dtype and device."""
+    if value is None:
+        return None
+    prior = model.initial.mean
+    return value.to(dtype=prior.dtype, device=prior.device)
+
+
+def _tolerance(*models) -> dict[str, float]:
+    """``rtol`` and ``atol`` of the comparison: 1e-6 and 1e-9, or 16 ε of the coarser dtype
+    (ε of float32: 1.2e-7) where that is wider (the absolute one scaled by the prior mean's
+    size, whose rounding the outputs carry)."""
+    eps = max(torch.finfo(m.initial.mean.dtype).eps for m in models)
+    if eps <= torch.finfo(torch.float64).eps:
+        return {"rtol": 1e-6, "atol": 1e-9}
+    scale = max(1.0, float(models[0].initial.mean.detach().abs().max()))
+    return {"rtol": max(1e-6, 16 * eps), "atol": max(1e-9, 16 * eps * scale)}
 
 
 def _card(path) -> dict:
@@ -142,14 +183,85 @@ def scenario_file_change(given: str, path, spec: str | None = None) -> str | Non
     )
 
 
+#: The key of a training run's Lightning checkpoint (and, as ``scenario_plant_sha256``, of
+#: an export's card) for the fingerprint of the plant it trained on (:func:`plant_fingerprint`).
+PLANT_FINGERPRINT = "difffilter_scenario_plant_sha256"
+
+
+def plant_fingerprint(scenario) -> str:
+    """The fingerprint of ``scenario``'s plant (its float64 model) as the calibration cache
+    reads one (:func:`~difffilter.models.calibration_cache.model_fingerprint`: its tensors,
+    and the code, constants and closures of its functions), recorded on a checkpoint's
+    card at training so that an edit of a ``module:object`` plant after training is seen
+    (the YAML file's digest covers a file alone: a trial edited F in its module unseen)."""
+    from .calibration_cache import model_fingerprint
+
+    return model_fingerprint(scenario.system(torch.float64))
+
+
+def _recorded_plant(path) -> str | None:
+    """The plant fingerprint a checkpoint records (the card's ``scenario_plant_sha256``, else
+    a Lightning checkpoint's own), ``None`` where none does (a card written before it)."""
+    recorded = _card(path).get("scenario_plant_sha256")
+    if recorded:
+        return str(recorded)
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception:  # (not a zip-format torch file: the loaders name it themselves)
+        return None
+    recorded = blob.get(PLANT_FINGERPRINT) if isinstance(blob, dict) else None
+    return None if recorded is None else str(recorded)
+
+
+def plant_change(given: str, path, spec: str, trained) -> str | None:
+    """A note (naming the checkpoint as ``given``) where the plant of its training scenario
+    ``spec``, as built here (``trained``), has another fingerprint than training recorded:
+    a ``module:object`` plant edited since (:func:`scenario_file_change` reads YAML files
+    only). ``None`` where they match or the checkpoint records none."""
+    recorded = _recorded_plant(path)
+    if recorded is None:
+        return None
+    now = plant_fingerprint(trained)
+    if now == recorded:
+        return None
+    return (
+        f"note: {given} was trained on the plant of {spec} as it was then (fingerprint "
+        f"{recorded[:12]}…); that plant, or the code that builds it, reads otherwise now "
+        f"({now[:12]}…): the network never saw the plant as it is today"
+    )
+
+
+def training_scenario(spec: str):
+    """The scenario ``spec`` (a checkpoint's training scenario) names, read without the
+    registry where it is a YAML file or ``module:object`` path: an evaluated copy of the
+    file with its plant edited and its ``name`` kept is registered under that name, and
+    registering the training file then raised the name clash (the plant comparison was
+    dropped without a word, a trial)."""
+    from . import registry
+    from .scenario import Scenario
+    from .yaml_scenario import import_object, is_yaml_path, scenario_from_yaml
+
+    if is_yaml_path(spec):
+        return scenario_from_yaml(spec)
+    if ":" in spec:
+        found = import_object(spec, f"scenario {spec!r}")
+        if callable(found) and not isinstance(found, Scenario):
+            found = found()
+        if isinstance(found, Scenario):
+            return found
+    return registry.get(spec)
+
+
 def training_plant_notes(
-    checkpoints: Sequence[tuple[str, Path]], names: Sequence[str]
+    checkpoints: Sequence[tuple[str, Path]], names: Sequence[str], *, flag: str = "--ckpt"
 ) -> list[str]:
-    """One line for each checkpoint (``(how it was given, path)``) and evaluated scenario
-    of its family whose plant is not the one it was trained on (:func:`plant_difference`),
-    and one where its training scenario file has changed since (:func:`scenario_file_change`).
-    Nothing where the training scenario cannot be built here (a module not importable, a
-    YAML file moved): a note, never an error."""
+    """One line for each checkpoint (``(how it was given, path)``, named as ``flag given``)
+    and evaluated scenario of its family whose plant is not the one it was trained on
+    (:func:`plant_difference`: the plants, not the names, decide: a copy of the training
+    file with another plant and the same ``name`` is another plant), and one where its
+    training scenario file, or plant, has changed since (:func:`scenario_file_change`,
+    :func:`plant_change`). Nothing where the training scenario cannot be built here (a
+    module not importable, a YAML file moved): a note, never an error."""
     from . import registry
 
     notes = []
@@ -157,26 +269,37 @@ def training_plant_notes(
         spec = training_scenario_of(path)
         if spec is None:
             continue
-        changed = scenario_file_change(f"--ckpt {given}", path, spec)
+        label = f"{flag} {given}" if flag else given
+        changed = scenario_file_change(label, path, spec)
         if changed:
             notes.append(changed)
         try:
-            trained = registry.get(spec)
+            trained = training_scenario(spec)
             model = trained.system(torch.float64)
         except Exception:  # (another machine's module or file: nothing to compare)
             continue
+        if not changed:  # (a YAML file's edit is said above, in the file's words)
+            try:
+                changed = plant_change(label, path, spec, trained)
+            except Exception:  # (a plant that cannot be fingerprinted: no claim)
+                changed = None
+            if changed:
+                notes.append(changed)
+        if changed:  # the plant built here is not the one trained on: no comparison with it
+            continue
         for name in names:
             scenario = registry.get(name)
-            if scenario.family != trained.family or name == trained.name:
+            if scenario.family != trained.family:
                 continue
             try:
                 why = plant_difference(model, scenario.system(torch.float64))
             except Exception:  # (a model that cannot be read so: no claim)
                 continue
             if why:
+                # (the same name on both: the training one named by its file or path)
+                was = trained.name if trained.name != name else f"{spec} (named {name} too)"
                 notes.append(
-                    f"note: --ckpt {given} was trained on {trained.name}, whose plant is not "
-                    f"{name}'s ({why}): its numbers on {name} say how it transfers to another "
-                    "plant"
+                    f"note: {label} was trained on {was}, whose plant is not {name}'s ({why}): "
+                    f"its numbers on {name} say how it transfers to another plant"
                 )
     return notes

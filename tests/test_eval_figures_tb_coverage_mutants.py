@@ -362,7 +362,7 @@ def _fake_plant(calls, *, mean, cov, du=1, scale=1.0, h_shape=None):
 
 
 def test_plants_are_compared_at_the_docstrings_points_input_and_times():
-    """``f(x_j, u, 0)`` and ``h(x_j, 1)`` at ``m₀``, ``m₀ + σ_i e_i``, ``m₀ − σ`` with
+    """``f(x_j, u, k)`` and ``h(x_j, k)`` at ``m₀``, ``m₀ + σ_i e_i``, ``m₀ − σ`` with
     ``σ = √diag P₀`` and ``u = 0.1``, and ``f(m₀, 0.1 e_l, 0)`` for each input ``l``,
     written out for m₀ = (1, −2), P₀ = diag(4, 9) (a prior per run: its first); a relative
     difference of 1e-5 is one (rtol 1e-6); an output of another shape is one."""
@@ -376,7 +376,10 @@ def test_plants_are_compared_at_the_docstrings_points_input_and_times():
     a = _fake_plant(calls, mean=mean, cov=cov)
     b = _fake_plant(calls, mean=mean, cov=cov)
     assert plant_difference(a, b) is None
-    assert [(c[0], c[3]) for c in calls] == [("f", 0), ("f", 0), ("h", 1), ("h", 1)]
+    # each at k = 0, 1, 2, 7 (h: 1, 2, 7): a plant reading k can differ from k = 1 on only
+    assert [(c[0], c[3]) for c in calls] == [
+        *((w, k) for w, ks in (("f", (0, 1, 2, 7)), ("h", (1, 2, 7))) for k in ks for _ in "ab")
+    ]
     for what, x, u, _ in calls:
         assert x.numpy() == pytest.approx(with_inputs if what == "f" else want), what
         if what == "f":

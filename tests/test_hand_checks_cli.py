@@ -402,13 +402,18 @@ def test_an_exported_checkpoint_given_as_ckpt_path_loads_its_weights(capsys):
     with torch.no_grad():
         for p in mine.parameters():
             p.add_(1.0)
+    from difffilter.models import registry
+
+    # (the configured scenario: the checkpoint's own plant, so no note of another one)
     cli = NS(config_init={"predict": {"ckpt_path": str(path)}},
-             model=NS(estimator=mine, check_exported=lambda card, path: None))  # fmt: skip
+             model=NS(estimator=mine, check_exported=lambda card, path: None,
+                      scenario=registry.get("four_tank_bias")))  # fmt: skip
     DifffilterCLI._load_exported(cli, "predict")
     for got, want in zip(mine.state_dict().values(), shipped.state_dict().values()):
         assert torch.equal(got, want)
     assert cli.config_init["predict"]["ckpt_path"] is None  # nothing left for Lightning
-    assert "loaded the exported estimator" in capsys.readouterr().out
+    said = capsys.readouterr()
+    assert "loaded the exported estimator" in said.out and "note:" not in said.err
 
 
 def test_the_attack_figure_draws_the_two_most_attacked_channels_from_time_dt():

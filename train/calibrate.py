@@ -153,7 +153,7 @@ def calibrate_checkpoint(
         save_estimator_checkpoint,
         weights_sha256,
     )
-    from difffilter.models.plant_match import scenario_file_change
+    from difffilter.models.plant_match import training_plant_notes
     from difffilter.models.streams import Streams
 
     src, out = Path(src), Path(out)
@@ -195,9 +195,10 @@ def calibrate_checkpoint(
             f"--scenario {scenario.name}: of family {scenario.family!r}; the checkpoint was "
             f"trained on {card.scenario_family!r} scenarios"
         )
-    changed = scenario_file_change(str(src), src)
-    if changed:  # (the threshold is then for the edited plant: said, not refused)
-        print(changed, file=sys.stderr)
+    # the training file edited since, or --scenario another plant of the family: the
+    # threshold is then for that plant (said, as difffilter-eval says it, not refused)
+    for line in training_plant_notes([(str(src), src)], [scenario.name], flag=""):
+        print(line, file=sys.stderr)
     name, runs = estimator_name(card), runs or scenario.runs
     streams, start = Streams(seed), time.time()
     fit_seed = streams.seed_of("checkpoint-calibration")

@@ -32,6 +32,7 @@ from difffilter.models.neural_estimator import (
     save_estimator_checkpoint,
     weights_sha256,
 )
+from difffilter.models.plant_match import PLANT_FINGERPRINT
 from difffilter.models.yaml_scenario import SCENARIO_FILE_DIGEST
 
 from .adversarial import kept_an_attack
@@ -122,6 +123,8 @@ def _lightning_record(blob: dict, src: Path) -> dict:
     }
     if blob.get(SCENARIO_FILE_DIGEST) is not None:  # the plant file training read
         record["scenario_file_sha256"] = blob[SCENARIO_FILE_DIGEST]
+    if blob.get(PLANT_FINGERPRINT) is not None:  # the plant training built
+        record["scenario_plant_sha256"] = blob[PLANT_FINGERPRINT]
     if (craftings := adversarial_craftings(blob)) is not None:
         record["adversarial_craftings"] = craftings
     if (drawn := threats_drawn(blob)) is not None:

@@ -186,6 +186,7 @@ class DifffilterCLI(LightningCLI):
 
     def _load_exported(self, subcommand: str) -> None:
         from difffilter.models.neural_estimator import load_estimator_checkpoint
+        from difffilter.models.plant_match import training_plant_notes
 
         path = self.config_init[subcommand].get("ckpt_path")
         if not path or _check_ckpt_path({"ckpt_path": path}, None) != "exported":
@@ -211,6 +212,11 @@ class DifffilterCLI(LightningCLI):
                 f"{_trainer_hint(card, self.model.card())}"
             )
         self.model.check_exported(card, path)  # the filter it was trained for
+        # another plant of its family, or its training plant edited since: said, as
+        # difffilter-eval says it (a test on another plant had logged its scores unsaid)
+        for line in training_plant_notes([(str(path), Path(path))], [self.model.scenario.name],
+                                         flag="--ckpt_path"):  # fmt: skip
+            print(line, file=sys.stderr)
         mine.load_state_dict(estimator.state_dict())
         self.config_init[subcommand]["ckpt_path"] = None  # weights are in; nothing to restore
         print(f"loaded the exported estimator {path}")

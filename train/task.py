@@ -70,6 +70,7 @@ from difffilter.models.neural_estimator import (
     EstimatorCard,
     NeuralFDIEstimator,
 )
+from difffilter.models.plant_match import PLANT_FINGERPRINT, plant_fingerprint
 from difffilter.models.streams import Streams
 from difffilter.models.yaml_scenario import SCENARIO_FILE_DIGEST, scenario_file_digest
 from difffilter.param_ekf import EKFOptimizer, ekf_along_sequence
@@ -577,6 +578,7 @@ class FilterEstimatorTask(pl.LightningModule):
         # during training then resumed unseen: a review)
         self._scenario_digest = scenario_file_digest(scenario)
         sc = registry.get(scenario)
+        self._plant_fingerprint = _plant_fingerprint(sc)
         self.save_hyperparameters()
         self.scenario, self._dtype = sc, dtype_of(dtype)
         self.channel = _channel(sc)
@@ -1092,6 +1094,10 @@ class FilterEstimatorTask(pl.LightningModule):
         digest = (
             {} if self._scenario_digest is None else {"scenario_file_sha256": self._scenario_digest}
         )
+        # the plant as training built it, whatever the scenario's kind (a module:object plant
+        # edited after training had gone unseen: the file digest covers YAML files alone)
+        if self._plant_fingerprint is not None:
+            digest["scenario_plant_sha256"] = self._plant_fingerprint
         return {
             **digest,
             "scenario_family": self.scenario.family,
@@ -1106,6 +1112,8 @@ class FilterEstimatorTask(pl.LightningModule):
         checkpoint["difffilter_estimator_config"] = self.estimator.config()
         if self._scenario_digest is not None:  # a resume checks the plant's file is the same
             checkpoint[SCENARIO_FILE_DIGEST] = self._scenario_digest
+        if getattr(self, "_plant_fingerprint", None) is not None:  # (read by plant_match)
+            checkpoint[PLANT_FINGERPRINT] = self._plant_fingerprint
         if self.adversary is not None:  # a resumed run goes on with the same crafted attack
             checkpoint["difffilter_adversary"] = self.adversary.state_dict()
         if getattr(self, "_validated_epoch", None) == self.current_epoch:
@@ -1142,6 +1150,16 @@ def _replacement_density(sc, dtype: torch.dtype):
             "the network under the replay with difffilter-eval --scenario <that scenario> "
             "--threats replay --ckpt <the export> (docs/threats.md)"
         ) from None
+
+
+def _plant_fingerprint(scenario) -> str | None:
+    """:func:`~difffilter.models.plant_match.plant_fingerprint` of the training scenario, or
+    ``None`` where its plant cannot be fingerprinted (the card then records none, as
+    before: a plant of one's own holding what the fingerprint cannot read is not refused)."""
+    try:
+        return plant_fingerprint(scenario)
+    except Exception:
+        return None
 
 
 def _channel(scenario) -> Channel:
