@@ -149,14 +149,20 @@ def _recorded_file_digest(path) -> str | None:
     card written before the field)."""
     from .yaml_scenario import SCENARIO_FILE_DIGEST
 
-    recorded = _card(path).get("scenario_file_sha256")
+    return _recorded(path, "scenario_file_sha256", SCENARIO_FILE_DIGEST)
+
+
+def _recorded(path, card_key: str, checkpoint_key: str) -> str | None:
+    """What a checkpoint records under ``card_key`` on its export card, else under
+    ``checkpoint_key`` in a Lightning checkpoint itself; ``None`` where neither does."""
+    recorded = _card(path).get(card_key)
     if recorded:
         return str(recorded)
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
     except Exception:  # (not a zip-format torch file: the loaders name it themselves)
         return None
-    recorded = blob.get(SCENARIO_FILE_DIGEST) if isinstance(blob, dict) else None
+    recorded = blob.get(checkpoint_key) if isinstance(blob, dict) else None
     return None if recorded is None else str(recorded)
 
 
@@ -202,15 +208,7 @@ def plant_fingerprint(scenario) -> str:
 def _recorded_plant(path) -> str | None:
     """The plant fingerprint a checkpoint records (the card's ``scenario_plant_sha256``, else
     a Lightning checkpoint's own), ``None`` where none does (a card written before it)."""
-    recorded = _card(path).get("scenario_plant_sha256")
-    if recorded:
-        return str(recorded)
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
-    except Exception:  # (not a zip-format torch file: the loaders name it themselves)
-        return None
-    recorded = blob.get(PLANT_FINGERPRINT) if isinstance(blob, dict) else None
-    return None if recorded is None else str(recorded)
+    return _recorded(path, "scenario_plant_sha256", PLANT_FINGERPRINT)
 
 
 def plant_change(given: str, path, spec: str, trained) -> str | None:
