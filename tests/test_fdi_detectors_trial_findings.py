@@ -174,3 +174,92 @@ def test_the_mixture_attack_posterior_of_a_reading_no_hypothesis_explains_is_an_
                                                  generator=torch.Generator().manual_seed(0))  # fmt: skip
         assert float(out.detection.scores[0, 2]) == 1.0 and bool(out.detection.alarms[0, 2])
         assert not out.detection.scores.isnan().any()
+
+
+# -- a second detector trial (2026-12-07) -----------------------------------------------
+
+
+def _f64(x):
+    return torch.tensor(x, dtype=torch.float64)
+
+
+def test_a_cusum_over_a_whole_sequence_alarms_on_an_overflowed_statistic_as_its_step_does():
+    # innovations of 1e200 (finite) give g = +inf: step() alarmed and reset, run() and
+    # detect() raised about a g the caller never passed
+    m, T = 2, 5
+    r = torch.zeros(1, T, m, dtype=torch.float64)
+    r[0, 2, 0] = 1e200
+    S = torch.eye(m, dtype=torch.float64).expand(1, T, m, m)
+    cusum = CusumDetector(bias=3.0, threshold=8.0)
+    state, online = cusum.init((1,)), []
+    for t in range(T):
+        g = df.fdi.normalized_innovation_squared(r[:, t], S[:, t])
+        state, _, alarm = cusum.step(state, g)
+        online.append(bool(alarm))
+    scores, alarms = cusum.detect(r, S)
+    assert alarms[0].tolist() == online == [False, False, True, False, False]
+    assert scores[0, :2].tolist() == [0.0, 0.0] and math.isinf(scores[0, 2])
+    with pytest.raises(ValueError, match="NaN"):
+        cusum.run(_f64([[1.0, math.nan]]))
+
+
+def test_the_detectors_refuse_a_negative_statistic():
+    # a g of −100 in the window silenced an alarming 30 two steps later
+    chi = ChiSquareDetector(2, 0.01, window=3)
+    with pytest.raises(ValueError, match="g must be >= 0"):
+        chi.step(chi.init(), _f64(-100.0))
+    cusum = CusumDetector(bias=4.0, threshold=5.0)
+    for call in (
+        lambda: cusum.step(cusum.init(), _f64(-1.0)),
+        lambda: cusum.run(_f64([[1.0, -1.0]])),
+        lambda: cusum.scores(_f64([[-1.0]])),
+        lambda: cusum.calibrate(_f64([[3.0, -1.0, 2.0] * 40]), 0.05),
+    ):
+        with pytest.raises(ValueError, match="must be >= 0"):
+            call()
+    assert float(cusum.run(_f64([[0.0, 9.5]]))[0][0, 1]) == 5.5  # 0 is a NIS; 9.5 − 4 > 5 alarms
+
+
+def test_a_chi_square_step_refuses_a_state_of_another_window_or_dim():
+    # window 3 → 1 after init: the two held g = 5 stayed in every score (g + 10: 1 read 11 and
+    # alarmed at every step); a state of a larger dim indexed past the quantile table
+    chi = ChiSquareDetector(2, 0.01, window=3)
+    state = chi.init(())
+    for _ in range(2):
+        state, _, _ = chi.step(state, _f64(5.0))
+    chi.window = 1
+    with pytest.raises(ValueError, match="another window: call init"):
+        chi.step(state, _f64(1.0))
+    state, score, alarm = chi.step(chi.init(), _f64(1.0))  # a new state: the W = 1 score is g
+    assert float(score) == 1.0 and not bool(alarm)
+    wide = ChiSquareDetector(3, 0.01, 2)
+    state3, _, _ = wide.step(wide.init(), _f64(1.0))
+    with pytest.raises(ValueError, match="another dim: call init"):
+        ChiSquareDetector(2, 0.01, 2).step(state3, _f64(1.0))
+    # the truth the checks leave alone: a state made for W = 2, m = 3 goes on as a sum of two
+    state3, score, alarm = wide.step(state3, _f64(2.0))
+    assert float(score) == 3.0 and bool(alarm) == (3.0 > chi2.ppf(0.99, 6))
+
+
+@pytest.mark.parametrize("bad", [math.nan, 1.5, -0.1, "0.5", True])
+def test_a_poa_detectors_zeta_or_eta_assigned_later_is_checked_as_at_init(bad):
+    # ζ = NaN assigned after __init__ never alarmed (β > NaN is false), nor did the PFs that
+    # read detector.zeta at every step
+    detector = df.fdi.PoADetector(0.2, 0.5)
+    with pytest.raises(ValueError, match="zeta must be a number in"):
+        detector.zeta = bad
+    with pytest.raises(ValueError, match="eta must be finite"):
+        detector.eta = -1.0
+    detector.zeta = torch.tensor(0.25, dtype=torch.float64)  # a one-entry tensor is a number
+    assert detector.zeta == 0.25 and isinstance(detector.zeta, float)
+    residuals = torch.tensor([[0.1], [0.3], [0.5], [0.05]])  # β = 0.5 of uniform weights
+    beta, alarm = detector(residuals)
+    assert float(beta) == pytest.approx(0.5) and bool(alarm)
+
+
+def test_a_cusum_detector_for_refuses_a_bad_runs_by_name():
+    one = torch.eye(1, dtype=torch.float64)
+    model = df.LinearGaussianModel(one, one, one, one, torch.zeros(1, dtype=torch.float64), one)
+    for runs in (0, -1, 2.5):
+        with pytest.raises(ValueError, match="runs must be a positive integer"):
+            df.fdi.cusum_detector_for(model, false_alarm_rate=0.05, runs=runs, steps=10)

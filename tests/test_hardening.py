@@ -104,7 +104,7 @@ def test_cusum_raises_on_nan_statistics():
     g = torch.ones(2, 5, dtype=F64)
     g[1, 2] = NAN
     for call in (det.run, det.scores):
-        with pytest.raises(ValueError, match="g contains NaN or Inf"):
+        with pytest.raises(ValueError, match="g contains NaN or −inf"):  # (+inf: an alarm)
             call(g)
     with pytest.raises(ValueError, match="g contains NaN or −inf"):  # (+inf: an alarm)
         det.step(det.init((2,)), g[:, 2])

@@ -20,10 +20,11 @@ variance, so its rate still varies with ``m_k`` (a trial: 0.41 %, 0.87 %, 1.43 %
 3 of 3 entries at a calibrated 1 %).
 
 **Non-finite input raises.** A detector must never answer "no alarm" for a statistic it
-could not compute (``NaN > τ`` is false): NaN or ±Inf innovations, covariances or
-statistics ``g`` raise ``ValueError`` naming the argument, as do non-symmetric innovation
-covariances. Validate or clean the filter output (e.g. ``nonfinite="skip"`` in the
-filters) before detection.
+could not compute (``NaN > τ`` is false): NaN or ±Inf innovations or covariances, and NaN,
+``−inf`` or negative statistics ``g``, raise ``ValueError`` naming the argument, as do
+non-symmetric innovation covariances. A statistic of ``+inf`` (``νᵀS⁻¹ν`` overflowed from a
+huge but finite measurement) is beyond every threshold: an alarm. Validate or clean the
+filter output (e.g. ``nonfinite="skip"`` in the filters) before detection.
 """
 
 from __future__ import annotations
@@ -62,11 +63,16 @@ __all__ = [
 ]
 
 
-def _check_statistic(t, name: str, *, alarm_on_inf: bool = False) -> Tensor:
+def _check_statistic(
+    t, name: str, *, alarm_on_inf: bool = False, nonnegative: bool = False
+) -> Tensor:
     """``t`` must be a floating tensor with finite entries (a NaN would read as "no alarm");
     with ``alarm_on_inf`` a detector's statistic may be ``+inf``, beyond every threshold:
     a huge but finite measurement overflows ``νᵀS⁻¹ν`` (from 1e20 in float32, 1e155 in
-    float64), and the gated filters raised on it where they should alarm (a user trial)."""
+    float64), and the gated filters raised on it where they should alarm (a user trial).
+    With ``nonnegative`` (a NIS ``g = νᵀS⁻¹ν``) a negative entry is refused: in a window
+    or a CUSUM sum it cancels later evidence (a ``g`` of −100 silenced an alarming 30 two
+    steps later: a detector trial)."""
     if not isinstance(t, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor; got {type(t).__name__}")
     if not t.is_floating_point():
@@ -78,12 +84,20 @@ def _check_statistic(t, name: str, *, alarm_on_inf: bool = False) -> Tensor:
             f"{name} contains {what} values; a detector cannot decide on a statistic it "
             "could not compute (it raises instead of returning 'no alarm')"
         )
+    if nonnegative and bool((t < 0).any()):
+        raise ValueError(
+            f"{name} must be >= 0, a normalised innovation squared νᵀS⁻¹ν per step; got a "
+            f"minimum of {float(t.min()):.6g}"
+        )
     return t
 
 
-def _check_sequence(t, name: str, event_dims: int) -> Tensor:
-    """A statistic over time: ``[..., T]`` plus ``event_dims`` trailing dimensions, ``T ≥ 1``."""
-    _check_statistic(t, name)
+def _check_sequence(
+    t, name: str, event_dims: int, *, alarm_on_inf: bool = False, nonnegative: bool = False
+) -> Tensor:
+    """A statistic over time: ``[..., T]`` plus ``event_dims`` trailing dimensions, ``T ≥ 1``
+    (``alarm_on_inf``, ``nonnegative``: as :func:`_check_statistic`)."""
+    _check_statistic(t, name, alarm_on_inf=alarm_on_inf, nonnegative=nonnegative)
     shape = "[..., T" + ", m" * event_dims + "]"
     if t.dim() < 1 + event_dims or t.shape[t.dim() - 1 - event_dims] < 1:
         raise ValueError(f"{name} must be a sequence {shape} of T >= 1 steps; got {tuple(t.shape)}")
@@ -439,6 +453,24 @@ class ChiSquareDetector:
         held[..., :empty] = 0.0
         return held
 
+    def _check_state(self, past: Tensor, held: list) -> None:
+        """A state :meth:`init` made for this ``window`` and ``dim``: both may be assigned
+        later, and a state of another window kept its old ``g`` values in every score (a
+        window set from 3 to 1 read ``g + 10`` at every step and alarmed at each: a detector
+        trial), one of a larger ``dim`` indexed past the quantile table."""
+        if not isinstance(past, Tensor) or past.dim() < 1 or past.shape[-1] != self.window - 1:
+            held_steps = past.shape[-1] if isinstance(past, Tensor) and past.dim() else None
+            raise ValueError(
+                f"state must be this detector's init() state, holding window - 1 = "
+                f"{self.window - 1} past values; it holds {held_steps} (made for another "
+                "window: call init() again after changing window)"
+            )
+        if held and bool((held[0] > self.dim).any()):
+            raise ValueError(
+                f"state counts up to {float(held[0].max()):g} entries received at one step, "
+                f"more than dim = {self.dim} (made for another dim: call init() again)"
+            )
+
     def step(
         self, state: tuple[Tensor, int, Tensor], g: Tensor, mask: Tensor | None = None
     ) -> tuple[tuple[Tensor, int, Tensor], Tensor, Tensor]:
@@ -447,9 +479,11 @@ class ChiSquareDetector:
         with the same masks (without one, every entry counts as received: a masked ``g``
         was judged against ``χ²_m`` and alarmed 0.07 % for 1 % where one of 3 arrived).
 
-        ``ValueError`` for a non-finite ``g``."""
-        _check_statistic(g, "g", alarm_on_inf=True)
+        ``ValueError`` for a NaN, ``−inf`` or negative ``g`` (``+inf``, an overflowed
+        statistic, alarms), or a state :meth:`init` made for another ``window`` or ``dim``."""
+        _check_statistic(g, "g", alarm_on_inf=True, nonnegative=True)
         past, count, *held = state
+        self._check_state(past, held)
         _check_step_runs(g, past.shape[:-1], "ChiSquareDetector")
         g = g.expand(past.shape[:-1])  # (one g for every run: the window holds it per run)
         past_dof = held[0] if held else self._all_received(past, count)
@@ -490,7 +524,8 @@ class CusumDetector:
             threshold would never alarm (``S > NaN`` is false) and is rejected, like
             negative and infinite ones.
 
-    Non-finite statistics ``g`` raise ``ValueError`` (module docstring).
+    NaN, ``−inf`` or negative statistics ``g`` raise ``ValueError``; ``+inf`` alarms (module
+    docstring).
     """
 
     def __init__(self, bias: float, threshold: float | None = None):
@@ -513,7 +548,8 @@ class CusumDetector:
         tau = self.threshold if threshold is None else _check_threshold(threshold)
         if tau is None:
             raise ValueError("threshold is not set: pass threshold= or call calibrate() first")
-        _check_sequence(g, "g", 0)
+        # (+inf, an overflowed statistic, alarms and resets, as in step())
+        _check_sequence(g, "g", 0, alarm_on_inf=True, nonnegative=True)
         s = torch.zeros_like(g[..., 0])
         stats, alarms = [], []
         for t in range(g.shape[-1]):
@@ -525,8 +561,9 @@ class CusumDetector:
         return torch.stack(stats, -1), torch.stack(alarms, -1)
 
     def scores(self, g: Tensor) -> Tensor:
-        """Statistic without resets ``[..., T]``: a threshold-free score for ROC curves."""
-        _check_sequence(g, "g", 0)
+        """Statistic without resets ``[..., T]``: a threshold-free score for ROC curves
+        (``+inf`` from an overflowed ``g`` on)."""
+        _check_sequence(g, "g", 0, alarm_on_inf=True, nonnegative=True)
         s = torch.zeros_like(g[..., 0])
         out = []
         for t in range(g.shape[-1]):
@@ -571,7 +608,7 @@ class CusumDetector:
         trial)."""
         if self.threshold is None:
             raise ValueError("threshold is not set: pass threshold= or call calibrate() first")
-        _check_statistic(g, "g", alarm_on_inf=True)
+        _check_statistic(g, "g", alarm_on_inf=True, nonnegative=True)
         if not isinstance(state, Tensor):
             raise TypeError(
                 f"state must be CusumDetector.init's tensor; got {type(state).__name__}"

@@ -32,7 +32,13 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from .._checks import NonFinite, broadcast_shapes, check_model_batch, check_one_model
+from .._checks import (
+    NonFinite,
+    broadcast_shapes,
+    check_model_batch,
+    check_one_model,
+    check_positive_int,
+)
 from ..estimator import Estimator, EstimatorOutput
 from ..extended import ExtendedKalmanFilter
 from ..kalman import GaussianFilter
@@ -251,6 +257,8 @@ def cusum_detector_for(
     check_one_model(model, "cusum_detector_for", "calibrate a detector per parameter set")
     filter = ExtendedKalmanFilter() if filter is None else filter
     if ys is None:
+        # (a bad runs reached torch as "max(): Expected reduction dim" or a negative dimension)
+        runs = check_positive_int(runs, "runs")
         _, ys, _ = model.simulate(steps, (runs,), us, generator=generator)
     free = open_loop(filter, model, ys, us, mask=mask)
     g = normalized_innovation_squared(free.extras["innovations"], free.extras["innovation_covs"])

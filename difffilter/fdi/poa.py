@@ -263,12 +263,25 @@ class PoADetector:
     """
 
     def __init__(self, eta, zeta: float):
-        eta_t = torch.as_tensor(eta, dtype=torch.float64)
-        if bool((eta_t < 0).any()) or not bool(torch.isfinite(eta_t).all()):
-            raise ValueError(f"eta must be finite and >= 0; got {eta!r}")
-        if not 0.0 <= float(zeta) < 1.0:
-            raise ValueError(f"zeta must lie in [0, 1); got {zeta!r}")
-        self.eta, self.zeta = eta, float(zeta)
+        self.eta, self.zeta = eta, zeta  # (checked by __setattr__)
+
+    def __setattr__(self, name, value):
+        # checked whenever set, not at __init__ alone: the filters read detector.zeta and
+        # .eta at every step, and a NaN ζ assigned later never alarmed (β > NaN is false: a
+        # detector trial)
+        if name == "eta":
+            eta_t = torch.as_tensor(value, dtype=torch.float64)
+            if bool((eta_t < 0).any()) or not bool(torch.isfinite(eta_t).all()):
+                raise ValueError(f"eta must be finite and >= 0; got {value!r}")
+        elif name == "zeta":
+            try:  # (a number, NumPy's or a one-entry tensor; NaN fails the range below)
+                zeta = None if isinstance(value, (bool, str)) else float(value)
+            except (TypeError, ValueError, RuntimeError):
+                zeta = None
+            if zeta is None or not 0.0 <= zeta < 1.0:
+                raise ValueError(f"zeta must be a number in [0, 1); got {value!r}")
+            value = zeta
+        super().__setattr__(name, value)
 
     def check_runs(self, batch_shape, model=None) -> None:
         """Refuse an ``η`` per run that does not match the runs ``batch_shape`` (of a
