@@ -69,6 +69,7 @@ from __future__ import annotations
 
 import contextlib
 import inspect
+import weakref
 from functools import lru_cache
 from typing import NamedTuple
 
@@ -464,6 +465,7 @@ class EKFRule:
         ups = torch.full((N,), self.init_noise, dtype=theta.dtype, device=theta.device)
         if not _REFERENCE[0]:
             rho = DeferredCovariance(rho, theta.new_empty(N, 0, P), 0, 0.0)
+            _note_scalar(rho.base)
         return LearnerState(theta, rho, ups, 0)
 
     @staticmethod
@@ -527,7 +529,7 @@ class EKFRule:
         if not _same_order(cov.order, order):
             if k0:  # ρ(0) = c·I reads the same in any order; a later ρ does not
                 raise ValueError("the Jacobian's order changed between steps of one learner")
-            cov = cov._replace(order=order)
+            cov = _in_order(cov, order)
         Ht = H.permuted() if kron else H  # H̃ [N, m, P]
         R = H.rows(cov.base) if kron else torch.bmm(H, cov.base)  # H̃ B
         if cov.shift:
@@ -554,7 +556,11 @@ class EKFRule:
         if self.donate:  # one buffer of `size` rows, written in place
             pending = cov.pending
             if pending.shape[1] != size:
-                pending = rows.new_empty(N, size, P)
+                # (a state another rule stepped: one that does not donate keeps `count`
+                # rows, another fold_every another width; its rows are still to fold, and a
+                # fresh buffer without them had dropped eq. (14)'s downdates: a trial)
+                pending = rows.new_empty(N, max(size, count + m), P)
+                pending[:, :count] = cov.pending[:, :count]
             pending[:, count : count + m] = rows
         else:
             pending = torch.cat([cov.pending[:, :count], rows], dim=1)
@@ -651,6 +657,46 @@ def _informed_energy(e: Tensor, received: Tensor) -> tuple[Tensor, Tensor]:
     it received any (``m_r > 0``)."""
     count = received.sum(-1).to(e.dtype)
     return (e * e).sum(-1) * (e.shape[-1] / count.clamp_min(1.0)), count > 0
+
+
+# The bases EKFRule.init made, ρ(0) = c·I, which reads the same in any order: by id, with a
+# weak reference and the version they had then (a base written since is no longer known).
+_SCALAR_BASES: dict[int, tuple[weakref.ref, int]] = {}
+
+
+def _note_scalar(base: Tensor) -> None:
+    if base.is_inference():  # (no version counter: such a base is permuted, not relabelled)
+        return
+    key = id(base)
+    forget = lambda _ref, key=key: _SCALAR_BASES.pop(key, None)  # noqa: E731
+    _SCALAR_BASES[key] = (weakref.ref(base, forget), base._version)
+
+
+def _known_scalar(base: Tensor) -> bool:
+    entry = _SCALAR_BASES.get(id(base))
+    return (
+        entry is not None
+        and entry[0]() is base
+        and not base.is_inference()
+        and base._version == entry[1]
+    )
+
+
+def _in_order(cov: DeferredCovariance, order: Tensor | None) -> DeferredCovariance:
+    """``cov`` of a learner's first step in the Jacobian's ``order`` (``None``: θ's). The
+    ``c·I`` of :meth:`EKFRule.init` is relabelled; any other base and pending rows (a
+    ``DeferredCovariance`` built by hand, documented in θ's order) are permuted: relabelled,
+    a diagonal prior of other variances for ``W`` and ``V`` was read in the Kronecker order
+    (the first weights 0.14 off one step of eqs 11–12 by hand: a trial)."""
+    if cov.count == 0 and _known_scalar(cov.base):
+        return cov._replace(order=order)
+    P = cov.base.shape[-1]
+    idx = torch.arange(P, device=cov.base.device) if order is None else order.to(cov.base.device)
+    if cov.order is not None:  # (θ index i sits at argsort(cov.order)[i] in cov's order)
+        idx = torch.argsort(cov.order.to(cov.base.device))[idx]
+    base = cov.base[:, idx][:, :, idx]
+    pending = cov.pending[:, : cov.count][:, :, idx]
+    return DeferredCovariance(base, pending, cov.count, cov.shift, order, None)
 
 
 def _same_order(a: Tensor | None, b: Tensor | None) -> bool:

@@ -8,10 +8,14 @@ import torch
 
 from difffilter.models.neural_estimator import AreaNetwork
 from difffilter.param_ekf import (
+    DeferredCovariance,
     EKFRule,
     GradientRule,
+    LearnerState,
     OnlineGradientDescent,
     ParamEKF,
+    WeightTemplate,
+    dense_reference,
 )
 
 
@@ -48,3 +52,70 @@ def test_a_rules_residual_of_other_runs_is_refused(rule):
             rule.step(state, H, bad)
     with pytest.raises(ValueError, match=r"H must be \[N, m, P\] = \[2, m, 4\]"):
         rule.step(state, H[:1], e)
+
+
+# -- a second trial (2026-12-07) ------------------------------------------------------------
+
+
+def _learner_run(first, then, steps, template, theta0, data):
+    state = first.init(theta0.clone())
+    for k, (x, target) in enumerate(data[:steps]):
+        prediction, H = template.jacobian(state.theta, x)
+        state = (first if k < 3 else then).step(state, H, target - prediction)
+    return state.theta, EKFRule.covariance(state)
+
+
+@pytest.mark.parametrize(
+    "first, then",
+    [
+        (EKFRule(donate=False), EKFRule(donate=True)),
+        (EKFRule(donate=True, fold_every=8), EKFRule(donate=True, fold_every=2)),
+        (EKFRule(donate=True, fold_every=2), EKFRule(donate=True, fold_every=8)),
+    ],
+    ids=["plain-then-donating", "wider-then-narrower", "narrower-then-wider"],
+)
+def test_a_donating_rule_keeps_the_downdates_of_a_state_another_rule_stepped(first, then):
+    """A donating rule (the LFC entries') took over a state whose pending buffer had another
+    width with a fresh buffer that held none of the earlier rows: ρ 99.9 off the dense
+    recursion after one step, then S indefinite (or a raw shape error)."""
+    template = WeightTemplate(AreaNetwork(3, 4, 2))
+    g = torch.Generator().manual_seed(0)
+    theta0 = 0.3 * torch.randn(2, template.num_params, generator=g, dtype=torch.float64)
+    data = _data(12)
+    for steps in (4, 12):
+        with dense_reference():  # the truth: eq. (14) in place at every step
+            want = _learner_run(EKFRule(), EKFRule(), steps, template, theta0, data)
+        got = _learner_run(first, then, steps, template, theta0, data)
+        torch.testing.assert_close(got[0], want[0], rtol=0, atol=1e-12)
+        torch.testing.assert_close(got[1], want[1], rtol=0, atol=1e-12)
+
+
+def test_a_hand_built_first_step_covariance_is_read_in_thetas_order():
+    """A ``DeferredCovariance`` of ``θ``'s order (as documented) with a non-scalar ρ(0) was
+    relabelled into the Kronecker Jacobian's order, not permuted: the first weights 0.14
+    off one step of eqs (11)–(12) worked by hand. ``init``'s ``c·I`` is still relabelled
+    without a copy (a permutation of ``[N, P, P]`` costs about 0.2 s at P = 560)."""
+    template = WeightTemplate(AreaNetwork(3, 2, 2))  # W [2, 2], V [2, 3]: P = 10, factored
+    g = torch.Generator().manual_seed(0)
+    P = template.num_params
+    theta = 0.3 * torch.randn(1, P, generator=g, dtype=torch.float64)
+    P0 = torch.diag(torch.linspace(0.1, 5.0, P, dtype=torch.float64))[None]
+    x = torch.randn(1, 3, generator=g, dtype=torch.float64)
+    target = torch.randn(1, 2, generator=g, dtype=torch.float64)
+    prediction, H_kron = template.jacobian(theta, x)
+    _, H = template.jacobian(theta, x, factored=False)
+    e = (target - prediction)[0]
+    S = H[0] @ P0[0] @ H[0].T + (e @ e) * torch.eye(2, dtype=torch.float64)  # Υ_1 = eᵀe
+    want = theta[0] + P0[0] @ H[0].T @ torch.linalg.solve(S, e)
+    for donate in (False, True):
+        cov = DeferredCovariance(P0.clone(), theta.new_empty(1, 0, P), 0, 0.0)
+        state = LearnerState(theta.clone(), cov, torch.full((1,), 1e-3, dtype=torch.float64), 0)
+        for jacobian in (H_kron, H):
+            step = EKFRule(donate=donate).step(state, jacobian, target - prediction)
+            torch.testing.assert_close(step.theta[0], want, rtol=0, atol=1e-14)
+            rho = P0[0] - P0[0] @ H[0].T @ torch.linalg.solve(S, H[0] @ P0[0])
+            torch.testing.assert_close(EKFRule.covariance(step)[0], rho, rtol=0, atol=1e-13)
+    rule = EKFRule(donate=True)
+    start = rule.init(theta.clone())
+    after = rule.step(start, H_kron, target - prediction)
+    assert after.rho.base is start.rho.base and after.rho.order is not None
