@@ -10,6 +10,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -94,3 +96,26 @@ def test_an_actuator_network_on_a_plant_of_another_input_width_is_refused(dim_u)
     carry = est.init(fits, (1,))
     _, out = est.step(carry, torch.zeros(1, 2, dtype=D), torch.zeros(1, 2, dtype=D))
     assert out.attack.shape == (1, 2)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), True, "0.5", None])
+def test_the_alarm_threshold_is_checked_when_made_and_when_set_later(bad):
+    """A NaN threshold built and ran and never alarmed (``score > nan``), ``True`` read as
+    1.0 and ``"0.5"`` as 0.5; the LFC entries set it after construction, unchecked."""
+    dt = torch.float64
+    eye = torch.eye(2, dtype=dt)
+    model = LinearGaussianModel(0.9 * eye, eye, 0.1 * eye, 0.2 * eye, torch.zeros(2, dtype=dt), eye)
+    net = NeuralFDIEstimator(num_areas=1, area_dim=2, a=1, b=1, hidden=4, init_scale=0.8,
+                             init="symmetric", seed=0)  # fmt: skip
+    with pytest.raises(ValueError, match="threshold must be a number"):
+        NeuralCompensation(net, difffilter.KalmanFilter(), threshold=bad)
+    estimator = NeuralCompensation(net, difffilter.KalmanFilter(), threshold=0.5)
+    with pytest.raises(ValueError, match="threshold must be a number"):
+        estimator.threshold = bad
+    estimator.threshold = torch.tensor(0.25, dtype=dt)  # a one-entry tensor is a number
+    assert estimator.threshold == 0.25 and isinstance(estimator.threshold, float)
+    ys = torch.randn(2, 6, 2, generator=torch.Generator().manual_seed(0), dtype=dt)
+    out = difffilter.open_loop(estimator, model, ys)
+    assert torch.equal(out.detection.alarms, out.detection.scores > 0.25)
+    estimator.threshold = -math.inf  # ±inf allowed, as on a card: every step alarms
+    assert bool(difffilter.open_loop(estimator, model, ys).detection.alarms.all())

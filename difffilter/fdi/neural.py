@@ -129,7 +129,8 @@ Detection: ``p_k = sigmoid(logit_k)`` (the largest over areas), alarm where ``p_
 threshold``; a network without a detection head (trained by the EKF over its weights,
 which fits the attack estimate alone) scores ``s_k = Σ_c (â_{k,c} / √S_{k,cc})²`` against a
 sensor attack and ``s_k = Σ_c â_{k,c}²`` against an actuator attack (the input's channels
-have no innovation variance to divide by: the robot's card calibrates this raw score). Every
+have no innovation variance to divide by: the robot's card calibrates this raw score), or
+against a sensor attack behind a filter that reports no ``S_k`` (a fixed-gain observer). Every
 operation is differentiable, so a loss on ``â``, ``logit`` or the state estimates
 back-propagates through the filter (through the particle weights and, with a
 differentiable resampler, through resampling): how :mod:`difffilter.train.task` trains
@@ -148,6 +149,7 @@ as soon as the injected signal ends. The threshold is then chosen for this score
 
 from __future__ import annotations
 
+import math
 from functools import partial
 from typing import Any, NamedTuple, Protocol
 
@@ -474,7 +476,7 @@ class _Core:
     def detect(self, attack, logit, scale, innovation) -> tuple[Tensor, dict]:
         """``(score [...], extras)``: ``sigmoid`` of the largest area logit, or without a
         head the squared estimate, standardised by ``√diag S`` against a sensor attack
-        (module docstring)."""
+        where the filter reports ``S`` (module docstring)."""
         if logit is not None:
             top = logit.amax(-1)
             extras = {"attack_logit": top}
@@ -627,7 +629,7 @@ class NeuralCompensation(Estimator):
         self._chi2_quantiles: dict[tuple, float] = {}  # χ² quantile by (dof, rate)
         self.network, self.inner, self.channel = network, inner, channel
         self.attack_channel = channel  # what its attack estimate â_k is on
-        self.threshold = float(threshold)
+        self.threshold = threshold  # (checked by __setattr__)
         self.core = _Core(network, channel, residual, bool(standardize), features, poa_eta,
                           learning, record_inputs)  # fmt: skip
         self.particles = isinstance(inner, ParticleFilter)
@@ -645,6 +647,17 @@ class NeuralCompensation(Estimator):
             self.carry_type = ParticleState
         else:
             self.carry_type = NeuralCarry
+
+    def __setattr__(self, name, value):
+        # checked whenever set, as the card checks it: a NaN threshold never alarmed, True read
+        # as 1.0 (a probability score then never alarms) and "0.5" as 0.5 (a trial); the LFC
+        # entries set it after construction
+        if name == "threshold":
+            number = None if isinstance(value, (bool, str)) else _as_number(value)
+            if number is None or math.isnan(number):
+                raise ValueError(f"threshold must be a number (±inf allowed); got {value!r}")
+            value = number
+        super().__setattr__(name, value)
 
     def batch_of(self, carry):
         return self.pf.batch_of(carry) if self.particles else self.inner.batch_of(carry.inner)
@@ -954,6 +967,14 @@ def _check_confirm(confirm, restart) -> None:
             "confirm reads the χ² test of the χ²-gated uncompensated copy, which runs only "
             f"with restart=α: give restart too (got confirm={confirm!r}, restart=None)"
         )
+
+
+def _as_number(value) -> float | None:
+    """``float(value)`` for a number (NumPy's or a one-entry tensor too), else ``None``."""
+    try:
+        return float(value)
+    except (TypeError, ValueError, RuntimeError):
+        return None
 
 
 def _check_options(network, inner, channel, features, poa_eta, learning, deception) -> None:
