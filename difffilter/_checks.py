@@ -751,10 +751,33 @@ def _noise_cov(noise):
         return None
 
 
+def method_matrices_batch(model) -> torch.Size:
+    """The batch shape of a linear model's ``F``, ``H``, ``B`` as its methods give them at
+    the first step (a time-varying model of per-run matrices holds none as attributes: its
+    ``[B, n, n]`` had met the sigma points ``[B, 2n+1, n]``, each run's matrix applied to a
+    sigma point where B = 2n + 1, 3 to 5 off the Kalman filter; and the particles
+    ``[B, N, n]`` where N = B, 0.5 off)."""
+    shapes = []
+    for name, k in (("transition_matrix", 0), ("observation_matrix", 1), ("control_matrix", 0)):
+        method = getattr(model, name, None)
+        if callable(method):
+            m = method(k)
+            if isinstance(m, Tensor) and m.dim() > 2:
+                shapes.append(m.shape[:-2])
+    try:
+        return broadcast_shapes(*shapes) if shapes else torch.Size()
+    except RuntimeError:  # its methods disagree: the filters' own checks name it
+        return max(shapes, key=lambda shape: shape.numel())
+
+
 def check_one_model(model, what: str, instead: str) -> None:
     """``model`` holds one parameter set (no batch): ``what`` (e.g. "the particle filter")
-    takes one model for all runs; ``instead`` says what to do with a sweep."""
+    takes one model for all runs; ``instead`` says what to do with a sweep. A matrix or
+    covariance per run from a method override counts (:func:`method_matrices_batch`)."""
     own = model_batch_shape(model)
+    methods = method_matrices_batch(model)
+    if methods.numel() > 1:  # ([1, n, n]: one)
+        own = broadcast_or_none(own, methods) or methods
     varying = getattr(model, "_varying_noise", None)
     for method, k in (("process_cov", 0), ("measurement_cov", 1)):
         if varying is not None and varying(method):  # a covariance per run from an override

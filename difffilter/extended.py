@@ -35,6 +35,7 @@ from ._checks import (
     NonFinite,
     broadcast_shapes,
     check_finite_number,
+    method_matrices_batch,
     model_batch_shape,
     step_covariance,
 )
@@ -237,7 +238,7 @@ class UnscentedKalmanFilter(GaussianFilter):
         self.sigma_points = sigma_points or SigmaPoints()
 
     def _init(self, model, batch_shape, generators):
-        own = model_batch_shape(model, matrices_only=True) or _method_matrices_batch(model)
+        own = model_batch_shape(model, matrices_only=True) or method_matrices_batch(model)
         if own:  # sigma points [..., 2n+1, n] meet F and H: a raw shape error in torch
             raise ValueError(
                 f"the UKF evaluates f and h on sigma points, and this model's F, B or H have "
@@ -329,21 +330,6 @@ def _blame_nonfinite(exc: Exception, mean: Tensor, cov: Tensor, what: str, cause
                                       and bool(torch.isfinite(cov).all())):  # fmt: skip
         return
     raise NumericalBreakdown(f"{what} is NaN or inf: {cause}") from exc
-
-
-def _method_matrices_batch(model) -> torch.Size:
-    """The batch shape of a linear model's ``F``, ``H``, ``B`` as its methods give them at
-    the first step (a time-varying model of per-run matrices holds none as attributes: its
-    ``[B, n, n]`` had met the sigma points ``[B, 2n+1, n]``, each run's matrix applied to a
-    sigma point where B = 2n + 1, 3 to 5 off the Kalman filter)."""
-    shapes = []
-    for name, k in (("transition_matrix", 0), ("observation_matrix", 1), ("control_matrix", 0)):
-        method = getattr(model, name, None)
-        if callable(method):
-            m = method(k)
-            if isinstance(m, Tensor) and m.dim() > 2:
-                shapes.append(m.shape[:-2])
-    return torch.broadcast_shapes(*shapes) if shapes else torch.Size()
 
 
 def unscented_kalman_step(

@@ -90,9 +90,11 @@ def gaussian_init(model, batch_shape=()) -> GaussianState:
     # an int too, as KalmanFilter().init takes it (a docs trial: gaussian_init(model, 32)
     # met "'int' object is not iterable")
     batch_shape = _batch_shape(batch_shape, least=0)
-    check_model_batch(model, batch_shape, "batch_shape")
+    # the runs: a model of one parameter set per run makes that many (a function holding
+    # per-run values met one prior mean [dx] in the EKF's Jacobian, "given x [2]": a trial)
+    runs = check_model_batch(model, batch_shape, "batch_shape")
     mean = model.initial.mean
-    mean = mean.expand(broadcast_shapes(batch_shape, mean.shape[:-1]) + mean.shape[-1:])
+    mean = mean.expand(broadcast_shapes(runs, mean.shape[:-1]) + mean.shape[-1:])
     return GaussianState(mean, model.initial.cov, 0, model)
 
 
