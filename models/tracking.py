@@ -169,11 +169,13 @@ class GlintNoise(NoiseModel):
         ``log Σ_c π_c Π_{e received} N(v_e; 0, var_{c,e})``: the squared residuals go
         through one matrix product with the masked ``−½/var`` table ``[dy, S·C]``.
         """
-        sq = value.square()
+        if mask is not None:
+            check_log_prob_mask(mask, self.dim)  # (a 2 had weighed its entry twice, 0.5 half)
+        # (an unreceived entry holding NaN or 1e200 had made its sensor's term NaN, 0 · inf)
+        sq = (value if mask is None else torch.where(mask, value, 0.0)).square()
         if mask is None:
             quad, norm = sq @ self._quad, self._norm.sum(0)
         else:
-            check_log_prob_mask(mask, self.dim)  # (a 2 had weighed its entry twice, 0.5 half)
             m = mask.to(value.dtype)
             if m.dim() >= 2 and m.shape[-2] == 1 and value.dim() >= 2:  # one mask, N particles
                 m = m.squeeze(-2)
@@ -485,13 +487,32 @@ class PerSensorDeception:
             raise ValueError(f"y holds {y.shape[-1]} entries; this likelihood's {self.sensors} "
                              f"sensors send {2 * self.sensors} (its sensors=)")  # fmt: skip
         r = model.measurement_residual(y.unsqueeze(-2), model.observe(particles, k))
-        clean = model.measurement_noise.block_log_prob(r) + self.log_q  # [..., N, S]
         yb = y.reshape(y.shape[:-1] + (self.sensors, 2))
-        inside = ((yb >= self.low.to(y)) & (yb <= self.high.to(y))).all(-1)
+        within = (yb >= self.low.to(y)) & (yb <= self.high.to(y))  # [..., S, 2]
+        entries = None if mask is None else mask.expand(y.shape).reshape(yb.shape)
+        if entries is not None and bool((entries.any(-1) & ~entries.all(-1)).any()):
+            return self._partly_received(model, r, within, entries)
+        clean = model.measurement_noise.block_log_prob(r) + self.log_q  # [..., N, S]
+        inside = within.all(-1)
         att = torch.full(inside.shape, -math.inf, dtype=clean.dtype, device=clean.device)
         att = att.masked_fill(inside, self.log_pa).unsqueeze(-2).expand_as(clean)
-        recv = torch.ones_like(inside) if mask is None else mask.reshape(yb.shape).any(-1)
+        recv = torch.ones_like(inside) if entries is None else entries.any(-1)
         return clean, att, recv.unsqueeze(-2)
+
+    def _partly_received(self, model, r, within, entries):
+        """:meth:`components` where a sensor's range or bearing alone arrived: both terms
+        marginalise the entry not received, the clean one through the noise's mask and the
+        box's density over the received entries' widths alone (the box's 2-D density and an
+        unmasked clean term had read the missing bearing as data: −7.25 where the range's
+        marginal is −1.95, a trial)."""
+        flat = entries.reshape(entries.shape[:-2] + (-1,))
+        clean = model.measurement_noise.block_log_prob(r, flat.unsqueeze(-2)) + self.log_q
+        log_width = torch.log(self.high - self.low).to(clean)  # [2]
+        log_rate = math.log(self.rate) if self.rate > 0 else -math.inf
+        log_pa = log_rate - (entries.to(clean.dtype) * log_width).sum(-1)  # [..., S]
+        inside = (within | ~entries).all(-1)
+        att = torch.where(inside, log_pa, -math.inf).unsqueeze(-2).expand_as(clean)
+        return clean, att, entries.any(-1).unsqueeze(-2)
 
     def __call__(self, model, y, particles, k, mask):
         clean, att, recv = self.components(model, y, particles, k, mask)

@@ -97,3 +97,61 @@ def test_the_first_sensor_is_an_integer(gamma_ini):
 
     with pytest.raises(ValueError, match="gamma_ini must be a sensor number"):
         dataclasses.replace(registry.get("tracking_rrp_deception"), gamma_ini=gamma_ini)
+
+
+# -- a second trial (2026-12-07) ------------------------------------------------------------
+
+
+def _log_normal(v, var):
+    return -0.5 * v * v / var - 0.5 * math.log(2 * math.pi * var)
+
+
+def test_a_sensor_whose_range_alone_arrived_is_weighed_by_the_ranges_marginal():
+    """Only sensor 1's range received: the clean term read the missing bearing as data and
+    the box its 2-D density (−7.25 for both particles); the truth is the range's marginal
+    ``log((1 − η̄) Σ_c π_c N(r; 0, var_c) + η̄ / 90)``."""
+    from difffilter.models.tracking import PerSensorDeception, TrackingModel
+
+    model, eta = TrackingModel(), 0.2
+    likelihood = PerSensorDeception(eta, (-10, -math.pi / 2), (80, math.pi / 2), 4)
+    x = torch.tensor([[20.0, 0.3, 20.0, 0.3], [21.0, 0.3, 19.0, 0.3]], dtype=torch.float64)
+    y = torch.tensor([14.0, 0.0, 0, 0, 0, 0, 0, 0], dtype=torch.float64)
+    mask = torch.tensor([True, False] + [False] * 6)
+    got = likelihood(model, y, x, 1, mask)
+    for i in range(2):
+        r = 14.0 - math.hypot(x[i, 0].item() - 10, x[i, 2].item() - 10)
+        clean = 0.8 * math.exp(_log_normal(r, 4.0)) + 0.2 * math.exp(_log_normal(r, 25.0))
+        assert float(got[i]) == pytest.approx(math.log((1 - eta) * clean + eta / 90.0), abs=1e-12)
+    # a range outside the box has no attacked term; a sensor received whole is as before
+    outside = likelihood(model, torch.tensor([95.0] + [0.0] * 7, dtype=torch.float64), x, 1, mask)
+    r = 95.0 - math.hypot(x[0, 0].item() - 10, x[0, 2].item() - 10)
+    clean = 0.8 * math.exp(_log_normal(r, 4.0)) + 0.2 * math.exp(_log_normal(r, 25.0))
+    assert float(outside[0]) == pytest.approx(math.log((1 - eta) * clean), rel=1e-12)
+    whole = torch.tensor([True, True] + [False] * 6)
+    y2 = torch.tensor([14.0, 0.2] + [0.0] * 6, dtype=torch.float64)
+    unmasked = likelihood(model, y2, x, 1, None)
+    others = torch.tensor([False, False] + [True] * 6)  # sensors 2–4
+    sensor_one = unmasked - likelihood(model, y2, x, 1, others)
+    torch.testing.assert_close(likelihood(model, y2, x, 1, whole), sensor_one, rtol=0, atol=1e-12)
+
+
+def test_the_glint_density_ignores_what_an_unreceived_entry_holds():
+    """NaN, inf or 1e200 in an entry not received made its sensor's term NaN (0 · inf)."""
+    from difffilter.models.tracking import TrackingModel
+
+    model = TrackingModel()
+    noise = model.measurement_noise
+    mask = torch.tensor([True, True] + [False] * 6)
+    clean = torch.tensor([1.0, 0.01] + [0.0] * 6, dtype=torch.float64)
+    for junk in (math.nan, math.inf, 1e200):
+        value = clean.clone()
+        value[2:] = junk
+        assert float(noise.log_prob(value, mask)) == float(noise.log_prob(clean, mask))
+    x = torch.tensor([[20.0, 0.3, 20.0, 0.3], [21.0, 0.3, 19.0, 0.3]], dtype=torch.float64)
+    y = torch.tensor([[30.0, 0.5] + [math.nan] * 6], dtype=torch.float64)
+    per_particle = model.measurement_log_prob(y, x, 1, mask.expand(2, 8))
+    one_row = model.measurement_log_prob(y, x, 1, mask[None])  # the Round-Robin fast path
+    assert bool(torch.isfinite(per_particle).all())
+    torch.testing.assert_close(
+        per_particle, one_row.reshape(per_particle.shape), rtol=0, atol=1e-12
+    )
