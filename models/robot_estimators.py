@@ -201,6 +201,10 @@ class FusedLocals(Estimator):
 
     def __init__(self, local: AdaptiveParticleFilter, rule: FusionRule | str = FusionRule.CI,
                  groups=GROUPS):  # fmt: skip
+        if not isinstance(local, AdaptiveParticleFilter):  # (its carry read as the pair's:
+            # an adaptive KF failed in "'Tensor' object has no attribute 'log_weights'")
+            raise TypeError(f"local must be an AdaptiveParticleFilter (the paper's local "
+                            f"estimator); got {type(local).__name__}")  # fmt: skip
         self.local, self.rule, self.groups = local, FusionRule(rule), tuple(groups)
         if len(self.groups) != 2:  # (three had run every local, then failed in the fusion)
             raise ValueError(f"groups must be two sensor groups (the fusion of a pair); got "
