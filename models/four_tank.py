@@ -421,6 +421,8 @@ class FourTankScenario(Scenario):
             )
         check_finite_number(self.gamma_hat_noise_var, "gamma_hat_noise_var", nonnegative=True)
         check_finite_number(self.cusum_bias, "cusum_bias", positive=True)
+        # a covariance, as R is (a negative or zero design R had set η without a word)
+        _cov(self.eta_design_R, {"dtype": torch.float64}, "eta_design_R")
 
     def estimator_options(self) -> dict:
         """PoA thresholds (η of Theorem 1 with the design R [P 0.233], ζ = p_l), CUSUM b, γ̂ noise.

@@ -66,3 +66,20 @@ def test_the_linearisation_is_at_the_fixed_point_with_the_prior_as_a_deviation()
 def test_the_plant_names_a_bad_covariance(kwargs, message):
     with pytest.raises(ValueError, match=message):
         FourTankModel(dtype=D, **kwargs)
+
+
+@pytest.mark.parametrize("bad", [(-5e-5,) * 4, (0.0,) * 4])
+def test_the_design_r_of_the_poa_threshold_is_checked_as_a_covariance(bad):
+    """A negative or zero ``eta_design_R`` (a sign typo) set η = 0.28 or 0 (every step an
+    alarm) without a word, where the same values as the scenario's ``R`` are refused."""
+    import dataclasses
+
+    from difffilter.models import registry
+
+    scenario = registry.get("four_tank_bias")
+    assert scenario.estimator_options()["poa_eta"] == pytest.approx(0.23333, abs=1e-4)
+    with pytest.raises(ValueError, match="eta_design_R must be positive definite"):
+        dataclasses.replace(scenario, eta_design_R=bad)
+    G = torch.eye(4, dtype=torch.float64)
+    with pytest.raises(ValueError, match="R must be positive definite"):
+        fdi.modified_pf_gain(G, 1e-4 * G, torch.diag(torch.tensor(bad, dtype=torch.float64)))

@@ -39,6 +39,7 @@ from .._checks import (
     check_finite_number,
     check_integer,
     check_one_model,
+    check_positive_definite,
     model_batch_shape,
 )
 from ..gaussian import kalman_gain
@@ -89,6 +90,9 @@ def modified_pf_gain(G, Q, R) -> Tensor:
         raise ValueError(
             f"R must have shape [..., {dy}, {dy}] to match G [{dy}, {dx}]; got {tuple(R.shape)}"
         )
+    # a measurement covariance: a negative or zero R (a sign typo in a design R) had given a
+    # gain and an η of its own without a word (R + G Q Gᵀ stayed positive definite)
+    check_positive_definite(R, "R")
     cross = Q @ G.transpose(-1, -2)  # [dx, dy]
     return kalman_gain(cross, R + G @ cross)[0]
 
