@@ -53,3 +53,21 @@ def test_the_attacked_channels_are_checked_against_the_papers_signals():
             LFCScenario(attack="random", attacked_channels=bad, **common)
     LFCScenario(attack="simultaneous", attacked_channels=(7, 2), **common)
     LFCScenario(attack="random", attacked_channels=(0, 5), **common)
+
+
+@pytest.mark.parametrize("missing", ["kf_nn_gd", "luenberger_nn_ekf", "traditional_ad"])
+def test_the_two_changes_of_the_paper_are_counted_on_the_channels_with_both_numbers(missing):
+    """A diverged channel (``None``) of ``kf_nn_gd``, ``luenberger_nn_ekf`` or
+    ``traditional_ad`` stopped the whole LFC report in the last sentence ("'<' not supported
+    between instances of 'NoneType' and 'float'")."""
+    table = {n: dict.fromkeys(STATE_NAMES, 0.2) for n in family.PER_CHANNEL}
+    for s in STATE_NAMES[:3]:  # both changes help on three channels
+        table["kf_nn_gd"][s] = table["luenberger_nn_ekf"][s] = 0.1
+    est = {"kf_nn_ekf": {"attack_rmse_eq43": 0.1, "state5_rmse": 0.1},
+           "traditional_ad": {"attack_rmse_eq43": 0.2}, "uncompensated": {"state5_rmse": 0.1}}  # fmt: skip
+    full = family._explain(registry.get("lfc_step"), table, est)
+    assert "kf_nn_gd) helps on 3/10 channels" in full and "luenberger_nn_ekf) on 3/10." in full
+    table[missing][STATE_NAMES[0]] = None
+    said = family._explain(registry.get("lfc_step"), table, est)
+    helped = "3/10" if missing == "luenberger_nn_ekf" else "2/9 with both numbers"
+    assert f"kf_nn_gd) helps on {helped} channels" in said
