@@ -136,3 +136,26 @@ def test_forward_mode_and_vmap_give_the_same_derivative():
     batched = torch.func.vmap(fused_mean)(torch.stack([covs, covs * 2.0]))
     torch.testing.assert_close(batched[0], fused_mean(covs), rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(batched[1], fused_mean(covs * 2.0), rtol=1e-12, atol=1e-12)
+
+
+def test_a_float32_pair_that_factorises_but_does_not_invert_is_refused_by_name():
+    """Covariances of condition 1e8 in float32 (beyond 1/ε): a quarter of such pairs passed
+    the pair check's Cholesky and stopped in ``torch.linalg.inv`` ("The diagonal element 2
+    is zero"), naming neither ``covs`` nor the dtype; every failure is now the ValueError."""
+    from difffilter.fdi import covariance_intersection, information_fusion
+
+    g = torch.Generator().manual_seed(1)
+    outcomes = set()
+    for _ in range(40):
+        basis, _ = torch.linalg.qr(torch.randn(2, 2, 2, generator=g, dtype=torch.float64))
+        covs = (basis * torch.logspace(0, 8, 2, dtype=torch.float64)) @ basis.transpose(-1, -2)
+        means = torch.randn(2, 2, generator=g, dtype=torch.float64)
+        for fuse in (covariance_intersection, information_fusion):
+            try:
+                fuse(means.float(), covs.float())
+                outcomes.add("fused")
+            except ValueError as error:
+                assert "covs must be positive definite" in str(error)
+                outcomes.add("inverse" if "precision" in str(error) else "factor")
+            fuse(means, covs)  # float64 holds every one of them
+    assert outcomes == {"fused", "factor", "inverse"}  # both refusals met, and fusions

@@ -80,6 +80,20 @@ def _check_pair(means: Tensor, covs: Tensor) -> None:
         )
 
 
+def _information(covs: Tensor) -> Tensor:
+    """``covs⁻¹`` where the pair check's Cholesky passed: a float32 covariance of condition
+    beyond 1/ε (≈ 1.7e7) can factorise and still fail to invert, and torch's error ("The
+    diagonal element 2 is zero") named neither ``covs`` nor the dtype (a trial)."""
+    info, status = torch.linalg.inv_ex(covs)
+    if not under_transform(covs) and bool((status != 0).any()):
+        raise ValueError(
+            f"covs must be positive definite to fuse by their inverses: a local covariance "
+            f"cannot be inverted in {str(covs.dtype).removeprefix('torch.')} (its condition "
+            "number is beyond the dtype's precision; float64 may hold it)"
+        )
+    return info
+
+
 def _fused(info: Tensor, means: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
     """``P_f = (Σ wᵢ Iᵢ)⁻¹``, ``x̂_f = P_f Σ wᵢ Iᵢ x̂ᵢ`` for ``info [..., 2, d, d]``, ``w [..., 2]``."""
     wi = w[..., None, None] * info
@@ -175,7 +189,7 @@ def covariance_intersection(
             return _trace_inverse(_weighted(info, omega, 1.0 - omega, d), d)
 
     else:
-        info = torch.linalg.inv(covs)
+        info = _information(covs)
 
         def trace(omega):
             w = torch.stack((omega, 1.0 - omega), -1)
@@ -242,7 +256,7 @@ def information_fusion(means: Tensor, covs: Tensor) -> tuple[Tensor, Tensor]:
     d = means.shape[-1]
     if _by_hand(covs, d):
         return _fused_by_hand(_local_information(covs, d), means, 1.0, 1.0, d)
-    info = torch.linalg.inv(covs)
+    info = _information(covs)
     return _fused(info, means, means.new_ones(means.shape[:-1]))
 
 
