@@ -300,7 +300,12 @@ class KalmanFilter(GaussianFilter):
     """
 
     def __init__(self, method: Method | str = Method.SEQUENTIAL):
-        self.method = _method(method)
+        self.method = method
+
+    def __setattr__(self, name, value):
+        # read whenever set, as __init__ reads it: "parallel" assigned later was a string the
+        # whole-sequence path never matched (it ran sequentially), "bogus" was taken (a trial)
+        super().__setattr__(name, _method(value) if name == "method" else value)
 
     def _init(self, model, batch_shape, generators):
         _check_linear(model)

@@ -528,8 +528,16 @@ class ParticleFilter(Estimator):
     #: gone on with 50 particles for ``num_particles = 20`` and returned a 0 × 0 covariance
     #: for ``cov_dims = 0``: a red-team trial); a new likelihood's statefulness is read again.
     _CARRY_SETTINGS = frozenset({"num_particles", "cov_dims", "likelihood"})
+    #: Settings read at each step, checked when replaced as ``__init__`` checks them.
+    _STRATEGY_SETTINGS = frozenset({"ess_threshold", "resampler", "proposal", "hooks"})
 
     def __setattr__(self, name, value):
+        if name in self._STRATEGY_SETTINGS and name in self.__dict__:
+            # checked as __init__ checks them (a NaN or negative ess_threshold assigned later
+            # turned resampling off for good, 2.0 resampled at every step; a None resampler
+            # failed at the step as "'NoneType' object is not callable": a trial)
+            super().__setattr__(name, _checked_strategy(name, value))
+            return
         if name not in self._CARRY_SETTINGS or name not in self.__dict__:
             super().__setattr__(name, value)
             return
@@ -631,6 +639,25 @@ def _check_hooks(hooks) -> tuple:
                             f"got {type(hook).__name__}")  # fmt: skip
         check_callable_as(hook, f"hooks[{i}]", "hook", _HOOK_ARGS)
     return hooks
+
+
+def _checked_strategy(name: str, value):
+    """A replaced ``ess_threshold``, ``resampler``, ``proposal`` or ``hooks`` of a
+    :class:`ParticleFilter`, checked (and ``None`` read) as ``__init__`` reads it."""
+    if name == "ess_threshold":
+        return check_ess_threshold(value)
+    if name == "hooks":
+        return _check_hooks(value)
+    if name == "resampler":
+        value = Systematic() if value is None else value
+        check_strategy(value, "resampler", "difffilter.resampling.Systematic()",
+                       ("particles", "log_weights", "generator"))  # fmt: skip
+        check_resampler_hooks(value)
+        return value
+    value = BootstrapProposal() if value is None else value
+    check_strategy(value, "proposal", "difffilter.BootstrapProposal()",
+                   ("model", "particles", "u", "y", "k", "mask", "generator"))  # fmt: skip
+    return value
 
 
 def _check_strategies(resampler, proposal, likelihood, ess_threshold) -> float:

@@ -1240,6 +1240,31 @@ class _KernelTransport(torch.autograd.Function):
         return grad_xs, grad_x, grad_log_a, None, None, None, None, None, None, None
 
 
+def _check_tolerance(value, name: str) -> float:
+    value = _check_positive_float(value, name)
+    if value >= 2.0:  # the L1 row error is at most 2: it would stop at once
+        raise ValueError(f"{name} must be below 2 (an L1 marginal error); got {value!r}")
+    return value
+
+
+def _check_method(value, name: str) -> str:
+    if value not in ("kernel", "log"):
+        raise ValueError(f"{name} must be 'kernel' or 'log', got {value!r}")
+    return value
+
+
+#: :class:`OptimalTransport`'s settings and their checks (name → check(value, name)).
+_OT_SETTINGS = {
+    "epsilon": _check_positive_float,
+    "max_iterations": check_positive_int,
+    "tolerance": _check_tolerance,
+    "grad_iterations": _check_nonnegative_int,
+    "scale": _check_bool,
+    "checkpoint": _check_bool,
+    "method": _check_method,
+}
+
+
 class OptimalTransport(Resampler):
     """Entropy-regularised optimal-transport resampling (Corenflos, Thornton,
     Deligiannidis & Doucet, ICML 2021).
@@ -1387,19 +1412,18 @@ class OptimalTransport(Resampler):
         checkpoint: bool = True,
         method: str = "kernel",
     ):
-        self.epsilon = _check_positive_float(epsilon, "epsilon")
-        self.max_iterations = check_positive_int(max_iterations, "max_iterations")
-        self.tolerance = _check_positive_float(tolerance, "tolerance")
-        if self.tolerance >= 2.0:  # the L1 row error is at most 2: it would stop at once
-            raise ValueError(f"tolerance must be below 2 (an L1 marginal error); got {tolerance!r}")
-        self.grad_iterations = _check_nonnegative_int(grad_iterations, "grad_iterations")
-        self.scale = _check_bool(scale, "scale")
-        self.checkpoint = _check_bool(checkpoint, "checkpoint")
-        if method not in ("kernel", "log"):
-            raise ValueError(f"method must be 'kernel' or 'log', got {method!r}")
-        self.method = method
+        self.epsilon, self.max_iterations, self.tolerance = epsilon, max_iterations, tolerance
+        self.grad_iterations, self.scale, self.checkpoint = grad_iterations, scale, checkpoint
+        self.method = method  # (each checked by __setattr__)
         self.last_iterations: int | None = None  # how the last call's Sinkhorn stopped
         self.last_error: float | None = None
+
+    def __setattr__(self, name, value):
+        # checked whenever set, not at __init__ alone: ε = −1 assigned later hung the
+        # ε-scaling loop, max_iterations = 0 returned a transport of no iteration (the mean
+        # 0.07 off), a tolerance of 5 stopped after one (a trial)
+        check = _OT_SETTINGS.get(name)
+        super().__setattr__(name, value if check is None else check(value, name))
 
     def __repr__(self) -> str:
         return (

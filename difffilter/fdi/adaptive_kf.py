@@ -234,13 +234,20 @@ class AdaptiveKalmanFilter(Estimator):
         attack0: Tensor | None = None,
         false_alarm_rate: float = 0.01,
     ):
-        self.forgetting = _check_forgetting(forgetting)
+        self.forgetting = forgetting  # (checked by __setattr__)
         attack_cov0 = check_finite_number(attack_cov0, "attack_cov0", nonnegative=True)
         if attack0 is not None:  # its width is checked against the model at init
             attack0 = as_tensor(attack0, "attack0")
             check_finite(attack0, "attack0")
         self.attack_cov0, self.attack0 = attack_cov0, attack0
         self.false_alarm_rate = check_rate(false_alarm_rate, "false_alarm_rate")
+
+    def __setattr__(self, name, value):
+        # checked whenever set: λ = 2 assigned later ran (the attack covariance shrinking, a
+        # Wald score of 968 and an alarm), 0 or NaN failed at the step blaming Q, R and P0
+        if name == "forgetting":
+            value = _check_forgetting(value)
+        super().__setattr__(name, value)
 
     def _init(self, model, batch_shape, generators):
         if model.dim_u < 1:
