@@ -447,15 +447,23 @@ class EKFRule:
         donate: bool = False,
         fold_every: int = 8,
     ):
-        # finite too: an infinite lr or covariance had been taken, every weight NaN after
-        # the first update (a fuzzing trial of the constructors)
-        self.lr = check_finite_number(lr, "lr", positive=True)
-        self.init_cov = check_finite_number(init_cov, "init_cov", positive=True)
-        self.init_noise = check_finite_number(init_noise, "init_noise", positive=True)
-        self.process_noise = check_finite_number(process_noise, "process_noise", nonnegative=True)
-        if isinstance(fold_every, bool) or not isinstance(fold_every, int) or fold_every < 1:
-            raise ValueError(f"fold_every must be an integer >= 1; got {fold_every!r}")
-        self.donate, self.fold_every = bool(donate), fold_every
+        self.lr, self.init_cov, self.init_noise = lr, init_cov, init_noise
+        self.process_noise, self.donate, self.fold_every = process_noise, donate, fold_every
+
+    def __setattr__(self, name, value):
+        # checked whenever set, not at __init__ alone (finite too: an infinite lr or
+        # covariance had been taken, every weight NaN after the first update: a fuzzing
+        # trial of the constructors; a NaN lr assigned later ran: a trial of options set later)
+        if name in ("lr", "init_cov", "init_noise"):
+            value = check_finite_number(value, name, positive=True)
+        elif name == "process_noise":
+            value = check_finite_number(value, name, nonnegative=True)
+        elif name == "fold_every":
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"fold_every must be an integer >= 1; got {value!r}")
+        elif name == "donate":
+            value = bool(value)
+        super().__setattr__(name, value)
 
     def init(self, theta: Tensor) -> LearnerState:
         """``θ [N, P]`` with ``ρ(0) = init_cov·I`` (any order), ``Υ(0) = init_noise``."""
@@ -710,7 +718,12 @@ class GradientRule:
     lr · H_kᵀ e_k`` (a gradient step on ``½‖e_k‖²``), ``lr`` [DEF] 0.01."""
 
     def __init__(self, *, lr: float = 0.01):
-        self.lr = check_finite_number(lr, "lr", positive=True)
+        self.lr = lr
+
+    def __setattr__(self, name, value):  # (checked whenever set, as EKFRule's)
+        if name == "lr":
+            value = check_finite_number(value, name, positive=True)
+        super().__setattr__(name, value)
 
     def init(self, theta: Tensor) -> LearnerState:
         return LearnerState(theta, None, None, 0)

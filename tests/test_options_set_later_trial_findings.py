@@ -117,3 +117,27 @@ def test_optimal_transports_settings_set_later(name, bad):
     log_w = torch.log_softmax(particles[..., 0], -1)
     torch.testing.assert_close(ot(particles, log_w).particles,
                                OptimalTransport(0.3)(particles, log_w).particles, rtol=0, atol=0)  # fmt: skip
+
+
+@pytest.mark.parametrize("name, bad", [("lr", math.nan), ("lr", -1.0), ("init_cov", math.inf),
+                                       ("init_noise", 0.0), ("process_noise", -1e-3),
+                                       ("fold_every", 0)])  # fmt: skip
+def test_the_weight_learners_settings_set_later(name, bad):
+    from difffilter.models.neural_estimator import AreaNetwork
+    from difffilter.param_ekf import EKFRule, GradientRule, WeightTemplate
+
+    rule = EKFRule()
+    with pytest.raises(ValueError, match=name):
+        setattr(rule, name, bad)
+    if name == "lr":
+        with pytest.raises(ValueError, match="lr"):
+            GradientRule().lr = bad
+    template = WeightTemplate(AreaNetwork(3, 4, 2))
+    g = torch.Generator().manual_seed(0)
+    theta = 0.3 * torch.randn(2, template.num_params, generator=g, dtype=F64)
+    x, target = torch.randn(2, 3, generator=g, dtype=F64), torch.randn(2, 2, generator=g, dtype=F64)
+    rule.lr = 0.5
+    prediction, H = template.jacobian(theta, x)
+    got = rule.step(rule.init(theta.clone()), H, target - prediction).theta
+    want = EKFRule(lr=0.5).step(EKFRule(lr=0.5).init(theta.clone()), H, target - prediction).theta
+    assert torch.equal(got, want)
