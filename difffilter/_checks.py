@@ -350,6 +350,16 @@ def check_mask(mask: Tensor, name: str, shape: torch.Size) -> Tensor:
     return mask
 
 
+def real_number(value) -> float | None:
+    """``float(value)`` for a real number (NumPy's, or a one-entry tensor, too), ``None`` for
+    anything else (``True``, ``"0.5"``): for settings checked whenever they are set."""
+    if isinstance(value, Tensor) and value.numel() == 1:
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return None
+    return float(value)
+
+
 def check_finite_number(
     value, name: str, *, positive: bool = False, nonnegative: bool = False
 ) -> float:

@@ -427,9 +427,11 @@ class ParticleFilter(Estimator):
         record_prior: bool = False,
     ):
         self.num_particles = check_positive_int(num_particles, "num_particles")
-        self.ess_threshold = _check_strategies(resampler, proposal, likelihood, ess_threshold)
-        self.resampler = resampler if resampler is not None else Systematic()
-        self.proposal = proposal if proposal is not None else BootstrapProposal()
+        # (the same checks as a replacement's: _checked_strategy)
+        self.resampler = _checked_strategy("resampler", resampler)
+        self.proposal = _checked_strategy("proposal", proposal)
+        _check_likelihood(likelihood)
+        self.ess_threshold = check_ess_threshold(ess_threshold)
         self.likelihood = likelihood if likelihood is not None else ModelLikelihood()
         self.stateful = hasattr(self.likelihood, "weigh")
         self.hooks = _check_hooks(hooks)
@@ -642,8 +644,9 @@ def _check_hooks(hooks) -> tuple:
 
 
 def _checked_strategy(name: str, value):
-    """A replaced ``ess_threshold``, ``resampler``, ``proposal`` or ``hooks`` of a
-    :class:`ParticleFilter`, checked (and ``None`` read) as ``__init__`` reads it."""
+    """A ``ess_threshold``, ``resampler``, ``proposal`` or ``hooks`` of a
+    :class:`ParticleFilter`, given to ``__init__`` or assigned later: checked, ``None`` read
+    as the default strategy."""
     if name == "ess_threshold":
         return check_ess_threshold(value)
     if name == "hooks":
@@ -660,12 +663,7 @@ def _checked_strategy(name: str, value):
     return value
 
 
-def _check_strategies(resampler, proposal, likelihood, ess_threshold) -> float:
-    check_strategy(resampler, "resampler", "difffilter.resampling.Systematic()",
-                   ("particles", "log_weights", "generator"))  # fmt: skip
-    check_resampler_hooks(resampler)
-    check_strategy(proposal, "proposal", "difffilter.BootstrapProposal()",
-                   ("model", "particles", "u", "y", "k", "mask", "generator"))  # fmt: skip
+def _check_likelihood(likelihood) -> None:
     # an init without a __call__ is a stateful likelihood whose weigh is missing (a
     # misspelt weigh had been told "must be a callable object": a gradients trial)
     if hasattr(likelihood, "weigh") or (hasattr(likelihood, "init") and not callable(likelihood)):
@@ -677,7 +675,6 @@ def _check_strategies(resampler, proposal, likelihood, ess_threshold) -> float:
             check_callable_as(likelihood, f"the likelihood {type(likelihood).__name__} "
                               "(uses_predictive = True)", "likelihood",
                               ("model", "y", "particles", "k", "mask"), ("predictive",))  # fmt: skip
-    return check_ess_threshold(ess_threshold)
 
 
 #: What a stateful likelihood implements (:class:`StepLikelihood`), named in its errors.

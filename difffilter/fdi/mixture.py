@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from .._assignments import assignments
-from .._checks import check_filter_inputs
+from .._checks import check_filter_inputs, real_number
 from ..estimator import Detection, EstimatorOutput
 from ..loop import _step_through, open_loop
 from ..noise import NoiseModel
@@ -297,10 +297,7 @@ class MixtureParticleFilter(ParticleFilter):
         # alarmed (0 of 24 where the attack probability reached 0.996), −1 alarmed at every
         # step (a trial)
         if name == "threshold":
-            try:
-                number = None if isinstance(value, (bool, str)) else float(value)
-            except (TypeError, ValueError, RuntimeError):
-                number = None
+            number = real_number(value)
             if number is None or not 0.0 <= number <= 1.0:
                 raise ValueError(f"threshold must lie in [0, 1] (a probability); got {value!r}")
             value = number

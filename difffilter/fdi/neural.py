@@ -156,7 +156,14 @@ from typing import Any, NamedTuple, Protocol
 import torch
 from torch import Tensor, nn
 
-from .._checks import Choice, broadcast_or_none, check_rate, check_strategy, model_batch_shape
+from .._checks import (
+    Choice,
+    broadcast_or_none,
+    check_rate,
+    check_strategy,
+    model_batch_shape,
+    real_number,
+)
 from ..attack import Channel
 from ..estimator import Estimator, Generators
 from ..kalman import GaussianFilter
@@ -653,7 +660,7 @@ class NeuralCompensation(Estimator):
         # as 1.0 (a probability score then never alarms) and "0.5" as 0.5 (a trial); the LFC
         # entries set it after construction
         if name == "threshold":
-            number = None if isinstance(value, (bool, str)) else _as_number(value)
+            number = real_number(value)
             if number is None or math.isnan(number):
                 raise ValueError(f"threshold must be a number (±inf allowed); got {value!r}")
             value = number
@@ -967,14 +974,6 @@ def _check_confirm(confirm, restart) -> None:
             "confirm reads the χ² test of the χ²-gated uncompensated copy, which runs only "
             f"with restart=α: give restart too (got confirm={confirm!r}, restart=None)"
         )
-
-
-def _as_number(value) -> float | None:
-    """``float(value)`` for a number (NumPy's or a one-entry tensor too), else ``None``."""
-    try:
-        return float(value)
-    except (TypeError, ValueError, RuntimeError):
-        return None
 
 
 def _check_options(network, inner, channel, features, poa_eta, learning, deception) -> None:

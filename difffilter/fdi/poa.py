@@ -41,6 +41,7 @@ from .._checks import (
     check_one_model,
     check_positive_definite,
     model_batch_shape,
+    real_number,
 )
 from ..gaussian import kalman_gain
 from ..linalg import LOG_2PI, NumericalBreakdown, safe_cholesky
@@ -278,10 +279,7 @@ class PoADetector:
             if bool((eta_t < 0).any()) or not bool(torch.isfinite(eta_t).all()):
                 raise ValueError(f"eta must be finite and >= 0; got {value!r}")
         elif name == "zeta":
-            try:  # (a number, NumPy's or a one-entry tensor; NaN fails the range below)
-                zeta = None if isinstance(value, (bool, str)) else float(value)
-            except (TypeError, ValueError, RuntimeError):
-                zeta = None
+            zeta = real_number(value)  # (NaN fails the range below)
             if zeta is None or not 0.0 <= zeta < 1.0:
                 raise ValueError(f"zeta must be a number in [0, 1); got {value!r}")
             value = zeta
