@@ -127,9 +127,11 @@ def _check_zero_mean_noise(model) -> None:
         tol = 64 * torch.finfo(mean.dtype).eps * scale if mean.is_floating_point() else 0
         if bool((mean.abs() > tol).any()):
             raise ValueError(
-                f"model.{name} has mean {mean.tolist()}, and the Gaussian filters (KF, EKF, UKF, the adaptive KF and PF) "
-                "take every noise as zero-mean: put the mean into the model (f or h, or a known "
-                "input) and give the noise mean 0, or use the particle filter"
+                f"model.{name} has mean {mean.tolist()}, and the Gaussian filters (KF, EKF, UKF, "
+                "AdaptiveKalmanFilter, and AdaptiveParticleFilter, whose proposal is one) take "
+                "every noise as zero-mean: put the mean into the model (f or h, or a known "
+                "input) and give the noise mean 0, or use ParticleFilter, which samples the "
+                "noise as it is"
             )
 
 

@@ -35,13 +35,18 @@ class FixedGainFilter(GaussianFilter):
     reports_innovation_cov = False  # a fixed gain, no S_k
 
     def __init__(self, gain: Tensor):
-        if not isinstance(gain, Tensor) or gain.dim() != 2:
-            raise ValueError(
-                f"gain must be a tensor [dx, dy]; got {getattr(gain, 'shape', gain)!r}"
-            )
-        # a NaN gain had run, every estimate NaN from its first step on (a trial)
-        check_finite(gain, "gain")
         self.gain = gain
+
+    def __setattr__(self, name, value):
+        # checked whenever set: a NaN gain had run, every estimate NaN from its first step
+        # on (a trial), and one assigned after construction still did (a red-team trial)
+        if name == "gain":
+            if not isinstance(value, Tensor) or value.dim() != 2:
+                raise ValueError(
+                    f"gain must be a tensor [dx, dy]; got {getattr(value, 'shape', value)!r}"
+                )
+            check_finite(value, "gain")
+        super().__setattr__(name, value)
 
     def _init(self, model, batch_shape, generators):
         _check_linear(model)

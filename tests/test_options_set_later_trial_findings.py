@@ -141,3 +141,91 @@ def test_the_weight_learners_settings_set_later(name, bad):
     got = rule.step(rule.init(theta.clone()), H, target - prediction).theta
     want = EKFRule(lr=0.5).step(EKFRule(lr=0.5).init(theta.clone()), H, target - prediction).theta
     assert torch.equal(got, want)
+
+
+# --- the modified PF's fused path and the mixture likelihood's parts (2026-12-07, later) ---
+
+
+def _four_tank_case():
+    from difffilter.models.four_tank import FourTankModel
+
+    model = FourTankModel(dtype=F64)
+    g = torch.Generator().manual_seed(0)
+    ys = model.initial.mean + 0.03 * torch.randn(4, 40, 4, dtype=F64, generator=g)
+    ys[:, ::2] += 0.3
+    return model, ys, torch.full((4, 40, 4), 0.3, dtype=F64)
+
+
+def _generators():
+    from difffilter.estimator import Generators
+
+    return Generators(*(torch.Generator().manual_seed(i) for i in range(3)))
+
+
+def test_fused_set_later_is_checked_against_the_running_attack_rate():
+    """``fused = True`` assigned beside an ``attack_rate`` ran the fused path, which has no
+    running rate: ζ fixed at 0.5 where the running one is 0.45 (0.045 off)."""
+    from difffilter.loop import open_loop
+
+    model, ys, gamma_hat = _four_tank_case()
+    pf = df.fdi.ModifiedParticleFilter(100, df.fdi.PoADetector(0.175, 0.5), gamma_hat,
+                                       attack_rate=df.fdi.RunningAttackRate(100))  # fmt: skip
+    ref = open_loop(pf, model, ys, generator=_generators())
+    with pytest.raises(ValueError, match="fused=True does not support attack_rate"):
+        pf.fused = True
+    assert pf.fused is False
+    again = open_loop(pf, model, ys, generator=_generators())
+    assert torch.equal(ref.detection.threshold, again.detection.threshold)
+    with pytest.raises(ValueError, match="fused must be True or False"):
+        pf.fused = "yes"
+
+
+def test_a_resampler_set_later_on_a_fused_filter_is_checked_at_its_run():
+    """A multinomial resampler assigned to a fused filter was ignored (systematic draws on
+    the fused path: means 0.023 off the unfused multinomial filter's)."""
+    from difffilter.loop import open_loop
+
+    model, ys, gamma_hat = _four_tank_case()
+    pf = df.fdi.ModifiedParticleFilter(100, df.fdi.PoADetector(0.175, 0.5), gamma_hat, fused=True)
+    pf.resampler = df.resampling.Multinomial()
+    with pytest.raises(ValueError, match=r"resampler \(not Systematic\)"):
+        open_loop(pf, model, ys, generator=_generators())
+    with pytest.raises(ValueError, match=r"resampler \(not Systematic\)"):
+        df.fdi.modified_particle_filter(model, ys, num_particles=100, gamma_hat=gamma_hat,
+                                        detector=df.fdi.PoADetector(0.175, 0.5), fused=True,
+                                        resampler=df.resampling.Multinomial())  # fmt: skip
+
+
+@pytest.mark.parametrize("when", ["before the first run", "between steps"])
+def test_an_attack_rate_of_another_n_set_later_is_refused(when):
+    """The constructor refuses a RunningAttackRate of another N (its warm-up ζ is eq. 46's
+    for its own N); one assigned to the weighting later had been used."""
+    model, ys, gamma_hat = _four_tank_case()
+    pf = df.fdi.ModifiedParticleFilter(100, df.fdi.PoADetector(0.175, 0.5), gamma_hat,
+                                       attack_rate=df.fdi.RunningAttackRate(100))  # fmt: skip
+    if when == "between steps":
+        carry = pf.init(model, (4,), _generators())
+        carry, _ = pf.step(carry, ys[:, 0])
+    pf.likelihood.attack_rate = df.fdi.RunningAttackRate(50)
+    with pytest.raises(ValueError, match="RunningAttackRate of 50 particles"):
+        if when == "between steps":
+            pf.step(carry, ys[:, 1])
+        else:
+            pf.init(model, (4,), _generators())
+
+
+def test_the_mixture_likelihoods_attack_and_bias_set_later_are_checked():
+    """``BiasDeception.rho`` set to a 0-d tensor met a bare ``IndexError`` in the likelihood;
+    an ``attack`` that is not callable, a ``TypeError`` at the first step."""
+    bias = BiasDeception(torch.zeros(2, dtype=F64))
+    with pytest.raises(ValueError, match="rho must be a finite vector"):
+        bias.rho = torch.tensor(1.0, dtype=F64)
+    with pytest.raises(ValueError, match="rho must be a finite vector"):
+        bias.rho = torch.tensor([math.nan, 0.0], dtype=F64)
+    lik = DeceptionMixtureLikelihood(0.2, bias)
+    with pytest.raises(ValueError, match="attack must be a callable"):
+        lik.attack = 3
+    bias.rho = torch.tensor([0.5, 0.0], dtype=F64)
+    made = DeceptionMixtureLikelihood(0.2, BiasDeception(torch.tensor([0.5, 0.0], dtype=F64)))
+    parts = (MODEL, YS[:, 0], torch.zeros(3, 5, 2, dtype=F64), 1, None)
+    assert torch.equal(lik(*parts), made(*parts))

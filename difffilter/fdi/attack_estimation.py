@@ -59,13 +59,37 @@ class BiasAttackEstimator:
         device=None,
     ):
         dim = check_integer(dim, "dim", 1)
-        if isinstance(tau, bool) or not isinstance(tau, numbers.Real) or not 0.0 < tau < 1.0:
-            raise ValueError(f"tau must lie in (0, 1) (eq. 4); got {tau!r}")
         if not gamma_bar_var > 0:
             raise ValueError(f"gamma_bar_var must be > 0; got {gamma_bar_var!r}")
         q_g, q_b = process_var
         if not (q_g > 0 and q_b > 0):
             raise ValueError(f"process_var must be two numbers > 0; got {process_var!r}")
+        object.__setattr__(self, "dim", dim)
+        self._settings = (float(gamma_bar_var), float(q_g), float(q_b), dtype, device)
+        self.tau = tau  # (checked, and the model built, by __setattr__)
+
+    def __setattr__(self, name, value):
+        # τ is built into F: assigned after construction it had been stored and never read
+        # (γ̂ of τ = 0.9 after tau = 0.1; and tau = 5 accepted): checked and the model built
+        # again, as the constructor builds it. dim is the states' size: not reassignable.
+        if name == "dim":
+            raise AttributeError(
+                "dim is the size of this estimator's states: build a new BiasAttackEstimator"
+            )
+        if name == "tau":
+            tau = value
+            if isinstance(tau, bool) or not isinstance(tau, numbers.Real) or not 0.0 < tau < 1.0:
+                raise ValueError(f"tau must lie in (0, 1) (eq. 4); got {tau!r}")
+            value = float(tau)
+            super().__setattr__("model", self._model(value))
+        elif name == "model" and "model" in self.__dict__:
+            raise AttributeError("model follows tau: assign tau instead")
+        super().__setattr__(name, value)
+
+    def _model(self, tau: float) -> LinearGaussianModel:
+        """Eq. (4)'s augmented model for ``τ`` and this estimator's other settings."""
+        dim = self.dim
+        gamma_bar_var, q_g, q_b, dtype, device = self._settings
         kw = {"dtype": dtype, "device": device}
         eye, zero = torch.eye(dim, **kw), torch.zeros(dim, dim, **kw)
         F = torch.cat([torch.cat([tau * eye, (1.0 - tau) * eye], 1), torch.cat([zero, eye], 1)], 0)
@@ -73,8 +97,7 @@ class BiasAttackEstimator:
         Q = torch.block_diag(q_g * eye, q_b * eye)
         # γ_0 = 0 is known (eq. 4): a tiny variance keeps P0 positive definite
         P0 = torch.block_diag(1e-12 * eye, gamma_bar_var * eye)
-        self.dim, self.tau = dim, float(tau)
-        self.model = LinearGaussianModel(F, H, Q, eye, torch.zeros(2 * dim, **kw), P0)
+        return LinearGaussianModel(F, H, Q, eye, torch.zeros(2 * dim, **kw), P0)
 
     def init(self, batch_shape=()) -> GaussianState:
         """Prior of ``θ_0``: mean ``[*batch, 2 dy]`` (zeros), covariance ``[2 dy, 2 dy]``."""

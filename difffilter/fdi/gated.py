@@ -32,6 +32,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
+from .._assignments import note_assignment
 from .._checks import (
     NonFinite,
     broadcast_shapes,
@@ -95,27 +96,24 @@ class GatedFilter(Estimator):
         *,
         gate: bool = True,
     ):
-        if not isinstance(detector, (ChiSquareDetector, CusumDetector)):
-            raise ValueError(
-                f"detector must be a ChiSquareDetector or a CusumDetector; got {type(detector).__name__}"
-            )
-        if isinstance(detector, CusumDetector) and detector.threshold is None:
-            raise ValueError(
-                "detector: the CusumDetector has no threshold; pass threshold= or call calibrate() first"
-            )
-        filter = ExtendedKalmanFilter() if filter is None else filter
-        if not isinstance(filter, GaussianFilter):
-            raise TypeError(
-                "filter must be a Gaussian filter object (difffilter.KalmanFilter(), "
-                f"ExtendedKalmanFilter(), UnscentedKalmanFilter()); got {type(filter).__name__}"
-            )
-        if not filter.reports_innovation_cov:  # (it failed inside torch at the first step)
-            raise TypeError(
-                f"filter: a {type(filter).__name__} reports no innovation covariance S_k, which "
-                "the detector's statistic g_k = r_kᵀ S_k⁻¹ r_k needs: give a KalmanFilter, "
-                "ExtendedKalmanFilter or UnscentedKalmanFilter"
-            )
-        self.detector, self.filter, self.gate = detector, filter, bool(gate)
+        self.detector, self.filter, self.gate = detector, filter, gate
+
+    def __setattr__(self, name, value):
+        # checked whenever set, as the constructor checks them: a PoADetector or a filter of
+        # None assigned later had failed at the first step on "has no attribute 'init'" or
+        # "'_init'" (a red-team trial); a replacement has the next step validate its carry
+        if name == "detector":
+            value = _checked_detector(value)
+        elif name == "filter":
+            value = _checked_filter(value)
+        elif name == "gate":
+            if not isinstance(value, bool | int) or value not in (0, 1):
+                raise ValueError(f"gate must be True or False; got {value!r}")
+            value = bool(value)
+        replacing = name in ("detector", "filter") and name in self.__dict__
+        super().__setattr__(name, value)
+        if replacing:
+            note_assignment()
 
     def batch_of(self, carry):
         return carry.inner.mean.shape[:-1]
@@ -182,6 +180,34 @@ class GatedFilter(Estimator):
             extras={**extras, "nis": g},
         )  # fmt: skip
         return GatedState(inner, det_state, carry.model), out
+
+
+def _checked_detector(detector):
+    if not isinstance(detector, (ChiSquareDetector, CusumDetector)):
+        raise ValueError(
+            f"detector must be a ChiSquareDetector or a CusumDetector; got {type(detector).__name__}"
+        )
+    if isinstance(detector, CusumDetector) and detector.threshold is None:
+        raise ValueError(
+            "detector: the CusumDetector has no threshold; pass threshold= or call calibrate() first"
+        )
+    return detector
+
+
+def _checked_filter(filter):
+    filter = ExtendedKalmanFilter() if filter is None else filter
+    if not isinstance(filter, GaussianFilter):
+        raise TypeError(
+            "filter must be a Gaussian filter object (difffilter.KalmanFilter(), "
+            f"ExtendedKalmanFilter(), UnscentedKalmanFilter()); got {type(filter).__name__}"
+        )
+    if not filter.reports_innovation_cov:  # (it failed inside torch at the first step)
+        raise TypeError(
+            f"filter: a {type(filter).__name__} reports no innovation covariance S_k, which "
+            "the detector's statistic g_k = r_kᵀ S_k⁻¹ r_k needs: give a KalmanFilter, "
+            "ExtendedKalmanFilter or UnscentedKalmanFilter"
+        )
+    return filter
 
 
 def gated_gaussian_filter(

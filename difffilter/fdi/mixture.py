@@ -53,10 +53,20 @@ class BiasDeception:
     """
 
     def __init__(self, rho):
+        self.rho = rho
+
+    @property
+    def rho(self) -> Tensor:
+        return self._rho
+
+    @rho.setter
+    def rho(self, rho) -> None:
+        # checked whenever set: a 0-d ρ assigned after construction had met a bare
+        # IndexError in the likelihood (a red-team trial)
         rho = torch.as_tensor(rho)
         if rho.dim() < 1 or not bool(torch.isfinite(rho).all()):
             raise ValueError(f"rho must be a finite vector [..., dy]; got {rho!r}")
-        self.rho = rho
+        self._rho = rho
 
     def __call__(self, model, y: Tensor, particles: Tensor, k: int, mask) -> Tensor:
         if self.rho.shape[-1] != model.dim_y:  # one entry would broadcast to every channel
@@ -165,9 +175,19 @@ class DeceptionMixtureLikelihood:
 
     def __init__(self, attack_probability: float, attack):
         self.p = attack_probability
+        self.attack = attack
+
+    @property
+    def attack(self):
+        """The attacked density ``log p_a(ỹ | x)``; checked whenever assigned (one assigned
+        after construction had been read unchecked, a ``TypeError`` at the first step)."""
+        return self._attack
+
+    @attack.setter
+    def attack(self, attack) -> None:
         if not callable(attack):
             raise ValueError("attack must be a callable (model, y, particles, k, mask) -> [..., N]")
-        self.attack = attack
+        self._attack = attack
 
     @property
     def p(self) -> float:

@@ -233,7 +233,7 @@ class ModifiedPFWeighting:
             )
         elif name == "estimator":  # (derived from gamma_hat: one source of truth)
             raise AttributeError("estimator follows gamma_hat: assign gamma_hat instead")
-        replacing = name in ("detector", "gamma_hat") and name in self.__dict__
+        replacing = name in ("detector", "gamma_hat", "attack_rate") and name in self.__dict__
         super().__setattr__(name, value)
         if replacing:
             note_assignment()
@@ -397,12 +397,7 @@ class ModifiedParticleFilter(ParticleFilter):
         base_likelihood=None,
         fused: bool = False,
     ):
-        if attack_rate is not None and getattr(attack_rate, "n", num_particles) != num_particles:
-            # (its warm-up ζ is eq. 46's for its own N: 0.25 for 0.49 in a trial)
-            raise ValueError(
-                f"attack_rate is a RunningAttackRate of {attack_rate.n} particles; this filter "
-                f"has num_particles = {num_particles}: make it RunningAttackRate({num_particles})"
-            )
+        _check_attack_rate_particles(attack_rate, num_particles)
         weighting = ModifiedPFWeighting(
             detector, gamma_hat, attack_rate=attack_rate, base_likelihood=base_likelihood
         )
@@ -410,9 +405,29 @@ class ModifiedParticleFilter(ParticleFilter):
         super().__init__(
             num_particles, resampler=resampler, likelihood=weighting, ess_threshold=ess_threshold
         )
-        self.fused = bool(fused)  # (detector and gamma_hat: the weighting's, below)
-        if self.fused:
-            _check_fused(gamma_hat, attack_rate, base_likelihood, resampler, ess_threshold)
+        self.fused = fused  # (detector and gamma_hat: the weighting's, below)
+
+    @property
+    def fused(self) -> bool:
+        """Whether whole sequences take :mod:`difffilter.fdi.fused`'s path. Assigned, it is
+        checked against the filter's settings as the constructor checks it; the settings are
+        checked again at every fused run (one assigned later, ``fused = True`` beside an
+        ``attack_rate`` or a resampler other than systematic, had run the fused path without
+        it: a fixed ζ for the running one, 0.045 off, and systematic draws for multinomial
+        ones, means 0.023 off: a red-team trial)."""
+        return self._fused
+
+    @fused.setter
+    def fused(self, fused) -> None:
+        if not isinstance(fused, bool | int) or fused not in (0, 1):
+            raise ValueError(f"fused must be True or False; got {fused!r}")
+        if fused:
+            self._check_fused_settings()
+        self._fused = bool(fused)
+
+    def _check_fused_settings(self) -> None:
+        w = self.likelihood
+        _check_fused(w.gamma_hat, w.attack_rate, w.base, self.resampler, self.ess_threshold)
 
     # The detector and γ̂ are the weighting's (the likelihood's) alone, read and assigned
     # through it: a copy kept here as well had been assigned and never read by the steps,
@@ -439,8 +454,16 @@ class ModifiedParticleFilter(ParticleFilter):
             _check_fused(gamma_hat, w.attack_rate, w.base, self.resampler, self.ess_threshold)
         self.likelihood.gamma_hat = gamma_hat
 
+    def attach(self, state: ParticleState, model, generators: Generators) -> ParticleState:
+        # (init's road too: an attack_rate of another N assigned before the first run)
+        _check_attack_rate_particles(self.likelihood.attack_rate, self.num_particles)
+        return super().attach(state, model, generators)
+
     def _check_carry(self, carry):
         super()._check_carry(carry)
+        # (an attack_rate assigned to the weighting since, of another N, is met here: the
+        # assignment has the next step validate its carry in full)
+        _check_attack_rate_particles(self.likelihood.attack_rate, self.num_particles)
         if isinstance(carry.aux, WeightingState):  # (a detector or γ̂ assigned since its init)
             self.likelihood.check_fits(carry.model, carry.log_weights.shape[:-1])
             self.likelihood.check_state(carry.aux, "carry.aux")
@@ -463,6 +486,7 @@ class ModifiedParticleFilter(ParticleFilter):
             )
         if not self.fused:
             return None
+        self._check_fused_settings()  # (any of them assigned since)
         if us is not None or mask is not None:
             bad = "us" if us is not None else "mask"
             raise ValueError(f"fused=True does not support {bad}; use fused=False")
@@ -512,6 +536,15 @@ def _fusable(model, ys: Tensor, detector, gamma_hat: Tensor) -> bool:
     except RuntimeError:
         fits = False
     return plain and fits and ys.dim() == 3 and torch.as_tensor(detector.eta).numel() == 1
+
+
+def _check_attack_rate_particles(attack_rate, num_particles: int) -> None:
+    if attack_rate is not None and getattr(attack_rate, "n", num_particles) != num_particles:
+        # (its warm-up ζ is eq. 46's for its own N: 0.25 for 0.49 in a trial)
+        raise ValueError(
+            f"attack_rate is a RunningAttackRate of {attack_rate.n} particles; this filter "
+            f"has num_particles = {num_particles}: make it RunningAttackRate({num_particles})"
+        )
 
 
 def _check_fused(gamma_hat, attack_rate, base_likelihood, resampler, ess_threshold) -> None:

@@ -34,6 +34,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from .._assignments import note_assignment
 from .._checks import (
     broadcast_or_none,
     check_finite_number,
@@ -208,6 +209,14 @@ def _exceed(residuals: Tensor, eta) -> Tensor:
     eta = torch.as_tensor(eta, dtype=residuals.dtype, device=residuals.device)
     if bool((eta < 0).any()) or not bool(torch.isfinite(eta).all()):
         raise ValueError("eta must be finite and >= 0")
+    runs = residuals.shape[:-2]
+    if broadcast_or_none(eta.shape, runs) != runs:
+        # (an η [B, 1] for residuals [B, N, dy] had given β [B, B], every run against every
+        # run's threshold, silently: a red-team trial)
+        raise ValueError(
+            f"eta has shape {tuple(eta.shape)}; it must be a number or one per run, of a shape "
+            f"that broadcasts to the residuals' runs {tuple(runs)} without adding dimensions"
+        )
     if bool(torch.isnan(residuals).any()):
         # NaN > η² is false: a NaN residual would silently count as "below threshold"
         raise ValueError(
@@ -390,16 +399,33 @@ class RunningAttackRate:
         alpha_min: float = 0.05,
         alpha_max: float = 0.95,
     ):
-        num_particles = check_integer(num_particles, "num_particles", 2)
-        if not 0.0 < alpha0 < 1.0:
-            raise ValueError(f"alpha0 must lie in (0, 1); got {alpha0!r}")
-        warmup = check_integer(warmup, "warmup", 1)
-        if not 0.0 < alpha_min <= alpha_max < 1.0:
-            raise ValueError(
-                f"need 0 < alpha_min <= alpha_max < 1; got {alpha_min!r}, {alpha_max!r}"
-            )
-        self.n, self.alpha0, self.warmup = num_particles, float(alpha0), warmup
-        self.alpha_min, self.alpha_max = float(alpha_min), float(alpha_max)
+        self.n, self.alpha0, self.warmup = num_particles, alpha0, warmup
+        # (the pair checked together here; either assigned later, against the other)
+        lo, hi = _check_alpha_bounds(alpha_min, alpha_max)
+        object.__setattr__(self, "alpha_min", lo)
+        object.__setattr__(self, "alpha_max", hi)
+
+    def __setattr__(self, name, value):
+        # checked whenever set, as PoADetector's ζ is: zeta() reads them at every step, and
+        # alpha0 = NaN or warmup = 0 assigned later gave ζ = NaN (β = 1 never alarmed), 1.5
+        # a ζ above 1 (a red-team trial)
+        if name == "n":
+            value = check_integer(value, "num_particles", 2)
+            if "n" in self.__dict__:
+                note_assignment()  # (the filters check a rate's N against theirs again)
+        elif name == "warmup":
+            value = check_integer(value, "warmup", 1)
+        elif name == "alpha0":
+            alpha0 = real_number(value)
+            if alpha0 is None or not 0.0 < alpha0 < 1.0:
+                raise ValueError(f"alpha0 must lie in (0, 1); got {value!r}")
+            value = alpha0
+        elif name in ("alpha_min", "alpha_max"):
+            bounds = {"alpha_min": getattr(self, "alpha_min", None),
+                      "alpha_max": getattr(self, "alpha_max", None), name: value}  # fmt: skip
+            lo, hi = _check_alpha_bounds(bounds["alpha_min"], bounds["alpha_max"])
+            value = lo if name == "alpha_min" else hi
+        super().__setattr__(name, value)
 
     def init(self, batch_shape=(), *, dtype=torch.float64, device=None) -> AttackRateState:
         """The state before the first step. The alarms are counted in float64 whatever
@@ -431,6 +457,13 @@ class RunningAttackRate:
     def estimate(self, state: AttackRateState) -> Tensor:
         """``p̂_l`` so far ``[...]`` (NaN before the first step)."""
         return state.count / state.steps if state.steps else torch.full_like(state.count, math.nan)
+
+
+def _check_alpha_bounds(alpha_min, alpha_max) -> tuple[float, float]:
+    lo, hi = real_number(alpha_min), real_number(alpha_max)
+    if lo is None or hi is None or not 0.0 < lo <= hi < 1.0:
+        raise ValueError(f"need 0 < alpha_min <= alpha_max < 1; got {alpha_min!r}, {alpha_max!r}")
+    return lo, hi
 
 
 def poa_detector_for(
