@@ -84,7 +84,7 @@ _WHERE = {
         ),
         "smoother",
     ),  # fmt: skip
-    **dict.fromkeys(("ParticleSmootherResult", "particle_smoother"), "particle_smoother"),
+    **dict.fromkeys(("ParticleSmootherResult", "particle_smoother"), "particle_smoothing"),
     **dict.fromkeys(("LinearGaussianModel", "NonlinearGaussianModel", "StateSpaceModel"), "ssm"),
 }
 

@@ -47,6 +47,7 @@ from ._checks import (
 from .kalman import _check_declared_time_varying, kalman_filter
 from .linalg import symmetrize
 from .results import FilterResult, ParticleFilterResult
+from .ssm import inputs_per_point
 
 __all__ = [
     "SmootherResult",
@@ -218,8 +219,9 @@ def unscented_rts_smoother(
     def predicted(k: int, mean: Tensor, cov: Tensor):
         """The sigma points ``X``, ``f(X)`` and the UKF's own prediction ``(m⁻, P⁻)``."""
         X = sp.points(mean, cov, scale)  # [..., 2n+1, n]
-        u = None if us is None else us[..., k, :].unsqueeze(-2)
-        FX = model.transition(X, u, k)
+        # (one input row per point, as the UKF gives them: a transition that joins x and u
+        # with torch.cat had failed here on [..., 1, du], the filter it smooths running it)
+        FX = model.transition(X, inputs_per_point(None if us is None else us[..., k, :], X), k)
         pred_mean, pred_cov = _moments(FX, wm, wc)  # (the filter's sums, in its order)
         return X, FX, pred_mean, symmetrize(pred_cov + step_covariance(model, "process_cov", k))
 

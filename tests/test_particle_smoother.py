@@ -64,7 +64,7 @@ def test_the_smoother_converges_to_the_rts_smoother_on_a_linear_model(monkeypatc
     chunks (a small chunk: several of them) change nothing."""
     import importlib
 
-    module = importlib.import_module("difffilter.particle_smoother")
+    module = importlib.import_module("difffilter.particle_smoothing")
 
     F = torch.tensor([[0.9, 0.2], [-0.1, 0.85]], dtype=F64)
     model = df.LinearGaussianModel(F, torch.tensor([[1.0, 0.0]], dtype=F64),

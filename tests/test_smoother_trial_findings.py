@@ -1,69 +1,69 @@
-"""Findings of a red-team trial of the smoothers (each failed before its fix)."""
+"""The smoothers (a red-team trial, 2026-12-07; each test failed before its fix)."""
 
 from __future__ import annotations
 
-import pytest
+import subprocess
+import sys
+
+import numpy as np
 import torch
 
 import difffilter as df
 
 F64 = torch.float64
-F = torch.tensor([[0.9, 0.2], [-0.1, 0.85]], dtype=F64)
-H = torch.tensor([[1.0, 0.0]], dtype=F64)
-Q = torch.diag(torch.tensor([0.05, 0.08], dtype=F64))
-R = torch.tensor([[0.3]], dtype=F64)
-M0, P0 = torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64)
 
 
-class _Undeclared(df.LinearGaussianModel):
-    """F_k = F·(1 + 0.1 k), time_varying left False."""
-
-    def transition_matrix(self, k):
-        return self.F * (1.0 + 0.1 * k)
+def _t(a):
+    return torch.tensor(a, dtype=F64)
 
 
-def test_the_extended_smoother_refuses_an_undeclared_time_varying_transition():
-    """The EKF reads F_k at every step and filtered it right; the smoother read F_0 at every
-    step (means 0.8 off the dense posterior). Refused, as the Kalman filter refuses it."""
-    model = _Undeclared(F, H, Q, R, M0, P0)
-    _, ys, _ = model.simulate(8, (1,), generator=torch.Generator().manual_seed(22))
-    with pytest.raises(ValueError, match="time_varying is False"):
-        df.extended_kalman_smoother(model, ys)
-
-    class Declared(_Undeclared):
-        time_varying = True
-
-    declared = Declared(F, H, Q, R, M0, P0)
-    eks = df.extended_kalman_smoother(declared, ys)
-    torch.testing.assert_close(eks.means, df.kalman_smoother(declared, ys).means)
+W = _t([[1.0, 0.1, 0.0], [-0.2, 0.9, 1.0]])
+Q, R = _t([[0.3, 0.05], [0.05, 0.2]]), _t([[0.4]])
+M0, P0 = _t([0.5, -1.0]), _t([[1.0, 0.2], [0.2, 2.0]])
 
 
-def test_the_unscented_and_extended_smoothers_take_a_kalman_filters_shared_covariances():
-    """A Kalman filter's covariances shared by every run (stride 0) passed the check of step
-    1 and failed in torch.stack: the last step's shared, the earlier per run."""
-    linear = df.LinearGaussianModel(F, H, Q, R, M0, P0)
-    wrapped = df.NonlinearGaussianModel(lambda x: x @ F.mT, lambda x: x @ H.mT, Q, R, M0, P0)
-    ys = torch.randn(3, 5, 1, dtype=F64, generator=torch.Generator().manual_seed(12))
-    kf = df.kalman_filter(linear, ys)
-    assert kf.covs.stride(0) == 0  # the shared path
-    rts = df.rts_smoother(linear, kf)
-    for smoothed in (df.unscented_rts_smoother(linear, kf), df.unscented_rts_smoother(wrapped, kf),
-                     df.rts_smoother(wrapped, kf)):  # fmt: skip
-        for name in ("means", "covs", "cross_covs", "gains", "initial_mean", "initial_cov"):
-            torch.testing.assert_close(getattr(smoothed, name), getattr(rts, name))
+def _joining(x, u):  # a transition that joins x and u, as a network's does
+    return torch.cat([x, u], -1) @ W.mT
 
 
-def test_smoothers_name_a_model_batch_that_does_not_fit_the_runs():
-    """A model of 4 parameter sets against 3 runs: torch's "size of tensor a (4)" from the
-    Kalman smoother; the particle smoother lined the runs' sets up with its particles (0.75
-    off where N = runs), where the particle filter refuses such a model."""
-    batched = df.LinearGaussianModel(F.expand(4, 2, 2), H, Q, R, M0, P0)
-    one = df.LinearGaussianModel(F, H, Q, R, M0, P0)
-    ys = torch.randn(3, 5, 1, dtype=F64, generator=torch.Generator().manual_seed(1))
-    with pytest.raises(ValueError, match=r"batch shape \(4,\) of the model's parameters"):
-        df.rts_smoother(batched, df.kalman_filter(one, ys))
-    pf = df.particle_filter(one, ys, num_particles=3, return_particles=True,
-                            generator=torch.Generator().manual_seed(2))  # fmt: skip
-    three = df.LinearGaussianModel(F.expand(3, 2, 2), H, Q, R, M0, P0)
-    with pytest.raises(ValueError, match="the particle smoother takes one model for all runs"):
-        df.particle_smoother(three, pf)
+def test_the_unscented_and_particle_smoothers_take_a_transition_that_joins_x_and_u():
+    """They handed f the input as ``[..., 1, du]`` beside ``[..., M, dx]`` points, and a
+    ``torch.cat`` transition failed on "Sizes of tensors must match", where the UKF and the
+    particle filter whose results they smooth run it (one input row per point). The model is
+    linear in (x, u): the Kalman smoother of the same linear model is the truth."""
+    model = df.NonlinearGaussianModel(_joining, lambda x: x[..., :1] + 0.5 * x[..., 1:], Q, R,
+                                      M0, P0, dim_u=1)  # fmt: skip
+    linear = df.LinearGaussianModel(W[:, :2], _t([[1.0, 0.5]]), Q, R, M0, P0, B=W[:, 2:])
+    rng = np.random.default_rng(0)
+    ys, us = _t(rng.normal(size=(2, 6, 1))), _t(rng.normal(size=(2, 6, 1)))
+    truth = df.kalman_smoother(linear, ys, us)
+    smoothed = df.unscented_rts_smoother(model, df.unscented_kalman_filter(model, ys, us), us)
+    torch.testing.assert_close(smoothed.means, truth.means, rtol=0, atol=1e-12)
+    torch.testing.assert_close(smoothed.covs, truth.covs, rtol=0, atol=1e-12)
+    pf = df.particle_filter(model, ys, us, num_particles=64, return_particles=True,
+                            generator=torch.Generator().manual_seed(0))  # fmt: skip
+    joined = df.particle_smoother(model, pf, us)
+    plain = df.particle_smoother(linear, pf, us)  # (the same particles, f as matrices)
+    torch.testing.assert_close(joined.means, plain.means, rtol=0, atol=1e-12)
+
+
+def test_the_particle_smoother_is_callable_after_its_module_is_imported():
+    """The function and its submodule shared the name ``particle_smoother``: importing
+    anything from the module first made ``df.particle_smoother`` the module ("'module'
+    object is not callable"), and the other order made the module the function. Run in a
+    fresh interpreter: the order of imports is the point."""
+    code = (
+        "from difffilter.particle_smoothing import ParticleSmootherResult, CHUNK_ELEMENTS\n"
+        "import difffilter as df\n"
+        "import difffilter.particle_smoothing as module\n"
+        "assert callable(df.particle_smoother), type(df.particle_smoother)\n"
+        "assert df.particle_smoother is module.particle_smoother\n"
+        "assert df.ParticleSmootherResult is ParticleSmootherResult\n"
+        "assert module.CHUNK_ELEMENTS == CHUNK_ELEMENTS\n"
+        "print('ok')\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr
+    names = set(df._WHERE)  # (the functions and classes; df.__all__ names modules as well)
+    modules = {p.stem for p in __import__("pathlib").Path(df.__file__).parent.glob("*.py")}
+    assert not names & modules, f"public names that are also submodules: {names & modules}"

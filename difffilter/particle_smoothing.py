@@ -35,7 +35,7 @@ from ._checks import (
 )
 from .noise import Gaussian
 from .results import ParticleFilterResult
-from .ssm import StateSpaceModel
+from .ssm import StateSpaceModel, inputs_per_point
 
 __all__ = ["ParticleSmootherResult", "particle_smoother"]
 
@@ -143,7 +143,7 @@ def _backward_step(model, now: Tensor, log_w: Tensor, later: Tensor, later_smoot
     out = []
     for start in range(0, runs, chunk):
         rows = slice(start, min(runs, start + chunk))
-        u_c = None if u_r is None else u_r[rows].unsqueeze(-2)
+        u_c = None if u_r is None else inputs_per_point(u_r[rows], now_r[rows])  # (as the PF)
         ahead = model.transition(now_r[rows], u_c, k)  # [c, N_i, dx]: f(x_k^i, u_k)
         # log f(x_{k+1}^j | x_k^i) [c, N_i, N_j]
         log_f = noise.log_prob(later_r[rows].unsqueeze(-3) - ahead.unsqueeze(-2))
