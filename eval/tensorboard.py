@@ -69,8 +69,11 @@ def log_suite(logdir: Path, result, doc: dict, images) -> None:
             if out.detection is not None:
                 rate = out.detection.alarms.double().mean(0)
                 curves[f"alarm_rate_per_step/{name}"] = rate.tolist()
-                at_far = doc["estimators"].get(name, {}).get("threshold_at_far")
-                if at_far is not None:
+                # the study's own threshold, as the figures take it: the report's JSON has an
+                # infinite one (calibrated on purpose where no finite one meets the rate) as
+                # null, and the curve of such a detector had been left out (a red-team trial)
+                at_far = result.metrics.get(name, {}).get("threshold_at_far")
+                if at_far is not None and at_far == at_far:  # (a NaN: none)
                     rate = alarms_at(out.detection.scores, at_far).double().mean(0)
                     curves[f"alarm_rate_at_far_per_step/{name}"] = rate.tolist()
             # the attack estimate's error, where it estimates this channel
@@ -110,7 +113,10 @@ def add_session(writer, run_name: str, hparams: dict, metrics: dict) -> None:
         session.file_writer.add_summary(start)
         session.file_writer.add_summary(end)
         for tag, value in metrics.items():
-            session.add_scalar(tag, value)
+            # in double precision: a simple value is float32, and a particle filter's
+            # calibrated threshold of 3.6e-234 was shown as 0, a detector alarming at 87 %
+            # of the attack-free steps for the study's 1 % (a red-team trial)
+            session.add_scalar(tag, value, new_style=True, double_precision=True)
 
 
 def _write_image(writer, tag: str, png: bytes) -> None:

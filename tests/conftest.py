@@ -170,3 +170,18 @@ def small_four_tank_fit(max_epochs: int) -> list[str]:
             "--data.init_args.steps=20", "--model.init_args.hidden=4",
             "--model.init_args.num_particles=20", "--trainer.log_every_n_steps=1",
             f"--trainer.max_epochs={max_epochs}"]  # fmt: skip
+
+
+def session_scalars(logdir) -> dict[str, list[float]]:
+    """The HPARAMS session scalars under ``logdir`` (``eval.tensorboard.add_session``
+    writes them as double-precision tensors: ``{tag: [values]}``, as TensorBoard reads them)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from tensorboard.util import tensor_util
+
+    events = EventAccumulator(str(logdir))
+    events.Reload()
+    return {
+        tag: [float(tensor_util.make_ndarray(e.tensor_proto)) for e in events.Tensors(tag)]
+        for tag in events.Tags()["tensors"]
+        if not tag.startswith("_hparams_/")
+    }

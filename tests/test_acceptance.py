@@ -206,10 +206,11 @@ def test_a_calibrated_report_judges_its_learned_estimator_against_the_best_analy
     assert mine["fpr_at_far"]["estimate"] == pytest.approx(m["gaussian_nn_ekf"]["fpr_at_far"])
     assert "How sure each verdict is over these 3 runs" in section
     # and in TensorBoard's HPARAMS, to compare checkpoints by how sure their verdicts are
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from conftest import session_scalars
 
-    acc = EventAccumulator(str(tmp_path / "tb" / "hparams" / "gaussian_nn_ekf")).Reload()
-    share = acc.Scalars("hparam/holds_share/state_rmse")[0].value
+    (share,) = session_scalars(tmp_path / "tb" / "hparams" / "gaussian_nn_ekf")[
+        "hparam/holds_share/state_rmse"
+    ]
     assert share == pytest.approx(mine["state_rmse"]["holds_share"])
     # a learned threshold resting on clustered calibration alarms: the verdict says its
     # intervals do not carry that (a trial read "0 [0, 0], holds in 0 %" as certain)

@@ -242,7 +242,7 @@ def test_tensorboard_curves_are_means_over_runs_at_steps_from_one(tmp_path):
     x = torch.zeros(4, 3, 1, dtype=torch.float64)
     traj = NS(x=x, attack=torch.zeros(4, 3, 0))
     out = NS(means=x + 2.0, detection=NS(alarms=alarms), attack=None)
-    result = NS(outputs={"chi": out}, traj_of=lambda name: traj)
+    result = NS(outputs={"chi": out}, traj_of=lambda name: traj, metrics={"chi": {}})
     log_suite(tmp_path, result, {"estimators": {"chi": {}}, "scenario": "s", "runs": 4, "seed": 0},
               [])  # fmt: skip
     events = EventAccumulator(str(tmp_path))
@@ -311,7 +311,8 @@ def test_the_hparams_table_has_every_estimators_columns_and_the_calibrated_curve
     out = NS(means=x + 2.0, detection=NS(alarms=alarms, scores=scores), attack=None)
     reference = NS(means=x + 1.0, detection=None, attack=None)
     traj = NS(x=x, attack=torch.zeros(4, 3, 0))
-    result = NS(outputs={"chi": out, "ref": reference}, traj_of=lambda name: traj)
+    result = NS(outputs={"chi": out, "ref": reference}, traj_of=lambda name: traj,
+                metrics={"chi": {"threshold_at_far": 1.5}, "ref": {}})  # fmt: skip
     doc = {"estimators": {"chi": {"auc": 0.9, "threshold_at_far": 1.5, "tpr_at_far": 0.5},
                           "ref": {"state_rmse": 1.0}},
            "scenario": "s", "runs": 4, "seed": 0,

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import session_scalars
 
 from difffilter.eval.leaderboard import COLUMNS, leaderboard_rows, write_leaderboard
 from difffilter.eval.scoring import METRICS
@@ -87,16 +88,14 @@ def test_units_are_the_scenarios_shared_in_the_header_or_per_row_when_mixed(tmp_
 def test_a_second_leaderboard_into_the_same_folder_holds_only_its_own_rows(tmp_path):
     """A user trial: tb_leaderboard kept the first evaluation's HPARAMS rows beside the
     second's, while leaderboard.md held only the second's."""
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     write_leaderboard(tmp_path, {"plant_a": doc(["kf", "pf"], state_rmse=0.5)})
     write_leaderboard(tmp_path, {"plant_a": doc(["kf"], state_rmse=0.25)})
     files = list((tmp_path / "tb_leaderboard").rglob("events.out.tfevents*"))
     runs = {p.parent.relative_to(tmp_path / "tb_leaderboard").as_posix() for p in files}
     assert runs == {".", "plant_a/kf"} and len(files) == 2
-    row = EventAccumulator(str(tmp_path / "tb_leaderboard" / "plant_a" / "kf"))
-    row.Reload()
-    assert [e.value for e in row.Scalars("leaderboard/state_rmse")] == [0.25]
+    row = session_scalars(tmp_path / "tb_leaderboard" / "plant_a" / "kf")
+    assert row["leaderboard/state_rmse"] == [0.25]
 
 
 def test_a_robustness_leaderboard_says_what_its_columns_are_and_plots_the_worst_case(
@@ -149,7 +148,6 @@ def test_the_best_is_set_by_the_ranked_estimators_and_roles_are_marked(tmp_path)
     attack-free reference's state RMSE, unmarked; a worst-case TPR whose best is 0.005 (no
     one detects) painted every 0 green; the robustness leaderboard's TensorBoard rows left
     out the worst-case columns, its point."""
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     from difffilter.eval.leaderboard import UNDETECTED, cell_goodness
 
@@ -191,9 +189,7 @@ def test_the_best_is_set_by_the_ranked_estimators_and_roles_are_marked(tmp_path)
         "worst_case": {"kf": {"tpr_at_far": 0.3, "state_error_ratio": 2.0}}
     }
     write_leaderboard(tmp_path / "b", {"tank": robust})
-    row = EventAccumulator(str(tmp_path / "b" / "tb_leaderboard" / "tank" / "kf"))
-    row.Reload()
-    tags = set(row.Tags()["scalars"])
+    tags = set(session_scalars(tmp_path / "b" / "tb_leaderboard" / "tank" / "kf"))
     assert {"leaderboard/worst_tpr_at_far", "leaderboard/worst_state_error_ratio"} <= tags
 
 
