@@ -54,6 +54,7 @@ from ._checks import (
     check_positive_int,
     check_strategy,
     first_index,
+    real_number,
 )
 from .estimator import Estimator, Generators, _batch_shape
 from .gaussian import gaussian_update
@@ -239,10 +240,17 @@ class KalmanProposal:
     """
 
     def __init__(self, defensive: float = 0.0):
-        rho = float(defensive)
-        if not 0.0 <= rho < 1.0:
-            raise ValueError(f"defensive must lie in [0, 1); got {defensive!r}")
-        self.rho = rho
+        self.rho = defensive
+
+    def __setattr__(self, name, value):
+        # checked whenever set: ρ = 1 assigned later had stopped the first step on a bare
+        # "math domain error" (a red-team trial)
+        if name == "rho":
+            rho = real_number(value)
+            if rho is None or not 0.0 <= rho < 1.0:
+                raise ValueError(f"defensive (rho) must lie in [0, 1); got {value!r}")
+            value = rho
+        super().__setattr__(name, value)
 
     def __call__(self, model, particles, u, y, k, mask, generator):
         noise = getattr(model, "process_noise", None)
@@ -547,6 +555,9 @@ class ParticleFilter(Estimator):
             value = check_positive_int(value, "num_particles")
         elif name == "cov_dims":
             value = _check_cov_dims(value, None)
+        elif name == "likelihood":  # (None had failed at the step, "'NoneType' object is
+            _check_likelihood(value)  # not callable": the constructor's default here too)
+            value = ModelLikelihood() if value is None else value
         super().__setattr__(name, value)
         if name == "likelihood":
             super().__setattr__("stateful", hasattr(value, "weigh"))
