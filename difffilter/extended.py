@@ -44,7 +44,7 @@ from .kalman import GaussianFilter, Prediction
 from .linalg import NumericalBreakdown, masked_measurement, outer, safe_cholesky, symmetrize
 from .loop import open_loop
 from .results import FilterResult, GaussianState, StepOutput
-from .ssm import StateSpaceModel, inputs_per_point, plain_residual, wrapped_spread
+from .ssm import StateSpaceModel, inputs_per_point, inputs_per_row, plain_residual, wrapped_spread
 
 __all__ = [
     "ExtendedKalmanFilter",
@@ -77,6 +77,7 @@ class ExtendedKalmanFilter(GaussianFilter):
         # A torch.func Jacobian can come back in another dtype than the state (a model
         # function that builds a float64 constant from a Python float promotes it): cast, so
         # a float32 model stays float32 (and the products below do not mix dtypes).
+        u = inputs_per_row(u, carry.mean)
         F = model.transition_jacobian(carry.mean, u, k).to(carry.mean.dtype)
         pred_mean = model.transition(carry.mean, u, k)
         return Prediction(

@@ -47,7 +47,7 @@ from ._checks import (
 from .kalman import _check_declared_time_varying, kalman_filter
 from .linalg import symmetrize
 from .results import FilterResult, ParticleFilterResult
-from .ssm import inputs_per_point
+from .ssm import inputs_per_point, inputs_per_row
 
 __all__ = [
     "SmootherResult",
@@ -102,7 +102,8 @@ def _jacobians(model, m0: Tensor, means: Tensor, us: Tensor | None) -> Tensor:
     """``∂f/∂x`` at ``m_k`` (``m_0`` the prior mean) with ``u_k`` for ``k = 0 … T − 1``
     ``[..., T, dx, dx]``: the transitions the EKF linearised."""
     at = [m0.expand(means.shape[:-2] + m0.shape[-1:])] + list(means[..., :-1, :].unbind(-2))
-    return torch.stack([model.transition_jacobian(x, None if us is None else us[..., k, :], k)
+    return torch.stack([model.transition_jacobian(x, inputs_per_row(None if us is None
+                                                                     else us[..., k, :], x), k)
                         for k, x in enumerate(at)], -3)  # fmt: skip
 
 
@@ -179,7 +180,8 @@ def rts_smoother(model, filtered: FilterResult, us: Tensor | None = None) -> Smo
         if us is not None or not getattr(model, "dim_u", 0):
             # the model's own transition (F_0 m0 was a nonlinear model's linearisation, not f)
             start = m0.expand(means.shape[:-2] + m0.shape[-1:])  # every run's
-            pred = model.transition(start, None if us is None else us[..., 0, :], 0)
+            pred = model.transition(start, inputs_per_row(None if us is None else us[..., 0, :],
+                                                          start), 0)  # fmt: skip
         _check_filtered_by(filtered, F_0 @ P0 @ F_0.mT + _at(Q, 0), pred)
 
     def transition(k: int, mean: Tensor, cov: Tensor, predict: bool):

@@ -338,6 +338,18 @@ def inputs_per_point(u: Tensor | None, points: Tensor) -> Tensor | None:
     return u.unsqueeze(-2).expand(*lead, u.shape[-1])
 
 
+def inputs_per_row(u: Tensor | None, x: Tensor) -> Tensor | None:
+    """``u [..., du]`` beside states ``x [..., dx]``: one row per run, ``u`` broadcast to
+    ``x``'s runs (a view). One input sequence shared by a batch of runs (``us [T, du]``
+    beside ``ys [B, T, dy]``) had reached a transition that joins ``x`` and ``u``
+    (``torch.cat``) unbatched in the EKF and its smoother, and failed there, where the UKF
+    and the particle filters (:func:`inputs_per_point`) take it."""
+    if u is None or u.shape[:-1] == x.shape[:-1]:
+        return u
+    lead = torch.broadcast_shapes(u.shape[:-1], x.shape[:-1])
+    return u.expand(*lead, u.shape[-1])
+
+
 def plain_residual(model) -> bool:
     """Whether ``model`` keeps the base class's ``y − ŷ`` (no angle to wrap)."""
     return type(model).measurement_residual is StateSpaceModel.measurement_residual

@@ -67,3 +67,23 @@ def test_the_particle_smoother_is_callable_after_its_module_is_imported():
     names = set(df._WHERE)  # (the functions and classes; df.__all__ names modules as well)
     modules = {p.stem for p in __import__("pathlib").Path(df.__file__).parent.glob("*.py")}
     assert not names & modules, f"public names that are also submodules: {names & modules}"
+
+
+def test_the_ekf_and_its_smoother_take_one_input_sequence_for_a_batch_of_runs():
+    """``us [T, du]`` shared by ``ys [B, T, dy]``: the EKF (and the extended smoother) handed
+    a transition that joins x and u the input unbatched beside ``x [B, dx]`` and failed in
+    ``torch.cat``, where the UKF and the particle filter take it (a red-team trial's aside)."""
+    model = df.NonlinearGaussianModel(_joining, lambda x: x[..., :1] + 0.5 * x[..., 1:], Q, R,
+                                      M0, P0, dim_u=1)  # fmt: skip
+    linear = df.LinearGaussianModel(W[:, :2], _t([[1.0, 0.5]]), Q, R, M0, P0, B=W[:, 2:])
+    rng = np.random.default_rng(1)
+    ys, us = _t(rng.normal(size=(3, 6, 1))), _t(rng.normal(size=(6, 1)))
+    truth = df.kalman_smoother(linear, ys, us)
+    filtered = df.extended_kalman_filter(model, ys, us)
+    torch.testing.assert_close(filtered.means, truth.filtered.means, rtol=0, atol=1e-12)
+    smoothed = df.extended_kalman_smoother(model, ys, us)
+    torch.testing.assert_close(smoothed.means, truth.means, rtol=0, atol=1e-12)
+    ekf = df.ExtendedKalmanFilter()
+    carry = ekf.init(model, (3,))
+    carry, out = ekf.step(carry, ys[:, 0], us[0])
+    torch.testing.assert_close(out.mean, truth.filtered.means[:, 0], rtol=0, atol=1e-12)
