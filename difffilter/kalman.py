@@ -489,11 +489,15 @@ def _live(carry: GaussianState, outputs: bool = True) -> GaussianState:
     where a step's output ``P⁻`` or ``S`` that the next step would share was written in place
     (:meth:`~difffilter.GainSchedule.outputs_intact`; ``outputs=False``: not checked here,
     where the fused step checks them, :class:`~difffilter.gain_schedule.OutputsWritten`): the
-    general update computes its own."""
+    general update computes its own. And where the schedule no longer holds the carry's own
+    step (a carry kept from the step its trimming dropped last): its covariance cannot be
+    told from the schedule's (a reset ``carry._replace(cov=3 I)`` there had been ignored, the
+    mean 0.36 off: a red-team trial), so the step goes on from the one the carry holds."""
     gains = carry.gains
     if gains is not None and not (
         gains.current()
         and gains.held(carry.k + 1)
+        and (carry.k == 0 or gains.held(carry.k))
         and (not outputs or gains.outputs_intact(carry.k + 1))
     ):
         return carry._replace(gains=None)
