@@ -45,7 +45,12 @@ def nees(errors: Tensor, covs: Tensor) -> Tensor:
 
     By a linear solve, not a Cholesky factor: a particle filter's collapsed covariance
     (an eigenvalue of 1e-26) gives the huge NEES it deserves rather than an error, and an
-    exactly singular one ``+inf`` (``0`` where the error is exactly ``0``)."""
+    exactly singular one ``+inf`` (``0`` where the error is exactly ``0``). So does one
+    singular to round-off, whose solve comes back negative or NaN (a cloud of two particles
+    has a rank-one covariance, its other eigenvalue a round-off of either sign: −4.6e22,
+    and NaN where the solve overflowed, had been returned, and a mean over runs and steps
+    read NaN: a red-team trial). A covariance that is indefinite beyond round-off is
+    refused."""
     if not isinstance(errors, Tensor) or errors.dim() < 1:
         raise ValueError(
             f"errors must be a tensor [..., n]; got {getattr(errors, 'shape', errors)!r}"
@@ -65,15 +70,41 @@ def nees(errors: Tensor, covs: Tensor) -> Tensor:
     e = errors.unsqueeze(-1)
     solved, info = torch.linalg.solve_ex(covs, e)
     value = (e.mT @ solved).squeeze(-1).squeeze(-1)
-    singular = info != 0
+    # an exactly singular covariance (a cloud collapsed onto one particle), or one singular
+    # to round-off (a negative or NaN solve of finite numbers): +inf, or 0 for an error of
+    # exactly 0 (it had raised torch's LinAlgError for the whole batch: a trial)
+    finite = torch.isfinite(errors).all(-1) & torch.isfinite(covs).all(-1).all(-1)
+    singular = (info != 0) | (~(value >= 0) & finite)
     if not bool(singular.any()):
         return value
-    # an exactly singular covariance (a cloud collapsed onto one particle): +inf, or 0 for
-    # an error of exactly 0 (it had raised torch's LinAlgError for the whole batch: a trial)
     value, singular = torch.broadcast_tensors(value, singular)
+    _refuse_indefinite(covs.expand(value.shape + (n, n))[singular])
     off = (errors != 0).any(-1).expand(value.shape)
     worst = torch.where(off, torch.full_like(value, math.inf), torch.zeros_like(value))
     return torch.where(singular, worst, value)
+
+
+def _refuse_indefinite(covs: Tensor) -> None:
+    """``covs [M, n, n]`` must be positive semi-definite up to round-off (``|λ_min| ≤ 1e3 n ε
+    λ_max`` of their dtype, symmetrised): what comes out of a filter, never ``diag(1, −1)``."""
+    sym = 0.5 * (covs + covs.mT)
+    sym = sym[torch.isfinite(sym).all(-1).all(-1)].double()
+    if sym.shape[0] == 0:
+        return
+    # scaled to a largest entry of 1 (a collapsed cloud's 1e-298 has subnormal round-off)
+    top = sym.abs().amax((-2, -1), keepdim=True)
+    lam = torch.linalg.eigvalsh(sym / torch.where(top > 0, top, torch.ones_like(top)))
+    # round-off relative to the entries, or absolute where they are near the dtype's
+    # smallest normal number (a cloud collapsed to 1e-323: two ulps of subnormal entries)
+    info = torch.finfo(covs.dtype)
+    relative = info.eps + info.tiny / top.squeeze(-1).squeeze(-1).clamp_min(1e-320)
+    tol = 1e3 * covs.shape[-1] * relative * lam.abs().amax(-1)
+    if bool((lam[..., 0] < -tol).any()):
+        worst = float((lam[..., 0] / lam.abs().amax(-1).clamp_min(1e-300)).min())
+        raise ValueError(
+            "covs must be covariances (symmetric, positive semi-definite); one has an "
+            f"eigenvalue {worst:.3g} times its largest, beyond round-off"
+        )
 
 
 def chi_square_bounds(dof: int, runs: int, confidence: float = 0.95) -> tuple[float, float]:
@@ -129,9 +160,14 @@ def ensemble_test(statistic: Tensor, dof, confidence: float = 0.95) -> Consisten
         from scipy.stats import chi2
 
         alpha = 1.0 - check_rate(confidence, "confidence", kind="a confidence level")
-        if dof.shape != statistic.shape or bool((dof < 0).any()):
+        if (
+            dof.shape != statistic.shape
+            or bool((dof < 0).any())
+            or not bool(torch.isfinite(dof).all())
+        ):  # (an infinite dof had given NaN bounds, counted as outside without a word)
             raise ValueError(f"dof must be a number or [R, T] like statistic "
-                             f"{tuple(statistic.shape)}, >= 0; got {tuple(dof.shape)}")  # fmt: skip
+                             f"{tuple(statistic.shape)}, finite and >= 0; got "
+                             f"{tuple(dof.shape)}")  # fmt: skip
         if dof.is_floating_point() and bool((dof != dof.round()).any()):
             # counts of entries received (the scalar dof is checked so too): 2.5 had passed
             raise ValueError(
@@ -208,6 +244,14 @@ def whiteness(
         raise ValueError(f"innovation_covs must be [R, T, {m}, {m}] like the innovations (or "
                          f"broadcast to it); got {got!r}")  # fmt: skip
     check_one_dtype_device(innovations, "innovations", innovation_covs, "innovation_covs")
+    if not bool(torch.isfinite(innovations).all()):
+        # (a diverged run's NaN made ρ̄ NaN at the steps it reached, and NaN > bound is
+        # false: a set of correlated innovations rejected at 100 % of the steps read 5 %,
+        # "white": a red-team trial; the NIS refuses them too)
+        raise ValueError(
+            "innovations contains NaN or Inf values: a diverged run has no whiteness to test "
+            "(leave it out, or pass mask= with its lost entries False and innovations 0)"
+        )
     if bool((torch.linalg.eigvalsh(innovation_covs.double()) <= 0).any()):
         # (a zero S had been taken, its Cholesky jittered, and a normal-looking ρ̄ returned)
         raise ValueError("innovation_covs must be positive definite (a filter's S)")
@@ -221,8 +265,11 @@ def whiteness(
     if mask is not None:  # the pairs whose both entries arrived
         both = (mask[:, :-lag] & mask[:, lag:]).to(w.device)
         now, later = now * both, later * both
+    # each step's pair of vectors scaled to a largest entry of 1 (the cosine does not
+    # change): innovations of 1e160 overflowed the sums of squares, inf/inf = NaN
+    now, later = _unit_max(now), _unit_max(later)
     cross = (now * later).sum((-1, 0))
-    scale = (now.square().sum((-1, 0)) * later.square().sum((-1, 0))).sqrt()
+    scale = now.square().sum((-1, 0)).sqrt() * later.square().sum((-1, 0)).sqrt()
     # a cosine: |ρ̄| ≤ 1, which round-off exceeded by an ulp (ρ̄ = 1 + 1e-16 "rejected" at a
     # bound of 1, the steps the docstring calls untested: 10 % of the one-pair steps)
     rho = (cross / scale).clamp(-1.0, 1.0)
@@ -231,6 +278,12 @@ def whiteness(
     counts, where = torch.unique(both.sum((-1, 0)).cpu(), return_inverse=True)
     bounds = torch.tensor([_white_bound(int(n)) for n in counts], dtype=torch.float64)
     return rho, bounds[where].to(cross.device)  # (one quantile per distinct n_k)
+
+
+def _unit_max(v: Tensor) -> Tensor:
+    """``v [R, T', m]`` divided by its largest magnitude at each step (steps of zeros kept)."""
+    top = v.abs().amax((-1, 0), keepdim=True)
+    return v / torch.where(top > 0, top, torch.ones_like(top))
 
 
 def _white_bound(n: int) -> float:

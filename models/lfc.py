@@ -306,14 +306,26 @@ class Watermarked:
     def __init__(self, inner, std: Tensor, generator: torch.Generator):
         if not isinstance(std, Tensor) or std.dim() != 1 or not bool((std >= 0).all()):
             raise ValueError(f"std must be a tensor [du] of non-negative numbers; got {std!r}")
+        if not isinstance(generator, torch.Generator):
+            # (None drew from torch's global stream, two identical loops marked apart; 5
+            # failed at the first step on torch's "invalid combination of arguments")
+            raise ValueError(
+                f"generator must be a torch.Generator (the watermark's draws); got {generator!r}"
+            )
         self.inner, self.std, self.generator = inner, std, generator
 
     def init(self, batch_shape, dtype, device) -> Tensor:
         u = self.inner.init(batch_shape, dtype, device)
-        if self.std.shape[0] > u.shape[-1]:  # (a raw torch size error at the first step)
+        # the control entries alone: an LFC controller's input ends with the loads, which
+        # the observer's model leaves out (3 or 4 entries had marked them, a watermark the
+        # observer does not know: a red-team trial)
+        gain = getattr(self.inner, "K1", None)
+        controls = gain.shape[0] if isinstance(gain, Tensor) else u.shape[-1]
+        if self.std.shape[0] > controls:  # (more than the input: a raw torch size error)
             raise ValueError(
-                f"Watermarked: std has {self.std.shape[0]} entries and the input "
-                f"{u.shape[-1]}: one per control input marked (the first len(std) entries)"
+                f"Watermarked: std has {self.std.shape[0]} entries and the controller "
+                f"{controls} control inputs: one per control input marked (the first "
+                "len(std) entries; the loads that ride along get none)"
             )
         return u
 
