@@ -99,13 +99,24 @@ def gaussian_information(R: Tensor, mask: Tensor | None = None) -> Tensor:
     result had failed ``posterior_crb``'s check of ``information=``).
     """
     if mask is None:
-        return symmetrize(torch.linalg.inv(R))
+        return symmetrize(_inverse_noise_cov(R))
     _check_mask(mask, R.shape[-1])
     m = mask.to(R.dtype)
     mm = m.unsqueeze(-1) * m.unsqueeze(-2)
     eye = torch.eye(R.shape[-1], dtype=R.dtype, device=R.device)
     padded = R * mm + torch.diag_embed(1.0 - m) * eye  # R_mm on the received block, I elsewhere
-    return symmetrize(torch.linalg.inv(padded) * mm)
+    return symmetrize(_inverse_noise_cov(padded) * mm)
+
+
+def _inverse_noise_cov(R: Tensor) -> Tensor:
+    inverse, singular = torch.linalg.inv_ex(R)
+    if bool(singular.any()):  # (torch's "linalg.inv: The diagonal element 1 is zero")
+        raise ValueError(
+            "the measurement noise covariance R (of the received entries) is singular: its "
+            "information R⁻¹ is infinite along a noiseless direction; add a small jitter to "
+            "R (e.g. 1e-9 I)"
+        )
+    return inverse
 
 
 def noise_information(
@@ -426,7 +437,13 @@ def posterior_crb(
     varying_q = model.time_varying or (
         isinstance(model.process_noise, Gaussian) and model._varying_noise("process_cov")
     )
-    J = torch.linalg.inv(model.initial.cov.to(work))
+    J, singular = torch.linalg.inv_ex(model.initial.cov.to(work))
+    if bool(singular.any()):  # (torch's "linalg.inv: The diagonal element 1 is zero")
+        raise ValueError(
+            f"{type(model).__name__}.initial.cov is singular: the PCRB starts from its inverse "
+            "J_0 = P_0⁻¹ (infinite along a component known exactly); add a small jitter to "
+            "P_0 (e.g. 1e-9 I) or bound a reduced state without the known components"
+        )
     batch = torch.broadcast_shapes(information.shape[:-3], G.shape[:-5])
     J = J.expand(batch + (dx, dx))
     x_prev, out = x0, []
