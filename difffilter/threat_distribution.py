@@ -357,6 +357,10 @@ class ThreatDistribution:
             # (read as one Channel, the mapping had failed: a robustness study died at its end)
             return any(self._could_draw({**entry, "channel": option}, spec)
                        for option in channel["choice"])  # fmt: skip
+        # one channel spelt any way it is accepted ("SENSOR", "Sensor", left out: the same
+        # attack; compared as written, "SENSOR" had read "kind only" for a sensor threat
+        # the distribution draws: a red-team trial)
+        spec, entry = _channel_named(spec), _channel_named(entry)
         library = isinstance(kind, str) and kind in THREATS  # (else an attack of one's own,
         if library:  # whose defaults are unknown here: a field on one side only differs)
             spec, entry = (_entries_sorted(self._entries_listed(x)) for x in (spec, entry))
@@ -550,6 +554,18 @@ def _floats(value) -> tuple | None:
     if not items or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in items):
         return None
     return tuple(float(v) for v in items)
+
+
+def _channel_named(spec: dict) -> dict:
+    """``spec`` with a constant ``channel`` read as the :class:`Channel` it names (a name
+    that names none is left as written: it then differs)."""
+    channel = spec.get("channel")
+    if channel is None or _is_draw(channel) or isinstance(channel, Channel):
+        return spec
+    try:
+        return {**spec, "channel": Channel(channel)}
+    except ValueError:
+        return spec
 
 
 def _same(a, b) -> bool:

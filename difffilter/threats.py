@@ -243,8 +243,16 @@ class KSigmaBias(Shaped):
     def of(cls, model, k: float, **window) -> KSigmaBias:
         """``k σ`` with ``σ = √diag R`` of ``model``'s measurement noise at step 1."""
         sigma = model.measurement_cov(1).diagonal(dim1=-2, dim2=-1).sqrt()
-        return cls(k=k, sigma=tuple(float(v) for v in sigma.reshape(-1, sigma.shape[-1])[0]),
-                   **window)  # fmt: skip
+        rows = sigma.reshape(-1, sigma.shape[-1])
+        if not bool((rows == rows[:1]).all()):
+            # one σ for every run: the first run's had been taken for all (2 σ in run 0, 0.67 σ
+            # in run 2 of a model of one R per run: a red-team trial)
+            raise ValueError(
+                "KSigmaBias.of: the model's measurement noise differs between its runs (an R "
+                "per run), and a KSigmaBias is one bias for every run: give sigma explicitly "
+                "(KSigmaBias(k=..., sigma=[...]))"
+            )
+        return cls(k=k, sigma=tuple(float(v) for v in rows[0]), **window)
 
     def shape(self, s, dim, batch, generator, dtype):
         sigma = self._vector(self.sigma, dim, "sigma", dtype, s.device)
