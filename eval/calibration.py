@@ -308,8 +308,11 @@ def calibrate(
     runs = scenario.runs if runs is None else runs
     # (a study's size of 0, -5 or 2.5 had been taken as the default silently)
     study_runs = runs if study_runs is None else check_positive_int(study_runs, "study_runs")
+    # (None, the scenario's own estimators, and [], only `add`'s, are two keys: one had
+    # answered for the other, 1 threshold of 11: a red-team trial)
     key = ("far-calibration", scenario.attack_free_key(), runs, seed, far,
-           tuple(estimators or ()), tuple(add), str(checkpoint), study_runs)  # fmt: skip
+           None if estimators is None else tuple(estimators), tuple(add), str(checkpoint),
+           study_runs)  # fmt: skip
     if cache is not None and key in cache:
         return cache[key]
     cal_seed = calibration_seed(seed)

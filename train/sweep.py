@@ -212,6 +212,20 @@ def _option_pairs(options) -> list[tuple[str, str | None]]:
     return pairs
 
 
+def _same_options(had, now) -> bool:
+    """Whether two option lists set the same values: ``--key=value`` and ``--key value``,
+    in any order, the last of a key's settings counting, as the command line reads them (a
+    sweep's own options reordered or respelt had been refused as "other settings": a
+    red-team trial). Where a ``--config`` is among them its place matters (what follows it
+    overrides it): compared as written."""
+    if not isinstance(had, list) or not isinstance(now, list):
+        return had == now
+    pairs = [_option_pairs(options) for options in (had, now)]
+    if any(key == "--config" for options in pairs for key, _ in options):
+        return had == now
+    return dict(pairs[0]) == dict(pairs[1])
+
+
 def _option_configs(options) -> list[str]:
     """The config files a seed's ``fit`` reads after the sweep's ``--config``: every
     ``--config`` among the options (``-- --config threats.yaml``), in order."""
@@ -286,7 +300,9 @@ def _check_same_settings(folder: Path, settings: dict, seed: int) -> None:
             "trained with (cut short by an interrupt or a full disk?); delete that folder to "
             "train the seed again there, or give another --out"
         ) from None
-    differ = [k for k in ("config", "options") if had.get(k) != settings[k]]
+    differ = [k for k in ("config", "options")
+              if not (_same_options(had.get(k), settings[k]) if k == "options"
+                      else had.get(k) == settings[k])]  # fmt: skip
     # (a folder of a sweep before the files were recorded is judged on the rest)
     if "option_configs" in had and had["option_configs"] != settings["option_configs"]:
         differ.append("option_configs")
@@ -323,7 +339,7 @@ def _check_same_sweep(out: Path, config: Path, extra: list[str]) -> None:
     except (OSError, json.JSONDecodeError):
         return  # not a sweep's: the seeds' own checks still hold
     same_config = Path(str(had.get("config"))).resolve() == Path(config).resolve()
-    if not same_config or had.get("options", []) != extra:
+    if not same_config or not _same_options(had.get("options", []), extra):
         raise ValueError(
             f"--out {out} holds the sweep of {had.get('config')} with the options "
             f"{had.get('options', [])}; this one is {config} with {extra}: give another --out"
