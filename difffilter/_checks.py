@@ -393,6 +393,16 @@ def check_rate(
     return float(value)
 
 
+def check_flag(value, name: str) -> bool:
+    """``value`` as a bool: ``True``/``False`` (NumPy's too) or the integers 1/0; anything
+    else (``"no"``, ``None``, ``0.5``) a ``ValueError`` naming ``name``, where ``bool()`` had
+    read it truthy or falsy."""
+    if isinstance(value, bool | np.bool_) or (isinstance(value, numbers.Integral)
+                                              and value in (0, 1)):  # fmt: skip
+        return bool(value)
+    raise ValueError(f"{name} must be True or False; got {value!r}")
+
+
 def check_integer(value, name: str, minimum: int = 0) -> int:
     """``int(value)`` for an integer ``>= minimum`` (numpy's integers too: a count read from
     an array); ``ValueError`` naming ``name`` else (``True`` is not a count)."""

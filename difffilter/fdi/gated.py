@@ -36,6 +36,7 @@ from .._assignments import note_assignment
 from .._checks import (
     NonFinite,
     broadcast_shapes,
+    check_flag,
     check_model_batch,
     check_one_model,
     check_positive_int,
@@ -107,9 +108,7 @@ class GatedFilter(Estimator):
         elif name == "filter":
             value = _checked_filter(value)
         elif name == "gate":
-            if not isinstance(value, bool | int) or value not in (0, 1):
-                raise ValueError(f"gate must be True or False; got {value!r}")
-            value = bool(value)
+            value = check_flag(value, "gate")
         replacing = name in ("detector", "filter") and name in self.__dict__
         super().__setattr__(name, value)
         if replacing:

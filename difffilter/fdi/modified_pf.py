@@ -39,7 +39,7 @@ import torch
 from torch import Tensor
 
 from .._assignments import note_assignment
-from .._checks import broadcast_or_none, check_filter_inputs
+from .._checks import broadcast_or_none, check_filter_inputs, check_flag
 from ..estimator import EstimatorOutput, Generators
 from ..gaussian import kalman_gain
 from ..linalg import masked_measurement
@@ -419,11 +419,10 @@ class ModifiedParticleFilter(ParticleFilter):
 
     @fused.setter
     def fused(self, fused) -> None:
-        if not isinstance(fused, bool | int) or fused not in (0, 1):
-            raise ValueError(f"fused must be True or False; got {fused!r}")
+        fused = check_flag(fused, "fused")
         if fused:
             self._check_fused_settings()
-        self._fused = bool(fused)
+        self._fused = fused
 
     def _check_fused_settings(self) -> None:
         w = self.likelihood
