@@ -263,8 +263,18 @@ class AdaptiveKalmanFilter(Estimator):
         check_carry_tensor(carry.cov, "cov", dim=dx, covariance=True)
         check_carry_tensor(carry.attack, "attack", dim=da)
         check_carry_tensor(carry.attack_cov, "attack_cov", dim=da, covariance=True)
+        # Υ too (unchecked, a NaN one was blamed on Q, R and P0, one of [3, 2] for dx = 2 met
+        # torch's shape error, and one of 4 runs on a carry of one made 4 runs: a red-team trial)
+        check_carry_tensor(carry.sensitivity, "sensitivity", dim=da)
+        runs = carry.mean.shape[:-1]
+        if (carry.sensitivity.dim() < 2 or carry.sensitivity.shape[-2] != dx
+                or broadcast_or_none(carry.sensitivity.shape[:-2], runs) != runs):  # fmt: skip
+            raise ValueError(
+                f"carry.sensitivity must be Υ [..., {dx}, {da}] of the carry's runs "
+                f"{tuple(runs)}; got {tuple(carry.sensitivity.shape)}"
+            )
         check_carry_fits_model(carry.model, mean=carry.mean, cov=carry.cov, attack=carry.attack,
-                               attack_cov=carry.attack_cov)  # fmt: skip
+                               attack_cov=carry.attack_cov, sensitivity=carry.sensitivity)  # fmt: skip
 
     def _step(self, carry, y, u, mask):
         model = carry.model
@@ -342,13 +352,16 @@ def adaptive_kalman_filter(
 
 def wald_statistic(attack: Tensor, attack_cov: Tensor) -> Tensor:
     """``θ̂ᵀ S⁻¹ θ̂`` for ``attack [..., da]`` and ``attack_cov [..., da, da]`` → ``[...]``
-    (``S`` regularised by ``1e-12·tr S``, at least the dtype's smallest normal number, so
-    that ``S_0 = 0`` gives a score: 0 for ``θ̂ = 0``, large or ``+inf`` for an estimate held
-    certain. The floor had been 1e-312, a subnormal the solve divided by into 0·∞: NaN
-    scores, which never alarm, and NaN gradients; a gradients trial)."""
-    eye = torch.eye(attack.shape[-1], dtype=attack.dtype, device=attack.device)
+    (``S`` regularised by ``1e-12`` of each of its own diagonal entries, each at least the
+    dtype's smallest normal number, so that ``S_0 = 0`` gives a score: 0 for ``θ̂ = 0``,
+    large or ``+inf`` for an estimate held certain. The floor had been 1e-312, a subnormal
+    the solve divided by into 0·∞: NaN scores, which never alarm, and NaN gradients; a
+    gradients trial. Per entry, not ``1e-12·tr S`` on every entry: with forgetting, a
+    direction the sensors never see grows to ``S/λᵏ``, its trace swamped the variance of
+    the well-estimated one, and the score fell from 35 to 3.5e-6, alarms missed; a red-team
+    trial. Per entry it is a relative ``1e-12`` of each direction, whatever their scales.)"""
     floor = torch.finfo(attack_cov.dtype).tiny * 1e12
-    tr = attack_cov.diagonal(dim1=-2, dim2=-1).sum(-1).clamp_min(floor)
-    reg = attack_cov + (1e-12 * tr)[..., None, None] * eye
+    diag = attack_cov.diagonal(dim1=-2, dim2=-1)
+    reg = attack_cov + torch.diag_embed(1e-12 * diag.clamp_min(floor))
     sol = torch.linalg.solve(reg, attack.unsqueeze(-1)).squeeze(-1)
     return (attack * sol).sum(-1)
