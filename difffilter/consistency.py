@@ -34,8 +34,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._checks import broadcast_or_none, check_one_dtype_device, check_rate
-from .linalg import safe_cholesky
+from ._checks import broadcast_or_none, check_one_dtype_device, check_rate, check_semidefinite
+from .linalg import safe_cholesky, symmetrize
 
 __all__ = ["nees", "chi_square_bounds", "ensemble_test", "ConsistencyTest", "whiteness"]
 
@@ -78,33 +78,14 @@ def nees(errors: Tensor, covs: Tensor) -> Tensor:
     if not bool(singular.any()):
         return value
     value, singular = torch.broadcast_tensors(value, singular)
-    _refuse_indefinite(covs.expand(value.shape + (n, n))[singular])
+    # ... and never an indefinite one (diag(1, −1) had given −1): the carries' check, whose
+    # jitter passes round-off, down to a cloud collapsed to 1e-323
+    flagged = covs.expand(value.shape + (n, n))[singular]
+    flagged = flagged[torch.isfinite(flagged).all(-1).all(-1)]
+    check_semidefinite(symmetrize(flagged), "covs", advice="give the filter's covariances")
     off = (errors != 0).any(-1).expand(value.shape)
     worst = torch.where(off, torch.full_like(value, math.inf), torch.zeros_like(value))
     return torch.where(singular, worst, value)
-
-
-def _refuse_indefinite(covs: Tensor) -> None:
-    """``covs [M, n, n]`` must be positive semi-definite up to round-off (``|λ_min| ≤ 1e3 n ε
-    λ_max`` of their dtype, symmetrised): what comes out of a filter, never ``diag(1, −1)``."""
-    sym = 0.5 * (covs + covs.mT)
-    sym = sym[torch.isfinite(sym).all(-1).all(-1)].double()
-    if sym.shape[0] == 0:
-        return
-    # scaled to a largest entry of 1 (a collapsed cloud's 1e-298 has subnormal round-off)
-    top = sym.abs().amax((-2, -1), keepdim=True)
-    lam = torch.linalg.eigvalsh(sym / torch.where(top > 0, top, torch.ones_like(top)))
-    # round-off relative to the entries, or absolute where they are near the dtype's
-    # smallest normal number (a cloud collapsed to 1e-323: two ulps of subnormal entries)
-    info = torch.finfo(covs.dtype)
-    relative = info.eps + info.tiny / top.squeeze(-1).squeeze(-1).clamp_min(1e-320)
-    tol = 1e3 * covs.shape[-1] * relative * lam.abs().amax(-1)
-    if bool((lam[..., 0] < -tol).any()):
-        worst = float((lam[..., 0] / lam.abs().amax(-1).clamp_min(1e-300)).min())
-        raise ValueError(
-            "covs must be covariances (symmetric, positive semi-definite); one has an "
-            f"eigenvalue {worst:.3g} times its largest, beyond round-off"
-        )
 
 
 def chi_square_bounds(dof: int, runs: int, confidence: float = 0.95) -> tuple[float, float]:
