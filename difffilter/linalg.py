@@ -131,6 +131,14 @@ def safe_cholesky(
             )
         return factor
     failing = info != 0
+    overflowed = ~torch.isfinite(factor.diagonal(dim1=-2, dim2=-1)).all(-1) & ~failing
+    if bool(overflowed.any()):
+        # a member that factorised to √∞ beside one that needs jitter: its jitter scale (its
+        # mean diagonal) is ∞ and 0·∞ = NaN had reached torch's bare error (a linalg trial)
+        raise NumericalBreakdown(
+            f"{name} must be symmetric positive definite and finite"
+            f"{_why_it_fails(matrix, overflowed)}"
+        )
     if mask is not None and mask.dim() > 1:
         batch = torch.broadcast_shapes(matrix.shape[:-2], mask.shape[:-1])
         if batch != matrix.shape[:-2]:

@@ -7,6 +7,7 @@ import torch
 
 import difffilter as df
 from difffilter.estimator import output_of
+from difffilter.gaussian import kalman_gain
 from difffilter.linalg import safe_cholesky
 from difffilter.noise import Gaussian, GaussianMixture
 
@@ -37,6 +38,22 @@ def test_an_infinite_variance_is_a_breakdown_as_nan_is():
         df.NumericalBreakdown, match="P must be symmetric positive definite and finite"
     ):
         safe_cholesky(torch.diag(torch.tensor([float("inf"), 1.0, 2.0], dtype=D)), name="P")
+
+
+@pytest.mark.parametrize("order", [(0, 1), (1, 0)])
+def test_an_infinite_variance_beside_a_member_that_needs_jitter_is_a_breakdown(order):
+    """The finiteness check ran only where every member factorised at once: beside a
+    rank-one member (jitter needed) the overflowed member's jitter scale was ∞, 0·∞ = NaN,
+    and torch's bare ``_LinAlgError`` (no ``NumericalBreakdown``, which the suites catch)
+    came out of ``safe_cholesky`` and ``kalman_gain``."""
+    overflowed = torch.diag(torch.tensor([float("inf"), 1.0], dtype=D))
+    rank_one = torch.ones(2, 2, dtype=D)
+    batch = torch.stack([(overflowed, rank_one)[i] for i in order])
+    where = f"at batch index \\({order.index(0)},\\)"
+    with pytest.raises(df.NumericalBreakdown, match=f"finite {where}: it holds NaN or inf"):
+        safe_cholesky(batch, name="S")
+    with pytest.raises(df.NumericalBreakdown, match="innovation covariance"):
+        kalman_gain(torch.ones(2, 3, 2, dtype=D), batch)
 
 
 def test_output_of_keeps_the_count_of_skipped_measurements():
