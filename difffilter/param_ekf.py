@@ -780,6 +780,14 @@ class _Learner:
                 f"inputs must have shape [{', '.join(map(str, self.batch_shape))}, ...]; "
                 f"got {tuple(inputs.shape)}"
             )
+        if self.template.factored and tuple(inputs.shape[nb:]) != self.template.shapes["V"][1:]:
+            # (the tanh layer's closed forms broadcast x / in_scale: a width-1 input had been
+            # learned from as n equal features; another width failed inside torch)
+            raise ValueError(
+                f"inputs must have shape [{', '.join(map(str, self.batch_shape))}, "
+                f"{self.template.shapes['V'][1]}] (the network's input width); got "
+                f"{tuple(inputs.shape)}"
+            )
         return inputs.reshape((self.batch_shape.numel(),) + inputs.shape[nb:]).to(self.dtype)
 
     def predict(self, inputs: Tensor) -> Tensor:
@@ -813,6 +821,30 @@ class _Learner:
         return ParamStepOutput(pred.reshape(want), e.reshape(want))
 
 
+def _rule_setting(name: str) -> property:
+    """A learner's ``name``: its rule's (checked when set, read at the next step). A plain
+    attribute had been set beside the rule and never read (``ekf.lr = 0.1`` learned at
+    the constructor's lr, ``nan`` accepted: a trial of settings assigned later)."""
+    return property(
+        lambda self: getattr(self.rule, name),
+        lambda self, value: setattr(self.rule, name, value),
+        doc=f"The rule's ``{name}`` (checked when set; the next step reads it).",
+    )
+
+
+def _initial_setting(name: str) -> property:
+    """A setting read once, by the constructor, to make the state (``ρ(0)``, ``Υ(0)``):
+    assigning it later is refused, as it would change nothing."""
+
+    def refuse(self, value):
+        raise AttributeError(
+            f"{name} makes the initial state, built by the constructor: it cannot be assigned "
+            f"later (build a new {type(self).__name__}, or set .state)"
+        )
+
+    return property(lambda self: getattr(self.rule, name), refuse)
+
+
 class ParamEKF(_Learner):
     """EKF over the weights of ``module``, one filter per run (eqs 10–14; see module doc).
 
@@ -822,7 +854,10 @@ class ParamEKF(_Learner):
         batch_shape: independent filters, e.g. ``(B,)`` runs or ``(B, J)`` runs × areas.
         params: initial weights ``{name: [*batch, *shape]}`` (broadcast; default: the
             template's own weights for every run).
-        lr, init_cov, init_noise, process_noise: as in :class:`EKFRule`.
+        lr, init_cov, init_noise, process_noise: as in :class:`EKFRule`. ``lr``,
+            ``process_noise`` and ``fold_every`` may be assigned later (the rule's, checked;
+            the next step reads them); ``init_cov`` and ``init_noise``, which make the
+            initial state, may not.
 
     State (:attr:`state`, a :class:`LearnerState`): ``theta [N, P]``, the covariances
     (:attr:`rho` ``[N, P, P]``), ``upsilon [N]``, step counter ``k``.
@@ -833,6 +868,12 @@ class ParamEKF(_Learner):
         rule = EKFRule(lr=lr, init_cov=init_cov, init_noise=init_noise,
                        process_noise=process_noise, donate=True)  # fmt: skip
         super().__init__(module, batch_shape, params, rule)
+
+    lr = _rule_setting("lr")
+    process_noise = _rule_setting("process_noise")
+    fold_every = _rule_setting("fold_every")
+    init_cov = _initial_setting("init_cov")
+    init_noise = _initial_setting("init_noise")
 
     def gain_norm(self) -> Tensor:
         """``tr ρ / P`` per filter ``[*batch]``: how much the filter is still willing to adapt."""
@@ -849,6 +890,8 @@ class OnlineGradientDescent(_Learner):
 
     def __init__(self, module, batch_shape, *, params=None, lr: float = 0.01):
         super().__init__(module, batch_shape, params, GradientRule(lr=lr))
+
+    lr = _rule_setting("lr")
 
 
 class EKFOptimizer(torch.optim.Optimizer):
@@ -883,6 +926,16 @@ class EKFOptimizer(torch.optim.Optimizer):
         if len(self.param_groups) != 1:
             raise ValueError("EKFOptimizer takes one parameter group (one vector ζ)")
 
+    def add_param_group(self, param_group: dict) -> None:
+        """The one group (the constructor's); another is refused: :meth:`step` updates one
+        vector ζ (a group added later had been kept and never trained, its weights fixed)."""
+        if self.param_groups:
+            raise ValueError(
+                "EKFOptimizer takes one parameter group (one vector ζ); another cannot be "
+                "added: pass every tensor to train in the constructor's params"
+            )
+        super().add_param_group(param_group)
+
     @torch.no_grad()
     def step(self, jacobian: Tensor, residual: Tensor, closure=None,  # type: ignore[override]
              received: Tensor | None = None) -> Tensor:  # fmt: skip
@@ -899,36 +952,52 @@ class EKFOptimizer(torch.optim.Optimizer):
                 f"jacobian must be [S, m, {P}] and residual [S, m]; got "
                 f"{tuple(jacobian.shape)} and {tuple(residual.shape)}"
             )
+        # the group's settings, checked at every step: LR schedulers and Lightning write
+        # them (a NaN lr had made every weight NaN; a negative Q_ρ ran as 0)
+        settings = {
+            key: check_finite_number(
+                group[key], f"param_groups[0][{key!r}]",
+                positive=key != "process_noise", nonnegative=key == "process_noise",
+            )
+            for key in ("lr", "init_cov", "init_noise", "process_noise")
+        }  # fmt: skip
         state = self.state[params[0]]
         if not state:
             dtype, device = params[0].dtype, params[0].device
-            state["rho"] = group["init_cov"] * torch.eye(P, dtype=dtype, device=device)
-            state["upsilon"] = torch.tensor(float(group["init_noise"]), dtype=dtype, device=device)
+            state["rho"] = settings["init_cov"] * torch.eye(P, dtype=dtype, device=device)
+            state["upsilon"] = torch.tensor(settings["init_noise"], dtype=dtype, device=device)
             state["k"] = 0
         e = residual.to(params[0].dtype)
         H = jacobian.to(e.dtype)
         if received is not None:
             r = _received(received, e)
             e, H = _unreceived_zeroed(e, r), _unreceived_zeroed(H, r)
+        for value, name in ((e, "residual"), (H, "jacobian")):
+            if not bool(torch.isfinite(value).all()):  # (of the received entries)
+                raise ValueError(f"{name} must be finite where received; it holds NaN or inf")
         per_sample = e.square().sum(-1)
-        state["k"] += 1
-        if received is None and "seen" not in state:  # every entry of every step so far
-            state["upsilon"] += (per_sample.mean() - state["upsilon"]) / state["k"]
+        # the step's k, Υ and seen are kept only once the update succeeds: a step refused
+        # (a NaN residual or Jacobian) had advanced them, and every later step was refused
+        # or ran from a NaN Υ (an EKF-over-weights trial)
+        k, upsilon, seen = state["k"] + 1, state["upsilon"], state.get("seen")
+        if received is None and seen is None:  # every entry of every step so far
+            upsilon = upsilon + (per_sample.mean() - upsilon) / k
         else:
             everything = torch.ones_like(e, dtype=torch.bool)
             energy, informed = _informed_energy(e, everything if received is None else r)
-            seen = state.get("seen", state["k"] - 1)
+            seen = k - 1 if seen is None else seen
             if bool(informed.any()):
                 seen += 1
-                state["upsilon"] += (energy[informed].mean() - state["upsilon"]) / seen
-            state["seen"] = seen
+                upsilon = upsilon + (energy[informed].mean() - upsilon) / seen
         H = H.reshape(1, -1, P)
-        update, rho = ekf_weight_update(
-            state["rho"].unsqueeze(0), H, e.reshape(1, -1), state["upsilon"].reshape(1),
-            group["process_noise"], state["k"], donate=True,
+        update, rho = ekf_weight_update(  # (ρ is written only after S factorised)
+            state["rho"].unsqueeze(0), H, e.reshape(1, -1), upsilon.reshape(1),
+            settings["process_noise"], k, donate=True,
         )  # fmt: skip
-        state["rho"] = rho[0]
-        update = update[0] * group["lr"]
+        update = update[0] * settings["lr"]
+        state["rho"], state["upsilon"], state["k"] = rho[0], upsilon, k
+        if seen is not None:
+            state["seen"] = seen
         i = 0
         for p in params:
             p.add_(update[i : i + p.numel()].reshape(p.shape))

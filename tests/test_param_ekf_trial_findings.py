@@ -9,6 +9,7 @@ import torch
 from difffilter.models.neural_estimator import AreaNetwork
 from difffilter.param_ekf import (
     DeferredCovariance,
+    EKFOptimizer,
     EKFRule,
     GradientRule,
     LearnerState,
@@ -119,3 +120,86 @@ def test_a_hand_built_first_step_covariance_is_read_in_thetas_order():
     start = rule.init(theta.clone())
     after = rule.step(start, H_kron, target - prediction)
     assert after.rho.base is start.rho.base and after.rho.order is not None
+
+
+@pytest.mark.parametrize("where", ["residual", "jacobian"])
+def test_a_refused_optimizer_step_leaves_the_optimizer_as_it_was(where):
+    """``EKFOptimizer.step`` advanced k and Υ before the update refused a NaN residual or
+    Jacobian: Υ = NaN after a NaN residual refused every later step, and after a NaN
+    Jacobian the next good step moved the weights to [0.054, -0.118, -0.142] where a fresh
+    optimizer's same step gives [-0.099, -0.529, -0.194]."""
+    g = torch.Generator().manual_seed(0)
+    H = torch.randn(1, 2, 3, generator=g, dtype=torch.float64)
+    e = torch.randn(1, 2, generator=g, dtype=torch.float64)
+    bad_H, bad_e = H.clone(), e.clone()
+    (bad_H if where == "jacobian" else bad_e)[0, 0, ...] = float("nan")
+    refused, fresh = (torch.nn.Parameter(torch.zeros(3, dtype=torch.float64)) for _ in range(2))
+    opt = EKFOptimizer([refused])
+    with pytest.raises(ValueError, match=f"{where} must be finite where received"):
+        opt.step(bad_H, bad_e)
+    opt.step(H, e)
+    EKFOptimizer([fresh]).step(H, e)
+    torch.testing.assert_close(refused.detach(), fresh.detach(), rtol=0, atol=0)
+    assert opt.state[refused]["k"] == 1
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "need"),
+    [
+        ("lr", float("nan"), "> 0"),
+        ("process_noise", -5.0, ">= 0"),
+        ("init_cov", float("inf"), "> 0"),
+    ],
+)
+def test_an_optimizers_group_settings_are_checked_at_every_step(key, value, need):
+    """Settings written into ``param_groups[0]`` (as LR schedulers and Lightning write them)
+    were never checked: a NaN lr made every weight NaN, a negative Q_ρ ran as 0, an infinite
+    ρ(0) was blamed on "the model's Q, R and P0"."""
+    p = torch.nn.Parameter(torch.zeros(3, dtype=torch.float64))
+    opt = EKFOptimizer([p])
+    opt.param_groups[0][key] = value
+    with pytest.raises(
+        ValueError, match=rf"param_groups\[0\]\['{key}'\] must be a finite number {need}"
+    ):
+        opt.step(torch.ones(1, 2, 3, dtype=torch.float64), torch.ones(1, 2, dtype=torch.float64))
+    assert torch.equal(p.detach(), torch.zeros(3, dtype=torch.float64)) and not opt.state[p]
+
+
+def test_an_optimizer_refuses_a_second_parameter_group():
+    """``add_param_group`` added a group that ``step`` never read (its weights fixed)."""
+    opt = EKFOptimizer([torch.nn.Parameter(torch.zeros(3, dtype=torch.float64))])
+    with pytest.raises(ValueError, match="takes one parameter group"):
+        opt.add_param_group({"params": [torch.nn.Parameter(torch.zeros(2, dtype=torch.float64))]})
+    assert len(opt.param_groups) == 1
+
+
+@pytest.mark.parametrize("learner", [ParamEKF, OnlineGradientDescent])
+def test_a_learners_settings_assigned_later_are_its_rules(learner):
+    """``ekf.lr = 0.1`` had made a plain attribute beside the rule, never read (the weights
+    those of the constructor's lr, 1.17 away from a learner built with 0.1; NaN taken);
+    ``init_cov``/``init_noise`` made the state and cannot change it later."""
+    net = AreaNetwork(3, 4, 2)
+    later, built = learner(net, (2,)), learner(net, (2,), lr=0.1)
+    later.lr = 0.1
+    if learner is ParamEKF:
+        later.process_noise = built.process_noise = 1e-2
+        with pytest.raises(AttributeError, match="init_cov makes the initial state"):
+            later.init_cov = 1.0
+        assert later.init_noise == 1e-3
+    for x, y in _data(5):
+        later.step(x, y)
+        built.step(x, y)
+    torch.testing.assert_close(later.theta, built.theta, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="lr must be a finite number > 0"):
+        later.lr = float("nan")
+
+
+@pytest.mark.parametrize("width", [1, 5])
+def test_a_factored_learners_input_width_is_checked(width):
+    """A width-1 input to a 3-input tanh network was learned from as three equal features
+    (x / in_scale broadcast); width 5 failed inside torch without naming ``inputs``."""
+    ekf = ParamEKF(AreaNetwork(3, 4, 2), (2,))
+    with pytest.raises(
+        ValueError, match=r"inputs must have shape \[2, 3\] \(the network's input width\)"
+    ):
+        ekf.step(torch.zeros(2, width, dtype=torch.float64), torch.zeros(2, 2, dtype=torch.float64))
