@@ -177,6 +177,14 @@ class FusedCarry(NamedTuple):
     model_stamp: Any = None
 
 
+def _check_fused_local(local) -> None:
+    """A local whose ``S₀`` the fusion can invert (assigned later, ``attack_cov0 = 0`` had
+    failed at the first step on "covs must be positive definite": an MDPF trial)."""
+    if getattr(local, "attack_cov0", None) == 0:
+        raise ValueError("local.attack_cov0 must be > 0: the fusion inverts each local's "
+                         "attack covariance S, which S₀ = 0 keeps at 0")  # fmt: skip
+
+
 class FusedLocals(Estimator):
     """The two local estimators of the sensor groups, fused at every step (App. B).
 
@@ -209,11 +217,10 @@ class FusedLocals(Estimator):
         if len(self.groups) != 2:  # (three had run every local, then failed in the fusion)
             raise ValueError(f"groups must be two sensor groups (the fusion of a pair); got "
                              f"{len(self.groups)}: {self.groups!r}")  # fmt: skip
-        if getattr(local, "attack_cov0", None) == 0:
-            raise ValueError("local.attack_cov0 must be > 0: the fusion inverts each local's "
-                             "attack covariance S, which S₀ = 0 keeps at 0")  # fmt: skip
+        _check_fused_local(local)
 
     def _init(self, model, batch_shape, generators):
+        _check_fused_local(self.local)  # (its attack_cov0 may have been assigned since)
         if model.groups_share_noise(self.groups):
             grouped = model.group(self.groups)
             states = self.local._init(grouped, torch.Size((len(self.groups),)) + batch_shape,

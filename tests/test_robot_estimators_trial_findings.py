@@ -158,3 +158,12 @@ def test_fused_locals_take_the_adaptive_particle_filter_alone():
 
     with pytest.raises(TypeError, match="local must be an AdaptiveParticleFilter"):
         FusedLocals(AdaptiveKalmanFilter(0.7), "ci")
+
+
+def test_a_fused_locals_attack_prior_assigned_zero_later_is_refused_by_name():
+    """The constructor refuses a local of ``attack_cov0=0``; assigned later, the first
+    step had failed in the fusion on "covs must be positive definite"."""
+    est = FusedLocals(AdaptiveParticleFilter(8))
+    est.local.attack_cov0 = 0.0
+    with pytest.raises(ValueError, match="local.attack_cov0 must be > 0"):
+        est.init(RobotModel(), (2,))

@@ -58,7 +58,7 @@ from .._checks import (
 )
 from ..estimator import Estimator, EstimatorOutput, Generators
 from ..kalman import _check_zero_mean_noise
-from ..linalg import matvec, safe_cholesky, symmetrize
+from ..linalg import matvec, safe_cholesky, symmetrize, under_transform
 from ..loop import open_loop
 from ..particle import PER_SET, ParticleFilter, ParticleState
 from ..resampling import Multinomial
@@ -181,17 +181,23 @@ def information_form_applies(model: StateSpaceModel) -> bool:
     """Whether ``model`` has what the information form needs: time-invariant noise (declared
     or not: a model whose ``R(k)`` varies without ``time_varying`` had been filtered with
     ``R(0)`` at every step, 6.5 off the covariance form's mean, a red-team trial), a diagonal
-    ``R``, and a ``Q`` positive definite with a condition number up to
-    :data:`INFORMATION_MAX_COND_Q` (the form inverts it)."""
+    ``R``, a ``Q`` positive definite with a condition number up to
+    :data:`INFORMATION_MAX_COND_Q` (the form inverts it), and no gradient to ``Q`` or ``R``
+    (it holds them as numbers: a loss had no gradient to either, an MDPF trial).
+    ``form="auto"`` takes it in float64 alone: in float32 its error, about ``cond(Q)·ε``,
+    had reached 4.6e-4 at cond 1e2 and an attack estimate 3.4 off at 1e4 where the
+    covariance form is 1.6e-6 off (the same trial)."""
     if getattr(model, "time_varying", False):
         return False
     varying = getattr(model, "_varying_noise", None)
     if varying is not None and (varying("process_cov") or varying("measurement_cov")):
         return False
-    R = model.measurement_cov(0)
+    R, Q = model.measurement_cov(0), model.process_cov(0)
+    if R.requires_grad or Q.requires_grad or under_transform(Q, R):
+        return False
     if R.dim() != 2 or bool((R - torch.diag_embed(R.diagonal())).abs().max() > 0):
         return False
-    return _well_conditioned(model.process_cov(0))
+    return _well_conditioned(Q)
 
 
 def _well_conditioned(Q: Tensor) -> bool:
@@ -256,19 +262,22 @@ class AdaptiveKalmanProposal:
         model made noisier under the estimator was filtered with its old ``R``, 125 cm
         away from a fresh estimator's)."""
         R, Q = self.base.measurement_cov(0), self.base.process_cov(0)
-        key = (R, R._version, Q, Q._version)
+        grads = (R.requires_grad, Q.requires_grad, under_transform(Q, R))
+        key = (R, R._version, Q, Q._version, grads)
         old = self._noise_key
         if old is not None and old[0] is R and old[2] is Q and old[1::2] == key[1::2]:
             return
         form = self.requested_form
         if form is Form.AUTO:
-            form = Form.INFORMATION if information_form_applies(self.base) else Form.COVARIANCE
+            fits = Q.dtype == torch.float64 and information_form_applies(self.base)
+            form = Form.INFORMATION if fits else Form.COVARIANCE
         if form is Form.INFORMATION:
             if not information_form_applies(self.base):
                 raise ValueError(
-                    "form='information' needs time-invariant noise, a diagonal R and a "
-                    f"positive definite Q of condition number up to {INFORMATION_MAX_COND_Q:g} "
-                    "(it inverts Q); use form='covariance'"
+                    "form='information' needs time-invariant noise, a diagonal R and "
+                    f"a positive definite Q of condition number up to {INFORMATION_MAX_COND_Q:g} "
+                    "(it inverts Q), and no gradient to Q or R (it holds them as numbers); "
+                    "use form='covariance'"
                 )
             Qd = Q.detach().double()
             self._rvar = R.diagonal().detach().tolist()
@@ -426,6 +435,25 @@ def _form_for(form: Form, attack_cov0: float) -> Form:
     return Form.COVARIANCE
 
 
+def _singular_attack_cov(state: ParticleState, layout: ParticleLayout) -> bool:
+    """Whether any particle's attack covariance ``S`` of ``state`` is singular (``S₀ = 0``:
+    :func:`adaptive_particle_init` with ``attack_cov0=0``)."""
+    S = layout.unpack(state.particles)[3]
+    return bool((torch.linalg.cholesky_ex(S.detach())[1] != 0).any())
+
+
+def _form_for_state(form: Form | str, state: ParticleState, model: StateSpaceModel) -> Form:
+    """The form the one-call wrappers run ``state`` with: ``"auto"`` takes the covariance
+    form for a state whose ``S`` is singular, as an estimator of ``attack_cov0=0`` does
+    (they had run the information form from such a state: NaN means and scores from
+    :func:`adaptive_particle_step`, a failure naming neither S₀ nor the form from
+    :func:`adaptive_particle_filter`; an MDPF trial)."""
+    form = Form(form)
+    if form is Form.AUTO and _singular_attack_cov(state, ParticleLayout(model.dim_x, model.dim_u)):
+        return Form.COVARIANCE
+    return form
+
+
 def adaptive_particle_init(
     model: StateSpaceModel,
     num_particles: int,
@@ -567,9 +595,18 @@ class AdaptiveParticleFilter(Estimator):
         return last[1], last[2]
 
     def attach(self, state: ParticleState, model, generators: Generators) -> ParticleState:
-        """Packed particles (:func:`adaptive_particle_init`) as this estimator's carry."""
+        """Packed particles (:func:`adaptive_particle_init`) as this estimator's carry.
+        A state whose attack covariance ``S`` is singular in some particle (``S₀ = 0``)
+        needs the covariance form: refused where the information form would step it."""
         view, pf = self.filter_for(model)
-        return pf.attach(state, view, generators)
+        carry = pf.attach(state, view, generators)
+        if pf.proposal.form is Form.INFORMATION and _singular_attack_cov(state, view.layout):
+            raise ValueError(
+                "the state's attack covariance S is singular in some particle (S₀ = 0: "
+                "adaptive_particle_init(attack_cov0=0)), and the information form inverts S: "
+                "give the estimator attack_cov0=0 or form='covariance'"
+            )
+        return carry
 
     def _init(self, model, batch_shape, generators):
         if model.dim_u < 1:
@@ -621,8 +658,8 @@ def adaptive_particle_step(
     ``u [..., du]``. Returns the new state and the step output.
     """
     apf = AdaptiveParticleFilter(
-        state.log_weights.shape[-1], forgetting=forgetting, reading=reading, form=form,
-        resampler=resampler,
+        state.log_weights.shape[-1], forgetting=forgetting, reading=reading,
+        form=_form_for_state(form, state, model), resampler=resampler,
     )  # fmt: skip
     y, u, mask = check_step_inputs(model, None, y, u, mask)
     gens = Generators(None, generator, resample_generator or generator)
@@ -666,6 +703,8 @@ def adaptive_particle_filter(
     """
     if model.dim_u < 1:
         raise ValueError("the adaptive particle filter needs a model with inputs (dim_u >= 1)")
+    if initial_state is not None:  # (its S, not attack_cov0, decides what "auto" can run)
+        form = _form_for_state(form, initial_state, model)
     apf = AdaptiveParticleFilter(
         num_particles, forgetting=forgetting, reading=reading, form=form,
         attack_cov0=attack_cov0, resampler=resampler, false_alarm_rate=false_alarm_rate,
