@@ -25,6 +25,8 @@ from contextlib import contextmanager
 
 import torch
 
+from ._checks import check_integer
+
 __all__ = ["command_threads", "one_thread", "tune_cpu_allocator"]
 
 #: The environment variable that sets a command's intra-op threads (:func:`command_threads`).
@@ -35,6 +37,7 @@ THREADS_VARIABLE = "DIFFFILTER_THREADS"
 _M_TRIM_THRESHOLD = -1
 _M_TOP_PAD = -2
 _M_MMAP_THRESHOLD = -3
+_INT_MAX = (1 << 31) - 1
 
 
 def tune_cpu_allocator(mmap_threshold: int = 1 << 30, top_pad: int = 64 << 20) -> bool:
@@ -44,7 +47,12 @@ def tune_cpu_allocator(mmap_threshold: int = 1 << 30, top_pad: int = 64 << 20) -
     ``M_TRIM_THRESHOLD`` (the heap is not shrunk below it) to ``mmap_threshold`` and
     ``M_TOP_PAD`` to ``top_pad``. A no-op returning ``False`` on other C libraries or
     platforms. Affects the whole process and should be called before large allocations.
+    Both are byte counts in ``[0, 2³¹ − 1]`` (mallopt takes a C ``int``: ``2**32`` had
+    wrapped to 0, every block mmapped, and returned ``True``); ``ValueError`` else.
     """
+    for value, name in ((mmap_threshold, "mmap_threshold"), (top_pad, "top_pad")):
+        if check_integer(value, name) > _INT_MAX:
+            raise ValueError(f"{name} must be an integer <= 2**31 - 1 (a C int); got {value!r}")
     if not sys.platform.startswith("linux"):
         return False
     name = ctypes.util.find_library("c")

@@ -494,3 +494,17 @@ def test_command_threads_default_and_a_zero_and_one_thread_after_an_exception(mo
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"mmap_threshold": 2**32}, r"mmap_threshold must be an integer <= 2\*\*31 - 1"),
+        ({"top_pad": -1}, "top_pad must be an integer >= 0"),
+        ({"mmap_threshold": 1.5e9}, "mmap_threshold must be an integer >= 0"),
+    ],
+)
+def test_the_allocator_tuning_refuses_what_a_c_int_cannot_hold(kwargs, match):
+    """mallopt takes a C int: 2**32 had wrapped to 0 (every block mmapped) and returned True."""
+    with pytest.raises(ValueError, match=match):
+        runtime.tune_cpu_allocator(**kwargs)
