@@ -60,11 +60,15 @@ def _feed(digest, value: Any, seen: dict[int, tuple[int, Any]], depth: int = 0) 
     if depth > 16:
         # a network nested deeper (blocks of blocks of layers) by its weights, not skipped:
         # another network loaded under the same name had kept the old CUSUM τ (a trial);
-        # the walk meets it as a module or in a module's `_modules`
+        # the walk meets it as a module or in a module's `_modules`, and a module met at
+        # depth 15-16 as its `_parameters` and `_buffers` (tensors: they had been dropped,
+        # its weights never hashed, a stale τ served; a calibration-cache trial)
         items = value.values() if isinstance(value, dict) else value
         group = items if isinstance(value, (dict, list, tuple)) else (value,)
         for module in group:
-            if isinstance(module, torch.nn.Module) and id(module) not in seen:
+            if isinstance(module, (torch.Tensor, np.ndarray, np.generic)):
+                _feed(digest, module, seen, 0)
+            elif isinstance(module, torch.nn.Module) and id(module) not in seen:
                 seen[id(module)] = (len(seen), module)
                 digest.update(f"module {type(module).__qualname__}".encode())
                 for name, tensor in module.state_dict().items():
@@ -179,7 +183,11 @@ def _class_code(cls: type) -> bytes:
     builtins' aside): a plant subclass's ``observe`` or ``transition`` edited gives a new
     file (a trial: ``h = x³`` edited to ``4x³`` had read the old CUSUM threshold, 708
     against 3366). Their code, constants and defaults; not the module-level values they
-    read (as for a module: delete the cache folder after editing one)."""
+    read (as for a module: delete the cache folder after editing one). What the code gives
+    is kept for the class while its members are the same objects; the constants are read
+    again at every call (a tensor or list edited in place is the same object:
+    ``Plant.A[0, 0] = 0.5`` had kept the digest, and the suite's in-process CUSUM τ, for
+    the process; a cache trial). The digest is the same stream of bytes either way."""
     members = _members(cls)
     memo = _CLASS_CODE.get(cls)
     known = None
@@ -189,7 +197,7 @@ def _class_code(cls: type) -> bytes:
     if known is None:
         # (a default of the class itself: no recursion)
         _CLASS_CODE[cls] = (members, b"(in progress)")
-        digest = hashlib.sha256()
+        digest = _ByteStream()
         for klass in cls.__mro__:
             if klass.__module__.split(".")[0] in _SKIPPED_MODULES:
                 continue
@@ -211,10 +219,35 @@ def _class_code(cls: type) -> bytes:
                     # a constant of the class (G = 9.81 read as self.G): edited, it had kept
                     # its CUSUM τ; numbers, strings and tensors, and groups of them
                     digest.update(name.encode())
-                    _feed(digest, attr, {})
-        known = digest.digest()
+                    digest.constant(attr)
+        known = digest.segments()
         _CLASS_CODE[cls] = (members, known)
-    return known
+    if isinstance(known, bytes):  # (met again while being hashed: its mark)
+        return known
+    digest = hashlib.sha256()
+    for segment in known:
+        if isinstance(segment, bytes):
+            digest.update(segment)
+        else:  # a constant, by its value now
+            _feed(digest, segment[0], {})
+    return digest.digest()
+
+
+class _ByteStream:
+    """What :func:`_class_code` feeds a digest, kept as segments: the bytes of the code, and
+    the class's constants as objects (``(value,)``), to be hashed by value at each use."""
+
+    def __init__(self):
+        self._segments: list = [bytearray()]
+
+    def update(self, data: bytes) -> None:
+        self._segments[-1] += data
+
+    def constant(self, value) -> None:
+        self._segments += [(value,), bytearray()]
+
+    def segments(self) -> list:
+        return [bytes(s) if isinstance(s, bytearray) else s for s in self._segments]
 
 
 def _plain_value(value) -> bool:
@@ -245,7 +278,7 @@ _SKIPPED_MODULES = ("builtins", "torch", "typing", "abc")
 
 #: :func:`_class_code` by class, with the members it was computed from (a class edited and
 #: re-created is another object).
-_CLASS_CODE: dict[type, tuple[tuple, bytes]] = {}
+_CLASS_CODE: dict[type, tuple[tuple, list | bytes]] = {}
 
 
 def _global_names(code) -> set[str]:

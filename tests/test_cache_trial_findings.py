@@ -268,6 +268,49 @@ def test_the_plant_fingerprint_sees_class_constants_builtins_and_deep_networks()
     assert model_fingerprint((deep(0),)) == model_fingerprint((deep(0),))
 
 
+@pytest.mark.parametrize("nesting", range(9))
+def test_a_networks_weights_are_hashed_at_every_nesting(nesting):
+    """At one nesting (a Linear met at walk depth 15-16) the deep walk's cut-off read the
+    module's ``_parameters`` dict, whose values are tensors, and dropped them: a plant's
+    network of blocks kept its fingerprint, and its cached CUSUM τ, after its weights
+    changed (a trial of the cache)."""
+    from difffilter.models.calibration_cache import model_fingerprint
+
+    def net(scale):
+        torch.manual_seed(0)
+        layer = torch.nn.Linear(2, 2)
+        with torch.no_grad():
+            layer.weight.mul_(scale)
+        for _ in range(nesting):
+            layer = torch.nn.Sequential(layer)
+        return torch.nn.ModuleList([torch.nn.Sequential(layer)])
+
+    assert model_fingerprint((net(1.0),)) != model_fingerprint((net(10.0),))
+    assert model_fingerprint((net(1.0),)) == model_fingerprint((net(1.0),))
+
+
+def test_a_class_constant_edited_in_place_changes_the_fingerprint():
+    """The class digest was kept while the class's members were the same objects: a tensor
+    constant edited in place (``Plant.A[0, 0] = 0.5``) kept the fingerprint, and the suite's
+    in-process CUSUM τ; now that of the class built with the edited value."""
+    from difffilter.models.calibration_cache import model_fingerprint
+
+    def plant_class(a):
+        class Plant:
+            A = torch.tensor([[a, 0.0], [0.0, 1.0]])
+
+            def transition(self, x):
+                return x @ self.A.T
+
+        return Plant
+
+    edited = plant_class(1.0)
+    before = model_fingerprint(edited())
+    edited.A[0, 0] = 0.5
+    assert model_fingerprint(edited()) != before
+    assert model_fingerprint(edited()) == model_fingerprint(plant_class(0.5)())
+
+
 def test_a_cusum_cache_file_out_of_the_detectors_range_is_computed_again():
     """A cached CUSUM calibration with a bias of 0 or a negative threshold is not a
     calibration (the evaluation had failed in the detector's words, naming no file)."""

@@ -64,3 +64,16 @@ def test_an_actuator_attack_is_drawn_in_input_units():
     assert "attack input2" in [t.get_text() for t in ax.get_legend().get_texts()]
     fig = attack_figure(attack, attack, 0.1)
     assert fig.axes[0].get_ylabel() == "attack [measurement units]"
+
+
+def test_an_export_of_a_lightning_file_carries_the_calibration_record(tmp_path):
+    """A fit's card has the observer's calibration record at its top level (README, "The
+    card"); an export of the run's Lightning file (the same weights) had left it out."""
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+    from difffilter.train.export import export
+
+    _, card = load_estimator_checkpoint(ROOT / "checkpoints" / "four_tank_nn_grad.ckpt")
+    export(_lightning_file(tmp_path), tmp_path / "out.ckpt")
+    exported = json.loads((tmp_path / "out.json").read_text())
+    assert exported["calibration"] == card.extra["calibration"]
+    assert exported["observer"]["extra"]["calibration"] == card.extra["calibration"]

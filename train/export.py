@@ -64,6 +64,15 @@ def check_metric(path, *, seed: int = 20, runs: int = 4) -> dict:
             "value": value}  # fmt: skip
 
 
+def _calibration_entry(est_card) -> dict:
+    """``{"calibration": …}`` where the threshold came from (``calibrate`` records it there
+    as well), or nothing: the card's top-level copy of the observer card's record (a user
+    trial read ``card["calibration"]`` and found nothing after a fit; an export of the run's
+    Lightning checkpoint had left it out again, a trial of the export)."""
+    record = est_card.extra.get("calibration")
+    return {} if record is None else {"calibration": record}
+
+
 def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
     """Write the estimator of ``src`` to ``out`` (and ``out`` with suffix ``.json``, its card).
 
@@ -94,6 +103,7 @@ def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
             "scenario_family": est_card.scenario_family,
             **_lightning_record(blob, src),
             "torch_version": torch.__version__,
+            **_calibration_entry(est_card),
         }
     card.update(checkpoint=out.name, sha256=digest, weights_sha256=weights_sha256(out),
                 exported_from=str(src))  # fmt: skip
@@ -340,13 +350,7 @@ class ExportEstimator(pl.Callback):
             "torch_version": torch.__version__,
             "lightning_version": pl.__version__,
             **pl_module.export_card(trainer, estimator),
-            # where the threshold came from, where `calibrate` records it as well (a user
-            # trial read card["calibration"] and found nothing after a fit)
-            **(
-                {"calibration": est_card.extra["calibration"]}
-                if "calibration" in est_card.extra
-                else {}
-            ),  # fmt: skip
+            **_calibration_entry(est_card),
             "check": check_metric(path),
             **({} if craftings is None else {"adversarial_craftings": craftings}),
             **({} if drawn is None else {"threats_drawn": drawn}),
