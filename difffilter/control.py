@@ -62,16 +62,41 @@ def _riccati(
     try:
         return solve(A, B, Q, R)
     except (np.linalg.LinAlgError, ValueError) as error:
-        need = ("(F, H) detectable and (F, Q^{1/2}) stabilisable: every unstable or marginal "
+        raise ValueError(
+            f"the Riccati equation has no stabilising solution here: it needs "
+            f"{_need(filtering)} (scipy: {error})"
+        ) from error
+
+
+#: The largest Riccati residual, relative to the equation's terms, of a solution scipy
+#: returns: its solutions of solvable equations reach about 1e-12; a pair that cannot be
+#: stabilised, in coordinates where scipy does not see it, had come back with 0.44 (an
+#: uncontrollable Jordan block at 1.2: the closed loop still at 1.2) or 2.09 (a trial).
+RICCATI_RESIDUAL_TOLERANCE = 1e-6
+
+
+def _check_riccati_solution(residual: np.ndarray, terms: tuple, *, filtering: bool = False) -> None:
+    """``ValueError`` (as :func:`_riccati`'s) where ``‖residual‖`` exceeds
+    :data:`RICCATI_RESIDUAL_TOLERANCE` times the largest of the equation's ``terms``."""
+    scale = max(max(float(np.linalg.norm(t)) for t in terms), np.finfo(np.float64).tiny)
+    relative = float(np.linalg.norm(residual)) / scale
+    if not relative <= RICCATI_RESIDUAL_TOLERANCE:
+        raise ValueError(
+            f"the Riccati equation has no stabilising solution here: it needs {_need(filtering)} "
+            f"(scipy returned a solution whose residual is {relative:.3g} of the equation's "
+            "terms)"
+        )
+
+
+def _need(filtering: bool) -> str:
+    """What a Riccati equation of :func:`_riccati` needs to have a stabilising solution."""
+    if filtering:
+        return ("(F, H) detectable and (F, Q^{1/2}) stabilisable: every unstable or marginal "
                 "mode seen by the measurements, and excited by the process noise (scipy "
                 "finds no solution for a measured constant state with Q = 0 on it: give it "
-                "some)") if filtering else (
-                "the pair stabilisable and (A, Q^{1/2}) detectable: every unstable or marginal "
-                "mode reachable by the inputs and seen by the state weight")  # fmt: skip
-        raise ValueError(
-            f"the Riccati equation has no stabilising solution here: it needs {need} "
-            f"(scipy: {error})"
-        ) from error
+                "some)")  # fmt: skip
+    return ("the pair stabilisable and (A, Q^{1/2}) detectable: every unstable or marginal "
+            "mode reachable by the inputs and seen by the state weight")  # fmt: skip
 
 
 def care_residual(A: Tensor, B: Tensor, Q: Tensor, R: Tensor, P: Tensor) -> Tensor:
@@ -140,7 +165,11 @@ def lqr(
         shift = check_finite_number(shift, "shift", positive=True)
     w = uncontrollable_direction(A, B) if method is LQRMethod.REDUCED else None
     if method is LQRMethod.DIRECT or (method is LQRMethod.REDUCED and w is None):
-        P = _riccati(sla.solve_continuous_are, _np(A), _np(B), _np(Q), _np(R))
+        An, Bn, Qn, Rn = _np(A), _np(B), _np(Q), _np(R)
+        P = _riccati(sla.solve_continuous_are, An, Bn, Qn, Rn)
+        PB = P @ Bn
+        _check_riccati_solution(P @ An + An.T @ P + Qn - PB @ np.linalg.solve(Rn, PB.T),
+                                (P @ An, Qn, PB @ np.linalg.solve(Rn, PB.T)))  # fmt: skip
     elif method is LQRMethod.SHIFT:
         P = _riccati(sla.solve_continuous_are, _np(A) - shift * np.eye(n), _np(B), _np(Q),
                      _np(R))  # fmt: skip
@@ -178,6 +207,9 @@ def _observer_spectrum(A_closed: Tensor, factor: float, zero_pole: float | None)
     (default: the slowest of the other scaled eigenvalues).
     """
     factor, zero_pole = _check_observer_design(factor, zero_pole)
+    if not isinstance(A_closed, Tensor) or not A_closed.is_floating_point():
+        raise ValueError(f"A_closed must be a floating tensor; got {type(A_closed).__name__}")
+    _check_finite_matrix(A_closed, "A_closed")
     lam, V = np.linalg.eig(_np(A_closed))
     lam = factor * lam
     # zero relative to the spectrum's own scale (an absolute 1e-8 had taken every pole of a
@@ -263,6 +295,7 @@ def luenberger_gain(
     ):  # (a numpy array had failed on .shape's use, a non-square one in a broadcast)
         got = tuple(Ad.shape) if isinstance(Ad, Tensor) else type(Ad).__name__
         raise ValueError(f"Ad must be a square [n, n] floating tensor; got {got}")
+    _check_finite_matrix(Ad, "Ad")
     n = Ad.shape[0]
     if not isinstance(A_closed, Tensor) or A_closed.shape != (n, n):
         raise ValueError(f"A_closed must have shape [{n}, {n}]; got {tuple(A_closed.shape)}")
@@ -320,14 +353,26 @@ def _modal_transition(A_closed: np.ndarray, V: np.ndarray, p: np.ndarray, moved:
     return Phi
 
 
+def _check_finite_matrix(t: Tensor, name: str) -> None:
+    """A plant matrix holds no NaN or inf (NaN had come out of the discretisation and the
+    observer gain without a word, and numpy's "SVD did not converge" out of the others: a
+    trial of the control tools)."""
+    if t.device.type != "meta" and not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{name} contains NaN or Inf values")
+
+
 def _check_pair(F: Tensor, G: Tensor, names: tuple[str, str]) -> tuple[int, int]:
-    """``F [n, n]`` and ``G [n, m]`` (two-dimensional, one floating dtype); returns ``(n, m)``."""
+    """``F [n, n]`` and ``G [n, m]`` (two-dimensional, one floating dtype, finite, ``m ≥ 1``);
+    returns ``(n, m)``."""
     a, b = names
     for name, t in ((a, F), (b, G)):
         if not isinstance(t, Tensor) or not t.is_floating_point() or t.dim() != 2:
             got = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
             raise ValueError(f"{name} must be a two-dimensional floating tensor; got {got}")
+        _check_finite_matrix(t, name)
     n, m = G.shape
+    if m < 1:  # (lqr had failed inside scipy on "index -1 is out of bounds")
+        raise ValueError(f"{b} must have at least one column; got shape {tuple(G.shape)}")
     if F.shape != (n, n):
         raise ValueError(f"{a} must have shape [{n}, {n}] to match {b} [{n}, {m}]; got "
                          f"{tuple(F.shape)}")  # fmt: skip
@@ -376,6 +421,14 @@ def dare_residual(F: Tensor, B: Tensor, Q: Tensor, R: Tensor, P: Tensor) -> Tens
     return F.T @ P @ F - P + Q - F.T @ P @ B @ torch.linalg.solve(R + B.T @ P @ B, B.T @ P @ F)
 
 
+def _check_dare(P: np.ndarray, F: np.ndarray, B: np.ndarray, Q: np.ndarray, R: np.ndarray,
+                *, filtering: bool = False) -> None:  # fmt: skip
+    """:func:`_check_riccati_solution` of the DARE ``FᵀPF − P + Q − FᵀPB (R + BᵀPB)⁻¹ BᵀPF``."""
+    FPF, PF = F.T @ P @ F, B.T @ P @ F
+    correction = PF.T @ np.linalg.solve(R + B.T @ P @ B, PF)
+    _check_riccati_solution(FPF - P + Q - correction, (FPF, P, Q, correction), filtering=filtering)
+
+
 def dlqr(
     F: Tensor, B: Tensor, Q: Tensor | None = None, R: Tensor | None = None
 ) -> tuple[Tensor, Tensor]:
@@ -385,7 +438,9 @@ def dlqr(
         P = FᵀPF + Q − FᵀPB (R + BᵀPB)⁻¹ BᵀPF     (the DARE; scipy's solver)
         K = (R + BᵀPB)⁻¹ BᵀPF
 
-    ``Q``, ``R`` default to ``I``. Needs ``(F, B)`` stabilisable (scipy raises otherwise).
+    ``Q``, ``R`` default to ``I``. Needs ``(F, B)`` stabilisable (a ``ValueError`` otherwise: scipy's,
+    or where scipy returns a solution anyway, its residual, checked against
+    :data:`RICCATI_RESIDUAL_TOLERANCE`).
     A marginal mode (``|λ| = 1``) that ``Q`` does not weigh is left where it is: the
     cost-optimal gain spends nothing on a mode that costs nothing (``F = diag(1, 0.5)``,
     ``Q = diag(0, 1)``: the pole stays at 1), so weigh every mode to be stabilised. The
@@ -397,7 +452,9 @@ def dlqr(
     n, m = _check_pair(F, B, ("F", "B"))
     Q, R = _weights(Q, R, n, m, F)
     F, B = F.detach(), B.detach()
-    P = _riccati(sla.solve_discrete_are, _np(F), _np(B), _np(Q), _np(R))
+    Fn, Bn, Qn, Rn = _np(F), _np(B), _np(Q), _np(R)
+    P = _riccati(sla.solve_discrete_are, Fn, Bn, Qn, Rn)
+    _check_dare(P, Fn, Bn, Qn, Rn)
     P = torch.as_tensor(0.5 * (P + P.T), dtype=F.dtype, device=F.device)
     K = torch.linalg.solve(R + B.T @ P @ B, B.T @ P @ F)
     return K, P
@@ -426,7 +483,9 @@ def kalman_steady_state(
     Q, R = _weights(Q, R, n, p, F)
     F, H = F.detach(), H.detach()
     _check_detectable(_np(F), _np(H))
-    pred = _riccati(sla.solve_discrete_are, _np(F).T, _np(H).T, _np(Q), _np(R), filtering=True)
+    Ft, Ht, Qn, Rn = _np(F).T, _np(H).T, _np(Q), _np(R)
+    pred = _riccati(sla.solve_discrete_are, Ft, Ht, Qn, Rn, filtering=True)
+    _check_dare(pred, Ft, Ht, Qn, Rn, filtering=True)
     pred = torch.as_tensor(0.5 * (pred + pred.T), dtype=F.dtype, device=F.device)
     S = H @ pred @ H.T + R
     gain = torch.linalg.solve(S, H @ pred).T
@@ -438,24 +497,55 @@ def kalman_steady_state(
 def _check_detectable(F: np.ndarray, H: np.ndarray, tol: float = 1e-9) -> None:
     """Refuse ``(F, H)`` with a mode of ``|λ| ≥ 1`` that no measurement sees (PBH:
     ``[λI − F; H]`` of rank below ``n``, its smallest singular value at most ``tol`` times its
-    largest). scipy refuses such a mode where the process noise excites it, and where it
-    does not returns a covariance of 0 on it: a constant state that nothing measures, with
-    ``Q = 0`` on it, was given ``P⁻ = 0`` and the gain 0, where the filter keeps its prior
-    variance on it for ever (a trial: the steady state depends on the prior there)."""
+    largest; and the modes of ``F`` on the unobservable subspace, :func:`_unobservable_modes`).
+    scipy refuses such a mode where the process noise excites it, and where it does not
+    returns a covariance of 0 on it: a constant state that nothing measures, with ``Q = 0``
+    on it, was given ``P⁻ = 0`` and the gain 0, where the filter keeps its prior variance on
+    it for ever (a trial: the steady state depends on the prior there). The PBH test alone
+    missed a Jordan block, whose eigenvalues numpy gives √ε apart (1 ± 1e-8): a constant
+    position with only its velocity measured, in coordinates not triangular, had been given
+    ``P⁻`` 2.8e8 (a trial of the control tools)."""
     n = F.shape[0]
+    unseen = []
     for lam in np.linalg.eigvals(F):
         if abs(lam) < 1.0 - 1e-12:
             continue
         pencil = np.vstack([lam * np.eye(n) - F, H.astype(complex)])
         s = np.linalg.svd(pencil, compute_uv=False)
         if s[-1] <= tol * max(s[0], np.finfo(np.float64).tiny):
-            raise ValueError(
-                f"kalman_steady_state needs (F, H) detectable: the mode of F at eigenvalue "
-                f"{complex(lam):.6g} (on or outside the unit circle) is seen by no "
-                "measurement, so the filter's "
-                "covariance along it has no steady state (it stays at the prior's, or grows): "
-                "measure that mode, or leave it out of the model"
-            )
+            unseen.append(lam)
+    unseen += [lam for lam in _unobservable_modes(F, H, tol) if abs(lam) >= 1.0 - 1e-12]
+    if unseen:
+        raise ValueError(
+            f"kalman_steady_state needs (F, H) detectable: the mode of F at eigenvalue "
+            f"{complex(unseen[0]):.6g} (on or outside the unit circle) is seen by no "
+            "measurement, so the filter's "
+            "covariance along it has no steady state (it stays at the prior's, or grows): "
+            "measure that mode, or leave it out of the model"
+        )
+
+
+def _unobservable_modes(F: np.ndarray, H: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+    """The eigenvalues of ``F`` on its unobservable subspace: the null space ``N`` (orthonormal)
+    of ``[H; HF; …; HFⁿ⁻¹]`` (its rows scaled to unit length, singular values at most ``tol``
+    times the largest), ``eig(Nᵀ F N)``; none where ``N`` is empty or, numerically, not
+    invariant under ``F`` (``‖F N − N NᵀFN‖ > √tol ‖F‖``: no subspace, round-off of an
+    observable one). By duality ``_unobservable_modes(Fᵀ, Bᵀ)`` are the uncontrollable modes."""
+    n = F.shape[0]
+    rows, block = [], H.astype(np.float64)
+    for _ in range(n):
+        norms = np.linalg.norm(block, axis=1, keepdims=True)
+        rows.append(np.where(norms > 0, block / np.maximum(norms, np.finfo(np.float64).tiny), 0.0))
+        block = rows[-1] @ F
+    _, s, vh = np.linalg.svd(np.vstack(rows))
+    s = np.concatenate([s, np.zeros(n - s.size)])
+    null = vh[s <= tol * max(s[0], np.finfo(np.float64).tiny)].T  # [n, k]
+    if null.shape[1] == 0:
+        return np.zeros(0, dtype=complex)
+    restricted = null.T @ F @ null
+    if np.linalg.norm(F @ null - null @ restricted) > np.sqrt(tol) * max(np.linalg.norm(F), 1e-300):
+        return np.zeros(0, dtype=complex)
+    return np.linalg.eigvals(restricted).astype(complex)
 
 
 def zoh_discretize(A: Tensor, B: Tensor, dt: float) -> tuple[Tensor, Tensor]:
@@ -473,6 +563,8 @@ def zoh_discretize(A: Tensor, B: Tensor, dt: float) -> tuple[Tensor, Tensor]:
         raise ValueError(f"A must be square [n, n]; got {tuple(A.shape)}")
     if B.dim() != 2 or B.shape[0] != A.shape[0]:
         raise ValueError(f"B must have shape [{A.shape[0]}, m]; got {tuple(B.shape)}")
+    for name, t in (("A", A), ("B", B)):
+        _check_finite_matrix(t, name)
     n, m = B.shape
     block = torch.zeros(n + m, n + m, dtype=A.dtype, device=A.device)
     block[:n, :n] = A
@@ -482,13 +574,25 @@ def zoh_discretize(A: Tensor, B: Tensor, dt: float) -> tuple[Tensor, Tensor]:
 
 
 def controllability_rank(A: Tensor, B: Tensor, tol: float | None = None) -> int:
-    """Rank of ``[B, AB, …, Aⁿ⁻¹B]`` (9 for the two-area LFC: the tie-line sum is conserved)."""
+    """Rank of ``[B, AB, …, Aⁿ⁻¹B]`` (9 for the two-area LFC: the tie-line sum is conserved).
+
+    Each column is scaled to unit norm (the rank is the columns'), and a column of ``A M``
+    within ``n ε ‖A‖`` of zero (``M``'s columns of unit norm: the product's round-off) is
+    zero: scaled up, such a column of −2.8e-17 had counted as a full one, an uncontrollable
+    pair given rank 2 (a trial). ``tol``: ``matrix_rank``'s ``atol`` (finite, ≥ 0)."""
     _check_pair(A, B, ("A", "B"))
+    if tol is not None:  # (NaN had given rank 0, a negative tol had been taken)
+        tol = check_finite_number(tol, "tol", nonnegative=True)
+    n = A.shape[0]
+    roundoff = n * torch.finfo(A.dtype).eps * float(torch.linalg.matrix_norm(A, 2))
     blocks, M = [], B
-    for _ in range(A.shape[0]):
+    for i in range(n):
         # columns of unit norm (the rank is theirs): A's entries span four orders of
         # magnitude, and Aⁿ⁻¹B unscaled overflowed float32 (a chain of ten integrators)
-        M = M / M.norm(dim=0, keepdim=True).clamp_min(torch.finfo(M.dtype).tiny)
+        norm = M.norm(dim=0, keepdim=True)
+        if i > 0:  # (B's own columns are as given)
+            M = torch.where(norm <= roundoff, torch.zeros_like(M), M)
+        M = M / norm.clamp_min(torch.finfo(M.dtype).tiny)
         blocks.append(M)
         M = A @ M
     ctrb = torch.cat(blocks, dim=1)

@@ -150,3 +150,81 @@ def test_the_steady_kalman_filter_refuses_a_marginal_mode_no_measurement_sees():
     gain, pred, _ = kalman_steady_state(t([[c, -s], [s, c]]), t([[1.0, 0.0]]),
                                         torch.zeros(2, 2, dtype=torch.float64), R)  # fmt: skip
     assert float(gain.abs().max()) < 1e-6 and float(pred.abs().max()) < 1e-6
+
+
+_S = torch.tensor([[1.0, 0.3], [0.2, 1.0]], dtype=torch.float64)  # a change of coordinates
+
+
+def _in_other_coordinates(A, *more):
+    """``S A S⁻¹`` (and ``S M`` for the others): the same system, not triangular."""
+    Si = torch.linalg.inv(_S)
+    return (_S @ A @ Si, *(_S @ m for m in more))
+
+
+def test_an_unmeasured_position_is_undetectable_in_any_coordinates():
+    """A double integrator with its velocity alone measured: numpy gives the Jordan block's
+    eigenvalues √ε apart (1 ± 1e-8), where the PBH test passed, and the steady state came
+    back with P⁻ 2.8e8 and a residual of 1 (refused in triangular coordinates)."""
+    D = torch.float64
+    J = torch.tensor([[1.0, 1.0], [0.0, 1.0]], dtype=D)
+    (F,) = _in_other_coordinates(J)
+    H = torch.tensor([[0.0, 1.0]], dtype=D) @ torch.linalg.inv(_S)
+    for q in (torch.diag(torch.tensor([0.0, 1e-6], dtype=D)), torch.zeros(2, 2, dtype=D)):
+        Q = _S @ q @ _S.T
+        with pytest.raises(
+            ValueError, match="needs \\(F, H\\) detectable: the mode of F at eigenvalue 1"
+        ):
+            kalman_steady_state(F, H, Q, torch.eye(1, dtype=D))
+    seen = torch.eye(2, dtype=D)  # both measured: a steady state
+    kalman_steady_state(F, seen, _S @ _S.T * 1e-6, torch.eye(2, dtype=D))
+
+
+def test_a_gain_for_a_pair_that_cannot_be_stabilised_is_refused():
+    """scipy returned a 'solution' for these pairs in coordinates not triangular: dlqr's
+    closed loop kept its pole at 1.2 (DARE residual 0.44 of its terms), lqr(direct) a CARE
+    residual of 2.09."""
+    D = torch.float64
+    e1 = torch.tensor([[1.0], [0.0]], dtype=D)
+    F, B = _in_other_coordinates(torch.tensor([[1.2, 1.0], [0.0, 1.2]], dtype=D), e1)
+    with pytest.raises(ValueError, match="no stabilising solution here.*residual is"):
+        dlqr(F, B)
+    A, Bc = _in_other_coordinates(torch.tensor([[0.0, 1.0], [0.0, 0.0]], dtype=D), e1)
+    with pytest.raises(ValueError, match="no stabilising solution here.*residual is"):
+        lqr(A, Bc, method="direct")
+    K, _ = dlqr(*_in_other_coordinates(torch.tensor([[1.2, 1.0], [0.0, 1.2]], dtype=D),
+                                        torch.tensor([[0.0], [1.0]], dtype=D)))  # fmt: skip
+    assert float(torch.linalg.eigvals(F - B @ K).abs().max()) > 0  # (controllable: solved)
+
+
+def test_a_round_off_column_does_not_count_in_the_controllability_rank():
+    """A column of A M that is zero up to round-off (-2.8e-17) was scaled to unit length and
+    counted: an uncontrollable pair had rank 2; a NaN tol gave 0, a negative one was taken."""
+    D = torch.float64
+    A, B = _in_other_coordinates(torch.tensor([[1.0, 0.0], [0.0, 2.0]], dtype=D),
+                                 torch.tensor([[1.0], [0.0]], dtype=D))  # fmt: skip
+    assert controllability_rank(A, B) == 1
+    assert controllability_rank(A, _S @ torch.ones(2, 1, dtype=D)) == 2
+    for tol in (float("nan"), -1.0):
+        with pytest.raises(ValueError, match="tol must be a finite number >= 0"):
+            controllability_rank(A, B, tol=tol)
+
+
+def test_a_plant_matrix_holding_nan_is_refused_by_name():
+    """NaN had come out of the discretisation and the observer gain without a word, and
+    numpy's "SVD did not converge" out of the others; lqr with no input failed in scipy."""
+    D = torch.float64
+    bad = torch.tensor([[float("nan"), 1.0], [0.0, -1.0]], dtype=D)
+    B = torch.ones(2, 1, dtype=D)
+    calls = {
+        "A": [lambda: zoh_discretize(bad, B, 0.1), lambda: lqr(bad, B),
+              lambda: uncontrollable_direction(bad, B), lambda: controllability_rank(bad, B)],
+        "F": [lambda: dlqr(bad, B)],
+        "Ad": [lambda: luenberger_gain(bad, -torch.eye(2, dtype=D), 0.1)],
+        "A_closed": [lambda: observer_poles(bad, 0.1)],
+    }  # fmt: skip
+    for name, fns in calls.items():
+        for fn in fns:
+            with pytest.raises(ValueError, match=f"^{name} contains NaN or Inf values"):
+                fn()
+    with pytest.raises(ValueError, match="B must have at least one column"):
+        lqr(-torch.eye(2, dtype=D), torch.zeros(2, 0, dtype=D))
