@@ -49,6 +49,7 @@ from difffilter.linalg import safe_cholesky
 from difffilter.loop import LoopResult, ReplayedNoise, closed_loop
 from difffilter.models.registry import Scenario, register
 from difffilter.models.scenario import OWN_ATTACK, simulation_dtype
+from difffilter.models.schedules import AllSensors
 from difffilter.threats import Covert, Shaped
 
 from .attacks import Signal
@@ -807,12 +808,23 @@ class LFCScenario(Scenario):
         attack-free). ``info`` carries the exogenous draws (``xi, theta [B, T, 10]``,
         ``load``) that every estimator's own closed loop replays (common random numbers).
         ``us[:, t]`` is the input applied before ``x_{t+1}`` (control and load)."""
+        self._check_no_losses()
         dtype = simulation_dtype(dtype, model)
         draws = self.exogenous(runs, generators, dtype=dtype)
         loop = self.loop(self._shared_observer(draws, attack), draws, compensate=False,
                          attack=attack)  # fmt: skip
         info = {**loop.trajectories.info, **draws}
         return loop.trajectories._replace(info=info)
+
+    def _check_no_losses(self) -> None:
+        """The LFC loops deliver every measurement and every input (the paper's network):
+        a subclass's ``schedule()`` or ``input_loss_schedule()`` is refused, where it had been
+        ignored without a word (a lossy LFC scenario ran 100 % received; a registry trial)."""
+        if not isinstance(self.schedule(), AllSensors) or self.input_loss_schedule() is not None:
+            raise ValueError(
+                f"scenario {self.name!r}: the LFC loops take every measurement and input; a "
+                "schedule() or input_loss_schedule() of losses is not supported on them"
+            )
 
     def _shared_observer(self, draws, attack):
         """The estimator of :meth:`simulate`'s loop: a Kalman filter, χ²-gated at the
