@@ -32,6 +32,7 @@ suite's ``metrics``), so the verdict is reproducible from the files.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Collection
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -129,7 +130,18 @@ def state_metric(metrics: dict[str, dict]) -> str:
 
 
 def _finite(value) -> bool:
-    return value is not None and isinstance(value, int | float) and math.isfinite(value)
+    """Whether a metric's value is a finite real number (numpy's too); ``None`` is a missing
+    one. Anything else is refused: a metric given as ``np.float32`` or a 0-d tensor had
+    read as missing, and another estimator's value had set the bar (a trial of the
+    acceptance checks); ``True`` is no rate."""
+    if value is None:
+        return False
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(
+            f"a metric's value must be a real number or None; got {type(value).__name__} "
+            f"{value!r} (a tensor: .item())"
+        )
+    return math.isfinite(value)
 
 
 def best_analytic(
@@ -231,8 +243,9 @@ def judge_robustness(
         return min(values) if values else None
 
     def not_run_somewhere(name) -> bool:  # its minimum over the other threats alone is
-        # not its worst case (a partial 0.359 had set the bar: a robustness trial)
-        return any(row.get(name, {}).get("not_run") for row in cells.values())
+        # not its worst case (a partial 0.359 had set the bar: a robustness trial); a threat
+        # without its cell at all too (it had set the bar from the others: 0.9 for 0.3)
+        return any(name not in row or row[name].get("not_run") for row in cells.values())
 
     analytic_worst = [(w[0], n, w[1]) for n in sorted(analytic)
                       if not not_run_somewhere(n) and (w := worst_tpr(n))]  # fmt: skip

@@ -310,3 +310,44 @@ def test_a_calibrated_study_with_no_analytic_number_says_its_learned_are_not_jud
     judged = {**alone, "estimators": {**alone["estimators"], "cusum_ekf": STUDY["cusum_ekf"]},
               "estimator_roles": {"pf_nn_grad": "learned", "cusum_ekf": "analytic"}}  # fmt: skip
     assert "not judged" not in _acceptance_section(judged).body
+
+
+def test_a_metric_of_numpys_float_counts_and_a_tensor_is_refused():
+    """``np.float32`` metrics had read as missing: another analytic estimator's 1.00 set the
+    state bar where 0.40 is the best, so a learned 0.52 passed; the same learned numbers in
+    float32 failed every check. A 0-d tensor (or ``True``) is refused by name now."""
+    import numpy as np
+    import torch
+
+    from difffilter.eval.acceptance import best_analytic, judge
+
+    role = {"a1": "analytic", "a2": "analytic", "L": "learned"}
+    learned = {"tpr_at_far": 0.94, "state_rmse": 0.52, "fpr_at_far": 0.01}
+    metrics = {"a1": {"tpr_at_far": 0.90, "state_rmse": 1.00},
+               "a2": {"tpr_at_far": np.float32(0.95), "state_rmse": np.float32(0.40)}, "L": learned}  # fmt: skip
+    best = best_analytic(metrics, role)
+    assert best["state_rmse"][1] == "a2" and not judge(learned, best, 0.01)[1].holds
+    as_f32 = {k: np.float32(v) for k, v in learned.items()}
+    assert [c.holds for c in judge(as_f32, best, 0.01)] == [
+        c.holds for c in judge(learned, best, 0.01)
+    ]
+    for bad in (torch.tensor(0.95), True):
+        metrics["a2"]["tpr_at_far"] = bad
+        with pytest.raises(TypeError, match="a metric's value must be a real number or None"):
+            best_analytic(metrics, role)
+
+
+def test_an_analytic_detector_absent_from_a_threat_sets_no_worst_case_bar():
+    """Only a ``not_run`` cell had counted as not run: an analytic detector with no cell under
+    a threat set the bar from its other threats (0.9 where a1's worst, 0.3, is the bar), as
+    the docstring and the check's interval (``robustness_intervals``) say it must not."""
+    from difffilter.eval.acceptance import judge_robustness
+
+    role = {"a1": "analytic", "a2": "analytic", "L": "learned"}
+    row = {"state_rmse": 1.0}
+    cells = {
+        "t1": {"a1": {"tpr_at_far": 0.3, **row}, "a2": {"tpr_at_far": 0.9, **row}, "L": {"tpr_at_far": 0.5, **row}},
+        "t2": {"a1": {"tpr_at_far": 0.4, **row}, "L": {"tpr_at_far": 0.5, **row}},
+    }  # fmt: skip
+    verdict = judge_robustness(cells, role)["L"]
+    assert verdict["best_analytic_worst_tpr"] == (0.3, "a1", "t1") and verdict["tpr_holds"]
