@@ -850,9 +850,12 @@ def check_filter_inputs(
     return ys, us, mask
 
 
-def check_model(model) -> None:
+def check_model(model, *, prior: bool = True) -> None:
     """``model`` must be a state-space model (``dim_x``, ``dim_y``, ``transition``, ``observe``)
-    whose noise models are of its prior's dtype and device."""
+    whose noise models are of its prior's dtype and device, and (``prior``: where a run
+    starts from it) whose prior mean is finite (written NaN in place after construction, it
+    had been refused by ``init`` and run to NaN means by the whole-sequence filters: a trial
+    of models changed under the filters)."""
     needed = ("dim_x", "dim_y", "dim_u", "transition", "observe", "initial")
     missing = [name for name in needed if not hasattr(model, name)]
     if missing:
@@ -861,6 +864,10 @@ def check_model(model) -> None:
             f"{type(model).__name__} lacks {', '.join(missing)}"
         )
     _check_noise_dtypes(model)
+    mean = getattr(model.initial, "mean", None) if prior else None
+    if isinstance(mean, Tensor) and mean.is_floating_point() and mean.device.type != "meta":
+        if not bool(torch.isfinite(mean).all()):
+            raise ValueError("model.initial.mean (the prior mean m0) contains NaN or Inf values")
 
 
 def _check_noise_dtypes(model) -> None:

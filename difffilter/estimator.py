@@ -330,7 +330,7 @@ class Estimator:
                 f"got {type(carry).__name__}"
             )
         model = carry.model
-        check_model(model)  # (a noise assigned since init may be of another dtype)
+        check_model(model, prior=False)  # (a noise assigned since init may be of another dtype)
         self._check_carry(carry)
         y, u, mask = check_step_inputs(model, None, y, u, mask)
         check_carry_batch(self._runs_of(carry), y, u, mask)

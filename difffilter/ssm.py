@@ -480,6 +480,39 @@ class LinearGaussianModel(StateSpaceModel):
         self.process_noise = Gaussian(torch.zeros(dx, dtype=dtype, device=device), Q)
         self.measurement_noise = Gaussian(torch.zeros(dy, dtype=dtype, device=device), R)
 
+    def __setattr__(self, name, value):
+        # F, H and B assigned after construction are checked as the constructor checks
+        # them, and B sets dim_u (None: no input): another shape or dtype had been taken
+        # and the filters failed in torch's words (or the UKF ran on a broadcast), B = None
+        # crashed the Kalman filter, and a B of another width left dim_u stale (a trial of
+        # models changed under the filters)
+        if name in ("F", "H", "B") and "measurement_noise" in self._modules:
+            value = self._checked_matrix(name, value)
+            if name == "B":
+                super().__setattr__("dim_u", 0 if value is None else value.shape[-1])
+        super().__setattr__(name, value)
+
+    def _checked_matrix(self, name: str, value):
+        """``value`` for ``F``, ``H`` or ``B`` against the model's dims, dtype and device."""
+        if value is None and name == "B":
+            return None
+        dx, dy = self.dim_x, self.dim_y
+        want = {"F": f"[..., {dx}, {dx}]", "H": f"[..., {dy}, {dx}]", "B": f"[..., {dx}, du]"}
+        if not isinstance(value, Tensor):
+            raise ValueError(f"{name} must be a tensor {want[name]}; got {type(value).__name__}")
+        rows, cols = {"F": (dx, dx), "H": (dy, dx), "B": (dx, None)}[name]
+        if value.dim() < 2 or value.shape[-2] != rows or cols not in (None, value.shape[-1]):
+            raise ValueError(f"{name} must have shape {want[name]}; got {tuple(value.shape)}")
+        noise = self.process_noise.cov
+        if value.dtype != noise.dtype or value.device != noise.device:
+            raise ValueError(
+                f"{name} is {value.dtype} on {value.device} and the model {noise.dtype} on "
+                f"{noise.device}: give it the model's (or convert the model: model.to(...))"
+            )
+        if value.device.type != "meta":
+            check_finite(value, name)
+        return value
+
     def transition_matrix(self, k: int) -> Tensor:
         """``F_k`` ``[*, dx, dx]``."""
         return self.F

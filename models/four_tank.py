@@ -201,7 +201,12 @@ class FourTankModel(StateSpaceModel):
 
         Evaluated with ``dt`` folded into the coefficients (``step_diag``, ``step_couple``,
         ``step_offset``), equal to ``x + dt · continuous_rhs(x)`` up to round-off. ``dt``
-        is fixed at construction.
+        is fixed at construction. The ``step_*`` buffers are the discrete plant (the filters
+        and ``simulate`` read them); ``outflow``, ``couple`` and ``inflow`` are the
+        continuous coefficients ``continuous_rhs`` reads, folded into ``step_*`` once at
+        construction: to change the plant in place, edit the ``step_*`` buffers (and the
+        continuous ones with them, where ``continuous_rhs`` is used), or build a new model
+        (a trial had edited ``inflow`` alone: the filters kept the old one, 0.125 apart).
         """
         s = torch.sqrt(x.clamp_min(0.0))
         offset, diag, couple = self._step_coefficients(x)

@@ -191,7 +191,7 @@ class LFCPlant(nn.Module):
             process_var = 1e-6 * dt / 0.01
         process_var = check_finite_number(process_var, "process_var", positive=True)
         measurement_var = check_finite_number(measurement_var, "measurement_var", positive=True)
-        self.dt = dt
+        self._dt = dt
         self.params = params or LFCParameters()
         A, B, F = continuous_model(self.params, dtype=torch.float64)
         Ad, BFd = zoh_discretize(A, torch.cat([B, F], dim=1), self.dt)
@@ -208,6 +208,13 @@ class LFCPlant(nn.Module):
             "R": measurement_var * eye,
         }.items():
             self.register_buffer(name, value.to(dtype))
+
+    @property
+    def dt(self) -> float:
+        """Sampling time in s (read-only: ``Ad``, ``Bd`` and ``Fd`` are discretised with it;
+        assigned later, it had been stored and the old matrices kept, 1.7 off a plant built
+        with it: a trial of models changed under the filters)."""
+        return self._dt
 
     @property
     def dtype(self):

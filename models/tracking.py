@@ -303,6 +303,9 @@ class TrackingModel(StateSpaceModel):
         # the noise the fast sampler's L (_chol_q) belongs to; not a submodule (the state
         # dict holds it once): a noise assigned later is sampled by the generic path
         object.__setattr__(self, "_sampled_noise", self.process_noise)
+        # and the covariance it was made from, as it was (written in place since, the old L
+        # had drawn on: simulate 0.515 off a model built with the new Q; a trial)
+        object.__setattr__(self, "_sampled_cov", (self._process_cov_stamp(), Q.detach().clone()))
         self.measurement_noise = GlintNoise(
             torch.tensor([1 - kappa, kappa], dtype=dtype),
             torch.tensor([sigma1, sigma2], dtype=dtype),
@@ -316,6 +319,25 @@ class TrackingModel(StateSpaceModel):
     #: the posterior Cramér–Rao bound applies (difffilter.bounds.posterior_crb)
     samples_process_noise = True
 
+    def _process_cov_stamp(self) -> tuple:
+        """Where the process noise's covariance lives and how often it was written."""
+        cov = self.process_noise.cov
+        return (cov.data_ptr(), cov._version)
+
+    def _same_process_cov(self) -> bool:
+        """Whether the process noise's covariance is still the one ``L`` was made from: by
+        its stamp, else by value (a copy of the model holds it elsewhere; the stamp is then
+        renewed)."""
+        stamp, values = self._sampled_cov
+        now = self._process_cov_stamp()
+        if now == stamp:
+            return True
+        cov = self.process_noise.cov.detach()
+        if cov.shape != values.shape or not torch.equal(cov, values.to(cov)):
+            return False
+        object.__setattr__(self, "_sampled_cov", (now, values))
+        return True
+
     def sample_transition(self, x, u, k, generator=None):
         """``x_{k+1} = F x_k + L ε`` with ``L = chol(Q)`` for ``x [..., 4]``: the same ``ε``
         (one ``randn`` of ``x``'s shape, ``[..., 4]`` per particle) as the generic path;
@@ -328,7 +350,8 @@ class TrackingModel(StateSpaceModel):
         slower on CPU; per-component in-place arithmetic reads ``ε`` with stride 4 and was
         ~1.6× slower in float32). One particle ``x [..., 4]``: per axis in closed form.
         """
-        if self.process_noise is not self._sampled_noise:  # replaced: L is not its factor
+        if self.process_noise is not self._sampled_noise or not self._same_process_cov():
+            # replaced, or written in place: L is not its factor
             return super().sample_transition(x, u, k, generator)
         eps = torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
         if x.dim() >= 3:

@@ -262,11 +262,17 @@ class AdaptiveKalmanProposal:
         model made noisier under the estimator was filtered with its old ``R``, 125 cm
         away from a fresh estimator's)."""
         R, Q = self.base.measurement_cov(0), self.base.process_cov(0)
-        grads = (R.requires_grad, Q.requires_grad, under_transform(Q, R))
-        key = (R, R._version, Q, Q._version, grads)
+        # the tensors themselves, and what they hold: their version (written in place),
+        # their storage (``R.data = new`` keeps the object and its version: the old noise
+        # had been filtered on, 1.56 off), and whether a gradient is wanted (the key's
+        # flags had not been compared: R.requires_grad_() later kept the information form)
+        traced = under_transform(Q, R)  # (wrapped tensors: no storage to read)
+        state = (R._version, None if traced else R.data_ptr(), Q._version,
+                 None if traced else Q.data_ptr(), R.requires_grad, Q.requires_grad, traced)  # fmt: skip
         old = self._noise_key
-        if old is not None and old[0] is R and old[2] is Q and old[1::2] == key[1::2]:
+        if old is not None and old[0] is R and old[1] is Q and old[2] == state:
             return
+        key = (R, Q, state)
         form = self.requested_form
         if form is Form.AUTO:
             fits = Q.dtype == torch.float64 and information_form_applies(self.base)
