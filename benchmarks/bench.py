@@ -50,9 +50,11 @@ Prints, in one run:
 11. One training chunk of the learned LFC estimator (``train/configs/lfc.yaml``, 32 runs ×
    100 steps), forward and backward apart (``bench_training.py``; ``--only-training``).
 
-Targets (2-core CPU) are printed beside the figures; a missed target says so. Everything
-runs with one intra-op thread (``--threads``; numpy's OpenBLAS on one too, unless
-``OPENBLAS_NUM_THREADS`` says otherwise), the faster in section 9 on the shared 2-core
+Targets (2-core CPU) are printed beside the figures; a missed target says so. Sections 1–3
+and 8 run with ``--threads`` intra-op threads (default one; numpy's OpenBLAS on one too,
+unless ``OPENBLAS_NUM_THREADS`` says otherwise), sections 4–7 with one whatever it says
+(their headers or rows say so), section 9 with one and two, section 10 with every core;
+one is the faster in section 9 on the shared 2-core
 machine: for every KF workload in every run (by 1.1× to 100×), for every PF workload but
 in the quietest run, where two threads won the PF at B·N = 1e5 by 1.4× (docs/benchmarks.md).
 """
@@ -505,17 +507,19 @@ def _positive_int(text: str) -> int:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--skip-memory", action="store_true")
-    p.add_argument("--only-kf-large", action="store_true", help="only section 1b (B = 1e5)")
-    p.add_argument("--only-robot", action="store_true", help="only section 6 (mdpf_fused_ci)")
-    p.add_argument("--only-tracking", action="store_true", help="only section 5 (rrp_pf_da)")
-    p.add_argument("--only-ot", action="store_true", help="only section 3b (one OT step)")
-    p.add_argument("--only-lfc", action="store_true", help="only section 7 (LFC learners)")
-    p.add_argument("--only-online", action="store_true", help="only sections 1c and 2b")
-    p.add_argument("--only-peers", action="store_true", help="only section 8 (torch-kf)")
-    p.add_argument("--only-threads", action="store_true", help="only section 9 (1 or 2 threads)")
-    p.add_argument("--only-cuda", action="store_true", help="only section 10 (CUDA)")
-    p.add_argument("--only-training", action="store_true",
-                   help="only section 11 (an LFC training step)")  # fmt: skip
+    # one --only-* at a time (two had run the first in the order below alone, exit 0)
+    only = p.add_mutually_exclusive_group()
+    only.add_argument("--only-kf-large", action="store_true", help="only section 1b (B = 1e5)")
+    only.add_argument("--only-robot", action="store_true", help="only section 6 (mdpf_fused_ci)")
+    only.add_argument("--only-tracking", action="store_true", help="only section 5 (rrp_pf_da)")
+    only.add_argument("--only-ot", action="store_true", help="only section 3b (one OT step)")
+    only.add_argument("--only-lfc", action="store_true", help="only section 7 (LFC learners)")
+    only.add_argument("--only-online", action="store_true", help="only sections 1c and 2b")
+    only.add_argument("--only-peers", action="store_true", help="only section 8 (torch-kf)")
+    only.add_argument("--only-threads", action="store_true", help="only section 9 (1 or 2 threads)")
+    only.add_argument("--only-cuda", action="store_true", help="only section 10 (CUDA)")
+    only.add_argument("--only-training", action="store_true",
+                      help="only section 11 (an LFC training step)")  # fmt: skip
     p.add_argument("--threads", type=_positive_int, default=1,
                    help="intra-op threads (default 1: the faster one measured, section 9)")  # fmt: skip
     p.add_argument("--json", type=Path, default=None, help="also write the figures as JSON")
