@@ -30,6 +30,7 @@ both particles and weights.
 
 from __future__ import annotations
 
+import functools
 import math
 import numbers
 import threading
@@ -39,10 +40,10 @@ from typing import ClassVar, NamedTuple
 
 import torch
 from torch import Tensor
-from torch.autograd.function import once_differentiable
 from torch.utils.checkpoint import checkpoint as _checkpoint
 
 from ._checks import broadcast_shapes, check_positive_int
+from .linalg import under_transform
 
 __all__ = [
     "systematic_ancestors",
@@ -855,6 +856,26 @@ def _exp_floor(dtype: torch.dtype) -> float:
     return 2.0 * math.log(torch.finfo(dtype).eps)
 
 
+def _first_order_only(backward):
+    """A hand-written backward that cannot itself be differentiated: refused where autograd
+    would record it (``create_graph=True``: a Hessian, a gradient penalty). Marked
+    ``once_differentiable``, a double backward had dropped its second-order terms without a
+    word where the incoming gradient held no graph (a trial of the resamplers: 1.3e-13 where
+    the kernel method's ``transport_matrix``, plain torch operations, gives 495)."""
+
+    @functools.wraps(backward)
+    def checked(ctx, *grads):
+        if torch.is_grad_enabled():
+            raise RuntimeError(
+                "OptimalTransport's gradient is computed by hand and cannot be differentiated "
+                "again (create_graph=True, a Hessian): use another resampler (Soft, "
+                "StopGradient, an index scheme) for second derivatives"
+            )
+        return backward(ctx, *grads)
+
+    return checked
+
+
 class _LogSumExpShift(torch.autograd.Function):
     """``s_i = logsumexp_j(h_j − K_ij)`` for ``h [M, N]``, ``K [M, N, N]`` → ``[M, N]``.
 
@@ -871,7 +892,7 @@ class _LogSumExpShift(torch.autograd.Function):
         return out
 
     @staticmethod
-    @once_differentiable
+    @_first_order_only
     def backward(ctx, grad_out: Tensor):
         h, k, out = ctx.saved_tensors
         soft = _softmax_shift(h, k, out)  # S [M, N, N]
@@ -901,7 +922,7 @@ class _BarycentricProjection(torch.autograd.Function):
         return out
 
     @staticmethod
-    @once_differentiable
+    @_first_order_only
     def backward(ctx, grad_out: Tensor):
         h, k, x, lse, out = ctx.saved_tensors
         soft_t = _softmax_shift(h, k, lse)  # Sᵀ [M, j, i]
@@ -948,7 +969,16 @@ def _standardise(x: Tensor, log_w: Tensor, scale: bool) -> Tensor:
     centre = (torch.exp(log_w.detach()).unsqueeze(-1) * x.detach()).sum(-2, keepdim=True)
     if not scale:
         return x - centre
-    var = x.var(dim=-2, unbiased=False)  # [M, d]
+    weightless = log_w.detach() == -math.inf  # [M, N]
+    if bool(weightless.any()):
+        # particles of zero weight are not in the measure: over the others alone (one far
+        # away had set σ, and the blur, for the whole cloud: std 0.35 for 0.98; a trial)
+        keep = (~weightless).to(x.dtype).unsqueeze(-1)
+        count = keep.sum(-2).clamp_min(1.0)
+        mean = (keep * x).sum(-2, keepdim=True) / count.unsqueeze(-2)
+        var = (keep * (x - mean).square()).sum(-2) / count
+    else:
+        var = x.var(dim=-2, unbiased=False)  # [M, d]
     var = torch.where(var > 0, var, torch.ones_like(var))
     return (x - centre) / torch.sqrt(var).unsqueeze(-2)
 
@@ -1227,7 +1257,7 @@ class _KernelTransport(torch.autograd.Function):
         return y
 
     @staticmethod
-    @once_differentiable
+    @_first_order_only
     def backward(ctx, grad_y):
         xs, x, log_a, phi, psi, us, vs, y, den, kernel = ctx.saved_tensors
         eps = ctx.eps
@@ -1534,6 +1564,19 @@ class OptimalTransport(Resampler):
             raise ValueError(
                 f"particles are {particles.dtype} and log_weights {log_weights.dtype}: optimal "
                 "transport computes with both; give them one dtype"
+            )
+        if torch.finfo(particles.dtype).bits < 32:
+            # (its kernel floor is e^-6.5 of a row's largest entry in float16: it swamped
+            # the kernel, still "converged", and moved particles 0.53; a trial)
+            raise ValueError(
+                f"particles and log_weights are {particles.dtype}: optimal transport needs "
+                "float32 or float64 (its kernel underflows in half precision)"
+            )
+        if under_transform(particles, log_weights):
+            raise ValueError(
+                "OptimalTransport's gradients are written by hand for torch.autograd: they do "
+                "not run under torch.func transforms or forward-mode AD (jvp, jacfwd, grad, "
+                "vmap); use torch.autograd.grad, or another resampler there"
             )
         batch = log_weights.shape[:-1]
         n, d = particles.shape[-2:]
