@@ -480,6 +480,25 @@ def _stack_thresholds(values: Sequence, batch: torch.Size, like: Tensor):
     return _stack_scalars(tensors, batch)
 
 
+def _stack_extra(key: str, outs: Sequence[StepOutput], batch: torch.Size) -> Tensor:
+    """The steps' ``extras[key]`` stacked after the batch dimensions: every step must give
+    it, as a tensor (the keys of the first step alone had been stacked, a record a hook
+    began at step 3 dropped without a word, one that stopped a bare ``KeyError``, and a
+    number a failure in ``torch.stack``: a trial of the plug-ins)."""
+    values = []
+    for t, out in enumerate(outs, start=1):
+        value = (out.extras or {}).get(key)
+        if not isinstance(value, Tensor):
+            got = "nothing" if value is None else type(value).__name__
+            raise ValueError(
+                f"the step outputs' extras[{key!r}] must be a tensor at every step (a record "
+                f"of a hook or likelihood: give it at every step); step {t} of {len(outs)} "
+                f"gave {got}"
+            )
+        values.append(value)
+    return torch.stack(values, dim=len(batch))
+
+
 def stack_steps(
     outs: Sequence[StepOutput],
     batch: torch.Size,
@@ -512,9 +531,8 @@ def stack_steps(
         increments = _stack_scalars([o.log_likelihood for o in outs], batch)
         extras["log_likelihood_increments"] = increments
         extras["log_likelihood"] = increments.sum(-1)
-    if first.extras:
-        for key in first.extras:
-            extras[key] = torch.stack([o.extras[key] for o in outs], dim=len(batch))
+    for key in dict.fromkeys(k for o in outs if o.extras for k in o.extras):
+        extras[key] = _stack_extra(key, outs, batch)
     extras.update(collected or {})
     means = _stack_vectors([o.mean for o in outs], batch)
     covs = None if first.cov is None else _stack_matrices([o.cov for o in outs], batch)

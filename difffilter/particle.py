@@ -679,13 +679,16 @@ def _check_likelihood(likelihood) -> None:
     # misspelt weigh had been told "must be a callable object": a gradients trial)
     if hasattr(likelihood, "weigh") or (hasattr(likelihood, "init") and not callable(likelihood)):
         _check_step_likelihood(likelihood)
+    elif getattr(likelihood, "uses_predictive", False):  # (it failed at the first step)
+        # called with predictive= always: a required predictive had been refused against
+        # a call without it that the filter never makes (a trial of the plug-ins)
+        check_strategy(likelihood, "likelihood", "difffilter.ModelLikelihood()")
+        check_callable_as(likelihood, f"the likelihood {type(likelihood).__name__} "
+                          "(uses_predictive = True)", "likelihood",
+                          ("model", "y", "particles", "k", "mask"), ("predictive",))  # fmt: skip
     else:
         check_strategy(likelihood, "likelihood", "difffilter.ModelLikelihood()",
                        ("model", "y", "particles", "k", "mask"))  # fmt: skip
-        if getattr(likelihood, "uses_predictive", False):  # (it failed at the first step)
-            check_callable_as(likelihood, f"the likelihood {type(likelihood).__name__} "
-                              "(uses_predictive = True)", "likelihood",
-                              ("model", "y", "particles", "k", "mask"), ("predictive",))  # fmt: skip
 
 
 #: What a stateful likelihood implements (:class:`StepLikelihood`), named in its errors.
@@ -735,7 +738,10 @@ def _resample(pf: ParticleFilter, particles, log_w, ess, w, generator, k: int):
     rows = None if count == need.numel() else need
     # weights here are normalised and finite by construction: skip re-validation
     kind = type(resampler)
-    if not isinstance(resampler, Resampler) or defined_outside(kind, "__call__"):  # a user's
+    # a user's __call__, or resample_normalized (one returning N − 1 particles had shrunk
+    # the carry unchecked: a trial of the plug-ins), checked
+    if (not isinstance(resampler, Resampler) or defined_outside(kind, "__call__")
+            or defined_outside(kind, "resample_normalized")):  # fmt: skip
         res = _checked_resampled(resampler(particles, log_w, generator), particles, log_w,
                                  resampler, k)  # fmt: skip
         if rows is not None:
@@ -846,11 +852,21 @@ def _particle_step(pf: ParticleFilter, carry: ParticleState, y, u, mask):
     )  # fmt: skip
     new_carry = ParticleState(new, log_w_new, k + 1, ess_new, w_new, model, aux, carry.generators)
     if pf.hooks:
+        taken = {key: f"the likelihood {type(pf.likelihood).__name__}" for key in record}
         for hook in pf.hooks:
             recorded = hook(model, y, mask, new_carry, out)
+            name = getattr(hook, "__qualname__", type(hook).__name__)
             if type(recorded) is not dict or not _RESERVED_KEYS.isdisjoint(recorded):
-                name = getattr(hook, "__qualname__", type(hook).__name__)
                 recorded = _checked_record(recorded, f"the step hook {name}", "record", k + 1)
+            if not taken.keys().isdisjoint(recorded):
+                # (one plug-in's record had silently replaced another's of the same name:
+                # a detector's "score" read as a hook's; a trial of the plug-ins)
+                key = next(key for key in recorded if key in taken)
+                raise ValueError(
+                    f"the step hook {name} recorded {key!r} at step {k + 1}, which "
+                    f"{taken[key]} records too (one would replace the other): name them apart"
+                )
+            taken.update(dict.fromkeys(recorded, f"the step hook {name}"))
             extras.update(recorded)
         if not pf.record_prior:
             del extras["prior_log_weights"]

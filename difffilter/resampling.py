@@ -478,10 +478,11 @@ def check_resampler_hooks(resampler) -> None:
 
 
 def _own_draw(resampler: Resampler) -> bool:
-    """Whether ``resampler`` draws its ancestors with a ``_draw`` defined outside this module
-    (a user's): its class's, or its ``base``'s (:class:`Soft` and :class:`StopGradient`
-    draw with their base's ``_draw``)."""
-    if defined_outside(type(resampler), "_draw"):
+    """Whether ``resampler`` draws its ancestors with a ``_draw`` or ``_draw_given`` defined
+    outside this module (a user's; an index N from a ``_draw_given`` had been read as the
+    next run's particle, unchecked: a trial of the plug-ins): its class's, or its ``base``'s
+    (:class:`Soft` and :class:`StopGradient` draw with their base's ``_draw``)."""
+    if defined_outside(type(resampler), "_draw") or defined_outside(type(resampler), "_draw_given"):
         return True
     base = getattr(resampler, "base", None)
     return isinstance(base, Resampler) and _own_draw(base)
