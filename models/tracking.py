@@ -173,6 +173,10 @@ class GlintNoise(NoiseModel):
             check_log_prob_mask(mask, self.dim)  # (a 2 had weighed its entry twice, 0.5 half)
         # (an unreceived entry holding NaN or 1e200 had made its sensor's term NaN, 0 · inf)
         sq = (value if mask is None else torch.where(mask, value, 0.0)).square()
+        # a received residual whose square overflows: the largest finite square instead (its
+        # sensor's term then −inf), as the table's zeros for the other sensors times ∞ had
+        # made every sensor's term NaN (a trial: [−inf, nan, nan, nan] for [−inf, 1.22, …])
+        sq = sq.clamp_(max=torch.finfo(sq.dtype).max)
         if mask is None:
             quad, norm = sq @ self._quad, self._norm.sum(0)
         else:

@@ -73,6 +73,17 @@ class BiasDeception:
             raise ValueError(f"rho must have shape [..., {model.dim_y}] (the model's dim_y); "
                              f"got {tuple(self.rho.shape)}")  # fmt: skip
         rho = self.rho.to(dtype=y.dtype, device=y.device)
+        try:
+            fits = torch.broadcast_shapes(rho.shape, y.shape) == y.shape
+        except RuntimeError:
+            fits = False
+        if not fits:
+            # (a ρ per run for another number of runs had failed in torch's "size of tensor
+            # a (2) must match … (3)", naming neither; a trial)
+            raise ValueError(
+                f"rho {tuple(rho.shape)} must broadcast to the measurements {tuple(y.shape)} "
+                "(one deception vector, or one per run)"
+            )
         m = None if mask is None else mask.unsqueeze(-2)
         return model.measurement_log_prob((y - rho).unsqueeze(-2), particles, k, m)
 
@@ -304,13 +315,23 @@ class MixtureParticleFilter(ParticleFilter):
             raise ValueError(
                 f"likelihood must be a DeceptionMixtureLikelihood; got {type(likelihood).__name__}"
             )
-        self.mixture, self.threshold = likelihood, threshold  # (checked by __setattr__)
-        self._options = dict(
-            resampler=resampler if resampler is not None else Systematic(),
-            proposal=proposal, ess_threshold=ess_threshold, innovations=innovations,
+        self.threshold = threshold  # (checked by __setattr__)
+        super().__init__(
+            num_particles, likelihood=likelihood, hooks=(self._responsibility,),
+            resampler=resampler if resampler is not None else Systematic(), proposal=proposal,
+            ess_threshold=ess_threshold, innovations=innovations,
         )  # fmt: skip
-        super().__init__(num_particles, likelihood=likelihood, hooks=(self._responsibility,),
-                         **self._options)  # fmt: skip
+
+    @property
+    def mixture(self) -> DeceptionMixtureLikelihood:
+        """The mixture likelihood: the filter's ``likelihood`` (one object: kept twice, one
+        assigned later had left the other weighing or scoring with the old ``p``, 0.6-0.8
+        off a filter built with the new one; a trial)."""
+        return self.likelihood
+
+    @mixture.setter
+    def mixture(self, value) -> None:
+        self.likelihood = value
 
     def __setattr__(self, name, value):
         # checked whenever set, not at __init__ alone: a NaN threshold assigned later never
@@ -321,6 +342,14 @@ class MixtureParticleFilter(ParticleFilter):
             if number is None or not 0.0 <= number <= 1.0:
                 raise ValueError(f"threshold must lie in [0, 1] (a probability); got {value!r}")
             value = number
+        elif name == "likelihood" and not isinstance(value, DeceptionMixtureLikelihood):
+            raise ValueError(
+                f"likelihood must be a DeceptionMixtureLikelihood; got {type(value).__name__}"
+            )
+        elif name == "hooks" and "hooks" in self.__dict__:
+            # the filter's own hook (the attack posterior, its score) stays: hooks assigned
+            # later had dropped it, and the next step failed on a bare KeyError 'p'
+            value = (*(h for h in value if h != self._responsibility), self._responsibility)
         super().__setattr__(name, value)
 
     def _responsibility(self, model, y, m, state, out):  # P(l_k = 1 | ỹ_{1:k}) from w_{k−1}
@@ -345,9 +374,14 @@ class MixtureParticleFilter(ParticleFilter):
         if type(self.proposal) is not BootstrapProposal:
             return None
         attacked = self.mixture.replacement_term(ys, mask)
+        # the settings as they are now (those of the constructor had been kept here: a
+        # resampler, ESS threshold, proposal or hook assigned later ran in the steps alone,
+        # means up to 2.09 off; a trial)
+        hooks = tuple(h for h in self.hooks if h != self._responsibility)
         tabulated = ParticleFilter(
             self.num_particles, likelihood=_Tabulated(self.mixture, attacked.unsqueeze(-1), carry.k),
-            **self._options,
+            resampler=self.resampler, proposal=self.proposal, ess_threshold=self.ess_threshold,
+            innovations=self.innovations, hooks=hooks, record_prior=self.record_prior,
         )  # fmt: skip
         batch = self.batch_of(carry)
         out = _step_through(tabulated, carry, ys, us, mask, batch, None)
