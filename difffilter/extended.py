@@ -169,10 +169,15 @@ class SigmaPoints:
     PRECISION_WARNING = 1e-3
 
     def __init__(self, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0):
-        # finite numbers: a NaN or inf made a NaN covariance, blamed on P at the first step
-        self.alpha = check_finite_number(alpha, "alpha", positive=True)
-        self.beta = check_finite_number(beta, "beta")
-        self.kappa = check_finite_number(kappa, "kappa")
+        self.alpha, self.beta, self.kappa = alpha, beta, kappa  # (checked by __setattr__)
+
+    def __setattr__(self, name, value):
+        # finite numbers: a NaN or inf made a NaN covariance, blamed on P at the first step;
+        # checked whenever set (assigned later, NaN had been blamed on the transition f, and
+        # alpha = -0.5 ran: a trial of the sigma-point filters)
+        if name in ("alpha", "beta", "kappa"):
+            value = check_finite_number(value, name, positive=name == "alpha")
+        super().__setattr__(name, value)
 
     def weights(self, n: int, dtype, device) -> tuple[Tensor, Tensor, float]:
         """Mean weights ``[2n+1]``, covariance weights ``[2n+1]`` and the scale ``√(n+λ)``."""
@@ -235,12 +240,21 @@ class UnscentedKalmanFilter(GaussianFilter):
     """
 
     def __init__(self, sigma_points: SigmaPoints | None = None):
-        _check_sigma_points(sigma_points)
-        self.sigma_points = sigma_points or SigmaPoints()
+        self.sigma_points = sigma_points  # (checked by __setattr__; None: the defaults)
+
+    def __setattr__(self, name, value):
+        # checked whenever set (None or a tuple assigned later had failed on "'NoneType'
+        # object has no attribute 'weights'": a trial), None read as the constructor reads it
+        if name == "sigma_points":
+            _check_sigma_points(value)
+            value = value or SigmaPoints()
+        super().__setattr__(name, value)
 
     def _init(self, model, batch_shape, generators):
         own = model_batch_shape(model, matrices_only=True) or method_matrices_batch(model)
-        if own:  # sigma points [..., 2n+1, n] meet F and H: a raw shape error in torch
+        # sigma points [..., 2n+1, n] meet F and H: a raw shape error in torch (one set of a
+        # batch of one, [1, n, n], is one model: it had been refused, a trial)
+        if own and torch.Size(own).numel() > 1:
             raise ValueError(
                 f"the UKF evaluates f and h on sigma points, and this model's F, B or H have "
                 f"batch shape {tuple(own)} (one per run): use the Kalman filter or the EKF, "
@@ -284,8 +298,9 @@ class UnscentedKalmanFilter(GaussianFilter):
             y_hat, dy_pts = wrapped_spread(model, Y, wm, centre=Y[..., 0, :])
         dx_pts = Xp - pred_mean.unsqueeze(-2)
         residual = model.measurement_residual(y, y_hat)
-        if mask is not None:
-            dy_pts = dy_pts * mask.to(dy_pts.dtype).unsqueeze(-2)
+        if mask is not None:  # (a where: h NaN at an unreceived entry had stopped the update)
+            received = mask if mask.dtype == torch.bool else mask != 0
+            dy_pts = torch.where(received.unsqueeze(-2), dy_pts, 0.0)
         eye_y = torch.eye(Y.shape[-1], dtype=Y.dtype, device=Y.device)
         residual, _, R, observed = masked_measurement(
             residual, eye_y, step_covariance(model, "measurement_cov", k), mask

@@ -281,10 +281,13 @@ def masked_measurement(
     if mask is None:
         return residual, obs_matrix, noise_cov, obs_matrix.shape[-2]
     m = mask.to(obs_matrix.dtype if residual is None else residual.dtype)
+    received = mask if mask.dtype == torch.bool else m != 0
     if residual is not None:  # (not residual · m: a NaN or ∞ where nothing was received,
         # as lost values are stored, made the density NaN: a linalg trial)
-        residual = torch.where(mask if mask.dtype == torch.bool else m != 0, residual, 0.0)
-    obs_matrix = obs_matrix * m.unsqueeze(-1)
+        residual = torch.where(received, residual, 0.0)
+    # (not H · m either: a Jacobian row NaN where nothing was received, an EKF on a silent
+    # range beacon it sits on, had stopped the update of the received entries: a trial)
+    obs_matrix = torch.where(received.unsqueeze(-1), obs_matrix, 0.0)
     eye = torch.eye(m.shape[-1], dtype=m.dtype, device=m.device)
     noise_cov = noise_cov * outer(m, m) + torch.diag_embed(1.0 - m) * eye
     return residual, obs_matrix, noise_cov, m.sum(-1)
