@@ -412,6 +412,9 @@ class GainSchedule:
         ``k``: about eight tensor operations in all, the same numbers as :meth:`predict`,
         :meth:`update` and the moments' whitening. ``mean [..., dx]``, ``y [..., dy]``, ``u
         [..., du]`` or ``None`` → ``[..., dx]``, ``[..., dx]``, ``[..., dy]``, ``[...]``.
+        Unchecked (the lean step's inner call: :meth:`KalmanFilter.step
+        <difffilter.KalmanFilter.step>` checks ``y`` and ``u`` first): a ``y`` of one entry
+        broadcasts over ``dy`` here without a word (a trial of the gain schedule).
         """
         m = self.moments(k)
         index = self._index(k)
@@ -460,6 +463,9 @@ class GainSchedule:
         """``(m_k, ν_k, S_k)``: ``pred_mean [..., dx]``, ``y [..., dy]`` → ``[..., dx]``,
         ``[..., dy]``, ``[dy, dy]`` (shared by the runs)."""
         m = self.moments(k)
+        dy = m.innovation_cov.shape[-1]
+        if y.dim() < 1 or y.shape[-1] != dy:  # (a y [1] had broadcast over dy = 2, unsaid)
+            raise ValueError(f"y must have shape [..., {dy}]; got {tuple(y.shape)}")
         innovation = self.innovation(pred_mean, y)
         return pred_mean + matvec(m.gain, innovation), innovation, m.innovation_cov
 
@@ -555,7 +561,7 @@ class CovarianceChunks:
         if finite < len(moments[0]):  # the finite steps now; the next chunk raises
             moments = tuple(m[:finite] for m in moments)
         F, _, Q, _ = self._host
-        chained = chained_steps(moments[0], moments[1], F, Q, self.CHAIN_TOL)
+        chained = chained_steps(moments[0], moments[1], F, Q, self.chain_tol(F.dtype))
         if chained < len(moments[0]):  # the steps the chain holds; then step by step
             moments, self._stepwise = tuple(m[:chained] for m in moments), True
         K, P = moments[2], moments[1]
@@ -597,14 +603,26 @@ class CovarianceChunks:
         return finite
 
     #: The chain test's tolerance per entry, against ``√(P⁻ᵢᵢ P⁻ⱼⱼ)``, times ``√ε`` of the
-    #: dtype (1.5e-7 in float64, 3.5e-3 in float32): round-off of the maps is far below it
-    #: on a well-conditioned model (1e-12 in float64), their breakdown far above it.
+    #: dtype (3.5e-3 in float32): round-off of the maps is far below it on a
+    #: well-conditioned model, their breakdown far above it. In float64 :data:`CHAIN_TOL_FLOAT64`.
     CHAIN_TOL = 10.0
+    #: The same in float64 (1.5e-11 relative): the maps' round-off reaches 2.5e-14 on the
+    #: LFC plant and 1e-15 on random and constant-velocity models, while 10 (1.5e-7) had
+    #: let a chain 3.7e-9 off through, whose covariances, near cancelling in ``P⁻Hᵀ``, gave
+    #: gains 2.4 % off the recursion (three random walks seen through their sum: means
+    #: 2.7e-4 off; a trial of the gain schedule). Steps it refuses run one at a time.
+    CHAIN_TOL_FLOAT64 = 1e-3
+
+    @classmethod
+    def chain_tol(cls, dtype: torch.dtype) -> float:
+        """The chain test's tolerance of ``dtype`` (:data:`CHAIN_TOL`, :data:`CHAIN_TOL_FLOAT64`)."""
+        wide = dtype == torch.float64 or dtype == np.float64  # (a torch or a host dtype)
+        return cls.CHAIN_TOL_FLOAT64 if wide else cls.CHAIN_TOL
 
     def _chained_steps(self, pred_cov: Tensor, cov: Tensor) -> int:
         """How many of a chunk's first steps form one chain of the recursion: ``P⁻_t =
         F P_{t−1} Fᵀ + Q`` for each step ``t`` after the first, per entry within
-        :data:`CHAIN_TOL` ``·√ε·√(P⁻ᵢᵢ P⁻ⱼⱼ)`` (``P⁻, P [n, dx, dx]``). A chunk starts its
+        :meth:`chain_tol` ``·√ε·√(P⁻ᵢᵢ P⁻ⱼⱼ)`` (``P⁻, P [n, dx, dx]``). A chunk starts its
         steps from the ``j``-step maps ``E(j)``, whose ``(I + P J)⁻¹`` is ill-conditioned
         on a strongly non-normal ``F`` with small ``Q`` and ``R``: each step then began from
         another covariance than its predecessor's (``S`` 6.5 % off, ``P`` 3.8 %, the
@@ -619,7 +637,9 @@ class CovarianceChunks:
         pred = pred_cov[1:].detach()
         root = pred.diagonal(dim1=-2, dim2=-1).clamp_min(0.0).sqrt()
         finfo = torch.finfo(pred.dtype)
-        bound = (self.CHAIN_TOL * finfo.eps**0.5) * (root.unsqueeze(-1) * root.unsqueeze(-2))
+        bound = (self.chain_tol(pred.dtype) * finfo.eps**0.5) * (
+            root.unsqueeze(-1) * root.unsqueeze(-2)
+        )
         # (plus round-off of the largest entry: a state of zero variance has no scale)
         bound = bound + 64 * finfo.eps * pred.abs().amax(dim=(-2, -1), keepdim=True)
         broken = ((again - pred).abs() > bound).flatten(1).any(1)

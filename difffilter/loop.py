@@ -619,12 +619,21 @@ def closed_loop(
         raise ValueError("give a loop either state= or fork= to resume from, not both")
     if fork is not None or state is not None:
         _check_resumed(fork.state if fork is not None else state, "fork" if fork else "state",
-                       estimator, given_model)  # fmt: skip
+                       estimator, given_model, plant, controller)  # fmt: skip
     if state is not None:
         _check_resumed_attack(state, attack)
     if fork is not None:
+        end = fork.state.k + steps
+        if horizon is not None and (isinstance(horizon, bool) or not isinstance(horizon, int)
+                                    or horizon < end):  # fmt: skip
+            # (horizon=0 had been taken for the default, one short of the fork's steps had
+            # failed in torch's narrow: a trial of the resumed loops)
+            raise ValueError(
+                f"horizon (the whole loop's T) must be an integer >= {end} (the fork's step "
+                f"{fork.state.k} + steps={steps}); got {horizon!r}"
+            )
         state, rec, outs = _resume(fork, plant, attack, attack_generator, channel,
-                                   horizon or fork.state.k + steps)  # fmt: skip
+                                   end if horizon is None else horizon)  # fmt: skip
     else:
         if state is None:
             state = _start(plant, steps, horizon, x0, estimator, model, controller, attack,
@@ -693,7 +702,7 @@ def closed_loop(
                 seen = _Untouched(attack, x, y)
                 a_state, correction = attack.conceal(a_state, k, y=y, x=x if shows_state else None)
                 seen.check(k, "conceal")
-                received = y + correction
+                received = y + _checked_correction(attack, correction, y, k)
                 rec["concealment"].append(correction)
             if channel is not None and channel is not Channel.ACTUATOR:
                 seen = _Untouched(attack, x, y, u, view if reads else None)
@@ -1216,7 +1225,30 @@ def _values_differ(a, b) -> bool:
         return False
 
 
-def _check_resumed(kept: LoopState, given: str, estimator, model) -> None:
+def _checked_correction(attack, correction, y: Tensor, k: int) -> Tensor:
+    """A covert attack's sensor correction at step ``k``: a floating tensor of ``y``'s shape
+    ``[B, dy]`` (or one that broadcasts to it over the runs). A ``[B, 1]`` one had been spread
+    over every sensor, an integer one taken, and others had failed in torch or blamed the
+    controller (a trial of the adaptive attacks)."""
+    fits = isinstance(correction, Tensor) and correction.is_floating_point()
+    if fits:
+        try:
+            fits = (correction.shape[-1:] == y.shape[-1:]
+                    and torch.broadcast_shapes(correction.shape, y.shape) == y.shape)  # fmt: skip
+        except RuntimeError:
+            fits = False
+    if not fits:
+        got = (f"{correction.dtype} {tuple(correction.shape)}" if isinstance(correction, Tensor)
+               else type(correction).__name__)  # fmt: skip
+        raise ValueError(
+            f"attack {type(attack).__name__}'s conceal returned {got} at step {k}; it returns "
+            f"the correction added to the measurement, a floating tensor [..., {y.shape[-1]}] "
+            f"of y's shape {tuple(y.shape)}"
+        )
+    return correction
+
+
+def _check_resumed(kept: LoopState, given: str, estimator, model, plant, controller) -> None:
     """A loop resumed from ``kept`` (``given``: ``"state"`` or ``"fork"``) runs its
     estimator on the carry kept (one exactly where the kept loop had an estimator), with
     ``model`` (where given) the model that carry filters with, and from a finite last input
@@ -1232,7 +1264,26 @@ def _check_resumed(kept: LoopState, given: str, estimator, model) -> None:
             "loop with the estimator it ran (its carry is the estimator's state), or start a "
             "new loop"
         )
+    if carry is not None and not isinstance(carry, estimator.carry_type):
+        # (another kind of estimator had failed deep inside on the kept carry: "'GaussianState'
+        # object has no attribute 'particles'", a trial of the resumed loops)
+        raise TypeError(
+            f"{given}: the loop kept ran another estimator (its carry is a "
+            f"{type(carry).__name__}; {type(estimator).__name__} steps a "
+            f"{estimator.carry_type.__name__}): resume with the estimator it ran"
+        )
+    check_model(plant, prior=False)
+    x = kept.x
+    if isinstance(x, Tensor) and x.shape[-1] != plant.dim_x:
+        raise ValueError(
+            f"{given}: the loop kept has states of {x.shape[-1]} entries and the plant "
+            f"{plant.dim_x} (dim_x): resume a loop on its own plant"
+        )
     held = None if carry is None else estimator._model_of(carry)
+    if held is not None and isinstance(x, Tensor):
+        # the plant against the carry's model, as a fresh start checks it (a plant of one
+        # sensor had fed the estimator's two a broadcast measurement, silently)
+        _check_estimator_model(held, plant, controller, x.shape[:-1])
     if model is not None and held is not None and not _same_model(held, model):
         raise ValueError(
             f"model: the {given}'s estimator carry filters with its own model, and another "

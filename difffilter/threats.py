@@ -51,6 +51,7 @@ from torch import Tensor
 
 from ._checks import broadcast_or_none, check_finite_number
 from .attack import Attack, Channel, TabulatedAttack
+from .ssm import StateSpaceModel
 
 __all__ = [
     "Shaped",
@@ -619,7 +620,17 @@ class Covert(Attack):
 
     def conceal(self, state, k, *, y, x):
         _, attacked, nominal, _, plant = state
-        return state, plant.observe(nominal, k) - plant.observe(attacked, k)
+        residual = getattr(type(plant), "measurement_residual", None)  # (a duck-typed plant)
+        if residual is None or residual is StateSpaceModel.measurement_residual:
+            return state, plant.observe(nominal, k) - plant.observe(attacked, k)
+        # angles (a model whose residual wraps them): the attack-free prediction plus this
+        # measurement's own deviation from the attacked one (its residual), wrapped as the
+        # model wraps a residual (against 0), minus y; the difference of the two predictions
+        # had sent bearings 2π outside (−π, π] (93 of 4,800 on the robot; a trial)
+        deviation = plant.measurement_residual(y, plant.observe(attacked, k))
+        received = plant.observe(nominal, k) + deviation
+        received = plant.measurement_residual(received, torch.zeros_like(received))
+        return state, received - y
 
 
 def _at_first_step(signal: TabulatedAttack) -> tuple[TabulatedAttack, int]:

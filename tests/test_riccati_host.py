@@ -203,5 +203,7 @@ def test_host_chunk_tests_equal_the_torch_ones(dtype):
                                       (pred, overflowed, 5, 6)]:  # fmt: skip
         tp, tc = torch.from_numpy(p), torch.from_numpy(c)
         assert host.finite_steps(p, c) == chunks._finite_steps(tp, tc) == n_finite
-        chained = host.chained_steps(p, c, arrays[0], arrays[2], CovarianceChunks.CHAIN_TOL)
+        chained = host.chained_steps(
+            p, c, arrays[0], arrays[2], CovarianceChunks.chain_tol(torch.float64)
+        )
         assert chained == chunks._chained_steps(tp, tc) == n_chained
