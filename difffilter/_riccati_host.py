@@ -122,12 +122,16 @@ def host_chunk(cov, maps, blocks: int, F, H, Q, R) -> tuple[np.ndarray, ...] | N
     return pred_cov, post, K, S, chol, whiten
 
 
-def finite_steps(pred_cov, cov) -> int:
-    """How many of a chunk's first steps have finite ``P⁻, P [n, dx, dx]`` (the test of
+def finite_steps(*moments) -> int:
+    """How many of a chunk's first steps have finite moments (``P⁻, P [n, dx, dx]``, and
+    ``S``, ``L`` where given: an ``S`` overflowed beside a finite ``P⁻`` had been taken, the
+    means 0.047 s off and the log-likelihood −inf at scale s; a trial), the test of
     :meth:`~difffilter.gain_schedule.CovarianceChunks._finite_steps` on host arrays; what
-    to do with a first step that has none is the caller's)."""
-    n = pred_cov.shape[0]
-    ok = np.isfinite(pred_cov.reshape(n, -1)).all(1) & np.isfinite(cov.reshape(n, -1)).all(1)
+    to do with a first step that has none is the caller's."""
+    n = moments[0].shape[0]
+    ok = np.ones(n, dtype=bool)
+    for m in moments:
+        ok &= np.isfinite(m.reshape(n, -1)).all(1)
     return n if ok.all() else int(ok.argmin())
 
 

@@ -26,6 +26,7 @@ non-negative weights, where the difference lost that to round-off). On a linear 
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import torch
@@ -181,7 +182,15 @@ class SigmaPoints:
 
     def weights(self, n: int, dtype, device) -> tuple[Tensor, Tensor, float]:
         """Mean weights ``[2n+1]``, covariance weights ``[2n+1]`` and the scale ``√(n+λ)``."""
-        lam = self.alpha**2 * (n + self.kappa) - n
+        try:
+            lam = self.alpha**2 * (n + self.kappa) - n
+        except OverflowError:  # (a bare "Numerical result out of range" for alpha = 1e160)
+            lam = math.inf
+        if not math.isfinite(lam):
+            raise ValueError(
+                f"sigma-point scaling alpha² (n + kappa) overflows for alpha = {self.alpha!r}, "
+                f"kappa = {self.kappa!r}: give alpha of order 1 (the points spread as alpha·√n)"
+            )
         if n + lam <= 0:
             raise ValueError(
                 f"sigma-point scaling gives n + λ = {n + lam} ≤ 0; raise alpha or kappa"
@@ -288,7 +297,8 @@ class UnscentedKalmanFilter(GaussianFilter):
         except ValueError as exc:  # (it had read as a covariance that overflowed)
             _blame_nonfinite(exc, pred_mean, pred_cov, f"the UKF's prediction at step {k}",
                              "the transition f gave it on the sigma points of the previous "
-                             "estimate (e.g. a square root of a negative level)")  # fmt: skip
+                             "estimate (e.g. a square root of a negative level), or the "
+                             "points' spread √(n + λ)·√P overflowed (a large alpha)")  # fmt: skip
             raise
         Y = model.observe(Xp, k)  # [..., 2n+1, dy]
         if plain_residual(model):

@@ -533,7 +533,7 @@ class CovarianceChunks:
             moments = riccati_chunk(self._cov, maps, blocks, *self._mats)
         else:  # no scan element (H Q Hᵀ + R singular), or the maps broke the chain
             moments = riccati_steps(self._cov, blocks * self.BLOCK, *self._mats)
-        finite = self._finite_steps(moments[0], moments[1])
+        finite = self._finite_steps(moments[0], moments[1], moments[3], moments[4])
         if finite < len(moments[0]):  # the finite steps now; the next chunk raises
             moments = tuple(m[:finite] for m in moments)
         if not self._stepwise:
@@ -555,7 +555,7 @@ class CovarianceChunks:
         :meth:`_steps_to_keep`: the same tests, tolerances and cuts) on a host chunk's
         arrays before they become tensors: a few numpy calls instead of about 40 torch ones
         on ``[n, d, d]`` batches."""
-        finite = finite_steps(moments[0], moments[1])
+        finite = finite_steps(moments[0], moments[1], moments[3], moments[4])
         if finite == 0:
             raise self._overflow(torch.from_numpy(moments[1][:0]).dtype)
         if finite < len(moments[0]):  # the finite steps now; the next chunk raises
@@ -577,7 +577,8 @@ class CovarianceChunks:
         """The error of a chunk whose first step has no finite covariance."""
         step = self.steps + 1
         return NumericalBreakdown(
-            f"the Kalman filter's state covariance P is not finite at step {step}: "
+            f"the Kalman filter's state covariance P (or the innovation covariance S = H P⁻ "
+            f"Hᵀ + R made from it) is not finite at step {step}: "
             f"a variance grew past the largest {str(dtype).removeprefix('torch.')} "
             f"number ({torch.finfo(dtype).max:.2g}), most often an unstable mode of F "
             "(an eigenvalue of modulus above 1) that the measurements do not observe, "
@@ -586,15 +587,19 @@ class CovarianceChunks:
             "float64 (a larger range: the same model overflows later)"
         )
 
-    def _finite_steps(self, pred_cov: Tensor, cov: Tensor) -> int:
+    def _finite_steps(self, pred_cov: Tensor, cov: Tensor, *more: Tensor) -> int:
         """How many of a chunk's first steps have finite covariances ``P⁻, P [n, dx, dx]``
-        (all ``n`` in the common case; one read); raises :class:`NumericalBreakdown` where
-        the chunk's first step has none: the recursion cannot go on from it. A chunk is
-        computed ahead of the steps asked for, so its finite steps are handed out first
-        and the error comes with the step that overflowed, not a chunk before it."""
+        (and ``more``: ``S``, ``L``, where an ``S`` overflowed beside a finite ``P⁻`` had
+        been taken; all ``n`` in the common case; one read); raises
+        :class:`NumericalBreakdown` where the chunk's first step has none: the recursion
+        cannot go on from it. A chunk is computed ahead of the steps asked for, so its
+        finite steps are handed out first and the error comes with the step that
+        overflowed, not a chunk before it."""
         if cov.device.type == "meta":
             return cov.shape[0]
         ok = torch.isfinite(pred_cov).flatten(1).all(1) & torch.isfinite(cov).flatten(1).all(1)
+        for m in more:
+            ok &= torch.isfinite(m).flatten(1).all(1)
         if bool(ok.all()):
             return ok.shape[0]
         finite = int(ok.int().argmin())

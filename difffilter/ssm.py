@@ -486,6 +486,15 @@ class LinearGaussianModel(StateSpaceModel):
         # and the filters failed in torch's words (or the UKF ran on a broadcast), B = None
         # crashed the Kalman filter, and a B of another width left dim_u stale (a trial of
         # models changed under the filters)
+        if name in ("Q", "R", "m0", "P0") and "measurement_noise" in self._modules:
+            # (the constructor's arguments, kept in the noise models and the prior: an
+            # attribute of that name had been set beside them and never read, a trial)
+            where = {"Q": "model.process_noise", "R": "model.measurement_noise",
+                     "m0": "model.initial", "P0": "model.initial"}[name]  # fmt: skip
+            raise AttributeError(
+                f"{name} is kept in {where} (a Gaussian), not as model.{name}: assign {where} "
+                "= difffilter.noise.Gaussian(…), or write its tensor in place"
+            )
         if name in ("F", "H", "B") and "measurement_noise" in self._modules:
             value = self._checked_matrix(name, value)
             if name == "B":
