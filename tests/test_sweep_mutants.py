@@ -587,3 +587,13 @@ def test_a_config_among_the_options_may_bring_the_checkpoint_monitor(tmp_path):
     with pytest.raises(ValueError, match="--runs must be an integer >= 1"):
         sweep.sweep(bare, [0], out, runs=0, extra=["--config", str(monitored)])
     assert not out.exists()
+
+
+def test_an_infinite_metric_makes_the_summary_unknown_and_names_its_seeds():
+    """Two seeds at inf had made the spread NaN (inf − inf), named no seed, and written bare
+    ``Infinity`` and ``NaN`` into sweep.json (a trial of the sweep's statistics)."""
+    per_seed = {seed: {"scenarios": {"sc": {"state_rmse": value}}}
+                for seed, value in ((0, math.inf), (1, math.inf), (2, 0.11))}  # fmt: skip
+    entry = sweep._summary(per_seed)["sc"]["state_rmse"]
+    assert entry == {"mean": None, "min": None, "max": None, "spread": None, "not_a_number": [0, 1]}
+    json.dumps(entry, allow_nan=False)

@@ -581,9 +581,11 @@ def _acceptance(per_seed: dict, baselines: dict, far: float, seed_totals: dict) 
 
 def _summary(per_seed: dict) -> dict:
     """``{scenario: {metric: {mean, min, max, spread}}}`` over the seeds. A seed whose value
-    is NaN (a filter that diverged) makes all four unknown (``None``, null in the JSON) and
-    is named in ``not_a_number``: Python's ``min``/``max`` had skipped it or not by the
-    seeds' order, and a finite spread hid it (a sweep trial)."""
+    is NaN or infinite (a filter that diverged) makes all four unknown (``None``, null in
+    the JSON) and is named in ``not_a_number``: Python's ``min``/``max`` had skipped a NaN
+    or not by the seeds' order, and a finite spread hid it (a sweep trial); two infinite
+    values had made the spread NaN and written bare ``Infinity`` and ``NaN`` into the JSON,
+    which strict readers refuse (a trial of the sweep's statistics)."""
     first = next(iter(per_seed.values()))["scenarios"]
     out = {}
     for scenario, metrics in first.items():
@@ -593,7 +595,7 @@ def _summary(per_seed: dict) -> dict:
             values = {seed: v for seed, v in values.items() if v is not None}
             if not values:
                 continue
-            nan = [seed for seed, v in values.items() if math.isnan(v)]
+            nan = [seed for seed, v in values.items() if not math.isfinite(v)]
             if nan:
                 out[scenario][metric] = {"mean": None, "min": None, "max": None,
                                          "spread": None, "not_a_number": nan}  # fmt: skip
