@@ -486,7 +486,8 @@ class LinearGaussianModel(StateSpaceModel):
         # and the filters failed in torch's words (or the UKF ran on a broadcast), B = None
         # crashed the Kalman filter, and a B of another width left dim_u stale (a trial of
         # models changed under the filters)
-        if name in ("Q", "R", "m0", "P0") and "measurement_noise" in self._modules:
+        if (name in ("Q", "R", "m0", "P0") and "measurement_noise" in self._modules
+                and not self._reads_own(name)):  # fmt: skip
             # (the constructor's arguments, kept in the noise models and the prior: an
             # attribute of that name had been set beside them and never read, a trial)
             where = {"Q": "model.process_noise", "R": "model.measurement_noise",
@@ -495,11 +496,25 @@ class LinearGaussianModel(StateSpaceModel):
                 f"{name} is kept in {where} (a Gaussian), not as model.{name}: assign {where} "
                 "= difffilter.noise.Gaussian(…), or write its tensor in place"
             )
-        if name in ("F", "H", "B") and "measurement_noise" in self._modules:
+        if (name in ("F", "H", "B") and "measurement_noise" in self._modules
+                and not self._reads_own(name)):  # fmt: skip
             value = self._checked_matrix(name, value)
             if name == "B":
                 super().__setattr__("dim_u", 0 if value is None else value.shape[-1])
         super().__setattr__(name, value)
+
+    def _reads_own(self, name: str) -> bool:
+        """Whether a subclass reads an attribute ``name`` its own way: one that overrides
+        the method the attribute feeds (``transition_matrix`` for ``F``,
+        ``observation_matrix`` for ``H``, ``control_matrix`` for ``B``, ``process_cov`` for
+        ``Q``, ``measurement_cov`` for ``R``: a time-varying model's tables, unchecked
+        here), or any subclass for the prior's ``m0``, ``P0``."""
+        cls = type(self)
+        if cls is LinearGaussianModel:
+            return False
+        method = {"Q": "process_cov", "R": "measurement_cov", "F": "transition_matrix",
+                  "H": "observation_matrix", "B": "control_matrix"}.get(name)  # fmt: skip
+        return method is None or getattr(cls, method) is not getattr(LinearGaussianModel, method)
 
     def _checked_matrix(self, name: str, value):
         """``value`` for ``F``, ``H`` or ``B`` against the model's dims, dtype and device."""

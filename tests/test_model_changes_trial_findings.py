@@ -127,3 +127,25 @@ def test_the_lfc_plants_sampling_time_is_read_only():
     with pytest.raises(AttributeError):
         plant.dt = 0.001
     assert plant.dt == 0.01
+
+
+def test_a_subclass_that_reads_its_own_tables_keeps_them():
+    """The checks of F/H/B and the refusal of Q/R/m0/P0 apply where the model's own methods
+    read them: a time-varying subclass whose ``process_cov`` reads a table ``self.Q`` and
+    whose ``transition_matrix`` reads ``self.F`` per step keeps assigning them."""
+
+    class TimeVarying(df.LinearGaussianModel):
+        time_varying = True
+
+        def transition_matrix(self, k):
+            return self.F[min(k, len(self.F) - 1)]
+
+        def process_cov(self, k):
+            return self.Q[min(k, len(self.Q) - 1)]
+
+    model = TimeVarying(torch.eye(2, dtype=D), torch.eye(2, dtype=D), torch.eye(2, dtype=D),
+                        torch.eye(2, dtype=D), torch.zeros(2, dtype=D), torch.eye(2, dtype=D))  # fmt: skip
+    model.F = torch.stack([torch.eye(2, dtype=D), 0.5 * torch.eye(2, dtype=D)])
+    model.Q = [0.1 * torch.eye(2, dtype=D)] * 3
+    _, ys, _ = model.simulate(4, (2,), generator=torch.Generator().manual_seed(0))
+    assert bool(torch.isfinite(df.kalman_filter(model, ys).means).all())
