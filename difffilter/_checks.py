@@ -377,6 +377,15 @@ def check_finite_number(
     return value
 
 
+def check_fraction(value, name: str) -> float:
+    """``value`` must be a real number in ``[0, 1)`` (a probability threshold, a share);
+    returns it as ``float`` (NaN fails the range)."""
+    number = real_number(value)
+    if number is None or not 0.0 <= number < 1.0:
+        raise ValueError(f"{name} must be a number in [0, 1); got {value!r}")
+    return number
+
+
 def check_rate(
     value, name: str, *, unset: str | None = None, kind: str = "a false-alarm rate"
 ) -> float:

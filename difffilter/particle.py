@@ -49,12 +49,12 @@ from ._checks import (
     check_carry_fits_model,
     check_carry_tensor,
     check_ess_threshold,
+    check_fraction,
     check_model,
     check_one_model,
     check_positive_int,
     check_strategy,
     first_index,
-    real_number,
 )
 from .estimator import Estimator, Generators, _batch_shape
 from .gaussian import gaussian_update
@@ -246,10 +246,7 @@ class KalmanProposal:
         # checked whenever set: ρ = 1 assigned later had stopped the first step on a bare
         # "math domain error" (a red-team trial)
         if name == "rho":
-            rho = real_number(value)
-            if rho is None or not 0.0 <= rho < 1.0:
-                raise ValueError(f"defensive (rho) must lie in [0, 1); got {value!r}")
-            value = rho
+            value = check_fraction(value, "defensive (rho)")
         super().__setattr__(name, value)
 
     def __call__(self, model, particles, u, y, k, mask, generator):

@@ -77,7 +77,7 @@ def test_residual_and_stop_gradients_base_set_later():
 def test_the_kalman_proposals_defensive_weight_set_later(bad):
     """ρ = 1 (refused by the constructor) stopped the first step on "math domain error"."""
     proposal = KalmanProposal()
-    with pytest.raises(ValueError, match=r"defensive \(rho\) must lie in \[0, 1\)"):
+    with pytest.raises(ValueError, match=r"defensive \(rho\) must be a number in \[0, 1\)"):
         proposal.rho = bad
 
 

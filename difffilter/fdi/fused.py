@@ -28,7 +28,7 @@ import numbers
 import torch
 from torch import Tensor
 
-from .._checks import check_finite, check_finite_number, real_number
+from .._checks import check_finite, check_finite_number, check_fraction
 from ..estimator import Detection, EstimatorOutput
 from ..noise import Gaussian
 from ..particle import _ess, particle_init
@@ -90,10 +90,7 @@ class FusedModifiedPF:
         elif name == "eta":
             value = check_finite_number(value, "eta", nonnegative=True)
         elif name == "zeta":
-            number = real_number(value)
-            if number is None or not 0.0 <= number < 1.0:
-                raise ValueError(f"zeta must lie in [0, 1); got {value!r}")
-            value = number
+            value = check_fraction(value, "zeta")
         super().__setattr__(name, value)
 
     def _derive(self) -> None:

@@ -38,6 +38,7 @@ from .._assignments import note_assignment
 from .._checks import (
     broadcast_or_none,
     check_finite_number,
+    check_fraction,
     check_integer,
     check_one_model,
     check_positive_definite,
@@ -288,10 +289,7 @@ class PoADetector:
             if bool((eta_t < 0).any()) or not bool(torch.isfinite(eta_t).all()):
                 raise ValueError(f"eta must be finite and >= 0; got {value!r}")
         elif name == "zeta":
-            zeta = real_number(value)  # (NaN fails the range below)
-            if zeta is None or not 0.0 <= zeta < 1.0:
-                raise ValueError(f"zeta must be a number in [0, 1); got {value!r}")
-            value = zeta
+            value = check_fraction(value, "zeta")
         super().__setattr__(name, value)
 
     def check_runs(self, batch_shape, model=None) -> None:
