@@ -127,8 +127,10 @@ def test_a_fused_filter_refuses_what_its_weights_are_not_written_for():
     with pytest.raises(ValueError, match="zero-mean Gaussian measurement noise"):
         _fused(model)
     pf = _fused(FourTankModel(dtype=D))
-    for name, value, match in (("zeta", 1.5, r"zeta must be a number in \[0, 1\)"), ("eta", -1.0, "eta must be a finite number >= 0"),
-                               ("n", 1, "num_particles must be an integer >= 2")):  # fmt: skip
+    cases = (("zeta", 1.5, r"zeta must be a number in \[0, 1\)"),
+             ("eta", -1.0, "eta must be a finite number >= 0"),
+             ("n", 1, "num_particles must be an integer >= 2"))  # fmt: skip
+    for name, value, match in cases:
         with pytest.raises(ValueError, match=match):
             setattr(pf, name, value)
 
