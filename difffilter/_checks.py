@@ -648,6 +648,9 @@ def check_sequence_inputs(
         ys = torch.where(mask, ys, torch.zeros((), dtype=ys.dtype, device=ys.device))
     if us is not None:
         us = _check_us(model, us, ys.shape[:-2], ys.shape[-2], dtype, device)
+        # (us for 4 runs on a model of 3 parameter sets had been blamed on a batch_shape
+        # never passed; a trial of the input checks)
+        check_model_batch(model, us.shape[:-2], "the runs of us")
     return ys, us, mask, skipped
 
 

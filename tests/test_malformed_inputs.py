@@ -659,3 +659,23 @@ def test_a_bias_estimator_flag_of_another_shape_is_named(flag_shape):
     # one per run and one per entry are taken
     for good in (residual.shape[:-1], residual.shape):
         est.step(est.init(residual.shape[:-1]), residual, cov, torch.ones(good, dtype=torch.bool))
+
+
+def test_inputs_of_other_runs_than_the_models_parameter_sets_are_named():
+    """``us`` for 4 runs on a model of 3 parameter sets (``ys`` shared by every run) had been
+    blamed on a ``batch_shape`` the caller never passed."""
+    D = torch.float64
+    model = df.LinearGaussianModel(
+        torch.tensor([[1.0, 0.1], [0.0, 0.9]], dtype=D).expand(3, 2, 2).clone(),
+        torch.tensor([[1.0, 0.0], [0.5, 1.0]], dtype=D), 0.1 * torch.eye(2, dtype=D),
+        0.2 * torch.eye(2, dtype=D), torch.zeros(2, dtype=D), torch.eye(2, dtype=D),
+        B=torch.tensor([[0.0], [1.0]], dtype=D),
+    )  # fmt: skip
+    ys, us = torch.zeros(5, 2, dtype=D), torch.zeros(4, 5, 1, dtype=D)
+    for run in (lambda: df.kalman_filter(model, ys, us), lambda: df.kalman_filter(model, ys, us, method="parallel"),
+                lambda: df.extended_kalman_filter(model, ys, us)):  # fmt: skip
+        with pytest.raises(
+            ValueError,
+            match=r"the runs of us \(4,\) does not broadcast with the batch shape \(3,\)",
+        ):
+            run()
