@@ -251,15 +251,14 @@ class FusedModifiedPF:
             # compared an int64 count with a float in float32: 99.9999998 read as 100)
             alarm = count.to(dtype) / n > self.zeta
             # Step 3-1: weights of the uncorrected particles with ỹ − l̂ γ̂ (59)
+            if whiten is not None and (direct or both is None):
+                r = r @ whiten
             if direct:
-                rw = r if whiten is None else r @ whiten
-                d = rw - (gam[:, t] * alarm.unsqueeze(-1).to(dtype)).unsqueeze(-2)
+                d = r - (gam[:, t] * alarm.unsqueeze(-1).to(dtype)).unsqueeze(-2)
                 w = torch.softmax((d * d) @ nhp, -1)
-            elif both is None:
-                if whiten is not None:
-                    r = r @ whiten
-                rr_p = ((r * r) @ nhp).unsqueeze(-1)
-            if not direct:
+            else:
+                if both is None:
+                    rr_p = ((r * r) @ nhp).unsqueeze(-1)
                 c = (comp[:, t] * alarm.unsqueeze(-1)).unsqueeze(-1)  # [B, dy, 1]
                 w = torch.softmax(rr_p.baddbmm(r, c).squeeze(-1), -1)
             # Step 3-2: x̂_k = Σ w^i x^i (60)
