@@ -58,6 +58,15 @@ class Choice(str, Enum):
         raise ValueError(f"{value!r} is not a {cls.__name__}: one of {names}")
 
 
+def version_stamp(t: Tensor):
+    """``t``'s autograd version counter, for a cache kept while a tensor is unwritten; for
+    an inference tensor (``torch.inference_mode()``: no counter to read, and writable in
+    place unseen) a new object equal to no other, so the cache is made again (caches keyed
+    on ``t._version`` had failed in torch's "Inference tensors do not track version
+    counter" on a model built under inference mode: a four-tank trial)."""
+    return object() if t.is_inference() else t._version
+
+
 def values_known(t: Tensor) -> bool:
     """Whether ``t`` holds values: ``False`` on the ``meta`` device (shapes and dtypes
     only), where value checks (finiteness, symmetry, definiteness) are skipped so that a
@@ -641,8 +650,9 @@ def check_sequence_inputs(
         where = first_index(bad)
         raise ValueError(
             f"ys contains NaN or Inf values at received entries (first at index {where}); "
-            "every received measurement must be finite. Pass nonfinite='skip' to treat them "
-            "as unreceived, or mask=... to mark lost entries"
+            "every received measurement must be finite. Pass mask=torch.isfinite(ys) to treat "
+            "them as unreceived (nonfinite='skip' does so where the function takes it: "
+            "open_loop, the plain filters and smoothers, the gated filters)"
         )
     if mask is not None:
         ys = torch.where(mask, ys, torch.zeros((), dtype=ys.dtype, device=ys.device))
@@ -867,7 +877,9 @@ def check_model(model, *, prior: bool = True) -> None:
     whose noise models are of its prior's dtype and device, and (``prior``: where a run
     starts from it) whose prior mean is finite (written NaN in place after construction, it
     had been refused by ``init`` and run to NaN means by the whole-sequence filters: a trial
-    of models changed under the filters)."""
+    of models changed under the filters), as are the tensors its ``_matrices_read()``
+    names, where it has one (a linear model's ``F``, ``H``, ``B``; the robot's sensor
+    positions): written NaN in place, they had run to NaN means without an error."""
     needed = ("dim_x", "dim_y", "dim_u", "transition", "observe", "initial")
     missing = [name for name in needed if not hasattr(model, name)]
     if missing:
@@ -876,6 +888,11 @@ def check_model(model, *, prior: bool = True) -> None:
             f"{type(model).__name__} lacks {', '.join(missing)}"
         )
     _check_noise_dtypes(model)
+    for name, matrix in getattr(model, "_matrices_read", list)():
+        # a linear model's F, H or B written NaN in place after construction (a NaN B had
+        # run to NaN means without an error, a NaN F or H blamed on Q, R and P0: a trial)
+        if matrix.is_floating_point() and values_known(matrix) and not _all_finite(matrix):
+            raise ValueError(f"model.{name} contains NaN or Inf values; every entry must be finite")
     mean = getattr(model.initial, "mean", None) if prior else None
     if isinstance(mean, Tensor) and mean.is_floating_point() and mean.device.type != "meta":
         if not bool(torch.isfinite(mean).all()):

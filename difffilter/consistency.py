@@ -205,6 +205,8 @@ def whiteness(
             f"{tuple(innovations.shape) if isinstance(innovations, Tensor) else innovations!r}"
         )
     runs, steps, m = innovations.shape
+    if runs == 0 or m == 0:  # (torch's amax had failed on no runs: a batch-dims trial)
+        raise ValueError(f"innovations has no runs or no entries: {tuple(innovations.shape)}")
     # numbers.Integral: numpy's integers too (np.int64(1) had been refused as no integer)
     if isinstance(lag, bool) or not isinstance(lag, numbers.Integral) or not 1 <= lag < steps:
         raise ValueError(f"lag must be an integer in [1, T − 1 = {steps - 1}]; got {lag!r}")

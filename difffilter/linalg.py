@@ -7,6 +7,7 @@ vectors ``[..., d]``.
 from __future__ import annotations
 
 import math
+import threading
 
 import torch
 from torch import Tensor
@@ -59,7 +60,12 @@ def under_transform(*tensors: Tensor | None) -> bool:
     the whole-sequence Kalman filter steps through instead. Without tensors: whether a
     transform or a dual level is active at all (then none of them can be traced)."""
     level = torch.autograd.forward_ad._current_level
-    active = level >= 0 or torch._C._functorch.maybe_current_level() is not None
+    # the dual level is the process's, not the thread's: one another thread's Jacobian
+    # holds (batched_jacobian's torch.func.jacfwd) is not this thread's transform (every
+    # other thread had taken its traced paths meanwhile: a one-run PF 0.73 off, a model's
+    # width check skipped; a concurrency trial). torch.func's own level is per thread.
+    dual = level >= 0 and not _dual_level_of_another_thread()
+    active = dual or torch._C._functorch.maybe_current_level() is not None
     if not active or not tensors:
         return active
     for t in tensors:
@@ -70,6 +76,16 @@ def under_transform(*tensors: Tensor | None) -> bool:
         if level >= 0 and torch.autograd.forward_ad.unpack_dual(t).tangent is not None:
             return True
     return False
+
+
+#: The thread whose ``torch.func`` Jacobian (:func:`difffilter.ssm.batched_jacobian`, one
+#: at a time) holds the process's forward-mode dual level now, or ``None``.
+JACOBIAN_THREAD: list[int | None] = [None]
+
+
+def _dual_level_of_another_thread() -> bool:
+    owner = JACOBIAN_THREAD[0]
+    return owner is not None and owner != threading.get_ident()
 
 
 def symmetrize(matrix: Tensor) -> Tensor:

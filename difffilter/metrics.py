@@ -1,7 +1,10 @@
 """Evaluation metrics of the FDI literature (docs/metrics.md), batched over runs.
 
 Conventions: alarms, attack flags and scores are ``[..., T]`` (runs first, time last);
-counts and rates pool every run and step unless ``valid`` excludes some steps.
+counts and rates pool every run and step unless ``valid`` excludes some steps. The three
+"since the attack" functions (:func:`steps_since_attack`, :func:`after_attack`,
+:func:`alarm_rate_since_attack`) take ``[B, T, ...]`` instead (time on dim 1, trailing
+axes the LFC plant's areas): pass ``time_dim=-1`` for runs ``[..., T]`` of several axes.
 """
 
 from __future__ import annotations
@@ -305,12 +308,15 @@ def threshold_for(scores: Tensor, far: float) -> float:
     return float(ranked[allowed]) if allowed < s.numel() else -math.inf
 
 
-def steps_since_attack(flags: Tensor) -> Tensor:
+def steps_since_attack(flags: Tensor, *, time_dim: int = 1) -> Tensor:
     """Steps since the last attacked step of the same run (and area): ``[B, T, ...]``
     int64 for ``flags [B, T, ...]`` (bool, time on dim 1), ``0`` on an attacked step and
     ``−1`` where the run has not been attacked yet. One running maximum over the steps::
 
         last_k = max{j ≤ k : flags_j}    steps_k = k − last_k   (−1 without such j)
+
+    ``time_dim`` names the time axis where it is not dim 1 (``-1`` for ``[..., T]``, runs
+    of several axes, the module's usual layout); every other axis is a run (or an area).
     """
     _check_tensors(flags=flags)
     if flags.dtype != torch.bool or flags.dim() < 2:
@@ -318,23 +324,41 @@ def steps_since_attack(flags: Tensor) -> Tensor:
             f"flags must be a bool tensor [B, T, ...]; got {flags.dtype} of shape "
             f"{tuple(flags.shape)}"
         )
-    T = flags.shape[1]
-    t = torch.arange(T, device=flags.device).view(1, T, *([1] * (flags.dim() - 2)))
-    last = torch.where(flags, t, -1).cummax(dim=1).values  # the last attacked step ≤ k
+    dim = _time_axis(time_dim, flags.dim())
+    T = flags.shape[dim]
+    view = [1] * flags.dim()
+    view[dim] = T
+    t = torch.arange(T, device=flags.device).view(view)
+    last = torch.where(flags, t, -1).cummax(dim=dim).values  # the last attacked step ≤ k
     return torch.where(last >= 0, t - last, -1)
 
 
-def after_attack(flags: Tensor, steps: int) -> Tensor:
-    """Where ``flags [B, T, ...]`` (bool, time on dim 1) is false within ``steps`` steps
-    after a true entry of the same run (and area): ``[B, T, ...]`` bool
-    (:func:`steps_since_attack` in ``1 … steps``; the training task's after-attack weight
-    and the evaluation's ``fpr_at_far_after_attack`` read it)."""
-    since = steps_since_attack(flags)
+def _time_axis(time_dim, ndim: int) -> int:
+    """``time_dim`` as a non-negative axis of a tensor of ``ndim ≥ 2`` axes (bool and
+    out-of-range values refused by name)."""
+    if isinstance(time_dim, bool) or not isinstance(time_dim, numbers.Integral):
+        raise TypeError(f"time_dim must be an int; got {type(time_dim).__name__}")
+    if not -ndim <= time_dim < ndim:
+        raise ValueError(f"time_dim must name one of flags' {ndim} axes; got {time_dim}")
+    return int(time_dim) % ndim
+
+
+def after_attack(flags: Tensor, steps: int, *, time_dim: int = 1) -> Tensor:
+    """Where ``flags [B, T, ...]`` (bool, time on dim 1, or on ``time_dim``) is false
+    within ``steps`` steps after a true entry of the same run (and area): ``[B, T, ...]``
+    bool (:func:`steps_since_attack` in ``1 … steps``; the training task's after-attack
+    weight and the evaluation's ``fpr_at_far_after_attack`` read it)."""
+    since = steps_since_attack(flags, time_dim=time_dim)
     return (since >= 1) & (since <= steps)
 
 
 def alarm_rate_since_attack(
-    alarms: Tensor, flags: Tensor, edges=(1, 5, 10, 20, 50, 100, 200), *, before: bool = False
+    alarms: Tensor,
+    flags: Tensor,
+    edges=(1, 5, 10, 20, 50, 100, 200),
+    *,
+    before: bool = False,
+    time_dim: int = 1,
 ) -> tuple[Tensor, Tensor]:
     """The alarm rate on attack-free steps by the steps since the run's last attacked step:
     ``(rates [M], counts [M])`` float64 and int64 for ``M = len(edges)`` bins
@@ -345,6 +369,7 @@ def alarm_rate_since_attack(
     ``before``: then they are one more bin, the last (``M = len(edges) + 1``). Where
     ``fpr_at_far_after_attack`` gives one number for steps 1–10, this shows how long an
     estimator's alarms outlast the attack (the report's ``false_alarms_after_attack.png``).
+    ``time_dim`` as in :func:`steps_since_attack` (``-1`` for ``[..., T]``).
     """
     _check_tensors(alarms=alarms, flags=flags)
     if alarms.shape != flags.shape or alarms.dtype != torch.bool:
@@ -358,7 +383,7 @@ def alarm_rate_since_attack(
         raise ValueError(f"edges must be increasing integers ≥ 1; got {given}")
     if not edges or edges[0] < 1 or any(b <= a for a, b in zip(edges, edges[1:])):
         raise ValueError(f"edges must be increasing integers ≥ 1; got {edges}")
-    since = steps_since_attack(flags)
+    since = steps_since_attack(flags, time_dim=time_dim)
     bins = torch.bucketize(since, torch.tensor(edges, device=flags.device), right=True) - 1
     if before:
         bins = torch.where(since < 0, len(edges), bins)

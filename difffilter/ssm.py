@@ -13,6 +13,7 @@ A measurement sequence ``ys [..., T, dy]`` holds ``y_1 … y_T``; ``us [..., T, 
 
 from __future__ import annotations
 
+import functools
 import inspect
 import numbers
 import threading
@@ -23,6 +24,7 @@ from torch import Tensor
 
 from ._assignments import CountsAssignments
 from ._checks import (
+    _all_finite,
     _check_us,
     as_tensor,
     broadcast_or_none,
@@ -36,8 +38,9 @@ from ._checks import (
     check_square,
     check_vector_last,
     model_dtype_device,
+    values_known,
 )
-from .linalg import matvec, rowwise, under_transform
+from .linalg import JACOBIAN_THREAD, matvec, rowwise, under_transform
 from .noise import Gaussian, NoiseModel, _shape, register_tensor
 
 __all__ = [
@@ -88,11 +91,26 @@ def batched_jacobian(
         # error had blamed the user's function: a serialisation trial)
         flat_x = flat_x.clone() if flat_x.is_inference() else flat_x
         flat_args = [a.clone() if a is not None and a.is_inference() else a for a in flat_args]
+    empty = flat_x.shape[0] == 0
+    if empty:
+        # vmap over no rows hands fn a per-row view of no entries, on which a model's
+        # x[..., 0] raises inside the user's code: differentiate one row of zeros for the
+        # Jacobian's shape and keep none of it (a batch-dims trial: 0 runs had crashed the
+        # EKF where the UKF and the PF return empty outputs)
+        flat_x = flat_x.new_zeros((1,) + flat_x.shape[1:])
+        flat_args = [a if a is None else a.new_zeros((1,) + a.shape[1:]) for a in flat_args]
     try:
         with _JACOBIAN_LOCK:
-            jac = torch.func.vmap(torch.func.jacfwd(fn, argnums=0), in_dims=tuple(in_dims))(
-                flat_x, *flat_args
-            )
+            # (under_transform: whose dual level; re-entrant, so the outer one is restored)
+            outer, JACOBIAN_THREAD[0] = JACOBIAN_THREAD[0], threading.get_ident()
+            try:
+                jac = torch.func.vmap(torch.func.jacfwd(fn, argnums=0), in_dims=tuple(in_dims))(
+                    flat_x, *flat_args
+                )
+            finally:
+                JACOBIAN_THREAD[0] = outer
+        if empty:
+            jac = jac[:0]
     except RuntimeError as error:  # what torch.func says of numpy, .item(), ... is cryptic
         name = what or getattr(fn, "__qualname__", None) or type(fn).__name__
         raise RuntimeError(
@@ -480,6 +498,24 @@ class LinearGaussianModel(StateSpaceModel):
         self.process_noise = Gaussian(torch.zeros(dx, dtype=dtype, device=device), Q)
         self.measurement_noise = Gaussian(torch.zeros(dy, dtype=dtype, device=device), R)
 
+    def __init_subclass__(cls, **kwargs):
+        # a time-varying model's own F_k, H_k, B_k are checked finite when read, as its
+        # process_cov(k) and measurement_cov(k) are (step_covariance): a NaN B_k had run to
+        # NaN means from that step on without an error, and a NaN F_k or H_k was blamed on
+        # "Q, R and P0" (a dense-Gaussian trial); the built-in ones are checked when set
+        super().__init_subclass__(**kwargs)
+        for name in _STEP_MATRICES:
+            own = cls.__dict__.get(name)
+            if callable(own) and not getattr(own, "_checks_finite", False):
+                setattr(cls, name, _finite_step_matrix(own, name))
+
+    def _matrices_read(self) -> list[tuple[str, Tensor]]:
+        """``F``, ``H`` and ``B`` where this model's filters read them as stored (not where a
+        subclass overrides the method that reads them): :func:`check_model` checks them
+        finite, written in place since construction."""
+        return [(name, getattr(self, name)) for name in ("F", "H", "B")
+                if isinstance(getattr(self, name, None), Tensor) and not self._reads_own(name)]  # fmt: skip
+
     def __setattr__(self, name, value):
         # F, H and B assigned after construction are checked as the constructor checks
         # them, and B sets dim_u (None: no input): another shape or dtype had been taken
@@ -566,6 +602,31 @@ class LinearGaussianModel(StateSpaceModel):
     def observation_jacobian(self, x, k):
         H = self.observation_matrix(k)
         return H.expand(broadcast_shapes(x.shape[:-1], H.shape[:-2]) + H.shape[-2:])
+
+
+_STEP_MATRICES = ("transition_matrix", "observation_matrix", "control_matrix")
+
+
+def _finite_step_matrix(method: Callable, name: str) -> Callable:
+    """``method`` (a subclass's ``transition_matrix``, ``observation_matrix`` or
+    ``control_matrix``) whose returned matrix is refused by name where an entry is NaN or
+    Inf (under a transform, or on the meta device, values are not read)."""
+
+    @functools.wraps(method)
+    def checked(self, *args, **kwargs):
+        value = method(self, *args, **kwargs)
+        if (isinstance(value, Tensor) and value.is_floating_point()
+                and not under_transform(value) and values_known(value)
+                and not _all_finite(value)):  # fmt: skip
+            step = ", ".join(map(repr, args))
+            raise ValueError(
+                f"{type(self).__name__}.{name}({step}) contains NaN or Inf values; every "
+                "entry must be finite"
+            )
+        return value
+
+    checked._checks_finite = True
+    return checked
 
 
 def _arity(fn: Callable, names: tuple[str, ...] = ("x", "u", "k")) -> int:

@@ -104,6 +104,15 @@ def _check_sequence(
     return t
 
 
+def _check_calibration_sequence(t, name: str) -> Tensor:
+    """An attack-free statistic ``[..., T]`` to calibrate on: a sequence of at least one
+    run (no runs had failed in torch's max: a batch-dims trial)."""
+    _check_sequence(t, name, 0)
+    if t.numel() == 0:
+        raise ValueError(f"{name} has no runs to calibrate on: {tuple(t.shape)}")
+    return t
+
+
 def normalized_innovation_squared(
     innovations: Tensor, innovation_covs: Tensor, *, mask: Tensor | None = None
 ) -> Tensor:
@@ -342,6 +351,13 @@ class ChiSquareDetector:
                 f"threshold {tau!r} is beyond what χ²_{dim * window} reaches in float64 (a rate "
                 f"of {rate!r}): give a threshold of a false-alarm rate in (0, 1)"
             )
+        # the rate read back lands up to 2 ulp below τ one time in three, and τ from
+        # threshold_for is one of the scores: that score alarmed, one more than the ⌊αn⌋ the
+        # calibration allows (a recorded-log trial): the largest rate whose quantile is ≥ τ
+        for _ in range(64):
+            if chi_square_upper_quantile(dim * window, rate) >= tau:
+                break
+            rate = math.nextafter(rate, 0.0)
         return cls(dim, rate, window)
 
     def __repr__(self) -> str:
@@ -635,7 +651,7 @@ class CusumDetector:
         false_alarm_rate = check_rate(false_alarm_rate, "false_alarm_rate")  # (a "0.01" too)
         # (0 bisections returned the bracket's top, max Σg: no alarm at all, unsaid)
         iterations = check_positive_int(iterations, "iterations")
-        _check_sequence(g_attack_free, "g_attack_free", 0)
+        _check_calibration_sequence(g_attack_free, "g_attack_free")
         mean = float(_finite_mean(g_attack_free))
         if self.bias <= mean:  # (taken without a word before: a closed-loop trial)
             warnings.warn(

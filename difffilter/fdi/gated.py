@@ -285,6 +285,9 @@ def cusum_detector_for(
         # (a bad runs reached torch as "max(): Expected reduction dim" or a negative dimension)
         runs = check_positive_int(runs, "runs")
         _, ys, _ = model.simulate(steps, (runs,), us, generator=generator)
+    elif isinstance(ys, Tensor) and ys.dim() >= 2 and ys[..., 0].numel() == 0:
+        # (named as g_attack_free, a statistic the caller never saw: a batch-dims trial)
+        raise ValueError(f"ys has no runs or no steps to calibrate on: {tuple(ys.shape)}")
     free = open_loop(filter, model, ys, us, mask=mask)
     g = normalized_innovation_squared(free.extras["innovations"], free.extras["innovation_covs"])
     if mask is not None:  # as in the gated filter: missing entries count their mean
