@@ -223,6 +223,18 @@ def _observer_spectrum(A_closed: Tensor, factor: float, zero_pole: float | None)
     if tiny.any():
         target = lam[~tiny].real.max() if zero_pole is None else float(zero_pole)
         lam = np.where(tiny, target, lam)
+    # the zero modes are moved because their error would never decay; an undamped pair
+    # (±iω) or an unstable mode is as bad, and had given poles on or outside the unit
+    # circle without a word (an observers trial)
+    slow = ~tiny & (lam.real >= -1e-12 * np.abs(lam).max())
+    if slow.any():
+        raise ValueError(
+            "A_closed must be stable but for zero eigenvalues (A − BK₁ of a stabilising "
+            "controller): its eigenvalues "
+            f"{np.array2string(lam[slow] / factor, precision=4)} have real part ≥ 0, and the "
+            "observer error along them would never decay (poles exp(factor·λ·dt) on or outside "
+            "the unit circle)"
+        )
     return lam, V, tiny
 
 
@@ -322,7 +334,14 @@ def luenberger_gain(
             Phi[i : i + 2, i : i + 2] = [[z.real, z.imag], [-z.imag, z.real]]
             i += 2
     Lp = _np(Ad) - Phi
-    return torch.as_tensor(np.linalg.solve(_np(Ad), Lp), dtype=Ad.dtype, device=Ad.device)
+    try:
+        gain = np.linalg.solve(_np(Ad), Lp)
+    except np.linalg.LinAlgError:  # (numpy's bare "Singular matrix": an observers trial)
+        raise ValueError(
+            "Ad must be invertible: the filter-form gain is L_f = Ad⁻¹ L_p, and with a "
+            "singular Ad the error dynamics Ad (I − L_f) keep a pole at 0 whatever L_f is"
+        ) from None
+    return torch.as_tensor(gain, dtype=Ad.dtype, device=Ad.device)
 
 
 def _modal_transition(A_closed: np.ndarray, V: np.ndarray, p: np.ndarray, moved: np.ndarray,

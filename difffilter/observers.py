@@ -45,6 +45,10 @@ class FixedGainFilter(GaussianFilter):
                 raise ValueError(
                     f"gain must be a tensor [dx, dy]; got {getattr(value, 'shape', value)!r}"
                 )
+            # a complex gain (a modal design without .real) had run as its real part, an
+            # integer or bool one cast without a word (an observers trial)
+            if not value.is_floating_point():
+                raise ValueError(f"gain must be a real floating tensor [dx, dy]; got {value.dtype}")
             check_finite(value, "gain")
         super().__setattr__(name, value)
 

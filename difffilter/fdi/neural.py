@@ -622,7 +622,11 @@ class NeuralCompensation(Estimator):
         _check_restart(restart, inner, channel)
         _check_confirm(confirm, restart)
         _check_reject(reject, channel)
-        _check_needs_innovation_cov(inner, standardize=standardize, restart=restart, reject=reject)
+        _check_needs_innovation_cov(
+            inner, standardize=standardize, restart=restart, reject=reject,
+            plain_innovation="plain_innovation" in features,
+            log_likelihood="log_likelihood" in features,
+        )  # fmt: skip
         if not getattr(inner, "carry_is_state", True):  # (its steps report the carry's mean)
             raise ValueError(
                 f"inner: {type(inner).__name__}'s carry holds more than the state (on held "
@@ -655,7 +659,22 @@ class NeuralCompensation(Estimator):
         else:
             self.carry_type = NeuralCarry
 
+    #: What the constructor checks together and builds into the estimator (the core, the
+    #: uncompensated copy, the particle filter's likelihood): assigned later, ``restart``
+    #: had been ignored (its copy is made by the constructor's choice) and an ``inner``
+    #: observer reached ``S_k = None`` inside torch (an observers trial). Not reassignable.
+    _BUILT = frozenset({
+        "network", "inner", "channel", "gating", "compensation", "restart", "confirm",
+        "reject", "evidence", "core", "particles", "plain", "pf", "carry_type",
+    })  # fmt: skip
+
     def __setattr__(self, name, value):
+        if name in self._BUILT and name in self.__dict__:
+            raise AttributeError(
+                f"{name} is checked with the other options and built into the estimator by "
+                f"its constructor: it cannot be assigned later (build a new "
+                f"{type(self).__name__})"
+            )
         # checked whenever set, as the card checks it: a NaN threshold never alarmed, True read
         # as 1.0 (a probability score then never alarms) and "0.5" as 0.5 (a trial); the LFC
         # entries set it after construction
@@ -946,9 +965,9 @@ def _check_needs_innovation_cov(inner, **options) -> None:
         raise ValueError(
             f"{', '.join(used)}: {'these read' if len(used) > 1 else 'it reads'} the innovation "
             f"covariance S_k, which a {type(inner).__name__} (a Luenberger observer) does not "
-            "report: "
+            "report (nor a log-likelihood): "
             "give a KalmanFilter (or leave them out: standardize=False, restart=None, "
-            "reject=None)"
+            "reject=None, no 'plain_innovation' or 'log_likelihood' feature)"
         )
 
 
@@ -1027,7 +1046,7 @@ def _check_options(network, inner, channel, features, poa_eta, learning, decepti
     if "plain_innovation" in features and particles:
         raise ValueError(
             "'plain_innovation' runs an uncompensated copy of a Gaussian filter: inner must be "
-            "a KalmanFilter, ExtendedKalmanFilter, UnscentedKalmanFilter or FixedGainFilter"
+            "a KalmanFilter, ExtendedKalmanFilter or UnscentedKalmanFilter"
         )
     if "poa" in features and not particles:
         raise ValueError("'poa' needs particles: inner must be a ParticleFilter")
