@@ -32,8 +32,9 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from difffilter._checks import check_finite_number, check_positive_definite
+from difffilter._checks import check_finite_number, check_positive_definite, version_stamp
 from difffilter.fdi.poa import InfeasibleThreshold, poa_detector_for
+from difffilter.linalg import under_transform
 from difffilter.noise import Gaussian
 from difffilter.ssm import StateSpaceModel
 
@@ -146,6 +147,8 @@ class FourTankModel(StateSpaceModel):
         self.params = p
         # finite too: dt = inf would be accepted by "> 0" and make every state NaN later
         self._dt = check_finite_number(dt, "dt", positive=True)
+        if dtype not in (torch.float32, torch.float64):  # (torch's finfo or cholesky said it)
+            raise ValueError(f"dtype must be torch.float32 or torch.float64; got {dtype!r}")
         kw = {"dtype": dtype, "device": device}
         A = torch.tensor(p.A, **kw)
         a = torch.tensor(p.a, **kw)
@@ -180,7 +183,7 @@ class FourTankModel(StateSpaceModel):
         self.register_buffer("step_offset", self.dt * inflow)
         self.register_buffer("_couple_index", torch.tensor([2, 3, 2, 3], device=device))
         self.register_buffer("G", torch.eye(4, **kw))
-        x0 = torch.tensor(p.fixed_point(), **kw) if x0 is None else torch.as_tensor(x0, **kw)
+        x0 = torch.tensor(p.fixed_point(), **kw) if x0 is None else _prior_mean(x0, kw)
         self.initial = Gaussian(x0, _cov(P0, kw, "P0"))
         self.process_noise = Gaussian(torch.zeros(4, **kw), _cov(Q, kw, "Q"))
         self.measurement_noise = Gaussian(torch.zeros(4, **kw), _cov(R, kw, "R"))
@@ -190,9 +193,40 @@ class FourTankModel(StateSpaceModel):
         """Sampling period in s (read-only: the Euler step matrix is built from it)."""
         return self._dt
 
+    def __setattr__(self, name, value):
+        # the parameters are folded into the buffers at construction: reassigned, they had
+        # moved the linearised filter's x* while the plant stayed (a four-tank trial)
+        if name == "params" and "params" in self.__dict__:
+            raise AttributeError(
+                "params are folded into the model's buffers by its constructor: build a new "
+                "FourTankModel (or edit the step_* buffers in place, transition's docstring)"
+            )
+        super().__setattr__(name, value)
+
+    def fixed_point(self) -> Tensor:
+        """The equilibrium ``x*`` of the plant as it runs (``transition(x*) = x*``) ``[4]``,
+        from the ``step_*`` buffers in float64 (solved for ``s = √x*`` from the lower tanks
+        up: ``c + a ⊙ s + b ⊙ s[[2, 3, 2, 3]] = 0``), in the buffers' dtype. Where those
+        are still the parameters' (the plant unedited), ``params.fixed_point()`` (the same
+        point, from the constants); a plant edited in place (transition's docstring) has
+        its own, which the parameters' had stood in for (a four-tank trial: 0.025 cm of
+        drift a step under the linearised filter)."""
+        offset, diag, couple = (self._buffers[n].detach().double()
+                                for n in ("step_offset", "step_diag", "step_couple"))  # fmt: skip
+        lower = -offset[2:] / diag[2:]
+        upper = -(offset[:2] + couple[:2] * lower) / diag[:2]
+        own = torch.cat([upper, lower]).square()
+        given = torch.tensor(self.params.fixed_point(), dtype=torch.float64, device=own.device)
+        dtype = self._buffers["step_offset"].dtype
+        # the parameters' point where it is the plant's within the buffers' own round-off
+        # (the demo's numbers, made from it, stay as they were)
+        if bool(((own - given).abs() <= 64 * torch.finfo(dtype).eps * given.abs()).all()):
+            own = given
+        return own.to(dtype)
+
     def continuous_rhs(self, x: Tensor) -> Tensor:
         """``f_c(max(x, 0), v)`` for ``x [..., 4]`` → ``[..., 4]`` (cm/s)."""
-        s = torch.sqrt(x.clamp_min(0.0))
+        s = _sqrt_levels(x)
         coupled = torch.cat([s[..., 2:4], torch.zeros_like(s[..., :2])], dim=-1)
         return self.outflow * s + self.couple * coupled + self.inflow
 
@@ -208,7 +242,7 @@ class FourTankModel(StateSpaceModel):
         continuous ones with them, where ``continuous_rhs`` is used), or build a new model
         (a trial had edited ``inflow`` alone: the filters kept the old one, 0.125 apart).
         """
-        s = torch.sqrt(x.clamp_min(0.0))
+        s = _sqrt_levels(x)
         offset, diag, couple = self._step_coefficients(x)
         out = torch.addcmul(x + offset, s, diag)
         return torch.addcmul(out, s.index_select(-1, self._buffers["_couple_index"]), couple)
@@ -240,7 +274,7 @@ class FourTankModel(StateSpaceModel):
             # (a state of another dtype takes torch's promotion, as a small batch does: a
             # cast copy had made the result's dtype hang on the batch size, a review)
             return coefs
-        key = (tuple(x.shape),) + tuple((c.data_ptr(), c._version) for c in coefs)
+        key = (tuple(x.shape),) + tuple((c.data_ptr(), version_stamp(c)) for c in coefs)
         cached = getattr(self, "_coef_cache", None)
         if cached is None or cached[0] != key:
             full = tuple(c.expand(x.shape).contiguous() for c in coefs)
@@ -264,7 +298,7 @@ class FourTankModel(StateSpaceModel):
         of the step coefficients they are made of."""
         buffers = self._buffers
         diag, couple = buffers["step_diag"], buffers["step_couple"]
-        key = (diag.data_ptr(), diag._version, couple.data_ptr(), couple._version,
+        key = (diag.data_ptr(), version_stamp(diag), couple.data_ptr(), version_stamp(couple),
                diag.dtype, diag.device, diag.requires_grad or couple.requires_grad)  # fmt: skip
         cached = getattr(self, "_jacobian_cache", None)
         if cached is not None and cached[0] == key and not key[-1]:
@@ -286,6 +320,29 @@ class FourTankModel(StateSpaceModel):
     def observation_matrix(self, k: int) -> Tensor:
         """``G`` ``[4, 4]`` (the measurement is linear)."""
         return self.G
+
+
+def _prior_mean(value, kw) -> Tensor:
+    """``x0`` as the prior mean ``[..., 4]``, finite, named in its errors (``Gaussian`` had
+    named it "loc": a four-tank trial)."""
+    t = torch.as_tensor(value, **kw)
+    if t.dim() < 1 or t.shape[-1] != 4:
+        raise ValueError(f"x0 must be four tank levels [4] (or [B, 4]); got shape {tuple(t.shape)}")
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError("x0 contains NaN or Inf values; every level must be finite")
+    return t
+
+
+def _sqrt_levels(x: Tensor) -> Tensor:
+    """``√max(x, 0)``, differentiated as :meth:`FourTankModel.transition_jacobian` is
+    (``∂√h/∂h = 0`` where ``h ≤ 0``): autograd through ``sqrt(clamp(x))`` had given ``inf``
+    at an empty tank and ``0 · inf = NaN`` in the coupled terms, an EKF's gradient from
+    empty tanks ``[-inf, -inf, inf, inf]`` (a four-tank trial). The same values either way;
+    the plain form where no gradient reaches ``x`` (the particle filters' hot path)."""
+    if not (x.requires_grad or under_transform(x)):
+        return torch.sqrt(x.clamp_min(0.0))
+    pos = x > 0
+    return torch.where(pos, torch.sqrt(torch.where(pos, x, 1.0)), 0.0)
 
 
 def _cov(value, kw, name) -> Tensor:

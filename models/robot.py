@@ -75,6 +75,8 @@ class RobotModel(StateSpaceModel):
         pos = torch.as_tensor(sensors, dtype=dtype)
         if pos.dim() not in (2, 3) or pos.shape[-1] != 2:
             raise ValueError(f"sensors must have shape [S, 2] or [G, S, 2]; got {tuple(pos.shape)}")
+        if not bool(torch.isfinite(pos).all()):  # (NaN ranges had been simulated: a trial)
+            raise ValueError("sensors contains NaN or Inf positions; every position must be finite")
         dim_y = 2 * pos.shape[-2]
         var = torch.tensor(meas_var, dtype=dtype)
         if var.shape == (dim_y // 2, 2):  # one (range, bearing) pair per lidar
@@ -86,22 +88,38 @@ class RobotModel(StateSpaceModel):
                 f"meas_var must be one (range, bearing) variance pair for every lidar, shape "
                 f"(2,), or one per lidar, shape ({dim_y // 2}, 2); got {tuple(var.shape)}"
             )
+        # each named in its errors (Gaussian had named a wrong length "loc": a trial)
+        x0, p0 = _entries(x0, "x0", 3, dtype), _entries(p0, "p0", 3, dtype)
+        filter_q, input_var = (
+            _entries(filter_q, "filter_q", 3, dtype),
+            _entries(input_var, "input_var", 2, dtype),
+        )
         self._setup(
             pos, dt,
-            initial=Gaussian(torch.tensor(x0, dtype=dtype), torch.diag(torch.tensor(p0, dtype=dtype))),
-            process_noise=Gaussian(torch.zeros(3, dtype=dtype),
-                                   torch.diag(torch.tensor(filter_q, dtype=dtype))),
-            input_noise=Gaussian(torch.zeros(2, dtype=dtype),
-                                 torch.diag(torch.tensor(input_var, dtype=dtype))),
+            initial=Gaussian(x0, torch.diag(p0)),
+            process_noise=Gaussian(torch.zeros(3, dtype=dtype), torch.diag(filter_q)),
+            input_noise=Gaussian(torch.zeros(2, dtype=dtype), torch.diag(input_var)),
             measurement_noise=Gaussian(torch.zeros(dim_y, dtype=dtype), torch.diag(R)),
         )  # fmt: skip
+
+    def _matrices_read(self) -> list[tuple[str, Tensor]]:
+        """What :func:`~difffilter._checks.check_model` checks finite at a run's start: the
+        sensor positions, written NaN in place had simulated NaN ranges (a robot trial)."""
+        return [("sensor_pos", self._buffers["sensor_pos"])]
+
+    def __setattr__(self, name, value):
+        # dt assigned later is checked as the constructor checks it (dt = -1 had run the
+        # robot backwards, NaN simulated NaN states, "1" failed in torch: a robot trial)
+        if name == "dt":
+            value = check_finite_number(value, "dt", positive=True)
+        super().__setattr__(name, value)
 
     def _setup(self, pos, dt, *, initial, process_noise, input_noise, measurement_noise):
         """Set every attribute once (first assignments: building a model, e.g. a group,
         changes no other model's validation, :mod:`difffilter._assignments`)."""
         super().__init__()
         # (a NaN or negative dt had built a model that simulated NaN or ran backwards)
-        self.dt = check_finite_number(dt, "dt", positive=True)
+        self.dt = dt  # (checked by __setattr__)
         self.num_sensors = pos.shape[-2]
         self.dim_y = 2 * self.num_sensors
         self.register_buffer("sensor_pos", pos)
@@ -132,10 +150,14 @@ class RobotModel(StateSpaceModel):
             or idx.dim() not in (1, 2)
             or idx.numel() == 0
             or idx.dtype.is_floating_point
+            or idx.dtype == torch.bool  # (a mask had been read as indices 0 and 1: a trial)
+            or any(
+                len(set(g)) != len(g) for g in (idx.tolist() if idx.dim() == 2 else [idx.tolist()])
+            )
         ):
             raise ValueError(
-                "indices must be sensor indices (a sequence of ints) or equal-length groups of "
-                f"them; got {indices!r}"
+                "indices must be sensor indices (a sequence of distinct ints) or equal-length "
+                f"groups of them; got {indices!r}"
             )
         if pos.dim() != 2:
             raise ValueError(
@@ -283,6 +305,20 @@ class RobotModel(StateSpaceModel):
         return torch.stack((d[..., 0], wrap_angle(d[..., 1])), -1).flatten(-2)
 
 
+def _entries(value, name: str, count: int, dtype) -> Tensor:
+    """``value`` as ``count`` finite numbers (a tensor of ``dtype``), named in its errors."""
+    try:
+        t = torch.as_tensor(value, dtype=dtype)
+    except (TypeError, ValueError, RuntimeError):
+        t = None
+    if t is None or t.shape != (count,):
+        got = tuple(t.shape) if t is not None else repr(value)
+        raise ValueError(f"{name} must be {count} numbers; got {got}")
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{name} contains NaN or Inf values; every entry must be finite")
+    return t
+
+
 def _noise_blocks(noise: Gaussian, groups) -> tuple[list[Tensor], list[Tensor]]:
     """The mean ``[..., 2S]`` and covariance ``[..., 2S, 2S]`` blocks of each sensor group's
     range–bearing entries (``2i``, ``2i + 1`` for sensor ``i``)."""
@@ -343,6 +379,18 @@ class RobotScenario(Scenario):
                 f"report reads â at k = attack_from + 14 and the errors from k = 40); got "
                 f"steps={self.steps!r}, attack_from={self.attack_from!r}"
             )
+        if isinstance(self.attack_from, bool):  # (True had been taken for k = 1: a trial)
+            raise ValueError(f"attack_from must be an integer step ≥ 1; got {self.attack_from!r}")
+        rates = self.turn_rate_range_deg
+        if rates is not None and (
+            not isinstance(rates, (tuple, list)) or len(rates) != 2
+            or any(isinstance(r, bool) or not isinstance(r, (int, float)) or not math.isfinite(r)
+                   for r in rates)
+        ):  # fmt: skip
+            # (three entries or a number failed at the first run in Python's unpacking, NaN
+            # commanded NaN turn rates: a robot trial)
+            raise ValueError("turn_rate_range_deg must be None or two finite numbers (lo, hi) in "
+                             f"deg/s; got {rates!r}")  # fmt: skip
         attack = self.attack
         if (not isinstance(attack, (tuple, list)) or len(attack) != 2
                 or any(isinstance(a, bool) or not isinstance(a, (int, float))

@@ -32,7 +32,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from difffilter._checks import check_finite_number
+from difffilter._checks import check_finite_number, version_stamp
 from difffilter.linalg import matvec, rowwise
 from difffilter.noise import Gaussian, NoiseModel, check_log_prob_mask, register_tensor
 from difffilter.particle import KalmanProposal
@@ -309,7 +309,9 @@ class TrackingModel(StateSpaceModel):
         object.__setattr__(self, "_sampled_noise", self.process_noise)
         # and the covariance it was made from, as it was (written in place since, the old L
         # had drawn on: simulate 0.515 off a model built with the new Q; a trial)
-        object.__setattr__(self, "_sampled_cov", (self._process_cov_stamp(), Q.detach().clone()))
+        object.__setattr__(
+            self, "_sampled_cov_cache", (self._process_cov_stamp(), Q.detach().clone())
+        )
         self.measurement_noise = GlintNoise(
             torch.tensor([1 - kappa, kappa], dtype=dtype),
             torch.tensor([sigma1, sigma2], dtype=dtype),
@@ -326,20 +328,20 @@ class TrackingModel(StateSpaceModel):
     def _process_cov_stamp(self) -> tuple:
         """Where the process noise's covariance lives and how often it was written."""
         cov = self.process_noise.cov
-        return (cov.data_ptr(), cov._version)
+        return (cov.data_ptr(), version_stamp(cov))
 
     def _same_process_cov(self) -> bool:
         """Whether the process noise's covariance is still the one ``L`` was made from: by
         its stamp, else by value (a copy of the model holds it elsewhere; the stamp is then
         renewed)."""
-        stamp, values = self._sampled_cov
+        stamp, values = self._sampled_cov_cache
         now = self._process_cov_stamp()
         if now == stamp:
             return True
         cov = self.process_noise.cov.detach()
         if cov.shape != values.shape or not torch.equal(cov, values.to(cov)):
             return False
-        object.__setattr__(self, "_sampled_cov", (now, values))
+        object.__setattr__(self, "_sampled_cov_cache", (now, values))
         return True
 
     def sample_transition(self, x, u, k, generator=None):

@@ -28,7 +28,7 @@ import numbers
 import torch
 from torch import Tensor
 
-from .._checks import check_finite, check_finite_number, check_fraction
+from .._checks import check_finite, check_finite_number, check_fraction, version_stamp
 from ..estimator import Detection, EstimatorOutput
 from ..noise import Gaussian
 from ..particle import _ess, particle_init
@@ -102,7 +102,7 @@ class FusedModifiedPF:
         _check_measurement_noise(model)
         G = model.observation_matrix(1)
         R, Q = model.measurement_cov(1), model.process_cov(0)
-        stamp = tuple((t, t._version) for t in (G, R, Q))
+        stamp = tuple((t, version_stamp(t)) for t in (G, R, Q))
         if self._derived is not None and all(
             a is b and va == vb for (a, va), (b, vb) in zip(self._derived, stamp)
         ):

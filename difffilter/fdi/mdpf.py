@@ -55,6 +55,7 @@ from .._checks import (
     check_rate,
     check_step_inputs,
     check_strategy,
+    version_stamp,
 )
 from ..estimator import Estimator, EstimatorOutput, Generators
 from ..kalman import _check_zero_mean_noise
@@ -267,7 +268,7 @@ class AdaptiveKalmanProposal:
         # had been filtered on, 1.56 off), and whether a gradient is wanted (the key's
         # flags had not been compared: R.requires_grad_() later kept the information form)
         traced = under_transform(Q, R)  # (wrapped tensors: no storage to read)
-        state = (R._version, None if traced else R.data_ptr(), Q._version,
+        state = (version_stamp(R), None if traced else R.data_ptr(), version_stamp(Q),
                  None if traced else Q.data_ptr(), R.requires_grad, Q.requires_grad, traced)  # fmt: skip
         old = self._noise_key
         if old is not None and old[0] is R and old[1] is Q and old[2] == state:
