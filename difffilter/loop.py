@@ -1217,6 +1217,11 @@ def _values_differ(a, b) -> bool:
     apart or compared)."""
     if isinstance(a, Tensor) or isinstance(b, Tensor):
         return not (isinstance(a, Tensor) and isinstance(b, Tensor) and _same(a, b))
+    if isinstance(a, torch.nn.Module) and isinstance(b, torch.nn.Module):
+        # by their tensors, as the loop compares its models: a module's == is identity, and a
+        # covert attack's plant restored by torch.load or pickle (or built again for a chunk)
+        # had refused the resume of its own loop (a serialisation trial)
+        return not _same_model(a, b)
     if isinstance(a, (tuple, list)) and isinstance(b, (tuple, list)):
         return len(a) != len(b) or any(_values_differ(x, y) for x, y in zip(a, b))
     try:
