@@ -8,7 +8,13 @@ import signal
 import threading
 from contextlib import contextmanager
 
-__all__ = ["Terminated", "sigterm_as_interrupt", "sigterm_received", "stop_words"]
+__all__ = [
+    "Terminated",
+    "sigterm_as_interrupt",
+    "sigterm_received",
+    "signals_deferred",
+    "stop_words",
+]
 
 
 class Terminated(KeyboardInterrupt):
@@ -48,6 +54,35 @@ def sigterm_as_interrupt():
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+@contextmanager
+def signals_deferred():
+    """Run the block (a few renames that must happen together) with Ctrl-C and SIGTERM
+    held: one that arrives inside is raised as it would have been (``KeyboardInterrupt``,
+    :class:`Terminated`) once the block is done. Outside the main thread the block runs as
+    it is. (``calibrate --out SRC --force`` stopped between writing a checkpoint and its
+    card had left a pair that no longer matched, and the rerun it advised was refused: an
+    interrupts trial.)"""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+
+    def hold(signum, frame):
+        held.append(signum)
+
+    previous = {sig: signal.signal(sig, hold) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if held:
+        if signal.SIGTERM in held:
+            _RECEIVED[0] = True
+            raise Terminated
+        raise KeyboardInterrupt
 
 
 def stop_words(interrupt: KeyboardInterrupt) -> tuple[str, int]:

@@ -16,6 +16,7 @@ from it; and the versions of Python and torch::
 from __future__ import annotations
 
 import functools
+import os
 import platform
 import subprocess
 from pathlib import Path
@@ -29,9 +30,12 @@ __all__ = ["software_record", "software_line"]
 
 def _git(folder: Path, *args: str) -> str | None:
     """``git -C folder args`` stripped, or ``None`` where git or the work tree is missing."""
+    # the folder alone says which repository: GIT_DIR or GIT_WORK_TREE exported by a script
+    # driving another repository had recorded that one's commit (a provenance trial)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GIT_")}
     try:
         done = subprocess.run(["git", "-C", str(folder), *args], capture_output=True,
-                              text=True, timeout=10, check=False)  # fmt: skip
+                              text=True, timeout=10, check=False, env=env)  # fmt: skip
     except (OSError, subprocess.SubprocessError):
         return None
     return done.stdout.strip() if done.returncode == 0 else None

@@ -8,6 +8,8 @@ folder, which then replaces the target in one ``os.replace`` (atomic on one file
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import json
 import os
 import threading
@@ -25,8 +27,13 @@ def write_atomically(path: str | Path, content: str | bytes | Callable[[Path], o
     line had to say which file was not written)."""
     path = Path(path)
     # a partial file of this process and thread: two threads writing one path had shared
-    # it, and the first to finish moved the other's half-written file into place
-    partial = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.partial")
+    # it, and the first to finish moved the other's half-written file into place. Its name
+    # is the target's cut to a prefix (with a digest of the whole): a legal name of 240
+    # bytes had made a partial one past the file system's 255 (an interrupts trial)
+    tag = hashlib.sha256(path.name.encode()).hexdigest()[:12]
+    partial = path.with_name(
+        f".{path.name[:64]}.{tag}.{os.getpid()}.{threading.get_ident()}.partial"
+    )
     try:
         if isinstance(content, str):
             partial.write_text(content)
@@ -36,10 +43,20 @@ def write_atomically(path: str | Path, content: str | bytes | Callable[[Path], o
             content(partial)
         os.replace(partial, path)
     except BaseException as exc:
-        partial.unlink(missing_ok=True)
-        if isinstance(exc, OSError):
-            exc.filename, exc.filename2 = str(path), None
+        with contextlib.suppress(OSError):  # (its own error had hidden the first)
+            partial.unlink(missing_ok=True)
+        if isinstance(exc, OSError) and exc.errno is not None and _about(exc, partial, path):
+            # named after the target: "-> None" had ended every such line (filename2 set to
+            # None is printed), and an error about another file a writer read is left alone
+            raise type(exc)(exc.errno, exc.strerror, str(path)) from exc
         raise
+
+
+def _about(exc: OSError, partial: Path, path: Path) -> bool:
+    """Whether ``exc`` is about the write itself: no file named, or the partial file or
+    the target (not another file the writer function read)."""
+    named = {exc.filename, exc.filename2} - {None}
+    return not named or all(str(name) in (str(partial), str(path)) for name in named)
 
 
 def save_torch_atomically(path: str | Path, obj) -> None:

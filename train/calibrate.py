@@ -40,8 +40,10 @@ estimator so configured.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
+import os
 import sys
 import tempfile
 import time
@@ -49,7 +51,7 @@ from pathlib import Path
 
 from difffilter._checks import check_rate
 from difffilter.fdi.neural import restart_applies
-from difffilter.interrupts import stop_words
+from difffilter.interrupts import signals_deferred, stop_words
 from difffilter.models.atomic_write import write_json_atomically
 from difffilter.models.neural_estimator import RUN_OPTIONS
 
@@ -151,7 +153,6 @@ def calibrate_checkpoint(
     from difffilter.models.neural_estimator import (
         load_estimator_checkpoint,
         save_estimator_checkpoint,
-        weights_sha256,
     )
     from difffilter.models.plant_match import training_plant_notes
     from difffilter.models.streams import Streams
@@ -238,15 +239,41 @@ def calibrate_checkpoint(
                                    estimator=name, extra={**card.extra, "calibration": calibration})  # fmt: skip
     old_json = src.with_suffix(".json")
     document = json.loads(old_json.read_text()) if old_json.is_file() else {}
-    digest = save_estimator_checkpoint(out, estimator, new_card)
-    document.update(name=document.get("name", out.stem), checkpoint=out.name, sha256=digest,
-                    weights_sha256=weights_sha256(out), observer=new_card.to_dict(),
-                    calibration=calibration)  # fmt: skip
-    if check is not None:
-        document["check"] = check
-    write_json_atomically(out.with_suffix(".json"), document)
+    _write_pair(out, estimator, new_card, document, calibration, check)
     load_estimator_checkpoint(out)  # the pair loads and matches its card
     return calibration
+
+
+def _write_pair(out: Path, estimator, card, document: dict, calibration: dict, check) -> None:
+    """The checkpoint ``out`` and its card, written beside their final names first and then
+    moved into place together, with Ctrl-C and SIGTERM held for the two renames: stopped
+    between two plain writes of an in-place ``--out SRC``, the new checkpoint had stood
+    beside the old card, which the rerun (verifying SRC against its card) refused."""
+    from difffilter.models.neural_estimator import save_estimator_checkpoint, weights_sha256
+
+    card_path = out.with_suffix(".json")
+    tag = f"{os.getpid()}.staged"  # (names cut: a legal long --out stays legal staged)
+    staged = out.with_name(f".{out.name[:64]}.{tag}")
+    staged_card = card_path.with_name(f".{card_path.name[:64]}.{tag}")
+    try:
+        digest = save_estimator_checkpoint(staged, estimator, card)
+        document.update(name=document.get("name", out.stem), checkpoint=out.name, sha256=digest,
+                        weights_sha256=weights_sha256(staged), observer=card.to_dict(),
+                        calibration=calibration)  # fmt: skip
+        if check is not None:
+            document["check"] = check
+        write_json_atomically(staged_card, document)
+        with signals_deferred():
+            os.replace(staged, out)
+            os.replace(staged_card, card_path)
+    except OSError as exc:  # named after --out, not the staged files beside it
+        if exc.errno is None:
+            raise
+        raise type(exc)(exc.errno, exc.strerror, str(out)) from exc
+    finally:
+        for leftover in (staged, staged_card):
+            with contextlib.suppress(OSError):
+                leftover.unlink(missing_ok=True)
 
 
 def _rate_option(value: str, option: str):
@@ -318,8 +345,8 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)  # fmt: skip
         return 2
     except KeyboardInterrupt as exc:  # (a traceback of 22 frames before: a training trial)
-        # --out is written at the end, the checkpoint and then its card: interrupted between
-        # the two, the pair does not match and a rerun must replace it
+        # --out is written at the end, the checkpoint and its card moved into place together
+        # (signals held): a pair is either the old one or the new one
         touched = _signature(args.out) != before
         what, code = stop_words(exc)  # (SIGTERM: 143)
         print(f"difffilter-train calibrate: {what}: "
