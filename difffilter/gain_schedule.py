@@ -39,6 +39,7 @@ little more than the Python call).
 from __future__ import annotations
 
 import numbers
+import threading
 from typing import NamedTuple
 
 import numpy as np
@@ -134,6 +135,10 @@ class GainSchedule:
         if isinstance(tol, bool) or not isinstance(tol, numbers.Real) or not tol >= 0:
             raise ValueError(f"tol must be a number >= 0; got {tol!r}")
         self.model, self.tol = model, float(tol)
+        # held by a Kalman filter's step that uses the schedule: the carries branched from
+        # one start carry share it, and stepped from several threads their handing out and
+        # trimming had interleaved (IndexError, or means 1.6 off: a concurrency trial)
+        self.lock = threading.RLock()
         # the count before the model is read: an assignment while it is read counts as after
         self._assignments = assignments()
         self.F, self.H, self.B = (
@@ -189,7 +194,7 @@ class GainSchedule:
         restored carry had been refused as "written in place" at its next step, though
         nothing had written to it (a serialisation trial)."""
         state = self.__dict__.copy()
-        for name in ("_stamps_of", "_stamps"):  # (remade from _sources at the next use)
+        for name in ("_stamps_of", "_stamps", "lock"):  # (remade: at the next use, a new lock)
             state.pop(name, None)
         for name in ("_sources", "_own_sources"):
             state[name] = tuple((t, _unchanged(t, stamp)) for t, stamp in state[name])
@@ -216,6 +221,7 @@ class GainSchedule:
         # after a first `model.F = …` here, which then went unseen (a KF trial: the old gains
         # and a mean 0.17 off); -1 has the model read again at the first use
         state["_assignments"] = -1
+        state["lock"] = threading.RLock()
         self.__dict__.update(state)
 
     @property

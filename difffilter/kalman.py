@@ -25,6 +25,7 @@ all runs, and the whole-sequence run takes the shared-covariance path
 
 from __future__ import annotations
 
+import contextlib
 from typing import NamedTuple
 
 import torch
@@ -321,6 +322,10 @@ class KalmanFilter(GaussianFilter):
         return state
 
     def _step(self, carry, y, u, mask):
+        with _schedule_held(carry):
+            return self._step_held(carry, y, u, mask)
+
+    def _step_held(self, carry, y, u, mask):
         carry = _live(carry, outputs=False)  # (the fused step checks those itself)
         if carry.gains is not None and mask is None:
             # the fused step of the shared gains: about eight tensor operations per step
@@ -338,10 +343,11 @@ class KalmanFilter(GaussianFilter):
         return self.update(carry, self.predict(carry, u), y, mask)
 
     def predict(self, carry, u):
-        carry = _live(carry)
-        if carry.gains is not None:
-            return Prediction(carry.gains.predict(carry.mean, u),
-                              carry.gains.moments(carry.k + 1).pred_cov)  # fmt: skip
+        with _schedule_held(carry):
+            carry = _live(carry)
+            if carry.gains is not None:
+                return Prediction(carry.gains.predict(carry.mean, u),
+                                  carry.gains.moments(carry.k + 1).pred_cov)  # fmt: skip
         return Prediction(*kalman_predict(carry.model, carry, u))
 
     def moments(self, carry, prediction, mask):
@@ -356,18 +362,24 @@ class KalmanFilter(GaussianFilter):
         return y - matvec(carry.model.observation_matrix(carry.k + 1), prediction.mean)
 
     def update(self, carry, prediction, y, mask, *, evidence=True, moments=None):
-        carry = _live(carry)
-        if carry.gains is not None and mask is None:
-            return _shared_update(carry, prediction.mean, y, evidence)
+        with _schedule_held(carry):
+            carry = _live(carry)
+            if carry.gains is not None and mask is None:
+                return _shared_update(carry, prediction.mean, y, evidence)
         return self._moments_update(carry, prediction, y, mask, evidence, moments)
 
     def innovation(self, carry, prediction, y, mask, *, evidence: bool = True, moments=None):
-        carry = _live(carry)
-        if carry.gains is None or mask is not None:
+        with _schedule_held(carry):
+            carry = _live(carry)
+            m = (
+                None
+                if carry.gains is None or mask is not None
+                else carry.gains.moments(carry.k + 1)
+            )
+        if m is None:
             # the update's own ν and S (and density), without its gain and posterior
             return super().innovation(carry, prediction, y, mask, evidence=evidence,
                                       moments=moments)  # fmt: skip
-        m = carry.gains.moments(carry.k + 1)
         nu = carry.gains.innovation(prediction.mean, y)
         ell = -0.5 * matvec(m.whiten, nu).square().sum(-1) - m.log_norm if evidence else None
         return nu, m.innovation_cov, ell
@@ -375,6 +387,10 @@ class KalmanFilter(GaussianFilter):
     def _check_carry(self, carry):
         _check_linear(carry.model)  # (an EKF's carry on a nonlinear model: an AttributeError)
         super()._check_carry(carry)
+        with _schedule_held(carry):
+            self._check_schedule(carry)
+
+    def _check_schedule(self, carry):
         if carry.gains is not None:
             if carry.gains.model is not carry.model:  # the step would filter with the other
                 raise ValueError(
@@ -478,6 +494,14 @@ def _own_update(kf) -> bool:
     ):
         return False
     return all(getattr(cls, name) is getattr(KalmanFilter, name) for name in _UPDATE_METHODS)
+
+
+def _schedule_held(carry):
+    """The lock of ``carry``'s gain schedule (a no-op context without one): a step's checks
+    and its use of the schedule happen together, as the branches of one start carry,
+    stepped from several threads, share it (:class:`~difffilter.GainSchedule`)."""
+    gains = getattr(carry, "gains", None)
+    return contextlib.nullcontext() if gains is None else gains.lock
 
 
 def _live(carry: GaussianState, outputs: bool = True) -> GaussianState:

@@ -29,6 +29,7 @@ import functools
 import hashlib
 import json
 import os
+import threading
 import types
 from pathlib import Path
 from typing import Any
@@ -195,35 +196,18 @@ def _class_code(cls: type) -> bytes:
         if all(a is b for a, b in zip(memo[0], members)):
             known = memo[1]
     if known is None:
-        # (a default of the class itself: no recursion)
-        _CLASS_CODE[cls] = (members, b"(in progress)")
-        digest = _ByteStream()
-        for klass in cls.__mro__:
-            if klass.__module__.split(".")[0] in _SKIPPED_MODULES:
-                continue
-            digest.update(klass.__qualname__.encode())
-            for name, attr in sorted(vars(klass).items()):
-                if isinstance(attr, (staticmethod, classmethod)):
-                    attr = attr.__func__
-                elif isinstance(attr, property):
-                    attr = attr.fget
-                code = getattr(attr, "__code__", None)
-                if code is not None:
-                    digest.update(name.encode())
-                    _feed_code(digest, code)
-                    # defaults by value, keyword-only ones too (a repr holds an address
-                    # where the default is a function: a new digest in every process)
-                    _feed(digest, getattr(attr, "__defaults__", None), {})
-                    _feed(digest, getattr(attr, "__kwdefaults__", None), {})
-                elif not name.startswith("__") and _plain_value(attr):
-                    # a constant of the class (G = 9.81 read as self.G): edited, it had kept
-                    # its CUSUM τ; numbers, strings and tensors, and groups of them
-                    digest.update(name.encode())
-                    digest.constant(attr)
-        known = digest.segments()
+        # (a default of the class itself: no recursion). The mark is this thread's: kept in
+        # the shared memo, another thread fingerprinting a model of the class meanwhile had
+        # taken it for the class's code (a concurrency trial: 33 of 80 digests wrong)
+        busy = _classes_being_hashed()
+        if cls in busy:
+            return _IN_PROGRESS_MARK
+        busy.add(cls)
+        try:
+            known = _class_segments(cls)
+        finally:
+            busy.discard(cls)
         _CLASS_CODE[cls] = (members, known)
-    if isinstance(known, bytes):  # (met again while being hashed: its mark)
-        return known
     digest = hashlib.sha256()
     for segment in known:
         if isinstance(segment, bytes):
@@ -231,6 +215,49 @@ def _class_code(cls: type) -> bytes:
         else:  # a constant, by its value now
             _feed(digest, segment[0], {})
     return digest.digest()
+
+
+#: What a class met again while it is being hashed (its own default) reads as.
+_IN_PROGRESS_MARK = b"(in progress)"
+
+_HASHING = threading.local()
+
+
+def _classes_being_hashed() -> set:
+    """The classes this thread is hashing (:func:`_class_code`)."""
+    busy = getattr(_HASHING, "classes", None)
+    if busy is None:
+        busy = _HASHING.classes = set()
+    return busy
+
+
+def _class_segments(cls: type) -> list:
+    """The segments :func:`_class_code` digests: the code of ``cls``'s methods and its
+    constants, base by base."""
+    digest = _ByteStream()
+    for klass in cls.__mro__:
+        if klass.__module__.split(".")[0] in _SKIPPED_MODULES:
+            continue
+        digest.update(klass.__qualname__.encode())
+        for name, attr in sorted(vars(klass).items()):
+            if isinstance(attr, (staticmethod, classmethod)):
+                attr = attr.__func__
+            elif isinstance(attr, property):
+                attr = attr.fget
+            code = getattr(attr, "__code__", None)
+            if code is not None:
+                digest.update(name.encode())
+                _feed_code(digest, code)
+                # defaults by value, keyword-only ones too (a repr holds an address
+                # where the default is a function: a new digest in every process)
+                _feed(digest, getattr(attr, "__defaults__", None), {})
+                _feed(digest, getattr(attr, "__kwdefaults__", None), {})
+            elif not name.startswith("__") and _plain_value(attr):
+                # a constant of the class (G = 9.81 read as self.G): edited, it had kept
+                # its CUSUM τ; numbers, strings and tensors, and groups of them
+                digest.update(name.encode())
+                digest.constant(attr)
+    return digest.segments()
 
 
 class _ByteStream:

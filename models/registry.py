@@ -39,6 +39,7 @@ import inspect
 import math
 import pkgutil
 import sys
+import threading
 import warnings
 from collections.abc import Callable
 from importlib.metadata import entry_points
@@ -204,15 +205,34 @@ def _caller_module() -> str:
 
 
 _LOADED = False
+#: Whether the built-in families are being imported (by the thread holding the lock): a
+#: module that asks the registry while it loads finds it loading.
+_LOADING = False
+#: One loader: threads that make their first registry call together had found it marked
+#: loaded while another was still importing the families ("known scenarios: (none)", a
+#: concurrency trial); they now wait for it.
+_LOAD_LOCK = threading.RLock()
 
 
 def _load_builtin() -> None:
     """Import every module of ``difffilter.models`` once: family modules register their
     scenarios when imported, so a new family is one new file and no list to edit."""
-    global _LOADED
+    global _LOADED, _LOADING
     if _LOADED:
         return
-    _LOADED = True  # (first: a module that asks the registry while it loads finds it loading)
+    with _LOAD_LOCK:
+        if _LOADED or _LOADING:  # (loaded by another thread meanwhile, or this one loading)
+            return
+        _LOADING = True
+        try:
+            _import_families()
+            _LOADED = True
+        finally:
+            _LOADING = False
+
+
+def _import_families() -> None:
+    """The body of :func:`_load_builtin`: the built-in modules, then the plug-ins."""
     package = importlib.import_module("difffilter.models")
     for info in pkgutil.iter_modules(package.__path__):
         if info.name.startswith("_"):
@@ -222,7 +242,6 @@ def _load_builtin() -> None:
         except Exception as error:
             # a module that fails (a contributor's new family) fails every later call too,
             # named, instead of leaving the registries without the modules after it
-            _LOADED = False
             error.add_note(f"(while importing difffilter.models.{info.name}: every module of "
                            "difffilter.models is imported to register its scenarios)")  # fmt: skip
             raise
@@ -237,7 +256,7 @@ def _load_builtin() -> None:
             warnings.warn(
                 f"difffilter: the scenario plug-in {point.name!r} ({point.value}) failed to "
                 f"load: {type(error).__name__}: {error}",
-                stacklevel=2,
+                stacklevel=3,  # (the caller of _load_builtin)
             )
             continue
         if fresh and isinstance(obj, type(importlib)) and len(_REGISTRY) == before:
@@ -245,7 +264,7 @@ def _load_builtin() -> None:
                 f"difffilter: the scenario plug-in {point.name!r} ({point.value}) registered no "
                 "scenario: a module must call difffilter.models.registry.register(scenario) "
                 "when imported, or the entry point may name its scenario (module:object)",
-                stacklevel=2,
+                stacklevel=3,  # (the caller of _load_builtin)
             )
 
 
