@@ -1021,9 +1021,10 @@ def _blame_degenerate(pf, particles, log_lik, correction, log_w, k: int) -> None
     :mod:`difffilter._pf_host_step`), so that all of them raise where the general one does."""
     bad = ~torch.isfinite(particles)
     if bool(bad.any()):  # (the likelihood of a NaN particle is NaN: not its fault)
+        hint = getattr(pf.proposal, "nonfinite_hint", None)  # (what the proposal knows)
         raise ValueError(
             f"the particles proposed by {type(pf.proposal).__name__} hold NaN or inf at step "
-            f"{k} (first at index {first_index(bad)})"
+            f"{k} (first at index {first_index(bad)})" + (f": {hint}" if hint else "")
         )
     _blame_nonfinite(log_lik, pf.likelihood, "likelihood", k)
     if correction is not None:

@@ -55,7 +55,13 @@ from .._checks import (
 from ..estimator import Estimator, EstimatorOutput
 from ..gaussian import joseph_covariance, kalman_gain, predict_covariance
 from ..kalman import _check_zero_mean_noise
-from ..linalg import gaussian_log_prob_chol, masked_measurement, matvec, symmetrize
+from ..linalg import (
+    NumericalBreakdown,
+    gaussian_log_prob_chol,
+    masked_measurement,
+    matvec,
+    symmetrize,
+)
 from ..loop import open_loop
 from ..results import StepOutput
 from ..ssm import batched_jacobian
@@ -292,14 +298,20 @@ class AdaptiveKalmanFilter(Estimator):
         model = carry.model
         if u is None:
             u = carry.attack.new_zeros(carry.attack.shape)
-        upd = adaptive_update(
-            model, carry.mean, carry.attack, carry.attack_cov, carry.sensitivity, y, u,
-            carry.k, forgetting=self.forgetting, cov=carry.cov, mask=mask,
-        )  # fmt: skip
+        try:
+            upd = adaptive_update(
+                model, carry.mean, carry.attack, carry.attack_cov, carry.sensitivity, y, u,
+                carry.k, forgetting=self.forgetting, cov=carry.cov, mask=mask,
+            )  # fmt: skip
+            score = wald_statistic(upd.attack, upd.attack_cov)
+        except (NumericalBreakdown, torch.linalg.LinAlgError) as error:
+            named = forgetting_breakdown(carry.attack_cov, self.forgetting, carry.k + 1)
+            if named is None:
+                raise
+            raise named from error
         new = AdaptiveKFState(
             upd.mean, upd.cov, upd.attack, upd.attack_cov, upd.sensitivity, carry.k + 1, model
         )
-        score = wald_statistic(upd.attack, upd.attack_cov)
         threshold = chi_square_upper_quantile(model.dim_u, self.false_alarm_rate)
         return new, StepOutput(
             # the innovation's covariance and density given the past (the attack estimate's
@@ -364,6 +376,33 @@ def adaptive_kalman_filter(
         forgetting, attack_cov0=attack_cov0, attack0=attack0, false_alarm_rate=false_alarm_rate
     )
     return open_loop(estimator, model, ys, us, mask=mask)
+
+
+def forgetting_hint(forgetting: float) -> str:
+    """What a breakdown of the attack covariance ``S`` says of the forgetting factor."""
+    return (
+        f"with forgetting λ = {forgetting:g} the attack covariance S grows as S/λ at every step "
+        "that tells nothing of the attack (an outage, lost entries), and over a long one it "
+        "passes the dtype's range: take λ closer to 1 (1: no growth), float64, or start the "
+        "filter again after the outage"
+    )
+
+
+def forgetting_breakdown(
+    attack_cov: Tensor, forgetting: float, k: int, who: str = "the adaptive Kalman filter"
+) -> NumericalBreakdown | None:
+    """A :class:`~difffilter.linalg.NumericalBreakdown` naming ``forgetting`` where the step
+    of measurement ``k`` broke down from an attack covariance ``S`` grown past the square
+    root of the dtype's range (or not finite), else ``None`` (another cause: the caller's
+    error stands). A 240-step outage in float32 had failed in torch's "matrix is singular",
+    2,000 in float64 blamed "Q, R and P0" (a long-run trial)."""
+    if forgetting >= 1.0:
+        return None
+    diag = attack_cov.detach().diagonal(dim1=-2, dim2=-1)
+    big = torch.finfo(attack_cov.dtype).max ** 0.5
+    if bool(torch.isfinite(diag).all()) and float(diag.abs().max()) < big:
+        return None
+    return NumericalBreakdown(f"{who} broke down at measurement {k}: {forgetting_hint(forgetting)}")
 
 
 def wald_statistic(attack: Tensor, attack_cov: Tensor) -> Tensor:

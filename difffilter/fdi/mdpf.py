@@ -59,14 +59,21 @@ from .._checks import (
 )
 from ..estimator import Estimator, EstimatorOutput, Generators
 from ..kalman import _check_zero_mean_noise
-from ..linalg import matvec, safe_cholesky, symmetrize, under_transform
+from ..linalg import NumericalBreakdown, matvec, safe_cholesky, symmetrize, under_transform
 from ..loop import open_loop
 from ..particle import PER_SET, ParticleFilter, ParticleState
 from ..resampling import Multinomial
 from ..results import StepOutput
 from ..ssm import StateSpaceModel
 from . import _components as C
-from .adaptive_kf import _check_forgetting, adaptive_update, input_jacobian, wald_statistic
+from .adaptive_kf import (
+    _check_forgetting,
+    adaptive_update,
+    forgetting_breakdown,
+    forgetting_hint,
+    input_jacobian,
+    wald_statistic,
+)
 from .detectors import chi_square_upper_quantile
 from .modified_pf import FlatLikelihood
 
@@ -299,6 +306,12 @@ class AdaptiveKalmanProposal:
             return self._covariance(particles, u, y, k, mask, generator)
         return self._information(particles, u, y, k, mask, generator)
 
+    @property
+    def nonfinite_hint(self) -> str | None:
+        """What a particle filter's error about non-finite particles adds (a 1,034-step
+        outage in float64 had said only "NaN or inf": a long-run trial)."""
+        return forgetting_hint(self.forgetting) if self.forgetting < 1.0 else None
+
     def _covariance(self, particles, u, y, k, mask, generator):
         x, a, ups, S, P = self.layout.unpack(particles)
         if self.reading is Reading.DRAW:  # x̂ʲ(k−1) ~ N(x̄ˡ, Pˡ)
@@ -306,10 +319,18 @@ class AdaptiveKalmanProposal:
             x = x + matvec(safe_cholesky(P, name="particle covariance P"), eps)
         u = a.new_zeros(()).expand(a.shape) if u is None else u.unsqueeze(-2)
         m = None if mask is None else mask.unsqueeze(-2)
-        upd = adaptive_update(
-            self.base, x, a, S, ups, y.unsqueeze(-2), u, k, forgetting=self.forgetting,
-            pred_cov=self.base.process_cov(k), mask=m,
-        )  # fmt: skip
+        try:
+            upd = adaptive_update(
+                self.base, x, a, S, ups, y.unsqueeze(-2), u, k, forgetting=self.forgetting,
+                pred_cov=self.base.process_cov(k), mask=m,
+            )  # fmt: skip
+        except NumericalBreakdown as error:  # (its S, grown over an outage: named)
+            named = forgetting_breakdown(
+                S, self.forgetting, k + 1, "the adaptive particle filter's local estimator"
+            )
+            if named is None:
+                raise
+            raise named from error
         new = self.layout.pack(upd.mean, upd.attack, upd.sensitivity, upd.attack_cov, upd.cov)
         return new, upd.log_likelihood
 
