@@ -101,7 +101,21 @@ def _need(filtering: bool) -> str:
 
 def care_residual(A: Tensor, B: Tensor, Q: Tensor, R: Tensor, P: Tensor) -> Tensor:
     """``PA + AᵀP + Q − PBR⁻¹BᵀP`` (zero at a CARE solution) → ``[n, n]``."""
+    _check_riccati_terms(A, B, Q, R, P, ("A", "B"))
     return P @ A + A.T @ P + Q - P @ B @ torch.linalg.solve(R, B.T @ P)
+
+
+def _check_riccati_terms(F: Tensor, B: Tensor, Q: Tensor, R: Tensor, P: Tensor,
+                         names: tuple[str, str]) -> None:  # fmt: skip
+    """The arguments of :func:`care_residual` / :func:`dare_residual`: ``F [n, n]`` and
+    ``B [n, m]`` as :func:`_check_pair` takes them, ``Q``, ``P`` ``[n, n]`` and ``R [m, m]`` of
+    their dtype (a batch ``[b, n, n]`` had been transposed whole by ``.T``: residuals 3.3
+    for 1e-7, a trial; another dtype or a numpy array failed inside torch)."""
+    n, m = _check_pair(F, B, names)
+    for name, t, shape in (("Q", Q, (n, n)), ("R", R, (m, m)), ("P", P, (n, n))):
+        if not isinstance(t, Tensor) or t.dtype != F.dtype or tuple(t.shape) != shape:
+            got = f"{t.dtype} {tuple(t.shape)}" if isinstance(t, Tensor) else type(t).__name__
+            raise ValueError(f"{name} must be a {F.dtype} tensor of shape {list(shape)}; got {got}")
 
 
 def uncontrollable_direction(A: Tensor, B: Tensor, tol: float = 1e-9) -> Tensor | None:
@@ -207,8 +221,12 @@ def _observer_spectrum(A_closed: Tensor, factor: float, zero_pole: float | None)
     (default: the slowest of the other scaled eigenvalues).
     """
     factor, zero_pole = _check_observer_design(factor, zero_pole)
-    if not isinstance(A_closed, Tensor) or not A_closed.is_floating_point():
-        raise ValueError(f"A_closed must be a floating tensor; got {type(A_closed).__name__}")
+    if (not isinstance(A_closed, Tensor) or not A_closed.is_floating_point()
+            or A_closed.dim() != 2 or A_closed.shape[0] != A_closed.shape[1]):  # fmt: skip
+        # (a batch [b, n, n] had moved each member's zero modes by the whole batch's
+        # eigenvalues: poles 0.86 for 0.74, an apishapes trial)
+        got = tuple(A_closed.shape) if isinstance(A_closed, Tensor) else type(A_closed).__name__
+        raise ValueError(f"A_closed must be a square [n, n] floating tensor; got {got}")
     _check_finite_matrix(A_closed, "A_closed")
     lam, V = np.linalg.eig(_np(A_closed))
     lam = factor * lam
@@ -437,6 +455,7 @@ def _weights(Q, R, n: int, m: int, like: Tensor) -> tuple[Tensor, Tensor]:
 
 def dare_residual(F: Tensor, B: Tensor, Q: Tensor, R: Tensor, P: Tensor) -> Tensor:
     """``FᵀPF − P + Q − FᵀPB (R + BᵀPB)⁻¹ BᵀPF`` (zero at a DARE solution) → ``[n, n]``."""
+    _check_riccati_terms(F, B, Q, R, P, ("F", "B"))
     return F.T @ P @ F - P + Q - F.T @ P @ B @ torch.linalg.solve(R + B.T @ P @ B, B.T @ P @ F)
 
 

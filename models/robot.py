@@ -36,7 +36,7 @@ from difffilter.ssm import StateSpaceModel
 
 from .attacks import ActuatorInjection
 from .registry import register
-from .scenario import Scenario
+from .scenario import Scenario, plant_entries
 from .tracking import wrap_angle
 
 __all__ = ["DEG", "SENSORS", "GROUPS", "RobotModel", "RobotScenario"]
@@ -89,11 +89,9 @@ class RobotModel(StateSpaceModel):
                 f"(2,), or one per lidar, shape ({dim_y // 2}, 2); got {tuple(var.shape)}"
             )
         # each named in its errors (Gaussian had named a wrong length "loc": a trial)
-        x0, p0 = _entries(x0, "x0", 3, dtype), _entries(p0, "p0", 3, dtype)
-        filter_q, input_var = (
-            _entries(filter_q, "filter_q", 3, dtype),
-            _entries(input_var, "input_var", 2, dtype),
-        )
+        x0, p0 = plant_entries(x0, "x0", 3, dtype), plant_entries(p0, "p0", 3, dtype, positive=True)
+        filter_q = plant_entries(filter_q, "filter_q", 3, dtype, positive=True)
+        input_var = plant_entries(input_var, "input_var", 2, dtype, positive=True)
         self._setup(
             pos, dt,
             initial=Gaussian(x0, torch.diag(p0)),
@@ -303,20 +301,6 @@ class RobotModel(StateSpaceModel):
         d = rowwise(torch.sub, y, y_hat)
         d = d.reshape(d.shape[:-1] + (-1, 2))
         return torch.stack((d[..., 0], wrap_angle(d[..., 1])), -1).flatten(-2)
-
-
-def _entries(value, name: str, count: int, dtype) -> Tensor:
-    """``value`` as ``count`` finite numbers (a tensor of ``dtype``), named in its errors."""
-    try:
-        t = torch.as_tensor(value, dtype=dtype)
-    except (TypeError, ValueError, RuntimeError):
-        t = None
-    if t is None or t.shape != (count,):
-        got = tuple(t.shape) if t is not None else repr(value)
-        raise ValueError(f"{name} must be {count} numbers; got {got}")
-    if not bool(torch.isfinite(t).all()):
-        raise ValueError(f"{name} contains NaN or Inf values; every entry must be finite")
-    return t
 
 
 def _noise_blocks(noise: Gaussian, groups) -> tuple[list[Tensor], list[Tensor]]:

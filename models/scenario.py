@@ -647,3 +647,22 @@ class CustomScenario(Scenario):
 
     def estimator_options(self) -> dict[str, Any]:
         return dict(self.options)
+
+
+def plant_entries(value, name: str, count: int, dtype, *, positive: bool = False) -> Tensor:
+    """A plant constructor's vector argument ``value`` as ``count`` finite numbers (``> 0``
+    where ``positive``: variances), a tensor of ``dtype``, named in its errors (``Gaussian``
+    had named a wrong-length prior "loc", torch a ragged one in its own words: the robot
+    and tracking trials)."""
+    try:
+        t = torch.as_tensor(value, dtype=dtype)
+    except (TypeError, ValueError, RuntimeError):
+        t = None
+    if t is None or t.shape != (count,):
+        got = tuple(t.shape) if t is not None else repr(value)
+        raise ValueError(f"{name} must be {count} numbers; got {got}")
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{name} contains NaN or Inf values; every entry must be finite")
+    if positive and not bool((t > 0).all()):
+        raise ValueError(f"{name} must be {count} numbers > 0 (variances); got {value!r}")
+    return t

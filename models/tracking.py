@@ -44,6 +44,7 @@ from .scenario import (
     OWN_ATTACK,
     Scenario,
     Trajectories,
+    plant_entries,
     simulate,
     simulation_dtype,
     warn_on_global_draws,
@@ -300,9 +301,12 @@ class TrackingModel(StateSpaceModel):
         self.register_buffer("_schedule_code", code)
         self.register_buffer("_one_whole_sensor", torch.tensor([2.0, 1.0, 0.0], dtype=dtype))
         self.register_buffer("_entry_kind", torch.stack((is_range, 1 - is_range), -1))
-        self.initial = Gaussian(
-            torch.tensor(x0, dtype=dtype), torch.diag(torch.tensor(p0, dtype=dtype))
-        )
+        # each named in its errors (a wrong-length p0 had been blamed on "loc", sigma1 of one
+        # entry failed in torch's words: a tracking trial)
+        x0, p0 = plant_entries(x0, "x0", 4, dtype), plant_entries(p0, "p0", 4, dtype, positive=True)
+        sigma1 = plant_entries(sigma1, "sigma1", 2, dtype, positive=True)
+        sigma2 = plant_entries(sigma2, "sigma2", 2, dtype, positive=True)
+        self.initial = Gaussian(x0, torch.diag(p0))
         self.process_noise = Gaussian(torch.zeros(4, dtype=dtype), Q)
         # the noise the fast sampler's L (_chol_q) belongs to; not a submodule (the state
         # dict holds it once): a noise assigned later is sampled by the generic path
@@ -314,7 +318,7 @@ class TrackingModel(StateSpaceModel):
         )
         self.measurement_noise = GlintNoise(
             torch.tensor([1 - kappa, kappa], dtype=dtype),
-            torch.tensor([sigma1, sigma2], dtype=dtype),
+            torch.stack([sigma1, sigma2]),
             len(sensors),
         )
 

@@ -171,6 +171,11 @@ def chi_square_equivalent(g: Tensor, dof, full_dof) -> Tensor:
     Differentiable in ``g`` (first order): ``dx/dg = f_{χ²_d}(g) / f_{χ²_D}(x)``, from
     scipy's distributions on the CPU (the map runs only where ``0 < d < D``).
     """
+    if not isinstance(g, Tensor) or not g.is_floating_point():
+        # (an integer g had come back truncated, [1, 3, 4, 8] for [1.84, 3.16, 4.38, 8.93];
+        # numpy and list g failed inside torch: an apishapes trial)
+        got = g.dtype if isinstance(g, Tensor) else type(g).__name__
+        raise ValueError(f"g must be a floating tensor (a statistic); got {got}")
     d = torch.as_tensor(dof, device=g.device).to(torch.float64)
     full = torch.as_tensor(full_dof, device=g.device).to(torch.float64)
     if d.shape != full.shape:
@@ -762,6 +767,22 @@ def missing_entries_counted(g: Tensor, mask: Tensor) -> Tensor:
     """``g_k + m − m_k``: the NIS ``g [...]`` of a masked result with each of the ``m − m_k``
     entries not received (``mask [..., m]`` false) counted at its mean, 1, so a CUSUM's drift
     ``b`` (set for ``m`` entries) keeps its meaning (module docstring)."""
+    # (a float mask of 0.5s had counted half entries, a numpy one or one of other runs
+    # failed inside torch: an apishapes trial)
+    if not isinstance(mask, Tensor) or mask.dtype != torch.bool or mask.dim() < 1:
+        got = (
+            f"{mask.dtype} {tuple(mask.shape)}" if isinstance(mask, Tensor) else type(mask).__name__
+        )
+        raise ValueError(f"mask must be a bool tensor [..., m] (True where received); got {got}")
+    if not isinstance(g, Tensor) or not g.is_floating_point():
+        got = g.dtype if isinstance(g, Tensor) else type(g).__name__
+        raise ValueError(f"g must be a floating tensor (the NIS); got {got}")
+    try:
+        torch.broadcast_shapes(g.shape, mask.shape[:-1])
+    except RuntimeError:
+        raise ValueError(
+            f"mask {tuple(mask.shape)} must be g's shape {tuple(g.shape)} plus the entries' axis"
+        ) from None
     return g + (mask.shape[-1] - mask.sum(-1)).to(g.dtype)
 
 

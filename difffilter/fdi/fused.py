@@ -113,7 +113,7 @@ class FusedModifiedPF:
     def _derive_from(self, G: Tensor, R: Tensor, Q: Tensor) -> None:
         model = self.model
         R = model.measurement_cov(1)
-        K = modified_pf_gain(G, Q, R).to(G.dtype)
+        K = modified_pf_gain(G.double(), Q.double(), R.double()).to(G.dtype)  # (float64 gain)
         dy = G.shape[-2]
         eye = torch.eye(dy, dtype=G.dtype, device=G.device)
         # r = y − x only where G is the square identity (a rectangular [I 0] measures a part)

@@ -78,18 +78,43 @@ __all__ = [
 def kalman_corrected_particles(particles: Tensor, y: Tensor, G: Tensor, K: Tensor) -> Tensor:
     """Eq. (36): ``x̃^{i+} = x^i + K (ỹ − G x^i)``.
 
-    Shapes: ``particles [..., N, dx]``, ``y [..., dy]``, ``G [dy, dx]``, ``K [dx, dy]`` →
-    ``[..., N, dx]``.
+    Shapes: ``particles [..., N, dx]``, ``y [..., dy]``, ``G [..., dy, dx]``, ``K [..., dx,
+    dy]`` (one per run, or shared) → ``[..., N, dx]``. ``G`` and ``K`` are taken in the particles' dtype
+    (:func:`~difffilter.fdi.modified_pf_gain` computes ``K`` in float64).
     """
+    G, K = _correction_terms(particles, y, G, K)
     innov = y.unsqueeze(-2) - particles @ G.transpose(-1, -2)
     return particles + innov @ K.transpose(-1, -2)
 
 
 def corrected_residuals(particles: Tensor, y: Tensor, G: Tensor, K: Tensor) -> Tensor:
-    """``z̃^{i+} = ỹ − G x̃^{i+} = (I − G K)(ỹ − G x^i)`` ``[..., N, dy]`` (eqs 36, 58)."""
+    """``z̃^{i+} = ỹ − G x̃^{i+} = (I − G K)(ỹ − G x^i)`` ``[..., N, dy]`` (eqs 36, 58);
+    arguments as :func:`kalman_corrected_particles` takes them."""
+    G, K = _correction_terms(particles, y, G, K)
     innov = y.unsqueeze(-2) - particles @ G.transpose(-1, -2)
     eye = torch.eye(G.shape[-2], dtype=G.dtype, device=G.device)
     return innov @ (eye - G @ K).transpose(-1, -2)
+
+
+def _correction_terms(particles, y, G, K) -> tuple[Tensor, Tensor]:
+    """``(G, K)`` in the particles' dtype, every shape checked by name (float64 ``K`` with
+    float32 particles, a wrong-length ``y`` or a numpy argument had failed inside torch:
+    an apishapes trial)."""
+    for name, t in (("particles", particles), ("y", y), ("G", G), ("K", K)):
+        if not isinstance(t, Tensor) or not t.is_floating_point():
+            got = t.dtype if isinstance(t, Tensor) else type(t).__name__
+            raise ValueError(f"{name} must be a floating tensor; got {got}")
+    if particles.dim() < 2 or G.dim() < 2 or K.dim() < 2:
+        raise ValueError(f"particles must be [..., N, dx], G [..., dy, dx] and K [..., dx, dy]; "
+                         f"got {tuple(particles.shape)}, {tuple(G.shape)} and {tuple(K.shape)}")  # fmt: skip
+    dy, dx = G.shape[-2:]
+    if particles.shape[-1] != dx or y.shape[-1:] != (dy,) or tuple(K.shape[-2:]) != (dx, dy):
+        raise ValueError(
+            f"G [..., {dy}, {dx}] needs particles [..., N, {dx}], y [..., {dy}] and K "
+            f"[..., {dx}, {dy}]; got {tuple(particles.shape)}, {tuple(y.shape)} and "
+            f"{tuple(K.shape)}"
+        )
+    return G.to(particles.dtype), K.to(particles.dtype)
 
 
 class FlatLikelihood:

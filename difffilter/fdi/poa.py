@@ -79,9 +79,13 @@ def modified_pf_gain(G, Q, R) -> Tensor:
     """Gain of the modified (Kalman-corrected) proposal, eq. (35): ``K = Q Gᵀ (R + G Q Gᵀ)⁻¹``.
 
     Shapes: ``G [..., dy, dx]``, ``Q [..., dx, dx]``, ``R [..., dy, dy]`` → ``K [..., dx, dy]``.
-    ``R + G Q Gᵀ`` is solved by Cholesky (``ValueError`` if not positive definite).
+    ``R + G Q Gᵀ`` is solved by Cholesky (``ValueError`` if not positive definite). Computed
+    in ``G``'s dtype, float64 where ``G`` is not a tensor of its own (a float32 ``G`` gives a
+    float32 ``K``: cast ``G`` to float64 first for the gain's round-off).
     """
-    G = _as_matrix(G, "G")
+    # in G's own floating dtype: float32 G, Q and R had given a float64 K that eq. (36)'s
+    # float32 particles then refused inside torch (an apishapes trial)
+    G = _as_matrix(G, "G", G.dtype if isinstance(G, Tensor) and G.is_floating_point() else None)
     Q = _as_matrix(Q, "Q", G.dtype)
     R = _as_matrix(R, "R", G.dtype)
     dy, dx = G.shape[-2:]
