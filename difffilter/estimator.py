@@ -331,6 +331,7 @@ class Estimator:
             )
         model = carry.model
         check_model(model, prior=False)  # (a noise assigned since init may be of another dtype)
+        _check_step_index(carry)
         self._check_carry(carry)
         y, u, mask = check_step_inputs(model, None, y, u, mask)
         check_carry_batch(self._runs_of(carry), y, u, mask)
@@ -564,3 +565,12 @@ def output_of(result: FilterResult) -> EstimatorOutput:
     }
     extras = {k: v for k, v in extras.items() if v is not None}
     return EstimatorOutput(result.means, result.covs, extras=extras)
+
+
+def _check_step_index(carry) -> None:
+    """A carry's step index ``k`` (where it has one) is an integer ``≥ 0``: a hand-built
+    ``k = 0.5`` or ``-3`` had read a time-varying model at that step without a word (an
+    apishapes trial)."""
+    k = getattr(carry, "k", 0)
+    if isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 0:
+        raise ValueError(f"carry.k must be an integer step index >= 0; got {k!r}")

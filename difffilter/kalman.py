@@ -35,10 +35,13 @@ from . import _kf_host_step as _host_step
 from ._checks import (
     Choice,
     NonFinite,
+    _check_us,
+    broadcast_or_none,
     broadcast_shapes,
     check_carry_fits_model,
     check_carry_tensor,
     check_model_batch,
+    model_dtype_device,
     step_covariance,
 )
 from ._shared_cov import shared_covariance_applies, shared_covariance_kalman_filter
@@ -140,8 +143,20 @@ def kalman_predict(model, state: GaussianState, u: Tensor | None = None) -> tupl
     """``m⁻ = F m + B u``, ``P⁻ = F P Fᵀ + Q`` for a linear model → ``([..., dx], [..., dx, dx])``.
 
     ``model`` must provide ``transition_matrix(k)``, ``control_matrix(k)`` and
-    ``process_cov(k)`` (as :class:`~difffilter.LinearGaussianModel` does).
+    ``process_cov(k)`` (as :class:`~difffilter.LinearGaussianModel` does). The state and
+    ``u`` are checked as :func:`kalman_step` checks them (another dtype, width or a numpy
+    ``u`` had failed in torch's words: an apishapes trial).
     """
+    _check_linear(model)
+    KalmanFilter()._check_carry(state._replace(model=model, gains=None))
+    if u is not None:
+        dtype, device = model_dtype_device(model)
+        u = _check_us(model, u, state.mean.shape[:-1], None, dtype, device)
+    return _kalman_predict(model, state, u)
+
+
+def _kalman_predict(model, state: GaussianState, u: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """:func:`kalman_predict` without its checks (the filters' own path)."""
     k = state.k
     return linear_predict(
         state.mean,
@@ -274,6 +289,16 @@ class GaussianFilter(Estimator):
     def _model_of(self, carry):
         return carry.model
 
+    def batch_of(self, carry) -> torch.Size:
+        """The runs of ``carry``: its mean's and its covariance's leading dimensions broadcast
+        (a mean shared by a batch of covariances steps one run per covariance: its steps had
+        refused measurements of those runs, an apishapes trial)."""
+        own = super().batch_of(carry)
+        cov = getattr(carry, "cov", None)
+        if not isinstance(cov, Tensor) or cov.dim() < 2:
+            return own
+        return broadcast_or_none(own, cov.shape[:-2]) or own
+
     def _check_carry(self, carry):
         # a noise of non-zero mean assigned between steps (init refuses one) had its mean
         # dropped without a word (a KF trial: [1.51, 0.87] where [3.22, 2.95] is right)
@@ -281,6 +306,13 @@ class GaussianFilter(Estimator):
         dx = carry.model.dim_x
         check_carry_tensor(carry.mean, "mean", dim=dx)
         check_carry_tensor(carry.cov, "cov", dim=dx, covariance=True)
+        # runs that broadcast with the mean's (a shared covariance, or one mean for a batch
+        # of covariances): a cov of other runs had failed inside torch (an apishapes trial)
+        if broadcast_or_none(carry.cov.shape[:-2], carry.mean.shape[:-1]) is None:
+            raise ValueError(
+                f"carry.cov {tuple(carry.cov.shape)} and carry.mean {tuple(carry.mean.shape)} "
+                "must hold runs that broadcast together (one covariance per run, or shared)"
+            )
         check_carry_fits_model(carry.model, mean=carry.mean, cov=carry.cov)
 
 
@@ -348,7 +380,7 @@ class KalmanFilter(GaussianFilter):
             if carry.gains is not None:
                 return Prediction(carry.gains.predict(carry.mean, u),
                                   carry.gains.moments(carry.k + 1).pred_cov)  # fmt: skip
-        return Prediction(*kalman_predict(carry.model, carry, u))
+        return Prediction(*_kalman_predict(carry.model, carry, u))
 
     def moments(self, carry, prediction, mask):
         carry = _live(carry)

@@ -66,6 +66,7 @@ from ._checks import (
     check_model_batch,
     check_sequence_inputs,
     model_batch_shape,
+    values_known,
 )
 from .attack import Attack, Channel, TabulatedAttack, attack_dim, inject
 from .estimator import Estimator, EstimatorOutput, Generators, stack_steps
@@ -281,6 +282,17 @@ class ReplayedNoise:
     estimator's loop replays the same draws (common random numbers)."""
 
     def __init__(self, process: Tensor, measurement: Tensor):
+        for name, t in (("process", process), ("measurement", measurement)):
+            # (NaN draws had run to NaN states, or been blamed on the plant: a trial)
+            if not isinstance(t, Tensor) or not t.is_floating_point() or t.dim() != 3:
+                got = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+                raise ValueError(
+                    f"ReplayedNoise: {name} noise must be a floating tensor [B, T, d]; got {got}"
+                )
+            if values_known(t) and not bool(torch.isfinite(t).all()):
+                raise ValueError(
+                    f"ReplayedNoise: {name} noise contains NaN or Inf values; every draw must be finite"
+                )
         if process.shape[:-1] != measurement.shape[:-1]:
             raise ValueError(
                 f"process [B, T, dx] and measurement [B, T, dy] noise must share B and T; got "

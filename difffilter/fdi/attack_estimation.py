@@ -22,7 +22,7 @@ from torch import Tensor
 
 from .._checks import broadcast_or_none, check_covariance, check_integer
 from ..gaussian import gaussian_update
-from ..kalman import kalman_predict
+from ..kalman import _kalman_predict
 from ..linalg import masked_measurement, matvec
 from ..results import GaussianState
 from ..ssm import LinearGaussianModel
@@ -167,7 +167,7 @@ class BiasAttackEstimator:
         """:meth:`step` on checked inputs (``mask``: :meth:`_flagged`), as a filter that
         feeds it its own residuals calls it."""
         d = self.dim
-        pred_mean, pred_cov = kalman_predict(self.model, state)
+        pred_mean, pred_cov = _kalman_predict(self.model, state)
         H = self.model.H
         innov = residual - matvec(H, pred_mean)
         innov, Hm, Rm, observed = masked_measurement(innov, H, residual_cov, mask)

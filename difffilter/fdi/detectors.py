@@ -352,6 +352,7 @@ class ChiSquareDetector:
         elif name in ("dim", "window"):
             if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1; got {value!r}")
+            value = int(value)  # (a numpy integer had failed in torch's mask broadcast)
         super().__setattr__(name, value)
 
     @classmethod
