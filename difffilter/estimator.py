@@ -567,10 +567,15 @@ def output_of(result: FilterResult) -> EstimatorOutput:
     return EstimatorOutput(result.means, result.covs, extras=extras)
 
 
-def _check_step_index(carry) -> None:
-    """A carry's step index ``k`` (where it has one) is an integer ``≥ 0``: a hand-built
-    ``k = 0.5`` or ``-3`` had read a time-varying model at that step without a word (an
-    apishapes trial)."""
+def _check_step_index(carry, name: str = "carry") -> None:
+    """A carry's step index ``k`` (where it has one) is an integer ``≥ 0``, and so is that of
+    a carry it wraps (``carry.inner``, ``carry.plain``: a gated or learned estimator's): a
+    hand-built ``k = 0.5`` or ``-3`` had read a time-varying model at that step without a
+    word (two apishapes trials)."""
     k = getattr(carry, "k", 0)
     if isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 0:
-        raise ValueError(f"carry.k must be an integer step index >= 0; got {k!r}")
+        raise ValueError(f"{name}.k must be an integer step index >= 0; got {k!r}")
+    for part in ("inner", "plain"):
+        wrapped = getattr(carry, part, None)
+        if isinstance(wrapped, tuple) and hasattr(wrapped, "_fields"):
+            _check_step_index(wrapped, f"{name}.{part}")

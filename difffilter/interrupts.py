@@ -78,11 +78,11 @@ def signals_deferred():
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    if held:
-        if signal.SIGTERM in held:
-            _RECEIVED[0] = True
-            raise Terminated
-        raise KeyboardInterrupt
+    # each held signal delivered again, to the handler it would have met: ignored where the
+    # process ignores it, a caller's own handler called (raising KeyboardInterrupt or
+    # Terminated regardless had overridden both: a review)
+    for sig in dict.fromkeys(held):
+        signal.raise_signal(sig)
 
 
 def stop_words(interrupt: KeyboardInterrupt) -> tuple[str, int]:

@@ -354,7 +354,10 @@ class KalmanFilter(GaussianFilter):
         return state
 
     def _step(self, carry, y, u, mask):
-        with _schedule_held(carry):
+        gains = carry.gains
+        if gains is None:
+            return self._step_held(carry, y, u, mask)
+        with gains.lock:  # (_schedule_held, inlined: the one-run online step's hot path)
             return self._step_held(carry, y, u, mask)
 
     def _step_held(self, carry, y, u, mask):

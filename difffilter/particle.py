@@ -475,6 +475,18 @@ class ParticleFilter(Estimator):
         n, dx = self.num_particles, carry.model.dim_x
         _check_cov_dims(self.cov_dims, dx)
         check_carry_tensor(carry.particles, "particles", dim=None)
+        # the weights and their caches as tensors of the carry's dtype first (numpy ones, or
+        # a float32 ess cache, had failed in torch's words: an apishapes trial)
+        for name in ("log_weights", "weights", "ess"):
+            value = getattr(carry, name)
+            if (value is not None or name == "log_weights") and not (
+                isinstance(value, torch.Tensor) and value.dtype == carry.particles.dtype
+            ):
+                got = value.dtype if isinstance(value, torch.Tensor) else type(value).__name__
+                raise ValueError(
+                    f"carry.{name} must be a {carry.particles.dtype} tensor (the particles' "
+                    f"dtype{'' if name == 'log_weights' else ', or None'}); got {got}"
+                )
         check_carry_fits_model(carry.model, particles=carry.particles,
                                log_weights=carry.log_weights)  # fmt: skip
         if carry.particles.dim() < 2 or carry.particles.shape[-2:] != (n, dx):

@@ -97,25 +97,28 @@ def test_the_mdpf_weight_keeps_the_papers_density_given_the_attack_estimate():
 
 
 class _TimeVarying(df.LinearGaussianModel):
+    """Tables of F_k, H_k and B_k (a recorded log's), one of them NaN at one step."""
+
     time_varying = True
 
     def __init__(self, bad: str, step: int):
         eye = torch.eye(2, dtype=torch.float64)
         super().__init__(0.9 * eye, eye[:1], 0.1 * eye, 0.2 * eye[:1, :1], torch.zeros(2, dtype=torch.float64),
                          eye, B=torch.ones(2, 1, dtype=torch.float64))  # fmt: skip
-        self.bad, self.step = bad, step
-
-    def _table(self, which, k, value):
-        return value * float("nan") if (which == self.bad and k == self.step) else value
+        for which in ("F", "H", "B"):
+            table = getattr(self, which).expand(10, *getattr(self, which).shape).clone()
+            if which == bad and step < 10:
+                table[step] = float("nan")
+            self.register_buffer(f"{which}s", table)
 
     def transition_matrix(self, k):
-        return self._table("F", k, self.F)
+        return self.Fs[k]
 
     def observation_matrix(self, k):
-        return self._table("H", k, self.H)
+        return self.Hs[k]
 
     def control_matrix(self, k):
-        return self._table("B", k, self.B)
+        return self.Bs[k]
 
 
 FILTERS = {

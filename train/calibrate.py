@@ -42,6 +42,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import hashlib
 import json
 import os
 import sys
@@ -252,9 +253,7 @@ def _write_pair(out: Path, estimator, card, document: dict, calibration: dict, c
     from difffilter.models.neural_estimator import save_estimator_checkpoint, weights_sha256
 
     card_path = out.with_suffix(".json")
-    tag = f"{os.getpid()}.staged"  # (names cut: a legal long --out stays legal staged)
-    staged = out.with_name(f".{out.name[:64]}.{tag}")
-    staged_card = card_path.with_name(f".{card_path.name[:64]}.{tag}")
+    staged, staged_card = (_staged_name(p) for p in (out, card_path))
     try:
         digest = save_estimator_checkpoint(staged, estimator, card)
         document.update(name=document.get("name", out.stem), checkpoint=out.name, sha256=digest,
@@ -274,6 +273,15 @@ def _write_pair(out: Path, estimator, card, document: dict, calibration: dict, c
         for leftover in (staged, staged_card):
             with contextlib.suppress(OSError):
                 leftover.unlink(missing_ok=True)
+
+
+def _staged_name(path: Path) -> Path:
+    """Where ``path`` is written before it is moved into place: its name cut (a legal long
+    name stays legal) with a digest of the whole name, so that the checkpoint and its card
+    never share one (cut alike, a name of 64 characters had written the card over the
+    checkpoint: a review)."""
+    digest = hashlib.sha256(path.name.encode()).hexdigest()[:12]
+    return path.with_name(f".{path.name[:64]}.{digest}.{os.getpid()}.staged")
 
 
 def _rate_option(value: str, option: str):

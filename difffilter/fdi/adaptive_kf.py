@@ -285,6 +285,13 @@ class AdaptiveKalmanFilter(Estimator):
         # torch's shape error, and one of 4 runs on a carry of one made 4 runs: a red-team trial)
         check_carry_tensor(carry.sensitivity, "sensitivity", dim=da)
         runs = carry.mean.shape[:-1]
+        # each field's runs those of the mean or fewer (shared): 2 runs in a carry of 3 had
+        # failed in torch's words, and an attack of one more axis made 6 runs (a trial)
+        for name, t, event in (("cov", carry.cov, 2), ("attack", carry.attack, 1),
+                               ("attack_cov", carry.attack_cov, 2)):  # fmt: skip
+            if broadcast_or_none(t.shape[:-event], runs) != runs:
+                raise ValueError(f"carry.{name} {tuple(t.shape)} must hold the runs of carry.mean "
+                                 f"{tuple(carry.mean.shape)} (or fewer, shared)")  # fmt: skip
         if (carry.sensitivity.dim() < 2 or carry.sensitivity.shape[-2] != dx
                 or broadcast_or_none(carry.sensitivity.shape[:-2], runs) != runs):  # fmt: skip
             raise ValueError(

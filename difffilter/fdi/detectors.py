@@ -49,6 +49,7 @@ from .._checks import (
     check_square,
     check_symmetric,
     host_array,
+    values_known,
 )
 from ..linalg import mahalanobis_sq_chol, safe_cholesky
 
@@ -308,16 +309,21 @@ def _window_sums(g: Tensor, window: int) -> Tensor:
     the totals' round-off swamped the window's sum (a numerics trial: score errors of 0.25
     and 2 % of the alarms flipped at T = 4e6)."""
     c = torch.cumsum(g.to(torch.float64), dim=-1)
-    # a difference of two totals is off by the totals' round-off: after one large statistic
-    # (1e16) every later window had been off by up to 4.2, alarms flipping on clean steps
-    # for the rest of the run (a long-run trial). Where that round-off could reach 1e-9,
-    # each window is summed directly instead (the online step's sums; the same numbers
-    # otherwise, so ordinary runs keep the cheap path)
-    if c.numel() and float(c.abs().amax()) * _FLOAT64_EPS > _WINDOW_SUM_TOL:
-        padded = torch.nn.functional.pad(g.to(torch.float64), (window - 1, 0))
-        return padded.unfold(-1, window, 1).sum(-1).to(g.dtype)
     shifted = torch.cat([torch.zeros_like(c[..., :window]), c[..., :-window]], dim=-1)
-    return (c - shifted[..., : c.shape[-1]]).to(g.dtype)
+    sums = c - shifted[..., : c.shape[-1]]
+    # a difference of two totals is off by the totals' accumulated round-off (about
+    # √T·ε·max|total|): after one large statistic (1e16) every later window had been off by
+    # up to 4.2, alarms flipping on clean steps for the rest of the run (a long-run trial).
+    # A run whose round-off could reach 1e-9 has its windows summed directly (the online
+    # step's sums), decided per run so that a run's scores do not hang on its batch (a
+    # review); ordinary runs keep the cheap path, bit for bit
+    if c.numel():
+        bound = math.sqrt(c.shape[-1]) * _FLOAT64_EPS * c.abs().amax(-1, keepdim=True)
+        direct = ~(bound <= _WINDOW_SUM_TOL)  # (NaN totals too: their windows summed alone)
+        if bool(direct.any()):
+            padded = torch.nn.functional.pad(g.to(torch.float64), (window - 1, 0))
+            sums = torch.where(direct, padded.unfold(-1, window, 1).sum(-1), sums)
+    return sums.to(g.dtype)
 
 
 _FLOAT64_EPS = torch.finfo(torch.float64).eps
@@ -480,6 +486,25 @@ class ChiSquareDetector:
         self._quantile_table(past)
         return past, 0, torch.zeros_like(past, dtype=torch.float64)
 
+    def check_state(self, state, dtype: torch.dtype, name: str = "state") -> None:
+        """``ValueError`` naming ``name`` where ``state`` is not an online state of this
+        detector (:meth:`init`'s layout, ``dtype``): finite, non-negative window values
+        ``[..., W − 1]``, an integer step count ``≥ 0`` and the entries received."""
+        if not isinstance(state, tuple) or len(state) not in (2, 3):
+            raise ValueError(f"{name} must be the (window, count, received) of {type(self).__name__}"
+                             f".init; got {type(state).__name__}")  # fmt: skip
+        past, count = state[0], state[1]
+        _check_state_tensor(past, f"{name}[0] (the window's values)", dtype, self.window - 1)
+        if isinstance(count, bool) or not isinstance(count, numbers.Integral) or count < 0:
+            raise ValueError(f"{name}[1] (the step count) must be an integer >= 0; got {count!r}")
+        if len(state) == 3:
+            received = state[2]
+            _check_state_tensor(received, f"{name}[2] (the entries received)", torch.float64,
+                                self.window - 1)  # fmt: skip
+            if received.shape != past.shape:
+                raise ValueError(f"{name}[2] must have the window's shape {tuple(past.shape)}; "
+                                 f"got {tuple(received.shape)}")  # fmt: skip
+
     def _all_received(self, past: Tensor, count: int) -> Tensor:
         """The entries received of a window whose steps all arrived (a state of
         ``(past, count)``, as :meth:`init` made before masks were counted): ``m`` for each
@@ -630,6 +655,11 @@ class CusumDetector:
         """Online state ``S_0 = 0`` ``[*batch]``."""
         return torch.zeros(torch.Size(batch_shape), dtype=dtype, device=device)
 
+    def check_state(self, state, dtype: torch.dtype, name: str = "state") -> None:
+        """``ValueError`` naming ``name`` where ``state`` is no online state ``S ≥ 0`` of
+        ``dtype`` (finite: a NaN S had never alarmed again)."""
+        _check_state_tensor(state, f"{name} (the statistic S)", dtype, None)
+
     def step(
         self, state: Tensor, g: Tensor, mask: Tensor | None = None, *, dim: int | None = None
     ) -> tuple[Tensor, Tensor, Tensor]:
@@ -708,6 +738,18 @@ class CusumDetector:
                 hi = mid
         self.threshold = hi
         return hi
+
+
+def _check_state_tensor(t, name: str, dtype: torch.dtype, last: int | None) -> None:
+    """A detector state's tensor: of ``dtype``, finite and ``≥ 0``, of last size ``last``."""
+    if not isinstance(t, Tensor) or t.dtype != dtype:
+        got = t.dtype if isinstance(t, Tensor) else type(t).__name__
+        raise ValueError(f"{name} must be a {dtype} tensor; got {got}")
+    if last is not None and (t.dim() < 1 or t.shape[-1] != last):
+        raise ValueError(f"{name} must have shape [..., {last}] (as this detector's init "
+                         f"makes it); got {tuple(t.shape)}")  # fmt: skip
+    if values_known(t) and not bool((torch.isfinite(t) & (t >= 0)).all()):
+        raise ValueError(f"{name} must be finite and >= 0 (a detector's state)")
 
 
 def _finite_mean(g: Tensor) -> Tensor:

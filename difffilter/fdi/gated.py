@@ -134,6 +134,11 @@ class GatedFilter(Estimator):
 
     def _check_carry(self, carry):
         self.filter._check_carry(carry.inner)
+        # the detector's online state too: a NaN CUSUM S or χ² window had scored NaN and never
+        # alarmed, a negative one lowered the score (an apishapes trial)
+        check_state = getattr(self.detector, "check_state", None)
+        if check_state is not None:
+            check_state(carry.detector, carry.inner.mean.dtype, "carry.detector")
 
     def _detect(self, det_state, g: Tensor, mask: Tensor | None, dy: int):
         """``(detector state, score, alarm, threshold)`` of the step's NIS ``g [...]``."""

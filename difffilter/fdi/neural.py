@@ -163,6 +163,7 @@ from .._checks import (
     check_strategy,
     model_batch_shape,
     real_number,
+    values_known,
 )
 from ..attack import Channel
 from ..estimator import Estimator, Generators
@@ -291,6 +292,26 @@ class NeuralCarry(NamedTuple):
     net: NeuralState
     model: Any
     plain: Any = None
+
+
+def _check_net_state(network, state, dtype: torch.dtype, runs: torch.Size) -> None:
+    """A carry's :class:`NeuralState` histories: tensors of the carry's dtype, finite, of the
+    network's layout ``[..., J, a, d]`` and ``[..., J, b, r]`` (a NaN estimate in a hand-built
+    history had run to NaN means, another layout failed in torch's cat: an apishapes trial)."""
+    if not isinstance(state, NeuralState):
+        raise ValueError(
+            f"the carry's network state must be a NeuralState; got {type(state).__name__}"
+        )
+    J = network.num_areas
+    for name, t, tail in (("attack_hist", state.attack_hist, (J, network.a, network.area_dim)),
+                          ("resid_hist", state.resid_hist, (J, network.b, network.resid_dim))):  # fmt: skip
+        want = tuple(runs) + tail
+        if not isinstance(t, Tensor) or t.dtype != dtype or tuple(t.shape) != want:
+            got = f"{t.dtype} {tuple(t.shape)}" if isinstance(t, Tensor) else type(t).__name__
+            raise ValueError(f"carry's NeuralState.{name} must be a {dtype} tensor of shape "
+                             f"{list(want)} (its runs, then the network's layout); got {got}")  # fmt: skip
+        if values_known(t) and not bool(torch.isfinite(t).all()):
+            raise ValueError(f"carry's NeuralState.{name} contains NaN or Inf values")
 
 
 def feature_dim(features, dim_y: int) -> int:
@@ -743,8 +764,11 @@ class NeuralCompensation(Estimator):
                     "(carry.aux is None): start the carry from this estimator's init"
                 )
             self.pf._check_carry(carry)
+            net_state, dtype = carry.aux, carry.particles.dtype
         else:
             self.inner._check_carry(carry.inner)
+            net_state, dtype = carry.net, carry.inner.mean.dtype
+        _check_net_state(self.network, net_state, dtype, self._runs_of(carry))
 
     def _step(self, carry, y, u, mask):
         if self.particles:  # the open-loop mean to step k + 1 first: the likelihood reads it
