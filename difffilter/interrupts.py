@@ -81,8 +81,15 @@ def signals_deferred():
     # each held signal delivered again, to the handler it would have met: ignored where the
     # process ignores it, a caller's own handler called (raising KeyboardInterrupt or
     # Terminated regardless had overridden both: a review)
-    for sig in dict.fromkeys(held):
-        signal.raise_signal(sig)
+    error = None
+    for sig in dict.fromkeys(held):  # (every one: a SIGINT's KeyboardInterrupt had dropped a
+        try:  # SIGTERM held after it, exit 130 for 143: a review)
+            signal.raise_signal(sig)
+        except BaseException as raised:
+            if error is None or isinstance(raised, Terminated):
+                error = raised
+    if error is not None:
+        raise error
 
 
 def stop_words(interrupt: KeyboardInterrupt) -> tuple[str, int]:

@@ -76,7 +76,29 @@ def attacked_pairs(runs: int, steps: int, onset: int, entries=None, mask=None) -
     (``None``: all) is attacked on, as the closed loop flags them ``[runs, steps]`` (bool):
     from the onset, where an attacked entry is received (``mask [runs, steps, dy]``, the
     entries received; ``None``: every one). Under a Round-Robin schedule or packet loss
-    that is not every step from the onset."""
+    that is not every step from the onset. Each argument is checked by name (onset 0 had
+    marked every step, ``entries=[-1]`` the last entry, a mask of other runs or steps had
+    failed inside torch: a stealthy trial)."""
+    for name, value, least in (("runs", runs, 0), ("steps", steps, 0), ("onset", onset, 1)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
+            raise ValueError(f"{name} must be an integer >= {least}; got {value!r}")
+    if mask is not None:
+        if not isinstance(mask, Tensor) or mask.dtype != torch.bool or mask.dim() != 3:
+            got = (
+                f"{mask.dtype} {tuple(mask.shape)}"
+                if isinstance(mask, Tensor)
+                else type(mask).__name__
+            )
+            raise ValueError(f"mask must be a bool tensor [runs, steps, dy]; got {got}")
+        if tuple(mask.shape[:2]) != (runs, steps):
+            raise ValueError(f"mask must hold runs = {runs} and steps = {steps}: [{runs}, "
+                             f"{steps}, dy]; got {tuple(mask.shape)}")  # fmt: skip
+        dim = mask.shape[-1]
+        if entries is not None and any(
+            isinstance(e, bool) or not isinstance(e, numbers.Integral) or not 0 <= e < dim
+            for e in entries
+        ):
+            raise ValueError(f"entries must be indices in [0, {dim}) (0-based); got {entries!r}")
     device = None if mask is None else mask.device
     on = torch.arange(1, steps + 1, device=device) >= onset
     if mask is None:

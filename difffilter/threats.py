@@ -406,7 +406,10 @@ class Replay(Attack):
     The offset is what the closed loop would do from that gap on its own, so an observer
     that predicts with ``Φ`` finds it consistent (innovations zero up to the error of
     ``g``): only the error of the gap's estimate shows at the splice. On a noise-free loop
-    ``x_{k+1} = Φ x_k`` with ``w = 1`` the replay continues the live trajectory exactly.
+    ``x_{k+1} = Φ x_k`` with ``w = 1`` and ``C`` of full column rank (the gap's state is
+    then ``C⁺`` of its measurements) the replay continues the live trajectory exactly; a
+    ``C`` that sees part of the state leaves the unseen part of the gap out (0.25 off with
+    ``C = [1 0 0]``: a stealthy trial).
 
     Args:
         delay: ``d ≥ 1`` steps (the length of the recording).
@@ -418,8 +421,8 @@ class Replay(Attack):
             seamless splice (default ``None``: Mo & Sinopoli's plain replay); needs
             ``live=False``.
         level_window: ``w``, the frames averaged to estimate the gap (``≤ d``), with
-            ``loop`` only (default ``None``: 5 with ``loop``; without one it would do nothing,
-            and is refused).
+            ``loop`` only (default ``None``: ``min(5, d)`` with ``loop``; without one it
+            would do nothing, and is refused).
     """
 
     delay: int
@@ -451,8 +454,8 @@ class Replay(Attack):
                     "which needs loop=(Φ, C); a plain replay has no splice: leave it out"
                 )
             return
-        if self.level_window is None:
-            object.__setattr__(self, "level_window", 5)
+        if self.level_window is None:  # (5 had refused a recording of fewer frames)
+            object.__setattr__(self, "level_window", min(5, self.delay))
         _set_counts(self, 1, "level_window")
         self._check_loop()
 
@@ -669,6 +672,14 @@ def check_attack_fits(attack: Attack | None, model, num_steps: int | None = None
             raise ValueError(
                 f"the replay's loop C has {rows} rows; the model has {model.dim_y} measurements"
             )
+    if isinstance(attack, Covert):  # (another size had failed in Covert.step's matmul)
+        for what in ("dim_x", "dim_u", "dim_y"):
+            theirs, ours = getattr(attack.plant, what, None), getattr(model, what, None)
+            if theirs is not None and ours is not None and theirs != ours:
+                raise ValueError(
+                    f"the covert attack's plant has {what} = {theirs} and the loop's plant "
+                    f"{ours}: give Covert a model of this plant"
+                )
     signal = attack.signal if isinstance(attack, Covert) else attack
     onset, start = getattr(signal, "onset", None), getattr(signal, "start", None)
     first = onset if onset is not None else None if start is None else start + 1
@@ -793,6 +804,15 @@ def threat_from_dict(spec: dict, model=None) -> Attack:
     if cls is KSigmaBias and "sigma" not in params:
         if model is None:
             raise ValueError("ksigma_bias without sigma needs the model (sigma = sqrt(diag R))")
+        try:
+            actuator = Channel(params.get("channel", Channel.SENSOR)) is Channel.ACTUATOR
+        except ValueError:
+            actuator = False  # (the class names a bad channel)
+        if actuator:  # (√diag R, the sensors' noise, had been taken for the inputs' σ)
+            raise ValueError(
+                "ksigma_bias on the actuators needs sigma (the inputs' σ): without it σ is "
+                "√diag R, the measurement noise's"
+            )
         k = params.pop("k", KSigmaBias.k)  # the class default, said once
         return KSigmaBias.of(model, k, **params)
     return cls(**params)

@@ -34,7 +34,7 @@ def test_a_gated_filters_detector_state_is_checked(detector):
         if isinstance(state, torch.Tensor)
         else (state[0] * float("nan"),) + state[1:]
     )
-    with pytest.raises(ValueError, match="carry.detector.* must be finite and >= 0"):
+    with pytest.raises(ValueError, match="carry.detector.* must be >= 0 and not NaN"):
         gated.step(carry._replace(detector=bad), torch.zeros(2, 2, dtype=D))
     gated.step(carry, torch.zeros(2, 2, dtype=D))  # (the init carry steps)
 

@@ -281,7 +281,9 @@ def _staged_name(path: Path) -> Path:
     never share one (cut alike, a name of 64 characters had written the card over the
     checkpoint: a review)."""
     digest = hashlib.sha256(path.name.encode()).hexdigest()[:12]
-    return path.with_name(f".{path.name[:64]}.{digest}.{os.getpid()}.staged")
+    # cut by bytes (a name of 62 emoji is 253 bytes: cut by characters it had passed 255)
+    prefix = path.name.encode()[:64].decode(errors="ignore")
+    return path.with_name(f".{prefix}.{digest}.{os.getpid()}.staged")
 
 
 def _rate_option(value: str, option: str):

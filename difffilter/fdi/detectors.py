@@ -748,8 +748,9 @@ def _check_state_tensor(t, name: str, dtype: torch.dtype, last: int | None) -> N
     if last is not None and (t.dim() < 1 or t.shape[-1] != last):
         raise ValueError(f"{name} must have shape [..., {last}] (as this detector's init "
                          f"makes it); got {tuple(t.shape)}")  # fmt: skip
-    if values_known(t) and not bool((torch.isfinite(t) & (t >= 0)).all()):
-        raise ValueError(f"{name} must be finite and >= 0 (a detector's state)")
+    # (+inf is a state the steps keep: an overflowed statistic, which alarms; a review)
+    if values_known(t) and not bool(((t >= 0) & ~torch.isnan(t)).all()):
+        raise ValueError(f"{name} must be >= 0 and not NaN (a detector's state)")
 
 
 def _finite_mean(g: Tensor) -> Tensor:
