@@ -75,12 +75,17 @@ def signals_deferred():
     previous = {sig: signal.signal(sig, hold) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
-    finally:
+    finally:  # (also where the block raised: a held SIGTERM had been dropped, a review)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    # each held signal delivered again, to the handler it would have met: ignored where the
-    # process ignores it, a caller's own handler called (raising KeyboardInterrupt or
-    # Terminated regardless had overridden both: a review)
+        _deliver(held)
+
+
+def _deliver(held: list[int]) -> None:
+    """Each held signal delivered again, to the handler it would have met: ignored where the
+    process ignores it, a caller's own handler called (raising KeyboardInterrupt or
+    Terminated regardless had overridden both: a review); every one, ``Terminated`` first
+    among what the handlers raise."""
     error = None
     for sig in dict.fromkeys(held):  # (every one: a SIGINT's KeyboardInterrupt had dropped a
         try:  # SIGTERM held after it, exit 130 for 143: a review)

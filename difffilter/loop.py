@@ -674,6 +674,7 @@ def closed_loop(
             _check_fork_input_loss(rec, input_loss, first)
     k, x, u, a_state, carry, view, memory, attacker = state
     attacker = attacker if attack is None else attack  # (None: the kept attacker's state stays)
+    _check_attackers_plant(attacker, plant)
     if channel is Channel.ACTUATOR and plant.dim_u == 0:  # (no controller could help it)
         raise ValueError(
             f"attack {type(attack).__name__} acts on the actuators, and the plant has no input "
@@ -1328,6 +1329,22 @@ def _same_model(a, b) -> bool:
     return sa.keys() == sb.keys() and all(_same(sa[k], sb[k]) for k in sa)
 
 
+def _check_attackers_plant(attack, plant) -> None:
+    """An attack that runs a model of the plant (a covert one's ``plant``) has the loop
+    plant's sizes (another had failed inside its step's matmul: a review; the same check
+    as :func:`difffilter.threats.check_attack_fits`)."""
+    theirs = getattr(attack, "plant", None)
+    if theirs is None:
+        return
+    for what in ("dim_x", "dim_u", "dim_y"):
+        a, b = getattr(theirs, what, None), getattr(plant, what, None)
+        if a is not None and b is not None and a != b:
+            raise ValueError(
+                f"the covert attack's plant has {what} = {a} and the loop's plant {b}: give "
+                f"{type(attack).__name__} a model of this plant"
+            )
+
+
 def _start(plant, steps, horizon, x0, estimator, model, controller, attack, attack_generator,
            generator) -> LoopState:  # fmt: skip
     """The state before step 1 (after checking the plant and ``x0``)."""
@@ -1363,6 +1380,7 @@ def _start(plant, steps, horizon, x0, estimator, model, controller, attack, atta
         u = _checked_input(controller, controller.init(batch, dtype, device), x0, plant, 0)
     a_state = None
     if attack is not None:
+        _check_attackers_plant(attack, plant)
         dim = attack_dim(plant, attack.channel)
         a_state = attack.init(batch, steps, dim, attack_generator, dtype=dtype, device=device)
     carry = None

@@ -627,12 +627,12 @@ def _finite_step_matrix(method: Callable, name: str) -> Callable:
 
 
 def _check_step_matrix(model, value: Tensor, name: str, args) -> None:
-    """``value`` (``model.name(*args)``) finite where it is stored data: a view of a table
-    (``self.Fs[k]``) checks the whole table once and remembers it while it is unwritten
-    (its version), a tensor the model holds likewise, so that each later read costs a
-    lookup. A matrix computed afresh at each read is the model's own arithmetic and is not
-    checked (checking every read had made such a model's Kalman filter 25 % slower: a
-    review)."""
+    """``value`` (``model.name(*args)``) finite: a view of a stored table (``self.Fs[k]``)
+    checks the whole table once and remembers it while it is unwritten (its version and
+    memory), a tensor the model holds likewise, so that each later read costs a lookup
+    (checking every read with torch's reduction had made a time-varying Kalman filter 25 %
+    slower: a review); a matrix computed afresh is checked at each read by its host sum
+    (:func:`_finite_now`)."""
     source = value._base
     if source is None:
         held = any(value is t for t in model._buffers.values()) or any(

@@ -242,7 +242,17 @@ class KSigmaBias(Shaped):
 
     @classmethod
     def of(cls, model, k: float, **window) -> KSigmaBias:
-        """``k σ`` with ``σ = √diag R`` of ``model``'s measurement noise at step 1."""
+        """``k σ`` with ``σ = √diag R`` of ``model``'s measurement noise at step 1: a bias on
+        the sensors (on the actuators give ``sigma``, the inputs' σ: ``ValueError``)."""
+        try:
+            actuator = Channel(window.get("channel", Channel.SENSOR)) is Channel.ACTUATOR
+        except ValueError:
+            actuator = False  # (the class names a bad channel)
+        if actuator:  # (√diag R, the sensors' noise, had been taken for the inputs' σ)
+            raise ValueError(
+                "ksigma_bias on the actuators needs sigma (the inputs' σ): without it σ is "
+                "√diag R, the measurement noise's"
+            )
         sigma = model.measurement_cov(1).diagonal(dim1=-2, dim2=-1).sqrt()
         rows = sigma.reshape(-1, sigma.shape[-1])
         if not bool((rows == rows[:1]).all()):
@@ -421,8 +431,8 @@ class Replay(Attack):
             seamless splice (default ``None``: Mo & Sinopoli's plain replay); needs
             ``live=False``.
         level_window: ``w``, the frames averaged to estimate the gap (``≤ d``), with
-            ``loop`` only (default ``None``: ``min(5, d)`` with ``loop``; without one it
-            would do nothing, and is refused).
+            ``loop`` only (default ``None``: 5 with ``loop``, which needs ``d ≥ 5``; without
+            one it would do nothing, and is refused).
     """
 
     delay: int
@@ -454,9 +464,18 @@ class Replay(Attack):
                     "which needs loop=(Φ, C); a plain replay has no splice: leave it out"
                 )
             return
-        if self.level_window is None:  # (5 had refused a recording of fewer frames)
-            object.__setattr__(self, "level_window", min(5, self.delay))
+        defaulted = self.level_window is None
+        if defaulted:
+            object.__setattr__(self, "level_window", 5)
         _set_counts(self, 1, "level_window")
+        if defaulted and self.level_window > self.delay:
+            # (said as the default's: it had named a level_window the caller never set; and
+            # a window of the whole recording would estimate no gap at all, a review)
+            raise ValueError(
+                f"the seamless replay's default level_window (5 frames) needs delay >= 5; got "
+                f"delay={self.delay}: give level_window=w with w < delay (1 for a noise-free "
+                "loop)"
+            )
         self._check_loop()
 
     def _check_loop(self):
@@ -673,13 +692,9 @@ def check_attack_fits(attack: Attack | None, model, num_steps: int | None = None
                 f"the replay's loop C has {rows} rows; the model has {model.dim_y} measurements"
             )
     if isinstance(attack, Covert):  # (another size had failed in Covert.step's matmul)
-        for what in ("dim_x", "dim_u", "dim_y"):
-            theirs, ours = getattr(attack.plant, what, None), getattr(model, what, None)
-            if theirs is not None and ours is not None and theirs != ours:
-                raise ValueError(
-                    f"the covert attack's plant has {what} = {theirs} and the loop's plant "
-                    f"{ours}: give Covert a model of this plant"
-                )
+        from .loop import _check_attackers_plant  # (here: the loop module is the heavier one)
+
+        _check_attackers_plant(attack, model)
     signal = attack.signal if isinstance(attack, Covert) else attack
     onset, start = getattr(signal, "onset", None), getattr(signal, "start", None)
     first = onset if onset is not None else None if start is None else start + 1
@@ -804,15 +819,6 @@ def threat_from_dict(spec: dict, model=None) -> Attack:
     if cls is KSigmaBias and "sigma" not in params:
         if model is None:
             raise ValueError("ksigma_bias without sigma needs the model (sigma = sqrt(diag R))")
-        try:
-            actuator = Channel(params.get("channel", Channel.SENSOR)) is Channel.ACTUATOR
-        except ValueError:
-            actuator = False  # (the class names a bad channel)
-        if actuator:  # (√diag R, the sensors' noise, had been taken for the inputs' σ)
-            raise ValueError(
-                "ksigma_bias on the actuators needs sigma (the inputs' σ): without it σ is "
-                "√diag R, the measurement noise's"
-            )
         k = params.pop("k", KSigmaBias.k)  # the class default, said once
         return KSigmaBias.of(model, k, **params)
     return cls(**params)

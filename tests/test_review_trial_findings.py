@@ -145,3 +145,20 @@ def test_a_staged_name_stays_within_the_name_limit_in_bytes():
 
     path = Path("/tmp") / ("\N{GRINNING FACE}" * 62 + ".ckpt")  # 253 bytes
     assert len(_staged_name(path).name.encode()) <= 255
+
+
+def test_a_held_sigterm_is_delivered_where_the_block_raised():
+    # (a third review: an OSError in the block had dropped a held SIGTERM)
+    import os
+    import signal
+
+    import pytest
+
+    from difffilter.interrupts import Terminated, signals_deferred, sigterm_as_interrupt
+
+    with sigterm_as_interrupt():
+        with pytest.raises(Terminated) as caught:
+            with signals_deferred():
+                os.kill(os.getpid(), signal.SIGTERM)
+                raise OSError("a rename failed")
+    assert isinstance(caught.value.__context__, OSError)

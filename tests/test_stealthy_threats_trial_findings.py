@@ -8,7 +8,14 @@ import torch
 
 import difffilter as df
 from difffilter.stealthy import attacked_pairs
-from difffilter.threats import Covert, Ramp, Replay, check_attack_fits, threat_from_dict
+from difffilter.threats import (
+    Covert,
+    KSigmaBias,
+    Ramp,
+    Replay,
+    check_attack_fits,
+    threat_from_dict,
+)
 
 F64 = torch.float64
 
@@ -49,12 +56,26 @@ def test_attacked_pairs_names_its_arguments(kwargs, match):
     assert attacked_pairs(2, 5, 3).tolist() == [[False, False, True, True, True]] * 2
 
 
-def test_a_seamless_replay_of_a_short_recording_takes_its_default_window():
-    # its own default (5) had been refused for a delay of 3, a value the caller never set
+def test_a_seamless_replay_of_a_short_recording_says_its_default_window_needs_more():
+    # its own default (5) had been refused for a delay of 3 as a level_window the caller never
+    # set; a default of the whole recording (w = d) would estimate no gap at all (a review)
     phi, C = 0.9 * torch.eye(2, dtype=F64), torch.eye(2, dtype=F64)
-    replay = Replay(delay=3, onset=6, loop=(phi, C))
-    assert replay.level_window == 3
+    with pytest.raises(ValueError, match="default level_window .* needs delay >= 5"):
+        Replay(delay=3, onset=6, loop=(phi, C))
+    assert Replay(delay=3, onset=6, loop=(phi, C), level_window=1).level_window == 1
     assert Replay(delay=8, onset=10, loop=(phi, C)).level_window == 5
+
+
+def test_a_covert_attackers_model_of_other_sizes_is_refused_by_the_loop():
+    # (check_attack_fits refused it, but closed_loop never calls that: torch's matmul error)
+    from difffilter.loop import DrawnNoise, KnownInputs, closed_loop
+
+    plant = _linear(3, 2, 1)
+    attack = Covert(Ramp(0.2, channel="actuator", onset=3), _linear(2, 2, 1))
+    with pytest.raises(ValueError, match="covert attack's plant has dim_x = 2"):
+        closed_loop(plant, 10, noise=DrawnNoise(torch.Generator().manual_seed(0)),
+                    x0=torch.zeros(2, 3, dtype=F64), attack=attack,
+                    controller=KnownInputs(torch.zeros(2, 10, 1, dtype=F64)))  # fmt: skip
 
 
 def test_a_ksigma_bias_on_the_actuators_needs_its_sigma():
@@ -64,4 +85,6 @@ def test_a_ksigma_bias_on_the_actuators_needs_its_sigma():
         threat_from_dict({"kind": "ksigma_bias", "k": 2.0, "channel": "actuator"}, model)
     with pytest.raises(ValueError, match="ksigma_bias on the actuators needs sigma"):
         threat_from_dict({"kind": "covert", "signal": {"kind": "ksigma_bias", "k": 2.0}}, model)
+    with pytest.raises(ValueError, match="ksigma_bias on the actuators needs sigma"):
+        KSigmaBias.of(model, 2.0, channel="actuator")
     threat_from_dict({"kind": "ksigma_bias", "k": 2.0}, model)  # (the sensors': √diag R)

@@ -488,7 +488,8 @@ class ChiSquareDetector:
 
     def check_state(self, state, dtype: torch.dtype, name: str = "state") -> None:
         """``ValueError`` naming ``name`` where ``state`` is not an online state of this
-        detector (:meth:`init`'s layout, ``dtype``): finite, non-negative window values
+        detector (:meth:`init`'s layout, ``dtype``): non-negative window values (``+inf``
+        where an overflowed statistic is held, never NaN)
         ``[..., W − 1]``, an integer step count ``≥ 0`` and the entries received."""
         if not isinstance(state, tuple) or len(state) not in (2, 3):
             raise ValueError(f"{name} must be the (window, count, received) of {type(self).__name__}"
@@ -657,7 +658,8 @@ class CusumDetector:
 
     def check_state(self, state, dtype: torch.dtype, name: str = "state") -> None:
         """``ValueError`` naming ``name`` where ``state`` is no online state ``S ≥ 0`` of
-        ``dtype`` (finite: a NaN S had never alarmed again)."""
+        ``dtype`` (``+inf`` after an overflowed statistic; never NaN: a NaN S had never
+        alarmed again)."""
         _check_state_tensor(state, f"{name} (the statistic S)", dtype, None)
 
     def step(
@@ -741,7 +743,8 @@ class CusumDetector:
 
 
 def _check_state_tensor(t, name: str, dtype: torch.dtype, last: int | None) -> None:
-    """A detector state's tensor: of ``dtype``, finite and ``≥ 0``, of last size ``last``."""
+    """A detector state's tensor: of ``dtype``, ``≥ 0`` and not NaN (``+inf`` allowed: an
+    overflowed statistic), of last size ``last``."""
     if not isinstance(t, Tensor) or t.dtype != dtype:
         got = t.dtype if isinstance(t, Tensor) else type(t).__name__
         raise ValueError(f"{name} must be a {dtype} tensor; got {got}")
