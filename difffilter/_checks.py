@@ -949,11 +949,9 @@ def check_carry_fits_model(model, **tensors) -> None:
     if dtype is None:
         return
     for name, t in tensors.items():
-        if (
-            isinstance(t, Tensor)
-            and t.is_floating_point()
-            and (t.dtype, t.device) != (dtype, device)
-        ):
+        # (an integer one too: an int64 mean of the right values had made the UKF's sigma
+        # weights int64, rounded to 0, and the other filters fail in torch: a carries trial)
+        if isinstance(t, Tensor) and (t.dtype, t.device) != (dtype, device):
             raise ValueError(
                 f"carry.{name} is {t.dtype} on {t.device} and its model's tensors {dtype} on "
                 f"{device} (a model moved with .to() after init keeps its carries as they "
@@ -969,6 +967,12 @@ def check_carry_tensor(t, name: str, *, dim: int | None = None, covariance: bool
         raise TypeError(f"carry.{name} must be a torch.Tensor; got {type(t).__name__}")
     if dim is not None and (t.dim() < 1 or t.shape[-1] != dim):
         raise ValueError(f"carry.{name} must have shape [..., {dim}]; got {tuple(t.shape)}")
+    if covariance and (t.dim() < 2 or t.shape[-1] != t.shape[-2]):  # (check_symmetric's
+        raise ValueError(  # IndexError had named nothing: a carries trial)
+            f"carry.{name} must be a covariance [..., d, d]; got {tuple(t.shape)}"
+        )
+    if not t.is_floating_point():  # (before torch.finfo's TypeError on an integer one)
+        raise ValueError(f"carry.{name} must be a floating tensor; got {t.dtype}")
     if values_known(t) and not _all_finite(t):
         raise ValueError(
             f"carry.{name} contains NaN or Inf values; a carry must come from the "

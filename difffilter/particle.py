@@ -501,6 +501,12 @@ class ParticleFilter(Estimator):
             )
         if bool(torch.isnan(carry.log_weights).any()):
             raise ValueError("carry.log_weights contains NaN values")
+        if carry.aux is None and self.stateful:  # (it failed on None's attributes: a trial)
+            raise ValueError(
+                f"carry.aux is None, and this particle filter's likelihood "
+                f"({type(self.likelihood).__name__}) keeps a state there: start the carry from "
+                "this estimator's init"
+            )
         if carry.aux is not None and not self.stateful:  # (it was stepped, the state ignored)
             raise ValueError(
                 "carry.aux holds a stateful likelihood's state (another estimator's carry, e.g. "

@@ -210,7 +210,8 @@ class FourTankModel(StateSpaceModel):
         are still the parameters' (the plant unedited), ``params.fixed_point()`` (the same
         point, from the constants); a plant edited in place (transition's docstring) has
         its own, which the parameters' had stood in for (a four-tank trial: 0.025 cm of
-        drift a step under the linearised filter)."""
+        drift a step under the linearised filter). A point to linearise at, without a
+        gradient (as the parameters' always was)."""
         offset, diag, couple = (self._buffers[n].detach().double()
                                 for n in ("step_offset", "step_diag", "step_couple"))  # fmt: skip
         lower = -offset[2:] / diag[2:]
@@ -270,7 +271,10 @@ class FourTankModel(StateSpaceModel):
         buffers = self._buffers
         coefs = (buffers["step_offset"], buffers["step_diag"], buffers["step_couple"])
         if (x.numel() < 4096 or any(c.requires_grad for c in coefs) or x.shape[-1] != 4
-                or x.dtype != coefs[0].dtype or x.device != coefs[0].device):  # fmt: skip
+                or x.dtype != coefs[0].dtype or x.device != coefs[0].device
+                or under_transform(x, *coefs)):  # fmt: skip
+            # (under torch.func the wrapped tensors have no storage for the key's data_ptr:
+            # the EKF and a PF of 1,024 particles had failed inside torch, a gradients trial)
             # (a state of another dtype takes torch's promotion, as a small batch does: a
             # cast copy had made the result's dtype hang on the batch size, a review)
             return coefs
@@ -298,6 +302,11 @@ class FourTankModel(StateSpaceModel):
         of the step coefficients they are made of."""
         buffers = self._buffers
         diag, couple = buffers["step_diag"], buffers["step_couple"]
+        if under_transform(diag, couple):  # (no storage to key on: made afresh)
+            return (
+                torch.eye(4, dtype=diag.dtype, device=diag.device),
+                self.sqrt_affine_form()[0].mT,
+            )
         key = (diag.data_ptr(), version_stamp(diag), couple.data_ptr(), version_stamp(couple),
                diag.dtype, diag.device, diag.requires_grad or couple.requires_grad)  # fmt: skip
         cached = getattr(self, "_jacobian_cache", None)

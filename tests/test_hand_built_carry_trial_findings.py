@@ -87,3 +87,40 @@ def test_a_particle_carrys_weights_and_caches_are_named(field, value):
     carry = pf.init(_model(), (2,), torch.Generator().manual_seed(0))
     with pytest.raises(ValueError, match=f"carry.{field} must be a torch.float64 tensor"):
         pf.step(carry._replace(**{field: value(carry)}), torch.zeros(2, 2, dtype=D))
+
+
+@pytest.mark.parametrize(
+    "filt", [df.UnscentedKalmanFilter(), df.ExtendedKalmanFilter(), df.KalmanFilter()]
+)
+def test_an_integer_carry_mean_is_named(filt):
+    # an int64 mean of init's values had made the UKF's sigma-point weights int64 (rounded to
+    # 0: mean [0.1, -0.07] for [0.27, -0.18]); the others failed in torch's words
+    carry = filt.init(_model(), ())
+    with pytest.raises(ValueError, match="carry.mean must be a floating tensor"):
+        filt.step(carry._replace(mean=carry.mean.long()), torch.tensor([1.0, -1.0], dtype=D))
+    with pytest.raises(ValueError, match=r"carry.cov must be a covariance \[\.\.\., d, d\]"):
+        filt.step(carry._replace(cov=carry.cov[0]), torch.tensor([1.0, -1.0], dtype=D))
+
+
+def test_a_stateful_particle_filters_carry_without_its_state_is_named():
+    # (a modified PF's carry with aux None had failed on None's attributes)
+    from difffilter.fdi import ModifiedParticleFilter, PoADetector
+
+    pf = ModifiedParticleFilter(20, PoADetector(0.5, 0.5), torch.zeros(4, 2, dtype=D))
+    carry = pf.init(_model(), (2,), torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match="carry.aux is None"):
+        pf.step(carry._replace(aux=None), torch.zeros(2, 2, dtype=D))
+
+
+def test_an_adaptive_pf_carry_of_a_singular_attack_covariance_is_refused_by_its_step():
+    # attach refused it; the step took it and ran to NaN means in the information form
+    from difffilter.fdi.mdpf import AdaptiveParticleFilter, adaptive_particle_init
+
+    model = _model(B=EYE)
+    apf = AdaptiveParticleFilter(16, form="information")
+    carry = apf.init(model, (1,), torch.Generator().manual_seed(0))
+    state = adaptive_particle_init(
+        model, 16, (1,), torch.Generator().manual_seed(0), attack_cov0=0.0
+    )
+    with pytest.raises(ValueError, match="singular"):
+        apf.step(carry._replace(particles=state.particles), torch.zeros(1, 2, dtype=D))

@@ -206,7 +206,9 @@ def adaptive_kalman_init(
     dx, da = model.dim_x, model.dim_u
     mean = m0.expand(batch + (dx,))
     cov = p0.expand(batch + (dx, dx))
-    omega = check_finite_number(attack_cov0, "attack_cov0", nonnegative=True)
+    omega = _attack_cov0(attack_cov0)
+    if isinstance(omega, Tensor):
+        omega = omega.to(dtype=m0.dtype, device=m0.device)
     if attack0 is None:
         attack = m0.new_zeros(batch + (da,))
     else:
@@ -220,6 +222,16 @@ def adaptive_kalman_init(
     s0 = omega * torch.eye(da, dtype=m0.dtype, device=m0.device)
     sens = m0.new_zeros(batch + (dx, da))
     return AdaptiveKFState(mean, cov, attack, s0.expand(batch + (da, da)), sens, 0, model)
+
+
+def _attack_cov0(value):
+    """``ω`` checked (finite, ``≥ 0``): a number, or a one-element tensor kept as a tensor
+    so that a gradient reaches it (made a number, its gradient had been dropped without a
+    word: 0 for −0.756, a gradients trial)."""
+    number = check_finite_number(value, "attack_cov0", nonnegative=True)
+    if isinstance(value, Tensor) and value.requires_grad:
+        return value.reshape(())
+    return number
 
 
 class AdaptiveKalmanFilter(Estimator):
@@ -253,7 +265,7 @@ class AdaptiveKalmanFilter(Estimator):
         false_alarm_rate: float = 0.01,
     ):
         self.forgetting = forgetting  # (checked by __setattr__)
-        attack_cov0 = check_finite_number(attack_cov0, "attack_cov0", nonnegative=True)
+        attack_cov0 = _attack_cov0(attack_cov0)
         if attack0 is not None:  # its width is checked against the model at init
             attack0 = as_tensor(attack0, "attack0")
             check_finite(attack0, "attack0")

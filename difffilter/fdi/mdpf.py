@@ -178,6 +178,15 @@ class ParticleView(StateSpaceModel):
     def _varying_noise(self, cov_method):
         return self.base._varying_noise(cov_method)
 
+    def transition(self, x, u, k):
+        # (another particle filter given this view's carry had failed on an empty
+        # NotImplementedError: a hand-built-carries trial)
+        raise ValueError(
+            "carry.model is the adaptive particle filter's view of packed particles, which "
+            "only its own proposal moves: step this carry with the AdaptiveParticleFilter that "
+            "made it"
+        )
+
 
 #: The largest condition number of ``Q`` the information form takes: it inverts ``Q`` (the
 #: covariance form does not), and its error grows like ``cond(Q)`` (4.8e-4 cm at 1e14
@@ -651,7 +660,16 @@ class AdaptiveParticleFilter(Estimator):
         if not isinstance(carry.model, ParticleView):
             raise ValueError("carry.model must be the ParticleView of AdaptiveParticleFilter.init")
         _check_zero_mean_noise(carry.model.base)
-        self.filter_for(carry.model.base)[1]._check_carry(carry)
+        view, pf = self.filter_for(carry.model.base)
+        pf._check_carry(carry)
+        # as attach refuses it: a hand-built S₀ = 0 state had stepped to NaN means in the
+        # information form (a hand-built-carries trial)
+        if pf.proposal.form is Form.INFORMATION and _singular_attack_cov(carry, view.layout):
+            raise ValueError(
+                "carry.particles hold an attack covariance S that is singular in some particle "
+                "(S₀ = 0: adaptive_particle_init(attack_cov0=0)), and the information form "
+                "inverts S: give the estimator attack_cov0=0 or form='covariance'"
+            )
 
     def _step(self, carry, y, u, mask):
         base = carry.model.base

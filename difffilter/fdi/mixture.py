@@ -63,7 +63,9 @@ class BiasDeception:
     def rho(self, rho) -> None:
         # checked whenever set: a 0-d ρ assigned after construction had met a bare
         # IndexError in the likelihood (a red-team trial)
-        rho = torch.as_tensor(rho)
+        # numbers and lists in float64, cast at use (under a float32 default they had been
+        # rounded first: means 6e-9 off a float64 filter's; a default-dtype trial)
+        rho = rho if isinstance(rho, Tensor) else torch.as_tensor(rho, dtype=torch.float64)
         if rho.dim() < 1 or not bool(torch.isfinite(rho).all()):
             raise ValueError(f"rho must be a finite vector [..., dy]; got {rho!r}")
         self._rho = rho

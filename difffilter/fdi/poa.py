@@ -495,7 +495,14 @@ def poa_detector_for(
                 "eqs (45)/(46) cannot be computed (start the prior mean elsewhere)"
             )
     G = G.detach().to(torch.float64)
-    R = model.measurement_cov(1) if R is None else torch.as_tensor(R)
+    # (a list R in float64: under a float32 default it had been rounded first, η 2e-9 off)
+    R = (
+        model.measurement_cov(1)
+        if R is None
+        else torch.as_tensor(R, dtype=torch.float64)
+        if not isinstance(R, Tensor)
+        else R
+    )
     K = modified_pf_gain(G, model.process_cov(0).detach().double(), R.detach().double())
     eta = float(attack_threshold(G, K, gamma_min, rule=rule))
     return PoADetector(eta, detection_threshold(p_l, num_particles))
