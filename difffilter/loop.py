@@ -66,7 +66,6 @@ from ._checks import (
     check_model_batch,
     check_sequence_inputs,
     model_batch_shape,
-    values_known,
 )
 from .attack import Attack, Channel, TabulatedAttack, attack_dim, inject
 from .estimator import Estimator, EstimatorOutput, Generators, stack_steps
@@ -289,10 +288,7 @@ class ReplayedNoise:
                 raise ValueError(
                     f"ReplayedNoise: {name} noise must be a floating tensor [B, T, d]; got {got}"
                 )
-            if values_known(t) and not bool(torch.isfinite(t).all()):
-                raise ValueError(
-                    f"ReplayedNoise: {name} noise contains NaN or Inf values; every draw must be finite"
-                )
+            check_finite(t, f"ReplayedNoise: {name} noise")
         if process.shape[:-1] != measurement.shape[:-1]:
             raise ValueError(
                 f"process [B, T, dx] and measurement [B, T, dy] noise must share B and T; got "

@@ -93,17 +93,13 @@ def attacked_pairs(runs: int, steps: int, onset: int, entries=None, mask=None) -
         if tuple(mask.shape[:2]) != (runs, steps):
             raise ValueError(f"mask must hold runs = {runs} and steps = {steps}: [{runs}, "
                              f"{steps}, dy]; got {tuple(mask.shape)}")  # fmt: skip
-        dim = mask.shape[-1]
-        if entries is not None and any(
-            isinstance(e, bool) or not isinstance(e, numbers.Integral) or not 0 <= e < dim
-            for e in entries
-        ):
-            raise ValueError(f"entries must be indices in [0, {dim}) (0-based); got {entries!r}")
+        if entries is not None:  # (the crafting's own check)
+            entries = _check_entries(entries, mask.shape[-1])
     device = None if mask is None else mask.device
     on = torch.arange(1, steps + 1, device=device) >= onset
     if mask is None:
         return on.expand(runs, steps)
-    return on & (mask.bool() & _entry_mask(mask.shape[-1], entries, device)).any(-1)
+    return on & (mask & _entry_mask(mask.shape[-1], entries, device)).any(-1)
 
 
 def _entry_mask(dim: int, entries, device=None) -> Tensor:

@@ -16,7 +16,7 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["write_atomically", "write_json_atomically"]
+__all__ = ["sibling_name", "write_atomically", "write_json_atomically"]
 
 
 def write_atomically(path: str | Path, content: str | bytes | Callable[[Path], object]) -> None:
@@ -30,10 +30,7 @@ def write_atomically(path: str | Path, content: str | bytes | Callable[[Path], o
     # it, and the first to finish moved the other's half-written file into place. Its name
     # is the target's cut to a prefix (with a digest of the whole): a legal name of 240
     # bytes had made a partial one past the file system's 255 (an interrupts trial)
-    tag = hashlib.sha256(path.name.encode()).hexdigest()[:12]
-    partial = path.with_name(
-        f".{path.name[:64]}.{tag}.{os.getpid()}.{threading.get_ident()}.partial"
-    )
+    partial = sibling_name(path, f"{os.getpid()}.{threading.get_ident()}.partial")
     try:
         if isinstance(content, str):
             partial.write_text(content)
@@ -50,6 +47,16 @@ def write_atomically(path: str | Path, content: str | bytes | Callable[[Path], o
             # None is printed), and an error about another file a writer read is left alone
             raise type(exc)(exc.errno, exc.strerror, str(path)) from exc
         raise
+
+
+def sibling_name(path: Path, tag: str) -> Path:
+    """A hidden file beside ``path`` for writing it first: ``path``'s name cut to 64 bytes
+    (a legal long name stays legal: a 240-byte one had made a partial name past the file
+    system's 255; cut by characters, 62 emoji had), a digest of the whole name (two names
+    cut alike stay apart: a checkpoint and its card had shared one) and ``tag``."""
+    digest = hashlib.sha256(path.name.encode()).hexdigest()[:12]
+    prefix = path.name.encode()[:64].decode(errors="ignore")
+    return path.with_name(f".{prefix}.{digest}.{tag}")
 
 
 def _about(exc: OSError, partial: Path, path: Path) -> bool:

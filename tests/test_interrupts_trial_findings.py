@@ -154,3 +154,11 @@ def test_the_software_record_ignores_an_exported_git_dir(tmp_path):
         [*git, "rev-parse", "HEAD"], capture_output=True, text=True
     ).stdout.strip()
     assert seen == truth and seen != other_head
+
+
+def test_a_legal_name_of_multibyte_characters_is_written_whole(tmp_path):
+    # the partial name had been cut by characters: 62 emoji (253 bytes) made one past 255
+    target = tmp_path / ("\N{GRINNING FACE}" * 62 + ".json")
+    write_atomically(target, "{}\n")
+    assert target.read_text() == "{}\n"
+    assert [p.name for p in tmp_path.iterdir()] == [target.name]

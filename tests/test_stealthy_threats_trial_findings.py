@@ -42,7 +42,7 @@ def test_a_covert_attackers_model_of_other_sizes_is_refused_before_the_run(other
 @pytest.mark.parametrize("kwargs,match", [
     ({"onset": 0}, "onset must be an integer >= 1"),
     ({"onset": 2.5}, "onset must be an integer >= 1"),
-    ({"entries": [-1], "mask": torch.ones(2, 5, 2, dtype=torch.bool)}, r"entries must be indices in \[0, 2\)"),
+    ({"entries": [-1], "mask": torch.ones(2, 5, 2, dtype=torch.bool)}, r"entries must be distinct .* in \[0, 2\)"),
     ({"mask": torch.ones(3, 5, 2, dtype=torch.bool)}, "mask must hold runs = 2 and steps = 5"),
 ])  # fmt: skip
 def test_attacked_pairs_names_its_arguments(kwargs, match):

@@ -42,7 +42,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import hashlib
 import json
 import os
 import sys
@@ -53,7 +52,7 @@ from pathlib import Path
 from difffilter._checks import check_rate
 from difffilter.fdi.neural import restart_applies
 from difffilter.interrupts import signals_deferred, stop_words
-from difffilter.models.atomic_write import write_json_atomically
+from difffilter.models.atomic_write import sibling_name, write_json_atomically
 from difffilter.models.neural_estimator import RUN_OPTIONS
 
 from .common import check_checkpoint_out, load_source
@@ -276,14 +275,9 @@ def _write_pair(out: Path, estimator, card, document: dict, calibration: dict, c
 
 
 def _staged_name(path: Path) -> Path:
-    """Where ``path`` is written before it is moved into place: its name cut (a legal long
-    name stays legal) with a digest of the whole name, so that the checkpoint and its card
-    never share one (cut alike, a name of 64 characters had written the card over the
-    checkpoint: a review)."""
-    digest = hashlib.sha256(path.name.encode()).hexdigest()[:12]
-    # cut by bytes (a name of 62 emoji is 253 bytes: cut by characters it had passed 255)
-    prefix = path.name.encode()[:64].decode(errors="ignore")
-    return path.with_name(f".{prefix}.{digest}.{os.getpid()}.staged")
+    """Where ``path`` is written before it is moved into place (:func:`sibling_name`: the
+    checkpoint's and its card's names kept apart and within the file system's limit)."""
+    return sibling_name(path, f"{os.getpid()}.staged")
 
 
 def _rate_option(value: str, option: str):
