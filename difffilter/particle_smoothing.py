@@ -31,7 +31,9 @@ from ._checks import (
     check_filtered_dtype,
     check_inputs_given,
     check_one_model,
+    first_index,
     model_dtype_device,
+    values_known,
 )
 from .noise import Gaussian
 from .results import ParticleFilterResult
@@ -98,6 +100,7 @@ def particle_smoother(
     check_one_model(model, "the particle smoother", "smooth each parameter set's filter result "
                     "with its own model")  # fmt: skip
     particles, log_w = filtered.particles, filtered.log_weights
+    _check_particles_weights(particles, log_w)
     steps = particles.shape[-3]
     if particles.shape[-1] != model.dim_x:  # (torch's "Expected size for first two …")
         raise ValueError(
@@ -110,6 +113,12 @@ def particle_smoother(
         dtype, device = model_dtype_device(model)
         _check_us(model, us, particles.shape[:-3], steps, dtype, device,
                   against="the particles'")  # fmt: skip
+        runs = particles.shape[:-3]
+        if torch.broadcast_shapes(us.shape[:-2], runs) != runs:  # (torch's expand had failed)
+            raise ValueError(
+                f"us's batch shape {tuple(us.shape[:-2])} has runs the filter's particles "
+                f"{tuple(runs)} do not: give the inputs the filter ran on"
+            )
     smoothed = [log_w[..., -1, :]]
     for t in range(steps - 2, -1, -1):  # index t holds x_{t+1}; its successor x_{t+2}
         u = None if us is None else us[..., t + 1, :]
@@ -123,6 +132,39 @@ def particle_smoother(
     dev = particles - means.unsqueeze(-2)
     covs = (w[..., None, None] * dev.unsqueeze(-1) * dev.unsqueeze(-2)).sum(-3)
     return ParticleSmootherResult(means, 0.5 * (covs + covs.mT), log_ws, filtered)
+
+
+def _check_particles_weights(particles: Tensor, log_w: Tensor) -> None:
+    """``filtered.particles [..., T, N, dx]`` (T ≥ 1, finite) and ``filtered.log_weights
+    [..., T, N]`` of the same shape, dtype and device (no NaN or +inf; −inf: a zero weight):
+    log-weights one step short had been read a step shifted (0.9 posterior sd off), others
+    had failed in torch or given NaN means (a particle smoother trial)."""
+    for t, name in ((particles, "particles"), (log_w, "log_weights")):
+        if not isinstance(t, Tensor) or not t.is_floating_point():
+            got = t.dtype if isinstance(t, Tensor) else type(t).__name__
+            raise ValueError(f"filtered.{name} must be a floating tensor; got {got}")
+    if particles.dim() < 3 or particles.shape[-3] == 0:
+        raise ValueError(
+            "filtered.particles must have shape [..., T, N, dx] with T >= 1 (a particle "
+            f"filter's result with return_particles=True); got {tuple(particles.shape)}"
+        )
+    if log_w.shape != particles.shape[:-1]:
+        raise ValueError(
+            f"filtered.log_weights must have shape {tuple(particles.shape[:-1])} ([..., T, N], "
+            f"one per particle of filtered.particles); got {tuple(log_w.shape)}"
+        )
+    if log_w.dtype != particles.dtype or log_w.device != particles.device:
+        raise ValueError(
+            f"filtered.log_weights ({log_w.dtype} on {log_w.device}) must share the particles' "
+            f"dtype and device ({particles.dtype} on {particles.device})"
+        )
+    if values_known(particles) and not bool(torch.isfinite(particles).all()):
+        where = first_index(~torch.isfinite(particles))
+        raise ValueError(f"filtered.particles contains NaN or Inf values (first at {where})")
+    if values_known(log_w) and bool((torch.isnan(log_w) | (log_w == float("inf"))).any()):
+        raise ValueError(
+            "filtered.log_weights contains NaN or +inf values (−inf, a zero weight, is allowed)"
+        )
 
 
 def _backward_step(model, now: Tensor, log_w: Tensor, later: Tensor, later_smoothed: Tensor,

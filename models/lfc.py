@@ -40,7 +40,7 @@ import torch
 from torch import Tensor, nn
 
 import difffilter
-from difffilter._checks import Choice, check_finite_number
+from difffilter._checks import Choice, check_finite_number, check_integer
 from difffilter.attack import Channel, TabulatedAttack, attack_dim
 from difffilter.control import zoh_discretize
 from difffilter.fdi import ChiSquareDetector, GatedFilter
@@ -288,6 +288,20 @@ class SecureController:
     """
 
     def __init__(self, K1: Tensor, load: Tensor, *, compensate: bool = True):
+        if (
+            not isinstance(K1, Tensor)
+            or not K1.is_floating_point()
+            or K1.shape
+            != (
+                NUM_AREAS,
+                STATE_DIM,
+            )
+        ):  # (torch's expand/matmul at the first input had named neither: an LFC trial)
+            got = f"{tuple(K1.shape)} {K1.dtype}" if isinstance(K1, Tensor) else type(K1).__name__
+            raise ValueError(
+                f"K1 must be a floating tensor [{NUM_AREAS}, {STATE_DIM}] (the LQR gain, "
+                f"lqr_gain(plant)); got {got}"
+            )
         self.K1, self.load, self.compensate = K1, load, bool(compensate)
         self._gain = -K1.T  # U = Z·(−K₁ᵀ): one product per step
 
@@ -378,6 +392,9 @@ def sawtooth_pulse_train(
         raise ValueError(
             f"start and stop must be finite with stop >= start; got {start!r}, {stop!r}"
         )
+    if not isinstance(t, Tensor) or t.dim() != 1:  # (torch's broadcasting error had named no t)
+        got = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+        raise ValueError(f"t must be a 1-D tensor of sample times [T]; got {got}")
     n_pulses = int(math.floor((stop - start) / period + 1e-9)) + 1
     delays = start + period * torch.arange(n_pulses, dtype=t.dtype)
     tau = t[:, None] - delays[None, :]
@@ -529,8 +546,11 @@ def _check_random_attacks(num_runs, steps, generator, channels, min_events, max_
     """The arguments of :func:`random_attacks` checked; the channel indices as a tensor."""
     if not isinstance(generator, torch.Generator):
         raise ValueError("generator must be a torch.Generator (every draw is seeded)")
-    if num_runs < 1 or steps < 1:
-        raise ValueError(f"num_runs and steps must be >= 1; got {num_runs}, {steps}")
+    # (a float count had failed in torch's randint, naming neither: an LFC trial)
+    check_integer(num_runs, "num_runs", 1)
+    check_integer(steps, "steps", 1)
+    check_integer(min_events, "min_events")
+    check_integer(max_events, "max_events")
     if not 0 <= min_events <= max_events:
         raise ValueError(f"need 0 <= min_events <= max_events; got {min_events}, {max_events}")
     chans = torch.arange(STATE_DIM) if channels is None else torch.as_tensor(channels)
@@ -737,6 +757,7 @@ class LFCScenario(Scenario):
             raise ValueError(f"dt must be positive and duration >= dt, both finite; got dt = "
                              f"{self.dt!r}, duration = {self.duration!r}")  # fmt: skip
         object.__setattr__(self, "steps", int(round(self.duration / self.dt)))
+        check_integer(self.max_events, "max_events")  # (else refused only at simulate)
         _check_attacked_channels(self.attacked_channels, self.attack)
 
     def with_steps(self, steps: int) -> LFCScenario:
