@@ -207,6 +207,14 @@ def check_batch_shapes(whose: str = "the model's parameters", /, **shapes: torch
         )
 
 
+def add_note(error: BaseException, note: str) -> None:
+    """``error.add_note(note)`` where Python has it (3.11 on); nothing on 3.10, which the
+    package supports (the call had replaced an estimator's own error by an
+    ``AttributeError`` there: a packaging trial)."""
+    if hasattr(error, "add_note"):
+        error.add_note(note)
+
+
 def check_finite(t: Tensor, name: str) -> None:
     if values_known(t) and not bool(torch.isfinite(t).all()):
         raise ValueError(f"{name} contains NaN or Inf values; every entry must be finite")

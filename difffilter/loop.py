@@ -59,6 +59,7 @@ from torch import Tensor
 
 from ._checks import (
     NonFinite,
+    add_note,
     broadcast_or_none,
     broadcast_shapes,
     check_finite,
@@ -738,10 +739,10 @@ def closed_loop(
                 records = {key: list(v) for key, v in rec.items()}
                 forks[k] = LoopFork(kept, records, list(outs), noise)
     except (TypeError, AttributeError) as error:
-        if attack is not None and hasattr(error, "add_note"):  # (Python ≥ 3.11)
+        if attack is not None:
             hint = _undeclared_read(error, attack, shows_state, reads)
             if hint is not None:
-                error.add_note(hint)
+                add_note(error, hint)
         raise
     traj = _trajectories(rec, mask, first, k, channel)
     if estimator is None:

@@ -16,7 +16,7 @@ from typing import Any
 
 import torch
 
-from difffilter._checks import check_integer
+from difffilter._checks import add_note, check_integer
 from difffilter.estimator import EstimatorOutput
 from difffilter.linalg import NumericalBreakdown
 from difffilter.loop import LoopResult, Trajectories
@@ -242,7 +242,7 @@ def _naming(name: str, scenario: str):
     except ValueError as exc:
         raise ValueError(f"{name} on {scenario}: {exc}") from exc
     except Exception as exc:
-        exc.add_note(f"(raised by estimator {name!r} on scenario {scenario!r})")
+        add_note(exc, f"(raised by estimator {name!r} on scenario {scenario!r})")
         raise
 
 

@@ -46,6 +46,8 @@ from importlib.metadata import entry_points
 
 import torch
 
+from difffilter._checks import add_note
+
 from .scenario import CustomScenario, Scenario
 from .yaml_scenario import import_object, is_yaml_path, scenario_from_yaml
 
@@ -242,7 +244,7 @@ def _import_families() -> None:
         except Exception as error:
             # a module that fails (a contributor's new family) fails every later call too,
             # named, instead of leaving the registries without the modules after it
-            error.add_note(f"(while importing difffilter.models.{info.name}: every module of "
+            add_note(error, f"(while importing difffilter.models.{info.name}: every module of "
                            "difffilter.models is imported to register its scenarios)")  # fmt: skip
             raise
     for point in entry_points(group=PLUGIN_GROUP):

@@ -366,7 +366,7 @@ def _sections(result, doc: dict, out, prepared=None) -> list[Section]:
         rel, worst = ([f(e) if on else "— (not attacked)" for on, e in zip(attacked, att[key])]
                       for key in ("mean_rel_error_k44", "max_rel_error_at_end"))  # fmt: skip
         body = (f"Mean fused â at k = {k44}: {f(att['mean_attack_k44'][0])} cm/s, {f(att['mean_attack_k44'][1])} deg/s "
-                f"(relative errors {rel[0]}, {rel[1]}; target < 0.1). "
+                f"(mean over runs of |â − a|/|a| {rel[0]}, {rel[1]}; target < 0.1). "
                 f"Every run within 10 % at k = {doc['steps']}: {att['all_runs_within_10pct_at_end']} (largest relative errors "
                 f"{worst[0]}, {worst[1]}).\n")  # fmt: skip
         if comp:
