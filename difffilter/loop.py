@@ -365,6 +365,14 @@ class StateFeedback:
     """
 
     def __init__(self, gain: Tensor, reference: Tensor | None = None):
+        self._check(gain, reference)
+        self.gain, self.reference = gain, reference
+
+    @staticmethod
+    def _check(gain, reference) -> None:
+        """The constructor's checks, made again at ``init``: a reference assigned later of
+        another shape (``[B, 1]``, 0-dim) had been broadcast over every state entry (an
+        LQG trial)."""
         if not isinstance(gain, Tensor) or not gain.is_floating_point() or gain.dim() < 2:
             got = tuple(gain.shape) if isinstance(gain, Tensor) else type(gain).__name__
             raise ValueError(f"gain must be a floating tensor K [du, dx] or [B, du, dx]; got {got}")
@@ -380,9 +388,9 @@ class StateFeedback:
             )
         if reference is not None:
             check_finite(reference, "reference")
-        self.gain, self.reference = gain, reference
 
     def init(self, batch_shape, dtype, device) -> Tensor:
+        self._check(self.gain, self.reference)
         runs = torch.Size(batch_shape)
         for name, t, event in (("gain", self.gain, 2), ("reference", self.reference, 1)):
             if t is None:
