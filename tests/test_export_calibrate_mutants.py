@@ -515,3 +515,27 @@ def test_a_fits_export_takes_the_best_checkpoints_weights_and_score(tmp_path, mo
     assert doc["metrics_last_validation"] == {"val/auc": pytest.approx(0.9)}
     assert doc["model_config"] == {"hidden": 16} and doc["epochs"] == 1
     assert doc["global_step"] == 9 and doc["check"] == {"value": 0.5}
+
+
+def test_calibrating_a_lightning_checkpoint_keeps_what_its_export_records(tmp_path, stub_scores):
+    """A training run's Lightning checkpoint calibrated directly (``calibrate`` takes one) had
+    a card of six keys: the configs, epochs and the plant's fingerprint were lost (a training
+    trial). Its card is the export's, with the calibration."""
+    from difffilter.models.plant_match import PLANT_FINGERPRINT, _recorded_plant
+
+    blob = _lightning_blob({}, **{PLANT_FINGERPRINT: "ab" * 32})
+    torch.save(blob, tmp_path / "last.ckpt")
+    exported = export(tmp_path / "last.ckpt", tmp_path / "exp.ckpt")
+    calibrate_checkpoint(exported, tmp_path / "a.ckpt", far=0.05, runs=4, progress=False)
+    calibrate_checkpoint(tmp_path / "last.ckpt", tmp_path / "b.ckpt", far=0.05, runs=4,
+                         progress=False)  # fmt: skip
+    via_export = json.loads((tmp_path / "a.json").read_text())
+    direct = json.loads((tmp_path / "b.json").read_text())
+    assert sorted(direct) == sorted(via_export)
+    for key in ("model_config", "data_config", "epochs", "global_step", "scenario_plant_sha256",
+                "weights_sha256"):  # fmt: skip
+        assert direct[key] == via_export[key], key
+    assert {**direct["observer"], "extra": None} == {**via_export["observer"], "extra": None}
+    assert direct["exported_from"] == str(tmp_path / "last.ckpt")
+    assert direct["calibration"]["threshold"] == via_export["calibration"]["threshold"]
+    assert _recorded_plant(tmp_path / "b.ckpt") == "ab" * 32

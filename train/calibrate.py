@@ -237,11 +237,28 @@ def calibrate_checkpoint(
     # another score, e.g. LFC's online fine-tuning of the same network, keeps its own)
     new_card = dataclasses.replace(card, threshold=threshold, target_false_alarm_rate=float(far),
                                    estimator=name, extra={**card.extra, "calibration": calibration})  # fmt: skip
-    old_json = src.with_suffix(".json")
-    document = json.loads(old_json.read_text()) if old_json.is_file() else {}
+    document = _source_card(src, estimator, as_shipped)
     _write_pair(out, estimator, new_card, document, calibration, check)
     load_estimator_checkpoint(out)  # the pair loads and matches its card
     return calibration
+
+
+def _source_card(src: Path, estimator, card) -> dict:
+    """The card ``src`` comes with, to which the calibration is added: its ``.json`` beside
+    it; for a training run's Lightning checkpoint (no card of its own) the card ``export``
+    writes of it, with the configs, epochs and plant fingerprint the file records (they
+    had been lost: a training trial); ``{}`` else."""
+    import torch
+
+    from .export import lightning_card
+
+    beside = src.with_suffix(".json")
+    if beside.is_file():
+        return json.loads(beside.read_text())
+    blob = torch.load(src, map_location="cpu", weights_only=True)
+    if "pytorch-lightning_version" not in blob:
+        return {}
+    return {**lightning_card(blob, src, estimator, card), "exported_from": str(src)}
 
 
 def _write_pair(out: Path, estimator, card, document: dict, calibration: dict, check) -> None:

@@ -94,23 +94,31 @@ def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
         digest = checkpoint_sha256(out)
     else:
         digest = save_estimator_checkpoint(out, estimator, est_card)
-        card = {
-            "estimator_config": estimator.config(),
-            "observer": est_card.to_dict(),
-            # as a fit's card names them (the shipped-checkpoint hint matches cards on
-            # them: an export of a run's Lightning file had been offered nowhere)
-            "estimator": est_card.estimator,
-            "scenario_family": est_card.scenario_family,
-            **_lightning_record(blob, src),
-            "torch_version": torch.__version__,
-            **_calibration_entry(est_card),
-        }
+        card = lightning_card(blob, src, estimator, est_card)
     card.update(checkpoint=out.name, sha256=digest, weights_sha256=weights_sha256(out),
                 exported_from=str(src))  # fmt: skip
     card.setdefault("name", out.stem)
     write_json_atomically(out.with_suffix(".json"), card)
     load_estimator_checkpoint(out)  # the shipped pair loads and matches its card
     return out
+
+
+def lightning_card(blob: dict, src: Path, estimator, est_card) -> dict:
+    """The card of the estimator of a training run's Lightning checkpoint ``src`` (its
+    loaded ``blob``), less the file's own entries (``checkpoint``, digests): what ``export``
+    writes, and ``calibrate`` of such a file starts from (its card had lost the configs,
+    epochs and the plant's fingerprint: a training trial)."""
+    return {
+        "estimator_config": estimator.config(),
+        "observer": est_card.to_dict(),
+        # as a fit's card names them (the shipped-checkpoint hint matches cards on
+        # them: an export of a run's Lightning file had been offered nowhere)
+        "estimator": est_card.estimator,
+        "scenario_family": est_card.scenario_family,
+        **_lightning_record(blob, src),
+        "torch_version": torch.__version__,
+        **_calibration_entry(est_card),
+    }
 
 
 def _lightning_record(blob: dict, src: Path) -> dict:
