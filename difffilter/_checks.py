@@ -93,7 +93,7 @@ def host_array(t: Tensor) -> np.ndarray:
     in an online step's value checks under ``torch.func.grad``: a gradients trial)."""
     *_, t = _functorch_levels(t)  # the innermost: the values themselves
     with torch._C._DisableFuncTorch():  # (the unwrapped value read outside the transform)
-        c = t.detach()
+        c = t.detach().resolve_neg()  # (numpy reads no view of torch's negative bit)
         return (c if c.dtype in (torch.float32, torch.float64) else c.double()).cpu().numpy()
 
 

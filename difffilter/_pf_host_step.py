@@ -121,8 +121,10 @@ def host_step(
     ``u [du]`` or ``None``, ``mask [dy]`` (bool, the received entries) or ``None``.
     """
     model, gens, k = carry.model, carry.generators or _NO_GENERATORS, carry.k
-    x_t, log_w = carry.particles, carry.log_weights.numpy()
-    w = None if carry.weights is None else carry.weights.numpy()
+    # (views of torch's negative bit, `z.conj().imag`, resolved: numpy reads none, and the
+    # step had failed in torch's "negative bit set": a memory-layout trial)
+    x_t, log_w = carry.particles, carry.log_weights.resolve_neg().numpy()
+    w = None if carry.weights is None else carry.weights.resolve_neg().numpy()
     n, dtype = log_w.shape[0], log_w.dtype.type
     # a carry without its ESS (from init): torch's, so that the first decision to resample
     # is the torch steps' (a host log-sum-exp rounds otherwise: ess_threshold = 1 split them)
@@ -139,7 +141,7 @@ def host_step(
     new = new_t.numpy()
     obs_t = model.observe(new_t, k + 1)
     plain = type(model).measurement_residual is StateSpaceModel.measurement_residual
-    y_np = y.numpy()
+    y_np = y.resolve_neg().numpy()
     obs = obs_t.numpy()
     if resampled:  # equal weights (the torch step averages: the same up to round-off)
         pred_w = _uniform(n, log_w.dtype)[1]
@@ -208,7 +210,8 @@ def _predictive(model, y, y_np, k: int, obs, pred_w, plain: bool, received=None)
         y_hat_t, dev_t = wrapped_spread(model, torch.from_numpy(obs), torch.tensor(pred_w))
         y_hat, dev = y_hat_t.numpy(), dev_t.numpy()
     y_cov = (dev.T * pred_w) @ dev
-    R = model.measurement_cov(k + 1).detach().numpy()  # (a learnable R: its values)
+    # (a learnable R: its values; a negative-bit view resolved, which numpy cannot read)
+    R = model.measurement_cov(k + 1).detach().resolve_neg().numpy()
     if plain:
         innovation = np.subtract(y_np, y_hat)
     else:

@@ -50,7 +50,8 @@ __all__ = [
 
 
 def _np(t: Tensor) -> np.ndarray:
-    return t.detach().cpu().to(torch.float64).numpy()
+    # (a view of torch's negative bit, `z.conj().imag`, resolved: numpy reads none)
+    return t.detach().cpu().to(torch.float64).resolve_neg().numpy()
 
 
 def _riccati(

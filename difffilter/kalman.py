@@ -99,7 +99,10 @@ def gaussian_init(model, batch_shape=()) -> GaussianState:
     runs = check_model_batch(model, batch_shape, "batch_shape")
     mean = model.initial.mean
     mean = mean.expand(broadcast_shapes(runs, mean.shape[:-1]) + mean.shape[-1:])
-    return GaussianState(mean, model.initial.cov, 0, model)
+    # own tensors, not views of the model's prior: a carry written in place (which is
+    # followed) had written the prior, every run's start and every later init with it
+    # (an aliasing trial: `carry.mean[0] = x` moved all runs and `model.simulate`)
+    return GaussianState(mean.clone(), model.initial.cov.clone(), 0, model)
 
 
 def _check_zero_mean_noise(model) -> None:

@@ -204,8 +204,10 @@ def adaptive_kalman_init(
     m0, p0 = model.initial.mean, model.initial.cov
     batch = check_model_batch(model, torch.Size(batch_shape), "batch_shape")
     dx, da = model.dim_x, model.dim_u
-    mean = m0.expand(batch + (dx,))
-    cov = p0.expand(batch + (dx, dx))
+    # own tensors, one per run (as gaussian_init's): views of the prior and of attack0 had
+    # been written through by a carry written in place (an aliasing trial)
+    mean = m0.expand(batch + (dx,)).clone()
+    cov = p0.expand(batch + (dx, dx)).clone()
     omega = _attack_cov0(attack_cov0)
     if isinstance(omega, Tensor):
         omega = omega.to(dtype=m0.dtype, device=m0.device)
@@ -218,10 +220,11 @@ def adaptive_kalman_init(
         if broadcast_or_none(attack0.shape, batch + (da,)) != batch + (da,):
             raise ValueError(f"attack0 {tuple(attack0.shape)} must be [{da}] or one per run "
                              f"[*{tuple(batch)}, {da}]")  # fmt: skip
-        attack = attack0.expand(batch + (da,))
+        attack = attack0.expand(batch + (da,)).clone()
     s0 = omega * torch.eye(da, dtype=m0.dtype, device=m0.device)
     sens = m0.new_zeros(batch + (dx, da))
-    return AdaptiveKFState(mean, cov, attack, s0.expand(batch + (da, da)), sens, 0, model)
+    s0 = s0.expand(batch + (da, da)).clone()
+    return AdaptiveKFState(mean, cov, attack, s0, sens, 0, model)
 
 
 def _attack_cov0(value):

@@ -203,8 +203,8 @@ def _linear_measurement(
 class WeightingState(NamedTuple):
     """The running state of :class:`ModifiedPFWeighting` (in the particle carry's ``aux``):
     Remark 6's ``rate`` (:class:`~difffilter.fdi.poa.AttackRateState` or ``None``), the
-    attack estimator's ``estimator`` state (or ``None``) and the shared ``gain`` ``(G, K)``
-    (``None``: computed at each step)."""
+    attack estimator's ``estimator`` state (or ``None``) and the ``gain`` ``(G, K)`` given
+    to the weighting (``None``: computed from the model at each step)."""
 
     rate: Any
     estimator: Any
@@ -235,8 +235,10 @@ class ModifiedPFWeighting:
         gamma_hat: tensor ``[..., T, dy]`` (indexed by the step) or a
             :class:`BiasAttackEstimator`.
         attack_rate: :class:`RunningAttackRate` (Remark 6) or ``None``.
-        gain: ``(G, K)`` shared by every step (``None``: shared when the model's measurement
-            is linear and time-invariant and nothing is masked, else computed at each step).
+        gain: ``(G, K)`` shared by every step (``None``: computed from the model at each
+            step, so that a model written in place mid-run is followed: a pair computed at
+            ``init`` had met the new ``H`` with the old ``K``, β 0.11 off, an aliasing
+            trial; a small linear solve against the step's ``N`` particles).
         base_likelihood: clean-measurement likelihood of eq. (59) (default the model's).
     """
 
@@ -294,10 +296,9 @@ class ModifiedPFWeighting:
         return WeightingState(rate, est, self._gain_for(model, dtype))
 
     def _gain_for(self, model, dtype):
-        """``(G, K)`` of eq. (35) shared by every step of ``model``, or ``None`` (per step)."""
+        """The given ``(G, K)`` of eq. (35) in ``dtype``, or ``None`` (from the model, per
+        step)."""
         gain = self.gain
-        if gain is None and _shared_gain_applies(model):
-            gain = _linear_measurement(model, 1, None)
         return None if gain is None else tuple(m.to(dtype) for m in gain)
 
     def resume(self, state: WeightingState, model, batch_shape, dtype, device) -> WeightingState:
@@ -375,10 +376,6 @@ def _check_gamma_hat(gamma_hat) -> None:
             "gamma_hat must be a tensor [..., T, dy] (one row per step); got shape "
             f"{tuple(gamma_hat.shape)}: for one γ̂ for every step, expand it to [T, dy]"
         )
-
-
-def _shared_gain_applies(model) -> bool:
-    return hasattr(model, "observation_matrix") and not getattr(model, "time_varying", False)
 
 
 class ModifiedParticleFilter(ParticleFilter):
