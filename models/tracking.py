@@ -80,10 +80,13 @@ class GlintNoise(NoiseModel):
     Each sensor: ``Σ_c π_c N(0, diag(var_c))`` with ``weights [C]`` and ``variances
     [C, 2]``; ``log_prob`` sums the sensors whose entries are received (``mask``; a
     sensor with no received entry adds 0), in closed form for diagonal components. The
-    weights and variances are read once, into the tables ``log_prob`` reads: constants
-    (a learnable or edited glint noise kept its first tables, 3.2 nats off, and a second
-    backward failed on their graph), so a tensor that requires a gradient is refused;
-    build a new ``GlintNoise`` to change them.
+    weights and variances are read into the tables ``log_prob`` reads: constants (a
+    learnable glint noise kept its first tables, 3.2 nats off, and a second backward failed
+    on their graph), so a tensor that requires a gradient is refused. Written in place
+    (under ``torch.no_grad()``) or assigned anew, they are checked and read into new tables
+    at the next density (the tables had kept the first values while ``cov`` and ``sample``
+    took the new ones: a particle filter 0.47 off, a model-write trial); under
+    ``torch.inference_mode()``, whose tensors keep no version, build a new ``GlintNoise``.
     """
 
     def __init__(self, weights, variances, sensors: int):
@@ -97,33 +100,37 @@ class GlintNoise(NoiseModel):
         if not variances.is_floating_point():  # (integers had failed in torch.multinomial)
             variances = variances.to(torch.get_default_dtype())
         weights = torch.as_tensor(weights, dtype=variances.dtype)
-        if weights.dim() != 1 or variances.shape != (weights.shape[0], 2):
-            raise ValueError(
-                f"weights [C] and variances [C, 2] expected; got {tuple(weights.shape)}, {tuple(variances.shape)}"
-            )
-        # finite and non-negative too: κ = NaN or −1 (weights [2, −1], which sum to 1) had
-        # passed, and failed in a draw as torch's "invalid multinomial distribution"
-        if not bool(torch.isfinite(variances).all()) or bool((variances <= 0).any()):
-            raise ValueError(f"variances must be finite and positive; got {variances.tolist()}")
-        if (
-            not bool(torch.isfinite(weights).all())
-            or bool((weights < 0).any())
-            # in float64, to 1e-6 as GaussianMixture's (float32 weights of 0.1 × 10 sum to
-            # 1 + 1.2e-7, and a 1e-9 tolerance had refused them)
-            or abs(float(weights.detach().double().sum()) - 1.0) > 1e-6
-        ):
-            raise ValueError(
-                f"weights must be finite, non-negative and sum to 1; got {weights.tolist()}"
-            )
+        _check_glint(weights, variances)
         if isinstance(sensors, bool) or not isinstance(sensors, int) or sensors < 1:
             raise ValueError(f"sensors must be an integer >= 1; got {sensors!r}")
         self.sensors, self.dim = int(sensors), 2 * int(sensors)
         register_tensor(self, "weights", weights)
         register_tensor(self, "variances", variances)
+        self._read_tables()
+
+    def _stamp(self):
+        """What the tables were read from: the weights' and variances' versions and memory
+        (``None`` for inference tensors, which keep no version). A ``*_cache`` attribute: the
+        plant's fingerprint leaves memory addresses out."""
+        w, v = self.weights, self.variances
+        wrapped = torch._C._functorch.is_functorch_wrapped_tensor
+        if w.is_inference() or v.is_inference() or wrapped(w) or wrapped(v):
+            return None  # (a torch.func wrapper has no memory address to read either)
+        return w._version, v._version, w.data_ptr(), v.data_ptr()
+
+    def _tables(self) -> None:
+        """The tables read again where the weights or variances changed since."""
+        if self._stamp() != self._tables_cache:
+            _check_glint(self.weights, self.variances)
+            self._read_tables()
+
+    def _read_tables(self) -> None:
+        weights, variances = self.weights.detach(), self.variances.detach()
         # entry e (of sensor e // 2), component c: −½/var and −½ log(2π var), laid out [dy, S·C]
-        own = torch.arange(self.dim) // 2
-        on_block = (own[:, None] == torch.arange(self.sensors)[None, :]).to(variances.dtype)
-        per_entry = variances[:, torch.arange(self.dim) % 2].T  # [dy, C]
+        own = torch.arange(self.dim, device=variances.device) // 2
+        sensors = torch.arange(self.sensors, device=variances.device)
+        on_block = (own[:, None] == sensors[None, :]).to(variances.dtype)
+        per_entry = variances[:, torch.arange(self.dim, device=variances.device) % 2].T  # [dy, C]
         quad = on_block[:, :, None] * (-0.5 / per_entry)[:, None, :]
         norm = on_block[:, :, None] * (-0.5 * torch.log(2 * math.pi * per_entry))[:, None, :]
         self.register_buffer("_quad", quad.flatten(1))
@@ -139,6 +146,7 @@ class GlintNoise(NoiseModel):
         self.register_buffer(
             "_one_terms", torch.cat((self._quad_one, self._const_one[:, None]), -1)
         )
+        self._tables_cache = self._stamp()
 
     @property
     def mean(self) -> Tensor:
@@ -172,6 +180,7 @@ class GlintNoise(NoiseModel):
         """
         if mask is not None:
             check_log_prob_mask(mask, self.dim)  # (a 2 had weighed its entry twice, 0.5 half)
+        self._tables()
         # (an unreceived entry holding NaN or 1e200 had made its sensor's term NaN, 0 · inf)
         sq = (value if mask is None else torch.where(mask, value, 0.0)).square()
         # a received residual whose square overflows: the largest finite square instead (its
@@ -214,6 +223,7 @@ class GlintNoise(NoiseModel):
         ``logsumexp``.
         """
         r2, b2 = range_sq, bearing_sq
+        self._tables()
         if self.weights.requires_grad or self.variances.requires_grad:
             q, c = self._quad_one, self._const_one
             comp = torch.stack([r2 * q[i, 0] + b2 * q[i, 1] + c[i] for i in range(len(c))])
@@ -223,6 +233,29 @@ class GlintNoise(NoiseModel):
         if comp.shape[0] == 2:
             return torch.logaddexp(comp[0], comp[1])
         return torch.logsumexp(comp, dim=0)
+
+
+def _check_glint(weights: Tensor, variances: Tensor) -> None:
+    """A glint noise's ``weights [C]`` and ``variances [C, 2]``: finite, positive variances
+    and non-negative weights summing to 1 (κ = NaN or −1, weights [2, −1] which sum to 1,
+    had passed and failed in a draw as torch's "invalid multinomial distribution")."""
+    if weights.dim() != 1 or variances.shape != (weights.shape[0], 2):
+        raise ValueError(
+            f"weights [C] and variances [C, 2] expected; got {tuple(weights.shape)}, "
+            f"{tuple(variances.shape)}"
+        )
+    if not bool(torch.isfinite(variances).all()) or bool((variances <= 0).any()):
+        raise ValueError(f"variances must be finite and positive; got {variances.tolist()}")
+    if (
+        not bool(torch.isfinite(weights).all())
+        or bool((weights < 0).any())
+        # in float64, to 1e-6 as GaussianMixture's (float32 weights of 0.1 × 10 sum to
+        # 1 + 1.2e-7, and a 1e-9 tolerance had refused them)
+        or abs(float(weights.detach().double().sum()) - 1.0) > 1e-6
+    ):
+        raise ValueError(
+            f"weights must be finite, non-negative and sum to 1; got {weights.tolist()}"
+        )
 
 
 def _is_finite_number(value) -> bool:
