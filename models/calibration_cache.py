@@ -33,7 +33,7 @@ import threading
 import types
 import weakref
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -194,7 +194,7 @@ def _class_code(cls: type) -> bytes:
     memo = _CLASS_CODE.get(cls)
     known = None
     if memo is not None and len(memo[0]) == len(members):
-        if all(_held(a) is b for a, b in zip(memo[0], members)):
+        if all(map(_still, memo[0], members)):
             known = memo[1]
     if known is None:
         # (a default of the class itself: no recursion). The mark is this thread's: kept in
@@ -315,17 +315,52 @@ _CLASS_CODE: weakref.WeakKeyDictionary[type, tuple[tuple, list | bytes]] = (
 
 
 def _hold_weakly(member):
-    """A weak reference to ``member`` where it takes one (functions, descriptors, tensors,
-    classes); the member itself else (numbers, strings, groups of them)."""
+    """A token of ``member`` that does not hold its class alive: a weak reference where it
+    takes one (functions, tensors, classes); a static/class method or property by a weak
+    reference to the function it wraps; a slot or ``__dict__``/``__weakref__`` descriptor
+    (which points at its class; a plain class's own: a review) by its type and name; the
+    member itself else (numbers, strings, groups of them)."""
+    if isinstance(member, (staticmethod, classmethod)):
+        return _Wrapped(type(member), weakref.ref(member.__func__))
+    if isinstance(member, property):
+        return _Wrapped(property, None if member.fget is None else weakref.ref(member.fget))
+    if isinstance(member, (types.GetSetDescriptorType, types.MemberDescriptorType)):
+        return _Descriptor(type(member), member.__name__)
     try:
         return weakref.ref(member)
     except TypeError:
         return member
 
 
-def _held(token):
-    """The member :func:`_hold_weakly` kept (``None`` once it is gone)."""
-    return token() if type(token) is weakref.ref else token
+class _Wrapped(NamedTuple):
+    kind: type
+    function: weakref.ref | None
+
+
+class _Descriptor(NamedTuple):
+    kind: type
+    name: str
+
+
+def _still(token, member) -> bool:
+    """Whether ``member`` is the one :func:`_hold_weakly` made ``token`` of (a member gone
+    is none: a dead reference had read as ``None``, and a member set to ``None`` kept the
+    old digest, a review)."""
+    kind = type(token)
+    if kind is weakref.ref:
+        held = token()
+        return held is not None and held is member
+    if kind is _Wrapped:
+        if type(member) is not token.kind:
+            return False
+        inner = member.fget if token.kind is property else member.__func__
+        if token.function is None:
+            return inner is None
+        held = token.function()
+        return held is not None and held is inner
+    if kind is _Descriptor:
+        return type(member) is token.kind and member.__name__ == token.name
+    return token is member
 
 
 def _global_names(code) -> set[str]:

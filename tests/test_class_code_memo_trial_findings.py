@@ -54,3 +54,61 @@ def test_the_memo_still_serves_and_follows_a_replaced_method():
     assert cc.model_fingerprint(_model(Plant)) != first
     Plant.lookup[0, 0] = 5.0  # a constant edited in place: read again at each use
     assert cc.model_fingerprint(_model(Plant)) != first
+
+
+def test_a_plain_helper_class_a_model_holds_is_freed_too():
+    # its own __dict__/__weakref__ descriptors take no weak reference and point at the
+    # class: kept among the memo's members, they had held it (a review)
+    refs = []
+    for i in range(3):
+
+        class Gain:  # a plain class made per call, base object
+            data = [float(i)] * 10
+
+            def __call__(self, x):
+                return x
+
+        model = _model(df.LinearGaussianModel)
+        model.helper = Gain()
+        cc.model_fingerprint(model)
+        refs.append(weakref.ref(Gain))
+        del Gain, model
+    gc.collect()
+    assert [r() for r in refs] == [None] * 3
+
+
+def test_a_member_set_to_none_is_a_new_digest():
+    # the old member's dead weak reference had read as None, and None is None had served
+    # the old digest (a review: observe 8.0 -> 2.0, the fingerprint unchanged)
+    class Plant(df.LinearGaussianModel):
+        def squash(self, y):
+            return y**3
+
+        def observe(self, x, k):
+            y = super().observe(x, k)
+            return y if self.squash is None else self.squash(y)
+
+    before = cc.model_fingerprint(_model(Plant))
+    Plant.squash = None
+    after = cc.model_fingerprint(_model(Plant))
+    cc._CLASS_CODE.pop(Plant, None)
+    assert after == cc.model_fingerprint(_model(Plant)) != before
+
+
+def test_static_and_class_methods_and_properties_replaced_are_seen():
+    class Plant(df.LinearGaussianModel):
+        @staticmethod
+        def scale():
+            return 1.0
+
+        @property
+        def gain(self):
+            return 1.0
+
+    first = cc.model_fingerprint(_model(Plant))
+    assert cc.model_fingerprint(_model(Plant)) == first
+    Plant.scale = staticmethod(lambda: 2.0)
+    second = cc.model_fingerprint(_model(Plant))
+    assert second != first
+    Plant.gain = property(lambda self: 2.0)
+    assert cc.model_fingerprint(_model(Plant)) != second

@@ -56,3 +56,15 @@ def test_the_adaptive_filters_attack0_and_prior_are_not_written_through_its_carr
     torch.testing.assert_close(carry.attack[1:], fresh.attack[1:], rtol=0, atol=0)
     torch.testing.assert_close(carry.attack_cov[1:], fresh.attack_cov[1:], rtol=0, atol=0)
     torch.testing.assert_close(carry.cov[1:], fresh.cov[1:], rtol=0, atol=0)
+
+
+def test_the_bias_estimators_start_is_its_own():
+    from difffilter.fdi import BiasAttackEstimator
+
+    est = BiasAttackEstimator(2, 0.5)
+    state = est.init((2,))
+    state.mean[0] = torch.tensor([1.0, 1.0, 2.0, 2.0], dtype=state.mean.dtype)
+    state.cov[0, 0] = 5.0
+    assert state.mean[1].abs().sum() == 0
+    assert est.init((2,)).mean.abs().sum() == 0
+    assert float(est.model.initial.cov[0, 0]) == pytest.approx(1e-12)

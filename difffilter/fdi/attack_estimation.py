@@ -102,7 +102,9 @@ class BiasAttackEstimator:
     def init(self, batch_shape=()) -> GaussianState:
         """Prior of ``θ_0``: mean ``[*batch, 2 dy]`` (zeros), covariance ``[2 dy, 2 dy]``."""
         mean = self.model.initial.mean.expand(torch.Size(batch_shape) + (2 * self.dim,))
-        return GaussianState(mean, self.model.initial.cov, 0)
+        # own tensors (as gaussian_init's): views of the prior had been written through by a
+        # state written in place, moving every run's start and every later init (a review)
+        return GaussianState(mean.clone(), self.model.initial.cov.clone(), 0)
 
     def step(
         self, state: GaussianState, residual: Tensor, residual_cov: Tensor, flag: Tensor
