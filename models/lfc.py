@@ -173,6 +173,8 @@ class LFCPlant(nn.Module):
         dtype: floating dtype of every buffer.
 
     Buffers: ``A, B, F`` (continuous), ``Ad, Bd, Fd`` (ZOH), ``C = I₁₀``, ``Q = Ξ``, ``R = Θ``.
+    The continuous ``A, B, F`` are discretised once, here: written later they change no
+    discrete matrix (build a plant of other parameters: ``LFCPlant(params=…)``).
     """
 
     def __init__(
@@ -237,7 +239,12 @@ class LFCPlant(nn.Module):
         ``[U (2), ΔP_l (2)]``: ``B = [B_d, F_d]``, ``H = I``, ``Q = Ξ``, ``R = Θ``, prior
         ``N(0, init_cov·I)``. ``knows_load=False`` gives the observers' model, to which the
         load is an unknown input (``B = [B_d, 0]``; [DEF], as in eq. 2): the same input
-        vector reaches both, the observers simply do not use its load part."""
+        vector reaches both, the observers simply do not use its load part.
+
+        The model holds the buffers ``Ad, C, Q, R`` themselves (a write in place reaches a
+        filter on it), and a ``B`` made here from ``Bd`` and ``Fd``: after a write into
+        either, build the model again (a filter on the old one had gone on with the old
+        ``B``, 9.8e-3 off a step later: a trial of models changed under the filters)."""
         eye = torch.eye(STATE_DIM, dtype=self.dtype, device=self.Ad.device)
         load = self.Fd if knows_load else torch.zeros_like(self.Fd)
         return difffilter.LinearGaussianModel(
