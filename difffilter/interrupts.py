@@ -4,7 +4,9 @@ after SIGTERM). Imports nothing heavy: ``--help`` runs before torch is imported.
 
 from __future__ import annotations
 
+import os
 import signal
+import sys
 import threading
 from contextlib import contextmanager
 
@@ -103,3 +105,20 @@ def stop_words(interrupt: KeyboardInterrupt) -> tuple[str, int]:
     if isinstance(interrupt, Terminated):
         return "terminated (SIGTERM)", 143
     return "interrupted", 130
+
+
+def console_output_tolerant() -> None:
+    """Standard output that writes what its encoding lacks as escapes: under a locale of
+    another encoding (Python's UTF-8 mode off: ``PYTHONUTF8=0``, a Windows code page) the
+    reports' ✓, ≥ and × had stopped a finished evaluation at its last print (an I/O
+    trial). The files are written in UTF-8 whatever the locale."""
+    reconfigure = getattr(sys.stdout, "reconfigure", None)
+    encoding = (getattr(sys.stdout, "encoding", None) or "").lower().replace("-", "")
+    if reconfigure is not None and encoding != "utf8":
+        reconfigure(errors="backslashreplace")
+
+
+def reader_left() -> None:
+    """After ``BrokenPipeError`` (``… | head``: the reader of standard output left), what is
+    still written to it goes nowhere: the interpreter's last flush would raise again."""
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

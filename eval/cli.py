@@ -774,7 +774,7 @@ def check_output_folder(out: Path, scenarios: Sequence[str] = ()) -> None:
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / f".difffilter-write-check-{os.getpid()}"  # one per process (--devices)
-        probe.write_text("")
+        probe.write_text("", encoding="utf-8")
         probe.unlink()
     except OSError as exc:
         raise ValueError(f"--out: cannot write to {out} ({exc.strerror or exc})") from None
@@ -840,8 +840,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     """The command line (:func:`build_parser`); an interrupt (Ctrl-C) ends it with one line
     and exit code 130, SIGTERM with one line and 143, not a traceback from wherever the
     study was (a CLI trial) or, for SIGTERM, silently."""
-    from difffilter.interrupts import sigterm_as_interrupt, stop_words
+    from difffilter.interrupts import (
+        console_output_tolerant,
+        reader_left,
+        sigterm_as_interrupt,
+        stop_words,
+    )
 
+    console_output_tolerant()
     try:
         with sigterm_as_interrupt():
             return _main(argv)
@@ -852,7 +858,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return code
     except BrokenPipeError:  # `… | head`: the reader left after the reports were written;
         # a traceback and exit 1 had read as a failed run under pipefail (an interrupts trial)
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        reader_left()
         return 0
 
 
@@ -960,9 +966,9 @@ def _study(args, argv: Sequence[str] | None, held: contextlib.ExitStack) -> int:
         return 2
     if process_group()[0] > 0:
         return 0
-    print("\n" + (args.out / "leaderboard.md").read_text())
+    print("\n" + (args.out / "leaderboard.md").read_text(encoding="utf-8"))
     if (summary := args.out / "acceptance.md").is_file():
-        print(summary.read_text())
+        print(summary.read_text(encoding="utf-8"))
     elif args.far is None:  # (a docs trial looked for the summary and found no word why)
         print("note: --far off: nothing calibrated, so no acceptance.md (the acceptance judges "
               "every estimator at one calibrated false-alarm rate)")  # fmt: skip
@@ -1074,7 +1080,7 @@ def _robustness(names: list[str], threats, args) -> int:
     summary = write_robustness_summary(args.out, docs)
     if incomplete is not None:  # (an evaluation's section, left by one stopped here, stays)
         clear_incomplete(args.out, MARKER_KIND)
-    print("\n" + summary.read_text())
+    print("\n" + summary.read_text(encoding="utf-8"))
     print(f"robustness reports written under {args.out}/ (<scenario>/robustness.md)")
     if evaluated:  # (it went without a word: a trial)
         print(f"note: {args.out}/leaderboard.* are now this study's, and the evaluation's "

@@ -75,7 +75,7 @@ def training_coverage(
     card_path = Path(checkpoint).with_suffix(".json") if checkpoint else None
     if card_path is None or not card_path.is_file():
         return None
-    card = json.loads(card_path.read_text())
+    card = json.loads(card_path.read_text(encoding="utf-8"))
     spec = (card.get("data_config") or {}).get("threats")
     # adversarial only where the weights met a crafted attack: configured, they may predate
     # the first crafting (the card's count; a card written before it counted: configured)

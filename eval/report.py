@@ -96,7 +96,7 @@ def _marked(folder: Path) -> dict[str, str]:
     marker = folder / INCOMPLETE
     if not marker.is_file():
         return {}
-    text = marker.read_text()
+    text = marker.read_text(encoding="utf-8")
     sections: dict[str, list[str]] = {}
     kind, unheaded = None, []
     for line in text.splitlines():
@@ -400,7 +400,7 @@ def report_for(scenario) -> tuple[FamilyReport, str | None]:
 def metrics_schema() -> dict[str, Any]:
     """The JSON Schema of metrics.json (``eval/metrics.schema.json``; its units and
     descriptions are those of :data:`~difffilter.eval.scoring.METRICS`, tested)."""
-    return json.loads((Path(__file__).parent / "metrics.schema.json").read_text())
+    return json.loads((Path(__file__).parent / "metrics.schema.json").read_text(encoding="utf-8"))
 
 
 def study_metrics(scenario: str, *, runs: int, steps: int, seed: int,
@@ -540,7 +540,7 @@ def _figures_of(report: Path) -> set[str]:
     if not report.is_file():
         return set()
     return {name for alt, name in re.findall(r"^!\[([^\]]*)\]\(([^)/\\]+)\)$",
-                                              report.read_text(), flags=re.M)
+                                              report.read_text(encoding="utf-8"), flags=re.M)
             if alt == name}  # fmt: skip
 
 

@@ -33,7 +33,7 @@ def write_atomically(path: str | Path, content: str | bytes | Callable[[Path], o
     partial = sibling_name(path, f"{os.getpid()}.{threading.get_ident()}.partial")
     try:
         if isinstance(content, str):
-            partial.write_text(content)
+            partial.write_text(content, encoding="utf-8")
         elif isinstance(content, bytes):
             partial.write_bytes(content)
         else:

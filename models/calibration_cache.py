@@ -450,7 +450,7 @@ def cached(kind: str, key: tuple, model, compute, valid=None):
     )
     path = folder / "calibrations" / f"{kind}-{name.hexdigest()[:32]}.json"
     try:
-        value = json.loads(path.read_text())["value"]
+        value = json.loads(path.read_text(encoding="utf-8"))["value"]
         if valid is None or valid(value):
             return value
     except (OSError, ValueError, KeyError, TypeError):

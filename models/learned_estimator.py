@@ -95,7 +95,7 @@ def _shipped_fitting(name: str, family: str) -> str | None:
     root = Path(__file__).resolve().parents[1]
     for card_path in sorted((root / "checkpoints").glob("*.json")):
         try:
-            card = json.loads(card_path.read_text())
+            card = json.loads(card_path.read_text(encoding="utf-8"))
         except (OSError, ValueError):
             continue
         ckpt = card_path.with_suffix(".ckpt")

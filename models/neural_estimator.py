@@ -506,7 +506,7 @@ def _verify_sha256(path: Path, expected_sha256: str | None) -> dict | None:
         if not card.is_file():
             return None  # no card: nothing recorded to compare with (weights are still checked)
         try:
-            info = json.loads(card.read_text())
+            info = json.loads(card.read_text(encoding="utf-8"))
         except (OSError, ValueError) as exc:
             raise ValueError(
                 f"ckpt: the card {card} beside {path} is not readable JSON ({exc})"

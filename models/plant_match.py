@@ -109,7 +109,7 @@ def _tolerance(*models) -> dict[str, float]:
 def _card(path) -> dict:
     """The JSON card beside a checkpoint, or ``{}`` where there is none that reads."""
     try:
-        card = json.loads(Path(path).with_suffix(".json").read_text())
+        card = json.loads(Path(path).with_suffix(".json").read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return {}
     return card if isinstance(card, dict) else {}

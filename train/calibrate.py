@@ -97,7 +97,11 @@ def _new_check(src: Path, scored: Path, card) -> dict | None:
     from .export import check_metric
 
     card_json = src.with_suffix(".json")
-    old = json.loads(card_json.read_text()).get("check") if card_json.is_file() else None
+    old = (
+        json.loads(card_json.read_text(encoding="utf-8")).get("check")
+        if card_json.is_file()
+        else None
+    )
     if old is None:
         return None
     return {**check_metric(scored, seed=old["seed"], runs=old["runs"]),
@@ -115,7 +119,7 @@ def _fit_scenario(src: Path) -> str | None:
 
     sidecar = Path(src).with_suffix(".json")
     try:
-        given = json.loads(sidecar.read_text())["model_config"]["scenario"]
+        given = json.loads(sidecar.read_text(encoding="utf-8"))["model_config"]["scenario"]
     except (OSError, ValueError, KeyError, TypeError):
         return None
     if isinstance(given, str) and (":" in given or is_yaml_path(given)):
@@ -254,7 +258,7 @@ def _source_card(src: Path, estimator, card) -> dict:
 
     beside = src.with_suffix(".json")
     if beside.is_file():
-        return json.loads(beside.read_text())
+        return json.loads(beside.read_text(encoding="utf-8"))
     blob = torch.load(src, map_location="cpu", weights_only=True)
     if "pytorch-lightning_version" not in blob:
         return {}

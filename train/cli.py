@@ -76,12 +76,27 @@ def main(args: list[str] | None = None) -> int:
     143, as ``difffilter-eval`` (Lightning's exit code 1 had read as a failure, and its
     code 0 after SIGTERM as a finished run); a fit's ``last.ckpt`` is written as before
     (:mod:`~difffilter.train.last_checkpoint`)."""
-    from difffilter.interrupts import sigterm_as_interrupt, stop_words
+    from difffilter.interrupts import (
+        console_output_tolerant,
+        reader_left,
+        sigterm_as_interrupt,
+        stop_words,
+    )
 
     argv = sys.argv[1:] if args is None else list(args)
+    console_output_tolerant()
     try:
         with sigterm_as_interrupt():
             return _main(args, argv)
+    except BrokenPipeError:  # `… | head`: the reader of its output left (an I/O trial:
+        # a traceback and exit 1 after `--help | head -1`)
+        reader_left()
+        if not argv or {"-h", "--help"} & set(argv):
+            return 0  # the help, read as far as wanted
+        command = argv[0] if not argv[0].startswith("-") else "the command"
+        print(f"difffilter-train: the reader of its output left (a closed pipe): {command} "
+              "stopped where it was; rerun it without the pipe, or into a file", file=sys.stderr)  # fmt: skip
+        return 141  # (128 + SIGPIPE: a shell's code for a writer stopped by a closed pipe)
     except KeyboardInterrupt as exc:
         hints = sys.modules.get("difffilter.train.last_checkpoint")
         if hints is not None and os.environ.get(hints.RESUME_HINT):

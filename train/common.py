@@ -96,7 +96,9 @@ def check_config_keys(config: Path) -> None:
     ``yaml.YAMLError`` where it is no valid YAML."""
     from difffilter.models.yaml_scenario import check_unique_keys
 
-    check_unique_keys(Path(config).read_text(), str(config), jsonargparse_yaml_loader())
+    check_unique_keys(
+        Path(config).read_text(encoding="utf-8"), str(config), jsonargparse_yaml_loader()
+    )
 
 
 def jsonargparse_yaml_loader():

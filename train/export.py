@@ -90,7 +90,7 @@ def export(src: str | Path, out: str | Path, *, force: bool = False) -> Path:
     blob = torch.load(src, map_location="cpu", weights_only=True)
     if "pytorch-lightning_version" not in blob:  # already exported: the same bytes
         write_atomically(out, lambda partial: shutil.copyfile(src, partial))
-        card = json.loads(card_src.read_text()) if card_src.is_file() else {}
+        card = json.loads(card_src.read_text(encoding="utf-8")) if card_src.is_file() else {}
         digest = checkpoint_sha256(out)
     else:
         digest = save_estimator_checkpoint(out, estimator, est_card)

@@ -186,14 +186,14 @@ def main(argv=None) -> int:
     if args.runs < 1:
         p.error("--runs must be >= 1")
     result = tune(args.estimators, runs=args.runs, ckpt=args.ckpt)
-    previous = json.loads(args.out.read_text()) if args.out.is_file() else {}
+    previous = json.loads(args.out.read_text(encoding="utf-8")) if args.out.is_file() else {}
     previous.setdefault("grids", {}).update(result["grids"])
     previous.setdefault("chosen", {}).update(result["chosen"])
     previous["validation"] = result["validation"]  # this run's (each grid's: validated_on)
     previous.setdefault("validated_on", {}).update(result.get("validated_on", {}))
     previous["ekf_fixed"] = {k: v for k, v in EKF_DEFAULTS.items() if k != "process_noise"}
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(previous, indent=2) + "\n")
+    args.out.write_text(json.dumps(previous, indent=2) + "\n", encoding="utf-8")
     print(json.dumps(result["chosen"], indent=2))
     return 0
 

@@ -83,7 +83,9 @@ class PredictionFiles(BasePredictionWriter):
             "seed": None if dm is None else dm.hparams.get("test_seed"),
             "fields": FIELDS, "files": self.files,
         }  # fmt: skip
-        (folder / "predictions.json").write_text(json.dumps(index, indent=2) + "\n")
+        (folder / "predictions.json").write_text(
+            json.dumps(index, indent=2) + "\n", encoding="utf-8"
+        )
         runs = sum(f["runs"] for f in self.files)
         print(f"predictions of {runs} runs written to {folder}/ (predictions.json, "
               f"{len(self.files)} batch file(s); train/predictions.py says the format)")  # fmt: skip

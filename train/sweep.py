@@ -167,7 +167,7 @@ def _settings(config: Path, options: list[str]) -> dict:
     from difffilter.models.yaml_scenario import is_yaml_path, scenario_file_digest
 
     try:
-        values = yaml.safe_load(Path(config).read_text())
+        values = yaml.safe_load(Path(config).read_text(encoding="utf-8"))
     except (OSError, yaml.YAMLError):  # fit itself then says what is wrong with it
         values = None
     # a config given among the options (a threat distribution's: -- --config threats.yaml),
@@ -192,7 +192,7 @@ def _yaml_values(path) -> object:
     import yaml
 
     try:
-        return yaml.safe_load(Path(path).read_text())
+        return yaml.safe_load(Path(path).read_text(encoding="utf-8"))
     except (OSError, yaml.YAMLError):
         return None
 
@@ -290,7 +290,7 @@ def _check_same_settings(folder: Path, settings: dict, seed: int) -> None:
     if not file.is_file():
         return
     try:
-        had = json.loads(file.read_text())
+        had = json.loads(file.read_text(encoding="utf-8"))
         if not isinstance(had, dict):
             raise ValueError("not a JSON object")
     except (OSError, ValueError) as error:  # (a bad byte, bad JSON: ValueErrors)
@@ -335,7 +335,7 @@ def _check_same_sweep(out: Path, config: Path, extra: list[str]) -> None:
     if not file.is_file():
         return
     try:
-        had = json.loads(file.read_text())
+        had = json.loads(file.read_text(encoding="utf-8"))
     except (OSError, json.JSONDecodeError):
         return  # not a sweep's: the seeds' own checks still hold
     same_config = Path(str(had.get("config"))).resolve() == Path(config).resolve()
@@ -499,7 +499,7 @@ def _cached_baseline(file: Path, totals_file: Path, key: dict) -> tuple[dict, di
     if not (file.is_file() and totals_file.is_file()):
         return None
     try:
-        cached = json.loads(file.read_text())
+        cached = json.loads(file.read_text(encoding="utf-8"))
         if not isinstance(cached, dict) or not isinstance(cached.get("estimators"), dict):
             raise ValueError("not a baselines table")
     except (OSError, ValueError) as error:  # (a bad byte, bad JSON: ValueErrors)
@@ -697,7 +697,7 @@ def _config_monitor(config: Path) -> dict | None:
     ``min``), or ``None``: for cards exported before they recorded their monitor."""
     import yaml
 
-    trainer = (yaml.safe_load(config.read_text()) or {}).get("trainer") or {}
+    trainer = (yaml.safe_load(config.read_text(encoding="utf-8")) or {}).get("trainer") or {}
     for callback in trainer.get("callbacks") or []:
         if isinstance(callback, dict) and str(callback.get("class_path", "")).endswith(
             "ModelCheckpoint"
@@ -776,7 +776,7 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
     per_seed, cards, seed_totals = {}, {}, {}
     for seed in seeds:
         path = _fit(config, seed, runs_dir, list(extra), progress)
-        card = cards[seed] = json.loads(path.with_suffix(".json").read_text())
+        card = cards[seed] = json.loads(path.with_suffix(".json").read_text(encoding="utf-8"))
         per_seed[seed] = {"checkpoint": str(path), "train_time_s": card.get("train_time_s")}
         if test:
             evaluated, seed_totals[seed] = _evaluate(path, scenarios, runs, far, progress)
@@ -967,7 +967,7 @@ def main(argv: list[str] | None = None) -> int:
               "being trained resumes from its last whole epoch; rerun the same command to go "
               "on", file=sys.stderr)  # fmt: skip
         return code
-    print((Path(args.out) / "sweep.md").read_text())
+    print((Path(args.out) / "sweep.md").read_text(encoding="utf-8"))
     if args.validation_only:
         print(f"median seed {doc['median_seed']} on validation; the test is held back")
         return 0

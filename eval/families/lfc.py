@@ -303,7 +303,7 @@ def _prepare(names, *, out: Path, seed: int, checkpoint, progress: bool, options
     where the evaluation calibrates nothing) written to ``<out>/lfc_watermark/``. Their
     sizes are these options', not the evaluation's ``--runs``."""
     options = _checked_options(options)
-    tuning = json.loads(TUNING.read_text()) if TUNING.is_file() else None
+    tuning = json.loads(TUNING.read_text(encoding="utf-8")) if TUNING.is_file() else None
     doc = None
     default, named = split_checkpoints(checkpoint)
     if default is None:
