@@ -321,15 +321,34 @@ def _hold_weakly(member):
     (which points at its class; a plain class's own: a review) by its type and name; the
     member itself else (numbers, strings, groups of them)."""
     if isinstance(member, (staticmethod, classmethod)):
-        return _Wrapped(type(member), weakref.ref(member.__func__))
+        return _Wrapped(type(member), _weakly(member.__func__))
     if isinstance(member, property):
-        return _Wrapped(property, None if member.fget is None else weakref.ref(member.fget))
+        return _Wrapped(property, None if member.fget is None else _weakly(member.fget))
     if isinstance(member, (types.GetSetDescriptorType, types.MemberDescriptorType)):
         return _Descriptor(type(member), member.__name__)
+    return _weakly(member)
+
+
+def _weakly(obj):
+    """A weak reference to ``obj``, or ``obj`` itself where it takes none (a number, an
+    ``operator.itemgetter``, ``dict.get``: a property of one had failed in weakref, a
+    review)."""
     try:
-        return weakref.ref(member)
+        return weakref.ref(obj)
     except TypeError:
-        return member
+        return obj
+
+
+def _deref(token):
+    """What :func:`_weakly` kept (``_GONE`` once a weakly held object is gone)."""
+    if type(token) is not weakref.ref:
+        return token
+    held = token()
+    return _GONE if held is None else held
+
+
+#: What a dead weak reference reads as: no member is it (``None`` had been, a review).
+_GONE = object()
 
 
 class _Wrapped(NamedTuple):
@@ -347,20 +366,16 @@ def _still(token, member) -> bool:
     is none: a dead reference had read as ``None``, and a member set to ``None`` kept the
     old digest, a review)."""
     kind = type(token)
-    if kind is weakref.ref:
-        held = token()
-        return held is not None and held is member
     if kind is _Wrapped:
         if type(member) is not token.kind:
             return False
         inner = member.fget if token.kind is property else member.__func__
         if token.function is None:
             return inner is None
-        held = token.function()
-        return held is not None and held is inner
+        return _deref(token.function) is inner
     if kind is _Descriptor:
         return type(member) is token.kind and member.__name__ == token.name
-    return token is member
+    return _deref(token) is member
 
 
 def _global_names(code) -> set[str]:

@@ -86,7 +86,8 @@ class GlintNoise(NoiseModel):
     (under ``torch.no_grad()``) or assigned anew, they are checked and read into new tables
     at the next density (the tables had kept the first values while ``cov`` and ``sample``
     took the new ones: a particle filter 0.47 off, a model-write trial); under
-    ``torch.inference_mode()``, whose tensors keep no version, build a new ``GlintNoise``.
+    ``torch.inference_mode()``, whose tensors keep no version, or through ``.data`` (which
+    moves no version, as for every model), build a new ``GlintNoise``.
     """
 
     def __init__(self, weights, variances, sensors: int):
@@ -125,6 +126,13 @@ class GlintNoise(NoiseModel):
             self._read_tables()
 
     def _read_tables(self) -> None:
+        # not inference tensors, where the first density after a write or a copy is taken
+        # under torch.inference_mode(): a later gradient through them had failed (a review)
+        with torch.inference_mode(False):
+            self._read_tables_now()
+        self._tables_cache = self._stamp()
+
+    def _read_tables_now(self) -> None:
         weights, variances = self.weights.detach(), self.variances.detach()
         # entry e (of sensor e // 2), component c: −½/var and −½ log(2π var), laid out [dy, S·C]
         own = torch.arange(self.dim, device=variances.device) // 2
@@ -146,7 +154,6 @@ class GlintNoise(NoiseModel):
         self.register_buffer(
             "_one_terms", torch.cat((self._quad_one, self._const_one[:, None]), -1)
         )
-        self._tables_cache = self._stamp()
 
     @property
     def mean(self) -> Tensor:

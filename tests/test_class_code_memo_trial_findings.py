@@ -112,3 +112,18 @@ def test_static_and_class_methods_and_properties_replaced_are_seen():
     assert second != first
     Plant.gain = property(lambda self: 2.0)
     assert cc.model_fingerprint(_model(Plant)) != second
+
+
+def test_members_wrapping_objects_of_no_weak_reference_are_fingerprinted():
+    # property(operator.attrgetter(...)) had failed in weakref: no plant of one could be
+    # fingerprinted, calibrated or evaluated (a review)
+    import operator
+
+    class Plant(df.LinearGaussianModel):
+        gain = property(operator.attrgetter("_gain"))
+        first = staticmethod(operator.itemgetter(0))
+
+    digest = cc.model_fingerprint(_model(Plant))
+    assert cc.model_fingerprint(_model(Plant)) == digest
+    Plant.first = staticmethod(lambda seq: seq[1])  # code now: a new digest
+    assert cc.model_fingerprint(_model(Plant)) != digest
