@@ -907,14 +907,27 @@ def check_model(model, *, prior: bool = True) -> None:
             raise ValueError("model.initial.mean (the prior mean m0) contains NaN or Inf values")
 
 
+def check_model_dtype(dtype: torch.dtype, what: str) -> None:
+    """``ValueError`` where ``dtype`` (``what``'s) is no float32 or float64: a model made
+    ``.half()`` or ``.bfloat16()`` had failed at its first draw or filter in torch's
+    '"cholesky_cpu" not implemented for 'Half'' (a module-operations trial)."""
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(
+            f"{what} is {dtype}: the filters and simulate run in torch.float32 or "
+            "torch.float64 (convert with .float() or .double())"
+        )
+
+
 def _check_noise_dtypes(model) -> None:
     """The process and measurement noise models' floating tensors are of the prior mean's
     dtype and device: every filter adds or multiplies them with the states (a float64
     measurement noise on a float32 model failed in torch's words, "addmv input tensors must
-    have the same dtype", in every filter; a trial)."""
+    have the same dtype", in every filter; a trial). That dtype float32 or float64
+    (:func:`check_model_dtype`)."""
     ref = getattr(model.initial, "mean", None)
     if not isinstance(ref, Tensor) or not ref.is_floating_point():
         return
+    check_model_dtype(ref.dtype, "the model (its prior mean)")
     for name in ("process_noise", "measurement_noise"):
         noise = getattr(model, name, None)
         if not isinstance(noise, torch.nn.Module):

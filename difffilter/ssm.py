@@ -35,6 +35,7 @@ from ._checks import (
     check_finite,
     check_model,
     check_model_batch,
+    check_model_dtype,
     check_positive_definite,
     check_positive_int,
     check_square,
@@ -465,6 +466,7 @@ class LinearGaussianModel(StateSpaceModel):
         super().__init__()
         F = as_tensor(F, "F")
         dtype, device = F.dtype, F.device
+        check_model_dtype(dtype, "F (which sets the model's dtype)")
         H = as_tensor(H, "H", dtype=dtype, device=device)
         Q = as_tensor(Q, "Q", dtype=dtype, device=device)
         R = as_tensor(R, "R", dtype=dtype, device=device)
