@@ -500,37 +500,40 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     )
     write_json_atomically(out / "metrics.json", doc)
     figures = standard_figures(result)
-    sections = [_summary_section(doc, sc), _table_section(doc)]
-    if (judged := _acceptance_section(doc)) is not None:
-        sections.append(judged)
-    sections.append(Section("Plots", "", [name for name, _ in figures]))
-    if family_skipped:
-        sections.append(
-            Section(f"The {sc.family} family's sections", f"Left out: {family_skipped}.")
-        )
-    elif family.sections:
-        sections += family.sections(result, doc, out, prepared)
-    images = [(name, png_bytes(fig)) for name, fig in figures]  # each drawn once:
-    for name, png in images:  # the file and TensorBoard's image are the same PNG
-        write_atomically(out / name, png)
-    write_atomically(out / "report.md", _markdown(doc, sc, sections))
-    # the family's own figures too (its sections saved them in the folder)
-    drawn = {name for name, _ in images}
-    for section in sections:
-        for name in section.figures:
-            if name not in drawn and name.endswith(".png") and (out / name).is_file():
-                images.append((name, (out / name).read_bytes()))
-                drawn.add(name)
-    log_suite(out / "tb", result, doc, images)
-    # an earlier evaluation's figures this one does not draw (a detector's ROC where this run
-    # has none), and a stopped one's: the folder shows one run, as the README says
-    for name in (shown_before | stopped) - {n for section in sections for n in section.figures}:
-        (out / name).unlink(missing_ok=True)
-    clear_incomplete(out)  # every file of this evaluation written (a robustness study's stays)
-    import matplotlib.pyplot as plt
+    try:  # the figures closed also where a write fails (they had stayed open: 20+ in a
+        # process that met failing writes, matplotlib's warning)
+        sections = [_summary_section(doc, sc), _table_section(doc)]
+        if (judged := _acceptance_section(doc)) is not None:
+            sections.append(judged)
+        sections.append(Section("Plots", "", [name for name, _ in figures]))
+        if family_skipped:
+            sections.append(
+                Section(f"The {sc.family} family's sections", f"Left out: {family_skipped}.")
+            )
+        elif family.sections:
+            sections += family.sections(result, doc, out, prepared)
+        images = [(name, png_bytes(fig)) for name, fig in figures]  # each drawn once:
+        for name, png in images:  # the file and TensorBoard's image are the same PNG
+            write_atomically(out / name, png)
+        write_atomically(out / "report.md", _markdown(doc, sc, sections))
+        # the family's own figures too (its sections saved them in the folder)
+        drawn = {name for name, _ in images}
+        for section in sections:
+            for name in section.figures:
+                if name not in drawn and name.endswith(".png") and (out / name).is_file():
+                    images.append((name, (out / name).read_bytes()))
+                    drawn.add(name)
+        log_suite(out / "tb", result, doc, images)
+        # an earlier evaluation's figures this one does not draw (a detector's ROC where this run
+        # has none), and a stopped one's: the folder shows one run, as the README says
+        for name in (shown_before | stopped) - {n for section in sections for n in section.figures}:
+            (out / name).unlink(missing_ok=True)
+        clear_incomplete(out)  # every file of this evaluation written (a robustness study's stays)
+    finally:
+        import matplotlib.pyplot as plt
 
-    for _, fig in figures:
-        plt.close(fig)
+        for _, fig in figures:
+            plt.close(fig)
     return doc
 
 
