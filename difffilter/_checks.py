@@ -138,6 +138,12 @@ def as_tensor(value, name: str, *, dtype=None, device=None) -> Tensor:
                 "model.parameters() would not train it); make the Parameter in the model's "
                 "dtype and device"
             )
+        if value.is_complex():  # (a cast drops the imaginary part: diag(0.9 ± 0.5j), |λ| 1.03,
+            # had become diag(0.9, 0.9) with torch's warning alone: a review)
+            raise ValueError(
+                f"{name} is {value.dtype}: the models are real (give {name}.real where its "
+                "real part is meant)"
+            )
         if not value.is_floating_point():
             value = value.to(dtype or torch.get_default_dtype())
         elif dtype is not None and value.dtype != dtype:
@@ -256,7 +262,10 @@ def check_symmetric(t: Tensor, name: str, rtol: float = 1e-6) -> None:
 
 
 def check_positive_definite(t: Tensor, name: str, dim: int | None = None) -> None:
-    """``t`` must be a finite, symmetric, positive-definite ``[..., d, d]`` matrix."""
+    """``t`` must be a finite, symmetric, positive-definite ``[..., d, d]`` matrix, of float32
+    or float64 (a float16 covariance had failed in torch's Cholesky: a review)."""
+    if t.is_floating_point():
+        check_model_dtype(t.dtype, name)
     check_square(t, name, dim)
     check_finite(t, name)
     check_symmetric(t, name)

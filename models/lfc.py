@@ -40,7 +40,7 @@ import torch
 from torch import Tensor, nn
 
 import difffilter
-from difffilter._checks import Choice, check_finite_number, check_integer
+from difffilter._checks import Choice, check_finite_number, check_integer, check_model_dtype
 from difffilter.attack import Channel, TabulatedAttack, attack_dim
 from difffilter.control import zoh_discretize
 from difffilter.fdi import ChiSquareDetector, GatedFilter
@@ -187,6 +187,8 @@ class LFCPlant(nn.Module):
         dtype=torch.float64,
     ):
         super().__init__()
+        # (float16 had failed at the first draw, int64 truncated Ad to 0 and ±1: a review)
+        check_model_dtype(dtype, "dtype")
         # finite as well as positive: inf passes "> 0" and turns every later state NaN
         dt = check_finite_number(dt, "dt", positive=True)
         if process_var is None:

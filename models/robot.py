@@ -28,7 +28,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from difffilter._checks import check_finite_number
+from difffilter._checks import check_finite_number, check_model_dtype
 from difffilter.fdi.mdpf import Reading
 from difffilter.linalg import matvec, rowwise
 from difffilter.noise import Gaussian
@@ -72,6 +72,7 @@ class RobotModel(StateSpaceModel):
         p0=(1.0, 1.0, DEG**2),
         dtype=torch.float64,
     ):
+        check_model_dtype(dtype, "dtype")  # (float16 had failed in torch's Cholesky)
         pos = torch.as_tensor(sensors, dtype=dtype)
         if pos.dim() not in (2, 3) or pos.shape[-1] != 2:
             raise ValueError(f"sensors must have shape [S, 2] or [G, S, 2]; got {tuple(pos.shape)}")

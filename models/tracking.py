@@ -32,7 +32,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from difffilter._checks import check_finite_number, version_stamp
+from difffilter._checks import check_finite_number, check_model_dtype, version_stamp
 from difffilter.linalg import matvec, rowwise
 from difffilter.noise import Gaussian, NoiseModel, check_log_prob_mask, register_tensor
 from difffilter.particle import KalmanProposal
@@ -312,6 +312,7 @@ class TrackingModel(StateSpaceModel):
         dtype=torch.float64,
     ):
         super().__init__()
+        check_model_dtype(dtype, "dtype")  # (float16 had failed in torch's Cholesky)
         # (a NaN, zero or negative dt or σ_ω had failed as a raw Cholesky error; κ outside
         # [0, 1] in a draw: a fuzzing trial)
         T = check_finite_number(dt, "dt", positive=True)
