@@ -37,12 +37,18 @@ from torch import Tensor
 
 from ._checks import (
     _check_us,
+    broadcast_or_none,
     check_filtered_dtype,
     check_inputs_given,
     check_model_batch,
+    check_positive_definite,
+    check_semidefinite,
+    check_symmetric,
+    first_index,
     model_batch_shape,
     model_dtype_device,
     step_covariance,
+    values_known,
 )
 from .kalman import _check_declared_time_varying, kalman_filter
 from .linalg import symmetrize
@@ -260,11 +266,57 @@ def _check_arguments(model, filtered, us, needed: str) -> tuple[int, int]:
     check_filtered_dtype(model, filtered.means, "means")
     # (torch's "size of tensor a (4) must match" from the check of step 1 otherwise)
     check_model_batch(model, filtered.means.shape[:-2], "the filtered means")
+    _check_fields(filtered, steps, dx)
     if us is not None:  # the filter's inputs, checked as the filters check them
         dtype, device = model_dtype_device(model)
         _check_us(model, us, filtered.means.shape[:-2], steps, dtype, device,
                   against="the filtered means'")  # fmt: skip
     return steps, dx
+
+
+def _check_fields(filtered: FilterResult, steps: int, dx: int) -> None:
+    """``filtered``'s ``means [..., T, dx]``, ``covs [..., T, dx, dx]``, ``pred_means`` and
+    ``pred_covs`` (if any) as a filter hands them out: ``T`` steps each, runs that broadcast
+    to the means', the means' dtype and device, finite values, symmetric covariances and
+    positive-definite predicted ones (which the gain solves against). A result edited by
+    hand had been read a step shifted (``covs`` one short: 0.14 off), truncated (integer
+    ``pred_means``: 0.78 off), run to NaN means, or failed in torch (a Gaussian-smoother
+    trial). Covariances shared by the runs (stride 0) are checked once."""
+    means = filtered.means
+    runs = means.shape[:-2]
+    fields = [("means", means, 1), ("covs", filtered.covs, 2)]
+    fields.append(("pred_means", filtered.pred_means, 1))
+    if filtered.pred_covs is not None:
+        fields.append(("pred_covs", filtered.pred_covs, 2))
+    for name, t, event in fields:
+        want = (steps, dx) if event == 1 else (steps, dx, dx)
+        shape = "[..., T, dx]" if event == 1 else "[..., T, dx, dx]"
+        if not isinstance(t, Tensor) or t.dim() < event + 1 or tuple(t.shape[-event - 1 :]) != want:
+            got = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+            raise ValueError(
+                f"filtered.{name} must be {shape} with T = {steps}, dx = {dx} (as the means); "
+                f"got {got}"
+            )
+        if broadcast_or_none(t.shape[: t.dim() - event - 1], runs) != runs:
+            raise ValueError(
+                f"filtered.{name} holds the runs {tuple(t.shape[: t.dim() - event - 1])}, and "
+                f"the means {tuple(runs)}: one result of one filter"
+            )
+        if t.dtype != means.dtype or t.device != means.device:
+            raise ValueError(
+                f"filtered.{name} is {t.dtype} on {t.device}, and the means {means.dtype} on "
+                f"{means.device}: one result of one filter"
+            )
+        values = _shared(t) if event == 2 else t
+        if values_known(values) and not bool(torch.isfinite(values).all()):
+            where = first_index(~torch.isfinite(values))
+            raise ValueError(f"filtered.{name} contains NaN or Inf values (first at {where})")
+        if event == 2:
+            check_symmetric(values, f"filtered.{name}")
+            check_semidefinite(values, f"filtered.{name}",
+                               advice="smooth the result a filter returned")  # fmt: skip
+    if filtered.pred_covs is not None:
+        check_positive_definite(_shared(filtered.pred_covs), "filtered.pred_covs")
 
 
 def _backward(model, filtered: FilterResult, transition) -> SmootherResult:
