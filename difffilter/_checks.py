@@ -221,6 +221,25 @@ def add_note(error: BaseException, note: str) -> None:
         error.add_note(note)
 
 
+def check_finite_at(t: Tensor, name: str) -> None:
+    """``ValueError`` naming ``name`` and the index of its first NaN or ±Inf entry (a filter
+    result handed to a smoother, whose entries a user may have edited)."""
+    if values_known(t) and not bool(torch.isfinite(t).all()):
+        raise ValueError(
+            f"{name} contains NaN or Inf values (first at {first_index(~torch.isfinite(t))})"
+        )
+
+
+def check_same_result(t: Tensor, name: str, ref: Tensor, ref_name: str) -> None:
+    """``ValueError`` where ``t`` (``name``) is not of ``ref``'s (``ref_name``'s) dtype and
+    device: two fields of one filter result."""
+    if t.dtype != ref.dtype or t.device != ref.device:
+        raise ValueError(
+            f"{name} is {t.dtype} on {t.device}, and {ref_name} {ref.dtype} on {ref.device}: "
+            "fields of one result of one filter"
+        )
+
+
 def check_finite(t: Tensor, name: str) -> None:
     if values_known(t) and not bool(torch.isfinite(t).all()):
         raise ValueError(f"{name} contains NaN or Inf values; every entry must be finite")

@@ -29,9 +29,10 @@ from torch import Tensor
 from ._checks import (
     _check_us,
     check_filtered_dtype,
+    check_finite_at,
     check_inputs_given,
     check_one_model,
-    first_index,
+    check_same_result,
     model_dtype_device,
     values_known,
 )
@@ -153,14 +154,8 @@ def _check_particles_weights(particles: Tensor, log_w: Tensor) -> None:
             f"filtered.log_weights must have shape {tuple(particles.shape[:-1])} ([..., T, N], "
             f"one per particle of filtered.particles); got {tuple(log_w.shape)}"
         )
-    if log_w.dtype != particles.dtype or log_w.device != particles.device:
-        raise ValueError(
-            f"filtered.log_weights ({log_w.dtype} on {log_w.device}) must share the particles' "
-            f"dtype and device ({particles.dtype} on {particles.device})"
-        )
-    if values_known(particles) and not bool(torch.isfinite(particles).all()):
-        where = first_index(~torch.isfinite(particles))
-        raise ValueError(f"filtered.particles contains NaN or Inf values (first at {where})")
+    check_same_result(log_w, "filtered.log_weights", particles, "the particles")
+    check_finite_at(particles, "filtered.particles")
     if values_known(log_w) and bool((torch.isnan(log_w) | (log_w == float("inf"))).any()):
         raise ValueError(
             "filtered.log_weights contains NaN or +inf values (−inf, a zero weight, is allowed)"

@@ -39,16 +39,16 @@ from ._checks import (
     _check_us,
     broadcast_or_none,
     check_filtered_dtype,
+    check_finite_at,
     check_inputs_given,
     check_model_batch,
     check_positive_definite,
+    check_same_result,
     check_semidefinite,
     check_symmetric,
-    first_index,
     model_batch_shape,
     model_dtype_device,
     step_covariance,
-    values_known,
 )
 from .kalman import _check_declared_time_varying, kalman_filter
 from .linalg import symmetrize
@@ -302,15 +302,9 @@ def _check_fields(filtered: FilterResult, steps: int, dx: int) -> None:
                 f"filtered.{name} holds the runs {tuple(t.shape[: t.dim() - event - 1])}, and "
                 f"the means {tuple(runs)}: one result of one filter"
             )
-        if t.dtype != means.dtype or t.device != means.device:
-            raise ValueError(
-                f"filtered.{name} is {t.dtype} on {t.device}, and the means {means.dtype} on "
-                f"{means.device}: one result of one filter"
-            )
+        check_same_result(t, f"filtered.{name}", means, "the means")
         values = _shared(t) if event == 2 else t
-        if values_known(values) and not bool(torch.isfinite(values).all()):
-            where = first_index(~torch.isfinite(values))
-            raise ValueError(f"filtered.{name} contains NaN or Inf values (first at {where})")
+        check_finite_at(values, f"filtered.{name}")
         if event == 2:
             check_symmetric(values, f"filtered.{name}")
             check_semidefinite(values, f"filtered.{name}",
