@@ -71,6 +71,17 @@ __all__ = [
 ]
 
 
+def _one_number(item) -> float:
+    """One entry of a vector field as a ``float``: a real number (numpy's and 0-d arrays
+    and tensors too), never a bool or a string, which ``float`` would take (YAML reads
+    ``yes`` as true: ``[yes, 0.5]`` is not the vector (1, 0.5)); TypeError otherwise."""
+    if getattr(item, "ndim", None) == 0 and not isinstance(item, (str, bytes)):
+        item = item.item()
+    if isinstance(item, bool) or not isinstance(item, numbers.Real):
+        raise TypeError(item)
+    return float(item)
+
+
 def _numbers(value, name: str) -> tuple[float, ...]:
     """One finite number (numpy's and 0-d arrays and tensors too) or a non-empty sequence of
     them, as a tuple."""
@@ -81,7 +92,7 @@ def _numbers(value, name: str) -> tuple[float, ...]:
     if isinstance(seq, (str, bytes)):  # iterable, but "10" is not the vector (1, 0)
         raise ValueError(f"{name} must be a number or a sequence of numbers; got {value!r}")
     try:
-        out = tuple(float(v) for v in seq)
+        out = tuple(_one_number(v) for v in seq)
     except (TypeError, ValueError):
         raise ValueError(
             f"{name} must be a number or a sequence of numbers; got {value!r}"

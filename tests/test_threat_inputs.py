@@ -204,3 +204,23 @@ def test_a_yaml_covert_attack_runs_the_suite_in_float32(tmp_path):
         out = run_suite(scenario, runs=4, progress=False, dtype=dtype, estimators=["chi_square_kf"])
         results[dtype] = out.metrics["chi_square_kf"]["state_rmse"]
     assert results[torch.float32] == pytest.approx(results[F64], rel=1e-3)
+
+
+@pytest.mark.parametrize(
+    ("kind", "field", "value"),
+    [("bias", "value", [True, 0.5]), ("ramp", "slope", [True]),
+     ("ksigma_bias", "sigma", [1.0, True]), ("bias", "value", ["0.5", "1"]),
+     ("sinusoid", "amplitude", [0.5, "1"]), ("random_walk", "step_std", [False])],
+)  # fmt: skip
+def test_a_vector_fields_entries_are_numbers_never_bools_or_strings(kind, field, value):
+    # A threat-library trial: each entry went through float(), so YAML's `[yes, 0.5]` was a
+    # bias of 1.0 on entry 0 and ["0.5"] a bias of 0.5, where a bare `true` is refused.
+    fields = {"kind": kind, field: value, **({"k": 1.0} if kind == "ksigma_bias" else {})}
+    with pytest.raises(ValueError, match=f"{field} must be a number or a sequence of numbers"):
+        threat_from_dict(fields)
+
+
+def test_a_vector_fields_entries_may_be_numpy_and_tensor_scalars():
+    bias = threat_from_dict({"kind": "bias", "value": [np.float32(0.5), torch.tensor(1.0), 2]})
+    assert bias.value == (0.5, 1.0, 2.0)
+    assert Bias(np.array([0.5, 1.0])).value == Bias(torch.tensor([0.5, 1.0])).value == (0.5, 1.0)
