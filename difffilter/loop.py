@@ -321,7 +321,12 @@ class Controller(Protocol):
     resumed from a :class:`LoopState` or continued from a :class:`LoopFork` holds none of
     it (it holds the plant's, the attack's and the estimator's), so give the resumed loop a
     controller whose state is where it was at that step, or keep the controller a function
-    of ``k``, ``y`` and ``out``."""
+    of ``k``, ``y`` and ``out``.
+
+    Optionally ``check(batch_shape, dtype, device)``: the checks ``init`` makes of the
+    controller's own fields (raising ``ValueError``), which a resumed loop, calling no
+    ``init``, makes when it starts: a field written between chunks is checked as a new
+    loop checks it (a reference of another shape, a gain of another dtype had been taken)."""
 
     def init(self, batch_shape, dtype, device) -> Tensor | None: ...
 
@@ -390,6 +395,13 @@ class StateFeedback:
             check_finite(reference, "reference")
 
     def init(self, batch_shape, dtype, device) -> Tensor:
+        self.check(batch_shape, dtype, device)
+        return torch.zeros(*batch_shape, self.gain.shape[-2], dtype=dtype, device=device)
+
+    def check(self, batch_shape, dtype, device) -> None:
+        """The gain and reference as the constructor checks them, in the loop's dtype, on
+        its device, for its runs (at ``init``, and when a loop resumes: a field assigned
+        later is checked as a new one)."""
         self._check(self.gain, self.reference)
         runs = torch.Size(batch_shape)
         for name, t, event in (("gain", self.gain, 2), ("reference", self.reference, 1)):
@@ -406,7 +418,6 @@ class StateFeedback:
                     f"StateFeedback's {name} {tuple(t.shape)} holds {tuple(own)} runs, and the "
                     f"loop {tuple(runs)}: one for all runs, or one per run"
                 )
-        return torch.zeros(*runs, self.gain.shape[-2], dtype=dtype, device=device)
 
     def __call__(self, k: int, y: Tensor, out) -> Tensor:
         if out is None:
@@ -1196,8 +1207,20 @@ def _check_resumed_attack(kept: LoopState, attack) -> None:
     where it ran without one, then ``attack=None``), not another: the attacker's state is
     that attack's own tables, so another attack had stepped them under its name (a ramp
     resumed on a bias's state injected the bias), and an attack on a loop kept without one
-    had no state to step (a bare ``TypeError`` on ``None``)."""
-    if attack is None or kept.k == 0:
+    had no state to step (a bare ``TypeError`` on ``None``); and a loop kept under an
+    attack is not resumed without one (``attack=None``, the default, had run the rest
+    attack-free while the returned state still named the attacker: a closed-loop trial)."""
+    if kept.k == 0:
+        return
+    if attack is None:
+        if kept.attack is not None:
+            name = type(kept.attacker).__name__ if kept.attacker is not None else "an attack"
+            raise ValueError(
+                f"state: the loop kept ran under {name} and this call gives attack=None: a "
+                "resumed loop goes on with the attack it kept, so give it again (attack=, "
+                "the same object or one equal to it); to end the attack, start a new loop "
+                "or continue a fork of the loop without attack"
+            )
         return
     if kept.attack is None:
         raise ValueError(
@@ -1313,6 +1336,9 @@ def _check_resumed(kept: LoopState, given: str, estimator, model, plant, control
             "was given (its steps would have ignored it): resume with model=None (the "
             "carry's), or start a new loop on the new model"
         )
+    check = getattr(controller, "check", None)
+    if callable(check) and isinstance(x, Tensor):  # (fields written between chunks)
+        check(x.shape[:-1], x.dtype, x.device)
     u = kept.u
     if isinstance(u, Tensor) and not bool(torch.isfinite(u).all()):
         raise ValueError(

@@ -297,31 +297,39 @@ class SecureController:
     """
 
     def __init__(self, K1: Tensor, load: Tensor, *, compensate: bool = True):
+        self._check_gain(K1)
+        self.K1, self.load, self.compensate = K1, load, bool(compensate)
+
+    @staticmethod
+    def _check_gain(K1) -> None:
         if (
             not isinstance(K1, Tensor)
             or not K1.is_floating_point()
-            or K1.shape
-            != (
-                NUM_AREAS,
-                STATE_DIM,
-            )
+            or K1.shape != (NUM_AREAS, STATE_DIM)
         ):  # (torch's expand/matmul at the first input had named neither: an LFC trial)
             got = f"{tuple(K1.shape)} {K1.dtype}" if isinstance(K1, Tensor) else type(K1).__name__
             raise ValueError(
                 f"K1 must be a floating tensor [{NUM_AREAS}, {STATE_DIM}] (the LQR gain, "
                 f"lqr_gain(plant)); got {got}"
             )
-        self.K1, self.load, self.compensate = K1, load, bool(compensate)
-        self._gain = -K1.T  # U = Z·(−K₁ᵀ): one product per step
+
+    def check(self, batch_shape, dtype, device) -> None:
+        """``K1`` as the constructor checks it (a loop resumed after ``K1`` was assigned
+        checks it again: :class:`~difffilter.loop.Controller`)."""
+        self._check_gain(self.K1)
 
     def init(self, batch_shape, dtype, device) -> Tensor:
+        self.check(batch_shape, dtype, device)
         u = torch.zeros(tuple(batch_shape) + (self.K1.shape[0],), dtype=dtype, device=device)
         return torch.cat([u, self.load.to(dtype).expand(u.shape)], -1)
 
     def __call__(self, k: int, y: Tensor, out) -> Tensor:
         attack = None if out is None else out.attack
         feedback = y - attack if self.compensate and attack is not None else y
-        u = feedback @ self._gain.to(feedback.dtype)
+        # U = −(Z·K₁ᵀ), K₁ read at every step: a K1 assigned (or written) mid-run is
+        # followed (the gain made once when built had kept the old one, while Watermarked
+        # read the new: a closed-loop trial); bit for bit Z·(−K₁ᵀ), negation being exact
+        u = (feedback @ self.K1.T.to(feedback.dtype)).neg_()
         return torch.cat([u, self.load.to(u.dtype).expand(u.shape)], -1)
 
 
@@ -335,6 +343,11 @@ class Watermarked:
     innovations show it. The price is the control cost the noise adds."""
 
     def __init__(self, inner, std: Tensor, generator: torch.Generator):
+        self._check_fields(std, generator)
+        self.inner, self.std, self.generator = inner, std, generator
+
+    @staticmethod
+    def _check_fields(std, generator) -> None:
         if not isinstance(std, Tensor) or std.dim() != 1 or not bool((std >= 0).all()):
             raise ValueError(f"std must be a tensor [du] of non-negative numbers; got {std!r}")
         if not isinstance(generator, torch.Generator):
@@ -343,21 +356,32 @@ class Watermarked:
             raise ValueError(
                 f"generator must be a torch.Generator (the watermark's draws); got {generator!r}"
             )
-        self.inner, self.std, self.generator = inner, std, generator
 
-    def init(self, batch_shape, dtype, device) -> Tensor:
-        u = self.inner.init(batch_shape, dtype, device)
+    def check(self, batch_shape, dtype, device, controls: int | None = None) -> None:
+        """``std`` and ``generator`` as the constructor checks them, ``std`` no longer than
+        the control inputs (``controls``; the inner controller's ``K1`` rows where it has
+        one), and the inner controller's own checks: at ``init``, and when a loop resumes
+        (a ``std`` of four entries assigned between chunks had marked the LFC loads)."""
+        self._check_fields(self.std, self.generator)
+        inner_check = getattr(self.inner, "check", None)
+        if callable(inner_check):
+            inner_check(batch_shape, dtype, device)
         # the control entries alone: an LFC controller's input ends with the loads, which
         # the observer's model leaves out (3 or 4 entries had marked them, a watermark the
         # observer does not know: a red-team trial)
         gain = getattr(self.inner, "K1", None)
-        controls = gain.shape[0] if isinstance(gain, Tensor) else u.shape[-1]
-        if self.std.shape[0] > controls:  # (more than the input: a raw torch size error)
+        controls = gain.shape[0] if isinstance(gain, Tensor) else controls
+        if controls is not None and self.std.shape[0] > controls:
+            # (more than the input: a raw torch size error)
             raise ValueError(
                 f"Watermarked: std has {self.std.shape[0]} entries and the controller "
                 f"{controls} control inputs: one per control input marked (the first "
                 "len(std) entries; the loads that ride along get none)"
             )
+
+    def init(self, batch_shape, dtype, device) -> Tensor:
+        u = self.inner.init(batch_shape, dtype, device)
+        self.check(batch_shape, dtype, device, controls=u.shape[-1])
         return u
 
     def __call__(self, k: int, y: Tensor, out) -> Tensor:
