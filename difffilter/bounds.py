@@ -43,7 +43,9 @@ from torch import Tensor
 from ._checks import (
     _check_float_tensor,
     _check_us,
+    check_finite,
     check_inputs_given,
+    check_positive_definite,
     check_positive_int,
     model_dtype_device,
     step_covariance,
@@ -109,13 +111,25 @@ def gaussian_information(R: Tensor, mask: Tensor | None = None) -> Tensor:
 
 
 def _inverse_noise_cov(R: Tensor) -> Tensor:
-    inverse, singular = torch.linalg.inv_ex(R)
-    if bool(singular.any()):  # (torch's "linalg.inv: The diagonal element 1 is zero")
-        raise ValueError(
-            "the measurement noise covariance R (of the received entries) is singular: its "
-            "information R⁻¹ is infinite along a noiseless direction; add a small jitter to "
-            "R (e.g. 1e-9 I)"
-        )
+    return _definite_inverse(
+        R, "the measurement noise covariance R (of the received entries)",
+        "its information R⁻¹ is infinite along a noiseless direction; add a small jitter to "
+        "R (e.g. 1e-9 I)",
+    )  # fmt: skip
+
+
+def _definite_inverse(M: Tensor, name: str, singular: str) -> Tensor:
+    """``M⁻¹`` of a covariance ``M [..., d, d]`` the bound inverts (``R``, ``Q_k``, ``P₀``):
+    finite and symmetric, not singular (``singular`` says what that means and what to do),
+    and positive definite. A covariance written in place after the model was built
+    (training, ``load_state_dict``) had been inverted as it came: a negated ``Q`` gave a
+    "bound" of negative variances, a negated ``R`` a negative-definite information, NaN an
+    all-NaN bound, where the filters refuse the model (a bounds trial)."""
+    check_finite(M, name)
+    inverse, info = torch.linalg.inv_ex(M)
+    if bool(info.any()):  # (torch's "linalg.inv: The diagonal element 1 is zero")
+        raise ValueError(f"{name} is singular: {singular}")
+    check_positive_definite(M, name)
     return inverse
 
 
@@ -420,15 +434,12 @@ def posterior_crb(
 
     def q_inv(t: int) -> Tensor:  # Q_t of the transition x_t → x_{t+1}, as the filters read it
         Q = step_covariance(model, "process_cov", t)  # (an indefinite Q_k had been read)
-        inverse, singular = torch.linalg.inv_ex(Q.to(work))
-        if bool(singular.any()):  # (torch's "linalg.inv: The diagonal element 1 is zero")
-            raise ValueError(
-                f"{type(model).__name__}.process_cov({t}) is singular: the PCRB recursion needs "
-                "Q_k⁻¹ (the information of the transition noise, infinite along a noiseless "
-                "direction); add a small jitter to Q_k (e.g. 1e-9 I) or bound a reduced state "
-                "without the noiseless components"
-            )
-        return inverse
+        return _definite_inverse(
+            Q.to(work), f"{type(model).__name__}.process_cov({t})",
+            "the PCRB recursion needs Q_k⁻¹ (the information of the transition noise, "
+            "infinite along a noiseless direction); add a small jitter to Q_k (e.g. 1e-9 I) "
+            "or bound a reduced state without the noiseless components",
+        )  # fmt: skip
 
     Q_inv = q_inv(0)
     # Q_t read step by step where the model varies it or its class overrides process_cov, as
@@ -437,13 +448,12 @@ def posterior_crb(
     varying_q = model.time_varying or (
         isinstance(model.process_noise, Gaussian) and model._varying_noise("process_cov")
     )
-    J, singular = torch.linalg.inv_ex(model.initial.cov.to(work))
-    if bool(singular.any()):  # (torch's "linalg.inv: The diagonal element 1 is zero")
-        raise ValueError(
-            f"{type(model).__name__}.initial.cov is singular: the PCRB starts from its inverse "
-            "J_0 = P_0⁻¹ (infinite along a component known exactly); add a small jitter to "
-            "P_0 (e.g. 1e-9 I) or bound a reduced state without the known components"
-        )
+    J = _definite_inverse(
+        model.initial.cov.to(work), f"{type(model).__name__}.initial.cov",
+        "the PCRB starts from its inverse J_0 = P_0⁻¹ (infinite along a component known "
+        "exactly); add a small jitter to P_0 (e.g. 1e-9 I) or bound a reduced state without "
+        "the known components",
+    )  # fmt: skip
     batch = torch.broadcast_shapes(information.shape[:-3], G.shape[:-5])
     J = J.expand(batch + (dx, dx))
     x_prev, out = x0, []

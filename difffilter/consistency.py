@@ -34,8 +34,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._checks import broadcast_or_none, check_one_dtype_device, check_rate, check_semidefinite
-from .linalg import safe_cholesky, symmetrize
+from ._checks import (
+    broadcast_or_none,
+    check_covariance,
+    check_one_dtype_device,
+    check_rate,
+    check_symmetric,
+)
+from .linalg import safe_cholesky
 
 __all__ = ["nees", "chi_square_bounds", "ensemble_test", "ConsistencyTest", "whiteness"]
 
@@ -67,6 +73,12 @@ def nees(errors: Tensor, covs: Tensor) -> Tensor:
             f"covs [..., {n}, {n}] must have the errors' batch {tuple(errors.shape[:-1])} (or "
             f"broadcast to it); got {tuple(covs.shape)}"
         )
+    # every finite covariance, symmetric and semidefinite (the carries' check, whose jitter
+    # passes round-off, down to a cloud collapsed to 1e-323); only those whose solve came
+    # back negative had been checked: diag(1, −1) gave 0.99 for e = (1, 0.1), and an
+    # asymmetric one a number (a consistency trial)
+    check_covariance(covs[torch.isfinite(covs).all(-1).all(-1)], "covs",
+                     advice="give the filter's covariances")  # fmt: skip
     e = errors.unsqueeze(-1)
     solved, info = torch.linalg.solve_ex(covs, e)
     value = (e.mT @ solved).squeeze(-1).squeeze(-1)
@@ -78,11 +90,6 @@ def nees(errors: Tensor, covs: Tensor) -> Tensor:
     if not bool(singular.any()):
         return value
     value, singular = torch.broadcast_tensors(value, singular)
-    # ... and never an indefinite one (diag(1, −1) had given −1): the carries' check, whose
-    # jitter passes round-off, down to a cloud collapsed to 1e-323
-    flagged = covs.expand(value.shape + (n, n))[singular]
-    flagged = flagged[torch.isfinite(flagged).all(-1).all(-1)]
-    check_semidefinite(symmetrize(flagged), "covs", advice="give the filter's covariances")
     off = (errors != 0).any(-1).expand(value.shape)
     worst = torch.where(off, torch.full_like(value, math.inf), torch.zeros_like(value))
     return torch.where(singular, worst, value)
@@ -235,6 +242,9 @@ def whiteness(
             "innovations contains NaN or Inf values: a diverged run has no whiteness to test "
             "(leave it out, or pass mask= with its lost entries False and innovations 0)"
         )
+    # (eigvalsh and the Cholesky factor read one triangle: an asymmetric S, which the NIS
+    # refuses, had been read as its lower triangle: a consistency trial)
+    check_symmetric(innovation_covs, "innovation_covs")
     if bool((torch.linalg.eigvalsh(innovation_covs.double()) <= 0).any()):
         # (a zero S had been taken, its Cholesky jittered, and a normal-looking ρ̄ returned)
         raise ValueError("innovation_covs must be positive definite (a filter's S)")
