@@ -411,6 +411,12 @@ def _check_pair(F: Tensor, G: Tensor, names: tuple[str, str]) -> tuple[int, int]
     n, m = G.shape
     if m < 1:  # (lqr had failed inside scipy on "index -1 is out of bounds")
         raise ValueError(f"{b} must have at least one column; got shape {tuple(G.shape)}")
+    if F.shape[0] == F.shape[1] != n:  # square: either may be the wrong one, so name both
+        k = F.shape[0]
+        raise ValueError(
+            f"{a} {tuple(F.shape)} and {b} {tuple(G.shape)} do not match: {b} must have {k} "
+            f"rows (one per state of {a}), or {a} must have shape [{n}, {n}]"
+        )
     if F.shape != (n, n):
         raise ValueError(f"{a} must have shape [{n}, {n}] to match {b} [{n}, {m}]; got "
                          f"{tuple(F.shape)}")  # fmt: skip

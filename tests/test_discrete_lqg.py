@@ -35,6 +35,12 @@ def test_dlqr_is_the_limit_of_the_riccati_difference_equation():
     assert float(torch.linalg.eigvals(F - B @ K).abs().max()) < 1.0
     with pytest.raises(ValueError, match=r"F must have shape \[2, 2\] to match B \[2, 1\]"):
         dlqr(F[:1], B)
+    # a square F and B of other rows: either may be wrong, and both are named (a
+    # lossy-control trial: the message had blamed F alone, asking for [1, 1])
+    with pytest.raises(
+        ValueError, match=r"F \(2, 2\) and B \(1, 1\) do not match: B must have 2 rows"
+    ):
+        dlqr(F, B[:1])
     with pytest.raises(ValueError, match=r"R must have shape \[1, 1\]"):
         dlqr(F, B, Qc, torch.eye(2, dtype=F64))
 
