@@ -41,7 +41,14 @@ from difffilter.fdi.mdpf import (
     adaptive_particle_init,
 )
 from difffilter.gain_schedule import _STALE, _stamp, _unchanged
-from difffilter.loop import DrawnNoise, LoopResult, _step_through, closed_loop, open_loop
+from difffilter.loop import (
+    DrawnNoise,
+    KnownInputs,
+    LoopResult,
+    _step_through,
+    closed_loop,
+    open_loop,
+)
 from difffilter.models.estimators import SuiteContext, family_register
 from difffilter.particle import ParticleState
 from difffilter.results import StepOutput
@@ -338,19 +345,32 @@ def _tensors_of(model) -> list:
     return list(model.state_dict(keep_vars=True).values())
 
 
-class CompensatingInputs:
+class CompensatingInputs(KnownInputs):
     """Remark 1's controller: the commanded inputs ``us [B, T, du]`` minus the fused attack
-    estimate, ``u_sent,k = u_k − â_f,k`` (``compensate=False``: the commanded inputs)."""
+    estimate, ``u_sent,k = u_k − â_f,k`` (``compensate=False``: the commanded inputs).
+
+    The table read as :class:`~difffilter.loop.KnownInputs` reads it: a loop of more steps
+    than rows is refused, and the input after the last row is NaN, so that a loop resumed
+    from that state is refused (the last row had been repeated: a resumed loop drove its
+    first step with ``u_{T−1}``, a robot-loop trial)."""
 
     def __init__(self, us: torch.Tensor, *, compensate: bool = True):
-        self.us, self.compensate = us, bool(compensate)
-
-    def init(self, batch_shape, dtype, device):
-        return self.us[:, 0]
+        super().__init__(us)
+        self.compensate = bool(compensate)
 
     def __call__(self, k, y, out):
-        u = self.us[:, min(k, self.us.shape[1] - 1)]
-        return u - out.attack if self.compensate else u
+        u = super().__call__(k, y, out)
+        if not self.compensate:
+            return u
+        if out is None or out.attack is None:  # (an AttributeError/TypeError on None)
+            raise ValueError(
+                "CompensatingInputs subtracts the estimator's attack estimate (Remark 1), and "
+                + ("this loop has no estimator" if out is None else
+                   "the estimator's output carries none (out.attack is None)")
+                + ": give closed_loop an estimator of the attack (the fused locals), or "
+                "compensate=False"
+            )  # fmt: skip
+        return u - out.attack
 
 
 def _fused_locals(ctx: SuiteContext, rule: FusionRule) -> FusedLocals:

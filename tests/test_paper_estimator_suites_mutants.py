@@ -237,8 +237,9 @@ def test_the_zhang_estimators_read_the_trajectorys_mask(name):
 
 
 def test_compensating_inputs_send_u_minus_the_attack_estimate_of_the_step():
-    """Remark 1 on a varying command: ``init`` is u₀, step k sends u_k − â (the last row
-    past the end), ``compensate=False`` or â = 0 sends u_k (numbers by hand)."""
+    """Remark 1 on a varying command: ``init`` is u₀, step k sends u_k − â (NaN after the
+    last row, refused past it, as KnownInputs reads a table), ``compensate=False`` or â = 0
+    sends u_k (numbers by hand)."""
     us = torch.arange(2 * 4 * 2, dtype=F64).reshape(2, 4, 2)
     a = torch.tensor([[0.5, -1.0], [2.0, 0.25]], dtype=F64)
     ctl = CompensatingInputs(us)
@@ -246,7 +247,9 @@ def test_compensating_inputs_send_u_minus_the_attack_estimate_of_the_step():
     for k in (1, 2, 3):
         want = torch.tensor([[2.0 * k, 2.0 * k + 1], [8.0 + 2 * k, 9.0 + 2 * k]], dtype=F64) - a
         torch.testing.assert_close(ctl(k, None, NS(attack=a)), want, rtol=0, atol=0)
-    torch.testing.assert_close(ctl(7, None, NS(attack=a)), us[:, 3] - a, rtol=0, atol=0)
+    assert bool(ctl(4, None, NS(attack=a)).isnan().all())
+    with pytest.raises(ValueError, match=r"cover u_0 … u_3 \(T = 4\); step 7"):
+        ctl(7, None, NS(attack=a))
     for c, att in ((CompensatingInputs(us, compensate=False), a), (ctl, torch.zeros_like(a))):
         torch.testing.assert_close(c(2, None, NS(attack=att)), us[:, 2], rtol=0, atol=0)
 
