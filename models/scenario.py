@@ -16,9 +16,10 @@ estimator), time index ``t`` ↔ ``k = t + 1``::
     ỹ_k = inject_sensor(y_k)                             sensor attack, if any
     mask_k = schedule(k)                                 received entries
 
-Random draws come from three named generators: ``"plant"`` (initial state, process and
-measurement noise, in that order per step), ``"attack"`` and ``"schedule"``; the plant
-realisation therefore does not depend on the attack, and vice versa.
+Random draws come from named generators: ``"plant"`` (initial state, process and
+measurement noise, in that order per step), ``"attack"``, ``"schedule"`` and, under an
+input loss, ``"input_schedule"``; the plant realisation therefore does not depend on the
+attack, and vice versa.
 """
 
 from __future__ import annotations
@@ -162,7 +163,10 @@ def simulate(
         x0 = model.sample_initial((runs,), plant)
     else:
         x0 = model.initial.mean.expand(runs, model.dim_x).clone()
-    with warn_on_global_draws(generators):
+    # (an input loss's own stream too: one left out had drawn from the global generator
+    # without the warning a measurement schedule's gets, a schedules trial)
+    streams = ("attack", "schedule") + (() if input_loss is None else ("input_schedule",))
+    with warn_on_global_draws(generators, streams):
         mask = schedule.mask((runs,), steps, model.dim_y, generators.get("schedule"),
                              device=device)  # fmt: skip
         if input_loss is not None:

@@ -460,3 +460,33 @@ def test_a_loss_schedule_without_its_generator_is_refused():
         with pytest.raises(ValueError, match="draws its losses from generator"):
             schedule.mask((2,), 5, 1)
         assert schedule.mask((2,), 0, 1).shape == (2, 0, 1)  # nothing to draw
+
+
+def test_a_users_input_loss_schedule_drawing_globally_is_warned_about():
+    """A schedules trial: a user's own arrival schedule (any object with ``mask``), its
+    stream left out of ``generators``, drew from torch's global generator without the
+    warning a measurement schedule's gets; two identical calls differed."""
+    from difffilter import LinearGaussianModel
+    from difffilter.models.scenario import simulate
+
+    class Coin:
+        def mask(self, batch_shape, num_steps, dim, generator=None, *, device=None):
+            b = (batch_shape,) if isinstance(batch_shape, int) else tuple(batch_shape)
+            return torch.rand(*b, num_steps, dim, generator=generator, device=device) >= 0.5
+
+    f64 = torch.float64
+    eye = torch.eye(2, dtype=f64)
+    model = LinearGaussianModel(torch.tensor([[0.9, 0.1], [0.0, 0.8]], dtype=f64), eye,
+                                0.01 * eye, 0.1 * eye, torch.zeros(2, dtype=f64), eye,
+                                B=torch.tensor([[0.0], [1.0]], dtype=f64))  # fmt: skip
+    loss = InputLossSchedule(Coin(), "hold", True)
+    us = torch.ones(4, 20, 1, dtype=f64)
+    gens = {"plant": torch.Generator().manual_seed(0)}
+    with pytest.warns(UserWarning, match="'input_schedule' stream"):
+        simulate(model, 4, 20, generators=gens, us=us, input_loss=loss)
+    with_stream = {**Streams(0).simulation()}
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # its stream given: no warning
+        simulate(model, 4, 20, generators=with_stream, us=us, input_loss=loss)
