@@ -297,11 +297,14 @@ class SecureController:
     """
 
     def __init__(self, K1: Tensor, load: Tensor, *, compensate: bool = True):
-        self._check_gain(K1)
+        self._check_fields(K1, load)
         self.K1, self.load, self.compensate = K1, load, bool(compensate)
 
     @staticmethod
-    def _check_gain(K1) -> None:
+    def _check_fields(K1, load, runs: torch.Size | None = None) -> None:
+        """``K1 [2, 10]`` floating and ``load [2]``, ``[1, 2]`` or ``[B, 2]`` (``B`` the
+        loop's ``runs`` where known): a load ``[1]`` had been applied to both areas (a
+        review; lfc_loop refuses it by name)."""
         if (
             not isinstance(K1, Tensor)
             or not K1.is_floating_point()
@@ -312,11 +315,23 @@ class SecureController:
                 f"K1 must be a floating tensor [{NUM_AREAS}, {STATE_DIM}] (the LQR gain, "
                 f"lqr_gain(plant)); got {got}"
             )
+        real = isinstance(load, Tensor) and not (load.dtype == torch.bool or load.is_complex())
+        if runs is None:  # when built: [2] or [any runs, 2]
+            fits = real and load.shape[-1:] == (NUM_AREAS,) and load.dim() in (1, 2)
+        else:
+            fits = real and tuple(load.shape) in ((NUM_AREAS,), (1, NUM_AREAS),
+                                                  (*runs, NUM_AREAS))  # fmt: skip
+        if not fits:
+            got = tuple(load.shape) if isinstance(load, Tensor) else type(load).__name__
+            per_run = "[B, 2]" if runs is None else f"[{', '.join(map(str, runs))}, 2]"
+            raise ValueError(f"load must be a real tensor [2] or [1, 2] (one for every run) "
+                             f"or {per_run} (one per run); got {got}")  # fmt: skip
 
     def check(self, batch_shape, dtype, device) -> None:
-        """``K1`` as the constructor checks it (a loop resumed after ``K1`` was assigned
-        checks it again: :class:`~difffilter.loop.Controller`)."""
-        self._check_gain(self.K1)
+        """``K1`` and ``load`` as the constructor checks them, the load for the loop's runs
+        (a loop resumed after either was assigned checks them again:
+        :class:`~difffilter.loop.Controller`)."""
+        self._check_fields(self.K1, self.load, torch.Size(batch_shape))
 
     def init(self, batch_shape, dtype, device) -> Tensor:
         self.check(batch_shape, dtype, device)
@@ -387,6 +402,12 @@ class Watermarked:
     def __call__(self, k: int, y: Tensor, out) -> Tensor:
         u = self.inner(k, y, out)
         n = self.std.shape[0]
+        if n > u.shape[-1]:  # (a std assigned later, of an inner controller without K1 that
+            # check() cannot count: a raw torch size error, a review)
+            raise ValueError(
+                f"Watermarked: std has {n} entries and the controller's input {u.shape[-1]}: "
+                "one per control input marked (the first len(std) entries)"
+            )
         noise = torch.randn(*u.shape[:-1], n, generator=self.generator, dtype=u.dtype,
                             device=u.device)  # fmt: skip
         return torch.cat([u[..., :n] + noise * self.std.to(u.dtype), u[..., n:]], -1)

@@ -140,3 +140,34 @@ def test_a_loop_kept_without_attack_resumes_without_one():
     first = closed_loop(plant, 10, **kw)
     again = closed_loop(plant, 10, state=first.state, **kw)
     assert torch.equal(again.trajectories.y_recv, whole.trajectories.y_recv[:, 10:])
+
+
+def test_a_secure_controllers_load_is_checked_when_built_and_when_the_loop_resumes():
+    # a review: the load, documented [B or 1, 2], had been broadcast from [1] to both areas
+    plant, K1, load, kw = _lfc()
+    with pytest.raises(ValueError, match=r"load must be a real tensor \[2\] or \[1, 2\]"):
+        SecureController(K1, torch.tensor([0.01], dtype=F64))
+    controller = SecureController(K1, load)
+    first = closed_loop(plant.model(), 10, model=plant.model(knows_load=False),
+                        controller=controller, **kw)  # fmt: skip
+    for bad in (torch.tensor([0.02], dtype=F64), torch.zeros(2, 2, dtype=F64)):
+        controller.load = bad  # one number; two runs' loads for a loop of three
+        with pytest.raises(ValueError, match=r"load must be a real tensor .* or \[3, 2\]"):
+            closed_loop(plant.model(), 20, model=plant.model(knows_load=False),
+                        controller=controller, state=first.state, **kw)  # fmt: skip
+    controller.load = torch.tensor([[0.02, 0.0]], dtype=F64).expand(3, 2)  # one per run: valid
+    again = closed_loop(plant.model(), 20, model=plant.model(knows_load=False),
+                        controller=controller, state=first.state, **kw)  # fmt: skip
+    assert bool((again.trajectories.us[:, 1:, 2] == 0.02).all())
+
+
+def test_a_watermark_longer_than_an_inner_controllers_input_is_named_at_every_step():
+    # a review: an inner controller without K1 (StateFeedback) cannot be counted by check(),
+    # and a std assigned between chunks failed in torch's "size of tensor a (2) must match"
+    plant, K, kw = _plant()
+    mark = Watermarked(StateFeedback(K), torch.full((1,), 0.1, dtype=F64),
+                       torch.Generator().manual_seed(0))  # fmt: skip
+    first = closed_loop(plant, 8, controller=mark, **kw)
+    mark.std = torch.full((3,), 0.1, dtype=F64)
+    with pytest.raises(ValueError, match="std has 3 entries and the controller's input 1"):
+        closed_loop(plant, 12, state=first.state, controller=mark, **kw)
