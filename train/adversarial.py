@@ -77,7 +77,11 @@ class Adversary:
         sel = self.selection_runs
         if isinstance(sel, bool) or not isinstance(sel, int) or sel < 0:
             raise ValueError(f"adversarial_selection_runs must be an integer >= 0; got {sel!r}")
-        lo, hi = self.onsets
+        if not isinstance(self.onsets, (tuple, list)) or len(self.onsets) != 2:
+            # (Python's own "too many values to unpack" had named nothing)
+            raise ValueError(f"adversarial_onsets must be [first, last], 1 <= first <= last; "
+                             f"got {self.onsets!r}")  # fmt: skip
+        self.onsets = lo, hi = tuple(self.onsets)
         if not (isinstance(lo, int) and isinstance(hi, int) and 1 <= lo <= hi):
             raise ValueError(f"adversarial_onsets must be [first, last], 1 <= first <= last; "
                              f"got {self.onsets!r}")  # fmt: skip
@@ -91,6 +95,15 @@ class Adversary:
             raise ValueError(
                 f"adversarial_onsets {list(self.onsets)}: the first onset is after the "
                 f"scenario's last step ({steps}): give onsets within 1 … {steps}"
+            )
+        if self.crafting_runs == 1 and min(self.onsets[1], steps) == steps:
+            # an onset drawn at the last step leaves one attacked (run, step), too few for
+            # the crafting's smoothing: a fit died at a random crafting (an adversarial trial)
+            raise ValueError(
+                f"adversarial_onsets {list(self.onsets)} reach the last step ({steps}), and "
+                "with adversarial_crafting_runs 1 an attack drawn there has one attacked "
+                "step, too few to craft on: give adversarial_crafting_runs >= 2, or a last "
+                f"onset before step {steps}"
             )
 
     def due(self, step: int) -> bool:

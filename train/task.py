@@ -437,6 +437,25 @@ class ScenarioDataModule(pl.LightningDataModule):
         return self.test_dataloader()
 
 
+def _warn_adversarial_options_unread(options: dict) -> None:
+    """Warn naming the adversarial options set to other than their defaults while
+    ``adversarial_runs`` is 0 (adversarial training off: none of them is read)."""
+    defaults = inspect.signature(FilterEstimatorTask.__init__).parameters
+
+    def plain(value):  # (onsets from YAML come as a list)
+        return tuple(value) if isinstance(value, list) else value
+
+    given = [f"adversarial_{name}" for name, value in options.items()
+             if plain(value) != plain(defaults[f"adversarial_{name}"].default)]  # fmt: skip
+    if given:
+        warnings.warn(
+            f"{', '.join(given)} set while adversarial_runs is 0: adversarial training is off "
+            "and they are not read; give adversarial_runs > 0 to train against crafted "
+            "attacks",
+            stacklevel=3,
+        )
+
+
 def _scored_monitor_error(seed: int, what: str) -> str:
     """Why ``monitor_seed`` ``seed`` is refused: the monitors' ``val/scenario/…`` metrics,
     which a checkpoint callback may select on, would be computed on the very runs the
@@ -619,13 +638,18 @@ class FilterEstimatorTask(pl.LightningModule):
         self.adversary = None
         self._calibrated_at: int | None = None  # the step of the last threshold chosen on
         # calibration runs (current_threshold reuses it while no step has trained since)
+        options = {"iterations": adversarial_iterations, "every": adversarial_every,
+                   "crafting_runs": adversarial_crafting_runs, "onsets": adversarial_onsets,
+                   "resample": adversarial_resample,
+                   "selection_runs": adversarial_selection_runs}  # fmt: skip
+        # checked whether or not adversarial training is on (adversarial_iterations=0 had
+        # been taken without a word beside adversarial_runs=0: an adversarial trial)
+        adversary = Adversary(1 if adversarial_runs == 0 else adversarial_runs, **options)
         if adversarial_runs:
-            self.adversary = Adversary(
-                adversarial_runs, adversarial_iterations, adversarial_every,
-                adversarial_crafting_runs, tuple(adversarial_onsets),
-                adversarial_resample, adversarial_selection_runs,
-            )  # fmt: skip
+            self.adversary = adversary
             self.adversary.check_horizon(sc.steps)
+        else:
+            _warn_adversarial_options_unread(options)
 
     def _start_from(self, path: str) -> None:
         """Copy the network weights of the estimator at ``path`` (``init_from``)."""
@@ -778,10 +802,16 @@ class FilterEstimatorTask(pl.LightningModule):
         self.log("train/grad_norm", max(norms), batch_size=runs)
 
     def _adversarial(self, batch: dict, seed: int) -> dict:
-        """``batch`` with the adversary's runs (a new attack crafted when due, once a
-        validation has calibrated the threshold the attacker must stay under)."""
+        """``batch`` with the adversary's runs (a new attack crafted when due, from the
+        second epoch on, once a threshold the attacker must stay under has been chosen for
+        the network: :meth:`_threshold_chosen`)."""
         adversary = self.adversary
-        if adversary.due(self.global_step) and self.current_epoch >= 1:
+        # (a threshold chosen for the network: without calibration runs, one validation
+        # first; with check_val_every_n_epoch > 1 the crafting had run under the placeholder
+        # 0.5, at which the network alarmed on none of the crafting runs' steps and the alarm
+        # budget bounded nothing: an adversarial trial)
+        if (adversary.due(self.global_step) and self.current_epoch >= 1
+                and self._threshold_chosen()):  # fmt: skip
             logs = adversary.craft(self, self.global_step)
             # straight to the loggers, once, at the step it crafted: a value given to
             # self.log stays in the epoch's results and went to TensorBoard again at every
@@ -881,6 +911,15 @@ class FilterEstimatorTask(pl.LightningModule):
         threshold = threshold_for(calibration, self.false_alarm_rate)
         return threshold, float((calibration > threshold).double().mean())
 
+    def _threshold_chosen(self) -> bool:
+        """Whether :meth:`current_threshold` is one chosen for the network: on the data
+        module's calibration runs, or by a validation (its measured rate recorded); not the
+        placeholder the task starts with."""
+        dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        if hasattr(dm, "calibration_data") and dm.calibration_data() is not None:
+            return True
+        return math.isfinite(float(self.alarm_threshold_rate))
+
     def current_threshold(self) -> float:
         """τ for the weights as they are now, chosen as validation chooses it, on the data
         module's attack-free calibration runs: the last validation's where the weights have
@@ -926,6 +965,10 @@ class FilterEstimatorTask(pl.LightningModule):
         return scores
 
     def on_fit_start(self) -> None:
+        if self.adversary is not None:  # the data's horizon, shorter than the scenario's
+            # (--data.init_args.steps): onsets past it had been refused an epoch later, at
+            # the first crafting (an adversarial trial)
+            self.adversary.check_horizon(self.scenario_of_data().steps)
         dm = getattr(self.trainer, "datamodule", None)
         test_seed = None if dm is None else dm.hparams.get("test_seed")
         if self.monitors and self.hparams.monitor_seed == test_seed:
