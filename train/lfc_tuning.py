@@ -28,6 +28,7 @@ import torch
 
 from difffilter.control import LuenbergerDesign
 from difffilter.estimator import Generators
+from difffilter.linalg import NumericalBreakdown
 from difffilter.models import registry
 from difffilter.models.lfc_estimators import (
     EKF_DEFAULTS,
@@ -60,8 +61,18 @@ def score(estimator, batch: dict, *, init_seed: int = 1) -> dict:
     scenario = registry.get("lfc_random_attacks")
     gens = Generators(init=torch.Generator().manual_seed(init_seed))
     start = time.perf_counter()
-    with torch.no_grad():
-        loop = scenario.loop(estimator, batch, generator=gens)
+    try:
+        with torch.no_grad():
+            loop = scenario.loop(estimator, batch, generator=gens)
+    except ValueError as error:
+        # a setting that diverges: its NaN input or measurement stops the loop, or its
+        # filter's arithmetic breaks down; it scores inf (it had stopped the whole grid,
+        # the scores before it lost: an lfc-tuning trial)
+        if not (isinstance(error, NumericalBreakdown) or "contains NaN or Inf" in str(error)):
+            raise
+        wall = time.perf_counter() - start
+        return {"attack_rmse": math.inf, "attack_rmse_attacked": math.inf,
+                "state5_rmse": math.inf, "wall_s": wall}  # fmt: skip
     wall = time.perf_counter() - start
     err = (loop.output.attack - batch["attack"]).square().mean()
     rmse = float(err.sqrt()) if bool(torch.isfinite(err)) else math.inf
@@ -185,8 +196,19 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.runs < 1:
         p.error("--runs must be >= 1")
+    # the output read before the grid runs: a folder or a file that is not this script's
+    # JSON had been found after every point was scored, the scores lost (a trial)
+    if args.out.exists() and not args.out.is_file():
+        p.error(f"--out {args.out} is not a file: give the JSON file to write (or merge into)")
+    previous = {}
+    if args.out.is_file():
+        try:
+            previous = json.loads(args.out.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as error:
+            p.error(f"--out {args.out} exists and is not JSON ({error}): give another file")
+        if not isinstance(previous, dict):
+            p.error(f"--out {args.out} holds JSON of another kind: give another file")
     result = tune(args.estimators, runs=args.runs, ckpt=args.ckpt)
-    previous = json.loads(args.out.read_text(encoding="utf-8")) if args.out.is_file() else {}
     previous.setdefault("grids", {}).update(result["grids"])
     previous.setdefault("chosen", {}).update(result["chosen"])
     previous["validation"] = result["validation"]  # this run's (each grid's: validated_on)

@@ -1,0 +1,42 @@
+"""An LFC-tuning trial's findings: a diverging grid point (``traditional_ad`` at lr = 1,
+which the estimators' module says diverges from 0.3) stopped the whole grid with the loop's
+"contains NaN or Inf", the scores before it lost, where the module says such settings score
+``inf``; and an ``--out`` that is a folder or not JSON was found after every point was
+scored."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from difffilter.models.lfc_estimators import LFCContext
+from difffilter.train import lfc_tuning
+
+
+def test_a_diverging_setting_scores_inf_and_a_converging_one_a_number():
+    batch = lfc_tuning.validation_batch(1)
+
+    def scored(lr):
+        settings = {"init_scale": 0.01, "lr": lr, "luenberger_design": "modal"}
+        est = lfc_tuning._estimator("traditional_ad", settings, LFCContext(dt=0.01), None)
+        return lfc_tuning.score(est, batch)
+
+    diverged = scored(1.0)
+    assert diverged["attack_rmse"] == diverged["state5_rmse"] == math.inf
+    assert math.isfinite(scored(0.01)["attack_rmse"])
+
+
+@pytest.mark.parametrize("kind", ["folder", "not json", "a list"])
+def test_a_bad_out_is_named_before_any_grid_point_is_scored(kind, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "out.json"
+    if kind == "folder":
+        out.mkdir()
+    else:
+        out.write_text("not json" if kind == "not json" else "[1, 2]", encoding="utf-8")
+    ran = []
+    monkeypatch.setattr(lfc_tuning, "tune", lambda *a, **k: ran.append(1))
+    with pytest.raises(SystemExit) as stop:
+        lfc_tuning.main(["--runs", "1", "--out", str(out)])
+    assert stop.value.code == 2 and ran == []
+    assert "--out" in capsys.readouterr().err
