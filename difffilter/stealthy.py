@@ -68,7 +68,21 @@ from .estimator import Estimator
 from .loop import open_loop
 from .metrics import nan_as_lowest
 
-__all__ = ["CraftedAttack", "StealthySettings", "attacked_pairs", "craft_stealthy_attack"]
+__all__ = [
+    "CraftedAttack",
+    "StealthySettings",
+    "TooFewAttackedSteps",
+    "attacked_pairs",
+    "craft_stealthy_attack",
+]
+
+
+class TooFewAttackedSteps(ValueError):
+    """The batch a crafting runs on holds too few attacked (run, step) pairs received
+    (none, or fewer than two with a finite attack-free score) to bound the alarm rate on
+    or to set the smoothing's temperature: a late onset, packet loss. A ``ValueError``;
+    adversarial training catches it alone and skips that crafting (another draw of runs
+    and onset may hold enough)."""
 
 
 def attacked_pairs(runs: int, steps: int, onset: int, entries=None, mask=None) -> Tensor:
@@ -457,7 +471,7 @@ def craft_stealthy_attack(
         # threat-model trial: 1.5 ε with f = 1/2, 4.4 ε on tracking's four-sensor cycle)
         steps = attacked_pairs(runs, T, onset, entries, mask)
         if not bool(steps.any()):  # (the rates and J of no pair are NaN: Adam would take them)
-            raise ValueError(
+            raise TooFewAttackedSteps(
                 f"craft_stealthy_attack: the {name} batch receives no attacked entry from onset "
                 f"{onset} on (mask{'' if entries is None else f' on entries {entries}'}): "
                 "there is no attacked step to bound the alarm rate on"
@@ -476,7 +490,7 @@ def craft_stealthy_attack(
     scored = quiet[torch.isfinite(quiet)]
     spread = float(scored.std()) if scored.numel() > 1 else math.nan
     if not math.isfinite(spread):
-        raise ValueError(
+        raise TooFewAttackedSteps(
             "craft_stealthy_attack needs the detector's attack-free scores on at least two "
             f"attacked (run, step) pairs finite, to set the smoothing's temperature; got "
             f"{scored.numel()} finite of {quiet.numel()} (runs {tuple(ys.shape[:-2])}, onset "

@@ -57,12 +57,12 @@ def test_adversarial_options_set_with_adversarial_training_off_are_named():
     assert task.adversary is None
 
 
-def test_one_crafting_run_with_onsets_reaching_the_last_step_is_refused_when_built():
-    with pytest.raises(ValueError, match="with adversarial_crafting_runs 1 an attack drawn there"):
+def test_one_crafting_run_with_every_onset_at_the_last_step_is_refused_when_built():
+    with pytest.raises(ValueError, match="with adversarial_crafting_runs 1 an attack there"):
         FilterEstimatorTask("four_tank_bias", filter="ekf", hidden=4, adversarial_runs=2,
-                            adversarial_crafting_runs=1, adversarial_onsets=(5, 100))  # fmt: skip
-    # one run whose onsets end before the last step, or two runs reaching it: built
-    for runs, onsets in ((1, (5, 99)), (2, (5, 100))):
+                            adversarial_crafting_runs=1, adversarial_onsets=(100, 100))  # fmt: skip
+    # onsets that reach it now and then (that crafting is skipped), or two runs: built
+    for runs, onsets in ((1, (5, 100)), (1, (5, 99)), (2, (100, 100))):
         task = FilterEstimatorTask("four_tank_bias", filter="ekf", hidden=4,
                                    adversarial_runs=2, adversarial_crafting_runs=runs,
                                    adversarial_onsets=onsets)  # fmt: skip
@@ -96,3 +96,50 @@ def test_no_crafting_runs_under_a_threshold_no_one_chose(tmp_path, monkeypatch):
     assert rc == 0
     # no validation until the end of epoch 1: the craftings wait for it (epoch 2)
     assert seen and all(epoch == 2 and math.isfinite(rate) for epoch, rate in seen)
+
+
+LOSSY = """\
+name: lossy_yaml
+family: my_plants
+description: scalar plant over a lossy network, sensor bias
+dt: 0.1
+runs: 8
+steps: 20
+num_particles: 50
+false_alarm_rate: 0.01
+plant: {F: [[0.9]], H: [[1.0]], Q: 1.0e-2, R: 1.0e-2, P0: 1.0e-1}
+attack: {kind: bias, channel: sensor, value: 0.5, onset: 5, share: 0.5}
+schedule: {kind: packet_loss, rate: 0.5}
+"""
+
+
+def test_a_crafting_with_too_few_received_attacked_steps_is_skipped_not_fatal(
+    tmp_path, monkeypatch
+):
+    # a review: under packet loss, a late onset left fewer than two received attacked steps
+    # in the crafting batch, and the fit died at that crafting
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "lossy.yaml").write_text(LOSSY, encoding="utf-8")
+    logged, craft = [], Adversary.craft
+
+    def recording(self, task, step):
+        logs = craft(self, task, step)
+        logged.append(logs)
+        return logs
+
+    monkeypatch.setattr(Adversary, "craft", recording)
+    generic = str(Path(CONFIG).with_name("generic.yaml"))
+    with pytest.warns(UserWarning, match="skipped the crafting at step"):
+        rc = main(["fit", "--config", generic, "--scenario", "lossy.yaml",
+                   "--trainer.max_epochs=3", "--trainer.logger=false",
+                   f"--trainer.default_root_dir={tmp_path / 'out'}",
+                   "--trainer.enable_progress_bar=false", "--data.init_args.batch_size=2",
+                   "--data.init_args.batches_per_epoch=3", "--data.init_args.val_runs=8",
+                   "--model.init_args.hidden=4", "--model.init_args.adversarial_runs=2",
+                   "--model.init_args.adversarial_iterations=2",
+                   "--model.init_args.adversarial_every=1",
+                   "--model.init_args.adversarial_crafting_runs=2",
+                   "--model.init_args.adversarial_onsets=[19, 20]"])  # fmt: skip
+    assert rc == 0
+    skipped = [logs for logs in logged if "adversarial_skipped" in logs]
+    assert skipped and len(skipped) < len(logged)  # some craftings skipped, others crafted
