@@ -72,3 +72,16 @@ def test_the_calibration_caches_key_tells_the_scenarios_estimators_from_none(mon
         cal.calibrate(scenario, far=0.05, runs=4, seed=0, estimators=None, add=["cusum_ekf"],
                       cache=cache, progress=False)  # fmt: skip
     assert seen == [None]
+
+
+def test_a_run_name_with_the_seed_placeholder_is_the_folder_the_fit_writes(tmp_path):
+    # a sweep trial: -- --trainer.logger.init_args.name=net_{seed} trained into net_0/seed_0,
+    # and the sweep looked in net_{seed}/seed_0, said the fit exported nothing, and the rerun
+    # was refused as a run folder holding a run
+    from difffilter.train.sweep import _seed_run
+
+    config = Path(__file__).resolve().parents[1] / "train" / "configs" / "four_tank.yaml"
+    folder, options, _ = _seed_run(config, 3, tmp_path / "runs",
+                                   ["--trainer.logger.init_args.name=net_{seed}"])  # fmt: skip
+    assert folder == tmp_path / "runs" / "net_3" / "seed_3"
+    assert options == ["--trainer.logger.init_args.name=net_3"]

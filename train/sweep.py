@@ -155,7 +155,10 @@ _SETTINGS = "sweep_settings.json"
 def _seed_run(config: Path, seed: int, runs_dir: Path, extra: list[str]):
     """Seed ``seed``'s run folder, its ``fit`` options (``{seed}`` filled in) and settings."""
     options = [option.replace("{seed}", str(seed)) for option in extra]
-    folder = runs_dir / _run_name(config, extra) / f"seed_{seed}"
+    # the name as the fit reads it, {seed} filled in (a name of net_{seed} had been looked
+    # for literally: the fit exported into net_0/seed_0 and the sweep said it exported
+    # nothing, then refused the rerun; a sweep trial)
+    folder = runs_dir / _run_name(config, options) / f"seed_{seed}"
     return folder, options, _settings(config, options)
 
 
