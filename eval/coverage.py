@@ -31,11 +31,14 @@ not known     a threat of a class of your own (``module:object``) beside a netwo
 from __future__ import annotations
 
 import json
+import warnings
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from difffilter._checks import check_finite_number
 from difffilter.threat_distribution import HELD_OUT, KIND_ONLY, ThreatDistribution, threat_spec
-from difffilter.threats import with_sampling_period
+from difffilter.threats import THREATS, with_sampling_period
 
 __all__ = ["training_coverage", "checkpoint_of", "NOT_KNOWN"]
 
@@ -44,6 +47,39 @@ NOT_KNOWN = "not known"
 
 #: What a card says the network was trained on, as the reports name it.
 SCENARIO_ATTACK, DISTRIBUTION = "its scenario's attack", "a distribution over threats"
+
+
+def _check_threats(threats) -> None:
+    """``threats`` a mapping of threat name to a mapping with a ``kind`` of the library,
+    ``stealthy`` or ``module:object``: a misspelt or missing kind had been labelled "held
+    out", a list failed on ``.items`` (a coverage trial)."""
+    if not isinstance(threats, Mapping):
+        raise ValueError(f"threats must be a mapping {{name: {{'kind': …, …}}}}; got "
+                         f"{type(threats).__name__}")  # fmt: skip
+    for name, threat in threats.items():
+        kind = threat.get("kind") if isinstance(threat, Mapping) else None
+        if not isinstance(kind, str) or not (kind in THREATS or kind == "stealthy"
+                                             or ":" in kind):  # fmt: skip
+            raise ValueError(
+                f"threats[{name!r}] must be a mapping whose kind is one of "
+                f"{', '.join(sorted(THREATS))}, stealthy or module:object; got {threat!r}"
+            )
+
+
+def _trained_scenario(card: dict, own, dt):
+    """``(own, dt)`` of the scenario the card says the weights were trained on
+    (``data_config.scenario``: its attack and sampling period, which its training filled
+    in) where the registry knows it, else the caller's (the study's)."""
+    name = (card.get("data_config") or {}).get("scenario")
+    if not isinstance(name, str):
+        return own, dt
+    from difffilter.models import registry
+
+    try:
+        trained = registry.get(name)
+    except (KeyError, ValueError):  # (a file or module of a user's, not registered here)
+        return own, dt
+    return trained.attack_model(), getattr(trained, "dt", dt)
 
 
 def checkpoint_of(name: str, suite) -> str | None:
@@ -72,10 +108,18 @@ def training_coverage(
     both sides, as training and the study fill it in (left out, the class's default had been
     compared: the very attack trained on read "kind only", and one at 20× another
     frequency "within")."""
+    _check_threats(threats)
+    if dt is not None:
+        dt = check_finite_number(dt, "dt", positive=True)
     card_path = Path(checkpoint).with_suffix(".json") if checkpoint else None
     if card_path is None or not card_path.is_file():
         return None
     card = json.loads(card_path.read_text(encoding="utf-8"))
+    # the attack and sampling period of the scenario the weights were trained on, where the
+    # card names one that is registered: the study's had been credited (a network trained on
+    # four_tank_bias read "within" on a library bias it never met, studied on another
+    # scenario of the family whose attack that is: a coverage trial)
+    own, trained_dt = _trained_scenario(card, own, dt)
     spec = (card.get("data_config") or {}).get("threats")
     # adversarial only where the weights met a crafted attack: configured, they may predate
     # the first crafting (the card's count; a card written before it counted: configured)
@@ -91,9 +135,19 @@ def training_coverage(
     else:
         trained_on = DISTRIBUTION
     if spec:
-        spec = {name: with_sampling_period(entry, dt) for name, entry in spec.items()}
+        spec = {name: with_sampling_period(entry, trained_dt) for name, entry in spec.items()}
     threats = {name: with_sampling_period(threat, dt) for name, threat in threats.items()}
-    distribution = ThreatDistribution(spec, model=model, own=own) if spec else None
+    try:
+        distribution = ThreatDistribution(spec, model=model, own=own) if spec else None
+    except ValueError as error:
+        # a card of another version whose distribution this one refuses (a share it now
+        # names, a kind it lacks): its threats cannot be placed, and the study they label
+        # had run to the end before failing here (a coverage trial)
+        warnings.warn(f"{card_path}: its training distribution cannot be read by this "
+                      f"version ({error}); its threats are labelled '{NOT_KNOWN}'",
+                      stacklevel=2)  # fmt: skip
+        return {"trained_on": trained_on, "adversarial": adversarial,
+                "threats": dict.fromkeys(threats, NOT_KNOWN)}  # fmt: skip
     # a scenario attack of no library kind, met alone or as a distribution's drawn `own`: a
     # threat of a user's class may be that attack (the distribution's had read "held out")
     if trained_on == SCENARIO_ATTACK:

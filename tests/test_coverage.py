@@ -7,6 +7,8 @@ import shutil
 from pathlib import Path
 from types import SimpleNamespace
 
+import pytest
+
 from difffilter.eval.coverage import checkpoint_of, training_coverage
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -54,7 +56,10 @@ def test_a_network_trained_across_threats_has_its_threats_labelled_from_its_card
         path.with_suffix(".json").write_text(json.dumps(card))
         got = training_coverage(path, THREATS)
         assert got["threats"]["crafted"] == want and got["adversarial"] is (want == "kind only")
-    plain = _with_card(tmp_path, {"threats": None}, {"adversarial_runs": 0})
+    # (a scenario the registry does not know, a user's file: the study's attack is the one
+    # trained on; a registered one's own attack is read from it, test below)
+    plain = _with_card(tmp_path, {"threats": None, "scenario": "ramp_plant.yaml"},
+                       {"adversarial_runs": 0})  # fmt: skip
     assert training_coverage(plain, THREATS) == {
         "trained_on": "its scenario's attack", "adversarial": False,
         "threats": dict.fromkeys(THREATS, "held out")}  # fmt: skip
@@ -69,7 +74,8 @@ def test_a_network_trained_across_threats_has_its_threats_labelled_from_its_card
         "replay": "held out", "crafted": "held out"}  # fmt: skip
     same = {"ramp": {"kind": "ramp", "slope": 0.005, "onset": 21, "share": 0.5}}
     assert training_coverage(plain, same, own=own)["threats"] == {"ramp": "within"}
-    across = _with_card(tmp_path, {"threats": threats}, {"adversarial_runs": 0})  # own: 0.5
+    across = _with_card(tmp_path, {"threats": threats, "scenario": "ramp_plant.yaml"},
+                        {"adversarial_runs": 0})  # own: 0.5  # fmt: skip
     assert training_coverage(across, same, own=own)["threats"] == {"ramp": "within"}
     assert training_coverage(across, same)["threats"] == {"ramp": "kind only"}  # slope drawn
     # a scenario attack of a user's class: a threat of a user's class may be that attack
@@ -79,7 +85,8 @@ def test_a_network_trained_across_threats_has_its_threats_labelled_from_its_card
             "ramp": THREATS["ramp"]}  # fmt: skip
     assert training_coverage(across, mine)["threats"]["scale30"] == "held out"
     (tmp_path / "own").mkdir()
-    plain = _with_card(tmp_path / "own", {"threats": None}, {"adversarial_runs": 0})
+    plain = _with_card(tmp_path / "own", {"threats": None, "scenario": "ramp_plant.yaml"},
+                       {"adversarial_runs": 0})  # fmt: skip
     assert training_coverage(plain, mine, own=object())["threats"] == {
         "scale30": "not known", "ramp": "held out"}  # fmt: skip
     assert training_coverage(plain, mine, own=own)["threats"] == {
@@ -105,3 +112,47 @@ def test_the_checkpoint_an_estimator_ran_with_is_its_own_else_the_default_it_use
     assert checkpoint_of("pf_nn_grad", suite) == "a.ckpt"
     assert checkpoint_of("kf_nn_grad", suite) is None
     assert checkpoint_of("pf_nn_grad", SimpleNamespace(checkpoints={}, checkpoint=None)) is None
+
+
+def test_the_attack_trained_on_is_that_of_the_scenario_the_card_names(tmp_path):
+    """A coverage trial: the study's scenario's attack had been credited to the network. The
+    shipped four-tank network (trained on four_tank_bias, whose attack is no library threat)
+    read "within" on a library bias it never met, studied on a four-tank scenario of one's
+    own whose attack that bias is."""
+    from difffilter.threats import Bias
+
+    study_attack = Bias(0.5, onset=21)
+    same = {"bias": {"kind": "bias", "value": 0.5, "onset": 21}}
+    shipped = _with_card(tmp_path, {}, {})  # data_config.scenario: four_tank_bias
+    assert training_coverage(shipped, same, own=study_attack)["threats"] == {"bias": "held out"}
+    user = _with_card(tmp_path, {"scenario": "my_bias_plant.yaml"}, {})  # not registered
+    assert training_coverage(user, same, own=study_attack)["threats"] == {"bias": "within"}
+
+
+def test_a_card_of_another_versions_distribution_labels_its_threats_not_known(tmp_path):
+    """A coverage trial: a distribution this version refuses (a share of 0, written before
+    it was refused) had failed the robustness report after the whole study had run."""
+    threats = {"own": {"weight": 0.5},
+               "off": {"weight": 0.5, "kind": "ramp", "slope": 0.01, "onset": 21,
+                       "share": {"randint": [0, 0]}}}  # fmt: skip
+    path = _with_card(tmp_path, {"threats": threats}, {})
+    with pytest.warns(UserWarning, match="cannot be read by this version .*share is 0"):
+        got = training_coverage(path, THREATS)
+    assert got["threats"] == dict.fromkeys(THREATS, "not known")
+
+
+@pytest.mark.parametrize(
+    ("threats", "message"),
+    [({"bias": {"kind": "bais", "value": 0.5}}, r"threats\['bias'\] must be a mapping whose kind"),
+     ({"bias": {"value": 0.5}}, r"threats\['bias'\] must be a mapping whose kind"),
+     (["bias"], "threats must be a mapping"),
+     ({"bias": "bias"}, r"threats\['bias'\] must be a mapping")],
+)  # fmt: skip
+def test_bad_threats_are_named(threats, message):
+    with pytest.raises(ValueError, match=message):
+        training_coverage(SHIPPED, threats)
+
+
+def test_a_bad_dt_is_named_as_dt():
+    with pytest.raises(ValueError, match="dt must be"):
+        training_coverage(SHIPPED, {"bias": {"kind": "bias", "value": 0.5}}, dt=-1.0)
