@@ -691,8 +691,11 @@ class CovarianceChunks:
         with one state in units 100× smaller, a filter that is not scale-equivariant). And
         ``ρ``: the covariance's error contracts by about ``ρ²`` a step, so a step's change
         ``c`` leaves ``c ρ²/(1 − ρ²)`` to go; a slow mode (``ρ`` near 1) had stopped far from
-        the fixed point (0.7 posterior standard deviations off in float32). Where round-off
-        keeps a slow recursion moving the test may never hold: every step is computed."""
+        the fixed point (0.7 posterior standard deviations off in float32). In float32,
+        where ``tol_ρ`` falls below 16 ε, the test must hold for
+        :data:`~difffilter._riccati_host.STEADY_WINDOW` steps in a row (a step's change
+        rounded to 0 had passed alone). Where round-off keeps a slow recursion moving the
+        test may never hold: every step is computed."""
         n = K.shape[0]
         if K.device.type == "meta":  # shapes only: never converged
             return n
