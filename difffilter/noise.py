@@ -33,6 +33,8 @@ from ._checks import (
     check_positive_definite,
     check_square,
     check_vector_last,
+    values_known,
+    version_stamp,
 )
 from .linalg import (
     LOG_2PI,
@@ -406,9 +408,7 @@ class GaussianMixture(NoiseModel):
         if covs.shape != (c, d, d):
             raise ValueError(f"covs must have shape [{c}, {d}, {d}]; got {tuple(covs.shape)}")
         check_positive_definite(covs, "covs", d)
-        # (written to fail on NaN: NaN weights had passed both comparisons, NaN locs no check)
-        if not (bool((weights >= 0).all()) and abs(float(weights.sum()) - 1.0) <= 1e-6):
-            raise ValueError("weights must be finite, non-negative and sum to 1")
+        _check_mixture_weights(weights)
         if not bool(torch.isfinite(locs).all()):
             raise ValueError("locs must be finite")
         self.dim = d
@@ -416,9 +416,22 @@ class GaussianMixture(NoiseModel):
         register_tensor(self, "locs", locs)
         register_tensor(self, "covs", covs)
 
+    def _weights(self) -> Tensor:
+        """``weights``, checked again where written since (in place, a ``load_state_dict``,
+        an optimiser's step on an ``nn.Parameter``): every member had read them as they
+        came, ``log_prob`` and ``mean`` raw, ``sample`` normalised by ``torch.multinomial``
+        (a noise trial: a density integrating to 5.51 after a fit of the weights; to learn
+        them, build the mixture from ``softmax(logits)`` at each use)."""
+        w = self.weights
+        stamp = (version_stamp(w), w.data_ptr(), id(w))
+        if stamp != getattr(self, "_weights_checked", None):
+            _check_mixture_weights(w)
+            self._weights_checked = stamp
+        return w
+
     @property
     def mean(self) -> Tensor:
-        return (self.weights[:, None] * self.locs).sum(0)
+        return (self._weights()[:, None] * self.locs).sum(0)
 
     def has_batch(self) -> bool:
         """``False``: one mixture for all runs (``weights [C]``, ``locs [C, d]``)."""
@@ -426,7 +439,7 @@ class GaussianMixture(NoiseModel):
 
     @property
     def cov(self) -> Tensor:
-        second = (self.weights[:, None, None] * (self.covs + outer(self.locs, self.locs))).sum(0)
+        second = (self._weights()[:, None, None] * (self.covs + outer(self.locs, self.locs))).sum(0)
         m = self.mean
         return second - outer(m, m)
 
@@ -436,7 +449,7 @@ class GaussianMixture(NoiseModel):
         n = math.prod(shape)
         if n == 0:  # (torch.multinomial draws at least one)
             return self.locs.new_zeros(shape + (self.dim,))
-        comp = torch.multinomial(self.weights, n, replacement=True, generator=generator)
+        comp = torch.multinomial(self._weights(), n, replacement=True, generator=generator)
         L = safe_cholesky(self.covs, name="covs")
         eps = torch.randn(
             n, self.dim, generator=generator, dtype=self.covs.dtype, device=self.covs.device
@@ -457,7 +470,18 @@ class GaussianMixture(NoiseModel):
             comp = gaussian_log_prob_chol(residual, safe_cholesky(self.covs, name="covs"))
         else:
             comp = _masked_gaussian_log_prob(residual, self.covs, mask.unsqueeze(-2))
-        return torch.logsumexp(comp + torch.log(self.weights), dim=-1)
+        return torch.logsumexp(comp + torch.log(self._weights()), dim=-1)
+
+
+def _check_mixture_weights(weights: Tensor) -> None:
+    """Mixing probabilities: finite, non-negative, summing to 1 (to 1e-6). (Written to fail
+    on NaN: NaN weights had passed both comparisons.)"""
+    w = weights.detach()
+    if not (bool((w >= 0).all()) and abs(float(w.sum()) - 1.0) <= 1e-6):
+        raise ValueError(
+            "weights must be finite, non-negative and sum to 1 (to learn them, build the "
+            f"mixture from softmax(logits) of a parameter at each use); got {w.tolist()}"
+        )
 
 
 def check_log_prob_mask(mask: Tensor, dim: int) -> None:
@@ -480,6 +504,17 @@ def _masked_gaussian_log_prob(residual: Tensor, cov: Tensor, mask: Tensor) -> Te
     return gaussian_log_prob_chol(r, safe_cholesky(c, name="cov", mask=mask), count)
 
 
+def _check_box(low: Tensor, high: Tensor) -> None:
+    """Finite bounds with ``high > low`` in every coordinate (when built, and where written
+    since)."""
+    if not values_known(low):
+        return
+    check_finite(low, "low")
+    check_finite(high, "high")
+    if bool((high <= low).any()):
+        raise ValueError("high must be strictly greater than low in every coordinate")
+
+
 class UniformBox(NoiseModel):
     """Uniform distribution on the box ``[low, high]`` (``low, high [*batch, d]``).
 
@@ -495,10 +530,7 @@ class UniformBox(NoiseModel):
             raise ValueError(
                 f"low and high must have the same shape [..., d]; got {tuple(low.shape)}, {tuple(high.shape)}"
             )
-        check_finite(low, "low")
-        check_finite(high, "high")
-        if bool((high <= low).any()):
-            raise ValueError("high must be strictly greater than low in every coordinate")
+        _check_box(low, high)
         self.dim = low.shape[-1]
         register_tensor(self, "low", low)
         register_tensor(self, "high", high)
@@ -521,6 +553,7 @@ class UniformBox(NoiseModel):
         return torch.log(self.high - self.low).sum(-1)
 
     def sample(self, sample_shape=(), generator=None) -> Tensor:
+        _check_box(self.low, self.high)
         shape = _shape(sample_shape) + self.low.shape
         u = torch.rand(shape, generator=generator, dtype=self.low.dtype, device=self.low.device)
         return self.low + (self.high - self.low) * u
@@ -544,10 +577,15 @@ class UniformBox(NoiseModel):
         (a filter asks at every step); recomputed for learnable bounds."""
         low, high = self.low, self.high
         if _uncacheable(low) or _uncacheable(high):
+            _check_box(low, high)
             return torch.log(high - low)
         key = (low.data_ptr(), low._version, high.data_ptr(), high._version, low.dtype, low.device)
         cached = getattr(self, "_log_len_cache", None)
         if not _held(cached, key, low, high):
+            # bounds written since the box was built (in place, load_state_dict) are checked
+            # as the constructor checks them: high = low had given +inf densities, high < low
+            # -inf and NaN under a mask (a noise trial)
+            _check_box(low, high)
             cached = (key, _refs(low, high), torch.log(high - low))
             self._log_len_cache = cached
         return cached[2]
