@@ -37,7 +37,13 @@ from pathlib import Path
 from typing import Any
 
 from difffilter._checks import check_finite_number
-from difffilter.threat_distribution import HELD_OUT, KIND_ONLY, ThreatDistribution, threat_spec
+from difffilter.threat_distribution import (
+    HELD_OUT,
+    KIND_ONLY,
+    WITHIN,
+    ThreatDistribution,
+    threat_spec,
+)
 from difffilter.threats import THREATS, with_sampling_period
 
 __all__ = ["training_coverage", "checkpoint_of", "NOT_KNOWN"]
@@ -66,19 +72,39 @@ def _check_threats(threats) -> None:
             )
 
 
+#: ``_trained_scenario``'s answer where the card names a scenario file that is gone or
+#: was edited since the training read it: the attack trained on is not known.
+UNKNOWN_ATTACK = object()
+
+
 def _trained_scenario(card: dict, own, dt):
     """``(own, dt)`` of the scenario the card says the weights were trained on
     (``data_config.scenario``: its attack and sampling period, which its training filled
-    in) where the registry knows it, else the caller's (the study's)."""
+    in): a registered name from the registry; a YAML file read as it is (not registered:
+    a file of the study's name had collided, and the study's attack was read, a review)
+    where its digest is the card's (``scenario_file_sha256``), else ``UNKNOWN_ATTACK`` (a
+    file edited since: its new attack had been credited); the caller's (the study's) for
+    a module's object or a name not registered here."""
+    from difffilter.models import registry
+    from difffilter.models.yaml_scenario import (
+        is_yaml_path,
+        scenario_file_digest,
+        scenario_from_yaml,
+    )
+
     name = (card.get("data_config") or {}).get("scenario")
     if not isinstance(name, str):
         return own, dt
-    from difffilter.models import registry
-
-    try:
-        trained = registry.get(name)
-    except (KeyError, ValueError):  # (a file or module of a user's, not registered here)
-        return own, dt
+    if is_yaml_path(name):
+        recorded = card.get("scenario_file_sha256")
+        if not Path(name).is_file() or (recorded and scenario_file_digest(name) != recorded):
+            return UNKNOWN_ATTACK, dt
+        trained = scenario_from_yaml(name)
+    else:
+        try:
+            trained = registry.get(name)
+        except (KeyError, ValueError):  # (a module's object of a user's, not registered here)
+            return own, dt
     return trained.attack_model(), getattr(trained, "dt", dt)
 
 
@@ -120,6 +146,9 @@ def training_coverage(
     # four_tank_bias read "within" on a library bias it never met, studied on another
     # scenario of the family whose attack that is: a coverage trial)
     own, trained_dt = _trained_scenario(card, own, dt)
+    unknown = own is UNKNOWN_ATTACK
+    if unknown:
+        own = None
     spec = (card.get("data_config") or {}).get("threats")
     # adversarial only where the weights met a crafted attack: configured, they may predate
     # the first crafting (the card's count; a card written before it counted: configured)
@@ -155,6 +184,9 @@ def training_coverage(
     else:
         drawn_own = float((spec.get("own") or {}).get("weight", 0)) > 0
         unplaced = drawn_own and own is not None and threat_spec(own) is None
+    # the scenario's attack trained on not known (its file gone or edited): whatever it
+    # could have covered is not known, what a drawn component covers exactly still is
+    own_met = trained_on == SCENARIO_ATTACK or float((spec.get("own") or {}).get("weight", 0)) > 0
     labels = {}
     for name, threat in threats.items():
         if threat.get("kind") == "stealthy":  # crafted when the study runs, not drawn
@@ -163,4 +195,6 @@ def training_coverage(
             labels[name] = NOT_KNOWN
         else:
             labels[name] = HELD_OUT if distribution is None else distribution.covers(threat)
+            if unknown and own_met and labels[name] != WITHIN:
+                labels[name] = NOT_KNOWN
     return {"trained_on": trained_on, "adversarial": adversarial, "threats": labels}

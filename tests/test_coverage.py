@@ -56,9 +56,9 @@ def test_a_network_trained_across_threats_has_its_threats_labelled_from_its_card
         path.with_suffix(".json").write_text(json.dumps(card))
         got = training_coverage(path, THREATS)
         assert got["threats"]["crafted"] == want and got["adversarial"] is (want == "kind only")
-    # (a scenario the registry does not know, a user's file: the study's attack is the one
-    # trained on; a registered one's own attack is read from it, test below)
-    plain = _with_card(tmp_path, {"threats": None, "scenario": "ramp_plant.yaml"},
+    # (a scenario the registry does not know, a user's module's: the study's attack is the
+    # one trained on; a registered one's own attack is read from it, test below)
+    plain = _with_card(tmp_path, {"threats": None, "scenario": "my_plants:ramp_plant"},
                        {"adversarial_runs": 0})  # fmt: skip
     assert training_coverage(plain, THREATS) == {
         "trained_on": "its scenario's attack", "adversarial": False,
@@ -74,7 +74,7 @@ def test_a_network_trained_across_threats_has_its_threats_labelled_from_its_card
         "replay": "held out", "crafted": "held out"}  # fmt: skip
     same = {"ramp": {"kind": "ramp", "slope": 0.005, "onset": 21, "share": 0.5}}
     assert training_coverage(plain, same, own=own)["threats"] == {"ramp": "within"}
-    across = _with_card(tmp_path, {"threats": threats, "scenario": "ramp_plant.yaml"},
+    across = _with_card(tmp_path, {"threats": threats, "scenario": "my_plants:ramp_plant"},
                         {"adversarial_runs": 0})  # own: 0.5  # fmt: skip
     assert training_coverage(across, same, own=own)["threats"] == {"ramp": "within"}
     assert training_coverage(across, same)["threats"] == {"ramp": "kind only"}  # slope drawn
@@ -85,7 +85,7 @@ def test_a_network_trained_across_threats_has_its_threats_labelled_from_its_card
             "ramp": THREATS["ramp"]}  # fmt: skip
     assert training_coverage(across, mine)["threats"]["scale30"] == "held out"
     (tmp_path / "own").mkdir()
-    plain = _with_card(tmp_path / "own", {"threats": None, "scenario": "ramp_plant.yaml"},
+    plain = _with_card(tmp_path / "own", {"threats": None, "scenario": "my_plants:ramp_plant"},
                        {"adversarial_runs": 0})  # fmt: skip
     assert training_coverage(plain, mine, own=object())["threats"] == {
         "scale30": "not known", "ramp": "held out"}  # fmt: skip
@@ -125,8 +125,41 @@ def test_the_attack_trained_on_is_that_of_the_scenario_the_card_names(tmp_path):
     same = {"bias": {"kind": "bias", "value": 0.5, "onset": 21}}
     shipped = _with_card(tmp_path, {}, {})  # data_config.scenario: four_tank_bias
     assert training_coverage(shipped, same, own=study_attack)["threats"] == {"bias": "held out"}
-    user = _with_card(tmp_path, {"scenario": "my_bias_plant.yaml"}, {})  # not registered
+    user = _with_card(tmp_path, {"scenario": "my_plants:bias_plant"}, {})  # not registered
     assert training_coverage(user, same, own=study_attack)["threats"] == {"bias": "within"}
+
+
+def test_a_scenario_file_read_as_trained_unless_gone_or_edited(tmp_path):
+    """A review: a card naming a YAML file was read through the registry (a file of the
+    study's scenario name collided, and the study's attack was credited) and as it is now
+    (edited since, its new attack was credited). It is read itself, and only where its
+    digest is the card's; else what it could have covered is "not known"."""
+    from difffilter.models.yaml_scenario import scenario_file_digest
+    from difffilter.threats import Ramp
+
+    plant = tmp_path / "plant.yaml"
+    doc = (
+        "name: coverage_plant\nfamily: my_plants\ndescription: a scalar plant\ndt: 0.1\n"
+        "runs: 4\nsteps: 20\nnum_particles: 50\nfalse_alarm_rate: 0.01\n"
+        "plant: {F: [[0.9]], H: [[1.0]], Q: 1.0e-2, R: 1.0e-2, P0: 1.0e-1}\n"
+        "attack: {kind: bias, channel: sensor, value: 0.5, onset: 5}\n"
+    )
+    plant.write_text(doc, encoding="utf-8")
+    card = _with_card(tmp_path, {"scenario": str(plant)}, {})
+    meta = json.loads(card.with_suffix(".json").read_text())
+    meta["scenario_file_sha256"] = scenario_file_digest(str(plant))
+    card.with_suffix(".json").write_text(json.dumps(meta))
+    threats = {"bias": {"kind": "bias", "value": 0.5, "onset": 5},
+               "other": {"kind": "bias", "value": 0.7, "onset": 5},
+               "ramp": {"kind": "ramp", "slope": 0.1, "onset": 5}}  # fmt: skip
+    study = Ramp(slope=0.1, onset=5)  # the study's own attack: not what was trained on
+    assert training_coverage(card, threats, own=study)["threats"] == {
+        "bias": "within", "other": "kind only", "ramp": "held out"}  # fmt: skip
+    threats = {"bias": threats["bias"]}
+    plant.write_text(doc + "\n# edited\n", encoding="utf-8")  # its digest moves
+    assert training_coverage(card, threats)["threats"] == {"bias": "not known"}
+    plant.unlink()
+    assert training_coverage(card, threats)["threats"] == {"bias": "not known"}
 
 
 def test_a_card_of_another_versions_distribution_labels_its_threats_not_known(tmp_path):
