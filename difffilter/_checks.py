@@ -924,6 +924,7 @@ def check_model(model, *, prior: bool = True) -> None:
             f"{type(model).__name__} lacks {', '.join(missing)}"
         )
     _check_noise_dtypes(model)
+    _check_noise_fits(model)
     for name, matrix in getattr(model, "_matrices_read", list)():
         # a linear model's F, H or B written NaN in place after construction (a NaN B had
         # run to NaN means without an error, a NaN F or H blamed on Q, R and P0: a trial)
@@ -944,6 +945,28 @@ def check_model_dtype(dtype: torch.dtype, what: str) -> None:
             f"{what} is {dtype}: the filters and simulate run in torch.float32 or "
             "torch.float64 (convert with .float() or .double())"
         )
+
+
+def _check_noise_fits(model) -> None:
+    """The noise models and the prior of the model's dimensions, and a Gaussian covariance
+    written since still symmetric (``Gaussian.check_written``): a noise of another
+    dimension assigned after construction had run (a 1-dim process noise on two states
+    broadcast to a singular ``Q`` in the EKF, UKF and particle filter) or failed in torch's
+    words, and an asymmetric ``R`` written in place was read as its average by the Kalman
+    filters and as one triangle by the particle filter (a covariance-write trial)."""
+    for name, want, what in (("process_noise", "dim_x", "states"),
+                             ("measurement_noise", "dim_y", "measurement entries"),
+                             ("initial", "dim_x", "states")):  # fmt: skip
+        noise = getattr(model, name, None)
+        dim, size = getattr(noise, "dim", None), getattr(model, want, None)
+        if isinstance(dim, int) and isinstance(size, int) and dim != size:
+            raise ValueError(
+                f"model.{name} has dimension {dim} and the model {size} {what} ({want}): give "
+                f"it a noise of dimension {size}"
+            )
+        check = getattr(noise, "check_written", None)
+        if callable(check):
+            check(f"model.{name}")
 
 
 def _check_noise_dtypes(model) -> None:

@@ -32,9 +32,9 @@ from ._checks import (
     check_finite,
     check_positive_definite,
     check_square,
+    check_symmetric,
     check_vector_last,
     values_known,
-    version_stamp,
 )
 from .linalg import (
     LOG_2PI,
@@ -80,6 +80,21 @@ def _uncacheable(t: Tensor) -> bool:
     trial; the factor is then differentiated through the transform)."""
     return (t.requires_grad or t.is_inference()
             or torch._C._functorch.is_functorch_wrapped_tensor(t))  # fmt: skip
+
+
+def _written_since(owner, attr: str, *tensors: Tensor) -> bool:
+    """Whether ``tensors`` were written (or replaced) since ``owner`` last recorded them
+    under ``attr``, recording them now: a check made once per write (a ``torch.func``
+    wrapper, which has no storage to identify, and an inference tensor, which keeps no
+    version, count as written at every use)."""
+    wrapped = torch._C._functorch.is_functorch_wrapped_tensor
+    if any(wrapped(t) or t.is_inference() for t in tensors):
+        return True
+    stamp = tuple((t._version, t.data_ptr(), id(t)) for t in tensors)
+    if stamp == getattr(owner, attr, None):
+        return False
+    setattr(owner, attr, stamp)
+    return True
 
 
 def _held(cached, key, *tensors: Tensor) -> bool:
@@ -279,7 +294,24 @@ class Gaussian(NoiseModel):
             if bool((diag < 0).any()):
                 L = L * torch.where(diag < 0, -1.0, 1.0).to(L.dtype).unsqueeze(-2)
             return L
+        # (written asymmetric since it was built: the factor reads one triangle, the Kalman
+        # filters the average, and a particle filter's means were 0.44 off a Kalman
+        # filter's of the same model: a covariance-write trial)
+        check_symmetric(self._cov, "cov")
         return safe_cholesky(self._cov, name="cov")
+
+    def check_written(self, name: str) -> None:
+        """A covariance given as ``cov`` and written since it was checked (in place, a
+        ``load_state_dict``) still symmetric (:func:`~difffilter._checks.check_symmetric`);
+        one check per version. ``name``: how the error names it (``model.process_noise``)."""
+        if self._given != "cov":
+            return
+        if _written_since(self, "_written_checked", self._cov):
+            try:
+                check_symmetric(self._cov, f"{name}'s covariance")
+            except ValueError:
+                self._written_checked = None
+                raise
 
     @property
     def scale_tril(self) -> Tensor:
@@ -423,10 +455,12 @@ class GaussianMixture(NoiseModel):
         (a noise trial: a density integrating to 5.51 after a fit of the weights; to learn
         them, build the mixture from ``softmax(logits)`` at each use)."""
         w = self.weights
-        stamp = (version_stamp(w), w.data_ptr(), id(w))
-        if stamp != getattr(self, "_weights_checked", None):
-            _check_mixture_weights(w)
-            self._weights_checked = stamp
+        if _written_since(self, "_weights_checked", w):
+            try:
+                _check_mixture_weights(w)
+            except ValueError:
+                self._weights_checked = None  # (refused: checked again at the next use)
+                raise
         return w
 
     @property
@@ -535,9 +569,23 @@ class UniformBox(NoiseModel):
         register_tensor(self, "low", low)
         register_tensor(self, "high", high)
 
+    def _bounds(self) -> tuple[Tensor, Tensor]:
+        """``(low, high)``, checked again where written since the box was built (in place,
+        ``load_state_dict``): ``high = low`` had given +inf densities, ``high < low`` −inf,
+        NaN under a mask, and ``cov``/``log_volume`` an empty box's (a noise trial)."""
+        low, high = self.low, self.high
+        if _written_since(self, "_bounds_checked", low, high):
+            try:
+                _check_box(low, high)
+            except ValueError:
+                self._bounds_checked = None
+                raise
+        return low, high
+
     @property
     def mean(self) -> Tensor:
-        return 0.5 * (self.low + self.high)
+        low, high = self._bounds()
+        return 0.5 * (low + high)
 
     def has_batch(self) -> bool:
         """Whether ``low`` and ``high`` have batch dimensions (one box per run)."""
@@ -545,18 +593,20 @@ class UniformBox(NoiseModel):
 
     @property
     def cov(self) -> Tensor:
-        return torch.diag_embed((self.high - self.low).square() / 12.0)
+        low, high = self._bounds()
+        return torch.diag_embed((high - low).square() / 12.0)
 
     @property
     def log_volume(self) -> Tensor:
         """``Σ log(high − low)`` ``[*batch]``."""
-        return torch.log(self.high - self.low).sum(-1)
+        low, high = self._bounds()
+        return torch.log(high - low).sum(-1)
 
     def sample(self, sample_shape=(), generator=None) -> Tensor:
-        _check_box(self.low, self.high)
-        shape = _shape(sample_shape) + self.low.shape
-        u = torch.rand(shape, generator=generator, dtype=self.low.dtype, device=self.low.device)
-        return self.low + (self.high - self.low) * u
+        low, high = self._bounds()
+        shape = _shape(sample_shape) + low.shape
+        u = torch.rand(shape, generator=generator, dtype=low.dtype, device=low.device)
+        return low + (high - low) * u
 
     def log_prob(self, value: Tensor, mask: Tensor | None = None) -> Tensor:
         """``−Σ log(high − low)`` inside the box, ``−inf`` outside (marginal on ``mask``)."""
@@ -575,17 +625,12 @@ class UniformBox(NoiseModel):
     def _log_lengths(self) -> Tensor:
         """``log(high − low)`` ``[*batch, d]``, kept while ``low`` and ``high`` are unchanged
         (a filter asks at every step); recomputed for learnable bounds."""
-        low, high = self.low, self.high
+        low, high = self._bounds()
         if _uncacheable(low) or _uncacheable(high):
-            _check_box(low, high)
             return torch.log(high - low)
         key = (low.data_ptr(), low._version, high.data_ptr(), high._version, low.dtype, low.device)
         cached = getattr(self, "_log_len_cache", None)
         if not _held(cached, key, low, high):
-            # bounds written since the box was built (in place, load_state_dict) are checked
-            # as the constructor checks them: high = low had given +inf densities, high < low
-            # -inf and NaN under a mask (a noise trial)
-            _check_box(low, high)
             cached = (key, _refs(low, high), torch.log(high - low))
             self._log_len_cache = cached
         return cached[2]

@@ -165,6 +165,8 @@ class GlintNoise(NoiseModel):
 
     @property
     def cov(self) -> Tensor:
+        self._tables()  # (weights written since are checked, as log_prob checks them: a
+        # sum of 3 had given 3× the covariance, the model's R, a review)
         block = (self.weights[:, None] * self.variances).sum(0)
         return torch.diag_embed(block.repeat(self.sensors))
 

@@ -64,3 +64,74 @@ def test_box_bounds_written_in_order_are_followed():
     torch.testing.assert_close(box.log_prob(torch.full((1, 2), 1.5, dtype=F64)),
                                torch.tensor([-2 * torch.log(torch.tensor(2.0, dtype=F64))],
                                             dtype=F64))  # fmt: skip
+
+
+def test_mixture_weights_of_softmax_run_under_torch_func():
+    # a review: the once-per-write check read data_ptr(), which a torch.func wrapper lacks
+    v = torch.linspace(-2, 2, 5, dtype=F64)[:, None]
+
+    def total(logits):
+        return _mixture(torch.softmax(logits, 0)).log_prob(v).sum()
+
+    logits = torch.tensor([0.3, -0.2], dtype=F64)
+    grad = torch.func.grad(total)(logits)
+    leaf = logits.clone().requires_grad_(True)
+    total(leaf).backward()
+    torch.testing.assert_close(grad, leaf.grad, rtol=1e-12, atol=0)
+
+
+def test_every_box_member_refuses_bounds_written_out_of_order():
+    box = UniformBox(torch.zeros(2, dtype=F64), torch.ones(2, dtype=F64))
+    box.high.fill_(-1.0)
+    for member in ("cov", "mean", "log_volume"):
+        with pytest.raises(ValueError, match="high must be strictly greater than low"):
+            getattr(box, member)
+
+
+def test_glint_cov_refuses_weights_written_off_the_simplex():
+    from difffilter.models.tracking import GlintNoise
+
+    noise = GlintNoise(torch.tensor([0.8, 0.2], dtype=F64),
+                       torch.tensor([[4.0, 1e-3], [25.0, 1e-3]], dtype=F64), sensors=2)  # fmt: skip
+    with torch.no_grad():
+        noise.weights.mul_(3.0)
+    with pytest.raises(ValueError, match="weights must be finite, non-negative and sum to 1"):
+        _ = noise.cov
+
+
+def _linear():
+    import difffilter as df
+
+    eye = torch.eye(2, dtype=F64)
+    return df.LinearGaussianModel(torch.tensor([[1.0, 0.1], [0.0, 1.0]], dtype=F64), eye,
+                                  0.1 * eye, 0.5 * eye, torch.zeros(2, dtype=F64), eye)  # fmt: skip
+
+
+@pytest.mark.parametrize("consumer", ["kalman_filter", "particle_filter", "simulate", "pcrb"])
+def test_a_covariance_written_asymmetric_or_a_noise_of_other_dimension_is_named(consumer):
+    # a covariance-write trial: an asymmetric R written in place was read as its average by
+    # the Kalman filters and as one triangle by the particle filter (0.44 apart); a 1-dim
+    # noise assigned to two states ran as a broadcast, singular Q
+    import difffilter as df
+    from difffilter.noise import Gaussian
+
+    def run(model):
+        gen = torch.Generator().manual_seed(0)
+        xs = torch.zeros(1, 4, 2, dtype=F64)
+        ys = torch.zeros(1, 4, 2, dtype=F64)
+        return {"kalman_filter": lambda: df.kalman_filter(model, ys),
+                "particle_filter": lambda: df.particle_filter(model, ys, num_particles=50,
+                                                              generator=gen),
+                "simulate": lambda: model.simulate(4, (1,), generator=gen),
+                "pcrb": lambda: df.posterior_crb(model, xs, torch.zeros(1, 2, dtype=F64))}[
+            consumer]()  # fmt: skip
+
+    model = _linear()
+    with torch.no_grad():
+        model.measurement_noise.cov[0, 1] += 0.3
+    with pytest.raises(ValueError, match="must be symmetric"):
+        run(model)
+    model = _linear()
+    model.process_noise = Gaussian(torch.zeros(1, dtype=F64), 0.1 * torch.eye(1, dtype=F64))
+    with pytest.raises(ValueError, match="model.process_noise has dimension 1 and the model 2"):
+        run(model)
