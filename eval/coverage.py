@@ -88,7 +88,7 @@ def _trained_scenario(card: dict, own, dt):
     from difffilter.models import registry
     from difffilter.models.yaml_scenario import (
         is_yaml_path,
-        scenario_file_digest,
+        scenario_file_matches,
         scenario_from_yaml,
     )
 
@@ -97,7 +97,9 @@ def _trained_scenario(card: dict, own, dt):
         return own, dt
     if is_yaml_path(name):
         recorded = card.get("scenario_file_sha256")
-        if not Path(name).is_file() or (recorded and scenario_file_digest(name) != recorded):
+        # (scenario_file_matches: a card of before the digest covered the file's Python
+        # code had read "not known" for an unchanged file, a review)
+        if not Path(name).is_file() or (recorded and not scenario_file_matches(recorded, name)):
             return UNKNOWN_ATTACK, dt
         trained = scenario_from_yaml(name)
     else:

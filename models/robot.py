@@ -191,6 +191,15 @@ class RobotModel(StateSpaceModel):
         """Whether the sensor groups ``groups`` (equal-length sequences of 0-based indices)
         see the same measurement noise (equal blocks of ``R`` and of its mean), so that
         :meth:`group` can stack them."""
+        flat = [i for g in groups for i in g]
+        if any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < self.num_sensors
+               for i in flat):  # fmt: skip
+            # (an index past the sensors had failed in torch's IndexError at the estimator's
+            # init, and -1 read as the last sensor: a robot-estimators trial)
+            raise ValueError(
+                f"groups: indices must lie in 0 … {self.num_sensors - 1} (0-based sensors); "
+                f"got {groups!r}"
+            )
         noise = self.measurement_noise
         if not isinstance(noise, Gaussian):
             return False

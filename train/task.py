@@ -1018,8 +1018,15 @@ class FilterEstimatorTask(pl.LightningModule):
         experiment = getattr(self.logger, "experiment", None)
         if experiment is None or not hasattr(experiment, "add_figure"):
             return
-        fig = attack_figure(truth["attack"][0], out.attack[0].detach(), scenario.dt,
+        from difffilter.eval.plots import shown_run
+
+        # the first attacked run, as the evaluation's figures show (run 0 of a scenario
+        # attacking a share of its runs may be clean: an injected signal of zeros beside a
+        # noisy estimate, a figures trial)
+        run = shown_run(truth["flags"]) if "flags" in truth else 0
+        fig = attack_figure(truth["attack"][run], out.attack[run].detach(), scenario.dt,
                             actuator=self.channel is Channel.ACTUATOR)  # fmt: skip
+        fig.axes[0].set_title(f"run {run}", fontsize=8)
         experiment.add_figure(tag, fig, global_step=self._logged_step())
 
     def _logged_step(self) -> int:
