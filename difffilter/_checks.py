@@ -954,12 +954,17 @@ def _check_noise_fits(model) -> None:
     broadcast to a singular ``Q`` in the EKF, UKF and particle filter) or failed in torch's
     words, and an asymmetric ``R`` written in place was read as its average by the Kalman
     filters and as one triangle by the particle filter (a covariance-write trial)."""
+    from .ssm import LinearGaussianModel, NonlinearGaussianModel
+
+    # the dimensions where the noise is added to the state and the measurement as they are
+    # (the library's two models; a model of its own, e.g. an augmented state, may differ;
+    # the prior's dimension is named by init and the filters already)
+    additive = isinstance(model, (LinearGaussianModel, NonlinearGaussianModel))
     for name, want, what in (("process_noise", "dim_x", "states"),
-                             ("measurement_noise", "dim_y", "measurement entries"),
-                             ("initial", "dim_x", "states")):  # fmt: skip
+                             ("measurement_noise", "dim_y", "measurement entries")):  # fmt: skip
         noise = getattr(model, name, None)
         dim, size = getattr(noise, "dim", None), getattr(model, want, None)
-        if isinstance(dim, int) and isinstance(size, int) and dim != size:
+        if additive and isinstance(dim, int) and isinstance(size, int) and dim != size:
             raise ValueError(
                 f"model.{name} has dimension {dim} and the model {size} {what} ({want}): give "
                 f"it a noise of dimension {size}"
@@ -967,6 +972,9 @@ def _check_noise_fits(model) -> None:
         check = getattr(noise, "check_written", None)
         if callable(check):
             check(f"model.{name}")
+    check = getattr(getattr(model, "initial", None), "check_written", None)
+    if callable(check):
+        check("model.initial")
 
 
 def _check_noise_dtypes(model) -> None:

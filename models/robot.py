@@ -22,6 +22,7 @@ the paper's attack ``a(k)``, ``k ≥ 30``, starts at index ``t = 29``.
 from __future__ import annotations
 
 import math
+import operator
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -191,9 +192,11 @@ class RobotModel(StateSpaceModel):
         """Whether the sensor groups ``groups`` (equal-length sequences of 0-based indices)
         see the same measurement noise (equal blocks of ``R`` and of its mean), so that
         :meth:`group` can stack them."""
-        flat = [i for g in groups for i in g]
-        if any(isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < self.num_sensors
-               for i in flat):  # fmt: skip
+        try:  # (numpy's and tensors' integers too, as group() takes them)
+            flat = [None if isinstance(i, bool) else operator.index(i) for g in groups for i in g]
+        except TypeError:
+            flat = [None]
+        if any(i is None or not 0 <= i < self.num_sensors for i in flat):
             # (an index past the sensors had failed in torch's IndexError at the estimator's
             # init, and -1 read as the last sensor: a robot-estimators trial)
             raise ValueError(

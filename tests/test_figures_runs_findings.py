@@ -50,3 +50,17 @@ def test_a_robot_sensor_group_past_the_sensors_is_named():
         with pytest.raises(ValueError, match=r"groups: indices must lie in 0 … 5"):
             model.groups_share_noise(groups)
     assert model.groups_share_noise(((0, 1, 2), (3, 4, 5))) is True  # the paper's two groups
+
+
+def test_robot_sensor_groups_of_numpy_or_tensor_integers_are_taken():
+    # a review: the group check above had refused the integer types group() takes
+    import numpy as np
+
+    from difffilter.models.robot import RobotModel
+
+    model = RobotModel()
+    for groups in (np.array([[0, 1, 2], [3, 4, 5]]), torch.tensor([[0, 1, 2], [3, 4, 5]]),
+                   [[np.int64(0), 1, 2], [3, 4, np.int64(5)]]):  # fmt: skip
+        assert model.groups_share_noise(groups) is True
+    with pytest.raises(ValueError, match="groups: indices must lie in 0 … 5"):
+        model.groups_share_noise([[True, 1, 2], [3, 4, 5]])
