@@ -114,7 +114,7 @@ schedule: {kind: packet_loss, rate: 0.5}
 
 
 def test_a_crafting_with_too_few_received_attacked_steps_is_skipped_not_fatal(
-    tmp_path, monkeypatch
+    tmp_path, monkeypatch, isolated_registry
 ):
     # a review: under packet loss, a late onset left fewer than two received attacked steps
     # in the crafting batch, and the fit died at that crafting
