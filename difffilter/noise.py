@@ -82,20 +82,20 @@ def _uncacheable(t: Tensor) -> bool:
             or torch._C._functorch.is_functorch_wrapped_tensor(t))  # fmt: skip
 
 
-def _written_since(owner, attr: str, *tensors: Tensor) -> bool:
-    """Whether ``tensors`` were written (or replaced) since ``owner`` last recorded them
-    under ``attr``, recording them now: a check made once per write (a ``torch.func``
-    wrapper, which has no storage to identify, and an inference tensor, which keeps no
-    version, count as written at every use). ``attr`` ends in ``_cache``: a plant's
-    fingerprint leaves such attributes (memory addresses) out."""
+def _check_once(owner, attr: str, check, *tensors: Tensor) -> None:
+    """``check()`` where ``tensors`` were written (or replaced) since ``owner`` last passed
+    it, recorded under ``attr`` only once it passes: a check made once per write (a
+    ``torch.func`` wrapper, which has no storage to identify, and an inference tensor,
+    which keeps no version, are checked at every use). ``attr`` ends in ``_cache``: a
+    plant's fingerprint leaves such attributes (memory addresses) out."""
     wrapped = torch._C._functorch.is_functorch_wrapped_tensor
     if any(wrapped(t) or t.is_inference() for t in tensors):
-        return True
+        check()
+        return
     stamp = tuple((t._version, t.data_ptr(), id(t)) for t in tensors)
-    if stamp == getattr(owner, attr, None):
-        return False
-    setattr(owner, attr, stamp)
-    return True
+    if stamp != getattr(owner, attr, None):
+        check()
+        setattr(owner, attr, stamp)
 
 
 def _held(cached, key, *tensors: Tensor) -> bool:
@@ -298,13 +298,9 @@ class Gaussian(NoiseModel):
         # (written asymmetric since it was built: the factor reads one triangle, the Kalman
         # filters the average, and a particle filter's means were 0.44 off a Kalman
         # filter's of the same model: a covariance-write trial)
-        if _written_since(self, "_factor_checked_cache", self._cov):  # (once per write: a learnable
-            # covariance's factor is made at every use, a review)
-            try:
-                check_symmetric(self._cov, "cov")
-            except ValueError:
-                self._factor_checked_cache = None
-                raise
+        # (once per write: a learnable covariance's factor is made at every use, a review)
+        _check_once(self, "_factor_checked_cache", lambda: check_symmetric(self._cov, "cov"),
+                    self._cov)  # fmt: skip
         return safe_cholesky(self._cov, name="cov")
 
     def check_written(self, name: str) -> None:
@@ -313,12 +309,8 @@ class Gaussian(NoiseModel):
         one check per version. ``name``: how the error names it (``model.process_noise``)."""
         if self._given != "cov":
             return
-        if _written_since(self, "_written_checked_cache", self._cov):
-            try:
-                check_symmetric(self._cov, f"{name}'s covariance")
-            except ValueError:
-                self._written_checked_cache = None
-                raise
+        _check_once(self, "_written_checked_cache",
+                    lambda: check_symmetric(self._cov, f"{name}'s covariance"), self._cov)  # fmt: skip
 
     @property
     def scale_tril(self) -> Tensor:
@@ -462,12 +454,7 @@ class GaussianMixture(NoiseModel):
         (a noise trial: a density integrating to 5.51 after a fit of the weights; to learn
         them, build the mixture from ``softmax(logits)`` at each use)."""
         w = self.weights
-        if _written_since(self, "_weights_checked_cache", w):
-            try:
-                _check_mixture_weights(w)
-            except ValueError:
-                self._weights_checked_cache = None  # (refused: checked again at the next use)
-                raise
+        _check_once(self, "_weights_checked_cache", lambda: _check_mixture_weights(w), w)
         return w
 
     @property
@@ -581,12 +568,7 @@ class UniformBox(NoiseModel):
         ``load_state_dict``): ``high = low`` had given +inf densities, ``high < low`` −inf,
         NaN under a mask, and ``cov``/``log_volume`` an empty box's (a noise trial)."""
         low, high = self.low, self.high
-        if _written_since(self, "_bounds_checked_cache", low, high):
-            try:
-                _check_box(low, high)
-            except ValueError:
-                self._bounds_checked_cache = None
-                raise
+        _check_once(self, "_bounds_checked_cache", lambda: _check_box(low, high), low, high)
         return low, high
 
     @property
