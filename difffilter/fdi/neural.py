@@ -269,6 +269,29 @@ class OnlineLearning(NamedTuple):
     init_scale: float | None = None
 
 
+def _check_learning(learning: OnlineLearning) -> None:
+    """An :class:`OnlineLearning`'s fields, when the estimator is built: a ``rule="ekf"``
+    had failed in the loop's first step (``'str' object has no attribute 'init'``), a NaN
+    ``init_scale`` as a Cholesky breakdown naming nothing, a negative one was taken (where
+    ``paper_network`` refuses it)."""
+    if not isinstance(learning.rule, (EKFRule, GradientRule)):
+        raise TypeError(
+            "learning.rule must be an EKFRule or a GradientRule (difffilter.param_ekf); got "
+            f"{learning.rule!r}"
+        )
+    scale = learning.init_scale
+    if scale is not None and (
+        isinstance(scale, bool) or not isinstance(scale, (int, float))
+        or not math.isfinite(scale) or scale <= 0
+    ):  # fmt: skip
+        raise ValueError(
+            "learning.init_scale must be a finite number > 0 (each run starts from s·U[0, 1] "
+            f"weights) or None (the network's own); got {scale!r}"
+        )
+    if not isinstance(learning.posterior, bool):
+        raise TypeError(f"learning.posterior must be True or False; got {learning.posterior!r}")
+
+
 class NeuralState(NamedTuple):
     """The network's part of a carry: ``attack_hist [..., J, a, d]`` (``â_{k−1} … â_{k−a}``
     of each area), ``resid_hist [..., J, b, r]`` (most recent first), the online ``learner``
@@ -1080,6 +1103,8 @@ def _check_options(network, inner, channel, features, poa_eta, learning, decepti
         raise TypeError(
             f"learning must be an OnlineLearning(rule=...) or None; got {type(learning).__name__}"
         )
+    if learning is not None:
+        _check_learning(learning)
     if learning is not None and channel is not Channel.SENSOR:
         raise ValueError(
             "online learning fits the estimate to the innovation (eq. 5): it needs a sensor "
