@@ -405,11 +405,23 @@ def _check_fits(name: str, scenario: str, out, traj) -> None:
         if estimate is None:
             continue
         bad = ~torch.isfinite(estimate).all(-1)
-        if bool(bad.any()):  # a diverged estimate: its RMSEs are NaN, null in metrics.json
+        if not bool(bad.any()):
+            continue
+        # the attack RMSE reads the attacked steps only (the state RMSE every step): a NaN
+        # on an attack-free step had been said to null an attack RMSE that metrics.json gave
+        scored = bad if what == "state" else bad & traj.flags
+        if bool(scored.any()):  # a diverged estimate: its RMSE is NaN, null in metrics.json
             warnings.warn(
                 f"estimator {name!r} on {scenario}: its {what} estimate is NaN or infinite "
                 f"at {int(bad.sum())} of {bad.numel()} run-steps, so its {what} RMSE is "
                 "null (not 'does not apply': it diverged)", stacklevel=2,
+            )  # fmt: skip
+        else:
+            warnings.warn(
+                f"estimator {name!r} on {scenario}: its attack estimate is NaN or infinite "
+                f"at {int(bad.sum())} of {bad.numel()} run-steps, all attack-free: its attack "
+                "RMSE (over the attacked steps) is given, though the estimate diverged there",
+                stacklevel=2,
             )  # fmt: skip
     if out.detection is not None and out.detection.scores.shape != traj.flags.shape:
         raise ValueError(  # (the output's own check ties scores to its means; kept for clarity)

@@ -110,3 +110,28 @@ def test_a_nan_attack_estimate_is_warned_too():
     attack[1, 1] = float("nan")
     with pytest.warns(UserWarning, match="its attack estimate is NaN or infinite at 1 of 6"):
         _check_fits("mine", "plant", EstimatorOutput(x, attack=attack), traj)
+
+
+def test_a_nan_attack_estimate_on_attack_free_steps_only_is_not_said_to_null_its_rmse():
+    """The attack RMSE reads the attacked steps only: a NaN on an attack-free step had been
+    warned as "so its attack RMSE is null" while metrics.json gave the number (a trial)."""
+    import torch
+
+    from difffilter.estimator import EstimatorOutput
+    from difffilter.eval.scoring import score
+    from difffilter.eval.suite import _check_fits
+    from difffilter.loop import Trajectories
+
+    x = torch.zeros(2, 3, 1, dtype=torch.float64)
+    flags = torch.tensor([[False, True, True], [False, False, True]])
+    traj = Trajectories(x, x, x, None, None, x, flags, {})
+    attack = torch.full_like(x, 0.5)
+    attack[1, 1] = float("nan")  # attack-free
+    output = EstimatorOutput(x, attack=attack)
+    with pytest.warns(UserWarning, match="at 1 of 6 run-steps, all attack-free") as seen:
+        _check_fits("mine", "plant", output, traj)
+    assert not any("is null" in str(w.message) for w in seen)
+    assert score(output, traj, dt=1.0, wall_s=0.0)["attack_rmse"] == pytest.approx(0.5)
+    attack[0, 1] = float("nan")  # attacked: now the RMSE is NaN, null in metrics.json
+    with pytest.warns(UserWarning, match="at 2 of 6 run-steps, so its attack RMSE is null"):
+        _check_fits("mine", "plant", output, traj)
