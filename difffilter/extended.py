@@ -108,6 +108,14 @@ class ExtendedKalmanFilter(GaussianFilter):
                     "its Jacobian) gave it from the previous estimate (e.g. a square root of a "
                     "negative level), so nothing could be linearised there"
                 ) from exc
+            if not bool(torch.isfinite(prediction.cov).all()) and bool(
+                torch.isfinite(carry.cov).all()
+            ):  # P⁻ = F P Fᵀ + Q from a finite P: F it is (the message had blamed S's Q, R, P0)
+                raise NumericalBreakdown(
+                    f"the transition Jacobian ∂f/∂x at step {k} holds NaN or inf at the previous "
+                    "estimate: f is not differentiable there (e.g. a square root of a level "
+                    "at 0), so the EKF cannot linearise it (the UKF or a particle filter can run)"
+                ) from exc
             H = carry.model.observation_jacobian(prediction.mean, k)
             if bool(torch.isfinite(H).all()):
                 raise

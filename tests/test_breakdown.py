@@ -290,3 +290,36 @@ def test_a_sweep_names_a_learned_checkpoint_that_broke_down(at_the_sensor):
         ),
     ):
         _calibrated_metrics(at_the_sensor, ["chi_square_ekf"], 3, 0.05, False, required=True)
+
+
+def test_a_transition_jacobian_not_finite_at_the_estimate_is_named():
+    """An ekfukf trial: ``∂f/∂x`` NaN or inf at the estimate (torch.func's Jacobian of
+    ``sqrt(|x0|)`` at 0; a closed form returning inf) was reported as a failed ``S`` blaming
+    ``Q``, ``R`` and ``P0``; the observation Jacobian's case was named already."""
+    from difffilter.ssm import NonlinearGaussianModel
+
+    f64 = dict(dtype=torch.float64)
+    Q, R, P0 = 0.01 * torch.eye(2, **f64), 0.1 * torch.eye(1, **f64), torch.eye(2, **f64)
+    ys = torch.ones(5, 1, **f64)
+
+    def h(x):
+        return x[..., :1] ** 2
+
+    def root(x):
+        return torch.stack([torch.sqrt(x[..., 0].abs()), x[..., 1]], -1)
+
+    def shear(x):
+        return torch.stack([x[..., 0] + 0.1 * x[..., 1], x[..., 1]], -1)
+
+    def infinite(x):
+        return torch.full((*x.shape[:-1], 2, 2), float("inf"), **f64)
+
+    for model in (
+        NonlinearGaussianModel(root, h, Q, R, torch.zeros(2, **f64), P0),
+        NonlinearGaussianModel(
+            shear, h, Q, R, torch.tensor([1.0, 0.0], **f64), P0, transition_jacobian=infinite
+        ),  # fmt: skip
+    ):
+        with pytest.raises(df.NumericalBreakdown, match="transition Jacobian ∂f/∂x at step 1"):
+            df.extended_kalman_filter(model, ys)
+    df.unscented_kalman_filter(NonlinearGaussianModel(root, h, Q, R, torch.zeros(2, **f64), P0), ys)
