@@ -89,7 +89,8 @@ def _bound_for(name: str) -> str:
 
 
 def _sweep(result) -> list[dict]:
-    """``rrp_pf_da`` (and ``rrp_spf_nm``) at η̄ ∈ SWEEP on the same plant and random numbers."""
+    """``rrp_pf_da`` at η̄ ∈ SWEEP on the same plant and random numbers (``rrp_spf_nm``
+    reads no η̄: its figures are the study's own)."""
     sc, ctx, rows = result.scenario, result.context, []
     for eta in SWEEP:
         s = replace(sc, eta_bar=eta)
