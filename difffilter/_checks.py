@@ -5,6 +5,7 @@ from __future__ import annotations
 import inspect
 import math
 import numbers
+import operator
 from collections.abc import Sequence
 from enum import Enum
 
@@ -463,6 +464,33 @@ def check_integer(value, name: str, minimum: int = 0) -> int:
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}")
     return int(value)
+
+
+def check_batch_shape(batch_shape, least: int = 1, name: str = "batch_shape") -> torch.Size:
+    """``batch_shape`` (a sequence of integers, or one integer; numpy's too) as a
+    ``torch.Size``, each entry at least ``least`` (the function forms ``gaussian_init`` and
+    ``particle_init``, and ``simulate``, take 0: no runs); ``ValueError`` naming it
+    otherwise. A bool is no size (``simulate(T, True)`` had simulated one run, ``False``
+    none, without a word; a numpy integer had failed as "not iterable": an ssm trial)."""
+    expect = f"{name} must be a tuple of integers >= {least} (or one integer)"
+    if isinstance(batch_shape, (bool, np.bool_)):
+        raise ValueError(f"{expect}; got {batch_shape!r}")
+    if not isinstance(batch_shape, (Sequence, torch.Size, np.ndarray)):
+        try:
+            batch_shape = (operator.index(batch_shape),)
+        except TypeError:
+            raise ValueError(f"{expect}; got {batch_shape!r}") from None
+    entries = []
+    for size in batch_shape:
+        if isinstance(size, (bool, np.bool_)):
+            raise ValueError(f"{expect}; got {tuple(batch_shape)!r}")
+        try:
+            entries.append(operator.index(size))
+        except TypeError:
+            raise ValueError(f"{expect}; got {batch_shape!r}") from None
+    if any(size < least for size in entries):
+        raise ValueError(f"{expect}; got {tuple(entries)}")
+    return torch.Size(entries)
 
 
 def check_positive_int(value, name: str) -> int:
@@ -957,8 +985,7 @@ def _check_noise_fits(model) -> None:
     from .ssm import LinearGaussianModel, NonlinearGaussianModel
 
     # the dimensions where the noise is added to the state and the measurement as they are
-    # (the library's two models; a model of its own, e.g. an augmented state, may differ;
-    # the prior's dimension is named by init and the filters already)
+    # (the library's two models; a model of its own, e.g. an augmented state, may differ)
     additive = isinstance(model, (LinearGaussianModel, NonlinearGaussianModel))
     for name, want, what in (("process_noise", "dim_x", "states"),
                              ("measurement_noise", "dim_y", "measurement entries")):  # fmt: skip
@@ -972,9 +999,18 @@ def _check_noise_fits(model) -> None:
         check = getattr(noise, "check_written", None)
         if callable(check):
             check(f"model.{name}")
-    check = getattr(getattr(model, "initial", None), "check_written", None)
-    if callable(check):
-        check("model.initial")
+    prior = getattr(model, "initial", None)
+    dim, size = getattr(prior, "dim", None), getattr(model, "dim_x", None)
+    if additive and isinstance(dim, int) and isinstance(size, int) and dim != size:
+        # (a prior assigned since built, as the models' own errors advise, had been
+        # broadcast over the states or failed in torch's words: an ssm trial)
+        raise ValueError(
+            f"model.initial has dimension {dim} and the model {size} states (dim_x): give it a "
+            f"prior of dimension {size} (mean [..., {size}])"
+        )
+    check = getattr(prior, "check_written", None)
+    if callable(check):  # (its mean is check_model's to check, where the prior is read)
+        check("model.initial", loc=False)
 
 
 def _check_noise_dtypes(model) -> None:

@@ -38,6 +38,7 @@ from ._checks import (
     _check_us,
     broadcast_or_none,
     broadcast_shapes,
+    check_batch_shape,
     check_carry_fits_model,
     check_carry_tensor,
     check_model_batch,
@@ -45,7 +46,7 @@ from ._checks import (
     step_covariance,
 )
 from ._shared_cov import shared_covariance_applies, shared_covariance_kalman_filter
-from .estimator import Estimator, _batch_shape, output_of
+from .estimator import Estimator, output_of
 from .gain_schedule import GainSchedule, OutputsWritten, shared_gains_apply
 from .gaussian import (
     innovation_log_prob,
@@ -93,7 +94,7 @@ def gaussian_init(model, batch_shape=()) -> GaussianState:
     _check_zero_mean_noise(model)
     # an int too, as KalmanFilter().init takes it (a docs trial: gaussian_init(model, 32)
     # met "'int' object is not iterable")
-    batch_shape = _batch_shape(batch_shape, least=0)
+    batch_shape = check_batch_shape(batch_shape, least=0)
     # the runs: a model of one parameter set per run makes that many (a function holding
     # per-run values met one prior mean [dx] in the EKF's Jacobian, "given x [2]": a trial)
     runs = check_model_batch(model, batch_shape, "batch_shape")

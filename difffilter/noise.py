@@ -233,6 +233,7 @@ class Gaussian(NoiseModel):
             self._given = "cov"
         else:
             check_finite(mat, "scale_tril")
+            _check_lower(mat, "scale_tril")
             if bool((mat.detach().diagonal(dim1=-2, dim2=-1) <= 0).any()):
                 raise ValueError("scale_tril must be lower triangular with a positive diagonal")
             register_tensor(self, "_scale_tril", mat)
@@ -280,9 +281,17 @@ class Gaussian(NoiseModel):
             self._zero_loc_cache = cached
         return cached[2]
 
+    def _lower(self) -> Tensor:
+        """The factor given as ``scale_tril``, checked lower triangular once per write (one
+        written with entries above its diagonal since built had been read as its lower
+        triangle, another covariance than the one written)."""
+        L = self._scale_tril
+        _check_once(self, "_lower_checked_cache", lambda: _check_lower(L, "scale_tril"), L)
+        return L.tril()
+
     def _compute_scale_tril(self) -> Tensor:
         if self._given == "scale_tril":
-            L = self._scale_tril.tril()
+            L = self._lower()
             # a factor whose diagonal an optimiser step made negative is the same cov = L Lᵀ:
             # its columns' signs are normalised, so that log Lᵢᵢ exists (a user trial's
             # particle filter read NaN densities there while the Kalman filters, reading
@@ -303,14 +312,24 @@ class Gaussian(NoiseModel):
                     self._cov)  # fmt: skip
         return safe_cholesky(self._cov, name="cov")
 
-    def check_written(self, name: str) -> None:
-        """A covariance given as ``cov`` and written since it was checked (in place, a
-        ``load_state_dict``) still symmetric (:func:`~difffilter._checks.check_symmetric`);
-        one check per version. ``name``: how the error names it (``model.process_noise``)."""
-        if self._given != "cov":
-            return
-        _check_once(self, "_written_checked_cache",
-                    lambda: check_symmetric(self._cov, f"{name}'s covariance"), self._cov)  # fmt: skip
+    def check_written(self, name: str, *, loc: bool = True) -> None:
+        """What was written since it was checked (in place, a ``load_state_dict``): a
+        covariance given as ``cov`` still symmetric (:func:`~difffilter._checks.check_symmetric`),
+        a factor given as ``scale_tril`` still lower triangular and, with ``loc``, the mean
+        finite (a NaN noise mean had been simulated as NaN runs and read as a zero mean by
+        the Kalman filters: an ssm trial); one check per version. ``name``: how the error
+        names it (``model.process_noise``)."""
+        if loc:
+            mean = self.loc
+            _check_once(self, "_loc_checked_cache",
+                        lambda: _check_finite_written(mean, f"{name}'s mean (loc)"), mean)  # fmt: skip
+        if self._given == "cov":
+            _check_once(self, "_written_checked_cache",
+                        lambda: check_symmetric(self._cov, f"{name}'s covariance"), self._cov)  # fmt: skip
+        else:
+            L = self._scale_tril
+            _check_once(self, "_written_checked_cache",
+                        lambda: _check_lower(L, f"{name}'s scale_tril"), L)  # fmt: skip
 
     @property
     def scale_tril(self) -> Tensor:
@@ -325,7 +344,7 @@ class Gaussian(NoiseModel):
     def cov(self) -> Tensor:
         if self._given == "cov":
             return self._cov
-        L = self._scale_tril.tril()
+        L = self._lower()
         return L @ L.transpose(-1, -2)
 
     def sample(self, sample_shape=(), generator=None) -> Tensor:
@@ -457,6 +476,15 @@ class GaussianMixture(NoiseModel):
         _check_once(self, "_weights_checked_cache", lambda: _check_mixture_weights(w), w)
         return w
 
+    def check_written(self, name: str) -> None:
+        """Component means written since they were checked still finite, and covariances
+        still symmetric (one check per version; the weights are checked at each read)."""
+        locs, covs = self.locs, self.covs
+        _check_once(self, "_locs_checked_cache",
+                    lambda: _check_finite_written(locs, f"{name}'s locs"), locs)  # fmt: skip
+        _check_once(self, "_covs_checked_cache",
+                    lambda: check_symmetric(covs, f"{name}'s covs"), covs)  # fmt: skip
+
     @property
     def mean(self) -> Tensor:
         return (self._weights()[:, None] * self.locs).sum(0)
@@ -499,6 +527,23 @@ class GaussianMixture(NoiseModel):
         else:
             comp = _masked_gaussian_log_prob(residual, self.covs, mask.unsqueeze(-2))
         return torch.logsumexp(comp + torch.log(self._weights()), dim=-1)
+
+
+def _check_finite_written(t: Tensor, name: str) -> None:
+    """``check_finite`` where the values can be read (not under ``torch.func``, not meta)."""
+    if values_known(t):
+        check_finite(t, name)
+
+
+def _check_lower(L: Tensor, name: str) -> None:
+    """A Cholesky factor given as ``scale_tril`` has nothing above its diagonal: the factor
+    is read as ``tril(L)``, so an upper factor (scipy's default) had given another
+    covariance than ``L Lᵀ`` without a word (an ssm trial)."""
+    if values_known(L) and bool(L.detach().triu(1).any()):
+        raise ValueError(
+            f"{name} must be lower triangular (cov = L Lᵀ with L lower): it has non-zero "
+            "entries above its diagonal (an upper factor U gives L = Uᵀ, for cov = Uᵀ U)"
+        )
 
 
 def _check_mixture_weights(weights: Tensor) -> None:

@@ -45,6 +45,7 @@ from ._assignments import note_assignment
 from ._checks import (
     NonFinite,
     broadcast_shapes,
+    check_batch_shape,
     check_callable_as,
     check_carry_fits_model,
     check_carry_tensor,
@@ -56,7 +57,7 @@ from ._checks import (
     check_strategy,
     first_index,
 )
-from .estimator import Estimator, Generators, _batch_shape
+from .estimator import Estimator, Generators
 from .gaussian import gaussian_update
 from .linalg import (
     gaussian_log_prob_chol,
@@ -377,7 +378,7 @@ def particle_init(
     """Draw ``N`` particles from the prior: ``[*batch_shape, N, dx]``, log-weights ``−log N``."""
     check_positive_int(num_particles, "num_particles")
     check_one_model(model, "the particle filter", PER_SET)
-    batch_shape = _batch_shape(batch_shape, least=0)  # (an int too, as init takes it)
+    batch_shape = check_batch_shape(batch_shape, least=0)  # (an int too, as init takes it)
     particles = model.sample_initial(batch_shape + (num_particles,), generator)
     log_w = particles.new_full(batch_shape + (num_particles,), -math.log(num_particles))
     return ParticleState(particles, log_w, 0, model=model)

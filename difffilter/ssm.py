@@ -28,9 +28,11 @@ from ._assignments import CountsAssignments
 from ._checks import (
     _all_finite,
     _check_us,
+    add_note,
     as_tensor,
     broadcast_or_none,
     broadcast_shapes,
+    check_batch_shape,
     check_batch_shapes,
     check_finite,
     check_model,
@@ -291,9 +293,7 @@ class StateSpaceModel(CountsAssignments):
         # measurement noise on a float32 model had simulated float32 xs beside float64 ys,
         # and a float64 process noise failed in torch's words at the second step
         check_model(self)
-        batch_shape = torch.Size(
-            batch_shape if not isinstance(batch_shape, int) else (batch_shape,)
-        )
+        batch_shape = check_batch_shape(batch_shape, least=0)
         # the runs: a model of B parameter sets simulates B runs (as the filters read it)
         batch_shape = check_model_batch(self, batch_shape, "batch_shape")
         if us is not None:  # ignored before on a model without input; a short one raised late
@@ -777,6 +777,23 @@ class NonlinearGaussianModel(StateSpaceModel):
             self._check_takes_no_input(m0.reshape(-1, dx)[:1])
         self._check_widths(m0.reshape(-1, dx)[:1])
         self._check_jacobians(m0.reshape(-1, dx)[0], P0.reshape(-1, dx, dx)[0])
+
+    def _apply(self, fn, *args, **kwargs):
+        """``.to(dtype)``, ``.float()``, ``.double()``: the functions probed again in the new
+        dtype, as when built (a float64 constant in ``f`` had been refused for a model built
+        in float32, and taken for one converted to it: ``simulate`` returned float64 states
+        beside a float32 ``x0``, the UKF float64 means: an ssm trial)."""
+        before = self.initial.mean.dtype
+        out = super()._apply(fn, *args, **kwargs)
+        mean = self.initial.mean
+        if mean.dtype != before and mean.dtype in (torch.float32, torch.float64):
+            try:
+                self._check_widths(mean.detach().reshape(-1, self.dim_x)[:1])
+            except ValueError as error:  # refused: the model stays in its dtype, usable
+                super()._apply(lambda t: t.to(before) if t.is_floating_point() else t)
+                add_note(error, f"(the model was not converted: it stays {before})")
+                raise
+        return out
 
     def _check_takes_no_input(self, mean: Tensor) -> None:
         """A transition ``f(x, u[, k])`` of a model without input (``dim_u = 0``) is given

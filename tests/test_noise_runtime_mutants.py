@@ -53,16 +53,19 @@ def test_gaussian_log_prob_matches_scipy_for_batched_diagonal_covariances():
         np.testing.assert_allclose(got[:, b], want, rtol=1e-12)
 
 
-def test_a_scale_tril_with_entries_above_the_diagonal_is_read_as_its_lower_triangle():
-    """``scale_tril`` is the lower factor: entries above its diagonal are not part of it.
-    ``cov``, ``log_prob`` and ``sample`` all take ``tril(L) tril(L)ᵀ`` (numpy, scipy; 40,000
-    draws: covariance entries within 0.06, their sd about 0.01) (N09: draws from the full
-    matrix; N12: ``cov`` from the full matrix)."""
+def test_a_scale_tril_is_the_lower_factor_and_entries_above_its_diagonal_are_refused():
+    """``scale_tril`` is the lower factor: ``cov``, ``log_prob`` and ``sample`` take ``L Lᵀ``
+    (numpy, scipy; 40,000 draws: covariance entries within 0.06, their sd about 0.01).
+    Entries above its diagonal had been dropped without a word (an upper factor, scipy's
+    default, gave another covariance: an ssm trial): refused when built, and when written
+    since, at the next use."""
     full = np.array([[1.2, 0.7, -0.4], [0.3, 0.9, 0.5], [-0.2, 0.4, 1.1]])
     lower = np.tril(full)
     cov = lower @ lower.T
     loc = np.array([0.5, -1.0, 2.0])
-    g = Gaussian(torch.tensor(loc), scale_tril=torch.tensor(full))
+    with pytest.raises(ValueError, match="scale_tril must be lower triangular"):
+        Gaussian(torch.tensor(loc), scale_tril=torch.tensor(full))
+    g = Gaussian(torch.tensor(loc), scale_tril=torch.tensor(lower))
     np.testing.assert_allclose(g.cov.numpy(), cov, rtol=1e-14)
     x = torch.randn(6, 3, dtype=D, generator=_gen(1))
     want = stats.multivariate_normal(loc, cov).logpdf(x.numpy())
@@ -70,6 +73,11 @@ def test_a_scale_tril_with_entries_above_the_diagonal_is_read_as_its_lower_trian
     s = g.sample((40000,), generator=_gen(20)).numpy()
     np.testing.assert_allclose(np.cov(s.T), cov, atol=0.06)
     np.testing.assert_allclose(s.mean(0), loc, atol=0.04)
+    with torch.no_grad():
+        g._scale_tril.copy_(torch.tensor(full))
+    for use in (lambda: g.cov, lambda: g.log_prob(x), lambda: g.sample((2,))):
+        with pytest.raises(ValueError, match="scale_tril must be lower triangular"):
+            use()
 
 
 def test_a_gaussian_mean_takes_the_batch_of_its_covariance():
