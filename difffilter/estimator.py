@@ -28,6 +28,7 @@ from torch import Tensor
 from ._checks import (
     broadcast_or_none,
     broadcast_shapes,
+    check_batch_shape,
     check_carry_batch,
     check_model,
     check_step_inputs,
@@ -291,7 +292,7 @@ class Estimator:
     def init(self, model, batch_shape=(), generator=None):
         """The carry of ``batch_shape`` independent runs before the first measurement."""
         check_model(model)
-        batch = _batch_shape(batch_shape)
+        batch = check_batch_shape(batch_shape)
         carry = self._init(model, batch, Generators.of(generator))
         # Validated once, here (a model's own prior of the wrong shape is named now, not
         # at the first step), and vouched for: the first step, like every later one, checks
@@ -406,23 +407,6 @@ class Estimator:
         return None
 
 
-def _batch_shape(batch_shape, least: int = 1) -> torch.Size:
-    """``batch_shape`` (a tuple of integers, or one integer) as a ``torch.Size``, each
-    entry at least ``least`` (the function forms, ``gaussian_init`` and ``particle_init``,
-    take 0: a filter of no runs); ``ValueError`` naming it otherwise."""
-    if isinstance(batch_shape, int) and not isinstance(batch_shape, bool):
-        batch_shape = (batch_shape,)
-    try:
-        batch = torch.Size(batch_shape)
-    except TypeError as exc:
-        raise ValueError(
-            f"batch_shape must be a tuple of integers >= {least}; got {batch_shape!r}"
-        ) from exc
-    if any(int(b) < least for b in batch):
-        raise ValueError(f"batch_shape must be a tuple of integers >= {least}; got {tuple(batch)}")
-    return batch
-
-
 # ---------------------------------------------------------------- stacking step outputs
 
 #: StepOutput fields stacked into EstimatorOutput.extras, and the name each gets there.
@@ -500,6 +484,26 @@ def _stack_extra(key: str, outs: Sequence[StepOutput], batch: torch.Size) -> Ten
     return torch.stack(values, dim=len(batch))
 
 
+def _field(outs: Sequence[StepOutput], name: str) -> list | None:
+    """The steps' values of the optional field ``name``, or ``None`` where no step gives
+    it; every step or none must (the first step's fields alone had decided: a detector
+    that began scoring at step 2 came out without its detection, scored as a plain filter,
+    and a field that stopped failed in torch's words: an estimator-API trial)."""
+    values = [getattr(o, name) for o in outs]
+    given = [v is not None for v in values]
+    if all(given):
+        return values
+    if any(given):
+        t = given.index(not given[0]) + 1
+        raise ValueError(
+            f"the step outputs' {name} is {'given' if given[0] else 'None'} at step 1 and "
+            f"{'None' if given[0] else 'given'} at step {t} of {len(outs)}: an estimator "
+            f"reports a field at every step or at none (a detector warming up scores those "
+            "steps too, e.g. 0 with alarm False)"
+        )
+    return None
+
+
 def stack_steps(
     outs: Sequence[StepOutput],
     batch: torch.Size,
@@ -520,29 +524,33 @@ def stack_steps(
     """
     if not outs:
         raise ValueError("outs must hold at least one step output (T >= 1)")
-    first = outs[0]
     extras: dict[str, Tensor] = {}
     for name, key in _STATISTICS.items():
-        if getattr(first, name) is not None:
-            extras[key] = _stack_vectors([getattr(o, name) for o in outs], batch)
+        if (values := _field(outs, name)) is not None:
+            extras[key] = _stack_vectors(values, batch)
     for name, key in _MATRICES.items():
-        if getattr(first, name) is not None:
-            extras[key] = _stack_matrices([getattr(o, name) for o in outs], batch)
-    if first.log_likelihood is not None:
-        increments = _stack_scalars([o.log_likelihood for o in outs], batch)
+        if (values := _field(outs, name)) is not None:
+            extras[key] = _stack_matrices(values, batch)
+    if (values := _field(outs, "log_likelihood")) is not None:
+        increments = _stack_scalars(values, batch)
         extras["log_likelihood_increments"] = increments
         extras["log_likelihood"] = increments.sum(-1)
     for key in dict.fromkeys(k for o in outs if o.extras for k in o.extras):
         extras[key] = _stack_extra(key, outs, batch)
     extras.update(collected or {})
     means = _stack_vectors([o.mean for o in outs], batch)
-    covs = None if first.cov is None else _stack_matrices([o.cov for o in outs], batch)
-    attack = None if first.attack is None else _stack_vectors([o.attack for o in outs], batch)
+    covs = None if (values := _field(outs, "cov")) is None else _stack_matrices(values, batch)
+    attack = None if (values := _field(outs, "attack")) is None else _stack_vectors(values, batch)
     detection = None
-    if first.score is not None:
+    scores, alarms = _field(outs, "score"), _field(outs, "alarm")
+    if (scores is None) != (alarms is None):
+        raise ValueError(
+            "the step outputs give a score without an alarm or an alarm without a score: a "
+            "detector reports both at every step (alarm = score > threshold)"
+        )
+    if scores is not None:
         lead = means.shape[:-2]
-        scores = _stack_scalars([o.score for o in outs], lead)
-        alarms = _stack_scalars([o.alarm for o in outs], lead)
+        scores, alarms = _stack_scalars(scores, lead), _stack_scalars(alarms, lead)
         threshold = _stack_thresholds([o.threshold for o in outs], lead, scores)
         detection = Detection(scores, alarms, threshold)
     return EstimatorOutput(means, covs, attack=attack, detection=detection, extras=extras,
@@ -562,6 +570,12 @@ def output_of(result: FilterResult) -> EstimatorOutput:
         # (the count of a nonfinite="skip" run: open_loop's own result had it, this one
         # had dropped it; a results trial)
         "nonfinite_skipped": getattr(result, "nonfinite_skipped", None),
+        # a particle filter's records, as its steps give them (they had been dropped: an
+        # estimator-API trial)
+        "ess": getattr(result, "ess", None),
+        "resampled": getattr(result, "resampled", None),
+        "degenerate": getattr(result, "degenerate", None),
+        **(getattr(result, "records", None) or {}),
     }
     extras = {k: v for k, v in extras.items() if v is not None}
     return EstimatorOutput(result.means, result.covs, extras=extras)

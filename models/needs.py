@@ -57,8 +57,17 @@ class Need:
     check: Callable[[Any, Any], str | None]
 
     def unmet(self, scenario, model) -> str | None:
-        """Why ``scenario`` (with its estimators' ``model``) does not meet this need, or ``None``."""
-        return self.check(scenario, model)
+        """Why ``scenario`` (with its estimators' ``model``) does not meet this need, or
+        ``None``. A check that returns anything else (a predicate's ``True`` where the need
+        is met) is named: its ``True`` had been taken for a reason, the estimator left out
+        of the study without a word (an estimator-API trial)."""
+        reason = self.check(scenario, model)
+        if reason is None or (isinstance(reason, str) and reason):
+            return reason
+        raise TypeError(
+            f"the need {self.what!r}: its check(scenario, model) returns the reason it is not "
+            f"met (a non-empty string) or None where it is met; got {reason!r}"
+        )
 
 
 def _channel(attack) -> Channel | None:

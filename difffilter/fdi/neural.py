@@ -159,6 +159,7 @@ from torch import Tensor, nn
 from .._checks import (
     Choice,
     broadcast_or_none,
+    check_flag,
     check_rate,
     check_strategy,
     model_batch_shape,
@@ -288,8 +289,7 @@ def _check_learning(learning: OnlineLearning) -> None:
             "learning.init_scale must be a finite number > 0 (each run starts from s·U[0, 1] "
             f"weights) or None (the network's own); got {scale!r}"
         )
-    if not isinstance(learning.posterior, bool):
-        raise TypeError(f"learning.posterior must be True or False; got {learning.posterior!r}")
+    check_flag(learning.posterior, "learning.posterior")
 
 
 class NeuralState(NamedTuple):
@@ -661,6 +661,13 @@ class NeuralCompensation(Estimator):
     ):
         channel, residual, features = Channel(channel), Residual(residual), tuple(features)
         compensation = Compensation(compensation)
+        # (read with bool() before: gating="false" gated, standardize="no" standardised, the
+        # means 0.18 and 1.4 off: an LFC options trial)
+        gating, standardize = check_flag(gating, "gating"), check_flag(standardize, "standardize")
+        evidence, record_inputs = (
+            check_flag(evidence, "evidence"),
+            check_flag(record_inputs, "record_inputs"),
+        )
         _check_options(network, inner, channel, features, poa_eta, learning, deception)
         _check_step_options(network, channel, residual, gating, compensation)
         _check_restart(restart, inner, channel)
@@ -677,7 +684,7 @@ class NeuralCompensation(Estimator):
                 "inputs, [x; z]), and the learned estimator compensates and reports the "
                 "carry's moments: give it a KalmanFilter, or the filter with on_loss='zero'"
             )
-        self.gating, self.compensation, self.evidence = bool(gating), compensation, bool(evidence)
+        self.gating, self.compensation, self.evidence = gating, compensation, evidence
         self.restart = None if restart is None else float(restart)
         self.confirm = None if confirm is None else float(confirm)
         self.reject = None if reject is None else float(reject)
@@ -685,7 +692,7 @@ class NeuralCompensation(Estimator):
         self.network, self.inner, self.channel = network, inner, channel
         self.attack_channel = channel  # what its attack estimate â_k is on
         self.threshold = threshold  # (checked by __setattr__)
-        self.core = _Core(network, channel, residual, bool(standardize), features, poa_eta,
+        self.core = _Core(network, channel, residual, standardize, features, poa_eta,
                           learning, record_inputs)  # fmt: skip
         self.particles = isinstance(inner, ParticleFilter)
         # the uncompensated copy runs beside for its innovation or its χ² test
