@@ -178,6 +178,19 @@ class EstimatorOutput:
                 f"attack must have shape [{', '.join(map(str, lead))}, da] like means; "
                 f"got {tuple(self.attack.shape)}"
             )
+        dx, covs = self.means.shape[-1], self.covs
+        if covs is not None and (
+            not isinstance(covs, Tensor)
+            or covs.dim() < 2
+            or not covs.shape[-1] == covs.shape[-2] <= dx
+            or broadcast_or_none(covs.shape[:-2], lead) != lead
+        ):  # (any shape had been taken: [B, T, dx], or [5, 5] beside dx = 2; an API trial)
+            got = tuple(covs.shape) if isinstance(covs, Tensor) else type(covs).__name__
+            raise ValueError(
+                f"covs must have shape [{', '.join(map(str, lead))}, {dx}, {dx}] (one dx × dx "
+                "covariance per run and step, or a shared one broadcasting to them; a particle "
+                f"filter's cov_dims = c: the leading c × c block); got {got}"
+            )
         if self.detection is not None and self.detection.scores.shape != lead:
             raise ValueError(
                 f"detection scores must have shape {tuple(lead)} (means without dx); "

@@ -161,3 +161,15 @@ def test_a_need_whose_check_returns_no_reason_string_is_named():
             TypeError, match=r"the need 'a predicate': its check\(scenario, model\)"
         ):
             first_unmet((Need("a predicate", lambda sc, m, got=got: got),), None, None)
+
+
+def test_an_outputs_covariances_must_fit_its_means():
+    from difffilter.estimator import EstimatorOutput
+
+    means = torch.zeros(3, 5, 2, dtype=DT)
+    for bad in ((3, 5, 2), (5, 5), (3, 5, 3, 3), (4, 3, 5, 2, 2)):
+        with pytest.raises(ValueError, match=r"covs must have shape \[3, 5, 2, 2\]"):
+            EstimatorOutput(means, torch.zeros(bad, dtype=DT))
+    # per run and step, shared, or the leading block (a particle filter's cov_dims)
+    for good in ((3, 5, 2, 2), (5, 2, 2), (2, 2), (1, 5, 2, 2), (3, 5, 1, 1)):
+        EstimatorOutput(means, torch.zeros(good, dtype=DT))
