@@ -235,7 +235,7 @@ class FusedLocals(Estimator):
         else:
             states = tuple(self.local._init(model.group(g), batch_shape, generators)
                            for g in self.groups)  # fmt: skip
-        return FusedCarry(states, model, _ModelStamp(model))
+        return FusedCarry(states, model, _ModelStamp(model, self.groups))
 
     def _model_of(self, carry):
         return carry.model
@@ -286,12 +286,12 @@ class FusedLocals(Estimator):
 
     def _step(self, carry, y, u, mask):
         stamp = carry.model_stamp
-        if stamp is not None and not stamp.holds(carry.model):
+        if stamp is not None and not stamp.holds(carry.model, self.groups):
             raise ValueError(
                 "FusedLocals: the model changed since init (a noise or tensor of it assigned "
-                "or written in place), and the locals step grouped copies made at init from "
-                "it (they would filter the model as it was): init a new carry from the model "
-                "as it is now"
+                "or written in place) or its groups were assigned, and the locals step grouped "
+                "copies made at init (they would filter the model and groups as they were): "
+                "init a new carry from them as they are now"
             )
         states, *local, thr = self._locals_step(carry.local_states, y, u, mask)
         x, P, a, score, extras = self._fuse(*local)
@@ -323,26 +323,47 @@ class _ModelStamp:
     and :meth:`__setstate__` stamps the copies anew where they were unchanged, as the gain
     schedule does."""
 
-    __slots__ = ("entries",)
+    __slots__ = ("entries", "groups")
 
-    def __init__(self, model):
+    def __init__(self, model, groups=None):
         self.entries = tuple((t, _stamp(t)) for t in _tensors_of(model))
+        # the sensor groups the locals' models were made for (FusedLocals.groups assigned
+        # since init had regrouped y over the old groups' models, lidar positions and all:
+        # 120.8 m off; an options trial)
+        self.groups = _groups_key(groups)
 
-    def holds(self, model) -> bool:
+    def holds(self, model, groups=None) -> bool:
         now = _tensors_of(model)
-        return len(now) == len(self.entries) and all(
-            t is held and _unchanged(t, stamp) for t, (held, stamp) in zip(now, self.entries)
+        return (
+            self.groups in (None, _groups_key(groups))
+            and len(now) == len(self.entries)
+            and all(t is held and _unchanged(t, s) for t, (held, s) in zip(now, self.entries))
         )
 
     def __getstate__(self):
-        return tuple((t, _unchanged(t, stamp)) for t, stamp in self.entries)
+        return tuple((t, _unchanged(t, stamp)) for t, stamp in self.entries), self.groups
 
     def __setstate__(self, state):
-        self.entries = tuple((t, _stamp(t) if same else _STALE) for t, same in state)
+        if not state or _is_entry(state[0]):  # (pickled before the groups were kept)
+            entries, self.groups = state, None
+        else:
+            entries, self.groups = state
+        self.entries = tuple((t, _stamp(t) if same else _STALE) for t, same in entries)
 
 
 def _tensors_of(model) -> list:
     return list(model.state_dict(keep_vars=True).values())
+
+
+def _groups_key(groups):
+    """Sensor groups as nested tuples (a list assigned compares equal), or ``None``."""
+    return None if groups is None else tuple(tuple(int(i) for i in g) for g in groups)
+
+
+def _is_entry(value) -> bool:
+    """Whether ``value`` is one ``(tensor, unchanged)`` entry of a stamp's pickled state."""
+    return (isinstance(value, tuple) and len(value) == 2 and isinstance(value[0], torch.Tensor)
+            and isinstance(value[1], bool))  # fmt: skip
 
 
 class CompensatingInputs(KnownInputs):

@@ -72,6 +72,17 @@ class GatedState(NamedTuple):
     model: Any
 
 
+def _check_detector_dim(det, dy: int) -> None:
+    """A χ² detector tests the model's ``dy``-entry innovation: its quantile's degrees of
+    freedom (3 on a 1-sensor model alarmed 0.09 % for 1 %)."""
+    if isinstance(det, ChiSquareDetector) and det.dim != dy:
+        raise ValueError(
+            f"detector: ChiSquareDetector(dim={det.dim}) tests a {det.dim}-entry innovation, "
+            f"and the model measures {dy} entries: ChiSquareDetector({dy}, "
+            f"{det.false_alarm_rate})"
+        )
+
+
 class GatedFilter(Estimator):
     """A Gaussian filter whose update is skipped where a residual detector alarms.
 
@@ -118,14 +129,7 @@ class GatedFilter(Estimator):
         return carry.inner.mean.shape[:-1]
 
     def _init(self, model, batch_shape, generators):
-        det = self.detector
-        if isinstance(det, ChiSquareDetector) and det.dim != model.dim_y:
-            # its quantile's degrees of freedom: 3 on a 1-sensor model alarmed 0.09 % for 1 %
-            raise ValueError(
-                f"detector: ChiSquareDetector(dim={det.dim}) tests a {det.dim}-entry innovation, "
-                f"and the model measures {model.dim_y} entries: ChiSquareDetector({model.dim_y}, "
-                f"{det.false_alarm_rate})"
-            )
+        _check_detector_dim(self.detector, model.dim_y)
         inner = self.filter._init(model, batch_shape, generators)
         dtype, device = inner.mean.dtype, inner.mean.device
         # one window per run: a model with a parameter set per run makes runs of unbatched ys
@@ -144,6 +148,9 @@ class GatedFilter(Estimator):
         """``(detector state, score, alarm, threshold)`` of the step's NIS ``g [...]``."""
         det = self.detector
         if isinstance(det, ChiSquareDetector):
+            # (at every step: a detector, or its dim, assigned since init had tested a 2-entry
+            # statistic against χ²₅, a gate far below its rate: an options trial)
+            _check_detector_dim(det, dy)
             # under a mask the step judges the degrees of freedom received and scores the
             # statistic's full-window equivalent (ChiSquareDetector.step): one threshold
             threshold = det.quantile(det.dim * min(det_state[1] + 1, det.window))

@@ -760,6 +760,7 @@ class NeuralCompensation(Estimator):
         # carry of init(model, ()) on a model of 3 sets had failed in a raw cat error)
         runs = broadcast_or_none(batch_shape, model_batch_shape(model)) or batch_shape
         if self.particles:
+            self._follow_inner()
             carry = self.pf._init(model, batch_shape, generators)
             net = self.core.init(runs, carry.particles.dtype, carry.particles.device,
                                  generators.init, model)  # fmt: skip
@@ -793,6 +794,7 @@ class NeuralCompensation(Estimator):
                     "carry is a particle filter's without this estimator's network state "
                     "(carry.aux is None): start the carry from this estimator's init"
                 )
+            self._follow_inner()
             self.pf._check_carry(carry)
             net_state, dtype = carry.aux, carry.particles.dtype
         else:
@@ -800,8 +802,23 @@ class NeuralCompensation(Estimator):
             net_state, dtype = carry.net, carry.inner.mean.dtype
         _check_net_state(self.network, net_state, dtype, self._runs_of(carry))
 
+    def _follow_inner(self) -> None:
+        """The particle filter's settings as ``inner`` has them now: its own filter (of the
+        network's likelihood) was built from ``inner``'s, and ``inner.num_particles = 20`` or
+        its ``ess_threshold`` assigned since had been ignored (means 0.47 and 0.13 off one
+        built so: an options trial). A count other than the carry's is then refused by the
+        carry's check, as a plain particle filter's."""
+        inner, pf = self.inner, self.pf
+        for name in ("num_particles", "ess_threshold"):
+            if getattr(pf, name) != getattr(inner, name):
+                setattr(pf, name, getattr(inner, name))
+        for name in ("resampler", "proposal"):
+            if getattr(pf, name) is not getattr(inner, name):
+                setattr(pf, name, getattr(inner, name))
+
     def _step(self, carry, y, u, mask):
         if self.particles:  # the open-loop mean to step k + 1 first: the likelihood reads it
+            self._follow_inner()
             carry = carry._replace(aux=self.core.advance_open_loop(carry.aux, carry.model, u,
                                                                    carry.k))  # fmt: skip
             carry, out = self.pf._step(carry, y, u, mask)
