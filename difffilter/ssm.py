@@ -298,7 +298,7 @@ class StateSpaceModel(CountsAssignments):
         batch_shape = check_model_batch(self, batch_shape, "batch_shape")
         if us is not None:  # ignored before on a model without input; a short one raised late
             dtype, device = model_dtype_device(self)
-            us = _check_us(self, us, batch_shape, num_steps, dtype, device)
+            us = _check_us(self, us, batch_shape, num_steps, dtype, device, "the runs'")
         x = self.sample_initial(batch_shape, generator)
         x0 = x
         xs, ys = [], []

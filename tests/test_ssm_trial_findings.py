@@ -119,3 +119,10 @@ def test_a_prior_of_another_dimension_assigned_since_built_is_named(kind):
         df.unscented_kalman_filter(model, torch.zeros(3, 1, dtype=F64))
     model.initial = Gaussian(torch.ones(2, dtype=F64), torch.eye(2, dtype=F64))
     assert model.simulate(3, (4,))[2].shape == (4, 2)
+
+
+def test_simulates_inputs_of_other_runs_are_named_against_the_runs_not_ys():
+    eye = torch.eye(2, dtype=F64)
+    model = LinearGaussianModel(0.9 * eye, eye, eye, eye, torch.zeros(2, dtype=F64), eye, B=eye)
+    with pytest.raises(ValueError, match=r"does not broadcast with the runs' \(4,\)"):
+        model.simulate(3, (4,), us=torch.zeros(3, 3, 2, dtype=F64))
