@@ -467,7 +467,8 @@ def check_integer(value, name: str, minimum: int = 0) -> int:
 
 
 def check_batch_shape(batch_shape, least: int = 1, name: str = "batch_shape") -> torch.Size:
-    """``batch_shape`` (a sequence of integers, or one integer; numpy's too) as a
+    """``batch_shape`` (a sequence of integers, an integer array or tensor, or one integer;
+    numpy's too) as a
     ``torch.Size``, each entry at least ``least`` (the function forms ``gaussian_init`` and
     ``particle_init``, and ``simulate``, take 0: no runs); ``ValueError`` naming it
     otherwise. A bool is no size (``simulate(T, True)`` had simulated one run, ``False``
@@ -475,7 +476,10 @@ def check_batch_shape(batch_shape, least: int = 1, name: str = "batch_shape") ->
     expect = f"{name} must be a tuple of integers >= {least} (or one integer)"
     if isinstance(batch_shape, (bool, np.bool_)):
         raise ValueError(f"{expect}; got {batch_shape!r}")
-    if not isinstance(batch_shape, (Sequence, torch.Size, np.ndarray)):
+    iterable = isinstance(batch_shape, Sequence) or (
+        isinstance(batch_shape, (np.ndarray, Tensor)) and batch_shape.ndim > 0
+    )
+    if not iterable:  # one integer (numpy's, a 0-d array or tensor too)
         try:
             batch_shape = (operator.index(batch_shape),)
         except TypeError:

@@ -110,11 +110,13 @@ class ExtendedKalmanFilter(GaussianFilter):
                 ) from exc
             if not bool(torch.isfinite(prediction.cov).all()) and bool(
                 torch.isfinite(carry.cov).all()
-            ):  # P⁻ = F P Fᵀ + Q from a finite P: F it is (the message had blamed S's Q, R, P0)
+            ):  # P⁻ = F P Fᵀ + Q from a finite P (the message had blamed S's Q, R and P0)
                 raise NumericalBreakdown(
-                    f"the transition Jacobian ∂f/∂x at step {k} holds NaN or inf at the previous "
-                    "estimate: f is not differentiable there (e.g. a square root of a level "
-                    "at 0), so the EKF cannot linearise it (the UKF or a particle filter can run)"
+                    f"the EKF's predicted covariance F P Fᵀ + Q at step {k} is NaN or inf from a "
+                    "finite P: the transition Jacobian ∂f/∂x is not finite at the previous "
+                    "estimate (f not differentiable there, e.g. a square root of a level at 0: "
+                    "the UKF or a particle filter can run), or the covariance overflowed (an "
+                    "unstable plant run long without measurements)"
                 ) from exc
             H = carry.model.observation_jacobian(prediction.mean, k)
             if bool(torch.isfinite(H).all()):

@@ -754,7 +754,11 @@ def closed_loop(
                              ("value", value), ("flag", flag), ("mask", m)):  # fmt: skip
                 rec[key].append(val)
             if controller is not None:
-                u = _checked_input(controller, controller(k, received, view), x, plant, k)
+                # (a controller's `e = view.mean; e -= ref` had been blamed on the estimator)
+                seen = _Untouched(controller, view, role="controller")
+                u = controller(k, received, view)
+                seen.check(k, "__call__")
+                u = _checked_input(controller, u, x, plant, k)
             if progress is not None:
                 progress(1)
             if forks is not None and k in forks:
@@ -778,15 +782,16 @@ def closed_loop(
 
 class _Untouched:
     """The version counters of what the loop hands an attack (``x``, ``y``, ``u`` and the
-    estimator's :class:`~difffilter.results.StepOutput`), checked after its call: an attack
-    reads them and acts only through what it returns. A trial's attack that wrote into
-    them in place (``x.add_``, ``y.clamp_``, ``view.mean +=``) moved the plant's true
-    state, the recorded measurement or the estimator's carry, while the loop recorded no
-    attack and flagged no step (the runs scored against wrong labels). Inference tensors
-    keep no counter and are not checked."""
+    estimator's :class:`~difffilter.results.StepOutput`) or a controller (the output),
+    checked after its call: each reads them and acts only through what it returns. A
+    trial's attack that wrote into them in place (``x.add_``, ``y.clamp_``, ``view.mean
+    +=``) moved the plant's true state, the recorded measurement or the estimator's carry,
+    while the loop recorded no attack and flagged no step (the runs scored against wrong
+    labels); a controller's ``e = out.mean; e -= ref`` had been blamed on the estimator (a
+    review). Inference tensors keep no counter and are not checked."""
 
-    def __init__(self, attack, *values):
-        self.attack, self.stamps = attack, []
+    def __init__(self, owner, *values, role: str = "attack"):
+        self.owner, self.role, self.stamps = owner, role, []
         for value in values:
             tensors = [value] if isinstance(value, Tensor) else _tensors_of(value)
             for t in tensors:
@@ -794,14 +799,22 @@ class _Untouched:
                     self.stamps.append((t, t._version))
 
     def check(self, k: int, call: str) -> None:
-        if any(t._version != version for t, version in self.stamps):
+        if not any(t._version != version for t, version in self.stamps):
+            return
+        name = f"{self.role} {type(self.owner).__name__}.{call}"
+        if self.role == "controller":
             raise ValueError(
-                f"attack {type(self.attack).__name__}.{call} wrote in place into a tensor the "
-                f"loop handed it at step {k} (the true state, the measurement, the input or "
-                "the estimator's output): that changes the plant, the records or the "
-                "estimator without being recorded as an attack. An attack acts only through "
-                "what it returns: compute out of place (x + 1, not x.add_(1)) or on a copy"
+                f"{name} wrote in place into the estimator's output the loop handed it at step "
+                f"{k} (e.g. e = out.mean; e -= ref): that changes the estimates the loop "
+                "records. Compute out of place (e = out.mean - ref) or on a copy"
             )
+        raise ValueError(
+            f"{name} wrote in place into a tensor the loop handed it at step {k} (the true "
+            "state, the measurement, the input or the estimator's output): that changes the "
+            "plant, the records or the estimator without being recorded as an attack. An "
+            "attack acts only through what it returns: compute out of place (x + 1, not "
+            "x.add_(1)) or on a copy"
+        )
 
 
 def _failing_source(tb) -> str:
@@ -885,15 +898,15 @@ def _empty_view(error: BaseException, attack, view, text: str) -> str | None:
 
 
 class _HandedOut:
-    """The version counters of the means and covariances an estimator handed the driver,
-    checked before they are stacked. ``Estimator.step`` leaves its carry's tensors as they
+    """The version counters of the means, covariances, attack estimates and scores an
+    estimator handed the driver, checked before they are stacked. ``Estimator.step`` leaves its carry's tensors as they
     were; a user's step that wrote its carry in place and handed that tensor out as its mean
     had every stacked ``means[:, t]`` read the last step's value, without a word (a trial:
-    3.46 off a hand run). Two counters a step (a few hundred ns; every field had cost a
-    tenth of a Kalman step); inference tensors and ``torch.func`` wrappers keep no counter
-    and are not checked."""
+    3.46 off a hand run; the attack and score 0.66 and 4.3, a review). The fields the
+    metrics read, not every field (every field had cost a tenth of a Kalman step);
+    inference tensors and ``torch.func`` wrappers keep no counter and are not checked."""
 
-    FIELDS = ("mean", "cov")
+    FIELDS = ("mean", "cov", "attack", "score")
 
     def __init__(self, estimator):
         self.estimator, self.stamps = estimator, []

@@ -476,12 +476,14 @@ class GaussianMixture(NoiseModel):
         _check_once(self, "_weights_checked_cache", lambda: _check_mixture_weights(w), w)
         return w
 
-    def check_written(self, name: str) -> None:
-        """Component means written since they were checked still finite, and covariances
-        still symmetric (one check per version; the weights are checked at each read)."""
+    def check_written(self, name: str, *, loc: bool = True) -> None:
+        """Component means (with ``loc``) written since they were checked still finite, and
+        covariances still symmetric (one check per version; the weights are checked at each
+        read). ``loc=False``: a prior's, whose mean ``check_model`` checks where it is read."""
         locs, covs = self.locs, self.covs
-        _check_once(self, "_locs_checked_cache",
-                    lambda: _check_finite_written(locs, f"{name}'s locs"), locs)  # fmt: skip
+        if loc:
+            _check_once(self, "_locs_checked_cache",
+                        lambda: _check_finite_written(locs, f"{name}'s locs"), locs)  # fmt: skip
         _check_once(self, "_covs_checked_cache",
                     lambda: check_symmetric(covs, f"{name}'s covs"), covs)  # fmt: skip
 

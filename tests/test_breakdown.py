@@ -320,6 +320,21 @@ def test_a_transition_jacobian_not_finite_at_the_estimate_is_named():
             shear, h, Q, R, torch.tensor([1.0, 0.0], **f64), P0, transition_jacobian=infinite
         ),  # fmt: skip
     ):
-        with pytest.raises(df.NumericalBreakdown, match="transition Jacobian ∂f/∂x at step 1"):
+        with pytest.raises(df.NumericalBreakdown, match=r"predicted covariance F P Fᵀ \+ Q at "
+                           "step 1 is NaN or inf from a finite P: the transition Jacobian"):  # fmt: skip
             df.extended_kalman_filter(model, ys)
     df.unscented_kalman_filter(NonlinearGaussianModel(root, h, Q, R, torch.zeros(2, **f64), P0), ys)
+
+
+def test_an_overflowing_ekf_covariance_is_said_to_be_one_of_two_causes():
+    """A review: an unstable plant run long without measurements overflows ``P⁻`` with a
+    finite ``F``; the message names the overflow beside a non-finite Jacobian."""
+    one = torch.ones(1, 1, dtype=torch.float64)
+    model = df.LinearGaussianModel(
+        2.0 * one, one, one, one, torch.zeros(1, dtype=torch.float64), one
+    )
+    mask = torch.zeros(1, 530, 1, dtype=torch.bool)
+    mask[:, -1] = True  # 4^k overflows near k = 512
+    with pytest.raises(df.NumericalBreakdown, match="or the covariance overflowed"):
+        df.open_loop(df.ExtendedKalmanFilter(), model, torch.zeros(1, 530, 1, dtype=torch.float64),
+                     mask=mask)  # fmt: skip

@@ -173,3 +173,77 @@ def test_an_outputs_covariances_must_fit_its_means():
     # per run and step, shared, or the leading block (a particle filter's cov_dims)
     for good in ((3, 5, 2, 2), (5, 2, 2), (2, 2), (1, 5, 2, 2), (3, 5, 1, 1)):
         EstimatorOutput(means, torch.zeros(good, dtype=DT))
+
+
+class _AttackInPlace(_Average):
+    """Hands out its running attack estimate and score, written in place at later steps."""
+
+    def _init(self, model, batch_shape, generators):
+        carry = super()._init(model, batch_shape, generators)
+        return carry._replace(model=(model, torch.zeros(*batch_shape, 2, dtype=DT)))
+
+    def _step(self, carry, y, u, mask):
+        model, attack = carry.model
+        new = 0.5 * carry.mean + 0.5 * y
+        attack.mul_(0.5).add_(0.5 * (y - new))  # written in place, then handed out
+        score = attack.square().sum(-1)
+        return _Carry(new, carry.k + 1, (model, attack)), StepOutput(
+            new, attack=attack, score=score, alarm=score > 1.0, threshold=1.0
+        )
+
+
+def test_an_attack_estimate_written_in_place_after_it_was_handed_out_is_named():
+    model = _model()
+    _, ys, _ = model.simulate(6, (2,), generator=torch.Generator().manual_seed(1))
+    with pytest.raises(RuntimeError, match="the attack it handed out at step 1 was written"):
+        open_loop(_AttackInPlace(), model, ys)
+
+
+class _SubtractingController:
+    """``u = −½ (x̂ − ref)``, with ``e = out.mean; e −= ref`` (in place) when ``in_place``."""
+
+    def __init__(self, in_place):
+        self.in_place = in_place
+
+    def init(self, batch_shape, dtype, device):
+        return torch.zeros(*batch_shape, 2, dtype=dtype)
+
+    def __call__(self, k, y, out):
+        ref = torch.tensor([1.0, 0.0], dtype=DT)
+        if self.in_place:
+            e = out.mean
+            e -= ref
+        else:
+            e = out.mean - ref
+        return -0.5 * e
+
+
+def test_a_controller_writing_the_estimators_output_in_place_is_named_not_the_estimator():
+    eye = torch.eye(2, dtype=DT)
+    F = torch.tensor([[1.0, 0.1], [0.0, 1.0]], dtype=DT)
+    model = df.LinearGaussianModel(F, eye, 0.01 * eye, 0.05 * eye, torch.zeros(2, dtype=DT), eye,
+                                   B=0.1 * eye)  # fmt: skip
+    run = dict(noise=DrawnNoise(torch.Generator().manual_seed(0)), x0=torch.zeros(3, 2, dtype=DT),
+               estimator=df.KalmanFilter())  # fmt: skip
+    closed_loop(model, 5, controller=_SubtractingController(False), **run)
+    with pytest.raises(ValueError, match="controller _SubtractingController.__call__ wrote in "
+                       "place into the estimator's output the loop handed it at step 1"):  # fmt: skip
+        closed_loop(model, 5, controller=_SubtractingController(True), **run)
+
+
+def test_an_online_learnings_init_scale_may_be_a_numpy_number():
+    import numpy as np
+
+    from difffilter.fdi.neural import NeuralCompensation, OnlineLearning
+    from difffilter.models.neural_estimator import NeuralFDIEstimator
+    from difffilter.param_ekf import EKFRule
+
+    net = NeuralFDIEstimator(num_areas=1, area_dim=2, resid_dim=2, a=1, b=1, hidden=4, dtype=DT)
+    for scale in (np.float32(0.01), np.int64(1), np.float64(0.5)):  # (refused for a while)
+        NeuralCompensation(
+            net, df.KalmanFilter(), learning=OnlineLearning(EKFRule(), init_scale=scale)
+        )
+    with pytest.raises(ValueError, match="init_scale must be a finite number > 0"):
+        NeuralCompensation(
+            net, df.KalmanFilter(), learning=OnlineLearning(EKFRule(), init_scale=torch.tensor(0.1))
+        )

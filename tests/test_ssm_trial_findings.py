@@ -126,3 +126,21 @@ def test_simulates_inputs_of_other_runs_are_named_against_the_runs_not_ys():
     model = LinearGaussianModel(0.9 * eye, eye, eye, eye, torch.zeros(2, dtype=F64), eye, B=eye)
     with pytest.raises(ValueError, match=r"does not broadcast with the runs' \(4,\)"):
         model.simulate(3, (4,), us=torch.zeros(3, 3, 2, dtype=F64))
+
+
+def test_a_mixture_prior_still_runs_and_batch_shapes_of_arrays_and_tensors():
+    """A review: a GaussianMixture prior (any noise model may be one) had failed every use
+    on the new written-since check; an integer tensor batch_shape had been refused."""
+    eye = torch.eye(2, dtype=F64)
+    model = _linear()
+    model.initial = GaussianMixture(torch.tensor([0.5, 0.5], dtype=F64),
+                                    torch.tensor([[1.0, 0.0], [-1.0, 0.0]], dtype=F64),
+                                    torch.stack([0.1 * eye, 0.1 * eye]))  # fmt: skip
+    _, ys, _ = model.simulate(5, (3,), generator=torch.Generator().manual_seed(0))
+    df.particle_filter(model, ys, num_particles=32, generator=torch.Generator().manual_seed(1))
+    model = _linear()
+    for shape, runs in ((torch.tensor([2, 3]), (2, 3)), (np.array([2, 3]), (2, 3)),
+                        (np.array(3), (3,)), (torch.tensor(4), (4,))):  # fmt: skip
+        assert model.simulate(2, shape)[2].shape == (*runs, 2)
+    with pytest.raises(ValueError, match="batch_shape must be a tuple of integers"):
+        model.simulate(2, torch.tensor([2.5]))

@@ -281,10 +281,8 @@ def _check_learning(learning: OnlineLearning) -> None:
             f"{learning.rule!r}"
         )
     scale = learning.init_scale
-    if scale is not None and (
-        isinstance(scale, bool) or not isinstance(scale, (int, float))
-        or not math.isfinite(scale) or scale <= 0
-    ):  # fmt: skip
+    number = None if isinstance(scale, Tensor) else real_number(scale)  # (numpy's too)
+    if scale is not None and (number is None or not math.isfinite(number) or number <= 0):
         raise ValueError(
             "learning.init_scale must be a finite number > 0 (each run starts from s·U[0, 1] "
             f"weights) or None (the network's own); got {scale!r}"
