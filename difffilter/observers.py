@@ -54,11 +54,16 @@ class FixedGainFilter(GaussianFilter):
 
     def _init(self, model, batch_shape, generators):
         _check_linear(model)
-        if tuple(self.gain.shape) != (model.dim_x, model.dim_y):
+        self._check_gain_fits(model)
+        return gaussian_init(model, batch_shape)
+
+    def _check_gain_fits(self, model) -> None:
+        # (at init and every update: a [1, 1] gain assigned between steps on a 2-state
+        # model had added one correction to both states: an options trial)
+        if self.gain.shape != (model.dim_x, model.dim_y):
             raise ValueError(
                 f"gain must have shape [{model.dim_x}, {model.dim_y}]; got {tuple(self.gain.shape)}"
             )
-        return gaussian_init(model, batch_shape)
 
     def _check_carry(self, carry):
         check_carry_tensor(carry.mean, "mean", dim=carry.model.dim_x)
@@ -75,6 +80,7 @@ class FixedGainFilter(GaussianFilter):
     def update(self, carry, prediction, y, mask, *, evidence=True, moments=None):
         # (an observer reports no density; it has no moments to share)
         model, k = carry.model, carry.k + 1
+        self._check_gain_fits(model)
         residual = y - matvec(model.observation_matrix(k), prediction.mean)
         if mask is not None:
             residual = residual * mask.to(residual.dtype)

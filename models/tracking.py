@@ -537,26 +537,47 @@ class PerSensorDeception:
     def __init__(self, rate: float, low, high, sensors: int):
         # (a rate of −0.1 had added log 1.1 per sensor, 1.5 failed in math.log, and a box
         # of low > high had a positive area and counted every packet outside)
-        rate = check_finite_number(rate, "rate")
-        if not 0.0 <= rate <= 1.0:
-            raise ValueError(f"rate (η̄, the attack probability per sensor) must lie in [0, 1]; "
-                             f"got {rate!r}")  # fmt: skip
-        if isinstance(sensors, bool) or not isinstance(sensors, numbers.Integral) or sensors < 1:
-            raise ValueError(f"sensors must be an integer >= 1; got {sensors!r}")
-        box = [torch.as_tensor(b, dtype=torch.float64) for b in (low, high)]
-        if any(b.shape != (2,) or not bool(torch.isfinite(b).all()) for b in box) or not bool(
-            (box[0] < box[1]).all()
-        ):
+        self.rate, self.sensors, self.low, self.high = rate, sensors, low, high
+        self._check_box()
+
+    def __setattr__(self, name, value):
+        # checked whenever set, and the log terms derived from them at each use (they had
+        # been computed once when built: a rate of 0.6 assigned later weighed fully
+        # received packets with the old one, 2.67 off; 1.5 was taken: an options trial)
+        if name == "rate":
+            value = check_finite_number(value, "rate")
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"rate (η̄, the attack probability per sensor) must lie in "
+                                 f"[0, 1]; got {value!r}")  # fmt: skip
+        elif name == "sensors":
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+                raise ValueError(f"sensors must be an integer >= 1; got {value!r}")
+            value = int(value)
+        elif name in ("low", "high"):
+            # the box in float64, cast to the packets' dtype where compared (its area and the
+            # attacked term in the filter's precision, not torch's default float32)
+            value = torch.as_tensor(value, dtype=torch.float64)
+            if value.shape != (2,) or not bool(torch.isfinite(value).all()):
+                raise ValueError(f"{name} must be two finite (range, bearing) entries; got "
+                                 f"{value!r}")  # fmt: skip
+        super().__setattr__(name, value)
+
+    def _check_box(self) -> None:
+        if not bool((self.low < self.high).all()):
             raise ValueError(f"low and high must be two finite (range, bearing) entries each, "
-                             f"low below high; got {low!r}, {high!r}")  # fmt: skip
-        self.rate, self.sensors = float(rate), int(sensors)
-        # the box in float64, cast to the packets' dtype where compared (its area and the
-        # attacked term in the filter's precision, not torch's default float32)
-        self.low, self.high = box
-        self.log_q = math.log1p(-self.rate)
-        self.log_pa = (math.log(self.rate) if self.rate > 0 else -math.inf) - math.log(
-            float((self.high - self.low).prod())
-        )
+                             f"low below high; got {self.low.tolist()}, {self.high.tolist()}")  # fmt: skip
+
+    @property
+    def log_q(self) -> float:
+        """``log(1 − η̄)``."""
+        return math.log1p(-self.rate)
+
+    @property
+    def log_pa(self) -> float:
+        """``log η̄ − log |box|``: the attacked term inside the box."""
+        self._check_box()  # (here: low and high assigned one after the other may cross)
+        log_rate = math.log(self.rate) if self.rate > 0 else -math.inf
+        return log_rate - math.log(float((self.high - self.low).prod()))
 
     def components(self, model, y, particles, k, mask):
         if y.shape[-1] != 2 * self.sensors:
@@ -581,6 +602,7 @@ class PerSensorDeception:
         box's density over the received entries' widths alone (the box's 2-D density and an
         unmasked clean term had read the missing bearing as data: −7.25 where the range's
         marginal is −1.95, a trial)."""
+        self._check_box()
         flat = entries.reshape(entries.shape[:-2] + (-1,))
         clean = model.measurement_noise.block_log_prob(r, flat.unsqueeze(-2)) + self.log_q
         log_width = torch.log(self.high - self.low).to(clean)  # [2]

@@ -113,3 +113,109 @@ def test_a_learned_estimators_particle_filter_follows_its_inner_settings(name, v
         assigned.inner.num_particles = 30
         with pytest.raises(ValueError, match="particles"):
             assigned.step(carry_a, ys[0])
+
+
+def _identity_model():
+    eye = torch.eye(2, dtype=F64)
+    return df.LinearGaussianModel(eye, eye, 0.01 * eye, 0.01 * eye, torch.zeros(2, dtype=F64), eye)
+
+
+def test_a_poa_particle_filters_detector_and_literal_assigned_since_built():
+    from difffilter.fdi.modified_pf import PoAParticleFilter
+    from difffilter.fdi.poa import PoADetector
+
+    pf = PoAParticleFilter(50, PoADetector(0.3, 0.2))
+    carry = pf.init(_identity_model(), generator=torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match="detector must be a PoADetector; got dict"):
+        pf.detector = {"eta": 0.3, "zeta": 0.2}  # (taken; the next step: a bare AttributeError)
+    pf.detector = PoADetector(0.5, 0.1)  # a detector: followed
+    _, out = pf.step(carry, torch.zeros(2, dtype=F64))
+    assert out.threshold == 0.1
+    with pytest.raises(AttributeError, match="literal is built into the filter's likelihood"):
+        pf.literal = True  # (the score had followed it, the weights not: 0.42 off)
+    with pytest.raises(ValueError, match="literal must be True or False"):
+        PoAParticleFilter(50, PoADetector(0.3, 0.2), literal="no")
+
+
+def test_a_modified_particle_filters_attack_rate_assigned_since_built_is_the_weightings():
+    from difffilter.fdi.modified_pf import ModifiedParticleFilter
+    from difffilter.fdi.poa import PoADetector, RunningAttackRate
+
+    model, gamma = _identity_model(), torch.zeros(5, 2, dtype=F64)
+
+    def first_threshold(pf):
+        carry = pf.init(model, generator=torch.Generator().manual_seed(0))
+        return float(pf.step(carry, torch.zeros(2, dtype=F64))[1].threshold)
+
+    assigned = ModifiedParticleFilter(50, PoADetector(0.3, 0.2), gamma)
+    assigned.attack_rate = RunningAttackRate(50, alpha0=0.9)  # (a new attribute, unread)
+    assert assigned.likelihood.attack_rate is assigned.attack_rate
+    built = ModifiedParticleFilter(50, PoADetector(0.3, 0.2), gamma,
+                                   attack_rate=RunningAttackRate(50, alpha0=0.9))  # fmt: skip
+    assert first_threshold(assigned) == first_threshold(built) == pytest.approx(0.9 * 49 / 50)
+    with pytest.raises(ValueError, match="attack_rate must be a RunningAttackRate or None"):
+        assigned.attack_rate = 0.3
+    assigned.base_likelihood = None
+    assert assigned.likelihood.base is None
+
+
+def test_a_fixed_gain_of_another_shape_assigned_between_steps_is_named():
+    from difffilter.observers import FixedGainFilter
+
+    F = torch.tensor([[1.0, 0.1], [0.0, 0.9]], dtype=F64)
+    H = torch.tensor([[1.0, 0.0]], dtype=F64)
+    eye = torch.eye(2, dtype=F64)
+    model = df.LinearGaussianModel(F, H, 0.01 * eye, 0.01 * torch.eye(1, dtype=F64),
+                                   torch.zeros(2, dtype=F64), eye)  # fmt: skip
+    observer = FixedGainFilter(torch.tensor([[0.5], [0.2]], dtype=F64))
+    carry, _ = observer.step(observer.init(model), torch.tensor([0.4], dtype=F64))
+    observer.gain = torch.tensor([[0.3]], dtype=F64)  # [1, 1] had broadcast to both states
+    with pytest.raises(ValueError, match=r"gain must have shape \[2, 1\]; got \(1, 1\)"):
+        observer.step(carry, torch.tensor([1.0], dtype=F64))
+
+
+def test_a_mixture_particle_filters_cov_dims_is_its_whole_sequence_runs_too():
+    from difffilter.fdi.mixture import (
+        DeceptionMixtureLikelihood,
+        MixtureParticleFilter,
+        ReplacementDeception,
+    )
+    from difffilter.loop import open_loop
+    from difffilter.noise import Gaussian
+
+    model = _identity_model()
+    _, ys, _ = model.simulate(6, generator=torch.Generator().manual_seed(0))
+    deception = ReplacementDeception(
+        Gaussian(torch.zeros(2, dtype=F64), 4 * torch.eye(2, dtype=F64))
+    )
+    pf = MixtureParticleFilter(32, DeceptionMixtureLikelihood(0.1, deception))
+    pf.cov_dims = 1  # (the tabulated fast path had dropped it: covs [T, 2, 2])
+    gens = Generators(*(torch.Generator().manual_seed(s) for s in (1, 2, 3)))
+    assert open_loop(pf, model, ys, generator=gens).covs.shape == (6, 1, 1)
+
+
+def test_the_tracking_per_sensor_likelihood_follows_its_rate_assigned_since_built():
+    import math
+
+    from difffilter.models.tracking import PerSensorDeception, TrackingModel
+
+    model = TrackingModel()
+    x = torch.tensor([20.0, 0.3, 20.0, 0.3], dtype=torch.float32)
+    gen = torch.Generator().manual_seed(0)
+    particles = x + torch.randn(30, 4, generator=gen) * torch.tensor([1.0, 0.01, 1.0, 0.01])
+    y = model.observe(x, 1) + torch.tensor([1.0, 0.01] * 4)
+    y[2] = 50.0  # sensor 2's range replaced
+    low, high = (-10.0, -math.pi / 2), (80.0, math.pi / 2)
+    assigned = PerSensorDeception(0.2, low, high, 4)
+    assigned.rate = 0.6  # (its log terms had been computed when built: 2.67 off)
+    built = PerSensorDeception(0.6, low, high, 4)
+    mask = torch.ones(8, dtype=torch.bool)
+    mask[3] = False
+    for m in (None, mask):
+        torch.testing.assert_close(assigned(model, y, particles, 1, m), built(model, y, particles, 1, m),
+                                   rtol=0, atol=0)  # fmt: skip
+    with pytest.raises(ValueError, match=r"rate .* must lie in \[0, 1\]; got 1.5"):
+        assigned.rate = 1.5
+    assigned.high = torch.tensor([-20.0, 2.0])  # below low: named at the next use
+    with pytest.raises(ValueError, match="low below high"):
+        assigned(model, y, particles, 1, None)

@@ -384,6 +384,7 @@ class MixtureParticleFilter(ParticleFilter):
             self.num_particles, likelihood=_Tabulated(self.mixture, attacked.unsqueeze(-1), carry.k),
             resampler=self.resampler, proposal=self.proposal, ess_threshold=self.ess_threshold,
             innovations=self.innovations, hooks=hooks, record_prior=self.record_prior,
+            cov_dims=self.cov_dims,  # (dropped before: covs [T, 2, 2] for cov_dims = 1, a trial)
         )  # fmt: skip
         batch = self.batch_of(carry)
         out = _step_through(tabulated, carry, ys, us, mask, batch, None)

@@ -260,7 +260,9 @@ class ModifiedPFWeighting:
             )
         elif name == "estimator":  # (derived from gamma_hat: one source of truth)
             raise AttributeError("estimator follows gamma_hat: assign gamma_hat instead")
-        replacing = name in ("detector", "gamma_hat", "attack_rate") and name in self.__dict__
+        replacing = (
+            name in ("detector", "gamma_hat", "attack_rate", "base") and name in self.__dict__
+        )
         super().__setattr__(name, value)
         if replacing:
             note_assignment()
@@ -474,6 +476,38 @@ class ModifiedParticleFilter(ParticleFilter):
             _check_gamma_hat(gamma_hat)
             _check_fused(gamma_hat, w.attack_rate, w.base, self.resampler, self.ess_threshold)
         self.likelihood.gamma_hat = gamma_hat
+
+    # Remark 6's running rate and eq. (59)'s clean likelihood are the weighting's too: an
+    # assignment here had made a new attribute the steps never read (the first threshold
+    # 0.2 where a filter built with the rate gives 0.882: an options trial).
+    @property
+    def attack_rate(self):
+        """The weighting's :class:`RunningAttackRate` (Remark 6), or ``None``."""
+        return self.likelihood.attack_rate
+
+    @attack_rate.setter
+    def attack_rate(self, attack_rate) -> None:
+        if attack_rate is not None and not isinstance(attack_rate, RunningAttackRate):
+            raise ValueError(
+                f"attack_rate must be a RunningAttackRate or None; got {type(attack_rate).__name__}"
+            )
+        _check_attack_rate_particles(attack_rate, self.num_particles)
+        if self.fused:
+            w = self.likelihood
+            _check_fused(w.gamma_hat, attack_rate, w.base, self.resampler, self.ess_threshold)
+        self.likelihood.attack_rate = attack_rate
+
+    @property
+    def base_likelihood(self):
+        """The weighting's clean-measurement likelihood of eq. (59) (``None``: the model's)."""
+        return self.likelihood.base
+
+    @base_likelihood.setter
+    def base_likelihood(self, base) -> None:
+        if self.fused:
+            w = self.likelihood
+            _check_fused(w.gamma_hat, w.attack_rate, base, self.resampler, self.ess_threshold)
+        self.likelihood.base = base
 
     def attach(self, state: ParticleState, model, generators: Generators) -> ParticleState:
         # (init's road too: an attack_rate of another N assigned before the first run)
@@ -691,7 +725,7 @@ class PoAParticleFilter(ParticleFilter):
             raise ValueError(f"detector must be a PoADetector; got {type(detector).__name__}")
         if literal and likelihood is not None:
             raise ValueError("pass either literal=True or a likelihood, not both")
-        self.detector, self.literal = detector, bool(literal)
+        self.detector, self.literal = detector, check_flag(literal, "literal")
         super().__init__(
             num_particles,
             resampler=resampler if resampler is not None else Systematic(),
@@ -700,6 +734,22 @@ class PoAParticleFilter(ParticleFilter):
             hooks=(self._poa,),
             record_prior=record_prior,
         )
+
+    def __setattr__(self, name, value):
+        # (a detector assigned since built had been taken unchecked, failing at the next step
+        # on a bare AttributeError; literal assigned since had switched the score's density
+        # and not the weights': means 0.42 off a filter built so; an options trial)
+        if name == "detector" and not isinstance(value, PoADetector):
+            raise ValueError(f"detector must be a PoADetector; got {type(value).__name__}")
+        if name == "literal" and name in self.__dict__:
+            raise AttributeError(
+                "literal is built into the filter's likelihood by its constructor: it cannot "
+                "be assigned later (build a new PoAParticleFilter(..., literal=...))"
+            )
+        replacing = name == "detector" and name in self.__dict__
+        super().__setattr__(name, value)
+        if replacing:
+            note_assignment()
 
     def attach(self, state: ParticleState, model, generators: Generators) -> ParticleState:
         self.detector.check_runs(state.log_weights.shape[:-1], model)
