@@ -448,9 +448,13 @@ class ModifiedParticleFilter(ParticleFilter):
             self._check_fused_settings()
         self._fused = fused
 
-    def _check_fused_settings(self) -> None:
+    def _check_fused_settings(self, **assigned) -> None:
+        """The fused path's assumptions, with the weighting's settings as they are or as
+        ``assigned`` (``gamma_hat``, ``attack_rate``, ``base``) is about to make them."""
         w = self.likelihood
-        _check_fused(w.gamma_hat, w.attack_rate, w.base, self.resampler, self.ess_threshold)
+        now = {"gamma_hat": w.gamma_hat, "attack_rate": w.attack_rate, "base": w.base, **assigned}
+        _check_fused(now["gamma_hat"], now["attack_rate"], now["base"], self.resampler,
+                     self.ess_threshold)  # fmt: skip
 
     # The detector and γ̂ are the weighting's (the likelihood's) alone, read and assigned
     # through it: a copy kept here as well had been assigned and never read by the steps,
@@ -472,9 +476,8 @@ class ModifiedParticleFilter(ParticleFilter):
     @gamma_hat.setter
     def gamma_hat(self, gamma_hat) -> None:
         if self.fused:
-            w = self.likelihood
             _check_gamma_hat(gamma_hat)
-            _check_fused(gamma_hat, w.attack_rate, w.base, self.resampler, self.ess_threshold)
+            self._check_fused_settings(gamma_hat=gamma_hat)
         self.likelihood.gamma_hat = gamma_hat
 
     # Remark 6's running rate and eq. (59)'s clean likelihood are the weighting's too: an
@@ -493,8 +496,7 @@ class ModifiedParticleFilter(ParticleFilter):
             )
         _check_attack_rate_particles(attack_rate, self.num_particles)
         if self.fused:
-            w = self.likelihood
-            _check_fused(w.gamma_hat, attack_rate, w.base, self.resampler, self.ess_threshold)
+            self._check_fused_settings(attack_rate=attack_rate)
         self.likelihood.attack_rate = attack_rate
 
     @property
@@ -505,8 +507,7 @@ class ModifiedParticleFilter(ParticleFilter):
     @base_likelihood.setter
     def base_likelihood(self, base) -> None:
         if self.fused:
-            w = self.likelihood
-            _check_fused(w.gamma_hat, w.attack_rate, base, self.resampler, self.ess_threshold)
+            self._check_fused_settings(base=base)
         self.likelihood.base = base
 
     def attach(self, state: ParticleState, model, generators: Generators) -> ParticleState:
