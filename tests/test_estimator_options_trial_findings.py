@@ -219,3 +219,29 @@ def test_the_tracking_per_sensor_likelihood_follows_its_rate_assigned_since_buil
     assigned.high = torch.tensor([-20.0, 2.0])  # below low: named at the next use
     with pytest.raises(ValueError, match="low below high"):
         assigned(model, y, particles, 1, None)
+
+
+def test_a_learned_estimators_attach_and_init_read_inner_as_it_is_now():
+    """A review: ``attach`` had kept the count built in (refusing the 20 particles init made
+    after ``inner.num_particles = 20``); an ``on_loss="hold"`` assigned to an inner filter
+    the constructor would refuse ran."""
+    from difffilter.expected_input import ExpectedInputKalmanFilter
+    from difffilter.models.learned_estimator import NeuralCompensation
+    from difffilter.particle import particle_init
+
+    model = _model()
+    est = NeuralCompensation(_QuietNetwork(), df.ParticleFilter(50))
+    est.inner.num_particles = 20
+    gens = Generators(*(torch.Generator().manual_seed(s) for s in (1, 2, 3)))
+    state = particle_init(model, 20, (), torch.Generator().manual_seed(0))
+    assert est.attach(state, model, gens).particles.shape == (20, 2)
+    with pytest.raises(ValueError, match="20 particles"):
+        est.attach(particle_init(model, 50, (), torch.Generator().manual_seed(0)), model, gens)
+    eye = torch.eye(2, dtype=F64)
+    actuated = df.LinearGaussianModel(eye, eye, 0.01 * eye, 0.01 * eye, torch.zeros(2, dtype=F64),
+                                      eye, B=eye)  # fmt: skip
+    inner = ExpectedInputKalmanFilter(0.9)
+    est = NeuralCompensation(_QuietNetwork(), inner)
+    inner.on_loss = "hold"
+    with pytest.raises(ValueError, match=r"carry holds more than the state \(on held inputs"):
+        est.init(actuated, ())

@@ -270,6 +270,17 @@ class OnlineLearning(NamedTuple):
     init_scale: float | None = None
 
 
+def _check_inner_carry(inner) -> None:
+    """``inner``'s carry is the state alone: the learned estimator compensates and reports
+    the carry's moments (its steps report the carry's mean)."""
+    if not getattr(inner, "carry_is_state", True):
+        raise ValueError(
+            f"inner: {type(inner).__name__}'s carry holds more than the state (on held "
+            "inputs, [x; z]), and the learned estimator compensates and reports the "
+            "carry's moments: give it a KalmanFilter, or the filter with on_loss='zero'"
+        )
+
+
 def _check_learning(learning: OnlineLearning) -> None:
     """An :class:`OnlineLearning`'s fields, when the estimator is built: a ``rule="ekf"``
     had failed in the loop's first step (``'str' object has no attribute 'init'``), a NaN
@@ -676,12 +687,7 @@ class NeuralCompensation(Estimator):
             plain_innovation="plain_innovation" in features,
             log_likelihood="log_likelihood" in features,
         )  # fmt: skip
-        if not getattr(inner, "carry_is_state", True):  # (its steps report the carry's mean)
-            raise ValueError(
-                f"inner: {type(inner).__name__}'s carry holds more than the state (on held "
-                "inputs, [x; z]), and the learned estimator compensates and reports the "
-                "carry's moments: give it a KalmanFilter, or the filter with on_loss='zero'"
-            )
+        _check_inner_carry(inner)
         self.gating, self.compensation, self.evidence = gating, compensation, evidence
         self.restart = None if restart is None else float(restart)
         self.confirm = None if confirm is None else float(confirm)
@@ -763,6 +769,7 @@ class NeuralCompensation(Estimator):
             net = self.core.init(runs, carry.particles.dtype, carry.particles.device,
                                  generators.init, model)  # fmt: skip
             return carry._replace(aux=net)
+        _check_inner_carry(self.inner)  # (its on_loss may have been assigned since: a review)
         inner = self.inner._init(model, batch_shape, generators)
         net = self.core.init(runs, inner.mean.dtype, inner.mean.device, generators.init,
                              model)  # fmt: skip
@@ -776,6 +783,7 @@ class NeuralCompensation(Estimator):
                 "the open_loop_innovation feature starts its trajectory at E[x_0]: attach "
                 f"particles of step k = 0 (got k = {state.k}), or run from init"
             )
+        self._follow_inner()  # (as init: a count assigned to inner since, a review)
         carry = self.pf.attach(state._replace(aux=None), model, generators)
         lead = state.log_weights.shape[:-1]
         net = self.core.init(lead, state.particles.dtype, state.particles.device, generators.init,
