@@ -468,10 +468,9 @@ def check_integer(value, name: str, minimum: int = 0) -> int:
 
 def check_batch_shape(batch_shape, least: int = 1, name: str = "batch_shape") -> torch.Size:
     """``batch_shape`` (a sequence of integers, an integer array or tensor, or one integer;
-    numpy's too) as a
-    ``torch.Size``, each entry at least ``least`` (the function forms ``gaussian_init`` and
-    ``particle_init``, and ``simulate``, take 0: no runs); ``ValueError`` naming it
-    otherwise. A bool is no size (``simulate(T, True)`` had simulated one run, ``False``
+    numpy's too) as a ``torch.Size``, each entry at least ``least`` (the function forms
+    ``gaussian_init`` and ``particle_init``, and ``simulate``, take 0: no runs);
+    ``ValueError`` naming it otherwise. A bool is no size (``simulate(T, True)`` had simulated one run, ``False``
     none, without a word; a numpy integer had failed as "not iterable": an ssm trial)."""
     expect = f"{name} must be a tuple of integers >= {least} (or one integer)"
     if isinstance(batch_shape, (bool, np.bool_)):

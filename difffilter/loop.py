@@ -755,7 +755,7 @@ def closed_loop(
                 rec[key].append(val)
             if controller is not None:
                 # (a controller's `e = view.mean; e -= ref` had been blamed on the estimator)
-                seen = _Untouched(controller, view, role="controller")
+                seen = _Untouched(controller, *_handed_fields(view), role="controller")
                 u = controller(k, received, view)
                 seen.check(k, "__call__")
                 u = _checked_input(controller, u, x, plant, k)
@@ -899,12 +899,13 @@ def _empty_view(error: BaseException, attack, view, text: str) -> str | None:
 
 class _HandedOut:
     """The version counters of the means, covariances, attack estimates and scores an
-    estimator handed the driver, checked before they are stacked. ``Estimator.step`` leaves its carry's tensors as they
-    were; a user's step that wrote its carry in place and handed that tensor out as its mean
-    had every stacked ``means[:, t]`` read the last step's value, without a word (a trial:
-    3.46 off a hand run; the attack and score 0.66 and 4.3, a review). The fields the
-    metrics read, not every field (every field had cost a tenth of a Kalman step);
-    inference tensors and ``torch.func`` wrappers keep no counter and are not checked."""
+    estimator handed the driver, checked before they are stacked. ``Estimator.step``
+    leaves its carry's tensors as they were; a user's step that wrote its carry in place
+    and handed that tensor out as its mean had every stacked ``means[:, t]`` read the last
+    step's value, without a word (a trial: 3.46 off a hand run; the attack and score 0.66
+    and 4.3, a review). The fields the metrics read, not every field (every field had
+    cost a tenth of a Kalman step); inference tensors and ``torch.func`` wrappers keep no
+    counter and are not checked."""
 
     FIELDS = ("mean", "cov", "attack", "score")
 
@@ -930,6 +931,11 @@ class _HandedOut:
                     "returns new ones: compute out of place (mean = 0.5 * mean + y, not "
                     "mean.mul_(0.5).add_(y)) or hand out a copy"
                 )
+
+
+def _handed_fields(output) -> tuple:
+    """The fields of a step output the metrics read (:attr:`_HandedOut.FIELDS`), or none."""
+    return () if output is None else tuple(getattr(output, f) for f in _HandedOut.FIELDS)
 
 
 def _tensors_of(output) -> list[Tensor]:
