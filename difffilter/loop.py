@@ -755,7 +755,10 @@ def closed_loop(
                 rec[key].append(val)
             if controller is not None:
                 # (a controller's `e = view.mean; e -= ref` had been blamed on the estimator)
-                seen = _Untouched(controller, *_handed_fields(view), role="controller")
+                # (every field: an adaptive filter's extras["attack_covs"] is its next carry's
+                # own tensor, docs/python-api.md; checking the metrics' four alone let a
+                # controller's `S += I` move every later estimate: a review)
+                seen = _Untouched(controller, view, role="controller")
                 u = controller(k, received, view)
                 seen.check(k, "__call__")
                 u = _checked_input(controller, u, x, plant, k)
@@ -931,11 +934,6 @@ class _HandedOut:
                     "returns new ones: compute out of place (mean = 0.5 * mean + y, not "
                     "mean.mul_(0.5).add_(y)) or hand out a copy"
                 )
-
-
-def _handed_fields(output) -> tuple:
-    """The fields of a step output the metrics read (:attr:`_HandedOut.FIELDS`), or none."""
-    return () if output is None else tuple(getattr(output, f) for f in _HandedOut.FIELDS)
 
 
 def _tensors_of(output) -> list[Tensor]:

@@ -247,3 +247,43 @@ def test_an_online_learnings_init_scale_may_be_a_numpy_number():
         NeuralCompensation(
             net, df.KalmanFilter(), learning=OnlineLearning(EKFRule(), init_scale=torch.tensor(0.1))
         )
+
+
+class _BackingOffController:
+    """``u = −x̂ / (1 + tr(S + I))`` from the adaptive KF's ``extras["attack_covs"]`` (its
+    next carry's own tensor), the sum in place (``S += I``) when ``in_place``."""
+
+    def __init__(self, in_place):
+        self.in_place = in_place
+
+    def init(self, batch_shape, dtype, device):
+        return torch.zeros(*batch_shape, 2, dtype=dtype, device=device)
+
+    def __call__(self, k, y, out):
+        S = out.extras["attack_covs"]
+        if self.in_place:
+            S += torch.eye(2, dtype=S.dtype)
+        else:
+            S = S + torch.eye(2, dtype=S.dtype)
+        return -out.mean / (1.0 + torch.diagonal(S, dim1=-2, dim2=-1).sum(-1, keepdim=True))
+
+
+def test_a_controller_writing_an_extra_of_the_output_in_place_is_named():
+    """A review: the controller's check narrowed to the metrics' four fields had let
+    ``S += I`` into the adaptive KF's carry move every later estimate (0.105)."""
+    from difffilter.fdi import AdaptiveKalmanFilter
+    from difffilter.loop import ReplayedNoise
+
+    eye = torch.eye(2, dtype=DT)
+    F = torch.tensor([[1.0, 0.1], [0.0, 0.95]], dtype=DT)
+    model = df.LinearGaussianModel(F, eye, 1e-3 * eye, 1e-2 * eye, torch.zeros(2, dtype=DT), eye,
+                                   B=eye)  # fmt: skip
+    gen = torch.Generator().manual_seed(0)
+    noise = ReplayedNoise(0.03 * torch.randn(2, 12, 2, generator=gen, dtype=DT),
+                          0.1 * torch.randn(2, 12, 2, generator=gen, dtype=DT))  # fmt: skip
+    run = dict(noise=noise, x0=torch.ones(2, 2, dtype=DT), estimator=AdaptiveKalmanFilter(0.7))
+    closed_loop(model, 12, controller=_BackingOffController(False), **run)
+    with pytest.raises(
+        ValueError, match="controller _BackingOffController.__call__ wrote in place"
+    ):
+        closed_loop(model, 12, controller=_BackingOffController(True), **run)

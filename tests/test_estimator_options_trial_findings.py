@@ -245,3 +245,16 @@ def test_a_learned_estimators_attach_and_init_read_inner_as_it_is_now():
     inner.on_loss = "hold"
     with pytest.raises(ValueError, match=r"carry holds more than the state \(on held inputs"):
         est.init(actuated, ())
+
+
+def test_a_fused_modified_particle_filter_refuses_a_rate_or_likelihood_assigned_later():
+    from difffilter.fdi.modified_pf import ModifiedParticleFilter
+    from difffilter.fdi.poa import PoADetector, RunningAttackRate
+    from difffilter.particle import ModelLikelihood
+
+    pf = ModifiedParticleFilter(50, PoADetector(0.3, 0.2), torch.zeros(5, 2, dtype=F64), fused=True)
+    with pytest.raises(ValueError, match="fused=True does not support attack_rate"):
+        pf.attack_rate = RunningAttackRate(50, alpha0=0.9)
+    with pytest.raises(ValueError, match="fused=True does not support base_likelihood"):
+        pf.base_likelihood = ModelLikelihood()
+    assert pf.attack_rate is None and pf.base_likelihood is None
