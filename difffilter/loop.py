@@ -798,8 +798,8 @@ class _Untouched:
         for value in values:
             tensors = [value] if isinstance(value, Tensor) else _tensors_of(value)
             for t in tensors:
-                if not t.is_inference():
-                    self.stamps.append((t, t._version))
+                if (version := _version_of(t)) is not None:
+                    self.stamps.append((t, version))
 
     def check(self, k: int, call: str) -> None:
         if not any(t._version != version for t, version in self.stamps):
@@ -918,11 +918,8 @@ class _HandedOut:
     def add(self, step: int, output) -> None:
         for name in self.FIELDS:
             value = getattr(output, name)
-            if isinstance(value, Tensor):
-                try:
-                    self.stamps.append((step, name, value, value._version))
-                except RuntimeError:  # no version counter to read
-                    pass
+            if isinstance(value, Tensor) and (version := _version_of(value)) is not None:
+                self.stamps.append((step, name, value, version))
 
     def check(self) -> None:
         for step, name, value, version in self.stamps:
@@ -934,6 +931,15 @@ class _HandedOut:
                     "returns new ones: compute out of place (mean = 0.5 * mean + y, not "
                     "mean.mul_(0.5).add_(y)) or hand out a copy"
                 )
+
+
+def _version_of(t: Tensor) -> int | None:
+    """``t``'s version counter (moved by every in-place write), or ``None`` where it keeps
+    none (an inference tensor)."""
+    try:
+        return t._version
+    except RuntimeError:
+        return None
 
 
 def _tensors_of(output) -> list[Tensor]:

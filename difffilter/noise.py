@@ -281,12 +281,12 @@ class Gaussian(NoiseModel):
             self._zero_loc_cache = cached
         return cached[2]
 
-    def _lower(self) -> Tensor:
+    def _lower(self, name: str = "scale_tril") -> Tensor:
         """The factor given as ``scale_tril``, checked lower triangular once per write (one
         written with entries above its diagonal since built had been read as its lower
-        triangle, another covariance than the one written)."""
+        triangle, another covariance than the one written); ``name``: how the error names it."""
         L = self._scale_tril
-        _check_once(self, "_lower_checked_cache", lambda: _check_lower(L, "scale_tril"), L)
+        _check_once(self, "_lower_checked_cache", lambda: _check_lower(L, name), L)
         return L.tril()
 
     def _compute_scale_tril(self) -> Tensor:
@@ -327,9 +327,7 @@ class Gaussian(NoiseModel):
             _check_once(self, "_written_checked_cache",
                         lambda: check_symmetric(self._cov, f"{name}'s covariance"), self._cov)  # fmt: skip
         else:
-            L = self._scale_tril
-            _check_once(self, "_written_checked_cache",
-                        lambda: _check_lower(L, f"{name}'s scale_tril"), L)  # fmt: skip
+            self._lower(f"{name}'s scale_tril")
 
     @property
     def scale_tril(self) -> Tensor:

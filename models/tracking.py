@@ -576,8 +576,12 @@ class PerSensorDeception:
     def log_pa(self) -> float:
         """``log η̄ − log |box|``: the attacked term inside the box."""
         self._check_box()  # (here: low and high assigned one after the other may cross)
-        log_rate = math.log(self.rate) if self.rate > 0 else -math.inf
-        return log_rate - math.log(float((self.high - self.low).prod()))
+        return self.log_rate - math.log(float((self.high - self.low).prod()))
+
+    @property
+    def log_rate(self) -> float:
+        """``log η̄`` (``−inf`` at 0)."""
+        return math.log(self.rate) if self.rate > 0 else -math.inf
 
     def components(self, model, y, particles, k, mask):
         if y.shape[-1] != 2 * self.sensors:
@@ -606,8 +610,7 @@ class PerSensorDeception:
         flat = entries.reshape(entries.shape[:-2] + (-1,))
         clean = model.measurement_noise.block_log_prob(r, flat.unsqueeze(-2)) + self.log_q
         log_width = torch.log(self.high - self.low).to(clean)  # [2]
-        log_rate = math.log(self.rate) if self.rate > 0 else -math.inf
-        log_pa = log_rate - (entries.to(clean.dtype) * log_width).sum(-1)  # [..., S]
+        log_pa = self.log_rate - (entries.to(clean.dtype) * log_width).sum(-1)  # [..., S]
         inside = (within | ~entries).all(-1)
         att = torch.where(inside, log_pa, -math.inf).unsqueeze(-2).expand_as(clean)
         return clean, att, entries.any(-1).unsqueeze(-2)
