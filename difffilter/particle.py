@@ -1230,7 +1230,9 @@ def particle_filter(
 
     out = open_loop(pf, model, ys, us, mask=mask, generator=gens, carry=carry,
                     nonfinite=nonfinite, collect=collect)  # fmt: skip
-    return particle_result(out)
+    result = particle_result(out)
+    result.start = 0 if initial_state is None else int(initial_state.k)  # (the smoother's)
+    return result
 
 
 #: The keys of a particle filter's stacked extras that are fields of its result.

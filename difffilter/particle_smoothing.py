@@ -58,16 +58,34 @@ class ParticleSmootherResult(NamedTuple):
     filtered: ParticleFilterResult
 
 
+def _start_of(filtered: ParticleFilterResult, start) -> int:
+    """The step the filter started from: ``start`` where given, checked against what the
+    filter recorded (``filtered.start``), else the recorded one (0 where none was)."""
+    if start is None:
+        return 0 if filtered.start is None else filtered.start
+    if isinstance(start, bool) or not isinstance(start, numbers.Integral) or start < 0:
+        raise ValueError(f"start must be an integer >= 0 (the filter's first k); got {start!r}")
+    if filtered.start is not None and start != filtered.start:
+        raise ValueError(
+            f"start={start} but the particle filter started from k = {filtered.start} "
+            "(filtered.start): leave start out to smooth from the filter's own first step"
+        )
+    return int(start)
+
+
 def particle_smoother(
     model: StateSpaceModel, filtered: ParticleFilterResult, us: Tensor | None = None, *,
-    start: int = 0,
+    start: int | None = None,
 ) -> ParticleSmootherResult:  # fmt: skip
     """FFBSm (module docstring) of ``filtered``, the result of
     :func:`difffilter.particle_filter` on ``model`` with ``return_particles=True`` and the same
     inputs ``us [..., T, du]`` (``u_k`` drives ``x_k → x_{k+1}``: the filter's own pairing;
     required on a model with inputs, ``ValueError`` without: zero inputs are given as zeros).
     ``start``: the step ``k`` the filter started from (its ``initial_state``'s; 0 from the
-    prior), so that a time-varying model's step ``k`` is read at its own ``k``. Zero
+    prior), so that a time-varying model's step ``k`` is read at its own ``k``; by default
+    ``filtered.start`` (what :func:`difffilter.particle_filter` recorded; 0 for a result
+    made elsewhere), and a ``start`` that contradicts it is refused (left at 0 for a
+    filter started at k = 3 it had smoothed 2.7 sd off: a trial). Zero
     filtering weights (``−inf`` log-weights, a particle a bounded noise cannot reach) weigh
     nothing, and their derivatives are 0. Differentiable in the particles, weights and the
     model's parameters. Under nearly deterministic dynamics (``Q`` tiny against the
@@ -94,8 +112,7 @@ def particle_smoother(
             f"log_prob); {type(model).__name__} "
             + ("draws its transition its own way" if custom else "is no StateSpaceModel")
         )
-    if isinstance(start, bool) or not isinstance(start, numbers.Integral) or start < 0:
-        raise ValueError(f"start must be an integer >= 0 (the filter's first k); got {start!r}")
+    start = _start_of(filtered, start)
     # as the particle filter refuses it: its runs' parameter sets lined up with the particles
     # (0.75 off where N = runs; torch's "size of tensor a" otherwise: a trial)
     check_one_model(model, "the particle smoother", "smooth each parameter set's filter result "

@@ -149,6 +149,9 @@ class ParticleFilterResult(FilterResult):
         particles: ``[..., T, N, dx]`` when requested (``return_particles=True``), else ``None``.
         log_weights: normalised log-weights ``[..., T, N]`` when requested, else ``None``.
         records: what the filter's step hooks recorded, ``{name: [..., T, ...]}``.
+        start: the step ``k`` the filter started from (its ``initial_state``'s; 0 from the
+            prior), which :func:`difffilter.particle_smoother` reads a time-varying model at;
+            ``None`` where the result was not made by :func:`difffilter.particle_filter`.
     """
 
     ess: Tensor | None = None
@@ -157,3 +160,4 @@ class ParticleFilterResult(FilterResult):
     particles: Tensor | None = None
     log_weights: Tensor | None = None
     records: dict[str, Tensor] | None = None
+    start: int | None = None

@@ -4,6 +4,8 @@ limit, the Rauch–Tung–Striebel smoother of a linear Gaussian model."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -188,5 +190,30 @@ def test_each_backward_step_reads_the_noise_at_its_own_k():
 
     model.process_noise_at = recording
     df.particle_smoother(model, pf, us)
-    df.particle_smoother(model, pf, us, start=3)
+    df.particle_smoother(model, dataclasses.replace(pf, start=None), us, start=3)
     assert read == [4, 3, 2, 1, 7, 6, 5, 4]
+
+
+def test_the_smoother_starts_where_the_filter_started():
+    """A filter run from a carry of step k = 3 records it (``start``), and the smoother reads
+    the model at k = 4, … by default: left at 0 it had read a time-varying noise at the wrong
+    steps (2.7 sd off, a trial). A ``start`` that contradicts the record is refused."""
+    model = _pendulum()
+    us = torch.zeros(2, 5, 1, dtype=F64)
+    _, ys, _ = model.simulate(5, (2,), us, generator=torch.Generator().manual_seed(9))
+    gens = df.Generators.of(torch.Generator().manual_seed(10))
+    carry = df.ParticleFilter(6).init(model, (2,), gens)._replace(k=3)
+    pf = df.particle_filter(model, ys, us, num_particles=6, return_particles=True,
+                            initial_state=carry, generator=gens)  # fmt: skip
+    assert pf.start == 3
+    assert df.particle_filter(model, ys, us, num_particles=6).start == 0
+    read = []
+    original = model.process_noise_at
+    model.process_noise_at = lambda k: read.append(k) or original(k)
+    recorded = df.particle_smoother(model, pf, us)
+    assert read == [7, 6, 5, 4]
+    told = df.particle_smoother(model, dataclasses.replace(pf, start=None), us, start=3)
+    torch.testing.assert_close(recorded.log_weights, told.log_weights, rtol=0, atol=0)
+    with pytest.raises(ValueError, match=r"start=0 but the particle filter started from k = 3"):
+        df.particle_smoother(model, pf, us, start=0)
+    assert df.particle_smoother(model, pf, us, start=3).means.shape == (2, 5, 2)
