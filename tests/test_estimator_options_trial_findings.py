@@ -258,3 +258,17 @@ def test_a_fused_modified_particle_filter_refuses_a_rate_or_likelihood_assigned_
     with pytest.raises(ValueError, match="fused=True does not support base_likelihood"):
         pf.base_likelihood = ModelLikelihood()
     assert pf.attack_rate is None and pf.base_likelihood is None
+
+
+def test_attach_on_a_learned_estimator_over_a_gaussian_filter_is_named():
+    """``attach`` takes particles (particle filter only, its docstring): over a Kalman filter it
+    had failed with a bare ``AttributeError: 'NeuralCompensation' object has no attribute
+    'pf'``."""
+    from difffilter.models.learned_estimator import NeuralCompensation
+    from difffilter.particle import particle_init
+
+    model = _model()
+    est = NeuralCompensation(_QuietNetwork(), df.KalmanFilter())
+    state = particle_init(model, 20, (), torch.Generator().manual_seed(0))
+    with pytest.raises(TypeError, match="this one's inner is a KalmanFilter: start its carry"):
+        est.attach(state, model, Generators())

@@ -778,6 +778,11 @@ class NeuralCompensation(Estimator):
 
     def attach(self, state: ParticleState, model, generators: Generators) -> ParticleState:
         """Particles drawn elsewhere as this estimator's carry (particle filter only)."""
+        if not self.particles:  # (a bare AttributeError: 'pf')
+            raise TypeError(
+                f"attach takes particles for an estimator over a ParticleFilter; this one's "
+                f"inner is a {type(self.inner).__name__}: start its carry from init"
+            )
         if state.k and "open_loop_innovation" in self.core.features:
             raise ValueError(
                 "the open_loop_innovation feature starts its trajectory at E[x_0]: attach "
