@@ -17,6 +17,7 @@ beyond it (the PF's ESS, the modified PF's ``ζ_k``, the NIS of a gated EKF) goe
 
 from __future__ import annotations
 
+import math
 import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
@@ -94,6 +95,9 @@ class Detection:
         and step, or broadcast to it), or ``None``: a trial's ``"25"`` was read as 25.0 and
         a list or a ``[B]`` tensor (one per run) was taken without a word."""
         th = self.threshold
+        if isinstance(th, numbers.Real) and not isinstance(th, bool) and math.isnan(th):
+            # (taken, it compared false with every score and was reported as null)
+            raise ValueError("threshold must be a number, not NaN (None: no threshold)")
         if th is None or (isinstance(th, numbers.Real) and not isinstance(th, bool)):
             return
         if isinstance(th, torch.Tensor) and not th.is_complex() and th.dtype != torch.bool:

@@ -272,3 +272,15 @@ def test_attach_on_a_learned_estimator_over_a_gaussian_filter_is_named():
     state = particle_init(model, 20, (), torch.Generator().manual_seed(0))
     with pytest.raises(TypeError, match="this one's inner is a KalmanFilter: start its carry"):
         est.attach(state, model, Generators())
+
+
+def test_a_nan_threshold_is_refused_by_detection():
+    """``Detection(threshold=nan)`` had been taken: no score exceeds it, and the report read
+    the threshold as null (noted last session). ``None`` says there is none."""
+    from difffilter.estimator import Detection
+
+    scores = torch.zeros(2, 3)
+    for nan in (float("nan"), np.float64("nan")):
+        with pytest.raises(ValueError, match="threshold must be a number, not NaN"):
+            Detection(scores, scores > 0, nan)
+    assert Detection(scores, scores > 0, None).threshold is None
