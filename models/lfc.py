@@ -196,7 +196,7 @@ class LFCPlant(nn.Module):
         process_var = check_finite_number(process_var, "process_var", positive=True)
         measurement_var = check_finite_number(measurement_var, "measurement_var", positive=True)
         self._dt = dt
-        self.params = params or LFCParameters()
+        self._params = params or LFCParameters()
         A, B, F = continuous_model(self.params, dtype=torch.float64)
         Ad, BFd = zoh_discretize(A, torch.cat([B, F], dim=1), self.dt)
         eye = torch.eye(STATE_DIM, dtype=torch.float64)
@@ -219,6 +219,20 @@ class LFCPlant(nn.Module):
         assigned later, it had been stored and the old matrices kept, 1.7 off a plant built
         with it: a trial of models changed under the filters)."""
         return self._dt
+
+    @property
+    def params(self) -> LFCParameters:
+        """The plant's parameters (read-only: the matrices are built from them once, here;
+        assigned later, they had been stored beside the old matrices, A 0.125 and the LQR
+        gain 8.05 off a plant built with them: a trial)."""
+        return self._params
+
+    @params.setter
+    def params(self, value) -> None:
+        raise AttributeError(
+            "LFCPlant.params are built into its matrices by the constructor: build a new "
+            "LFCPlant(params=…)"
+        )
 
     @property
     def dtype(self):

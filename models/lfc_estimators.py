@@ -116,11 +116,32 @@ class LFCContext:
     """Plant, LQR gain and Luenberger gains of one sampling time (built once, reused)."""
 
     def __init__(self, dt: float = 0.01, dtype=torch.float64):
-        self.dt, self.dtype = dt, dtype
         self.plant = LFCPlant(dt=dt, dtype=dtype)
+        self._dtype = dtype
         self.K1 = lqr_gain(self.plant)
         self.A_closed = self.plant.A.double() - self.plant.B.double() @ self.K1.double()
         self._luenberger: dict[LuenbergerDesign, Tensor] = {}
+
+    # dt and dtype are read-only: the plant, K1 and the gains are built with them once; a dt
+    # assigned later had been stored beside them, and luenberger() designed its gain from the
+    # old plant's Ad with the new dt (1.8 off a context of that dt: a trial)
+    @property
+    def dt(self) -> float:
+        """The sampling time in s (the plant's)."""
+        return self.plant.dt
+
+    @dt.setter
+    def dt(self, value) -> None:
+        raise AttributeError("LFCContext.dt is its plant's: build a new LFCContext(dt=…)")
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The dtype of the observers' gains and networks."""
+        return self._dtype
+
+    @dtype.setter
+    def dtype(self, value) -> None:
+        raise AttributeError("LFCContext.dtype is read-only: build a new LFCContext(dtype=…)")
 
     def luenberger(self, design: LuenbergerDesign | str) -> Tensor:
         """The filter-form Luenberger gain of ``design`` (``[10, 10]``)."""
