@@ -826,6 +826,10 @@ class LFCScenario(Scenario):
                              f"{self.dt!r}, duration = {self.duration!r}")  # fmt: skip
         object.__setattr__(self, "steps", int(round(self.duration / self.dt)))
         check_integer(self.max_events, "max_events")  # (else refused only at simulate)
+        if self.load_range is not None:  # (a negative range had drawn mirrored loads)
+            object.__setattr__(self, "load_range", check_finite_number(
+                self.load_range, "load_range (the width of U[-range/2, range/2])",
+                nonnegative=True))  # fmt: skip
         _check_attacked_channels(self.attacked_channels, self.attack)
 
     def with_steps(self, steps: int) -> LFCScenario:

@@ -34,3 +34,19 @@ def test_a_plants_parameters_are_read_only():
     assert plant.params == LFCParameters()
     built = LFCPlant(dt=0.01, params=other)
     assert built.params is other and not torch.equal(lqr_gain(built), lqr_gain(plant))
+
+
+def test_a_scenarios_load_range_is_checked_when_built():
+    """``load_range`` is the width of ``U[−range/2, range/2]``: a negative one had drawn the
+    mirrored loads without a word, an infinite one failed only at simulate."""
+    import dataclasses
+
+    from difffilter.models.registry import get
+
+    scenario = get("lfc_step")
+    for bad in (-1.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match=r"load_range \(the width of .*\) must be a finite"):
+            dataclasses.replace(scenario, load_range=bad)
+    with pytest.raises(TypeError, match="load_range"):
+        dataclasses.replace(scenario, load_range="0.02")
+    assert dataclasses.replace(scenario, load_range=0).load_range == 0.0
