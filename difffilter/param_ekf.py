@@ -912,8 +912,10 @@ class EKFOptimizer(torch.optim.Optimizer):
         params: the tensors ``ζ`` (e.g. ``[W, V]``; one parameter group).
         lr, init_cov, init_noise, process_noise: as in :class:`EKFRule`.
 
-    State (``state_dict``): ``rho [P, P]``, ``upsilon``, ``k`` and, once a step was given
-    ``received``, ``seen`` (the steps that informed ``Υ``). Cost per step
+    State (``state_dict``): ``rho [P, P]``, ``upsilon``, ``k``, ``started_from`` (the
+    ``init_cov`` and ``init_noise`` of the first step: written into the group later, they are
+    refused) and, once a step was given ``received``, ``seen`` (the steps that informed
+    ``Υ``). Cost per step
     ``O(P²·S·m + (S·m)³)``.
     """
 
@@ -967,6 +969,8 @@ class EKFOptimizer(torch.optim.Optimizer):
             state["rho"] = settings["init_cov"] * torch.eye(P, dtype=dtype, device=device)
             state["upsilon"] = torch.tensor(settings["init_noise"], dtype=dtype, device=device)
             state["k"] = 0
+            state["started_from"] = {key: settings[key] for key in ("init_cov", "init_noise")}
+        _check_started_from(state, settings)
         e = residual.to(params[0].dtype)
         H = jacobian.to(e.dtype)
         if received is not None:
@@ -1003,6 +1007,20 @@ class EKFOptimizer(torch.optim.Optimizer):
             p.add_(update[i : i + p.numel()].reshape(p.shape))
             i += p.numel()
         return per_sample
+
+
+def _check_started_from(state: dict, settings: dict) -> None:
+    """``init_cov`` and ``init_noise`` are ``ρ(0)`` and ``Υ(0)``: read at the first step, a
+    value written into the group since had been kept there and never used (as
+    :class:`ParamEKF` refuses the same assignment). A state of an older version, which did
+    not record them, is not checked."""
+    for key, used in state.get("started_from", {}).items():
+        if settings[key] != used:
+            raise ValueError(
+                f"param_groups[0][{key!r}] = {settings[key]:g} but this optimizer started from "
+                f"{used:g}: it is the state's initial value, read at the first step only; to "
+                "start again from it, clear the state (optimizer.state.clear())"
+            )
 
 
 def ekf_along_sequence(step, predict, inputs: Tensor, targets: Tensor,

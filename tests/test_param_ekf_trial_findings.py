@@ -203,3 +203,29 @@ def test_a_factored_learners_input_width_is_checked(width):
         ValueError, match=r"inputs must have shape \[2, 3\] \(the network's input width\)"
     ):
         ekf.step(torch.zeros(2, width, dtype=torch.float64), torch.zeros(2, 2, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("key", ["init_cov", "init_noise"])
+def test_an_optimizers_initial_values_written_after_its_first_step_are_refused(key):
+    """ρ(0) and Υ(0) are read at the first step: ``param_groups[0]["init_cov"] = 1.0`` written
+    later had been kept in the group and never used (noted last session; :class:`ParamEKF`
+    refuses the same assignment). A state loaded into a new optimizer carries them along,
+    and a cleared state starts from the group's values."""
+    p = torch.nn.Parameter(torch.zeros(3, dtype=torch.float64))
+    opt = EKFOptimizer([p])
+    H, e = torch.ones(1, 2, 3, dtype=torch.float64), torch.ones(1, 2, dtype=torch.float64)
+    opt.step(H, e)
+    saved = opt.state_dict()
+    opt.param_groups[0][key] = 0.5
+    with pytest.raises(ValueError, match=rf"\['{key}'\] = 0.5 but this optimizer started from"):
+        opt.step(H, e)
+    resumed = EKFOptimizer([p])
+    resumed.load_state_dict(saved)
+    resumed.step(H, e)  # the saved group and state agree
+    assert resumed.state[p]["k"] == 2
+    opt.state.clear()
+    opt.step(H, e)
+    assert opt.state[p]["started_from"][key] == 0.5
+    if key == "init_cov":
+        torch.testing.assert_close(opt.state[p]["rho"].diagonal().max(), torch.tensor(
+            0.5, dtype=torch.float64), rtol=0, atol=0.5)  # fmt: skip
