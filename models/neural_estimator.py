@@ -488,6 +488,14 @@ def save_estimator_checkpoint(
 
 
 def _check_finite_weights(state: dict, what: str) -> None:
+    """Every weight a finite floating-point tensor: a storage of another dtype (an int32
+    ``V`` of a damaged file without a card) had been loaded as its integers, silently."""
+    typed = [f"{k} ({v.dtype if isinstance(v, Tensor) else type(v).__name__})"
+             for k, v in state.items()
+             if not isinstance(v, Tensor) or not v.is_floating_point()]  # fmt: skip
+    if typed:
+        raise ValueError(f"ckpt: {what} holds weights that are no floating-point tensors: "
+                         f"{', '.join(typed)}")  # fmt: skip
     bad = [
         f"{k} ({int((~torch.isfinite(v)).sum())} of {v.numel()})"
         for k, v in state.items()

@@ -77,3 +77,16 @@ def test_an_export_of_a_lightning_file_carries_the_calibration_record(tmp_path):
     exported = json.loads((tmp_path / "out.json").read_text())
     assert exported["calibration"] == card.extra["calibration"]
     assert exported["observer"]["extra"]["calibration"] == card.extra["calibration"]
+
+
+def test_weights_stored_as_integers_are_refused_by_name(tmp_path):
+    """A damaged file (no card beside it to compare the sha256 with) whose ``V`` was stored
+    as int32 had loaded its integers as the weights (0 and ±1), without a word."""
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+
+    blob = torch.load(ROOT / "checkpoints" / "four_tank_nn_grad.ckpt", weights_only=True)
+    blob["state_dict"]["V"] = blob["state_dict"]["V"].to(torch.int32)
+    torch.save(blob, tmp_path / "damaged.ckpt")
+    with pytest.raises(ValueError, match=r"holds weights that are no floating-point tensors: V "
+                                         r"\(torch.int32\)"):  # fmt: skip
+        load_estimator_checkpoint(tmp_path / "damaged.ckpt")
