@@ -31,7 +31,7 @@ SLOW = (
     "test_lfc_acceptance.py", "test_lfc_eval.py", "test_stealthy.py", "test_lfc_train.py",
     "test_four_tank_eval.py", "test_eval_devices.py", "test_docs_your_own_plant.py",
     "test_user_plants.py", "test_watermark.py", "test_train_logging.py", "test_sweep.py",
-    "test_metrics_schema.py", "test_robustness.py",
+    "test_metrics_schema.py", "test_robustness.py", "test_shipped_card_checks.py",
     # single tests
     "test_adversarial.py::test_an_adversarial_fit_crafts_after_the_first_validation_and_logs_it",
     "test_calibrate_checkpoint.py::test_a_calibrated_lfc_checkpoint_alarms_at_its_threshold_on_its_head",

@@ -56,6 +56,7 @@ def _by_hand_threshold(scores: np.ndarray, far: float) -> float:
 
 class Calls(list):
     continuous = False  # integer multiples of 1/4 (ties), else uniform draws (no ties)
+    check_value = 0.0123456789  # what the stubbed check_metric gives (_source's card's)
 
 
 def _stub_values(seed: int, runs: int, continuous: bool) -> torch.Tensor:
@@ -77,7 +78,11 @@ def stub_scores(monkeypatch):
                                      seed=seed, progress=progress))  # fmt: skip
         return _stub_values(seed, runs, calls.continuous), "stub statistic"
 
+    def check_metric(path, *, seed, runs):  # (calibrate recomputes the card's check)
+        return {"metric": "attack_rmse", "seed": seed, "runs": runs, "value": calls.check_value}
+
     monkeypatch.setattr(calibrate_module, "_scores", scores)
+    monkeypatch.setattr(export_module, "check_metric", check_metric)
     return calls
 
 
@@ -135,11 +140,25 @@ def test_the_threshold_and_rates_are_the_hand_computed_quantile_and_counts(tmp_p
     assert doc["name"] == document["name"] == "four_tank_nn_grad"  # kept from the source
     assert doc["weights_sha256"] == weights_sha256(SHIPPED)  # the weights unchanged
     assert doc["observer"] == card.to_dict() and doc["calibration"] == cal
-    assert doc["check"] == document["check"]  # nothing changed how the estimator runs
+    assert doc["check"] == document["check"]  # the same figure: kept as it was
     assert doc["model_config"] == document["model_config"]
     src_net, _ = load_estimator_checkpoint(SHIPPED, dtype=None)
     for a, b in zip(net.state_dict().values(), src_net.state_dict().values(), strict=True):
         assert torch.equal(a, b)
+
+
+def test_a_check_the_library_no_longer_gives_is_recomputed_with_the_value_before(
+    tmp_path, stub_scores
+):
+    """A calibration that changes nothing of how the estimator runs recomputes the card's
+    check too: the tracking card's had kept its export's figure after the particle filter's
+    numbers moved (a trial). The new value comes with the one before."""
+    src, document = _source(tmp_path)
+    stub_scores.check_value = 0.5
+    calibrate_checkpoint(src, tmp_path / "cal.ckpt", far=0.1, runs=3, progress=False)
+    check = json.loads((tmp_path / "cal.json").read_text())["check"]
+    assert check == {**document["check"], "value": 0.5,
+                     "note": "recomputed by difffilter-train calibrate (before: 0.0123457)"}  # fmt: skip
 
 
 @pytest.mark.parametrize("far", [0.04, 0.5, 0.29])

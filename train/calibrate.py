@@ -93,7 +93,10 @@ def _scores(scenario, name: str, path, runs: int, seed: int, progress: bool):
 
 def _new_check(src: Path, scored: Path, card) -> dict | None:
     """The card's reproducibility check (``difffilter-train export``'s) of the estimator as it
-    now runs (``scored``: its restart, confirm or reject changed), where ``src``'s card has one."""
+    now runs (``scored``: ``src``, or a file of its restart, confirm or reject changed), where
+    ``src``'s card has one: recomputed at every calibration, so that a card recalibrated after
+    the library's numbers moved states what it gives now (the tracking card's had kept its
+    export's 0.73555 beside today's 0.73457: a trial). ``None`` where there is none."""
     from .export import check_metric
 
     card_json = src.with_suffix(".json")
@@ -104,10 +107,13 @@ def _new_check(src: Path, scored: Path, card) -> dict | None:
     )
     if old is None:
         return None
-    return {**check_metric(scored, seed=old["seed"], runs=old["runs"]),
-            "note": "recomputed by difffilter-train calibrate with "
-                    + ", ".join(f"{o} {getattr(card, o)}" for o in RUN_OPTIONS)
-                    + f" (before: {old['value']:.6g})"}  # fmt: skip
+    now = check_metric(scored, seed=old["seed"], runs=old["runs"])
+    if scored == src and now["value"] == old["value"]:
+        return old  # (as it was, its note included)
+    options = ("" if scored == src else " with "
+               + ", ".join(f"{o} {getattr(card, o)}" for o in RUN_OPTIONS))  # fmt: skip
+    return {**now, "note": f"recomputed by difffilter-train calibrate{options} (before: "
+                           f"{old['value']:.6g})"}  # fmt: skip
 
 
 def _fit_scenario(src: Path) -> str | None:
@@ -217,7 +223,7 @@ def calibrate_checkpoint(
         fitted, statistic = _scores(scenario, name, scored, runs, fit_seed, progress)
         threshold = threshold_for(fitted, far)
         checked, _ = _scores(scenario, name, scored, runs, check_seed, progress)
-        check = _new_check(src, scored, card) if scored is not src else None
+        check = _new_check(src, scored, card)
     calibration = {
         "target": float(far), "estimator": name, "scenario": scenario.name, "runs": runs,
         **({} if statistic is None else {"score": statistic}),
