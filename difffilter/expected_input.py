@@ -303,6 +303,12 @@ def _arrival_rate(arrival_rate, independent: bool) -> Tensor:
                          f"{arrival_rate!r}")  # fmt: skip
     if isinstance(arrival_rate, Tensor) and arrival_rate.dim() == 0:
         arrival_rate = float(arrival_rate)
+    if (
+        isinstance(arrival_rate, np.ndarray)
+        and arrival_rate.ndim == 0
+        and (arrival_rate.dtype.kind in "fiu")
+    ):  # (a 0-d numpy array had been refused where a 0-d tensor was taken: a trial)
+        arrival_rate = arrival_rate.item()
     if isinstance(arrival_rate, numbers.Real) and not isinstance(arrival_rate, bool):
         rate = torch.tensor(float(arrival_rate), dtype=torch.float64)
     elif isinstance(arrival_rate, (Tensor, list, tuple, np.ndarray)) and independent:

@@ -284,3 +284,15 @@ def test_a_nan_threshold_is_refused_by_detection():
         with pytest.raises(ValueError, match="threshold must be a number, not NaN"):
             Detection(scores, scores > 0, nan)
     assert Detection(scores, scores > 0, None).threshold is None
+
+
+def test_an_arrival_rate_of_a_0d_numpy_array_is_taken_as_a_0d_tensor_is():
+    """A 0-d tensor was taken as the rate and a 0-d numpy array (``np.array(0.9)``) refused
+    (a trial); a boolean or a string is refused either way."""
+    from difffilter.expected_input import ExpectedInputKalmanFilter
+
+    for rate in (np.array(0.9), torch.tensor(0.9, dtype=F64), 0.9):
+        assert float(ExpectedInputKalmanFilter(rate).arrival_rate) == 0.9
+    for bad in (np.array(True), np.array("0.9"), np.array(1.5)):
+        with pytest.raises(ValueError, match="arrival_rate must"):
+            ExpectedInputKalmanFilter(bad)
