@@ -263,3 +263,17 @@ def test_a_cusum_detector_for_refuses_a_bad_runs_by_name():
     for runs in (0, -1, 2.5):
         with pytest.raises(ValueError, match="runs must be a positive integer"):
             df.fdi.cusum_detector_for(model, false_alarm_rate=0.05, runs=runs, steps=10)
+
+
+@pytest.mark.parametrize("bad", [math.nan, -1e7])
+def test_a_cusum_step_refuses_a_state_that_is_no_statistic(bad):
+    """``S ≥ 0`` and never NaN: a NaN state had scored NaN and never alarmed again (g = 1e6),
+    a negative one cancelled the attack's evidence; :meth:`CusumDetector.check_state` (which
+    GatedFilter calls) refused both, a direct ``step`` took them (a trial). ``+inf`` (an
+    overflowed statistic) is a state the steps keep."""
+    det = CusumDetector(bias=4.0, threshold=5.0)
+    g = torch.tensor([1e6], dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"state \(the statistic S\) must be >= 0 and not NaN"):
+        det.step(torch.tensor([bad], dtype=torch.float64), g)
+    _, s, alarm = det.step(torch.tensor([math.inf], dtype=torch.float64), g)
+    assert math.isinf(float(s)) and bool(alarm)

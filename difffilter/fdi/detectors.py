@@ -698,6 +698,9 @@ class CusumDetector:
             raise TypeError(
                 f"state must be CusumDetector.init's tensor; got {type(state).__name__}"
             )
+        # its values too (a NaN S had scored NaN and never alarmed again, a negative one
+        # cancelled the evidence: GatedFilter checked its carry's, a direct step did not)
+        _check_state_tensor(state, "state (the statistic S)", state.dtype, None)
         _check_step_runs(g, state.shape, "CusumDetector")
         if mask is not None:
             mask = torch.as_tensor(mask, device=g.device)
