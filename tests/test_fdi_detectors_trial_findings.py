@@ -277,3 +277,15 @@ def test_a_cusum_step_refuses_a_state_that_is_no_statistic(bad):
         det.step(torch.tensor([bad], dtype=torch.float64), g)
     _, s, alarm = det.step(torch.tensor([math.inf], dtype=torch.float64), g)
     assert math.isinf(float(s)) and bool(alarm)
+
+
+def test_a_chi_square_step_refuses_a_window_that_holds_no_statistics():
+    """As the CUSUM's S: a NaN window value had scored NaN and never alarmed while it was in
+    the window (g = 1e6 twice), a negative one lowered the score."""
+    det = ChiSquareDetector(2, 0.01, window=3)
+    past, count, received = det.init((1,), dtype=torch.float64)
+    g = torch.tensor([1e6], dtype=torch.float64)
+    for bad in (math.nan, -1e7):
+        with pytest.raises(ValueError, match=r"state\[0\] \(the window's values\) must be >= 0"):
+            det.step((torch.full_like(past, bad), count, received), g)
+    assert bool(det.step((past, count, received), g)[2])
