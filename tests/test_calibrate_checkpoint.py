@@ -282,7 +282,9 @@ def test_calibrate_sets_the_restart_it_runs_and_chooses_the_threshold_with(
 
     checked = []  # (the file's card, seed, runs) of every recomputed check
 
-    def check_metric(path, *, seed, runs):  # the real one is tested on the shipped files
+    def check_metric(
+        path, *, seed, runs, scenario=None
+    ):  # the real one is tested on the shipped files
         checked.append((load_estimator_checkpoint(path)[1], seed, runs))
         return {"metric": "attack_rmse", "seed": seed, "runs": runs, "value": 0.125}
 

@@ -78,7 +78,7 @@ def stub_scores(monkeypatch):
                                      seed=seed, progress=progress))  # fmt: skip
         return _stub_values(seed, runs, calls.continuous), "stub statistic"
 
-    def check_metric(path, *, seed, runs):  # (calibrate recomputes the card's check)
+    def check_metric(path, *, seed, runs, scenario=None):  # (calibrate recomputes the card's check)
         return {"metric": "attack_rmse", "seed": seed, "runs": runs, "value": calls.check_value}
 
     monkeypatch.setattr(calibrate_module, "_scores", scores)
@@ -161,6 +161,33 @@ def test_a_check_the_library_no_longer_gives_is_recomputed_with_the_value_before
                      "note": "recomputed by difffilter-train calibrate (before: 0.0123457)"}  # fmt: skip
 
 
+def test_a_check_on_a_plant_this_process_cannot_load_is_kept_or_left_out(
+    tmp_path, stub_scores, capsys
+):
+    """A card trained on a plant of one's own, calibrated on a built-in plant of its family
+    (``--scenario four_tank_bias``, the documented route): the check, made on that plant,
+    cannot be recomputed here. Kept as it was where nothing changed how the estimator runs
+    (a review: the calibration had failed after its scoring, writing nothing), left out
+    where its restart changed; said on stderr either way."""
+    for restart in (None, 0.05):
+        src, document = _source(tmp_path / str(restart), scenario="my_own_tanks", restart=None,
+                                reject=None, confirm=None, filter="ekf")  # fmt: skip
+        document["check"]["scenario"] = "my_own_tanks"
+        src.with_suffix(".json").write_text(json.dumps(document))
+        out = tmp_path / str(restart) / "cal.ckpt"
+        calibrate_checkpoint(src, out, far=0.1, runs=3, progress=False,
+                             scenario="four_tank_bias", restart=restart)  # fmt: skip
+        doc = json.loads(out.with_suffix(".json").read_text())
+        if restart is None:
+            assert doc["check"] == document["check"]
+            assert "'my_own_tanks', which is not registered here: kept as it was" in (
+                capsys.readouterr().err)  # fmt: skip
+        else:
+            assert "check" not in doc
+            assert "not registered here: left out (the estimator runs otherwise now)" in (
+                capsys.readouterr().err)  # fmt: skip
+
+
 @pytest.mark.parametrize("far", [0.04, 0.5, 0.29])
 def test_the_threshold_is_the_quantile_at_other_rates_and_the_default_runs(
     far, tmp_path, stub_scores
@@ -206,7 +233,7 @@ def test_a_changed_restart_scores_a_file_so_configured_and_recomputes_the_check(
     recomputed on that file with the source card's seed and runs."""
     checked = []
 
-    def check_metric(path, *, seed, runs):
+    def check_metric(path, *, seed, runs, scenario=None):
         checked.append((load_estimator_checkpoint(path)[1].restart, seed, runs))
         return {"metric": "attack_rmse", "seed": seed, "runs": runs, "value": 0.25}
 

@@ -107,13 +107,38 @@ def _new_check(src: Path, scored: Path, card) -> dict | None:
     )
     if old is None:
         return None
-    now = check_metric(scored, seed=old["seed"], runs=old["runs"])
+    plant = _check_scenario(src, old.get("scenario", card.scenario))
+    if plant is None:  # (a plant of one's own that this process cannot load: a review)
+        changed = scored != src
+        print(f"note: the card's check was made on {old.get('scenario')!r}, which is not "
+              f"registered here: {'left out (the estimator runs otherwise now)' if changed else 'kept as it was'}"
+              "; calibrate with the plant's module or YAML file loadable to recompute it",
+              file=sys.stderr)  # fmt: skip
+        return None if changed else old
+    now = check_metric(scored, seed=old["seed"], runs=old["runs"], scenario=plant)
     if scored == src and now["value"] == old["value"]:
         return old  # (as it was, its note included)
     options = ("" if scored == src else " with "
                + ", ".join(f"{o} {getattr(card, o)}" for o in RUN_OPTIONS))  # fmt: skip
     return {**now, "note": f"recomputed by difffilter-train calibrate{options} (before: "
                            f"{old['value']:.6g})"}  # fmt: skip
+
+
+def _check_scenario(src: Path, name: str):
+    """The scenario the card's check ran on: ``name`` as registered here, else the file or
+    module the fit was given where it loads as ``name``; ``None`` where neither does."""
+    from difffilter.models import registry
+
+    for given in (name, _fit_scenario(src)):
+        if given is None:
+            continue
+        try:
+            found = registry.get(given)
+        except ValueError:
+            continue
+        if found.name == name:
+            return found
+    return None
 
 
 def _fit_scenario(src: Path) -> str | None:
@@ -285,7 +310,9 @@ def _write_pair(out: Path, estimator, card, document: dict, calibration: dict, c
         document.update(name=document.get("name", out.stem), checkpoint=out.name, sha256=digest,
                         weights_sha256=weights_sha256(staged), observer=card.to_dict(),
                         calibration=calibration)  # fmt: skip
-        if check is not None:
+        if check is None:  # (none, or one that no longer describes the estimator)
+            document.pop("check", None)
+        else:
             document["check"] = check
         write_json_atomically(staged_card, document)
         with signals_deferred():

@@ -41,17 +41,20 @@ from .common import check_checkpoint_out, load_source
 __all__ = ["export", "main", "ExportEstimator", "check_metric"]
 
 
-def check_metric(path, *, seed: int = 20, runs: int = 4) -> dict:
+def check_metric(path, *, seed: int = 20, runs: int = 4, scenario=None) -> dict:
     """The card's reproducibility check of the exported estimator at ``path``: its attack
     RMSE on ``runs`` runs of its training scenario (``difffilter-eval``'s draws of
     ``seed``, float64), run as the evaluation runs it (its registered estimator, in its
-    own closed loop where the scenario has one). A test recomputes it from the file."""
+    own closed loop where the scenario has one). A test recomputes it from the file.
+    ``scenario``: that scenario where the registry of this process does not know the
+    card's name (a plant of one's own, loaded from its file), else ``None``."""
     from difffilter.loop import LoopResult
     from difffilter.models import estimators, registry
     from difffilter.models.streams import Streams
 
     _, card = load_estimator_checkpoint(path)
-    scenario, streams = registry.get(card.scenario), Streams(seed)
+    scenario = registry.get(card.scenario) if scenario is None else scenario
+    streams = Streams(seed)
     model = scenario.system(torch.float64)
     with torch.no_grad():  # the one process that exports runs it (no process group)
         traj = scenario.simulate(runs, streams.simulation(), model=model)
