@@ -35,6 +35,7 @@ from ._checks import (
     check_step_inputs,
     model_batch_shape,
     model_dtype_device,
+    values_known,
 )
 from ._vouched import Established, hold_whole, vouch, vouched
 from .attack import Channel
@@ -101,6 +102,8 @@ class Detection:
         if th is None or (isinstance(th, numbers.Real) and not isinstance(th, bool)):
             return
         if isinstance(th, torch.Tensor) and not th.is_complex() and th.dtype != torch.bool:
+            if values_known(th) and bool(torch.isnan(th).any()):  # (as a number: a review)
+                raise ValueError("threshold must not hold NaN (None: no threshold)")
             if th.dim() == 0:
                 return
             try:

@@ -277,13 +277,22 @@ def test_attach_on_a_learned_estimator_over_a_gaussian_filter_is_named():
 def test_a_nan_threshold_is_refused_by_detection():
     """``Detection(threshold=nan)`` had been taken: no score exceeds it, and the report read
     the threshold as null (noted last session). ``None`` says there is none."""
-    from difffilter.estimator import Detection
+    from difffilter.estimator import Detection, stack_steps
 
     scores = torch.zeros(2, 3)
     for nan in (float("nan"), np.float64("nan")):
         with pytest.raises(ValueError, match="threshold must be a number, not NaN"):
             Detection(scores, scores > 0, nan)
     assert Detection(scores, scores > 0, None).threshold is None
+    # nor as a tensor, nor stacked from steps that each gave NaN (a review)
+    for nan in (torch.tensor(float("nan")), torch.full((2, 3), float("nan")),
+                torch.tensor([0.5, float("nan"), 0.5])):  # fmt: skip
+        with pytest.raises(ValueError, match="threshold must not hold NaN"):
+            Detection(scores, scores > 0, nan)
+    steps = [df.StepOutput(torch.zeros(2, 1), score=torch.zeros(2), alarm=torch.zeros(2) > 0,
+                           threshold=float("nan")) for _ in range(3)]  # fmt: skip
+    with pytest.raises(ValueError, match="threshold must not hold NaN"):
+        stack_steps(steps, torch.Size([2]))
 
 
 def test_an_arrival_rate_of_a_0d_numpy_array_is_taken_as_a_0d_tensor_is():
