@@ -163,8 +163,9 @@ def rts_smoother(model, filtered: FilterResult, us: Tensor | None = None) -> Smo
     also let the check of ``filtered`` read the first predicted mean; a nonlinear model with
     inputs needs them (``ValueError`` without: zero inputs are given as zeros). (The UKF's result:
     :func:`unscented_rts_smoother`.) The check sees a filter of another ``F``, ``Q`` or
-    prior, not one of another ``H``, ``R`` or ``B`` (the backward pass reads none of them):
-    smooth with the model that filtered."""
+    prior (the prior's mean, on a model with inputs, only where ``us`` is given), not one of
+    another ``H``, ``R`` or ``B`` (the backward pass reads none of them): smooth with the
+    model that filtered."""
     steps, dx = _check_arguments(model, filtered, us, "transition_jacobian")
     means = filtered.means
     if callable(getattr(model, "transition_matrix", None)):
