@@ -68,7 +68,8 @@ def _start_of(filtered: ParticleFilterResult, start) -> int:
     if filtered.start is not None and start != filtered.start:
         raise ValueError(
             f"start={start} but the particle filter started from k = {filtered.start} "
-            "(filtered.start): leave start out to smooth from the filter's own first step"
+            "(filtered.start): leave start out to smooth from the filter's own first step "
+            "(a result cut in time starts later: dataclasses.replace(filtered, start=k))"
         )
     return int(start)
 
