@@ -153,6 +153,12 @@ def ensemble_test(statistic: Tensor, dof, confidence: float = 0.95) -> Consisten
     runs = statistic.shape[0]
     if runs == 0 or statistic.shape[1] == 0:
         raise ValueError(f"statistic has no runs or no steps: {tuple(statistic.shape)}")
+    if bool((statistic < 0).any()):  # (a negative one, of a covariance that is no
+        # covariance, had been averaged with the others and could land inside the bounds)
+        raise ValueError(
+            f"statistic must be >= 0 (NEES and NIS are squared norms); got "
+            f"{float(statistic.min()):g} (a covariance that is not positive definite?)"
+        )
     mean = statistic.double().mean(0)
     if isinstance(dof, (np.ndarray, list, tuple)):
         dof = torch.as_tensor(np.asarray(dof))

@@ -92,3 +92,14 @@ def test_an_infinite_dof_is_refused_by_the_ensemble_test():
     dof[1, 2] = math.inf
     with pytest.raises(ValueError, match="finite and >= 0"):
         ensemble_test(stat, dof)
+
+
+def test_a_negative_statistic_is_refused_by_the_ensemble_test():
+    """NEES and NIS are squared norms: a negative value (a covariance that is no covariance)
+    had been averaged with the others, and a run of -3 beside runs of 5 read as consistent
+    (noted in an earlier session)."""
+    stat = torch.full((4, 3), 2.0, dtype=torch.float64)
+    assert ensemble_test(stat, 2).outside == 0.0
+    stat[0, 1] = -3.0
+    with pytest.raises(ValueError, match=r"statistic must be >= 0 .* got -3"):
+        ensemble_test(stat, 2)
