@@ -299,6 +299,11 @@ def _pcrb_information(model, xs, x0, us, mask, information, num_samples, generat
         check_inputs_given(model, us, "posterior_crb", "its Jacobians ∂f/∂x at u_k")
     if us is not None:  # (a us without its T axis read path t's input at step t, unsaid)
         _check_us(model, us, xs.shape[:-2], T, dtype, device, against="xs's [..., M]")
+    if mask is not None and information is not None:  # (the mask had been ignored)
+        raise ValueError(
+            "give mask or information, not both: information is J_v of what was received; "
+            "zero its rows and columns of the entries not received instead"
+        )
     mask = _check_mask(mask, dy)
     if mask is not None and (mask.dim() < 2 or mask.shape[-2] != T):
         raise ValueError(
@@ -423,7 +428,7 @@ def posterior_crb(
             inputs and without ``transition_matrix``, whose Jacobians read them
             (``ValueError``).
         mask: received entries ``[..., T, dy]`` (bool) or ``None`` (all received); an
-            all-false step adds no information.
+            all-false step adds no information. Not with ``information`` (``ValueError``).
         information: ``J_v`` for every step, ``[..., T, dy, dy]``, instead of computing
             it from ``model.measurement_noise`` and ``mask`` with :func:`noise_information`.
         num_samples, generator: of the Monte Carlo Fisher information (non-Gaussian noise).

@@ -289,3 +289,18 @@ def test_a_float32_fisher_information_is_accepted():
             torch.testing.assert_close(given.bound, df.posterior_crb(model, xs, x0, mask=m).bound)
         info = gaussian_information(R, mask)
         assert torch.equal(info, info.mT)  # symmetric to the bit, as a Fisher information is
+
+
+def test_a_mask_beside_the_information_is_refused():
+    """``information`` is ``J_v`` already: a ``mask`` given beside it had been ignored (an
+    all-false mask bounded as if everything arrived; noted in an earlier session)."""
+    model = df.LinearGaussianModel(F, H, Q, R, M0, P0)
+    xs, x0 = torch.zeros(1, 3, 2, dtype=D), torch.zeros(1, 2, dtype=D)
+    info = torch.eye(3, dtype=D).expand(3, 3, 3)
+    lost = torch.zeros(3, 3, dtype=torch.bool)
+    with pytest.raises(ValueError, match="give mask or information, not both"):
+        df.posterior_crb(model, xs, x0, mask=lost, information=info)
+    # the documented way: the rows and columns of what was lost zeroed
+    zeroed = df.posterior_crb(model, xs, x0, information=torch.zeros(3, 3, 3, dtype=D))
+    masked = df.posterior_crb(model, xs, x0, mask=lost)
+    torch.testing.assert_close(zeroed.bound, masked.bound)
