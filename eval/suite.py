@@ -210,7 +210,9 @@ def run_suite(
     def provenance(path) -> dict:  # (the scenario it was trained on: another plant of the
         # family runs without a word, so the report says what the network was trained on)
         trained = checkpoint_training_scenario(path)
-        return {"sha256": checkpoint_sha256(path),
+        # the file as the estimators loaded it (replaced since, it would name another network)
+        digest = registry.loaded_sha256(ctx.cache, path) or checkpoint_sha256(path)
+        return {"sha256": digest,
                 **({"training_scenario": trained} if trained is not None else {})}  # fmt: skip
 
     for name, path in named.items():

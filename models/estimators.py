@@ -342,6 +342,30 @@ def _load_families() -> None:
     all_scenarios()
 
 
+def loaded_checkpoint(ctx, path, dtype=torch.float64):
+    """``(network, card)`` of the checkpoint at ``path`` in ``dtype``, loaded once per
+    evaluation (``ctx.cache``: a :class:`SuiteContext`'s, or any object with a ``cache``
+    dict), and the sha256 of the file as it was when first loaded, which the report records
+    (:func:`loaded_sha256`): hashed at the report's end, a file replaced during a study of
+    several scenarios (an export's ``--force``) had been recorded while its scenarios ran
+    the network loaded before (a provenance trial)."""
+    from difffilter.models.neural_estimator import checkpoint_sha256, load_estimator_checkpoint
+
+    key = ("checkpoint", str(path), dtype)
+    if key not in ctx.cache:
+        digest = checkpoint_sha256(path)  # (before the load: a file changed after it no
+        # longer matches its card, which the load checks)
+        ctx.cache[key] = load_estimator_checkpoint(path, dtype=dtype)
+        ctx.cache.setdefault(("checkpoint/sha256", str(path)), digest)
+    return ctx.cache[key]
+
+
+def loaded_sha256(cache: dict, path) -> str | None:
+    """The sha256 of ``path`` when :func:`loaded_checkpoint` first loaded it into ``cache``,
+    or ``None``."""
+    return cache.get(("checkpoint/sha256", str(path)))
+
+
 @dataclass
 class SuiteContext:
     """What an estimator factory may use.

@@ -29,7 +29,7 @@ from difffilter.fdi.neural import (
     feature_dim,
 )
 from difffilter.loop import open_loop
-from difffilter.models.estimators import SkipEstimator, register
+from difffilter.models.estimators import SkipEstimator, loaded_checkpoint, register
 from difffilter.models.generic_estimators import GAUSSIAN_FILTERS, deception_of
 from difffilter.particle import ParticleFilter
 
@@ -55,8 +55,6 @@ def _trained_network(ctx, name: str, filters, trainer: str):
     """The checkpoint's network and card if it was trained for this scenario family with
     one of ``filters`` by ``trainer``; :class:`~difffilter.models.estimators.SkipEstimator`
     otherwise."""
-    from difffilter.models.neural_estimator import load_estimator_checkpoint
-
     path = ctx.checkpoint_for(name)
     if path is None:
         raise SkipEstimator(
@@ -64,10 +62,7 @@ def _trained_network(ctx, name: str, filters, trainer: str):
         )
     # the dtype too: the network is loaded in it (a float64 suite sharing the cache of a
     # float32 one had run the float32 network: a cache trial)
-    key = ("learned/ckpt", str(path), ctx.dtype)
-    if key not in ctx.cache:
-        ctx.cache[key] = load_estimator_checkpoint(path, dtype=ctx.dtype)
-    net, card = ctx.cache[key]
+    net, card = loaded_checkpoint(ctx, path, ctx.dtype)
     if (
         card.scenario_family != ctx.scenario.family
         or card.filter not in filters

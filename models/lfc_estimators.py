@@ -57,14 +57,15 @@ from difffilter.control import LuenbergerDesign, luenberger_gain
 from difffilter.estimator import Detection, EstimatorOutput, Generators
 from difffilter.kalman import KalmanFilter
 from difffilter.loop import LoopResult, Trajectories
-from difffilter.models.estimators import SkipEstimator, SuiteContext, family_register
+from difffilter.models.estimators import (
+    SkipEstimator,
+    SuiteContext,
+    family_register,
+    loaded_checkpoint,
+)
 from difffilter.models.learned_estimator import NeuralCompensation, OnlineLearning, Residual
 from difffilter.models.lfc import LFCPlant, LFCScenario, lqr_gain
-from difffilter.models.neural_estimator import (
-    RUN_OPTIONS,
-    NeuralFDIEstimator,
-    load_estimator_checkpoint,
-)
+from difffilter.models.neural_estimator import RUN_OPTIONS, NeuralFDIEstimator
 from difffilter.models.scenario import OWN_ATTACK
 from difffilter.models.streams import Streams, far_calibration_seed
 from difffilter.observers import FixedGainFilter
@@ -216,7 +217,7 @@ def _checkpoint_network(ctx: SuiteContext, name: str):
         raise SkipEstimator(
             "no checkpoint given (--ckpt; checkpoint= in Python) and no shipped one"
         )
-    net, obs = _cached(ctx, ("lfc/ckpt", str(path)), lambda: load_estimator_checkpoint(path))
+    net, obs = loaded_checkpoint(ctx, path)
     why = check_lfc_card(obs, ctx.scenario.dt)
     if why is not None:
         raise SkipEstimator(why)
@@ -364,7 +365,7 @@ def _alarm_threshold(ctx: SuiteContext, name: str, trained: bool, statistic: str
     if not trained:
         return DEFAULT_THRESHOLD[statistic]
     path = ctx.checkpoint_for(name)  # loaded (and checked) by the entry's build already
-    _, card = _cached(ctx, ("lfc/ckpt", str(path)), lambda: load_estimator_checkpoint(path))
+    _, card = loaded_checkpoint(ctx, path)
     calibration = card.extra.get("calibration", {})
     # for this entry, statistic and run options (the reported name encodes confirm alone: a
     # card re-saved with another restart or reject had kept the threshold of before)

@@ -215,7 +215,7 @@ def test_a_suites_checkpoint_cache_holds_one_network_per_dtype():
             _trained_network(ctx, "pf_nn_grad", ("pf",), "grad")
         except SkipEstimator:  # (a card of other settings: the network is cached all the same)
             pass
-        net = [v[0] for v in cache.values()][-1]
+        net = [v[0] for k, v in cache.items() if k[0] == "checkpoint"][-1]
         dtypes.append(next(net.parameters()).dtype)
     assert dtypes == [torch.float32, torch.float64]
 

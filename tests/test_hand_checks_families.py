@@ -194,7 +194,7 @@ def test_lfc_card_without_a_score_record_was_calibrated_for_the_estimate():
 
     card = NS(threshold=7.25, extra={"calibration": {"estimator": "kf_nn_grad"}})
     ctx = SuiteContext(scenario=None, model=None, runs=1, streams=Streams(0), checkpoint="old.ckpt")
-    ctx.cache[("lfc/ckpt", "old.ckpt")] = (None, card)
+    ctx.cache[("checkpoint", "old.ckpt", torch.float64)] = (None, card)
     assert _alarm_threshold(ctx, "kf_nn_grad", True, ESTIMATE, ESTIMATE) == 7.25
     assert _alarm_threshold(ctx, "kf_nn_grad", True, PROBABILITY, PROBABILITY) == 0.5
     assert _alarm_threshold(ctx, "kf_nn_grad_ekf", True, ESTIMATE, ESTIMATE) == 3.0

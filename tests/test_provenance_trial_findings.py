@@ -55,3 +55,39 @@ def test_a_copy_inside_another_work_tree_gets_no_commit_and_an_unknown_status_is
     assert record["git_commit"] is None and record["git_dirty"] is None
     line = provenance.software_line({**record, "git_commit": "0123456789abcdef", "git_dirty": None})
     assert "at 0123456789ab + changes unknown" in line
+
+
+def test_a_checkpoint_replaced_during_an_evaluation_is_recorded_as_the_file_that_ran(tmp_path):
+    """The network is loaded once per evaluation (its cache, shared by its scenarios), and
+    its sha256 had been read at each report's end: a file replaced in between (an export's
+    ``--force``) was recorded while the old network ran (a trial). The digest is the file's
+    when first loaded; a fresh evaluation loads and records the new one."""
+    import hashlib
+    import shutil
+
+    import torch
+
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import registry
+
+    shipped = Path(__file__).resolve().parents[1] / "checkpoints" / "robot_nn_ekf.ckpt"
+    used = tmp_path / "x.ckpt"
+    shutil.copyfile(shipped, used)
+    blob = torch.load(shipped, map_location="cpu", weights_only=True)
+    blob["state_dict"] = {k: v + 0.05 for k, v in blob["state_dict"].items()}
+    other = tmp_path / "other.ckpt"
+    torch.save(blob, other)
+
+    def sha(path):
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+    first, second = sha(used), sha(other)
+    scenario, cache = registry.get("robot_actuator_attack"), {}
+    kw = dict(runs=2, estimators=["gaussian_nn_ekf"], progress=False, checkpoint=used)
+    before = run_suite(scenario, cache=cache, **kw)
+    shutil.copyfile(other, used)
+    during = run_suite(scenario, cache=cache, **kw)  # the network loaded before runs
+    fresh = run_suite(scenario, cache={}, **kw)
+    rmse = [r.metrics["gaussian_nn_ekf"]["state_rmse"] for r in (before, during, fresh)]
+    assert rmse[0] == rmse[1] != rmse[2]
+    assert [r.checkpoint["sha256"] for r in (before, during, fresh)] == [first, first, second]
