@@ -289,3 +289,8 @@ def test_a_chi_square_step_refuses_a_window_that_holds_no_statistics():
         with pytest.raises(ValueError, match=r"state\[0\] \(the window's values\) must be >= 0"):
             det.step((torch.full_like(past, bad), count, received), g)
     assert bool(det.step((past, count, received), g)[2])
+    # nor counts of entries received that are none (a review: -2 flipped the alarm, NaN
+    # failed as torch's IndexError)
+    for bad in (math.nan, -2.0):
+        with pytest.raises(ValueError, match=r"state\[2\] \(the entries received\) must be >= 0"):
+            det.step((past, count, torch.full_like(received, bad)), g)

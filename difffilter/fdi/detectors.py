@@ -562,8 +562,12 @@ class ChiSquareDetector:
         _check_statistic(g, "g", alarm_on_inf=True, nonnegative=True)
         past, count, *held = state
         self._check_state(past, held)
-        if self.window > 1:  # (a NaN window had scored NaN, never alarming, as a CUSUM's S)
+        if self.window > 1:  # (a NaN window had scored NaN, never alarming, as a CUSUM's S;
+            # a negative count received judged the window at fewer degrees: a review)
             _check_state_tensor(past, "state[0] (the window's values)", past.dtype, None)
+            if held:
+                _check_state_tensor(held[0], "state[2] (the entries received)", held[0].dtype,
+                                    None)  # fmt: skip
         _check_step_runs(g, past.shape[:-1], "ChiSquareDetector")
         g = g.expand(past.shape[:-1])  # (one g for every run: the window holds it per run)
         past_dof = held[0] if held else self._all_received(past, count)
