@@ -211,7 +211,7 @@ def run_suite(
         # family runs without a word, so the report says what the network was trained on)
         trained = checkpoint_training_scenario(path)
         # the file as the estimators loaded it (replaced since, it would name another network)
-        digest = registry.loaded_sha256(ctx.cache, path) or checkpoint_sha256(path)
+        digest = ctx.checkpoint_digests.get(str(path)) or checkpoint_sha256(path)
         return {"sha256": digest,
                 **({"training_scenario": trained} if trained is not None else {})}  # fmt: skip
 
@@ -577,15 +577,18 @@ def _gather(result: SuiteResult, ctx, specs, world: int) -> None:
     would in one process, so the gathered outputs are those of a single-process run.
     """
     mine = (result.outputs, result.wall_s, result.skipped, ctx.checkpoint_users,
-            result.trajectories)  # fmt: skip
+            result.trajectories, ctx.checkpoint_digests)  # fmt: skip
     parts = gather_objects(mine, world)
     outputs, walls, skipped, users, trajs = {}, {}, {}, [], {}
-    for out, wall, skip, used, own in parts:
+    for out, wall, skip, used, own, digests in parts:
         outputs.update(out)
         walls.update(wall)
         skipped.update(skip)
         users += used
         trajs.update(own)
+        # the files as the process that ran their estimators loaded them (a review: rank 0
+        # had hashed a file it never loaded at the report's end)
+        ctx.checkpoint_digests.update(digests)
     order = [s.name for s in specs]
     result.outputs = {n: outputs[n] for n in order if n in outputs}
     result.trajectories = {n: trajs[n] for n in order if n in trajs}

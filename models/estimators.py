@@ -345,10 +345,10 @@ def _load_families() -> None:
 def loaded_checkpoint(ctx, path, dtype=torch.float64):
     """``(network, card)`` of the checkpoint at ``path`` in ``dtype``, loaded once per
     evaluation (``ctx.cache``: a :class:`SuiteContext`'s, or any object with a ``cache``
-    dict), and the sha256 of the file as it was when first loaded, which the report records
-    (:func:`loaded_sha256`): hashed at the report's end, a file replaced during a study of
-    several scenarios (an export's ``--force``) had been recorded while its scenarios ran
-    the network loaded before (a provenance trial)."""
+    dict), with the sha256 of the file as it was when that network was loaded, which the
+    study's report records (:attr:`SuiteContext.checkpoint_digests`): hashed at the report's
+    end, a file replaced during a study of several scenarios (an export's ``--force``) had
+    been recorded while its scenarios ran the network loaded before (a provenance trial)."""
     from difffilter.models.neural_estimator import checkpoint_sha256, load_estimator_checkpoint
 
     key = ("checkpoint", str(path), dtype)
@@ -356,14 +356,11 @@ def loaded_checkpoint(ctx, path, dtype=torch.float64):
         digest = checkpoint_sha256(path)  # (before the load: a file changed after it no
         # longer matches its card, which the load checks)
         ctx.cache[key] = load_estimator_checkpoint(path, dtype=dtype)
-        ctx.cache.setdefault(("checkpoint/sha256", str(path)), digest)
+        ctx.cache[("checkpoint/sha256",) + key[1:]] = digest
+    digests = getattr(ctx, "checkpoint_digests", None)
+    if digests is not None:  # (per study: the network of this dtype is the one that ran)
+        digests[str(path)] = ctx.cache.get(("checkpoint/sha256",) + key[1:])
     return ctx.cache[key]
-
-
-def loaded_sha256(cache: dict, path) -> str | None:
-    """The sha256 of ``path`` when :func:`loaded_checkpoint` first loaded it into ``cache``,
-    or ``None``."""
-    return cache.get(("checkpoint/sha256", str(path)))
 
 
 @dataclass
@@ -395,6 +392,8 @@ class SuiteContext:
             threat-model trial: a CUSUM calibrated on the calibration seed's runs had another
             τ, and the threshold picked on its scores moved the study's false-alarm rate
             by −0.13 to +0.23 points).
+        checkpoint_digests: ``{path: sha256}`` of the checkpoints this study's estimators
+            loaded (:func:`loaded_checkpoint`), as the files were when loaded.
         detector_runs: the study's runs, whose count sets the detectors' own attack-free
             runs (``max(runs, 50)``), ``None``: :attr:`runs` (a calibration on more runs
             than the study had built a CUSUM of another τ: a review).
@@ -412,6 +411,7 @@ class SuiteContext:
     particle_prefix: str = ""
     detector_streams: Streams | None = None
     detector_runs: int | None = None
+    checkpoint_digests: dict[str, str | None] = field(default_factory=dict)
 
     def checkpoint_for(self, name: str):
         """The checkpoint estimator ``name`` uses: its own (``--ckpt name=path``), else

@@ -91,3 +91,29 @@ def test_a_checkpoint_replaced_during_an_evaluation_is_recorded_as_the_file_that
     rmse = [r.metrics["gaussian_nn_ekf"]["state_rmse"] for r in (before, during, fresh)]
     assert rmse[0] == rmse[1] != rmse[2]
     assert [r.checkpoint["sha256"] for r in (before, during, fresh)] == [first, first, second]
+    # a study in another dtype loads the file again, as it is now, and records that (a
+    # review: the digest of the first load had been kept for the path)
+    single = run_suite(scenario, cache=cache, dtype=torch.float32, **kw)
+    again = run_suite(scenario, cache={}, dtype=torch.float32, **kw)
+    assert (
+        single.metrics["gaussian_nn_ekf"]["state_rmse"]
+        == again.metrics["gaussian_nn_ekf"]["state_rmse"]
+    )
+    assert single.checkpoint["sha256"] == second
+
+
+def test_the_digests_of_checkpoints_other_processes_loaded_are_gathered(monkeypatch):
+    """With ``--devices 2`` the entry using a checkpoint may run in another process: the
+    report's process had hashed the file at the end, never having loaded it (a review).
+    The processes' digests come with their outputs."""
+    from types import SimpleNamespace
+
+    from difffilter.eval import suite
+
+    mine = SimpleNamespace(outputs={}, wall_s={}, skipped={}, trajectories={})
+    ctx = SimpleNamespace(checkpoint_users=[], checkpoint_digests={})
+    other = ({}, {}, {}, ["gaussian_nn_ekf"], {}, {"net.ckpt": "loaded-by-rank-1"})
+    monkeypatch.setattr(suite, "gather_objects", lambda part, world: [part, other])
+    suite._gather(mine, ctx, [SimpleNamespace(name="gaussian_nn_ekf")], 2)
+    assert ctx.checkpoint_digests == {"net.ckpt": "loaded-by-rank-1"}
+    assert ctx.checkpoint_users == ["gaussian_nn_ekf"]
