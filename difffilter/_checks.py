@@ -77,8 +77,9 @@ def values_known(t: Tensor) -> bool:
     flow" error alone)."""
     if _vmapped(t):
         raise ValueError(
-            "torch.func.vmap over a model's parameters or data is not supported: the filters "
-            "check values (finiteness, symmetry, definiteness) and choose paths by them. "
+            "torch.func.vmap over a model's parameters, data or an estimator's (or detector's) "
+            "state is not supported: the filters and detectors check values (finiteness, "
+            "symmetry, definiteness, signs) and choose paths by them. "
             "Batch instead: a model of per-run matrices (e.g. Q [B, d, d]) runs B parameter "
             "sets in one call, and measurements ys [B, T, dy] B data sets; gradients flow to "
             "each (docs/gradients.md)"
