@@ -209,10 +209,11 @@ def run_suite(
 
     def provenance(path) -> dict:  # (the scenario it was trained on: another plant of the
         # family runs without a word, so the report says what the network was trained on)
+        loaded = ctx.loaded_checkpoints.get(str(path))
+        if loaded is not None:  # the file as the estimators loaded it (replaced since, it
+            return dict(loaded)  # would name another network)
         trained = checkpoint_training_scenario(path)
-        # the file as the estimators loaded it (replaced since, it would name another network)
-        digest = ctx.checkpoint_digests.get(str(path)) or checkpoint_sha256(path)
-        return {"sha256": digest,
+        return {"sha256": checkpoint_sha256(path),
                 **({"training_scenario": trained} if trained is not None else {})}  # fmt: skip
 
     for name, path in named.items():
@@ -577,10 +578,10 @@ def _gather(result: SuiteResult, ctx, specs, world: int) -> None:
     would in one process, so the gathered outputs are those of a single-process run.
     """
     mine = (result.outputs, result.wall_s, result.skipped, ctx.checkpoint_users,
-            result.trajectories, ctx.checkpoint_digests)  # fmt: skip
+            result.trajectories, ctx.loaded_checkpoints)  # fmt: skip
     parts = gather_objects(mine, world)
     outputs, walls, skipped, users, trajs = {}, {}, {}, [], {}
-    for out, wall, skip, used, own, digests in parts:
+    for out, wall, skip, used, own, loaded in parts:
         outputs.update(out)
         walls.update(wall)
         skipped.update(skip)
@@ -588,7 +589,7 @@ def _gather(result: SuiteResult, ctx, specs, world: int) -> None:
         trajs.update(own)
         # the files as the process that ran their estimators loaded them (a review: rank 0
         # had hashed a file it never loaded at the report's end)
-        ctx.checkpoint_digests.update(digests)
+        ctx.loaded_checkpoints.update(loaded)
     order = [s.name for s in specs]
     result.outputs = {n: outputs[n] for n in order if n in outputs}
     result.trajectories = {n: trajs[n] for n in order if n in trajs}

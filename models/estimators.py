@@ -345,21 +345,26 @@ def _load_families() -> None:
 def loaded_checkpoint(ctx, path, dtype=torch.float64):
     """``(network, card)`` of the checkpoint at ``path`` in ``dtype``, loaded once per
     evaluation (``ctx.cache``: a :class:`SuiteContext`'s, or any object with a ``cache``
-    dict), with the sha256 of the file as it was when that network was loaded, which the
-    study's report records (:attr:`SuiteContext.checkpoint_digests`): hashed at the report's
-    end, a file replaced during a study of several scenarios (an export's ``--force``) had
-    been recorded while its scenarios ran the network loaded before (a provenance trial)."""
+    dict), with the sha256 of the file as it was when that network was loaded and the
+    scenario its card says it was trained on, which the study's report records
+    (:attr:`SuiteContext.loaded_checkpoints`): read at the report's end, a file replaced
+    during a study of several scenarios (an export's ``--force``) had been recorded while its
+    scenarios ran the network loaded before (a provenance trial; a review: its training
+    scenario too)."""
     from difffilter.models.neural_estimator import checkpoint_sha256, load_estimator_checkpoint
 
     key = ("checkpoint", str(path), dtype)
+    record = ("checkpoint/provenance",) + key[1:]
     if key not in ctx.cache:
         digest = checkpoint_sha256(path)  # (before the load: a file changed after it no
         # longer matches its card, which the load checks)
-        ctx.cache[key] = load_estimator_checkpoint(path, dtype=dtype)
-        ctx.cache[("checkpoint/sha256",) + key[1:]] = digest
-    digests = getattr(ctx, "checkpoint_digests", None)
-    if digests is not None:  # (per study: the network of this dtype is the one that ran)
-        digests[str(path)] = ctx.cache.get(("checkpoint/sha256",) + key[1:])
+        _, card = ctx.cache[key] = load_estimator_checkpoint(path, dtype=dtype)
+        trained = None if card.scenario is None else str(card.scenario)
+        ctx.cache[record] = {"sha256": digest,
+                             **({"training_scenario": trained} if trained else {})}  # fmt: skip
+    loaded = getattr(ctx, "loaded_checkpoints", None)
+    if loaded is not None and record in ctx.cache:  # (per study: this dtype's network ran)
+        loaded[str(path)] = ctx.cache[record]
     return ctx.cache[key]
 
 
@@ -392,8 +397,9 @@ class SuiteContext:
             threat-model trial: a CUSUM calibrated on the calibration seed's runs had another
             τ, and the threshold picked on its scores moved the study's false-alarm rate
             by −0.13 to +0.23 points).
-        checkpoint_digests: ``{path: sha256}`` of the checkpoints this study's estimators
-            loaded (:func:`loaded_checkpoint`), as the files were when loaded.
+        loaded_checkpoints: ``{path: {"sha256", "training_scenario"}}`` of the checkpoints
+            this study's estimators loaded (:func:`loaded_checkpoint`), as the files were
+            when loaded.
         detector_runs: the study's runs, whose count sets the detectors' own attack-free
             runs (``max(runs, 50)``), ``None``: :attr:`runs` (a calibration on more runs
             than the study had built a CUSUM of another τ: a review).
@@ -411,7 +417,7 @@ class SuiteContext:
     particle_prefix: str = ""
     detector_streams: Streams | None = None
     detector_runs: int | None = None
-    checkpoint_digests: dict[str, str | None] = field(default_factory=dict)
+    loaded_checkpoints: dict[str, dict] = field(default_factory=dict)
 
     def checkpoint_for(self, name: str):
         """The checkpoint estimator ``name`` uses: its own (``--ckpt name=path``), else

@@ -75,6 +75,8 @@ def test_a_checkpoint_replaced_during_an_evaluation_is_recorded_as_the_file_that
     shutil.copyfile(shipped, used)
     blob = torch.load(shipped, map_location="cpu", weights_only=True)
     blob["state_dict"] = {k: v + 0.05 for k, v in blob["state_dict"].items()}
+    trained = blob["observer"]["scenario"]
+    blob["observer"]["scenario"] = "retrained_elsewhere"
     other = tmp_path / "other.ckpt"
     torch.save(blob, other)
 
@@ -91,6 +93,9 @@ def test_a_checkpoint_replaced_during_an_evaluation_is_recorded_as_the_file_that
     rmse = [r.metrics["gaussian_nn_ekf"]["state_rmse"] for r in (before, during, fresh)]
     assert rmse[0] == rmse[1] != rmse[2]
     assert [r.checkpoint["sha256"] for r in (before, during, fresh)] == [first, first, second]
+    # and the scenario it was trained on is that network's too (a review)
+    assert [r.checkpoint.get("training_scenario") for r in (before, during, fresh)] == [
+        trained, trained, "retrained_elsewhere"]  # fmt: skip
     # a study in another dtype loads the file again, as it is now, and records that (a
     # review: the digest of the first load had been kept for the path)
     single = run_suite(scenario, cache=cache, dtype=torch.float32, **kw)
@@ -111,9 +116,10 @@ def test_the_digests_of_checkpoints_other_processes_loaded_are_gathered(monkeypa
     from difffilter.eval import suite
 
     mine = SimpleNamespace(outputs={}, wall_s={}, skipped={}, trajectories={})
-    ctx = SimpleNamespace(checkpoint_users=[], checkpoint_digests={})
-    other = ({}, {}, {}, ["gaussian_nn_ekf"], {}, {"net.ckpt": "loaded-by-rank-1"})
+    ctx = SimpleNamespace(checkpoint_users=[], loaded_checkpoints={})
+    record = {"sha256": "loaded-by-rank-1", "training_scenario": "robot"}
+    other = ({}, {}, {}, ["gaussian_nn_ekf"], {}, {"net.ckpt": record})
     monkeypatch.setattr(suite, "gather_objects", lambda part, world: [part, other])
     suite._gather(mine, ctx, [SimpleNamespace(name="gaussian_nn_ekf")], 2)
-    assert ctx.checkpoint_digests == {"net.ckpt": "loaded-by-rank-1"}
+    assert ctx.loaded_checkpoints == {"net.ckpt": record}
     assert ctx.checkpoint_users == ["gaussian_nn_ekf"]
