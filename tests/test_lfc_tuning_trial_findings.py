@@ -7,6 +7,7 @@ scored."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 
@@ -40,3 +41,19 @@ def test_a_bad_out_is_named_before_any_grid_point_is_scored(kind, tmp_path, monk
         lfc_tuning.main(["--runs", "1", "--out", str(out)])
     assert stop.value.code == 2 and ran == []
     assert "--out" in capsys.readouterr().err
+
+
+def test_a_bad_ckpt_is_a_usage_error_before_any_grid_point(tmp_path, capsys):
+    """``kf_nn_grad_ekf`` without ``--ckpt``, a path that does not exist, a checkpoint of
+    another family: each had stopped with a traceback (a trial); now argparse's error
+    (exit 2), naming ``--ckpt``, and nothing written."""
+    from difffilter.train.lfc_tuning import main
+
+    out = tmp_path / "t.json"
+    four_tank = Path(__file__).resolve().parents[1] / "checkpoints" / "four_tank_nn_grad.ckpt"
+    for extra, said in (([], "needs --ckpt"), (["--ckpt", str(tmp_path / "none.ckpt")],
+                        "no checkpoint file"), (["--ckpt", str(four_tank)], "--ckpt")):  # fmt: skip
+        with pytest.raises(SystemExit) as stop:
+            main(["--estimators", "kf_nn_grad_ekf", "--runs", "1", "--out", str(out), *extra])
+        assert stop.value.code == 2 and said in capsys.readouterr().err
+    assert not out.exists()

@@ -137,14 +137,10 @@ def tune(
     log=print,
 ) -> dict:
     """Score every grid point of ``GRIDS[name]``; returns the table and the chosen settings."""
-    from difffilter.models.neural_estimator import checkpoint_sha256, load_estimator_checkpoint
+    from difffilter.models.neural_estimator import checkpoint_sha256
 
-    checkpoint = None if ckpt is None else load_estimator_checkpoint(ckpt)
-    if "kf_nn_grad_ekf" in estimators and checkpoint is None:
-        raise ValueError("tuning kf_nn_grad_ekf needs --ckpt (the trained network)")
+    checkpoint = tuned_checkpoint(estimators, ckpt)
     ctx = LFCContext(dt=0.01)
-    if checkpoint is not None and (why := check_lfc_card(checkpoint[1], ctx.dt)) is not None:
-        raise ValueError(f"--ckpt {ckpt}: {why}")
     batch = validation_batch(runs)
     out = {
         "validation": {
@@ -178,6 +174,19 @@ def tune(
     return out
 
 
+def tuned_checkpoint(estimators, ckpt):
+    """``(network, card)`` of ``ckpt`` (``None`` without one), checked: ``kf_nn_grad_ekf``
+    fine-tunes a trained LFC network of the 10 ms plant (``ValueError`` naming ``--ckpt``)."""
+    from difffilter.models.neural_estimator import load_estimator_checkpoint
+
+    checkpoint = None if ckpt is None else load_estimator_checkpoint(ckpt)
+    if "kf_nn_grad_ekf" in estimators and checkpoint is None:
+        raise ValueError("tuning kf_nn_grad_ekf needs --ckpt (the trained network)")
+    if checkpoint is not None and (why := check_lfc_card(checkpoint[1], 0.01)) is not None:
+        raise ValueError(f"--ckpt {ckpt}: {why}")
+    return checkpoint
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m difffilter.train.lfc_tuning", description=__doc__, allow_abbrev=False
@@ -208,6 +217,10 @@ def main(argv=None) -> int:
             p.error(f"--out {args.out} exists and is not JSON ({error}): give another file")
         if not isinstance(previous, dict):
             p.error(f"--out {args.out} holds JSON of another kind: give another file")
+    try:  # (before any grid point: a traceback had said it)
+        tuned_checkpoint(args.estimators, args.ckpt)
+    except (ValueError, FileNotFoundError) as error:
+        p.error(str(error))
     result = tune(args.estimators, runs=args.runs, ckpt=args.ckpt)
     previous.setdefault("grids", {}).update(result["grids"])
     previous.setdefault("chosen", {}).update(result["chosen"])
