@@ -11,8 +11,9 @@ asked for by name)::
     python -m difffilter.train.lfc_tuning --runs 16 --out reports/lfc_tuning.json
 
 Score: RMSE of the attack estimate over all channels and steps (``val/attack_rmse``, the
-metric ``kf_nn_grad``'s checkpoints are selected on). Settings that break down or overflow score ``inf``; one that diverges within
-float64 scores its huge RMSE (lr = 0.3: 2.7e82).
+metric ``kf_nn_grad``'s checkpoints are selected on). Settings that break down or
+overflow score ``inf``; one that diverges within float64 scores its huge RMSE (lr = 0.3:
+2.7e82).
 """
 
 from __future__ import annotations
