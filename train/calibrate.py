@@ -110,10 +110,10 @@ def _new_check(src: Path, scored: Path, card) -> dict | None:
     plant = _check_scenario(src, old.get("scenario", card.scenario))
     if plant is None:  # (a plant of one's own that this process cannot load: a review)
         changed = scored != src
+        fate = "left out (the estimator runs otherwise now)" if changed else "kept as it was"
         print(f"note: the card's check was made on {old.get('scenario')!r}, which is not "
-              f"registered here: {'left out (the estimator runs otherwise now)' if changed else 'kept as it was'}"
-              "; calibrate with the plant's module or YAML file loadable to recompute it",
-              file=sys.stderr)  # fmt: skip
+              f"registered here: {fate}; calibrate with the plant's module or YAML file "
+              "loadable to recompute it", file=sys.stderr)  # fmt: skip
         return None if changed else old
     now = check_metric(scored, seed=old["seed"], runs=old["runs"], scenario=plant)
     if scored == src and now["value"] == old["value"]:

@@ -535,7 +535,9 @@ class ChiSquareDetector:
         """A state :meth:`init` made for this ``window`` and ``dim``: both may be assigned
         later, and a state of another window kept its old ``g`` values in every score (a
         window set from 3 to 1 read ``g + 10`` at every step and alarmed at each: a detector
-        trial), one of a larger ``dim`` indexed past the quantile table."""
+        trial), one of a larger ``dim`` indexed past the quantile table; its values
+        statistics and counts (a NaN window had scored NaN, never alarming, as a CUSUM's S; a
+        negative count received judged the window at fewer degrees: a review)."""
         if not isinstance(past, Tensor) or past.dim() < 1 or past.shape[-1] != self.window - 1:
             held_steps = past.shape[-1] if isinstance(past, Tensor) and past.dim() else None
             raise ValueError(
@@ -543,6 +545,11 @@ class ChiSquareDetector:
                 f"{self.window - 1} past values; it holds {held_steps} (made for another "
                 "window: call init() again after changing window)"
             )
+        if self.window > 1:  # (an empty window holds no values)
+            _check_state_tensor(past, "state[0] (the window's values)", past.dtype, None)
+            if held:
+                _check_state_tensor(held[0], "state[2] (the entries received)", held[0].dtype,
+                                    None)  # fmt: skip
         if held and bool((held[0] > self.dim).any()):
             raise ValueError(
                 f"state counts up to {float(held[0].max()):g} entries received at one step, "
@@ -562,12 +569,6 @@ class ChiSquareDetector:
         _check_statistic(g, "g", alarm_on_inf=True, nonnegative=True)
         past, count, *held = state
         self._check_state(past, held)
-        if self.window > 1:  # (a NaN window had scored NaN, never alarming, as a CUSUM's S;
-            # a negative count received judged the window at fewer degrees: a review)
-            _check_state_tensor(past, "state[0] (the window's values)", past.dtype, None)
-            if held:
-                _check_state_tensor(held[0], "state[2] (the entries received)", held[0].dtype,
-                                    None)  # fmt: skip
         _check_step_runs(g, past.shape[:-1], "ChiSquareDetector")
         g = g.expand(past.shape[:-1])  # (one g for every run: the window holds it per run)
         past_dof = held[0] if held else self._all_received(past, count)
@@ -706,7 +707,7 @@ class CusumDetector:
             )
         # its values too (a NaN S had scored NaN and never alarmed again, a negative one
         # cancelled the evidence: GatedFilter checked its carry's, a direct step did not)
-        _check_state_tensor(state, "state (the statistic S)", state.dtype, None)
+        self.check_state(state, state.dtype)
         _check_step_runs(g, state.shape, "CusumDetector")
         if mask is not None:
             mask = torch.as_tensor(mask, device=g.device)
