@@ -307,6 +307,12 @@ def check_positive_definite(t: Tensor, name: str, dim: int | None = None) -> Non
             "float64 or choose units that bring the variances closer"
         )
     _, info = torch.linalg.cholesky_ex(t.detach())
+    if t.dtype == torch.float32 and not bool((info != 0).any()):
+        # float32's factorisation of an exactly singular matrix passes or fails by the CPU's
+        # kernels: MKL's AVX2 ones left the rank-one [[1, 1], [1, 1]] a last pivot of 3e-4
+        # (their reciprocal square roots are not exact), its AVX-512 ones 0. The same values
+        # factorised in float64 decide it alike on every CPU (about 7 µs).
+        _, info = torch.linalg.cholesky_ex(t.detach().double())
     if bool((info != 0).any()):
         raise ValueError(_not_definite(t, info != 0, name))
 
