@@ -478,7 +478,8 @@ class FourTankScenario(Scenario):
         ``τ`` and ``p_l`` (:class:`~.attacks.SensorBias`'s own checks), a false-alarm rate
         in (0, 1), a non-negative ``γ̂`` noise variance and a positive CUSUM bias (a trial:
         a two-entry ``γ̄``, a rate of 1.5 or a negative variance had been accepted here and
-        failed, if at all, deep inside the study)."""
+        failed, if at all, deep inside the study), and the plant's ``R``, ``Q``, ``P0`` and
+        ``dt``."""
         attack = self.attack()  # (ValueError naming gamma_bar, tau or p_l)
         if attack.dim != 4:
             raise ValueError(
@@ -494,6 +495,11 @@ class FourTankScenario(Scenario):
         check_finite_number(self.cusum_bias, "cusum_bias", positive=True)
         # a covariance, as R is (a negative or zero design R had set η without a word)
         _cov(self.eta_design_R, {"dtype": torch.float64}, "eta_design_R")
+        # the plant's own R, Q, P0 and dt, as FourTankModel checks them (a 3-entry or
+        # negative R, or P0 = 0, had been taken here and refused at the study's first model())
+        for name in ("R", "Q", "P0"):
+            _cov(getattr(self, name), {"dtype": torch.float64}, name)
+        check_finite_number(self.dt, "dt", positive=True)
 
     def estimator_options(self) -> dict:
         """PoA thresholds (η of Theorem 1 with the design R [P 0.233], ζ = p_l), CUSUM b, γ̂ noise.

@@ -404,12 +404,17 @@ def test_tank_step_of_a_float32_state_on_a_float64_model_promotes_at_every_batch
      ("false_alarm_rate", 1.5, "false_alarm_rate must lie in (0, 1)"),
      ("false_alarm_rate", 0.0, "false_alarm_rate must lie in (0, 1)"),
      ("gamma_hat_noise_var", -1.0, "gamma_hat_noise_var must be a finite number >= 0"),
-     ("cusum_bias", 0.0, "cusum_bias must be a finite number > 0")],
+     ("cusum_bias", 0.0, "cusum_bias must be a finite number > 0"),
+     ("R", (0.1, 0.1, 0.1), "R must have 4 diagonal entries; got 3"),
+     ("R", (-0.1, 0.1, 0.1, 0.1), "R must be positive definite"),
+     ("Q", -1e-4, "Q must be positive definite"), ("P0", 0.0, "P0 must be positive definite"),
+     ("dt", 0.0, "dt must be a finite number > 0")],
 )  # fmt: skip
 def test_four_tank_scenario_names_a_bad_attack_or_detector_field_at_build(field, value, named):
-    """A four-tank scenario refuses, when built, an attack or detector field its study would
-    have failed on deep inside (or, for a two-entry γ̄, a rate of 1.5 or a negative γ̂ noise
-    variance, been accepted until then: a trial)."""
+    """A four-tank scenario refuses, when built, an attack, detector or plant field its study
+    would have failed on deep inside (or, for a two-entry γ̄, a rate of 1.5 or a negative γ̂
+    noise variance, been accepted until then: a trial; a 3-entry R or P0 = 0 was refused at
+    the study's first ``model()``)."""
     from difffilter.models.four_tank import FourTankScenario
 
     with pytest.raises(ValueError, match=re.escape(named)):
