@@ -433,6 +433,20 @@ def markdown_table(header: list[str], rows: list[list[Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _scenario_file(name: str) -> dict:
+    """``{"scenario_file": {"path", "sha256"}}`` for a scenario read from a YAML file (its
+    absolute path and :func:`~difffilter.models.yaml_scenario.scenario_file_digest` as the
+    report is written: what the numbers were computed on, as a training card records it),
+    ``{}`` for any other."""
+    from difffilter.models import registry as scenarios
+    from difffilter.models.yaml_scenario import scenario_file_digest
+
+    path = scenarios.source_file(name)
+    if path is None:
+        return {}
+    return {"scenario_file": {"path": str(path), "sha256": scenario_file_digest(path)}}
+
+
 def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, Any]:
     """Write metrics.json, report.md, plots and TensorBoard events of a suite run.
 
@@ -475,6 +489,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
         "attacked_steps": int(result.traj.flags.sum()),
         "attack_free_steps": int((~result.traj.flags).sum()),
         "skipped": dict(result.skipped), "checkpoint": result.checkpoint,
+        **_scenario_file(sc.name),
         "far": None if result.calibration is None else result.calibration.summary(),
         **({"checkpoints": result.checkpoints} if result.checkpoints else {}),
         **({"family_report_skipped": family_skipped} if family_skipped else {}),

@@ -43,6 +43,7 @@ import threading
 import warnings
 from collections.abc import Callable
 from importlib.metadata import entry_points
+from pathlib import Path
 
 import torch
 
@@ -51,13 +52,25 @@ from difffilter._checks import add_note
 from .scenario import CustomScenario, Scenario
 from .yaml_scenario import import_object, is_yaml_path, scenario_from_yaml
 
-__all__ = ["Scenario", "register", "get", "names", "families", "all_scenarios", "nearest"]
+__all__ = [
+    "Scenario",
+    "register",
+    "get",
+    "names",
+    "families",
+    "all_scenarios",
+    "nearest",
+    "source_file",
+]
 
 
 _REGISTRY: dict[str, Scenario] = {}
 #: Where each name was registered (the module, plug-in or file): a second definition of a
 #: name is blamed on itself and names the first, wherever the import order put them.
 _ORIGINS: dict[str, str] = {}
+#: The YAML file each scenario registered from a file was read from (absolute): reports
+#: record it and its digest (:func:`source_file`).
+_FILES: dict[str, Path] = {}
 #: Words both command lines read as selections, not scenario names (``all`` runs every
 #: headline scenario, ``robustness`` their threats); a family's name selects the family.
 RESERVED_NAMES = ("all", "robustness")
@@ -343,7 +356,9 @@ def get(name: str) -> Scenario:
     (module docstring); ``ValueError`` listing the known names otherwise."""
     _load_builtin()
     if is_yaml_path(name):
-        return _register_all(scenario_from_yaml(name), f"scenario file {name!r}")[0]
+        scenario = _register_all(scenario_from_yaml(name), f"scenario file {name!r}")[0]
+        _FILES.setdefault(scenario.name, Path(name).resolve())
+        return scenario
     if ":" in name:
         return _from_path(name)
     try:
@@ -353,6 +368,13 @@ def get(name: str) -> Scenario:
         # (difffilter-eval suggested the nearest names, difffilter-train did not: a docs trial)
         hint = nearest(name, sorted(_REGISTRY))
         raise ValueError(f"unknown scenario {name!r}; {hint}known scenarios: {known}") from None
+
+
+def source_file(name: str) -> Path | None:
+    """The YAML file (absolute path) that the scenario registered as ``name`` was read from
+    in this process, or ``None`` for a built-in scenario or one a ``module:object`` path
+    named."""
+    return _FILES.get(name)
 
 
 def nearest(name, candidates) -> str:

@@ -103,6 +103,7 @@ def isolated_registry(monkeypatch):
     registry.names()
     monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
     monkeypatch.setattr(registry, "_ORIGINS", dict(registry._ORIGINS))
+    monkeypatch.setattr(registry, "_FILES", dict(registry._FILES))
     monkeypatch.setattr(registry, "_CALLED", dict(registry._CALLED))
     return registry
 

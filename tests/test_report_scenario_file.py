@@ -1,0 +1,40 @@
+"""A report of a scenario read from a YAML file records the file: its absolute path and its
+digest as the report was written (a trial: the report named the scenario alone, so an
+edited file's numbers could not be told from the old one's)."""
+
+from __future__ import annotations
+
+import json
+
+from difffilter.models.yaml_scenario import scenario_file_digest
+
+YAML = """\
+name: file_recorded
+steps: 30
+runs: 2
+plant: {F: [[0.95, 0.04], [-0.02, 0.8]], H: [[1.0, 0.0]], Q: 1.0e-4, R: 1.0e-3}
+attack: {kind: bias, value: 0.5, onset: 15}
+estimators: [kf_attack_free, kf]
+"""
+
+
+def test_a_yaml_scenarios_report_records_its_file_and_digest(tmp_path, monkeypatch,
+                                                             isolated_registry):  # fmt: skip
+    import jsonschema
+
+    from difffilter.eval.report import metrics_schema, write_report
+    from difffilter.eval.suite import run_suite
+
+    (tmp_path / "plant.yaml").write_text(YAML)
+    monkeypatch.chdir(tmp_path)
+    scenario = isolated_registry.get("plant.yaml")  # (a relative path, as typed)
+    assert isolated_registry.source_file("file_recorded") == tmp_path / "plant.yaml"
+    doc = write_report(tmp_path / "out", run_suite(scenario, runs=2, progress=False))
+    written = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    recorded = {"path": str(tmp_path / "plant.yaml"),
+                "sha256": scenario_file_digest(tmp_path / "plant.yaml")}  # fmt: skip
+    assert doc["scenario_file"] == written["scenario_file"] == recorded
+    assert len(recorded["sha256"]) == 64
+    jsonschema.validate(written, metrics_schema())
+    # a built-in scenario's report has none
+    assert isolated_registry.source_file("four_tank_bias") is None
