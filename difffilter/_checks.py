@@ -22,6 +22,7 @@ __all__ = [
     "check_vector_last",
     "check_square",
     "check_positive_definite",
+    "cholesky_fails",
     "check_finite",
     "check_symmetric",
     "check_sequence",
@@ -306,15 +307,24 @@ def check_positive_definite(t: Tensor, name: str, dim: int | None = None) -> Non
             f"({tiny:.3g}), which its factorisation does not resolve: build the model in "
             "float64 or choose units that bring the variances closer"
         )
-    _, info = torch.linalg.cholesky_ex(t.detach())
-    if t.dtype == torch.float32 and not bool((info != 0).any()):
-        # float32's factorisation of an exactly singular matrix passes or fails by the CPU's
-        # kernels: MKL's AVX2 ones left the rank-one [[1, 1], [1, 1]] a last pivot of 3e-4
-        # (their reciprocal square roots are not exact), its AVX-512 ones 0. The same values
-        # factorised in float64 decide it alike on every CPU (about 7 µs).
-        _, info = torch.linalg.cholesky_ex(t.detach().double())
-    if bool((info != 0).any()):
-        raise ValueError(_not_definite(t, info != 0, name))
+    failing = cholesky_fails(t)
+    if bool(failing.any()):
+        raise ValueError(_not_definite(t, failing, name))
+
+
+def cholesky_fails(t: Tensor) -> Tensor:
+    """Where the Cholesky factorisation of ``t [..., d, d]`` fails (bool ``[...]``), alike on
+    every CPU. float32's factorisation of a matrix singular in exact arithmetic passes or
+    fails by the CPU's kernels: MKL's AVX2 ones left the rank-one ``[[1, 1], [1, 1]]`` a last
+    pivot of 3e-4 (their reciprocal square roots are inexact), its AVX-512 ones 0, so a
+    model, a pair of local estimates or an error's explanation was taken on one machine and
+    refused on another (a review). A float32 matrix is also factorised in float64, from
+    the same values (about 7 µs), and fails where either does."""
+    t = t.detach()
+    failing = torch.linalg.cholesky_ex(t).info != 0
+    if t.dtype == torch.float32:
+        failing = failing | (torch.linalg.cholesky_ex(t.double()).info != 0)
+    return failing
 
 
 def first_index(flags: Tensor) -> tuple[int, ...]:

@@ -37,7 +37,7 @@ from functools import partial
 import torch
 from torch import Tensor
 
-from ._checks import step_covariance
+from ._checks import cholesky_fails, step_covariance
 from .gaussian import joseph_covariance, kalman_gain
 from .linalg import (
     INNOVATION_COV,
@@ -325,7 +325,7 @@ def _cause(H: Tensor, R: Tensor, Q: Tensor) -> str:
     S = symmetrize(H @ Q @ H.transpose(-1, -2) + R)
     if S.shape[-3] > 1:
         S = _take(S, S.dim() - 3, 1, None)  # the steps after the first (element 0: the prior)
-    if bool((torch.linalg.cholesky_ex(S).info != 0).any()):
+    if bool(cholesky_fails(S).any()):  # (float32's alone is the CPU's: cholesky_fails)
         return ("Each scan element needs H Q Hᵀ + R positive definite, and here it is "
                 "singular (a noise-free sensor of a state the process noise does not reach): "
                 "use method='sequential' (the default), whose S_k = H P⁻_k Hᵀ + R is positive "

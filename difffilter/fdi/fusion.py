@@ -38,7 +38,7 @@ import math
 import torch
 from torch import Tensor
 
-from .._checks import Choice, _vmapped, check_symmetric
+from .._checks import Choice, _vmapped, check_symmetric, cholesky_fails
 from ..linalg import matvec, symmetrize, under_transform
 from . import _components as C
 
@@ -73,7 +73,7 @@ def _check_pair(means: Tensor, covs: Tensor) -> None:
     if not bool(torch.isfinite(means).all()) or not bool(torch.isfinite(covs).all()):
         raise ValueError("means and covs must be finite (a NaN or Inf local estimate)")
     check_symmetric(covs, "covs")
-    if bool((torch.linalg.cholesky_ex(covs.detach()).info != 0).any()):
+    if bool(cholesky_fails(covs).any()):  # (float32's alone is the CPU's: cholesky_fails)
         raise ValueError(
             "covs must be positive definite: a local covariance is singular or indefinite (a "
             "local estimate of no uncertainty in some direction cannot be fused by its inverse)"
