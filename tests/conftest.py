@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 import torch
@@ -111,14 +112,19 @@ def pytest_collection_modifyitems(config, items):
         collected.add(named)
         if path.split("::")[0] in SLOW or path in SLOW or named in SLOW:
             item.add_marker(pytest.mark.slow)
-    # an entry naming one parameter must name one that exists (a renamed parameter would
-    # otherwise move its test back into the fast group unnoticed); checked where its
-    # test function was collected at all
+    # an entry must name a file, test or parameter that exists (a renamed one would
+    # otherwise move its tests back into the fast group unnoticed): a file on disk, a test
+    # where its file was collected, a parameter where its test was
     functions = {named.split("[")[0] for named in collected}
-    stale = [e for e in SLOW if "[" in e and e.split("[")[0] in functions and e not in collected]
+    files = {named.split("::")[0] for named in collected}
+    here = Path(__file__).parent
+    stale = [e for e in SLOW
+             if ("::" not in e and not (here / e).is_file())
+             or ("::" in e and "[" not in e and e.split("::")[0] in files and e not in functions)
+             or ("[" in e and e.split("[")[0] in functions and e not in collected)]  # fmt: skip
     if stale:
         raise pytest.UsageError(
-            f"tests/conftest.py SLOW names parameters that do not exist: {stale}"
+            f"tests/conftest.py SLOW names files, tests or parameters that do not exist: {stale}"
         )
 
 
@@ -193,8 +199,6 @@ def online_pair(kind: str, num_particles: int = 10):
 def small_four_tank_fit(max_epochs: int) -> list[str]:
     """``difffilter-train fit`` options of a four-tank training of a few seconds: three
     batches of two runs of 20 steps an epoch, a network of 4 hidden units, 20 particles."""
-    from pathlib import Path
-
     config = Path(__file__).resolve().parents[1] / "train" / "configs" / "four_tank.yaml"
     return ["--config", str(config), "--data.init_args.batch_size=2",
             "--data.init_args.batches_per_epoch=3", "--data.init_args.val_runs=4",
