@@ -113,15 +113,20 @@ def pytest_collection_modifyitems(config, items):
         if path.split("::")[0] in SLOW or path in SLOW or named in SLOW:
             item.add_marker(pytest.mark.slow)
     # an entry must name a file, test or parameter that exists (a renamed one would
-    # otherwise move its tests back into the fast group unnoticed): a file on disk, a test
-    # where its file was collected, a parameter where its test was
+    # otherwise move its tests back into the fast group unnoticed): its file on disk, and,
+    # where whole files were collected (no node id asked for: `pytest file::test` collects
+    # that test alone, and the file's other entries had read as missing: a review), its
+    # test where its file was collected, its parameter where its test was
     functions = {named.split("[")[0] for named in collected}
     files = {named.split("::")[0] for named in collected}
     here = Path(__file__).parent
+    whole_files = not any("::" in str(arg) for arg in config.args)
     stale = [e for e in SLOW
-             if ("::" not in e and not (here / e).is_file())
-             or ("::" in e and "[" not in e and e.split("::")[0] in files and e not in functions)
-             or ("[" in e and e.split("[")[0] in functions and e not in collected)]  # fmt: skip
+             if not (here / e.split("::")[0]).is_file()
+             or (whole_files and "::" in e and "[" not in e
+                 and e.split("::")[0] in files and e not in functions)
+             or (whole_files and "[" in e and e.split("[")[0] in functions
+                 and e not in collected)]  # fmt: skip
     if stale:
         raise pytest.UsageError(
             f"tests/conftest.py SLOW names files, tests or parameters that do not exist: {stale}"
