@@ -314,17 +314,34 @@ def check_positive_definite(t: Tensor, name: str, dim: int | None = None) -> Non
 
 def cholesky_fails(t: Tensor) -> Tensor:
     """Where the Cholesky factorisation of ``t [..., d, d]`` fails (bool ``[...]``), alike on
-    every CPU. float32's factorisation of a matrix singular in exact arithmetic passes or
-    fails by the CPU's kernels: MKL's AVX2 ones left the rank-one ``[[1, 1], [1, 1]]`` a last
-    pivot of 3e-4 (their reciprocal square roots are inexact), its AVX-512 ones 0, so a
-    model, a pair of local estimates or an error's explanation was taken on one machine and
-    refused on another (a review). A float32 matrix is also factorised in float64, from
-    the same values (about 7 µs), and fails where either does."""
+    every CPU. float32's factorisation of a matrix at float32's precision passes or fails by
+    the CPU's kernels: MKL's AVX2 ones left the rank-one ``[[1, 1], [1, 1]]`` a last pivot of
+    3e-4 (their reciprocal square roots are inexact), its AVX-512 ones 0, and the rounded
+    ``g gᵀ`` of g = (0.1, 0.3) a pivot of float32's round-off on one and none on the other
+    (a review: one float32 rank-one matrix in ten decided so), so a model, a pair of local
+    estimates or an error's explanation was taken on one machine and refused on another.
+
+    A float32 matrix is decided in float64, from the same values (about 10 µs): it fails
+    where float64's factorisation fails or where a pivot ``L_ii²`` is below
+    :data:`FLOAT32_PIVOT_FLOOR` · d · ε₃₂ of its variance ``t_ii`` (a partial correlation
+    within about 1e-6 of 1 for d = 4: float32's own factorisation is round-off there, up to
+    its sign). float64 matrices are decided by their own factorisation (its kernels agree
+    across CPUs where float32's did not, a review's sweep)."""
     t = t.detach()
-    failing = torch.linalg.cholesky_ex(t).info != 0
-    if t.dtype == torch.float32:
-        failing = failing | (torch.linalg.cholesky_ex(t.double()).info != 0)
-    return failing
+    if t.dtype != torch.float32:
+        return torch.linalg.cholesky_ex(t).info != 0
+    t = t.double()
+    factor, info = torch.linalg.cholesky_ex(t)
+    pivots = factor.diagonal(dim1=-2, dim2=-1).square()
+    floor = FLOAT32_PIVOT_FLOOR * t.shape[-1] * torch.finfo(torch.float32).eps
+    resolved = pivots > floor * t.diagonal(dim1=-2, dim2=-1)
+    return (info != 0) | ~resolved.all(-1)
+
+
+#: A float32 matrix's pivots must exceed this many times d·ε₃₂ of their variances
+#: (:func:`cholesky_fails`): float32's factorisation errs by about d·ε₃₂ of them, so below
+#: the floor whether it passes is the CPU's kernels' round-off.
+FLOAT32_PIVOT_FLOOR = 4.0
 
 
 def first_index(flags: Tensor) -> tuple[int, ...]:
