@@ -434,17 +434,27 @@ def markdown_table(header: list[str], rows: list[list[Any]]) -> str:
 
 
 def _scenario_file(name: str) -> dict:
-    """``{"scenario_file": {"path", "sha256"}}`` for a scenario read from a YAML file (its
+    """``{"scenario_file": {"path", "sha256"}}`` for a scenario read from a YAML file: its
     absolute path and :func:`~difffilter.models.yaml_scenario.scenario_file_digest` as the
-    report is written: what the numbers were computed on, as a training card records it),
-    ``{}`` for any other."""
+    study read it (what the numbers were computed on, as a training card records it), with
+    ``"sha256_now"`` and a warning where the file has changed since; ``{}`` for any other."""
     from difffilter.models import registry as scenarios
     from difffilter.models.yaml_scenario import scenario_file_digest
 
-    path = scenarios.source_file(name)
-    if path is None:
+    source = scenarios.source_file(name)
+    if source is None:
         return {}
-    return {"scenario_file": {"path": str(path), "sha256": scenario_file_digest(path)}}
+    path, read = source
+    record = {"path": str(path), "sha256": read}
+    now = scenario_file_digest(path)
+    if now != read:
+        record["sha256_now"] = now
+        warnings.warn(
+            f"{path} changed during the study of {name}: its report records the file as the "
+            "study read it (scenario_file.sha256), and the file now as sha256_now",
+            stacklevel=2,
+        )
+    return {"scenario_file": record}
 
 
 def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, Any]:

@@ -50,7 +50,7 @@ import torch
 from difffilter._checks import add_note
 
 from .scenario import CustomScenario, Scenario
-from .yaml_scenario import import_object, is_yaml_path, scenario_from_yaml
+from .yaml_scenario import import_object, is_yaml_path, scenario_file_digest, scenario_from_yaml
 
 __all__ = [
     "Scenario",
@@ -68,9 +68,9 @@ _REGISTRY: dict[str, Scenario] = {}
 #: Where each name was registered (the module, plug-in or file): a second definition of a
 #: name is blamed on itself and names the first, wherever the import order put them.
 _ORIGINS: dict[str, str] = {}
-#: The YAML file each scenario registered from a file was read from (absolute): reports
-#: record it and its digest (:func:`source_file`).
-_FILES: dict[str, Path] = {}
+#: The YAML file each scenario registered from a file was read from (absolute) and its
+#: digest as it was read: reports record both (:func:`source_file`).
+_FILES: dict[str, tuple[Path, str | None]] = {}
 #: Words both command lines read as selections, not scenario names (``all`` runs every
 #: headline scenario, ``robustness`` their threats); a family's name selects the family.
 RESERVED_NAMES = ("all", "robustness")
@@ -356,8 +356,11 @@ def get(name: str) -> Scenario:
     (module docstring); ``ValueError`` listing the known names otherwise."""
     _load_builtin()
     if is_yaml_path(name):
+        # the digest of the file as read (taken just before it is: an edit during a study
+        # had been recorded on the numbers of the file before it, a review)
+        digest = scenario_file_digest(name)
         scenario = _register_all(scenario_from_yaml(name), f"scenario file {name!r}")[0]
-        _FILES.setdefault(scenario.name, Path(name).resolve())
+        _FILES.setdefault(scenario.name, (Path(name).resolve(), digest))
         return scenario
     if ":" in name:
         return _from_path(name)
@@ -370,10 +373,10 @@ def get(name: str) -> Scenario:
         raise ValueError(f"unknown scenario {name!r}; {hint}known scenarios: {known}") from None
 
 
-def source_file(name: str) -> Path | None:
+def source_file(name: str) -> tuple[Path, str | None] | None:
     """The YAML file (absolute path) that the scenario registered as ``name`` was read from
-    in this process, or ``None`` for a built-in scenario or one a ``module:object`` path
-    named."""
+    in this process and its :func:`~.yaml_scenario.scenario_file_digest` as it was read, or
+    ``None`` for a built-in scenario or one a ``module:object`` path named."""
     return _FILES.get(name)
 
 

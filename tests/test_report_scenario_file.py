@@ -28,7 +28,8 @@ def test_a_yaml_scenarios_report_records_its_file_and_digest(tmp_path, monkeypat
     (tmp_path / "plant.yaml").write_text(YAML)
     monkeypatch.chdir(tmp_path)
     scenario = isolated_registry.get("plant.yaml")  # (a relative path, as typed)
-    assert isolated_registry.source_file("file_recorded") == tmp_path / "plant.yaml"
+    read = scenario_file_digest(tmp_path / "plant.yaml")
+    assert isolated_registry.source_file("file_recorded") == (tmp_path / "plant.yaml", read)
     doc = write_report(tmp_path / "out", run_suite(scenario, runs=2, progress=False))
     written = json.loads((tmp_path / "out" / "metrics.json").read_text())
     recorded = {"path": str(tmp_path / "plant.yaml"),
@@ -36,5 +37,28 @@ def test_a_yaml_scenarios_report_records_its_file_and_digest(tmp_path, monkeypat
     assert doc["scenario_file"] == written["scenario_file"] == recorded
     assert len(recorded["sha256"]) == 64
     jsonschema.validate(written, metrics_schema())
+    assert "sha256_now" not in doc["scenario_file"]
     # a built-in scenario's report has none
     assert isolated_registry.source_file("four_tank_bias") is None
+
+
+def test_a_file_edited_during_the_study_is_recorded_as_read_with_its_digest_now(
+    tmp_path, monkeypatch, isolated_registry
+):
+    """A review: the digest was taken as the report was written, so an edit during the study
+    put the edited file's digest on the numbers of the file before it."""
+    import pytest
+
+    from difffilter.eval.report import write_report
+    from difffilter.eval.suite import run_suite
+
+    path = tmp_path / "plant.yaml"
+    path.write_text(YAML)
+    read = scenario_file_digest(path)
+    result = run_suite(isolated_registry.get(str(path)), runs=2, progress=False)
+    path.write_text(YAML.replace("Q: 1.0e-4", "Q: 1.0e-1"))
+    with pytest.warns(UserWarning, match="changed during the study of file_recorded"):
+        doc = write_report(tmp_path / "out", result)
+    assert doc["scenario_file"] == {"path": str(path), "sha256": read,
+                                    "sha256_now": scenario_file_digest(path)}  # fmt: skip
+    assert read != scenario_file_digest(path)
