@@ -24,7 +24,7 @@ from difffilter.models.atomic_write import write_atomically, write_json_atomical
 
 from .acceptance import role_mark  # noqa: E402
 from .plots import text_colour  # noqa: E402
-from .report import _clean, format_number, markdown_table, save_figure  # noqa: E402
+from .report import format_number, json_safe, markdown_table, save_figure  # noqa: E402
 from .scoring import HEADLINE, METRICS  # noqa: E402
 
 __all__ = ["COLUMNS", "leaderboard_rows", "write_leaderboard"]
@@ -103,7 +103,7 @@ def write_leaderboard(out: str | Path, results: dict[str, dict[str, Any]]) -> Pa
     rows = leaderboard_rows(results)
     # (inf as null, its worst_<metric>_diverged saying why: json.dumps wrote the bare token
     # Infinity, which strict JSON readers refuse: a review)
-    write_json_atomically(out / "leaderboard.json", _clean(rows))
+    write_json_atomically(out / "leaderboard.json", json_safe(rows))
     if not rows:  # (the figure of no rows failed in matplotlib, after every report was written)
         path = out / "leaderboard.md"
         write_atomically(path, "# Leaderboard\n\nNo estimator ran: each scenario's `report.md` "

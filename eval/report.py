@@ -188,8 +188,9 @@ def _pngs(folder: Path) -> set[str]:
     return {p.name for p in folder.glob("*.png") if p.is_file()}
 
 
-def _clean(value: Any) -> Any:
-    """JSON-safe: tensors/numpy scalars to Python numbers, NaN/inf to ``None``."""
+def json_safe(value: Any) -> Any:
+    """JSON-safe: tensors/numpy scalars to Python numbers, NaN/inf to ``None``, recursively
+    through dicts (keys as strings), lists and tuples."""
     if hasattr(value, "item") and callable(value.item):
         try:
             value = value.item()
@@ -198,9 +199,9 @@ def _clean(value: Any) -> Any:
     if isinstance(value, float) and not math.isfinite(value):
         return None
     if isinstance(value, dict):
-        return {str(k): _clean(v) for k, v in value.items()}
+        return {str(k): json_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_clean(v) for v in value]
+        return [json_safe(v) for v in value]
     return value
 
 
@@ -483,7 +484,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
     family, foreign = report_for(sc)
     family_numbers, family_skipped = _family_numbers(family, result)  # may add estimator keys
     family_skipped = foreign or family_skipped
-    doc = _clean({
+    doc = json_safe({
         "scenario": sc.name, "runs": result.runs, "steps": sc.steps, "seed": result.seed,
         # the study's dtype (a docs trial: a float32 study's report read as a float64 one's)
         "dtype": str(result.traj.x.dtype).removeprefix("torch."),
@@ -510,7 +511,7 @@ def write_report(out: str | Path, result, *, prepared: Any = None) -> dict[str, 
         result, doc["estimator_roles"], far=doc["far"]["target"],
         state_metric=state_metric(doc["estimators"]),
     )):  # fmt: skip
-        doc["acceptance_intervals"] = _clean(intervals)
+        doc["acceptance_intervals"] = json_safe(intervals)
     # The figures of a write stopped here before its report.md (the PNGs and the family's
     # figures come first) are listed by no report.md: its INCOMPLETE.md recorded the PNGs
     # that were here before it, so the others are its own. Kept in this write's record too,

@@ -45,10 +45,10 @@ from .coverage import checkpoint_of, training_coverage
 from .intervals import LEVEL, RESAMPLES, robustness_intervals, threat_totals
 from .provenance import software_line, software_record
 from .report import (
-    _clean,
     _network_line,
     clear_incomplete,
     format_number,
+    json_safe,
     mark_incomplete,
     markdown_table,
     network_of,
@@ -597,7 +597,7 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     sc, free = result.scenario, result.attack_free
-    doc = _clean({
+    doc = json_safe({
         "scenario": sc.name, "runs": result.runs, "steps": sc.steps, "seed": result.seed,
         "units": {name: m.unit for name, m in METRICS.items()}, "paper": {},
         "scenario_units": {"state": sc.state_unit, "attack": sc.attack_unit},
@@ -631,7 +631,7 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
         judged["worst_tpr_interval"] = mine.get("worst_tpr")
         for threat, check in judged["state"].items():
             check["interval"] = mine.get("state", {}).get(threat)
-    doc["acceptance"] = _clean(acceptance)
+    doc["acceptance"] = json_safe(acceptance)
     mark_incomplete(
         out, f"Writing the robustness study of {sc.name} into this folder", kind=MARKER_KIND
     )

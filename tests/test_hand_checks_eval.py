@@ -138,10 +138,10 @@ def test_an_estimator_is_scored_on_the_trajectories_it_ran_on(monkeypatch):
 
 
 def test_report_writes_strict_json_and_keeps_a_column_any_estimator_has():
-    from difffilter.eval.report import _clean, _table_section
+    from difffilter.eval.report import _table_section, json_safe
     from difffilter.eval.scoring import METRICS
 
-    cleaned = _clean({"x": math.inf, "y": -math.inf, "z": math.nan, "w": 1.5})
+    cleaned = json_safe({"x": math.inf, "y": -math.inf, "z": math.nan, "w": 1.5})
     assert cleaned == {"x": None, "y": None, "z": None, "w": 1.5}
     json.dumps(cleaned, allow_nan=False)
     doc = {"estimators": {"a": {"state_rmse": 1.0, "auc": 0.8},

@@ -47,3 +47,39 @@ def test_a_seeds_metrics_record_the_threshold_they_were_judged_at():
     assert row["far_measured_on_calibration"] == pytest.approx(
         calibration.measured["chi_square_ekf"]
     )
+
+
+def test_sweep_json_is_strict_json_where_a_seed_diverged_or_lacks_the_ranked_metric(tmp_path):
+    """A trial of the reports' JSON: sweep.json took a diverged seed's ``inf`` error into
+    ``per_seed`` and the NaN test score of a seed without the ``--rank-by`` metric into
+    ``selection``, bare ``Infinity`` and ``NaN`` that strict readers refuse; both are null
+    now (the summary's ``not_a_number`` names the seed)."""
+    import json
+
+    from train.sweep import _median, _test_scores, _write
+
+    finite = {"state_rmse": 0.02, "detection_delay_steps": 3.0}
+    diverged = {"state_rmse": math.inf, "detection_delay_steps": None}
+    per_seed = {s: {"checkpoint": f"{s}.ckpt", "train_time_s": 1.0,
+                    "scenarios": {"four_tank_bias": m}}
+                for s, m in ((0, finite), (1, diverged))}  # fmt: skip
+    scores = _test_scores(per_seed, "detection_delay_steps")
+    assert math.isnan(scores[1])
+    median = _median(scores, False)
+    doc = {"config": "c.yaml", "options": [], "seeds": [0, 1], "far": 0.01, "runs": 4,
+           "eval_seed": 0, "rank_by": "detection_delay_steps", "select_on": "test",
+           "median_seed": median, "median_checkpoint": per_seed[median]["checkpoint"],
+           "selection": {"monitor": None, "scores": {str(s): v for s, v in scores.items()},
+                         "median_seed_by_test": median},
+           "per_seed": {str(s): v for s, v in per_seed.items()}, "test": "held back",
+           "summary": _summary(per_seed)}  # fmt: skip
+
+    def refuse(constant):
+        raise ValueError(f"non-standard JSON constant {constant}")
+
+    _write(tmp_path, doc)
+    written = json.loads((tmp_path / "sweep.json").read_text(), parse_constant=refuse)
+    assert written["selection"]["scores"] == {"0": 3.0, "1": None}
+    assert written["per_seed"]["1"]["scenarios"]["four_tank_bias"]["state_rmse"] is None
+    assert written["summary"]["four_tank_bias"]["state_rmse"]["not_a_number"] == [1]
+    assert math.isinf(doc["per_seed"]["1"]["scenarios"]["four_tank_bias"]["state_rmse"])

@@ -813,9 +813,15 @@ def sweep(config, seeds=(0, 1, 2), out="sweeps", *, scenarios=None, runs: int | 
 
 
 def _write(out: Path, doc: dict) -> dict:
-    """``<out>/sweep.json`` and ``<out>/sweep.md`` of ``doc``; returns it."""
+    """``<out>/sweep.json`` and ``<out>/sweep.md`` of ``doc``; returns it. In the JSON a NaN
+    or infinite value (a seed's diverged error, the NaN score of a seed without the ranked
+    metric) is null, as in the summary and metrics.json: bare ``NaN`` and ``Infinity`` had
+    been written into ``per_seed`` and ``selection``, which strict readers refuse (a trial of
+    the reports' JSON)."""
+    from difffilter.eval.report import json_safe
+
     out.mkdir(parents=True, exist_ok=True)
-    write_json_atomically(out / "sweep.json", doc)
+    write_json_atomically(out / "sweep.json", json_safe(doc))
     write_atomically(out / "sweep.md", _markdown(doc))
     return doc
 
