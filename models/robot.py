@@ -347,6 +347,8 @@ class RobotScenario(Scenario):
         turn_rate_range_deg: ``(lo, hi)``: run ``r`` of ``R`` commands ``u_r`` evenly spaced
             from ``lo`` to ``hi`` deg/s instead of ``turn_rate_deg`` (a training variant:
             paths of many curvatures, so that a network does not learn one path's inputs).
+        false_alarm_rate: the Wald tests' per-step rate on ``(â, S)`` (χ²₂) [DEF 1 %, the
+            library's default, which the study had used whatever this field said].
     """
 
     family: str = "robot"
@@ -366,6 +368,7 @@ class RobotScenario(Scenario):
     attack_cov0: float = 10.0
     reading: Reading = Reading.DRAW
     turn_rate_range_deg: tuple | None = None
+    false_alarm_rate: float = 0.01
     checkpoint: str | None = "checkpoints/robot_nn_ekf.ckpt"  # gaussian_nn_ekf without --ckpt
 
     def __post_init__(self):

@@ -79,8 +79,12 @@ def group_measurements(ys: torch.Tensor, groups=GROUPS) -> torch.Tensor:
 
 
 def _opts(ctx: SuiteContext) -> dict:
+    """The adaptive estimators' settings of the scenario: ``λ``, ``S_0`` and the Wald test's
+    false-alarm rate (the scenario's ``false_alarm_rate``: it had been left at the library's
+    1 % whatever the scenario said, a trial of the variants)."""
     sc = ctx.scenario
-    return {"forgetting": sc.forgetting, "attack_cov0": sc.attack_cov0}
+    return {"forgetting": sc.forgetting, "attack_cov0": sc.attack_cov0,
+            "false_alarm_rate": sc.false_alarm_rate}  # fmt: skip
 
 
 def local_pair(ctx: SuiteContext, tr) -> EstimatorOutput:
@@ -396,8 +400,7 @@ class CompensatingInputs(KnownInputs):
 
 def _fused_locals(ctx: SuiteContext, rule: FusionRule) -> FusedLocals:
     sc = ctx.scenario
-    local = AdaptiveParticleFilter(sc.num_particles, forgetting=sc.forgetting,
-                                   reading=sc.reading, attack_cov0=sc.attack_cov0)  # fmt: skip
+    local = AdaptiveParticleFilter(sc.num_particles, reading=sc.reading, **_opts(ctx))
     return FusedLocals(local, rule)
 
 

@@ -167,3 +167,48 @@ def test_a_fused_locals_attack_prior_assigned_zero_later_is_refused_by_name():
     est.local.attack_cov0 = 0.0
     with pytest.raises(ValueError, match="local.attack_cov0 must be > 0"):
         est.init(RobotModel(), (2,))
+
+
+def test_the_robot_scenarios_false_alarm_rate_sets_its_wald_tests():
+    """A trial of the variants: every robot scenario said 0.5 % and its adaptive
+    estimators' Wald tests stayed at the library's 1 % (χ²₂ 9.21) whatever it said. The
+    robot scenarios now say 1 % (the threshold they had run at) and the estimators read it."""
+    import dataclasses
+
+    from scipy.stats import chi2
+
+    from difffilter.eval.suite import run_suite
+    from difffilter.models import registry
+
+    base = registry.get("robot_actuator_attack")
+    assert base.false_alarm_rate == 0.01
+    small = dataclasses.replace(base, name="robot_far_small", steps=44, num_particles=8,
+                                headline=False)  # fmt: skip
+    for far in (0.01, 0.001):
+        scenario = dataclasses.replace(small, false_alarm_rate=far)
+        result = run_suite(scenario, runs=1, estimators=["zhang_akf", "mdpf_fused_ci"],
+                           progress=False)  # fmt: skip
+        for name in ("zhang_akf", "mdpf_fused_ci"):
+            threshold = float(result.outputs[name].detection.threshold)
+            assert threshold == pytest.approx(chi2.ppf(1 - far, 2), rel=1e-9), (name, far)
+
+
+def test_the_adaptive_step_functions_take_the_false_alarm_rate():
+    """``adaptive_particle_step`` and ``adaptive_kalman_step`` had no ``false_alarm_rate``
+    (their step's alarm was at 1 % where the whole-sequence functions took a rate)."""
+    from scipy.stats import chi2
+
+    from difffilter.fdi import adaptive_kalman_step, adaptive_particle_step
+    from difffilter.fdi.adaptive_kf import adaptive_kalman_init
+    from difffilter.fdi.mdpf import adaptive_particle_init
+    from difffilter.models.robot import RobotScenario
+
+    model = RobotScenario(name="far_steps").system()
+    y = model.observe(model.initial.mean, 0)
+    u = torch.zeros(2, dtype=model.initial.mean.dtype)
+    state = adaptive_particle_init(model, 8, (), torch.Generator().manual_seed(0))
+    _, out = adaptive_particle_step(model, state, y, u, generator=torch.Generator().manual_seed(1),
+                                    false_alarm_rate=0.001)  # fmt: skip
+    assert float(out.threshold) == pytest.approx(chi2.ppf(0.999, 2), rel=1e-9)
+    _, out = adaptive_kalman_step(model, adaptive_kalman_init(model), y, u, false_alarm_rate=0.001)
+    assert float(out.threshold) == pytest.approx(chi2.ppf(0.999, 2), rel=1e-9)

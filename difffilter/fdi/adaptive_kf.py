@@ -354,10 +354,13 @@ def adaptive_kalman_step(
     mask: Tensor | None = None,
     *,
     forgetting: float = 0.7,
+    false_alarm_rate: float = 0.01,
 ) -> tuple[AdaptiveKFState, StepOutput]:
     """One online step ``k → k+1`` of :class:`AdaptiveKalmanFilter` (``y [..., dy]``,
-    ``u [..., du]`` or ``None`` = 0, ``mask [..., dy]``), validated."""
-    return AdaptiveKalmanFilter(forgetting).step(state._replace(model=model), y, u, mask)
+    ``u [..., du]`` or ``None`` = 0, ``mask [..., dy]``), validated; ``false_alarm_rate`` of
+    the step's Wald test, as :func:`adaptive_kalman_filter` takes it."""
+    estimator = AdaptiveKalmanFilter(forgetting, false_alarm_rate=false_alarm_rate)
+    return estimator.step(state._replace(model=model), y, u, mask)
 
 
 def _check_forgetting(forgetting) -> float:

@@ -697,15 +697,19 @@ def adaptive_particle_step(
     resampler=None,
     generator: torch.Generator | None = None,
     resample_generator: torch.Generator | None = None,
+    false_alarm_rate: float = 0.01,
 ) -> tuple[ParticleState, StepOutput]:
     """One online step ``k−1 → k`` of :class:`AdaptiveParticleFilter`: resample, (A2)–(A8).
 
     ``state`` from :func:`adaptive_particle_init` (or an earlier step); ``y [..., dy]``,
-    ``u [..., du]``. Returns the new state and the step output.
+    ``u [..., du]``; ``false_alarm_rate`` as in :class:`AdaptiveParticleFilter` (the step
+    output's alarm; the whole-sequence function took it, this step had not). Returns the new
+    state and the step output.
     """
     apf = AdaptiveParticleFilter(
         state.log_weights.shape[-1], forgetting=forgetting, reading=reading,
         form=_form_for_state(form, state, model), resampler=resampler,
+        false_alarm_rate=false_alarm_rate,
     )  # fmt: skip
     y, u, mask = check_step_inputs(model, None, y, u, mask)
     gens = Generators(None, generator, resample_generator or generator)
