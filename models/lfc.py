@@ -1045,7 +1045,14 @@ register(
         description="LFC with random attacks (steps, ramps, sinusoids, pulse trains) on all "
         "ten channels and a random load per run: the learned estimator's training data",
         paper=PAPER,
-        notes=DEFAULT_NOTES,
+        # (its load is drawn, not DEFAULT_NOTES' fixed step: a trial of the variants)
+        notes=tuple(
+            "[DEF] load: a load per run and area ~ U[-0.01, 0.01] p.u. (load_range 0.02) from "
+            "t = 0, unknown to the observers"
+            if note.startswith("[DEF] load:")
+            else note
+            for note in DEFAULT_NOTES
+        ),
         attack="random",
         load_range=0.02,
         attacked_channels=tuple(range(STATE_DIM)),

@@ -431,9 +431,17 @@ _ESTIMATORS = (
     "mdpf_fused_ci_compensated",
     "gaussian_nn_ekf",
 )
+
+
+def _notes(inputs: str) -> tuple[str, ...]:
+    """The robot scenarios' notes, with the commanded ``inputs`` of the scenario (the
+    turning variants' had read u = (5 cm/s, 5 deg/s): a trial of the variants)."""
+    return (f"[DEF] u = {inputs} (unstated); filters' Q = diag(1 cm², 1 cm², 1 deg²) for "
+            "(A4); truth's noise is input noise N(0, diag(1 cm²/s², 1 deg²/s²)) through B(k).",
+            *_NOTES)  # fmt: skip
+
+
 _NOTES = (
-    "[DEF] u = (5 cm/s, 5 deg/s) (unstated); filters' Q = diag(1 cm², 1 cm², 1 deg²) for (A4); "
-    "truth's noise is input noise N(0, diag(1 cm²/s², 1 deg²/s²)) through B(k).",
     "[DEF] P0 = diag(1 cm², 1 cm², 1 deg²), S0 = 10 I, Υ0 = 0, â0 = 0, M = 100 particles per local.",
     "[DEF] eq. (5) of the letter is missing: 'draw' reading x̂ʲ ~ N(x̄ˡ, Pˡ), âʲ = āˡ; fusion by "
     "covariance intersection (naive information fusion as ablation).",
@@ -444,7 +452,7 @@ register(
         name="robot_actuator_attack",
         description="unicycle, 6 lidars, actuator attack a = (20 cm/s, 20 deg/s) from k = 30, u = (5, 5)",
         estimators=_ESTIMATORS,
-        notes=_NOTES,
+        notes=_notes("(5 cm/s, 5 deg/s)"),
     )
 )
 register(
@@ -452,7 +460,7 @@ register(
         name="robot_actuator_attack_turning",
         description="as robot_actuator_attack with u = (5 cm/s, 10 deg/s): the attacked path leaves the nominal one",
         estimators=_ESTIMATORS,
-        notes=_NOTES,
+        notes=_notes("(5 cm/s, 10 deg/s)"),
         turn_rate_deg=10.0,
     )
 )
@@ -462,7 +470,7 @@ register(
         description="as robot_actuator_attack with u_r evenly spread over 0-15 deg/s across the "
         "runs (training data: many path curvatures)",
         estimators=_ESTIMATORS,
-        notes=_NOTES,
+        notes=_notes("(5 cm/s, u_r evenly spread over 0-15 deg/s across the runs)"),
         turn_rate_range_deg=(0.0, 15.0),
         headline=False,
     )
