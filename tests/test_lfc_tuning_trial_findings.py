@@ -10,6 +10,7 @@ import math
 from pathlib import Path
 
 import pytest
+import torch
 
 from difffilter.models.lfc_estimators import LFCContext
 from difffilter.train import lfc_tuning
@@ -57,3 +58,41 @@ def test_a_bad_ckpt_is_a_usage_error_before_any_grid_point(tmp_path, capsys):
             main(["--estimators", "kf_nn_grad_ekf", "--runs", "1", "--out", str(out), *extra])
         assert stop.value.code == 2 and said in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_a_diverged_grid_is_written_as_strict_json_and_chooses_nothing(tmp_path, monkeypatch,
+                                                                       capsys):  # fmt: skip
+    """A trial of the JSON writers: a diverged point's inf score was written as bare
+    ``Infinity`` (strict readers refuse the file), and a grid whose every point diverged
+    "chose" one. Now the score is null with ``"diverged": true``, nothing is chosen for such
+    a grid, and the file is written atomically."""
+    import json
+
+    monkeypatch.setitem(lfc_tuning.GRIDS, "traditional_ad",
+                        {"init_scale": [0.01], "lr": [1.0, 2.0], "luenberger_design": ["modal"]})  # fmt: skip
+    scores = {1.0: math.inf, 2.0: 0.5}
+    monkeypatch.setattr(lfc_tuning, "_estimator", lambda name, setting, ctx, ckpt: setting["lr"])
+    monkeypatch.setattr(lfc_tuning, "score", lambda lr, batch: {
+        "attack_rmse": scores[lr], "attack_rmse_attacked": scores[lr],
+        "state5_rmse": scores[lr], "wall_s": 0.0})  # fmt: skip
+    monkeypatch.setattr(
+        lfc_tuning, "validation_batch", lambda runs: {"attack": torch.zeros(1, 5, 10)}
+    )
+
+    def refuse(constant):
+        raise ValueError(f"non-standard JSON constant {constant}")
+
+    out = tmp_path / "tuning.json"
+    assert (
+        lfc_tuning.main(["--runs", "1", "--estimators", "traditional_ad", "--out", str(out)]) == 0
+    )
+    written = json.loads(out.read_text(), parse_constant=refuse)
+    rows = written["grids"]["traditional_ad"]
+    assert rows[0]["attack_rmse"] is None and rows[0]["diverged"] is True
+    assert rows[1]["attack_rmse"] == 0.5 and "diverged" not in rows[1]
+    assert written["chosen"]["traditional_ad"]["lr"] == 2.0
+    scores[2.0] = math.inf  # every point diverged: nothing chosen, said on stderr
+    out.unlink()
+    lfc_tuning.main(["--runs", "1", "--estimators", "traditional_ad", "--out", str(out)])
+    assert "traditional_ad" not in json.loads(out.read_text(), parse_constant=refuse)["chosen"]
+    assert "every point of the traditional_ad grid diverged" in capsys.readouterr().err

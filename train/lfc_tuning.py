@@ -12,8 +12,9 @@ asked for by name)::
 
 Score: RMSE of the attack estimate over all channels and steps (``val/attack_rmse``, the
 metric ``kf_nn_grad``'s checkpoints are selected on). Settings that break down or
-overflow score ``inf``; one that diverges within float64 scores its huge RMSE (lr = 0.3:
-2.7e82).
+overflow score ``inf``, written as null with ``"diverged": true`` (strict JSON; a grid
+whose every point diverged chooses nothing, said on stderr); one that diverges within
+float64 scores its huge RMSE (lr = 0.3: 2.7e82).
 """
 
 from __future__ import annotations
@@ -162,7 +163,8 @@ def tune(
         for values in itertools.product(*(grid[k] for k in keys)):
             setting = dict(zip(keys, values))
             res = score(_estimator(name, setting, ctx, checkpoint), batch)
-            rows.append({**setting, **res})
+            diverged = not math.isfinite(res["attack_rmse"])
+            rows.append({**setting, **res, **({"diverged": True} if diverged else {})})
             if progress:
                 log(f"{name} {setting} -> {res['attack_rmse']:.4f} ({res['wall_s']:.0f}s)")
         best = min(rows, key=lambda r: r["attack_rmse"])
@@ -172,6 +174,10 @@ def tune(
         out["validated_on"][name] = dict(out["validation"]) | (
             {"checkpoint_sha256": checkpoint_sha256(ckpt)} if name == "kf_nn_grad_ekf" else {}
         )
+        if best.get("diverged"):  # (an inf score had been "chosen" and written as Infinity)
+            print(f"lfc_tuning: every point of the {name} grid diverged: nothing chosen for it",
+                  file=sys.stderr)  # fmt: skip
+            continue
         out["chosen"][name] = {k: best[k] for k in keys} | {"attack_rmse": best["attack_rmse"]}
     return out
 
@@ -229,8 +235,13 @@ def main(argv=None) -> int:
     previous["validation"] = result["validation"]  # this run's (each grid's: validated_on)
     previous.setdefault("validated_on", {}).update(result.get("validated_on", {}))
     previous["ekf_fixed"] = {k: v for k, v in EKF_DEFAULTS.items() if k != "process_noise"}
+    # strict JSON (a diverged point's inf score had been written as bare Infinity) and
+    # atomic (a stopped write had left a cut file in place of the merged one)
+    from difffilter.eval.report import json_safe
+    from difffilter.models.atomic_write import write_json_atomically
+
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(previous, indent=2) + "\n", encoding="utf-8")
+    write_json_atomically(args.out, json_safe(previous))
     print(json.dumps(result["chosen"], indent=2))
     return 0
 
