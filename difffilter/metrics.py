@@ -303,9 +303,11 @@ def threshold_for(scores: Tensor, far: float) -> float:
     if s.numel() == 0:
         raise ValueError("scores must hold at least one attack-free step")
     # ⌊α n⌋ of α and n, not of their product's round-off (0.29 · 100 = 28.999999999999996)
-    allowed = int(math.floor(far * s.numel() * (1 + 1e-12)))
+    # and below n, as ⌊α n⌋ is for α < 1 (that guard had made it n, and τ −inf, for α
+    # within 1e-12 of 1: a trial of the JSON writers found a card's threshold −Infinity)
+    allowed = min(int(math.floor(far * s.numel() * (1 + 1e-12))), s.numel() - 1)
     ranked = torch.sort(s, descending=True).values
-    return float(ranked[allowed]) if allowed < s.numel() else -math.inf
+    return float(ranked[allowed])
 
 
 def steps_since_attack(flags: Tensor, *, time_dim: int = 1) -> Tensor:

@@ -80,3 +80,13 @@ def test_rates_by_size_reads_0_1_integer_flags_as_a_mask_and_refuses_other_value
         rates_by_size(alarms, flags * 2, sizes, [0, 2])
     with pytest.raises(ValueError, match="alarms must be bool"):
         rates_by_size(alarms.double() * 0.5, flags, sizes, [0, 2])
+
+
+def test_a_rate_just_below_one_gives_the_lowest_score_not_minus_infinity():
+    """A trial of the JSON writers: ⌊α n⌋'s round-off guard made it n for α within 1e-12 of
+    1, and the threshold −inf, which ``calibrate`` wrote into a card as ``-Infinity``."""
+    from difffilter.metrics import threshold_for
+
+    scores = torch.arange(10.0)
+    assert threshold_for(scores, 0.9999999999999) == 0.0  # nine of ten alarm above it
+    assert threshold_for(scores, 0.29) == 7.0 and threshold_for(scores, 0.3) == 6.0
