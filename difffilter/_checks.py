@@ -321,27 +321,32 @@ def cholesky_fails(t: Tensor) -> Tensor:
     (a review: one float32 rank-one matrix in ten decided so), so a model, a pair of local
     estimates or an error's explanation was taken on one machine and refused on another.
 
-    A float32 matrix is decided in float64, from the same values (about 10 µs): it fails
-    where float64's factorisation fails or where a pivot ``L_ii²`` is below
-    :data:`FLOAT32_PIVOT_FLOOR` · d · ε₃₂ of its variance ``t_ii`` (a partial correlation
-    within about 1e-6 of 1 for d = 4: float32's own factorisation is round-off there, up to
-    its sign). float64 matrices are decided by their own factorisation (its kernels agree
-    across CPUs where float32's did not, a review's sweep)."""
+    A float32 matrix is decided in float64, from the same values (about 20 µs): it fails
+    where float64's factorisation fails or where the smallest eigenvalue of its correlation
+    matrix ``D^-½ t D^-½`` (``D`` its variances) is below :data:`FLOAT32_CORRELATION_FLOOR`
+    · d · ε₃₂ (1.9e-6 for d = 4: within that of singular, whatever its scales, float32's own
+    factorisation is round-off, up to its sign). The eigenvalue, not the factor's pivots,
+    so that the order of the states does not decide (a review: a pivot floor refused a Q in
+    one order and took it in another). float64 matrices are decided by their own
+    factorisation (its kernels agree across CPUs where float32's did not, a review's sweep)."""
     t = t.detach()
     if t.dtype != torch.float32:
         return torch.linalg.cholesky_ex(t).info != 0
     t = t.double()
-    factor, info = torch.linalg.cholesky_ex(t)
-    pivots = factor.diagonal(dim1=-2, dim2=-1).square()
-    floor = FLOAT32_PIVOT_FLOOR * t.shape[-1] * torch.finfo(torch.float32).eps
-    resolved = pivots > floor * t.diagonal(dim1=-2, dim2=-1)
-    return (info != 0) | ~resolved.all(-1)
+    failing = torch.linalg.cholesky_ex(t).info != 0
+    # (where it factorised, the variances are > 0: the scaling is defined)
+    scale = t.diagonal(dim1=-2, dim2=-1).clamp_min(torch.finfo(torch.float64).tiny).rsqrt()
+    correlation = t * scale.unsqueeze(-1) * scale.unsqueeze(-2)
+    lowest = torch.linalg.eigvalsh(torch.where(failing[..., None, None], torch.eye(
+        t.shape[-1], dtype=t.dtype, device=t.device), correlation))[..., 0]  # fmt: skip
+    floor = FLOAT32_CORRELATION_FLOOR * t.shape[-1] * torch.finfo(torch.float32).eps
+    return failing | (lowest < floor)
 
 
-#: A float32 matrix's pivots must exceed this many times d·ε₃₂ of their variances
-#: (:func:`cholesky_fails`): float32's factorisation errs by about d·ε₃₂ of them, so below
-#: the floor whether it passes is the CPU's kernels' round-off.
-FLOAT32_PIVOT_FLOOR = 4.0
+#: The smallest eigenvalue of a float32 matrix's correlation matrix must be at least this
+#: many times d·ε₃₂ (:func:`cholesky_fails`): float32's factorisation errs by about d·ε₃₂
+#: of each variance, so below it whether it passes is the CPU's kernels' round-off.
+FLOAT32_CORRELATION_FLOOR = 4.0
 
 
 def first_index(flags: Tensor) -> tuple[int, ...]:
@@ -368,8 +373,14 @@ def _not_definite(t: Tensor, failing: Tensor, name: str) -> str:
     if low > 10 * member.shape[-1] * torch.finfo(torch.float64).eps * high:
         return (
             f"{name}{where} is positive definite in exact arithmetic (eigenvalues from "
-            f"{low:.3g} to {high:.3g}: condition number {high / low:.3g}) but its Cholesky "
-            f"factorisation fails in {dtype} (relative precision {eps:.2g}): build the model "
+            f"{low:.3g} to {high:.3g}: condition number {high / low:.3g}) but "
+            + (
+                f"too near singular for float32 (its factorisation there is round-off, taken "
+                f"by some CPUs' kernels and refused by others; relative precision {eps:.2g})"
+                if t.dtype == torch.float32
+                else f"its Cholesky factorisation fails in {dtype} (relative precision {eps:.2g})"
+            )
+            + ": build the model "
             f"in float64, use units that bring the variances closer, or add a variance ("
             f"{jitter}) if it was meant to be singular"
         )

@@ -347,8 +347,10 @@ class RobotScenario(Scenario):
         turn_rate_range_deg: ``(lo, hi)``: run ``r`` of ``R`` commands ``u_r`` evenly spaced
             from ``lo`` to ``hi`` deg/s instead of ``turn_rate_deg`` (a training variant:
             paths of many curvatures, so that a network does not learn one path's inputs).
-        false_alarm_rate: the Wald tests' per-step rate on ``(â, S)`` (χ²₂) [DEF 1 %, the
-            library's default, which the study had used whatever this field said].
+        false_alarm_rate: the per-step rate of the robot's detectors: the Wald tests on
+            ``(â, S)`` (χ²₂) and any χ²/CUSUM detector named on a robot study [DEF 1 %].
+            It had said 0.5 %, at which a named χ²/CUSUM detector ran, while the Wald tests
+            ran at the library's 1 % whatever it said.
     """
 
     family: str = "robot"

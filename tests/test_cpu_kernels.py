@@ -106,3 +106,28 @@ def test_the_parallel_filters_explanation_names_the_singular_s_on_every_cpu(unde
     """H Q Hᵀ + R = [[1, 1], [1, 1]] + 1e-8 I, singular in float32: AVX2 had blamed I + C J."""
     (cause,) = [line for line in under_avx2 if line.startswith("cause ")]
     assert "H Q Hᵀ + R positive definite, and here it is singular" in cause
+
+
+def test_float32_definiteness_does_not_depend_on_the_order_of_the_states():
+    """A review: the pivot floor refused a Q in one order of its states and took it in
+    another (x3 = x1 + 0.01·x2 + 1e-3·e: a last pivot of 9.7e-7 of its variance in one
+    order, none below 1e-4 in the other); the correlation matrix's eigenvalue decides."""
+    import itertools
+
+    import torch
+
+    from difffilter._checks import cholesky_fails
+
+    a = 0.01
+    q = torch.tensor([[1, 0, 1], [0, 1, a], [1, a, 1 + a * a + 1e-6]], dtype=torch.float32)
+    g = torch.Generator().manual_seed(3)
+    near = torch.randn(200, 3, 3, generator=g, dtype=torch.float64)
+    near = near @ near.mT
+    e, v = torch.linalg.eigh(near)
+    e[:, 0] = e[:, -1] * torch.logspace(-8, -4, 200, dtype=torch.float64)
+    near = ((v * e[:, None, :]) @ v.mT).float()
+    near = (near + near.mT) / 2
+    for order in itertools.permutations(range(3)):
+        p = list(order)
+        assert bool(cholesky_fails(q[p][:, p])) is True
+        assert torch.equal(cholesky_fails(near[:, p][:, :, p]), cholesky_fails(near))
