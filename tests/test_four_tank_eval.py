@@ -126,10 +126,14 @@ def test_committed_schema_holds_every_metric_with_its_unit_and_definition():
     }
     entry = SCHEMA["properties"]["estimators"]["additionalProperties"]
     assert entry["required"] == list(METRICS)
+    # bounds by unit: a fraction in [0, 1]; counts, errors, delays and times >= 0; scores
+    # (thresholds) unbounded
+    bounds = {"fraction": {"minimum": 0, "maximum": 1}, "score units": {}}
     for name, m in METRICS.items():
         assert entry["properties"][name] == {
             "type": ["integer" if m.kind == "integer" else "number", "null"],
             "description": f"[{m.unit}] {m.definition}",
+            **bounds.get(m.unit, {"minimum": 0}),
         }
 
 
