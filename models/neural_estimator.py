@@ -352,6 +352,14 @@ class EstimatorCard:
         n = self.num_particles
         if n is not None and (isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1):
             raise ValueError(f"num_particles must be a positive integer or null; got {n!r}")
+        # (a NaN dt or η was written, and the pair then refused at every load as "dt = nan
+        # there, nan inside", NaN being unequal to itself: a trial of the cards)
+        for name, positive in (("dt", True), ("poa_eta", False)):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, numbers.Real)
+                                  or not math.isfinite(v) or (positive and v <= 0)):  # fmt: skip
+                raise ValueError(f"{name} must be a finite number{' > 0' if positive else ''} "
+                                 f"or null; got {v!r}")  # fmt: skip
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)

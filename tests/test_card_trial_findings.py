@@ -90,3 +90,53 @@ def test_weights_stored_as_integers_are_refused_by_name(tmp_path):
     with pytest.raises(ValueError, match=r"holds weights that are no floating-point tensors: V "
                                          r"\(torch.int32\)"):  # fmt: skip
         load_estimator_checkpoint(tmp_path / "damaged.ckpt")
+
+
+def test_calibrate_refuses_scores_that_are_not_finite_where_the_threshold_falls(tmp_path,
+                                                                                monkeypatch):  # fmt: skip
+    """A trial of the cards: attack-free scores of +inf (an overflowed statistic) or NaN (no
+    scored step) made a threshold of Infinity or -Infinity, written into the card as
+    non-standard JSON; nothing is written now, and the error says why."""
+    import math
+    import shutil
+
+    import difffilter.train.calibrate as calibrate
+
+    for suffix in (".ckpt", ".json"):
+        shutil.copy(ROOT / "checkpoints" / f"robot_nn_ekf{suffix}", tmp_path / f"src{suffix}")
+    for fill in (math.inf, math.nan):
+        monkeypatch.setattr(calibrate, "_scores", lambda scenario, name, path, runs, seed,
+                            progress, fill=fill: (torch.full((runs, 50), fill), None))  # fmt: skip
+        out = tmp_path / "out.ckpt"
+        with pytest.raises(ValueError, match="are not finite where the threshold for 0.01 falls"):
+            calibrate.calibrate_checkpoint(tmp_path / "src.ckpt", out, far=0.01, runs=2,
+                                           force=True, progress=False)  # fmt: skip
+        assert not out.exists() and not out.with_suffix(".json").exists()
+
+
+def test_a_check_that_diverges_is_refused_not_written_as_nan(monkeypatch):
+    """A trial of the cards: a check of NaN was written as bare NaN (and, never equal to
+    itself, noted as moved at every calibration)."""
+    import math
+    from types import SimpleNamespace
+
+    from difffilter.models import estimators
+    from difffilter.train.export import check_metric
+
+    nan_output = SimpleNamespace(factory=lambda ctx: lambda traj: SimpleNamespace(
+        attack=torch.full_like(traj.attack, math.nan)))  # fmt: skip
+    monkeypatch.setattr(estimators, "get", lambda name: nan_output)
+    with pytest.raises(ValueError, match="the estimator diverges there"):
+        check_metric(ROOT / "checkpoints" / "robot_nn_ekf.ckpt", runs=1)
+
+
+@pytest.mark.parametrize(("field", "value"), [("dt", float("nan")), ("dt", float("inf")),
+                                              ("dt", 0.0), ("poa_eta", float("nan"))])  # fmt: skip
+def test_a_card_of_a_non_finite_dt_or_eta_is_refused_when_made(field, value):
+    """A trial of the cards: a NaN ``dt`` or ``poa_eta`` was written, and the pair was then
+    refused at every load ("dt = nan there, nan inside"); ``dt = inf`` was taken."""
+    from difffilter.models.neural_estimator import EstimatorCard
+
+    with pytest.raises(ValueError, match=f"{field} must be a finite number"):
+        EstimatorCard(scenario_family="four_tank", scenario="four_tank_bias", threshold=0.5,
+                      **{field: value})  # fmt: skip

@@ -43,6 +43,7 @@ import argparse
 import contextlib
 import dataclasses
 import json
+import math
 import os
 import sys
 import tempfile
@@ -247,6 +248,12 @@ def calibrate_checkpoint(
             save_estimator_checkpoint(scored, estimator, card)
         fitted, statistic = _scores(scenario, name, scored, runs, fit_seed, progress)
         threshold = threshold_for(fitted, far)
+        if not math.isfinite(threshold):  # (a card's JSON had held bare Infinity: a trial)
+            raise ValueError(
+                f"{src}: the attack-free scores of {name} on {scenario.name} are not finite "
+                f"where the threshold for {far:g} falls (it would be {threshold}): the "
+                "estimator's statistic overflows or was never computed there; nothing written"
+            )
         checked, _ = _scores(scenario, name, scored, runs, check_seed, progress)
         check = _new_check(src, scored, card)
     calibration = {

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 import sys
 import time
@@ -63,6 +64,13 @@ def check_metric(path, *, seed: int = 20, runs: int = 4, scenario=None) -> dict:
     if isinstance(out, LoopResult):  # its own closed loop: its own truth
         traj, out = out.trajectories, out.output
     value = float((out.attack - traj.attack).square().mean().sqrt())
+    if not math.isfinite(value):  # (written as bare NaN into the card, non-standard JSON,
+        # and never equal to itself at the next calibration: a trial of the cards)
+        raise ValueError(
+            f"{path}: the card's check, the attack RMSE of {card.estimator} on {runs} runs of "
+            f"{card.scenario} (seed {seed}), is {value}: the estimator diverges there, and "
+            "no card is written with it"
+        )
     return {"metric": "attack_rmse", "scenario": card.scenario, "seed": seed, "runs": runs,
             "value": value}  # fmt: skip
 
