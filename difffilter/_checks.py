@@ -283,9 +283,15 @@ def check_symmetric(t: Tensor, name: str, rtol: float = 1e-6) -> None:
         )
 
 
-def check_positive_definite(t: Tensor, name: str, dim: int | None = None) -> None:
+def check_positive_definite(
+    t: Tensor, name: str, dim: int | None = None, *, resolved: bool = True
+) -> None:
     """``t`` must be a finite, symmetric, positive-definite ``[..., d, d]`` matrix, of float32
-    or float64 (a float16 covariance had failed in torch's Cholesky: a review)."""
+    or float64 (a float16 covariance had failed in torch's Cholesky: a review); with
+    ``resolved`` (a covariance given to build on) also one float32 resolves
+    (:func:`cholesky_fails`). ``resolved=False`` for a filter's own output: definite as its
+    values are, decided in float64 (a float32 filter's predicted covariance, a correlation
+    within 1e-6 of 1 after a precise first reading, had been refused by the smoother)."""
     if t.is_floating_point():
         check_model_dtype(t.dtype, name)
     check_square(t, name, dim)
@@ -307,12 +313,12 @@ def check_positive_definite(t: Tensor, name: str, dim: int | None = None) -> Non
             f"({tiny:.3g}), which its factorisation does not resolve: build the model in "
             "float64 or choose units that bring the variances closer"
         )
-    failing = cholesky_fails(t)
+    failing = cholesky_fails(t, resolved=resolved)
     if bool(failing.any()):
         raise ValueError(_not_definite(t, failing, name))
 
 
-def cholesky_fails(t: Tensor) -> Tensor:
+def cholesky_fails(t: Tensor, *, resolved: bool = True) -> Tensor:
     """Where the Cholesky factorisation of ``t [..., d, d]`` fails (bool ``[...]``), alike on
     every CPU. float32's factorisation of a matrix at float32's precision passes or fails by
     the CPU's kernels: MKL's AVX2 ones left the rank-one ``[[1, 1], [1, 1]]`` a last pivot of
@@ -328,20 +334,27 @@ def cholesky_fails(t: Tensor) -> Tensor:
     factorisation is round-off, up to its sign). The eigenvalue, not the factor's pivots,
     so that the order of the states does not decide (a review: a pivot floor refused a Q in
     one order and took it in another). float64 matrices are decided by their own
-    factorisation (its kernels agree across CPUs where float32's did not, a review's sweep)."""
+    factorisation (its kernels agree across CPUs where float32's did not, a review's sweep).
+    ``resolved=False``: float64's factorisation of a float32 matrix's values alone decides
+    (definite as its values are, however near singular)."""
     t = t.detach()
     if t.dtype != torch.float32:
         return torch.linalg.cholesky_ex(t).info != 0
     t, d = t.double(), t.shape[-1]
     factor, info = torch.linalg.cholesky_ex(t)
     failing = info != 0
+    if not resolved:
+        return failing
     floor = FLOAT32_CORRELATION_FLOOR * d * torch.finfo(torch.float32).eps
-    # the correlation matrix's determinant is the product of the pivots over the variances,
-    # and its largest eigenvalue at most d: where det / d^(d−1) clears the floor, so does
-    # its smallest eigenvalue, and no eigenvalue is computed (most matrices: 2 µs, not 25)
+    # the correlation matrix's determinant is the product of the pivots over the variances
+    # and of its eigenvalues; the other d − 1 sum to under d, so their product is under
+    # (d / (d − 1))^(d−1) < e: where det over that clears the floor, so does the smallest
+    # eigenvalue, and none is computed (most matrices: 2 µs, not 25; a review had d^(d−1),
+    # 27 times looser at d = 4, send most of a batch of condition 1e4 to the eigenvalues)
     variances = t.diagonal(dim1=-2, dim2=-1)
     ratios = factor.diagonal(dim1=-2, dim2=-1).square() / variances
-    unsure = ~failing & ~(ratios.prod(-1) >= floor * d ** (d - 1))
+    bound = (d / (d - 1)) ** (d - 1) if d > 1 else 1.0
+    unsure = ~failing & ~(ratios.prod(-1) >= floor * bound)
     if bool(unsure.any()):
         # (where it factorised, the variances are > 0: the scaling is defined)
         scale = variances[unsure].rsqrt()
@@ -376,21 +389,27 @@ def _not_definite(t: Tensor, failing: Tensor, name: str) -> str:
     where = f" (batch index {index})" if index else ""
     dtype, eps = str(t.dtype).replace("torch.", ""), torch.finfo(t.dtype).eps
     jitter = f"{name} + {1e-12 if t.dtype == torch.float64 else 1e3 * eps:.0e} · max(diag) · I"
-    # definite beyond float64's round-off of its eigenvalues (a rank-one matrix's smallest
-    # came out 3e-21 for 0): then too ill-conditioned for its own dtype alone
-    if low > 10 * member.shape[-1] * torch.finfo(torch.float64).eps * high:
+    # definite beyond float64's round-off of its correlation matrix's eigenvalues (a
+    # rank-one matrix's smallest came out 3e-21 for 0), whatever its units (judged on the
+    # unscaled eigenvalues, variances 1e6 apart had read as rank-deficient: a review): then
+    # too near singular for its own dtype alone
+    d, var = member.shape[-1], member.diagonal()
+    lowest = -1.0
+    if bool((var > 0).all()):
+        scale = var.rsqrt()
+        lowest = float(torch.linalg.eigvalsh(member * scale[:, None] * scale[None, :])[0])
+    if lowest > 10 * d * d * torch.finfo(torch.float64).eps:
         return (
             f"{name}{where} is positive definite in exact arithmetic (eigenvalues from "
-            f"{low:.3g} to {high:.3g}: condition number {high / low:.3g}) but "
+            f"{low:.3g} to {high:.3g}; its correlation matrix's smallest {lowest:.3g}) but "
             + (
                 f"too near singular for float32 (its factorisation there is round-off, taken "
                 f"by some CPUs' kernels and refused by others; relative precision {eps:.2g})"
                 if t.dtype == torch.float32
                 else f"its Cholesky factorisation fails in {dtype} (relative precision {eps:.2g})"
             )
-            + ": build the model "
-            f"in float64, use units that bring the variances closer, or add a variance ("
-            f"{jitter}) if it was meant to be singular"
+            + f": build the model in float64, or add a variance ({jitter}) if it was meant to "
+            "be singular"
         )
     return (
         f"{name}{where} must be positive definite (all eigenvalues > 0; its smallest is "

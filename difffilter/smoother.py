@@ -311,7 +311,7 @@ def _check_fields(filtered: FilterResult, steps: int, dx: int) -> None:
             check_semidefinite(values, f"filtered.{name}",
                                advice="smooth the result a filter returned")  # fmt: skip
     if filtered.pred_covs is not None:
-        check_positive_definite(_shared(filtered.pred_covs), "filtered.pred_covs")
+        check_positive_definite(_shared(filtered.pred_covs), "filtered.pred_covs", resolved=False)
 
 
 def _backward(model, filtered: FilterResult, transition) -> SmootherResult:
