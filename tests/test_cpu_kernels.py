@@ -110,7 +110,7 @@ def test_the_parallel_filters_explanation_names_the_singular_s_on_every_cpu(unde
 
 def test_float32_definiteness_does_not_depend_on_the_order_of_the_states():
     """A review: the pivot floor refused a Q in one order of its states and took it in
-    another (x3 = x1 + 0.01·x2 + 1e-3·e: a last pivot of 9.7e-7 of its variance in one
+    another (x3 = x1 + 0.01·x2 + e, a last pivot of 9.7e-7 of its variance in one
     order, none below 1e-4 in the other); the correlation matrix's eigenvalue decides."""
     import itertools
 
@@ -118,8 +118,8 @@ def test_float32_definiteness_does_not_depend_on_the_order_of_the_states():
 
     from difffilter._checks import cholesky_fails
 
-    a = 0.01
-    q = torch.tensor([[1, 0, 1], [0, 1, a], [1, a, 1 + a * a + 1e-6]], dtype=torch.float32)
+    a = 0.01  # (x3's own noise 3e-4: the correlation matrix's smallest eigenvalue 4.5e-8)
+    q = torch.tensor([[1, 0, 1], [0, 1, a], [1, a, 1 + a * a + 1e-7]], dtype=torch.float32)
     g = torch.Generator().manual_seed(3)
     near = torch.randn(200, 3, 3, generator=g, dtype=torch.float64)
     near = near @ near.mT
@@ -143,7 +143,7 @@ def test_a_definite_float32_covariance_in_mixed_units_is_not_called_rank_deficie
 
     import difffilter as df
 
-    rho = 1 - 2.0**-21  # 1 − 4.8e-7, exact in float32
+    rho = 1 - 2.0**-23  # 1 − 1.2e-7, exact in float32: below the floor d·ε₃₂ = 2.4e-7
     corr = torch.tensor([[1.0, rho], [rho, 1.0]], dtype=torch.float64)
     for scales in ((1.0, 1.0), (1.0, 1e-6), (1e3, 1e-3)):
         s = torch.diag(torch.tensor(scales, dtype=torch.float64))

@@ -158,11 +158,11 @@ def test_a_float32_pair_that_factorises_but_does_not_invert_is_refused_by_name()
                 assert "covs must be positive definite" in str(error)
                 outcomes.add("inverse" if "precision" in str(error) else "factor")
             fuse(means, covs)  # float64 holds every one of them
-    # Which of them float32's own kernels took was the CPU's round-off (MKL's: fusions and
-    # both refusals on one machine, fusions and the Cholesky's on an AVX-512 one); decided
-    # in float64 (difffilter._checks.cholesky_fails), condition 1e8 is beyond float32 and
-    # every such pair is refused by name, on every CPU
-    assert outcomes == {"factor"}
+    # Which refusal a pair met was the CPU's round-off (MKL's kernels: fusions and both
+    # refusals on one machine, fusions and the Cholesky's on an AVX-512 one); the pair check
+    # is decided in float64 now (difffilter._checks.cholesky_fails), the inverse of a pair
+    # it takes is still float32's: fusions and a refusal by name on every CPU
+    assert {"fused", "factor"} <= outcomes <= {"fused", "factor", "inverse"}
 
 
 def test_a_covariance_that_does_not_invert_is_refused_naming_covs_and_the_dtype():

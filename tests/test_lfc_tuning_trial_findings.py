@@ -91,8 +91,8 @@ def test_a_diverged_grid_is_written_as_strict_json_and_chooses_nothing(tmp_path,
     assert rows[0]["attack_rmse"] is None and rows[0]["diverged"] is True
     assert rows[1]["attack_rmse"] == 0.5 and "diverged" not in rows[1]
     assert written["chosen"]["traditional_ad"]["lr"] == 2.0
-    scores[2.0] = math.inf  # every point diverged: nothing chosen, said on stderr
-    out.unlink()
+    scores[2.0] = math.inf  # every point diverged: nothing chosen, said on stderr, and the
+    # choice of the file it merges into (the run before's) gone with its grid (a review)
     lfc_tuning.main(["--runs", "1", "--estimators", "traditional_ad", "--out", str(out)])
     assert "traditional_ad" not in json.loads(out.read_text(), parse_constant=refuse)["chosen"]
     assert "every point of the traditional_ad grid diverged" in capsys.readouterr().err

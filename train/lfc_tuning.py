@@ -231,7 +231,12 @@ def main(argv=None) -> int:
         p.error(str(error))
     result = tune(args.estimators, runs=args.runs, ckpt=args.ckpt)
     previous.setdefault("grids", {}).update(result["grids"])
-    previous.setdefault("chosen", {}).update(result["chosen"])
+    # a grid scored again replaces its choice, and one that chose nothing (every point
+    # diverged) leaves none: the file before's choice had stayed beside this run's grid of
+    # diverged rows, and the LFC report printed it (a review)
+    for name in result["grids"]:
+        previous.setdefault("chosen", {}).pop(name, None)
+    previous["chosen"].update(result["chosen"])
     previous["validation"] = result["validation"]  # this run's (each grid's: validated_on)
     previous.setdefault("validated_on", {}).update(result.get("validated_on", {}))
     previous["ekf_fixed"] = {k: v for k, v in EKF_DEFAULTS.items() if k != "process_noise"}
