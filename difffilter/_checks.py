@@ -391,12 +391,22 @@ def _not_definite(t: Tensor, failing: Tensor, name: str) -> str:
     low = float(torch.linalg.eigvalsh(member)[0])
     where = f" (batch index {index})" if index else ""
     dtype, eps = str(t.dtype).replace("torch.", ""), torch.finfo(t.dtype).eps
-    jitter = f"{name} + {1e-12 if t.dtype == torch.float64 else 1e3 * eps:.0e} · max(diag) · I"
+    size = 1e-12 if t.dtype == torch.float64 else 1e3 * eps
+    var = member.diagonal()
+    if bool((var > 0).all()) and float(var.max()) > 1e4 * float(var.min()):
+        # variances in mixed units: each raised by that much of itself (a variance of the
+        # largest had added 1e-4 to a variance of 1e-12: a review), which lifts the
+        # correlation matrix's smallest eigenvalue to about that much whatever the units
+        jitter = (
+            f"{name} + {size:.0e} · diag({name}) (each variance raised by {size:.0e} of itself)"
+        )
+    else:
+        jitter = f"{name} + {size:.0e} · max(diag) · I"
     # definite beyond float64's round-off of its correlation matrix's eigenvalues (a
     # rank-one matrix's smallest came out 3e-21 for 0), whatever its units (judged on the
     # unscaled eigenvalues, variances 1e6 apart had read as rank-deficient: a review): then
     # too near singular for its own dtype alone
-    d, var = member.shape[-1], member.diagonal()
+    d = member.shape[-1]
     lowest = -1.0
     if bool((var > 0).all()):
         scale = var.rsqrt()

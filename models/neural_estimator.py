@@ -354,12 +354,16 @@ class EstimatorCard:
             raise ValueError(f"num_particles must be a positive integer or null; got {n!r}")
         # (a NaN dt or η was written, and the pair then refused at every load as "dt = nan
         # there, nan inside", NaN being unequal to itself: a trial of the cards)
-        for name, positive in (("dt", True), ("poa_eta", False)):
+        # (η ≥ 0, as the PoA detector takes it: −1 had been taken here and refused only where
+        # the estimator was built, a review)
+        for name, bound, ok in (
+            ("dt", "> 0", lambda v: v > 0),
+            ("poa_eta", ">= 0", lambda v: v >= 0),
+        ):
             v = getattr(self, name)
             if v is not None and (isinstance(v, bool) or not isinstance(v, numbers.Real)
-                                  or not math.isfinite(v) or (positive and v <= 0)):  # fmt: skip
-                raise ValueError(f"{name} must be a finite number{' > 0' if positive else ''} "
-                                 f"or null; got {v!r}")  # fmt: skip
+                                  or not math.isfinite(v) or not ok(v)):  # fmt: skip
+                raise ValueError(f"{name} must be a finite number {bound} or null; got {v!r}")
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)

@@ -131,7 +131,8 @@ def test_a_check_that_diverges_is_refused_not_written_as_nan(monkeypatch):
 
 
 @pytest.mark.parametrize(("field", "value"), [("dt", float("nan")), ("dt", float("inf")),
-                                              ("dt", 0.0), ("poa_eta", float("nan"))])  # fmt: skip
+                                              ("dt", 0.0), ("poa_eta", float("nan")),
+                                              ("poa_eta", -1.0)])  # fmt: skip
 def test_a_card_of_a_non_finite_dt_or_eta_is_refused_when_made(field, value):
     """A trial of the cards: a NaN ``dt`` or ``poa_eta`` was written, and the pair was then
     refused at every load ("dt = nan there, nan inside"); ``dt = inf`` was taken."""

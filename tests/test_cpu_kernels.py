@@ -178,3 +178,24 @@ def test_the_smoother_takes_a_float32_filters_own_predicted_covariances():
     exact = df.rts_smoother(m64, df.kalman_filter(m64, ys))
     sd = exact.covs.diagonal(dim1=-2, dim2=-1).sqrt()
     assert float(((smoothed.means.double() - exact.means) / sd).abs().max()) < 0.5
+
+
+def test_the_variance_a_refusal_suggests_fixes_a_covariance_in_mixed_units():
+    """A review: the suggested ``Q + 1e-4 · max(diag) · I`` added 1e-4 to a variance of
+    1e-8 (a rank-one g gᵀ of g = (1, 1e-4)); in mixed units each variance is raised by 1e-4
+    of itself, which float32 then resolves."""
+    import pytest
+    import torch
+
+    import difffilter as df
+
+    def model(q):
+        return df.LinearGaussianModel(torch.eye(2), torch.eye(2)[:1], q, torch.eye(1),
+                                      torch.zeros(2), torch.eye(2))  # fmt: skip
+
+    g = torch.tensor([[1.0], [1e-4]])
+    q = g @ g.T
+    with pytest.raises(ValueError, match=r"Q \+ 1e-04 · diag\(Q\) \(each variance raised"):
+        model(q)
+    fixed = model(q + 1e-4 * torch.diag(q.diagonal()))
+    assert float(fixed.process_noise.cov[1, 1]) < 1.1e-8  # (the small variance kept its scale)
