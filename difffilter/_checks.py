@@ -391,9 +391,19 @@ def _not_definite(t: Tensor, failing: Tensor, name: str) -> str:
     low = float(torch.linalg.eigvalsh(member)[0])
     where = f" (batch index {index})" if index else ""
     dtype, eps = str(t.dtype).replace("torch.", ""), torch.finfo(t.dtype).eps
-    size = 1e-12 if t.dtype == torch.float64 else 1e3 * eps
+    # a variance that lifts the correlation matrix's smallest eigenvalue to about `size`,
+    # ten times float32's floor d·ε₃₂ at any d (1e-4 had been refused again from d = 839)
+    d = member.shape[-1]
+    size = 1e-12 if t.dtype == torch.float64 else max(1e3 * eps, 10 * d * eps)
     var = member.diagonal()
-    if bool((var > 0).all()) and float(var.max()) > 1e4 * float(var.min()):
+    zeros = [i for i, v in enumerate(var.tolist()) if v == 0]
+    if len(zeros) == d:  # (Q = 0: any multiple of its variances is 0 again, a review)
+        jitter = f"a variance of its own on each state ({name} = 0 has no scale to take one from)"
+    elif zeros:  # (max(diag) had raised a variance of 1e-8 to 1e4 beside one of 1e8)
+        jitter = (f"{name} + {size:.0e} · diag({name}) (each variance raised by {size:.0e} of "
+                  f"itself) and a variance of its own on state{'s' * (len(zeros) > 1)} "
+                  f"{', '.join(map(str, zeros))}, whose variance is 0")  # fmt: skip
+    elif float(var.max()) > 1e4 * float(var.min()):
         # variances in mixed units: each raised by that much of itself (a variance of the
         # largest had added 1e-4 to a variance of 1e-12: a review), which lifts the
         # correlation matrix's smallest eigenvalue to about that much whatever the units
@@ -406,7 +416,6 @@ def _not_definite(t: Tensor, failing: Tensor, name: str) -> str:
     # rank-one matrix's smallest came out 3e-21 for 0), whatever its units (judged on the
     # unscaled eigenvalues, variances 1e6 apart had read as rank-deficient: a review): then
     # too near singular for its own dtype alone
-    d = member.shape[-1]
     lowest = -1.0
     if bool((var > 0).all()):
         scale = var.rsqrt()

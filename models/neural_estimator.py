@@ -364,6 +364,10 @@ class EstimatorCard:
             if v is not None and (isinstance(v, bool) or not isinstance(v, numbers.Real)
                                   or not math.isfinite(v) or not ok(v)):  # fmt: skip
                 raise ValueError(f"{name} must be a finite number {bound} or null; got {v!r}")
+        if "poa" in self.features and self.poa_eta is None:  # (refused only where the
+            # estimator was built, as η = −1 had been: a review)
+            raise ValueError("poa_eta must be a number >= 0 where features include 'poa' "
+                             "(the PoA feature's threshold η); got null")  # fmt: skip
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)

@@ -141,3 +141,15 @@ def test_a_card_of_a_non_finite_dt_or_eta_is_refused_when_made(field, value):
     with pytest.raises(ValueError, match=f"{field} must be a finite number"):
         EstimatorCard(scenario_family="four_tank", scenario="four_tank_bias", threshold=0.5,
                       **{field: value})  # fmt: skip
+
+
+def test_a_card_of_the_poa_feature_without_its_eta_is_refused_when_made():
+    """A review: ``features: ["poa"]`` with ``poa_eta: null`` was taken by the card and
+    refused only where the estimator was built."""
+    from difffilter.models.neural_estimator import EstimatorCard
+
+    with pytest.raises(ValueError, match="poa_eta must be a number >= 0 where features include"):
+        EstimatorCard(scenario_family="four_tank", scenario="four_tank_bias", threshold=0.5,
+                      features=("poa",))  # fmt: skip
+    EstimatorCard(scenario_family="four_tank", scenario="four_tank_bias", threshold=0.5,
+                  features=("poa",), poa_eta=0.233)  # fmt: skip

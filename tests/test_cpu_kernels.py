@@ -199,3 +199,31 @@ def test_the_variance_a_refusal_suggests_fixes_a_covariance_in_mixed_units():
         model(q)
     fixed = model(q + 1e-4 * torch.diag(q.diagonal()))
     assert float(fixed.process_noise.cov[1, 1]) < 1.1e-8  # (the small variance kept its scale)
+
+
+def test_the_suggested_variance_is_one_the_check_takes_at_any_size_and_for_zero_variances():
+    """A review: the suggested 1e-4 lifted the correlation eigenvalue to 1e-4, under the
+    floor d·ε₃₂ from d = 839, so the fixed matrix was refused with the same advice; for
+    Q = 0 the suggestion was 0 again, and beside a zero variance it raised one of 1e-8 to
+    1e4."""
+    import re
+
+    import pytest
+    import torch
+
+    import difffilter as df
+
+    def model(q):
+        n = q.shape[-1]
+        return df.LinearGaussianModel(torch.eye(n), torch.eye(n)[:1], q, torch.eye(1),
+                                      torch.zeros(n), torch.eye(n))  # fmt: skip
+
+    ones = torch.ones(850, 850)
+    with pytest.raises(ValueError, match=r"Q \+ 1e-03 · max\(diag\) · I") as error:
+        model(ones)
+    size = float(re.search(r"Q \+ (\S+) · max", str(error.value)).group(1))
+    model(ones + size * torch.eye(850))  # taken: the suggestion clears the floor
+    with pytest.raises(ValueError, match=r"a variance of its own on each state \(Q = 0"):
+        model(torch.zeros(2, 2))
+    with pytest.raises(ValueError, match=r"Q \+ 1e-04 · diag\(Q\) .* on state 2, whose variance"):
+        model(torch.diag(torch.tensor([1e8, 1e-8, 0.0])))
