@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -133,20 +134,27 @@ def pytest_collection_modifyitems(config, items):
         )
 
 
-@pytest.fixture
-def isolated_registry(monkeypatch):
-    """The scenario registry, loaded, then replaced by a copy for this test: what the test
-    registers leaves with it. (A copy taken before the registry was loaded would receive
-    the built-in scenarios and take them away with it, leaving the real registry empty but
+@contextlib.contextmanager
+def registry_copy():
+    """The scenario registry, loaded, then replaced by a copy while the block runs: what is
+    registered in it leaves with it (for a module's fixture; a test's own:
+    ``isolated_registry``). (A copy taken before the registry was loaded would receive the
+    built-in scenarios and take them away with it, leaving the real registry empty but
     marked loaded for every later test of the process.)"""
     from difffilter.models import registry
 
     registry.names()
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
-    monkeypatch.setattr(registry, "_ORIGINS", dict(registry._ORIGINS))
-    monkeypatch.setattr(registry, "_FILES", dict(registry._FILES))
-    monkeypatch.setattr(registry, "_CALLED", dict(registry._CALLED))
-    return registry
+    with pytest.MonkeyPatch.context() as patch:
+        for table in ("_REGISTRY", "_ORIGINS", "_FILES", "_CALLED"):
+            patch.setattr(registry, table, dict(getattr(registry, table)))
+        yield registry
+
+
+@pytest.fixture
+def isolated_registry():
+    """The scenario registry as :func:`registry_copy` gives it, for this test."""
+    with registry_copy() as registry:
+        yield registry
 
 
 @pytest.fixture(scope="session", autouse=True)

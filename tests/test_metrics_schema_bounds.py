@@ -8,6 +8,7 @@ import copy
 
 import jsonschema
 import pytest
+from conftest import registry_copy
 
 from difffilter.eval.report import metrics_schema
 
@@ -25,14 +26,10 @@ estimators: [kf_attack_free, kf, chi_square_kf]
 def written(tmp_path_factory):
     from difffilter.eval.report import write_report
     from difffilter.eval.suite import run_suite
-    from difffilter.models import registry
 
     folder = tmp_path_factory.mktemp("schema_bounds")
     (folder / "plant.yaml").write_text(YAML)
-    registry.names()
-    with pytest.MonkeyPatch.context() as patch:  # (conftest's isolated_registry, per module)
-        for table in ("_REGISTRY", "_ORIGINS", "_CALLED", "_FILES"):
-            patch.setattr(registry, table, dict(getattr(registry, table)))
+    with registry_copy() as registry:
         scenario = registry.get(str(folder / "plant.yaml"))
         yield write_report(folder / "out", run_suite(scenario, runs=2, progress=False))
 
