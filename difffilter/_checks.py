@@ -389,7 +389,20 @@ def _not_definite(t: Tensor, failing: Tensor, name: str) -> str:
     the "fixed" matrix was the same, bit for bit)."""
     index = first_index(failing) if failing.dim() else ()
     member = t.detach()[index].double()
-    low = float(torch.linalg.eigvalsh(member)[0])
+    eigenvalues = torch.linalg.eigvalsh(member)
+    low = float(eigenvalues[0])
+    # indefinite beyond round-off (a negative variance, [[1, 2], [2, 1]]): no variance added
+    # makes it a covariance, and it was told to add one (a review: −1 raised by 1e-4 of
+    # itself to −1.0001)
+    spread = float(eigenvalues.abs().max())
+    if low < -10 * member.shape[-1] * torch.finfo(torch.float64).eps * spread:
+        where = f" (batch index {index})" if index else ""
+        return (
+            f"{name}{where} must be positive definite, and it is indefinite: its smallest "
+            f"eigenvalue is {low:.3g}"
+            + (" (a negative variance)" if bool((member.diagonal() < 0).any()) else "")
+            + ": not a covariance (a sign, a transposition or a square root missing?)"
+        )
     where = f" (batch index {index})" if index else ""
     dtype, eps = str(t.dtype).replace("torch.", ""), torch.finfo(t.dtype).eps
     # a variance that lifts the correlation matrix's smallest eigenvalue to about `size`,

@@ -599,6 +599,9 @@ def write_robustness(out: str | Path, result: RobustnessResult) -> dict[str, Any
     sc, free = result.scenario, result.attack_free
     doc = json_safe({
         "scenario": sc.name, "runs": result.runs, "steps": sc.steps, "seed": result.seed,
+        # (the leaderboard's delays are coloured by it: its rows after a robustness study
+        # had dt_s null, a review)
+        "dt_s": sc.dt,
         "units": {name: m.unit for name, m in METRICS.items()}, "paper": {},
         "scenario_units": {"state": sc.state_unit, "attack": sc.attack_unit},
         "estimators": {n: {**dict.fromkeys(METRICS), **m} for n, m in free.metrics.items()},

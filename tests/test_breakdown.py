@@ -150,6 +150,11 @@ def test_a_breakdown_under_one_threat_is_that_estimators_worst_case(tmp_path, mo
     written = json.loads((tmp_path / "out" / "robustness.json").read_text())
     jsonschema.validate(written, metrics_schema())
     assert written["software"] == software_record()
+    # its dt, which the leaderboard's rows read (null after a robustness study: a review)
+    assert written["dt_s"] == sc.dt == 1.0
+    from difffilter.eval.leaderboard import leaderboard_rows
+
+    assert {row["dt_s"] for row in leaderboard_rows({"four_tank_bias": written})} == {1.0}
     text = (tmp_path / "out" / "robustness.md").read_text()
     assert "Broke down under a threat" in text and "`chi_square_ekf` under `huge`" in text
     assert "broke down (huge)" in text

@@ -227,3 +227,26 @@ def test_the_suggested_variance_is_one_the_check_takes_at_any_size_and_for_zero_
         model(torch.zeros(2, 2))
     with pytest.raises(ValueError, match=r"Q \+ 1e-04 · diag\(Q\) .* on state 2, whose variance"):
         model(torch.diag(torch.tensor([1e8, 1e-8, 0.0])))
+
+
+def test_an_indefinite_matrix_is_called_indefinite_and_told_no_variance():
+    """A review: a negative variance was told to raise each variance by 1e-4 of itself
+    (−1 → −1.0001), and every indefinite matrix ([[1, 2], [2, 1]]: eigenvalue −1) was
+    called "a rank-deficient covariance" that "needs a small variance added"."""
+    import pytest
+    import torch
+
+    import difffilter as df
+
+    for q, negative in ((torch.tensor([[-1.0]]), True), (torch.tensor([[1.0, 2.0], [2.0, 1.0]]), False),
+                        (torch.diag(torch.tensor([1.0, -1e-3])).double(), True),
+                        (torch.tensor([[0.0, 1.0], [1.0, 1.0]]), False)):  # fmt: skip
+        n = q.shape[-1]
+        with pytest.raises(ValueError) as error:
+            df.LinearGaussianModel(torch.eye(n, dtype=q.dtype), torch.eye(n, dtype=q.dtype)[:1],
+                                   q, torch.eye(1, dtype=q.dtype), torch.zeros(n, dtype=q.dtype),
+                                   torch.eye(n, dtype=q.dtype))  # fmt: skip
+        message = str(error.value)
+        assert "Q must be positive definite, and it is indefinite" in message, message
+        assert ("a negative variance" in message) is negative
+        assert "variance added" not in message and "raised by" not in message
