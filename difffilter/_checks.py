@@ -381,6 +381,30 @@ def first_index(flags: Tensor) -> tuple[int, ...]:
     return tuple(int(i) for i in flags.nonzero()[0])
 
 
+def _indefinite(member: Tensor, eps: float) -> str | None:
+    """Why the float64 ``member [d, d]`` is indefinite beyond the round-off of a matrix of
+    relative precision ``eps`` (its dtype's), or ``None``: a negative variance, a zero
+    variance with a covariance beside it, or its correlation matrix's smallest eigenvalue
+    below −10·d·ε (scale-free: in mixed units the raw eigenvalues hid an indefinite block,
+    and float32's rounding of a rank-deficient g gᵀ moves its zero eigenvalue by about ε₃₂,
+    past a float64 threshold: two reviews)."""
+    var = member.diagonal()
+    if bool((var < 0).any()):
+        return f"a negative variance, {float(var.min()):.3g}"
+    zero = var == 0
+    if bool((member[zero].abs().sum(-1) > 0).any()):
+        return "a variance of 0 beside a covariance that is not 0"
+    keep = ~zero
+    scale = var[keep].rsqrt()
+    correlation = member[keep][:, keep] * scale[:, None] * scale[None, :]
+    if correlation.numel() == 0:
+        return None
+    lowest = float(torch.linalg.eigvalsh(correlation)[0])
+    if lowest < -10 * member.shape[-1] * eps:
+        return f"its correlation matrix's smallest eigenvalue is {lowest:.3g}"
+    return None
+
+
 def _not_definite(t: Tensor, failing: Tensor, name: str) -> str:
     """Why ``t`` (its first member whose Cholesky factorisation failed) is refused, and what
     to do: a rank-deficient covariance needs a variance added, one definite in exact
@@ -389,19 +413,15 @@ def _not_definite(t: Tensor, failing: Tensor, name: str) -> str:
     the "fixed" matrix was the same, bit for bit)."""
     index = first_index(failing) if failing.dim() else ()
     member = t.detach()[index].double()
-    eigenvalues = torch.linalg.eigvalsh(member)
-    low = float(eigenvalues[0])
-    # indefinite beyond round-off (a negative variance, [[1, 2], [2, 1]]): no variance added
-    # makes it a covariance, and it was told to add one (a review: −1 raised by 1e-4 of
-    # itself to −1.0001)
-    spread = float(eigenvalues.abs().max())
-    if low < -10 * member.shape[-1] * torch.finfo(torch.float64).eps * spread:
+    low = float(torch.linalg.eigvalsh(member)[0])
+    indefinite = _indefinite(member, torch.finfo(t.dtype).eps)
+    if indefinite is not None:
+        # no variance added makes it a covariance, and it was told to add one (a review: −1
+        # raised by 1e-4 of itself to −1.0001; [[1, 2], [2, 1]] called rank-deficient)
         where = f" (batch index {index})" if index else ""
         return (
-            f"{name}{where} must be positive definite, and it is indefinite: its smallest "
-            f"eigenvalue is {low:.3g}"
-            + (" (a negative variance)" if bool((member.diagonal() < 0).any()) else "")
-            + ": not a covariance (a sign, a transposition or a square root missing?)"
+            f"{name}{where} must be positive definite, and it is indefinite ({indefinite}): "
+            "not a covariance (a sign, a transposition or a square root missing?)"
         )
     where = f" (batch index {index})" if index else ""
     dtype, eps = str(t.dtype).replace("torch.", ""), torch.finfo(t.dtype).eps

@@ -12,6 +12,7 @@
 import sys
 
 import pytest
+from conftest import registry_copy
 
 from difffilter.eval import cli as eval_cli
 
@@ -35,14 +36,11 @@ attack: {{kind: bias, channel: actuator, value: 0.5, onset: 10}}
 
 
 @pytest.fixture(autouse=True)
-def _registry_restored(monkeypatch):
+def _registry_restored():
     """The plants these tests register leave the registry as it was (one of family lfc had
-    joined the lfc family of later tests)."""
-    from difffilter.models import registry
-
-    registry.names()  # the built-in scenarios first
-    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
-    monkeypatch.setattr(registry, "_ORIGINS", dict(registry._ORIGINS))
+    joined the lfc family of later tests; its files and calls had stayed: a review)."""
+    with registry_copy():
+        yield
 
 
 def _error(argv, capsys, monkeypatch):

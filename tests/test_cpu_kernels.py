@@ -159,8 +159,9 @@ def test_the_smoother_takes_a_float32_filters_own_predicted_covariances():
     """A review: after a precise first position reading (R = 1e-6 beside P0 = I) a float32
     constant-velocity filter's predicted covariance has a correlation within 1e-6 of 1; the
     filter ran, float32 factorised it, and the smoother refused it as "too near singular"
-    (its check of a filter's output now asks only that it be definite, decided in float64;
-    the smoothed means are 0.17 sd from float64's, as at R = 2e-6, which it took)."""
+    (its check of a filter's output now asks only that it be definite, decided in float64).
+    At R = 1e-7 (a correlation eigenvalue of 1e-7, under the floor d·ε₃₂: a mutation trial
+    found R = 1e-6 above it, where undoing the fix passed)."""
     import torch
 
     import difffilter as df
@@ -169,7 +170,7 @@ def test_the_smoother_takes_a_float32_filters_own_predicted_covariances():
         q = 1e-8 * torch.tensor([[1 / 3, 1 / 2], [1 / 2, 1.0]], dtype=torch.float64)
         return df.LinearGaussianModel(torch.tensor([[1.0, 1.0], [0.0, 1.0]], dtype=dtype),
                                       torch.tensor([[1.0, 0.0]], dtype=dtype), q.to(dtype),
-                                      torch.tensor([[1e-6]], dtype=dtype),
+                                      torch.tensor([[1e-7]], dtype=dtype),
                                       torch.zeros(2, dtype=dtype), torch.eye(2, dtype=dtype))  # fmt: skip
 
     m32, m64 = cv(torch.float32), cv(torch.float64)
@@ -250,3 +251,68 @@ def test_an_indefinite_matrix_is_called_indefinite_and_told_no_variance():
         assert "Q must be positive definite, and it is indefinite" in message, message
         assert ("a negative variance" in message) is negative
         assert "variance added" not in message and "raised by" not in message
+
+
+def test_float32_rank_deficiency_and_mixed_unit_indefiniteness_are_told_apart():
+    """A review: judged against float64's round-off, the float32 textbook q g gᵀ of a
+    constant-velocity model (dt = 0.1), whose zero eigenvalue float32's rounding moves by
+    about ε₃₂, was called indefinite; and judged on raw eigenvalues, [[1, 2], [2, 1]] at a
+    scale of 1e-8 beside a variance of 1e8 (its correlation's eigenvalue −1) was called
+    rank-deficient and told to add a variance."""
+    import pytest
+    import torch
+
+    import difffilter as df
+
+    def refusal(q):
+        n = q.shape[-1]
+        with pytest.raises(ValueError) as error:
+            df.LinearGaussianModel(torch.eye(n, dtype=q.dtype), torch.eye(n, dtype=q.dtype)[:1],
+                                   q, torch.eye(1, dtype=q.dtype), torch.zeros(n, dtype=q.dtype),
+                                   torch.eye(n, dtype=q.dtype))  # fmt: skip
+        return str(error.value)
+
+    for dt in (0.3, 0.1, 0.05, 0.01):
+        g = torch.tensor([[dt**2 / 2], [dt]], dtype=torch.float64)
+        message = refusal((g @ g.T).float())
+        # (rank-deficient, or definite by its rounded float32 values and too near singular)
+        assert "indefinite" not in message, message
+        assert "a rank-deficient covariance" in message or "too near singular" in message
+    block = torch.zeros(3, 3, dtype=torch.float64)
+    block[0, 0] = 1e8
+    block[1:, 1:] = 1e-8 * torch.tensor([[1.0, 2.0], [2.0, 1.0]], dtype=torch.float64)
+    message = refusal(block)
+    assert "indefinite (its correlation matrix's smallest eigenvalue is -1)" in message, message
+
+
+def test_the_determinant_shortcut_does_not_pass_a_matrix_under_the_floor():
+    """A mutation trial: with the shortcut's bound set to 1 no test failed, and a float32
+    correlation of 1 − 3·2⁻²⁴ (smallest eigenvalue 1.8e-7, under the floor 2.4e-7;
+    determinant 3.6e-7) passed it. Its bound (d/(d−1))^(d−1) = 2 here sends it to the
+    eigenvalues, which refuse it."""
+    import torch
+
+    from difffilter._checks import cholesky_fails
+
+    rho = 1 - 3 * 2.0**-24
+    q = torch.tensor([[1.0, rho], [rho, 1.0]], dtype=torch.float32)
+    assert torch.linalg.eigvalsh(q.double())[0] < 2 * torch.finfo(torch.float32).eps
+    assert bool(cholesky_fails(q)) is True
+    assert bool(cholesky_fails(q, resolved=False)) is False  # definite as its values are
+
+
+def test_a_rank_one_float64_matrix_is_called_rank_deficient_not_definite():
+    """A mutation trial: with the definite branch's threshold at 0 no test failed, and 30
+    of 200 rank-one float64 3×3 (a smallest eigenvalue of round-off, ±1e-17) read as
+    "positive definite in exact arithmetic"."""
+    import pytest
+    import torch
+
+    import difffilter as df
+
+    g = torch.randn(200, 3, 1, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    for q in (g @ g.mT)[:40]:
+        with pytest.raises(ValueError, match="a rank-deficient covariance"):
+            df.LinearGaussianModel(torch.eye(3, dtype=q.dtype), torch.eye(3, dtype=q.dtype)[:1],
+                                   q, torch.eye(1, dtype=q.dtype), torch.zeros(3, dtype=q.dtype),
+                                   torch.eye(3, dtype=q.dtype))  # fmt: skip
