@@ -147,7 +147,11 @@ def test_a_breakdown_under_one_threat_is_that_estimators_worst_case(tmp_path, mo
     assert worst["impact_threat"] == "huge"
     assert "broke_down" not in result.cells["huge"]["normal_pf"]  # the others as before
     write_robustness(tmp_path / "out", result)
-    written = json.loads((tmp_path / "out" / "robustness.json").read_text())
+
+    def refuse(constant):  # strict JSON: the broken-down cells' inf is null (a mutation
+        raise ValueError(f"non-standard JSON constant {constant}")  # trial: not pinned)
+
+    written = json.loads((tmp_path / "out" / "robustness.json").read_text(), parse_constant=refuse)
     jsonschema.validate(written, metrics_schema())
     assert written["software"] == software_record()
     # its dt, which the leaderboard's rows read (null after a robustness study: a review)

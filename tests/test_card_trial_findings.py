@@ -132,7 +132,8 @@ def test_a_check_that_diverges_is_refused_not_written_as_nan(monkeypatch):
 
 @pytest.mark.parametrize(("field", "value"), [("dt", float("nan")), ("dt", float("inf")),
                                               ("dt", 0.0), ("poa_eta", float("nan")),
-                                              ("poa_eta", -1.0)])  # fmt: skip
+                                              ("poa_eta", -1.0), ("dt", True),
+                                              ("poa_eta", True)])  # fmt: skip
 def test_a_card_of_a_non_finite_dt_or_eta_is_refused_when_made(field, value):
     """A trial of the cards: a NaN ``dt`` or ``poa_eta`` was written, and the pair was then
     refused at every load ("dt = nan there, nan inside"); ``dt = inf`` was taken."""
@@ -141,6 +142,9 @@ def test_a_card_of_a_non_finite_dt_or_eta_is_refused_when_made(field, value):
     with pytest.raises(ValueError, match=f"{field} must be a finite number"):
         EstimatorCard(scenario_family="four_tank", scenario="four_tank_bias", threshold=0.5,
                       **{field: value})  # fmt: skip
+    # η = 0 is a threshold the PoA detector takes (a mutation trial: > 0 was not caught)
+    EstimatorCard(scenario_family="four_tank", scenario="four_tank_bias", threshold=0.5,
+                  poa_eta=0.0)  # fmt: skip
 
 
 def test_a_card_of_the_poa_feature_without_its_eta_is_refused_when_made():
