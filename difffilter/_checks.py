@@ -414,16 +414,15 @@ def _not_definite(t: Tensor, failing: Tensor, name: str) -> str:
     index = first_index(failing) if failing.dim() else ()
     member = t.detach()[index].double()
     low = float(torch.linalg.eigvalsh(member)[0])
+    where = f" (batch index {index})" if index else ""
     indefinite = _indefinite(member, torch.finfo(t.dtype).eps)
     if indefinite is not None:
         # no variance added makes it a covariance, and it was told to add one (a review: −1
         # raised by 1e-4 of itself to −1.0001; [[1, 2], [2, 1]] called rank-deficient)
-        where = f" (batch index {index})" if index else ""
         return (
             f"{name}{where} must be positive definite, and it is indefinite ({indefinite}): "
             "not a covariance (a sign, a transposition or a square root missing?)"
         )
-    where = f" (batch index {index})" if index else ""
     dtype, eps = str(t.dtype).replace("torch.", ""), torch.finfo(t.dtype).eps
     # a variance that lifts the correlation matrix's smallest eigenvalue to about `size`,
     # ten times float32's floor d·ε₃₂ at any d (1e-4 had been refused again from d = 839)
