@@ -381,28 +381,30 @@ def first_index(flags: Tensor) -> tuple[int, ...]:
     return tuple(int(i) for i in flags.nonzero()[0])
 
 
-def _indefinite(member: Tensor, eps: float) -> str | None:
-    """Why the float64 ``member [d, d]`` is indefinite beyond the round-off of a matrix of
-    relative precision ``eps`` (its dtype's), or ``None``: a negative variance, a zero
-    variance with a covariance beside it, or its correlation matrix's smallest eigenvalue
-    below −10·d·ε (scale-free: in mixed units the raw eigenvalues hid an indefinite block,
-    and float32's rounding of a rank-deficient g gᵀ moves its zero eigenvalue by about ε₃₂,
-    past a float64 threshold: two reviews)."""
+def _indefinite(member: Tensor, eps: float) -> tuple[str | None, float | None]:
+    """``(why, lowest)``: why the float64 ``member [d, d]`` is indefinite beyond the
+    round-off of a matrix of relative precision ``eps`` (its dtype's), or ``None``: a
+    negative variance, a zero variance with a covariance beside it, or its correlation
+    matrix's smallest eigenvalue below −10·d·ε (scale-free: in mixed units the raw
+    eigenvalues hid an indefinite block, and float32's rounding of a rank-deficient g gᵀ
+    moves its zero eigenvalue by about ε₃₂, past a float64 threshold: two reviews).
+    ``lowest``: that eigenvalue, of the states whose variance is not 0 (``None`` where it
+    was not computed), for :func:`_not_definite` to read again."""
     var = member.diagonal()
     if bool((var < 0).any()):
-        return f"a negative variance, {float(var.min()):.3g}"
+        return f"a negative variance, {float(var.min()):.3g}", None
     zero = var == 0
     if bool((member[zero].abs().sum(-1) > 0).any()):
-        return "a variance of 0 beside a covariance that is not 0"
+        return "a variance of 0 beside a covariance that is not 0", None
     keep = ~zero
     scale = var[keep].rsqrt()
     correlation = member[keep][:, keep] * scale[:, None] * scale[None, :]
     if correlation.numel() == 0:
-        return None
+        return None, None
     lowest = float(torch.linalg.eigvalsh(correlation)[0])
     if lowest < -10 * member.shape[-1] * eps:
-        return f"its correlation matrix's smallest eigenvalue is {lowest:.3g}"
-    return None
+        return f"its correlation matrix's smallest eigenvalue is {lowest:.3g}", lowest
+    return None, lowest
 
 
 def _not_definite(t: Tensor, failing: Tensor, name: str) -> str:
@@ -413,9 +415,8 @@ def _not_definite(t: Tensor, failing: Tensor, name: str) -> str:
     the "fixed" matrix was the same, bit for bit)."""
     index = first_index(failing) if failing.dim() else ()
     member = t.detach()[index].double()
-    low = float(torch.linalg.eigvalsh(member)[0])
     where = f" (batch index {index})" if index else ""
-    indefinite = _indefinite(member, torch.finfo(t.dtype).eps)
+    indefinite, correlation_lowest = _indefinite(member, torch.finfo(t.dtype).eps)
     if indefinite is not None:
         # no variance added makes it a covariance, and it was told to add one (a review: −1
         # raised by 1e-4 of itself to −1.0001; [[1, 2], [2, 1]] called rank-deficient)
@@ -449,10 +450,7 @@ def _not_definite(t: Tensor, failing: Tensor, name: str) -> str:
     # rank-one matrix's smallest came out 3e-21 for 0), whatever its units (judged on the
     # unscaled eigenvalues, variances 1e6 apart had read as rank-deficient: a review): then
     # too near singular for its own dtype alone
-    lowest = -1.0
-    if bool((var > 0).all()):
-        scale = var.rsqrt()
-        lowest = float(torch.linalg.eigvalsh(member * scale[:, None] * scale[None, :])[0])
+    lowest = correlation_lowest if not zeros and correlation_lowest is not None else -1.0
     if lowest > 10 * d * d * torch.finfo(torch.float64).eps:
         # (its correlation matrix's eigenvalue, not the unscaled ones: in mixed units those
         # read −3e-20 in round-off beside "positive definite", a review)
@@ -471,7 +469,7 @@ def _not_definite(t: Tensor, failing: Tensor, name: str) -> str:
         )
     return (
         f"{name}{where} must be positive definite (all eigenvalues > 0; its smallest is "
-        f"{low:.3g}): a rank-deficient covariance (Q = 0, P0 = 0, the textbook q g gᵀ of a "
+        f"{float(torch.linalg.eigvalsh(member)[0]):.3g}): a rank-deficient covariance (Q = 0, P0 = 0, the textbook q g gᵀ of a "
         "constant-velocity model) needs a small variance added to make it definite, e.g. "
         f"{jitter}, or the full-rank discretised noise (README, Numerical limits)"
     )

@@ -101,17 +101,23 @@ SLOW = (
 )  # fmt: skip
 
 
+def slow_name(nodeid: str) -> tuple[str, bool]:
+    """``(file.py::test[parameters], slow)`` of a test's node id: its name as SLOW names
+    tests, and whether SLOW lists its file, its test or its parameters."""
+    # the folder cut before the first "::" (a parameter holding a path, "[{tmp}/vdp.yaml]",
+    # had been cut instead, and its file's tests ran in make test though the file is listed)
+    folder_file, sep, rest = nodeid.partition("::")
+    named = folder_file.rsplit("/", 1)[-1] + sep + rest
+    path = named.split("[")[0]  # file.py::test, parameters dropped
+    return named, path.split("::")[0] in SLOW or path in SLOW or named in SLOW
+
+
 def pytest_collection_modifyitems(config, items):
     collected = set()
     for item in items:
-        # file.py::test[parameters] (the folder cut before the first "::": a parameter
-        # holding a path, "[{tmp}/vdp.yaml]", had been cut instead, and its file's tests
-        # ran in make test though the file is listed)
-        folder_file, sep, rest = item.nodeid.partition("::")
-        named = folder_file.rsplit("/", 1)[-1] + sep + rest
-        path = named.split("[")[0]  # file.py::test, parameters dropped
+        named, slow = slow_name(item.nodeid)
         collected.add(named)
-        if path.split("::")[0] in SLOW or path in SLOW or named in SLOW:
+        if slow:
             item.add_marker(pytest.mark.slow)
     # an entry must name a file, test or parameter that exists (a renamed one would
     # otherwise move its tests back into the fast group unnoticed): its file on disk, and,

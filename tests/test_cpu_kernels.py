@@ -316,3 +316,26 @@ def test_a_rank_one_float64_matrix_is_called_rank_deficient_not_definite():
             df.LinearGaussianModel(torch.eye(3, dtype=q.dtype), torch.eye(3, dtype=q.dtype)[:1],
                                    q, torch.eye(1, dtype=q.dtype), torch.zeros(3, dtype=q.dtype),
                                    torch.eye(3, dtype=q.dtype))  # fmt: skip
+
+
+def test_the_indefinite_threshold_scales_with_the_dimension():
+    """A mutation trial: dropping the d of the threshold −10·d·ε left every test passing.
+    A float32 correlation of 1 + 15·2⁻²³ (smallest eigenvalue −1.8e-6: between −10·ε₃₂ and
+    −10·d·ε₃₂ at d = 2) is round-off of the rank-one [[1, 1], [1, 1]] and is told to add a
+    variance; 1 + 25·2⁻²³ (−3.0e-6, under −10·d·ε₃₂) is indefinite."""
+    import pytest
+    import torch
+
+    import difffilter as df
+
+    def refusal(rho):
+        q = torch.tensor([[1.0, rho], [rho, 1.0]], dtype=torch.float32)
+        with pytest.raises(ValueError) as error:
+            df.LinearGaussianModel(torch.eye(2), torch.eye(2)[:1], q, torch.eye(1),
+                                   torch.zeros(2), torch.eye(2))  # fmt: skip
+        return str(error.value)
+
+    near = refusal(1 + 15 * 2.0**-23)
+    assert "indefinite" not in near and "a rank-deficient covariance" in near, near
+    far = refusal(1 + 25 * 2.0**-23)
+    assert "it is indefinite (its correlation matrix's smallest eigenvalue is -2.98e-06)" in far

@@ -14,6 +14,7 @@ import json
 import math
 from types import SimpleNamespace as NS
 
+import numpy as np
 import pytest
 import torch
 
@@ -144,6 +145,12 @@ def test_report_writes_strict_json_and_keeps_a_column_any_estimator_has():
     cleaned = json_safe({"x": math.inf, "y": -math.inf, "z": math.nan, "w": 1.5})
     assert cleaned == {"x": None, "y": None, "z": None, "w": 1.5}
     json.dumps(cleaned, allow_nan=False)
+    # (a mutation trial: tuples and non-string keys were untested) tuples become lists,
+    # keys strings, and the rule holds at any depth, numpy and torch scalars included
+    nested = json_safe({1: (math.nan, np.float32(2.5)), (2, 3): [torch.tensor(math.inf)],
+                        "t": torch.tensor([1.0, math.nan])})  # fmt: skip
+    assert nested == {"1": [None, 2.5], "(2, 3)": [None], "t": [1.0, None]}
+    json.dumps(nested, allow_nan=False)
     doc = {"estimators": {"a": {"state_rmse": 1.0, "auc": 0.8},
                           "b": {"state_rmse": 2.0, "auc": None}},
            "units": {n: m.unit for n, m in METRICS.items()}, "estimator_roles": {},
