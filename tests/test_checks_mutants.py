@@ -528,3 +528,26 @@ def test_check_model_names_a_missing_prior():
 
     with pytest.raises(TypeError, match="NoPrior lacks initial"):
         df.KalmanFilter().init(NoPrior())
+
+
+@pytest.mark.parametrize("kind", ["kf", "ekf", "ukf", "pf"])
+def test_vmap_over_an_online_step_is_refused_with_advice(kind):
+    """A trial: the lean step's finiteness check read a vmap-batched ``y`` and raised
+    torch's "Cannot access data pointer of Tensor that doesn't have storage" (the Gaussian
+    filters; the particle filter named vmap); every online step now names it."""
+    import difffilter as df
+
+    model = df.LinearGaussianModel(torch.eye(2, dtype=D), torch.eye(2, dtype=D)[:1],
+                                   0.1 * torch.eye(2, dtype=D), torch.eye(1, dtype=D),
+                                   torch.zeros(2, dtype=D), torch.eye(2, dtype=D))  # fmt: skip
+    est = {"kf": df.KalmanFilter(), "ekf": df.ExtendedKalmanFilter(),
+           "ukf": df.UnscentedKalmanFilter(), "pf": df.ParticleFilter(10)}[kind]  # fmt: skip
+
+    def run(y):
+        carry = est.init(model)
+        for k in range(y.shape[0]):
+            carry, out = est.step(carry, y[k])
+        return out.mean
+
+    with pytest.raises(ValueError, match="torch.func.vmap over .* is not supported"):
+        torch.func.vmap(run, randomness="different")(torch.ones(3, 4, 1, dtype=D))
