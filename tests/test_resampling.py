@@ -259,6 +259,24 @@ def test_soft_gradient_reaches_log_weights():
     assert float(log_w.grad.abs().sum()) > 0
 
 
+def test_soft_gradient_is_that_of_w_over_q_with_the_ancestors_held():
+    """A mutation trial: with ``q`` detached in the correction ``w_a / q_a`` every test
+    passed. With the draw held (one seeded generator per call, the ancestors piecewise
+    constant in ``log w``), the new log-weights are a smooth function of ``log w``, and
+    their gradient, through ``q = α w + (1 − α)/N`` as well as ``w``, is checked against
+    finite differences in float64."""
+    log_w = torch.randn(2, 6, generator=_gen(27), dtype=torch.float64).requires_grad_()
+    particles = torch.randn(2, 6, 1, generator=_gen(28), dtype=torch.float64)
+    ancestors = Soft(alpha=0.4)(particles, log_w, _gen(29)).ancestors
+
+    def new_log_weights(lw):
+        out = Soft(alpha=0.4)(particles, lw, _gen(29))
+        assert torch.equal(out.ancestors, ancestors)  # (the draw held: no boundary crossed)
+        return out.log_weights
+
+    assert torch.autograd.gradcheck(new_log_weights, (log_w,), eps=1e-6, atol=1e-8)
+
+
 # --------------------------------------------------------------- stop-gradient
 
 
