@@ -60,7 +60,7 @@ from .loop import _step_through, open_loop
 from .noise import Gaussian
 from .parallel_kalman import parallel_kalman_filter
 from .results import FilterResult, GaussianState, StepOutput
-from .ssm import LinearGaussianModel
+from .ssm import LinearGaussianModel, StateSpaceModel
 
 __all__ = [
     "Method",
@@ -604,20 +604,35 @@ _PROBED_STEPS = (0, 2, 3, 10, 100, 1000)
 _READ_AT_0 = ("transition_matrix", "control_matrix", "process_cov")
 
 
+def _methods_of_k_written(model) -> list[str]:
+    """The methods of ``k`` (:data:`_OF_K`) that ``model`` has written itself: assigned on the
+    object, or defined by its class over :class:`~difffilter.LinearGaussianModel`'s (its
+    matrices as given) or :class:`~difffilter.StateSpaceModel`'s (the noise modules'
+    covariances); every one a model of another kind has (any model with the matrix methods:
+    a time-varying one written from ``StateSpaceModel``, or an instance's assigned
+    ``transition_matrix``, had been filtered with the first step's ``F``, 16 nats off: a
+    trial of time-varying models)."""
+    cls, own = type(model), vars(model)
+    base = (LinearGaussianModel if isinstance(model, LinearGaussianModel)
+            else StateSpaceModel if isinstance(model, StateSpaceModel) else None)  # fmt: skip
+    return [name for name in _OF_K
+            if name in own
+            or (hasattr(cls, name)
+                and (base is None or getattr(cls, name) is not getattr(base, name, None)))]  # fmt: skip
+
+
 def _check_declared_time_varying(model) -> None:
-    """``ValueError`` where a subclass of :class:`~difffilter.LinearGaussianModel` overrides a
-    method of ``k`` whose value at step 0, 2, 3, 10, 100 or 1,000 differs from step 1's but
-    leaves ``time_varying`` false: the filters' fast paths would read the first step's
+    """``ValueError`` where a linear model's method of ``k`` that the model wrote itself
+    (:func:`_methods_of_k_written`) differs at step 0, 2, 3, 10, 100 or 1,000 from step 1's
+    while ``time_varying`` is false: the filters' fast paths would read the first step's
     matrices at every step (a user trial's rotating ``F`` was filtered as constant, 0.88
     nats off at T = 60; a closed-loop trial's ``F`` halved from step 5 on gave estimates
     1.30 off when only step 2 was compared). A matrix that changes only between the
     probed steps, or only after them, is not seen here."""
-    if getattr(model, "time_varying", False) or not isinstance(model, LinearGaussianModel):
+    if getattr(model, "time_varying", False):
         return
     cls = type(model)
-    for name in _OF_K:
-        if getattr(cls, name, None) is getattr(LinearGaussianModel, name, None):
-            continue
+    for name in _methods_of_k_written(model):
         method = getattr(model, name)
         try:
             with torch.no_grad():
@@ -645,6 +660,7 @@ def _check_declared_time_varying(model) -> None:
                     f"{cls.__name__}.{name}(k) differs between k = 1 and k = {k}, but the "
                     "model's time_varying is False: the filters would cache the first step's "
                     "matrices and read them at every step; set time_varying = True on the class"
+                    + (" (or on this model, whose own it is)" if name in vars(model) else "")
                 )
 
 

@@ -202,9 +202,13 @@ class StateSpaceModel(CountsAssignments):
 
     def _varying_noise(self, cov_method: str) -> bool:
         """Whether this model's class overrides ``cov_method`` (``"process_cov"`` or
-        ``"measurement_cov"``), i.e. its noise may differ from the noise module's at
-        some step: fast paths that read the noise module directly step aside."""
-        return getattr(type(self), cov_method) is not getattr(StateSpaceModel, cov_method)
+        ``"measurement_cov"``), or the model holds one of its own (assigned on the object:
+        read by the Gaussian filters, it had been left out of ``simulate`` and the particle
+        filters, which drew with the noise module's, 100 times smaller: a trial), i.e. its
+        noise may differ from the noise module's at some step: fast paths that read the
+        noise module directly step aside."""
+        return (getattr(type(self), cov_method) is not getattr(StateSpaceModel, cov_method)
+                or cov_method in self.__dict__)  # fmt: skip
 
     def _noise_at(self, noise_name: str, cov_method: str, k: int) -> NoiseModel:
         noise = getattr(self, noise_name)
