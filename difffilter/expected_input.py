@@ -134,7 +134,11 @@ class ExpectedInputKalmanFilter(KalmanFilter):
         state = gaussian_init(model, batch_shape)  # (no shared gains: P⁻ reads the inputs)
         if self.on_loss is OnLoss.ZERO:
             return state
-        if model.control_matrix(0) is None or model.dim_u == 0:
+        # (a time-varying model's B_k may be None at some steps, B_0 among them: no input
+        # acts there, and the actuators still hold theirs; a trial had it refused)
+        if model.dim_u == 0 or (
+            not getattr(model, "time_varying", False) and model.control_matrix(0) is None
+        ):
             raise ValueError(
                 "ExpectedInputKalmanFilter(on_loss='hold') estimates the input the actuators "
                 "hold, and this model has no input (B is None): use on_loss='zero' or a "
@@ -227,6 +231,8 @@ class ExpectedInputKalmanFilter(KalmanFilter):
             model.control_matrix(k),
         )
         dx, du = model.dim_x, model.dim_u
+        if B is None:  # no input acts at this step (a time-varying B_k): B_k = 0, z still held
+            B = F.new_zeros(F.shape[:-2] + (dx, du))  # (an AttributeError in matvec before)
         rate = self.arrival_rate.to(dtype=u.dtype, device=u.device)
         keep, spread = 1.0 - rate, rate * (1.0 - rate)
         mean, cov = carry.mean, carry.cov

@@ -132,17 +132,15 @@ def test_a_kalman_filters_carry_with_shared_gains_is_stepped_without_them():
         torch.testing.assert_close(out.mean, ref.means[:, t], rtol=0, atol=1e-12)
 
 
-def _numpy_held(model, ys, us, mask, rate, independent):
+def _numpy_held(model, ys, us, mask, rate, independent, no_input_at=()):
     """The filter on s = [x; z] written out in numpy: z⁺ = z + ν̄(u − z), x⁺ = F x + B z⁺,
     P⁻ = Ā P Āᵀ + blkdiag(Q, 0) + G V Gᵀ (module docstring), a masked update on the rows
-    received."""
-    F, H, B = (t.numpy() for t in (model.F, model.H, model.B))
+    received; ``B_k = 0`` at the steps ``k`` of ``no_input_at``."""
+    F, H, B_all = (t.numpy() for t in (model.F, model.H, model.B))
     Q, R = model.process_cov(0).numpy(), model.measurement_cov(0).numpy()
-    dx, du = B.shape
+    dx, du = B_all.shape
     nu = np.broadcast_to(np.asarray(rate, dtype=float), (du,))
     keep = np.diag(1.0 - nu)
-    A = np.block([[F, B @ keep], [np.zeros((du, dx)), keep]])
-    G = np.vstack([B, np.eye(du)])
     Qs = np.zeros((dx + du, dx + du))
     Qs[:dx, :dx] = Q
     Hs = np.hstack([H, np.zeros((H.shape[0], du))])
@@ -150,7 +148,10 @@ def _numpy_held(model, ys, us, mask, rate, independent):
     P = np.zeros((dx + du, dx + du))
     P[:dx, :dx] = model.initial.cov.numpy()
     out = []
-    for y, u, seen in zip(ys, us, mask):
+    for k, (y, u, seen) in enumerate(zip(ys, us, mask)):
+        B = 0 * B_all if k in no_input_at else B_all
+        A = np.block([[F, B @ keep], [np.zeros((du, dx)), keep]])
+        G = np.vstack([B, np.eye(du)])
         d = u - m[dx:]
         Pzz = P[dx:, dx:]
         if independent:
@@ -179,6 +180,35 @@ def test_held_inputs_are_the_augmented_predictor_written_out(independent, rate):
         out.extras["held_input"][0].numpy(), means[:, 2:], rtol=0, atol=1e-12
     )
     np.testing.assert_allclose(out.extras["held_input_cov"][0].numpy(), covs[:, 2:, 2:], rtol=0,
+                               atol=1e-12)  # fmt: skip
+
+
+@pytest.mark.parametrize("none_at", [1, 0])
+def test_held_inputs_on_a_time_varying_b_that_is_none_at_a_step(none_at):
+    """A trial: a time-varying model's ``control_matrix(k)`` of ``None`` at one step (no input
+    acts there) failed in ``matvec`` (an AttributeError) at k = 1, and at k = 0 the model was
+    refused as having no input. The actuators still hold ``z``: ``B_k = 0`` at that step."""
+
+    class NoInputAtOneStep(df.LinearGaussianModel):
+        time_varying = True
+
+        def control_matrix(self, k):
+            return None if k == none_at else self.B
+
+    plant, ys, us, gen = _one_run(6)
+    model = NoInputAtOneStep(plant.F, plant.H, plant.process_cov(0), plant.measurement_cov(0),
+                             plant.initial.mean, plant.initial.cov, B=plant.B)  # fmt: skip
+    mask = torch.rand(1, 30, 1, generator=gen) > 0.3
+    out = open_loop(df.ExpectedInputKalmanFilter(0.6, on_loss="hold"), model, ys, us, mask=mask)
+    ref = _numpy_held(model, ys[0].numpy(), us[0].numpy(), mask[0].numpy(), 0.6, False,
+                      no_input_at=(none_at,))  # fmt: skip
+    means = np.array([m for m, _ in ref])
+    np.testing.assert_allclose(out.means[0].numpy(), means[:, :2], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        out.extras["held_input"][0].numpy(), means[:, 2:], rtol=0, atol=1e-12
+    )
+    every = open_loop(df.ExpectedInputKalmanFilter(1.0, on_loss="hold"), model, ys, us)
+    torch.testing.assert_close(every.means, df.kalman_filter(model, ys, us).means, rtol=0,
                                atol=1e-12)  # fmt: skip
 
 
