@@ -446,3 +446,19 @@ def test_the_nis_and_the_detectors_refuse_innovations_and_s_of_two_dtypes():
             with pytest.raises(ValueError, match="give them one dtype and device"):
                 call(n, s)
         call(nu, S)  # one dtype: runs
+
+
+@pytest.mark.parametrize("window", [1, 2])
+def test_a_window_with_nothing_received_scores_zero_and_never_alarms(window):
+    """A mutation trial: with the score of a window of no degrees of freedom left as the
+    window's statistic, every test passed, and windows that received nothing scored 6.63
+    and 9.21 (χ²₁'s and χ²₂'s 1 % thresholds: innovations left at lost entries) where they
+    score 0."""
+    det = ChiSquareDetector(1, window=window)
+    innovations = torch.tensor([[[5.0], [0.3], [7.0], [0.1]]], dtype=torch.float64)
+    covs = torch.ones(1, 4, 1, 1, dtype=torch.float64)
+    mask = torch.tensor([[[False], [False], [True], [False]]])
+    scores, alarms = det.detect(innovations, covs, mask)
+    assert scores[0, :2].tolist() == [0.0, 0.0]
+    assert alarms[0].tolist() == [False, False, True, window == 2]
+    assert (scores[0, 3] > 0) == (window == 2)  # (the window still holds step 3's entry)
