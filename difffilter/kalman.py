@@ -612,7 +612,7 @@ def _methods_of_k_written(model) -> list[str]:
     a time-varying one written from ``StateSpaceModel``, or an instance's assigned
     ``transition_matrix``, had been filtered with the first step's ``F``, 16 nats off: a
     trial of time-varying models)."""
-    cls, own = type(model), vars(model)
+    cls, own = type(model), getattr(model, "__dict__", {})  # (a duck type may have slots)
     base = (LinearGaussianModel if isinstance(model, LinearGaussianModel)
             else StateSpaceModel if isinstance(model, StateSpaceModel) else None)  # fmt: skip
     return [name for name in _OF_K
@@ -660,7 +660,11 @@ def _check_declared_time_varying(model) -> None:
                     f"{cls.__name__}.{name}(k) differs between k = 1 and k = {k}, but the "
                     "model's time_varying is False: the filters would cache the first step's "
                     "matrices and read them at every step; set time_varying = True on the class"
-                    + (" (or on this model, whose own it is)" if name in vars(model) else "")
+                    + (
+                        " (or on this model, whose own it is)"
+                        if name in getattr(model, "__dict__", {})
+                        else ""
+                    )
                 )
 
 
