@@ -131,3 +131,50 @@ def test_an_assigned_measurement_cov_is_what_simulate_and_the_particle_filter_dr
     )
     torch.testing.assert_close(pf.log_likelihood, df.kalman_filter(model, one).log_likelihood,
                                atol=0.05, rtol=0)  # fmt: skip
+
+
+def test_a_model_without_a_dict_is_probed_too():
+    """A review: a duck type with ``__slots__`` failed in ``vars()`` (TypeError) once the
+    check read methods assigned on the object."""
+    from difffilter.kalman import _check_declared_time_varying
+
+    class Slotted:
+        __slots__ = ()
+        time_varying = False
+
+        def transition_matrix(self, k):
+            return rotating(k)
+
+    with pytest.raises(ValueError, match=r"Slotted.transition_matrix\(k\) differs"):
+        _check_declared_time_varying(Slotted())
+
+
+@pytest.mark.parametrize("how", ["subclass", "assigned"])
+def test_the_fused_modified_pf_steps_where_the_model_has_a_process_cov_of_its_own(how):
+    """A review: the fused modified PF drew the noise module's Q where the composed filter
+    (since the assigned covariance is read) drew the model's ``process_cov``: means 4.19 apart
+    with the same seeds (a subclass's override alike, before). Such a model steps."""
+    from difffilter import fdi
+
+    args = (torch.tensor([[0.9, 0.1], [0.0, 0.95]], dtype=F64), torch.eye(2, dtype=F64),
+            0.01 * torch.eye(2, dtype=F64), 0.1 * torch.eye(2, dtype=F64),
+            torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64))  # fmt: skip
+    big = torch.eye(2, dtype=F64)
+
+    class OwnQ(df.LinearGaussianModel):
+        def process_cov(self, k):
+            return big
+
+    if how == "subclass":
+        model = OwnQ(*args)
+    else:
+        model = df.LinearGaussianModel(*args)
+        model.process_cov = lambda k: big
+    _, ys, _ = OwnQ(*args).simulate(15, (2,), generator=torch.Generator().manual_seed(1))
+    means = [fdi.modified_particle_filter(model, ys, num_particles=400,
+                                          detector=fdi.PoADetector(3.0, 0.5),
+                                          gamma_hat=torch.zeros_like(ys), fused=fused,
+                                          generator=torch.Generator().manual_seed(5),
+                                          resample_generator=torch.Generator().manual_seed(6)).means
+             for fused in (False, True)]  # fmt: skip
+    torch.testing.assert_close(means[0], means[1], rtol=0, atol=1e-12)

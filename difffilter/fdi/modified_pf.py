@@ -591,7 +591,13 @@ def _fusable(model, ys: Tensor, detector, gamma_hat: Tensor) -> bool:
         fits = torch.broadcast_shapes(gamma_hat.shape, ys.shape) == ys.shape
     except RuntimeError:
         fits = False
-    return plain and fits and ys.dim() == 3 and torch.as_tensor(detector.eta).numel() == 1
+    # the fused path draws the noise module's Q and reads the first step's matrices: a
+    # declared time-varying model, or a process_cov of the model's own (a subclass's, or one
+    # assigned on the object), steps instead (an assigned Q had put the paths 4.19 apart: a
+    # review)
+    constant = not getattr(model, "time_varying", False) and not model._varying_noise("process_cov")
+    return (plain and constant and fits and ys.dim() == 3
+            and torch.as_tensor(detector.eta).numel() == 1)  # fmt: skip
 
 
 def _check_attack_rate_particles(attack_rate, num_particles: int) -> None:
